@@ -1,0 +1,38 @@
+//! `instpol`: the command-line tool. It parses arguments, prints tables and JSON, draws plots
+//! and shows progress; all science lives in the library crates (`mueller`, `stokes`,
+//! `skyfield`, `fit`, `sim`).
+
+use clap::{Parser, Subcommand};
+
+mod cmd;
+mod util;
+
+/// Find, model and remove the instrumental polarization of dual-beam imaging polarimeters
+/// (half-wave plate + Wollaston prism, e.g. VLT FORS1/FORS2), following Patat & Romaniello
+/// 2006, PASP 118, 146.
+///
+/// Every command that prints numbers takes --json for scripts. Polarization degrees are
+/// fractions in JSON and percent (labelled) in tables; angles are degrees at the edges.
+/// Errors in the input exit with code 2 and a message that names the input.
+#[derive(Parser)]
+#[command(name = "instpol", version, about, long_about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    Stokes(cmd::stokes::Args),
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Stokes(a) => cmd::stokes::run(a),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(2);
+    }
+}

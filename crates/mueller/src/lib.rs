@@ -1,0 +1,387 @@
+//! Stokes vectors and Mueller matrices of the optics of a dual-beam polarimeter, and the
+//! dual-beam forward model.
+//!
+//! This crate knows the *optics*: what each element (telescope and collimator as a partial
+//! polarizer, half-wave plate with its defects, Wollaston prism, post-analyzer optics) does to
+//! a Stokes vector, and what fluxes `f_O,i`, `f_E,i` a train of elements puts on the detector
+//! at each half-wave-plate angle. It does not reduce measurements (that is the `stokes` crate)
+//! and knows nothing of files or frames.
+//!
+//! Conventions (see DESIGN.md):
+//! - angles in radians; polarization angle `chi` measured as `eq:polang`, `Q/I = P cos 2chi`;
+//! - a Stokes vector is `(I, Q, U, V)`; circular polarization follows the IAU convention
+//!   (V > 0 for counter-clockwise rotation of the electric vector as seen by the observer);
+//!   a linear retarder with its fast axis at 0 and retardance +pi/2 turns +45 deg linear
+//!   light into V > 0;
+//! - an element at angle `theta` is `R(-theta) M(0) R(theta)` ([`rotate`]).
+
+use nalgebra::{Matrix4, RowVector4, Vector4};
+use serde::{Deserialize, Serialize};
+
+/// A Stokes vector `(I, Q, U, V)`.
+pub type Stokes = Vector4<f64>;
+/// A 4 x 4 Mueller matrix.
+pub type Mueller = Matrix4<f64>;
+
+/// Errors of this crate: each says which parameter was out of its physical range.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum Error {
+    #[error("{name} = {value} is outside its physical range {range}")]
+    OutOfRange { name: &'static str, value: f64, range: &'static str },
+    #[error("matrix is singular and cannot be inverted: {0}")]
+    Singular(&'static str),
+}
+
+/// Stokes vector of intensity `i` with normalized linear polarization `q = Q/I`, `u = U/I`.
+pub fn stokes_qu(i: f64, q: f64, u: f64) -> Stokes {
+    Stokes::new(i, i * q, i * u, 0.0)
+}
+
+/// Stokes vector from intensity, polarization degree `p` (fraction) and angle `chi` (rad); `eq:QU`.
+pub fn stokes_p_chi(i: f64, p: f64, chi: f64) -> Stokes {
+    let (s, c) = (2.0 * chi).sin_cos();
+    Stokes::new(i, i * p * c, i * p * s, 0.0)
+}
+
+/// The Stokes rotation matrix `R(theta)`: the same light described in axes rotated by `theta`.
+pub fn rotation(theta: f64) -> Mueller {
+    let (s, c) = (2.0 * theta).sin_cos();
+    #[rustfmt::skip]
+    let m = Mueller::new(
+        1.0, 0.0, 0.0, 0.0,
+        0.0, c,   s,   0.0,
+        0.0, -s,  c,   0.0,
+        0.0, 0.0, 0.0, 1.0,
+    );
+    m
+}
+
+/// An element `m0` (given with its axis at 0) turned to angle `theta`: `R(-theta) m0 R(theta)`.
+pub fn rotate(m0: &Mueller, theta: f64) -> Mueller {
+    rotation(-theta) * m0 * rotation(theta)
+}
+
+/// The paper's partial polarizer `M_I(p, phi)` of section `sec:instr`: a fraction of an ideal
+/// polarizer at angle `phi` mixed with clear glass, normalized by `1 / (1 + p)` so that the
+/// largest transmission is 1. `M_I(0) = 1`, `M_I(1)` is an ideal polarizer. The `V` row, which
+/// the paper drops, follows from the same mixture: `V' = (1 - p) / (1 + p) V`.
+/// Its action on `(I, Q, U)` is `eq:instpol`.
+pub fn partial_polarizer(p: f64, phi: f64) -> Mueller {
+    let (s, c) = (2.0 * phi).sin_cos();
+    let k = 1.0 / (1.0 + p);
+    #[rustfmt::skip]
+    let m = Mueller::new(
+        1.0,   p * c,             p * s,             0.0,
+        p * c, 1.0 - p * s * s,   p * c * s,         0.0,
+        p * s, p * c * s,         1.0 - p * c * c,   0.0,
+        0.0,   0.0,               0.0,               1.0 - p,
+    );
+    m * k
+}
+
+/// The physical linear diattenuator with principal intensity transmittances `k1` (along the
+/// axis at `angle`) and `k2` (perpendicular to it).
+pub fn diattenuator(k1: f64, k2: f64, angle: f64) -> Mueller {
+    let a = 0.5 * (k1 + k2);
+    let b = 0.5 * (k1 - k2);
+    let g = (k1 * k2).max(0.0).sqrt();
+    #[rustfmt::skip]
+    let m0 = Mueller::new(
+        a,   b,   0.0, 0.0,
+        b,   a,   0.0, 0.0,
+        0.0, 0.0, g,   0.0,
+        0.0, 0.0, 0.0, g,
+    );
+    rotate(&m0, angle)
+}
+
+/// Ideal linear polarizer transmitting along `angle` (a diattenuator with k1 = 1, k2 = 0).
+pub fn polarizer(angle: f64) -> Mueller {
+    diattenuator(1.0, 0.0, angle)
+}
+
+/// Linear retarder of retardance `delta` (rad) with its fast axis at `angle`.
+/// A half-wave plate is `delta = pi + Delta beta` (section `sec:HWP`).
+pub fn retarder(delta: f64, angle: f64) -> Mueller {
+    let (s, c) = delta.sin_cos();
+    #[rustfmt::skip]
+    let m0 = Mueller::new(
+        1.0, 0.0, 0.0, 0.0,
+        0.0, 1.0, 0.0, 0.0,
+        0.0, 0.0, c,   s,
+        0.0, 0.0, -s,  c,
+    );
+    rotate(&m0, angle)
+}
+
+/// A periodic defect of the half-wave plate that follows the plate as it turns, seen by the
+/// analyzer as a harmonic of the HWP angle in `F_i` (section `sec:HWP`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Harmonic {
+    /// Amplitude of the spurious modulation of `F` (fraction).
+    pub amplitude: f64,
+    /// Phase (rad).
+    pub phase: f64,
+}
+
+/// A half-wave plate: retardance `pi + retardance_error`, fast axis at the commanded angle
+/// plus `chi_offset / 2`, and optional defects.
+///
+/// `chi_offset` is the chromatic zero angle expressed, as instruments tabulate it, as the
+/// polarization-angle correction to *add* to a measured chi: a plate whose axis sits at
+/// `theta + chi_offset / 2` makes every measured chi smaller by `chi_offset`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct Hwp {
+    pub retardance_error: f64,
+    pub chi_offset: f64,
+    /// k = 1 harmonic (dust, dirt: repeats after a full turn): a weak partial polarizer aligned
+    /// with the analyzer whose signed strength is `amplitude * cos(theta - phase)`.
+    pub dust: Option<Harmonic>,
+    /// k = 2 harmonic (pleochroism: period pi): a weak partial polarizer fixed to the plate,
+    /// at angle `theta + phase / 2`, of strength `amplitude`.
+    pub pleochroism: Option<Harmonic>,
+}
+
+impl Hwp {
+    /// The ideal half-wave plate.
+    pub fn ideal() -> Self {
+        Self::default()
+    }
+
+    /// Mueller matrix of the plate (with its defects) at commanded angle `theta`.
+    /// Only the defects that are present are computed.
+    pub fn matrix(&self, theta: f64) -> Mueller {
+        let mut m = retarder(std::f64::consts::PI + self.retardance_error, theta + 0.5 * self.chi_offset);
+        if let Some(h) = self.pleochroism {
+            m = partial_polarizer_signed(h.amplitude, theta + 0.5 * h.phase) * m;
+        }
+        if let Some(h) = self.dust {
+            m = partial_polarizer_signed(h.amplitude * (theta - h.phase).cos(), 0.0) * m;
+        }
+        m
+    }
+}
+
+/// `M_I(|p|, phi)` for `p >= 0`, `M_I(|p|, phi + pi/2)` for `p < 0`.
+fn partial_polarizer_signed(p: f64, phi: f64) -> Mueller {
+    if p >= 0.0 {
+        partial_polarizer(p, phi)
+    } else {
+        partial_polarizer(-p, phi + std::f64::consts::FRAC_PI_2)
+    }
+}
+
+/// The Wollaston prism as two analyzers (section `sec:wollaston`, `eq:WP`): the ordinary beam
+/// transmits a fraction `2t` of the light polarized along 0, the extraordinary beam a fraction
+/// `2s` of the light polarized along `pi/2 + delta_alpha`. The ideal prism has
+/// `t = s = 1/2`, `delta_alpha = 0`; `eq:WP` is the case `s = 1 - t`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Wollaston {
+    pub t: f64,
+    pub s: f64,
+    pub delta_alpha: f64,
+}
+
+impl Default for Wollaston {
+    fn default() -> Self {
+        Self { t: 0.5, s: 0.5, delta_alpha: 0.0 }
+    }
+}
+
+impl Wollaston {
+    /// The ideal prism.
+    pub fn ideal() -> Self {
+        Self::default()
+    }
+    /// The prism of `eq:WP`: `s = 1 - t`, orthogonal beams.
+    pub fn with_t(t: f64) -> Self {
+        Self { t, s: 1.0 - t, delta_alpha: 0.0 }
+    }
+    /// Mueller matrices of the ordinary and extraordinary beams.
+    pub fn beams(&self) -> (Mueller, Mueller) {
+        (
+            polarizer(0.0) * (2.0 * self.t),
+            polarizer(std::f64::consts::FRAC_PI_2 + self.delta_alpha) * (2.0 * self.s),
+        )
+    }
+    /// `kappa = (t - s) / (t + s)` (section `sec:wollaston`).
+    pub fn kappa(&self) -> f64 {
+        (self.t - self.s) / (self.t + self.s)
+    }
+}
+
+/// The approximate post-analyzer matrix `M_PA(A, B, C, phi)` of section `sec:postwp`.
+pub fn post_analyzer(a: f64, b: f64, c: f64, phi: f64) -> Mueller {
+    let (s2, c2) = (2.0 * phi).sin_cos();
+    #[rustfmt::skip]
+    let m = Mueller::new(
+        1.0,    b * c2, b * s2, 0.0,
+        b * c2, 1.0,    0.0,    0.0,
+        b * s2, 0.0,    c,      0.0,
+        0.0,    0.0,    0.0,    c,
+    );
+    m * a
+}
+
+/// An optical element placed before the half-wave plate (telescope, collimator, ...).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Element {
+    /// The paper's `M_I(p, phi)`.
+    PartialPolarizer { p: f64, phi: f64 },
+    /// Physical diattenuator with transmittances `k1`, `k2` along / across `angle`.
+    Diattenuator { k1: f64, k2: f64, angle: f64 },
+    /// Linear retarder.
+    Retarder { retardance: f64, angle: f64 },
+    /// Any Mueller matrix (e.g. from the ray tracer).
+    Matrix(Mueller),
+}
+
+impl Element {
+    /// The element's Mueller matrix.
+    pub fn matrix(&self) -> Mueller {
+        match *self {
+            Element::PartialPolarizer { p, phi } => partial_polarizer(p, phi),
+            Element::Diattenuator { k1, k2, angle } => diattenuator(k1, k2, angle),
+            Element::Retarder { retardance, angle } => retarder(retardance, angle),
+            Element::Matrix(m) => m,
+        }
+    }
+}
+
+/// A dual-beam polarimeter: elements before the plate (listed in the order light meets
+/// them), the half-wave plate, the Wollaston prism and optional post-analyzer optics.
+/// Absent elements cost nothing: an empty `pre` list or `post = None` is skipped, not
+/// multiplied as an identity.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct DualBeam {
+    pub pre: Vec<Element>,
+    pub hwp: Hwp,
+    pub wollaston: Wollaston,
+    pub post: Option<Mueller>,
+}
+
+/// The two fluxes measured at one HWP angle.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BeamFluxes {
+    pub f_o: f64,
+    pub f_e: f64,
+}
+
+/// A [`DualBeam`] with everything that does not depend on the HWP angle composed once.
+#[derive(Debug, Clone)]
+pub struct CompiledDualBeam {
+    pre: Option<Mueller>,
+    hwp: Hwp,
+    /// First rows of `post * beam`: the detector measures intensity only.
+    row_o: RowVector4<f64>,
+    row_e: RowVector4<f64>,
+}
+
+impl DualBeam {
+    /// The ideal instrument: no pre-optics, ideal plate and prism, no post-analyzer optics.
+    pub fn ideal() -> Self {
+        Self::default()
+    }
+
+    /// Compose the angle-independent parts once.
+    pub fn compile(&self) -> CompiledDualBeam {
+        let pre = self.pre.iter().fold(None, |acc: Option<Mueller>, e| {
+            let m = e.matrix();
+            Some(match acc {
+                None => m,
+                Some(a) => m * a,
+            })
+        });
+        let (o, e) = self.wollaston.beams();
+        let (o, e) = match self.post {
+            Some(p) => (p * o, p * e),
+            None => (o, e),
+        };
+        CompiledDualBeam { pre, hwp: self.hwp, row_o: o.row(0).into_owned(), row_e: e.row(0).into_owned() }
+    }
+
+    /// The dual-beam forward model: the fluxes `f_O,i`, `f_E,i` for input Stokes vector `s`
+    /// at HWP angles `theta` (rad). For the ideal train this is `eq:ord`; with a prism of
+    /// `s = 1 - t` it is `eq:WP`.
+    pub fn fluxes(&self, s: &Stokes, theta: &[f64]) -> Vec<BeamFluxes> {
+        self.compile().fluxes(s, theta)
+    }
+}
+
+impl CompiledDualBeam {
+    /// The Stokes vector that reaches the plate.
+    pub fn at_plate(&self, s: &Stokes) -> Stokes {
+        match &self.pre {
+            Some(m) => m * s,
+            None => *s,
+        }
+    }
+
+    /// Fluxes at one HWP angle for a Stokes vector already at the plate ([`Self::at_plate`]).
+    pub fn fluxes_at_plate(&self, s_plate: &Stokes, theta: f64) -> BeamFluxes {
+        let s2 = self.hwp.matrix(theta) * s_plate;
+        BeamFluxes { f_o: (self.row_o * s2)[0], f_e: (self.row_e * s2)[0] }
+    }
+
+    /// Fluxes at every HWP angle of `theta`.
+    pub fn fluxes(&self, s: &Stokes, theta: &[f64]) -> Vec<BeamFluxes> {
+        let sp = self.at_plate(s);
+        theta.iter().map(|&t| self.fluxes_at_plate(&sp, t)).collect()
+    }
+}
+
+/// The optimal HWP angle set of `N` positions, `theta_i = i pi / 8` (section `sec:basics`).
+pub fn optimal_angles(n: usize) -> Vec<f64> {
+    (0..n).map(|i| i as f64 * std::f64::consts::PI / 8.0).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use approx::assert_relative_eq;
+    use std::f64::consts::PI;
+
+    #[test]
+    fn ideal_train_is_eq_ord() {
+        let s = stokes_qu(1000.0, 0.03, -0.02);
+        let th = optimal_angles(16);
+        for (f, &t) in DualBeam::ideal().fluxes(&s, &th).iter().zip(&th) {
+            let m = s[1] * (4.0 * t).cos() + s[2] * (4.0 * t).sin();
+            assert_relative_eq!(f.f_o, 0.5 * (s[0] + m), epsilon = 1e-9);
+            assert_relative_eq!(f.f_e, 0.5 * (s[0] - m), epsilon = 1e-9);
+        }
+    }
+
+    #[test]
+    fn eq_wp_imbalance() {
+        let s = stokes_qu(1.0, 0.05, 0.01);
+        let t = 0.45;
+        let train = DualBeam { wollaston: Wollaston::with_t(t), ..Default::default() };
+        let th = optimal_angles(4);
+        for (f, &a) in train.fluxes(&s, &th).iter().zip(&th) {
+            let m = s[1] * (4.0 * a).cos() + s[2] * (4.0 * a).sin();
+            assert_relative_eq!(f.f_o, t * (s[0] + m), epsilon = 1e-12);
+            assert_relative_eq!(f.f_e, (1.0 - t) * (s[0] - m), epsilon = 1e-12);
+        }
+    }
+
+    #[test]
+    fn chi_offset_rotates_measured_angle() {
+        // A plate whose zero sits chi_offset/2 away shifts F_i = P cos(4 theta - 2 chi) to
+        // chi - chi_offset.
+        let (p, chi, off) = (0.02, 0.3, 0.1);
+        let train = DualBeam { hwp: Hwp { chi_offset: off, ..Hwp::ideal() }, ..Default::default() };
+        let th = optimal_angles(8);
+        for (f, &a) in train.fluxes(&stokes_p_chi(1.0, p, chi), &th).iter().zip(&th) {
+            let fi = (f.f_o - f.f_e) / (f.f_o + f.f_e);
+            assert_relative_eq!(fi, p * (4.0 * a - 2.0 * (chi - off)).cos(), epsilon = 1e-12);
+        }
+    }
+
+    #[test]
+    fn rotation_composes() {
+        let m = retarder(1.1, 0.0);
+        assert_relative_eq!(rotate(&rotate(&m, 0.2), 0.3), rotate(&m, 0.5), epsilon = 1e-12);
+        assert_relative_eq!(rotate(&m, PI), m, epsilon = 1e-12);
+    }
+}

@@ -1,0 +1,32 @@
+//! Dual-beam reduction of one source and the statistics of polarization measurements.
+//!
+//! From the fluxes of the ordinary and extraordinary beams at `N` half-wave-plate angles this
+//! crate computes the normalized flux differences `F_i` (`eq:F`), the normalized Stokes
+//! parameters `Q/I`, `U/I` (Fourier sums `eq:Q`, `eq:U` for the optimal angle set, weighted
+//! least squares for any other), `P`, `chi` and their errors. It knows nothing of frames,
+//! files or pixels: callers hand it numbers. The optics that produce the fluxes live in the
+//! `mueller` crate.
+//!
+//! There is exactly one `F_i` ([`normalized_difference`]) and one Stokes solver
+//! ([`StokesSolver`]); everything in the workspace that needs them calls these.
+
+pub mod solver;
+
+pub use solver::{normalized_difference, polarization, QuEstimate, StokesSolver};
+
+/// Errors of the reduction: each names the offending input.
+#[derive(Debug, thiserror::Error, Clone, PartialEq)]
+pub enum Error {
+    #[error("need at least 2 HWP angles, got {0}")]
+    TooFewAngles(usize),
+    #[error("HWP angle {deg} deg is the same plate position as an earlier one (positions {first} and {second}, equal modulo 360 deg)")]
+    DuplicateAngle { deg: f64, first: usize, second: usize },
+    #[error("the HWP angles do not constrain both Q and U (all angles give the same modulation modulo 45 deg)")]
+    Degenerate,
+    #[error("{what} has {got} values but there are {expected} HWP angles")]
+    LengthMismatch { what: &'static str, got: usize, expected: usize },
+    #[error("total flux f_O + f_E = {total} at HWP angle index {index} is not positive")]
+    NonPositiveFlux { index: usize, total: f64 },
+    #[error("non-finite value ({value}) in {what} at index {index}")]
+    NonFinite { what: &'static str, index: usize, value: f64 },
+}

@@ -1,0 +1,265 @@
+//! The one normalized flux difference and the one Stokes solver of the workspace.
+
+use crate::Error;
+use std::f64::consts::PI;
+
+/// Normalized flux difference `F = (f_O - f_E) / (f_O + f_E)` (`eq:F`).
+#[inline]
+pub fn normalized_difference(f_o: f64, f_e: f64) -> f64 {
+    (f_o - f_e) / (f_o + f_e)
+}
+
+/// Polarization degree and angle from normalized Stokes parameters (`eq:poldeg`,
+/// `eq:polang`): `P = hypot(q, u)`, `chi = atan2(u, q) / 2` folded into [0, pi).
+#[inline]
+pub fn polarization(q: f64, u: f64) -> (f64, f64) {
+    let mut chi = 0.5 * u.atan2(q);
+    if chi < 0.0 {
+        chi += PI;
+    }
+    // -tiny + pi rounds to pi itself: fold it back to 0.
+    if chi >= PI {
+        chi = 0.0;
+    }
+    (q.hypot(u), chi)
+}
+
+/// `Q/I`, `U/I` with their covariance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct QuEstimate {
+    pub q: f64,
+    pub u: f64,
+    pub var_q: f64,
+    pub var_u: f64,
+    pub cov_qu: f64,
+}
+
+/// Linear solver of `eq:system`, `F_i = Q cos 4theta_i + U sin 4theta_i`, for a fixed set of
+/// HWP angles.
+///
+/// Built once per angle set, it holds the weights `c_q,i`, `c_u,i` with
+/// `Q = sum c_q,i F_i`, `U = sum c_u,i F_i`: the unweighted least-squares solution, which for
+/// the optimal set `theta_i = i pi/8` with `N` a multiple of 4 is exactly the Fourier sums of
+/// `eq:Q` and `eq:U` (`2/N cos(pi i / 2)` and `2/N sin(pi i / 2)`). Solving is then two dot
+/// products: no allocation, cheap enough for Monte Carlo inner loops.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StokesSolver {
+    theta: Vec<f64>,
+    c4: Vec<f64>,
+    s4: Vec<f64>,
+    cq: Vec<f64>,
+    cu: Vec<f64>,
+    /// `(A^T A)^-1` for the design `A = [cos 4theta, sin 4theta]`.
+    inv: [[f64; 2]; 2],
+    optimal: bool,
+}
+
+impl StokesSolver {
+    /// Prepare the solver for HWP angles `theta` (rad). Errors: fewer than 2 angles,
+    /// the same plate position twice (angles equal modulo 2 pi), angles that cannot
+    /// separate Q from U. Redundant positions (theta and theta + pi/4, + pi/2, ...) are
+    /// welcome: they are what cancels the Wollaston and flat-field terms.
+    pub fn new(theta: &[f64]) -> Result<Self, Error> {
+        let n = theta.len();
+        if n < 2 {
+            return Err(Error::TooFewAngles(n));
+        }
+        for (i, &t) in theta.iter().enumerate() {
+            if !t.is_finite() {
+                return Err(Error::NonFinite { what: "HWP angle", index: i, value: t });
+            }
+        }
+        // The same plate position twice (modulo a full turn) is a bookkeeping error.
+        let red: Vec<f64> = theta.iter().map(|t| t.rem_euclid(2.0 * PI)).collect();
+        for i in 0..n {
+            for j in i + 1..n {
+                let d = (red[i] - red[j]).abs();
+                if d.min(2.0 * PI - d) < 1e-9 {
+                    return Err(Error::DuplicateAngle { deg: theta[j].to_degrees(), first: i, second: j });
+                }
+            }
+        }
+        let c4: Vec<f64> = theta.iter().map(|t| (4.0 * t).cos()).collect();
+        let s4: Vec<f64> = theta.iter().map(|t| (4.0 * t).sin()).collect();
+        let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
+        for i in 0..n {
+            a += c4[i] * c4[i];
+            b += c4[i] * s4[i];
+            c += s4[i] * s4[i];
+        }
+        let det = a * c - b * b;
+        if det <= 1e-12 * (a + c) * (a + c) {
+            return Err(Error::Degenerate);
+        }
+        let inv = [[c / det, -b / det], [-b / det, a / det]];
+        let cq: Vec<f64> = (0..n).map(|i| inv[0][0] * c4[i] + inv[0][1] * s4[i]).collect();
+        let cu: Vec<f64> = (0..n).map(|i| inv[1][0] * c4[i] + inv[1][1] * s4[i]).collect();
+        let optimal = n % 4 == 0
+            && theta.iter().enumerate().all(|(i, &t)| ((t - i as f64 * PI / 8.0).abs()) < 1e-9);
+        Ok(Self { theta: theta.to_vec(), c4, s4, cq, cu, inv, optimal })
+    }
+
+    /// Number of HWP angles.
+    pub fn n(&self) -> usize {
+        self.theta.len()
+    }
+
+    /// The HWP angles (rad).
+    pub fn angles(&self) -> &[f64] {
+        &self.theta
+    }
+
+    /// `cos 4theta_i` and `sin 4theta_i`.
+    pub fn modulation(&self) -> (&[f64], &[f64]) {
+        (&self.c4, &self.s4)
+    }
+
+    /// The weights `c_q,i`, `c_u,i` of the linear solution.
+    pub fn weights(&self) -> (&[f64], &[f64]) {
+        (&self.cq, &self.cu)
+    }
+
+    /// True for the optimal set `theta_i = i pi/8`, `N` a multiple of 4, where the solution is
+    /// the Fourier sums `eq:Q`, `eq:U`.
+    pub fn is_optimal(&self) -> bool {
+        self.optimal
+    }
+
+    /// `(Q/I, U/I)` from the `F_i` (equal weights). `f.len()` must equal [`Self::n`]; the hot
+    /// path does not check beyond a debug assertion.
+    #[inline]
+    pub fn solve(&self, f: &[f64]) -> (f64, f64) {
+        debug_assert_eq!(f.len(), self.cq.len());
+        let mut q = 0.0;
+        let mut u = 0.0;
+        for i in 0..f.len() {
+            q += self.cq[i] * f[i];
+            u += self.cu[i] * f[i];
+        }
+        (q, u)
+    }
+
+    /// Solve with the covariance propagated from per-angle errors `sigma_f` of the `F_i`
+    /// (equal-weight estimator, exact propagation). With all `sigma_f` equal to
+    /// `1/SNR` on the optimal set this gives `var(Q) = var(U) = 2 / (N SNR^2)`, i.e. `eq:sigp`.
+    pub fn solve_with_errors(&self, f: &[f64], sigma_f: &[f64]) -> Result<QuEstimate, Error> {
+        self.check_len("F", f.len())?;
+        self.check_len("sigma_F", sigma_f.len())?;
+        let (q, u) = self.solve(f);
+        let (mut vq, mut vu, mut cqu) = (0.0, 0.0, 0.0);
+        for i in 0..f.len() {
+            let v = sigma_f[i] * sigma_f[i];
+            vq += self.cq[i] * self.cq[i] * v;
+            vu += self.cu[i] * self.cu[i] * v;
+            cqu += self.cq[i] * self.cu[i] * v;
+        }
+        Ok(QuEstimate { q, u, var_q: vq, var_u: vu, cov_qu: cqu })
+    }
+
+    /// Weighted least squares with weights `1 / sigma_f^2`: the minimum-variance solution when
+    /// the `F_i` have unequal errors (e.g. uneven exposures).
+    pub fn solve_weighted(&self, f: &[f64], sigma_f: &[f64]) -> Result<QuEstimate, Error> {
+        self.check_len("F", f.len())?;
+        self.check_len("sigma_F", sigma_f.len())?;
+        let (mut a, mut b, mut c, mut rq, mut ru) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for i in 0..f.len() {
+            let s = sigma_f[i];
+            if !(s.is_finite() && s > 0.0) {
+                return Err(Error::NonFinite { what: "sigma_F", index: i, value: s });
+            }
+            let w = 1.0 / (s * s);
+            a += w * self.c4[i] * self.c4[i];
+            b += w * self.c4[i] * self.s4[i];
+            c += w * self.s4[i] * self.s4[i];
+            rq += w * self.c4[i] * f[i];
+            ru += w * self.s4[i] * f[i];
+        }
+        let det = a * c - b * b;
+        if det <= 0.0 {
+            return Err(Error::Degenerate);
+        }
+        Ok(QuEstimate {
+            q: (c * rq - b * ru) / det,
+            u: (a * ru - b * rq) / det,
+            var_q: c / det,
+            var_u: a / det,
+            cov_qu: -b / det,
+        })
+    }
+
+    /// `(A^T A)^-1`: the covariance of `(Q, U)` in units of a common variance of the `F_i`.
+    pub fn unit_covariance(&self) -> [[f64; 2]; 2] {
+        self.inv
+    }
+
+    fn check_len(&self, what: &'static str, got: usize) -> Result<(), Error> {
+        if got != self.n() {
+            return Err(Error::LengthMismatch { what, got, expected: self.n() });
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use approx::assert_relative_eq;
+
+    fn optimal(n: usize) -> Vec<f64> {
+        (0..n).map(|i| i as f64 * PI / 8.0).collect()
+    }
+
+    /// eq:Q / eq:U: for the optimal set the least-squares weights are the Fourier sums.
+    #[test]
+    fn eq_q_eq_u_are_least_squares_for_optimal_set() {
+        for n in [4, 8, 12, 16] {
+            let s = StokesSolver::new(&optimal(n)).unwrap();
+            assert!(s.is_optimal());
+            let (cq, cu) = s.weights();
+            for i in 0..n {
+                let a = PI / 2.0 * i as f64;
+                assert_relative_eq!(cq[i], 2.0 / n as f64 * a.cos(), epsilon = 1e-14);
+                assert_relative_eq!(cu[i], 2.0 / n as f64 * a.sin(), epsilon = 1e-14);
+            }
+        }
+    }
+
+    #[test]
+    fn any_angle_set_recovers_noiseless_qu() {
+        let th: [f64; 5] = [0.1, 0.5, 0.77, 1.3, 2.9];
+        let (q0, u0) = (0.013, -0.042);
+        let f: Vec<f64> = th.iter().map(|t| q0 * (4.0 * t).cos() + u0 * (4.0 * t).sin()).collect();
+        let (q, u) = StokesSolver::new(&th).unwrap().solve(&f);
+        assert_relative_eq!(q, q0, epsilon = 1e-15);
+        assert_relative_eq!(u, u0, epsilon = 1e-15);
+    }
+
+    #[test]
+    fn eq_sigp_from_propagation() {
+        let snr = 250.0;
+        for n in [4, 8, 16] {
+            let s = StokesSolver::new(&optimal(n)).unwrap();
+            let e = s.solve_with_errors(&vec![0.0; n], &vec![1.0 / snr; n]).unwrap();
+            let sigp = 1.0 / ((n as f64 / 2.0).sqrt() * snr);
+            assert_relative_eq!(e.var_q.sqrt(), sigp, max_relative = 1e-12);
+            assert_relative_eq!(e.var_u.sqrt(), sigp, max_relative = 1e-12);
+        }
+    }
+
+    #[test]
+    fn rejects_bad_sets() {
+        assert_eq!(StokesSolver::new(&[0.0]).unwrap_err(), Error::TooFewAngles(1));
+        assert!(matches!(StokesSolver::new(&[0.0, 2.0 * PI]), Err(Error::DuplicateAngle { .. })));
+        assert!(matches!(StokesSolver::new(&[0.0, PI / 2.0]), Err(Error::Degenerate)));
+        assert!(matches!(StokesSolver::new(&[0.0, PI / 4.0]), Err(Error::Degenerate)));
+    }
+
+    #[test]
+    fn chi_at_the_wrap() {
+        let (_, chi) = polarization(1.0, -1e-300);
+        assert!((0.0..PI).contains(&chi));
+        let (p, chi) = polarization(0.0, 0.0);
+        assert_eq!(p, 0.0);
+        assert!(chi.is_finite());
+    }
+}
