@@ -146,7 +146,9 @@ impl Instrument {
         if d.nx == 0 || d.ny == 0 {
             return bad("detector.nx/ny", format!("{} x {}", d.nx, d.ny), "the detector must have pixels");
         }
-        for (k, v) in [("detector.pixel_scale_arcsec", d.pixel_scale_arcsec), ("detector.gain_e_per_adu", d.gain_e_per_adu)] {
+        for (k, v) in
+            [("detector.pixel_scale_arcsec", d.pixel_scale_arcsec), ("detector.gain_e_per_adu", d.gain_e_per_adu)]
+        {
             if !(v.is_finite() && v > 0.0) {
                 return bad(k, v.to_string(), "must be a positive number");
             }
@@ -159,7 +161,11 @@ impl Instrument {
             return bad("polarimetry.strip_axis", p.strip_axis.clone(), "must be \"x\" or \"y\"");
         }
         if p.extraordinary_offset_sign != 1 && p.extraordinary_offset_sign != -1 {
-            return bad("polarimetry.extraordinary_offset_sign", p.extraordinary_offset_sign.to_string(), "must be 1 or -1");
+            return bad(
+                "polarimetry.extraordinary_offset_sign",
+                p.extraordinary_offset_sign.to_string(),
+                "must be 1 or -1",
+            );
         }
         if !(p.throw_arcsec.is_finite() && p.throw_arcsec > 0.0) {
             return bad("polarimetry.throw_arcsec", p.throw_arcsec.to_string(), "must be positive");
@@ -170,7 +176,8 @@ impl Instrument {
         let extent = if p.strip_axis == "y" { d.ny } else { d.nx };
         let h = self.throw_px();
         let lo = p.first_strip_y_px as i64 + if p.extraordinary_offset_sign < 0 { -(h as i64) } else { 0 };
-        let hi = p.first_strip_y_px as i64 + (2 * p.strip_count as i64) * h as i64
+        let hi = p.first_strip_y_px as i64
+            + (2 * p.strip_count as i64) * h as i64
             + if p.extraordinary_offset_sign < 0 { -(h as i64) } else { 0 };
         if lo < 0 || hi > extent as i64 {
             return bad(
@@ -184,7 +191,11 @@ impl Instrument {
         }
         for f in &self.filters {
             if !(f.lambda_eff_nm.is_finite() && f.lambda_eff_nm > 100.0 && f.lambda_eff_nm < 30000.0) {
-                return bad(&format!("filters.{}.lambda_eff_nm", f.name), f.lambda_eff_nm.to_string(), "must be a wavelength in nm");
+                return bad(
+                    &format!("filters.{}.lambda_eff_nm", f.name),
+                    f.lambda_eff_nm.to_string(),
+                    "must be a wavelength in nm",
+                );
             }
         }
         Ok(())
@@ -223,10 +234,7 @@ impl Instrument {
     /// Field coordinates (arcmin from the detector centre) of 0-based pixel `(x, y)`.
     pub fn pixel_to_arcmin(&self, x: f64, y: f64) -> (f64, f64) {
         let s = self.detector.pixel_scale_arcsec / 60.0;
-        (
-            (x - 0.5 * (self.detector.nx as f64 - 1.0)) * s,
-            (y - 0.5 * (self.detector.ny as f64 - 1.0)) * s,
-        )
+        ((x - 0.5 * (self.detector.nx as f64 - 1.0)) * s, (y - 0.5 * (self.detector.ny as f64 - 1.0)) * s)
     }
 
     /// 0-based pixel of field position `(x, y)` in arcmin from the detector centre.
