@@ -10,9 +10,13 @@
 //! There is exactly one `F_i` ([`normalized_difference`]) and one Stokes solver
 //! ([`StokesSolver`]); everything in the workspace that needs them calls these.
 
+pub mod fourier;
+pub mod kappa;
+pub mod reduce;
 pub mod solver;
 
-pub use solver::{normalized_difference, polarization, QuEstimate, StokesSolver};
+pub use reduce::{reduce, Estimator, Measurement, Reduction, Warning};
+pub use solver::{normalized_difference, polarization, sigma_normalized_difference, QuEstimate, StokesSolver};
 
 /// Errors of the reduction: each names the offending input.
 #[derive(Debug, thiserror::Error, Clone, PartialEq)]
@@ -29,4 +33,8 @@ pub enum Error {
     NonPositiveFlux { index: usize, total: f64 },
     #[error("non-finite value ({value}) in {what} at index {index}")]
     NonFinite { what: &'static str, index: usize, value: f64 },
+    #[error("{what} = {value} at index {index} is invalid: {why}")]
+    Invalid { what: &'static str, index: usize, value: f64, why: &'static str },
+    #[error("kappa = {0} is outside the open interval (-1, 1)")]
+    KappaOutOfRange(f64),
 }

@@ -9,6 +9,15 @@ pub fn normalized_difference(f_o: f64, f_e: f64) -> f64 {
     (f_o - f_e) / (f_o + f_e)
 }
 
+/// Error of `F` (`eq:F`) propagated exactly from independent per-beam errors:
+/// `sigma_F = 2 sqrt(f_E^2 sigma_O^2 + f_O^2 sigma_E^2) / (f_O + f_E)^2`.
+/// For Poisson counts (`sigma^2 = f`) this is `sqrt((1 - F^2) / (f_O + f_E))`.
+#[inline]
+pub fn sigma_normalized_difference(f_o: f64, f_e: f64, sigma_o: f64, sigma_e: f64) -> f64 {
+    let tot = f_o + f_e;
+    2.0 * (f_e * sigma_o).hypot(f_o * sigma_e) / (tot * tot)
+}
+
 /// Polarization degree and angle from normalized Stokes parameters (`eq:poldeg`,
 /// `eq:polang`): `P = hypot(q, u)`, `chi = atan2(u, q) / 2` folded into [0, pi).
 #[inline]
@@ -94,8 +103,7 @@ impl StokesSolver {
         let inv = [[c / det, -b / det], [-b / det, a / det]];
         let cq: Vec<f64> = (0..n).map(|i| inv[0][0] * c4[i] + inv[0][1] * s4[i]).collect();
         let cu: Vec<f64> = (0..n).map(|i| inv[1][0] * c4[i] + inv[1][1] * s4[i]).collect();
-        let optimal = n % 4 == 0
-            && theta.iter().enumerate().all(|(i, &t)| ((t - i as f64 * PI / 8.0).abs()) < 1e-9);
+        let optimal = n % 4 == 0 && theta.iter().enumerate().all(|(i, &t)| ((t - i as f64 * PI / 8.0).abs()) < 1e-9);
         Ok(Self { theta: theta.to_vec(), c4, s4, cq, cu, inv, optimal })
     }
 
