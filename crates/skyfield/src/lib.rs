@@ -1,1 +1,75 @@
-//! placeholder
+//! Frames to maps: the sky side of a dual-beam imaging polarimeter.
+//!
+//! This crate reads raw-like FITS frames (real or simulated, by the same code path), knows
+//! where the ordinary and extraordinary images of each focal-plane mask strip fall on the
+//! detector ([`beams`], the one place that geometry lives), reduces a set of frames taken at
+//! `N` half-wave-plate angles to per-pixel `F_i` and `Q/I`, `U/I` with the one Stokes solver of
+//! the `stokes` crate, bins them with a sigma-clipped average ([`bin`]) into a [`StokesMap`]
+//! ([`maps`], with its FITS format), and measures point sources by aperture photometry with
+//! the background removed vectorially ([`photometry`]). It does not fit field models (that is
+//! the `fit` crate) and does not simulate (that is `sim`).
+
+pub mod beams;
+pub mod bin;
+pub mod io;
+pub mod maps;
+
+pub use beams::BeamGeometry;
+pub use maps::{BinGeometry, StokesMap};
+
+use std::path::PathBuf;
+
+/// Errors of the frame side: each names the file, keyword, HWP angle or pixel at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("{path}: {message}")]
+    Fits { path: PathBuf, message: String },
+    #[error("{path}: cannot write: {message}")]
+    Write { path: PathBuf, message: String },
+    #[error("{path}: BITPIX {bitpix} is not a detector frame type (expected 16, 32, -32 or -64)")]
+    BadBitpix { path: PathBuf, bitpix: i32 },
+    #[error("{path}: primary HDU is not a 2-D image (shape {shape:?})")]
+    NotImage { path: PathBuf, shape: Vec<usize> },
+    #[error("{path}: missing header keyword '{keyword}'")]
+    MissingKeyword { path: PathBuf, keyword: String },
+    #[error("{path}: header keyword '{keyword}' = '{value}' is not {expected}")]
+    BadKeyword { path: PathBuf, keyword: String, value: String, expected: String },
+    #[error("{path}: image is {got_nx} x {got_ny} px but {expected}")]
+    SizeMismatch { path: PathBuf, got_nx: usize, got_ny: usize, expected: String },
+    #[error("frames mix filters: {details}")]
+    MixedFilters { details: String },
+    #[error("incomplete HWP angle set in filter {filter}: have {have}, missing {missing} (expected the N = {n} set {expected})")]
+    MissingAngle { filter: String, have: String, missing: String, n: usize, expected: String },
+    #[error("{path}: every pixel is NaN or infinite")]
+    AllNonFinite { path: PathBuf },
+    #[error("no frames given")]
+    NoFrames,
+    #[error("no valid bins: every pixel was masked (saturated, non-finite or non-positive flux)")]
+    NoValidBins,
+    #[error("{0}")]
+    Invalid(String),
+    #[error("Stokes solver: {0}")]
+    Stokes(#[from] stokes::Error),
+    #[error(transparent)]
+    Instrument(#[from] instrument::Error),
+}
+
+/// A non-fatal problem worth telling the user (NaN or saturated pixels masked, ...).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Warning {
+    pub file: Option<PathBuf>,
+    pub message: String,
+}
+
+impl std::fmt::Display for Warning {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match &self.file {
+            Some(p) => write!(f, "{}: {}", p.display(), self.message),
+            None => write!(f, "{}", self.message),
+        }
+    }
+}
+
+pub(crate) fn fits_err(path: &std::path::Path, e: impl std::fmt::Display) -> Error {
+    Error::Fits { path: path.to_path_buf(), message: e.to_string() }
+}

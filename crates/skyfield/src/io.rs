@@ -1,0 +1,293 @@
+//! FITS frame input and output: one image per exposure in the primary HDU, the HWP angle,
+//! filter and exposure time in the header keywords the instrument file names (for FORS:
+//! `HIERARCH ESO INS RETA2 POSANG`, `HIERARCH ESO INS FILT1 NAME`, `EXPTIME`).
+//!
+//! Simulated frames are written by [`write_frame`] and read back by [`read_frame`], the same
+//! function that reads real frames. Keywords longer than 8 characters are written with the
+//! ESO `HIERARCH` convention (CFITSIO does this for any name that starts with `HIERARCH `).
+//! Every file is written atomically: a temporary file in the target folder, renamed into
+//! place only when complete, so a failed run leaves no partial output.
+
+use crate::{fits_err, Error};
+use fitsio::images::{ImageDescription, ImageType};
+use fitsio::FitsFile;
+use instrument::Instrument;
+use std::path::{Path, PathBuf};
+
+/// One exposure as read from disk.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    pub path: PathBuf,
+    pub nx: usize,
+    pub ny: usize,
+    /// Pixel values (ADU, BZERO/BSCALE applied), row-major `[y * nx + x]`.
+    pub data: Vec<f64>,
+    /// HWP angle (deg) from the instrument's keyword.
+    pub hwp_deg: f64,
+    /// Filter name as found in the header.
+    pub filter: String,
+    /// Exposure time (s), if the keyword is present.
+    pub exptime_s: Option<f64>,
+    /// BITPIX of the file (16, 32, -32, -64).
+    pub bitpix: i32,
+}
+
+/// Pixel type of a written frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum Bitpix {
+    /// Unsigned 16-bit integers (BITPIX 16 with BZERO 32768), like raw CCD frames: values are
+    /// rounded and clipped to [0, 65535].
+    U16,
+    /// 32-bit floats.
+    F32,
+    /// 64-bit floats (exact round trips for tests).
+    F64,
+}
+
+impl Bitpix {
+    /// From the FITS BITPIX number (16, -32, -64).
+    pub fn from_fits(b: i32) -> Option<Self> {
+        match b {
+            16 => Some(Self::U16),
+            -32 => Some(Self::F32),
+            -64 => Some(Self::F64),
+            _ => None,
+        }
+    }
+}
+
+/// A header keyword value to write.
+#[derive(Debug, Clone, PartialEq)]
+pub enum KeyValue {
+    F64(f64),
+    I64(i64),
+    Str(String),
+}
+
+/// Write a FITS file through a temporary file in the same folder and a rename. `fill`
+/// creates the content; if it fails, nothing is left behind.
+pub fn write_fits_atomic(path: &Path, fill: impl FnOnce(&mut FitsFile) -> Result<(), Error>) -> Result<(), Error> {
+    write_fits_atomic_with(path, None, fill)
+}
+
+/// [`write_fits_atomic`] with a primary image of the given type and shape.
+fn write_fits_atomic_with(
+    path: &Path,
+    primary: Option<&ImageDescription>,
+    fill: impl FnOnce(&mut FitsFile) -> Result<(), Error>,
+) -> Result<(), Error> {
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let werr = |m: String| Error::Write { path: path.into(), message: m };
+    let tmp = tempfile::Builder::new()
+        .prefix(".instpol-")
+        .suffix(".fits.tmp")
+        .tempfile_in(dir)
+        .map_err(|e| werr(format!("cannot create a temporary file in {}: {e}", dir.display())))?
+        .into_temp_path();
+    {
+        let mut b = FitsFile::create(&tmp).overwrite();
+        if let Some(d) = primary {
+            b = b.with_custom_primary(d);
+        }
+        let mut f = b.open().map_err(|e| werr(e.to_string()))?;
+        fill(&mut f)?;
+        // Dropping closes the file and flushes CFITSIO's buffers.
+    }
+    tmp.persist(path).map_err(|e| werr(e.to_string()))?;
+    Ok(())
+}
+
+/// Write one frame (`data` row-major `[y * nx + x]`, ADU) with header keywords, atomically.
+pub fn write_frame(
+    path: &Path,
+    nx: usize,
+    ny: usize,
+    data: &[f64],
+    bitpix: Bitpix,
+    keys: &[(String, KeyValue, String)],
+) -> Result<(), Error> {
+    if data.len() != nx * ny {
+        return Err(Error::Invalid(format!("frame data has {} pixels, expected {nx} x {ny}", data.len())));
+    }
+    let dims = [ny, nx];
+    let ty = match bitpix {
+        Bitpix::U16 => ImageType::UnsignedShort,
+        Bitpix::F32 => ImageType::Float,
+        Bitpix::F64 => ImageType::Double,
+    };
+    let desc = ImageDescription { data_type: ty, dimensions: &dims };
+    write_fits_atomic_with(path, Some(&desc), |f| {
+        let e = |x: fitsio::errors::Error| Error::Write { path: path.into(), message: x.to_string() };
+        let hdu = f.primary_hdu().map_err(e)?;
+        match bitpix {
+            Bitpix::U16 => {
+                let v: Vec<u16> =
+                    data.iter().map(|&x| if x.is_nan() { 0 } else { x.round().clamp(0.0, 65535.0) as u16 }).collect();
+                hdu.write_image(f, &v).map_err(e)?;
+            }
+            Bitpix::F32 => {
+                let v: Vec<f32> = data.iter().map(|&x| x as f32).collect();
+                hdu.write_image(f, &v).map_err(e)?;
+            }
+            Bitpix::F64 => hdu.write_image(f, data).map_err(e)?,
+        }
+        for (k, v, c) in keys {
+            match v {
+                KeyValue::F64(x) => hdu.write_key(f, k, (*x, c.as_str())),
+                KeyValue::I64(x) => hdu.write_key(f, k, (*x, c.as_str())),
+                KeyValue::Str(s) => hdu.write_key(f, k, s.as_str()),
+            }
+            .map_err(|x| Error::Write { path: path.into(), message: format!("keyword {k}: {x}") })?;
+        }
+        Ok(())
+    })
+}
+
+fn read_key_string(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, key: &str) -> Option<String> {
+    hdu.read_key::<String>(f, key).ok().map(|s| s.trim().to_string())
+}
+
+/// Read one frame, checking what reduction needs: a 2-D image in the primary HDU of a
+/// detector pixel type, the size of `inst`'s detector, and the HWP-angle and filter keywords
+/// the instrument names (the exposure-time keyword is optional).
+pub fn read_frame(path: &Path, inst: &Instrument) -> Result<Frame, Error> {
+    let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
+    let hdu = f.primary_hdu().map_err(|e| fits_err(path, format!("unreadable primary HDU: {e}")))?;
+    let (shape, ty) = match &hdu.info {
+        fitsio::hdu::HduInfo::ImageInfo { shape, image_type } => (shape.clone(), *image_type),
+        _ => return Err(Error::NotImage { path: path.into(), shape: vec![] }),
+    };
+    let bitpix = match ty {
+        ImageType::Short | ImageType::UnsignedShort => 16,
+        ImageType::Long | ImageType::UnsignedLong => 32,
+        ImageType::Float => -32,
+        ImageType::Double => -64,
+        ImageType::UnsignedByte | ImageType::Byte => return Err(Error::BadBitpix { path: path.into(), bitpix: 8 }),
+        ImageType::LongLong => return Err(Error::BadBitpix { path: path.into(), bitpix: 64 }),
+    };
+    if shape.len() != 2 {
+        return Err(Error::NotImage { path: path.into(), shape });
+    }
+    let (ny, nx) = (shape[0], shape[1]);
+    let d = &inst.detector;
+    if nx != d.nx || ny != d.ny {
+        return Err(Error::SizeMismatch {
+            path: path.into(),
+            got_nx: nx,
+            got_ny: ny,
+            expected: format!("instrument {} has a {} x {} detector", inst.name, d.nx, d.ny),
+        });
+    }
+    let pol = &inst.polarimetry;
+    let hwp_s = read_key_string(&mut f, &hdu, &pol.hwp_angle_keyword)
+        .ok_or_else(|| Error::MissingKeyword { path: path.into(), keyword: pol.hwp_angle_keyword.clone() })?;
+    let hwp_deg: f64 = hwp_s.parse().ok().filter(|v: &f64| v.is_finite()).ok_or_else(|| Error::BadKeyword {
+        path: path.into(),
+        keyword: pol.hwp_angle_keyword.clone(),
+        value: hwp_s.clone(),
+        expected: "an angle in degrees".into(),
+    })?;
+    let filter = read_key_string(&mut f, &hdu, &pol.filter_keyword)
+        .ok_or_else(|| Error::MissingKeyword { path: path.into(), keyword: pol.filter_keyword.clone() })?;
+    let exptime_s = read_key_string(&mut f, &hdu, &pol.exptime_keyword).and_then(|s| s.parse().ok());
+    let data: Vec<f64> = hdu
+        .read_image(&mut f)
+        .map_err(|e| fits_err(path, format!("cannot read the image data (truncated or corrupt file?): {e}")))?;
+    if data.len() != nx * ny {
+        return Err(fits_err(path, format!("read {} pixels, header says {nx} x {ny}", data.len())));
+    }
+    Ok(Frame { path: path.into(), nx, ny, data, hwp_deg, filter, exptime_s, bitpix })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    pub(crate) fn tiny_instrument() -> Instrument {
+        let text = include_str!("../../../instruments/fors1.toml")
+            .replace("nx = 2048", "nx = 64")
+            .replace("ny = 2048", "ny = 64")
+            .replace("throw_arcsec = 22.0", "throw_arcsec = 2.0")
+            .replace("strip_count = 9", "strip_count = 3")
+            .replace("first_strip_y_px = 34", "first_strip_y_px = 2");
+        Instrument::from_toml_str(&text, Path::new("tiny.toml")).unwrap()
+    }
+
+    fn keys(inst: &Instrument, hwp: f64) -> Vec<(String, KeyValue, String)> {
+        vec![
+            (inst.polarimetry.hwp_angle_keyword.clone(), KeyValue::F64(hwp), "HWP angle [deg]".into()),
+            (inst.polarimetry.filter_keyword.clone(), KeyValue::Str("V_BESS".into()), String::new()),
+            ("EXPTIME".into(), KeyValue::F64(30.0), "[s]".into()),
+        ]
+    }
+
+    #[test]
+    fn hierarch_keywords_and_pixels_round_trip() {
+        let inst = tiny_instrument();
+        let dir = tempfile::tempdir().unwrap();
+        let data: Vec<f64> = (0..64 * 64).map(|i| 1000.0 + i as f64 * 0.25).collect();
+        for (bp, tol) in [(Bitpix::F64, 0.0), (Bitpix::F32, 1e-3), (Bitpix::U16, 0.5)] {
+            let p = dir.path().join(format!("f{bp:?}.fits"));
+            write_frame(&p, 64, 64, &data, bp, &keys(&inst, 22.5)).unwrap();
+            let fr = read_frame(&p, &inst).unwrap();
+            assert_eq!(fr.hwp_deg, 22.5);
+            assert_eq!(fr.filter, "V_BESS");
+            assert_eq!(fr.exptime_s, Some(30.0));
+            assert_eq!(
+                fr.bitpix,
+                match bp {
+                    Bitpix::U16 => 16,
+                    Bitpix::F32 => -32,
+                    Bitpix::F64 => -64,
+                }
+            );
+            for (a, b) in fr.data.iter().zip(&data) {
+                assert!((a - b).abs() <= tol, "{bp:?}: {a} vs {b}");
+            }
+            // The keyword is written as an ESO HIERARCH card, readable by its full name.
+            let text = std::fs::read(&p).unwrap();
+            let s = String::from_utf8_lossy(&text[..2880]);
+            assert!(s.contains("HIERARCH ESO INS RETA2 POSANG"), "{s}");
+        }
+    }
+
+    #[test]
+    fn missing_keyword_is_named() {
+        let inst = tiny_instrument();
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("nokey.fits");
+        let mut k = keys(&inst, 0.0);
+        k.remove(1);
+        write_frame(&p, 64, 64, &vec![1.0; 64 * 64], Bitpix::F32, &k).unwrap();
+        let e = read_frame(&p, &inst).unwrap_err().to_string();
+        assert!(e.contains("HIERARCH ESO INS FILT1 NAME") && e.contains("nokey.fits"), "{e}");
+    }
+
+    #[test]
+    fn truncated_and_wrong_size_are_errors() {
+        let inst = tiny_instrument();
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("t.fits");
+        write_frame(&p, 64, 64, &vec![1.0; 64 * 64], Bitpix::F64, &keys(&inst, 0.0)).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        std::fs::write(&p, &bytes[..2880 + 1000]).unwrap();
+        let e = read_frame(&p, &inst).unwrap_err().to_string();
+        assert!(e.contains("t.fits"), "{e}");
+        let p2 = dir.path().join("small.fits");
+        write_frame(&p2, 32, 64, &vec![1.0; 32 * 64], Bitpix::F64, &keys(&inst, 0.0)).unwrap();
+        let e = read_frame(&p2, &inst).unwrap_err().to_string();
+        assert!(e.contains("32 x 64") && e.contains("small.fits"), "{e}");
+        let p3 = dir.path().join("garbage.fits");
+        std::fs::write(&p3, b"not a fits file at all").unwrap();
+        assert!(read_frame(&p3, &inst).unwrap_err().to_string().contains("garbage.fits"));
+    }
+
+    #[test]
+    fn failed_write_leaves_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("x.fits");
+        let r = write_fits_atomic(&p, |_| Err(Error::Invalid("boom".into())));
+        assert!(r.is_err());
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+}

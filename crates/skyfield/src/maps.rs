@@ -1,0 +1,440 @@
+//! The Stokes map: binned `Q/I`, `U/I`, `P`, `chi` over the field with their errors and the
+//! number of pixels each bin kept, and its FITS format.
+//!
+//! # Bin geometry
+//! Bins are square, `bin_px` detector pixels on a side, on a regular grid whose bin `(0, 0)`
+//! starts at 0-based pixel `(origin_x, origin_y)` of the *ordinary-image* (= sky) coordinates
+//! of [`crate::beams`]; bin `(i, j)` covers pixels `[origin_x + i bin_px, origin_x + (i+1)
+//! bin_px)` in x and likewise in y. Arrays are row-major, index `j * nx + i`. Bins that fall on
+//! masked sky (between strips) have no pixels and are invalid; bins that straddle a strip edge
+//! keep only the pixels the mask lets through (see `n_pixels`).
+//!
+//! # FITS layout (format version 1)
+//! Primary HDU: no data; header keywords `MAPVERS`, `INSTRUME`, `FILTER`, `NHWP`, `HWPANG1`..
+//! `HWPANGn` (deg), `BINSIZE` (px), `BINORGX`, `BINORGY` (0-based px), `NBINX`, `NBINY`,
+//! `PIXSCALE` (arcsec/px), `DETNX`, `DETNY` (px). Image extensions (each `NBINY x NBINX`,
+//! float64 unless noted): `Q`, `U` (normalized, fractions), `SIGMA_Q`, `SIGMA_U`, `COV_QU` (from
+//! the scatter of the kept pixels), `SIGQ_PHOT`, `SIGU_PHOT` (photon + read noise propagated),
+//! `P` (fraction), `CHI` (deg, [0, 180)), `COVERAGE` (int32, pixels kept), `INTENSITY` (mean
+//! `f_O + f_E` per exposure, e-/px), `INT_SNR` (per-pixel SNR of the combined intensity image),
+//! `VALID` (int32, 1 = usable). Invalid bins hold NaN in the float images.
+
+use crate::{fits_err, Error};
+use fitsio::images::{ImageDescription, ImageType};
+use fitsio::FitsFile;
+use std::path::Path;
+
+/// Current version of the Stokes-map FITS format.
+pub const MAP_FORMAT_VERSION: i32 = 1;
+
+/// Where the bins of a map lie on the detector.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct BinGeometry {
+    /// Bin side (px).
+    pub bin_px: usize,
+    /// 0-based pixel (sky / ordinary-image coordinates) where bin (0, 0) starts.
+    pub origin_x: usize,
+    pub origin_y: usize,
+    /// Number of bins along x and y.
+    pub nx: usize,
+    pub ny: usize,
+    /// Detector pixel scale (arcsec/px).
+    pub pixel_scale_arcsec: f64,
+    /// Detector size (px).
+    pub detector_nx: usize,
+    pub detector_ny: usize,
+}
+
+impl BinGeometry {
+    /// The grid of `bin_px` bins that covers a detector from `(origin_x, origin_y)`.
+    pub fn covering(
+        bin_px: usize,
+        origin_x: usize,
+        origin_y: usize,
+        detector_nx: usize,
+        detector_ny: usize,
+        pixel_scale_arcsec: f64,
+    ) -> Self {
+        let b = bin_px.max(1);
+        Self {
+            bin_px: b,
+            origin_x,
+            origin_y,
+            nx: detector_nx.saturating_sub(origin_x).div_ceil(b),
+            ny: detector_ny.saturating_sub(origin_y).div_ceil(b),
+            pixel_scale_arcsec,
+            detector_nx,
+            detector_ny,
+        }
+    }
+
+    /// Number of bins.
+    pub fn len(&self) -> usize {
+        self.nx * self.ny
+    }
+
+    /// True for an empty grid.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The bin holding 0-based pixel `(x, y)`, if any.
+    pub fn bin_of(&self, x: usize, y: usize) -> Option<usize> {
+        if x < self.origin_x || y < self.origin_y {
+            return None;
+        }
+        let (i, j) = ((x - self.origin_x) / self.bin_px, (y - self.origin_y) / self.bin_px);
+        (i < self.nx && j < self.ny).then_some(j * self.nx + i)
+    }
+
+    /// Geometric centre of bin `(i, j)` in 0-based pixels (a bin cut by the detector edge is
+    /// centred on its part inside the detector).
+    pub fn centre_px(&self, i: usize, j: usize) -> (f64, f64) {
+        let x0 = (self.origin_x + i * self.bin_px) as f64;
+        let y0 = (self.origin_y + j * self.bin_px) as f64;
+        let x1 = ((self.origin_x + (i + 1) * self.bin_px).min(self.detector_nx)) as f64;
+        let y1 = ((self.origin_y + (j + 1) * self.bin_px).min(self.detector_ny)) as f64;
+        (0.5 * (x0 + x1) - 0.5, 0.5 * (y0 + y1) - 0.5)
+    }
+
+    /// Centre of bin `(i, j)` in arcmin from the detector centre (DESIGN.md convention; the
+    /// same formula as `instrument::Instrument::pixel_to_arcmin`).
+    pub fn centre_arcmin(&self, i: usize, j: usize) -> (f64, f64) {
+        let (x, y) = self.centre_px(i, j);
+        self.px_to_arcmin(x, y)
+    }
+
+    /// 0-based pixel to arcmin from the detector centre.
+    pub fn px_to_arcmin(&self, x: f64, y: f64) -> (f64, f64) {
+        let s = self.pixel_scale_arcsec / 60.0;
+        ((x - 0.5 * (self.detector_nx as f64 - 1.0)) * s, (y - 0.5 * (self.detector_ny as f64 - 1.0)) * s)
+    }
+}
+
+/// A binned Stokes map of one filter. All per-bin arrays have `geometry.len()` entries,
+/// row-major (`j * nx + i`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct StokesMap {
+    pub geometry: BinGeometry,
+    pub instrument: String,
+    pub filter: String,
+    /// HWP angles of the frames that made the map (deg).
+    pub hwp_angles_deg: Vec<f64>,
+    /// Normalized Stokes parameters `Q/I`, `U/I` (fractions).
+    pub q: Vec<f64>,
+    pub u: Vec<f64>,
+    /// Standard errors of the bin means from the scatter of the kept pixels (`std / sqrt(n)`).
+    pub sigma_q: Vec<f64>,
+    pub sigma_u: Vec<f64>,
+    /// Covariance of the bin means of q and u (scatter).
+    pub cov_qu: Vec<f64>,
+    /// Errors of the bin means propagated from photon and read noise.
+    pub sigma_q_phot: Vec<f64>,
+    pub sigma_u_phot: Vec<f64>,
+    /// Polarization degree (fraction) and angle (rad, [0, pi)) of the bin means (`eq:poldeg`,
+    /// `eq:polang`).
+    pub p: Vec<f64>,
+    pub chi: Vec<f64>,
+    /// Pixels kept by the sigma clipping (coverage).
+    pub n_pixels: Vec<u32>,
+    /// Mean intensity `f_O + f_E` per exposure of the kept pixels (e-/px).
+    pub intensity: Vec<f64>,
+    /// Per-pixel SNR of the intensity summed over all exposures (photon + read noise).
+    pub intensity_snr: Vec<f64>,
+    /// Usable bins.
+    pub valid: Vec<bool>,
+}
+
+impl StokesMap {
+    /// An all-invalid map on `geometry`.
+    pub fn empty(geometry: BinGeometry, instrument: &str, filter: &str, hwp_angles_deg: Vec<f64>) -> Self {
+        let n = geometry.len();
+        let nan = vec![f64::NAN; n];
+        Self {
+            geometry,
+            instrument: instrument.into(),
+            filter: filter.into(),
+            hwp_angles_deg,
+            q: nan.clone(),
+            u: nan.clone(),
+            sigma_q: nan.clone(),
+            sigma_u: nan.clone(),
+            cov_qu: nan.clone(),
+            sigma_q_phot: nan.clone(),
+            sigma_u_phot: nan.clone(),
+            p: nan.clone(),
+            chi: nan.clone(),
+            n_pixels: vec![0; n],
+            intensity: nan.clone(),
+            intensity_snr: nan,
+            valid: vec![false; n],
+        }
+    }
+
+    /// Number of valid bins.
+    pub fn n_valid(&self) -> usize {
+        self.valid.iter().filter(|&&v| v).count()
+    }
+
+    /// Iterate over valid bins as `(index, i, j)`.
+    pub fn valid_bins(&self) -> impl Iterator<Item = (usize, usize, usize)> + '_ {
+        let nx = self.geometry.nx;
+        (0..self.geometry.len()).filter(move |&k| self.valid[k]).map(move |k| (k, k % nx, k / nx))
+    }
+
+    fn check_lengths(&self) -> Result<(), Error> {
+        let n = self.geometry.len();
+        let lens = [
+            ("Q", self.q.len()),
+            ("U", self.u.len()),
+            ("SIGMA_Q", self.sigma_q.len()),
+            ("SIGMA_U", self.sigma_u.len()),
+            ("COV_QU", self.cov_qu.len()),
+            ("SIGQ_PHOT", self.sigma_q_phot.len()),
+            ("SIGU_PHOT", self.sigma_u_phot.len()),
+            ("P", self.p.len()),
+            ("CHI", self.chi.len()),
+            ("COVERAGE", self.n_pixels.len()),
+            ("INTENSITY", self.intensity.len()),
+            ("INT_SNR", self.intensity_snr.len()),
+            ("VALID", self.valid.len()),
+        ];
+        for (name, l) in lens {
+            if l != n {
+                return Err(Error::Invalid(format!("Stokes map array {name} has {l} entries, geometry has {n} bins")));
+            }
+        }
+        Ok(())
+    }
+
+    /// Write the map as a multi-extension FITS file (layout in the module docs), atomically:
+    /// a temporary file in the same folder renamed over `path` only when complete.
+    pub fn write_fits(&self, path: &Path) -> Result<(), Error> {
+        self.check_lengths()?;
+        crate::io::write_fits_atomic(path, |f| self.write_into(f, path))
+    }
+
+    fn write_into(&self, f: &mut FitsFile, path: &Path) -> Result<(), Error> {
+        let e = |x: fitsio::errors::Error| Error::Write { path: path.into(), message: x.to_string() };
+        let g = &self.geometry;
+        let ph = f.primary_hdu().map_err(e)?;
+        ph.write_key(f, "MAPVERS", (MAP_FORMAT_VERSION, "instpol Stokes map format version")).map_err(e)?;
+        ph.write_key(f, "ORIGIN", "instpol").map_err(e)?;
+        ph.write_key(f, "INSTRUME", self.instrument.as_str()).map_err(e)?;
+        ph.write_key(f, "FILTER", self.filter.as_str()).map_err(e)?;
+        ph.write_key(f, "NHWP", (self.hwp_angles_deg.len() as i64, "number of HWP angles")).map_err(e)?;
+        for (k, a) in self.hwp_angles_deg.iter().enumerate() {
+            ph.write_key(f, &format!("HWPANG{}", k + 1), (*a, "HWP angle [deg]")).map_err(e)?;
+        }
+        ph.write_key(f, "BINSIZE", (g.bin_px as i64, "bin side [px]")).map_err(e)?;
+        ph.write_key(f, "BINORGX", (g.origin_x as i64, "0-based x pixel where bin 0 starts")).map_err(e)?;
+        ph.write_key(f, "BINORGY", (g.origin_y as i64, "0-based y pixel where bin 0 starts")).map_err(e)?;
+        ph.write_key(f, "NBINX", (g.nx as i64, "bins along x")).map_err(e)?;
+        ph.write_key(f, "NBINY", (g.ny as i64, "bins along y")).map_err(e)?;
+        ph.write_key(f, "PIXSCALE", (g.pixel_scale_arcsec, "detector scale [arcsec/px]")).map_err(e)?;
+        ph.write_key(f, "DETNX", (g.detector_nx as i64, "detector size x [px]")).map_err(e)?;
+        ph.write_key(f, "DETNY", (g.detector_ny as i64, "detector size y [px]")).map_err(e)?;
+        let dims = [g.ny, g.nx];
+        let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
+        let floats: [(&str, &[f64], &str); 11] = [
+            ("Q", &self.q, "Q/I"),
+            ("U", &self.u, "U/I"),
+            ("SIGMA_Q", &self.sigma_q, "error of Q/I from pixel scatter"),
+            ("SIGMA_U", &self.sigma_u, "error of U/I from pixel scatter"),
+            ("COV_QU", &self.cov_qu, "covariance of Q/I and U/I"),
+            ("SIGQ_PHOT", &self.sigma_q_phot, "error of Q/I from photon+read noise"),
+            ("SIGU_PHOT", &self.sigma_u_phot, "error of U/I from photon+read noise"),
+            ("P", &self.p, "polarization degree (fraction)"),
+            ("CHI", &chi_deg, "polarization angle [deg]"),
+            ("INTENSITY", &self.intensity, "mean f_O+f_E per exposure [e-/px]"),
+            ("INT_SNR", &self.intensity_snr, "per-pixel SNR of combined intensity"),
+        ];
+        for (name, data, comment) in floats.iter() {
+            let d = ImageDescription { data_type: ImageType::Double, dimensions: &dims };
+            let hdu = f.create_image(name.to_string(), &d).map_err(e)?;
+            hdu.write_image(f, data).map_err(e)?;
+            hdu.write_key(f, "CONTENT", *comment).map_err(e)?;
+        }
+        let d = ImageDescription { data_type: ImageType::Long, dimensions: &dims };
+        let cov: Vec<i32> = self.n_pixels.iter().map(|&n| n as i32).collect();
+        let hdu = f.create_image("COVERAGE".to_string(), &d).map_err(e)?;
+        hdu.write_image(f, &cov).map_err(e)?;
+        hdu.write_key(f, "CONTENT", "pixels kept by sigma clipping").map_err(e)?;
+        let valid: Vec<i32> = self.valid.iter().map(|&v| v as i32).collect();
+        let hdu = f.create_image("VALID".to_string(), &d).map_err(e)?;
+        hdu.write_image(f, &valid).map_err(e)?;
+        hdu.write_key(f, "CONTENT", "1 = usable bin").map_err(e)?;
+        Ok(())
+    }
+
+    /// Read a map written by [`Self::write_fits`].
+    pub fn read_fits(path: &Path) -> Result<Self, Error> {
+        let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
+        let ph = f.primary_hdu().map_err(|e| fits_err(path, e))?;
+        let key_i = |f: &mut FitsFile, k: &str| -> Result<i64, Error> {
+            ph.read_key::<i64>(f, k).map_err(|_| Error::MissingKeyword { path: path.into(), keyword: k.into() })
+        };
+        let ver = key_i(&mut f, "MAPVERS")?;
+        if ver != MAP_FORMAT_VERSION as i64 {
+            return Err(Error::BadKeyword {
+                path: path.into(),
+                keyword: "MAPVERS".into(),
+                value: ver.to_string(),
+                expected: format!("a supported Stokes-map format version ({MAP_FORMAT_VERSION})"),
+            });
+        }
+        let key_s = |f: &mut FitsFile, k: &str| -> Result<String, Error> {
+            ph.read_key::<String>(f, k).map_err(|_| Error::MissingKeyword { path: path.into(), keyword: k.into() })
+        };
+        let instrument = key_s(&mut f, "INSTRUME")?;
+        let filter = key_s(&mut f, "FILTER")?;
+        let nhwp = key_i(&mut f, "NHWP")?.max(0) as usize;
+        let mut hwp = Vec::with_capacity(nhwp);
+        for k in 1..=nhwp {
+            let name = format!("HWPANG{k}");
+            hwp.push(
+                ph.read_key::<f64>(&mut f, &name)
+                    .map_err(|_| Error::MissingKeyword { path: path.into(), keyword: name.clone() })?,
+            );
+        }
+        let usz = |f: &mut FitsFile, k: &str| -> Result<usize, Error> {
+            let v = key_i(f, k)?;
+            usize::try_from(v).map_err(|_| Error::BadKeyword {
+                path: path.into(),
+                keyword: k.into(),
+                value: v.to_string(),
+                expected: "a non-negative integer".into(),
+            })
+        };
+        let geometry = BinGeometry {
+            bin_px: usz(&mut f, "BINSIZE")?,
+            origin_x: usz(&mut f, "BINORGX")?,
+            origin_y: usz(&mut f, "BINORGY")?,
+            nx: usz(&mut f, "NBINX")?,
+            ny: usz(&mut f, "NBINY")?,
+            pixel_scale_arcsec: ph
+                .read_key::<f64>(&mut f, "PIXSCALE")
+                .map_err(|_| Error::MissingKeyword { path: path.into(), keyword: "PIXSCALE".into() })?,
+            detector_nx: usz(&mut f, "DETNX")?,
+            detector_ny: usz(&mut f, "DETNY")?,
+        };
+        let n = geometry.len();
+        let read_f = |f: &mut FitsFile, name: &str| -> Result<Vec<f64>, Error> {
+            let hdu = f.hdu(name).map_err(|_| fits_err(path, format!("missing image extension {name}")))?;
+            let v: Vec<f64> = hdu.read_image(f).map_err(|e| fits_err(path, format!("extension {name}: {e}")))?;
+            if v.len() != n {
+                return Err(fits_err(path, format!("extension {name} has {} values, header says {n} bins", v.len())));
+            }
+            Ok(v)
+        };
+        let q = read_f(&mut f, "Q")?;
+        let u = read_f(&mut f, "U")?;
+        let sigma_q = read_f(&mut f, "SIGMA_Q")?;
+        let sigma_u = read_f(&mut f, "SIGMA_U")?;
+        let cov_qu = read_f(&mut f, "COV_QU")?;
+        let sigma_q_phot = read_f(&mut f, "SIGQ_PHOT")?;
+        let sigma_u_phot = read_f(&mut f, "SIGU_PHOT")?;
+        let p = read_f(&mut f, "P")?;
+        let chi: Vec<f64> = read_f(&mut f, "CHI")?.into_iter().map(f64::to_radians).collect();
+        let intensity = read_f(&mut f, "INTENSITY")?;
+        let intensity_snr = read_f(&mut f, "INT_SNR")?;
+        let n_pixels: Vec<u32> = read_f(&mut f, "COVERAGE")?.into_iter().map(|v| v.max(0.0) as u32).collect();
+        let valid: Vec<bool> = read_f(&mut f, "VALID")?.into_iter().map(|v| v > 0.5).collect();
+        Ok(Self {
+            geometry,
+            instrument,
+            filter,
+            hwp_angles_deg: hwp,
+            q,
+            u,
+            sigma_q,
+            sigma_u,
+            cov_qu,
+            sigma_q_phot,
+            sigma_u_phot,
+            p,
+            chi,
+            n_pixels,
+            intensity,
+            intensity_snr,
+            valid,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> StokesMap {
+        let g = BinGeometry::covering(30, 0, 34, 100, 130, 0.2);
+        assert_eq!((g.nx, g.ny), (4, 4));
+        let mut m = StokesMap::empty(g, "FORS1", "V", vec![0.0, 22.5, 45.0, 67.5]);
+        for k in 0..m.geometry.len() {
+            if k % 3 == 0 {
+                continue;
+            }
+            m.q[k] = 0.01 * k as f64;
+            m.u[k] = -0.002 * k as f64;
+            let (p, chi) = stokes::polarization(m.q[k], m.u[k]);
+            m.p[k] = p;
+            m.chi[k] = chi;
+            m.sigma_q[k] = 1e-4;
+            m.sigma_u[k] = 2e-4;
+            m.cov_qu[k] = 1e-9;
+            m.sigma_q_phot[k] = 1.1e-4;
+            m.sigma_u_phot[k] = 1.2e-4;
+            m.n_pixels[k] = 900 - k as u32;
+            m.intensity[k] = 5000.0;
+            m.intensity_snr[k] = 141.0;
+            m.valid[k] = true;
+        }
+        m
+    }
+
+    #[test]
+    fn fits_round_trip_keeps_everything() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("map.fits");
+        let m = sample();
+        m.write_fits(&path).unwrap();
+        let r = StokesMap::read_fits(&path).unwrap();
+        assert_eq!(r.geometry, m.geometry);
+        assert_eq!(r.hwp_angles_deg, m.hwp_angles_deg);
+        assert_eq!((r.instrument.as_str(), r.filter.as_str()), ("FORS1", "V"));
+        assert_eq!(r.valid, m.valid);
+        assert_eq!(r.n_pixels, m.n_pixels);
+        for k in 0..m.geometry.len() {
+            if m.valid[k] {
+                assert_eq!(r.q[k], m.q[k]);
+                assert!((r.chi[k] - m.chi[k]).abs() < 1e-14);
+            } else {
+                assert!(r.q[k].is_nan());
+            }
+        }
+        // Rewriting over an existing file works (atomic rename).
+        m.write_fits(&path).unwrap();
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn bin_centres_match_instrument_convention() {
+        let inst = instrument::Instrument::load("fors1").unwrap();
+        let g = BinGeometry::covering(30, 0, 34, 2048, 2048, 0.2);
+        let (x, y) = g.centre_px(3, 5);
+        assert_eq!((x, y), (104.5, 34.0 + 165.0 - 0.5));
+        let (ax, ay) = g.centre_arcmin(3, 5);
+        let (bx, by) = inst.pixel_to_arcmin(x, y);
+        assert!((ax - bx).abs() < 1e-12 && (ay - by).abs() < 1e-12);
+        assert_eq!(g.bin_of(104, 199), Some(5 * g.nx + 3));
+        assert_eq!(g.bin_of(104, 10), None);
+    }
+
+    #[test]
+    fn missing_file_and_wrong_file_are_named_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("nope.fits");
+        let e = StokesMap::read_fits(&p).unwrap_err().to_string();
+        assert!(e.contains("nope.fits"), "{e}");
+    }
+}
