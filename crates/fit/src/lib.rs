@@ -8,3 +8,4 @@
 //! model it is.
 
 pub mod model;
+pub mod correct;

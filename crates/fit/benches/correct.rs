@@ -1,0 +1,73 @@
+//! Throughput of the correction (issue 6 asks for >= 1e7 corrections per second per core with
+//! the polynomial model). Run: `cargo bench -p fit --bench correct`; criterion reports
+//! elements per second for batches of 100 000 catalog rows on one thread, for the exact
+//! inversion with full error propagation and for `eq:approx`.
+
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use fit::correct::{CorrectOptions, Corrected, Corrector, Measurement, Method};
+use fit::model::{FieldModel, InstPol};
+use std::hint::black_box;
+
+/// The FORS1 V radial polynomial of section `sec:fors1` (fractions, r in arcmin), radial
+/// pattern, constant model covariance: the cost of a cubic polynomial field model.
+struct RadialCubic {
+    c: [f64; 4],
+    half: f64,
+}
+
+impl FieldModel for RadialCubic {
+    #[inline]
+    fn eval(&self, x: f64, y: f64) -> InstPol {
+        let r2 = x * x + y * y;
+        let r = r2.sqrt();
+        let p = ((self.c[3] * r + self.c[2]) * r + self.c[1]) * r + self.c[0];
+        let k = if r2 > 0.0 { p / r2 } else { 0.0 };
+        InstPol { q: k * (x * x - y * y), u: k * 2.0 * x * y, var_q: 2.5e-7, var_u: 2.5e-7, cov_qu: 0.0 }
+    }
+    #[inline]
+    fn contains(&self, x: f64, y: f64) -> bool {
+        x.abs() <= self.half && y.abs() <= self.half
+    }
+}
+
+fn catalog(n: usize) -> Vec<Measurement> {
+    // A deterministic spread of positions and polarizations over the field.
+    (0..n)
+        .map(|i| {
+            let t = i as f64;
+            Measurement {
+                x: 3.4 * (0.618_033_988_7 * t).fract() * 2.0 - 3.4,
+                y: 3.4 * (0.754_877_666_2 * t).fract() * 2.0 - 3.4,
+                q: 0.01 * (0.1 * t).cos(),
+                u: 0.01 * (0.1 * t).sin(),
+                sigma_q: 5e-4,
+                sigma_u: 5e-4,
+                cov_qu: 0.0,
+            }
+        })
+        .collect()
+}
+
+fn bench(c: &mut Criterion) {
+    let model = RadialCubic { c: [0.0, 0.012e-2, 0.046e-2, 0.002e-2], half: 3.42 };
+    let input = catalog(100_000);
+    let mut out = vec![Corrected::default(); input.len()];
+    let mut g = c.benchmark_group("correct");
+    g.throughput(Throughput::Elements(input.len() as u64));
+    for (name, method) in [("exact", Method::Exact), ("first_order", Method::FirstOrder)] {
+        let cor = Corrector::new(&model, CorrectOptions { method, chi_offset: 0.01, ..Default::default() });
+        g.bench_function(name, |b| {
+            b.iter(|| cor.correct_batch(black_box(&input), black_box(&mut out)).unwrap());
+        });
+    }
+    // The same through a trait object, as the CLI holds a loaded calibration.
+    let dynm: &dyn FieldModel = &model;
+    let cor = Corrector::new(dynm, CorrectOptions::default());
+    g.bench_function("exact_dyn", |b| {
+        b.iter(|| cor.correct_batch(black_box(&input), black_box(&mut out)).unwrap());
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

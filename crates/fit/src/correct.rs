@@ -1,0 +1,441 @@
+//! Applying a calibration: from a measured `(Q/I, U/I)` at a field position to the intrinsic
+//! `(Q0/I0, U0/I0)` of the source, with the measurement's and the calibration's uncertainties
+//! propagated.
+//!
+//! # What is inverted
+//!
+//! The pre-analyzer optics act on the sky's Stokes vector as the partial polarizer
+//! `M_I(p, phi)` (`eq:instpol`, [`mueller::partial_polarizer`]): `S1 = M_I S0`. The measurement
+//! gives the normalized `m = (q1, u1) = (Q1/I1, U1/I1)`; the instrumental polarization at the
+//! position comes from a [`FieldModel`] as `a = (qi, ui) = p (cos 2phi, sin 2phi)`. The exact
+//! correction is `S0 ∝ M_I^-1 (1, q1, u1)`, renormalized by `I0` (the `1 / (1 + p)` factor and
+//! the unknown `I1` cancel). [`invert_exact_matrix`] does exactly that with nalgebra; the hot
+//! path ([`invert_exact`]) uses its closed form, obtained by turning to the frame of `phi`, where
+//! `M_I ∝ [[1, p, 0], [p, 1, 0], [0, 0, 1 - p]]`:
+//!
+//! ```text
+//! v0 = [ (1 + p) m - a - (n·m) a ] / (1 - a·m),      n = a / p,
+//! ```
+//!
+//! (the component of `m` along `n` transforms as `(m∥ - p) / (1 - p m∥)`, the perpendicular one
+//! as `(1 + p) m⊥ / (1 - p m∥)`). The two are checked against each other in the tests. The
+//! first-order form `eq:approx` is `v0 = m - a` ([`invert_first_order`]); the two differ at
+//! second order, by terms of size `p P0` and `p^2`.
+//!
+//! # Uncertainties
+//!
+//! The corrected covariance is the linear propagation, by the analytic Jacobian of the exact map
+//! ([`exact_jacobian`], checked against finite differences in the tests), of two independent
+//! covariances: the measurement's `(sigma_q, sigma_u, cov)` and the calibration's own
+//! `(var_q, var_u, cov_qu)` of the instrumental `(qi, ui)` at that position (the fit's coefficient
+//! covariance or the map's interpolation error, as the model reports it):
+//! `C0 = Jm Cm Jm^T + Ja Ca Ja^T`. For `eq:approx`, `Jm = I`, `Ja = -I`.
+//! `M_I` depends on `p = |a|`, which is not differentiable at `a = 0`; there the terms that carry
+//! the direction `n` (of size `|m|`) are left out, which is their average over directions.
+//!
+//! # Outside the calibrated field
+//!
+//! A position where [`FieldModel::contains`] is false is an error ([`Error::OutsideField`]),
+//! unless extrapolation is allowed; then the model is still evaluated, the result is flagged
+//! `extrapolated`, and the calibration covariance is inflated by adding `(f p)^2` to both
+//! `var_q` and `var_u`, where `f` = [`CorrectOptions::extrapolation_rel_error`] (default 0.5):
+//! an extrapolated polynomial (its `r^3` term grows fastest exactly there) or a map beyond its
+//! hull is trusted to half its own size, in amplitude and (through `f / 2` rad) in angle.
+//!
+//! # The HWP chromatic zero angle, and the order of the two corrections
+//!
+//! A plate whose zero sits off by `chi_offset / 2` makes every measured chi smaller by
+//! `chi_offset` (see [`mueller::Hwp`]): the reduction sees the light *at the plate*, rotated.
+//! The light at the plate is `M_I S0`, and `M_I` acts in the sky frame. So the zero angle is
+//! undone first (`chi -> chi + chi_offset`, i.e. `(q1, u1)` rotated by `2 chi_offset`), giving
+//! `S1` in the frame where `M_I` and the calibration live, and `M_I` is inverted second. The
+//! other order would amount to using `phi - chi_offset` for the instrumental angle. This
+//! presumes the calibration's `(p, phi)` were measured in the sky frame too, i.e. from data that
+//! had their zero angle corrected before the sky-field solution. The test
+//! `forward_model_with_hwp_offset_round_trip` runs the full dual-beam forward model
+//! (`M_I`, then a plate with a zero-angle offset) and recovers the sky exactly.
+
+use crate::model::{FieldModel, InstPol};
+
+/// Errors of the correction; each names the position or the input that was wrong.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum Error {
+    #[error("position ({x}, {y}) arcmin is outside the calibrated field (allow extrapolation to correct it with an inflated error)")]
+    OutsideField { x: f64, y: f64 },
+    #[error("{what} = {value} is not a finite number")]
+    NonFinite { what: &'static str, value: f64 },
+    #[error("{what} = {value} is negative")]
+    Negative { what: &'static str, value: f64 },
+    #[error(
+        "the calibration gives an unphysical instrumental polarization p = {p} (must be < 1) at ({x}, {y}) arcmin"
+    )]
+    Unphysical { p: f64, x: f64, y: f64 },
+    #[error("measured (q, u) = ({q}, {u}) cannot come through the instrumental polarization (qi, ui) = ({qi}, {ui}): 1 - qi q - ui u = {d} <= 0")]
+    Singular { q: f64, u: f64, qi: f64, ui: f64, d: f64 },
+    #[error("row {row}: {source}")]
+    Row { row: usize, source: Box<Error> },
+    #[error("batch lengths differ: {inputs} inputs, {outputs} output slots")]
+    Length { inputs: usize, outputs: usize },
+}
+
+/// Which inversion of `eq:instpol` to use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Method {
+    /// Exact inversion of `M_I` (`eq:instpol`).
+    #[default]
+    Exact,
+    /// The first-order form `eq:approx`: `q0 = q1 - p cos 2phi`, `u0 = u1 - p sin 2phi`.
+    FirstOrder,
+}
+
+/// Options of a [`Corrector`].
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CorrectOptions {
+    pub method: Method,
+    /// Correct positions outside the calibrated field (flagged, with inflated errors) instead
+    /// of failing.
+    pub allow_extrapolation: bool,
+    /// `f` of the inflation rule: outside the field, `(f p)^2` is added to the calibration's
+    /// `var_q` and `var_u` (fraction; default 0.5).
+    pub extrapolation_rel_error: f64,
+    /// HWP chromatic zero angle (rad), the angle to *add* to a measured chi.
+    pub chi_offset: f64,
+}
+
+impl Default for CorrectOptions {
+    fn default() -> Self {
+        Self { method: Method::Exact, allow_extrapolation: false, extrapolation_rel_error: 0.5, chi_offset: 0.0 }
+    }
+}
+
+/// A measurement to correct: position in arcmin from the detector centre, normalized Stokes
+/// parameters as fractions, their 1-sigma errors and covariance.
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct Measurement {
+    pub x: f64,
+    pub y: f64,
+    pub q: f64,
+    pub u: f64,
+    pub sigma_q: f64,
+    pub sigma_u: f64,
+    #[serde(default)]
+    pub cov_qu: f64,
+}
+
+/// The intrinsic polarization of a source after correction.
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct Corrected {
+    /// `Q0/I0`, `U0/I0` (fractions) and their covariance.
+    pub q0: f64,
+    pub u0: f64,
+    pub var_q0: f64,
+    pub var_u0: f64,
+    pub cov_qu0: f64,
+    /// `P0 = hypot(q0, u0)` (fraction, not bias-corrected) and its linearized error.
+    pub p0: f64,
+    pub sigma_p0: f64,
+    /// `chi0` in [0, pi) (rad) and its linearized error (rad), capped at `pi / sqrt(12)`, the
+    /// standard deviation of an angle that is not constrained at all.
+    pub chi0: f64,
+    pub sigma_chi0: f64,
+    /// The instrumental polarization that was removed, with the covariance used (inflated when
+    /// extrapolated).
+    pub inst: InstPol,
+    /// True when the position lay outside the calibrated field.
+    pub extrapolated: bool,
+}
+
+/// Rotate normalized Stokes parameters for a polarization-angle change of `+offset` (rad):
+/// `chi -> chi + offset`.
+#[inline]
+pub fn rotate_chi(q: f64, u: f64, offset: f64) -> (f64, f64) {
+    let (s, c) = (2.0 * offset).sin_cos();
+    (c * q - s * u, s * q + c * u)
+}
+
+/// Exact inversion of `eq:instpol` by nalgebra: `S0 ∝ M_I(p, phi)^-1 (1, q1, u1, 0)`,
+/// renormalized by `I0`. The reference for [`invert_exact`]; slower (a 4x4 inverse per call).
+pub fn invert_exact_matrix(p: f64, phi: f64, q1: f64, u1: f64) -> Result<(f64, f64), Error> {
+    if !(p < 1.0) {
+        return Err(Error::Unphysical { p, x: f64::NAN, y: f64::NAN });
+    }
+    let m = mueller::partial_polarizer(p, phi);
+    let inv = m.try_inverse().ok_or(Error::Unphysical { p, x: f64::NAN, y: f64::NAN })?;
+    let s0 = inv * mueller::stokes_qu(1.0, q1, u1);
+    if !(s0[0] > 0.0) {
+        let (qi, ui) = (p * (2.0 * phi).cos(), p * (2.0 * phi).sin());
+        return Err(Error::Singular { q: q1, u: u1, qi, ui, d: 1.0 - qi * q1 - ui * u1 });
+    }
+    Ok((s0[1] / s0[0], s0[2] / s0[0]))
+}
+
+/// Exact inversion of `eq:instpol` in closed form: intrinsic `(q0, u0)` from measured
+/// `(q1, u1)` and the instrumental `(qi, ui) = p (cos 2phi, sin 2phi)`.
+#[inline]
+pub fn invert_exact(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<(f64, f64), Error> {
+    let p = (qi * qi + ui * ui).sqrt();
+    if !(p < 1.0) {
+        return Err(Error::Unphysical { p, x: f64::NAN, y: f64::NAN });
+    }
+    let am = qi * q1 + ui * u1;
+    let d = 1.0 - am;
+    if !(d > 0.0) {
+        return Err(Error::Singular { q: q1, u: u1, qi, ui, d });
+    }
+    // (n·m) a = (a·m) a / p; zero when p = 0.
+    let k = if p > 0.0 { am / p } else { 0.0 };
+    let inv_d = 1.0 / d;
+    Ok((((1.0 + p) * q1 - qi - k * qi) * inv_d, ((1.0 + p) * u1 - ui - k * ui) * inv_d))
+}
+
+/// The first-order correction `eq:approx`: `q0 = q1 - p cos 2phi`, `u0 = u1 - p sin 2phi`.
+#[inline]
+pub fn invert_first_order(qi: f64, ui: f64, q1: f64, u1: f64) -> (f64, f64) {
+    (q1 - qi, u1 - ui)
+}
+
+/// The exact correction with its Jacobians: returns `(q0, u0)`, `Jm = d(q0, u0)/d(q1, u1)` and
+/// `Ja = d(q0, u0)/d(qi, ui)` (row-major 2x2). See the module docs for the formulas.
+#[inline]
+pub fn exact_jacobian(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<((f64, f64), [[f64; 2]; 2], [[f64; 2]; 2]), Error> {
+    let p = (qi * qi + ui * ui).sqrt();
+    if !(p < 1.0) {
+        return Err(Error::Unphysical { p, x: f64::NAN, y: f64::NAN });
+    }
+    let am = qi * q1 + ui * u1;
+    let d = 1.0 - am;
+    if !(d > 0.0) {
+        return Err(Error::Singular { q: q1, u: u1, qi, ui, d });
+    }
+    let (nq, nu) = if p > 0.0 { (qi / p, ui / p) } else { (0.0, 0.0) };
+    let nm = nq * q1 + nu * u1;
+    let inv_d = 1.0 / d;
+    let q0 = ((1.0 + p) * q1 - qi - nm * qi) * inv_d;
+    let u0 = ((1.0 + p) * u1 - ui - nm * ui) * inv_d;
+    // Jm = [(1 + p) I - p n n^T + v0 a^T] / d
+    let jm = [
+        [((1.0 + p) - p * nq * nq + q0 * qi) * inv_d, (-p * nq * nu + q0 * ui) * inv_d],
+        [(-p * nu * nq + u0 * qi) * inv_d, ((1.0 + p) - p * nu * nu + u0 * ui) * inv_d],
+    ];
+    // Ja = [m n^T - n m^T - I - (n·m)(I - n n^T) + v0 m^T] / d
+    let ja = [
+        [(-1.0 - nm * (1.0 - nq * nq) + q0 * q1) * inv_d, (q1 * nu - nq * u1 + nm * nq * nu + q0 * u1) * inv_d],
+        [(u1 * nq - nu * q1 + nm * nu * nq + u0 * q1) * inv_d, (-1.0 - nm * (1.0 - nu * nu) + u0 * u1) * inv_d],
+    ];
+    Ok(((q0, u0), jm, ja))
+}
+
+/// `J C J^T` for symmetric `C = [[a, c], [c, b]]`, returned as `(var_q, var_u, cov)`.
+#[inline]
+fn sandwich(j: &[[f64; 2]; 2], a: f64, b: f64, c: f64) -> (f64, f64, f64) {
+    let r0 = [j[0][0] * a + j[0][1] * c, j[0][0] * c + j[0][1] * b];
+    let r1 = [j[1][0] * a + j[1][1] * c, j[1][0] * c + j[1][1] * b];
+    (r0[0] * j[0][0] + r0[1] * j[0][1], r1[0] * j[1][0] + r1[1] * j[1][1], r0[0] * j[1][0] + r0[1] * j[1][1])
+}
+
+/// `P`, `chi` of `(q, u)` with their linearized errors (`eq:sigp`, `eq:sigchi` generalized to a
+/// full covariance). At `P = 0` the error of `P` is `sqrt((var_q + var_u) / 2)` and the angle is
+/// unconstrained; the angle error is capped at `pi / sqrt(12)` (a uniform angle).
+#[inline]
+pub fn p_chi_with_errors(q: f64, u: f64, vq: f64, vu: f64, c: f64) -> (f64, f64, f64, f64) {
+    const SIGMA_CHI_MAX: f64 = 0.906_899_682_117_108_9; // pi / sqrt(12)
+    let (p, chi) = stokes::polarization(q, u);
+    if p > 0.0 {
+        let p2 = p * p;
+        let sp = ((q * q * vq + u * u * vu + 2.0 * q * u * c).max(0.0) / p2).sqrt();
+        let sc = 0.5 * ((u * u * vq + q * q * vu - 2.0 * q * u * c).max(0.0)).sqrt() / p2;
+        (p, sp, chi, sc.min(SIGMA_CHI_MAX))
+    } else {
+        (p, (0.5 * (vq + vu)).max(0.0).sqrt(), chi, SIGMA_CHI_MAX)
+    }
+}
+
+/// Applies one calibration to many measurements: build it once, then call
+/// [`correct`](Self::correct) or [`correct_batch`](Self::correct_batch) as often as needed;
+/// nothing is re-read and nothing is allocated per call.
+///
+/// `M` is any [`FieldModel`] (a concrete type for static dispatch in hot loops, or
+/// `dyn FieldModel`).
+///
+/// ```
+/// use fit::correct::{CorrectOptions, Corrector, Measurement};
+/// use fit::model::{FieldModel, InstPol};
+///
+/// /// A uniform 1% instrumental polarization along 0 deg over a 4' x 4' field.
+/// struct Flat;
+/// impl FieldModel for Flat {
+///     fn eval(&self, _x: f64, _y: f64) -> InstPol {
+///         InstPol { q: 0.01, u: 0.0, var_q: 1e-8, var_u: 1e-8, cov_qu: 0.0 }
+///     }
+///     fn contains(&self, x: f64, y: f64) -> bool { x.abs() <= 2.0 && y.abs() <= 2.0 }
+/// }
+///
+/// let c = Corrector::new(&Flat, CorrectOptions::default());
+/// let m = Measurement { x: 1.0, y: -0.5, q: 0.01, u: 0.0, sigma_q: 1e-4, sigma_u: 1e-4, cov_qu: 0.0 };
+/// let r = c.correct(&m).unwrap();
+/// assert!(r.p0 < 1e-12); // an unpolarized star seen through the instrument
+/// assert!(c.correct(&Measurement { x: 3.0, ..m }).is_err()); // outside the field
+/// ```
+pub struct Corrector<'a, M: FieldModel + ?Sized> {
+    model: &'a M,
+    opts: CorrectOptions,
+    cos2off: f64,
+    sin2off: f64,
+}
+
+impl<'a, M: FieldModel + ?Sized> Corrector<'a, M> {
+    /// Prepare a corrector for `model` (precomputes the zero-angle rotation).
+    pub fn new(model: &'a M, opts: CorrectOptions) -> Self {
+        let (s, c) = (2.0 * opts.chi_offset).sin_cos();
+        Self { model, opts, cos2off: c, sin2off: s }
+    }
+
+    /// The options in use.
+    pub fn options(&self) -> &CorrectOptions {
+        &self.opts
+    }
+
+    /// The instrumental polarization that would be removed at `(x, y)` arcmin, with the
+    /// covariance as used (inflated outside the field) and the extrapolation flag.
+    #[inline]
+    pub fn instrumental(&self, x: f64, y: f64) -> Result<(InstPol, bool), Error> {
+        let mut a = self.model.eval(x, y);
+        let inside = self.model.contains(x, y);
+        if !inside {
+            if !self.opts.allow_extrapolation {
+                return Err(Error::OutsideField { x, y });
+            }
+            let f = self.opts.extrapolation_rel_error;
+            let add = f * f * (a.q * a.q + a.u * a.u);
+            a.var_q += add;
+            a.var_u += add;
+        }
+        Ok((a, !inside))
+    }
+
+    /// Correct one measurement (`eq:instpol` inverted, or `eq:approx`), zero angle first.
+    #[inline]
+    pub fn correct(&self, m: &Measurement) -> Result<Corrected, Error> {
+        for (what, v) in [("x", m.x), ("y", m.y), ("q", m.q), ("u", m.u)] {
+            if !v.is_finite() {
+                return Err(Error::NonFinite { what, value: v });
+            }
+        }
+        for (what, v) in [("sigma_q", m.sigma_q), ("sigma_u", m.sigma_u)] {
+            if !v.is_finite() {
+                return Err(Error::NonFinite { what, value: v });
+            }
+            if v < 0.0 {
+                return Err(Error::Negative { what, value: v });
+            }
+        }
+        let (a, extrapolated) = self.instrumental(m.x, m.y)?;
+        // Zero angle first: the measured (q, u) are at the plate; M_I lives in the sky frame.
+        let (c, s) = (self.cos2off, self.sin2off);
+        let q1 = c * m.q - s * m.u;
+        let u1 = s * m.q + c * m.u;
+        let (vq, vu, cv) = (m.sigma_q * m.sigma_q, m.sigma_u * m.sigma_u, m.cov_qu);
+        let rot = [[c, -s], [s, c]];
+        let (vq1, vu1, cv1) = sandwich(&rot, vq, vu, cv);
+        let (q0, u0, vq0, vu0, cv0) = match self.opts.method {
+            Method::Exact => {
+                let ((q0, u0), jm, ja) = exact_jacobian(a.q, a.u, q1, u1).map_err(|e| match e {
+                    Error::Unphysical { p, .. } => Error::Unphysical { p, x: m.x, y: m.y },
+                    e => e,
+                })?;
+                let (aq, au, ac) = sandwich(&jm, vq1, vu1, cv1);
+                let (bq, bu, bc) = sandwich(&ja, a.var_q, a.var_u, a.cov_qu);
+                (q0, u0, aq + bq, au + bu, ac + bc)
+            }
+            Method::FirstOrder => {
+                let (q0, u0) = invert_first_order(a.q, a.u, q1, u1);
+                (q0, u0, vq1 + a.var_q, vu1 + a.var_u, cv1 + a.cov_qu)
+            }
+        };
+        let (p0, sigma_p0, chi0, sigma_chi0) = p_chi_with_errors(q0, u0, vq0, vu0, cv0);
+        Ok(Corrected {
+            q0,
+            u0,
+            var_q0: vq0,
+            var_u0: vu0,
+            cov_qu0: cv0,
+            p0,
+            sigma_p0,
+            chi0,
+            sigma_chi0,
+            inst: a,
+            extrapolated,
+        })
+    }
+
+    /// Correct a batch into `out` (same length). Stops at the first bad row with an error that
+    /// names the row (0-based). Returns the number of extrapolated rows.
+    pub fn correct_batch(&self, inputs: &[Measurement], out: &mut [Corrected]) -> Result<usize, Error> {
+        if inputs.len() != out.len() {
+            return Err(Error::Length { inputs: inputs.len(), outputs: out.len() });
+        }
+        let mut n_extra = 0;
+        for (row, (m, o)) in inputs.iter().zip(out.iter_mut()).enumerate() {
+            *o = self.correct(m).map_err(|e| Error::Row { row, source: Box::new(e) })?;
+            n_extra += o.extrapolated as usize;
+        }
+        Ok(n_extra)
+    }
+
+    /// [`correct_batch`](Self::correct_batch) on all cores (rayon); the same results in the same
+    /// order. On errors, the one of the lowest row is returned.
+    pub fn par_correct_batch(&self, inputs: &[Measurement], out: &mut [Corrected]) -> Result<usize, Error> {
+        use rayon::prelude::*;
+        if inputs.len() != out.len() {
+            return Err(Error::Length { inputs: inputs.len(), outputs: out.len() });
+        }
+        const CHUNK: usize = 4096;
+        inputs
+            .par_chunks(CHUNK)
+            .zip(out.par_chunks_mut(CHUNK))
+            .enumerate()
+            .map(|(k, (i, o))| {
+                self.correct_batch(i, o).map_err(|e| match e {
+                    Error::Row { row, source } => Error::Row { row: row + k * CHUNK, source },
+                    e => e,
+                })
+            })
+            .collect::<Vec<_>>()
+            .into_iter()
+            .try_fold(0, |acc, r| r.map(|n| acc + n))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use approx::assert_relative_eq;
+
+    #[test]
+    fn closed_form_is_the_matrix_inverse() {
+        for &(p, phi, q1, u1) in
+            &[(0.0f64, 0.3f64, 0.01, -0.02), (0.05, 0.3, 0.04, 0.02), (0.3, 2.0, -0.2, 0.25), (0.9, -1.0, 0.5, 0.1)]
+        {
+            let (qi, ui) = (p * (2.0 * phi).cos(), p * (2.0 * phi).sin());
+            let a = invert_exact(qi, ui, q1, u1).unwrap();
+            let b = invert_exact_matrix(p, phi, q1, u1).unwrap();
+            assert_relative_eq!(a.0, b.0, epsilon = 1e-14);
+            assert_relative_eq!(a.1, b.1, epsilon = 1e-14);
+        }
+    }
+
+    #[test]
+    fn ideal_polarizer_is_singular() {
+        assert!(matches!(invert_exact(1.0, 0.0, 0.5, 0.0), Err(Error::Unphysical { .. })));
+        assert!(invert_exact_matrix(1.0, 0.0, 0.5, 0.0).is_err());
+    }
+
+    #[test]
+    fn rotate_chi_adds_to_angle() {
+        let (q, u) = rotate_chi(0.02 * (0.6f64).cos(), 0.02 * (0.6f64).sin(), 0.1);
+        let (p, chi) = stokes::polarization(q, u);
+        assert_relative_eq!(p, 0.02, epsilon = 1e-15);
+        assert_relative_eq!(chi, 0.4, epsilon = 1e-14);
+    }
+}
