@@ -24,12 +24,14 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     Stokes(cmd::stokes::Args),
+    Fresnel(cmd::fresnel::Args),
 }
 
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Stokes(a) => cmd::stokes::run(a),
+        Command::Fresnel(a) => cmd::fresnel::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -7,16 +7,29 @@
 //! at each half-wave-plate angle. It does not reduce measurements (that is the `stokes` crate)
 //! and knows nothing of files or frames.
 //!
+//! Modules: [`fresnel`] (interface coefficients, dielectric and metal), [`thinfilm`]
+//! (characteristic-matrix coatings), [`analysis`] (Jones to Mueller, realizability, inverse,
+//! diattenuation / retardance), [`raytrace`] (polarization ray tracing of a lens collimator
+//! from its prescription: the field pattern `p(r)`, `phi(alpha)` and its wavelength law).
+//!
 //! Conventions (see DESIGN.md):
 //! - angles in radians; polarization angle `chi` measured as `eq:polang`, `Q/I = P cos 2chi`;
 //! - a Stokes vector is `(I, Q, U, V)`; circular polarization follows the IAU convention
 //!   (V > 0 for counter-clockwise rotation of the electric vector as seen by the observer);
 //!   a linear retarder with its fast axis at 0 and retardance +pi/2 turns +45 deg linear
-//!   light into V > 0;
+//!   light into V > 0; in Jones terms (time dependence `exp(-i omega t)`),
+//!   `V = 2 Im(E_x^* E_y)` ([`analysis`]);
 //! - an element at angle `theta` is `R(-theta) M(0) R(theta)` ([`rotate`]).
 
 use nalgebra::{Matrix4, RowVector4, Vector4};
 use serde::{Deserialize, Serialize};
+
+pub mod analysis;
+pub mod fresnel;
+pub mod thinfilm;
+
+pub use analysis::{inverse, is_physical, jones_to_mueller};
+pub use fresnel::C64;
 
 /// A Stokes vector `(I, Q, U, V)`.
 pub type Stokes = Vector4<f64>;
@@ -30,6 +43,9 @@ pub enum Error {
     OutOfRange { name: &'static str, value: f64, range: &'static str },
     #[error("matrix is singular and cannot be inverted: {0}")]
     Singular(&'static str),
+    /// A bad optical prescription or trace input; `what` names the surface or key.
+    #[error("{what}: {why}")]
+    Invalid { what: String, why: String },
 }
 
 /// Stokes vector of intensity `i` with normalized linear polarization `q = Q/I`, `u = U/I`.
@@ -102,14 +118,19 @@ pub fn polarizer(angle: f64) -> Mueller {
 
 /// Linear retarder of retardance `delta` (rad) with its fast axis at `angle`.
 /// A half-wave plate is `delta = pi + Delta beta` (section `sec:HWP`).
+///
+/// The slow axis lags by `delta`: with the fast axis at 0 and `delta = +pi/2`, light linearly
+/// polarized at +45 deg leaves with the electric vector turning from +x towards +y, which is
+/// counter-clockwise as seen by the observer in the IAU frame (x north, y east, z towards the
+/// observer), i.e. `V > 0` (tested in `tests::iau_circular_sign`).
 pub fn retarder(delta: f64, angle: f64) -> Mueller {
     let (s, c) = delta.sin_cos();
     #[rustfmt::skip]
     let m0 = Mueller::new(
         1.0, 0.0, 0.0, 0.0,
         0.0, 1.0, 0.0, 0.0,
-        0.0, 0.0, c,   s,
-        0.0, 0.0, -s,  c,
+        0.0, 0.0, c,   -s,
+        0.0, 0.0, s,   c,
     );
     rotate(&m0, angle)
 }
@@ -199,10 +220,7 @@ impl Wollaston {
     }
     /// Mueller matrices of the ordinary and extraordinary beams.
     pub fn beams(&self) -> (Mueller, Mueller) {
-        (
-            polarizer(0.0) * (2.0 * self.t),
-            polarizer(std::f64::consts::FRAC_PI_2 + self.delta_alpha) * (2.0 * self.s),
-        )
+        (polarizer(0.0) * (2.0 * self.t), polarizer(std::f64::consts::FRAC_PI_2 + self.delta_alpha) * (2.0 * self.s))
     }
     /// `kappa = (t - s) / (t + s)` (section `sec:wollaston`).
     pub fn kappa(&self) -> f64 {
@@ -234,6 +252,13 @@ pub enum Element {
     Retarder { retardance: f64, angle: f64 },
     /// Any Mueller matrix (e.g. from the ray tracer).
     Matrix(Mueller),
+    /// Transmission through a bare interface from a lossless medium `n_incident` into a medium
+    /// of complex index `n` at angle of incidence `aoi`, with the plane of incidence at
+    /// `plane_angle` ([`fresnel::Coefficients::mueller_t`]). Inputs outside their range give
+    /// a zero matrix (no light): validate them with [`fresnel::interface`] first.
+    Interface { n_incident: f64, n: C64, aoi: f64, plane_angle: f64 },
+    /// Reflection by a mirror of complex index `n` in air ([`fresnel::mirror`]); same caveat.
+    Mirror { n: C64, aoi: f64, plane_angle: f64 },
 }
 
 impl Element {
@@ -244,6 +269,12 @@ impl Element {
             Element::Diattenuator { k1, k2, angle } => diattenuator(k1, k2, angle),
             Element::Retarder { retardance, angle } => retarder(retardance, angle),
             Element::Matrix(m) => m,
+            Element::Interface { n_incident, n, aoi, plane_angle } => fresnel::interface(n_incident, n, aoi)
+                .map(|c| c.mueller_t(plane_angle))
+                .unwrap_or_else(|_| Mueller::zeros()),
+            Element::Mirror { n, aoi, plane_angle } => {
+                fresnel::mirror(n, aoi, plane_angle).unwrap_or_else(|_| Mueller::zeros())
+            }
         }
     }
 }
