@@ -168,10 +168,13 @@ impl Measurement {
         check_len("f_O", f_o.len(), n)?;
         check_len("f_E", f_e.len(), n)?;
         for (what, v) in [("f_O", &f_o), ("f_E", &f_e)] {
+            if let Some((i, &x)) = v.iter().enumerate().find(|(_, x)| !x.is_finite()) {
+                return Err(Error::NonFinite { what, index: i, value: x });
+            }
+        }
+        check_total(&f_o, &f_e)?;
+        for (what, v) in [("f_O", &f_o), ("f_E", &f_e)] {
             for (i, &x) in v.iter().enumerate() {
-                if !x.is_finite() {
-                    return Err(Error::NonFinite { what, index: i, value: x });
-                }
                 if x < 0.0 {
                     return Err(Error::Invalid {
                         what,
@@ -227,12 +230,7 @@ impl Measurement {
                 return Err(Error::Invalid { what, index: i, value: x, why: "an error cannot be negative" });
             }
         }
-        for i in 0..n {
-            let total = f_o[i] + f_e[i];
-            if !(total > 0.0) {
-                return Err(Error::NonPositiveFlux { index: i, total });
-            }
-        }
+        check_total(&f_o, &f_e)?;
         // Duplicated, degenerate angle sets: the solver's checks are the one place for them.
         StokesSolver::new(&theta)?;
         Ok(Self { theta, f_o, f_e, sigma_o, sigma_e, poisson })
@@ -289,6 +287,16 @@ impl Measurement {
     pub fn reduce(&self) -> Result<Reduction, Error> {
         reduce(self)
     }
+}
+
+fn check_total(f_o: &[f64], f_e: &[f64]) -> Result<(), Error> {
+    for (i, (o, e)) in f_o.iter().zip(f_e).enumerate() {
+        let total = o + e;
+        if !(total > 0.0) {
+            return Err(Error::NonPositiveFlux { index: i, total });
+        }
+    }
+    Ok(())
 }
 
 fn check_len(what: &'static str, got: usize, expected: usize) -> Result<(), Error> {
@@ -433,8 +441,10 @@ mod tests {
     fn validation_names_the_input() {
         let e = Measurement::poisson(opt(4), vec![1.0, 2.0, 3.0], vec![1.0; 4]).unwrap_err();
         assert_eq!(e, Error::LengthMismatch { what: "f_O", got: 3, expected: 4 });
-        let e = Measurement::poisson(opt(4), vec![1.0, 2.0, -3.0, 1.0], vec![1.0; 4]).unwrap_err();
+        let e = Measurement::poisson(opt(4), vec![1.0, 2.0, -0.5, 1.0], vec![1.0; 4]).unwrap_err();
         assert!(matches!(e, Error::Invalid { what: "f_O", index: 2, .. }));
+        let e = Measurement::poisson(opt(4), vec![1.0, 2.0, -3.0, 1.0], vec![1.0; 4]).unwrap_err();
+        assert_eq!(e, Error::NonPositiveFlux { index: 2, total: -2.0 });
         let e = Measurement::with_errors(opt(4), vec![1.0, 2.0, -3.0, 1.0], vec![1.0; 4], vec![1.0; 4], vec![1.0; 4])
             .unwrap_err();
         assert_eq!(e, Error::NonPositiveFlux { index: 2, total: -2.0 });
