@@ -228,7 +228,7 @@ pub fn exact_jacobian(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<((f64, f64),
 
 /// `J C J^T` for symmetric `C = [[a, c], [c, b]]`, returned as `(var_q, var_u, cov)`.
 #[inline]
-fn sandwich(j: &[[f64; 2]; 2], a: f64, b: f64, c: f64) -> (f64, f64, f64) {
+pub(crate) fn sandwich(j: &[[f64; 2]; 2], a: f64, b: f64, c: f64) -> (f64, f64, f64) {
     let r0 = [j[0][0] * a + j[0][1] * c, j[0][0] * c + j[0][1] * b];
     let r1 = [j[1][0] * a + j[1][1] * c, j[1][0] * c + j[1][1] * b];
     (r0[0] * j[0][0] + r0[1] * j[0][1], r1[0] * j[1][0] + r1[1] * j[1][1], r0[0] * j[1][0] + r0[1] * j[1][1])

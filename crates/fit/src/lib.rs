@@ -9,3 +9,4 @@
 
 pub mod model;
 pub mod correct;
+pub mod standards;
