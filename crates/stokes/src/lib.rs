@@ -12,8 +12,10 @@
 
 pub mod fourier;
 pub mod kappa;
+pub mod mc;
 pub mod reduce;
 pub mod solver;
+pub mod stats;
 
 pub use reduce::{reduce, Estimator, Measurement, Reduction, Warning};
 pub use solver::{normalized_difference, polarization, sigma_normalized_difference, QuEstimate, StokesSolver};
