@@ -1,19 +1,346 @@
-//! `instpol stokes`: reduce one source's dual-beam fluxes.
+//! `instpol stokes`: reduce one source's dual-beam fluxes (the `stokes` crate does the work).
 
-use anyhow::Result;
+use anyhow::{anyhow, bail, Context, Result};
+use serde::Serialize;
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+use stokes::{Error as RedError, Measurement, Reduction};
 
 /// Reduce the ordinary/extraordinary fluxes of one source at N half-wave-plate angles to
-/// Q/I, U/I, P, chi with errors, Fourier harmonics and the Wollaston kappa.
+/// Q/I, U/I, P, chi with errors, the Fourier harmonics of F_i and the Wollaston kappa
+/// (Patat & Romaniello 2006, eq:F, eq:Q, eq:U, eq:sigp, eq:sigchi, eq:fourcoeff, eq:kappa2).
+///
+/// Input: a CSV file with a header row naming the columns (any order; other columns are
+/// ignored; lines starting with # are comments):
+///
+///   hwp_deg  HWP angle in degrees (the optimal set is 0, 22.5, 45, ...)
+///   f_o      ordinary-beam flux
+///   f_e      extraordinary-beam flux
+///   sigma_o  (optional) 1-sigma error of f_o
+///   sigma_e  (optional) 1-sigma error of f_e
+///
+/// Without sigma_o/sigma_e the fluxes must be photon counts in electrons and their Poisson
+/// errors sqrt(f) are used. With N = 4k angles on the optimal set, Q/I and U/I are the
+/// Fourier sums eq:Q/eq:U and the harmonics are computed; other sets use (weighted) least
+/// squares. kappa needs N >= 4.
+///
+/// Output: a table (P in %, angles in deg) or, with --json, the fields n_hwp, q, u, p
+/// (fractions), chi_deg in [0, 180), sigma_p, sigma_chi_deg (null when P = 0), a0, kappa
+/// (array), kappa_mean (null when none), fourier (array of {k, a, b, sigma_a, sigma_b}),
+/// warnings, plus extra detail fields.
 #[derive(clap::Args)]
+#[command(verbatim_doc_comment)]
 pub struct Args {
-    /// CSV with columns hwp_deg,f_o,f_e[,sigma_o,sigma_e].
-    #[arg(long)]
-    pub input: std::path::PathBuf,
-    /// Print JSON.
+    /// CSV with columns hwp_deg,f_o,f_e[,sigma_o,sigma_e] (header required).
+    #[arg(long, value_name = "FILE.csv")]
+    pub input: PathBuf,
+    /// Known Wollaston imbalance kappa = (t - s)/(t + s), dimensionless in (-1, 1): the fluxes
+    /// are corrected (f_o / (1 + kappa), f_e / (1 - kappa)) before the reduction. Default: no
+    /// correction.
+    #[arg(long, value_name = "K", allow_negative_numbers = true)]
+    pub kappa: Option<f64>,
+    /// Print JSON instead of the table.
     #[arg(long)]
     pub json: bool,
 }
 
-pub fn run(_a: Args) -> Result<()> {
-    anyhow::bail!("not yet implemented")
+/// The parsed CSV: one entry per data row.
+struct Table {
+    hwp_deg: Vec<f64>,
+    f_o: Vec<f64>,
+    f_e: Vec<f64>,
+    sigma: Option<(Vec<f64>, Vec<f64>)>,
+    /// File line number of each data row (1-based).
+    lines: Vec<u64>,
+}
+
+fn read_table(path: &Path) -> Result<Table> {
+    let name = path.display();
+    let mut rdr = csv::ReaderBuilder::new()
+        .comment(Some(b'#'))
+        .trim(csv::Trim::All)
+        .from_path(path)
+        .with_context(|| format!("cannot read {name}"))?;
+    let headers: Vec<String> = rdr
+        .headers()
+        .with_context(|| format!("{name}: cannot read the header row"))?
+        .iter()
+        .map(|h| h.to_ascii_lowercase())
+        .collect();
+    let col = |c: &str| -> Result<Option<usize>> {
+        let idx: Vec<usize> = headers.iter().enumerate().filter(|(_, h)| *h == c).map(|(i, _)| i).collect();
+        match idx.len() {
+            0 => Ok(None),
+            1 => Ok(Some(idx[0])),
+            _ => bail!("{name}: column '{c}' appears {} times in the header", idx.len()),
+        }
+    };
+    let need = |c: &str| -> Result<usize> {
+        col(c)?.ok_or_else(|| {
+            anyhow!(
+                "{name}: missing column '{c}' (header has: {}; need hwp_deg,f_o,f_e[,sigma_o,sigma_e])",
+                headers.join(",")
+            )
+        })
+    };
+    let (ci, co, ce) = (need("hwp_deg")?, need("f_o")?, need("f_e")?);
+    let sig = match (col("sigma_o")?, col("sigma_e")?) {
+        (Some(a), Some(b)) => Some((a, b)),
+        (None, None) => None,
+        (Some(_), None) => bail!("{name}: column 'sigma_o' is given without 'sigma_e' (give both or neither)"),
+        (None, Some(_)) => bail!("{name}: column 'sigma_e' is given without 'sigma_o' (give both or neither)"),
+    };
+    let mut t =
+        Table { hwp_deg: vec![], f_o: vec![], f_e: vec![], sigma: sig.map(|_| (vec![], vec![])), lines: vec![] };
+    for (r, rec) in rdr.records().enumerate() {
+        let row = r + 1;
+        let rec = rec.with_context(|| format!("{name}: row {row}: malformed CSV record"))?;
+        let line = rec.position().map(|p| p.line()).unwrap_or(0);
+        let get = |c: usize, cname: &str| -> Result<f64> {
+            let s = rec.get(c).unwrap_or("");
+            let v: f64 = s
+                .parse()
+                .map_err(|_| anyhow!("{name}: row {row} (line {line}), column '{cname}': '{s}' is not a number"))?;
+            if !v.is_finite() {
+                bail!("{name}: row {row} (line {line}), column '{cname}': '{s}' is not a finite number");
+            }
+            Ok(v)
+        };
+        t.hwp_deg.push(get(ci, "hwp_deg")?);
+        t.f_o.push(get(co, "f_o")?);
+        t.f_e.push(get(ce, "f_e")?);
+        if let (Some((a, b)), Some((so, se))) = (sig, t.sigma.as_mut()) {
+            so.push(get(a, "sigma_o")?);
+            se.push(get(b, "sigma_e")?);
+        }
+        t.lines.push(line);
+    }
+    Ok(t)
+}
+
+/// Say which row a library error is about.
+fn explain(e: RedError, t: &Table, name: &str) -> anyhow::Error {
+    let row = |i: usize| format!("row {} (line {}, hwp_deg = {})", i + 1, t.lines[i], t.hwp_deg[i]);
+    match e {
+        RedError::TooFewAngles(n) => anyhow!("{name}: need at least 2 HWP angles (data rows), found {n}"),
+        RedError::DuplicateAngle { first, second, deg } => anyhow!(
+            "{name}: rows {} (line {}) and {} (line {}) are the same HWP position ({deg} deg, equal modulo 360 deg)",
+            first + 1,
+            t.lines[first],
+            second + 1,
+            t.lines[second]
+        ),
+        RedError::NonPositiveFlux { index, total } => {
+            anyhow!("{name}: {}: total flux f_o + f_e = {total} is not positive", row(index))
+        }
+        RedError::Invalid { index, .. } | RedError::NonFinite { index, .. } if index < t.lines.len() => {
+            anyhow!("{name}: {}: {e}", row(index))
+        }
+        e => anyhow!("{name}: {e}"),
+    }
+}
+
+#[derive(Serialize)]
+struct JsonHarmonic {
+    k: usize,
+    a: f64,
+    b: f64,
+    sigma_a: f64,
+    sigma_b: f64,
+    power: f64,
+}
+
+/// The JSON output. The first fields are the contract of issue 2; the rest is detail.
+#[derive(Serialize)]
+struct JsonOut {
+    n_hwp: usize,
+    q: f64,
+    u: f64,
+    p: f64,
+    chi_deg: f64,
+    sigma_p: f64,
+    sigma_chi_deg: Option<f64>,
+    a0: f64,
+    kappa: Vec<f64>,
+    kappa_mean: Option<f64>,
+    fourier: Vec<JsonHarmonic>,
+    warnings: Vec<String>,
+    input: String,
+    estimator: stokes::Estimator,
+    kappa_correction: Option<f64>,
+    sigma_q: f64,
+    sigma_u: f64,
+    cov_qu: f64,
+    chi_defined: bool,
+    snr: f64,
+    sigma_p_analytic: f64,
+    sigma_chi_analytic_deg: Option<f64>,
+    sigma_a0: f64,
+    f: Vec<f64>,
+    sigma_f: Vec<f64>,
+}
+
+fn finite(x: f64) -> Option<f64> {
+    x.is_finite().then_some(x)
+}
+
+/// chi in degrees folded into [0, 180) (rounding at the wrap).
+fn chi_deg(chi: f64) -> f64 {
+    let d = chi.to_degrees();
+    if d >= 180.0 {
+        d - 180.0
+    } else {
+        d
+    }
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let name = a.input.display().to_string();
+    let t = read_table(&a.input)?;
+    let theta: Vec<f64> = t.hwp_deg.iter().map(|d| d.to_radians()).collect();
+    let m = match &t.sigma {
+        Some((so, se)) => Measurement::with_errors(theta, t.f_o.clone(), t.f_e.clone(), so.clone(), se.clone()),
+        None => Measurement::poisson(theta, t.f_o.clone(), t.f_e.clone()),
+    }
+    .map_err(|e| explain(e, &t, &name))?;
+    let m = match a.kappa {
+        Some(k) => m.corrected_for_kappa(k).map_err(|e| anyhow!("--kappa: {e}"))?,
+        None => m,
+    };
+    let r = m.reduce().map_err(|e| explain(e, &t, &name))?;
+    if a.json {
+        crate::util::print_json(&json(&r, &name, a.kappa))
+    } else {
+        // A closed pipe (`| head`) is not an error worth a panic.
+        match std::io::stdout().write_all(table(&r, &t, &name, a.kappa).as_bytes()) {
+            Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
+            _ => Ok(()),
+        }
+    }
+}
+
+fn json(r: &Reduction, name: &str, kappa: Option<f64>) -> JsonOut {
+    JsonOut {
+        n_hwp: r.n,
+        q: r.qu.q,
+        u: r.qu.u,
+        p: r.p,
+        chi_deg: chi_deg(r.chi),
+        sigma_p: r.sigma_p,
+        sigma_chi_deg: finite(r.sigma_chi.to_degrees()),
+        a0: r.a0,
+        kappa: r.kappa.iter().map(|e| e.kappa).collect(),
+        kappa_mean: r.kappa_mean,
+        fourier: r
+            .fourier
+            .iter()
+            .map(|h| JsonHarmonic { k: h.k, a: h.a, b: h.b, sigma_a: h.sigma_a, sigma_b: h.sigma_b, power: h.power() })
+            .collect(),
+        warnings: r.warnings.iter().map(|w| w.to_string()).collect(),
+        input: name.to_string(),
+        estimator: r.estimator,
+        kappa_correction: kappa,
+        sigma_q: r.qu.var_q.sqrt(),
+        sigma_u: r.qu.var_u.sqrt(),
+        cov_qu: r.qu.cov_qu,
+        chi_defined: r.chi_defined,
+        snr: r.snr,
+        sigma_p_analytic: r.sigma_p_analytic,
+        sigma_chi_analytic_deg: finite(r.sigma_chi_analytic.to_degrees()),
+        sigma_a0: r.sigma_a0,
+        f: r.f.clone(),
+        sigma_f: r.sigma_f.clone(),
+    }
+}
+
+/// `writeln!` into a String (cannot fail).
+macro_rules! wl {
+    ($o:expr, $($t:tt)*) => {{
+        let _ = writeln!($o, $($t)*);
+    }};
+}
+
+fn pct(x: f64) -> String {
+    format!("{:9.4} %", 100.0 * x)
+}
+
+fn table(r: &Reduction, t: &Table, name: &str, kappa: Option<f64>) -> String {
+    let mut o = String::new();
+    let how = match r.estimator {
+        stokes::Estimator::FourierSums => "Fourier sums eq:Q/eq:U",
+        stokes::Estimator::LeastSquares => "least squares of eq:system",
+        stokes::Estimator::WeightedLeastSquares => "weighted least squares of eq:system",
+    };
+    let errs = if t.sigma.is_some() { "per-beam errors from the file" } else { "Poisson errors of counts" };
+    wl!(o, "instpol stokes: {name}");
+    wl!(o, "  N = {} HWP angles, {how}, {errs}", r.n);
+    if let Some(k) = kappa {
+        wl!(o, "  fluxes corrected for kappa = {k} (f_o/(1+kappa), f_e/(1-kappa))");
+    }
+    o.push('\n');
+    wl!(o, "  {:<8} {:>11}   {:>11}", "", "value", "1-sigma");
+    wl!(o, "  {:<8} {}   {}", "Q/I", pct(r.qu.q), pct(r.qu.var_q.sqrt()));
+    wl!(o, "  {:<8} {}   {}", "U/I", pct(r.qu.u), pct(r.qu.var_u.sqrt()));
+    wl!(
+        o,
+        "  {:<8} {}   {}   (eq:sigp: {} at SNR {:.0})",
+        "P",
+        pct(r.p),
+        pct(r.sigma_p),
+        pct(r.sigma_p_analytic).trim(),
+        r.snr
+    );
+    let sc = if r.sigma_chi.is_finite() { format!("{:9.3} deg", r.sigma_chi.to_degrees()) } else { "undefined".into() };
+    let chi = if r.chi_defined { format!("{:9.3} deg", chi_deg(r.chi)) } else { "undefined".into() };
+    wl!(o, "  {:<8} {chi:>11}   {sc:>11}", "chi");
+    wl!(o, "  {:<8} {}   {}   (eq:a0: ~ kappa or post-analyzer B cos 2phi)", "a0", pct(r.a0), pct(r.sigma_a0));
+    match r.kappa_mean {
+        Some(k) => {
+            let lo = r.kappa.iter().map(|e| e.kappa).fold(f64::INFINITY, f64::min);
+            let hi = r.kappa.iter().map(|e| e.kappa).fold(f64::NEG_INFINITY, f64::max);
+            wl!(
+                o,
+                "  {:<8} {:11.3e}   mean of {} estimates kappa_j (eq:kappa2), range [{lo:.3e}, {hi:.3e}]",
+                "kappa",
+                k,
+                r.kappa.len()
+            );
+        }
+        None => wl!(o, "  {:<8} {:>11}", "kappa", "-"),
+    }
+    o.push('\n');
+    wl!(o, "  {:>3} {:>9} {:>11} {:>11}", "i", "hwp_deg", "F_i (%)", "sigma (%)");
+    for i in 0..r.n {
+        wl!(o, "  {:>3} {:>9.2} {:>11.4} {:>11.4}", i, t.hwp_deg[i], 100.0 * r.f[i], 100.0 * r.sigma_f[i]);
+    }
+    if !r.fourier.is_empty() {
+        o.push('\n');
+        wl!(o, "  Harmonics (eq:fourcoeff): amplitude sqrt(a_k^2 + b_k^2); k = {} is the polarization", r.n / 4);
+        wl!(o, "  {:>3} {:>10} {:>10} {:>10} {:>8}", "k", "a_k (%)", "b_k (%)", "ampl (%)", "ampl/sig");
+        let amax = r.fourier.iter().map(|h| h.amplitude()).fold(0.0f64, f64::max);
+        for h in &r.fourier {
+            // k = 0 and the Nyquist harmonic have no sine part.
+            let sig = if h.sigma_b == 0.0 { h.sigma_a } else { h.sigma_a.hypot(h.sigma_b) / 2f64.sqrt() };
+            let snr = if sig > 0.0 { format!("{:8.1}", h.amplitude() / sig) } else { format!("{:>8}", "-") };
+            let w = if amax > 0.0 { (40.0 * h.amplitude() / amax).round() as usize } else { 0 };
+            wl!(
+                o,
+                "  {:>3} {:>10.4} {:>10.4} {:>10.4} {snr} {}",
+                h.k,
+                100.0 * h.a,
+                100.0 * h.b,
+                100.0 * h.amplitude(),
+                "#".repeat(w)
+            );
+        }
+    }
+    if !r.warnings.is_empty() {
+        o.push('\n');
+        wl!(o, "  warnings:");
+        for w in &r.warnings {
+            wl!(o, "  - {w}");
+        }
+    }
+    o
 }
