@@ -5,8 +5,50 @@
 //!
 //! A model is a value that answers "what is the instrumental polarization here"
 //! ([`model::FieldModel`]); fitters, the calibration file and the correction do not care which
-//! model it is.
+//! model it is. This crate does not read frames or make Stokes maps (that is `skyfield`), and
+//! it draws no plots (that is the CLI).
 
+pub mod bins;
+pub mod calfile;
+pub mod gridmap;
 pub mod model;
+pub mod polar;
+pub mod radial;
+pub mod region;
+pub mod residual;
+pub mod wavelength;
+
+pub use bins::Bin;
+pub use calfile::{Calibration, Model};
+pub use model::{FieldModel, InstPol};
+pub use radial::{fit_radial, RadialFit, RadialFitOptions, RadialModel};
+pub use region::{Exclusion, FieldRegion};
+
+use std::path::PathBuf;
+
+/// Errors of the field models and calibration files: each names the input at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("too few usable bins for the fit: {used} of {total} bins are usable (valid, not excluded), need at least {needed}")]
+    TooFewBins { used: usize, total: usize, needed: usize },
+    #[error("degenerate fit: {0}")]
+    Degenerate(String),
+    #[error("fit failed: {0}")]
+    FitFailed(String),
+    #[error("bad exclusion region '{spec}': {why}")]
+    BadExclusion { spec: String, why: String },
+    #[error("bad input: {0}")]
+    Input(String),
+    #[error("{path}: calibration file format version {found} is newer than this instpol understands (up to {supported}); upgrade instpol to read it")]
+    NewerFormat { path: PathBuf, found: i64, supported: i64 },
+    #[error("{path}: {what}")]
+    BadFile { path: PathBuf, what: String },
+    #[error("{path}: FITS error while {doing}: {message}")]
+    Fits { path: PathBuf, doing: String, message: String },
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+}
+
+pub type Result<T> = std::result::Result<T, Error>;
 pub mod correct;
 pub mod standards;

@@ -13,6 +13,7 @@ pub mod beams;
 pub mod bin;
 pub mod io;
 pub mod maps;
+pub mod solve;
 
 pub use beams::BeamGeometry;
 pub use maps::{BinGeometry, StokesMap};

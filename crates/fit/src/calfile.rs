@@ -1,0 +1,751 @@
+//! The calibration file: one multi-extension FITS per instrument and filter, readable by
+//! astropy with no help (DESIGN.md, Files).
+//!
+//! Layout (format version [`FORMAT_VERSION`]):
+//! - primary HDU, no data; `HIERARCH IP ...` keywords: format version, instrument, filter,
+//!   wavelength, HWP chi offset, model kind, centre (arcmin, and pixels when there is a pixel
+//!   grid), radial coefficients (fractions, r in arcmin) with errors and full covariance, RMS of
+//!   the residuals, polar-angle test, valid field region, exclusions, provenance (sky values,
+//!   tool version, date, number of input files);
+//! - `QMAP`, `UMAP`, `QERR`, `UERR`: images of the instrumental `Q/I`, `U/I` and their errors on
+//!   a regular grid (linear WCS in arcmin from the detector centre: `CRVALn` is the centre of
+//!   pixel `CRPIXn = 1`, `CDELTn` the step); for an imported map these images are the model;
+//! - `BINS`: binary table of the binned measurements the fit used (positions, `q`, `u`, errors,
+//!   the approximate solution, the model and residuals, a USED flag);
+//! - `INPUTS`: binary table of input file names (present when there were input files).
+//!
+//! Files are written to a temporary file in the destination folder and renamed, so a failed
+//! write never leaves a half-written calibration. A reader refuses files of a newer format.
+
+use crate::bins::Bin;
+use crate::gridmap::GridMap;
+use crate::model::{FieldModel, InstPol};
+use crate::polar::PolarAngleTest;
+use crate::radial::RadialModel;
+use crate::region::{Exclusion, FieldRegion};
+use crate::residual::{ResidualMap, ResidualPoint};
+use crate::{Error, Result};
+use fitsio::hdu::FitsHdu;
+use fitsio::images::{ImageDescription, ImageType};
+use fitsio::tables::{ColumnDataType, ColumnDescription};
+use fitsio::FitsFile;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// The calibration-file format this build writes and the newest it reads.
+pub const FORMAT_VERSION: i64 = 1;
+
+/// The model a calibration holds.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Model {
+    /// A radial polynomial about an optical-axis centre.
+    Radial(RadialModel),
+    /// A radial polynomial plus the natural-neighbour interpolant of its residuals (fields that
+    /// are not radial, such as the paper's B band).
+    RadialResidual { radial: RadialModel, residual: ResidualMap },
+    /// A gridded map (e.g. imported from another tool), bilinearly interpolated.
+    Map(GridMap),
+}
+
+impl Model {
+    /// Keyword value naming the model kind.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Model::Radial(_) => "RADIAL",
+            Model::RadialResidual { .. } => "RADIAL+RESIDUAL",
+            Model::Map(_) => "MAP",
+        }
+    }
+
+    /// The radial part, if any.
+    pub fn radial(&self) -> Option<&RadialModel> {
+        match self {
+            Model::Radial(r) | Model::RadialResidual { radial: r, .. } => Some(r),
+            Model::Map(_) => None,
+        }
+    }
+}
+
+/// Where a calibration came from.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct Provenance {
+    /// Input files (frames, or the imported maps).
+    pub inputs: Vec<String>,
+    /// Sky polarization assumed by the sky-field solution (fraction, degrees), if any.
+    pub sky_p: Option<f64>,
+    pub sky_chi_deg: Option<f64>,
+    /// "sky-field", "imported map", "simulation", ...
+    pub source: String,
+    pub tool_version: String,
+    /// UTC, ISO 8601.
+    pub date: String,
+}
+
+impl Provenance {
+    /// Provenance stamped with this tool's version and the current UTC date.
+    pub fn now(source: &str, inputs: Vec<String>) -> Self {
+        Provenance {
+            inputs,
+            sky_p: None,
+            sky_chi_deg: None,
+            source: source.into(),
+            tool_version: format!("instpol {}", env!("CARGO_PKG_VERSION")),
+            date: utc_now_iso(),
+        }
+    }
+}
+
+/// The detector pixel grid behind the field coordinates: field position `(0, 0)` arcmin is
+/// 0-based pixel `origin_px`, and one pixel is `scale_arcsec`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PixelGrid {
+    pub scale_arcsec: f64,
+    pub origin_px: [f64; 2],
+}
+
+impl PixelGrid {
+    /// 0-based pixel of field position `(x, y)` arcmin.
+    pub fn to_px(&self, x: f64, y: f64) -> [f64; 2] {
+        let s = 60.0 / self.scale_arcsec;
+        [self.origin_px[0] + x * s, self.origin_px[1] + y * s]
+    }
+}
+
+/// Summary of the polar-angle test kept in the file.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PolarAngleSummary {
+    pub slope: f64,
+    pub slope_err: f64,
+    pub intercept_deg: f64,
+    pub intercept_err_deg: f64,
+}
+
+impl From<&PolarAngleTest> for PolarAngleSummary {
+    fn from(t: &PolarAngleTest) -> Self {
+        PolarAngleSummary {
+            slope: t.slope,
+            slope_err: t.slope_err,
+            intercept_deg: t.intercept_deg,
+            intercept_err_deg: t.intercept_err_deg,
+        }
+    }
+}
+
+/// A calibration of the instrumental polarization of one instrument in one filter.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Calibration {
+    pub format_version: i64,
+    pub instrument: String,
+    pub filter: String,
+    /// Effective wavelength (nm), NaN when unknown.
+    pub lambda_nm: f64,
+    /// HWP chromatic zero angle added to measured chi (deg), as in the instrument file.
+    pub hwp_chi_offset_deg: f64,
+    pub model: Model,
+    /// Where the model is valid (arcmin from the detector centre).
+    pub region: FieldRegion,
+    /// RMS per component of the fit residuals (fraction), NaN when there was no fit.
+    pub rms_residual: f64,
+    pub n_bins_used: usize,
+    pub polar_angle: Option<PolarAngleSummary>,
+    pub exclusions: Vec<Exclusion>,
+    /// Robust loss of the fit ("huber:1.345", "none", ...).
+    pub robust: String,
+    pub pixel: Option<PixelGrid>,
+    pub provenance: Provenance,
+    /// The binned measurements (the BINS table).
+    pub bins: Vec<Bin>,
+    /// The gridded images. For a [`Model::Map`] they are the model itself; for the other models
+    /// the model evaluated on a grid, for people and other tools.
+    pub grid: Option<GridMap>,
+}
+
+impl Calibration {
+    /// The optical-axis centre (arcmin): the radial model's, else the detector centre.
+    pub fn centre_arcmin(&self) -> [f64; 2] {
+        self.model.radial().map(|r| r.centre).unwrap_or([0.0, 0.0])
+    }
+
+    /// The centre in 0-based detector pixels, when the field has a pixel grid.
+    pub fn centre_px(&self) -> Option<[f64; 2]> {
+        let c = self.centre_arcmin();
+        self.pixel.map(|g| g.to_px(c[0], c[1]))
+    }
+
+    /// Evaluate the model on a regular grid of `step` arcmin over the region, for the images.
+    pub fn gridded(&self, step: f64) -> GridMap {
+        let r = &self.region;
+        let nx = (((r.x_max - r.x_min) / step).floor() as usize + 1).max(2);
+        let ny = (((r.y_max - r.y_min) / step).floor() as usize + 1).max(2);
+        let mut g = GridMap {
+            nx,
+            ny,
+            x0: r.x_min,
+            y0: r.y_min,
+            dx: step,
+            dy: step,
+            q: vec![f64::NAN; nx * ny],
+            u: vec![f64::NAN; nx * ny],
+            sigma_q: vec![f64::NAN; nx * ny],
+            sigma_u: vec![f64::NAN; nx * ny],
+        };
+        for j in 0..ny {
+            for i in 0..nx {
+                let (x, y) = g.pixel_centre(i, j);
+                if !self.contains(x, y) {
+                    continue;
+                }
+                let v = self.eval(x, y);
+                let k = j * nx + i;
+                g.q[k] = v.q;
+                g.u[k] = v.u;
+                g.sigma_q[k] = v.var_q.sqrt();
+                g.sigma_u[k] = v.var_u.sqrt();
+            }
+        }
+        g
+    }
+
+    /// Write the calibration to `path` atomically (temporary file in the same folder, then
+    /// rename). Non-map models get their images from [`Self::gridded`] when `grid` is None.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        let tmp = tempfile::Builder::new()
+            .prefix(".instpol-cal-")
+            .suffix(".fits")
+            .tempfile_in(dir)
+            .map_err(|source| Error::Io { path: dir.to_path_buf(), source })?;
+        {
+            let mut f = FitsFile::create(tmp.path()).overwrite().open().map_err(fits_err(path, "creating the file"))?;
+            self.write_to(&mut f, path)?;
+        }
+        tmp.persist(path).map_err(|e| Error::Io { path: path.to_path_buf(), source: e.error })?;
+        Ok(())
+    }
+
+    fn write_to(&self, f: &mut FitsFile, path: &Path) -> Result<()> {
+        let e = |doing: &str| fits_err(path, doing);
+        let hdu = f.primary_hdu().map_err(e("opening the primary HDU"))?;
+        let mut w = KeyWriter { f, hdu: &hdu, path };
+        w.int("FORMAT VERSION", FORMAT_VERSION)?;
+        w.str("INSTRUMENT", &self.instrument)?;
+        w.str("FILTER", &self.filter)?;
+        w.real("LAMBDA NM", self.lambda_nm)?;
+        w.real("HWP CHI OFFSET DEG", self.hwp_chi_offset_deg)?;
+        w.str("MODEL", self.model.kind())?;
+        w.str("UNITS", "fractions; arcmin from detector centre; degrees")?;
+        w.real("RMS RESID", self.rms_residual)?;
+        w.int("NBINS USED", self.n_bins_used as i64)?;
+        w.str("ROBUST", &self.robust)?;
+        w.real("REGION XMIN", self.region.x_min)?;
+        w.real("REGION XMAX", self.region.x_max)?;
+        w.real("REGION YMIN", self.region.y_min)?;
+        w.real("REGION YMAX", self.region.y_max)?;
+        w.int("NEXCL", self.exclusions.len() as i64)?;
+        for (k, ex) in self.exclusions.iter().enumerate() {
+            w.str(&format!("EXCL{}", k + 1), &ex.spec())?;
+        }
+        let c = self.centre_arcmin();
+        w.real("CENTRE X", c[0])?;
+        w.real("CENTRE Y", c[1])?;
+        if let Some(r) = self.model.radial() {
+            let ce = r.centre_errors();
+            w.int("CENTRE FREE", r.centre_free as i64)?;
+            w.real("CENTRE X ERR", ce[0])?;
+            w.real("CENTRE Y ERR", ce[1])?;
+            w.int("RADIAL FIRST POWER", r.first_power as i64)?;
+            w.int("RADIAL DEGREE", r.degree() as i64)?;
+            let errs = r.coefficient_errors();
+            for (i, (cv, ev)) in r.coeffs.iter().zip(&errs).enumerate() {
+                let k = r.first_power + i;
+                w.real(&format!("RADIAL C{k}"), *cv)?;
+                w.real(&format!("RADIAL C{k} ERR"), *ev)?;
+            }
+            let np = r.n_params();
+            for i in 0..np {
+                for j in i..np {
+                    w.real(&format!("COV {i} {j}"), r.cov_at(i, j))?;
+                }
+            }
+        }
+        if let Model::RadialResidual { residual, .. } = &self.model {
+            w.real("RESID LOO RMS Q", residual.loo_rms_q)?;
+            w.real("RESID LOO RMS U", residual.loo_rms_u)?;
+        }
+        if let Some(pa) = &self.polar_angle {
+            w.real("POLANG SLOPE", pa.slope)?;
+            w.real("POLANG SLOPE ERR", pa.slope_err)?;
+            w.real("POLANG ICPT DEG", pa.intercept_deg)?;
+            w.real("POLANG ICPT ERR", pa.intercept_err_deg)?;
+        }
+        if let Some(g) = &self.pixel {
+            w.real("PIX SCALE ARCSEC", g.scale_arcsec)?;
+            w.real("PIX ORIGIN X", g.origin_px[0])?;
+            w.real("PIX ORIGIN Y", g.origin_px[1])?;
+            let cp = g.to_px(c[0], c[1]);
+            w.real("PIX CENTRE X", cp[0])?;
+            w.real("PIX CENTRE Y", cp[1])?;
+        }
+        let pv = &self.provenance;
+        if let Some(p) = pv.sky_p {
+            w.real("SKY P", p)?;
+        }
+        if let Some(chi) = pv.sky_chi_deg {
+            w.real("SKY CHI DEG", chi)?;
+        }
+        w.str("SOURCE", &pv.source)?;
+        w.str("TOOL", &pv.tool_version)?;
+        w.str("DATE", &pv.date)?;
+        w.int("NINPUT", pv.inputs.len() as i64)?;
+
+        // Images.
+        let grid = match (&self.model, &self.grid) {
+            (Model::Map(g), _) => g.clone(),
+            (_, Some(g)) => g.clone(),
+            _ => self.gridded(0.1),
+        };
+        for (name, data, what) in [
+            ("QMAP", &grid.q, "instrumental Q/I"),
+            ("UMAP", &grid.u, "instrumental U/I"),
+            ("QERR", &grid.sigma_q, "1-sigma error of Q/I"),
+            ("UERR", &grid.sigma_u, "1-sigma error of U/I"),
+        ] {
+            let desc = ImageDescription { data_type: ImageType::Double, dimensions: &[grid.ny, grid.nx] };
+            let h = f.create_image(name, &desc).map_err(e(&format!("creating image {name}")))?;
+            h.write_image(f, data).map_err(e(&format!("writing image {name}")))?;
+            let mut w = KeyWriter { f, hdu: &h, path };
+            w.plain("BUNIT", "fraction")?;
+            w.plain("COMMENT1", what)?;
+            w.plain("CTYPE1", "X-ARCMIN")?;
+            w.plain("CTYPE2", "Y-ARCMIN")?;
+            w.plain("CUNIT1", "arcmin")?;
+            w.plain("CUNIT2", "arcmin")?;
+            w.plain_real("CRPIX1", 1.0)?;
+            w.plain_real("CRPIX2", 1.0)?;
+            w.plain_real("CRVAL1", grid.x0)?;
+            w.plain_real("CRVAL2", grid.y0)?;
+            w.plain_real("CDELT1", grid.dx)?;
+            w.plain_real("CDELT2", grid.dy)?;
+        }
+
+        // The binned measurements.
+        let model_qu: Vec<(f64, f64)> = self
+            .bins
+            .iter()
+            .map(|b| match &self.model {
+                Model::Radial(r) | Model::RadialResidual { radial: r, .. } => r.qu(b.x, b.y),
+                Model::Map(g) => g.interpolate(b.x, b.y).map(|v| (v.q, v.u)).unwrap_or((f64::NAN, f64::NAN)),
+            })
+            .collect();
+        let dcols = [
+            "X_ARCMIN",
+            "Y_ARCMIN",
+            "Q",
+            "U",
+            "SIGMA_Q",
+            "SIGMA_U",
+            "P",
+            "PHI_DEG",
+            "P_APPROX",
+            "PHI_APPROX_DEG",
+            "MODEL_Q",
+            "MODEL_U",
+            "RES_Q",
+            "RES_U",
+        ];
+        let mut descs = vec![];
+        for c in dcols {
+            descs.push(
+                ColumnDescription::new(c).with_type(ColumnDataType::Double).create().map_err(e("describing BINS"))?,
+            );
+        }
+        descs.push(
+            ColumnDescription::new("USED").with_type(ColumnDataType::Int).create().map_err(e("describing BINS"))?,
+        );
+        let h = f.create_table("BINS", &descs).map_err(e("creating table BINS"))?;
+        let col = |g: &dyn Fn(usize) -> f64| (0..self.bins.len()).map(g).collect::<Vec<f64>>();
+        let b = &self.bins;
+        let columns: Vec<(&str, Vec<f64>)> = vec![
+            ("X_ARCMIN", col(&|i| b[i].x)),
+            ("Y_ARCMIN", col(&|i| b[i].y)),
+            ("Q", col(&|i| b[i].q)),
+            ("U", col(&|i| b[i].u)),
+            ("SIGMA_Q", col(&|i| b[i].sigma_q)),
+            ("SIGMA_U", col(&|i| b[i].sigma_u)),
+            ("P", col(&|i| b[i].p_phi().0)),
+            ("PHI_DEG", col(&|i| b[i].p_phi().1.to_degrees())),
+            ("P_APPROX", col(&|i| b[i].p_approx)),
+            ("PHI_APPROX_DEG", col(&|i| b[i].phi_approx.to_degrees())),
+            ("MODEL_Q", col(&|i| model_qu[i].0)),
+            ("MODEL_U", col(&|i| model_qu[i].1)),
+            ("RES_Q", col(&|i| b[i].q - model_qu[i].0)),
+            ("RES_U", col(&|i| b[i].u - model_qu[i].1)),
+        ];
+        if !b.is_empty() {
+            for (name, v) in &columns {
+                h.write_col(f, *name, v).map_err(e(&format!("writing column {name}")))?;
+            }
+            let used: Vec<i32> = b.iter().map(|x| x.used as i32).collect();
+            h.write_col(f, "USED", &used).map_err(e("writing column USED"))?;
+        }
+        if !pv.inputs.is_empty() {
+            let width = pv.inputs.iter().map(|s| s.len()).max().unwrap_or(1).max(1);
+            let d = ColumnDescription::new("FILE")
+                .with_type(ColumnDataType::String)
+                .that_repeats(width)
+                .create()
+                .map_err(e("describing INPUTS"))?;
+            let h = f.create_table("INPUTS", &[d]).map_err(e("creating table INPUTS"))?;
+            h.write_col(f, "FILE", &pv.inputs).map_err(e("writing INPUTS"))?;
+        }
+        Ok(())
+    }
+
+    /// Read a calibration file. Files of a newer format version are refused with an error
+    /// that says so; missing keywords are named.
+    pub fn load(path: &Path) -> Result<Self> {
+        if !path.is_file() {
+            return Err(Error::Io {
+                path: path.into(),
+                source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such calibration file"),
+            });
+        }
+        let e = |doing: &str| fits_err(path, doing);
+        let mut f = FitsFile::open(path).map_err(e("opening"))?;
+        let hdu = f.primary_hdu().map_err(e("reading the primary HDU"))?;
+        let mut r = KeyReader { f: &mut f, hdu: &hdu, path };
+        let version = r.int("FORMAT VERSION")?;
+        if version > FORMAT_VERSION {
+            return Err(Error::NewerFormat { path: path.into(), found: version, supported: FORMAT_VERSION });
+        }
+        if version < 1 {
+            return Err(Error::BadFile { path: path.into(), what: format!("format version {version} is not valid") });
+        }
+        let instrument = r.str("INSTRUMENT")?;
+        let filter = r.str("FILTER")?;
+        let lambda_nm = r.opt_real("LAMBDA NM").unwrap_or(f64::NAN);
+        let hwp_chi_offset_deg = r.opt_real("HWP CHI OFFSET DEG").unwrap_or(0.0);
+        let kind = r.str("MODEL")?;
+        let rms_residual = r.opt_real("RMS RESID").unwrap_or(f64::NAN);
+        let n_bins_used = r.opt_int("NBINS USED").unwrap_or(0).max(0) as usize;
+        let robust = r.opt_str("ROBUST").unwrap_or_default();
+        let region = FieldRegion {
+            x_min: r.real("REGION XMIN")?,
+            x_max: r.real("REGION XMAX")?,
+            y_min: r.real("REGION YMIN")?,
+            y_max: r.real("REGION YMAX")?,
+        };
+        let nexcl = r.opt_int("NEXCL").unwrap_or(0);
+        let mut exclusions = vec![];
+        for k in 1..=nexcl {
+            let s = r.str(&format!("EXCL{k}"))?;
+            exclusions.push(s.parse::<Exclusion>().map_err(|err| Error::BadFile {
+                path: path.into(),
+                what: format!("keyword HIERARCH IP EXCL{k}: {err}"),
+            })?);
+        }
+        let radial = if kind == "RADIAL" || kind == "RADIAL+RESIDUAL" {
+            let first_power = r.int("RADIAL FIRST POWER")?;
+            let degree = r.int("RADIAL DEGREE")?;
+            if !(0..=1).contains(&first_power) || degree < first_power || degree > 20 {
+                return Err(Error::BadFile {
+                    path: path.into(),
+                    what: format!("radial powers {first_power}..{degree} are not valid"),
+                });
+            }
+            let coeffs =
+                (first_power..=degree).map(|k| r.real(&format!("RADIAL C{k}"))).collect::<Result<Vec<f64>>>()?;
+            let np = coeffs.len() + 2;
+            let mut cov = vec![0.0; np * np];
+            for i in 0..np {
+                for j in i..np {
+                    let v = r.opt_real(&format!("COV {i} {j}")).unwrap_or(0.0);
+                    cov[i * np + j] = v;
+                    cov[j * np + i] = v;
+                }
+            }
+            Some(RadialModel {
+                first_power: first_power as usize,
+                coeffs,
+                centre: [r.real("CENTRE X")?, r.real("CENTRE Y")?],
+                centre_free: r.opt_int("CENTRE FREE").unwrap_or(0) != 0,
+                cov,
+            })
+        } else if kind == "MAP" {
+            None
+        } else {
+            return Err(Error::BadFile { path: path.into(), what: format!("unknown model kind MODEL = '{kind}'") });
+        };
+        let polar_angle = r.opt_real("POLANG SLOPE").map(|slope| PolarAngleSummary {
+            slope,
+            slope_err: r.opt_real("POLANG SLOPE ERR").unwrap_or(f64::NAN),
+            intercept_deg: r.opt_real("POLANG ICPT DEG").unwrap_or(f64::NAN),
+            intercept_err_deg: r.opt_real("POLANG ICPT ERR").unwrap_or(f64::NAN),
+        });
+        let pixel = r.opt_real("PIX SCALE ARCSEC").map(|scale_arcsec| PixelGrid {
+            scale_arcsec,
+            origin_px: [r.opt_real("PIX ORIGIN X").unwrap_or(0.0), r.opt_real("PIX ORIGIN Y").unwrap_or(0.0)],
+        });
+        let mut provenance = Provenance {
+            inputs: vec![],
+            sky_p: r.opt_real("SKY P"),
+            sky_chi_deg: r.opt_real("SKY CHI DEG"),
+            source: r.opt_str("SOURCE").unwrap_or_default(),
+            tool_version: r.opt_str("TOOL").unwrap_or_default(),
+            date: r.opt_str("DATE").unwrap_or_default(),
+        };
+        let ninput = r.opt_int("NINPUT").unwrap_or(0);
+
+        // Images.
+        let mut planes = vec![];
+        let (mut nx, mut ny, mut x0, mut y0, mut dx, mut dy) = (0, 0, 0.0, 0.0, 1.0, 1.0);
+        for name in ["QMAP", "UMAP", "QERR", "UERR"] {
+            let h = f.hdu(name).map_err(e(&format!("finding image extension {name}")))?;
+            if let fitsio::hdu::HduInfo::ImageInfo { shape, .. } = &h.info {
+                if shape.len() != 2 {
+                    return Err(Error::BadFile { path: path.into(), what: format!("{name} is not a 2-D image") });
+                }
+                ny = shape[0];
+                nx = shape[1];
+            } else {
+                return Err(Error::BadFile { path: path.into(), what: format!("{name} is not an image") });
+            }
+            let data: Vec<f64> = h.read_image(&mut f).map_err(e(&format!("reading image {name}")))?;
+            if name == "QMAP" {
+                let mut r = KeyReader { f: &mut f, hdu: &h, path };
+                x0 = r.plain_real("CRVAL1")?;
+                y0 = r.plain_real("CRVAL2")?;
+                dx = r.plain_real("CDELT1")?;
+                dy = r.plain_real("CDELT2")?;
+                let (p1, p2) = (r.plain_real("CRPIX1")?, r.plain_real("CRPIX2")?);
+                x0 -= (p1 - 1.0) * dx;
+                y0 -= (p2 - 1.0) * dy;
+            }
+            planes.push(data);
+        }
+        let grid = GridMap {
+            nx,
+            ny,
+            x0,
+            y0,
+            dx,
+            dy,
+            sigma_u: planes.pop().unwrap_or_default(),
+            sigma_q: planes.pop().unwrap_or_default(),
+            u: planes.pop().unwrap_or_default(),
+            q: planes.pop().unwrap_or_default(),
+        };
+
+        // Bins.
+        let h = f.hdu("BINS").map_err(e("finding table BINS"))?;
+        let nrows = match &h.info {
+            fitsio::hdu::HduInfo::TableInfo { num_rows, .. } => *num_rows,
+            _ => return Err(Error::BadFile { path: path.into(), what: "BINS is not a table".into() }),
+        };
+        let mut bins = vec![];
+        if nrows > 0 {
+            let mut get = |c: &str| -> Result<Vec<f64>> {
+                h.read_col::<f64>(&mut f, c).map_err(e(&format!("reading BINS column {c}")))
+            };
+            let (x, y, q, u, sq, su, pa, pha) = (
+                get("X_ARCMIN")?,
+                get("Y_ARCMIN")?,
+                get("Q")?,
+                get("U")?,
+                get("SIGMA_Q")?,
+                get("SIGMA_U")?,
+                get("P_APPROX")?,
+                get("PHI_APPROX_DEG")?,
+            );
+            let used: Vec<i32> = h.read_col(&mut f, "USED").map_err(e("reading BINS column USED"))?;
+            for i in 0..nrows {
+                bins.push(Bin {
+                    x: x[i],
+                    y: y[i],
+                    q: q[i],
+                    u: u[i],
+                    sigma_q: sq[i],
+                    sigma_u: su[i],
+                    p_approx: pa[i],
+                    phi_approx: pha[i].to_radians(),
+                    used: used[i] != 0,
+                });
+            }
+        }
+        if ninput > 0 {
+            let h = f.hdu("INPUTS").map_err(e("finding table INPUTS"))?;
+            provenance.inputs = h.read_col::<String>(&mut f, "FILE").map_err(e("reading INPUTS"))?;
+        }
+
+        let model = match (kind.as_str(), radial) {
+            ("RADIAL", Some(r)) => Model::Radial(r),
+            ("RADIAL+RESIDUAL", Some(r)) => {
+                let residual = residual_from_bins(&r, &bins)?;
+                Model::RadialResidual { radial: r, residual }
+            }
+            _ => Model::Map(grid.clone()),
+        };
+        Ok(Calibration {
+            format_version: version,
+            instrument,
+            filter,
+            lambda_nm,
+            hwp_chi_offset_deg,
+            model,
+            region,
+            rms_residual,
+            n_bins_used,
+            polar_angle,
+            exclusions,
+            robust,
+            pixel,
+            provenance,
+            bins,
+            grid: Some(grid),
+        })
+    }
+}
+
+/// The residual interpolant of a radial model: the residuals `q - q_model`, `u - u_model` of
+/// the used bins, interpolated by natural neighbours.
+pub fn residual_from_bins(radial: &RadialModel, bins: &[Bin]) -> Result<ResidualMap> {
+    let pts = bins
+        .iter()
+        .filter(|b| b.used && b.is_valid())
+        .map(|b| {
+            let (q, u) = radial.qu(b.x, b.y);
+            ResidualPoint { x: b.x, y: b.y, dq: b.q - q, du: b.u - u }
+        })
+        .collect();
+    ResidualMap::new(pts)
+}
+
+impl FieldModel for Calibration {
+    fn eval(&self, x: f64, y: f64) -> InstPol {
+        match &self.model {
+            Model::Radial(r) => r.eval(x, y),
+            Model::RadialResidual { radial, residual } => {
+                let mut v = radial.eval(x, y);
+                if let Some((dq, du)) = residual.eval(x, y) {
+                    v.q += dq;
+                    v.u += du;
+                    v.var_q += residual.loo_rms_q.powi(2);
+                    v.var_u += residual.loo_rms_u.powi(2);
+                }
+                v
+            }
+            Model::Map(g) => g.eval(x, y),
+        }
+    }
+
+    fn contains(&self, x: f64, y: f64) -> bool {
+        self.region.contains(x, y)
+            && match &self.model {
+                Model::Radial(_) => true,
+                Model::RadialResidual { residual, .. } => residual.eval(x, y).is_some(),
+                Model::Map(g) => g.contains(x, y),
+            }
+    }
+}
+
+fn fits_err(path: &Path, doing: &str) -> impl Fn(fitsio::errors::Error) -> Error {
+    let (path, doing) = (path.to_path_buf(), doing.to_string());
+    move |err| Error::Fits { path: path.clone(), doing: doing.clone(), message: err.to_string() }
+}
+
+/// Writes `HIERARCH IP <name>` keywords (and plain ones) to one HDU.
+struct KeyWriter<'a> {
+    f: &'a mut FitsFile,
+    hdu: &'a FitsHdu,
+    path: &'a Path,
+}
+
+impl KeyWriter<'_> {
+    fn err(&self, key: &str, e: fitsio::errors::Error) -> Error {
+        Error::Fits { path: self.path.to_path_buf(), doing: format!("writing keyword {key}"), message: e.to_string() }
+    }
+    fn str(&mut self, name: &str, v: &str) -> Result<()> {
+        let key = format!("HIERARCH IP {name}");
+        // A HIERARCH card holds about 68 characters of name and value together.
+        let max = 66usize.saturating_sub(key.len()).max(8);
+        let v: String = v.chars().take(max).collect();
+        self.hdu.write_key(self.f, &key, v).map_err(|e| self.err(&key, e))
+    }
+    fn real(&mut self, name: &str, v: f64) -> Result<()> {
+        if !v.is_finite() {
+            // FITS has no NaN keyword value: leave the keyword out (readers treat it as unknown).
+            return Ok(());
+        }
+        let key = format!("HIERARCH IP {name}");
+        self.hdu.write_key(self.f, &key, v).map_err(|e| self.err(&key, e))
+    }
+    fn int(&mut self, name: &str, v: i64) -> Result<()> {
+        let key = format!("HIERARCH IP {name}");
+        self.hdu.write_key(self.f, &key, v).map_err(|e| self.err(&key, e))
+    }
+    fn plain(&mut self, key: &str, v: &str) -> Result<()> {
+        self.hdu.write_key(self.f, key, v).map_err(|e| self.err(key, e))
+    }
+    fn plain_real(&mut self, key: &str, v: f64) -> Result<()> {
+        self.hdu.write_key(self.f, key, v).map_err(|e| self.err(key, e))
+    }
+}
+
+/// Reads `HIERARCH IP <name>` keywords, naming the keyword and file when one is missing.
+struct KeyReader<'a> {
+    f: &'a mut FitsFile,
+    hdu: &'a FitsHdu,
+    path: &'a Path,
+}
+
+impl KeyReader<'_> {
+    fn missing(&self, key: &str, e: fitsio::errors::Error) -> Error {
+        Error::BadFile {
+            path: PathBuf::from(self.path),
+            what: format!("keyword {key} is missing or unreadable ({e}); is this an instpol calibration file?"),
+        }
+    }
+    fn str(&mut self, name: &str) -> Result<String> {
+        let key = format!("HIERARCH IP {name}");
+        self.hdu.read_key::<String>(self.f, &key).map_err(|e| self.missing(&key, e))
+    }
+    fn real(&mut self, name: &str) -> Result<f64> {
+        let key = format!("HIERARCH IP {name}");
+        self.hdu.read_key::<f64>(self.f, &key).map_err(|e| self.missing(&key, e))
+    }
+    fn int(&mut self, name: &str) -> Result<i64> {
+        let key = format!("HIERARCH IP {name}");
+        self.hdu.read_key::<i64>(self.f, &key).map_err(|e| self.missing(&key, e))
+    }
+    fn opt_str(&mut self, name: &str) -> Option<String> {
+        self.str(name).ok()
+    }
+    fn opt_real(&mut self, name: &str) -> Option<f64> {
+        self.real(name).ok()
+    }
+    fn opt_int(&mut self, name: &str) -> Option<i64> {
+        self.int(name).ok()
+    }
+    fn plain_real(&mut self, key: &str) -> Result<f64> {
+        self.hdu.read_key::<f64>(self.f, key).map_err(|e| self.missing(key, e))
+    }
+}
+
+/// The current UTC time as ISO 8601 (no time-zone crate needed for this one stamp).
+pub fn utc_now_iso() -> String {
+    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0);
+    let days = (secs / 86400) as i64;
+    let rem = secs % 86400;
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36524 - doe / 146_096) / 365;
+    let y = yoe + era * 400;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = if m <= 2 { y + 1 } else { y };
+    format!("{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z", rem / 3600, (rem % 3600) / 60, rem % 60)
+}

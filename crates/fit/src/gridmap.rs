@@ -1,0 +1,146 @@
+//! A gridded map of the instrumental `Q/I`, `U/I` with errors: the form in which calibration
+//! files store their images, and the model of an imported third-party map.
+
+use crate::model::{FieldModel, InstPol};
+use serde::{Deserialize, Serialize};
+
+/// A regular grid of `q`, `u` (fractions) and their errors, row-major `[j * nx + i]`, NaN where
+/// there is no measurement. Pixel `(i, j)` is centred at `(x0 + i dx, y0 + j dy)` arcmin.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GridMap {
+    pub nx: usize,
+    pub ny: usize,
+    pub x0: f64,
+    pub y0: f64,
+    pub dx: f64,
+    pub dy: f64,
+    pub q: Vec<f64>,
+    pub u: Vec<f64>,
+    pub sigma_q: Vec<f64>,
+    pub sigma_u: Vec<f64>,
+}
+
+impl GridMap {
+    /// Centre of pixel `(i, j)` in arcmin.
+    pub fn pixel_centre(&self, i: usize, j: usize) -> (f64, f64) {
+        (self.x0 + i as f64 * self.dx, self.y0 + j as f64 * self.dy)
+    }
+
+    /// Whether pixel `(i, j)` holds a measurement.
+    pub fn is_finite_at(&self, i: usize, j: usize) -> bool {
+        let k = j * self.nx + i;
+        self.q[k].is_finite() && self.u[k].is_finite()
+    }
+
+    /// Fractional pixel coordinates of `(x, y)` arcmin.
+    fn frac(&self, x: f64, y: f64) -> (f64, f64) {
+        ((x - self.x0) / self.dx, (y - self.y0) / self.dy)
+    }
+
+    /// Bilinear interpolation over the measured corners of the cell around `(x, y)`: corners
+    /// without a measurement are left out and the weights renormalized, so the map is usable
+    /// up to its NaN edges. `None` when no corner is measured or the point is off the grid.
+    pub fn interpolate(&self, x: f64, y: f64) -> Option<InstPol> {
+        let (fi, fj) = self.frac(x, y);
+        if !(fi > -0.5 && fj > -0.5 && fi < self.nx as f64 - 0.5 && fj < self.ny as f64 - 0.5) {
+            return None;
+        }
+        let i0 = fi.floor().clamp(0.0, (self.nx.max(2) - 2) as f64) as usize;
+        let j0 = fj.floor().clamp(0.0, (self.ny.max(2) - 2) as f64) as usize;
+        let (tx, ty) = ((fi - i0 as f64).clamp(0.0, 1.0), (fj - j0 as f64).clamp(0.0, 1.0));
+        let mut acc = [0.0; 5];
+        let mut wsum = 0.0;
+        for (di, dj, w) in
+            [(0, 0, (1.0 - tx) * (1.0 - ty)), (1, 0, tx * (1.0 - ty)), (0, 1, (1.0 - tx) * ty), (1, 1, tx * ty)]
+        {
+            let (i, j) = (i0 + di, j0 + dj);
+            if i >= self.nx || j >= self.ny || w <= 0.0 || !self.is_finite_at(i, j) {
+                continue;
+            }
+            let k = j * self.nx + i;
+            acc[0] += w * self.q[k];
+            acc[1] += w * self.u[k];
+            acc[2] += w * self.sigma_q[k].powi(2);
+            acc[3] += w * self.sigma_u[k].powi(2);
+            wsum += w;
+        }
+        if wsum <= 0.0 {
+            // The point sits exactly on a measured pixel whose neighbours are all NaN.
+            let (i, j) = (fi.round() as usize, fj.round() as usize);
+            if i < self.nx && j < self.ny && self.is_finite_at(i, j) {
+                let k = j * self.nx + i;
+                return Some(InstPol {
+                    q: self.q[k],
+                    u: self.u[k],
+                    var_q: self.sigma_q[k].powi(2),
+                    var_u: self.sigma_u[k].powi(2),
+                    cov_qu: 0.0,
+                });
+            }
+            return None;
+        }
+        // The pixel errors are treated as fully correlated between neighbours (smoothed maps),
+        // so the variance is the weighted mean of the variances.
+        Some(InstPol { q: acc[0] / wsum, u: acc[1] / wsum, var_q: acc[2] / wsum, var_u: acc[3] / wsum, cov_qu: 0.0 })
+    }
+}
+
+impl FieldModel for GridMap {
+    fn eval(&self, x: f64, y: f64) -> InstPol {
+        self.interpolate(x, y).unwrap_or(InstPol {
+            q: f64::NAN,
+            u: f64::NAN,
+            var_q: f64::NAN,
+            var_u: f64::NAN,
+            cov_qu: 0.0,
+        })
+    }
+
+    fn contains(&self, x: f64, y: f64) -> bool {
+        let (fi, fj) = self.frac(x, y);
+        let (i, j) = (fi.round(), fj.round());
+        i >= 0.0
+            && j >= 0.0
+            && (i as usize) < self.nx
+            && (j as usize) < self.ny
+            && self.is_finite_at(i as usize, j as usize)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bilinear_is_exact_on_planes_and_respects_nan() {
+        let (nx, ny) = (5, 4);
+        let f = |x: f64, y: f64| 0.01 * x - 0.002 * y;
+        let mut g = GridMap {
+            nx,
+            ny,
+            x0: -1.0,
+            y0: -2.0,
+            dx: 0.5,
+            dy: 0.25,
+            q: vec![0.0; nx * ny],
+            u: vec![0.0; nx * ny],
+            sigma_q: vec![1e-4; nx * ny],
+            sigma_u: vec![1e-4; nx * ny],
+        };
+        for j in 0..ny {
+            for i in 0..nx {
+                let (x, y) = g.pixel_centre(i, j);
+                g.q[j * nx + i] = f(x, y);
+                g.u[j * nx + i] = -f(x, y);
+            }
+        }
+        let v = g.interpolate(-0.1, -1.6).unwrap();
+        assert!((v.q - f(-0.1, -1.6)).abs() < 1e-15 && (v.u + f(-0.1, -1.6)).abs() < 1e-15);
+        assert!((v.var_q.sqrt() - 1e-4).abs() < 1e-18);
+        assert!(g.interpolate(10.0, 0.0).is_none());
+        g.q[nx + 1] = f64::NAN;
+        assert!(!g.contains(-0.5, -1.75));
+        let v = g.interpolate(-0.4, -1.7).unwrap();
+        assert!(v.q.is_finite(), "a NaN corner is left out");
+    }
+}

@@ -1,0 +1,553 @@
+//! The radial field model of section `sec:fors1`: `p(r) = sum_k c_k r^k` about an optical-axis
+//! centre, with the polarization angle along the radius (`phi = alpha`), fitted by robust
+//! weighted least squares to the `(q, u)` of each bin.
+//!
+//! Fitting `q = p(r) cos 2 alpha`, `u = p(r) sin 2 alpha` rather than `p` keeps the fit free of
+//! the positive bias of `p` at low signal-to-noise (section `sec:bias`), lets `p(r)` change
+//! sign (a tangential pattern is a negative `p`), and constrains the centre through the angles.
+
+use crate::bins::Bin;
+use crate::model::{FieldModel, InstPol};
+use crate::region::Exclusion;
+use crate::{Error, Result};
+use argmin::core::{CostFunction, Executor, Jacobian, Operator, State};
+use argmin::solver::gaussnewton::GaussNewton;
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+
+/// The radial polynomial model `p(r) = sum_{k = first_power}^{degree} c_k r^k` (r in arcmin,
+/// `p` a fraction), the angle `phi = alpha` (the polar angle about `centre`).
+///
+/// The paper's V- and I-band fits (section `sec:fors1`) have `first_power = 1`: `p` vanishes on
+/// the axis. Parameter order everywhere (covariance, errors): `c_first..c_degree, x0, y0`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RadialModel {
+    pub first_power: usize,
+    pub coeffs: Vec<f64>,
+    /// Optical-axis centre, arcmin from the detector centre.
+    pub centre: [f64; 2],
+    pub centre_free: bool,
+    /// Covariance of `(c..., x0, y0)`, row-major, `n_params()^2` values; the centre rows are
+    /// zero when the centre was fixed.
+    pub cov: Vec<f64>,
+}
+
+impl RadialModel {
+    /// A model with no covariance (e.g. a simulation's input pattern).
+    pub fn new(first_power: usize, coeffs: Vec<f64>, centre: [f64; 2]) -> Self {
+        let n = coeffs.len() + 2;
+        RadialModel { first_power, coeffs, centre, centre_free: false, cov: vec![0.0; n * n] }
+    }
+
+    /// Highest power of r.
+    pub fn degree(&self) -> usize {
+        self.first_power + self.coeffs.len().saturating_sub(1)
+    }
+
+    /// Number of parameters in the covariance: the coefficients and the two centre coordinates.
+    pub fn n_params(&self) -> usize {
+        self.coeffs.len() + 2
+    }
+
+    /// `cov[i][j]`.
+    pub fn cov_at(&self, i: usize, j: usize) -> f64 {
+        self.cov[i * self.n_params() + j]
+    }
+
+    /// One-sigma errors of the coefficients.
+    pub fn coefficient_errors(&self) -> Vec<f64> {
+        (0..self.coeffs.len()).map(|i| self.cov_at(i, i).max(0.0).sqrt()).collect()
+    }
+
+    /// One-sigma errors of the centre (0 when fixed).
+    pub fn centre_errors(&self) -> [f64; 2] {
+        let n = self.coeffs.len();
+        [self.cov_at(n, n).max(0.0).sqrt(), self.cov_at(n + 1, n + 1).max(0.0).sqrt()]
+    }
+
+    /// `p(r)`, the paper's radial polynomial (section `sec:fors1`).
+    pub fn p_of_r(&self, r: f64) -> f64 {
+        // Horner in r, then the r^first_power factor.
+        let mut s = 0.0;
+        for c in self.coeffs.iter().rev() {
+            s = s * r + c;
+        }
+        s * r.powi(self.first_power as i32)
+    }
+
+    /// One-sigma error of `p(r)` from the coefficient covariance.
+    pub fn p_of_r_sigma(&self, r: f64) -> f64 {
+        let g: Vec<f64> = (0..self.coeffs.len()).map(|i| r.powi((self.first_power + i) as i32)).collect();
+        let mut v = 0.0;
+        for i in 0..g.len() {
+            for j in 0..g.len() {
+                v += g[i] * g[j] * self.cov_at(i, j);
+            }
+        }
+        v.max(0.0).sqrt()
+    }
+
+    /// `(q, u)` at `(x, y)` arcmin and their derivatives with respect to the parameters
+    /// `(c..., x0, y0)`.
+    fn eval_with_gradient(&self, x: f64, y: f64, gq: &mut [f64], gu: &mut [f64]) -> (f64, f64) {
+        radial_eval(self.first_power, &self.coeffs, self.centre, x, y, gq, gu)
+    }
+
+    /// `(q, u)` at `(x, y)` arcmin.
+    pub fn qu(&self, x: f64, y: f64) -> (f64, f64) {
+        let n = self.n_params();
+        let (mut gq, mut gu) = (vec![0.0; n], vec![0.0; n]);
+        self.eval_with_gradient(x, y, &mut gq, &mut gu)
+    }
+}
+
+/// `q = p(r) cos 2 alpha = g(r) (dx^2 - dy^2)`, `u = p(r) sin 2 alpha = 2 g(r) dx dy` with
+/// `g = p / r^2`: the form without angles, smooth wherever `p(r) / r^2` is. Fills the gradient
+/// with respect to `(c..., x0, y0)`.
+fn radial_eval(
+    first_power: usize,
+    coeffs: &[f64],
+    centre: [f64; 2],
+    x: f64,
+    y: f64,
+    gq: &mut [f64],
+    gu: &mut [f64],
+) -> (f64, f64) {
+    let (dx, dy) = (x - centre[0], y - centre[1]);
+    let r = dx.hypot(dy);
+    gq.iter_mut().chain(gu.iter_mut()).for_each(|g| *g = 0.0);
+    let nc = coeffs.len();
+    if r < 1e-12 {
+        // On the axis the angle is undefined; only a c_0 term would be non-zero there, and its
+        // direction is arbitrary: take alpha = 0.
+        if first_power == 0 {
+            gq[0] = 1.0;
+            return (coeffs[0], 0.0);
+        }
+        return (0.0, 0.0);
+    }
+    let (c2, s2) = ((dx * dx - dy * dy) / (r * r), 2.0 * dx * dy / (r * r));
+    let mut p = 0.0;
+    let mut dp = 0.0;
+    for (i, c) in coeffs.iter().enumerate() {
+        let k = first_power + i;
+        let rk = r.powi(k as i32);
+        p += c * rk;
+        if k > 0 {
+            dp += c * k as f64 * r.powi(k as i32 - 1);
+        }
+        gq[i] = rk * c2;
+        gu[i] = rk * s2;
+    }
+    // d/dx0 = -d/ddx. q = p c2: dq/ddx = p' dx/r c2 + p dc2/ddx; dc2/ddx = 2 dx/r^2 (1 - c2)... use
+    // c2 = cos 2a, s2 = sin 2a with da/ddx = -dy/r^2, da/ddy = dx/r^2.
+    let (drdx, drdy) = (dx / r, dy / r);
+    let (dadx, dady) = (-dy / (r * r), dx / (r * r));
+    let dq_ddx = dp * drdx * c2 - 2.0 * p * s2 * dadx;
+    let dq_ddy = dp * drdy * c2 - 2.0 * p * s2 * dady;
+    let du_ddx = dp * drdx * s2 + 2.0 * p * c2 * dadx;
+    let du_ddy = dp * drdy * s2 + 2.0 * p * c2 * dady;
+    gq[nc] = -dq_ddx;
+    gq[nc + 1] = -dq_ddy;
+    gu[nc] = -du_ddx;
+    gu[nc + 1] = -du_ddy;
+    (p * c2, p * s2)
+}
+
+impl FieldModel for RadialModel {
+    fn eval(&self, x: f64, y: f64) -> InstPol {
+        let n = self.n_params();
+        let (mut gq, mut gu) = (vec![0.0; n], vec![0.0; n]);
+        let (q, u) = self.eval_with_gradient(x, y, &mut gq, &mut gu);
+        let (mut vq, mut vu, mut cqu) = (0.0, 0.0, 0.0);
+        for i in 0..n {
+            for j in 0..n {
+                let c = self.cov_at(i, j);
+                vq += gq[i] * gq[j] * c;
+                vu += gu[i] * gu[j] * c;
+                cqu += gq[i] * gu[j] * c;
+            }
+        }
+        InstPol { q, u, var_q: vq.max(0.0), var_u: vu.max(0.0), cov_qu: cqu }
+    }
+
+    fn contains(&self, _x: f64, _y: f64) -> bool {
+        true
+    }
+}
+
+/// Down-weighting of outlying bins in the fit (iteratively reweighted least squares on the
+/// bin's standardized residual `t`, scaled by a robust estimate of its spread when that
+/// exceeds 1).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub enum Robust {
+    /// Plain weighted least squares.
+    None,
+    /// Huber: weight 1 for `|t| <= k`, `k / |t|` beyond (k = 1.345: 95% efficiency).
+    Huber(f64),
+    /// Cauchy: weight `1 / (1 + (t / k)^2)` (k = 2.385).
+    Cauchy(f64),
+}
+
+impl Robust {
+    fn weight(&self, t: f64) -> f64 {
+        match *self {
+            Robust::None => 1.0,
+            Robust::Huber(k) => {
+                if t.abs() <= k {
+                    1.0
+                } else {
+                    k / t.abs()
+                }
+            }
+            Robust::Cauchy(k) => 1.0 / (1.0 + (t / k).powi(2)),
+        }
+    }
+
+    /// Name for files and reports.
+    pub fn name(&self) -> String {
+        match self {
+            Robust::None => "none".into(),
+            Robust::Huber(k) => format!("huber:{k}"),
+            Robust::Cauchy(k) => format!("cauchy:{k}"),
+        }
+    }
+}
+
+/// How to fit a [`RadialModel`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RadialFitOptions {
+    /// Highest power of r (default 3, as the paper).
+    pub degree: usize,
+    /// Fit a constant `c_0` too (default false: `p` vanishes on the axis, as the paper assumes).
+    pub include_c0: bool,
+    /// Fit the optical-axis centre (default false: fixed at `centre`).
+    pub free_centre: bool,
+    /// The fixed centre, or the starting point of a free one (arcmin; default the detector centre).
+    pub centre: [f64; 2],
+    /// Parts of the field left out.
+    pub exclusions: Vec<Exclusion>,
+    pub robust: Robust,
+}
+
+impl Default for RadialFitOptions {
+    fn default() -> Self {
+        RadialFitOptions {
+            degree: 3,
+            include_c0: false,
+            free_centre: false,
+            centre: [0.0, 0.0],
+            exclusions: vec![],
+            robust: Robust::Huber(1.345),
+        }
+    }
+}
+
+impl RadialFitOptions {
+    /// Parse a model name `radialN` (N = degree, e.g. `radial3`), optionally `radial0N` to
+    /// include `c_0`.
+    pub fn set_model_name(&mut self, name: &str) -> Result<()> {
+        let bad = || Error::Input(format!("unknown model '{name}': expected radialN (N = degree 1..8, e.g. radial3)"));
+        let digits = name.strip_prefix("radial").ok_or_else(bad)?;
+        let d: usize = digits.parse().map_err(|_| bad())?;
+        if !(1..=8).contains(&d) {
+            return Err(bad());
+        }
+        self.degree = d;
+        Ok(())
+    }
+}
+
+/// The result of a radial fit.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RadialFit {
+    pub model: RadialModel,
+    /// Reduced chi^2 of the (robustly weighted) fit; the covariance is scaled by it.
+    pub chi2_reduced: f64,
+    /// RMS per component of the residuals `q - q_model`, `u - u_model` over the used bins.
+    pub rms_residual: f64,
+    pub n_used: usize,
+    /// Per input bin: used by the fit (valid and not excluded).
+    pub used: Vec<bool>,
+    /// Per input bin: final robust weight (0 for unused bins).
+    pub weights: Vec<f64>,
+}
+
+/// The least-squares problem argmin sees: standardized, weighted residuals of the used bins.
+struct Problem<'a> {
+    bins: Vec<&'a Bin>,
+    /// sqrt(robust weight) / sigma for q and u.
+    wq: Vec<f64>,
+    wu: Vec<f64>,
+    first_power: usize,
+    nc: usize,
+    free_centre: bool,
+    fixed_centre: [f64; 2],
+}
+
+impl Problem<'_> {
+    fn split(&self, p: &DVector<f64>) -> (Vec<f64>, [f64; 2]) {
+        let c = p.as_slice()[..self.nc].to_vec();
+        let centre = if self.free_centre { [p[self.nc], p[self.nc + 1]] } else { self.fixed_centre };
+        (c, centre)
+    }
+    fn n_free(&self) -> usize {
+        self.nc + if self.free_centre { 2 } else { 0 }
+    }
+}
+
+impl Operator for Problem<'_> {
+    type Param = DVector<f64>;
+    type Output = DVector<f64>;
+    fn apply(&self, p: &DVector<f64>) -> std::result::Result<DVector<f64>, argmin::core::Error> {
+        let (c, centre) = self.split(p);
+        let n = self.bins.len();
+        let mut r = DVector::zeros(2 * n);
+        let (mut gq, mut gu) = (vec![0.0; self.nc + 2], vec![0.0; self.nc + 2]);
+        for (i, b) in self.bins.iter().enumerate() {
+            let (q, u) = radial_eval(self.first_power, &c, centre, b.x, b.y, &mut gq, &mut gu);
+            r[2 * i] = (q - b.q) * self.wq[i];
+            r[2 * i + 1] = (u - b.u) * self.wu[i];
+        }
+        Ok(r)
+    }
+}
+
+impl CostFunction for Problem<'_> {
+    type Param = DVector<f64>;
+    type Output = f64;
+    fn cost(&self, p: &DVector<f64>) -> std::result::Result<f64, argmin::core::Error> {
+        Ok(self.apply(p)?.norm_squared())
+    }
+}
+
+impl Jacobian for Problem<'_> {
+    type Param = DVector<f64>;
+    type Jacobian = DMatrix<f64>;
+    fn jacobian(&self, p: &DVector<f64>) -> std::result::Result<DMatrix<f64>, argmin::core::Error> {
+        let (c, centre) = self.split(p);
+        let n = self.bins.len();
+        let m = self.n_free();
+        let mut j = DMatrix::zeros(2 * n, m);
+        let (mut gq, mut gu) = (vec![0.0; self.nc + 2], vec![0.0; self.nc + 2]);
+        for (i, b) in self.bins.iter().enumerate() {
+            radial_eval(self.first_power, &c, centre, b.x, b.y, &mut gq, &mut gu);
+            for k in 0..m {
+                j[(2 * i, k)] = gq[k] * self.wq[i];
+                j[(2 * i + 1, k)] = gu[k] * self.wu[i];
+            }
+        }
+        Ok(j)
+    }
+}
+
+/// Run argmin's Gauss-Newton from `start`; if a full step does not lower the cost (a free
+/// centre far from the start), retry with damped steps.
+fn gauss_newton(problem: &Problem, start: DVector<f64>) -> Result<DVector<f64>> {
+    let start_cost = problem.cost(&start).map_err(|e| Error::FitFailed(e.to_string()))?;
+    let mut last_err = String::new();
+    for gamma in [1.0, 0.5, 0.25] {
+        let solver = GaussNewton::new().with_gamma(gamma).map_err(|e| Error::FitFailed(e.to_string()))?;
+        let run = Executor::new(ProblemRef(problem), solver)
+            .configure(|s| s.param(start.clone()).max_iters(if gamma == 1.0 { 50 } else { 200 }))
+            .run();
+        match run {
+            Ok(res) => {
+                let best = res.state().get_best_param().or(res.state().get_param()).cloned();
+                if let Some(p) = best {
+                    let c = problem.cost(&p).map_err(|e| Error::FitFailed(e.to_string()))?;
+                    if c.is_finite() && c <= start_cost * (1.0 + 1e-12) {
+                        return Ok(p);
+                    }
+                    last_err = format!("cost rose from {start_cost} to {c}");
+                }
+            }
+            Err(e) => last_err = e.to_string(),
+        }
+    }
+    Err(Error::FitFailed(format!("Gauss-Newton did not converge: {last_err}")))
+}
+
+/// argmin's executor owns its problem; this lends it ours.
+struct ProblemRef<'a, 'b>(&'a Problem<'b>);
+impl Operator for ProblemRef<'_, '_> {
+    type Param = DVector<f64>;
+    type Output = DVector<f64>;
+    fn apply(&self, p: &DVector<f64>) -> std::result::Result<DVector<f64>, argmin::core::Error> {
+        self.0.apply(p)
+    }
+}
+impl Jacobian for ProblemRef<'_, '_> {
+    type Param = DVector<f64>;
+    type Jacobian = DMatrix<f64>;
+    fn jacobian(&self, p: &DVector<f64>) -> std::result::Result<DMatrix<f64>, argmin::core::Error> {
+        self.0.jacobian(p)
+    }
+}
+
+/// Ratio of the smallest to the largest singular value of `j` with unit-norm columns: near 0
+/// when some parameter (combination) is not constrained by the data.
+fn conditioning(j: &DMatrix<f64>) -> f64 {
+    let mut j = j.clone();
+    for mut col in j.column_iter_mut() {
+        let n = col.norm();
+        if n > 0.0 {
+            col /= n;
+        }
+    }
+    let sv = j.singular_values();
+    let max = sv.max();
+    if max > 0.0 {
+        sv.min() / max
+    } else {
+        0.0
+    }
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// Fit the radial model (section `sec:fors1`) to the bins by robust weighted least squares on
+/// `(q, u)` (argmin Gauss-Newton inside iteratively reweighted least squares). The covariance
+/// comes from the Jacobian at the solution, scaled by the reduced chi^2.
+pub fn fit_radial(bins: &[Bin], opts: &RadialFitOptions) -> Result<RadialFit> {
+    let first_power = if opts.include_c0 { 0 } else { 1 };
+    if opts.degree < first_power.max(1) {
+        return Err(Error::Input(format!("degree {} is too low for the radial model", opts.degree)));
+    }
+    let nc = opts.degree - first_power + 1;
+    let n_free = nc + if opts.free_centre { 2 } else { 0 };
+    let used: Vec<bool> =
+        bins.iter().map(|b| b.is_valid() && !opts.exclusions.iter().any(|e| e.excludes(b.x, b.y))).collect();
+    let sel: Vec<&Bin> = bins.iter().zip(&used).filter(|(_, u)| **u).map(|(b, _)| b).collect();
+    // Two numbers per bin; ask for a few bins per parameter so the covariance means something.
+    let needed = (2 * n_free).max(n_free + 3);
+    if sel.len() < needed {
+        return Err(Error::TooFewBins { used: sel.len(), total: bins.len(), needed });
+    }
+    let mut problem = Problem {
+        wq: sel.iter().map(|b| 1.0 / b.sigma_q).collect(),
+        wu: sel.iter().map(|b| 1.0 / b.sigma_u).collect(),
+        bins: sel,
+        first_power,
+        nc,
+        free_centre: false,
+        fixed_centre: opts.centre,
+    };
+    // The coefficients must be constrained by the radii present (all bins at one radius make
+    // every r^k column the same shape).
+    let j0 = problem.jacobian(&DVector::zeros(nc)).map_err(|e| Error::FitFailed(e.to_string()))?;
+    let radii: Vec<f64> = problem.bins.iter().map(|b| (b.x - opts.centre[0]).hypot(b.y - opts.centre[1])).collect();
+    if conditioning(&j0) < 1e-9 {
+        let (lo, hi) = radii.iter().fold((f64::INFINITY, 0.0f64), |(l, h), r| (l.min(*r), h.max(*r)));
+        return Err(Error::Degenerate(format!(
+            "the {} polynomial coefficients are not constrained by the bins: their radii span only {lo:.4}..{hi:.4} arcmin \
+             (a radial profile needs bins at several distances from the centre)",
+            nc
+        )));
+    }
+
+    // Robust weights from the standardized residuals of each bin (without the weights).
+    let robust_weights = |problem: &Problem, params: &DVector<f64>| -> Vec<f64> {
+        let (c, centre) = problem.split(params);
+        let (mut gq, mut gu) = (vec![0.0; nc + 2], vec![0.0; nc + 2]);
+        let t: Vec<f64> = problem
+            .bins
+            .iter()
+            .map(|b| {
+                let (q, u) = radial_eval(first_power, &c, centre, b.x, b.y, &mut gq, &mut gu);
+                let (tq, tu) = ((q - b.q) / b.sigma_q, (u - b.u) / b.sigma_u);
+                (0.5 * (tq * tq + tu * tu)).sqrt()
+            })
+            .collect();
+        let mut a = t.clone();
+        let scale = (1.4826 * median(&mut a)).max(1.0);
+        t.iter().map(|ti| opts.robust.weight(ti / scale)).collect()
+    };
+
+    let mut params = gauss_newton(&problem, DVector::zeros(nc))?;
+    let mut weights = vec![1.0; problem.bins.len()];
+    let sigmas: Vec<(f64, f64)> = problem.bins.iter().map(|b| (b.sigma_q, b.sigma_u)).collect();
+    let set_weights = |problem: &mut Problem, w: &[f64]| {
+        for i in 0..w.len() {
+            problem.wq[i] = w[i].sqrt() / sigmas[i].0;
+            problem.wu[i] = w[i].sqrt() / sigmas[i].1;
+        }
+    };
+    for stage in 0..2 {
+        if stage == 1 {
+            if !opts.free_centre {
+                break;
+            }
+            problem.free_centre = true;
+            let mut p = params.as_slice().to_vec();
+            p.extend_from_slice(&opts.centre);
+            params = DVector::from_vec(p);
+        }
+        for _ in 0..30 {
+            if opts.robust == Robust::None {
+                params = gauss_newton(&problem, params)?;
+                break;
+            }
+            let w_new = robust_weights(&problem, &params);
+            let change = w_new.iter().zip(&weights).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            weights = w_new;
+            set_weights(&mut problem, &weights);
+            params = gauss_newton(&problem, params)?;
+            if change < 1e-4 {
+                break;
+            }
+        }
+    }
+
+    // Covariance from the Jacobian at the solution, scaled by the reduced chi^2.
+    let j = problem.jacobian(&params).map_err(|e| Error::FitFailed(e.to_string()))?;
+    if conditioning(&j) < 1e-10 {
+        return Err(Error::Degenerate(
+            "the parameters are not all constrained at the solution (free centre with no polarization gradient?)"
+                .into(),
+        ));
+    }
+    let r = problem.apply(&params).map_err(|e| Error::FitFailed(e.to_string()))?;
+    let dof = (2 * problem.bins.len()).saturating_sub(n_free).max(1);
+    let chi2_reduced = r.norm_squared() / dof as f64;
+    let jtj = j.transpose() * &j;
+    let inv = jtj.try_inverse().ok_or_else(|| Error::Degenerate("the normal matrix of the fit is singular".into()))?
+        * chi2_reduced;
+    let np = nc + 2;
+    let mut cov = vec![0.0; np * np];
+    for a in 0..n_free {
+        for b in 0..n_free {
+            // Symmetrize: the numerical inverse is symmetric only to rounding.
+            cov[a * np + b] = 0.5 * (inv[(a, b)] + inv[(b, a)]);
+        }
+    }
+    let (coeffs, centre) = problem.split(&params);
+    let model = RadialModel { first_power, coeffs, centre, centre_free: opts.free_centre, cov };
+    let mut ss = 0.0;
+    for b in &problem.bins {
+        let (q, u) = model.qu(b.x, b.y);
+        ss += (b.q - q).powi(2) + (b.u - u).powi(2);
+    }
+    let n_used = problem.bins.len();
+    let rms_residual = (ss / (2 * n_used) as f64).sqrt();
+    let mut all_w = vec![0.0; bins.len()];
+    let mut k = 0;
+    for (i, u) in used.iter().enumerate() {
+        if *u {
+            all_w[i] = weights[k];
+            k += 1;
+        }
+    }
+    Ok(RadialFit { model, chi2_reduced, rms_residual, n_used, used, weights: all_w })
+}

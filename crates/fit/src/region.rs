@@ -1,0 +1,174 @@
+//! Where a model is valid and which parts of the field a fit leaves out.
+
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::f64::consts::PI;
+
+/// A part of the field left out of a fit.
+///
+/// Polar angles are measured about the detector centre, counter-clockwise from +x, as the
+/// paper's `alpha = arctan(y / x)` (section `sec:fors1`, where the V band drops the sector
+/// 10 to 80 deg); the CLI gives them in degrees and they are kept in degrees here because they
+/// are a user's specification, written back into calibration files as text.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Exclusion {
+    /// Bins whose polar angle lies in `[from_deg, to_deg]` (counter-clockwise, wraps at 360).
+    Sector { from_deg: f64, to_deg: f64 },
+    /// Bins inside the box `[x0, x1] x [y0, y1]` arcmin.
+    Box { x0: f64, x1: f64, y0: f64, y1: f64 },
+    /// Bins whose distance from the detector centre lies in `[r0, r1]` arcmin.
+    Ring { r0: f64, r1: f64 },
+}
+
+impl Exclusion {
+    /// Whether the bin at `(x, y)` arcmin is excluded.
+    pub fn excludes(&self, x: f64, y: f64) -> bool {
+        match *self {
+            Exclusion::Sector { from_deg, to_deg } => {
+                if x == 0.0 && y == 0.0 {
+                    return false;
+                }
+                let a = y.atan2(x).to_degrees().rem_euclid(360.0);
+                let lo = from_deg.rem_euclid(360.0);
+                let width = (to_deg - from_deg).rem_euclid(360.0);
+                (a - lo).rem_euclid(360.0) <= width
+            }
+            Exclusion::Box { x0, x1, y0, y1 } => x >= x0 && x <= x1 && y >= y0 && y <= y1,
+            Exclusion::Ring { r0, r1 } => {
+                let r = x.hypot(y);
+                r >= r0 && r <= r1
+            }
+        }
+    }
+
+    /// The specification as the CLI takes it (`sector:10:80`, `box:x0:x1:y0:y1`, `ring:r0:r1`).
+    pub fn spec(&self) -> String {
+        match self {
+            Exclusion::Sector { from_deg, to_deg } => format!("sector:{from_deg}:{to_deg}"),
+            Exclusion::Box { x0, x1, y0, y1 } => format!("box:{x0}:{x1}:{y0}:{y1}"),
+            Exclusion::Ring { r0, r1 } => format!("ring:{r0}:{r1}"),
+        }
+    }
+}
+
+impl std::str::FromStr for Exclusion {
+    type Err = Error;
+
+    /// Parse `sector:FROM_DEG:TO_DEG`, `box:X0:X1:Y0:Y1` (arcmin) or `ring:R0:R1` (arcmin).
+    fn from_str(s: &str) -> Result<Self> {
+        let bad = |why: &str| Error::BadExclusion { spec: s.into(), why: why.into() };
+        let mut parts = s.split(':');
+        let kind = parts.next().unwrap_or("").trim().to_ascii_lowercase();
+        let nums: Vec<f64> = parts
+            .map(|t| t.trim().parse::<f64>().map_err(|_| bad(&format!("'{t}' is not a number"))))
+            .collect::<Result<_>>()?;
+        if nums.iter().any(|v| !v.is_finite()) {
+            return Err(bad("numbers must be finite"));
+        }
+        match (kind.as_str(), nums.as_slice()) {
+            ("sector", [a, b]) => Ok(Exclusion::Sector { from_deg: *a, to_deg: *b }),
+            ("box", [x0, x1, y0, y1]) => {
+                if x1 <= x0 || y1 <= y0 {
+                    return Err(bad("need x0 < x1 and y0 < y1"));
+                }
+                Ok(Exclusion::Box { x0: *x0, x1: *x1, y0: *y0, y1: *y1 })
+            }
+            ("ring", [r0, r1]) => {
+                if *r0 < 0.0 || r1 <= r0 {
+                    return Err(bad("need 0 <= r0 < r1"));
+                }
+                Ok(Exclusion::Ring { r0: *r0, r1: *r1 })
+            }
+            _ => Err(bad("expected sector:FROM_DEG:TO_DEG, box:X0:X1:Y0:Y1 or ring:R0:R1 (arcmin)")),
+        }
+    }
+}
+
+/// The rectangle of the field (arcmin from the detector centre) where a model was calibrated.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FieldRegion {
+    pub x_min: f64,
+    pub x_max: f64,
+    pub y_min: f64,
+    pub y_max: f64,
+}
+
+impl FieldRegion {
+    /// Whether `(x, y)` arcmin lies inside.
+    pub fn contains(&self, x: f64, y: f64) -> bool {
+        x >= self.x_min && x <= self.x_max && y >= self.y_min && y <= self.y_max
+    }
+
+    /// The smallest rectangle holding every point, widened by `margin` arcmin on each side.
+    pub fn bounding(points: impl Iterator<Item = (f64, f64)>, margin: f64) -> Option<Self> {
+        let mut r = FieldRegion {
+            x_min: f64::INFINITY,
+            x_max: f64::NEG_INFINITY,
+            y_min: f64::INFINITY,
+            y_max: f64::NEG_INFINITY,
+        };
+        let mut any = false;
+        for (x, y) in points.filter(|(x, y)| x.is_finite() && y.is_finite()) {
+            any = true;
+            r.x_min = r.x_min.min(x);
+            r.x_max = r.x_max.max(x);
+            r.y_min = r.y_min.min(y);
+            r.y_max = r.y_max.max(y);
+        }
+        any.then(|| FieldRegion {
+            x_min: r.x_min - margin,
+            x_max: r.x_max + margin,
+            y_min: r.y_min - margin,
+            y_max: r.y_max + margin,
+        })
+    }
+
+    /// Largest distance from `(x0, y0)` to a corner: the radius a radial profile must reach.
+    pub fn max_radius_from(&self, x0: f64, y0: f64) -> f64 {
+        [(self.x_min, self.y_min), (self.x_min, self.y_max), (self.x_max, self.y_min), (self.x_max, self.y_max)]
+            .iter()
+            .map(|(x, y)| (x - x0).hypot(y - y0))
+            .fold(0.0, f64::max)
+    }
+}
+
+/// Polar angle of `(dx, dy)` in (-pi, pi], the paper's `alpha`.
+pub fn polar_angle(dx: f64, dy: f64) -> f64 {
+    let a = dy.atan2(dx);
+    if a <= -PI {
+        a + 2.0 * PI
+    } else {
+        a
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sector_10_80_of_sec_fors1() {
+        let e: Exclusion = "sector:10:80".parse().unwrap();
+        let at = |deg: f64| e.excludes(deg.to_radians().cos(), deg.to_radians().sin());
+        assert!(at(45.0) && at(10.5) && at(79.5));
+        assert!(!at(5.0) && !at(85.0) && !at(225.0) && !at(-45.0));
+        // A sector across the wrap at 0 deg.
+        let w: Exclusion = "sector:350:20".parse().unwrap();
+        let atw = |deg: f64| w.excludes(deg.to_radians().cos(), deg.to_radians().sin());
+        assert!(atw(0.0) && atw(355.0) && atw(-5.0) && atw(19.0));
+        assert!(!atw(30.0) && !atw(340.0));
+    }
+
+    #[test]
+    fn box_and_ring_and_bad_specs() {
+        let b: Exclusion = "box:-1:1:0:2".parse().unwrap();
+        assert!(b.excludes(0.0, 1.0) && !b.excludes(0.0, -0.5));
+        let r: Exclusion = "ring:0:0.5".parse().unwrap();
+        assert!(r.excludes(0.3, 0.3) && !r.excludes(0.5, 0.5));
+        for bad in ["sector:10", "box:1:0:0:1", "circle:1:2", "sector:a:b", "ring:2:1"] {
+            let e = bad.parse::<Exclusion>().unwrap_err().to_string();
+            assert!(e.contains(bad), "{e}");
+        }
+        assert_eq!(b.spec().parse::<Exclusion>().unwrap(), b);
+    }
+}
