@@ -11,7 +11,9 @@
 pub mod bins;
 pub mod calfile;
 pub mod gridmap;
+pub mod import;
 pub mod model;
+pub mod pipeline;
 pub mod polar;
 pub mod radial;
 pub mod region;

@@ -56,7 +56,16 @@ pub fn polar_angle_test(bins: &[Bin], centre: [f64; 2], r_min: f64) -> Result<Po
     if alpha.len() < 3 {
         return Err(Error::TooFewBins { used: alpha.len(), total: bins.len(), needed: 3 });
     }
-    let (mut a, mut b) = (1.0, 0.0);
+    // Start from slope 1 and the circular mean offset of phi - alpha (period 180 deg), so that
+    // a tangential pattern (offset 90) is not torn apart at the +-90 wrap.
+    let (mut ss, mut cc) = (0.0, 0.0);
+    for k in 0..alpha.len() {
+        let d = 2.0 * (phi[k] - alpha[k]).to_radians();
+        let w = 1.0 / (sig[k] * sig[k]);
+        ss += w * d.sin();
+        cc += w * d.cos();
+    }
+    let (mut a, mut b) = (1.0, 0.5 * ss.atan2(cc).to_degrees());
     let mut unwrapped = phi.clone();
     let mut cov = [[0.0; 2]; 2];
     for _ in 0..8 {

@@ -1,0 +1,154 @@
+//! Import of instrumental-polarization maps made by other tools: a pair of FITS cubes of
+//! `Q/I` and `U/I` (plane 1 value, plane 2 its 1-sigma error, NaN outside the mapped area), each
+//! map pixel covering `bin x bin` detector pixels, as the public FORS2 maps of
+//! Gonzalez-Gaitan et al. (2020). The result is a calibration whose model is the map itself.
+
+use crate::bins::Bin;
+use crate::calfile::{Calibration, Model, PixelGrid, Provenance, FORMAT_VERSION};
+use crate::gridmap::GridMap;
+use crate::region::FieldRegion;
+use crate::{Error, Result};
+use fitsio::FitsFile;
+use std::path::Path;
+
+/// How the map lies on the detector.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImportOptions {
+    /// Detector pixel scale (arcsec per detector pixel, as binned on chip).
+    pub pixel_scale_arcsec: f64,
+    /// Detector pixels per map pixel along each axis.
+    pub bin: usize,
+    pub instrument: String,
+    pub filter: String,
+    pub lambda_nm: f64,
+    /// 0-based detector pixel taken as the field origin (0, 0) arcmin; default the centre of
+    /// the area the map covers.
+    pub origin_px: Option<[f64; 2]>,
+}
+
+/// A `(2, ny, nx)` cube: value plane and error plane, row-major.
+struct Cube {
+    nx: usize,
+    ny: usize,
+    value: Vec<f64>,
+    error: Vec<f64>,
+}
+
+fn read_cube(path: &Path, what: &str) -> Result<Cube> {
+    let e = |doing: &str, m: String| Error::Fits { path: path.into(), doing: doing.into(), message: m };
+    if !path.is_file() {
+        return Err(Error::Io {
+            path: path.into(),
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, format!("no such {what} map")),
+        });
+    }
+    let mut f = FitsFile::open(path).map_err(|x| e("opening", x.to_string()))?;
+    let hdu = f.primary_hdu().map_err(|x| e("reading the primary HDU", x.to_string()))?;
+    let shape = match &hdu.info {
+        fitsio::hdu::HduInfo::ImageInfo { shape, .. } => shape.clone(),
+        _ => return Err(Error::BadFile { path: path.into(), what: "primary HDU is not an image".into() }),
+    };
+    if shape.len() != 3 || shape[0] != 2 {
+        return Err(Error::BadFile {
+            path: path.into(),
+            what: format!(
+                "{what} map has shape {shape:?} (numpy order); expected (2, NY, NX): plane 1 the value, plane 2 its error"
+            ),
+        });
+    }
+    let data: Vec<f64> = hdu.read_image(&mut f).map_err(|x| e("reading the image", x.to_string()))?;
+    let (ny, nx) = (shape[1], shape[2]);
+    let n = nx * ny;
+    Ok(Cube { nx, ny, value: data[..n].to_vec(), error: data[n..2 * n].to_vec() })
+}
+
+/// Read the `Q/I` and `U/I` cubes into a calibration holding the map as its model; every
+/// measured map pixel becomes a bin (so the map can be refitted with a radial model).
+pub fn import_map(q_path: &Path, u_path: &Path, opts: &ImportOptions) -> Result<Calibration> {
+    if !(opts.pixel_scale_arcsec.is_finite() && opts.pixel_scale_arcsec > 0.0) {
+        return Err(Error::Input(format!("pixel scale {} arcsec is not positive", opts.pixel_scale_arcsec)));
+    }
+    if opts.bin == 0 {
+        return Err(Error::Input("--bin must be at least 1 detector pixel per map pixel".into()));
+    }
+    let q = read_cube(q_path, "Q")?;
+    let u = read_cube(u_path, "U")?;
+    if (q.nx, q.ny) != (u.nx, u.ny) {
+        return Err(Error::Input(format!(
+            "the Q map {} is {} x {} but the U map {} is {} x {}",
+            q_path.display(),
+            q.nx,
+            q.ny,
+            u_path.display(),
+            u.nx,
+            u.ny
+        )));
+    }
+    let b = opts.bin as f64;
+    // Map pixel (i, j) covers detector pixels [b i, b i + b): its centre is at b i + (b - 1)/2.
+    let origin = opts.origin_px.unwrap_or([0.5 * (q.nx as f64 * b - 1.0), 0.5 * (q.ny as f64 * b - 1.0)]);
+    let s = opts.pixel_scale_arcsec / 60.0;
+    let (x0, y0) = ((0.5 * (b - 1.0) - origin[0]) * s, (0.5 * (b - 1.0) - origin[1]) * s);
+    let n = q.nx * q.ny;
+    let mut grid = GridMap {
+        nx: q.nx,
+        ny: q.ny,
+        x0,
+        y0,
+        dx: b * s,
+        dy: b * s,
+        q: q.value,
+        u: u.value,
+        sigma_q: q.error,
+        sigma_u: u.error,
+    };
+    // A pixel counts as measured only when Q, U and both errors are.
+    for k in 0..n {
+        let ok = grid.q[k].is_finite()
+            && grid.u[k].is_finite()
+            && grid.sigma_q[k].is_finite()
+            && grid.sigma_u[k].is_finite();
+        if !ok {
+            grid.q[k] = f64::NAN;
+            grid.u[k] = f64::NAN;
+        }
+    }
+    let mut bins = vec![];
+    for j in 0..grid.ny {
+        for i in 0..grid.nx {
+            if grid.is_finite_at(i, j) {
+                let k = j * grid.nx + i;
+                let (x, y) = grid.pixel_centre(i, j);
+                bins.push(Bin::new(x, y, grid.q[k], grid.u[k], grid.sigma_q[k], grid.sigma_u[k]));
+            }
+        }
+    }
+    if bins.is_empty() {
+        return Err(Error::Input(format!(
+            "the maps {} and {} have no finite pixel",
+            q_path.display(),
+            u_path.display()
+        )));
+    }
+    let region = FieldRegion::bounding(bins.iter().map(|b| (b.x, b.y)), 0.5 * b * s)
+        .ok_or_else(|| Error::Input("no finite pixel positions".into()))?;
+    let n_used = bins.len();
+    Ok(Calibration {
+        format_version: FORMAT_VERSION,
+        instrument: opts.instrument.clone(),
+        filter: opts.filter.clone(),
+        lambda_nm: opts.lambda_nm,
+        hwp_chi_offset_deg: 0.0,
+        model: Model::Map(grid.clone()),
+        region,
+        rms_residual: f64::NAN,
+        n_bins_used: n_used,
+        polar_angle: None,
+        exclusions: vec![],
+        robust: String::new(),
+        pixel: Some(PixelGrid { scale_arcsec: opts.pixel_scale_arcsec, origin_px: origin }),
+        provenance: Provenance::now("imported map", vec![q_path.display().to_string(), u_path.display().to_string()]),
+        bins,
+        grid: Some(grid),
+    })
+}
