@@ -12,7 +12,11 @@
 //!   exactly from the per-angle errors.
 //! - **Any other set** (missing or uneven angles, `N = 2`): weighted least squares of
 //!   `eq:system` with weights `1/sigma_F,i^2` when the `sigma_F,i` differ, plain least squares
-//!   when they are equal (the two coincide then).
+//!   when they are equal (the two coincide then). For counts the weights depend on `F_i`
+//!   only through `1 - F_i^2`, a negligible correlation for the small `P` of this use.
+//!
+//! The angles are taken in the order given: "optimal set" means the `i`-th angle is
+//! `i pi/8`, and `kappa_j` uses positions `j - 1` and `j + 1`.
 //!
 //! # Errors
 //!
@@ -335,7 +339,7 @@ pub fn reduce(m: &Measurement) -> Result<Reduction, Error> {
     }
 
     let all_equal = sigma_f.iter().all(|&s| s == sigma_f[0]);
-    let any_zero = sigma_f.iter().any(|&s| s == 0.0);
+    let any_zero = sigma_f.contains(&0.0);
     let (estimator, qu) = if solver.is_optimal() {
         (Estimator::FourierSums, solver.solve_with_errors(&f, &sigma_f)?)
     } else if all_equal {

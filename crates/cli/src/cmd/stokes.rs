@@ -14,7 +14,8 @@ use stokes::{Error as RedError, Measurement, Reduction};
 /// Input: a CSV file with a header row naming the columns (any order; other columns are
 /// ignored; lines starting with # are comments):
 ///
-///   hwp_deg  HWP angle in degrees (the optimal set is 0, 22.5, 45, ...)
+///   hwp_deg  HWP angle in degrees; rows in observing order (the optimal set is row i at
+///            i*22.5 deg: 0, 22.5, 45, ...)
 ///   f_o      ordinary-beam flux
 ///   f_e      extraordinary-beam flux
 ///   sigma_o  (optional) 1-sigma error of f_o
@@ -23,7 +24,8 @@ use stokes::{Error as RedError, Measurement, Reduction};
 /// Without sigma_o/sigma_e the fluxes must be photon counts in electrons and their Poisson
 /// errors sqrt(f) are used. With N = 4k angles on the optimal set, Q/I and U/I are the
 /// Fourier sums eq:Q/eq:U and the harmonics are computed; other sets use (weighted) least
-/// squares. kappa needs N >= 4.
+/// squares. kappa_j (eq:g, eq:kappa2) comes from rows j-1 and j+1 when they are 45 deg
+/// apart (j = 1..N-2) and needs N >= 4.
 ///
 /// Output: a table (P in %, angles in deg) or, with --json, the fields n_hwp, q, u, p
 /// (fractions), chi_deg in [0, 180), sigma_p, sigma_chi_deg (null when P = 0), a0, kappa
