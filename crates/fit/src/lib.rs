@@ -18,6 +18,7 @@ pub mod polar;
 pub mod radial;
 pub mod region;
 pub mod residual;
+pub mod synth;
 pub mod wavelength;
 
 pub use bins::Bin;

@@ -209,3 +209,21 @@ impl FitSummary {
         }
     }
 }
+
+/// The bins of a sky-field solution (`skyfield::solve`): the exact instrumental `(q, u)` with
+/// their propagated errors, the approximate solution kept beside them.
+pub fn bins_from_solutions(sol: &[skyfield::solve::BinSolution]) -> Vec<Bin> {
+    sol.iter()
+        .map(|s| Bin {
+            x: s.x,
+            y: s.y,
+            q: s.q,
+            u: s.u,
+            sigma_q: s.var_q.max(0.0).sqrt(),
+            sigma_u: s.var_u.max(0.0).sqrt(),
+            p_approx: s.p_approx,
+            phi_approx: s.phi_approx,
+            used: true,
+        })
+        .collect()
+}

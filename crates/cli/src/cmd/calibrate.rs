@@ -1,0 +1,210 @@
+//! `instpol calibrate`: empty-field frames of known sky polarization to a calibration file.
+
+use anyhow::{bail, Context, Result};
+use fit::calfile::{PixelGrid, Provenance};
+use fit::pipeline::{
+    bins_from_solutions, calibrate_bins, CalibrateOptions, CalibrationMeta, CalibrationRun, FitSummary,
+};
+use fit::radial::Robust;
+use fit::RadialFitOptions;
+use skyfield::solve::{solve_map, SkyPolarization};
+use std::path::PathBuf;
+
+/// Measure the instrumental polarization over the field from frames of an empty field whose
+/// sky polarization is known (section sec:instr of Patat & Romaniello 2006), fit the radial
+/// model p(r) = sum c_k r^k (r in arcmin, p a fraction) with its centre, run the polar-angle
+/// test, and write a calibration file (multi-extension FITS) for the filter.
+///
+/// The frames are reduced in bins of --bin px (sigma-clipped), the sky-field equations are
+/// solved exactly (eq:instpol) in each bin (the approximate eq:approx solution is kept for
+/// comparison), and the bins' instrumental (Q/I, U/I) are fitted by robust weighted least
+/// squares.
+///
+/// Example: instpol calibrate v_*.fits --sky-p 1.74 --sky-chi -53.8 --exclude sector:10:80
+/// --out cal_V.fits
+#[derive(clap::Args)]
+pub struct Args {
+    /// Frames of one filter at a complete set of HWP angles (FITS, as the instrument writes
+    /// them).
+    pub frames: Vec<PathBuf>,
+    /// A Stokes map (FITS written by instpol) to use instead of frames.
+    #[arg(long, conflicts_with = "frames")]
+    pub map: Option<PathBuf>,
+    /// Built-in instrument name or instrument TOML file.
+    #[arg(long, default_value = "fors1")]
+    pub instrument: String,
+    /// Sky polarization degree in percent (Table tab:empty: B 6.45, V 1.74, I 1.34). Required.
+    #[arg(long)]
+    pub sky_p: Option<f64>,
+    /// Sky polarization angle in degrees (any sign, taken modulo 180). Required.
+    #[arg(long, allow_hyphen_values = true)]
+    pub sky_chi: Option<f64>,
+    #[command(flatten)]
+    pub fit: FitArgs,
+    /// Bin side in detector pixels (the paper: 30).
+    #[arg(long, default_value_t = 30)]
+    pub bin: usize,
+    /// Output calibration file (FITS).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also draw the map, profile and residual plots (PNG and SVG) into this folder.
+    #[arg(long)]
+    pub plots: Option<PathBuf>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Fit options shared by `calibrate` and `fit`.
+#[derive(clap::Args, Clone)]
+pub struct FitArgs {
+    /// Model: radialN, a polynomial of degree N in r (default radial3, as the paper).
+    #[arg(long, default_value = "radial3")]
+    pub model: String,
+    /// Fit a constant term c_0 too (the paper assumes p = 0 on the axis: no c_0).
+    #[arg(long)]
+    pub include_c0: bool,
+    /// Fit the optical-axis centre instead of fixing it at the detector centre.
+    #[arg(long)]
+    pub free_centre: bool,
+    /// Leave part of the field out; repeatable. sector:FROM:TO (polar angle, deg, about the
+    /// detector centre, e.g. sector:10:80 as the paper's V band), box:X0:X1:Y0:Y1 (arcmin),
+    /// ring:R0:R1 (arcmin).
+    #[arg(long)]
+    pub exclude: Vec<String>,
+    /// Keep a natural-neighbour interpolant of the residuals in the model (for fields that are
+    /// not radial, e.g. the B band).
+    #[arg(long)]
+    pub residual_map: bool,
+    /// Robust loss: huber (default), cauchy or none.
+    #[arg(long, default_value = "huber")]
+    pub robust: String,
+}
+
+impl FitArgs {
+    pub fn options(&self) -> Result<CalibrateOptions> {
+        let mut fo =
+            RadialFitOptions { include_c0: self.include_c0, free_centre: self.free_centre, ..Default::default() };
+        fo.set_model_name(&self.model)?;
+        for e in &self.exclude {
+            fo.exclusions.push(e.parse()?);
+        }
+        fo.robust = match self.robust.to_ascii_lowercase().as_str() {
+            "huber" => Robust::Huber(1.345),
+            "cauchy" => Robust::Cauchy(2.385),
+            "none" => Robust::None,
+            other => bail!("unknown --robust '{other}': use huber, cauchy or none"),
+        };
+        Ok(CalibrateOptions { fit: fo, residual_map: self.residual_map, ..Default::default() })
+    }
+}
+
+/// Solve a Stokes map for the instrumental field and calibrate: shared with `instpol demo`.
+pub fn calibrate_map(
+    map: &skyfield::StokesMap,
+    sky: &SkyPolarization,
+    inst: &instrument::Instrument,
+    inputs: Vec<String>,
+    opts: &CalibrateOptions,
+) -> Result<CalibrationRun> {
+    let (sol, _skipped) = solve_map(map, sky).context("sky-field solution")?;
+    let bins = bins_from_solutions(&sol);
+    let filter = inst.filter(&map.filter).ok();
+    let mut provenance = Provenance::now("sky-field", inputs);
+    provenance.sky_p = Some(sky.p);
+    provenance.sky_chi_deg = Some(sky.chi.to_degrees());
+    let meta = CalibrationMeta {
+        instrument: inst.name.clone(),
+        filter: filter.map(|f| f.name.clone()).unwrap_or_else(|| map.filter.clone()),
+        lambda_nm: filter.map(|f| f.lambda_eff_nm).unwrap_or(f64::NAN),
+        hwp_chi_offset_deg: filter.map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0),
+        pixel: Some(PixelGrid {
+            scale_arcsec: inst.detector.pixel_scale_arcsec,
+            origin_px: [0.5 * (inst.detector.nx as f64 - 1.0), 0.5 * (inst.detector.ny as f64 - 1.0)],
+        }),
+        provenance,
+    };
+    let mut o = opts.clone();
+    o.region_margin = 0.5 * map.geometry.bin_px as f64 * map.geometry.pixel_scale_arcsec / 60.0;
+    Ok(calibrate_bins(bins, meta, &o)?)
+}
+
+/// The sky values are required: without them the sky-field equations have no solution.
+pub fn sky_from_args(p: Option<f64>, chi: Option<f64>) -> Result<SkyPolarization> {
+    match (p, chi) {
+        (Some(p), Some(c)) => Ok(SkyPolarization::from_percent_deg(p, c)?),
+        _ => bail!(
+            "the sky polarization is required: give --sky-p PERCENT and --sky-chi DEG (the sky-field method \
+             needs the field's own polarization, e.g. from Table tab:empty: V 1.74 -53.8)"
+        ),
+    }
+}
+
+/// A human-readable table of a fit.
+pub fn print_table(s: &FitSummary) {
+    println!("filter {}  model {}  bins used {} of {}", s.filter, s.model, s.n_bins_used, s.n_bins);
+    print!(
+        "centre ({:.4} +- {:.4}, {:.4} +- {:.4}) arcmin",
+        s.centre_arcmin[0], s.centre_errors_arcmin[0], s.centre_arcmin[1], s.centre_errors_arcmin[1]
+    );
+    match s.centre_px {
+        Some(c) => println!("  = pixel ({:.1}, {:.1}){}", c[0], c[1], if s.centre_free { "" } else { "  (fixed)" }),
+        None => println!(),
+    }
+    println!("{:>6} {:>14} {:>12}", "power", "c_k (%)", "error (%)");
+    for ((k, c), e) in s.powers.iter().zip(&s.coefficients).zip(&s.coefficient_errors) {
+        println!("{:>6} {:>14.5} {:>12.5}", k, 100.0 * c, 100.0 * e);
+    }
+    println!("RMS residual {:.4}% (per component)   reduced chi2 {:.2}", 100.0 * s.rms_residual, s.chi2_reduced);
+    println!(
+        "polar-angle test: slope {:.4} +- {:.4}, intercept {:.2} +- {:.2} deg",
+        s.polar_angle_slope, s.polar_angle_slope_err, s.polar_angle_intercept_deg, s.polar_angle_intercept_err_deg
+    );
+    if let Some(a) = &s.approx_vs_exact {
+        println!(
+            "eq:approx vs exact: max |dp| {:.5}%, rms {:.5}%, max |dphi| {:.3} deg",
+            100.0 * a.max_dp,
+            100.0 * a.rms_dp,
+            a.max_dphi_deg
+        );
+    }
+    if let Some(l) = s.residual_loo_rms {
+        println!("residual map: leave-one-out RMS {:.4}% (Q), {:.4}% (U)", 100.0 * l[0], 100.0 * l[1]);
+    }
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let sky = sky_from_args(a.sky_p, a.sky_chi)?;
+    let opts = a.fit.options()?;
+    let inst = instrument::Instrument::load(&a.instrument)?;
+    let (map, inputs) = if let Some(m) = &a.map {
+        (skyfield::StokesMap::read_fits(m)?, vec![m.display().to_string()])
+    } else {
+        if a.frames.is_empty() {
+            bail!("no frames given: list the FITS frames of one filter (or give --map MAP.fits)");
+        }
+        let bar = crate::plot::progress(a.frames.len() as u64, "reading frames", a.json);
+        let cfg = skyfield::reduce::ReduceConfig { bin_px: a.bin, ..Default::default() };
+        let red = skyfield::reduce::reduce_files(&a.frames, &inst, &cfg, &|| bar.inc(1))?;
+        bar.finish_and_clear();
+        for w in &red.warnings {
+            eprintln!("warning: {w}");
+        }
+        (red.map, a.frames.iter().map(|p| p.display().to_string()).collect())
+    };
+    let run = calibrate_map(&map, &sky, &inst, inputs, &opts)?;
+    run.calibration.save(&a.out)?;
+    let mut s = FitSummary::new(&run);
+    s.calibration_file = Some(a.out.display().to_string());
+    if let Some(dir) = &a.plots {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        crate::cmd::plot::plot_run(dir, &run.calibration.filter, &run)?;
+    }
+    if a.json {
+        crate::util::print_json(&s)
+    } else {
+        print_table(&s);
+        println!("wrote {}", a.out.display());
+        Ok(())
+    }
+}

@@ -1,0 +1,95 @@
+//! `instpol plot`: the paper's figures for a calibration file.
+
+use anyhow::{Context, Result};
+use fit::pipeline::{refit, CalibrateOptions, CalibrationRun};
+use fit::RadialFitOptions;
+use std::path::{Path, PathBuf};
+
+/// Draw a calibration's figures as PNG and SVG into a folder: the instrumental polarization map
+/// as vectors over contours of 0.3, 0.6 and 0.9% (fig:insmapB), the radial profile with the
+/// fitted p(r) and the polar-angle test (fig:radprofB), and the residual field (fig:residB).
+/// An imported map without a radial model gets a free-centre radial fit for the profile.
+///
+/// Example: instpol plot cal_V.fits --out plots/
+#[derive(clap::Args)]
+pub struct Args {
+    /// Calibration file (FITS).
+    pub calibration: PathBuf,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// CSV of a ray-trace prediction with columns r_arcmin,p (p a fraction), drawn on the
+    /// profile.
+    #[arg(long)]
+    pub raytrace: Option<PathBuf>,
+    /// Print the written files as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn read_raytrace(path: &Path) -> Result<Vec<(f64, f64)>> {
+    let mut rd = csv::ReaderBuilder::new()
+        .has_headers(true)
+        .from_path(path)
+        .with_context(|| format!("cannot read {}", path.display()))?;
+    let mut v = vec![];
+    for (i, rec) in rd.records().enumerate() {
+        let rec = rec.with_context(|| format!("{}: row {}", path.display(), i + 2))?;
+        let num = |k: usize| -> Result<f64> {
+            rec.get(k)
+                .and_then(|s| s.trim().parse::<f64>().ok())
+                .with_context(|| format!("{}: row {}: column {} is not a number", path.display(), i + 2, k + 1))
+        };
+        v.push((num(0)?, num(1)?));
+    }
+    Ok(v)
+}
+
+/// Plots of a calibration run (used by calibrate, fit and demo too).
+pub fn plot_run(dir: &Path, stem: &str, run: &CalibrationRun) -> Result<Vec<PathBuf>> {
+    plot_with(dir, stem, run, None)
+}
+
+fn plot_with(dir: &Path, stem: &str, run: &CalibrationRun, raytrace: Option<Vec<(f64, f64)>>) -> Result<Vec<PathBuf>> {
+    let cal = &run.calibration;
+    let d = crate::plot::CalPlotData {
+        cal,
+        radial: Some(&run.fit.model),
+        polar: Some(&run.polar),
+        raytrace,
+        title: format!("{} {}", cal.instrument, cal.filter),
+    };
+    crate::plot::calibration_plots(dir, &stem.replace(['/', ' '], "_"), &d)
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let cal = fit::Calibration::load(&a.calibration)?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
+    let raytrace = a.raytrace.as_deref().map(read_raytrace).transpose()?;
+    // The stored model is drawn; the profile and polar-angle panels need the fit's products,
+    // which a refit with the stored options reproduces (imported maps: free centre).
+    let mut fo = RadialFitOptions { exclusions: cal.exclusions.clone(), ..Default::default() };
+    match cal.model.radial() {
+        Some(r) => {
+            fo.free_centre = r.centre_free;
+            fo.centre = r.centre;
+            fo.include_c0 = r.first_power == 0;
+            fo.degree = r.degree();
+        }
+        None => fo.free_centre = true,
+    }
+    let mut run = refit(&cal, &CalibrateOptions { fit: fo, ..Default::default() })
+        .with_context(|| format!("radial fit of {} for the profile", a.calibration.display()))?;
+    // Draw the file's own model and images, not the refit's.
+    run.calibration = cal;
+    let stem = a.calibration.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_else(|| "cal".into());
+    let files = plot_with(&a.out, &stem, &run, raytrace)?;
+    if a.json {
+        crate::util::print_json(&serde_json::json!({ "files": files }))
+    } else {
+        for f in files {
+            println!("wrote {}", f.display());
+        }
+        Ok(())
+    }
+}
