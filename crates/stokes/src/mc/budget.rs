@@ -170,21 +170,23 @@ pub struct NoiseRow {
     pub rejected: u64,
 }
 
-/// Compare the three noise modes at each SNR on the same work (`N`, `P0`, trials).
+/// Compare the three noise modes at each SNR on the same work: `N`, `eta = P0 SNR` (the
+/// same regime of the Rice distribution at every SNR), trials.
 pub fn noise_comparison(
     n_hwp: usize,
-    p0: f64,
+    eta: f64,
     snrs: &[f64],
     trials: u64,
     seed: u64,
     threads: Option<usize>,
 ) -> Result<Vec<NoiseRow>, Error> {
     let mut rows = Vec::new();
-    for &snr in snrs {
+    for (j, &snr) in snrs.iter().enumerate() {
         let mut base = None;
         for noise in Noise::ALL {
-            let mut cfg = McConfig::new(n_hwp, snr, p0, 0.5, trials, noise);
-            cfg.seed = seed;
+            let mut cfg = McConfig::new(n_hwp, snr, (eta / snr).min(1.0), 0.5, trials, noise);
+            // Independent streams per SNR so the rows are independent comparisons.
+            cfg.seed = seed.wrapping_add(104_729 * j as u64);
             let eng = Engine::new(&cfg)?;
             let t0 = Instant::now();
             let r = match threads {

@@ -265,12 +265,12 @@ pub(crate) fn posterior_support(x: f64) -> (f64, f64) {
 /// the posterior is a half-normal and the mean is `sqrt(2/pi)`.
 pub fn mb_n(x: f64) -> f64 {
     let (lo, hi) = posterior_support(x);
-    let n = ((hi - lo) / 0.5).ceil() as usize;
+    // Panels of one sigma: the posterior is smooth on that scale (20-point rule).
+    let n = (hi - lo).ceil() as usize;
     // Scale by the likelihood at the ML point to keep exp() in range.
     let peak = ln_likelihood_n(x, ml_n(x));
     let w = |a: f64| (ln_likelihood_n(x, a) - peak).exp();
-    let z = integrate_panels(w, lo, hi, n);
-    let m = integrate_panels(|a| a * w(a), lo, hi, n);
+    let (z, m) = super::special::integrate_panels2(w, lo, hi, n);
     m / z
 }
 
@@ -279,6 +279,6 @@ pub fn mb_n(x: f64) -> f64 {
 pub fn expected_n(est: Estimator, a: f64) -> f64 {
     let lo = (a - 14.0).max(0.0);
     let hi = a.max(1.0) + 14.0;
-    let n = ((hi - lo) / 0.25).ceil() as usize;
+    let n = ((hi - lo) / 0.5).ceil() as usize;
     integrate_panels(|x| est.apply_n(x) * pdf_n(x, a), lo, hi, n)
 }

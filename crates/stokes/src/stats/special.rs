@@ -118,6 +118,27 @@ pub fn integrate_panels<F: FnMut(f64) -> f64>(mut f: F, a: f64, b: f64, panels: 
     s
 }
 
+/// `(int f, int t f(t))` over `[a, b]` in `panels` 20-point panels, evaluating `f` once per
+/// node (posterior normalizer and first moment together).
+pub fn integrate_panels2<F: FnMut(f64) -> f64>(mut f: F, a: f64, b: f64, panels: usize) -> (f64, f64) {
+    let (x, w) = gl_table();
+    let panels = panels.max(1);
+    let h = (b - a) / panels as f64;
+    let (mut s0, mut s1) = (0.0, 0.0);
+    for k in 0..panels {
+        let lo = a + h * k as f64;
+        let hi = if k + 1 == panels { b } else { lo + h };
+        let (c, hh) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+        for i in 0..GL_N {
+            let t = c + hh * x[i];
+            let v = w[i] * f(t) * hh;
+            s0 += v;
+            s1 += v * t;
+        }
+    }
+    (s0, s1)
+}
+
 /// Adaptive Gauss-Legendre quadrature: a panel is accepted when it agrees with the sum of its
 /// two halves to `rel_tol` (relative to the running total) or `abs_tol`.
 pub fn integrate_adaptive<F: FnMut(f64) -> f64>(mut f: F, a: f64, b: f64, rel_tol: f64, abs_tol: f64) -> f64 {
