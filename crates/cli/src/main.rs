@@ -23,6 +23,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    Correct(cmd::correct::Args),
     Stokes(cmd::stokes::Args),
     Fresnel(cmd::fresnel::Args),
 }
@@ -30,6 +31,7 @@ enum Command {
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Correct(a) => cmd::correct::run(a),
         Command::Stokes(a) => cmd::stokes::run(a),
         Command::Fresnel(a) => cmd::fresnel::run(a),
     };

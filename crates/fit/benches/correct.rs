@@ -60,6 +60,16 @@ fn bench(c: &mut Criterion) {
             b.iter(|| cor.correct_batch(black_box(&input), black_box(&mut out)).unwrap());
         });
     }
+    // The calibration file's radial model (fit::radial), with a coefficient covariance.
+    let mut rm = fit::RadialModel::new(1, vec![0.012e-2, 0.046e-2, 0.002e-2], [0.0, 0.0]);
+    let np = rm.n_params();
+    for i in 0..3 {
+        rm.cov[i * np + i] = (1e-5f64).powi(2);
+    }
+    let cor = Corrector::new(&rm, CorrectOptions::default());
+    g.bench_function("exact_fit_radial_model", |b| {
+        b.iter(|| cor.correct_batch(black_box(&input), black_box(&mut out)).unwrap());
+    });
     // The same through a trait object, as the CLI holds a loaded calibration.
     let dynm: &dyn FieldModel = &model;
     let cor = Corrector::new(dynm, CorrectOptions::default());

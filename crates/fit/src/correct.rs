@@ -109,6 +109,38 @@ impl Default for CorrectOptions {
     }
 }
 
+impl CorrectOptions {
+    /// The defaults with the HWP zero angle of a calibration file (its filter's offset).
+    pub fn for_calibration(cal: &crate::Calibration) -> Self {
+        Self { chi_offset: cal.hwp_chi_offset_deg.to_radians(), ..Self::default() }
+    }
+}
+
+/// A field model with an extra, position-independent model error: `sigma^2` added to
+/// `var_q` and `var_u`. Use it to count the scatter of the data about a smooth fit (the
+/// calibration's RMS residual, ~0.05% for FORS1 V and I in section `sec:fors1`) when the
+/// question is how well the model predicts one new position (validation), not only how well
+/// its coefficients are known.
+pub struct WithModelError<'a, M: FieldModel + ?Sized> {
+    pub model: &'a M,
+    pub sigma: f64,
+}
+
+impl<M: FieldModel + ?Sized> FieldModel for WithModelError<'_, M> {
+    #[inline]
+    fn eval(&self, x: f64, y: f64) -> InstPol {
+        let mut a = self.model.eval(x, y);
+        let v = self.sigma * self.sigma;
+        a.var_q += v;
+        a.var_u += v;
+        a
+    }
+    #[inline]
+    fn contains(&self, x: f64, y: f64) -> bool {
+        self.model.contains(x, y)
+    }
+}
+
 /// A measurement to correct: position in arcmin from the detector centre, normalized Stokes
 /// parameters as fractions, their 1-sigma errors and covariance.
 #[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]

@@ -2,3 +2,4 @@
 
 pub mod stokes;
 pub mod fresnel;
+pub mod correct;

@@ -1,0 +1,390 @@
+//! `instpol correct` end to end: catalogs (CSV and FITS tables) and Stokes maps corrected with a
+//! calibration file, checked against the forward model (`M_I` of `eq:instpol`, then the HWP
+//! zero angle), and the third-party FORS2 maps in /work/shared/data/fors2-instpol/.
+
+use fit::calfile::{Model, PixelGrid, Provenance, FORMAT_VERSION};
+use fit::model::FieldModel;
+use fit::{Calibration, FieldRegion, RadialModel};
+use fitsio::tables::{ColumnDataType, ColumnDescription};
+use fitsio::FitsFile;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+const BIN: &str = env!("CARGO_BIN_EXE_instpol");
+/// FORS1: 2048 px at 0.2"/px, half-width 3.413 arcmin.
+const HALF: f64 = 1024.0 * 0.2 / 60.0;
+/// The paper's V polynomial (section `sec:fors1`), as fractions.
+const V: [f64; 3] = [0.012e-2, 0.046e-2, 0.002e-2];
+const OFFSET_DEG: f64 = 1.5;
+
+fn v_calibration() -> Calibration {
+    Calibration {
+        format_version: FORMAT_VERSION,
+        instrument: "FORS1".into(),
+        filter: "V".into(),
+        lambda_nm: 554.0,
+        hwp_chi_offset_deg: OFFSET_DEG,
+        model: Model::Radial(RadialModel::new(1, V.to_vec(), [0.0, 0.0])),
+        region: FieldRegion { x_min: -HALF, x_max: HALF, y_min: -HALF, y_max: HALF },
+        rms_residual: 5e-4,
+        n_bins_used: 0,
+        polar_angle: None,
+        exclusions: vec![],
+        robust: "none".into(),
+        pixel: Some(PixelGrid { scale_arcsec: 0.2, origin_px: [1023.5, 1023.5] }),
+        provenance: Provenance::now("test", vec![]),
+        bins: vec![],
+        grid: None,
+    }
+}
+
+/// What the reduction reports for a star of intrinsic `(p0, chi0)` at `(x, y)` arcmin: `M_I` of
+/// the field applied (`eq:instpol`), then the plate's zero angle (chi measured smaller by the
+/// offset).
+fn observed(cal: &Calibration, x: f64, y: f64, p0: f64, chi0: f64) -> (f64, f64) {
+    let a = cal.eval(x, y);
+    let (q1, u1) = fit::standards::forward(a.q, a.u, p0 * (2.0 * chi0).cos(), p0 * (2.0 * chi0).sin());
+    fit::correct::rotate_chi(q1, u1, -OFFSET_DEG.to_radians())
+}
+
+fn run(args: &[&str]) -> std::process::Output {
+    Command::new(BIN).args(args).output().unwrap()
+}
+
+fn read_csv(path: &Path) -> (Vec<String>, Vec<Vec<String>>) {
+    let mut r = csv::Reader::from_path(path).unwrap();
+    let h = r.headers().unwrap().iter().map(String::from).collect();
+    let rows = r.records().map(|x| x.unwrap().iter().map(String::from).collect()).collect();
+    (h, rows)
+}
+
+fn col(h: &[String], name: &str) -> usize {
+    h.iter().position(|c| c == name).unwrap_or_else(|| panic!("no column {name} in {h:?}"))
+}
+
+/// A CSV catalog of a 1% star at many positions (pixel coordinates, p up to 1.36% at the
+/// corners) comes back with P0 = 1% and its chi0 everywhere; every input column is kept.
+#[test]
+fn csv_catalog_round_trip_in_pixels() {
+    let dir = tempfile::tempdir().unwrap();
+    let cal = v_calibration();
+    let calp = dir.path().join("v.fits");
+    cal.save(&calp).unwrap();
+    let mut text = String::from("# a comment line\nid,x,y,q,u,sigma_q,sigma_u,mag\n");
+    let mut truth = vec![];
+    let mut k = 0;
+    for i in 0..7 {
+        for j in 0..7 {
+            let (px, py) = (2.0 + 2043.0 * i as f64 / 6.0, 2.0 + 2043.0 * j as f64 / 6.0);
+            let (x, y) = ((px - 1023.5) * 0.2 / 60.0, (py - 1023.5) * 0.2 / 60.0);
+            let chi0 = 0.37 * k as f64 % std::f64::consts::PI;
+            let (q, u) = observed(&cal, x, y, 0.01, chi0);
+            text.push_str(&format!("star{k},{px},{py},{q:e},{u:e},0.0005,0.0005,17.{k}\n"));
+            truth.push(chi0);
+            k += 1;
+        }
+    }
+    let inp = dir.path().join("cat.csv");
+    std::fs::write(&inp, text).unwrap();
+    let out = dir.path().join("out.csv");
+    let o = run(&[
+        "correct",
+        "--cal",
+        calp.to_str().unwrap(),
+        "--in",
+        inp.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--coords",
+        "pixel",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let js: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(js["rows"], 49);
+    assert_eq!(js["extrapolated"], 0);
+    assert_eq!(js["estimator"], "mas");
+    let (h, rows) = read_csv(&out);
+    for c in
+        ["id", "x", "y", "q", "u", "sigma_q", "sigma_u", "mag", "p0", "chi0_deg", "p0_mas", "sigma_p0", "extrapolated"]
+    {
+        col(&h, c);
+    }
+    for (r, chi0) in rows.iter().zip(&truth) {
+        let f = |n: &str| r[col(&h, n)].parse::<f64>().unwrap();
+        assert!((f("p0") - 0.01).abs() < 1e-9, "{r:?}");
+        let d = (f("chi0_deg") - chi0.to_degrees()).rem_euclid(180.0);
+        assert!(d.min(180.0 - d) < 1e-6, "chi0 {} vs {}", f("chi0_deg"), chi0.to_degrees());
+        // The bias-corrected P0 at SNR 20 is a little below P0.
+        assert!(f("p0_mas") < f("p0") && f("p0_mas") > 0.009);
+        assert!(r[col(&h, "id")].starts_with("star") && r[col(&h, "mag")].starts_with("17."));
+    }
+    // The first-order method is measurably wrong at the corners (p ~ 1.4%, P0 = 1%).
+    let out2 = dir.path().join("out2.csv");
+    let o = run(&[
+        "correct",
+        "--cal",
+        calp.to_str().unwrap(),
+        "--in",
+        inp.to_str().unwrap(),
+        "--out",
+        out2.to_str().unwrap(),
+        "--coords",
+        "pixel",
+        "--method",
+        "first-order",
+    ]);
+    assert!(o.status.success());
+    let (h2, rows2) = read_csv(&out2);
+    let worst = rows2.iter().map(|r| (r[col(&h2, "p0")].parse::<f64>().unwrap() - 0.01).abs()).fold(0.0, f64::max);
+    assert!(worst > 3e-5, "eq:approx error at the corners {worst}");
+}
+
+/// Outside the field: exit 2 naming the line and no output file; with --allow-extrapolation a
+/// warning, the row flagged and its errors inflated.
+#[test]
+fn outside_the_field_and_extrapolation() {
+    let dir = tempfile::tempdir().unwrap();
+    let calp = dir.path().join("v.fits");
+    v_calibration().save(&calp).unwrap();
+    let inp = dir.path().join("cat.csv");
+    std::fs::write(&inp, "x,y,q,u,sigma_q,sigma_u\n1.0,1.0,0.001,0.0,1e-4,1e-4\n3.6,0.0,0.01,0.0,1e-4,1e-4\n").unwrap();
+    let out = dir.path().join("out.csv");
+    let args =
+        ["correct", "--cal", calp.to_str().unwrap(), "--in", inp.to_str().unwrap(), "--out", out.to_str().unwrap()];
+    let o = run(&args);
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.starts_with("error:") && err.contains("row 2") && err.contains("outside the calibrated field"),
+        "{err}"
+    );
+    assert!(!out.exists(), "no half-written output");
+    let mut a = args.to_vec();
+    a.push("--allow-extrapolation");
+    let o = run(&a);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("warning: 1 of 2 positions"));
+    let (h, rows) = read_csv(&out);
+    assert_eq!(rows[0][col(&h, "extrapolated")], "0");
+    assert_eq!(rows[1][col(&h, "extrapolated")], "1");
+    // Inflation: the model has no coefficient covariance, so sigma_q0 ~ sqrt(1e-8 + (0.5 p)^2 ...).
+    let s = rows[1][col(&h, "sigma_q0")].parse::<f64>().unwrap();
+    let p = (V[0] * 3.6 + V[1] * 3.6 * 3.6 + V[2] * 3.6f64.powi(3)).abs();
+    assert!(s > 0.4 * p && s < 0.7 * p, "sigma_q0 {s}, p {p}");
+    // Bad input names the column and the line.
+    std::fs::write(&inp, "x,y,q,u,sigma_q,sigma_u\n1.0,1.0,abc,0.0,1e-4,1e-4\n").unwrap();
+    let o = run(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.code() == Some(2) && err.contains("line 2") && err.contains("'q'"), "{err}");
+    std::fs::write(&inp, "x,y,q,u,sigma_u\n1.0,1.0,0.0,0.0,1e-4\n").unwrap();
+    let err = String::from_utf8_lossy(&run(&args).stderr).to_string();
+    assert!(err.contains("no column 'sigma_q'"), "{err}");
+}
+
+/// A FITS binary-table catalog: every HDU, keyword and column kept, corrected columns appended.
+#[test]
+fn fits_table_catalog() {
+    let dir = tempfile::tempdir().unwrap();
+    let cal = v_calibration();
+    let calp = dir.path().join("v.fits");
+    cal.save(&calp).unwrap();
+    let pos = [(-3.0, -3.0), (2.5, -3.2), (0.5, 0.2), (-1.0, 2.9)];
+    let (mut xs, mut ys, mut qs, mut us, mut ids) = (vec![], vec![], vec![], vec![], vec![]);
+    for (k, &(x, y)) in pos.iter().enumerate() {
+        let (q, u) = observed(&cal, x, y, 0.0, 0.0); // unpolarized stars
+        xs.push(x);
+        ys.push(y);
+        qs.push(q);
+        us.push(u);
+        ids.push(k as i32 + 100);
+    }
+    let inp = dir.path().join("cat.fits");
+    {
+        let mut f = FitsFile::create(&inp).open().unwrap();
+        f.primary_hdu().unwrap().write_key(&mut f, "OBSERVER", "test").unwrap();
+        let cols: Vec<fitsio::tables::ConcreteColumnDescription> = ["ID", "X", "Y", "Q", "U", "SIGMA_Q", "SIGMA_U"]
+            .iter()
+            .map(|n| {
+                let t = if *n == "ID" { ColumnDataType::Int } else { ColumnDataType::Double };
+                ColumnDescription::new(*n).with_type(t).create().unwrap()
+            })
+            .collect();
+        let h = f.create_table("STARS".to_string(), &cols).unwrap();
+        h.write_col(&mut f, "ID", &ids).unwrap();
+        for (n, v) in [("X", &xs), ("Y", &ys), ("Q", &qs), ("U", &us)] {
+            h.write_col(&mut f, n, v).unwrap();
+        }
+        h.write_col(&mut f, "SIGMA_Q", &vec![1e-4; 4]).unwrap();
+        h.write_col(&mut f, "SIGMA_U", &vec![1e-4; 4]).unwrap();
+    }
+    let out = dir.path().join("out.fits");
+    let o = run(&[
+        "correct",
+        "--cal",
+        calp.to_str().unwrap(),
+        "--in",
+        inp.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--estimator",
+        "as",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mut f = FitsFile::open(&out).unwrap();
+    assert_eq!(f.primary_hdu().unwrap().read_key::<String>(&mut f, "OBSERVER").unwrap(), "test");
+    let h = f.hdu("STARS").unwrap();
+    assert_eq!(h.read_col::<i32>(&mut f, "ID").unwrap(), ids);
+    let q0: Vec<f64> = h.read_col(&mut f, "q0").unwrap();
+    let u0: Vec<f64> = h.read_col(&mut f, "u0").unwrap();
+    let pas: Vec<f64> = h.read_col(&mut f, "p0_as").unwrap();
+    let qi: Vec<f64> = h.read_col(&mut f, "q_inst").unwrap();
+    for k in 0..4 {
+        assert!(q0[k].abs() < 1e-12 && u0[k].abs() < 1e-12, "row {k}: {} {}", q0[k], u0[k]);
+        assert_eq!(pas[k], 0.0, "as gives 0 below sigma");
+        assert!(qi[k].abs() > 0.0 || pos[k].0.abs() == pos[k].1.abs());
+    }
+}
+
+/// A Stokes map of an unpolarized sky seen through the V field is corrected to zero in every
+/// bin, with the calibration's error added to the map's.
+#[test]
+fn stokes_map_corrected_bin_by_bin() {
+    use skyfield::{BinGeometry, StokesMap};
+    let dir = tempfile::tempdir().unwrap();
+    let mut cal = v_calibration();
+    cal.hwp_chi_offset_deg = 0.0;
+    let calp = dir.path().join("v.fits");
+    cal.save(&calp).unwrap();
+    let g = BinGeometry::covering(256, 0, 0, 2048, 2048, 0.2);
+    let mut m = StokesMap::empty(g.clone(), "FORS1", "V", vec![0.0, 22.5, 45.0, 67.5]);
+    for j in 0..g.ny {
+        for i in 0..g.nx {
+            let k = j * g.nx + i;
+            let (x, y) = g.centre_arcmin(i, j);
+            let a = cal.eval(x, y);
+            m.q[k] = a.q;
+            m.u[k] = a.u;
+            m.sigma_q[k] = 1e-4;
+            m.sigma_u[k] = 1e-4;
+            m.cov_qu[k] = 0.0;
+            m.sigma_q_phot[k] = 1e-4;
+            m.sigma_u_phot[k] = 1e-4;
+            (m.p[k], m.chi[k]) = stokes::polarization(a.q, a.u);
+            m.n_pixels[k] = 100;
+            m.intensity[k] = 1e4;
+            m.intensity_snr[k] = 100.0;
+            m.valid[k] = k != 5;
+        }
+    }
+    let inp = dir.path().join("map.fits");
+    m.write_fits(&inp).unwrap();
+    let out = dir.path().join("map_corr.fits");
+    let o = run(&[
+        "correct",
+        "--cal",
+        calp.to_str().unwrap(),
+        "--in",
+        inp.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let js: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(js["kind"], "Stokes map");
+    assert_eq!(js["rows"], 63);
+    let c = StokesMap::read_fits(&out).unwrap();
+    for k in 0..g.len() {
+        if k == 5 {
+            assert!(!c.valid[k]);
+            continue;
+        }
+        assert!(c.q[k].abs() < 1e-12 && c.u[k].abs() < 1e-12 && c.p[k] < 1e-12, "bin {k}");
+        assert!(c.sigma_q[k] >= 1e-4);
+    }
+}
+
+fn fors2_dir() -> Option<PathBuf> {
+    let d = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../../shared/data/fors2-instpol"));
+    if d.join("v_HIGH_inlaQ_bin10.fits").is_file() {
+        Some(d)
+    } else {
+        eprintln!("skipping: FORS2 maps not found at {} (../shared/data/fors2-instpol)", d.display());
+        None
+    }
+}
+
+/// The real FORS2 v_HIGH maps (Gonzalez-Gaitan et al. 2020), imported as a calibration: a
+/// catalog whose q, u equal the map's own instrumental values at its positions comes out with
+/// q0, u0 ~ 0, and a polarized star through the map is recovered.
+#[test]
+#[ignore = "needs `instpol import-map` (calibration issue) in the committed tree; run with --ignored"]
+fn fors2_map_calibration_corrects_its_own_instrumental_values() {
+    let Some(d) = fors2_dir() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let calp = dir.path().join("fors2_v.fits");
+    let o = run(&[
+        "import-map",
+        "--q",
+        d.join("v_HIGH_inlaQ_bin10.fits").to_str().unwrap(),
+        "--u",
+        d.join("v_HIGH_inlaU_bin10.fits").to_str().unwrap(),
+        "--pixel-scale",
+        "0.25",
+        "--bin",
+        "10",
+        "--filter",
+        "v_HIGH",
+        "--instrument",
+        "FORS2",
+        "--out",
+        calp.to_str().unwrap(),
+    ]);
+    if !o.status.success() {
+        // import-map belongs to the calibration issue; say so rather than pass silently.
+        panic!("instpol import-map failed (needed for this test): {}", String::from_utf8_lossy(&o.stderr));
+    }
+    let cal = Calibration::load(&calp).unwrap();
+    let reg = cal.region;
+    let mut text = String::from("x,y,q,u,sigma_q,sigma_u\n");
+    let mut n = 0;
+    for i in 0..25 {
+        for j in 0..25 {
+            let x = reg.x_min + (reg.x_max - reg.x_min) * (i as f64 + 0.5) / 25.0;
+            let y = reg.y_min + (reg.y_max - reg.y_min) * (j as f64 + 0.5) / 25.0;
+            if !cal.contains(x, y) {
+                continue;
+            }
+            let a = cal.eval(x, y);
+            let (q, u) = fit::correct::rotate_chi(a.q, a.u, -cal.hwp_chi_offset_deg.to_radians());
+            text.push_str(&format!("{x},{y},{q:e},{u:e},1e-4,1e-4\n"));
+            n += 1;
+        }
+    }
+    assert!(n > 200, "only {n} positions inside the FORS2 map");
+    let inp = dir.path().join("cat.csv");
+    std::fs::write(&inp, text).unwrap();
+    let out = dir.path().join("out.csv");
+    let o = run(&[
+        "correct",
+        "--cal",
+        calp.to_str().unwrap(),
+        "--in",
+        inp.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (h, rows) = read_csv(&out);
+    let mut pmax_inst = 0.0f64;
+    for r in &rows {
+        let f = |c: &str| r[col(&h, c)].parse::<f64>().unwrap();
+        assert!(f("q0").abs() < 1e-12 && f("u0").abs() < 1e-12, "{r:?}");
+        pmax_inst = pmax_inst.max(f("q_inst").hypot(f("u_inst")));
+        // The map's own errors are propagated.
+        assert!(f("sigma_q0") > 1e-4);
+    }
+    // Published: the FORS2 pattern reaches about 1.4% at the field edges.
+    assert!(pmax_inst > 0.008 && pmax_inst < 0.03, "max instrumental p {pmax_inst}");
+}
