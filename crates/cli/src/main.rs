@@ -23,6 +23,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    Bias(cmd::bias::Args),
+    Mc(cmd::mc::Args),
     Correct(cmd::correct::Args),
     Stokes(cmd::stokes::Args),
     Fresnel(cmd::fresnel::Args),
@@ -31,6 +33,8 @@ enum Command {
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Bias(a) => cmd::bias::run(a),
+        Command::Mc(a) => cmd::mc::run(a),
         Command::Correct(a) => cmd::correct::run(a),
         Command::Stokes(a) => cmd::stokes::run(a),
         Command::Fresnel(a) => cmd::fresnel::run(a),

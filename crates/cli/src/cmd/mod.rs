@@ -2,4 +2,7 @@
 
 pub mod stokes;
 pub mod fresnel;
+pub mod bias;
+pub mod mc;
+pub mod mc_plot;
 pub mod correct;

@@ -1,0 +1,463 @@
+//! `instpol mc`: Monte Carlo of dual-beam polarimetry, the paper's section-mc reproductions
+//! and the accuracy-against-time report.
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use serde::Serialize;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+use stokes::mc::budget::{noise_comparison, observer_table, precision_table};
+use stokes::mc::sweep::{bias_sweep, deltap_sweep, fit_law_exact, fit_law_mc, PAPER_C, PAPER_K};
+use stokes::mc::{Engine, McConfig, Noise};
+
+/// Monte Carlo of dual-beam linear polarimetry: draw the ordinary and extraordinary fluxes
+/// at N half-wave-plate angles (theta_i = i x 22.5 deg), reduce each trial with the Stokes
+/// solver and report the distribution of the measured P.
+///
+/// Noise models (--noise): poisson (exact photon counts, SNR^2 counts per angle, plus --sky
+/// and --read-noise), gauss-f (Gaussian on each F_i, sigma_F = 1/SNR) and gauss-qu (Gaussian on
+/// Q and U, sigma = 1/(sqrt(N/2) SNR), eq:sigp). SNR is that of the intensity f_O + f_E at each
+/// angle. The same --seed gives the same result on any number of --threads.
+///
+/// Three modes:
+///
+///   instpol mc --n-hwp 4 --snr 100 --p0 0.01 --trials 10000000 --noise poisson --json
+///
+///   instpol mc --sweep --plot sweep.png      (fig:deltap, fig:bias, refit of the bias law)
+///
+///   instpol mc --accuracy-report --plot acc.png   (precision vs trials and wall time;
+///       sigma_P and the HWP systematic floor vs SNR for N = 4, 8, 16; fast noise modes vs
+///       exact Poisson)
+#[derive(clap::Args)]
+pub struct Args {
+    /// Number of HWP angles N (optimal set i x 22.5 deg).
+    #[arg(long, default_value_t = 4)]
+    pub n_hwp: usize,
+    /// Signal-to-noise ratio of the intensity at each HWP angle.
+    #[arg(long, default_value_t = 100.0)]
+    pub snr: f64,
+    /// True polarization degree (fraction, 0..1).
+    #[arg(long, default_value_t = 0.01)]
+    pub p0: f64,
+    /// True polarization angle (degrees).
+    #[arg(long, default_value_t = 30.0)]
+    pub chi0: f64,
+    /// Number of trials (with --sweep: per point; default there 400000).
+    #[arg(long)]
+    pub trials: Option<u64>,
+    /// Noise model: poisson, gauss-f or gauss-qu.
+    #[arg(long, default_value = "poisson")]
+    pub noise: String,
+    /// Random seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Sky counts per beam and HWP angle in the aperture (poisson only; subtracted as known).
+    #[arg(long, default_value_t = 0.0)]
+    pub sky: f64,
+    /// Read noise per beam and HWP angle in the aperture, electrons rms (poisson only).
+    #[arg(long, default_value_t = 0.0)]
+    pub read_noise: f64,
+    /// Also time drawing the same random numbers alone (the engine's cost floor); reported as
+    /// rng_seconds.
+    #[arg(long)]
+    pub rng_baseline: bool,
+    /// Reproduce fig:deltap and fig:bias of the paper and refit its bias law.
+    #[arg(long, conflicts_with = "accuracy_report")]
+    pub sweep: bool,
+    /// Accuracy against time: Monte Carlo precision vs trials, sigma_P and the systematic
+    /// floor vs SNR, and the accuracy cost of the fast noise modes.
+    #[arg(long)]
+    pub accuracy_report: bool,
+    /// PNG file for the plot of --sweep or --accuracy-report.
+    #[arg(long)]
+    pub plot: Option<std::path::PathBuf>,
+    /// Print JSON (single run: trials, mean_p, rms_p, mode_p, seconds, trials_per_second, ...).
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct RunOut {
+    trials: u64,
+    mean_p: f64,
+    rms_p: f64,
+    mode_p: Option<f64>,
+    seconds: f64,
+    trials_per_second: f64,
+    median_p: Option<f64>,
+    q16_p: Option<f64>,
+    q84_p: Option<f64>,
+    rejected: u64,
+    sigma_p_analytic: f64,
+    noise: String,
+    n_hwp: usize,
+    snr: f64,
+    p0: f64,
+    chi0: f64,
+    seed: u64,
+    threads: usize,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    rng_seconds: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    engine_over_rng: Option<f64>,
+}
+
+/// A progress bar over `total` trials that appears only once the work has run for a second,
+/// and never with --json.
+struct Progress {
+    bar: ProgressBar,
+    start: Instant,
+    shown: AtomicBool,
+    enabled: bool,
+}
+
+impl Progress {
+    fn new(total: u64, enabled: bool) -> Self {
+        let bar = ProgressBar::with_draw_target(Some(total), ProgressDrawTarget::hidden());
+        if let Ok(st) = ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {human_pos}/{human_len} trials ({per_sec}, eta {eta})",
+        ) {
+            bar.set_style(st);
+        }
+        Self { bar, start: Instant::now(), shown: AtomicBool::new(false), enabled }
+    }
+    fn inc(&self, n: u64) {
+        self.bar.inc(n);
+        if self.enabled && !self.shown.load(Ordering::Relaxed) && self.start.elapsed().as_secs_f64() > 1.0 {
+            self.shown.store(true, Ordering::Relaxed);
+            self.bar.set_draw_target(ProgressDrawTarget::stderr());
+        }
+    }
+    fn finish(&self) {
+        self.bar.finish_and_clear();
+    }
+}
+
+fn pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
+    let mut b = rayon::ThreadPoolBuilder::new();
+    if let Some(j) = threads {
+        if j == 0 {
+            bail!("--threads must be >= 1");
+        }
+        b = b.num_threads(j);
+    }
+    b.build().context("cannot start the worker threads")
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let noise: Noise = a.noise.parse()?;
+    if !a.chi0.is_finite() {
+        bail!("--chi0 = {} must be finite (degrees)", a.chi0);
+    }
+    if a.plot.is_some() && !(a.sweep || a.accuracy_report) {
+        bail!("--plot needs --sweep or --accuracy-report");
+    }
+    if a.sweep {
+        return sweep(&a, noise);
+    }
+    if a.accuracy_report {
+        return accuracy(&a);
+    }
+    let trials = a.trials.unwrap_or(1_000_000);
+    if trials == 0 {
+        bail!("--trials must be >= 1");
+    }
+    let mut cfg = McConfig::new(a.n_hwp, a.snr, a.p0, a.chi0.to_radians(), trials, noise);
+    cfg.seed = a.seed;
+    cfg.sky = a.sky;
+    cfg.read_noise = a.read_noise;
+    let engine = Engine::new(&cfg)?;
+    let pool = pool(a.threads)?;
+    let prog = Progress::new(trials, !a.json);
+    let t0 = Instant::now();
+    let r = pool.install(|| engine.run(Some(&|n| prog.inc(n))));
+    let secs = t0.elapsed().as_secs_f64();
+    prog.finish();
+    let rng_seconds = if a.rng_baseline {
+        let t1 = Instant::now();
+        let chk = pool.install(|| engine.draw_only());
+        std::hint::black_box(chk);
+        Some(t1.elapsed().as_secs_f64())
+    } else {
+        None
+    };
+    let out = RunOut {
+        trials: r.trials,
+        mean_p: r.mean_p,
+        rms_p: r.rms_p,
+        mode_p: r.mode_p,
+        seconds: secs,
+        trials_per_second: trials as f64 / secs,
+        median_p: r.median_p,
+        q16_p: r.q16_p,
+        q84_p: r.q84_p,
+        rejected: r.rejected,
+        sigma_p_analytic: r.sigma_p_analytic,
+        noise: noise.name().into(),
+        n_hwp: a.n_hwp,
+        snr: a.snr,
+        p0: a.p0,
+        chi0: a.chi0,
+        seed: a.seed,
+        threads: pool.current_num_threads(),
+        rng_seconds,
+        engine_over_rng: rng_seconds.map(|r| secs / r),
+    };
+    if a.json {
+        return crate::util::print_json(&out);
+    }
+    let pc = |v: f64| format!("{:.5} %", 100.0 * v);
+    let opc = |v: Option<f64>| v.map_or("n/a".into(), pc);
+    println!(
+        "N = {}, SNR = {}, P0 = {}, chi0 = {} deg, noise {}, {} trials on {} threads",
+        a.n_hwp,
+        a.snr,
+        pc(a.p0),
+        a.chi0,
+        noise,
+        r.trials,
+        out.threads
+    );
+    println!("  mean P    {}", pc(r.mean_p));
+    println!("  mode P    {}", opc(r.mode_p));
+    println!("  median P  {}", opc(r.median_p));
+    println!("  sigma_P   {}   (eq:sigp: {})", pc(r.rms_p), pc(r.sigma_p_analytic));
+    println!("  68% band  [{}, {}]", opc(r.q16_p), opc(r.q84_p));
+    if r.rejected > 0 {
+        println!("  {} trials dropped (no counts in both beams at some angle)", r.rejected);
+    }
+    println!("  {:.3} s, {:.3e} trials/s", secs, out.trials_per_second);
+    if let Some(rs) = rng_seconds {
+        println!("  drawing the random numbers alone: {:.3} s (engine / draws = {:.2})", rs, secs / rs);
+    }
+    Ok(())
+}
+
+#[derive(Serialize)]
+struct SweepOut {
+    n_hwp: usize,
+    snr: f64,
+    noise: String,
+    trials_per_point: u64,
+    deltap: Vec<stokes::mc::sweep::DeltaPPoint>,
+    bias: Vec<stokes::mc::sweep::BiasPoint>,
+    fit_mc: Option<stokes::mc::sweep::LawFit>,
+    fit_exact_rice: Option<stokes::mc::sweep::LawFit>,
+    paper: (f64, f64),
+    seconds: f64,
+}
+
+fn sweep(a: &Args, noise: Noise) -> Result<()> {
+    let trials = a.trials.unwrap_or(400_000);
+    let n = a.n_hwp;
+    let k = (n as f64 / 2.0).sqrt();
+    // fig:deltap: eta = P0 SNR from 0.1 to 30 (log), plus the fit points sqrt(N/2) eta = 4..16.
+    let mut etas: Vec<f64> = (0..=24).map(|i| 10f64.powf(-1.0 + i as f64 * 2.5 / 24.0)).collect();
+    etas.extend((0..=12).map(|i| (4.0 + i as f64) / k));
+    etas.sort_by(|x, y| x.total_cmp(y));
+    etas.retain(|&e| e / a.snr <= 1.0);
+    let snr_ps: Vec<f64> = (0..=20).map(|i| 10f64.powf(-1.0 + i as f64 * 2.0 / 20.0)).collect();
+    let total = trials * (etas.len() + snr_ps.len()) as u64;
+    let pool = pool(a.threads)?;
+    let prog = Progress::new(total, !a.json);
+    let t0 = Instant::now();
+    let cb = |x| prog.inc(x);
+    let (dp, bs) = pool.install(|| -> Result<_> {
+        let dp = deltap_sweep(n, a.snr, &etas, trials, noise, a.seed, None, Some(&cb))?;
+        let bs = bias_sweep(n, a.snr, &snr_ps, trials, noise, a.seed, None, Some(&cb))?;
+        Ok((dp, bs))
+    })?;
+    prog.finish();
+    let fit_mc = fit_law_mc(&dp, 4.0);
+    let avals: Vec<f64> = (0..=120).map(|i| 4.0 + i as f64 * 0.1).collect();
+    let fit_exact = fit_law_exact(&avals, 4.0);
+    let out = SweepOut {
+        n_hwp: n,
+        snr: a.snr,
+        noise: noise.name().into(),
+        trials_per_point: trials,
+        deltap: dp,
+        bias: bs,
+        fit_mc,
+        fit_exact_rice: fit_exact,
+        paper: (PAPER_C, PAPER_K),
+        seconds: t0.elapsed().as_secs_f64(),
+    };
+    if let Some(path) = &a.plot {
+        super::mc_plot::sweep_png(path, &out.deltap, &out.bias, n, a.snr)?;
+    }
+    if a.json {
+        return crate::util::print_json(&out);
+    }
+    println!("fig:deltap  N = {n}, SNR = {}, noise {}, {trials} trials per point (values x SNR)", a.snr, noise);
+    println!(
+        "{:>8} {:>9} {:>9} {:>9} {:>9} {:>10} {:>10} {:>10} {:>10}",
+        "eta", "sigP*SNR", "eq:sigp", "Rice", "", "dP_mode", "WK(Rice)", "dP_mean", "Rice mean"
+    );
+    for p in &out.deltap {
+        println!(
+            "{:>8.3} {:>9.4} {:>9.4} {:>9.4} {:>9} {:>10.4} {:>10.4} {:>10.4} {:>10.4}",
+            p.eta,
+            p.sigma_p * a.snr,
+            p.sigma_p_eq * a.snr,
+            p.sigma_p_rice * a.snr,
+            "",
+            p.delta_mode.map_or(f64::NAN, |d| d * a.snr),
+            p.delta_mode_rice * a.snr,
+            p.delta_mean * a.snr,
+            p.delta_mean_rice * a.snr
+        );
+    }
+    println!("Rayleigh sigma_P x SNR = {:.4}", (2.0 - std::f64::consts::PI / 2.0).sqrt() / k);
+    println!();
+    println!("fig:bias  Delta P / sigma_P against SNR_P = P0 / sigma_P");
+    let names: Vec<String> =
+        out.bias.first().map(|b| b.estimators.iter().map(|e| e.0.clone()).collect()).unwrap_or_default();
+    print!("{:>8} {:>8} {:>8} {:>8}", "SNR_P", "mode", "mean", "median");
+    for nm in &names {
+        print!(" {:>8}", format!("E[{nm}]"));
+    }
+    println!();
+    for b in &out.bias {
+        print!(
+            "{:>8.3} {:>8.4} {:>8.4} {:>8.4}",
+            b.snr_p,
+            b.mc_mode.unwrap_or(f64::NAN),
+            b.mc_mean,
+            b.mc_median.unwrap_or(f64::NAN)
+        );
+        for e in &b.estimators {
+            print!(" {:>8.4}", e.1);
+        }
+        println!();
+    }
+    println!(
+        "(mode/mean/median: Monte Carlo; E[...]: estimator bias over the Rice distribution, ml = Simmons & Stewart)"
+    );
+    println!();
+    println!("bias law P0 = P~ [1 - (c / (sqrt(N/2) eta~))^k], fitted for sqrt(N/2) eta~ > 4:");
+    println!("{:>22} {:>8} {:>8} {:>7}", "", "c", "k", "points");
+    if let Some(f) = out.fit_mc {
+        println!("{:>22} {:>8.3} {:>8.3} {:>7}", "this Monte Carlo", f.c, f.k, f.points);
+    }
+    if let Some(f) = out.fit_exact_rice {
+        println!("{:>22} {:>8.3} {:>8.3} {:>7}", "exact Rice mode", f.c, f.k, f.points);
+    }
+    println!("{:>22} {:>8.3} {:>8.3}", "paper (sec:bias)", PAPER_C, PAPER_K);
+    println!("({:.1} s)", out.seconds);
+    Ok(())
+}
+
+#[derive(Serialize)]
+struct AccuracyOut {
+    precision: Vec<stokes::mc::budget::PrecisionRow>,
+    observer: Vec<stokes::mc::budget::ObserverRow>,
+    noise_modes: Vec<stokes::mc::budget::NoiseRow>,
+    precision_config: String,
+}
+
+fn accuracy(a: &Args) -> Result<()> {
+    let pool = pool(a.threads)?;
+    let noise: Noise = a.noise.parse()?;
+    let snr = a.snr;
+    let p0 = 2.0 / snr; // eta = 2, where bias and sigma_P are comparable
+    let mut base = McConfig::new(a.n_hwp, snr, p0.min(1.0), a.chi0.to_radians(), 0, noise);
+    base.seed = a.seed;
+    let tmax = a.trials.unwrap_or(1_000_000).max(1000);
+    let mut trial_list = vec![];
+    let mut t = 1000u64;
+    while t <= tmax {
+        trial_list.push(t);
+        t *= 10;
+    }
+    let spin = Progress::new(0, !a.json);
+    let (precision, observer, noise_modes) = pool.install(|| -> Result<_> {
+        let p = precision_table(&base, &trial_list, 5, None)?;
+        let o = observer_table(&[4, 8, 16], &[10.0, 30.0, 100.0, 300.0, 1000.0, 3000.0, 10000.0])?;
+        let nm = noise_comparison(a.n_hwp, 2.0, &[3.0, 10.0, 30.0, 100.0, 300.0], tmax.min(200_000), a.seed, None)?;
+        Ok((p, o, nm))
+    })?;
+    spin.finish();
+    let out = AccuracyOut {
+        precision,
+        observer,
+        noise_modes,
+        precision_config: format!("N = {}, SNR = {snr}, P0 = {p0} (eta = 2), noise {noise}", a.n_hwp),
+    };
+    if let Some(path) = &a.plot {
+        super::mc_plot::accuracy_png(path, &out.precision, &out.observer, &out.noise_modes, p0)?;
+    }
+    if a.json {
+        return crate::util::print_json(&out);
+    }
+    println!("1. Monte Carlo precision against trials ({}), 5 repetitions each", out.precision_config);
+    println!("   values in % of polarization; +- is the scatter of one run");
+    println!("{:>10} {:>10} {:>22} {:>22} {:>22}", "trials", "seconds", "sigma_P", "bias (mean)", "bias (mode)");
+    for r in &out.precision {
+        let f = |v: f64, s: f64| format!("{:.5} +- {:.5}", 100.0 * v, 100.0 * s);
+        println!(
+            "{:>10} {:>10.4} {:>22} {:>22} {:>22}",
+            r.trials,
+            r.seconds,
+            f(r.sigma_p, r.sigma_p_scatter),
+            f(r.bias_mean, r.bias_mean_scatter),
+            f(r.bias_mode, r.bias_mode_scatter)
+        );
+    }
+    println!();
+    println!("2. Observer: sigma_P (eq:sigp, %) against SNR (exposure time ~ SNR^2, relative to SNR 100)");
+    println!("   and the systematic floor of HWP defects at infinite SNR (mueller forward model, %)");
+    let snrs: Vec<f64> = out.observer[0].sigma_p.iter().map(|s| s.0).collect();
+    print!("{:>6}", "N");
+    for s in &snrs {
+        print!(" {:>9}", format!("SNR {s}"));
+    }
+    println!("  SNR where sigma_P = worst floor");
+    for r in &out.observer {
+        print!("{:>6}", r.n_hwp);
+        for s in &r.sigma_p {
+            print!(" {:>9.4}", 100.0 * s.1);
+        }
+        println!("  {:.0}", r.snr_at_floor);
+    }
+    print!("{:>6}", "time");
+    for s in &out.observer[0].sigma_p {
+        print!(" {:>9.3}", s.2);
+    }
+    println!();
+    println!("{:>30} {:>10} {:>10} {:>10}", "floor (%)", "N=4", "N=8", "N=16");
+    for (k, (name, _)) in out.observer[0].floors.iter().enumerate() {
+        print!("{:>30}", name);
+        for r in &out.observer {
+            print!(" {:>10.5}", 100.0 * r.floors[k].1);
+        }
+        println!();
+    }
+    println!();
+    println!(
+        "3. Fast noise modes against exact Poisson (N = {}, eta = P0 SNR = 2, {} trials)",
+        a.n_hwp,
+        tmax.min(200_000)
+    );
+    println!(
+        "{:>6} {:>9} {:>11} {:>11} {:>14} {:>12} {:>14}",
+        "SNR", "noise", "mean P %", "sigma_P %", "mean dev/err", "sigma rel", "trials/s"
+    );
+    for r in &out.noise_modes {
+        println!(
+            "{:>6} {:>9} {:>11.5} {:>11.5} {:>14.2} {:>12.4} {:>14.3e}{}",
+            r.snr,
+            r.noise,
+            100.0 * r.mean_p,
+            100.0 * r.rms_p,
+            r.mean_dev_sigma,
+            r.rms_rel_dev,
+            r.trials_per_second,
+            if r.rejected > 0 { format!("  ({} dropped: no counts)", r.rejected) } else { String::new() }
+        );
+    }
+    Ok(())
+}
