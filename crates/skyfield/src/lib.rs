@@ -13,6 +13,8 @@ pub mod beams;
 pub mod bin;
 pub mod io;
 pub mod maps;
+pub mod photometry;
+pub mod reduce;
 pub mod solve;
 
 pub use beams::BeamGeometry;

@@ -1,0 +1,783 @@
+//! The simulation plan: the steps a scene needs, built once, and the frames they make.
+
+use crate::scene::{Coords, Extended, InstPolSpec, Profile, Psf, Scene, Star};
+use crate::Error;
+use instrument::Instrument;
+use mueller::{DualBeam, Element, Harmonic, Hwp, Stokes, Wollaston};
+use rand::{RngExt, SeedableRng};
+use rand_distr::{Distribution, Normal, Poisson};
+use rand_xoshiro::Xoshiro256PlusPlus;
+use rayon::prelude::*;
+use skyfield::beams::{BeamGeometry, PixelKind};
+use skyfield::io::{write_frame, Bitpix, KeyValue};
+use std::f64::consts::PI;
+use std::path::{Path, PathBuf};
+
+/// Normalized Stokes `(I, Q, U)` of one sky pixel at the plate (V = 0 throughout).
+type Iqu = [f64; 3];
+
+/// The sky at the HWP: one vector for a uniform sky with no field-dependent effect, else one
+/// per sky pixel (in the order of `Plan::sky_pixels`).
+#[derive(Debug, Clone)]
+enum SkyAtPlate {
+    Constant(Iqu),
+    Image(Vec<Iqu>),
+}
+
+/// A per-pixel detector step, applied in this order to the electrons of each pixel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum DetStep {
+    /// Multiply by the (flat-field error) gain map.
+    Flat,
+    /// Replace the expected electrons by a Poisson draw.
+    Photon,
+    /// Add this frame's cosmic-ray charge.
+    Cosmic,
+    /// Add Gaussian read noise (e- rms).
+    ReadNoise(f64),
+    /// Electrons to ADU.
+    Gain(f64),
+    /// Add a bias level (ADU).
+    Bias(f64),
+    /// Clip at the saturation level (ADU).
+    Saturate(f64),
+}
+
+impl DetStep {
+    fn random(&self) -> bool {
+        matches!(self, DetStep::Photon | DetStep::ReadNoise(_))
+    }
+}
+
+/// Everything a scene needs, computed once; frames are rendered from it.
+pub struct Plan {
+    pub scene: Scene,
+    pub inst: Instrument,
+    geom: BeamGeometry,
+    /// (o, e) detector indices of every sky pixel the mask lets through.
+    sky_pixels: Vec<(u32, u32)>,
+    sky: SkyAtPlate,
+    /// Per HWP angle: rows giving `f_O`, `f_E` from `(I, Q, U)` at the plate.
+    rows: Vec<(Iqu, Iqu)>,
+    flat: Option<Vec<f64>>,
+    steps: Vec<DetStep>,
+    cosmic: Option<crate::scene::CosmicSpec>,
+    bitpix: Bitpix,
+    explain: Vec<String>,
+}
+
+/// What [`simulate`] wrote.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Simulated {
+    pub frames: Vec<PathBuf>,
+    pub truth: PathBuf,
+}
+
+/// A random stream for (seed, purpose, frame, row): independent of thread scheduling.
+fn stream(seed: u64, purpose: u64, frame: u64, row: u64) -> Xoshiro256PlusPlus {
+    fn mix(mut z: u64) -> u64 {
+        z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    Xoshiro256PlusPlus::seed_from_u64(mix(seed ^ mix(purpose ^ mix(frame ^ mix(row)))))
+}
+
+const STREAM_FLAT: u64 = 1;
+const STREAM_PIXELS: u64 = 2;
+const STREAM_COSMIC: u64 = 3;
+
+fn file_err(path: &Path, m: impl std::fmt::Display) -> Error {
+    Error::File { path: path.into(), message: m.to_string() }
+}
+
+/// Read a 2-D map (or the first plane of a cube) with its size `(nx, ny)`.
+fn read_map(path: &Path) -> Result<(Vec<f64>, usize, usize), Error> {
+    let mut f = fitsio::FitsFile::open(path).map_err(|e| file_err(path, format!("cannot open as FITS: {e}")))?;
+    let hdu = f.primary_hdu().map_err(|e| file_err(path, e))?;
+    let shape = match &hdu.info {
+        fitsio::hdu::HduInfo::ImageInfo { shape, .. } => shape.clone(),
+        _ => return Err(file_err(path, "primary HDU is not an image")),
+    };
+    let (ny, nx) = match shape.as_slice() {
+        [ny, nx] => (*ny, *nx),
+        [_, ny, nx] => (*ny, *nx),
+        _ => return Err(file_err(path, format!("expected a 2-D image or a cube, shape {shape:?}"))),
+    };
+    let v: Vec<f64> = hdu.read_image(&mut f).map_err(|e| file_err(path, format!("cannot read data: {e}")))?;
+    Ok((v[..nx * ny].to_vec(), nx, ny))
+}
+
+/// A ray-trace profile file.
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RaytraceProfile {
+    radius_arcmin: Vec<f64>,
+    p: Vec<f64>,
+}
+
+/// The instrumental field, evaluated per sky pixel: `(p, phi)` of `M_I`.
+enum InstField {
+    Radial { c: Vec<f64>, centre: [f64; 2], phi0: f64 },
+    Map { q: Vec<f64>, u: Vec<f64>, nx: usize, ny: usize, bin: usize },
+    Profile { r: Vec<f64>, p: Vec<f64>, centre: [f64; 2] },
+}
+
+impl InstField {
+    fn load(spec: &InstPolSpec) -> Result<Self, Error> {
+        Ok(match spec {
+            InstPolSpec::Radial { coeffs_percent, centre_arcmin, phi_offset_deg } => InstField::Radial {
+                c: coeffs_percent.iter().map(|c| c / 100.0).collect(),
+                centre: *centre_arcmin,
+                phi0: phi_offset_deg.to_radians(),
+            },
+            InstPolSpec::Map { q_file, u_file, bin_px } => {
+                let (q, nx, ny) = read_map(q_file)?;
+                let (u, ux, uy) = read_map(u_file)?;
+                if (ux, uy) != (nx, ny) {
+                    return Err(file_err(u_file, format!("U map is {ux} x {uy}, Q map is {nx} x {ny}")));
+                }
+                InstField::Map { q, u, nx, ny, bin: (*bin_px).max(1) }
+            }
+            InstPolSpec::Raytrace { file, centre_arcmin } => {
+                let text = std::fs::read_to_string(file).map_err(|e| file_err(file, e))?;
+                let p: RaytraceProfile = serde_json::from_str(&text).map_err(|e| file_err(file, e))?;
+                if p.radius_arcmin.len() != p.p.len() || p.p.is_empty() {
+                    return Err(file_err(file, "radius_arcmin and p must have the same, non-zero length"));
+                }
+                if p.radius_arcmin.windows(2).any(|w| !(w[1] > w[0])) {
+                    return Err(file_err(file, "radius_arcmin must increase"));
+                }
+                InstField::Profile { r: p.radius_arcmin, p: p.p, centre: *centre_arcmin }
+            }
+        })
+    }
+
+    /// `(p, phi)` at sky pixel `(x, y)` (arcmin `(xa, ya)`); a negative radial `p` is the
+    /// same partial polarizer turned by 90 deg.
+    fn eval(&self, x: usize, y: usize, xa: f64, ya: f64) -> (f64, f64) {
+        let signed = |p: f64, phi: f64| if p >= 0.0 { (p, phi) } else { (-p, phi + 0.5 * PI) };
+        match self {
+            InstField::Radial { c, centre, phi0 } => {
+                let (dx, dy) = (xa - centre[0], ya - centre[1]);
+                let r = dx.hypot(dy);
+                let p = c.iter().rev().fold(0.0, |acc, &ck| acc * r + ck);
+                signed(p, dy.atan2(dx) + phi0)
+            }
+            InstField::Map { q, u, nx, ny, bin } => {
+                let (i, j) = (x / bin, y / bin);
+                if i >= *nx || j >= *ny {
+                    return (0.0, 0.0);
+                }
+                let (qv, uv) = (q[j * nx + i], u[j * nx + i]);
+                if !(qv.is_finite() && uv.is_finite()) {
+                    return (0.0, 0.0);
+                }
+                stokes::polarization(qv, uv)
+            }
+            InstField::Profile { r, p, centre } => {
+                let (dx, dy) = (xa - centre[0], ya - centre[1]);
+                let rr = dx.hypot(dy);
+                let k = r.partition_point(|&v| v < rr);
+                let pv = if k == 0 {
+                    p[0]
+                } else if k >= r.len() {
+                    p[r.len() - 1]
+                } else {
+                    let w = (rr - r[k - 1]) / (r[k] - r[k - 1]);
+                    p[k - 1] + w * (p[k] - p[k - 1])
+                };
+                signed(pv, dy.atan2(dx))
+            }
+        }
+    }
+}
+
+/// Sersic `b_n` (asymptotic expansion, good to < 1e-4 for n > 0.36).
+fn sersic_b(n: f64) -> f64 {
+    2.0 * n - 1.0 / 3.0 + 4.0 / (405.0 * n) + 46.0 / (25515.0 * n * n)
+}
+
+impl Plan {
+    /// Build the plan of a validated scene.
+    pub fn build(scene: &Scene) -> Result<Self, Error> {
+        let inst = Instrument::load(&scene.instrument)?;
+        let filter = inst.filter(&scene.filter)?.clone();
+        let geom = BeamGeometry::new(&inst);
+        let mut explain = Vec::new();
+        explain.push(format!(
+            "instrument {} ({} x {} px, {} strips, throw {} px), filter {}, {} HWP angles {:?} deg",
+            inst.name,
+            geom.nx,
+            geom.ny,
+            geom.strips.len(),
+            inst.throw_px(),
+            filter.name,
+            scene.hwp_angles_deg.len(),
+            scene.hwp_angles_deg
+        ));
+        let sky_pixels: Vec<(u32, u32)> = geom
+            .sky_pixels()
+            .map(|(x, y)| {
+                let (o, e) = geom.beams_of_sky(x, y).expect("sky pixel");
+                (o as u32, e as u32)
+            })
+            .collect();
+
+        // --- the sky at the plate ---
+        explain.push("sky at the plate (once per scene):".into());
+        let base = scene.sky.as_ref().map(|s| {
+            let st = mueller::stokes_p_chi(s.brightness_e, s.p, s.chi_deg.to_radians());
+            [st[0], st[1], st[2]]
+        });
+        let fx = &scene.effects;
+        let needs_image = scene.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some())
+            || !scene.stars.is_empty()
+            || !scene.extended.is_empty()
+            || fx.instpol.is_some();
+        let sky = if !needs_image {
+            let c = base.unwrap_or([0.0; 3]);
+            match &scene.sky {
+                Some(s) => explain.push(format!(
+                    "  uniform sky I = {} e-/px, p = {} ({:.3}%), chi = {} deg: one Stokes vector, nothing per pixel",
+                    s.brightness_e,
+                    s.p,
+                    100.0 * s.p,
+                    s.chi_deg
+                )),
+                None => explain.push("  empty sky: no light".into()),
+            }
+            SkyAtPlate::Constant(c)
+        } else {
+            let mut img = vec![base.unwrap_or([0.0; 3]); sky_pixels.len()];
+            let nx = geom.nx;
+            let pos = |o: u32| ((o as usize) % nx, (o as usize) / nx);
+            if let Some(s) = &scene.sky {
+                explain.push(format!(
+                    "  sky I = {} e-/px, p = {} ({:.3}%), chi = {} deg",
+                    s.brightness_e,
+                    s.p,
+                    100.0 * s.p,
+                    s.chi_deg
+                ));
+                if let Some([gx, gy]) = s.gradient_e_per_arcmin {
+                    explain.push(format!("  + linear gradient ({gx}, {gy}) e-/px per arcmin"));
+                    let (q0, u0) =
+                        (s.p * (2.0 * s.chi_deg.to_radians()).cos(), s.p * (2.0 * s.chi_deg.to_radians()).sin());
+                    for (k, &(o, _)) in sky_pixels.iter().enumerate() {
+                        let (x, y) = pos(o);
+                        let (xa, ya) = inst.pixel_to_arcmin(x as f64, y as f64);
+                        let i = (s.brightness_e + gx * xa + gy * ya).max(0.0);
+                        img[k] = [i, i * q0, i * u0];
+                    }
+                }
+            }
+            if !scene.stars.is_empty() || !scene.extended.is_empty() {
+                // Sky-pixel ordinal of each detector pixel, for sources that touch a window.
+                let mut ordinal = vec![u32::MAX; geom.nx * geom.ny];
+                for (k, &(o, _)) in sky_pixels.iter().enumerate() {
+                    ordinal[o as usize] = k as u32;
+                }
+                for st in &scene.stars {
+                    explain.push(format!("  + star {}", describe_star(st)));
+                    add_star(&mut img, &ordinal, &inst, st);
+                }
+                for ex in &scene.extended {
+                    explain.push(format!(
+                        "  + extended source: {:?} profile, p = {}, chi = {} deg",
+                        ex.profile, ex.p, ex.chi_deg
+                    ));
+                    add_extended(&mut img, &sky_pixels, &inst, ex)?;
+                }
+            }
+            if let Some(spec) = &fx.instpol {
+                let field = InstField::load(spec)?;
+                explain.push(format!(
+                    "  x instrumental field Element::PartialPolarizer{{p(x,y), phi(x,y)}} per pixel: {}",
+                    describe_instpol(spec)
+                ));
+                img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(s, &(o, _))| {
+                    let (x, y) = pos(o);
+                    let (xa, ya) = inst.pixel_to_arcmin(x as f64, y as f64);
+                    let (p, phi) = field.eval(x, y, xa, ya);
+                    if p != 0.0 {
+                        let out = Element::PartialPolarizer { p, phi }.matrix() * Stokes::new(s[0], s[1], s[2], 0.0);
+                        *s = [out[0], out[1], out[2]];
+                    }
+                });
+            }
+            SkyAtPlate::Image(img)
+        };
+
+        // --- the optics: the one forward model, compiled once ---
+        let mut hwp = Hwp::ideal();
+        let mut optics = Vec::new();
+        if let Some(d) = fx.hwp_retardance_error_deg {
+            hwp.retardance_error = d.to_radians();
+            optics.push(format!("HWP retardance error {d} deg"));
+        }
+        let chi_off =
+            if fx.hwp_chi_offset_from_filter { Some(filter.hwp_chi_offset_deg) } else { fx.hwp_chi_offset_deg };
+        if let Some(c) = chi_off {
+            hwp.chi_offset = c.to_radians();
+            optics.push(format!("HWP chromatic zero angle {c} deg"));
+        }
+        if let Some(h) = &fx.dust {
+            hwp.dust = Some(Harmonic { amplitude: h.amplitude, phase: h.phase_deg.to_radians() });
+            optics.push(format!("HWP dust (k = 1) amplitude {} phase {} deg", h.amplitude, h.phase_deg));
+        }
+        if let Some(h) = &fx.pleochroism {
+            hwp.pleochroism = Some(Harmonic { amplitude: h.amplitude, phase: h.phase_deg.to_radians() });
+            optics.push(format!("HWP pleochroism (k = 2) amplitude {} phase {} deg", h.amplitude, h.phase_deg));
+        }
+        let wollaston = match &fx.wollaston {
+            Some(w) => {
+                let s = w.s.unwrap_or(1.0 - w.t);
+                optics.push(format!("Wollaston t = {}, s = {s}, delta_alpha = {} deg", w.t, w.delta_alpha_deg));
+                Wollaston { t: w.t, s, delta_alpha: w.delta_alpha_deg.to_radians() }
+            }
+            None => Wollaston::ideal(),
+        };
+        let post = fx.post_analyzer.as_ref().map(|p| {
+            optics.push(format!("post-analyzer M_PA(A = {}, B = {}, C = {}, phi = {} deg)", p.a, p.b, p.c, p.phi_deg));
+            mueller::post_analyzer(p.a, p.b, p.c, p.phi_deg.to_radians())
+        });
+        let train = DualBeam { pre: vec![], hwp, wollaston, post }.compile();
+        if optics.is_empty() {
+            explain.push("optics: ideal HWP + ideal Wollaston (eq:ord)".into());
+        } else {
+            explain.push(format!("optics (mueller::DualBeam, compiled once): {}", optics.join("; ")));
+        }
+        explain.push("  per HWP angle: f_O, f_E = two rows . (I, Q, U) at the plate (the model is linear)".into());
+        let basis = [Stokes::new(1.0, 0.0, 0.0, 0.0), Stokes::new(0.0, 1.0, 0.0, 0.0), Stokes::new(0.0, 0.0, 1.0, 0.0)];
+        let rows = scene
+            .hwp_angles_deg
+            .iter()
+            .map(|a| {
+                let t = a.to_radians();
+                let mut ro = [0.0; 3];
+                let mut re = [0.0; 3];
+                for (k, b) in basis.iter().enumerate() {
+                    let f = train.fluxes_at_plate(b, t);
+                    ro[k] = f.f_o;
+                    re[k] = f.f_e;
+                }
+                (ro, re)
+            })
+            .collect();
+
+        // --- detector steps ---
+        let d = &inst.detector;
+        let mut steps = Vec::new();
+        let mut det = Vec::new();
+        let flat = match &fx.flat {
+            Some(f) => {
+                steps.push(DetStep::Flat);
+                det.push(format!(
+                    "flat-field errors (o: rms {} + large-scale {}; e: rms {} + large-scale {})",
+                    f.pixel_rms_o, f.large_scale_o, f.pixel_rms_e, f.large_scale_e
+                ));
+                Some(flat_map(&geom, f, scene.seed))
+            }
+            None => None,
+        };
+        if fx.photon_noise {
+            steps.push(DetStep::Photon);
+            det.push("photon noise (Poisson)".into());
+        }
+        if let Some(c) = &fx.cosmic_rays {
+            steps.push(DetStep::Cosmic);
+            det.push(format!(
+                "cosmic rays ({} per frame, {} e- over {} px squares)",
+                c.rate_per_frame, c.energy_e, c.size_px
+            ));
+        }
+        let rn = fx.read_noise_e.or(if fx.read_noise { Some(d.read_noise_e) } else { None });
+        if let Some(r) = rn.filter(|&r| r > 0.0) {
+            steps.push(DetStep::ReadNoise(r));
+            det.push(format!("read noise {r} e- rms"));
+        }
+        let gain = fx.gain_e_per_adu.unwrap_or(d.gain_e_per_adu);
+        steps.push(DetStep::Gain(gain));
+        det.push(format!("gain {gain} e-/ADU"));
+        if d.bias_adu != 0.0 {
+            steps.push(DetStep::Bias(d.bias_adu));
+            det.push(format!("bias {} ADU", d.bias_adu));
+        }
+        if fx.saturation {
+            steps.push(DetStep::Saturate(d.saturation_adu));
+            det.push(format!("saturation at {} ADU", d.saturation_adu));
+        }
+        let bitpix = Bitpix::from_fits(scene.output.bitpix).unwrap_or(Bitpix::U16);
+        det.push(format!(
+            "written as BITPIX {}{}",
+            scene.output.bitpix,
+            if bitpix == Bitpix::U16 { " (rounded)" } else { "" }
+        ));
+        explain.push(format!("detector steps per pixel: {}", det.join(" -> ")));
+        Ok(Self {
+            scene: scene.clone(),
+            inst,
+            geom,
+            sky_pixels,
+            sky,
+            rows,
+            flat,
+            steps,
+            cosmic: fx.cosmic_rays.clone(),
+            bitpix,
+            explain,
+        })
+    }
+
+    /// The train and noise steps, one per line, for `--explain`.
+    pub fn explain(&self) -> String {
+        self.explain.join("\n")
+    }
+
+    /// Number of frames (HWP angles).
+    pub fn n_frames(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// Detector size `(nx, ny)`.
+    pub fn size(&self) -> (usize, usize) {
+        (self.geom.nx, self.geom.ny)
+    }
+
+    /// Render frame `k` (ADU, row-major, before the file's rounding).
+    pub fn render(&self, k: usize) -> Vec<f64> {
+        let (nx, ny) = (self.geom.nx, self.geom.ny);
+        let mut img = vec![0.0; nx * ny];
+        let (ro, re) = self.rows[k];
+        let dot = |r: &Iqu, s: &Iqu| r[0] * s[0] + r[1] * s[1] + r[2] * s[2];
+        match &self.sky {
+            SkyAtPlate::Constant(s) => {
+                let (fo, fe) = (dot(&ro, s), dot(&re, s));
+                for &(o, e) in &self.sky_pixels {
+                    img[o as usize] = fo;
+                    img[e as usize] = fe;
+                }
+            }
+            SkyAtPlate::Image(v) => {
+                for (s, &(o, e)) in v.iter().zip(&self.sky_pixels) {
+                    img[o as usize] = dot(&ro, s);
+                    img[e as usize] = dot(&re, s);
+                }
+            }
+        }
+        // Cosmic-ray hits of this frame, by row (drawn only when the scene has them).
+        let mut hits: Vec<Vec<(usize, f64)>> = Vec::new();
+        if let Some(c) = &self.cosmic {
+            hits = vec![Vec::new(); ny];
+            let mut rng = stream(self.scene.seed, STREAM_COSMIC, k as u64, 0);
+            let n = if c.rate_per_frame > 0.0 {
+                Poisson::new(c.rate_per_frame).map(|p| p.sample(&mut rng) as usize).unwrap_or(0)
+            } else {
+                0
+            };
+            let per = c.energy_e / (c.size_px * c.size_px) as f64;
+            for _ in 0..n {
+                let x0 = rng.random_range(0..nx);
+                let y0 = rng.random_range(0..ny);
+                for y in y0..(y0 + c.size_px).min(ny) {
+                    for x in x0..(x0 + c.size_px).min(nx) {
+                        hits[y].push((x, per));
+                    }
+                }
+            }
+        }
+        let random = self.steps.iter().any(|s| s.random());
+        let seed = self.scene.seed;
+        img.par_chunks_mut(nx).enumerate().for_each(|(y, row)| {
+            let mut rng = random.then(|| stream(seed, STREAM_PIXELS, k as u64, y as u64));
+            let flat_row = self.flat.as_ref().map(|f| &f[y * nx..(y + 1) * nx]);
+            for step in &self.steps {
+                match *step {
+                    DetStep::Flat => {
+                        for (v, g) in row.iter_mut().zip(flat_row.expect("flat map")) {
+                            *v *= g;
+                        }
+                    }
+                    DetStep::Photon => {
+                        let r = rng.as_mut().expect("rng");
+                        for v in row.iter_mut() {
+                            if *v > 0.0 {
+                                *v = Poisson::new(*v).map(|p| p.sample(r)).unwrap_or(*v);
+                            }
+                        }
+                    }
+                    DetStep::Cosmic => {
+                        for &(x, q) in &hits[y] {
+                            row[x] += q;
+                        }
+                    }
+                    DetStep::ReadNoise(s) => {
+                        let r = rng.as_mut().expect("rng");
+                        let nd = Normal::new(0.0, s).expect("read noise >= 0");
+                        for v in row.iter_mut() {
+                            *v += nd.sample(r);
+                        }
+                    }
+                    DetStep::Gain(g) => {
+                        for v in row.iter_mut() {
+                            *v /= g;
+                        }
+                    }
+                    DetStep::Bias(b) => {
+                        for v in row.iter_mut() {
+                            *v += b;
+                        }
+                    }
+                    DetStep::Saturate(s) => {
+                        for v in row.iter_mut() {
+                            *v = v.min(s);
+                        }
+                    }
+                }
+            }
+        });
+        img
+    }
+
+    /// The header keywords of frame `k`.
+    fn keys(&self, k: usize) -> Vec<(String, KeyValue, String)> {
+        let pol = &self.inst.polarimetry;
+        let filt = self.inst.filter(&self.scene.filter).map(|f| f.aliases.first().cloned().unwrap_or(f.name.clone()));
+        vec![
+            ("INSTRUME".into(), KeyValue::Str(self.inst.name.clone()), String::new()),
+            ("OBJECT".into(), KeyValue::Str("instpol simulation".into()), String::new()),
+            (pol.hwp_angle_keyword.clone(), KeyValue::F64(self.scene.hwp_angles_deg[k]), "HWP angle [deg]".into()),
+            (pol.filter_keyword.clone(), KeyValue::Str(filt.unwrap_or(self.scene.filter.clone())), String::new()),
+            (pol.exptime_keyword.clone(), KeyValue::F64(self.scene.exposure_s), "exposure time [s]".into()),
+            ("SIMSEED".into(), KeyValue::I64(self.scene.seed as i64), "instpol simulation seed".into()),
+        ]
+    }
+
+    /// File name of frame `k`.
+    pub fn frame_name(&self, k: usize) -> String {
+        format!("{}_{:02}_hwp{:05.1}.fits", self.scene.output.prefix, k, self.scene.hwp_angles_deg[k])
+    }
+}
+
+fn describe_star(s: &Star) -> String {
+    let unit = if s.coords == Coords::Pixel { "px" } else { "arcmin" };
+    format!(
+        "at ({}, {}) {unit}, {} e-, p = {}, chi = {} deg, {:?} PSF FWHM {}\"",
+        s.x, s.y, s.flux_e, s.p, s.chi_deg, s.psf, s.fwhm_arcsec
+    )
+}
+
+fn describe_instpol(s: &InstPolSpec) -> String {
+    match s {
+        InstPolSpec::Radial { coeffs_percent, centre_arcmin, phi_offset_deg } => format!(
+            "radial polynomial p(r) = sum c_k r^k, c = {coeffs_percent:?} %, centre {centre_arcmin:?} arcmin, phi = polar angle + {phi_offset_deg} deg"
+        ),
+        InstPolSpec::Map { q_file, u_file, bin_px } => {
+            format!("Q/U maps {} and {}, {bin_px} px per map pixel", q_file.display(), u_file.display())
+        }
+        InstPolSpec::Raytrace { file, centre_arcmin } => {
+            format!("ray-trace profile {} (radial pattern), centre {centre_arcmin:?} arcmin", file.display())
+        }
+    }
+}
+
+fn source_pixel(inst: &Instrument, x: f64, y: f64, c: Coords) -> (f64, f64) {
+    match c {
+        Coords::Pixel => (x, y),
+        Coords::Arcmin => inst.arcmin_to_pixel(x, y),
+    }
+}
+
+/// Add a star's Stokes vector, spread by its PSF (sampled at pixel centres, normalized to the
+/// flux over the rendered window), to the sky image.
+fn add_star(img: &mut [Iqu], ordinal: &[u32], inst: &Instrument, s: &Star) {
+    let (nx, ny) = (inst.detector.nx, inst.detector.ny);
+    let (xc, yc) = source_pixel(inst, s.x, s.y, s.coords);
+    let fwhm = s.fwhm_arcsec / inst.detector.pixel_scale_arcsec;
+    let (profile, radius): (Box<dyn Fn(f64) -> f64>, f64) = match s.psf {
+        Psf::Gaussian => {
+            let sig = fwhm / (8.0 * 2f64.ln()).sqrt();
+            (Box::new(move |r2: f64| (-0.5 * r2 / (sig * sig)).exp()), 8.0 * sig)
+        }
+        Psf::Moffat => {
+            let b = s.moffat_beta;
+            let alpha = fwhm / (2.0 * (2f64.powf(1.0 / b) - 1.0).sqrt());
+            // Radius where the profile has fallen to 1e-6 of its peak, at most 300 px.
+            let r = alpha * (1e-6f64.powf(-1.0 / b) - 1.0).sqrt();
+            (Box::new(move |r2: f64| (1.0 + r2 / (alpha * alpha)).powf(-b)), r.min(300.0))
+        }
+    };
+    let x0 = (xc - radius).floor().max(0.0) as usize;
+    let x1 = ((xc + radius).ceil() as usize).min(nx.saturating_sub(1));
+    let y0 = (yc - radius).floor().max(0.0) as usize;
+    let y1 = ((yc + radius).ceil() as usize).min(ny.saturating_sub(1));
+    if xc + radius < 0.0 || yc + radius < 0.0 || x0 > x1 || y0 > y1 {
+        return;
+    }
+    // Normalize over the whole window (masked pixels included: the mask hides that light).
+    let mut norm = 0.0;
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            let r2 = (x as f64 - xc).powi(2) + (y as f64 - yc).powi(2);
+            norm += profile(r2);
+        }
+    }
+    if norm <= 0.0 {
+        return;
+    }
+    let st = mueller::stokes_p_chi(s.flux_e / norm, s.p, s.chi_deg.to_radians());
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            let k = ordinal[y * nx + x];
+            if k == u32::MAX {
+                continue;
+            }
+            let w = profile((x as f64 - xc).powi(2) + (y as f64 - yc).powi(2));
+            let t = &mut img[k as usize];
+            t[0] += w * st[0];
+            t[1] += w * st[1];
+            t[2] += w * st[2];
+        }
+    }
+}
+
+fn add_extended(img: &mut [Iqu], sky_pixels: &[(u32, u32)], inst: &Instrument, e: &Extended) -> Result<(), Error> {
+    let nx = inst.detector.nx;
+    let (q, u) = (e.p * (2.0 * e.chi_deg.to_radians()).cos(), e.p * (2.0 * e.chi_deg.to_radians()).sin());
+    match e.profile {
+        Profile::Image => {
+            let path = e.image.as_ref().expect("validated");
+            let (v, ix, iy) = read_map(path)?;
+            if (ix, iy) != (inst.detector.nx, inst.detector.ny) {
+                return Err(file_err(
+                    path,
+                    format!("image is {ix} x {iy}, the detector is {} x {}", nx, inst.detector.ny),
+                ));
+            }
+            for (t, &(o, _)) in img.iter_mut().zip(sky_pixels) {
+                let i = v[o as usize];
+                if i.is_finite() && i > 0.0 {
+                    t[0] += i;
+                    t[1] += i * q;
+                    t[2] += i * u;
+                }
+            }
+        }
+        Profile::Sersic | Profile::Exponential => {
+            let n = if e.profile == Profile::Exponential { 1.0 } else { e.sersic_n };
+            let b = sersic_b(n);
+            let (xc, yc) = source_pixel(inst, e.x, e.y, e.coords);
+            let re = e.r_e_arcsec / inst.detector.pixel_scale_arcsec;
+            let (sp, cp) = e.pa_deg.to_radians().sin_cos();
+            img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(t, &(o, _))| {
+                let (x, y) = ((o as usize % nx) as f64 - xc, (o as usize / nx) as f64 - yc);
+                let (a, bb) = (x * cp + y * sp, -x * sp + y * cp);
+                let r = a.hypot(bb / e.axis_ratio);
+                let i = e.i_e * (-b * ((r / re).powf(1.0 / n) - 1.0)).exp();
+                t[0] += i;
+                t[1] += i * q;
+                t[2] += i * u;
+            });
+        }
+    }
+    Ok(())
+}
+
+/// The flat-field error gains: 1 on masked pixels; on o (e) pixels `1 + rms n + A L(x, y)`
+/// with `n` standard normal and `L` a smooth unit-amplitude pattern, different for the two
+/// beams: `L_o = sin(2 pi x/nx + 0.3) cos(2 pi y/ny)`, `L_e = cos(2 pi x/nx - 0.7) sin(2 pi
+/// y/ny + 0.4)`.
+fn flat_map(geom: &BeamGeometry, f: &crate::scene::FlatSpec, seed: u64) -> Vec<f64> {
+    let (nx, ny) = (geom.nx, geom.ny);
+    let mut out = vec![1.0; nx * ny];
+    out.par_chunks_mut(nx).enumerate().for_each(|(y, row)| {
+        let mut rng = stream(seed, STREAM_FLAT, 0, y as u64);
+        let yy = 2.0 * PI * y as f64 / ny as f64;
+        for (x, g) in row.iter_mut().enumerate() {
+            let xx = 2.0 * PI * x as f64 / nx as f64;
+            let n: f64 = rand_distr::StandardNormal.sample(&mut rng);
+            *g = match geom.kind(x, y) {
+                PixelKind::Ordinary(_) => 1.0 + f.pixel_rms_o * n + f.large_scale_o * (xx + 0.3).sin() * yy.cos(),
+                PixelKind::Extraordinary(_) => {
+                    1.0 + f.pixel_rms_e * n + f.large_scale_e * (xx - 0.7).cos() * (yy + 0.4).sin()
+                }
+                PixelKind::Masked => 1.0,
+            };
+        }
+    });
+    out
+}
+
+/// The truth file: every input of the scene, resolved.
+#[derive(serde::Serialize)]
+struct Truth<'a> {
+    format: &'static str,
+    scene: &'a Scene,
+    instrument: &'a Instrument,
+    frames: Vec<TruthFrame>,
+    explain: &'a [String],
+    /// Sky normalized Stokes parameters (fractions) as given.
+    sky_q: Option<f64>,
+    sky_u: Option<f64>,
+}
+
+#[derive(serde::Serialize)]
+struct TruthFrame {
+    file: String,
+    hwp_deg: f64,
+}
+
+/// Simulate a scene into `out` (created if needed): one FITS file per HWP angle and
+/// `truth.json`. Frames are rendered and written in parallel; `on_frame` ticks once per file.
+pub fn simulate(scene: &Scene, out: &Path, on_frame: &(dyn Fn() + Sync)) -> Result<Simulated, Error> {
+    let plan = Plan::build(scene)?;
+    plan.write(out, on_frame)
+}
+
+impl Plan {
+    /// Render and write every frame and the truth file into `out`.
+    pub fn write(&self, out: &Path, on_frame: &(dyn Fn() + Sync)) -> Result<Simulated, Error> {
+        std::fs::create_dir_all(out).map_err(|e| file_err(out, format!("cannot create output folder: {e}")))?;
+        let (nx, ny) = self.size();
+        let frames: Vec<PathBuf> = (0..self.n_frames())
+            .into_par_iter()
+            .map(|k| {
+                let img = self.render(k);
+                let path = out.join(self.frame_name(k));
+                write_frame(&path, nx, ny, &img, self.bitpix, &self.keys(k))?;
+                on_frame();
+                Ok(path)
+            })
+            .collect::<Result<_, Error>>()?;
+        let (sky_q, sky_u) = match &self.scene.sky {
+            Some(s) => {
+                (Some(s.p * (2.0 * s.chi_deg.to_radians()).cos()), Some(s.p * (2.0 * s.chi_deg.to_radians()).sin()))
+            }
+            None => (None, None),
+        };
+        let truth = Truth {
+            format: "instpol-sim-truth-1",
+            scene: &self.scene,
+            instrument: &self.inst,
+            frames: frames
+                .iter()
+                .zip(&self.scene.hwp_angles_deg)
+                .map(|(p, &a)| TruthFrame {
+                    file: p.file_name().unwrap_or_default().to_string_lossy().into(),
+                    hwp_deg: a,
+                })
+                .collect(),
+            explain: &self.explain,
+            sky_q,
+            sky_u,
+        };
+        let tpath = out.join("truth.json");
+        let text = serde_json::to_string_pretty(&truth).map_err(|e| file_err(&tpath, e))?;
+        let mut tmp = tempfile::NamedTempFile::new_in(out).map_err(|e| file_err(&tpath, e))?;
+        std::io::Write::write_all(&mut tmp, text.as_bytes()).map_err(|e| file_err(&tpath, e))?;
+        tmp.persist(&tpath).map_err(|e| file_err(&tpath, e))?;
+        Ok(Simulated { frames, truth: tpath })
+    }
+}

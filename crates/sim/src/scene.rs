@@ -1,0 +1,571 @@
+//! The scene file (TOML): what is on the sky, which instrument looks at it, and which
+//! instrument effects to apply. Validated on load; unknown keys are errors that name the key.
+//!
+//! Units: fluxes and surface brightness in electrons *per exposure* (the total `I` of both
+//! beams, i.e. what an ideal instrument would put in `f_O + f_E`); polarization degrees as
+//! **fractions** (`p = 0.0174` for the paper's 1.74%; only the radial polynomial of the
+//! instrumental field is given in percent, as the paper prints it, and its key says so:
+//! `coeffs_percent`); angles in degrees; positions in pixels (0-based, o-image = sky
+//! coordinates, see `skyfield::beams`) or arcmin from the detector centre (`coords`).
+//! Relative file paths are taken from the scene file's folder.
+//!
+//! ```toml
+//! instrument = "fors1"          # built-in name or path to an instrument TOML
+//! filter = "V"
+//! hwp_angles_deg = [0, 22.5, 45, 67.5]   # default: the optimal N = 4 set
+//! exposure_s = 300              # written to EXPTIME only
+//! seed = 42
+//!
+//! [output]
+//! bitpix = 16                   # 16 (raw-like unsigned, default), -32 or -64
+//!
+//! [sky]
+//! brightness_e = 20000          # e-/px per exposure at the detector centre
+//! p = 0.0174                    # fraction
+//! chi_deg = -53.8
+//! gradient_e_per_arcmin = [0, 0]   # optional linear gradient along x, y
+//!
+//! [[stars]]
+//! x = 3.0
+//! y = -3.0
+//! coords = "arcmin"             # or "pixel"
+//! flux_e = 2e6
+//! p = 0.0
+//! chi_deg = 0
+//! fwhm_arcsec = 0.8
+//! psf = "gaussian"              # or "moffat" (with moffat_beta, default 2.5)
+//!
+//! [effects]
+//! photon_noise = true
+//! read_noise = true             # the instrument's read noise; or read_noise_e = 4.0
+//! saturation = true
+//! instpol = { kind = "radial", coeffs_percent = [0, 0.012, 0.046, 0.002] }
+//! wollaston = { t = 0.51, s = 0.49, delta_alpha_deg = 0 }
+//! post_analyzer = { b = 0.004, phi_deg = 30 }
+//! flat = { pixel_rms_o = 0.01, pixel_rms_e = 0.012, large_scale_o = 0.02, large_scale_e = 0.03 }
+//! cosmic_rays = { rate_per_frame = 50 }
+//! ```
+
+use crate::Error;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+fn default_angles() -> Vec<f64> {
+    vec![0.0, 22.5, 45.0, 67.5]
+}
+fn one() -> f64 {
+    1.0
+}
+fn default_bitpix() -> i32 {
+    16
+}
+fn default_beta() -> f64 {
+    2.5
+}
+fn default_bin() -> usize {
+    10
+}
+fn default_cr_energy() -> f64 {
+    20000.0
+}
+fn default_cr_size() -> usize {
+    2
+}
+
+/// A whole scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Scene {
+    /// Built-in instrument name or path to an instrument TOML.
+    pub instrument: String,
+    pub filter: String,
+    /// HWP angles (deg); default the optimal N = 4 set.
+    #[serde(default = "default_angles")]
+    pub hwp_angles_deg: Vec<f64>,
+    /// Exposure time (s): written to the header; fluxes are per exposure already.
+    #[serde(default = "one")]
+    pub exposure_s: f64,
+    #[serde(default)]
+    pub seed: u64,
+    #[serde(default)]
+    pub output: Output,
+    pub sky: Option<Sky>,
+    #[serde(default)]
+    pub stars: Vec<Star>,
+    #[serde(default)]
+    pub extended: Vec<Extended>,
+    #[serde(default)]
+    pub effects: Effects,
+}
+
+/// How frames are written.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Output {
+    /// 16 (unsigned 16-bit, rounded, like raw CCD frames), -32 or -64.
+    #[serde(default = "default_bitpix")]
+    pub bitpix: i32,
+    /// File name prefix.
+    #[serde(default = "default_prefix")]
+    pub prefix: String,
+}
+
+fn default_prefix() -> String {
+    "frame".into()
+}
+
+impl Default for Output {
+    fn default() -> Self {
+        Self { bitpix: 16, prefix: default_prefix() }
+    }
+}
+
+/// The sky background: constant, or with a linear gradient; one polarization.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Sky {
+    /// Surface brightness at the detector centre (e-/px per exposure, both beams).
+    pub brightness_e: f64,
+    /// Polarization degree (fraction).
+    #[serde(default)]
+    pub p: f64,
+    #[serde(default)]
+    pub chi_deg: f64,
+    /// Linear gradient (e-/px per arcmin along detector x and y).
+    #[serde(default)]
+    pub gradient_e_per_arcmin: Option<[f64; 2]>,
+}
+
+/// Coordinates of a position.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Coords {
+    /// 0-based pixels of the o image (= sky coordinates).
+    Pixel,
+    /// Arcmin from the detector centre.
+    Arcmin,
+}
+
+/// Point-spread function shape.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Psf {
+    #[default]
+    Gaussian,
+    Moffat,
+}
+
+/// A star.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Star {
+    pub x: f64,
+    pub y: f64,
+    pub coords: Coords,
+    /// Total flux (e- per exposure, both beams).
+    pub flux_e: f64,
+    #[serde(default)]
+    pub p: f64,
+    #[serde(default)]
+    pub chi_deg: f64,
+    pub fwhm_arcsec: f64,
+    #[serde(default)]
+    pub psf: Psf,
+    #[serde(default = "default_beta")]
+    pub moffat_beta: f64,
+}
+
+/// Profile of an extended source.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Profile {
+    /// `I(r) = i_e exp(-b_n ((r/r_e)^(1/n) - 1))`.
+    Sersic,
+    /// Sersic with `n = 1`.
+    Exponential,
+    /// A FITS image of the detector's size (e-/px per exposure, o coordinates).
+    Image,
+}
+
+/// An extended source with one polarization.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Extended {
+    pub profile: Profile,
+    #[serde(default)]
+    pub x: f64,
+    #[serde(default)]
+    pub y: f64,
+    #[serde(default = "default_coords_arcmin")]
+    pub coords: Coords,
+    /// Effective radius (arcsec) of the analytic profiles.
+    #[serde(default)]
+    pub r_e_arcsec: f64,
+    /// Sersic index (analytic `sersic` only).
+    #[serde(default = "one")]
+    pub sersic_n: f64,
+    /// Surface brightness at `r_e` (e-/px per exposure).
+    #[serde(default)]
+    pub i_e: f64,
+    #[serde(default = "one")]
+    pub axis_ratio: f64,
+    #[serde(default)]
+    pub pa_deg: f64,
+    #[serde(default)]
+    pub p: f64,
+    #[serde(default)]
+    pub chi_deg: f64,
+    /// FITS image (profile = "image").
+    #[serde(default)]
+    pub image: Option<PathBuf>,
+}
+
+fn default_coords_arcmin() -> Coords {
+    Coords::Arcmin
+}
+
+/// The instrumental polarization field `M_I(p(x,y), phi(x,y))` before the HWP.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
+pub enum InstPolSpec {
+    /// `p(r) = sum_k c_k r^k` percent (r in arcmin from `centre_arcmin`), `phi` = polar angle
+    /// of the position (+ `phi_offset_deg`): the paper's radial pattern.
+    Radial {
+        coeffs_percent: Vec<f64>,
+        #[serde(default)]
+        centre_arcmin: [f64; 2],
+        #[serde(default)]
+        phi_offset_deg: f64,
+    },
+    /// Q/I and U/I maps (FITS; a 2-D image, or a cube whose first plane holds the values, as
+    /// in the FORS2 INLA maps); map pixel `(i, j)` covers detector pixels
+    /// `[bin_px i, bin_px (i+1))` x `[bin_px j, bin_px (j+1))`; NaN or outside: no
+    /// instrumental polarization.
+    Map {
+        q_file: PathBuf,
+        u_file: PathBuf,
+        #[serde(default = "default_bin")]
+        bin_px: usize,
+    },
+    /// A ray-trace profile: JSON `{"radius_arcmin": [...], "p": [...]}` (p fractions,
+    /// radii increasing), linearly interpolated (constant beyond the ends), radial pattern.
+    Raytrace {
+        file: PathBuf,
+        #[serde(default)]
+        centre_arcmin: [f64; 2],
+    },
+}
+
+/// Wollaston prism parameters (`eq:WP` when `s = 1 - t`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WollastonSpec {
+    pub t: f64,
+    /// Default `1 - t`.
+    #[serde(default)]
+    pub s: Option<f64>,
+    #[serde(default)]
+    pub delta_alpha_deg: f64,
+}
+
+/// A harmonic HWP defect.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HarmonicSpec {
+    pub amplitude: f64,
+    #[serde(default)]
+    pub phase_deg: f64,
+}
+
+/// Post-analyzer optics `M_PA(A, B, C, phi)` (section `sec:postwp`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PostAnalyzerSpec {
+    pub b: f64,
+    #[serde(default)]
+    pub phi_deg: f64,
+    #[serde(default = "one")]
+    pub a: f64,
+    #[serde(default = "one")]
+    pub c: f64,
+}
+
+/// Flat-field errors left in the frames (multiplicative gains), different in the two beams:
+/// pixel-to-pixel Gaussian rms and a smooth large-scale pattern of the given amplitude.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct FlatSpec {
+    #[serde(default)]
+    pub pixel_rms_o: f64,
+    #[serde(default)]
+    pub pixel_rms_e: f64,
+    #[serde(default)]
+    pub large_scale_o: f64,
+    #[serde(default)]
+    pub large_scale_e: f64,
+}
+
+/// Cosmic-ray hits.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CosmicSpec {
+    /// Mean number of hits per frame (Poisson).
+    pub rate_per_frame: f64,
+    /// Charge per hit (e-), spread over a `size_px` square.
+    #[serde(default = "default_cr_energy")]
+    pub energy_e: f64,
+    #[serde(default = "default_cr_size")]
+    pub size_px: usize,
+}
+
+/// Which instrument effects to apply. Anything absent is not computed at all.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+pub struct Effects {
+    pub instpol: Option<InstPolSpec>,
+    pub wollaston: Option<WollastonSpec>,
+    pub hwp_retardance_error_deg: Option<f64>,
+    /// HWP chromatic zero angle (deg, the correction instruments tabulate: added to measured chi).
+    pub hwp_chi_offset_deg: Option<f64>,
+    /// Take the zero angle from the instrument's filter table instead.
+    #[serde(default)]
+    pub hwp_chi_offset_from_filter: bool,
+    pub dust: Option<HarmonicSpec>,
+    pub pleochroism: Option<HarmonicSpec>,
+    pub post_analyzer: Option<PostAnalyzerSpec>,
+    pub flat: Option<FlatSpec>,
+    #[serde(default)]
+    pub photon_noise: bool,
+    /// Add the instrument's read noise.
+    #[serde(default)]
+    pub read_noise: bool,
+    /// Read noise (e-) overriding the instrument's (implies read noise).
+    pub read_noise_e: Option<f64>,
+    /// Gain (e-/ADU) overriding the instrument's.
+    pub gain_e_per_adu: Option<f64>,
+    /// Clip at the instrument's saturation level.
+    #[serde(default)]
+    pub saturation: bool,
+    pub cosmic_rays: Option<CosmicSpec>,
+}
+
+impl Scene {
+    /// Parse and validate scene TOML; `path` labels errors and anchors relative file paths.
+    pub fn from_toml_str(text: &str, path: &Path) -> Result<Self, Error> {
+        let mut s: Scene =
+            toml::from_str(text).map_err(|e| Error::Scene { path: path.into(), message: e.to_string() })?;
+        let base = path.parent().unwrap_or(Path::new(""));
+        s.resolve_paths(base);
+        s.validate(path)?;
+        Ok(s)
+    }
+
+    /// Read and validate a scene file.
+    pub fn from_file(path: &Path) -> Result<Self, Error> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| Error::Scene { path: path.into(), message: format!("cannot read: {e}") })?;
+        Self::from_toml_str(&text, path)
+    }
+
+    fn resolve_paths(&mut self, base: &Path) {
+        let fix = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        };
+        let inst = base.join(&self.instrument);
+        if inst.is_file() && Path::new(&self.instrument).is_relative() {
+            self.instrument = inst.to_string_lossy().into_owned();
+        }
+        for e in &mut self.extended {
+            if let Some(p) = &mut e.image {
+                fix(p);
+            }
+        }
+        match &mut self.effects.instpol {
+            Some(InstPolSpec::Map { q_file, u_file, .. }) => {
+                fix(q_file);
+                fix(u_file);
+            }
+            Some(InstPolSpec::Raytrace { file, .. }) => fix(file),
+            _ => {}
+        }
+    }
+
+    fn validate(&self, path: &Path) -> Result<(), Error> {
+        let bad = |key: &str, value: String, why: &str| {
+            Err(Error::Invalid { path: path.into(), key: key.into(), value, why: why.into() })
+        };
+        let inst = instrument::Instrument::load(&self.instrument)?;
+        inst.filter(&self.filter)?;
+        let th: Vec<f64> = self.hwp_angles_deg.iter().map(|a| a.to_radians()).collect();
+        if let Err(e) = stokes::StokesSolver::new(&th) {
+            return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &e.to_string());
+        }
+        if !(self.exposure_s.is_finite() && self.exposure_s > 0.0) {
+            return bad("exposure_s", self.exposure_s.to_string(), "must be positive");
+        }
+        if ![16, -32, -64].contains(&self.output.bitpix) {
+            return bad("output.bitpix", self.output.bitpix.to_string(), "must be 16, -32 or -64");
+        }
+        let frac = |key: &str, v: f64| -> Result<(), Error> {
+            if !(v.is_finite() && (0.0..1.0).contains(&v)) {
+                return bad(key, v.to_string(), "a polarization degree is a fraction in [0, 1) (0.0174 for 1.74%)");
+            }
+            Ok(())
+        };
+        let nonneg = |key: &str, v: f64| -> Result<(), Error> {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(key, v.to_string(), "must be a finite number >= 0");
+            }
+            Ok(())
+        };
+        if let Some(s) = &self.sky {
+            nonneg("sky.brightness_e", s.brightness_e)?;
+            frac("sky.p", s.p)?;
+        }
+        for (k, s) in self.stars.iter().enumerate() {
+            nonneg(&format!("stars[{k}].flux_e"), s.flux_e)?;
+            frac(&format!("stars[{k}].p"), s.p)?;
+            if !(s.fwhm_arcsec.is_finite() && s.fwhm_arcsec > 0.0) {
+                return bad(&format!("stars[{k}].fwhm_arcsec"), s.fwhm_arcsec.to_string(), "must be positive");
+            }
+            if s.psf == Psf::Moffat && !(s.moffat_beta > 1.0) {
+                return bad(&format!("stars[{k}].moffat_beta"), s.moffat_beta.to_string(), "must be > 1");
+            }
+        }
+        for (k, e) in self.extended.iter().enumerate() {
+            frac(&format!("extended[{k}].p"), e.p)?;
+            match e.profile {
+                Profile::Image => {
+                    if e.image.is_none() {
+                        return bad(
+                            &format!("extended[{k}].image"),
+                            "(absent)".into(),
+                            "profile = \"image\" needs a file",
+                        );
+                    }
+                }
+                _ => {
+                    if !(e.r_e_arcsec > 0.0) {
+                        return bad(&format!("extended[{k}].r_e_arcsec"), e.r_e_arcsec.to_string(), "must be positive");
+                    }
+                    if !(e.sersic_n > 0.0) {
+                        return bad(&format!("extended[{k}].sersic_n"), e.sersic_n.to_string(), "must be positive");
+                    }
+                    if !(e.axis_ratio > 0.0 && e.axis_ratio <= 1.0) {
+                        return bad(
+                            &format!("extended[{k}].axis_ratio"),
+                            e.axis_ratio.to_string(),
+                            "must be in (0, 1]",
+                        );
+                    }
+                    nonneg(&format!("extended[{k}].i_e"), e.i_e)?;
+                }
+            }
+        }
+        let fx = &self.effects;
+        if let Some(w) = &fx.wollaston {
+            for (k, v) in [("effects.wollaston.t", Some(w.t)), ("effects.wollaston.s", w.s)] {
+                if let Some(v) = v {
+                    if !(v > 0.0 && v <= 1.0) {
+                        return bad(k, v.to_string(), "a beam transmission is in (0, 1]");
+                    }
+                }
+            }
+        }
+        if let Some(p) = &fx.post_analyzer {
+            if !(p.b.abs() < 1.0) {
+                return bad("effects.post_analyzer.b", p.b.to_string(), "|B| must be < 1");
+            }
+        }
+        for (k, h) in [("effects.dust", &fx.dust), ("effects.pleochroism", &fx.pleochroism)] {
+            if let Some(h) = h {
+                if !(h.amplitude.abs() < 1.0) {
+                    return bad(&format!("{k}.amplitude"), h.amplitude.to_string(), "must be < 1 in size");
+                }
+            }
+        }
+        if let Some(f) = &fx.flat {
+            for (k, v) in [
+                ("effects.flat.pixel_rms_o", f.pixel_rms_o),
+                ("effects.flat.pixel_rms_e", f.pixel_rms_e),
+                ("effects.flat.large_scale_o", f.large_scale_o),
+                ("effects.flat.large_scale_e", f.large_scale_e),
+            ] {
+                if !(v.is_finite() && (0.0..0.5).contains(&v)) {
+                    return bad(k, v.to_string(), "flat-field error amplitudes are fractions in [0, 0.5)");
+                }
+            }
+        }
+        if let Some(r) = fx.read_noise_e {
+            nonneg("effects.read_noise_e", r)?;
+        }
+        if let Some(g) = fx.gain_e_per_adu {
+            if !(g.is_finite() && g > 0.0) {
+                return bad("effects.gain_e_per_adu", g.to_string(), "must be positive");
+            }
+        }
+        if let Some(c) = &fx.cosmic_rays {
+            nonneg("effects.cosmic_rays.rate_per_frame", c.rate_per_frame)?;
+            nonneg("effects.cosmic_rays.energy_e", c.energy_e)?;
+            if c.size_px == 0 {
+                return bad("effects.cosmic_rays.size_px", "0".into(), "must be >= 1");
+            }
+        }
+        if let Some(InstPolSpec::Radial { coeffs_percent, .. }) = &fx.instpol {
+            if coeffs_percent.iter().any(|c| !c.is_finite()) {
+                return bad("effects.instpol.coeffs_percent", format!("{coeffs_percent:?}"), "must be finite numbers");
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MIN: &str = "instrument = \"fors1\"\nfilter = \"V\"\n[sky]\nbrightness_e = 1000\np = 0.01\n";
+
+    #[test]
+    fn minimal_scene_gets_defaults() {
+        let s = Scene::from_toml_str(MIN, Path::new("s.toml")).unwrap();
+        assert_eq!(s.hwp_angles_deg, vec![0.0, 22.5, 45.0, 67.5]);
+        assert_eq!(s.output.bitpix, 16);
+        assert!(!s.effects.photon_noise && s.effects.instpol.is_none());
+    }
+
+    #[test]
+    fn unknown_keys_are_named() {
+        for (text, key) in [
+            (format!("{MIN}brightnes = 3\n"), "brightnes"),
+            (format!("{MIN}[effects]\nphoton_nois = true\n"), "photon_nois"),
+            (
+                format!("{MIN}[effects.instpol]\nkind = \"radial\"\ncoeffs_percent = [0]\ncenter_arcmin = [0, 0]\n"),
+                "center_arcmin",
+            ),
+            (format!("seeed = 3\n{MIN}"), "seeed"),
+        ] {
+            let e = Scene::from_toml_str(&text, Path::new("scene.toml")).unwrap_err().to_string();
+            assert!(e.contains(key) && e.contains("scene.toml"), "{e}");
+        }
+    }
+
+    #[test]
+    fn percent_given_as_fraction_is_refused() {
+        let e =
+            Scene::from_toml_str(&MIN.replace("p = 0.01", "p = 6.45"), Path::new("s.toml")).unwrap_err().to_string();
+        assert!(e.contains("sky.p") && e.contains("fraction"), "{e}");
+    }
+
+    #[test]
+    fn bad_angles_filter_and_instrument() {
+        let e = Scene::from_toml_str(&format!("hwp_angles_deg = [0, 45]\n{MIN}"), Path::new("s.toml")).unwrap_err();
+        assert!(e.to_string().contains("hwp_angles_deg"), "{e}");
+        let e = Scene::from_toml_str(&MIN.replace("\"V\"", "\"Z\""), Path::new("s.toml")).unwrap_err();
+        assert!(e.to_string().contains("'Z'"), "{e}");
+        let e = Scene::from_toml_str(&MIN.replace("fors1", "nosuch"), Path::new("s.toml")).unwrap_err();
+        assert!(e.to_string().contains("nosuch"), "{e}");
+    }
+}
