@@ -28,6 +28,7 @@ enum Command {
     Correct(cmd::correct::Args),
     Stokes(cmd::stokes::Args),
     Fresnel(cmd::fresnel::Args),
+    Raytrace(cmd::raytrace::Args),
 }
 
 fn main() {
@@ -38,6 +39,7 @@ fn main() {
         Command::Correct(a) => cmd::correct::run(a),
         Command::Stokes(a) => cmd::stokes::run(a),
         Command::Fresnel(a) => cmd::fresnel::run(a),
+        Command::Raytrace(a) => cmd::raytrace::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

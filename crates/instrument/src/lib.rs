@@ -93,6 +93,9 @@ pub struct Instrument {
     pub field: Field,
     pub polarimetry: Polarimetry,
     pub filters: Vec<Filter>,
+    /// Optical prescription of the collimator for polarization ray tracing (optional).
+    #[serde(default)]
+    pub optics: Option<mueller::raytrace::Prescription>,
 }
 
 /// One mask strip on the detector: rows `[o_start, o_start + height)` hold its ordinary image
@@ -185,6 +188,14 @@ impl Instrument {
                 p.strip_count.to_string(),
                 &format!("strips of {h} px (the throw) span pixels {lo}..{hi}, outside the detector (0..{extent})"),
             );
+        }
+        if let Some(o) = &self.optics {
+            o.validate().map_err(|e| Error::Invalid {
+                path: path.into(),
+                key: "optics".into(),
+                value: String::new(),
+                why: e.to_string(),
+            })?;
         }
         if self.filters.is_empty() {
             return bad("filters", "[]".into(), "need at least one filter");

@@ -26,6 +26,7 @@ use serde::{Deserialize, Serialize};
 
 pub mod analysis;
 pub mod fresnel;
+pub mod raytrace;
 pub mod thinfilm;
 
 pub use analysis::{inverse, is_physical, jones_to_mueller};

@@ -2,6 +2,7 @@
 
 pub mod stokes;
 pub mod fresnel;
+pub mod raytrace;
 pub mod bias;
 pub mod mc;
 pub mod mc_plot;

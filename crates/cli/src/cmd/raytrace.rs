@@ -1,0 +1,271 @@
+//! `instpol raytrace`: polarization ray tracing of the instrument's collimator prescription.
+//! All numbers come from `mueller::raytrace`; this file prints, plots and writes them.
+
+use anyhow::{anyhow, bail, Context, Result};
+use mueller::raytrace::{fit_radial, FieldFile, Sampling, PAPER_LAW_A, PAPER_LAW_B};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+/// Trace real rays through the collimator prescription of an instrument file ([optics]) and
+/// predict the instrumental polarization field it makes (the paper's section "cause"):
+/// p(r) along the field diagonal, its angle (radial: phi = polar angle), the fitted radial
+/// polynomial p = c1 r + c2 r^2 + c3 r^3, each surface's share at the field edge, and the
+/// wavelength law p(lambda)/p(550) = a + b lambda over 400-900 nm.
+///
+/// Each field point averages the Mueller matrices of the rays over the telescope pupil
+/// (Gauss-Legendre rings x spokes). Polarization is a fraction in JSON, percent in tables.
+///
+/// Example: instpol raytrace --instrument fors1 --filter V --plot p_r.png --field-out v.json
+#[derive(clap::Args)]
+pub struct Args {
+    /// Instrument name (built-in: fors1) or path to an instrument TOML with an [optics] section.
+    #[arg(long, default_value = "fors1")]
+    pub instrument: String,
+    /// Filter whose effective wavelength to trace (default V).
+    #[arg(long, conflicts_with = "wavelength_nm")]
+    pub filter: Option<String>,
+    /// Trace at this vacuum wavelength (nm) instead of a filter's.
+    #[arg(long)]
+    pub wavelength_nm: Option<f64>,
+    /// Number of field points from the axis to the field radius (>= 4).
+    #[arg(long, default_value_t = 13)]
+    pub field_points: usize,
+    /// Approximate number of rays per field point (pupil sampling; >= 4). The default
+    /// changes p by < 1e-5 when doubled.
+    #[arg(long, default_value_t = Sampling::DEFAULT_RAYS)]
+    pub pupil_rays: usize,
+    /// Print JSON instead of tables.
+    #[arg(long)]
+    pub json: bool,
+    /// Draw p(r) against the paper's V and I fits into this PNG.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// Write the field (format instpol-field-v1, JSON) for the simulator to this file.
+    #[arg(long)]
+    pub field_out: Option<PathBuf>,
+}
+
+#[derive(Serialize)]
+struct PerSurface {
+    surface: String,
+    p_at_edge: f64,
+}
+
+#[derive(Serialize)]
+struct Law {
+    a: f64,
+    b: f64,
+    radius_arcmin: f64,
+    samples: Vec<LawSample>,
+    paper_a: f64,
+    paper_b: f64,
+}
+
+#[derive(Serialize)]
+struct LawSample {
+    wavelength_nm: f64,
+    ratio: f64,
+    paper: f64,
+}
+
+#[derive(Serialize)]
+struct PhiAlpha {
+    alpha_deg: f64,
+    phi_deg: f64,
+    p: f64,
+}
+
+#[derive(Serialize)]
+struct Out {
+    instrument: String,
+    prescription: String,
+    wavelength_nm: f64,
+    pupil_rays: usize,
+    profile_alpha_deg: f64,
+    radius_arcmin: Vec<f64>,
+    p: Vec<f64>,
+    phi_deg: Vec<f64>,
+    polynomial_powers: Vec<i32>,
+    polynomial: Vec<f64>,
+    phi_vs_alpha: Vec<PhiAlpha>,
+    per_surface: Vec<PerSurface>,
+    wavelength_law: Law,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let inst = instrument::Instrument::load(&a.instrument)?;
+    let presc = inst
+        .optics
+        .as_ref()
+        .ok_or_else(|| anyhow!("instrument {} has no [optics] prescription to trace", inst.name))?;
+    let lam = match (a.wavelength_nm, &a.filter) {
+        (Some(l), _) => {
+            if !(l.is_finite() && l > 100.0 && l < 30000.0) {
+                bail!("--wavelength-nm {l} must be a wavelength in nm (100-30000)");
+            }
+            l
+        }
+        (None, f) => inst.filter(f.as_deref().unwrap_or("V"))?.lambda_eff_nm,
+    };
+    if a.field_points < 4 {
+        bail!("--field-points {} must be >= 4 (the radial fit has 3 terms)", a.field_points);
+    }
+    if a.pupil_rays < 4 {
+        bail!("--pupil-rays {} must be >= 4", a.pupil_rays);
+    }
+    let sampling = Sampling::from_rays(a.pupil_rays);
+    let c = presc.compile(lam)?;
+    let edge = presc.field_radius_arcmin;
+    // Along the diagonal: the direction in which a square field reaches its corners.
+    let alpha = 45f64.to_radians();
+    let radii: Vec<f64> = (0..a.field_points).map(|i| edge * i as f64 / (a.field_points - 1) as f64).collect();
+    let lambdas: Vec<f64> = (0..=10).map(|i| 400.0 + 50.0 * i as f64).collect();
+
+    let bar = indicatif::ProgressBar::new(4).with_message("tracing");
+    if a.json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let pts = c.profile(&radii, alpha, &sampling, None)?;
+    bar.inc(1);
+    let alphas: Vec<f64> = (0..12).map(|k| (15.0 + 30.0 * k as f64).to_radians()).collect();
+    let ring: Vec<_> = alphas
+        .iter()
+        .map(|&al| c.field_point(0.5 * edge * al.cos(), 0.5 * edge * al.sin(), &sampling, None))
+        .collect::<Result<_, _>>()?;
+    bar.inc(1);
+    let (ex, ey) = (edge * alpha.cos(), edge * alpha.sin());
+    let per = c.per_surface(ex, ey, &sampling)?;
+    bar.inc(1);
+    let law = presc.wavelength_law(edge, &sampling, &lambdas)?;
+    bar.finish_and_clear();
+
+    let p: Vec<f64> = pts.iter().map(|f| f.p).collect();
+    let poly = fit_radial(&radii, &p, &[1, 2, 3])?;
+    let out = Out {
+        instrument: inst.name.clone(),
+        prescription: presc.description.clone(),
+        wavelength_nm: lam,
+        pupil_rays: sampling.rays(),
+        profile_alpha_deg: alpha.to_degrees(),
+        radius_arcmin: radii.clone(),
+        p: p.clone(),
+        // phi is undefined where p = 0 (the axis): reported as 0 there.
+        phi_deg: pts.iter().map(|f| if f.p > 1e-12 { f.phi.to_degrees() } else { 0.0 }).collect(),
+        polynomial_powers: poly.powers.clone(),
+        polynomial: poly.coefficients.clone(),
+        phi_vs_alpha: ring
+            .iter()
+            .map(|f| PhiAlpha {
+                alpha_deg: f.alpha.to_degrees().rem_euclid(360.0),
+                phi_deg: f.phi.to_degrees(),
+                p: f.p,
+            })
+            .collect(),
+        per_surface: per
+            .iter()
+            .enumerate()
+            .map(|(i, f)| PerSurface { surface: c.surface_name(i).to_string(), p_at_edge: f.p })
+            .collect(),
+        wavelength_law: Law {
+            a: law.a,
+            b: law.b,
+            radius_arcmin: law.radius_arcmin,
+            samples: law
+                .samples
+                .iter()
+                .map(|&(l, r)| LawSample { wavelength_nm: l, ratio: r, paper: PAPER_LAW_A + PAPER_LAW_B * l })
+                .collect(),
+            paper_a: PAPER_LAW_A,
+            paper_b: PAPER_LAW_B,
+        },
+    };
+    if let Some(path) = &a.field_out {
+        let ff = FieldFile::new(&format!("ray trace of {}", presc.description), lam, &pts, poly.clone());
+        crate::util::write_atomic(path, serde_json::to_string_pretty(&ff)?.as_bytes())?;
+    }
+    if let Some(path) = &a.plot {
+        plot(path, &radii, &p, lam, &inst.name)?;
+    }
+    if a.json {
+        return crate::util::print_json(&out);
+    }
+    println!("{} at {lam} nm, {} rays per field point", out.prescription, out.pupil_rays);
+    println!("{:>10} {:>10} {:>10}", "r arcmin", "p %", "phi deg");
+    for ((r, p), phi) in radii.iter().zip(&out.p).zip(&out.phi_deg) {
+        println!("{r:>10.3} {:>10.4} {phi:>10.2}", 100.0 * p);
+    }
+    let c = &out.polynomial;
+    println!("fit: p(r) % = {:.4} r + {:.4} r^2 + {:.5} r^3", 100.0 * c[0], 100.0 * c[1], 100.0 * c[2]);
+    println!("phi - alpha at r = {:.2}': max {:.4} deg", 0.5 * edge, {
+        ring.iter().map(|f| f.phi_rel().to_degrees().abs()).fold(0.0, f64::max)
+    });
+    println!("per surface at the edge (r = {edge}'):");
+    for s in &out.per_surface {
+        println!("  {:<14} {:>8.4} %", s.surface, 100.0 * s.p_at_edge);
+    }
+    println!(
+        "wavelength law at r = {edge}': p/p(550) = {:.4} + {:.4e} lambda  (paper: {PAPER_LAW_A} + {PAPER_LAW_B:e} lambda)",
+        law.a, law.b
+    );
+    for s in &out.wavelength_law.samples {
+        println!("  {:>5} nm  {:>7.4}  paper {:>7.4}", s.wavelength_nm, s.ratio, s.paper);
+    }
+    Ok(())
+}
+
+const FONT: &str = "sans-serif";
+
+/// p(r) in percent against the paper's V and I polynomials (section fors1).
+fn plot(path: &Path, r: &[f64], p: &[f64], lam: f64, name: &str) -> Result<()> {
+    use plotters::prelude::*;
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        let _ = plotters::style::register_font(FONT, FontStyle::Normal, dejavu::sans::regular());
+    });
+    let pe = |e: &dyn std::fmt::Debug| anyhow!("plot {}: {e:?}", path.display());
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let tmp = tempfile::Builder::new()
+        .suffix(".png")
+        .tempfile_in(dir)
+        .with_context(|| format!("cannot create a temporary file in {}", dir.display()))?;
+    let rmax = r.last().copied().unwrap_or(5.0).max(1.0);
+    let v = |x: f64| 0.012 * x + 0.046 * x * x + 0.002 * x * x * x;
+    let i = |x: f64| -0.017 * x + 0.105 * x * x - 0.006 * x * x * x;
+    let grid: Vec<f64> = (0..=100).map(|k| rmax * k as f64 / 100.0).collect();
+    let ymax = grid.iter().map(|&x| v(x).max(i(x))).chain(p.iter().map(|&x| 100.0 * x)).fold(0.0, f64::max) * 1.1;
+    {
+        let root = BitMapBackend::new(tmp.path(), (900, 600)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| pe(&e))?;
+        let mut ch = ChartBuilder::on(&root)
+            .caption(format!("{name}: ray-traced p(r) at {lam} nm vs paper fits"), (FONT, 22))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(0.0..rmax, 0.0..ymax)
+            .map_err(|e| pe(&e))?;
+        ch.configure_mesh().x_desc("r (arcmin)").y_desc("p (%)").label_style((FONT, 14)).draw().map_err(|e| pe(&e))?;
+        ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, v(x))), GREEN.stroke_width(2)))
+            .map_err(|e| pe(&e))?
+            .label("paper V fit")
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], GREEN));
+        ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, i(x))), RED.stroke_width(2)))
+            .map_err(|e| pe(&e))?
+            .label("paper I fit")
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED));
+        ch.draw_series(LineSeries::new(r.iter().zip(p).map(|(&x, &y)| (x, 100.0 * y)), BLACK.stroke_width(2)))
+            .map_err(|e| pe(&e))?
+            .label("ray trace")
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
+        ch.draw_series(r.iter().zip(p).map(|(&x, &y)| Circle::new((x, 100.0 * y), 3, BLACK.filled())))
+            .map_err(|e| pe(&e))?;
+        ch.configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .label_font((FONT, 14))
+            .draw()
+            .map_err(|e| pe(&e))?;
+        root.present().map_err(|e| pe(&e))?;
+    }
+    tmp.persist(path).with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(())
+}
