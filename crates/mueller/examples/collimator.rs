@@ -30,6 +30,22 @@ fn main() {
     for (i, f) in per.iter().enumerate() {
         println!("{:12} {:8.4}%", c.surface_name(i), 100.0 * f.p);
     }
+    // Convergence with the pupil sampling (absolute change of p against 4x the rays).
+    for r in [1.0, 3.0, 4.8] {
+        let reference = c.field_point(r, 0.0, &Sampling::from_rays(16384), None).unwrap().p;
+        for m in [16usize, 64, 256, 512, 1024, 4096] {
+            let s = Sampling::from_rays(m);
+            let t = std::time::Instant::now();
+            let f = c.field_point(r, 0.0, &s, None).unwrap();
+            println!(
+                "conv r {r:3.1} rays {:5} p {:.8} |p - p(16384)| {:.1e}  {:.2} ms",
+                s.rays(),
+                f.p,
+                (f.p - reference).abs(),
+                1e3 * t.elapsed().as_secs_f64()
+            );
+        }
+    }
     let law = w.optics.wavelength_law(4.5, &s, &[400.0, 450.0, 500.0, 600.0, 700.0, 800.0, 900.0]).unwrap();
     println!("law a {:.4} b {:.3e}  {:?}", law.a, law.b, law.samples);
 }

@@ -214,7 +214,8 @@ fn pupil_sampling_converges() {
     let s1 = Sampling::default();
     let s2 = Sampling::from_rays(2 * Sampling::DEFAULT_RAYS);
     assert!(s2.rays() as f64 > 1.8 * s1.rays() as f64);
-    for r in [1.0, 3.0, 4.5] {
+    // 4.8' is vignetted by the clear apertures, where the quadrature converges slowest.
+    for r in [1.0, 3.0, 4.5, 4.8] {
         let a = c.field_point(r, 0.0, &s1, None).unwrap().p;
         let b = c.field_point(r, 0.0, &s2, None).unwrap().p;
         assert!((a - b).abs() < 1e-5, "r {r}: {a} vs {b}");
