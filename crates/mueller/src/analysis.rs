@@ -113,7 +113,7 @@ pub fn polarizance(m: &Mueller) -> f64 {
 /// `cos R = tr(M_R) / 2 - 1`. Fails with [`Error::Singular`] for a total diattenuator.
 pub fn retardance(m: &Mueller) -> Result<f64, Error> {
     let t = m[(0, 0)];
-    if !(t > 0.0) {
+    if t.is_nan() || t <= 0.0 {
         return Err(Error::Singular("m00 <= 0"));
     }
     let d = Vector3::new(m[(0, 1)], m[(0, 2)], m[(0, 3)]) / t;
