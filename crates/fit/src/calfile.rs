@@ -10,8 +10,11 @@
 //! - `QMAP`, `UMAP`, `QERR`, `UERR`: images of the instrumental `Q/I`, `U/I` and their errors on
 //!   a regular grid (linear WCS in arcmin from the detector centre: `CRVALn` is the centre of
 //!   pixel `CRPIXn = 1`, `CDELTn` the step); for an imported map these images are the model;
-//! - `BINS`: binary table of the binned measurements the fit used (positions, `q`, `u`, errors,
-//!   the approximate solution, the model and residuals, a USED flag);
+//! - `BINS`: binary table of the binned measurements (positions in arcmin, instrumental `q`,
+//!   `u` of the exact sky-field solution with errors, `p`, `phi`, the approximate `eq:approx`
+//!   solution, `MODEL_Q/U` = the radial (or map) model at the bin, `RES_Q/U` = data minus that
+//!   model, which is what the residual interpolant of a RADIAL+RESIDUAL model passes through,
+//!   and `USED` = 1 for bins the fit used);
 //! - `INPUTS`: binary table of input file names (present when there were input files).
 //!
 //! Files are written to a temporary file in the destination folder and renamed, so a failed
