@@ -23,6 +23,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    Validate(cmd::validate::Args),
     Bias(cmd::bias::Args),
     Mc(cmd::mc::Args),
     Correct(cmd::correct::Args),
@@ -34,6 +35,7 @@ enum Command {
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Validate(a) => cmd::validate::run(a),
         Command::Bias(a) => cmd::bias::run(a),
         Command::Mc(a) => cmd::mc::run(a),
         Command::Correct(a) => cmd::correct::run(a),

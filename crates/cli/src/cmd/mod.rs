@@ -7,3 +7,4 @@ pub mod bias;
 pub mod mc;
 pub mod mc_plot;
 pub mod correct;
+pub mod validate;
