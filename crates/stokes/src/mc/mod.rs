@@ -38,6 +38,19 @@ use stream::{ChunkSums, Histogram};
 pub const CHUNK: u64 = 1 << 15;
 /// Histogram bins for the mode and quantiles.
 pub const BINS: usize = 4096;
+/// Trials reduced together (see [`Engine::flush`]).
+const BATCH: usize = 64;
+
+/// Four interleaved partial sums of each statistic within a chunk.
+#[derive(Default)]
+struct Lanes {
+    n: u64,
+    s1: [f64; 4],
+    s2: [f64; 4],
+    sq: [f64; 4],
+    su: [f64; 4],
+    sd2: [f64; 4],
+}
 
 /// Noise model of a trial.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -345,79 +358,115 @@ impl Engine {
         }
     }
 
+    /// Reduce a batch of `(Q, U)`: `P` for the whole batch first (the square roots then
+    /// pipeline and vectorize), then the histogram and four interleaved partial sums (short
+    /// dependency chains). The summation order is fixed by the chunk, so results stay
+    /// identical on any thread count.
     #[inline(always)]
-    fn record(&self, s: &mut ChunkSums, h: &mut Histogram, q: f64, u: f64) {
-        // |q|, |u| <= ~1: the plain square root cannot overflow and is faster than hypot.
-        let p = (q * q + u * u).sqrt();
-        let d = p - self.p_ref;
-        s.n += 1;
-        s.s1 += d;
-        s.s2 += d * d;
-        s.sq += q;
-        s.su += u;
+    fn flush(&self, qb: &[f64], ub: &[f64], l: &mut Lanes, h: &mut Histogram) {
+        let k = qb.len().min(ub.len());
+        let mut pb = [0.0f64; BATCH];
+        for i in 0..k {
+            // |q|, |u| <= ~1: the plain square root cannot overflow and is faster than hypot.
+            pb[i] = (qb[i] * qb[i] + ub[i] * ub[i]).sqrt();
+        }
+        for &p in &pb[..k] {
+            h.push(p);
+        }
+        for i in 0..k {
+            let j = i & 3;
+            let d = pb[i] - self.p_ref;
+            l.s1[j] += d;
+            l.s2[j] += d * d;
+            l.sq[j] += qb[i];
+            l.su[j] += ub[i];
+        }
         if self.cfg.angle_stats {
             let (sn, cs) = self.rot;
-            let dev = 0.5 * (u * cs - q * sn).atan2(q * cs + u * sn);
-            s.sd2 += dev * dev;
+            for i in 0..k {
+                let (q, u) = (qb[i], ub[i]);
+                let dev = 0.5 * (u * cs - q * sn).atan2(q * cs + u * sn);
+                l.sd2[i & 3] += dev * dev;
+            }
         }
-        h.push(p);
+        l.n += k as u64;
     }
 
     /// Trials of chunk `c` (length `len`), accumulated into `h` and the returned sums.
     pub fn run_chunk(&self, c: u64, len: u64, h: &mut Histogram) -> ChunkSums {
         let mut rng = chunk_rng(self.cfg.seed, c);
-        let mut s = ChunkSums::default();
+        let mut l = Lanes::default();
         let n = self.f0.len();
-        let mut f = vec![0.0f64; n];
-        match self.cfg.noise {
-            Noise::GaussQu => {
-                let [l11, l21, l22] = self.chol;
-                for _ in 0..len {
-                    let z1: f64 = StandardNormal.sample(&mut rng);
-                    let z2: f64 = StandardNormal.sample(&mut rng);
-                    self.record(&mut s, h, self.q0 + l11 * z1, self.u0 + l21 * z1 + l22 * z2);
-                }
-            }
-            Noise::GaussF => {
-                let sf = self.sigma_f;
-                for _ in 0..len {
-                    for i in 0..n {
-                        let z: f64 = StandardNormal.sample(&mut rng);
-                        f[i] = self.f0[i] + sf * z;
+        // Per batch: draw everything first, then reduce (the divisions of F_i over the whole
+        // batch vectorize, and the draws are not stalled by the arithmetic).
+        let mut ob = vec![0.0f64; BATCH * n];
+        let mut eb = vec![0.0f64; BATCH * n];
+        let mut fb = vec![0.0f64; BATCH * n];
+        let mut qb = [0.0f64; BATCH];
+        let mut ub = [0.0f64; BATCH];
+        let mut done = 0u64;
+        while done < len {
+            let m = (BATCH as u64).min(len - done) as usize;
+            done += m as u64;
+            let mut k = 0;
+            match self.cfg.noise {
+                Noise::GaussQu => {
+                    let [l11, l21, l22] = self.chol;
+                    for i in 0..m {
+                        let z1: f64 = StandardNormal.sample(&mut rng);
+                        let z2: f64 = StandardNormal.sample(&mut rng);
+                        qb[i] = self.q0 + l11 * z1;
+                        ub[i] = self.u0 + l21 * z1 + l22 * z2;
                     }
-                    let (q, u) = self.solver.solve(&f);
-                    self.record(&mut s, h, q, u);
+                    k = m;
                 }
-            }
-            Noise::Poisson => {
-                let sky = self.cfg.sky;
-                let rn = self.cfg.read_noise;
-                let extra = sky > 0.0 || rn > 0.0;
-                'trial: for _ in 0..len {
-                    for i in 0..n {
-                        let (so, se) = &self.samplers[i];
-                        let mut o = so.sample(&mut rng);
-                        let mut e = se.sample(&mut rng);
-                        if extra {
+                Noise::GaussF => {
+                    let sf = self.sigma_f;
+                    for trial in fb[..m * n].chunks_exact_mut(n) {
+                        for (fj, f0) in trial.iter_mut().zip(&self.f0) {
+                            let z: f64 = StandardNormal.sample(&mut rng);
+                            *fj = f0 + sf * z;
+                        }
+                    }
+                    for (i, trial) in fb[..m * n].chunks_exact(n).enumerate() {
+                        (qb[i], ub[i]) = self.solver.solve(trial);
+                    }
+                    k = m;
+                }
+                Noise::Poisson => {
+                    let sky = self.cfg.sky;
+                    let rn = self.cfg.read_noise;
+                    for (o, e) in ob[..m * n].chunks_exact_mut(n).zip(eb[..m * n].chunks_exact_mut(n)) {
+                        for (j, (so, se)) in self.samplers.iter().enumerate() {
+                            o[j] = so.sample(&mut rng);
+                            e[j] = se.sample(&mut rng);
+                        }
+                    }
+                    if sky > 0.0 || rn > 0.0 {
+                        for (o, e) in ob[..m * n].iter_mut().zip(eb[..m * n].iter_mut()) {
                             let zo: f64 = StandardNormal.sample(&mut rng);
                             let ze: f64 = StandardNormal.sample(&mut rng);
-                            o += rn * zo - sky;
-                            e += rn * ze - sky;
+                            *o += rn * zo - sky;
+                            *e += rn * ze - sky;
                         }
-                        if !(o + e > 0.0) {
-                            // No light at this angle: F is undefined; drop the trial.
-                            // (The remaining draws of the trial are skipped; determinism is
-                            // kept because the chunk's stream is fixed.)
-                            continue 'trial;
-                        }
-                        f[i] = normalized_difference(o, e);
                     }
-                    let (q, u) = self.solver.solve(&f);
-                    self.record(&mut s, h, q, u);
+                    for ((fj, &o), &e) in fb[..m * n].iter_mut().zip(&ob[..m * n]).zip(&eb[..m * n]) {
+                        *fj = normalized_difference(o, e);
+                    }
+                    for t in 0..m {
+                        let r = t * n..(t + 1) * n;
+                        // No light at some angle (f_O + f_E <= 0): F is undefined; drop the trial.
+                        if ob[r.clone()].iter().zip(&eb[r.clone()]).all(|(o, e)| o + e > 0.0) {
+                            (qb[k], ub[k]) = self.solver.solve(&fb[r]);
+                            k += 1;
+                        }
+                    }
                 }
             }
+            self.flush(&qb[..k], &ub[..k], &mut l, h);
         }
-        s
+        let sum4 = |a: [f64; 4]| (a[0] + a[1]) + (a[2] + a[3]);
+        ChunkSums { n: l.n, s1: sum4(l.s1), s2: sum4(l.s2), sq: sum4(l.sq), su: sum4(l.su), sd2: sum4(l.sd2) }
     }
 
     /// Draw exactly the random numbers a run would draw, without reducing them: the cost

@@ -30,44 +30,53 @@ impl ChunkSums {
     }
 }
 
-/// A fixed-range histogram of `P` with under- and overflow counters.
+/// A fixed-range histogram of `P` with under- and overflow counters (kept as the first and
+/// last cells of one array, so filling is branch-free).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Histogram {
     pub lo: f64,
     pub hi: f64,
     inv_w: f64,
-    pub counts: Vec<u64>,
-    pub under: u64,
-    pub over: u64,
+    nb: usize,
+    /// `[underflow, bins..., overflow]`.
+    raw: Vec<u64>,
 }
 
 impl Histogram {
     pub fn new(lo: f64, hi: f64, bins: usize) -> Self {
-        Self { lo, hi, inv_w: bins as f64 / (hi - lo), counts: vec![0; bins], under: 0, over: 0 }
+        Self { lo, hi, inv_w: bins as f64 / (hi - lo), nb: bins, raw: vec![0; bins + 2] }
+    }
+    /// Cell of `p` in the raw array (NaN goes to the underflow).
+    #[inline(always)]
+    fn cell(&self, p: f64) -> usize {
+        let t = ((p - self.lo) * self.inv_w).max(-1.0).min(self.nb as f64);
+        (t + 1.0) as usize
     }
     #[inline(always)]
     pub fn push(&mut self, p: f64) {
-        let t = (p - self.lo) * self.inv_w;
-        if t < 0.0 {
-            self.under += 1;
-        } else if t >= self.counts.len() as f64 {
-            self.over += 1;
-        } else {
-            self.counts[t as usize] += 1;
-        }
+        let c = self.cell(p);
+        self.raw[c] += 1;
+    }
+    /// The in-range bin counts.
+    pub fn counts(&self) -> &[u64] {
+        &self.raw[1..=self.nb]
+    }
+    pub fn under(&self) -> u64 {
+        self.raw[0]
+    }
+    pub fn over(&self) -> u64 {
+        self.raw[self.nb + 1]
     }
     pub fn merge(&mut self, o: &Histogram) {
-        for (a, b) in self.counts.iter_mut().zip(&o.counts) {
+        for (a, b) in self.raw.iter_mut().zip(&o.raw) {
             *a += b;
         }
-        self.under += o.under;
-        self.over += o.over;
     }
     pub fn width(&self) -> f64 {
-        (self.hi - self.lo) / self.counts.len() as f64
+        (self.hi - self.lo) / self.nb as f64
     }
     pub fn total(&self) -> u64 {
-        self.counts.iter().sum::<u64>() + self.under + self.over
+        self.raw.iter().sum::<u64>()
     }
     fn center(&self, i: usize) -> f64 {
         self.lo + (i as f64 + 0.5) * self.width()
@@ -78,12 +87,12 @@ impl Histogram {
     pub fn quantile(&self, q: f64) -> Option<f64> {
         let n = self.total() as f64;
         let target = q * n;
-        let mut cum = self.under as f64;
+        let mut cum = self.under() as f64;
         if target < cum {
             return None;
         }
         let w = self.width();
-        for (i, &c) in self.counts.iter().enumerate() {
+        for (i, &c) in self.counts().iter().enumerate() {
             let next = cum + c as f64;
             if next >= target && c > 0 {
                 return Some(self.lo + w * (i as f64 + (target - cum) / c as f64));
@@ -99,7 +108,8 @@ impl Histogram {
     /// follows the skewness of the Rice distribution that would bias a kernel mode, and uses
     /// every trial in the window, so its error falls as `1/sqrt(trials)`.
     pub fn mode(&self, bw: f64, window: f64) -> Option<f64> {
-        let nb = self.counts.len();
+        let nb = self.nb;
+        let counts = self.counts();
         let w = self.width();
         let hb = (bw / w).max(1.0);
         let reach = (4.0 * hb).ceil() as isize;
@@ -110,7 +120,7 @@ impl Histogram {
             for (jj, k) in kern.iter().enumerate() {
                 let j = i as isize + jj as isize - reach;
                 if j >= 0 && (j as usize) < nb {
-                    s += k * self.counts[j as usize] as f64;
+                    s += k * counts[j as usize] as f64;
                 }
             }
             if s > best.1 {
@@ -134,7 +144,7 @@ impl Histogram {
         let mut atb = [0.0f64; D];
         let mut used = 0;
         for i in 0..nb {
-            let c = self.counts[i] as f64;
+            let c = counts[i] as f64;
             let x = self.center(i);
             if c < 1.0 || x < a || x > b || x <= 0.0 {
                 continue;
