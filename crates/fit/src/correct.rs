@@ -463,6 +463,19 @@ mod tests {
         assert!(invert_exact_matrix(1.0, 0.0, 0.5, 0.0).is_err());
     }
 
+    /// A measurement that no star can produce through `M_I` (1 - a.m <= 0) is an error that
+    /// names the numbers, not a division by zero.
+    #[test]
+    fn impossible_measurement_is_singular() {
+        let e = invert_exact(0.6, 0.0, 2.0, 0.0).unwrap_err();
+        assert!(matches!(e, Error::Singular { .. }), "{e}");
+        assert!(e.to_string().contains("(2, 0)"));
+        assert!(exact_jacobian(0.6, 0.0, 2.0, 0.0).is_err());
+        // P -> 1 of the instrument with a measurement along it: still finite below the limit.
+        let (q0, u0) = invert_exact(0.999, 0.0, 0.9995, 0.0).unwrap();
+        assert!(q0.is_finite() && u0 == 0.0 && q0 <= 1.0);
+    }
+
     #[test]
     fn rotate_chi_adds_to_angle() {
         let (q, u) = rotate_chi(0.02 * (0.6f64).cos(), 0.02 * (0.6f64).sin(), 0.1);

@@ -424,13 +424,20 @@ fn correct_rows(
 /// The bias-corrected P0 of each row with the chosen estimator (NaN when the errors are not
 /// usable, e.g. zero).
 fn estimates(out: &[Corrected], est: Estimator) -> Vec<f64> {
+    use indicatif::{ParallelProgressIterator, ProgressBar};
     use rayon::prelude::*;
-    out.par_iter()
+    // The root-finding estimators take ~1 us a row: show progress on big catalogs.
+    let pb = if out.len() >= 500_000 { ProgressBar::new(out.len() as u64) } else { ProgressBar::hidden() };
+    let v = out
+        .par_iter()
+        .progress_with(pb.clone())
         .map(|r| match PolMeasurement::new(r.q0, r.u0, r.var_q0.sqrt(), r.var_u0.sqrt()) {
             Ok(m) => est.estimate(&m).value,
             Err(_) => f64::NAN,
         })
-        .collect()
+        .collect();
+    pb.finish_and_clear();
+    v
 }
 
 fn added_values(r: &Corrected, p0e: f64) -> [f64; 12] {
