@@ -5,6 +5,7 @@
 use clap::{Parser, Subcommand};
 
 mod cmd;
+mod plot;
 mod util;
 
 /// Find, model and remove the instrumental polarization of dual-beam imaging polarimeters
@@ -30,6 +31,12 @@ enum Command {
     Stokes(cmd::stokes::Args),
     Fresnel(cmd::fresnel::Args),
     Raytrace(cmd::raytrace::Args),
+    Calibrate(cmd::calibrate::Args),
+    Fit(cmd::fit::Args),
+    ImportMap(cmd::import_map::Args),
+    WavelengthLaw(cmd::wavelength_law::Args),
+    Plot(cmd::plot::Args),
+    Demo(cmd::demo::Args),
 }
 
 fn main() {
@@ -42,6 +49,12 @@ fn main() {
         Command::Stokes(a) => cmd::stokes::run(a),
         Command::Fresnel(a) => cmd::fresnel::run(a),
         Command::Raytrace(a) => cmd::raytrace::run(a),
+        Command::Calibrate(a) => cmd::calibrate::run(a),
+        Command::Fit(a) => cmd::fit::run(a),
+        Command::ImportMap(a) => cmd::import_map::run(a),
+        Command::WavelengthLaw(a) => cmd::wavelength_law::run(a),
+        Command::Plot(a) => cmd::plot::run(a),
+        Command::Demo(a) => cmd::demo::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

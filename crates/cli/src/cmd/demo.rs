@@ -167,7 +167,10 @@ fn map_through_frames(
             up.display().to_string()
         )
     } else {
-        format!("kind = \"radial\"\ncoeffs_percent = {:?}\n", c.coeffs_pct)
+        // The simulator's list starts at r^0; the paper's polynomial has no constant term.
+        let mut k0 = vec![0.0];
+        k0.extend_from_slice(&c.coeffs_pct);
+        format!("kind = \"radial\"\ncoeffs_percent = {k0:?}\n")
     };
     let scene = format!(
         "instrument = \"fors1\"\nfilter = \"{}\"\nseed = {}\n\n[sky]\nbrightness_e = 20000.0\np = {}\nchi_deg = {}\n\n\

@@ -1,0 +1,248 @@
+//! End-to-end: `instpol calibrate` on a Stokes map of a simulated V-band empty field (the
+//! paper's V pattern and sky, section sec:fors1), then `fit`, `plot` and bad input.
+
+use fit::synth::{sky_field, FnField};
+use fit::RadialModel;
+use std::path::Path;
+use std::process::Command;
+
+fn instpol(args: &[&str]) -> (i32, String, String) {
+    let o = Command::new(env!("CARGO_BIN_EXE_instpol")).args(args).output().unwrap();
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into(),
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
+}
+
+const V: [f64; 3] = [0.012e-2, 0.046e-2, 0.002e-2];
+
+/// A FORS1-like binned map (60 px bins: fast) of the V field seen through the sky of Table
+/// tab:empty, measured with noise 1e-4 per bin; `keep` selects valid bins.
+fn write_map(path: &Path, keep: impl Fn(usize) -> bool) {
+    let geom = skyfield::BinGeometry::covering(60, 0, 0, 2048, 2048, 0.2);
+    let mut map = skyfield::StokesMap::empty(geom.clone(), "FORS1", "V", vec![0.0, 22.5, 45.0, 67.5]);
+    let centres: Vec<(f64, f64)> = (0..geom.len()).map(|k| geom.centre_arcmin(k % geom.nx, k / geom.nx)).collect();
+    let truth = RadialModel::new(1, V.to_vec(), [0.0, 0.0]);
+    let sky = skyfield::solve::SkyPolarization::from_percent_deg(1.74, -53.8).unwrap();
+    let (q0, u0) = sky.qu();
+    let m = sky_field(&centres, &FnField(move |x, y| truth.qu(x, y)), q0, u0, 1e-4, 9);
+    for (k, b) in m.iter().enumerate() {
+        if !keep(k) {
+            continue;
+        }
+        map.q[k] = b.q1;
+        map.u[k] = b.u1;
+        map.sigma_q[k] = 1e-4;
+        map.sigma_u[k] = 1e-4;
+        map.cov_qu[k] = 0.0;
+        map.p[k] = b.q1.hypot(b.u1);
+        map.chi[k] = 0.0;
+        map.n_pixels[k] = 3600;
+        map.valid[k] = true;
+    }
+    map.write_fits(path).unwrap();
+}
+
+#[test]
+fn calibrate_map_recovers_the_v_pattern_and_writes_a_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let map = dir.path().join("map_v.fits");
+    write_map(&map, |_| true);
+    let cal = dir.path().join("cal_v.fits");
+    let (code, out, err) = instpol(&[
+        "calibrate",
+        "--map",
+        map.to_str().unwrap(),
+        "--sky-p",
+        "1.74",
+        "--sky-chi",
+        "-53.8",
+        "--out",
+        cal.to_str().unwrap(),
+        "--json",
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    // The JSON contract of issue 5.
+    for key in [
+        "filter",
+        "centre_arcmin",
+        "coefficients",
+        "coefficient_errors",
+        "rms_residual",
+        "polar_angle_slope",
+        "polar_angle_intercept_deg",
+        "n_bins_used",
+        "centre_px",
+    ] {
+        assert!(j.get(key).is_some(), "missing {key} in {out}");
+    }
+    assert_eq!(j["filter"], "V");
+    let c: Vec<f64> = serde_json::from_value(j["coefficients"].clone()).unwrap();
+    let e: Vec<f64> = serde_json::from_value(j["coefficient_errors"].clone()).unwrap();
+    for k in 0..3 {
+        assert!(((c[k] - V[k]) / e[k]).abs() < 4.0, "c{} {} +- {} vs {}", k + 1, c[k], e[k], V[k]);
+    }
+    assert!((j["polar_angle_slope"].as_f64().unwrap() - 1.0).abs() < 0.01);
+    assert!((j["rms_residual"].as_f64().unwrap() / 1e-4 - 1.0).abs() < 0.2);
+    // Fixed centre at the detector centre: pixel (1023.5, 1023.5) of FORS1.
+    assert_eq!(j["centre_px"][0].as_f64().unwrap(), 1023.5);
+    assert!(cal.is_file());
+
+    // Refit with a free centre: same JSON shape, centre near the detector centre.
+    let (code, out, err) = instpol(&["fit", cal.to_str().unwrap(), "--free-centre", "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let cx = j["centre_arcmin"][0].as_f64().unwrap();
+    let cy = j["centre_arcmin"][1].as_f64().unwrap();
+    assert!(cx.hypot(cy) < 0.05, "free centre ({cx}, {cy})");
+
+    // Plots.
+    let plots = dir.path().join("plots");
+    let (code, _, err) = instpol(&["plot", cal.to_str().unwrap(), "--out", plots.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    for f in ["cal_v_map.png", "cal_v_map.svg", "cal_v_profile.png", "cal_v_residual.png"] {
+        assert!(plots.join(f).is_file(), "{f}");
+    }
+}
+
+#[test]
+fn bad_input_is_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("cal.fits");
+    // Frames without the sky values.
+    let (code, _, err) = instpol(&["calibrate", "a.fits", "b.fits", "--out", out.to_str().unwrap()]);
+    assert_eq!(code, 2);
+    assert!(err.contains("error:") && err.contains("--sky-p"), "{err}");
+    // A sky field with too few valid bins.
+    let map = dir.path().join("sparse.fits");
+    write_map(&map, |k| k % 200 == 0 && k < 800);
+    let (code, _, err) = instpol(&[
+        "calibrate",
+        "--map",
+        map.to_str().unwrap(),
+        "--sky-p",
+        "1.74",
+        "--sky-chi",
+        "-53.8",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 2);
+    assert!(err.contains("too few usable bins"), "{err}");
+    assert!(!out.exists(), "no calibration may be written on error");
+    // A calibration file from a newer format version.
+    let full = dir.path().join("full.fits");
+    write_map(&full, |_| true);
+    let (code, _, err) = instpol(&[
+        "calibrate",
+        "--map",
+        full.to_str().unwrap(),
+        "--sky-p",
+        "1.74",
+        "--sky-chi",
+        "-53.8",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    {
+        let mut f = fitsio::FitsFile::edit(&out).unwrap();
+        let h = f.primary_hdu().unwrap();
+        h.write_key(&mut f, "HIERARCH IP FORMAT VERSION", 99i64).unwrap();
+    }
+    let (code, _, err) = instpol(&["fit", out.to_str().unwrap()]);
+    assert_eq!(code, 2);
+    assert!(err.contains("newer") && err.contains("cal.fits") && err.contains("99"), "{err}");
+    // A bad exclusion spec is named.
+    let (code, _, err) = instpol(&[
+        "calibrate",
+        "--map",
+        full.to_str().unwrap(),
+        "--sky-p",
+        "1.74",
+        "--sky-chi",
+        "-53.8",
+        "--exclude",
+        "sector:10",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 2);
+    assert!(err.contains("sector:10"), "{err}");
+}
+
+/// A small FORS1-like instrument (512 x 512 px of 0.8", the same 6.8' field and strip layout)
+/// so that a whole frame chain runs in a test.
+const SMALL_INSTRUMENT: &str = r#"
+name = "SMALL"
+description = "test instrument: FORS1 field on a 512 x 512 detector"
+[detector]
+nx = 512
+ny = 512
+pixel_scale_arcsec = 0.8
+gain_e_per_adu = 1.25
+read_noise_e = 5.0
+saturation_adu = 65535.0
+[field]
+width_arcmin = 6.8
+height_arcmin = 6.8
+[polarimetry]
+throw_arcsec = 22.4
+strip_axis = "y"
+strip_count = 9
+first_strip_y_px = 4
+extraordinary_offset_sign = 1
+hwp_angle_keyword = "HIERARCH ESO INS RETA2 POSANG"
+filter_keyword = "HIERARCH ESO INS FILT1 NAME"
+[[filters]]
+name = "V"
+lambda_eff_nm = 554.0
+"#;
+
+#[test]
+fn calibrate_from_simulated_frames_through_the_whole_chain() {
+    // sim -> FITS frames -> skyfield reduce -> sky-field solution -> radial fit. (The
+    // simulator's coeffs_percent start at r^0; the paper's polynomial has no constant.)
+    let dir = tempfile::tempdir().unwrap();
+    let inst = dir.path().join("small.toml");
+    std::fs::write(&inst, SMALL_INSTRUMENT).unwrap();
+    let scene = format!(
+        "instrument = {:?}\nfilter = \"V\"\nseed = 5\n[output]\nbitpix = -32\n[sky]\nbrightness_e = 40000.0\np = 0.0174\nchi_deg = -53.8\n\
+         [effects]\nphoton_noise = true\n[effects.instpol]\nkind = \"radial\"\ncoeffs_percent = [0.0, 0.012, 0.046, 0.002]\n",
+        inst.display().to_string()
+    );
+    let scene = sim::Scene::from_toml_str(&scene, std::path::Path::new("<test scene>")).unwrap();
+    let simd = sim::simulate(&scene, &dir.path().join("frames"), &|| {}).unwrap();
+    let cal = dir.path().join("cal.fits");
+    let mut args: Vec<String> = vec!["calibrate".into()];
+    args.extend(simd.frames.iter().map(|p| p.display().to_string()));
+    for a in [
+        "--instrument",
+        inst.to_str().unwrap(),
+        "--sky-p",
+        "1.74",
+        "--sky-chi",
+        "-53.8",
+        "--bin",
+        "8",
+        "--out",
+        cal.to_str().unwrap(),
+        "--json",
+    ] {
+        args.push(a.into());
+    }
+    let argv: Vec<&str> = args.iter().map(|s| s.as_str()).collect();
+    let (code, out, err) = instpol(&argv);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let c: Vec<f64> = serde_json::from_value(j["coefficients"].clone()).unwrap();
+    let e: Vec<f64> = serde_json::from_value(j["coefficient_errors"].clone()).unwrap();
+    for k in 0..3 {
+        assert!(((c[k] - V[k]) / e[k]).abs() < 4.0, "c{} {} +- {} vs {}", k + 1, c[k], e[k], V[k]);
+    }
+    assert!((j["polar_angle_slope"].as_f64().unwrap() - 1.0).abs() < 0.02, "{out}");
+    // Only the strips see the sky: about half the field.
+    assert!(j["n_bins_used"].as_u64().unwrap() > 1000, "{out}");
+}
