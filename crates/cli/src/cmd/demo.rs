@@ -1,7 +1,7 @@
 //! `instpol demo`: the main job end to end on the paper's three empty fields.
 
 use anyhow::{Context, Result};
-use fit::calfile::{Calibration, Model};
+use fit::calfile::Calibration;
 use fit::pipeline::{CalibrateOptions, CalibrationRun, FitSummary};
 use fit::synth::{write_qu_cubes, FnField};
 use fit::wavelength::fit_wavelength_law;
@@ -353,6 +353,5 @@ pub fn run(a: Args) -> Result<()> {
         law.a, law.a_err, law.b, law.b_err
     );
     println!("wrote calibration files and plots to {}", a.out.display());
-    let _ = Model::kind;
     Ok(())
 }

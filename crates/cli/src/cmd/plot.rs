@@ -18,8 +18,9 @@ pub struct Args {
     /// Output folder (created if missing).
     #[arg(long)]
     pub out: PathBuf,
-    /// CSV of a ray-trace prediction with columns r_arcmin,p (p a fraction), drawn on the
-    /// profile.
+    /// A ray-trace prediction drawn on the profile: CSV with columns r_arcmin,p (p a
+    /// fraction, one header line), or JSON {"radius_arcmin": [...], "p": [...]} (the ray
+    /// tracer's profile file).
     #[arg(long)]
     pub raytrace: Option<PathBuf>,
     /// Print the written files as JSON.
@@ -28,6 +29,20 @@ pub struct Args {
 }
 
 fn read_raytrace(path: &Path) -> Result<Vec<(f64, f64)>> {
+    if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
+        #[derive(serde::Deserialize)]
+        struct Profile {
+            radius_arcmin: Vec<f64>,
+            p: Vec<f64>,
+        }
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+        let pr: Profile = serde_json::from_str(&text)
+            .with_context(|| format!("{}: expected {{\"radius_arcmin\": [...], \"p\": [...]}}", path.display()))?;
+        if pr.radius_arcmin.len() != pr.p.len() {
+            anyhow::bail!("{}: radius_arcmin and p have different lengths", path.display());
+        }
+        return Ok(pr.radius_arcmin.into_iter().zip(pr.p).collect());
+    }
     let mut rd = csv::ReaderBuilder::new()
         .has_headers(true)
         .from_path(path)
