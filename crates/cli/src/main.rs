@@ -24,6 +24,9 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    Simulate(cmd::simulate::Args),
+    Reduce(cmd::reduce::Args),
+    Photometry(cmd::photometry::Args),
     Validate(cmd::validate::Args),
     Bias(cmd::bias::Args),
     Mc(cmd::mc::Args),
@@ -42,6 +45,9 @@ enum Command {
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Simulate(a) => cmd::simulate::run(a),
+        Command::Reduce(a) => cmd::reduce::run(a),
+        Command::Photometry(a) => cmd::photometry::run(a),
         Command::Validate(a) => cmd::validate::run(a),
         Command::Bias(a) => cmd::bias::run(a),
         Command::Mc(a) => cmd::mc::run(a),

@@ -41,6 +41,6 @@ pub enum Error {
     Instrument(#[from] instrument::Error),
     #[error(transparent)]
     Frames(#[from] skyfield::Error),
-    #[error("Stokes solver: {0}")]
+    #[error(transparent)]
     Stokes(#[from] stokes::Error),
 }

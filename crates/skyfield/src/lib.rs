@@ -51,7 +51,7 @@ pub enum Error {
     NoValidBins,
     #[error("{0}")]
     Invalid(String),
-    #[error("Stokes solver: {0}")]
+    #[error(transparent)]
     Stokes(#[from] stokes::Error),
     #[error(transparent)]
     Instrument(#[from] instrument::Error),

@@ -153,6 +153,13 @@ pub fn photometry(set: &FrameSet, inst: &Instrument, x: f64, y: f64, ap: &Apertu
         s_o[i] = vo.sqrt();
         s_e[i] = ve.sqrt();
     }
+    if let Some(i) = (0..n).find(|&i| !(f_o[i] + f_e[i] > 0.0)) {
+        return Err(Error::Invalid(format!(
+            "no source at ({x:.1}, {y:.1}) px: the background-subtracted flux f_O + f_E = {:.1} e- at HWP angle {} deg is not positive",
+            f_o[i] + f_e[i],
+            set.angles_deg[i]
+        )));
+    }
     let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();
     let m = stokes::Measurement::with_errors(theta, f_o.clone(), f_e.clone(), s_o.clone(), s_e.clone())?;
     let reduction = m.reduce()?;

@@ -14,3 +14,6 @@ pub mod import_map;
 pub mod plot;
 pub mod wavelength_law;
 pub mod validate;
+pub mod photometry;
+pub mod reduce;
+pub mod simulate;

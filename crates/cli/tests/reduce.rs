@@ -1,0 +1,100 @@
+//! `instpol reduce` end to end: simulate, reduce, read the map back.
+
+use std::path::Path;
+use std::process::Command;
+
+/// A 128 x 128 detector with one 40-px strip (rows 20..60 o, 60..100 e).
+fn tiny_instrument(dir: &Path) -> std::path::PathBuf {
+    let text = include_str!("../../../instruments/fors1.toml")
+        .replace("nx = 2048", "nx = 128")
+        .replace("ny = 2048", "ny = 128")
+        .replace("throw_arcsec = 22.0", "throw_arcsec = 8.0")
+        .replace("strip_count = 9", "strip_count = 1")
+        .replace("first_strip_y_px = 34", "first_strip_y_px = 20");
+    let p = dir.join("tiny.toml");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn instpol() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_instpol"))
+}
+
+fn sim(dir: &Path, inst: &Path, angles: &str, out: &str) -> Vec<std::path::PathBuf> {
+    let scene = dir.join(format!("{out}.toml"));
+    std::fs::write(
+        &scene,
+        format!(
+            "instrument = \"{}\"\nfilter = \"V\"\nhwp_angles_deg = {angles}\n[output]\nbitpix = -64\n[sky]\nbrightness_e = 3000\np = 0.0645\nchi_deg = 68.4\n",
+            inst.display()
+        ),
+    )
+    .unwrap();
+    let o = instpol().arg("simulate").arg(&scene).arg("--out").arg(dir.join(out)).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mut v: Vec<_> = std::fs::read_dir(dir.join(out))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "fits"))
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn reduce_round_trip_through_the_map_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst = tiny_instrument(dir.path());
+    let frames = sim(dir.path(), &inst, "[0, 22.5, 45, 67.5]", "a");
+    let map = dir.path().join("map.fits");
+    let o = instpol()
+        .arg("reduce")
+        .args(&frames)
+        .arg("--instrument")
+        .arg(&inst)
+        .arg("--bin")
+        .arg("10")
+        .arg("--out")
+        .arg(&map)
+        .arg("--json")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!((j["median_p"].as_f64().unwrap() - 0.0645).abs() < 1e-10, "{j}");
+    let m = skyfield::StokesMap::read_fits(&map).unwrap();
+    assert_eq!(m.geometry.bin_px, 10);
+    assert_eq!(m.hwp_angles_deg, vec![0.0, 22.5, 45.0, 67.5]);
+    let q0 = 0.0645 * (2.0 * 68.4f64.to_radians()).cos();
+    for (k, _, _) in m.valid_bins() {
+        assert!((m.q[k] - q0).abs() < 1e-10);
+    }
+}
+
+#[test]
+fn missing_angle_exits_2_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst = tiny_instrument(dir.path());
+    let frames = sim(dir.path(), &inst, "[0, 22.5, 45, 67.5]", "b");
+    let map = dir.path().join("map.fits");
+    let o = instpol()
+        .arg("reduce")
+        .args(&frames[..3])
+        .arg("--instrument")
+        .arg(&inst)
+        .arg("--out")
+        .arg(&map)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("missing [67.5 deg]"), "{err}");
+    assert!(!map.exists());
+    assert_eq!(
+        std::fs::read_dir(dir.path())
+            .unwrap()
+            .filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "tmp"))
+            .count(),
+        0
+    );
+}

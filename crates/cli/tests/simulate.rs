@@ -1,0 +1,62 @@
+//! `instpol simulate` end to end on a small instrument.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+pub fn tiny_instrument(dir: &Path) -> PathBuf {
+    let text = include_str!("../../../instruments/fors1.toml")
+        .replace("nx = 2048", "nx = 128")
+        .replace("ny = 2048", "ny = 128")
+        .replace("throw_arcsec = 22.0", "throw_arcsec = 8.0")
+        .replace("strip_count = 9", "strip_count = 1")
+        .replace("first_strip_y_px = 34", "first_strip_y_px = 20");
+    let p = dir.join("tiny.toml");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn instpol() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_instpol"))
+}
+
+#[test]
+fn writes_frames_truth_and_explains() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst = tiny_instrument(dir.path());
+    let scene = dir.path().join("s.toml");
+    std::fs::write(
+        &scene,
+        format!(
+            "instrument = \"{}\"\nfilter = \"V\"\n[sky]\nbrightness_e = 3000\np = 0.0174\nchi_deg = -53.8\n[effects]\nphoton_noise = true\nwollaston = {{ t = 0.51 }}\n",
+            inst.display()
+        ),
+    )
+    .unwrap();
+    let out = dir.path().join("out");
+    let o =
+        instpol().arg("simulate").arg(&scene).arg("--out").arg(&out).arg("--explain").arg("--json").output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("photon noise") && err.contains("Wollaston t = 0.51"), "{err}");
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(j["frames"].as_array().unwrap().len(), 4);
+    let truth: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("truth.json")).unwrap()).unwrap();
+    assert_eq!(truth["scene"]["sky"]["p"], 0.0174);
+    assert_eq!(truth["frames"][1]["hwp_deg"], 22.5);
+    // Only the frames and the truth file: no temporary leftovers.
+    assert_eq!(std::fs::read_dir(&out).unwrap().count(), 5);
+}
+
+#[test]
+fn unknown_key_exits_2_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("s.toml");
+    std::fs::write(&scene, "instrument = \"fors1\"\nfilter = \"V\"\n[effects]\nphotonnoise = true\n").unwrap();
+    let out = dir.path().join("out");
+    let o = instpol().arg("simulate").arg(&scene).arg("--out").arg(&out).output().unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.starts_with("error:") && err.contains("photonnoise"), "{err}");
+    assert!(!out.exists());
+}
