@@ -72,6 +72,8 @@ pub enum Error {
     Unphysical { p: f64, x: f64, y: f64 },
     #[error("measured (q, u) = ({q}, {u}) cannot come through the instrumental polarization (qi, ui) = ({qi}, {ui}): 1 - qi q - ui u = {d} <= 0")]
     Singular { q: f64, u: f64, qi: f64, ui: f64, d: f64 },
+    #[error("the calibration has no value at ({x}, {y}) arcmin (outside its map or hull)")]
+    NoModelValue { x: f64, y: f64 },
     #[error("row {row}: {source}")]
     Row { row: usize, source: Box<Error> },
     #[error("batch lengths differ: {inputs} inputs, {outputs} output slots")]
@@ -332,12 +334,16 @@ impl<'a, M: FieldModel + ?Sized> Corrector<'a, M> {
     /// covariance as used (inflated outside the field) and the extrapolation flag.
     #[inline]
     pub fn instrumental(&self, x: f64, y: f64) -> Result<(InstPol, bool), Error> {
-        let mut a = self.model.eval(x, y);
         let inside = self.model.contains(x, y);
+        if !inside && !self.opts.allow_extrapolation {
+            return Err(Error::OutsideField { x, y });
+        }
+        let mut a = self.model.eval(x, y);
+        if !(a.q.is_finite() && a.u.is_finite() && a.var_q.is_finite() && a.var_u.is_finite()) {
+            // A map cannot be extrapolated beyond its data: nothing to inflate.
+            return Err(Error::NoModelValue { x, y });
+        }
         if !inside {
-            if !self.opts.allow_extrapolation {
-                return Err(Error::OutsideField { x, y });
-            }
             let f = self.opts.extrapolation_rel_error;
             let add = f * f * (a.q * a.q + a.u * a.u);
             a.var_q += add;

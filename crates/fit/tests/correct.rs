@@ -398,6 +398,29 @@ fn outside_the_field_is_an_error_or_an_inflated_extrapolation() {
     assert_eq!(r.inst.var_q, model.sigma * model.sigma);
 }
 
+/// A model with no value somewhere (a map's hole) is an error there, extrapolation or not.
+#[test]
+fn model_without_value_is_an_error() {
+    struct Holey;
+    impl FieldModel for Holey {
+        fn eval(&self, x: f64, _: f64) -> InstPol {
+            if x > 1.0 {
+                InstPol { q: f64::NAN, u: f64::NAN, ..Default::default() }
+            } else {
+                InstPol { q: 0.01, ..Default::default() }
+            }
+        }
+        fn contains(&self, x: f64, _: f64) -> bool {
+            x <= 1.0
+        }
+    }
+    let m = Measurement { x: 2.0, y: 0.0, q: 0.01, u: 0.0, sigma_q: 1e-4, sigma_u: 1e-4, cov_qu: 0.0 };
+    let opts = CorrectOptions { allow_extrapolation: true, ..Default::default() };
+    let e = Corrector::new(&Holey, opts).correct(&m).unwrap_err();
+    assert_eq!(e, Error::NoModelValue { x: 2.0, y: 0.0 });
+    assert!(Corrector::new(&Holey, opts).correct(&Measurement { x: 0.5, ..m }).unwrap().p0 < 1e-15);
+}
+
 /// Bad input names what was wrong; batches name the row.
 #[test]
 fn bad_input_and_batches() {
