@@ -68,7 +68,7 @@ fn rayleigh_limit() {
     assert!((r.mean() - s * FRAC_PI_2.sqrt()).abs() < 1e-15);
     assert!((r.mode() - s).abs() < 1e-15);
     assert!((r.median() - s * (2.0 * 2f64.ln()).sqrt()).abs() < 1e-13);
-    for &x in &[0.1, 0.7, 1.0, 2.0, 5.0, 9.0] {
+    for &x in &[0.1f64, 0.7, 1.0, 2.0, 5.0, 9.0] {
         let exact = -(-0.5 * x * x).exp_m1();
         assert!((cdf_n(x, 0.0) - exact).abs() < 1e-13, "x={x}");
         let tail = (-0.5 * x * x).exp();
