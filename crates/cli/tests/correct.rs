@@ -295,6 +295,8 @@ fn stokes_map_corrected_bin_by_bin() {
     assert_eq!(js["kind"], "Stokes map");
     assert_eq!(js["rows"], 63);
     let c = StokesMap::read_fits(&out).unwrap();
+    let mut f = FitsFile::open(&out).unwrap();
+    assert_eq!(f.primary_hdu().unwrap().read_key::<String>(&mut f, "INSTCORR").unwrap(), "v.fits");
     for k in 0..g.len() {
         if k == 5 {
             assert!(!c.valid[k]);

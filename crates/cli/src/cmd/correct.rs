@@ -581,7 +581,29 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
     if n == 0 {
         bail!("{}: the Stokes map has no valid bins", a.input.display());
     }
-    m.write_fits(&a.out).with_context(|| format!("cannot write {}", a.out.display()))?;
+    // Written beside the output, stamped with the correction's provenance, then renamed.
+    let dir = a.out.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let tmp = tempfile::Builder::new()
+        .prefix(".instpol-")
+        .suffix(".fits.tmp")
+        .tempfile_in(dir)
+        .with_context(|| format!("cannot create a temporary file in {}", dir.display()))?
+        .into_temp_path();
+    m.write_fits(&tmp).with_context(|| format!("cannot write {}", a.out.display()))?;
+    {
+        let werr = |e: fitsio::errors::Error| anyhow!("cannot write {}: {e}", a.out.display());
+        let mut f = FitsFile::edit(&tmp).map_err(werr)?;
+        let ph = f.primary_hdu().map_err(werr)?;
+        let name = a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+        ph.write_key(&mut f, "INSTCORR", (name.as_str(), "instrumental polarization removed with")).map_err(werr)?;
+        let meth = match a.method {
+            MethodArg::Exact => "exact M_I inverse (eq:instpol)",
+            MethodArg::FirstOrder => "first order (eq:approx)",
+        };
+        ph.write_key(&mut f, "CORRMETH", meth).map_err(werr)?;
+        ph.write_key(&mut f, "CORRHWP", (cal.hwp_chi_offset_deg, "HWP zero angle added to chi [deg]")).map_err(werr)?;
+    }
+    tmp.persist(&a.out).map_err(|e| anyhow!("cannot write {}: {e}", a.out.display()))?;
     Ok(Summary {
         input: a.input.clone(),
         output: a.out.clone(),
