@@ -109,19 +109,25 @@ fn read_map(path: &Path) -> Result<(Vec<f64>, usize, usize), Error> {
     Ok((v[..nx * ny].to_vec(), nx, ny))
 }
 
-/// A ray-trace profile file.
-#[derive(serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-struct RaytraceProfile {
-    radius_arcmin: Vec<f64>,
-    p: Vec<f64>,
-}
-
 /// The instrumental field, evaluated per sky pixel: `(p, phi)` of `M_I`.
 enum InstField {
-    Radial { c: Vec<f64>, centre: [f64; 2], phi0: f64 },
-    Map { q: Vec<f64>, u: Vec<f64>, nx: usize, ny: usize, bin: usize },
-    Profile { r: Vec<f64>, p: Vec<f64>, centre: [f64; 2] },
+    Radial {
+        c: Vec<f64>,
+        centre: [f64; 2],
+        phi0: f64,
+    },
+    Map {
+        q: Vec<f64>,
+        u: Vec<f64>,
+        nx: usize,
+        ny: usize,
+        bin: usize,
+    },
+    /// A ray tracer's field file, read and evaluated by `mueller::raytrace::FieldFile`.
+    Raytrace {
+        field: mueller::raytrace::FieldFile,
+        centre: [f64; 2],
+    },
 }
 
 impl InstField {
@@ -142,14 +148,24 @@ impl InstField {
             }
             InstPolSpec::Raytrace { file, centre_arcmin } => {
                 let text = std::fs::read_to_string(file).map_err(|e| file_err(file, e))?;
-                let p: RaytraceProfile = serde_json::from_str(&text).map_err(|e| file_err(file, e))?;
-                if p.radius_arcmin.len() != p.p.len() || p.p.is_empty() {
-                    return Err(file_err(file, "radius_arcmin and p must have the same, non-zero length"));
+                let f: mueller::raytrace::FieldFile = serde_json::from_str(&text).map_err(|e| file_err(file, e))?;
+                if f.format != mueller::raytrace::FieldFile::FORMAT {
+                    return Err(file_err(
+                        file,
+                        format!("format '{}' is not {}", f.format, mueller::raytrace::FieldFile::FORMAT),
+                    ));
                 }
-                if p.radius_arcmin.windows(2).any(|w| !(w[1] > w[0])) {
+                let n = f.radius_arcmin.len();
+                if n == 0 || f.p.len() != n || f.phi_rel_deg.len() != n {
+                    return Err(file_err(file, "radius_arcmin, p and phi_rel_deg must have the same, non-zero length"));
+                }
+                if f.radius_arcmin.windows(2).any(|w| !(w[1] > w[0])) {
                     return Err(file_err(file, "radius_arcmin must increase"));
                 }
-                InstField::Profile { r: p.radius_arcmin, p: p.p, centre: *centre_arcmin }
+                if f.p.iter().chain(&f.phi_rel_deg).any(|v| !v.is_finite()) {
+                    return Err(file_err(file, "p and phi_rel_deg must be finite"));
+                }
+                InstField::Raytrace { field: f, centre: *centre_arcmin }
             }
         })
     }
@@ -176,19 +192,9 @@ impl InstField {
                 }
                 stokes::polarization(qv, uv)
             }
-            InstField::Profile { r, p, centre } => {
-                let (dx, dy) = (xa - centre[0], ya - centre[1]);
-                let rr = dx.hypot(dy);
-                let k = r.partition_point(|&v| v < rr);
-                let pv = if k == 0 {
-                    p[0]
-                } else if k >= r.len() {
-                    p[r.len() - 1]
-                } else {
-                    let w = (rr - r[k - 1]) / (r[k] - r[k - 1]);
-                    p[k - 1] + w * (p[k] - p[k - 1])
-                };
-                signed(pv, dy.atan2(dx))
+            InstField::Raytrace { field, centre } => {
+                let (p, phi) = field.eval(xa - centre[0], ya - centre[1]);
+                signed(p, phi)
             }
         }
     }

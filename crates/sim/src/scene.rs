@@ -247,8 +247,9 @@ pub enum InstPolSpec {
         #[serde(default = "default_bin")]
         bin_px: usize,
     },
-    /// A ray-trace profile: JSON `{"radius_arcmin": [...], "p": [...]}` (p fractions,
-    /// radii increasing), linearly interpolated (constant beyond the ends), radial pattern.
+    /// A ray tracer's field file (`instpol raytrace --field-out`, format `instpol-field-v1`,
+    /// see `mueller::raytrace`): p interpolated linearly in radius (constant beyond the
+    /// ends), angle radial plus the tabulated offset, about `centre_arcmin`.
     Raytrace {
         file: PathBuf,
         #[serde(default)]

@@ -314,3 +314,54 @@ fn radial_instpol_field_is_recovered() {
     }
     assert!(checked > 1000);
 }
+
+/// A ray tracer's field file (`instpol-field-v1`, written as `instpol raytrace --field-out`
+/// writes it) drives the simulator: the reduced map returns the file's own `eval` (the one
+/// interpolation, `mueller::raytrace::FieldFile`) bin by bin, including a non-radial offset.
+#[test]
+fn raytrace_field_file_is_recovered() {
+    use mueller::raytrace::{FieldFile, Polynomial};
+    let dir = tempfile::tempdir().unwrap();
+    let inst = tiny_instrument(dir.path());
+    let radius: Vec<f64> = (0..=10).map(|k| 0.05 * k as f64).collect();
+    let field = FieldFile {
+        format: FieldFile::FORMAT.into(),
+        source: "test profile".into(),
+        wavelength_nm: 554.0,
+        p: radius.iter().map(|r| 0.04 * r * r + 0.01 * r).collect(),
+        phi_rel_deg: radius.iter().map(|r| 20.0 * r).collect(),
+        radius_arcmin: radius,
+        polynomial: Polynomial { powers: vec![1, 2], coefficients: vec![0.01, 0.04] },
+    };
+    let file = dir.path().join("field.json");
+    std::fs::write(&file, serde_json::to_string(&field).unwrap()).unwrap();
+    let sc = scene(
+        dir.path(),
+        &inst,
+        &format!(
+            "[output]\nbitpix = -64\n[sky]\nbrightness_e = 5000\n[effects]\ninstpol = {{ kind = \"raytrace\", file = \"{}\" }}\n",
+            file.display()
+        ),
+    );
+    let (frames, instr) = run(dir.path(), &sc, "rt");
+    let m = reduce_files(&frames, &instr, &ReduceConfig { bin_px: 2, ..Default::default() }, &|| {}).unwrap().map;
+    let mut checked = 0;
+    for (k, i, j) in m.valid_bins() {
+        if m.n_pixels[k] != 4 {
+            continue;
+        }
+        let (xa, ya) = m.geometry.centre_arcmin(i, j);
+        if xa.hypot(ya) < 0.1 {
+            continue;
+        }
+        let (p, phi) = field.eval(xa, ya);
+        assert!((m.p[k] - p).abs() < 2e-4, "({xa}, {ya}): p {} vs {p}", m.p[k]);
+        let mut dphi = (m.chi[k] - phi).rem_euclid(std::f64::consts::PI);
+        if dphi > 0.5 * std::f64::consts::PI {
+            dphi -= std::f64::consts::PI;
+        }
+        assert!(dphi.abs() < 0.02, "phi off by {dphi} at ({xa}, {ya})");
+        checked += 1;
+    }
+    assert!(checked > 1000, "{checked}");
+}
