@@ -69,6 +69,7 @@ pub fn save_png_svg(
 
 /// Line segments where a gridded field crosses `level` (marching squares; cells with a NaN
 /// corner are skipped). `v[j * nx + i]` is the value at `(x0 + i dx, y0 + j dy)`.
+#[allow(clippy::too_many_arguments)]
 pub fn contour_segments(
     v: &[f64],
     nx: usize,

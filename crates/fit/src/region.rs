@@ -115,7 +115,7 @@ impl FieldRegion {
             r.y_min = r.y_min.min(y);
             r.y_max = r.y_max.max(y);
         }
-        any.then(|| FieldRegion {
+        any.then_some(FieldRegion {
             x_min: r.x_min - margin,
             x_max: r.x_max + margin,
             y_min: r.y_min - margin,

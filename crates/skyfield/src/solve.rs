@@ -131,6 +131,7 @@ impl BinSolution {
 /// Solve one bin: exact and approximate `(p, phi)`, with the covariance of the instrumental
 /// `(q, u)` propagated from the measured `(sigma_q, sigma_u, cov_qu)`. `None` when the exact
 /// inversion has no physical solution.
+#[allow(clippy::too_many_arguments)]
 pub fn solve_bin(
     x: f64,
     y: f64,

@@ -251,8 +251,7 @@ pub fn run(a: Args) -> Result<()> {
         }
         bar.set_message(format!("{}: sky-field solution and fit", c.name));
         let sky = skyfield::solve::SkyPolarization::from_percent_deg(c.sky_p_pct, c.sky_chi_deg)?;
-        let mut opts = CalibrateOptions::default();
-        opts.residual_map = c.asymmetric;
+        let opts = CalibrateOptions { residual_map: c.asymmetric, ..Default::default() };
         let run = crate::cmd::calibrate::calibrate_map(&map, &sky, &inst, inputs, &opts)?;
         bar.inc(1);
         let path = a.out.join(format!("cal_{}.fits", c.name));
