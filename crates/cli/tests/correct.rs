@@ -294,6 +294,21 @@ fn stokes_map_corrected_bin_by_bin() {
     let js: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(js["kind"], "Stokes map");
     assert_eq!(js["rows"], 63);
+    // A map of another filter is refused, naming both; --allow-mismatch overrides.
+    let mut mb = m.clone();
+    mb.filter = "B".into();
+    let inb = dir.path().join("map_b.fits");
+    mb.write_fits(&inb).unwrap();
+    let outb = dir.path().join("map_b_corr.fits");
+    let args =
+        ["correct", "--cal", calp.to_str().unwrap(), "--in", inb.to_str().unwrap(), "--out", outb.to_str().unwrap()];
+    let o = run(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.code() == Some(2) && err.contains("FORS1 B map") && err.contains("FORS1 V"), "{err}");
+    assert!(!outb.exists());
+    let mut a2 = args.to_vec();
+    a2.push("--allow-mismatch");
+    assert!(run(&a2).status.success());
     let c = StokesMap::read_fits(&out).unwrap();
     let mut f = FitsFile::open(&out).unwrap();
     assert_eq!(f.primary_hdu().unwrap().read_key::<String>(&mut f, "INSTCORR").unwrap(), "v.fits");

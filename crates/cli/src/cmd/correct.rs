@@ -73,6 +73,10 @@ pub struct Args {
     /// calibration variance (fraction of the instrumental polarization).
     #[arg(long, default_value_t = 0.5, value_name = "F")]
     pub extrapolation_error: f64,
+    /// Stokes maps: correct even when the map's instrument or filter differs from the
+    /// calibration's (normally an error).
+    #[arg(long)]
+    pub allow_mismatch: bool,
     /// FITS catalogs: name of the table HDU (default: the first binary table).
     #[arg(long, value_name = "NAME")]
     pub hdu: Option<String>,
@@ -527,10 +531,41 @@ fn write_fits_table(
     Ok(())
 }
 
+/// A calibration applies to one instrument and filter: refuse a map of another (names
+/// compared case-insensitively, filters through the instrument's aliases when it is known;
+/// "unknown" or empty names are not checked).
+fn check_same_setup(inst: &str, filter: &str, cal: &Calibration, input: &Path, calp: &Path, allow: bool) -> Result<()> {
+    let known = |s: &str| !s.trim().is_empty() && !s.trim().eq_ignore_ascii_case("unknown");
+    let same_inst = !known(inst) || !known(&cal.instrument) || inst.trim().eq_ignore_ascii_case(cal.instrument.trim());
+    let same_filter =
+        !known(filter) || !known(&cal.filter) || filter.trim().eq_ignore_ascii_case(cal.filter.trim()) || {
+            match instrument::Instrument::load(&cal.instrument) {
+                Ok(i) => match (i.filter(filter), i.filter(&cal.filter)) {
+                    (Ok(a), Ok(b)) => a.name == b.name,
+                    _ => false,
+                },
+                Err(_) => false,
+            }
+        };
+    if (!same_inst || !same_filter) && !allow {
+        bail!(
+            "{} is a {} {} map but {} calibrates {} {}: use the calibration of the map's instrument and filter (or --allow-mismatch)",
+            input.display(),
+            inst,
+            filter,
+            calp.display(),
+            cal.instrument,
+            cal.filter
+        );
+    }
+    Ok(())
+}
+
 /// Correct a Stokes map bin by bin at the bin centres.
 fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summary> {
     let map = skyfield::StokesMap::read_fits(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
+    check_same_setup(&map.instrument, &map.filter, cal, &a.input, &a.cal, a.allow_mismatch)?;
     let g = &map.geometry;
     let cor = Corrector::new(cal, opts);
     let mut m = map.clone();
