@@ -217,12 +217,12 @@ impl Calibration {
             .prefix(".instpol-cal-")
             .suffix(".fits")
             .tempfile_in(dir)
-            .map_err(|source| Error::Io { path: dir.to_path_buf(), source })?;
+            .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
         {
             let mut f = FitsFile::create(tmp.path()).overwrite().open().map_err(fits_err(path, "creating the file"))?;
             self.write_to(&mut f, path)?;
         }
-        tmp.persist(path).map_err(|e| Error::Io { path: path.to_path_buf(), source: e.error })?;
+        tmp.persist(path).map_err(|e| Error::Io { path: path.to_path_buf(), err: e.error })?;
         Ok(())
     }
 
@@ -392,14 +392,27 @@ impl Calibration {
             h.write_col(f, "USED", &used).map_err(e("writing column USED"))?;
         }
         if !pv.inputs.is_empty() {
+            // FILE (text, for people and astropy) and FILE_BYTES (the same names as bytes,
+            // zero-padded): the reader uses the bytes, because fitsio 0.21's string-column
+            // reader writes one byte past its buffer.
             let width = pv.inputs.iter().map(|s| s.len()).max().unwrap_or(1).max(1);
             let d = ColumnDescription::new("FILE")
                 .with_type(ColumnDataType::String)
                 .that_repeats(width)
                 .create()
                 .map_err(e("describing INPUTS"))?;
-            let h = f.create_table("INPUTS", &[d]).map_err(e("creating table INPUTS"))?;
+            let db = ColumnDescription::new("FILE_BYTES")
+                .with_type(ColumnDataType::Byte)
+                .that_repeats(width)
+                .create()
+                .map_err(e("describing INPUTS"))?;
+            let h = f.create_table("INPUTS", &[d, db]).map_err(e("creating table INPUTS"))?;
             h.write_col(f, "FILE", &pv.inputs).map_err(e("writing INPUTS"))?;
+            let mut bytes = vec![0u8; width * pv.inputs.len()];
+            for (k, name) in pv.inputs.iter().enumerate() {
+                bytes[k * width..k * width + name.len()].copy_from_slice(name.as_bytes());
+            }
+            h.write_col(f, "FILE_BYTES", &bytes).map_err(e("writing INPUTS"))?;
         }
         Ok(())
     }
@@ -410,7 +423,7 @@ impl Calibration {
         if !path.is_file() {
             return Err(Error::Io {
                 path: path.into(),
-                source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such calibration file"),
+                err: std::io::Error::new(std::io::ErrorKind::NotFound, "no such calibration file"),
             });
         }
         let e = |doing: &str| fits_err(path, doing);
@@ -577,7 +590,19 @@ impl Calibration {
         }
         if ninput > 0 {
             let h = f.hdu("INPUTS").map_err(e("finding table INPUTS"))?;
-            provenance.inputs = h.read_col::<String>(&mut f, "FILE").map_err(e("reading INPUTS"))?;
+            let bytes: Vec<u8> = h.read_col(&mut f, "FILE_BYTES").map_err(e("reading INPUTS column FILE_BYTES"))?;
+            let n = ninput as usize;
+            if n == 0 || bytes.len() % n != 0 {
+                return Err(Error::BadFile {
+                    path: path.into(),
+                    what: format!("INPUTS holds {} bytes, not a whole number of {n} names", bytes.len()),
+                });
+            }
+            let width = bytes.len() / n;
+            provenance.inputs = bytes
+                .chunks(width)
+                .map(|c| String::from_utf8_lossy(&c[..c.iter().position(|&b| b == 0).unwrap_or(c.len())]).into_owned())
+                .collect();
         }
 
         let model = match (kind.as_str(), radial) {
@@ -732,6 +757,15 @@ impl KeyReader<'_> {
     fn plain_real(&mut self, key: &str) -> Result<f64> {
         self.hdu.read_key::<f64>(self.f, key).map_err(|e| self.missing(key, e))
     }
+}
+
+/// The error of a temporary file that could not be made beside `target`: says which file was
+/// being written and why, without the temporary's random name.
+fn temp_error(target: &Path, e: std::io::Error) -> std::io::Error {
+    // tempfile appends ` at path "<temporary>"` to the OS error: keep only the reason.
+    let text = e.to_string();
+    let why = text.split(" at path ").next().unwrap_or(&text).to_string();
+    std::io::Error::new(e.kind(), format!("cannot write {} in this folder: {why}", target.display()))
 }
 
 /// The current UTC time as ISO 8601 (no time-zone crate needed for this one stamp).

@@ -39,7 +39,7 @@ fn read_cube(path: &Path, what: &str) -> Result<Cube> {
     if !path.is_file() {
         return Err(Error::Io {
             path: path.into(),
-            source: std::io::Error::new(std::io::ErrorKind::NotFound, format!("no such {what} map")),
+            err: std::io::Error::new(std::io::ErrorKind::NotFound, format!("no such {what} map")),
         });
     }
     let mut f = FitsFile::open(path).map_err(|x| e("opening", x.to_string()))?;

@@ -48,8 +48,9 @@ pub enum Error {
     BadFile { path: PathBuf, what: String },
     #[error("{path}: FITS error while {doing}: {message}")]
     Fits { path: PathBuf, doing: String, message: String },
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    /// (The I/O error is a field, not a `source`, so that error chains do not print it twice.)
+    #[error("{path}: {err}")]
+    Io { path: PathBuf, err: std::io::Error },
 }
 
 pub type Result<T> = std::result::Result<T, Error>;

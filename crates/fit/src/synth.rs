@@ -109,7 +109,7 @@ pub fn write_qu_cubes(
         let tmp = tempfile::Builder::new()
             .suffix(".fits")
             .tempfile_in(dir)
-            .map_err(|source| crate::Error::Io { path: dir.into(), source })?;
+            .map_err(|source| crate::Error::Io { path: dir.into(), err: source })?;
         {
             let mut f = fitsio::FitsFile::create(tmp.path())
                 .with_custom_primary(&fitsio::images::ImageDescription {
@@ -122,7 +122,7 @@ pub fn write_qu_cubes(
             let h = f.primary_hdu().map_err(|e| err(e.to_string()))?;
             h.write_image(&mut f, data).map_err(|e| err(e.to_string()))?;
         }
-        tmp.persist(path).map_err(|e| crate::Error::Io { path: path.into(), source: e.error })?;
+        tmp.persist(path).map_err(|e| crate::Error::Io { path: path.into(), err: e.error })?;
     }
     Ok(())
 }

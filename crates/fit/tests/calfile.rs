@@ -22,7 +22,8 @@ fn sample(residual: bool) -> Calibration {
     } else {
         Model::Radial(fit.model.clone())
     };
-    let mut prov = Provenance::now("test", vec!["a.fits".into(), "frames/b_with_a_long_name.fits".into()]);
+    // 24 characters (8 mod 16): the width at which fitsio's string-column reader overflowed.
+    let mut prov = Provenance::now("test", vec!["a.fits".into(), "frames/b_24_chars_x.fits".into()]);
     prov.sky_p = Some(0.0174);
     prov.sky_chi_deg = Some(126.2);
     Calibration {

@@ -56,6 +56,16 @@ pub fn run(a: Args) -> Result<()> {
         let reg = cal.region;
         let c = model.centre;
         r_in = r_in.min((c[0] - reg.x_min).min(reg.x_max - c[0]).min(c[1] - reg.y_min).min(reg.y_max - c[1]));
+        if let Some(k) = models.iter().position(|(l, _)| *l == cal.lambda_nm) {
+            bail!(
+                "{} (filter {}) and {} (filter {}) are both at {} nm: the wavelength law needs different filters",
+                a.calibrations[k].display(),
+                names[k],
+                p.display(),
+                cal.filter,
+                cal.lambda_nm
+            );
+        }
         names.push(cal.filter.clone());
         models.push((cal.lambda_nm, model));
     }
