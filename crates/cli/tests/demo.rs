@@ -46,6 +46,16 @@ fn demo_json_contract_and_recovery() {
     // Table tab:empty sky values.
     assert_eq!(filters[0]["sky_p"].as_f64().unwrap(), 0.0645);
     assert_eq!(filters[1]["sky_chi_deg"].as_f64().unwrap(), -53.8);
+    // The paper's check (sec:fors1): an unpolarized standard near the lower-right corner of
+    // the V field, predicted 0.96 % at -51.9 deg (= 128.1 deg) by the V polynomial.
+    let v = &j["validation"];
+    for key in ["measured_p", "measured_chi_deg", "sigma_p", "sigma_chi_deg", "predicted_p", "predicted_chi_deg"] {
+        assert!(v[key].is_number(), "validation.{key} missing");
+    }
+    assert!((v["predicted_p"].as_f64().unwrap() - 0.0096).abs() < 2e-4, "{v}");
+    assert!((v["predicted_chi_deg"].as_f64().unwrap() - 128.1).abs() < 1.0, "{v}");
+    assert!(v["residual_sigma"].as_f64().unwrap() < 3.0, "{v}");
+    assert_eq!(v["pass"], serde_json::Value::Bool(true), "{v}");
     let law = &j["wavelength_law"];
     assert!(law["a"].is_number() && law["b"].is_number());
     // The law is normalized to 1 at 550 nm.

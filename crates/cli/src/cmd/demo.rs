@@ -141,6 +141,9 @@ struct Law {
 struct Out {
     filters: Vec<FilterOut>,
     wavelength_law: Law,
+    /// The V calibration validated on a simulated unpolarized standard near the lower-right
+    /// corner (the paper's check, section sec:fors1): the `instpol validate` JSON.
+    validation: crate::cmd::validate::ValidationReport,
     through_frames: bool,
     out_dir: String,
 }
@@ -235,7 +238,7 @@ pub fn run(a: Args) -> Result<()> {
     std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
     let inst = instrument::Instrument::load("fors1")?;
     let cases = cases(&inst)?;
-    let steps = if a.no_frames { 3 * 2 } else { 3 * (4 + 4 + 2) };
+    let steps = if a.no_frames { 3 * 2 + 1 } else { 3 * (4 + 4 + 2) + 1 };
     let bar = crate::plot::progress(steps as u64, "starting", a.json);
     let mut outs = vec![];
     let mut runs: Vec<CalibrationRun> = vec![];
@@ -283,12 +286,24 @@ pub fn run(a: Args) -> Result<()> {
         });
         runs.push(run);
     }
+    bar.set_message("V: validation on an unpolarized standard at the lower-right corner");
+    let v = cases.iter().position(|c| c.name == "V").context("the demo has no V field")?;
+    let mut v_true = vec![0.0];
+    v_true.extend_from_slice(&cases[v].coeffs_pct);
+    let star_dir = a.out.join("standard_V");
+    let validation =
+        crate::cmd::validate::demo_corner_star(&runs[v].calibration, &v_true, &star_dir, a.seed.wrapping_add(17))?;
+    if !a.keep_frames {
+        let _ = std::fs::remove_dir_all(&star_dir);
+    }
+    bar.inc(1);
     bar.finish_and_clear();
     let models: Vec<(f64, &RadialModel)> = runs.iter().map(|r| (r.calibration.lambda_nm, &r.fit.model)).collect();
     let law = fit_wavelength_law(&models, [1.0, 3.3])?;
     let out = Out {
         filters: outs,
         wavelength_law: Law { a: law.a, b: law.b, a_err: law.a_err, b_err: law.b_err, paper_a: 0.02, paper_b: 1.73e-3 },
+        validation,
         through_frames: !a.no_frames,
         out_dir: a.out.display().to_string(),
     };
@@ -350,6 +365,20 @@ pub fn run(a: Args) -> Result<()> {
     println!(
         "wavelength law p(l)/p(550) = {:.3} (+-{:.3}) + {:.3e} (+-{:.1e}) l[nm]   (paper's ray tracing: 0.02 + 1.73e-3 l)",
         law.a, law.a_err, law.b, law.b_err
+    );
+    let v = &out.validation.validation;
+    println!(
+        "validation (sec:fors1): unpolarized standard at ({:.2}', {:.2}') in V: measured P = {:.3} +- {:.3} % at {:.1} deg, \
+         predicted {:.3} % at {:.1} deg: {:.2} sigma, {}   (paper: 0.92 +- 0.04 % at -48 deg measured, 0.96 % at -51.9 deg predicted)",
+        out.validation.x_arcmin,
+        out.validation.y_arcmin,
+        100.0 * v.measured_p,
+        100.0 * v.sigma_p,
+        v.measured_chi_deg,
+        100.0 * v.predicted_p,
+        v.predicted_chi_deg,
+        v.residual_sigma,
+        if v.pass { "PASS" } else { "FAIL" }
     );
     println!("wrote calibration files and plots to {}", a.out.display());
     Ok(())

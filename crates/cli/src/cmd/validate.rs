@@ -192,7 +192,6 @@ pub fn paper_corner_position_arcmin() -> (f64, f64) {
 /// exposure, sigma_P ~ 0.04%) at [`paper_corner_position_arcmin`] seen through the true V field
 /// `true_coeffs_percent` (index = power of r, as in a scene file), write them into `dir`, and
 /// validate the calibration `cal` on them.
-#[allow(dead_code)] // for `instpol demo` (issue 6, step 5): called once the demo wires it in
 pub fn demo_corner_star(
     cal: &Calibration,
     true_coeffs_percent: &[f64],
