@@ -24,43 +24,59 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    Simulate(cmd::simulate::Args),
-    Reduce(cmd::reduce::Args),
-    Photometry(cmd::photometry::Args),
-    Validate(cmd::validate::Args),
-    Bias(cmd::bias::Args),
-    Mc(cmd::mc::Args),
-    Correct(cmd::correct::Args),
-    Stokes(cmd::stokes::Args),
-    Fresnel(cmd::fresnel::Args),
-    Raytrace(cmd::raytrace::Args),
-    Calibrate(cmd::calibrate::Args),
-    Fit(cmd::fit::Args),
-    ImportMap(cmd::import_map::Args),
-    WavelengthLaw(cmd::wavelength_law::Args),
-    Plot(cmd::plot::Args),
+    #[command(about = "Run the whole chain on the paper's FORS1 empty fields (the main job; start here)")]
     Demo(cmd::demo::Args),
+    #[command(about = "Simulate raw-like dual-beam FITS frames of a scene (only the effects it lists)")]
+    Simulate(cmd::simulate::Args),
+    #[command(about = "Reduce frames to a binned, sigma-clipped Stokes map")]
+    Reduce(cmd::reduce::Args),
+    #[command(about = "Measure a star's Q, U, P, chi in frames, background removed vectorially")]
+    Photometry(cmd::photometry::Args),
+    #[command(about = "Measure the instrumental polarization on an empty field of known sky polarization")]
+    Calibrate(cmd::calibrate::Args),
+    #[command(about = "Refit a calibration file (radial model, free centre, exclusions, residual map)")]
+    Fit(cmd::fit::Args),
+    #[command(about = "Turn third-party Q/I, U/I maps into a calibration file")]
+    ImportMap(cmd::import_map::Args),
+    #[command(about = "Fit p(lambda)/p(550 nm) = a + b lambda across filters' calibrations")]
+    WavelengthLaw(cmd::wavelength_law::Args),
+    #[command(about = "Draw a calibration's map, radial profile, polar-angle test and residual map")]
+    Plot(cmd::plot::Args),
+    #[command(about = "Remove the instrumental polarization from a catalog or a Stokes map")]
+    Correct(cmd::correct::Args),
+    #[command(about = "Check a calibration against a standard star in frames")]
+    Validate(cmd::validate::Args),
+    #[command(about = "Reduce one source's dual-beam fluxes: Q, U, P, chi, errors, harmonics, kappa")]
+    Stokes(cmd::stokes::Args),
+    #[command(about = "Estimate the true polarization P0 from a measured P and sigma, with an interval")]
+    Bias(cmd::bias::Args),
+    #[command(about = "Monte Carlo of dual-beam polarimetry; paper figures; accuracy against time")]
+    Mc(cmd::mc::Args),
+    #[command(about = "Fresnel and thin-film transmission: diattenuation and retardance of a surface")]
+    Fresnel(cmd::fresnel::Args),
+    #[command(about = "Polarization ray trace of the collimator: p(r), phi, per surface, wavelength law")]
+    Raytrace(cmd::raytrace::Args),
 }
 
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Demo(a) => cmd::demo::run(a),
         Command::Simulate(a) => cmd::simulate::run(a),
         Command::Reduce(a) => cmd::reduce::run(a),
         Command::Photometry(a) => cmd::photometry::run(a),
-        Command::Validate(a) => cmd::validate::run(a),
-        Command::Bias(a) => cmd::bias::run(a),
-        Command::Mc(a) => cmd::mc::run(a),
-        Command::Correct(a) => cmd::correct::run(a),
-        Command::Stokes(a) => cmd::stokes::run(a),
-        Command::Fresnel(a) => cmd::fresnel::run(a),
-        Command::Raytrace(a) => cmd::raytrace::run(a),
         Command::Calibrate(a) => cmd::calibrate::run(a),
         Command::Fit(a) => cmd::fit::run(a),
         Command::ImportMap(a) => cmd::import_map::run(a),
         Command::WavelengthLaw(a) => cmd::wavelength_law::run(a),
         Command::Plot(a) => cmd::plot::run(a),
-        Command::Demo(a) => cmd::demo::run(a),
+        Command::Correct(a) => cmd::correct::run(a),
+        Command::Validate(a) => cmd::validate::run(a),
+        Command::Stokes(a) => cmd::stokes::run(a),
+        Command::Bias(a) => cmd::bias::run(a),
+        Command::Mc(a) => cmd::mc::run(a),
+        Command::Fresnel(a) => cmd::fresnel::run(a),
+        Command::Raytrace(a) => cmd::raytrace::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
