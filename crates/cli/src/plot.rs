@@ -140,6 +140,7 @@ fn thin<'b>(bins: &'b [fit::Bin], region: &fit::FieldRegion, n_across: f64) -> V
 
 /// fig:insmapB: vectors of the instrumental polarization over contours of 0.3, 0.6, 0.9%.
 pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotData) -> Result<()> {
+    let radial_centre = d.radial.map(|r| r.centre);
     let cal = d.cal;
     let (xr, yr) = field_ranges(cal);
     let mut c = ChartBuilder::on(area)
@@ -185,10 +186,12 @@ pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotDa
     c.draw_series(std::iter::once(PathElement::new(vec![(bx, by), (bx + 0.01 * scale, by)], BLACK.stroke_width(3))))
         .map_err(pe)?;
     c.draw_series(std::iter::once(Text::new("1%", (bx, by + 0.03 * (yr.end - yr.start)), (FONT, 15)))).map_err(pe)?;
-    let cen = cal.centre_arcmin();
+    // The radial fit's centre (for an imported map: the free-centre refit the profile panel
+    // uses), else the calibration's own.
+    let cen = radial_centre.unwrap_or_else(|| cal.centre_arcmin());
     c.draw_series(std::iter::once(Cross::new((cen[0], cen[1]), 7, MAGENTA.stroke_width(2))))
         .map_err(pe)?
-        .label("model centre")
+        .label("radial-model centre")
         .legend(|(x, y)| Cross::new((x + 10, y), 5, MAGENTA.stroke_width(2)));
     c.configure_series_labels()
         .background_style(WHITE.mix(0.85))
