@@ -938,3 +938,106 @@ fn calibration_whose_input_name_is_24_chars_is_readable() {
     let (code, _, err) = run(&["correct", "--cal", &cal, "--in", &cat, "--out", out.to_str().unwrap()]);
     assert_eq!(code, 0, "correct on a calibration with a {}-char input name: exit {code}, {err}", m.len());
 }
+
+// ---------------------------------------------------------------------------------------
+// instpol simulate: scene files; instpol reduce: frames
+// ---------------------------------------------------------------------------------------
+
+fn scene_v() -> String {
+    std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../instruments/scenes/empty_V.toml"))
+        .unwrap()
+}
+
+#[test]
+fn scene_unknown_and_mistyped_keys() {
+    let f = Fixture::new();
+    let out = f.out_dir();
+    let o = out.join("sim");
+    let p = f.csv("typo.toml", &scene_v().replace("brightness_e", "brightnes_e"));
+    refuses(&out, &["simulate", &p, "--out", o.to_str().unwrap()], &["typo.toml", "brightnes_e"]);
+    let p = f.csv("extra.toml", &scene_v().replace("[sky]", "[sky]\ncolour = 3"));
+    refuses(&out, &["simulate", &p, "--out", o.to_str().unwrap()], &["extra.toml", "colour"]);
+    let p = f.csv("type.toml", &scene_v().replace("seed = 102", "seed = \"abc\""));
+    refuses(&out, &["simulate", &p, "--out", o.to_str().unwrap()], &["type.toml", "seed"]);
+}
+
+#[test]
+fn scene_bad_values() {
+    let f = Fixture::new();
+    let out = f.out_dir();
+    let o = out.join("sim");
+    let p = f.csv("pbig.toml", &scene_v().replace("p = 0.0174", "p = 1.5"));
+    refuses(&out, &["simulate", &p, "--out", o.to_str().unwrap()], &["pbig.toml", "1.5"]);
+    let p = f.csv("dup.toml", &scene_v().replace("[0, 22.5, 45, 67.5]", "[0, 22.5, 22.5, 67.5]"));
+    refuses(&out, &["simulate", &p, "--out", o.to_str().unwrap()], &["dup.toml", "22.5"]);
+    let p = f.csv("filt.toml", &scene_v().replace("filter = \"V\"", "filter = \"Q\""));
+    refuses(&out, &["simulate", &p, "--out", o.to_str().unwrap()], &["filter 'Q'", "FORS1"]);
+    let p = f.csv("inst.toml", &scene_v().replace("instrument = \"fors1\"", "instrument = \"fors7\""));
+    refuses(&out, &["simulate", &p, "--out", o.to_str().unwrap()], &["fors7"]);
+    let p = f.csv("nan.toml", &scene_v().replace("brightness_e = 12000", "brightness_e = nan"));
+    refuses(&out, &["simulate", &p, "--out", o.to_str().unwrap()], &["nan.toml", "brightness_e"]);
+}
+
+#[test]
+fn simulate_output_not_writable() {
+    let f = Fixture::new();
+    std::fs::write(f.p("afile"), "x").unwrap();
+    let p = f.csv("v.toml", &scene_v());
+    refuses(f.dir.path(), &["simulate", &p, "--out", f.p("afile").join("sim").to_str().unwrap()], &["afile"]);
+}
+
+#[test]
+fn reduce_truncated_frame_and_unwritable_output() {
+    let f = Fixture::new();
+    let mut frames = f.frames();
+    let ins = f.s("mini.toml");
+    std::fs::write(f.p("afile"), "x").unwrap();
+    let bad_out = f.p("afile").join("map.fits");
+    let mut a = vec!["reduce", "--instrument", ins.as_str(), "--bin", "8", "--out", bad_out.to_str().unwrap()];
+    a.extend(frames.iter().map(|s| s.as_str()));
+    refuses(f.dir.path(), &a, &["afile"]);
+    let bytes = std::fs::read(&frames[0]).unwrap();
+    std::fs::write(f.p("trunc.fits"), &bytes[..bytes.len() - 1000]).unwrap();
+    frames[0] = f.s("trunc.fits");
+    let out = f.out_dir();
+    let o = out.join("map.fits");
+    let mut a = vec!["reduce", "--instrument", ins.as_str(), "--bin", "8", "--out", o.to_str().unwrap()];
+    a.extend(frames.iter().map(|s| s.as_str()));
+    refuses(&out, &a, &["trunc.fits"]);
+}
+
+/// `instpol simulate` of the FORS1 V scene (four 2048 x 2048 frames, ~2 s) killed with SIGKILL
+/// at several moments: every frame file present under its final name is complete (the size of
+/// the frame of a full run); only dot-named temporaries may remain.
+#[test]
+fn killed_simulate_leaves_no_partial_frame() {
+    let f = Fixture::new();
+    let p = f.csv("v.toml", &scene_v());
+    let full = f.p("full");
+    let (code, _, err) = run(&["simulate", &p, "--out", full.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let sizes: std::collections::BTreeMap<String, u64> =
+        listing(&full).into_iter().map(|n| (n.clone(), std::fs::metadata(full.join(&n)).unwrap().len())).collect();
+    for delay_ms in [150u64, 400, 700, 1000, 1400] {
+        let out = f.p(&format!("k{delay_ms}"));
+        let mut child = Command::new(bin())
+            .args(["simulate", &p, "--out", out.to_str().unwrap()])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(delay_ms));
+        let _ = child.kill();
+        let _ = child.wait();
+        if !out.exists() {
+            continue;
+        }
+        for name in listing(&out) {
+            if name.starts_with('.') {
+                continue;
+            }
+            let len = std::fs::metadata(out.join(&name)).unwrap().len();
+            assert_eq!(Some(&len), sizes.get(&name), "partial or unexpected file {name} after kill at {delay_ms} ms");
+        }
+    }
+}
