@@ -18,23 +18,23 @@ use serde::Serialize;
 #[derive(clap::Args)]
 pub struct Args {
     /// Real part of the substrate refractive index (> 0).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub n_real: f64,
     /// Imaginary part of the substrate index (>= 0; absorption, e.g. 6.69 for aluminium).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0)]
     pub n_imag: f64,
     /// Angle of incidence in degrees, in [0, 90).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub aoi_deg: f64,
     /// Vacuum wavelength in nm (matters only with a coating).
-    #[arg(long, default_value_t = 550.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 550.0)]
     pub wavelength_nm: f64,
     /// Coating layers from the incident side, "index:thickness_nm,index:thickness_nm,...",
     /// e.g. "1.38:81.52" (a MgF2 quarter-wave at 450 nm: 450 / (4 x 1.38) nm).
     #[arg(long)]
     pub coating: Option<String>,
     /// Refractive index of the (lossless) incident medium.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1.0)]
     pub n_incident: f64,
     /// Print JSON (fields Ts, Tp, Rs, Rp, diattenuation, retardance_deg) instead of a table.
     #[arg(long)]
