@@ -1,6 +1,31 @@
 //! From binned measurements to a calibration: fit the radial model, run the polar-angle test,
 //! optionally interpolate the residuals, and gather the numbers a person or a script reads.
-//! `instpol calibrate`, `instpol fit` and `instpol demo` all go through [`calibrate_bins`].
+//! `instpol calibrate`, `instpol fit` and `instpol demo` all go through [`calibrate_bins`];
+//! `calibrate` and `demo` reach it from a Stokes map through [`calibrate_map`].
+//!
+//! # The HWP zero angle: which frame the calibration is in
+//!
+//! A plate whose zero sits off by `chi_offset / 2` makes every measured angle smaller by
+//! `chi_offset` ([`mueller::Hwp`], the filter's `hwp_chi_offset_deg`, the angle to *add* to a
+//! measured chi). The reduction (`skyfield::reduce`) does not add it: a Stokes map made by
+//! instpol is in the *plate* frame, `chi_meas = chi_sky - chi_offset`. The sky's `(P, chi)` of
+//! the sky-field solution and the instrumental `M_I(p, phi)` (`eq:instpol`) live in the *sky*
+//! frame, and [`crate::correct`] assumes the calibration's field does too (it rotates a
+//! measurement into the sky frame first, then inverts `M_I`). So [`calibrate_map`] rotates the
+//! map's `(q, u)` and their covariance by `+chi_offset` ([`map_to_sky_frame`]) before the
+//! solution, with the same offset it records in the calibration: applied exactly once, here.
+//!
+//! What is assumed of the other ways in:
+//! - a map read from FITS (`instpol calibrate --map`) is an *uncorrected* instpol map, in the
+//!   plate frame, like one fresh from the reduction (a map already corrected by
+//!   `instpol correct` carries `INSTCORR`/`CORRHWP` but `StokesMap` does not keep them; it is
+//!   not a sky-field input);
+//! - [`refit`] starts from a calibration's bins, which are already solved instrumental `(q, u)`
+//!   in that calibration's frame: nothing is rotated again;
+//! - an imported third-party map (`crate::import`) is taken as is, in its producer's frame, and
+//!   records a zero offset, so correcting with it rotates nothing either: it is consistent when
+//!   the map and the measurements to correct share that frame (to first order the order of the
+//!   two corrections does not matter, see [`crate::correct`]).
 
 use crate::bins::Bin;
 use crate::calfile::{
@@ -208,6 +233,65 @@ impl FitSummary {
             calibration_file: None,
         }
     }
+}
+
+/// A plate-frame Stokes map turned into the sky frame: every `(q, u)` rotated by `+chi_offset`
+/// (rad; `chi -> chi + chi_offset`, i.e. by `2 chi_offset` in the `(q, u)` plane), their
+/// covariance as `R C R^T`, the photon-noise errors as a diagonal covariance, `chi` shifted
+/// (kept in [0, pi)); `p`, coverage and intensities unchanged. A zero offset returns an exact copy.
+pub fn map_to_sky_frame(map: &skyfield::StokesMap, chi_offset: f64) -> skyfield::StokesMap {
+    let mut out = map.clone();
+    if chi_offset == 0.0 {
+        return out;
+    }
+    let (s, c) = (2.0 * chi_offset).sin_cos();
+    for k in 0..out.q.len() {
+        let (q, u) = (map.q[k], map.u[k]);
+        out.q[k] = c * q - s * u;
+        out.u[k] = s * q + c * u;
+        // R C R^T with R = [[c, -s], [s, c]].
+        let (vq, vu, cv) = (map.sigma_q[k].powi(2), map.sigma_u[k].powi(2), map.cov_qu[k]);
+        let cv0 = if cv.is_finite() { cv } else { 0.0 };
+        out.sigma_q[k] = (c * c * vq - 2.0 * c * s * cv0 + s * s * vu).max(0.0).sqrt();
+        out.sigma_u[k] = (s * s * vq + 2.0 * c * s * cv0 + c * c * vu).max(0.0).sqrt();
+        out.cov_qu[k] = if cv.is_finite() { c * s * (vq - vu) + (c * c - s * s) * cv } else { cv };
+        let (pq, pu) = (map.sigma_q_phot[k].powi(2), map.sigma_u_phot[k].powi(2));
+        out.sigma_q_phot[k] = (c * c * pq + s * s * pu).sqrt();
+        out.sigma_u_phot[k] = (s * s * pq + c * c * pu).sqrt();
+        out.chi[k] = (map.chi[k] + chi_offset).rem_euclid(std::f64::consts::PI);
+    }
+    out
+}
+
+/// The sky-field solution (`skyfield::solve`, section `sec:instr`) of a plate-frame map taken
+/// through a plate of zero angle `hwp_chi_offset_deg`: the map is first turned into the sky
+/// frame ([`map_to_sky_frame`]), so the bins are the instrumental `(q, u)` in the sky frame.
+/// Returns the bins and the number of bins without a physical solution.
+pub fn solve_sky_field(
+    map: &skyfield::StokesMap,
+    sky: &skyfield::solve::SkyPolarization,
+    hwp_chi_offset_deg: f64,
+) -> std::result::Result<(Vec<Bin>, usize), skyfield::Error> {
+    let sky_frame = map_to_sky_frame(map, hwp_chi_offset_deg.to_radians());
+    let (sol, skipped) = skyfield::solve::solve_map(&sky_frame, sky)?;
+    Ok((bins_from_solutions(&sol), skipped))
+}
+
+/// Calibrate from a Stokes map of an empty field of known sky polarization (a map made by the
+/// reduction, in the plate frame): the sky-field solution in the sky frame with the zero angle
+/// `meta.hwp_chi_offset_deg` (the same number the calibration records), then
+/// [`calibrate_bins`] with the valid region widened by half a map bin.
+pub fn calibrate_map(
+    map: &skyfield::StokesMap,
+    sky: &skyfield::solve::SkyPolarization,
+    meta: CalibrationMeta,
+    opts: &CalibrateOptions,
+) -> Result<CalibrationRun> {
+    let (bins, _skipped) = solve_sky_field(map, sky, meta.hwp_chi_offset_deg)
+        .map_err(|e| Error::Input(format!("sky-field solution of the {} map: {e}", map.filter)))?;
+    let mut o = opts.clone();
+    o.region_margin = 0.5 * map.geometry.bin_px as f64 * map.geometry.pixel_scale_arcsec / 60.0;
+    calibrate_bins(bins, meta, &o)
 }
 
 /// The bins of a sky-field solution (`skyfield::solve`): the exact instrumental `(q, u)` with

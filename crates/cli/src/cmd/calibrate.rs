@@ -2,12 +2,10 @@
 
 use anyhow::{bail, Context, Result};
 use fit::calfile::{PixelGrid, Provenance};
-use fit::pipeline::{
-    bins_from_solutions, calibrate_bins, CalibrateOptions, CalibrationMeta, CalibrationRun, FitSummary,
-};
+use fit::pipeline::{CalibrateOptions, CalibrationMeta, CalibrationRun, FitSummary};
 use fit::radial::Robust;
 use fit::RadialFitOptions;
-use skyfield::solve::{solve_map, SkyPolarization};
+use skyfield::solve::SkyPolarization;
 use std::path::PathBuf;
 
 /// Measure the instrumental polarization over the field from frames of an empty field whose
@@ -107,8 +105,6 @@ pub fn calibrate_map(
     inputs: Vec<String>,
     opts: &CalibrateOptions,
 ) -> Result<CalibrationRun> {
-    let (sol, _skipped) = solve_map(map, sky).context("sky-field solution")?;
-    let bins = bins_from_solutions(&sol);
     let filter = inst.filter(&map.filter).ok();
     let mut provenance = Provenance::now("sky-field", inputs);
     provenance.sky_p = Some(sky.p);
@@ -124,9 +120,9 @@ pub fn calibrate_map(
         }),
         provenance,
     };
-    let mut o = opts.clone();
-    o.region_margin = 0.5 * map.geometry.bin_px as f64 * map.geometry.pixel_scale_arcsec / 60.0;
-    Ok(calibrate_bins(bins, meta, &o)?)
+    // The map is in the plate frame: the pipeline turns it into the sky frame with the
+    // filter's HWP zero angle (the one recorded in the calibration) before solving.
+    Ok(fit::pipeline::calibrate_map(map, sky, meta, opts)?)
 }
 
 /// The sky values are required: without them the sky-field equations have no solution.
