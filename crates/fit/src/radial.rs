@@ -87,18 +87,84 @@ impl RadialModel {
         v.max(0.0).sqrt()
     }
 
-    /// `(q, u)` at `(x, y)` arcmin and their derivatives with respect to the parameters
-    /// `(c..., x0, y0)`.
-    fn eval_with_gradient(&self, x: f64, y: f64, gq: &mut [f64], gu: &mut [f64]) -> (f64, f64) {
-        radial_eval(self.first_power, &self.coeffs, self.centre, x, y, gq, gu)
+    /// `(q, u)` at `(x, y)` arcmin.
+    #[inline]
+    pub fn qu(&self, x: f64, y: f64) -> (f64, f64) {
+        let (q, u, ..) = self.eval_core(x, y, false);
+        (q, u)
     }
 
-    /// `(q, u)` at `(x, y)` arcmin.
-    pub fn qu(&self, x: f64, y: f64) -> (f64, f64) {
-        let n = self.n_params();
-        let (mut gq, mut gu) = (vec![0.0; n], vec![0.0; n]);
-        self.eval_with_gradient(x, y, &mut gq, &mut gu)
+    /// The hot path of [`FieldModel::eval`] and [`qu`](Self::qu): no allocation, Horner in `r`.
+    /// Returns `(q, u, c2, s2, p, dp/dr, r)` (`c2 = cos 2 alpha`, `s2 = sin 2 alpha`); `dp/dr` only
+    /// when `want_dp` (the centre gradient needs it), else 0. On the axis (`r < 1e-12`) `c2 = 1`,
+    /// `s2 = 0` (alpha = 0, as in [`radial_eval`]).
+    #[inline]
+    fn eval_core(&self, x: f64, y: f64, want_dp: bool) -> (f64, f64, f64, f64, f64, f64, f64) {
+        let (dx, dy) = (x - self.centre[0], y - self.centre[1]);
+        let r2 = dx * dx + dy * dy;
+        let r = r2.sqrt();
+        if r < 1e-12 {
+            let p = if self.first_power == 0 { self.coeffs.first().copied().unwrap_or(0.0) } else { 0.0 };
+            return (p, 0.0, 1.0, 0.0, p, 0.0, r);
+        }
+        let inv = 1.0 / r2;
+        let (c2, s2) = ((dx * dx - dy * dy) * inv, 2.0 * dx * dy * inv);
+        // s = sum_i c_i r^i by Horner, ds = its derivative; p = r^f s.
+        let (mut s, mut ds) = (0.0, 0.0);
+        if want_dp {
+            for c in self.coeffs.iter().rev() {
+                ds = ds * r + s;
+                s = s * r + c;
+            }
+        } else {
+            for c in self.coeffs.iter().rev() {
+                s = s * r + c;
+            }
+        }
+        let rf = pow_small(r, self.first_power);
+        let p = s * rf;
+        let dp = if want_dp {
+            let f = self.first_power;
+            let df = if f == 0 { 0.0 } else { f as f64 * pow_small(r, f - 1) };
+            df * s + rf * ds
+        } else {
+            0.0
+        };
+        (p * c2, p * s2, c2, s2, p, dp, r)
     }
+
+    /// `sum_j cov[row][j] r^j` over the coefficient columns (Horner).
+    #[inline]
+    fn cov_row_poly(&self, row: usize, r: f64) -> f64 {
+        let np = self.n_params();
+        let base = row * np;
+        let mut t = 0.0;
+        for j in (0..self.coeffs.len()).rev() {
+            t = t * r + self.cov[base + j];
+        }
+        t
+    }
+
+    /// `sum_i cov[i][col] r^i` over the coefficient rows (Horner).
+    #[inline]
+    fn cov_col_poly(&self, col: usize, r: f64) -> f64 {
+        let np = self.n_params();
+        let mut t = 0.0;
+        for i in (0..self.coeffs.len()).rev() {
+            t = t * r + self.cov[i * np + col];
+        }
+        t
+    }
+}
+
+/// `r^k` for the small powers of the model (k = 0, 1 in practice) without `powi`'s call.
+#[inline]
+fn pow_small(r: f64, k: usize) -> f64 {
+    let mut v = 1.0;
+    for _ in 0..k {
+        v *= r;
+    }
+    v
 }
 
 /// `q = p(r) cos 2 alpha = g(r) (dx^2 - dy^2)`, `u = p(r) sin 2 alpha = 2 g(r) dx dy` with
@@ -154,19 +220,51 @@ fn radial_eval(
     (p * c2, p * s2)
 }
 
+/// The variance of `(q, u)` is `g^T C g` with the gradient `g` of [`radial_eval`]. Its
+/// coefficient part is `g_i = r^(f+i) (cos 2a, sin 2a)`, so the coefficient block reduces to
+/// `V = sum_ij r^(f+i) C_ij r^(f+j)` (the variance of `p(r)`, nested Horner) times `cos^2`,
+/// `sin^2`, `cos sin`; the centre enters only when it was fitted (a fixed centre is not a
+/// parameter and its covariance rows are zero), through the two mixed sums and the 2 x 2 block.
+/// No allocation, `O(n^2)` multiply-adds for `V` and `O(n)` for the centre terms.
 impl FieldModel for RadialModel {
+    #[inline]
     fn eval(&self, x: f64, y: f64) -> InstPol {
-        let n = self.n_params();
-        let (mut gq, mut gu) = (vec![0.0; n], vec![0.0; n]);
-        let (q, u) = self.eval_with_gradient(x, y, &mut gq, &mut gu);
-        let (mut vq, mut vu, mut cqu) = (0.0, 0.0, 0.0);
-        for i in 0..n {
-            for j in 0..n {
-                let c = self.cov_at(i, j);
-                vq += gq[i] * gq[j] * c;
-                vu += gu[i] * gu[j] * c;
-                cqu += gq[i] * gu[j] * c;
-            }
+        let nc = self.coeffs.len();
+        let free = self.centre_free;
+        let (q, u, c2, s2, p, dp, r) = self.eval_core(x, y, free);
+        if r < 1e-12 {
+            // On the axis only c_0 has a gradient (dq/dc_0 = 1, alpha = 0), as radial_eval.
+            let vq = if self.first_power == 0 && nc > 0 { self.cov_at(0, 0) } else { 0.0 };
+            return InstPol { q, u, var_q: vq.max(0.0), var_u: 0.0, cov_qu: 0.0 };
+        }
+        // Coefficient block: V = r^(2f) sum_i r^i (sum_j C_ij r^j).
+        let rf = pow_small(r, self.first_power);
+        let mut v = 0.0;
+        for i in (0..nc).rev() {
+            v = v * r + self.cov_row_poly(i, r);
+        }
+        v *= rf * rf;
+        let (mut vq, mut vu, mut cqu) = (c2 * c2 * v, s2 * s2 * v, c2 * s2 * v);
+        if free {
+            // Gradient with respect to (x0, y0): minus that with respect to (dx, dy).
+            let (dx, dy) = (x - self.centre[0], y - self.centre[1]);
+            let inv_r2 = 1.0 / (r * r);
+            let (drdx, drdy) = (dx / r, dy / r);
+            let (dadx, dady) = (-dy * inv_r2, dx * inv_r2);
+            let gqx = -(dp * drdx * c2 - 2.0 * p * s2 * dadx);
+            let gqy = -(dp * drdy * c2 - 2.0 * p * s2 * dady);
+            let gux = -(dp * drdx * s2 + 2.0 * p * c2 * dadx);
+            let guy = -(dp * drdy * s2 + 2.0 * p * c2 * dady);
+            let (ix, iy) = (nc, nc + 1);
+            // sum_i r^(f+i) C_(i, centre) and sum_j C_(centre, j) r^(f+j).
+            let (colx, coly) = (rf * self.cov_col_poly(ix, r), rf * self.cov_col_poly(iy, r));
+            let (rowx, rowy) = (rf * self.cov_row_poly(ix, r), rf * self.cov_row_poly(iy, r));
+            let (cxx, cxy, cyx, cyy) =
+                (self.cov_at(ix, ix), self.cov_at(ix, iy), self.cov_at(iy, ix), self.cov_at(iy, iy));
+            let quad = |ax: f64, ay: f64, bx: f64, by: f64| ax * (cxx * bx + cxy * by) + ay * (cyx * bx + cyy * by);
+            vq += c2 * (gqx * colx + gqy * coly) + c2 * (gqx * rowx + gqy * rowy) + quad(gqx, gqy, gqx, gqy);
+            vu += s2 * (gux * colx + guy * coly) + s2 * (gux * rowx + guy * rowy) + quad(gux, guy, gux, guy);
+            cqu += c2 * (gux * colx + guy * coly) + s2 * (gqx * rowx + gqy * rowy) + quad(gqx, gqy, gux, guy);
         }
         InstPol { q, u, var_q: vq.max(0.0), var_u: vu.max(0.0), cov_qu: cqu }
     }
