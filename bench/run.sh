@@ -1,0 +1,116 @@
+#!/usr/bin/env bash
+# Every benchmark of instpol side by side, with ratios against the targets of issue 8:
+#   Monte Carlo vs the numpy peer (bench/mc.sh)            target >= 3x poisson, >= 4x gauss-f
+#   frame reduction vs numpy+astropy (bench/peers/)          target >= 10x the peer
+#   frame reduction vs the time merely to read the frames   target <= 2x read time
+#   correction throughput of the library (fit bench)        target >= 1e7 positions/s/core
+#   ray trace: field points x pupil rays per second (mueller bench)
+# usage: bench/run.sh [--write]      (--write: also write the table to bench/RESULTS.md)
+# env:   MC_TRIALS (default 2000000), REPS (default 3), FRAMES_DIR (default: a temp folder;
+#        16 FORS1 frames of 2048 x 2048 float32 = 256 MB are made there once and kept if set)
+# Release builds. Run on a quiet machine: the 2 cores are shared (check `uptime`).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+WRITE=${1:-}
+export REPS=${REPS:-3}
+MC_TRIALS=${MC_TRIALS:-2000000}
+T=${CARGO_TARGET_DIR:-target}
+LOG=$(mktemp -d)
+trap 'rm -rf "$LOG"' EXIT
+echo "load before: $(uptime)" >&2
+
+python3 -c "import numpy, astropy" 2>/dev/null || python3 -m pip install --quiet numpy astropy \
+  || python3 -m pip install --quiet --break-system-packages numpy astropy
+
+cargo build --release -q -p instpol >&2
+BIN="$T/release/instpol"
+
+# 1. Monte Carlo (the statistics engineer's script).
+echo "== Monte Carlo (bench/mc.sh $MC_TRIALS)" >&2
+bash bench/mc.sh "$MC_TRIALS" | tee "$LOG/mc.txt" >&2
+
+# 2. Frames: made once by the peer script.
+FR=${FRAMES_DIR:-$LOG/frames}
+if [ ! -f "$FR/frame_15.fits" ]; then
+  echo "== making 16 frames in $FR" >&2
+  python3 bench/peers/reduce_peer.py make "$FR"
+fi
+echo "== numpy+astropy peer reduction" >&2
+best_peer=""
+for r in $(seq "$REPS"); do
+  python3 bench/peers/reduce_peer.py reduce "$FR" > "$LOG/peer_$r.json"
+done
+echo "== instpol reduce (binary, all threads)" >&2
+for r in $(seq "$REPS"); do
+  s=$(date +%s.%N); "$BIN" reduce "$FR"/frame_*.fits --out "$LOG/map.fits" > /dev/null 2>&1; e=$(date +%s.%N)
+  echo "$s $e" | awk '{print $2-$1}' > "$LOG/ip_$r.txt"
+done
+echo "== read-only baseline and library reduction (crates/skyfield/benches/read.rs)" >&2
+BENCH_FRAMES="$FR" cargo bench -q -p skyfield --bench read 2>/dev/null | grep '^{' > "$LOG/read.json"
+
+# 3. Correction throughput and 4. ray trace (criterion).
+echo "== fit correct bench" >&2
+cargo bench -q -p fit --bench correct 2>/dev/null | tee "$LOG/correct.txt" | grep -E 'thrpt|^correct' >&2 || true
+echo "== mueller raytrace bench" >&2
+cargo bench -q -p mueller --bench raytrace 2>/dev/null | tee "$LOG/raytrace.txt" | grep -E 'thrpt|^raytrace' >&2 || true
+
+python3 - "$LOG" "$REPS" "$(nproc)" > "$LOG/table.md" <<'PY'
+import json, re, sys, glob, os
+log, reps, nproc = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+rows = []
+def row(what, ours, peer, ratio, target, ok):
+    rows.append(f"| {what} | {ours} | {peer} | {ratio} | {target} | {'yes' if ok else 'NO'} |")
+# Monte Carlo: parse bench/mc.sh's table.
+for line in open(os.path.join(log, "mc.txt")):
+    f = line.split()
+    if f and f[0] in ("poisson", "gauss-f", "gauss-qu") and len(f) >= 6:
+        tn, t1, r1, tn_, rn = float(f[1]), float(f[2]), float(f[3]), float(f[4]), float(f[5])
+        tgt = {"poisson": 3.0, "gauss-f": 4.0}.get(f[0])
+        row(f"MC {f[0]}, 1 thread (trials/s)", f"{t1:.3g}", f"{tn:.3g}", f"{r1:.2f}x", f">= {tgt}x" if tgt else "-", tgt is None or r1 >= tgt)
+        row(f"MC {f[0]}, {nproc} threads (trials/s)", f"{tn_:.3g}", f"{tn:.3g}", f"{rn:.2f}x", f">= {tgt}x" if tgt else "-", tgt is None or rn >= tgt)
+peer = min((json.load(open(p)) for p in glob.glob(os.path.join(log, "peer_*.json"))), key=lambda d: d["total_s"])
+ip = min(float(open(p).read()) for p in glob.glob(os.path.join(log, "ip_*.txt")))
+row("reduce 16 x 2048^2 frames, binary (s)", f"{ip:.2f}", f"{peer['total_s']:.2f}", f"{peer['total_s']/ip:.1f}x faster", ">= 10x", peer["total_s"] / ip >= 10)
+rd = json.loads(open(os.path.join(log, "read.json")).read().strip().splitlines()[-1]) if os.path.getsize(os.path.join(log, "read.json")) else None
+if rd:
+    row("reduce_files (library) vs CFITSIO read alone (s)", f"{rd['reduce_files_s']:.2f}", f"read {rd['cfitsio_read_s']:.2f}", f"{rd['reduce_files_s']/rd['cfitsio_read_s']:.2f}x read", "<= 2x read", rd["reduce_files_s"] <= 2 * rd["cfitsio_read_s"])
+    row("binary reduce vs CFITSIO read alone (s)", f"{ip:.2f}", f"read {rd['cfitsio_read_s']:.2f}", f"{ip/rd['cfitsio_read_s']:.2f}x read", "<= 2x read", ip <= 2 * rd["cfitsio_read_s"])
+    row("peer: astropy read alone (s)", "-", f"{peer['read_s']:.2f}", "-", "-", True)
+def thrpt(path, prefix):
+    out, name = [], None
+    for line in open(path):
+        m = re.match(r"^(\S+/\S+)", line)
+        if m and "/" in m.group(1) and not line.startswith(" "):
+            name = m.group(1)
+        t = re.search(r"thrpt:\s*\[\S+ \S+ (\S+) (\S+) \S+ \S+\]", line)
+        if t and name:
+            v, unit = float(t.group(1)), t.group(2)
+            scale = {"elem/s": 1, "Kelem/s": 1e3, "Melem/s": 1e6, "Gelem/s": 1e9}.get(unit, 1)
+            out.append((name, v * scale))
+    return out
+for name, v in thrpt(os.path.join(log, "correct.txt"), "correct"):
+    row(f"correction {name} (positions/s, 1 core)", f"{v:.3g}", "-", "-", ">= 1e7/s", v >= 1e7)
+for name, v in thrpt(os.path.join(log, "raytrace.txt"), "raytrace"):
+    row(f"ray trace {name} (field points x rays /s)", f"{v:.3g}", "-", "-", "-", True)
+print("| benchmark | instpol | peer / baseline | ratio | target | met |")
+print("|---|---|---|---|---|---|")
+print("\n".join(rows))
+PY
+echo "load after: $(uptime)" >&2
+cat "$LOG/table.md"
+if [ "$WRITE" = "--write" ]; then
+  {
+    echo "# Benchmark results"
+    echo
+    echo "\`bench/run.sh --write\`, $(date -u +%Y-%m-%d), $(nproc) cores ($(uname -m)), best of $REPS;"
+    echo "load average at the end: $(uptime | sed 's/.*load average: //'). Machine shared: treat ratios as lower bounds."
+    echo
+    cat "$LOG/table.md"
+    # Keep the hand-written notes below the table.
+    if [ -f bench/RESULTS.md ] && grep -q '^## Notes' bench/RESULTS.md; then
+      echo
+      sed -n '/^## Notes/,$p' bench/RESULTS.md
+    fi
+  } > bench/RESULTS.md.new
+  mv bench/RESULTS.md.new bench/RESULTS.md
+fi
