@@ -45,6 +45,14 @@ for r in $(seq "$REPS"); do
   s=$(date +%s.%N); "$BIN" reduce "$FR"/frame_*.fits --out "$LOG/map.fits" > /dev/null 2>&1; e=$(date +%s.%N)
   echo "$s $e" | awk '{print $2-$1}' > "$LOG/ip_$r.txt"
 done
+echo "== sky-field calibration: peer and instpol calibrate" >&2
+for r in $(seq "$REPS"); do
+  python3 bench/peers/reduce_peer.py calibrate "$FR" > "$LOG/pcal_$r.json"
+  s=$(date +%s.%N)
+  "$BIN" calibrate "$FR"/frame_*.fits --sky-p 2 --sky-chi 30 --out "$LOG/cal.fits" > /dev/null 2>&1 || echo "instpol calibrate failed" >&2
+  e=$(date +%s.%N)
+  echo "$s $e" | awk '{print $2-$1}' > "$LOG/ical_$r.txt"
+done
 echo "== read-only baseline and library reduction (crates/skyfield/benches/read.rs)" >&2
 BENCH_FRAMES="$FR" cargo bench -q -p skyfield --bench read 2>/dev/null | grep '^{' > "$LOG/read.json"
 
@@ -71,6 +79,9 @@ for line in open(os.path.join(log, "mc.txt")):
 peer = min((json.load(open(p)) for p in glob.glob(os.path.join(log, "peer_*.json"))), key=lambda d: d["total_s"])
 ip = min(float(open(p).read()) for p in glob.glob(os.path.join(log, "ip_*.txt")))
 row("reduce 16 x 2048^2 frames, binary (s)", f"{ip:.2f}", f"{peer['total_s']:.2f}", f"{peer['total_s']/ip:.1f}x faster", ">= 10x", peer["total_s"] / ip >= 10)
+pcal = min(json.load(open(p))["total_s"] for p in glob.glob(os.path.join(log, "pcal_*.json")))
+ical = min(float(open(p).read()) for p in glob.glob(os.path.join(log, "ical_*.txt")))
+row("sky-field calibration from the 16 frames, binary (s)", f"{ical:.2f}", f"{pcal:.2f}", f"{pcal/ical:.1f}x faster", ">= 10x", pcal / ical >= 10)
 rd = json.loads(open(os.path.join(log, "read.json")).read().strip().splitlines()[-1]) if os.path.getsize(os.path.join(log, "read.json")) else None
 if rd:
     row("reduce_files (library) vs CFITSIO read alone (s)", f"{rd['reduce_files_s']:.2f}", f"read {rd['cfitsio_read_s']:.2f}", f"{rd['reduce_files_s']/rd['cfitsio_read_s']:.2f}x read", "<= 2x read", rd["reduce_files_s"] <= 2 * rd["cfitsio_read_s"])
