@@ -258,7 +258,7 @@ pub fn map_to_sky_frame(map: &skyfield::StokesMap, chi_offset: f64) -> skyfield:
         let (pq, pu) = (map.sigma_q_phot[k].powi(2), map.sigma_u_phot[k].powi(2));
         out.sigma_q_phot[k] = (c * c * pq + s * s * pu).sqrt();
         out.sigma_u_phot[k] = (s * s * pq + c * c * pu).sqrt();
-        out.chi[k] = (map.chi[k] + chi_offset).rem_euclid(std::f64::consts::PI);
+        out.chi[k] = mueller::fold_pi(map.chi[k] + chi_offset);
     }
     out
 }

@@ -60,6 +60,18 @@ pub fn stokes_p_chi(i: f64, p: f64, chi: f64) -> Stokes {
     Stokes::new(i, i * p * c, i * p * s, 0.0)
 }
 
+/// Angle `a` (rad) modulo pi, in [0, pi): the range of polarization angles (DESIGN.md).
+/// `rem_euclid` alone returns pi itself for tiny negative inputs (-1e-17 + pi rounds to pi).
+#[inline]
+pub fn fold_pi(a: f64) -> f64 {
+    let r = a.rem_euclid(std::f64::consts::PI);
+    if r >= std::f64::consts::PI {
+        0.0
+    } else {
+        r
+    }
+}
+
 /// The Stokes rotation matrix `R(theta)`: the same light described in axes rotated by `theta`.
 pub fn rotation(theta: f64) -> Mueller {
     let (s, c) = (2.0 * theta).sin_cos();

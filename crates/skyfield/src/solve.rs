@@ -45,7 +45,7 @@ impl SkyPolarization {
         if !chi_deg.is_finite() {
             return Err(Error::Invalid(format!("sky polarization angle {chi_deg} deg is not finite")));
         }
-        Ok(SkyPolarization { p: p_percent / 100.0, chi: chi_deg.to_radians().rem_euclid(std::f64::consts::PI) })
+        Ok(SkyPolarization { p: p_percent / 100.0, chi: mueller::fold_pi(chi_deg.to_radians()) })
     }
 
     /// `(q0, u0) = P (cos 2chi, sin 2chi)` (`eq:QU`).
@@ -60,7 +60,7 @@ impl SkyPolarization {
 pub fn solve_approx(q1: f64, u1: f64, q0: f64, u0: f64) -> (f64, f64) {
     let (dq, du) = (q1 - q0, u1 - u0);
     let p = dq.hypot(du);
-    let phi = if p > 0.0 { (0.5 * du.atan2(dq)).rem_euclid(std::f64::consts::PI) } else { 0.0 };
+    let phi = if p > 0.0 { mueller::fold_pi(0.5 * du.atan2(dq)) } else { 0.0 };
     (p, phi)
 }
 
@@ -86,7 +86,7 @@ pub fn solve_exact(q1: f64, u1: f64, q0: f64, u0: f64) -> Option<(f64, f64)> {
     if !(p < 1.0) {
         return None;
     }
-    Some((p, (0.5 * two_phi).rem_euclid(std::f64::consts::PI)))
+    Some((p, mueller::fold_pi(0.5 * two_phi)))
 }
 
 /// The instrumental polarization found in one bin.

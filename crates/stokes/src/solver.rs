@@ -27,15 +27,7 @@ pub fn sigma_normalized_difference(f_o: f64, f_e: f64, sigma_o: f64, sigma_e: f6
 /// `eq:polang`): `P = hypot(q, u)`, `chi = atan2(u, q) / 2` folded into [0, pi).
 #[inline]
 pub fn polarization(q: f64, u: f64) -> (f64, f64) {
-    let mut chi = 0.5 * u.atan2(q);
-    if chi < 0.0 {
-        chi += PI;
-    }
-    // -tiny + pi rounds to pi itself: fold it back to 0.
-    if chi >= PI {
-        chi = 0.0;
-    }
-    (q.hypot(u), chi)
+    (q.hypot(u), mueller::fold_pi(0.5 * u.atan2(q)))
 }
 
 /// `Q/I`, `U/I` with their covariance.

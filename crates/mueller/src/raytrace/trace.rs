@@ -141,7 +141,7 @@ pub struct FieldPoint {
 impl FieldPoint {
     fn from_mueller(x: f64, y: f64, m: Mueller, traced: usize, lost: usize) -> Self {
         let p = m[(1, 0)].hypot(m[(2, 0)]) / m[(0, 0)];
-        let phi = (0.5 * m[(2, 0)].atan2(m[(1, 0)])).rem_euclid(std::f64::consts::PI);
+        let phi = crate::fold_pi(0.5 * m[(2, 0)].atan2(m[(1, 0)]));
         Self {
             x_arcmin: x,
             y_arcmin: y,
@@ -536,6 +536,6 @@ impl FieldFile {
                 self.phi_rel_deg[i - 1] + f * (self.phi_rel_deg[i] - self.phi_rel_deg[i - 1]),
             )
         };
-        (p, (y.atan2(x) + off.to_radians()).rem_euclid(std::f64::consts::PI))
+        (p, crate::fold_pi(y.atan2(x) + off.to_radians()))
     }
 }
