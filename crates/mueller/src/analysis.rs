@@ -66,8 +66,12 @@ pub fn coherency(m: &Mueller) -> Matrix4<C64> {
     (h + h.adjoint()) * C64::new(0.25, 0.0)
 }
 
-/// Eigenvalues of the coherency matrix, ascending; their sum is `m00`.
+/// Eigenvalues of the coherency matrix, ascending; their sum is `m00`. All NaN for a matrix
+/// with a non-finite element (the eigen-solver would not terminate on it).
 pub fn coherency_eigenvalues(m: &Mueller) -> [f64; 4] {
+    if !m.iter().all(|x| x.is_finite()) {
+        return [f64::NAN; 4];
+    }
     let e = coherency(m).symmetric_eigenvalues();
     let mut v = [e[0], e[1], e[2], e[3]];
     v.sort_by(|a, b| a.total_cmp(b));
@@ -86,8 +90,12 @@ pub fn is_physical(m: &Mueller, tol: f64) -> bool {
 
 /// Exact inverse of a Mueller matrix, or [`Error::Singular`] when it has none (an ideal
 /// polarizer, a fully opaque element): the ratio of the smallest to the largest singular
-/// value must exceed `1e-12`.
+/// value must exceed `1e-12`. A matrix with a NaN or infinite element is [`Error::Invalid`].
 pub fn inverse(m: &Mueller) -> Result<Mueller, Error> {
+    // nalgebra's SVD iterates without end on non-finite input: refuse it first.
+    if let Some(v) = m.iter().find(|v| !v.is_finite()) {
+        return Err(Error::Invalid { what: "Mueller matrix".into(), why: format!("holds a non-finite element ({v})") });
+    }
     let sv = m.singular_values();
     let (mx, mn) = (sv.max(), sv.min());
     if !(mx.is_finite() && mx > 0.0 && mn > 1e-12 * mx) {
