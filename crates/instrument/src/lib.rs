@@ -176,26 +176,41 @@ impl Instrument {
         if p.strip_count == 0 {
             return bad("polarimetry.strip_count", "0".into(), "need at least one strip");
         }
-        let extent = if p.strip_axis == "y" { d.ny } else { d.nx };
-        let h = self.throw_px();
-        let lo = p.first_strip_y_px as i64 + if p.extraordinary_offset_sign < 0 { -(h as i64) } else { 0 };
-        let hi = p.first_strip_y_px as i64
-            + (2 * p.strip_count as i64) * h as i64
-            + if p.extraordinary_offset_sign < 0 { -(h as i64) } else { 0 };
-        if lo < 0 || hi > extent as i64 {
+        if !(d.saturation_adu.is_finite() && d.saturation_adu > 0.0) {
+            return bad("detector.saturation_adu", d.saturation_adu.to_string(), "must be a positive number");
+        }
+        // The strip layout, in floating point first so that absurd values (a throw of 1e308",
+        // 2^62 strips) are refused by name instead of overflowing the pixel arithmetic.
+        let extent = if p.strip_axis == "y" { d.ny } else { d.nx } as f64;
+        let h = (p.throw_arcsec / d.pixel_scale_arcsec).round();
+        if !(h >= 1.0 && h <= extent) {
             return bad(
-                "polarimetry.strip_count",
-                p.strip_count.to_string(),
-                &format!("strips of {h} px (the throw) span pixels {lo}..{hi}, outside the detector (0..{extent})"),
+                "polarimetry.throw_arcsec",
+                p.throw_arcsec.to_string(),
+                &format!(
+                    "the throw is {h} px at {} arcsec/px (detector.pixel_scale_arcsec): it must be 1 to {extent} px",
+                    d.pixel_scale_arcsec
+                ),
             );
         }
-        if let Some(o) = &self.optics {
-            o.validate().map_err(|e| Error::Invalid {
-                path: path.into(),
-                key: "optics".into(),
-                value: String::new(),
-                why: e.to_string(),
-            })?;
+        let below = if p.extraordinary_offset_sign < 0 { h } else { 0.0 };
+        let lo = p.first_strip_y_px as f64 - below;
+        let hi = p.first_strip_y_px as f64 + 2.0 * p.strip_count as f64 * h - below;
+        if lo < 0.0 || hi > extent {
+            let key = if p.first_strip_y_px as f64 >= extent {
+                "polarimetry.first_strip_y_px"
+            } else {
+                "polarimetry.strip_count"
+            };
+            let value = if key.ends_with("count") { p.strip_count.to_string() } else { p.first_strip_y_px.to_string() };
+            return bad(
+                key,
+                value,
+                &format!(
+                    "{} strips of {h} px (the throw) from pixel {} span pixels {lo}..{hi}, outside the detector (0..{extent})",
+                    p.strip_count, p.first_strip_y_px
+                ),
+            );
         }
         if self.filters.is_empty() {
             return bad("filters", "[]".into(), "need at least one filter");
