@@ -146,8 +146,24 @@ pub fn validate_star(
     star: (&str, Expected),
     opts: &ValidateOptions,
 ) -> Result<ValidationReport> {
+    // A calibration's positions and pattern mean nothing on another instrument's detector.
+    if !cal.instrument.eq_ignore_ascii_case(&inst.name) {
+        bail!(
+            "the calibration is for instrument {} but the frames are read as instrument {} (--instrument); \
+             use a calibration of {}",
+            cal.instrument,
+            inst.name,
+            inst.name
+        );
+    }
     let fr = read_frames(frames, inst, &|| {}).context("reading the frames")?;
     let set = FrameSet::from_frames(fr, inst, true).context("grouping the frames by HWP angle")?;
+    // Another filter's calibration is allowed (it is how a wrong calibration is shown to
+    // fail), but said.
+    let canonical = |f: &str| inst.filter(f).map(|x| x.name.clone()).unwrap_or_else(|_| f.to_string());
+    if !canonical(&set.filter).eq_ignore_ascii_case(&canonical(&cal.filter)) {
+        eprintln!("warning: the frames are in filter {} but the calibration is for filter {}", set.filter, cal.filter);
+    }
     let ph = photometry(&set, inst, x_px, y_px, &opts.aperture)
         .with_context(|| format!("photometry of the star at ({x_px}, {y_px}) px"))?;
     let qu = ph.reduction.qu;
