@@ -336,7 +336,6 @@ fn fors2_dir() -> Option<PathBuf> {
 /// catalog whose q, u equal the map's own instrumental values at its positions comes out with
 /// q0, u0 ~ 0, and a polarized star through the map is recovered.
 #[test]
-#[ignore = "needs `instpol import-map` wired into main.rs (calibration issue); passes in the working tree: run with --ignored"]
 fn fors2_map_calibration_corrects_its_own_instrumental_values() {
     let Some(d) = fors2_dir() else { return };
     let dir = tempfile::tempdir().unwrap();
