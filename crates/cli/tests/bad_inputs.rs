@@ -696,7 +696,7 @@ fn correct_calibration_of_newer_format_version() {
     );
 }
 
-/// DEFECT: `correct` applies a FORS1 calibration to a Stokes map written for another
+/// Regression (was a defect, fixed in 2e448c5): `correct` applied a FORS1 calibration to a Stokes map written for another
 /// instrument (MAP instrument "OTHER") silently, exit 0. Fix (crates/cli/src/cmd/correct.rs,
 /// map path): compare the map's instrument and filter with the calibration's (filter names
 /// through the instrument's aliases) and refuse with both names unless forced.
@@ -722,7 +722,8 @@ fn correct_map_of_another_instrument() {
     );
 }
 
-/// DEFECT: likewise a B-band map corrected with a V calibration: exit 0, no warning.
+/// Regression (fixed in 2e448c5): likewise a B-band map corrected with a V calibration gave
+/// exit 0 and no warning.
 #[test]
 fn correct_map_of_another_filter() {
     let f = Fixture::new();
@@ -781,7 +782,7 @@ fn fit_plot_wavelength_law_on_a_corrupt_calibration() {
     refuses(&out, &["wavelength-law", &f.s("bad_cal.fits"), &f.s("bad_cal.fits")], &["bad_cal.fits"]);
 }
 
-/// DEFECT (minor): the message is "degenerate fit: all calibrations are at the same
+/// Regression (fixed in 7bb1761): the message was "degenerate fit: all calibrations are at the same
 /// wavelength", naming neither the files nor the filter; it should say e.g. "cal.fits and
 /// cal.fits are both filter V (554 nm): the wavelength law needs two filters".
 #[test]
@@ -845,7 +846,7 @@ fn import_map_mismatched_and_bad_images() {
 // Numbers on the command line
 // ---------------------------------------------------------------------------------------
 
-/// DEFECT (minor): `--n-real -1.5` is taken by clap as an unknown flag `-1` ("unexpected
+/// Regression (fixed in 447c778): `--n-real -1.5` was taken by clap as an unknown flag `-1` ("unexpected
 /// argument '-1' found") instead of the number; `allow_negative_numbers = true` on the
 /// fresnel number arguments (as `instpol stokes --kappa` has) would let the range check speak.
 #[test]
@@ -907,7 +908,7 @@ fn killed_correct_leaves_no_partial_output() {
     let _ = complete_seen;
 }
 
-/// DEFECT (fit::calfile + fitsio 0.21.10): a calibration file whose INPUTS table has a string
+/// Regression (was a defect of fit::calfile + fitsio 0.21.10, fixed in 7bb1761): a calibration file whose INPUTS table has a string
 /// column 24 (or 40, 56, ... : 8 mod 16) characters wide crashes every reader with heap
 /// corruption (`free(): invalid pointer`, SIGABRT, exit 134). fitsio's
 /// `read_col::<String>` allocates `width` bytes per row but CFITSIO's `ffgcvs` writes
@@ -1141,7 +1142,7 @@ fn validate_bad_standards_file_and_unknown_star() {
     refuses(f.dir.path(), &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["HD 99999"]);
 }
 
-/// DEFECT: frames of the tiny instrument MINI validated with a FORS1 calibration pass (exit 0,
+/// Regression (was a defect, fixed in e568d20): frames of the tiny instrument MINI validated with a FORS1 calibration pass (exit 0,
 /// "star unpolarized in V ..."): the calibration's instrument is never compared with the
 /// frames' (`--instrument`). Fix (crates/cli/src/cmd/validate.rs): refuse when
 /// `cal.instrument` differs from the instrument's name (case-insensitive), naming both.

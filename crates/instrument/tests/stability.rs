@@ -51,7 +51,7 @@ fn control_edits_load() {
 
 /// Values that make the strip arithmetic overflow must be refused with the key named.
 ///
-/// DEFECT (found by fuzz/run.sh, fuzz_instrument_toml): `throw_arcsec = 1e308` (any throw of
+/// Regression (a defect found by fuzz/run.sh, fuzz_instrument_toml; fixed in 833bbbb): `throw_arcsec = 1e308` (any throw of
 /// more than ~2^63 px) is ACCEPTED: `throw_px()` saturates to `usize::MAX`, `h as i64` is -1 in
 /// `validate`, so `hi = first + 2 * count * (-1)` comes out small and passes the detector check;
 /// then `strips()` panics with "attempt to add with overflow" (debug) or wraps (release). Huge

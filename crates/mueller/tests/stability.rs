@@ -153,7 +153,8 @@ fn ideal_polarizer_has_no_inverse() {
     assert!(inverse(&Mueller::zeros()).is_err());
 }
 
-/// DEFECT (issue 8 report): `inverse` of a matrix holding a NaN (or inf) never returns:
+/// Regression (a defect found here, fixed in 50e8393): `inverse` of a matrix holding a NaN
+/// (or inf) never returned:
 /// nalgebra's SVD does not converge on non-finite input and `inverse` calls
 /// `singular_values()` before looking at the entries. Fix (crates/mueller/src/analysis.rs,
 /// `inverse`): return `Error::Singular` first when `!m.iter().all(|x| x.is_finite())`.

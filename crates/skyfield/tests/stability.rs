@@ -106,7 +106,8 @@ fn rotation_covariance() {
     }
 }
 
-/// DEFECT: `solve_exact` and `solve_approx` return phi = pi exactly (outside the convention
+/// Regression (a defect found here, fixed in d00f59e): `solve_exact` and `solve_approx`
+/// returned phi = pi exactly (outside the convention
 /// [0, pi)) when the instrumental angle is 0 and rounding makes `2 phi` a tiny negative number:
 /// `(-1e-17_f64).rem_euclid(PI)` rounds to `PI`. Found with p = 0.251, phi = 0, sky 0.72% at
 /// 1e-12 rad. Fix (crates/skyfield/src/solve.rs, both functions): fold `phi >= PI` to 0 after
