@@ -1175,3 +1175,82 @@ fn validate_calibration_of_another_instrument() {
     a.extend(frames.iter().cloned());
     refuses(f.dir.path(), &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["MINI", "FORS1"]);
 }
+
+/// DEFECT (found by fuzz/run.sh, fuzz_calibration_file, 2026-11-21): a calibration whose UMAP
+/// header claims NAXIS2 = 99999999999 aborts `instpol correct` with "memory allocation of
+/// 55199999999448 bytes failed" (SIGABRT, no `error:` line): `fit::Calibration::load` reads the
+/// image with the size its header claims. Fix (crates/fit/src/calfile.rs, `load`): check each
+/// map's NAXIS1 x NAXIS2 against the grid of the primary header (and the bytes left in the
+/// file) before `read_image`, and refuse naming the extension.
+#[test]
+fn calibration_with_absurd_image_size_is_refused() {
+    let f = Fixture::new();
+    let cal = f.cal();
+    let mut b = std::fs::read(&cal).unwrap();
+    let ext = b.windows(14).position(|w| w == b"EXTNAME = 'UMA").expect("UMAP extension");
+    let start = ext - ext % 2880;
+    let naxis2 = start + b[start..ext].windows(8).position(|w| w == b"NAXIS2  ").expect("NAXIS2 of UMAP");
+    b[naxis2 + 10..naxis2 + 30].copy_from_slice(format!("{:>20}", 99_999_999_999u64).as_bytes());
+    std::fs::write(&cal, &b).unwrap();
+    let cat = f.csv("cat.csv", GOOD_CAT);
+    let out = f.out_dir();
+    refuses(
+        &out,
+        &["correct", "--cal", &cal, "--in", &cat, "--out", out.join("c.csv").to_str().unwrap()],
+        &["cal.fits", "UMAP"],
+    );
+}
+
+/// DEFECT (same class, fit::import): a Q cube for `import-map` whose header claims NAXIS2 =
+/// 99999999999 (the file holds 2 x 20 x 20) aborts with "memory allocation of 31999999999680
+/// bytes failed". Fix (crates/fit/src/import.rs): check the claimed size against the file's
+/// length (NAXIS1 x NAXIS2 x NAXIS3 x |BITPIX|/8 <= bytes after the header) before reading.
+#[test]
+fn import_map_with_absurd_image_size_is_refused() {
+    let f = Fixture::new();
+    write_image(&f.p("q.fits"), 20, 20, 0.001);
+    write_image(&f.p("u.fits"), 20, 20, 0.001);
+    let mut b = std::fs::read(f.p("q.fits")).unwrap();
+    let naxis2 = b.windows(8).position(|w| w == b"NAXIS2  ").unwrap();
+    b[naxis2 + 10..naxis2 + 30].copy_from_slice(format!("{:>20}", 99_999_999_999u64).as_bytes());
+    std::fs::write(f.p("q.fits"), &b).unwrap();
+    let out = f.out_dir();
+    let o = out.join("cal.fits");
+    let (q, u) = (f.s("q.fits"), f.s("u.fits"));
+    refuses(
+        &out,
+        &[
+            "import-map",
+            "--q",
+            &q,
+            "--u",
+            &u,
+            "--pixel-scale",
+            "0.25",
+            "--bin",
+            "50",
+            "--filter",
+            "V",
+            "--lambda-nm",
+            "554",
+            "--out",
+            o.to_str().unwrap(),
+        ],
+        &["q.fits"],
+    );
+}
+
+/// A frame whose header claims NAXIS2 = 99999999999 is refused by the detector-size check
+/// before any pixel is read (no huge allocation).
+#[test]
+fn frame_with_absurd_image_size_is_refused() {
+    let f = Fixture::new();
+    let mut frames = f.frames();
+    let mut b = std::fs::read(&frames[1]).unwrap();
+    let naxis2 = b.windows(8).position(|w| w == b"NAXIS2  ").unwrap();
+    b[naxis2 + 10..naxis2 + 30].copy_from_slice(format!("{:>20}", 99_999_999_999u64).as_bytes());
+    std::fs::write(f.p("huge.fits"), &b).unwrap();
+    frames[1] = f.s("huge.fits");
+    let out = f.out_dir();
+    refuses(&out, &calibrate_args(&f, &frames, out.join("cal.fits").to_str().unwrap()), &["huge.fits", "99999999999"]);
+}
