@@ -174,3 +174,32 @@ fn non_finite_matrix_inverse_returns_an_error() {
         }
     }
 }
+
+proptest! {
+    #![proptest_config(cfg())]
+
+    /// Fresnel interfaces between lossless dielectrics: R + T = 1 for s and p at every angle
+    /// below the critical angle, including normal and grazing incidence (aoi up to 90 deg -
+    /// 1e-9) and Brewster's angle (R_p = 0 at tan aoi = n1/n0); everything finite; the
+    /// transmission Mueller matrix is physical and has M00 = (T_s + T_p)/2.
+    #[test]
+    fn fresnel_energy_conservation(n0 in 1.0..1.8f64, n1 in 1.0..2.5f64, t in prop_oneof![0.0..1.0f64, Just(0.0), Just(1.0 - 1e-11)]) {
+        use mueller::fresnel::interface;
+        use mueller::C64;
+        // Keep below the critical angle when going to a lower index.
+        let max_aoi = if n1 < n0 { (n1 / n0).asin() } else { std::f64::consts::FRAC_PI_2 };
+        let aoi = t * max_aoi * (1.0 - 1e-9);
+        let c = interface(n0, C64::new(n1, 0.0), aoi).unwrap();
+        for (r, tt) in [(c.reflectance_s, c.transmittance_s), (c.reflectance_p, c.transmittance_p)] {
+            prop_assert!(r.is_finite() && tt.is_finite() && r >= 0.0 && tt >= 0.0);
+            prop_assert!((r + tt - 1.0).abs() <= 1e-12, "R {r} + T {tt} != 1 at aoi {aoi} n0 {n0} n1 {n1}");
+        }
+        let m = c.mueller_t(0.3);
+        prop_assert!(m.iter().all(|x| x.is_finite()));
+        prop_assert!((m[(0, 0)] - 0.5 * (c.transmittance_s + c.transmittance_p)).abs() <= 1e-12);
+        prop_assert!(mueller::is_physical(&m, 1e-9));
+        let brewster = (n1 / n0).atan();
+        let cb = interface(n0, C64::new(n1, 0.0), brewster).unwrap();
+        prop_assert!(cb.reflectance_p <= 1e-20, "R_p at Brewster = {}", cb.reflectance_p);
+    }
+}
