@@ -526,6 +526,7 @@ impl Calibration {
             } else {
                 return Err(Error::BadFile { path: path.into(), what: format!("{name} is not an image") });
             }
+            check_claimed_size(path, name, &[ny, nx])?;
             let data: Vec<f64> = h.read_image(&mut f).map_err(e(&format!("reading image {name}")))?;
             if name == "QMAP" {
                 let mut r = KeyReader { f: &mut f, hdu: &h, path };
@@ -785,4 +786,19 @@ pub fn utc_now_iso() -> String {
     let m = if mp < 10 { mp + 3 } else { mp - 9 };
     let y = if m <= 2 { y + 1 } else { y };
     format!("{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}Z", rem / 3600, (rem % 3600) / 60, rem % 60)
+}
+
+/// Refuse an image whose header claims more values than its file has bytes (a corrupt or
+/// hostile NAXISn), before anything is allocated for it: no image stores fewer than one byte
+/// per value.
+pub(crate) fn check_claimed_size(path: &Path, what: &str, shape: &[usize]) -> Result<()> {
+    let len = std::fs::metadata(path).map(|m| m.len() as u128).unwrap_or(u128::MAX);
+    let claimed = shape.iter().try_fold(1u128, |a, &n| a.checked_mul(n as u128)).unwrap_or(u128::MAX);
+    if claimed > len {
+        return Err(Error::BadFile {
+            path: path.into(),
+            what: format!("{what} claims {shape:?} values (header NAXISn) but the file holds only {len} bytes"),
+        });
+    }
+    Ok(())
 }
