@@ -1176,7 +1176,7 @@ fn validate_calibration_of_another_instrument() {
     refuses(f.dir.path(), &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["MINI", "FORS1"]);
 }
 
-/// DEFECT (found by fuzz/run.sh, fuzz_calibration_file, 2026-11-21): a calibration whose UMAP
+/// Was a defect (found by fuzz/run.sh, fuzz_calibration_file; fixed in 2e5086f): a calibration whose UMAP
 /// header claims NAXIS2 = 99999999999 aborts `instpol correct` with "memory allocation of
 /// 55199999999448 bytes failed" (SIGABRT, no `error:` line): `fit::Calibration::load` reads the
 /// image with the size its header claims. Fix (crates/fit/src/calfile.rs, `load`): check each
@@ -1201,7 +1201,7 @@ fn calibration_with_absurd_image_size_is_refused() {
     );
 }
 
-/// DEFECT (same class, fit::import): a Q cube for `import-map` whose header claims NAXIS2 =
+/// Was a defect (fixed in 2e5086f; same class, fit::import): a Q cube for `import-map` whose header claims NAXIS2 =
 /// 99999999999 (the file holds 2 x 20 x 20) aborts with "memory allocation of 31999999999680
 /// bytes failed". Fix (crates/fit/src/import.rs): check the claimed size against the file's
 /// length (NAXIS1 x NAXIS2 x NAXIS3 x |BITPIX|/8 <= bytes after the header) before reading.
