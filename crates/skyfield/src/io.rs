@@ -147,10 +147,118 @@ fn read_key_string(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, key: &str) -> O
     hdu.read_key::<String>(f, key).ok().map(|s| s.trim().to_string())
 }
 
+/// Pixel values as stored (no scaling), or as f64 when the file scales them.
+#[derive(Debug, Clone)]
+pub(crate) enum Pixels {
+    F32(Vec<f32>),
+    U16(Vec<u16>),
+    I16(Vec<i16>),
+    F64(Vec<f64>),
+}
+
+impl Pixels {
+    /// Borrowed view.
+    pub(crate) fn view(&self) -> PixelView<'_> {
+        match self {
+            Pixels::F32(v) => PixelView::F32(v),
+            Pixels::U16(v) => PixelView::U16(v),
+            Pixels::I16(v) => PixelView::I16(v),
+            Pixels::F64(v) => PixelView::F64(v),
+        }
+    }
+
+    pub(crate) fn len(&self) -> usize {
+        match self {
+            Pixels::F32(v) => v.len(),
+            Pixels::U16(v) => v.len(),
+            Pixels::I16(v) => v.len(),
+            Pixels::F64(v) => v.len(),
+        }
+    }
+
+    /// As f64 (every stored type converts exactly).
+    pub(crate) fn into_f64(self) -> Vec<f64> {
+        match self {
+            Pixels::F64(v) => v,
+            other => {
+                let mut out = vec![0.0; other.len()];
+                other.view().load(0, &mut out);
+                out
+            }
+        }
+    }
+}
+
+/// A borrowed frame (or per-angle sum) in its stored type.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum PixelView<'a> {
+    F32(&'a [f32]),
+    U16(&'a [u16]),
+    I16(&'a [i16]),
+    F64(&'a [f64]),
+}
+
+impl PixelView<'_> {
+    /// Copy `out.len()` pixels from `start` as f64 (exact for every type).
+    #[inline]
+    pub(crate) fn load(&self, start: usize, out: &mut [f64]) {
+        let n = out.len();
+        match self {
+            PixelView::F32(v) => out.iter_mut().zip(&v[start..start + n]).for_each(|(o, &x)| *o = x as f64),
+            PixelView::U16(v) => out.iter_mut().zip(&v[start..start + n]).for_each(|(o, &x)| *o = x as f64),
+            PixelView::I16(v) => out.iter_mut().zip(&v[start..start + n]).for_each(|(o, &x)| *o = x as f64),
+            PixelView::F64(v) => out.copy_from_slice(&v[start..start + n]),
+        }
+    }
+
+    /// Number of non-finite pixels and of pixels at or above `sat`, in one pass.
+    pub(crate) fn count_bad(&self, sat: f64) -> (usize, usize) {
+        fn go<T: Copy>(v: &[T], f: impl Fn(T) -> f64, sat: f64) -> (usize, usize) {
+            v.iter().fold((0, 0), |(a, b), &x| {
+                let x = f(x);
+                (a + !x.is_finite() as usize, b + (x >= sat) as usize)
+            })
+        }
+        match self {
+            PixelView::F32(v) => go(v, |x| x as f64, sat),
+            PixelView::U16(v) => go(v, |x| x as f64, sat),
+            PixelView::I16(v) => go(v, |x| x as f64, sat),
+            PixelView::F64(v) => go(v, |x| x, sat),
+        }
+    }
+}
+
+/// A frame as stored: header facts and the pixels in their own type.
+#[derive(Debug, Clone)]
+pub(crate) struct RawFrame {
+    pub path: PathBuf,
+    pub nx: usize,
+    pub ny: usize,
+    pub pixels: Pixels,
+    pub hwp_deg: f64,
+    pub filter: String,
+    pub exptime_s: Option<f64>,
+    pub bitpix: i32,
+}
+
+impl RawFrame {
+    pub(crate) fn into_frame(self) -> Frame {
+        let RawFrame { path, nx, ny, pixels, hwp_deg, filter, exptime_s, bitpix } = self;
+        Frame { path, nx, ny, data: pixels.into_f64(), hwp_deg, filter, exptime_s, bitpix }
+    }
+}
+
 /// Read one frame, checking what reduction needs: a 2-D image in the primary HDU of a
 /// detector pixel type, the size of `inst`'s detector, and the HWP-angle and filter keywords
 /// the instrument names (the exposure-time keyword is optional).
 pub fn read_frame(path: &Path, inst: &Instrument) -> Result<Frame, Error> {
+    read_frame_raw(path, inst).map(RawFrame::into_frame)
+}
+
+/// [`read_frame`] keeping the stored pixel type (f32 frames are half the memory of f64 and
+/// need no conversion pass in CFITSIO); scaled data (BSCALE/BZERO other than the unsigned
+/// 16-bit convention) is read as f64.
+pub(crate) fn read_frame_raw(path: &Path, inst: &Instrument) -> Result<RawFrame, Error> {
     let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
     let hdu = f.primary_hdu().map_err(|e| fits_err(path, format!("unreadable primary HDU: {e}")))?;
     let (shape, ty) = match &hdu.info {
@@ -190,13 +298,23 @@ pub fn read_frame(path: &Path, inst: &Instrument) -> Result<Frame, Error> {
     let filter = read_key_string(&mut f, &hdu, &pol.filter_keyword)
         .ok_or_else(|| Error::MissingKeyword { path: path.into(), keyword: pol.filter_keyword.clone() })?;
     let exptime_s = read_key_string(&mut f, &hdu, &pol.exptime_keyword).and_then(|s| s.parse().ok());
-    let data: Vec<f64> = hdu
-        .read_image(&mut f)
-        .map_err(|e| fits_err(path, format!("cannot read the image data (truncated or corrupt file?): {e}")))?;
-    if data.len() != nx * ny {
-        return Err(fits_err(path, format!("read {} pixels, header says {nx} x {ny}", data.len())));
+    let bscale = hdu.read_key::<f64>(&mut f, "BSCALE").unwrap_or(1.0);
+    let bzero = hdu.read_key::<f64>(&mut f, "BZERO").unwrap_or(0.0);
+    let rerr = |e: fitsio::errors::Error| {
+        fits_err(path, format!("cannot read the image data (truncated or corrupt file?): {e}"))
+    };
+    let pixels = match ty {
+        ImageType::Float if bscale == 1.0 && bzero == 0.0 => Pixels::F32(hdu.read_image(&mut f).map_err(rerr)?),
+        ImageType::UnsignedShort if bscale == 1.0 && bzero == 32768.0 => {
+            Pixels::U16(hdu.read_image(&mut f).map_err(rerr)?)
+        }
+        ImageType::Short if bscale == 1.0 && bzero == 0.0 => Pixels::I16(hdu.read_image(&mut f).map_err(rerr)?),
+        _ => Pixels::F64(hdu.read_image(&mut f).map_err(rerr)?),
+    };
+    if pixels.len() != nx * ny {
+        return Err(fits_err(path, format!("read {} pixels, header says {nx} x {ny}", pixels.len())));
     }
-    Ok(Frame { path: path.into(), nx, ny, data, hwp_deg, filter, exptime_s, bitpix })
+    Ok(RawFrame { path: path.into(), nx, ny, pixels, hwp_deg, filter, exptime_s, bitpix })
 }
 
 #[cfg(test)]

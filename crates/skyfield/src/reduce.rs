@@ -20,7 +20,7 @@
 
 use crate::beams::BeamGeometry;
 use crate::bin::{clipped_bin, ClipConfig, PixelSample};
-use crate::io::{read_frame, Frame};
+use crate::io::{read_frame_raw, Frame, PixelView, RawFrame};
 use crate::maps::{BinGeometry, StokesMap};
 use crate::{Error, Warning};
 use instrument::Instrument;
@@ -51,18 +51,132 @@ impl Default for ReduceConfig {
 /// Read frames in parallel; `on_read` is called once per file read (for a progress bar).
 /// The first unreadable file (in the order given) is the error.
 pub fn read_frames(paths: &[PathBuf], inst: &Instrument, on_read: &(dyn Fn() + Sync)) -> Result<Vec<Frame>, Error> {
+    Ok(read_frames_raw(paths, inst, on_read)?.into_iter().map(|(r, _)| r.into_frame()).collect())
+}
+
+/// Non-finite and saturated pixel counts of one frame.
+type BadCounts = (usize, usize);
+
+/// [`read_frames`] in the stored pixel types, with each frame's bad-pixel counts taken while
+/// it is still in cache.
+fn read_frames_raw(
+    paths: &[PathBuf],
+    inst: &Instrument,
+    on_read: &(dyn Fn() + Sync),
+) -> Result<Vec<(RawFrame, BadCounts)>, Error> {
     if paths.is_empty() {
         return Err(Error::NoFrames);
     }
-    let res: Vec<Result<Frame, Error>> = paths
+    let sat = inst.detector.saturation_adu;
+    let res: Vec<Result<(RawFrame, BadCounts), Error>> = paths
         .par_iter()
         .map(|p| {
-            let r = read_frame(p, inst);
+            let r = read_frame_raw(p, inst).map(|fr| {
+                let c = fr.pixels.view().count_bad(sat);
+                (fr, c)
+            });
             on_read();
             r
         })
         .collect();
     res.into_iter().collect()
+}
+
+/// What grouping decided: the filter, sorted angles, which frames (indices) at each angle in
+/// summing order, and the notes.
+struct Grouping {
+    filter: String,
+    angles: Vec<f64>,
+    members: Vec<Vec<usize>>,
+    nx: usize,
+    ny: usize,
+    warnings: Vec<Warning>,
+}
+
+/// The checks of [`FrameSet::from_frames`] on frame facts alone (`meta`: path, filter, nx,
+/// ny, HWP angle; `bad`: non-finite and saturated counts).
+fn group_frames(
+    meta: &[(&Path, &str, usize, usize, f64)],
+    bad: &[BadCounts],
+    inst: &Instrument,
+    require_complete: bool,
+) -> Result<Grouping, Error> {
+    if meta.is_empty() {
+        return Err(Error::NoFrames);
+    }
+    let canon = |f: &str| inst.filter(f).map(|x| x.name.clone()).unwrap_or_else(|_| f.to_string());
+    let mut by_filter: BTreeMap<String, Vec<&Path>> = BTreeMap::new();
+    for fr in meta {
+        by_filter.entry(canon(fr.1)).or_default().push(fr.0);
+    }
+    if by_filter.len() > 1 {
+        let details: Vec<String> = by_filter
+            .iter()
+            .map(|(f, ps)| {
+                let names: Vec<String> = ps.iter().take(3).map(|p| p.display().to_string()).collect();
+                let more = if ps.len() > 3 { format!(" and {} more", ps.len() - 3) } else { String::new() };
+                format!("{f}: {}{more}", names.join(", "))
+            })
+            .collect();
+        return Err(Error::MixedFilters { details: details.join("; ") });
+    }
+    let filter = by_filter.into_keys().next().unwrap_or_default();
+    let (nx, ny) = (meta[0].2, meta[0].3);
+    for fr in meta {
+        if fr.2 != nx || fr.3 != ny {
+            return Err(Error::SizeMismatch {
+                path: fr.0.into(),
+                got_nx: fr.2,
+                got_ny: fr.3,
+                expected: format!("{} is {nx} x {ny}", meta[0].0.display()),
+            });
+        }
+    }
+    let mut warnings = Vec::new();
+    for (fr, &(nbad, nsat)) in meta.iter().zip(bad) {
+        if nbad == fr.2 * fr.3 {
+            return Err(Error::AllNonFinite { path: fr.0.into() });
+        }
+        if nbad > 0 {
+            warnings.push(Warning { file: Some(fr.0.into()), message: format!("{nbad} NaN/infinite pixels masked") });
+        }
+        let sat = inst.detector.saturation_adu;
+        if nsat > 0 {
+            warnings.push(Warning {
+                file: Some(fr.0.into()),
+                message: format!("{nsat} saturated pixels (>= {sat} ADU) masked"),
+            });
+        }
+    }
+    // Group by angle (stable sort: repeated exposures are summed in the order given).
+    let mut angles: Vec<f64> = Vec::new();
+    let mut members: Vec<Vec<usize>> = Vec::new();
+    let mut order: Vec<usize> = (0..meta.len()).collect();
+    order.sort_by(|&a, &b| meta[a].4.total_cmp(&meta[b].4));
+    for k in order {
+        let fr = &meta[k];
+        match angles.iter().position(|a| (a - fr.4).abs() < ANGLE_TOL_DEG) {
+            Some(i) => {
+                warnings.push(Warning {
+                    file: Some(fr.0.into()),
+                    message: format!(
+                        "second frame at HWP angle {} deg: summed with {}",
+                        fr.4,
+                        meta[members[i][0]].0.display()
+                    ),
+                });
+                members[i].push(k);
+            }
+            None => {
+                angles.push(fr.4);
+                members.push(vec![k]);
+            }
+        }
+    }
+    if require_complete {
+        check_complete(&filter, &angles)?;
+    }
+    Ok(Grouping { filter, angles, members, nx, ny, warnings })
 }
 
 /// A usable set: one filter, one detector size, each HWP angle once (frames at the same
@@ -91,93 +205,28 @@ fn fmt_angles(a: &[f64]) -> String {
 
 impl FrameSet {
     /// Group and check frames (see the module docs).
-    pub fn from_frames(frames: Vec<Frame>, inst: &Instrument, require_complete: bool) -> Result<Self, Error> {
-        if frames.is_empty() {
-            return Err(Error::NoFrames);
-        }
-        let canon = |f: &str| inst.filter(f).map(|x| x.name.clone()).unwrap_or_else(|_| f.to_string());
-        let mut by_filter: BTreeMap<String, Vec<&Path>> = BTreeMap::new();
-        for fr in &frames {
-            by_filter.entry(canon(&fr.filter)).or_default().push(&fr.path);
-        }
-        if by_filter.len() > 1 {
-            let details: Vec<String> = by_filter
-                .iter()
-                .map(|(f, ps)| {
-                    let names: Vec<String> = ps.iter().take(3).map(|p| p.display().to_string()).collect();
-                    let more = if ps.len() > 3 { format!(" and {} more", ps.len() - 3) } else { String::new() };
-                    format!("{f}: {}{more}", names.join(", "))
-                })
-                .collect();
-            return Err(Error::MixedFilters { details: details.join("; ") });
-        }
-        let filter = by_filter.into_keys().next().unwrap_or_default();
-        let (nx, ny) = (frames[0].nx, frames[0].ny);
-        for fr in &frames {
-            if fr.nx != nx || fr.ny != ny {
-                return Err(Error::SizeMismatch {
-                    path: fr.path.clone(),
-                    got_nx: fr.nx,
-                    got_ny: fr.ny,
-                    expected: format!("{} is {nx} x {ny}", frames[0].path.display()),
-                });
-            }
-        }
-        let mut warnings = Vec::new();
-        for fr in &frames {
-            let bad = fr.data.iter().filter(|v| !v.is_finite()).count();
-            if bad == fr.data.len() {
-                return Err(Error::AllNonFinite { path: fr.path.clone() });
-            }
-            if bad > 0 {
-                warnings.push(Warning {
-                    file: Some(fr.path.clone()),
-                    message: format!("{bad} NaN/infinite pixels masked"),
-                });
-            }
-            let sat = inst.detector.saturation_adu;
-            let nsat = fr.data.iter().filter(|&&v| v >= sat).count();
-            if nsat > 0 {
-                warnings.push(Warning {
-                    file: Some(fr.path.clone()),
-                    message: format!("{nsat} saturated pixels (>= {sat} ADU) masked"),
-                });
-            }
-        }
-        // Group by angle, summing repeated exposures.
-        let mut angles: Vec<f64> = Vec::new();
-        let mut data: Vec<Vec<f64>> = Vec::new();
-        let mut files: Vec<Vec<PathBuf>> = Vec::new();
-        let mut order: Vec<usize> = (0..frames.len()).collect();
-        order.sort_by(|&a, &b| frames[a].hwp_deg.total_cmp(&frames[b].hwp_deg));
-        for k in order {
-            let fr = &frames[k];
-            match angles.iter().position(|a| (a - fr.hwp_deg).abs() < ANGLE_TOL_DEG) {
-                Some(i) => {
-                    for (d, s) in data[i].iter_mut().zip(&fr.data) {
-                        *d += s;
+    pub fn from_frames(mut frames: Vec<Frame>, inst: &Instrument, require_complete: bool) -> Result<Self, Error> {
+        let sat = inst.detector.saturation_adu;
+        let bad: Vec<BadCounts> = frames.par_iter().map(|fr| PixelView::F64(&fr.data).count_bad(sat)).collect();
+        let meta: Vec<_> =
+            frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
+        let g = group_frames(&meta, &bad, inst, require_complete)?;
+        // Move (not copy) each angle's first frame; add the repeats to it.
+        let data: Vec<Vec<f64>> = g
+            .members
+            .iter()
+            .map(|m| {
+                let mut d = std::mem::take(&mut frames[m[0]].data);
+                for &k in &m[1..] {
+                    for (a, s) in d.iter_mut().zip(&frames[k].data) {
+                        *a += s;
                     }
-                    files[i].push(fr.path.clone());
-                    warnings.push(Warning {
-                        file: Some(fr.path.clone()),
-                        message: format!(
-                            "second frame at HWP angle {} deg: summed with {}",
-                            fr.hwp_deg,
-                            files[i][0].display()
-                        ),
-                    });
                 }
-                None => {
-                    angles.push(fr.hwp_deg);
-                    data.push(fr.data.clone());
-                    files.push(vec![fr.path.clone()]);
-                }
-            }
-        }
-        if require_complete {
-            check_complete(&filter, &angles)?;
-        }
-        Ok(Self { filter, angles_deg: angles, data, files, nx, ny, warnings })
+                d
+            })
+            .collect();
+        let files = g.members.iter().map(|m| m.iter().map(|&k| frames[k].path.clone()).collect()).collect();
+        Ok(Self { filter: g.filter, angles_deg: g.angles, data, files, nx: g.nx, ny: g.ny, warnings: g.warnings })
     }
 }
 
@@ -303,47 +352,120 @@ pub fn pixel_qu(set: &FrameSet, inst: &Instrument) -> Result<(Vec<f64>, Vec<f64>
 
 /// Reduce a checked frame set to a binned Stokes map.
 pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Result<Reduced, Error> {
+    let views: Vec<PixelView> = set.data.iter().map(|d| PixelView::F64(d)).collect();
+    let nexp: Vec<usize> = set.files.iter().map(|f| f.len()).collect();
+    let map = reduce_views(&views, &nexp, set.nx, set.ny, &set.angles_deg, &set.filter, inst, cfg)?;
+    Ok(Reduced { map, warnings: set.warnings.clone() })
+}
+
+/// The reduction proper on per-angle images (`views`, ADU, `nexp[i]` exposures summed).
+///
+/// Parallel over rows of bins; within a detector row each angle's o and e row segments are
+/// loaded once (as f64) and every pixel's `F_i` folded into its running `Q`, `U`, their photon
+/// variances and the intensity, in angle order: the same operations in the same order as a
+/// per-pixel `solver.solve`, so the result does not depend on this layout.
+#[allow(clippy::too_many_arguments)]
+fn reduce_views(
+    views: &[PixelView],
+    nexp: &[usize],
+    nx: usize,
+    ny: usize,
+    angles_deg: &[f64],
+    filter: &str,
+    inst: &Instrument,
+    cfg: &ReduceConfig,
+) -> Result<StokesMap, Error> {
     if cfg.bin_px == 0 {
         return Err(Error::Invalid("bin size must be at least 1 px".into()));
     }
-    let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();
+    let theta: Vec<f64> = angles_deg.iter().map(|a| a.to_radians()).collect();
     let solver = StokesSolver::new(&theta)?;
     let g = BeamGeometry::new(inst);
-    if (set.nx, set.ny) != (g.nx, g.ny) {
+    if (nx, ny) != (g.nx, g.ny) {
         return Err(Error::Invalid(format!(
             "frames are {} x {} px, instrument {} has {} x {}",
-            set.nx, set.ny, inst.name, g.nx, g.ny
+            nx, ny, inst.name, g.nx, g.ny
         )));
     }
     let geom = bin_geometry(inst, cfg.bin_px);
     let d = &inst.detector;
     let (bias, gain, sat, rn2) = (d.bias_adu, d.gain_e_per_adu, d.saturation_adu, d.read_noise_e.powi(2));
     let min_pixels = cfg.min_pixels.unwrap_or((cfg.bin_px * cfg.bin_px / 4).max(3));
-    let n = set.angles_deg.len();
-    let nexp_total: f64 = set.files.iter().map(|f| f.len() as f64).sum();
-    let stats: Vec<_> = (0..geom.len())
+    let n = angles_deg.len();
+    let nexp_total: f64 = nexp.iter().map(|&k| k as f64).sum();
+    let (cq, cu) = solver.weights();
+    let bp = geom.bin_px;
+    // Detector columns the bins cover.
+    let xa = geom.origin_x.min(g.nx);
+    let xb = (geom.origin_x + geom.nx * bp).min(g.nx);
+    let stats: Vec<Option<crate::bin::BinStats>> = (0..geom.ny)
         .into_par_iter()
         .map_init(
-            || (vec![0.0; n], vec![0.0; n], Vec::new()),
-            |(f, vf, samples), k| {
-                let (i, j) = (k % geom.nx, k / geom.nx);
-                samples.clear();
-                let x0 = geom.origin_x + i * geom.bin_px;
-                let y0 = geom.origin_y + j * geom.bin_px;
-                for y in y0..(y0 + geom.bin_px).min(g.ny) {
-                    for x in x0..(x0 + geom.bin_px).min(g.nx) {
-                        if let Some((o, e)) = g.beams_of_sky(x, y) {
-                            if let Some(s) = pixel_sample(set, &solver, o, e, bias, gain, sat, rn2, f, vf) {
-                                samples.push(s);
+            || Scratch::new(xb - xa, geom.nx),
+            |sc, j| {
+                for b in sc.bins.iter_mut() {
+                    b.clear();
+                }
+                let y0 = geom.origin_y + j * bp;
+                for y in y0..(y0 + bp).min(g.ny) {
+                    sc.segments_of_row(&g, y, xa, xb);
+                    for si in 0..sc.segs.len() {
+                        let (x0, x1, o0, e0) = sc.segs[si];
+                        let len = x1 - x0;
+                        let acc = &mut sc.acc[..len];
+                        acc.iter_mut().for_each(|a| *a = Acc::default());
+                        for i in 0..n {
+                            let ne = nexp[i] as f64;
+                            let (bias_n, sat_n) = (bias * ne, sat * ne);
+                            let (cqi, cui) = (cq[i], cu[i]);
+                            let (cq2, cu2) = (cqi * cqi, cui * cui);
+                            views[i].load(o0, &mut sc.ro[..len]);
+                            views[i].load(e0, &mut sc.re[..len]);
+                            for ((a, &ro), &re) in acc.iter_mut().zip(&sc.ro[..len]).zip(&sc.re[..len]) {
+                                if !(ro.is_finite() && re.is_finite()) || ro >= sat_n || re >= sat_n {
+                                    a.ok = false;
+                                }
+                                let fo = (ro - bias_n) * gain;
+                                let fe = (re - bias_n) * gain;
+                                let tot = fo + fe;
+                                if !(tot > 0.0) {
+                                    a.ok = false;
+                                }
+                                let f = normalized_difference(fo, fe);
+                                let vf = sigma_normalized_difference(
+                                    fo,
+                                    fe,
+                                    (fo.max(0.0) + ne * rn2).sqrt(),
+                                    (fe.max(0.0) + ne * rn2).sqrt(),
+                                )
+                                .powi(2);
+                                a.q += cqi * f;
+                                a.u += cui * f;
+                                a.var_q += cq2 * vf;
+                                a.var_u += cu2 * vf;
+                                a.isum += tot / ne;
+                            }
+                        }
+                        for (k, a) in acc.iter().enumerate() {
+                            if a.ok {
+                                let bi = (x0 + k - geom.origin_x) / bp;
+                                sc.bins[bi].push(PixelSample {
+                                    q: a.q,
+                                    u: a.u,
+                                    i: a.isum / n as f64,
+                                    var_q: a.var_q,
+                                    var_u: a.var_u,
+                                });
                             }
                         }
                     }
                 }
-                clipped_bin(samples, cfg.clip, min_pixels)
+                sc.bins.iter().map(|b| clipped_bin(b, cfg.clip, min_pixels)).collect::<Vec<_>>()
             },
         )
+        .flatten_iter()
         .collect();
-    let mut map = StokesMap::empty(geom, &inst.name, &set.filter, set.angles_deg.clone());
+    let mut map = StokesMap::empty(geom, &inst.name, filter, angles_deg.to_vec());
     for (k, s) in stats.into_iter().enumerate() {
         let Some(s) = s else { continue };
         let (p, chi) = stokes::polarization(s.q, s.u);
@@ -366,19 +488,134 @@ pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Resu
     if map.n_valid() == 0 {
         return Err(Error::NoValidBins);
     }
-    Ok(Reduced { map, warnings: set.warnings.clone() })
+    Ok(map)
+}
+
+/// Running per-pixel sums over the HWP angles.
+#[derive(Debug, Clone, Copy)]
+struct Acc {
+    q: f64,
+    u: f64,
+    var_q: f64,
+    var_u: f64,
+    isum: f64,
+    ok: bool,
+}
+
+impl Default for Acc {
+    fn default() -> Self {
+        Self { q: 0.0, u: 0.0, var_q: 0.0, var_u: 0.0, isum: 0.0, ok: true }
+    }
+}
+
+/// Per-thread buffers of [`reduce_views`], reused across bin rows.
+struct Scratch {
+    ro: Vec<f64>,
+    re: Vec<f64>,
+    acc: Vec<Acc>,
+    /// Runs of sky pixels in one detector row: `(x0, x1, o index of x0, e index of x0)`,
+    /// o and e both contiguous.
+    segs: Vec<(usize, usize, usize, usize)>,
+    bins: Vec<Vec<PixelSample>>,
+}
+
+impl Scratch {
+    fn new(width: usize, nbins: usize) -> Self {
+        Self {
+            ro: vec![0.0; width],
+            re: vec![0.0; width],
+            acc: vec![Acc::default(); width],
+            segs: Vec::new(),
+            bins: vec![Vec::new(); nbins],
+        }
+    }
+
+    /// The runs of sky pixels of row `y` within columns `[xa, xb)`.
+    fn segments_of_row(&mut self, g: &BeamGeometry, y: usize, xa: usize, xb: usize) {
+        self.segs.clear();
+        if xa >= xb {
+            return;
+        }
+        if g.along_y {
+            // Strips stacked along y: a row is all sky or all masked, with one e shift.
+            if let Some((o, e)) = g.beams_of_sky(xa, y) {
+                self.segs.push((xa, xb, o, e));
+            }
+            return;
+        }
+        let mut cur: Option<(usize, usize, usize, usize)> = None;
+        for x in xa..xb {
+            match (g.beams_of_sky(x, y), cur.as_mut()) {
+                (Some((o, e)), Some(c)) if c.2 + (x - c.0) == o && c.3 + (x - c.0) == e => c.1 = x + 1,
+                (Some((o, e)), _) => {
+                    if let Some(c) = cur.take() {
+                        self.segs.push(c);
+                    }
+                    cur = Some((x, x + 1, o, e));
+                }
+                (None, _) => {
+                    if let Some(c) = cur.take() {
+                        self.segs.push(c);
+                    }
+                }
+            }
+        }
+        if let Some(c) = cur {
+            self.segs.push(c);
+        }
+    }
 }
 
 /// Read, check and reduce frame files in one call; `on_read` ticks once per file read.
+///
+/// Same result as [`read_frames`] + [`FrameSet::from_frames`] + [`reduce_set`], but the frames
+/// stay in their stored pixel type (f32 frames are not widened to f64 copies) and an angle's
+/// frame is summed into f64 only when it has repeats.
 pub fn reduce_files(
     paths: &[PathBuf],
     inst: &Instrument,
     cfg: &ReduceConfig,
     on_read: &(dyn Fn() + Sync),
 ) -> Result<Reduced, Error> {
-    let frames = read_frames(paths, inst, on_read)?;
-    let set = FrameSet::from_frames(frames, inst, cfg.require_complete_set)?;
-    reduce_set(&set, inst, cfg)
+    let frames = read_frames_raw(paths, inst, on_read)?;
+    let meta: Vec<_> =
+        frames.iter().map(|(f, _)| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
+    let bad: Vec<BadCounts> = frames.iter().map(|(_, c)| *c).collect();
+    let g = group_frames(&meta, &bad, inst, cfg.require_complete_set)?;
+    let sums: Vec<Option<Vec<f64>>> = g
+        .members
+        .par_iter()
+        .map(|m| {
+            (m.len() > 1).then(|| {
+                let mut d = frames[m[0]].0.pixels.clone().into_f64();
+                const CH: usize = 1 << 14;
+                let mut row = vec![0.0; d.len().min(CH)];
+                for &k in &m[1..] {
+                    let v = frames[k].0.pixels.view();
+                    for (c, chunk) in d.chunks_mut(CH).enumerate() {
+                        let r = &mut row[..chunk.len()];
+                        v.load(c * CH, r);
+                        for (a, s) in chunk.iter_mut().zip(r.iter()) {
+                            *a += s;
+                        }
+                    }
+                }
+                d
+            })
+        })
+        .collect();
+    let views: Vec<PixelView> = g
+        .members
+        .iter()
+        .zip(&sums)
+        .map(|(m, s)| match s {
+            Some(d) => PixelView::F64(d),
+            None => frames[m[0]].0.pixels.view(),
+        })
+        .collect();
+    let nexp: Vec<usize> = g.members.iter().map(|m| m.len()).collect();
+    let map = reduce_views(&views, &nexp, g.nx, g.ny, &g.angles, &g.filter, inst, cfg)?;
+    Ok(Reduced { map, warnings: g.warnings })
 }
 
 #[cfg(test)]
