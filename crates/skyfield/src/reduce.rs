@@ -401,7 +401,7 @@ fn reduce_views(
     let stats: Vec<Option<crate::bin::BinStats>> = (0..geom.ny)
         .into_par_iter()
         .map_init(
-            || Scratch::new(xb - xa, geom.nx),
+            || Scratch::new(geom.nx),
             |sc, j| {
                 for b in sc.bins.iter_mut() {
                     b.clear();
@@ -411,52 +411,35 @@ fn reduce_views(
                     sc.segments_of_row(&g, y, xa, xb);
                     for si in 0..sc.segs.len() {
                         let (x0, x1, o0, e0) = sc.segs[si];
-                        let len = x1 - x0;
-                        let acc = &mut sc.acc[..len];
-                        acc.iter_mut().for_each(|a| *a = Acc::default());
-                        for i in 0..n {
-                            let ne = nexp[i] as f64;
-                            let (bias_n, sat_n) = (bias * ne, sat * ne);
-                            let (cqi, cui) = (cq[i], cu[i]);
-                            let (cq2, cu2) = (cqi * cqi, cui * cui);
-                            views[i].load(o0, &mut sc.ro[..len]);
-                            views[i].load(e0, &mut sc.re[..len]);
-                            for ((a, &ro), &re) in acc.iter_mut().zip(&sc.ro[..len]).zip(&sc.re[..len]) {
-                                if !(ro.is_finite() && re.is_finite()) || ro >= sat_n || re >= sat_n {
-                                    a.ok = false;
-                                }
-                                let fo = (ro - bias_n) * gain;
-                                let fe = (re - bias_n) * gain;
-                                let tot = fo + fe;
-                                if !(tot > 0.0) {
-                                    a.ok = false;
-                                }
-                                let f = normalized_difference(fo, fe);
-                                let vf = sigma_normalized_difference(
-                                    fo,
-                                    fe,
-                                    (fo.max(0.0) + ne * rn2).sqrt(),
-                                    (fe.max(0.0) + ne * rn2).sqrt(),
-                                )
-                                .powi(2);
-                                a.q += cqi * f;
-                                a.u += cui * f;
-                                a.var_q += cq2 * vf;
-                                a.var_u += cu2 * vf;
-                                a.isum += tot / ne;
+                        let mut c0 = 0;
+                        while c0 < x1 - x0 {
+                            let len = CHUNK.min(x1 - x0 - c0);
+                            sc.reset(len);
+                            for i in 0..n {
+                                sc.fold_angle(
+                                    &views[i],
+                                    o0 + c0,
+                                    e0 + c0,
+                                    len,
+                                    nexp[i],
+                                    (cq[i], cu[i]),
+                                    (bias, gain, sat, rn2),
+                                );
                             }
-                        }
-                        for (k, a) in acc.iter().enumerate() {
-                            if a.ok {
-                                let bi = (x0 + k - geom.origin_x) / bp;
-                                sc.bins[bi].push(PixelSample {
-                                    q: a.q,
-                                    u: a.u,
-                                    i: a.isum / n as f64,
-                                    var_q: a.var_q,
-                                    var_u: a.var_u,
-                                });
+                            let Scratch { q, u, vq, vu, isum, ok, bins, .. } = sc;
+                            for k in 0..len {
+                                if ok[k] {
+                                    let bi = (x0 + c0 + k - geom.origin_x) / bp;
+                                    bins[bi].push(PixelSample {
+                                        q: q[k],
+                                        u: u[k],
+                                        i: isum[k] / n as f64,
+                                        var_q: vq[k],
+                                        var_u: vu[k],
+                                    });
+                                }
                             }
+                            c0 += len;
                         }
                     }
                 }
@@ -491,28 +474,25 @@ fn reduce_views(
     Ok(map)
 }
 
-/// Running per-pixel sums over the HWP angles.
-#[derive(Debug, Clone, Copy)]
-struct Acc {
-    q: f64,
-    u: f64,
-    var_q: f64,
-    var_u: f64,
-    isum: f64,
-    ok: bool,
-}
+/// Pixels of a row processed together: every per-pixel buffer stays in L1.
+const CHUNK: usize = 256;
 
-impl Default for Acc {
-    fn default() -> Self {
-        Self { q: 0.0, u: 0.0, var_q: 0.0, var_u: 0.0, isum: 0.0, ok: true }
-    }
-}
-
-/// Per-thread buffers of [`reduce_views`], reused across bin rows.
+/// Per-thread buffers of [`reduce_views`], reused across bin rows: running per-pixel sums
+/// over the HWP angles of one chunk of a row (structure of arrays, so the loops vectorize),
+/// and the samples of each bin of the current bin row.
 struct Scratch {
     ro: Vec<f64>,
     re: Vec<f64>,
-    acc: Vec<Acc>,
+    fo: Vec<f64>,
+    fe: Vec<f64>,
+    so: Vec<f64>,
+    se: Vec<f64>,
+    q: Vec<f64>,
+    u: Vec<f64>,
+    vq: Vec<f64>,
+    vu: Vec<f64>,
+    isum: Vec<f64>,
+    ok: Vec<bool>,
     /// Runs of sky pixels in one detector row: `(x0, x1, o index of x0, e index of x0)`,
     /// o and e both contiguous.
     segs: Vec<(usize, usize, usize, usize)>,
@@ -520,13 +500,80 @@ struct Scratch {
 }
 
 impl Scratch {
-    fn new(width: usize, nbins: usize) -> Self {
+    fn new(nbins: usize) -> Self {
+        let z = || vec![0.0; CHUNK];
         Self {
-            ro: vec![0.0; width],
-            re: vec![0.0; width],
-            acc: vec![Acc::default(); width],
+            ro: z(),
+            re: z(),
+            fo: z(),
+            fe: z(),
+            so: z(),
+            se: z(),
+            q: z(),
+            u: z(),
+            vq: z(),
+            vu: z(),
+            isum: z(),
+            ok: vec![true; CHUNK],
             segs: Vec::new(),
             bins: vec![Vec::new(); nbins],
+        }
+    }
+
+    fn reset(&mut self, len: usize) {
+        for v in [&mut self.q, &mut self.u, &mut self.vq, &mut self.vu, &mut self.isum] {
+            v[..len].fill(0.0);
+        }
+        self.ok[..len].fill(true);
+    }
+
+    /// Fold one HWP angle into the running sums of `len` pixels whose o and e images start
+    /// at detector indices `o0`, `e0`: the per-pixel steps of the module docs (mask, electrons,
+    /// the one `F_i`, its photon + read noise variance, `Q`, `U` by the solver's weights), in
+    /// the order a per-pixel `StokesSolver::solve` uses, so sums are the same to the bit.
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn fold_angle(
+        &mut self,
+        view: &PixelView,
+        o0: usize,
+        e0: usize,
+        len: usize,
+        nexp: usize,
+        (cqi, cui): (f64, f64),
+        (bias, gain, sat, rn2): (f64, f64, f64, f64),
+    ) {
+        let ne = nexp as f64;
+        let (bias_n, sat_n, rn2_n) = (bias * ne, sat * ne, ne * rn2);
+        view.load(o0, &mut self.ro[..len]);
+        view.load(e0, &mut self.re[..len]);
+        // Branch-free, vectorizable part.
+        let (ro, re) = (&self.ro[..len], &self.re[..len]);
+        let (fo, fe, so, se) = (&mut self.fo[..len], &mut self.fe[..len], &mut self.so[..len], &mut self.se[..len]);
+        let (q, u, isum, ok) = (&mut self.q[..len], &mut self.u[..len], &mut self.isum[..len], &mut self.ok[..len]);
+        for k in 0..len {
+            let (r_o, r_e) = (ro[k], re[k]);
+            let bad = !(r_o.is_finite() & r_e.is_finite()) | (r_o >= sat_n) | (r_e >= sat_n);
+            let f_o = (r_o - bias_n) * gain;
+            let f_e = (r_e - bias_n) * gain;
+            let tot = f_o + f_e;
+            ok[k] &= !bad & (tot > 0.0);
+            let f = normalized_difference(f_o, f_e);
+            q[k] += cqi * f;
+            u[k] += cui * f;
+            // x / 1 is x exactly: skip the division for single exposures.
+            isum[k] += if nexp == 1 { tot } else { tot / ne };
+            fo[k] = f_o;
+            fe[k] = f_e;
+            so[k] = (f_o.max(0.0) + rn2_n).sqrt();
+            se[k] = (f_e.max(0.0) + rn2_n).sqrt();
+        }
+        let (cq2, cu2) = (cqi * cqi, cui * cui);
+        let (vq, vu) = (&mut self.vq[..len], &mut self.vu[..len]);
+        for k in 0..len {
+            let vf = sigma_normalized_difference(fo[k], fe[k], so[k], se[k]).powi(2);
+            vq[k] += cq2 * vf;
+            vu[k] += cu2 * vf;
         }
     }
 
