@@ -27,7 +27,7 @@ use instrument::Instrument;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use stokes::{normalized_difference, sigma_normalized_difference, StokesSolver};
+use stokes::{normalized_difference, sigma_normalized_difference, sigma_normalized_difference_into, StokesSolver};
 
 /// Reduction settings.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -487,6 +487,8 @@ struct Scratch {
     fe: Vec<f64>,
     so: Vec<f64>,
     se: Vec<f64>,
+    /// `sigma_F` of the current angle.
+    sf: Vec<f64>,
     q: Vec<f64>,
     u: Vec<f64>,
     vq: Vec<f64>,
@@ -509,6 +511,7 @@ impl Scratch {
             fe: z(),
             so: z(),
             se: z(),
+            sf: z(),
             q: z(),
             u: z(),
             vq: z(),
@@ -570,8 +573,10 @@ impl Scratch {
         }
         let (cq2, cu2) = (cqi * cqi, cui * cui);
         let (vq, vu) = (&mut self.vq[..len], &mut self.vu[..len]);
+        let sf = &mut self.sf[..len];
+        sigma_normalized_difference_into(fo, fe, so, se, sf);
         for k in 0..len {
-            let vf = sigma_normalized_difference(fo[k], fe[k], so[k], se[k]).powi(2);
+            let vf = sf[k].powi(2);
             vq[k] += cq2 * vf;
             vu[k] += cu2 * vf;
         }

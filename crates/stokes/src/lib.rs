@@ -18,7 +18,10 @@ pub mod solver;
 pub mod stats;
 
 pub use reduce::{reduce, Estimator, Measurement, Reduction, Warning};
-pub use solver::{normalized_difference, polarization, sigma_normalized_difference, QuEstimate, StokesSolver};
+pub use solver::{
+    normalized_difference, polarization, sigma_normalized_difference, sigma_normalized_difference_into, QuEstimate,
+    StokesSolver,
+};
 
 /// Errors of the reduction: each names the offending input.
 #[derive(Debug, thiserror::Error, Clone, PartialEq)]
