@@ -37,6 +37,32 @@ pub fn median_in_place(v: &mut [f64]) -> f64 {
     }
 }
 
+/// `x` as an integer whose order is `f64::total_cmp`'s (the same transform).
+#[inline]
+fn total_key(x: f64) -> i64 {
+    let b = x.to_bits() as i64;
+    b ^ ((((b >> 63) as u64) >> 1) as i64)
+}
+
+/// Inverse of [`total_key`] (the transform is its own inverse: it never touches the sign bit).
+#[inline]
+fn from_total_key(k: i64) -> f64 {
+    f64::from_bits(total_key(f64::from_bits(k as u64)) as u64)
+}
+
+/// [`median_in_place`] on [`total_key`]s (reorders `v`); `v` is not empty.
+fn median_keys(v: &mut [i64]) -> f64 {
+    let n = v.len();
+    let (_, m, _) = v.select_nth_unstable(n / 2);
+    let hi = from_total_key(*m);
+    if n % 2 == 1 {
+        hi
+    } else {
+        let lo = from_total_key(*v[..n / 2].iter().max().expect("n >= 2"));
+        0.5 * (lo + hi)
+    }
+}
+
 /// Iterative sigma clipping of several columns at once: a row is kept only if it lies within
 /// `nsigma` robust sigmas of the median in *every* column (so a star, bright in intensity but
 /// with the sky's polarization, is still rejected). The robust sigma is `1.4826 MAD`; when the
@@ -46,20 +72,23 @@ pub fn median_in_place(v: &mut [f64]) -> f64 {
 pub fn sigma_clip_columns(cols: &[&[f64]], cfg: ClipConfig) -> Vec<bool> {
     let n = cols.first().map_or(0, |c| c.len());
     let mut keep: Vec<bool> = (0..n).map(|r| cols.iter().all(|c| c[r].is_finite())).collect();
-    let mut buf = Vec::with_capacity(n);
+    // Medians are selected on integer keys of the IEEE total order (what `median_in_place`
+    // compares with `total_cmp`, without the per-comparison transform): same values.
+    let mut buf: Vec<i64> = Vec::with_capacity(n);
+    let mut centre = Vec::with_capacity(cols.len());
     for _ in 0..cfg.max_iter {
-        let mut centre = Vec::with_capacity(cols.len());
+        centre.clear();
         for c in cols {
             buf.clear();
-            buf.extend((0..n).filter(|&r| keep[r]).map(|r| c[r]));
+            buf.extend((0..n).filter(|&r| keep[r]).map(|r| total_key(c[r])));
             if buf.len() < 3 {
                 return keep;
             }
-            let med = median_in_place(&mut buf);
+            let med = median_keys(&mut buf);
             for v in buf.iter_mut() {
-                *v = (*v - med).abs();
+                *v = total_key((from_total_key(*v) - med).abs());
             }
-            let mut sigma = MAD_TO_SIGMA * median_in_place(&mut buf);
+            let mut sigma = MAD_TO_SIGMA * median_keys(&mut buf);
             if sigma == 0.0 {
                 let kept: Vec<f64> = (0..n).filter(|&r| keep[r]).map(|r| c[r]).collect();
                 let m = kept.iter().sum::<f64>() / kept.len() as f64;
@@ -161,6 +190,23 @@ mod tests {
         assert_eq!(median_in_place(&mut [3.0, 1.0, 2.0]), 2.0);
         assert_eq!(median_in_place(&mut [4.0, 1.0, 3.0, 2.0]), 2.5);
         assert!(median_in_place(&mut []).is_nan());
+    }
+
+    /// The integer-key median is `median_in_place` (total order) to the bit: odd and even
+    /// counts, negatives, infinities, subnormals.
+    #[test]
+    fn key_median_is_total_order_median() {
+        let pool = [-3.5, 2.0, -0.0, 0.0, 1e-310, -1e-310, f64::INFINITY, f64::NEG_INFINITY, 7.0, -7.0, 0.25, 1e300];
+        for n in 1..pool.len() {
+            for rot in 0..pool.len() {
+                let v: Vec<f64> = (0..n).map(|k| pool[(k * 5 + rot) % pool.len()]).collect();
+                let want = median_in_place(&mut v.clone());
+                let mut keys: Vec<i64> = v.iter().map(|&x| total_key(x)).collect();
+                let got = median_keys(&mut keys);
+                assert!(got == want || (got.is_nan() && want.is_nan()), "{v:?}: {got} vs {want}");
+                assert!(v.iter().all(|&x| from_total_key(total_key(x)).to_bits() == x.to_bits()));
+            }
+        }
     }
 
     #[test]
