@@ -27,6 +27,7 @@ pub fn sigma_normalized_difference(f_o: f64, f_e: f64, sigma_o: f64, sigma_e: f6
 /// values: the common case in a branch-free loop that vectorizes (frame reduction calls this
 /// per row and HWP angle), the rare overflow/underflow lanes redone by the scalar function.
 /// All slices must have `out.len()` elements.
+#[inline]
 pub fn sigma_normalized_difference_into(f_o: &[f64], f_e: &[f64], sigma_o: &[f64], sigma_e: &[f64], out: &mut [f64]) {
     let n = out.len();
     let (f_o, f_e, sigma_o, sigma_e) = (&f_o[..n], &f_e[..n], &sigma_o[..n], &sigma_e[..n]);
