@@ -51,7 +51,18 @@ impl Default for ReduceConfig {
 /// Read frames in parallel; `on_read` is called once per file read (for a progress bar).
 /// The first unreadable file (in the order given) is the error.
 pub fn read_frames(paths: &[PathBuf], inst: &Instrument, on_read: &(dyn Fn() + Sync)) -> Result<Vec<Frame>, Error> {
-    Ok(read_frames_raw(paths, inst, on_read)?.into_iter().map(|(r, _)| r.into_frame()).collect())
+    if paths.is_empty() {
+        return Err(Error::NoFrames);
+    }
+    let res: Vec<Result<Frame, Error>> = paths
+        .par_iter()
+        .map(|p| {
+            let r = read_frame_raw(p, inst).map(RawFrame::into_frame);
+            on_read();
+            r
+        })
+        .collect();
+    res.into_iter().collect()
 }
 
 /// Non-finite and saturated pixel counts of one frame.
