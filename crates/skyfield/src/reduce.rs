@@ -485,8 +485,9 @@ fn reduce_views(
     Ok(map)
 }
 
-/// Pixels of a row processed together: every per-pixel buffer stays in L1.
-const CHUNK: usize = 256;
+/// Pixels of a row processed together (a FORS row): the per-pixel buffers stay in L2 and each
+/// angle's o and e rows are read in long runs the hardware prefetcher follows.
+const CHUNK: usize = 2048;
 
 /// Per-thread buffers of [`reduce_views`], reused across bin rows: running per-pixel sums
 /// over the HWP angles of one chunk of a row (structure of arrays, so the loops vectorize),
