@@ -725,6 +725,57 @@ pub fn reduce_files(
 mod tests {
     use super::*;
 
+    fn tiny(axis: &str) -> Instrument {
+        let text = include_str!("../../../instruments/fors1.toml")
+            .replace("nx = 2048", "nx = 96")
+            .replace("ny = 2048", "ny = 64")
+            .replace("throw_arcsec = 22.0", "throw_arcsec = 2.0")
+            .replace("strip_count = 9", "strip_count = 3")
+            .replace("first_strip_y_px = 34", "first_strip_y_px = 2")
+            .replace("bias_adu = 0.0", "bias_adu = 200.0")
+            .replace("strip_axis = \"y\"", &format!("strip_axis = \"{axis}\""));
+        Instrument::from_toml_str(&text, Path::new("tiny.toml")).unwrap()
+    }
+
+    /// Noiseless uniform sky (`eq:F`: `F_i = Q cos 4theta_i + U sin 4theta_i`, o and e fluxes
+    /// `I/2 (1 +- F_i)`) for strips along y and along x: every valid bin returns the sky's Q, U
+    /// and I, so the o/e pixel runs the row kernel uses are the beams' (a wrong e pixel would
+    /// see the dark bias and give F = 1).
+    #[test]
+    fn uniform_sky_is_recovered_for_both_strip_axes() {
+        let (q0, u0, i0) = (0.013, -0.021, 4000.0);
+        for axis in ["y", "x"] {
+            let inst = tiny(axis);
+            let g = BeamGeometry::new(&inst);
+            let det = &inst.detector;
+            let angles: Vec<f64> = (0..4).map(|i| i as f64 * 22.5).collect();
+            let data: Vec<Vec<f64>> = angles
+                .iter()
+                .map(|a| {
+                    let t = 4.0 * a.to_radians();
+                    let f = q0 * t.cos() + u0 * t.sin();
+                    let mut d = vec![det.bias_adu; g.nx * g.ny];
+                    for (x, y) in g.sky_pixels() {
+                        let (o, e) = g.beams_of_sky(x, y).unwrap();
+                        d[o] = det.bias_adu + 0.5 * i0 * (1.0 + f) / det.gain_e_per_adu;
+                        d[e] = det.bias_adu + 0.5 * i0 * (1.0 - f) / det.gain_e_per_adu;
+                    }
+                    d
+                })
+                .collect();
+            let files = (0..4).map(|i| vec![PathBuf::from(format!("f{i}.fits"))]).collect();
+            let set =
+                FrameSet { filter: "V".into(), angles_deg: angles, data, files, nx: g.nx, ny: g.ny, warnings: vec![] };
+            let cfg = ReduceConfig { bin_px: 4, ..Default::default() };
+            let m = reduce_set(&set, &inst, &cfg).unwrap().map;
+            assert!(m.n_valid() >= 10, "axis {axis}: {} valid bins", m.n_valid());
+            for k in (0..m.q.len()).filter(|&k| m.valid[k]) {
+                assert!((m.q[k] - q0).abs() < 1e-12 && (m.u[k] - u0).abs() < 1e-12, "axis {axis} bin {k}");
+                assert!((m.intensity[k] - i0).abs() < 1e-8, "axis {axis} bin {k}: {}", m.intensity[k]);
+            }
+        }
+    }
+
     #[test]
     fn missing_angle_is_named() {
         let e = check_complete("V", &[0.0, 22.5, 67.5]).unwrap_err().to_string();
