@@ -1,7 +1,7 @@
 //! `instpol reduce`: frames to a binned Stokes map.
 
 use anyhow::Result;
-use skyfield::reduce::{FrameSet, ReduceConfig};
+use skyfield::reduce::ReduceConfig;
 use std::path::PathBuf;
 
 /// Reduce a set of dual-beam frames (one filter, N HWP angles) to a binned Stokes map: per
@@ -70,10 +70,10 @@ pub fn run(a: Args) -> Result<()> {
             .progress_chars("=> "),
     );
     bar.set_message("reading");
-    let frames = skyfield::reduce::read_frames(&a.frames, &inst, &|| bar.inc(1));
+    // The library's fast path: frames stay in their stored type, no f64 copies.
+    let r = skyfield::reduce::reduce_files(&a.frames, &inst, &cfg, &|| bar.inc(1));
     bar.finish_and_clear();
-    let set = FrameSet::from_frames(frames?, &inst, cfg.require_complete_set)?;
-    let r = skyfield::reduce::reduce_set(&set, &inst, &cfg)?;
+    let r = r?;
     for w in &r.warnings {
         eprintln!("warning: {w}");
     }
