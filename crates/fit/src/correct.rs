@@ -204,10 +204,11 @@ pub fn invert_exact_matrix(p: f64, phi: f64, q1: f64, u1: f64) -> Result<(f64, f
     Ok((s0[1] / s0[0], s0[2] / s0[0]))
 }
 
-/// Exact inversion of `eq:instpol` in closed form: intrinsic `(q0, u0)` from measured
-/// `(q1, u1)` and the instrumental `(qi, ui) = p (cos 2phi, sin 2phi)`.
+/// The shared start of [`invert_exact`] and [`exact_jacobian`]: `p = |(qi, ui)|`,
+/// `am = qi q1 + ui u1` and the denominator `d = 1 - am` of the inverse, refused when `M_I` is
+/// not physical (`p >= 1`) or the measurement cannot come from it (`d <= 0`).
 #[inline]
-pub fn invert_exact(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<(f64, f64), Error> {
+fn p_and_denominator(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<(f64, f64, f64), Error> {
     let p = (qi * qi + ui * ui).sqrt();
     if !(p < 1.0) {
         return Err(Error::Unphysical { p, x: f64::NAN, y: f64::NAN });
@@ -217,6 +218,14 @@ pub fn invert_exact(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<(f64, f64), Er
     if !(d > 0.0) {
         return Err(Error::Singular { q: q1, u: u1, qi, ui, d });
     }
+    Ok((p, am, d))
+}
+
+/// Exact inversion of `eq:instpol` in closed form: intrinsic `(q0, u0)` from measured
+/// `(q1, u1)` and the instrumental `(qi, ui) = p (cos 2phi, sin 2phi)`.
+#[inline]
+pub fn invert_exact(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<(f64, f64), Error> {
+    let (p, am, d) = p_and_denominator(qi, ui, q1, u1)?;
     // (n·m) a = (a·m) a / p; zero when p = 0.
     let k = if p > 0.0 { am / p } else { 0.0 };
     let inv_d = 1.0 / d;
@@ -233,15 +242,7 @@ pub fn invert_first_order(qi: f64, ui: f64, q1: f64, u1: f64) -> (f64, f64) {
 /// `Ja = d(q0, u0)/d(qi, ui)` (row-major 2x2). See the module docs for the formulas.
 #[inline]
 pub fn exact_jacobian(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<((f64, f64), [[f64; 2]; 2], [[f64; 2]; 2]), Error> {
-    let p = (qi * qi + ui * ui).sqrt();
-    if !(p < 1.0) {
-        return Err(Error::Unphysical { p, x: f64::NAN, y: f64::NAN });
-    }
-    let am = qi * q1 + ui * u1;
-    let d = 1.0 - am;
-    if !(d > 0.0) {
-        return Err(Error::Singular { q: q1, u: u1, qi, ui, d });
-    }
+    let (p, _, d) = p_and_denominator(qi, ui, q1, u1)?;
     let (nq, nu) = if p > 0.0 { (qi / p, ui / p) } else { (0.0, 0.0) };
     let nm = nq * q1 + nu * u1;
     let inv_d = 1.0 / d;
