@@ -30,16 +30,10 @@ pub fn pe<E: std::fmt::Debug>(e: E) -> anyhow::Error {
 }
 
 /// Write through a temporary file in the destination folder and rename.
-fn atomic(path: &Path, suffix: &str, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let tmp = tempfile::Builder::new()
-        .prefix(".instpol-plot-")
-        .suffix(suffix)
-        .tempfile_in(dir)
-        .with_context(|| format!("cannot create a temporary file in {}", dir.display()))?;
-    write(tmp.path()).with_context(|| format!("cannot draw {}", path.display()))?;
-    tmp.persist(path).with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(())
+pub fn atomic(path: &Path, suffix: &str, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+    crate::util::write_via_temp(path, suffix, |tmp| {
+        write(tmp).with_context(|| format!("cannot draw {}", path.display()))
+    })
 }
 
 /// Draw the same picture as `STEM.png` and `STEM.svg`; returns both paths. The two closures

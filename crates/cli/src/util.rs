@@ -10,14 +10,23 @@ pub fn print_json<T: serde::Serialize>(v: &T) -> Result<()> {
     Ok(())
 }
 
-/// Write `bytes` to `path` through a temporary file in the same folder and a rename, so an
-/// interrupted run never leaves a half-written file.
-#[allow(dead_code)]
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+/// The one way the CLI writes a file: `write` fills a temporary file (named `.instpol-*SUFFIX`)
+/// in the destination folder, which is then renamed onto `path`; on any error the temporary
+/// is removed, so an interrupted or failed run never leaves a half-written file.
+pub fn write_via_temp(path: &Path, suffix: &str, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let mut tmp = tempfile::NamedTempFile::new_in(dir)
+    let tmp = skyfield::io::temp_beside(path, suffix)
         .with_context(|| format!("cannot create a temporary file in {}", dir.display()))?;
-    tmp.write_all(bytes).with_context(|| format!("cannot write {}", path.display()))?;
+    write(tmp.path())?;
     tmp.persist(path).with_context(|| format!("cannot write {}", path.display()))?;
     Ok(())
+}
+
+/// Write `bytes` to `path` through [`write_via_temp`].
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_via_temp(path, ".tmp", |tmp| {
+        std::fs::File::create(tmp)
+            .and_then(|mut f| f.write_all(bytes))
+            .with_context(|| format!("cannot write {}", path.display()))
+    })
 }

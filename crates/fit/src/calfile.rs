@@ -213,10 +213,7 @@ impl Calibration {
     /// rename). Non-map models get their images from [`Self::gridded`] when `grid` is None.
     pub fn save(&self, path: &Path) -> Result<()> {
         let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-        let tmp = tempfile::Builder::new()
-            .prefix(".instpol-cal-")
-            .suffix(".fits")
-            .tempfile_in(dir)
+        let tmp = skyfield::io::temp_beside(path, ".fits")
             .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
         {
             let mut f = FitsFile::create(tmp.path()).overwrite().open().map_err(fits_err(path, "creating the file"))?;

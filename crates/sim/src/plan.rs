@@ -781,13 +781,7 @@ impl Plan {
         };
         let tpath = out.join("truth.json");
         let text = serde_json::to_string_pretty(&truth).map_err(|e| file_err(&tpath, e))?;
-        let mut tmp = tempfile::NamedTempFile::new_in(out).map_err(|e| file_err(&tpath, e))?;
-        // tempfile makes private files; the truth file is as readable as the frames.
-        #[cfg(unix)]
-        {
-            use std::os::unix::fs::PermissionsExt;
-            let _ = tmp.as_file().set_permissions(std::fs::Permissions::from_mode(0o644));
-        }
+        let mut tmp = skyfield::io::temp_beside(&tpath, ".json").map_err(|e| file_err(&tpath, e))?;
         std::io::Write::write_all(&mut tmp, text.as_bytes()).map_err(|e| file_err(&tpath, e))?;
         tmp.persist(&tpath).map_err(|e| file_err(&tpath, e))?;
         Ok(Simulated { frames, truth: tpath })

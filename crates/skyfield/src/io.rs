@@ -70,6 +70,22 @@ pub fn write_fits_atomic(path: &Path, fill: impl FnOnce(&mut FitsFile) -> Result
     write_fits_atomic_with(path, None, fill)
 }
 
+/// A temporary file (`.instpol-*SUFFIX`) in the folder of `path`, to be renamed onto it: the
+/// one way the workspace starts writing an output, so that a failed run leaves no half file.
+/// It gets the permissions of an ordinary new file (0o666 less the umask) rather than
+/// tempfile's private 0o600, which a rename would otherwise carry into the output.
+pub fn temp_beside(path: &Path, suffix: &str) -> std::io::Result<tempfile::NamedTempFile> {
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let mut b = tempfile::Builder::new();
+    b.prefix(".instpol-").suffix(suffix);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        b.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    b.tempfile_in(dir)
+}
+
 /// [`write_fits_atomic`] with a primary image of the given type and shape.
 fn write_fits_atomic_with(
     path: &Path,
@@ -78,10 +94,7 @@ fn write_fits_atomic_with(
 ) -> Result<(), Error> {
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let werr = |m: String| Error::Write { path: path.into(), message: m };
-    let tmp = tempfile::Builder::new()
-        .prefix(".instpol-")
-        .suffix(".fits.tmp")
-        .tempfile_in(dir)
+    let tmp = temp_beside(path, ".fits.tmp")
         .map_err(|e| werr(format!("cannot create a temporary file in {}: {e}", dir.display())))?
         .into_temp_path();
     {

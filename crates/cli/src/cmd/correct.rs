@@ -496,18 +496,12 @@ fn write_fits_table(
     est: Estimator,
     path: &Path,
 ) -> Result<()> {
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let tmp = tempfile::Builder::new()
-        .prefix(".instpol-")
-        .suffix(".fits.tmp")
-        .tempfile_in(dir)
-        .with_context(|| format!("cannot create a temporary file in {}", dir.display()))?
-        .into_temp_path();
-    std::fs::copy(input, &tmp).with_context(|| format!("cannot copy {} to {}", input.display(), dir.display()))?;
     let names = added_names(est);
     let werr = |m: String| anyhow!("cannot write {}: {m}", path.display());
-    {
-        let mut f = FitsFile::edit(&tmp).map_err(|e| werr(e.to_string()))?;
+    crate::util::write_via_temp(path, ".fits.tmp", |tmp| {
+        let dir = tmp.parent().unwrap_or(Path::new("."));
+        std::fs::copy(input, tmp).with_context(|| format!("cannot copy {} to {}", input.display(), dir.display()))?;
+        let mut f = FitsFile::edit(tmp).map_err(|e| werr(e.to_string()))?;
         let (mut t, _, _) = table_hdu(&mut f, name, input)?;
         for (k, n) in names.iter().enumerate() {
             let col: Vec<f64> = out.iter().zip(p0e).map(|(r, e)| added_values(r, *e)[k]).collect();
@@ -526,9 +520,8 @@ fn write_fits_table(
         t = t.append_column(&mut f, &d).map_err(|e| werr(format!("adding column extrapolated: {e}")))?;
         t.write_col(&mut f, "extrapolated", &flags).map_err(|e| werr(format!("writing column extrapolated: {e}")))?;
         // Dropping the file closes it and flushes CFITSIO's buffers before the rename.
-    }
-    tmp.persist(path).map_err(|e| werr(e.to_string()))?;
-    Ok(())
+        Ok(())
+    })
 }
 
 /// A calibration applies to one instrument and filter: refuse a map of another (names
@@ -617,17 +610,10 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
         bail!("{}: the Stokes map has no valid bins", a.input.display());
     }
     // Written beside the output, stamped with the correction's provenance, then renamed.
-    let dir = a.out.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let tmp = tempfile::Builder::new()
-        .prefix(".instpol-")
-        .suffix(".fits.tmp")
-        .tempfile_in(dir)
-        .with_context(|| format!("cannot create a temporary file in {}", dir.display()))?
-        .into_temp_path();
-    m.write_fits(&tmp).with_context(|| format!("cannot write {}", a.out.display()))?;
-    {
+    crate::util::write_via_temp(&a.out, ".fits.tmp", |tmp| {
+        m.write_fits(tmp).with_context(|| format!("cannot write {}", a.out.display()))?;
         let werr = |e: fitsio::errors::Error| anyhow!("cannot write {}: {e}", a.out.display());
-        let mut f = FitsFile::edit(&tmp).map_err(werr)?;
+        let mut f = FitsFile::edit(tmp).map_err(werr)?;
         let ph = f.primary_hdu().map_err(werr)?;
         let name = a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
         ph.write_key(&mut f, "INSTCORR", (name.as_str(), "instrumental polarization removed with")).map_err(werr)?;
@@ -637,8 +623,8 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
         };
         ph.write_key(&mut f, "CORRMETH", meth).map_err(werr)?;
         ph.write_key(&mut f, "CORRHWP", (cal.hwp_chi_offset_deg, "HWP zero angle added to chi [deg]")).map_err(werr)?;
-    }
-    tmp.persist(&a.out).map_err(|e| anyhow!("cannot write {}: {e}", a.out.display()))?;
+        Ok(())
+    })?;
     Ok(Summary {
         input: a.input.clone(),
         output: a.out.clone(),

@@ -1,28 +1,15 @@
 //! PNG plots of `instpol mc --sweep` (fig:deltap, fig:bias) and `--accuracy-report`.
 //! Drawing only: every number comes from `stokes::mc`.
 
-use anyhow::{anyhow, Context, Result};
+use anyhow::Result;
 use plotters::prelude::*;
 use plotters::series::DashedLineSeries;
 use std::path::Path;
-use std::sync::Once;
 use stokes::mc::budget::{NoiseRow, ObserverRow, PrecisionRow};
 use stokes::mc::sweep::{BiasPoint, DeltaPPoint};
 use stokes::stats::rice::{mean_bias_n, mode_n, std_n};
 
-const FONT: &str = "sans-serif";
-
-/// Register the embedded DejaVu Sans once, so plots render on machines without fonts.
-fn font() {
-    static ONCE: Once = Once::new();
-    ONCE.call_once(|| {
-        let _ = plotters::style::register_font(FONT, FontStyle::Normal, dejavu::sans::regular());
-    });
-}
-
-fn pe<E: std::fmt::Debug>(e: E) -> anyhow::Error {
-    anyhow!("plot: {e:?}")
-}
+use crate::plot::{font, pe, FONT};
 
 /// Draw into a temporary PNG in the target folder, then rename: no half-written plot.
 fn atomic_png(
@@ -32,19 +19,12 @@ fn atomic_png(
     draw: impl FnOnce(&DrawingArea<BitMapBackend, plotters::coord::Shift>) -> Result<()>,
 ) -> Result<()> {
     font();
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let tmp = tempfile::Builder::new()
-        .suffix(".png")
-        .tempfile_in(dir)
-        .with_context(|| format!("cannot create a temporary file in {}", dir.display()))?;
-    {
-        let root = BitMapBackend::new(tmp.path(), (w, h)).into_drawing_area();
+    crate::plot::atomic(path, ".png", |tmp| {
+        let root = BitMapBackend::new(tmp, (w, h)).into_drawing_area();
         root.fill(&WHITE).map_err(pe)?;
         draw(&root)?;
-        root.present().map_err(pe).with_context(|| format!("cannot write {}", path.display()))?;
-    }
-    tmp.persist(path).with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(())
+        root.present().map_err(pe)
+    })
 }
 
 fn logspace(a: f64, b: f64, n: usize) -> Vec<f64> {

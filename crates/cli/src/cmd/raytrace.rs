@@ -1,7 +1,7 @@
 //! `instpol raytrace`: polarization ray tracing of the instrument's collimator prescription.
 //! All numbers come from `mueller::raytrace`; this file prints, plots and writes them.
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, Result};
 use mueller::raytrace::{fit_radial, FieldFile, Sampling, PAPER_LAW_A, PAPER_LAW_B};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -213,28 +213,19 @@ pub fn run(a: Args) -> Result<()> {
     Ok(())
 }
 
-const FONT: &str = "sans-serif";
-
 /// p(r) in percent against the paper's V and I polynomials (section fors1).
 fn plot(path: &Path, r: &[f64], p: &[f64], lam: f64, name: &str) -> Result<()> {
+    use crate::plot::FONT;
     use plotters::prelude::*;
-    static ONCE: std::sync::Once = std::sync::Once::new();
-    ONCE.call_once(|| {
-        let _ = plotters::style::register_font(FONT, FontStyle::Normal, dejavu::sans::regular());
-    });
+    crate::plot::font();
     let pe = |e: &dyn std::fmt::Debug| anyhow!("plot {}: {e:?}", path.display());
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let tmp = tempfile::Builder::new()
-        .suffix(".png")
-        .tempfile_in(dir)
-        .with_context(|| format!("cannot create a temporary file in {}", dir.display()))?;
     let rmax = r.last().copied().unwrap_or(5.0).max(1.0);
     let v = |x: f64| 0.012 * x + 0.046 * x * x + 0.002 * x * x * x;
     let i = |x: f64| -0.017 * x + 0.105 * x * x - 0.006 * x * x * x;
     let grid: Vec<f64> = (0..=100).map(|k| rmax * k as f64 / 100.0).collect();
     let ymax = grid.iter().map(|&x| v(x).max(i(x))).chain(p.iter().map(|&x| 100.0 * x)).fold(0.0, f64::max) * 1.1;
-    {
-        let root = BitMapBackend::new(tmp.path(), (900, 600)).into_drawing_area();
+    crate::plot::atomic(path, ".png", |tmp| {
+        let root = BitMapBackend::new(tmp, (900, 600)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| pe(&e))?;
         let mut ch = ChartBuilder::on(&root)
             .caption(format!("{name}: ray-traced p(r) at {lam} nm vs paper fits"), (FONT, 22))
@@ -264,8 +255,6 @@ fn plot(path: &Path, r: &[f64], p: &[f64], lam: f64, name: &str) -> Result<()> {
             .label_font((FONT, 14))
             .draw()
             .map_err(|e| pe(&e))?;
-        root.present().map_err(|e| pe(&e))?;
-    }
-    tmp.persist(path).with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(())
+        root.present().map_err(|e| pe(&e))
+    })
 }
