@@ -4,8 +4,10 @@
 //! Layout (format version [`FORMAT_VERSION`]):
 //! - primary HDU, no data; `HIERARCH IP ...` keywords: format version, instrument, filter,
 //!   wavelength, HWP chi offset, model kind, centre (arcmin, and pixels when there is a pixel
-//!   grid), radial coefficients (fractions, r in arcmin) with errors and full covariance, RMS of
-//!   the residuals, polar-angle test, valid field region, exclusions, provenance (sky values,
+//!   grid), radial coefficients (fractions, r in arcmin) with errors and full covariance, how the
+//!   covariance was scaled (`ERR SCALING` = conservative / scaled / absolute, `CHI2 RED`,
+//!   `ERR CHI2 FACTOR`, and `ERR CORR INFL` when inflated for correlated errors; files written
+//!   before these keywords used `scaled`), RMS of the residuals, polar-angle test, valid field region, exclusions, provenance (sky values,
 //!   tool version, date, number of input files);
 //! - `QMAP`, `UMAP`, `QERR`, `UERR`: images of the instrumental `Q/I`, `U/I` and their errors on
 //!   a regular grid (linear WCS in arcmin from the detector centre: `CRVALn` is the centre of
@@ -24,7 +26,7 @@ use crate::bins::Bin;
 use crate::gridmap::GridMap;
 use crate::model::{FieldModel, InstPol};
 use crate::polar::PolarAngleTest;
-use crate::radial::RadialModel;
+use crate::radial::{CovarianceScaling, ErrorScaling, RadialModel};
 use crate::region::{Exclusion, FieldRegion};
 use crate::residual::{ResidualMap, ResidualPoint};
 use crate::{Error, Result};
@@ -267,6 +269,14 @@ impl Calibration {
                     w.real(&format!("COV {i} {j}"), r.cov_at(i, j))?;
                 }
             }
+            if let Some(sc) = &r.scaling {
+                w.str("ERR SCALING", sc.mode.name())?;
+                w.real("CHI2 RED", sc.chi2_reduced)?;
+                w.real("ERR CHI2 FACTOR", sc.chi2_factor)?;
+                if let Some(t) = sc.correlation_inflation {
+                    w.real("ERR CORR INFL", t)?;
+                }
+            }
         }
         if let Model::RadialResidual { residual, .. } = &self.model {
             w.real("RESID LOO RMS Q", residual.loo_rms_q)?;
@@ -477,12 +487,31 @@ impl Calibration {
                     cov[j * np + i] = v;
                 }
             }
+            // Absent from files written before the choice existed (their covariance was
+            // scaled by chi2_red): None, not a guess.
+            let scaling = match r.opt_str("ERR SCALING") {
+                None => None,
+                Some(name) => {
+                    let mode = name.parse::<ErrorScaling>().map_err(|err| Error::BadFile {
+                        path: path.into(),
+                        what: format!("keyword HIERARCH IP ERR SCALING: {err}"),
+                    })?;
+                    let chi2_reduced = r.opt_real("CHI2 RED").unwrap_or(f64::NAN);
+                    Some(CovarianceScaling {
+                        mode,
+                        chi2_reduced,
+                        chi2_factor: r.opt_real("ERR CHI2 FACTOR").unwrap_or_else(|| mode.factor(chi2_reduced)),
+                        correlation_inflation: r.opt_real("ERR CORR INFL"),
+                    })
+                }
+            };
             Some(RadialModel {
                 first_power: first_power as usize,
                 coeffs,
                 centre: [r.real("CENTRE X")?, r.real("CENTRE Y")?],
                 centre_free: r.opt_int("CENTRE FREE").unwrap_or(0) != 0,
                 cov,
+                scaling,
             })
         } else if kind == "MAP" {
             None

@@ -10,6 +10,7 @@
 
 pub mod bins;
 pub mod calfile;
+pub mod correlation;
 pub mod gridmap;
 pub mod import;
 pub mod model;
@@ -24,7 +25,7 @@ pub mod wavelength;
 pub use bins::Bin;
 pub use calfile::{Calibration, Model};
 pub use model::{FieldModel, InstPol};
-pub use radial::{fit_radial, RadialFit, RadialFitOptions, RadialModel};
+pub use radial::{fit_radial, CovarianceScaling, ErrorScaling, RadialFit, RadialFitOptions, RadialModel};
 pub use region::{Exclusion, FieldRegion};
 
 use std::path::PathBuf;

@@ -31,7 +31,7 @@ use crate::bins::Bin;
 use crate::calfile::{
     residual_from_bins, Calibration, Model, PixelGrid, PolarAngleSummary, Provenance, FORMAT_VERSION,
 };
-use crate::polar::{polar_angle_test, PolarAngleTest};
+use crate::polar::{polar_angle_test_with, PolarAngleTest};
 use crate::radial::{fit_radial, RadialFit, RadialFitOptions};
 use crate::region::FieldRegion;
 use crate::{Error, Result};
@@ -91,7 +91,9 @@ pub fn calibrate_bins(mut bins: Vec<Bin>, meta: CalibrationMeta, opts: &Calibrat
     for (b, u) in bins.iter_mut().zip(&fit.used) {
         b.used = *u;
     }
-    let polar = polar_angle_test(&bins, fit.model.centre, opts.polar_r_min)?;
+    // The polar-angle test's errors follow the fit's choices (scaling, correlated errors).
+    let inflation = fit.correlation.map_or(1.0, |c| c.factor);
+    let polar = polar_angle_test_with(&bins, fit.model.centre, opts.polar_r_min, opts.fit.error_scaling, inflation)?;
     let region = FieldRegion::bounding(bins.iter().filter(|b| b.is_valid()).map(|b| (b.x, b.y)), opts.region_margin)
         .ok_or_else(|| Error::Input("no valid bin positions".into()))?;
     let model = if opts.residual_map {
@@ -189,6 +191,13 @@ pub struct FitSummary {
     pub coefficient_errors: Vec<f64>,
     pub rms_residual: f64,
     pub chi2_reduced: f64,
+    /// How the errors use chi2_red: "conservative" (max(1, chi2_red)), "scaled" or "absolute".
+    pub error_scaling: String,
+    /// The whole factor applied to (J^T W J)^-1: the chi^2 factor times the correlation inflation.
+    pub covariance_scale: f64,
+    /// The correlated-errors estimate, when asked for (`--correlated-errors`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub correlation: Option<crate::correlation::CorrelationInflation>,
     pub polar_angle_slope: f64,
     pub polar_angle_slope_err: f64,
     pub polar_angle_intercept_deg: f64,
@@ -219,6 +228,9 @@ impl FitSummary {
             coefficient_errors: m.coefficient_errors(),
             rms_residual: run.fit.rms_residual,
             chi2_reduced: run.fit.chi2_reduced,
+            error_scaling: m.scaling.map_or("scaled", |s| s.mode.name()).to_string(),
+            covariance_scale: m.scaling.map_or(run.fit.chi2_reduced, |s| s.total()),
+            correlation: run.fit.correlation,
             polar_angle_slope: run.polar.slope,
             polar_angle_slope_err: run.polar.slope_err,
             polar_angle_intercept_deg: run.polar.intercept_deg,

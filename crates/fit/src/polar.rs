@@ -3,6 +3,7 @@
 //! centre. A radial pattern lies on `phi = alpha` (slope 1, intercept 0, modulo 180 deg).
 
 use crate::bins::Bin;
+use crate::radial::ErrorScaling;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 
@@ -32,8 +33,21 @@ pub fn wrap_half_turn_deg(a: f64) -> f64 {
 /// Fit `phi` against `alpha` for the bins (about `centre`, arcmin) by weighted least squares
 /// with weights `1 / sigma_phi^2`, unwrapping each `phi` onto the current line (modulo 180
 /// deg) and iterating. Bins closer than `r_min` arcmin to the centre are left out (their
-/// polar angle is ill defined). The errors are scaled by the reduced chi^2.
+/// polar angle is ill defined). The errors are scaled by `max(1, chi2_red)`
+/// ([`ErrorScaling::Conservative`]; [`polar_angle_test_with`] chooses).
 pub fn polar_angle_test(bins: &[Bin], centre: [f64; 2], r_min: f64) -> Result<PolarAngleTest> {
+    polar_angle_test_with(bins, centre, r_min, ErrorScaling::Conservative, 1.0)
+}
+
+/// [`polar_angle_test`] with the errors scaled as `scaling` says and the variances multiplied
+/// by `inflation` (the correlated-errors factor of the radial fit on the same bins, or 1).
+pub fn polar_angle_test_with(
+    bins: &[Bin],
+    centre: [f64; 2],
+    r_min: f64,
+    scaling: ErrorScaling,
+    inflation: f64,
+) -> Result<PolarAngleTest> {
     let mut alpha = vec![];
     let mut phi = vec![];
     let mut sig = vec![];
@@ -97,7 +111,7 @@ pub fn polar_angle_test(bins: &[Bin], centre: [f64; 2], r_min: f64) -> Result<Po
         }
     }
     let chi2: f64 = (0..alpha.len()).map(|k| ((unwrapped[k] - a * alpha[k] - b) / sig[k]).powi(2)).sum();
-    let scale = chi2 / (alpha.len() as f64 - 2.0).max(1.0);
+    let scale = scaling.factor(chi2 / (alpha.len() as f64 - 2.0).max(1.0)) * inflation;
     Ok(PolarAngleTest {
         slope: a,
         slope_err: (cov[0][0] * scale).sqrt(),

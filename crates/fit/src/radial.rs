@@ -30,13 +30,17 @@ pub struct RadialModel {
     /// Covariance of `(c..., x0, y0)`, row-major, `n_params()^2` values; the centre rows are
     /// zero when the centre was fixed.
     pub cov: Vec<f64>,
+    /// How `cov` was scaled from the per-bin errors (None for a model that was not fitted, or
+    /// read from a file written before this was recorded: those used [`ErrorScaling::Scaled`]).
+    #[serde(default)]
+    pub scaling: Option<CovarianceScaling>,
 }
 
 impl RadialModel {
     /// A model with no covariance (e.g. a simulation's input pattern).
     pub fn new(first_power: usize, coeffs: Vec<f64>, centre: [f64; 2]) -> Self {
         let n = coeffs.len() + 2;
-        RadialModel { first_power, coeffs, centre, centre_free: false, cov: vec![0.0; n * n] }
+        RadialModel { first_power, coeffs, centre, centre_free: false, cov: vec![0.0; n * n], scaling: None }
     }
 
     /// Highest power of r.
@@ -312,6 +316,77 @@ impl Robust {
     }
 }
 
+/// How the parameter covariance `(J^T W J)^-1` of a fit (`W` from the per-bin errors, `J` the
+/// Jacobian at the solution) is scaled by the fit's reduced chi^2.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub enum ErrorScaling {
+    /// By `max(1, chi2_red)` (the default): errors grow when the bins scatter more than their
+    /// errors say (a model that does not fit, errors understated), but never shrink below what
+    /// the stated per-bin errors allow. A chi^2 below 1 usually means the errors are correlated
+    /// (smoothed maps) or overstated, not that the data are better than stated.
+    #[default]
+    Conservative,
+    /// Always by `chi2_red`, as scipy's `curve_fit(absolute_sigma=False)`: the per-bin errors
+    /// are right only up to a common factor, which the scatter about the model sets.
+    Scaled,
+    /// Not at all: the per-bin errors are trusted as they are (`absolute_sigma=True`).
+    Absolute,
+}
+
+impl ErrorScaling {
+    /// The factor applied to `(J^T W J)^-1` for a fit of reduced chi^2 `chi2_reduced`.
+    pub fn factor(self, chi2_reduced: f64) -> f64 {
+        match self {
+            ErrorScaling::Conservative => chi2_reduced.max(1.0),
+            ErrorScaling::Scaled => chi2_reduced,
+            ErrorScaling::Absolute => 1.0,
+        }
+    }
+
+    /// Name for files, JSON and the CLI.
+    pub fn name(self) -> &'static str {
+        match self {
+            ErrorScaling::Conservative => "conservative",
+            ErrorScaling::Scaled => "scaled",
+            ErrorScaling::Absolute => "absolute",
+        }
+    }
+}
+
+impl std::str::FromStr for ErrorScaling {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "conservative" => Ok(ErrorScaling::Conservative),
+            "scaled" => Ok(ErrorScaling::Scaled),
+            "absolute" => Ok(ErrorScaling::Absolute),
+            other => Err(Error::Input(format!(
+                "unknown error scaling '{other}': use conservative (max(1, chi2_red), the default), scaled (chi2_red) \
+                 or absolute (the per-bin errors as given)"
+            ))),
+        }
+    }
+}
+
+/// How a fitted covariance was scaled: `cov = (J^T W J)^-1 * chi2_factor * inflation`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct CovarianceScaling {
+    pub mode: ErrorScaling,
+    /// Reduced chi^2 of the fit (robust weights included).
+    pub chi2_reduced: f64,
+    /// `mode.factor(chi2_reduced)`.
+    pub chi2_factor: f64,
+    /// The correlated-errors inflation `tau` ([`crate::correlation`]) when it was estimated.
+    pub correlation_inflation: Option<f64>,
+}
+
+impl CovarianceScaling {
+    /// The whole factor applied to `(J^T W J)^-1`.
+    pub fn total(&self) -> f64 {
+        self.chi2_factor * self.correlation_inflation.unwrap_or(1.0)
+    }
+}
+
 /// How to fit a [`RadialModel`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RadialFitOptions {
@@ -323,9 +398,17 @@ pub struct RadialFitOptions {
     pub free_centre: bool,
     /// The fixed centre, or the starting point of a free one (arcmin; default the detector centre).
     pub centre: [f64; 2],
-    /// Parts of the field left out.
+    /// Parts of the field left out. Sectors and rings are about the model's centre: with a free
+    /// centre, membership is recomputed about the fitted centre and the model refitted.
     pub exclusions: Vec<Exclusion>,
     pub robust: Robust,
+    /// How the covariance uses the reduced chi^2 (default [`ErrorScaling::Conservative`]).
+    #[serde(default)]
+    pub error_scaling: ErrorScaling,
+    /// Inflate the covariance for correlated bin errors, estimated from the residuals'
+    /// autocorrelation on the bins' grid ([`crate::correlation`]; default false).
+    #[serde(default)]
+    pub correlated_errors: bool,
 }
 
 impl Default for RadialFitOptions {
@@ -337,6 +420,8 @@ impl Default for RadialFitOptions {
             centre: [0.0, 0.0],
             exclusions: vec![],
             robust: Robust::Huber(1.345),
+            error_scaling: ErrorScaling::Conservative,
+            correlated_errors: false,
         }
     }
 }
@@ -360,8 +445,17 @@ impl RadialFitOptions {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RadialFit {
     pub model: RadialModel,
-    /// Reduced chi^2 of the (robustly weighted) fit; the covariance is scaled by it.
+    /// Reduced chi^2 of the (robustly weighted) fit; how it scales the covariance is
+    /// `model.scaling` (and [`RadialFitOptions::error_scaling`]).
     pub chi2_reduced: f64,
+    /// The correlated-errors estimate, when asked for.
+    pub correlation: Option<crate::correlation::CorrelationInflation>,
+    /// The centre (arcmin) about which sector and ring exclusions were measured: the fitted
+    /// centre of the previous pass when the centre is free (equal to the final one when the
+    /// membership settled), else the fixed centre.
+    pub exclusion_centre: [f64; 2],
+    /// Fits run to settle the exclusion membership (1 without polar exclusions or a free centre).
+    pub passes: usize,
     /// RMS per component of the residuals `q - q_model`, `u - u_model` over the used bins.
     pub rms_residual: f64,
     pub n_used: usize,
@@ -517,16 +611,70 @@ fn median(v: &mut [f64]) -> f64 {
 
 /// Fit the radial model (section `sec:fors1`) to the bins by robust weighted least squares on
 /// `(q, u)` (argmin Gauss-Newton inside iteratively reweighted least squares). The covariance
-/// comes from the Jacobian at the solution, scaled by the reduced chi^2.
+/// is `(J^T W J)^-1` from the Jacobian at the solution, scaled as
+/// [`RadialFitOptions::error_scaling`] says (default `max(1, chi2_red)`) and, when asked,
+/// inflated for correlated bin errors ([`crate::correlation`]).
+///
+/// Sector and ring exclusions are measured about the model's centre. With a free centre the
+/// first pass takes them about the starting centre; the membership is then recomputed about the
+/// fitted centre and the model refitted from there, until the membership no longer changes (at
+/// most three passes).
 pub fn fit_radial(bins: &[Bin], opts: &RadialFitOptions) -> Result<RadialFit> {
+    let membership = |c: [f64; 2]| -> Vec<bool> {
+        bins.iter().map(|b| b.is_valid() && !opts.exclusions.iter().any(|e| e.excludes_about(b.x, b.y, c))).collect()
+    };
+    let mut centre = opts.centre;
+    let mut used = membership(centre);
+    let mut fit = fit_pass(bins, opts, opts.centre, used.clone())?;
+    let mut passes = 1;
+    if opts.free_centre && opts.exclusions.iter().any(|e| e.is_polar()) {
+        while passes < 3 {
+            let next = membership(fit.model.centre);
+            if next == used {
+                break;
+            }
+            centre = fit.model.centre;
+            used = next;
+            // Start the refit from the fitted centre (a fixed-centre stage there, then free).
+            fit = fit_pass(bins, opts, centre, used.clone())?;
+            passes += 1;
+        }
+    }
+    fit.exclusion_centre = centre;
+    fit.passes = passes;
+    if opts.correlated_errors {
+        let (mut gq, mut gu) = (vec![0.0; fit.model.n_params()], vec![0.0; fit.model.n_params()]);
+        let z: Vec<(f64, f64, f64, f64)> = bins
+            .iter()
+            .zip(&fit.used)
+            .filter(|(_, u)| **u)
+            .map(|(b, _)| {
+                let m = &fit.model;
+                let (q, u) = radial_eval(m.first_power, &m.coeffs, m.centre, b.x, b.y, &mut gq, &mut gu);
+                (b.x, b.y, (b.q - q) / b.sigma_q, (b.u - u) / b.sigma_u)
+            })
+            .collect();
+        let c = crate::correlation::residual_inflation(&z)?;
+        for v in fit.model.cov.iter_mut() {
+            *v *= c.factor;
+        }
+        if let Some(sc) = fit.model.scaling.as_mut() {
+            sc.correlation_inflation = Some(c.factor);
+        }
+        fit.correlation = Some(c);
+    }
+    Ok(fit)
+}
+
+/// One fit with a given bin membership, from `start_centre` (the fixed centre, or the start of
+/// a free one).
+fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used: Vec<bool>) -> Result<RadialFit> {
     let first_power = if opts.include_c0 { 0 } else { 1 };
     if opts.degree < first_power.max(1) {
         return Err(Error::Input(format!("degree {} is too low for the radial model", opts.degree)));
     }
     let nc = opts.degree - first_power + 1;
     let n_free = nc + if opts.free_centre { 2 } else { 0 };
-    let used: Vec<bool> =
-        bins.iter().map(|b| b.is_valid() && !opts.exclusions.iter().any(|e| e.excludes(b.x, b.y))).collect();
     let sel: Vec<&Bin> = bins.iter().zip(&used).filter(|(_, u)| **u).map(|(b, _)| b).collect();
     // Two numbers per bin; ask for a few bins per parameter so the covariance means something.
     let needed = (2 * n_free).max(n_free + 3);
@@ -540,12 +688,12 @@ pub fn fit_radial(bins: &[Bin], opts: &RadialFitOptions) -> Result<RadialFit> {
         first_power,
         nc,
         free_centre: false,
-        fixed_centre: opts.centre,
+        fixed_centre: start_centre,
     };
     // The coefficients must be constrained by the radii present (all bins at one radius make
     // every r^k column the same shape).
     let j0 = problem.jacobian(&DVector::zeros(nc)).map_err(|e| Error::FitFailed(e.to_string()))?;
-    let radii: Vec<f64> = problem.bins.iter().map(|b| (b.x - opts.centre[0]).hypot(b.y - opts.centre[1])).collect();
+    let radii: Vec<f64> = problem.bins.iter().map(|b| (b.x - start_centre[0]).hypot(b.y - start_centre[1])).collect();
     if conditioning(&j0) < 1e-9 {
         let (lo, hi) = radii.iter().fold((f64::INFINITY, 0.0f64), |(l, h), r| (l.min(*r), h.max(*r)));
         return Err(Error::Degenerate(format!(
@@ -589,7 +737,7 @@ pub fn fit_radial(bins: &[Bin], opts: &RadialFitOptions) -> Result<RadialFit> {
             }
             problem.free_centre = true;
             let mut p = params.as_slice().to_vec();
-            p.extend_from_slice(&opts.centre);
+            p.extend_from_slice(&start_centre);
             params = DVector::from_vec(p);
         }
         for _ in 0..30 {
@@ -608,7 +756,7 @@ pub fn fit_radial(bins: &[Bin], opts: &RadialFitOptions) -> Result<RadialFit> {
         }
     }
 
-    // Covariance from the Jacobian at the solution, scaled by the reduced chi^2.
+    // Covariance from the Jacobian at the solution, scaled as the options say.
     let j = problem.jacobian(&params).map_err(|e| Error::FitFailed(e.to_string()))?;
     if conditioning(&j) < 1e-10 {
         return Err(Error::Degenerate(
@@ -620,8 +768,9 @@ pub fn fit_radial(bins: &[Bin], opts: &RadialFitOptions) -> Result<RadialFit> {
     let dof = (2 * problem.bins.len()).saturating_sub(n_free).max(1);
     let chi2_reduced = r.norm_squared() / dof as f64;
     let jtj = j.transpose() * &j;
+    let chi2_factor = opts.error_scaling.factor(chi2_reduced);
     let inv = jtj.try_inverse().ok_or_else(|| Error::Degenerate("the normal matrix of the fit is singular".into()))?
-        * chi2_reduced;
+        * chi2_factor;
     let np = nc + 2;
     let mut cov = vec![0.0; np * np];
     for a in 0..n_free {
@@ -631,7 +780,9 @@ pub fn fit_radial(bins: &[Bin], opts: &RadialFitOptions) -> Result<RadialFit> {
         }
     }
     let (coeffs, centre) = problem.split(&params);
-    let model = RadialModel { first_power, coeffs, centre, centre_free: opts.free_centre, cov };
+    let scaling =
+        CovarianceScaling { mode: opts.error_scaling, chi2_reduced, chi2_factor, correlation_inflation: None };
+    let model = RadialModel { first_power, coeffs, centre, centre_free: opts.free_centre, cov, scaling: Some(scaling) };
     let mut ss = 0.0;
     for b in &problem.bins {
         let (q, u) = model.qu(b.x, b.y);
@@ -647,5 +798,15 @@ pub fn fit_radial(bins: &[Bin], opts: &RadialFitOptions) -> Result<RadialFit> {
             k += 1;
         }
     }
-    Ok(RadialFit { model, chi2_reduced, rms_residual, n_used, used, weights: all_w })
+    Ok(RadialFit {
+        model,
+        chi2_reduced,
+        correlation: None,
+        exclusion_centre: start_centre,
+        passes: 1,
+        rms_residual,
+        n_used,
+        used,
+        weights: all_w,
+    })
 }

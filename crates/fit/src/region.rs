@@ -6,39 +6,55 @@ use std::f64::consts::PI;
 
 /// A part of the field left out of a fit.
 ///
-/// Polar angles are measured about the detector centre, counter-clockwise from +x, as the
-/// paper's `alpha = arctan(y / x)` (section `sec:fors1`, where the V band drops the sector
-/// 10 to 80 deg); the CLI gives them in degrees and they are kept in degrees here because they
-/// are a user's specification, written back into calibration files as text.
+/// Sectors and rings are polar coordinates about the radial model's optical-axis centre (the
+/// fitted one when the centre is free; [`Exclusion::excludes_about`]), as the paper's polar
+/// angle `alpha` of a bin about the axis (section `sec:fors1`, where the V band drops the
+/// sector 10 to 80 deg), counter-clockwise from +x; boxes are in field coordinates (arcmin
+/// from the detector centre). The CLI gives angles in degrees and they are kept in degrees
+/// here because they are a user's specification, written back into calibration files as text.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub enum Exclusion {
     /// Bins whose polar angle lies in `[from_deg, to_deg]` (counter-clockwise, wraps at 360).
     Sector { from_deg: f64, to_deg: f64 },
     /// Bins inside the box `[x0, x1] x [y0, y1]` arcmin.
     Box { x0: f64, x1: f64, y0: f64, y1: f64 },
-    /// Bins whose distance from the detector centre lies in `[r0, r1]` arcmin.
+    /// Bins whose distance from the model's centre lies in `[r0, r1]` arcmin.
     Ring { r0: f64, r1: f64 },
 }
 
 impl Exclusion {
-    /// Whether the bin at `(x, y)` arcmin is excluded.
+    /// Whether the bin at `(x, y)` arcmin is excluded when the model's centre is the detector
+    /// centre (`excludes_about(x, y, [0, 0])`).
     pub fn excludes(&self, x: f64, y: f64) -> bool {
+        self.excludes_about(x, y, [0.0, 0.0])
+    }
+
+    /// Whether the bin at `(x, y)` arcmin (field coordinates) is excluded by a model whose
+    /// optical-axis centre is `centre` (arcmin): sectors and rings are measured about `centre`,
+    /// boxes are not.
+    pub fn excludes_about(&self, x: f64, y: f64, centre: [f64; 2]) -> bool {
+        let (dx, dy) = (x - centre[0], y - centre[1]);
         match *self {
             Exclusion::Sector { from_deg, to_deg } => {
-                if x == 0.0 && y == 0.0 {
+                if dx == 0.0 && dy == 0.0 {
                     return false;
                 }
-                let a = y.atan2(x).to_degrees().rem_euclid(360.0);
+                let a = dy.atan2(dx).to_degrees().rem_euclid(360.0);
                 let lo = from_deg.rem_euclid(360.0);
                 let width = (to_deg - from_deg).rem_euclid(360.0);
                 (a - lo).rem_euclid(360.0) <= width
             }
             Exclusion::Box { x0, x1, y0, y1 } => x >= x0 && x <= x1 && y >= y0 && y <= y1,
             Exclusion::Ring { r0, r1 } => {
-                let r = x.hypot(y);
+                let r = dx.hypot(dy);
                 r >= r0 && r <= r1
             }
         }
+    }
+
+    /// Whether the exclusion depends on where the model's centre is (sectors and rings).
+    pub fn is_polar(&self) -> bool {
+        !matches!(self, Exclusion::Box { .. })
     }
 
     /// The specification as the CLI takes it (`sector:10:80`, `box:x0:x1:y0:y1`, `ring:r0:r1`).
@@ -157,6 +173,20 @@ mod tests {
         let atw = |deg: f64| w.excludes(deg.to_radians().cos(), deg.to_radians().sin());
         assert!(atw(0.0) && atw(355.0) && atw(-5.0) && atw(19.0));
         assert!(!atw(30.0) && !atw(340.0));
+    }
+
+    #[test]
+    fn sectors_and_rings_follow_the_centre_boxes_do_not() {
+        // A point 1 arcmin above a centre at (2, 0): polar angle 90 deg about that centre,
+        // ~153 deg about the detector centre.
+        let c = [2.0, 0.0];
+        let s: Exclusion = "sector:80:100".parse().unwrap();
+        assert!(s.excludes_about(2.0, 1.0, c) && !s.excludes(2.0, 1.0));
+        let r: Exclusion = "ring:0:1.5".parse().unwrap();
+        assert!(r.excludes_about(2.0, 1.0, c) && !r.excludes(2.0, 1.0));
+        let b: Exclusion = "box:1.5:2.5:0.5:1.5".parse().unwrap();
+        assert!(b.excludes_about(2.0, 1.0, c) && b.excludes(2.0, 1.0) && !b.excludes_about(0.0, 1.0, [-2.0, 0.0]));
+        assert!(s.is_polar() && r.is_polar() && !b.is_polar());
     }
 
     #[test]
