@@ -120,3 +120,50 @@ fn not_a_calibration_file_and_unwritable_folder() {
     assert!(sample(false).save(&bad).is_err());
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
 }
+
+#[test]
+fn error_scaling_is_recorded_and_files_without_it_still_load() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cal = sample(false);
+    let Model::Radial(r) = &mut cal.model else { unreachable!() };
+    let sc = r.scaling.expect("a fitted model records its scaling");
+    assert_eq!(sc.mode, fit::ErrorScaling::Conservative);
+    assert_eq!(sc.chi2_factor, sc.chi2_reduced.max(1.0));
+    // With a correlated-errors inflation too.
+    r.scaling = Some(fit::CovarianceScaling { correlation_inflation: Some(12.5), ..sc });
+    let path = dir.path().join("scaled.fits");
+    cal.save(&path).unwrap();
+    {
+        let mut f = fitsio::FitsFile::open(&path).unwrap();
+        let h = f.primary_hdu().unwrap();
+        assert_eq!(h.read_key::<String>(&mut f, "HIERARCH IP ERR SCALING").unwrap(), "conservative");
+        assert_eq!(h.read_key::<f64>(&mut f, "HIERARCH IP ERR CORR INFL").unwrap(), 12.5);
+    }
+    let back = Calibration::load(&path).unwrap();
+    let b = back.model.radial().unwrap().scaling.unwrap();
+    assert_eq!(b.mode, fit::ErrorScaling::Conservative);
+    assert_eq!(b.correlation_inflation, Some(12.5));
+    assert!((b.chi2_reduced - sc.chi2_reduced).abs() <= 1e-14 * sc.chi2_reduced);
+    assert!((b.total() - 12.5 * sc.chi2_factor).abs() <= 1e-13 * b.total());
+
+    // A file as written before the keywords existed: no ERR keywords, the covariance as stored.
+    let Model::Radial(r) = &mut cal.model else { unreachable!() };
+    r.scaling = None;
+    let want = r.centre_errors()[0];
+    let old = dir.path().join("old.fits");
+    cal.save(&old).unwrap();
+    let back = Calibration::load(&old).unwrap();
+    let rb = back.model.radial().unwrap();
+    assert!(rb.scaling.is_none());
+    assert!((rb.centre_errors()[0] - want).abs() <= 1e-13 * want);
+
+    // A value this build does not know is an error naming the keyword (added to the file that
+    // has none: fitsio appends keywords rather than updating them).
+    {
+        let mut f = fitsio::FitsFile::edit(&old).unwrap();
+        let h = f.primary_hdu().unwrap();
+        h.write_key(&mut f, "HIERARCH IP ERR SCALING", "optimistic").unwrap();
+    }
+    let e = Calibration::load(&old).map(|_| ()).unwrap_err().to_string();
+    assert!(e.contains("ERR SCALING") && e.contains("optimistic") && e.contains("old.fits"), "{e}");
+}

@@ -105,3 +105,84 @@ fn paraboloid_vertex_px(cal: &fit::Calibration) -> [f64; 2] {
     let v = h.try_inverse().unwrap() * Vector2::new(-c[1], -c[2]);
     [1000.0 + 1000.0 * v[0], 1000.0 + 1000.0 * v[1]]
 }
+
+/// The smoothed (INLA) FORS2 maps' per-pixel errors are larger than the scatter about a smooth
+/// model (chi2_red < 1) and shared between neighbouring pixels: the default error scaling does
+/// not let chi2_red < 1 shrink the centre errors, and the correlated-errors inflation shows
+/// how far the residuals are correlated. Printed: the centre errors of each mode (binned px).
+#[test]
+fn fors2_centre_errors_are_not_shrunk_by_a_small_chi2_and_inflate_for_correlated_residuals() {
+    use fit::ErrorScaling;
+    let Some(dir) = data_dir() else { return };
+    let px = 60.0 / 0.25;
+    let (mut centres, mut cons_err, mut infl_err) = (vec![], vec![], vec![]);
+    for name in ["b_HIGH", "v_HIGH", "R_SPECIAL", "I_BESS"] {
+        let opts = ImportOptions {
+            pixel_scale_arcsec: 0.25,
+            bin: 10,
+            instrument: "FORS2".into(),
+            filter: name.into(),
+            lambda_nm: f64::NAN,
+            origin_px: None,
+        };
+        let cal = import_map(
+            &dir.join(format!("{name}_inlaQ_bin10.fits")),
+            &dir.join(format!("{name}_inlaU_bin10.fits")),
+            &opts,
+        )
+        .unwrap();
+        let run_with = |error_scaling, correlated_errors| {
+            let fit = RadialFitOptions { free_centre: true, error_scaling, correlated_errors, ..Default::default() };
+            refit(&cal, &CalibrateOptions { fit, ..Default::default() }).unwrap()
+        };
+        let scaled = run_with(ErrorScaling::Scaled, false);
+        let corr = run_with(ErrorScaling::Conservative, true);
+        let chi2 = scaled.fit.chi2_reduced;
+        let c = corr.fit.correlation.unwrap();
+        let sc = corr.fit.model.scaling.unwrap();
+        let (es, ei) = (scaled.fit.model.centre_errors(), corr.fit.model.centre_errors());
+        // The conservative errors without the inflation: divide it out.
+        let ec = [ei[0] / c.factor.sqrt(), ei[1] / c.factor.sqrt()];
+        eprintln!(
+            "{name}: chi2_red {chi2:.3}; centre error (x, y) binned px: scaled ({:.2}, {:.2}), conservative ({:.2}, {:.2}), \
+             + correlated ({:.1}, {:.1}); rho_neighbour {:.3}, tau {:.0} over {} px{}",
+            es[0] * px,
+            es[1] * px,
+            ec[0] * px,
+            ec[1] * px,
+            ei[0] * px,
+            ei[1] * px,
+            c.rho_neighbour,
+            c.factor,
+            c.window_bins,
+            if c.resolved { "" } else { " (not resolved: a lower bound)" }
+        );
+        // Smoothed maps: chi2_red < 1, so conservative = absolute = scaled / sqrt(chi2_red).
+        assert!(chi2 < 1.0, "{name}: chi2 {chi2}");
+        assert_eq!(sc.chi2_factor, 1.0);
+        for k in 0..2 {
+            assert!((ec[k] * chi2.sqrt() / es[k] - 1.0).abs() < 1e-6, "{name}: {ec:?} {es:?} chi2 {chi2}");
+        }
+        // Neighbouring map pixels share their noise and misfit.
+        assert!(c.rho_neighbour > 0.9 && c.factor > 100.0, "{name}: {c:?}");
+        centres.push(corr.fit.model.centre);
+        cons_err.push(ec);
+        infl_err.push(ei);
+    }
+    // The four filters' centres scatter by far more than the independent-bin errors allow, and
+    // by about the inflated ones (the optics are the same; a real chromatic shift would only
+    // add scatter).
+    for k in 0..2 {
+        let m = centres.iter().map(|c| c[k]).sum::<f64>() / 4.0;
+        let sd = (centres.iter().map(|c| (c[k] - m).powi(2)).sum::<f64>() / 3.0).sqrt();
+        let (ce, ie) =
+            (cons_err.iter().map(|e| e[k]).sum::<f64>() / 4.0, infl_err.iter().map(|e| e[k]).sum::<f64>() / 4.0);
+        eprintln!(
+            "axis {k}: filter-to-filter centre scatter {:.1} px; mean error conservative {:.2} px, inflated {:.1} px",
+            sd * px,
+            ce * px,
+            ie * px
+        );
+        assert!(sd > 10.0 * ce && sd < 2.0 * ie, "axis {k}: scatter {sd} vs errors {ce}, {ie}");
+    }
+}
