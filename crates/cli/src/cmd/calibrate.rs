@@ -65,9 +65,11 @@ pub struct FitArgs {
     /// Fit the optical-axis centre instead of fixing it at the detector centre.
     #[arg(long)]
     pub free_centre: bool,
-    /// Leave part of the field out; repeatable. sector:FROM:TO (polar angle, deg, about the
-    /// detector centre, e.g. sector:10:80 as the paper's V band), box:X0:X1:Y0:Y1 (arcmin),
-    /// ring:R0:R1 (arcmin).
+    /// Leave part of the field out; repeatable. sector:FROM:TO (polar angle, deg,
+    /// counter-clockwise from +x, e.g. sector:10:80 as the paper's V band) and ring:R0:R1
+    /// (arcmin) are measured about the model's optical-axis centre (with --free-centre: about
+    /// the fitted centre, refitting until the excluded bins settle); box:X0:X1:Y0:Y1 is in
+    /// arcmin from the detector centre.
     #[arg(long)]
     pub exclude: Vec<String>,
     /// Keep a natural-neighbour interpolant of the residuals in the model (for fields that are
@@ -77,6 +79,19 @@ pub struct FitArgs {
     /// Robust loss: huber (default), cauchy or none.
     #[arg(long, default_value = "huber")]
     pub robust: String,
+    /// How the parameter errors use the fit's reduced chi^2: conservative (default) multiplies
+    /// the covariance by max(1, chi2_red), so errors grow when the bins scatter more than their
+    /// errors say but never shrink below what those errors allow (chi2_red < 1 usually means
+    /// correlated or overstated errors, e.g. smoothed maps); scaled always multiplies by
+    /// chi2_red (scipy curve_fit's absolute_sigma=False); absolute trusts the bins' errors.
+    /// Recorded in the calibration file (HIERARCH IP ERR SCALING) and the JSON.
+    #[arg(long, default_value = "conservative", value_name = "MODE")]
+    pub error_scaling: String,
+    /// Also inflate the errors for correlated bin errors (smoothed maps such as the FORS2 INLA
+    /// maps): the covariance is multiplied by tau, the sum of the residuals' autocorrelation
+    /// over neighbouring bins (bins per independent one). Needs bins on a regular grid.
+    #[arg(long)]
+    pub correlated_errors: bool,
 }
 
 impl FitArgs {
@@ -93,6 +108,8 @@ impl FitArgs {
             "none" => Robust::None,
             other => bail!("unknown --robust '{other}': use huber, cauchy or none"),
         };
+        fo.error_scaling = self.error_scaling.parse().context("--error-scaling")?;
+        fo.correlated_errors = self.correlated_errors;
         Ok(CalibrateOptions { fit: fo, residual_map: self.residual_map, ..Default::default() })
     }
 }
