@@ -8,50 +8,34 @@
 //! A control test runs each command on the good version of the input first, so that an
 //! error below is caused by the one thing that was broken.
 
-use fit::synth::{sky_field, FnField};
-use fit::RadialModel;
+mod common;
+
+use common::{bin, listing, run};
 use skyfield::io::{write_frame, Bitpix, KeyValue};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn bin() -> &'static str {
-    env!("CARGO_BIN_EXE_instpol")
-}
-
-fn run(args: &[&str]) -> (i32, String, String) {
-    let o: Output = Command::new(bin()).args(args).output().unwrap();
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
-    )
-}
-
-/// Files in `dir` (names only), sorted.
-fn listing(dir: &Path) -> Vec<String> {
-    let mut v: Vec<String> =
-        std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
-    v.sort();
-    v
-}
+use std::process::Command;
 
 /// Run `args`, expect a clean refusal: exit 2, `error:` naming each of `names`, no panic, and
 /// the folder `dir` unchanged (no output, no temporary left behind).
 #[track_caller]
-fn refuses(dir: &Path, args: &[&str], names: &[&str]) -> String {
+fn refuses<S: AsRef<std::ffi::OsStr> + std::fmt::Debug>(dir: &Path, args: &[S], names: &[&str]) -> String {
     let before = listing(dir);
     let (code, out, err) = run(args);
     if let Ok(log) = std::env::var("BAD_INPUTS_LOG") {
         use std::io::Write;
         let mut f = std::fs::OpenOptions::new().create(true).append(true).open(log).unwrap();
-        let first = err.lines().next().unwrap_or("").replace('|', "\\|");
+        let first = err.lines().find(|l| l.starts_with("error: ")).unwrap_or("").replace('|', "\\|");
         writeln!(f, "{} | {code} | {first}", std::thread::current().name().unwrap_or("?")).unwrap();
     }
     assert!(!err.contains("panicked"), "panic on {args:?}: {err}");
     assert_eq!(code, 2, "exit code for {args:?}: stdout {out} stderr {err}");
-    assert!(err.starts_with("error: "), "no 'error:' prefix: {err}");
+    // Warnings (naming masked pixels, say) may come first; the error is the last message.
+    let Some(start) = err.lines().position(|l| l.starts_with("error: ")) else {
+        panic!("no 'error:' line for {args:?}: {err}")
+    };
+    let msg = err.lines().skip(start).collect::<Vec<_>>().join("\n");
     for n in names {
-        assert!(err.contains(n), "message for {args:?} does not name '{n}': {err}");
+        assert!(msg.contains(n), "message for {args:?} does not name '{n}': {err}");
     }
     assert_eq!(listing(dir), before, "files left behind by {args:?}");
     err
@@ -61,37 +45,10 @@ fn refuses(dir: &Path, args: &[&str], names: &[&str]) -> String {
 // Inputs: a tiny instrument (96 x 96 px, 4"/px), frames, Stokes maps, a calibration file.
 // ---------------------------------------------------------------------------------------
 
-const MINI: &str = r#"
-name = "MINI"
-description = "a tiny dual-beam imager for tests"
-
-[detector]
-nx = 96
-ny = 96
-pixel_scale_arcsec = 4.0
-gain_e_per_adu = 1.0
-read_noise_e = 3.0
-saturation_adu = 60000.0
-bias_adu = 0.0
-
-[field]
-width_arcmin = 6.4
-height_arcmin = 6.4
-
-[polarimetry]
-throw_arcsec = 32.0
-strip_axis = "y"
-strip_count = 5
-first_strip_y_px = 4
-extraordinary_offset_sign = 1
-hwp_angle_keyword = "HIERARCH ESO INS RETA2 POSANG"
-filter_keyword = "HIERARCH ESO INS FILT1 NAME"
-exptime_keyword = "EXPTIME"
-
-[[filters]]
-name = "V"
-lambda_eff_nm = 554.0
-"#;
+/// The tiny instrument's file (`common::MINI`).
+fn mini() -> String {
+    common::MINI.toml()
+}
 
 struct Fixture {
     dir: tempfile::TempDir,
@@ -100,7 +57,7 @@ struct Fixture {
 impl Fixture {
     fn new() -> Self {
         let f = Fixture { dir: tempfile::tempdir().unwrap() };
-        std::fs::write(f.p("mini.toml"), MINI).unwrap();
+        std::fs::write(f.p("mini.toml"), mini()).unwrap();
         f
     }
     fn p(&self, name: &str) -> PathBuf {
@@ -119,7 +76,12 @@ impl Fixture {
     /// A frame of the tiny instrument: sky of 2000 ADU polarized 2% at 30 deg, seen at HWP
     /// angle `hwp` through an ideal prism, written to `name`. `edit` may change the pixels.
     fn frame(&self, name: &str, hwp: f64, filter: &str, edit: impl Fn(&mut Vec<f64>)) -> String {
-        let inst = instrument::Instrument::from_toml_str(MINI, Path::new("mini.toml")).unwrap();
+        self.frame_of(&mini(), name, hwp, filter, edit)
+    }
+
+    /// [`Fixture::frame`] with the beams laid out by the instrument file `toml`.
+    fn frame_of(&self, toml: &str, name: &str, hwp: f64, filter: &str, edit: impl Fn(&mut Vec<f64>)) -> String {
+        let inst = instrument::Instrument::from_toml_str(toml, Path::new("mini.toml")).unwrap();
         let (nx, ny) = (inst.detector.nx, inst.detector.ny);
         let m = 0.02 * (4.0 * hwp.to_radians() - 2.0 * 30f64.to_radians()).cos();
         let mut data = vec![2000.0; nx * ny];
@@ -161,27 +123,8 @@ impl Fixture {
         while self.p(&name).to_str().unwrap().len() % 16 == 8 {
             name.insert(0, '_');
         }
-        let name = name.as_str();
-        let geom = skyfield::BinGeometry::covering(60, 0, 0, 2048, 2048, 0.2);
-        let mut map = skyfield::StokesMap::empty(geom.clone(), "FORS1", "V", vec![0.0, 22.5, 45.0, 67.5]);
-        let centres: Vec<(f64, f64)> = (0..geom.len()).map(|k| geom.centre_arcmin(k % geom.nx, k / geom.nx)).collect();
-        let truth = RadialModel::new(1, vec![0.012e-2, 0.046e-2, 0.002e-2], [0.0, 0.0]);
-        let sky = skyfield::solve::SkyPolarization::from_percent_deg(1.74, -53.8).unwrap();
-        let (q0, u0) = sky.qu();
-        let m = sky_field(&centres, &FnField(move |x, y| truth.qu(x, y)), q0, u0, 1e-4, 9);
-        for (k, b) in m.iter().enumerate() {
-            map.q[k] = b.q1;
-            map.u[k] = b.u1;
-            map.sigma_q[k] = 1e-4;
-            map.sigma_u[k] = 1e-4;
-            map.cov_qu[k] = 0.0;
-            map.p[k] = b.q1.hypot(b.u1);
-            map.chi[k] = 0.0;
-            map.n_pixels[k] = 3600;
-            map.valid[k] = true;
-        }
-        let path = self.p(name);
-        map.write_fits(&path).unwrap();
+        let path = self.p(&name);
+        common::write_v_sky_map(&path, |_| true);
         path.to_str().unwrap().to_string()
     }
 
@@ -320,20 +263,20 @@ fn stokes_binary_garbage() {
 #[test]
 fn instrument_unknown_key() {
     let f = Fixture::new();
-    let p = f.csv("typo.toml", &MINI.replace("pixel_scale_arcsec", "pixel_scal_arcsec"));
+    let p = f.csv("typo.toml", &mini().replace("pixel_scale_arcsec", "pixel_scal_arcsec"));
     let out = f.out_dir();
     let err = refuses(&out, &["raytrace", "--instrument", &p, "--filter", "V"], &["typo.toml", "pixel_scal_arcsec"]);
     let _ = err;
-    let p2 = f.csv("extra.toml", &MINI.replace("[field]", "[field]\ncolour = \"red\""));
+    let p2 = f.csv("extra.toml", &mini().replace("[field]", "[field]\ncolour = \"red\""));
     refuses(&out, &["raytrace", "--instrument", &p2, "--filter", "V"], &["extra.toml", "colour"]);
 }
 
 #[test]
 fn instrument_wrong_type_and_missing_key() {
     let f = Fixture::new();
-    let p = f.csv("type.toml", &MINI.replace("nx = 96", "nx = \"ninety-six\""));
+    let p = f.csv("type.toml", &mini().replace("nx = 96", "nx = \"ninety-six\""));
     refuses(f.dir.path(), &["raytrace", "--instrument", &p, "--filter", "V"], &["type.toml", "nx"]);
-    let p = f.csv("missing.toml", &MINI.replace("gain_e_per_adu = 1.0\n", ""));
+    let p = f.csv("missing.toml", &mini().replace("gain_e_per_adu = 1.0\n", ""));
     refuses(f.dir.path(), &["raytrace", "--instrument", &p, "--filter", "V"], &["missing.toml", "gain_e_per_adu"]);
 }
 
@@ -347,9 +290,9 @@ fn instrument_unknown_name_and_missing_file() {
 #[test]
 fn instrument_invalid_values() {
     let f = Fixture::new();
-    let p = f.csv("neg.toml", &MINI.replace("pixel_scale_arcsec = 4.0", "pixel_scale_arcsec = -4.0"));
+    let p = f.csv("neg.toml", &mini().replace("pixel_scale_arcsec = 4.0", "pixel_scale_arcsec = -4.0"));
     refuses(f.dir.path(), &["raytrace", "--instrument", &p, "--filter", "V"], &["neg.toml", "pixel_scale_arcsec"]);
-    let p = f.csv("strips.toml", &MINI.replace("strip_count = 5", "strip_count = 50"));
+    let p = f.csv("strips.toml", &mini().replace("strip_count = 5", "strip_count = 50"));
     refuses(f.dir.path(), &["raytrace", "--instrument", &p, "--filter", "V"], &["strips.toml", "strip"]);
 }
 
@@ -524,7 +467,7 @@ fn frames_duplicated_hwp_angle_is_summed_with_a_warning() {
 #[test]
 fn frames_mixed_filters() {
     let f = Fixture::new();
-    let inst = MINI.replace(
+    let inst = mini().replace(
         "[[filters]]\nname = \"V\"",
         "[[filters]]\nname = \"B\"\nlambda_eff_nm = 429.0\n\n[[filters]]\nname = \"V\"",
     );
@@ -807,6 +750,15 @@ fn write_image(path: &Path, nx: usize, ny: usize, v: f64) {
     h.write_image(&mut f, &data).unwrap();
 }
 
+/// `instpol import-map` of the Q and U cubes `q`, `u` (0.25"/px, 50 px bins, V) into `out`.
+fn import_map_args(q: &str, u: &str, out: &str) -> Vec<String> {
+    ["import-map", "--q", q, "--u", u, "--pixel-scale", "0.25", "--bin", "50", "--filter", "V", "--lambda-nm", "554"]
+        .into_iter()
+        .chain(["--out", out])
+        .map(String::from)
+        .collect()
+}
+
 #[test]
 fn import_map_mismatched_and_bad_images() {
     let f = Fixture::new();
@@ -815,31 +767,13 @@ fn import_map_mismatched_and_bad_images() {
     write_image(&f.p("unan.fits"), 20, 20, f64::NAN);
     let out = f.out_dir();
     let o = out.join("cal.fits");
-    let base = |u: &str| {
-        vec![
-            "import-map".to_string(),
-            "--q".into(),
-            f.s("q.fits"),
-            "--u".into(),
-            f.s(u),
-            "--pixel-scale".into(),
-            "0.25".into(),
-            "--bin".into(),
-            "50".into(),
-            "--filter".into(),
-            "V".into(),
-            "--lambda-nm".into(),
-            "554".into(),
-            "--out".into(),
-            o.to_str().unwrap().to_string(),
-        ]
-    };
+    let base = |u: &str| import_map_args(&f.s("q.fits"), &f.s(u), o.to_str().unwrap());
     let a = base("u.fits");
-    refuses(&out, &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["u.fits", "18"]);
+    refuses(&out, &a, &["u.fits", "18"]);
     let a = base("unan.fits");
-    refuses(&out, &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["unan.fits"]);
+    refuses(&out, &a, &["unan.fits"]);
     let a = base("missing.fits");
-    refuses(&out, &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["missing.fits"]);
+    refuses(&out, &a, &["missing.fits"]);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -1048,132 +982,332 @@ fn killed_simulate_leaves_no_partial_frame() {
 // that an aperture and its annulus fit inside the ordinary image of strip 0: rows 4..24)
 // ---------------------------------------------------------------------------------------
 
-/// Four frames with a star at (48, 14) in the ordinary image and one 20 px throw above in the
-/// extraordinary image (the mini2 geometry), on the flat sky of [`Fixture::frame`].
+/// The tiny instrument with two strips of 20 px; its name is still MINI.
+fn mini2_toml() -> String {
+    common::Mini { throw_arcsec: 80.0, strip_count: 2, ..common::MINI }.toml()
+}
+
+/// [`mini2_toml`] written as `mini2.toml`.
+fn mini2(f: &Fixture) -> String {
+    f.csv("mini2.toml", &mini2_toml())
+}
+
+/// A frame of [`Fixture::frame`] in the mini2 layout with an unpolarized star (Gaussian, peak
+/// 20000 ADU) at (48, 14) in the ordinary image and one 20 px throw above, at (48, 34), in
+/// the extraordinary image; `edit` may then change the pixels.
+fn star_frame(f: &Fixture, name: &str, hwp: f64, filter: &str, edit: impl Fn(&mut Vec<f64>)) -> String {
+    f.frame_of(&mini2_toml(), name, hwp, filter, |d| {
+        for y in 0..96usize {
+            for x in 0..96usize {
+                let g = |yc: f64| {
+                    let r2 = (x as f64 - 48.0).powi(2) + (y as f64 - yc).powi(2);
+                    20000.0 * (-r2 / 4.5).exp()
+                };
+                d[y * 96 + x] += g(14.0) + g(34.0);
+            }
+        }
+        edit(d);
+    })
+}
+
+/// Four star frames `s0.fits` .. `s3.fits` at 0, 22.5, 45, 67.5 deg.
 fn star_frames(f: &Fixture) -> Vec<String> {
     [0.0, 22.5, 45.0, 67.5]
         .iter()
         .enumerate()
-        .map(|(i, &a)| {
-            f.frame(&format!("s{i}.fits"), a, "V", |d| {
-                for y in 0..96usize {
-                    for x in 0..96usize {
-                        let g = |yc: f64| {
-                            let r2 = (x as f64 - 48.0).powi(2) + (y as f64 - yc).powi(2);
-                            20000.0 * (-r2 / 4.5).exp()
-                        };
-                        d[y * 96 + x] += g(14.0) + g(34.0);
-                    }
-                }
-            })
-        })
+        .map(|(i, &a)| star_frame(f, &format!("s{i}.fits"), a, "V", |_| {}))
         .collect()
+}
+
+/// `instpol photometry` of the star (aperture 3 px, annulus 4..6 px) in `frames`.
+fn photometry_args(ins: &str, frames: &[String], extra: &[&str]) -> Vec<String> {
+    let mut a: Vec<String> = ["photometry", "--instrument", ins, "--x", "48", "--y", "14"].map(String::from).to_vec();
+    for (flag, value) in [("--aperture", "3"), ("--annulus", "4,6")] {
+        if !extra.iter().any(|e| e.starts_with(flag)) {
+            a.extend([flag.to_string(), value.to_string()]);
+        }
+    }
+    a.extend(extra.iter().map(|s| s.to_string()));
+    a.extend(frames.iter().cloned());
+    a
+}
+
+/// `instpol validate` of calibration `cal` on the star in `frames`, measured as in
+/// [`photometry_args`].
+fn validate_args(cal: &str, ins: &str, frames: &[String], extra: &[&str]) -> Vec<String> {
+    let mut a = photometry_args(ins, frames, extra);
+    a[0] = "validate".into();
+    a.splice(1..1, ["--cal".to_string(), cal.to_string()]);
+    a
+}
+
+/// A calibration of the tiny instrument MINI (its pixel grid: 4"/px about pixel 47.5) with the
+/// paper's V polynomial, valid for |x|, |y| <= `half` arcmin, saved as `name`.
+fn mini_cal(f: &Fixture, name: &str, half: f64) -> String {
+    let mut c = common::fors1_radial_calibration("V", common::V_COEFFS);
+    c.instrument = "MINI".into();
+    c.region = fit::FieldRegion { x_min: -half, x_max: half, y_min: -half, y_max: half };
+    c.pixel = Some(fit::calfile::PixelGrid { scale_arcsec: 4.0, origin_px: [47.5, 47.5] });
+    c.save(&f.p(name)).unwrap();
+    f.s(name)
+}
+
+/// Run photometry and validate (a MINI calibration covering the detector) on `frames` and
+/// expect both to refuse, naming each of `names`.
+#[track_caller]
+fn photometry_and_validate_refuse(f: &Fixture, frames: &[String], names: &[&str]) {
+    let ins = mini2(f);
+    let cal = mini_cal(f, "minical.fits", 3.2);
+    refuses(f.dir.path(), &photometry_args(&ins, frames, &["--json"]), names);
+    refuses(f.dir.path(), &validate_args(&cal, &ins, frames, &["--json"]), names);
+}
+
+/// Both commands on `frames` succeed; returns the JSON of each.
+fn photometry_and_validate_json(f: &Fixture, frames: &[String]) -> (serde_json::Value, serde_json::Value, String) {
+    let ins = mini2(f);
+    let cal = mini_cal(f, "minical.fits", 3.2);
+    let (code, out, err) = run(&photometry_args(&ins, frames, &["--json"]));
+    assert_eq!(code, 0, "photometry: {err}");
+    let (code, vout, verr) = run(&validate_args(&cal, &ins, frames, &["--json"]));
+    assert_eq!(code, 0, "validate: {verr}");
+    (serde_json::from_str(&out).unwrap(), serde_json::from_str(&vout).unwrap(), err + &verr)
 }
 
 #[test]
 fn photometry_control_and_bad_geometry() {
     let f = Fixture::new();
     let frames = star_frames(&f);
-    let ins = f.csv(
-        "mini2.toml",
-        &MINI.replace("throw_arcsec = 32.0", "throw_arcsec = 80.0").replace("strip_count = 5", "strip_count = 2"),
-    );
+    let ins = mini2(&f);
     let base = |x: &str, extra: &[&str]| {
-        let mut a: Vec<String> = vec![
-            "photometry".into(),
-            "--instrument".into(),
-            ins.clone(),
-            "--x".into(),
-            x.into(),
-            "--y".into(),
-            "14".into(),
-        ];
-        a.extend(extra.iter().map(|s| s.to_string()));
-        a.extend(frames.iter().cloned());
+        let mut a = photometry_args(&ins, &frames, extra);
+        a[4] = x.to_string();
         a
     };
-    let a = base("48", &["--aperture", "3", "--annulus", "4,6"]);
-    let (code, _, err) = run(&a.iter().map(|s| s.as_str()).collect::<Vec<_>>());
+    let (code, _, err) = run(&base("48", &[]));
     assert_eq!(code, 0, "control: {err}");
-    let a = base("5000", &["--aperture", "3", "--annulus", "4,6"]);
-    refuses(f.dir.path(), &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["5000"]);
-    let a = base("48", &["--aperture=-3", "--annulus", "4,6"]);
-    refuses(f.dir.path(), &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["aperture"]);
-    let a = base("48", &["--aperture", "3", "--annulus", "6,4"]);
-    refuses(f.dir.path(), &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["annulus"]);
+    refuses(f.dir.path(), &base("5000", &[]), &["5000"]);
+    refuses(f.dir.path(), &base("48", &["--aperture=-3"]), &["aperture radius -3"]);
+    refuses(f.dir.path(), &base("48", &["--annulus", "6,4"]), &["annulus (6, 4)"]);
+}
+
+/// The control of the frame rows below. The star is unpolarized (the same Gaussian in both
+/// beams) and the annulus sees the same star wings in both beams on top of each beam's sky,
+/// so the beam-by-beam background subtraction (section background) leaves P = 0 (to float32
+/// rounding) however much of the wings the annulus holds; validate measures the same star.
+#[test]
+fn photometry_and_validate_control_good_frames() {
+    let f = Fixture::new();
+    let (p, v, _) = photometry_and_validate_json(&f, &star_frames(&f));
+    assert!(p["p"].as_f64().unwrap() < 1e-6, "{p}");
+    assert!((v["measured_p"].as_f64().unwrap() - p["p"].as_f64().unwrap()).abs() < 1e-12, "{v} vs {p}");
+}
+
+#[test]
+fn photometry_and_validate_truncated_frame() {
+    let f = Fixture::new();
+    let mut frames = star_frames(&f);
+    let bytes = std::fs::read(&frames[2]).unwrap();
+    std::fs::write(f.p("trunc.fits"), &bytes[..bytes.len() / 2]).unwrap();
+    frames[2] = f.s("trunc.fits");
+    photometry_and_validate_refuse(&f, &frames, &["trunc.fits"]);
+}
+
+#[test]
+fn photometry_and_validate_text_file_as_frame() {
+    let f = Fixture::new();
+    let mut frames = star_frames(&f);
+    frames[1] = f.csv("text.fits", "this is not FITS\n");
+    photometry_and_validate_refuse(&f, &frames, &["text.fits"]);
+}
+
+#[test]
+fn photometry_and_validate_all_nan_frame() {
+    let f = Fixture::new();
+    let mut frames = star_frames(&f);
+    frames[0] = star_frame(&f, "nan.fits", 0.0, "V", |d| d.iter_mut().for_each(|x| *x = f64::NAN));
+    photometry_and_validate_refuse(&f, &frames, &["nan.fits"]);
+}
+
+/// A NaN or infinite pixel inside the aperture cannot be masked without biasing the flux:
+/// refused, naming the file, the pixel and its beam.
+#[test]
+fn photometry_and_validate_nan_or_inf_pixel_in_the_aperture() {
+    let f = Fixture::new();
+    let mut frames = star_frames(&f);
+    frames[1] = star_frame(&f, "nanap.fits", 22.5, "V", |d| d[14 * 96 + 48] = f64::NAN);
+    photometry_and_validate_refuse(&f, &frames, &["nanap.fits", "(48, 14)", "o beam", "NaN"]);
+    let mut frames = star_frames(&f);
+    frames[3] = star_frame(&f, "infap.fits", 67.5, "V", |d| d[34 * 96 + 49] = f64::INFINITY);
+    photometry_and_validate_refuse(&f, &frames, &["infap.fits", "(49, 34)", "e beam", "inf"]);
+}
+
+/// By design: NaN/inf pixels in the background annulus are left out of the sky estimate, with
+/// a warning naming the file; two of the 42 annulus pixels change the sky estimate far less
+/// than the photon noise (Q and U move by < 5% of their errors).
+#[test]
+fn photometry_and_validate_nan_pixels_in_the_annulus_are_masked_with_a_warning() {
+    let f = Fixture::new();
+    let (p0, _, _) = photometry_and_validate_json(&f, &star_frames(&f));
+    let mut frames = star_frames(&f);
+    frames[2] = star_frame(&f, "nanann.fits", 45.0, "V", |d| {
+        d[14 * 96 + 53] = f64::NAN;
+        d[34 * 96 + 43] = f64::NEG_INFINITY;
+    });
+    let (p, v, err) = photometry_and_validate_json(&f, &frames);
+    assert!(err.contains("nanann.fits") && err.contains("2 NaN/infinite pixels masked"), "{err}");
+    for k in ["q", "u"] {
+        let sigma = p0[format!("sigma_{k}")].as_f64().unwrap();
+        assert!((p[k].as_f64().unwrap() - p0[k].as_f64().unwrap()).abs() < 0.05 * sigma, "{k}: {p} vs {p0}");
+    }
+    assert!(v["measured_p"].as_f64().unwrap().is_finite(), "{v}");
+}
+
+#[test]
+fn photometry_and_validate_wrong_dimensions() {
+    let f = Fixture::new();
+    let mut frames = star_frames(&f);
+    let keys = vec![
+        ("HIERARCH ESO INS RETA2 POSANG".to_string(), KeyValue::F64(45.0), String::new()),
+        ("HIERARCH ESO INS FILT1 NAME".to_string(), KeyValue::Str("V".into()), String::new()),
+    ];
+    write_frame(&f.p("small.fits"), 64, 96, &vec![1000.0; 64 * 96], Bitpix::F32, &keys).unwrap();
+    frames[2] = f.s("small.fits");
+    photometry_and_validate_refuse(&f, &frames, &["small.fits", "64 x 96"]);
+}
+
+#[test]
+fn photometry_and_validate_missing_hwp_angle_keyword() {
+    let f = Fixture::new();
+    let mut frames = star_frames(&f);
+    let keys = vec![("HIERARCH ESO INS FILT1 NAME".to_string(), KeyValue::Str("V".into()), String::new())];
+    write_frame(&f.p("nokey.fits"), 96, 96, &vec![1000.0; 96 * 96], Bitpix::F32, &keys).unwrap();
+    frames[3] = f.s("nokey.fits");
+    photometry_and_validate_refuse(&f, &frames, &["nokey.fits", "RETA2 POSANG"]);
+}
+
+#[test]
+fn photometry_and_validate_missing_hwp_angle() {
+    let f = Fixture::new();
+    let mut frames = star_frames(&f);
+    frames.remove(2);
+    photometry_and_validate_refuse(&f, &frames, &["missing [45 deg]"]);
+}
+
+/// By design: a second exposure at one HWP angle is summed with the first (warning naming
+/// both files). The same exposure twice leaves every F_i (eq:F), hence Q and U, unchanged.
+#[test]
+fn photometry_and_validate_duplicated_hwp_angle_is_summed_with_a_warning() {
+    let f = Fixture::new();
+    let (p0, v0, _) = photometry_and_validate_json(&f, &star_frames(&f));
+    let mut frames = star_frames(&f);
+    frames.push(star_frame(&f, "again.fits", 45.0, "V", |_| {}));
+    let (p, v, err) = photometry_and_validate_json(&f, &frames);
+    assert!(err.contains("again.fits") && err.contains("second frame at HWP angle 45"), "{err}");
+    for k in ["q", "u"] {
+        assert!((p[k].as_f64().unwrap() - p0[k].as_f64().unwrap()).abs() < 1e-9, "{k}: {p} vs {p0}");
+    }
+    assert_eq!(v["n_frames"], 5);
+    assert!((v["predicted_p"].as_f64().unwrap() - v0["predicted_p"].as_f64().unwrap()).abs() < 1e-12);
+}
+
+#[test]
+fn photometry_and_validate_mixed_filters() {
+    let f = Fixture::new();
+    let mut frames = star_frames(&f);
+    frames[3] = star_frame(&f, "b.fits", 67.5, "B", |_| {});
+    let two = common::Mini { throw_arcsec: 80.0, strip_count: 2, ..common::MINI }.toml().replace(
+        "[[filters]]\nname = \"V\"",
+        "[[filters]]\nname = \"B\"\nlambda_eff_nm = 429.0\n\n[[filters]]\nname = \"V\"",
+    );
+    let ins = f.csv("mini2b.toml", &two);
+    let cal = mini_cal(&f, "minical.fits", 3.2);
+    refuses(f.dir.path(), &photometry_args(&ins, &frames, &[]), &["b.fits", "B", "V"]);
+    refuses(f.dir.path(), &validate_args(&cal, &ins, &frames, &[]), &["b.fits", "B", "V"]);
+}
+
+/// A frame of zero or negative counts (a failed readout, an over-subtracted bias) leaves no
+/// source flux at its HWP angle: refused, naming the angle and the file.
+#[test]
+fn photometry_and_validate_zero_and_negative_flux_frames() {
+    let f = Fixture::new();
+    let mut frames = star_frames(&f);
+    frames[0] = star_frame(&f, "zero.fits", 0.0, "V", |d| d.iter_mut().for_each(|x| *x = 0.0));
+    photometry_and_validate_refuse(&f, &frames, &["zero.fits", "HWP angle 0 deg"]);
+    let mut frames = star_frames(&f);
+    frames[1] = star_frame(&f, "neg.fits", 22.5, "V", |d| d.iter_mut().for_each(|x| *x = -100.0));
+    photometry_and_validate_refuse(&f, &frames, &["neg.fits", "HWP angle 22.5 deg"]);
+}
+
+/// No star at the position (empty sky): the background-subtracted flux is 0, not positive.
+#[test]
+fn photometry_and_validate_no_star_at_the_position() {
+    let f = Fixture::new();
+    let frames = star_frames(&f);
+    let ins = mini2(&f);
+    let cal = mini_cal(&f, "minical.fits", 3.2);
+    let mut a = photometry_args(&ins, &frames, &[]);
+    a[4] = "20".into();
+    refuses(f.dir.path(), &a, &["no source", "(20.0, 14.0)"]);
+    let mut a = validate_args(&cal, &ins, &frames, &[]);
+    a[6] = "20".into();
+    refuses(f.dir.path(), &a, &["no source", "(20.0, 14.0)"]);
+}
+
+/// A saturated star cannot be measured: refused, naming the file and the pixel.
+#[test]
+fn photometry_and_validate_saturated_star() {
+    let f = Fixture::new();
+    let mut frames = star_frames(&f);
+    frames[2] = star_frame(&f, "sat.fits", 45.0, "V", |d| d[14 * 96 + 48] = 65000.0);
+    photometry_and_validate_refuse(&f, &frames, &["sat.fits", "(48, 14)", "saturated"]);
+}
+
+#[test]
+fn validate_position_outside_the_calibrated_field() {
+    let f = Fixture::new();
+    let frames = star_frames(&f);
+    let ins = mini2(&f);
+    // Valid within 1 arcmin of the centre; the star is at y = (14 - 47.5) x 4" = -2.23'.
+    let cal = mini_cal(&f, "smallcal.fits", 1.0);
+    refuses(f.dir.path(), &validate_args(&cal, &ins, &frames, &[]), &["outside the calibrated field", "-2.23"]);
+    let (code, _, err) = run(&validate_args(&cal, &ins, &frames, &["--allow-extrapolation"]));
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("extrapolated"), "{err}");
 }
 
 #[test]
 fn validate_bad_standards_file_and_unknown_star() {
     let f = Fixture::new();
-    let cal = f.cal();
+    let cal = mini_cal(&f, "minical.fits", 3.2);
     let frames = star_frames(&f);
-    let ins = f.csv(
-        "mini2.toml",
-        &MINI.replace("throw_arcsec = 32.0", "throw_arcsec = 80.0").replace("strip_count = 5", "strip_count = 2"),
-    );
+    let ins = mini2(&f);
     let std_text =
         std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../instruments/standards.toml"))
             .unwrap();
     let typo = f.csv("typo_std.toml", &std_text.replacen("sigma_p_percent", "sigma_p_percnt", 1));
-    let base = |extra: &[&str]| {
-        let mut a: Vec<String> = vec![
-            "validate".into(),
-            "--cal".into(),
-            cal.clone(),
-            "--instrument".into(),
-            ins.clone(),
-            "--x".into(),
-            "48".into(),
-            "--y".into(),
-            "14".into(),
-            "--aperture".into(),
-            "3".into(),
-            "--annulus".into(),
-            "4,6".into(),
-        ];
-        a.extend(extra.iter().map(|s| s.to_string()));
-        a.extend(frames.iter().cloned());
-        a
-    };
-    let a = base(&["--standards", &typo, "--star", "HD 14069"]);
-    refuses(f.dir.path(), &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["typo_std.toml", "sigma_p_percnt"]);
-    let a = base(&["--star", "HD 99999"]);
-    refuses(f.dir.path(), &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["HD 99999"]);
+    let a = validate_args(&cal, &ins, &frames, &["--standards", &typo, "--star", "HD 14069"]);
+    refuses(f.dir.path(), &a, &["typo_std.toml", "sigma_p_percnt"]);
+    // Read even when no --star is named (was ignored then).
+    let a = validate_args(&cal, &ins, &frames, &["--standards", &typo]);
+    refuses(f.dir.path(), &a, &["typo_std.toml", "sigma_p_percnt"]);
+    let nop = f.csv("nop_std.toml", &std_text.replacen("p_percent = 0.111\n", "", 1));
+    let a = validate_args(&cal, &ins, &frames, &["--standards", &nop, "--star", "HD 14069"]);
+    refuses(f.dir.path(), &a, &["nop_std.toml", "p_percent"]);
+    refuses(f.dir.path(), &validate_args(&cal, &ins, &frames, &["--star", "HD 99999"]), &["HD 99999"]);
 }
 
-/// Regression (was a defect, fixed in e568d20): frames of the tiny instrument MINI validated with a FORS1 calibration pass (exit 0,
-/// "star unpolarized in V ..."): the calibration's instrument is never compared with the
-/// frames' (`--instrument`). Fix (crates/cli/src/cmd/validate.rs): refuse when
-/// `cal.instrument` differs from the instrument's name (case-insensitive), naming both.
-/// (Also noted, not tested: `--standards FILE` is not even read unless `--star` is given, so a
-/// broken standards file passes silently.)
+/// Regression (was a defect, fixed in e568d20): frames of the tiny instrument MINI validated
+/// with a FORS1 calibration passed (exit 0, "star unpolarized in V ..."): the calibration's
+/// instrument was never compared with the frames' (`--instrument`). Fix
+/// (crates/cli/src/cmd/validate.rs): refuse when `cal.instrument` differs from the
+/// instrument's name (case-insensitive), naming both.
 #[test]
 fn validate_calibration_of_another_instrument() {
     let f = Fixture::new();
     let cal = f.cal();
     let frames = star_frames(&f);
-    let ins = f.csv(
-        "mini2.toml",
-        &MINI.replace("throw_arcsec = 32.0", "throw_arcsec = 80.0").replace("strip_count = 5", "strip_count = 2"),
-    );
-    let mut a: Vec<String> = vec![
-        "validate".into(),
-        "--cal".into(),
-        cal.clone(),
-        "--instrument".into(),
-        ins.clone(),
-        "--x".into(),
-        "48".into(),
-        "--y".into(),
-        "14".into(),
-        "--aperture".into(),
-        "3".into(),
-        "--annulus".into(),
-        "4,6".into(),
-    ];
-    a.extend(frames.iter().cloned());
-    refuses(f.dir.path(), &a.iter().map(|s| s.as_str()).collect::<Vec<_>>(), &["MINI", "FORS1"]);
+    let ins = mini2(&f);
+    refuses(f.dir.path(), &validate_args(&cal, &ins, &frames, &[]), &["MINI", "FORS1"]);
 }
 
 /// Was a defect (found by fuzz/run.sh, fuzz_calibration_file; fixed in 2e5086f): a calibration whose UMAP
@@ -1217,27 +1351,7 @@ fn import_map_with_absurd_image_size_is_refused() {
     let out = f.out_dir();
     let o = out.join("cal.fits");
     let (q, u) = (f.s("q.fits"), f.s("u.fits"));
-    refuses(
-        &out,
-        &[
-            "import-map",
-            "--q",
-            &q,
-            "--u",
-            &u,
-            "--pixel-scale",
-            "0.25",
-            "--bin",
-            "50",
-            "--filter",
-            "V",
-            "--lambda-nm",
-            "554",
-            "--out",
-            o.to_str().unwrap(),
-        ],
-        &["q.fits"],
-    );
+    refuses(&out, &import_map_args(&q, &u, o.to_str().unwrap()), &["q.fits"]);
 }
 
 /// A frame whose header claims NAXIS2 = 99999999999 is refused by the detector-size check
@@ -1253,4 +1367,167 @@ fn frame_with_absurd_image_size_is_refused() {
     frames[1] = f.s("huge.fits");
     let out = f.out_dir();
     refuses(&out, &calibrate_args(&f, &frames, out.join("cal.fits").to_str().unwrap()), &["huge.fits", "99999999999"]);
+}
+
+// ---------------------------------------------------------------------------------------
+// Every reader of a calibration file, every writer of an output
+// ---------------------------------------------------------------------------------------
+
+/// A calibration of a newer (99) or an invalid (0) format version is refused by every command
+/// that reads one, naming the file and the version (`correct`:
+/// `correct_calibration_of_newer_format_version`).
+#[test]
+fn every_calibration_reader_refuses_another_format_version() {
+    let f = Fixture::new();
+    let frames = star_frames(&f);
+    let ins = mini2(&f);
+    let cal = mini_cal(&f, "minical.fits", 3.2);
+    let (code, _, err) = run(&validate_args(&cal, &ins, &frames, &[]));
+    assert_eq!(code, 0, "control: {err}");
+    let out = f.out_dir();
+    for (version, word) in [("99", "99"), ("0", "version")] {
+        patch_card(Path::new(&cal), "FORMAT VERSION", version);
+        refuses(&out, &validate_args(&cal, &ins, &frames, &[]), &["minical.fits", word]);
+        refuses(&out, &["fit", &cal, "--out", out.join("refit.fits").to_str().unwrap()], &["minical.fits", word]);
+        refuses(&out, &["plot", &cal, "--out", out.join("plots").to_str().unwrap()], &["minical.fits", word]);
+        refuses(&out, &["wavelength-law", &cal, &cal], &["minical.fits", word]);
+    }
+}
+
+/// Every command that writes a file or a folder, given an output whose parent is a regular
+/// file (fails even as root): exit 2 naming that parent, nothing written anywhere
+/// (`calibrate`, `correct`, `simulate`, `reduce`: their own rows above).
+#[test]
+fn every_writer_refuses_an_output_under_a_file() {
+    let f = Fixture::new();
+    let cal = f.cal();
+    std::fs::write(f.p("afile"), "x").unwrap();
+    let under = |name: &str| f.p("afile").join(name).to_str().unwrap().to_string();
+    let d = f.dir.path();
+    let map = f.map("map2.fits");
+    // calibrate --plots under a file: refused, but (weak, for the lead: cmd/calibrate.rs
+    // `finish` saves the calibration before it creates the plots folder) the calibration,
+    // complete, is already written; no plot and no temporary.
+    let c2 = f.p("c2.fits");
+    let (code, _, err) = run(&[
+        "calibrate",
+        "--map",
+        &map,
+        "--sky-p",
+        "1.74",
+        "--sky-chi",
+        "-53.8",
+        "--out",
+        c2.to_str().unwrap(),
+        "--plots",
+        &under("plots"),
+    ]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.starts_with("error: ") && err.contains("afile"), "{err}");
+    if c2.exists() {
+        fit::Calibration::load(&c2).expect("a calibration left by calibrate --plots must be complete");
+        std::fs::remove_file(&c2).unwrap();
+    }
+    refuses(d, &["fit", &cal, "--out", &under("refit.fits")], &["afile"]);
+    refuses(d, &["fit", &cal, "--plots", &under("plots")], &["afile"]);
+    refuses(d, &["plot", &cal, "--out", &under("plots")], &["afile"]);
+    write_image(&f.p("q.fits"), 20, 20, 0.001);
+    write_image(&f.p("u.fits"), 20, 20, 0.001);
+    let (q, u) = (f.s("q.fits"), f.s("u.fits"));
+    refuses(d, &import_map_args(&q, &u, &under("cal.fits")), &["afile"]);
+    refuses(
+        d,
+        &["mc", "--accuracy-report", "--trials", "1000", "--noise", "gauss-qu", "--plot", &under("acc.png")],
+        &["afile"],
+    );
+    refuses(d, &["mc", "--sweep", "--trials", "200", "--noise", "gauss-qu", "--plot", &under("sweep.png")], &["afile"]);
+    refuses(d, &["raytrace", "--filter", "V", "--plot", &under("rt.png")], &["afile"]);
+    refuses(d, &["raytrace", "--filter", "V", "--field-out", &under("field.json")], &["afile"]);
+    refuses(d, &["demo", "--no-frames", "--out", &under("demo")], &["afile"]);
+}
+
+/// Whether `b` is a whole PNG: the signature, then chunks (length, type, data, CRC) that end
+/// exactly at the end of the file with IEND.
+fn is_complete_png(b: &[u8]) -> bool {
+    if b.len() < 8 || &b[..8] != b"\x89PNG\r\n\x1a\n" {
+        return false;
+    }
+    let mut i = 8;
+    while i + 12 <= b.len() {
+        let len = u32::from_be_bytes(b[i..i + 4].try_into().unwrap()) as usize;
+        let end = i + 12 + len;
+        if end > b.len() {
+            return false;
+        }
+        if &b[i + 4..i + 8] == b"IEND" {
+            return end == b.len();
+        }
+        i = end;
+    }
+    false
+}
+
+/// `instpol mc --accuracy-report --plot FILE` killed with SIGKILL while the plot is being
+/// written (the moment its temporary appears, and when it has bytes) and at fixed delays
+/// around the end of the run: the plot is either absent or a complete PNG, never a partial
+/// one, and the only other names left are the writer's dot-temporaries (a killed process
+/// cannot remove its own).
+#[test]
+fn killed_mc_accuracy_report_leaves_no_partial_plot() {
+    let f = Fixture::new();
+    let out = f.out_dir();
+    let png = out.join("acc.png");
+    let args = ["mc", "--accuracy-report", "--trials", "2000", "--noise", "gauss-qu", "--threads", "1", "--plot"];
+    let (code, _, err) = run(&[&args[..], &[png.to_str().unwrap()]].concat());
+    assert_eq!(code, 0, "{err}");
+    assert!(is_complete_png(&std::fs::read(&png).unwrap()), "control plot is not a whole PNG");
+    let temps = || listing(&out).into_iter().filter(|n| n.starts_with('.')).collect::<Vec<_>>();
+    let check = |when: &str| {
+        if png.exists() {
+            assert!(is_complete_png(&std::fs::read(&png).unwrap()), "partial acc.png after kill {when}");
+        }
+        for name in listing(&out) {
+            assert!(name == "acc.png" || name.starts_with(".instpol-"), "stray file {name} after kill {when}");
+        }
+    };
+    let spawn = || {
+        Command::new(bin())
+            .args(args)
+            .arg(&png)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap()
+    };
+    // Killed while writing: poll for the temporary (empty, then with bytes) and kill then.
+    let mut caught = 0;
+    for want_bytes in [false, true, false, true, false, true] {
+        let _ = std::fs::remove_file(&png);
+        let before = temps();
+        let mut child = spawn();
+        let t0 = std::time::Instant::now();
+        loop {
+            let fresh: Vec<String> = temps().into_iter().filter(|n| !before.contains(n)).collect();
+            let hit = fresh
+                .iter()
+                .any(|n| !want_bytes || std::fs::metadata(out.join(n)).map(|m| m.len() > 0).unwrap_or(false));
+            if hit || t0.elapsed().as_secs() > 20 || child.try_wait().unwrap().is_some() {
+                let _ = child.kill();
+                caught += hit as usize;
+                break;
+            }
+        }
+        let _ = child.wait();
+        check(&format!("while writing (temporary with bytes: {want_bytes})"));
+    }
+    assert!(caught > 0, "never saw the plot's temporary: is the plot written through temp_beside?");
+    // Killed at fixed moments.
+    for delay_ms in [20u64, 60, 100, 140, 180, 250] {
+        let _ = std::fs::remove_file(&png);
+        let mut child = spawn();
+        std::thread::sleep(std::time::Duration::from_millis(delay_ms));
+        let _ = child.kill();
+        let _ = child.wait();
+        check(&format!("at {delay_ms} ms"));
+    }
 }

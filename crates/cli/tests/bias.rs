@@ -1,22 +1,13 @@
 //! `instpol bias` end to end: the JSON contract, the interval cases, errors.
 
-use std::process::Command;
+mod common;
 
 fn bias(args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(env!("CARGO_BIN_EXE_instpol")).arg("bias").args(args).output().unwrap();
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
-    )
+    common::run_sub("bias", args)
 }
 
 fn json(args: &[&str]) -> serde_json::Value {
-    let mut a = args.to_vec();
-    a.push("--json");
-    let (code, out, err) = bias(&a);
-    assert_eq!(code, 0, "{err}");
-    serde_json::from_str(&out).unwrap()
+    common::run_json("bias", args)
 }
 
 /// JSON fields estimator, estimate, interval [lo, hi], upper_limit_only, and the estimate is

@@ -1,48 +1,9 @@
 //! End-to-end: `instpol calibrate` on a Stokes map of a simulated V-band empty field (the
 //! paper's V pattern and sky, section sec:fors1), then `fit`, `plot` and bad input.
 
-use fit::synth::{sky_field, FnField};
-use fit::RadialModel;
-use std::path::Path;
-use std::process::Command;
+mod common;
 
-fn instpol(args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(env!("CARGO_BIN_EXE_instpol")).args(args).output().unwrap();
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
-    )
-}
-
-const V: [f64; 3] = [0.012e-2, 0.046e-2, 0.002e-2];
-
-/// A FORS1-like binned map (60 px bins: fast) of the V field seen through the sky of Table
-/// tab:empty, measured with noise 1e-4 per bin; `keep` selects valid bins.
-fn write_map(path: &Path, keep: impl Fn(usize) -> bool) {
-    let geom = skyfield::BinGeometry::covering(60, 0, 0, 2048, 2048, 0.2);
-    let mut map = skyfield::StokesMap::empty(geom.clone(), "FORS1", "V", vec![0.0, 22.5, 45.0, 67.5]);
-    let centres: Vec<(f64, f64)> = (0..geom.len()).map(|k| geom.centre_arcmin(k % geom.nx, k / geom.nx)).collect();
-    let truth = RadialModel::new(1, V.to_vec(), [0.0, 0.0]);
-    let sky = skyfield::solve::SkyPolarization::from_percent_deg(1.74, -53.8).unwrap();
-    let (q0, u0) = sky.qu();
-    let m = sky_field(&centres, &FnField(move |x, y| truth.qu(x, y)), q0, u0, 1e-4, 9);
-    for (k, b) in m.iter().enumerate() {
-        if !keep(k) {
-            continue;
-        }
-        map.q[k] = b.q1;
-        map.u[k] = b.u1;
-        map.sigma_q[k] = 1e-4;
-        map.sigma_u[k] = 1e-4;
-        map.cov_qu[k] = 0.0;
-        map.p[k] = b.q1.hypot(b.u1);
-        map.chi[k] = 0.0;
-        map.n_pixels[k] = 3600;
-        map.valid[k] = true;
-    }
-    map.write_fits(path).unwrap();
-}
+use common::{run as instpol, write_v_sky_map as write_map, V_COEFFS as V};
 
 #[test]
 fn calibrate_map_recovers_the_v_pattern_and_writes_a_calibration() {
@@ -175,31 +136,20 @@ fn bad_input_is_a_clear_error() {
 
 /// A small FORS1-like instrument (512 x 512 px of 0.8", the same 6.8' field and strip layout)
 /// so that a whole frame chain runs in a test.
-const SMALL_INSTRUMENT: &str = r#"
-name = "SMALL"
-description = "test instrument: FORS1 field on a 512 x 512 detector"
-[detector]
-nx = 512
-ny = 512
-pixel_scale_arcsec = 0.8
-gain_e_per_adu = 1.25
-read_noise_e = 5.0
-saturation_adu = 65535.0
-[field]
-width_arcmin = 6.8
-height_arcmin = 6.8
-[polarimetry]
-throw_arcsec = 22.4
-strip_axis = "y"
-strip_count = 9
-first_strip_y_px = 4
-extraordinary_offset_sign = 1
-hwp_angle_keyword = "HIERARCH ESO INS RETA2 POSANG"
-filter_keyword = "HIERARCH ESO INS FILT1 NAME"
-[[filters]]
-name = "V"
-lambda_eff_nm = 554.0
-"#;
+fn small_instrument() -> String {
+    common::Mini {
+        name: "SMALL",
+        nx: 512,
+        pixel_scale_arcsec: 0.8,
+        gain_e_per_adu: 1.25,
+        read_noise_e: 5.0,
+        saturation_adu: 65535.0,
+        field_arcmin: 6.8,
+        throw_arcsec: 22.4,
+        strip_count: 9,
+    }
+    .toml()
+}
 
 #[test]
 fn calibrate_from_simulated_frames_through_the_whole_chain() {
@@ -207,7 +157,7 @@ fn calibrate_from_simulated_frames_through_the_whole_chain() {
     // simulator's coeffs_percent start at r^0; the paper's polynomial has no constant.)
     let dir = tempfile::tempdir().unwrap();
     let inst = dir.path().join("small.toml");
-    std::fs::write(&inst, SMALL_INSTRUMENT).unwrap();
+    std::fs::write(&inst, small_instrument()).unwrap();
     let scene = format!(
         "instrument = {:?}\nfilter = \"V\"\nseed = 5\n[output]\nbitpix = -32\n[sky]\nbrightness_e = 40000.0\np = 0.0174\nchi_deg = -53.8\n\
          [effects]\nphoton_noise = true\n[effects.instpol]\nkind = \"radial\"\ncoeffs_percent = [0.0, 0.012, 0.046, 0.002]\n",

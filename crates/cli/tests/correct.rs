@@ -2,40 +2,19 @@
 //! calibration file, checked against the forward model (`M_I` of `eq:instpol`, then the HWP
 //! zero angle), and the third-party FORS2 maps in /work/shared/data/fors2-instpol/.
 
-use fit::calfile::{Model, PixelGrid, Provenance, FORMAT_VERSION};
+mod common;
+
+use common::V_COEFFS as V;
 use fit::model::FieldModel;
-use fit::{Calibration, FieldRegion, RadialModel};
+use fit::Calibration;
 use fitsio::tables::{ColumnDataType, ColumnDescription};
 use fitsio::FitsFile;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
-const BIN: &str = env!("CARGO_BIN_EXE_instpol");
-/// FORS1: 2048 px at 0.2"/px, half-width 3.413 arcmin.
-const HALF: f64 = 1024.0 * 0.2 / 60.0;
-/// The paper's V polynomial (section `sec:fors1`), as fractions.
-const V: [f64; 3] = [0.012e-2, 0.046e-2, 0.002e-2];
 const OFFSET_DEG: f64 = 1.5;
 
 fn v_calibration() -> Calibration {
-    Calibration {
-        format_version: FORMAT_VERSION,
-        instrument: "FORS1".into(),
-        filter: "V".into(),
-        lambda_nm: 554.0,
-        hwp_chi_offset_deg: OFFSET_DEG,
-        model: Model::Radial(RadialModel::new(1, V.to_vec(), [0.0, 0.0])),
-        region: FieldRegion { x_min: -HALF, x_max: HALF, y_min: -HALF, y_max: HALF },
-        rms_residual: 5e-4,
-        n_bins_used: 0,
-        polar_angle: None,
-        exclusions: vec![],
-        robust: "none".into(),
-        pixel: Some(PixelGrid { scale_arcsec: 0.2, origin_px: [1023.5, 1023.5] }),
-        provenance: Provenance::now("test", vec![]),
-        bins: vec![],
-        grid: None,
-    }
+    Calibration { lambda_nm: 554.0, hwp_chi_offset_deg: OFFSET_DEG, ..common::fors1_radial_calibration("V", V) }
 }
 
 /// What the reduction reports for a star of intrinsic `(p0, chi0)` at `(x, y)` arcmin: `M_I` of
@@ -48,7 +27,7 @@ fn observed(cal: &Calibration, x: f64, y: f64, p0: f64, chi0: f64) -> (f64, f64)
 }
 
 fn run(args: &[&str]) -> std::process::Output {
-    Command::new(BIN).args(args).output().unwrap()
+    common::instpol().args(args).output().unwrap()
 }
 
 fn read_csv(path: &Path) -> (Vec<String>, Vec<Vec<String>>) {

@@ -14,9 +14,10 @@
 //! distinct first error lines are counted as the corpus of behaviours reached. A summary line
 //! per target is appended to `$FUZZ_REPORT` when set.
 
+mod common;
+
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 struct Rng(u64);
@@ -301,10 +302,7 @@ fn fuzz_bin(
         std::fs::write(&p, &input).unwrap();
         let out = dir.path().join(format!("out.{ext}"));
         let _ = std::fs::remove_file(&out);
-        let o = Command::new(env!("CARGO_BIN_EXE_instpol"))
-            .args(args(p.to_str().unwrap(), out.to_str().unwrap()))
-            .output()
-            .unwrap();
+        let o = common::instpol().args(args(p.to_str().unwrap(), out.to_str().unwrap())).output().unwrap();
         st.runs += 1;
         let err = String::from_utf8_lossy(&o.stderr);
         match o.status.code() {
@@ -381,10 +379,7 @@ fn fuzz_stokes_csv() {
 fn fuzz_calibration_file() {
     let work = tempfile::tempdir().unwrap();
     let demo = work.path().join("demo");
-    let o = Command::new(env!("CARGO_BIN_EXE_instpol"))
-        .args(["demo", "--no-frames", "--out", demo.to_str().unwrap()])
-        .output()
-        .unwrap();
+    let o = common::instpol().args(["demo", "--no-frames", "--out", demo.to_str().unwrap()]).output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let seeds: Vec<Vec<u8>> =
         ["cal_V.fits", "cal_B.fits"].iter().map(|n| std::fs::read(demo.join(n)).unwrap()).collect();
@@ -396,30 +391,9 @@ fn fuzz_calibration_file() {
     });
 }
 
-const MINI: &str = r#"
-name = "MINI"
-[detector]
-nx = 64
-ny = 64
-pixel_scale_arcsec = 4.0
-gain_e_per_adu = 1.0
-read_noise_e = 3.0
-saturation_adu = 60000.0
-[field]
-width_arcmin = 4.27
-height_arcmin = 4.27
-[polarimetry]
-throw_arcsec = 24.0
-strip_axis = "y"
-strip_count = 4
-first_strip_y_px = 4
-extraordinary_offset_sign = 1
-hwp_angle_keyword = "HIERARCH ESO INS RETA2 POSANG"
-filter_keyword = "HIERARCH ESO INS FILT1 NAME"
-[[filters]]
-name = "V"
-lambda_eff_nm = 554.0
-"#;
+/// 64 x 64 px of 4": four strips of 6 px.
+const MINI: common::Mini =
+    common::Mini { nx: 64, field_arcmin: 4.27, throw_arcsec: 24.0, strip_count: 4, ..common::MINI };
 
 /// The frame reader (CFITSIO through skyfield::io::read_frame) and the frame-set checks via
 /// `instpol reduce`: one of four good 64 x 64 frames is replaced by a mutated copy.
@@ -429,7 +403,7 @@ fn fuzz_frame_fits() {
     use skyfield::io::{write_frame, Bitpix, KeyValue};
     let work = tempfile::tempdir().unwrap();
     let inst = work.path().join("mini.toml");
-    std::fs::write(&inst, MINI).unwrap();
+    std::fs::write(&inst, MINI.toml()).unwrap();
     let mut frames = Vec::new();
     for (i, a) in [0.0, 22.5, 45.0, 67.5].iter().enumerate() {
         let keys = vec![

@@ -2,16 +2,9 @@
 //! ../shared/data/fors2-instpol is absent), and bad map input.
 
 use std::path::PathBuf;
-use std::process::Command;
+mod common;
 
-fn instpol(args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(env!("CARGO_BIN_EXE_instpol")).args(args).output().unwrap();
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
-    )
-}
+use common::run as instpol;
 
 #[test]
 fn fors2_v_map_imports_fits_and_plots() {

@@ -1,23 +1,14 @@
 //! `instpol mc` end to end: the JSON contract shared with the numpy peer, thread-count
 //! independence, eq:sigp, the sweep and accuracy-report plots, errors.
 
-use std::process::Command;
+mod common;
 
 fn mc(args: &[&str]) -> (i32, String, String) {
-    let o = Command::new(env!("CARGO_BIN_EXE_instpol")).arg("mc").args(args).output().unwrap();
-    (
-        o.status.code().unwrap_or(-1),
-        String::from_utf8_lossy(&o.stdout).into(),
-        String::from_utf8_lossy(&o.stderr).into(),
-    )
+    common::run_sub("mc", args)
 }
 
 fn json(args: &[&str]) -> serde_json::Value {
-    let mut a = args.to_vec();
-    a.push("--json");
-    let (code, out, err) = mc(&a);
-    assert_eq!(code, 0, "{err}");
-    serde_json::from_str(&out).unwrap()
+    common::run_json("mc", args)
 }
 
 /// The contract fields, eq:sigp at high eta, and the same seed on 1 and 2 threads.

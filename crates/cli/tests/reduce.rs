@@ -1,23 +1,13 @@
 //! `instpol reduce` end to end: simulate, reduce, read the map back.
 
+mod common;
+
+use common::{fits_in, instpol};
 use std::path::Path;
-use std::process::Command;
 
 /// A 128 x 128 detector with one 40-px strip (rows 20..60 o, 60..100 e).
 fn tiny_instrument(dir: &Path) -> std::path::PathBuf {
-    let text = include_str!("../../../instruments/fors1.toml")
-        .replace("nx = 2048", "nx = 128")
-        .replace("ny = 2048", "ny = 128")
-        .replace("throw_arcsec = 22.0", "throw_arcsec = 8.0")
-        .replace("strip_count = 9", "strip_count = 1")
-        .replace("first_strip_y_px = 34", "first_strip_y_px = 20");
-    let p = dir.join("tiny.toml");
-    std::fs::write(&p, text).unwrap();
-    p
-}
-
-fn instpol() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_instpol"))
+    common::tiny_fors1(dir, 8.0, 20)
 }
 
 fn sim(dir: &Path, inst: &Path, angles: &str, out: &str) -> Vec<std::path::PathBuf> {
@@ -32,13 +22,7 @@ fn sim(dir: &Path, inst: &Path, angles: &str, out: &str) -> Vec<std::path::PathB
     .unwrap();
     let o = instpol().arg("simulate").arg(&scene).arg("--out").arg(dir.join(out)).output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let mut v: Vec<_> = std::fs::read_dir(dir.join(out))
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "fits"))
-        .collect();
-    v.sort();
-    v
+    fits_in(&dir.join(out))
 }
 
 #[test]

@@ -1,22 +1,13 @@
 //! `instpol simulate` end to end on a small instrument.
 
+mod common;
+
+use common::instpol;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
+/// A 128 x 128 detector with one 40-px strip (rows 20..60 o, 60..100 e).
 pub fn tiny_instrument(dir: &Path) -> PathBuf {
-    let text = include_str!("../../../instruments/fors1.toml")
-        .replace("nx = 2048", "nx = 128")
-        .replace("ny = 2048", "ny = 128")
-        .replace("throw_arcsec = 22.0", "throw_arcsec = 8.0")
-        .replace("strip_count = 9", "strip_count = 1")
-        .replace("first_strip_y_px = 34", "first_strip_y_px = 20");
-    let p = dir.join("tiny.toml");
-    std::fs::write(&p, text).unwrap();
-    p
-}
-
-fn instpol() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_instpol"))
+    common::tiny_fors1(dir, 8.0, 20)
 }
 
 #[test]

@@ -4,39 +4,15 @@
 //! measured by the photometry and judged against the V calibration (passes) and the I
 //! calibration (fails) — the paper's own check.
 
-use fit::calfile::{Model, PixelGrid, Provenance, FORMAT_VERSION};
-use fit::{Calibration, FieldModel, FieldRegion, RadialModel};
+mod common;
+
+use common::fors1_radial_calibration as calibration;
+use fit::{Calibration, FieldModel};
 use instrument::Instrument;
 use mueller::{stokes_p_chi, DualBeam, Element};
 use skyfield::io::{write_frame, Bitpix, KeyValue};
 use skyfield::BeamGeometry;
 use std::path::{Path, PathBuf};
-use std::process::Command;
-
-const BIN: &str = env!("CARGO_BIN_EXE_instpol");
-const HALF: f64 = 1024.0 * 0.2 / 60.0;
-
-fn calibration(filter: &str, coeffs: [f64; 3]) -> Calibration {
-    Calibration {
-        format_version: FORMAT_VERSION,
-        instrument: "FORS1".into(),
-        filter: filter.into(),
-        lambda_nm: f64::NAN,
-        hwp_chi_offset_deg: 0.0,
-        model: Model::Radial(RadialModel::new(1, coeffs.to_vec(), [0.0, 0.0])),
-        region: FieldRegion { x_min: -HALF, x_max: HALF, y_min: -HALF, y_max: HALF },
-        // The paper's fit RMS (section sec:fors1: "of the order of 0.05%").
-        rms_residual: 5e-4,
-        n_bins_used: 0,
-        polar_angle: None,
-        exclusions: vec![],
-        robust: "none".into(),
-        pixel: Some(PixelGrid { scale_arcsec: 0.2, origin_px: [1023.5, 1023.5] }),
-        provenance: Provenance::now("test", vec![]),
-        bins: vec![],
-        grid: None,
-    }
-}
 
 /// The paper's V and I polynomials (section `sec:fors1`), fractions.
 fn v_cal() -> Calibration {
@@ -128,7 +104,7 @@ fn validate(
     ];
     args.extend(extra.iter().map(|s| s.to_string()));
     args.extend(frames.iter().map(|p| p.display().to_string()));
-    let o = Command::new(BIN).args(&args).output().unwrap();
+    let o = common::instpol().args(&args).output().unwrap();
     let js = serde_json::from_slice(&o.stdout).unwrap_or(serde_json::Value::Null);
     (o, js)
 }

@@ -113,7 +113,7 @@ pub fn photometry(set: &FrameSet, inst: &Instrument, x: f64, y: f64, ap: &Apertu
                         idx % g.nx,
                         idx / g.nx,
                         set.files[i][0].display(),
-                        if v.is_finite() { "saturated" } else { "NaN" }
+                        if v.is_finite() { "saturated".to_string() } else { v.to_string() }
                     )));
                 }
             }
@@ -155,9 +155,10 @@ pub fn photometry(set: &FrameSet, inst: &Instrument, x: f64, y: f64, ap: &Apertu
     }
     if let Some(i) = (0..n).find(|&i| !(f_o[i] + f_e[i] > 0.0)) {
         return Err(Error::Invalid(format!(
-            "no source at ({x:.1}, {y:.1}) px: the background-subtracted flux f_O + f_E = {:.1} e- at HWP angle {} deg is not positive",
+            "no source at ({x:.1}, {y:.1}) px: the background-subtracted flux f_O + f_E = {:.1} e- at HWP angle {} deg ({}) is not positive",
             f_o[i] + f_e[i],
-            set.angles_deg[i]
+            set.angles_deg[i],
+            set.files[i].iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" + ")
         )));
     }
     let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();

@@ -277,11 +277,16 @@ pub fn run(a: Args) -> Result<()> {
         crate::cmd::correct::Coords::Pixel => (a.x, a.y),
         crate::cmd::correct::Coords::Arcmin => inst.arcmin_to_pixel(a.x, a.y),
     };
+    // A --standards file is read (and so checked) even when no --star is named.
+    let list = match &a.standards {
+        Some(p) => Some(Standards::load(p)?),
+        None => None,
+    };
     let (name, expected) = match &a.star {
         None => ("unpolarized".to_string(), Expected::unpolarized()),
         Some(n) => {
-            let list = match &a.standards {
-                Some(p) => Standards::load(p)?,
+            let list = match list {
+                Some(l) => l,
                 None => Standards::builtin()?,
             };
             let s = list.star(n)?;

@@ -1,0 +1,214 @@
+//! Fixtures shared by the `instpol` integration tests (each test file says `mod common;`):
+//! running the binary, tiny instruments, FORS1 calibrations and the paper's V-field map.
+//! Each test binary uses a part of it, hence the `dead_code` allowance.
+#![allow(dead_code)]
+
+use fit::calfile::{Model, PixelGrid, Provenance, FORMAT_VERSION};
+use fit::synth::{sky_field, FnField};
+use fit::{Calibration, FieldRegion, RadialModel};
+use std::ffi::OsStr;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// The `instpol` binary under test.
+pub fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_instpol")
+}
+
+/// A command for the binary under test.
+pub fn instpol() -> Command {
+    Command::new(bin())
+}
+
+/// Run the binary with `args`: (exit code, -1 on a signal; stdout; stderr).
+pub fn run<S: AsRef<OsStr>>(args: &[S]) -> (i32, String, String) {
+    let o: Output = instpol().args(args).output().unwrap();
+    (
+        o.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&o.stdout).into(),
+        String::from_utf8_lossy(&o.stderr).into(),
+    )
+}
+
+/// [`run`] of the subcommand `sub`.
+pub fn run_sub(sub: &str, args: &[&str]) -> (i32, String, String) {
+    let mut a = vec![sub];
+    a.extend_from_slice(args);
+    run(&a)
+}
+
+/// Files in `dir` (names only), sorted.
+pub fn listing(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> =
+        std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    v.sort();
+    v
+}
+
+/// A tiny dual-beam imager in the layout of `instruments/fors1.toml` (strips along y from row
+/// 4, the FORS header keywords, one V filter), small enough for a test to make its frames.
+#[derive(Clone, Copy)]
+pub struct Mini {
+    pub name: &'static str,
+    pub nx: usize,
+    pub pixel_scale_arcsec: f64,
+    pub gain_e_per_adu: f64,
+    pub read_noise_e: f64,
+    pub saturation_adu: f64,
+    pub field_arcmin: f64,
+    pub throw_arcsec: f64,
+    pub strip_count: usize,
+}
+
+/// 96 x 96 px of 4": five strips of 8 px (the throw).
+pub const MINI: Mini = Mini {
+    name: "MINI",
+    nx: 96,
+    pixel_scale_arcsec: 4.0,
+    gain_e_per_adu: 1.0,
+    read_noise_e: 3.0,
+    saturation_adu: 60000.0,
+    field_arcmin: 6.4,
+    throw_arcsec: 32.0,
+    strip_count: 5,
+};
+
+impl Mini {
+    /// The instrument file (TOML).
+    pub fn toml(&self) -> String {
+        format!(
+            r#"
+name = "{name}"
+description = "a tiny dual-beam imager for tests"
+
+[detector]
+nx = {nx}
+ny = {nx}
+pixel_scale_arcsec = {scale:?}
+gain_e_per_adu = {gain:?}
+read_noise_e = {rn:?}
+saturation_adu = {sat:?}
+bias_adu = 0.0
+
+[field]
+width_arcmin = {field:?}
+height_arcmin = {field:?}
+
+[polarimetry]
+throw_arcsec = {throw:?}
+strip_axis = "y"
+strip_count = {strips}
+first_strip_y_px = 4
+extraordinary_offset_sign = 1
+hwp_angle_keyword = "HIERARCH ESO INS RETA2 POSANG"
+filter_keyword = "HIERARCH ESO INS FILT1 NAME"
+exptime_keyword = "EXPTIME"
+
+[[filters]]
+name = "V"
+lambda_eff_nm = 554.0
+"#,
+            name = self.name,
+            nx = self.nx,
+            scale = self.pixel_scale_arcsec,
+            gain = self.gain_e_per_adu,
+            rn = self.read_noise_e,
+            sat = self.saturation_adu,
+            field = self.field_arcmin,
+            throw = self.throw_arcsec,
+            strips = self.strip_count
+        )
+    }
+}
+
+/// `instruments/fors1.toml` shrunk to a 128 x 128 detector with one strip of `throw_arcsec`
+/// (pixels of 0.2") from row `first_strip_y_px`, written to `dir/tiny.toml`.
+pub fn tiny_fors1(dir: &Path, throw_arcsec: f64, first_strip_y_px: usize) -> PathBuf {
+    let text = include_str!("../../../../instruments/fors1.toml")
+        .replace("nx = 2048", "nx = 128")
+        .replace("ny = 2048", "ny = 128")
+        .replace("throw_arcsec = 22.0", &format!("throw_arcsec = {throw_arcsec:?}"))
+        .replace("strip_count = 9", "strip_count = 1")
+        .replace("first_strip_y_px = 34", &format!("first_strip_y_px = {first_strip_y_px}"));
+    let p = dir.join("tiny.toml");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+/// The `.fits` files of a folder, sorted (the frames `instpol simulate` wrote).
+pub fn fits_in(dir: &Path) -> Vec<PathBuf> {
+    let mut v: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "fits"))
+        .collect();
+    v.sort();
+    v
+}
+
+/// FORS1: 2048 px at 0.2"/px, half-width 3.413 arcmin.
+pub const FORS1_HALF_ARCMIN: f64 = 1024.0 * 0.2 / 60.0;
+
+/// The paper's V polynomial (section `sec:fors1`), as fractions.
+pub const V_COEFFS: [f64; 3] = [0.012e-2, 0.046e-2, 0.002e-2];
+
+/// A FORS1 calibration with a centred radial model of `coeffs` (fractions, powers r^1..r^3)
+/// over the whole detector, the paper's fit RMS (section sec:fors1: "of the order of
+/// 0.05%"), no HWP zero angle and no wavelength.
+pub fn fors1_radial_calibration(filter: &str, coeffs: [f64; 3]) -> Calibration {
+    let h = FORS1_HALF_ARCMIN;
+    Calibration {
+        format_version: FORMAT_VERSION,
+        instrument: "FORS1".into(),
+        filter: filter.into(),
+        lambda_nm: f64::NAN,
+        hwp_chi_offset_deg: 0.0,
+        model: Model::Radial(RadialModel::new(1, coeffs.to_vec(), [0.0, 0.0])),
+        region: FieldRegion { x_min: -h, x_max: h, y_min: -h, y_max: h },
+        rms_residual: 5e-4,
+        n_bins_used: 0,
+        polar_angle: None,
+        exclusions: vec![],
+        robust: "none".into(),
+        pixel: Some(PixelGrid { scale_arcsec: 0.2, origin_px: [1023.5, 1023.5] }),
+        provenance: Provenance::now("test", vec![]),
+        bins: vec![],
+        grid: None,
+    }
+}
+
+/// A FORS1-like binned map (60 px bins: fast) of the V field (fig:insmapV) seen through the
+/// sky of Table tab:empty, measured with noise 1e-4 per bin; `keep` selects the valid bins.
+pub fn write_v_sky_map(path: &Path, keep: impl Fn(usize) -> bool) {
+    let geom = skyfield::BinGeometry::covering(60, 0, 0, 2048, 2048, 0.2);
+    let mut map = skyfield::StokesMap::empty(geom.clone(), "FORS1", "V", vec![0.0, 22.5, 45.0, 67.5]);
+    let centres: Vec<(f64, f64)> = (0..geom.len()).map(|k| geom.centre_arcmin(k % geom.nx, k / geom.nx)).collect();
+    let truth = RadialModel::new(1, V_COEFFS.to_vec(), [0.0, 0.0]);
+    let sky = skyfield::solve::SkyPolarization::from_percent_deg(1.74, -53.8).unwrap();
+    let (q0, u0) = sky.qu();
+    let m = sky_field(&centres, &FnField(move |x, y| truth.qu(x, y)), q0, u0, 1e-4, 9);
+    for (k, b) in m.iter().enumerate() {
+        if !keep(k) {
+            continue;
+        }
+        map.q[k] = b.q1;
+        map.u[k] = b.u1;
+        map.sigma_q[k] = 1e-4;
+        map.sigma_u[k] = 1e-4;
+        map.cov_qu[k] = 0.0;
+        map.p[k] = b.q1.hypot(b.u1);
+        map.chi[k] = 0.0;
+        map.n_pixels[k] = 3600;
+        map.valid[k] = true;
+    }
+    map.write_fits(path).unwrap();
+}
+
+/// The JSON printed by `instpol SUB ARGS --json` (which must succeed).
+pub fn run_json(sub: &str, args: &[&str]) -> serde_json::Value {
+    let mut a = args.to_vec();
+    a.push("--json");
+    let (code, out, err) = run_sub(sub, &a);
+    assert_eq!(code, 0, "instpol {sub} {args:?}: {err}");
+    serde_json::from_str(&out).unwrap()
+}
