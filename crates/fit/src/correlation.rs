@@ -39,11 +39,11 @@ pub struct CorrelationInflation {
 const MAX_WINDOW: usize = 30;
 
 /// The distinct values of `v` (sorted), merged within `tol`.
-fn distinct(v: &mut Vec<f64>, tol: f64) -> Vec<f64> {
+fn distinct(v: &mut [f64], tol: f64) -> Vec<f64> {
     v.sort_by(|a, b| a.total_cmp(b));
     let mut out: Vec<f64> = vec![];
     for &x in v.iter() {
-        if out.last().map_or(true, |l| x - l > tol) {
+        if out.last().is_none_or(|l| x - l > tol) {
             out.push(x);
         }
     }
