@@ -6,7 +6,7 @@ use fit::pipeline::{CalibrateOptions, CalibrationMeta, CalibrationRun, FitSummar
 use fit::radial::Robust;
 use fit::RadialFitOptions;
 use skyfield::solve::SkyPolarization;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Measure the instrumental polarization over the field from frames of an empty field whose
 /// sky polarization is known (section sec:instr of Patat & Romaniello 2006), fit the radial
@@ -206,18 +206,28 @@ pub fn run(a: Args) -> Result<()> {
         (red.map, a.frames.iter().map(|p| p.display().to_string()).collect())
     };
     let run = calibrate_map(&map, &sky, &inst, inputs, &opts)?;
-    run.calibration.save(&a.out)?;
-    let mut s = FitSummary::new(&run);
-    s.calibration_file = Some(a.out.display().to_string());
-    if let Some(dir) = &a.plots {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-        crate::cmd::plot::plot_run(dir, &run.calibration.filter, &run)?;
+    finish(&run, Some(&a.out), a.plots.as_deref(), a.json)
+}
+
+/// The end of `calibrate` and `fit`: save the calibration (when `out` is given), draw the plots
+/// into `plots`, and print the fit summary as JSON or as a table.
+pub fn finish(run: &CalibrationRun, out: Option<&Path>, plots: Option<&Path>, json: bool) -> Result<()> {
+    let mut s = FitSummary::new(run);
+    if let Some(out) = out {
+        run.calibration.save(out)?;
+        s.calibration_file = Some(out.display().to_string());
     }
-    if a.json {
+    if let Some(dir) = plots {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        crate::cmd::plot::plot_run(dir, &run.calibration.filter, run)?;
+    }
+    if json {
         crate::util::print_json(&s)
     } else {
         print_table(&s);
-        println!("wrote {}", a.out.display());
+        if let Some(out) = out {
+            println!("wrote {}", out.display());
+        }
         Ok(())
     }
 }

@@ -1,7 +1,7 @@
 //! `instpol fit`: refit a calibration file (native or imported) with the radial model.
 
 use anyhow::{Context, Result};
-use fit::pipeline::{refit, FitSummary};
+use fit::pipeline::refit;
 use std::path::PathBuf;
 
 /// Refit the binned measurements of any calibration file (made by `calibrate` or by
@@ -30,22 +30,5 @@ pub fn run(a: Args) -> Result<()> {
     let opts = a.fit.options()?;
     let cal = fit::Calibration::load(&a.calibration)?;
     let run = refit(&cal, &opts).with_context(|| format!("fitting {}", a.calibration.display()))?;
-    let mut s = FitSummary::new(&run);
-    if let Some(out) = &a.out {
-        run.calibration.save(out)?;
-        s.calibration_file = Some(out.display().to_string());
-    }
-    if let Some(dir) = &a.plots {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-        crate::cmd::plot::plot_run(dir, &run.calibration.filter, &run)?;
-    }
-    if a.json {
-        crate::util::print_json(&s)
-    } else {
-        crate::cmd::calibrate::print_table(&s);
-        if let Some(out) = &a.out {
-            println!("wrote {}", out.display());
-        }
-        Ok(())
-    }
+    crate::cmd::calibrate::finish(&run, a.out.as_deref(), a.plots.as_deref(), a.json)
 }
