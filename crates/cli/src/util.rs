@@ -18,7 +18,9 @@ pub fn write_via_temp(path: &Path, suffix: &str, write: impl FnOnce(&Path) -> Re
     let tmp = skyfield::io::temp_beside(path, suffix)
         .with_context(|| format!("cannot create a temporary file in {}", dir.display()))?;
     write(tmp.path())?;
-    tmp.persist(path).with_context(|| format!("cannot write {}", path.display()))?;
+    // Keep only the io::Error: the PersistError also holds the temporary, which must be
+    // dropped (deleted) here, not when the error is (main exits without unwinding).
+    tmp.persist(path).map_err(|e| e.error).with_context(|| format!("cannot write {}", path.display()))?;
     Ok(())
 }
 
