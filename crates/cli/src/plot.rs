@@ -8,10 +8,17 @@ use anyhow::{anyhow, Context, Result};
 use fit::calfile::{Calibration, Model};
 use fit::polar::PolarAngleTest;
 use fit::RadialModel;
-use plotters::coord::Shift;
+use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
+use plotters::coord::types::RangedCoordf64;
+use plotters::coord::{CoordTranslate, Shift};
+use plotters::element::{DashedPathElement, IntoDynElement};
 use plotters::prelude::*;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::path::{Path, PathBuf};
 use std::sync::Once;
+
+/// A pixel position on a drawing backend.
+type BackendCoord = (i32, i32);
 
 /// The font family every plot uses (the embedded DejaVu Sans).
 pub const FONT: &str = "sans-serif";
@@ -36,6 +43,21 @@ pub fn atomic(path: &Path, suffix: &str, write: impl FnOnce(&Path) -> Result<()>
     })
 }
 
+/// Draw one PNG of `size` pixels (white background) at `path`, through [`atomic`].
+pub fn save_png(
+    path: &Path,
+    size: (u32, u32),
+    draw: impl FnOnce(&DrawingArea<BitMapBackend, Shift>) -> Result<()>,
+) -> Result<()> {
+    font();
+    atomic(path, ".png", |tmp| {
+        let root = BitMapBackend::new(tmp, size).into_drawing_area();
+        root.fill(&WHITE).map_err(pe)?;
+        draw(&root)?;
+        root.present().map_err(pe)
+    })
+}
+
 /// Draw the same picture as `STEM.png` and `STEM.svg`; returns both paths. The two closures
 /// are the same drawing code instantiated for each backend.
 pub fn save_png_svg(
@@ -44,14 +66,8 @@ pub fn save_png_svg(
     png: impl FnOnce(&DrawingArea<BitMapBackend, Shift>) -> Result<()>,
     svg: impl FnOnce(&DrawingArea<SVGBackend, Shift>) -> Result<()>,
 ) -> Result<Vec<PathBuf>> {
-    font();
     let (p, s) = (stem.with_extension("png"), stem.with_extension("svg"));
-    atomic(&p, ".png", |tmp| {
-        let root = BitMapBackend::new(tmp, size).into_drawing_area();
-        root.fill(&WHITE).map_err(pe)?;
-        png(&root)?;
-        root.present().map_err(pe)
-    })?;
+    save_png(&p, size, png)?;
     atomic(&s, ".svg", |tmp| {
         let root = SVGBackend::new(tmp, size).into_drawing_area();
         root.fill(&WHITE).map_err(pe)?;
@@ -59,6 +75,161 @@ pub fn save_png_svg(
         root.present().map_err(pe)
     })?;
     Ok(vec![p, s])
+}
+
+/// Tick labels without float noise: `0` (never `-0.0`), `0.25`, `150`, `1e5`, `2.5e-4`:
+/// three significant digits, whole numbers below 1e5 in full, trailing zeros dropped.
+pub fn tick(v: &f64) -> String {
+    let v = *v;
+    // Ticks computed as multiples of a step land a rounding residue away from 0.
+    if v.abs() < 1e-13 || !v.is_finite() {
+        return if v.is_finite() { "0".into() } else { format!("{v}") };
+    }
+    let trim = |s: String| -> String {
+        if s.contains('.') {
+            s.trim_end_matches('0').trim_end_matches('.').to_string()
+        } else {
+            s
+        }
+    };
+    let a = v.abs();
+    if !(1e-3..1e5).contains(&a) {
+        let s = format!("{v:.2e}");
+        let (m, e) = s.split_once('e').unwrap_or((&s, "0"));
+        format!("{}e{e}", trim(m.to_string()))
+    } else {
+        let decimals = (2 - a.log10().floor() as i32).max(0) as usize;
+        trim(format!("{v:.decimals$}"))
+    }
+}
+
+/// The frame every chart shares: caption, axis titles, tick labels ([`tick`]) and margins that
+/// leave room for the widest labels. Build with [`Axes::new`], adjust, draw with [`chart`].
+pub struct Axes<'s> {
+    pub caption: String,
+    pub caption_size: u32,
+    pub x_desc: &'s str,
+    pub y_desc: &'s str,
+    /// Grid lines (off for maps, where they would hide the vectors).
+    pub grid: bool,
+    /// Number of x ticks (plotters chooses when `None`).
+    pub x_labels: Option<usize>,
+    /// x tick labels (default [`tick`]).
+    pub x_fmt: Option<&'s dyn Fn(&f64) -> String>,
+}
+
+/// Room right of the plotting area for half of the last x tick label.
+const RIGHT_PAD: u32 = 30;
+
+impl<'s> Axes<'s> {
+    pub fn new(caption: impl Into<String>, x_desc: &'s str, y_desc: &'s str) -> Self {
+        Axes { caption: caption.into(), caption_size: 22, x_desc, y_desc, grid: true, x_labels: None, x_fmt: None }
+    }
+    pub fn caption_size(mut self, px: u32) -> Self {
+        self.caption_size = px;
+        self
+    }
+    pub fn no_grid(mut self) -> Self {
+        self.grid = false;
+        self
+    }
+    pub fn x_ticks(mut self, n: usize, fmt: &'s dyn Fn(&f64) -> String) -> Self {
+        self.x_labels = Some(n);
+        self.x_fmt = Some(fmt);
+        self
+    }
+}
+
+/// A chart with `ax`'s frame on `area`, x and y ranges given (linear `a..b` or
+/// `(a..b).log_scale()`), mesh and axis labels drawn.
+pub fn chart<'a, DB, X, Y>(
+    area: &'a DrawingArea<DB, Shift>,
+    ax: &Axes,
+    x: X,
+    y: Y,
+) -> Result<ChartContext<'a, DB, Cartesian2d<X::CoordDescType, Y::CoordDescType>>>
+where
+    DB: DrawingBackend + 'a,
+    X: AsRangedCoord<Value = f64>,
+    Y: AsRangedCoord<Value = f64>,
+    X::CoordDescType: ValueFormatter<f64>,
+    Y::CoordDescType: ValueFormatter<f64>,
+{
+    let mut c = ChartBuilder::on(area)
+        .caption(&ax.caption, (FONT, ax.caption_size))
+        .margin(12)
+        .margin_right(RIGHT_PAD)
+        .x_label_area_size(45)
+        .y_label_area_size(70)
+        .build_cartesian_2d(x, y)
+        .map_err(pe)?;
+    let xf = ax.x_fmt.unwrap_or(&tick);
+    let mut m = c.configure_mesh();
+    m.x_desc(ax.x_desc)
+        .y_desc(ax.y_desc)
+        .label_style((FONT, 14))
+        .axis_desc_style((FONT, 15))
+        .x_label_formatter(xf)
+        .y_label_formatter(&tick);
+    if !ax.grid {
+        m.disable_mesh();
+    }
+    if let Some(n) = ax.x_labels {
+        m.x_labels(n);
+    }
+    m.draw().map_err(pe)?;
+    Ok(c)
+}
+
+/// A legend key: a short line in `style` (for `.legend(line_key(BLUE))`).
+pub fn line_key<S: Into<ShapeStyle>>(style: S) -> impl Fn(BackendCoord) -> PathElement<BackendCoord> {
+    let style = style.into();
+    move |(x, y)| PathElement::new([(x, y), (x + 20, y)], style)
+}
+
+/// A legend key for a dashed series.
+pub fn dashed_key<S: Into<ShapeStyle>>(
+    style: S,
+) -> impl Fn(BackendCoord) -> DashedPathElement<std::vec::IntoIter<BackendCoord>, i32> {
+    let style = style.into();
+    move |(x, y)| DashedPathElement::new(vec![(x, y), (x + 22, y)], 6, 2, style)
+}
+
+/// A legend in a panel of its own, for a plot where a box inside would hide the data (the
+/// map): a blank chart on `area` (its top level with the plots beside it), entries added with
+/// [`key`], drawn with [`legend`].
+pub fn key_panel<'a, DB: DrawingBackend + 'a>(
+    area: &'a DrawingArea<DB, Shift>,
+) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>> {
+    ChartBuilder::on(area).margin_top(45).build_cartesian_2d(0.0..1.0, 0.0..1.0).map_err(pe)
+}
+
+/// One entry of a [`key_panel`] legend: `label` with the key `draw` makes.
+pub fn key<'a, DB, E>(
+    k: &mut ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    label: impl Into<String>,
+    draw: impl Fn(BackendCoord) -> E + 'a,
+) -> Result<()>
+where
+    DB: DrawingBackend + 'a,
+    E: IntoDynElement<'a, DB, BackendCoord>,
+{
+    k.draw_series(std::iter::empty::<Circle<(f64, f64), i32>>()).map_err(pe)?.label(label).legend(draw);
+    Ok(())
+}
+
+/// The legend of the labelled series, boxed, at `pos` (a corner the data leave free).
+pub fn legend<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
+    c: &mut ChartContext<'a, DB, CT>,
+    pos: SeriesLabelPosition,
+) -> Result<()> {
+    c.configure_series_labels()
+        .position(pos)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font((FONT, 14))
+        .draw()
+        .map_err(pe)
 }
 
 /// Line segments where a gridded field crosses `level` (marching squares; cells with a NaN
@@ -132,25 +303,25 @@ fn thin<'b>(bins: &'b [fit::Bin], region: &fit::FieldRegion, n_across: f64) -> V
         .collect()
 }
 
+/// Width kept right of the map for its legend.
+const MAP_LEGEND_ROOM: u32 = 200;
+
 /// fig:insmapB: vectors of the instrumental polarization over contours of 0.3, 0.6, 0.9%.
 pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotData) -> Result<()> {
     let radial_centre = d.radial.map(|r| r.centre);
     let cal = d.cal;
     let (xr, yr) = field_ranges(cal);
-    let mut c = ChartBuilder::on(area)
-        .caption(format!("{}: instrumental polarization (contours 0.3, 0.6, 0.9%)", d.title), (FONT, 22))
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(55)
-        .build_cartesian_2d(xr.clone(), yr.clone())
-        .map_err(pe)?;
-    c.configure_mesh()
-        .x_desc("x (arcmin from detector centre)")
-        .y_desc("y (arcmin)")
-        .label_style((FONT, 15))
-        .disable_mesh()
-        .draw()
-        .map_err(pe)?;
+    let ax = Axes::new(
+        format!("{}: instrumental polarization (contours 0.3, 0.6, 0.9%)", d.title),
+        "x (arcmin from detector centre)",
+        "y (arcmin)",
+    )
+    .no_grid();
+    let (w, _) = area.dim_in_pixel();
+    let (main, side) = area.split_horizontally(w.saturating_sub(MAP_LEGEND_ROOM));
+    let mut c = chart(&main, &ax, xr.clone(), yr.clone())?;
+    // The legend goes beside the map: inside, its box would hide contours and vectors.
+    let mut k = key_panel(&side)?;
     // Contours of p on the gridded model.
     let g = match (&cal.model, &cal.grid) {
         (Model::Map(g), _) => g.clone(),
@@ -159,10 +330,8 @@ pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotDa
     let p: Vec<f64> = g.q.iter().zip(&g.u).map(|(q, u)| q.hypot(*u)).collect();
     for (level, colour) in [(0.003, BLUE), (0.006, RGBColor(0, 150, 0)), (0.009, RED)] {
         let segs = contour_segments(&p, g.nx, g.ny, g.x0, g.y0, g.dx, g.dy, level);
-        c.draw_series(segs.into_iter().map(|s| PathElement::new(s.to_vec(), colour.stroke_width(2))))
-            .map_err(pe)?
-            .label(format!("{:.1}%", level * 100.0))
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(2)));
+        c.draw_series(segs.into_iter().map(|s| PathElement::new(s.to_vec(), colour.stroke_width(2)))).map_err(pe)?;
+        key(&mut k, format!("p = {:.1}%", level * 100.0), line_key(colour.stroke_width(2)))?;
     }
     // Vectors at the bins, about 30 across.
     let bins = thin(&cal.bins, &cal.region, 30.0);
@@ -179,21 +348,16 @@ pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotDa
     let (bx, by) = (xr.start + 0.05 * (xr.end - xr.start), yr.start + 0.04 * (yr.end - yr.start));
     c.draw_series(std::iter::once(PathElement::new(vec![(bx, by), (bx + 0.01 * scale, by)], BLACK.stroke_width(3))))
         .map_err(pe)?;
-    c.draw_series(std::iter::once(Text::new("1%", (bx, by + 0.03 * (yr.end - yr.start)), (FONT, 15)))).map_err(pe)?;
+    // The label right of the bar, in the empty margin below the lowest row of vectors.
+    let label = TextStyle::from((FONT, 15).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
+    c.draw_series(std::iter::once(Text::new("1%", (bx + 0.01 * scale + 0.01 * (xr.end - xr.start), by), label)))
+        .map_err(pe)?;
     // The radial fit's centre (for an imported map: the free-centre refit the profile panel
     // uses), else the calibration's own.
     let cen = radial_centre.unwrap_or_else(|| cal.centre_arcmin());
-    c.draw_series(std::iter::once(Cross::new((cen[0], cen[1]), 7, MAGENTA.stroke_width(2))))
-        .map_err(pe)?
-        .label("radial-model centre")
-        .legend(|(x, y)| Cross::new((x + 10, y), 5, MAGENTA.stroke_width(2)));
-    c.configure_series_labels()
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font((FONT, 14))
-        .draw()
-        .map_err(pe)?;
-    Ok(())
+    c.draw_series(std::iter::once(Cross::new((cen[0], cen[1]), 7, MAGENTA.stroke_width(2)))).map_err(pe)?;
+    key(&mut k, "radial-model centre", |(x, y)| Cross::new((x + 10, y), 5, MAGENTA.stroke_width(2)))?;
+    legend(&mut k, SeriesLabelPosition::UpperLeft)
 }
 
 /// fig:radprofB: upper, the signed radial component of each bin's polarization against r with
@@ -222,19 +386,9 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
     let pad = 0.05 * (hi - lo).max(1e-4);
     lo -= pad;
     hi += pad;
-    let mut c = ChartBuilder::on(&upper)
-        .caption(format!("{}: radial profile", d.title), (FONT, 22))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(65)
-        .build_cartesian_2d(0.0..rmax, (lo * 100.0)..(hi * 100.0))
-        .map_err(pe)?;
-    c.configure_mesh()
-        .x_desc("r (arcmin from the model centre)")
-        .y_desc("p along the radius (%)")
-        .label_style((FONT, 14))
-        .draw()
-        .map_err(pe)?;
+    let ax =
+        Axes::new(format!("{}: radial profile", d.title), "r (arcmin from the model centre)", "p along the radius (%)");
+    let mut c = chart(&upper, &ax, 0.0..rmax, (lo * 100.0)..(hi * 100.0))?;
     c.draw_series(
         pts.iter()
             .step_by(stride)
@@ -254,45 +408,27 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
         c.draw_series(LineSeries::new(curve, BLACK.stroke_width(3)))
             .map_err(pe)?
             .label("fit p(r)")
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK.stroke_width(3)));
+            .legend(line_key(BLACK.stroke_width(3)));
     }
     if let Some(rt) = &d.raytrace {
         c.draw_series(LineSeries::new(rt.iter().map(|(x, p)| (*x, 100.0 * p)), RED.stroke_width(1)))
             .map_err(pe)?
             .label("ray trace")
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED));
+            .legend(line_key(RED));
     }
-    c.configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font((FONT, 14))
-        .draw()
-        .map_err(pe)?;
+    legend(&mut c, SeriesLabelPosition::UpperLeft)?;
 
     // Lower panel: phi against alpha.
     let Some(t) = d.polar else { return Ok(()) };
     let (plo, phi_hi) = t.phi_deg.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), p| (l.min(*p), h.max(*p)));
     let (plo, phi_hi) = (plo.min(-190.0), phi_hi.max(190.0));
-    let mut c = ChartBuilder::on(&lower)
-        .caption(
-            format!(
-                "phi vs polar angle: slope {:.4} +- {:.4}, intercept {:.2} deg",
-                t.slope, t.slope_err, t.intercept_deg
-            ),
-            (FONT, 20),
-        )
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(65)
-        .build_cartesian_2d(-180.0..180.0, plo..phi_hi)
-        .map_err(pe)?;
-    c.configure_mesh()
-        .x_desc("polar angle alpha (deg)")
-        .y_desc("phi (deg)")
-        .label_style((FONT, 14))
-        .draw()
-        .map_err(pe)?;
+    let ax = Axes::new(
+        format!("phi vs polar angle: slope {:.4} +- {:.4}, intercept {:.2} deg", t.slope, t.slope_err, t.intercept_deg),
+        "polar angle alpha (deg)",
+        "phi (deg)",
+    )
+    .caption_size(20);
+    let mut c = chart(&lower, &ax, -180.0..180.0, plo..phi_hi)?;
     let stride = (t.alpha_deg.len() / 6000).max(1);
     c.draw_series(
         t.alpha_deg
@@ -305,7 +441,7 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
     c.draw_series(LineSeries::new([(-180.0, -180.0), (180.0, 180.0)], BLACK.stroke_width(2)))
         .map_err(pe)?
         .label("unit slope, zero intercept")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK.stroke_width(2)));
+        .legend(line_key(BLACK.stroke_width(2)));
     for off in [-90.0, 90.0] {
         if (t.intercept_deg - off).abs() < 30.0 {
             c.draw_series(LineSeries::new(
@@ -314,17 +450,10 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
             ))
             .map_err(pe)?
             .label("unit slope, +-90 deg (tangential)")
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK.mix(0.5)));
+            .legend(line_key(BLACK.mix(0.5)));
         }
     }
-    c.configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .label_font((FONT, 14))
-        .draw()
-        .map_err(pe)?;
-    Ok(())
+    legend(&mut c, SeriesLabelPosition::UpperLeft)
 }
 
 /// fig:residB: the residual field (data minus radial model, as Q and U), coloured by its size,
@@ -345,20 +474,13 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
     let mut mags: Vec<f64> = res.iter().map(|r| r.2.hypot(r.3)).collect();
     mags.sort_by(|a, b| a.total_cmp(b));
     let top = mags.get(mags.len() * 98 / 100).copied().unwrap_or(1e-4).max(1e-6);
-    let mut c = ChartBuilder::on(area)
-        .caption(format!("{}: residual field (colour |residual|, 0 to {:.3}%)", d.title, top * 100.0), (FONT, 22))
-        .margin(15)
-        .x_label_area_size(45)
-        .y_label_area_size(55)
-        .build_cartesian_2d(xr.clone(), yr.clone())
-        .map_err(pe)?;
-    c.configure_mesh()
-        .x_desc("x (arcmin)")
-        .y_desc("y (arcmin)")
-        .label_style((FONT, 15))
-        .disable_mesh()
-        .draw()
-        .map_err(pe)?;
+    let ax = Axes::new(
+        format!("{}: residual field (colour |residual|, 0 to {:.3}%)", d.title, top * 100.0),
+        "x (arcmin)",
+        "y (arcmin)",
+    )
+    .no_grid();
+    let mut c = chart(area, &ax, xr.clone(), yr.clone())?;
     // Squares at the bins, coloured with viridis; size from the typical bin spacing.
     let spacing = nearest_spacing(&res);
     let h = 0.5 * spacing;
@@ -396,7 +518,8 @@ fn nearest_spacing(res: &[(f64, f64, f64, f64)]) -> f64 {
 /// `{stem}_residual` (PNG and SVG); returns the files written.
 pub fn calibration_plots(dir: &Path, stem: &str, d: &CalPlotData) -> Result<Vec<PathBuf>> {
     let mut out = vec![];
-    out.extend(save_png_svg(&dir.join(format!("{stem}_map")), (900, 900), |a| draw_map(a, d), |a| draw_map(a, d))?);
+    let map_size = (900 + MAP_LEGEND_ROOM, 900);
+    out.extend(save_png_svg(&dir.join(format!("{stem}_map")), map_size, |a| draw_map(a, d), |a| draw_map(a, d))?);
     out.extend(save_png_svg(
         &dir.join(format!("{stem}_profile")),
         (900, 1100),
@@ -425,4 +548,31 @@ pub fn progress(total: u64, msg: &str, quiet: bool) -> indicatif::ProgressBar {
     }
     bar.set_message(msg.to_string());
     bar
+}
+
+#[cfg(test)]
+mod tests {
+    use super::tick;
+
+    /// Tick labels: no rounding residue, no negative zero, no trailing zeros.
+    #[test]
+    fn tick_labels() {
+        let cases = [
+            (0.0, "0"),
+            (-0.0, "0"),
+            (5.551115123125783e-17, "0"),
+            (0.1 + 0.2, "0.3"),
+            (-0.1, "-0.1"),
+            (0.25, "0.25"),
+            (0.0015, "0.0015"),
+            (150.0, "150"),
+            (10000.0, "10000"),
+            (1e5, "1e5"),
+            (2.5e-4, "2.5e-4"),
+            (-1e-5, "-1e-5"),
+        ];
+        for (v, s) in cases {
+            assert_eq!(tick(&v), s, "tick({v:e})");
+        }
+    }
 }

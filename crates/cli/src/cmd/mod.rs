@@ -15,5 +15,6 @@ pub mod raytrace;
 pub mod reduce;
 pub mod simulate;
 pub mod stokes;
+pub mod stokes_plot;
 pub mod validate;
 pub mod wavelength_law;

@@ -42,6 +42,11 @@ pub struct Args {
     /// correction.
     #[arg(long, value_name = "K", allow_negative_numbers = true)]
     pub kappa: Option<f64>,
+    /// Also draw the paper's fig:fourier as a PNG (1000 x 900 px): F_i with their 1-sigma
+    /// errors against the HWP angle and the curve Q cos 4theta + U sin 4theta of the fitted
+    /// Q, U (eq:system); below, the harmonic amplitudes (optimal angle sets only).
+    #[arg(long, value_name = "FILE.png")]
+    pub plot: Option<PathBuf>,
     /// Print JSON instead of the table.
     #[arg(long)]
     pub json: bool,
@@ -211,6 +216,11 @@ pub fn run(a: Args) -> Result<()> {
         None => m,
     };
     let r = m.reduce().map_err(|e| explain(e, &t, &name))?;
+    // The plot first: a plot that cannot be written fails the command before anything is
+    // printed.
+    if let Some(path) = &a.plot {
+        super::stokes_plot::fourier_png(path, &super::stokes_plot::data::fourier_plot(&r))?;
+    }
     if a.json {
         crate::util::print_json(&json(&r, &name, a.kappa))
     } else {
@@ -322,8 +332,7 @@ fn table(r: &Reduction, t: &Table, name: &str, kappa: Option<f64>) -> String {
         wl!(o, "  {:>3} {:>10} {:>10} {:>10} {:>8}", "k", "a_k (%)", "b_k (%)", "ampl (%)", "ampl/sig");
         let amax = r.fourier.iter().map(|h| h.amplitude()).fold(0.0f64, f64::max);
         for h in &r.fourier {
-            // k = 0 and the Nyquist harmonic have no sine part.
-            let sig = if h.sigma_b == 0.0 { h.sigma_a } else { h.sigma_a.hypot(h.sigma_b) / 2f64.sqrt() };
+            let sig = super::stokes_plot::data::amplitude_sigma(h);
             let snr = if sig > 0.0 { format!("{:8.1}", h.amplitude() / sig) } else { format!("{:>8}", "-") };
             let w = if amax > 0.0 { (40.0 * h.amplitude() / amax).round() as usize } else { 0 };
             wl!(

@@ -1,0 +1,154 @@
+//! `instpol stokes --plot FILE.png`: the paper's fig:fourier for one source. Upper panel, F_i
+//! (eq:F) with their 1-sigma errors against the HWP angle, the eq:system curve through the
+//! solver's Q/I and U/I and the a_0 level (eq:a0); lower panel, the harmonic amplitudes
+//! (eq:fourcoeff) as bars with their noise level. Drawing only: the numbers are
+//! [`data::fourier_plot`]'s.
+
+pub mod data;
+
+use anyhow::Result;
+use data::FourierPlot;
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::series::DashedLineSeries;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
+use std::path::Path;
+
+use crate::plot::{chart, dashed_key, legend, line_key, pe, save_png, tick, Axes, FONT};
+
+/// Width and height of the PNG in pixels.
+pub const SIZE: (u32, u32) = (1000, 900);
+
+/// Draw `d` as a PNG at `path` (through a temporary file beside it).
+pub fn fourier_png(path: &Path, d: &FourierPlot) -> Result<()> {
+    save_png(path, SIZE, |root| {
+        let (upper, lower) = root.split_vertically(SIZE.1 * 11 / 20);
+        draw_fit(&upper, d)?;
+        draw_harmonics(&lower, d)
+    })
+}
+
+/// A finite range around `lo..hi` (percent), padded below and with `head` of the span free
+/// above for the legend.
+fn padded(lo: f64, hi: f64, head: f64) -> std::ops::Range<f64> {
+    let span = (hi - lo).max(1e-6);
+    (lo - 0.08 * span)..(hi + (0.08 + head) * span)
+}
+
+fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) -> Result<()> {
+    let pct = |x: f64| 100.0 * x;
+    let mut ys: Vec<f64> = d.curve.iter().map(|c| pct(c.1)).collect();
+    for p in &d.points {
+        let s = if p.sigma.is_finite() { p.sigma.max(0.0) } else { 0.0 };
+        ys.extend([pct(p.f - s), pct(p.f + s)]);
+    }
+    let lo = ys.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = ys.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let chi = d.chi_deg.map_or("undefined".to_string(), |c| format!("{c:.2} deg"));
+    let ax = Axes::new(
+        format!(
+            "fig:fourier  F_i against HWP angle (N = {}): P = {:.4} ± {:.4} %, χ = {chi}",
+            d.n,
+            pct(d.p),
+            pct(d.sigma_p)
+        ),
+        "HWP angle θ (deg)",
+        "F_i (%)",
+    )
+    .caption_size(20);
+    // A little room either side, so that the points at 0 deg are not cut by the axis.
+    let pad = d.theta_max_deg / 60.0;
+    let mut c = chart(area, &ax, -pad..d.theta_max_deg + pad, padded(lo, hi, 0.35))?;
+    let what = match d.a0 {
+        Some(_) => "a_0 + Q cos 4θ + U sin 4θ",
+        None => "Q cos 4θ + U sin 4θ (eq:system)",
+    };
+    c.draw_series(LineSeries::new(d.curve.iter().map(|(t, f)| (*t, pct(*f))), BLUE.stroke_width(2)))
+        .map_err(pe)?
+        .label(format!("{what}, the solver's Q = {:.4} %, U = {:.4} %", pct(d.q), pct(d.u)))
+        .legend(line_key(BLUE.stroke_width(2)));
+    if let Some(a0) = d.a0 {
+        let grey = BLACK.mix(0.6);
+        c.draw_series(DashedLineSeries::new(
+            [(-pad, pct(a0)), (d.theta_max_deg + pad, pct(a0))],
+            8,
+            6,
+            grey.stroke_width(1),
+        ))
+        .map_err(pe)?
+        .label(format!("a_0 = mean F_i = {:.4} % (eq:a0)", pct(a0)))
+        .legend(dashed_key(grey));
+    }
+    // Error bars as one I-shaped path each (capped, cap width 1/200 of the axis).
+    let w = d.theta_max_deg / 200.0;
+    c.draw_series(d.points.iter().filter(|p| p.sigma > 0.0 && p.sigma.is_finite()).map(|p| {
+        let (x, lo, hi) = (p.theta_deg, pct(p.f - p.sigma), pct(p.f + p.sigma));
+        PathElement::new([(x - w, hi), (x + w, hi), (x, hi), (x, lo), (x - w, lo), (x + w, lo)], BLACK)
+    }))
+    .map_err(pe)?;
+    c.draw_series(d.points.iter().map(|p| Circle::new((p.theta_deg, pct(p.f)), 4, BLACK.filled())))
+        .map_err(pe)?
+        .label("F_i (eq:F) with 1-sigma errors")
+        .legend(|(x, y)| Circle::new((x + 10, y), 4, BLACK.filled()));
+    legend(&mut c, SeriesLabelPosition::UpperRight)
+}
+
+/// Tick labels at the whole harmonic numbers only.
+fn whole(v: &f64) -> String {
+    if (v - v.round()).abs() < 1e-9 && *v >= 0.0 {
+        tick(&v.round())
+    } else {
+        String::new()
+    }
+}
+
+fn draw_harmonics<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) -> Result<()> {
+    if d.bars.is_empty() {
+        let (w, h) = area.dim_in_pixel();
+        let style = TextStyle::from((FONT, 18).into_font()).pos(Pos::new(HPos::Center, VPos::Center));
+        area.draw(&Text::new(
+            "no harmonics: eq:fourcoeff needs the optimal angle set (theta_i = i × 22.5 deg, N = 4k)",
+            (w as i32 / 2, h as i32 / 2),
+            style,
+        ))
+        .map_err(pe)?;
+        return Ok(());
+    }
+    let kmax = d.bars.last().map_or(0, |b| b.k) as f64;
+    let top = d.bars.iter().map(|b| 100.0 * b.amplitude.max(b.sigma)).fold(0.0, f64::max);
+    let k_pol = d.k_pol.map_or("N/4".to_string(), |k| k.to_string());
+    let ax = Axes::new(
+        format!("harmonic amplitudes √(a_k² + b_k²) (eq:fourcoeff); k = {k_pol} is the polarization"),
+        "harmonic k",
+        "amplitude (%)",
+    )
+    .caption_size(20)
+    .x_ticks(d.bars.len() + 1, &whole);
+    let mut c = chart(area, &ax, -0.6..kmax + 0.6, 0.0..padded(0.0, top, 0.3).end)?;
+    let pol = d.k_pol;
+    c.draw_series(d.bars.iter().filter(|b| Some(b.k) != pol).map(|b| {
+        let k = b.k as f64;
+        Rectangle::new([(k - 0.35, 0.0), (k + 0.35, 100.0 * b.amplitude)], BLUE.mix(0.45).filled())
+    }))
+    .map_err(pe)?
+    .label(if d.n == 16 { "other harmonics (k = 1: dust, k = 2: pleochroism)" } else { "other harmonics" })
+    .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], BLUE.mix(0.45).filled()));
+    if let Some(b) = d.bars.iter().find(|b| Some(b.k) == pol) {
+        let k = b.k as f64;
+        c.draw_series(std::iter::once(Rectangle::new(
+            [(k - 0.35, 0.0), (k + 0.35, 100.0 * b.amplitude)],
+            RED.mix(0.7).filled(),
+        )))
+        .map_err(pe)?
+        .label("k = N/4: P")
+        .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], RED.mix(0.7).filled()));
+    }
+    c.draw_series(d.bars.iter().map(|b| {
+        let k = b.k as f64;
+        PathElement::new([(k - 0.45, 100.0 * b.sigma), (k + 0.45, 100.0 * b.sigma)], BLACK.stroke_width(2))
+    }))
+    .map_err(pe)?
+    .label("1-sigma noise of the amplitude")
+    .legend(line_key(BLACK.stroke_width(2)));
+    legend(&mut c, SeriesLabelPosition::UpperRight)
+}
