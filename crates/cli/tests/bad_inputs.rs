@@ -639,6 +639,19 @@ fn correct_calibration_of_newer_format_version() {
     );
 }
 
+/// A FORS1-sized Stokes map of `instrument` and `filter` with one valid bin (P = 1%).
+fn one_bin_map(path: &Path, instrument: &str, filter: &str) {
+    let geom = skyfield::BinGeometry::covering(60, 0, 0, 2048, 2048, 0.2);
+    let mut map = skyfield::StokesMap::empty(geom, instrument, filter, vec![0.0, 22.5, 45.0, 67.5]);
+    map.valid[0] = true;
+    (map.q[0], map.u[0], map.p[0], map.chi[0], map.cov_qu[0]) = (0.01, 0.0, 0.01, 0.0, 0.0);
+    map.sigma_q[0] = 1e-3;
+    map.sigma_u[0] = 1e-3;
+    map.n_pixels[0] = 10;
+    (map.sigma_q_phot[0], map.sigma_u_phot[0], map.intensity[0], map.intensity_snr[0]) = (1e-3, 1e-3, 1e4, 100.0);
+    map.write_fits(path).unwrap();
+}
+
 /// Regression (was a defect, fixed in 2e448c5): `correct` applied a FORS1 calibration to a Stokes map written for another
 /// instrument (MAP instrument "OTHER") silently, exit 0. Fix (crates/cli/src/cmd/correct.rs,
 /// map path): compare the map's instrument and filter with the calibration's (filter names
@@ -648,15 +661,7 @@ fn correct_map_of_another_instrument() {
     // A Stokes map of instrument OTHER corrected with a FORS1 calibration.
     let f = Fixture::new();
     let cal = f.cal();
-    let geom = skyfield::BinGeometry::covering(60, 0, 0, 2048, 2048, 0.2);
-    let mut map = skyfield::StokesMap::empty(geom.clone(), "OTHER", "V", vec![0.0, 22.5, 45.0, 67.5]);
-    map.valid[0] = true;
-    (map.q[0], map.u[0], map.p[0], map.chi[0], map.cov_qu[0]) = (0.01, 0.0, 0.01, 0.0, 0.0);
-    map.sigma_q[0] = 1e-3;
-    map.sigma_u[0] = 1e-3;
-    map.n_pixels[0] = 10;
-    (map.sigma_q_phot[0], map.sigma_u_phot[0], map.intensity[0], map.intensity_snr[0]) = (1e-3, 1e-3, 1e4, 100.0);
-    map.write_fits(&f.p("other.fits")).unwrap();
+    one_bin_map(&f.p("other.fits"), "OTHER", "V");
     let out = f.out_dir();
     refuses(
         &out,
@@ -671,15 +676,7 @@ fn correct_map_of_another_instrument() {
 fn correct_map_of_another_filter() {
     let f = Fixture::new();
     let cal = f.cal();
-    let geom = skyfield::BinGeometry::covering(60, 0, 0, 2048, 2048, 0.2);
-    let mut map = skyfield::StokesMap::empty(geom.clone(), "FORS1", "B", vec![0.0, 22.5, 45.0, 67.5]);
-    map.valid[0] = true;
-    (map.q[0], map.u[0], map.p[0], map.chi[0], map.cov_qu[0]) = (0.01, 0.0, 0.01, 0.0, 0.0);
-    map.sigma_q[0] = 1e-3;
-    map.sigma_u[0] = 1e-3;
-    map.n_pixels[0] = 10;
-    (map.sigma_q_phot[0], map.sigma_u_phot[0], map.intensity[0], map.intensity_snr[0]) = (1e-3, 1e-3, 1e4, 100.0);
-    map.write_fits(&f.p("bmap.fits")).unwrap();
+    one_bin_map(&f.p("bmap.fits"), "FORS1", "B");
     let out = f.out_dir();
     refuses(
         &out,
