@@ -20,6 +20,9 @@ use std::sync::Once;
 /// A pixel position on a drawing backend.
 type BackendCoord = (i32, i32);
 
+/// A 2-D chart with x and y coordinates `X`, `Y` (linear or log).
+pub type Chart<'a, DB, X, Y> = ChartContext<'a, DB, Cartesian2d<X, Y>>;
+
 /// The font family every plot uses (the embedded DejaVu Sans).
 pub const FONT: &str = "sans-serif";
 
@@ -147,7 +150,7 @@ pub fn chart<'a, DB, X, Y>(
     ax: &Axes,
     x: X,
     y: Y,
-) -> Result<ChartContext<'a, DB, Cartesian2d<X::CoordDescType, Y::CoordDescType>>>
+) -> Result<Chart<'a, DB, X::CoordDescType, Y::CoordDescType>>
 where
     DB: DrawingBackend + 'a,
     X: AsRangedCoord<Value = f64>,
@@ -200,13 +203,13 @@ pub fn dashed_key<S: Into<ShapeStyle>>(
 /// [`key`], drawn with [`legend`].
 pub fn key_panel<'a, DB: DrawingBackend + 'a>(
     area: &'a DrawingArea<DB, Shift>,
-) -> Result<ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>> {
+) -> Result<Chart<'a, DB, RangedCoordf64, RangedCoordf64>> {
     ChartBuilder::on(area).margin_top(45).build_cartesian_2d(0.0..1.0, 0.0..1.0).map_err(pe)
 }
 
 /// One entry of a [`key_panel`] legend: `label` with the key `draw` makes.
 pub fn key<'a, DB, E>(
-    k: &mut ChartContext<'a, DB, Cartesian2d<RangedCoordf64, RangedCoordf64>>,
+    k: &mut Chart<'a, DB, RangedCoordf64, RangedCoordf64>,
     label: impl Into<String>,
     draw: impl Fn(BackendCoord) -> E + 'a,
 ) -> Result<()>
@@ -480,7 +483,10 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
         "y (arcmin)",
     )
     .no_grid();
-    let mut c = chart(area, &ax, xr.clone(), yr.clone())?;
+    let (w, _) = area.dim_in_pixel();
+    let (main, side) = area.split_horizontally(w.saturating_sub(COLOUR_BAR_ROOM));
+    let mut c = chart(&main, &ax, xr.clone(), yr.clone())?;
+    colour_bar(&side, "|residual| (%)", 100.0 * top)?;
     // Squares at the bins, coloured with viridis; size from the typical bin spacing.
     let spacing = nearest_spacing(&res);
     let h = 0.5 * spacing;
@@ -499,6 +505,24 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
         let a = 0.5 * du.atan2(dq);
         let (hx, hy) = (0.5 * m * scale * a.cos(), 0.5 * m * scale * a.sin());
         PathElement::new(vec![(b.x - hx, b.y - hy), (b.x + hx, b.y + hy)], WHITE.stroke_width(1))
+    }))
+    .map_err(pe)?;
+    Ok(())
+}
+
+/// Width kept right of a map for its colour bar.
+const COLOUR_BAR_ROOM: u32 = 150;
+
+/// A viridis colour bar from 0 to `top` on `area`, level with a [`chart`] beside it (same
+/// caption size and label areas).
+fn colour_bar<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, label: &str, top: f64) -> Result<()> {
+    let none = |_: &f64| String::new();
+    let ax = Axes::new(" ", "", label).no_grid().x_ticks(2, &none);
+    let mut c = chart(area, &ax, 0.0..1.0, 0.0..top)?;
+    let n = 200;
+    c.draw_series((0..n).map(|i| {
+        let (a, b) = (top * i as f64 / n as f64, top * (i + 1) as f64 / n as f64);
+        Rectangle::new([(0.0, a), (1.0, b)], ViridisRGB::get_color((i as f64 + 0.5) / n as f64).filled())
     }))
     .map_err(pe)?;
     Ok(())
@@ -529,7 +553,7 @@ pub fn calibration_plots(dir: &Path, stem: &str, d: &CalPlotData) -> Result<Vec<
     if d.radial.is_some() {
         out.extend(save_png_svg(
             &dir.join(format!("{stem}_residual")),
-            (900, 900),
+            (900 + COLOUR_BAR_ROOM, 900),
             |a| draw_residual(a, d),
             |a| draw_residual(a, d),
         )?);

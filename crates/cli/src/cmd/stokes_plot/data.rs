@@ -97,7 +97,7 @@ pub fn fourier_plot(r: &Reduction) -> FourierPlot {
             (deg, a0.unwrap_or(0.0) + model(r.qu.q, r.qu.u, deg.to_radians()))
         })
         .collect();
-    let k_pol = (!bars.is_empty() && r.n % 4 == 0).then_some(r.n / 4);
+    let k_pol = (!bars.is_empty() && r.n.is_multiple_of(4)).then_some(r.n / 4);
     FourierPlot {
         n: r.n,
         points,
