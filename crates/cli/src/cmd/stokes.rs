@@ -43,8 +43,10 @@ pub struct Args {
     #[arg(long, value_name = "K", allow_negative_numbers = true)]
     pub kappa: Option<f64>,
     /// Also draw the paper's fig:fourier as a PNG (1000 x 900 px): F_i with their 1-sigma
-    /// errors against the HWP angle and the curve Q cos 4theta + U sin 4theta of the fitted
-    /// Q, U (eq:system); below, the harmonic amplitudes (optimal angle sets only).
+    /// errors (from sigma_o/sigma_e, else Poisson) against the HWP angle, with the curve
+    /// Q cos 4theta + U sin 4theta of the fitted Q, U (eq:system), raised by a_0 = mean F_i
+    /// (eq:a0) on the optimal angle sets; below, the harmonic amplitudes with their 1-sigma
+    /// noise (optimal angle sets only). Written whole or not at all.
     #[arg(long, value_name = "FILE.png")]
     pub plot: Option<PathBuf>,
     /// Print JSON instead of the table.
