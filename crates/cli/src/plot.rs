@@ -306,6 +306,19 @@ fn thin<'b>(bins: &'b [fit::Bin], region: &fit::FieldRegion, n_across: f64) -> V
         .collect()
 }
 
+/// The frame of a field map: arcmin axes, no grid (it would hide the vectors).
+fn map_axes(caption: String) -> Axes<'static> {
+    Axes::new(caption, "x (arcmin from detector centre)", "y (arcmin)").no_grid()
+}
+
+/// `area` less `px` pixels on the right, and those pixels (for a legend or a colour bar).
+fn split_right<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    px: u32,
+) -> (DrawingArea<DB, Shift>, DrawingArea<DB, Shift>) {
+    area.split_horizontally(area.dim_in_pixel().0.saturating_sub(px))
+}
+
 /// Width kept right of the map for its legend.
 const MAP_LEGEND_ROOM: u32 = 200;
 
@@ -314,15 +327,9 @@ pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotDa
     let radial_centre = d.radial.map(|r| r.centre);
     let cal = d.cal;
     let (xr, yr) = field_ranges(cal);
-    let ax = Axes::new(
-        format!("{}: instrumental polarization (contours 0.3, 0.6, 0.9%)", d.title),
-        "x (arcmin from detector centre)",
-        "y (arcmin)",
-    )
-    .no_grid();
-    let (w, _) = area.dim_in_pixel();
-    let (main, side) = area.split_horizontally(w.saturating_sub(MAP_LEGEND_ROOM));
-    let mut c = chart(&main, &ax, xr.clone(), yr.clone())?;
+    let (main, side) = split_right(area, MAP_LEGEND_ROOM);
+    let caption = format!("{}: instrumental polarization (contours 0.3, 0.6, 0.9%)", d.title);
+    let mut c = chart(&main, &map_axes(caption), xr.clone(), yr.clone())?;
     // The legend goes beside the map: inside, its box would hide contours and vectors.
     let mut k = key_panel(&side)?;
     // Contours of p on the gridded model.
@@ -477,15 +484,9 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
     let mut mags: Vec<f64> = res.iter().map(|r| r.2.hypot(r.3)).collect();
     mags.sort_by(|a, b| a.total_cmp(b));
     let top = mags.get(mags.len() * 98 / 100).copied().unwrap_or(1e-4).max(1e-6);
-    let ax = Axes::new(
-        format!("{}: residual field (colour |residual|, 0 to {:.3}%)", d.title, top * 100.0),
-        "x (arcmin)",
-        "y (arcmin)",
-    )
-    .no_grid();
-    let (w, _) = area.dim_in_pixel();
-    let (main, side) = area.split_horizontally(w.saturating_sub(COLOUR_BAR_ROOM));
-    let mut c = chart(&main, &ax, xr.clone(), yr.clone())?;
+    let (main, side) = split_right(area, COLOUR_BAR_ROOM);
+    let caption = format!("{}: residual field (colour |residual|, 0 to {:.3}%)", d.title, top * 100.0);
+    let mut c = chart(&main, &map_axes(caption), xr.clone(), yr.clone())?;
     colour_bar(&side, "|residual| (%)", 100.0 * top)?;
     // Squares at the bins, coloured with viridis; size from the typical bin spacing.
     let spacing = nearest_spacing(&res);
