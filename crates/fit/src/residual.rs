@@ -85,8 +85,13 @@ impl ResidualMap {
 
     /// The residual `(dq, du)` at `(x, y)` arcmin; `None` outside the convex hull of the bins.
     pub fn eval(&self, x: f64, y: f64) -> Option<(f64, f64)> {
+        // spade panics on positions it cannot represent (NaN, |v| > 2^201) instead of answering:
+        // those are outside any hull of bins. Tiny values are flushed to 0 as spade's own inputs.
+        if !(x.abs() <= spade::MAX_ALLOWED_VALUE && y.abs() <= spade::MAX_ALLOWED_VALUE) {
+            return None;
+        }
         let nn = self.tri.natural_neighbor();
-        let pos = Point2::new(x, y);
+        let pos = spade::mitigate_underflow(Point2::new(x, y));
         Some((nn.interpolate(|v| v.data().dq, pos)?, nn.interpolate(|v| v.data().du, pos)?))
     }
 
