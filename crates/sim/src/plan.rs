@@ -105,7 +105,24 @@ fn read_map(path: &Path) -> Result<(Vec<f64>, usize, usize), Error> {
         [_, ny, nx] => (*ny, *nx),
         _ => return Err(file_err(path, format!("expected a 2-D image or a cube, shape {shape:?}"))),
     };
+    // The header's sizes are checked before CFITSIO allocates for them: an empty axis (no
+    // first plane to take) and a claimed size larger than the file (a corrupt NAXISn would
+    // otherwise abort on allocation) are errors.
+    if shape.contains(&0) {
+        return Err(file_err(path, format!("the image has no pixels: shape {shape:?} (header NAXISn)")));
+    }
+    let len = std::fs::metadata(path).map(|m| m.len() as u128).unwrap_or(u128::MAX);
+    let claimed = shape.iter().try_fold(1u128, |a, &n| a.checked_mul(n as u128)).unwrap_or(u128::MAX);
+    if claimed > len {
+        return Err(file_err(
+            path,
+            format!("the header claims {shape:?} values (NAXISn) but the file holds only {len} bytes"),
+        ));
+    }
     let v: Vec<f64> = hdu.read_image(&mut f).map_err(|e| file_err(path, format!("cannot read data: {e}")))?;
+    if v.len() < nx * ny {
+        return Err(file_err(path, format!("read {} values, the header says {nx} x {ny}", v.len())));
+    }
     Ok((v[..nx * ny].to_vec(), nx, ny))
 }
 
