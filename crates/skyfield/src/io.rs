@@ -268,10 +268,22 @@ pub fn read_frame(path: &Path, inst: &Instrument) -> Result<Frame, Error> {
     read_frame_raw(path, inst).map(RawFrame::into_frame)
 }
 
-/// [`read_frame`] keeping the stored pixel type (f32 frames are half the memory of f64 and
-/// need no conversion pass in CFITSIO); scaled data (BSCALE/BZERO other than the unsigned
-/// 16-bit convention) is read as f64.
-pub(crate) fn read_frame_raw(path: &Path, inst: &Instrument) -> Result<RawFrame, Error> {
+/// Header facts of a frame, checked against the instrument.
+struct FrameHeader {
+    nx: usize,
+    ny: usize,
+    hwp_deg: f64,
+    filter: String,
+    exptime_s: Option<f64>,
+    bitpix: i32,
+    ty: ImageType,
+    bscale: f64,
+    bzero: f64,
+}
+
+/// Open a frame and check its header: a 2-D image in the primary HDU of a detector pixel
+/// type, the size of `inst`'s detector, the HWP-angle and filter keywords the instrument names.
+fn open_checked(path: &Path, inst: &Instrument) -> Result<(FitsFile, fitsio::hdu::FitsHdu, FrameHeader), Error> {
     let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
     let hdu = f.primary_hdu().map_err(|e| fits_err(path, format!("unreadable primary HDU: {e}")))?;
     let (shape, ty) = match &hdu.info {
@@ -313,21 +325,212 @@ pub(crate) fn read_frame_raw(path: &Path, inst: &Instrument) -> Result<RawFrame,
     let exptime_s = read_key_string(&mut f, &hdu, &pol.exptime_keyword).and_then(|s| s.parse().ok());
     let bscale = hdu.read_key::<f64>(&mut f, "BSCALE").unwrap_or(1.0);
     let bzero = hdu.read_key::<f64>(&mut f, "BZERO").unwrap_or(0.0);
-    let rerr = |e: fitsio::errors::Error| {
-        fits_err(path, format!("cannot read the image data (truncated or corrupt file?): {e}"))
+    Ok((f, hdu, FrameHeader { nx, ny, hwp_deg, filter, exptime_s, bitpix, ty, bscale, bzero }))
+}
+
+fn read_error(path: &Path, e: impl std::fmt::Display) -> Error {
+    fits_err(path, format!("cannot read the image data (truncated or corrupt file?): {e}"))
+}
+
+/// All pixels of an open frame through CFITSIO, in the stored type when that needs no
+/// scaling (f32 frames are half the memory of f64 and need no conversion pass), else as f64.
+fn read_pixels(path: &Path, f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, h: &FrameHeader) -> Result<Pixels, Error> {
+    let rerr = |e: fitsio::errors::Error| read_error(path, e);
+    let pixels = match raw_kind(h) {
+        Some(RawKind::F32) => Pixels::F32(hdu.read_image(f).map_err(rerr)?),
+        Some(RawKind::U16) => Pixels::U16(hdu.read_image(f).map_err(rerr)?),
+        Some(RawKind::I16) => Pixels::I16(hdu.read_image(f).map_err(rerr)?),
+        _ => Pixels::F64(hdu.read_image(f).map_err(rerr)?),
     };
-    let pixels = match ty {
-        ImageType::Float if bscale == 1.0 && bzero == 0.0 => Pixels::F32(hdu.read_image(&mut f).map_err(rerr)?),
-        ImageType::UnsignedShort if bscale == 1.0 && bzero == 32768.0 => {
-            Pixels::U16(hdu.read_image(&mut f).map_err(rerr)?)
-        }
-        ImageType::Short if bscale == 1.0 && bzero == 0.0 => Pixels::I16(hdu.read_image(&mut f).map_err(rerr)?),
-        _ => Pixels::F64(hdu.read_image(&mut f).map_err(rerr)?),
-    };
-    if pixels.len() != nx * ny {
-        return Err(fits_err(path, format!("read {} pixels, header says {nx} x {ny}", pixels.len())));
+    if pixels.len() != h.nx * h.ny {
+        return Err(fits_err(path, format!("read {} pixels, header says {} x {}", pixels.len(), h.nx, h.ny)));
     }
+    Ok(pixels)
+}
+
+/// [`read_frame`] keeping the stored pixel type; scaled data (BSCALE/BZERO other than the
+/// unsigned 16-bit convention) is read as f64.
+pub(crate) fn read_frame_raw(path: &Path, inst: &Instrument) -> Result<RawFrame, Error> {
+    let (mut f, hdu, h) = open_checked(path, inst)?;
+    let pixels = read_pixels(path, &mut f, &hdu, &h)?;
+    let FrameHeader { nx, ny, hwp_deg, filter, exptime_s, bitpix, .. } = h;
     Ok(RawFrame { path: path.into(), nx, ny, pixels, hwp_deg, filter, exptime_s, bitpix })
+}
+
+/// Stored pixel encodings the reduction reads without CFITSIO's conversion: FITS data are
+/// big-endian, and these need no scaling beyond the unsigned 16-bit `BZERO = 32768`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum RawKind {
+    F32,
+    F64,
+    I16,
+    /// Stored as i16 with `BZERO = 32768`.
+    U16,
+}
+
+impl RawKind {
+    fn bytes(self) -> usize {
+        match self {
+            RawKind::F32 => 4,
+            RawKind::F64 => 8,
+            RawKind::I16 | RawKind::U16 => 2,
+        }
+    }
+
+    /// Decode big-endian pixels into f64 (exact for every kind).
+    #[inline(always)]
+    fn decode(self, bytes: &[u8], out: &mut [f64]) {
+        match self {
+            RawKind::F32 => out
+                .iter_mut()
+                .zip(bytes.chunks_exact(4))
+                .for_each(|(o, b)| *o = f32::from_be_bytes([b[0], b[1], b[2], b[3]]) as f64),
+            RawKind::F64 => out
+                .iter_mut()
+                .zip(bytes.chunks_exact(8))
+                .for_each(|(o, b)| *o = f64::from_be_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]])),
+            RawKind::I16 => out
+                .iter_mut()
+                .zip(bytes.chunks_exact(2))
+                .for_each(|(o, b)| *o = i16::from_be_bytes([b[0], b[1]]) as f64),
+            // Flipping the sign bit adds 32768 to a two's-complement i16.
+            RawKind::U16 => out
+                .iter_mut()
+                .zip(bytes.chunks_exact(2))
+                .for_each(|(o, b)| *o = u16::from_be_bytes([b[0] ^ 0x80, b[1]]) as f64),
+        }
+    }
+}
+
+fn raw_kind(h: &FrameHeader) -> Option<RawKind> {
+    match (h.ty, h.bscale == 1.0, h.bzero) {
+        (ImageType::Float, true, z) if z == 0.0 => Some(RawKind::F32),
+        (ImageType::Double, true, z) if z == 0.0 => Some(RawKind::F64),
+        (ImageType::Short, true, z) if z == 0.0 => Some(RawKind::I16),
+        (ImageType::UnsignedShort, true, z) if z == 32768.0 => Some(RawKind::U16),
+        _ => None,
+    }
+}
+
+/// An uncompressed primary image read by rows straight from the file (positioned reads, no
+/// CFITSIO buffer and no whole-frame copy): what lets the reduction read a few rows of every
+/// frame while the other threads compute, with the rows still in cache when they are used.
+/// (A memory map was tried: decoding from it ran at the speed of its page faults and cache
+/// misses, slower than the kernel's sequential copy into a buffer that stays in cache.)
+#[derive(Debug)]
+pub(crate) struct RowFile {
+    file: std::fs::File,
+    data_start: u64,
+    kind: RawKind,
+    nx: usize,
+}
+
+impl RowFile {
+    pub(crate) fn kind(&self) -> RawKind {
+        self.kind
+    }
+}
+
+/// Where a frame's rows come from: the file itself, or pixels CFITSIO read whole (compressed
+/// files such as `.fits.gz`, scaled data).
+#[derive(Debug)]
+pub(crate) enum FrameRows {
+    File(RowFile),
+    Memory(Pixels),
+}
+
+/// A frame opened for reduction, its header checked as by [`read_frame`].
+#[derive(Debug)]
+pub(crate) struct OpenFrame {
+    pub path: PathBuf,
+    pub nx: usize,
+    pub ny: usize,
+    pub hwp_deg: f64,
+    pub filter: String,
+    pub rows: FrameRows,
+}
+
+/// Open a frame for reduction: the header is checked now; the pixels are read later, by rows,
+/// except where only CFITSIO can decode them.
+pub(crate) fn open_frame(path: &Path, inst: &Instrument) -> Result<OpenFrame, Error> {
+    let (mut f, hdu, h) = open_checked(path, inst)?;
+    let direct = match raw_kind(&h) {
+        Some(kind) => direct_rows(path, &mut f, &h, kind)?,
+        None => None,
+    };
+    let rows = match direct {
+        Some(r) => FrameRows::File(r),
+        None => FrameRows::Memory(read_pixels(path, &mut f, &hdu, &h)?),
+    };
+    Ok(OpenFrame { path: path.into(), nx: h.nx, ny: h.ny, hwp_deg: h.hwp_deg, filter: h.filter, rows })
+}
+
+/// The data offset of the primary image when the file on disk is plain FITS (not a compressed
+/// stream CFITSIO inflates); `None` sends the frame through CFITSIO. A file too short for its
+/// image is refused here, as CFITSIO would refuse it when reading.
+fn direct_rows(path: &Path, f: &mut FitsFile, h: &FrameHeader, kind: RawKind) -> Result<Option<RowFile>, Error> {
+    use std::os::unix::fs::FileExt;
+    let (mut head, mut start, mut end, mut status) = (0i64, 0i64, 0i64, 0i32);
+    // SAFETY: the pointer is CFITSIO's own open file, positioned at the primary HDU; the
+    // outputs are plain integers.
+    unsafe {
+        fitsio::sys::ffghadll(f.as_raw(), &mut head, &mut start, &mut end, &mut status);
+    }
+    if status != 0 || head != 0 || start <= 0 {
+        return Ok(None);
+    }
+    let Ok(file) = std::fs::File::open(path) else { return Ok(None) };
+    let mut magic = [0u8; 9];
+    if file.read_exact_at(&mut magic, 0).is_err() || &magic != b"SIMPLE  =" {
+        return Ok(None);
+    }
+    let len = file.metadata().map_err(|e| read_error(path, e))?.len();
+    let need = start as u64 + (h.nx * h.ny * kind.bytes()) as u64;
+    if len < need {
+        return Err(read_error(path, format!("the file has {len} bytes, its {} x {} image needs {need}", h.nx, h.ny)));
+    }
+    Ok(Some(RowFile { file, data_start: start as u64, kind, nx: h.nx }))
+}
+
+impl OpenFrame {
+    /// Rows `row0 .. row0 + out.len() / nx` as f64 ADU into `out`; `bytes` is scratch.
+    pub(crate) fn load_rows(&self, row0: usize, out: &mut [f64], bytes: &mut Vec<u8>) -> Result<(), Error> {
+        match &self.rows {
+            FrameRows::Memory(p) => {
+                p.view().load(row0 * self.nx, out);
+                Ok(())
+            }
+            FrameRows::File(r) => {
+                let nb = out.len() * r.kind.bytes();
+                bytes.resize(nb, 0);
+                self.read_raw(r, row0, &mut bytes[..nb])?;
+                r.kind.decode(&bytes[..nb], out);
+                Ok(())
+            }
+        }
+    }
+
+    /// Rows from `row0` as stored (big-endian, `r.kind`), as many as fill `out`.
+    pub(crate) fn read_raw(&self, r: &RowFile, row0: usize, out: &mut [u8]) -> Result<(), Error> {
+        use std::os::unix::fs::FileExt;
+        let at = r.data_start + (row0 * r.nx * r.kind.bytes()) as u64;
+        r.file.read_exact_at(out, at).map_err(|e| read_error(&self.path, e))
+    }
+}
+
+impl RawKind {
+    /// Bytes per pixel.
+    pub(crate) fn size(self) -> usize {
+        self.bytes()
+    }
+
+    /// Decode `out.len()` pixels starting at pixel `start` of `bytes` (exact for every kind);
+    /// always inlined so that a vectorized caller decodes with its own vector width.
+    #[inline(always)]
+    pub(crate) fn decode_at(self, bytes: &[u8], start: usize, out: &mut [f64]) {
+        let b = self.bytes();
+        self.decode(&bytes[start * b..(start + out.len()) * b], out)
+    }
 }
 
 #[cfg(test)]

@@ -1,33 +1,38 @@
 //! Frame reduction: a set of frames at `N` HWP angles to a binned [`StokesMap`].
 //!
-//! Steps: read the frames ([`read_frames`], in parallel); group them by filter and HWP angle
-//! and check that they form a usable set ([`FrameSet::from_frames`]: one filter, one size,
-//! a complete set of angles — for angles on the `22.5 deg` grid the smallest optimal set
-//! that contains them, or the `N = 2` pair `{0, 22.5}`; several frames at one angle are summed);
-//! then for every sky pixel the mask lets through ([`crate::beams`]) take `f_O,i`, `f_E,i`
-//! (bias removed, times the gain: electrons), the one `F_i` (`stokes::normalized_difference`)
-//! and `Q/I`, `U/I` from the one `stokes::StokesSolver`, and finally the sigma-clipped mean of
-//! each bin ([`crate::bin`]).
+//! Steps: open the frames and check their headers; group them by filter and HWP angle and
+//! check that they form a usable set (one filter, one size, a complete set of angles — for
+//! angles on the `22.5 deg` grid the smallest optimal set that contains them, or the `N = 2`
+//! pair `{0, 22.5}`; several frames at one angle are summed); then for every sky pixel the
+//! mask lets through ([`crate::beams`]) take `f_O,i`, `f_E,i` (bias removed, times the gain:
+//! electrons), the one `F_i` (`stokes::normalized_difference`) and `Q/I`, `U/I` from the one
+//! `stokes::StokesSolver`, and finally the sigma-clipped mean of each bin ([`crate::bin`]).
+//!
+//! [`reduce_files`] never holds a frame whole: bands of bin rows are reduced in parallel, each
+//! reading the few detector rows it needs from every file just before using them (so reading
+//! overlaps computing and the rows are still in cache). [`reduce_set`] does the same from
+//! frames in memory; both give the same map to the bit.
 //!
 //! Pixels are masked (not used) when any of their `2N` values is NaN or infinite (a warning
 //! names the file and the count), reaches the instrument's saturation level (warning), or
-//! when `f_O + f_E <= 0`. A frame with no finite pixel is an error.
+//! when `f_O + f_E` is not positive (or, absurdly, beyond about `1e+-140` e-, where the
+//! variance of `F` is out of f64's range). A frame with no finite pixel is an error.
 //!
 //! Errors of a bin are given two ways: from the scatter of its kept pixels (`SIGMA_Q`, the
 //! honest one, which includes anything the noise model does not know) and propagated from
-//! photon and read noise (`SIGQ_PHOT`, `sigma_F` of `stokes::sigma_normalized_difference`); the
-//! two agree for pure photon noise (`eq:sigp` divided by `sqrt(n)`).
+//! photon and read noise (`SIGQ_PHOT`, `sigma_F^2` of `stokes::variance_normalized_difference`);
+//! the two agree for pure photon noise (`eq:sigp` divided by `sqrt(n)`).
 
 use crate::beams::BeamGeometry;
-use crate::bin::{clipped_bin, ClipConfig, PixelSample};
-use crate::io::{read_frame_raw, Frame, PixelView, RawFrame};
+use crate::bin::{clipped_bin_hinted, ClipConfig, PixelSample};
+use crate::io::{open_frame, read_frame_raw, Frame, FrameRows, OpenFrame, PixelView, RawFrame, RawKind};
 use crate::maps::{BinGeometry, StokesMap};
 use crate::{Error, Warning};
 use instrument::Instrument;
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use stokes::{normalized_difference, sigma_normalized_difference, sigma_normalized_difference_into, StokesSolver};
+use stokes::{fast_variance_in_range, normalized_difference, variance_normalized_difference_fast, StokesSolver};
 
 /// Reduction settings.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -68,29 +73,31 @@ pub fn read_frames(paths: &[PathBuf], inst: &Instrument, on_read: &(dyn Fn() + S
 /// Non-finite and saturated pixel counts of one frame.
 type BadCounts = (usize, usize);
 
-/// [`read_frames`] in the stored pixel types, with each frame's bad-pixel counts taken while
-/// it is still in cache.
-fn read_frames_raw(
-    paths: &[PathBuf],
+/// Warnings for masked bad pixels of each file, and the error for a frame none of whose
+/// `counted_px` pixels is finite (`bad`: non-finite and saturated counts per file).
+fn bad_pixel_notes(
+    meta: &[(&Path, &str, usize, usize, f64)],
+    bad: &[BadCounts],
+    counted_px: usize,
     inst: &Instrument,
-    on_read: &(dyn Fn() + Sync),
-) -> Result<Vec<(RawFrame, BadCounts)>, Error> {
-    if paths.is_empty() {
-        return Err(Error::NoFrames);
-    }
+) -> Result<Vec<Warning>, Error> {
     let sat = inst.detector.saturation_adu;
-    let res: Vec<Result<(RawFrame, BadCounts), Error>> = paths
-        .par_iter()
-        .map(|p| {
-            let r = read_frame_raw(p, inst).map(|fr| {
-                let c = fr.pixels.view().count_bad(sat);
-                (fr, c)
+    let mut warnings = Vec::new();
+    for (fr, &(nbad, nsat)) in meta.iter().zip(bad) {
+        if counted_px > 0 && nbad == counted_px {
+            return Err(Error::AllNonFinite { path: fr.0.into() });
+        }
+        if nbad > 0 {
+            warnings.push(Warning { file: Some(fr.0.into()), message: format!("{nbad} NaN/infinite pixels masked") });
+        }
+        if nsat > 0 {
+            warnings.push(Warning {
+                file: Some(fr.0.into()),
+                message: format!("{nsat} saturated pixels (>= {sat} ADU) masked"),
             });
-            on_read();
-            r
-        })
-        .collect();
-    res.into_iter().collect()
+        }
+    }
+    Ok(warnings)
 }
 
 /// What grouping decided: the filter, sorted angles, which frames (indices) at each angle in
@@ -105,10 +112,9 @@ struct Grouping {
 }
 
 /// The checks of [`FrameSet::from_frames`] on frame facts alone (`meta`: path, filter, nx,
-/// ny, HWP angle; `bad`: non-finite and saturated counts).
+/// ny, HWP angle).
 fn group_frames(
     meta: &[(&Path, &str, usize, usize, f64)],
-    bad: &[BadCounts],
     inst: &Instrument,
     require_complete: bool,
 ) -> Result<Grouping, Error> {
@@ -144,21 +150,6 @@ fn group_frames(
         }
     }
     let mut warnings = Vec::new();
-    for (fr, &(nbad, nsat)) in meta.iter().zip(bad) {
-        if nbad == fr.2 * fr.3 {
-            return Err(Error::AllNonFinite { path: fr.0.into() });
-        }
-        if nbad > 0 {
-            warnings.push(Warning { file: Some(fr.0.into()), message: format!("{nbad} NaN/infinite pixels masked") });
-        }
-        let sat = inst.detector.saturation_adu;
-        if nsat > 0 {
-            warnings.push(Warning {
-                file: Some(fr.0.into()),
-                message: format!("{nsat} saturated pixels (>= {sat} ADU) masked"),
-            });
-        }
-    }
     // Group by angle (stable sort: repeated exposures are summed in the order given).
     let mut angles: Vec<f64> = Vec::new();
     let mut members: Vec<Vec<usize>> = Vec::new();
@@ -221,7 +212,9 @@ impl FrameSet {
         let bad: Vec<BadCounts> = frames.par_iter().map(|fr| PixelView::F64(&fr.data).count_bad(sat)).collect();
         let meta: Vec<_> =
             frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
-        let g = group_frames(&meta, &bad, inst, require_complete)?;
+        let g = group_frames(&meta, inst, require_complete)?;
+        let mut warnings = bad_pixel_notes(&meta, &bad, g.nx * g.ny, inst)?;
+        warnings.extend(g.warnings);
         // Move (not copy) each angle's first frame; add the repeats to it.
         let data: Vec<Vec<f64>> = g
             .members
@@ -237,7 +230,7 @@ impl FrameSet {
             })
             .collect();
         let files = g.members.iter().map(|m| m.iter().map(|&k| frames[k].path.clone()).collect()).collect();
-        Ok(Self { filter: g.filter, angles_deg: g.angles, data, files, nx: g.nx, ny: g.ny, warnings: g.warnings })
+        Ok(Self { filter: g.filter, angles_deg: g.angles, data, files, nx: g.nx, ny: g.ny, warnings })
     }
 }
 
@@ -310,13 +303,13 @@ fn pixel_sample(
         let fo = (ro - bias * nexp) * gain;
         let fe = (re - bias * nexp) * gain;
         let tot = fo + fe;
-        if !(tot > 0.0) {
+        // The frame kernel's mask: no usable flux, or a variance out of the fast form's range.
+        let v = variance_normalized_difference_fast(fo, fe, fo.max(0.0) + nexp * rn2, fe.max(0.0) + nexp * rn2);
+        if !(tot > 0.0) || !fast_variance_in_range(v) {
             return None;
         }
         f[i] = normalized_difference(fo, fe);
-        vf[i] =
-            sigma_normalized_difference(fo, fe, (fo.max(0.0) + nexp * rn2).sqrt(), (fe.max(0.0) + nexp * rn2).sqrt())
-                .powi(2);
+        vf[i] = v;
         isum += tot / nexp;
     }
     let (q, u) = solver.solve(f);
@@ -363,29 +356,137 @@ pub fn pixel_qu(set: &FrameSet, inst: &Instrument) -> Result<(Vec<f64>, Vec<f64>
 
 /// Reduce a checked frame set to a binned Stokes map.
 pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Result<Reduced, Error> {
-    let views: Vec<PixelView> = set.data.iter().map(|d| PixelView::F64(d)).collect();
-    let nexp: Vec<usize> = set.files.iter().map(|f| f.len()).collect();
-    let map = reduce_views(&views, &nexp, set.nx, set.ny, &set.angles_deg, &set.filter, inst, cfg)?;
+    let inputs: Vec<AngleInput> = set
+        .data
+        .iter()
+        .zip(&set.files)
+        .map(|(d, f)| AngleInput { members: vec![Member::View(PixelView::F64(d))], nexp: f.len() })
+        .collect();
+    let pass = reduce_bands(&inputs, 0, set.nx, set.ny, &set.angles_deg, inst, cfg, &|| {})?;
+    let map = assemble_map(pass.stats, inst, cfg, &set.filter, &set.angles_deg, &inputs)?;
     Ok(Reduced { map, warnings: set.warnings.clone() })
 }
 
-/// The reduction proper on per-angle images (`views`, ADU, `nexp[i]` exposures summed).
-///
-/// Parallel over rows of bins; within a detector row each angle's o and e row segments are
-/// loaded once (as f64) and every pixel's `F_i` folded into its running `Q`, `U`, their photon
-/// variances and the intensity, in angle order: the same operations in the same order as a
-/// per-pixel `solver.solve`, so the result does not depend on this layout.
+/// One HWP angle's input: the exposures taken at it (summed) and how many exposures the
+/// values hold.
+struct AngleInput<'a> {
+    members: Vec<Member<'a>>,
+    nexp: usize,
+}
+
+/// Where one exposure's (or one sum's) rows come from.
+enum Member<'a> {
+    /// Pixels in memory (a [`FrameSet`]'s per-angle sums); not counted for bad pixels (the
+    /// set counted its frames when it was made).
+    View(PixelView<'a>),
+    /// An open file, its index among the files (for the bad-pixel counts).
+    File(&'a OpenFrame, usize),
+}
+
+/// One row group of a band of bin rows: the detector rows holding its o and e pixels, read as
+/// runs of consecutive rows into a group buffer (row `rows[k]` at slot `k`, `k * nx` pixels
+/// in), and its sky-pixel runs.
+struct Group {
+    /// `(first detector row, count, first slot)`.
+    runs: Vec<(usize, usize, usize)>,
+    n_rows: usize,
+    /// `(x0, x1, o index of x0, e index of x0, o slot index, e slot index)`: detector indices
+    /// and indices into the group buffer, o and e both contiguous.
+    segs: Vec<Seg>,
+}
+
+type Seg = (usize, usize, usize, usize, usize, usize);
+
+/// A band of bin rows, read and folded in [`Group`]s of a few detector rows each (so that a
+/// group's rows of every angle stay in cache between reading and use).
+struct Band {
+    groups: Vec<Group>,
+}
+
+/// Bytes of raw rows a group should hold (all angles): well inside a core's L2 + its L3 share.
+const GROUP_BYTES: usize = 3 << 18;
+
+/// The bands of bin rows `0..geom.ny` (see [`Band`]) for `n` angles, and how many detector
+/// pixels of each frame the reduction uses (o and e pixels of the binned sky pixels).
+fn plan_bands(g: &BeamGeometry, geom: &BinGeometry, n: usize) -> (Vec<Band>, usize) {
+    let bp = geom.bin_px;
+    let xa = geom.origin_x.min(g.nx);
+    let xb = (geom.origin_x + geom.nx * bp).min(g.nx);
+    // o rows per group: o and e rows of every angle, 4 bytes a pixel (f32 frames).
+    let per_row = 2 * n.max(1) * g.nx * 4;
+    let group_rows = (GROUP_BYTES / per_row.max(1)).clamp(1, bp);
+    let mut used_px = 0;
+    let mut row_segs = Vec::new();
+    let bands = (0..geom.ny)
+        .map(|j| {
+            let y0 = geom.origin_y + j * bp;
+            let y1 = (y0 + bp).min(g.ny);
+            let groups = (y0..y1)
+                .step_by(group_rows)
+                .map(|ya| {
+                    let mut segs = Vec::new();
+                    for y in ya..(ya + group_rows).min(y1) {
+                        segments_of_row(g, y, xa, xb, &mut row_segs);
+                        segs.extend_from_slice(&row_segs);
+                    }
+                    let mut rows: Vec<usize> = Vec::new();
+                    for &(x0, x1, o0, e0) in &segs {
+                        used_px += 2 * (x1 - x0);
+                        for start in [o0, e0] {
+                            rows.extend(start / g.nx..=(start + x1 - x0 - 1) / g.nx);
+                        }
+                    }
+                    rows.sort_unstable();
+                    rows.dedup();
+                    let slot = |p: usize| {
+                        let k = rows.binary_search(&(p / g.nx)).expect("row of the group");
+                        k * g.nx + p % g.nx
+                    };
+                    let segs = segs.iter().map(|&(x0, x1, o0, e0)| (x0, x1, o0, e0, slot(o0), slot(e0))).collect();
+                    let mut runs: Vec<(usize, usize, usize)> = Vec::new();
+                    for (k, &r) in rows.iter().enumerate() {
+                        match runs.last_mut() {
+                            Some(run) if run.0 + run.1 == r => run.1 += 1,
+                            _ => runs.push((r, 1, k)),
+                        }
+                    }
+                    Group { runs, n_rows: rows.len(), segs }
+                })
+                .collect();
+            Band { groups }
+        })
+        .collect();
+    (bands, used_px)
+}
+
+/// The reduction's one pass, over bands of bin rows in parallel.
+struct Pass {
+    /// Clipped statistics of every bin, row-major.
+    stats: Vec<Option<crate::bin::BinStats>>,
+    /// Non-finite and saturated values of each file among the pixels the pass used.
+    bad: Vec<BadCounts>,
+    /// Pixels of each frame the pass used (o and e pixels of the binned sky pixels).
+    used_px: usize,
+}
+
+/// The reduction proper: for each band of bin rows, group by group, read the detector rows
+/// holding the group's o and e pixels from every angle's exposures (files are read by rows
+/// here, so reading overlaps computing and a group is still in cache when it is used), then
+/// fold each pixel's `F_i` into its running `Q`, `U`, their photon variances and the
+/// intensity, in angle order (the same operations in the same order as a per-pixel
+/// `solver.solve`), and finally clip the band's bins. `on_file` ticks `nfiles` times in all,
+/// as the bands complete.
 #[allow(clippy::too_many_arguments)]
-fn reduce_views(
-    views: &[PixelView],
-    nexp: &[usize],
+fn reduce_bands(
+    inputs: &[AngleInput],
+    nfiles: usize,
     nx: usize,
     ny: usize,
     angles_deg: &[f64],
-    filter: &str,
     inst: &Instrument,
     cfg: &ReduceConfig,
-) -> Result<StokesMap, Error> {
+    on_file: &(dyn Fn() + Sync),
+) -> Result<Pass, Error> {
     if cfg.bin_px == 0 {
         return Err(Error::Invalid("bin size must be at least 1 px".into()));
     }
@@ -399,54 +500,58 @@ fn reduce_views(
         )));
     }
     let geom = bin_geometry(inst, cfg.bin_px);
-    let d = &inst.detector;
-    let (bias, gain, sat, rn2) = (d.bias_adu, d.gain_e_per_adu, d.saturation_adu, d.read_noise_e.powi(2));
-    let min_pixels = cfg.min_pixels.unwrap_or((cfg.bin_px * cfg.bin_px / 4).max(3));
     let n = angles_deg.len();
-    let nexp_total: f64 = nexp.iter().map(|&k| k as f64).sum();
+    let (bands, used_px) = plan_bands(&g, &geom, n);
+    let d = &inst.detector;
+    let det = (d.bias_adu, d.gain_e_per_adu, d.saturation_adu, d.read_noise_e.powi(2));
+    let min_pixels = cfg.min_pixels.unwrap_or((cfg.bin_px * cfg.bin_px / 4).max(3));
     let (cq, cu) = solver.weights();
     let bp = geom.bin_px;
-    // Detector columns the bins cover.
-    let xa = geom.origin_x.min(g.nx);
-    let xb = (geom.origin_x + geom.nx * bp).min(g.nx);
-    let stats: Vec<Option<crate::bin::BinStats>> = (0..geom.ny)
-        .into_par_iter()
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let nb = bands.len().max(1);
+    type BandOut = (Vec<Option<crate::bin::BinStats>>, Vec<BadCounts>);
+    // Rayon calls `map_init`'s init once per piece of work it splits off, not once per thread:
+    // scratch goes back to a pool when a piece is done, so the group buffers are allocated
+    // (and page-faulted) about once per thread.
+    let pool: std::sync::Mutex<Vec<Scratch>> = std::sync::Mutex::new(Vec::new());
+    let per_band: Vec<Result<BandOut, Error>> = bands
+        .par_iter()
         .map_init(
-            || Scratch::new(geom.nx),
-            |sc, j| {
+            || Pooled::take(&pool, || Scratch::new(geom.nx, n)),
+            |sc, band| -> Result<BandOut, Error> {
+                let sc = sc.get();
+                let mut bad = vec![(0, 0); nfiles];
                 for b in sc.bins.iter_mut() {
                     b.clear();
                 }
-                let y0 = geom.origin_y + j * bp;
-                for y in y0..(y0 + bp).min(g.ny) {
-                    sc.segments_of_row(&g, y, xa, xb);
-                    for si in 0..sc.segs.len() {
-                        let (x0, x1, o0, e0) = sc.segs[si];
+                for group in &band.groups {
+                    sc.read_group(inputs, group, g.nx, det.2, &mut bad)?;
+                    let Scratch { k, raw, sum, bins, .. } = &mut *sc;
+                    let rows: Vec<Rows> =
+                        inputs.iter().enumerate().map(|(i, inp)| Rows::of(inp, &raw[i], &sum[i])).collect();
+                    for &(x0, x1, o0, e0, os, es) in &group.segs {
                         let mut c0 = 0;
                         while c0 < x1 - x0 {
                             let len = CHUNK.min(x1 - x0 - c0);
-                            sc.reset(len);
-                            for i in 0..n {
-                                sc.fold_angle(
-                                    &views[i],
-                                    o0 + c0,
-                                    e0 + c0,
-                                    len,
-                                    nexp[i],
-                                    (cq[i], cu[i]),
-                                    (bias, gain, sat, rn2),
-                                );
+                            k.reset(len);
+                            for (i, inp) in inputs.iter().enumerate() {
+                                let at = ((o0 + c0, os + c0), (e0 + c0, es + c0));
+                                let counted = k.fold_angle(&rows[i], at, len, inp.nexp, (cq[i], cu[i]), det);
+                                if let (Some((nb_, ns)), [Member::File(_, fi)]) = (counted, &inp.members[..]) {
+                                    bad[*fi].0 += nb_;
+                                    bad[*fi].1 += ns;
+                                }
                             }
-                            let Scratch { q, u, vq, vu, isum, ok, bins, .. } = sc;
-                            for k in 0..len {
-                                if ok[k] {
-                                    let bi = (x0 + c0 + k - geom.origin_x) / bp;
+                            let Kernel { q, u, vq, vu, isum, ok, .. } = &*k;
+                            for j in 0..len {
+                                if ok[j] {
+                                    let bi = (x0 + c0 + j - geom.origin_x) / bp;
                                     bins[bi].push(PixelSample {
-                                        q: q[k],
-                                        u: u[k],
-                                        i: isum[k] / n as f64,
-                                        var_q: vq[k],
-                                        var_u: vu[k],
+                                        q: q[j],
+                                        u: u[j],
+                                        i: isum[j] / n as f64,
+                                        var_q: vq[j],
+                                        var_u: vu[j],
                                     });
                                 }
                             }
@@ -454,11 +559,43 @@ fn reduce_views(
                         }
                     }
                 }
-                sc.bins.iter().map(|b| clipped_bin(b, cfg.clip, min_pixels)).collect::<Vec<_>>()
+                // Along a row of bins the sky changes little: each bin's clipping starts its
+                // median searches where the previous bin's ended.
+                let mut hints = [None; 3];
+                let stats = sc.bins.iter().map(|b| clipped_bin_hinted(b, cfg.clip, min_pixels, &mut hints)).collect();
+                let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                for _ in (d - 1) * nfiles / nb..d * nfiles / nb {
+                    on_file();
+                }
+                Ok((stats, bad))
             },
         )
-        .flatten_iter()
         .collect();
+    let mut stats = Vec::with_capacity(geom.nx * geom.ny);
+    let mut bad = vec![(0, 0); nfiles];
+    for r in per_band {
+        let (s, b) = r?;
+        stats.extend(s);
+        for (t, x) in bad.iter_mut().zip(b) {
+            t.0 += x.0;
+            t.1 += x.1;
+        }
+    }
+    Ok(Pass { stats, bad, used_px })
+}
+
+/// The map from the bins' clipped statistics.
+fn assemble_map(
+    stats: Vec<Option<crate::bin::BinStats>>,
+    inst: &Instrument,
+    cfg: &ReduceConfig,
+    filter: &str,
+    angles_deg: &[f64],
+    inputs: &[AngleInput],
+) -> Result<StokesMap, Error> {
+    let geom = bin_geometry(inst, cfg.bin_px);
+    let rn2 = inst.detector.read_noise_e.powi(2);
+    let nexp_total: f64 = inputs.iter().map(|a| a.nexp as f64).sum();
     let mut map = StokesMap::empty(geom, &inst.name, filter, angles_deg.to_vec());
     for (k, s) in stats.into_iter().enumerate() {
         let Some(s) = s else { continue };
@@ -485,54 +622,168 @@ fn reduce_views(
     Ok(map)
 }
 
-/// Pixels of a row processed together (a FORS row): the per-pixel buffers stay in L2 and each
-/// angle's o and e rows are read in long runs the hardware prefetcher follows.
+/// Pixels of a row processed together (a FORS row): the per-pixel buffers stay in L1/L2.
 const CHUNK: usize = 2048;
 
-/// Per-thread buffers of [`reduce_views`], reused across bin rows: running per-pixel sums
-/// over the HWP angles of one chunk of a row (structure of arrays, so the loops vectorize),
-/// and the samples of each bin of the current bin row.
+/// A value borrowed from a pool and given back when dropped.
+struct Pooled<'a, T> {
+    value: Option<T>,
+    pool: &'a std::sync::Mutex<Vec<T>>,
+}
+
+impl<'a, T> Pooled<'a, T> {
+    fn take(pool: &'a std::sync::Mutex<Vec<T>>, make: impl FnOnce() -> T) -> Self {
+        let value = pool.lock().ok().and_then(|mut p| p.pop()).unwrap_or_else(make);
+        Self { value: Some(value), pool }
+    }
+
+    fn get(&mut self) -> &mut T {
+        self.value.as_mut().expect("present until dropped")
+    }
+}
+
+impl<T> Drop for Pooled<'_, T> {
+    fn drop(&mut self) {
+        if let (Some(v), Ok(mut p)) = (self.value.take(), self.pool.lock()) {
+            p.push(v);
+        }
+    }
+}
+
+/// One angle's pixels for the current group, as the kernel reads them.
+enum Rows<'a> {
+    /// The whole image in memory, by detector index.
+    View(PixelView<'a>),
+    /// The group's rows as stored in the file (big-endian), by group-buffer index.
+    Raw(&'a [u8], RawKind),
+    /// The group's rows summed over repeated exposures, by group-buffer index.
+    Sum(&'a [f64]),
+}
+
+impl<'a> Rows<'a> {
+    fn of(inp: &'a AngleInput<'a>, raw: &'a [u8], sum: &'a [f64]) -> Self {
+        match &inp.members[..] {
+            [Member::View(v)] => Rows::View(*v),
+            [Member::File(f, _)] => match &f.rows {
+                FrameRows::File(r) => Rows::Raw(raw, r.kind()),
+                FrameRows::Memory(p) => Rows::View(p.view()),
+            },
+            _ => Rows::Sum(sum),
+        }
+    }
+
+    /// `out.len()` values from detector index `det` (group-buffer index `slot`) as f64 ADU;
+    /// inlined into the kernel, so decoding gets its vectors.
+    #[inline(always)]
+    fn load(&self, det: usize, slot: usize, out: &mut [f64]) {
+        match self {
+            Rows::View(v) => v.load(det, out),
+            Rows::Raw(b, kind) => kind.decode_at(b, slot, out),
+            Rows::Sum(s) => out.copy_from_slice(&s[slot..slot + out.len()]),
+        }
+    }
+}
+
+/// Per-thread buffers of [`reduce_bands`], reused across bands: each angle's group of rows
+/// (as stored, or summed over repeated exposures), the kernel, and the samples of each bin of
+/// the band.
 struct Scratch {
+    raw: Vec<Vec<u8>>,
+    sum: Vec<Vec<f64>>,
+    tmp: Vec<f64>,
+    bytes: Vec<u8>,
+    k: Kernel,
+    bins: Vec<Vec<PixelSample>>,
+}
+
+impl Scratch {
+    fn new(nbins: usize, n_angles: usize) -> Self {
+        Self {
+            raw: vec![Vec::new(); n_angles],
+            sum: vec![Vec::new(); n_angles],
+            tmp: Vec::new(),
+            bytes: Vec::new(),
+            k: Kernel::new(),
+            bins: vec![Vec::new(); nbins],
+        }
+    }
+
+    /// Read a group's rows of every angle that comes from files: a single exposure's rows as
+    /// stored (decoded and counted by the kernel); repeated exposures decoded and summed in
+    /// order, each exposure's bad values counted on the group's o and e pixels.
+    fn read_group(
+        &mut self,
+        inputs: &[AngleInput],
+        group: &Group,
+        nx: usize,
+        sat: f64,
+        bad: &mut [BadCounts],
+    ) -> Result<(), Error> {
+        for (i, inp) in inputs.iter().enumerate() {
+            match &inp.members[..] {
+                [Member::View(_)] => {}
+                [Member::File(f, _)] => {
+                    if let FrameRows::File(r) = &f.rows {
+                        let b = r.kind().size();
+                        let raw = &mut self.raw[i];
+                        raw.resize(group.n_rows * nx * b, 0);
+                        for &(r0, nr, slot0) in &group.runs {
+                            f.read_raw(r, r0, &mut raw[slot0 * nx * b..(slot0 + nr) * nx * b])?;
+                        }
+                    }
+                }
+                members => {
+                    let npx = group.n_rows * nx;
+                    self.sum[i].resize(npx, 0.0);
+                    self.tmp.resize(npx, 0.0);
+                    for (m_i, m) in members.iter().enumerate() {
+                        let dst = if m_i == 0 { &mut self.sum[i][..] } else { &mut self.tmp[..] };
+                        for &(r0, nr, slot0) in &group.runs {
+                            let out = &mut dst[slot0 * nx..(slot0 + nr) * nx];
+                            match m {
+                                Member::View(v) => v.load(r0 * nx, out),
+                                Member::File(f, _) => f.load_rows(r0, out, &mut self.bytes)?,
+                            }
+                        }
+                        if let Member::File(_, fi) = m {
+                            for &(x0, x1, _, _, os, es) in &group.segs {
+                                for start in [os, es] {
+                                    let (a, s) = PixelView::F64(&dst[start..start + x1 - x0]).count_bad(sat);
+                                    bad[*fi].0 += a;
+                                    bad[*fi].1 += s;
+                                }
+                            }
+                        }
+                        if m_i > 0 {
+                            for (a, s) in self.sum[i].iter_mut().zip(self.tmp.iter()) {
+                                *a += s;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Running per-pixel sums over the HWP angles of one chunk of a row (structure of arrays, so
+/// the loops vectorize).
+struct Kernel {
     ro: Vec<f64>,
     re: Vec<f64>,
-    fo: Vec<f64>,
-    fe: Vec<f64>,
-    so: Vec<f64>,
-    se: Vec<f64>,
-    /// `sigma_F` of the current angle.
-    sf: Vec<f64>,
     q: Vec<f64>,
     u: Vec<f64>,
     vq: Vec<f64>,
     vu: Vec<f64>,
     isum: Vec<f64>,
     ok: Vec<bool>,
-    /// Runs of sky pixels in one detector row: `(x0, x1, o index of x0, e index of x0)`,
-    /// o and e both contiguous.
-    segs: Vec<(usize, usize, usize, usize)>,
-    bins: Vec<Vec<PixelSample>>,
 }
 
-impl Scratch {
-    fn new(nbins: usize) -> Self {
+impl Kernel {
+    fn new() -> Self {
         let z = || vec![0.0; CHUNK];
-        Self {
-            ro: z(),
-            re: z(),
-            fo: z(),
-            fe: z(),
-            so: z(),
-            se: z(),
-            sf: z(),
-            q: z(),
-            u: z(),
-            vq: z(),
-            vu: z(),
-            isum: z(),
-            ok: vec![true; CHUNK],
-            segs: Vec::new(),
-            bins: vec![Vec::new(); nbins],
-        }
+        Self { ro: z(), re: z(), q: z(), u: z(), vq: z(), vu: z(), isum: z(), ok: vec![true; CHUNK] }
     }
 
     fn reset(&mut self, len: usize) {
@@ -542,183 +793,172 @@ impl Scratch {
         self.ok[..len].fill(true);
     }
 
-    /// Fold one HWP angle into the running sums of `len` pixels whose o and e images start
-    /// at detector indices `o0`, `e0`: the per-pixel steps of the module docs (mask, electrons,
-    /// the one `F_i`, its photon + read noise variance, `Q`, `U` by the solver's weights), in
-    /// the order a per-pixel `StokesSolver::solve` uses, so sums are the same to the bit.
-    #[allow(clippy::too_many_arguments)]
+    /// Fold one HWP angle into the running sums of `len` pixels whose o and e values start at
+    /// `at` (detector and group-buffer indices of o, then of e) in `rows`: the per-pixel steps
+    /// of [`pixel_sample`] (mask, electrons, the one `F_i`, its photon + read noise variance,
+    /// `Q`, `U` by the solver's weights), in the order a per-pixel `StokesSolver::solve` uses,
+    /// so sums are the same to the bit. For a single exposure, also returns how many of the
+    /// `2 len` values were non-finite and how many saturated.
     #[inline]
     fn fold_angle(
         &mut self,
-        view: &PixelView,
-        o0: usize,
-        e0: usize,
+        rows: &Rows,
+        at: ((usize, usize), (usize, usize)),
         len: usize,
         nexp: usize,
         w: (f64, f64),
         det: (f64, f64, f64, f64),
-    ) {
-        // The loops are bound by sqrt and division: 4-wide AVX2 vectors where the CPU has
-        // them (same IEEE operations, so the same bits; no FMA is enabled).
+    ) -> Option<BadCounts> {
+        // Decoding and one pass bound by its two divisions: 4-wide AVX2 vectors where the CPU
+        // has them (same IEEE operations, so the same bits; no FMA is enabled).
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: AVX2 support was checked just above.
-            unsafe { self.fold_angle_avx2(view, o0, e0, len, nexp, w, det) };
-            return;
+            return unsafe { self.fold_avx2(rows, at, len, nexp, w, det) };
         }
-        self.fold_angle_impl(view, o0, e0, len, nexp, w, det)
+        self.fold_impl(rows, at, len, nexp, w, det)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn fold_angle_avx2(
+    unsafe fn fold_avx2(
         &mut self,
-        view: &PixelView,
-        o0: usize,
-        e0: usize,
+        rows: &Rows,
+        at: ((usize, usize), (usize, usize)),
         len: usize,
         nexp: usize,
         w: (f64, f64),
         det: (f64, f64, f64, f64),
-    ) {
-        self.fold_angle_impl(view, o0, e0, len, nexp, w, det)
+    ) -> Option<BadCounts> {
+        self.fold_impl(rows, at, len, nexp, w, det)
     }
 
-    #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    fn fold_angle_impl(
+    fn fold_impl(
         &mut self,
-        view: &PixelView,
-        o0: usize,
-        e0: usize,
+        rows: &Rows,
+        at: ((usize, usize), (usize, usize)),
         len: usize,
         nexp: usize,
+        w: (f64, f64),
+        det: (f64, f64, f64, f64),
+    ) -> Option<BadCounts> {
+        rows.load(at.0 .0, at.0 .1, &mut self.ro[..len]);
+        rows.load(at.1 .0, at.1 .1, &mut self.re[..len]);
+        // Separate loops for one and several exposures: x / 1 is x exactly, so the single
+        // exposure's loop skips a division.
+        if nexp == 1 {
+            Some(self.fold_loop::<true>(len, 1.0, w, det))
+        } else {
+            self.fold_loop::<false>(len, nexp as f64, w, det);
+            None
+        }
+    }
+
+    #[inline(always)]
+    fn fold_loop<const ONE: bool>(
+        &mut self,
+        len: usize,
+        ne: f64,
         (cqi, cui): (f64, f64),
         (bias, gain, sat, rn2): (f64, f64, f64, f64),
-    ) {
-        let ne = nexp as f64;
+    ) -> BadCounts {
         let (bias_n, sat_n, rn2_n) = (bias * ne, sat * ne, ne * rn2);
-        view.load(o0, &mut self.ro[..len]);
-        view.load(e0, &mut self.re[..len]);
-        // Branch-free, vectorizable part.
+        let (cq2, cu2) = (cqi * cqi, cui * cui);
         let (ro, re) = (&self.ro[..len], &self.re[..len]);
-        let (fo, fe, so, se) = (&mut self.fo[..len], &mut self.fe[..len], &mut self.so[..len], &mut self.se[..len]);
-        let (q, u, isum, ok) = (&mut self.q[..len], &mut self.u[..len], &mut self.isum[..len], &mut self.ok[..len]);
+        let (q, u, vq, vu) = (&mut self.q[..len], &mut self.u[..len], &mut self.vq[..len], &mut self.vu[..len]);
+        let (isum, ok) = (&mut self.isum[..len], &mut self.ok[..len]);
+        let (mut n_nonfinite, mut n_sat) = (0usize, 0usize);
         for k in 0..len {
             let (r_o, r_e) = (ro[k], re[k]);
-            let bad = !(r_o.is_finite() & r_e.is_finite()) | (r_o >= sat_n) | (r_e >= sat_n);
+            let (fin_o, fin_e) = (r_o.is_finite(), r_e.is_finite());
+            let (sat_o, sat_e) = (r_o >= sat_n, r_e >= sat_n);
+            n_nonfinite += !fin_o as usize + !fin_e as usize;
+            n_sat += sat_o as usize + sat_e as usize;
             let f_o = (r_o - bias_n) * gain;
             let f_e = (r_e - bias_n) * gain;
             let tot = f_o + f_e;
-            ok[k] &= !bad & (tot > 0.0);
             let f = normalized_difference(f_o, f_e);
+            // Photon (e-) plus read-noise variance of each beam, propagated to F.
+            let vf = variance_normalized_difference_fast(f_o, f_e, f_o.max(0.0) + rn2_n, f_e.max(0.0) + rn2_n);
+            ok[k] &= fin_o & fin_e & !sat_o & !sat_e & (tot > 0.0) & fast_variance_in_range(vf);
             q[k] += cqi * f;
             u[k] += cui * f;
-            // x / 1 is x exactly: skip the division for single exposures.
-            isum[k] += if nexp == 1 { tot } else { tot / ne };
-            fo[k] = f_o;
-            fe[k] = f_e;
-            so[k] = (f_o.max(0.0) + rn2_n).sqrt();
-            se[k] = (f_e.max(0.0) + rn2_n).sqrt();
-        }
-        let (cq2, cu2) = (cqi * cqi, cui * cui);
-        let (vq, vu) = (&mut self.vq[..len], &mut self.vu[..len]);
-        let sf = &mut self.sf[..len];
-        sigma_normalized_difference_into(fo, fe, so, se, sf);
-        for k in 0..len {
-            let vf = sf[k].powi(2);
+            isum[k] += if ONE { tot } else { tot / ne };
             vq[k] += cq2 * vf;
             vu[k] += cu2 * vf;
         }
-    }
-
-    /// The runs of sky pixels of row `y` within columns `[xa, xb)`.
-    fn segments_of_row(&mut self, g: &BeamGeometry, y: usize, xa: usize, xb: usize) {
-        self.segs.clear();
-        if xa >= xb {
-            return;
-        }
-        if g.along_y {
-            // Strips stacked along y: a row is all sky or all masked, with one e shift.
-            if let Some((o, e)) = g.beams_of_sky(xa, y) {
-                self.segs.push((xa, xb, o, e));
-            }
-            return;
-        }
-        let mut cur: Option<(usize, usize, usize, usize)> = None;
-        for x in xa..xb {
-            match (g.beams_of_sky(x, y), cur.as_mut()) {
-                (Some((o, e)), Some(c)) if c.2 + (x - c.0) == o && c.3 + (x - c.0) == e => c.1 = x + 1,
-                (Some((o, e)), _) => {
-                    if let Some(c) = cur.take() {
-                        self.segs.push(c);
-                    }
-                    cur = Some((x, x + 1, o, e));
-                }
-                (None, _) => {
-                    if let Some(c) = cur.take() {
-                        self.segs.push(c);
-                    }
-                }
-            }
-        }
-        if let Some(c) = cur {
-            self.segs.push(c);
-        }
+        (n_nonfinite, n_sat)
     }
 }
 
-/// Read, check and reduce frame files in one call; `on_read` ticks once per file read.
+/// The runs of sky pixels of row `y` within columns `[xa, xb)` into `segs`: `(x0, x1, o index
+/// of x0, e index of x0)`, o and e both contiguous.
+fn segments_of_row(g: &BeamGeometry, y: usize, xa: usize, xb: usize, segs: &mut Vec<(usize, usize, usize, usize)>) {
+    segs.clear();
+    if xa >= xb {
+        return;
+    }
+    if g.along_y {
+        // Strips stacked along y: a row is all sky or all masked, with one e shift.
+        if let Some((o, e)) = g.beams_of_sky(xa, y) {
+            segs.push((xa, xb, o, e));
+        }
+        return;
+    }
+    let mut cur: Option<(usize, usize, usize, usize)> = None;
+    for x in xa..xb {
+        match (g.beams_of_sky(x, y), cur.as_mut()) {
+            (Some((o, e)), Some(c)) if c.2 + (x - c.0) == o && c.3 + (x - c.0) == e => c.1 = x + 1,
+            (Some((o, e)), _) => {
+                if let Some(c) = cur.take() {
+                    segs.push(c);
+                }
+                cur = Some((x, x + 1, o, e));
+            }
+            (None, _) => {
+                if let Some(c) = cur.take() {
+                    segs.push(c);
+                }
+            }
+        }
+    }
+    if let Some(c) = cur {
+        segs.push(c);
+    }
+}
+
+/// Read, check and reduce frame files in one call; `on_read` ticks once per file in all, as
+/// the reading (which is spread over the reduction) goes along.
 ///
 /// Same result as [`read_frames`] + [`FrameSet::from_frames`] + [`reduce_set`], but the frames
-/// stay in their stored pixel type (f32 frames are not widened to f64 copies) and an angle's
-/// frame is summed into f64 only when it has repeats.
+/// are never held whole: each is opened and its header checked first, then its pixels are read
+/// by bands of rows as the reduction needs them (straight from the file for uncompressed
+/// images; through CFITSIO, whole, for compressed or scaled ones). Bad pixels are counted over
+/// the rows the beams use.
 pub fn reduce_files(
     paths: &[PathBuf],
     inst: &Instrument,
     cfg: &ReduceConfig,
     on_read: &(dyn Fn() + Sync),
 ) -> Result<Reduced, Error> {
-    let frames = read_frames_raw(paths, inst, on_read)?;
-    let meta: Vec<_> =
-        frames.iter().map(|(f, _)| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
-    let bad: Vec<BadCounts> = frames.iter().map(|(_, c)| *c).collect();
-    let g = group_frames(&meta, &bad, inst, cfg.require_complete_set)?;
-    let sums: Vec<Option<Vec<f64>>> = g
-        .members
-        .par_iter()
-        .map(|m| {
-            (m.len() > 1).then(|| {
-                let mut d = frames[m[0]].0.pixels.clone().into_f64();
-                const CH: usize = 1 << 14;
-                let mut row = vec![0.0; d.len().min(CH)];
-                for &k in &m[1..] {
-                    let v = frames[k].0.pixels.view();
-                    for (c, chunk) in d.chunks_mut(CH).enumerate() {
-                        let r = &mut row[..chunk.len()];
-                        v.load(c * CH, r);
-                        for (a, s) in chunk.iter_mut().zip(r.iter()) {
-                            *a += s;
-                        }
-                    }
-                }
-                d
-            })
-        })
-        .collect();
-    let views: Vec<PixelView> = g
+    if paths.is_empty() {
+        return Err(Error::NoFrames);
+    }
+    let opened: Vec<Result<OpenFrame, Error>> = paths.par_iter().map(|p| open_frame(p, inst)).collect();
+    let frames: Vec<OpenFrame> = opened.into_iter().collect::<Result<_, _>>()?;
+    let meta: Vec<_> = frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
+    let g = group_frames(&meta, inst, cfg.require_complete_set)?;
+    let inputs: Vec<AngleInput> = g
         .members
         .iter()
-        .zip(&sums)
-        .map(|(m, s)| match s {
-            Some(d) => PixelView::F64(d),
-            None => frames[m[0]].0.pixels.view(),
-        })
+        .map(|m| AngleInput { members: m.iter().map(|&k| Member::File(&frames[k], k)).collect(), nexp: m.len() })
         .collect();
-    let nexp: Vec<usize> = g.members.iter().map(|m| m.len()).collect();
-    let map = reduce_views(&views, &nexp, g.nx, g.ny, &g.angles, &g.filter, inst, cfg)?;
-    Ok(Reduced { map, warnings: g.warnings })
+    let pass = reduce_bands(&inputs, frames.len(), g.nx, g.ny, &g.angles, inst, cfg, on_read)?;
+    let mut warnings = bad_pixel_notes(&meta, &pass.bad, pass.used_px, inst)?;
+    warnings.extend(g.warnings);
+    let map = assemble_map(pass.stats, inst, cfg, &g.filter, &g.angles, &inputs)?;
+    Ok(Reduced { map, warnings })
 }
 
 #[cfg(test)]

@@ -19,8 +19,8 @@ pub mod stats;
 
 pub use reduce::{reduce, Estimator, Measurement, Reduction, Warning};
 pub use solver::{
-    normalized_difference, polarization, sigma_normalized_difference, sigma_normalized_difference_into, QuEstimate,
-    StokesSolver,
+    fast_variance_in_range, normalized_difference, polarization, sigma_normalized_difference,
+    variance_normalized_difference, variance_normalized_difference_fast, QuEstimate, StokesSolver,
 };
 
 /// Errors of the reduction: each names the offending input.

@@ -23,31 +23,39 @@ pub fn sigma_normalized_difference(f_o: f64, f_e: f64, sigma_o: f64, sigma_e: f6
     2.0 * r / (tot * tot)
 }
 
-/// [`sigma_normalized_difference`] (`eq:F`) over slices into `out`, bit for bit the same
-/// values: the common case in a branch-free loop that vectorizes (frame reduction calls this
-/// per row and HWP angle), the rare overflow/underflow lanes redone by the scalar function.
-/// All slices must have `out.len()` elements.
+/// Variance of `F` (`eq:F`) from independent per-beam variances: `sigma_F^2` of
+/// [`sigma_normalized_difference`] without its square roots, for callers that add variances
+/// (frame reduction, per pixel and angle). Evaluated as
+/// `4 ((f_E/t)^2 var_O + (f_O/t)^2 var_E) / t^2` with `t = f_O + f_E`, so that no fourth power
+/// of `t` over- or underflows; where this form would (`|t|` beyond about `1e+-150`, or a
+/// variance near the f64 limit), the square of the scaled `sigma_normalized_difference`.
+/// For Poisson counts (`var = f`) this is `(1 - F^2) / (f_O + f_E)`.
 #[inline]
-pub fn sigma_normalized_difference_into(f_o: &[f64], f_e: &[f64], sigma_o: &[f64], sigma_e: &[f64], out: &mut [f64]) {
-    let n = out.len();
-    let (f_o, f_e, sigma_o, sigma_e) = (&f_o[..n], &f_e[..n], &sigma_o[..n], &sigma_e[..n]);
-    let mut rare = false;
-    for k in 0..n {
-        let tot = f_o[k] + f_e[k];
-        let (a, b) = (f_e[k] * sigma_o[k], f_o[k] * sigma_e[k]);
-        let s = a * a + b * b;
-        rare |= !(s.is_finite() & (s > 1e-290));
-        out[k] = 2.0 * s.sqrt() / (tot * tot);
+pub fn variance_normalized_difference(f_o: f64, f_e: f64, var_o: f64, var_e: f64) -> f64 {
+    let v = variance_normalized_difference_fast(f_o, f_e, var_o, var_e);
+    if fast_variance_in_range(v) {
+        v
+    } else {
+        sigma_normalized_difference(f_o, f_e, var_o.sqrt(), var_e.sqrt()).powi(2)
     }
-    if rare {
-        for k in 0..n {
-            let (a, b) = (f_e[k] * sigma_o[k], f_o[k] * sigma_e[k]);
-            let s = a * a + b * b;
-            if !(s.is_finite() && s > 1e-290) {
-                out[k] = sigma_normalized_difference(f_o[k], f_e[k], sigma_o[k], sigma_e[k]);
-            }
-        }
-    }
+}
+
+/// The fast form of [`variance_normalized_difference`] without its range fallback: equal to it
+/// wherever [`fast_variance_in_range`] holds for the result (elsewhere it may have over- or
+/// underflowed). For vectorized loops, which treat such values as masked (frame reduction:
+/// a pixel whose `f_O + f_E` is beyond about `1e+-140` e- has no usable flux anyway).
+#[inline(always)]
+pub fn variance_normalized_difference_fast(f_o: f64, f_e: f64, var_o: f64, var_e: f64) -> f64 {
+    let inv = 1.0 / (f_o + f_e);
+    let (a, b) = (f_e * inv, f_o * inv);
+    4.0 * (a * a * var_o + b * b * var_e) * (inv * inv)
+}
+
+/// Whether a value of [`variance_normalized_difference_fast`] is exact to rounding: finite
+/// and clear of the underflow zone.
+#[inline(always)]
+pub fn fast_variance_in_range(v: f64) -> bool {
+    v.is_finite() & (v > 1e-290)
 }
 
 /// Polarization degree and angle from normalized Stokes parameters (`eq:poldeg`,
@@ -244,27 +252,28 @@ mod tests {
     use super::*;
     use approx::assert_relative_eq;
 
-    /// The slice form is the scalar `sigma_normalized_difference` to the bit, including the
-    /// hypot fallback where the squares overflow or underflow.
+    /// The variance form is the square of `sigma_normalized_difference` (a few ulp), on both
+    /// sides of its fallback, and Poisson counts give `(1 - F^2) / (f_O + f_E)` (`eq:F`).
     #[test]
-    fn sigma_normalized_difference_into_matches_scalar_bitwise() {
-        let v = [0.0, 1e-200, 1e-150, 3e-7, 0.5, 1.0, 7.25, 1e3, 4.2e5, 1e150, 1e200, f64::INFINITY, f64::NAN];
-        let mut cols = [vec![], vec![], vec![], vec![]];
-        for &a in &v {
-            for &b in &v {
-                for &c in &[0.0, 1e-160, 2.5, 1e160] {
-                    for (col, x) in cols.iter_mut().zip([a, b, c, -c + b]) {
-                        col.push(x);
-                    }
-                }
-            }
+    fn variance_is_sigma_squared() {
+        for &(fo, fe, vo, ve) in &[
+            (1000.0, 800.0, 1000.0, 800.0),
+            (3.0, 1e-3, 3.0 + 25.0, 25.0),
+            (1e-160, 2e-160, 1e-160, 2e-160),
+            (1e170, 3e170, 1e170, 3e170),
+            (5.0, 5.0, 1e305, 1e300),
+        ] {
+            let v = variance_normalized_difference(fo, fe, vo, ve);
+            let s = sigma_normalized_difference(fo, fe, f64::sqrt(vo), f64::sqrt(ve));
+            assert_relative_eq!(v, s * s, max_relative = 1e-14);
         }
-        let mut out = vec![0.0; cols[0].len()];
-        sigma_normalized_difference_into(&cols[0], &cols[1], &cols[2], &cols[3], &mut out);
-        for k in 0..out.len() {
-            let want = sigma_normalized_difference(cols[0][k], cols[1][k], cols[2][k], cols[3][k]);
-            assert_eq!(out[k].to_bits(), want.to_bits(), "row {k}: {} vs {want}", out[k]);
-        }
+        let (fo, fe) = (12345.0, 9876.0);
+        let f = normalized_difference(fo, fe);
+        assert_relative_eq!(
+            variance_normalized_difference(fo, fe, fo, fe),
+            (1.0 - f * f) / (fo + fe),
+            max_relative = 1e-14
+        );
     }
 
     fn optimal(n: usize) -> Vec<f64> {

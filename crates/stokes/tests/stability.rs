@@ -435,4 +435,26 @@ proptest! {
         prop_assert!(got.is_finite() && got > 0.0, "{got}");
         prop_assert!((got - r).abs() <= 8.0 * f64::EPSILON * r, "{got:e} vs {r:e}");
     }
+
+    /// sigma_F^2 in its variance form (what frame reduction adds up) against double-double,
+    /// over the same range: the fast form where it holds, the fallback beyond.
+    #[test]
+    fn variance_normalized_difference_vs_double_double(
+        eo in -100.0..100.0f64, ratio in 1e-3..1e3f64, es in -3.0..3.0f64, rs in 1e-3..1e3f64,
+    ) {
+        let f_o = 10f64.powf(eo);
+        let f_e = f_o * ratio;
+        let s_o = f_o * 10f64.powf(es);
+        let s_e = s_o * rs;
+        let got = stokes::variance_normalized_difference(f_o, f_e, s_o * s_o, s_e * s_e);
+        let k = 1.0 / f_o.max(f_e);
+        let (fo, fe, so, se) = (Dd::from(f_o * k), Dd::from(f_e * k), Dd::from(s_o * k), Dd::from(s_e * k));
+        let a = fe.mul(so);
+        let b = fo.mul(se);
+        let tot = fo.add(fe);
+        let t2 = tot.mul(tot);
+        let r = Dd::from(4.0).mul(a.mul(a).add(b.mul(b))).div(t2.mul(t2)).f();
+        prop_assert!(got.is_finite() && got > 0.0, "{got}");
+        prop_assert!((got - r).abs() <= 16.0 * f64::EPSILON * r, "{got:e} vs {r:e}");
+    }
 }
