@@ -50,27 +50,43 @@ fn from_total_key(k: i64) -> f64 {
     f64::from_bits(total_key(f64::from_bits(k as u64)) as u64)
 }
 
-/// [`median_in_place`] on [`total_key`]s (`v` not empty), exactly, helped by a `window` of keys `[lo, hi]` believed to hold the
-/// median (the previous clipping iteration's, which moves little): one counting pass finds
-/// how many keys lie below and inside it, and when the median's ranks fall inside, only the
-/// window's keys (`win`, scratch) are searched. Otherwise, or without a window, the whole
-/// slice is (`v` is then reordered).
-fn median_keys_near(v: &mut [i64], window: Option<(i64, i64)>, win: &mut Vec<i64>) -> f64 {
-    let n = v.len();
+/// The median of `v` (not empty) in the order of `f64::total_cmp`, exactly, helped by a
+/// `window` `[lo, hi]` believed to hold it: see [`median_near_by`].
+#[cfg(test)]
+fn median_near(v: &[f64], window: Option<(f64, f64)>) -> f64 {
+    median_near_by(v.len(), |i| v[i], window, &mut Vec::new(), &mut Vec::new())
+}
+
+/// The median of the `n` finite values `val(0..n)` (`n > 0`) in the order of
+/// `f64::total_cmp` (what [`median_in_place`] gives), exactly, helped by a `window`
+/// `[lo, hi]` believed to hold it (the previous clipping iteration's median, or a neighbouring
+/// bin's: both move little). One pass counts the values below the window and gathers those
+/// inside (`win`, scratch); when the median's ranks fall inside, only those are searched. Otherwise, or without a window,
+/// all values are (`keys`, scratch). Searches run on [`total_key`]s.
+fn median_near_by(
+    n: usize,
+    val: impl Fn(usize) -> f64,
+    window: Option<(f64, f64)>,
+    keys: &mut Vec<i64>,
+    win: &mut Vec<i64>,
+) -> f64 {
     let k = n / 2;
-    if let Some((lo, hi)) = window {
-        // Branch-free: every key is written, the count advances only for keys inside.
+    // For finite values IEEE comparisons are the total order except -0 against +0, so a
+    // window with a zero bound is not used.
+    if let Some((lo, hi)) = window.filter(|&(lo, hi)| lo != 0.0 && hi != 0.0) {
+        // Branch-free: every value is written, the count advances only for values inside.
         win.resize(n + 1, 0);
         let (mut below, mut m) = (0, 0);
-        for &x in v.iter() {
+        for i in 0..n {
+            let x = val(i);
             below += (x < lo) as usize;
-            win[m] = x;
+            win[m] = total_key(x);
             m += ((x >= lo) & (x <= hi)) as usize;
         }
         let win = &mut win[..m];
         // Both middle ranks (k - 1 and k for even n) must be inside the window.
         let first = if n % 2 == 1 { k } else { k - 1 };
-        if below <= first && k < below + win.len() {
+        if below <= first && k < below + m {
             let (left, m, _) = win.select_nth_unstable(k - below);
             let hi_v = from_total_key(*m);
             if n % 2 == 1 {
@@ -80,19 +96,21 @@ fn median_keys_near(v: &mut [i64], window: Option<(i64, i64)>, win: &mut Vec<i64
             return 0.5 * (lo_v + hi_v);
         }
     }
-    let (_, m, _) = v.select_nth_unstable(k);
+    keys.clear();
+    keys.extend((0..n).map(|i| total_key(val(i))));
+    let (_, m, _) = keys.select_nth_unstable(k);
     let hi = from_total_key(*m);
     if n % 2 == 1 {
         hi
     } else {
-        let lo = from_total_key(*v[..k].iter().max().expect("n >= 2"));
+        let lo = from_total_key(*keys[..k].iter().max().expect("n >= 2"));
         0.5 * (lo + hi)
     }
 }
 
-/// Keys of `[c - w, c + w]`, the window [`median_keys_near`] searches first.
-fn key_window(c: f64, w: f64) -> (i64, i64) {
-    (total_key(c - w), total_key(c + w))
+/// `[c - w, c + w]`, the window [`median_near_by`] searches first.
+fn window(c: f64, w: f64) -> (f64, f64) {
+    (c - w, c + w)
 }
 
 /// Half-widths of the search windows, in units of the previous iteration's robust sigma:
@@ -138,13 +156,11 @@ pub fn sigma_clip_columns_hinted(cols: &[&[f64]], cfg: ClipConfig, hints: &mut [
         }
         centre.clear();
         for (ci, v) in vals.iter().enumerate() {
-            buf.clear();
-            buf.extend(v.iter().map(|&x| total_key(x)));
             let hint = hints[ci];
-            let med = median_keys_near(&mut buf, hint.map(|(m, _, s)| key_window(m, MEDIAN_WINDOW * s)), &mut win);
-            buf.clear();
-            buf.extend(v.iter().map(|&x| total_key((x - med).abs())));
-            let mad = median_keys_near(&mut buf, hint.map(|(_, d, s)| key_window(d, MAD_WINDOW * s)), &mut win);
+            let w_med = hint.map(|(m, _, s)| window(m, MEDIAN_WINDOW * s));
+            let med = median_near_by(m, |r| v[r], w_med, &mut buf, &mut win);
+            let w_mad = hint.map(|(_, d, s)| window(d, MAD_WINDOW * s));
+            let mad = median_near_by(m, |r| (v[r] - med).abs(), w_mad, &mut buf, &mut win);
             let mut sigma = MAD_TO_SIGMA * mad;
             if sigma == 0.0 {
                 let mean = v.iter().sum::<f64>() / m as f64;
@@ -208,40 +224,81 @@ pub struct BinStats {
     pub n_kept: usize,
 }
 
+/// The pixels of one bin, column by column (what the clipping and the sums read).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct BinSamples {
+    pub q: Vec<f64>,
+    pub u: Vec<f64>,
+    pub i: Vec<f64>,
+    pub var_q: Vec<f64>,
+    pub var_u: Vec<f64>,
+}
+
+impl BinSamples {
+    pub fn push(&mut self, s: PixelSample) {
+        self.q.push(s.q);
+        self.u.push(s.u);
+        self.i.push(s.i);
+        self.var_q.push(s.var_q);
+        self.var_u.push(s.var_u);
+    }
+
+    pub fn clear(&mut self) {
+        for c in [&mut self.q, &mut self.u, &mut self.i, &mut self.var_q, &mut self.var_u] {
+            c.clear();
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.q.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.q.is_empty()
+    }
+}
+
+impl FromIterator<PixelSample> for BinSamples {
+    fn from_iter<T: IntoIterator<Item = PixelSample>>(iter: T) -> Self {
+        let mut b = BinSamples::default();
+        for s in iter {
+            b.push(s);
+        }
+        b
+    }
+}
+
 /// Sigma-clipped mean of the pixels of one bin (clipping on q, u and intensity together).
 /// `None` when fewer than `min_pixels` (at least 2) survive.
 pub fn clipped_bin(samples: &[PixelSample], cfg: ClipConfig, min_pixels: usize) -> Option<BinStats> {
-    clipped_bin_hinted(samples, cfg, min_pixels, &mut [None; 3])
+    clipped_bin_hinted(&samples.iter().copied().collect(), cfg, min_pixels, &mut [None; 3])
 }
 
 /// [`clipped_bin`] with [`ClipHint`]s for q, u and intensity (see
 /// [`sigma_clip_columns_hinted`]): same result, found faster along a row of bins.
 pub fn clipped_bin_hinted(
-    samples: &[PixelSample],
+    s: &BinSamples,
     cfg: ClipConfig,
     min_pixels: usize,
     hints: &mut [ClipHint; 3],
 ) -> Option<BinStats> {
-    let q: Vec<f64> = samples.iter().map(|s| s.q).collect();
-    let u: Vec<f64> = samples.iter().map(|s| s.u).collect();
-    let i: Vec<f64> = samples.iter().map(|s| s.i).collect();
-    let keep = sigma_clip_columns_hinted(&[&q, &u, &i], cfg, hints);
-    let kept: Vec<&PixelSample> = samples.iter().zip(&keep).filter(|(_, &k)| k).map(|(s, _)| s).collect();
+    let keep = sigma_clip_columns_hinted(&[&s.q, &s.u, &s.i], cfg, hints);
+    let kept: Vec<usize> = (0..s.len()).filter(|&r| keep[r]).collect();
     let n = kept.len();
     if n < min_pixels.max(2) {
         return None;
     }
     let nf = n as f64;
-    let mq = kept.iter().map(|s| s.q).sum::<f64>() / nf;
-    let mu = kept.iter().map(|s| s.u).sum::<f64>() / nf;
-    let mi = kept.iter().map(|s| s.i).sum::<f64>() / nf;
+    let mean = |c: &[f64]| kept.iter().map(|&r| c[r]).sum::<f64>() / nf;
+    let (mq, mu, mi) = (mean(&s.q), mean(&s.u), mean(&s.i));
     let (mut vq, mut vu, mut cqu, mut pq, mut pu) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for s in &kept {
-        vq += (s.q - mq) * (s.q - mq);
-        vu += (s.u - mu) * (s.u - mu);
-        cqu += (s.q - mq) * (s.u - mu);
-        pq += s.var_q;
-        pu += s.var_u;
+    for &r in &kept {
+        let (dq, du) = (s.q[r] - mq, s.u[r] - mu);
+        vq += dq * dq;
+        vu += du * du;
+        cqu += dq * du;
+        pq += s.var_q[r];
+        pu += s.var_u[r];
     }
     // Sample (co)variances with n - 1, then of the mean: / n.
     let d = (nf - 1.0) * nf;
@@ -278,27 +335,37 @@ mod tests {
             for rot in 0..pool.len() {
                 let v: Vec<f64> = (0..n).map(|k| pool[(k * 5 + rot) % pool.len()]).collect();
                 let want = median_in_place(&mut v.clone());
-                let mut keys: Vec<i64> = v.iter().map(|&x| total_key(x)).collect();
-                let got = median_keys_near(&mut keys, None, &mut Vec::new());
+                let got = median_near(&v, None);
                 assert!(got == want || (got.is_nan() && want.is_nan()), "{v:?}: {got} vs {want}");
                 assert!(v.iter().all(|&x| from_total_key(total_key(x)).to_bits() == x.to_bits()));
             }
         }
     }
 
-    /// The windowed search is the plain median whatever the window: containing the median,
-    /// off to either side, empty, inverted, or cutting between the two middle ranks.
+    /// The windowed search is the plain median (total order) whatever the window: containing
+    /// the median, off to either side, empty, inverted, cutting between the two middle ranks,
+    /// with a zero bound, or about signed zeros (where IEEE and total order differ).
     #[test]
     fn windowed_median_is_exact_for_any_window() {
         let pool: Vec<f64> = rand_like::quantiles(101, 1.0);
-        let mut win = Vec::new();
-        for n in [3usize, 4, 10, 11, 100, 101] {
-            let v = &pool[..n];
+        let zeros: Vec<f64> = (0..40).map(|k| [0.0, -0.0, 1e-3, -1e-3, -0.0][k % 5] * (1 + k % 3) as f64).collect();
+        let cases: Vec<&[f64]> =
+            vec![&pool[..3], &pool[..4], &pool[..10], &pool[..11], &pool[..100], &pool, &zeros, &zeros[..39]];
+        for v in cases {
             let want = median_in_place(&mut v.to_vec());
-            for (c, w) in [(want, 0.1), (want, 0.0), (want + 0.3, 0.2), (want - 0.5, 0.45), (10.0, 1.0), (want, -1.0)] {
-                let mut keys: Vec<i64> = v.iter().map(|&x| total_key(x)).collect();
-                let got = median_keys_near(&mut keys, Some(key_window(c, w)), &mut win);
-                assert_eq!(got.to_bits(), want.to_bits(), "n {n}, window {c} +- {w}");
+            for (c, w) in [
+                (want, 0.1),
+                (want, 0.0),
+                (want + 0.3, 0.2),
+                (want - 0.5, 0.45),
+                (10.0, 1.0),
+                (want, -1.0),
+                (0.0, 1e-3),
+                (5e-4, 5e-4),
+                (want, 1e-9),
+            ] {
+                let got = median_near(v, Some(window(c, w)));
+                assert_eq!(got.to_bits(), want.to_bits(), "n {}, window {c} +- {w}", v.len());
             }
         }
     }

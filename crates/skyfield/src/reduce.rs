@@ -24,7 +24,7 @@
 //! the two agree for pure photon noise (`eq:sigp` divided by `sqrt(n)`).
 
 use crate::beams::BeamGeometry;
-use crate::bin::{clipped_bin_hinted, ClipConfig, PixelSample};
+use crate::bin::{clipped_bin_hinted, BinSamples, ClipConfig, PixelSample};
 use crate::io::{open_frame, read_frame_raw, Frame, FrameRows, OpenFrame, PixelView, RawFrame, RawKind};
 use crate::maps::{BinGeometry, StokesMap};
 use crate::{Error, Warning};
@@ -544,7 +544,7 @@ fn reduce_bands(
                             }
                             let Kernel { q, u, vq, vu, isum, ok, .. } = &*k;
                             for j in 0..len {
-                                if ok[j] {
+                                if ok[j] != 0 {
                                     let bi = (x0 + c0 + j - geom.origin_x) / bp;
                                     bins[bi].push(PixelSample {
                                         q: q[j],
@@ -693,7 +693,7 @@ struct Scratch {
     tmp: Vec<f64>,
     bytes: Vec<u8>,
     k: Kernel,
-    bins: Vec<Vec<PixelSample>>,
+    bins: Vec<BinSamples>,
 }
 
 impl Scratch {
@@ -704,7 +704,7 @@ impl Scratch {
             tmp: Vec::new(),
             bytes: Vec::new(),
             k: Kernel::new(),
-            bins: vec![Vec::new(); nbins],
+            bins: vec![BinSamples::default(); nbins],
         }
     }
 
@@ -777,20 +777,22 @@ struct Kernel {
     vq: Vec<f64>,
     vu: Vec<f64>,
     isum: Vec<f64>,
-    ok: Vec<bool>,
+    /// 1 while the pixel is usable, 0 once masked (u64 lanes, as wide as the f64 ones, so the
+    /// mask needs no packing in the vector loop).
+    ok: Vec<u64>,
 }
 
 impl Kernel {
     fn new() -> Self {
         let z = || vec![0.0; CHUNK];
-        Self { ro: z(), re: z(), q: z(), u: z(), vq: z(), vu: z(), isum: z(), ok: vec![true; CHUNK] }
+        Self { ro: z(), re: z(), q: z(), u: z(), vq: z(), vu: z(), isum: z(), ok: vec![1; CHUNK] }
     }
 
     fn reset(&mut self, len: usize) {
         for v in [&mut self.q, &mut self.u, &mut self.vq, &mut self.vu, &mut self.isum] {
             v[..len].fill(0.0);
         }
-        self.ok[..len].fill(true);
+        self.ok[..len].fill(1);
     }
 
     /// Fold one HWP angle into the running sums of `len` pixels whose o and e values start at
@@ -881,7 +883,7 @@ impl Kernel {
             let f = normalized_difference(f_o, f_e);
             // Photon (e-) plus read-noise variance of each beam, propagated to F.
             let vf = variance_normalized_difference_fast(f_o, f_e, f_o.max(0.0) + rn2_n, f_e.max(0.0) + rn2_n);
-            ok[k] &= fin_o & fin_e & !sat_o & !sat_e & (tot > 0.0) & fast_variance_in_range(vf);
+            ok[k] &= (fin_o & fin_e & !sat_o & !sat_e & (tot > 0.0) & fast_variance_in_range(vf)) as u64;
             q[k] += cqi * f;
             u[k] += cui * f;
             isum[k] += if ONE { tot } else { tot / ne };
