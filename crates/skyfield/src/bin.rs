@@ -77,10 +77,12 @@ fn median_near_by(
         // Branch-free: every value is written, the count advances only for values inside.
         win.resize(n + 1, 0);
         let (mut below, mut m) = (0, 0);
+        let w = win.as_mut_ptr();
         for i in 0..n {
             let x = val(i);
             below += (x < lo) as usize;
-            win[m] = total_key(x);
+            // SAFETY: m <= i < n + 1 = win.len() (m counts a subset of the i values seen).
+            unsafe { *w.add(m) = total_key(x) };
             m += ((x >= lo) & (x <= hi)) as usize;
         }
         let win = &mut win[..m];
@@ -168,6 +170,15 @@ pub fn sigma_clip_columns_hinted(cols: &[&[f64]], cfg: ClipConfig, hints: &mut [
             }
             hints[ci] = Some((med, mad, sigma));
             centre.push((med, cfg.nsigma * sigma));
+        }
+        // Most iterations reject nothing (the last one always): check that first, in passes
+        // that vectorize.
+        let any_out = vals
+            .iter()
+            .zip(&centre)
+            .any(|(v, &(med, lim))| v.iter().fold(false, |a, &x| a | ((x - med).abs() > lim)));
+        if !any_out {
+            break;
         }
         // Keep the rows within every column's limit, compacting in place.
         let mut w = 0;

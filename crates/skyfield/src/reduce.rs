@@ -543,17 +543,32 @@ fn reduce_bands(
                                 }
                             }
                             let Kernel { q, u, vq, vu, isum, ok, .. } = &*k;
-                            for j in 0..len {
-                                if ok[j] != 0 {
-                                    let bi = (x0 + c0 + j - geom.origin_x) / bp;
-                                    bins[bi].push(PixelSample {
-                                        q: q[j],
-                                        u: u[j],
-                                        i: isum[j] / n as f64,
-                                        var_q: vq[j],
-                                        var_u: vu[j],
-                                    });
+                            // Hand the chunk to its bins a bin's run at a time: whole slices
+                            // when no pixel of the run is masked (the usual case).
+                            let nf = n as f64;
+                            let mut j = 0;
+                            while j < len {
+                                let bi = (x0 + c0 + j - geom.origin_x) / bp;
+                                let end = (geom.origin_x + (bi + 1) * bp - (x0 + c0)).min(len);
+                                let b = &mut bins[bi];
+                                if ok[j..end].iter().all(|&o| o != 0) {
+                                    b.q.extend_from_slice(&q[j..end]);
+                                    b.u.extend_from_slice(&u[j..end]);
+                                    b.i.extend(isum[j..end].iter().map(|s| s / nf));
+                                    b.var_q.extend_from_slice(&vq[j..end]);
+                                    b.var_u.extend_from_slice(&vu[j..end]);
+                                } else {
+                                    for t in (j..end).filter(|&t| ok[t] != 0) {
+                                        b.push(PixelSample {
+                                            q: q[t],
+                                            u: u[t],
+                                            i: isum[t] / nf,
+                                            var_q: vq[t],
+                                            var_u: vu[t],
+                                        });
+                                    }
                                 }
+                                j = end;
                             }
                             c0 += len;
                         }
