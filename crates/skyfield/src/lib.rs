@@ -47,6 +47,8 @@ pub enum Error {
     AllNonFinite { path: PathBuf },
     #[error("no frames given")]
     NoFrames,
+    #[error("{files}: no sky pixel has f_O + f_E > 0 after removing the instrument's bias of {bias} ADU (gain {gain} e-/ADU): are the frames already bias-subtracted, or is the instrument's bias_adu wrong?")]
+    NoFlux { files: String, bias: f64, gain: f64 },
     #[error("no valid bins: every pixel was masked (saturated, non-finite or non-positive flux)")]
     NoValidBins,
     #[error("{0}")]

@@ -465,6 +465,8 @@ struct Pass {
     stats: Vec<Option<crate::bin::BinStats>>,
     /// Non-finite and saturated values of each file among the pixels the pass used.
     bad: Vec<BadCounts>,
+    /// Sky pixels of each single-exposure file whose `f_O + f_E` was not positive.
+    dark: Vec<usize>,
     /// Pixels of each frame the pass used (o and e pixels of the binned sky pixels).
     used_px: usize,
 }
@@ -509,7 +511,7 @@ fn reduce_bands(
     let bp = geom.bin_px;
     let done = std::sync::atomic::AtomicUsize::new(0);
     let nb = bands.len().max(1);
-    type BandOut = (Vec<Option<crate::bin::BinStats>>, Vec<BadCounts>);
+    type BandOut = (Vec<Option<crate::bin::BinStats>>, Vec<BadCounts>, Vec<usize>);
     // Rayon calls `map_init`'s init once per piece of work it splits off, not once per thread:
     // scratch goes back to a pool when a piece is done, so the group buffers are allocated
     // (and page-faulted) about once per thread.
@@ -521,6 +523,7 @@ fn reduce_bands(
             |sc, band| -> Result<BandOut, Error> {
                 let sc = sc.get();
                 let mut bad = vec![(0, 0); nfiles];
+                let mut dark = vec![0; nfiles];
                 for b in sc.bins.iter_mut() {
                     b.clear();
                 }
@@ -540,6 +543,7 @@ fn reduce_bands(
                                 if let (Some((nb_, ns)), [Member::File(_, fi)]) = (counted, &inp.members[..]) {
                                     bad[*fi].0 += nb_;
                                     bad[*fi].1 += ns;
+                                    dark[*fi] += k.dark;
                                 }
                             }
                             let Kernel { q, u, vq, vu, isum, ok, .. } = &*k;
@@ -582,21 +586,25 @@ fn reduce_bands(
                 for _ in (d - 1) * nfiles / nb..d * nfiles / nb {
                     on_file();
                 }
-                Ok((stats, bad))
+                Ok((stats, bad, dark))
             },
         )
         .collect();
     let mut stats = Vec::with_capacity(geom.nx * geom.ny);
     let mut bad = vec![(0, 0); nfiles];
+    let mut dark = vec![0; nfiles];
     for r in per_band {
-        let (s, b) = r?;
+        let (s, b, k) = r?;
         stats.extend(s);
         for (t, x) in bad.iter_mut().zip(b) {
             t.0 += x.0;
             t.1 += x.1;
         }
+        for (t, x) in dark.iter_mut().zip(k) {
+            *t += x;
+        }
     }
-    Ok(Pass { stats, bad, used_px })
+    Ok(Pass { stats, bad, dark, used_px })
 }
 
 /// The map from the bins' clipped statistics.
@@ -792,6 +800,8 @@ struct Kernel {
     vq: Vec<f64>,
     vu: Vec<f64>,
     isum: Vec<f64>,
+    /// Pixels of the last single-exposure fold with finite values but `f_O + f_E <= 0`.
+    dark: usize,
     /// 1 while the pixel is usable, 0 once masked (u64 lanes, as wide as the f64 ones, so the
     /// mask needs no packing in the vector loop).
     ok: Vec<u64>,
@@ -800,7 +810,7 @@ struct Kernel {
 impl Kernel {
     fn new() -> Self {
         let z = || vec![0.0; CHUNK];
-        Self { ro: z(), re: z(), q: z(), u: z(), vq: z(), vu: z(), isum: z(), ok: vec![1; CHUNK] }
+        Self { ro: z(), re: z(), q: z(), u: z(), vq: z(), vu: z(), isum: z(), dark: 0, ok: vec![1; CHUNK] }
     }
 
     fn reset(&mut self, len: usize) {
@@ -885,7 +895,7 @@ impl Kernel {
         let (ro, re) = (&self.ro[..len], &self.re[..len]);
         let (q, u, vq, vu) = (&mut self.q[..len], &mut self.u[..len], &mut self.vq[..len], &mut self.vu[..len]);
         let (isum, ok) = (&mut self.isum[..len], &mut self.ok[..len]);
-        let (mut n_nonfinite, mut n_sat) = (0usize, 0usize);
+        let (mut n_nonfinite, mut n_sat, mut n_dark) = (0usize, 0usize, 0usize);
         for k in 0..len {
             let (r_o, r_e) = (ro[k], re[k]);
             let (fin_o, fin_e) = (r_o.is_finite(), r_e.is_finite());
@@ -895,6 +905,7 @@ impl Kernel {
             let f_o = (r_o - bias_n) * gain;
             let f_e = (r_e - bias_n) * gain;
             let tot = f_o + f_e;
+            n_dark += (fin_o & fin_e & !(tot > 0.0)) as usize;
             let f = normalized_difference(f_o, f_e);
             // Photon (e-) plus read-noise variance of each beam, propagated to F.
             let vf = variance_normalized_difference_fast(f_o, f_e, f_o.max(0.0) + rn2_n, f_e.max(0.0) + rn2_n);
@@ -905,6 +916,7 @@ impl Kernel {
             vq[k] += cq2 * vf;
             vu[k] += cu2 * vf;
         }
+        self.dark = n_dark;
         (n_nonfinite, n_sat)
     }
 }
@@ -974,7 +986,27 @@ pub fn reduce_files(
     let pass = reduce_bands(&inputs, frames.len(), g.nx, g.ny, &g.angles, inst, cfg, on_read)?;
     let mut warnings = bad_pixel_notes(&meta, &pass.bad, pass.used_px, inst)?;
     warnings.extend(g.warnings);
-    let map = assemble_map(pass.stats, inst, cfg, &g.filter, &g.angles, &inputs)?;
+    let map = match assemble_map(pass.stats, inst, cfg, &g.filter, &g.angles, &inputs) {
+        // Say why when it is that some frames hold no flux above the bias anywhere.
+        Err(Error::NoValidBins) => {
+            let dark: Vec<String> = meta
+                .iter()
+                .zip(&pass.dark)
+                .filter(|(_, &d)| pass.used_px > 0 && 2 * d == pass.used_px)
+                .map(|(m, _)| m.0.display().to_string())
+                .collect();
+            if dark.is_empty() {
+                return Err(Error::NoValidBins);
+            }
+            let more = if dark.len() > 3 { format!(" and {} more", dark.len() - 3) } else { String::new() };
+            return Err(Error::NoFlux {
+                files: format!("{}{more}", dark[..dark.len().min(3)].join(", ")),
+                bias: inst.detector.bias_adu,
+                gain: inst.detector.gain_e_per_adu,
+            });
+        }
+        r => r?,
+    };
     Ok(Reduced { map, warnings })
 }
 

@@ -161,3 +161,19 @@ fn missing_keyword_mixed_filters_missing_angle() {
     // No frames at all.
     assert!(matches!(reduce(&[], &inst), Err(Error::NoFrames)));
 }
+
+/// Frames with no flux above the bias (already bias-subtracted, or the instrument's bias_adu
+/// wrong): the error names those frames and the likely cause instead of "no valid bins".
+#[test]
+fn frames_without_flux_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst = tiny();
+    let p = good_set(dir.path(), &inst);
+    write_frame(&p[0], 64, 64, &vec![0.0; 64 * 64], Bitpix::F32, &keys(&inst, 0.0, "V_BESS")).unwrap();
+    write_frame(&p[2], 64, 64, &vec![-50.0; 64 * 64], Bitpix::F32, &keys(&inst, 45.0, "V_BESS")).unwrap();
+    let e = reduce(&p, &inst).unwrap_err();
+    assert!(matches!(e, Error::NoFlux { .. }), "{e}");
+    let e = e.to_string();
+    assert!(e.contains("f0.fits") && e.contains("f2.fits") && !e.contains("f1.fits") && e.contains("bias"), "{e}");
+    eprintln!("{e}");
+}

@@ -213,12 +213,15 @@ pub fn run(a: Args) -> Result<()> {
 /// into `plots`, and print the fit summary as JSON or as a table.
 pub fn finish(run: &CalibrationRun, out: Option<&Path>, plots: Option<&Path>, json: bool) -> Result<()> {
     let mut s = FitSummary::new(run);
+    // The plots folder first: a run that cannot write its plots fails before it saves anything.
+    if let Some(dir) = plots {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create the plots folder {}", dir.display()))?;
+    }
     if let Some(out) = out {
         run.calibration.save(out)?;
         s.calibration_file = Some(out.display().to_string());
     }
     if let Some(dir) = plots {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         crate::cmd::plot::plot_run(dir, &run.calibration.filter, run)?;
     }
     if json {
