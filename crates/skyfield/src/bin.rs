@@ -173,10 +173,8 @@ pub fn sigma_clip_columns_hinted(cols: &[&[f64]], cfg: ClipConfig, hints: &mut [
         }
         // Most iterations reject nothing (the last one always): check that first, in passes
         // that vectorize.
-        let any_out = vals
-            .iter()
-            .zip(&centre)
-            .any(|(v, &(med, lim))| v.iter().fold(false, |a, &x| a | ((x - med).abs() > lim)));
+        let any_out =
+            vals.iter().zip(&centre).any(|(v, &(med, lim))| v.iter().fold(false, |a, &x| a | ((x - med).abs() > lim)));
         if !any_out {
             break;
         }
