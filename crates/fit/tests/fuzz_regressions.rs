@@ -33,3 +33,53 @@ fn residual_map_at_unrepresentable_positions_is_none() {
         assert!((dq - p.dq).abs() < 1e-12 && (du - p.du).abs() < 1e-12, "through ({}, {})", p.x, p.y);
     }
 }
+
+mod common;
+
+/// A radial calibration with two input names, saved to `dir/cal.fits`.
+fn saved_calibration(dir: &std::path::Path) -> std::path::PathBuf {
+    use common::*;
+    use fit::calfile::{Calibration, Model, Provenance, FORMAT_VERSION};
+    let bins = noisy_bins(&fors1_bin_centres(16), radial_field(&V_COEFFS, (0.0, 0.0)), SIGMA_BIN, 3);
+    let fit = fit::fit_radial(&bins, &fit::RadialFitOptions::default()).unwrap();
+    let cal = Calibration {
+        format_version: FORMAT_VERSION,
+        instrument: "FORS1".into(),
+        filter: "V".into(),
+        lambda_nm: 554.0,
+        hwp_chi_offset_deg: 0.0,
+        model: Model::Radial(fit.model.clone()),
+        region: fit::FieldRegion::bounding(bins.iter().map(|b| (b.x, b.y)), 0.05).unwrap(),
+        rms_residual: fit.rms_residual,
+        n_bins_used: fit.n_used,
+        polar_angle: None,
+        exclusions: vec![],
+        robust: "none".into(),
+        pixel: None,
+        provenance: Provenance::now("test", vec!["a.fits".into(), "b.fits".into()]),
+        bins,
+        grid: None,
+    };
+    let p = dir.join("cal.fits");
+    cal.save(&p).unwrap();
+    p
+}
+
+/// fuzz/FINDINGS.md, calibration_file 2: a calibration whose header says NINPUT = 2 but whose
+/// INPUTS table has no rows (NAXIS2 = 0, or a card CFITSIO reads as 0) panicked in `load`
+/// ("chunk size must be non-zero": zero bytes divide into any number of names). Now an error
+/// naming the file and the table; the unpatched file loads with its two names.
+#[test]
+fn calibration_with_empty_inputs_table_is_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = saved_calibration(dir.path());
+    assert_eq!(fit::Calibration::load(&p).unwrap().provenance.inputs, vec!["a.fits", "b.fits"]);
+    let mut b = std::fs::read(&p).unwrap();
+    let ext = b.windows(17).position(|w| w == b"EXTNAME = 'INPUTS").expect("INPUTS table");
+    let start = b[..ext].windows(8).rposition(|w| w == b"XTENSION").unwrap();
+    let card = start + b[start..ext].windows(9).position(|w| w == b"NAXIS2  =").unwrap();
+    b[card + 10..card + 30].copy_from_slice(format!("{:>20}", 0).as_bytes());
+    std::fs::write(&p, b).unwrap();
+    let e = fit::Calibration::load(&p).err().expect("empty INPUTS refused").to_string();
+    assert!(e.contains("cal.fits") && e.contains("INPUTS"), "{e}");
+}
