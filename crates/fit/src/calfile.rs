@@ -762,7 +762,7 @@ impl KeyReader<'_> {
     }
     fn str(&mut self, name: &str) -> Result<String> {
         let key = format!("HIERARCH IP {name}");
-        self.hdu.read_key::<String>(self.f, &key).map_err(|e| self.missing(&key, e))
+        skyfield::io::read_key_str(self.f, self.hdu, &key).map_err(|e| self.missing(&key, e))
     }
     fn real(&mut self, name: &str) -> Result<f64> {
         let key = format!("HIERARCH IP {name}");

@@ -15,14 +15,9 @@ fn residual_map_at_unrepresentable_positions_is_none() {
         .map(|(k, &(x, y))| ResidualPoint { x, y, dq: 1e-3 * k as f64, du: -2e-3 * k as f64 })
         .collect();
     let m = ResidualMap::new(pts.clone()).unwrap();
-    for (x, y) in [
-        (f64::NAN, 0.5),
-        (0.5, f64::NAN),
-        (f64::INFINITY, 0.5),
-        (0.5, f64::NEG_INFINITY),
-        (1e300, -1e300),
-        (0.5, 1e61),
-    ] {
+    for (x, y) in
+        [(f64::NAN, 0.5), (0.5, f64::NAN), (f64::INFINITY, 0.5), (0.5, f64::NEG_INFINITY), (1e300, -1e300), (0.5, 1e61)]
+    {
         assert_eq!(m.eval(x, y), None, "({x}, {y})");
     }
     // Subnormal offsets from a vertex: the vertex's value (spade flushes them to 0).

@@ -157,7 +157,30 @@ pub fn write_frame(
 }
 
 fn read_key_string(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, key: &str) -> Option<String> {
-    hdu.read_key::<String>(f, key).ok().map(|s| s.trim().to_string())
+    read_key_str(f, hdu, key).ok().map(|s| s.trim().to_string())
+}
+
+/// Read the string value of keyword `key` of `hdu`: the one string-keyword reader for
+/// untrusted files. fitsio 0.21's `read_key::<String>` gives CFITSIO a 71-byte value buffer,
+/// and CFITSIO writes 72 bytes for a card whose value starts right after the `=` and fills
+/// the card (a heap overflow, found by the frame_fits fuzz target): this reads into buffers
+/// longer than a whole card.
+pub fn read_key_str(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, key: &str) -> fitsio::errors::Result<String> {
+    use std::os::raw::{c_char, c_int};
+    let name = std::ffi::CString::new(key)?;
+    let mut value = [0 as c_char; 160];
+    let mut comment = [0 as c_char; 160];
+    let (mut status, mut hdu_type): (c_int, c_int) = (0, 0);
+    // SAFETY: `f` is an open file; both buffers exceed the 81 bytes of a card, the most CFITSIO
+    // copies into either; `name` is NUL-terminated.
+    unsafe {
+        let fptr = f.as_raw();
+        fitsio::sys::ffmahd(fptr, hdu.number as c_int + 1, &mut hdu_type, &mut status);
+        fitsio::sys::ffgkys(fptr, name.as_ptr(), value.as_mut_ptr(), comment.as_mut_ptr(), &mut status);
+    }
+    fitsio::errors::check_status(status)?;
+    let bytes: Vec<u8> = value.iter().take_while(|&&c| c != 0).map(|&c| c as u8).collect();
+    Ok(String::from_utf8(bytes).map_err(|e| e.utf8_error())?)
 }
 
 /// Pixel values as stored (no scaling), or as f64 when the file scales them.
