@@ -85,7 +85,7 @@ if [ -z "${FUZZ_BYTES:-}" ] && cargo +nightly fuzz --version >/dev/null 2>&1; th
       find="0 findings"
     else
       status=1
-      art=$(grep -oE 'Test unit written to [^ ]+' "$LOG" | tail -1 | sed 's/Test unit written to //; s#^$PWD/##')
+      art=$(grep -oE 'Test unit written to [^ ]+' "$LOG" | tail -1 | sed "s/Test unit written to //; s#^$PWD/fuzz/artifacts/##")
       why=$(grep -v 'Running `' "$LOG" | grep -E -A1 'panicked at|ERROR: libFuzzer|ERROR: AddressSanitizer|out-of-memory|timeout after|allocation of' | head -2 | tr '\n' ' ' | cut -c1-220)
       find="1 finding: ${art:-?}: ${why:-exit $rc}"
     fi
