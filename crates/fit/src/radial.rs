@@ -184,7 +184,7 @@ fn radial_eval(
     gu: &mut [f64],
 ) -> (f64, f64) {
     let (dx, dy) = (x - centre[0], y - centre[1]);
-    let r = dx.hypot(dy);
+    let r = mueller::hypot(dx, dy);
     gq.iter_mut().chain(gu.iter_mut()).for_each(|g| *g = 0.0);
     let nc = coeffs.len();
     if r < 1e-12 {

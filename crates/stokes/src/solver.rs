@@ -15,12 +15,7 @@ pub fn normalized_difference(f_o: f64, f_e: f64) -> f64 {
 #[inline]
 pub fn sigma_normalized_difference(f_o: f64, f_e: f64, sigma_o: f64, sigma_e: f64) -> f64 {
     let tot = f_o + f_e;
-    let (a, b) = (f_e * sigma_o, f_o * sigma_e);
-    // sqrt(a^2 + b^2) is ~5x cheaper than libm's hypot (this runs per pixel and angle); fall
-    // back to hypot only where the squares would overflow or underflow.
-    let s = a * a + b * b;
-    let r = if s.is_finite() && s > 1e-290 { s.sqrt() } else { a.hypot(b) };
-    2.0 * r / (tot * tot)
+    2.0 * mueller::hypot(f_e * sigma_o, f_o * sigma_e) / (tot * tot)
 }
 
 /// Variance of `F` (`eq:F`) from independent per-beam variances: `sigma_F^2` of
@@ -62,7 +57,7 @@ pub fn fast_variance_in_range(v: f64) -> bool {
 /// `eq:polang`): `P = hypot(q, u)`, `chi = atan2(u, q) / 2` folded into [0, pi).
 #[inline]
 pub fn polarization(q: f64, u: f64) -> (f64, f64) {
-    (q.hypot(u), mueller::fold_pi(0.5 * u.atan2(q)))
+    (mueller::hypot(q, u), mueller::fold_pi(0.5 * u.atan2(q)))
 }
 
 /// `Q/I`, `U/I` with their covariance.
