@@ -284,7 +284,8 @@ impl StokesMap {
             });
         }
         let key_s = |f: &mut FitsFile, k: &str| -> Result<String, Error> {
-            crate::io::read_key_str(f, &ph, k).map_err(|_| Error::MissingKeyword { path: path.into(), keyword: k.into() })
+            crate::io::read_key_str(f, &ph, k)
+                .map_err(|_| Error::MissingKeyword { path: path.into(), keyword: k.into() })
         };
         let instrument = key_s(&mut f, "INSTRUME")?;
         let filter = key_s(&mut f, "FILTER")?;
