@@ -59,6 +59,16 @@ fn calibrate_map_recovers_the_v_pattern_and_writes_a_calibration() {
     let cy = j["centre_arcmin"][1].as_f64().unwrap();
     assert!(cx.hypot(cy) < 0.05, "free centre ({cx}, {cy})");
 
+    // The table says how the errors were scaled, with the factor the JSON reports.
+    let (code, out, err) = instpol(&["fit", cal.to_str().unwrap(), "--error-scaling", "absolute"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("errors: covariance x 1.000 (absolute)"), "{out}");
+    let (_, out, _) = instpol(&["fit", cal.to_str().unwrap(), "--json"]);
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let (chi2, scale) = (j["chi2_reduced"].as_f64().unwrap(), j["covariance_scale"].as_f64().unwrap());
+    assert_eq!(j["error_scaling"], "conservative");
+    assert_eq!(scale, chi2.max(1.0), "conservative scale is max(1, chi2_red)");
+
     // Plots.
     let plots = dir.path().join("plots");
     let (code, _, err) = instpol(&["plot", cal.to_str().unwrap(), "--out", plots.to_str().unwrap()]);

@@ -170,6 +170,12 @@ pub fn print_table(s: &FitSummary) {
     }
     println!("RMS residual {:.4}% (per component)   reduced chi2 {:.2}", 100.0 * s.rms_residual, s.chi2_reduced);
     println!(
+        "errors: covariance x {:.3} ({}{})",
+        s.covariance_scale,
+        s.error_scaling,
+        if s.correlation.is_some() { ", with the correlated-errors inflation" } else { "" }
+    );
+    println!(
         "polar-angle test: slope {:.4} +- {:.4}, intercept {:.2} +- {:.2} deg",
         s.polar_angle_slope, s.polar_angle_slope_err, s.polar_angle_intercept_deg, s.polar_angle_intercept_err_deg
     );

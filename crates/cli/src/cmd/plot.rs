@@ -90,6 +90,11 @@ pub fn run(a: Args) -> Result<()> {
             fo.centre = r.centre;
             fo.include_c0 = r.first_power == 0;
             fo.degree = r.degree();
+            // The file's own error treatment, so the panels' error bars are the file's.
+            if let Some(sc) = r.scaling {
+                fo.error_scaling = sc.mode;
+                fo.correlated_errors = sc.correlation_inflation.is_some();
+            }
         }
         None => fo.free_centre = true,
     }
