@@ -7,21 +7,14 @@ use skyfield::reduce::{reduce_files, ReduceConfig};
 use skyfield::Error;
 use std::path::{Path, PathBuf};
 
+mod common;
+
 fn tiny() -> Instrument {
-    let text = include_str!("../../../instruments/fors1.toml")
-        .replace("nx = 2048", "nx = 64")
-        .replace("ny = 2048", "ny = 64")
-        .replace("throw_arcsec = 22.0", "throw_arcsec = 2.0")
-        .replace("strip_count = 9", "strip_count = 3")
-        .replace("first_strip_y_px = 34", "first_strip_y_px = 2");
-    Instrument::from_toml_str(&text, Path::new("tiny.toml")).unwrap()
+    common::tiny_with_bias(0.0)
 }
 
 fn keys(inst: &Instrument, hwp: f64, filter: &str) -> Vec<(String, KeyValue, String)> {
-    vec![
-        (inst.polarimetry.hwp_angle_keyword.clone(), KeyValue::F64(hwp), String::new()),
-        (inst.polarimetry.filter_keyword.clone(), KeyValue::Str(filter.into()), String::new()),
-    ]
+    common::keys(inst, hwp, filter, &[])
 }
 
 /// A frame of an unpolarized-in-o/e-balance sky with `Q/I = 0.01` modulation (eq:ord).

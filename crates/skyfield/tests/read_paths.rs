@@ -10,24 +10,14 @@ use skyfield::io::{write_frame, Bitpix, KeyValue};
 use skyfield::reduce::{read_frames, reduce_files, reduce_set, FrameSet, ReduceConfig};
 use std::path::{Path, PathBuf};
 
+mod common;
+
 fn tiny() -> Instrument {
-    let text = include_str!("../../../instruments/fors1.toml")
-        .replace("nx = 2048", "nx = 64")
-        .replace("ny = 2048", "ny = 64")
-        .replace("throw_arcsec = 22.0", "throw_arcsec = 2.0")
-        .replace("strip_count = 9", "strip_count = 3")
-        .replace("first_strip_y_px = 34", "first_strip_y_px = 2")
-        .replace("bias_adu = 0.0", "bias_adu = 180.0");
-    Instrument::from_toml_str(&text, Path::new("tiny.toml")).unwrap()
+    common::tiny_with_bias(180.0)
 }
 
 fn keys(inst: &Instrument, hwp: f64, extra: &[(&str, f64)]) -> Vec<(String, KeyValue, String)> {
-    let mut k = vec![
-        (inst.polarimetry.hwp_angle_keyword.clone(), KeyValue::F64(hwp), String::new()),
-        (inst.polarimetry.filter_keyword.clone(), KeyValue::Str("V_BESS".into()), String::new()),
-    ];
-    k.extend(extra.iter().map(|(n, v)| (n.to_string(), KeyValue::F64(*v), String::new())));
-    k
+    common::keys(inst, hwp, "V_BESS", extra)
 }
 
 /// Deterministic noise in [-0.5, 0.5) (a hash of the pixel and frame).

@@ -414,47 +414,32 @@ fn reference_is_sane() {
 proptest! {
     #![proptest_config(cfg(256))]
 
-    /// sigma_F (eq:F propagated) against double-double, over fluxes and errors from 1e-100 to
-    /// 1e100 (the fast sqrt(a^2 + b^2) path and its hypot fallback where the squares underflow).
+    /// sigma_F (eq:F propagated) and its variance form (what frame reduction adds up) against
+    /// double-double, over fluxes and errors from 1e-100 to 1e100 (the fast paths and their
+    /// fallbacks where squares under- or overflow).
     #[test]
-    fn sigma_normalized_difference_vs_double_double(
+    fn sigma_and_variance_of_normalized_difference_vs_double_double(
         eo in -100.0..100.0f64, ratio in 1e-3..1e3f64, es in -3.0..3.0f64, rs in 1e-3..1e3f64,
     ) {
         let f_o = 10f64.powf(eo);
         let f_e = f_o * ratio;
         let s_o = f_o * 10f64.powf(es);
         let s_e = s_o * rs;
-        let got = stokes::sigma_normalized_difference(f_o, f_e, s_o, s_e);
+        let sig = stokes::sigma_normalized_difference(f_o, f_e, s_o, s_e);
+        let var = stokes::variance_normalized_difference(f_o, f_e, s_o * s_o, s_e * s_e);
         // Scale out the magnitude so that the double-double products stay in range.
         let k = 1.0 / f_o.max(f_e);
         let (fo, fe, so, se) = (Dd::from(f_o * k), Dd::from(f_e * k), Dd::from(s_o * k), Dd::from(s_e * k));
         let a = fe.mul(so);
         let b = fo.mul(se);
         let tot = fo.add(fe);
-        let r = Dd::from(2.0).mul(a.mul(a).add(b.mul(b)).sqrt()).div(tot.mul(tot)).f();
-        prop_assert!(got.is_finite() && got > 0.0, "{got}");
-        prop_assert!((got - r).abs() <= 8.0 * f64::EPSILON * r, "{got:e} vs {r:e}");
-    }
-
-    /// sigma_F^2 in its variance form (what frame reduction adds up) against double-double,
-    /// over the same range: the fast form where it holds, the fallback beyond.
-    #[test]
-    fn variance_normalized_difference_vs_double_double(
-        eo in -100.0..100.0f64, ratio in 1e-3..1e3f64, es in -3.0..3.0f64, rs in 1e-3..1e3f64,
-    ) {
-        let f_o = 10f64.powf(eo);
-        let f_e = f_o * ratio;
-        let s_o = f_o * 10f64.powf(es);
-        let s_e = s_o * rs;
-        let got = stokes::variance_normalized_difference(f_o, f_e, s_o * s_o, s_e * s_e);
-        let k = 1.0 / f_o.max(f_e);
-        let (fo, fe, so, se) = (Dd::from(f_o * k), Dd::from(f_e * k), Dd::from(s_o * k), Dd::from(s_e * k));
-        let a = fe.mul(so);
-        let b = fo.mul(se);
-        let tot = fo.add(fe);
         let t2 = tot.mul(tot);
-        let r = Dd::from(4.0).mul(a.mul(a).add(b.mul(b))).div(t2.mul(t2)).f();
-        prop_assert!(got.is_finite() && got > 0.0, "{got}");
-        prop_assert!((got - r).abs() <= 16.0 * f64::EPSILON * r, "{got:e} vs {r:e}");
+        let s2 = a.mul(a).add(b.mul(b));
+        let r = Dd::from(2.0).mul(s2.sqrt()).div(t2).f();
+        let r2 = Dd::from(4.0).mul(s2).div(t2.mul(t2)).f();
+        prop_assert!(sig.is_finite() && sig > 0.0, "{sig}");
+        prop_assert!((sig - r).abs() <= 8.0 * f64::EPSILON * r, "{sig:e} vs {r:e}");
+        prop_assert!(var.is_finite() && var > 0.0, "{var}");
+        prop_assert!((var - r2).abs() <= 16.0 * f64::EPSILON * r2, "{var:e} vs {r2:e}");
     }
 }
