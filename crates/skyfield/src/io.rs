@@ -392,7 +392,8 @@ pub(crate) enum RawKind {
 }
 
 impl RawKind {
-    fn bytes(self) -> usize {
+    /// Bytes per pixel.
+    pub(crate) fn bytes(self) -> usize {
         match self {
             RawKind::F32 => 4,
             RawKind::F64 => 8,
@@ -542,11 +543,6 @@ impl OpenFrame {
 }
 
 impl RawKind {
-    /// Bytes per pixel.
-    pub(crate) fn size(self) -> usize {
-        self.bytes()
-    }
-
     /// Decode `out.len()` pixels starting at pixel `start` of `bytes` (exact for every kind);
     /// always inlined so that a vectorized caller decodes with its own vector width.
     #[inline(always)]

@@ -538,12 +538,19 @@ fn reduce_bands(
                             let len = CHUNK.min(x1 - x0 - c0);
                             k.reset(len);
                             for (i, inp) in inputs.iter().enumerate() {
-                                let at = ((o0 + c0, os + c0), (e0 + c0, es + c0));
-                                let counted = k.fold_angle(&rows[i], at, len, inp.nexp, (cq[i], cu[i]), det);
-                                if let (Some((nb_, ns)), [Member::File(_, fi)]) = (counted, &inp.members[..]) {
-                                    bad[*fi].0 += nb_;
-                                    bad[*fi].1 += ns;
-                                    dark[*fi] += k.dark;
+                                let counted = k.fold_angle(Fold {
+                                    rows: &rows[i],
+                                    o: (o0 + c0, os + c0),
+                                    e: (e0 + c0, es + c0),
+                                    len,
+                                    nexp: inp.nexp,
+                                    w: (cq[i], cu[i]),
+                                    det,
+                                });
+                                if let (Some(c), [Member::File(_, fi)]) = (counted, &inp.members[..]) {
+                                    bad[*fi].0 += c.nonfinite;
+                                    bad[*fi].1 += c.saturated;
+                                    dark[*fi] += c.dark;
                                 }
                             }
                             let Kernel { q, u, vq, vu, isum, ok, .. } = &*k;
@@ -747,7 +754,7 @@ impl Scratch {
                 [Member::View(_)] => {}
                 [Member::File(f, _)] => {
                     if let FrameRows::File(r) = &f.rows {
-                        let b = r.kind().size();
+                        let b = r.kind().bytes();
                         let raw = &mut self.raw[i];
                         raw.resize(group.n_rows * nx * b, 0);
                         for &(r0, nr, slot0) in &group.runs {
@@ -790,6 +797,29 @@ impl Scratch {
     }
 }
 
+/// One HWP angle's part of a chunk, as [`Kernel::fold_angle`] takes it: `len` pixels whose o
+/// and e values start at detector / group-buffer indices `o` and `e` of `rows`, from `nexp`
+/// exposures, with the solver's weights `w` for this angle and the detector's `det` (bias ADU,
+/// gain e-/ADU, saturation ADU, read-noise variance e-^2).
+#[derive(Clone, Copy)]
+struct Fold<'a> {
+    rows: &'a Rows<'a>,
+    o: (usize, usize),
+    e: (usize, usize),
+    len: usize,
+    nexp: usize,
+    w: (f64, f64),
+    det: (f64, f64, f64, f64),
+}
+
+/// Bad values of a single exposure's chunk: non-finite and saturated values among its `2 len`
+/// o and e values, and pixels with finite values but `f_O + f_E <= 0` (no flux).
+struct FoldCounts {
+    nonfinite: usize,
+    saturated: usize,
+    dark: usize,
+}
+
 /// Running per-pixel sums over the HWP angles of one chunk of a row (structure of arrays, so
 /// the loops vectorize).
 struct Kernel {
@@ -800,8 +830,6 @@ struct Kernel {
     vq: Vec<f64>,
     vu: Vec<f64>,
     isum: Vec<f64>,
-    /// Pixels of the last single-exposure fold with finite values but `f_O + f_E <= 0`.
-    dark: usize,
     /// 1 while the pixel is usable, 0 once masked (u64 lanes, as wide as the f64 ones, so the
     /// mask needs no packing in the vector loop).
     ok: Vec<u64>,
@@ -810,7 +838,7 @@ struct Kernel {
 impl Kernel {
     fn new() -> Self {
         let z = || vec![0.0; CHUNK];
-        Self { ro: z(), re: z(), q: z(), u: z(), vq: z(), vu: z(), isum: z(), dark: 0, ok: vec![1; CHUNK] }
+        Self { ro: z(), re: z(), q: z(), u: z(), vq: z(), vu: z(), isum: z(), ok: vec![1; CHUNK] }
     }
 
     fn reset(&mut self, len: usize) {
@@ -820,64 +848,40 @@ impl Kernel {
         self.ok[..len].fill(1);
     }
 
-    /// Fold one HWP angle into the running sums of `len` pixels whose o and e values start at
-    /// `at` (detector and group-buffer indices of o, then of e) in `rows`: the per-pixel steps
-    /// of [`pixel_sample`] (mask, electrons, the one `F_i`, its photon + read noise variance,
-    /// `Q`, `U` by the solver's weights), in the order a per-pixel `StokesSolver::solve` uses,
-    /// so sums are the same to the bit. For a single exposure, also returns how many of the
-    /// `2 len` values were non-finite and how many saturated.
+    /// Fold one HWP angle into the running sums of the chunk's pixels (see [`Fold`]): the
+    /// per-pixel steps of [`pixel_sample`] (mask, electrons, the one `F_i`, its photon + read
+    /// noise variance, `Q`, `U` by the solver's weights), in the order a per-pixel
+    /// `StokesSolver::solve` uses, so sums are the same to the bit. For a single exposure, also
+    /// returns the chunk's counts of bad values ([`FoldCounts`]).
     #[inline]
-    fn fold_angle(
-        &mut self,
-        rows: &Rows,
-        at: ((usize, usize), (usize, usize)),
-        len: usize,
-        nexp: usize,
-        w: (f64, f64),
-        det: (f64, f64, f64, f64),
-    ) -> Option<BadCounts> {
+    fn fold_angle(&mut self, a: Fold) -> Option<FoldCounts> {
         // Decoding and one pass bound by its two divisions: 4-wide AVX2 vectors where the CPU
         // has them (same IEEE operations, so the same bits; no FMA is enabled).
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: AVX2 support was checked just above.
-            return unsafe { self.fold_avx2(rows, at, len, nexp, w, det) };
+            return unsafe { self.fold_avx2(a) };
         }
-        self.fold_impl(rows, at, len, nexp, w, det)
+        self.fold_impl(a)
     }
 
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    unsafe fn fold_avx2(
-        &mut self,
-        rows: &Rows,
-        at: ((usize, usize), (usize, usize)),
-        len: usize,
-        nexp: usize,
-        w: (f64, f64),
-        det: (f64, f64, f64, f64),
-    ) -> Option<BadCounts> {
-        self.fold_impl(rows, at, len, nexp, w, det)
+    unsafe fn fold_avx2(&mut self, a: Fold) -> Option<FoldCounts> {
+        self.fold_impl(a)
     }
 
     #[inline(always)]
-    fn fold_impl(
-        &mut self,
-        rows: &Rows,
-        at: ((usize, usize), (usize, usize)),
-        len: usize,
-        nexp: usize,
-        w: (f64, f64),
-        det: (f64, f64, f64, f64),
-    ) -> Option<BadCounts> {
-        rows.load(at.0 .0, at.0 .1, &mut self.ro[..len]);
-        rows.load(at.1 .0, at.1 .1, &mut self.re[..len]);
+    fn fold_impl(&mut self, a: Fold) -> Option<FoldCounts> {
+        let len = a.len;
+        a.rows.load(a.o.0, a.o.1, &mut self.ro[..len]);
+        a.rows.load(a.e.0, a.e.1, &mut self.re[..len]);
         // Separate loops for one and several exposures: x / 1 is x exactly, so the single
         // exposure's loop skips a division.
-        if nexp == 1 {
-            Some(self.fold_loop::<true>(len, 1.0, w, det))
+        if a.nexp == 1 {
+            Some(self.fold_loop::<true>(len, 1.0, a.w, a.det))
         } else {
-            self.fold_loop::<false>(len, nexp as f64, w, det);
+            self.fold_loop::<false>(len, a.nexp as f64, a.w, a.det);
             None
         }
     }
@@ -889,7 +893,7 @@ impl Kernel {
         ne: f64,
         (cqi, cui): (f64, f64),
         (bias, gain, sat, rn2): (f64, f64, f64, f64),
-    ) -> BadCounts {
+    ) -> FoldCounts {
         let (bias_n, sat_n, rn2_n) = (bias * ne, sat * ne, ne * rn2);
         let (cq2, cu2) = (cqi * cqi, cui * cui);
         let (ro, re) = (&self.ro[..len], &self.re[..len]);
@@ -916,8 +920,7 @@ impl Kernel {
             vq[k] += cq2 * vf;
             vu[k] += cu2 * vf;
         }
-        self.dark = n_dark;
-        (n_nonfinite, n_sat)
+        FoldCounts { nonfinite: n_nonfinite, saturated: n_sat, dark: n_dark }
     }
 }
 
