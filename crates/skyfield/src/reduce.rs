@@ -279,76 +279,35 @@ pub fn bin_geometry(inst: &Instrument, bin_px: usize) -> BinGeometry {
     BinGeometry::covering(bin_px, ox, oy, g.nx, g.ny, inst.detector.pixel_scale_arcsec)
 }
 
-/// Per-pixel reduction of one sky pixel: `None` when masked.
-#[inline]
-fn pixel_sample(
-    set: &FrameSet,
-    solver: &StokesSolver,
-    o: usize,
-    e: usize,
-    bias: f64,
-    gain: f64,
-    sat: f64,
-    rn2: f64,
-    f: &mut [f64],
-    vf: &mut [f64],
-) -> Option<PixelSample> {
-    let mut isum = 0.0;
-    for (i, d) in set.data.iter().enumerate() {
-        let nexp = set.files[i].len() as f64;
-        let (ro, re) = (d[o], d[e]);
-        if !(ro.is_finite() && re.is_finite()) || ro >= sat * nexp || re >= sat * nexp {
-            return None;
-        }
-        let fo = (ro - bias * nexp) * gain;
-        let fe = (re - bias * nexp) * gain;
-        let tot = fo + fe;
-        // The frame kernel's mask: no usable flux, or a variance out of the fast form's range.
-        let v = variance_normalized_difference_fast(fo, fe, fo.max(0.0) + nexp * rn2, fe.max(0.0) + nexp * rn2);
-        if !(tot > 0.0) || !fast_variance_in_range(v) {
-            return None;
-        }
-        f[i] = normalized_difference(fo, fe);
-        vf[i] = v;
-        isum += tot / nexp;
-    }
-    let (q, u) = solver.solve(f);
-    let (cq, cu) = solver.weights();
-    let (mut var_q, mut var_u) = (0.0, 0.0);
-    for i in 0..f.len() {
-        var_q += cq[i] * cq[i] * vf[i];
-        var_u += cu[i] * cu[i] * vf[i];
-    }
-    Some(PixelSample { q, u, i: isum / f.len() as f64, var_q, var_u })
-}
-
 /// Per-pixel `Q/I`, `U/I` of every sky pixel (NaN where masked or outside the sky bands),
-/// row-major over the detector in o coordinates: for inspection and tests.
+/// row-major over the detector in o coordinates: for inspection and tests. Computed by the
+/// reduction's own kernel, row by row.
 pub fn pixel_qu(set: &FrameSet, inst: &Instrument) -> Result<(Vec<f64>, Vec<f64>), Error> {
     let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();
     let solver = StokesSolver::new(&theta)?;
+    let (cq, cu) = solver.weights();
     let g = BeamGeometry::new(inst);
     let d = &inst.detector;
-    let n = set.angles_deg.len();
+    let det = (d.bias_adu, d.gain_e_per_adu, d.saturation_adu, d.read_noise_e.powi(2));
+    let rows: Vec<Rows> = set.data.iter().map(|v| Rows::View(PixelView::F64(v))).collect();
     let mut q = vec![f64::NAN; g.nx * g.ny];
     let mut u = vec![f64::NAN; g.nx * g.ny];
-    let (mut f, mut vf) = (vec![0.0; n], vec![0.0; n]);
-    for (x, y) in g.sky_pixels() {
-        let (o, e) = g.beams_of_sky(x, y).expect("sky pixel");
-        if let Some(s) = pixel_sample(
-            set,
-            &solver,
-            o,
-            e,
-            d.bias_adu,
-            d.gain_e_per_adu,
-            d.saturation_adu,
-            d.read_noise_e.powi(2),
-            &mut f,
-            &mut vf,
-        ) {
-            q[o] = s.q;
-            u[o] = s.u;
+    let (mut k, mut segs) = (Kernel::new(), Vec::new());
+    for y in 0..g.ny {
+        segments_of_row(&g, y, 0, g.nx, &mut segs);
+        for &(x0, x1, o0, e0) in &segs {
+            for c0 in (0..x1 - x0).step_by(CHUNK) {
+                let len = CHUNK.min(x1 - x0 - c0);
+                k.reset(len);
+                for (i, r) in rows.iter().enumerate() {
+                    let (o, e) = ((o0 + c0, 0), (e0 + c0, 0));
+                    k.fold_angle(Fold { rows: r, o, e, len, nexp: set.files[i].len(), w: (cq[i], cu[i]), det });
+                }
+                for j in (0..len).filter(|&j| k.ok[j] != 0) {
+                    q[o0 + c0 + j] = k.q[j];
+                    u[o0 + c0 + j] = k.u[j];
+                }
+            }
         }
     }
     Ok((q, u))
@@ -849,7 +808,7 @@ impl Kernel {
     }
 
     /// Fold one HWP angle into the running sums of the chunk's pixels (see [`Fold`]): the
-    /// per-pixel steps of [`pixel_sample`] (mask, electrons, the one `F_i`, its photon + read
+    /// per-pixel steps of the module docs (mask, electrons, the one `F_i`, its photon + read
     /// noise variance, `Q`, `U` by the solver's weights), in the order a per-pixel
     /// `StokesSolver::solve` uses, so sums are the same to the bit. For a single exposure, also
     /// returns the chunk's counts of bad values ([`FoldCounts`]).
@@ -1065,6 +1024,67 @@ mod tests {
                 assert!((m.q[k] - q0).abs() < 1e-12 && (m.u[k] - u0).abs() < 1e-12, "axis {axis} bin {k}");
                 assert!((m.intensity[k] - i0).abs() < 1e-8, "axis {axis} bin {k}: {}", m.intensity[k]);
             }
+        }
+    }
+
+    /// The kernel's per-pixel Q, U are `StokesSolver::solve` of the `F_i` (`eq:F`, `eq:Q`,
+    /// `eq:U`) to the bit, computed here pixel by pixel, for both strip axes and an angle with
+    /// two exposures; masked pixels (a NaN, a saturated value) are NaN.
+    #[test]
+    fn pixel_qu_is_the_solver_pixel_by_pixel() {
+        for axis in ["y", "x"] {
+            let inst = tiny(axis);
+            let g = BeamGeometry::new(&inst);
+            let det = &inst.detector;
+            let angles: Vec<f64> = (0..8).map(|i| i as f64 * 22.5).collect();
+            let nexp = |i: usize| if i == 3 { 2 } else { 1 };
+            let data: Vec<Vec<f64>> = (0..8)
+                .map(|i| {
+                    (0..g.nx * g.ny)
+                        .map(|p| nexp(i) as f64 * (det.bias_adu + 1000.0 + ((p * 7919 + i * 104729) % 997) as f64))
+                        .collect()
+                })
+                .collect();
+            let mut data = data;
+            let (xs, ys) = g.sky_pixels().nth(5).unwrap();
+            let (o_nan, _) = g.beams_of_sky(xs, ys).unwrap();
+            data[2][o_nan] = f64::NAN;
+            let (xs, ys) = g.sky_pixels().nth(17).unwrap();
+            let (_, e_sat) = g.beams_of_sky(xs, ys).unwrap();
+            data[6][e_sat] = det.saturation_adu + 1.0;
+            let files = (0..8).map(|i| (0..nexp(i)).map(|k| PathBuf::from(format!("f{i}_{k}"))).collect()).collect();
+            let set = FrameSet {
+                filter: "V".into(),
+                angles_deg: angles.clone(),
+                data,
+                files,
+                nx: g.nx,
+                ny: g.ny,
+                warnings: vec![],
+            };
+            let (q, u) = pixel_qu(&set, &inst).unwrap();
+            let theta: Vec<f64> = angles.iter().map(|a| a.to_radians()).collect();
+            let solver = StokesSolver::new(&theta).unwrap();
+            let mut checked = 0;
+            for (x, y) in g.sky_pixels() {
+                let (o, e) = g.beams_of_sky(x, y).unwrap();
+                if o == o_nan || e == e_sat {
+                    assert!(q[o].is_nan() && u[o].is_nan(), "axis {axis}: masked pixel ({x}, {y})");
+                    continue;
+                }
+                let f: Vec<f64> = (0..8)
+                    .map(|i| {
+                        let ne = nexp(i) as f64;
+                        let fo = (set.data[i][o] - det.bias_adu * ne) * det.gain_e_per_adu;
+                        let fe = (set.data[i][e] - det.bias_adu * ne) * det.gain_e_per_adu;
+                        normalized_difference(fo, fe)
+                    })
+                    .collect();
+                let (qs, us) = solver.solve(&f);
+                assert_eq!((q[o].to_bits(), u[o].to_bits()), (qs.to_bits(), us.to_bits()), "axis {axis}: ({x}, {y})");
+                checked += 1;
+            }
+            assert!(checked > 100, "axis {axis}: {checked} pixels");
         }
     }
 
