@@ -47,18 +47,76 @@ pub struct Field {
     pub height_arcmin: f64,
 }
 
-/// Polarimetric optics as the detector sees them: mask strips, throw, header keywords.
+/// How the two beams of a sky point reach the detector.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Layout {
+    /// A focal-plane strip mask (FORS, EFOSC2, ALFOSC): each open strip of the sky is imaged
+    /// twice, side by side along the strip axis; the sky between strips is masked. Sky-field
+    /// (extended-source) calibration works.
+    #[default]
+    Strips,
+    /// No mask (a calcite or Savart plate): every point of the sky is imaged twice, the
+    /// extraordinary image offset from the ordinary one by a fixed 2-D vector, and the sky of
+    /// the two beams overlaps. Point sources work; sky-field calibration is impossible.
+    Maskless,
+}
+
+/// One term `c * u^i * v^j` of the variation of the o/e offset across the field (px), with
+/// `u = (x - cx) / cx`, `v = (y - cy) / cy` the o-image pixel position scaled to [-1, 1] over
+/// the detector (`cx = (nx - 1) / 2`, `cy = (ny - 1) / 2`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OffsetTerm {
+    pub i: u32,
+    pub j: u32,
+    pub c: f64,
+}
+
+/// Polarimetric optics as the detector sees them: beam layout, mask strips, throw, header
+/// keywords.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Polarimetry {
+    /// `"strips"` (default) or `"maskless"`.
+    #[serde(default)]
+    pub layout: Layout,
+    /// Strips: the Wollaston throw (arcsec), also the height of each mask strip.
+    #[serde(default)]
     pub throw_arcsec: f64,
-    /// Detector axis along which the Wollaston separates the beams: "x" or "y".
+    /// Strips: detector axis along which the Wollaston separates the beams: "x" or "y".
+    #[serde(default = "default_strip_axis")]
     pub strip_axis: String,
+    /// Strips: number of open strips (ignored when `strip_starts_px` lists them).
+    #[serde(default)]
     pub strip_count: usize,
-    /// Lower edge (0-based pixel along the strip axis) of the first strip's ordinary image.
-    pub first_strip_y_px: usize,
-    /// +1: the extraordinary image lies at +throw from the ordinary one; -1: at -throw.
+    /// Strips: lower edge (0-based pixel, along the strip axis, a real number) of the first
+    /// strip's ordinary image; the others follow every two throws.
+    #[serde(default)]
+    pub first_strip_y_px: f64,
+    /// Strips: the lower edges of every strip's ordinary image (px along the strip axis, real
+    /// numbers), when the strips are not evenly spaced; replaces `first_strip_y_px` and
+    /// `strip_count`.
+    #[serde(default)]
+    pub strip_starts_px: Option<Vec<f64>>,
+    /// Strips: +1: the extraordinary image lies at +throw from the ordinary one; -1: at -throw.
+    #[serde(default = "default_sign")]
     pub extraordinary_offset_sign: i32,
+    /// Strips: pixels (along the strip axis) not used at each edge of every strip image
+    /// (vignetting by the mask edge; room for a throw that varies across the field).
+    #[serde(default)]
+    pub strip_margin_px: f64,
+    /// Strips: how the o/e offset along the strip axis varies across the field, added to the
+    /// throw (px): a low-order polynomial of position (FORS2-like distortion).
+    #[serde(default)]
+    pub throw_terms: Vec<OffsetTerm>,
+    /// Maskless: the extraordinary image's offset from the ordinary one `[dx, dy]` (px);
+    /// measured from the frames' stars when absent.
+    #[serde(default)]
+    pub oe_offset_px: Option<[f64; 2]>,
+    /// The header keyword of the HWP angle (deg); empty: the headers carry none and the angles
+    /// are given with the frames (`--hwp-angles`).
+    #[serde(default)]
     pub hwp_angle_keyword: String,
     pub filter_keyword: String,
     #[serde(default = "default_exptime_keyword")]
@@ -67,6 +125,14 @@ pub struct Polarimetry {
 
 fn default_exptime_keyword() -> String {
     "EXPTIME".into()
+}
+
+fn default_strip_axis() -> String {
+    "y".into()
+}
+
+fn default_sign() -> i32 {
+    1
 }
 
 /// A filter.
@@ -108,7 +174,10 @@ pub struct Strip {
     pub height: usize,
 }
 
-const BUILTIN: &[(&str, &str)] = &[("fors1", include_str!("../../../instruments/fors1.toml"))];
+const BUILTIN: &[(&str, &str)] = &[
+    ("fors1", include_str!("../../../instruments/fors1.toml")),
+    ("calcite", include_str!("../../../instruments/calcite.toml")),
+];
 
 impl Instrument {
     /// Load a built-in instrument by name (case-insensitive) or an instrument file by path.
@@ -159,58 +228,12 @@ impl Instrument {
         if !(d.read_noise_e.is_finite() && d.read_noise_e >= 0.0) {
             return bad("detector.read_noise_e", d.read_noise_e.to_string(), "must be >= 0");
         }
-        let p = &self.polarimetry;
-        if p.strip_axis != "x" && p.strip_axis != "y" {
-            return bad("polarimetry.strip_axis", p.strip_axis.clone(), "must be \"x\" or \"y\"");
-        }
-        if p.extraordinary_offset_sign != 1 && p.extraordinary_offset_sign != -1 {
-            return bad(
-                "polarimetry.extraordinary_offset_sign",
-                p.extraordinary_offset_sign.to_string(),
-                "must be 1 or -1",
-            );
-        }
-        if !(p.throw_arcsec.is_finite() && p.throw_arcsec > 0.0) {
-            return bad("polarimetry.throw_arcsec", p.throw_arcsec.to_string(), "must be positive");
-        }
-        if p.strip_count == 0 {
-            return bad("polarimetry.strip_count", "0".into(), "need at least one strip");
-        }
         if !(d.saturation_adu.is_finite() && d.saturation_adu > 0.0) {
             return bad("detector.saturation_adu", d.saturation_adu.to_string(), "must be a positive number");
         }
-        // The strip layout, in floating point first so that absurd values (a throw of 1e308",
-        // 2^62 strips) are refused by name instead of overflowing the pixel arithmetic.
-        let extent = if p.strip_axis == "y" { d.ny } else { d.nx } as f64;
-        let h = (p.throw_arcsec / d.pixel_scale_arcsec).round();
-        if !(h >= 1.0 && h <= extent) {
-            return bad(
-                "polarimetry.throw_arcsec",
-                p.throw_arcsec.to_string(),
-                &format!(
-                    "the throw is {h} px at {} arcsec/px (detector.pixel_scale_arcsec): it must be 1 to {extent} px",
-                    d.pixel_scale_arcsec
-                ),
-            );
-        }
-        let below = if p.extraordinary_offset_sign < 0 { h } else { 0.0 };
-        let lo = p.first_strip_y_px as f64 - below;
-        let hi = p.first_strip_y_px as f64 + 2.0 * p.strip_count as f64 * h - below;
-        if lo < 0.0 || hi > extent {
-            let key = if p.first_strip_y_px as f64 >= extent {
-                "polarimetry.first_strip_y_px"
-            } else {
-                "polarimetry.strip_count"
-            };
-            let value = if key.ends_with("count") { p.strip_count.to_string() } else { p.first_strip_y_px.to_string() };
-            return bad(
-                key,
-                value,
-                &format!(
-                    "{} strips of {h} px (the throw) from pixel {} span pixels {lo}..{hi}, outside the detector (0..{extent})",
-                    p.strip_count, p.first_strip_y_px
-                ),
-            );
+        match self.polarimetry.layout {
+            Layout::Strips => self.validate_strips(path)?,
+            Layout::Maskless => self.validate_maskless(path)?,
         }
         if self.filters.is_empty() {
             return bad("filters", "[]".into(), "need at least one filter");
@@ -227,20 +250,227 @@ impl Instrument {
         Ok(())
     }
 
-    /// The Wollaston throw in pixels (rounded): also the height of each mask strip.
-    pub fn throw_px(&self) -> usize {
-        (self.polarimetry.throw_arcsec / self.detector.pixel_scale_arcsec).round() as usize
+    fn validate_strips(&self, path: &Path) -> Result<(), Error> {
+        let bad = |key: &str, value: String, why: &str| {
+            Err(Error::Invalid { path: path.into(), key: key.into(), value, why: why.into() })
+        };
+        let (d, p) = (&self.detector, &self.polarimetry);
+        if p.strip_axis != "x" && p.strip_axis != "y" {
+            return bad("polarimetry.strip_axis", p.strip_axis.clone(), "must be \"x\" or \"y\"");
+        }
+        if p.extraordinary_offset_sign != 1 && p.extraordinary_offset_sign != -1 {
+            return bad(
+                "polarimetry.extraordinary_offset_sign",
+                p.extraordinary_offset_sign.to_string(),
+                "must be 1 or -1",
+            );
+        }
+        if !(p.throw_arcsec.is_finite() && p.throw_arcsec > 0.0) {
+            return bad(
+                "polarimetry.throw_arcsec",
+                p.throw_arcsec.to_string(),
+                "must be positive (a strip layout needs the Wollaston throw; for a maskless calcite set layout = \"maskless\")",
+            );
+        }
+        if p.oe_offset_px.is_some() {
+            return bad(
+                "polarimetry.oe_offset_px",
+                format!("{:?}", p.oe_offset_px.unwrap_or_default()),
+                "is for layout = \"maskless\"; a strip layout's offset is the throw (throw_arcsec, throw_terms)",
+            );
+        }
+        // The strip layout, in floating point first so that absurd values (a throw of 1e308",
+        // 2^62 strips) are refused by name instead of overflowing the pixel arithmetic.
+        let extent = if p.strip_axis == "y" { d.ny } else { d.nx } as f64;
+        let h = p.throw_arcsec / d.pixel_scale_arcsec;
+        if !(h >= 1.0 && h <= extent) {
+            return bad(
+                "polarimetry.throw_arcsec",
+                p.throw_arcsec.to_string(),
+                &format!(
+                    "the throw is {h} px at {} arcsec/px (detector.pixel_scale_arcsec): it must be 1 to {extent} px",
+                    d.pixel_scale_arcsec
+                ),
+            );
+        }
+        let m = p.strip_margin_px;
+        if !(m.is_finite() && m >= 0.0 && 2.0 * m < h - 0.999) {
+            return bad(
+                "polarimetry.strip_margin_px",
+                m.to_string(),
+                &format!("must be >= 0 and leave at least one pixel row of the {h} px strips"),
+            );
+        }
+        // The largest change of the throw over the field (|u|, |v| <= 1): it must fit inside
+        // the margins, or e pixels near a strip edge would fall behind the mask.
+        let mut swing = 0.0;
+        for t in &p.throw_terms {
+            if !t.c.is_finite() || t.i > 8 || t.j > 8 {
+                return bad(
+                    "polarimetry.throw_terms",
+                    format!("{{ i = {}, j = {}, c = {} }}", t.i, t.j, t.c),
+                    "each term needs a finite c and powers i, j of at most 8",
+                );
+            }
+            swing += t.c.abs();
+        }
+        if swing > m + 1e-9 {
+            return bad(
+                "polarimetry.throw_terms",
+                format!("{} term(s), up to {swing} px", p.throw_terms.len()),
+                &format!(
+                    "the throw may change by up to {swing} px over the field, more than strip_margin_px = {m}: widen the margin so that no e pixel falls behind the mask"
+                ),
+            );
+        }
+        let starts = match &p.strip_starts_px {
+            Some(v) => {
+                if v.is_empty() {
+                    return bad("polarimetry.strip_starts_px", "[]".into(), "need at least one strip");
+                }
+                if v.len() > 100_000 {
+                    return bad("polarimetry.strip_starts_px", format!("{} values", v.len()), "too many strips");
+                }
+                v.clone()
+            }
+            None => {
+                if p.strip_count == 0 {
+                    return bad("polarimetry.strip_count", "0".into(), "need at least one strip");
+                }
+                let first = p.first_strip_y_px;
+                let span = first + 2.0 * p.strip_count as f64 * h;
+                if !(first.is_finite() && first >= 0.0 && span <= extent) {
+                    let key = if !(first.is_finite() && first >= 0.0 && first < extent) {
+                        "polarimetry.first_strip_y_px"
+                    } else {
+                        "polarimetry.strip_count"
+                    };
+                    let value = if key.ends_with("count") { p.strip_count.to_string() } else { first.to_string() };
+                    return bad(
+                        key,
+                        value,
+                        &format!(
+                            "{} strips of {h} px (the throw) from pixel {first} span pixels {first}..{span}, outside the detector (0..{extent})",
+                            p.strip_count
+                        ),
+                    );
+                }
+                self.strip_o_edges()
+            }
+        };
+        // Every strip's o and e images inside the detector, and no two images overlapping.
+        let sign = p.extraordinary_offset_sign as f64;
+        let mut spans: Vec<(f64, f64)> = Vec::new();
+        for &o in &starts {
+            let e = o + sign * h;
+            if !(o.is_finite() && o.min(e) >= 0.0 && o.max(e) + h <= extent) {
+                return bad(
+                    "polarimetry.strip_starts_px",
+                    o.to_string(),
+                    &format!(
+                        "the strip at {o} px has its o image at {o}..{} and its e image at {e}..{} px: outside the detector (0..{extent})",
+                        o + h,
+                        e + h
+                    ),
+                );
+            }
+            spans.push((o, o + h));
+            spans.push((e, e + h));
+        }
+        spans.sort_by(|a, b| a.0.total_cmp(&b.0));
+        if let Some(w) = spans.windows(2).find(|w| w[1].0 < w[0].1 - 1e-9) {
+            return bad(
+                "polarimetry.strip_starts_px",
+                format!("{:?}", starts),
+                &format!("the strip images at {}..{} px and {}..{} px overlap", w[0].0, w[0].1, w[1].0, w[1].1),
+            );
+        }
+        Ok(())
     }
 
-    /// The mask strips with the rows (along the strip axis) of their o and e images.
-    pub fn strips(&self) -> Vec<Strip> {
-        let h = self.throw_px();
+    fn validate_maskless(&self, path: &Path) -> Result<(), Error> {
         let p = &self.polarimetry;
-        (0..p.strip_count)
-            .map(|k| {
-                let o = p.first_strip_y_px + 2 * k * h + if p.extraordinary_offset_sign < 0 { h } else { 0 };
-                let e = if p.extraordinary_offset_sign > 0 { o + h } else { o - h };
-                Strip { index: k, o_start: o, e_start: e, height: h }
+        let d = &self.detector;
+        if let Some([dx, dy]) = p.oe_offset_px {
+            let r = dx.hypot(dy);
+            if !(dx.is_finite() && dy.is_finite() && r >= 2.0 && dx.abs() < d.nx as f64 && dy.abs() < d.ny as f64) {
+                return Err(Error::Invalid {
+                    path: path.into(),
+                    key: "polarimetry.oe_offset_px".into(),
+                    value: format!("[{dx}, {dy}]"),
+                    why: format!(
+                        "the o/e offset must be at least 2 px long and fit inside the {} x {} px detector",
+                        d.nx, d.ny
+                    ),
+                });
+            }
+        }
+        if p.strip_starts_px.is_some() || !p.throw_terms.is_empty() || p.strip_count != 0 {
+            return Err(Error::Invalid {
+                path: path.into(),
+                key: "polarimetry.layout".into(),
+                value: "\"maskless\"".into(),
+                why: "a maskless layout has no strips: remove strip_count, strip_starts_px and throw_terms (or use layout = \"strips\")".into(),
+            });
+        }
+        Ok(())
+    }
+
+    /// The Wollaston throw in pixels (exact): the o/e offset of a strip layout before its
+    /// variation across the field (`throw_terms`).
+    pub fn throw_px_exact(&self) -> f64 {
+        self.polarimetry.throw_arcsec / self.detector.pixel_scale_arcsec
+    }
+
+    /// The Wollaston throw in pixels (rounded): the whole-pixel o/e shift of a strip layout.
+    pub fn throw_px(&self) -> usize {
+        self.throw_px_exact().round() as usize
+    }
+
+    /// Strips: the lower edges (px along the strip axis, real) of every strip's o image.
+    pub fn strip_o_edges(&self) -> Vec<f64> {
+        let p = &self.polarimetry;
+        if p.layout != Layout::Strips {
+            return Vec::new();
+        }
+        if let Some(v) = &p.strip_starts_px {
+            return v.clone();
+        }
+        let h = self.throw_px_exact();
+        let below = if p.extraordinary_offset_sign < 0 { h } else { 0.0 };
+        (0..p.strip_count).map(|k| p.first_strip_y_px + 2.0 * k as f64 * h + below).collect()
+    }
+
+    /// Strips: the variation of the o/e offset along the strip axis at o pixel `(x, y)` (px,
+    /// added to the throw; 0 without `throw_terms`).
+    pub fn throw_variation_px(&self, x: f64, y: f64) -> f64 {
+        let t = &self.polarimetry.throw_terms;
+        if t.is_empty() {
+            return 0.0;
+        }
+        let cx = 0.5 * (self.detector.nx as f64 - 1.0);
+        let cy = 0.5 * (self.detector.ny as f64 - 1.0);
+        let (u, v) = ((x - cx) / cx.max(0.5), (y - cy) / cy.max(0.5));
+        t.iter().map(|k| k.c * u.powi(k.i as i32) * v.powi(k.j as i32)).sum()
+    }
+
+    /// The mask strips with the whole pixel rows (along the strip axis) of their o and e
+    /// images: the rows lying entirely inside a strip's o image less its margins, and the rows
+    /// a whole-pixel throw away. Empty for a maskless layout.
+    pub fn strips(&self) -> Vec<Strip> {
+        let p = &self.polarimetry;
+        let h = self.throw_px_exact();
+        let m = p.strip_margin_px;
+        let shift = p.extraordinary_offset_sign as f64 * h.round();
+        self.strip_o_edges()
+            .iter()
+            .enumerate()
+            .map(|(k, &lo)| {
+                let a = (lo + m).ceil();
+                let b = (lo + h - m).floor();
+                let o = a.max(0.0) as usize;
+                let height = (b - a).max(0.0) as usize;
+                Strip { index: k, o_start: o, e_start: (a + shift).max(0.0) as usize, height }
             })
             .collect()
     }

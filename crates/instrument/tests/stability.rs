@@ -96,3 +96,51 @@ fn non_physical_numbers_are_refused() {
         }
     }
 }
+
+/// Beam layouts: an unknown layout, a maskless offset outside the detector or shorter than
+/// 2 px, strip fields in a maskless file, overlapping explicit strips and a throw variation
+/// larger than the strip margin are refused by name; the maskless example loads.
+#[test]
+fn beam_layout_errors_are_named() {
+    let cases = [
+        ("strip_axis = \"y\"", "layout = \"calcite\"\nstrip_axis = \"y\"", "calcite"),
+        ("strip_axis = \"y\"", "strip_axis = \"y\"\nthrow_terms = [{ i = 1, j = 0, c = 2.0 }]", "strip_margin_px"),
+        ("strip_axis = \"y\"", "strip_axis = \"y\"\nstrip_margin_px = 60", "strip_margin_px"),
+        ("strip_axis = \"y\"", "strip_axis = \"y\"\nstrip_starts_px = [34.0, 100.0]", "overlap"),
+        ("strip_axis = \"y\"", "strip_axis = \"y\"\nstrip_starts_px = [1990.0]", "outside the detector"),
+        ("strip_axis = \"y\"", "strip_axis = \"y\"\noe_offset_px = [3.0, 0.0]", "maskless"),
+    ];
+    for (from, to, key) in cases {
+        match load_patched(from, to) {
+            Err(panic) => panic!("{to}: panicked: {panic}"),
+            Ok(Ok(_)) => panic!("{to}: accepted"),
+            Ok(Err(msg)) => assert!(msg.contains("patched.toml") && msg.contains(key), "{to}: {msg}"),
+        }
+    }
+    let calcite = include_str!("../../../instruments/calcite.toml");
+    for (to, key) in [
+        ("oe_offset_px = [900.0, 0.0]", "oe_offset_px"),
+        ("oe_offset_px = [1.0, 0.5]", "oe_offset_px"),
+        ("oe_offset_px = [70.2, 0.0]\nstrip_count = 3", "no strips"),
+    ] {
+        let text = calcite.replacen("oe_offset_px = [70.2, 0.0]", to, 1);
+        let e = Instrument::from_toml_str(&text, Path::new("cal.toml")).unwrap_err().to_string();
+        assert!(e.contains("cal.toml") && e.contains(key), "{to}: {e}");
+    }
+    let c = Instrument::load("calcite").unwrap();
+    assert_eq!(c.polarimetry.layout, instrument::Layout::Maskless);
+    assert!(c.strips().is_empty());
+}
+
+/// Strip positions as real numbers: a strip whose o image starts at 34.4 px uses the whole rows
+/// 35..144 (109 rows: the partly covered row 34 is left out), e rows a whole throw (110 px)
+/// above; a 2 px margin trims two rows at each edge.
+#[test]
+fn real_strip_edges_give_whole_rows_inside() {
+    let i = load_patched("first_strip_y_px = 34", "first_strip_y_px = 34.4").unwrap().unwrap();
+    let s = i.strips()[0];
+    assert_eq!((s.o_start, s.height, s.e_start), (35, 109, 145));
+    let i = load_patched("first_strip_y_px = 34", "first_strip_y_px = 34\nstrip_margin_px = 2").unwrap().unwrap();
+    let s = i.strips()[1];
+    assert_eq!((s.o_start, s.height, s.e_start), (34 + 220 + 2, 106, 34 + 220 + 2 + 110));
+}

@@ -64,6 +64,57 @@ pub struct Plan {
     cosmic: Option<crate::scene::CosmicSpec>,
     bitpix: Bitpix,
     explain: Vec<String>,
+    /// Stars drawn frame by frame (maskless layouts, or frames that move): each beam's image
+    /// placed by the layout at the star's position in that frame.
+    moving: Vec<StarDraw>,
+    /// Pointing offset of each frame (px).
+    shifts: Vec<(f64, f64)>,
+}
+
+/// A star drawn frame by frame: its position (px, o image, before the frame's shift), its
+/// normalized Stokes vector at the plate (instrumental field applied) and its PSF.
+struct StarDraw {
+    x: f64,
+    y: f64,
+    st: Iqu,
+    psf: PsfShape,
+}
+
+/// A circular PSF profile of `r^2` (px^2) and the radius it is drawn to.
+#[derive(Clone, Copy)]
+enum PsfShape {
+    Gaussian { sigma: f64 },
+    Moffat { alpha: f64, beta: f64 },
+}
+
+impl PsfShape {
+    fn of(s: &Star, inst: &Instrument) -> Self {
+        let fwhm = s.fwhm_arcsec / inst.detector.pixel_scale_arcsec;
+        match s.psf {
+            Psf::Gaussian => PsfShape::Gaussian { sigma: fwhm / (8.0 * 2f64.ln()).sqrt() },
+            Psf::Moffat => {
+                let b = s.moffat_beta;
+                PsfShape::Moffat { alpha: fwhm / (2.0 * (2f64.powf(1.0 / b) - 1.0).sqrt()), beta: b }
+            }
+        }
+    }
+
+    #[inline]
+    fn at(&self, r2: f64) -> f64 {
+        match *self {
+            PsfShape::Gaussian { sigma } => (-0.5 * r2 / (sigma * sigma)).exp(),
+            PsfShape::Moffat { alpha, beta } => (1.0 + r2 / (alpha * alpha)).powf(-beta),
+        }
+    }
+
+    /// Radius (px) the profile is drawn to: 8 sigma, or where a Moffat falls to 1e-6 of its
+    /// peak (at most 300 px).
+    fn radius(&self) -> f64 {
+        match *self {
+            PsfShape::Gaussian { sigma } => 8.0 * sigma,
+            PsfShape::Moffat { alpha, beta } => (alpha * (1e-6f64.powf(-1.0 / beta) - 1.0).sqrt()).min(300.0),
+        }
+    }
 }
 
 /// What [`simulate`] wrote.
@@ -229,13 +280,15 @@ impl Plan {
         let filter = inst.filter(&scene.filter)?.clone();
         let geom = BeamGeometry::new(&inst);
         let mut explain = Vec::new();
+        let layout = match geom.layout {
+            instrument::Layout::Strips => format!("{} strips, throw {} px", geom.strips.len(), inst.throw_px_exact()),
+            instrument::Layout::Maskless => format!("maskless, o/e offset {:?} px", geom.oe_offset.unwrap_or_default()),
+        };
         explain.push(format!(
-            "instrument {} ({} x {} px, {} strips, throw {} px), filter {}, {} HWP angles {:?} deg",
+            "instrument {} ({} x {} px, {layout}), filter {}, {} HWP angles {:?} deg",
             inst.name,
             geom.nx,
             geom.ny,
-            geom.strips.len(),
-            inst.throw_px(),
             filter.name,
             scene.hwp_angles_deg.len(),
             scene.hwp_angles_deg
@@ -255,8 +308,37 @@ impl Plan {
             [st[0], st[1], st[2]]
         });
         let fx = &scene.effects;
+        // Stars go frame by frame when the two beams overlap (maskless) or the frames move;
+        // otherwise they are folded into the sky image once.
+        let per_frame = geom.layout == instrument::Layout::Maskless || !scene.frame_shifts_px.is_empty();
+        let shifts: Vec<(f64, f64)> = if scene.frame_shifts_px.is_empty() {
+            vec![(0.0, 0.0); scene.hwp_angles_deg.len()]
+        } else {
+            scene.frame_shifts_px.iter().map(|s| (s[0], s[1])).collect()
+        };
+        let mut moving = Vec::new();
+        if per_frame {
+            let field = fx.instpol.as_ref().map(InstField::load).transpose()?;
+            for st in &scene.stars {
+                explain.push(format!("  + star {} (drawn frame by frame in both beams)", describe_star(st)));
+                let (x, y) = source_pixel(&inst, st.x, st.y, st.coords);
+                let mut v = mueller::stokes_p_chi(st.flux_e, st.p, st.chi_deg.to_radians());
+                if let Some(f) = &field {
+                    let (xa, ya) = inst.pixel_to_arcmin(x, y);
+                    let (xi, yi) = (x.round().max(0.0) as usize, y.round().max(0.0) as usize);
+                    let (p, phi) = f.eval(xi, yi, xa, ya);
+                    if p != 0.0 {
+                        v = Element::PartialPolarizer { p, phi }.matrix() * v;
+                    }
+                }
+                moving.push(StarDraw { x, y, st: [v[0], v[1], v[2]], psf: PsfShape::of(st, &inst) });
+            }
+            if !scene.frame_shifts_px.is_empty() {
+                explain.push(format!("  frames moved by {:?} px", scene.frame_shifts_px));
+            }
+        }
         let needs_image = scene.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some())
-            || !scene.stars.is_empty()
+            || (!scene.stars.is_empty() && !per_frame)
             || !scene.extended.is_empty()
             || fx.instpol.is_some();
         let sky = if !needs_image {
@@ -296,13 +378,13 @@ impl Plan {
                     }
                 }
             }
-            if !scene.stars.is_empty() || !scene.extended.is_empty() {
+            if (!scene.stars.is_empty() && !per_frame) || !scene.extended.is_empty() {
                 // Sky-pixel ordinal of each detector pixel, for sources that touch a window.
                 let mut ordinal = vec![u32::MAX; geom.nx * geom.ny];
                 for (k, &(o, _)) in sky_pixels.iter().enumerate() {
                     ordinal[o as usize] = k as u32;
                 }
-                for st in &scene.stars {
+                for st in scene.stars.iter().filter(|_| !per_frame) {
                     explain.push(format!("  + star {}", describe_star(st)));
                     add_star(&mut img, &ordinal, &inst, st);
                 }
@@ -314,7 +396,7 @@ impl Plan {
                     add_extended(&mut img, &sky_pixels, &inst, ex)?;
                 }
             }
-            if let Some(spec) = &fx.instpol {
+            if let Some(spec) = fx.instpol.as_ref().filter(|_| geom.layout == instrument::Layout::Strips) {
                 let field = InstField::load(spec)?;
                 explain.push(format!(
                     "  x instrumental field Element::PartialPolarizer{{p(x,y), phi(x,y)}} per pixel: {}",
@@ -451,6 +533,8 @@ impl Plan {
             cosmic: fx.cosmic_rays.clone(),
             bitpix,
             explain,
+            moving,
+            shifts,
         })
     }
 
@@ -476,6 +560,10 @@ impl Plan {
         let (ro, re) = self.rows[k];
         let dot = |r: &Iqu, s: &Iqu| r[0] * s[0] + r[1] * s[1] + r[2] * s[2];
         match &self.sky {
+            SkyAtPlate::Constant(s) if self.geom.layout == instrument::Layout::Maskless => {
+                // Every pixel takes the o light of one sky point and the e light of another.
+                img.fill(dot(&ro, s) + dot(&re, s));
+            }
             SkyAtPlate::Constant(s) => {
                 let (fo, fe) = (dot(&ro, s), dot(&re, s));
                 for &(o, e) in &self.sky_pixels {
@@ -489,6 +577,9 @@ impl Plan {
                     img[e as usize] = dot(&re, s);
                 }
             }
+        }
+        for st in &self.moving {
+            self.draw_star(&mut img, st, k, (&ro, &re));
         }
         // Cosmic-ray hits of this frame, by row (drawn only when the scene has them).
         let mut hits: Vec<Vec<(usize, f64)>> = Vec::new();
@@ -564,6 +655,46 @@ impl Plan {
         img
     }
 
+    /// Add star `s` of frame `k` to `img` (e- at the plate): in each beam the light of that
+    /// beam (`rows`), spread by the PSF about where the layout puts the beam's image of the
+    /// star, on the detector pixels that beam reaches (strips: its image of the mask strips;
+    /// maskless: every pixel). The PSF is normalized over its window, as for the stars of the
+    /// sky image, so that the mask hides light instead of moving it.
+    fn draw_star(&self, img: &mut [f64], s: &StarDraw, k: usize, rows: (&Iqu, &Iqu)) {
+        let (nx, ny) = (self.geom.nx, self.geom.ny);
+        let (x, y) = (s.x + self.shifts[k].0, s.y + self.shifts[k].1);
+        let dot = |r: &Iqu| r[0] * s.st[0] + r[1] * s.st[1] + r[2] * s.st[2];
+        let Some((dx, dy)) = self.geom.e_offset(x, y) else { return };
+        let radius = s.psf.radius();
+        for (beam, (cx, cy), flux) in [(0, (x, y), dot(rows.0)), (1, (x + dx, y + dy), dot(rows.1))] {
+            if cx + radius < 0.0 || cy + radius < 0.0 || cx - radius > nx as f64 || cy - radius > ny as f64 {
+                continue;
+            }
+            let x0 = (cx - radius).floor().max(0.0) as usize;
+            let x1 = ((cx + radius).ceil().max(0.0) as usize).min(nx - 1);
+            let y0 = (cy - radius).floor().max(0.0) as usize;
+            let y1 = ((cy + radius).ceil().max(0.0) as usize).min(ny - 1);
+            let w = |px: usize, py: usize| s.psf.at((px as f64 - cx).powi(2) + (py as f64 - cy).powi(2));
+            let norm: f64 = (y0..=y1).flat_map(|py| (x0..=x1).map(move |px| (px, py))).map(|(px, py)| w(px, py)).sum();
+            if !(norm > 0.0) {
+                continue;
+            }
+            for py in y0..=y1 {
+                for px in x0..=x1 {
+                    let reaches = match self.geom.kind(px, py) {
+                        PixelKind::Both => true,
+                        PixelKind::Ordinary(_) => beam == 0,
+                        PixelKind::Extraordinary(_) => beam == 1,
+                        PixelKind::Masked => false,
+                    };
+                    if reaches {
+                        img[py * nx + px] += flux * w(px, py) / norm;
+                    }
+                }
+            }
+        }
+    }
+
     /// The header keywords of frame `k`.
     fn keys(&self, k: usize) -> Vec<(String, KeyValue, String)> {
         let pol = &self.inst.polarimetry;
@@ -576,6 +707,10 @@ impl Plan {
             (pol.exptime_keyword.clone(), KeyValue::F64(self.scene.exposure_s), "exposure time [s]".into()),
             ("SIMSEED".into(), KeyValue::I64(self.scene.seed as i64), "instpol simulation seed".into()),
         ]
+        .into_iter()
+        // An instrument whose headers carry no HWP angle gets none (as its real frames).
+        .filter(|(k, _, _)| !k.is_empty())
+        .collect()
     }
 
     /// File name of frame `k`.
@@ -722,7 +857,9 @@ fn flat_map(geom: &BeamGeometry, f: &crate::scene::FlatSpec, seed: u64) -> Vec<f
             let xx = 2.0 * PI * x as f64 / nx as f64;
             let n: f64 = rand_distr::StandardNormal.sample(&mut rng);
             *g = match geom.kind(x, y) {
-                PixelKind::Ordinary(_) => 1.0 + f.pixel_rms_o * n + f.large_scale_o * (xx + 0.3).sin() * yy.cos(),
+                PixelKind::Ordinary(_) | PixelKind::Both => {
+                    1.0 + f.pixel_rms_o * n + f.large_scale_o * (xx + 0.3).sin() * yy.cos()
+                }
                 PixelKind::Extraordinary(_) => {
                     1.0 + f.pixel_rms_e * n + f.large_scale_e * (xx - 0.7).cos() * (yy + 0.4).sin()
                 }

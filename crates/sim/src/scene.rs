@@ -96,6 +96,10 @@ pub struct Scene {
     pub extended: Vec<Extended>,
     #[serde(default)]
     pub effects: Effects,
+    /// Pointing offsets `[dx, dy]` (px) of each frame, one per HWP angle (the telescope moves a
+    /// little between exposures): the stars move by them on the detector. Empty: none.
+    #[serde(default)]
+    pub frame_shifts_px: Vec<[f64; 2]>,
 }
 
 /// How frames are written.
@@ -405,6 +409,45 @@ impl Scene {
         }
         if !(self.exposure_s.is_finite() && self.exposure_s > 0.0) {
             return bad("exposure_s", self.exposure_s.to_string(), "must be positive");
+        }
+        if !self.frame_shifts_px.is_empty() {
+            if self.frame_shifts_px.len() != self.hwp_angles_deg.len() {
+                return bad(
+                    "frame_shifts_px",
+                    format!("{} shifts", self.frame_shifts_px.len()),
+                    &format!("give one [dx, dy] per HWP angle ({})", self.hwp_angles_deg.len()),
+                );
+            }
+            if let Some(s) = self.frame_shifts_px.iter().find(|s| !(s[0].abs() <= 100.0 && s[1].abs() <= 100.0)) {
+                return bad(
+                    "frame_shifts_px",
+                    format!("[{}, {}]", s[0], s[1]),
+                    "each shift must be finite and at most 100 px",
+                );
+            }
+        }
+        if inst.polarimetry.layout == instrument::Layout::Maskless {
+            let why = "a maskless scene takes a uniform sky and stars (the overlapping o and e images of an extended or varying sky are not modelled)";
+            if self.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some()) {
+                return bad("sky.gradient_e_per_arcmin", "set".into(), why);
+            }
+            if !self.extended.is_empty() {
+                return bad("extended", format!("{} sources", self.extended.len()), why);
+            }
+            if self.effects.instpol.is_some() && self.sky.is_some() {
+                return bad(
+                    "effects.instpol",
+                    "set".into(),
+                    "a maskless scene applies an instrumental field to its stars only: remove [sky] or the field",
+                );
+            }
+            if inst.polarimetry.oe_offset_px.is_none() {
+                return bad(
+                    "instrument",
+                    self.instrument.clone(),
+                    "simulating a maskless layout needs the true o/e offset: set [polarimetry] oe_offset_px in the instrument file",
+                );
+            }
         }
         if ![16, -32, -64].contains(&self.output.bitpix) {
             return bad("output.bitpix", self.output.bitpix.to_string(), "must be 16, -32 or -64");

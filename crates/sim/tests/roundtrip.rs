@@ -229,7 +229,7 @@ fn background_is_removed_vectorially() {
     // Without the annulus: S = S_star + n_ap S_sky.
     let ap0 = skyfield::photometry::Aperture { radius_px: 8.0, annulus: None };
     let ph = skyfield::photometry::photometry(&set, &instr, 128.0, 70.0, &ap0).unwrap();
-    let i_b = ph.n_aperture as f64 * ib;
+    let i_b = ph.aperture_area_px * ib;
     let rr = i_b * pb / (fs * ps);
     let dchi = 2.0 * (chis - chib).to_radians();
     let p_comb = fs * ps / (fs + i_b) * (1.0 + rr * rr + 2.0 * rr * dchi.cos()).sqrt();

@@ -1,29 +1,45 @@
-//! Where the ordinary and extraordinary images of each mask strip fall on the detector: the
-//! one place this geometry lives (the simulator places light with it, the reduction extracts
-//! with it).
+//! Where the ordinary and extraordinary images of a sky point fall on the detector: the one
+//! place this geometry lives (the simulator places light with it, the reduction and the
+//! photometry extract with it). The instrument file chooses the layout
+//! (`[polarimetry] layout`):
 //!
-//! # Geometry
-//! Coordinates of the *sky* are the detector pixels of the ordinary image ("o coordinates"):
-//! the sky position seen by the o image of mask strip `k` at detector pixel `(x, y)` appears
-//! in the extraordinary image at `(x, y + throw_px)` (for FORS, `strip_axis = "y"` and
-//! `extraordinary_offset_sign = +1`; in general the offset is `e_start - o_start` along the
-//! strip axis, taken from `instrument::Instrument::strips()`). Strip `k`'s o image covers rows
-//! `[o_start, o_start + h)` of the detector, `h` = the throw in pixels, and those are also the
-//! sky rows it sees: the mask hides every other throw-high band of the sky, and the band it
-//! shows is imaged twice, at `[o_start, o_start + h)` (o) and `[e_start, e_start + h)` (e).
-//! Detector pixels in neither image are dark (masked): only bias and read noise.
-//! Field positions of a sky pixel are those of its o pixel (arcmin from the detector centre).
+//! - **Strips** (FORS, EFOSC2, ALFOSC): a focal-plane mask lets through strips of the sky, each
+//!   imaged twice, side by side along the strip axis. Coordinates of the *sky* are the detector
+//!   pixels of the ordinary image ("o coordinates"): the sky point seen by the o image of strip
+//!   `k` at detector pixel `(x, y)` appears in the extraordinary image at `(x, y + throw)` (FORS:
+//!   `strip_axis = "y"`, `extraordinary_offset_sign = +1`; the throw may vary slowly across the
+//!   field, `throw_terms`). Strip `k`'s o image covers the whole pixel rows
+//!   `[o_start, o_start + h)` ([`instrument::Instrument::strips`]); the band it shows is imaged
+//!   again at `[e_start, e_start + h)` (e). Detector pixels in neither image are dark (masked).
+//! - **Maskless** (calcite or Savart plate, no mask): every sky point is imaged twice, the e
+//!   image at a fixed 2-D offset `(dx, dy)` from the o image, and every detector pixel receives
+//!   o light from one sky point and e light from another. The sky of the two beams overlaps,
+//!   so an extended sky cannot be split into o and e ([`BeamGeometry::require_separable_sky`]
+//!   refuses it with the reason); point sources work ([`BeamGeometry::e_position`]).
+//!
+//! Field positions of a sky point are those of its o pixel (arcmin from the detector centre).
 
-use instrument::{Instrument, Strip};
+use instrument::{Instrument, Layout, OffsetTerm, Strip};
 
-/// The strip layout of an instrument's detector.
+/// The beam layout of an instrument's detector.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BeamGeometry {
     pub nx: usize,
     pub ny: usize,
-    /// True when the strips are stacked along y (FORS), false along x.
+    pub layout: Layout,
+    /// Strips: true when the strips are stacked along y (FORS), false along x.
     pub along_y: bool,
+    /// Strips: the whole pixel rows (along the strip axis) of every strip's o and e image.
     pub strips: Vec<Strip>,
+    /// Strips: the signed o/e offset along the strip axis (px, real) before its variation.
+    throw: f64,
+    /// Strips: the variation of the throw across the field and the detector centre it is
+    /// measured from.
+    terms: Vec<OffsetTerm>,
+    centre: (f64, f64),
+    /// Maskless: the e image's offset from the o image (px), when known.
+    pub oe_offset: Option<(f64, f64)>,
+    name: String,
 }
 
 /// Which image a detector pixel belongs to.
@@ -32,16 +48,45 @@ pub enum PixelKind {
     Ordinary(usize),
     Extraordinary(usize),
     Masked,
+    /// Maskless layouts: the pixel receives the o light of one sky point and the e light of
+    /// another.
+    Both,
 }
 
 impl BeamGeometry {
     /// The layout of `inst`.
     pub fn new(inst: &Instrument) -> Self {
+        let p = &inst.polarimetry;
+        let (nx, ny) = (inst.detector.nx, inst.detector.ny);
         Self {
-            nx: inst.detector.nx,
-            ny: inst.detector.ny,
-            along_y: inst.polarimetry.strip_axis == "y",
+            nx,
+            ny,
+            layout: p.layout,
+            along_y: p.strip_axis == "y",
             strips: inst.strips(),
+            throw: p.extraordinary_offset_sign as f64 * inst.throw_px_exact(),
+            terms: p.throw_terms.clone(),
+            centre: (0.5 * (nx as f64 - 1.0), 0.5 * (ny as f64 - 1.0)),
+            oe_offset: p.oe_offset_px.map(|[dx, dy]| (dx, dy)),
+            name: inst.name.clone(),
+        }
+    }
+
+    /// The same layout with the maskless o/e offset set (measured from the frames, say).
+    pub fn with_oe_offset(mut self, dx: f64, dy: f64) -> Self {
+        self.oe_offset = Some((dx, dy));
+        self
+    }
+
+    /// `Ok` when an extended sky can be split into its o and e images (strip layouts);
+    /// otherwise the reason, for an error message.
+    pub fn require_separable_sky(&self) -> Result<(), String> {
+        match self.layout {
+            Layout::Strips => Ok(()),
+            Layout::Maskless => Err(format!(
+                "instrument {} has a maskless layout: the o and e images of the sky overlap on the detector, so an extended sky (a sky-field calibration, a Stokes map) cannot be separated into its two beams; point sources can: use photometry or validate",
+                self.name
+            )),
         }
     }
 
@@ -55,6 +100,45 @@ impl BeamGeometry {
         }
     }
 
+    /// True when the o/e shift of a strip layout is the same whole number of pixels everywhere.
+    #[inline]
+    pub fn uniform_shift(&self) -> bool {
+        self.terms.is_empty()
+    }
+
+    /// The offset `(dx, dy)` (px) from the o image of the sky point seen at o position `(x, y)`
+    /// to its e image: along the strip axis the throw plus its variation (strips), or the fixed
+    /// 2-D vector (maskless; `None` while unknown).
+    pub fn e_offset(&self, x: f64, y: f64) -> Option<(f64, f64)> {
+        match self.layout {
+            Layout::Maskless => self.oe_offset,
+            Layout::Strips => {
+                let mut d = self.throw;
+                if !self.terms.is_empty() {
+                    let u = (x - self.centre.0) / self.centre.0.max(0.5);
+                    let v = (y - self.centre.1) / self.centre.1.max(0.5);
+                    d += self.terms.iter().map(|t| t.c * u.powi(t.i as i32) * v.powi(t.j as i32)).sum::<f64>();
+                }
+                Some(if self.along_y { (0.0, d) } else { (d, 0.0) })
+            }
+        }
+    }
+
+    /// Where the e image of the sky point whose o image is at `(x, y)` (px, real) falls, or
+    /// `None` when the mask hides that sky point, the offset is unknown, or the e image falls
+    /// off the detector.
+    pub fn e_position(&self, x: f64, y: f64) -> Option<(f64, f64)> {
+        if self.layout == Layout::Strips {
+            let (xi, yi) = (x.round(), y.round());
+            if !(xi >= 0.0 && yi >= 0.0) || self.strip_of_sky(xi as usize, yi as usize).is_none() {
+                return None;
+            }
+        }
+        let (dx, dy) = self.e_offset(x, y)?;
+        let (xe, ye) = (x + dx, y + dy);
+        (xe >= -0.5 && ye >= -0.5 && xe < self.nx as f64 - 0.5 && ye < self.ny as f64 - 0.5).then_some((xe, ye))
+    }
+
     /// Row-major index of detector pixel `(x, y)`.
     #[inline]
     pub fn index(&self, x: usize, y: usize) -> usize {
@@ -62,7 +146,7 @@ impl BeamGeometry {
     }
 
     /// The strip whose o image sees sky pixel `(x, y)` (o coordinates), if the mask lets it
-    /// through.
+    /// through (always `None` for a maskless layout, whose sky has no strips).
     #[inline]
     pub fn strip_of_sky(&self, x: usize, y: usize) -> Option<usize> {
         if x >= self.nx || y >= self.ny {
@@ -72,15 +156,25 @@ impl BeamGeometry {
         self.strips.iter().position(|s| a >= s.o_start && a < s.o_start + s.height)
     }
 
-    /// Detector pixels `(o, e)` (row-major indices) that image sky pixel `(x, y)`, or `None`
-    /// for masked sky.
+    /// Detector pixels `(o, e)` (row-major indices) that image sky pixel `(x, y)` of a strip
+    /// layout, the e pixel the nearest to the e image, or `None` for masked sky.
     #[inline]
     pub fn beams_of_sky(&self, x: usize, y: usize) -> Option<(usize, usize)> {
         let k = self.strip_of_sky(x, y)?;
         let s = &self.strips[k];
-        // e along-axis coordinate = o coordinate + (e_start - o_start); in range by construction.
-        let shift = |a: usize| (a as isize + s.e_start as isize - s.o_start as isize) as usize;
-        let (xe, ye) = if self.along_y { (x, shift(y)) } else { (shift(x), y) };
+        let shift = if self.terms.is_empty() {
+            // e along-axis coordinate = o coordinate + (e_start - o_start); in range by
+            // construction.
+            s.e_start as isize - s.o_start as isize
+        } else {
+            let (dx, dy) = self.e_offset(x as f64, y as f64)?;
+            (if self.along_y { dy } else { dx }).round() as isize
+        };
+        let sh = |a: usize, n: usize| {
+            let v = a as isize + shift;
+            (v >= 0 && (v as usize) < n).then_some(v as usize)
+        };
+        let (xe, ye) = if self.along_y { (x, sh(y, self.ny)?) } else { (sh(x, self.nx)?, y) };
         Some((self.index(x, y), self.index(xe, ye)))
     }
 
@@ -92,6 +186,9 @@ impl BeamGeometry {
 
     /// What detector pixel `(x, y)` shows.
     pub fn kind(&self, x: usize, y: usize) -> PixelKind {
+        if self.layout == Layout::Maskless {
+            return PixelKind::Both;
+        }
         let a = self.along(x, y);
         for s in &self.strips {
             if a >= s.o_start && a < s.o_start + s.height {
@@ -109,16 +206,21 @@ impl BeamGeometry {
         self.strips.iter().map(|s| s.o_start..s.o_start + s.height).collect()
     }
 
-    /// Every sky pixel the mask lets through, as `(x, y)`, in row-major order.
+    /// Every sky pixel the mask lets through, as `(x, y)`, in row-major order (none for a
+    /// maskless layout: its sky is not separable into pixels of one beam).
     pub fn sky_pixels(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
         let (nx, ny) = (self.nx, self.ny);
-        (0..ny).flat_map(move |y| (0..nx).map(move |x| (x, y))).filter(move |&(x, y)| self.strip_of_sky(x, y).is_some())
+        (0..ny).flat_map(move |y| (0..nx).map(move |x| (x, y))).filter(move |&(x, y)| self.beams_of_sky(x, y).is_some())
     }
 
     /// Number of sky pixels the mask lets through.
     pub fn n_sky_pixels(&self) -> usize {
-        let across = if self.along_y { self.nx } else { self.ny };
-        self.strips.iter().map(|s| s.height).sum::<usize>() * across
+        if self.terms.is_empty() {
+            let across = if self.along_y { self.nx } else { self.ny };
+            self.strips.iter().map(|s| s.height).sum::<usize>() * across
+        } else {
+            self.sky_pixels().count()
+        }
     }
 }
 

@@ -3,17 +3,23 @@
 //! background's polarization is then removed vectorially (section `sec:background`), and the
 //! result feeds the one reduction of the `stokes` crate (`stokes::Measurement`).
 //!
-//! Pixels are in electrons (bias removed, times the gain). A pixel belongs to the aperture when
-//! its centre lies within `radius_px` of the source; the annulus `[r_in, r_out)` gives the
+//! Pixels are in electrons (bias removed, times the gain). The o aperture sits at the source
+//! (re-centred in each frame on the star's centroid by default, since real frames move by a
+//! pixel or two between HWP positions), the e aperture where the beam layout puts the e image
+//! of that point ([`BeamGeometry::e_position`]: a whole-pixel throw for FORS strips, a 2-D
+//! sub-pixel vector for a maskless calcite). Edge pixels weigh by the exact fraction of their
+//! area inside the circle ([`crate::aperture`]), so that both beams get the same aperture at
+//! any sub-pixel phase. The annulus `[r_in, r_out)` (whole pixels of the same beam) gives the
 //! background per pixel as a sigma-clipped mean (so neighbouring stars and cosmic rays do not
 //! bias it). Errors per beam: photon noise of the aperture counts, read noise, and the error of
 //! the background mean times the aperture area.
 
-use crate::beams::BeamGeometry;
+use crate::aperture::{centroid, weights, Weighting};
+use crate::beams::{BeamGeometry, PixelKind};
 use crate::bin::{sigma_clip_columns, ClipConfig};
 use crate::reduce::FrameSet;
 use crate::Error;
-use instrument::Instrument;
+use instrument::{Instrument, Layout};
 
 /// Aperture and background annulus (px).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -24,13 +30,31 @@ pub struct Aperture {
     pub annulus: Option<(f64, f64)>,
 }
 
+/// How the apertures are placed and weighed.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PhotOptions {
+    /// Exact pixel-area weights (default) or whole pixels by their centre.
+    pub weighting: Weighting,
+    /// Re-centre the o aperture on the star's centroid in every frame (default), searching
+    /// within the aperture radius of the given position.
+    pub recentre: bool,
+}
+
+impl Default for PhotOptions {
+    fn default() -> Self {
+        Self { weighting: Weighting::Exact, recentre: true }
+    }
+}
+
 /// The photometry of one source and its reduction.
 #[derive(Debug, Clone)]
 pub struct StarPhotometry {
-    /// Source position (px, o coordinates).
+    /// Source position as given (px, o coordinates).
     pub x: f64,
     pub y: f64,
     pub hwp_deg: Vec<f64>,
+    /// Aperture centres per HWP angle: `[x_o, y_o, x_e, y_e]` (px).
+    pub centres: Vec<[f64; 4]>,
     /// Background-subtracted fluxes (e-) and their errors, per HWP angle.
     pub f_o: Vec<f64>,
     pub f_e: Vec<f64>,
@@ -39,145 +63,359 @@ pub struct StarPhotometry {
     /// Background per pixel (e-) in each beam, per HWP angle (0 without annulus).
     pub bg_o: Vec<f64>,
     pub bg_e: Vec<f64>,
+    /// Aperture area (px, the sum of the weights) and annulus pixels kept.
     pub n_aperture: usize,
+    pub aperture_area_px: f64,
     pub n_annulus: usize,
     pub reduction: stokes::Reduction,
 }
 
-/// Measure the source at `(x, y)` (0-based px, o coordinates) in every frame of `set`.
+/// Measure the source at `(x, y)` (0-based px, o coordinates) in every frame of `set`, with
+/// the default options (exact weights, re-centring) and the instrument's own layout.
 pub fn photometry(set: &FrameSet, inst: &Instrument, x: f64, y: f64, ap: &Aperture) -> Result<StarPhotometry, Error> {
-    if !(ap.radius_px > 0.0) {
+    let g = layout_for(set, inst)?;
+    photometry_with(set, inst, &g, x, y, ap, &PhotOptions::default())
+}
+
+/// The instrument's layout for these frames: for a maskless layout without a given o/e
+/// offset, the offset measured from the frames' stars ([`measure_oe_offset`]).
+pub fn layout_for(set: &FrameSet, inst: &Instrument) -> Result<BeamGeometry, Error> {
+    let g = BeamGeometry::new(inst);
+    if g.layout == Layout::Maskless && g.oe_offset.is_none() {
+        let (dx, dy, _) = measure_oe_offset(set, inst)?;
+        return Ok(g.with_oe_offset(dx, dy));
+    }
+    Ok(g)
+}
+
+/// Check the aperture and annulus radii.
+fn check_aperture(ap: &Aperture) -> Result<(), Error> {
+    if !(ap.radius_px > 0.0 && ap.radius_px.is_finite()) {
         return Err(Error::Invalid(format!("aperture radius {} px must be positive", ap.radius_px)));
     }
     if let Some((a, b)) = ap.annulus {
-        if !(a >= ap.radius_px && b > a) {
+        if !(a >= ap.radius_px && b > a && b.is_finite()) {
             return Err(Error::Invalid(format!(
                 "annulus ({a}, {b}) px must lie outside the aperture (radius {}) with r_in < r_out",
                 ap.radius_px
             )));
         }
     }
-    let g = BeamGeometry::new(inst);
+    Ok(())
+}
+
+/// [`photometry`] with a given layout `g` (e.g. with a measured maskless offset) and options.
+pub fn photometry_with(
+    set: &FrameSet,
+    inst: &Instrument,
+    g: &BeamGeometry,
+    x: f64,
+    y: f64,
+    ap: &Aperture,
+    opts: &PhotOptions,
+) -> Result<StarPhotometry, Error> {
+    check_aperture(ap)?;
     if !(x.is_finite() && y.is_finite()) || x < 0.0 || y < 0.0 || x >= g.nx as f64 || y >= g.ny as f64 {
         return Err(Error::Invalid(format!(
             "source position ({x}, {y}) px is outside the {} x {} detector",
             g.nx, g.ny
         )));
     }
-    if g.strip_of_sky(x.round() as usize, y.round() as usize).is_none() {
+    if g.layout == Layout::Strips && g.strip_of_sky(x.round() as usize, y.round() as usize).is_none() {
         return Err(Error::Invalid(format!(
             "source position ({x:.1}, {y:.1}) px is behind the focal-plane mask: the sky there is not imaged (sky bands: {:?})",
             g.sky_bands()
         )));
     }
-    let d = &inst.detector;
-    let (bias, gain, sat, rn2) = (d.bias_adu, d.gain_e_per_adu, d.saturation_adu, d.read_noise_e.powi(2));
-    let rmax = ap.annulus.map_or(ap.radius_px, |(_, b)| b);
-    let (x0, x1) = ((x - rmax).floor().max(0.0) as usize, ((x + rmax).ceil() as usize).min(g.nx - 1));
-    let (y0, y1) = ((y - rmax).floor().max(0.0) as usize, ((y + rmax).ceil() as usize).min(g.ny - 1));
-    let mut ap_px = Vec::new();
-    let mut ann_px = Vec::new();
-    for py in y0..=y1 {
-        for px in x0..=x1 {
-            let r2 = (px as f64 - x).powi(2) + (py as f64 - y).powi(2);
-            let beams = g.beams_of_sky(px, py);
-            if r2 <= ap.radius_px * ap.radius_px {
-                let Some(b) = beams else {
-                    return Err(Error::Invalid(format!(
-                        "aperture of radius {} px at ({x:.1}, {y:.1}) reaches pixel ({px}, {py}) behind the mask; use a smaller aperture",
-                        ap.radius_px
-                    )));
-                };
-                ap_px.push(b);
-            } else if let (Some((a, bo)), Some(b)) = (ap.annulus, beams) {
-                if r2 >= a * a && r2 < bo * bo {
-                    ann_px.push(b);
-                }
-            }
-        }
-    }
-    let n = set.angles_deg.len();
-    let (mut f_o, mut f_e, mut s_o, mut s_e, mut bg_o, mut bg_e) =
-        (vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]);
-    let mut n_ann = 0;
-    for (i, data) in set.data.iter().enumerate() {
-        let nexp = set.files[i].len() as f64;
-        let to_e = |v: f64| (v - bias * nexp) * gain;
-        let (mut so, mut se) = (0.0, 0.0);
-        for &(o, e) in &ap_px {
-            for (idx, beam) in [(o, "o"), (e, "e")] {
-                let v = data[idx];
-                if !v.is_finite() || v >= sat * nexp {
-                    return Err(Error::Invalid(format!(
-                        "aperture pixel ({}, {}) of the {beam} beam in {} is {}; photometry needs clean aperture pixels",
-                        idx % g.nx,
-                        idx / g.nx,
-                        set.files[i][0].display(),
-                        if v.is_finite() { "saturated".to_string() } else { v.to_string() }
-                    )));
-                }
-            }
-            so += to_e(data[o]);
-            se += to_e(data[e]);
-        }
-        let na = ap_px.len() as f64;
-        let (mut vo, mut ve) = (so.max(0.0) + na * nexp * rn2, se.max(0.0) + na * nexp * rn2);
-        if ap.annulus.is_some() {
-            let vals_o: Vec<f64> = ann_px.iter().map(|&(o, _)| data[o]).collect();
-            let vals_e: Vec<f64> = ann_px.iter().map(|&(_, e)| data[e]).collect();
-            let ok: Vec<usize> = (0..ann_px.len())
-                .filter(|&k| {
-                    vals_o[k].is_finite() && vals_e[k].is_finite() && vals_o[k] < sat * nexp && vals_e[k] < sat * nexp
-                })
-                .collect();
-            if ok.len() < 5 {
+    if g.layout == Layout::Strips {
+        // The aperture at the given position must see sky only: say so before any centring.
+        let k = g.strip_of_sky(x.round() as usize, y.round() as usize);
+        for (px, py, _) in weights(x, y, ap.radius_px, g.nx, g.ny, opts.weighting) {
+            if !matches!(g.kind(px, py), PixelKind::Ordinary(s) if Some(s) == k) {
                 return Err(Error::Invalid(format!(
-                    "background annulus at ({x:.1}, {y:.1}) has {} usable sky pixels (need 5): move it or widen it",
-                    ok.len()
+                    "aperture of radius {} px at ({x:.1}, {y:.1}) reaches pixel ({px}, {py}) behind the mask; use a smaller aperture",
+                    ap.radius_px
                 )));
             }
-            let eo: Vec<f64> = ok.iter().map(|&k| to_e(vals_o[k])).collect();
-            let ee: Vec<f64> = ok.iter().map(|&k| to_e(vals_e[k])).collect();
-            let (mo, vmo, ko) = clipped_mean(&eo);
-            let (me, vme, _) = clipped_mean(&ee);
-            n_ann = ko;
-            bg_o[i] = mo;
-            bg_e[i] = me;
-            so -= na * mo;
-            se -= na * me;
-            vo += na * na * vmo;
-            ve += na * na * vme;
         }
-        f_o[i] = so;
-        f_e[i] = se;
-        s_o[i] = vo.sqrt();
-        s_e[i] = ve.sqrt();
     }
-    if let Some(i) = (0..n).find(|&i| !(f_o[i] + f_e[i] > 0.0)) {
+    let d = &inst.detector;
+    let (bias, gain, sat, rn2) = (d.bias_adu, d.gain_e_per_adu, d.saturation_adu, d.read_noise_e.powi(2));
+    let n = set.angles_deg.len();
+    let mut out = Partial {
+        hwp_deg: set.angles_deg.clone(),
+        centres: Vec::with_capacity(n),
+        f_o: vec![0.0; n],
+        f_e: vec![0.0; n],
+        sigma_o: vec![0.0; n],
+        sigma_e: vec![0.0; n],
+        bg_o: vec![0.0; n],
+        bg_e: vec![0.0; n],
+        n_aperture: 0,
+        aperture_area_px: 0.0,
+        n_annulus: 0,
+    };
+    for (i, data) in set.data.iter().enumerate() {
+        let nexp = set.files[i].len() as f64;
+        let file = set.files[i][0].display().to_string();
+        let to_e = |v: f64| (v - bias * nexp) * gain;
+        let strip0 = g.strip_of_sky(x.round() as usize, y.round() as usize);
+        let o_pixel = |px: usize, py: usize| match g.kind(px, py) {
+            PixelKind::Both => true,
+            PixelKind::Ordinary(k) => Some(k) == strip0,
+            _ => false,
+        };
+        let (xo, yo) = if opts.recentre {
+            centroid(data, g.nx, g.ny, x, y, ap.radius_px, o_pixel).ok_or_else(|| {
+                Error::Invalid(format!(
+                    "no source at ({x:.1}, {y:.1}) px in {file} (HWP angle {} deg): nothing rises above the local background within the aperture radius {} px, so the aperture cannot be centred (turn re-centring off to measure a fixed position)",
+                    set.angles_deg[i], ap.radius_px
+                ))
+            })?
+        } else {
+            (x, y)
+        };
+        let (xe, ye) = g.e_position(xo, yo).ok_or_else(|| {
+            Error::Invalid(format!(
+                "the e image of ({xo:.1}, {yo:.1}) px falls behind the mask or off the detector ({file})"
+            ))
+        })?;
+        out.centres.push([xo, yo, xe, ye]);
+        let strip = g.strip_of_sky(xo.round().max(0.0) as usize, yo.round().max(0.0) as usize);
+        let mut beam = [(0.0, 0.0, 0.0, 0.0); 2];
+        for (b, (cx, cy)) in [(xo, yo), (xe, ye)].into_iter().enumerate() {
+            let name = if b == 0 { "o" } else { "e" };
+            // Pixels of this beam's image of the strip (strips), or any pixel (maskless).
+            let in_beam = |px: usize, py: usize| match (g.kind(px, py), strip) {
+                (PixelKind::Both, _) => true,
+                (PixelKind::Ordinary(k), Some(s)) => b == 0 && k == s,
+                (PixelKind::Extraordinary(k), Some(s)) => b == 1 && k == s,
+                _ => false,
+            };
+            let w = weights(cx, cy, ap.radius_px, g.nx, g.ny, opts.weighting);
+            let r = ap.radius_px;
+            let covered =
+                cx - r >= -0.5 && cy - r >= -0.5 && cx + r <= g.nx as f64 - 0.5 && cy + r <= g.ny as f64 - 0.5;
+            if !covered {
+                return Err(Error::Invalid(format!(
+                    "the {name} aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches off the {} x {} detector",
+                    g.nx, g.ny
+                )));
+            }
+            let (mut s, mut v, mut area) = (0.0, 0.0, 0.0);
+            for &(px, py, wt) in &w {
+                if !in_beam(px, py) {
+                    return Err(Error::Invalid(format!(
+                        "aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches pixel ({px}, {py}) behind the mask; use a smaller aperture"
+                    )));
+                }
+                let val = data[py * g.nx + px];
+                if !val.is_finite() || val >= sat * nexp {
+                    return Err(Error::Invalid(format!(
+                        "aperture pixel ({px}, {py}) of the {name} beam in {file} is {}; photometry needs clean aperture pixels",
+                        if val.is_finite() { "saturated".to_string() } else { val.to_string() }
+                    )));
+                }
+                let e = to_e(val);
+                s += wt * e;
+                // Photon (e-) and read-noise variance of the weighted sum.
+                v += wt * wt * (e.max(0.0) + nexp * rn2);
+                area += wt;
+            }
+            if b == 0 {
+                out.n_aperture = w.len();
+                out.aperture_area_px = area;
+            }
+            let (mut bg, mut vbg) = (0.0, 0.0);
+            if let Some((ra, rb)) = ap.annulus {
+                let mut vals = Vec::new();
+                let (xa, xb) = ((cx - rb).floor().max(0.0) as usize, ((cx + rb).ceil() as usize).min(g.nx - 1));
+                let (ya, yb) = ((cy - rb).floor().max(0.0) as usize, ((cy + rb).ceil() as usize).min(g.ny - 1));
+                for py in ya..=yb {
+                    for px in xa..=xb {
+                        let r2 = (px as f64 - cx).powi(2) + (py as f64 - cy).powi(2);
+                        if r2 >= ra * ra && r2 < rb * rb && in_beam(px, py) {
+                            let val = data[py * g.nx + px];
+                            if val.is_finite() && val < sat * nexp {
+                                vals.push(to_e(val));
+                            }
+                        }
+                    }
+                }
+                if vals.len() < 5 {
+                    return Err(Error::Invalid(format!(
+                        "background annulus of the {name} beam at ({cx:.1}, {cy:.1}) has {} usable sky pixels (need 5): move it or widen it",
+                        vals.len()
+                    )));
+                }
+                let (m, vm, kept) = clipped_mean(&vals);
+                if b == 0 {
+                    out.n_annulus = kept;
+                }
+                (bg, vbg) = (m, vm);
+            }
+            beam[b] = (s - area * bg, v + area * area * vbg, bg, area);
+        }
+        out.f_o[i] = beam[0].0;
+        out.f_e[i] = beam[1].0;
+        out.sigma_o[i] = beam[0].1.sqrt();
+        out.sigma_e[i] = beam[1].1.sqrt();
+        out.bg_o[i] = beam[0].2;
+        out.bg_e[i] = beam[1].2;
+    }
+    if let Some(i) = (0..n).find(|&i| !(out.f_o[i] + out.f_e[i] > 0.0)) {
         return Err(Error::Invalid(format!(
             "no source at ({x:.1}, {y:.1}) px: the background-subtracted flux f_O + f_E = {:.1} e- at HWP angle {} deg ({}) is not positive",
-            f_o[i] + f_e[i],
+            out.f_o[i] + out.f_e[i],
             set.angles_deg[i],
             set.files[i].iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" + ")
         )));
     }
     let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();
-    let m = stokes::Measurement::with_errors(theta, f_o.clone(), f_e.clone(), s_o.clone(), s_e.clone())?;
+    let m = stokes::Measurement::with_errors(
+        theta,
+        out.f_o.clone(),
+        out.f_e.clone(),
+        out.sigma_o.clone(),
+        out.sigma_e.clone(),
+    )?;
     let reduction = m.reduce()?;
+    let Partial { hwp_deg, centres, f_o, f_e, sigma_o, sigma_e, bg_o, bg_e, n_aperture, aperture_area_px, n_annulus } =
+        out;
     Ok(StarPhotometry {
         x,
         y,
-        hwp_deg: set.angles_deg.clone(),
+        hwp_deg,
+        centres,
         f_o,
         f_e,
-        sigma_o: s_o,
-        sigma_e: s_e,
+        sigma_o,
+        sigma_e,
         bg_o,
         bg_e,
-        n_aperture: ap_px.len(),
-        n_annulus: n_ann,
+        n_aperture,
+        aperture_area_px,
+        n_annulus,
         reduction,
     })
+}
+
+/// [`StarPhotometry`] while it is being measured.
+struct Partial {
+    hwp_deg: Vec<f64>,
+    centres: Vec<[f64; 4]>,
+    f_o: Vec<f64>,
+    f_e: Vec<f64>,
+    sigma_o: Vec<f64>,
+    sigma_e: Vec<f64>,
+    bg_o: Vec<f64>,
+    bg_e: Vec<f64>,
+    n_aperture: usize,
+    aperture_area_px: f64,
+    n_annulus: usize,
+}
+
+/// Measure the o/e offset `(dx, dy)` (px) of a maskless layout from the stars of the first
+/// frame of `set`, and the number of star pairs it rests on. Bright local maxima are found
+/// (above the median by 10 robust sigma), every pair of them with about equal peaks votes for
+/// its separation vector on a 1-px grid, and the most voted vector, confirmed by at least three pairs, is refined by
+/// the centroids of its pairs. Every star has its twin at the offset, so that vector (and its
+/// opposite) wins over chance separations. Which image is the ordinary one cannot be told from
+/// the frames: the offset is taken with a positive x component (positive y when x is ~0).
+pub fn measure_oe_offset(set: &FrameSet, inst: &Instrument) -> Result<(f64, f64, usize), Error> {
+    let (nx, ny) = (set.nx, set.ny);
+    let img = set.data.first().ok_or(Error::NoFrames)?;
+    let mut vals: Vec<f64> = img.iter().copied().filter(|v| v.is_finite()).collect();
+    if vals.len() < 9 {
+        return Err(Error::Invalid("cannot measure the o/e offset: the frame has no finite pixels".into()));
+    }
+    vals.sort_by(f64::total_cmp);
+    let med = vals[vals.len() / 2];
+    let mut dev: Vec<f64> = vals.iter().map(|v| (v - med).abs()).collect();
+    dev.sort_by(f64::total_cmp);
+    let sigma = (1.4826 * dev[dev.len() / 2]).max(1e-9 * med.abs().max(1.0));
+    let thr = med + 10.0 * sigma;
+    let mut peaks: Vec<(f64, usize, usize)> = Vec::new();
+    for y in 2..ny.saturating_sub(2) {
+        for x in 2..nx.saturating_sub(2) {
+            let v = img[y * nx + x];
+            if !(v > thr) {
+                continue;
+            }
+            let is_max =
+                (y - 2..=y + 2).all(|yy| (x - 2..=x + 2).all(|xx| (xx, yy) == (x, y) || !(img[yy * nx + xx] >= v)));
+            if is_max {
+                peaks.push((v, x, y));
+            }
+        }
+    }
+    peaks.sort_by(|a, b| b.0.total_cmp(&a.0));
+    peaks.truncate(300);
+    let mut votes: std::collections::HashMap<(i64, i64), usize> = std::collections::HashMap::new();
+    for a in &peaks {
+        for b in &peaks {
+            let (dx, dy) = (b.1 as i64 - a.1 as i64, b.2 as i64 - a.2 as i64);
+            // The two images of one star are about equally bright (their ratio is
+            // (1 + F) / (1 - F), near 1 unless the star is strongly polarized); two different
+            // stars seldom are, so only such pairs vote.
+            let (fa, fb) = (a.0 - med, b.0 - med);
+            let similar = fa < 1.6 * fb && fb < 1.6 * fa;
+            if similar && (dx > 0 || (dx == 0 && dy > 0)) {
+                if dx * dx + dy * dy >= 4 {
+                    *votes.entry((dx, dy)).or_default() += 1;
+                }
+            }
+        }
+    }
+    // Votes of a vector and its 8 neighbours (a sub-pixel offset splits its pairs).
+    let score = |v: &(i64, i64)| -> usize {
+        (-1..=1)
+            .flat_map(|i| (-1..=1).map(move |j| (i, j)))
+            .map(|(i, j)| votes.get(&(v.0 + i, v.1 + j)).copied().unwrap_or(0))
+            .sum()
+    };
+    let best = votes.keys().max_by_key(|v| (score(v), votes[v])).copied();
+    let Some(best) = best.filter(|v| score(v) >= 3) else {
+        return Err(Error::Invalid(format!(
+            "cannot measure the o/e offset of instrument {}: fewer than three star pairs share one separation in {} ({} bright peaks); give [polarimetry] oe_offset_px in the instrument file",
+            inst.name,
+            set.files[0][0].display(),
+            peaks.len()
+        )));
+    };
+    let r = 3.0;
+    let mut dxs = Vec::new();
+    let mut dys = Vec::new();
+    for a in &peaks {
+        let t = (a.1 as i64 + best.0, a.2 as i64 + best.1);
+        if let Some(b) = peaks.iter().find(|b| (b.1 as i64 - t.0).abs() <= 1 && (b.2 as i64 - t.1).abs() <= 1) {
+            if let (Some(ca), Some(cb)) = (
+                centroid(img, nx, ny, a.1 as f64, a.2 as f64, r, |_, _| true),
+                centroid(img, nx, ny, b.1 as f64, b.2 as f64, r, |_, _| true),
+            ) {
+                dxs.push(cb.0 - ca.0);
+                dys.push(cb.1 - ca.1);
+            }
+        }
+    }
+    if dxs.len() < 3 {
+        return Err(Error::Invalid(format!(
+            "cannot measure the o/e offset of instrument {}: only {} star pairs could be centred; give [polarimetry] oe_offset_px",
+            inst.name,
+            dxs.len()
+        )));
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        let k = v.len();
+        if k % 2 == 1 {
+            v[k / 2]
+        } else {
+            0.5 * (v[k / 2 - 1] + v[k / 2])
+        }
+    };
+    let npairs = dxs.len();
+    Ok((median(&mut dxs), median(&mut dys), npairs))
 }
 
 /// Sigma-clipped mean, the variance of that mean, and the number kept.

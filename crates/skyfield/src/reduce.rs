@@ -287,6 +287,7 @@ pub fn pixel_qu(set: &FrameSet, inst: &Instrument) -> Result<(Vec<f64>, Vec<f64>
     let solver = StokesSolver::new(&theta)?;
     let (cq, cu) = solver.weights();
     let g = BeamGeometry::new(inst);
+    g.require_separable_sky().map_err(Error::Invalid)?;
     let d = &inst.detector;
     let det = (d.bias_adu, d.gain_e_per_adu, d.saturation_adu, d.read_noise_e.powi(2));
     let rows: Vec<Rows> = set.data.iter().map(|v| Rows::View(PixelView::F64(v))).collect();
@@ -454,6 +455,7 @@ fn reduce_bands(
     let theta: Vec<f64> = angles_deg.iter().map(|a| a.to_radians()).collect();
     let solver = StokesSolver::new(&theta)?;
     let g = BeamGeometry::new(inst);
+    g.require_separable_sky().map_err(Error::Invalid)?;
     if (nx, ny) != (g.nx, g.ny) {
         return Err(Error::Invalid(format!(
             "frames are {} x {} px, instrument {} has {} x {}",
@@ -890,8 +892,9 @@ fn segments_of_row(g: &BeamGeometry, y: usize, xa: usize, xb: usize, segs: &mut 
     if xa >= xb {
         return;
     }
-    if g.along_y {
-        // Strips stacked along y: a row is all sky or all masked, with one e shift.
+    if g.along_y && g.uniform_shift() {
+        // Strips stacked along y with one whole-pixel throw: a row is all sky or all masked,
+        // with one e shift.
         if let Some((o, e)) = g.beams_of_sky(xa, y) {
             segs.push((xa, xb, o, e));
         }

@@ -32,12 +32,27 @@ pub struct Args {
     /// No background subtraction (the combined source + background values).
     #[arg(long)]
     pub no_background: bool,
+    /// How the aperture weighs its edge pixels: exact (the fraction of each pixel's area inside
+    /// the circle; the same aperture in both beams at any sub-pixel offset) or centre (whole
+    /// pixels whose centre is inside).
+    #[arg(long, value_enum, default_value = "exact")]
+    pub aperture_weights: WeightsArg,
+    /// Keep the aperture at --x/--y in every frame instead of re-centring it on the star's
+    /// centroid in each (frames usually move by a pixel or two between HWP positions).
+    #[arg(long)]
+    pub fixed: bool,
     /// Instrument: built-in name or path to an instrument TOML.
     #[arg(long, default_value = "fors1")]
     pub instrument: String,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum WeightsArg {
+    Exact,
+    Centre,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -62,7 +77,12 @@ struct Out {
     chi_deg: f64,
     sigma_chi_deg: f64,
     n_aperture: usize,
+    aperture_area_px: f64,
     n_annulus: usize,
+    /// Aperture centres per HWP angle `[x_o, y_o, x_e, y_e]` (px).
+    centres_px: Vec<[f64; 4]>,
+    /// The o/e offset used (px) at the source.
+    oe_offset_px: Option<(f64, f64)>,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -90,7 +110,22 @@ pub fn run(a: Args) -> Result<()> {
     for w in &set.warnings {
         eprintln!("warning: {w}");
     }
-    let ph = skyfield::photometry::photometry(&set, &inst, x, y, &Aperture { radius_px: a.aperture, annulus })?;
+    let g = skyfield::photometry::layout_for(&set, &inst)?;
+    if inst.polarimetry.layout == instrument::Layout::Maskless && inst.polarimetry.oe_offset_px.is_none() {
+        let (dx, dy) = g.oe_offset.unwrap_or_default();
+        eprintln!(
+            "warning: o/e offset measured from the stars: ({dx:.2}, {dy:.2}) px; which image is the ordinary one cannot be measured (taken with dx > 0): if it is the other, Q and U change sign. Set [polarimetry] oe_offset_px in the instrument file."
+        );
+    }
+    let opts = skyfield::photometry::PhotOptions {
+        weighting: match a.aperture_weights {
+            WeightsArg::Exact => skyfield::aperture::Weighting::Exact,
+            WeightsArg::Centre => skyfield::aperture::Weighting::Centre,
+        },
+        recentre: !a.fixed,
+    };
+    let ap = Aperture { radius_px: a.aperture, annulus };
+    let ph = skyfield::photometry::photometry_with(&set, &inst, &g, x, y, &ap, &opts)?;
     let r = &ph.reduction;
     let o = Out {
         x_px: x,
@@ -107,12 +142,19 @@ pub fn run(a: Args) -> Result<()> {
         chi_deg: r.chi.to_degrees(),
         sigma_chi_deg: r.sigma_chi.to_degrees(),
         n_aperture: ph.n_aperture,
+        aperture_area_px: ph.aperture_area_px,
         n_annulus: ph.n_annulus,
+        oe_offset_px: g.e_offset(x, y),
+        centres_px: ph.centres.clone(),
     };
     if a.json {
         crate::util::print_json(&o)?;
     } else {
         println!("source at ({:.2}, {:.2}) px, aperture {} px, {} HWP angles", x, y, a.aperture, o.hwp_deg.len());
+        let moved = o.centres_px.iter().map(|c| (c[0] - x).hypot(c[1] - y)).fold(0.0, f64::max);
+        if !a.fixed {
+            println!("  apertures re-centred in every frame (largest move {moved:.2} px)");
+        }
         println!("  Q/I = {:+.5} +- {:.5}", o.q, o.sigma_q);
         println!("  U/I = {:+.5} +- {:.5}", o.u, o.sigma_u);
         println!("  P   = {:.4}% +- {:.4}%", 100.0 * o.p, 100.0 * o.sigma_p);
