@@ -32,6 +32,8 @@ enum Command {
     Reduce(cmd::reduce::Args),
     #[command(about = "Measure a star's Q, U, P, chi in frames, background removed vectorially")]
     Photometry(cmd::photometry::Args),
+    #[command(about = "Find, pair and measure every star in frames: Q, U, P, chi with errors and flags")]
+    Catalog(cmd::catalog::Args),
     #[command(about = "Measure the instrumental polarization on an empty field of known sky polarization")]
     Calibrate(cmd::calibrate::Args),
     #[command(about = "Refit a calibration file (radial model, free centre, exclusions, residual map)")]
@@ -65,6 +67,7 @@ fn main() {
         Command::Simulate(a) => cmd::simulate::run(a),
         Command::Reduce(a) => cmd::reduce::run(a),
         Command::Photometry(a) => cmd::photometry::run(a),
+        Command::Catalog(a) => cmd::catalog::run(a),
         Command::Calibrate(a) => cmd::calibrate::run(a),
         Command::Fit(a) => cmd::fit::run(a),
         Command::ImportMap(a) => cmd::import_map::run(a),

@@ -12,6 +12,8 @@
 pub mod aperture;
 pub mod beams;
 pub mod bin;
+pub mod catalog;
+pub mod detect;
 pub mod io;
 pub mod maps;
 pub mod photometry;

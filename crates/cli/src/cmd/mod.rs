@@ -2,6 +2,7 @@
 
 pub mod bias;
 pub mod calibrate;
+pub mod catalog;
 pub mod correct;
 pub mod demo;
 pub mod fit;

@@ -1,0 +1,78 @@
+//! `instpol catalog` end to end: the shipped maskless scene's three stars found, paired and
+//! measured in one run, each with the same q, u as `instpol photometry` gives at that star
+//! (the same machinery, so to rounding), and within errors of the scene.
+
+mod common;
+
+use common::{fits_in, run};
+use std::ffi::OsString;
+
+#[test]
+fn catalog_of_the_maskless_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = include_str!("../../../instruments/calcite.toml")
+        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
+    let inst = dir.path().join("calcite.toml");
+    std::fs::write(&inst, text).unwrap();
+    let scene = include_str!("../../../instruments/scenes/calcite_stars.toml")
+        .replace("instrument = \"calcite\"", &format!("instrument = \"{}\"", inst.display()));
+    let sp = dir.path().join("scene.toml");
+    std::fs::write(&sp, scene).unwrap();
+    let out = dir.path().join("f");
+    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert_eq!(code, 0, "{err}");
+    let frames = fits_in(&out);
+    let csv_path = dir.path().join("cat.csv");
+    let mut args: Vec<OsString> = vec!["catalog".into()];
+    args.extend(frames.iter().map(|f| f.clone().into_os_string()));
+    for a in [
+        "--instrument",
+        inst.to_str().unwrap(),
+        "--fwhm",
+        "4.7",
+        "--aperture",
+        "9",
+        "--annulus",
+        "14,24",
+        "--json",
+        "--out",
+    ] {
+        args.push(a.into());
+    }
+    args.push(csv_path.clone().into_os_string());
+    let (code, stdout, err) = run(&args);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let rows = j["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 3, "{j}");
+    let mut rdr = csv::Reader::from_path(&csv_path).unwrap();
+    assert_eq!(rdr.records().count(), 3);
+    for (x, y, p, chi) in [(150.0, 200.0, 0.0572, 136.0), (420.0, 450.0, 0.0, 0.0), (300.0, 600.0, 0.021, 12.0)] {
+        let r = rows
+            .iter()
+            .find(|r| (r["x"].as_f64().unwrap() - x).hypot(r["y"].as_f64().unwrap() - y) < 2.0)
+            .unwrap_or_else(|| panic!("no row at ({x}, {y}): {j}"));
+        let f = |k: &str| r[k].as_f64().unwrap();
+        let (q0, u0) = (p * (2.0 * f64::to_radians(chi)).cos(), p * (2.0 * f64::to_radians(chi)).sin());
+        assert!(((f("q") - q0) / f("sigma_q")).abs() < 4.0 && ((f("u") - u0) / f("sigma_u")).abs() < 4.0, "{r}");
+        // photometry at the catalog's position gives the same numbers.
+        let mut args: Vec<OsString> = vec!["photometry".into()];
+        args.extend(frames.iter().map(|f| f.clone().into_os_string()));
+        for a in ["--instrument", inst.to_str().unwrap(), "--x", &f("x").to_string(), "--y", &f("y").to_string()] {
+            args.push(a.into());
+        }
+        for a in ["--aperture", "9", "--annulus", "14,24", "--json"] {
+            args.push(a.into());
+        }
+        let (code, stdout, err) = run(&args);
+        assert_eq!(code, 0, "{err}");
+        let ph: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+        assert!((ph["q"].as_f64().unwrap() - f("q")).abs() < 1e-9 * f("sigma_q").max(1e-3), "{ph} vs {r}");
+    }
+    // An unknown table format is refused before any work.
+    let mut args: Vec<OsString> = vec!["catalog".into(), frames[0].clone().into_os_string()];
+    args.extend(["--out".into(), dir.path().join("cat.xlsx").into_os_string()]);
+    let (code, _, err) = run(&args);
+    assert_eq!(code, 2);
+    assert!(err.contains("cat.xlsx") && err.contains("format"), "{err}");
+}

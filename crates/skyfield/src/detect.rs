@@ -1,0 +1,271 @@
+//! Point sources in a frame: background and noise, detection, centroids, FWHM, flags, and
+//! the pairing of each source's ordinary image with its extraordinary one through the beam
+//! layout ([`crate::beams`]).
+//!
+//! The background is a mesh of sigma-clipped medians (boxes of `box_px`, over the pixels the
+//! layout illuminates), interpolated bilinearly between box centres; the noise is the robust
+//! standard deviation of the background-subtracted illuminated pixels. Sources are the local
+//! maxima of the image smoothed with a Gaussian of the expected FWHM (a matched filter) that
+//! rise `threshold_sigma` above the smoothed noise; each is re-centred on its flux-weighted
+//! centroid ([`crate::aperture::centroid`]) and measured for its FWHM (second moments) and
+//! peak. Pairing asks the layout where each source's e image should fall and takes the nearest
+//! source within `pair_tol_px` there.
+
+use crate::aperture::centroid;
+use crate::beams::{BeamGeometry, PixelKind};
+use instrument::Layout;
+
+/// Detection settings.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct DetectConfig {
+    /// Expected FWHM of the stars (px): the matched filter's width.
+    pub fwhm_px: f64,
+    /// Detection threshold in units of the smoothed image's noise.
+    pub threshold_sigma: f64,
+    /// Background mesh box (px).
+    pub box_px: usize,
+    /// Largest distance (px) between where the layout predicts a source's e image and a
+    /// detected source, for the two to pair.
+    pub pair_tol_px: f64,
+    /// Saturation level of the image's values (same units as the image).
+    pub saturation: f64,
+}
+
+impl Default for DetectConfig {
+    fn default() -> Self {
+        Self { fwhm_px: 4.0, threshold_sigma: 5.0, box_px: 64, pair_tol_px: 1.5, saturation: f64::INFINITY }
+    }
+}
+
+/// A detected source (one beam's image of a star).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Source {
+    pub x: f64,
+    pub y: f64,
+    /// Peak value above the background.
+    pub peak: f64,
+    /// FWHM from the second moments (px).
+    pub fwhm_px: f64,
+    /// Which image the layout says the pixel belongs to.
+    #[serde(skip)]
+    pub kind: PixelKind,
+    /// A pixel near the centre reaches the saturation level.
+    pub saturated: bool,
+}
+
+/// The background and noise of an image.
+#[derive(Debug, Clone)]
+pub struct Background {
+    /// Background per pixel (row-major), NaN where nothing is illuminated nearby.
+    pub level: Vec<f64>,
+    /// Robust rms of the background-subtracted illuminated pixels.
+    pub sigma: f64,
+}
+
+fn usable(g: &BeamGeometry, x: usize, y: usize) -> bool {
+    !matches!(g.kind(x, y), PixelKind::Masked)
+}
+
+/// Median of `v` (sorted in place), `None` when empty.
+fn median(v: &mut [f64]) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
+}
+
+/// Median and robust sigma (1.4826 MAD) after three 3-sigma clipping passes.
+fn clipped_stats(v: &[f64]) -> Option<(f64, f64)> {
+    let mut w: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    let mut med = median(&mut w.clone())?;
+    let mut sig = 0.0;
+    for _ in 0..3 {
+        let mut dev: Vec<f64> = w.iter().map(|x| (x - med).abs()).collect();
+        sig = 1.4826 * median(&mut dev)?;
+        if !(sig > 0.0) {
+            break;
+        }
+        w.retain(|x| (x - med).abs() <= 3.0 * sig);
+        med = median(&mut w.clone())?;
+    }
+    Some((med, sig))
+}
+
+/// Background mesh and noise of `img` over the pixels the layout illuminates.
+pub fn background(img: &[f64], g: &BeamGeometry, box_px: usize) -> Background {
+    let (nx, ny) = (g.nx, g.ny);
+    let b = box_px.max(8);
+    let (mx, my) = (nx.div_ceil(b), ny.div_ceil(b));
+    let mut mesh = vec![f64::NAN; mx * my];
+    for j in 0..my {
+        for i in 0..mx {
+            let mut v = Vec::with_capacity(b * b);
+            for y in j * b..((j + 1) * b).min(ny) {
+                for x in i * b..((i + 1) * b).min(nx) {
+                    if usable(g, x, y) {
+                        v.push(img[y * nx + x]);
+                    }
+                }
+            }
+            if v.len() >= 16 {
+                mesh[j * mx + i] = clipped_stats(&v).map_or(f64::NAN, |s| s.0);
+            }
+        }
+    }
+    // Empty boxes (behind the mask) take the median of the filled ones: the bilinear
+    // interpolation then never reaches for a NaN.
+    let fill = median(&mut mesh.iter().copied().filter(|v| v.is_finite()).collect::<Vec<_>>()).unwrap_or(0.0);
+    for v in mesh.iter_mut().filter(|v| !v.is_finite()) {
+        *v = fill;
+    }
+    let at =
+        |i: isize, j: isize| mesh[(j.clamp(0, my as isize - 1) as usize) * mx + i.clamp(0, mx as isize - 1) as usize];
+    let mut level = vec![f64::NAN; nx * ny];
+    for y in 0..ny {
+        let fy = (y as f64 + 0.5) / b as f64 - 0.5;
+        let (j0, ty) = (fy.floor() as isize, fy - fy.floor());
+        for x in 0..nx {
+            let fx = (x as f64 + 0.5) / b as f64 - 0.5;
+            let (i0, tx) = (fx.floor() as isize, fx - fx.floor());
+            level[y * nx + x] = (1.0 - ty) * ((1.0 - tx) * at(i0, j0) + tx * at(i0 + 1, j0))
+                + ty * ((1.0 - tx) * at(i0, j0 + 1) + tx * at(i0 + 1, j0 + 1));
+        }
+    }
+    let resid: Vec<f64> = (0..nx * ny).filter(|&k| usable(g, k % nx, k / nx)).map(|k| img[k] - level[k]).collect();
+    let sigma = clipped_stats(&resid).map_or(0.0, |s| s.1);
+    Background { level, sigma }
+}
+
+/// Detect the sources of `img` (one frame, or a sum of frames, in any linear unit).
+pub fn detect(img: &[f64], g: &BeamGeometry, cfg: &DetectConfig) -> Vec<Source> {
+    let (nx, ny) = (g.nx, g.ny);
+    let bg = background(img, g, cfg.box_px);
+    // Background-subtracted image, zero where nothing is illuminated or the value is bad.
+    let sub: Vec<f64> = (0..nx * ny)
+        .map(|k| {
+            let v = img[k] - bg.level[k];
+            if usable(g, k % nx, k / nx) && v.is_finite() {
+                v
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    // Separable Gaussian matched filter, normalized to unit sum.
+    let s = (cfg.fwhm_px / 2.3548).max(0.5);
+    let r = (3.0 * s).ceil() as isize;
+    let mut k: Vec<f64> = (-r..=r).map(|i| (-0.5 * (i as f64 / s).powi(2)).exp()).collect();
+    let ks: f64 = k.iter().sum();
+    k.iter_mut().for_each(|v| *v /= ks);
+    let conv = |src: &[f64], along_x: bool| -> Vec<f64> {
+        let mut out = vec![0.0; nx * ny];
+        for y in 0..ny {
+            for x in 0..nx {
+                let mut a = 0.0;
+                for (t, w) in k.iter().enumerate() {
+                    let d = t as isize - r;
+                    let (xx, yy) = if along_x { (x as isize + d, y as isize) } else { (x as isize, y as isize + d) };
+                    if xx >= 0 && yy >= 0 && (xx as usize) < nx && (yy as usize) < ny {
+                        a += w * src[yy as usize * nx + xx as usize];
+                    }
+                }
+                out[y * nx + x] = a;
+            }
+        }
+        out
+    };
+    let sm = conv(&conv(&sub, true), false);
+    // Noise of the smoothed image: sigma times the kernel's 2-D norm.
+    let k2: f64 = k.iter().map(|v| v * v).sum::<f64>();
+    let thr = cfg.threshold_sigma * bg.sigma * k2;
+    let mut found: Vec<Source> = Vec::new();
+    let rc = (1.5 * cfg.fwhm_px).max(3.0);
+    for y in 1..ny.saturating_sub(1) {
+        for x in 1..nx.saturating_sub(1) {
+            let v = sm[y * nx + x];
+            if !(v > thr) || !usable(g, x, y) {
+                continue;
+            }
+            let is_max = (y - 1..=y + 1).all(|yy| (x - 1..=x + 1).all(|xx| (xx, yy) == (x, y) || sm[yy * nx + xx] < v));
+            if !is_max {
+                continue;
+            }
+            let kind = g.kind(x, y);
+            let same = |px: usize, py: usize| g.kind(px, py) == kind;
+            let Some((cx, cy)) = centroid(&sub, nx, ny, x as f64, y as f64, rc, same) else { continue };
+            // FWHM from the second moments inside the centroid radius, and the peak.
+            let (mut sw, mut s2, mut peak, mut sat) = (0.0, 0.0, 0.0f64, false);
+            let (xa, xb) = ((cx - rc).floor().max(0.0) as usize, ((cx + rc).ceil() as usize).min(nx - 1));
+            let (ya, yb) = ((cy - rc).floor().max(0.0) as usize, ((cy + rc).ceil() as usize).min(ny - 1));
+            for py in ya..=yb {
+                for px in xa..=xb {
+                    let d2 = (px as f64 - cx).powi(2) + (py as f64 - cy).powi(2);
+                    if d2 > rc * rc || !same(px, py) {
+                        continue;
+                    }
+                    let w = sub[py * nx + px];
+                    if d2 <= 4.0 {
+                        peak = peak.max(w);
+                        sat |= img[py * nx + px] >= cfg.saturation;
+                    }
+                    if w > 0.0 {
+                        sw += w;
+                        s2 += w * d2;
+                    }
+                }
+            }
+            let fwhm = if sw > 0.0 { 2.3548 * (s2 / (2.0 * sw)).sqrt() } else { f64::NAN };
+            if found.iter().any(|f| (f.x - cx).hypot(f.y - cy) < 1.5) {
+                continue;
+            }
+            found.push(Source { x: cx, y: cy, peak, fwhm_px: fwhm, kind, saturated: sat });
+        }
+    }
+    found.sort_by(|a, b| b.peak.total_cmp(&a.peak));
+    found
+}
+
+/// A star: its o image and, when the layout found it, its e image (indices into the sources).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Pair {
+    pub o: usize,
+    pub e: usize,
+}
+
+/// Pair the sources' o images with their e images through the layout `g`: for every source
+/// that can be an o image (strips: on an o image of the mask; maskless: any, taken in the order
+/// of their position along the offset so that the first image of a star is its o image), the
+/// nearest unused source within `tol` px of the predicted e position. Returns the pairs and the
+/// sources left unpaired.
+pub fn pair(sources: &[Source], g: &BeamGeometry, tol: f64) -> (Vec<Pair>, Vec<usize>) {
+    let mut order: Vec<usize> = (0..sources.len()).collect();
+    if g.layout == Layout::Maskless {
+        let (dx, dy) = g.oe_offset.unwrap_or((1.0, 0.0));
+        order.sort_by(|&a, &b| {
+            (sources[a].x * dx + sources[a].y * dy).total_cmp(&(sources[b].x * dx + sources[b].y * dy))
+        });
+    }
+    let mut used = vec![false; sources.len()];
+    let mut pairs = Vec::new();
+    for &i in &order {
+        let s = &sources[i];
+        if used[i] || matches!(s.kind, PixelKind::Extraordinary(_)) {
+            continue;
+        }
+        let Some((ex, ey)) = g.e_position(s.x, s.y) else { continue };
+        let best = (0..sources.len())
+            .filter(|&j| j != i && !used[j] && !matches!(sources[j].kind, PixelKind::Ordinary(_)))
+            .map(|j| (j, (sources[j].x - ex).hypot(sources[j].y - ey)))
+            .filter(|&(_, d)| d <= tol)
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        if let Some((j, _)) = best {
+            used[i] = true;
+            used[j] = true;
+            pairs.push(Pair { o: i, e: j });
+        }
+    }
+    let unpaired = (0..sources.len()).filter(|&k| !used[k]).collect();
+    (pairs, unpaired)
+}
