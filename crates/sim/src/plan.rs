@@ -138,6 +138,7 @@ fn stream(seed: u64, purpose: u64, frame: u64, row: u64) -> Xoshiro256PlusPlus {
 const STREAM_FLAT: u64 = 1;
 const STREAM_PIXELS: u64 = 2;
 const STREAM_COSMIC: u64 = 3;
+const STREAM_TRANSPARENCY: u64 = 4;
 
 fn file_err(path: &Path, m: impl std::fmt::Display) -> Error {
     Error::File { path: path.into(), message: m.to_string() }
@@ -487,6 +488,9 @@ impl Plan {
             }
             None => None,
         };
+        if let Some(t) = fx.transparency_rms {
+            det.push(format!("transparency noise {t} rms per frame (both beams together)"));
+        }
         if fx.photon_noise {
             steps.push(DetStep::Photon);
             det.push("photon noise (Poisson)".into());
@@ -580,6 +584,12 @@ impl Plan {
         }
         for st in &self.moving {
             self.draw_star(&mut img, st, k, (&ro, &re));
+        }
+        if let Some(t) = self.scene.effects.transparency_rms.filter(|&t| t > 0.0) {
+            let mut rng = stream(self.scene.seed, STREAM_TRANSPARENCY, k as u64, 0);
+            let n: f64 = rand_distr::StandardNormal.sample(&mut rng);
+            let f = (1.0 + t * n).max(0.0);
+            img.iter_mut().for_each(|v| *v *= f);
         }
         // Cosmic-ray hits of this frame, by row (drawn only when the scene has them).
         let mut hits: Vec<Vec<(usize, f64)>> = Vec::new();

@@ -352,6 +352,10 @@ pub struct Effects {
     #[serde(default)]
     pub saturation: bool,
     pub cosmic_rays: Option<CosmicSpec>,
+    /// Frame-to-frame transparency (and exposure-time) noise: every frame's light times
+    /// `1 + rms n`, `n` standard normal, one draw per frame. Both beams scale together, so
+    /// `F_i` (`eq:F`) does not see it: the dual-beam method's reason to be.
+    pub transparency_rms: Option<f64>,
 }
 
 impl Scene {
@@ -464,6 +468,11 @@ impl Scene {
             }
             Ok(())
         };
+        if let Some(t) = self.effects.transparency_rms {
+            if !(t.is_finite() && (0.0..0.5).contains(&t)) {
+                return bad("effects.transparency_rms", t.to_string(), "a relative rms in [0, 0.5) (0.05 for 5 %)");
+            }
+        }
         if let Some(s) = &self.sky {
             nonneg("sky.brightness_e", s.brightness_e)?;
             frac("sky.p", s.p)?;

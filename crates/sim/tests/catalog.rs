@@ -143,3 +143,61 @@ fn strip_catalog_of_55_stars_with_an_edge_star() {
     stars.push(Truth { x: 575.0, y: 112.0, p: 0.02, chi: 40.0, saturated: false, edge: true });
     check(dir.path(), &ip, &stars, 0.8, Aperture { radius_px: 6.0, annulus: Some((9.0, 14.0)) });
 }
+
+/// The catalog's rows for 40 bright stars through the maskless example with extra effects.
+fn bright_rows(dir: &Path, effects: &str) -> Vec<skyfield::catalog::Row> {
+    let text = include_str!("../../../instruments/calcite.toml")
+        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
+    let ip = dir.join("calcite.toml");
+    std::fs::write(&ip, text).unwrap();
+    let mut s = format!(
+        "instrument = \"{}\"\nfilter = \"V\"\nseed = 9\nhwp_angles_deg = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]\n{SHIFTS}\n[output]\nbitpix = -64\n[sky]\nbrightness_e = 100\n[effects]\nphoton_noise = true\n{effects}\n",
+        ip.display()
+    );
+    for j in 0..8 {
+        for i in 0..5 {
+            let (p, chi) = truth_p(i + 5 * j);
+            s += &format!(
+                "[[stars]]\nx = {}\ny = {}\ncoords = \"pixel\"\nflux_e = 6e5\np = {p}\nchi_deg = {chi}\nfwhm_arcsec = 1.0\n",
+                40.0 + 120.0 * i as f64,
+                50.0 + 80.0 * j as f64
+            );
+        }
+    }
+    let sc = Scene::from_toml_str(&s, &dir.join("s.toml")).unwrap();
+    let out = sim::simulate(&sc, &dir.join("f"), &|| {}).unwrap();
+    let inst = instrument::Instrument::load(ip.to_str().unwrap()).unwrap();
+    let set = FrameSet::from_frames(read_frames(&out.frames, &inst, &|| {}).unwrap(), &inst, true).unwrap();
+    let cfg = CatalogConfig {
+        detect: DetectConfig { fwhm_px: 4.7, ..Default::default() },
+        aperture: Aperture { radius_px: 9.0, annulus: Some((14.0, 24.0)) },
+        weighting: skyfield::aperture::Weighting::Exact,
+    };
+    catalog(&set, &inst, &cfg).unwrap().rows.into_iter().filter(|r| r.q.is_finite()).collect()
+}
+
+/// Mean reduced modulation chi^2 over the rows: the square of the scatter-based error over the
+/// propagated one, on average.
+fn mean_chi2_red(rows: &[skyfield::catalog::Row]) -> f64 {
+    rows.iter().map(|r| r.chi2_mod / r.dof_mod as f64).sum::<f64>() / rows.len() as f64
+}
+
+/// The scatter-based error agrees with the propagated one on photon-limited frames (mean
+/// reduced chi^2 of the modulation 1 within its error sqrt(2 / (40 x 5)) = 0.1), still does
+/// with 5 % frame-to-frame transparency noise (both beams scale together: eq:F cancels it, the
+/// reason for the dual-beam method), and exceeds it when uncorrected flat-field errors that
+/// differ between the beams meet stars moving over the detector between frames.
+#[test]
+fn scatter_error_against_propagated() {
+    let photon = bright_rows(tempfile::tempdir().unwrap().path(), "");
+    let transp = bright_rows(tempfile::tempdir().unwrap().path(), "transparency_rms = 0.05");
+    let flat = bright_rows(tempfile::tempdir().unwrap().path(), "flat = { pixel_rms_o = 0.05, pixel_rms_e = 0.05 }");
+    let (a, b, c) = (mean_chi2_red(&photon), mean_chi2_red(&transp), mean_chi2_red(&flat));
+    eprintln!("mean reduced modulation chi^2: photon {a:.2}, + transparency {b:.2}, + flat errors {c:.2}");
+    assert!(photon.len() >= 38 && transp.len() >= 38 && flat.len() >= 38);
+    assert!((0.7..1.3).contains(&a), "photon-limited: {a}");
+    assert!((0.7..1.3).contains(&b), "transparency: {b}");
+    assert!(c > 2.5, "flat-field errors with moving stars: {c}");
+    let ratio = flat.iter().map(|r| r.sigma_q_scatter / r.sigma_q).sum::<f64>() / flat.len() as f64;
+    assert!(ratio > 1.3, "{ratio}");
+}
