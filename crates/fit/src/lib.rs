@@ -57,3 +57,4 @@ pub enum Error {
 pub type Result<T> = std::result::Result<T, Error>;
 pub mod correct;
 pub mod standards;
+pub mod zeroangle;
