@@ -5,6 +5,7 @@ pub mod calibrate;
 pub mod correct;
 pub mod demo;
 pub mod fit;
+pub mod fit_standards;
 pub mod fresnel;
 pub mod import_map;
 pub mod mc;
