@@ -289,3 +289,42 @@ fn efosc2_report_physical_and_joint_fits() {
         );
     }
 }
+
+#[test]
+fn efosc2_standards_corrected_leave_one_out_are_unpolarized() {
+    // Each star's measurement corrected with the Wiersema model fitted to the other stars of
+    // its band: the published standards are unpolarized (P < 0.1%), so the corrected (q, u)
+    // must be zero within the errors (measurement errors scaled by sqrt(max(1, chi2_red)) of
+    // the fit, plus the model's covariance), while uncorrected they show the M3's 3-5 %.
+    let Some(dir) = data_dir() else { return };
+    let table = MetalTable::read(&dir.join("METALS_Aluminium_Rakic.txt")).unwrap();
+    let (mut n, mut within, mut raw_p, mut cor_p) = (0, 0, Vec::new(), Vec::new());
+    for (_, stem) in BANDS {
+        let obs = read_observations(&dir.join(format!("{stem}_standards.txt"))).unwrap();
+        for k in 0..obs.len() {
+            let rest: Vec<_> = obs.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, o)| o.clone()).collect();
+            let f = fit_band(ModelKind::Wiersema, &rest, &table, &FitOptions::default()).unwrap();
+            let o = &obs[k];
+            let s = f.chi2_reduced.max(1.0).sqrt();
+            let [q, sq, u, su] = f.correct(&o.band, o.q, o.sigma_q * s, o.u, o.sigma_u * s, o.parallactic).unwrap();
+            let z2 = (q / sq).powi(2) + (u / su).powi(2);
+            n += 1;
+            // 2-dof chi^2 below 11.83: 3 sigma.
+            if z2 < 11.83 {
+                within += 1;
+            }
+            raw_p.push(o.q.hypot(o.u));
+            cor_p.push(q.hypot(u));
+        }
+    }
+    raw_p.sort_by(f64::total_cmp);
+    cor_p.sort_by(f64::total_cmp);
+    let (mr, mc) = (raw_p[raw_p.len() / 2], cor_p[cor_p.len() / 2]);
+    eprintln!(
+        "leave-one-out: {within} of {n} corrected within 3 sigma of P = 0; median P raw {:.2}% corrected {:.3}%",
+        100.0 * mr,
+        100.0 * mc
+    );
+    assert!(mr > 0.025 && mc < 0.003, "median P raw {mr}, corrected {mc}");
+    assert!(within as f64 >= 0.85 * n as f64, "{within} of {n}");
+}
