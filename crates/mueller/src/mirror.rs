@@ -113,8 +113,8 @@ pub struct LorentzDrude {
     pub oscillators: &'static [Oscillator],
 }
 
-/// Aluminium, Rakic et al. 1998 Table 1 (LD model), valid 0.1-250 micron (their fit range
-/// 0.04-200 eV... used here in the optical only).
+/// Aluminium, Rakic et al. 1998 Table 1 (LD model); used here from the near UV to the near
+/// IR, where it follows Rakic 1995's tabulation to a few percent (tested).
 pub const ALUMINIUM_LD: LorentzDrude = LorentzDrude {
     omega_p: 14.98,
     f0: 0.523,
@@ -357,7 +357,9 @@ pub fn nasmyth(m1: &Reflection, m2: &Reflection, m3: &Reflection, parallactic: f
 /// It is [`nasmyth`] (without M1, M2) at parallactic angle `-q` and rotator `offset - q`: the
 /// field-tracking rotator of a frame whose parallactic angle counts the other way, or
 /// equivalently an instrument frame of the other handedness (the sign of `u`); for unpolarized
-/// stars only the polarization of M3 and the total angle matter. Angles in rad.
+/// stars only the polarization of M3 and the total angle matter. Their product also ends with
+/// one normal-incidence mirror on the sky side (`diag(1, 1, -1, -1)` for a perfect one), which
+/// changes nothing for unpolarized light and is left out here. Angles in rad.
 pub fn wiersema_m3(m3: &Reflection, parallactic: f64, offset: f64) -> Mueller {
     rotation(offset) * m3.mueller_at(FRAC_PI_2 - parallactic)
 }
