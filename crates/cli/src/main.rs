@@ -58,6 +58,8 @@ enum Command {
     Fresnel(cmd::fresnel::Args),
     #[command(about = "Polarization ray trace of the collimator: p(r), phi, per surface, wavelength law")]
     Raytrace(cmd::raytrace::Args),
+    #[command(about = "Fit a telescope M3 Mueller model to standard stars against the parallactic angle")]
+    FitStandards(cmd::fit_standards::Args),
 }
 
 fn main() {
@@ -80,6 +82,7 @@ fn main() {
         Command::Mc(a) => cmd::mc::run(a),
         Command::Fresnel(a) => cmd::fresnel::run(a),
         Command::Raytrace(a) => cmd::raytrace::run(a),
+        Command::FitStandards(a) => cmd::fit_standards::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

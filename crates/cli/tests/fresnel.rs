@@ -53,3 +53,61 @@ fn bad_input_exits_2_with_a_named_error() {
         assert!(e.contains("error") && e.contains(needle), "{args:?}: {e}");
     }
 }
+
+/// The row of a `lambda,n,k` table at `lambda` (micron), read here without instpol.
+fn table_row(file: &str, lambda: &str) -> (f64, f64) {
+    let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../instruments/metals").join(file);
+    let text = std::fs::read_to_string(&p).expect("shipped table");
+    let line = text.lines().find(|l| l.starts_with(&format!("{lambda},"))).expect("row");
+    let v: Vec<f64> = line.split(',').map(|x| x.trim().parse().unwrap()).collect();
+    (v[1], v[2])
+}
+
+#[test]
+fn aluminium_mirror_at_45_deg_reflection_output() {
+    let v = json(&["--metal", "aluminium", "--aoi-deg", "45", "--wavelength-nm", "550", "--json"]);
+    let (n, k) = table_row("aluminium.txt", "0.550");
+    // Born & Wolf 14.2: n cos t = sqrt(N^2 - sin^2 i), complex arithmetic by hand.
+    let (er, ei) = (n * n - k * k - 0.5, 2.0 * n * k); // N^2 - sin^2(45)
+    let m = (er * er + ei * ei).sqrt();
+    let (a, b) = (((m + er) / 2.0).sqrt(), ((m - er) / 2.0).sqrt()); // sqrt: a + i b
+    let c = 0.5f64.sqrt();
+    let rs = ((c - a).powi(2) + b * b) / ((c + a).powi(2) + b * b);
+    // r_p = (N^2 c - w) / (N^2 c + w), N^2 = (n^2 - k^2) + 2nk i, w = a + i b.
+    let (pr, pi) = ((n * n - k * k) * c, 2.0 * n * k * c);
+    let rp = ((pr - a).powi(2) + (pi - b).powi(2)) / ((pr + a).powi(2) + (pi + b).powi(2));
+    let get = |f: &str| v[f].as_f64().unwrap_or_else(|| panic!("missing {f}: {v}"));
+    assert!((get("Rs") - rs).abs() < 1e-12 && (get("Rp") - rp).abs() < 1e-12, "{v}");
+    assert!((get("reflection_polarization") - (rs - rp) / (rs + rp)).abs() < 1e-12);
+    assert!((0.025..0.045).contains(&get("reflection_polarization")), "{v}");
+    assert!((get("n_imag") - k).abs() < 1e-12);
+    // The table labels which diattenuation is which.
+    let o = run(&["--metal", "aluminium", "--aoi-deg", "45"]);
+    let t = String::from_utf8_lossy(&o.stdout);
+    assert!(t.contains("transmission diattenuation") && t.contains("reflection polarization (Rs-Rp)/(Rs+Rp)"), "{t}");
+}
+
+#[test]
+fn absorbing_layer_is_accepted_and_thin_is_invisible() {
+    let bare = json(&["--n-real", "0.96", "--n-imag", "6.69", "--aoi-deg", "45", "--json"]);
+    let thin = json(&["--n-real", "0.96", "--n-imag", "6.69", "--aoi-deg", "45", "--coating", "2.0:0.5:0", "--json"]);
+    assert!((bare["Rs"].as_f64().unwrap() - thin["Rs"].as_f64().unwrap()).abs() < 1e-13);
+    let thick = json(&["--n-real", "0.96", "--n-imag", "6.69", "--aoi-deg", "45", "--coating", "2.0:0.5:20", "--json"]);
+    assert!(thick["Rs"].as_f64().unwrap() < bare["Rs"].as_f64().unwrap() - 0.01, "{thick}");
+    assert_eq!(thick["layers"][0]["k"].as_f64(), Some(0.5));
+}
+
+#[test]
+fn bad_metal_is_named() {
+    for (args, needle) in [
+        (vec!["--metal", "gold", "--aoi-deg", "45"], "gold"),
+        (vec!["--metal", "aluminium", "--aoi-deg", "45", "--wavelength-nm", "5000"], "outside"),
+        (vec!["--metal", "aluminium", "--n-real", "1.5", "--aoi-deg", "45"], "--n-real"),
+        (vec!["--n-real", "1.5", "--aoi-deg", "10", "--coating", "1.38:-1:3"], "--coating layer 1"),
+    ] {
+        let o = run(&args);
+        assert_eq!(o.status.code(), Some(2), "{args:?}");
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains(needle), "{args:?}: {e}");
+    }
+}

@@ -1,7 +1,8 @@
 //! Models of the instrumental polarization field and their use: radial polynomials with an
 //! optional free optical-axis centre (argmin), the polar-angle test, the wavelength law, the
 //! Delaunay-interpolated residual map (spade), the per-filter calibration file, and the
-//! correction of measured Stokes parameters with error propagation.
+//! correction of measured Stokes parameters with error propagation, and the telescope term
+//! (a Nasmyth M3 model fitted to standard stars against the parallactic angle, [`telescope`]).
 //!
 //! A model is a value that answers "what is the instrumental polarization here"
 //! ([`model::FieldModel`]); fitters, the calibration file and the correction do not care which
@@ -20,6 +21,7 @@ pub mod radial;
 pub mod region;
 pub mod residual;
 pub mod synth;
+pub mod telescope;
 pub mod wavelength;
 
 pub use bins::Bin;

@@ -8,7 +8,8 @@
 //! and knows nothing of files or frames.
 //!
 //! Modules: [`fresnel`] (interface coefficients, dielectric and metal), [`thinfilm`]
-//! (characteristic-matrix coatings), [`analysis`] (Jones to Mueller, realizability, inverse,
+//! (characteristic-matrix coatings), [`mirror`] (telescope mirrors: metals with over-layers,
+//! tabulated n, k, the sky / alt-az / instrument rotations and the Nasmyth train), [`analysis`] (Jones to Mueller, realizability, inverse,
 //! diattenuation / retardance), [`raytrace`] (polarization ray tracing of a lens collimator
 //! from its prescription: the field pattern `p(r)`, `phi(alpha)` and its wavelength law).
 //!
@@ -26,6 +27,7 @@ use serde::{Deserialize, Serialize};
 
 pub mod analysis;
 pub mod fresnel;
+pub mod mirror;
 pub mod raytrace;
 pub mod thinfilm;
 

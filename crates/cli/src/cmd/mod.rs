@@ -6,6 +6,7 @@ pub mod catalog;
 pub mod correct;
 pub mod demo;
 pub mod fit;
+pub mod fit_standards;
 pub mod fresnel;
 pub mod import_map;
 pub mod mc;

@@ -1,0 +1,330 @@
+//! `instpol fit-standards`: fit a Mueller model of the telescope's M3 to standard stars
+//! measured at many parallactic angles (library: `fit::telescope`).
+
+use anyhow::{bail, Context, Result};
+use fit::telescope::{fit_band, fit_joint, read_observations, FitOptions, ModelKind, Observation, TelescopeFit};
+use fit::ErrorScaling;
+use mueller::mirror::MetalTable;
+use plotters::prelude::*;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+/// Fit the instrumental polarization of a Nasmyth telescope's 45 deg tertiary mirror to
+/// unpolarized standard stars observed at many parallactic angles, band by band and jointly.
+///
+/// Models (sky to instrument: R(offset) M3(plane at 90 deg - parallactic angle), Wiersema et
+/// al. 2018, PASA 35, e012):
+///   wiersema: the metal's n and k times an empirical factor; free: factor, offset.
+///   oxide:    the metal under an alumina layer; free: thickness, offset, constant q0, u0.
+/// With --joint, the mirror parameter (factor or thickness) is shared by all bands, offsets
+/// and q0, u0 stay per band.
+///
+/// Input files: one line per measurement, "star, parallactic_deg, q, sigma_q, u, sigma_u,
+/// wavelength_um" (no header; the EFOSC2 files of Wiersema et al.), or a CSV with a header
+/// naming those columns (any order) and optionally "filter". The band is the filter, or else
+/// the wavelength. Points whose pull exceeds --clip times max(1, robust scatter) are flagged
+/// and the fit repeated without them. Errors: sqrt of the covariance's diagonal times
+/// max(1, chi2/dof) by default (--error-scaling).
+///
+/// Example (EFOSC2 2018 standards, all five bands, plots in plots/):
+///
+///   instpol fit-standards ../shared/data/efosc2-standards/p?_standards.txt --joint --plot-dir plots
+#[derive(clap::Args)]
+pub struct Args {
+    /// Measurement files (one or more; bands may be mixed).
+    #[arg(required = true)]
+    pub files: Vec<PathBuf>,
+    /// Which model: wiersema, oxide or both.
+    #[arg(long, default_value = "both")]
+    pub model: String,
+    /// Also fit all bands at once with a shared mirror parameter.
+    #[arg(long)]
+    pub joint: bool,
+    /// The mirror metal: "aluminium" or "silver" (built-in tables, Rakic et al. 1998) or a
+    /// "lambda,n,k" table file (micron).
+    #[arg(long, default_value = "aluminium")]
+    pub metal: String,
+    /// Flag points with a pull above this many sigma (0: no flagging).
+    #[arg(long, default_value_t = 4.0)]
+    pub clip: f64,
+    /// conservative (x max(1, chi2_red), default), scaled (x chi2_red) or absolute.
+    #[arg(long, default_value = "conservative")]
+    pub error_scaling: String,
+    /// Write q and u against parallactic angle with the model, and the residuals (PNG), here.
+    #[arg(long)]
+    pub plot_dir: Option<PathBuf>,
+    /// Print JSON instead of tables (angles in degrees, polarization as fractions).
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct ParamOut {
+    name: String,
+    value: f64,
+    sigma: f64,
+    unit: &'static str,
+}
+
+#[derive(Serialize)]
+struct PointOut {
+    star: String,
+    band: String,
+    source: String,
+    parallactic_deg: f64,
+    q: f64,
+    u: f64,
+    q_model: f64,
+    u_model: f64,
+    pull: f64,
+    flagged: bool,
+}
+
+#[derive(Serialize)]
+struct FitOut {
+    model: &'static str,
+    bands: Vec<String>,
+    joint: bool,
+    params: Vec<ParamOut>,
+    chi2: f64,
+    dof: usize,
+    chi2_reduced: f64,
+    error_scaling: &'static str,
+    error_factor: f64,
+    rms_q: f64,
+    rms_u: f64,
+    n_used: usize,
+    n_total: usize,
+    flagged: Vec<String>,
+    points: Vec<PointOut>,
+}
+
+fn out(f: &TelescopeFit, joint: bool) -> FitOut {
+    FitOut {
+        model: f.model.name(),
+        bands: f.bands.iter().map(|b| b.0.clone()).collect(),
+        joint,
+        params: f
+            .params
+            .iter()
+            .map(|p| {
+                let angle = p.name.starts_with("offset");
+                let unit = if angle {
+                    "deg"
+                } else if p.name == "thickness_nm" {
+                    "nm"
+                } else if p.name.starts_with('q') || p.name.starts_with('u') {
+                    "fraction"
+                } else {
+                    ""
+                };
+                let s = if angle { 180.0 / std::f64::consts::PI } else { 1.0 };
+                ParamOut { name: p.name.clone(), value: p.value * s, sigma: p.sigma * s, unit }
+            })
+            .collect(),
+        chi2: f.chi2,
+        dof: f.dof,
+        chi2_reduced: f.chi2_reduced,
+        error_scaling: f.error_scaling.name(),
+        error_factor: f.error_factor,
+        rms_q: f.rms_q,
+        rms_u: f.rms_u,
+        n_used: f.n_used(),
+        n_total: f.points.len(),
+        flagged: f
+            .points
+            .iter()
+            .filter(|p| p.flagged)
+            .map(|p| format!("{} ({}, pull {:.1})", p.obs.star, p.obs.source, p.pull))
+            .collect(),
+        points: f
+            .points
+            .iter()
+            .map(|p| PointOut {
+                star: p.obs.star.clone(),
+                band: p.obs.band.clone(),
+                source: p.obs.source.clone(),
+                parallactic_deg: p.obs.parallactic.to_degrees(),
+                q: p.obs.q,
+                u: p.obs.u,
+                q_model: p.q_model,
+                u_model: p.u_model,
+                pull: p.pull,
+                flagged: p.flagged,
+            })
+            .collect(),
+    }
+}
+
+fn print_fit(o: &FitOut) {
+    let head = if o.joint { format!("joint ({})", o.bands.join(", ")) } else { o.bands.join(", ") };
+    println!("{head}: model {}", o.model);
+    for p in &o.params {
+        if p.unit == "fraction" {
+            println!("  {:<22} {:>10.4} +- {:.4} %", p.name, 100.0 * p.value, 100.0 * p.sigma);
+        } else {
+            println!("  {:<22} {:>10.4} +- {:.4} {}", p.name, p.value, p.sigma, p.unit);
+        }
+    }
+    println!(
+        "  chi2/dof = {:.2} / {} = {:.2}; errors x sqrt({:.2}) ({}); RMS q = {:.3} %, u = {:.3} %; {} of {} points used",
+        o.chi2,
+        o.dof,
+        o.chi2_reduced,
+        o.error_factor,
+        o.error_scaling,
+        100.0 * o.rms_q,
+        100.0 * o.rms_u,
+        o.n_used,
+        o.n_total
+    );
+    for f in &o.flagged {
+        println!("  flagged: {f}");
+    }
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let models: Vec<ModelKind> = match a.model.trim().to_ascii_lowercase().as_str() {
+        "wiersema" => vec![ModelKind::Wiersema],
+        "oxide" | "physical" => vec![ModelKind::Oxide],
+        "both" => vec![ModelKind::Wiersema, ModelKind::Oxide],
+        other => bail!("--model '{other}': use wiersema, oxide or both"),
+    };
+    if !(a.clip.is_finite() && a.clip >= 0.0) {
+        bail!("--clip {} must be >= 0 (0: no flagging)", a.clip);
+    }
+    let error_scaling: ErrorScaling = a.error_scaling.parse().context("--error-scaling")?;
+    let opts = FitOptions { clip: if a.clip > 0.0 { Some(a.clip) } else { None }, error_scaling };
+    let table = if Path::new(&a.metal).is_file() {
+        MetalTable::read(Path::new(&a.metal))
+    } else {
+        MetalTable::builtin(&a.metal)
+    }
+    .with_context(|| format!("--metal {}", a.metal))?;
+    let mut obs: Vec<Observation> = Vec::new();
+    for f in &a.files {
+        obs.extend(read_observations(f)?);
+    }
+    let mut bands: Vec<String> = Vec::new();
+    for o in &obs {
+        if !bands.contains(&o.band) {
+            bands.push(o.band.clone());
+        }
+    }
+    let mut fits: Vec<(TelescopeFit, bool)> = Vec::new();
+    for b in &bands {
+        let sel: Vec<Observation> = obs.iter().filter(|o| &o.band == b).cloned().collect();
+        for &m in &models {
+            let f = fit_band(m, &sel, &table, &opts).with_context(|| format!("band {b}, model {}", m.name()))?;
+            fits.push((f, false));
+        }
+    }
+    if a.joint {
+        for &m in &models {
+            let f =
+                fit_joint(m, &obs, &table, &opts, true).with_context(|| format!("joint fit, model {}", m.name()))?;
+            fits.push((f, true));
+        }
+    }
+    let outs: Vec<FitOut> = fits.iter().map(|(f, j)| out(f, *j)).collect();
+    if let Some(dir) = &a.plot_dir {
+        std::fs::create_dir_all(dir).with_context(|| format!("--plot-dir {}", dir.display()))?;
+        for (f, j) in &fits {
+            for (bi, (b, _)) in f.bands.iter().enumerate() {
+                let name =
+                    format!("standards_{}_{}{}.png", f.model.name(), sanitize(b), if *j { "_joint" } else { "" });
+                let path = dir.join(name);
+                plot_band(&path, f, bi)?;
+                if !a.json {
+                    eprintln!("wrote {}", path.display());
+                }
+            }
+        }
+    }
+    if a.json {
+        return crate::util::print_json(&outs);
+    }
+    for o in &outs {
+        print_fit(o);
+        println!();
+    }
+    Ok(())
+}
+
+fn sanitize(s: &str) -> String {
+    s.chars().map(|c| if c.is_ascii_alphanumeric() || c == '.' { c } else { '_' }).collect()
+}
+
+/// q and u against the parallactic angle with the model curve (upper panel), residuals
+/// (lower panel); flagged points hollow.
+fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
+    let (band, m) = &f.bands[bi];
+    let pts: Vec<_> = f.points.iter().filter(|p| &p.obs.band == band).collect();
+    let mut curve = Vec::new();
+    for k in 0..=360 {
+        let pa = -180.0 + k as f64;
+        let (q, u) = m.unpolarized(f64::to_radians(pa)).map_err(|e| anyhow::anyhow!("model: {e}"))?;
+        curve.push((pa, 100.0 * q, 100.0 * u));
+    }
+    let ymax = curve
+        .iter()
+        .map(|c| c.1.abs().max(c.2.abs()))
+        .chain(pts.iter().map(|p| 100.0 * (p.obs.q.abs().max(p.obs.u.abs()) + 2.0 * p.obs.sigma_q.max(p.obs.sigma_u))))
+        .fold(0.5, f64::max)
+        * 1.1;
+    let rmax = pts
+        .iter()
+        .map(|p| 100.0 * ((p.obs.q - p.q_model).abs() + p.obs.sigma_q).max((p.obs.u - p.u_model).abs() + p.obs.sigma_u))
+        .fold(0.05, f64::max)
+        * 1.2;
+    crate::plot::save_png(path, (900, 800), |root| {
+        let (top, bottom) = root.split_vertically(520);
+        let ax = crate::plot::Axes::new(
+            format!("{band}: {} model, chi2/dof = {:.2}", f.model.name(), f.chi2_reduced),
+            "parallactic angle (deg)",
+            "q, u (%)",
+        );
+        let mut c = crate::plot::chart(&top, &ax, -180.0..180.0, -ymax..ymax)?;
+        for (col, idx, label) in [(RED, 0usize, "q"), (BLUE, 1, "u")] {
+            c.draw_series(LineSeries::new(
+                curve.iter().map(|p| (p.0, if idx == 0 { p.1 } else { p.2 })),
+                col.stroke_width(2),
+            ))
+            .map_err(crate::plot::pe)?
+            .label(format!("{label} model"))
+            .legend(crate::plot::line_key(col.stroke_width(2)));
+            for p in &pts {
+                let (v, s) = if idx == 0 { (p.obs.q, p.obs.sigma_q) } else { (p.obs.u, p.obs.sigma_u) };
+                let x = p.obs.parallactic.to_degrees();
+                c.draw_series(std::iter::once(PathElement::new([(x, 100.0 * (v - s)), (x, 100.0 * (v + s))], col)))
+                    .map_err(crate::plot::pe)?;
+                let style = if p.flagged { col.stroke_width(2) } else { col.filled() };
+                c.draw_series(std::iter::once(Circle::new((x, 100.0 * v), 5, style))).map_err(crate::plot::pe)?;
+            }
+        }
+        crate::plot::legend(&mut c, SeriesLabelPosition::UpperRight)?;
+        let ax = crate::plot::Axes::new(
+            "residuals (data - model; hollow: flagged)",
+            "parallactic angle (deg)",
+            "residual (%)",
+        )
+        .caption_size(16);
+        let mut r = crate::plot::chart(&bottom, &ax, -180.0..180.0, -rmax..rmax)?;
+        r.draw_series(LineSeries::new([(-180.0, 0.0), (180.0, 0.0)], BLACK)).map_err(crate::plot::pe)?;
+        for p in &pts {
+            let x = p.obs.parallactic.to_degrees();
+            for (col, d, s, dx) in
+                [(RED, p.obs.q - p.q_model, p.obs.sigma_q, -1.5), (BLUE, p.obs.u - p.u_model, p.obs.sigma_u, 1.5)]
+            {
+                r.draw_series(std::iter::once(PathElement::new(
+                    [(x + dx, 100.0 * (d - s)), (x + dx, 100.0 * (d + s))],
+                    col,
+                )))
+                .map_err(crate::plot::pe)?;
+                let style = if p.flagged { col.stroke_width(2) } else { col.filled() };
+                r.draw_series(std::iter::once(Circle::new((x + dx, 100.0 * d), 4, style))).map_err(crate::plot::pe)?;
+            }
+        }
+        Ok(())
+    })
+}
