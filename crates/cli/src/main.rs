@@ -46,6 +46,8 @@ enum Command {
     Plot(cmd::plot::Args),
     #[command(about = "Remove the instrumental polarization from a catalog or a Stokes map")]
     Correct(cmd::correct::Args),
+    #[command(about = "HWP zero angle of a filter from a polarized standard star in frames")]
+    ZeroAngle(cmd::zero_angle::Args),
     #[command(about = "Check a calibration against a standard star in frames")]
     Validate(cmd::validate::Args),
     #[command(about = "Reduce one source's dual-beam fluxes: Q, U, P, chi, errors, harmonics, kappa")]
@@ -76,6 +78,7 @@ fn main() {
         Command::WavelengthLaw(a) => cmd::wavelength_law::run(a),
         Command::Plot(a) => cmd::plot::run(a),
         Command::Correct(a) => cmd::correct::run(a),
+        Command::ZeroAngle(a) => cmd::zero_angle::run(a),
         Command::Validate(a) => cmd::validate::run(a),
         Command::Stokes(a) => cmd::stokes::run(a),
         Command::Bias(a) => cmd::bias::run(a),

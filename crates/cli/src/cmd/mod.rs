@@ -20,3 +20,4 @@ pub mod stokes;
 pub mod stokes_plot;
 pub mod validate;
 pub mod wavelength_law;
+pub mod zero_angle;
