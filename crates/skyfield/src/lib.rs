@@ -11,6 +11,7 @@
 
 pub mod beams;
 pub mod bin;
+pub mod durable;
 pub mod io;
 pub mod maps;
 pub mod photometry;

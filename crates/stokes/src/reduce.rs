@@ -165,6 +165,21 @@ pub struct Reduction {
     pub warnings: Vec<Warning>,
 }
 
+/// The largest `sigma_chi` (rad) worth reporting: the standard deviation of an angle uniform
+/// over `[0, pi)`, `pi/sqrt(12)` (52 deg). A propagated error beyond it (a `P` far below its
+/// error, where linear propagation gives e.g. 5e6 deg) says only that chi is undetermined.
+pub const SIGMA_CHI_UNDETERMINED: f64 = std::f64::consts::PI / 3.464_101_615_137_754_5;
+
+impl Reduction {
+    /// `sigma_chi` in degrees as every command reports it (one rule for `stokes`,
+    /// `photometry`, ...): `None` when chi is undetermined (`P = 0` to rounding, or an error
+    /// above [`SIGMA_CHI_UNDETERMINED`]).
+    pub fn sigma_chi_deg_reported(&self) -> Option<f64> {
+        (self.chi_defined && self.sigma_chi.is_finite() && self.sigma_chi <= SIGMA_CHI_UNDETERMINED)
+            .then(|| self.sigma_chi.to_degrees())
+    }
+}
+
 impl Measurement {
     /// Photon counts (electrons) in the two beams: Poisson errors `sqrt(f)`. Angles in rad.
     pub fn poisson(theta: Vec<f64>, f_o: Vec<f64>, f_e: Vec<f64>) -> Result<Self, Error> {

@@ -31,7 +31,8 @@ pub struct Args {
     /// Built-in instrument name or instrument TOML file.
     #[arg(long, default_value = "fors1")]
     pub instrument: String,
-    /// Sky polarization degree in percent (Table tab:empty: B 6.45, V 1.74, I 1.34). Required.
+    /// Sky polarization degree in PERCENT (Table tab:empty: B 6.45, V 1.74, I 1.34), not a
+    /// fraction; a value below 0.1 draws a warning. Required.
     #[arg(long)]
     pub sky_p: Option<f64>,
     /// Sky polarization angle in degrees (any sign, taken modulo 180). Required.
@@ -145,7 +146,20 @@ pub fn calibrate_map(
 /// The sky values are required: without them the sky-field equations have no solution.
 pub fn sky_from_args(p: Option<f64>, chi: Option<f64>) -> Result<SkyPolarization> {
     match (p, chi) {
-        (Some(p), Some(c)) => Ok(SkyPolarization::from_percent_deg(p, c)?),
+        (Some(p), Some(c)) => {
+            // Other commands and the scene files take fractions: 0.0174 here is 0.0174 %, a sky
+            // so weakly polarized that the fit would measure noise. Say so loudly.
+            if p > 0.0 && p < 0.1 {
+                eprintln!(
+                    "warning: --sky-p {p} is in PERCENT: a sky polarization of {p} % = {:.2e} (fraction). \
+                     If you meant the fraction {p} (= {:.2} %), give --sky-p {:.2}",
+                    p / 100.0,
+                    100.0 * p,
+                    100.0 * p
+                );
+            }
+            Ok(SkyPolarization::from_percent_deg(p, c)?)
+        }
         _ => bail!(
             "the sky polarization is required: give --sky-p PERCENT and --sky-chi DEG (the sky-field method \
              needs the field's own polarization, e.g. from Table tab:empty: V 1.74 -53.8)"
@@ -193,6 +207,10 @@ pub fn print_table(s: &FitSummary) {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs(
+        a.frames.iter().map(|p| p.as_path()).chain(a.map.as_deref()).chain(crate::util::file_arg(&a.instrument)),
+    )?;
+    crate::util::check_output(&a.out)?;
     let sky = sky_from_args(a.sky_p, a.sky_chi)?;
     let opts = a.fit.options()?;
     let inst = instrument::Instrument::load(&a.instrument)?;

@@ -93,6 +93,10 @@ struct Out {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs(crate::util::file_arg(&a.instrument))?;
+    for o in a.plot.iter().chain(&a.field_out) {
+        crate::util::check_output(o)?;
+    }
     let inst = instrument::Instrument::load(&a.instrument)?;
     let presc = inst
         .optics

@@ -24,8 +24,15 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs([a.scene.as_path()])?;
     let scene = sim::Scene::from_file(&a.scene)?;
     let plan = sim::Plan::build(&scene).with_context(|| format!("scene {}", a.scene.display()))?;
+    // No frame or truth file may land on the scene or its instrument file.
+    crate::util::inputs(crate::util::file_arg(&scene.instrument))?;
+    for k in 0..plan.n_frames() {
+        crate::util::check_output(&a.out.join(plan.frame_name(k)))?;
+    }
+    crate::util::check_output(&a.out.join("truth.json"))?;
     if a.explain {
         eprintln!("{}", plan.explain());
     }
