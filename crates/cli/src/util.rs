@@ -92,8 +92,13 @@ impl std::error::Error for CheckFailed {}
 
 /// Print a value as pretty JSON on stdout.
 pub fn print_json<T: serde::Serialize>(v: &T) -> Result<()> {
-    println!("{}", serde_json::to_string_pretty(v)?);
-    Ok(())
+    let mut s = serde_json::to_string_pretty(v)?;
+    s.push('\n');
+    // A closed pipe (`| head`) is the reader's choice, not a panic (println! would panic).
+    match std::io::stdout().lock().write_all(s.as_bytes()) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
+        _ => Ok(()),
+    }
 }
 
 /// The one way the CLI writes a file: `write` fills a temporary file (named `.instpol-*SUFFIX`)

@@ -735,7 +735,11 @@ fn wavelength_law_needs_two_filters() {
     let f = Fixture::new();
     let cal = f.cal();
     let out = f.out_dir();
-    refuses(&out, &["wavelength-law", &cal, &cal], &["V"]);
+    // Two files of the same filter (the same file twice is refused earlier, as a duplicate).
+    let cal2 = out.join("cal_copy.fits");
+    std::fs::copy(&cal, &cal2).unwrap();
+    refuses(&out, &["wavelength-law", &cal, cal2.to_str().unwrap()], &["V"]);
+    refuses(&out, &["wavelength-law", &cal, &cal], &["given twice"]);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -1392,7 +1396,10 @@ fn every_calibration_reader_refuses_another_format_version() {
         refuses(&out, &validate_args(&cal, &ins, &frames, &[]), &["minical.fits", word]);
         refuses(&out, &["fit", &cal, "--out", out.join("refit.fits").to_str().unwrap()], &["minical.fits", word]);
         refuses(&out, &["plot", &cal, "--out", out.join("plots").to_str().unwrap()], &["minical.fits", word]);
-        refuses(&out, &["wavelength-law", &cal, &cal], &["minical.fits", word]);
+        let copy = out.join("minical_copy.fits");
+        std::fs::copy(&cal, &copy).unwrap();
+        refuses(&out, &["wavelength-law", &cal, copy.to_str().unwrap()], &["minical.fits", word]);
+        std::fs::remove_file(&copy).unwrap();
     }
 }
 

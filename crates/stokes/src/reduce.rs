@@ -343,6 +343,19 @@ pub fn reduce(m: &Measurement) -> Result<Reduction, Error> {
     let n = m.theta.len();
     let solver = StokesSolver::new(&m.theta)?;
     let (f, sigma_f) = m.normalized_differences();
+    // F is in [-1, 1] for counts; an error of 1e150 (errors 1e150 times the fluxes) says that
+    // nothing was measured, and its square (the variances below) would overflow to inf.
+    for (i, &s) in sigma_f.iter().enumerate() {
+        if !(s.is_finite() && s <= 1e150) {
+            return Err(Error::Invalid {
+                what: "sigma_F",
+                index: i,
+                value: s,
+                why: "the flux errors are so far above the fluxes (or the total so close to 0) that F is \
+                      undetermined; check the sigma_o, sigma_e columns",
+            });
+        }
+    }
     let mut warnings = Vec::new();
     if n == 2 {
         warnings.push(Warning::TwoAngles);
@@ -386,10 +399,12 @@ pub fn reduce(m: &Measurement) -> Result<Reduction, Error> {
     }
 
     // SNR of the intensity image of one exposure, combined so that eq:sigp holds.
+    // Scale-free ratios sigma/t: sigma^2 and t^2 over- or underflow at extreme scales.
     let inv_snr2: f64 = (0..n)
         .map(|i| {
             let tot = m.f_o[i] + m.f_e[i];
-            (m.sigma_o[i] * m.sigma_o[i] + m.sigma_e[i] * m.sigma_e[i]) / (tot * tot)
+            let (a, b) = (m.sigma_o[i] / tot, m.sigma_e[i] / tot);
+            a * a + b * b
         })
         .sum::<f64>()
         / n as f64;

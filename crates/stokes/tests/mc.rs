@@ -199,8 +199,8 @@ fn bad_configuration_is_an_error() {
         let e = Engine::new(&McConfig::new(4, snr, 0.01, 0.0, 10, Noise::Poisson)).err().expect("refused").to_string();
         assert!(e.contains("SNR"), "{snr}: {e}");
     }
-    for rn in [1e200, 1e3] {
-        // SNR 100: 1e4 counts, sigma_F = sqrt(1e4 + 2 rn^2)/1e4 > 1 for rn = 1e3 (1.4) and inf.
+    for rn in [1e200, 1e4] {
+        // SNR 100: 1e4 counts, sigma_F = sqrt(1e4 + 2 rn^2)/1e4: 1.41 for rn = 1e4, inf for 1e200.
         let mut c = McConfig::new(4, 100.0, 0.01, 0.0, 10, Noise::Poisson);
         c.read_noise = rn;
         let e = Engine::new(&c).err().expect("refused").to_string();
