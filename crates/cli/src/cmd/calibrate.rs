@@ -214,6 +214,7 @@ pub fn run(a: Args) -> Result<()> {
     let sky = sky_from_args(a.sky_p, a.sky_chi)?;
     let opts = a.fit.options()?;
     let inst = instrument::Instrument::load(&a.instrument)?;
+    crate::util::check_bin(a.bin, &inst)?;
     let (map, inputs) = if let Some(m) = &a.map {
         (skyfield::StokesMap::read_fits(m)?, vec![m.display().to_string()])
     } else {
