@@ -347,13 +347,7 @@ pub fn reduce(m: &Measurement) -> Result<Reduction, Error> {
     // nothing was measured, and its square (the variances below) would overflow to inf.
     for (i, &s) in sigma_f.iter().enumerate() {
         if !(s.is_finite() && s <= 1e150) {
-            return Err(Error::Invalid {
-                what: "sigma_F",
-                index: i,
-                value: s,
-                why: "the flux errors are so far above the fluxes (or the total so close to 0) that F is \
-                      undetermined; check the sigma_o, sigma_e columns",
-            });
+            return Err(Error::Undetermined { index: i, sigma_f: s });
         }
     }
     let mut warnings = Vec::new();

@@ -189,10 +189,22 @@ pub fn print_table(s: &FitSummary) {
         s.error_scaling,
         if s.correlation.is_some() { ", with the correlated-errors inflation" } else { "" }
     );
-    println!(
-        "polar-angle test: slope {:.4} +- {:.4}, intercept {:.2} +- {:.2} deg",
-        s.polar_angle_slope, s.polar_angle_slope_err, s.polar_angle_intercept_deg, s.polar_angle_intercept_err_deg
-    );
+    if s.polar_angle_pattern {
+        println!(
+            "polar-angle test: slope {:.4} +- {:.4}, intercept {:.2} +- {:.2} deg (pattern against noise: p = {:.2e}, radial component {:+.1} sigma)",
+            s.polar_angle_slope,
+            s.polar_angle_slope_err,
+            s.polar_angle_intercept_deg,
+            s.polar_angle_intercept_err_deg,
+            s.polar_angle_noise_p,
+            s.polar_angle_radial_z
+        );
+    } else {
+        println!(
+            "polar-angle test: no radial pattern: the bins are consistent with noise (p = {:.3}, radial component {:+.1} sigma); the line fit (slope {:.4}) describes noise",
+            s.polar_angle_noise_p, s.polar_angle_radial_z, s.polar_angle_slope
+        );
+    }
     if let Some(a) = &s.approx_vs_exact {
         println!(
             "eq:approx vs exact: max |dp| {:.5}%, rms {:.5}%, max |dphi| {:.3} deg",
@@ -238,6 +250,21 @@ pub fn run(a: Args) -> Result<()> {
 /// into `plots`, and print the fit summary as JSON or as a table.
 pub fn finish(run: &CalibrationRun, out: Option<&Path>, plots: Option<&Path>, json: bool) -> Result<()> {
     let mut s = FitSummary::new(run);
+    // A fit whose residuals are far from its errors is a wrong model or wrong errors (e.g. an
+    // extreme Wollaston imbalance gave chi2_red = 1e9): the numbers still come, with a warning.
+    if !(s.chi2_reduced >= 0.1 && s.chi2_reduced <= 10.0) {
+        eprintln!(
+            "warning: reduced chi^2 of the radial fit is {:.3e}, far from 1: the model or the errors do not describe \
+             the bins (errors scaled: {}; check the frames, the sky polarization and the Wollaston balance)",
+            s.chi2_reduced, s.error_scaling
+        );
+    }
+    if !s.polar_angle_pattern {
+        eprintln!(
+            "warning: polar-angle test: no radial pattern (the bins are consistent with noise, p = {:.3})",
+            s.polar_angle_noise_p
+        );
+    }
     // The plots folder first: a run that cannot write its plots fails before it saves anything.
     if let Some(dir) = plots {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create the plots folder {}", dir.display()))?;

@@ -214,6 +214,11 @@ pub fn run(a: Args) -> Result<()> {
     if a.plot.is_some() && !(a.sweep || a.accuracy_report) {
         bail!("--plot needs --sweep or --accuracy-report");
     }
+    // Checked before minutes of simulation, not after.
+    if let Some(p) = &a.plot {
+        crate::plot::require_png(p)?;
+        crate::util::check_output(p)?;
+    }
     if a.sweep {
         return sweep(&a, noise);
     }

@@ -97,6 +97,9 @@ pub fn run(a: Args) -> Result<()> {
     for o in a.plot.iter().chain(&a.field_out) {
         crate::util::check_output(o)?;
     }
+    if let Some(p) = &a.plot {
+        crate::plot::require_png(p)?;
+    }
     let inst = instrument::Instrument::load(&a.instrument)?;
     let presc = inst
         .optics

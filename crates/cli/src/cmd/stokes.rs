@@ -154,7 +154,9 @@ fn explain(e: RedError, t: &Table, name: &str) -> anyhow::Error {
         RedError::NonPositiveFlux { index, total } => {
             anyhow!("{name}: {}: total flux f_o + f_e = {total} is not positive", row(index))
         }
-        RedError::Invalid { index, .. } | RedError::NonFinite { index, .. } if index < t.lines.len() => {
+        RedError::Invalid { index, .. } | RedError::NonFinite { index, .. } | RedError::Undetermined { index, .. }
+            if index < t.lines.len() =>
+        {
             anyhow!("{name}: {}: {e}", row(index))
         }
         e => anyhow!("{name}: {e}"),
@@ -219,6 +221,7 @@ pub fn run(a: Args) -> Result<()> {
     crate::util::inputs([a.input.as_path()])?;
     if let Some(p) = &a.plot {
         crate::util::check_output(p)?;
+        crate::plot::ImageFormat::of(p)?;
     }
     let name = a.input.display().to_string();
     let mut t = read_table(&a.input)?;
@@ -244,6 +247,14 @@ pub fn run(a: Args) -> Result<()> {
         None => m,
     };
     let r = m.reduce().map_err(|e| explain(e, &t, &name))?;
+    // kappa = (t - s)/(t + s): beyond 0.2 one beam carries 1.5 times the other, far beyond any
+    // working Wollaston prism; a column swap or a flux in the wrong units is more likely.
+    if let Some(k) = r.kappa_mean.filter(|k| k.abs() > 0.2) {
+        eprintln!(
+            "warning: {name}: extreme Wollaston imbalance kappa = {k:.3} (beam ratio {:.2}): check the f_o, f_e columns",
+            (1.0 + k) / (1.0 - k)
+        );
+    }
     // The plot first: a plot that cannot be written fails the command before anything is
     // printed.
     if let Some(path) = &a.plot {
