@@ -60,8 +60,27 @@ enum Command {
 
 fn main() {
     // Negative numbers are values everywhere (`--chi -30`, `--kappa -1e-3`, `--x -30`), in
-    // every subcommand, not only where an argument remembered to say so.
-    let matches = Cli::command().mut_subcommands(|s| s.allow_negative_numbers(true)).get_matches();
+    // every subcommand, not only where an argument remembered to say so. clap's own test for
+    // a negative number knows no exponent (`-1e-3` was read as the flags -1, -e, ...), so the
+    // numeric options take any value that starts with '-' and their parser judges it.
+    let numeric = |a: &clap::Arg| {
+        use std::any::TypeId;
+        let t = a.get_value_parser().type_id();
+        [TypeId::of::<f64>(), TypeId::of::<usize>(), TypeId::of::<u64>(), TypeId::of::<u32>(), TypeId::of::<i64>()]
+            .iter()
+            .any(|id| t == *id)
+    };
+    let matches = Cli::command()
+        .mut_subcommands(|s| {
+            s.allow_negative_numbers(true).mut_args(|a| {
+                if !a.is_positional() && numeric(&a) {
+                    a.allow_hyphen_values(true)
+                } else {
+                    a
+                }
+            })
+        })
+        .get_matches();
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     let result = match cli.command {
         Command::Demo(a) => cmd::demo::run(a),
