@@ -453,6 +453,59 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
                 });
             }
         }
+        // Hostile output names: a symlink to an input (refused, input unchanged), a folder
+        // that does not exist, an existing folder, a name in /proc (not writable).
+        if let Some(name) = t.out_name {
+            for kind in ["symlink-to-input", "missing-folder", "is-a-folder", "proc"] {
+                let dir = new_dir();
+                let o = match kind {
+                    "symlink-to-input" => {
+                        let i = file_index(&t.args, &t.files[0]);
+                        let copy = dir.join(format!(
+                            "input_copy_{}",
+                            Path::new(&t.args[i]).file_name().unwrap().to_string_lossy()
+                        ));
+                        std::fs::copy(&t.args[i], &copy).unwrap();
+                        let link = dir.join(name);
+                        std::os::unix::fs::symlink(&copy, &link).unwrap();
+                        let mut a = t.args.clone();
+                        a[i] = copy.to_str().unwrap().to_string();
+                        let o = a.iter().position(|x| x == "{OUT}").unwrap();
+                        a[o] = link.to_str().unwrap().to_string();
+                        let inputs = files_in(&a);
+                        out.push(Case {
+                            command: t.command,
+                            what: format!("--out {kind}"),
+                            args: a,
+                            outputs: vec![],
+                            inputs,
+                            dir,
+                        });
+                        continue;
+                    }
+                    "missing-folder" => dir.join("no/such/folder").join(name),
+                    "is-a-folder" => {
+                        std::fs::create_dir_all(dir.join(name)).unwrap();
+                        dir.join(name)
+                    }
+                    _ => PathBuf::from("/proc/instpol_hostile").join(name),
+                };
+                let a: Vec<String> = t
+                    .args
+                    .iter()
+                    .map(|x| if x == "{OUT}" { o.to_str().unwrap().to_string() } else { x.clone() })
+                    .collect();
+                let outputs = if kind == "is-a-folder" { vec![] } else { vec![o.clone()] };
+                out.push(Case {
+                    command: t.command,
+                    what: format!("--out {kind}"),
+                    inputs: files_in(&a),
+                    args: a,
+                    outputs,
+                    dir,
+                });
+            }
+        }
         // The same input file twice (frames): refused, naming it.
         if let Some(FileArg::Positional(i)) = t.files.iter().find(|fa| matches!(fa, FileArg::Positional(_))) {
             if t.command != "fit" && t.command != "plot" && t.command != "simulate" {
