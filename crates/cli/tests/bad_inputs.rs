@@ -782,6 +782,42 @@ fn import_map_mismatched_and_bad_images() {
     refuses(&out, &a, &["missing.fits"]);
 }
 
+/// Issue 17: physically impossible maps were accepted: a negative error plane, and values in
+/// percent (P = 1.4 > 1). Both refused naming the file and the map pixel; the control passes.
+#[test]
+fn import_map_negative_errors_and_p_above_one() {
+    let f = Fixture::new();
+    write_image(&f.p("q.fits"), 20, 20, 0.001);
+    write_image(&f.p("u.fits"), 20, 20, 0.001);
+    write_image(&f.p("qpct.fits"), 20, 20, 1.0);
+    let neg = f.p("uneg.fits");
+    {
+        let d =
+            fitsio::images::ImageDescription { data_type: fitsio::images::ImageType::Double, dimensions: &[2, 20, 20] };
+        let mut fi = fitsio::FitsFile::create(&neg).with_custom_primary(&d).open().unwrap();
+        let h = fi.primary_hdu().unwrap();
+        let mut data = vec![0.001; 400];
+        data.extend(vec![1e-4; 400]);
+        data[400 + 3 * 20 + 5] = -1e-4; // pixel (5, 3) of the error plane
+        h.write_image(&mut fi, &data).unwrap();
+    }
+    let out = f.out_dir();
+    let o = out.join("cal.fits");
+    let (code, _, err) = run(&import_map_args(&f.s("q.fits"), &f.s("u.fits"), o.to_str().unwrap()));
+    assert_eq!(code, 0, "control: {err}");
+    std::fs::remove_file(&o).unwrap();
+    refuses(
+        &out,
+        &import_map_args(&f.s("q.fits"), &f.s("uneg.fits"), o.to_str().unwrap()),
+        &["uneg.fits", "(5, 3)", "negative"],
+    );
+    refuses(
+        &out,
+        &import_map_args(&f.s("qpct.fits"), &f.s("u.fits"), o.to_str().unwrap()),
+        &["qpct.fits", "above 1", "percent"],
+    );
+}
+
 // ---------------------------------------------------------------------------------------
 // Numbers on the command line
 // ---------------------------------------------------------------------------------------
