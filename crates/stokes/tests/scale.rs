@@ -7,9 +7,12 @@
 use std::f64::consts::PI;
 use stokes::{Measurement, Reduction};
 
+/// Angles, f_O, f_E, sigma_O, sigma_E.
+type Case = (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>);
+
 /// Two angle sets: the optimal N = 8 (Fourier sums) and an uneven set with unequal errors
 /// (weighted least squares), with P ~ 5 % so that F does not cancel badly.
-fn cases() -> Vec<(Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>)> {
+fn cases() -> Vec<Case> {
     let (q, u) = (0.04, -0.03);
     let mk = |theta: Vec<f64>, sig_scale: &dyn Fn(usize) -> f64| {
         let n = theta.len();
@@ -31,7 +34,7 @@ fn cases() -> Vec<(Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>)> {
     ]
 }
 
-fn reduce(c: &(Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>), s: f64) -> Reduction {
+fn reduce(c: &Case, s: f64) -> Reduction {
     let sc = |v: &Vec<f64>| v.iter().map(|x| x * s).collect::<Vec<_>>();
     Measurement::with_errors(c.0.clone(), sc(&c.1), sc(&c.2), sc(&c.3), sc(&c.4))
         .unwrap_or_else(|e| panic!("scale {s:e}: {e}"))
