@@ -2,7 +2,7 @@
 //! and shows progress; all science lives in the library crates (`mueller`, `stokes`,
 //! `skyfield`, `fit`, `sim`).
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Subcommand};
 
 mod cmd;
 mod plot;
@@ -15,7 +15,7 @@ mod util;
 /// Every command that prints numbers takes --json for scripts. Polarization degrees are
 /// fractions in JSON and percent (labelled) in tables; angles are degrees at the edges.
 /// Errors in the input exit with code 2 and a message that names the input.
-#[derive(Parser)]
+#[derive(clap::Parser)]
 #[command(name = "instpol", version, about, long_about)]
 struct Cli {
     #[command(subcommand)]
@@ -65,7 +65,29 @@ enum Command {
 }
 
 fn main() {
-    let cli = Cli::parse();
+    // Negative numbers are values everywhere (`--chi -30`, `--kappa -1e-3`, `--x -30`), in
+    // every subcommand, not only where an argument remembered to say so. clap's own test for
+    // a negative number knows no exponent (`-1e-3` was read as the flags -1, -e, ...), so the
+    // numeric options take any value that starts with '-' and their parser judges it.
+    let numeric = |a: &clap::Arg| {
+        use std::any::TypeId;
+        let t = a.get_value_parser().type_id();
+        [TypeId::of::<f64>(), TypeId::of::<usize>(), TypeId::of::<u64>(), TypeId::of::<u32>(), TypeId::of::<i64>()]
+            .iter()
+            .any(|id| t == *id)
+    };
+    let matches = Cli::command()
+        .mut_subcommands(|s| {
+            s.allow_negative_numbers(true).mut_args(|a| {
+                if !a.is_positional() && numeric(&a) {
+                    a.allow_hyphen_values(true)
+                } else {
+                    a
+                }
+            })
+        })
+        .get_matches();
+    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     let result = match cli.command {
         Command::Demo(a) => cmd::demo::run(a),
         Command::Simulate(a) => cmd::simulate::run(a),
@@ -88,6 +110,11 @@ fn main() {
         Command::FitStandards(a) => cmd::fit_standards::run(a),
     };
     if let Err(e) = result {
+        // Exit codes: 0 success, 1 a check that ran and failed, 2 bad input.
+        if let Some(f) = e.downcast_ref::<util::CheckFailed>() {
+            eprintln!("{f}");
+            std::process::exit(1);
+        }
         eprintln!("error: {e:#}");
         std::process::exit(2);
     }

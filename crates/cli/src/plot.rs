@@ -52,6 +52,7 @@ pub fn save_png(
     size: (u32, u32),
     draw: impl FnOnce(&DrawingArea<BitMapBackend, Shift>) -> Result<()>,
 ) -> Result<()> {
+    require_png(path)?;
     font();
     atomic(path, ".png", |tmp| {
         let root = BitMapBackend::new(tmp, size).into_drawing_area();
@@ -59,6 +60,58 @@ pub fn save_png(
         draw(&root)?;
         root.present().map_err(pe)
     })
+}
+
+/// The image format a `--plot` file name asks for: PNG or SVG by its extension (any case);
+/// anything else is refused rather than written as PNG bytes under another name.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ImageFormat {
+    Png,
+    Svg,
+}
+
+impl ImageFormat {
+    pub fn of(path: &Path) -> Result<Self> {
+        let ext = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+        match ext.as_str() {
+            "png" => Ok(Self::Png),
+            "svg" => Ok(Self::Svg),
+            _ => Err(anyhow!(
+                "{}: cannot tell the image format from the extension '{ext}': name the file .png or .svg",
+                path.display()
+            )),
+        }
+    }
+}
+
+/// For plots drawn only as PNG: refuse any other extension (a `.svg` name would get PNG bytes).
+pub fn require_png(path: &Path) -> Result<()> {
+    if ImageFormat::of(path)? != ImageFormat::Png {
+        return Err(anyhow!("{}: this plot is drawn as PNG only: name the file .png", path.display()));
+    }
+    Ok(())
+}
+
+/// Draw one image at `path`, PNG or SVG by its extension ([`ImageFormat::of`]), through
+/// [`atomic`]; the two closures are the same drawing code instantiated for each backend.
+pub fn save_image(
+    path: &Path,
+    size: (u32, u32),
+    png: impl FnOnce(&DrawingArea<BitMapBackend, Shift>) -> Result<()>,
+    svg: impl FnOnce(&DrawingArea<SVGBackend, Shift>) -> Result<()>,
+) -> Result<()> {
+    match ImageFormat::of(path)? {
+        ImageFormat::Png => save_png(path, size, png),
+        ImageFormat::Svg => {
+            font();
+            atomic(path, ".svg", |tmp| {
+                let root = SVGBackend::new(tmp, size).into_drawing_area();
+                root.fill(&WHITE).map_err(pe)?;
+                svg(&root)?;
+                root.present().map_err(pe)
+            })
+        }
+    }
 }
 
 /// Draw the same picture as `STEM.png` and `STEM.svg`; returns both paths. The two closures

@@ -1,26 +1,136 @@
 //! Small helpers shared by the commands: JSON printing and atomic file writes.
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+/// The files the running command reads, registered by [`inputs`]: every output is checked
+/// against them ([`check_output`], also inside [`write_via_temp`]), so that no command ever
+/// writes over one of its own inputs, whatever the name it is given by.
+static INPUTS: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+/// The identity of an existing file: device and inode (a hard link or a bind mount has another
+/// name but the same identity).
+fn file_id(p: &Path) -> Option<(u64, u64)> {
+    use std::os::unix::fs::MetadataExt;
+    std::fs::metadata(p).ok().map(|m| (m.dev(), m.ino()))
+}
+
+/// `p` with symlinks and `..` resolved; for a file that does not exist yet, its folder
+/// resolved and the name appended.
+fn resolved(p: &Path) -> Option<PathBuf> {
+    if let Ok(c) = std::fs::canonicalize(p) {
+        return Some(c);
+    }
+    let dir = p.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    Some(std::fs::canonicalize(dir).ok()?.join(p.file_name()?))
+}
+
+fn same_file(a: &Path, b: &Path) -> bool {
+    match (file_id(a), file_id(b)) {
+        (Some(x), Some(y)) if x == y => return true,
+        _ => {}
+    }
+    matches!((resolved(a), resolved(b)), (Some(x), Some(y)) if x == y)
+}
+
+/// Register the files this command reads, after refusing one passed twice (it would be summed
+/// with itself, doubling its weight without a word). Files that do not exist are registered
+/// too (their reader reports them).
+pub fn inputs<'a>(paths: impl IntoIterator<Item = &'a Path>) -> Result<()> {
+    let paths: Vec<&Path> = paths.into_iter().collect();
+    for (i, a) in paths.iter().enumerate() {
+        for b in &paths[..i] {
+            if file_id(a).is_some() && same_file(a, b) {
+                if a == b {
+                    bail!("{} is given twice: each input file may be given once", a.display());
+                }
+                bail!("{} and {} are the same file: each input file may be given once", b.display(), a.display());
+            }
+        }
+    }
+    INPUTS.lock().unwrap_or_else(|e| e.into_inner()).extend(paths.iter().map(|p| p.to_path_buf()));
+    Ok(())
+}
+
+/// `--bin` must be a number of pixels that fits the detector (1 ..= its longer side): a bin of
+/// 1e11 px overflowed the bin-count arithmetic (a panic) before it was checked.
+pub fn check_bin(bin: usize, inst: &instrument::Instrument) -> Result<()> {
+    let side = inst.detector.nx.max(inst.detector.ny);
+    if bin == 0 || bin > side {
+        bail!(
+            "--bin {bin}: a bin side in pixels must be between 1 and the detector's {side} px ({} is {} x {} px)",
+            inst.name,
+            inst.detector.nx,
+            inst.detector.ny
+        );
+    }
+    Ok(())
+}
+
+/// An `--instrument` value as an input path when it names a file (built-in names do not).
+pub fn file_arg(s: &str) -> Option<&Path> {
+    let p = Path::new(s);
+    p.is_file().then_some(p)
+}
+
+/// Refuse an output that resolves to one of the registered inputs (same path after resolving
+/// symlinks and `..`, or same device and inode), naming both.
+pub fn check_output(out: &Path) -> Result<()> {
+    let ins = INPUTS.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    for i in &ins {
+        if same_file(out, i) {
+            bail!(
+                "output {} is the input {} (the same file): refusing to write over an input; choose another output name",
+                out.display(),
+                i.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// A check that ran and failed (a standard star that does not match its prediction): the
+/// command's report is already printed; `main` prints this line and exits with code 1, which
+/// scripts tell apart from 0 (passed) and 2 (bad input, nothing checked).
+#[derive(Debug)]
+pub struct CheckFailed(pub String);
+
+impl std::fmt::Display for CheckFailed {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for CheckFailed {}
 
 /// Print a value as pretty JSON on stdout.
 pub fn print_json<T: serde::Serialize>(v: &T) -> Result<()> {
-    println!("{}", serde_json::to_string_pretty(v)?);
-    Ok(())
+    let mut s = serde_json::to_string_pretty(v)?;
+    s.push('\n');
+    // A closed pipe (`| head`) is the reader's choice, not a panic (println! would panic).
+    match std::io::stdout().lock().write_all(s.as_bytes()) {
+        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
+        _ => Ok(()),
+    }
 }
 
 /// The one way the CLI writes a file: `write` fills a temporary file (named `.instpol-*SUFFIX`)
 /// in the destination folder, which is then renamed onto `path`; on any error the temporary
 /// is removed, so an interrupted or failed run never leaves a half-written file.
 pub fn write_via_temp(path: &Path, suffix: &str, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+    check_output(path)?;
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let tmp = skyfield::io::temp_beside(path, suffix)
         .with_context(|| format!("cannot create a temporary file in {}", dir.display()))?;
+    // The closure writes by name (plotters, CFITSIO open their own handle); it must close
+    // what it opened and return every error (FITS: through `skyfield::durable::close_fits`).
     write(tmp.path())?;
-    // Keep only the io::Error: the PersistError also holds the temporary, which must be
-    // dropped (deleted) here, not when the error is (main exits without unwinding).
-    tmp.persist(path).map_err(|e| e.error).with_context(|| format!("cannot write {}", path.display()))?;
+    // fsync then rename: a deferred write error (full disk) fails the command here and the
+    // temporary is deleted, instead of a truncated file under the final name and exit 0.
+    skyfield::durable::finish(tmp.into_temp_path(), path)
+        .with_context(|| format!("cannot write {}", path.display()))?;
     Ok(())
 }
 
@@ -28,7 +138,10 @@ pub fn write_via_temp(path: &Path, suffix: &str, write: impl FnOnce(&Path) -> Re
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     write_via_temp(path, ".tmp", |tmp| {
         std::fs::File::create(tmp)
-            .and_then(|mut f| f.write_all(bytes))
+            .and_then(|mut f| {
+                f.write_all(bytes)?;
+                f.flush()
+            })
             .with_context(|| format!("cannot write {}", path.display()))
     })
 }

@@ -735,7 +735,11 @@ fn wavelength_law_needs_two_filters() {
     let f = Fixture::new();
     let cal = f.cal();
     let out = f.out_dir();
-    refuses(&out, &["wavelength-law", &cal, &cal], &["V"]);
+    // Two files of the same filter (the same file twice is refused earlier, as a duplicate).
+    let cal2 = out.join("cal_copy.fits");
+    std::fs::copy(&cal, &cal2).unwrap();
+    refuses(&out, &["wavelength-law", &cal, cal2.to_str().unwrap()], &["V"]);
+    refuses(&out, &["wavelength-law", &cal, &cal], &["given twice"]);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -776,6 +780,42 @@ fn import_map_mismatched_and_bad_images() {
     refuses(&out, &a, &["unan.fits"]);
     let a = base("missing.fits");
     refuses(&out, &a, &["missing.fits"]);
+}
+
+/// Issue 17: physically impossible maps were accepted: a negative error plane, and values in
+/// percent (P = 1.4 > 1). Both refused naming the file and the map pixel; the control passes.
+#[test]
+fn import_map_negative_errors_and_p_above_one() {
+    let f = Fixture::new();
+    write_image(&f.p("q.fits"), 20, 20, 0.001);
+    write_image(&f.p("u.fits"), 20, 20, 0.001);
+    write_image(&f.p("qpct.fits"), 20, 20, 1.0);
+    let neg = f.p("uneg.fits");
+    {
+        let d =
+            fitsio::images::ImageDescription { data_type: fitsio::images::ImageType::Double, dimensions: &[2, 20, 20] };
+        let mut fi = fitsio::FitsFile::create(&neg).with_custom_primary(&d).open().unwrap();
+        let h = fi.primary_hdu().unwrap();
+        let mut data = vec![0.001; 400];
+        data.extend(vec![1e-4; 400]);
+        data[400 + 3 * 20 + 5] = -1e-4; // pixel (5, 3) of the error plane
+        h.write_image(&mut fi, &data).unwrap();
+    }
+    let out = f.out_dir();
+    let o = out.join("cal.fits");
+    let (code, _, err) = run(&import_map_args(&f.s("q.fits"), &f.s("u.fits"), o.to_str().unwrap()));
+    assert_eq!(code, 0, "control: {err}");
+    std::fs::remove_file(&o).unwrap();
+    refuses(
+        &out,
+        &import_map_args(&f.s("q.fits"), &f.s("uneg.fits"), o.to_str().unwrap()),
+        &["uneg.fits", "(5, 3)", "negative"],
+    );
+    refuses(
+        &out,
+        &import_map_args(&f.s("qpct.fits"), &f.s("u.fits"), o.to_str().unwrap()),
+        &["qpct.fits", "above 1", "percent"],
+    );
 }
 
 // ---------------------------------------------------------------------------------------
@@ -1392,7 +1432,10 @@ fn every_calibration_reader_refuses_another_format_version() {
         refuses(&out, &validate_args(&cal, &ins, &frames, &[]), &["minical.fits", word]);
         refuses(&out, &["fit", &cal, "--out", out.join("refit.fits").to_str().unwrap()], &["minical.fits", word]);
         refuses(&out, &["plot", &cal, "--out", out.join("plots").to_str().unwrap()], &["minical.fits", word]);
-        refuses(&out, &["wavelength-law", &cal, &cal], &["minical.fits", word]);
+        let copy = out.join("minical_copy.fits");
+        std::fs::copy(&cal, &copy).unwrap();
+        refuses(&out, &["wavelength-law", &cal, copy.to_str().unwrap()], &["minical.fits", word]);
+        std::fs::remove_file(&copy).unwrap();
     }
 }
 

@@ -65,12 +65,15 @@ fn a_plain_image_is_not_a_map_cube() {
         h.write_image(&mut f, &[0.0f64; 20]).unwrap();
     }
     let out = dir.path().join("cal.fits");
+    // A copy as the U map: the same file as both maps is refused earlier, as a duplicate.
+    let img_u = dir.path().join("flat_u.fits");
+    std::fs::copy(&img, &img_u).unwrap();
     let (code, _, err) = instpol(&[
         "import-map",
         "--q",
         img.to_str().unwrap(),
         "--u",
-        img.to_str().unwrap(),
+        img_u.to_str().unwrap(),
         "--pixel-scale",
         "0.25",
         "--bin",

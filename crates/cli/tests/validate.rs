@@ -144,8 +144,12 @@ fn unpolarized_standard_in_the_corner_passes_with_v_fails_with_i() {
     assert!(f("residual_sigma") < 1.0, "{v}");
     assert_eq!(v["pass"], true);
     assert!(f("corrected_p") < 3.0 * f("sigma_corrected_p"), "{v}");
+    // A check that ran and failed exits 1 (scripts: 0 pass, 1 fail, 2 bad input), with the
+    // JSON still printed and a FAIL line naming the star on stderr.
     let (o, i) = validate(&ip, &frames, x, y, &[]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.status.code(), Some(1), "{}", String::from_utf8_lossy(&o.stderr));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.lines().last().is_some_and(|l| l.starts_with("FAIL: unpolarized")), "{err}");
     assert!((i["predicted_p"].as_f64().unwrap() - 0.0128).abs() < 1e-4, "{i}");
     assert!(i["residual_sigma"].as_f64().unwrap() > 3.0, "{i}");
     assert_eq!(i["pass"], false);
@@ -156,7 +160,7 @@ fn unpolarized_standard_in_the_corner_passes_with_v_fails_with_i() {
     assert!((va["residual_sigma"].as_f64().unwrap() - f("residual_sigma")).abs() < 1e-9);
     // A named polarized standard claimed for this unpolarized star fails.
     let (o, h) = validate(&vp, &frames, x, y, &["--star", "Hiltner 652"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(o.status.code(), Some(1), "{}", String::from_utf8_lossy(&o.stderr));
     assert_eq!(h["pass"], false);
     assert_eq!(h["star"], "Hiltner 652");
     // Errors: a position behind the focal-plane mask names the pixel; an unknown star names it.

@@ -217,11 +217,19 @@ impl Calibration {
         let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
         let tmp = skyfield::io::temp_beside(path, ".fits")
             .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
+        let tmp = tmp.into_temp_path();
         {
-            let mut f = FitsFile::create(tmp.path()).overwrite().open().map_err(fits_err(path, "creating the file"))?;
+            let mut f = FitsFile::create(&tmp).overwrite().open().map_err(fits_err(path, "creating the file"))?;
             self.write_to(&mut f, path)?;
+            // Close with the status checked, fsync, then rename: a full disk is an error here,
+            // never a truncated calibration under the final name.
+            skyfield::durable::close_fits(f).map_err(|m| Error::Fits {
+                path: path.to_path_buf(),
+                doing: "closing the file".into(),
+                message: m,
+            })?;
         }
-        tmp.persist(path).map_err(|e| Error::Io { path: path.to_path_buf(), err: e.error })?;
+        skyfield::durable::finish(tmp, path).map_err(|err| Error::Io { path: path.to_path_buf(), err })?;
         Ok(())
     }
 

@@ -114,6 +114,35 @@ pub fn import_map(q_path: &Path, u_path: &Path, opts: &ImportOptions) -> Result<
             grid.u[k] = f64::NAN;
         }
     }
+    // Physically impossible values are refused, naming the file and the map pixel: an error
+    // cannot be negative, and a polarization degree cannot exceed 1 (these maps are fractions).
+    for j in 0..grid.ny {
+        for i in 0..grid.nx {
+            let k = j * grid.nx + i;
+            if !grid.q[k].is_finite() {
+                continue;
+            }
+            for (path, name, s) in [(q_path, "Q", grid.sigma_q[k]), (u_path, "U", grid.sigma_u[k])] {
+                if s < 0.0 {
+                    return Err(Error::Input(format!(
+                        "{}: the {name} error map (plane 2) is {s} at map pixel ({i}, {j}): an error cannot be negative",
+                        path.display()
+                    )));
+                }
+            }
+            let p = grid.q[k].hypot(grid.u[k]);
+            if p > 1.0 {
+                return Err(Error::Input(format!(
+                    "{} and {}: at map pixel ({i}, {j}) Q/I = {}, U/I = {} give P = {p}, above 1: are the maps in \
+                     percent? (they must be fractions)",
+                    q_path.display(),
+                    u_path.display(),
+                    grid.q[k],
+                    grid.u[k]
+                )));
+            }
+        }
+    }
     let mut bins = vec![];
     for j in 0..grid.ny {
         for i in 0..grid.nx {

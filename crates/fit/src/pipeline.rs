@@ -202,6 +202,12 @@ pub struct FitSummary {
     pub polar_angle_slope_err: f64,
     pub polar_angle_intercept_deg: f64,
     pub polar_angle_intercept_err_deg: f64,
+    /// The polar-angle test against noise (see `polar::PolarAngleTest::noise_p_value`): the
+    /// slope and intercept mean something only when this is below 0.01.
+    pub polar_angle_noise_p: f64,
+    /// False: "no radial pattern", the bins are consistent with noise.
+    pub polar_angle_pattern: bool,
+    pub polar_angle_radial_z: f64,
     pub n_bins_used: usize,
     pub n_bins: usize,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -235,6 +241,9 @@ impl FitSummary {
             polar_angle_slope_err: run.polar.slope_err,
             polar_angle_intercept_deg: run.polar.intercept_deg,
             polar_angle_intercept_err_deg: run.polar.intercept_err_deg,
+            polar_angle_noise_p: run.polar.noise_p_value,
+            polar_angle_pattern: run.polar.pattern_detected(),
+            polar_angle_radial_z: run.polar.radial_z,
             n_bins_used: run.fit.n_used,
             n_bins: cal.bins.len(),
             residual_loo_rms: match &cal.model {

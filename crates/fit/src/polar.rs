@@ -18,6 +18,69 @@ pub struct PolarAngleTest {
     pub alpha_deg: Vec<f64>,
     pub phi_deg: Vec<f64>,
     pub sigma_phi_deg: Vec<f64>,
+    /// The test against noise: the probability that bins of pure noise (no instrumental
+    /// polarization at all) give a chi^2 of (q, u) about zero at least as large as observed,
+    /// `chi^2 = sum q^2/sigma_q^2 + u^2/sigma_u^2` with `2 n` degrees of freedom. The line
+    /// above is fitted whatever the data (noise unwrapped onto a line of slope 1 gives slope
+    /// ~1), so it means something only when this is small.
+    #[serde(default = "one")]
+    pub noise_p_value: f64,
+    /// The weighted mean radial component `q cos 2alpha + u sin 2alpha` in units of its error:
+    /// > 0 radial, < 0 tangential, ~N(0, 1) for noise.
+    #[serde(default)]
+    pub radial_z: f64,
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+/// Below this noise probability the pattern counts as detected (1 %).
+pub const NOISE_P_THRESHOLD: f64 = 0.01;
+
+impl PolarAngleTest {
+    /// True when the bins carry a polarization pattern at all (noise rejected at
+    /// [`NOISE_P_THRESHOLD`]); when false the slope and intercept describe noise.
+    pub fn pattern_detected(&self) -> bool {
+        self.noise_p_value < NOISE_P_THRESHOLD
+    }
+
+    /// One line for tables: the fit, or "no radial pattern" with the noise probability.
+    pub fn verdict(&self) -> String {
+        if self.pattern_detected() {
+            format!(
+                "pattern detected (noise p = {:.2e}; radial component {:+.1} sigma)",
+                self.noise_p_value, self.radial_z
+            )
+        } else {
+            format!(
+                "no radial pattern: the bins are consistent with noise (p = {:.3}, radial component {:+.1} sigma); \
+                 the slope below describes noise",
+                self.noise_p_value, self.radial_z
+            )
+        }
+    }
+}
+
+/// Upper tail of chi^2 with `2 n` degrees of freedom at `chi2`: `exp(-x) sum_{k<n} x^k/k!`,
+/// `x = chi2/2` (closed form for even degrees of freedom), summed in logs (no overflow for
+/// thousands of bins).
+pub fn chi2_even_sf(chi2: f64, n: usize) -> f64 {
+    let x = 0.5 * chi2;
+    if !(x > 0.0) {
+        return 1.0;
+    }
+    let (lx, mut lt, mut best) = (x.ln(), -x, f64::NEG_INFINITY);
+    let mut terms = Vec::with_capacity(n);
+    for k in 0..n {
+        if k > 0 {
+            lt += lx - (k as f64).ln();
+        }
+        terms.push(lt);
+        best = best.max(lt);
+    }
+    let s: f64 = terms.iter().map(|t| (t - best).exp()).sum();
+    (best + s.ln()).exp().min(1.0)
 }
 
 /// `a` wrapped into (-90, 90]: differences of polarization angles are taken modulo 180 deg.
@@ -51,10 +114,21 @@ pub fn polar_angle_test_with(
     let mut alpha = vec![];
     let mut phi = vec![];
     let mut sig = vec![];
+    // The noise test on the same bins: chi^2 about zero and the radial component.
+    let (mut chi2_zero, mut n_noise, mut zr_num, mut zr_w) = (0.0, 0usize, 0.0, 0.0);
     for b in bins.iter().filter(|b| b.used && b.is_valid()) {
         let (dx, dy) = (b.x - centre[0], b.y - centre[1]);
         if dx.hypot(dy) < r_min {
             continue;
+        }
+        if b.sigma_q > 0.0 && b.sigma_u > 0.0 {
+            chi2_zero += (b.q / b.sigma_q).powi(2) + (b.u / b.sigma_u).powi(2);
+            n_noise += 1;
+            let al = 2.0 * dy.atan2(dx);
+            let radial = b.q * al.cos() + b.u * al.sin();
+            let var = (b.sigma_q * al.cos()).powi(2) + (b.sigma_u * al.sin()).powi(2);
+            zr_num += radial / var;
+            zr_w += 1.0 / var;
         }
         let (p, ph) = b.p_phi();
         if p <= 0.0 {
@@ -120,6 +194,10 @@ pub fn polar_angle_test_with(
         alpha_deg: alpha,
         phi_deg: unwrapped,
         sigma_phi_deg: sig,
+        // Bins without errors (noise-free maps) cannot be tested against noise: count as
+        // detected, as before the test existed.
+        noise_p_value: if n_noise == 0 { 0.0 } else { chi2_even_sf(chi2_zero / inflation.max(1.0), n_noise) },
+        radial_z: if zr_w > 0.0 { zr_num / zr_w.sqrt() } else { 0.0 },
     })
 }
 
@@ -143,6 +221,58 @@ mod tests {
             assert!((t.slope - 1.0).abs() < 1e-9, "{}", t.slope);
             assert!(wrap_half_turn_deg(t.intercept_deg - want).abs() < 1e-6, "{}", t.intercept_deg);
         }
+    }
+
+    /// chi^2 upper tail for even degrees of freedom against closed forms: 2 dof is exp(-x/2);
+    /// 4 dof is (1 + x/2) exp(-x/2); the median of chi^2(200) is about 199.3.
+    #[test]
+    fn chi2_tail_closed_forms() {
+        for x in [0.1, 1.0, 5.0, 30.0] {
+            assert!((chi2_even_sf(x, 1) - (-x / 2.0f64).exp()).abs() < 1e-15);
+            assert!((chi2_even_sf(x, 2) - (1.0 + x / 2.0) * (-x / 2.0f64).exp()).abs() < 1e-15);
+        }
+        let m = chi2_even_sf(199.33, 100);
+        assert!((m - 0.5).abs() < 0.01, "{m}");
+        assert!(chi2_even_sf(1e5, 3000) < 1e-300 || chi2_even_sf(1e5, 3000) == 0.0);
+    }
+
+    /// A field of pure noise (no instrumental polarization): the line fit reports slope ~1
+    /// (noise unwrapped onto the starting line), but the test against noise does not reject
+    /// noise: "no radial pattern". A weak radial pattern (3 sigma per bin) is detected, with a
+    /// positive radial component; a tangential one with a negative one.
+    #[test]
+    fn pure_noise_is_no_radial_pattern() {
+        let mut x = 0x9E3779B97F4A7C15u64;
+        let mut gauss = move || {
+            let mut u = || {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                ((x >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+            };
+            let (a, b) = (u(), u());
+            (-2.0 * a.ln()).sqrt() * (2.0 * std::f64::consts::PI * b).cos()
+        };
+        let field = |amp: f64, offset: f64, g: &mut dyn FnMut() -> f64| {
+            let mut bins = vec![];
+            for i in 0..12 {
+                for j in 0..12 {
+                    let (x, y) = (i as f64 - 5.5, j as f64 - 5.5);
+                    let a = y.atan2(x) + offset;
+                    let s = 1e-4;
+                    bins.push(Bin::new(x, y, amp * (2.0 * a).cos() + s * g(), amp * (2.0 * a).sin() + s * g(), s, s));
+                }
+            }
+            polar_angle_test(&bins, [0.0, 0.0], 0.5).unwrap()
+        };
+        let noise = field(0.0, 0.0, &mut gauss);
+        assert!(!noise.pattern_detected(), "{}", noise.noise_p_value);
+        assert!(noise.radial_z.abs() < 3.0, "{}", noise.radial_z);
+        assert!(noise.verdict().starts_with("no radial pattern"), "{}", noise.verdict());
+        let radial = field(3e-4, 0.0, &mut gauss);
+        assert!(radial.pattern_detected() && radial.radial_z > 10.0, "{} {}", radial.noise_p_value, radial.radial_z);
+        let tangential = field(3e-4, std::f64::consts::FRAC_PI_2, &mut gauss);
+        assert!(tangential.pattern_detected() && tangential.radial_z < -10.0, "{}", tangential.radial_z);
     }
 
     #[test]

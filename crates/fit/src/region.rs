@@ -82,7 +82,17 @@ impl std::str::FromStr for Exclusion {
             return Err(bad("numbers must be finite"));
         }
         match (kind.as_str(), nums.as_slice()) {
-            ("sector", [a, b]) => Ok(Exclusion::Sector { from_deg: *a, to_deg: *b }),
+            ("sector", [a, b]) => {
+                // Widths are taken modulo 360, so 0:360 was a sector of width 0 that excluded
+                // nothing (silently); a full turn would exclude every bin.
+                if (b - a).abs() >= 360.0 {
+                    return Err(bad("a sector of 360 deg or more is the full circle: it would exclude every bin"));
+                }
+                if (b - a).rem_euclid(360.0) == 0.0 {
+                    return Err(bad("FROM and TO are the same angle: the sector is empty"));
+                }
+                Ok(Exclusion::Sector { from_deg: *a, to_deg: *b })
+            }
             ("box", [x0, x1, y0, y1]) => {
                 if x1 <= x0 || y1 <= y0 {
                     return Err(bad("need x0 < x1 and y0 < y1"));
@@ -195,7 +205,17 @@ mod tests {
         assert!(b.excludes(0.0, 1.0) && !b.excludes(0.0, -0.5));
         let r: Exclusion = "ring:0:0.5".parse().unwrap();
         assert!(r.excludes(0.3, 0.3) && !r.excludes(0.5, 0.5));
-        for bad in ["sector:10", "box:1:0:0:1", "circle:1:2", "sector:a:b", "ring:2:1"] {
+        for bad in [
+            "sector:10",
+            "box:1:0:0:1",
+            "circle:1:2",
+            "sector:a:b",
+            "ring:2:1",
+            "sector:0:360",
+            "sector:-180:180",
+            "sector:10:730",
+            "sector:30:30",
+        ] {
             let e = bad.parse::<Exclusion>().unwrap_err().to_string();
             assert!(e.contains(bad), "{e}");
         }

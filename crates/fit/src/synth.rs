@@ -107,9 +107,10 @@ pub fn write_qu_cubes(
         let err = |m: String| crate::Error::Fits { path: path.into(), doing: "writing a map cube".into(), message: m };
         let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
         let tmp = skyfield::io::temp_beside(path, ".fits")
-            .map_err(|source| crate::Error::Io { path: dir.into(), err: source })?;
+            .map_err(|source| crate::Error::Io { path: dir.into(), err: source })?
+            .into_temp_path();
         {
-            let mut f = fitsio::FitsFile::create(tmp.path())
+            let mut f = fitsio::FitsFile::create(&tmp)
                 .with_custom_primary(&fitsio::images::ImageDescription {
                     data_type: fitsio::images::ImageType::Double,
                     dimensions: &[2, ny, nx],
@@ -119,8 +120,10 @@ pub fn write_qu_cubes(
                 .map_err(|e| err(e.to_string()))?;
             let h = f.primary_hdu().map_err(|e| err(e.to_string()))?;
             h.write_image(&mut f, data).map_err(|e| err(e.to_string()))?;
+            // Status-checked close, fsync, rename (see skyfield::durable).
+            skyfield::durable::close_fits(f).map_err(err)?;
         }
-        tmp.persist(path).map_err(|e| crate::Error::Io { path: path.into(), err: e.error })?;
+        skyfield::durable::finish(tmp, path).map_err(|e| crate::Error::Io { path: path.into(), err: e })?;
     }
     Ok(())
 }

@@ -565,6 +565,44 @@ impl Scene {
             if c.size_px == 0 {
                 return bad("effects.cosmic_rays.size_px", "0".into(), "must be >= 1");
             }
+            let (nx, ny) = (inst.detector.nx, inst.detector.ny);
+            if c.size_px > nx.max(ny) {
+                return bad(
+                    "effects.cosmic_rays.size_px",
+                    c.size_px.to_string(),
+                    &format!("a hit larger than the detector ({nx} x {ny} px)"),
+                );
+            }
+            // Each hit is drawn and stored (16 bytes per pixel it touches) before the frame is
+            // made: refuse a rate that would cover the detector more than 10 times over, before
+            // allocating, and say what it would need.
+            let side = |n: usize| c.size_px.min(n) as f64;
+            let touched = c.rate_per_frame * side(nx) * side(ny);
+            let limit = 10.0 * nx as f64 * ny as f64;
+            if touched > limit {
+                return bad(
+                    "effects.cosmic_rays.rate_per_frame",
+                    c.rate_per_frame.to_string(),
+                    &format!(
+                        "{:.3e} hit pixels per frame (~{:.3e} bytes to hold them) would cover the {nx} x {ny} px \
+                         detector more than 10 times: at most {:.3e} hits of {} px per frame",
+                        touched,
+                        16.0 * touched,
+                        limit / (side(nx) * side(ny)),
+                        c.size_px
+                    ),
+                );
+            }
+        }
+        // Frames are written as OUT/PREFIX_NN_hwpA.fits: the prefix is a plain file-name part,
+        // so a scene cannot put files outside the output folder the user named.
+        let pre = &self.output.prefix;
+        if pre.is_empty() || pre.contains(['/', '\\', '\0']) || pre.starts_with('.') || Path::new(pre).is_absolute() {
+            return bad(
+                "output.prefix",
+                format!("{pre:?}"),
+                "must be a plain file-name part (no '/', '\\', '..', not starting with '.', not empty): frames are written inside --out",
+            );
         }
         if let Some(InstPolSpec::Radial { coeffs_percent, .. }) = &fx.instpol {
             if coeffs_percent.iter().any(|c| !c.is_finite()) {
@@ -620,5 +658,31 @@ mod tests {
         assert!(e.to_string().contains("'Z'"), "{e}");
         let e = Scene::from_toml_str(&MIN.replace("fors1", "nosuch"), Path::new("s.toml")).unwrap_err();
         assert!(e.to_string().contains("nosuch"), "{e}");
+    }
+
+    #[test]
+    fn prefix_escaping_the_output_folder_is_refused() {
+        for pre in ["../x", "/tmp/x", "a/b", "..", ".hidden", ""] {
+            let t = format!("{MIN}[output]\nprefix = \"{pre}\"\n");
+            let e = Scene::from_toml_str(&t, Path::new("s.toml")).unwrap_err();
+            assert!(e.to_string().contains("output.prefix"), "{pre}: {e}");
+        }
+        let t = format!("{MIN}[output]\nprefix = \"v_band-1\"\n");
+        Scene::from_toml_str(&t, Path::new("s.toml")).unwrap();
+    }
+
+    #[test]
+    fn absurd_cosmic_ray_rate_is_refused_with_its_size() {
+        // FORS1 is 2048 x 2048: 1e12 single-pixel hits per frame would need 1.6e13 bytes.
+        let t = format!("{MIN}[effects]\ncosmic_rays = {{ rate_per_frame = 1e12, size_px = 1 }}\n");
+        let e = Scene::from_toml_str(&t, Path::new("s.toml")).unwrap_err().to_string();
+        assert!(e.contains("rate_per_frame") && e.contains("1.000e12") && e.contains("1.600e13"), "{e}");
+        // The limit is 10 coverages of the detector: just below it is accepted.
+        let ok = 10.0 * 2048.0 * 2048.0 * 0.99;
+        let t = format!("{MIN}[effects]\ncosmic_rays = {{ rate_per_frame = {ok}, size_px = 1 }}\n");
+        Scene::from_toml_str(&t, Path::new("s.toml")).unwrap();
+        let t = format!("{MIN}[effects]\ncosmic_rays = {{ rate_per_frame = 5, size_px = 100000 }}\n");
+        let e = Scene::from_toml_str(&t, Path::new("s.toml")).unwrap_err().to_string();
+        assert!(e.contains("size_px"), "{e}");
     }
 }

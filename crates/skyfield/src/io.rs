@@ -103,10 +103,12 @@ fn write_fits_atomic_with(
             b = b.with_custom_primary(d);
         }
         let mut f = b.open().map_err(|e| werr(e.to_string()))?;
+        // On an error here `f` is dropped (closed, status ignored) and so is `tmp` (deleted).
         fill(&mut f)?;
-        // Dropping closes the file and flushes CFITSIO's buffers.
+        // CFITSIO writes its last blocks at close: a full disk shows up here, not in `fill`.
+        crate::durable::close_fits(f).map_err(werr)?;
     }
-    tmp.persist(path).map_err(|e| werr(e.to_string()))?;
+    crate::durable::finish(tmp, path).map_err(|e| werr(e.to_string()))?;
     Ok(())
 }
 

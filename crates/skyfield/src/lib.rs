@@ -14,6 +14,7 @@ pub mod beams;
 pub mod bin;
 pub mod catalog;
 pub mod detect;
+pub mod durable;
 pub mod io;
 pub mod maps;
 pub mod photometry;

@@ -42,4 +42,9 @@ pub enum Error {
     Invalid { what: &'static str, index: usize, value: f64, why: &'static str },
     #[error("kappa = {0} is outside the open interval (-1, 1)")]
     KappaOutOfRange(f64),
+    #[error(
+        "sigma_F = {sigma_f:.3e} at index {index}: the flux errors are so far above the fluxes that F is \
+         undetermined (and its variance would overflow); check the errors"
+    )]
+    Undetermined { index: usize, sigma_f: f64 },
 }

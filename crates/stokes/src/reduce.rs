@@ -165,6 +165,21 @@ pub struct Reduction {
     pub warnings: Vec<Warning>,
 }
 
+/// The largest `sigma_chi` (rad) worth reporting: the standard deviation of an angle uniform
+/// over `[0, pi)`, `pi/sqrt(12)` (52 deg). A propagated error beyond it (a `P` far below its
+/// error, where linear propagation gives e.g. 5e6 deg) says only that chi is undetermined.
+pub const SIGMA_CHI_UNDETERMINED: f64 = std::f64::consts::PI / 3.464_101_615_137_754_5;
+
+impl Reduction {
+    /// `sigma_chi` in degrees as every command reports it (one rule for `stokes`,
+    /// `photometry`, ...): `None` when chi is undetermined (`P = 0` to rounding, or an error
+    /// above [`SIGMA_CHI_UNDETERMINED`]).
+    pub fn sigma_chi_deg_reported(&self) -> Option<f64> {
+        (self.chi_defined && self.sigma_chi.is_finite() && self.sigma_chi <= SIGMA_CHI_UNDETERMINED)
+            .then(|| self.sigma_chi.to_degrees())
+    }
+}
+
 impl Measurement {
     /// Photon counts (electrons) in the two beams: Poisson errors `sqrt(f)`. Angles in rad.
     pub fn poisson(theta: Vec<f64>, f_o: Vec<f64>, f_e: Vec<f64>) -> Result<Self, Error> {
@@ -328,6 +343,13 @@ pub fn reduce(m: &Measurement) -> Result<Reduction, Error> {
     let n = m.theta.len();
     let solver = StokesSolver::new(&m.theta)?;
     let (f, sigma_f) = m.normalized_differences();
+    // F is in [-1, 1] for counts; an error of 1e150 (errors 1e150 times the fluxes) says that
+    // nothing was measured, and its square (the variances below) would overflow to inf.
+    for (i, &s) in sigma_f.iter().enumerate() {
+        if !(s.is_finite() && s <= 1e150) {
+            return Err(Error::Undetermined { index: i, sigma_f: s });
+        }
+    }
     let mut warnings = Vec::new();
     if n == 2 {
         warnings.push(Warning::TwoAngles);
@@ -371,10 +393,12 @@ pub fn reduce(m: &Measurement) -> Result<Reduction, Error> {
     }
 
     // SNR of the intensity image of one exposure, combined so that eq:sigp holds.
+    // Scale-free ratios sigma/t: sigma^2 and t^2 over- or underflow at extreme scales.
     let inv_snr2: f64 = (0..n)
         .map(|i| {
             let tot = m.f_o[i] + m.f_e[i];
-            (m.sigma_o[i] * m.sigma_o[i] + m.sigma_e[i] * m.sigma_e[i]) / (tot * tot)
+            let (a, b) = (m.sigma_o[i] / tot, m.sigma_e[i] / tot);
+            a * a + b * b
         })
         .sum::<f64>()
         / n as f64;

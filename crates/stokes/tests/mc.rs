@@ -193,6 +193,22 @@ fn bad_configuration_is_an_error() {
     let mut c = McConfig::new(4, 100.0, 0.01, 0.0, 10, Noise::GaussF);
     c.sky = 10.0;
     assert!(Engine::new(&c).is_err());
+    // Degenerate runs are refused with a reason instead of printing noise: SNR far below 1,
+    // an SNR whose SNR^2 counts overflow, read noise that swamps F (sigma_F = inf or > 1).
+    for snr in [1e-10, 0.5, 1e200] {
+        let e = Engine::new(&McConfig::new(4, snr, 0.01, 0.0, 10, Noise::Poisson)).err().expect("refused").to_string();
+        assert!(e.contains("SNR"), "{snr}: {e}");
+    }
+    for rn in [1e200, 1e4] {
+        // SNR 100: 1e4 counts, sigma_F = sqrt(1e4 + 2 rn^2)/1e4: 1.41 for rn = 1e4, inf for 1e200.
+        let mut c = McConfig::new(4, 100.0, 0.01, 0.0, 10, Noise::Poisson);
+        c.read_noise = rn;
+        let e = Engine::new(&c).err().expect("refused").to_string();
+        assert!(e.contains("error of F_i") && e.contains("read noise"), "{rn}: {e}");
+    }
+    let mut c = McConfig::new(4, 100.0, 0.01, 0.0, 10, Noise::Poisson);
+    c.read_noise = 100.0; // sigma_F = sqrt(1e4 + 2e4)/1e4 = 0.017: fine
+    assert!(Engine::new(&c).is_ok());
     assert!("poison".parse::<Noise>().is_err());
     // Very low SNR with Poisson noise: trials without light are dropped, not NaN.
     let r = run(&McConfig::new(4, 1.0, 0.0, 0.0, 20_000, Noise::Poisson), None, None).unwrap();

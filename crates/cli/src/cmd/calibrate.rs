@@ -31,7 +31,8 @@ pub struct Args {
     /// Built-in instrument name or instrument TOML file.
     #[arg(long, default_value = "fors1")]
     pub instrument: String,
-    /// Sky polarization degree in percent (Table tab:empty: B 6.45, V 1.74, I 1.34). Required.
+    /// Sky polarization degree in PERCENT (Table tab:empty: B 6.45, V 1.74, I 1.34), not a
+    /// fraction; a value below 0.1 draws a warning. Required.
     #[arg(long)]
     pub sky_p: Option<f64>,
     /// Sky polarization angle in degrees (any sign, taken modulo 180). Required.
@@ -145,7 +146,20 @@ pub fn calibrate_map(
 /// The sky values are required: without them the sky-field equations have no solution.
 pub fn sky_from_args(p: Option<f64>, chi: Option<f64>) -> Result<SkyPolarization> {
     match (p, chi) {
-        (Some(p), Some(c)) => Ok(SkyPolarization::from_percent_deg(p, c)?),
+        (Some(p), Some(c)) => {
+            // Other commands and the scene files take fractions: 0.0174 here is 0.0174 %, a sky
+            // so weakly polarized that the fit would measure noise. Say so loudly.
+            if p > 0.0 && p < 0.1 {
+                eprintln!(
+                    "warning: --sky-p {p} is in PERCENT: a sky polarization of {p} % = {:.2e} (fraction). \
+                     If you meant the fraction {p} (= {:.2} %), give --sky-p {:.2}",
+                    p / 100.0,
+                    100.0 * p,
+                    100.0 * p
+                );
+            }
+            Ok(SkyPolarization::from_percent_deg(p, c)?)
+        }
         _ => bail!(
             "the sky polarization is required: give --sky-p PERCENT and --sky-chi DEG (the sky-field method \
              needs the field's own polarization, e.g. from Table tab:empty: V 1.74 -53.8)"
@@ -175,10 +189,22 @@ pub fn print_table(s: &FitSummary) {
         s.error_scaling,
         if s.correlation.is_some() { ", with the correlated-errors inflation" } else { "" }
     );
-    println!(
-        "polar-angle test: slope {:.4} +- {:.4}, intercept {:.2} +- {:.2} deg",
-        s.polar_angle_slope, s.polar_angle_slope_err, s.polar_angle_intercept_deg, s.polar_angle_intercept_err_deg
-    );
+    if s.polar_angle_pattern {
+        println!(
+            "polar-angle test: slope {:.4} +- {:.4}, intercept {:.2} +- {:.2} deg (pattern against noise: p = {:.2e}, radial component {:+.1} sigma)",
+            s.polar_angle_slope,
+            s.polar_angle_slope_err,
+            s.polar_angle_intercept_deg,
+            s.polar_angle_intercept_err_deg,
+            s.polar_angle_noise_p,
+            s.polar_angle_radial_z
+        );
+    } else {
+        println!(
+            "polar-angle test: no radial pattern: the bins are consistent with noise (p = {:.3}, radial component {:+.1} sigma); the line fit (slope {:.4}) describes noise",
+            s.polar_angle_noise_p, s.polar_angle_radial_z, s.polar_angle_slope
+        );
+    }
     if let Some(a) = &s.approx_vs_exact {
         println!(
             "eq:approx vs exact: max |dp| {:.5}%, rms {:.5}%, max |dphi| {:.3} deg",
@@ -193,9 +219,14 @@ pub fn print_table(s: &FitSummary) {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs(
+        a.frames.iter().map(|p| p.as_path()).chain(a.map.as_deref()).chain(crate::util::file_arg(&a.instrument)),
+    )?;
+    crate::util::check_output(&a.out)?;
     let sky = sky_from_args(a.sky_p, a.sky_chi)?;
     let opts = a.fit.options()?;
     let inst = instrument::Instrument::load(&a.instrument)?;
+    crate::util::check_bin(a.bin, &inst)?;
     let (map, inputs) = if let Some(m) = &a.map {
         (skyfield::StokesMap::read_fits(m)?, vec![m.display().to_string()])
     } else {
@@ -219,6 +250,21 @@ pub fn run(a: Args) -> Result<()> {
 /// into `plots`, and print the fit summary as JSON or as a table.
 pub fn finish(run: &CalibrationRun, out: Option<&Path>, plots: Option<&Path>, json: bool) -> Result<()> {
     let mut s = FitSummary::new(run);
+    // A fit whose residuals are far from its errors is a wrong model or wrong errors (e.g. an
+    // extreme Wollaston imbalance gave chi2_red = 1e9): the numbers still come, with a warning.
+    if !(s.chi2_reduced >= 0.1 && s.chi2_reduced <= 10.0) {
+        eprintln!(
+            "warning: reduced chi^2 of the radial fit is {:.3e}, far from 1: the model or the errors do not describe \
+             the bins (errors scaled: {}; check the frames, the sky polarization and the Wollaston balance)",
+            s.chi2_reduced, s.error_scaling
+        );
+    }
+    if !s.polar_angle_pattern {
+        eprintln!(
+            "warning: polar-angle test: no radial pattern (the bins are consistent with noise, p = {:.3})",
+            s.polar_angle_noise_p
+        );
+    }
     // The plots folder first: a run that cannot write its plots fails before it saves anything.
     if let Some(dir) = plots {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create the plots folder {}", dir.display()))?;

@@ -121,6 +121,8 @@ const ADDED: [&str; 9] =
     ["q0", "u0", "sigma_q0", "sigma_u0", "cov_qu0", "p0", "sigma_p0", "chi0_deg", "sigma_chi0_deg"];
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs([a.cal.as_path(), a.input.as_path()])?;
+    crate::util::check_output(&a.out)?;
     let cal = Calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     let est: Estimator = a.estimator.parse().map_err(|e| anyhow!("--estimator: {e}"))?;
     if !(a.extrapolation_error.is_finite() && a.extrapolation_error >= 0.0) {
@@ -519,8 +521,8 @@ fn write_fits_table(
             .map_err(|e| werr(e.to_string()))?;
         t = t.append_column(&mut f, &d).map_err(|e| werr(format!("adding column extrapolated: {e}")))?;
         t.write_col(&mut f, "extrapolated", &flags).map_err(|e| werr(format!("writing column extrapolated: {e}")))?;
-        // Dropping the file closes it and flushes CFITSIO's buffers before the rename.
-        Ok(())
+        // Closed explicitly: CFITSIO flushes its buffers here and a full disk must fail the run.
+        skyfield::durable::close_fits(f).map_err(werr)
     })
 }
 
@@ -623,7 +625,7 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
         };
         ph.write_key(&mut f, "CORRMETH", meth).map_err(werr)?;
         ph.write_key(&mut f, "CORRHWP", (cal.hwp_chi_offset_deg, "HWP zero angle added to chi [deg]")).map_err(werr)?;
-        Ok(())
+        skyfield::durable::close_fits(f).map_err(|m| anyhow!("cannot write {}: {m}", a.out.display()))
     })?;
     Ok(Summary {
         input: a.input.clone(),

@@ -27,6 +27,10 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs([a.calibration.as_path()])?;
+    if let Some(o) = &a.out {
+        crate::util::check_output(o)?;
+    }
     let opts = a.fit.options()?;
     let cal = fit::Calibration::load(&a.calibration)?;
     let run = refit(&cal, &opts).with_context(|| format!("fitting {}", a.calibration.display()))?;

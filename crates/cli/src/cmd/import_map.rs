@@ -65,6 +65,8 @@ struct Summary {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs([a.q.as_path(), a.u.as_path()].into_iter().chain(crate::util::file_arg(&a.instrument)))?;
+    crate::util::check_output(&a.out)?;
     let inst = instrument::Instrument::load(&a.instrument).ok();
     let lambda = a
         .lambda_nm

@@ -74,6 +74,9 @@ pub struct Args {
     /// PNG file for the plot of --sweep or --accuracy-report.
     #[arg(long)]
     pub plot: Option<std::path::PathBuf>,
+    /// Run even when the estimated run time exceeds 10 minutes (the estimate is printed first).
+    #[arg(long)]
+    pub force: bool,
     /// Print JSON (single run: trials, mean_p, rms_p, mode_p, seconds, trials_per_second, ...).
     #[arg(long)]
     pub json: bool,
@@ -136,12 +139,68 @@ impl Progress {
     }
 }
 
+/// The longest run (estimated, seconds) started without --force.
+const MAX_SECONDS: f64 = 600.0;
+
+fn human(s: f64) -> String {
+    if s < 120.0 {
+        format!("{s:.0} s")
+    } else if s < 7200.0 {
+        format!("{:.0} min", s / 60.0)
+    } else if s < 2.0 * 86400.0 {
+        format!("{:.1} h", s / 3600.0)
+    } else {
+        format!("{:.1} days", s / 86400.0)
+    }
+}
+
+/// Before a long run: time a short probe of the same configuration on the same pool, print the
+/// estimated run time when it is over 10 s, and refuse beyond [`MAX_SECONDS`] unless `force`
+/// (a `--trials 1e12` typo would otherwise run for hours without a word).
+fn check_budget(cfg: &McConfig, total: u64, pool: &rayon::ThreadPool, force: bool) -> Result<()> {
+    const PROBE: u64 = 100_000;
+    if total <= 10 * PROBE {
+        return Ok(());
+    }
+    let mut c = cfg.clone();
+    c.trials = PROBE;
+    let e = Engine::new(&c)?;
+    let t0 = Instant::now();
+    std::hint::black_box(pool.install(|| e.run(None)));
+    let rate = PROBE as f64 / t0.elapsed().as_secs_f64().max(1e-9);
+    let est = total as f64 / rate;
+    if est > 10.0 {
+        eprintln!(
+            "note: {total} trials: estimated run time {} ({rate:.3e} trials/s on {} threads)",
+            human(est),
+            pool.current_num_threads()
+        );
+    }
+    if est > MAX_SECONDS && !force {
+        bail!(
+            "--trials {total}: estimated run time {} exceeds the {} limit; lower --trials, or pass --force to run it",
+            human(est),
+            human(MAX_SECONDS)
+        );
+    }
+    Ok(())
+}
+
 fn pool(threads: Option<usize>) -> Result<rayon::ThreadPool> {
     let mut b = rayon::ThreadPoolBuilder::new();
     if let Some(j) = threads {
         if j == 0 {
             bail!("--threads must be >= 1");
         }
+        // More threads than cores only adds switching (and 1e6 threads exhaust the machine);
+        // results do not depend on the thread count, so cap it and say so.
+        let cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+        let j = if j > cores {
+            eprintln!("note: --threads {j} capped at the machine's {cores} cores");
+            cores
+        } else {
+            j
+        };
         b = b.num_threads(j);
     }
     b.build().context("cannot start the worker threads")
@@ -154,6 +213,11 @@ pub fn run(a: Args) -> Result<()> {
     }
     if a.plot.is_some() && !(a.sweep || a.accuracy_report) {
         bail!("--plot needs --sweep or --accuracy-report");
+    }
+    // Checked before minutes of simulation, not after.
+    if let Some(p) = &a.plot {
+        crate::plot::require_png(p)?;
+        crate::util::check_output(p)?;
     }
     if a.sweep {
         return sweep(&a, noise);
@@ -171,6 +235,7 @@ pub fn run(a: Args) -> Result<()> {
     cfg.read_noise = a.read_noise;
     let engine = Engine::new(&cfg)?;
     let pool = pool(a.threads)?;
+    check_budget(&cfg, trials, &pool, a.force)?;
     let prog = Progress::new(trials, !a.json);
     let t0 = Instant::now();
     let r = pool.install(|| engine.run(Some(&|n| prog.inc(n))));
@@ -260,8 +325,14 @@ fn sweep(a: &Args, noise: Noise) -> Result<()> {
     etas.sort_by(|x, y| x.total_cmp(y));
     etas.retain(|&e| e / a.snr <= 1.0);
     let snr_ps: Vec<f64> = (0..=20).map(|i| 10f64.powf(-1.0 + i as f64 * 2.0 / 20.0)).collect();
-    let total = trials * (etas.len() + snr_ps.len()) as u64;
+    if trials == 0 {
+        bail!("--trials must be >= 1");
+    }
+    let total = trials.saturating_mul((etas.len() + snr_ps.len()) as u64);
     let pool = pool(a.threads)?;
+    // The sweep's points cost about what a single run of the same SNR does.
+    let probe = McConfig::new(n, a.snr, 0.5 / a.snr.max(1.0), 0.5, 0, noise);
+    check_budget(&probe, total, &pool, a.force)?;
     let prog = Progress::new(total, !a.json);
     let t0 = Instant::now();
     let cb = |x| prog.inc(x);
@@ -367,6 +438,8 @@ fn accuracy(a: &Args) -> Result<()> {
     let mut base = McConfig::new(a.n_hwp, snr, p0.min(1.0), a.chi0.to_radians(), 0, noise);
     base.seed = a.seed;
     let tmax = a.trials.unwrap_or(1_000_000).max(1000);
+    // 5 repeats of each decade up to tmax: about 5.6 tmax trials.
+    check_budget(&base, tmax.saturating_mul(6), &pool, a.force)?;
     let mut trial_list = vec![];
     let mut t = 1000u64;
     while t <= tmax {

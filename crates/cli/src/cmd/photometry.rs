@@ -75,7 +75,8 @@ struct Out {
     p: f64,
     sigma_p: f64,
     chi_deg: f64,
-    sigma_chi_deg: f64,
+    /// null when chi is undetermined (the rule of `instpol stokes`).
+    sigma_chi_deg: Option<f64>,
     n_aperture: usize,
     aperture_area_px: f64,
     n_annulus: usize,
@@ -86,6 +87,7 @@ struct Out {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
     let inst = instrument::Instrument::load(&a.instrument)?;
     let (x, y) = match a.coords {
         CoordsArg::Pixel => (a.x, a.y),
@@ -140,7 +142,7 @@ pub fn run(a: Args) -> Result<()> {
         p: r.p,
         sigma_p: r.sigma_p,
         chi_deg: r.chi.to_degrees(),
-        sigma_chi_deg: r.sigma_chi.to_degrees(),
+        sigma_chi_deg: r.sigma_chi_deg_reported(),
         n_aperture: ph.n_aperture,
         aperture_area_px: ph.aperture_area_px,
         n_annulus: ph.n_annulus,
@@ -158,7 +160,10 @@ pub fn run(a: Args) -> Result<()> {
         println!("  Q/I = {:+.5} +- {:.5}", o.q, o.sigma_q);
         println!("  U/I = {:+.5} +- {:.5}", o.u, o.sigma_u);
         println!("  P   = {:.4}% +- {:.4}%", 100.0 * o.p, 100.0 * o.sigma_p);
-        println!("  chi = {:.2} +- {:.2} deg", o.chi_deg, o.sigma_chi_deg);
+        match o.sigma_chi_deg {
+            Some(s) => println!("  chi = {:.2} +- {:.2} deg", o.chi_deg, s),
+            None => println!("  chi = {:.2} deg (undetermined: P is not above its error)", o.chi_deg),
+        }
     }
     Ok(())
 }

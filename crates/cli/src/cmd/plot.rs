@@ -78,6 +78,7 @@ fn plot_with(dir: &Path, stem: &str, run: &CalibrationRun, raytrace: Option<Vec<
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs([a.calibration.as_path()].into_iter().chain(a.raytrace.as_deref()))?;
     let cal = fit::Calibration::load(&a.calibration)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
     let raytrace = a.raytrace.as_deref().map(read_raytrace).transpose()?;

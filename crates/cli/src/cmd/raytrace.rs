@@ -93,6 +93,13 @@ struct Out {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs(crate::util::file_arg(&a.instrument))?;
+    for o in a.plot.iter().chain(&a.field_out) {
+        crate::util::check_output(o)?;
+    }
+    if let Some(p) = &a.plot {
+        crate::plot::require_png(p)?;
+    }
     let inst = instrument::Instrument::load(&a.instrument)?;
     let presc = inst
         .optics
@@ -112,6 +119,24 @@ pub fn run(a: Args) -> Result<()> {
     }
     if a.pupil_rays < 4 {
         bail!("--pupil-rays {} must be >= 4", a.pupil_rays);
+    }
+    // Bounded before allocating: the trace is field_points x pupil_rays ray paths, and each
+    // limit is far beyond where p(r) stops changing (the defaults change p by < 1e-5).
+    const MAX_FIELD_POINTS: usize = 10_000;
+    const MAX_PUPIL_RAYS: usize = 1_000_000;
+    if a.field_points > MAX_FIELD_POINTS {
+        bail!("--field-points {} is above the limit of {MAX_FIELD_POINTS}", a.field_points);
+    }
+    if a.pupil_rays > MAX_PUPIL_RAYS {
+        bail!("--pupil-rays {} is above the limit of {MAX_PUPIL_RAYS}", a.pupil_rays);
+    }
+    if (a.field_points as f64) * (a.pupil_rays as f64) > 2e7 {
+        bail!(
+            "--field-points {} x --pupil-rays {} = {:.2e} rays: above the limit of 2e7 (minutes of tracing); lower one",
+            a.field_points,
+            a.pupil_rays,
+            a.field_points as f64 * a.pupil_rays as f64
+        );
     }
     let sampling = Sampling::from_rays(a.pupil_rays);
     let c = presc.compile(lam)?;

@@ -55,7 +55,10 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
+    crate::util::check_output(&a.out)?;
     let inst = instrument::Instrument::load(&a.instrument)?;
+    crate::util::check_bin(a.bin, &inst)?;
     let cfg = ReduceConfig {
         bin_px: a.bin,
         clip: skyfield::bin::ClipConfig { nsigma: a.nsigma, ..Default::default() },

@@ -24,8 +24,15 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs([a.scene.as_path()])?;
     let scene = sim::Scene::from_file(&a.scene)?;
     let plan = sim::Plan::build(&scene).with_context(|| format!("scene {}", a.scene.display()))?;
+    // No frame or truth file may land on the scene or its instrument file.
+    crate::util::inputs(crate::util::file_arg(&scene.instrument))?;
+    for k in 0..plan.n_frames() {
+        crate::util::check_output(&a.out.join(plan.frame_name(k)))?;
+    }
+    crate::util::check_output(&a.out.join("truth.json"))?;
     if a.explain {
         eprintln!("{}", plan.explain());
     }
@@ -37,7 +44,23 @@ pub fn run(a: Args) -> Result<()> {
             .progress_chars("=> "),
     );
     bar.set_message("writing");
-    let out = plan.write(&a.out, &|| bar.inc(1))?;
+    // A failed run (a full disk at frame 3) must not leave the frames it did write: they look
+    // like a complete set to the next command. Only files this run created are removed.
+    let planned: Vec<std::path::PathBuf> =
+        (0..plan.n_frames()).map(|k| a.out.join(plan.frame_name(k))).chain([a.out.join("truth.json")]).collect();
+    let existed: Vec<bool> = planned.iter().map(|p| p.exists()).collect();
+    let out = match plan.write(&a.out, &|| bar.inc(1)) {
+        Ok(o) => o,
+        Err(e) => {
+            bar.finish_and_clear();
+            for (p, was) in planned.iter().zip(existed) {
+                if !was {
+                    let _ = std::fs::remove_file(p);
+                }
+            }
+            return Err(e.into());
+        }
+    };
     bar.finish_and_clear();
     if a.json {
         crate::util::print_json(&out)?;

@@ -52,6 +52,17 @@ pub struct Args {
     /// Print JSON instead of the table.
     #[arg(long)]
     pub json: bool,
+    /// The hwp_deg column holds radians, not degrees. Without it, a column whose angles all lie
+    /// within 0..2pi (as radians of an HWP set do, and no degree set of use does) is refused.
+    #[arg(long)]
+    pub angles_in_radians: bool,
+}
+
+/// True when HWP angles "in degrees" all lie within [-2pi, 2pi]: radians by mistake (the optimal
+/// set 0, 22.5, 45, 67.5 deg is 0, 0.39, 0.79, 1.18 rad). No useful degree set spans less than
+/// 6.3 deg: HWP sets step by 22.5 deg or so.
+fn looks_like_radians(deg: &[f64]) -> bool {
+    deg.iter().all(|d| d.abs() <= std::f64::consts::TAU + 1e-9)
 }
 
 /// The parsed CSV: one entry per data row.
@@ -143,7 +154,9 @@ fn explain(e: RedError, t: &Table, name: &str) -> anyhow::Error {
         RedError::NonPositiveFlux { index, total } => {
             anyhow!("{name}: {}: total flux f_o + f_e = {total} is not positive", row(index))
         }
-        RedError::Invalid { index, .. } | RedError::NonFinite { index, .. } if index < t.lines.len() => {
+        RedError::Invalid { index, .. } | RedError::NonFinite { index, .. } | RedError::Undetermined { index, .. }
+            if index < t.lines.len() =>
+        {
             anyhow!("{name}: {}: {e}", row(index))
         }
         e => anyhow!("{name}: {e}"),
@@ -205,8 +218,24 @@ fn chi_deg(chi: f64) -> f64 {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs([a.input.as_path()])?;
+    if let Some(p) = &a.plot {
+        crate::util::check_output(p)?;
+        crate::plot::ImageFormat::of(p)?;
+    }
     let name = a.input.display().to_string();
-    let t = read_table(&a.input)?;
+    let mut t = read_table(&a.input)?;
+    if a.angles_in_radians {
+        t.hwp_deg.iter_mut().for_each(|r| *r = r.to_degrees());
+    } else if t.hwp_deg.len() >= 2 && looks_like_radians(&t.hwp_deg) {
+        bail!(
+            "{name}: column 'hwp_deg' holds {:?}{}, all within 0..2pi: these look like radians (in degrees the \
+             angles would span only {:.2} deg). Give the angles in degrees, or pass --angles-in-radians",
+            &t.hwp_deg[..t.hwp_deg.len().min(8)],
+            if t.hwp_deg.len() > 8 { " ..." } else { "" },
+            t.hwp_deg.iter().cloned().fold(f64::MIN, f64::max) - t.hwp_deg.iter().cloned().fold(f64::MAX, f64::min)
+        );
+    }
     let theta: Vec<f64> = t.hwp_deg.iter().map(|d| d.to_radians()).collect();
     let m = match &t.sigma {
         Some((so, se)) => Measurement::with_errors(theta, t.f_o.clone(), t.f_e.clone(), so.clone(), se.clone()),
@@ -218,6 +247,14 @@ pub fn run(a: Args) -> Result<()> {
         None => m,
     };
     let r = m.reduce().map_err(|e| explain(e, &t, &name))?;
+    // kappa = (t - s)/(t + s): beyond 0.2 one beam carries 1.5 times the other, far beyond any
+    // working Wollaston prism; a column swap or a flux in the wrong units is more likely.
+    if let Some(k) = r.kappa_mean.filter(|k| k.abs() > 0.2) {
+        eprintln!(
+            "warning: {name}: extreme Wollaston imbalance kappa = {k:.3} (beam ratio {:.2}): check the f_o, f_e columns",
+            (1.0 + k) / (1.0 - k)
+        );
+    }
     // The plot first: a plot that cannot be written fails the command before anything is
     // printed.
     if let Some(path) = &a.plot {
@@ -242,7 +279,7 @@ fn json(r: &Reduction, name: &str, kappa: Option<f64>) -> JsonOut {
         p: r.p,
         chi_deg: chi_deg(r.chi),
         sigma_p: r.sigma_p,
-        sigma_chi_deg: finite(r.sigma_chi.to_degrees()),
+        sigma_chi_deg: r.sigma_chi_deg_reported(),
         a0: r.a0,
         kappa: r.kappa.iter().map(|e| e.kappa).collect(),
         kappa_mean: r.kappa_mean,
@@ -305,7 +342,10 @@ fn table(r: &Reduction, t: &Table, name: &str, kappa: Option<f64>) -> String {
         pct(r.sigma_p_analytic).trim(),
         r.snr
     );
-    let sc = if r.sigma_chi.is_finite() { format!("{:9.3} deg", r.sigma_chi.to_degrees()) } else { "undefined".into() };
+    let sc = match r.sigma_chi_deg_reported() {
+        Some(s) => format!("{s:9.3} deg"),
+        None => "undetermined".into(),
+    };
     let chi = if r.chi_defined { format!("{:9.3} deg", chi_deg(r.chi)) } else { "undefined".into() };
     wl!(o, "  {:<8} {chi:>11}   {sc:>11}", "chi");
     wl!(o, "  {:<8} {}   {}   (eq:a0: ~ kappa or post-analyzer B cos 2phi)", "a0", pct(r.a0), pct(r.sigma_a0));

@@ -14,18 +14,21 @@ use plotters::series::DashedLineSeries;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::path::Path;
 
-use crate::plot::{chart, dashed_key, legend, line_key, pe, save_png, tick, Axes, FONT};
+use crate::plot::{chart, dashed_key, legend, line_key, pe, save_image, tick, Axes, FONT};
 
 /// Width and height of the PNG in pixels.
 pub const SIZE: (u32, u32) = (1000, 900);
 
-/// Draw `d` as a PNG at `path` (through a temporary file beside it).
+/// Draw `d` at `path` (through a temporary file beside it): PNG or SVG by the extension,
+/// any other extension refused.
 pub fn fourier_png(path: &Path, d: &FourierPlot) -> Result<()> {
-    save_png(path, SIZE, |root| {
-        let (upper, lower) = root.split_vertically(SIZE.1 * 11 / 20);
-        draw_fit(&upper, d)?;
-        draw_harmonics(&lower, d)
-    })
+    save_image(path, SIZE, |root| draw_both(root, d), |root| draw_both(root, d))
+}
+
+fn draw_both<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, d: &FourierPlot) -> Result<()> {
+    let (upper, lower) = root.split_vertically(SIZE.1 * 11 / 20);
+    draw_fit(&upper, d)?;
+    draw_harmonics(&lower, d)
 }
 
 /// A finite range around `lo..hi` (percent), padded below and with `head` of the span free

@@ -268,6 +268,13 @@ fn parse_model_error(s: &str) -> Result<Option<f64>> {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs(
+        [a.cal.as_path()]
+            .into_iter()
+            .chain(a.frames.iter().map(|p| p.as_path()))
+            .chain(a.standards.as_deref())
+            .chain(crate::util::file_arg(&a.instrument)),
+    )?;
     if !(a.threshold.is_finite() && a.threshold > 0.0) {
         bail!("--threshold {} must be a positive number of sigma", a.threshold);
     }
@@ -306,9 +313,19 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     if a.json {
-        return crate::util::print_json(&r);
+        crate::util::print_json(&r)?;
+    } else {
+        print_report(&r, &a.cal);
     }
-    print_report(&r, &a.cal);
+    // A check that ran and failed exits 1 (not 0, not 2): a script can trust the code alone.
+    let v = &r.validation;
+    if !v.pass {
+        return Err(crate::util::CheckFailed(format!(
+            "FAIL: {} differs from the calibration's prediction by {:.2} sigma (corrected: {:.2} sigma; threshold {} sigma)",
+            r.star, v.residual_sigma, v.corrected_residual_sigma, v.threshold
+        ))
+        .into());
+    }
     Ok(())
 }
 

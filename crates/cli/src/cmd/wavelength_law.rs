@@ -29,6 +29,7 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs(a.calibrations.iter().map(|p| p.as_path()))?;
     if a.calibrations.len() < 2 {
         bail!("need at least two calibration files (filters) for a wavelength law, got {}", a.calibrations.len());
     }

@@ -200,6 +200,15 @@ impl Engine {
         if !(cfg.snr.is_finite() && cfg.snr > 0.0) {
             return inval("SNR", cfg.snr, "must be finite and > 0");
         }
+        // Below SNR 1 the noise of F_i exceeds its whole range [-1, 1] (and with Poisson noise
+        // most trials have no counts at all): a run would print numbers that are only noise.
+        if cfg.snr < 1.0 {
+            return inval("SNR", cfg.snr, "must be >= 1: below it every trial is noise (sigma_F > 1)");
+        }
+        // SNR^2 counts are drawn per HWP angle: beyond 1e150 they overflow on the way.
+        if cfg.snr > 1e150 {
+            return inval("SNR", cfg.snr, "must be <= 1e150 (SNR^2 counts per angle are simulated)");
+        }
         if !(cfg.p0.is_finite() && (0.0..=1.0).contains(&cfg.p0)) {
             return inval("P0", cfg.p0, "must be in [0, 1]");
         }
@@ -259,6 +268,14 @@ impl Engine {
             }
             _ => 1.0 / cfg.snr,
         };
+        // Sky or read noise so large that sigma_F exceeds the range of F: the run measures noise.
+        if !(sigma_f.is_finite() && sigma_f <= 1.0) {
+            return Err(Error::Model(format!(
+                "the error of F_i per angle would be {sigma_f:e} (SNR {:e}, sky {:e} e-, read noise {:e} e-): \
+                 above 1, the whole range of F, so every trial is noise; lower the sky or read noise",
+                cfg.snr, cfg.sky, cfg.read_noise
+            )));
+        }
         let cov = solver.unit_covariance();
         let v = sigma_f * sigma_f;
         let (c00, c01, c11) = (cov[0][0] * v, cov[0][1] * v, cov[1][1] * v);

@@ -1,0 +1,277 @@
+//! Issue 17: exit codes and flags a script can trust, outputs that never replace inputs,
+//! resource bounds and unit traps, each checked on the built binary.
+
+mod common;
+
+use common::run;
+use std::path::{Path, PathBuf};
+
+const GOOD: &str =
+    "hwp_deg,f_o,f_e\n0,505000,495000\n22.5,508660.25,491339.75\n45,495000,505000\n67.5,491339.75,508660.25\n";
+
+fn s(p: &Path) -> String {
+    p.to_str().unwrap().to_string()
+}
+
+fn json(out: &str) -> serde_json::Value {
+    serde_json::from_str(out).unwrap_or_else(|e| panic!("not JSON ({e}): {out}"))
+}
+
+/// Frames and a Stokes map of the tiny instrument, made by the binary.
+fn frames(dir: &Path) -> (PathBuf, Vec<String>, PathBuf) {
+    let ins = dir.join("mini.toml");
+    std::fs::write(&ins, common::MINI.toml()).unwrap();
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, "instrument = \"mini.toml\"\nfilter = \"V\"\n[sky]\nbrightness_e = 20000\np = 0.02\n")
+        .unwrap();
+    let (c, _, e) = run(&["simulate", &s(&scene), "--out", &s(&dir.join("frames"))]);
+    assert_eq!(c, 0, "{e}");
+    let fr: Vec<String> = common::fits_in(&dir.join("frames")).iter().map(|p| s(p)).collect();
+    let map = dir.join("map.fits");
+    let mut a = vec!["reduce".to_string(), "--instrument".into(), s(&ins), "--bin".into(), "8".into()];
+    a.extend(["--out".into(), s(&map)]);
+    a.extend(fr.iter().cloned());
+    let (c, _, e) = run(&a);
+    assert_eq!(c, 0, "{e}");
+    (ins, fr, map)
+}
+
+/// Negative numbers are values in every command (`--chi -30`, `--kappa -1e-3`, `--x -30`),
+/// not flags: the same result as the `--chi=-30` form, which always worked.
+#[test]
+fn negative_numbers_are_values_everywhere() {
+    let (c1, o1, e1) = run(&["bias", "--p", "0.01", "--sigma", "0.003", "--chi", "-30", "--json"]);
+    let (c2, o2, _) = run(&["bias", "--p", "0.01", "--sigma", "0.003", "--chi=-30", "--json"]);
+    assert_eq!((c1, c2), (0, 0), "{e1}");
+    assert_eq!(o1, o2);
+    let d = tempfile::tempdir().unwrap();
+    let f = d.path().join("f.csv");
+    std::fs::write(&f, GOOD).unwrap();
+    let (c, o, e) = run(&["stokes", "--input", &s(&f), "--kappa", "-1e-3", "--json"]);
+    assert_eq!(c, 0, "{e}");
+    assert_eq!(json(&o)["kappa_correction"], -1e-3);
+    let (c, _, e) = run(&["mc", "--chi0", "-30", "--trials", "1000", "--json"]);
+    assert_eq!(c, 0, "{e}");
+    // A position at x = -30 px is refused for what it is, not as an unknown flag '-3'.
+    let (ins, fr, _) = frames(d.path());
+    let mut a = vec!["photometry".to_string(), "--instrument".into(), s(&ins), "--x".into(), "-30".into()];
+    a.extend(["--y".into(), "24".into()]);
+    a.extend(fr);
+    let (c, _, e) = run(&a);
+    assert_eq!(c, 2, "{e}");
+    assert!(!e.contains("unexpected argument") && !e.contains("Usage"), "{e}");
+}
+
+/// HWP angles that are evidently radians are refused unless --angles-in-radians, which then
+/// gives the result of the same angles in degrees.
+#[test]
+fn radian_hwp_angles_refused_unless_declared() {
+    let d = tempfile::tempdir().unwrap();
+    let deg = d.path().join("deg.csv");
+    std::fs::write(&deg, GOOD).unwrap();
+    let rad = d.path().join("rad.csv");
+    let text: String = GOOD
+        .lines()
+        .enumerate()
+        .map(|(i, l)| {
+            if i == 0 {
+                return format!("{l}\n");
+            }
+            let (a, rest) = l.split_once(',').unwrap();
+            format!("{:.17},{rest}\n", a.parse::<f64>().unwrap().to_radians())
+        })
+        .collect();
+    std::fs::write(&rad, text).unwrap();
+    let (c, _, e) = run(&["stokes", "--input", &s(&rad), "--json"]);
+    assert_eq!(c, 2);
+    assert!(e.contains("rad.csv") && e.contains("look like radians") && e.contains("--angles-in-radians"), "{e}");
+    let (c, o, e) = run(&["stokes", "--input", &s(&rad), "--angles-in-radians", "--json"]);
+    assert_eq!(c, 0, "{e}");
+    let (_, od, _) = run(&["stokes", "--input", &s(&deg), "--json"]);
+    let (r, g) = (json(&o), json(&od));
+    assert!((r["p"].as_f64().unwrap() - g["p"].as_f64().unwrap()).abs() < 1e-12, "{r} {g}");
+    assert!((g["p"].as_f64().unwrap() - 0.02).abs() < 1e-6);
+}
+
+/// sigma_chi has one rule in `stokes` and `photometry`: null when chi is undetermined (P far
+/// below its error: the linear propagation would give thousands of degrees), a number below
+/// 52 deg (the spread of a uniform angle) otherwise.
+#[test]
+fn sigma_chi_is_null_when_chi_is_undetermined() {
+    let d = tempfile::tempdir().unwrap();
+    let f = d.path().join("weak.csv");
+    // 100 counts per angle, P ~ 1e-4: sigma_P ~ 0.07, sigma_chi far beyond 52 deg.
+    std::fs::write(&f, "hwp_deg,f_o,f_e\n0,50.005,49.995\n22.5,50,50\n45,49.995,50.005\n67.5,50,50\n").unwrap();
+    let (c, o, e) = run(&["stokes", "--input", &s(&f), "--json"]);
+    assert_eq!(c, 0, "{e}");
+    assert!(json(&o)["sigma_chi_deg"].is_null(), "{o}");
+    let (c, o, _) = run(&["stokes", "--input", &s(&f)]);
+    assert_eq!(c, 0);
+    assert!(o.contains("undetermined"), "{o}");
+    let g = d.path().join("good.csv");
+    std::fs::write(&g, GOOD).unwrap();
+    let (_, o, _) = run(&["stokes", "--input", &s(&g), "--json"]);
+    let sc = json(&o)["sigma_chi_deg"].as_f64().unwrap();
+    // eq:sigchi: sigma_P / (2 P) in rad, sigma_P = 1/(sqrt(2) 1000) for 1e6 counts, N = 4.
+    let want = (1e-3 / 2f64.sqrt() / (2.0 * 0.02)).to_degrees();
+    assert!((sc - want).abs() < 0.01 * want, "{sc} vs {want}");
+}
+
+/// `--plot x.svg` writes SVG, `.png` PNG, anything else is refused before anything is
+/// written; plots drawn only as PNG refuse `.svg` before their (long) computation.
+#[test]
+fn plot_format_follows_the_extension() {
+    let d = tempfile::tempdir().unwrap();
+    let f = d.path().join("f.csv");
+    std::fs::write(&f, GOOD).unwrap();
+    let svg = d.path().join("x.svg");
+    let (c, _, e) = run(&["stokes", "--input", &s(&f), "--plot", &s(&svg)]);
+    assert_eq!(c, 0, "{e}");
+    let b = std::fs::read(&svg).unwrap();
+    assert!(b.starts_with(b"<svg"), "{:?}", &b[..20.min(b.len())]);
+    let png = d.path().join("x.png");
+    run(&["stokes", "--input", &s(&f), "--plot", &s(&png)]);
+    assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
+    let jpg = d.path().join("x.jpg");
+    let (c, _, e) = run(&["stokes", "--input", &s(&f), "--plot", &s(&jpg)]);
+    assert_eq!(c, 2);
+    assert!(e.contains("x.jpg") && e.contains(".png or .svg"), "{e}");
+    assert!(!jpg.exists());
+    let t0 = std::time::Instant::now();
+    let (c, _, e) = run(&["mc", "--sweep", "--plot", &s(&d.path().join("sweep.svg"))]);
+    assert_eq!(c, 2, "{e}");
+    assert!(e.contains("PNG only") && t0.elapsed().as_secs() < 5, "{e}");
+}
+
+/// No command writes over one of its inputs, whatever name the output is given by: the same
+/// path, a symlink to it, a hard link (same inode); the message names both; the input is
+/// unchanged. The same input given twice is refused, naming it.
+#[test]
+fn outputs_never_replace_inputs() {
+    let d = tempfile::tempdir().unwrap();
+    let f = d.path().join("f.csv");
+    std::fs::write(&f, GOOD).unwrap();
+    let link = d.path().join("link.png");
+    std::os::unix::fs::symlink(&f, &link).unwrap();
+    let hard = d.path().join("hard.png");
+    std::fs::hard_link(&f, &hard).unwrap();
+    for out in [&f, &link, &hard] {
+        let (c, _, e) = run(&["stokes", "--input", &s(&f), "--plot", &s(out)]);
+        assert_eq!(c, 2, "{e}");
+        assert!(e.contains("is the input") && e.contains("f.csv"), "{e}");
+        assert_eq!(std::fs::read_to_string(&f).unwrap(), GOOD);
+    }
+    let (ins, fr, map) = frames(d.path());
+    let before = std::fs::read(&fr[0]).unwrap();
+    let mut a = vec!["reduce".to_string(), "--instrument".into(), s(&ins), "--bin".into(), "8".into()];
+    a.extend(["--out".into(), fr[0].clone()]);
+    a.extend(fr.iter().cloned());
+    let (c, _, e) = run(&a);
+    assert_eq!(c, 2, "{e}");
+    assert!(e.contains("is the input"), "{e}");
+    assert_eq!(std::fs::read(&fr[0]).unwrap(), before);
+    // The same frame twice (it would be summed with itself).
+    let mut a =
+        vec!["reduce".to_string(), "--instrument".into(), s(&ins), "--out".into(), s(&d.path().join("m2.fits"))];
+    a.extend(fr.iter().cloned());
+    a.push(fr[1].clone());
+    let (c, _, e) = run(&a);
+    assert_eq!(c, 2, "{e}");
+    assert!(e.contains("given twice") && e.contains(Path::new(&fr[1]).file_name().unwrap().to_str().unwrap()), "{e}");
+    // correct: the map given as its own output.
+    let cal = d.path().join("cal.fits");
+    let (c, _, e) = run(&[
+        "calibrate",
+        "--map",
+        &s(&map),
+        "--instrument",
+        &s(&ins),
+        "--sky-p",
+        "2",
+        "--sky-chi",
+        "30",
+        "--out",
+        &s(&cal),
+    ]);
+    assert_eq!(c, 0, "{e}");
+    let mb = std::fs::read(&map).unwrap();
+    let (c, _, e) = run(&["correct", "--cal", &s(&cal), "--in", &s(&map), "--out", &s(&map)]);
+    assert_eq!(c, 2, "{e}");
+    assert!(e.contains("map.fits"), "{e}");
+    assert_eq!(std::fs::read(&map).unwrap(), mb);
+    // A full-circle sector exclusion is refused, not silently ignored.
+    let (c, _, e) = run(&["fit", &s(&cal), "--exclude", "sector:0:360"]);
+    assert_eq!(c, 2, "{e}");
+    assert!(e.contains("full circle"), "{e}");
+    // --sky-p in percent: a fraction-looking value is warned about loudly.
+    let (c, _, e) = run(&[
+        "calibrate",
+        "--map",
+        &s(&map),
+        "--instrument",
+        &s(&ins),
+        "--sky-p",
+        "0.02",
+        "--sky-chi",
+        "30",
+        "--out",
+        &s(&d.path().join("cal3.fits")),
+    ]);
+    assert!(c == 0 || c == 2, "{e}");
+    assert!(e.contains("warning: --sky-p 0.02 is in PERCENT") && e.contains("--sky-p 2.00"), "{e}");
+}
+
+/// Resource bounds of `mc`: threads capped at the cores (with a note; the result does not
+/// depend on the thread count), a huge --trials refused with its estimated run time before
+/// running, degenerate runs refused with a reason.
+#[test]
+fn mc_resource_bounds() {
+    let (c, o, e) = run(&["mc", "--threads", "100000", "--trials", "5000", "--json"]);
+    assert_eq!(c, 0, "{e}");
+    assert!(e.contains("capped at the machine's"), "{e}");
+    let cores = std::thread::available_parallelism().unwrap().get() as u64;
+    assert_eq!(json(&o)["threads"].as_u64().unwrap(), cores);
+    let t0 = std::time::Instant::now();
+    let (c, _, e) = run(&["mc", "--trials", "1000000000000", "--json"]);
+    assert_eq!(c, 2, "{e}");
+    assert!(e.contains("estimated run time") && e.contains("--force"), "{e}");
+    assert!(t0.elapsed().as_secs() < 20);
+    for (args, word) in [
+        (vec!["--snr", "1e-10"], "SNR"),
+        (vec!["--read-noise", "1e200"], "read noise"),
+        (vec!["--trials", "0"], "--trials"),
+    ] {
+        let mut a = vec!["mc"];
+        a.extend(args.iter());
+        if !a.contains(&"--trials") {
+            a.extend(["--trials", "100"]);
+        }
+        let (c, o, e) = run(&a);
+        assert_eq!(c, 2, "{a:?}: {o} {e}");
+        assert!(e.contains(word), "{e}");
+    }
+}
+
+/// `stokes` is n log n in the rows: 2e5 rows (the duplicate-angle check was all pairs, 7 s at
+/// 1e5) finish in seconds, and errors near 1e149 with a plot end (sigma >= 1e160 never did).
+#[test]
+fn stokes_large_inputs_end() {
+    let d = tempfile::tempdir().unwrap();
+    let f = d.path().join("rows.csv");
+    let mut t = String::from("hwp_deg,f_o,f_e\n");
+    for i in 0..200_000 {
+        t += &format!("{},{},{}\n", 7.0 + i as f64 * 0.0017, 1000 + i % 7, 1000 - i % 5);
+    }
+    std::fs::write(&f, t).unwrap();
+    let t0 = std::time::Instant::now();
+    let (c, _, e) = run(&["stokes", "--input", &s(&f), "--json"]);
+    assert_eq!(c, 0, "{e}");
+    assert!(t0.elapsed().as_secs() < 30, "{:?}", t0.elapsed());
+    for (sig, code) in [("1e149", 0), ("1e160", 2)] {
+        let g = d.path().join("big.csv");
+        let rows: String = [0.0, 22.5, 45.0, 67.5].iter().map(|a| format!("{a},505000,495000,{sig},{sig}\n")).collect();
+        std::fs::write(&g, format!("hwp_deg,f_o,f_e,sigma_o,sigma_e\n{rows}")).unwrap();
+        let (c, _, e) = run(&["stokes", "--input", &s(&g), "--plot", &s(&d.path().join("big.png"))]);
+        assert_eq!(c, code, "{sig}: {e}");
+    }
+}

@@ -1,0 +1,77 @@
+//! Durable writes: the last steps every writer of the workspace takes before an output gets its
+//! final name.
+//!
+//! A write error is not always reported by the `write` call that caused it: a full disk or a
+//! quota often shows up only when buffers are flushed (CFITSIO writes its last 2880-byte
+//! blocks when the file is closed) or when the kernel writes the page cache back (fsync). So a
+//! writer (1) closes a FITS file with [`close_fits`] and checks CFITSIO's status (fitsio's
+//! `Drop` ignores it), (2) fsyncs the temporary and (3) only then renames it onto the final name
+//! ([`finish`]). Any error on the way drops the temporary, which deletes it: a failed run leaves
+//! neither a truncated file under the final name nor a temporary.
+//!
+//! Tests cannot always fill a disk (mounting a tmpfs needs root), so the fsync step can be made
+//! to fail on purpose: with the environment variable `INSTPOL_TEST_FAIL_SYNC` set to a
+//! non-empty value, [`sync_file`] reports "No space left on device" (ENOSPC) without writing
+//! anything. It exists only to prove, in tests, that every writer treats that error as fatal.
+
+use fitsio::FitsFile;
+use std::io;
+use std::path::Path;
+
+/// The environment variable that makes [`sync_file`] fail (tests only; see the module docs).
+pub const FAIL_SYNC_ENV: &str = "INSTPOL_TEST_FAIL_SYNC";
+
+/// Close `f` through CFITSIO and return its status as an error. CFITSIO writes its buffered
+/// header and data blocks here, so on a full disk this is where the error appears.
+pub fn close_fits(mut f: FitsFile) -> Result<(), String> {
+    let mut status: std::os::raw::c_int = 0;
+    // SAFETY: `as_raw` gives the live pointer the FitsFile owns. ffclos frees the fitsfile
+    // structure whatever the status, so the FitsFile must not run its Drop (a second
+    // ffclos on freed memory): it is forgotten (leaking only its path and mode, a few bytes).
+    unsafe {
+        fitsio::sys::ffclos(f.as_raw(), &mut status);
+    }
+    std::mem::forget(f);
+    if status == 0 {
+        Ok(())
+    } else {
+        let mut buf = [0 as std::os::raw::c_char; 32];
+        // SAFETY: ffgerr writes at most 30 characters and a NUL into the 32-byte buffer.
+        let text = unsafe {
+            fitsio::sys::ffgerr(status, buf.as_mut_ptr());
+            std::ffi::CStr::from_ptr(buf.as_ptr()).to_string_lossy().into_owned()
+        };
+        Err(format!("closing the FITS file failed (CFITSIO status {status}: {text}); disk full?"))
+    }
+}
+
+/// fsync the file at `path` (data and metadata), so that a deferred write error (ENOSPC, EIO,
+/// EDQUOT) is reported now rather than lost after the rename.
+pub fn sync_file(path: &Path) -> io::Result<()> {
+    if std::env::var_os(FAIL_SYNC_ENV).is_some_and(|v| !v.is_empty()) {
+        return Err(io::Error::new(
+            io::ErrorKind::StorageFull,
+            format!("No space left on device (injected by {FAIL_SYNC_ENV} for a test)"),
+        ));
+    }
+    std::fs::OpenOptions::new().write(true).open(path)?.sync_all()
+}
+
+/// fsync the folder holding `path`, so that the rename itself survives a crash. Best effort:
+/// some file systems refuse fsync on a folder, and the file's data is already safe.
+fn sync_parent(path: &Path) {
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    if let Ok(d) = std::fs::File::open(dir) {
+        let _ = d.sync_all();
+    }
+}
+
+/// The final step of every writer: fsync the complete temporary `tmp`, then rename it onto
+/// `path`. On error the temporary is deleted (dropped) and `path` is untouched.
+pub fn finish(tmp: tempfile::TempPath, path: &Path) -> io::Result<()> {
+    sync_file(&tmp)?;
+    // Keep only the io::Error: the PersistError also holds the temporary, dropped (deleted) here.
+    tmp.persist(path).map_err(|e| e.error)?;
+    sync_parent(path);
+    Ok(())
+}
