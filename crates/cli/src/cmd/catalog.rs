@@ -52,6 +52,9 @@ pub fn run(a: Args) -> Result<()> {
         Some([r1, r2]) => (*r1, *r2),
         _ => bail!("--annulus '{}': expected two radii in px, e.g. 12,20", a.annulus),
     };
+    if !(a.aperture.is_finite() && a.aperture > 0.0 && a.aperture < 1000.0) {
+        bail!("--aperture {} px: expected a radius between 0 and 1000 px", a.aperture);
+    }
     if !(a.fwhm.is_finite() && a.fwhm > 0.5 && a.fwhm < 200.0) {
         bail!("--fwhm {} px: expected a star width between 0.5 and 200 px", a.fwhm);
     }
@@ -67,9 +70,10 @@ pub fn run(a: Args) -> Result<()> {
                 other.unwrap_or("")
             ),
         }
-        if a.frames.iter().any(|f| f == out) {
-            bail!("--out {} is one of the input frames: refusing to overwrite it", out.display());
-        }
+    }
+    crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
+    if let Some(out) = &a.out {
+        crate::util::check_output(out)?;
     }
     let bar =
         if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(a.frames.len() as u64) };

@@ -77,6 +77,9 @@ pub fn run(a: Args) -> Result<()> {
         Some([r1, r2]) => (*r1, *r2),
         _ => bail!("--annulus '{}': expected two radii in px, e.g. 12,20", a.annulus),
     };
+    crate::util::inputs(
+        a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)).chain(a.standards.as_deref()),
+    )?;
     let frames = skyfield::reduce::read_frames(&a.frames, &inst, &|| {})?;
     let set = FrameSet::from_frames(frames, &inst, true)?;
     for w in &set.warnings {
@@ -103,8 +106,8 @@ pub fn run(a: Args) -> Result<()> {
         (None, Some(c)) => (c, a.sigma_chi_deg),
         _ => bail!("give the standard either by --star NAME or by --chi-deg (not both)"),
     };
-    if !(chi_cat.is_finite() && a.sigma_chi_deg.is_finite() && a.sigma_chi_deg >= 0.0) {
-        bail!("--chi-deg {chi_cat} / --sigma-chi-deg {}: need finite angles", a.sigma_chi_deg);
+    if !(chi_cat.is_finite() && sig_cat.is_finite() && sig_cat >= 0.0 && sig_cat < 90.0) {
+        bail!("--chi-deg {chi_cat} / --sigma-chi-deg {sig_cat}: need a finite angle and an error in [0, 90) deg");
     }
     let g = layout_for(&set, &inst)?;
     let ap = Aperture { radius_px: a.aperture, annulus: Some(annulus) };
