@@ -150,8 +150,8 @@ pub fn centroid(
         if ring.is_empty() {
             return None;
         }
-        ring.sort_by(f64::total_cmp);
-        let bg = ring[ring.len() / 2];
+        let mid = ring.len() / 2;
+        let bg = *ring.select_nth_unstable_by(mid, f64::total_cmp).1;
         let (mut sw, mut sx, mut sy) = (0.0, 0.0, 0.0);
         for py in ya..=yb {
             for px in xa..=xb {

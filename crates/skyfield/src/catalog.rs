@@ -12,6 +12,7 @@ use crate::photometry::{layout_for, photometry_with, Aperture, PhotOptions};
 use crate::reduce::FrameSet;
 use crate::Error;
 use instrument::Instrument;
+use rayon::prelude::*;
 
 /// Catalog settings.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -119,105 +120,108 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
     let ap = cfg.aperture;
     let opts = PhotOptions { weighting: cfg.weighting, recentre: true };
     let blend_r = 2.0 * ap.radius_px;
-    let mut rows = Vec::with_capacity(pairs.len());
-    for (id, pr) in pairs.iter().enumerate() {
-        let (so, se) = (&sources[pr.o], &sources[pr.e]);
-        let (xa, ya) = inst.pixel_to_arcmin(so.x, so.y);
-        let mut flags = 0;
-        if so.saturated || se.saturated {
-            flags |= flags::SATURATED;
-        }
-        let near = |s: &Source, skip: [usize; 2]| {
-            sources.iter().enumerate().any(|(k, t)| !skip.contains(&k) && (t.x - s.x).hypot(t.y - s.y) < blend_r)
-        };
-        if near(so, [pr.o, pr.e]) || near(se, [pr.o, pr.e]) {
-            flags |= flags::BLENDED;
-        }
-        let nan = f64::NAN;
-        let mut row = Row {
-            id: id + 1,
-            x: so.x,
-            y: so.y,
-            x_e: se.x,
-            y_e: se.y,
-            x_arcmin: xa,
-            y_arcmin: ya,
-            fwhm_px: so.fwhm_px,
-            flux_e: nan,
-            f: vec![],
-            q: nan,
-            u: nan,
-            sigma_q: nan,
-            sigma_u: nan,
-            cov_qu: nan,
-            p: nan,
-            sigma_p: nan,
-            chi_deg: nan,
-            sigma_chi_deg: nan,
-            a0: nan,
-            kappa: None,
-            chi2_mod: nan,
-            dof_mod: 0,
-            sigma_q_scatter: nan,
-            sigma_u_scatter: nan,
-            flags,
-            note: String::new(),
-        };
-        if flags & flags::SATURATED != 0 {
-            row.note = "saturated: not measured".into();
-            rows.push(row);
-            continue;
-        }
-        match photometry_with(set, inst, &g, so.x, so.y, &ap, &opts) {
-            Ok(ph) => {
-                let r = &ph.reduction;
-                let n = r.n;
-                row.flux_e = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum::<f64>() / n as f64;
-                row.f = r.f.clone();
-                row.q = r.qu.q;
-                row.u = r.qu.u;
-                row.sigma_q = r.qu.var_q.sqrt();
-                row.sigma_u = r.qu.var_u.sqrt();
-                row.cov_qu = r.qu.cov_qu;
-                row.p = r.p;
-                row.sigma_p = r.sigma_p;
-                row.chi_deg = (r.chi.to_degrees() + chi_off).rem_euclid(180.0);
-                row.sigma_chi_deg = r.sigma_chi.to_degrees();
-                row.a0 = r.a0;
-                row.kappa = r.kappa_mean;
-                // Modulation chi^2: F_i about a_0 + Q cos 4theta + U sin 4theta (a_0 is fitted
-                // too, as the Wollaston's transmission offset makes one).
-                let chi2: f64 = r
-                    .theta
-                    .iter()
-                    .zip(&r.f)
-                    .zip(&r.sigma_f)
-                    .map(|((t, f), s)| {
-                        let m = r.a0 + r.qu.q * (4.0 * t).cos() + r.qu.u * (4.0 * t).sin();
-                        ((f - m) / s).powi(2)
-                    })
-                    .sum();
-                let dof = n.saturating_sub(3);
-                row.chi2_mod = chi2;
-                row.dof_mod = dof;
-                let scale = if dof > 0 { (chi2 / dof as f64).sqrt() } else { nan };
-                row.sigma_q_scatter = row.sigma_q * scale;
-                row.sigma_u_scatter = row.sigma_u * scale;
+    // Stars are measured independently: in parallel, in catalog order.
+    let rows: Vec<Row> = pairs
+        .par_iter()
+        .enumerate()
+        .map(|(id, pr)| {
+            let (so, se) = (&sources[pr.o], &sources[pr.e]);
+            let (xa, ya) = inst.pixel_to_arcmin(so.x, so.y);
+            let mut flags = 0;
+            if so.saturated || se.saturated {
+                flags |= flags::SATURATED;
             }
-            Err(e) => {
-                let m = e.to_string();
-                row.flags |= if m.contains("behind the mask") || m.contains("off the") {
-                    flags::MASK_EDGE
-                } else if m.contains("saturated") {
-                    flags::SATURATED
-                } else {
-                    flags::FAILED
-                };
-                row.note = m;
+            let near = |s: &Source, skip: [usize; 2]| {
+                sources.iter().enumerate().any(|(k, t)| !skip.contains(&k) && (t.x - s.x).hypot(t.y - s.y) < blend_r)
+            };
+            if near(so, [pr.o, pr.e]) || near(se, [pr.o, pr.e]) {
+                flags |= flags::BLENDED;
             }
-        }
-        rows.push(row);
-    }
+            let nan = f64::NAN;
+            let mut row = Row {
+                id: id + 1,
+                x: so.x,
+                y: so.y,
+                x_e: se.x,
+                y_e: se.y,
+                x_arcmin: xa,
+                y_arcmin: ya,
+                fwhm_px: so.fwhm_px,
+                flux_e: nan,
+                f: vec![],
+                q: nan,
+                u: nan,
+                sigma_q: nan,
+                sigma_u: nan,
+                cov_qu: nan,
+                p: nan,
+                sigma_p: nan,
+                chi_deg: nan,
+                sigma_chi_deg: nan,
+                a0: nan,
+                kappa: None,
+                chi2_mod: nan,
+                dof_mod: 0,
+                sigma_q_scatter: nan,
+                sigma_u_scatter: nan,
+                flags,
+                note: String::new(),
+            };
+            if flags & flags::SATURATED != 0 {
+                row.note = "saturated: not measured".into();
+                return row;
+            }
+            match photometry_with(set, inst, &g, so.x, so.y, &ap, &opts) {
+                Ok(ph) => {
+                    let r = &ph.reduction;
+                    let n = r.n;
+                    row.flux_e = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum::<f64>() / n as f64;
+                    row.f = r.f.clone();
+                    row.q = r.qu.q;
+                    row.u = r.qu.u;
+                    row.sigma_q = r.qu.var_q.sqrt();
+                    row.sigma_u = r.qu.var_u.sqrt();
+                    row.cov_qu = r.qu.cov_qu;
+                    row.p = r.p;
+                    row.sigma_p = r.sigma_p;
+                    row.chi_deg = (r.chi.to_degrees() + chi_off).rem_euclid(180.0);
+                    row.sigma_chi_deg = r.sigma_chi.to_degrees();
+                    row.a0 = r.a0;
+                    row.kappa = r.kappa_mean;
+                    // Modulation chi^2: F_i about a_0 + Q cos 4theta + U sin 4theta (a_0 is fitted
+                    // too, as the Wollaston's transmission offset makes one).
+                    let chi2: f64 = r
+                        .theta
+                        .iter()
+                        .zip(&r.f)
+                        .zip(&r.sigma_f)
+                        .map(|((t, f), s)| {
+                            let m = r.a0 + r.qu.q * (4.0 * t).cos() + r.qu.u * (4.0 * t).sin();
+                            ((f - m) / s).powi(2)
+                        })
+                        .sum();
+                    let dof = n.saturating_sub(3);
+                    row.chi2_mod = chi2;
+                    row.dof_mod = dof;
+                    let scale = if dof > 0 { (chi2 / dof as f64).sqrt() } else { nan };
+                    row.sigma_q_scatter = row.sigma_q * scale;
+                    row.sigma_u_scatter = row.sigma_u * scale;
+                }
+                Err(e) => {
+                    let m = e.to_string();
+                    row.flags |= if m.contains("behind the mask") || m.contains("off the") {
+                        flags::MASK_EDGE
+                    } else if m.contains("saturated") {
+                        flags::SATURATED
+                    } else {
+                        flags::FAILED
+                    };
+                    row.note = m;
+                }
+            }
+            row
+        })
+        .collect();
     Ok(Catalog {
         hwp_deg: set.angles_deg.clone(),
         filter: set.filter.clone(),
