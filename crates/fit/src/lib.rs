@@ -11,7 +11,6 @@
 pub mod bins;
 pub mod calfile;
 pub mod correlation;
-pub mod gridmap;
 pub mod import;
 pub mod model;
 pub mod pipeline;
@@ -21,6 +20,9 @@ pub mod region;
 pub mod residual;
 pub mod synth;
 pub mod wavelength;
+
+/// The gridded map lives in the `field` crate (the simulator evaluates it too).
+pub use field::grid as gridmap;
 
 pub use bins::Bin;
 pub use calfile::{Calibration, Model};

@@ -131,10 +131,7 @@ pub fn calibrate_map(
         filter: filter.map(|f| f.name.clone()).unwrap_or_else(|| map.filter.clone()),
         lambda_nm: filter.map(|f| f.lambda_eff_nm).unwrap_or(f64::NAN),
         hwp_chi_offset_deg: filter.map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0),
-        pixel: Some(PixelGrid {
-            scale_arcsec: inst.detector.pixel_scale_arcsec,
-            origin_px: [0.5 * (inst.detector.nx as f64 - 1.0), 0.5 * (inst.detector.ny as f64 - 1.0)],
-        }),
+        pixel: Some(PixelGrid::of_instrument(inst)),
         provenance,
     };
     // The map is in the plate frame: the pipeline turns it into the sky frame with the

@@ -391,8 +391,7 @@ fn measurements(t: &Table, cal: &Calibration, coords: Coords, path: &Path) -> Re
                 let g = cal.pixel.ok_or_else(|| {
                     anyhow!("the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)")
                 })?;
-                let s = g.scale_arcsec / 60.0;
-                Ok(((x - g.origin_px[0]) * s, (y - g.origin_px[1]) * s))
+                Ok(g.to_arcmin(x, y))
             }
         }
     };
