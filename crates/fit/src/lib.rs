@@ -13,6 +13,7 @@ pub mod calfile;
 pub mod correlation;
 pub mod import;
 pub mod model;
+pub mod paper;
 pub mod pipeline;
 pub mod polar;
 pub mod radial;

@@ -189,23 +189,9 @@ pub fn validate_star(
     })
 }
 
-/// The paper's validation position (section `sec:fors1`): where the FORS1 V polynomial
-/// `p(r) = 0.012 r + 0.046 r^2 + 0.002 r^3` % gives the predicted 0.96% on the radial pattern at
-/// `phi = -51.9 deg`, i.e. r = 4.10' at polar angle -51.9 deg: (2.53', -3.23') arcmin, in the
-/// lower-right corner of the 6.8' field (the corner itself, r = 4.83', would give 1.36%).
-#[allow(dead_code)] // used by demo_corner_star
-pub fn paper_corner_position_arcmin() -> (f64, f64) {
-    let mut r = 4.0f64;
-    for _ in 0..30 {
-        r -= (0.012 * r + 0.046 * r * r + 0.002 * r * r * r - 0.96) / (0.012 + 0.092 * r + 0.006 * r * r);
-    }
-    let a = (-51.9f64).to_radians();
-    (r * a.cos(), r * a.sin())
-}
-
 /// The demo's validation step, as the paper did it: simulate (the `sim` crate: photon and
 /// read noise) frames of an unpolarized standard of the paper's precision (3e6 e- per
-/// exposure, sigma_P ~ 0.04%) at [`paper_corner_position_arcmin`] seen through the true V field
+/// exposure, sigma_P ~ 0.04%) at `fit::paper::corner_position_arcmin` seen through the true V field
 /// `true_coeffs_percent` (index = power of r, as in a scene file), write them into `dir`, and
 /// validate the calibration `cal` on them.
 pub fn demo_corner_star(
@@ -214,7 +200,7 @@ pub fn demo_corner_star(
     dir: &Path,
     seed: u64,
 ) -> Result<ValidationReport> {
-    let (x, y) = paper_corner_position_arcmin();
+    let (x, y) = fit::paper::corner_position_arcmin();
     let coeffs: Vec<String> = true_coeffs_percent.iter().map(|c| format!("{c:e}")).collect();
     let scene = format!(
         "instrument = \"fors1\"\nfilter = \"V\"\nhwp_angles_deg = [0, 22.5, 45, 67.5]\nseed = {seed}\n\
