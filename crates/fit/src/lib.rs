@@ -19,7 +19,9 @@ pub mod polar;
 pub mod radial;
 pub mod region;
 pub mod residual;
+pub mod setup;
 pub mod synth;
+pub mod validate;
 pub mod wavelength;
 
 /// The gridded map lives in the `field` crate (the simulator evaluates it too).

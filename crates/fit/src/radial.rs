@@ -357,6 +357,20 @@ impl ErrorScaling {
     }
 }
 
+impl std::str::FromStr for Robust {
+    type Err = Error;
+
+    /// `huber` (k = 1.345), `cauchy` (k = 2.385) or `none`, ignoring case.
+    fn from_str(s: &str) -> Result<Self> {
+        match s.to_ascii_lowercase().as_str() {
+            "huber" => Ok(Robust::Huber(1.345)),
+            "cauchy" => Ok(Robust::Cauchy(2.385)),
+            "none" => Ok(Robust::None),
+            other => Err(Error::Input(format!("unknown robust loss '{other}': use huber, cauchy or none"))),
+        }
+    }
+}
+
 impl std::str::FromStr for ErrorScaling {
     type Err = Error;
     fn from_str(s: &str) -> Result<Self> {
