@@ -1,12 +1,17 @@
-//! Models of the instrumental polarization field and their use: radial polynomials with an
-//! optional free optical-axis centre (argmin), the polar-angle test, the wavelength law, the
-//! Delaunay-interpolated residual map (spade), the per-filter calibration file, and the
-//! correction of measured Stokes parameters with error propagation.
+//! Fitted models of the instrumental polarization field and their use: radial polynomials with
+//! an optional free optical-axis centre (argmin), the polar-angle test, the wavelength law, the
+//! Delaunay-interpolated residual map (spade), the per-filter calibration file with its
+//! metadata and refit policy ([`pipeline`]), the correction of measured Stokes parameters (one
+//! row or a whole Stokes map) with error propagation ([`correct`]), the validation of a
+//! calibration on a standard star in frames ([`validate`]), and the paper's own fields
+//! ([`paper`]).
 //!
 //! A model is a value that answers "what is the instrumental polarization here"
-//! ([`model::FieldModel`]); fitters, the calibration file and the correction do not care which
-//! model it is. This crate does not read frames or make Stokes maps (that is `skyfield`), and
-//! it draws no plots (that is the CLI).
+//! ([`model::FieldModel`], defined in the `field` crate with the field coordinates, so the
+//! simulator evaluates the same values); fitters, the calibration file and the correction do not
+//! care which model it is. This crate does not make Stokes maps from frames (that is
+//! `skyfield`, which [`validate`] calls for the star's photometry), and it draws no plots and
+//! parses no arguments (that is the CLI).
 
 pub mod bins;
 pub mod calfile;

@@ -1,5 +1,5 @@
-//! `instpol validate`: check a calibration on a standard star (photometry by `skyfield`, the
-//! comparison by `fit::standards`).
+//! `instpol validate`: check a calibration on a standard star (`fit::validate` measures and
+//! judges it; this module parses the arguments and prints the report).
 
 use anyhow::{anyhow, bail, Context, Result};
 use fit::standards::{Expected, Standards};
