@@ -717,6 +717,10 @@ impl FieldModel for Calibration {
                 Model::Map(g) => g.contains(x, y),
             }
     }
+
+    fn describe(&self) -> String {
+        format!("calibration of {} {}, model {}", self.instrument, self.filter, self.model.kind())
+    }
 }
 
 fn fits_err(path: &Path, doing: &str) -> impl Fn(fitsio::errors::Error) -> Error {
