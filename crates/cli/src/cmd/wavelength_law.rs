@@ -1,7 +1,6 @@
 //! `instpol wavelength-law`: p(lambda)/p(550 nm) = a + b lambda across filters.
 
 use anyhow::{bail, Context, Result};
-
 use fit::wavelength::fit_wavelength_law;
 use std::path::PathBuf;
 
