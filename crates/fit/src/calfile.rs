@@ -109,10 +109,26 @@ pub struct PixelGrid {
 }
 
 impl PixelGrid {
+    /// The grid of a detector: field origin at its centre.
+    pub fn of_instrument(inst: &instrument::Instrument) -> Self {
+        let c = inst.field_coords();
+        PixelGrid { scale_arcsec: c.scale_arcsec, origin_px: c.origin_px }
+    }
+
+    /// The field coordinates of this grid (unbinned pixels).
+    pub fn coords(&self) -> field::FieldCoords {
+        field::FieldCoords::with_origin(self.origin_px, self.scale_arcsec)
+    }
+
     /// 0-based pixel of field position `(x, y)` arcmin.
     pub fn to_px(&self, x: f64, y: f64) -> [f64; 2] {
-        let s = 60.0 / self.scale_arcsec;
-        [self.origin_px[0] + x * s, self.origin_px[1] + y * s]
+        let (px, py) = self.coords().arcmin_to_pixel(x, y);
+        [px, py]
+    }
+
+    /// Field position (arcmin) of 0-based pixel `(x, y)`.
+    pub fn to_arcmin(&self, x: f64, y: f64) -> (f64, f64) {
+        self.coords().pixel_to_arcmin(x, y)
     }
 }
 
@@ -708,6 +724,10 @@ impl FieldModel for Calibration {
                 Model::RadialResidual { residual, .. } => residual.eval(x, y).is_some(),
                 Model::Map(g) => g.contains(x, y),
             }
+    }
+
+    fn describe(&self) -> String {
+        format!("calibration of {} {}, model {}", self.instrument, self.filter, self.model.kind())
     }
 }
 

@@ -491,3 +491,90 @@ mod tests {
         assert_relative_eq!(chi, 0.4, epsilon = 1e-14);
     }
 }
+
+/// A corrected Stokes map ([`correct_map`]) and what was done.
+#[derive(Debug, Clone)]
+pub struct CorrectedMap {
+    /// The map with `q`, `u`, `p`, `chi` corrected and `sigma_q/u`, `cov_qu`,
+    /// `sigma_q/u_phot` propagated (same layout; invalid bins untouched).
+    pub map: skyfield::StokesMap,
+    /// Bins corrected.
+    pub n_bins: usize,
+    /// Of those, bins outside the calibrated field (corrected by extrapolation, flagged).
+    pub n_extrapolated: usize,
+    /// Per corrected bin, in bin order: `P0` and the instrumental `p` removed.
+    pub p0: Vec<f64>,
+    pub p_inst: Vec<f64>,
+}
+
+/// The bin of a Stokes map that could not be corrected, and why.
+#[derive(Debug, thiserror::Error)]
+pub enum MapError {
+    #[error("bin ({i}, {j}) at ({x:.3}, {y:.3}) arcmin: {source}")]
+    Bin { i: usize, j: usize, x: f64, y: f64, source: Error },
+    #[error("the Stokes map has no valid bins")]
+    NoValidBins,
+}
+
+/// Correct every valid bin of a Stokes map at its centre (`eq:instpol` inverted, or
+/// `eq:approx`, as `opts` says): the scatter errors (`sigma_q/u`, `cov_qu`) and the
+/// photon-noise errors (`sigma_q/u_phot`) are each propagated with the calibration's own
+/// error. The map's instrument and filter are not checked here (see
+/// [`crate::setup::check_map_setup`]).
+pub fn correct_map<M: FieldModel + ?Sized>(
+    model: &M,
+    map: &skyfield::StokesMap,
+    opts: CorrectOptions,
+) -> Result<CorrectedMap, MapError> {
+    let g = &map.geometry;
+    let cor = Corrector::new(model, opts);
+    let mut m = map.clone();
+    let (mut n, mut n_extra) = (0usize, 0usize);
+    let mut p0s = Vec::new();
+    let mut pis = Vec::new();
+    for j in 0..g.ny {
+        for i in 0..g.nx {
+            let k = j * g.nx + i;
+            if !map.valid[k] {
+                continue;
+            }
+            let (x, y) = g.centre_arcmin(i, j);
+            let meas = Measurement {
+                x,
+                y,
+                q: map.q[k],
+                u: map.u[k],
+                sigma_q: map.sigma_q[k],
+                sigma_u: map.sigma_u[k],
+                cov_qu: map.cov_qu[k],
+            };
+            let bin_err = |source| MapError::Bin { i, j, x, y, source };
+            let r = cor.correct(&meas).map_err(bin_err)?;
+            let rp = cor
+                .correct(&Measurement {
+                    sigma_q: map.sigma_q_phot[k],
+                    sigma_u: map.sigma_u_phot[k],
+                    cov_qu: 0.0,
+                    ..meas
+                })
+                .map_err(bin_err)?;
+            m.q[k] = r.q0;
+            m.u[k] = r.u0;
+            m.sigma_q[k] = r.var_q0.sqrt();
+            m.sigma_u[k] = r.var_u0.sqrt();
+            m.cov_qu[k] = r.cov_qu0;
+            m.sigma_q_phot[k] = rp.var_q0.sqrt();
+            m.sigma_u_phot[k] = rp.var_u0.sqrt();
+            m.p[k] = r.p0;
+            m.chi[k] = r.chi0;
+            n += 1;
+            n_extra += r.extrapolated as usize;
+            p0s.push(r.p0);
+            pis.push(r.inst.q.hypot(r.inst.u));
+        }
+    }
+    if n == 0 {
+        return Err(MapError::NoValidBins);
+    }
+    Ok(CorrectedMap { map: m, n_bins: n, n_extrapolated: n_extra, p0: p0s, p_inst: pis })
+}

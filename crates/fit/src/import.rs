@@ -88,21 +88,9 @@ pub fn import_map(q_path: &Path, u_path: &Path, opts: &ImportOptions) -> Result<
     let b = opts.bin as f64;
     // Map pixel (i, j) covers detector pixels [b i, b i + b): its centre is at b i + (b - 1)/2.
     let origin = opts.origin_px.unwrap_or([0.5 * (q.nx as f64 * b - 1.0), 0.5 * (q.ny as f64 * b - 1.0)]);
-    let s = opts.pixel_scale_arcsec / 60.0;
-    let (x0, y0) = ((0.5 * (b - 1.0) - origin[0]) * s, (0.5 * (b - 1.0) - origin[1]) * s);
+    let coords = field::FieldCoords::with_origin(origin, opts.pixel_scale_arcsec);
     let n = q.nx * q.ny;
-    let mut grid = GridMap {
-        nx: q.nx,
-        ny: q.ny,
-        x0,
-        y0,
-        dx: b * s,
-        dy: b * s,
-        q: q.value,
-        u: u.value,
-        sigma_q: q.error,
-        sigma_u: u.error,
-    };
+    let mut grid = GridMap::on_pixels(&coords.binned(opts.bin), q.nx, q.ny, q.value, u.value, q.error, u.error);
     // A pixel counts as measured only when Q, U and both errors are.
     for k in 0..n {
         let ok = grid.q[k].is_finite()
@@ -160,7 +148,7 @@ pub fn import_map(q_path: &Path, u_path: &Path, opts: &ImportOptions) -> Result<
             u_path.display()
         )));
     }
-    let region = FieldRegion::bounding(bins.iter().map(|b| (b.x, b.y)), 0.5 * b * s)
+    let region = FieldRegion::bounding(bins.iter().map(|b| (b.x, b.y)), 0.5 * grid.dx)
         .ok_or_else(|| Error::Input("no finite pixel positions".into()))?;
     let n_used = bins.len();
     Ok(Calibration {

@@ -1,28 +1,39 @@
-//! Models of the instrumental polarization field and their use: radial polynomials with an
-//! optional free optical-axis centre (argmin), the polar-angle test, the wavelength law, the
-//! Delaunay-interpolated residual map (spade), the per-filter calibration file, and the
-//! correction of measured Stokes parameters with error propagation, and the telescope term
-//! (a Nasmyth M3 model fitted to standard stars against the parallactic angle, [`telescope`]).
+//! Fitted models of the instrumental polarization field and their use: radial polynomials with
+//! an optional free optical-axis centre (argmin), the polar-angle test, the wavelength law, the
+//! Delaunay-interpolated residual map (spade), the per-filter calibration file with its
+//! metadata and refit policy ([`pipeline`]), the correction of measured Stokes parameters (one
+//! row or a whole Stokes map) with error propagation ([`correct`]), the validation of a
+//! calibration on a standard star in frames ([`validate`]), the paper's own fields
+//! ([`paper`]), the telescope term (a Nasmyth M3 model fitted to standard stars against the
+//! parallactic angle, [`telescope`]) and the HWP zero angle from polarized standards
+//! ([`zeroangle`]).
 //!
 //! A model is a value that answers "what is the instrumental polarization here"
-//! ([`model::FieldModel`]); fitters, the calibration file and the correction do not care which
-//! model it is. This crate does not read frames or make Stokes maps (that is `skyfield`), and
-//! it draws no plots (that is the CLI).
+//! ([`model::FieldModel`], defined in the `field` crate with the field coordinates, so the
+//! simulator evaluates the same values); fitters, the calibration file and the correction do not
+//! care which model it is. This crate does not make Stokes maps from frames (that is
+//! `skyfield`, which [`validate`] calls for the star's photometry), and it draws no plots and
+//! parses no arguments (that is the CLI).
 
 pub mod bins;
 pub mod calfile;
 pub mod correlation;
-pub mod gridmap;
 pub mod import;
 pub mod model;
+pub mod paper;
 pub mod pipeline;
 pub mod polar;
 pub mod radial;
 pub mod region;
 pub mod residual;
+pub mod setup;
 pub mod synth;
 pub mod telescope;
+pub mod validate;
 pub mod wavelength;
+
+/// The gridded map lives in the `field` crate (the simulator evaluates it too).
+pub use field::grid as gridmap;
 
 pub use bins::Bin;
 pub use calfile::{Calibration, Model};

@@ -48,6 +48,32 @@ pub struct CalibrationMeta {
     pub provenance: Provenance,
 }
 
+impl CalibrationMeta {
+    /// A sky-field calibration of `inst` from a map in filter `map_filter` (canonical filter
+    /// name, effective wavelength and HWP zero angle from the instrument's filter table when it
+    /// knows the filter; else the map's name, no wavelength, no offset), pixel grid about the
+    /// detector centre, provenance stamped now with the sky values and the input files.
+    pub fn sky_field(
+        inst: &instrument::Instrument,
+        map_filter: &str,
+        sky: &skyfield::solve::SkyPolarization,
+        inputs: Vec<String>,
+    ) -> Self {
+        let filter = inst.filter(map_filter).ok();
+        let mut provenance = Provenance::now("sky-field", inputs);
+        provenance.sky_p = Some(sky.p);
+        provenance.sky_chi_deg = Some(sky.chi.to_degrees());
+        CalibrationMeta {
+            instrument: inst.name.clone(),
+            filter: filter.map(|f| f.name.clone()).unwrap_or_else(|| map_filter.to_string()),
+            lambda_nm: filter.map(|f| f.lambda_eff_nm).unwrap_or(f64::NAN),
+            hwp_chi_offset_deg: filter.map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0),
+            pixel: Some(PixelGrid::of_instrument(inst)),
+            provenance,
+        }
+    }
+}
+
 /// How to calibrate.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CalibrateOptions {
@@ -296,6 +322,59 @@ pub fn solve_sky_field(
     let sky_frame = map_to_sky_frame(map, hwp_chi_offset_deg.to_radians());
     let (sol, skipped) = skyfield::solve::solve_map(&sky_frame, sky)?;
     Ok((bins_from_solutions(&sol), skipped))
+}
+
+/// The fit options that reproduce a calibration's own fit (for its profile and polar-angle
+/// panels, or to refit its bins the same way): its exclusions, and for a radial model its
+/// centre (free or fixed), constant term, degree and error treatment. A calibration without a
+/// radial model (an imported map) is fitted with a free centre.
+pub fn refit_options(cal: &Calibration) -> RadialFitOptions {
+    let mut fo = RadialFitOptions { exclusions: cal.exclusions.clone(), ..Default::default() };
+    match cal.model.radial() {
+        Some(r) => {
+            fo.free_centre = r.centre_free;
+            fo.centre = r.centre;
+            fo.include_c0 = r.first_power == 0;
+            fo.degree = r.degree();
+            // The file's own error treatment, so error bars drawn from the refit are the file's.
+            if let Some(sc) = r.scaling {
+                fo.error_scaling = sc.mode;
+                fo.correlated_errors = sc.correlation_inflation.is_some();
+            }
+        }
+        None => fo.free_centre = true,
+    }
+    fo
+}
+
+/// The radial model of a calibration: its own, or for a calibration without one (an imported
+/// map) a free-centre radial fit of its bins (as `instpol wavelength-law` needs).
+pub fn radial_model_of(cal: &Calibration) -> Result<crate::RadialModel> {
+    match cal.model.radial() {
+        Some(r) => Ok(r.clone()),
+        None => {
+            let opts = CalibrateOptions {
+                fit: RadialFitOptions { free_centre: true, ..Default::default() },
+                ..Default::default()
+            };
+            Ok(refit(cal, &opts)?.fit.model)
+        }
+    }
+}
+
+/// [`calibrate_map`] for a map of instrument `inst` with [`CalibrationMeta::sky_field`]: what
+/// `instpol calibrate` and `instpol demo` run.
+pub fn calibrate_sky_field(
+    map: &skyfield::StokesMap,
+    sky: &skyfield::solve::SkyPolarization,
+    inst: &instrument::Instrument,
+    inputs: Vec<String>,
+    opts: &CalibrateOptions,
+) -> Result<CalibrationRun> {
+    let meta = CalibrationMeta::sky_field(inst, &map.filter, sky, inputs);
+    // The map is in the plate frame: calibrate_map turns it into the sky frame with the
+    // filter's HWP zero angle (the one recorded in the calibration) before solving.
+    calibrate_map(map, sky, meta, opts)
 }
 
 /// Calibrate from a Stokes map of an empty field of known sky polarization (a map made by the

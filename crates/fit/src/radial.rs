@@ -71,12 +71,7 @@ impl RadialModel {
 
     /// `p(r)`, the paper's radial polynomial (section `sec:fors1`).
     pub fn p_of_r(&self, r: f64) -> f64 {
-        // Horner in r, then the r^first_power factor.
-        let mut s = 0.0;
-        for c in self.coeffs.iter().rev() {
-            s = s * r + c;
-        }
-        s * r.powi(self.first_power as i32)
+        field::radial::poly(self.first_power, &self.coeffs, r)
     }
 
     /// One-sigma error of `p(r)` from the coefficient covariance.
@@ -113,26 +108,11 @@ impl RadialModel {
         }
         let inv = 1.0 / r2;
         let (c2, s2) = ((dx * dx - dy * dy) * inv, 2.0 * dx * dy * inv);
-        // s = sum_i c_i r^i by Horner, ds = its derivative; p = r^f s.
-        let (mut s, mut ds) = (0.0, 0.0);
-        if want_dp {
-            for c in self.coeffs.iter().rev() {
-                ds = ds * r + s;
-                s = s * r + c;
-            }
+        // The one evaluation of p(r) (and dp/dr when the centre gradient needs it).
+        let (p, dp) = if want_dp {
+            field::radial::poly_and_derivative(self.first_power, &self.coeffs, r)
         } else {
-            for c in self.coeffs.iter().rev() {
-                s = s * r + c;
-            }
-        }
-        let rf = pow_small(r, self.first_power);
-        let p = s * rf;
-        let dp = if want_dp {
-            let f = self.first_power;
-            let df = if f == 0 { 0.0 } else { f as f64 * pow_small(r, f - 1) };
-            df * s + rf * ds
-        } else {
-            0.0
+            (field::radial::poly(self.first_power, &self.coeffs, r), 0.0)
         };
         (p * c2, p * s2, c2, s2, p, dp, r)
     }
@@ -197,15 +177,9 @@ fn radial_eval(
         return (0.0, 0.0);
     }
     let (c2, s2) = ((dx * dx - dy * dy) / (r * r), 2.0 * dx * dy / (r * r));
-    let mut p = 0.0;
-    let mut dp = 0.0;
-    for (i, c) in coeffs.iter().enumerate() {
-        let k = first_power + i;
-        let rk = r.powi(k as i32);
-        p += c * rk;
-        if k > 0 {
-            dp += c * k as f64 * r.powi(k as i32 - 1);
-        }
+    let (p, dp) = field::radial::poly_and_derivative(first_power, coeffs, r);
+    for i in 0..coeffs.len() {
+        let rk = r.powi((first_power + i) as i32);
         gq[i] = rk * c2;
         gu[i] = rk * s2;
     }
@@ -275,6 +249,36 @@ impl FieldModel for RadialModel {
 
     fn contains(&self, _x: f64, _y: f64) -> bool {
         true
+    }
+
+    /// `(c_first..c_degree, x0, y0)`.
+    fn params(&self) -> Vec<f64> {
+        let mut v = self.coeffs.clone();
+        v.extend_from_slice(&self.centre);
+        v
+    }
+
+    fn covariance(&self) -> Option<Vec<f64>> {
+        Some(self.cov.clone())
+    }
+
+    /// The gradient the fit uses (`radial_eval`): coefficients, then the centre.
+    fn jacobian(&self, x: f64, y: f64) -> Option<(Vec<f64>, Vec<f64>)> {
+        let n = self.n_params();
+        let (mut gq, mut gu) = (vec![0.0; n], vec![0.0; n]);
+        radial_eval(self.first_power, &self.coeffs, self.centre, x, y, &mut gq, &mut gu);
+        Some((gq, gu))
+    }
+
+    fn describe(&self) -> String {
+        format!(
+            "radial polynomial of degree {} (from r^{}), centre ({:.4}, {:.4}) arcmin{}",
+            self.degree(),
+            self.first_power,
+            self.centre[0],
+            self.centre[1],
+            if self.centre_free { " (fitted)" } else { "" }
+        )
     }
 }
 
@@ -349,6 +353,20 @@ impl ErrorScaling {
             ErrorScaling::Conservative => "conservative",
             ErrorScaling::Scaled => "scaled",
             ErrorScaling::Absolute => "absolute",
+        }
+    }
+}
+
+impl std::str::FromStr for Robust {
+    type Err = Error;
+
+    /// `huber` (k = 1.345), `cauchy` (k = 2.385) or `none`, ignoring case.
+    fn from_str(s: &str) -> Result<Self> {
+        match s.to_ascii_lowercase().as_str() {
+            "huber" => Ok(Robust::Huber(1.345)),
+            "cauchy" => Ok(Robust::Cauchy(2.385)),
+            "none" => Ok(Robust::None),
+            other => Err(Error::Input(format!("unknown robust loss '{other}': use huber, cauchy or none"))),
         }
     }
 }

@@ -21,14 +21,11 @@ pub struct MeasuredBin {
 /// Bin centres (arcmin from the detector centre) of a regular grid of `bin_px` bins over a
 /// `nx x ny` px detector of `scale` arcsec/px (a bin cut by the edge is left out).
 pub fn bin_centres(nx: usize, ny: usize, scale_arcsec: f64, bin_px: usize) -> Vec<(f64, f64)> {
-    let s = scale_arcsec / 60.0;
-    let (cx, cy) = (0.5 * (nx as f64 - 1.0), 0.5 * (ny as f64 - 1.0));
+    let bins = field::FieldCoords::centred(nx, ny, scale_arcsec).binned(bin_px);
     let mut v = vec![];
     for j in 0..ny / bin_px {
         for i in 0..nx / bin_px {
-            let px = (i * bin_px) as f64 + 0.5 * (bin_px as f64 - 1.0);
-            let py = (j * bin_px) as f64 + 0.5 * (bin_px as f64 - 1.0);
-            v.push(((px - cx) * s, (py - cy) * s));
+            v.push(bins.pixel_to_arcmin(i as f64, j as f64));
         }
     }
     v
@@ -87,15 +84,13 @@ pub fn write_qu_cubes(
     sigma: f64,
 ) -> crate::Result<()> {
     let (nx, ny) = (det_nx.div_ceil(bin), det_ny.div_ceil(bin));
-    let s = scale_arcsec / 60.0;
-    let (cx, cy) = (0.5 * (det_nx as f64 - 1.0), 0.5 * (det_ny as f64 - 1.0));
+    let cells = field::FieldCoords::centred(det_nx, det_ny, scale_arcsec).binned(bin);
     let mut q = vec![0.0; 2 * nx * ny];
     let mut u = vec![0.0; 2 * nx * ny];
     for j in 0..ny {
         for i in 0..nx {
-            let px = (i * bin) as f64 + 0.5 * (bin as f64 - 1.0);
-            let py = (j * bin) as f64 + 0.5 * (bin as f64 - 1.0);
-            let v = field.eval((px - cx) * s, (py - cy) * s);
+            let (x, y) = cells.pixel_to_arcmin(i as f64, j as f64);
+            let v = field.eval(x, y);
             let k = j * nx + i;
             q[k] = v.q;
             u[k] = v.u;

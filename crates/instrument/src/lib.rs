@@ -489,14 +489,17 @@ impl Instrument {
 
     /// Field coordinates (arcmin from the detector centre) of 0-based pixel `(x, y)`.
     pub fn pixel_to_arcmin(&self, x: f64, y: f64) -> (f64, f64) {
-        let s = self.detector.pixel_scale_arcsec / 60.0;
-        ((x - 0.5 * (self.detector.nx as f64 - 1.0)) * s, (y - 0.5 * (self.detector.ny as f64 - 1.0)) * s)
+        self.field_coords().pixel_to_arcmin(x, y)
     }
 
     /// 0-based pixel of field position `(x, y)` in arcmin from the detector centre.
     pub fn arcmin_to_pixel(&self, x: f64, y: f64) -> (f64, f64) {
-        let s = 60.0 / self.detector.pixel_scale_arcsec;
-        (x * s + 0.5 * (self.detector.nx as f64 - 1.0), y * s + 0.5 * (self.detector.ny as f64 - 1.0))
+        self.field_coords().arcmin_to_pixel(x, y)
+    }
+
+    /// The detector's field coordinates: arcmin from its centre, unbinned pixels.
+    pub fn field_coords(&self) -> field::FieldCoords {
+        field::FieldCoords::centred(self.detector.nx, self.detector.ny, self.detector.pixel_scale_arcsec)
     }
 }
 

@@ -7,6 +7,11 @@
 //!   a uniform sky with no field-dependent effect (then nothing is stored per pixel), otherwise
 //!   an image made once per scene (sky, gradient, stars, extended sources, and the
 //!   instrumental field `Element::PartialPolarizer{p, phi}` applied per pixel);
+//! - the **instrumental field** is any [`field::FieldModel`]: the one the scene's
+//!   `[effects.instpol]` names (radial pattern, Q/U maps, ray-trace profile), or a model value
+//!   handed over directly ([`Plan::build_with_field`], [`simulate_with_field`]: a calibration's
+//!   model, a fitted polynomial, a paper field), evaluated at each pixel's field position by
+//!   `field::FieldCoords`, the same conversion the fitter uses;
 //! - the **optics**: the one forward model `mueller::DualBeam` (HWP defects, Wollaston,
 //!   post-analyzer), compiled once and reduced, per HWP angle, to the two rows that give
 //!   `f_O`, `f_E` from the Stokes vector at the plate (the model is linear, so two dot
@@ -23,7 +28,7 @@
 pub mod plan;
 pub mod scene;
 
-pub use plan::{simulate, Plan, Simulated};
+pub use plan::{simulate, simulate_with_field, Plan, Simulated};
 pub use scene::Scene;
 
 use std::path::PathBuf;

@@ -2,6 +2,7 @@
 
 use crate::scene::{Coords, Extended, InstPolSpec, Profile, Psf, Scene, Star};
 use crate::Error;
+use field::{FieldModel, GridMap, InstPol, NearestCell, RadialPattern};
 use instrument::Instrument;
 use mueller::{DualBeam, Element, Harmonic, Hwp, Stokes, Wollaston};
 use rand::{RngExt, SeedableRng};
@@ -12,6 +13,7 @@ use skyfield::beams::{BeamGeometry, PixelKind};
 use skyfield::io::{write_frame, Bitpix, KeyValue};
 use std::f64::consts::PI;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// Normalized Stokes `(I, Q, U)` of one sky pixel at the plate (V = 0 throughout).
 type Iqu = [f64; 3];
@@ -178,95 +180,76 @@ fn read_map(path: &Path) -> Result<(Vec<f64>, usize, usize), Error> {
     Ok((v[..nx * ny].to_vec(), nx, ny))
 }
 
-/// The instrumental field, evaluated per sky pixel: `(p, phi)` of `M_I`.
-enum InstField {
-    Radial {
-        c: Vec<f64>,
-        centre: [f64; 2],
-        phi0: f64,
-    },
-    Map {
-        q: Vec<f64>,
-        u: Vec<f64>,
-        nx: usize,
-        ny: usize,
-        bin: usize,
-    },
-    /// A ray tracer's field file, read and evaluated by `mueller::raytrace::FieldFile`.
-    Raytrace {
-        field: mueller::raytrace::FieldFile,
-        centre: [f64; 2],
-    },
+/// A ray tracer's field profile (`mueller::raytrace::FieldFile`) about `centre` as a field
+/// model: `p` interpolated in radius, angle radial plus the tabulated offset.
+struct RaytraceField {
+    field: mueller::raytrace::FieldFile,
+    centre: [f64; 2],
 }
 
-impl InstField {
-    fn load(spec: &InstPolSpec) -> Result<Self, Error> {
-        Ok(match spec {
-            InstPolSpec::Radial { coeffs_percent, centre_arcmin, phi_offset_deg } => InstField::Radial {
-                c: coeffs_percent.iter().map(|c| c / 100.0).collect(),
-                centre: *centre_arcmin,
-                phi0: phi_offset_deg.to_radians(),
-            },
-            InstPolSpec::Map { q_file, u_file, bin_px } => {
-                let (q, nx, ny) = read_map(q_file)?;
-                let (u, ux, uy) = read_map(u_file)?;
-                if (ux, uy) != (nx, ny) {
-                    return Err(file_err(u_file, format!("U map is {ux} x {uy}, Q map is {nx} x {ny}")));
-                }
-                InstField::Map { q, u, nx, ny, bin: (*bin_px).max(1) }
-            }
-            InstPolSpec::Raytrace { file, centre_arcmin } => {
-                let text = std::fs::read_to_string(file).map_err(|e| file_err(file, e))?;
-                let f: mueller::raytrace::FieldFile = serde_json::from_str(&text).map_err(|e| file_err(file, e))?;
-                if f.format != mueller::raytrace::FieldFile::FORMAT {
-                    return Err(file_err(
-                        file,
-                        format!("format '{}' is not {}", f.format, mueller::raytrace::FieldFile::FORMAT),
-                    ));
-                }
-                let n = f.radius_arcmin.len();
-                if n == 0 || f.p.len() != n || f.phi_rel_deg.len() != n {
-                    return Err(file_err(file, "radius_arcmin, p and phi_rel_deg must have the same, non-zero length"));
-                }
-                if f.radius_arcmin.windows(2).any(|w| !(w[1] > w[0])) {
-                    return Err(file_err(file, "radius_arcmin must increase"));
-                }
-                if f.p.iter().chain(&f.phi_rel_deg).any(|v| !v.is_finite()) {
-                    return Err(file_err(file, "p and phi_rel_deg must be finite"));
-                }
-                InstField::Raytrace { field: f, centre: *centre_arcmin }
-            }
-        })
+impl FieldModel for RaytraceField {
+    fn eval(&self, x: f64, y: f64) -> InstPol {
+        let (p, phi) = self.p_phi(x, y);
+        InstPol { q: p * (2.0 * phi).cos(), u: p * (2.0 * phi).sin(), ..Default::default() }
     }
 
-    /// `(p, phi)` at sky pixel `(x, y)` (arcmin `(xa, ya)`); a negative radial `p` is the
-    /// same partial polarizer turned by 90 deg.
-    fn eval(&self, x: usize, y: usize, xa: f64, ya: f64) -> (f64, f64) {
-        let signed = |p: f64, phi: f64| if p >= 0.0 { (p, phi) } else { (-p, phi + 0.5 * PI) };
-        match self {
-            InstField::Radial { c, centre, phi0 } => {
-                let (dx, dy) = (xa - centre[0], ya - centre[1]);
-                let r = dx.hypot(dy);
-                let p = c.iter().rev().fold(0.0, |acc, &ck| acc * r + ck);
-                signed(p, dy.atan2(dx) + phi0)
-            }
-            InstField::Map { q, u, nx, ny, bin } => {
-                let (i, j) = (x / bin, y / bin);
-                if i >= *nx || j >= *ny {
-                    return (0.0, 0.0);
-                }
-                let (qv, uv) = (q[j * nx + i], u[j * nx + i]);
-                if !(qv.is_finite() && uv.is_finite()) {
-                    return (0.0, 0.0);
-                }
-                stokes::polarization(qv, uv)
-            }
-            InstField::Raytrace { field, centre } => {
-                let (p, phi) = field.eval(xa - centre[0], ya - centre[1]);
-                signed(p, phi)
-            }
+    fn contains(&self, _x: f64, _y: f64) -> bool {
+        true
+    }
+
+    /// A negative `p` is the same partial polarizer turned by 90 deg.
+    fn p_phi(&self, x: f64, y: f64) -> (f64, f64) {
+        let (p, phi) = self.field.eval(x - self.centre[0], y - self.centre[1]);
+        if p >= 0.0 {
+            (p, phi)
+        } else {
+            (-p, phi + 0.5 * PI)
         }
     }
+}
+
+/// The field model a scene's `[effects.instpol]` names: a radial pattern, Q/U maps on the
+/// detector (each map pixel a block of `bin_px x bin_px` detector pixels, nearest cell), or a
+/// ray tracer's profile.
+fn load_field(spec: &InstPolSpec, inst: &Instrument) -> Result<Arc<dyn FieldModel>, Error> {
+    Ok(match spec {
+        InstPolSpec::Radial { coeffs_percent, centre_arcmin, phi_offset_deg } => Arc::new(RadialPattern {
+            coeffs: coeffs_percent.iter().map(|c| c / 100.0).collect(),
+            centre: *centre_arcmin,
+            phi_offset: phi_offset_deg.to_radians(),
+        }),
+        InstPolSpec::Map { q_file, u_file, bin_px } => {
+            let (q, nx, ny) = read_map(q_file)?;
+            let (u, ux, uy) = read_map(u_file)?;
+            if (ux, uy) != (nx, ny) {
+                return Err(file_err(u_file, format!("U map is {ux} x {uy}, Q map is {nx} x {ny}")));
+            }
+            let cells = inst.field_coords().binned((*bin_px).max(1));
+            let zero = vec![0.0; nx * ny];
+            Arc::new(NearestCell(GridMap::on_pixels(&cells, nx, ny, q, u, zero.clone(), zero)))
+        }
+        InstPolSpec::Raytrace { file, centre_arcmin } => {
+            let text = std::fs::read_to_string(file).map_err(|e| file_err(file, e))?;
+            let f: mueller::raytrace::FieldFile = serde_json::from_str(&text).map_err(|e| file_err(file, e))?;
+            if f.format != mueller::raytrace::FieldFile::FORMAT {
+                return Err(file_err(
+                    file,
+                    format!("format '{}' is not {}", f.format, mueller::raytrace::FieldFile::FORMAT),
+                ));
+            }
+            let n = f.radius_arcmin.len();
+            if n == 0 || f.p.len() != n || f.phi_rel_deg.len() != n {
+                return Err(file_err(file, "radius_arcmin, p and phi_rel_deg must have the same, non-zero length"));
+            }
+            if f.radius_arcmin.windows(2).any(|w| !(w[1] > w[0])) {
+                return Err(file_err(file, "radius_arcmin must increase"));
+            }
+            if f.p.iter().chain(&f.phi_rel_deg).any(|v| !v.is_finite()) {
+                return Err(file_err(file, "p and phi_rel_deg must be finite"));
+            }
+            Arc::new(RaytraceField { field: f, centre: *centre_arcmin })
+        }
+    })
 }
 
 /// Sersic `b_n` (asymptotic expansion, good to < 1e-4 for n > 0.36).
@@ -277,6 +260,15 @@ fn sersic_b(n: f64) -> f64 {
 impl Plan {
     /// Build the plan of a validated scene.
     pub fn build(scene: &Scene) -> Result<Self, Error> {
+        Self::build_with_field(scene, None)
+    }
+
+    /// Build the plan of a validated scene whose instrumental field is the model `field`
+    /// (any [`FieldModel`]: a calibration's model, a fitted radial polynomial, a map, a
+    /// closure), evaluated at every sky pixel's field position (arcmin from the detector
+    /// centre). The scene must then not name an `[effects.instpol]` of its own. Where the model
+    /// gives no finite polarization (outside a map, NaN pixels) there is none.
+    pub fn build_with_field(scene: &Scene, field: Option<Arc<dyn FieldModel>>) -> Result<Self, Error> {
         let inst = Instrument::load(&scene.instrument)?;
         let filter = inst.filter(&scene.filter)?.clone();
         let geom = BeamGeometry::new(&inst);
@@ -309,6 +301,20 @@ impl Plan {
             [st[0], st[1], st[2]]
         });
         let fx = &scene.effects;
+        let field: Option<(Arc<dyn FieldModel>, String)> = match (field, &fx.instpol) {
+            (Some(_), Some(_)) => {
+                return Err(Error::Scene {
+                    path: PathBuf::from("<scene>"),
+                    message: "the scene names [effects.instpol] and a field model was given too: give one".into(),
+                })
+            }
+            (Some(m), None) => {
+                let d = m.describe();
+                Some((m, d))
+            }
+            (None, Some(spec)) => Some((load_field(spec, &inst)?, describe_instpol(spec))),
+            (None, None) => None,
+        };
         // Stars go frame by frame when the two beams overlap (maskless) or the frames move;
         // otherwise they are folded into the sky image once.
         let per_frame = geom.layout == instrument::Layout::Maskless || !scene.frame_shifts_px.is_empty();
@@ -319,16 +325,14 @@ impl Plan {
         };
         let mut moving = Vec::new();
         if per_frame {
-            let field = fx.instpol.as_ref().map(InstField::load).transpose()?;
             for st in &scene.stars {
                 explain.push(format!("  + star {} (drawn frame by frame in both beams)", describe_star(st)));
                 let (x, y) = source_pixel(&inst, st.x, st.y, st.coords);
                 let mut v = mueller::stokes_p_chi(st.flux_e, st.p, st.chi_deg.to_radians());
-                if let Some(f) = &field {
+                if let Some((f, _)) = &field {
                     let (xa, ya) = inst.pixel_to_arcmin(x, y);
-                    let (xi, yi) = (x.round().max(0.0) as usize, y.round().max(0.0) as usize);
-                    let (p, phi) = f.eval(xi, yi, xa, ya);
-                    if p != 0.0 {
+                    let (p, phi) = f.p_phi(xa, ya);
+                    if p != 0.0 && p.is_finite() && phi.is_finite() {
                         v = Element::PartialPolarizer { p, phi }.matrix() * v;
                     }
                 }
@@ -341,7 +345,7 @@ impl Plan {
         let needs_image = scene.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some())
             || (!scene.stars.is_empty() && !per_frame)
             || !scene.extended.is_empty()
-            || fx.instpol.is_some();
+            || (field.is_some() && geom.layout == instrument::Layout::Strips);
         let sky = if !needs_image {
             let c = base.unwrap_or([0.0; 3]);
             match &scene.sky {
@@ -397,17 +401,16 @@ impl Plan {
                     add_extended(&mut img, &sky_pixels, &inst, ex)?;
                 }
             }
-            if let Some(spec) = fx.instpol.as_ref().filter(|_| geom.layout == instrument::Layout::Strips) {
-                let field = InstField::load(spec)?;
+            if let Some((field, what)) = field.as_ref().filter(|_| geom.layout == instrument::Layout::Strips) {
                 explain.push(format!(
-                    "  x instrumental field Element::PartialPolarizer{{p(x,y), phi(x,y)}} per pixel: {}",
-                    describe_instpol(spec)
+                    "  x instrumental field Element::PartialPolarizer{{p(x,y), phi(x,y)}} per pixel: {what}"
                 ));
+                let coords = inst.field_coords();
                 img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(s, &(o, _))| {
                     let (x, y) = pos(o);
-                    let (xa, ya) = inst.pixel_to_arcmin(x as f64, y as f64);
-                    let (p, phi) = field.eval(x, y, xa, ya);
-                    if p != 0.0 {
+                    let (xa, ya) = coords.pixel_to_arcmin(x as f64, y as f64);
+                    let (p, phi) = field.p_phi(xa, ya);
+                    if p != 0.0 && p.is_finite() && phi.is_finite() {
                         let out = Element::PartialPolarizer { p, phi }.matrix() * Stokes::new(s[0], s[1], s[2], 0.0);
                         *s = [out[0], out[1], out[2]];
                     }
@@ -904,6 +907,17 @@ struct TruthFrame {
 pub fn simulate(scene: &Scene, out: &Path, on_frame: &(dyn Fn() + Sync)) -> Result<Simulated, Error> {
     let plan = Plan::build(scene)?;
     plan.write(out, on_frame)
+}
+
+/// [`simulate`] with the instrumental field given as a model value instead of the scene's
+/// `[effects.instpol]` (see [`Plan::build_with_field`]).
+pub fn simulate_with_field(
+    scene: &Scene,
+    field: Arc<dyn FieldModel>,
+    out: &Path,
+    on_frame: &(dyn Fn() + Sync),
+) -> Result<Simulated, Error> {
+    Plan::build_with_field(scene, Some(field))?.write(out, on_frame)
 }
 
 impl Plan {

@@ -106,8 +106,12 @@ impl BinGeometry {
 
     /// 0-based pixel to arcmin from the detector centre.
     pub fn px_to_arcmin(&self, x: f64, y: f64) -> (f64, f64) {
-        let s = self.pixel_scale_arcsec / 60.0;
-        ((x - 0.5 * (self.detector_nx as f64 - 1.0)) * s, (y - 0.5 * (self.detector_ny as f64 - 1.0)) * s)
+        self.field_coords().pixel_to_arcmin(x, y)
+    }
+
+    /// The detector's field coordinates (arcmin from its centre, unbinned pixels).
+    pub fn field_coords(&self) -> field::FieldCoords {
+        field::FieldCoords::centred(self.detector_nx, self.detector_ny, self.pixel_scale_arcsec)
     }
 }
 

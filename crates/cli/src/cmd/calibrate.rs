@@ -1,8 +1,7 @@
 //! `instpol calibrate`: empty-field frames of known sky polarization to a calibration file.
 
-use anyhow::{bail, Context, Result};
-use fit::calfile::{PixelGrid, Provenance};
-use fit::pipeline::{CalibrateOptions, CalibrationMeta, CalibrationRun, FitSummary};
+use anyhow::{anyhow, bail, Context, Result};
+use fit::pipeline::{CalibrateOptions, CalibrationRun, FitSummary};
 use fit::radial::Robust;
 use fit::RadialFitOptions;
 use skyfield::solve::SkyPolarization;
@@ -103,12 +102,9 @@ impl FitArgs {
         for e in &self.exclude {
             fo.exclusions.push(e.parse()?);
         }
-        fo.robust = match self.robust.to_ascii_lowercase().as_str() {
-            "huber" => Robust::Huber(1.345),
-            "cauchy" => Robust::Cauchy(2.385),
-            "none" => Robust::None,
-            other => bail!("unknown --robust '{other}': use huber, cauchy or none"),
-        };
+        fo.robust = self.robust.parse::<Robust>().map_err(|_| {
+            anyhow!("unknown --robust '{}': use huber, cauchy or none", self.robust.to_ascii_lowercase())
+        })?;
         fo.error_scaling = self.error_scaling.parse().context("--error-scaling")?;
         fo.correlated_errors = self.correlated_errors;
         Ok(CalibrateOptions { fit: fo, residual_map: self.residual_map, ..Default::default() })
@@ -123,24 +119,7 @@ pub fn calibrate_map(
     inputs: Vec<String>,
     opts: &CalibrateOptions,
 ) -> Result<CalibrationRun> {
-    let filter = inst.filter(&map.filter).ok();
-    let mut provenance = Provenance::now("sky-field", inputs);
-    provenance.sky_p = Some(sky.p);
-    provenance.sky_chi_deg = Some(sky.chi.to_degrees());
-    let meta = CalibrationMeta {
-        instrument: inst.name.clone(),
-        filter: filter.map(|f| f.name.clone()).unwrap_or_else(|| map.filter.clone()),
-        lambda_nm: filter.map(|f| f.lambda_eff_nm).unwrap_or(f64::NAN),
-        hwp_chi_offset_deg: filter.map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0),
-        pixel: Some(PixelGrid {
-            scale_arcsec: inst.detector.pixel_scale_arcsec,
-            origin_px: [0.5 * (inst.detector.nx as f64 - 1.0), 0.5 * (inst.detector.ny as f64 - 1.0)],
-        }),
-        provenance,
-    };
-    // The map is in the plate frame: the pipeline turns it into the sky frame with the
-    // filter's HWP zero angle (the one recorded in the calibration) before solving.
-    Ok(fit::pipeline::calibrate_map(map, sky, meta, opts)?)
+    Ok(fit::pipeline::calibrate_sky_field(map, sky, inst, inputs, opts)?)
 }
 
 /// The sky values are required: without them the sky-field equations have no solution.

@@ -393,8 +393,7 @@ fn measurements(t: &Table, cal: &Calibration, coords: Coords, path: &Path) -> Re
                 let g = cal.pixel.ok_or_else(|| {
                     anyhow!("the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)")
                 })?;
-                let s = g.scale_arcsec / 60.0;
-                Ok(((x - g.origin_px[0]) * s, (y - g.origin_px[1]) * s))
+                Ok(g.to_arcmin(x, y))
             }
         }
     };
@@ -530,19 +529,7 @@ fn write_fits_table(
 /// compared case-insensitively, filters through the instrument's aliases when it is known;
 /// "unknown" or empty names are not checked).
 fn check_same_setup(inst: &str, filter: &str, cal: &Calibration, input: &Path, calp: &Path, allow: bool) -> Result<()> {
-    let known = |s: &str| !s.trim().is_empty() && !s.trim().eq_ignore_ascii_case("unknown");
-    let same_inst = !known(inst) || !known(&cal.instrument) || inst.trim().eq_ignore_ascii_case(cal.instrument.trim());
-    let same_filter =
-        !known(filter) || !known(&cal.filter) || filter.trim().eq_ignore_ascii_case(cal.filter.trim()) || {
-            match instrument::Instrument::load(&cal.instrument) {
-                Ok(i) => match (i.filter(filter), i.filter(&cal.filter)) {
-                    (Ok(a), Ok(b)) => a.name == b.name,
-                    _ => false,
-                },
-                Err(_) => false,
-            }
-        };
-    if (!same_inst || !same_filter) && !allow {
+    if !fit::setup::matches_calibration(inst, filter, cal) && !allow {
         bail!(
             "{} is a {} {} map but {} calibrates {} {}: use the calibration of the map's instrument and filter (or --allow-mismatch)",
             input.display(),
@@ -561,56 +548,11 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
     let map = skyfield::StokesMap::read_fits(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
     check_same_setup(&map.instrument, &map.filter, cal, &a.input, &a.cal, a.allow_mismatch)?;
-    let g = &map.geometry;
-    let cor = Corrector::new(cal, opts);
-    let mut m = map.clone();
-    let (mut n, mut n_extra) = (0usize, 0usize);
-    let mut p0s = Vec::new();
-    let mut pis = Vec::new();
-    for j in 0..g.ny {
-        for i in 0..g.nx {
-            let k = j * g.nx + i;
-            if !map.valid[k] {
-                continue;
-            }
-            let (x, y) = g.centre_arcmin(i, j);
-            let meas = Measurement {
-                x,
-                y,
-                q: map.q[k],
-                u: map.u[k],
-                sigma_q: map.sigma_q[k],
-                sigma_u: map.sigma_u[k],
-                cov_qu: map.cov_qu[k],
-            };
-            let ctx = || format!("{} bin ({i}, {j}) at ({x:.3}, {y:.3}) arcmin", a.input.display());
-            let r = cor.correct(&meas).map_err(|e| anyhow!("{}: {e}", ctx()))?;
-            let rp = cor
-                .correct(&Measurement {
-                    sigma_q: map.sigma_q_phot[k],
-                    sigma_u: map.sigma_u_phot[k],
-                    cov_qu: 0.0,
-                    ..meas
-                })
-                .map_err(|e| anyhow!("{}: {e}", ctx()))?;
-            m.q[k] = r.q0;
-            m.u[k] = r.u0;
-            m.sigma_q[k] = r.var_q0.sqrt();
-            m.sigma_u[k] = r.var_u0.sqrt();
-            m.cov_qu[k] = r.cov_qu0;
-            m.sigma_q_phot[k] = rp.var_q0.sqrt();
-            m.sigma_u_phot[k] = rp.var_u0.sqrt();
-            m.p[k] = r.p0;
-            m.chi[k] = r.chi0;
-            n += 1;
-            n_extra += r.extrapolated as usize;
-            p0s.push(r.p0);
-            pis.push(r.inst.q.hypot(r.inst.u));
-        }
-    }
-    if n == 0 {
-        bail!("{}: the Stokes map has no valid bins", a.input.display());
-    }
+    let c = fit::correct::correct_map(cal, &map, opts).map_err(|e| match e {
+        fit::correct::MapError::NoValidBins => anyhow!("{}: {e}", a.input.display()),
+        e => anyhow!("{} {e}", a.input.display()),
+    })?;
+    let m = c.map;
     // Written beside the output, stamped with the correction's provenance, then renamed.
     crate::util::write_via_temp(&a.out, ".fits.tmp", |tmp| {
         m.write_fits(tmp).with_context(|| format!("cannot write {}", a.out.display()))?;
@@ -631,14 +573,14 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
         input: a.input.clone(),
         output: a.out.clone(),
         kind: "Stokes map",
-        rows: n,
-        extrapolated: n_extra,
+        rows: c.n_bins,
+        extrapolated: c.n_extrapolated,
         method: a.method,
         estimator: a.estimator.clone(),
         coords: None,
         filter: cal.filter.clone(),
         hwp_chi_offset_deg: cal.hwp_chi_offset_deg,
-        median_p0: median(p0s.into_iter()),
-        median_p_inst: median(pis.into_iter()),
+        median_p0: median(c.p0.into_iter()),
+        median_p_inst: median(c.p_inst.into_iter()),
     })
 }

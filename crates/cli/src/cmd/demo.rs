@@ -1,13 +1,15 @@
 //! `instpol demo`: the main job end to end on the paper's three empty fields.
 
 use anyhow::{Context, Result};
+use field::{FieldModel, GridMap, NearestCell, RadialPattern};
 use fit::calfile::Calibration;
+use fit::paper::DemoField;
 use fit::pipeline::{CalibrateOptions, CalibrationRun, FitSummary};
-use fit::synth::{write_qu_cubes, FnField};
 use fit::wavelength::fit_wavelength_law;
-use fit::{FieldModel, RadialModel};
+use fit::RadialModel;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// Simulate the paper's three empty fields (B, V, I with the sky polarization of Table
 /// tab:empty), calibrate each filter, fit the wavelength law, and write the calibration files
@@ -39,62 +41,6 @@ pub struct Args {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
-}
-
-const V_PCT: [f64; 3] = [0.012, 0.046, 0.002];
-const I_PCT: [f64; 3] = [-0.017, 0.105, -0.006];
-
-/// The paper's ray-traced law (section sec:cause), used only to make the B-band input.
-fn paper_law(lambda: f64) -> f64 {
-    0.02 + 1.73e-3 * lambda
-}
-
-/// The asymmetric B component: a smooth bump of up to 0.5% at a fixed angle (the kind of
-/// residual fig:residB shows).
-fn b_asymmetry(x: f64, y: f64) -> (f64, f64) {
-    let g = 0.005 * (-((x - 1.6).powi(2) + (y + 1.2).powi(2)) / (2.0 * 1.1f64.powi(2))).exp();
-    let a = 30f64.to_radians();
-    (g * (2.0 * a).cos(), g * (2.0 * a).sin())
-}
-
-struct FilterCase {
-    name: &'static str,
-    sky_p_pct: f64,
-    sky_chi_deg: f64,
-    coeffs_pct: Vec<f64>,
-    asymmetric: bool,
-}
-
-fn cases(inst: &instrument::Instrument) -> Result<Vec<FilterCase>> {
-    let lb = inst.filter("B")?.lambda_eff_nm;
-    let lv = inst.filter("V")?.lambda_eff_nm;
-    let k = paper_law(lb) / paper_law(lv);
-    Ok(vec![
-        FilterCase {
-            name: "B",
-            sky_p_pct: 6.45,
-            sky_chi_deg: 68.4,
-            coeffs_pct: V_PCT.iter().map(|c| c * k).collect(),
-            asymmetric: true,
-        },
-        FilterCase { name: "V", sky_p_pct: 1.74, sky_chi_deg: -53.8, coeffs_pct: V_PCT.to_vec(), asymmetric: false },
-        FilterCase { name: "I", sky_p_pct: 1.34, sky_chi_deg: 68.7, coeffs_pct: I_PCT.to_vec(), asymmetric: false },
-    ])
-}
-
-/// The input field of a case, in fractions.
-fn truth(c: &FilterCase) -> impl Fn(f64, f64) -> (f64, f64) + Send + Sync + 'static {
-    let model = RadialModel::new(1, c.coeffs_pct.iter().map(|x| x / 100.0).collect(), [0.0, 0.0]);
-    let asym = c.asymmetric;
-    move |x, y| {
-        let (q, u) = model.qu(x, y);
-        if asym {
-            let (a, b) = b_asymmetry(x, y);
-            (q + a, u + b)
-        } else {
-            (q, u)
-        }
-    }
 }
 
 #[derive(Serialize)]
@@ -150,7 +96,7 @@ struct Out {
 
 /// Frames for one case with the simulator, reduced to a Stokes map.
 fn map_through_frames(
-    c: &FilterCase,
+    c: &DemoField,
     inst: &instrument::Instrument,
     dir: &Path,
     seed: u64,
@@ -158,35 +104,29 @@ fn map_through_frames(
 ) -> Result<(skyfield::StokesMap, Vec<String>)> {
     let fdir = dir.join(format!("frames_{}", c.name));
     std::fs::create_dir_all(&fdir).with_context(|| format!("cannot create {}", fdir.display()))?;
-    let instpol = if c.asymmetric {
-        // A non-radial field goes to the simulator as Q/U maps (16 px per map pixel).
-        let (qp, up) = (fdir.join("truth_q.fits"), fdir.join("truth_u.fits"));
-        let t = FnField(truth(c));
-        let d = &inst.detector;
-        write_qu_cubes(&qp, &up, &t, d.nx, d.ny, d.pixel_scale_arcsec, 16, 0.0)?;
-        format!(
-            "kind = \"map\"\nq_file = {:?}\nu_file = {:?}\nbin_px = 16\n",
-            qp.display().to_string(),
-            up.display().to_string()
-        )
+    // The input field goes to the simulator as a model value.
+    let field: Arc<dyn FieldModel> = if c.asymmetric {
+        // The non-radial B field sampled on 16 x 16 px cells, each cell one M_I (the README's
+        // demo numbers were made so).
+        let (nx, ny) = (inst.detector.nx.div_ceil(16), inst.detector.ny.div_ceil(16));
+        Arc::new(NearestCell(GridMap::sample(&c.truth(), &inst.field_coords().binned(16), nx, ny)))
     } else {
-        // The simulator's list starts at r^0; the paper's polynomial has no constant term.
-        let mut k0 = vec![0.0];
-        k0.extend_from_slice(&c.coeffs_pct);
-        format!("kind = \"radial\"\ncoeffs_percent = {k0:?}\n")
+        // The radial pattern with the paper's coefficients (the list starts at r^0; the paper's
+        // polynomial has no constant term).
+        let coeffs = std::iter::once(0.0).chain(c.coeffs_pct.iter().copied()).map(|k| k / 100.0).collect();
+        Arc::new(RadialPattern::new(coeffs, [0.0, 0.0]))
     };
     let scene = format!(
         "instrument = \"fors1\"\nfilter = \"{}\"\nseed = {}\n\n[sky]\nbrightness_e = 20000.0\np = {}\nchi_deg = {}\n\n\
-         [effects]\nphoton_noise = true\nread_noise = true\n\n[effects.instpol]\n{}",
+         [effects]\nphoton_noise = true\nread_noise = true\n",
         c.name,
         seed,
         c.sky_p_pct / 100.0,
         c.sky_chi_deg,
-        instpol
     );
     let scene = sim::Scene::from_toml_str(&scene, Path::new("<demo scene>"))?;
     bar.set_message(format!("{}: simulating frames", c.name));
-    let simd = sim::simulate(&scene, &fdir, &|| bar.inc(1))?;
+    let simd = sim::simulate_with_field(&scene, field, &fdir, &|| bar.inc(1))?;
     bar.set_message(format!("{}: reducing frames", c.name));
     let cfg = skyfield::reduce::ReduceConfig { bin_px: 30, ..Default::default() };
     let red = skyfield::reduce::reduce_files(&simd.frames, inst, &cfg, &|| bar.inc(1))?;
@@ -195,7 +135,7 @@ fn map_through_frames(
 }
 
 /// A binned map measured directly through `M_I` with the noise of a 30 x 30 px bin.
-fn map_direct(c: &FilterCase, inst: &instrument::Instrument, seed: u64) -> Result<skyfield::StokesMap> {
+fn map_direct(c: &DemoField, inst: &instrument::Instrument, seed: u64) -> Result<skyfield::StokesMap> {
     let d = &inst.detector;
     let geom = skyfield::BinGeometry::covering(30, 0, 0, d.nx, d.ny, d.pixel_scale_arcsec);
     let mut map = skyfield::StokesMap::empty(geom.clone(), &inst.name, c.name, vec![0.0, 22.5, 45.0, 67.5]);
@@ -204,7 +144,7 @@ fn map_direct(c: &FilterCase, inst: &instrument::Instrument, seed: u64) -> Resul
     let (q0, u0) = sky.qu();
     // SNR 280 per pixel, 4 HWP angles, 900 px: sigma of a bin mean ~ 1 / (280 sqrt(900)).
     let sigma = 1.0 / (280.0 * 30.0);
-    let meas = fit::synth::sky_field(&centres, &FnField(truth(c)), q0, u0, sigma, seed);
+    let meas = fit::synth::sky_field(&centres, &c.truth(), q0, u0, sigma, seed);
     for (k, m) in meas.iter().enumerate() {
         map.q[k] = m.q1;
         map.u[k] = m.u1;
@@ -218,8 +158,8 @@ fn map_direct(c: &FilterCase, inst: &instrument::Instrument, seed: u64) -> Resul
 }
 
 /// RMS per component of (calibration - input) over the calibrated bins.
-fn rms_vs_input(cal: &Calibration, c: &FilterCase) -> f64 {
-    let t = truth(c);
+fn rms_vs_input(cal: &Calibration, c: &DemoField) -> f64 {
+    let t = c.truth();
     let mut ss = 0.0;
     let mut n = 0;
     for b in cal.bins.iter().filter(|b| b.used) {
@@ -227,7 +167,7 @@ fn rms_vs_input(cal: &Calibration, c: &FilterCase) -> f64 {
             continue;
         }
         let v = cal.eval(b.x, b.y);
-        let (q, u) = t(b.x, b.y);
+        let (q, u) = t.qu(b.x, b.y);
         ss += (v.q - q).powi(2) + (v.u - u).powi(2);
         n += 2;
     }
@@ -237,7 +177,7 @@ fn rms_vs_input(cal: &Calibration, c: &FilterCase) -> f64 {
 pub fn run(a: Args) -> Result<()> {
     std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
     let inst = instrument::Instrument::load("fors1")?;
-    let cases = cases(&inst)?;
+    let cases = fit::paper::demo_fields(&inst)?;
     let steps = if a.no_frames { 3 * 2 + 1 } else { 3 * (4 + 4 + 2) + 1 };
     let bar = crate::plot::progress(steps as u64, "starting", a.json);
     let mut outs = vec![];
@@ -302,7 +242,14 @@ pub fn run(a: Args) -> Result<()> {
     let law = fit_wavelength_law(&models, [1.0, 3.3])?;
     let out = Out {
         filters: outs,
-        wavelength_law: Law { a: law.a, b: law.b, a_err: law.a_err, b_err: law.b_err, paper_a: 0.02, paper_b: 1.73e-3 },
+        wavelength_law: Law {
+            a: law.a,
+            b: law.b,
+            a_err: law.a_err,
+            b_err: law.b_err,
+            paper_a: fit::paper::RAYTRACED_LAW.0,
+            paper_b: fit::paper::RAYTRACED_LAW.1,
+        },
         validation,
         through_frames: !a.no_frames,
         out_dir: a.out.display().to_string(),

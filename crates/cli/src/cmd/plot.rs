@@ -2,7 +2,6 @@
 
 use anyhow::{Context, Result};
 use fit::pipeline::{refit, CalibrateOptions, CalibrationRun};
-use fit::RadialFitOptions;
 use std::path::{Path, PathBuf};
 
 /// Draw a calibration's figures as PNG and SVG into a folder: the instrumental polarization map
@@ -84,21 +83,7 @@ pub fn run(a: Args) -> Result<()> {
     let raytrace = a.raytrace.as_deref().map(read_raytrace).transpose()?;
     // The stored model is drawn; the profile and polar-angle panels need the fit's products,
     // which a refit with the stored options reproduces (imported maps: free centre).
-    let mut fo = RadialFitOptions { exclusions: cal.exclusions.clone(), ..Default::default() };
-    match cal.model.radial() {
-        Some(r) => {
-            fo.free_centre = r.centre_free;
-            fo.centre = r.centre;
-            fo.include_c0 = r.first_power == 0;
-            fo.degree = r.degree();
-            // The file's own error treatment, so the panels' error bars are the file's.
-            if let Some(sc) = r.scaling {
-                fo.error_scaling = sc.mode;
-                fo.correlated_errors = sc.correlation_inflation.is_some();
-            }
-        }
-        None => fo.free_centre = true,
-    }
+    let fo = fit::pipeline::refit_options(&cal);
     let mut run = refit(&cal, &CalibrateOptions { fit: fo, ..Default::default() })
         .with_context(|| format!("radial fit of {} for the profile", a.calibration.display()))?;
     // Draw the file's own model and images, not the refit's.

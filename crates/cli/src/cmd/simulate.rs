@@ -1,6 +1,6 @@
 //! `instpol simulate`: raw-like frames of a scene.
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use std::path::PathBuf;
 
 /// Simulate raw-like dual-beam frames of a scene: one FITS file per HWP angle (the detector,
@@ -15,6 +15,11 @@ pub struct Args {
     /// Output folder (created if needed); files are written atomically.
     #[arg(long)]
     pub out: PathBuf,
+    /// Instrumental field from a calibration file (`instpol calibrate` or `instpol import-map`):
+    /// its model (any kind) is put into the frames instead of the scene's [effects.instpol].
+    /// The calibration must be of the scene's instrument and filter.
+    #[arg(long, value_name = "CAL.fits")]
+    pub field: Option<PathBuf>,
     /// Print the optical train and the noise steps built for this scene.
     #[arg(long)]
     pub explain: bool,
@@ -26,7 +31,26 @@ pub struct Args {
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs([a.scene.as_path()])?;
     let scene = sim::Scene::from_file(&a.scene)?;
-    let plan = sim::Plan::build(&scene).with_context(|| format!("scene {}", a.scene.display()))?;
+    let field = match &a.field {
+        Some(p) => {
+            crate::util::inputs([p.as_path()])?;
+            let cal = fit::Calibration::load(p).with_context(|| format!("cannot load calibration {}", p.display()))?;
+            let inst = instrument::Instrument::load(&scene.instrument)?;
+            if !fit::setup::matches_calibration(&inst.name, &scene.filter, &cal) {
+                bail!(
+                    "{} calibrates {} {} but the scene is {} {}: use a calibration of the scene's instrument and filter",
+                    p.display(),
+                    cal.instrument,
+                    cal.filter,
+                    inst.name,
+                    scene.filter
+                );
+            }
+            Some(std::sync::Arc::new(cal) as std::sync::Arc<dyn field::FieldModel>)
+        }
+        None => None,
+    };
+    let plan = sim::Plan::build_with_field(&scene, field).with_context(|| format!("scene {}", a.scene.display()))?;
     // No frame or truth file may land on the scene or its instrument file.
     crate::util::inputs(crate::util::file_arg(&scene.instrument))?;
     for k in 0..plan.n_frames() {

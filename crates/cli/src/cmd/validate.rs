@@ -1,14 +1,11 @@
-//! `instpol validate`: check a calibration on a standard star (photometry by `skyfield`, the
-//! comparison by `fit::standards`).
+//! `instpol validate`: check a calibration on a standard star (`fit::validate` measures and
+//! judges it; this module parses the arguments and prints the report).
 
 use anyhow::{anyhow, bail, Context, Result};
-use fit::correct::{CorrectOptions, WithModelError};
-use fit::standards::{validate_star as compare, Expected, MeasuredStar, Standards, Validation};
+use fit::standards::{Expected, Standards};
 use fit::Calibration;
 use instrument::Instrument;
-use serde::Serialize;
-use skyfield::photometry::{photometry, Aperture};
-use skyfield::reduce::{read_frames, FrameSet};
+use skyfield::photometry::Aperture;
 use std::path::{Path, PathBuf};
 
 /// Validate a calibration on a standard star, as the paper checks its V map with an
@@ -86,57 +83,10 @@ pub struct Args {
     pub json: bool,
 }
 
-/// The validate result: the comparison (the JSON contract first) and where and what was
-/// measured.
-#[derive(Debug, Clone, Serialize)]
-pub struct ValidationReport {
-    #[serde(flatten)]
-    pub validation: Validation,
-    pub star: String,
-    pub band: String,
-    pub x_px: f64,
-    pub y_px: f64,
-    pub x_arcmin: f64,
-    pub y_arcmin: f64,
-    pub model_error: f64,
-    pub hwp_chi_offset_deg: f64,
-    pub n_frames: usize,
-}
-
-/// How to measure and judge the star.
-#[derive(Debug, Clone)]
-pub struct ValidateOptions {
-    pub aperture: Aperture,
-    pub threshold: f64,
-    /// Extra per-component calibration error (fraction); `None`: the calibration's own RMS
-    /// residual for radial models, 0 for models with a residual map or a gridded map.
-    pub model_error: Option<f64>,
-    pub allow_extrapolation: bool,
-}
-
-impl Default for ValidateOptions {
-    fn default() -> Self {
-        Self {
-            aperture: Aperture { radius_px: 10.0, annulus: Some((14.0, 24.0)) },
-            threshold: 3.0,
-            model_error: None,
-            allow_extrapolation: false,
-        }
-    }
-}
-
-/// The model error `auto` means for a calibration.
-pub fn auto_model_error(cal: &Calibration) -> f64 {
-    match cal.model {
-        fit::Model::Radial(_) if cal.rms_residual.is_finite() => cal.rms_residual,
-        _ => 0.0,
-    }
-}
+pub use fit::validate::{ValidateOptions, ValidationReport};
 
 /// Measure a star at 0-based ordinary-image pixel `(x_px, y_px)` in `frames` and validate
-/// `cal` on it (`star`: the expected intrinsic polarization, [`Expected::unpolarized`] for a
-/// null standard). This is what `instpol validate` runs; `instpol demo` calls it on its
-/// simulated corner star.
+/// `cal` on it (`fit::validate::validate_frames`), printing its warnings.
 pub fn validate_star(
     cal: &Calibration,
     inst: &Instrument,
@@ -146,66 +96,16 @@ pub fn validate_star(
     star: (&str, Expected),
     opts: &ValidateOptions,
 ) -> Result<ValidationReport> {
-    // A calibration's positions and pattern mean nothing on another instrument's detector.
-    if !cal.instrument.eq_ignore_ascii_case(&inst.name) {
-        bail!(
-            "the calibration is for instrument {} but the frames are read as instrument {} (--instrument); \
-             use a calibration of {}",
-            cal.instrument,
-            inst.name,
-            inst.name
-        );
+    let r = fit::validate::validate_frames(cal, inst, frames, x_px, y_px, star, opts)?;
+    for w in &r.warnings {
+        eprintln!("warning: {w}");
     }
-    let fr = read_frames(frames, inst, &|| {}).context("reading the frames")?;
-    let set = FrameSet::from_frames(fr, inst, true).context("grouping the frames by HWP angle")?;
-    // Another filter's calibration is allowed (it is how a wrong calibration is shown to
-    // fail), but said.
-    let canonical = |f: &str| inst.filter(f).map(|x| x.name.clone()).unwrap_or_else(|_| f.to_string());
-    if !canonical(&set.filter).eq_ignore_ascii_case(&canonical(&cal.filter)) {
-        eprintln!("warning: the frames are in filter {} but the calibration is for filter {}", set.filter, cal.filter);
-    }
-    let ph = photometry(&set, inst, x_px, y_px, &opts.aperture)
-        .with_context(|| format!("photometry of the star at ({x_px}, {y_px}) px"))?;
-    let qu = ph.reduction.qu;
-    let measured = MeasuredStar { q: qu.q, u: qu.u, var_q: qu.var_q, var_u: qu.var_u, cov_qu: qu.cov_qu };
-    let (x, y) = inst.pixel_to_arcmin(x_px, y_px);
-    let me = opts.model_error.unwrap_or_else(|| auto_model_error(cal));
-    let model = WithModelError { model: cal, sigma: me };
-    let copts =
-        CorrectOptions { allow_extrapolation: opts.allow_extrapolation, ..CorrectOptions::for_calibration(cal) };
-    let v = compare(&model, x, y, &measured, &star.1, copts, opts.threshold)
-        .with_context(|| format!("validating {} at ({x:.3}, {y:.3}) arcmin", star.0))?;
-    Ok(ValidationReport {
-        validation: v,
-        star: star.0.to_string(),
-        band: cal.filter.clone(),
-        x_px,
-        y_px,
-        x_arcmin: x,
-        y_arcmin: y,
-        model_error: me,
-        hwp_chi_offset_deg: cal.hwp_chi_offset_deg,
-        n_frames: frames.len(),
-    })
-}
-
-/// The paper's validation position (section `sec:fors1`): where the FORS1 V polynomial
-/// `p(r) = 0.012 r + 0.046 r^2 + 0.002 r^3` % gives the predicted 0.96% on the radial pattern at
-/// `phi = -51.9 deg`, i.e. r = 4.10' at polar angle -51.9 deg: (2.53', -3.23') arcmin, in the
-/// lower-right corner of the 6.8' field (the corner itself, r = 4.83', would give 1.36%).
-#[allow(dead_code)] // used by demo_corner_star
-pub fn paper_corner_position_arcmin() -> (f64, f64) {
-    let mut r = 4.0f64;
-    for _ in 0..30 {
-        r -= (0.012 * r + 0.046 * r * r + 0.002 * r * r * r - 0.96) / (0.012 + 0.092 * r + 0.006 * r * r);
-    }
-    let a = (-51.9f64).to_radians();
-    (r * a.cos(), r * a.sin())
+    Ok(r)
 }
 
 /// The demo's validation step, as the paper did it: simulate (the `sim` crate: photon and
 /// read noise) frames of an unpolarized standard of the paper's precision (3e6 e- per
-/// exposure, sigma_P ~ 0.04%) at [`paper_corner_position_arcmin`] seen through the true V field
+/// exposure, sigma_P ~ 0.04%) at `fit::paper::corner_position_arcmin` seen through the true V field
 /// `true_coeffs_percent` (index = power of r, as in a scene file), write them into `dir`, and
 /// validate the calibration `cal` on them.
 pub fn demo_corner_star(
@@ -214,7 +114,7 @@ pub fn demo_corner_star(
     dir: &Path,
     seed: u64,
 ) -> Result<ValidationReport> {
-    let (x, y) = paper_corner_position_arcmin();
+    let (x, y) = fit::paper::corner_position_arcmin();
     let coeffs: Vec<String> = true_coeffs_percent.iter().map(|c| format!("{c:e}")).collect();
     let scene = format!(
         "instrument = \"fors1\"\nfilter = \"V\"\nhwp_angles_deg = [0, 22.5, 45, 67.5]\nseed = {seed}\n\

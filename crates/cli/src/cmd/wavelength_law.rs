@@ -1,9 +1,7 @@
 //! `instpol wavelength-law`: p(lambda)/p(550 nm) = a + b lambda across filters.
 
 use anyhow::{bail, Context, Result};
-use fit::pipeline::{refit, CalibrateOptions};
 use fit::wavelength::fit_wavelength_law;
-use fit::RadialFitOptions;
 use std::path::PathBuf;
 
 /// Fit the wavelength law p(lambda)/p(550 nm) = a + b lambda (lambda in nm; the paper's ray
@@ -44,16 +42,7 @@ pub fn run(a: Args) -> Result<()> {
                 p.display()
             );
         }
-        let model = match cal.model.radial() {
-            Some(r) => r.clone(),
-            None => {
-                let opts = CalibrateOptions {
-                    fit: RadialFitOptions { free_centre: true, ..Default::default() },
-                    ..Default::default()
-                };
-                refit(&cal, &opts).with_context(|| format!("radial fit of {}", p.display()))?.fit.model
-            }
-        };
+        let model = fit::pipeline::radial_model_of(&cal).with_context(|| format!("radial fit of {}", p.display()))?;
         let reg = cal.region;
         let c = model.centre;
         r_in = r_in.min((c[0] - reg.x_min).min(reg.x_max - c[0]).min(c[1] - reg.y_min).min(reg.y_max - c[1]));

@@ -1,6 +1,8 @@
 //! A gridded map of the instrumental `Q/I`, `U/I` with errors: the form in which calibration
-//! files store their images, and the model of an imported third-party map.
+//! files store their images, the model of an imported third-party map, and a simulation's
+//! map-shaped input field (evaluated by nearest cell, [`NearestCell`]).
 
+use crate::coords::FieldCoords;
 use crate::model::{FieldModel, InstPol};
 use serde::{Deserialize, Serialize};
 
@@ -21,6 +23,71 @@ pub struct GridMap {
 }
 
 impl GridMap {
+    /// A map whose pixel `(i, j)` is pixel `(i, j)` of `coords` (binned or not): pixel centres
+    /// at `coords.pixel_to_arcmin(i, j)`, steps of one (binned) pixel. The values are
+    /// row-major `[j * nx + i]`, each `nx * ny` long.
+    #[allow(clippy::too_many_arguments)]
+    pub fn on_pixels(
+        coords: &FieldCoords,
+        nx: usize,
+        ny: usize,
+        q: Vec<f64>,
+        u: Vec<f64>,
+        sigma_q: Vec<f64>,
+        sigma_u: Vec<f64>,
+    ) -> Self {
+        let (x0, y0) = coords.pixel_to_arcmin(0.0, 0.0);
+        let d = coords.arcmin_per_px();
+        GridMap { nx, ny, x0, y0, dx: d, dy: d, q, u, sigma_q, sigma_u }
+    }
+
+    /// `model` sampled at the centres of the `nx x ny` pixels of `coords` (e.g. 16 x 16 px
+    /// cells of a detector), with the model's own errors.
+    pub fn sample(model: &dyn FieldModel, coords: &FieldCoords, nx: usize, ny: usize) -> Self {
+        let mut g = Self::on_pixels(
+            coords,
+            nx,
+            ny,
+            vec![0.0; nx * ny],
+            vec![0.0; nx * ny],
+            vec![0.0; nx * ny],
+            vec![0.0; nx * ny],
+        );
+        for j in 0..ny {
+            for i in 0..nx {
+                let (x, y) = coords.pixel_to_arcmin(i as f64, j as f64);
+                let v = model.eval(x, y);
+                let k = j * nx + i;
+                g.q[k] = v.q;
+                g.u[k] = v.u;
+                g.sigma_q[k] = v.var_q.sqrt();
+                g.sigma_u[k] = v.var_u.sqrt();
+            }
+        }
+        g
+    }
+
+    /// The measured pixel whose cell holds `(x, y)` arcmin (the nearest pixel centre), if any.
+    pub fn nearest(&self, x: f64, y: f64) -> Option<InstPol> {
+        let (fi, fj) = self.frac(x, y);
+        let (i, j) = (fi.round(), fj.round());
+        if !(i >= 0.0 && j >= 0.0 && i < self.nx as f64 && j < self.ny as f64) {
+            return None;
+        }
+        let (i, j) = (i as usize, j as usize);
+        if !self.is_finite_at(i, j) {
+            return None;
+        }
+        let k = j * self.nx + i;
+        Some(InstPol {
+            q: self.q[k],
+            u: self.u[k],
+            var_q: self.sigma_q[k].powi(2),
+            var_u: self.sigma_u[k].powi(2),
+            cov_qu: 0.0,
+        })
+    }
+
     /// Centre of pixel `(i, j)` in arcmin.
     pub fn pixel_centre(&self, i: usize, j: usize) -> (f64, f64) {
         (self.x0 + i as f64 * self.dx, self.y0 + j as f64 * self.dy)
@@ -105,6 +172,37 @@ impl FieldModel for GridMap {
             && (j as usize) < self.ny
             && self.is_finite_at(i as usize, j as usize)
     }
+
+    fn describe(&self) -> String {
+        format!("{} x {} map, bilinear, {:.4}' x {:.4}' per pixel", self.nx, self.ny, self.dx, self.dy)
+    }
+}
+
+/// A [`GridMap`] evaluated piecewise constant: every position takes the value of the map
+/// pixel whose cell holds it (no interpolation), NaN outside the map or on a pixel without a
+/// measurement. This is how a simulation's map-shaped input field covers the detector: each
+/// map pixel is a block of detector pixels with one `M_I`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NearestCell(pub GridMap);
+
+impl FieldModel for NearestCell {
+    fn eval(&self, x: f64, y: f64) -> InstPol {
+        self.0.nearest(x, y).unwrap_or(InstPol {
+            q: f64::NAN,
+            u: f64::NAN,
+            var_q: f64::NAN,
+            var_u: f64::NAN,
+            cov_qu: 0.0,
+        })
+    }
+
+    fn contains(&self, x: f64, y: f64) -> bool {
+        self.0.nearest(x, y).is_some()
+    }
+
+    fn describe(&self) -> String {
+        format!("{} x {} map, nearest cell, {:.4}' x {:.4}' per cell", self.0.nx, self.0.ny, self.0.dx, self.0.dy)
+    }
 }
 
 #[cfg(test)]
@@ -142,5 +240,37 @@ mod tests {
         assert!(!g.contains(-0.5, -1.75));
         let v = g.interpolate(-0.4, -1.7).unwrap();
         assert!(v.q.is_finite(), "a NaN corner is left out");
+    }
+
+    /// Nearest cell on 16-px cells of a 100 x 40 px detector (7 x 3 cells, the last ones cut):
+    /// detector pixel `(x, y)` takes cell `(x / 16, y / 16)` (integer division), as the
+    /// simulator's map input did before it took models.
+    #[test]
+    fn nearest_cell_is_integer_division_of_pixels() {
+        let det = FieldCoords::centred(100, 40, 0.2);
+        let cells = det.binned(16);
+        let (nx, ny) = (7, 3);
+        let q: Vec<f64> = (0..nx * ny).map(|k| k as f64).collect();
+        let mut g =
+            GridMap::on_pixels(&cells, nx, ny, q.clone(), vec![0.5; nx * ny], vec![0.0; nx * ny], vec![0.0; nx * ny]);
+        g.q[nx + 2] = f64::NAN;
+        let m = NearestCell(g);
+        for y in 0..40usize {
+            for x in 0..100usize {
+                let (xa, ya) = det.pixel_to_arcmin(x as f64, y as f64);
+                let v = m.eval(xa, ya);
+                let k = (y / 16) * nx + x / 16;
+                if k == nx + 2 {
+                    assert!(v.q.is_nan() && !m.contains(xa, ya));
+                } else {
+                    assert_eq!(v.q, q[k], "pixel ({x}, {y})");
+                }
+            }
+        }
+        // Outside the 7 x 16 = 112 px the map covers: nothing.
+        let (xa, ya) = det.pixel_to_arcmin(112.0, 0.0);
+        assert!(m.eval(xa, ya).q.is_nan());
+        let (xa, ya) = det.pixel_to_arcmin(111.0, 0.0);
+        assert_eq!(m.eval(xa, ya).q, 6.0);
     }
 }

@@ -1,0 +1,76 @@
+//! The interface every instrumental-polarization field model offers.
+
+/// The instrumental polarization at one field position: the normalized Stokes parameters
+/// `q = p cos 2phi`, `u = p sin 2phi` of the partial polarizer `M_I(p, phi)` (`eq:instpol`)
+/// with the model's own uncertainty (covariance of q, u from the fit or the interpolation).
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct InstPol {
+    pub q: f64,
+    pub u: f64,
+    pub var_q: f64,
+    pub var_u: f64,
+    pub cov_qu: f64,
+}
+
+impl InstPol {
+    /// `(p, phi)` with phi in [0, pi).
+    pub fn p_phi(&self) -> (f64, f64) {
+        stokes::polarization(self.q, self.u)
+    }
+}
+
+/// A model of the instrumental polarization over the field: a value that says what `M_I`
+/// is at a position. Positions are in arcminutes about the field origin of
+/// [`FieldCoords`](crate::FieldCoords) (the detector centre unless stated; DESIGN.md
+/// conventions).
+///
+/// The simulator puts any model into frames (`sim::Plan::build_with_field`), the fitter fits
+/// and stores models (`fit`), the correction inverts them (`fit::correct`): none of them asks
+/// which model it has. A new model (elliptical paraboloid, a telescope term that depends on the
+/// parallactic angle, a full Mueller field) implements this trait; only `eval` and `contains`
+/// are required.
+pub trait FieldModel: Send + Sync {
+    /// The instrumental polarization at `(x, y)` arcmin. Outside the model's field the value
+    /// may be NaN (a gridded map) or an extrapolation (a polynomial): ask [`contains`](Self::contains).
+    fn eval(&self, x_arcmin: f64, y_arcmin: f64) -> InstPol;
+
+    /// Whether `(x, y)` lies inside the field where the model was calibrated.
+    fn contains(&self, x_arcmin: f64, y_arcmin: f64) -> bool;
+
+    /// The instrumental polarization at `(x, y)` arcmin at parallactic angle
+    /// `parallactic_rad`. The models of today are fixed to the instrument and ignore the angle;
+    /// a telescope-mirror term that turns with the sky overrides this.
+    fn eval_at_angle(&self, x_arcmin: f64, y_arcmin: f64, _parallactic_rad: f64) -> InstPol {
+        self.eval(x_arcmin, y_arcmin)
+    }
+
+    /// `(p, phi)` of `M_I(p, phi)` at `(x, y)` arcmin (`eq:instpol`), phi in radians. The
+    /// default takes them from [`eval`](Self::eval); a model whose natural parameters are `p`
+    /// and `phi` (a radial pattern) returns them directly, without the round trip through
+    /// `(q, u)`.
+    fn p_phi(&self, x_arcmin: f64, y_arcmin: f64) -> (f64, f64) {
+        self.eval(x_arcmin, y_arcmin).p_phi()
+    }
+
+    /// The model's free parameters, in the order of [`covariance`](Self::covariance) and
+    /// [`jacobian`](Self::jacobian); empty for a model that has none (a gridded map).
+    fn params(&self) -> Vec<f64> {
+        Vec::new()
+    }
+
+    /// Covariance of [`params`](Self::params), row-major `n x n`; `None` when unknown.
+    fn covariance(&self) -> Option<Vec<f64>> {
+        None
+    }
+
+    /// `(dq/dparams, du/dparams)` at `(x, y)` arcmin; `None` for a model without parameters.
+    /// The variance of `(q, u)` from the parameters is `J C J^T` with `C` the covariance.
+    fn jacobian(&self, _x_arcmin: f64, _y_arcmin: f64) -> Option<(Vec<f64>, Vec<f64>)> {
+        None
+    }
+
+    /// One line saying what the model is (for `--explain` and provenance).
+    fn describe(&self) -> String {
+        "a field model".into()
+    }
+}
