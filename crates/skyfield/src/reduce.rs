@@ -245,13 +245,20 @@ fn check_complete(filter: &str, angles: &[f64]) -> Result<(), Error> {
         })
         .collect();
     let Some(idx) = idx else { return Ok(()) };
+    // A half-wave plate at theta + 360 deg is the same plate position, and the modulation
+    // (eq:F) repeats every 90 deg: a set such as 90 ... 157.5 or 360 ... 427.5 is the optimal
+    // set shifted, not an incomplete one. Indices are taken modulo 16 (360 deg) and shifted by
+    // whole multiples of 4 (90 deg) to start at the first quarter.
+    let idx: Vec<usize> = idx.iter().map(|i| i % 16).collect();
+    let base = idx.iter().min().map_or(0, |&i| i / 4 * 4);
+    let idx: Vec<usize> = idx.iter().map(|i| i - base).collect();
     let m = idx.iter().max().map_or(0, |&i| i + 1);
     if m <= 2 && idx.len() == 2 {
         return Ok(());
     }
     let n = m.div_ceil(4).max(1) * 4;
-    let expected: Vec<f64> = (0..n).map(|i| i as f64 * 22.5).collect();
-    let missing: Vec<f64> = (0..n).filter(|i| !idx.contains(i)).map(|i| i as f64 * 22.5).collect();
+    let expected: Vec<f64> = (0..n).map(|i| (i + base) as f64 * 22.5).collect();
+    let missing: Vec<f64> = (0..n).filter(|i| !idx.contains(i)).map(|i| (i + base) as f64 * 22.5).collect();
     if missing.is_empty() {
         return Ok(());
     }
@@ -608,6 +615,15 @@ fn assemble_map(
         map.valid[k] = true;
     }
     if map.n_valid() == 0 {
+        // Bins smaller than the minimum count can never be valid: say so, not "masked".
+        let min = cfg.min_pixels.unwrap_or((cfg.bin_px * cfg.bin_px / 4).max(3));
+        if cfg.bin_px * cfg.bin_px < min {
+            return Err(Error::Invalid(format!(
+                "bins of {b} x {b} px hold {} pixels, fewer than the {min} a bin needs to be valid (with sigma clipping): use --bin 2 or more",
+                cfg.bin_px * cfg.bin_px,
+                b = cfg.bin_px
+            )));
+        }
         return Err(Error::NoValidBins);
     }
     Ok(map)
@@ -1101,5 +1117,24 @@ mod tests {
         check_complete("V", &[0.0, 22.5, 45.0, 67.5]).unwrap();
         // Off-grid sets are left to the solver.
         check_complete("V", &[0.0, 10.0, 50.0]).unwrap();
+    }
+
+    /// HWP sets complete modulo 90 or 360 deg are accepted (the plate at theta + 360 is the
+    /// same position; eq:F repeats every 90 deg); a set missing a position is refused naming
+    /// it in the angles given.
+    #[test]
+    fn angle_sets_complete_modulo_90_or_360() {
+        for set in [
+            vec![90.0, 112.5, 135.0, 157.5],
+            vec![360.0, 382.5, 405.0, 427.5],
+            vec![180.0, 202.5, 225.0, 247.5, 270.0, 292.5, 315.0, 337.5],
+            vec![0.0, 22.5, 45.0, 67.5],
+        ] {
+            check_complete("V", &set).unwrap_or_else(|e| panic!("{set:?}: {e}"));
+        }
+        let e = check_complete("V", &[90.0, 112.5, 135.0]).unwrap_err().to_string();
+        assert!(e.contains("missing [157.5 deg]"), "{e}");
+        let e = check_complete("V", &[0.0, 22.5, 67.5]).unwrap_err().to_string();
+        assert!(e.contains("missing [45 deg]"), "{e}");
     }
 }
