@@ -10,6 +10,9 @@
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
+mod format;
+pub use format::{Chip, FrameFormat, NumberOrKeyword};
+
 /// Errors while loading an instrument definition.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
@@ -96,6 +99,9 @@ pub struct Instrument {
     /// Optical prescription of the collimator for polarization ray tracing (optional).
     #[serde(default)]
     pub optics: Option<mueller::raytrace::Prescription>,
+    /// How raw frames are laid out (HDUs, chips, overscan, binning); see [`FrameFormat`].
+    #[serde(default)]
+    pub format: FrameFormat,
 }
 
 /// One mask strip on the detector: rows `[o_start, o_start + height)` hold its ordinary image
@@ -108,7 +114,11 @@ pub struct Strip {
     pub height: usize,
 }
 
-const BUILTIN: &[(&str, &str)] = &[("fors1", include_str!("../../../instruments/fors1.toml"))];
+const BUILTIN: &[(&str, &str)] = &[
+    ("fors1", include_str!("../../../instruments/fors1.toml")),
+    ("fors2", include_str!("../../../instruments/fors2.toml")),
+    ("efosc2", include_str!("../../../instruments/efosc2.toml")),
+];
 
 impl Instrument {
     /// Load a built-in instrument by name (case-insensitive) or an instrument file by path.
@@ -211,6 +221,9 @@ impl Instrument {
                     p.strip_count, p.first_strip_y_px
                 ),
             );
+        }
+        if let Err((key, value, why)) = self.format.check(d.nx, d.ny) {
+            return bad(&key, value, &why);
         }
         if self.filters.is_empty() {
             return bad("filters", "[]".into(), "need at least one filter");

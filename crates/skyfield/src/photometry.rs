@@ -70,8 +70,8 @@ pub fn photometry(set: &FrameSet, inst: &Instrument, x: f64, y: f64, ap: &Apertu
             g.sky_bands()
         )));
     }
-    let d = &inst.detector;
-    let (bias, gain, sat, rn2) = (d.bias_adu, d.gain_e_per_adu, d.saturation_adu, d.read_noise_e.powi(2));
+    // The frames' own conversion: the instrument's ADU, or electrons for calibrated frames.
+    let (bias, gain, sat, rn2) = set.conversion.det();
     let rmax = ap.annulus.map_or(ap.radius_px, |(_, b)| b);
     let (x0, x1) = ((x - rmax).floor().max(0.0) as usize, ((x + rmax).ceil() as usize).min(g.nx - 1));
     let (y0, y1) = ((y - rmax).floor().max(0.0) as usize, ((y + rmax).ceil() as usize).min(g.ny - 1));
@@ -107,6 +107,13 @@ pub fn photometry(set: &FrameSet, inst: &Instrument, x: f64, y: f64, ap: &Apertu
         for &(o, e) in &ap_px {
             for (idx, beam) in [(o, "o"), (e, "e")] {
                 let v = data[idx];
+                if v <= crate::io::GAP_LIMIT {
+                    return Err(Error::Invalid(format!(
+                        "aperture pixel ({}, {}) of the {beam} beam lies in the gap between the chips; photometry needs clean aperture pixels",
+                        idx % g.nx,
+                        idx / g.nx
+                    )));
+                }
                 if !v.is_finite() || v >= sat * nexp {
                     return Err(Error::Invalid(format!(
                         "aperture pixel ({}, {}) of the {beam} beam in {} is {}; photometry needs clean aperture pixels",
@@ -127,7 +134,12 @@ pub fn photometry(set: &FrameSet, inst: &Instrument, x: f64, y: f64, ap: &Apertu
             let vals_e: Vec<f64> = ann_px.iter().map(|&(_, e)| data[e]).collect();
             let ok: Vec<usize> = (0..ann_px.len())
                 .filter(|&k| {
-                    vals_o[k].is_finite() && vals_e[k].is_finite() && vals_o[k] < sat * nexp && vals_e[k] < sat * nexp
+                    vals_o[k].is_finite()
+                        && vals_e[k].is_finite()
+                        && vals_o[k] < sat * nexp
+                        && vals_e[k] < sat * nexp
+                        && vals_o[k] > crate::io::GAP_LIMIT
+                        && vals_e[k] > crate::io::GAP_LIMIT
                 })
                 .collect();
             if ok.len() < 5 {

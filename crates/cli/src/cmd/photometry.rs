@@ -38,6 +38,8 @@ pub struct Args {
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub frame: crate::cmd::frame_opts::FrameOpts,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -61,6 +63,8 @@ struct Out {
     sigma_p: f64,
     chi_deg: f64,
     sigma_chi_deg: f64,
+    /// The filter's HWP zero angle added to chi (deg).
+    hwp_chi_offset_deg: f64,
     n_aperture: usize,
     n_annulus: usize,
 }
@@ -84,7 +88,8 @@ pub fn run(a: Args) -> Result<()> {
     let bar =
         if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(a.frames.len() as u64) };
     bar.set_message("reading");
-    let frames = skyfield::reduce::read_frames(&a.frames, &inst, &|| bar.inc(1));
+    let read = a.frame.read_options()?;
+    let frames = skyfield::reduce::read_frames_with(&a.frames, &inst, &read, &|| bar.inc(1));
     bar.finish_and_clear();
     let set = FrameSet::from_frames(frames?, &inst, true)?;
     for w in &set.warnings {
@@ -92,19 +97,27 @@ pub fn run(a: Args) -> Result<()> {
     }
     let ph = skyfield::photometry::photometry(&set, &inst, x, y, &Aperture { radius_px: a.aperture, annulus })?;
     let r = &ph.reduction;
+    // The HWP zero angle of the filter (the angle to add to a measured chi): Q, U and chi are
+    // reported in the sky's frame, as the calibration and validation report them.
+    let offset = inst.filter(&set.filter).map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0);
+    let (c, s) = ((2.0 * offset.to_radians()).cos(), (2.0 * offset.to_radians()).sin());
+    let (q, u) = (c * r.qu.q - s * r.qu.u, s * r.qu.q + c * r.qu.u);
+    let var_q = c * c * r.qu.var_q + s * s * r.qu.var_u - 2.0 * c * s * r.qu.cov_qu;
+    let var_u = s * s * r.qu.var_q + c * c * r.qu.var_u + 2.0 * c * s * r.qu.cov_qu;
     let o = Out {
         x_px: x,
         y_px: y,
         hwp_deg: ph.hwp_deg.clone(),
         f_o: ph.f_o.clone(),
         f_e: ph.f_e.clone(),
-        q: r.qu.q,
-        u: r.qu.u,
-        sigma_q: r.qu.var_q.sqrt(),
-        sigma_u: r.qu.var_u.sqrt(),
+        q,
+        u,
+        sigma_q: var_q.max(0.0).sqrt(),
+        sigma_u: var_u.max(0.0).sqrt(),
         p: r.p,
         sigma_p: r.sigma_p,
-        chi_deg: r.chi.to_degrees(),
+        chi_deg: (r.chi.to_degrees() + offset).rem_euclid(180.0),
+        hwp_chi_offset_deg: offset,
         sigma_chi_deg: r.sigma_chi.to_degrees(),
         n_aperture: ph.n_aperture,
         n_annulus: ph.n_annulus,

@@ -8,7 +8,7 @@ use fit::Calibration;
 use instrument::Instrument;
 use serde::Serialize;
 use skyfield::photometry::{photometry, Aperture};
-use skyfield::reduce::{read_frames, FrameSet};
+use skyfield::reduce::FrameSet;
 use std::path::{Path, PathBuf};
 
 /// Validate a calibration on a standard star, as the paper checks its V map with an
@@ -84,6 +84,8 @@ pub struct Args {
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub frame: crate::cmd::frame_opts::FrameOpts,
 }
 
 /// The validate result: the comparison (the JSON contract first) and where and what was
@@ -112,6 +114,8 @@ pub struct ValidateOptions {
     /// residual for radial models, 0 for models with a residual map or a gridded map.
     pub model_error: Option<f64>,
     pub allow_extrapolation: bool,
+    /// Calibration frames and HWP angles for reading the frames.
+    pub read: skyfield::calib::ReadOptions,
 }
 
 impl Default for ValidateOptions {
@@ -121,6 +125,7 @@ impl Default for ValidateOptions {
             threshold: 3.0,
             model_error: None,
             allow_extrapolation: false,
+            read: Default::default(),
         }
     }
 }
@@ -156,7 +161,7 @@ pub fn validate_star(
             inst.name
         );
     }
-    let fr = read_frames(frames, inst, &|| {}).context("reading the frames")?;
+    let fr = skyfield::reduce::read_frames_with(frames, inst, &opts.read, &|| {}).context("reading the frames")?;
     let set = FrameSet::from_frames(fr, inst, true).context("grouping the frames by HWP angle")?;
     // Another filter's calibration is allowed (it is how a wrong calibration is shown to
     // fail), but said.
@@ -298,6 +303,7 @@ pub fn run(a: Args) -> Result<()> {
         threshold: a.threshold,
         model_error: parse_model_error(&a.model_error)?,
         allow_extrapolation: a.allow_extrapolation,
+        read: a.frame.read_options()?,
     };
     let r = validate_star(&cal, &inst, &a.frames, x_px, y_px, (&name, expected), &opts)?;
     if r.validation.extrapolated {
