@@ -147,6 +147,23 @@ pub fn write_frame(
             Bitpix::F64 => hdu.write_image(f, data).map_err(e)?,
         }
         for (k, v, c) in keys {
+            // fitsio names the primary HDU EXTNAME = '_PRIMARY'; an EXTNAME of our own (a chip
+            // name) replaces that card rather than adding a conflicting second one.
+            if let (true, KeyValue::Str(s)) = (k.eq_ignore_ascii_case("EXTNAME"), v) {
+                let name = std::ffi::CString::new("EXTNAME").expect("no NUL");
+                let val = std::ffi::CString::new(s.as_str())
+                    .map_err(|x| Error::Write { path: path.into(), message: format!("keyword {k}: {x}") })?;
+                let mut status = 0;
+                // SAFETY: an open file at its primary HDU; NUL-terminated strings.
+                unsafe { fitsio::sys::ffukys(f.as_raw(), name.as_ptr(), val.as_ptr(), std::ptr::null(), &mut status) };
+                if status != 0 {
+                    return Err(Error::Write {
+                        path: path.into(),
+                        message: format!("keyword {k}: CFITSIO status {status}"),
+                    });
+                }
+                continue;
+            }
             match v {
                 KeyValue::F64(x) => hdu.write_key(f, k, (*x, c.as_str())),
                 KeyValue::I64(x) => hdu.write_key(f, k, (*x, c.as_str())),
@@ -723,6 +740,8 @@ pub(crate) fn frame_header(img: &mut ImageHdu, path: &Path, inst: &Instrument) -
     let pol = &inst.polarimetry;
     let mut keys = vec![pol.hwp_angle_keyword.as_str(), pol.filter_keyword.as_str(), pol.exptime_keyword.as_str()];
     keys.extend(inst.format.binning_keywords.iter().map(|s| s.as_str()));
+    keys.extend(inst.format.chips.iter().filter_map(|c| c.match_keyword.as_deref()));
+    keys.extend(inst.format.exposure_keywords.iter().map(|s| s.as_str()));
     img.check_duplicates(path, &keys)?;
     let hwp_deg = if pol.hwp_angle_keyword.is_empty() {
         None
