@@ -239,7 +239,7 @@ struct Exposure {
     rn2: f64,
 }
 
-/// Loaded calibration frames.
+/// Loaded calibration frames: the bias (ADU) and the inverse of the flat.
 struct Masters {
     bias: Option<Vec<f32>>,
     flat: Option<Vec<f32>>,
@@ -442,26 +442,22 @@ fn calibrate_exposure(
         let flat_map = if stage == Stage::Science { masters.flat.as_ref() } else { None };
         let [x0, y0] = c.origin_px;
         let to_e = if stage == Stage::Bias { 1.0 } else { gain };
+        // One branch-free pass per row (so it vectorizes): absent masters are a zero bias and
+        // a unit inverse flat; NaN and saturated raw values are selected after.
+        let (zeros, ones) = (vec![0.0f32; cx], vec![1.0f32; cx]);
+        let level = level + const_bias;
         for j in 0..cy {
             view.load((pry + j) * rnx, &mut row);
             let base = (y0 + j) * nx + x0;
             let out = &mut data[base..base + cx];
             let raw = &row[prx..prx + cx];
+            let b = bias_map.map_or(&zeros[..], |m| &m[base..base + cx]);
+            let fi = flat_map.map_or(&ones[..], |m| &m[base..base + cx]);
             for i in 0..cx {
                 let r = raw[i];
-                out[i] = if !r.is_finite() {
-                    f32::NAN
-                } else if r >= sat {
-                    SATURATED as f32
-                } else {
-                    let b = bias_map.map_or(const_bias, |m| m[base + i] as f64);
-                    let mut e = (r - level - b) * to_e;
-                    if let Some(fl) = flat_map {
-                        let f = fl[base + i] as f64;
-                        e = if f > 0.0 { e / f } else { f64::NAN };
-                    }
-                    e as f32
-                };
+                let e = ((r - level - b[i] as f64) * to_e * fi[i] as f64) as f32;
+                let e = if r >= sat { SATURATED as f32 } else { e };
+                out[i] = if r.is_nan() { f32::NAN } else { e };
             }
         }
     }
@@ -514,7 +510,15 @@ fn calibrate_all(
     let chips = chips_of(inst);
     let masters = Masters {
         bias: opts.bias.as_deref().map(|p| load_master(p, inst, "BIAS")).transpose()?,
-        flat: opts.flat.as_deref().map(|p| load_master(p, inst, "FLAT")).transpose()?,
+        // Stored as its inverse (NaN where the response is not positive): a multiply per pixel.
+        flat: opts
+            .flat
+            .as_deref()
+            .map(|p| {
+                load_master(p, inst, "FLAT")
+                    .map(|v| v.into_iter().map(|f| if f > 0.0 { 1.0 / f } else { f32::NAN }).collect())
+            })
+            .transpose()?,
     };
     let groups = group_exposures(paths, inst, &chips)?;
     let n = groups.len();
