@@ -18,7 +18,7 @@
 //! Not done here: per-amplifier regions within one chip, flipped chip read-outs, non-linearity.
 
 use crate::io::{
-    check_bitpix, frame_header, open_image, parse_number, require_hwp, write_frame, Bitpix, Conversion, Frame,
+    check_bitpix, frame_header_with, open_image, parse_number, require_hwp, write_frame, Bitpix, Conversion, Frame,
     FrameRows, ImageHdu, KeyValue, OpenFrame, Pixels, GAP, GAP_LIMIT, SATURATED, SATURATED_LIMIT,
 };
 use crate::{Error, Warning};
@@ -112,8 +112,8 @@ fn group_exposures(paths: &[PathBuf], inst: &Instrument, chips: &[Chip]) -> Resu
     let by_keyword = chips.iter().any(|c| c.match_keyword.is_some());
     if !by_keyword {
         // Every file is one exposure; each chip is an HDU of it (or the image HDU).
-        return paths
-            .par_iter()
+        let res: Vec<Result<Vec<ChipFile>, Error>> = paths
+            .iter()
             .map(|p| {
                 chips
                     .iter()
@@ -125,6 +125,7 @@ fn group_exposures(paths: &[PathBuf], inst: &Instrument, chips: &[Chip]) -> Resu
                     .collect()
             })
             .collect();
+        return res.into_iter().collect();
     }
     // Chips in separate files: match each file to its chip; the chip files of one exposure
     // are given next to each other (as a time-sorted archive listing puts them).
@@ -308,7 +309,7 @@ fn calibrate_exposure(
     for cf in files.iter_mut() {
         let path = cf.path.clone();
         check_bitpix(&path, cf.img.bitpix)?;
-        let h = frame_header(&mut cf.img, &path, inst)?;
+        let h = frame_header_with(&mut cf.img, &path, inst, stage == Stage::Science)?;
         let mut exp_keys = Vec::new();
         for k in &fmt.exposure_keywords {
             exp_keys.push((k.clone(), cf.img.key(k)));
@@ -522,10 +523,10 @@ fn calibrate_all(
     };
     let groups = group_exposures(paths, inst, &chips)?;
     let n = groups.len();
-    let mut out: Vec<Exposure> = groups
-        .into_par_iter()
-        .map(|g| calibrate_exposure(g, inst, &chips, stage, &masters))
-        .collect::<Result<_, _>>()?;
+    // Errors in the order of the files (rayon's short-circuiting collect would pick any).
+    let res: Vec<Result<Exposure, Error>> =
+        groups.into_par_iter().map(|g| calibrate_exposure(g, inst, &chips, stage, &masters)).collect();
+    let mut out: Vec<Exposure> = res.into_iter().collect::<Result<_, _>>()?;
     if let Some(a) = &opts.hwp_angles_deg {
         if a.len() != n {
             return Err(Error::Invalid(format!(
@@ -559,10 +560,11 @@ fn calibrate_all(
 /// nothing needs calibrating ([`ReadOptions::is_plain`]); `--hwp-angles` applied either way.
 pub fn read_exposures(paths: &[PathBuf], inst: &Instrument, opts: &ReadOptions) -> Result<Vec<Frame>, Error> {
     if opts.is_plain(inst) {
-        let mut frames: Vec<Frame> = paths
+        let res: Vec<Result<Frame, Error>> = paths
             .par_iter()
             .map(|p| crate::io::read_frame_raw_with(p, inst, opts.hwp_angles_deg.is_some()).map(|r| r.into_frame()))
-            .collect::<Result<_, _>>()?;
+            .collect();
+        let mut frames: Vec<Frame> = res.into_iter().collect::<Result<_, _>>()?;
         apply_angles(frames.iter_mut().map(|f| (&f.path, &mut f.hwp_deg)), inst, opts)?;
         return Ok(frames);
     }
@@ -591,10 +593,9 @@ pub(crate) fn open_exposures(
     opts: &ReadOptions,
 ) -> Result<Vec<OpenFrame>, Error> {
     if opts.is_plain(inst) {
-        let mut frames: Vec<OpenFrame> = paths
-            .par_iter()
-            .map(|p| crate::io::open_frame_with(p, inst, opts.hwp_angles_deg.is_some()))
-            .collect::<Result<_, _>>()?;
+        let res: Vec<Result<OpenFrame, Error>> =
+            paths.par_iter().map(|p| crate::io::open_frame_with(p, inst, opts.hwp_angles_deg.is_some())).collect();
+        let mut frames: Vec<OpenFrame> = res.into_iter().collect::<Result<_, _>>()?;
         apply_angles(frames.iter_mut().map(|f| (&f.path, &mut f.hwp_deg)), inst, opts)?;
         return Ok(frames);
     }

@@ -737,6 +737,17 @@ pub(crate) struct FrameHeader {
 /// conflicting duplicates of those and of the pixel keywords refused. The HWP angle is
 /// optional here (it may come from `--hwp-angles`); a present but non-numeric one is an error.
 pub(crate) fn frame_header(img: &mut ImageHdu, path: &Path, inst: &Instrument) -> Result<FrameHeader, Error> {
+    frame_header_with(img, path, inst, true)
+}
+
+/// [`frame_header`]; `need_filter` false: a missing filter keyword is an empty name (bias
+/// frames are often taken without one).
+pub(crate) fn frame_header_with(
+    img: &mut ImageHdu,
+    path: &Path,
+    inst: &Instrument,
+    need_filter: bool,
+) -> Result<FrameHeader, Error> {
     let pol = &inst.polarimetry;
     let mut keys = vec![pol.hwp_angle_keyword.as_str(), pol.filter_keyword.as_str(), pol.exptime_keyword.as_str()];
     keys.extend(inst.format.binning_keywords.iter().map(|s| s.as_str()));
@@ -748,9 +759,11 @@ pub(crate) fn frame_header(img: &mut ImageHdu, path: &Path, inst: &Instrument) -
     } else {
         img.number(path, &pol.hwp_angle_keyword, "an angle in degrees")?
     };
-    let filter = img
-        .key(&pol.filter_keyword)
-        .ok_or_else(|| Error::MissingKeyword { path: path.into(), keyword: pol.filter_keyword.clone() })?;
+    let filter = match img.key(&pol.filter_keyword) {
+        Some(f) => f,
+        None if !need_filter => String::new(),
+        None => return Err(Error::MissingKeyword { path: path.into(), keyword: pol.filter_keyword.clone() }),
+    };
     let exptime_s = img.key(&pol.exptime_keyword).and_then(|s| parse_number(&s));
     Ok(FrameHeader { hwp_deg, filter, exptime_s })
 }
