@@ -129,3 +129,96 @@ fn check_sky(m: &skyfield::StokesMap, flat_removed: bool) {
         assert!(worst > 0.02, "the flat pattern should show without --flat: {worst}");
     }
 }
+
+/// EFOSC2 (shrunk): its 12 extra rows and columns are no usable overscan (EFOSC2 manual), so
+/// the instrument declares the raw bias level instead: frames whose darkest pixels sit at it
+/// are refused without a master bias, and reduce to the known sky with one.
+#[test]
+fn efosc2_frames_without_a_master_bias_are_refused() {
+    use sim::raw::{write_raw_exposure, RawChip, RawExposure};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let text = include_str!("../../../instruments/efosc2.toml")
+        .replace("nx = 1024", "nx = 64")
+        .replace("ny = 1024", "ny = 64")
+        .replace("size_px = [1024, 1024]", "size_px = [64, 64]")
+        .replace("throw_arcsec = 10.0", "throw_arcsec = 1.92")
+        .replace("strip_count = 9", "strip_count = 3")
+        .replace("first_strip_y_px = 50", "first_strip_y_px = 2");
+    let ip = d.join("efosc2_tiny.toml");
+    std::fs::write(&ip, &text).unwrap();
+    let inst = instrument::Instrument::from_toml_str(&text, &ip).unwrap();
+    let chip = [RawChip { bias_adu: 221.0, gain_e_per_adu: 1.18, read_noise_e: 11.0, scan: [0; 4] }];
+    let mut sci = Vec::new();
+    for (k, &a) in common::raw::ANGLES.iter().enumerate() {
+        let e = common::raw::sky_electrons(&inst, a);
+        let x = RawExposure {
+            electrons: &e,
+            hwp_deg: Some(a),
+            filter: "V".into(),
+            exptime_s: 5.0,
+            exposure_no: k as i64,
+            binning: None,
+        };
+        sci.extend(write_raw_exposure(&inst, &x, None, None, &chip, true, k as u64, d, &format!("e{k}")).unwrap());
+    }
+    let zero = vec![0.0; 64 * 64];
+    let mut bias = Vec::new();
+    for k in 0..4 {
+        let x = RawExposure {
+            electrons: &zero,
+            hwp_deg: None,
+            filter: "V".into(),
+            exptime_s: 0.0,
+            exposure_no: 9,
+            binning: None,
+        };
+        bias.extend(write_raw_exposure(&inst, &x, None, None, &chip, false, 50 + k, d, &format!("b{k}")).unwrap());
+    }
+    let run_reduce = |extra: &[String]| {
+        let mut a = vec!["reduce".to_string()];
+        a.extend(sci.iter().map(|p| s(p)));
+        a.extend(["--instrument".into(), s(&ip), "--bin".into(), "8".into(), "--out".into(), s(&d.join("m.fits"))]);
+        a.extend(extra.iter().cloned());
+        run(&a)
+    };
+    // Refused: the (unused) overscan sits at the bias level.
+    let (code, _, err) = run_reduce(&[]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("e0_CCD40.fits") && err.contains("still carries its bias level") && err.contains("--bias"),
+        "{err}"
+    );
+    // Refused also with no overscan at all: the darkest pixels (behind the mask) sit at the
+    // declared raw bias.
+    let bare: String = text.lines().filter(|l| !l.starts_with("overscan_")).collect::<Vec<_>>().join("\n");
+    let bare_path = d.join("bare.toml");
+    std::fs::write(&bare_path, &bare).unwrap();
+    let bare_inst = instrument::Instrument::from_toml_str(&bare, &bare_path).unwrap();
+    let e = common::raw::sky_electrons(&bare_inst, 0.0);
+    let x = RawExposure {
+        electrons: &e,
+        hwp_deg: Some(0.0),
+        filter: "V".into(),
+        exptime_s: 5.0,
+        exposure_no: 0,
+        binning: None,
+    };
+    let f = write_raw_exposure(&bare_inst, &x, None, None, &chip, true, 7, d, "bare").unwrap();
+    let (code, _, err) = run(&["reduce", &s(&f[0]), "--instrument", &s(&bare_path), "--out", &s(&d.join("x.fits"))]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("bare_CCD40.fits") && err.contains("raw bias of 220 ADU") && err.contains("--bias"), "{err}");
+    let mut a = vec!["master-bias".to_string()];
+    a.extend(bias.iter().map(|p| s(p)));
+    a.extend(["--instrument".into(), s(&ip), "--out".into(), s(&d.join("B.fits"))]);
+    let (code, _, err) = run(&a);
+    assert_eq!(code, 0, "{err}");
+    let (code, _, err) = run_reduce(&["--bias".into(), s(&d.join("B.fits"))]);
+    assert_eq!(code, 0, "{err}");
+    let m = skyfield::StokesMap::read_fits(&d.join("m.fits")).unwrap();
+    let v: Vec<usize> = (0..m.q.len()).filter(|&k| m.valid[k]).collect();
+    assert!(v.len() >= 10);
+    for &k in &v {
+        assert!((m.q[k] - Q0).abs() < 5.0 * m.sigma_q[k] && (m.u[k] - U0).abs() < 5.0 * m.sigma_u[k], "bin {k}");
+    }
+}
