@@ -1670,3 +1670,40 @@ fn reduce_blank_pixels_are_masked_with_a_warning() {
     assert_eq!(code, 0, "{err}");
     assert!(err.contains("blank.fits: 3 NaN/infinite pixels masked"), "{err}");
 }
+
+/// HWP angles from `--hwp-angles` (issue 12): for an instrument that names no HWP keyword they
+/// are required (and then used, in the frames' order); a count that does not match the
+/// exposures, or an angle that contradicts the header, is refused naming the file.
+#[test]
+fn reduce_hwp_angles_from_the_command_line() {
+    let f = Fixture::new();
+    let frames = f.frames();
+    std::fs::write(
+        f.p("nokw.toml"),
+        mini().replace("hwp_angle_keyword = \"HIERARCH ESO INS RETA2 POSANG\"", "hwp_angle_keyword = \"\""),
+    )
+    .unwrap();
+    let out = f.out_dir().join("m.fits");
+    let args = |inst: &str, extra: &[&str]| {
+        let mut a = vec!["reduce".to_string()];
+        a.extend(frames.iter().cloned());
+        a.extend(["--instrument".into(), f.s(inst), "--out".into(), out.to_str().unwrap().into()]);
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a
+    };
+    refuses(&f.out_dir(), &args("nokw.toml", &[]), &["f0.fits", "names no HWP-angle keyword", "--hwp-angles"]);
+    refuses(
+        &f.out_dir(),
+        &args("nokw.toml", &["--hwp-angles", "0,22.5,45"]),
+        &["--hwp-angles gives 3 angles for 4 exposures"],
+    );
+    refuses(
+        &f.out_dir(),
+        &args("mini.toml", &["--hwp-angles", "0,22.5,45,90"]),
+        &["f3.fits", "--hwp-angles says 90 deg", "'HIERARCH ESO INS RETA2 POSANG' says 67.5 deg"],
+    );
+    refuses(&f.out_dir(), &args("mini.toml", &["--hwp-angles", "0,x"]), &["--hwp-angles '0,x'"]);
+    let (code, _, err) = run(&args("nokw.toml", &["--hwp-angles", "0,22.5,45,67.5", "--json"]));
+    assert_eq!(code, 0, "{err}");
+    assert!(out.exists());
+}
