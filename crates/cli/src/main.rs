@@ -30,6 +30,10 @@ enum Command {
     Simulate(cmd::simulate::Args),
     #[command(about = "Reduce frames to a binned, sigma-clipped Stokes map")]
     Reduce(cmd::reduce::Args),
+    #[command(about = "Combine bias frames into a master bias (sigma-clipped, overscan-corrected)")]
+    MasterBias(cmd::master::BiasArgs),
+    #[command(about = "Combine flat-field frames into a normalized master flat (sigma-clipped)")]
+    MasterFlat(cmd::master::FlatArgs),
     #[command(about = "Measure a star's Q, U, P, chi in frames, background removed vectorially")]
     Photometry(cmd::photometry::Args),
     #[command(about = "Find, pair and measure every star in frames: Q, U, P, chi with errors and flags")]
@@ -92,6 +96,8 @@ fn main() {
         Command::Demo(a) => cmd::demo::run(a),
         Command::Simulate(a) => cmd::simulate::run(a),
         Command::Reduce(a) => cmd::reduce::run(a),
+        Command::MasterBias(a) => cmd::master::run_bias(a),
+        Command::MasterFlat(a) => cmd::master::run_flat(a),
         Command::Photometry(a) => cmd::photometry::run(a),
         Command::Catalog(a) => cmd::catalog::run(a),
         Command::Calibrate(a) => cmd::calibrate::run(a),

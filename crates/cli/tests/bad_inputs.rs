@@ -1572,3 +1572,181 @@ fn killed_mc_accuracy_report_leaves_no_partial_plot() {
         check(&format!("at {delay_ms} ms"));
     }
 }
+
+// ---------------------------------------------------------------------------------------
+// Raw frame formats (issue 12): tables, chip files, overscan keywords, filters, BLANK.
+// ---------------------------------------------------------------------------------------
+
+/// The shrunk FORS2 (`common::raw`) and its raw science set, written into the fixture.
+fn fors2_fixture(f: &Fixture) -> (String, common::raw::RawSet) {
+    std::fs::write(f.p("fors2.toml"), common::raw::fors2_tiny_text()).unwrap();
+    let set = common::raw::write_raw_set(f.dir.path(), &common::raw::fors2_tiny());
+    (f.s("fors2.toml"), set)
+}
+
+fn strs(v: &[PathBuf]) -> Vec<String> {
+    v.iter().map(|p| p.to_str().unwrap().to_string()).collect()
+}
+
+#[test]
+fn raw_fors2_control_reduces() {
+    let f = Fixture::new();
+    let (inst, set) = fors2_fixture(&f);
+    let out = f.out_dir().join("m.fits");
+    let mut a = vec!["reduce".to_string()];
+    a.extend(strs(&set.science));
+    a.extend(["--instrument".into(), inst, "--bin".into(), "8".into(), "--out".into(), out.to_str().unwrap().into()]);
+    let (code, _, err) = run(&a);
+    assert_eq!(code, 0, "{err}");
+}
+
+#[test]
+fn reduce_an_extension_that_is_a_table() {
+    let f = Fixture::new();
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../skyfield/tests/data/formats");
+    let toml = include_str!("../../../instruments/fors1.toml")
+        .replace("nx = 2048", "nx = 12")
+        .replace("ny = 2048", "ny = 20")
+        .replace("throw_arcsec = 22.0", "throw_arcsec = 2.0")
+        .replace("strip_count = 9", "strip_count = 1")
+        .replace("first_strip_y_px = 34", "first_strip_y_px = 0");
+    std::fs::write(f.p("t.toml"), toml).unwrap();
+    let table = format!("{}[1]", data.join("mef.fits").display());
+    let good = data.join("prim_f32.fits").display().to_string();
+    let out = f.out_dir().join("m.fits");
+    refuses(
+        &f.out_dir(),
+        &["reduce", &table, &good, "--instrument", &f.s("t.toml"), "--out", out.to_str().unwrap()],
+        &["mef.fits", "HDU 1 (TAB) is a binary table, not an image"],
+    );
+}
+
+#[test]
+fn reduce_chip_files_of_different_exposures() {
+    let f = Fixture::new();
+    let (inst, set) = fors2_fixture(&f);
+    // CHIP1 of the exposure at 0 deg with CHIP2 of the one at 22.5 deg.
+    let mut files = strs(&set.science);
+    files.swap(1, 3);
+    let out = f.out_dir().join("m.fits");
+    let mut a = vec!["reduce".to_string()];
+    a.extend(files);
+    a.extend(["--instrument".into(), inst, "--out".into(), out.to_str().unwrap().into()]);
+    refuses(
+        &f.out_dir(),
+        &a,
+        &["chip files of different exposures", "sci0_CHIP1.fits", "sci1_CHIP2.fits", "HIERARCH ESO INS RETA2 POSANG"],
+    );
+}
+
+#[test]
+fn reduce_missing_overscan_keywords() {
+    let f = Fixture::new();
+    let (_, set) = fors2_fixture(&f);
+    // An instrument file that names overscan keywords these files do not have.
+    let text = common::raw::fors2_tiny_text().replace("OUT1 PRSCY", "OUT9 PRSCY").replace("OUT1 OVSCY", "OUT9 OVSCY");
+    std::fs::write(f.p("other.toml"), text).unwrap();
+    let out = f.out_dir().join("m.fits");
+    let mut a = vec!["reduce".to_string()];
+    a.extend(strs(&set.science));
+    a.extend(["--instrument".into(), f.s("other.toml"), "--out".into(), out.to_str().unwrap().into()]);
+    refuses(
+        &f.out_dir(),
+        &a,
+        &[
+            "sci0_CHIP1.fits",
+            "missing prescan/overscan header keywords",
+            "'HIERARCH ESO DET OUT9 PRSCY'",
+            "'HIERARCH ESO DET OUT9 OVSCY'",
+        ],
+    );
+}
+
+#[test]
+fn reduce_and_photometry_unknown_filter() {
+    let f = Fixture::new();
+    let mut frames = f.frames();
+    frames[2] = f.frame("zf.fits", 45.0, "z_GUNN", |_| {});
+    let out = f.out_dir().join("m.fits");
+    let mut a = vec!["reduce".to_string()];
+    a.extend(frames.iter().cloned());
+    a.extend(["--instrument".into(), f.s("mini.toml"), "--out".into(), out.to_str().unwrap().into()]);
+    refuses(&f.out_dir(), &a, &["zf.fits", "filter 'z_GUNN'", "instrument MINI's filters (V)"]);
+    let mut a = vec!["photometry".to_string()];
+    a.extend(frames);
+    a.extend(["--instrument".into(), f.s("mini.toml"), "--x".into(), "48".into(), "--y".into(), "14".into()]);
+    refuses(&f.out_dir(), &a, &["zf.fits", "filter 'z_GUNN'"]);
+}
+
+/// BLANK pixels of an integer frame are no data: masked with a warning, by design.
+#[test]
+fn reduce_blank_pixels_are_masked_with_a_warning() {
+    let f = Fixture::new();
+    let mut frames = f.frames();
+    let inst = instrument::Instrument::from_toml_str(&mini(), Path::new("mini.toml")).unwrap();
+    let (nx, ny) = (inst.detector.nx, inst.detector.ny);
+    let path = f.p("blank.fits");
+    {
+        use fitsio::images::{ImageDescription, ImageType};
+        let d = ImageDescription { data_type: ImageType::Short, dimensions: &[ny, nx] };
+        let mut ff = fitsio::FitsFile::create(&path).with_custom_primary(&d).open().unwrap();
+        let h = ff.primary_hdu().unwrap();
+        // The frame of f1 (22.5 deg), as integers, with three BLANK pixels in the beams.
+        let mut fr = fitsio::FitsFile::open(&frames[1]).unwrap();
+        let v: Vec<f32> = fr.primary_hdu().unwrap().read_image(&mut fr).unwrap();
+        let mut v: Vec<i16> = v.iter().map(|x| x.round() as i16).collect();
+        let s = inst.strips()[0];
+        for k in 0..3 {
+            v[(s.o_start + k) * nx + 10] = -32768;
+        }
+        h.write_image(&mut ff, &v).unwrap();
+        h.write_key(&mut ff, "BLANK", -32768i64).unwrap();
+        h.write_key(&mut ff, "HIERARCH ESO INS RETA2 POSANG", 22.5f64).unwrap();
+        h.write_key(&mut ff, "HIERARCH ESO INS FILT1 NAME", "V").unwrap();
+    }
+    frames[1] = path.to_str().unwrap().to_string();
+    let out = f.out_dir().join("m.fits");
+    let mut a = vec!["reduce".to_string()];
+    a.extend(frames);
+    a.extend(["--instrument".into(), f.s("mini.toml"), "--out".into(), out.to_str().unwrap().into()]);
+    let (code, _, err) = run(&a);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("blank.fits: 3 NaN/infinite pixels masked"), "{err}");
+}
+
+/// HWP angles from `--hwp-angles` (issue 12): for an instrument that names no HWP keyword they
+/// are required (and then used, in the frames' order); a count that does not match the
+/// exposures, or an angle that contradicts the header, is refused naming the file.
+#[test]
+fn reduce_hwp_angles_from_the_command_line() {
+    let f = Fixture::new();
+    let frames = f.frames();
+    std::fs::write(
+        f.p("nokw.toml"),
+        mini().replace("hwp_angle_keyword = \"HIERARCH ESO INS RETA2 POSANG\"", "hwp_angle_keyword = \"\""),
+    )
+    .unwrap();
+    let out = f.out_dir().join("m.fits");
+    let args = |inst: &str, extra: &[&str]| {
+        let mut a = vec!["reduce".to_string()];
+        a.extend(frames.iter().cloned());
+        a.extend(["--instrument".into(), f.s(inst), "--out".into(), out.to_str().unwrap().into()]);
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a
+    };
+    refuses(&f.out_dir(), &args("nokw.toml", &[]), &["f0.fits", "names no HWP-angle keyword", "--hwp-angles"]);
+    refuses(
+        &f.out_dir(),
+        &args("nokw.toml", &["--hwp-angles", "0,22.5,45"]),
+        &["--hwp-angles gives 3 angles for 4 exposures"],
+    );
+    refuses(
+        &f.out_dir(),
+        &args("mini.toml", &["--hwp-angles", "0,22.5,45,90"]),
+        &["f3.fits", "--hwp-angles says 90 deg", "'HIERARCH ESO INS RETA2 POSANG' says 67.5 deg"],
+    );
+    refuses(&f.out_dir(), &args("mini.toml", &["--hwp-angles", "0,x"]), &["--hwp-angles '0,x'"]);
+    let (code, _, err) = run(&args("nokw.toml", &["--hwp-angles", "0,22.5,45,67.5", "--json"]));
+    assert_eq!(code, 0, "{err}");
+    assert!(out.exists());
+}

@@ -33,6 +33,30 @@ fn star_polarization_after_vectorial_background_subtraction() {
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert!((j["p"].as_f64().unwrap() - 0.03).abs() < 1e-6, "{j}");
     assert!((j["chi_deg"].as_f64().unwrap() - 20.0).abs() < 1e-3, "{j}");
+    // The filter's HWP zero angle (the angle to add to a measured chi, instrument file) is
+    // applied to chi, Q and U as for calibrations (issue 12: photometry ignored it): the same
+    // frames read with a V offset of 7.5 deg give chi = 27.5 deg, Q = P cos 55 deg,
+    // U = P sin 55 deg, P unchanged.
+    let text = std::fs::read_to_string(&inst).unwrap();
+    let v = text.find("name = \"V\"").unwrap();
+    let at = v + text[v..].find("hwp_chi_offset_deg = 0.0").unwrap();
+    let text = format!("{}hwp_chi_offset_deg = 7.5{}", &text[..at], &text[at + "hwp_chi_offset_deg = 0.0".len()..]);
+    let inst2 = dir.path().join("offset.toml");
+    std::fs::write(&inst2, text).unwrap();
+    let o = instpol()
+        .arg("photometry")
+        .args(&frames)
+        .args(["--x", "64", "--y", "34", "--aperture", "8", "--annulus", "12,20", "--json", "--instrument"])
+        .arg(&inst2)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let k: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!((k["chi_deg"].as_f64().unwrap() - 27.5).abs() < 1e-3, "{k}");
+    assert!((k["p"].as_f64().unwrap() - 0.03).abs() < 1e-6, "{k}");
+    assert!((k["q"].as_f64().unwrap() - 0.03 * 55f64.to_radians().cos()).abs() < 1e-6, "{k}");
+    assert!((k["u"].as_f64().unwrap() - 0.03 * 55f64.to_radians().sin()).abs() < 1e-6, "{k}");
+    assert_eq!(k["hwp_chi_offset_deg"].as_f64(), Some(7.5));
     // An aperture reaching behind the mask is refused by name.
     let o = instpol()
         .arg("photometry")

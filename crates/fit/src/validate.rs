@@ -11,7 +11,7 @@ use crate::Calibration;
 use instrument::Instrument;
 use serde::Serialize;
 use skyfield::photometry::{photometry, Aperture};
-use skyfield::reduce::{read_frames, FrameSet};
+use skyfield::reduce::{read_frames_with, FrameSet};
 use std::path::PathBuf;
 
 /// The result of validating a calibration on a star: the comparison (the JSON contract first)
@@ -44,6 +44,8 @@ pub struct ValidateOptions {
     /// Extra per-component calibration error (fraction); `None`: [`auto_model_error`].
     pub model_error: Option<f64>,
     pub allow_extrapolation: bool,
+    /// Calibration frames (bias, flat) and HWP angles for reading the frames.
+    pub read: skyfield::calib::ReadOptions,
 }
 
 impl Default for ValidateOptions {
@@ -55,6 +57,7 @@ impl Default for ValidateOptions {
             threshold: 3.0,
             model_error: None,
             allow_extrapolation: false,
+            read: Default::default(),
         }
     }
 }
@@ -113,7 +116,7 @@ pub fn validate_frames(
         let doing = doing.to_string();
         move |source| Error::Frames { doing, source }
     };
-    let fr = read_frames(frames, inst, &|| {}).map_err(frames_err("reading the frames"))?;
+    let fr = read_frames_with(frames, inst, &opts.read, &|| {}).map_err(frames_err("reading the frames"))?;
     let set = FrameSet::from_frames(fr, inst, true).map_err(frames_err("grouping the frames by HWP angle"))?;
     // Another filter's calibration is allowed (it is how a wrong calibration is shown to
     // fail), but said.

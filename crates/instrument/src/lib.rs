@@ -10,6 +10,9 @@
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
+mod format;
+pub use format::{Chip, FrameFormat, NumberOrKeyword};
+
 /// Errors while loading an instrument definition.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
@@ -162,6 +165,9 @@ pub struct Instrument {
     /// Optical prescription of the collimator for polarization ray tracing (optional).
     #[serde(default)]
     pub optics: Option<mueller::raytrace::Prescription>,
+    /// How raw frames are laid out (HDUs, chips, overscan, binning); see [`FrameFormat`].
+    #[serde(default)]
+    pub format: FrameFormat,
 }
 
 /// One mask strip on the detector: rows `[o_start, o_start + height)` hold its ordinary image
@@ -177,6 +183,8 @@ pub struct Strip {
 const BUILTIN: &[(&str, &str)] = &[
     ("fors1", include_str!("../../../instruments/fors1.toml")),
     ("calcite", include_str!("../../../instruments/calcite.toml")),
+    ("fors2", include_str!("../../../instruments/fors2.toml")),
+    ("efosc2", include_str!("../../../instruments/efosc2.toml")),
 ];
 
 impl Instrument {
@@ -234,6 +242,9 @@ impl Instrument {
         match self.polarimetry.layout {
             Layout::Strips => self.validate_strips(path)?,
             Layout::Maskless => self.validate_maskless(path)?,
+        }
+        if let Err((key, value, why)) = self.format.check(d.nx, d.ny) {
+            return bad(&key, value, &why);
         }
         if self.filters.is_empty() {
             return bad("filters", "[]".into(), "need at least one filter");

@@ -26,6 +26,7 @@
 //! (scene seed, frame, detector row), so results do not depend on the number of threads.
 
 pub mod plan;
+pub mod raw;
 pub mod scene;
 
 pub use plan::{simulate, simulate_with_field, Plan, Simulated};

@@ -105,7 +105,7 @@ fn fixed_whole_pixel_apertures_are_biased_on_moving_maskless_frames() {
     let opts = PhotOptions { weighting: skyfield::aperture::Weighting::Centre, recentre: false };
     let mut worst: f64 = 0.0;
     for (x, y, p, chi, _) in stars() {
-        let r = photometry_with(&set, &inst, &g, x, y, &ap, &opts).unwrap().reduction;
+        let r = photometry_with(&set, &g, x, y, &ap, &opts).unwrap().reduction;
         let (q0, u0) = (p * (2.0 * chi.to_radians()).cos(), p * (2.0 * chi.to_radians()).sin());
         worst = worst.max(((r.qu.q - q0) / r.qu.var_q.sqrt()).abs()).max(((r.qu.u - u0) / r.qu.var_u.sqrt()).abs());
     }

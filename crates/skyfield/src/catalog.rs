@@ -113,7 +113,7 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
     let first = set.data.first().ok_or(Error::NoFrames)?;
     let nexp = set.files[0].len() as f64;
     let mut dcfg = cfg.detect;
-    dcfg.saturation = inst.detector.saturation_adu * nexp;
+    dcfg.saturation = set.conversion.det().2 * nexp;
     let sources: Vec<Source> = detect(first, &g, &dcfg);
     let (pairs, unpaired) = pair(&sources, &g, dcfg.pair_tol_px);
     let chi_off = inst.filter(&set.filter).map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0);
@@ -171,17 +171,19 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
                 row.note = "saturated: not measured".into();
                 return row;
             }
-            match photometry_with(set, inst, &g, so.x, so.y, &ap, &opts) {
+            match photometry_with(set, &g, so.x, so.y, &ap, &opts) {
                 Ok(ph) => {
                     let r = &ph.reduction;
                     let n = r.n;
                     row.flux_e = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum::<f64>() / n as f64;
                     row.f = r.f.clone();
-                    row.q = r.qu.q;
-                    row.u = r.qu.u;
-                    row.sigma_q = r.qu.var_q.sqrt();
-                    row.sigma_u = r.qu.var_u.sqrt();
-                    row.cov_qu = r.qu.cov_qu;
+                    // In the sky's frame: the filter's HWP zero angle turns q, u as it turns chi.
+                    let sky = r.qu.rotated(chi_off.to_radians());
+                    row.q = sky.q;
+                    row.u = sky.u;
+                    row.sigma_q = sky.var_q.sqrt();
+                    row.sigma_u = sky.var_u.sqrt();
+                    row.cov_qu = sky.cov_qu;
                     row.p = r.p;
                     row.sigma_p = r.sigma_p;
                     row.chi_deg = (r.chi.to_degrees() + chi_off).rem_euclid(180.0);

@@ -28,8 +28,10 @@ pub struct Frame {
     pub filter: String,
     /// Exposure time (s), if the keyword is present.
     pub exptime_s: Option<f64>,
-    /// BITPIX of the file (16, 32, -32, -64).
+    /// BITPIX of the file (8, 16, 32, 64, -32, -64).
     pub bitpix: i32,
+    /// How the values become electrons (the instrument's ADU, or already electrons).
+    pub conversion: Conversion,
 }
 
 /// Pixel type of a written frame.
@@ -147,6 +149,23 @@ pub fn write_frame(
             Bitpix::F64 => hdu.write_image(f, data).map_err(e)?,
         }
         for (k, v, c) in keys {
+            // fitsio names the primary HDU EXTNAME = '_PRIMARY'; an EXTNAME of our own (a chip
+            // name) replaces that card rather than adding a conflicting second one.
+            if let (true, KeyValue::Str(s)) = (k.eq_ignore_ascii_case("EXTNAME"), v) {
+                let name = std::ffi::CString::new("EXTNAME").expect("no NUL");
+                let val = std::ffi::CString::new(s.as_str())
+                    .map_err(|x| Error::Write { path: path.into(), message: format!("keyword {k}: {x}") })?;
+                let mut status = 0;
+                // SAFETY: an open file at its primary HDU; NUL-terminated strings.
+                unsafe { fitsio::sys::ffukys(f.as_raw(), name.as_ptr(), val.as_ptr(), std::ptr::null(), &mut status) };
+                if status != 0 {
+                    return Err(Error::Write {
+                        path: path.into(),
+                        message: format!("keyword {k}: CFITSIO status {status}"),
+                    });
+                }
+                continue;
+            }
             match v {
                 KeyValue::F64(x) => hdu.write_key(f, k, (*x, c.as_str())),
                 KeyValue::I64(x) => hdu.write_key(f, k, (*x, c.as_str())),
@@ -158,15 +177,6 @@ pub fn write_frame(
     })
 }
 
-fn read_key_string(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, key: &str) -> Option<String> {
-    read_key_str(f, hdu, key).ok().map(|s| s.trim().to_string())
-}
-
-/// Read the string value of keyword `key` of `hdu`: the one string-keyword reader for
-/// untrusted files. fitsio 0.21's `read_key::<String>` gives CFITSIO a 71-byte value buffer,
-/// and CFITSIO writes 72 bytes for a card whose value starts right after the `=` and fills
-/// the card (a heap overflow, found by the frame_fits fuzz target): this reads into buffers
-/// longer than a whole card.
 pub fn read_key_str(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, key: &str) -> fitsio::errors::Result<String> {
     use std::os::raw::{c_char, c_int};
     let name = std::ffi::CString::new(key)?;
@@ -266,6 +276,69 @@ impl PixelView<'_> {
     }
 }
 
+/// How a frame's values become electrons: `(value - bias) * gain`; values at or above
+/// `saturation` are saturated; `read_noise_e2` is each pixel's read-noise variance (e-^2).
+/// Plain frames use the instrument's `[detector]`; frames calibrated on reading (trimmed,
+/// overscan- and bias-subtracted, flat-fielded, chips assembled) are already in electrons
+/// ([`Conversion::electrons`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Conversion {
+    pub bias: f64,
+    pub gain: f64,
+    pub saturation: f64,
+    pub read_noise_e2: f64,
+}
+
+/// The value a calibrated image carries for a pixel saturated in the raw frame: far above
+/// any number of electrons, finite in f32, so it still counts as saturated (not NaN) after
+/// summing repeated exposures (see [`SATURATED_LIMIT`]).
+pub const SATURATED: f64 = 1e38;
+/// Calibrated values at or above this are saturated: [`SATURATED`] divided by 100, so a sum
+/// of up to 100 exposures with one saturated value still reaches `nexp * SATURATED_LIMIT`.
+pub const SATURATED_LIMIT: f64 = 1e36;
+/// The value of detector pixels no chip covers (the gap of a mosaic): finite and hugely
+/// negative, so the reduction masks them as pixels without flux, silently.
+pub const GAP: f64 = -1e38;
+/// Values at or below this are gap pixels.
+pub const GAP_LIMIT: f64 = -1e36;
+
+impl Conversion {
+    /// The instrument's `[detector]` numbers (raw ADU frames).
+    pub fn of_instrument(inst: &Instrument) -> Self {
+        let d = &inst.detector;
+        Self {
+            bias: d.bias_adu,
+            gain: d.gain_e_per_adu,
+            saturation: d.saturation_adu,
+            read_noise_e2: d.read_noise_e.powi(2),
+        }
+    }
+
+    /// Frames already in electrons with a read-noise variance `read_noise_e2` (e-^2).
+    pub fn electrons(read_noise_e2: f64) -> Self {
+        Self { bias: 0.0, gain: 1.0, saturation: SATURATED_LIMIT, read_noise_e2 }
+    }
+
+    /// True for frames calibrated to electrons on reading.
+    pub fn is_electrons(&self) -> bool {
+        self.saturation == SATURATED_LIMIT
+    }
+
+    /// `(bias, gain, saturation, read-noise variance)` as the reduction kernel takes them.
+    pub(crate) fn det(&self) -> (f64, f64, f64, f64) {
+        (self.bias, self.gain, self.saturation, self.read_noise_e2)
+    }
+
+    /// The saturation level as people read it.
+    pub(crate) fn saturation_label(&self) -> String {
+        if self.is_electrons() {
+            "the chip's saturation level".into()
+        } else {
+            format!("{} ADU", self.saturation)
+        }
+    }
+}
+
 /// A frame as stored: header facts and the pixels in their own type.
 #[derive(Debug, Clone)]
 pub(crate) struct RawFrame {
@@ -277,109 +350,498 @@ pub(crate) struct RawFrame {
     pub filter: String,
     pub exptime_s: Option<f64>,
     pub bitpix: i32,
+    pub conversion: Conversion,
 }
 
 impl RawFrame {
     pub(crate) fn into_frame(self) -> Frame {
-        let RawFrame { path, nx, ny, pixels, hwp_deg, filter, exptime_s, bitpix } = self;
-        Frame { path, nx, ny, data: pixels.into_f64(), hwp_deg, filter, exptime_s, bitpix }
+        let RawFrame { path, nx, ny, pixels, hwp_deg, filter, exptime_s, bitpix, conversion } = self;
+        Frame { path, nx, ny, data: pixels.into_f64(), hwp_deg, filter, exptime_s, bitpix, conversion }
     }
 }
 
-/// Read one frame, checking what reduction needs: a 2-D image in the primary HDU of a
-/// detector pixel type, the size of `inst`'s detector, and the HWP-angle and filter keywords
-/// the instrument names (the exposure-time keyword is optional).
+/// Read one frame, checking what reduction needs: a 2-D image of a detector pixel type (in
+/// the primary HDU or an extension, see [`open_image`]), the size of `inst`'s detector, and the
+/// HWP-angle and filter keywords the instrument names (the exposure-time keyword is optional).
+/// Frames of instruments whose `[format]` declares chips or a raw bias level go through
+/// [`crate::calib`] (trimmed, overscan-corrected, assembled, in electrons).
 pub fn read_frame(path: &Path, inst: &Instrument) -> Result<Frame, Error> {
+    if inst.format.is_raw() {
+        let mut v = crate::calib::read_exposures(&[path.to_path_buf()], inst, &crate::calib::ReadOptions::default())?;
+        return v.pop().ok_or(Error::NoFrames);
+    }
     read_frame_raw(path, inst).map(RawFrame::into_frame)
 }
 
-/// Header facts of a frame, checked against the instrument.
-struct FrameHeader {
-    nx: usize,
-    ny: usize,
-    hwp_deg: f64,
-    filter: String,
-    exptime_s: Option<f64>,
-    bitpix: i32,
-    ty: ImageType,
-    bscale: f64,
-    bzero: f64,
+/// An image HDU opened for reading (any HDU of a plain, gzipped or tile-compressed file).
+pub(crate) struct ImageHdu {
+    pub f: FitsFile,
+    /// The file on disk (the name without a CFITSIO `[...]` suffix).
+    pub disk: PathBuf,
+    /// 0-based HDU index.
+    pub index: usize,
+    /// `HDU n` or `HDU n (EXTNAME)`, for messages.
+    pub label: String,
+    pub nx: usize,
+    pub ny: usize,
+    pub bitpix: i32,
+    pub bscale: f64,
+    pub bzero: f64,
+    /// A BLANK keyword is present (integer images): such pixels read as NaN.
+    pub blank: bool,
+    /// Tile-compressed (`.fz`): only CFITSIO decodes it.
+    pub compressed: bool,
 }
 
-/// Open a frame and check its header: a 2-D image in the primary HDU of a detector pixel
-/// type, the size of `inst`'s detector, the HWP-angle and filter keywords the instrument names.
-fn open_checked(path: &Path, inst: &Instrument) -> Result<(FitsFile, fitsio::hdu::FitsHdu, FrameHeader), Error> {
-    let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
-    let hdu = f.primary_hdu().map_err(|e| fits_err(path, format!("unreadable primary HDU: {e}")))?;
-    let (shape, ty) = match &hdu.info {
-        fitsio::hdu::HduInfo::ImageInfo { shape, image_type } => (shape.clone(), *image_type),
-        _ => return Err(Error::NotImage { path: path.into(), shape: vec![] }),
-    };
-    let bitpix = match ty {
-        ImageType::Short | ImageType::UnsignedShort => 16,
-        ImageType::Long | ImageType::UnsignedLong => 32,
-        ImageType::Float => -32,
-        ImageType::Double => -64,
-        ImageType::UnsignedByte | ImageType::Byte => return Err(Error::BadBitpix { path: path.into(), bitpix: 8 }),
-        ImageType::LongLong => return Err(Error::BadBitpix { path: path.into(), bitpix: 64 }),
-    };
-    if shape.len() != 2 {
-        return Err(Error::NotImage { path: path.into(), shape });
+/// CFITSIO status codes this module tells apart.
+const HDU_IMAGE: i32 = 0;
+
+/// Move to HDU `index` (0-based); its CFITSIO HDU type.
+fn move_to(f: &mut FitsFile, index: usize) -> Result<i32, i32> {
+    let (mut ty, mut status) = (0, 0);
+    // SAFETY: an open file; plain integer outputs.
+    unsafe { fitsio::sys::ffmahd(f.as_raw(), index as i32 + 1, &mut ty, &mut status) };
+    if status != 0 {
+        Err(status)
+    } else {
+        Ok(ty)
     }
-    let (ny, nx) = (shape[0], shape[1]);
+}
+
+/// The string value of `key` in HDU `index`, `None` when absent. Reads into buffers longer
+/// than a card (see [`read_key_str`]).
+pub(crate) fn key_at(f: &mut FitsFile, index: usize, key: &str) -> Option<String> {
+    use std::os::raw::c_char;
+    let name = std::ffi::CString::new(key).ok()?;
+    move_to(f, index).ok()?;
+    let mut value = [0 as c_char; 160];
+    let mut comment = [0 as c_char; 160];
+    let mut status = 0;
+    // SAFETY: buffers exceed a card; name is NUL-terminated.
+    unsafe { fitsio::sys::ffgkys(f.as_raw(), name.as_ptr(), value.as_mut_ptr(), comment.as_mut_ptr(), &mut status) };
+    if status != 0 {
+        return None;
+    }
+    let bytes: Vec<u8> = value.iter().take_while(|&&c| c != 0).map(|&c| c as u8).collect();
+    Some(String::from_utf8_lossy(&bytes).trim().to_string())
+}
+
+impl ImageHdu {
+    /// `key` in the image HDU, else in the primary header (ESO writes its keywords there when
+    /// the image is in an extension).
+    pub(crate) fn key(&mut self, key: &str) -> Option<String> {
+        key_at(&mut self.f, self.index, key).or_else(|| if self.index > 0 { key_at(&mut self.f, 0, key) } else { None })
+    }
+
+    /// A numeric keyword (number or numeric string; Fortran `D` exponents accepted).
+    pub(crate) fn number(&mut self, path: &Path, key: &str, expected: &str) -> Result<Option<f64>, Error> {
+        let Some(s) = self.key(key) else { return Ok(None) };
+        parse_number(&s).map(Some).ok_or_else(|| Error::BadKeyword {
+            path: path.into(),
+            keyword: key.into(),
+            value: s,
+            expected: expected.into(),
+        })
+    }
+
+    /// All pixels through CFITSIO: in the stored type when that needs no scaling and has no
+    /// BLANK (f32 frames are half the memory of f64), else as f64 with BLANK pixels NaN.
+    pub(crate) fn read_pixels(&mut self, path: &Path) -> Result<Pixels, Error> {
+        let n = self.nx * self.ny;
+        move_to(&mut self.f, self.index).map_err(|s| read_error(path, format!("CFITSIO status {s}")))?;
+        let rerr = |e: fitsio::errors::Error| read_error(path, e);
+        let kind = if self.compressed || self.blank { None } else { raw_kind(self.bitpix, self.bscale, self.bzero) };
+        let pixels = match kind {
+            Some(k @ (RawKind::F32 | RawKind::U16 | RawKind::I16)) => {
+                let hdu = self.f.hdu(self.index).map_err(rerr)?;
+                match k {
+                    RawKind::F32 => Pixels::F32(hdu.read_image(&mut self.f).map_err(rerr)?),
+                    RawKind::U16 => Pixels::U16(hdu.read_image(&mut self.f).map_err(rerr)?),
+                    _ => Pixels::I16(hdu.read_image(&mut self.f).map_err(rerr)?),
+                }
+            }
+            _ => {
+                let mut v = vec![0.0f64; n];
+                let (mut anynul, mut status) = (0, 0);
+                // SAFETY: `v` holds `n` values, the number requested; CFITSIO applies BSCALE and
+                // BZERO and sets undefined (BLANK) pixels to the non-zero null value NaN.
+                unsafe {
+                    fitsio::sys::ffgpvd(
+                        self.f.as_raw(),
+                        1,
+                        1,
+                        n as i64,
+                        f64::NAN,
+                        v.as_mut_ptr(),
+                        &mut anynul,
+                        &mut status,
+                    )
+                };
+                if status != 0 {
+                    return Err(read_error(path, format!("CFITSIO status {status}")));
+                }
+                Pixels::F64(v)
+            }
+        };
+        if pixels.len() != n {
+            return Err(fits_err(path, format!("read {} pixels, header says {} x {}", pixels.len(), self.nx, self.ny)));
+        }
+        Ok(pixels)
+    }
+
+    /// Refuse keywords that appear twice with different values among `keys` (and the ones
+    /// that say how to read the pixels): which one CFITSIO uses is not a choice to make
+    /// silently.
+    pub(crate) fn check_duplicates(&mut self, path: &Path, keys: &[&str]) -> Result<(), Error> {
+        let mut watched: Vec<String> =
+            ["BITPIX", "NAXIS", "NAXIS1", "NAXIS2", "BZERO", "BSCALE", "BLANK"].iter().map(|s| s.to_string()).collect();
+        watched.extend(keys.iter().filter(|k| !k.is_empty()).map(|k| k.to_ascii_uppercase()));
+        let mut indices = vec![self.index];
+        if self.index > 0 {
+            indices.push(0);
+        }
+        for idx in indices {
+            move_to(&mut self.f, idx).map_err(|s| read_error(path, format!("CFITSIO status {s}")))?;
+            let (mut nkeys, mut more, mut status) = (0, 0, 0);
+            // SAFETY: plain integer outputs.
+            unsafe { fitsio::sys::ffghsp(self.f.as_raw(), &mut nkeys, &mut more, &mut status) };
+            let mut seen: Vec<(String, String)> = Vec::new();
+            for n in 1..=nkeys.max(0) {
+                let mut card = [0 as std::os::raw::c_char; 100];
+                let mut st = 0;
+                // SAFETY: a card is at most 81 bytes with its NUL.
+                unsafe { fitsio::sys::ffgrec(self.f.as_raw(), n, card.as_mut_ptr(), &mut st) };
+                if st != 0 {
+                    break;
+                }
+                let bytes: Vec<u8> = card.iter().take_while(|&&c| c != 0).map(|&c| c as u8).collect();
+                let card = String::from_utf8_lossy(&bytes).to_string();
+                let Some((name, value)) = split_card(&card) else { continue };
+                if !watched.contains(&name) {
+                    continue;
+                }
+                match seen.iter().find(|(k, _)| *k == name) {
+                    Some((_, v0)) if !same_value(v0, &value) => {
+                        let where_ = if idx == 0 { "primary header".to_string() } else { self.label.clone() };
+                        return Err(fits_err(
+                            path,
+                            format!(
+                                "keyword '{name}' appears twice in the {where_} with different values ({v0} and {value}); remove one"
+                            ),
+                        ));
+                    }
+                    Some(_) => {}
+                    None => seen.push((name, value)),
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A number from a header value: `22.5`, `'22.5'`, `2.25D+01`.
+pub(crate) fn parse_number(s: &str) -> Option<f64> {
+    let t = s.trim().trim_matches('\'').trim();
+    t.parse::<f64>().ok().or_else(|| t.replace(['D', 'd'], "E").parse().ok()).filter(|v: &f64| v.is_finite())
+}
+
+/// Keyword name (upper case, `HIERARCH ` kept) and value text of a header card.
+fn split_card(card: &str) -> Option<(String, String)> {
+    let (name, rest) = if let Some(h) = card.strip_prefix("HIERARCH ") {
+        let eq = h.find('=')?;
+        (format!("HIERARCH {}", h[..eq].trim()), &h[eq + 1..])
+    } else {
+        if card.len() < 10 || &card[8..10] != "= " {
+            return None;
+        }
+        (card[..8].trim().to_string(), &card[10..])
+    };
+    let rest = rest.trim_start();
+    let value = if let Some(q) = rest.strip_prefix('\'') {
+        // A quoted string ends at a quote not doubled.
+        let mut out = String::new();
+        let mut it = q.chars().peekable();
+        while let Some(c) = it.next() {
+            if c == '\'' {
+                if it.peek() == Some(&'\'') {
+                    it.next();
+                    out.push('\'');
+                    continue;
+                }
+                break;
+            }
+            out.push(c);
+        }
+        out.trim_end().to_string()
+    } else {
+        rest.split('/').next().unwrap_or("").trim().to_string()
+    };
+    Some((name.to_ascii_uppercase(), value))
+}
+
+fn same_value(a: &str, b: &str) -> bool {
+    match (parse_number(a), parse_number(b)) {
+        (Some(x), Some(y)) => x == y,
+        _ => a.trim() == b.trim(),
+    }
+}
+
+/// Open `path` and move to its image HDU: the HDU a CFITSIO suffix names (`f.fits[1]`,
+/// `f.fits[CHIP1]`), else `spec` (the instrument's: a number or an EXTNAME), else the primary
+/// HDU if it holds an image, else the one image extension with data. A file whose own name
+/// contains brackets is opened by that name (no suffix parsing). A table where an image is
+/// wanted, no image or several: errors naming the file and the HDUs.
+pub(crate) fn open_image(path: &Path, spec: &str) -> Result<ImageHdu, Error> {
+    let name = path.to_str().ok_or_else(|| fits_err(path, "file name is not valid UTF-8"))?;
+    let open_err = |e: String| fits_err(path, format!("cannot open as FITS: {e}"));
+    let literal = path.is_file();
+    let (mut f, explicit, disk) = if literal && name.contains('[') {
+        // CFITSIO would read the brackets as an HDU selector: open the disk file by its name.
+        let c = std::ffi::CString::new(name).map_err(|e| open_err(e.to_string()))?;
+        let (mut fptr, mut status) = (std::ptr::null_mut(), 0);
+        // SAFETY: `c` is NUL-terminated; CFITSIO sets `fptr` on success.
+        unsafe { fitsio::sys::ffdkopn(&mut fptr, c.as_ptr(), 0, &mut status) };
+        if status != 0 || fptr.is_null() {
+            return Err(open_err(format!("CFITSIO status {status}")));
+        }
+        // SAFETY: a file CFITSIO just opened read-only, owned from here on.
+        let f =
+            unsafe { FitsFile::from_raw(fptr, fitsio::FileOpenMode::READONLY) }.map_err(|e| open_err(e.to_string()))?;
+        (f, false, path.to_path_buf())
+    } else {
+        let f = FitsFile::open(path).map_err(|e| open_err(e.to_string()))?;
+        let explicit = !literal && name.ends_with(']') && name.contains('[');
+        let disk = if explicit { PathBuf::from(&name[..name.find('[').unwrap_or(name.len())]) } else { path.into() };
+        (f, explicit, disk)
+    };
+    let nhdus = f.num_hdus().map_err(|e| open_err(e.to_string()))?;
+    let index = if explicit {
+        let mut n = 0;
+        // SAFETY: an open file.
+        unsafe { fitsio::sys::ffghdn(f.as_raw(), &mut n) };
+        (n - 1).max(0) as usize
+    } else if !spec.is_empty() {
+        match spec.parse::<usize>() {
+            Ok(i) if i < nhdus => i,
+            Ok(i) => {
+                return Err(fits_err(
+                    path,
+                    format!("has no HDU {i} (it has {nhdus}); the instrument's format names HDU {i}"),
+                ))
+            }
+            Err(_) => (0..nhdus)
+                .find(|&i| key_at(&mut f, i, "EXTNAME").is_some_and(|v| v.eq_ignore_ascii_case(spec)))
+                .ok_or_else(|| fits_err(path, format!("has no HDU named '{spec}' (EXTNAME)")))?,
+        }
+    } else {
+        let images: Vec<usize> = (0..nhdus).filter(|&i| image_dims(&mut f, i).is_some_and(|d| !d.is_empty())).collect();
+        match images[..] {
+            [i] => i,
+            [] => {
+                return Err(fits_err(
+                    path,
+                    format!(
+                        "has no image HDU with data ({}), so there is no frame to read",
+                        describe_hdus(&mut f, nhdus)
+                    ),
+                ))
+            }
+            _ if images.contains(&0) => 0,
+            _ => {
+                return Err(fits_err(
+                    path,
+                    format!(
+                        "has {} image HDUs ({}): name the one to read, e.g. {}[{}]",
+                        images.len(),
+                        describe_hdus(&mut f, nhdus),
+                        path.display(),
+                        images[0]
+                    ),
+                ))
+            }
+        }
+    };
+    let label = hdu_label(&mut f, index);
+    let ty = move_to(&mut f, index).map_err(|s| open_err(format!("CFITSIO status {s}")))?;
+    if ty != HDU_IMAGE {
+        let kind = if ty == 1 { "an ASCII table" } else { "a binary table" };
+        return Err(fits_err(path, format!("{label} is {kind}, not an image: name an image HDU (e.g. [0] or [1])")));
+    }
+    let dims = image_dims(&mut f, index).unwrap_or_default();
+    if dims.len() != 2 {
+        return Err(Error::NotImage { path: path.into(), shape: dims });
+    }
+    let (mut bitpix, mut status) = (0, 0);
+    // SAFETY: an open file at an image HDU.
+    unsafe { fitsio::sys::ffgidt(f.as_raw(), &mut bitpix, &mut status) };
+    let mut compressed = false;
+    // SAFETY: as above.
+    unsafe { compressed |= fitsio::sys::fits_is_compressed_image(f.as_raw(), &mut status) != 0 };
+    let bscale = key_at(&mut f, index, "BSCALE").and_then(|s| parse_number(&s)).unwrap_or(1.0);
+    let bzero = key_at(&mut f, index, "BZERO").and_then(|s| parse_number(&s)).unwrap_or(0.0);
+    let blank = bitpix > 0 && key_at(&mut f, index, "BLANK").is_some();
+    Ok(ImageHdu { f, disk, index, label, nx: dims[1], ny: dims[0], bitpix, bscale, bzero, blank, compressed })
+}
+
+/// Dimensions `[ny, nx, ...]` (slowest first) of HDU `index` when it is an image.
+fn image_dims(f: &mut FitsFile, index: usize) -> Option<Vec<usize>> {
+    if move_to(f, index).ok()? != HDU_IMAGE {
+        return None;
+    }
+    let (mut naxis, mut status) = (0, 0);
+    // SAFETY: plain outputs.
+    unsafe { fitsio::sys::ffgidm(f.as_raw(), &mut naxis, &mut status) };
+    if status != 0 || !(0..=9).contains(&naxis) {
+        return None;
+    }
+    let mut ax = [0i64; 9];
+    // SAFETY: `ax` holds 9 >= naxis values.
+    unsafe { fitsio::sys::ffgiszll(f.as_raw(), naxis, ax.as_mut_ptr(), &mut status) };
+    if status != 0 || ax[..naxis as usize].iter().any(|&a| a <= 0) {
+        return Some(vec![]);
+    }
+    Some(ax[..naxis as usize].iter().rev().map(|&a| a as usize).collect())
+}
+
+fn hdu_label(f: &mut FitsFile, index: usize) -> String {
+    match key_at(f, index, "EXTNAME") {
+        Some(n) if !n.is_empty() => format!("HDU {index} ({n})"),
+        _ => format!("HDU {index}"),
+    }
+}
+
+fn describe_hdus(f: &mut FitsFile, n: usize) -> String {
+    (0..n.min(20))
+        .map(|i| {
+            let what = match move_to(f, i) {
+                Ok(HDU_IMAGE) => match image_dims(f, i) {
+                    Some(d) if !d.is_empty() => format!("image {:?}", d.iter().rev().collect::<Vec<_>>()),
+                    _ => "header only".to_string(),
+                },
+                Ok(1) => "ASCII table".to_string(),
+                Ok(_) => "binary table".to_string(),
+                Err(_) => "unreadable".to_string(),
+            };
+            format!("{}: {what}", hdu_label(f, i))
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// Header facts of a frame, checked against the instrument.
+pub(crate) struct FrameHeader {
+    pub hwp_deg: Option<f64>,
+    pub filter: String,
+    pub exptime_s: Option<f64>,
+}
+
+/// The HWP angle, filter and exposure time of a frame (image HDU, then primary header), with
+/// conflicting duplicates of those and of the pixel keywords refused. The HWP angle is
+/// optional here (it may come from `--hwp-angles`); a present but non-numeric one is an error.
+pub(crate) fn frame_header(img: &mut ImageHdu, path: &Path, inst: &Instrument) -> Result<FrameHeader, Error> {
+    frame_header_with(img, path, inst, true)
+}
+
+/// [`frame_header`]; `need_filter` false: a missing filter keyword is an empty name (bias
+/// frames are often taken without one).
+pub(crate) fn frame_header_with(
+    img: &mut ImageHdu,
+    path: &Path,
+    inst: &Instrument,
+    need_filter: bool,
+) -> Result<FrameHeader, Error> {
+    let pol = &inst.polarimetry;
+    let mut keys = vec![pol.hwp_angle_keyword.as_str(), pol.filter_keyword.as_str(), pol.exptime_keyword.as_str()];
+    keys.extend(inst.format.binning_keywords.iter().map(|s| s.as_str()));
+    keys.extend(inst.format.chips.iter().filter_map(|c| c.match_keyword.as_deref()));
+    keys.extend(inst.format.exposure_keywords.iter().map(|s| s.as_str()));
+    img.check_duplicates(path, &keys)?;
+    let hwp_deg = if pol.hwp_angle_keyword.is_empty() {
+        None
+    } else {
+        img.number(path, &pol.hwp_angle_keyword, "an angle in degrees")?
+    };
+    let filter = match img.key(&pol.filter_keyword) {
+        Some(f) => f,
+        None if !need_filter => String::new(),
+        None => return Err(Error::MissingKeyword { path: path.into(), keyword: pol.filter_keyword.clone() }),
+    };
+    let exptime_s = img.key(&pol.exptime_keyword).and_then(|s| parse_number(&s));
+    Ok(FrameHeader { hwp_deg, filter, exptime_s })
+}
+
+/// The HWP angle of a frame or the error that says where it should have come from.
+pub(crate) fn require_hwp(h: Option<f64>, path: &Path, inst: &Instrument) -> Result<f64, Error> {
+    let k = &inst.polarimetry.hwp_angle_keyword;
+    h.ok_or_else(|| {
+        if k.is_empty() {
+            Error::Invalid(format!(
+                "{}: no HWP angle: instrument {} names no HWP-angle keyword; give the angles with --hwp-angles",
+                path.display(),
+                inst.name
+            ))
+        } else {
+            Error::MissingKeyword { path: path.into(), keyword: k.clone() }
+        }
+    })
+}
+
+/// Open a plain frame (one image, already trimmed, in the instrument's ADU) and check it: a
+/// 2-D image of a detector type, the size of `inst`'s detector, its keywords.
+fn open_checked(path: &Path, inst: &Instrument, hwp_optional: bool) -> Result<(ImageHdu, FrameHeader), Error> {
+    let mut img = open_image(path, &inst.format.hdu)?;
+    check_bitpix(path, img.bitpix)?;
     let d = &inst.detector;
-    if nx != d.nx || ny != d.ny {
+    if img.nx != d.nx || img.ny != d.ny {
         return Err(Error::SizeMismatch {
             path: path.into(),
-            got_nx: nx,
-            got_ny: ny,
+            got_nx: img.nx,
+            got_ny: img.ny,
             expected: format!("instrument {} has a {} x {} detector", inst.name, d.nx, d.ny),
         });
     }
-    let pol = &inst.polarimetry;
-    let hwp_s = read_key_string(&mut f, &hdu, &pol.hwp_angle_keyword)
-        .ok_or_else(|| Error::MissingKeyword { path: path.into(), keyword: pol.hwp_angle_keyword.clone() })?;
-    let hwp_deg: f64 = hwp_s.parse().ok().filter(|v: &f64| v.is_finite()).ok_or_else(|| Error::BadKeyword {
-        path: path.into(),
-        keyword: pol.hwp_angle_keyword.clone(),
-        value: hwp_s.clone(),
-        expected: "an angle in degrees".into(),
-    })?;
-    let filter = read_key_string(&mut f, &hdu, &pol.filter_keyword)
-        .ok_or_else(|| Error::MissingKeyword { path: path.into(), keyword: pol.filter_keyword.clone() })?;
-    let exptime_s = read_key_string(&mut f, &hdu, &pol.exptime_keyword).and_then(|s| s.parse().ok());
-    let bscale = hdu.read_key::<f64>(&mut f, "BSCALE").unwrap_or(1.0);
-    let bzero = hdu.read_key::<f64>(&mut f, "BZERO").unwrap_or(0.0);
-    Ok((f, hdu, FrameHeader { nx, ny, hwp_deg, filter, exptime_s, bitpix, ty, bscale, bzero }))
+    let mut h = frame_header(&mut img, path, inst)?;
+    if !hwp_optional {
+        h.hwp_deg = Some(require_hwp(h.hwp_deg, path, inst)?);
+    }
+    Ok((img, h))
 }
 
-fn read_error(path: &Path, e: impl std::fmt::Display) -> Error {
+/// Every FITS image type is read (8, 16, 32, 64-bit integers with any BZERO/BSCALE, 32 and
+/// 64-bit floats); anything else is not a FITS image.
+pub(crate) fn check_bitpix(path: &Path, bitpix: i32) -> Result<(), Error> {
+    match bitpix {
+        8 | 16 | 32 | 64 | -32 | -64 => Ok(()),
+        b => Err(Error::BadBitpix { path: path.into(), bitpix: b }),
+    }
+}
+
+pub(crate) fn read_error(path: &Path, e: impl std::fmt::Display) -> Error {
     fits_err(path, format!("cannot read the image data (truncated or corrupt file?): {e}"))
 }
 
-/// All pixels of an open frame through CFITSIO, in the stored type when that needs no
-/// scaling (f32 frames are half the memory of f64 and need no conversion pass), else as f64.
-fn read_pixels(path: &Path, f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, h: &FrameHeader) -> Result<Pixels, Error> {
-    let rerr = |e: fitsio::errors::Error| read_error(path, e);
-    let pixels = match raw_kind(h) {
-        Some(RawKind::F32) => Pixels::F32(hdu.read_image(f).map_err(rerr)?),
-        Some(RawKind::U16) => Pixels::U16(hdu.read_image(f).map_err(rerr)?),
-        Some(RawKind::I16) => Pixels::I16(hdu.read_image(f).map_err(rerr)?),
-        _ => Pixels::F64(hdu.read_image(f).map_err(rerr)?),
-    };
-    if pixels.len() != h.nx * h.ny {
-        return Err(fits_err(path, format!("read {} pixels, header says {} x {}", pixels.len(), h.nx, h.ny)));
-    }
-    Ok(pixels)
+/// [`read_frame`] of a plain frame keeping the stored pixel type; scaled data (BSCALE/BZERO
+/// other than the unsigned 16-bit convention) and BLANK-flagged or compressed images are
+/// read as f64.
+pub(crate) fn read_frame_raw(path: &Path, inst: &Instrument) -> Result<RawFrame, Error> {
+    read_frame_raw_with(path, inst, false)
 }
 
-/// [`read_frame`] keeping the stored pixel type; scaled data (BSCALE/BZERO other than the
-/// unsigned 16-bit convention) is read as f64.
-pub(crate) fn read_frame_raw(path: &Path, inst: &Instrument) -> Result<RawFrame, Error> {
-    let (mut f, hdu, h) = open_checked(path, inst)?;
-    let pixels = read_pixels(path, &mut f, &hdu, &h)?;
-    let FrameHeader { nx, ny, hwp_deg, filter, exptime_s, bitpix, .. } = h;
-    Ok(RawFrame { path: path.into(), nx, ny, pixels, hwp_deg, filter, exptime_s, bitpix })
+/// [`read_frame_raw`]; `hwp_optional`: a missing HWP angle is NaN (it comes from elsewhere).
+pub(crate) fn read_frame_raw_with(path: &Path, inst: &Instrument, hwp_optional: bool) -> Result<RawFrame, Error> {
+    let (mut img, h) = open_checked(path, inst, hwp_optional)?;
+    let pixels = img.read_pixels(path)?;
+    Ok(RawFrame {
+        path: path.into(),
+        nx: img.nx,
+        ny: img.ny,
+        pixels,
+        hwp_deg: h.hwp_deg.unwrap_or(f64::NAN),
+        filter: h.filter,
+        exptime_s: h.exptime_s,
+        bitpix: img.bitpix,
+        conversion: Conversion::of_instrument(inst),
+    })
 }
 
 /// Stored pixel encodings the reduction reads without CFITSIO's conversion: FITS data are
@@ -428,12 +890,12 @@ impl RawKind {
     }
 }
 
-fn raw_kind(h: &FrameHeader) -> Option<RawKind> {
-    match (h.ty, h.bscale == 1.0, h.bzero) {
-        (ImageType::Float, true, z) if z == 0.0 => Some(RawKind::F32),
-        (ImageType::Double, true, z) if z == 0.0 => Some(RawKind::F64),
-        (ImageType::Short, true, z) if z == 0.0 => Some(RawKind::I16),
-        (ImageType::UnsignedShort, true, z) if z == 32768.0 => Some(RawKind::U16),
+fn raw_kind(bitpix: i32, bscale: f64, bzero: f64) -> Option<RawKind> {
+    match (bitpix, bscale == 1.0, bzero) {
+        (-32, true, z) if z == 0.0 => Some(RawKind::F32),
+        (-64, true, z) if z == 0.0 => Some(RawKind::F64),
+        (16, true, z) if z == 0.0 => Some(RawKind::I16),
+        (16, true, z) if z == 32768.0 => Some(RawKind::U16),
         _ => None,
     }
 }
@@ -474,48 +936,65 @@ pub(crate) struct OpenFrame {
     pub hwp_deg: f64,
     pub filter: String,
     pub rows: FrameRows,
+    /// How the values become electrons.
+    pub conversion: Conversion,
 }
 
-/// Open a frame for reduction: the header is checked now; the pixels are read later, by rows,
-/// except where only CFITSIO can decode them.
-pub(crate) fn open_frame(path: &Path, inst: &Instrument) -> Result<OpenFrame, Error> {
-    let (mut f, hdu, h) = open_checked(path, inst)?;
-    let direct = match raw_kind(&h) {
-        Some(kind) => direct_rows(path, &mut f, &h, kind)?,
-        None => None,
+/// Open a plain frame for reduction: the header is checked now; the pixels are read later, by
+/// rows, except where only CFITSIO can decode them (gzip, tile compression, scaling, BLANK).
+/// `hwp_optional`: a missing HWP angle is NaN (it comes from `--hwp-angles`).
+pub(crate) fn open_frame_with(path: &Path, inst: &Instrument, hwp_optional: bool) -> Result<OpenFrame, Error> {
+    let (mut img, h) = open_checked(path, inst, hwp_optional)?;
+    let direct = match raw_kind(img.bitpix, img.bscale, img.bzero) {
+        Some(kind) if !img.compressed && !img.blank => direct_rows(path, &mut img, kind)?,
+        _ => None,
     };
     let rows = match direct {
         Some(r) => FrameRows::File(r),
-        None => FrameRows::Memory(read_pixels(path, &mut f, &hdu, &h)?),
+        None => FrameRows::Memory(img.read_pixels(path)?),
     };
-    Ok(OpenFrame { path: path.into(), nx: h.nx, ny: h.ny, hwp_deg: h.hwp_deg, filter: h.filter, rows })
+    Ok(OpenFrame {
+        path: path.into(),
+        nx: img.nx,
+        ny: img.ny,
+        hwp_deg: h.hwp_deg.unwrap_or(f64::NAN),
+        filter: h.filter,
+        rows,
+        conversion: Conversion::of_instrument(inst),
+    })
 }
 
-/// The data offset of the primary image when the file on disk is plain FITS (not a compressed
-/// stream CFITSIO inflates); `None` sends the frame through CFITSIO. A file too short for its
-/// image is refused here, as CFITSIO would refuse it when reading.
-fn direct_rows(path: &Path, f: &mut FitsFile, h: &FrameHeader, kind: RawKind) -> Result<Option<RowFile>, Error> {
+/// The data offset of the image when the file on disk is plain FITS (not a compressed stream
+/// CFITSIO inflates); `None` sends the frame through CFITSIO. A file too short for its image
+/// is refused here, as CFITSIO would refuse it when reading.
+fn direct_rows(path: &Path, img: &mut ImageHdu, kind: RawKind) -> Result<Option<RowFile>, Error> {
     use std::os::unix::fs::FileExt;
-    let (mut head, mut start, mut end, mut status) = (0i64, 0i64, 0i64, 0i32);
-    // SAFETY: the pointer is CFITSIO's own open file, positioned at the primary HDU; the
-    // outputs are plain integers.
-    unsafe {
-        fitsio::sys::ffghadll(f.as_raw(), &mut head, &mut start, &mut end, &mut status);
-    }
-    if status != 0 || head != 0 || start <= 0 {
+    if move_to(&mut img.f, img.index).is_err() {
         return Ok(None);
     }
-    let Ok(file) = std::fs::File::open(path) else { return Ok(None) };
+    let (mut head, mut start, mut end, mut status) = (0i64, 0i64, 0i64, 0i32);
+    // SAFETY: the pointer is CFITSIO's own open file, positioned at the image HDU; the
+    // outputs are plain integers.
+    unsafe {
+        fitsio::sys::ffghadll(img.f.as_raw(), &mut head, &mut start, &mut end, &mut status);
+    }
+    if status != 0 || start <= 0 {
+        return Ok(None);
+    }
+    let Ok(file) = std::fs::File::open(&img.disk) else { return Ok(None) };
     let mut magic = [0u8; 9];
     if file.read_exact_at(&mut magic, 0).is_err() || &magic != b"SIMPLE  =" {
         return Ok(None);
     }
     let len = file.metadata().map_err(|e| read_error(path, e))?.len();
-    let need = start as u64 + (h.nx * h.ny * kind.bytes()) as u64;
+    let need = start as u64 + (img.nx * img.ny * kind.bytes()) as u64;
     if len < need {
-        return Err(read_error(path, format!("the file has {len} bytes, its {} x {} image needs {need}", h.nx, h.ny)));
+        return Err(read_error(
+            path,
+            format!("the file has {len} bytes, its {} x {} image needs {need}", img.nx, img.ny),
+        ));
     }
-    Ok(Some(RowFile { file, data_start: start as u64, kind, nx: h.nx }))
+    Ok(Some(RowFile { file, data_start: start as u64, kind, nx: img.nx }))
 }
 
 impl OpenFrame {
@@ -635,6 +1114,41 @@ mod tests {
         let p3 = dir.path().join("garbage.fits");
         std::fs::write(&p3, b"not a fits file at all").unwrap();
         assert!(read_frame(&p3, &inst).unwrap_err().to_string().contains("garbage.fits"));
+    }
+
+    /// The reduction's fast path reads rows straight from the file for images in an extension
+    /// (`[CHIP1]`, found automatically) as for the primary, and CFITSIO reads gzip, tile
+    /// compression and BLANK images whole: either way the pixels of `read_frame` (which
+    /// `tests/formats.rs` checks against astropy).
+    #[test]
+    fn rows_of_extension_and_compressed_frames_are_the_frame_pixels() {
+        let text = include_str!("../../../instruments/fors1.toml")
+            .replace("nx = 2048", "nx = 12")
+            .replace("ny = 2048", "ny = 20")
+            .replace("throw_arcsec = 22.0", "throw_arcsec = 2.0")
+            .replace("strip_count = 9", "strip_count = 1")
+            .replace("first_strip_y_px = 34", "first_strip_y_px = 0");
+        let inst = Instrument::from_toml_str(&text, Path::new("t.toml")).unwrap();
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/formats");
+        for (name, direct) in [
+            ("ext1.fits", true),
+            ("mef.fits[CHIP1]", true),
+            ("prim_i16.fits", true),
+            ("rice_u16.fits.fz", false),
+            ("gz_u16.fits.gz", false),
+            ("prim_blank.fits", false),
+            ("prim_scaled.fits", false),
+        ] {
+            let p = dir.join(name);
+            let want = read_frame(&p, &inst).unwrap().data;
+            let of = open_frame_with(&p, &inst, false).unwrap();
+            assert_eq!(matches!(of.rows, FrameRows::File(_)), direct, "{name}");
+            let mut got = vec![0.0; 12 * 20];
+            of.load_rows(0, &mut got, &mut Vec::new()).unwrap();
+            for (a, b) in got.iter().zip(&want) {
+                assert!(a == b || (a.is_nan() && b.is_nan()), "{name}: {a} vs {b}");
+            }
+        }
     }
 
     #[test]

@@ -12,6 +12,7 @@
 pub mod aperture;
 pub mod beams;
 pub mod bin;
+pub mod calib;
 pub mod catalog;
 pub mod detect;
 pub mod durable;
@@ -43,6 +44,8 @@ pub enum Error {
     BadKeyword { path: PathBuf, keyword: String, value: String, expected: String },
     #[error("{path}: image is {got_nx} x {got_ny} px but {expected}")]
     SizeMismatch { path: PathBuf, got_nx: usize, got_ny: usize, expected: String },
+    #[error("{path}: filter '{filter}' is not one of instrument {instrument}'s filters ({known})")]
+    UnknownFilter { path: PathBuf, filter: String, instrument: String, known: String },
     #[error("frames mix filters: {details}")]
     MixedFilters { details: String },
     #[error("incomplete HWP angle set in filter {filter}: have {have}, missing {missing} (expected the N = {n} set {expected})")]

@@ -74,7 +74,7 @@ pub struct StarPhotometry {
 /// the default options (exact weights, re-centring) and the instrument's own layout.
 pub fn photometry(set: &FrameSet, inst: &Instrument, x: f64, y: f64, ap: &Aperture) -> Result<StarPhotometry, Error> {
     let g = layout_for(set, inst)?;
-    photometry_with(set, inst, &g, x, y, ap, &PhotOptions::default())
+    photometry_with(set, &g, x, y, ap, &PhotOptions::default())
 }
 
 /// The instrument's layout for these frames: for a maskless layout without a given o/e
@@ -107,7 +107,6 @@ fn check_aperture(ap: &Aperture) -> Result<(), Error> {
 /// [`photometry`] with a given layout `g` (e.g. with a measured maskless offset) and options.
 pub fn photometry_with(
     set: &FrameSet,
-    inst: &Instrument,
     g: &BeamGeometry,
     x: f64,
     y: f64,
@@ -139,8 +138,8 @@ pub fn photometry_with(
             }
         }
     }
-    let d = &inst.detector;
-    let (bias, gain, sat, rn2) = (d.bias_adu, d.gain_e_per_adu, d.saturation_adu, d.read_noise_e.powi(2));
+    // The frames' own conversion: the instrument's ADU, or electrons for calibrated frames.
+    let (bias, gain, sat, rn2) = set.conversion.det();
     let n = set.angles_deg.len();
     let mut out = Partial {
         hwp_deg: set.angles_deg.clone(),
@@ -210,6 +209,11 @@ pub fn photometry_with(
                     )));
                 }
                 let val = data[py * g.nx + px];
+                if val <= crate::io::GAP_LIMIT {
+                    return Err(Error::Invalid(format!(
+                        "aperture pixel ({px}, {py}) of the {name} beam lies in the gap between the chips; photometry needs clean aperture pixels"
+                    )));
+                }
                 if !val.is_finite() || val >= sat * nexp {
                     return Err(Error::Invalid(format!(
                         "aperture pixel ({px}, {py}) of the {name} beam in {file} is {}; photometry needs clean aperture pixels",
@@ -236,7 +240,7 @@ pub fn photometry_with(
                         let r2 = (px as f64 - cx).powi(2) + (py as f64 - cy).powi(2);
                         if r2 >= ra * ra && r2 < rb * rb && in_beam(px, py) {
                             let val = data[py * g.nx + px];
-                            if val.is_finite() && val < sat * nexp {
+                            if val.is_finite() && val < sat * nexp && val > crate::io::GAP_LIMIT {
                                 vals.push(to_e(val));
                             }
                         }

@@ -25,7 +25,8 @@
 
 use crate::beams::BeamGeometry;
 use crate::bin::{clipped_bin_hinted, BinSamples, ClipConfig, PixelSample};
-use crate::io::{open_frame, read_frame_raw, Frame, FrameRows, OpenFrame, PixelView, RawFrame, RawKind};
+use crate::calib::ReadOptions;
+use crate::io::{Conversion, Frame, FrameRows, OpenFrame, PixelView, RawKind};
 use crate::maps::{BinGeometry, StokesMap};
 use crate::{Error, Warning};
 use instrument::Instrument;
@@ -56,18 +57,26 @@ impl Default for ReduceConfig {
 /// Read frames in parallel; `on_read` is called once per file read (for a progress bar).
 /// The first unreadable file (in the order given) is the error.
 pub fn read_frames(paths: &[PathBuf], inst: &Instrument, on_read: &(dyn Fn() + Sync)) -> Result<Vec<Frame>, Error> {
+    read_frames_with(paths, inst, &ReadOptions::default(), on_read)
+}
+
+/// [`read_frames`] with calibration frames and HWP angles ([`ReadOptions`]): one [`Frame`]
+/// per exposure, calibrated to electrons when the instrument's format or the options ask
+/// for it (see [`crate::calib`]).
+pub fn read_frames_with(
+    paths: &[PathBuf],
+    inst: &Instrument,
+    opts: &ReadOptions,
+    on_read: &(dyn Fn() + Sync),
+) -> Result<Vec<Frame>, Error> {
     if paths.is_empty() {
         return Err(Error::NoFrames);
     }
-    let res: Vec<Result<Frame, Error>> = paths
-        .par_iter()
-        .map(|p| {
-            let r = read_frame_raw(p, inst).map(RawFrame::into_frame);
-            on_read();
-            r
-        })
-        .collect();
-    res.into_iter().collect()
+    let frames = crate::calib::read_exposures(paths, inst, opts)?;
+    for _ in paths {
+        on_read();
+    }
+    Ok(frames)
 }
 
 /// Non-finite and saturated pixel counts of one frame.
@@ -79,9 +88,9 @@ fn bad_pixel_notes(
     meta: &[(&Path, &str, usize, usize, f64)],
     bad: &[BadCounts],
     counted_px: usize,
-    inst: &Instrument,
+    conv: &Conversion,
 ) -> Result<Vec<Warning>, Error> {
-    let sat = inst.detector.saturation_adu;
+    let sat = conv.saturation_label();
     let mut warnings = Vec::new();
     for (fr, &(nbad, nsat)) in meta.iter().zip(bad) {
         if counted_px > 0 && nbad == counted_px {
@@ -93,7 +102,7 @@ fn bad_pixel_notes(
         if nsat > 0 {
             warnings.push(Warning {
                 file: Some(fr.0.into()),
-                message: format!("{nsat} saturated pixels (>= {sat} ADU) masked"),
+                message: format!("{nsat} saturated pixels (>= {sat}) masked"),
             });
         }
     }
@@ -121,10 +130,16 @@ fn group_frames(
     if meta.is_empty() {
         return Err(Error::NoFrames);
     }
-    let canon = |f: &str| inst.filter(f).map(|x| x.name.clone()).unwrap_or_else(|_| f.to_string());
     let mut by_filter: BTreeMap<String, Vec<&Path>> = BTreeMap::new();
     for fr in meta {
-        by_filter.entry(canon(fr.1)).or_default().push(fr.0);
+        // A filter the instrument does not know has no wavelength or HWP zero angle: an error.
+        let canon = inst.filter(fr.1).map(|x| x.name.clone()).map_err(|_| Error::UnknownFilter {
+            path: fr.0.into(),
+            filter: fr.1.into(),
+            instrument: inst.name.clone(),
+            known: inst.filters.iter().map(|f| f.name.as_str()).collect::<Vec<_>>().join(", "),
+        })?;
+        by_filter.entry(canon).or_default().push(fr.0);
     }
     if by_filter.len() > 1 {
         let details: Vec<String> = by_filter
@@ -195,6 +210,8 @@ pub struct FrameSet {
     pub nx: usize,
     pub ny: usize,
     pub warnings: Vec<Warning>,
+    /// How the values become electrons (the instrument's ADU, or electrons already).
+    pub conversion: Conversion,
 }
 
 /// Angles (deg) equal within this tolerance are the same plate position.
@@ -208,12 +225,13 @@ fn fmt_angles(a: &[f64]) -> String {
 impl FrameSet {
     /// Group and check frames (see the module docs).
     pub fn from_frames(mut frames: Vec<Frame>, inst: &Instrument, require_complete: bool) -> Result<Self, Error> {
-        let sat = inst.detector.saturation_adu;
+        let conversion = common_conversion(frames.iter().map(|f| &f.conversion), inst)?;
+        let sat = conversion.saturation;
         let bad: Vec<BadCounts> = frames.par_iter().map(|fr| PixelView::F64(&fr.data).count_bad(sat)).collect();
         let meta: Vec<_> =
             frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
         let g = group_frames(&meta, inst, require_complete)?;
-        let mut warnings = bad_pixel_notes(&meta, &bad, g.nx * g.ny, inst)?;
+        let mut warnings = bad_pixel_notes(&meta, &bad, g.nx * g.ny, &conversion)?;
         warnings.extend(g.warnings);
         // Move (not copy) each angle's first frame; add the repeats to it.
         let data: Vec<Vec<f64>> = g
@@ -230,8 +248,25 @@ impl FrameSet {
             })
             .collect();
         let files = g.members.iter().map(|m| m.iter().map(|&k| frames[k].path.clone()).collect()).collect();
-        Ok(Self { filter: g.filter, angles_deg: g.angles, data, files, nx: g.nx, ny: g.ny, warnings })
+        Ok(Self { filter: g.filter, angles_deg: g.angles, data, files, nx: g.nx, ny: g.ny, warnings, conversion })
     }
+}
+
+/// The one conversion of a set of frames: all in the instrument's ADU, or all in electrons
+/// (then with the largest read noise of them, a conservative noise model).
+fn common_conversion<'a>(convs: impl Iterator<Item = &'a Conversion>, inst: &Instrument) -> Result<Conversion, Error> {
+    let mut out: Option<Conversion> = None;
+    for c in convs {
+        out = Some(match out {
+            None => *c,
+            Some(o) if o.is_electrons() && c.is_electrons() => {
+                Conversion::electrons(o.read_noise_e2.max(c.read_noise_e2))
+            }
+            Some(o) if o == *c => o,
+            Some(_) => return Err(Error::Invalid("frames mix calibrated (electrons) and raw (ADU) images".into())),
+        });
+    }
+    Ok(out.unwrap_or_else(|| Conversion::of_instrument(inst)))
 }
 
 /// For angles on the optimal grid (`i * 22.5 deg`), the smallest optimal set containing them
@@ -295,8 +330,7 @@ pub fn pixel_qu(set: &FrameSet, inst: &Instrument) -> Result<(Vec<f64>, Vec<f64>
     let (cq, cu) = solver.weights();
     let g = BeamGeometry::new(inst);
     g.require_separable_sky().map_err(Error::Invalid)?;
-    let d = &inst.detector;
-    let det = (d.bias_adu, d.gain_e_per_adu, d.saturation_adu, d.read_noise_e.powi(2));
+    let det = set.conversion.det();
     let rows: Vec<Rows> = set.data.iter().map(|v| Rows::View(PixelView::F64(v))).collect();
     let mut q = vec![f64::NAN; g.nx * g.ny];
     let mut u = vec![f64::NAN; g.nx * g.ny];
@@ -327,7 +361,11 @@ pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Resu
         .data
         .iter()
         .zip(&set.files)
-        .map(|(d, f)| AngleInput { members: vec![Member::View(PixelView::F64(d))], nexp: f.len() })
+        .map(|(d, f)| AngleInput {
+            members: vec![Member::View(PixelView::F64(d))],
+            nexp: f.len(),
+            det: set.conversion.det(),
+        })
         .collect();
     let pass = reduce_bands(&inputs, 0, set.nx, set.ny, &set.angles_deg, inst, cfg, &|| {})?;
     let map = assemble_map(pass.stats, inst, cfg, &set.filter, &set.angles_deg, &inputs)?;
@@ -339,6 +377,8 @@ pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Resu
 struct AngleInput<'a> {
     members: Vec<Member<'a>>,
     nexp: usize,
+    /// The members' conversion to electrons (bias, gain, saturation, read-noise variance).
+    det: (f64, f64, f64, f64),
 }
 
 /// Where one exposure's (or one sum's) rows come from.
@@ -472,8 +512,6 @@ fn reduce_bands(
     let geom = bin_geometry(inst, cfg.bin_px);
     let n = angles_deg.len();
     let (bands, used_px) = plan_bands(&g, &geom, n);
-    let d = &inst.detector;
-    let det = (d.bias_adu, d.gain_e_per_adu, d.saturation_adu, d.read_noise_e.powi(2));
     let min_pixels = cfg.min_pixels.unwrap_or((cfg.bin_px * cfg.bin_px / 4).max(3));
     let (cq, cu) = solver.weights();
     let bp = geom.bin_px;
@@ -496,7 +534,7 @@ fn reduce_bands(
                     b.clear();
                 }
                 for group in &band.groups {
-                    sc.read_group(inputs, group, g.nx, det.2, &mut bad)?;
+                    sc.read_group(inputs, group, g.nx, &mut bad)?;
                     let Scratch { k, raw, sum, bins, .. } = &mut *sc;
                     let rows: Vec<Rows> =
                         inputs.iter().enumerate().map(|(i, inp)| Rows::of(inp, &raw[i], &sum[i])).collect();
@@ -513,7 +551,7 @@ fn reduce_bands(
                                     len,
                                     nexp: inp.nexp,
                                     w: (cq[i], cu[i]),
-                                    det,
+                                    det: inp.det,
                                 });
                                 if let (Some(c), [Member::File(_, fi)]) = (counted, &inp.members[..]) {
                                     bad[*fi].0 += c.nonfinite;
@@ -592,7 +630,7 @@ fn assemble_map(
     inputs: &[AngleInput],
 ) -> Result<StokesMap, Error> {
     let geom = bin_geometry(inst, cfg.bin_px);
-    let rn2 = inst.detector.read_noise_e.powi(2);
+    let rn2 = inputs.first().map_or(inst.detector.read_noise_e.powi(2), |a| a.det.3);
     let nexp_total: f64 = inputs.iter().map(|a| a.nexp as f64).sum();
     let mut map = StokesMap::empty(geom, &inst.name, filter, angles_deg.to_vec());
     for (k, s) in stats.into_iter().enumerate() {
@@ -723,10 +761,10 @@ impl Scratch {
         inputs: &[AngleInput],
         group: &Group,
         nx: usize,
-        sat: f64,
         bad: &mut [BadCounts],
     ) -> Result<(), Error> {
         for (i, inp) in inputs.iter().enumerate() {
+            let sat = inp.det.2;
             match &inp.members[..] {
                 [Member::View(_)] => {}
                 [Member::File(f, _)] => {
@@ -952,20 +990,41 @@ pub fn reduce_files(
     cfg: &ReduceConfig,
     on_read: &(dyn Fn() + Sync),
 ) -> Result<Reduced, Error> {
+    reduce_files_with(paths, inst, cfg, &ReadOptions::default(), on_read)
+}
+
+/// [`reduce_files`] with calibration frames and HWP angles ([`ReadOptions`]). Raw frames
+/// (chips, overscan, bias, flat) are calibrated to electrons in memory first (see
+/// [`crate::calib`]); plain frames keep the fast path of rows read straight from the files.
+pub fn reduce_files_with(
+    paths: &[PathBuf],
+    inst: &Instrument,
+    cfg: &ReduceConfig,
+    opts: &ReadOptions,
+    on_read: &(dyn Fn() + Sync),
+) -> Result<Reduced, Error> {
     if paths.is_empty() {
         return Err(Error::NoFrames);
     }
-    let opened: Vec<Result<OpenFrame, Error>> = paths.par_iter().map(|p| open_frame(p, inst)).collect();
-    let frames: Vec<OpenFrame> = opened.into_iter().collect::<Result<_, _>>()?;
+    let frames: Vec<OpenFrame> = crate::calib::open_exposures(paths, inst, opts)?;
+    let conversion = common_conversion(frames.iter().map(|f| &f.conversion), inst)?;
     let meta: Vec<_> = frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
     let g = group_frames(&meta, inst, cfg.require_complete_set)?;
     let inputs: Vec<AngleInput> = g
         .members
         .iter()
-        .map(|m| AngleInput { members: m.iter().map(|&k| Member::File(&frames[k], k)).collect(), nexp: m.len() })
+        .map(|m| AngleInput {
+            members: m.iter().map(|&k| Member::File(&frames[k], k)).collect(),
+            nexp: m.len(),
+            det: Conversion {
+                read_noise_e2: m.iter().map(|&k| frames[k].conversion.read_noise_e2).fold(0.0, f64::max),
+                ..conversion
+            }
+            .det(),
+        })
         .collect();
     let pass = reduce_bands(&inputs, frames.len(), g.nx, g.ny, &g.angles, inst, cfg, on_read)?;
-    let mut warnings = bad_pixel_notes(&meta, &pass.bad, pass.used_px, inst)?;
+    let mut warnings = bad_pixel_notes(&meta, &pass.bad, pass.used_px, &conversion)?;
     warnings.extend(g.warnings);
     let map = match assemble_map(pass.stats, inst, cfg, &g.filter, &g.angles, &inputs) {
         // Say why when it is that some frames hold no flux above the bias anywhere.
@@ -1034,8 +1093,16 @@ mod tests {
                 })
                 .collect();
             let files = (0..4).map(|i| vec![PathBuf::from(format!("f{i}.fits"))]).collect();
-            let set =
-                FrameSet { filter: "V".into(), angles_deg: angles, data, files, nx: g.nx, ny: g.ny, warnings: vec![] };
+            let set = FrameSet {
+                filter: "V".into(),
+                angles_deg: angles,
+                data,
+                files,
+                nx: g.nx,
+                ny: g.ny,
+                warnings: vec![],
+                conversion: Conversion::of_instrument(&inst),
+            };
             let cfg = ReduceConfig { bin_px: 4, ..Default::default() };
             let m = reduce_set(&set, &inst, &cfg).unwrap().map;
             assert!(m.n_valid() >= 10, "axis {axis}: {} valid bins", m.n_valid());
@@ -1080,6 +1147,7 @@ mod tests {
                 nx: g.nx,
                 ny: g.ny,
                 warnings: vec![],
+                conversion: Conversion::of_instrument(&inst),
             };
             let (q, u) = pixel_qu(&set, &inst).unwrap();
             let theta: Vec<f64> = angles.iter().map(|a| a.to_radians()).collect();

@@ -84,6 +84,44 @@ pub struct QuEstimate {
     pub cov_qu: f64,
 }
 
+impl QuEstimate {
+    /// The same polarization with its angle turned by `dchi` (rad): `(q, u)` rotated by
+    /// `2 dchi` (`eq:polang`), the covariance by `R C R^T`. How a measured `chi` becomes the
+    /// sky's when the instrument's HWP zero angle `dchi` is added.
+    pub fn rotated(&self, dchi: f64) -> Self {
+        let (s, c) = (2.0 * dchi).sin_cos();
+        Self {
+            q: c * self.q - s * self.u,
+            u: s * self.q + c * self.u,
+            var_q: c * c * self.var_q + s * s * self.var_u - 2.0 * c * s * self.cov_qu,
+            var_u: s * s * self.var_q + c * c * self.var_u + 2.0 * c * s * self.cov_qu,
+            cov_qu: c * s * (self.var_q - self.var_u) + (c * c - s * s) * self.cov_qu,
+        }
+    }
+}
+
+#[cfg(test)]
+mod rotated_tests {
+    use super::*;
+
+    /// Against a covariance propagated by hand through the 2 x 2 rotation written out with
+    /// nalgebra-free arithmetic: trace and determinant are invariant, a 90 deg turn of chi
+    /// negates (q, u), and P and chi move as they should.
+    #[test]
+    fn rotation_keeps_p_and_turns_chi() {
+        let e = QuEstimate { q: 0.03, u: -0.01, var_q: 4e-6, var_u: 9e-6, cov_qu: 1e-6 };
+        let r = e.rotated(0.3);
+        let (p0, c0) = polarization(e.q, e.u);
+        let (p1, c1) = polarization(r.q, r.u);
+        assert!((p1 - p0).abs() < 1e-15 && ((c1 - c0 - 0.3).rem_euclid(std::f64::consts::PI)).abs() < 1e-12);
+        assert!((r.var_q + r.var_u - e.var_q - e.var_u).abs() < 1e-20);
+        let det = |x: &QuEstimate| x.var_q * x.var_u - x.cov_qu * x.cov_qu;
+        assert!((det(&r) - det(&e)).abs() < 1e-24);
+        let h = e.rotated(std::f64::consts::FRAC_PI_2);
+        assert!((h.q + e.q).abs() < 1e-15 && (h.u + e.u).abs() < 1e-15 && (h.cov_qu - e.cov_qu).abs() < 1e-20);
+    }
+}
+
 /// Linear solver of `eq:system`, `F_i = Q cos 4theta_i + U sin 4theta_i`, for a fixed set of
 /// HWP angles.
 ///

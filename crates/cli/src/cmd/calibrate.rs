@@ -51,6 +51,8 @@ pub struct Args {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub frame: crate::cmd::frame_opts::FrameOpts,
 }
 
 /// Fit options shared by `calibrate` and `fit`.
@@ -214,7 +216,8 @@ pub fn run(a: Args) -> Result<()> {
         }
         let bar = crate::plot::progress(a.frames.len() as u64, "reading frames", a.json);
         let cfg = skyfield::reduce::ReduceConfig { bin_px: a.bin, ..Default::default() };
-        let red = skyfield::reduce::reduce_files(&a.frames, &inst, &cfg, &|| bar.inc(1))?;
+        let read = a.frame.read_options()?;
+        let red = skyfield::reduce::reduce_files_with(&a.frames, &inst, &cfg, &read, &|| bar.inc(1))?;
         bar.finish_and_clear();
         for w in &red.warnings {
             eprintln!("warning: {w}");

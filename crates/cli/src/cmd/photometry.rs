@@ -47,6 +47,8 @@ pub struct Args {
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub frame: crate::cmd::frame_opts::FrameOpts,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -77,6 +79,8 @@ struct Out {
     chi_deg: f64,
     /// null when chi is undetermined (the rule of `instpol stokes`).
     sigma_chi_deg: Option<f64>,
+    /// The filter's HWP zero angle added to chi (deg).
+    hwp_chi_offset_deg: f64,
     n_aperture: usize,
     aperture_area_px: f64,
     n_annulus: usize,
@@ -106,7 +110,8 @@ pub fn run(a: Args) -> Result<()> {
     let bar =
         if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(a.frames.len() as u64) };
     bar.set_message("reading");
-    let frames = skyfield::reduce::read_frames(&a.frames, &inst, &|| bar.inc(1));
+    let read = a.frame.read_options()?;
+    let frames = skyfield::reduce::read_frames_with(&a.frames, &inst, &read, &|| bar.inc(1));
     bar.finish_and_clear();
     let set = FrameSet::from_frames(frames?, &inst, true)?;
     for w in &set.warnings {
@@ -127,21 +132,27 @@ pub fn run(a: Args) -> Result<()> {
         recentre: !a.fixed,
     };
     let ap = Aperture { radius_px: a.aperture, annulus };
-    let ph = skyfield::photometry::photometry_with(&set, &inst, &g, x, y, &ap, &opts)?;
+    let ph = skyfield::photometry::photometry_with(&set, &g, x, y, &ap, &opts)?;
     let r = &ph.reduction;
+    // The HWP zero angle of the filter (the angle to add to a measured chi): Q, U and chi are
+    // reported in the sky's frame, as the calibration and validation report them.
+    let offset = inst.filter(&set.filter).map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0);
+    let sky = r.qu.rotated(offset.to_radians());
+    let (q, u, var_q, var_u) = (sky.q, sky.u, sky.var_q, sky.var_u);
     let o = Out {
         x_px: x,
         y_px: y,
         hwp_deg: ph.hwp_deg.clone(),
         f_o: ph.f_o.clone(),
         f_e: ph.f_e.clone(),
-        q: r.qu.q,
-        u: r.qu.u,
-        sigma_q: r.qu.var_q.sqrt(),
-        sigma_u: r.qu.var_u.sqrt(),
+        q,
+        u,
+        sigma_q: var_q.max(0.0).sqrt(),
+        sigma_u: var_u.max(0.0).sqrt(),
         p: r.p,
         sigma_p: r.sigma_p,
-        chi_deg: r.chi.to_degrees(),
+        chi_deg: (r.chi.to_degrees() + offset).rem_euclid(180.0),
+        hwp_chi_offset_deg: offset,
         sigma_chi_deg: r.sigma_chi_deg_reported(),
         n_aperture: ph.n_aperture,
         aperture_area_px: ph.aperture_area_px,

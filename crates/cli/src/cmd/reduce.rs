@@ -34,6 +34,8 @@ pub struct Args {
     /// Print a summary as JSON.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub frame: crate::cmd::frame_opts::FrameOpts,
 }
 
 #[derive(serde::Serialize)]
@@ -74,7 +76,8 @@ pub fn run(a: Args) -> Result<()> {
     );
     bar.set_message("reading");
     // The library's fast path: frames stay in their stored type, no f64 copies.
-    let r = skyfield::reduce::reduce_files(&a.frames, &inst, &cfg, &|| bar.inc(1));
+    let read = a.frame.read_options()?;
+    let r = skyfield::reduce::reduce_files_with(&a.frames, &inst, &cfg, &read, &|| bar.inc(1));
     bar.finish_and_clear();
     let r = r?;
     for w in &r.warnings {

@@ -81,6 +81,8 @@ pub struct Args {
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub frame: crate::cmd::frame_opts::FrameOpts,
 }
 
 pub use fit::validate::{ValidateOptions, ValidationReport};
@@ -205,6 +207,7 @@ pub fn run(a: Args) -> Result<()> {
         threshold: a.threshold,
         model_error: parse_model_error(&a.model_error)?,
         allow_extrapolation: a.allow_extrapolation,
+        read: a.frame.read_options()?,
     };
     let r = validate_star(&cal, &inst, &a.frames, x_px, y_px, (&name, expected), &opts)?;
     if r.validation.extrapolated {

@@ -111,7 +111,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     let g = layout_for(&set, &inst)?;
     let ap = Aperture { radius_px: a.aperture, annulus: Some(annulus) };
-    let ph = photometry_with(&set, &inst, &g, a.x, a.y, &ap, &PhotOptions::default())?;
+    let ph = photometry_with(&set, &g, a.x, a.y, &ap, &PhotOptions::default())?;
     let r = &ph.reduction;
     if !(r.p > 3.0 * r.sigma_p) {
         bail!(

@@ -3,6 +3,8 @@
 //! Each test binary uses a part of it, hence the `dead_code` allowance.
 #![allow(dead_code)]
 
+pub mod raw;
+
 use fit::calfile::{Model, PixelGrid, Provenance, FORMAT_VERSION};
 use fit::synth::{sky_field, FnField};
 use fit::{Calibration, FieldRegion, RadialModel};

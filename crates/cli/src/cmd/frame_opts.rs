@@ -1,0 +1,40 @@
+//! Options every command that reads frames shares: calibration frames and HWP angles.
+
+use anyhow::{bail, Result};
+use std::path::PathBuf;
+
+/// Calibration frames and HWP angles for reading raw frames.
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct FrameOpts {
+    /// Master bias (from `instpol master-bias`), subtracted from every frame after its
+    /// overscan level.
+    #[arg(long, value_name = "BIAS.fits")]
+    pub bias: Option<PathBuf>,
+    /// Master flat (from `instpol master-flat`): every frame is divided by it.
+    #[arg(long, value_name = "FLAT.fits")]
+    pub flat: Option<PathBuf>,
+    /// HWP angles in degrees, one per exposure in the order of the frames (for headers without
+    /// an HWP-angle keyword), e.g. 0,22.5,45,67.5.
+    #[arg(long, value_name = "DEG,DEG,...", allow_hyphen_values = true)]
+    pub hwp_angles: Option<String>,
+}
+
+impl FrameOpts {
+    /// The library's reading options.
+    pub fn read_options(&self) -> Result<skyfield::calib::ReadOptions> {
+        let hwp_angles_deg = match &self.hwp_angles {
+            None => None,
+            Some(s) => {
+                let v: Option<Vec<f64>> =
+                    s.split(',').map(|t| t.trim().parse::<f64>().ok().filter(|x| x.is_finite())).collect();
+                match v {
+                    Some(v) if !v.is_empty() => Some(v),
+                    _ => {
+                        bail!("--hwp-angles '{s}': expected angles in degrees separated by commas, e.g. 0,22.5,45,67.5")
+                    }
+                }
+            }
+        };
+        Ok(skyfield::calib::ReadOptions { bias: self.bias.clone(), flat: self.flat.clone(), hwp_angles_deg })
+    }
+}

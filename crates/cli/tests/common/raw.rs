@@ -1,0 +1,134 @@
+//! FORS2-format raw frames from known pixel values (issue 12): a FORS2 shrunk to a 64 x 68 px
+//! mosaic (two 64 x 32 chips in separate files, a 4-row gap, 2x2 binning keywords, 5-row
+//! prescan and overscan, gain and read noise in ESO keywords), a uniformly polarized sky with
+//! `F_i = Q cos 4theta + U sin 4theta` (eq:F) behind the strip mask, a flat-field pattern, a
+//! bias level with a column pattern, photon and read noise; written by `sim::raw`.
+
+use instrument::Instrument;
+use sim::raw::{write_raw_exposure, RawChip, RawExposure};
+use skyfield::beams::BeamGeometry;
+use std::path::{Path, PathBuf};
+
+pub const Q0: f64 = 0.021;
+pub const U0: f64 = -0.013;
+/// Sky electrons per pixel pair (o + e).
+pub const I0: f64 = 40000.0;
+pub const ANGLES: [f64; 4] = [0.0, 22.5, 45.0, 67.5];
+
+/// The shrunk FORS2 instrument file's text.
+pub fn fors2_tiny_text() -> String {
+    include_str!("../../../../instruments/fors2.toml")
+        .replace("nx = 2048", "nx = 64")
+        .replace("ny = 2064", "ny = 68")
+        .replace("origin_px = [0, 1040]", "origin_px = [0, 36]")
+        .replace("size_px = [2048, 1024]", "size_px = [64, 32]")
+        .replace("throw_arcsec = 22.0", "throw_arcsec = 2.0")
+        .replace("strip_count = 11", "strip_count = 3")
+        .replace("first_strip_y_px = 60", "first_strip_y_px = 2")
+}
+
+pub fn fors2_tiny() -> Instrument {
+    Instrument::from_toml_str(&fors2_tiny_text(), Path::new("fors2_tiny.toml")).unwrap()
+}
+
+/// The two chips' read-outs: different bias levels and gains (read from their headers).
+pub const CHIPS: [RawChip; 2] = [
+    RawChip { bias_adu: 200.0, gain_e_per_adu: 1.25, read_noise_e: 3.0, scan: [0, 0, 5, 5] },
+    RawChip { bias_adu: 212.0, gain_e_per_adu: 1.40, read_noise_e: 3.5, scan: [0, 0, 5, 5] },
+];
+
+/// The flat-field pattern (relative response, known).
+pub fn flat(inst: &Instrument) -> Vec<f64> {
+    let (nx, ny) = (inst.detector.nx, inst.detector.ny);
+    (0..nx * ny).map(|p| 1.0 + 0.08 * ((p % nx) as f64 / 5.0).sin() * ((p / nx) as f64 / 7.0).cos()).collect()
+}
+
+/// A bias pattern on top of the chips' levels: a 4 ADU ramp along x.
+pub fn bias_pattern(inst: &Instrument) -> Vec<f64> {
+    let nx = inst.detector.nx;
+    (0..nx * inst.detector.ny).map(|p| 4.0 * (p % nx) as f64 / nx as f64).collect()
+}
+
+/// The ideal sky in electrons at HWP angle `a` (deg): the o and e images of every sky pixel.
+pub fn sky_electrons(inst: &Instrument, a: f64) -> Vec<f64> {
+    let g = BeamGeometry::new(inst);
+    let t = 4.0 * a.to_radians();
+    let f = Q0 * t.cos() + U0 * t.sin();
+    let mut d = vec![0.0; g.nx * g.ny];
+    for (x, y) in g.sky_pixels() {
+        let (o, e) = g.beams_of_sky(x, y).unwrap();
+        d[o] = 0.5 * I0 * (1.0 + f);
+        d[e] = 0.5 * I0 * (1.0 - f);
+    }
+    d
+}
+
+fn exposure<'a>(e: &'a [f64], hwp: Option<f64>, no: i64) -> RawExposure<'a> {
+    RawExposure { electrons: e, hwp_deg: hwp, filter: "v_HIGH".into(), exptime_s: 10.0, exposure_no: no, binning: None }
+}
+
+/// Science frames (4 HWP angles), bias frames (5) and flats (3): the chip files of each, in
+/// exposure order (chip files of one exposure next to each other).
+pub struct RawSet {
+    pub science: Vec<PathBuf>,
+    pub bias: Vec<PathBuf>,
+    pub flats: Vec<PathBuf>,
+}
+
+pub fn write_raw_set(dir: &Path, inst: &Instrument) -> RawSet {
+    let fl = flat(inst);
+    let bp = bias_pattern(inst);
+    let mut s = RawSet { science: vec![], bias: vec![], flats: vec![] };
+    for (k, &a) in ANGLES.iter().enumerate() {
+        let e = sky_electrons(inst, a);
+        s.science.extend(
+            write_raw_exposure(
+                inst,
+                &exposure(&e, Some(a), k as i64),
+                Some(&fl),
+                Some(&bp),
+                &CHIPS,
+                true,
+                100 + k as u64,
+                dir,
+                &format!("sci{k}"),
+            )
+            .unwrap(),
+        );
+    }
+    let zero = vec![0.0; inst.detector.nx * inst.detector.ny];
+    for k in 0..5 {
+        s.bias.extend(
+            write_raw_exposure(
+                inst,
+                &exposure(&zero, Some(0.0), 10 + k),
+                None,
+                Some(&bp),
+                &CHIPS,
+                false,
+                200 + k as u64,
+                dir,
+                &format!("bias{k}"),
+            )
+            .unwrap(),
+        );
+    }
+    let lamp = vec![30000.0; inst.detector.nx * inst.detector.ny];
+    for k in 0..3 {
+        s.flats.extend(
+            write_raw_exposure(
+                inst,
+                &exposure(&lamp, Some(0.0), 20 + k),
+                Some(&fl),
+                Some(&bp),
+                &CHIPS,
+                true,
+                300 + k as u64,
+                dir,
+                &format!("flat{k}"),
+            )
+            .unwrap(),
+        );
+    }
+    s
+}

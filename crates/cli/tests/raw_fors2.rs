@@ -1,0 +1,224 @@
+//! FORS2-format raw frames (issue 12, "must show"): two chip files per exposure, prescan and
+//! overscan, a bias level with a pattern, a flat-field pattern and 2x2 binning keywords, made
+//! from known pixel values (`common::raw`). Reduced with a master bias and a master flat made by
+//! `instpol master-bias` / `master-flat`, the Stokes map is the known sky's (Q0, U0) within the
+//! bins' errors, and the intensity is the known I0 (the flat removed). Without --bias the
+//! overscan still corrects the bias level; with an instrument that does not subtract the
+//! overscan, the frames are refused, never reduced silently.
+
+mod common;
+
+use common::raw::{fors2_tiny_text, write_raw_set, I0, Q0, U0};
+use common::run;
+
+fn s(p: &std::path::Path) -> String {
+    p.display().to_string()
+}
+
+#[test]
+fn fors2_raw_frames_with_master_bias_and_flat_give_the_known_sky() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let inst_path = d.join("fors2_tiny.toml");
+    std::fs::write(&inst_path, fors2_tiny_text()).unwrap();
+    let inst = common::raw::fors2_tiny();
+    let set = write_raw_set(d, &inst);
+    let ip = s(&inst_path);
+    let mut a = vec!["master-bias".to_string()];
+    a.extend(set.bias.iter().map(|p| s(p)));
+    a.extend(["--instrument".into(), ip.clone(), "--out".into(), s(&d.join("BIAS.fits"))]);
+    let (code, _, err) = run(&a);
+    assert_eq!(code, 0, "{err}");
+    let mut a = vec!["master-flat".to_string()];
+    a.extend(set.flats.iter().map(|p| s(p)));
+    a.extend(["--instrument".into(), ip.clone(), "--bias".into(), s(&d.join("BIAS.fits"))]);
+    a.extend(["--out".into(), s(&d.join("FLAT.fits"))]);
+    let (code, _, err) = run(&a);
+    assert_eq!(code, 0, "{err}");
+
+    // The master flat is the known pattern (normalized to its median), to the noise of 3
+    // flats of 30000 e- (0.35% per pixel).
+    let mf: Vec<f64> = {
+        let mut f = fitsio::FitsFile::open(d.join("FLAT.fits")).unwrap();
+        let h = f.primary_hdu().unwrap();
+        assert_eq!(h.read_key::<String>(&mut f, "INSTRUME").unwrap(), "FORS2");
+        let v: Vec<f32> = h.read_image(&mut f).unwrap();
+        v.into_iter().map(f64::from).collect()
+    };
+    let truth = common::raw::flat(&inst);
+    let gap = |p: usize| (32..36).contains(&(p / 64));
+    let mut tm: Vec<f64> = truth.iter().enumerate().filter(|(p, _)| !gap(*p)).map(|(_, v)| *v).collect();
+    let tmed = skyfield::bin::median_in_place(&mut tm);
+    let mut dev = 0.0f64;
+    for (p, (m, t)) in mf.iter().zip(&truth).enumerate() {
+        if gap(p) {
+            assert!(m.is_nan(), "gap pixel {p} of the master flat is {m}");
+        } else {
+            dev = dev.max((m - t / tmed).abs());
+        }
+    }
+    assert!(dev < 0.02, "master flat off the known pattern by {dev}");
+
+    // Reduce with both masters: the known sky within errors, the known intensity.
+    let reduce = |extra: &[String], out: &str| -> (i32, String) {
+        let mut a = vec!["reduce".to_string()];
+        a.extend(set.science.iter().map(|p| s(p)));
+        a.extend(["--instrument".into(), ip.clone(), "--bin".into(), "8".into(), "--out".into(), s(&d.join(out))]);
+        a.extend(extra.iter().cloned());
+        let (code, _, err) = run(&a);
+        (code, err)
+    };
+    let masters = ["--bias".to_string(), s(&d.join("BIAS.fits")), "--flat".into(), s(&d.join("FLAT.fits"))];
+    let (code, err) = reduce(&masters, "map.fits");
+    assert_eq!(code, 0, "{err}");
+    let m = skyfield::StokesMap::read_fits(&d.join("map.fits")).unwrap();
+    check_sky(&m, true);
+
+    // Without --bias and --flat: the overscan still removes the bias level (Q, U right), the
+    // flat pattern stays in the intensity.
+    let (code, err) = reduce(&[], "map_noflat.fits");
+    assert_eq!(code, 0, "{err}");
+    let m = skyfield::StokesMap::read_fits(&d.join("map_noflat.fits")).unwrap();
+    check_sky(&m, false);
+
+    // An instrument that does not subtract the overscan: frames still carrying their bias are
+    // refused (naming the file and the level), never reduced silently.
+    let no_scan = fors2_tiny_text().replace(
+        "read_noise_e = \"HIERARCH ESO DET OUT1 RON\"",
+        "read_noise_e = \"HIERARCH ESO DET OUT1 RON\"\nsubtract_overscan = false",
+    );
+    std::fs::write(&inst_path, no_scan).unwrap();
+    let (code, err) = reduce(&[], "map_refused.fits");
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("sci0_CHIP1.fits") && err.contains("still carries its bias") && err.contains("--bias"),
+        "{err}"
+    );
+    assert!(!d.join("map_refused.fits").exists());
+    // ... and with the master bias they reduce to the same sky.
+    let (code, err) = reduce(&masters, "map_bias_only.fits");
+    assert_eq!(code, 0, "{err}");
+    check_sky(&skyfield::StokesMap::read_fits(&d.join("map_bias_only.fits")).unwrap(), true);
+}
+
+/// Every valid bin within 5 sigma of (Q0, U0), their mean within 4 standard errors; with the
+/// flat removed, the intensity (f_O + f_E) is uniform within 1% over the bins, else it carries
+/// the flat's +-8% pattern.
+fn check_sky(m: &skyfield::StokesMap, flat_removed: bool) {
+    let v: Vec<usize> = (0..m.q.len()).filter(|&k| m.valid[k]).collect();
+    assert!(v.len() >= 15, "{} valid bins", v.len());
+    let (mut sq, mut su) = (0.0, 0.0);
+    for &k in &v {
+        assert!((m.q[k] - Q0).abs() < 5.0 * m.sigma_q[k], "bin {k}: Q {} +- {}", m.q[k], m.sigma_q[k]);
+        assert!((m.u[k] - U0).abs() < 5.0 * m.sigma_u[k], "bin {k}: U {} +- {}", m.u[k], m.sigma_u[k]);
+        sq += m.q[k];
+        su += m.u[k];
+    }
+    let n = v.len() as f64;
+    let se = v.iter().map(|&k| m.sigma_q[k]).sum::<f64>() / n / n.sqrt();
+    assert!((sq / n - Q0).abs() < 4.0 * se && (su / n - U0).abs() < 4.0 * se, "mean Q {} U {}", sq / n, su / n);
+    // A master flat is normalized to its median, so the intensity is I0 times a constant: flat
+    // means I0's uniformity across the bins (and that constant is near 1).
+    let mut iv: Vec<f64> = v.iter().map(|&k| m.intensity[k]).collect();
+    let med = skyfield::bin::median_in_place(&mut iv);
+    assert!((med / I0 - 1.0).abs() < 0.03, "median intensity {med} vs I0 {I0}");
+    let worst = v.iter().map(|&k| (m.intensity[k] / med - 1.0).abs()).fold(0.0, f64::max);
+    if flat_removed {
+        assert!(worst < 0.01, "intensity off I0 by {worst}");
+    } else {
+        assert!(worst > 0.02, "the flat pattern should show without --flat: {worst}");
+    }
+}
+
+/// EFOSC2 (shrunk): its 12 extra rows and columns are no usable overscan (EFOSC2 manual), so
+/// the instrument declares the raw bias level instead: frames whose darkest pixels sit at it
+/// are refused without a master bias, and reduce to the known sky with one.
+#[test]
+fn efosc2_frames_without_a_master_bias_are_refused() {
+    use sim::raw::{write_raw_exposure, RawChip, RawExposure};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let text = include_str!("../../../instruments/efosc2.toml")
+        .replace("nx = 1024", "nx = 64")
+        .replace("ny = 1024", "ny = 64")
+        .replace("size_px = [1024, 1024]", "size_px = [64, 64]")
+        .replace("throw_arcsec = 10.0", "throw_arcsec = 1.92")
+        .replace("strip_count = 9", "strip_count = 3")
+        .replace("first_strip_y_px = 50", "first_strip_y_px = 2");
+    let ip = d.join("efosc2_tiny.toml");
+    std::fs::write(&ip, &text).unwrap();
+    let inst = instrument::Instrument::from_toml_str(&text, &ip).unwrap();
+    let chip = [RawChip { bias_adu: 221.0, gain_e_per_adu: 1.18, read_noise_e: 11.0, scan: [0; 4] }];
+    let mut sci = Vec::new();
+    for (k, &a) in common::raw::ANGLES.iter().enumerate() {
+        let e = common::raw::sky_electrons(&inst, a);
+        let x = RawExposure {
+            electrons: &e,
+            hwp_deg: Some(a),
+            filter: "V".into(),
+            exptime_s: 5.0,
+            exposure_no: k as i64,
+            binning: None,
+        };
+        sci.extend(write_raw_exposure(&inst, &x, None, None, &chip, true, k as u64, d, &format!("e{k}")).unwrap());
+    }
+    let zero = vec![0.0; 64 * 64];
+    let mut bias = Vec::new();
+    for k in 0..4 {
+        let x = RawExposure {
+            electrons: &zero,
+            hwp_deg: None,
+            filter: "V".into(),
+            exptime_s: 0.0,
+            exposure_no: 9,
+            binning: None,
+        };
+        bias.extend(write_raw_exposure(&inst, &x, None, None, &chip, false, 50 + k, d, &format!("b{k}")).unwrap());
+    }
+    let run_reduce = |extra: &[String]| {
+        let mut a = vec!["reduce".to_string()];
+        a.extend(sci.iter().map(|p| s(p)));
+        a.extend(["--instrument".into(), s(&ip), "--bin".into(), "8".into(), "--out".into(), s(&d.join("m.fits"))]);
+        a.extend(extra.iter().cloned());
+        run(&a)
+    };
+    // Refused: the (unused) overscan sits at the bias level.
+    let (code, _, err) = run_reduce(&[]);
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("e0_CCD40.fits") && err.contains("still carries its bias level") && err.contains("--bias"),
+        "{err}"
+    );
+    // Refused also with no overscan at all: the darkest pixels (behind the mask) sit at the
+    // declared raw bias.
+    let bare: String = text.lines().filter(|l| !l.starts_with("overscan_")).collect::<Vec<_>>().join("\n");
+    let bare_path = d.join("bare.toml");
+    std::fs::write(&bare_path, &bare).unwrap();
+    let bare_inst = instrument::Instrument::from_toml_str(&bare, &bare_path).unwrap();
+    let e = common::raw::sky_electrons(&bare_inst, 0.0);
+    let x = RawExposure {
+        electrons: &e,
+        hwp_deg: Some(0.0),
+        filter: "V".into(),
+        exptime_s: 5.0,
+        exposure_no: 0,
+        binning: None,
+    };
+    let f = write_raw_exposure(&bare_inst, &x, None, None, &chip, true, 7, d, "bare").unwrap();
+    let (code, _, err) = run(&["reduce", &s(&f[0]), "--instrument", &s(&bare_path), "--out", &s(&d.join("x.fits"))]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("bare_CCD40.fits") && err.contains("raw bias of 220 ADU") && err.contains("--bias"), "{err}");
+    let mut a = vec!["master-bias".to_string()];
+    a.extend(bias.iter().map(|p| s(p)));
+    a.extend(["--instrument".into(), s(&ip), "--out".into(), s(&d.join("B.fits"))]);
+    let (code, _, err) = run(&a);
+    assert_eq!(code, 0, "{err}");
+    let (code, _, err) = run_reduce(&["--bias".into(), s(&d.join("B.fits"))]);
+    assert_eq!(code, 0, "{err}");
+    let m = skyfield::StokesMap::read_fits(&d.join("m.fits")).unwrap();
+    let v: Vec<usize> = (0..m.q.len()).filter(|&k| m.valid[k]).collect();
+    assert!(v.len() >= 10);
+    for &k in &v {
+        assert!((m.q[k] - Q0).abs() < 5.0 * m.sigma_q[k] && (m.u[k] - U0).abs() < 5.0 * m.sigma_u[k], "bin {k}");
+    }
+}

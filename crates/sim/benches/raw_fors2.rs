@@ -1,0 +1,146 @@
+//! Raw FORS2 frames against the time merely to read them (issue 12 benchmark): 16 exposures of
+//! two chip files each (2048 x 1034 u16 with prescan and overscan rows, ESO keywords; written
+//! by `sim::raw` from a uniformly polarized sky), reduced with a master bias, a master flat and
+//! the overscan correction (`reduce_files_with`), against CFITSIO reading the same 32 files as
+//! stored (u16), one after the other. Same files, same page cache (every file read once before
+//! timing; the two timings alternate), best of `REPS` (default 3), wall and CPU time of the
+//! process. Prints one JSON line. Frames are made in `BENCH_RAW_DIR` (kept) or a temporary
+//! folder.
+//!
+//! `cargo bench -p sim --bench raw_fors2`
+
+use fitsio::FitsFile;
+use instrument::Instrument;
+use sim::raw::{write_raw_exposure, RawChip, RawExposure};
+use skyfield::beams::BeamGeometry;
+use skyfield::calib::ReadOptions;
+use skyfield::reduce::{reduce_files_with, ReduceConfig};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// User + system CPU seconds of this process so far (Linux `/proc/self/stat`).
+fn cpu_s() -> f64 {
+    let s = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let f: Vec<&str> = s.rsplit(')').next().unwrap_or("").split_whitespace().collect();
+    let tick = 100.0; // USER_HZ on Linux
+    let t = |i: usize| f.get(i).and_then(|x| x.parse::<f64>().ok()).unwrap_or(0.0);
+    (t(11) + t(12)) / tick
+}
+
+fn timed<T>(f: impl FnOnce() -> T) -> (f64, f64, T) {
+    let (c0, t0) = (cpu_s(), Instant::now());
+    let v = f();
+    (t0.elapsed().as_secs_f64(), cpu_s() - c0, v)
+}
+
+const CHIPS: [RawChip; 2] = [
+    RawChip { bias_adu: 200.0, gain_e_per_adu: 1.25, read_noise_e: 3.0, scan: [0, 0, 5, 5] },
+    RawChip { bias_adu: 212.0, gain_e_per_adu: 1.40, read_noise_e: 3.5, scan: [0, 0, 5, 5] },
+];
+
+fn make(dir: &Path, inst: &Instrument) -> (Vec<PathBuf>, PathBuf, PathBuf) {
+    let (nx, ny) = (inst.detector.nx, inst.detector.ny);
+    let g = BeamGeometry::new(inst);
+    let flat: Vec<f64> = (0..nx * ny).map(|p| 1.0 + 0.05 * ((p % nx) as f64 / 40.0).sin()).collect();
+    let mut science = Vec::new();
+    for k in 0..16 {
+        let a = (k % 4) as f64 * 22.5;
+        let stem = format!("sci{k:02}");
+        if !dir.join(format!("{stem}_CHIP2.fits")).exists() {
+            let t = 4.0 * a.to_radians();
+            let f = 0.02 * t.cos() - 0.01 * t.sin();
+            let mut e = vec![0.0; nx * ny];
+            for (x, y) in g.sky_pixels() {
+                let (o, ee) = g.beams_of_sky(x, y).unwrap();
+                e[o] = 2000.0 * (1.0 + f);
+                e[ee] = 2000.0 * (1.0 - f);
+            }
+            let x = RawExposure {
+                electrons: &e,
+                hwp_deg: Some(a),
+                filter: "v_HIGH".into(),
+                exptime_s: 10.0,
+                exposure_no: k,
+                binning: None,
+            };
+            write_raw_exposure(inst, &x, Some(&flat), None, &CHIPS, true, k as u64, dir, &stem).unwrap();
+        }
+        science.push(dir.join(format!("{stem}_CHIP1.fits")));
+        science.push(dir.join(format!("{stem}_CHIP2.fits")));
+    }
+    let (bias, flatp) = (dir.join("BIAS.fits"), dir.join("FLAT.fits"));
+    if !flatp.exists() {
+        let zero = vec![0.0; nx * ny];
+        let lamp = vec![20000.0; nx * ny];
+        let mut b = Vec::new();
+        let mut fl = Vec::new();
+        for k in 0..3 {
+            let x = RawExposure {
+                electrons: &zero,
+                hwp_deg: Some(0.0),
+                filter: "v_HIGH".into(),
+                exptime_s: 0.0,
+                exposure_no: 100 + k,
+                binning: None,
+            };
+            b.extend(
+                write_raw_exposure(inst, &x, None, None, &CHIPS, false, 100 + k as u64, dir, &format!("bias{k}"))
+                    .unwrap(),
+            );
+            let x = RawExposure {
+                electrons: &lamp,
+                hwp_deg: Some(0.0),
+                filter: "v_HIGH".into(),
+                exptime_s: 1.0,
+                exposure_no: 200 + k,
+                binning: None,
+            };
+            fl.extend(
+                write_raw_exposure(inst, &x, Some(&flat), None, &CHIPS, true, 200 + k as u64, dir, &format!("flat{k}"))
+                    .unwrap(),
+            );
+        }
+        skyfield::calib::master_bias(&b, inst, 3.0).unwrap().write(&bias, inst).unwrap();
+        skyfield::calib::master_flat(&fl, inst, Some(&bias), 3.0).unwrap().write(&flatp, inst).unwrap();
+    }
+    (science, bias, flatp)
+}
+
+fn main() {
+    let reps: usize = std::env::var("REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(3);
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = std::env::var("BENCH_RAW_DIR").map(PathBuf::from).unwrap_or_else(|_| tmp.path().to_path_buf());
+    std::fs::create_dir_all(&dir).unwrap();
+    let inst = Instrument::load("fors2").unwrap();
+    let (paths, bias, flat) = make(&dir, &inst);
+    let read_all = || {
+        let mut n = 0usize;
+        for p in &paths {
+            let mut f = FitsFile::open(p).unwrap();
+            let h = f.primary_hdu().unwrap();
+            let v: Vec<u16> = h.read_image(&mut f).unwrap();
+            n += v.len();
+        }
+        n
+    };
+    read_all(); // page cache warm for both timings
+    let opts = ReadOptions { bias: Some(bias), flat: Some(flat), hwp_angles_deg: None };
+    let cfg = ReduceConfig::default();
+    let (mut rw, mut rc, mut dw, mut dc) = (f64::INFINITY, f64::INFINITY, f64::INFINITY, f64::INFINITY);
+    let (mut npix, mut bins) = (0, 0);
+    for _ in 0..reps {
+        let (w, c, n) = timed(read_all);
+        (rw, rc, npix) = (rw.min(w), rc.min(c), n);
+        let (w, c, b) = timed(|| {
+            reduce_files_with(&paths, &inst, &cfg, &opts, &|| {}).unwrap().map.valid.iter().filter(|v| **v).count()
+        });
+        (dw, dc, bins) = (dw.min(w), dc.min(c), b);
+    }
+    println!(
+        "{{\"files\": {}, \"pixels\": {npix}, \"cfitsio_read_wall_s\": {rw:.4}, \"cfitsio_read_cpu_s\": {rc:.4}, \"reduce_raw_wall_s\": {dw:.4}, \"reduce_raw_cpu_s\": {dc:.4}, \"ratio_wall\": {:.3}, \"ratio_cpu\": {:.3}, \"valid_bins\": {bins}, \"threads\": {}}}",
+        paths.len(),
+        dw / rw,
+        dc / rc.max(1e-9),
+        rayon::current_num_threads()
+    );
+}
