@@ -1616,7 +1616,7 @@ fn reduce_an_extension_that_is_a_table() {
     let out = f.out_dir().join("m.fits");
     refuses(
         &f.out_dir(),
-        &["reduce", &table, &good, "--instrument", &f.s("t.toml"), "--out", out.to_str().unwrap()],
+        &["reduce", &table, &good, "--instrument", &f.s("t.toml"), "--bin", "4", "--out", out.to_str().unwrap()],
         &["mef.fits", "HDU 1 (TAB) is a binary table, not an image"],
     );
 }

@@ -144,3 +144,20 @@ fn real_strip_edges_give_whole_rows_inside() {
     let s = i.strips()[1];
     assert_eq!((s.o_start, s.height, s.e_start), (34 + 220 + 2, 106, 34 + 220 + 2 + 110));
 }
+
+/// The built-in instruments load, their strips inside the detector and their images disjoint
+/// (the loader refuses anything else), with the facts their files cite: FORS2 88 px throw at
+/// 0.25"/px (22", PR06) and EFOSC2 83.3 px (20" at 0.24"/px).
+#[test]
+fn builtin_instruments_load_with_their_cited_facts() {
+    for name in ["fors1", "fors2", "efosc2", "calcite"] {
+        Instrument::load(name).unwrap_or_else(|e| panic!("{name}: {e}"));
+    }
+    let f2 = Instrument::load("fors2").unwrap();
+    assert!((f2.throw_px_exact() - 88.0).abs() < 1e-12);
+    assert_eq!(f2.strips().len(), 9);
+    let e2 = Instrument::load("efosc2").unwrap();
+    assert!((e2.throw_px_exact() - 20.0 / 0.24).abs() < 1e-12);
+    let s = e2.strips();
+    assert!(s.iter().all(|s| s.height >= 80 && s.e_start + s.height <= 1024), "{s:?}");
+}

@@ -23,8 +23,9 @@ pub fn fors2_tiny_text() -> String {
         .replace("origin_px = [0, 1040]", "origin_px = [0, 36]")
         .replace("size_px = [2048, 1024]", "size_px = [64, 32]")
         .replace("throw_arcsec = 22.0", "throw_arcsec = 2.0")
-        .replace("strip_count = 11", "strip_count = 3")
-        .replace("first_strip_y_px = 60", "first_strip_y_px = 2")
+        .replace("strip_count = 9 ", "strip_count = 3 ")
+        .replace("first_strip_y_px = 240", "first_strip_y_px = 2")
+        .replace("strip_margin_px = 2 ", "strip_margin_px = 0 ")
 }
 
 pub fn fors2_tiny() -> Instrument {
