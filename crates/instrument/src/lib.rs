@@ -226,6 +226,19 @@ impl Instrument {
         if d.nx == 0 || d.ny == 0 {
             return bad("detector.nx/ny", format!("{} x {}", d.nx, d.ny), "the detector must have pixels");
         }
+        // Every reader and the simulator hold whole frames of f64: a bound that a real detector
+        // mosaic stays far below (a 4e9 x 4e9 "detector" exhausted memory before this).
+        if d.nx > 65_536 || d.ny > 65_536 || d.nx * d.ny > 400_000_000 {
+            return bad(
+                "detector.nx/ny",
+                format!("{} x {}", d.nx, d.ny),
+                &format!(
+                    "{} Mpx would need {} GB per frame in memory: at most 65536 px a side and 400 Mpx in all",
+                    (d.nx as f64 * d.ny as f64 / 1e6).round(),
+                    (d.nx as f64 * d.ny as f64 * 8.0 / 1e9).round()
+                ),
+            );
+        }
         for (k, v) in
             [("detector.pixel_scale_arcsec", d.pixel_scale_arcsec), ("detector.gain_e_per_adu", d.gain_e_per_adu)]
         {

@@ -161,3 +161,14 @@ fn builtin_instruments_load_with_their_cited_facts() {
     let s = e2.strips();
     assert!(s.iter().all(|s| s.height >= 80 && s.e_start + s.height <= 1024), "{s:?}");
 }
+
+/// A detector too large to hold in memory (4e9 x 4e9, or 1e9 px in all) is refused by name
+/// before anything allocates for it.
+#[test]
+fn absurd_detector_size_is_refused() {
+    for (from, to) in [("nx = 2048", "nx = 4000000000"), ("ny = 2048", "ny = 300000")] {
+        let r = load_patched(from, to).expect("no panic");
+        let msg = r.err().unwrap_or_default();
+        assert!(msg.contains("detector.nx/ny") && msg.contains("GB"), "{to}: {msg}");
+    }
+}

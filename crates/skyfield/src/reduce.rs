@@ -130,6 +130,7 @@ fn group_frames(
     if meta.is_empty() {
         return Err(Error::NoFrames);
     }
+    check_not_radians(meta)?;
     let mut by_filter: BTreeMap<String, Vec<&Path>> = BTreeMap::new();
     for fr in meta {
         // A filter the instrument does not know has no wavelength or HWP zero angle: an error.
@@ -194,6 +195,32 @@ fn group_frames(
         check_complete(&filter, &angles)?;
     }
     Ok(Grouping { filter, angles, members, nx, ny, warnings })
+}
+
+/// HWP angles that are evidently radians (all within [0, 2 pi], every one a multiple of pi/8,
+/// not all on the 22.5 deg grid): a header written in the wrong unit would otherwise be read
+/// as plate positions a fraction of a degree apart (P 41 % for a 2 % source).
+fn check_not_radians(meta: &[(&Path, &str, usize, usize, f64)]) -> Result<(), Error> {
+    let a: Vec<f64> = meta.iter().map(|m| m.4).collect();
+    let step = std::f64::consts::PI / 8.0;
+    let on = |x: f64, s: f64| ((x / s) - (x / s).round()).abs() < 1e-3;
+    let distinct = {
+        let mut v = a.clone();
+        v.sort_by(f64::total_cmp);
+        v.dedup_by(|x, y| (*x - *y).abs() < 1e-6);
+        v.len()
+    };
+    let radians = distinct >= 2
+        && a.iter().all(|&x| (0.0..=2.0 * std::f64::consts::PI + 1e-6).contains(&x) && on(x, step))
+        && !a.iter().all(|&x| on(x, 22.5));
+    if radians {
+        return Err(Error::Invalid(format!(
+            "HWP angles {} (from {} ...) look like radians (multiples of pi/8 = 0.3927): the header keyword must hold degrees (0, 22.5, 45, ...)",
+            fmt_angles(&a),
+            meta[0].0.display()
+        )));
+    }
+    Ok(())
 }
 
 /// A usable set: one filter, one detector size, each HWP angle once (frames at the same
@@ -1204,5 +1231,17 @@ mod tests {
         assert!(e.contains("missing [157.5 deg]"), "{e}");
         let e = check_complete("V", &[0.0, 22.5, 67.5]).unwrap_err().to_string();
         assert!(e.contains("missing [45 deg]"), "{e}");
+    }
+
+    /// Angle sets in radians are refused naming the unit; degrees pass.
+    #[test]
+    fn radian_hwp_angles_are_refused() {
+        let p = Path::new("f.fits");
+        let m = |a: &[f64]| a.iter().map(|&x| (p, "V", 8usize, 8usize, x)).collect::<Vec<_>>();
+        let pi8 = std::f64::consts::PI / 8.0;
+        let e = check_not_radians(&m(&[0.0, pi8, 2.0 * pi8, 3.0 * pi8])).unwrap_err().to_string();
+        assert!(e.contains("radians") && e.contains("f.fits"), "{e}");
+        check_not_radians(&m(&[0.0, 22.5, 45.0, 67.5])).unwrap();
+        check_not_radians(&m(&[0.0, 0.0])).unwrap();
     }
 }
