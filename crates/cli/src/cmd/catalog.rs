@@ -42,6 +42,8 @@ pub struct Args {
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub frame: crate::cmd::frame_opts::FrameOpts,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -78,7 +80,8 @@ pub fn run(a: Args) -> Result<()> {
     let bar =
         if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(a.frames.len() as u64) };
     bar.set_message("reading");
-    let frames = skyfield::reduce::read_frames(&a.frames, &inst, &|| bar.inc(1));
+    let read = a.frame.read_options()?;
+    let frames = skyfield::reduce::read_frames_with(&a.frames, &inst, &read, &|| bar.inc(1));
     bar.finish_and_clear();
     let set = FrameSet::from_frames(frames?, &inst, true)?;
     for w in &set.warnings {

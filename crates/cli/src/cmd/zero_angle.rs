@@ -52,6 +52,8 @@ pub struct Args {
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub frame: crate::cmd::frame_opts::FrameOpts,
 }
 
 #[derive(serde::Serialize)]
@@ -80,7 +82,7 @@ pub fn run(a: Args) -> Result<()> {
     crate::util::inputs(
         a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)).chain(a.standards.as_deref()),
     )?;
-    let frames = skyfield::reduce::read_frames(&a.frames, &inst, &|| {})?;
+    let frames = skyfield::reduce::read_frames_with(&a.frames, &inst, &a.frame.read_options()?, &|| {})?;
     let set = FrameSet::from_frames(frames, &inst, true)?;
     for w in &set.warnings {
         eprintln!("warning: {w}");
