@@ -28,7 +28,7 @@ use mueller::thinfilm::Layer;
 use mueller::{Stokes, C64};
 use nalgebra::{DMatrix, DVector, Matrix4};
 use serde::{Deserialize, Serialize};
-use std::f64::consts::{FRAC_PI_4, PI};
+use std::f64::consts::FRAC_PI_4;
 use std::path::Path;
 
 /// One measurement of a standard star (angles in rad, polarization as fractions).
@@ -491,12 +491,7 @@ impl Jacobian for ProblemRef<'_, '_> {
 
 /// Fold an angle offset into (-pi/2, pi/2] (the model has period pi in it).
 fn fold_offset(a: f64) -> f64 {
-    let r = (a + PI / 2.0).rem_euclid(PI) - PI / 2.0;
-    if r <= -PI / 2.0 {
-        r + PI
-    } else {
-        r
-    }
+    mueller::wrap_half_pi(a)
 }
 
 /// Fit `model` to the observations of one band (all of `obs` must share a band).

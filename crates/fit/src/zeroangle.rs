@@ -48,16 +48,7 @@ pub struct ZeroAngle {
     pub offsets: Vec<f64>,
 }
 
-/// Wrap an angle to (-pi/2, pi/2] (period pi).
-pub fn wrap_half_pi(a: f64) -> f64 {
-    let pi = std::f64::consts::PI;
-    let w = a.rem_euclid(pi);
-    if w > 0.5 * pi {
-        w - pi
-    } else {
-        w
-    }
-}
+pub use mueller::wrap_half_pi;
 
 /// Weighted circular mean (period pi) of offsets `d` with weights `w`, and its chi^2.
 fn mean_offset(d: &[f64], w: &[f64]) -> (f64, f64) {

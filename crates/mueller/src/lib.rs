@@ -88,6 +88,19 @@ pub fn fold_pi(a: f64) -> f64 {
     }
 }
 
+/// Angle `a` (rad) wrapped into (-pi/2, pi/2]: a difference of polarization angles, which are
+/// defined modulo pi (DESIGN.md).
+#[inline]
+pub fn wrap_half_pi(a: f64) -> f64 {
+    let pi = std::f64::consts::PI;
+    let r = (a + 0.5 * pi).rem_euclid(pi) - 0.5 * pi;
+    if r <= -0.5 * pi {
+        r + pi
+    } else {
+        r
+    }
+}
+
 /// The Stokes rotation matrix `R(theta)`: the same light described in axes rotated by `theta`.
 pub fn rotation(theta: f64) -> Mueller {
     let (s, c) = (2.0 * theta).sin_cos();
