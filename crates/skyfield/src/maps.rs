@@ -345,6 +345,30 @@ impl StokesMap {
         let intensity_snr = read_f(&mut f, "INT_SNR")?;
         let n_pixels: Vec<u32> = read_f(&mut f, "COVERAGE")?.into_iter().map(|v| v.max(0.0) as u32).collect();
         let valid: Vec<bool> = read_f(&mut f, "VALID")?.into_iter().map(|v| v > 0.5).collect();
+        // A map made elsewhere (or edited) is checked before anything is fitted to it: every
+        // valid bin holds a physical polarization and a covariance that is one.
+        for k in (0..n).filter(|&k| valid[k]) {
+            let (i, j) = (k % geometry.nx.max(1), k / geometry.nx.max(1));
+            let why = if !(q[k].is_finite() && u[k].is_finite()) {
+                Some(format!("Q/U = {}, {} is not finite", q[k], u[k]))
+            } else if q[k].hypot(u[k]) > 1.0 {
+                Some(format!("P = hypot(Q, U) = {} exceeds 1 (a map in percent?)", q[k].hypot(u[k])))
+            } else if !(sigma_q[k] >= 0.0 && sigma_u[k] >= 0.0 && sigma_q[k].is_finite() && sigma_u[k].is_finite()) {
+                Some(format!("SIGMA_Q, SIGMA_U = {}, {} are not finite errors >= 0", sigma_q[k], sigma_u[k]))
+            } else if !(cov_qu[k].is_finite()
+                && cov_qu[k] * cov_qu[k] <= sigma_q[k] * sigma_q[k] * sigma_u[k] * sigma_u[k] * (1.0 + 1e-9))
+            {
+                Some(format!(
+                    "COV_QU = {} is not a covariance of errors {} and {} (|cov| > sigma_q sigma_u)",
+                    cov_qu[k], sigma_q[k], sigma_u[k]
+                ))
+            } else {
+                None
+            };
+            if let Some(w) = why {
+                return Err(fits_err(path, format!("bin ({i}, {j}): {w}")));
+            }
+        }
         Ok(Self {
             geometry,
             instrument,
@@ -441,5 +465,27 @@ mod tests {
         let p = dir.path().join("nope.fits");
         let e = StokesMap::read_fits(&p).unwrap_err().to_string();
         assert!(e.contains("nope.fits"), "{e}");
+    }
+
+    /// A map whose valid bins hold a negative error, P > 1 or a covariance larger than the
+    /// errors allow is refused naming the file and the bin; the sample itself reads.
+    #[test]
+    fn unphysical_bins_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        for (what, edit) in [
+            ("not finite errors", &(|m: &mut StokesMap| m.sigma_q[1] = -1e-4) as &dyn Fn(&mut StokesMap)),
+            ("exceeds 1", &|m: &mut StokesMap| m.q[2] = 1.5),
+            ("not a covariance", &|m: &mut StokesMap| m.cov_qu[4] = 1e-6),
+        ] {
+            let mut m = sample();
+            edit(&mut m);
+            let path = dir.path().join("bad.fits");
+            m.write_fits(&path).unwrap();
+            let e = StokesMap::read_fits(&path).unwrap_err().to_string();
+            assert!(e.contains("bad.fits") && e.contains(what) && e.contains("bin ("), "{what}: {e}");
+        }
+        let path = dir.path().join("good.fits");
+        sample().write_fits(&path).unwrap();
+        StokesMap::read_fits(&path).unwrap();
     }
 }
