@@ -511,6 +511,29 @@ impl Calibration {
                     cov[j * np + i] = v;
                 }
             }
+            // A covariance with a negative variance or a correlation beyond 1 would give
+            // imaginary or understated errors downstream: refused by name.
+            for i in 0..np {
+                let cii = cov[i * np + i];
+                if !(cii.is_finite() && cii >= 0.0) {
+                    return Err(Error::BadFile {
+                        path: path.into(),
+                        what: format!("keyword HIERARCH IP COV {i} {i} = {cii} is not a variance (finite, >= 0)"),
+                    });
+                }
+                for j in 0..i {
+                    let c = cov[i * np + j];
+                    if !(c.is_finite() && c * c <= cii * cov[j * np + j] * (1.0 + 1e-9)) {
+                        return Err(Error::BadFile {
+                            path: path.into(),
+                            what: format!(
+                                "keyword HIERARCH IP COV {j} {i} = {c} is not a covariance of variances {} and {cii} (|correlation| > 1)",
+                                cov[j * np + j]
+                            ),
+                        });
+                    }
+                }
+            }
             // Absent from files written before the choice existed (their covariance was
             // scaled by chi2_red): None, not a guess.
             let scaling = match r.opt_str("ERR SCALING") {
@@ -636,6 +659,21 @@ impl Calibration {
                     p_approx: pa[i],
                     phi_approx: pha[i].to_radians(),
                     used: used[i] != 0,
+                });
+            }
+            if let Some((i, b)) = bins.iter().enumerate().find(|(_, b)| {
+                b.sigma_q < 0.0 || b.sigma_u < 0.0 || (b.q.is_finite() && b.u.is_finite() && b.q.hypot(b.u) > 1.0)
+            }) {
+                return Err(Error::BadFile {
+                    path: path.into(),
+                    what: format!(
+                        "BINS row {}: Q, U = {}, {} with errors {}, {}: errors must be >= 0 and P = hypot(Q, U) at most 1",
+                        i + 1,
+                        b.q,
+                        b.u,
+                        b.sigma_q,
+                        b.sigma_u
+                    ),
                 });
             }
         }

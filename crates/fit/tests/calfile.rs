@@ -167,3 +167,27 @@ fn error_scaling_is_recorded_and_files_without_it_still_load() {
     let e = Calibration::load(&old).map(|_| ()).unwrap_err().to_string();
     assert!(e.contains("ERR SCALING") && e.contains("optimistic") && e.contains("old.fits"), "{e}");
 }
+
+/// A calibration whose binned measurements hold a negative error or P > 1 is refused naming
+/// the file, the table and the row; the untouched sample loads.
+#[test]
+fn unphysical_bins_in_a_calibration_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    for (k, edit) in
+        [&(|c: &mut Calibration| c.bins[3].sigma_q = -1e-4) as &dyn Fn(&mut Calibration), &|c: &mut Calibration| {
+            c.bins[5].q = 1.2
+        }]
+        .iter()
+        .enumerate()
+    {
+        let mut cal = sample(false);
+        edit(&mut cal);
+        let path = dir.path().join(format!("bad{k}.fits"));
+        cal.save(&path).unwrap();
+        let e = Calibration::load(&path).unwrap_err().to_string();
+        assert!(e.contains(&format!("bad{k}.fits")) && e.contains("BINS row"), "{e}");
+    }
+    let path = dir.path().join("good.fits");
+    sample(false).save(&path).unwrap();
+    Calibration::load(&path).unwrap();
+}
