@@ -643,7 +643,24 @@ pub fn fit_radial(bins: &[Bin], opts: &RadialFitOptions) -> Result<RadialFit> {
     };
     let mut centre = opts.centre;
     let mut used = membership(centre);
-    let mut fit = fit_pass(bins, opts, opts.centre, used.clone())?;
+    let mut fit = match fit_pass(bins, opts, opts.centre, used.clone()) {
+        Ok(f) => f,
+        // With no radial pattern there is no optical axis to find: say so, rather than
+        // "did not converge" (the free centre's Jacobian vanishes when p(r) = 0).
+        Err(e) if opts.free_centre => {
+            let fixed = RadialFitOptions { free_centre: false, ..opts.clone() };
+            match fit_pass(bins, &fixed, opts.centre, used.clone()) {
+                Ok(f) if f.model.coeffs.iter().enumerate().all(|(k, c)| c.abs() <= 3.0 * f.model.cov_at(k, k).sqrt()) => {
+                    return Err(Error::Input(format!(
+                        "no radial pattern to centre: with the centre fixed at ({}, {}) arcmin every coefficient is within 3 sigma of zero ({:?}), so the optical-axis centre is undefined; fit with a fixed centre",
+                        opts.centre[0], opts.centre[1], f.model.coeffs
+                    )))
+                }
+                _ => return Err(e),
+            }
+        }
+        Err(e) => return Err(e),
+    };
     let mut passes = 1;
     if opts.free_centre && opts.exclusions.iter().any(|e| e.is_polar()) {
         while passes < 3 {
