@@ -60,7 +60,9 @@ enum Command {
     Bias(cmd::bias::Args),
     #[command(about = "Monte Carlo of dual-beam polarimetry; paper figures; accuracy against time")]
     Mc(cmd::mc::Args),
-    #[command(about = "Fresnel and thin-film transmission: diattenuation and retardance of a surface")]
+    #[command(
+        about = "Fresnel and thin films: transmission diattenuation and retardance, reflection from metals with coatings"
+    )]
     Fresnel(cmd::fresnel::Args),
     #[command(about = "Polarization ray trace of the collimator: p(r), phi, per surface, wavelength law")]
     Raytrace(cmd::raytrace::Args),
