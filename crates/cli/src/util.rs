@@ -145,3 +145,12 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
             .with_context(|| format!("cannot write {}", path.display()))
     })
 }
+
+/// `--annulus R_IN,R_OUT` (px): the one parser of photometry, catalog and zero-angle.
+pub fn parse_radii(s: &str) -> Result<(f64, f64)> {
+    let parsed: Option<Vec<f64>> = s.split(',').map(|t| t.trim().parse().ok()).collect();
+    match parsed.as_deref() {
+        Some([r1, r2]) => Ok((*r1, *r2)),
+        _ => bail!("--annulus '{s}': expected two radii in px, e.g. 12,20"),
+    }
+}

@@ -32,6 +32,32 @@ pub mod telescope;
 pub mod validate;
 pub mod wavelength;
 
+/// argmin's executor owns its problem; this lends it one of ours (any least-squares problem
+/// of this crate: the radial fit, the telescope fit), so the same problem can be run again.
+pub(crate) struct Lend<'a, P>(pub(crate) &'a P);
+
+impl<P> argmin::core::Operator for Lend<'_, P>
+where
+    P: argmin::core::Operator<Param = nalgebra::DVector<f64>, Output = nalgebra::DVector<f64>>,
+{
+    type Param = nalgebra::DVector<f64>;
+    type Output = nalgebra::DVector<f64>;
+    fn apply(&self, p: &Self::Param) -> std::result::Result<Self::Output, argmin::core::Error> {
+        self.0.apply(p)
+    }
+}
+
+impl<P> argmin::core::Jacobian for Lend<'_, P>
+where
+    P: argmin::core::Jacobian<Param = nalgebra::DVector<f64>, Jacobian = nalgebra::DMatrix<f64>>,
+{
+    type Param = nalgebra::DVector<f64>;
+    type Jacobian = nalgebra::DMatrix<f64>;
+    fn jacobian(&self, p: &Self::Param) -> std::result::Result<Self::Jacobian, argmin::core::Error> {
+        self.0.jacobian(p)
+    }
+}
+
 /// The gridded map lives in the `field` crate (the simulator evaluates it too).
 pub use field::grid as gridmap;
 

@@ -558,7 +558,7 @@ fn gauss_newton(problem: &Problem, start: DVector<f64>) -> Result<DVector<f64>> 
     let mut last_err = String::new();
     for gamma in [1.0, 0.5, 0.25] {
         let solver = GaussNewton::new().with_gamma(gamma).map_err(|e| Error::FitFailed(e.to_string()))?;
-        let run = Executor::new(ProblemRef(problem), solver)
+        let run = Executor::new(crate::Lend(problem), solver)
             .configure(|s| s.param(start.clone()).max_iters(if gamma == 1.0 { 50 } else { 200 }))
             .run();
         match run {
@@ -576,23 +576,6 @@ fn gauss_newton(problem: &Problem, start: DVector<f64>) -> Result<DVector<f64>> 
         }
     }
     Err(Error::FitFailed(format!("Gauss-Newton did not converge: {last_err}")))
-}
-
-/// argmin's executor owns its problem; this lends it ours.
-struct ProblemRef<'a, 'b>(&'a Problem<'b>);
-impl Operator for ProblemRef<'_, '_> {
-    type Param = DVector<f64>;
-    type Output = DVector<f64>;
-    fn apply(&self, p: &DVector<f64>) -> std::result::Result<DVector<f64>, argmin::core::Error> {
-        self.0.apply(p)
-    }
-}
-impl Jacobian for ProblemRef<'_, '_> {
-    type Param = DVector<f64>;
-    type Jacobian = DMatrix<f64>;
-    fn jacobian(&self, p: &DVector<f64>) -> std::result::Result<DMatrix<f64>, argmin::core::Error> {
-        self.0.jacobian(p)
-    }
 }
 
 /// Ratio of the smallest to the largest singular value of `j` with unit-norm columns: near 0

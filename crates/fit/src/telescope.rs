@@ -458,7 +458,7 @@ fn gauss_newton(problem: &Problem, start: Vec<f64>) -> Vec<f64> {
     let mut best = (chi2_of(problem, &start), start.clone());
     for gamma in [1.0, 0.5, 0.2] {
         let Ok(solver) = GaussNewton::<f64>::new().with_gamma(gamma) else { continue };
-        let run = Executor::new(ProblemRef(problem), solver)
+        let run = Executor::new(crate::Lend(problem), solver)
             .configure(|s| s.param(DVector::from_vec(best.1.clone())).max_iters(100))
             .run();
         if let Ok(res) = run {
@@ -471,22 +471,6 @@ fn gauss_newton(problem: &Problem, start: Vec<f64>) -> Vec<f64> {
         }
     }
     best.1
-}
-
-struct ProblemRef<'a, 'b>(&'a Problem<'b>);
-impl Operator for ProblemRef<'_, '_> {
-    type Param = DVector<f64>;
-    type Output = DVector<f64>;
-    fn apply(&self, p: &DVector<f64>) -> std::result::Result<DVector<f64>, argmin::core::Error> {
-        self.0.apply(p)
-    }
-}
-impl Jacobian for ProblemRef<'_, '_> {
-    type Param = DVector<f64>;
-    type Jacobian = DMatrix<f64>;
-    fn jacobian(&self, p: &DVector<f64>) -> std::result::Result<DMatrix<f64>, argmin::core::Error> {
-        self.0.jacobian(p)
-    }
 }
 
 /// Fold an angle offset into (-pi/2, pi/2] (the model has period pi in it).

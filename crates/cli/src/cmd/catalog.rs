@@ -48,12 +48,7 @@ pub struct Args {
 
 pub fn run(a: Args) -> Result<()> {
     let inst = instrument::Instrument::load(&a.instrument)?;
-    let v: Vec<&str> = a.annulus.split(',').collect();
-    let ann: Option<Vec<f64>> = v.iter().map(|s| s.trim().parse().ok()).collect();
-    let annulus = match ann.as_deref() {
-        Some([r1, r2]) => (*r1, *r2),
-        _ => bail!("--annulus '{}': expected two radii in px, e.g. 12,20", a.annulus),
-    };
+    let annulus = crate::util::parse_radii(&a.annulus)?;
     if !(a.aperture.is_finite() && a.aperture > 0.0 && a.aperture < 1000.0) {
         bail!("--aperture {} px: expected a radius between 0 and 1000 px", a.aperture);
     }

@@ -1,6 +1,6 @@
 //! `instpol photometry`: Q, U, P, chi of a point source from a set of frames.
 
-use anyhow::{bail, Result};
+use anyhow::Result;
 use skyfield::photometry::Aperture;
 use skyfield::reduce::FrameSet;
 use std::path::PathBuf;
@@ -97,16 +97,7 @@ pub fn run(a: Args) -> Result<()> {
         CoordsArg::Pixel => (a.x, a.y),
         CoordsArg::Arcmin => inst.arcmin_to_pixel(a.x, a.y),
     };
-    let annulus = if a.no_background {
-        None
-    } else {
-        let v: Vec<&str> = a.annulus.split(',').collect();
-        let parsed: Option<Vec<f64>> = v.iter().map(|s| s.trim().parse().ok()).collect();
-        match parsed.as_deref() {
-            Some([r1, r2]) => Some((*r1, *r2)),
-            _ => bail!("--annulus '{}': expected two radii in px, e.g. 12,20", a.annulus),
-        }
-    };
+    let annulus = if a.no_background { None } else { Some(crate::util::parse_radii(&a.annulus)?) };
     let bar =
         if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(a.frames.len() as u64) };
     bar.set_message("reading");

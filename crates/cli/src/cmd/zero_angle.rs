@@ -73,12 +73,7 @@ struct Out {
 
 pub fn run(a: Args) -> Result<()> {
     let inst = instrument::Instrument::load(&a.instrument)?;
-    let v: Vec<&str> = a.annulus.split(',').collect();
-    let ann: Option<Vec<f64>> = v.iter().map(|s| s.trim().parse().ok()).collect();
-    let annulus = match ann.as_deref() {
-        Some([r1, r2]) => (*r1, *r2),
-        _ => bail!("--annulus '{}': expected two radii in px, e.g. 12,20", a.annulus),
-    };
+    let annulus = crate::util::parse_radii(&a.annulus)?;
     crate::util::inputs(
         a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)).chain(a.standards.as_deref()),
     )?;
