@@ -4,6 +4,18 @@
 
 use clap::{CommandFactory, FromArgMatches, Subcommand};
 
+/// `println!` for the CLI's tables: a reader that closes the pipe (`| head`) ends the printing,
+/// not the command (which still writes its files); see [`util::write_stdout`].
+macro_rules! outln {
+    () => { $crate::util::write_stdout(b"\n") };
+    ($($t:tt)*) => { $crate::util::write_stdout(format!("{}\n", format_args!($($t)*)).as_bytes()) };
+}
+
+/// `print!` with [`outln!`]'s handling of a closed pipe.
+macro_rules! out {
+    ($($t:tt)*) => { $crate::util::write_stdout(format!($($t)*).as_bytes()) };
+}
+
 mod cmd;
 mod plot;
 mod util;
@@ -117,6 +129,9 @@ fn main() {
         Command::Raytrace(a) => cmd::raytrace::run(a),
         Command::FitStandards(a) => cmd::fit_standards::run(a),
     };
+    // Output the reader could not take for another reason than closing the pipe (a full
+    // disk behind `> file`): the command's files are written, but the printed result is lost.
+    let result = result.and_then(|()| util::stdout_status());
     if let Err(e) = result {
         // Exit codes: 0 success, 1 a check that ran and failed, 2 bad input.
         if let Some(f) = e.downcast_ref::<util::CheckFailed>() {

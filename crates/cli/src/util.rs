@@ -109,10 +109,37 @@ impl std::error::Error for CheckFailed {}
 pub fn print_json<T: serde::Serialize>(v: &T) -> Result<()> {
     let mut s = serde_json::to_string_pretty(v)?;
     s.push('\n');
-    // A closed pipe (`| head`) is the reader's choice, not a panic (println! would panic).
-    match std::io::stdout().lock().write_all(s.as_bytes()) {
-        Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
-        _ => Ok(()),
+    write_stdout(s.as_bytes());
+    Ok(())
+}
+
+/// The first error met writing stdout that was not a closed pipe.
+static STDOUT_ERROR: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+
+/// Write to stdout, the one way the CLI prints results (`outln!`, `out!`, [`print_json`]).
+/// A closed pipe (`instpol bias ... | head -3`) is the reader's choice: the rest of the output
+/// is dropped and the command goes on to write its files and exit normally (`println!` would
+/// panic, and a panic would leave those files unwritten). Any other error (a full disk behind
+/// `> file`) is remembered and fails the command at its end ([`stdout_status`]).
+pub fn write_stdout(bytes: &[u8]) {
+    static CLOSED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+    if CLOSED.load(std::sync::atomic::Ordering::Relaxed) {
+        return;
+    }
+    let mut out = std::io::stdout().lock();
+    if let Err(e) = out.write_all(bytes).and_then(|()| out.flush()) {
+        CLOSED.store(true, std::sync::atomic::Ordering::Relaxed);
+        if e.kind() != std::io::ErrorKind::BrokenPipe {
+            let _ = STDOUT_ERROR.set(e.to_string());
+        }
+    }
+}
+
+/// Err when printing failed for another reason than a closed pipe.
+pub fn stdout_status() -> Result<()> {
+    match STDOUT_ERROR.get() {
+        Some(e) => anyhow::bail!("cannot write the results to standard output: {e}"),
+        None => Ok(()),
     }
 }
 

@@ -275,3 +275,48 @@ fn stokes_large_inputs_end() {
         assert_eq!(c, code, "{sig}: {e}");
     }
 }
+
+/// A reader that closes the pipe (`instpol stokes ... | head -0`) ends the printing, not the
+/// command: no "panicked at" message (println! panics on a closed pipe), exit 0, and the plot
+/// the command was asked for is still written, with no temporary file left beside it. A
+/// stdout that fails otherwise (a full disk: /dev/full) fails the command with exit 2.
+#[test]
+fn closed_stdout_ends_the_printing_not_the_command() {
+    let d = tempfile::tempdir().unwrap();
+    let f = d.path().join("good.csv");
+    std::fs::write(&f, GOOD).unwrap();
+    let png = d.path().join("f.png");
+    let cases: [Vec<String>; 3] = [
+        ["bias", "--p", "0.01", "--sigma", "0.005"].map(String::from).to_vec(),
+        ["bias", "--p", "0.01", "--sigma", "0.005", "--json"].map(String::from).to_vec(),
+        vec!["stokes".into(), "--input".into(), s(&f), "--plot".into(), s(&png)],
+    ];
+    for args in cases {
+        // The read end is closed before the child starts, so its first write meets the closed
+        // pipe whatever the scheduling (no race with a reader that exits "soon").
+        let (reader, writer) = std::io::pipe().unwrap();
+        drop(reader);
+        let out = common::instpol().args(&args).stdout(writer).stderr(std::process::Stdio::piped()).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+        assert_eq!(out.status.code(), Some(0), "{args:?}: {err}");
+        let left: Vec<String> = common::listing(d.path()).into_iter().filter(|n| n.contains(".instpol-")).collect();
+        assert!(left.is_empty(), "{args:?} left {left:?}");
+    }
+    assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"), "the plot was not written");
+    let full = std::fs::OpenOptions::new().write(true).open("/dev/full");
+    match full {
+        Ok(full) => {
+            let out = common::instpol()
+                .args(["bias", "--p", "0.01", "--sigma", "0.005"])
+                .stdout(full)
+                .stderr(std::process::Stdio::piped())
+                .output()
+                .unwrap();
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert_eq!(out.status.code(), Some(2), "{err}");
+            assert!(err.contains("standard output") && !err.contains("panicked"), "{err}");
+        }
+        Err(e) => eprintln!("SKIPPED the full-stdout half: /dev/full cannot be opened ({e})"),
+    }
+}

@@ -119,8 +119,8 @@ pub fn run(a: Args) -> Result<()> {
         return crate::util::print_json(&out);
     }
     let fmt = |v: Option<f64>| v.map_or("none".to_string(), |x| format!("{x:.6}"));
-    println!("measured P = {} +- {} (P/sigma = {:.3})", a.p, a.sigma, out.snr_p);
-    println!(
+    outln!("measured P = {} +- {} (P/sigma = {:.3})", a.p, a.sigma, out.snr_p);
+    outln!(
         "estimate ({}): P0 = {:.6}{}",
         out.estimator,
         out.estimate,
@@ -133,11 +133,11 @@ pub fn run(a: Args) -> Result<()> {
     } else {
         "two-sided"
     };
-    println!("{} interval at {:.2}%: [{}, {}]  ({what})", out.interval_kind, 100.0 * a.cl, fmt(iv.lo), fmt(iv.hi));
-    println!();
-    println!("{:<8} {:>12}", "estimator", "P0");
+    outln!("{} interval at {:.2}%: [{}, {}]  ({what})", out.interval_kind, 100.0 * a.cl, fmt(iv.lo), fmt(iv.hi));
+    outln!();
+    outln!("{:<8} {:>12}", "estimator", "P0");
     for (n, v) in &out.all_estimators {
-        println!("{n:<8} {v:>12.6}");
+        outln!("{n:<8} {v:>12.6}");
     }
     Ok(())
 }

@@ -150,28 +150,31 @@ pub fn sky_from_args(p: Option<f64>, chi: Option<f64>) -> Result<SkyPolarization
 
 /// A human-readable table of a fit.
 pub fn print_table(s: &FitSummary) {
-    println!("filter {}  model {}  bins used {} of {}", s.filter, s.model, s.n_bins_used, s.n_bins);
-    print!(
+    outln!("filter {}  model {}  bins used {} of {}", s.filter, s.model, s.n_bins_used, s.n_bins);
+    out!(
         "centre ({:.4} +- {:.4}, {:.4} +- {:.4}) arcmin",
-        s.centre_arcmin[0], s.centre_errors_arcmin[0], s.centre_arcmin[1], s.centre_errors_arcmin[1]
+        s.centre_arcmin[0],
+        s.centre_errors_arcmin[0],
+        s.centre_arcmin[1],
+        s.centre_errors_arcmin[1]
     );
     match s.centre_px {
-        Some(c) => println!("  = pixel ({:.1}, {:.1}){}", c[0], c[1], if s.centre_free { "" } else { "  (fixed)" }),
-        None => println!(),
+        Some(c) => outln!("  = pixel ({:.1}, {:.1}){}", c[0], c[1], if s.centre_free { "" } else { "  (fixed)" }),
+        None => outln!(),
     }
-    println!("{:>6} {:>14} {:>12}", "power", "c_k (%)", "error (%)");
+    outln!("{:>6} {:>14} {:>12}", "power", "c_k (%)", "error (%)");
     for ((k, c), e) in s.powers.iter().zip(&s.coefficients).zip(&s.coefficient_errors) {
-        println!("{:>6} {:>14.5} {:>12.5}", k, 100.0 * c, 100.0 * e);
+        outln!("{:>6} {:>14.5} {:>12.5}", k, 100.0 * c, 100.0 * e);
     }
-    println!("RMS residual {:.4}% (per component)   reduced chi2 {:.2}", 100.0 * s.rms_residual, s.chi2_reduced);
-    println!(
+    outln!("RMS residual {:.4}% (per component)   reduced chi2 {:.2}", 100.0 * s.rms_residual, s.chi2_reduced);
+    outln!(
         "errors: covariance x {:.3} ({}{})",
         s.covariance_scale,
         s.error_scaling,
         if s.correlation.is_some() { ", with the correlated-errors inflation" } else { "" }
     );
     if s.polar_angle_pattern {
-        println!(
+        outln!(
             "polar-angle test: slope {:.4} +- {:.4}, intercept {:.2} +- {:.2} deg (pattern against noise: p = {:.2e}, radial component {:+.1} sigma)",
             s.polar_angle_slope,
             s.polar_angle_slope_err,
@@ -181,13 +184,13 @@ pub fn print_table(s: &FitSummary) {
             s.polar_angle_radial_z
         );
     } else {
-        println!(
+        outln!(
             "polar-angle test: no radial pattern: the bins are consistent with noise (p = {:.3}, radial component {:+.1} sigma); the line fit (slope {:.4}) describes noise",
             s.polar_angle_noise_p, s.polar_angle_radial_z, s.polar_angle_slope
         );
     }
     if let Some(a) = &s.approx_vs_exact {
-        println!(
+        outln!(
             "eq:approx vs exact: max |dp| {:.5}%, rms {:.5}%, max |dphi| {:.3} deg",
             100.0 * a.max_dp,
             100.0 * a.rms_dp,
@@ -195,7 +198,7 @@ pub fn print_table(s: &FitSummary) {
         );
     }
     if let Some(l) = s.residual_loo_rms {
-        println!("residual map: leave-one-out RMS {:.4}% (Q), {:.4}% (U)", 100.0 * l[0], 100.0 * l[1]);
+        outln!("residual map: leave-one-out RMS {:.4}% (Q), {:.4}% (U)", 100.0 * l[0], 100.0 * l[1]);
     }
 }
 
@@ -263,7 +266,7 @@ pub fn finish(run: &CalibrationRun, out: Option<&Path>, plots: Option<&Path>, js
     } else {
         print_table(&s);
         if let Some(out) = out {
-            println!("wrote {}", out.display());
+            outln!("wrote {}", out.display());
         }
         Ok(())
     }

@@ -153,7 +153,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&cat)?;
     } else {
-        println!(
+        outln!(
             "{} sources, {} stars paired ({} measured, {} flagged), {} unpaired; filter {}, {} HWP angles, chi zero angle {} deg",
             cat.n_sources,
             cat.rows.len(),
@@ -164,9 +164,9 @@ pub fn run(a: Args) -> Result<()> {
             cat.hwp_deg.len(),
             cat.chi_offset_deg
         );
-        println!("  id        x        y      P %     +-   chi deg     +-  flags");
+        outln!("  id        x        y      P %     +-   chi deg     +-  flags");
         for r in &cat.rows {
-            println!(
+            outln!(
                 "{:4} {:8.2} {:8.2} {:8.3} {:6.3} {:9.2} {:6.2}  {}",
                 r.id,
                 r.x,
@@ -179,7 +179,7 @@ pub fn run(a: Args) -> Result<()> {
             );
         }
         if let Some(out) = &a.out {
-            println!("wrote {}", out.display());
+            outln!("wrote {}", out.display());
         }
     }
     Ok(())

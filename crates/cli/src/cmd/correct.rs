@@ -171,7 +171,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&summary)
     } else {
-        println!(
+        outln!(
             "corrected {} {} with {} ({} {}, HWP zero angle {:+.2} deg)",
             summary.rows,
             if kind == Kind::Map { "bins" } else { "rows" },
@@ -181,9 +181,9 @@ pub fn run(a: Args) -> Result<()> {
             cal.hwp_chi_offset_deg
         );
         if let (Some(p0), Some(pi)) = (summary.median_p0, summary.median_p_inst) {
-            println!("median instrumental p removed: {:.3} %, median corrected P0: {:.3} %", 100.0 * pi, 100.0 * p0);
+            outln!("median instrumental p removed: {:.3} %, median corrected P0: {:.3} %", 100.0 * pi, 100.0 * p0);
         }
-        println!("wrote {}", a.out.display());
+        outln!("wrote {}", a.out.display());
         Ok(())
     }
 }

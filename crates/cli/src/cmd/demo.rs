@@ -257,13 +257,22 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         return crate::util::print_json(&out);
     }
-    println!(
+    outln!(
         "instpol demo: the paper's empty fields (Table tab:empty), FORS1, 30 x 30 px bins, {}",
         if a.no_frames { "binned maps measured directly" } else { "through simulated frames" }
     );
-    println!(
+    outln!(
         "{:<3} {:>6} {:>7} {:>5} {:>9} {:>19} {:>9} {:>9} {:>14} {:>9}",
-        "", "sky %", "chi", "k", "input %", "fitted % +- err", "pull", "rms %", "polar slope", "vs true %"
+        "",
+        "sky %",
+        "chi",
+        "k",
+        "input %",
+        "fitted % +- err",
+        "pull",
+        "rms %",
+        "polar slope",
+        "vs true %"
     );
     for f in &out.filters {
         for (i, ((inp, fit), err)) in
@@ -285,7 +294,7 @@ pub fn run(a: Args) -> Result<()> {
             } else {
                 String::new()
             };
-            println!(
+            outln!(
                 "{head} {:>5} {:>9.4} {:>10.4}+-{:<7.4} {:>8.1} {tail}",
                 i + 1,
                 100.0 * inp,
@@ -295,13 +304,13 @@ pub fn run(a: Args) -> Result<()> {
             );
         }
         if let Some(l) = f.extra.residual_loo_rms {
-            println!(
+            outln!(
                 "    {} model {}: residual map leave-one-out RMS {:.4}% / {:.4}% (Q / U); the asymmetric component's azimuthal mean goes into the polynomial",
                 f.filter, f.extra.model, 100.0 * l[0], 100.0 * l[1]
             );
         }
         if let Some(d) = &f.extra.approx_vs_exact {
-            println!(
+            outln!(
                 "    {} eq:approx vs exact: max |dp| {:.4}%, max |dphi| {:.2} deg",
                 f.filter,
                 100.0 * d.max_dp,
@@ -309,12 +318,12 @@ pub fn run(a: Args) -> Result<()> {
             );
         }
     }
-    println!(
+    outln!(
         "wavelength law p(l)/p(550) = {:.3} (+-{:.3}) + {:.3e} (+-{:.1e}) l[nm]   (paper's ray tracing: 0.02 + 1.73e-3 l)",
         law.a, law.a_err, law.b, law.b_err
     );
     let v = &out.validation.validation;
-    println!(
+    outln!(
         "validation (sec:fors1): unpolarized standard at ({:.2}', {:.2}') in V: measured P = {:.3} +- {:.3} % at {:.1} deg, \
          predicted {:.3} % at {:.1} deg: {:.2} sigma, {}   (paper: 0.92 +- 0.04 % at -48 deg measured, 0.96 % at -51.9 deg predicted)",
         out.validation.x_arcmin,
@@ -327,6 +336,6 @@ pub fn run(a: Args) -> Result<()> {
         v.residual_sigma,
         if v.pass { "PASS" } else { "FAIL" }
     );
-    println!("wrote calibration files and plots to {}", a.out.display());
+    outln!("wrote calibration files and plots to {}", a.out.display());
     Ok(())
 }

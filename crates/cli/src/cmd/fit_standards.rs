@@ -158,15 +158,15 @@ fn out(f: &TelescopeFit, joint: bool) -> FitOut {
 
 fn print_fit(o: &FitOut) {
     let head = if o.joint { format!("joint ({})", o.bands.join(", ")) } else { o.bands.join(", ") };
-    println!("{head}: model {}", o.model);
+    outln!("{head}: model {}", o.model);
     for p in &o.params {
         if p.unit == "fraction" {
-            println!("  {:<22} {:>10.4} +- {:.4} %", p.name, 100.0 * p.value, 100.0 * p.sigma);
+            outln!("  {:<22} {:>10.4} +- {:.4} %", p.name, 100.0 * p.value, 100.0 * p.sigma);
         } else {
-            println!("  {:<22} {:>10.4} +- {:.4} {}", p.name, p.value, p.sigma, p.unit);
+            outln!("  {:<22} {:>10.4} +- {:.4} {}", p.name, p.value, p.sigma, p.unit);
         }
     }
-    println!(
+    outln!(
         "  chi2/dof = {:.2} / {} = {:.2}; errors x sqrt({:.2}) ({}); RMS q = {:.3} %, u = {:.3} %; {} of {} points used",
         o.chi2,
         o.dof,
@@ -179,7 +179,7 @@ fn print_fit(o: &FitOut) {
         o.n_total
     );
     for f in &o.flagged {
-        println!("  flagged: {f}");
+        outln!("  flagged: {f}");
     }
 }
 
@@ -246,7 +246,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     for o in &outs {
         print_fit(o);
-        println!();
+        outln!();
     }
     Ok(())
 }

@@ -174,7 +174,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         return crate::util::print_json(&out);
     }
-    println!(
+    outln!(
         "n0 = {} -> {} layer(s) -> n = {} + {}i at {} deg, {} nm",
         a.n_incident,
         layers.len(),
@@ -183,15 +183,16 @@ pub fn run(a: Args) -> Result<()> {
         a.aoi_deg,
         a.wavelength_nm
     );
-    println!("{:<14}{:>12}{:>12}", "", "s", "p");
-    println!("{:<14}{:>12.6}{:>12.6}", "T", out.ts, out.tp);
-    println!("{:<14}{:>12.6}{:>12.6}", "R", out.rs, out.rp);
-    println!("{:<14}{:>12.6}{:>12.6}", "T + R", out.ts + out.rs, out.tp + out.rp);
-    println!("transmission diattenuation (Tp-Ts)/(Tp+Ts) = {:.4} %", 100.0 * out.transmission_diattenuation);
-    println!("reflection polarization (Rs-Rp)/(Rs+Rp) = {:.4} %", 100.0 * out.reflection_polarization);
-    println!(
+    outln!("{:<14}{:>12}{:>12}", "", "s", "p");
+    outln!("{:<14}{:>12.6}{:>12.6}", "T", out.ts, out.tp);
+    outln!("{:<14}{:>12.6}{:>12.6}", "R", out.rs, out.rp);
+    outln!("{:<14}{:>12.6}{:>12.6}", "T + R", out.ts + out.rs, out.tp + out.rp);
+    outln!("transmission diattenuation (Tp-Ts)/(Tp+Ts) = {:.4} %", 100.0 * out.transmission_diattenuation);
+    outln!("reflection polarization (Rs-Rp)/(Rs+Rp) = {:.4} %", 100.0 * out.reflection_polarization);
+    outln!(
         "retardance (p - s): transmitted {:.4} deg, reflected {:.4} deg",
-        out.retardance_deg, out.reflection_retardance_deg
+        out.retardance_deg,
+        out.reflection_retardance_deg
     );
     Ok(())
 }

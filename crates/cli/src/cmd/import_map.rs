@@ -103,14 +103,23 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&s)
     } else {
-        println!(
+        outln!(
             "{} {}: {} mapped pixels over x {:.2}..{:.2}, y {:.2}..{:.2} arcmin (origin at pixel {:.1}, {:.1})",
-            s.instrument, s.filter, s.n_pixels, r.x_min, r.x_max, r.y_min, r.y_max, s.origin_px[0], s.origin_px[1]
+            s.instrument,
+            s.filter,
+            s.n_pixels,
+            r.x_min,
+            r.x_max,
+            r.y_min,
+            r.y_max,
+            s.origin_px[0],
+            s.origin_px[1]
         );
-        println!("p: median {:.3}%, max {:.3}%", 100.0 * s.p_median, 100.0 * s.p_max);
-        println!(
+        outln!("p: median {:.3}%, max {:.3}%", 100.0 * s.p_median, 100.0 * s.p_max);
+        outln!(
             "wrote {} (model MAP; refit with: instpol fit {} --free-centre)",
-            s.calibration_file, s.calibration_file
+            s.calibration_file,
+            s.calibration_file
         );
         Ok(())
     }

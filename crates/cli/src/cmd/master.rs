@@ -52,7 +52,7 @@ pub fn run_bias(a: BiasArgs) -> Result<()> {
     let inst = instrument::Instrument::load(&a.instrument)?;
     let m = skyfield::calib::master_bias(&a.frames, &inst, a.nsigma)?;
     m.write(&a.out, &inst)?;
-    println!("{}: master bias of {} frames ({} x {} px)", a.out.display(), a.frames.len(), m.nx, m.ny);
+    outln!("{}: master bias of {} frames ({} x {} px)", a.out.display(), a.frames.len(), m.nx, m.ny);
     Ok(())
 }
 
@@ -60,6 +60,6 @@ pub fn run_flat(a: FlatArgs) -> Result<()> {
     let inst = instrument::Instrument::load(&a.instrument)?;
     let m = skyfield::calib::master_flat(&a.frames, &inst, a.bias.as_deref(), a.nsigma)?;
     m.write(&a.out, &inst)?;
-    println!("{}: master flat of {} frames ({} x {} px)", a.out.display(), a.frames.len(), m.nx, m.ny);
+    outln!("{}: master flat of {} frames ({} x {} px)", a.out.display(), a.frames.len(), m.nx, m.ny);
     Ok(())
 }

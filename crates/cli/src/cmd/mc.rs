@@ -276,7 +276,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     let pc = |v: f64| format!("{:.5} %", 100.0 * v);
     let opc = |v: Option<f64>| v.map_or("n/a".into(), pc);
-    println!(
+    outln!(
         "N = {}, SNR = {}, P0 = {}, chi0 = {} deg, noise {}, {} trials on {} threads",
         a.n_hwp,
         a.snr,
@@ -286,17 +286,17 @@ pub fn run(a: Args) -> Result<()> {
         r.trials,
         out.threads
     );
-    println!("  mean P    {}", pc(r.mean_p));
-    println!("  mode P    {}", opc(r.mode_p));
-    println!("  median P  {}", opc(r.median_p));
-    println!("  sigma_P   {}   (eq:sigp: {})", pc(r.rms_p), pc(r.sigma_p_analytic));
-    println!("  68% band  [{}, {}]", opc(r.q16_p), opc(r.q84_p));
+    outln!("  mean P    {}", pc(r.mean_p));
+    outln!("  mode P    {}", opc(r.mode_p));
+    outln!("  median P  {}", opc(r.median_p));
+    outln!("  sigma_P   {}   (eq:sigp: {})", pc(r.rms_p), pc(r.sigma_p_analytic));
+    outln!("  68% band  [{}, {}]", opc(r.q16_p), opc(r.q84_p));
     if r.rejected > 0 {
-        println!("  {} trials dropped (no counts in both beams at some angle)", r.rejected);
+        outln!("  {} trials dropped (no counts in both beams at some angle)", r.rejected);
     }
-    println!("  {:.3} s, {:.3e} trials/s", secs, out.trials_per_second);
+    outln!("  {:.3} s, {:.3e} trials/s", secs, out.trials_per_second);
     if let Some(rs) = rng_seconds {
-        println!("  drawing the random numbers alone: {:.3} s (engine / draws = {:.2})", rs, secs / rs);
+        outln!("  drawing the random numbers alone: {:.3} s (engine / draws = {:.2})", rs, secs / rs);
     }
     Ok(())
 }
@@ -363,13 +363,21 @@ fn sweep(a: &Args, noise: Noise) -> Result<()> {
     if a.json {
         return crate::util::print_json(&out);
     }
-    println!("fig:deltap  N = {n}, SNR = {}, noise {}, {trials} trials per point (values x SNR)", a.snr, noise);
-    println!(
+    outln!("fig:deltap  N = {n}, SNR = {}, noise {}, {trials} trials per point (values x SNR)", a.snr, noise);
+    outln!(
         "{:>8} {:>9} {:>9} {:>9} {:>9} {:>10} {:>10} {:>10} {:>10}",
-        "eta", "sigP*SNR", "eq:sigp", "Rice", "", "dP_mode", "WK(Rice)", "dP_mean", "Rice mean"
+        "eta",
+        "sigP*SNR",
+        "eq:sigp",
+        "Rice",
+        "",
+        "dP_mode",
+        "WK(Rice)",
+        "dP_mean",
+        "Rice mean"
     );
     for p in &out.deltap {
-        println!(
+        outln!(
             "{:>8.3} {:>9.4} {:>9.4} {:>9.4} {:>9} {:>10.4} {:>10.4} {:>10.4} {:>10.4}",
             p.eta,
             p.sigma_p * a.snr,
@@ -382,18 +390,18 @@ fn sweep(a: &Args, noise: Noise) -> Result<()> {
             p.delta_mean_rice * a.snr
         );
     }
-    println!("Rayleigh sigma_P x SNR = {:.4}", (2.0 - std::f64::consts::PI / 2.0).sqrt() / k);
-    println!();
-    println!("fig:bias  Delta P / sigma_P against SNR_P = P0 / sigma_P");
+    outln!("Rayleigh sigma_P x SNR = {:.4}", (2.0 - std::f64::consts::PI / 2.0).sqrt() / k);
+    outln!();
+    outln!("fig:bias  Delta P / sigma_P against SNR_P = P0 / sigma_P");
     let names: Vec<String> =
         out.bias.first().map(|b| b.estimators.iter().map(|e| e.0.clone()).collect()).unwrap_or_default();
-    print!("{:>8} {:>8} {:>8} {:>8}", "SNR_P", "mode", "mean", "median");
+    out!("{:>8} {:>8} {:>8} {:>8}", "SNR_P", "mode", "mean", "median");
     for nm in &names {
-        print!(" {:>8}", format!("E[{nm}]"));
+        out!(" {:>8}", format!("E[{nm}]"));
     }
-    println!();
+    outln!();
     for b in &out.bias {
-        print!(
+        out!(
             "{:>8.3} {:>8.4} {:>8.4} {:>8.4}",
             b.snr_p,
             b.mc_mode.unwrap_or(f64::NAN),
@@ -401,24 +409,24 @@ fn sweep(a: &Args, noise: Noise) -> Result<()> {
             b.mc_median.unwrap_or(f64::NAN)
         );
         for e in &b.estimators {
-            print!(" {:>8.4}", e.1);
+            out!(" {:>8.4}", e.1);
         }
-        println!();
+        outln!();
     }
-    println!(
+    outln!(
         "(mode/mean/median: Monte Carlo; E[...]: estimator bias over the Rice distribution, ml = Simmons & Stewart)"
     );
-    println!();
-    println!("bias law P0 = P~ [1 - (c / (sqrt(N/2) eta~))^k], fitted for sqrt(N/2) eta~ > 4:");
-    println!("{:>22} {:>8} {:>8} {:>7}", "", "c", "k", "points");
+    outln!();
+    outln!("bias law P0 = P~ [1 - (c / (sqrt(N/2) eta~))^k], fitted for sqrt(N/2) eta~ > 4:");
+    outln!("{:>22} {:>8} {:>8} {:>7}", "", "c", "k", "points");
     if let Some(f) = out.fit_mc {
-        println!("{:>22} {:>8.3} {:>8.3} {:>7}", "this Monte Carlo", f.c, f.k, f.points);
+        outln!("{:>22} {:>8.3} {:>8.3} {:>7}", "this Monte Carlo", f.c, f.k, f.points);
     }
     if let Some(f) = out.fit_exact_rice {
-        println!("{:>22} {:>8.3} {:>8.3} {:>7}", "exact Rice mode", f.c, f.k, f.points);
+        outln!("{:>22} {:>8.3} {:>8.3} {:>7}", "exact Rice mode", f.c, f.k, f.points);
     }
-    println!("{:>22} {:>8.3} {:>8.3}", "paper (sec:bias)", PAPER_C, PAPER_K);
-    println!("({:.1} s)", out.seconds);
+    outln!("{:>22} {:>8.3} {:>8.3}", "paper (sec:bias)", PAPER_C, PAPER_K);
+    outln!("({:.1} s)", out.seconds);
     Ok(())
 }
 
@@ -466,12 +474,12 @@ fn accuracy(a: &Args) -> Result<()> {
     if a.json {
         return crate::util::print_json(&out);
     }
-    println!("1. Monte Carlo precision against trials ({}), 5 repetitions each", out.precision_config);
-    println!("   values in % of polarization; +- is the scatter of one run");
-    println!("{:>10} {:>10} {:>22} {:>22} {:>22}", "trials", "seconds", "sigma_P", "bias (mean)", "bias (mode)");
+    outln!("1. Monte Carlo precision against trials ({}), 5 repetitions each", out.precision_config);
+    outln!("   values in % of polarization; +- is the scatter of one run");
+    outln!("{:>10} {:>10} {:>22} {:>22} {:>22}", "trials", "seconds", "sigma_P", "bias (mean)", "bias (mode)");
     for r in &out.precision {
         let f = |v: f64, s: f64| format!("{:.5} +- {:.5}", 100.0 * v, 100.0 * s);
-        println!(
+        outln!(
             "{:>10} {:>10.4} {:>22} {:>22} {:>22}",
             r.trials,
             r.seconds,
@@ -480,47 +488,53 @@ fn accuracy(a: &Args) -> Result<()> {
             f(r.bias_mode, r.bias_mode_scatter)
         );
     }
-    println!();
-    println!("2. Observer: sigma_P (eq:sigp, %) against SNR (exposure time ~ SNR^2, relative to SNR 100)");
-    println!("   and the systematic floor of HWP defects at infinite SNR (mueller forward model, %)");
+    outln!();
+    outln!("2. Observer: sigma_P (eq:sigp, %) against SNR (exposure time ~ SNR^2, relative to SNR 100)");
+    outln!("   and the systematic floor of HWP defects at infinite SNR (mueller forward model, %)");
     let snrs: Vec<f64> = out.observer[0].sigma_p.iter().map(|s| s.0).collect();
-    print!("{:>6}", "N");
+    out!("{:>6}", "N");
     for s in &snrs {
-        print!(" {:>9}", format!("SNR {s}"));
+        out!(" {:>9}", format!("SNR {s}"));
     }
-    println!("  SNR where sigma_P = worst floor");
+    outln!("  SNR where sigma_P = worst floor");
     for r in &out.observer {
-        print!("{:>6}", r.n_hwp);
+        out!("{:>6}", r.n_hwp);
         for s in &r.sigma_p {
-            print!(" {:>9.4}", 100.0 * s.1);
+            out!(" {:>9.4}", 100.0 * s.1);
         }
-        println!("  {:.0}", r.snr_at_floor);
+        outln!("  {:.0}", r.snr_at_floor);
     }
-    print!("{:>6}", "time");
+    out!("{:>6}", "time");
     for s in &out.observer[0].sigma_p {
-        print!(" {:>9.3}", s.2);
+        out!(" {:>9.3}", s.2);
     }
-    println!();
-    println!("{:>30} {:>10} {:>10} {:>10}", "floor (%)", "N=4", "N=8", "N=16");
+    outln!();
+    outln!("{:>30} {:>10} {:>10} {:>10}", "floor (%)", "N=4", "N=8", "N=16");
     for (k, (name, _)) in out.observer[0].floors.iter().enumerate() {
-        print!("{:>30}", name);
+        out!("{:>30}", name);
         for r in &out.observer {
-            print!(" {:>10.5}", 100.0 * r.floors[k].1);
+            out!(" {:>10.5}", 100.0 * r.floors[k].1);
         }
-        println!();
+        outln!();
     }
-    println!();
-    println!(
+    outln!();
+    outln!(
         "3. Fast noise modes against exact Poisson (N = {}, eta = P0 SNR = 2, {} trials)",
         a.n_hwp,
         tmax.min(200_000)
     );
-    println!(
+    outln!(
         "{:>6} {:>9} {:>11} {:>11} {:>14} {:>12} {:>14}",
-        "SNR", "noise", "mean P %", "sigma_P %", "mean dev/err", "sigma rel", "trials/s"
+        "SNR",
+        "noise",
+        "mean P %",
+        "sigma_P %",
+        "mean dev/err",
+        "sigma rel",
+        "trials/s"
     );
     for r in &out.noise_modes {
-        println!(
+        outln!(
             "{:>6} {:>9} {:>11.5} {:>11.5} {:>14.2} {:>12.4} {:>14.3e}{}",
             r.snr,
             r.noise,

@@ -154,17 +154,17 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&o)?;
     } else {
-        println!("source at ({:.2}, {:.2}) px, aperture {} px, {} HWP angles", x, y, a.aperture, o.hwp_deg.len());
+        outln!("source at ({:.2}, {:.2}) px, aperture {} px, {} HWP angles", x, y, a.aperture, o.hwp_deg.len());
         let moved = o.centres_px.iter().map(|c| (c[0] - x).hypot(c[1] - y)).fold(0.0, f64::max);
         if !a.fixed {
-            println!("  apertures re-centred in every frame (largest move {moved:.2} px)");
+            outln!("  apertures re-centred in every frame (largest move {moved:.2} px)");
         }
-        println!("  Q/I = {:+.5} +- {:.5}", o.q, o.sigma_q);
-        println!("  U/I = {:+.5} +- {:.5}", o.u, o.sigma_u);
-        println!("  P   = {:.4}% +- {:.4}%", 100.0 * o.p, 100.0 * o.sigma_p);
+        outln!("  Q/I = {:+.5} +- {:.5}", o.q, o.sigma_q);
+        outln!("  U/I = {:+.5} +- {:.5}", o.u, o.sigma_u);
+        outln!("  P   = {:.4}% +- {:.4}%", 100.0 * o.p, 100.0 * o.sigma_p);
         match o.sigma_chi_deg {
-            Some(s) => println!("  chi = {:.2} +- {:.2} deg", o.chi_deg, s),
-            None => println!("  chi = {:.2} deg (undetermined: P is not above its error)", o.chi_deg),
+            Some(s) => outln!("  chi = {:.2} +- {:.2} deg", o.chi_deg, s),
+            None => outln!("  chi = {:.2} deg (undetermined: P is not above its error)", o.chi_deg),
         }
     }
     Ok(())

@@ -94,7 +94,7 @@ pub fn run(a: Args) -> Result<()> {
         crate::util::print_json(&serde_json::json!({ "files": files }))
     } else {
         for f in files {
-            println!("wrote {}", f.display());
+            outln!("wrote {}", f.display());
         }
         Ok(())
     }

@@ -214,26 +214,26 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         return crate::util::print_json(&out);
     }
-    println!("{} at {lam} nm, {} rays per field point", out.prescription, out.pupil_rays);
-    println!("{:>10} {:>10} {:>10}", "r arcmin", "p %", "phi deg");
+    outln!("{} at {lam} nm, {} rays per field point", out.prescription, out.pupil_rays);
+    outln!("{:>10} {:>10} {:>10}", "r arcmin", "p %", "phi deg");
     for ((r, p), phi) in radii.iter().zip(&out.p).zip(&out.phi_deg) {
-        println!("{r:>10.3} {:>10.4} {phi:>10.2}", 100.0 * p);
+        outln!("{r:>10.3} {:>10.4} {phi:>10.2}", 100.0 * p);
     }
     let c = &out.polynomial;
-    println!("fit: p(r) % = {:.4} r + {:.4} r^2 + {:.5} r^3", 100.0 * c[0], 100.0 * c[1], 100.0 * c[2]);
-    println!("phi - alpha at r = {:.2}': max {:.4} deg", 0.5 * edge, {
+    outln!("fit: p(r) % = {:.4} r + {:.4} r^2 + {:.5} r^3", 100.0 * c[0], 100.0 * c[1], 100.0 * c[2]);
+    outln!("phi - alpha at r = {:.2}': max {:.4} deg", 0.5 * edge, {
         ring.iter().map(|f| f.phi_rel().to_degrees().abs()).fold(0.0, f64::max)
     });
-    println!("per surface at the edge (r = {edge}'):");
+    outln!("per surface at the edge (r = {edge}'):");
     for s in &out.per_surface {
-        println!("  {:<14} {:>8.4} %", s.surface, 100.0 * s.p_at_edge);
+        outln!("  {:<14} {:>8.4} %", s.surface, 100.0 * s.p_at_edge);
     }
-    println!(
+    outln!(
         "wavelength law at r = {edge}': p/p(550) = {:.4} + {:.4e} lambda  (paper: {PAPER_LAW_A} + {PAPER_LAW_B:e} lambda)",
         law.a, law.b
     );
     for s in &out.wavelength_law.samples {
-        println!("  {:>5} nm  {:>7.4}  paper {:>7.4}", s.wavelength_nm, s.ratio, s.paper);
+        outln!("  {:>5} nm  {:>7.4}  paper {:>7.4}", s.wavelength_nm, s.ratio, s.paper);
     }
     Ok(())
 }

@@ -101,7 +101,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&s)?;
     } else {
-        println!(
+        outln!(
             "{}: filter {}, N = {} ({:?} deg), {} of {} bins of {} px valid; median P = {:.3}%, chi = {:.1} deg, sigma_Q/I = {:.4}%",
             s.out.display(),
             s.filter,

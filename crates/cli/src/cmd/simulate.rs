@@ -89,7 +89,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&out)?;
     } else {
-        println!("wrote {} frames and {} to {}", out.frames.len(), out.truth.display(), a.out.display());
+        outln!("wrote {} frames and {} to {}", out.frames.len(), out.truth.display(), a.out.display());
     }
     Ok(())
 }

@@ -3,7 +3,6 @@
 use anyhow::{anyhow, bail, Context, Result};
 use serde::Serialize;
 use std::fmt::Write as _;
-use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use stokes::{Error as RedError, Measurement, Reduction};
 
@@ -263,11 +262,8 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&json(&r, &name, a.kappa))
     } else {
-        // A closed pipe (`| head`) is not an error worth a panic.
-        match std::io::stdout().write_all(table(&r, &t, &name, a.kappa).as_bytes()) {
-            Err(e) if e.kind() != std::io::ErrorKind::BrokenPipe => Err(e.into()),
-            _ => Ok(()),
-        }
+        crate::util::write_stdout(table(&r, &t, &name, a.kappa).as_bytes());
+        Ok(())
     }
 }
 

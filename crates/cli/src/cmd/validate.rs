@@ -234,38 +234,44 @@ pub fn run(a: Args) -> Result<()> {
 
 fn print_report(r: &ValidationReport, cal: &Path) {
     let v = &r.validation;
-    println!(
+    outln!(
         "star {} in {} at ({:.1}, {:.1}) px = ({:.3}, {:.3}) arcmin, {} frames",
-        r.star, r.band, r.x_px, r.y_px, r.x_arcmin, r.y_arcmin, r.n_frames
+        r.star,
+        r.band,
+        r.x_px,
+        r.y_px,
+        r.x_arcmin,
+        r.y_arcmin,
+        r.n_frames
     );
-    println!(
+    outln!(
         "calibration {} (HWP zero angle {:+.2} deg, model error {:.3} %)",
         cal.display(),
         r.hwp_chi_offset_deg,
         100.0 * r.model_error
     );
-    println!(
+    outln!(
         "  measured   P = {:.3} +- {:.3} %   chi = {:.1} +- {:.1} deg",
         100.0 * v.measured_p,
         100.0 * v.sigma_p,
         v.measured_chi_deg,
         v.sigma_chi_deg
     );
-    println!(
+    outln!(
         "  predicted  P = {:.3} +- {:.3} %   chi = {:.1} deg",
         100.0 * v.predicted_p,
         100.0 * v.sigma_predicted_p,
         v.predicted_chi_deg
     );
-    println!("  difference {:.2} sigma", v.residual_sigma);
-    println!(
+    outln!("  difference {:.2} sigma", v.residual_sigma);
+    outln!(
         "  corrected  P0 = {:.3} +- {:.3} % (expected {:.3} %): {:.2} sigma",
         100.0 * v.corrected_p,
         100.0 * v.sigma_corrected_p,
         100.0 * v.expected_p,
         v.corrected_residual_sigma
     );
-    println!("{} (threshold {} sigma)", if v.pass { "PASS" } else { "FAIL" }, v.threshold);
+    outln!("{} (threshold {} sigma)", if v.pass { "PASS" } else { "FAIL" }, v.threshold);
 }
 
 #[cfg(test)]

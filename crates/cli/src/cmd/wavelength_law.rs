@@ -71,20 +71,17 @@ pub fn run(a: Args) -> Result<()> {
         }
         crate::util::print_json(&Out { filters: &names, law: &law })
     } else {
-        println!("p(lambda)/p(550) = a + b lambda[nm], p(r) averaged over r = {:.2}..{:.2} arcmin", a.r_min, r_max);
-        println!(
+        outln!("p(lambda)/p(550) = a + b lambda[nm], p(r) averaged over r = {:.2}..{:.2} arcmin", a.r_min, r_max);
+        outln!(
             "a = {:.4} +- {:.4}   b = {:.4e} +- {:.1e}   (paper's ray tracing: 0.02 + 1.73e-3 lambda)",
-            law.a, law.a_err, law.b, law.b_err
+            law.a,
+            law.a_err,
+            law.b,
+            law.b_err
         );
-        println!("{:>10} {:>8} {:>12} {:>8}", "filter", "nm", "mean p (%)", "ratio");
+        outln!("{:>10} {:>8} {:>12} {:>8}", "filter", "nm", "mean p (%)", "ratio");
         for k in 0..names.len() {
-            println!(
-                "{:>10} {:>8.1} {:>12.4} {:>8.3}",
-                names[k],
-                law.lambda_nm[k],
-                100.0 * law.mean_p[k],
-                law.ratio[k]
-            );
+            outln!("{:>10} {:>8.1} {:>12.4} {:>8.3}", names[k], law.lambda_nm[k], 100.0 * law.mean_p[k], law.ratio[k]);
         }
         Ok(())
     }

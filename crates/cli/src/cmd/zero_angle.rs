@@ -143,7 +143,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&o)?;
     } else {
-        println!(
+        outln!(
             "filter {}: measured chi = {:.2} +- {:.2} deg (P = {:.3} +- {:.3} %), catalogue {:.2} +- {:.2} deg",
             o.filter,
             o.chi_measured_deg,
@@ -153,9 +153,9 @@ pub fn run(a: Args) -> Result<()> {
             o.chi_catalogue_deg,
             o.sigma_chi_catalogue_deg
         );
-        println!("HWP zero angle: {zd:.2} +- {:.2} deg (to add to a measured chi)", o.sigma_zero_angle_deg);
-        println!("sense of the angle: undetermined from one standard (assumed counter-clockwise, IAU)");
-        println!("in the instrument file, filter {}:  {}", o.filter, o.instrument_file_line);
+        outln!("HWP zero angle: {zd:.2} +- {:.2} deg (to add to a measured chi)", o.sigma_zero_angle_deg);
+        outln!("sense of the angle: undetermined from one standard (assumed counter-clockwise, IAU)");
+        outln!("in the instrument file, filter {}:  {}", o.filter, o.instrument_file_line);
     }
     Ok(())
 }
