@@ -120,10 +120,20 @@ pub struct FieldRegion {
 }
 
 impl FieldRegion {
-    /// Whether `(x, y)` arcmin lies inside.
+    /// Whether `(x, y)` arcmin lies inside, edges included to within [`Self::EDGE_TOLERANCE_ARCMIN`].
+    ///
+    /// Why a tolerance: the limits pass through a FITS header, which keeps 15 significant
+    /// digits (CFITSIO's `%.15G`), and a position given in pixels passes through the pixel
+    /// scale; a star on the edge was inside in arcmin and outside in pixels when either
+    /// rounding went the wrong way. 1e-9 arcmin (6e-8 arcsec) is far below any position error
+    /// and far above either rounding.
     pub fn contains(&self, x: f64, y: f64) -> bool {
-        x >= self.x_min && x <= self.x_max && y >= self.y_min && y <= self.y_max
+        let t = Self::EDGE_TOLERANCE_ARCMIN;
+        x >= self.x_min - t && x <= self.x_max + t && y >= self.y_min - t && y <= self.y_max + t
     }
+
+    /// How far outside its limits [`Self::contains`] still counts a position as on the edge.
+    pub const EDGE_TOLERANCE_ARCMIN: f64 = 1e-9;
 
     /// The smallest rectangle holding every point, widened by `margin` arcmin on each side.
     pub fn bounding(points: impl Iterator<Item = (f64, f64)>, margin: f64) -> Option<Self> {
@@ -170,6 +180,32 @@ pub fn polar_angle(dx: f64, dy: f64) -> f64 {
 
 #[cfg(test)]
 mod tests {
+    /// A limit as a FITS header keeps it: 15 significant digits (CFITSIO writes `%.15G`).
+    fn as_header(v: f64) -> f64 {
+        format!("{v:.14e}").parse().unwrap()
+    }
+
+    /// The field's edge is inside whichever way the header's rounding and the pixel scale's
+    /// went: 0.1 + 0.2 (= 0.30000000000000004) is stored as 0.3, below a star placed at the
+    /// edge in arcmin; a star given in pixels on FORS1's 0.2"/px grid lands a few ulps beyond.
+    /// A position 1e-6 arcmin beyond the edge is still outside.
+    #[test]
+    fn the_edge_survives_header_rounding_and_the_pixel_scale() {
+        let edge = 0.1 + 0.2;
+        assert!(as_header(edge) < edge, "the case must round down");
+        let r = super::FieldRegion { x_min: -as_header(edge), x_max: as_header(edge), y_min: -1.0, y_max: 1.0 };
+        let scale_arcsec = 0.2;
+        // The pixel of the edge and back, as `correct --coords px` computes it.
+        let px = edge * 60.0 / scale_arcsec;
+        let from_px = px * scale_arcsec / 60.0;
+        for x in [edge, -edge, from_px, -from_px] {
+            assert!(r.contains(x, 0.0), "{x:e} on the edge counted outside");
+        }
+        for x in [edge + 1e-6, -edge - 1e-6] {
+            assert!(!r.contains(x, 0.0), "{x:e} beyond the edge counted inside");
+        }
+    }
+
     use super::*;
 
     #[test]
