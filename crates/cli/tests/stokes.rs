@@ -82,6 +82,25 @@ fn example_n4_and_kappa_correction() {
     let c = json(&["--input", path.to_str().unwrap(), "--kappa", &km]);
     assert!(f(&c, "a0").abs() < 1e-4, "a0 after correction = {}", f(&c, "a0"));
     assert!((f(&c, "p") - f(&v, "p")).abs() < 1e-4);
+    // --kappa-from-data does both runs in one: the same kappa applied (stated in the output),
+    // the same result as the second run above to rounding of the printed kappa.
+    let one = json(&["--input", path.to_str().unwrap(), "--kappa-from-data"]);
+    assert!((f(&one, "kappa_correction") - f(&v, "kappa_mean")).abs() < 1e-15);
+    for k in ["q", "u", "p", "a0"] {
+        assert!((f(&one, k) - f(&c, k)).abs() < 1e-12, "{k}: {} vs {}", f(&one, k), f(&c, k));
+    }
+    let o = run(&["stokes", "--input", path.to_str().unwrap(), "--kappa-from-data"]);
+    let t = String::from_utf8_lossy(&o.stdout);
+    assert!(t.contains("estimated from these data"), "{t}");
+    // Both at once is a usage error; two angles cannot give kappa.
+    let o = run(&["stokes", "--input", path.to_str().unwrap(), "--kappa-from-data", "--kappa", "0.01"]);
+    assert_eq!(o.status.code(), Some(2));
+    let d = tempfile::tempdir().unwrap();
+    let two = write(&d, "two.csv", "hwp_deg,f_o,f_e\n0,510,490\n22.5,500,500\n");
+    let o = run(&["stokes", "--input", &two, "--kappa-from-data"]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("kappa cannot be estimated") && e.contains("N >= 4"), "{e}");
 }
 
 #[test]

@@ -102,7 +102,7 @@ fn fixed_whole_pixel_apertures_are_biased_on_moving_maskless_frames() {
     let set = frame_set(&out.frames, &inst);
     let g = layout_for(&set, &inst).unwrap();
     let ap = Aperture { radius_px: 4.0, annulus: Some((14.0, 24.0)) };
-    let opts = PhotOptions { weighting: skyfield::aperture::Weighting::Centre, recentre: false };
+    let opts = PhotOptions { weighting: skyfield::aperture::Weighting::Centre, recentre: false, ..Default::default() };
     let mut worst: f64 = 0.0;
     for (x, y, p, chi, _) in stars() {
         let r = photometry_with(&set, &g, x, y, &ap, &opts).unwrap().reduction;

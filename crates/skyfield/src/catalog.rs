@@ -20,6 +20,9 @@ pub struct CatalogConfig {
     pub detect: DetectConfig,
     pub aperture: Aperture,
     pub weighting: Weighting,
+    /// The Wollaston imbalance, per star: as measured, known, or estimated and applied.
+    #[serde(default)]
+    pub kappa: stokes::KappaCorrection,
 }
 
 impl Default for CatalogConfig {
@@ -28,6 +31,7 @@ impl Default for CatalogConfig {
             detect: DetectConfig::default(),
             aperture: Aperture { radius_px: 8.0, annulus: Some((12.0, 20.0)) },
             weighting: Weighting::Exact,
+            kappa: stokes::KappaCorrection::None,
         }
     }
 }
@@ -81,7 +85,10 @@ pub struct Row {
     pub chi_deg: f64,
     pub sigma_chi_deg: f64,
     pub a0: f64,
+    /// Mean `kappa_j` (`eq:kappa2`) of the reduced `F_i` (after any correction).
     pub kappa: Option<f64>,
+    /// The kappa applied to the fluxes before the reduction (none, known or estimated).
+    pub kappa_applied: Option<f64>,
     /// Modulation chi^2 of the `F_i` about `Q cos 4 theta + U sin 4 theta` and its degrees of
     /// freedom.
     pub chi2_mod: f64,
@@ -118,7 +125,7 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
     let (pairs, unpaired) = pair(&sources, &g, dcfg.pair_tol_px);
     let chi_off = inst.filter(&set.filter).map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0);
     let ap = cfg.aperture;
-    let opts = PhotOptions { weighting: cfg.weighting, recentre: true };
+    let opts = PhotOptions { weighting: cfg.weighting, recentre: true, kappa: cfg.kappa };
     let blend_r = 2.0 * ap.radius_px;
     // Stars are measured independently: in parallel, in catalog order.
     let rows: Vec<Row> = pairs
@@ -160,6 +167,7 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
                 sigma_chi_deg: nan,
                 a0: nan,
                 kappa: None,
+                kappa_applied: None,
                 chi2_mod: nan,
                 dof_mod: 0,
                 sigma_q_scatter: nan,
@@ -190,6 +198,7 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
                     row.sigma_chi_deg = r.sigma_chi.to_degrees();
                     row.a0 = r.a0;
                     row.kappa = r.kappa_mean;
+                    row.kappa_applied = ph.kappa_applied;
                     // Modulation chi^2: F_i about a_0 + Q cos 4theta + U sin 4theta (a_0 is fitted
                     // too, as the Wollaston's transmission offset makes one).
                     let chi2: f64 = r

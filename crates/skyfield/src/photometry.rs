@@ -38,11 +38,14 @@ pub struct PhotOptions {
     /// Re-centre the o aperture on the star's centroid in every frame (default), searching
     /// within the aperture radius of the given position.
     pub recentre: bool,
+    /// The Wollaston imbalance: as measured (default), a known kappa, or estimated from the
+    /// star's own `F_i` and applied in the same run.
+    pub kappa: stokes::KappaCorrection,
 }
 
 impl Default for PhotOptions {
     fn default() -> Self {
-        Self { weighting: Weighting::Exact, recentre: true }
+        Self { weighting: Weighting::Exact, recentre: true, kappa: stokes::KappaCorrection::None }
     }
 }
 
@@ -68,6 +71,8 @@ pub struct StarPhotometry {
     pub aperture_area_px: f64,
     pub n_annulus: usize,
     pub reduction: stokes::Reduction,
+    /// The kappa applied to the fluxes before `reduction` (`f_o`, `f_e` above are as measured).
+    pub kappa_applied: Option<f64>,
 }
 
 /// Measure the source at `(x, y)` (0-based px, o coordinates) in every frame of `set`, with
@@ -283,7 +288,7 @@ pub fn photometry_with(
         out.sigma_o.clone(),
         out.sigma_e.clone(),
     )?;
-    let reduction = m.reduce()?;
+    let (reduction, kappa_applied) = m.reduce_with(opts.kappa)?;
     let Partial { hwp_deg, centres, f_o, f_e, sigma_o, sigma_e, bg_o, bg_e, n_aperture, aperture_area_px, n_annulus } =
         out;
     Ok(StarPhotometry {
@@ -301,6 +306,7 @@ pub fn photometry_with(
         aperture_area_px,
         n_annulus,
         reduction,
+        kappa_applied,
     })
 }
 

@@ -17,7 +17,7 @@ pub mod reduce;
 pub mod solver;
 pub mod stats;
 
-pub use reduce::{reduce, Estimator, Measurement, Reduction, Warning};
+pub use reduce::{reduce, Estimator, KappaCorrection, Measurement, Reduction, Warning};
 pub use solver::{
     fast_variance_in_range, normalized_difference, polarization, sigma_normalized_difference,
     variance_normalized_difference, variance_normalized_difference_fast, QuEstimate, StokesSolver,
@@ -42,6 +42,8 @@ pub enum Error {
     Invalid { what: &'static str, index: usize, value: f64, why: &'static str },
     #[error("kappa = {0} is outside the open interval (-1, 1)")]
     KappaOutOfRange(f64),
+    #[error("kappa cannot be estimated from these data ({0}), so it cannot be applied; give a known kappa instead")]
+    KappaNotEstimable(String),
     #[error(
         "sigma_F = {sigma_f:.3e} at index {index}: the flux errors are so far above the fluxes that F is \
          undetermined (and its variance would overflow); check the errors"

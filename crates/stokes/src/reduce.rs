@@ -306,6 +306,47 @@ impl Measurement {
     pub fn reduce(&self) -> Result<Reduction, Error> {
         reduce(self)
     }
+
+    /// [`reduce`] with the Wollaston imbalance handled as `k` says; returns the reduction and
+    /// the `kappa` that was applied to the fluxes (`None` for [`KappaCorrection::None`]).
+    ///
+    /// [`KappaCorrection::FromData`] estimates `kappa` from these same data (the mean of the
+    /// `kappa_j` of `eq:kappa2`, from positions 45 deg apart), corrects both beams with it
+    /// ([`Self::corrected_for_kappa`]) and reduces again, in one call: `kappa` enters `F_i` in
+    /// second order (`eq:F` cancels it to first order on a complete set), so the estimate from
+    /// the uncorrected `F_i` is unbiased to that order. Refused when no `kappa_j` exists (fewer
+    /// than 4 angles, or no pair 45 deg apart), with the reason.
+    pub fn reduce_with(&self, k: KappaCorrection) -> Result<(Reduction, Option<f64>), Error> {
+        match k {
+            KappaCorrection::None => Ok((self.reduce()?, None)),
+            KappaCorrection::Known(kappa) => Ok((self.corrected_for_kappa(kappa)?.reduce()?, Some(kappa))),
+            KappaCorrection::FromData => {
+                let first = self.reduce()?;
+                let Some(kappa) = first.kappa_mean else {
+                    let why = first
+                        .warnings
+                        .iter()
+                        .find(|w| matches!(w, Warning::KappaNeedsFour { .. } | Warning::KappaNoPairs))
+                        .map_or("no kappa_j".to_string(), |w| w.to_string());
+                    return Err(Error::KappaNotEstimable(why));
+                };
+                Ok((self.corrected_for_kappa(kappa)?.reduce()?, Some(kappa)))
+            }
+        }
+    }
+}
+
+/// How a reduction treats the Wollaston imbalance `kappa = (t - s)/(t + s)` (section
+/// `sec:wollaston`).
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub enum KappaCorrection {
+    /// The fluxes as measured (`eq:F` cancels `kappa` to first order on a complete set).
+    #[default]
+    None,
+    /// A known `kappa` (e.g. from flats), applied to both beams.
+    Known(f64),
+    /// `kappa` estimated from the data themselves (`eq:kappa2`) and applied in the same run.
+    FromData,
 }
 
 fn check_total(f_o: &[f64], f_e: &[f64]) -> Result<(), Error> {

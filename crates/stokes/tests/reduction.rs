@@ -436,3 +436,35 @@ fn instrumental_partial_polarizer_is_measured() {
     assert_relative_eq!(r.p, 0.004, max_relative = 1e-12);
     assert_relative_eq!(r.chi, 1.2, epsilon = 1e-12);
 }
+
+/// kappa estimated and applied in one run (`KappaCorrection::FromData`): with the Wollaston's
+/// beams transmitting t and s (fluxes written here in closed form, not through `mueller`),
+/// the estimate is (t - s)/(t + s) exactly on noiseless data and q, u come back exactly, where
+/// the uncorrected reduction carries the second-order term of `F = (kappa + m)/(1 + kappa m)`.
+/// A known kappa gives the same numbers; two angles cannot give kappa and are refused.
+#[test]
+fn kappa_from_the_data_is_applied_in_the_same_run() {
+    use stokes::KappaCorrection;
+    let (t, s) = (1.06, 0.94);
+    let kappa = (t - s) / (t + s);
+    let (q, u) = (0.04, -0.03);
+    let theta: Vec<f64> = (0..8).map(|i| i as f64 * PI / 8.0).collect();
+    let m = |th: f64| q * (4.0 * th).cos() + u * (4.0 * th).sin();
+    let f_o: Vec<f64> = theta.iter().map(|&th| 5e5 * t * (1.0 + m(th))).collect();
+    let f_e: Vec<f64> = theta.iter().map(|&th| 5e5 * s * (1.0 - m(th))).collect();
+    let meas = Measurement::poisson(theta.clone(), f_o.clone(), f_e.clone()).unwrap();
+    let (plain, none) = meas.reduce_with(KappaCorrection::None).unwrap();
+    assert_eq!(none, None);
+    let off = (plain.qu.q - q).abs().max((plain.qu.u - u).abs());
+    assert!(off > 1e-5, "the uncorrected reduction should show kappa's second-order term, off by {off:e}");
+    let (r, applied) = meas.reduce_with(KappaCorrection::FromData).unwrap();
+    assert_relative_eq!(applied.unwrap(), kappa, max_relative = 1e-12);
+    assert!((r.qu.q - q).abs() < 1e-13 && (r.qu.u - u).abs() < 1e-13, "{} {}", r.qu.q, r.qu.u);
+    let (k, _) = meas.reduce_with(KappaCorrection::Known(kappa)).unwrap();
+    assert_relative_eq!(k.qu.q, r.qu.q, max_relative = 1e-12);
+    let two = Measurement::poisson(theta[..2].to_vec(), f_o[..2].to_vec(), f_e[..2].to_vec()).unwrap();
+    match two.reduce_with(KappaCorrection::FromData) {
+        Err(Error::KappaNotEstimable(why)) => assert!(why.contains("N >= 4"), "{why}"),
+        other => panic!("two angles gave {other:?}"),
+    }
+}

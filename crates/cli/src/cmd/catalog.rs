@@ -44,6 +44,8 @@ pub struct Args {
     pub json: bool,
     #[command(flatten)]
     pub frame: crate::cmd::frame_opts::FrameOpts,
+    #[command(flatten)]
+    pub kappa: crate::cmd::frame_opts::KappaOpts,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -86,6 +88,7 @@ pub fn run(a: Args) -> Result<()> {
         detect: DetectConfig { fwhm_px: a.fwhm, threshold_sigma: a.threshold, ..Default::default() },
         aperture: Aperture { radius_px: a.aperture, annulus: Some(annulus) },
         weighting: skyfield::aperture::Weighting::Exact,
+        kappa: a.kappa.correction()?,
     };
     let cat = catalog(&set, &inst, &cfg)?;
     if let Some(out) = &a.out {
@@ -113,6 +116,7 @@ pub fn run(a: Args) -> Result<()> {
                 "sigma_chi_deg",
                 "a0",
                 "kappa",
+                "kappa_applied",
                 "chi2_mod",
                 "dof_mod",
                 "sigma_q_scatter",
@@ -136,6 +140,7 @@ pub fn run(a: Args) -> Result<()> {
                 rec.push(r.sigma_chi_deg.to_string());
                 rec.push(r.a0.to_string());
                 rec.push(r.kappa.map_or(String::new(), |k| k.to_string()));
+                rec.push(r.kappa_applied.map_or(String::new(), |k| k.to_string()));
                 rec.push(r.chi2_mod.to_string());
                 rec.push(r.dof_mod.to_string());
                 rec.push(r.sigma_q_scatter.to_string());

@@ -38,3 +38,32 @@ impl FrameOpts {
         Ok(skyfield::calib::ReadOptions { bias: self.bias.clone(), flat: self.flat.clone(), hwp_angles_deg })
     }
 }
+
+/// The Wollaston imbalance kappa: a known value, or estimated from the data and applied in the
+/// same run (paper, sec:wollaston, eq:kappa2).
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct KappaOpts {
+    /// Known Wollaston imbalance kappa = (t - s)/(t + s), dimensionless in (-1, 1): the fluxes
+    /// are corrected (f_o / (1 + kappa), f_e / (1 - kappa)) before the reduction. Default: no
+    /// correction.
+    #[arg(long, value_name = "K", allow_negative_numbers = true, conflicts_with = "kappa_from_data")]
+    pub kappa: Option<f64>,
+    /// Estimate kappa from the data (the mean kappa_j of eq:kappa2, from HWP positions 45 deg
+    /// apart: needs N >= 4) and apply it in the same run; the output states the kappa applied.
+    #[arg(long)]
+    pub kappa_from_data: bool,
+}
+
+impl KappaOpts {
+    /// The library's setting.
+    pub fn correction(&self) -> Result<stokes::KappaCorrection> {
+        match (self.kappa, self.kappa_from_data) {
+            (Some(k), _) if !(k.is_finite() && k.abs() < 1.0) => {
+                bail!("--kappa {k}: kappa = (t - s)/(t + s) lies in the open interval (-1, 1)")
+            }
+            (Some(k), _) => Ok(stokes::KappaCorrection::Known(k)),
+            (None, true) => Ok(stokes::KappaCorrection::FromData),
+            (None, false) => Ok(stokes::KappaCorrection::None),
+        }
+    }
+}

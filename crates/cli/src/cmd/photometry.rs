@@ -49,6 +49,8 @@ pub struct Args {
     pub json: bool,
     #[command(flatten)]
     pub frame: crate::cmd::frame_opts::FrameOpts,
+    #[command(flatten)]
+    pub kappa: crate::cmd::frame_opts::KappaOpts,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -88,6 +90,8 @@ struct Out {
     centres_px: Vec<[f64; 4]>,
     /// The o/e offset used (px) at the source.
     oe_offset_px: Option<(f64, f64)>,
+    /// The Wollaston kappa applied to the fluxes before the reduction (null: none).
+    kappa_applied: Option<f64>,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -121,6 +125,7 @@ pub fn run(a: Args) -> Result<()> {
             WeightsArg::Centre => skyfield::aperture::Weighting::Centre,
         },
         recentre: !a.fixed,
+        kappa: a.kappa.correction()?,
     };
     let ap = Aperture { radius_px: a.aperture, annulus };
     let ph = skyfield::photometry::photometry_with(&set, &g, x, y, &ap, &opts)?;
@@ -150,6 +155,7 @@ pub fn run(a: Args) -> Result<()> {
         n_annulus: ph.n_annulus,
         oe_offset_px: g.e_offset(x, y),
         centres_px: ph.centres.clone(),
+        kappa_applied: ph.kappa_applied,
     };
     if a.json {
         crate::util::print_json(&o)?;
@@ -158,6 +164,10 @@ pub fn run(a: Args) -> Result<()> {
         let moved = o.centres_px.iter().map(|c| (c[0] - x).hypot(c[1] - y)).fold(0.0, f64::max);
         if !a.fixed {
             outln!("  apertures re-centred in every frame (largest move {moved:.2} px)");
+        }
+        if let Some(k) = o.kappa_applied {
+            let how = if a.kappa.kappa_from_data { ", estimated from these data (eq:kappa2)" } else { "" };
+            outln!("  fluxes corrected for kappa = {k:.6e}{how}");
         }
         outln!("  Q/I = {:+.5} +- {:.5}", o.q, o.sigma_q);
         outln!("  U/I = {:+.5} +- {:.5}", o.u, o.sigma_u);

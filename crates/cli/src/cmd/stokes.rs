@@ -36,11 +36,8 @@ pub struct Args {
     /// CSV with columns hwp_deg,f_o,f_e[,sigma_o,sigma_e] (header required).
     #[arg(long, value_name = "FILE.csv")]
     pub input: PathBuf,
-    /// Known Wollaston imbalance kappa = (t - s)/(t + s), dimensionless in (-1, 1): the fluxes
-    /// are corrected (f_o / (1 + kappa), f_e / (1 - kappa)) before the reduction. Default: no
-    /// correction.
-    #[arg(long, value_name = "K", allow_negative_numbers = true)]
-    pub kappa: Option<f64>,
+    #[command(flatten)]
+    pub kappa: super::frame_opts::KappaOpts,
     /// Also draw the paper's fig:fourier as a PNG (1000 x 900 px): F_i with their 1-sigma
     /// errors (from sigma_o/sigma_e, else Poisson) against the HWP angle, with the curve
     /// Q cos 4theta + U sin 4theta of the fitted Q, U (eq:system), raised by a_0 = mean F_i
@@ -241,11 +238,8 @@ pub fn run(a: Args) -> Result<()> {
         None => Measurement::poisson(theta, t.f_o.clone(), t.f_e.clone()),
     }
     .map_err(|e| explain(e, &t, &name))?;
-    let m = match a.kappa {
-        Some(k) => m.corrected_for_kappa(k).map_err(|e| anyhow!("--kappa: {e}"))?,
-        None => m,
-    };
-    let r = m.reduce().map_err(|e| explain(e, &t, &name))?;
+    let (r, applied) = m.reduce_with(a.kappa.correction()?).map_err(|e| explain(e, &t, &name))?;
+    let kappa = applied.map(|k| (k, a.kappa.kappa_from_data));
     // kappa = (t - s)/(t + s): beyond 0.2 one beam carries 1.5 times the other, far beyond any
     // working Wollaston prism; a column swap or a flux in the wrong units is more likely.
     if let Some(k) = r.kappa_mean.filter(|k| k.abs() > 0.2) {
@@ -260,9 +254,9 @@ pub fn run(a: Args) -> Result<()> {
         super::stokes_plot::fourier_png(path, &super::stokes_plot::data::fourier_plot(&r))?;
     }
     if a.json {
-        crate::util::print_json(&json(&r, &name, a.kappa))
+        crate::util::print_json(&json(&r, &name, applied))
     } else {
-        crate::util::write_stdout(table(&r, &t, &name, a.kappa).as_bytes());
+        crate::util::write_stdout(table(&r, &t, &name, kappa).as_bytes());
         Ok(())
     }
 }
@@ -312,7 +306,7 @@ fn pct(x: f64) -> String {
     format!("{:9.4} %", 100.0 * x)
 }
 
-fn table(r: &Reduction, t: &Table, name: &str, kappa: Option<f64>) -> String {
+fn table(r: &Reduction, t: &Table, name: &str, kappa: Option<(f64, bool)>) -> String {
     let mut o = String::new();
     let how = match r.estimator {
         stokes::Estimator::FourierSums => "Fourier sums eq:Q/eq:U",
@@ -322,8 +316,13 @@ fn table(r: &Reduction, t: &Table, name: &str, kappa: Option<f64>) -> String {
     let errs = if t.sigma.is_some() { "per-beam errors from the file" } else { "Poisson errors of counts" };
     wl!(o, "instpol stokes: {name}");
     wl!(o, "  N = {} HWP angles, {how}, {errs}", r.n);
-    if let Some(k) = kappa {
-        wl!(o, "  fluxes corrected for kappa = {k} (f_o/(1+kappa), f_e/(1-kappa))");
+    match kappa {
+        Some((k, false)) => wl!(o, "  fluxes corrected for kappa = {k} (f_o/(1+kappa), f_e/(1-kappa))"),
+        Some((k, true)) => wl!(
+            o,
+            "  fluxes corrected for kappa = {k:.6e}, estimated from these data (eq:kappa2; f_o/(1+kappa), f_e/(1-kappa))"
+        ),
+        None => {}
     }
     o.push('\n');
     wl!(o, "  {:<8} {:>11}   {:>11}", "", "value", "1-sigma");
