@@ -181,3 +181,21 @@ pub fn parse_radii(s: &str) -> Result<(f64, f64)> {
         _ => bail!("--annulus '{s}': expected two radii in px, e.g. 12,20"),
     }
 }
+
+/// `--aperture`: `8` (px), `2.5fwhm` (a multiple of the star's FWHM) or `best` (the radius of
+/// best S/N on the star's curve of growth).
+pub fn parse_aperture(s: &str) -> Result<skyfield::photometry::ApertureRadius> {
+    use skyfield::photometry::ApertureRadius;
+    match ApertureRadius::parse(s) {
+        Some(ApertureRadius::Px(r)) if r >= 1000.0 => {
+            anyhow::bail!("--aperture {s}: expected a radius between 0 and 1000 px")
+        }
+        Some(ApertureRadius::FwhmMultiple(k)) if k > 20.0 => {
+            anyhow::bail!("--aperture {s}: expected at most 20 FWHM")
+        }
+        Some(r) => Ok(r),
+        None => anyhow::bail!(
+            "--aperture '{s}': expected a radius in px (8), a multiple of the FWHM (2.5fwhm) or 'best' (best S/N on the curve of growth)"
+        ),
+    }
+}

@@ -197,3 +197,57 @@ fn catalog_estimates_and_applies_kappa_in_one_run() {
         assert!(((f("q") - q0) / f("sigma_q")).abs() < 4.0 && ((f("u") - u0) / f("sigma_u")).abs() < 4.0, "{r}");
     }
 }
+
+/// `catalog --aperture best` and `--aperture 2fwhm`: every star measured with its own radius
+/// (the `aperture_px` column: 2 x the measured FWHM, or the best-S/N radius, never above the
+/// annulus), q, u within 4 sigma of the scene; a radius that is neither is refused naming it.
+#[test]
+fn catalog_aperture_from_fwhm_or_best_snr() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = include_str!("../../../instruments/calcite.toml")
+        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
+    let inst = dir.path().join("calcite.toml");
+    std::fs::write(&inst, text).unwrap();
+    let scene = include_str!("../../../instruments/scenes/calcite_stars.toml")
+        .replace("instrument = \"calcite\"", &format!("instrument = \"{}\"", inst.display()));
+    let sp = dir.path().join("scene.toml");
+    std::fs::write(&sp, scene).unwrap();
+    let out = dir.path().join("f");
+    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert_eq!(code, 0, "{err}");
+    let frames = fits_in(&out);
+    let cat = |aperture: &str| {
+        let mut args: Vec<OsString> = vec!["catalog".into()];
+        args.extend(frames.iter().map(|f| f.clone().into_os_string()));
+        for a in ["--instrument", inst.to_str().unwrap(), "--fwhm", "4.7", "--annulus", "14,24", "--json"] {
+            args.push(a.into());
+        }
+        args.extend(["--aperture".into(), aperture.into()]);
+        run(&args)
+    };
+    for aperture in ["2fwhm", "best"] {
+        let (code, stdout, err) = cat(aperture);
+        assert_eq!(code, 0, "{aperture}: {err}");
+        let j: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+        let rows = j["rows"].as_array().unwrap();
+        assert_eq!(rows.len(), 3, "{j}");
+        for (x, y, p, chi) in [(150.0, 200.0, 0.0572, 136.0), (420.0, 450.0, 0.0, 0.0), (300.0, 600.0, 0.021, 12.0)] {
+            let r = rows
+                .iter()
+                .find(|r| (r["x"].as_f64().unwrap() - x).hypot(r["y"].as_f64().unwrap() - y) < 2.0)
+                .unwrap_or_else(|| panic!("no row at ({x}, {y}): {j}"));
+            let f = |k: &str| r[k].as_f64().unwrap_or_else(|| panic!("{k} missing: {r}"));
+            if aperture == "2fwhm" {
+                assert!((f("aperture_px") - 2.0 * f("fwhm_px")).abs() < 1e-9, "{r}");
+            } else {
+                let k = f("aperture_px") / f("fwhm_px");
+                assert!((0.5 - 1e-9..=4.0 + 1e-9).contains(&k) && f("aperture_px") <= 14.0, "{r}");
+            }
+            let (q0, u0) = (p * (2.0 * f64::to_radians(chi)).cos(), p * (2.0 * f64::to_radians(chi)).sin());
+            assert!(((f("q") - q0) / f("sigma_q")).abs() < 4.0 && ((f("u") - u0) / f("sigma_u")).abs() < 4.0, "{r}");
+        }
+    }
+    let (code, _, err) = cat("2xyz");
+    assert_eq!(code, 2);
+    assert!(err.contains("--aperture '2xyz'") && err.contains("best"), "{err}");
+}

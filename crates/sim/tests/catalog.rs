@@ -50,8 +50,10 @@ fn check(dir: &Path, inst_path: &Path, stars: &[Truth], fwhm_arcsec: f64, ap: Ap
     let fwhm_px = fwhm_arcsec / inst.detector.pixel_scale_arcsec;
     let cfg = CatalogConfig {
         detect: DetectConfig { fwhm_px, ..Default::default() },
-        aperture: ap,
+        radius: skyfield::photometry::ApertureRadius::Px(ap.radius_px),
+        annulus: ap.annulus,
         weighting: skyfield::aperture::Weighting::Exact,
+        kappa: Default::default(),
     };
     let cat = catalog(&set, &inst, &cfg).unwrap();
     let mut pulls = Vec::new();
@@ -170,8 +172,10 @@ fn bright_rows(dir: &Path, effects: &str) -> Vec<skyfield::catalog::Row> {
     let set = FrameSet::from_frames(read_frames(&out.frames, &inst, &|| {}).unwrap(), &inst, true).unwrap();
     let cfg = CatalogConfig {
         detect: DetectConfig { fwhm_px: 4.7, ..Default::default() },
-        aperture: Aperture { radius_px: 9.0, annulus: Some((14.0, 24.0)) },
+        radius: skyfield::photometry::ApertureRadius::Px(9.0),
+        annulus: Some((14.0, 24.0)),
         weighting: skyfield::aperture::Weighting::Exact,
+        kappa: Default::default(),
     };
     catalog(&set, &inst, &cfg).unwrap().rows.into_iter().filter(|r| r.q.is_finite()).collect()
 }

@@ -8,7 +8,7 @@
 use crate::aperture::Weighting;
 use crate::beams::BeamGeometry;
 use crate::detect::{detect, pair, DetectConfig, Source};
-use crate::photometry::{layout_for, photometry_with, Aperture, PhotOptions};
+use crate::photometry::{layout_for, photometry_sized, ApertureRadius, PhotOptions};
 use crate::reduce::FrameSet;
 use crate::Error;
 use instrument::Instrument;
@@ -18,7 +18,10 @@ use rayon::prelude::*;
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct CatalogConfig {
     pub detect: DetectConfig,
-    pub aperture: Aperture,
+    /// The aperture radius: fixed, a multiple of each star's FWHM, or its best S/N.
+    pub radius: ApertureRadius,
+    /// Background annulus `(r_in, r_out)` (px); `None`: no background subtraction.
+    pub annulus: Option<(f64, f64)>,
     pub weighting: Weighting,
     /// The Wollaston imbalance, per star: as measured, known, or estimated and applied.
     #[serde(default)]
@@ -29,7 +32,8 @@ impl Default for CatalogConfig {
     fn default() -> Self {
         Self {
             detect: DetectConfig::default(),
-            aperture: Aperture { radius_px: 8.0, annulus: Some((12.0, 20.0)) },
+            radius: ApertureRadius::Px(8.0),
+            annulus: Some((12.0, 20.0)),
             weighting: Weighting::Exact,
             kappa: stokes::KappaCorrection::None,
         }
@@ -70,6 +74,8 @@ pub struct Row {
     pub x_arcmin: f64,
     pub y_arcmin: f64,
     pub fwhm_px: f64,
+    /// Aperture radius used (px).
+    pub aperture_px: f64,
     /// Mean `f_O + f_E` over the HWP angles (e-).
     pub flux_e: f64,
     /// `F_i` per HWP angle (`eq:F`).
@@ -124,9 +130,7 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
     let sources: Vec<Source> = detect(first, &g, &dcfg);
     let (pairs, unpaired) = pair(&sources, &g, dcfg.pair_tol_px);
     let chi_off = inst.filter(&set.filter).map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0);
-    let ap = cfg.aperture;
     let opts = PhotOptions { weighting: cfg.weighting, recentre: true, kappa: cfg.kappa };
-    let blend_r = 2.0 * ap.radius_px;
     // Stars are measured independently: in parallel, in catalog order.
     let rows: Vec<Row> = pairs
         .par_iter()
@@ -138,6 +142,14 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
             if so.saturated || se.saturated {
                 flags |= flags::SATURATED;
             }
+            // Blended: another source within two aperture radii (the radius this star will get;
+            // for the best-S/N choice, its largest candidate's typical 2 FWHM).
+            let r_nominal = match cfg.radius {
+                ApertureRadius::Px(r) => r,
+                ApertureRadius::FwhmMultiple(k) => k * so.fwhm_px,
+                ApertureRadius::BestSnr => 2.0 * so.fwhm_px,
+            };
+            let blend_r = 2.0 * if r_nominal.is_finite() { r_nominal } else { 2.0 * cfg.detect.fwhm_px };
             let near = |s: &Source, skip: [usize; 2]| {
                 sources.iter().enumerate().any(|(k, t)| !skip.contains(&k) && (t.x - s.x).hypot(t.y - s.y) < blend_r)
             };
@@ -154,6 +166,7 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
                 x_arcmin: xa,
                 y_arcmin: ya,
                 fwhm_px: so.fwhm_px,
+                aperture_px: nan,
                 flux_e: nan,
                 f: vec![],
                 q: nan,
@@ -179,8 +192,11 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
                 row.note = "saturated: not measured".into();
                 return row;
             }
-            match photometry_with(set, &g, so.x, so.y, &ap, &opts) {
-                Ok(ph) => {
+            // The detection's FWHM of the o image, or the expected one if it could not be measured.
+            let fwhm = if so.fwhm_px.is_finite() && so.fwhm_px > 0.0 { so.fwhm_px } else { cfg.detect.fwhm_px };
+            match photometry_sized(set, &g, so.x, so.y, cfg.radius, fwhm, cfg.annulus, &opts) {
+                Ok((ph, radius)) => {
+                    row.aperture_px = radius;
                     let r = &ph.reduction;
                     let n = r.n;
                     row.flux_e = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum::<f64>() / n as f64;

@@ -310,6 +310,106 @@ pub fn photometry_with(
     })
 }
 
+/// How an aperture's radius is chosen (issue 13): given in pixels, a multiple of the star's
+/// FWHM, or the radius of best signal-to-noise on the star's curve of growth.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub enum ApertureRadius {
+    /// A fixed radius (px).
+    Px(f64),
+    /// `k` times the star's FWHM.
+    FwhmMultiple(f64),
+    /// The radius, among 0.5, 0.6, ... 4.0 FWHM (and inside the background annulus), that
+    /// maximizes the S/N of the star's total flux `sum_i (f_O + f_E)` over all frames, with the
+    /// photon, read and background noise [`photometry_with`] propagates.
+    BestSnr,
+}
+
+impl ApertureRadius {
+    /// Parse `8` (px), `2.5fwhm` (a multiple of the FWHM) or `best` (best S/N).
+    pub fn parse(s: &str) -> Option<Self> {
+        let t = s.trim().to_ascii_lowercase();
+        if t == "best" {
+            return Some(Self::BestSnr);
+        }
+        let (num, fwhm) = match t.strip_suffix("fwhm") {
+            Some(n) => (n.trim(), true),
+            None => (t.strip_suffix("px").unwrap_or(&t).trim(), false),
+        };
+        let v: f64 = num.parse().ok().filter(|v: &f64| v.is_finite() && *v > 0.0)?;
+        Some(if fwhm { Self::FwhmMultiple(v) } else { Self::Px(v) })
+    }
+}
+
+/// The photometry of one source with its aperture radius chosen by `radius` for a star of
+/// FWHM `fwhm_px` (px; unused for [`ApertureRadius::Px`]); returns the photometry and the
+/// radius used. The background annulus stays as given: a radius that would reach into it is
+/// not considered (and is an error for the fixed choices, as in [`photometry_with`]).
+///
+/// Why the total-flux S/N for [`ApertureRadius::BestSnr`]: the polarization's error is
+/// `1/(sqrt(N/2) SNR)` (`eq:sigp`), so the radius of best flux S/N is the radius of smallest
+/// `sigma_P`; the choice depends on the propagated variances only, never on the measured
+/// polarization, so it does not bias `P`. Radii where the photometry fails (an aperture
+/// reaching the mask or the detector's edge) are skipped; if all fail, the smallest radius's
+/// error is returned.
+#[allow(clippy::too_many_arguments)]
+pub fn photometry_sized(
+    set: &FrameSet,
+    g: &BeamGeometry,
+    x: f64,
+    y: f64,
+    radius: ApertureRadius,
+    fwhm_px: f64,
+    annulus: Option<(f64, f64)>,
+    opts: &PhotOptions,
+) -> Result<(StarPhotometry, f64), Error> {
+    let need_fwhm = || {
+        if fwhm_px.is_finite() && fwhm_px > 0.0 {
+            Ok(fwhm_px)
+        } else {
+            Err(Error::Invalid(format!(
+                "the aperture is chosen from the star's FWHM, but the FWHM at ({x:.1}, {y:.1}) px is {fwhm_px}: give the radius in pixels"
+            )))
+        }
+    };
+    let fixed = |r: f64| photometry_with(set, g, x, y, &Aperture { radius_px: r, annulus }, opts).map(|p| (p, r));
+    match radius {
+        ApertureRadius::Px(r) => fixed(r),
+        ApertureRadius::FwhmMultiple(k) => fixed(k * need_fwhm()?),
+        ApertureRadius::BestSnr => {
+            let fwhm = need_fwhm()?;
+            let r_max = annulus.map_or(f64::INFINITY, |(a, _)| a);
+            let mut best: Option<(f64, StarPhotometry, f64)> = None;
+            let mut first_err = None;
+            for k in (5..=40).map(|i| i as f64 * 0.1) {
+                let r = k * fwhm;
+                if r > r_max {
+                    break;
+                }
+                match fixed(r) {
+                    Ok((ph, r)) => {
+                        let flux: f64 = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum();
+                        let var: f64 = ph.sigma_o.iter().zip(&ph.sigma_e).map(|(a, b)| a * a + b * b).sum();
+                        let snr = flux / var.sqrt();
+                        if snr.is_finite() && best.as_ref().is_none_or(|b| snr > b.0) {
+                            best = Some((snr, ph, r));
+                        }
+                    }
+                    Err(e) => {
+                        first_err.get_or_insert(e);
+                    }
+                }
+            }
+            match (best, first_err) {
+                (Some((_, ph, r)), _) => Ok((ph, r)),
+                (None, Some(e)) => Err(e),
+                (None, None) => Err(Error::Invalid(format!(
+                    "no aperture radius between 0.5 and 4 FWHM ({fwhm:.2} px) fits inside the background annulus's inner radius {r_max} px"
+                ))),
+            }
+        }
+    }
+}
+
 /// [`StarPhotometry`] while it is being measured.
 struct Partial {
     hwp_deg: Vec<f64>,

@@ -3,7 +3,6 @@
 use anyhow::{bail, Result};
 use skyfield::catalog::{catalog, flags, CatalogConfig};
 use skyfield::detect::DetectConfig;
-use skyfield::photometry::Aperture;
 use skyfield::reduce::FrameSet;
 use std::path::PathBuf;
 
@@ -30,9 +29,11 @@ pub struct Args {
     /// Detection threshold (sigma of the filtered image's noise).
     #[arg(long, default_value_t = 5.0)]
     pub threshold: f64,
-    /// Aperture radius (px).
-    #[arg(long, default_value_t = 8.0)]
-    pub aperture: f64,
+    /// Aperture radius: pixels (8), a multiple of each star's measured FWHM (2.5fwhm) or
+    /// 'best': per star, the radius of best S/N of its total flux on the curve of growth,
+    /// 0.5 to 4 FWHM inside the annulus (the radius used is the aperture_px column).
+    #[arg(long, default_value = "8", value_name = "PX|Kfwhm|best", allow_hyphen_values = true)]
+    pub aperture: String,
     /// Background annulus inner,outer radius (px).
     #[arg(long, default_value = "12,20")]
     pub annulus: String,
@@ -51,9 +52,7 @@ pub struct Args {
 pub fn run(a: Args) -> Result<()> {
     let inst = instrument::Instrument::load(&a.instrument)?;
     let annulus = crate::util::parse_radii(&a.annulus)?;
-    if !(a.aperture.is_finite() && a.aperture > 0.0 && a.aperture < 1000.0) {
-        bail!("--aperture {} px: expected a radius between 0 and 1000 px", a.aperture);
-    }
+    let radius = crate::util::parse_aperture(&a.aperture)?;
     if !(a.fwhm.is_finite() && a.fwhm > 0.5 && a.fwhm < 200.0) {
         bail!("--fwhm {} px: expected a star width between 0.5 and 200 px", a.fwhm);
     }
@@ -86,7 +85,8 @@ pub fn run(a: Args) -> Result<()> {
     }
     let cfg = CatalogConfig {
         detect: DetectConfig { fwhm_px: a.fwhm, threshold_sigma: a.threshold, ..Default::default() },
-        aperture: Aperture { radius_px: a.aperture, annulus: Some(annulus) },
+        radius,
+        annulus: Some(annulus),
         weighting: skyfield::aperture::Weighting::Exact,
         kappa: a.kappa.correction()?,
     };
@@ -104,6 +104,7 @@ pub fn run(a: Args) -> Result<()> {
                 "x_arcmin",
                 "y_arcmin",
                 "fwhm_px",
+                "aperture_px",
                 "flux_e",
                 "q",
                 "u",
@@ -130,10 +131,11 @@ pub fn run(a: Args) -> Result<()> {
             head.extend((0..n).map(|i| format!("f_{i}")));
             w.write_record(&head)?;
             for r in &cat.rows {
-                let mut rec: Vec<String> = [r.id as f64, r.x, r.y, r.x_e, r.y_e, r.x_arcmin, r.y_arcmin, r.fwhm_px]
-                    .iter()
-                    .map(|v| v.to_string())
-                    .collect();
+                let mut rec: Vec<String> =
+                    [r.id as f64, r.x, r.y, r.x_e, r.y_e, r.x_arcmin, r.y_arcmin, r.fwhm_px, r.aperture_px]
+                        .iter()
+                        .map(|v| v.to_string())
+                        .collect();
                 for v in [r.flux_e, r.q, r.u, r.sigma_q, r.sigma_u, r.cov_qu, r.p, r.sigma_p, r.chi_deg] {
                     rec.push(v.to_string());
                 }

@@ -1,7 +1,6 @@
 //! `instpol photometry`: Q, U, P, chi of a point source from a set of frames.
 
-use anyhow::Result;
-use skyfield::photometry::Aperture;
+use anyhow::{bail, Result};
 use skyfield::reduce::FrameSet;
 use std::path::PathBuf;
 
@@ -23,9 +22,14 @@ pub struct Args {
     /// Units of --x/--y.
     #[arg(long, value_enum, default_value = "pixel")]
     pub coords: CoordsArg,
-    /// Aperture radius (px).
-    #[arg(long, default_value_t = 8.0)]
-    pub aperture: f64,
+    /// Aperture radius: pixels (8), a multiple of the star's FWHM (2.5fwhm; needs --fwhm) or
+    /// 'best': the radius of best S/N of the total flux on the curve of growth, 0.5 to 4 FWHM
+    /// inside the annulus (needs --fwhm).
+    #[arg(long, default_value = "8", value_name = "PX|Kfwhm|best", allow_hyphen_values = true)]
+    pub aperture: String,
+    /// The star's FWHM (px), for --aperture Kfwhm or best.
+    #[arg(long, value_name = "PX")]
+    pub fwhm: Option<f64>,
     /// Background annulus inner,outer radius (px).
     #[arg(long, default_value = "12,20")]
     pub annulus: String,
@@ -92,6 +96,8 @@ struct Out {
     oe_offset_px: Option<(f64, f64)>,
     /// The Wollaston kappa applied to the fluxes before the reduction (null: none).
     kappa_applied: Option<f64>,
+    /// The aperture radius used (px).
+    aperture_px: f64,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -127,8 +133,14 @@ pub fn run(a: Args) -> Result<()> {
         recentre: !a.fixed,
         kappa: a.kappa.correction()?,
     };
-    let ap = Aperture { radius_px: a.aperture, annulus };
-    let ph = skyfield::photometry::photometry_with(&set, &g, x, y, &ap, &opts)?;
+    let radius = crate::util::parse_aperture(&a.aperture)?;
+    let fwhm = match (radius, a.fwhm) {
+        (skyfield::photometry::ApertureRadius::Px(_), f) => f.unwrap_or(f64::NAN),
+        (_, Some(f)) if f.is_finite() && f > 0.0 && f < 200.0 => f,
+        (_, Some(f)) => bail!("--fwhm {f} px: expected a star width between 0 and 200 px"),
+        (_, None) => bail!("--aperture {}: give the star's FWHM with --fwhm PX", a.aperture),
+    };
+    let (ph, radius_px) = skyfield::photometry::photometry_sized(&set, &g, x, y, radius, fwhm, annulus, &opts)?;
     let r = &ph.reduction;
     // The HWP zero angle of the filter (the angle to add to a measured chi): Q, U and chi are
     // reported in the sky's frame, as the calibration and validation report them.
@@ -156,11 +168,12 @@ pub fn run(a: Args) -> Result<()> {
         oe_offset_px: g.e_offset(x, y),
         centres_px: ph.centres.clone(),
         kappa_applied: ph.kappa_applied,
+        aperture_px: radius_px,
     };
     if a.json {
         crate::util::print_json(&o)?;
     } else {
-        outln!("source at ({:.2}, {:.2}) px, aperture {} px, {} HWP angles", x, y, a.aperture, o.hwp_deg.len());
+        outln!("source at ({:.2}, {:.2}) px, aperture {:.2} px, {} HWP angles", x, y, radius_px, o.hwp_deg.len());
         let moved = o.centres_px.iter().map(|c| (c[0] - x).hypot(c[1] - y)).fold(0.0, f64::max);
         if !a.fixed {
             outln!("  apertures re-centred in every frame (largest move {moved:.2} px)");
