@@ -57,16 +57,7 @@ pub fn inputs<'a>(paths: impl IntoIterator<Item = &'a Path>) -> Result<()> {
 /// `--bin` must be a number of pixels that fits the detector (1 ..= its longer side): a bin of
 /// 1e11 px overflowed the bin-count arithmetic (a panic) before it was checked.
 pub fn check_bin(bin: usize, inst: &instrument::Instrument) -> Result<()> {
-    let side = inst.detector.nx.max(inst.detector.ny);
-    if bin == 0 || bin > side {
-        bail!(
-            "--bin {bin}: a bin side in pixels must be between 1 and the detector's {side} px ({} is {} x {} px)",
-            inst.name,
-            inst.detector.nx,
-            inst.detector.ny
-        );
-    }
-    Ok(())
+    skyfield::reduce::check_bin(bin, inst).map_err(|e| anyhow::anyhow!("--bin {bin}: {e}"))
 }
 
 /// An `--instrument` value as an input path when it names a file (built-in names do not).
