@@ -53,7 +53,7 @@ PathLike = Union[str, "os.PathLike[str]"]
 def _f64(a: ArrayLike, name: str) -> np.ndarray:
     """``a`` as a C-contiguous float64 array (no copy when it already is one)."""
     try:
-        return np.ascontiguousarray(a, dtype=np.float64)
+        return np.asarray(a, dtype=np.float64, order="C")
     except (TypeError, ValueError) as e:
         raise InputError(f"{name}: not an array of numbers ({e})") from None
 
@@ -75,9 +75,7 @@ def _reshape(d: Dict[str, Any], shape: Tuple[int, ...], n: int) -> Dict[str, Any
     out = {}
     for k, v in d.items():
         if isinstance(v, np.ndarray) and v.ndim == 1 and v.shape[0] == n:
-            v = v.reshape(shape)
-            if shape == ():
-                v = v[()]
+            v = v.item() if shape == () else v.reshape(shape)
         elif isinstance(v, dict):
             v = _reshape(v, shape, n)
         out[k] = v
