@@ -77,3 +77,14 @@ def test_catalog_errors(star_frames):
         instpol.catalog(frames, instrument=inst, aperture=0.0)
     with pytest.raises(instpol.InputError, match="annulus"):
         instpol.catalog(frames, instrument=inst, annulus=(12.0,))
+
+
+def test_reduce_refuses_to_write_over_an_input(sky_frames, tmp_path):
+    import shutil
+
+    frames, inst = sky_frames
+    copies = [shutil.copy(f, tmp_path / f.name) for f in frames]
+    before = [open(f, "rb").read() for f in copies]
+    with pytest.raises(instpol.InputError, match="refusing to write over an input"):
+        instpol.reduce(copies, instrument=inst, bin=10, output=copies[2])
+    assert [open(f, "rb").read() for f in copies] == before

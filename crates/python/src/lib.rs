@@ -324,8 +324,8 @@ impl _Calibration {
 #[pymethods]
 impl _Calibration {
     #[staticmethod]
-    fn load(path: PathBuf) -> PyResult<Self> {
-        let cal = fit::Calibration::load(&path).map_err(|e| {
+    fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+        let cal = py.detach(|| fit::Calibration::load(&path)).map_err(|e| {
             let file = matches!(e, fit::Error::Io { .. } | fit::Error::Fits { .. });
             let msg = format!("cannot load calibration {}: {e}", path.display());
             if file {
@@ -629,6 +629,20 @@ fn _reduce<'py>(
         require_complete_set: !allow_incomplete,
     };
     let read = read_options(bias, flat, hwp_angles)?;
+    if let Some(out) = &output {
+        // No command writes over its own input (the CLI's rule), whatever name it is given by.
+        let same = |a: &PathBuf| match (std::fs::canonicalize(a), std::fs::canonicalize(out)) {
+            (Ok(x), Ok(y)) => x == y,
+            _ => false,
+        };
+        if let Some(f) = frames.iter().chain(&read.bias).chain(&read.flat).find(|f| same(f)) {
+            return Err(input_err(format!(
+                "output {} is the input {} (the same file): refusing to write over an input; choose another output name",
+                out.display(),
+                f.display()
+            )));
+        }
+    }
     let r = py
         .detach(|| {
             let r = skyfield::reduce::reduce_files_with(&frames, &inst, &cfg, &read, &|| {})?;
