@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import instpol
-from conftest import same
+from conftest import key, same
 
 ADDED = ["q0", "u0", "sigma_q0", "sigma_u0", "cov_qu0", "p0", "sigma_p0", "chi0_deg", "sigma_chi0_deg",
          "p0_mas", "q_inst", "u_inst"]
@@ -44,10 +44,16 @@ def read_csv(path):
 
 
 def cli_correct(run, cal, cols, tmp_path, *flags):
+    """`instpol correct --json` on `cols`: the output CSV's columns, with the JSON summary
+    under the key "summary"."""
+    import json
+
     inp, out = tmp_path / "in.csv", tmp_path / "out.csv"
     write_csv(inp, cols)
-    run("correct", "--cal", cal, "--in", inp, "--out", out, *flags)
-    return read_csv(out)
+    summary = json.loads(run("correct", "--cal", cal, "--in", inp, "--out", out, "--json", *flags)[1])
+    t = read_csv(out)
+    t["summary"] = summary
+    return t
 
 
 @pytest.fixture(scope="module")
@@ -74,6 +80,11 @@ def test_correct_is_the_cli_bit_for_bit(run, request, tmp_path, which):
     for k in ADDED:
         assert same(py[k], cli[k]), k
     assert same(py["extrapolated"], cli["extrapolated"])
+    s = cli["summary"]
+    assert key(s, "n_rows") == len(cols["x"]) and key(s, "n_extrapolated") == py["n_extrapolated"] == 0
+    assert np.median(py["p0"]) == pytest.approx(key(s, "median_p0"), rel=1e-15)
+    assert np.median(np.hypot(py["q_inst"], py["u_inst"])) == pytest.approx(key(s, "median_p_inst"), rel=1e-15)
+    assert c.hwp_chi_offset_deg == key(s, "hwp_chi_offset_deg") and c.filter == key(s, "filter")
 
 
 def test_first_order_pixels_and_extrapolation_match_cli(run, cal_v_offset, tmp_path):
