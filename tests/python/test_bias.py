@@ -65,3 +65,22 @@ def test_bad_values_raise_input_error():
         instpol.bias(0.01, 0.002, "mas", "wide")
     with pytest.raises(instpol.InputError, match="do not broadcast"):
         instpol.bias([0.01, 0.02], [0.001, 0.002, 0.003])
+
+
+def rice_cdf(x, a, n=200001):
+    """P(P/sigma <= x | P0/sigma = a): the Rice pdf x exp(-(x^2 + a^2)/2) I0(a x), integrated
+    here with numpy (Simpson's rule; np.i0 scaled by exp(-a x) to stay finite)."""
+    t = np.linspace(0.0, x, n)
+    f = t * np.exp(-0.5 * (t - a) ** 2) * (np.i0(a * t) * np.exp(-a * t))
+    h = t[1] - t[0]
+    return h / 3 * (f[0] + f[-1] + 4 * f[1:-1:2].sum() + 2 * f[2:-1:2].sum())
+
+
+@pytest.mark.parametrize("p,sigma,cl", [(0.012, 0.004, 0.6827), (0.03, 0.005, 0.9)])
+def test_neyman_limits_solve_the_rice_cdf(p, sigma, cl):
+    """The Neyman central interval: the measured P sits at the (1 + cl)/2 quantile of the
+    Rice distribution of the lower limit and at the (1 - cl)/2 quantile of the upper one."""
+    r = instpol.bias(p, sigma, interval="neyman", cl=cl)
+    x = p / sigma
+    assert rice_cdf(x, r["lo"] / sigma) == pytest.approx(0.5 * (1 + cl), abs=1e-7)
+    assert rice_cdf(x, r["hi"] / sigma) == pytest.approx(0.5 * (1 - cl), abs=1e-7)
