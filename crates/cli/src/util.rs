@@ -57,16 +57,7 @@ pub fn inputs<'a>(paths: impl IntoIterator<Item = &'a Path>) -> Result<()> {
 /// `--bin` must be a number of pixels that fits the detector (1 ..= its longer side): a bin of
 /// 1e11 px overflowed the bin-count arithmetic (a panic) before it was checked.
 pub fn check_bin(bin: usize, inst: &instrument::Instrument) -> Result<()> {
-    let side = inst.detector.nx.max(inst.detector.ny);
-    if bin == 0 || bin > side {
-        bail!(
-            "--bin {bin}: a bin side in pixels must be between 1 and the detector's {side} px ({} is {} x {} px)",
-            inst.name,
-            inst.detector.nx,
-            inst.detector.ny
-        );
-    }
-    Ok(())
+    skyfield::reduce::check_bin(bin, inst).map_err(|e| anyhow::anyhow!("--bin {bin}: {e}"))
 }
 
 /// An `--instrument` value as an input path when it names a file (built-in names do not).
@@ -187,11 +178,11 @@ pub fn parse_radii(s: &str) -> Result<(f64, f64)> {
 pub fn parse_aperture(s: &str) -> Result<skyfield::photometry::ApertureRadius> {
     use skyfield::photometry::ApertureRadius;
     match ApertureRadius::parse(s) {
-        Some(ApertureRadius::Px(r)) if r >= 1000.0 => {
+        Some(ApertureRadius::Px(r)) if !(r > 0.0 && r < 1000.0) => {
             anyhow::bail!("--aperture {s}: expected a radius between 0 and 1000 px")
         }
-        Some(ApertureRadius::FwhmMultiple(k)) if k > 20.0 => {
-            anyhow::bail!("--aperture {s}: expected at most 20 FWHM")
+        Some(ApertureRadius::FwhmMultiple(k)) if !(k > 0.0 && k <= 20.0) => {
+            anyhow::bail!("--aperture {s}: expected a multiple of the FWHM between 0 and 20")
         }
         Some(r) => Ok(r),
         None => anyhow::bail!(

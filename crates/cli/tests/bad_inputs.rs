@@ -1128,7 +1128,7 @@ fn photometry_control_and_bad_geometry() {
     let (code, _, err) = run(&base("48", &[]));
     assert_eq!(code, 0, "control: {err}");
     refuses(f.dir.path(), &base("5000", &[]), &["5000"]);
-    refuses(f.dir.path(), &base("48", &["--aperture=-3"]), &["aperture radius -3"]);
+    refuses(f.dir.path(), &base("48", &["--aperture=-3"]), &["--aperture -3"]);
     refuses(f.dir.path(), &base("48", &["--annulus", "6,4"]), &["annulus (6, 4)"]);
 }
 

@@ -180,6 +180,18 @@ pub struct Corrected {
     pub extrapolated: bool,
 }
 
+impl Corrected {
+    /// The bias-corrected `P0` with `est` (section `sec:bias`) from the corrected `(q0, u0)`
+    /// and their errors; NaN when the errors are not usable (e.g. zero). The `p0_<name>` column
+    /// of `instpol correct` and of the Python `Calibration.correct`.
+    pub fn p0_estimate(&self, est: stokes::stats::Estimator) -> f64 {
+        match stokes::stats::PolMeasurement::new(self.q0, self.u0, self.var_q0.sqrt(), self.var_u0.sqrt()) {
+            Ok(m) => est.estimate(&m).value,
+            Err(_) => f64::NAN,
+        }
+    }
+}
+
 /// Rotate normalized Stokes parameters for a polarization-angle change of `+offset` (rad):
 /// `chi -> chi + offset`.
 #[inline]

@@ -40,6 +40,31 @@ impl Default for CatalogConfig {
     }
 }
 
+impl CatalogConfig {
+    /// Refuse settings no star field can have (the CLI and the Python package both ask here):
+    /// an aperture radius outside (0, 1000) px, a star width outside (0.5, 200) px, a
+    /// threshold that is not a positive number of sigma.
+    pub fn check(&self) -> Result<(), Error> {
+        let (w, t) = (self.detect.fwhm_px, self.detect.threshold_sigma);
+        match self.radius {
+            ApertureRadius::Px(r) if !(r.is_finite() && r > 0.0 && r < 1000.0) => {
+                return Err(Error::Invalid(format!("aperture {r} px: expected a radius between 0 and 1000 px")));
+            }
+            ApertureRadius::FwhmMultiple(k) if !(k.is_finite() && k > 0.0 && k <= 20.0) => {
+                return Err(Error::Invalid(format!("aperture {k} FWHM: expected a multiple between 0 and 20")));
+            }
+            _ => {}
+        }
+        if !(w.is_finite() && w > 0.5 && w < 200.0) {
+            return Err(Error::Invalid(format!("fwhm {w} px: expected a star width between 0.5 and 200 px")));
+        }
+        if !(t.is_finite() && t > 0.0) {
+            return Err(Error::Invalid(format!("threshold {t}: must be a positive number of sigma")));
+        }
+        Ok(())
+    }
+}
+
 /// Row flags (bits).
 pub mod flags {
     /// A pixel near the centre of either image reaches saturation: not measured.

@@ -335,7 +335,8 @@ impl ApertureRadius {
             Some(n) => (n.trim(), true),
             None => (t.strip_suffix("px").unwrap_or(&t).trim(), false),
         };
-        let v: f64 = num.parse().ok().filter(|v: &f64| v.is_finite() && *v > 0.0)?;
+        // The range is the caller's to judge (with its own words): any finite number parses.
+        let v: f64 = num.parse().ok().filter(|v: &f64| v.is_finite())?;
         Some(if fwhm { Self::FwhmMultiple(v) } else { Self::Px(v) })
     }
 }

@@ -340,6 +340,20 @@ pub struct Reduced {
     pub warnings: Vec<Warning>,
 }
 
+/// A bin side must be a number of pixels that fits the detector (1 ..= its longer side): a bin
+/// of 1e11 px overflowed the bin-count arithmetic before it was checked. Every caller of
+/// [`reduce_files_with`] with a user's bin (the CLI, the Python package) checks it here.
+pub fn check_bin(bin_px: usize, inst: &Instrument) -> Result<(), Error> {
+    let side = inst.detector.nx.max(inst.detector.ny);
+    if bin_px == 0 || bin_px > side {
+        return Err(Error::Invalid(format!(
+            "a bin side in pixels must be between 1 and the detector's {side} px ({} is {} x {} px)",
+            inst.name, inst.detector.nx, inst.detector.ny
+        )));
+    }
+    Ok(())
+}
+
 /// The bin grid used for an instrument: `bin_px` bins starting at the first sky band.
 pub fn bin_geometry(inst: &Instrument, bin_px: usize) -> BinGeometry {
     let g = BeamGeometry::new(inst);

@@ -17,7 +17,7 @@ pub mod reduce;
 pub mod solver;
 pub mod stats;
 
-pub use reduce::{reduce, Estimator, KappaCorrection, Measurement, Reduction, Warning};
+pub use reduce::{looks_like_radians, reduce, Estimator, KappaCorrection, Measurement, Reduction, Warning};
 pub use solver::{
     fast_variance_in_range, normalized_difference, polarization, sigma_normalized_difference,
     variance_normalized_difference, variance_normalized_difference_fast, QuEstimate, StokesSolver,

@@ -171,6 +171,17 @@ pub struct Reduction {
 pub const SIGMA_CHI_UNDETERMINED: f64 = std::f64::consts::PI / 3.464_101_615_137_754_5;
 
 impl Reduction {
+    /// `chi` (`eq:polang`) in degrees, in `[0, 180)` (a value that rounds to 180 at the wrap is
+    /// folded to 0), as every command and the Python package report it.
+    pub fn chi_deg(&self) -> f64 {
+        let d = self.chi.to_degrees();
+        if d >= 180.0 {
+            d - 180.0
+        } else {
+            d
+        }
+    }
+
     /// `sigma_chi` in degrees as every command reports it (one rule for `stokes`,
     /// `photometry`, ...): `None` when chi is undetermined (`P = 0` to rounding, or an error
     /// above [`SIGMA_CHI_UNDETERMINED`]).
@@ -347,6 +358,13 @@ pub enum KappaCorrection {
     Known(f64),
     /// `kappa` estimated from the data themselves (`eq:kappa2`) and applied in the same run.
     FromData,
+}
+
+/// True when HWP angles given "in degrees" all lie within `[-2pi, 2pi]`: radians by mistake
+/// (the optimal set 0, 22.5, 45, 67.5 deg is 0, 0.39, 0.79, 1.18 rad). No useful degree set
+/// spans less than 6.3 deg: HWP sets step by 22.5 deg or so. Callers refuse such input.
+pub fn looks_like_radians(deg: &[f64]) -> bool {
+    deg.len() >= 2 && deg.iter().all(|d| d.abs() <= std::f64::consts::TAU + 1e-9)
 }
 
 fn check_total(f_o: &[f64], f_e: &[f64]) -> Result<(), Error> {

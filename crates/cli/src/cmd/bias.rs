@@ -3,7 +3,7 @@
 
 use anyhow::{bail, Result};
 use serde::Serialize;
-use stokes::stats::{hpd_interval, neyman_interval, Estimator, IntervalKind, PolMeasurement};
+use stokes::stats::{Estimator, IntervalKind};
 
 /// Estimate the true polarization degree P0 from a measured P and its error sigma, and give a
 /// confidence interval on P0.
@@ -89,18 +89,9 @@ pub fn run(a: Args) -> Result<()> {
     if !a.chi.is_finite() {
         bail!("--chi = {} must be finite (degrees)", a.chi);
     }
-    let sq = a.sigma_q.unwrap_or(a.sigma);
-    let su = a.sigma_u.unwrap_or(a.sigma);
-    let (s2, c2) = (2.0 * a.chi.to_radians()).sin_cos();
-    let m = PolMeasurement::new(a.p * c2, a.p * s2, sq, su)?;
-    // The Rice-based estimators and intervals use the one sigma.
-    let m_eq = PolMeasurement::from_p(a.p, a.sigma)?;
-    let pick = |e: Estimator| if e == Estimator::Mas { e.estimate(&m) } else { e.estimate(&m_eq) };
-    let e = pick(est);
-    let iv = match kind {
-        IntervalKind::Neyman => neyman_interval(a.p, a.sigma, a.cl)?,
-        IntervalKind::Hpd => hpd_interval(a.p, a.sigma, a.cl)?,
-    };
+    // The science is the library's (the Python `instpol.bias` calls the same function).
+    let d = stokes::stats::debias(a.p, a.sigma, est, kind, a.cl, a.sigma_q, a.sigma_u, a.chi.to_radians())?;
+    let (e, iv) = (d.estimate, d.interval);
     let out = Out {
         estimator: est.name().into(),
         estimate: e.value,
@@ -113,7 +104,7 @@ pub fn run(a: Args) -> Result<()> {
         p: a.p,
         sigma: a.sigma,
         snr_p: a.p / a.sigma,
-        all_estimators: Estimator::ALL.iter().map(|&x| (x.name().to_string(), pick(x).value)).collect(),
+        all_estimators: Estimator::ALL.iter().zip(d.all).map(|(x, v)| (x.name().to_string(), v)).collect(),
     };
     if a.json {
         return crate::util::print_json(&out);

@@ -53,12 +53,14 @@ pub fn run(a: Args) -> Result<()> {
     let inst = instrument::Instrument::load(&a.instrument)?;
     let annulus = crate::util::parse_radii(&a.annulus)?;
     let radius = crate::util::parse_aperture(&a.aperture)?;
-    if !(a.fwhm.is_finite() && a.fwhm > 0.5 && a.fwhm < 200.0) {
-        bail!("--fwhm {} px: expected a star width between 0.5 and 200 px", a.fwhm);
-    }
-    if !(a.threshold.is_finite() && a.threshold > 0.0) {
-        bail!("--threshold {}: must be a positive number of sigma", a.threshold);
-    }
+    let cfg = CatalogConfig {
+        detect: DetectConfig { fwhm_px: a.fwhm, threshold_sigma: a.threshold, ..Default::default() },
+        radius,
+        annulus: Some(annulus),
+        weighting: skyfield::aperture::Weighting::Exact,
+        kappa: a.kappa.correction()?,
+    };
+    cfg.check().map_err(|e| anyhow::anyhow!("--{e}"))?;
     if let Some(out) = &a.out {
         match out.extension().and_then(|e| e.to_str()) {
             Some("csv") => {}
@@ -83,13 +85,6 @@ pub fn run(a: Args) -> Result<()> {
     for w in &set.warnings {
         eprintln!("warning: {w}");
     }
-    let cfg = CatalogConfig {
-        detect: DetectConfig { fwhm_px: a.fwhm, threshold_sigma: a.threshold, ..Default::default() },
-        radius,
-        annulus: Some(annulus),
-        weighting: skyfield::aperture::Weighting::Exact,
-        kappa: a.kappa.correction()?,
-    };
     let cat = catalog(&set, &inst, &cfg)?;
     if let Some(out) = &a.out {
         let n = cat.hwp_deg.len();

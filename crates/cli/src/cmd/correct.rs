@@ -8,7 +8,7 @@ use fitsio::tables::{ColumnDataType, ColumnDescription};
 use fitsio::FitsFile;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
-use stokes::stats::{Estimator, PolMeasurement};
+use stokes::stats::Estimator;
 
 /// Remove the instrumental polarization from measured Stokes parameters with a calibration
 /// file: exact inversion of the instrument's Mueller matrix M_I (eq:instpol) or the
@@ -433,14 +433,7 @@ fn estimates(out: &[Corrected], est: Estimator) -> Vec<f64> {
     use rayon::prelude::*;
     // The root-finding estimators take ~1 us a row: show progress on big catalogs.
     let pb = if out.len() >= 500_000 { ProgressBar::new(out.len() as u64) } else { ProgressBar::hidden() };
-    let v = out
-        .par_iter()
-        .progress_with(pb.clone())
-        .map(|r| match PolMeasurement::new(r.q0, r.u0, r.var_q0.sqrt(), r.var_u0.sqrt()) {
-            Ok(m) => est.estimate(&m).value,
-            Err(_) => f64::NAN,
-        })
-        .collect();
+    let v = out.par_iter().progress_with(pb.clone()).map(|r| r.p0_estimate(est)).collect();
     pb.finish_and_clear();
     v
 }

@@ -54,13 +54,6 @@ pub struct Args {
     pub angles_in_radians: bool,
 }
 
-/// True when HWP angles "in degrees" all lie within [-2pi, 2pi]: radians by mistake (the optimal
-/// set 0, 22.5, 45, 67.5 deg is 0, 0.39, 0.79, 1.18 rad). No useful degree set spans less than
-/// 6.3 deg: HWP sets step by 22.5 deg or so.
-fn looks_like_radians(deg: &[f64]) -> bool {
-    deg.iter().all(|d| d.abs() <= std::f64::consts::TAU + 1e-9)
-}
-
 /// The parsed CSV: one entry per data row.
 struct Table {
     hwp_deg: Vec<f64>,
@@ -203,16 +196,6 @@ fn finite(x: f64) -> Option<f64> {
     x.is_finite().then_some(x)
 }
 
-/// chi in degrees folded into [0, 180) (rounding at the wrap).
-fn chi_deg(chi: f64) -> f64 {
-    let d = chi.to_degrees();
-    if d >= 180.0 {
-        d - 180.0
-    } else {
-        d
-    }
-}
-
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs([a.input.as_path()])?;
     if let Some(p) = &a.plot {
@@ -223,7 +206,7 @@ pub fn run(a: Args) -> Result<()> {
     let mut t = read_table(&a.input)?;
     if a.angles_in_radians {
         t.hwp_deg.iter_mut().for_each(|r| *r = r.to_degrees());
-    } else if t.hwp_deg.len() >= 2 && looks_like_radians(&t.hwp_deg) {
+    } else if stokes::looks_like_radians(&t.hwp_deg) {
         bail!(
             "{name}: column 'hwp_deg' holds {:?}{}, all within 0..2pi: these look like radians (in degrees the \
              angles would span only {:.2} deg). Give the angles in degrees, or pass --angles-in-radians",
@@ -267,7 +250,7 @@ fn json(r: &Reduction, name: &str, kappa: Option<f64>) -> JsonOut {
         q: r.qu.q,
         u: r.qu.u,
         p: r.p,
-        chi_deg: chi_deg(r.chi),
+        chi_deg: r.chi_deg(),
         sigma_p: r.sigma_p,
         sigma_chi_deg: r.sigma_chi_deg_reported(),
         a0: r.a0,
@@ -341,7 +324,7 @@ fn table(r: &Reduction, t: &Table, name: &str, kappa: Option<(f64, bool)>) -> St
         Some(s) => format!("{s:9.3} deg"),
         None => "undetermined".into(),
     };
-    let chi = if r.chi_defined { format!("{:9.3} deg", chi_deg(r.chi)) } else { "undefined".into() };
+    let chi = if r.chi_defined { format!("{:9.3} deg", r.chi_deg()) } else { "undefined".into() };
     wl!(o, "  {:<8} {chi:>11}   {sc:>11}", "chi");
     wl!(o, "  {:<8} {}   {}   (eq:a0: ~ kappa or post-analyzer B cos 2phi)", "a0", pct(r.a0), pct(r.sigma_a0));
     match r.kappa_mean {

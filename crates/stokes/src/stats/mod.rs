@@ -16,12 +16,14 @@
 //! - [`intervals`]: Neyman central intervals and Bayesian HPD intervals on `P0`.
 
 pub mod angle;
+pub mod debias;
 pub mod estimators;
 pub mod intervals;
 pub mod rice;
 pub mod special;
 
 pub use angle::AngleDist;
+pub use debias::{debias, Debiased};
 pub use estimators::{Estimate, Estimator, PolMeasurement};
 pub use intervals::{hpd_interval, neyman_interval, Interval, IntervalKind};
 pub use rice::Rice;

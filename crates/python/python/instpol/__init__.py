@@ -1,0 +1,406 @@
+"""instpol: find, model and remove the instrumental polarization of dual-beam imaging
+polarimeters (half-wave plate + Wollaston prism), after Patat & Romaniello 2006, PASP 118, 146
+(equations cited by their labels, e.g. ``eq:Q``).
+
+The same library functions as the ``instpol`` command-line tool, with numpy arrays in and out:
+
+- :func:`stokes`: dual-beam fluxes at N half-wave-plate angles -> Q/I, U/I, P, chi and errors
+  (``instpol stokes``), for one star or many at once;
+- :func:`bias`: bias-corrected polarization degree and an interval on P0 (``instpol bias``);
+- :class:`Calibration`: a calibration file; ``evaluate`` gives the instrumental polarization,
+  ``correct`` removes it (``instpol correct``);
+- :func:`reduce`: frames -> binned Stokes map (``instpol reduce``);
+- :func:`catalog`: frames -> every paired star measured (``instpol catalog``).
+
+This module only converts arguments; the numbers come from the compiled library
+(``instpol._instpol``), which works with the GIL released. Errors raise :class:`InputError`
+(a ``ValueError``) or :class:`FileError` (an ``OSError``) with the CLI's messages.
+
+Example::
+
+    import numpy as np, instpol
+    cal = instpol.Calibration.load("demo/calibration_V.fits")
+    c = cal.correct(x, y, q, u, sigma_q, sigma_u, units="arcmin")
+    print(np.median(c["p0"]))
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Dict, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from . import _instpol
+from ._instpol import FileError, InputError, __version__
+
+__all__ = [
+    "stokes",
+    "bias",
+    "Calibration",
+    "reduce",
+    "catalog",
+    "StokesMap",
+    "InputError",
+    "FileError",
+    "__version__",
+]
+
+ArrayLike = Any
+PathLike = Union[str, "os.PathLike[str]"]
+
+
+def _f64(a: ArrayLike, name: str) -> np.ndarray:
+    """``a`` as a C-contiguous float64 array (no copy when it already is one)."""
+    try:
+        return np.asarray(a, dtype=np.float64, order="C")
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{name}: not an array of numbers ({e})") from None
+
+
+def _broadcast(names: Sequence[str], arrays: Sequence[ArrayLike]) -> Tuple[Tuple[int, ...], list]:
+    """Broadcast to one shape; return the shape and the flattened contiguous float64 arrays."""
+    conv = [_f64(a, n) for n, a in zip(names, arrays)]
+    try:
+        b = np.broadcast_arrays(*conv)
+    except ValueError:
+        shapes = ", ".join(f"{n} {a.shape}" for n, a in zip(names, conv))
+        raise InputError(f"arrays of shapes that do not broadcast together: {shapes}") from None
+    shape = b[0].shape
+    return shape, [np.ascontiguousarray(x).ravel() for x in b]
+
+
+def _reshape(d: Dict[str, Any], shape: Tuple[int, ...], n: int) -> Dict[str, Any]:
+    """Give every length-``n`` array of ``d`` the input ``shape`` (a 0-d shape gives scalars)."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, np.ndarray) and v.ndim == 1 and v.shape[0] == n:
+            v = v.item() if shape == () else v.reshape(shape)
+        elif isinstance(v, dict):
+            v = _reshape(v, shape, n)
+        out[k] = v
+    return out
+
+
+def _first_star(d: Dict[str, Any]) -> Dict[str, Any]:
+    """The batch result of one star as that star's values (floats, lists of its own)."""
+    out: Dict[str, Any] = {}
+    for k, v in d.items():
+        if k == "fourier":
+            out[k] = {h: (w if h == "k" else w[0]) for h, w in v.items()}
+        elif isinstance(v, np.ndarray):
+            out[k] = v[0].item() if v.ndim == 1 else v[0]
+        elif isinstance(v, list):
+            out[k] = v[0]
+        else:
+            out[k] = v
+    return out
+
+
+def stokes(
+    hwp_deg: ArrayLike,
+    f_o: ArrayLike,
+    f_e: ArrayLike,
+    sigma_o: Optional[ArrayLike] = None,
+    sigma_e: Optional[ArrayLike] = None,
+    kappa: Optional[float] = None,
+    *,
+    angles_in_radians: bool = False,
+) -> Dict[str, Any]:
+    """Reduce dual-beam fluxes at N half-wave-plate angles to Q/I, U/I, P and chi.
+
+    The normalized flux differences ``F_i`` (eq:F) give Q/I and U/I by the Fourier sums eq:Q,
+    eq:U on the optimal angle set (theta_i = i * 22.5 deg, N a multiple of 4), else by (weighted)
+    least squares of eq:system; P and chi (eq:poldeg, eq:polang) with errors propagated from
+    the per-beam errors and the analytic eq:sigp / eq:sigchi; the harmonics (eq:fourcoeff),
+    a_0 (eq:a0) and the Wollaston kappa_j (eq:g, eq:kappa2). The same reduction as
+    ``instpol stokes``.
+
+    Parameters
+    ----------
+    hwp_deg : (N,) array
+        HWP angles in degrees, in observing order (angles that all lie within 0..2pi are
+        refused as radians unless ``angles_in_radians=True``).
+    f_o, f_e : (N,) or (M, N) arrays
+        Ordinary and extraordinary fluxes: one star, or M stars (one per row) at the same
+        angles (the batch form).
+    sigma_o, sigma_e : arrays of the same shape, optional
+        1-sigma errors of the fluxes; without them the fluxes are photon counts (electrons)
+        with Poisson errors sqrt(f).
+    kappa : float, optional
+        Known Wollaston imbalance (t - s)/(t + s) in (-1, 1): fluxes are corrected as
+        f_o / (1 + kappa), f_e / (1 - kappa) first.
+
+    Returns
+    -------
+    dict
+        ``q, u, p`` (fractions), ``chi_deg`` in [0, 180), ``sigma_q, sigma_u, cov_qu,
+        sigma_p, sigma_chi_deg`` (NaN where chi is undetermined), ``a0, sigma_a0, snr,
+        sigma_p_analytic, sigma_chi_analytic_deg, kappa_mean`` (NaN when none),
+        ``chi_defined``: floats for one star, (M,) arrays for M stars; ``f, sigma_f`` ((N,) or
+        (M, N)), ``kappa`` (the kappa_j), ``fourier`` (dict of ``k, a, b, sigma_a, sigma_b,
+        power``), ``estimator`` and ``warnings``.
+    """
+    hwp = _f64(hwp_deg, "hwp_deg").ravel()
+    fo, fe = _f64(f_o, "f_o"), _f64(f_e, "f_e")
+    if fo.ndim not in (1, 2):
+        raise InputError(f"f_o has {fo.ndim} dimensions: expected (N,) for one star or (M, N) for M stars")
+    single = fo.ndim == 1
+    two = lambda a: np.ascontiguousarray(a.reshape(1, -1) if a.ndim == 1 else a)  # noqa: E731
+    so = None if sigma_o is None else two(_f64(sigma_o, "sigma_o"))
+    se = None if sigma_e is None else two(_f64(sigma_e, "sigma_e"))
+    if fe.ndim != fo.ndim:
+        raise InputError(f"f_o has shape {fo.shape} but f_e has shape {fe.shape}")
+    kap = None if kappa is None else float(kappa)
+    d = _instpol._stokes(hwp, two(fo), two(fe), so, se, kap, bool(angles_in_radians), single)
+    if single:
+        d = _first_star(d)
+    return d
+
+
+def bias(
+    p: ArrayLike,
+    sigma: ArrayLike,
+    estimator: str = "mas",
+    interval: str = "neyman",
+    *,
+    cl: float = 0.6827,
+    sigma_q: Optional[ArrayLike] = None,
+    sigma_u: Optional[ArrayLike] = None,
+    chi_deg: ArrayLike = 0.0,
+) -> Dict[str, Any]:
+    """Bias-corrected polarization degree P0 and an interval on it (section sec:bias).
+
+    P is biased high at low signal-to-noise. Estimators: ``naive``, ``as`` (asymptotic),
+    ``wk`` (Wardle & Kronberg 1974), ``ml`` (maximum likelihood), ``mp2`` (2-D most probable),
+    ``mas`` (Plaszczynski et al. 2014, takes unequal ``sigma_q``, ``sigma_u``; default),
+    ``mb`` (posterior mean), ``pr06`` (the paper's law, valid for P/sigma > 4). Intervals:
+    ``neyman`` (classical, from the Rice distribution) or ``hpd`` (Bayesian, flat prior), at
+    confidence ``cl``. ``sigma`` is the error of each of Q and U (eq:sigp); P and sigma in the
+    same units. Vectorized: the arguments broadcast together; the same numbers as
+    ``instpol bias``.
+
+    Returns
+    -------
+    dict
+        ``estimate``, ``lo``, ``hi`` (NaN where a limit does not exist), ``upper_limit_only``,
+        ``empty``, ``in_validity_range`` in the broadcast shape (scalars for scalar input),
+        ``all_estimators`` (name -> values), ``estimator``, ``interval_kind``, ``cl``.
+    """
+    names = ["p", "sigma", "chi_deg"]
+    arrs = [p, sigma, chi_deg]
+    if sigma_q is not None:
+        names.append("sigma_q")
+        arrs.append(sigma_q)
+    if sigma_u is not None:
+        names.append("sigma_u")
+        arrs.append(sigma_u)
+    shape, flat = _broadcast(names, arrs)
+    by = dict(zip(names, flat))
+    d = _instpol._bias(
+        by["p"], by["sigma"], str(estimator), str(interval), float(cl), by.get("sigma_q"), by.get("sigma_u"),
+        by["chi_deg"], shape == (),
+    )
+    return _reshape(d, shape, flat[0].shape[0])
+
+
+class Calibration:
+    """A calibration file (``instpol calibrate`` or ``instpol import-map``): the instrumental
+    polarization field p(x, y), phi(x, y) of one instrument and filter, its covariance, the
+    region where it holds and the filter's HWP zero angle.
+
+    Load it with :meth:`load`; :meth:`evaluate` gives the instrumental (q, u) at positions,
+    :meth:`correct` removes it from measurements (eq:instpol inverted exactly, or eq:approx).
+    """
+
+    def __init__(self, inner: Any) -> None:
+        self._c = inner
+
+    @classmethod
+    def load(cls, path: PathLike) -> "Calibration":
+        """Read a calibration FITS file. Raises FileError (unreadable) or InputError (not a
+        valid calibration), with the message of ``instpol correct --cal``."""
+        return cls(_instpol._Calibration.load(os.fspath(path)))
+
+    path = property(lambda self: self._c.path, doc="The file it was loaded from.")
+    instrument = property(lambda self: self._c.instrument, doc="Instrument name.")
+    filter = property(lambda self: self._c.filter, doc="Filter name.")
+    lambda_nm = property(lambda self: self._c.lambda_nm, doc="Effective wavelength (nm), NaN if unknown.")
+    hwp_chi_offset_deg = property(
+        lambda self: self._c.hwp_chi_offset_deg, doc="HWP chromatic zero angle added to a measured chi (deg)."
+    )
+    model = property(lambda self: self._c.model, doc="Model kind: RADIAL, RADIAL+RESIDUAL or MAP.")
+    rms_residual = property(lambda self: self._c.rms_residual, doc="RMS fit residual per component (fraction).")
+    centre_arcmin = property(lambda self: self._c.centre_arcmin, doc="Optical-axis centre (arcmin).")
+    has_pixel_grid = property(lambda self: self._c.has_pixel_grid, doc="True when positions may be given in px.")
+
+    def __repr__(self) -> str:
+        return f"<instpol.Calibration {self.instrument} {self.filter} ({self.model}) from {self.path!r}>"
+
+    def evaluate(self, x: ArrayLike, y: ArrayLike, units: str = "arcmin") -> Dict[str, Any]:
+        """The instrumental polarization at positions ``(x, y)``: ``q, u`` = p (cos 2phi,
+        sin 2phi) (eq:instpol), ``sigma_q, sigma_u, cov_qu`` (the calibration's own
+        uncertainty), and ``inside`` (the position lies in the calibrated field).
+
+        ``units``: ``"arcmin"`` (from the detector centre; the default, as ``instpol correct
+        --coords``) or ``"px"`` (0-based detector pixels of the calibration's grid). Arrays
+        broadcast; scalars give scalars.
+        """
+        shape, (xf, yf) = _broadcast(["x", "y"], [x, y])
+        return _reshape(self._c._evaluate(xf, yf, str(units)), shape, xf.shape[0])
+
+    def correct(
+        self,
+        x: ArrayLike,
+        y: ArrayLike,
+        q: ArrayLike,
+        u: ArrayLike,
+        sigma_q: ArrayLike,
+        sigma_u: ArrayLike,
+        cov_qu: Optional[ArrayLike] = None,
+        *,
+        units: str = "arcmin",
+        method: str = "exact",
+        allow_extrapolation: bool = False,
+        extrapolation_error: float = 0.5,
+        estimator: Optional[str] = None,
+    ) -> Dict[str, Any]:
+        """Remove the instrumental polarization from measured ``(q, u)`` at ``(x, y)``.
+
+        The HWP zero angle of the calibration's filter is applied first, then ``M_I`` is
+        inverted exactly (``method="exact"``, eq:instpol) or to first order
+        (``method="first-order"``, eq:approx); the measurement's and the calibration's
+        covariances are propagated. Positions outside the calibrated field raise InputError
+        unless ``allow_extrapolation``; then they are flagged and the calibration variance is
+        inflated by (F p)^2 (F = ``extrapolation_error``). ``units`` as in :meth:`evaluate`.
+        The same function and numbers, bit for bit, as ``instpol correct``.
+
+        Returns
+        -------
+        dict
+            ``q0, u0, sigma_q0, sigma_u0, cov_qu0, p0, sigma_p0, chi0_deg, sigma_chi0_deg,
+            q_inst, u_inst, extrapolated`` in the broadcast shape, ``p0_<estimator>`` when an
+            estimator is named (see :func:`bias`), and ``n_extrapolated``.
+        """
+        names = ["x", "y", "q", "u", "sigma_q", "sigma_u"]
+        arrs = [x, y, q, u, sigma_q, sigma_u]
+        if cov_qu is not None:
+            names.append("cov_qu")
+            arrs.append(cov_qu)
+        shape, flat = _broadcast(names, arrs)
+        cov = flat[6] if cov_qu is not None else None
+        d = self._c._correct(
+            *flat[:6], cov, str(units), str(method), bool(allow_extrapolation), float(extrapolation_error),
+            None if estimator is None else str(estimator),
+        )
+        return _reshape(d, shape, flat[0].shape[0])
+
+
+class StokesMap:
+    """A binned Stokes map from :func:`reduce`: 2-D arrays of shape ``(ny, nx)`` (bin row j,
+    column i) and the map's header values.
+
+    Attributes: ``q, u`` (Q/I, U/I fractions), ``sigma_q, sigma_u, cov_qu`` (scatter errors of
+    the bin means), ``sigma_q_phot, sigma_u_phot`` (photon and read noise), ``p`` (eq:poldeg),
+    ``chi_deg`` (eq:polang, [0, 180)), ``n_pixels``, ``intensity``, ``intensity_snr``,
+    ``valid``, ``x_arcmin, y_arcmin`` (bin centres from the detector centre), ``header``
+    (instrument, filter, hwp_angles_deg, bin_px, origin_x/y, nx, ny, pixel_scale_arcsec,
+    detector_nx/ny) and ``warnings``.
+    """
+
+    _ARRAYS = (
+        "q", "u", "sigma_q", "sigma_u", "cov_qu", "sigma_q_phot", "sigma_u_phot", "p", "chi_deg",
+        "n_pixels", "intensity", "intensity_snr", "valid", "x_arcmin", "y_arcmin",
+    )
+
+    def __init__(self, d: Dict[str, Any]) -> None:
+        self.header: Dict[str, Any] = d["header"]
+        self.warnings = list(d["warnings"])
+        shape = (self.header["ny"], self.header["nx"])
+        for k in self._ARRAYS:
+            setattr(self, k, d[k].reshape(shape))
+
+    def __repr__(self) -> str:
+        h = self.header
+        return (
+            f"<instpol.StokesMap {h['instrument']} {h['filter']}: {h['nx']} x {h['ny']} bins of "
+            f"{h['bin_px']} px, {int(self.valid.sum())} valid>"
+        )
+
+
+def _paths(frames: Union[PathLike, Sequence[PathLike]]) -> list:
+    if isinstance(frames, (str, os.PathLike)):
+        frames = [frames]
+    return [os.fspath(f) for f in frames]
+
+
+def _opt_path(p: Optional[PathLike]) -> Optional[str]:
+    return None if p is None else os.fspath(p)
+
+
+def reduce(
+    frames: Union[PathLike, Sequence[PathLike]],
+    instrument: str = "fors1",
+    *,
+    bin: int = 30,
+    nsigma: float = 3.0,
+    allow_incomplete: bool = False,
+    bias: Optional[PathLike] = None,
+    flat: Optional[PathLike] = None,
+    hwp_angles: Optional[Sequence[float]] = None,
+    output: Optional[PathLike] = None,
+) -> StokesMap:
+    """Reduce dual-beam frames (one filter, N HWP angles) to a binned Stokes map, as
+    ``instpol reduce``: per pixel F_i (eq:F) and Q/I, U/I (eq:Q, eq:U) from the ordinary and
+    extraordinary images of every mask strip, then a sigma-clipped mean per ``bin`` x ``bin``
+    px bin. ``instrument``: a built-in name or an instrument TOML file; ``bias``, ``flat``:
+    master frames; ``hwp_angles``: degrees per frame for headers without the keyword;
+    ``output``: also write the FITS map there (atomically).
+    """
+    if isinstance(bin, bool) or not isinstance(bin, (int, np.integer)) or bin < 0:
+        raise InputError(f"bin {bin!r}: expected a bin side in pixels (a positive integer)")
+    d = _instpol._reduce(
+        _paths(frames), str(instrument), int(bin), float(nsigma), bool(allow_incomplete), _opt_path(bias),
+        _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles], _opt_path(output),
+    )
+    return StokesMap(d)
+
+
+def catalog(
+    frames: Union[PathLike, Sequence[PathLike]],
+    instrument: str = "fors1",
+    *,
+    fwhm: float = 4.0,
+    threshold: float = 5.0,
+    aperture: Union[float, str] = 8.0,
+    annulus: Tuple[float, float] = (12.0, 20.0),
+    bias: Optional[PathLike] = None,
+    flat: Optional[PathLike] = None,
+    hwp_angles: Optional[Sequence[float]] = None,
+    kappa: Optional[float] = None,
+    kappa_from_data: bool = False,
+) -> Dict[str, Any]:
+    """Every paired star of a frame set measured, as ``instpol catalog``: detection on the
+    first frame, ordinary/extraordinary pairing through the instrument's beam layout, aperture
+    photometry per frame with the background removed in each beam, then Q/I, U/I, P, chi
+    (eq:Q, eq:U, eq:poldeg, eq:polang) with propagated and scatter-based errors and flags.
+
+    Returns a dict of columns (one value per star: ``id, x, y, x_e, y_e, x_arcmin, y_arcmin,
+    fwhm_px, aperture_px, flux_e, q, u, sigma_q, sigma_u, cov_qu, p, sigma_p, chi_deg, sigma_chi_deg, a0,
+    kappa, kappa_applied, chi2_mod, dof_mod, sigma_q_scatter, sigma_u_scatter, flags, flag_names, note``, and
+    ``f`` of shape (stars, N)) and metadata (``hwp_deg, filter, chi_offset_deg, oe_offset_px,
+    unpaired, n_sources, warnings``).
+
+    ``aperture``: a radius in px, ``"2.5fwhm"`` (a multiple of each star's FWHM) or ``"best"``
+    (the radius of best S/N on each star's curve of growth). ``kappa`` applies a known Wollaston
+    imbalance; ``kappa_from_data=True`` estimates it per star (eq:kappa2) and applies it.
+    """
+    try:
+        r_in, r_out = (float(a) for a in annulus)
+    except (TypeError, ValueError):
+        raise InputError(f"annulus {annulus!r}: expected two radii in px, e.g. (12, 20)") from None
+    return _instpol._catalog(
+        _paths(frames), str(instrument), float(fwhm), float(threshold), str(aperture), (r_in, r_out),
+        _opt_path(bias), _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles],
+        None if kappa is None else float(kappa), bool(kappa_from_data),
+    )

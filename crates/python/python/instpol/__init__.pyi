@@ -1,0 +1,134 @@
+# Type stubs of the Python package `instpol` (see __init__.py for the docstrings, which cite
+# Patat & Romaniello 2006 by equation label).
+import os
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import numpy.typing as npt
+
+__version__: str
+ArrayLike = npt.ArrayLike
+PathLike = Union[str, os.PathLike[str]]
+
+class InputError(ValueError):
+    """Bad input: a value, an array or a file's content."""
+
+class FileError(OSError):
+    """A file that cannot be opened, read or written."""
+
+def stokes(
+    hwp_deg: ArrayLike,
+    f_o: ArrayLike,
+    f_e: ArrayLike,
+    sigma_o: Optional[ArrayLike] = ...,
+    sigma_e: Optional[ArrayLike] = ...,
+    kappa: Optional[float] = ...,
+    *,
+    angles_in_radians: bool = ...,
+) -> Dict[str, Any]:
+    """Q/I, U/I, P, chi with errors from dual-beam fluxes (eq:F, eq:Q, eq:U, eq:sigp, eq:sigchi)."""
+
+def bias(
+    p: ArrayLike,
+    sigma: ArrayLike,
+    estimator: str = ...,
+    interval: str = ...,
+    *,
+    cl: float = ...,
+    sigma_q: Optional[ArrayLike] = ...,
+    sigma_u: Optional[ArrayLike] = ...,
+    chi_deg: ArrayLike = ...,
+) -> Dict[str, Any]:
+    """Bias-corrected P0 and an interval on it (section sec:bias), vectorized."""
+
+class Calibration:
+    """A calibration file: the instrumental polarization field of one instrument and filter."""
+
+    @classmethod
+    def load(cls, path: PathLike) -> Calibration: ...
+    @property
+    def path(self) -> os.PathLike[str]: ...
+    @property
+    def instrument(self) -> str: ...
+    @property
+    def filter(self) -> str: ...
+    @property
+    def lambda_nm(self) -> float: ...
+    @property
+    def hwp_chi_offset_deg(self) -> float: ...
+    @property
+    def model(self) -> str: ...
+    @property
+    def rms_residual(self) -> float: ...
+    @property
+    def centre_arcmin(self) -> Tuple[float, float]: ...
+    @property
+    def has_pixel_grid(self) -> bool: ...
+    def evaluate(self, x: ArrayLike, y: ArrayLike, units: str = ...) -> Dict[str, Any]:
+        """Instrumental (q, u) = p (cos 2phi, sin 2phi) (eq:instpol) with errors at (x, y)."""
+    def correct(
+        self,
+        x: ArrayLike,
+        y: ArrayLike,
+        q: ArrayLike,
+        u: ArrayLike,
+        sigma_q: ArrayLike,
+        sigma_u: ArrayLike,
+        cov_qu: Optional[ArrayLike] = ...,
+        *,
+        units: str = ...,
+        method: str = ...,
+        allow_extrapolation: bool = ...,
+        extrapolation_error: float = ...,
+        estimator: Optional[str] = ...,
+    ) -> Dict[str, Any]:
+        """Exact inversion of eq:instpol (or eq:approx), as `instpol correct`, bit for bit."""
+
+class StokesMap:
+    header: Dict[str, Any]
+    warnings: List[str]
+    q: npt.NDArray[np.float64]
+    u: npt.NDArray[np.float64]
+    sigma_q: npt.NDArray[np.float64]
+    sigma_u: npt.NDArray[np.float64]
+    cov_qu: npt.NDArray[np.float64]
+    sigma_q_phot: npt.NDArray[np.float64]
+    sigma_u_phot: npt.NDArray[np.float64]
+    p: npt.NDArray[np.float64]
+    chi_deg: npt.NDArray[np.float64]
+    n_pixels: npt.NDArray[np.uint32]
+    intensity: npt.NDArray[np.float64]
+    intensity_snr: npt.NDArray[np.float64]
+    valid: npt.NDArray[np.bool_]
+    x_arcmin: npt.NDArray[np.float64]
+    y_arcmin: npt.NDArray[np.float64]
+
+def reduce(
+    frames: Union[PathLike, Sequence[PathLike]],
+    instrument: str = ...,
+    *,
+    bin: int = ...,
+    nsigma: float = ...,
+    allow_incomplete: bool = ...,
+    bias: Optional[PathLike] = ...,
+    flat: Optional[PathLike] = ...,
+    hwp_angles: Optional[Sequence[float]] = ...,
+    output: Optional[PathLike] = ...,
+) -> StokesMap:
+    """Frames to a binned Stokes map (eq:F, eq:Q, eq:U per pixel, clipped bin means)."""
+
+def catalog(
+    frames: Union[PathLike, Sequence[PathLike]],
+    instrument: str = ...,
+    *,
+    fwhm: float = ...,
+    threshold: float = ...,
+    aperture: Union[float, str] = ...,
+    annulus: Tuple[float, float] = ...,
+    bias: Optional[PathLike] = ...,
+    flat: Optional[PathLike] = ...,
+    hwp_angles: Optional[Sequence[float]] = ...,
+    kappa: Optional[float] = ...,
+    kappa_from_data: bool = ...,
+) -> Dict[str, Any]:
+    """Every paired star measured: Q/I, U/I, P, chi with errors and flags."""

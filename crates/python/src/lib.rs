@@ -1,0 +1,808 @@
+//! `instpol._instpol`: the compiled half of the Python package `instpol`.
+//!
+//! Thin by design (DESIGN.md, "Two faces over one library"): numpy arrays in, the same library
+//! functions the `instpol` CLI calls, numpy arrays out. The Python half
+//! (`python/instpol/__init__.py`) turns user input into contiguous float64 arrays, broadcasts and
+//! reshapes; this half runs the science with the GIL released (`Python::detach`) and never
+//! touches a Python object per element.
+//!
+//! | Python                     | library function (as the CLI command)                      |
+//! |----------------------------|------------------------------------------------------------|
+//! | `instpol.stokes`           | `stokes::Measurement::reduce` (`instpol stokes`)           |
+//! | `instpol.bias`             | `stokes::stats::debias` (`instpol bias`)                   |
+//! | `Calibration.load`         | `fit::Calibration::load` (`instpol correct --cal`)         |
+//! | `Calibration.evaluate`     | `fit::correct::Corrector::instrumental`                    |
+//! | `Calibration.correct`      | `fit::correct::Corrector::par_correct_batch` (`correct`)   |
+//! | `instpol.reduce`           | `skyfield::reduce::reduce_files_with` (`instpol reduce`)   |
+//! | `instpol.catalog`          | `skyfield::catalog::catalog` (`instpol catalog`)           |
+//!
+//! Errors: `instpol.InputError` (a `ValueError`) for bad values or file contents,
+//! `instpol.FileError` (an `OSError`) for files that cannot be opened, read or written; the
+//! messages are the libraries', as the CLI prints them.
+
+use fit::correct::{CorrectOptions, Corrector, Measurement, Method};
+use numpy::prelude::*;
+use numpy::{PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
+use pyo3::create_exception;
+use pyo3::exceptions::{PyOSError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use rayon::prelude::*;
+use std::path::PathBuf;
+use stokes::stats::{Estimator, IntervalKind};
+
+create_exception!(
+    instpol,
+    InputError,
+    PyValueError,
+    "Bad input: a value, an array or a file's content (a ValueError)."
+);
+create_exception!(instpol, FileError, PyOSError, "A file that cannot be opened, read or written (an OSError).");
+
+fn input_err(msg: impl std::fmt::Display) -> PyErr {
+    InputError::new_err(msg.to_string())
+}
+
+fn sky_err(e: skyfield::Error) -> PyErr {
+    match e {
+        skyfield::Error::Fits { .. } | skyfield::Error::Write { .. } => FileError::new_err(e.to_string()),
+        e => input_err(e),
+    }
+}
+
+fn inst_err(e: instrument::Error) -> PyErr {
+    match e {
+        instrument::Error::Io { .. } => FileError::new_err(e.to_string()),
+        e => input_err(e),
+    }
+}
+
+/// A contiguous view of a float64 array (the Python half makes it contiguous).
+fn slice<'a>(a: &'a PyReadonlyArray1<'_, f64>, what: &str) -> PyResult<&'a [f64]> {
+    a.as_slice().map_err(|_| input_err(format!("{what}: expected a contiguous float64 array")))
+}
+
+fn slice2<'a>(a: &'a PyReadonlyArray2<'_, f64>, what: &str) -> PyResult<&'a [f64]> {
+    a.as_slice().map_err(|_| input_err(format!("{what}: expected a contiguous float64 array")))
+}
+
+fn arr1<'py>(py: Python<'py>, v: Vec<f64>) -> Bound<'py, PyArray1<f64>> {
+    PyArray1::from_vec(py, v)
+}
+
+fn arr2<'py>(py: Python<'py>, v: Vec<f64>, rows: usize, cols: usize) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    PyArray1::from_vec(py, v).reshape([rows, cols])
+}
+
+/// A zeroed output column of `n` values (handed to numpy without a copy).
+fn column(n: usize) -> Vec<f64> {
+    vec![0.0f64; n]
+}
+
+fn bools<'py>(py: Python<'py>, v: Vec<bool>) -> Bound<'py, PyArray1<bool>> {
+    PyArray1::from_vec(py, v)
+}
+
+fn opt(x: Option<f64>) -> f64 {
+    x.unwrap_or(f64::NAN)
+}
+
+/// Dual-beam reduction of `m` stars measured at the same `n` HWP angles (`eq:F`, `eq:Q`,
+/// `eq:U`, `eq:sigp`, `eq:sigchi`, `eq:fourcoeff`, `eq:a0`, `eq:kappa2`): `f_o`, `f_e` (and the
+/// optional per-beam errors) are `(m, n)`. `single`: one star (errors name no star).
+#[pyfunction]
+#[pyo3(signature = (hwp_deg, f_o, f_e, sigma_o, sigma_e, kappa, angles_in_radians, single))]
+#[allow(clippy::too_many_arguments)]
+fn _stokes<'py>(
+    py: Python<'py>,
+    hwp_deg: PyReadonlyArray1<'py, f64>,
+    f_o: PyReadonlyArray2<'py, f64>,
+    f_e: PyReadonlyArray2<'py, f64>,
+    sigma_o: Option<PyReadonlyArray2<'py, f64>>,
+    sigma_e: Option<PyReadonlyArray2<'py, f64>>,
+    kappa: Option<f64>,
+    angles_in_radians: bool,
+    single: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    let hwp = slice(&hwp_deg, "hwp_deg")?;
+    let n = hwp.len();
+    let [m, nf] = [f_o.shape()[0], f_o.shape()[1]];
+    if nf != n || f_e.shape() != f_o.shape() {
+        return Err(input_err(format!(
+            "f_o has shape {:?} and f_e {:?}: both must have one column per HWP angle ({n} angles in hwp_deg)",
+            f_o.shape(),
+            f_e.shape()
+        )));
+    }
+    let sig = match (&sigma_o, &sigma_e) {
+        (Some(a), Some(b)) => {
+            if a.shape() != f_o.shape() || b.shape() != f_o.shape() {
+                return Err(input_err(format!(
+                    "sigma_o {:?} and sigma_e {:?} must have the shape of f_o {:?}",
+                    a.shape(),
+                    b.shape(),
+                    f_o.shape()
+                )));
+            }
+            Some((slice2(a, "sigma_o")?, slice2(b, "sigma_e")?))
+        }
+        (None, None) => None,
+        (Some(_), None) => return Err(input_err("sigma_o is given without sigma_e (give both or neither)")),
+        (None, Some(_)) => return Err(input_err("sigma_e is given without sigma_o (give both or neither)")),
+    };
+    let (fo, fe) = (slice2(&f_o, "f_o")?, slice2(&f_e, "f_e")?);
+    let theta: Vec<f64> = if angles_in_radians {
+        hwp.to_vec()
+    } else {
+        if stokes::looks_like_radians(hwp) {
+            let lo = hwp.iter().cloned().fold(f64::MAX, f64::min);
+            let hi = hwp.iter().cloned().fold(f64::MIN, f64::max);
+            return Err(input_err(format!(
+                "hwp_deg holds {:?}{}, all within 0..2pi: these look like radians (in degrees the angles would span \
+                 only {:.2} deg). Give the angles in degrees, or pass angles_in_radians=True",
+                &hwp[..n.min(8)],
+                if n > 8 { " ..." } else { "" },
+                hi - lo
+            )));
+        }
+        hwp.iter().map(|d| d.to_radians()).collect()
+    };
+    let results: Vec<Result<stokes::Reduction, String>> = py.detach(|| {
+        (0..m)
+            .into_par_iter()
+            .map(|s| {
+                let row = |a: &[f64]| a[s * n..(s + 1) * n].to_vec();
+                let meas = match sig {
+                    Some((so, se)) => {
+                        stokes::Measurement::with_errors(theta.clone(), row(fo), row(fe), row(so), row(se))
+                    }
+                    None => stokes::Measurement::poisson(theta.clone(), row(fo), row(fe)),
+                }
+                .map_err(|e| e.to_string())?;
+                let meas = match kappa {
+                    Some(k) => meas.corrected_for_kappa(k).map_err(|e| format!("kappa: {e}"))?,
+                    None => meas,
+                };
+                meas.reduce().map_err(|e| e.to_string())
+            })
+            .collect()
+    });
+    let mut red = Vec::with_capacity(m);
+    for (s, r) in results.into_iter().enumerate() {
+        match r {
+            Ok(r) => red.push(r),
+            Err(e) if single => return Err(input_err(e)),
+            Err(e) => return Err(input_err(format!("star {s} (row {s} of f_o, f_e): {e}"))),
+        }
+    }
+    let col = |f: &dyn Fn(&stokes::Reduction) -> f64| -> Vec<f64> { red.iter().map(f).collect() };
+    let d = PyDict::new(py);
+    d.set_item("n_hwp", n)?;
+    d.set_item("q", arr1(py, col(&|r| r.qu.q)))?;
+    d.set_item("u", arr1(py, col(&|r| r.qu.u)))?;
+    d.set_item("p", arr1(py, col(&|r| r.p)))?;
+    d.set_item("chi_deg", arr1(py, col(&|r| r.chi_deg())))?;
+    d.set_item("sigma_q", arr1(py, col(&|r| r.qu.var_q.sqrt())))?;
+    d.set_item("sigma_u", arr1(py, col(&|r| r.qu.var_u.sqrt())))?;
+    d.set_item("cov_qu", arr1(py, col(&|r| r.qu.cov_qu)))?;
+    d.set_item("sigma_p", arr1(py, col(&|r| r.sigma_p)))?;
+    d.set_item("sigma_chi_deg", arr1(py, col(&|r| opt(r.sigma_chi_deg_reported()))))?;
+    d.set_item("chi_defined", bools(py, red.iter().map(|r| r.chi_defined).collect()))?;
+    d.set_item("snr", arr1(py, col(&|r| r.snr)))?;
+    d.set_item("sigma_p_analytic", arr1(py, col(&|r| r.sigma_p_analytic)))?;
+    d.set_item("sigma_chi_analytic_deg", arr1(py, col(&|r| r.sigma_chi_analytic.to_degrees())))?;
+    d.set_item("a0", arr1(py, col(&|r| r.a0)))?;
+    d.set_item("sigma_a0", arr1(py, col(&|r| r.sigma_a0)))?;
+    d.set_item("kappa_mean", arr1(py, col(&|r| opt(r.kappa_mean))))?;
+    // kappa_j and the harmonics depend on the angle set only for their number: the same for
+    // every star.
+    let nk = red.first().map_or(0, |r| r.kappa.len());
+    let nh = red.first().map_or(0, |r| r.fourier.len());
+    let flat = |f: &dyn Fn(&stokes::Reduction) -> Vec<f64>| -> Vec<f64> { red.iter().flat_map(f).collect() };
+    d.set_item("kappa", arr2(py, flat(&|r| r.kappa.iter().map(|k| k.kappa).collect()), m, nk)?)?;
+    d.set_item("f", arr2(py, flat(&|r| r.f.clone()), m, n)?)?;
+    d.set_item("sigma_f", arr2(py, flat(&|r| r.sigma_f.clone()), m, n)?)?;
+    let four = pyo3::types::PyDict::new(py);
+    four.set_item("k", red.first().map_or(vec![], |r| r.fourier.iter().map(|h| h.k).collect::<Vec<_>>()))?;
+    four.set_item("a", arr2(py, flat(&|r| r.fourier.iter().map(|h| h.a).collect()), m, nh)?)?;
+    four.set_item("b", arr2(py, flat(&|r| r.fourier.iter().map(|h| h.b).collect()), m, nh)?)?;
+    four.set_item("sigma_a", arr2(py, flat(&|r| r.fourier.iter().map(|h| h.sigma_a).collect()), m, nh)?)?;
+    four.set_item("sigma_b", arr2(py, flat(&|r| r.fourier.iter().map(|h| h.sigma_b).collect()), m, nh)?)?;
+    four.set_item("power", arr2(py, flat(&|r| r.fourier.iter().map(|h| h.power()).collect()), m, nh)?)?;
+    d.set_item("fourier", four)?;
+    let est: Vec<String> = red
+        .iter()
+        .map(|r| match r.estimator {
+            stokes::Estimator::FourierSums => "fourier_sums",
+            stokes::Estimator::LeastSquares => "least_squares",
+            stokes::Estimator::WeightedLeastSquares => "weighted_least_squares",
+        })
+        .map(String::from)
+        .collect();
+    d.set_item("estimator", est)?;
+    let warn: Vec<Vec<String>> = red.iter().map(|r| r.warnings.iter().map(|w| w.to_string()).collect()).collect();
+    d.set_item("warnings", warn)?;
+    Ok(d)
+}
+
+/// Bias correction of `P` (section `sec:bias`) and an interval on `P0`, element by element over
+/// flat arrays of equal length (`sigma_q`, `sigma_u` optional; `chi_deg` the measured angle).
+#[pyfunction]
+#[pyo3(signature = (p, sigma, estimator, interval, cl, sigma_q, sigma_u, chi_deg, single))]
+#[allow(clippy::too_many_arguments)]
+fn _bias<'py>(
+    py: Python<'py>,
+    p: PyReadonlyArray1<'py, f64>,
+    sigma: PyReadonlyArray1<'py, f64>,
+    estimator: &str,
+    interval: &str,
+    cl: f64,
+    sigma_q: Option<PyReadonlyArray1<'py, f64>>,
+    sigma_u: Option<PyReadonlyArray1<'py, f64>>,
+    chi_deg: PyReadonlyArray1<'py, f64>,
+    single: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    let est: Estimator = estimator.parse().map_err(input_err)?;
+    let kind: IntervalKind = interval.parse().map_err(input_err)?;
+    let (p, sigma, chi) = (slice(&p, "p")?, slice(&sigma, "sigma")?, slice(&chi_deg, "chi_deg")?);
+    let sq = sigma_q.as_ref().map(|a| slice(a, "sigma_q")).transpose()?;
+    let su = sigma_u.as_ref().map(|a| slice(a, "sigma_u")).transpose()?;
+    let n = p.len();
+    if [sigma.len(), chi.len(), sq.map_or(n, |a| a.len()), su.map_or(n, |a| a.len())].iter().any(|&l| l != n) {
+        return Err(input_err("p, sigma, sigma_q, sigma_u and chi_deg must have one shape (after broadcasting)"));
+    }
+    let res: Vec<Result<stokes::stats::Debiased, String>> = py.detach(|| {
+        (0..n)
+            .into_par_iter()
+            .map(|i| {
+                stokes::stats::debias(
+                    p[i],
+                    sigma[i],
+                    est,
+                    kind,
+                    cl,
+                    sq.map(|a| a[i]),
+                    su.map(|a| a[i]),
+                    chi[i].to_radians(),
+                )
+                .map_err(|e| e.to_string())
+            })
+            .collect()
+    });
+    let mut out = Vec::with_capacity(n);
+    for (i, r) in res.into_iter().enumerate() {
+        match r {
+            Ok(r) => out.push(r),
+            Err(e) if single => return Err(input_err(e)),
+            Err(e) => return Err(input_err(format!("element {i}: {e}"))),
+        }
+    }
+    let d = PyDict::new(py);
+    d.set_item("estimator", est.name())?;
+    d.set_item("interval_kind", kind.to_string())?;
+    d.set_item("cl", cl)?;
+    d.set_item("estimate", arr1(py, out.iter().map(|r| r.estimate.value).collect()))?;
+    d.set_item("in_validity_range", bools(py, out.iter().map(|r| r.estimate.in_validity_range).collect()))?;
+    d.set_item("lo", arr1(py, out.iter().map(|r| opt(r.interval.lo)).collect()))?;
+    d.set_item("hi", arr1(py, out.iter().map(|r| opt(r.interval.hi)).collect()))?;
+    d.set_item("upper_limit_only", bools(py, out.iter().map(|r| r.interval.upper_limit_only).collect()))?;
+    d.set_item("empty", bools(py, out.iter().map(|r| r.interval.empty).collect()))?;
+    let all = PyDict::new(py);
+    for (k, e) in Estimator::ALL.iter().enumerate() {
+        all.set_item(e.name(), arr1(py, out.iter().map(|r| r.all[k]).collect()))?;
+    }
+    d.set_item("all_estimators", all)?;
+    Ok(d)
+}
+
+/// A calibration file (`fit::Calibration`): the instrumental polarization field of one
+/// instrument and filter.
+#[pyclass(module = "instpol._instpol", frozen)]
+struct _Calibration {
+    cal: fit::Calibration,
+    path: PathBuf,
+}
+
+impl _Calibration {
+    /// Positions in arcmin from the detector centre, from `units` "px" (0-based pixels of the
+    /// calibration's grid, converted as `instpol correct --coords pixel` does) or "arcmin".
+    fn arcmin(&self, x: &[f64], y: &[f64], units: &str) -> PyResult<Option<(Vec<f64>, Vec<f64>)>> {
+        match units {
+            "arcmin" => Ok(None),
+            "px" | "pixel" => {
+                let g = self.cal.pixel.ok_or_else(|| {
+                    input_err("the calibration has no pixel grid: give the positions in arcmin (units=\"arcmin\")")
+                })?;
+                let (ax, ay): (Vec<f64>, Vec<f64>) = x.iter().zip(y).map(|(&x, &y)| g.to_arcmin(x, y)).unzip();
+                Ok(Some((ax, ay)))
+            }
+            u => Err(input_err(format!("units '{u}': expected \"px\" or \"arcmin\""))),
+        }
+    }
+}
+
+#[pymethods]
+impl _Calibration {
+    #[staticmethod]
+    fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+        let cal = py.detach(|| fit::Calibration::load(&path)).map_err(|e| {
+            let file = matches!(e, fit::Error::Io { .. } | fit::Error::Fits { .. });
+            let msg = format!("cannot load calibration {}: {e}", path.display());
+            if file {
+                FileError::new_err(msg)
+            } else {
+                input_err(msg)
+            }
+        })?;
+        Ok(Self { cal, path })
+    }
+
+    #[getter]
+    fn path(&self) -> PathBuf {
+        self.path.clone()
+    }
+    #[getter]
+    fn instrument(&self) -> String {
+        self.cal.instrument.clone()
+    }
+    #[getter]
+    fn filter(&self) -> String {
+        self.cal.filter.clone()
+    }
+    #[getter]
+    fn lambda_nm(&self) -> f64 {
+        self.cal.lambda_nm
+    }
+    #[getter]
+    fn hwp_chi_offset_deg(&self) -> f64 {
+        self.cal.hwp_chi_offset_deg
+    }
+    #[getter]
+    fn model(&self) -> &'static str {
+        self.cal.model.kind()
+    }
+    #[getter]
+    fn rms_residual(&self) -> f64 {
+        self.cal.rms_residual
+    }
+    #[getter]
+    fn centre_arcmin(&self) -> (f64, f64) {
+        let c = self.cal.centre_arcmin();
+        (c[0], c[1])
+    }
+    #[getter]
+    fn has_pixel_grid(&self) -> bool {
+        self.cal.pixel.is_some()
+    }
+
+    /// Instrumental `(q, u)` with the calibration's covariance at flat arrays `x`, `y`, and
+    /// whether each position lies inside the calibrated field.
+    fn _evaluate<'py>(
+        &self,
+        py: Python<'py>,
+        x: PyReadonlyArray1<'py, f64>,
+        y: PyReadonlyArray1<'py, f64>,
+        units: &str,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        use field::FieldModel;
+        let (x, y) = (slice(&x, "x")?, slice(&y, "y")?);
+        if x.len() != y.len() {
+            return Err(input_err("x and y must have one shape (after broadcasting)"));
+        }
+        let conv = self.arcmin(x, y, units)?;
+        let (x, y) = conv.as_ref().map_or((x, y), |(a, b)| (a.as_slice(), b.as_slice()));
+        let cal = &self.cal;
+        let v: Vec<(fit::model::InstPol, bool)> =
+            py.detach(|| x.par_iter().zip(y).map(|(&x, &y)| (cal.eval(x, y), cal.contains(x, y))).collect());
+        let d = PyDict::new(py);
+        d.set_item("q", arr1(py, v.iter().map(|a| a.0.q).collect()))?;
+        d.set_item("u", arr1(py, v.iter().map(|a| a.0.u).collect()))?;
+        d.set_item("sigma_q", arr1(py, v.iter().map(|a| a.0.var_q.sqrt()).collect()))?;
+        d.set_item("sigma_u", arr1(py, v.iter().map(|a| a.0.var_u.sqrt()).collect()))?;
+        d.set_item("cov_qu", arr1(py, v.iter().map(|a| a.0.cov_qu).collect()))?;
+        d.set_item("inside", bools(py, v.iter().map(|a| a.1).collect()))?;
+        Ok(d)
+    }
+
+    /// `instpol correct` on flat arrays: exact inversion of `eq:instpol` (or `eq:approx`), the
+    /// HWP zero angle first, errors propagated; `estimator`: also the bias-corrected `P0`.
+    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator))]
+    #[allow(clippy::too_many_arguments)]
+    fn _correct<'py>(
+        &self,
+        py: Python<'py>,
+        x: PyReadonlyArray1<'py, f64>,
+        y: PyReadonlyArray1<'py, f64>,
+        q: PyReadonlyArray1<'py, f64>,
+        u: PyReadonlyArray1<'py, f64>,
+        sigma_q: PyReadonlyArray1<'py, f64>,
+        sigma_u: PyReadonlyArray1<'py, f64>,
+        cov_qu: Option<PyReadonlyArray1<'py, f64>>,
+        units: &str,
+        method: &str,
+        allow_extrapolation: bool,
+        extrapolation_error: f64,
+        estimator: Option<&str>,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let method = match method {
+            "exact" => Method::Exact,
+            "first-order" | "first_order" => Method::FirstOrder,
+            m => return Err(input_err(format!("method '{m}': expected \"exact\" or \"first-order\""))),
+        };
+        if !(extrapolation_error.is_finite() && extrapolation_error >= 0.0) {
+            return Err(input_err(format!("extrapolation_error {extrapolation_error} must be a non-negative number")));
+        }
+        let est: Option<Estimator> =
+            estimator.map(|e| e.parse().map_err(|e| input_err(format!("estimator: {e}")))).transpose()?;
+        let (x, y, q, u) = (slice(&x, "x")?, slice(&y, "y")?, slice(&q, "q")?, slice(&u, "u")?);
+        let (sq, su) = (slice(&sigma_q, "sigma_q")?, slice(&sigma_u, "sigma_u")?);
+        let cov = cov_qu.as_ref().map(|c| slice(c, "cov_qu")).transpose()?;
+        let n = x.len();
+        if [y.len(), q.len(), u.len(), sq.len(), su.len(), cov.map_or(n, |c| c.len())].iter().any(|&l| l != n) {
+            return Err(input_err("x, y, q, u, sigma_q, sigma_u and cov_qu must have one shape (after broadcasting)"));
+        }
+        let conv = self.arcmin(x, y, units)?;
+        let (x, y) = conv.as_ref().map_or((x, y), |(a, b)| (a.as_slice(), b.as_slice()));
+        // The options `instpol correct` builds (cli::cmd::correct::options).
+        let opts = CorrectOptions {
+            method,
+            allow_extrapolation,
+            extrapolation_rel_error: extrapolation_error,
+            chi_offset: self.cal.hwp_chi_offset_deg.to_radians(),
+        };
+        let cal = &self.cal;
+        let input = Inputs { x, y, q, u, sq, su, cov };
+        let cor = Corrector::new(cal, opts);
+        let mut cols: Vec<Vec<f64>> = (0..N_OUT).map(|_| column(n)).collect();
+        let mut p0e: Option<Vec<f64>> = est.map(|_| column(n));
+        let mut extra = vec![false; n];
+        let res = py.detach(|| {
+            let mut it = cols.iter_mut();
+            let sink = Sink {
+                cols: std::array::from_fn(|_| it.next().expect("N_OUT columns").as_mut_slice()),
+                p0e: p0e.as_mut().zip(est).map(|(c, e)| (c.as_mut_slice(), e)),
+                extra: &mut extra,
+                start: 0,
+            };
+            fill(&cor, &input, sink)
+        });
+        let n_extra = res.map_err(|(row, e)| input_err(format!("index {row}: {e}")))?;
+        let d = PyDict::new(py);
+        for (name, c) in OUT_NAMES.iter().zip(cols) {
+            d.set_item(*name, arr1(py, c))?;
+            if *name == "sigma_chi0_deg" {
+                if let (Some(e), Some(v)) = (est, p0e.take()) {
+                    d.set_item(format!("p0_{}", e.name()), arr1(py, v))?;
+                }
+            }
+        }
+        d.set_item("extrapolated", bools(py, extra))?;
+        d.set_item("n_extrapolated", n_extra)?;
+        Ok(d)
+    }
+}
+
+/// The input columns of [`_Calibration::_correct`] (arcmin).
+struct Inputs<'a> {
+    x: &'a [f64],
+    y: &'a [f64],
+    q: &'a [f64],
+    u: &'a [f64],
+    sq: &'a [f64],
+    su: &'a [f64],
+    cov: Option<&'a [f64]>,
+}
+
+/// The output columns of a correction, in the order and with the names of the columns
+/// `instpol correct` adds (the estimator's `p0_<name>` apart).
+const OUT_NAMES: [&str; 11] =
+    ["q0", "u0", "sigma_q0", "sigma_u0", "cov_qu0", "p0", "sigma_p0", "chi0_deg", "sigma_chi0_deg", "q_inst", "u_inst"];
+const N_OUT: usize = OUT_NAMES.len();
+
+/// Mutable windows of the output columns for rows `start ..`.
+struct Sink<'a> {
+    cols: [&'a mut [f64]; N_OUT],
+    p0e: Option<(&'a mut [f64], Estimator)>,
+    extra: &'a mut [bool],
+    start: usize,
+}
+
+impl<'a> Sink<'a> {
+    fn split(self, mid: usize) -> (Sink<'a>, Sink<'a>) {
+        let mut left: [&'a mut [f64]; N_OUT] = Default::default();
+        let mut right: [&'a mut [f64]; N_OUT] = Default::default();
+        for (k, c) in self.cols.into_iter().enumerate() {
+            (left[k], right[k]) = c.split_at_mut(mid);
+        }
+        let (pa, pb) = match self.p0e {
+            Some((c, e)) => {
+                let (l, r) = c.split_at_mut(mid);
+                (Some((l, e)), Some((r, e)))
+            }
+            None => (None, None),
+        };
+        let (ea, eb) = self.extra.split_at_mut(mid);
+        (
+            Sink { cols: left, p0e: pa, extra: ea, start: self.start },
+            Sink { cols: right, p0e: pb, extra: eb, start: self.start + mid },
+        )
+    }
+}
+
+/// Correct every row with `Corrector::correct` (the function `instpol correct` applies to each
+/// row through `par_correct_batch`), writing the output columns directly: no row structs in
+/// between, so the time is the library's and not the copying. Halves run on rayon's pool; the
+/// error returned is the one of the lowest row, as `par_correct_batch` does. Returns the number
+/// of extrapolated rows.
+fn fill(
+    cor: &Corrector<'_, fit::Calibration>,
+    i: &Inputs<'_>,
+    s: Sink<'_>,
+) -> Result<usize, (usize, fit::correct::Error)> {
+    const CHUNK: usize = 4096;
+    let n = s.extra.len();
+    if n > CHUNK {
+        let (a, b) = s.split(n / 2);
+        let (ra, rb) = rayon::join(|| fill(cor, i, a), || fill(cor, i, b));
+        return match (ra, rb) {
+            (Ok(x), Ok(y)) => Ok(x + y),
+            (Err(e), _) | (Ok(_), Err(e)) => Err(e),
+        };
+    }
+    let r0 = s.start;
+    let (x, y, q, u) = (&i.x[r0..r0 + n], &i.y[r0..r0 + n], &i.q[r0..r0 + n], &i.u[r0..r0 + n]);
+    let (sq, su) = (&i.sq[r0..r0 + n], &i.su[r0..r0 + n]);
+    let cov = i.cov.map(|c| &c[r0..r0 + n]);
+    let Sink { cols, mut p0e, extra, .. } = s;
+    let [c_q0, c_u0, c_sq0, c_su0, c_cov0, c_p0, c_sp0, c_chi0, c_sc0, c_qi, c_ui] = cols;
+    let mut n_extra = 0;
+    for k in 0..n {
+        let m = Measurement {
+            x: x[k],
+            y: y[k],
+            q: q[k],
+            u: u[k],
+            sigma_q: sq[k],
+            sigma_u: su[k],
+            cov_qu: cov.map_or(0.0, |c| c[k]),
+        };
+        let r = cor.correct(&m).map_err(|e| (r0 + k, e))?;
+        // The values `instpol correct` writes (cli::cmd::correct::added_values).
+        c_q0[k] = r.q0;
+        c_u0[k] = r.u0;
+        c_sq0[k] = r.var_q0.sqrt();
+        c_su0[k] = r.var_u0.sqrt();
+        c_cov0[k] = r.cov_qu0;
+        c_p0[k] = r.p0;
+        c_sp0[k] = r.sigma_p0;
+        c_chi0[k] = r.chi0.to_degrees();
+        c_sc0[k] = r.sigma_chi0.to_degrees();
+        c_qi[k] = r.inst.q;
+        c_ui[k] = r.inst.u;
+        if let Some((c, e)) = p0e.as_mut() {
+            c[k] = r.p0_estimate(*e);
+        }
+        extra[k] = r.extrapolated;
+        n_extra += r.extrapolated as usize;
+    }
+    Ok(n_extra)
+}
+
+fn read_options(
+    bias: Option<PathBuf>,
+    flat: Option<PathBuf>,
+    hwp_angles: Option<Vec<f64>>,
+) -> PyResult<skyfield::calib::ReadOptions> {
+    if let Some(v) = &hwp_angles {
+        if v.is_empty() || v.iter().any(|x| !x.is_finite()) {
+            return Err(input_err(
+                "hwp_angles: expected finite angles in degrees, one per frame, e.g. [0, 22.5, 45, 67.5]",
+            ));
+        }
+    }
+    Ok(skyfield::calib::ReadOptions { bias, flat, hwp_angles_deg: hwp_angles })
+}
+
+/// Frames to a binned Stokes map (`instpol reduce`): returns the map's arrays flat, in bin order
+/// (row j, column i at j * nx + i), its header values and the warnings.
+#[pyfunction]
+#[pyo3(signature = (frames, instrument, bin, nsigma, allow_incomplete, bias, flat, hwp_angles, output))]
+#[allow(clippy::too_many_arguments)]
+fn _reduce<'py>(
+    py: Python<'py>,
+    frames: Vec<PathBuf>,
+    instrument: &str,
+    bin: usize,
+    nsigma: f64,
+    allow_incomplete: bool,
+    bias: Option<PathBuf>,
+    flat: Option<PathBuf>,
+    hwp_angles: Option<Vec<f64>>,
+    output: Option<PathBuf>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let inst = instrument::Instrument::load(instrument).map_err(inst_err)?;
+    skyfield::reduce::check_bin(bin, &inst).map_err(|e| input_err(format!("bin {bin}: {e}")))?;
+    let cfg = skyfield::reduce::ReduceConfig {
+        bin_px: bin,
+        clip: skyfield::bin::ClipConfig { nsigma, ..Default::default() },
+        min_pixels: None,
+        require_complete_set: !allow_incomplete,
+    };
+    let read = read_options(bias, flat, hwp_angles)?;
+    if let Some(out) = &output {
+        // No command writes over its own input (the CLI's rule), whatever name it is given by.
+        let same = |a: &PathBuf| match (std::fs::canonicalize(a), std::fs::canonicalize(out)) {
+            (Ok(x), Ok(y)) => x == y,
+            _ => false,
+        };
+        if let Some(f) = frames.iter().chain(&read.bias).chain(&read.flat).find(|f| same(f)) {
+            return Err(input_err(format!(
+                "output {} is the input {} (the same file): refusing to write over an input; choose another output name",
+                out.display(),
+                f.display()
+            )));
+        }
+    }
+    let r = py
+        .detach(|| {
+            let r = skyfield::reduce::reduce_files_with(&frames, &inst, &cfg, &read, &|| {})?;
+            if let Some(out) = &output {
+                r.map.write_fits(out)?;
+            }
+            Ok::<_, skyfield::Error>(r)
+        })
+        .map_err(sky_err)?;
+    let m = &r.map;
+    let g = &m.geometry;
+    let d = PyDict::new(py);
+    let h = PyDict::new(py);
+    h.set_item("instrument", &m.instrument)?;
+    h.set_item("filter", &m.filter)?;
+    h.set_item("hwp_angles_deg", m.hwp_angles_deg.clone())?;
+    h.set_item("bin_px", g.bin_px)?;
+    h.set_item("origin_x", g.origin_x)?;
+    h.set_item("origin_y", g.origin_y)?;
+    h.set_item("nx", g.nx)?;
+    h.set_item("ny", g.ny)?;
+    h.set_item("pixel_scale_arcsec", g.pixel_scale_arcsec)?;
+    h.set_item("detector_nx", g.detector_nx)?;
+    h.set_item("detector_ny", g.detector_ny)?;
+    d.set_item("header", h)?;
+    for (name, v) in [
+        ("q", &m.q),
+        ("u", &m.u),
+        ("sigma_q", &m.sigma_q),
+        ("sigma_u", &m.sigma_u),
+        ("cov_qu", &m.cov_qu),
+        ("sigma_q_phot", &m.sigma_q_phot),
+        ("sigma_u_phot", &m.sigma_u_phot),
+        ("p", &m.p),
+        ("intensity", &m.intensity),
+        ("intensity_snr", &m.intensity_snr),
+    ] {
+        d.set_item(name, arr1(py, v.clone()))?;
+    }
+    d.set_item("chi_deg", arr1(py, m.chi.iter().map(|c| c.to_degrees()).collect()))?;
+    d.set_item("n_pixels", PyArray1::from_vec(py, m.n_pixels.clone()))?;
+    d.set_item("valid", bools(py, m.valid.clone()))?;
+    let (mut xa, mut ya) = (Vec::with_capacity(g.len()), Vec::with_capacity(g.len()));
+    for j in 0..g.ny {
+        for i in 0..g.nx {
+            let (x, y) = g.centre_arcmin(i, j);
+            xa.push(x);
+            ya.push(y);
+        }
+    }
+    d.set_item("x_arcmin", arr1(py, xa))?;
+    d.set_item("y_arcmin", arr1(py, ya))?;
+    d.set_item("warnings", r.warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>())?;
+    Ok(d)
+}
+
+/// Every paired star of a frame set (`instpol catalog`): one entry per column, one value per
+/// star, plus the catalog's metadata.
+#[pyfunction]
+#[pyo3(signature = (frames, instrument, fwhm, threshold, aperture, annulus, bias, flat, hwp_angles, kappa, kappa_from_data))]
+#[allow(clippy::too_many_arguments)]
+fn _catalog<'py>(
+    py: Python<'py>,
+    frames: Vec<PathBuf>,
+    instrument: &str,
+    fwhm: f64,
+    threshold: f64,
+    aperture: &str,
+    annulus: (f64, f64),
+    bias: Option<PathBuf>,
+    flat: Option<PathBuf>,
+    hwp_angles: Option<Vec<f64>>,
+    kappa: Option<f64>,
+    kappa_from_data: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    use skyfield::catalog::{catalog, CatalogConfig};
+    let radius = skyfield::photometry::ApertureRadius::parse(aperture).ok_or_else(|| {
+        InputError::new_err(format!(
+            "aperture '{aperture}': expected a radius in px (8), a multiple of the FWHM ('2.5fwhm') or 'best'"
+        ))
+    })?;
+    let kappa = match (kappa, kappa_from_data) {
+        (Some(_), true) => return Err(InputError::new_err("give kappa or kappa_from_data, not both")),
+        (Some(k), false) => stokes::KappaCorrection::Known(k),
+        (None, true) => stokes::KappaCorrection::FromData,
+        (None, false) => stokes::KappaCorrection::None,
+    };
+    let inst = instrument::Instrument::load(instrument).map_err(inst_err)?;
+    let cfg = CatalogConfig {
+        detect: skyfield::detect::DetectConfig { fwhm_px: fwhm, threshold_sigma: threshold, ..Default::default() },
+        radius,
+        annulus: Some(annulus),
+        weighting: skyfield::aperture::Weighting::Exact,
+        kappa,
+    };
+    cfg.check().map_err(sky_err)?;
+    let read = read_options(bias, flat, hwp_angles)?;
+    let (cat, warnings) = py
+        .detach(|| {
+            let frames = skyfield::reduce::read_frames_with(&frames, &inst, &read, &|| {})?;
+            let set = skyfield::reduce::FrameSet::from_frames(frames, &inst, true)?;
+            let cat = catalog(&set, &inst, &cfg)?;
+            Ok::<_, skyfield::Error>((cat, set.warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>()))
+        })
+        .map_err(sky_err)?;
+    let rows = &cat.rows;
+    let n = cat.hwp_deg.len();
+    let d = PyDict::new(py);
+    let col = |f: fn(&skyfield::catalog::Row) -> f64| arr1(py, rows.iter().map(f).collect());
+    d.set_item("id", PyArray1::from_vec(py, rows.iter().map(|r| r.id as u64).collect()))?;
+    d.set_item("x", col(|r| r.x))?;
+    d.set_item("y", col(|r| r.y))?;
+    d.set_item("x_e", col(|r| r.x_e))?;
+    d.set_item("y_e", col(|r| r.y_e))?;
+    d.set_item("x_arcmin", col(|r| r.x_arcmin))?;
+    d.set_item("y_arcmin", col(|r| r.y_arcmin))?;
+    d.set_item("fwhm_px", col(|r| r.fwhm_px))?;
+    d.set_item("aperture_px", col(|r| r.aperture_px))?;
+    d.set_item("flux_e", col(|r| r.flux_e))?;
+    d.set_item("q", col(|r| r.q))?;
+    d.set_item("u", col(|r| r.u))?;
+    d.set_item("sigma_q", col(|r| r.sigma_q))?;
+    d.set_item("sigma_u", col(|r| r.sigma_u))?;
+    d.set_item("cov_qu", col(|r| r.cov_qu))?;
+    d.set_item("p", col(|r| r.p))?;
+    d.set_item("sigma_p", col(|r| r.sigma_p))?;
+    d.set_item("chi_deg", col(|r| r.chi_deg))?;
+    d.set_item("sigma_chi_deg", col(|r| r.sigma_chi_deg))?;
+    d.set_item("a0", col(|r| r.a0))?;
+    d.set_item("kappa", col(|r| opt(r.kappa)))?;
+    d.set_item("kappa_applied", col(|r| opt(r.kappa_applied)))?;
+    d.set_item("chi2_mod", col(|r| r.chi2_mod))?;
+    d.set_item("dof_mod", PyArray1::from_vec(py, rows.iter().map(|r| r.dof_mod as u64).collect()))?;
+    d.set_item("sigma_q_scatter", col(|r| r.sigma_q_scatter))?;
+    d.set_item("sigma_u_scatter", col(|r| r.sigma_u_scatter))?;
+    d.set_item("flags", PyArray1::from_vec(py, rows.iter().map(|r| r.flags).collect()))?;
+    d.set_item("flag_names", rows.iter().map(|r| skyfield::catalog::flags::names(r.flags)).collect::<Vec<_>>())?;
+    d.set_item("note", rows.iter().map(|r| r.note.clone()).collect::<Vec<_>>())?;
+    let f: Vec<f64> = rows.iter().flat_map(|r| (0..n).map(|i| r.f.get(i).copied().unwrap_or(f64::NAN))).collect();
+    d.set_item("f", arr2(py, f, rows.len(), n)?)?;
+    d.set_item("hwp_deg", cat.hwp_deg.clone())?;
+    d.set_item("filter", &cat.filter)?;
+    d.set_item("chi_offset_deg", cat.chi_offset_deg)?;
+    d.set_item("oe_offset_px", cat.oe_offset_px)?;
+    d.set_item("unpaired", cat.unpaired.clone())?;
+    d.set_item("n_sources", cat.n_sources)?;
+    d.set_item("warnings", warnings)?;
+    Ok(d)
+}
+
+#[pymodule]
+fn _instpol(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    let py = m.py();
+    m.add("InputError", py.get_type::<InputError>())?;
+    m.add("FileError", py.get_type::<FileError>())?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add_function(wrap_pyfunction!(_stokes, m)?)?;
+    m.add_function(wrap_pyfunction!(_bias, m)?)?;
+    m.add_function(wrap_pyfunction!(_reduce, m)?)?;
+    m.add_function(wrap_pyfunction!(_catalog, m)?)?;
+    m.add_class::<_Calibration>()?;
+    Ok(())
+}
