@@ -142,7 +142,6 @@ fn bad_input_names_the_problem() {
     bad("hwp_deg,f_o,f_e\n0,1,1\n22.5,0,0\n", &["row 2", "not positive"]);
     bad("hwp_deg,f_o,f_e\n0,1,1\n", &["at least 2 HWP angles", "found 1"]);
     bad("hwp_deg,f_o,f_e\n", &["at least 2 HWP angles", "found 0"]);
-    bad("hwp_deg,f_o,f_e\n0,1,1\n22.5,1,1\n22.5,1,2\n", &["rows 2", "and 3", "same HWP position"]);
     bad("hwp_deg,f_o,f_e,sigma_o\n0,1,1,1\n22.5,1,1,1\n", &["sigma_o", "without 'sigma_e'"]);
     bad("hwp_deg,f_o,f_e,sigma_o,sigma_e\n0,1,1,1,-1\n22.5,1,1,1,1\n", &["row 1", "sigma_E"]);
     bad("hwp_deg,f_o,f_e\n0,1,1\n22.5,nan,1\n", &["row 2", "f_o", "not a finite number"]);
@@ -182,4 +181,61 @@ fn column_order_p_zero_and_n2() {
     assert!(v["kappa_mean"].is_null());
     assert!(v["fourier"].as_array().unwrap().is_empty());
     assert!(v["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains("N = 2")));
+}
+
+/// Repeated exposures (issue 13 item 6): two cycles of 8 positions, the second at theta + 360
+/// deg (the same plate positions), are combined, not refused: the result is the reduction of
+/// the summed fluxes (summed here, in the test), and every exposure's pull about its
+/// position's mean is reported. One exposure with 3 % more flux in the o beam is flagged, with
+/// the pull of two equal-error exposures computed here: (F_1 - F_2) / (sqrt(2) sigma_F).
+#[test]
+fn repeated_exposures_are_combined_and_outliers_flagged() {
+    let d = tempfile::tempdir().unwrap();
+    let (q, u) = (0.03, -0.01);
+    let mut rows = vec![];
+    for cycle in 0..2 {
+        for i in 0..8 {
+            let th = (i as f64 * 22.5_f64).to_radians();
+            let m = q * (4.0 * th).cos() + u * (4.0 * th).sin();
+            let (mut o, e) = (5e5 * (1.0 + m), 5e5 * (1.0 - m));
+            if cycle == 1 && i == 3 {
+                o *= 1.03;
+            }
+            rows.push((i as f64 * 22.5 + 360.0 * cycle as f64, o.round(), e.round()));
+        }
+    }
+    let text: String = rows.iter().map(|(a, o, e)| format!("{a},{o},{e}\n")).collect();
+    let both = write(&d, "both.csv", &format!("hwp_deg,f_o,f_e\n{text}"));
+    let summed: String = (0..8)
+        .map(|i| format!("{},{},{}\n", rows[i].0, rows[i].1 + rows[i + 8].1, rows[i].2 + rows[i + 8].2))
+        .collect();
+    let sum = write(&d, "sum.csv", &format!("hwp_deg,f_o,f_e\n{summed}"));
+    let v = json(&["--input", &both]);
+    let w = json(&["--input", &sum]);
+    assert_eq!(v["n_hwp"], 8);
+    for k in ["q", "u", "sigma_q", "sigma_u", "p"] {
+        assert_eq!(f(&v, k), f(&w, k), "{k}");
+    }
+    let ex = v["exposures"].as_array().unwrap();
+    assert_eq!(ex.len(), 16);
+    let fj = |o: f64, e: f64| (o - e) / (o + e);
+    let sig = |o: f64, e: f64| 2.0 * (o * e * e + e * o * o).sqrt() / (o + e).powi(2);
+    for (k, x) in ex.iter().enumerate() {
+        let i = k % 8;
+        let (a, b) = (rows[i], rows[i + 8]);
+        let s = sig(a.1, a.2).hypot(sig(b.1, b.2)) / 2f64.sqrt();
+        let mut want = (fj(a.1, a.2) - fj(b.1, b.2)) / (2f64.sqrt() * s);
+        if k >= 8 {
+            want = -want;
+        }
+        // Equal errors to 1e-3 here, so the equal-error pull holds to that.
+        assert!((x["pull"].as_f64().unwrap() - want).abs() < 1e-2 * want.abs().max(1.0), "{x} vs {want}");
+        assert_eq!(x["outlier"].as_bool().unwrap(), i == 3, "{x}");
+    }
+    let o = run(&["stokes", "--input", &both]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains("16 exposures combined into 8 HWP positions") && e.contains("row 12") && e.contains("outlier"),
+        "{e}"
+    );
 }

@@ -14,6 +14,7 @@ pub mod fourier;
 pub mod kappa;
 pub mod mc;
 pub mod reduce;
+pub mod repeats;
 pub mod solver;
 pub mod stats;
 

@@ -128,6 +128,76 @@ fn read_table(path: &Path) -> Result<Table> {
     Ok(t)
 }
 
+/// A repeated exposure's check, for the JSON (`stokes::repeats::ExposureCheck` with its row).
+#[derive(Serialize)]
+struct JsonExposure {
+    row: usize,
+    line: u64,
+    hwp_deg: f64,
+    f: f64,
+    pull: f64,
+    outlier: bool,
+}
+
+/// Exposures at the same plate position (rows at theta and theta + 360 deg too) combined into
+/// one row each (fluxes summed, variances added: `stokes::repeats`), with every exposure's
+/// check; `None` when no position repeats (the table is returned as read).
+fn combine_repeats(t: Table, name: &str) -> Result<(Table, Option<Vec<JsonExposure>>)> {
+    let theta: Vec<f64> = t.hwp_deg.iter().map(|d| d.to_radians()).collect();
+    let repeats = {
+        let mut k: Vec<f64> = theta.iter().map(|a| a.rem_euclid(std::f64::consts::TAU)).collect();
+        k.sort_by(f64::total_cmp);
+        k.windows(2).any(|w| w[1] - w[0] < 1e-9)
+            || k.len() > 1 && std::f64::consts::TAU - (k[k.len() - 1] - k[0]) < 1e-9
+    };
+    if !repeats {
+        // The library checks the rows and names them (see `explain`).
+        return Ok((t, None));
+    }
+    if t.sigma.is_none() {
+        // Photon counts: a negative count is refused before it can hide in a sum.
+        for (i, (o, e)) in t.f_o.iter().zip(&t.f_e).enumerate() {
+            if *o < 0.0 || *e < 0.0 {
+                bail!(
+                    "{name}: row {} (line {}): photon counts cannot be negative (give sigma_o, sigma_e for background-subtracted fluxes)",
+                    i + 1,
+                    t.lines[i]
+                );
+            }
+        }
+    }
+    let (so, se) = match &t.sigma {
+        Some((a, b)) => (a.clone(), b.clone()),
+        None => (t.f_o.iter().map(|v| v.sqrt()).collect(), t.f_e.iter().map(|v| v.sqrt()).collect()),
+    };
+    let c = stokes::repeats::combine_repeats(&theta, &t.f_o, &t.f_e, &so, &se, OUTLIER_SIGMA);
+    let checks = c
+        .checks
+        .iter()
+        .map(|k| JsonExposure {
+            row: k.index + 1,
+            line: t.lines[k.index],
+            hwp_deg: t.hwp_deg[k.index],
+            f: k.f,
+            pull: k.pull,
+            outlier: k.outlier,
+        })
+        .collect();
+    let first: Vec<usize> = c.groups.iter().map(|g| g[0]).collect();
+    let combined = Table {
+        hwp_deg: first.iter().map(|&i| t.hwp_deg[i]).collect(),
+        sigma: t.sigma.as_ref().map(|_| (c.sigma_o.clone(), c.sigma_e.clone())),
+        f_o: c.f_o,
+        f_e: c.f_e,
+        lines: first.iter().map(|&i| t.lines[i]).collect(),
+    };
+    Ok((combined, Some(checks)))
+}
+
+/// An exposure whose F lies further than this (in sigma of its residual) from its repeats'
+/// mean is flagged: beyond 4 sigma, one in 16 000 honest exposures.
+const OUTLIER_SIGMA: f64 = 4.0;
+
 /// Say which row a library error is about.
 fn explain(e: RedError, t: &Table, name: &str) -> anyhow::Error {
     let row = |i: usize| format!("row {} (line {}, hwp_deg = {})", i + 1, t.lines[i], t.hwp_deg[i]);
@@ -190,6 +260,9 @@ struct JsonOut {
     sigma_a0: f64,
     f: Vec<f64>,
     sigma_f: Vec<f64>,
+    /// Repeated exposures: every input row's F and its pull about its position's mean
+    /// (null when no HWP position repeats).
+    exposures: Option<Vec<JsonExposure>>,
 }
 
 fn finite(x: f64) -> Option<f64> {
@@ -215,6 +288,19 @@ pub fn run(a: Args) -> Result<()> {
             t.hwp_deg.iter().cloned().fold(f64::MIN, f64::max) - t.hwp_deg.iter().cloned().fold(f64::MAX, f64::min)
         );
     }
+    let (t, exposures) = combine_repeats(t, &name)?;
+    if let Some(ex) = &exposures {
+        let n_pos = t.hwp_deg.len();
+        if !a.json {
+            eprintln!("note: {name}: {} exposures combined into {n_pos} HWP positions (fluxes summed)", ex.len());
+        }
+        for e in ex.iter().filter(|e| e.outlier) {
+            eprintln!(
+                "warning: {name}: row {} (line {}, hwp_deg = {}): its F = {:.5} lies {:.1} sigma from its repeats' mean: an outlier exposure (kept in the sum; remove the row to drop it)",
+                e.row, e.line, e.hwp_deg, e.f, e.pull
+            );
+        }
+    }
     let theta: Vec<f64> = t.hwp_deg.iter().map(|d| d.to_radians()).collect();
     let m = match &t.sigma {
         Some((so, se)) => Measurement::with_errors(theta, t.f_o.clone(), t.f_e.clone(), so.clone(), se.clone()),
@@ -237,7 +323,9 @@ pub fn run(a: Args) -> Result<()> {
         super::stokes_plot::fourier_png(path, &super::stokes_plot::data::fourier_plot(&r))?;
     }
     if a.json {
-        crate::util::print_json(&json(&r, &name, applied))
+        let mut j = json(&r, &name, applied);
+        j.exposures = exposures;
+        crate::util::print_json(&j)
     } else {
         crate::util::write_stdout(table(&r, &t, &name, kappa).as_bytes());
         Ok(())
@@ -275,6 +363,7 @@ fn json(r: &Reduction, name: &str, kappa: Option<f64>) -> JsonOut {
         sigma_a0: r.sigma_a0,
         f: r.f.clone(),
         sigma_f: r.sigma_f.clone(),
+        exposures: None,
     }
 }
 
