@@ -20,6 +20,7 @@ pub mod calfile;
 pub mod correlation;
 pub mod import;
 pub mod model;
+pub mod mueller_field;
 pub mod paper;
 pub mod pipeline;
 pub mod polar;
