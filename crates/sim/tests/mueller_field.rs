@@ -218,3 +218,52 @@ fn polarized_stars_are_corrected_within_errors_where_p_phi_is_not() {
     assert!(rms_pp > 3.0 * rms_m, "p, phi residual {rms_pp:.2e} vs Mueller {rms_m:.2e}");
     assert!(rms_pp > 5e-4, "p, phi residual {rms_pp:.2e}");
 }
+
+/// The simulator's frames carry the stressed lens: on a noiseless 256 x 256 FORS1 cut-out with
+/// the B sky, the per-pixel q, u from the 8 HWP angles (the Fourier sums of eq:Q, eq:U written
+/// here) equal the lens block's forward model at that pixel, and differ from the sky.
+#[test]
+fn frames_carry_the_stressed_lens() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = include_str!("../../../instruments/fors1.toml")
+        .replace("nx = 2048", "nx = 256")
+        .replace("ny = 2048", "ny = 256")
+        .replace("throw_arcsec = 22.0", "throw_arcsec = 8.0")
+        .replace("strip_count = 9", "strip_count = 3")
+        .replace("first_strip_y_px = 34", "first_strip_y_px = 8");
+    let inst_path = dir.path().join("tiny.toml");
+    std::fs::write(&inst_path, text).unwrap();
+    let scene = format!(
+        "instrument = \"{}\"\nfilter = \"B\"\nseed = 1\nhwp_angles_deg = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]\n[output]\nbitpix = -64\n[sky]\nbrightness_e = 1000.0\np = 0.0645\nchi_deg = 68.4\n[effects.stressed_lens]\nretardance_edge_deg = 60.0\nradius_arcmin = 0.4\ncentre_arcmin = [0.1, 0.0]\n",
+        inst_path.display()
+    );
+    let sc = sim::Scene::from_toml_str(&scene, &dir.path().join("scene.toml")).unwrap();
+    let out = sim::simulate(&sc, &dir.path().join("out"), &|| {}).unwrap();
+    let inst = instrument::Instrument::load(&sc.instrument).unwrap();
+    let g = skyfield::beams::BeamGeometry::new(&inst);
+    let frames: Vec<_> = out.frames.iter().map(|p| skyfield::io::read_frame(p, &inst).unwrap()).collect();
+    let coords = inst.field_coords();
+    let chi = 68.4f64.to_radians();
+    let (q0, u0) = (0.0645 * (2.0 * chi).cos(), 0.0645 * (2.0 * chi).sin());
+    let (mut n, mut moved) = (0, 0.0f64);
+    for (x, y) in g.sky_pixels() {
+        let (o, e) = g.beams_of_sky(x, y).unwrap();
+        let (mut q, mut u) = (0.0, 0.0);
+        for (k, fr) in frames.iter().enumerate() {
+            let f = (fr.data[o] - fr.data[e]) / (fr.data[o] + fr.data[e]);
+            let th = (k as f64 * 22.5).to_radians();
+            q += 2.0 / 8.0 * f * (4.0 * th).cos();
+            u += 2.0 / 8.0 * f * (4.0 * th).sin();
+        }
+        let (xa, ya) = coords.pixel_to_arcmin((o % g.nx) as f64, (o / g.nx) as f64);
+        let (qw, uw) = lens_of(&sc).block_at(xa, ya).forward(q0, u0).unwrap();
+        assert!((q - qw).abs() < 1e-9 && (u - uw).abs() < 1e-9, "pixel ({x}, {y}): ({q}, {u}) vs ({qw}, {uw})");
+        moved = moved.max(mueller::hypot(q - q0, u - u0));
+        n += 1;
+    }
+    assert!(n > 1000 && moved > 0.003, "{n} pixels, largest change {moved}");
+}
+
+fn lens_of(sc: &sim::Scene) -> StressedLensSpec {
+    sc.effects.stressed_lens.clone().unwrap()
+}
