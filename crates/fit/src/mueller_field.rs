@@ -358,9 +358,40 @@ impl FieldModel for MuellerField {
     }
 }
 
-/// One observation with everything the fit needs, flattened.
-struct Row {
+/// The observations grouped by position (the fields share positions): each position's
+/// monomials once, its rows contiguous.
+struct Data {
+    nm: usize,
+    /// `npos x nm`, row-major.
     mono: Vec<f64>,
+    /// Rows of position `p` are `rows[start[p]..start[p + 1]]`.
+    start: Vec<usize>,
+    rows: Vec<Row>,
+}
+
+impl Data {
+    fn n_pos(&self) -> usize {
+        self.start.len() - 1
+    }
+    fn mono(&self, p: usize) -> &[f64] {
+        &self.mono[p * self.nm..(p + 1) * self.nm]
+    }
+    fn rows(&self, p: usize) -> &[Row] {
+        &self.rows[self.start[p]..self.start[p + 1]]
+    }
+    /// The full parameter vector at position `p`.
+    fn full(&self, p: usize, free: &[usize], coef: &[f64], full: &mut [f64]) {
+        let m = self.mono(p);
+        let nm = self.nm;
+        for (k, &i) in free.iter().enumerate() {
+            full[i] = coef[k * nm..(k + 1) * nm].iter().zip(m).map(|(c, x)| c * x).sum();
+        }
+    }
+}
+
+/// One observation with everything the fit needs, flattened.
+#[derive(Clone, Copy)]
+struct Row {
     sky: (f64, f64),
     meas: (f64, f64),
     /// Inverse covariance `[w_qq, w_qu, w_uu]`.
@@ -396,7 +427,8 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
     if !(opts.scale_arcmin > 0.0 && opts.scale_arcmin.is_finite()) {
         return Err(Error::Input(format!("scale_arcmin = {} must be positive", opts.scale_arcmin)));
     }
-    let mut rows = Vec::new();
+    // (position key, row) pairs; grouped by position below.
+    let mut keyed: Vec<((u64, u64), Row)> = Vec::new();
     let mut bounds = [f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY];
     for f in fields {
         if !(mueller::hypot(f.sky_q, f.sky_u) < 1.0) || !(f.sigma_sky >= 0.0) {
@@ -405,7 +437,7 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
                 f.name, f.sky_q, f.sky_u, f.sigma_sky
             )));
         }
-        let before = rows.len();
+        let before = keyed.len();
         let s2 = f.sigma_sky * f.sigma_sky;
         for o in &f.obs {
             let (a, b, c) = (o.var_q + s2, o.cov_qu, o.var_u + s2);
@@ -415,9 +447,10 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
             if !ok {
                 continue;
             }
-            let mut mono = Vec::with_capacity(nm);
-            monomials(deg, o.x_arcmin / opts.scale_arcmin, o.y_arcmin / opts.scale_arcmin, &mut mono);
-            rows.push(Row { mono, sky: (f.sky_q, f.sky_u), meas: (o.q, o.u), w: [c / det, -b / det, a / det] });
+            keyed.push((
+                (o.x_arcmin.to_bits(), o.y_arcmin.to_bits()),
+                Row { sky: (f.sky_q, f.sky_u), meas: (o.q, o.u), w: [c / det, -b / det, a / det] },
+            ));
             bounds = [
                 bounds[0].min(o.x_arcmin),
                 bounds[1].max(o.x_arcmin),
@@ -425,15 +458,36 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
                 bounds[3].max(o.y_arcmin),
             ];
         }
-        if rows.len() == before {
+        if keyed.len() == before {
             return Err(Error::Input(format!(
                 "field '{}': no usable observation (finite q, u with positive variances)",
                 f.name
             )));
         }
     }
-    if 2 * rows.len() <= n {
-        return Err(Error::TooFewBins { used: rows.len(), total: rows.len(), needed: n / 2 + 1 });
+    let n_rows = keyed.len();
+    let data = {
+        let mut order: Vec<usize> = (0..n_rows).collect();
+        order.sort_by_key(|&i| keyed[i].0);
+        let (mut mono, mut start, mut rows) = (Vec::new(), Vec::new(), Vec::with_capacity(n_rows));
+        let mut m = Vec::with_capacity(nm);
+        let mut last = None;
+        for i in order {
+            let (key, row) = &keyed[i];
+            if last != Some(*key) {
+                last = Some(*key);
+                start.push(rows.len());
+                let (x, y) = (f64::from_bits(key.0), f64::from_bits(key.1));
+                monomials(deg, x / opts.scale_arcmin, y / opts.scale_arcmin, &mut m);
+                mono.extend_from_slice(&m);
+            }
+            rows.push(*row);
+        }
+        start.push(rows.len());
+        Data { nm, mono, start, rows }
+    };
+    if 2 * n_rows < n {
+        return Err(Error::TooFewBins { used: n_rows, total: n_rows, needed: n.div_ceil(2) });
     }
 
     // Start: no instrumental effect except a first-order diattenuation, the mean of
@@ -445,21 +499,21 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
         coef[k * nm] = ident[i];
     }
     if let Kind::Physical { .. } = kind {
-        let m = rows.len() as f64;
-        coef[0] = rows.iter().map(|r| r.meas.0 - r.sky.0).sum::<f64>() / m;
-        coef[nm] = rows.iter().map(|r| r.meas.1 - r.sky.1).sum::<f64>() / m;
+        let m = n_rows as f64;
+        coef[0] = data.rows.iter().map(|r| r.meas.0 - r.sky.0).sum::<f64>() / m;
+        coef[nm] = data.rows.iter().map(|r| r.meas.1 - r.sky.1).sum::<f64>() / m;
     }
 
     // Identifiability, from the Fisher matrix at the start (and, for the retardance, a probe
     // with a small retardance along each axis, because |g| has no derivative at g = 0).
-    let (fisher, _, _) = normal_equations(&rows, kind, &free, nm, &coef);
+    let (fisher, _, _) = normal_equations(&data, kind, &free, &coef);
     check_constrained(&fisher, kind, &free, nm, fields, opts.min_eigen_ratio)?;
 
     // Gauss-Newton with Levenberg-Marquardt damping.
-    let mut chi2 = normal_equations(&rows, kind, &free, nm, &coef).2;
+    let mut chi2 = normal_equations(&data, kind, &free, &coef).2;
     let mut lambda = 1e-6;
     for _ in 0..opts.max_iter {
-        let (a, b, _) = normal_equations(&rows, kind, &free, nm, &coef);
+        let (a, b, _) = normal_equations(&data, kind, &free, &coef);
         let mut improved = false;
         for _ in 0..10 {
             let mut ad = a.clone();
@@ -471,7 +525,7 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
                 continue;
             };
             let trial: Vec<f64> = coef.iter().zip(step.iter()).map(|(c, s)| c + s).collect();
-            let c2 = chi2_of(&rows, kind, &free, nm, &trial);
+            let c2 = chi2_of(&data, kind, &free, &trial);
             if c2 <= chi2 {
                 let done = chi2 - c2 < 1e-10 * chi2.max(1.0);
                 coef = trial;
@@ -486,8 +540,8 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
             break;
         }
     }
-    let (fisher, _, chi2) = normal_equations(&rows, kind, &free, nm, &coef);
-    let dof = (2 * rows.len() - n) as f64;
+    let (fisher, _, chi2) = normal_equations(&data, kind, &free, &coef);
+    let dof = (2 * n_rows - n) as f64;
     let chi2_dof = chi2 / dof;
     let (cov, condition) = invert_scaled(&fisher)
         .ok_or_else(|| Error::Degenerate("the Fisher matrix at the solution is singular".into()))?;
@@ -503,7 +557,7 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
         coeffs: coef,
         cov,
         chi2_dof,
-        n_obs: rows.len(),
+        n_obs: n_rows,
         condition,
         bounds,
         warnings: Vec::new(),
@@ -512,72 +566,93 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
     Ok(mf)
 }
 
-/// `(J^T W J, J^T W r, chi2)` over all rows at coefficients `coef`.
-fn normal_equations(
-    rows: &[Row],
-    kind: Kind,
-    free: &[usize],
-    nm: usize,
-    coef: &[f64],
-) -> (DMatrix<f64>, DVector<f64>, f64) {
+/// `(J^T W J, J^T W r, chi2)` over all rows at coefficients `coef`. The Jacobian of the
+/// forward model is taken per position in the `n_free` block parameters (central differences
+/// of the one forward model), so the normal matrix is `sum_p K_p (x) m_p m_p^T` over positions
+/// with `K_p` the `n_free x n_free` information of position `p` and `m_p` its monomials:
+/// computed as `Z^T diag(K_kl) Z` for each parameter pair (matrix products, not a rank-one
+/// update per observation).
+fn normal_equations(d: &Data, kind: Kind, free: &[usize], coef: &[f64]) -> (DMatrix<f64>, DVector<f64>, f64) {
     let nf = free.len();
+    let nm = d.nm;
+    let np = d.n_pos();
     let n = nf * nm;
-    let mut a = DMatrix::zeros(n, n);
-    let mut b = DVector::zeros(n);
+    let mut kp = vec![0.0; np * nf * nf];
+    let mut bp = vec![0.0; np * nf];
     let mut chi2 = 0.0;
-    let ident = kind.identity();
-    let mut full = ident.clone();
-    let mut jrow = vec![[0.0f64; 2]; n];
+    let mut full = kind.identity();
     let h = 1e-7;
-    for r in rows {
-        for (k, &i) in free.iter().enumerate() {
-            full[i] = (0..nm).map(|m| coef[k * nm + m] * r.mono[m]).sum();
-        }
-        let Some(pred) = kind.block(&full).forward(r.sky.0, r.sky.1) else { continue };
-        let res = (r.meas.0 - pred.0, r.meas.1 - pred.1);
-        chi2 += r.w[0] * res.0 * res.0 + 2.0 * r.w[1] * res.0 * res.1 + r.w[2] * res.1 * res.1;
-        // d(pred)/d(free param k), central differences of the one forward model.
-        for (k, &i) in free.iter().enumerate() {
+    let mut plus = Vec::with_capacity(nf);
+    let mut dv = vec![[0.0f64; 2]; nf];
+    for p in 0..np {
+        d.full(p, free, coef, &mut full);
+        let b0 = kind.block(&full);
+        plus.clear();
+        for &i in free {
             let v = full[i];
             full[i] = v + h;
-            let pa = kind.block(&full).forward(r.sky.0, r.sky.1).unwrap_or(pred);
+            let a = kind.block(&full);
             full[i] = v - h;
-            let pb = kind.block(&full).forward(r.sky.0, r.sky.1).unwrap_or(pred);
+            let b = kind.block(&full);
             full[i] = v;
-            let d = [(pa.0 - pb.0) / (2.0 * h), (pa.1 - pb.1) / (2.0 * h)];
-            for m in 0..nm {
-                jrow[k * nm + m] = [d[0] * r.mono[m], d[1] * r.mono[m]];
-            }
+            plus.push((a, b));
         }
-        // W J and W r.
-        for p in 0..n {
-            let (jq, ju) = (jrow[p][0], jrow[p][1]);
-            let wq = r.w[0] * jq + r.w[1] * ju;
-            let wu = r.w[1] * jq + r.w[2] * ju;
-            b[p] += wq * res.0 + wu * res.1;
-            for s in p..n {
-                a[(p, s)] += wq * jrow[s][0] + wu * jrow[s][1];
+        let k = &mut kp[p * nf * nf..(p + 1) * nf * nf];
+        let bb = &mut bp[p * nf..(p + 1) * nf];
+        for r in d.rows(p) {
+            let Some(pred) = b0.forward(r.sky.0, r.sky.1) else { continue };
+            let res = (r.meas.0 - pred.0, r.meas.1 - pred.1);
+            chi2 += r.w[0] * res.0 * res.0 + 2.0 * r.w[1] * res.0 * res.1 + r.w[2] * res.1 * res.1;
+            for (j, (a, b)) in plus.iter().enumerate() {
+                let pa = a.forward(r.sky.0, r.sky.1).unwrap_or(pred);
+                let pb = b.forward(r.sky.0, r.sky.1).unwrap_or(pred);
+                dv[j] = [(pa.0 - pb.0) / (2.0 * h), (pa.1 - pb.1) / (2.0 * h)];
+            }
+            for j in 0..nf {
+                let wq = r.w[0] * dv[j][0] + r.w[1] * dv[j][1];
+                let wu = r.w[1] * dv[j][0] + r.w[2] * dv[j][1];
+                bb[j] += wq * res.0 + wu * res.1;
+                for l in j..nf {
+                    k[j * nf + l] += wq * dv[l][0] + wu * dv[l][1];
+                }
             }
         }
     }
-    for p in 0..n {
-        for s in 0..p {
-            a[(p, s)] = a[(s, p)];
+    let z = DMatrix::from_row_slice(np, nm, &d.mono);
+    let mut a = DMatrix::zeros(n, n);
+    let mut b = DVector::zeros(n);
+    let mut wz = z.clone();
+    for j in 0..nf {
+        let bj = DVector::from_iterator(np, (0..np).map(|p| bp[p * nf + j]));
+        b.rows_mut(j * nm, nm).copy_from(&(z.transpose() * bj));
+        for l in j..nf {
+            for p in 0..np {
+                let w = kp[p * nf * nf + j * nf + l];
+                for m in 0..nm {
+                    wz[(p, m)] = w * z[(p, m)];
+                }
+            }
+            let blk = z.transpose() * &wz;
+            a.view_mut((j * nm, l * nm), (nm, nm)).copy_from(&blk);
+            if l != j {
+                a.view_mut((l * nm, j * nm), (nm, nm)).copy_from(&blk.transpose());
+            }
         }
     }
     (a, b, chi2)
 }
 
-fn chi2_of(rows: &[Row], kind: Kind, free: &[usize], nm: usize, coef: &[f64]) -> f64 {
+fn chi2_of(d: &Data, kind: Kind, free: &[usize], coef: &[f64]) -> f64 {
     let mut full = kind.identity();
     let mut chi2 = 0.0;
-    for r in rows {
-        for (k, &i) in free.iter().enumerate() {
-            full[i] = (0..nm).map(|m| coef[k * nm + m] * r.mono[m]).sum();
+    for p in 0..d.n_pos() {
+        d.full(p, free, coef, &mut full);
+        let blk = kind.block(&full);
+        for r in d.rows(p) {
+            let Some(pred) = blk.forward(r.sky.0, r.sky.1) else { return f64::INFINITY };
+            let res = (r.meas.0 - pred.0, r.meas.1 - pred.1);
+            chi2 += r.w[0] * res.0 * res.0 + 2.0 * r.w[1] * res.0 * res.1 + r.w[2] * res.1 * res.1;
         }
-        let Some(pred) = kind.block(&full).forward(r.sky.0, r.sky.1) else { return f64::INFINITY };
-        let res = (r.meas.0 - pred.0, r.meas.1 - pred.1);
-        chi2 += r.w[0] * res.0 * res.0 + 2.0 * r.w[1] * res.0 * res.1 + r.w[2] * res.1 * res.1;
     }
     chi2
 }
