@@ -173,7 +173,7 @@ fn n_monomials(deg: usize) -> usize {
 }
 
 /// A fitted Mueller field: every free parameter a polynomial over the field.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct MuellerField {
     pub kind: Kind,
     pub deg: usize,
@@ -842,4 +842,123 @@ pub fn fit_per_bin(fields: &[CalField], opts: &MuellerFitOptions) -> Result<(Vec
         return Err(Error::Degenerate("no position could be fitted on its own".into()));
     }
     Ok((fits, skipped))
+}
+
+/// The format tag of a Mueller-field file ([`MuellerField::to_json`]).
+pub const FORMAT: &str = "instpol-mueller-field-v1";
+
+#[derive(serde::Serialize, serde::Deserialize)]
+struct FileForm {
+    format: String,
+    field: MuellerField,
+}
+
+impl MuellerField {
+    /// The field as a JSON document tagged [`FORMAT`].
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(&FileForm { format: FORMAT.into(), field: self.clone() }).expect("plain data")
+    }
+
+    /// Read a field written by [`to_json`](Self::to_json); `what` names the input in errors.
+    /// Refuses another format, inconsistent lengths and non-finite coefficients.
+    pub fn from_json(text: &str, what: &str) -> Result<Self> {
+        let f: FileForm =
+            serde_json::from_str(text).map_err(|e| Error::Input(format!("{what}: not a Mueller-field file: {e}")))?;
+        if f.format != FORMAT {
+            return Err(Error::Input(format!("{what}: format '{}' is not {FORMAT}", f.format)));
+        }
+        let m = f.field;
+        let n = m.free.len() * n_monomials(m.deg);
+        let full = m.kind.identity().len();
+        if m.deg > 12 || m.coeffs.len() != n || m.cov.len() != n * n || m.free.iter().any(|&i| i >= full) {
+            return Err(Error::Input(format!("{what}: coefficient or covariance lengths do not match the model")));
+        }
+        if !m.coeffs.iter().chain(&m.cov).all(|v| v.is_finite()) || !(m.scale_arcmin > 0.0) {
+            return Err(Error::Input(format!("{what}: non-finite coefficient or covariance, or bad scale")));
+        }
+        Ok(m)
+    }
+}
+
+/// The valid bins of a Stokes map as observations (bin centres in arcmin, the scatter errors
+/// of the bin means).
+pub fn observations_of_map(map: &skyfield::maps::StokesMap) -> Vec<Observation> {
+    map.valid_bins()
+        .map(|(k, i, j)| {
+            let (x, y) = map.geometry.centre_arcmin(i, j);
+            Observation {
+                x_arcmin: x,
+                y_arcmin: y,
+                q: map.q[k],
+                u: map.u[k],
+                var_q: map.sigma_q[k] * map.sigma_q[k],
+                var_u: map.sigma_u[k] * map.sigma_u[k],
+                cov_qu: map.cov_qu[k],
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn obs(q: f64, u: f64) -> Vec<Observation> {
+        (0..25)
+            .map(|k| Observation {
+                x_arcmin: (k % 5) as f64 - 2.0,
+                y_arcmin: (k / 5) as f64 - 2.0,
+                q,
+                u,
+                var_q: 1e-8,
+                var_u: 1e-8,
+                cov_qu: 0.0,
+            })
+            .collect()
+    }
+
+    /// With the diattenuation alone, the Mueller correction is the paper's exact inversion of
+    /// `eq:instpol` (`correct::invert_exact_matrix`, a separate 4 x 4 implementation): today's
+    /// calibrations are the special case.
+    #[test]
+    fn diattenuation_only_correction_is_the_exact_eq_instpol_inverse() {
+        let (p, phi) = (0.004f64, 0.6f64);
+        let blk = linear::Physical { p, phi, ..Default::default() }.block();
+        let (q1, u1) = blk.forward(0.0645 * 0.3, 0.0645 * 0.95).unwrap();
+        let f =
+            CalField { name: "b".into(), sky_q: 0.0645 * 0.3, sky_u: 0.0645 * 0.95, sigma_sky: 0.0, obs: obs(q1, u1) };
+        let kind = Kind::Physical { retardance: false, rotation: false, depolarization: false };
+        let mf = fit_mueller_field(&[f], &MuellerFitOptions { kind, deg: 0, ..Default::default() }).unwrap();
+        let ph = mf.physical_at(0.0, 0.0).unwrap();
+        assert!((ph.p - p).abs() < 1e-12 && (ph.phi - phi).abs() < 1e-9, "{ph:?}");
+        let ((q0, u0), _) = mf.correct(0.5, -0.5, 0.03, -0.01, [1e-8, 0.0, 1e-8]).unwrap();
+        let (qw, uw) = crate::correct::invert_exact_matrix(p, phi, 0.03, -0.01).unwrap();
+        assert!((q0 - qw).abs() < 1e-11 && (u0 - uw).abs() < 1e-11);
+        // serde_json parses floats to within an ulp (no float_roundtrip feature).
+        let back = MuellerField::from_json(&mf.to_json(), "test").unwrap();
+        assert_eq!((back.kind, back.deg, &back.free), (mf.kind, mf.deg, &mf.free));
+        for (a, b) in back.coeffs.iter().chain(&back.cov).zip(mf.coeffs.iter().chain(&mf.cov)) {
+            assert!((a - b).abs() <= 4.0 * f64::EPSILON * b.abs());
+        }
+        assert!(MuellerField::from_json("{\"format\": \"x\"}", "bad.json")
+            .unwrap_err()
+            .to_string()
+            .contains("bad.json"));
+    }
+
+    /// Error propagation of the correction: the propagated measurement part equals the
+    /// closed form for an identity block (the Jacobian is the identity).
+    #[test]
+    fn identity_block_passes_errors_through() {
+        let f1 = CalField { name: "a".into(), sky_q: 0.05, sky_u: 0.0, sigma_sky: 0.0, obs: obs(0.05, 0.0) };
+        let f2 = CalField { name: "b".into(), sky_q: 0.0, sky_u: 0.05, sigma_sky: 0.0, obs: obs(0.0, 0.05) };
+        let mf = fit_mueller_field(&[f1, f2], &MuellerFitOptions { deg: 0, ..Default::default() }).unwrap();
+        let ((q, u), c) = mf.correct(0.0, 0.0, 0.01, 0.02, [4e-8, 1e-8, 9e-8]).unwrap();
+        assert!((q - 0.01).abs() < 1e-9 && (u - 0.02).abs() < 1e-9);
+        // Model variance is tiny (1e-8 data over 25 positions): within 5 %.
+        assert!(
+            (c[0] / 4e-8 - 1.0).abs() < 0.05 && (c[2] / 9e-8 - 1.0).abs() < 0.05 && (c[1] / 1e-8 - 1.0).abs() < 0.1,
+            "{c:?}"
+        );
+    }
 }

@@ -2,6 +2,7 @@
 
 pub mod bias;
 pub mod calibrate;
+pub mod calibrate_mueller;
 pub mod catalog;
 pub mod correct;
 pub mod demo;
