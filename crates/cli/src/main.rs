@@ -42,6 +42,8 @@ enum Command {
     Calibrate(cmd::calibrate::Args),
     #[command(about = "Fit the Mueller field (diattenuation, retardance, ...) jointly to several sky fields")]
     CalibrateMueller(cmd::calibrate_mueller::Args),
+    #[command(about = "Plan a Mueller-field calibration: fields and exposure for a target accuracy")]
+    Plan(cmd::plan::Args),
     #[command(about = "Refit a calibration file (radial model, free centre, exclusions, residual map)")]
     Fit(cmd::fit::Args),
     #[command(about = "Turn third-party Q/I, U/I maps into a calibration file")]
@@ -106,6 +108,7 @@ fn main() {
         Command::Catalog(a) => cmd::catalog::run(a),
         Command::Calibrate(a) => cmd::calibrate::run(a),
         Command::CalibrateMueller(a) => cmd::calibrate_mueller::run(a),
+        Command::Plan(a) => cmd::plan::run(a),
         Command::Fit(a) => cmd::fit::run(a),
         Command::ImportMap(a) => cmd::import_map::run(a),
         Command::WavelengthLaw(a) => cmd::wavelength_law::run(a),

@@ -114,3 +114,54 @@ fn three_fields_give_the_lens_retardance_and_one_field_is_refused() {
     assert_eq!(o.status.code(), Some(2));
     assert!(err.contains("x.fits:abc:10") && err.contains("P_PERCENT"), "{err}");
 }
+
+/// `instpol plan` linearized at a fitted Mueller field: one field is refused with the reason,
+/// the cheapest plan uses >= 2 fields, and --check simulates it at the target (exit 0); the
+/// plot is written.
+#[test]
+fn plan_from_a_fitted_field_is_checked_by_simulation() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let maps = [map(d, "b1.fits", 0.0645, 68.4), map(d, "b2.fits", 0.04, 10.0), map(d, "b3.fits", 0.08, 130.0)];
+    let mf = d.join("mf.json");
+    let mut args = vec!["calibrate-mueller".to_string()];
+    for (m, s) in maps.iter().zip(["6.45:68.4", "4.0:10", "8.0:130"]) {
+        args.extend(["--field".to_string(), format!("{}:{s}", m.display())]);
+    }
+    args.extend(["--deg".to_string(), "6".to_string(), "--out".to_string(), mf.display().to_string()]);
+    assert!(run(&args).status.success());
+    let plot = d.join("plan.png");
+    let args: Vec<String> = [
+        "plan",
+        "--target-percent",
+        "0.05",
+        "--sky-rate",
+        "2",
+        "--candidate",
+        "6.45:68.4",
+        "--candidate",
+        "4:10",
+        "--candidate",
+        "8:130",
+        "--bin",
+        "128",
+        "--deg",
+        "4",
+        "--check",
+        "--json",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .chain(["--expected".to_string(), mf.display().to_string(), "--plot".to_string(), plot.display().to_string()])
+    .collect();
+    let o = run(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(j["best"]["n_fields"].as_u64().unwrap() >= 2, "{j}");
+    assert!(j["refused"][0].as_str().unwrap().contains("retardance unconstrained"), "{j}");
+    let sim = j["simulated_rms_qu"].as_f64().unwrap();
+    assert!((sim / 5e-4 - 1.0).abs() < 0.25, "simulated {sim} against 5e-4");
+    assert_eq!(j["output"], plot.display().to_string());
+    assert!(std::fs::metadata(&plot).unwrap().len() > 1000);
+}

@@ -149,6 +149,15 @@ impl PlanSetup {
     /// matrix scales as `1 / sigma^2`), so one fit per choice suffices. Choices the model
     /// cannot use are skipped; their reasons are returned.
     pub fn plan(&self, target_rms: f64) -> Result<(Vec<PlanRow>, Vec<String>)> {
+        self.plan_with_progress(target_rms, &|_, _| {})
+    }
+
+    /// [`plan`](Self::plan), calling `step(done, total)` after every choice of fields tried.
+    pub fn plan_with_progress(
+        &self,
+        target_rms: f64,
+        step: &dyn Fn(usize, usize),
+    ) -> Result<(Vec<PlanRow>, Vec<String>)> {
         if !(target_rms > 0.0) || self.candidates.is_empty() || self.positions.is_empty() {
             return Err(Error::Input("plan: need a positive target, candidates and positions".into()));
         }
@@ -159,6 +168,8 @@ impl PlanSetup {
         let sigma0 = 1e-3;
         let mut rows = Vec::new();
         let mut reasons = Vec::new();
+        let total = (1usize << k) - 1;
+        let mut done = 0;
         for n in 1..=k {
             let mut best: Option<PlanRow> = None;
             for mask in 0u32..(1 << k) {
@@ -166,7 +177,10 @@ impl PlanSetup {
                     continue;
                 }
                 let chosen: Vec<usize> = (0..k).filter(|i| mask & (1 << i) != 0).collect();
-                match self.predict(&chosen, sigma0) {
+                let predicted = self.predict(&chosen, sigma0);
+                done += 1;
+                step(done, total);
+                match predicted {
                     Ok(rms0) => {
                         let t = self.exposure_for_sigma(sigma0 * target_rms / rms0);
                         let row = PlanRow {

@@ -15,6 +15,7 @@ pub mod master;
 pub mod mc;
 pub mod mc_plot;
 pub mod photometry;
+pub mod plan;
 pub mod plot;
 pub mod raytrace;
 pub mod reduce;
