@@ -74,6 +74,22 @@ impl Kind {
         Kind::Physical { retardance: true, rotation: false, depolarization: false }
     }
 
+    /// The physical form with the effects named in `s` (comma-separated: retardance,
+    /// rotation, depolarization, or none) free besides the diattenuation.
+    pub fn parse_free(s: &str) -> std::result::Result<Self, String> {
+        let (mut retardance, mut rotation, mut depolarization) = (false, false, false);
+        for w in s.split(',').map(str::trim).filter(|w| !w.is_empty()) {
+            match w {
+                "retardance" => retardance = true,
+                "rotation" => rotation = true,
+                "depolarization" => depolarization = true,
+                "none" => {}
+                _ => return Err(format!("unknown effect '{w}' (retardance, rotation, depolarization or none)")),
+            }
+        }
+        Ok(Kind::Physical { retardance, rotation, depolarization })
+    }
+
     /// Indices of the free parameters in the full vector of this kind.
     pub fn free(&self) -> Vec<usize> {
         match *self {
@@ -255,6 +271,41 @@ impl MuellerField {
         self.block_at(x, y).forward(q_sky, u_sky)
     }
 
+    /// `[var_q, cov_qu, var_u]` of `g(params)` at a position from the parameter covariance
+    /// there (`J C J^T`, `J` by central differences in the free parameters); `None` when `g`
+    /// has no value next to `full`.
+    fn model_covariance(
+        &self,
+        x: f64,
+        y: f64,
+        full: &[f64],
+        g: &dyn Fn(&[f64]) -> Option<(f64, f64)>,
+    ) -> Option<[f64; 3]> {
+        let (_, pc) = self.params_at(x, y);
+        let nf = self.free.len();
+        let h = 1e-7;
+        let mut jp = vec![[0.0; 2]; nf];
+        let (mut a, mut b) = (full.to_vec(), full.to_vec());
+        for (k, &i) in self.free.iter().enumerate() {
+            a[i] = full[i] + h;
+            b[i] = full[i] - h;
+            let (ra, rb) = (g(&a)?, g(&b)?);
+            a[i] = full[i];
+            b[i] = full[i];
+            jp[k] = [(ra.0 - rb.0) / (2.0 * h), (ra.1 - rb.1) / (2.0 * h)];
+        }
+        let mut v = [0.0; 3];
+        for k in 0..nf {
+            for l in 0..nf {
+                let c = pc[k * nf + l];
+                v[0] += jp[k][0] * c * jp[l][0];
+                v[1] += jp[k][0] * c * jp[l][1];
+                v[2] += jp[k][1] * c * jp[l][1];
+            }
+        }
+        Some(v)
+    }
+
     /// The exact correction of a measured `(q, u)` (covariance `[var_q, cov_qu, var_u]`) at a
     /// position: the source's `(q, u)` and its covariance, propagated from the measurement and
     /// from the model's parameter covariance (Jacobians by central differences of the one
@@ -283,24 +334,9 @@ impl MuellerField {
             jq[1] * jq[1] * vq + 2.0 * jq[1] * ju[1] * c + ju[1] * ju[1] * vu,
         ];
         // Model part: over the free parameters at this position.
-        let (_, pc) = self.params_at(x, y);
-        let nf = self.free.len();
-        let mut jp = vec![[0.0; 2]; nf];
-        for (k, &i) in self.free.iter().enumerate() {
-            let mut a = full.clone();
-            let mut b = full.clone();
-            a[i] += h;
-            b[i] -= h;
-            let (ra, rb) = (inv(&a, q, u).ok_or_else(sing)?, inv(&b, q, u).ok_or_else(sing)?);
-            jp[k] = [(ra.0 - rb.0) / (2.0 * h), (ra.1 - rb.1) / (2.0 * h)];
-        }
-        for k in 0..nf {
-            for l in 0..nf {
-                let c = pc[k * nf + l];
-                out[0] += jp[k][0] * c * jp[l][0];
-                out[1] += jp[k][0] * c * jp[l][1];
-                out[2] += jp[k][1] * c * jp[l][1];
-            }
+        let m = self.model_covariance(x, y, &full, &|f| inv(f, q, u)).ok_or_else(sing)?;
+        for (o, v) in out.iter_mut().zip(m) {
+            *o += v;
         }
         Ok(((q0, u0), out))
     }
@@ -314,28 +350,7 @@ impl FieldModel for MuellerField {
         let Some((q, u)) = self.kind.block(&full).forward(0.0, 0.0) else {
             return InstPol { q: f64::NAN, u: f64::NAN, ..Default::default() };
         };
-        let (_, pc) = self.params_at(x, y);
-        let nf = self.free.len();
-        let h = 1e-7;
-        let mut jp = vec![[0.0; 2]; nf];
-        for (k, &i) in self.free.iter().enumerate() {
-            let (mut a, mut b) = (full.clone(), full.clone());
-            a[i] += h;
-            b[i] -= h;
-            if let (Some(ra), Some(rb)) = (self.kind.block(&a).forward(0.0, 0.0), self.kind.block(&b).forward(0.0, 0.0))
-            {
-                jp[k] = [(ra.0 - rb.0) / (2.0 * h), (ra.1 - rb.1) / (2.0 * h)];
-            }
-        }
-        let mut v = [0.0; 3];
-        for k in 0..nf {
-            for l in 0..nf {
-                let c = pc[k * nf + l];
-                v[0] += jp[k][0] * c * jp[l][0];
-                v[1] += jp[k][0] * c * jp[l][1];
-                v[2] += jp[k][1] * c * jp[l][1];
-            }
-        }
+        let v = self.model_covariance(x, y, &full, &|f| self.kind.block(f).forward(0.0, 0.0)).unwrap_or([f64::NAN; 3]);
         InstPol { q, u, var_q: v[0], var_u: v[2], cov_qu: v[1] }
     }
 

@@ -85,17 +85,7 @@ fn kind_of(a: &Args) -> Result<Kind> {
     if a.general {
         return Ok(Kind::General);
     }
-    let (mut retardance, mut rotation, mut depolarization) = (false, false, false);
-    for w in a.free.split(',').map(str::trim).filter(|w| !w.is_empty()) {
-        match w {
-            "retardance" => retardance = true,
-            "rotation" => rotation = true,
-            "depolarization" => depolarization = true,
-            "none" => {}
-            _ => bail!("--free '{}': unknown effect '{w}' (retardance, rotation, depolarization or none)", a.free),
-        }
-    }
-    Ok(Kind::Physical { retardance, rotation, depolarization })
+    Kind::parse_free(&a.free).map_err(|e| anyhow!("--free '{}': {e}", a.free))
 }
 
 #[derive(serde::Serialize)]

@@ -114,19 +114,7 @@ pub fn run(a: Args) -> Result<()> {
     if candidates.len() > 8 {
         bail!("--candidate given {} times: at most 8", candidates.len());
     }
-    let kind = {
-        let (mut r, mut o, mut d) = (false, false, false);
-        for w in a.free.split(',').map(str::trim).filter(|w| !w.is_empty()) {
-            match w {
-                "retardance" => r = true,
-                "rotation" => o = true,
-                "depolarization" => d = true,
-                "none" => {}
-                _ => bail!("--free '{}': unknown effect '{w}' (retardance, rotation, depolarization or none)", a.free),
-            }
-        }
-        Kind::Physical { retardance: r, rotation: o, depolarization: d }
-    };
+    let kind = Kind::parse_free(&a.free).map_err(|e| anyhow!("--free '{}': {e}", a.free))?;
     let expected: Option<Arc<MuellerField>> = match &a.expected {
         Some(p) => {
             crate::util::inputs([p.as_path()])?;
