@@ -52,6 +52,10 @@ enum Command {
     Catalog(cmd::catalog::Args),
     #[command(about = "Measure the instrumental polarization on an empty field of known sky polarization")]
     Calibrate(cmd::calibrate::Args),
+    #[command(about = "Fit the Mueller field (diattenuation, retardance, ...) jointly to several sky fields")]
+    CalibrateMueller(cmd::calibrate_mueller::Args),
+    #[command(about = "Plan a Mueller-field calibration: fields and exposure for a target accuracy")]
+    Plan(cmd::plan::Args),
     #[command(about = "Refit a calibration file (radial model, free centre, exclusions, residual map)")]
     Fit(cmd::fit::Args),
     #[command(about = "Turn third-party Q/I, U/I maps into a calibration file")]
@@ -115,6 +119,8 @@ fn main() {
         Command::Photometry(a) => cmd::photometry::run(a),
         Command::Catalog(a) => cmd::catalog::run(a),
         Command::Calibrate(a) => cmd::calibrate::run(a),
+        Command::CalibrateMueller(a) => cmd::calibrate_mueller::run(a),
+        Command::Plan(a) => cmd::plan::run(a),
         Command::Fit(a) => cmd::fit::run(a),
         Command::ImportMap(a) => cmd::import_map::run(a),
         Command::WavelengthLaw(a) => cmd::wavelength_law::run(a),

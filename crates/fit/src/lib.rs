@@ -20,6 +20,8 @@ pub mod calfile;
 pub mod correlation;
 pub mod import;
 pub mod model;
+pub mod mueller_field;
+pub mod mueller_plan;
 pub mod paper;
 pub mod pipeline;
 pub mod polar;

@@ -27,6 +27,7 @@ use serde::{Deserialize, Serialize};
 
 pub mod analysis;
 pub mod fresnel;
+pub mod linear;
 pub mod mirror;
 pub mod raytrace;
 pub mod thinfilm;

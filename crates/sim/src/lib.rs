@@ -28,6 +28,7 @@
 pub mod plan;
 pub mod raw;
 pub mod scene;
+pub mod stress;
 
 pub use plan::{simulate, simulate_with_field, Plan, Simulated};
 pub use scene::Scene;

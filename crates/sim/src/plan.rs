@@ -336,6 +336,11 @@ impl Plan {
                         v = Element::PartialPolarizer { p, phi }.matrix() * v;
                     }
                 }
+                if let Some(sl) = &fx.stressed_lens {
+                    let (xa, ya) = inst.pixel_to_arcmin(x, y);
+                    let o = sl.block_at(xa, ya).apply([v[0], v[1], v[2]]);
+                    v = Stokes::new(o[0], o[1], o[2], 0.0);
+                }
                 moving.push(StarDraw { x, y, st: [v[0], v[1], v[2]], psf: PsfShape::of(st, &inst) });
             }
             if !scene.frame_shifts_px.is_empty() {
@@ -345,7 +350,7 @@ impl Plan {
         let needs_image = scene.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some())
             || (!scene.stars.is_empty() && !per_frame)
             || !scene.extended.is_empty()
-            || (field.is_some() && geom.layout == instrument::Layout::Strips);
+            || ((field.is_some() || fx.stressed_lens.is_some()) && geom.layout == instrument::Layout::Strips);
         let sky = if !needs_image {
             let c = base.unwrap_or([0.0; 3]);
             match &scene.sky {
@@ -414,6 +419,15 @@ impl Plan {
                         let out = Element::PartialPolarizer { p, phi }.matrix() * Stokes::new(s[0], s[1], s[2], 0.0);
                         *s = [out[0], out[1], out[2]];
                     }
+                });
+            }
+            if let Some(sl) = fx.stressed_lens.as_ref().filter(|_| geom.layout == instrument::Layout::Strips) {
+                explain.push(format!("  x stressed lens (mueller::linear block per pixel, after the field): {sl:?}"));
+                let coords = inst.field_coords();
+                img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(s, &(o, _))| {
+                    let (x, y) = pos(o);
+                    let (xa, ya) = coords.pixel_to_arcmin(x as f64, y as f64);
+                    *s = sl.block_at(xa, ya).apply(*s);
                 });
             }
             SkyAtPlate::Image(img)

@@ -328,6 +328,8 @@ pub struct CosmicSpec {
 #[serde(deny_unknown_fields)]
 pub struct Effects {
     pub instpol: Option<InstPolSpec>,
+    /// A stressed collimator lens: a retardance field applied after `instpol` ([`crate::stress`]).
+    pub stressed_lens: Option<crate::stress::StressedLensSpec>,
     pub wollaston: Option<WollastonSpec>,
     pub hwp_retardance_error_deg: Option<f64>,
     /// HWP chromatic zero angle (deg, the correction instruments tabulate: added to measured chi).
@@ -410,6 +412,11 @@ impl Scene {
         let th: Vec<f64> = self.hwp_angles_deg.iter().map(|a| a.to_radians()).collect();
         if let Err(e) = stokes::StokesSolver::new(&th) {
             return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &e.to_string());
+        }
+        if let Some(sl) = &self.effects.stressed_lens {
+            if let Err(why) = sl.validate() {
+                return bad("effects.stressed_lens", format!("{sl:?}"), &why);
+            }
         }
         if !(self.exposure_s.is_finite() && self.exposure_s > 0.0) {
             return bad("exposure_s", self.exposure_s.to_string(), "must be positive");

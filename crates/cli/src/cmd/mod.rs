@@ -2,6 +2,7 @@
 
 pub mod bias;
 pub mod calibrate;
+pub mod calibrate_mueller;
 pub mod catalog;
 pub mod correct;
 pub mod demo;
@@ -14,6 +15,7 @@ pub mod master;
 pub mod mc;
 pub mod mc_plot;
 pub mod photometry;
+pub mod plan;
 pub mod plot;
 pub mod raytrace;
 pub mod reduce;

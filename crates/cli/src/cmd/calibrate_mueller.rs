@@ -1,0 +1,224 @@
+//! `instpol calibrate-mueller`: the instrument's Mueller field from several sky fields of known
+//! polarization (issue 16), fitted jointly by `fit::mueller_field`.
+
+use anyhow::{anyhow, bail, Context, Result};
+use fit::mueller_field::{
+    fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions,
+};
+use std::path::PathBuf;
+
+/// Fit the linear block of the pre-analyzer Mueller matrix over the field jointly to two or
+/// more Stokes maps of empty fields whose sky polarization is known: the diattenuation p, phi
+/// of the paper's M_I (eq:instpol) and, with --free, a linear retardance (stress
+/// birefringence), a rotation of the polarization plane and a depolarization; or --general,
+/// the whole 3 x 3 block. Each free parameter is a 2-D polynomial of degree --deg in the field
+/// position; --per-bin also fits every bin on its own.
+///
+/// One sky field gives two numbers per position: it fixes p, phi and nothing else. A
+/// retardance needs >= 2 fields of different sky polarization, rotation and depolarization too
+/// need >= 3 whose sky (q, u) are not on one line. The command refuses (exit code 2), naming
+/// the parameters and the reason, what its inputs cannot separate, instead of printing
+/// numbers. It runs in well under a second (no progress bar).
+///
+/// Example: instpol calibrate-mueller --field b_sky1.fits:6.45:68.4 --field b_sky2.fits:4.0:10
+/// --field b_sky3.fits:8.0:130 --free retardance --deg 4 --out mueller_B.json
+#[derive(clap::Args)]
+pub struct Args {
+    /// A Stokes map (FITS written by `instpol reduce`) with its sky polarization:
+    /// MAP:P_PERCENT:CHI_DEG[:SIGMA_P_PERCENT] (P in percent, chi in degrees; the optional
+    /// 1-sigma uncertainty of the sky's q and u, in percent). Repeat for every field.
+    #[arg(long = "field", required = true, allow_hyphen_values = true)]
+    pub fields: Vec<String>,
+    /// Effects fitted besides the diattenuation, comma-separated: retardance, rotation,
+    /// depolarization (or "none": the paper's p, phi only).
+    #[arg(long, default_value = "retardance")]
+    pub free: String,
+    /// Fit the general 3 x 3 block (8 parameters; needs >= 3 fields not on one line).
+    #[arg(long, conflicts_with = "free")]
+    pub general: bool,
+    /// Polynomial degree of every parameter over the field.
+    #[arg(long, default_value_t = 4)]
+    pub deg: usize,
+    /// Field scale (arcmin) the positions are divided by: about the field radius.
+    #[arg(long, default_value_t = 3.4)]
+    pub scale_arcmin: f64,
+    /// Also fit every bin on its own and report how many bins constrain the model.
+    #[arg(long)]
+    pub per_bin: bool,
+    /// Output Mueller-field file (JSON, format instpol-mueller-field-v1).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn parse_field(spec: &str) -> Result<(PathBuf, f64, f64, f64)> {
+    let parts: Vec<&str> = spec.rsplitn(4, ':').collect();
+    // rsplitn: the path (which may hold ':') comes last.
+    let num = |s: &str, what: &str| -> Result<f64> {
+        s.trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| anyhow!("--field '{spec}': {what} '{s}' is not a number"))
+    };
+    let (path, p, chi, sig) = match parts.as_slice() {
+        [chi, p, path] => (*path, num(p, "P_PERCENT")?, num(chi, "CHI_DEG")?, 0.0),
+        [sig, chi, p, path] => match num(p, "P_PERCENT") {
+            Ok(pv) => (*path, pv, num(chi, "CHI_DEG")?, num(sig, "SIGMA_P_PERCENT")?),
+            // A path with a ':' and no sigma.
+            Err(_) => {
+                let joined = format!("{path}:{p}");
+                return Ok((PathBuf::from(joined), num(chi, "P_PERCENT")?, num(sig, "CHI_DEG")?, 0.0));
+            }
+        },
+        _ => bail!("--field '{spec}': expected MAP:P_PERCENT:CHI_DEG[:SIGMA_P_PERCENT], e.g. sky.fits:6.45:68.4"),
+    };
+    if !(0.0..100.0).contains(&p) || sig < 0.0 {
+        bail!("--field '{spec}': P = {p} % must be in [0, 100) and the sigma >= 0");
+    }
+    Ok((PathBuf::from(path), p / 100.0, chi.to_radians(), sig / 100.0))
+}
+
+fn kind_of(a: &Args) -> Result<Kind> {
+    if a.general {
+        return Ok(Kind::General);
+    }
+    Kind::parse_free(&a.free).map_err(|e| anyhow!("--free '{}': {e}", a.free))
+}
+
+#[derive(serde::Serialize)]
+struct Param {
+    name: &'static str,
+    median_value: f64,
+    rms_value: f64,
+    median_sigma: f64,
+}
+
+#[derive(serde::Serialize)]
+struct Report {
+    output: PathBuf,
+    n_fields: usize,
+    n_obs: usize,
+    deg: usize,
+    kind: String,
+    chi2_dof: f64,
+    condition: f64,
+    parameters: Vec<Param>,
+    median_p: Option<f64>,
+    max_p: Option<f64>,
+    median_retardance_deg: Option<f64>,
+    max_retardance_deg: Option<f64>,
+    n_bins_fitted: Option<usize>,
+    n_bins_unconstrained: Option<usize>,
+    warnings: Vec<String>,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.retain(|x| x.is_finite());
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let kind = kind_of(&a)?;
+    let specs: Vec<(PathBuf, f64, f64, f64)> = a.fields.iter().map(|s| parse_field(s)).collect::<Result<_>>()?;
+    crate::util::inputs(specs.iter().map(|s| s.0.as_path()))?;
+    crate::util::check_output(&a.out)?;
+    let mut fields = Vec::new();
+    for (path, p, chi, sig) in &specs {
+        let map = skyfield::maps::StokesMap::read_fits(path).with_context(|| format!("reading {}", path.display()))?;
+        let obs = observations_of_map(&map);
+        if obs.is_empty() {
+            bail!("{}: the Stokes map has no valid bin", path.display());
+        }
+        fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));
+    }
+    let opts = MuellerFitOptions { kind, deg: a.deg, scale_arcmin: a.scale_arcmin, ..Default::default() };
+    if a.deg > 8 {
+        bail!("--deg {}: at most 8", a.deg);
+    }
+    let mf: MuellerField = fit_mueller_field(&fields, &opts).map_err(|e| anyhow!("{e}"))?;
+    let per_bin = if a.per_bin { Some(fit_per_bin(&fields, &opts).map_err(|e| anyhow!("{e}"))?) } else { None };
+    crate::util::write_atomic(&a.out, mf.to_json().as_bytes())?;
+
+    // Summaries over the observed positions.
+    let pos: Vec<(f64, f64)> = fields[0].obs.iter().map(|o| (o.x_arcmin, o.y_arcmin)).collect();
+    let nf = mf.free.len();
+    let mut parameters = Vec::new();
+    for (k, &i) in mf.free.iter().enumerate() {
+        let (mut vals, mut sig) = (Vec::new(), Vec::new());
+        for &(x, y) in &pos {
+            let (v, c) = mf.params_at(x, y);
+            vals.push(v[k]);
+            sig.push(c[k * nf + k].max(0.0).sqrt());
+        }
+        let rms = (vals.iter().map(|v| v * v).sum::<f64>() / vals.len() as f64).sqrt();
+        parameters.push(Param {
+            name: kind.name(i),
+            median_value: median(vals),
+            rms_value: rms,
+            median_sigma: median(sig),
+        });
+    }
+    let phys: Vec<_> = pos.iter().filter_map(|&(x, y)| mf.physical_at(x, y)).collect();
+    let has_ret = mf.free.contains(&2);
+    let (median_p, max_p) = if phys.is_empty() {
+        (None, None)
+    } else {
+        (Some(median(phys.iter().map(|p| p.p).collect())), Some(phys.iter().map(|p| p.p).fold(0.0, f64::max)))
+    };
+    let (median_retardance_deg, max_retardance_deg) = if has_ret && !phys.is_empty() {
+        let d: Vec<f64> = phys.iter().map(|p| p.retardance.to_degrees()).collect();
+        (Some(median(d.clone())), Some(d.iter().cloned().fold(0.0, f64::max)))
+    } else {
+        (None, None)
+    };
+    let rep = Report {
+        output: a.out.clone(),
+        n_fields: fields.len(),
+        n_obs: mf.n_obs,
+        deg: mf.deg,
+        kind: format!("{kind:?}"),
+        chi2_dof: mf.chi2_dof,
+        condition: mf.condition,
+        parameters,
+        median_p,
+        max_p,
+        median_retardance_deg,
+        max_retardance_deg,
+        n_bins_fitted: per_bin.as_ref().map(|b| b.0.len()),
+        n_bins_unconstrained: per_bin.as_ref().map(|b| b.1),
+        warnings: mf.warnings.clone(),
+    };
+    if a.json {
+        return crate::util::print_json(&rep);
+    }
+    outln!("Mueller field from {} fields, {} observations: {}", rep.n_fields, rep.n_obs, rep.kind);
+    outln!(
+        "  degree {} polynomials, chi2/dof {:.3}, Fisher condition number {:.3e}",
+        rep.deg, rep.chi2_dof, rep.condition
+    );
+    outln!("  {:<16} {:>12} {:>12} {:>12}", "parameter", "median", "rms", "median sigma");
+    for p in &rep.parameters {
+        outln!("  {:<16} {:>12.3e} {:>12.3e} {:>12.3e}", p.name, p.median_value, p.rms_value, p.median_sigma);
+    }
+    if let (Some(m), Some(x)) = (rep.median_p, rep.max_p) {
+        outln!("  diattenuation p: median {:.4} %, largest {:.4} %", 100.0 * m, 100.0 * x);
+    }
+    if let (Some(m), Some(x)) = (rep.median_retardance_deg, rep.max_retardance_deg) {
+        outln!("  retardance: median {m:.2} deg, largest {x:.2} deg");
+    }
+    if let (Some(n), Some(s)) = (rep.n_bins_fitted, rep.n_bins_unconstrained) {
+        outln!("  per bin: {n} bins fitted, {s} not constrained on their own");
+    }
+    for w in &rep.warnings {
+        eprintln!("WARNING: {w}");
+    }
+    outln!("  written: {}", rep.output.display());
+    Ok(())
+}

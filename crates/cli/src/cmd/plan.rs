@@ -1,0 +1,293 @@
+//! `instpol plan`: what a Mueller-field calibration costs (issue 16): how many sky fields,
+//! which, and how long per HWP angle reach a target accuracy, from `fit::mueller_plan`.
+
+use anyhow::{anyhow, bail, Context, Result};
+use fit::mueller_field::{Kind, MuellerField, MuellerFitOptions};
+use fit::mueller_plan::{simulate_plan, PlanRow, PlanSetup};
+use plotters::prelude::*;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// Plan a calibration of the Mueller field: for a target accuracy (RMS over the field of the
+/// corrected q, u of polarized targets, model error only), the instrument, the sky brightness
+/// and the candidate sky fields with their polarization, find for every number of fields the
+/// cheapest choice and its exposure per HWP angle, from the error propagation of the same fit
+/// `calibrate-mueller` runs (its inverse Fisher matrix, per-bin errors from eq:sigp with photon
+/// and read noise). One field never constrains a retardance: such choices are listed as
+/// refused, with the reason. The retardance's errors are Gaussian only where a retardance is
+/// present (|g| has no derivative at zero): give --expected (a previous calibration) and use
+/// --check, which exits with code 1 and a warning when the simulation misses the target by
+/// more than 25 %. --check simulates the cheapest plan (noisy maps of the expected
+/// field, fitted and used to correct targets) and reports the accuracy it reaches.
+///
+/// Example: instpol plan --target-percent 0.02 --sky-rate 2 --candidate 6.45:68.4
+/// --candidate 4:10 --candidate 8:130 --expected mueller_B.json --check --plot plan.png
+#[derive(clap::Args)]
+pub struct Args {
+    /// Target RMS of the corrected q, u over the field, in PERCENT (0.02 = 2e-4).
+    #[arg(long)]
+    pub target_percent: f64,
+    /// Built-in instrument name or instrument TOML file (detector size, scale, read noise).
+    #[arg(long, default_value = "fors1")]
+    pub instrument: String,
+    /// Sky count rate, o + e beams, e- per sky pixel per second.
+    #[arg(long)]
+    pub sky_rate: f64,
+    /// A candidate field's sky polarization: P_PERCENT:CHI_DEG. Repeat (at most 8).
+    #[arg(long = "candidate", required = true, allow_hyphen_values = true)]
+    pub candidates: Vec<String>,
+    /// Bin side in detector pixels of the calibration maps.
+    #[arg(long, default_value_t = 64)]
+    pub bin: usize,
+    /// HWP angles per field (optimal set: 4, 8 or 16).
+    #[arg(long, default_value_t = 4)]
+    pub angles: usize,
+    /// Effects besides the diattenuation, as for calibrate-mueller.
+    #[arg(long, default_value = "retardance")]
+    pub free: String,
+    /// Polynomial degree of the model.
+    #[arg(long, default_value_t = 4)]
+    pub deg: usize,
+    /// Polarization degree of the targets (PERCENT).
+    #[arg(long, default_value_t = 5.0)]
+    pub target_p_percent: f64,
+    /// A Mueller-field file (calibrate-mueller --out) to linearize at and, with --check, to
+    /// simulate; without it: no instrumental effect.
+    #[arg(long)]
+    pub expected: Option<PathBuf>,
+    /// Simulate the cheapest plan (4 noise draws) and report the accuracy it reaches.
+    #[arg(long)]
+    pub check: bool,
+    /// Plot accuracy against total observing time (PNG).
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(serde::Serialize)]
+struct Row {
+    n_fields: usize,
+    fields: Vec<usize>,
+    exposure_s: f64,
+    total_s: f64,
+    rms_qu: f64,
+}
+
+#[derive(serde::Serialize)]
+struct Report {
+    target_rms_qu: f64,
+    n_bins: usize,
+    sigma_qu_at_plan: Option<f64>,
+    plans: Vec<Row>,
+    refused: Vec<String>,
+    best: Option<Row>,
+    simulated_rms_qu: Option<f64>,
+    output: Option<PathBuf>,
+}
+
+fn parse_candidate(s: &str) -> Result<(f64, f64)> {
+    let v: Option<Vec<f64>> = s.split(':').map(|t| t.trim().parse().ok().filter(|x: &f64| x.is_finite())).collect();
+    match v.as_deref() {
+        Some([p, chi]) if (0.0..100.0).contains(p) => Ok((p / 100.0, chi.to_radians())),
+        _ => bail!("--candidate '{s}': expected P_PERCENT:CHI_DEG with 0 <= P < 100, e.g. 6.45:68.4"),
+    }
+}
+
+pub fn run(a: Args) -> Result<()> {
+    if !(a.target_percent > 0.0 && a.target_percent.is_finite()) {
+        bail!("--target-percent {}: must be a positive number (percent)", a.target_percent);
+    }
+    if !(a.sky_rate > 0.0 && a.sky_rate.is_finite()) {
+        bail!("--sky-rate {}: must be a positive count rate (e-/px/s)", a.sky_rate);
+    }
+    if ![4, 8, 16].contains(&a.angles) {
+        bail!("--angles {}: the optimal sets have 4, 8 or 16 angles", a.angles);
+    }
+    if a.deg > 8 {
+        bail!("--deg {}: at most 8", a.deg);
+    }
+    let inst = instrument::Instrument::load(&a.instrument).map_err(|e| anyhow!("{e}"))?;
+    crate::util::check_bin(a.bin, &inst)?;
+    let candidates: Vec<(f64, f64)> = a.candidates.iter().map(|s| parse_candidate(s)).collect::<Result<_>>()?;
+    if candidates.len() > 8 {
+        bail!("--candidate given {} times: at most 8", candidates.len());
+    }
+    let kind = Kind::parse_free(&a.free).map_err(|e| anyhow!("--free '{}': {e}", a.free))?;
+    let expected: Option<Arc<MuellerField>> = match &a.expected {
+        Some(p) => {
+            crate::util::inputs([p.as_path()])?;
+            let text = std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?;
+            Some(Arc::new(MuellerField::from_json(&text, &p.display().to_string()).map_err(|e| anyhow!("{e}"))?))
+        }
+        None => None,
+    };
+    if let Some(p) = &a.plot {
+        crate::plot::require_png(p)?;
+        crate::util::check_output(p)?;
+    }
+    let g = skyfield::maps::BinGeometry::covering(
+        a.bin,
+        0,
+        0,
+        inst.detector.nx,
+        inst.detector.ny,
+        inst.detector.pixel_scale_arcsec,
+    );
+    let mut positions = Vec::new();
+    for j in 0..g.ny {
+        for i in 0..g.nx {
+            positions.push(g.centre_arcmin(i, j));
+        }
+    }
+    let radius = positions.iter().map(|&(x, y)| x.abs().max(y.abs())).fold(0.0, f64::max).max(0.1);
+    let setup = PlanSetup {
+        positions,
+        bin_npix: (a.bin * a.bin) as f64,
+        n_angles: a.angles,
+        sky_rate: a.sky_rate,
+        read_noise_e: inst.detector.read_noise_e,
+        candidates,
+        fit: MuellerFitOptions { kind, deg: a.deg, scale_arcmin: radius, ..Default::default() },
+        target_p: a.target_p_percent / 100.0,
+        expected: expected.clone().map(|m| {
+            let f: Arc<dyn Fn(f64, f64) -> mueller::linear::LinearBlock + Send + Sync> =
+                Arc::new(move |x, y| m.block_at(x, y));
+            f
+        }),
+    };
+    let target = a.target_percent / 100.0;
+    let bar = indicatif::ProgressBar::with_draw_target(None, indicatif::ProgressDrawTarget::hidden());
+    let start = std::time::Instant::now();
+    let shown = std::cell::Cell::new(false);
+    let (rows, refused) = setup
+        .plan_with_progress(target, &|done, total| {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+            if !a.json && !shown.get() && start.elapsed().as_secs_f64() > 1.0 {
+                shown.set(true);
+                bar.set_draw_target(indicatif::ProgressDrawTarget::stderr());
+            }
+        })
+        .map_err(|e| anyhow!("{e}"))?;
+    bar.finish_and_clear();
+    let best: Option<PlanRow> = rows.iter().min_by(|x, y| x.total_s.total_cmp(&y.total_s)).cloned();
+    let simulated = match (&best, a.check) {
+        (Some(b), true) => {
+            let truth = |x: f64, y: f64| match &expected {
+                Some(m) => m.block_at(x, y),
+                None => mueller::linear::LinearBlock::identity(),
+            };
+            let mut s = 0.0;
+            for seed in 0..4 {
+                let r = simulate_plan(&setup, b, &truth, seed).map_err(|e| anyhow!("{e}"))?;
+                s += r * r;
+            }
+            Some((s / 4.0).sqrt())
+        }
+        _ => None,
+    };
+    if let (Some(path), Some(b)) = (&a.plot, &best) {
+        let ts: Vec<f64> = (0..40).map(|k| b.exposure_s * 10f64.powf(-1.0 + 2.0 * k as f64 / 39.0)).collect();
+        let mut curves = Vec::new();
+        for r in &rows {
+            curves.push((r.n_fields, r.fields.clone(), setup.curve(&r.fields, &ts).map_err(|e| anyhow!("{e}"))?));
+        }
+        let (x0, x1) = curves
+            .iter()
+            .flat_map(|c| c.2.iter().map(|p| p.0))
+            .fold((f64::MAX, 0.0f64), |(a, b), x| (a.min(x), b.max(x)));
+        let (y0, y1) = curves
+            .iter()
+            .flat_map(|c| c.2.iter().map(|p| 100.0 * p.1))
+            .fold((f64::MAX, 0.0f64), |(a, b), y| (a.min(y), b.max(y)));
+        crate::plot::save_png(path, (900, 600), |root| {
+            let ax = crate::plot::Axes::new(
+                format!("Mueller-field calibration: accuracy against time (target {} %)", a.target_percent),
+                "total observing time (s)",
+                "RMS corrected q, u (%)",
+            );
+            let mut c = crate::plot::chart(root, &ax, (x0..x1).log_scale(), (y0..y1).log_scale())?;
+            let colours = [RED, BLUE, GREEN, MAGENTA, CYAN, BLACK, RGBColor(200, 120, 0), RGBColor(120, 60, 160)];
+            for (k, (n, f, pts)) in curves.iter().enumerate() {
+                let col = colours[k % colours.len()];
+                c.draw_series(LineSeries::new(pts.iter().map(|p| (p.0, 100.0 * p.1)), col.stroke_width(2)))
+                    .map_err(crate::plot::pe)?
+                    .label(format!("{n} field(s) {f:?}"))
+                    .legend(crate::plot::line_key(col.stroke_width(2)));
+            }
+            c.draw_series(LineSeries::new([(x0, a.target_percent), (x1, a.target_percent)], BLACK.stroke_width(1)))
+                .map_err(crate::plot::pe)?
+                .label("target")
+                .legend(crate::plot::line_key(BLACK.stroke_width(1)));
+            c.configure_series_labels()
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .draw()
+                .map_err(crate::plot::pe)?;
+            Ok(())
+        })?;
+    }
+    let conv = |r: &PlanRow| Row {
+        n_fields: r.n_fields,
+        fields: r.fields.clone(),
+        exposure_s: r.exposure_s,
+        total_s: r.total_s,
+        rms_qu: r.rms_qu,
+    };
+    let rep = Report {
+        target_rms_qu: target,
+        n_bins: setup.positions.len(),
+        sigma_qu_at_plan: best.as_ref().map(|b| setup.sigma_qu(b.exposure_s)),
+        plans: rows.iter().map(conv).collect(),
+        refused,
+        best: best.as_ref().map(conv),
+        simulated_rms_qu: simulated,
+        output: a.plot.clone(),
+    };
+    let missed = rep.simulated_rms_qu.filter(|&s| s > 1.25 * target);
+    if a.json {
+        crate::util::print_json(&rep)?;
+        return check_result(missed, target);
+    }
+    outln!(
+        "Plan for an RMS of {} % in corrected q, u ({} bins, {} HWP angles per field)",
+        a.target_percent, rep.n_bins, a.angles
+    );
+    outln!("  {:>8} {:<16} {:>14} {:>12}", "fields", "candidates", "s per angle", "total s");
+    for r in &rep.plans {
+        outln!("  {:>8} {:<16} {:>14.1} {:>12.0}", r.n_fields, format!("{:?}", r.fields), r.exposure_s, r.total_s);
+    }
+    for r in &rep.refused {
+        outln!("  refused: {r}");
+    }
+    if let Some(b) = &rep.best {
+        outln!(
+            "  cheapest: {} field(s) {:?}, {:.1} s per HWP angle, {:.0} s in all",
+            b.n_fields, b.fields, b.exposure_s, b.total_s
+        );
+    } else {
+        eprintln!("WARNING: no choice of the candidates constrains the model: see the refusals");
+    }
+    if let Some(s) = rep.simulated_rms_qu {
+        outln!("  simulated (4 noise draws): RMS {:.4} % against the target {} %", 100.0 * s, a.target_percent);
+    }
+    if let Some(p) = &rep.output {
+        outln!("  plot: {}", p.display());
+    }
+    check_result(missed, target)
+}
+
+/// A --check that missed the target is a failed check (exit code 1), never a quiet 0.
+fn check_result(missed: Option<f64>, target: f64) -> Result<()> {
+    match missed {
+        Some(s) => Err(crate::util::CheckFailed(format!(
+            "WARNING: the simulated plan reaches an RMS of {:.4} %, not the target {:.4} %: the Fisher prediction does not hold at this field (near zero retardance the errors are not Gaussian); give --expected or plan for a smaller target",
+            100.0 * s,
+            100.0 * target
+        ))
+        .into()),
+        None => Ok(()),
+    }
+}

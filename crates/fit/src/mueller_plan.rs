@@ -1,0 +1,248 @@
+//! What a Mueller-field calibration costs (issue 16, item 5): how many sky fields, which ones
+//! and how long per HWP angle reach a target accuracy of the corrected `(q, u)` over the field,
+//! from the error propagation of the one fit ([`crate::mueller_field`]): the covariance of a
+//! fit to noiseless maps with the predicted per-bin errors is the inverse Fisher matrix of the
+//! same model, and the correction's model error follows from it ([`MuellerField::correct`]).
+//! [`simulate_plan`] checks a plan by fitting noisy maps of a given true field.
+//!
+//! Per-bin errors: `sigma_q = sigma_u = 1 / (sqrt(N/2) SNR)` (`eq:sigp`, optimal angle sets)
+//! with `SNR = S / sqrt(S + 2 n_px RN^2)` of one exposure's `f_O + f_E` in the bin
+//! (`S = rate t n_px` electrons, photon and read noise of both beams).
+
+use crate::mueller_field::{fit_mueller_field, CalField, MuellerField, MuellerFitOptions, Observation};
+use crate::{Error, Result};
+use mueller::linear::LinearBlock;
+use rand::SeedableRng;
+use rand_distr::{Distribution, Normal};
+
+/// What the plan is for.
+#[derive(Clone)]
+pub struct PlanSetup {
+    /// Bin centres (arcmin) of the calibration maps.
+    pub positions: Vec<(f64, f64)>,
+    /// Sky pixels per bin (both beams see this many).
+    pub bin_npix: f64,
+    /// HWP angles per field (optimal set).
+    pub n_angles: usize,
+    /// Sky count rate, `f_O + f_E`, e- per sky pixel per second.
+    pub sky_rate: f64,
+    pub read_noise_e: f64,
+    /// Candidate fields: sky `(P, chi)` (fraction, rad).
+    pub candidates: Vec<(f64, f64)>,
+    pub fit: MuellerFitOptions,
+    /// Polarization degree of the targets the accuracy is for (their chi averaged over).
+    pub target_p: f64,
+    /// The field the calibration expects (a previous calibration, the ray trace; `None`: no
+    /// instrumental effect). The Fisher matrix is taken there: a retarder is invisible to
+    /// light polarized along its axis, so the information on a retardance depends on the
+    /// retardance present, and an identity linearization can misjudge it by a factor of 2.
+    pub expected: Option<std::sync::Arc<dyn Fn(f64, f64) -> LinearBlock + Send + Sync>>,
+}
+
+impl std::fmt::Debug for PlanSetup {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PlanSetup({} positions, {} candidates)", self.positions.len(), self.candidates.len())
+    }
+}
+
+/// One plan: which fields and how long.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct PlanRow {
+    pub n_fields: usize,
+    /// Indices into the candidates.
+    pub fields: Vec<usize>,
+    pub exposure_s: f64,
+    pub total_s: f64,
+    /// Predicted RMS of the corrected q, u over the field (model error only).
+    pub rms_qu: f64,
+}
+
+impl PlanSetup {
+    /// Per-bin `sigma_q = sigma_u` for an exposure of `t` s per HWP angle (`eq:sigp`).
+    pub fn sigma_qu(&self, t: f64) -> f64 {
+        let s = self.sky_rate * t * self.bin_npix;
+        let snr = s / (s + 2.0 * self.bin_npix * self.read_noise_e * self.read_noise_e).sqrt();
+        1.0 / ((self.n_angles as f64 / 2.0).sqrt() * snr)
+    }
+
+    /// The exposure per angle at which [`sigma_qu`](Self::sigma_qu) is `sigma` (solves the
+    /// quadratic in `S`).
+    pub fn exposure_for_sigma(&self, sigma: f64) -> f64 {
+        let snr = 1.0 / ((self.n_angles as f64 / 2.0).sqrt() * sigma);
+        let r = 2.0 * self.bin_npix * self.read_noise_e * self.read_noise_e;
+        // S^2 = snr^2 (S + r)
+        let k = snr * snr;
+        let s = 0.5 * (k + (k * k + 4.0 * k * r).sqrt());
+        s / (self.sky_rate * self.bin_npix)
+    }
+
+    fn fields(
+        &self,
+        chosen: &[usize],
+        truth: &dyn Fn(f64, f64) -> LinearBlock,
+        sigma: f64,
+        seed: Option<u64>,
+    ) -> Vec<CalField> {
+        chosen
+            .iter()
+            .map(|&k| {
+                let (p, chi) = self.candidates[k];
+                let (q0, u0) = (p * (2.0 * chi).cos(), p * (2.0 * chi).sin());
+                let mut rng = seed.map(|s| rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(s + 7919 * k as u64));
+                let n = Normal::new(0.0, sigma).expect("positive sigma");
+                let obs = self
+                    .positions
+                    .iter()
+                    .map(|&(x, y)| {
+                        let (q, u) = truth(x, y).forward(q0, u0).unwrap_or((q0, u0));
+                        let (dq, du) = match rng.as_mut() {
+                            Some(r) => (n.sample(r), n.sample(r)),
+                            None => (0.0, 0.0),
+                        };
+                        Observation {
+                            x_arcmin: x,
+                            y_arcmin: y,
+                            q: q + dq,
+                            u: u + du,
+                            var_q: sigma * sigma,
+                            var_u: sigma * sigma,
+                            cov_qu: 0.0,
+                        }
+                    })
+                    .collect();
+                CalField::from_p_chi(&format!("candidate {k}"), p, chi, 0.0, obs)
+            })
+            .collect()
+    }
+
+    /// RMS over the positions (and 4 target angles) of the model error of the corrected q, u.
+    fn model_rms(&self, mf: &MuellerField) -> Result<f64> {
+        let mut s = 0.0;
+        let mut n = 0.0;
+        for &(x, y) in &self.positions {
+            for a in 0..4 {
+                let chi = a as f64 * std::f64::consts::FRAC_PI_4;
+                let (q0, u0) = (self.target_p * (2.0 * chi).cos(), self.target_p * (2.0 * chi).sin());
+                let (qm, um) = mf.forward_at(x, y, q0, u0).unwrap_or((q0, u0));
+                let (_, c) = mf.correct(x, y, qm, um, [0.0; 3])?;
+                s += 0.5 * (c[0] + c[2]);
+                n += 1.0;
+            }
+        }
+        Ok((s / n).sqrt())
+    }
+
+    /// Predicted RMS of the corrected q, u for fields `chosen` at per-bin error `sigma`: the
+    /// fit to noiseless maps of an identity field returns the inverse Fisher matrix as its
+    /// covariance (at the expected field, [`PlanSetup::expected`]). Refused (with the fit's reason) when the fields cannot constrain the model.
+    pub fn predict(&self, chosen: &[usize], sigma: f64) -> Result<f64> {
+        let id = |_: f64, _: f64| LinearBlock::identity();
+        let mf = match &self.expected {
+            Some(e) => fit_mueller_field(&self.fields(chosen, &**e, sigma, None), &self.fit)?,
+            None => fit_mueller_field(&self.fields(chosen, &id, sigma, None), &self.fit)?,
+        };
+        self.model_rms(&mf)
+    }
+
+    /// For every number of fields, the cheapest choice of candidates and its exposure per HWP
+    /// angle reaching `target_rms`; the model error scales as the per-bin error (the Fisher
+    /// matrix scales as `1 / sigma^2`), so one fit per choice suffices. Choices the model
+    /// cannot use are skipped; their reasons are returned.
+    pub fn plan(&self, target_rms: f64) -> Result<(Vec<PlanRow>, Vec<String>)> {
+        self.plan_with_progress(target_rms, &|_, _| {})
+    }
+
+    /// [`plan`](Self::plan), calling `step(done, total)` after every choice of fields tried.
+    pub fn plan_with_progress(
+        &self,
+        target_rms: f64,
+        step: &dyn Fn(usize, usize),
+    ) -> Result<(Vec<PlanRow>, Vec<String>)> {
+        if !(target_rms > 0.0) || self.candidates.is_empty() || self.positions.is_empty() {
+            return Err(Error::Input("plan: need a positive target, candidates and positions".into()));
+        }
+        let k = self.candidates.len();
+        if k > 8 {
+            return Err(Error::Input(format!("plan: {k} candidate fields; at most 8")));
+        }
+        let sigma0 = 1e-3;
+        let mut rows = Vec::new();
+        let mut reasons = Vec::new();
+        let total = (1usize << k) - 1;
+        let mut done = 0;
+        for n in 1..=k {
+            let mut best: Option<PlanRow> = None;
+            for mask in 0u32..(1 << k) {
+                if mask.count_ones() as usize != n {
+                    continue;
+                }
+                let chosen: Vec<usize> = (0..k).filter(|i| mask & (1 << i) != 0).collect();
+                let predicted = self.predict(&chosen, sigma0);
+                done += 1;
+                step(done, total);
+                match predicted {
+                    Ok(rms0) => {
+                        let t = self.exposure_for_sigma(sigma0 * target_rms / rms0);
+                        let row = PlanRow {
+                            n_fields: n,
+                            fields: chosen,
+                            exposure_s: t,
+                            total_s: t * (n * self.n_angles) as f64,
+                            rms_qu: target_rms,
+                        };
+                        if best.as_ref().is_none_or(|b| row.total_s < b.total_s) {
+                            best = Some(row);
+                        }
+                    }
+                    Err(e) => {
+                        let s = format!("{n} field(s) {chosen:?}: {e}");
+                        if !reasons.iter().any(|r: &String| r.starts_with(&format!("{n} field"))) {
+                            reasons.push(s);
+                        }
+                    }
+                }
+            }
+            rows.extend(best);
+        }
+        Ok((rows, reasons))
+    }
+
+    /// Accuracy against total time for one choice of fields: `(total_s, rms_qu)` at the given
+    /// exposures per HWP angle.
+    pub fn curve(&self, chosen: &[usize], exposures_s: &[f64]) -> Result<Vec<(f64, f64)>> {
+        let sigma0 = 1e-3;
+        let rms0 = self.predict(chosen, sigma0)?;
+        Ok(exposures_s
+            .iter()
+            .map(|&t| (t * (chosen.len() * self.n_angles) as f64, rms0 * self.sigma_qu(t) / sigma0))
+            .collect())
+    }
+}
+
+/// Check a plan by simulation: noisy maps of the true field `truth` with the plan's per-bin
+/// errors, fitted, and the corrected q, u of targets (degree `target_p`, 4 angles) at every
+/// position compared with their truth. Returns the RMS error of the corrected q, u (model
+/// error only: the targets are noiseless).
+pub fn simulate_plan(
+    setup: &PlanSetup,
+    row: &PlanRow,
+    truth: &dyn Fn(f64, f64) -> LinearBlock,
+    seed: u64,
+) -> Result<f64> {
+    let sigma = setup.sigma_qu(row.exposure_s);
+    let mf = fit_mueller_field(&setup.fields(&row.fields, truth, sigma, Some(seed)), &setup.fit)?;
+    let (mut s, mut n) = (0.0, 0.0);
+    for &(x, y) in &setup.positions {
+        for a in 0..4 {
+            let chi = a as f64 * std::f64::consts::FRAC_PI_4;
+            let (q0, u0) = (setup.target_p * (2.0 * chi).cos(), setup.target_p * (2.0 * chi).sin());
+            let (qm, um) = truth(x, y)
+                .forward(q0, u0)
+                .ok_or_else(|| Error::Input(format!("the true field at ({x}, {y}) passes no light")))?;
+            let ((qc, uc), _) = mf.correct(x, y, qm, um, [0.0; 3])?;
+            s += 0.5 * ((qc - q0).powi(2) + (uc - u0).powi(2));
+            n += 1.0;
+        }
+    }
+    Ok((s / n).sqrt())
+}
