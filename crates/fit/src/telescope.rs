@@ -274,6 +274,17 @@ impl Track {
     pub fn at(parallactic: f64) -> Self {
         Track { start: parallactic, end: parallactic }
     }
+
+    /// The track of an exposure from the angles (rad) at its start and end as a header or a
+    /// catalog gives them (each in (-pi, pi] or any other turn): `end` is moved by whole turns
+    /// to lie within pi of `start`, the short way round (an exposure does not turn by half a
+    /// circle; near the zenith, where it might, split the exposure). No end: an instant.
+    pub fn new(start: f64, end: Option<f64>) -> Self {
+        match end {
+            None => Track::at(start),
+            Some(e) => Track { start, end: start + 2.0 * mueller::wrap_half_pi(0.5 * (e - start)) },
+        }
+    }
 }
 
 /// `sin(x) / x`, stable at 0.
@@ -967,6 +978,18 @@ mod tests {
         }
         let (q, u) = b.correct_track(meas[1] / meas[0], meas[2] / meas[0], track, true).unwrap();
         assert!((q - 0.02).abs() < 1e-7 && (u + 0.01).abs() < 1e-7, "{q} {u}");
+    }
+
+    #[test]
+    fn track_goes_the_short_way_across_the_wrap() {
+        let d = f64::to_radians;
+        let t = Track::new(d(170.0), Some(d(-175.0)));
+        assert!((t.start - d(170.0)).abs() < 1e-12 && (t.end - d(185.0)).abs() < 1e-12, "{t:?}");
+        let t = Track::new(d(-175.0), Some(d(170.0)));
+        assert!((t.end - d(-190.0)).abs() < 1e-12, "{t:?}");
+        let t = Track::new(d(10.0), Some(d(30.0)));
+        assert!((t.end - d(30.0)).abs() < 1e-12, "{t:?}");
+        assert_eq!(Track::new(0.3, None), Track::at(0.3));
     }
 
     #[test]

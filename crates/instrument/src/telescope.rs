@@ -96,15 +96,13 @@ impl Telescope {
         self.mirrors.iter().find(|m| m.aoi_deg > 1.0)
     }
 
-    /// The parallactic-angle track (rad, in the convention of `mueller::mirror`) of an
-    /// exposure from its header values (deg): `start` and `end` (end absent: a zero-length
-    /// track), the sense applied, and `end` unwrapped to lie within 180 deg of `start` (the
-    /// short way round: an exposure does not turn by half a circle).
-    pub fn track(&self, start_deg: f64, end_deg: Option<f64>) -> (f64, f64) {
+    /// The parallactic angles (rad, in the convention of `mueller::mirror`) at the start and
+    /// end of an exposure from its header values (deg), the sense applied; the end is `None`
+    /// when the header gives only the start. (`fit::telescope::Track::new` makes the track,
+    /// going the short way round across +-180 deg.)
+    pub fn parallactic_rad(&self, start_deg: f64, end_deg: Option<f64>) -> (f64, Option<f64>) {
         let s = self.parang_sense as f64;
-        let a = start_deg.to_radians() * s;
-        let b = end_deg.map(|e| e.to_radians() * s).unwrap_or(a);
-        (a, a + mueller::wrap_half_pi(0.5 * (b - a)) * 2.0)
+        (start_deg.to_radians() * s, end_deg.map(|e| e.to_radians() * s))
     }
 
     /// Validate; errors are `(key, value, why)` relative to `telescope`.
@@ -192,16 +190,10 @@ mod tests {
     }
 
     #[test]
-    fn track_goes_the_short_way_across_the_wrap() {
+    fn the_sense_turns_the_header_angle() {
         let d = |x: f64| x.to_radians();
-        let (a, b) = t().track(170.0, Some(-175.0));
-        assert!((a - d(170.0)).abs() < 1e-12 && (b - d(185.0)).abs() < 1e-12, "{a} {b}");
-        let (a, b) = t().track(-175.0, Some(170.0));
-        assert!((a - d(-175.0)).abs() < 1e-12 && (b - d(-190.0)).abs() < 1e-12, "{a} {b}");
-        let (a, b) = t().track(10.0, None);
-        assert_eq!(a, b);
+        assert_eq!(t().parallactic_rad(10.0, Some(20.0)), (d(10.0), Some(d(20.0))));
         let m = Telescope { parang_sense: -1, ..t() };
-        let (a, b) = m.track(10.0, Some(20.0));
-        assert!((a + d(10.0)).abs() < 1e-12 && (b + d(20.0)).abs() < 1e-12);
+        assert_eq!(m.parallactic_rad(10.0, None), (-d(10.0), None));
     }
 }
