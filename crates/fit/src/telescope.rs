@@ -224,6 +224,14 @@ impl BandModel {
         track_average(|q| Ok(wiersema_m3(&m3, q, self.offset)), track)
     }
 
+    /// The sky's `(q, u)` as it reaches the instrument over `track` (without `q0, u0`): what a
+    /// sky-field calibration must take as the known sky polarization on a Nasmyth focus, so
+    /// that the field pattern it solves for is the instrument's alone.
+    pub fn sky_through(&self, q: f64, u: f64, track: Track) -> std::result::Result<(f64, f64), mueller::Error> {
+        let s = self.matrix_track(track)? * Stokes::new(1.0, q, u, 0.0);
+        Ok((s[1] / s[0], s[2] / s[0]))
+    }
+
     /// Sky `(q, u)` of a measured instrument `(q, u)` over an exposure's track: subtract
     /// `(q0, u0)` when `constant` (leave it out when a field model holds the instrument's own
     /// polarization), then invert the track-averaged chain `M` for a sky without circular
@@ -258,6 +266,22 @@ impl BandModel {
         let x = a.lu().solve(&rhs).ok_or(mueller::Error::Singular("LU of the telescope chain failed"))?;
         Ok((x[0], x[1]))
     }
+}
+
+/// The parallactic angle (rad) of a star of declination `dec` at hour angle `ha` (rad, positive
+/// west of the meridian) seen from latitude `lat`: the position angle of the zenith at the
+/// star, north through east, `q = atan2(sin H cos phi, sin phi cos dec - cos phi sin dec cos H)`
+/// (spherical triangle pole-zenith-star; positive west of the meridian). For simulated nights.
+pub fn parallactic_angle(lat: f64, dec: f64, ha: f64) -> f64 {
+    (ha.sin() * lat.cos()).atan2(lat.sin() * dec.cos() - lat.cos() * dec.sin() * ha.cos())
+}
+
+/// The parallactic-angle track of an exposure of a star at `dec` from hour angle `ha_start` to
+/// `ha_end` (rad) at latitude `lat`: its end angle unwrapped to the start (`Track::new`). The
+/// angle is not linear in time; for exposures of minutes away from the zenith the error of
+/// the uniform sweep that [`track_average`] assumes is second order in the turn.
+pub fn exposure_track(lat: f64, dec: f64, ha_start: f64, ha_end: f64) -> Track {
+    Track::new(parallactic_angle(lat, dec, ha_start), Some(parallactic_angle(lat, dec, ha_end)))
 }
 
 /// The parallactic-angle range of one exposure (rad, unwrapped: `end` may pass +-pi), swept at
