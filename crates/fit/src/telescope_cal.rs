@@ -259,6 +259,7 @@ pub fn read_hdu(path: &Path) -> Result<Option<TelescopeFit>> {
         });
     }
     let mut cov = vec![vec![0.0; np]; np];
+    #[allow(clippy::needless_range_loop)] // symmetric fill by keyword indices
     for i in 0..np {
         for j in i..np {
             let v = r.real(&format!("TEL COV {i} {j}"))?;
@@ -271,7 +272,7 @@ pub fn read_hdu(path: &Path) -> Result<Option<TelescopeFit>> {
             return Err(bad(format!("keyword HIERARCH IP TEL COV {i} {i} = {} is not a variance", cov[i][i])));
         }
         for j in 0..i {
-            if !(cov[j][i] * cov[j][i] <= cov[i][i] * cov[j][j] * (1.0 + 1e-9)) {
+            if !cov[j][i].is_finite() || cov[j][i] * cov[j][i] > cov[i][i] * cov[j][j] * (1.0 + 1e-9) {
                 return Err(bad(format!(
                     "keyword HIERARCH IP TEL COV {j} {i} = {} is not a covariance of variances {} and {} (|correlation| > 1)",
                     cov[j][i], cov[j][j], cov[i][i]

@@ -6,12 +6,13 @@
 //! polarizer as a diattenuator's Jones matrix, a parallactic-angle track summed finely), and
 //! malformed telescope HDUs refused by keyword.
 
+mod common;
+use common::jones::{mul, rot, C, J};
 use fit::correct::{CorrectOptions, Corrector, Measurement};
 use fit::model::{FieldModel, InstPol};
 use fit::telescope::{fit_band, read_observations, FitOptions, ModelKind, TelescopeFit, Track};
 use fit::telescope_cal::{correct_chain, load, save_alone, save_with_field};
 use mueller::mirror::MetalTable;
-use num_complex::Complex64 as C;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use std::path::PathBuf;
@@ -30,21 +31,6 @@ const BANDS: [&str; 5] = ["pu", "pb", "pv", "pr", "pi"];
 
 // ---- An independent Jones chain, written here ----
 
-type J = [[C; 2]; 2];
-fn mul(a: &J, b: &J) -> J {
-    let mut o = [[C::new(0.0, 0.0); 2]; 2];
-    for i in 0..2 {
-        for j in 0..2 {
-            o[i][j] = a[i][0] * b[0][j] + a[i][1] * b[1][j];
-        }
-    }
-    o
-}
-/// Field components in axes turned by t.
-fn rot(t: f64) -> J {
-    let (s, c) = t.sin_cos();
-    [[C::new(c, 0.0), C::new(s, 0.0)], [C::new(-s, 0.0), C::new(c, 0.0)]]
-}
 /// Sky to instrument of the Wiersema chain for a metal of index `n` at 45 deg: Rot(offset)
 /// Rot(-pa) M3 Rot(-pa), M3 = diag(r_s, r_p) (textbook Fresnel amplitudes, Born & Wolf 14.2).
 fn chain(n: C, offset: f64, pa: f64) -> J {

@@ -176,27 +176,7 @@ pub fn run(a: Args) -> Result<()> {
             let cor = Corrector::new(&cal, opts);
             let mut out = vec![Corrected::default(); meas.len()];
             let n_extra = correct_rows(&cor, &meas, &mut out, &a.input)?;
-            let p0est = estimates(&out, est);
-            match kind {
-                Kind::Csv => write_csv(&table, &out, &p0est, est, &a.out)?,
-                _ => write_fits_table(&a.input, a.hdu.as_deref(), &out, &p0est, est, &a.out)?,
-            }
-            Summary {
-                input: a.input.clone(),
-                output: a.out.clone(),
-                kind: if kind == Kind::Csv { "catalog (CSV)" } else { "catalog (FITS table)" },
-                rows: out.len(),
-                extrapolated: n_extra,
-                method: a.method,
-                estimator: est.name().into(),
-                coords: Some(a.coords),
-                filter: cal.filter.clone(),
-                hwp_chi_offset_deg: cal.hwp_chi_offset_deg,
-                median_p0: median(out.iter().map(|r| r.p0)),
-                median_p_inst: median(out.iter().map(|r| r.inst.q.hypot(r.inst.u))),
-                telescope_model: None,
-                telescope_band: None,
-            }
+            write_catalog(&a, kind, &table, &out, est, n_extra, cal.filter.clone(), cal.hwp_chi_offset_deg)?
         }
     };
     if summary.extrapolated > 0 {
@@ -715,11 +695,6 @@ fn run_telescope(
         c.inst.u += r.u_tel;
         out.push(c);
     }
-    let p0est = estimates(&out, est);
-    match kind {
-        Kind::Csv => write_csv(&table, &out, &p0est, est, &a.out)?,
-        _ => write_fits_table(&a.input, a.hdu.as_deref(), &out, &p0est, est, &a.out)?,
-    }
     let n_extra = out.iter().filter(|c| c.extrapolated).count();
     if n_extra > 0 {
         eprintln!(
@@ -727,22 +702,10 @@ fn run_telescope(
             out.len()
         );
     }
-    let summary = Summary {
-        input: a.input.clone(),
-        output: a.out.clone(),
-        kind: if kind == Kind::Csv { "catalog (CSV)" } else { "catalog (FITS table)" },
-        rows: out.len(),
-        extrapolated: n_extra,
-        method: a.method,
-        estimator: est.name().into(),
-        coords: Some(a.coords),
-        filter: field.map(|c| c.filter.clone()).unwrap_or_else(|| band.clone()),
-        hwp_chi_offset_deg: 0.0,
-        median_p0: median(out.iter().map(|r| r.p0)),
-        median_p_inst: median(out.iter().map(|r| r.inst.q.hypot(r.inst.u))),
-        telescope_model: Some(tel.model.name()),
-        telescope_band: Some(band.clone()),
-    };
+    let filter = field.map(|c| c.filter.clone()).unwrap_or_else(|| band.clone());
+    let mut summary = write_catalog(a, kind, &table, &out, est, n_extra, filter, 0.0)?;
+    summary.telescope_model = Some(tel.model.name());
+    summary.telescope_band = Some(band.clone());
     if a.json {
         return crate::util::print_json(&summary);
     }
@@ -758,4 +721,39 @@ fn run_telescope(
     }
     println!("wrote {}", a.out.display());
     Ok(())
+}
+
+/// Write a corrected catalog in the input's format and make its summary.
+#[allow(clippy::too_many_arguments)]
+fn write_catalog(
+    a: &Args,
+    kind: Kind,
+    table: &Table,
+    out: &[Corrected],
+    est: Estimator,
+    n_extra: usize,
+    filter: String,
+    hwp_chi_offset_deg: f64,
+) -> Result<Summary> {
+    let p0est = estimates(out, est);
+    match kind {
+        Kind::Csv => write_csv(table, out, &p0est, est, &a.out)?,
+        _ => write_fits_table(&a.input, a.hdu.as_deref(), out, &p0est, est, &a.out)?,
+    }
+    Ok(Summary {
+        input: a.input.clone(),
+        output: a.out.clone(),
+        kind: if kind == Kind::Csv { "catalog (CSV)" } else { "catalog (FITS table)" },
+        rows: out.len(),
+        extrapolated: n_extra,
+        method: a.method,
+        estimator: est.name().into(),
+        coords: Some(a.coords),
+        filter,
+        hwp_chi_offset_deg,
+        median_p0: median(out.iter().map(|r| r.p0)),
+        median_p_inst: median(out.iter().map(|r| r.inst.q.hypot(r.inst.u))),
+        telescope_model: None,
+        telescope_band: None,
+    })
 }
