@@ -175,3 +175,43 @@ fn efosc2_v_calibration_corrects_the_standards_through_the_cli() {
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("parang_deg"), "{}", String::from_utf8_lossy(&o.stderr));
 }
+
+/// Calibration output that cannot be right is refused (exit 2, naming the cause): several
+/// bands into one file, a Cassegrain instrument, an unknown saved model.
+#[test]
+fn calibration_output_refuses_what_it_cannot_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut csv = String::from("filter,star,pa_deg,q,sigma_q,u,sigma_u,wavelength_um\n");
+    for (b, w) in [("V", 0.55), ("R", 0.64)] {
+        for i in 0..8 {
+            let pa = -160.0 + 40.0 * i as f64;
+            let a = (2.0 * (30.0 - pa) as f64).to_radians();
+            csv += &format!("{b},S{i},{pa},{},0.001,{},0.001,{w}\n", 0.035 * a.cos(), -0.035 * a.sin());
+        }
+    }
+    let data = dir.path().join("std.csv");
+    std::fs::write(&data, csv).unwrap();
+    let out = dir.path().join("cal.fits");
+    let d = data.to_str().unwrap();
+    let o = out.to_str().unwrap();
+    for (args, says) in [
+        (vec![d, "--output", o], "--output-dir"),
+        (vec![d, "--joint", "--instrument", "fors1", "--output", o], "Cassegrain"),
+        (vec![d, "--joint", "--save-model", "mirror", "--output", o], "--save-model"),
+        (vec![d, "--field-cal", d], "--field-cal needs --output"),
+    ] {
+        let r = run(&args);
+        assert_eq!(r.status.code(), Some(2), "{args:?}");
+        let e = String::from_utf8_lossy(&r.stderr);
+        assert!(e.contains(says), "{args:?}: {e}");
+        assert!(!out.exists(), "{args:?} wrote a file");
+    }
+    // Jointly, one file with both bands; --output-dir, one per band.
+    let r = run(&[d, "--joint", "--output", o]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(out.is_file());
+    let per = dir.path().join("per");
+    let r = run(&[d, "--output-dir", per.to_str().unwrap()]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(per.join("telescope_V.fits").is_file() && per.join("telescope_R.fits").is_file());
+}
