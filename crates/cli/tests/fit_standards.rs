@@ -97,3 +97,121 @@ fn bad_input_is_named_and_help_has_an_example() {
     assert!(String::from_utf8_lossy(&h.stdout)
         .contains("instpol fit-standards ../shared/data/efosc2-standards/p?_standards.txt"));
 }
+
+/// The real EFOSC2 V standards: fitted and written as a calibration (`--output`), then each
+/// standard's own measurement corrected by `instpol correct` with its parallactic angle per
+/// row: unpolarized within the errors (scaled by the fit's sqrt(chi2/dof)), where raw they
+/// show the M3's 3-4 %. Without the angle column the correction is refused, naming it.
+#[test]
+fn efosc2_v_calibration_corrects_the_standards_through_the_cli() {
+    let d = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/efosc2-standards");
+    if !d.is_dir() {
+        eprintln!("\n*** SKIPPED: {} not found: the EFOSC2 CLI chain test did not run ***\n", d.display());
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let cal = dir.path().join("tel_V.fits");
+    let o = run(&[
+        d.join("pv_standards.txt").to_str().unwrap(),
+        "--model",
+        "wiersema",
+        "--instrument",
+        "efosc2",
+        "--output",
+        cal.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v[0]["output"].as_str().unwrap(), cal.to_str().unwrap());
+    let s = v[0]["chi2_reduced"].as_f64().unwrap().max(1.0).sqrt();
+    // The standards as a catalog, read here without instpol.
+    let mut csv = String::from("x,y,q,u,sigma_q,sigma_u,parang_deg\n");
+    let mut raw_p = vec![];
+    for l in std::fs::read_to_string(d.join("pv_standards.txt")).unwrap().lines().filter(|l| !l.trim().is_empty()) {
+        let f: Vec<f64> = l.split(',').skip(1).map(|x| x.trim().parse().unwrap()).collect();
+        csv += &format!("0,0,{},{},{},{},{}\n", f[1], f[3], f[2] * s, f[4] * s, f[0]);
+        raw_p.push(f[1].hypot(f[3]));
+    }
+    let cat = dir.path().join("std.csv");
+    std::fs::write(&cat, &csv).unwrap();
+    let out = dir.path().join("std_corr.csv");
+    let correct = |cat: &std::path::Path| {
+        Command::new(env!("CARGO_BIN_EXE_instpol"))
+            .args(["correct", "--cal", cal.to_str().unwrap(), "--in", cat.to_str().unwrap(), "--out"])
+            .arg(&out)
+            .arg("--json")
+            .output()
+            .unwrap()
+    };
+    let o = correct(&cat);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let sum: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(sum["telescope_model"], "wiersema");
+    let mut rdr = csv::Reader::from_path(&out).unwrap();
+    let h = rdr.headers().unwrap().clone();
+    let col = |n: &str| h.iter().position(|x| x == n).unwrap();
+    let (iq, iu, isq, isu) = (col("q0"), col("u0"), col("sigma_q0"), col("sigma_u0"));
+    let (mut chi2, mut n) = (0.0, 0);
+    for r in rdr.records() {
+        let r = r.unwrap();
+        let g = |i: usize| r[i].parse::<f64>().unwrap();
+        chi2 += (g(iq) / g(isq)).powi(2) + (g(iu) / g(isu)).powi(2);
+        n += 2;
+    }
+    // The model was fitted to these very rows (2 parameters): chi2 about n - 2 after the
+    // scaling; below n + 4 sqrt(2n) says P = 0 within the errors.
+    assert!(chi2 < n as f64 + 4.0 * (2.0 * n as f64).sqrt(), "chi2 {chi2} for {n}");
+    assert!(raw_p.iter().all(|&p| p > 0.02), "{raw_p:?}");
+    assert!(sum["median_p0"].as_f64().unwrap() < 0.004, "{sum}");
+    // No angle column: refused, naming it.
+    let bare = dir.path().join("bare.csv");
+    std::fs::write(
+        &bare,
+        csv.lines().map(|l| l.rsplitn(2, ',').last().unwrap().to_string() + "\n").collect::<String>(),
+    )
+    .unwrap();
+    let o = correct(&bare);
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("parang_deg"), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// Calibration output that cannot be right is refused (exit 2, naming the cause): several
+/// bands into one file, a Cassegrain instrument, an unknown saved model.
+#[test]
+fn calibration_output_refuses_what_it_cannot_write() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut csv = String::from("filter,star,pa_deg,q,sigma_q,u,sigma_u,wavelength_um\n");
+    for (b, w) in [("V", 0.55), ("R", 0.64)] {
+        for i in 0..8 {
+            let pa = -160.0 + 40.0 * i as f64;
+            let a = (2.0 * (30.0 - pa) as f64).to_radians();
+            csv += &format!("{b},S{i},{pa},{},0.001,{},0.001,{w}\n", 0.035 * a.cos(), -0.035 * a.sin());
+        }
+    }
+    let data = dir.path().join("std.csv");
+    std::fs::write(&data, csv).unwrap();
+    let out = dir.path().join("cal.fits");
+    let d = data.to_str().unwrap();
+    let o = out.to_str().unwrap();
+    for (args, says) in [
+        (vec![d, "--output", o], "--output-dir"),
+        (vec![d, "--joint", "--instrument", "fors1", "--output", o], "Cassegrain"),
+        (vec![d, "--joint", "--save-model", "mirror", "--output", o], "--save-model"),
+        (vec![d, "--field-cal", d], "--field-cal needs --output"),
+    ] {
+        let r = run(&args);
+        assert_eq!(r.status.code(), Some(2), "{args:?}");
+        let e = String::from_utf8_lossy(&r.stderr);
+        assert!(e.contains(says), "{args:?}: {e}");
+        assert!(!out.exists(), "{args:?} wrote a file");
+    }
+    // Jointly, one file with both bands; --output-dir, one per band.
+    let r = run(&[d, "--joint", "--output", o]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(out.is_file());
+    let per = dir.path().join("per");
+    let r = run(&[d, "--output-dir", per.to_str().unwrap()]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(per.join("telescope_V.fits").is_file() && per.join("telescope_R.fits").is_file());
+}

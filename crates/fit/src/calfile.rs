@@ -230,6 +230,12 @@ impl Calibration {
     /// Write the calibration to `path` atomically (temporary file in the same folder, then
     /// rename). Non-map models get their images from [`Self::gridded`] when `grid` is None.
     pub fn save(&self, path: &Path) -> Result<()> {
+        self.save_with(path, |_, _| Ok(()))
+    }
+
+    /// [`Self::save`], with `extra` writing further HDUs (e.g. the telescope model,
+    /// [`crate::telescope_cal`]) into the same temporary file before it is renamed.
+    pub fn save_with(&self, path: &Path, extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()>) -> Result<()> {
         let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
         let tmp = skyfield::io::temp_beside(path, ".fits")
             .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
@@ -237,6 +243,7 @@ impl Calibration {
         {
             let mut f = FitsFile::create(&tmp).overwrite().open().map_err(fits_err(path, "creating the file"))?;
             self.write_to(&mut f, path)?;
+            extra(&mut f, path)?;
             // Close with the status checked, fsync, then rename: a full disk is an error here,
             // never a truncated calibration under the final name.
             skyfield::durable::close_fits(f).map_err(|m| Error::Fits {
@@ -467,6 +474,12 @@ impl Calibration {
         }
         if version < 1 {
             return Err(Error::BadFile { path: path.into(), what: format!("format version {version} is not valid") });
+        }
+        if r.opt_str("MODEL").as_deref() == Some(crate::telescope_cal::MODEL_KIND) {
+            return Err(Error::BadFile {
+                path: path.into(),
+                what: "holds only a telescope model (instpol fit-standards), no field model: read it with fit::telescope_cal::load".into(),
+            });
         }
         let instrument = r.str("INSTRUMENT")?;
         let filter = r.str("FILTER")?;
@@ -769,30 +782,30 @@ impl FieldModel for Calibration {
     }
 }
 
-fn fits_err(path: &Path, doing: &str) -> impl Fn(fitsio::errors::Error) -> Error {
+pub(crate) fn fits_err(path: &Path, doing: &str) -> impl Fn(fitsio::errors::Error) -> Error {
     let (path, doing) = (path.to_path_buf(), doing.to_string());
     move |err| Error::Fits { path: path.clone(), doing: doing.clone(), message: err.to_string() }
 }
 
 /// Writes `HIERARCH IP <name>` keywords (and plain ones) to one HDU.
-struct KeyWriter<'a> {
-    f: &'a mut FitsFile,
-    hdu: &'a FitsHdu,
-    path: &'a Path,
+pub(crate) struct KeyWriter<'a> {
+    pub(crate) f: &'a mut FitsFile,
+    pub(crate) hdu: &'a FitsHdu,
+    pub(crate) path: &'a Path,
 }
 
 impl KeyWriter<'_> {
     fn err(&self, key: &str, e: fitsio::errors::Error) -> Error {
         Error::Fits { path: self.path.to_path_buf(), doing: format!("writing keyword {key}"), message: e.to_string() }
     }
-    fn str(&mut self, name: &str, v: &str) -> Result<()> {
+    pub(crate) fn str(&mut self, name: &str, v: &str) -> Result<()> {
         let key = format!("HIERARCH IP {name}");
         // A HIERARCH card holds about 68 characters of name and value together.
         let max = 66usize.saturating_sub(key.len()).max(8);
         let v: String = v.chars().take(max).collect();
         self.hdu.write_key(self.f, &key, v).map_err(|e| self.err(&key, e))
     }
-    fn real(&mut self, name: &str, v: f64) -> Result<()> {
+    pub(crate) fn real(&mut self, name: &str, v: f64) -> Result<()> {
         if !v.is_finite() {
             // FITS has no NaN keyword value: leave the keyword out (readers treat it as unknown).
             return Ok(());
@@ -800,7 +813,7 @@ impl KeyWriter<'_> {
         let key = format!("HIERARCH IP {name}");
         self.hdu.write_key(self.f, &key, v).map_err(|e| self.err(&key, e))
     }
-    fn int(&mut self, name: &str, v: i64) -> Result<()> {
+    pub(crate) fn int(&mut self, name: &str, v: i64) -> Result<()> {
         let key = format!("HIERARCH IP {name}");
         self.hdu.write_key(self.f, &key, v).map_err(|e| self.err(&key, e))
     }
@@ -813,10 +826,10 @@ impl KeyWriter<'_> {
 }
 
 /// Reads `HIERARCH IP <name>` keywords, naming the keyword and file when one is missing.
-struct KeyReader<'a> {
-    f: &'a mut FitsFile,
-    hdu: &'a FitsHdu,
-    path: &'a Path,
+pub(crate) struct KeyReader<'a> {
+    pub(crate) f: &'a mut FitsFile,
+    pub(crate) hdu: &'a FitsHdu,
+    pub(crate) path: &'a Path,
 }
 
 impl KeyReader<'_> {
@@ -826,25 +839,25 @@ impl KeyReader<'_> {
             what: format!("keyword {key} is missing or unreadable ({e}); is this an instpol calibration file?"),
         }
     }
-    fn str(&mut self, name: &str) -> Result<String> {
+    pub(crate) fn str(&mut self, name: &str) -> Result<String> {
         let key = format!("HIERARCH IP {name}");
         skyfield::io::read_key_str(self.f, self.hdu, &key).map_err(|e| self.missing(&key, e))
     }
-    fn real(&mut self, name: &str) -> Result<f64> {
+    pub(crate) fn real(&mut self, name: &str) -> Result<f64> {
         let key = format!("HIERARCH IP {name}");
         self.hdu.read_key::<f64>(self.f, &key).map_err(|e| self.missing(&key, e))
     }
-    fn int(&mut self, name: &str) -> Result<i64> {
+    pub(crate) fn int(&mut self, name: &str) -> Result<i64> {
         let key = format!("HIERARCH IP {name}");
         self.hdu.read_key::<i64>(self.f, &key).map_err(|e| self.missing(&key, e))
     }
-    fn opt_str(&mut self, name: &str) -> Option<String> {
+    pub(crate) fn opt_str(&mut self, name: &str) -> Option<String> {
         self.str(name).ok()
     }
-    fn opt_real(&mut self, name: &str) -> Option<f64> {
+    pub(crate) fn opt_real(&mut self, name: &str) -> Option<f64> {
         self.real(name).ok()
     }
-    fn opt_int(&mut self, name: &str) -> Option<i64> {
+    pub(crate) fn opt_int(&mut self, name: &str) -> Option<i64> {
         self.int(name).ok()
     }
     fn plain_real(&mut self, key: &str) -> Result<f64> {
@@ -854,7 +867,7 @@ impl KeyReader<'_> {
 
 /// The error of a temporary file that could not be made beside `target`: says which file was
 /// being written and why, without the temporary's random name.
-fn temp_error(target: &Path, e: std::io::Error) -> std::io::Error {
+pub(crate) fn temp_error(target: &Path, e: std::io::Error) -> std::io::Error {
     // tempfile appends ` at path "<temporary>"` to the OS error: keep only the reason.
     let text = e.to_string();
     let why = text.split(" at path ").next().unwrap_or(&text).to_string();

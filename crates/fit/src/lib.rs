@@ -31,6 +31,7 @@ pub mod residual;
 pub mod setup;
 pub mod synth;
 pub mod telescope;
+pub mod telescope_cal;
 pub mod validate;
 pub mod wavelength;
 

@@ -213,10 +213,152 @@ impl BandModel {
     /// Sky `(q, u)` of a measured instrument `(q, u)` at parallactic angle `parallactic`:
     /// subtract `(q0, u0)` and invert the chain (V assumed zero at the instrument).
     pub fn correct(&self, q: f64, u: f64, parallactic: f64) -> std::result::Result<(f64, f64), mueller::Error> {
-        let inv = mueller::inverse(&self.matrix(parallactic)?)?;
-        let s = inv * Stokes::new(1.0, q - self.q0, u - self.u0, 0.0);
+        self.correct_track(q, u, Track::at(parallactic), true)
+    }
+
+    /// Sky to instrument averaged over an exposure's parallactic-angle track: light from the
+    /// whole exposure adds incoherently, so the Mueller matrices average
+    /// ([`track_average`]; not the matrix at the mean angle).
+    pub fn matrix_track(&self, track: Track) -> std::result::Result<Matrix4<f64>, mueller::Error> {
+        let m3 = self.m3()?;
+        track_average(|q| Ok(wiersema_m3(&m3, q, self.offset)), track)
+    }
+
+    /// The sky's `(q, u)` as it reaches the instrument over `track` (without `q0, u0`): what a
+    /// sky-field calibration must take as the known sky polarization on a Nasmyth focus, so
+    /// that the field pattern it solves for is the instrument's alone.
+    pub fn sky_through(&self, q: f64, u: f64, track: Track) -> std::result::Result<(f64, f64), mueller::Error> {
+        let s = self.matrix_track(track)? * Stokes::new(1.0, q, u, 0.0);
         Ok((s[1] / s[0], s[2] / s[0]))
     }
+
+    /// Sky `(q, u)` of a measured instrument `(q, u)` over an exposure's track: subtract
+    /// `(q0, u0)` when `constant` (leave it out when a field model holds the instrument's own
+    /// polarization), then invert the track-averaged chain `M` for a sky without circular
+    /// polarization. A dual-beam linear polarimeter does not measure V, and M3's retardance
+    /// turns the sky's U partly into V, so "V = 0 at the instrument" would be wrong by
+    /// `P sin(retardance)`; with `V = 0` on the sky the measured `m_k = (M S)_k / (M S)_0`,
+    /// `S = (1, q, u, 0)`, are two linear equations in `(q, u)`:
+    /// `(M_k1 - m_k M_01) q + (M_k2 - m_k M_02) u = m_k M_00 - M_k0`, `k = 1, 2`.
+    pub fn correct_track(
+        &self,
+        q: f64,
+        u: f64,
+        track: Track,
+        constant: bool,
+    ) -> std::result::Result<(f64, f64), mueller::Error> {
+        let m = self.matrix_track(track)?;
+        let (c0, c1) = if constant { (self.q0, self.u0) } else { (0.0, 0.0) };
+        let meas = [q - c0, u - c1];
+        let a = nalgebra::Matrix2::new(
+            m[(1, 1)] - meas[0] * m[(0, 1)],
+            m[(1, 2)] - meas[0] * m[(0, 2)],
+            m[(2, 1)] - meas[1] * m[(0, 1)],
+            m[(2, 2)] - meas[1] * m[(0, 2)],
+        );
+        let rhs = nalgebra::Vector2::new(meas[0] * m[(0, 0)] - m[(1, 0)], meas[1] * m[(0, 0)] - m[(2, 0)]);
+        let det = a.determinant();
+        if !(det.is_finite() && det.abs() > 1e-12 * a.abs().max().powi(2).max(f64::MIN_POSITIVE)) {
+            return Err(mueller::Error::Singular(
+                "the telescope chain cannot be inverted for a linearly polarized sky (singular 2x2 system)",
+            ));
+        }
+        let x = a.lu().solve(&rhs).ok_or(mueller::Error::Singular("LU of the telescope chain failed"))?;
+        Ok((x[0], x[1]))
+    }
+}
+
+/// The parallactic angle (rad) of a star of declination `dec` at hour angle `ha` (rad, positive
+/// west of the meridian) seen from latitude `lat`: the position angle of the zenith at the
+/// star, north through east, `q = atan2(sin H cos phi, sin phi cos dec - cos phi sin dec cos H)`
+/// (spherical triangle pole-zenith-star; positive west of the meridian). For simulated nights.
+pub fn parallactic_angle(lat: f64, dec: f64, ha: f64) -> f64 {
+    (ha.sin() * lat.cos()).atan2(lat.sin() * dec.cos() - lat.cos() * dec.sin() * ha.cos())
+}
+
+/// The parallactic-angle track of an exposure of a star at `dec` from hour angle `ha_start` to
+/// `ha_end` (rad) at latitude `lat`: its end angle unwrapped to the start (`Track::new`). The
+/// angle is not linear in time; for exposures of minutes away from the zenith the error of
+/// the uniform sweep that [`track_average`] assumes is second order in the turn.
+pub fn exposure_track(lat: f64, dec: f64, ha_start: f64, ha_end: f64) -> Track {
+    Track::new(parallactic_angle(lat, dec, ha_start), Some(parallactic_angle(lat, dec, ha_end)))
+}
+
+/// The parallactic-angle range of one exposure (rad, unwrapped: `end` may pass +-pi), swept at
+/// a uniform rate from `start` to `end` (`instrument::Telescope::track` makes one from header
+/// values). A single angle is `start == end`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Track {
+    pub start: f64,
+    pub end: f64,
+}
+
+impl Track {
+    /// A track of zero length (an instant, or a measurement that gives one angle).
+    pub fn at(parallactic: f64) -> Self {
+        Track { start: parallactic, end: parallactic }
+    }
+
+    /// The track of an exposure from the angles (rad) at its start and end as a header or a
+    /// catalog gives them (each in (-pi, pi] or any other turn): `end` is moved by whole turns
+    /// to lie within pi of `start`, the short way round (an exposure does not turn by half a
+    /// circle; near the zenith, where it might, split the exposure). No end: an instant.
+    pub fn new(start: f64, end: Option<f64>) -> Self {
+        match end {
+            None => Track::at(start),
+            Some(e) => Track { start, end: start + 2.0 * mueller::wrap_half_pi(0.5 * (e - start)) },
+        }
+    }
+}
+
+/// `sin(x) / x`, stable at 0.
+fn sinc(x: f64) -> f64 {
+    if x.abs() < 1e-4 {
+        1.0 - x * x / 6.0
+    } else {
+        x.sin() / x
+    }
+}
+
+/// The mean over `track` of `m(q)`, a Mueller matrix that depends on the parallactic angle `q`
+/// through a mirror's plane of incidence (`R(a) M R(a)` with `a` linear in `q`, as in
+/// [`wiersema_m3`] and [`mueller::mirror::nasmyth`]): every element is then a trigonometric
+/// polynomial in `2q` of degree 2. Its five harmonics are found exactly from eight samples over
+/// a period (a discrete Fourier transform; degree 2 < 8 / 2, no aliasing), and each averages in
+/// closed form: `mean of exp(2inq) over [a, b] = exp(2in (a+b)/2) sinc(n (b - a))`. Exact for
+/// any track length, and the matrix at the angle itself for a zero-length track.
+pub fn track_average<E>(
+    m: impl Fn(f64) -> std::result::Result<Matrix4<f64>, E>,
+    track: Track,
+) -> std::result::Result<Matrix4<f64>, E> {
+    let len = track.end - track.start;
+    if len == 0.0 {
+        return m(track.start);
+    }
+    const N: usize = 8;
+    let samples: Vec<(f64, Matrix4<f64>)> = (0..N)
+        .map(|j| {
+            let q = std::f64::consts::PI * j as f64 / N as f64;
+            m(q).map(|v| (q, v))
+        })
+        .collect::<std::result::Result<_, E>>()?;
+    let mid = 0.5 * (track.start + track.end);
+    let mut out = Matrix4::zeros();
+    for n in 0..=2i32 {
+        // c_n = (1/N) sum_j m(q_j) exp(-2 i n q_j); the pair n, -n gives 2 Re(c_n exp(2inq)).
+        let (mut re, mut im) = (Matrix4::<f64>::zeros(), Matrix4::<f64>::zeros());
+        for (q, v) in &samples {
+            let (s, c) = (2.0 * n as f64 * q).sin_cos();
+            re += v * c;
+            im -= v * s;
+        }
+        re /= N as f64;
+        im /= N as f64;
+        let (s, c) = (2.0 * n as f64 * mid).sin_cos();
+        let w = if n == 0 { 1.0 } else { 2.0 } * sinc(n as f64 * len);
+        out += (re * c - im * s) * w;
+    }
+    Ok(out)
 }
 
 /// Options of the fits.
@@ -290,14 +432,40 @@ impl TelescopeFit {
     /// Corrected sky `(q, u)` and their 1-sigma errors for a measurement in `band`: the
     /// measurement's errors and the parameters' covariance propagated (numerical Jacobian).
     pub fn correct(&self, band: &str, q: f64, sq: f64, u: f64, su: f64, parallactic: f64) -> Result<[f64; 4]> {
-        let b = self.band(band).ok_or_else(|| Error::Input(format!("band '{band}' was not fitted")))?;
-        let me = |e: mueller::Error| Error::FitFailed(format!("correction: {e}"));
-        let (qs, us) = b.correct(q, u, parallactic).map_err(me)?;
+        let c = self.correct_cov(band, q, u, [sq * sq, su * su, 0.0], Track::at(parallactic), true)?;
+        Ok([c[0], c[2].sqrt(), c[1], c[3].sqrt()])
+    }
+
+    /// Corrected sky `(q, u)` and their covariance `[q, u, var_q, var_u, cov_qu]` for a
+    /// measurement in `band` with covariance `[var_q, var_u, cov_qu]`, taken over `track`
+    /// ([`BandModel::correct_track`]; `constant`: subtract the fitted `(q0, u0)`). Propagated:
+    /// the measurement's covariance and the parameters' (numerical Jacobians, central
+    /// differences), `C = Jm Cm Jm^T + Jp Cp Jp^T`.
+    pub fn correct_cov(
+        &self,
+        band: &str,
+        q: f64,
+        u: f64,
+        cov: [f64; 3],
+        track: Track,
+        constant: bool,
+    ) -> Result<[f64; 5]> {
+        let b = self.band(band).ok_or_else(|| {
+            Error::Input(format!(
+                "band '{band}' was not fitted (the telescope model has: {})",
+                self.bands.iter().map(|b| b.0.as_str()).collect::<Vec<_>>().join(", ")
+            ))
+        })?;
+        let me = |e: mueller::Error| Error::FitFailed(format!("telescope correction: {e}"));
+        let f = |m: &BandModel, q: f64, u: f64| m.correct_track(q, u, track, constant).map_err(me);
+        let (qs, us) = f(b, q, u)?;
         let h = 1e-6;
-        let (qa, ua) = b.correct(q + h, u, parallactic).map_err(me)?;
-        let (qb, ub) = b.correct(q, u + h, parallactic).map_err(me)?;
-        let mut vq = ((qa - qs) / h * sq).powi(2) + ((qb - qs) / h * su).powi(2);
-        let mut vu = ((ua - us) / h * sq).powi(2) + ((ub - us) / h * su).powi(2);
+        let (qa, ua) = f(b, q + h, u)?;
+        let (qa2, ua2) = f(b, q - h, u)?;
+        let (qb, ub) = f(b, q, u + h)?;
+        let (qb2, ub2) = f(b, q, u - h)?;
+        let jm = [[(qa - qa2) / (2.0 * h), (qb - qb2) / (2.0 * h)], [(ua - ua2) / (2.0 * h), (ub - ub2) / (2.0 * h)]];
+        let (mut vq, mut vu, mut cv) = crate::correct::sandwich(&jm, cov[0], cov[1], cov[2]);
         // Parameter covariance: derivatives of the correction with respect to each parameter.
         let spec = Spec::new(
             self.model,
@@ -308,19 +476,23 @@ impl TelescopeFit {
         let bi = self.bands.iter().position(|(n, _)| n == band).unwrap_or(0);
         let mut g = vec![[0.0; 2]; p0.len()];
         for (k, gk) in g.iter_mut().enumerate() {
-            let mut p = p0.clone();
             let step = spec.step(k);
-            p[k] += step;
-            let (qk, uk) = spec.band_model(&p, bi).correct(q, u, parallactic).map_err(me)?;
-            *gk = [(qk - qs) / step, (uk - us) / step];
+            let (mut pa, mut pb) = (p0.clone(), p0.clone());
+            pa[k] += step;
+            pb[k] -= step;
+            let (q1, u1) = f(&spec.band_model(&pa, bi), q, u)?;
+            let (q2, u2) = f(&spec.band_model(&pb, bi), q, u)?;
+            *gk = [(q1 - q2) / (2.0 * step), (u1 - u2) / (2.0 * step)];
         }
         for i in 0..p0.len() {
             for j in 0..p0.len() {
-                vq += g[i][0] * self.covariance[i][j] * g[j][0];
-                vu += g[i][1] * self.covariance[i][j] * g[j][1];
+                let c = self.covariance[i][j];
+                vq += g[i][0] * c * g[j][0];
+                vu += g[i][1] * c * g[j][1];
+                cv += g[i][0] * c * g[j][1];
             }
         }
-        Ok([qs, vq.sqrt(), us, vu.sqrt()])
+        Ok([qs, us, vq, vu, cv])
     }
 }
 
@@ -778,6 +950,70 @@ mod tests {
         }
         // 80 terms: chi2 within its 4-sigma range (mean 80, sigma 12.6) says P = 0 within errors.
         assert!(chi2 < 80.0 + 4.0 * 12.65 && chi2 > 30.0, "{chi2}");
+    }
+
+    #[test]
+    fn track_average_is_the_fine_numerical_mean_not_the_matrix_at_the_mean_angle() {
+        let t = table();
+        let b = BandModel {
+            wavelength_um: 0.55,
+            index: t.index(0.55).unwrap(),
+            factor: 0.85,
+            thickness_nm: 7.0,
+            offset: 0.7,
+            q0: 0.0,
+            u0: 0.0,
+        };
+        let d = f64::to_radians;
+        for (a, e) in [(10.0, 10.0), (10.0, 12.0), (-30.0, 30.0), (170.0, 185.0), (-80.0, 120.0), (0.0, 360.0)] {
+            let track = Track { start: d(a), end: d(e) };
+            let avg = b.matrix_track(track).unwrap();
+            // Midpoint rule over 20000 slices of the track, matrix by matrix.
+            let n = 20_000;
+            let mut fine = Matrix4::zeros();
+            for k in 0..n {
+                let q = d(a) + (d(e) - d(a)) * (k as f64 + 0.5) / n as f64;
+                fine += b.matrix(q).unwrap();
+            }
+            fine /= n as f64;
+            if a == e {
+                fine = b.matrix(d(a)).unwrap();
+            }
+            assert!((avg - fine).abs().max() < 1e-9, "{a}..{e}: {}", (avg - fine).abs().max());
+            // A long track blurs the polarization: the mean matrix is not the matrix at the
+            // mean angle (over a full turn, an unpolarized star comes out unpolarized).
+            let at_mid = b.matrix(d(0.5 * (a + e))).unwrap();
+            let pol = |m: &Matrix4<f64>| mueller::hypot(m[(1, 0)], m[(2, 0)]) / m[(0, 0)];
+            if e - a >= 60.0 {
+                assert!(pol(&avg) < 0.95 * pol(&at_mid), "{a}..{e}: {} vs {}", pol(&avg), pol(&at_mid));
+            }
+            if e - a == 360.0 {
+                assert!(pol(&avg) < 1e-12, "{}", pol(&avg));
+            }
+        }
+        // The correction over a track inverts the track's mean matrix: a star measured through
+        // it (the fine mean) comes back.
+        let track = Track { start: d(-40.0), end: d(25.0) };
+        let sky = Stokes::new(1.0, 0.02, -0.01, 0.0);
+        let n = 4000;
+        let mut meas = Stokes::zeros();
+        for k in 0..n {
+            meas += b.matrix(d(-40.0) + d(65.0) * (k as f64 + 0.5) / n as f64).unwrap() * sky;
+        }
+        let (q, u) = b.correct_track(meas[1] / meas[0], meas[2] / meas[0], track, true).unwrap();
+        assert!((q - 0.02).abs() < 1e-7 && (u + 0.01).abs() < 1e-7, "{q} {u}");
+    }
+
+    #[test]
+    fn track_goes_the_short_way_across_the_wrap() {
+        let d = f64::to_radians;
+        let t = Track::new(d(170.0), Some(d(-175.0)));
+        assert!((t.start - d(170.0)).abs() < 1e-12 && (t.end - d(185.0)).abs() < 1e-12, "{t:?}");
+        let t = Track::new(d(-175.0), Some(d(170.0)));
+        assert!((t.end - d(-190.0)).abs() < 1e-12, "{t:?}");
+        let t = Track::new(d(10.0), Some(d(30.0)));
+        assert!((t.end - d(30.0)).abs() < 1e-12, "{t:?}");
+        assert_eq!(Track::new(0.3, None), Track::at(0.3));
     }
 
     #[test]

@@ -5,10 +5,11 @@
 //! `Rot(offset) Rot(-pa) M3 Rot(-pa)` on unpolarized light (two incoherent orthogonal
 //! fields), a Nelder-Mead minimization of chi^2 and errors from its numerical Hessian.
 
+mod common;
+use common::jones::{mul, rot, C, J};
 use fit::telescope::{fit_band, fit_joint, read_observations, FitOptions, ModelKind};
 use fit::ErrorScaling;
 use mueller::mirror::MetalTable;
-use num_complex::Complex64 as C;
 use std::path::PathBuf;
 
 fn data_dir() -> Option<PathBuf> {
@@ -57,22 +58,6 @@ fn rakic(dir: &PathBuf, w: f64) -> C {
         }
     }
     panic!("{w} outside the table")
-}
-
-type J = [[C; 2]; 2];
-fn mul(a: &J, b: &J) -> J {
-    let mut o = [[C::new(0.0, 0.0); 2]; 2];
-    for i in 0..2 {
-        for j in 0..2 {
-            o[i][j] = a[i][0] * b[0][j] + a[i][1] * b[1][j];
-        }
-    }
-    o
-}
-/// Field components in axes turned by t.
-fn rot(t: f64) -> J {
-    let (s, c) = t.sin_cos();
-    [[C::new(c, 0.0), C::new(s, 0.0)], [C::new(-s, 0.0), C::new(c, 0.0)]]
 }
 
 /// Reference model: q, u of an unpolarized star (x and y fields added incoherently).

@@ -11,7 +11,9 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 mod format;
+pub mod telescope;
 pub use format::{Chip, FrameFormat, NumberOrKeyword};
+pub use telescope::{Focus, Telescope};
 
 /// Errors while loading an instrument definition.
 #[derive(Debug, thiserror::Error)]
@@ -168,6 +170,10 @@ pub struct Instrument {
     /// How raw frames are laid out (HDUs, chips, overscan, binning); see [`FrameFormat`].
     #[serde(default)]
     pub format: FrameFormat,
+    /// The telescope in front of the instrument (focus, mirrors, parallactic-angle and rotator
+    /// keywords); see [`telescope`].
+    #[serde(default)]
+    pub telescope: Option<Telescope>,
 }
 
 /// One mask strip on the detector: rows `[o_start, o_start + height)` hold its ordinary image
@@ -215,6 +221,14 @@ impl Instrument {
         let inst: Instrument =
             toml::from_str(text).map_err(|e| Error::Parse { path: path.into(), message: e.to_string() })?;
         inst.validate(path)?;
+        if let Some(t) = &inst.telescope {
+            t.check(path.parent()).map_err(|(key, value, why)| Error::Invalid {
+                path: path.into(),
+                key,
+                value,
+                why,
+            })?;
+        }
         Ok(inst)
     }
 

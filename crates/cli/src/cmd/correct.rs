@@ -34,6 +34,15 @@ use stokes::stats::Estimator;
 ///   valid bin is corrected at its centre and a Stokes map of the same layout is written,
 ///   with Q, U, P, CHI corrected and SIGMA_Q/U, COV_QU, SIGQ_PHOT/SIGU_PHOT propagated.
 ///
+/// The telescope (a calibration holding a TELESCOPE model, from `instpol fit-standards
+/// --output`, alone or beside a field model): catalogs then need the parallactic angle per
+/// row, column parang_deg (deg, as the standards were fitted with) and optionally
+/// parang_end_deg (the exposure's end: the model is averaged over the track). The field is
+/// undone first, then the telescope (fit::telescope_cal); q_inst, u_inst are then the field's
+/// and the telescope's instrumental polarization together, to first order. --band picks the
+/// telescope model's band (default: the field calibration's filter, or its only band).
+/// Example: instpol correct --cal tel_V.fits --in stars.csv --out stars_corr.csv
+///
 /// Positions outside the calibrated field are an error naming the row or bin, unless
 /// --allow-extrapolation: then they are corrected, flagged, and the calibration's variance
 /// is inflated by (F p)^2 per component (F = --extrapolation-error, default 0.5).
@@ -80,6 +89,10 @@ pub struct Args {
     /// FITS catalogs: name of the table HDU (default: the first binary table).
     #[arg(long, value_name = "NAME")]
     pub hdu: Option<String>,
+    /// The telescope model's band (calibrations with a TELESCOPE model; default: the field
+    /// calibration's filter, or the model's only band).
+    #[arg(long, value_name = "BAND")]
+    pub band: Option<String>,
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
@@ -113,6 +126,11 @@ struct Summary {
     hwp_chi_offset_deg: f64,
     median_p0: Option<f64>,
     median_p_inst: Option<f64>,
+    /// The telescope model applied (wiersema / oxide) and its band, when the calibration has one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    telescope_model: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    telescope_band: Option<String>,
 }
 
 /// Names of the columns `instpol correct` adds, in order (the estimator column is
@@ -123,10 +141,19 @@ const ADDED: [&str; 9] =
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs([a.cal.as_path(), a.input.as_path()])?;
     crate::util::check_output(&a.out)?;
-    let cal = Calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
+    let loaded =
+        fit::telescope_cal::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     let est: Estimator = a.estimator.parse().map_err(|e| anyhow!("--estimator: {e}"))?;
     if !(a.extrapolation_error.is_finite() && a.extrapolation_error >= 0.0) {
         bail!("--extrapolation-error {} must be a non-negative number", a.extrapolation_error);
+    }
+    let cal = match (loaded.telescope, loaded.field) {
+        (Some(tel), field) => return run_telescope(&a, &tel, field.as_ref(), est),
+        (None, Some(cal)) => cal,
+        (None, None) => bail!("{}: holds no model", a.cal.display()),
+    };
+    if a.band.is_some() {
+        bail!("--band is for calibrations with a telescope model; {} has none", a.cal.display());
     }
     let opts = options(&cal, &a);
     let kind = detect(&a.input)?;
@@ -137,29 +164,19 @@ pub fn run(a: Args) -> Result<()> {
                 Kind::Csv => read_csv(&a.input)?,
                 _ => read_fits_table(&a.input, a.hdu.as_deref())?,
             };
-            let meas = measurements(&table, &cal, a.coords, &a.input)?;
+            if table.parang.is_some() {
+                eprintln!(
+                    "warning: {} has a {} column but {} holds no telescope model: the telescope's polarization is NOT removed (fit one with instpol fit-standards --output)",
+                    a.input.display(),
+                    PARANG[0],
+                    a.cal.display()
+                );
+            }
+            let meas = measurements(&table, cal.pixel, a.coords, &a.input)?;
             let cor = Corrector::new(&cal, opts);
             let mut out = vec![Corrected::default(); meas.len()];
             let n_extra = correct_rows(&cor, &meas, &mut out, &a.input)?;
-            let p0est = estimates(&out, est);
-            match kind {
-                Kind::Csv => write_csv(&table, &out, &p0est, est, &a.out)?,
-                _ => write_fits_table(&a.input, a.hdu.as_deref(), &out, &p0est, est, &a.out)?,
-            }
-            Summary {
-                input: a.input.clone(),
-                output: a.out.clone(),
-                kind: if kind == Kind::Csv { "catalog (CSV)" } else { "catalog (FITS table)" },
-                rows: out.len(),
-                extrapolated: n_extra,
-                method: a.method,
-                estimator: est.name().into(),
-                coords: Some(a.coords),
-                filter: cal.filter.clone(),
-                hwp_chi_offset_deg: cal.hwp_chi_offset_deg,
-                median_p0: median(out.iter().map(|r| r.p0)),
-                median_p_inst: median(out.iter().map(|r| r.inst.q.hypot(r.inst.u))),
-            }
+            write_catalog(&a, kind, &table, &out, est, n_extra, cal.filter.clone(), cal.hwp_chi_offset_deg)?
         }
     };
     if summary.extrapolated > 0 {
@@ -249,7 +266,13 @@ struct Table {
     sq: Vec<f64>,
     su: Vec<f64>,
     cov: Option<Vec<f64>>,
+    /// Optional parallactic angles (deg) at the start and end of each row's exposure.
+    parang: Option<Vec<f64>>,
+    parang_end: Option<Vec<f64>>,
 }
+
+/// The optional parallactic-angle columns of a telescope correction.
+const PARANG: [&str; 2] = ["parang_deg", "parang_end_deg"];
 
 fn find_col(headers: &[String], name: &str, path: &Path) -> Result<usize> {
     headers.iter().position(|h| h.trim().eq_ignore_ascii_case(name)).ok_or_else(|| {
@@ -290,6 +313,7 @@ fn read_csv(path: &Path) -> Result<Table> {
         .map(|n| find_col(&headers, n, path))
         .collect::<Result<_>>()?;
     let icov = headers.iter().position(|h| h.trim().eq_ignore_ascii_case("cov_qu"));
+    let ipa = PARANG.map(|n| headers.iter().position(|h| h.trim().eq_ignore_ascii_case(n)));
     let mut t = Table {
         headers: headers.clone(),
         records: Vec::new(),
@@ -301,6 +325,8 @@ fn read_csv(path: &Path) -> Result<Table> {
         sq: vec![],
         su: vec![],
         cov: icov.map(|_| vec![]),
+        parang: ipa[0].map(|_| vec![]),
+        parang_end: ipa[1].map(|_| vec![]),
     };
     for rec in rdr.records() {
         let rec = rec.with_context(|| format!("{}: malformed CSV", path.display()))?;
@@ -317,6 +343,12 @@ fn read_csv(path: &Path) -> Result<Table> {
         t.sq.push(num(idx[4])?);
         t.su.push(num(idx[5])?);
         if let (Some(i), Some(c)) = (icov, t.cov.as_mut()) {
+            c.push(num(i)?);
+        }
+        if let (Some(i), Some(c)) = (ipa[0], t.parang.as_mut()) {
+            c.push(num(i)?);
+        }
+        if let (Some(i), Some(c)) = (ipa[1], t.parang_end.as_mut()) {
             c.push(num(i)?);
         }
         t.labels.push(format!("line {line}"));
@@ -370,6 +402,14 @@ fn read_fits_table(path: &Path, name: Option<&str>) -> Result<Table> {
     };
     let (x, y, q, u, sq, su) = (col("x")?, col("y")?, col("q")?, col("u")?, col("sigma_q")?, col("sigma_u")?);
     let cov = if headers.iter().any(|h| h.eq_ignore_ascii_case("cov_qu")) { Some(col("cov_qu")?) } else { None };
+    let mut opt = |n: &str| -> Result<Option<Vec<f64>>> {
+        if headers.iter().any(|h| h.eq_ignore_ascii_case(n)) {
+            col(n).map(Some)
+        } else {
+            Ok(None)
+        }
+    };
+    let (parang, parang_end) = (opt(PARANG[0])?, opt(PARANG[1])?);
     Ok(Table {
         headers,
         records: vec![],
@@ -381,16 +421,23 @@ fn read_fits_table(path: &Path, name: Option<&str>) -> Result<Table> {
         sq,
         su,
         cov,
+        parang,
+        parang_end,
     })
 }
 
 /// Catalog positions in arcmin from the detector centre.
-fn measurements(t: &Table, cal: &Calibration, coords: Coords, path: &Path) -> Result<Vec<Measurement>> {
+fn measurements(
+    t: &Table,
+    pixel: Option<fit::calfile::PixelGrid>,
+    coords: Coords,
+    path: &Path,
+) -> Result<Vec<Measurement>> {
     let to_arcmin = |x: f64, y: f64| -> Result<(f64, f64)> {
         match coords {
             Coords::Arcmin => Ok((x, y)),
             Coords::Pixel => {
-                let g = cal.pixel.ok_or_else(|| {
+                let g = pixel.ok_or_else(|| {
                     anyhow!("the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)")
                 })?;
                 Ok(g.to_arcmin(x, y))
@@ -575,5 +622,131 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
         hwp_chi_offset_deg: cal.hwp_chi_offset_deg,
         median_p0: median(c.p0.into_iter()),
         median_p_inst: median(c.p_inst.into_iter()),
+        telescope_model: None,
+        telescope_band: None,
+    })
+}
+
+/// `correct` with a telescope model (and maybe a field model): catalogs only, the parallactic
+/// angle per row; the field first, then the telescope over each row's track.
+fn run_telescope(
+    a: &Args,
+    tel: &fit::telescope::TelescopeFit,
+    field: Option<&Calibration>,
+    est: Estimator,
+) -> Result<()> {
+    use fit::telescope::Track;
+    let kind = detect(&a.input)?;
+    if kind == Kind::Map {
+        bail!(
+            "{}: a Stokes map has no parallactic angle per bin; with a telescope model ({}) correct catalogs (column {})",
+            a.input.display(),
+            a.cal.display(),
+            PARANG[0]
+        );
+    }
+    let bands: Vec<&str> = tel.bands.iter().map(|b| b.0.as_str()).collect();
+    let band = match (&a.band, field) {
+        (Some(b), _) => b.clone(),
+        (None, Some(c)) => c.filter.clone(),
+        (None, None) if bands.len() == 1 => bands[0].to_string(),
+        (None, None) => {
+            bail!("{}: the telescope model has bands {}: choose one with --band", a.cal.display(), bands.join(", "))
+        }
+    };
+    if tel.band(&band).is_none() {
+        bail!("--band {band}: the telescope model of {} has bands {}", a.cal.display(), bands.join(", "));
+    }
+    let table = match kind {
+        Kind::Csv => read_csv(&a.input)?,
+        _ => read_fits_table(&a.input, a.hdu.as_deref())?,
+    };
+    let Some(pa) = &table.parang else {
+        bail!(
+            "{}: no column '{}' (columns: {}): the telescope model of {} needs each row's parallactic angle (deg)",
+            a.input.display(),
+            PARANG[0],
+            table.headers.join(", "),
+            a.cal.display()
+        );
+    };
+    let meas = measurements(&table, field.and_then(|c| c.pixel), a.coords, &a.input)?;
+    // The telescope's offset is the instrument's angle zero (module docs of fit::telescope_cal).
+    let opts = field.map(|c| CorrectOptions { chi_offset: 0.0, ..options(c, a) });
+    let cor = match (field, opts) {
+        (Some(c), Some(o)) => Some(Corrector::new(c, o)),
+        _ => None,
+    };
+    let mut out = Vec::with_capacity(meas.len());
+    for (i, m) in meas.iter().enumerate() {
+        let end = table.parang_end.as_ref().map(|e| e[i].to_radians());
+        let track = Track::new(pa[i].to_radians(), end);
+        let r = fit::telescope_cal::correct_chain(cor.as_ref(), tel, &band, m, track)
+            .with_context(|| format!("{} {}", a.input.display(), table.labels[i]))?;
+        let mut c = r.corrected;
+        c.inst.q += r.q_tel;
+        c.inst.u += r.u_tel;
+        out.push(c);
+    }
+    let n_extra = out.iter().filter(|c| c.extrapolated).count();
+    if n_extra > 0 {
+        eprintln!(
+            "warning: {n_extra} of {} positions lie outside the calibrated field; corrected by extrapolation with inflated errors (flagged)",
+            out.len()
+        );
+    }
+    let filter = field.map(|c| c.filter.clone()).unwrap_or_else(|| band.clone());
+    let mut summary = write_catalog(a, kind, &table, &out, est, n_extra, filter, 0.0)?;
+    summary.telescope_model = Some(tel.model.name());
+    summary.telescope_band = Some(band.clone());
+    if a.json {
+        return crate::util::print_json(&summary);
+    }
+    println!(
+        "corrected {} rows with {} ({} model, band {band}{}), the parallactic angle per row",
+        summary.rows,
+        a.cal.display(),
+        tel.model.name(),
+        if field.is_some() { ", field model first" } else { ", no field model" }
+    );
+    if let (Some(p0), Some(pi)) = (summary.median_p0, summary.median_p_inst) {
+        println!("median instrumental p removed: {:.3} %, median corrected P0: {:.3} %", 100.0 * pi, 100.0 * p0);
+    }
+    println!("wrote {}", a.out.display());
+    Ok(())
+}
+
+/// Write a corrected catalog in the input's format and make its summary.
+#[allow(clippy::too_many_arguments)]
+fn write_catalog(
+    a: &Args,
+    kind: Kind,
+    table: &Table,
+    out: &[Corrected],
+    est: Estimator,
+    n_extra: usize,
+    filter: String,
+    hwp_chi_offset_deg: f64,
+) -> Result<Summary> {
+    let p0est = estimates(out, est);
+    match kind {
+        Kind::Csv => write_csv(table, out, &p0est, est, &a.out)?,
+        _ => write_fits_table(&a.input, a.hdu.as_deref(), out, &p0est, est, &a.out)?,
+    }
+    Ok(Summary {
+        input: a.input.clone(),
+        output: a.out.clone(),
+        kind: if kind == Kind::Csv { "catalog (CSV)" } else { "catalog (FITS table)" },
+        rows: out.len(),
+        extrapolated: n_extra,
+        method: a.method,
+        estimator: est.name().into(),
+        coords: Some(a.coords),
+        filter,
+        hwp_chi_offset_deg,
+        median_p0: median(out.iter().map(|r| r.p0)),
+        median_p_inst: median(out.iter().map(|r| r.inst.q.hypot(r.inst.u))),
+        telescope_model: None,
+        telescope_band: None,
     })
 }

@@ -26,9 +26,18 @@ use std::path::{Path, PathBuf};
 /// and the fit repeated without them. Errors: sqrt of the covariance's diagonal times
 /// max(1, chi2/dof) by default (--error-scaling).
 ///
+/// Calibration files (--output, --output-dir): the fitted model (--save-model, default
+/// wiersema) is written as a TELESCOPE HDU (fit::telescope_cal): with --field-cal beside that
+/// field calibration (its filter must be the band), else alone. `instpol correct` then takes
+/// the parallactic angle per row (catalog column parang_deg, optionally parang_end_deg).
+///
 /// Example (EFOSC2 2018 standards, all five bands, plots in plots/):
 ///
 ///   instpol fit-standards ../shared/data/efosc2-standards/p?_standards.txt --joint --plot-dir plots
+///
+/// Example (V only, written as a calibration for `instpol correct`):
+///
+///   instpol fit-standards ../shared/data/efosc2-standards/pv_standards.txt --instrument efosc2 --output tel_V.fits
 #[derive(clap::Args)]
 pub struct Args {
     /// Measurement files (one or more; bands may be mixed).
@@ -53,6 +62,22 @@ pub struct Args {
     /// Write q and u against parallactic angle with the model, and the residuals (PNG), here.
     #[arg(long)]
     pub plot_dir: Option<PathBuf>,
+    /// Write the fitted model as a calibration file: one band, or all bands with --joint.
+    #[arg(long, value_name = "CAL.fits")]
+    pub output: Option<PathBuf>,
+    /// Write one calibration file per band here (telescope_<band>.fits), from the per-band fits.
+    #[arg(long, value_name = "DIR")]
+    pub output_dir: Option<PathBuf>,
+    /// Which fitted model the calibration files hold: wiersema or oxide.
+    #[arg(long, default_value = "wiersema")]
+    pub save_model: String,
+    /// Put the telescope model beside this field calibration (instpol calibrate) in --output.
+    #[arg(long, value_name = "FIELD.fits")]
+    pub field_cal: Option<PathBuf>,
+    /// The instrument (built-in name or file): must sit at a Nasmyth focus (its [telescope]
+    /// section); names the calibration. Without it the calibration says "unknown".
+    #[arg(long)]
+    pub instrument: Option<String>,
     /// Print JSON instead of tables (angles in degrees, polarization as fractions).
     #[arg(long)]
     pub json: bool,
@@ -97,6 +122,9 @@ struct FitOut {
     n_total: usize,
     flagged: Vec<String>,
     points: Vec<PointOut>,
+    /// The calibration file this fit was written to (--output, --output-dir).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    output: Option<PathBuf>,
 }
 
 fn out(f: &TelescopeFit, joint: bool) -> FitOut {
@@ -153,6 +181,7 @@ fn out(f: &TelescopeFit, joint: bool) -> FitOut {
                 flagged: p.flagged,
             })
             .collect(),
+        output: None,
     }
 }
 
@@ -226,7 +255,11 @@ pub fn run(a: Args) -> Result<()> {
             fits.push((f, true));
         }
     }
-    let outs: Vec<FitOut> = fits.iter().map(|(f, j)| out(f, *j)).collect();
+    let outputs = write_calibrations(&a, &fits, &obs)?;
+    let mut outs: Vec<FitOut> = fits.iter().map(|(f, j)| out(f, *j)).collect();
+    for (i, p) in &outputs {
+        outs[*i].output = Some(p.clone());
+    }
     if let Some(dir) = &a.plot_dir {
         std::fs::create_dir_all(dir).with_context(|| format!("--plot-dir {}", dir.display()))?;
         for (f, j) in &fits {
@@ -248,7 +281,101 @@ pub fn run(a: Args) -> Result<()> {
         print_fit(o);
         outln!();
     }
+    for (_, p) in &outputs {
+        println!("wrote {}", p.display());
+    }
     Ok(())
+}
+
+/// The calibration files asked for (--output, --output-dir), written atomically; their paths.
+fn write_calibrations(a: &Args, fits: &[(TelescopeFit, bool)], obs: &[Observation]) -> Result<Vec<(usize, PathBuf)>> {
+    if a.output.is_none() && a.output_dir.is_none() {
+        if a.field_cal.is_some() {
+            bail!("--field-cal needs --output (the file that gets the field and the telescope model)");
+        }
+        return Ok(vec![]);
+    }
+    crate::util::inputs(a.files.iter().map(|p| p.as_path()).chain(a.field_cal.as_deref()))?;
+    let save = match a.save_model.trim().to_ascii_lowercase().as_str() {
+        "wiersema" => ModelKind::Wiersema,
+        "oxide" | "physical" => ModelKind::Oxide,
+        other => bail!("--save-model '{other}': use wiersema or oxide"),
+    };
+    let instrument = match &a.instrument {
+        Some(name) => {
+            let inst = instrument::Instrument::load(name).with_context(|| format!("--instrument {name}"))?;
+            match inst.telescope.as_ref().map(|t| t.focus) {
+                Some(instrument::Focus::Nasmyth) => {}
+                Some(instrument::Focus::Cassegrain) => bail!(
+                    "--instrument {name}: {} sits at a Cassegrain focus (its [telescope] section): no 45 deg mirror, no telescope term of this kind to calibrate",
+                    inst.name
+                ),
+                None => bail!(
+                    "--instrument {name}: {} has no [telescope] section saying it sits at a Nasmyth focus",
+                    inst.name
+                ),
+            }
+            inst.name
+        }
+        None => "unknown".to_string(),
+    };
+    let inputs: Vec<String> = a.files.iter().map(|f| f.display().to_string()).collect();
+    let pick = |joint: bool, band: Option<&str>| {
+        fits.iter().enumerate().find(|(_, (f, j))| {
+            f.model == save && *j == joint && band.is_none_or(|b| f.bands.len() == 1 && f.bands[0].0 == b)
+        })
+    };
+    let mut written = Vec::new();
+    let mut bands: Vec<&str> = Vec::new();
+    for o in obs {
+        if !bands.contains(&o.band.as_str()) {
+            bands.push(&o.band);
+        }
+    }
+    if let Some(path) = &a.output {
+        crate::util::check_output(path)?;
+        let f = if a.joint {
+            pick(true, None)
+        } else if bands.len() == 1 {
+            pick(false, Some(bands[0]))
+        } else {
+            bail!(
+                "--output: {} bands ({}): write one calibration per band with --output-dir, or fit them jointly (--joint)",
+                bands.len(),
+                bands.join(", ")
+            )
+        };
+        let (i, (f, _)) =
+            f.ok_or_else(|| anyhow::anyhow!("--save-model {}: that model was not fitted (--model)", save.name()))?;
+        match &a.field_cal {
+            Some(fc) => {
+                let cal = fit::Calibration::load(fc).with_context(|| format!("--field-cal {}", fc.display()))?;
+                if f.band(&cal.filter).is_none() {
+                    bail!(
+                        "--field-cal {} is for filter {}, but the telescope model has band(s) {} (name the bands by a 'filter' column)",
+                        fc.display(),
+                        cal.filter,
+                        f.bands.iter().map(|b| b.0.as_str()).collect::<Vec<_>>().join(", ")
+                    );
+                }
+                fit::telescope_cal::save_with_field(path, &cal, f, &a.metal)?;
+            }
+            None => fit::telescope_cal::save_alone(path, &instrument, f, &a.metal, &inputs)?,
+        }
+        written.push((i, path.clone()));
+    }
+    if let Some(dir) = &a.output_dir {
+        std::fs::create_dir_all(dir).with_context(|| format!("--output-dir {}", dir.display()))?;
+        for b in &bands {
+            let (i, (f, _)) = pick(false, Some(b))
+                .ok_or_else(|| anyhow::anyhow!("--save-model {}: that model was not fitted", save.name()))?;
+            let path = dir.join(format!("telescope_{}.fits", sanitize(b)));
+            crate::util::check_output(&path)?;
+            fit::telescope_cal::save_alone(&path, &instrument, f, &a.metal, &inputs)?;
+            written.push((i, path));
+        }
+    }
+    Ok(written)
 }
 
 fn sanitize(s: &str) -> String {

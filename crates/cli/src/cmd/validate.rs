@@ -181,6 +181,15 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--threshold {} must be a positive number of sigma", a.threshold);
     }
     let cal = Calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
+    // A telescope model beside the field one would be ignored here: refused rather than
+    // judging a Nasmyth star by the field alone (issue 14: validate with the telescope is
+    // not done yet; `instpol correct` applies it per row).
+    if fit::telescope_cal::read_hdu(&a.cal)?.is_some() {
+        bail!(
+            "{} holds a telescope model: validate does not apply it yet (it needs the frames' parallactic angles); correct the star's catalog row with `instpol correct` (column parang_deg) instead",
+            a.cal.display()
+        );
+    }
     let inst = Instrument::load(&a.instrument)?;
     let (x_px, y_px) = match a.coords {
         crate::cmd::correct::Coords::Pixel => (a.x, a.y),

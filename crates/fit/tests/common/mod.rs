@@ -55,3 +55,26 @@ pub fn radial_field(coeffs: &[f64], centre: (f64, f64)) -> impl Fn(f64, f64) -> 
         (p * (2.0 * a).cos(), p * (2.0 * a).sin())
     }
 }
+
+/// A Jones calculus written for the tests, independent of `mueller`: 2x2 complex matrices
+/// acting on the field components `(Ex, Ey)`.
+pub mod jones {
+    pub use num_complex::Complex64 as C;
+    pub type J = [[C; 2]; 2];
+
+    pub fn mul(a: &J, b: &J) -> J {
+        let mut o = [[C::new(0.0, 0.0); 2]; 2];
+        for i in 0..2 {
+            for j in 0..2 {
+                o[i][j] = a[i][0] * b[0][j] + a[i][1] * b[1][j];
+            }
+        }
+        o
+    }
+
+    /// Field components in axes turned by t.
+    pub fn rot(t: f64) -> J {
+        let (s, c) = t.sin_cos();
+        [[C::new(c, 0.0), C::new(s, 0.0)], [C::new(-s, 0.0), C::new(c, 0.0)]]
+    }
+}

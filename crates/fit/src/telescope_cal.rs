@@ -1,0 +1,372 @@
+//! The telescope model in a calibration file, and the correction through the whole chain
+//! (issue 14 item 4).
+//!
+//! # File layout
+//!
+//! A binary-table HDU `TELESCOPE`, one row per band: `WAVELENGTH_UM`, `N`, `K` (the metal's
+//! tabulated index there), `FACTOR` (on `n, k`), `THICKNESS_NM` (alumina over-layer),
+//! `OFFSET_DEG`, `Q0`, `U0` (fractions). Its header: `HIERARCH IP TEL MODEL` (`wiersema` /
+//! `oxide`), `TEL JOINT`, `TEL BAND<k>` (band names, 1-based), `TEL NPAR`, `TEL PAR<k> NAME`,
+//! `TEL PAR<k>`, `TEL PAR<k> ERR` (angles in rad as fitted), `TEL COV <i> <j>` (upper triangle,
+//! 0-based, scaled as `TEL ERR SCALING` says, by `TEL ERR FACTOR`), `TEL CHI2`, `TEL DOF`,
+//! `TEL CHI2 DOF`, `TEL RMS Q`, `TEL RMS U`, `TEL N USED`, `TEL METAL`.
+//!
+//! The HDU sits beside a field model (after the field calibration's HDUs, written by
+//! [`save_with_field`] through [`Calibration::save_with`]) or alone (a file whose primary HDU
+//! says `HIERARCH IP MODEL = 'TELESCOPE'`, [`save_alone`]). [`load`] reads either;
+//! [`Calibration::load`] refuses a telescope-only file by name.
+//!
+//! # The chain and its inversion
+//!
+//! Light meets the telescope first, then the instrument: the measured normalized Stokes
+//! parameters are `m = M_I(x, y) [T(track) S_sky]` with `T` the telescope model of the band
+//! averaged over the exposure's parallactic-angle track ([`crate::telescope::Track`]) and
+//! `M_I` the field's partial polarizer (`eq:instpol`). [`correct_chain`] undoes them in reverse:
+//! the field first ([`Corrector`], with its covariance), then the telescope
+//! ([`TelescopeFit::correct_cov`], with the measurement-plus-field covariance and the telescope
+//! parameters' covariance). With a field model the telescope's constant `(q0, u0)` is left out
+//! (the field model is the instrument's own polarization; counting both would remove it twice)
+//! and the field corrector's HWP zero angle is not applied (the telescope's fitted `offset`
+//! is the instrument's angle zero, measured on standards reduced the same way).
+
+use crate::calfile::{fits_err, temp_error, KeyReader, KeyWriter};
+use crate::correct::{p_chi_with_errors, Corrected, Corrector, Measurement};
+use crate::model::{FieldModel, InstPol};
+use crate::radial::ErrorScaling;
+use crate::telescope::{BandModel, ModelKind, Param, TelescopeFit, Track};
+use crate::{Calibration, Error, Result};
+use fitsio::tables::{ColumnDataType, ColumnDescription};
+use fitsio::FitsFile;
+use mueller::C64;
+use std::path::Path;
+
+/// `HIERARCH IP MODEL` of a calibration file that holds only a telescope model.
+pub const MODEL_KIND: &str = "TELESCOPE";
+/// The HDU name.
+pub const HDU: &str = "TELESCOPE";
+
+const COLS: [&str; 8] = ["WAVELENGTH_UM", "N", "K", "FACTOR", "THICKNESS_NM", "OFFSET_DEG", "Q0", "U0"];
+
+/// Write the `TELESCOPE` HDU of `fit` (fitted with the metal `metal`) into an open file.
+pub fn write_hdu(f: &mut FitsFile, path: &Path, fit: &TelescopeFit, metal: &str) -> Result<()> {
+    let e = |doing: &str| fits_err(path, doing);
+    let mut descs = vec![];
+    for c in COLS {
+        descs.push(
+            ColumnDescription::new(c).with_type(ColumnDataType::Double).create().map_err(e("describing TELESCOPE"))?,
+        );
+    }
+    let h = f.create_table(HDU, &descs).map_err(e("creating table TELESCOPE"))?;
+    let b = &fit.bands;
+    let col = |g: &dyn Fn(&BandModel) -> f64| b.iter().map(|(_, m)| g(m)).collect::<Vec<f64>>();
+    let columns: [(&str, Vec<f64>); 8] = [
+        ("WAVELENGTH_UM", col(&|m| m.wavelength_um)),
+        ("N", col(&|m| m.index.re)),
+        ("K", col(&|m| m.index.im)),
+        ("FACTOR", col(&|m| m.factor)),
+        ("THICKNESS_NM", col(&|m| m.thickness_nm)),
+        ("OFFSET_DEG", col(&|m| m.offset.to_degrees())),
+        ("Q0", col(&|m| m.q0)),
+        ("U0", col(&|m| m.u0)),
+    ];
+    for (name, v) in &columns {
+        h.write_col(f, *name, v).map_err(e(&format!("writing TELESCOPE column {name}")))?;
+    }
+    let mut w = KeyWriter { f, hdu: &h, path };
+    w.str("TEL MODEL", fit.model.name())?;
+    w.int("TEL JOINT", (b.len() > 1) as i64)?;
+    w.str("TEL METAL", metal)?;
+    w.int("TEL NBAND", b.len() as i64)?;
+    for (k, (name, _)) in b.iter().enumerate() {
+        w.str(&format!("TEL BAND{}", k + 1), name)?;
+    }
+    w.int("TEL NPAR", fit.params.len() as i64)?;
+    for (k, p) in fit.params.iter().enumerate() {
+        w.str(&format!("TEL PAR{} NAME", k + 1), &p.name)?;
+        w.real(&format!("TEL PAR{}", k + 1), p.value)?;
+        w.real(&format!("TEL PAR{} ERR", k + 1), p.sigma)?;
+    }
+    for i in 0..fit.params.len() {
+        for j in i..fit.params.len() {
+            w.real(&format!("TEL COV {i} {j}"), fit.covariance[i][j])?;
+        }
+    }
+    w.str("TEL ERR SCALING", fit.error_scaling.name())?;
+    w.real("TEL ERR FACTOR", fit.error_factor)?;
+    w.real("TEL CHI2", fit.chi2)?;
+    w.int("TEL DOF", fit.dof as i64)?;
+    w.real("TEL CHI2 DOF", fit.chi2_reduced)?;
+    w.real("TEL RMS Q", fit.rms_q)?;
+    w.real("TEL RMS U", fit.rms_u)?;
+    w.int("TEL N USED", fit.n_used() as i64)?;
+    Ok(())
+}
+
+/// Write a calibration file holding only the telescope model of `instrument` (atomically:
+/// a temporary file beside `path`, renamed when complete).
+pub fn save_alone(path: &Path, instrument: &str, fit: &TelescopeFit, metal: &str, inputs: &[String]) -> Result<()> {
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let tmp = skyfield::io::temp_beside(path, ".fits")
+        .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
+    let tmp = tmp.into_temp_path();
+    {
+        let e = |doing: &str| fits_err(path, doing);
+        let mut f = FitsFile::create(&tmp).overwrite().open().map_err(e("creating the file"))?;
+        let hdu = f.primary_hdu().map_err(e("opening the primary HDU"))?;
+        let mut w = KeyWriter { f: &mut f, hdu: &hdu, path };
+        w.int("FORMAT VERSION", crate::calfile::FORMAT_VERSION)?;
+        w.str("INSTRUMENT", instrument)?;
+        w.str("MODEL", MODEL_KIND)?;
+        w.str("SOURCE", "instpol fit-standards")?;
+        w.str("TOOL", &format!("instpol {}", env!("CARGO_PKG_VERSION")))?;
+        w.str("DATE", &crate::calfile::utc_now_iso())?;
+        w.int("NINPUT", inputs.len() as i64)?;
+        for (k, name) in inputs.iter().enumerate() {
+            w.str(&format!("INPUT{}", k + 1), name)?;
+        }
+        write_hdu(&mut f, path, fit, metal)?;
+        skyfield::durable::close_fits(f).map_err(|m| Error::Fits {
+            path: path.to_path_buf(),
+            doing: "closing the file".into(),
+            message: m,
+        })?;
+    }
+    skyfield::durable::finish(tmp, path).map_err(|err| Error::Io { path: path.to_path_buf(), err })
+}
+
+/// Write the field calibration `cal` with the telescope model beside it.
+pub fn save_with_field(path: &Path, cal: &Calibration, fit: &TelescopeFit, metal: &str) -> Result<()> {
+    cal.save_with(path, |f, p| write_hdu(f, p, fit, metal))
+}
+
+/// What a calibration file holds: a field model, a telescope model, or both.
+#[derive(Debug, Clone)]
+pub struct Loaded {
+    pub instrument: String,
+    pub field: Option<Calibration>,
+    pub telescope: Option<TelescopeFit>,
+}
+
+/// Read a calibration file with or without a field model and with or without a telescope
+/// model; an error when it has neither or when the telescope HDU is malformed (naming the
+/// keyword or row).
+pub fn load(path: &Path) -> Result<Loaded> {
+    let e = |doing: &str| fits_err(path, doing);
+    if !path.is_file() {
+        return Err(Error::Io {
+            path: path.into(),
+            err: std::io::Error::new(std::io::ErrorKind::NotFound, "no such calibration file"),
+        });
+    }
+    let (kind, instrument) = {
+        let mut f = FitsFile::open(path).map_err(e("opening"))?;
+        let hdu = f.primary_hdu().map_err(e("reading the primary HDU"))?;
+        let mut r = KeyReader { f: &mut f, hdu: &hdu, path };
+        let version = r.int("FORMAT VERSION")?;
+        if version > crate::calfile::FORMAT_VERSION {
+            return Err(Error::NewerFormat {
+                path: path.into(),
+                found: version,
+                supported: crate::calfile::FORMAT_VERSION,
+            });
+        }
+        (r.str("MODEL")?, r.str("INSTRUMENT")?)
+    };
+    let field = if kind == MODEL_KIND { None } else { Some(Calibration::load(path)?) };
+    let telescope = read_hdu(path)?;
+    if field.is_none() && telescope.is_none() {
+        return Err(Error::BadFile { path: path.into(), what: format!("MODEL = '{MODEL_KIND}' but no {HDU} HDU") });
+    }
+    Ok(Loaded { instrument, field, telescope })
+}
+
+/// Read the `TELESCOPE` HDU of a file, `None` when it has none.
+pub fn read_hdu(path: &Path) -> Result<Option<TelescopeFit>> {
+    let e = |doing: &str| fits_err(path, doing);
+    let mut f = FitsFile::open(path).map_err(e("opening"))?;
+    let Ok(h) = f.hdu(HDU) else { return Ok(None) };
+    let bad = |what: String| Error::BadFile { path: path.into(), what: format!("{HDU} HDU: {what}") };
+    let nrows = match &h.info {
+        fitsio::hdu::HduInfo::TableInfo { num_rows, .. } => *num_rows,
+        _ => return Err(bad("is not a table".into())),
+    };
+    let mut cols = Vec::new();
+    for c in COLS {
+        cols.push(h.read_col::<f64>(&mut f, c).map_err(e(&format!("reading {HDU} column {c}")))?);
+    }
+    let mut r = KeyReader { f: &mut f, hdu: &h, path };
+    let model = match r.str("TEL MODEL")?.as_str() {
+        "wiersema" => ModelKind::Wiersema,
+        "oxide" => ModelKind::Oxide,
+        other => return Err(bad(format!("keyword HIERARCH IP TEL MODEL = '{other}': not wiersema or oxide"))),
+    };
+    let nband = r.int("TEL NBAND")?;
+    if nband < 1 || nband as usize != nrows {
+        return Err(bad(format!("HIERARCH IP TEL NBAND = {nband} but the table has {nrows} rows")));
+    }
+    let mut bands = Vec::new();
+    for k in 0..nrows {
+        let v: Vec<f64> = cols.iter().map(|c| c[k]).collect();
+        let name = r.str(&format!("TEL BAND{}", k + 1))?;
+        let ok = v.iter().all(|x| x.is_finite())
+            && v[0] > 0.0
+            && v[1] > 0.0
+            && v[2] >= 0.0
+            && v[3] > 0.0
+            && v[4] >= 0.0
+            && v[6].abs() < 1.0
+            && v[7].abs() < 1.0;
+        if !ok {
+            return Err(bad(format!(
+                "row {} (band {name}): {} = {:?}: need finite values, wavelength, n, factor > 0, k, thickness >= 0, |q0|, |u0| < 1",
+                k + 1,
+                COLS.join(", "),
+                v
+            )));
+        }
+        bands.push((
+            name,
+            BandModel {
+                wavelength_um: v[0],
+                index: C64::new(v[1], v[2]),
+                factor: v[3],
+                thickness_nm: v[4],
+                offset: v[5].to_radians(),
+                q0: v[6],
+                u0: v[7],
+            },
+        ));
+    }
+    let npar = r.int("TEL NPAR")?;
+    let per_band = match model {
+        ModelKind::Wiersema => 1,
+        ModelKind::Oxide => 3,
+    };
+    if npar < 1 || npar as usize != 1 + per_band * nrows {
+        return Err(bad(format!(
+            "HIERARCH IP TEL NPAR = {npar}: the {} model of {nrows} band(s) has {}",
+            model.name(),
+            1 + per_band * nrows
+        )));
+    }
+    let np = npar as usize;
+    let mut params = Vec::new();
+    for k in 1..=np {
+        params.push(Param {
+            name: r.str(&format!("TEL PAR{k} NAME"))?,
+            value: r.real(&format!("TEL PAR{k}"))?,
+            sigma: r.real(&format!("TEL PAR{k} ERR"))?,
+        });
+    }
+    let mut cov = vec![vec![0.0; np]; np];
+    #[allow(clippy::needless_range_loop)] // symmetric fill by keyword indices
+    for i in 0..np {
+        for j in i..np {
+            let v = r.real(&format!("TEL COV {i} {j}"))?;
+            cov[i][j] = v;
+            cov[j][i] = v;
+        }
+    }
+    for i in 0..np {
+        if !(cov[i][i].is_finite() && cov[i][i] >= 0.0) {
+            return Err(bad(format!("keyword HIERARCH IP TEL COV {i} {i} = {} is not a variance", cov[i][i])));
+        }
+        for j in 0..i {
+            if !cov[j][i].is_finite() || cov[j][i] * cov[j][i] > cov[i][i] * cov[j][j] * (1.0 + 1e-9) {
+                return Err(bad(format!(
+                    "keyword HIERARCH IP TEL COV {j} {i} = {} is not a covariance of variances {} and {} (|correlation| > 1)",
+                    cov[j][i], cov[j][j], cov[i][i]
+                )));
+            }
+        }
+    }
+    let error_scaling = r
+        .opt_str("TEL ERR SCALING")
+        .map(|s| s.parse::<ErrorScaling>())
+        .transpose()
+        .map_err(|err| bad(format!("keyword HIERARCH IP TEL ERR SCALING: {err}")))?
+        .unwrap_or(ErrorScaling::Conservative);
+    Ok(Some(TelescopeFit {
+        model,
+        bands,
+        params,
+        covariance: cov,
+        chi2: r.opt_real("TEL CHI2").unwrap_or(f64::NAN),
+        dof: r.opt_int("TEL DOF").unwrap_or(0).max(0) as usize,
+        chi2_reduced: r.opt_real("TEL CHI2 DOF").unwrap_or(f64::NAN),
+        error_scaling,
+        error_factor: r.opt_real("TEL ERR FACTOR").unwrap_or(f64::NAN),
+        rms_q: r.opt_real("TEL RMS Q").unwrap_or(f64::NAN),
+        rms_u: r.opt_real("TEL RMS U").unwrap_or(f64::NAN),
+        points: Vec::new(),
+    }))
+}
+
+/// One measurement corrected through the chain.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ChainCorrected {
+    /// The sky's polarization with its covariance; `inst` is the field's part (zero without a
+    /// field model).
+    pub corrected: Corrected,
+    /// What the telescope alone makes of an unpolarized star over this track (instrument
+    /// frame, without `q0, u0` when a field model is given).
+    pub q_tel: f64,
+    pub u_tel: f64,
+}
+
+/// Correct `m` (instrument frame) for the field (when `field` is given) and then the telescope
+/// of `band` over `track` (see the module docs for the order and what each step uses).
+pub fn correct_chain<M: FieldModel + ?Sized>(
+    field: Option<&Corrector<M>>,
+    tel: &TelescopeFit,
+    band: &str,
+    m: &Measurement,
+    track: Track,
+) -> Result<ChainCorrected> {
+    for (what, v) in [("parallactic angle (start)", track.start), ("parallactic angle (end)", track.end)] {
+        if !v.is_finite() {
+            return Err(Error::Input(format!("{what} = {v} is not a finite number")));
+        }
+    }
+    let (q1, u1, cov, inst, extrapolated) = match field {
+        Some(c) => {
+            let r = c.correct(m).map_err(|e| Error::Input(e.to_string()))?;
+            (r.q0, r.u0, [r.var_q0, r.var_u0, r.cov_qu0], r.inst, r.extrapolated)
+        }
+        None => {
+            for (what, v) in [("q", m.q), ("u", m.u), ("sigma_q", m.sigma_q), ("sigma_u", m.sigma_u)] {
+                if !v.is_finite() || (what.starts_with("sigma") && v < 0.0) {
+                    return Err(Error::Input(format!("{what} = {v} is not a finite number (>= 0 for errors)")));
+                }
+            }
+            (m.q, m.u, [m.sigma_q * m.sigma_q, m.sigma_u * m.sigma_u, m.cov_qu], InstPol::default(), false)
+        }
+    };
+    let constant = field.is_none();
+    let [q0, u0, vq, vu, cv] = tel.correct_cov(band, q1, u1, cov, track, constant)?;
+    let b = tel.band(band).ok_or_else(|| Error::Input(format!("band '{band}' was not fitted")))?;
+    let mt = b.matrix_track(track).map_err(|e| Error::FitFailed(format!("telescope model: {e}")))?;
+    let (mut q_tel, mut u_tel) = (mt[(1, 0)] / mt[(0, 0)], mt[(2, 0)] / mt[(0, 0)]);
+    if constant {
+        q_tel += b.q0;
+        u_tel += b.u0;
+    }
+    let (p0, sigma_p0, chi0, sigma_chi0) = p_chi_with_errors(q0, u0, vq, vu, cv);
+    Ok(ChainCorrected {
+        corrected: Corrected {
+            q0,
+            u0,
+            var_q0: vq,
+            var_u0: vu,
+            cov_qu0: cv,
+            p0,
+            sigma_p0,
+            chi0,
+            sigma_chi0,
+            inst,
+            extrapolated,
+        },
+        q_tel,
+        u_tel,
+    })
+}
