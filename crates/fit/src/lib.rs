@@ -17,6 +17,7 @@
 
 pub mod bins;
 pub mod calfile;
+pub mod catalog_correct;
 pub mod correlation;
 pub mod import;
 pub mod model;

@@ -201,7 +201,9 @@ pub fn run(a: Args) -> Result<()> {
     outln!("Mueller field from {} fields, {} observations: {}", rep.n_fields, rep.n_obs, rep.kind);
     outln!(
         "  degree {} polynomials, chi2/dof {:.3}, Fisher condition number {:.3e}",
-        rep.deg, rep.chi2_dof, rep.condition
+        rep.deg,
+        rep.chi2_dof,
+        rep.condition
     );
     outln!("  {:<16} {:>12} {:>12} {:>12}", "parameter", "median", "rms", "median sigma");
     for p in &rep.parameters {

@@ -1,6 +1,6 @@
 //! `instpol catalog`: every paired star of a frame set, measured in one run.
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use skyfield::catalog::{catalog, flags, CatalogConfig};
 use skyfield::detect::DetectConfig;
 use skyfield::reduce::FrameSet;
@@ -47,6 +47,28 @@ pub struct Args {
     pub frame: crate::cmd::frame_opts::FrameOpts,
     #[command(flatten)]
     pub kappa: crate::cmd::frame_opts::KappaOpts,
+    /// Calibration file: remove the instrumental polarization in the same run (the columns of
+    /// `instpol correct`: q0, u0, sigma_q0, sigma_u0, cov_qu0, p0, sigma_p0, chi0_deg,
+    /// sigma_chi0_deg, q_inst, u_inst, extrapolated), exact inversion of eq:instpol. The
+    /// catalog's q, u already carry the instrument file's HWP zero angle, so only the
+    /// calibration's difference from it is applied.
+    #[arg(long, value_name = "CAL.fits")]
+    pub cal: Option<PathBuf>,
+    /// With --cal: correct stars outside the calibrated field too (flagged, errors inflated).
+    #[arg(long)]
+    pub allow_extrapolation: bool,
+}
+
+/// The JSON of a catalog corrected in the same run: the catalog, and per row its correction.
+#[derive(serde::Serialize)]
+struct CorrectedJson<'a> {
+    #[serde(flatten)]
+    catalog: &'a skyfield::catalog::Catalog,
+    /// One entry per row (null for a star not measured).
+    corrected: Vec<Option<fit::correct::Corrected>>,
+    calibration: String,
+    chi_offset_applied_deg: f64,
+    n_extrapolated: usize,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -86,6 +108,32 @@ pub fn run(a: Args) -> Result<()> {
         eprintln!("warning: {w}");
     }
     let cat = catalog(&set, &inst, &cfg)?;
+    let corrected = match &a.cal {
+        None => None,
+        Some(path) => {
+            let loaded = fit::telescope_cal::load(path)
+                .with_context(|| format!("cannot load calibration {}", path.display()))?;
+            if loaded.telescope.is_some() {
+                bail!(
+                    "{}: the calibration holds a telescope model, which needs each star's parallactic angle: write the catalog and correct it with `instpol correct` and a parang_deg column",
+                    path.display()
+                );
+            }
+            let cal =
+                loaded.field.ok_or_else(|| anyhow::anyhow!("{}: no field model to correct with", path.display()))?;
+            let opts =
+                fit::correct::CorrectOptions { allow_extrapolation: a.allow_extrapolation, ..Default::default() };
+            let c = fit::catalog_correct::correct_catalog(&cat, &inst.name, &cal, opts)
+                .with_context(|| format!("--cal {}", path.display()))?;
+            if c.n_extrapolated > 0 {
+                eprintln!(
+                    "warning: {} stars lie outside the calibrated field; corrected by extrapolation with inflated errors (flagged)",
+                    c.n_extrapolated
+                );
+            }
+            Some(c)
+        }
+    };
     if let Some(out) = &a.out {
         let n = cat.hwp_deg.len();
         crate::util::write_via_temp(out, ".csv", |tmp| {
@@ -121,11 +169,30 @@ pub fn run(a: Args) -> Result<()> {
                 "note",
             ]
             .iter()
+            .chain(if corrected.is_some() {
+                [
+                    "q0",
+                    "u0",
+                    "sigma_q0",
+                    "sigma_u0",
+                    "cov_qu0",
+                    "p0",
+                    "sigma_p0",
+                    "chi0_deg",
+                    "sigma_chi0_deg",
+                    "q_inst",
+                    "u_inst",
+                    "extrapolated",
+                ]
+                .iter()
+            } else {
+                [].iter()
+            })
             .map(|s| s.to_string())
             .collect();
             head.extend((0..n).map(|i| format!("f_{i}")));
             w.write_record(&head)?;
-            for r in &cat.rows {
+            for (k, r) in cat.rows.iter().enumerate() {
                 let mut rec: Vec<String> =
                     [r.id as f64, r.x, r.y, r.x_e, r.y_e, r.x_arcmin, r.y_arcmin, r.fwhm_px, r.aperture_px]
                         .iter()
@@ -144,6 +211,29 @@ pub fn run(a: Args) -> Result<()> {
                 rec.push(r.sigma_u_scatter.to_string());
                 rec.push(flags::names(r.flags));
                 rec.push(r.note.clone());
+                if let Some(c) = &corrected {
+                    match &c.rows[k] {
+                        Some(c) => {
+                            for v in [
+                                c.q0,
+                                c.u0,
+                                c.var_q0.sqrt(),
+                                c.var_u0.sqrt(),
+                                c.cov_qu0,
+                                c.p0,
+                                c.sigma_p0,
+                                c.chi0.to_degrees(),
+                                c.sigma_chi0.to_degrees(),
+                                c.inst.q,
+                                c.inst.u,
+                            ] {
+                                rec.push(v.to_string());
+                            }
+                            rec.push((c.extrapolated as u8).to_string());
+                        }
+                        None => rec.extend((0..12).map(|_| String::new())),
+                    }
+                }
                 rec.extend((0..n).map(|i| r.f.get(i).map_or(String::new(), |v| v.to_string())));
                 w.write_record(&rec)?;
             }
@@ -153,7 +243,16 @@ pub fn run(a: Args) -> Result<()> {
     }
     let measured = cat.rows.iter().filter(|r| r.q.is_finite()).count();
     if a.json {
-        crate::util::print_json(&cat)?;
+        match &corrected {
+            None => crate::util::print_json(&cat)?,
+            Some(c) => crate::util::print_json(&CorrectedJson {
+                catalog: &cat,
+                corrected: c.rows.clone(),
+                calibration: a.cal.as_ref().map(|p| p.display().to_string()).unwrap_or_default(),
+                chi_offset_applied_deg: c.chi_offset_applied_deg,
+                n_extrapolated: c.n_extrapolated,
+            })?,
+        }
     } else {
         outln!(
             "{} sources, {} stars paired ({} measured, {} flagged), {} unpaired; filter {}, {} HWP angles, chi zero angle {} deg",

@@ -702,7 +702,7 @@ fn run_telescope(
     if a.json {
         return crate::util::print_json(&summary);
     }
-    println!(
+    outln!(
         "corrected {} rows with {} ({} model, band {band}{}), the parallactic angle per row",
         summary.rows,
         a.cal.display(),
@@ -710,9 +710,9 @@ fn run_telescope(
         if field.is_some() { ", field model first" } else { ", no field model" }
     );
     if let (Some(p0), Some(pi)) = (summary.median_p0, summary.median_p_inst) {
-        println!("median instrumental p removed: {:.3} %, median corrected P0: {:.3} %", 100.0 * pi, 100.0 * p0);
+        outln!("median instrumental p removed: {:.3} %, median corrected P0: {:.3} %", 100.0 * pi, 100.0 * p0);
     }
-    println!("wrote {}", a.out.display());
+    outln!("wrote {}", a.out.display());
     Ok(())
 }
 

@@ -282,7 +282,7 @@ pub fn run(a: Args) -> Result<()> {
         outln!();
     }
     for (_, p) in &outputs {
-        println!("wrote {}", p.display());
+        outln!("wrote {}", p.display());
     }
     Ok(())
 }

@@ -253,7 +253,9 @@ pub fn run(a: Args) -> Result<()> {
     }
     outln!(
         "Plan for an RMS of {} % in corrected q, u ({} bins, {} HWP angles per field)",
-        a.target_percent, rep.n_bins, a.angles
+        a.target_percent,
+        rep.n_bins,
+        a.angles
     );
     outln!("  {:>8} {:<16} {:>14} {:>12}", "fields", "candidates", "s per angle", "total s");
     for r in &rep.plans {
@@ -265,7 +267,10 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(b) = &rep.best {
         outln!(
             "  cheapest: {} field(s) {:?}, {:.1} s per HWP angle, {:.0} s in all",
-            b.n_fields, b.fields, b.exposure_s, b.total_s
+            b.n_fields,
+            b.fields,
+            b.exposure_s,
+            b.total_s
         );
     } else {
         eprintln!("WARNING: no choice of the candidates constrains the model: see the refusals");
