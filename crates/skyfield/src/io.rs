@@ -107,6 +107,7 @@ fn write_fits_atomic_with(
         let mut f = b.open().map_err(|e| werr(e.to_string()))?;
         // On an error here `f` is dropped (closed, status ignored) and so is `tmp` (deleted).
         fill(&mut f)?;
+        crate::provenance::stamp(&mut f).map_err(werr)?;
         // CFITSIO writes its last blocks at close: a full disk shows up here, not in `fill`.
         crate::durable::close_fits(f).map_err(werr)?;
     }

@@ -17,7 +17,11 @@
 //! the scatter of the kept pixels), `SIGQ_PHOT`, `SIGU_PHOT` (photon + read noise propagated),
 //! `P` (fraction), `CHI` (deg, [0, 180)), `COVERAGE` (int32, pixels kept), `INTENSITY` (mean
 //! `f_O + f_E` per exposure, e-/px), `INT_SNR` (per-pixel SNR of the combined intensity image),
-//! `VALID` (int32, 1 = usable). Invalid bins hold NaN in the float images.
+//! `VALID` (int32, 1 = usable). Invalid bins hold NaN in the float images. Every image carries
+//! `BUNIT` (`''` = dimensionless for the fractions, `deg`, `electron/pix`, `pix`) and two linear
+//! WCSs of its bins ([`BinGeometry::wcs_cards`]): detector pixels (primary, `WCSNAME =
+//! 'DETECTOR'`) and arcmin from the detector centre (alternate `A`, `WCSNAMEA = 'FIELD'`). The
+//! primary header carries the run's provenance ([`crate::provenance`]).
 
 use crate::{fits_err, Error};
 use fitsio::images::{ImageDescription, ImageType};
@@ -26,6 +30,14 @@ use std::path::Path;
 
 /// Current version of the Stokes-map FITS format.
 pub const MAP_FORMAT_VERSION: i32 = 1;
+
+/// A WCS card's value (see [`BinGeometry::wcs_cards`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum WcsValue {
+    Int(i64),
+    Real(f64),
+    Text(String),
+}
 
 /// Where the bins of a map lie on the detector.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -107,6 +119,45 @@ impl BinGeometry {
     /// 0-based pixel to arcmin from the detector centre.
     pub fn px_to_arcmin(&self, x: f64, y: f64) -> (f64, f64) {
         self.field_coords().pixel_to_arcmin(x, y)
+    }
+
+    /// The world coordinates of the binned map's pixels, as FITS WCS cards `(key, value,
+    /// comment)`: the primary WCS (`WCSNAME = 'DETECTOR'`) gives the detector pixel (1-based, as
+    /// FITS counts) at each bin's nominal centre, `CRVAL + CDELT (p - CRPIX)` with `CDELT` the
+    /// bin side; the alternate WCS `A` (`WCSNAMEA = 'FIELD'`) gives arcmin from the detector
+    /// centre (DESIGN.md convention). A bin cut by the detector edge keeps its nominal centre
+    /// here; [`Self::centre_px`] gives the centre of its part inside the detector.
+    pub fn wcs_cards(&self) -> Vec<(String, WcsValue, &'static str)> {
+        use WcsValue::{Real, Text};
+        let b = self.bin_px as f64;
+        // Nominal centre of bin (0, 0), 0-based: origin + b/2 - 1/2.
+        let (x0, y0) = (self.origin_x as f64 + 0.5 * b - 0.5, self.origin_y as f64 + 0.5 * b - 0.5);
+        let (ax0, ay0) = self.px_to_arcmin(x0, y0);
+        let step = b * self.pixel_scale_arcsec / 60.0;
+        let v = vec![
+            ("WCSAXES".to_string(), WcsValue::Int(2), "number of WCS axes"),
+            ("WCSNAME".into(), Text("DETECTOR".into()), "detector pixels (1-based) of the bin centres"),
+            ("CTYPE1".into(), Text("DETX".into()), "detector column"),
+            ("CTYPE2".into(), Text("DETY".into()), "detector row"),
+            ("CRPIX1".into(), Real(1.0), "map pixel of bin (0, 0)"),
+            ("CRPIX2".into(), Real(1.0), "map pixel of bin (0, 0)"),
+            ("CRVAL1".into(), Real(x0 + 1.0), "detector x (1-based) of the centre of bin (0, 0)"),
+            ("CRVAL2".into(), Real(y0 + 1.0), "detector y (1-based) of the centre of bin (0, 0)"),
+            ("CDELT1".into(), Real(b), "detector px per map pixel (bin side)"),
+            ("CDELT2".into(), Real(b), "detector px per map pixel (bin side)"),
+            ("WCSNAMEA".into(), Text("FIELD".into()), "arcmin from the detector centre"),
+            ("CTYPE1A".into(), Text("FIELDX".into()), "field x from the detector centre"),
+            ("CTYPE2A".into(), Text("FIELDY".into()), "field y from the detector centre"),
+            ("CUNIT1A".into(), Text("arcmin".into()), ""),
+            ("CUNIT2A".into(), Text("arcmin".into()), ""),
+            ("CRPIX1A".into(), Real(1.0), "map pixel of bin (0, 0)"),
+            ("CRPIX2A".into(), Real(1.0), "map pixel of bin (0, 0)"),
+            ("CRVAL1A".into(), Real(ax0), "field x of the centre of bin (0, 0) [arcmin]"),
+            ("CRVAL2A".into(), Real(ay0), "field y of the centre of bin (0, 0) [arcmin]"),
+            ("CDELT1A".into(), Real(step), "arcmin per map pixel"),
+            ("CDELT2A".into(), Real(step), "arcmin per map pixel"),
+        ];
+        v
     }
 
     /// The detector's field coordinates (arcmin from its centre, unbinned pixels).
@@ -240,34 +291,53 @@ impl StokesMap {
         ph.write_key(f, "DETNY", (g.detector_ny as i64, "detector size y [px]")).map_err(e)?;
         let dims = [g.ny, g.nx];
         let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
-        let floats: [(&str, &[f64], &str); 11] = [
-            ("Q", &self.q, "Q/I"),
-            ("U", &self.u, "U/I"),
-            ("SIGMA_Q", &self.sigma_q, "error of Q/I from pixel scatter"),
-            ("SIGMA_U", &self.sigma_u, "error of U/I from pixel scatter"),
-            ("COV_QU", &self.cov_qu, "covariance of Q/I and U/I"),
-            ("SIGQ_PHOT", &self.sigma_q_phot, "error of Q/I from photon+read noise"),
-            ("SIGU_PHOT", &self.sigma_u_phot, "error of U/I from photon+read noise"),
-            ("P", &self.p, "polarization degree (fraction)"),
-            ("CHI", &chi_deg, "polarization angle [deg]"),
-            ("INTENSITY", &self.intensity, "mean f_O+f_E per exposure [e-/px]"),
-            ("INT_SNR", &self.intensity_snr, "per-pixel SNR of combined intensity"),
+        // Units as FITS/astropy unit strings; '' for the dimensionless Stokes fractions (an
+        // empty BUNIT reads as dimensionless in astropy; 'fraction' is no unit and fails).
+        const FRAC: (&str, &str) = ("", "dimensionless fraction");
+        let floats: [(&str, &[f64], &str, (&str, &str)); 11] = [
+            ("Q", &self.q, "Q/I", FRAC),
+            ("U", &self.u, "U/I", FRAC),
+            ("SIGMA_Q", &self.sigma_q, "error of Q/I from pixel scatter", FRAC),
+            ("SIGMA_U", &self.sigma_u, "error of U/I from pixel scatter", FRAC),
+            ("COV_QU", &self.cov_qu, "covariance of Q/I and U/I", FRAC),
+            ("SIGQ_PHOT", &self.sigma_q_phot, "error of Q/I from photon+read noise", FRAC),
+            ("SIGU_PHOT", &self.sigma_u_phot, "error of U/I from photon+read noise", FRAC),
+            ("P", &self.p, "polarization degree (fraction)", FRAC),
+            ("CHI", &chi_deg, "polarization angle [deg]", ("deg", "degrees")),
+            ("INTENSITY", &self.intensity, "mean f_O+f_E per exposure [e-/px]", ("electron/pix", "per exposure")),
+            ("INT_SNR", &self.intensity_snr, "per-pixel SNR of combined intensity", ("", "dimensionless ratio")),
         ];
-        for (name, data, comment) in floats.iter() {
+        let wcs = g.wcs_cards();
+        let put = |f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, bunit: (&str, &str)| -> Result<(), Error> {
+            hdu.write_key(f, "BUNIT", (bunit.0, bunit.1)).map_err(e)?;
+            for (k, v, c) in &wcs {
+                match v {
+                    WcsValue::Int(x) => hdu.write_key(f, k, (*x, *c)),
+                    WcsValue::Real(x) => hdu.write_key(f, k, (*x, *c)),
+                    WcsValue::Text(x) => hdu.write_key(f, k, (x.as_str(), *c)),
+                }
+                .map_err(e)?;
+            }
+            Ok(())
+        };
+        for (name, data, comment, bunit) in floats.iter() {
             let d = ImageDescription { data_type: ImageType::Double, dimensions: &dims };
             let hdu = f.create_image(name.to_string(), &d).map_err(e)?;
             hdu.write_image(f, data).map_err(e)?;
             hdu.write_key(f, "CONTENT", *comment).map_err(e)?;
+            put(f, &hdu, *bunit)?;
         }
         let d = ImageDescription { data_type: ImageType::Long, dimensions: &dims };
         let cov: Vec<i32> = self.n_pixels.iter().map(|&n| n as i32).collect();
         let hdu = f.create_image("COVERAGE".to_string(), &d).map_err(e)?;
         hdu.write_image(f, &cov).map_err(e)?;
         hdu.write_key(f, "CONTENT", "pixels kept by sigma clipping").map_err(e)?;
+        put(f, &hdu, ("pix", "detector pixels kept"))?;
         let valid: Vec<i32> = self.valid.iter().map(|&v| v as i32).collect();
         let hdu = f.create_image("VALID".to_string(), &d).map_err(e)?;
         hdu.write_image(f, &valid).map_err(e)?;
         hdu.write_key(f, "CONTENT", "1 = usable bin").map_err(e)?;
+        put(f, &hdu, ("", "flag"))?;
         Ok(())
     }
 

@@ -520,6 +520,7 @@ fn write_fits_table(
             .map_err(|e| werr(e.to_string()))?;
         t = t.append_column(&mut f, &d).map_err(|e| werr(format!("adding column extrapolated: {e}")))?;
         t.write_col(&mut f, "extrapolated", &flags).map_err(|e| werr(format!("writing column extrapolated: {e}")))?;
+        skyfield::provenance::stamp(&mut f).map_err(werr)?;
         // Closed explicitly: CFITSIO flushes its buffers here and a full disk must fail the run.
         skyfield::durable::close_fits(f).map_err(werr)
     })
