@@ -149,6 +149,11 @@ pub fn write_frame(
             }
             Bitpix::F64 => hdu.write_image(f, data).map_err(e)?,
         }
+        // A frame is in ADU unless the caller says otherwise (a normalized flat is
+        // dimensionless): astropy's CCDData needs a BUNIT to read it.
+        if !keys.iter().any(|(k, _, _)| k.eq_ignore_ascii_case("BUNIT")) {
+            hdu.write_key(f, "BUNIT", ("adu", "analog-to-digital units")).map_err(e)?;
+        }
         for (k, v, c) in keys {
             // fitsio names the primary HDU EXTNAME = '_PRIMARY'; an EXTNAME of our own (a chip
             // name) replaces that card rather than adding a conflicting second one.

@@ -516,6 +516,54 @@ mod tests {
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
     }
 
+    /// Every image carries a valid BUNIT and the two WCSs of the binning: read back through
+    /// CFITSIO and evaluated with the linear WCS formula `CRVAL + CDELT (p - CRPIX)`, map pixel
+    /// `(i + 1, j + 1)` lands on the 1-based detector pixel at the centre of bin `(i, j)`,
+    /// `origin + b (i + 1/2) + 1/2`, and on the FORS1 arcmin position of that pixel.
+    #[test]
+    fn every_image_has_units_and_the_binning_wcs() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("map.fits");
+        let m = sample();
+        m.write_fits(&path).unwrap();
+        let mut f = FitsFile::open(&path).unwrap();
+        let key_s = |f: &mut FitsFile, h: &fitsio::hdu::FitsHdu, k: &str| crate::io::read_key_str(f, h, k).unwrap();
+        let (b, ox, oy) = (30.0, 0.0, 34.0);
+        for (name, unit) in [
+            ("Q", ""),
+            ("SIGMA_U", ""),
+            ("P", ""),
+            ("CHI", "deg"),
+            ("INTENSITY", "electron/pix"),
+            ("COVERAGE", "pix"),
+            ("VALID", ""),
+        ] {
+            let h = f.hdu(name).unwrap();
+            assert_eq!(key_s(&mut f, &h, "BUNIT"), unit, "{name}");
+            assert_eq!(key_s(&mut f, &h, "WCSNAME"), "DETECTOR");
+            assert_eq!(key_s(&mut f, &h, "CUNIT1A"), "arcmin");
+            let r = |f: &mut FitsFile, k: &str| h.read_key::<f64>(f, k).unwrap();
+            for (i, j) in [(0usize, 0usize), (3, 2)] {
+                let x = r(&mut f, "CRVAL1") + r(&mut f, "CDELT1") * ((i + 1) as f64 - r(&mut f, "CRPIX1"));
+                let y = r(&mut f, "CRVAL2") + r(&mut f, "CDELT2") * ((j + 1) as f64 - r(&mut f, "CRPIX2"));
+                assert_eq!(
+                    (x, y),
+                    (ox + b * (i as f64 + 0.5) + 0.5, oy + b * (j as f64 + 0.5) + 0.5),
+                    "{name} {i} {j}"
+                );
+                let xa = r(&mut f, "CRVAL1A") + r(&mut f, "CDELT1A") * ((i + 1) as f64 - r(&mut f, "CRPIX1A"));
+                let ya = r(&mut f, "CRVAL2A") + r(&mut f, "CDELT2A") * ((j + 1) as f64 - r(&mut f, "CRPIX2A"));
+                // 100 x 130 px of 0.2": the centre is 0-based pixel (49.5, 64.5).
+                let (ex, ey) = ((x - 1.0 - 49.5) * 0.2 / 60.0, (y - 1.0 - 64.5) * 0.2 / 60.0);
+                assert!((xa - ex).abs() < 1e-14 && (ya - ey).abs() < 1e-14, "{name}: {xa} {ya} vs {ex} {ey}");
+            }
+        }
+        let ph = f.primary_hdu().unwrap();
+        assert_eq!(key_s(&mut f, &ph, "PROGRAM"), "instpol");
+        assert_eq!(key_s(&mut f, &ph, "PROGVER"), env!("CARGO_PKG_VERSION"));
+        assert_eq!(key_s(&mut f, &ph, "DATE").len(), 19);
+    }
+
     #[test]
     fn bin_centres_match_instrument_convention() {
         let inst = instrument::Instrument::load("fors1").unwrap();

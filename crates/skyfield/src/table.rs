@@ -144,10 +144,11 @@ impl Table {
         self.columns.first().map_or(0, |c| c.data.len())
     }
 
-    /// "line 12" (text formats) or "row 3" (1-based data row), for messages.
+    /// "row 3" (1-based data row), with its line in text formats ("row 3 (line 5)"), for
+    /// messages.
     pub fn row_label(&self, i: usize) -> String {
         match self.lines.get(i) {
-            Some(l) => format!("line {l}"),
+            Some(l) => format!("row {} (line {l})", i + 1),
             None => format!("row {}", i + 1),
         }
     }
@@ -162,7 +163,7 @@ impl Table {
         self.columns.iter().map(|c| c.name.clone()).collect()
     }
 
-    /// Column `name` as numbers; an error names the file, the column and the first row that is
+    /// Column `name` as numbers (an empty text field is NaN); an error names the file, the column and the first row that is
     /// not a number, or the columns there are when it is missing.
     pub fn numbers(&self, name: &str, path: &Path) -> Result<Vec<f64>, Error> {
         let c = self
@@ -175,6 +176,9 @@ impl Table {
                 .iter()
                 .enumerate()
                 .map(|(i, s)| {
+                    if s.trim().is_empty() {
+                        return Ok(f64::NAN); // an empty field is a missing value
+                    }
                     s.trim().parse::<f64>().map_err(|_| {
                         terr(path, format!("{}: column '{}' = '{s}' is not a number", self.row_label(i), c.name))
                     })
@@ -204,7 +208,12 @@ impl Table {
     /// Read a table in the format its extension names; for FITS, the HDU named `hdu` or the
     /// first table HDU.
     pub fn read(path: &Path, hdu: Option<&str>) -> Result<Self, Error> {
-        let format = Format::from_path(path)?;
+        Self::read_format(path, Format::from_path(path)?, hdu)
+    }
+
+    /// [`Self::read`] in a given format, whatever the extension (a FITS file recognized by its
+    /// content).
+    pub fn read_format(path: &Path, format: Format, hdu: Option<&str>) -> Result<Self, Error> {
         if hdu.is_some() && format != Format::Fits {
             return Err(terr(path, "an HDU name applies to FITS tables only"));
         }
@@ -435,7 +444,8 @@ fn read_csv(path: &Path) -> Result<Table, Error> {
         .map(String::from)
         .collect();
     if names.is_empty() || (names.len() == 1 && names[0].is_empty()) {
-        return Err(terr(path, "no header row (an empty file?)"));
+        // An empty file: a table without columns (its reader names the columns it lacks).
+        return Ok(Table::default());
     }
     let mut cells: Vec<Vec<String>> = vec![Vec::new(); names.len()];
     let mut lines = Vec::new();

@@ -40,7 +40,7 @@ fn reads_what_astropy_wrote_in_every_format() {
     check_astropy_catalog(&ecsv, "ecsv", "pix");
     assert_eq!(ecsv.column("q").unwrap().description.as_deref(), Some("Q/I, dimensionless fraction"));
     // ECSV rows are named by their line in the file: the first data row is line 13.
-    assert_eq!(ecsv.row_label(0), "line 13");
+    assert_eq!(ecsv.row_label(0), "row 1 (line 13)");
     let vot = Table::read(&data("astropy.vot"), None).unwrap();
     check_astropy_catalog(&vot, "votable", "pixel");
     assert_eq!(vot.column("q").unwrap().description.as_deref(), Some("Q/I, dimensionless fraction"));
@@ -49,7 +49,7 @@ fn reads_what_astropy_wrote_in_every_format() {
     // astropy writes -0.0 in CSV as "-0.0"; units are not in CSV.
     let csv = Table::read(&data("astropy.csv"), None).unwrap();
     check_astropy_catalog(&csv, "csv", "");
-    assert_eq!(csv.row_label(0), "line 2");
+    assert_eq!(csv.row_label(0), "row 1 (line 2)");
 }
 
 #[test]

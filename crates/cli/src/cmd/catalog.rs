@@ -36,7 +36,8 @@ pub struct Args {
     /// Background annulus inner,outer radius (px).
     #[arg(long, default_value = "12,20")]
     pub annulus: String,
-    /// Output table: .csv (one row per star; F_i as columns f_0, f_1, ...).
+    /// Output table, one row per star (F_i as columns f_0, f_1, ...), in the format of its
+    /// extension: .csv, .fits, .ecsv or .vot (units in the FITS, ECSV and VOTable headers).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Print JSON.
@@ -59,14 +60,7 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--threshold {}: must be a positive number of sigma", a.threshold);
     }
     if let Some(out) = &a.out {
-        match out.extension().and_then(|e| e.to_str()) {
-            Some("csv") => {}
-            other => bail!(
-                "--out {}: unknown table format '{}' (this version writes .csv)",
-                out.display(),
-                other.unwrap_or("")
-            ),
-        }
+        skyfield::table::Format::from_path(out).map_err(|e| anyhow::anyhow!("--out {e}"))?;
     }
     crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
     if let Some(out) = &a.out {
@@ -89,65 +83,8 @@ pub fn run(a: Args) -> Result<()> {
     };
     let cat = catalog(&set, &inst, &cfg)?;
     if let Some(out) = &a.out {
-        let n = cat.hwp_deg.len();
-        crate::util::write_via_temp(out, ".csv", |tmp| {
-            let mut w = csv::Writer::from_path(tmp)?;
-            let mut head: Vec<String> = [
-                "id",
-                "x",
-                "y",
-                "x_e",
-                "y_e",
-                "x_arcmin",
-                "y_arcmin",
-                "fwhm_px",
-                "flux_e",
-                "q",
-                "u",
-                "sigma_q",
-                "sigma_u",
-                "cov_qu",
-                "p",
-                "sigma_p",
-                "chi_deg",
-                "sigma_chi_deg",
-                "a0",
-                "kappa",
-                "chi2_mod",
-                "dof_mod",
-                "sigma_q_scatter",
-                "sigma_u_scatter",
-                "flags",
-                "note",
-            ]
-            .iter()
-            .map(|s| s.to_string())
-            .collect();
-            head.extend((0..n).map(|i| format!("f_{i}")));
-            w.write_record(&head)?;
-            for r in &cat.rows {
-                let mut rec: Vec<String> = [r.id as f64, r.x, r.y, r.x_e, r.y_e, r.x_arcmin, r.y_arcmin, r.fwhm_px]
-                    .iter()
-                    .map(|v| v.to_string())
-                    .collect();
-                for v in [r.flux_e, r.q, r.u, r.sigma_q, r.sigma_u, r.cov_qu, r.p, r.sigma_p, r.chi_deg] {
-                    rec.push(v.to_string());
-                }
-                rec.push(r.sigma_chi_deg.to_string());
-                rec.push(r.a0.to_string());
-                rec.push(r.kappa.map_or(String::new(), |k| k.to_string()));
-                rec.push(r.chi2_mod.to_string());
-                rec.push(r.dof_mod.to_string());
-                rec.push(r.sigma_q_scatter.to_string());
-                rec.push(r.sigma_u_scatter.to_string());
-                rec.push(flags::names(r.flags));
-                rec.push(r.note.clone());
-                rec.extend((0..n).map(|i| r.f.get(i).map_or(String::new(), |v| v.to_string())));
-                w.write_record(&rec)?;
-            }
-            w.flush()?;
-            Ok(())
-        })?;
+        crate::util::check_output(out)?;
+        cat.to_table().write(out)?;
     }
     let measured = cat.rows.iter().filter(|r| r.q.is_finite()).count();
     if a.json {
