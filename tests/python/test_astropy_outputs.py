@@ -33,6 +33,14 @@ if not DATA.is_dir():
     DATA = Path("/work/shared/data/fors2-instpol")
 
 
+# A FORS1-like celestial WCS: 0.2"/px, rotated by 30 deg, reference pixel off centre.
+_C, _S = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+_D = 0.2 / 3600.0
+CELESTIAL = {"CTYPE1": "RA---TAN", "CTYPE2": "DEC--TAN", "CRPIX1": 1000.5, "CRPIX2": 1040.25,
+             "CRVAL1": 150.1, "CRVAL2": -30.2, "CD1_1": -_D * _C, "CD1_2": _D * _S, "CD2_1": _D * _S,
+             "CD2_2": _D * _C, "RADESYS": "ICRS"}
+
+
 def run(*args, json_out=False):
     cmd = [str(BIN), *map(str, args)] + (["--json"] if json_out else [])
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
@@ -72,6 +80,15 @@ def outputs(tmp_path_factory):
     # masters: any frames combine (the format is what is checked here).
     run("master-bias", *stars[:3], "--instrument", calcite, "--out", d / "bias.fits")
     run("master-flat", *stars[:3], "--instrument", calcite, "--out", d / "flat.fits")
+    # The same frames with a celestial WCS (rotated TAN), as real frames have one.
+    (d / "wcs").mkdir()
+    for f in empty:
+        with fits.open(f) as h:
+            hdr = h[0].header
+            hdr.update(CELESTIAL)
+            h.writeto(d / "wcs" / f.name)
+    run("reduce", *sorted((d / "wcs").glob("*.fits")), "--instrument", "fors1", "--bin", "64", "--out",
+        d / "map_wcs.fits", json_out=True)
     # reduce, calibrate, fit on the FORS1 empty field.
     run("reduce", *empty, "--instrument", "fors1", "--bin", "64", "--out", d / "map.fits", json_out=True)
     run("calibrate", "--map", d / "map.fits", "--sky-p", "0", "--sky-chi", "0", "--out", d / "cal.fits",
@@ -206,3 +223,29 @@ def test_fitsverify_clean(outputs):
     for f in fits_files(outputs):
         p = subprocess.run([fv, "-q", str(f)], capture_output=True, text=True)
         assert "verification OK" in p.stdout + p.stderr, f"{f}: {p.stdout}{p.stderr}"
+
+
+def test_celestial_wcs_carried_through_the_binning(outputs):
+    """Each bin centre of the reduced map has, by the map's WCS, the sky position the frames'
+    WCS gives its detector pixel (astropy evaluates both)."""
+    frame = WCS(fits.Header(CELESTIAL))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with fits.open(outputs / "map_wcs.fits") as h:
+            g = h[0].header
+            b, ox, oy = g["BINSIZE"], g["BINORGX"], g["BINORGY"]
+            for name in ["Q", "P", "VALID"]:
+                w = WCS(h[name].header)
+                assert w.has_celestial
+                for i, j in [(0, 0), (7, 3), (g["NBINX"] - 1, g["NBINY"] - 1)]:
+                    sky_map = w.pixel_to_world(i, j)  # 0-based map pixel = bin (i, j)
+                    sky_det = frame.pixel_to_world(ox + b * (i + 0.5) - 0.5, oy + b * (j + 0.5) - 0.5)
+                    assert sky_map.separation(sky_det).arcsec < 1e-6, (name, i, j)
+                det = WCS(h[name].header, key="D")
+                x, y = det.wcs_pix2world([[1, 1]], 1)[0]
+                assert (x, y) == pytest.approx((ox + b / 2 + 0.5, oy + b / 2 + 0.5))
+    # Correcting the map keeps its celestial WCS.
+    d = outputs
+    run("correct", "--cal", d / "cal.fits", "--in", d / "map_wcs.fits", "--out", d / "map_wcs_cor.fits")
+    with fits.open(d / "map_wcs_cor.fits") as h:
+        assert WCS(h["Q"].header).has_celestial

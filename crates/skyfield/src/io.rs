@@ -183,6 +183,29 @@ pub fn write_frame(
     })
 }
 
+/// The celestial WCS of a frame file's first image HDU (see [`crate::maps::CelestialWcs::read`]),
+/// when that image is `nx x ny` px (the map's detector pixels); `Err(why)` when there is one
+/// that cannot be carried.
+pub fn celestial_wcs_of(path: &Path, nx: usize, ny: usize) -> Result<Option<crate::maps::CelestialWcs>, String> {
+    let mut f = FitsFile::open(path).map_err(|e| e.to_string())?;
+    let n_hdu = f.iter().count();
+    for i in 0..n_hdu {
+        let h = f.hdu(i).map_err(|e| e.to_string())?;
+        if let fitsio::hdu::HduInfo::ImageInfo { shape, .. } = &h.info {
+            if shape.len() == 2 {
+                let w = crate::maps::CelestialWcs::read(&mut f, &h)?;
+                return match w {
+                    Some(_) if shape[..] != [ny, nx] => {
+                        Err(format!("the image is {} x {} px, the reduced frame {nx} x {ny} px", shape[1], shape[0]))
+                    }
+                    w => Ok(w),
+                };
+            }
+        }
+    }
+    Ok(None)
+}
+
 pub fn read_key_str(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, key: &str) -> fitsio::errors::Result<String> {
     use std::os::raw::{c_char, c_int};
     let name = std::ffi::CString::new(key)?;

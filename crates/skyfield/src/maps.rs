@@ -20,8 +20,10 @@
 //! `VALID` (int32, 1 = usable). Invalid bins hold NaN in the float images. Every image carries
 //! `BUNIT` (`''` = dimensionless for the fractions, `deg`, `electron/pix`, `pix`) and two linear
 //! WCSs of its bins ([`BinGeometry::wcs_cards`]): detector pixels (primary, `WCSNAME =
-//! 'DETECTOR'`) and arcmin from the detector centre (alternate `A`, `WCSNAMEA = 'FIELD'`). The
-//! primary header carries the run's provenance ([`crate::provenance`]).
+//! 'DETECTOR'`) and arcmin from the detector centre (alternate `A`, `WCSNAMEA = 'FIELD'`). When
+//! the frames have a celestial WCS it is carried through the binning ([`CelestialWcs::binned`])
+//! and becomes the primary WCS (`WCSNAME = 'SKY'`), the detector grid moving to alternate `D`.
+//! The primary header carries the run's provenance ([`crate::provenance`]).
 
 use crate::{fits_err, Error};
 use fitsio::images::{ImageDescription, ImageType};
@@ -128,6 +130,12 @@ impl BinGeometry {
     /// centre (DESIGN.md convention). A bin cut by the detector edge keeps its nominal centre
     /// here; [`Self::centre_px`] gives the centre of its part inside the detector.
     pub fn wcs_cards(&self) -> Vec<(String, WcsValue, &'static str)> {
+        self.wcs_cards_keyed("")
+    }
+
+    /// [`Self::wcs_cards`] with the detector WCS under alternate key `det` ("" = primary; the
+    /// map writer uses "D" when a celestial WCS takes the primary place).
+    pub fn wcs_cards_keyed(&self, det: &str) -> Vec<(String, WcsValue, &'static str)> {
         use WcsValue::{Real, Text};
         let b = self.bin_px as f64;
         // Nominal centre of bin (0, 0), 0-based: origin + b/2 - 1/2.
@@ -136,15 +144,15 @@ impl BinGeometry {
         let step = b * self.pixel_scale_arcsec / 60.0;
         let v = vec![
             ("WCSAXES".to_string(), WcsValue::Int(2), "number of WCS axes"),
-            ("WCSNAME".into(), Text("DETECTOR".into()), "detector pixels (1-based) of the bin centres"),
-            ("CTYPE1".into(), Text("DETX".into()), "detector column"),
-            ("CTYPE2".into(), Text("DETY".into()), "detector row"),
-            ("CRPIX1".into(), Real(1.0), "map pixel of bin (0, 0)"),
-            ("CRPIX2".into(), Real(1.0), "map pixel of bin (0, 0)"),
-            ("CRVAL1".into(), Real(x0 + 1.0), "detector x (1-based) of the centre of bin (0, 0)"),
-            ("CRVAL2".into(), Real(y0 + 1.0), "detector y (1-based) of the centre of bin (0, 0)"),
-            ("CDELT1".into(), Real(b), "detector px per map pixel (bin side)"),
-            ("CDELT2".into(), Real(b), "detector px per map pixel (bin side)"),
+            (format!("WCSNAME{det}"), Text("DETECTOR".into()), "detector pixels (1-based) of the bin centres"),
+            (format!("CTYPE1{det}"), Text("DETX".into()), "detector column"),
+            (format!("CTYPE2{det}"), Text("DETY".into()), "detector row"),
+            (format!("CRPIX1{det}"), Real(1.0), "map pixel of bin (0, 0)"),
+            (format!("CRPIX2{det}"), Real(1.0), "map pixel of bin (0, 0)"),
+            (format!("CRVAL1{det}"), Real(x0 + 1.0), "detector x (1-based) of the centre of bin (0, 0)"),
+            (format!("CRVAL2{det}"), Real(y0 + 1.0), "detector y (1-based) of the centre of bin (0, 0)"),
+            (format!("CDELT1{det}"), Real(b), "detector px per map pixel (bin side)"),
+            (format!("CDELT2{det}"), Real(b), "detector px per map pixel (bin side)"),
             ("WCSNAMEA".into(), Text("FIELD".into()), "arcmin from the detector centre"),
             ("CTYPE1A".into(), Text("FIELDX".into()), "field x from the detector centre"),
             ("CTYPE2A".into(), Text("FIELDY".into()), "field y from the detector centre"),
@@ -198,6 +206,114 @@ pub struct StokesMap {
     pub intensity_snr: Vec<f64>,
     /// Usable bins.
     pub valid: Vec<bool>,
+    /// The celestial WCS of the map's bins (the frames' WCS carried through the binning, see
+    /// [`CelestialWcs::binned`]), when the frames had one.
+    pub celestial_wcs: Option<CelestialWcs>,
+}
+
+/// A celestial FITS WCS without distortion terms: `CTYPEi` (e.g. `RA---TAN`, `DEC--TAN`),
+/// `CRPIXi`, `CRVALi` (deg) and the `CD` matrix (deg/px), with `RADESYS`/`EQUINOX` when given.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CelestialWcs {
+    pub ctype: [String; 2],
+    pub crpix: [f64; 2],
+    pub crval: [f64; 2],
+    pub cd: [[f64; 2]; 2],
+    pub radesys: Option<String>,
+    pub equinox: Option<f64>,
+}
+
+/// Projections carried through the binning (linear in pixel coordinates before projection, so
+/// binning only rescales CD and shifts CRPIX); anything else (SIP, TPV, ...) is not carried.
+const PROJECTIONS: [&str; 10] = ["TAN", "SIN", "ARC", "ZEA", "STG", "CAR", "AIT", "MER", "CEA", "ZPN"];
+
+impl CelestialWcs {
+    /// The celestial WCS of header `hdu`: `Ok(None)` when it has none (no `CTYPE1` of the
+    /// form `xxxx-PPP`), `Err(why)` when it has one this reader does not carry (distortion
+    /// terms, an unknown projection, a missing value). The matrix is `CDi_j`, else
+    /// `PCi_j * CDELTi`, else `CDELTi` with `CROTA2`.
+    pub fn read(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<Option<Self>, String> {
+        let s = |f: &mut FitsFile, k: &str| crate::io::read_key_str(f, hdu, k).ok().map(|v| v.trim().to_string());
+        let (Some(c1), Some(c2)) = (s(f, "CTYPE1"), s(f, "CTYPE2")) else { return Ok(None) };
+        let celestial = |c: &str| c.len() >= 8 && c.as_bytes()[4] == b'-';
+        if !celestial(&c1) || !celestial(&c2) {
+            return Ok(None);
+        }
+        for c in [&c1, &c2] {
+            if c.len() != 8 || !PROJECTIONS.contains(&&c[5..8]) {
+                return Err(format!("CTYPE '{c}' (distortion or projection not carried through binning)"));
+            }
+        }
+        if s(f, "A_ORDER").is_some() || s(f, "PV1_1").is_some() || s(f, "PV2_1").is_some() {
+            return Err("distortion terms (SIP or PV) are not carried through binning".into());
+        }
+        let r = |f: &mut FitsFile, k: &str| hdu.read_key::<f64>(f, k).ok();
+        let need = |f: &mut FitsFile, k: &str| r(f, k).ok_or_else(|| format!("{k} missing"));
+        let crpix = [need(f, "CRPIX1")?, need(f, "CRPIX2")?];
+        let crval = [need(f, "CRVAL1")?, need(f, "CRVAL2")?];
+        let cd = if let Some(c11) = r(f, "CD1_1") {
+            [[c11, r(f, "CD1_2").unwrap_or(0.0)], [r(f, "CD2_1").unwrap_or(0.0), r(f, "CD2_2").unwrap_or(0.0)]]
+        } else {
+            let (d1, d2) = (need(f, "CDELT1")?, need(f, "CDELT2")?);
+            if r(f, "PC1_1").is_some() || r(f, "PC2_2").is_some() {
+                let pc = |f: &mut FitsFile, k: &str, d: f64| r(f, k).unwrap_or(d);
+                [
+                    [d1 * pc(f, "PC1_1", 1.0), d1 * pc(f, "PC1_2", 0.0)],
+                    [d2 * pc(f, "PC2_1", 0.0), d2 * pc(f, "PC2_2", 1.0)],
+                ]
+            } else {
+                let rho = r(f, "CROTA2").unwrap_or(0.0).to_radians();
+                [[d1 * rho.cos(), -d2 * rho.sin()], [d1 * rho.sin(), d2 * rho.cos()]]
+            }
+        };
+        if !(crpix.iter().chain(&crval).chain(cd.iter().flatten()).all(|v| v.is_finite())) {
+            return Err("a WCS value is not finite".into());
+        }
+        Ok(Some(Self { ctype: [c1, c2], crpix, crval, cd, radesys: s(f, "RADESYS"), equinox: r(f, "EQUINOX") }))
+    }
+
+    /// The WCS of the detector frame carried to the map of `g`: map pixel `p` (1-based) is
+    /// detector pixel `X = x0 + 1 + b (p - 1)` (`x0` the 0-based centre of bin 0, `b` the bin
+    /// side), so `X - CRPIX = b (p - CRPIX')` with `CRPIX' = 1 + (CRPIX - x0 - 1) / b`, and
+    /// `CD' = b CD`: every bin centre gets the sky position of its detector pixel.
+    pub fn binned(&self, g: &BinGeometry) -> Self {
+        let b = g.bin_px as f64;
+        let x0 = [g.origin_x as f64 + 0.5 * b - 0.5, g.origin_y as f64 + 0.5 * b - 0.5];
+        let mut w = self.clone();
+        for k in 0..2 {
+            w.crpix[k] = 1.0 + (self.crpix[k] - x0[k] - 1.0) / b;
+            for c in &mut w.cd[k] {
+                *c *= b;
+            }
+        }
+        w
+    }
+
+    fn cards(&self) -> Vec<(String, WcsValue, &'static str)> {
+        use WcsValue::{Real, Text};
+        let mut v = vec![
+            ("WCSNAME".to_string(), Text("SKY".into()), "the frames' celestial WCS, binned"),
+            ("CTYPE1".into(), Text(self.ctype[0].clone()), ""),
+            ("CTYPE2".into(), Text(self.ctype[1].clone()), ""),
+            ("CUNIT1".into(), Text("deg".into()), ""),
+            ("CUNIT2".into(), Text("deg".into()), ""),
+            ("CRPIX1".into(), Real(self.crpix[0]), "map pixel of CRVAL"),
+            ("CRPIX2".into(), Real(self.crpix[1]), "map pixel of CRVAL"),
+            ("CRVAL1".into(), Real(self.crval[0]), "[deg]"),
+            ("CRVAL2".into(), Real(self.crval[1]), "[deg]"),
+            ("CD1_1".into(), Real(self.cd[0][0]), "[deg per map pixel]"),
+            ("CD1_2".into(), Real(self.cd[0][1]), "[deg per map pixel]"),
+            ("CD2_1".into(), Real(self.cd[1][0]), "[deg per map pixel]"),
+            ("CD2_2".into(), Real(self.cd[1][1]), "[deg per map pixel]"),
+        ];
+        if let Some(r) = &self.radesys {
+            v.push(("RADESYS".into(), Text(r.clone()), ""));
+        }
+        if let Some(e) = self.equinox {
+            v.push(("EQUINOX".into(), Real(e), ""));
+        }
+        v
+    }
 }
 
 impl StokesMap {
@@ -223,6 +339,7 @@ impl StokesMap {
             intensity: nan.clone(),
             intensity_snr: nan,
             valid: vec![false; n],
+            celestial_wcs: None,
         }
     }
 
@@ -307,7 +424,16 @@ impl StokesMap {
             ("INTENSITY", &self.intensity, "mean f_O+f_E per exposure [e-/px]", ("electron/pix", "per exposure")),
             ("INT_SNR", &self.intensity_snr, "per-pixel SNR of combined intensity", ("", "dimensionless ratio")),
         ];
-        let wcs = g.wcs_cards();
+        // The celestial WCS, when the frames had one, is the primary WCS (what astropy's
+        // WCS(header) gives); the detector grid is then alternate D.
+        let wcs = match &self.celestial_wcs {
+            Some(c) => {
+                let mut v = g.wcs_cards_keyed("D");
+                v.splice(1..1, c.cards());
+                v
+            }
+            None => g.wcs_cards(),
+        };
         let put = |f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, bunit: (&str, &str)| -> Result<(), Error> {
             hdu.write_key(f, "BUNIT", (bunit.0, bunit.1)).map_err(e)?;
             for (k, v, c) in &wcs {
@@ -415,6 +541,12 @@ impl StokesMap {
         let intensity_snr = read_f(&mut f, "INT_SNR")?;
         let n_pixels: Vec<u32> = read_f(&mut f, "COVERAGE")?.into_iter().map(|v| v.max(0.0) as u32).collect();
         let valid: Vec<bool> = read_f(&mut f, "VALID")?.into_iter().map(|v| v > 0.5).collect();
+        // The celestial WCS the writer put on every image (read from Q); maps without one, or
+        // with one this reader does not carry, have None.
+        let celestial_wcs = match f.hdu("Q") {
+            Ok(h) => CelestialWcs::read(&mut f, &h).ok().flatten(),
+            Err(_) => None,
+        };
         // A map made elsewhere (or edited) is checked before anything is fitted to it: every
         // valid bin holds a physical polarization and a covariance that is one.
         for k in (0..n).filter(|&k| valid[k]) {
@@ -457,6 +589,7 @@ impl StokesMap {
             intensity,
             intensity_snr,
             valid,
+            celestial_wcs,
         })
     }
 }
