@@ -627,49 +627,59 @@ fn read_ecsv(path: &Path) -> Result<Table, Error> {
                 format!("line {}: column '{name}' = '{s}' is not a {dt}", src_lines.get(i).copied().unwrap_or(0)),
             )
         };
-        let data = match dt.as_str() {
-            "float16" | "float32" | "float64" | "float128" => Data::F64(
-                v.iter()
-                    .enumerate()
-                    .map(|(i, s)| if s.is_empty() { Ok(f64::NAN) } else { s.parse().map_err(|_| bad(i, s)) })
-                    .collect::<Result<_, _>>()?,
-            ),
-            "int8" | "int16" | "int32" | "int64" | "uint8" | "uint16" | "uint32" | "uint64" => {
-                if v.iter().any(|s| s.is_empty()) {
-                    // Masked integers: numbers with NaN for the missing ones.
-                    Data::F64(
-                        v.iter()
-                            .enumerate()
-                            .map(|(i, s)| if s.is_empty() { Ok(f64::NAN) } else { s.parse().map_err(|_| bad(i, s)) })
-                            .collect::<Result<_, _>>()?,
-                    )
-                } else {
-                    Data::I64(
-                        v.iter()
-                            .enumerate()
-                            .map(|(i, s)| s.parse().map_err(|_| bad(i, s)))
-                            .collect::<Result<_, _>>()?,
-                    )
-                }
-            }
-            "bool" => Data::I64(
-                v.iter()
-                    .enumerate()
-                    .map(|(i, s)| match s.as_str() {
-                        "True" | "true" | "1" => Ok(1),
-                        "False" | "false" | "0" => Ok(0),
-                        _ => Err(bad(i, s)),
-                    })
-                    .collect::<Result<_, _>>()?,
-            ),
-            "string" => Data::Str(v),
+        let kind = match dt.as_str() {
+            "float16" | "float32" | "float64" | "float128" => Kind::Float,
+            "int8" | "int16" | "int32" | "int64" | "uint8" | "uint16" | "uint32" | "uint64" => Kind::Int,
+            "bool" => Kind::Bool,
+            "string" => Kind::Text,
             other => {
                 return Err(terr(path, format!("line {ln}: column '{name}' has datatype '{other}': not supported")))
             }
         };
+        let num = |i: usize, s: &str| if s.is_empty() { Ok(f64::NAN) } else { s.parse().map_err(|_| bad(i, s)) };
+        let data = cells_to_data(v, kind, num, &bad)?;
         columns.push(Column { name, unit, description, data });
     }
     Ok(Table { columns, lines: src_lines })
+}
+
+/// What a column's declared type makes of its text cells.
+#[derive(Clone, Copy)]
+enum Kind {
+    Float,
+    Int,
+    Bool,
+    Text,
+}
+
+/// The text cells of one column as `kind`: `num` parses a float cell in the format's spellings
+/// (empty = missing = NaN), `bad(row, cell)` is the error for a cell that is not of the type.
+/// Integers with a missing cell become floats with NaN there.
+fn cells_to_data(
+    v: Vec<String>,
+    kind: Kind,
+    num: impl Fn(usize, &str) -> Result<f64, Error>,
+    bad: impl Fn(usize, &str) -> Error,
+) -> Result<Data, Error> {
+    let floats = |v: &[String]| v.iter().enumerate().map(|(i, s)| num(i, s)).collect::<Result<Vec<f64>, Error>>();
+    Ok(match kind {
+        Kind::Float => Data::F64(floats(&v)?),
+        Kind::Int if v.iter().any(|s| s.is_empty()) => Data::F64(floats(&v)?),
+        Kind::Int => {
+            Data::I64(v.iter().enumerate().map(|(i, s)| s.parse().map_err(|_| bad(i, s))).collect::<Result<_, _>>()?)
+        }
+        Kind::Bool => Data::I64(
+            v.iter()
+                .enumerate()
+                .map(|(i, s)| match s.to_ascii_lowercase().as_str() {
+                    "t" | "true" | "1" => Ok(1),
+                    "f" | "false" | "0" => Ok(0),
+                    _ => Err(bad(i, s)),
+                })
+                .collect::<Result<_, _>>()?,
+        ),
+        Kind::Text => Data::Str(v),
+    })
 }
 
 fn read_votable(path: &Path) -> Result<Table, Error> {
@@ -810,33 +820,14 @@ fn read_votable(path: &Path) -> Result<Table, Error> {
                 s => s.parse().map_err(|_| bad(i, s)),
             }
         };
-        let data = match f.datatype.as_str() {
-            "double" | "float" => Data::F64(v.iter().enumerate().map(|(i, s)| num(i, s)).collect::<Result<_, _>>()?),
-            "long" | "int" | "short" | "unsignedByte" => {
-                if v.iter().any(|s| s.is_empty()) {
-                    Data::F64(v.iter().enumerate().map(|(i, s)| num(i, s)).collect::<Result<_, _>>()?)
-                } else {
-                    Data::I64(
-                        v.iter()
-                            .enumerate()
-                            .map(|(i, s)| s.parse().map_err(|_| bad(i, s)))
-                            .collect::<Result<_, _>>()?,
-                    )
-                }
-            }
-            "boolean" => Data::I64(
-                v.iter()
-                    .enumerate()
-                    .map(|(i, s)| match s.to_ascii_lowercase().as_str() {
-                        "t" | "true" | "1" => Ok(1),
-                        "f" | "false" | "0" => Ok(0),
-                        _ => Err(bad(i, s)),
-                    })
-                    .collect::<Result<_, _>>()?,
-            ),
-            "char" | "unicodeChar" => Data::Str(v),
+        let kind = match f.datatype.as_str() {
+            "double" | "float" => Kind::Float,
+            "long" | "int" | "short" | "unsignedByte" => Kind::Int,
+            "boolean" => Kind::Bool,
+            "char" | "unicodeChar" => Kind::Text,
             other => return Err(terr(path, format!("FIELD '{}' has datatype '{other}': not supported", f.name))),
         };
+        let data = cells_to_data(v, kind, num, &bad)?;
         columns.push(Column { name: f.name, unit: f.unit, description: f.description, data });
     }
     Ok(Table::new(columns))
