@@ -280,9 +280,9 @@ impl CelestialWcs {
         let b = g.bin_px as f64;
         let x0 = [g.origin_x as f64 + 0.5 * b - 0.5, g.origin_y as f64 + 0.5 * b - 0.5];
         let mut w = self.clone();
-        for k in 0..2 {
-            w.crpix[k] = 1.0 + (self.crpix[k] - x0[k] - 1.0) / b;
-            for c in &mut w.cd[k] {
+        for ((p, x), row) in w.crpix.iter_mut().zip(x0).zip(w.cd.iter_mut()) {
+            *p = 1.0 + (*p - x - 1.0) / b;
+            for c in row {
                 *c *= b;
             }
         }

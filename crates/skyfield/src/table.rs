@@ -637,7 +637,7 @@ fn read_ecsv(path: &Path) -> Result<Table, Error> {
             }
         };
         let num = |i: usize, s: &str| if s.is_empty() { Ok(f64::NAN) } else { s.parse().map_err(|_| bad(i, s)) };
-        let data = cells_to_data(v, kind, num, &bad)?;
+        let data = cells_to_data(v, kind, num, bad)?;
         columns.push(Column { name, unit, description, data });
     }
     Ok(Table { columns, lines: src_lines })
@@ -827,7 +827,7 @@ fn read_votable(path: &Path) -> Result<Table, Error> {
             "char" | "unicodeChar" => Kind::Text,
             other => return Err(terr(path, format!("FIELD '{}' has datatype '{other}': not supported", f.name))),
         };
-        let data = cells_to_data(v, kind, num, &bad)?;
+        let data = cells_to_data(v, kind, num, bad)?;
         columns.push(Column { name: f.name, unit: f.unit, description: f.description, data });
     }
     Ok(Table::new(columns))
