@@ -51,7 +51,31 @@ pub fn inputs<'a>(paths: impl IntoIterator<Item = &'a Path>) -> Result<()> {
         }
     }
     INPUTS.lock().unwrap_or_else(|e| e.into_inner()).extend(paths.iter().map(|p| p.to_path_buf()));
+    for p in &paths {
+        skyfield::provenance::add_input(p);
+    }
     Ok(())
+}
+
+/// Start the run's provenance (`skyfield::provenance`): the command line, and the instrument
+/// named by `--instrument` (a file, hashed as read, or a built-in definition). Inputs are added
+/// by [`inputs`]; every FITS output and every `--json` object then carries it.
+pub fn start_provenance() {
+    let args: Vec<String> = std::env::args().collect();
+    let mut p = skyfield::provenance::Provenance::new(&args.join(" "));
+    let inst = args.iter().enumerate().find_map(|(i, a)| match a.strip_prefix("--instrument=") {
+        Some(v) => Some(v.to_string()),
+        None if a == "--instrument" => args.get(i + 1).cloned(),
+        None => None,
+    });
+    if let Some(name) = inst {
+        if let Ok(bytes) = std::fs::read(&name) {
+            p.set_instrument(&name, &bytes);
+        } else if let Some(text) = instrument::builtin_source(&name) {
+            p.set_instrument(&name.to_ascii_lowercase(), text.as_bytes());
+        }
+    }
+    skyfield::provenance::set_session(p);
 }
 
 /// `--bin` must be a number of pixels that fits the detector (1 ..= its longer side): a bin of
@@ -96,9 +120,26 @@ impl std::fmt::Display for CheckFailed {
 
 impl std::error::Error for CheckFailed {}
 
+/// Every JSON object a command prints carries the run's provenance as its last key,
+/// `provenance` (spliced into the text so that the command's own key order is kept; a list
+/// stays a list).
+fn with_provenance(s: String) -> Result<String> {
+    let body = s.trim_end();
+    if !(body.starts_with('{') && body.ends_with('}')) || body.contains("\n  \"provenance\": ") {
+        return Ok(s);
+    }
+    let p = serde_json::to_string_pretty(&skyfield::provenance::current())?.replace('\n', "\n  ");
+    let inner = body[1..body.len() - 1].trim_end();
+    Ok(if inner.trim().is_empty() {
+        format!("{{\n  \"provenance\": {p}\n}}")
+    } else {
+        format!("{{{inner},\n  \"provenance\": {p}\n}}")
+    })
+}
+
 /// Print a value as pretty JSON on stdout.
 pub fn print_json<T: serde::Serialize>(v: &T) -> Result<()> {
-    let mut s = serde_json::to_string_pretty(v)?;
+    let mut s = with_provenance(serde_json::to_string_pretty(v)?)?;
     s.push('\n');
     write_stdout(s.as_bytes());
     Ok(())

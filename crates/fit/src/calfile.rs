@@ -244,6 +244,11 @@ impl Calibration {
             let mut f = FitsFile::create(&tmp).overwrite().open().map_err(fits_err(path, "creating the file"))?;
             self.write_to(&mut f, path)?;
             extra(&mut f, path)?;
+            skyfield::provenance::stamp(&mut f).map_err(|m| Error::Fits {
+                path: path.to_path_buf(),
+                doing: "writing the provenance".into(),
+                message: m,
+            })?;
             // Close with the status checked, fsync, then rename: a full disk is an error here,
             // never a truncated calibration under the final name.
             skyfield::durable::close_fits(f).map_err(|m| Error::Fits {
@@ -355,7 +360,8 @@ impl Calibration {
             let h = f.create_image(name, &desc).map_err(e(&format!("creating image {name}")))?;
             h.write_image(f, data).map_err(e(&format!("writing image {name}")))?;
             let mut w = KeyWriter { f, hdu: &h, path };
-            w.plain("BUNIT", "fraction")?;
+            // '' = dimensionless for astropy (CCDData reads it); 'fraction' is not a unit.
+            w.plain_with_comment("BUNIT", "", "dimensionless fraction")?;
             w.plain("COMMENT1", what)?;
             w.plain("CTYPE1", "X-ARCMIN")?;
             w.plain("CTYPE2", "Y-ARCMIN")?;
@@ -422,6 +428,15 @@ impl Calibration {
             ("RES_Q", col(&|i| b[i].q - model_qu[i].0)),
             ("RES_U", col(&|i| b[i].u - model_qu[i].1)),
         ];
+        // Units (FITS/astropy strings) of the columns that have one; q, u, p are dimensionless.
+        for (k, c) in dcols.iter().enumerate() {
+            let unit = match *c {
+                "X_ARCMIN" | "Y_ARCMIN" => "arcmin",
+                "PHI_DEG" | "PHI_APPROX_DEG" => "deg",
+                _ => continue,
+            };
+            h.write_key(f, &format!("TUNIT{}", k + 1), unit).map_err(e("writing BINS units"))?;
+        }
         if !b.is_empty() {
             for (name, v) in &columns {
                 h.write_col(f, *name, v).map_err(e(&format!("writing column {name}")))?;
@@ -819,6 +834,9 @@ impl KeyWriter<'_> {
     }
     fn plain(&mut self, key: &str, v: &str) -> Result<()> {
         self.hdu.write_key(self.f, key, v).map_err(|e| self.err(key, e))
+    }
+    fn plain_with_comment(&mut self, key: &str, v: &str, comment: &str) -> Result<()> {
+        self.hdu.write_key(self.f, key, (v, comment)).map_err(|e| self.err(key, e))
     }
     fn plain_real(&mut self, key: &str, v: f64) -> Result<()> {
         self.hdu.write_key(self.f, key, v).map_err(|e| self.err(key, e))

@@ -115,6 +115,7 @@ pub fn write_qu_cubes(
                 .map_err(|e| err(e.to_string()))?;
             let h = f.primary_hdu().map_err(|e| err(e.to_string()))?;
             h.write_image(&mut f, data).map_err(|e| err(e.to_string()))?;
+            skyfield::provenance::stamp(&mut f).map_err(err)?;
             // Status-checked close, fsync, rename (see skyfield::durable).
             skyfield::durable::close_fits(f).map_err(err)?;
         }

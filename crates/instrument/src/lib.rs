@@ -193,6 +193,12 @@ const BUILTIN: &[(&str, &str)] = &[
     ("efosc2", include_str!("../../../instruments/efosc2.toml")),
 ];
 
+/// The TOML text of a built-in instrument (name case-insensitive), e.g. for provenance hashes.
+pub fn builtin_source(name: &str) -> Option<&'static str> {
+    let lower = name.to_ascii_lowercase();
+    BUILTIN.iter().find(|(n, _)| *n == lower).map(|(_, t)| *t)
+}
+
 impl Instrument {
     /// Load a built-in instrument by name (case-insensitive) or an instrument file by path.
     pub fn load(name_or_path: &str) -> Result<Self, Error> {

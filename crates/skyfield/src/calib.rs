@@ -761,6 +761,12 @@ impl Master {
     pub fn write(&self, path: &Path, inst: &Instrument) -> Result<(), Error> {
         let mut keys: Vec<(String, KeyValue, String)> = vec![
             ("INSTRUME".into(), KeyValue::Str(inst.name.clone()), String::new()),
+            // A bias is in ADU; a flat is normalized (dimensionless: '' for astropy).
+            (
+                "BUNIT".into(),
+                KeyValue::Str(if self.kind == "BIAS" { "adu".into() } else { String::new() }),
+                String::new(),
+            ),
             ("HIERARCH INSTPOL MASTER".into(), KeyValue::Str(self.kind.clone()), String::new()),
             ("NCOMBINE".into(), KeyValue::I64(self.inputs.len() as i64), "frames combined".into()),
             ("HIERARCH INSTPOL NSIGMA".into(), KeyValue::F64(self.nsigma), "clipping threshold per pixel".into()),

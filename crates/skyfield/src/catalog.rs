@@ -145,6 +145,61 @@ pub struct Catalog {
     pub n_sources: usize,
 }
 
+impl Catalog {
+    /// The catalog as a table (one row per paired star; `f_0`, `f_1`, ... the `F_i` of each
+    /// HWP angle), with units (`pix`, `arcmin`, `deg`, `ct` for photo-electrons, the FITS standard having no electron unit; q, u and their errors are
+    /// dimensionless fractions), for [`crate::table::Table::write`] in any format.
+    pub fn to_table(&self) -> crate::table::Table {
+        use crate::table::{Column, Table};
+        let r = &self.rows;
+        let col = |g: fn(&Row) -> f64| r.iter().map(g).collect::<Vec<f64>>();
+        let fr = |name: &str, g: fn(&Row) -> f64, d: &str| Column::f64(name, None, d, col(g));
+        let mut c = vec![
+            Column::i64("id", "star number", r.iter().map(|x| x.id as i64).collect()),
+            Column::f64("x", Some("pix"), "o image x in the first frame (0-based)", col(|x| x.x)),
+            Column::f64("y", Some("pix"), "o image y in the first frame (0-based)", col(|x| x.y)),
+            Column::f64("x_e", Some("pix"), "e image x (0-based)", col(|x| x.x_e)),
+            Column::f64("y_e", Some("pix"), "e image y (0-based)", col(|x| x.y_e)),
+            Column::f64("x_arcmin", Some("arcmin"), "x from the detector centre", col(|x| x.x_arcmin)),
+            Column::f64("y_arcmin", Some("arcmin"), "y from the detector centre", col(|x| x.y_arcmin)),
+            Column::f64("fwhm_px", Some("pix"), "star FWHM", col(|x| x.fwhm_px)),
+            Column::f64("aperture_px", Some("pix"), "aperture radius used", col(|x| x.aperture_px)),
+            Column::f64("flux_e", Some("ct"), "mean f_O + f_E over the HWP angles, photo-electrons", col(|x| x.flux_e)),
+            fr("q", |x| x.q, "Q/I (dimensionless fraction)"),
+            fr("u", |x| x.u, "U/I (dimensionless fraction)"),
+            fr("sigma_q", |x| x.sigma_q, "1-sigma error of q"),
+            fr("sigma_u", |x| x.sigma_u, "1-sigma error of u"),
+            fr("cov_qu", |x| x.cov_qu, "covariance of q and u"),
+            fr("p", |x| x.p, "polarization degree (fraction)"),
+            fr("sigma_p", |x| x.sigma_p, "1-sigma error of p"),
+            Column::f64("chi_deg", Some("deg"), "polarization angle, HWP zero angle added", col(|x| x.chi_deg)),
+            Column::f64("sigma_chi_deg", Some("deg"), "1-sigma error of chi", col(|x| x.sigma_chi_deg)),
+            fr("a0", |x| x.a0, "a0 of the modulation fit"),
+            fr("kappa", |x| x.kappa.unwrap_or(f64::NAN), "kappa of the modulation fit (NaN: not fitted)"),
+            fr(
+                "kappa_applied",
+                |x| x.kappa_applied.unwrap_or(f64::NAN),
+                "Wollaston kappa applied to the fluxes (NaN: none)",
+            ),
+            fr("chi2_mod", |x| x.chi2_mod, "modulation chi^2"),
+            Column::i64("dof_mod", "degrees of freedom of chi2_mod", r.iter().map(|x| x.dof_mod as i64).collect()),
+            fr("sigma_q_scatter", |x| x.sigma_q_scatter, "scatter-based error of q"),
+            fr("sigma_u_scatter", |x| x.sigma_u_scatter, "scatter-based error of u"),
+            Column::text(
+                "flags",
+                "saturated|mask_edge|blended|failed",
+                r.iter().map(|x| flags::names(x.flags)).collect(),
+            ),
+            Column::text("note", "why a star was not measured", r.iter().map(|x| x.note.clone()).collect()),
+        ];
+        for i in 0..self.hwp_deg.len() {
+            let v = r.iter().map(|x| x.f.get(i).copied().unwrap_or(f64::NAN)).collect();
+            c.push(Column::f64(&format!("f_{i}"), None, &format!("F_i (eq:F) at HWP {} deg", self.hwp_deg[i]), v));
+        }
+        Table::new(c)
+    }
+}
+
 /// Build the catalog of `set`.
 pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result<Catalog, Error> {
     let g: BeamGeometry = layout_for(set, inst)?;

@@ -107,6 +107,7 @@ fn write_fits_atomic_with(
         let mut f = b.open().map_err(|e| werr(e.to_string()))?;
         // On an error here `f` is dropped (closed, status ignored) and so is `tmp` (deleted).
         fill(&mut f)?;
+        crate::provenance::stamp(&mut f).map_err(werr)?;
         // CFITSIO writes its last blocks at close: a full disk shows up here, not in `fill`.
         crate::durable::close_fits(f).map_err(werr)?;
     }
@@ -148,6 +149,11 @@ pub fn write_frame(
             }
             Bitpix::F64 => hdu.write_image(f, data).map_err(e)?,
         }
+        // A frame is in ADU unless the caller says otherwise (a normalized flat is
+        // dimensionless): astropy's CCDData needs a BUNIT to read it.
+        if !keys.iter().any(|(k, _, _)| k.eq_ignore_ascii_case("BUNIT")) {
+            hdu.write_key(f, "BUNIT", ("adu", "analog-to-digital units")).map_err(e)?;
+        }
         for (k, v, c) in keys {
             // fitsio names the primary HDU EXTNAME = '_PRIMARY'; an EXTNAME of our own (a chip
             // name) replaces that card rather than adding a conflicting second one.
@@ -175,6 +181,29 @@ pub fn write_frame(
         }
         Ok(())
     })
+}
+
+/// The celestial WCS of a frame file's first image HDU (see [`crate::maps::CelestialWcs::read`]),
+/// when that image is `nx x ny` px (the map's detector pixels); `Err(why)` when there is one
+/// that cannot be carried.
+pub fn celestial_wcs_of(path: &Path, nx: usize, ny: usize) -> Result<Option<crate::maps::CelestialWcs>, String> {
+    let mut f = FitsFile::open(path).map_err(|e| e.to_string())?;
+    let n_hdu = f.iter().count();
+    for i in 0..n_hdu {
+        let h = f.hdu(i).map_err(|e| e.to_string())?;
+        if let fitsio::hdu::HduInfo::ImageInfo { shape, .. } = &h.info {
+            if shape.len() == 2 {
+                let w = crate::maps::CelestialWcs::read(&mut f, &h)?;
+                return match w {
+                    Some(_) if shape[..] != [ny, nx] => {
+                        Err(format!("the image is {} x {} px, the reduced frame {nx} x {ny} px", shape[1], shape[0]))
+                    }
+                    w => Ok(w),
+                };
+            }
+        }
+    }
+    Ok(None)
 }
 
 pub fn read_key_str(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, key: &str) -> fitsio::errors::Result<String> {

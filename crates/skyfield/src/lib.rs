@@ -19,8 +19,10 @@ pub mod durable;
 pub mod io;
 pub mod maps;
 pub mod photometry;
+pub mod provenance;
 pub mod reduce;
 pub mod solve;
+pub mod table;
 
 pub use beams::BeamGeometry;
 pub use maps::{BinGeometry, StokesMap};
@@ -60,6 +62,8 @@ pub enum Error {
     NoValidBins,
     #[error("{0}")]
     Invalid(String),
+    #[error("{path}: {message}")]
+    Table { path: PathBuf, message: String },
     #[error(transparent)]
     Stokes(#[from] stokes::Error),
     #[error(transparent)]

@@ -17,7 +17,13 @@
 //! the scatter of the kept pixels), `SIGQ_PHOT`, `SIGU_PHOT` (photon + read noise propagated),
 //! `P` (fraction), `CHI` (deg, [0, 180)), `COVERAGE` (int32, pixels kept), `INTENSITY` (mean
 //! `f_O + f_E` per exposure, e-/px), `INT_SNR` (per-pixel SNR of the combined intensity image),
-//! `VALID` (int32, 1 = usable). Invalid bins hold NaN in the float images.
+//! `VALID` (int32, 1 = usable). Invalid bins hold NaN in the float images. Every image carries
+//! `BUNIT` (`''` = dimensionless for the fractions, `deg`, `electron/pix`, `pix`) and two linear
+//! WCSs of its bins ([`BinGeometry::wcs_cards`]): detector pixels (primary, `WCSNAME =
+//! 'DETECTOR'`) and arcmin from the detector centre (alternate `A`, `WCSNAMEA = 'FIELD'`). When
+//! the frames have a celestial WCS it is carried through the binning ([`CelestialWcs::binned`])
+//! and becomes the primary WCS (`WCSNAME = 'SKY'`), the detector grid moving to alternate `D`.
+//! The primary header carries the run's provenance ([`crate::provenance`]).
 
 use crate::{fits_err, Error};
 use fitsio::images::{ImageDescription, ImageType};
@@ -26,6 +32,14 @@ use std::path::Path;
 
 /// Current version of the Stokes-map FITS format.
 pub const MAP_FORMAT_VERSION: i32 = 1;
+
+/// A WCS card's value (see [`BinGeometry::wcs_cards`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum WcsValue {
+    Int(i64),
+    Real(f64),
+    Text(String),
+}
 
 /// Where the bins of a map lie on the detector.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -109,6 +123,51 @@ impl BinGeometry {
         self.field_coords().pixel_to_arcmin(x, y)
     }
 
+    /// The world coordinates of the binned map's pixels, as FITS WCS cards `(key, value,
+    /// comment)`: the primary WCS (`WCSNAME = 'DETECTOR'`) gives the detector pixel (1-based, as
+    /// FITS counts) at each bin's nominal centre, `CRVAL + CDELT (p - CRPIX)` with `CDELT` the
+    /// bin side; the alternate WCS `A` (`WCSNAMEA = 'FIELD'`) gives arcmin from the detector
+    /// centre (DESIGN.md convention). A bin cut by the detector edge keeps its nominal centre
+    /// here; [`Self::centre_px`] gives the centre of its part inside the detector.
+    pub fn wcs_cards(&self) -> Vec<(String, WcsValue, &'static str)> {
+        self.wcs_cards_keyed("")
+    }
+
+    /// [`Self::wcs_cards`] with the detector WCS under alternate key `det` ("" = primary; the
+    /// map writer uses "D" when a celestial WCS takes the primary place).
+    pub fn wcs_cards_keyed(&self, det: &str) -> Vec<(String, WcsValue, &'static str)> {
+        use WcsValue::{Real, Text};
+        let b = self.bin_px as f64;
+        // Nominal centre of bin (0, 0), 0-based: origin + b/2 - 1/2.
+        let (x0, y0) = (self.origin_x as f64 + 0.5 * b - 0.5, self.origin_y as f64 + 0.5 * b - 0.5);
+        let (ax0, ay0) = self.px_to_arcmin(x0, y0);
+        let step = b * self.pixel_scale_arcsec / 60.0;
+        let v = vec![
+            ("WCSAXES".to_string(), WcsValue::Int(2), "number of WCS axes"),
+            (format!("WCSNAME{det}"), Text("DETECTOR".into()), "detector pixels (1-based) of the bin centres"),
+            (format!("CTYPE1{det}"), Text("DETX".into()), "detector column"),
+            (format!("CTYPE2{det}"), Text("DETY".into()), "detector row"),
+            (format!("CRPIX1{det}"), Real(1.0), "map pixel of bin (0, 0)"),
+            (format!("CRPIX2{det}"), Real(1.0), "map pixel of bin (0, 0)"),
+            (format!("CRVAL1{det}"), Real(x0 + 1.0), "detector x (1-based) of the centre of bin (0, 0)"),
+            (format!("CRVAL2{det}"), Real(y0 + 1.0), "detector y (1-based) of the centre of bin (0, 0)"),
+            (format!("CDELT1{det}"), Real(b), "detector px per map pixel (bin side)"),
+            (format!("CDELT2{det}"), Real(b), "detector px per map pixel (bin side)"),
+            ("WCSNAMEA".into(), Text("FIELD".into()), "arcmin from the detector centre"),
+            ("CTYPE1A".into(), Text("FIELDX".into()), "field x from the detector centre"),
+            ("CTYPE2A".into(), Text("FIELDY".into()), "field y from the detector centre"),
+            ("CUNIT1A".into(), Text("arcmin".into()), ""),
+            ("CUNIT2A".into(), Text("arcmin".into()), ""),
+            ("CRPIX1A".into(), Real(1.0), "map pixel of bin (0, 0)"),
+            ("CRPIX2A".into(), Real(1.0), "map pixel of bin (0, 0)"),
+            ("CRVAL1A".into(), Real(ax0), "field x of the centre of bin (0, 0) [arcmin]"),
+            ("CRVAL2A".into(), Real(ay0), "field y of the centre of bin (0, 0) [arcmin]"),
+            ("CDELT1A".into(), Real(step), "arcmin per map pixel"),
+            ("CDELT2A".into(), Real(step), "arcmin per map pixel"),
+        ];
+        v
+    }
+
     /// The detector's field coordinates (arcmin from its centre, unbinned pixels).
     pub fn field_coords(&self) -> field::FieldCoords {
         field::FieldCoords::centred(self.detector_nx, self.detector_ny, self.pixel_scale_arcsec)
@@ -147,6 +206,114 @@ pub struct StokesMap {
     pub intensity_snr: Vec<f64>,
     /// Usable bins.
     pub valid: Vec<bool>,
+    /// The celestial WCS of the map's bins (the frames' WCS carried through the binning, see
+    /// [`CelestialWcs::binned`]), when the frames had one.
+    pub celestial_wcs: Option<CelestialWcs>,
+}
+
+/// A celestial FITS WCS without distortion terms: `CTYPEi` (e.g. `RA---TAN`, `DEC--TAN`),
+/// `CRPIXi`, `CRVALi` (deg) and the `CD` matrix (deg/px), with `RADESYS`/`EQUINOX` when given.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CelestialWcs {
+    pub ctype: [String; 2],
+    pub crpix: [f64; 2],
+    pub crval: [f64; 2],
+    pub cd: [[f64; 2]; 2],
+    pub radesys: Option<String>,
+    pub equinox: Option<f64>,
+}
+
+/// Projections carried through the binning (linear in pixel coordinates before projection, so
+/// binning only rescales CD and shifts CRPIX); anything else (SIP, TPV, ...) is not carried.
+const PROJECTIONS: [&str; 10] = ["TAN", "SIN", "ARC", "ZEA", "STG", "CAR", "AIT", "MER", "CEA", "ZPN"];
+
+impl CelestialWcs {
+    /// The celestial WCS of header `hdu`: `Ok(None)` when it has none (no `CTYPE1` of the
+    /// form `xxxx-PPP`), `Err(why)` when it has one this reader does not carry (distortion
+    /// terms, an unknown projection, a missing value). The matrix is `CDi_j`, else
+    /// `PCi_j * CDELTi`, else `CDELTi` with `CROTA2`.
+    pub fn read(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<Option<Self>, String> {
+        let s = |f: &mut FitsFile, k: &str| crate::io::read_key_str(f, hdu, k).ok().map(|v| v.trim().to_string());
+        let (Some(c1), Some(c2)) = (s(f, "CTYPE1"), s(f, "CTYPE2")) else { return Ok(None) };
+        let celestial = |c: &str| c.len() >= 8 && c.as_bytes()[4] == b'-';
+        if !celestial(&c1) || !celestial(&c2) {
+            return Ok(None);
+        }
+        for c in [&c1, &c2] {
+            if c.len() != 8 || !PROJECTIONS.contains(&&c[5..8]) {
+                return Err(format!("CTYPE '{c}' (distortion or projection not carried through binning)"));
+            }
+        }
+        if s(f, "A_ORDER").is_some() || s(f, "PV1_1").is_some() || s(f, "PV2_1").is_some() {
+            return Err("distortion terms (SIP or PV) are not carried through binning".into());
+        }
+        let r = |f: &mut FitsFile, k: &str| hdu.read_key::<f64>(f, k).ok();
+        let need = |f: &mut FitsFile, k: &str| r(f, k).ok_or_else(|| format!("{k} missing"));
+        let crpix = [need(f, "CRPIX1")?, need(f, "CRPIX2")?];
+        let crval = [need(f, "CRVAL1")?, need(f, "CRVAL2")?];
+        let cd = if let Some(c11) = r(f, "CD1_1") {
+            [[c11, r(f, "CD1_2").unwrap_or(0.0)], [r(f, "CD2_1").unwrap_or(0.0), r(f, "CD2_2").unwrap_or(0.0)]]
+        } else {
+            let (d1, d2) = (need(f, "CDELT1")?, need(f, "CDELT2")?);
+            if r(f, "PC1_1").is_some() || r(f, "PC2_2").is_some() {
+                let pc = |f: &mut FitsFile, k: &str, d: f64| r(f, k).unwrap_or(d);
+                [
+                    [d1 * pc(f, "PC1_1", 1.0), d1 * pc(f, "PC1_2", 0.0)],
+                    [d2 * pc(f, "PC2_1", 0.0), d2 * pc(f, "PC2_2", 1.0)],
+                ]
+            } else {
+                let rho = r(f, "CROTA2").unwrap_or(0.0).to_radians();
+                [[d1 * rho.cos(), -d2 * rho.sin()], [d1 * rho.sin(), d2 * rho.cos()]]
+            }
+        };
+        if !(crpix.iter().chain(&crval).chain(cd.iter().flatten()).all(|v| v.is_finite())) {
+            return Err("a WCS value is not finite".into());
+        }
+        Ok(Some(Self { ctype: [c1, c2], crpix, crval, cd, radesys: s(f, "RADESYS"), equinox: r(f, "EQUINOX") }))
+    }
+
+    /// The WCS of the detector frame carried to the map of `g`: map pixel `p` (1-based) is
+    /// detector pixel `X = x0 + 1 + b (p - 1)` (`x0` the 0-based centre of bin 0, `b` the bin
+    /// side), so `X - CRPIX = b (p - CRPIX')` with `CRPIX' = 1 + (CRPIX - x0 - 1) / b`, and
+    /// `CD' = b CD`: every bin centre gets the sky position of its detector pixel.
+    pub fn binned(&self, g: &BinGeometry) -> Self {
+        let b = g.bin_px as f64;
+        let x0 = [g.origin_x as f64 + 0.5 * b - 0.5, g.origin_y as f64 + 0.5 * b - 0.5];
+        let mut w = self.clone();
+        for ((p, x), row) in w.crpix.iter_mut().zip(x0).zip(w.cd.iter_mut()) {
+            *p = 1.0 + (*p - x - 1.0) / b;
+            for c in row {
+                *c *= b;
+            }
+        }
+        w
+    }
+
+    fn cards(&self) -> Vec<(String, WcsValue, &'static str)> {
+        use WcsValue::{Real, Text};
+        let mut v = vec![
+            ("WCSNAME".to_string(), Text("SKY".into()), "the frames' celestial WCS, binned"),
+            ("CTYPE1".into(), Text(self.ctype[0].clone()), ""),
+            ("CTYPE2".into(), Text(self.ctype[1].clone()), ""),
+            ("CUNIT1".into(), Text("deg".into()), ""),
+            ("CUNIT2".into(), Text("deg".into()), ""),
+            ("CRPIX1".into(), Real(self.crpix[0]), "map pixel of CRVAL"),
+            ("CRPIX2".into(), Real(self.crpix[1]), "map pixel of CRVAL"),
+            ("CRVAL1".into(), Real(self.crval[0]), "[deg]"),
+            ("CRVAL2".into(), Real(self.crval[1]), "[deg]"),
+            ("CD1_1".into(), Real(self.cd[0][0]), "[deg per map pixel]"),
+            ("CD1_2".into(), Real(self.cd[0][1]), "[deg per map pixel]"),
+            ("CD2_1".into(), Real(self.cd[1][0]), "[deg per map pixel]"),
+            ("CD2_2".into(), Real(self.cd[1][1]), "[deg per map pixel]"),
+        ];
+        if let Some(r) = &self.radesys {
+            v.push(("RADESYS".into(), Text(r.clone()), ""));
+        }
+        if let Some(e) = self.equinox {
+            v.push(("EQUINOX".into(), Real(e), ""));
+        }
+        v
+    }
 }
 
 impl StokesMap {
@@ -172,6 +339,7 @@ impl StokesMap {
             intensity: nan.clone(),
             intensity_snr: nan,
             valid: vec![false; n],
+            celestial_wcs: None,
         }
     }
 
@@ -240,34 +408,62 @@ impl StokesMap {
         ph.write_key(f, "DETNY", (g.detector_ny as i64, "detector size y [px]")).map_err(e)?;
         let dims = [g.ny, g.nx];
         let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
-        let floats: [(&str, &[f64], &str); 11] = [
-            ("Q", &self.q, "Q/I"),
-            ("U", &self.u, "U/I"),
-            ("SIGMA_Q", &self.sigma_q, "error of Q/I from pixel scatter"),
-            ("SIGMA_U", &self.sigma_u, "error of U/I from pixel scatter"),
-            ("COV_QU", &self.cov_qu, "covariance of Q/I and U/I"),
-            ("SIGQ_PHOT", &self.sigma_q_phot, "error of Q/I from photon+read noise"),
-            ("SIGU_PHOT", &self.sigma_u_phot, "error of U/I from photon+read noise"),
-            ("P", &self.p, "polarization degree (fraction)"),
-            ("CHI", &chi_deg, "polarization angle [deg]"),
-            ("INTENSITY", &self.intensity, "mean f_O+f_E per exposure [e-/px]"),
-            ("INT_SNR", &self.intensity_snr, "per-pixel SNR of combined intensity"),
+        // Units as FITS/astropy unit strings; '' for the dimensionless Stokes fractions (an
+        // empty BUNIT reads as dimensionless in astropy; 'fraction' is no unit and fails).
+        const FRAC: (&str, &str) = ("", "dimensionless fraction");
+        let floats: [(&str, &[f64], &str, (&str, &str)); 11] = [
+            ("Q", &self.q, "Q/I", FRAC),
+            ("U", &self.u, "U/I", FRAC),
+            ("SIGMA_Q", &self.sigma_q, "error of Q/I from pixel scatter", FRAC),
+            ("SIGMA_U", &self.sigma_u, "error of U/I from pixel scatter", FRAC),
+            ("COV_QU", &self.cov_qu, "covariance of Q/I and U/I", FRAC),
+            ("SIGQ_PHOT", &self.sigma_q_phot, "error of Q/I from photon+read noise", FRAC),
+            ("SIGU_PHOT", &self.sigma_u_phot, "error of U/I from photon+read noise", FRAC),
+            ("P", &self.p, "polarization degree (fraction)", FRAC),
+            ("CHI", &chi_deg, "polarization angle [deg]", ("deg", "degrees")),
+            ("INTENSITY", &self.intensity, "mean f_O+f_E per exposure [e-/px]", ("electron/pix", "per exposure")),
+            ("INT_SNR", &self.intensity_snr, "per-pixel SNR of combined intensity", ("", "dimensionless ratio")),
         ];
-        for (name, data, comment) in floats.iter() {
+        // The celestial WCS, when the frames had one, is the primary WCS (what astropy's
+        // WCS(header) gives); the detector grid is then alternate D.
+        let wcs = match &self.celestial_wcs {
+            Some(c) => {
+                let mut v = g.wcs_cards_keyed("D");
+                v.splice(1..1, c.cards());
+                v
+            }
+            None => g.wcs_cards(),
+        };
+        let put = |f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, bunit: (&str, &str)| -> Result<(), Error> {
+            hdu.write_key(f, "BUNIT", (bunit.0, bunit.1)).map_err(e)?;
+            for (k, v, c) in &wcs {
+                match v {
+                    WcsValue::Int(x) => hdu.write_key(f, k, (*x, *c)),
+                    WcsValue::Real(x) => hdu.write_key(f, k, (*x, *c)),
+                    WcsValue::Text(x) => hdu.write_key(f, k, (x.as_str(), *c)),
+                }
+                .map_err(e)?;
+            }
+            Ok(())
+        };
+        for (name, data, comment, bunit) in floats.iter() {
             let d = ImageDescription { data_type: ImageType::Double, dimensions: &dims };
             let hdu = f.create_image(name.to_string(), &d).map_err(e)?;
             hdu.write_image(f, data).map_err(e)?;
             hdu.write_key(f, "CONTENT", *comment).map_err(e)?;
+            put(f, &hdu, *bunit)?;
         }
         let d = ImageDescription { data_type: ImageType::Long, dimensions: &dims };
         let cov: Vec<i32> = self.n_pixels.iter().map(|&n| n as i32).collect();
         let hdu = f.create_image("COVERAGE".to_string(), &d).map_err(e)?;
         hdu.write_image(f, &cov).map_err(e)?;
         hdu.write_key(f, "CONTENT", "pixels kept by sigma clipping").map_err(e)?;
+        put(f, &hdu, ("pix", "detector pixels kept"))?;
         let valid: Vec<i32> = self.valid.iter().map(|&v| v as i32).collect();
         let hdu = f.create_image("VALID".to_string(), &d).map_err(e)?;
         hdu.write_image(f, &valid).map_err(e)?;
         hdu.write_key(f, "CONTENT", "1 = usable bin").map_err(e)?;
+        put(f, &hdu, ("", "flag"))?;
         Ok(())
     }
 
@@ -345,6 +541,12 @@ impl StokesMap {
         let intensity_snr = read_f(&mut f, "INT_SNR")?;
         let n_pixels: Vec<u32> = read_f(&mut f, "COVERAGE")?.into_iter().map(|v| v.max(0.0) as u32).collect();
         let valid: Vec<bool> = read_f(&mut f, "VALID")?.into_iter().map(|v| v > 0.5).collect();
+        // The celestial WCS the writer put on every image (read from Q); maps without one, or
+        // with one this reader does not carry, have None.
+        let celestial_wcs = match f.hdu("Q") {
+            Ok(h) => CelestialWcs::read(&mut f, &h).ok().flatten(),
+            Err(_) => None,
+        };
         // A map made elsewhere (or edited) is checked before anything is fitted to it: every
         // valid bin holds a physical polarization and a covariance that is one.
         for k in (0..n).filter(|&k| valid[k]) {
@@ -387,6 +589,7 @@ impl StokesMap {
             intensity,
             intensity_snr,
             valid,
+            celestial_wcs,
         })
     }
 }
@@ -444,6 +647,54 @@ mod tests {
         // Rewriting over an existing file works (atomic rename).
         m.write_fits(&path).unwrap();
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    /// Every image carries a valid BUNIT and the two WCSs of the binning: read back through
+    /// CFITSIO and evaluated with the linear WCS formula `CRVAL + CDELT (p - CRPIX)`, map pixel
+    /// `(i + 1, j + 1)` lands on the 1-based detector pixel at the centre of bin `(i, j)`,
+    /// `origin + b (i + 1/2) + 1/2`, and on the FORS1 arcmin position of that pixel.
+    #[test]
+    fn every_image_has_units_and_the_binning_wcs() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("map.fits");
+        let m = sample();
+        m.write_fits(&path).unwrap();
+        let mut f = FitsFile::open(&path).unwrap();
+        let key_s = |f: &mut FitsFile, h: &fitsio::hdu::FitsHdu, k: &str| crate::io::read_key_str(f, h, k).unwrap();
+        let (b, ox, oy) = (30.0, 0.0, 34.0);
+        for (name, unit) in [
+            ("Q", ""),
+            ("SIGMA_U", ""),
+            ("P", ""),
+            ("CHI", "deg"),
+            ("INTENSITY", "electron/pix"),
+            ("COVERAGE", "pix"),
+            ("VALID", ""),
+        ] {
+            let h = f.hdu(name).unwrap();
+            assert_eq!(key_s(&mut f, &h, "BUNIT"), unit, "{name}");
+            assert_eq!(key_s(&mut f, &h, "WCSNAME"), "DETECTOR");
+            assert_eq!(key_s(&mut f, &h, "CUNIT1A"), "arcmin");
+            let r = |f: &mut FitsFile, k: &str| h.read_key::<f64>(f, k).unwrap();
+            for (i, j) in [(0usize, 0usize), (3, 2)] {
+                let x = r(&mut f, "CRVAL1") + r(&mut f, "CDELT1") * ((i + 1) as f64 - r(&mut f, "CRPIX1"));
+                let y = r(&mut f, "CRVAL2") + r(&mut f, "CDELT2") * ((j + 1) as f64 - r(&mut f, "CRPIX2"));
+                assert_eq!(
+                    (x, y),
+                    (ox + b * (i as f64 + 0.5) + 0.5, oy + b * (j as f64 + 0.5) + 0.5),
+                    "{name} {i} {j}"
+                );
+                let xa = r(&mut f, "CRVAL1A") + r(&mut f, "CDELT1A") * ((i + 1) as f64 - r(&mut f, "CRPIX1A"));
+                let ya = r(&mut f, "CRVAL2A") + r(&mut f, "CDELT2A") * ((j + 1) as f64 - r(&mut f, "CRPIX2A"));
+                // 100 x 130 px of 0.2": the centre is 0-based pixel (49.5, 64.5).
+                let (ex, ey) = ((x - 1.0 - 49.5) * 0.2 / 60.0, (y - 1.0 - 64.5) * 0.2 / 60.0);
+                assert!((xa - ex).abs() < 1e-14 && (ya - ey).abs() < 1e-14, "{name}: {xa} {ya} vs {ex} {ey}");
+            }
+        }
+        let ph = f.primary_hdu().unwrap();
+        assert_eq!(key_s(&mut f, &ph, "PROGRAM"), "instpol");
+        assert_eq!(key_s(&mut f, &ph, "PROGVER"), env!("CARGO_PKG_VERSION"));
+        assert_eq!(key_s(&mut f, &ph, "DATE").len(), 19);
     }
 
     #[test]

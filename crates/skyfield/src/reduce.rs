@@ -1067,7 +1067,7 @@ pub fn reduce_files_with(
     let pass = reduce_bands(&inputs, frames.len(), g.nx, g.ny, &g.angles, inst, cfg, on_read)?;
     let mut warnings = bad_pixel_notes(&meta, &pass.bad, pass.used_px, &conversion)?;
     warnings.extend(g.warnings);
-    let map = match assemble_map(pass.stats, inst, cfg, &g.filter, &g.angles, &inputs) {
+    let mut map = match assemble_map(pass.stats, inst, cfg, &g.filter, &g.angles, &inputs) {
         // Say why when it is that some frames hold no flux above the bias anywhere.
         Err(Error::NoValidBins) => {
             let dark: Vec<String> = meta
@@ -1088,6 +1088,16 @@ pub fn reduce_files_with(
         }
         r => r?,
     };
+    // The first frame's celestial WCS, carried through the binning, when its pixels are the
+    // map's detector pixels (a plain frame, same size; not chips trimmed and assembled).
+    match crate::io::celestial_wcs_of(&frames[0].path, frames[0].nx, frames[0].ny) {
+        Ok(Some(w)) => map.celestial_wcs = Some(w.binned(&map.geometry)),
+        Ok(None) => {}
+        Err(why) => warnings.push(crate::Warning {
+            file: Some(frames[0].path.clone()),
+            message: format!("celestial WCS not carried to the map: {why}"),
+        }),
+    }
     Ok(Reduced { map, warnings })
 }
 

@@ -37,7 +37,8 @@ pub struct Args {
     /// Background annulus inner,outer radius (px).
     #[arg(long, default_value = "12,20")]
     pub annulus: String,
-    /// Output table: .csv (one row per star; F_i as columns f_0, f_1, ...).
+    /// Output table, one row per star (F_i as columns f_0, f_1, ...), in the format of its
+    /// extension: .csv, .fits, .ecsv or .vot (units in the FITS, ECSV and VOTable headers).
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Print JSON.
@@ -84,14 +85,7 @@ pub fn run(a: Args) -> Result<()> {
     };
     cfg.check().map_err(|e| anyhow::anyhow!("--{e}"))?;
     if let Some(out) = &a.out {
-        match out.extension().and_then(|e| e.to_str()) {
-            Some("csv") => {}
-            other => bail!(
-                "--out {}: unknown table format '{}' (this version writes .csv)",
-                out.display(),
-                other.unwrap_or("")
-            ),
-        }
+        skyfield::table::Format::from_path(out).map_err(|e| anyhow::anyhow!("--out {e}"))?;
     }
     crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
     if let Some(out) = &a.out {
@@ -135,111 +129,36 @@ pub fn run(a: Args) -> Result<()> {
         }
     };
     if let Some(out) = &a.out {
-        let n = cat.hwp_deg.len();
-        crate::util::write_via_temp(out, ".csv", |tmp| {
-            let mut w = csv::Writer::from_path(tmp)?;
-            let mut head: Vec<String> = [
-                "id",
-                "x",
-                "y",
-                "x_e",
-                "y_e",
-                "x_arcmin",
-                "y_arcmin",
-                "fwhm_px",
-                "aperture_px",
-                "flux_e",
-                "q",
-                "u",
-                "sigma_q",
-                "sigma_u",
-                "cov_qu",
-                "p",
-                "sigma_p",
-                "chi_deg",
-                "sigma_chi_deg",
-                "a0",
-                "kappa",
-                "kappa_applied",
-                "chi2_mod",
-                "dof_mod",
-                "sigma_q_scatter",
-                "sigma_u_scatter",
-                "flags",
-                "note",
-            ]
-            .iter()
-            .chain(if corrected.is_some() {
-                [
-                    "q0",
-                    "u0",
-                    "sigma_q0",
-                    "sigma_u0",
-                    "cov_qu0",
-                    "p0",
-                    "sigma_p0",
-                    "chi0_deg",
-                    "sigma_chi0_deg",
-                    "q_inst",
-                    "u_inst",
-                    "extrapolated",
-                ]
-                .iter()
-            } else {
-                [].iter()
-            })
-            .map(|s| s.to_string())
-            .collect();
-            head.extend((0..n).map(|i| format!("f_{i}")));
-            w.write_record(&head)?;
-            for (k, r) in cat.rows.iter().enumerate() {
-                let mut rec: Vec<String> =
-                    [r.id as f64, r.x, r.y, r.x_e, r.y_e, r.x_arcmin, r.y_arcmin, r.fwhm_px, r.aperture_px]
-                        .iter()
-                        .map(|v| v.to_string())
-                        .collect();
-                for v in [r.flux_e, r.q, r.u, r.sigma_q, r.sigma_u, r.cov_qu, r.p, r.sigma_p, r.chi_deg] {
-                    rec.push(v.to_string());
-                }
-                rec.push(r.sigma_chi_deg.to_string());
-                rec.push(r.a0.to_string());
-                rec.push(r.kappa.map_or(String::new(), |k| k.to_string()));
-                rec.push(r.kappa_applied.map_or(String::new(), |k| k.to_string()));
-                rec.push(r.chi2_mod.to_string());
-                rec.push(r.dof_mod.to_string());
-                rec.push(r.sigma_q_scatter.to_string());
-                rec.push(r.sigma_u_scatter.to_string());
-                rec.push(flags::names(r.flags));
-                rec.push(r.note.clone());
-                if let Some(c) = &corrected {
-                    match &c.rows[k] {
-                        Some(c) => {
-                            for v in [
-                                c.q0,
-                                c.u0,
-                                c.var_q0.sqrt(),
-                                c.var_u0.sqrt(),
-                                c.cov_qu0,
-                                c.p0,
-                                c.sigma_p0,
-                                c.chi0.to_degrees(),
-                                c.sigma_chi0.to_degrees(),
-                                c.inst.q,
-                                c.inst.u,
-                            ] {
-                                rec.push(v.to_string());
-                            }
-                            rec.push((c.extrapolated as u8).to_string());
-                        }
-                        None => rec.extend((0..12).map(|_| String::new())),
-                    }
-                }
-                rec.extend((0..n).map(|i| r.f.get(i).map_or(String::new(), |v| v.to_string())));
-                w.write_record(&rec)?;
+        crate::util::check_output(out)?;
+        let mut t = cat.to_table();
+        if let Some(c) = &corrected {
+            // The columns of `instpol correct`, for the stars measured (NaN for the others).
+            let col = |g: fn(&fit::correct::Corrected) -> f64| -> Vec<f64> {
+                c.rows.iter().map(|r| r.as_ref().map_or(f64::NAN, g)).collect()
+            };
+            use skyfield::table::Column;
+            for (name, unit, g) in [
+                ("q0", None, (|r: &fit::correct::Corrected| r.q0) as fn(&fit::correct::Corrected) -> f64),
+                ("u0", None, |r| r.u0),
+                ("sigma_q0", None, |r| r.var_q0.sqrt()),
+                ("sigma_u0", None, |r| r.var_u0.sqrt()),
+                ("cov_qu0", None, |r| r.cov_qu0),
+                ("p0", None, |r| r.p0),
+                ("sigma_p0", None, |r| r.sigma_p0),
+                ("chi0_deg", Some("deg"), |r| r.chi0.to_degrees()),
+                ("sigma_chi0_deg", Some("deg"), |r| r.sigma_chi0.to_degrees()),
+                ("q_inst", None, |r| r.inst.q),
+                ("u_inst", None, |r| r.inst.u),
+            ] {
+                t.columns.push(Column::f64(name, unit, "corrected with --cal (instpol correct's column)", col(g)));
             }
-            w.flush()?;
-            Ok(())
-        })?;
+            t.columns.push(Column::i64(
+                "extrapolated",
+                "1 = outside the calibrated field",
+                c.rows.iter().map(|r| r.as_ref().is_some_and(|r| r.extrapolated) as i64).collect(),
+            ));
+        }
+        t.write(out)?;
     }
     let measured = cat.rows.iter().filter(|r| r.q.is_finite()).count();
     if a.json {

@@ -7,8 +7,9 @@ use fit::Calibration;
 use fitsio::tables::{ColumnDataType, ColumnDescription};
 use fitsio::FitsFile;
 use serde::Serialize;
+use skyfield::table::{Column, Format, Table};
 use std::path::{Path, PathBuf};
-use stokes::stats::Estimator;
+use stokes::stats::{Estimator, PolMeasurement};
 
 /// Remove the instrumental polarization from measured Stokes parameters with a calibration
 /// file: exact inversion of the instrument's Mueller matrix M_I (eq:instpol) or the
@@ -17,8 +18,9 @@ use stokes::stats::Estimator;
 ///
 /// Input (--in), detected by content:
 ///
-///   catalog, CSV (header row; lines starting with # are comments) or a FITS binary table
-///   (the first table HDU, or --hdu NAME), with columns (names case-insensitive):
+///   catalog: a FITS binary table (the first table HDU, or --hdu NAME), or by extension
+///   CSV (.csv; header row; lines starting with # are comments), ECSV (.ecsv) or VOTable
+///   (.vot, .xml; TABLEDATA), with columns (names case-insensitive):
 ///     x, y               position (--coords: arcmin from the detector centre, or 0-based
 ///                        pixels on the calibration's detector grid)
 ///     q, u               measured Q/I, U/I (fractions, not percent)
@@ -28,7 +30,8 @@ use stokes::stats::Estimator;
 ///   Q0/I0, U0/I0 and covariance), p0, sigma_p0 (fraction, not bias-corrected), chi0_deg,
 ///   sigma_chi0_deg ([0, 180) deg), p0_<estimator> (bias-corrected P0, see --estimator),
 ///   q_inst, u_inst (the instrumental polarization removed) and extrapolated (0/1).
-///   The output has the input's format (CSV or FITS).
+///   The output's format is its extension's (.csv, .fits, .ecsv, .vot); a FITS table
+///   corrected into a .fits keeps every HDU and keyword of the input.
 ///
 ///   Stokes map, a FITS file written by `instpol reduce` (primary keyword MAPVERS): every
 ///   valid bin is corrected at its centre and a Stokes map of the same layout is written,
@@ -59,7 +62,8 @@ pub struct Args {
     /// Catalog (CSV or FITS table) or Stokes map (FITS) to correct.
     #[arg(long = "in", value_name = "CATALOG")]
     pub input: PathBuf,
-    /// Output file (same format as the input).
+    /// Output file: a catalog in the format of its extension (.csv, .fits, .ecsv, .vot), or a
+    /// Stokes map (FITS).
     #[arg(long, value_name = "OUT")]
     pub out: PathBuf,
     /// Units of the catalog's x, y: arcmin from the detector centre, or 0-based detector
@@ -157,14 +161,20 @@ pub fn run(a: Args) -> Result<()> {
     }
     let opts = options(&cal, &a);
     let kind = detect(&a.input)?;
+    // The output's format is known before any work: an unknown extension fails now.
+    let out_format = if kind == Kind::Map { None } else { Some(Format::from_path(&a.out)?) };
     let summary = match kind {
         Kind::Map => correct_map(&cal, opts, &a)?,
-        Kind::Csv | Kind::FitsTable => {
-            let table = match kind {
-                Kind::Csv => read_csv(&a.input)?,
-                _ => read_fits_table(&a.input, a.hdu.as_deref())?,
+        Kind::Text | Kind::FitsTable => {
+            let mut table = match kind {
+                Kind::Text => Table::read(&a.input, a.hdu.as_deref())?,
+                _ => Table::read_format(&a.input, Format::Fits, a.hdu.as_deref())?,
             };
-            if table.parang.is_some() {
+            check_no_clash(&table.names(), &a.input)?;
+            if table.n_rows() == 0 {
+                bail!("{}: the catalog has no data rows", a.input.display());
+            }
+            if table.column(PARANG[0]).is_some() {
                 eprintln!(
                     "warning: {} has a {} column but {} holds no telescope model: the telescope's polarization is NOT removed (fit one with instpol fit-standards --output)",
                     a.input.display(),
@@ -176,7 +186,17 @@ pub fn run(a: Args) -> Result<()> {
             let cor = Corrector::new(&cal, opts);
             let mut out = vec![Corrected::default(); meas.len()];
             let n_extra = correct_rows(&cor, &meas, &mut out, &a.input)?;
-            write_catalog(&a, kind, &table, &out, est, n_extra, cal.filter.clone(), cal.hwp_chi_offset_deg)?
+            write_catalog(
+                &a,
+                kind,
+                out_format,
+                &mut table,
+                &out,
+                est,
+                n_extra,
+                cal.filter.clone(),
+                cal.hwp_chi_offset_deg,
+            )?
         }
     };
     if summary.extrapolated > 0 {
@@ -230,12 +250,13 @@ fn median(v: impl Iterator<Item = f64>) -> Option<f64> {
 
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 enum Kind {
-    Csv,
+    /// CSV, ECSV or VOTable (by extension, `skyfield::table`).
+    Text,
     FitsTable,
     Map,
 }
 
-/// FITS by its first bytes ("SIMPLE  ="), Stokes map by the MAPVERS keyword; else CSV.
+/// FITS by its first bytes ("SIMPLE  ="), Stokes map by the MAPVERS keyword; else a text table.
 fn detect(path: &Path) -> Result<Kind> {
     use std::io::Read;
     let mut head = [0u8; 9];
@@ -249,39 +270,7 @@ fn detect(path: &Path) -> Result<Kind> {
         }
         return Ok(Kind::FitsTable);
     }
-    Ok(Kind::Csv)
-}
-
-/// A catalog read into memory: the needed columns as numbers and, for CSV, every field as text.
-struct Table {
-    headers: Vec<String>,
-    /// CSV only: all fields of each row, as read.
-    records: Vec<csv::StringRecord>,
-    /// Row labels for errors ("line 12", "row 3").
-    labels: Vec<String>,
-    x: Vec<f64>,
-    y: Vec<f64>,
-    q: Vec<f64>,
-    u: Vec<f64>,
-    sq: Vec<f64>,
-    su: Vec<f64>,
-    cov: Option<Vec<f64>>,
-    /// Optional parallactic angles (deg) at the start and end of each row's exposure.
-    parang: Option<Vec<f64>>,
-    parang_end: Option<Vec<f64>>,
-}
-
-/// The optional parallactic-angle columns of a telescope correction.
-const PARANG: [&str; 2] = ["parang_deg", "parang_end_deg"];
-
-fn find_col(headers: &[String], name: &str, path: &Path) -> Result<usize> {
-    headers.iter().position(|h| h.trim().eq_ignore_ascii_case(name)).ok_or_else(|| {
-        anyhow!(
-            "{}: no column '{name}' (columns: {}); need x, y, q, u, sigma_q, sigma_u",
-            path.display(),
-            headers.join(", ")
-        )
-    })
+    Ok(Kind::Text)
 }
 
 fn check_no_clash(headers: &[String], path: &Path) -> Result<()> {
@@ -295,138 +284,10 @@ fn check_no_clash(headers: &[String], path: &Path) -> Result<()> {
     Ok(())
 }
 
-fn read_csv(path: &Path) -> Result<Table> {
-    let mut rdr = csv::ReaderBuilder::new()
-        .comment(Some(b'#'))
-        .trim(csv::Trim::All)
-        .from_path(path)
-        .with_context(|| format!("cannot read catalog {}", path.display()))?;
-    let headers: Vec<String> = rdr
-        .headers()
-        .with_context(|| format!("{}: cannot read the header row", path.display()))?
-        .iter()
-        .map(String::from)
-        .collect();
-    check_no_clash(&headers, path)?;
-    let idx: Vec<usize> = ["x", "y", "q", "u", "sigma_q", "sigma_u"]
-        .iter()
-        .map(|n| find_col(&headers, n, path))
-        .collect::<Result<_>>()?;
-    let icov = headers.iter().position(|h| h.trim().eq_ignore_ascii_case("cov_qu"));
-    let ipa = PARANG.map(|n| headers.iter().position(|h| h.trim().eq_ignore_ascii_case(n)));
-    let mut t = Table {
-        headers: headers.clone(),
-        records: Vec::new(),
-        labels: Vec::new(),
-        x: vec![],
-        y: vec![],
-        q: vec![],
-        u: vec![],
-        sq: vec![],
-        su: vec![],
-        cov: icov.map(|_| vec![]),
-        parang: ipa[0].map(|_| vec![]),
-        parang_end: ipa[1].map(|_| vec![]),
-    };
-    for rec in rdr.records() {
-        let rec = rec.with_context(|| format!("{}: malformed CSV", path.display()))?;
-        let line = rec.position().map(|p| p.line()).unwrap_or(0);
-        let num = |i: usize| -> Result<f64> {
-            let s = rec.get(i).unwrap_or("");
-            s.parse::<f64>()
-                .map_err(|_| anyhow!("{} line {line}: column '{}' = '{s}' is not a number", path.display(), headers[i]))
-        };
-        t.x.push(num(idx[0])?);
-        t.y.push(num(idx[1])?);
-        t.q.push(num(idx[2])?);
-        t.u.push(num(idx[3])?);
-        t.sq.push(num(idx[4])?);
-        t.su.push(num(idx[5])?);
-        if let (Some(i), Some(c)) = (icov, t.cov.as_mut()) {
-            c.push(num(i)?);
-        }
-        if let (Some(i), Some(c)) = (ipa[0], t.parang.as_mut()) {
-            c.push(num(i)?);
-        }
-        if let (Some(i), Some(c)) = (ipa[1], t.parang_end.as_mut()) {
-            c.push(num(i)?);
-        }
-        t.labels.push(format!("line {line}"));
-        t.records.push(rec);
-    }
-    if t.x.is_empty() {
-        bail!("{}: the catalog has no data rows", path.display());
-    }
-    Ok(t)
-}
-
-/// The table HDU of a FITS catalog: `name`, or the first binary/ASCII table.
-fn table_hdu(f: &mut FitsFile, name: Option<&str>, path: &Path) -> Result<(fitsio::hdu::FitsHdu, Vec<String>, usize)> {
-    use fitsio::hdu::HduInfo;
-    let hdu = match name {
-        Some(n) => f.hdu(n).map_err(|_| anyhow!("{}: no HDU named '{n}'", path.display()))?,
-        None => {
-            let n_hdu = f.iter().count();
-            let mut found = None;
-            for i in 0..n_hdu {
-                let h = f.hdu(i).map_err(|e| anyhow!("{}: HDU {i}: {e}", path.display()))?;
-                if matches!(h.info, HduInfo::TableInfo { .. }) {
-                    found = Some(h);
-                    break;
-                }
-            }
-            found.ok_or_else(|| anyhow!("{}: no table HDU (a FITS catalog needs a binary table)", path.display()))?
-        }
-    };
-    match &hdu.info {
-        HduInfo::TableInfo { column_descriptions, num_rows } => {
-            let names = column_descriptions.iter().map(|c| c.name.clone()).collect();
-            let n = *num_rows;
-            Ok((hdu, names, n))
-        }
-        _ => bail!("{}: HDU '{}' is not a table", path.display(), name.unwrap_or("?")),
-    }
-}
-
-fn read_fits_table(path: &Path, name: Option<&str>) -> Result<Table> {
-    let mut f = FitsFile::open(path).map_err(|e| anyhow!("{}: cannot open as FITS: {e}", path.display()))?;
-    let (hdu, headers, n) = table_hdu(&mut f, name, path)?;
-    check_no_clash(&headers, path)?;
-    if n == 0 {
-        bail!("{}: the catalog table has no rows", path.display());
-    }
-    let mut col = |c: &str| -> Result<Vec<f64>> {
-        let i = find_col(&headers, c, path)?;
-        hdu.read_col::<f64>(&mut f, &headers[i])
-            .map_err(|e| anyhow!("{}: column '{}': {e}", path.display(), headers[i]))
-    };
-    let (x, y, q, u, sq, su) = (col("x")?, col("y")?, col("q")?, col("u")?, col("sigma_q")?, col("sigma_u")?);
-    let cov = if headers.iter().any(|h| h.eq_ignore_ascii_case("cov_qu")) { Some(col("cov_qu")?) } else { None };
-    let mut opt = |n: &str| -> Result<Option<Vec<f64>>> {
-        if headers.iter().any(|h| h.eq_ignore_ascii_case(n)) {
-            col(n).map(Some)
-        } else {
-            Ok(None)
-        }
-    };
-    let (parang, parang_end) = (opt(PARANG[0])?, opt(PARANG[1])?);
-    Ok(Table {
-        headers,
-        records: vec![],
-        labels: (1..=n).map(|r| format!("row {r}")).collect(),
-        x,
-        y,
-        q,
-        u,
-        sq,
-        su,
-        cov,
-        parang,
-        parang_end,
-    })
-}
-
 /// Catalog positions in arcmin from the detector centre.
+/// The optional parallactic-angle columns of a telescope correction.
+const PARANG: [&str; 2] = ["parang_deg", "parang_end_deg"];
+
 fn measurements(
     t: &Table,
     pixel: Option<fit::calfile::PixelGrid>,
@@ -444,17 +305,29 @@ fn measurements(
             }
         }
     };
-    (0..t.x.len())
+    let col = |c: &str| -> Result<Vec<f64>> {
+        if t.column(c).is_none() {
+            bail!(
+                "{}: no column '{c}' (columns: {}); need x, y, q, u, sigma_q, sigma_u",
+                path.display(),
+                t.names().join(", ")
+            );
+        }
+        Ok(t.numbers(c, path)?)
+    };
+    let (x, y, q, u, sq, su) = (col("x")?, col("y")?, col("q")?, col("u")?, col("sigma_q")?, col("sigma_u")?);
+    let cov = if t.column("cov_qu").is_some() { Some(col("cov_qu")?) } else { None };
+    (0..x.len())
         .map(|i| {
-            let (x, y) = to_arcmin(t.x[i], t.y[i]).with_context(|| format!("{} {}", path.display(), t.labels[i]))?;
+            let (xa, ya) = to_arcmin(x[i], y[i]).with_context(|| format!("{} {}", path.display(), t.row_label(i)))?;
             Ok(Measurement {
-                x,
-                y,
-                q: t.q[i],
-                u: t.u[i],
-                sigma_q: t.sq[i],
-                sigma_u: t.su[i],
-                cov_qu: t.cov.as_ref().map(|c| c[i]).unwrap_or(0.0),
+                x: xa,
+                y: ya,
+                q: q[i],
+                u: u[i],
+                sigma_q: sq[i],
+                sigma_u: su[i],
+                cov_qu: cov.as_ref().map(|c| c[i]).unwrap_or(0.0),
             })
         })
         .collect()
@@ -480,7 +353,14 @@ fn estimates(out: &[Corrected], est: Estimator) -> Vec<f64> {
     use rayon::prelude::*;
     // The root-finding estimators take ~1 us a row: show progress on big catalogs.
     let pb = if out.len() >= 500_000 { ProgressBar::new(out.len() as u64) } else { ProgressBar::hidden() };
-    let v = out.par_iter().progress_with(pb.clone()).map(|r| r.p0_estimate(est)).collect();
+    let v = out
+        .par_iter()
+        .progress_with(pb.clone())
+        .map(|r| match PolMeasurement::new(r.q0, r.u0, r.var_q0.sqrt(), r.var_u0.sqrt()) {
+            Ok(m) => est.estimate(&m).value,
+            Err(_) => f64::NAN,
+        })
+        .collect();
     pb.finish_and_clear();
     v
 }
@@ -510,20 +390,19 @@ fn added_names(est: Estimator) -> Vec<String> {
     v
 }
 
-fn write_csv(t: &Table, out: &[Corrected], p0e: &[f64], est: Estimator, path: &Path) -> Result<()> {
-    let mut w = csv::Writer::from_writer(Vec::new());
-    let mut h: Vec<String> = t.headers.clone();
-    h.extend(added_names(est));
-    h.push("extrapolated".into());
-    w.write_record(&h)?;
-    for ((rec, r), e) in t.records.iter().zip(out).zip(p0e) {
-        let mut row: Vec<String> = rec.iter().map(String::from).collect();
-        row.extend(added_values(r, *e).iter().map(|v| if v.is_finite() { format!("{v}") } else { String::new() }));
-        row.push((r.extrapolated as u8).to_string());
-        w.write_record(&row)?;
+/// The corrected columns appended to the input table (units: `deg` for the angles; the rest
+/// are dimensionless fractions or a 0/1 flag).
+fn append_columns(t: &mut Table, out: &[Corrected], p0e: &[f64], est: Estimator) {
+    for (k, n) in added_names(est).iter().enumerate() {
+        let v: Vec<f64> = out.iter().zip(p0e).map(|(r, e)| added_values(r, *e)[k]).collect();
+        let unit = n.ends_with("_deg").then_some("deg");
+        t.columns.push(Column::f64(n, unit, "", v));
     }
-    let bytes = w.into_inner().map_err(|e| anyhow!("cannot format the CSV output: {e}"))?;
-    crate::util::write_atomic(path, &bytes)
+    t.columns.push(Column::i64(
+        "extrapolated",
+        "1 = outside the calibrated field",
+        out.iter().map(|r| r.extrapolated as i64).collect(),
+    ));
 }
 
 /// Copy the input FITS file byte for byte to a temporary file beside the output, append the
@@ -543,7 +422,7 @@ fn write_fits_table(
         let dir = tmp.parent().unwrap_or(Path::new("."));
         std::fs::copy(input, tmp).with_context(|| format!("cannot copy {} to {}", input.display(), dir.display()))?;
         let mut f = FitsFile::edit(tmp).map_err(|e| werr(e.to_string()))?;
-        let (mut t, _, _) = table_hdu(&mut f, name, input)?;
+        let (mut t, _, _) = skyfield::table::fits_table_hdu(&mut f, name, input)?;
         for (k, n) in names.iter().enumerate() {
             let col: Vec<f64> = out.iter().zip(p0e).map(|(r, e)| added_values(r, *e)[k]).collect();
             let d = ColumnDescription::new(n)
@@ -560,6 +439,7 @@ fn write_fits_table(
             .map_err(|e| werr(e.to_string()))?;
         t = t.append_column(&mut f, &d).map_err(|e| werr(format!("adding column extrapolated: {e}")))?;
         t.write_col(&mut f, "extrapolated", &flags).map_err(|e| werr(format!("writing column extrapolated: {e}")))?;
+        skyfield::provenance::stamp(&mut f).map_err(werr)?;
         // Closed explicitly: CFITSIO flushes its buffers here and a full disk must fail the run.
         skyfield::durable::close_fits(f).map_err(werr)
     })
@@ -657,18 +537,28 @@ fn run_telescope(
     if tel.band(&band).is_none() {
         bail!("--band {band}: the telescope model of {} has bands {}", a.cal.display(), bands.join(", "));
     }
-    let table = match kind {
-        Kind::Csv => read_csv(&a.input)?,
-        _ => read_fits_table(&a.input, a.hdu.as_deref())?,
+    let out_format = Some(Format::from_path(&a.out)?);
+    let mut table = match kind {
+        Kind::Text => Table::read(&a.input, a.hdu.as_deref())?,
+        _ => Table::read_format(&a.input, Format::Fits, a.hdu.as_deref())?,
     };
-    let Some(pa) = &table.parang else {
+    check_no_clash(&table.names(), &a.input)?;
+    if table.n_rows() == 0 {
+        bail!("{}: the catalog has no data rows", a.input.display());
+    }
+    if table.column(PARANG[0]).is_none() {
         bail!(
             "{}: no column '{}' (columns: {}): the telescope model of {} needs each row's parallactic angle (deg)",
             a.input.display(),
             PARANG[0],
-            table.headers.join(", "),
+            table.names().join(", "),
             a.cal.display()
         );
+    }
+    let pa = table.numbers(PARANG[0], &a.input)?;
+    let pa_end = match table.column(PARANG[1]) {
+        Some(_) => Some(table.numbers(PARANG[1], &a.input)?),
+        None => None,
     };
     let meas = measurements(&table, field.and_then(|c| c.pixel), a.coords, &a.input)?;
     // The telescope's offset is the instrument's angle zero (module docs of fit::telescope_cal).
@@ -679,10 +569,10 @@ fn run_telescope(
     };
     let mut out = Vec::with_capacity(meas.len());
     for (i, m) in meas.iter().enumerate() {
-        let end = table.parang_end.as_ref().map(|e| e[i].to_radians());
+        let end = pa_end.as_ref().map(|e| e[i].to_radians());
         let track = Track::new(pa[i].to_radians(), end);
         let r = fit::telescope_cal::correct_chain(cor.as_ref(), tel, &band, m, track)
-            .with_context(|| format!("{} {}", a.input.display(), table.labels[i]))?;
+            .with_context(|| format!("{} {}", a.input.display(), table.row_label(i)))?;
         let mut c = r.corrected;
         c.inst.q += r.q_tel;
         c.inst.u += r.u_tel;
@@ -696,7 +586,7 @@ fn run_telescope(
         );
     }
     let filter = field.map(|c| c.filter.clone()).unwrap_or_else(|| band.clone());
-    let mut summary = write_catalog(a, kind, &table, &out, est, n_extra, filter, 0.0)?;
+    let mut summary = write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, filter, 0.0)?;
     summary.telescope_model = Some(tel.model.name());
     summary.telescope_band = Some(band.clone());
     if a.json {
@@ -716,12 +606,13 @@ fn run_telescope(
     Ok(())
 }
 
-/// Write a corrected catalog in the input's format and make its summary.
+/// Write a corrected catalog in the output's format and make its summary.
 #[allow(clippy::too_many_arguments)]
 fn write_catalog(
     a: &Args,
     kind: Kind,
-    table: &Table,
+    out_format: Option<Format>,
+    table: &mut Table,
     out: &[Corrected],
     est: Estimator,
     n_extra: usize,
@@ -729,14 +620,17 @@ fn write_catalog(
     hwp_chi_offset_deg: f64,
 ) -> Result<Summary> {
     let p0est = estimates(out, est);
-    match kind {
-        Kind::Csv => write_csv(table, out, &p0est, est, &a.out)?,
-        _ => write_fits_table(&a.input, a.hdu.as_deref(), out, &p0est, est, &a.out)?,
+    if kind == Kind::FitsTable && out_format == Some(Format::Fits) {
+        write_fits_table(&a.input, a.hdu.as_deref(), out, &p0est, est, &a.out)?;
+    } else {
+        append_columns(table, out, &p0est, est);
+        crate::util::check_output(&a.out)?;
+        table.write(&a.out)?;
     }
     Ok(Summary {
         input: a.input.clone(),
         output: a.out.clone(),
-        kind: if kind == Kind::Csv { "catalog (CSV)" } else { "catalog (FITS table)" },
+        kind: if kind == Kind::Text { "catalog (text table)" } else { "catalog (FITS table)" },
         rows: out.len(),
         extrapolated: n_extra,
         method: a.method,

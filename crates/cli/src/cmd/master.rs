@@ -49,6 +49,9 @@ pub struct FlatArgs {
 }
 
 pub fn run_bias(a: BiasArgs) -> Result<()> {
+    // Registered: the provenance hashes them, and the output may not be one of them.
+    crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
+    crate::util::check_output(&a.out)?;
     let inst = instrument::Instrument::load(&a.instrument)?;
     let m = skyfield::calib::master_bias(&a.frames, &inst, a.nsigma)?;
     m.write(&a.out, &inst)?;
@@ -57,6 +60,10 @@ pub fn run_bias(a: BiasArgs) -> Result<()> {
 }
 
 pub fn run_flat(a: FlatArgs) -> Result<()> {
+    crate::util::inputs(
+        a.frames.iter().map(|p| p.as_path()).chain(a.bias.as_deref()).chain(crate::util::file_arg(&a.instrument)),
+    )?;
+    crate::util::check_output(&a.out)?;
     let inst = instrument::Instrument::load(&a.instrument)?;
     let m = skyfield::calib::master_flat(&a.frames, &inst, a.bias.as_deref(), a.nsigma)?;
     m.write(&a.out, &inst)?;

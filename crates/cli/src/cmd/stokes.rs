@@ -1,6 +1,6 @@
 //! `instpol stokes`: reduce one source's dual-beam fluxes (the `stokes` crate does the work).
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, Result};
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -33,7 +33,8 @@ use stokes::{Error as RedError, Measurement, Reduction};
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
-    /// CSV with columns hwp_deg,f_o,f_e[,sigma_o,sigma_e] (header required).
+    /// Table with columns hwp_deg,f_o,f_e[,sigma_o,sigma_e]: CSV (header required), FITS,
+    /// ECSV or VOTable, by extension.
     #[arg(long, value_name = "FILE.csv")]
     pub input: PathBuf,
     #[command(flatten)]
@@ -66,66 +67,34 @@ struct Table {
 
 fn read_table(path: &Path) -> Result<Table> {
     let name = path.display();
-    let mut rdr = csv::ReaderBuilder::new()
-        .comment(Some(b'#'))
-        .trim(csv::Trim::All)
-        .from_path(path)
-        .with_context(|| format!("cannot read {name}"))?;
-    let headers: Vec<String> = rdr
-        .headers()
-        .with_context(|| format!("{name}: cannot read the header row"))?
-        .iter()
-        .map(|h| h.to_ascii_lowercase())
-        .collect();
-    let col = |c: &str| -> Result<Option<usize>> {
-        let idx: Vec<usize> = headers.iter().enumerate().filter(|(_, h)| *h == c).map(|(i, _)| i).collect();
-        match idx.len() {
-            0 => Ok(None),
-            1 => Ok(Some(idx[0])),
-            _ => bail!("{name}: column '{c}' appears {} times in the header", idx.len()),
+    let t = skyfield::table::Table::read(path, None)?;
+    let col = |c: &str| -> Result<Option<Vec<f64>>> {
+        if t.column(c).is_none() {
+            return Ok(None);
         }
+        let v = t.numbers(c, path)?;
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            bail!("{name}: {}, column '{c}': '{}' is not a finite number", t.row_label(i), v[i]);
+        }
+        Ok(Some(v))
     };
-    let need = |c: &str| -> Result<usize> {
+    let need = |c: &str| -> Result<Vec<f64>> {
         col(c)?.ok_or_else(|| {
             anyhow!(
                 "{name}: missing column '{c}' (header has: {}; need hwp_deg,f_o,f_e[,sigma_o,sigma_e])",
-                headers.join(",")
+                t.names().join(",")
             )
         })
     };
-    let (ci, co, ce) = (need("hwp_deg")?, need("f_o")?, need("f_e")?);
-    let sig = match (col("sigma_o")?, col("sigma_e")?) {
+    let (hwp_deg, f_o, f_e) = (need("hwp_deg")?, need("f_o")?, need("f_e")?);
+    let sigma = match (col("sigma_o")?, col("sigma_e")?) {
         (Some(a), Some(b)) => Some((a, b)),
         (None, None) => None,
         (Some(_), None) => bail!("{name}: column 'sigma_o' is given without 'sigma_e' (give both or neither)"),
         (None, Some(_)) => bail!("{name}: column 'sigma_e' is given without 'sigma_o' (give both or neither)"),
     };
-    let mut t =
-        Table { hwp_deg: vec![], f_o: vec![], f_e: vec![], sigma: sig.map(|_| (vec![], vec![])), lines: vec![] };
-    for (r, rec) in rdr.records().enumerate() {
-        let row = r + 1;
-        let rec = rec.with_context(|| format!("{name}: row {row}: malformed CSV record"))?;
-        let line = rec.position().map(|p| p.line()).unwrap_or(0);
-        let get = |c: usize, cname: &str| -> Result<f64> {
-            let s = rec.get(c).unwrap_or("");
-            let v: f64 = s
-                .parse()
-                .map_err(|_| anyhow!("{name}: row {row} (line {line}), column '{cname}': '{s}' is not a number"))?;
-            if !v.is_finite() {
-                bail!("{name}: row {row} (line {line}), column '{cname}': '{s}' is not a finite number");
-            }
-            Ok(v)
-        };
-        t.hwp_deg.push(get(ci, "hwp_deg")?);
-        t.f_o.push(get(co, "f_o")?);
-        t.f_e.push(get(ce, "f_e")?);
-        if let (Some((a, b)), Some((so, se))) = (sig, t.sigma.as_mut()) {
-            so.push(get(a, "sigma_o")?);
-            se.push(get(b, "sigma_e")?);
-        }
-        t.lines.push(line);
-    }
-    Ok(t)
+    let lines = (0..hwp_deg.len()).map(|i| t.lines.get(i).copied().unwrap_or(i as u64 + 1)).collect();
+    Ok(Table { hwp_deg, f_o, f_e, sigma, lines })
 }
 
 /// A repeated exposure's check, for the JSON (`stokes::repeats::ExposureCheck` with its row).

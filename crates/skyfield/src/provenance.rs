@@ -1,0 +1,277 @@
+//! Provenance: what made an output. The one provenance type of the workspace, written into the
+//! primary header of every FITS file the workspace writes ([`stamp`]) and, by the CLI, into its
+//! JSON output as a `provenance` object.
+//!
+//! A run has one provenance: the program (`instpol` and its version), the command line, the UTC
+//! date, the instrument (name and a SHA-256 of its definition) and every input file with a
+//! SHA-256 of its bytes. The CLI fills it once per run ([`set_session`], [`add_input`],
+//! [`set_instrument`]); every FITS writer then stamps it without each command passing it down.
+//! A library caller that never sets it gets the program, version and date only.
+//!
+//! In FITS the provenance is written as keywords `PROGRAM`, `PROGVER`, `DATE` (the FITS
+//! standard's file-creation date, UTC) and a block of `HISTORY` cards (a path and its hash do
+//! not fit a 68-character keyword value), one line per item, long lines continued on the next
+//! card after two spaces:
+//!
+//! ```text
+//! HISTORY instpol 0.1.0 2026-11-23T23:59:59 UTC
+//! HISTORY command: instpol reduce frames/a.fits frames/b.fits --instrument fors1 --out m
+//! HISTORY   ap.fits
+//! HISTORY instrument: fors1 sha256:5f1c...
+//! HISTORY input 1: frames/a.fits sha256:9b0e...
+//! ```
+
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::io::Read;
+use std::path::Path;
+use std::sync::Mutex;
+
+/// One input file and the hash of its bytes.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct InputFile {
+    pub path: String,
+    /// `sha256:<64 hex digits>` of the file's bytes.
+    pub sha256: String,
+}
+
+/// What made an output (module docs).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Provenance {
+    /// Always `instpol`.
+    pub program: String,
+    pub version: String,
+    /// The command line, arguments joined by spaces (empty for a library call).
+    pub command_line: String,
+    /// UTC date and time of the run, ISO 8601 (`YYYY-MM-DDThh:mm:ss`).
+    pub date_utc: String,
+    /// Instrument name, when the run used one.
+    pub instrument: Option<String>,
+    /// `sha256:<hex>` of the instrument's definition (its TOML text).
+    pub instrument_sha256: Option<String>,
+    pub inputs: Vec<InputFile>,
+}
+
+impl Default for Provenance {
+    fn default() -> Self {
+        Self::new("")
+    }
+}
+
+/// `sha256:<hex>` of bytes.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    hex(&Sha256::digest(bytes))
+}
+
+fn hex(d: &[u8]) -> String {
+    let mut s = String::with_capacity(7 + 2 * d.len());
+    s.push_str("sha256:");
+    for b in d {
+        s.push_str(&format!("{b:02x}"));
+    }
+    s
+}
+
+/// `sha256:<hex>` of a file's bytes, streamed (a frame set can be gigabytes).
+pub fn sha256_file(path: &Path) -> std::io::Result<String> {
+    let mut f = std::fs::File::open(path)?;
+    let mut h = Sha256::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        let n = f.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        h.update(&buf[..n]);
+    }
+    Ok(hex(&h.finalize()))
+}
+
+/// Days since 1970-01-01 to a proleptic Gregorian (year, month, day) (Hinnant's civil-from-days
+/// algorithm, exact for every day the i64 range holds).
+fn civil_from_days(z: i64) -> (i64, u32, u32) {
+    let z = z + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z.rem_euclid(146_097);
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = (doy - (153 * mp + 2) / 5 + 1) as u32;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 } as u32;
+    (yoe + era * 400 + i64::from(m <= 2), m, d)
+}
+
+/// Seconds since the Unix epoch as ISO 8601 UTC (`YYYY-MM-DDThh:mm:ss`), the form of the FITS
+/// `DATE` keyword.
+pub fn iso_utc(unix_seconds: i64) -> String {
+    let (days, secs) = (unix_seconds.div_euclid(86_400), unix_seconds.rem_euclid(86_400));
+    let (y, m, d) = civil_from_days(days);
+    format!("{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}", secs / 3600, secs % 3600 / 60, secs % 60)
+}
+
+fn now_utc() -> String {
+    let s = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs() as i64).unwrap_or(0);
+    iso_utc(s)
+}
+
+impl Provenance {
+    /// The program, its version and the current UTC date, with `command_line`.
+    pub fn new(command_line: &str) -> Self {
+        Self {
+            program: "instpol".into(),
+            version: env!("CARGO_PKG_VERSION").into(),
+            command_line: command_line.into(),
+            date_utc: now_utc(),
+            instrument: None,
+            instrument_sha256: None,
+            inputs: Vec::new(),
+        }
+    }
+
+    /// Add an input file with the hash of its bytes (once per path). A file that cannot be
+    /// read is recorded with hash `unreadable` (its reader reports the real error).
+    pub fn add_input(&mut self, path: &Path) {
+        let p = path.display().to_string();
+        if self.inputs.iter().any(|i| i.path == p) {
+            return;
+        }
+        let sha256 = sha256_file(path).unwrap_or_else(|_| "unreadable".into());
+        self.inputs.push(InputFile { path: p, sha256 });
+    }
+
+    /// The instrument's name and the hash of its definition text.
+    pub fn set_instrument(&mut self, name: &str, definition: &[u8]) {
+        self.instrument = Some(name.into());
+        self.instrument_sha256 = Some(sha256_hex(definition));
+    }
+
+    /// The provenance as HISTORY lines (module docs), each at most 70 characters, the limit of
+    /// a HISTORY card's text.
+    pub fn history_lines(&self) -> Vec<String> {
+        let mut items = vec![format!("{} {} {} UTC", self.program, self.version, self.date_utc)];
+        if !self.command_line.is_empty() {
+            items.push(format!("command: {}", self.command_line));
+        }
+        if let Some(n) = &self.instrument {
+            items.push(format!("instrument: {n} {}", self.instrument_sha256.as_deref().unwrap_or("")));
+        }
+        for (k, i) in self.inputs.iter().enumerate() {
+            items.push(format!("input {}: {} {}", k + 1, i.path, i.sha256));
+        }
+        let mut out = Vec::new();
+        for it in items {
+            // Printable ASCII only: a FITS header holds nothing else.
+            let it: String = it.chars().map(|c| if (' '..='~').contains(&c) { c } else { '?' }).collect();
+            let mut rest = it.as_str();
+            let mut first = true;
+            while !rest.is_empty() || first {
+                let width = if first { 70 } else { 68 };
+                let cut = rest.len().min(width);
+                let (head, tail) = rest.split_at(cut);
+                out.push(if first { head.to_string() } else { format!("  {head}") });
+                rest = tail;
+                first = false;
+            }
+        }
+        out
+    }
+
+    /// Write the provenance into header `hdu` of `f`: `PROGRAM`, `PROGVER`, `DATE` (each
+    /// updated if the header has it already) and the HISTORY block (module docs).
+    pub fn write_fits(&self, f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<(), String> {
+        let mut status = 0;
+        let c = |s: &str| std::ffi::CString::new(s).map_err(|e| e.to_string());
+        // Updated rather than appended: a file that already has them (a catalog being
+        // corrected in place of a copy) keeps one card of each.
+        let keys = [
+            ("PROGRAM", self.program.as_str(), "software that wrote this file"),
+            ("PROGVER", self.version.as_str(), "version of that software"),
+            ("DATE", self.date_utc.as_str(), "UTC date the file was written"),
+        ];
+        // SAFETY: `f` is open; `hdu` is made current first.
+        unsafe {
+            let mut ty = 0;
+            fitsio::sys::ffmahd(f.as_raw(), hdu.number as i32 + 1, &mut ty, &mut status);
+        }
+        for (k, v, com) in keys {
+            let (k, v, com) = (c(k)?, c(v)?, c(com)?);
+            // SAFETY: an open file at the right HDU; NUL-terminated strings.
+            unsafe { fitsio::sys::ffukys(f.as_raw(), k.as_ptr(), v.as_ptr(), com.as_ptr(), &mut status) };
+        }
+        for line in self.history_lines() {
+            let l = c(&line)?;
+            // SAFETY: as above.
+            unsafe { fitsio::sys::ffphis(f.as_raw(), l.as_ptr(), &mut status) };
+        }
+        if status != 0 {
+            return Err(format!("writing the provenance (CFITSIO status {status})"));
+        }
+        Ok(())
+    }
+}
+
+static SESSION: Mutex<Option<Provenance>> = Mutex::new(None);
+
+/// Start the run's provenance with its command line (the CLI calls this once, first).
+pub fn set_session(p: Provenance) {
+    *SESSION.lock().unwrap_or_else(|e| e.into_inner()) = Some(p);
+}
+
+/// Add an input file to the run's provenance (hashing it); no effect before [`set_session`].
+pub fn add_input(path: &Path) {
+    if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
+        p.add_input(path);
+    }
+}
+
+/// Record the run's instrument; no effect before [`set_session`].
+pub fn set_instrument(name: &str, definition: &[u8]) {
+    if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
+        p.set_instrument(name, definition);
+    }
+}
+
+/// The run's provenance, or a fresh one (program, version, date) when none was set.
+pub fn current() -> Provenance {
+    SESSION.lock().unwrap_or_else(|e| e.into_inner()).clone().unwrap_or_default()
+}
+
+/// Stamp the run's provenance ([`current`]) into the primary header of `f`: every FITS writer
+/// of the workspace calls this before closing its file.
+pub fn stamp(f: &mut fitsio::FitsFile) -> Result<(), String> {
+    let ph = f.primary_hdu().map_err(|e| e.to_string())?;
+    current().write_fits(f, &ph)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sha256_of_known_vectors() {
+        // FIPS 180-2 appendix B.1 and the empty string.
+        assert_eq!(sha256_hex(b"abc"), "sha256:ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
+        assert_eq!(sha256_hex(b""), "sha256:e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855");
+    }
+
+    #[test]
+    fn iso_dates_at_known_epochs() {
+        assert_eq!(iso_utc(0), "1970-01-01T00:00:00");
+        // 2000-02-29 (a leap day in a century leap year): 951782400 s (POSIX date -d).
+        assert_eq!(iso_utc(951_782_400 + 3661), "2000-02-29T01:01:01");
+        // 2100 is not a leap year: 2100-03-01 is 4107542400 s.
+        assert_eq!(iso_utc(4_107_542_400 - 1), "2100-02-28T23:59:59");
+        assert_eq!(iso_utc(-1), "1969-12-31T23:59:59");
+    }
+
+    #[test]
+    fn history_lines_fit_a_card_and_keep_every_character() {
+        let mut p = Provenance::new(&format!("instpol reduce {}", "frames/very_long_name_".repeat(8)));
+        p.set_instrument("fors1", b"abc");
+        let lines = p.history_lines();
+        assert!(lines.iter().all(|l| l.len() <= 70), "{lines:?}");
+        let joined: String = lines.iter().map(|l| l.strip_prefix("  ").unwrap_or(l)).collect();
+        assert!(joined.contains(&p.command_line));
+        assert!(joined.contains("instrument: fors1 sha256:ba7816bf"));
+    }
+}
