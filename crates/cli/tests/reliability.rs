@@ -230,7 +230,7 @@ fn mc_resource_bounds() {
     assert_eq!(c, 0, "{e}");
     assert!(e.contains("capped at the machine's"), "{e}");
     let cores = std::thread::available_parallelism().unwrap().get() as u64;
-    assert_eq!(json(&o)["threads"].as_u64().unwrap(), cores);
+    assert_eq!(json(&o)["n_threads"].as_u64().unwrap(), cores);
     let t0 = std::time::Instant::now();
     let (c, _, e) = run(&["mc", "--trials", "1000000000000", "--json"]);
     assert_eq!(c, 2, "{e}");

@@ -62,6 +62,7 @@ pub struct Args {
 struct ParamOut {
     name: String,
     value: f64,
+    #[serde(rename = "sigma_value")]
     sigma: f64,
     unit: &'static str,
 }
@@ -87,7 +88,9 @@ struct FitOut {
     joint: bool,
     params: Vec<ParamOut>,
     chi2: f64,
+    #[serde(rename = "n_dof")]
     dof: usize,
+    #[serde(rename = "chi2_dof")]
     chi2_reduced: f64,
     error_scaling: &'static str,
     error_factor: f64,

@@ -80,6 +80,7 @@ struct Out {
     instrument: String,
     prescription: String,
     wavelength_nm: f64,
+    #[serde(rename = "n_pupil_rays")]
     pupil_rays: usize,
     profile_alpha_deg: f64,
     radius_arcmin: Vec<f64>,
