@@ -130,7 +130,7 @@ fn main() {
         // Exit codes: 0 success, 1 a check that ran and failed, 2 bad input.
         let (kind, code, message) = match e.downcast_ref::<util::CheckFailed>() {
             Some(f) => (ErrorKind::Check, 1, f.to_string()),
-            None if e.chain().any(|c| c.is::<std::io::Error>()) => (ErrorKind::Io, 2, format!("{e:#}")),
+            None if is_io(&e) => (ErrorKind::Io, 2, format!("{e:#}")),
             None => (ErrorKind::Input, 2, format!("{e:#}")),
         };
         if json {
@@ -153,6 +153,24 @@ enum ErrorKind {
     Input,
     Io,
     Check,
+}
+
+/// An error of the file system (a file that cannot be read or written), wherever in the chain:
+/// a `std::io::Error`, or a library error that carries one as a field rather than a source.
+fn is_io(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        c.is::<std::io::Error>()
+            || matches!(c.downcast_ref::<fit::Error>(), Some(fit::Error::Io { .. }))
+            || matches!(c.downcast_ref::<skyfield::Error>(), Some(skyfield::Error::Write { .. }))
+            || matches!(c.downcast_ref::<instrument::Error>(), Some(instrument::Error::Io { .. }))
+            || matches!(
+                c.downcast_ref::<sim::Error>(),
+                Some(
+                    sim::Error::Frames(skyfield::Error::Write { .. })
+                        | sim::Error::Instrument(instrument::Error::Io { .. })
+                )
+            )
+    })
 }
 
 /// The one JSON form of an error on stderr under `--json` (schemas/error.schema.json):
