@@ -310,8 +310,7 @@ fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
             "residuals (data - model; hollow: flagged)",
             "parallactic angle (deg)",
             "residual (%)",
-        )
-        .caption_size(16);
+        );
         let mut r = crate::plot::chart(&bottom, &ax, -180.0..180.0, -rmax..rmax)?;
         r.draw_series(LineSeries::new([(-180.0, 0.0), (180.0, 0.0)], BLACK)).map_err(crate::plot::pe)?;
         for p in &pts {

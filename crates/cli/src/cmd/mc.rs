@@ -222,7 +222,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     // Checked before minutes of simulation, not after.
     if let Some(p) = &a.plot {
-        crate::plot::require_png(p)?;
+        crate::plot::ImageFormat::of(p)?;
         crate::util::check_output(p)?;
     }
     if a.sweep {
