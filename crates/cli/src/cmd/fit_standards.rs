@@ -305,7 +305,20 @@ fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
                 c.draw_series(std::iter::once(Circle::new((x, 100.0 * v), 5, style))).map_err(crate::plot::pe)?;
             }
         }
-        crate::plot::legend(&mut c, SeriesLabelPosition::UpperRight)?;
+        let data: Vec<(f64, f64)> = curve
+            .iter()
+            .flat_map(|p| [(p.0, p.1), (p.0, p.2)])
+            .chain(pts.iter().flat_map(|p| {
+                let x = p.obs.parallactic.to_degrees();
+                [
+                    (x, 100.0 * (p.obs.q + p.obs.sigma_q)),
+                    (x, 100.0 * (p.obs.q - p.obs.sigma_q)),
+                    (x, 100.0 * (p.obs.u + p.obs.sigma_u)),
+                    (x, 100.0 * (p.obs.u - p.obs.sigma_u)),
+                ]
+            }))
+            .collect();
+        crate::plot::legend_off_data(&mut c, &data, 2, 7, crate::plot::CORNERS)?;
         let ax = crate::plot::Axes::new(
             "residuals (data - model; hollow: flagged)",
             "parallactic angle (deg)",

@@ -270,8 +270,12 @@ fn plot(path: &Path, r: &[f64], p: &[f64], lam: f64, name: &str) -> Result<()> {
             .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
         ch.draw_series(r.iter().zip(p).map(|(&x, &y)| Circle::new((x, 100.0 * y), 3, BLACK.filled())))
             .map_err(|e| pe(&e))?;
-        // p(r) rises with r: the upper left corner is empty.
-        crate::plot::legend(&mut ch, SeriesLabelPosition::UpperLeft)?;
+        let data: Vec<(f64, f64)> = grid
+            .iter()
+            .flat_map(|&x| [(x, v(x)), (x, i(x))])
+            .chain(r.iter().zip(p).map(|(&x, &y)| (x, 100.0 * y)))
+            .collect();
+        crate::plot::legend_off_data(&mut ch, &data, 3, 12, crate::plot::CORNERS)?;
         root.present().map_err(|e| pe(&e))
     })
 }
