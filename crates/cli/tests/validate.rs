@@ -145,11 +145,14 @@ fn unpolarized_standard_in_the_corner_passes_with_v_fails_with_i() {
     assert_eq!(v["pass"], true);
     assert!(f("corrected_p") < 3.0 * f("sigma_corrected_p"), "{v}");
     // A check that ran and failed exits 1 (scripts: 0 pass, 1 fail, 2 bad input), with the
-    // JSON still printed and a FAIL line naming the star on stderr.
+    // JSON still printed and, under --json, the JSON error (kind check) naming the star on
+    // stderr.
     let (o, i) = validate(&ip, &frames, x, y, &[]);
     assert_eq!(o.status.code(), Some(1), "{}", String::from_utf8_lossy(&o.stderr));
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.lines().last().is_some_and(|l| l.starts_with("FAIL: unpolarized")), "{err}");
+    let last: serde_json::Value = serde_json::from_str(err.lines().last().unwrap_or("")).unwrap();
+    assert_eq!(last["error"]["kind"], "check", "{err}");
+    assert!(last["error"]["message"].as_str().unwrap().starts_with("FAIL: unpolarized"), "{err}");
     assert!((i["predicted_p"].as_f64().unwrap() - 0.0128).abs() < 1e-4, "{i}");
     assert!(i["pull"].as_f64().unwrap() > 3.0, "{i}");
     assert_eq!(i["pass"], false);
