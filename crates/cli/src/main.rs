@@ -24,9 +24,11 @@ mod util;
 /// (half-wave plate + Wollaston prism, e.g. VLT FORS1/FORS2), following Patat & Romaniello
 /// 2006, PASP 118, 146.
 ///
-/// Every command that prints numbers takes --json for scripts. Polarization degrees are
-/// fractions in JSON and percent (labelled) in tables; angles are degrees at the edges.
-/// Errors in the input exit with code 2 and a message that names the input.
+/// Every command takes --json for scripts (keys: README "JSON vocabulary", schemas/).
+/// Polarization degrees are fractions in JSON and percent (labelled) in tables; angles are
+/// degrees at the edges. Errors in the input exit with code 2 and a message that names the
+/// input; with --json the error is one JSON object on stderr:
+/// {"error": {"message", "kind": "input" | "io" | "check", "exit_code"}}.
 #[derive(clap::Parser)]
 #[command(name = "instpol", version, about, long_about)]
 struct Cli {
@@ -98,7 +100,7 @@ fn main() {
             .iter()
             .any(|id| t == *id)
     };
-    let matches = Cli::command()
+    let parsed = Cli::command()
         .mut_subcommands(|s| {
             s.allow_negative_numbers(true).mut_args(|a| {
                 if !a.is_positional() && numeric(&a) {
@@ -108,8 +110,17 @@ fn main() {
                 }
             })
         })
-        .get_matches();
-    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+        .try_get_matches();
+    // A script that asked for --json gets its usage errors as JSON too (the flag is looked for
+    // in the raw arguments: the parse that would find it is the one that failed).
+    let json_arg = std::env::args_os().skip(1).any(|a| a == "--json");
+    let matches = match parsed {
+        Ok(m) => m,
+        Err(e) => clap_error(e, json_arg),
+    };
+    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| clap_error(e, json_arg));
+    let json =
+        matches.subcommand().and_then(|(_, m)| m.try_get_one::<bool>("json").ok().flatten().copied()).unwrap_or(false);
     util::start_provenance();
     let result = match cli.command {
         Command::Demo(a) => cmd::demo::run(a),
@@ -141,11 +152,78 @@ fn main() {
     let result = result.and_then(|()| util::stdout_status());
     if let Err(e) = result {
         // Exit codes: 0 success, 1 a check that ran and failed, 2 bad input.
-        if let Some(f) = e.downcast_ref::<util::CheckFailed>() {
-            eprintln!("{f}");
-            std::process::exit(1);
+        let (kind, code, message) = match e.downcast_ref::<util::CheckFailed>() {
+            Some(f) => (ErrorKind::Check, 1, f.to_string()),
+            None if is_io(&e) => (ErrorKind::Io, 2, format!("{e:#}")),
+            None => (ErrorKind::Input, 2, format!("{e:#}")),
+        };
+        if json {
+            eprintln!("{}", error_json(kind, code, &message));
+        } else if kind == ErrorKind::Check {
+            eprintln!("{message}");
+        } else {
+            eprintln!("error: {message}");
         }
-        eprintln!("error: {e:#}");
-        std::process::exit(2);
+        std::process::exit(code);
     }
+}
+
+/// What went wrong, for the `kind` of a `--json` error: the input (a bad value, file content or
+/// argument), the file system (an unreadable input, an unwritable output), or a check that ran
+/// and failed (a standard star off its prediction).
+#[derive(Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+enum ErrorKind {
+    Input,
+    Io,
+    Check,
+}
+
+/// An error of the file system (a file that cannot be read or written), wherever in the chain:
+/// a `std::io::Error`, or a library error that carries one as a field rather than a source.
+fn is_io(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        c.is::<std::io::Error>()
+            || matches!(c.downcast_ref::<fit::Error>(), Some(fit::Error::Io { .. }))
+            || matches!(c.downcast_ref::<skyfield::Error>(), Some(skyfield::Error::Write { .. }))
+            || matches!(c.downcast_ref::<instrument::Error>(), Some(instrument::Error::Io { .. }))
+            || matches!(
+                c.downcast_ref::<sim::Error>(),
+                Some(
+                    sim::Error::Frames(skyfield::Error::Write { .. })
+                        | sim::Error::Instrument(instrument::Error::Io { .. })
+                )
+            )
+    })
+}
+
+/// The one JSON form of an error on stderr under `--json` (schemas/error.schema.json):
+/// `{"error": {"message", "kind", "exit_code"}}`, one line.
+fn error_json(kind: ErrorKind, exit_code: i32, message: &str) -> String {
+    #[derive(serde::Serialize)]
+    struct Inner<'a> {
+        message: &'a str,
+        kind: ErrorKind,
+        exit_code: i32,
+    }
+    #[derive(serde::Serialize)]
+    struct Outer<'a> {
+        error: Inner<'a>,
+    }
+    serde_json::to_string(&Outer { error: Inner { message, kind, exit_code } })
+        .unwrap_or_else(|_| r#"{"error":{"message":"unprintable error","kind":"input","exit_code":2}}"#.into())
+}
+
+/// A command line clap refuses: as clap prints it, or under `--json` as the JSON error (exit 2,
+/// clap's own code for usage errors). `--help` and `--version` print as usual.
+fn clap_error(e: clap::Error, json: bool) -> ! {
+    use clap::error::ErrorKind as K;
+    if !json || matches!(e.kind(), K::DisplayHelp | K::DisplayVersion | K::DisplayHelpOnMissingArgumentOrSubcommand) {
+        e.exit()
+    }
+    let text = e.render().to_string();
+    // clap's message without its "error: " prefix and usage footer: the first paragraph.
+    let first = text.trim_start_matches("error: ").split("\n\n").next().unwrap_or("").trim().to_string();
+    eprintln!("{}", error_json(ErrorKind::Input, 2, &first));
+    std::process::exit(2)
 }

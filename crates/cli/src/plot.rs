@@ -20,6 +20,48 @@ use std::sync::Once;
 /// A pixel position on a drawing backend.
 type BackendCoord = (i32, i32);
 
+/// The printed width every figure is designed for: one column of a two-column journal (A&A,
+/// PASP, MNRAS: 8.8 cm, 249 pt). Font sizes are given in points at that width and turned into
+/// pixels from the figure's own pixel width ([`px_per_pt`]), so a figure scaled into a column
+/// keeps every text at least [`MIN_FONT_PT`].
+pub const PRINTED_WIDTH_CM: f64 = 8.8;
+
+/// The smallest font size, in points at the printed width (tick labels, legends).
+pub const MIN_FONT_PT: f64 = 9.0;
+
+/// Pixels per typographic point (1/72 inch) for a figure `width_px` wide printed
+/// [`PRINTED_WIDTH_CM`] wide: e.g. 1000 px / 249.4 pt = 4.01 px/pt.
+pub fn px_per_pt(width_px: u32) -> f64 {
+    width_px as f64 / (PRINTED_WIDTH_CM / 2.54 * 72.0)
+}
+
+thread_local! {
+    /// The pixel width of the figure being drawn (set by the `save_*` functions).
+    static FIGURE_WIDTH_PX: std::cell::Cell<u32> = const { std::cell::Cell::new(1000) };
+}
+
+/// Set the width [`pt`] converts against: the figure's full width, whatever panel is drawn.
+pub fn set_figure_width(width_px: u32) {
+    FIGURE_WIDTH_PX.with(|w| w.set(width_px));
+}
+
+/// plotters' font size is the line height, 1.24 em (its SVG backend writes
+/// `font-size = size / 1.24`, and its bitmap text scales the same way).
+const PLOTTERS_SIZE_PER_EM: f64 = 1.24;
+
+/// A font size of `points` (em) at the printed width, as the size plotters takes for the
+/// figure being drawn (rounded up, so the printed size is never below `points`).
+pub fn pt(points: f64) -> u32 {
+    (points * PLOTTERS_SIZE_PER_EM * px_per_pt(FIGURE_WIDTH_PX.with(|w| w.get()))).ceil() as u32
+}
+
+/// Font sizes in points: tick labels and legends at the minimum, axis titles and captions a
+/// little larger.
+pub const TICK_PT: f64 = MIN_FONT_PT;
+pub const LEGEND_PT: f64 = MIN_FONT_PT;
+pub const AXIS_PT: f64 = 10.0;
+pub const CAPTION_PT: f64 = 10.0;
+
 /// A 2-D chart with x and y coordinates `X`, `Y` (linear or log).
 pub type Chart<'a, DB, X, Y> = ChartContext<'a, DB, Cartesian2d<X, Y>>;
 
@@ -54,6 +96,7 @@ pub fn save_png(
 ) -> Result<()> {
     require_png(path)?;
     font();
+    set_figure_width(size.0);
     atomic(path, ".png", |tmp| {
         let root = BitMapBackend::new(tmp, size).into_drawing_area();
         root.fill(&WHITE).map_err(pe)?;
@@ -76,8 +119,15 @@ impl ImageFormat {
         match ext.as_str() {
             "png" => Ok(Self::Png),
             "svg" => Ok(Self::Svg),
+            // plotters has no PDF backend: refused by name rather than PNG bytes in a .pdf.
+            "pdf" => Err(anyhow!(
+                "{}: PDF is not supported (plotters has no PDF backend): the supported plot formats are .png and \
+                 .svg; write .svg and convert it (e.g. rsvg-convert -f pdf)",
+                path.display()
+            )),
             _ => Err(anyhow!(
-                "{}: cannot tell the image format from the extension '{ext}': name the file .png or .svg",
+                "{}: cannot tell the image format from the extension '{ext}': the supported plot formats are .png \
+                 and .svg",
                 path.display()
             )),
         }
@@ -104,6 +154,7 @@ pub fn save_image(
         ImageFormat::Png => save_png(path, size, png),
         ImageFormat::Svg => {
             font();
+            set_figure_width(size.0);
             atomic(path, ".svg", |tmp| {
                 let root = SVGBackend::new(tmp, size).into_drawing_area();
                 root.fill(&WHITE).map_err(pe)?;
@@ -124,6 +175,7 @@ pub fn save_png_svg(
 ) -> Result<Vec<PathBuf>> {
     let (p, s) = (stem.with_extension("png"), stem.with_extension("svg"));
     save_png(&p, size, png)?;
+    set_figure_width(size.0);
     atomic(&s, ".svg", |tmp| {
         let root = SVGBackend::new(tmp, size).into_drawing_area();
         root.fill(&WHITE).map_err(pe)?;
@@ -163,7 +215,8 @@ pub fn tick(v: &f64) -> String {
 /// leave room for the widest labels. Build with [`Axes::new`], adjust, draw with [`chart`].
 pub struct Axes<'s> {
     pub caption: String,
-    pub caption_size: u32,
+    /// Caption font size (points at the printed width, >= [`MIN_FONT_PT`]).
+    pub caption_pt: f64,
     pub x_desc: &'s str,
     pub y_desc: &'s str,
     /// Grid lines (off for maps, where they would hide the vectors).
@@ -174,17 +227,22 @@ pub struct Axes<'s> {
     pub x_fmt: Option<&'s dyn Fn(&f64) -> String>,
 }
 
-/// Room right of the plotting area for half of the last x tick label.
-const RIGHT_PAD: u32 = 30;
+/// Room right of the plotting area for half of the last x tick label (points).
+const RIGHT_PAD_PT: f64 = 8.0;
 
 impl<'s> Axes<'s> {
     pub fn new(caption: impl Into<String>, x_desc: &'s str, y_desc: &'s str) -> Self {
-        Axes { caption: caption.into(), caption_size: 22, x_desc, y_desc, grid: true, x_labels: None, x_fmt: None }
+        Axes {
+            caption: caption.into(),
+            caption_pt: CAPTION_PT,
+            x_desc,
+            y_desc,
+            grid: true,
+            x_labels: None,
+            x_fmt: None,
+        }
     }
-    pub fn caption_size(mut self, px: u32) -> Self {
-        self.caption_size = px;
-        self
-    }
+
     pub fn no_grid(mut self) -> Self {
         self.grid = false;
         self
@@ -211,20 +269,28 @@ where
     X::CoordDescType: ValueFormatter<f64>,
     Y::CoordDescType: ValueFormatter<f64>,
 {
+    // Label areas sized from the fonts: a tick label and the axis title below x; up to seven
+    // characters of tick label and the rotated title left of y.
     let mut c = ChartBuilder::on(area)
-        .caption(&ax.caption, (FONT, ax.caption_size))
-        .margin(12)
-        .margin_right(RIGHT_PAD)
-        .x_label_area_size(45)
-        .y_label_area_size(70)
+        .caption(&ax.caption, (FONT, pt(ax.caption_pt.max(MIN_FONT_PT))))
+        .margin(pt(3.0))
+        .margin_right(pt(RIGHT_PAD_PT))
+        .x_label_area_size(pt((1.3 * (TICK_PT + AXIS_PT) + 6.0) / PLOTTERS_SIZE_PER_EM))
+        .y_label_area_size(pt((0.6 * 6.0 * TICK_PT + 1.3 * AXIS_PT + 6.0) / PLOTTERS_SIZE_PER_EM))
         .build_cartesian_2d(x, y)
         .map_err(pe)?;
     let xf = ax.x_fmt.unwrap_or(&tick);
+    // As many ticks as fit without touching at this font (f = 1.24 em): a y label per 1.6
+    // lines of text, an x label per about five characters.
+    let (w, h) = c.plotting_area().dim_in_pixel();
+    let f = pt(TICK_PT) as f64;
+    let (nx, ny) = (((w as f64 / (2.5 * f)) as usize).clamp(3, 10), ((h as f64 / (2.0 * f)) as usize).clamp(3, 10));
     let mut m = c.configure_mesh();
+    m.x_labels(nx).y_labels(ny);
     m.x_desc(ax.x_desc)
         .y_desc(ax.y_desc)
-        .label_style((FONT, 14))
-        .axis_desc_style((FONT, 15))
+        .label_style((FONT, pt(TICK_PT)))
+        .axis_desc_style((FONT, pt(AXIS_PT)))
         .x_label_formatter(xf)
         .y_label_formatter(&tick);
     if !ax.grid {
@@ -235,6 +301,31 @@ where
     }
     m.draw().map_err(pe)?;
     Ok(c)
+}
+
+/// The decades 10^k inside `[a, b]` (a > 0): the key points of a log axis, so that every decade
+/// carries a label (plotters' own choice may skip some or label 2x, 5x between them). A range
+/// that holds no decade gets its two ends.
+pub fn decades(a: f64, b: f64) -> Vec<f64> {
+    let (lo, hi) = (a.min(b), a.max(b));
+    if !(lo > 0.0 && hi.is_finite()) {
+        return vec![];
+    }
+    // A decade a rounding residue outside the range still belongs to it.
+    let (k0, k1) = ((lo.log10() - 1e-9).ceil() as i32, (hi.log10() + 1e-9).floor() as i32);
+    if k0 > k1 {
+        return vec![lo, hi];
+    }
+    (k0..=k1).map(|k| 10f64.powi(k)).collect()
+}
+
+/// A log axis over `a..b` labelled at every decade ([`decades`]).
+pub fn log_axis(
+    a: f64,
+    b: f64,
+) -> plotters::coord::combinators::WithKeyPoints<plotters::coord::combinators::LogCoord<f64>> {
+    use plotters::coord::combinators::{BindKeyPoints, IntoLogRange};
+    (a..b).log_scale().with_key_points(decades(a, b))
 }
 
 /// A legend key: a short line in `style` (for `.legend(line_key(BLUE))`).
@@ -283,10 +374,81 @@ pub fn legend<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
         .position(pos)
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
-        .label_font((FONT, 14))
+        .label_font((FONT, pt(LEGEND_PT)))
         .draw()
         .map_err(pe)
 }
+
+/// The corner of the plotting area whose legend box would cover the fewest of `data` (the
+/// points and sampled curves drawn, in data coordinates), for a legend of `entries` lines of
+/// up to `chars` characters; ties go to the earlier corner of `prefer`. The box size follows
+/// the legend's font ([`LEGEND_PT`]; DejaVu Sans averages 0.6 em per character).
+pub fn quiet_corner<'a, DB, X, Y>(
+    c: &Chart<'a, DB, X, Y>,
+    data: &[(f64, f64)],
+    entries: usize,
+    chars: usize,
+    prefer: [SeriesLabelPosition; 4],
+) -> SeriesLabelPosition
+where
+    DB: DrawingBackend + 'a,
+    X: plotters::coord::ranged1d::Ranged<ValueType = f64>,
+    Y: plotters::coord::ranged1d::Ranged<ValueType = f64>,
+{
+    use SeriesLabelPosition::*;
+    let (xr, yr) = c.plotting_area().get_pixel_range();
+    let f = pt(LEGEND_PT) as f64;
+    // f is plotters' size, 1.24 em: a character is about 0.5 f wide, a legend line 1.1 f.
+    let (w, h) = ((f * (0.5 * chars as f64 + 3.5)) as i32, (f * (1.1 * entries as f64 + 1.0)) as i32);
+    let pts: Vec<(i32, i32)> =
+        data.iter().filter(|p| p.0.is_finite() && p.1.is_finite()).map(|p| c.backend_coord(p)).collect();
+    let cover = |pos: &SeriesLabelPosition| {
+        let x0 = match pos {
+            UpperLeft | LowerLeft => xr.start,
+            _ => xr.end - w,
+        };
+        let y0 = match pos {
+            UpperLeft | UpperRight => yr.start,
+            _ => yr.end - h,
+        };
+        pts.iter().filter(|p| p.0 >= x0 && p.0 <= x0 + w && p.1 >= y0 && p.1 <= y0 + h).count()
+    };
+    let mut best = 0;
+    let mut best_n = usize::MAX;
+    for (i, p) in prefer.iter().enumerate() {
+        let n = cover(p);
+        if n < best_n {
+            (best, best_n) = (i, n);
+        }
+    }
+    let [a, b, cc, d] = prefer;
+    [a, b, cc, d].into_iter().nth(best).unwrap_or(UpperRight)
+}
+
+/// [`legend`] in the [`quiet_corner`] of the data.
+pub fn legend_off_data<'a, DB, X, Y>(
+    c: &mut Chart<'a, DB, X, Y>,
+    data: &[(f64, f64)],
+    entries: usize,
+    chars: usize,
+    prefer: [SeriesLabelPosition; 4],
+) -> Result<()>
+where
+    DB: DrawingBackend + 'a,
+    X: plotters::coord::ranged1d::Ranged<ValueType = f64>,
+    Y: plotters::coord::ranged1d::Ranged<ValueType = f64>,
+{
+    let pos = quiet_corner(c, data, entries, chars, prefer);
+    legend(c, pos)
+}
+
+/// The four corners, upper right first (the usual place of a legend).
+pub const CORNERS: [SeriesLabelPosition; 4] = [
+    SeriesLabelPosition::UpperRight,
+    SeriesLabelPosition::UpperLeft,
+    SeriesLabelPosition::LowerRight,
+    SeriesLabelPosition::LowerLeft,
+];
 
 /// Line segments where a gridded field crosses `level` (marching squares; cells with a NaN
 /// corner are skipped). `v[j * nx + i]` is the value at `(x0 + i dx, y0 + j dy)`.
@@ -372,8 +534,9 @@ fn split_right<DB: DrawingBackend>(
     area.split_horizontally(area.dim_in_pixel().0.saturating_sub(px))
 }
 
-/// Width kept right of the map for its legend.
-const MAP_LEGEND_ROOM: u32 = 200;
+/// Width kept right of the map for its legend: a third of the figure, what labels of eight
+/// characters at 9 pt need in a column (8 x 0.6 em + the key, about 80 of 249 pt).
+const MAP_LEGEND_ROOM: u32 = 450;
 
 /// fig:insmapB: vectors of the instrumental polarization over contours of 0.3, 0.6, 0.9%.
 pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotData) -> Result<()> {
@@ -381,7 +544,7 @@ pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotDa
     let cal = d.cal;
     let (xr, yr) = field_ranges(cal);
     let (main, side) = split_right(area, MAP_LEGEND_ROOM);
-    let caption = format!("{}: instrumental polarization (contours 0.3, 0.6, 0.9%)", d.title);
+    let caption = format!("{}: instrumental p", d.title);
     let mut c = chart(&main, &map_axes(caption), xr.clone(), yr.clone())?;
     // The legend goes beside the map: inside, its box would hide contours and vectors.
     let mut k = key_panel(&side)?;
@@ -412,14 +575,14 @@ pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotDa
     c.draw_series(std::iter::once(PathElement::new(vec![(bx, by), (bx + 0.01 * scale, by)], BLACK.stroke_width(3))))
         .map_err(pe)?;
     // The label right of the bar, in the empty margin below the lowest row of vectors.
-    let label = TextStyle::from((FONT, 15).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
+    let label = TextStyle::from((FONT, pt(LEGEND_PT)).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
     c.draw_series(std::iter::once(Text::new("1%", (bx + 0.01 * scale + 0.01 * (xr.end - xr.start), by), label)))
         .map_err(pe)?;
     // The radial fit's centre (for an imported map: the free-centre refit the profile panel
     // uses), else the calibration's own.
     let cen = radial_centre.unwrap_or_else(|| cal.centre_arcmin());
     c.draw_series(std::iter::once(Cross::new((cen[0], cen[1]), 7, MAGENTA.stroke_width(2)))).map_err(pe)?;
-    key(&mut k, "radial-model centre", |(x, y)| Cross::new((x + 10, y), 5, MAGENTA.stroke_width(2)))?;
+    key(&mut k, "centre", |(x, y)| Cross::new((x + 10, y), 5, MAGENTA.stroke_width(2)))?;
     legend(&mut k, SeriesLabelPosition::UpperLeft)
 }
 
@@ -479,18 +642,24 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
             .label("ray trace")
             .legend(line_key(RED));
     }
-    legend(&mut c, SeriesLabelPosition::UpperLeft)?;
+    let mut data: Vec<(f64, f64)> = pts.iter().step_by(stride).map(|p| (p.0, p.1 * 100.0)).collect();
+    if let Some(r) = d.radial {
+        data.extend((0..=200).map(|k| rmax * k as f64 / 200.0).map(|x| (x, 100.0 * r.p_of_r(x))));
+    }
+    if let Some(rt) = &d.raytrace {
+        data.extend(rt.iter().map(|(x, p)| (*x, 100.0 * p)));
+    }
+    legend_off_data(&mut c, &data, 3, 20, CORNERS)?;
 
     // Lower panel: phi against alpha.
     let Some(t) = d.polar else { return Ok(()) };
     let (plo, phi_hi) = t.phi_deg.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), p| (l.min(*p), h.max(*p)));
     let (plo, phi_hi) = (plo.min(-190.0), phi_hi.max(190.0));
     let ax = Axes::new(
-        format!("phi vs polar angle: slope {:.4} +- {:.4}, intercept {:.2} deg", t.slope, t.slope_err, t.intercept_deg),
+        format!("slope {:.4} ± {:.4}, intercept {:.1}°", t.slope, t.slope_err, t.intercept_deg),
         "polar angle alpha (deg)",
         "phi (deg)",
-    )
-    .caption_size(20);
+    );
     let mut c = chart(&lower, &ax, -180.0..180.0, plo..phi_hi)?;
     let stride = (t.alpha_deg.len() / 6000).max(1);
     c.draw_series(
@@ -503,7 +672,7 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
     .map_err(pe)?;
     c.draw_series(LineSeries::new([(-180.0, -180.0), (180.0, 180.0)], BLACK.stroke_width(2)))
         .map_err(pe)?
-        .label("unit slope, zero intercept")
+        .label("unit slope")
         .legend(line_key(BLACK.stroke_width(2)));
     for off in [-90.0, 90.0] {
         if (t.intercept_deg - off).abs() < 30.0 {
@@ -512,11 +681,16 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
                 BLACK.mix(0.5).stroke_width(1),
             ))
             .map_err(pe)?
-            .label("unit slope, +-90 deg (tangential)")
+            .label("tangential (±90°)")
             .legend(line_key(BLACK.mix(0.5)));
         }
     }
-    legend(&mut c, SeriesLabelPosition::UpperLeft)
+    let mut data: Vec<(f64, f64)> = t.alpha_deg.iter().zip(&t.phi_deg).step_by(stride).map(|(a, p)| (*a, *p)).collect();
+    data.extend((-180..=180).step_by(5).flat_map(|a| {
+        let a = a as f64;
+        [(a, a), (a, a - 90.0), (a, a + 90.0)]
+    }));
+    legend_off_data(&mut c, &data, 2, 17, CORNERS)
 }
 
 /// fig:residB: the residual field (data minus radial model, as Q and U), coloured by its size,
@@ -538,7 +712,7 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
     mags.sort_by(|a, b| a.total_cmp(b));
     let top = mags.get(mags.len() * 98 / 100).copied().unwrap_or(1e-4).max(1e-6);
     let (main, side) = split_right(area, COLOUR_BAR_ROOM);
-    let caption = format!("{}: residual field (colour |residual|, 0 to {:.3}%)", d.title, top * 100.0);
+    let caption = format!("{}: residual, 0 to {:.3}%", d.title, top * 100.0);
     let mut c = chart(&main, &map_axes(caption), xr.clone(), yr.clone())?;
     colour_bar(&side, "|residual| (%)", 100.0 * top)?;
     // Squares at the bins, coloured with viridis; size from the typical bin spacing.
@@ -652,5 +826,42 @@ mod tests {
         for (v, s) in cases {
             assert_eq!(tick(&v), s, "tick({v:e})");
         }
+    }
+}
+
+#[cfg(test)]
+mod publication_tests {
+    use super::*;
+
+    #[test]
+    fn decades_inside_the_range() {
+        let close =
+            |a: &[f64], b: &[f64]| a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x / y - 1.0).abs() < 1e-12);
+        assert!(close(&decades(0.1, 30.0), &[0.1, 1.0, 10.0]));
+        assert!(close(&decades(1e-6, 0.2), &[1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 0.1]));
+        // Ends that are decades up to rounding are kept; a range with no decade gets its ends.
+        assert!(close(&decades(1000.0 * (1.0 + 1e-13), 1e5 * (1.0 - 1e-13)), &[1e3, 1e4, 1e5]));
+        assert!(close(&decades(2.0, 8.0), &[2.0, 8.0]));
+        assert!(decades(0.0, 1.0).is_empty() && decades(-1.0, 1.0).is_empty());
+    }
+
+    #[test]
+    fn font_size_scales_with_the_figure_width() {
+        // 8.8 cm = 249.45 pt: a 1000 px figure has 4.009 px/pt; 9 pt is 9 x 1.24 x 4.009 =
+        // 44.7 -> 45 in plotters' size (its em is size / 1.24).
+        set_figure_width(1000);
+        assert!((px_per_pt(1000) - 1000.0 / (8.8 / 2.54 * 72.0)).abs() < 1e-12);
+        assert_eq!(pt(9.0), 45);
+        set_figure_width(500);
+        assert_eq!(pt(9.0), 23);
+    }
+
+    #[test]
+    fn pdf_and_unknown_extensions_are_refused_by_name() {
+        let e = ImageFormat::of(Path::new("fig.pdf")).unwrap_err().to_string();
+        assert!(e.contains("fig.pdf") && e.contains(".png and .svg") && e.contains("PDF"), "{e}");
+        let e = ImageFormat::of(Path::new("fig.jpg")).unwrap_err().to_string();
+        assert!(e.contains(".png and .svg"), "{e}");
+        assert_eq!(ImageFormat::of(Path::new("a.SVG")).unwrap(), ImageFormat::Svg);
     }
 }

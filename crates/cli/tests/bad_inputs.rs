@@ -29,11 +29,17 @@ fn refuses<S: AsRef<std::ffi::OsStr> + std::fmt::Debug>(dir: &Path, args: &[S], 
     }
     assert!(!err.contains("panicked"), "panic on {args:?}: {err}");
     assert_eq!(code, 2, "exit code for {args:?}: stdout {out} stderr {err}");
-    // Warnings (naming masked pixels, say) may come first; the error is the last message.
-    let Some(start) = err.lines().position(|l| l.starts_with("error: ")) else {
-        panic!("no 'error:' line for {args:?}: {err}")
+    // Warnings (naming masked pixels, say) may come first; the error is the last message:
+    // `error: ...`, or under --json the JSON error object (schemas/error.schema.json).
+    let json_msg = err.lines().last().and_then(|l| serde_json::from_str::<serde_json::Value>(l).ok()).map(|v| {
+        assert_eq!(v["error"]["exit_code"], 2, "{err}");
+        v["error"]["message"].as_str().unwrap_or_else(|| panic!("no message in {err}")).to_string()
+    });
+    let msg = match (json_msg, err.lines().position(|l| l.starts_with("error: "))) {
+        (Some(m), _) => m,
+        (None, Some(start)) => err.lines().skip(start).collect::<Vec<_>>().join("\n"),
+        (None, None) => panic!("no 'error:' line for {args:?}: {err}"),
     };
-    let msg = err.lines().skip(start).collect::<Vec<_>>().join("\n");
     for n in names {
         assert!(msg.contains(n), "message for {args:?} does not name '{n}': {err}");
     }

@@ -30,7 +30,7 @@ fn calibrate_map_recovers_the_v_pattern_and_writes_a_calibration() {
         "filter",
         "centre_arcmin",
         "coefficients",
-        "coefficient_errors",
+        "sigma_coefficients",
         "rms_residual",
         "polar_angle_slope",
         "polar_angle_intercept_deg",
@@ -41,7 +41,7 @@ fn calibrate_map_recovers_the_v_pattern_and_writes_a_calibration() {
     }
     assert_eq!(j["filter"], "V");
     let c: Vec<f64> = serde_json::from_value(j["coefficients"].clone()).unwrap();
-    let e: Vec<f64> = serde_json::from_value(j["coefficient_errors"].clone()).unwrap();
+    let e: Vec<f64> = serde_json::from_value(j["sigma_coefficients"].clone()).unwrap();
     for k in 0..3 {
         assert!(((c[k] - V[k]) / e[k]).abs() < 4.0, "c{} {} +- {} vs {}", k + 1, c[k], e[k], V[k]);
     }
@@ -65,7 +65,7 @@ fn calibrate_map_recovers_the_v_pattern_and_writes_a_calibration() {
     assert!(out.contains("errors: covariance x 1.000 (absolute)"), "{out}");
     let (_, out, _) = instpol(&["fit", cal.to_str().unwrap(), "--json"]);
     let j: serde_json::Value = serde_json::from_str(&out).unwrap();
-    let (chi2, scale) = (j["chi2_reduced"].as_f64().unwrap(), j["covariance_scale"].as_f64().unwrap());
+    let (chi2, scale) = (j["chi2_dof"].as_f64().unwrap(), j["covariance_scale"].as_f64().unwrap());
     assert_eq!(j["error_scaling"], "conservative");
     assert_eq!(scale, chi2.max(1.0), "conservative scale is max(1, chi2_red)");
 
@@ -198,7 +198,7 @@ fn calibrate_from_simulated_frames_through_the_whole_chain() {
     assert_eq!(code, 0, "{err}");
     let j: serde_json::Value = serde_json::from_str(&out).unwrap();
     let c: Vec<f64> = serde_json::from_value(j["coefficients"].clone()).unwrap();
-    let e: Vec<f64> = serde_json::from_value(j["coefficient_errors"].clone()).unwrap();
+    let e: Vec<f64> = serde_json::from_value(j["sigma_coefficients"].clone()).unwrap();
     for k in 0..3 {
         assert!(((c[k] - V[k]) / e[k]).abs() < 4.0, "c{} {} +- {} vs {}", k + 1, c[k], e[k], V[k]);
     }

@@ -80,8 +80,8 @@ fn csv_catalog_round_trip_in_pixels() {
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let js: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(js["rows"], 49);
-    assert_eq!(js["extrapolated"], 0);
+    assert_eq!(js["n_rows"], 49);
+    assert_eq!(js["n_extrapolated"], 0);
     assert_eq!(js["estimator"], "mas");
     let (h, rows) = read_csv(&out);
     for c in
@@ -272,7 +272,7 @@ fn stokes_map_corrected_bin_by_bin() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let js: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(js["kind"], "Stokes map");
-    assert_eq!(js["rows"], 63);
+    assert_eq!(js["n_rows"], 63);
     // A map of another filter is refused, naming both; --allow-mismatch overrides.
     let mut mb = m.clone();
     mb.filter = "B".into();

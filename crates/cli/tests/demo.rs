@@ -22,21 +22,21 @@ fn demo_json_contract_and_recovery() {
             "sky_chi_deg",
             "input_coefficients",
             "fitted_coefficients",
-            "fitted_errors",
+            "sigma_fitted_coefficients",
             "rms_residual",
             "polar_angle_slope",
-            "calibration_file",
+            "output",
         ] {
             assert!(f.get(key).is_some(), "missing {key}");
         }
-        assert!(std::path::Path::new(f["calibration_file"].as_str().unwrap()).is_file());
+        assert!(std::path::Path::new(f["output"].as_str().unwrap()).is_file());
         let name = f["filter"].as_str().unwrap();
         if name == "B" {
             continue; // the asymmetric component biases the polynomial; checked by fit's tests
         }
         let inp: Vec<f64> = serde_json::from_value(f["input_coefficients"].clone()).unwrap();
         let fit: Vec<f64> = serde_json::from_value(f["fitted_coefficients"].clone()).unwrap();
-        let err: Vec<f64> = serde_json::from_value(f["fitted_errors"].clone()).unwrap();
+        let err: Vec<f64> = serde_json::from_value(f["sigma_fitted_coefficients"].clone()).unwrap();
         for k in 0..3 {
             assert!(((fit[k] - inp[k]) / err[k]).abs() < 4.0, "{name} c{}", k + 1);
         }
@@ -54,7 +54,7 @@ fn demo_json_contract_and_recovery() {
     }
     assert!((v["predicted_p"].as_f64().unwrap() - 0.0096).abs() < 2e-4, "{v}");
     assert!((v["predicted_chi_deg"].as_f64().unwrap() - 128.1).abs() < 1.0, "{v}");
-    assert!(v["residual_sigma"].as_f64().unwrap() < 3.0, "{v}");
+    assert!(v["pull"].as_f64().unwrap() < 3.0, "{v}");
     assert_eq!(v["pass"], serde_json::Value::Bool(true), "{v}");
     let law = &j["wavelength_law"];
     assert!(law["a"].is_number() && law["b"].is_number());
@@ -63,7 +63,7 @@ fn demo_json_contract_and_recovery() {
 
     // The wavelength-law command on the demo's files: the I/V ratio of the mean p over
     // r = 1..3 arcmin must match that of the input polynomials (section sec:fors1).
-    let files: Vec<String> = filters.iter().map(|f| f["calibration_file"].as_str().unwrap().to_string()).collect();
+    let files: Vec<String> = filters.iter().map(|f| f["output"].as_str().unwrap().to_string()).collect();
     let o = Command::new(env!("CARGO_BIN_EXE_instpol"))
         .args(["wavelength-law", &files[0], &files[1], &files[2], "--r-min", "1", "--r-max", "3", "--json"])
         .output()

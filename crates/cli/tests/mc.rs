@@ -22,10 +22,10 @@ fn json_contract_threads_and_eq_sigp() {
     a2.extend(["--threads", "2"]);
     let v1 = json(&a1);
     let v2 = json(&a2);
-    for k in ["trials", "mean_p", "rms_p", "mode_p", "seconds", "trials_per_second"] {
+    for k in ["n_trials", "mean_p", "rms_p", "mode_p", "seconds", "trials_per_second"] {
         assert!(!v1[k].is_null(), "missing {k}");
     }
-    assert_eq!(v1["trials"], 100000);
+    assert_eq!(v1["n_trials"], 100000);
     for k in ["mean_p", "rms_p", "mode_p"] {
         assert_eq!(v1[k], v2[k], "{k} differs between thread counts");
     }

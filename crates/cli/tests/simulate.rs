@@ -30,7 +30,7 @@ fn writes_frames_truth_and_explains() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("photon noise") && err.contains("Wollaston t = 0.51"), "{err}");
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(j["frames"].as_array().unwrap().len(), 4);
+    assert_eq!(j["outputs"].as_array().unwrap().len(), 4);
     let truth: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("truth.json")).unwrap()).unwrap();
     assert_eq!(truth["scene"]["sky"]["p"], 0.0174);

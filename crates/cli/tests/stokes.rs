@@ -47,7 +47,7 @@ fn fors1_n16_recovers_the_generator() {
     assert!((f(&v, "a0") - 0.004).abs() < 3.0 * 6.25e-4 / 4.0, "a0 = {}", f(&v, "a0"));
     let kappa = v["kappa"].as_array().unwrap();
     assert_eq!(kappa.len(), 14, "kappa_j for j = 1..N-2");
-    assert!((f(&v, "kappa_mean") - 0.004).abs() < 5e-4);
+    assert!((f(&v, "mean_kappa") - 0.004).abs() < 5e-4);
     let four = v["fourier"].as_array().unwrap();
     assert_eq!(four.len(), 9, "harmonics 0..N/2");
     for (k, h) in four.iter().enumerate() {
@@ -75,10 +75,10 @@ fn example_n4_and_kappa_correction() {
     assert!((f(&v, "p") - 0.02).abs() < 3.0 * sp);
     assert!((f(&v, "chi_deg") - 40.0).abs() < 3.0 * f(&v, "sigma_chi_deg"));
     assert_eq!(v["kappa"].as_array().unwrap().len(), 2);
-    assert!((f(&v, "kappa_mean") - 0.02).abs() < 3.0 * 1e-3);
+    assert!((f(&v, "mean_kappa") - 0.02).abs() < 3.0 * 1e-3);
     assert_eq!(v["fourier"].as_array().unwrap().len(), 3);
     // Correcting for the measured kappa leaves a0 ~ 0 (exactly the mean of two pairs' F).
-    let km = f(&v, "kappa_mean").to_string();
+    let km = f(&v, "mean_kappa").to_string();
     let c = json(&["--input", path.to_str().unwrap(), "--kappa", &km]);
     assert!(f(&c, "a0").abs() < 1e-4, "a0 after correction = {}", f(&c, "a0"));
     assert!((f(&c, "p") - f(&v, "p")).abs() < 1e-4);
@@ -178,7 +178,7 @@ fn column_order_p_zero_and_n2() {
     assert_eq!(v["n_hwp"], 2);
     assert!((f(&v, "q") - 0.02).abs() < 1e-15 && f(&v, "u").abs() < 1e-15);
     assert!(v["kappa"].as_array().unwrap().is_empty());
-    assert!(v["kappa_mean"].is_null());
+    assert!(v["mean_kappa"].is_null());
     assert!(v["fourier"].as_array().unwrap().is_empty());
     assert!(v["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains("N = 2")));
 }

@@ -91,7 +91,12 @@ fn bad_plot_path_exits_2_and_leaves_no_file() {
     let o = stokes(&["--input", input.to_str().unwrap(), "--plot", taken.to_str().unwrap(), "--json"]);
     assert_eq!(o.status.code(), Some(2));
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.starts_with("error:") && err.contains("taken.png"), "stderr: {err}");
+    // Under --json the error is the JSON object (schemas/error.schema.json): a file-system
+    // failure, exit 2.
+    let e: serde_json::Value = serde_json::from_str(err.trim()).unwrap_or_else(|x| panic!("{x}: {err}"));
+    assert!(e["error"]["message"].as_str().unwrap().contains("taken.png"), "stderr: {err}");
+    assert_eq!(e["error"]["kind"], "io", "{err}");
+    assert_eq!(e["error"]["exit_code"], 2);
     assert!(o.stdout.is_empty());
     assert_eq!(names_in(dir.path()), ["taken.png"]);
     assert!(taken.is_dir() && names_in(&taken).is_empty());

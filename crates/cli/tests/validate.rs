@@ -130,7 +130,7 @@ fn unpolarized_standard_in_the_corner_passes_with_v_fails_with_i() {
         "sigma_chi_deg",
         "predicted_p",
         "predicted_chi_deg",
-        "residual_sigma",
+        "pull",
         "pass",
     ] {
         assert!(!v[k].is_null(), "JSON field {k} missing: {v}");
@@ -141,23 +141,26 @@ fn unpolarized_standard_in_the_corner_passes_with_v_fails_with_i() {
     // The star shows the instrumental polarization, measured to the paper's precision.
     assert!((f("measured_p") - 0.0096).abs() < 3.0 * f("sigma_p"), "{v}");
     assert!(f("sigma_p") > 1e-4 && f("sigma_p") < 1e-3, "{v}");
-    assert!(f("residual_sigma") < 1.0, "{v}");
+    assert!(f("pull") < 1.0, "{v}");
     assert_eq!(v["pass"], true);
     assert!(f("corrected_p") < 3.0 * f("sigma_corrected_p"), "{v}");
     // A check that ran and failed exits 1 (scripts: 0 pass, 1 fail, 2 bad input), with the
-    // JSON still printed and a FAIL line naming the star on stderr.
+    // JSON still printed and, under --json, the JSON error (kind check) naming the star on
+    // stderr.
     let (o, i) = validate(&ip, &frames, x, y, &[]);
     assert_eq!(o.status.code(), Some(1), "{}", String::from_utf8_lossy(&o.stderr));
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.lines().last().is_some_and(|l| l.starts_with("FAIL: unpolarized")), "{err}");
+    let last: serde_json::Value = serde_json::from_str(err.lines().last().unwrap_or("")).unwrap();
+    assert_eq!(last["error"]["kind"], "check", "{err}");
+    assert!(last["error"]["message"].as_str().unwrap().starts_with("FAIL: unpolarized"), "{err}");
     assert!((i["predicted_p"].as_f64().unwrap() - 0.0128).abs() < 1e-4, "{i}");
-    assert!(i["residual_sigma"].as_f64().unwrap() > 3.0, "{i}");
+    assert!(i["pull"].as_f64().unwrap() > 3.0, "{i}");
     assert_eq!(i["pass"], false);
     // The same in arcmin coordinates, and in the human-readable form.
     let (xa, ya) = inst.pixel_to_arcmin(x, y);
     let (o, va) = validate(&vp, &frames, xa, ya, &["--coords", "arcmin"]);
     assert!(o.status.success());
-    assert!((va["residual_sigma"].as_f64().unwrap() - f("residual_sigma")).abs() < 1e-9);
+    assert!((va["pull"].as_f64().unwrap() - f("pull")).abs() < 1e-9);
     // A named polarized standard claimed for this unpolarized star fails.
     let (o, h) = validate(&vp, &frames, x, y, &["--star", "Hiltner 652"]);
     assert_eq!(o.status.code(), Some(1), "{}", String::from_utf8_lossy(&o.stderr));

@@ -208,14 +208,17 @@ pub struct FitSummary {
     pub centre_arcmin: [f64; 2],
     #[serde(skip_serializing_if = "Option::is_none")]
     pub centre_px: Option<[f64; 2]>,
+    #[serde(rename = "sigma_centre_arcmin")]
     pub centre_errors_arcmin: [f64; 2],
     pub centre_free: bool,
     /// Powers of r of the coefficients.
     pub powers: Vec<usize>,
     /// Coefficients (fraction per arcmin^k).
     pub coefficients: Vec<f64>,
+    #[serde(rename = "sigma_coefficients")]
     pub coefficient_errors: Vec<f64>,
     pub rms_residual: f64,
+    #[serde(rename = "chi2_dof")]
     pub chi2_reduced: f64,
     /// How the errors use chi2_red: "conservative" (max(1, chi2_red)), "scaled" or "absolute".
     pub error_scaling: String,
@@ -225,11 +228,14 @@ pub struct FitSummary {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub correlation: Option<crate::correlation::CorrelationInflation>,
     pub polar_angle_slope: f64,
+    #[serde(rename = "sigma_polar_angle_slope")]
     pub polar_angle_slope_err: f64,
     pub polar_angle_intercept_deg: f64,
+    #[serde(rename = "sigma_polar_angle_intercept_deg")]
     pub polar_angle_intercept_err_deg: f64,
     /// The polar-angle test against noise (see `polar::PolarAngleTest::noise_p_value`): the
     /// slope and intercept mean something only when this is below 0.01.
+    #[serde(rename = "polar_angle_noise_pvalue")]
     pub polar_angle_noise_p: f64,
     /// False: "no radial pattern", the bins are consistent with noise.
     pub polar_angle_pattern: bool,
@@ -237,10 +243,12 @@ pub struct FitSummary {
     pub n_bins_used: usize,
     pub n_bins: usize,
     #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(rename = "rms_residual_loo")]
     pub residual_loo_rms: Option<[f64; 2]>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub approx_vs_exact: Option<ApproxVsExact>,
     #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(rename = "output")]
     pub calibration_file: Option<String>,
 }
 

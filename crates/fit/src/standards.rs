@@ -252,6 +252,7 @@ pub struct Validation {
     pub predicted_chi_deg: f64,
     /// `sqrt(d^T C^-1 d)`, `d` = measured - predicted in `(q, u)`, `C` the sum of the
     /// measurement's covariance and the prediction's (calibration and star).
+    #[serde(rename = "pull", alias = "residual_sigma")]
     pub residual_sigma: f64,
     /// Both residuals (this one and [`Self::corrected_residual_sigma`]) within the threshold.
     pub pass: bool,
@@ -263,6 +264,7 @@ pub struct Validation {
     pub corrected_chi_deg: f64,
     pub sigma_corrected_p: f64,
     pub expected_p: f64,
+    #[serde(rename = "corrected_pull", alias = "corrected_residual_sigma")]
     pub corrected_residual_sigma: f64,
     pub threshold: f64,
     /// The position lay outside the calibrated field (only with extrapolation allowed).

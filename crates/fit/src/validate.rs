@@ -26,6 +26,7 @@ pub struct ValidationReport {
     pub y_px: f64,
     pub x_arcmin: f64,
     pub y_arcmin: f64,
+    #[serde(rename = "sigma_model")]
     pub model_error: f64,
     pub hwp_chi_offset_deg: f64,
     pub n_frames: usize,

@@ -11,15 +11,19 @@ use serde::{Deserialize, Serialize};
 pub struct WavelengthLaw {
     pub a: f64,
     pub b: f64,
+    #[serde(rename = "sigma_a", alias = "a_err")]
     pub a_err: f64,
+    #[serde(rename = "sigma_b", alias = "b_err")]
     pub b_err: f64,
     /// Per filter: wavelength (nm), mean `p` over the radius grid, its error, and the ratio
     /// to the fitted `p(550)`.
     pub lambda_nm: Vec<f64>,
     pub mean_p: Vec<f64>,
+    #[serde(rename = "sigma_mean_p", alias = "mean_p_err")]
     pub mean_p_err: Vec<f64>,
     pub ratio: Vec<f64>,
     /// The radius range (arcmin) over which `p(r)` was averaged.
+    #[serde(rename = "r_range_arcmin", alias = "r_range")]
     pub r_range: [f64; 2],
 }
 

@@ -122,7 +122,9 @@ impl PsfShape {
 /// What [`simulate`] wrote.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Simulated {
+    #[serde(rename = "outputs")]
     pub frames: Vec<PathBuf>,
+    #[serde(rename = "truth_output")]
     pub truth: PathBuf,
 }
 

@@ -72,6 +72,7 @@ struct Out {
     empty: bool,
     in_validity_range: bool,
     p: f64,
+    #[serde(rename = "sigma_p")]
     sigma: f64,
     snr_p: f64,
     all_estimators: std::collections::BTreeMap<String, f64>,

@@ -121,7 +121,9 @@ struct Summary {
     input: PathBuf,
     output: PathBuf,
     kind: &'static str,
+    #[serde(rename = "n_rows")]
     rows: usize,
+    #[serde(rename = "n_extrapolated")]
     extrapolated: usize,
     method: MethodArg,
     estimator: String,

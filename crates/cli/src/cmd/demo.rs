@@ -50,9 +50,11 @@ struct FilterOut {
     sky_chi_deg: f64,
     input_coefficients: Vec<f64>,
     fitted_coefficients: Vec<f64>,
+    #[serde(rename = "sigma_fitted_coefficients")]
     fitted_errors: Vec<f64>,
     rms_residual: f64,
     polar_angle_slope: f64,
+    #[serde(rename = "output")]
     calibration_file: String,
     #[serde(flatten)]
     extra: Extra,
@@ -60,16 +62,19 @@ struct FilterOut {
 
 #[derive(Serialize)]
 struct Extra {
+    #[serde(rename = "sigma_polar_angle_slope")]
     polar_angle_slope_err: f64,
     polar_angle_intercept_deg: f64,
     n_bins_used: usize,
     model: String,
     #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(rename = "rms_residual_loo")]
     residual_loo_rms: Option<[f64; 2]>,
     #[serde(skip_serializing_if = "Option::is_none")]
     approx_vs_exact: Option<fit::pipeline::ApproxVsExact>,
     /// RMS over the field of (calibration - input field), per component (fraction).
     rms_vs_input: f64,
+    #[serde(rename = "plot_outputs")]
     plots: Vec<String>,
 }
 
@@ -77,7 +82,9 @@ struct Extra {
 struct Law {
     a: f64,
     b: f64,
+    #[serde(rename = "sigma_a")]
     a_err: f64,
+    #[serde(rename = "sigma_b")]
     b_err: f64,
     paper_a: f64,
     paper_b: f64,
@@ -91,6 +98,7 @@ struct Out {
     /// corner (the paper's check, section sec:fors1): the `instpol validate` JSON.
     validation: crate::cmd::validate::ValidationReport,
     through_frames: bool,
+    #[serde(rename = "output")]
     out_dir: String,
 }
 

@@ -87,6 +87,7 @@ pub struct Args {
 struct ParamOut {
     name: String,
     value: f64,
+    #[serde(rename = "sigma_value")]
     sigma: f64,
     unit: &'static str,
 }
@@ -112,7 +113,9 @@ struct FitOut {
     joint: bool,
     params: Vec<ParamOut>,
     chi2: f64,
+    #[serde(rename = "n_dof")]
     dof: usize,
+    #[serde(rename = "chi2_dof")]
     chi2_reduced: f64,
     error_scaling: &'static str,
     error_factor: f64,
@@ -429,13 +432,25 @@ fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
                 c.draw_series(std::iter::once(Circle::new((x, 100.0 * v), 5, style))).map_err(crate::plot::pe)?;
             }
         }
-        crate::plot::legend(&mut c, SeriesLabelPosition::UpperRight)?;
+        let data: Vec<(f64, f64)> = curve
+            .iter()
+            .flat_map(|p| [(p.0, p.1), (p.0, p.2)])
+            .chain(pts.iter().flat_map(|p| {
+                let x = p.obs.parallactic.to_degrees();
+                [
+                    (x, 100.0 * (p.obs.q + p.obs.sigma_q)),
+                    (x, 100.0 * (p.obs.q - p.obs.sigma_q)),
+                    (x, 100.0 * (p.obs.u + p.obs.sigma_u)),
+                    (x, 100.0 * (p.obs.u - p.obs.sigma_u)),
+                ]
+            }))
+            .collect();
+        crate::plot::legend_off_data(&mut c, &data, 2, 7, crate::plot::CORNERS)?;
         let ax = crate::plot::Axes::new(
             "residuals (data - model; hollow: flagged)",
             "parallactic angle (deg)",
             "residual (%)",
-        )
-        .caption_size(16);
+        );
         let mut r = crate::plot::chart(&bottom, &ax, -180.0..180.0, -rmax..rmax)?;
         r.draw_series(LineSeries::new([(-180.0, 0.0), (180.0, 0.0)], BLACK)).map_err(crate::plot::pe)?;
         for p in &pts {

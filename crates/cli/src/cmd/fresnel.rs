@@ -48,41 +48,45 @@ pub struct Args {
     /// Refractive index of the (lossless) incident medium.
     #[arg(long, allow_negative_numbers = true, default_value_t = 1.0)]
     pub n_incident: f64,
-    /// Print JSON (fields Ts, Tp, Rs, Rp, transmission_diattenuation (also under its old name
-    /// diattenuation), retardance_deg (transmitted), reflection_polarization,
-    /// reflection_retardance_deg, n_real, n_imag of the substrate used) instead of a table.
+    /// Print JSON (fields t_s, t_p, r_s, r_p, transmission_diattenuation, retardance_deg
+    /// (transmitted), reflection_polarization, reflection_retardance_deg, index_real,
+    /// index_imag of the substrate used; schemas/fresnel.schema.json) instead of a table.
     #[arg(long)]
     pub json: bool,
 }
 
 #[derive(Serialize)]
 struct Out {
-    #[serde(rename = "Ts")]
+    #[serde(rename = "t_s")]
     ts: f64,
-    #[serde(rename = "Tp")]
+    #[serde(rename = "t_p")]
     tp: f64,
-    #[serde(rename = "Rs")]
+    #[serde(rename = "r_s")]
     rs: f64,
-    #[serde(rename = "Rp")]
+    #[serde(rename = "r_p")]
     rp: f64,
-    /// (Tp - Ts) / (Tp + Ts); `diattenuation` is its older name, kept for scripts.
+    /// (Tp - Ts) / (Tp + Ts) (one name per quantity: the older `diattenuation` is gone).
     transmission_diattenuation: f64,
-    diattenuation: f64,
     retardance_deg: f64,
     /// (Rs - Rp) / (Rs + Rp).
     reflection_polarization: f64,
     reflection_retardance_deg: f64,
     aoi_deg: f64,
     wavelength_nm: f64,
+    #[serde(rename = "index_incident")]
     n_incident: f64,
+    #[serde(rename = "index_real")]
     n_real: f64,
+    #[serde(rename = "index_imag")]
     n_imag: f64,
     layers: Vec<LayerOut>,
 }
 
 #[derive(Serialize)]
 struct LayerOut {
+    #[serde(rename = "index_real")]
     index: f64,
+    #[serde(rename = "index_imag")]
     k: f64,
     thickness_nm: f64,
 }
@@ -160,7 +164,6 @@ pub fn run(a: Args) -> Result<()> {
         rs: c.reflectance_s,
         rp: c.reflectance_p,
         transmission_diattenuation: c.diattenuation_t(),
-        diattenuation: c.diattenuation_t(),
         retardance_deg: c.retardance_t().to_degrees(),
         reflection_polarization: if rs + rp > 0.0 { (rs - rp) / (rs + rp) } else { 0.0 },
         reflection_retardance_deg: c.retardance_r().to_degrees(),

@@ -59,8 +59,11 @@ struct Summary {
     n_pixels: usize,
     region_arcmin: [f64; 4],
     origin_px: [f64; 2],
+    #[serde(rename = "max_p")]
     p_max: f64,
+    #[serde(rename = "median_p")]
     p_median: f64,
+    #[serde(rename = "output")]
     calibration_file: String,
 }
 

@@ -22,6 +22,10 @@ pub struct BiasArgs {
     /// Output master bias (FITS).
     #[arg(long)]
     pub out: PathBuf,
+    /// Print JSON (output, n_frames, nx_px, ny_px; schemas/master-bias.schema.json) instead of
+    /// a line of text.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// Combine flat-field frames into a master flat: each frame is trimmed, overscan- and (with
@@ -46,6 +50,28 @@ pub struct FlatArgs {
     /// Output master flat (FITS).
     #[arg(long)]
     pub out: PathBuf,
+    /// Print JSON (output, n_frames, nx_px, ny_px; schemas/master-flat.schema.json) instead of
+    /// a line of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// The JSON of `master-bias` and `master-flat`.
+#[derive(serde::Serialize)]
+struct Out {
+    output: String,
+    n_frames: usize,
+    nx_px: usize,
+    ny_px: usize,
+}
+
+/// Print what was written: JSON or one line naming the master.
+fn report(json: bool, out: &std::path::Path, what: &str, n_frames: usize, nx: usize, ny: usize) -> Result<()> {
+    if json {
+        return crate::util::print_json(&Out { output: out.display().to_string(), n_frames, nx_px: nx, ny_px: ny });
+    }
+    outln!("{}: master {what} of {n_frames} frames ({nx} x {ny} px)", out.display());
+    Ok(())
 }
 
 pub fn run_bias(a: BiasArgs) -> Result<()> {
@@ -55,8 +81,7 @@ pub fn run_bias(a: BiasArgs) -> Result<()> {
     let inst = instrument::Instrument::load(&a.instrument)?;
     let m = skyfield::calib::master_bias(&a.frames, &inst, a.nsigma)?;
     m.write(&a.out, &inst)?;
-    outln!("{}: master bias of {} frames ({} x {} px)", a.out.display(), a.frames.len(), m.nx, m.ny);
-    Ok(())
+    report(a.json, &a.out, "bias", a.frames.len(), m.nx, m.ny)
 }
 
 pub fn run_flat(a: FlatArgs) -> Result<()> {
@@ -67,6 +92,5 @@ pub fn run_flat(a: FlatArgs) -> Result<()> {
     let inst = instrument::Instrument::load(&a.instrument)?;
     let m = skyfield::calib::master_flat(&a.frames, &inst, a.bias.as_deref(), a.nsigma)?;
     m.write(&a.out, &inst)?;
-    outln!("{}: master flat of {} frames ({} x {} px)", a.out.display(), a.frames.len(), m.nx, m.ny);
-    Ok(())
+    report(a.json, &a.out, "flat", a.frames.len(), m.nx, m.ny)
 }

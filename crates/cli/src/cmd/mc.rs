@@ -84,6 +84,7 @@ pub struct Args {
 
 #[derive(Serialize)]
 struct RunOut {
+    #[serde(rename = "n_trials")]
     trials: u64,
     mean_p: f64,
     rms_p: f64,
@@ -91,16 +92,21 @@ struct RunOut {
     seconds: f64,
     trials_per_second: f64,
     median_p: Option<f64>,
+    #[serde(rename = "percentile16_p")]
     q16_p: Option<f64>,
+    #[serde(rename = "percentile84_p")]
     q84_p: Option<f64>,
+    #[serde(rename = "n_rejected")]
     rejected: u64,
     sigma_p_analytic: f64,
     noise: String,
     n_hwp: usize,
     snr: f64,
     p0: f64,
+    #[serde(rename = "chi0_deg")]
     chi0: f64,
     seed: u64,
+    #[serde(rename = "n_threads")]
     threads: usize,
     #[serde(skip_serializing_if = "Option::is_none")]
     rng_seconds: Option<f64>,
@@ -216,7 +222,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     // Checked before minutes of simulation, not after.
     if let Some(p) = &a.plot {
-        crate::plot::require_png(p)?;
+        crate::plot::ImageFormat::of(p)?;
         crate::util::check_output(p)?;
     }
     if a.sweep {
@@ -306,6 +312,7 @@ struct SweepOut {
     n_hwp: usize,
     snr: f64,
     noise: String,
+    #[serde(rename = "n_trials_per_point")]
     trials_per_point: u64,
     deltap: Vec<stokes::mc::sweep::DeltaPPoint>,
     bias: Vec<stokes::mc::sweep::BiasPoint>,

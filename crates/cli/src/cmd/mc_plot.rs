@@ -1,4 +1,4 @@
-//! PNG plots of `instpol mc --sweep` (fig:deltap, fig:bias) and `--accuracy-report`.
+//! PNG or SVG plots of `instpol mc --sweep` (fig:deltap, fig:bias) and `--accuracy-report`.
 //! Drawing only: every number comes from `stokes::mc`.
 
 use anyhow::Result;
@@ -11,7 +11,12 @@ use stokes::mc::budget::{NoiseRow, ObserverRow, PrecisionRow};
 use stokes::mc::sweep::{BiasPoint, DeltaPPoint};
 use stokes::stats::rice::{mean_bias_n, mode_n, std_n};
 
-use crate::plot::{chart, dashed_key, legend, line_key, pe, save_png, Axes, FONT};
+use crate::plot::{chart, dashed_key, legend_off_data, line_key, log_axis, pe, save_image, Axes, CORNERS, FONT};
+use plotters::coord::Shift;
+
+/// Three panels stacked, for one journal column (fonts: crate::plot): tall enough for the
+/// fig:bias legend of every estimator at 9 pt.
+const SIZE: (u32, u32) = (1000, 2400);
 
 fn logspace(a: f64, b: f64, n: usize) -> Vec<f64> {
     (0..n).map(|i| (a.ln() + (b.ln() - a.ln()) * i as f64 / (n - 1) as f64).exp()).collect()
@@ -19,15 +24,25 @@ fn logspace(a: f64, b: f64, n: usize) -> Vec<f64> {
 
 /// fig:deltap (sigma_P and Delta P against eta, N and SNR given) and fig:bias.
 pub fn sweep_png(path: &Path, dp: &[DeltaPPoint], bias: &[BiasPoint], n: usize, snr: f64) -> Result<()> {
+    save_image(path, SIZE, |r| draw_sweep(r, dp, bias, n, snr), |r| draw_sweep(r, dp, bias, n, snr))
+}
+
+fn draw_sweep<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    dp: &[DeltaPPoint],
+    bias: &[BiasPoint],
+    n: usize,
+    snr: f64,
+) -> Result<()> {
     let k = (n as f64 / 2.0).sqrt();
-    save_png(path, (1000, 1500), |root| {
+    {
         let areas = root.split_evenly((3, 1));
         let emin = dp.iter().map(|p| p.eta).fold(f64::INFINITY, f64::min).max(1e-3);
         let emax = dp.iter().map(|p| p.eta).fold(0.0, f64::max).max(emin * 10.0);
         let curve = logspace(emin, emax, 200);
         // Upper panel of fig:deltap: sigma_P x SNR.
         let ax = Axes::new(format!("fig:deltap  sigma_P (N = {n}, SNR = {snr})"), "eta = P0 SNR", "sigma_P x SNR");
-        let mut c = chart(&areas[0], &ax, (emin..emax).log_scale(), 0.0..(1.25 / k))?;
+        let mut c = chart(&areas[0], &ax, log_axis(emin, emax), 0.0..(1.25 / k))?;
         c.draw_series(LineSeries::new([(emin, 1.0 / k), (emax, 1.0 / k)], BLACK.stroke_width(2)))
             .map_err(pe)?
             .label("eq:sigp")
@@ -45,15 +60,20 @@ pub fn sweep_png(path: &Path, dp: &[DeltaPPoint], bias: &[BiasPoint], n: usize, 
             .map_err(pe)?
             .label("Monte Carlo")
             .legend(|(x, y)| Circle::new((x + 10, y), 4, BLACK));
-        legend(&mut c, SeriesLabelPosition::LowerRight)?;
+        let data: Vec<(f64, f64)> = curve
+            .iter()
+            .flat_map(|&e| [(e, 1.0 / k), (e, ray), (e, std_n(k * e) / k)])
+            .chain(dp.iter().map(|p| (p.eta, p.sigma_p * snr)))
+            .collect();
+        legend_off_data(&mut c, &data, 4, 11, CORNERS)?;
 
         // Lower panel of fig:deltap: Delta P x SNR.
         let ymax = dp.iter().map(|p| p.delta_mean * snr).fold(0.0, f64::max).max(0.1) * 1.1;
         let ax = Axes::new("fig:deltap  bias Delta P", "eta = P0 SNR", "Delta P x SNR");
-        let mut c = chart(&areas[1], &ax, (emin..emax).log_scale(), 0.0..ymax)?;
+        let mut c = chart(&areas[1], &ax, log_axis(emin, emax), 0.0..ymax)?;
         c.draw_series(LineSeries::new(curve.iter().map(|&e| (e, (mode_n(k * e) - k * e) / k)), BLACK.stroke_width(2)))
             .map_err(pe)?
-            .label("Wardle & Kronberg (Rice mode)")
+            .label("W&K (Rice mode)")
             .legend(line_key(BLACK.stroke_width(2)));
         c.draw_series(DashedLineSeries::new(
             curve.iter().map(|&e| (e, mean_bias_n(k * e) / k)),
@@ -62,7 +82,7 @@ pub fn sweep_png(path: &Path, dp: &[DeltaPPoint], bias: &[BiasPoint], n: usize, 
             BLUE.stroke_width(2),
         ))
         .map_err(pe)?
-        .label("Rice mean (average)")
+        .label("Rice mean")
         .legend(dashed_key(BLUE.stroke_width(2)));
         c.draw_series(
             dp.iter().filter_map(|p| p.delta_mode.map(|d| Circle::new((p.eta, d * snr), 4, BLACK.stroke_width(1)))),
@@ -74,13 +94,19 @@ pub fn sweep_png(path: &Path, dp: &[DeltaPPoint], bias: &[BiasPoint], n: usize, 
             .map_err(pe)?
             .label("MC mean")
             .legend(|(x, y)| Cross::new((x + 10, y), 5, BLUE));
-        legend(&mut c, SeriesLabelPosition::UpperRight)?;
+        let data: Vec<(f64, f64)> = curve
+            .iter()
+            .flat_map(|&e| [(e, (mode_n(k * e) - k * e) / k), (e, mean_bias_n(k * e) / k)])
+            .chain(dp.iter().filter_map(|p| p.delta_mode.map(|d| (p.eta, d * snr))))
+            .chain(dp.iter().map(|p| (p.eta, p.delta_mean * snr)))
+            .collect();
+        legend_off_data(&mut c, &data, 4, 15, CORNERS)?;
 
         // fig:bias: Delta P / sigma_P against SNR_P.
         let smin = bias.iter().map(|b| b.snr_p).fold(f64::INFINITY, f64::min).max(1e-3);
         let smax = bias.iter().map(|b| b.snr_p).fold(0.0, f64::max).max(smin * 10.0);
         let ax = Axes::new("fig:bias  Delta P / sigma_P", "SNR_P = P0 / sigma_P", "Delta P / sigma_P");
-        let mut c = chart(&areas[2], &ax, (smin..smax).log_scale(), -0.6f64..1.6)?;
+        let mut c = chart(&areas[2], &ax, log_axis(smin, smax), -1.5f64..1.6)?;
         let names: Vec<String> =
             bias.first().map(|b| b.estimators.iter().map(|e| e.0.clone()).collect()).unwrap_or_default();
         for (j, nm) in names.iter().enumerate() {
@@ -106,14 +132,34 @@ pub fn sweep_png(path: &Path, dp: &[DeltaPPoint], bias: &[BiasPoint], n: usize, 
         .map_err(pe)?
         .label("MC median")
         .legend(|(x, y)| TriangleMarker::new((x + 10, y), 5, RED));
-        legend(&mut c, SeriesLabelPosition::UpperRight)?;
+        let data: Vec<(f64, f64)> = bias
+            .iter()
+            .flat_map(|b| {
+                b.estimators.iter().map(|e| (b.snr_p, e.1)).chain([
+                    (b.snr_p, b.mc_mode.unwrap_or(f64::NAN)),
+                    (b.snr_p, b.mc_mean),
+                    (b.snr_p, b.mc_median.unwrap_or(f64::NAN)),
+                ])
+            })
+            .collect();
+        legend_off_data(&mut c, &data, names.len() + 3, 13, CORNERS)?;
         Ok(())
-    })
+    }
 }
 
 /// The accuracy report: Monte Carlo precision vs trials, sigma_P and floors vs SNR, noise modes.
 pub fn accuracy_png(path: &Path, prec: &[PrecisionRow], obs: &[ObserverRow], nm: &[NoiseRow], p0: f64) -> Result<()> {
-    save_png(path, (1000, 1500), |root| {
+    save_image(path, SIZE, |r| draw_accuracy(r, prec, obs, nm, p0), |r| draw_accuracy(r, prec, obs, nm, p0))
+}
+
+fn draw_accuracy<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    prec: &[PrecisionRow],
+    obs: &[ObserverRow],
+    nm: &[NoiseRow],
+    p0: f64,
+) -> Result<()> {
+    {
         let areas = root.split_evenly((3, 1));
         // 1. Scatter of the estimates against trials (and seconds).
         let tmin = prec.iter().map(|r| r.trials as f64).fold(f64::INFINITY, f64::min).max(1.0);
@@ -128,10 +174,8 @@ pub fn accuracy_png(path: &Path, prec: &[PrecisionRow], obs: &[ObserverRow], nm:
             vals.iter().cloned().fold(f64::INFINITY, f64::min).max(1e-6) / 2.0,
             vals.iter().cloned().fold(1e-5, f64::max) * 2.0,
         );
-        let ax =
-            Axes::new("Monte Carlo precision (scatter of one run, relative to P0) vs trials", "trials", "scatter / P0")
-                .caption_size(20);
-        let mut c = chart(&areas[0], &ax, (tmin..tmax).log_scale(), (ylo..yhi).log_scale())?;
+        let ax = Axes::new("MC precision: scatter / P0 vs trials", "trials", "scatter / P0");
+        let mut c = chart(&areas[0], &ax, log_axis(tmin, tmax), log_axis(ylo, yhi))?;
         type Get = fn(&PrecisionRow) -> f64;
         let series: [(&str, Get, RGBColor); 3] = [
             ("sigma_P", |r| r.sigma_p_scatter, BLACK),
@@ -151,7 +195,8 @@ pub fn accuracy_png(path: &Path, prec: &[PrecisionRow], obs: &[ObserverRow], nm:
                 _ if i + 1 == prec.len() => HPos::Right,
                 _ => HPos::Center,
             };
-            let style = TextStyle::from((FONT, 13).into_font()).pos(Pos::new(h, VPos::Center));
+            let style = TextStyle::from((FONT, crate::plot::pt(crate::plot::LEGEND_PT)).into_font())
+                .pos(Pos::new(h, VPos::Center));
             c.draw_series(std::iter::once(Text::new(
                 format!("{:.3} s", r.seconds),
                 (r.trials as f64, yhi / 1.6),
@@ -159,23 +204,30 @@ pub fn accuracy_png(path: &Path, prec: &[PrecisionRow], obs: &[ObserverRow], nm:
             )))
             .map_err(pe)?;
         }
-        legend(&mut c, SeriesLabelPosition::LowerLeft)?;
+        let data: Vec<(f64, f64)> = prec
+            .iter()
+            .flat_map(|r| {
+                let t = r.trials as f64;
+                [
+                    (t, r.sigma_p_scatter / p0),
+                    (t, r.bias_mean_scatter / p0),
+                    (t, r.bias_mode_scatter / p0),
+                    (t, yhi / 1.6),
+                ]
+            })
+            .collect();
+        legend_off_data(&mut c, &data, 3, 11, CORNERS)?;
 
         // 2. sigma_P vs SNR with the systematic floors.
         let smin = obs.first().and_then(|o| o.sigma_p.first()).map_or(10.0, |s| s.0);
         let smax = obs.first().and_then(|o| o.sigma_p.last()).map_or(1e4, |s| s.0);
-        let ax = Axes::new(
-            "observer: sigma_P (eq:sigp) and HWP systematic floors vs SNR",
-            "SNR per HWP angle (time ~ SNR^2)",
-            "P error",
-        )
-        .caption_size(20);
-        let mut c = chart(&areas[1], &ax, (smin..smax).log_scale(), (1e-6f64..0.2).log_scale())?;
+        let ax = Axes::new("sigma_P (solid), HWP floors (dashed)", "SNR per HWP angle", "P error");
+        let mut c = chart(&areas[1], &ax, log_axis(smin, smax), log_axis(1e-6, 0.2))?;
         for (j, o) in obs.iter().enumerate() {
             let col = Palette99::pick(j).to_rgba();
             c.draw_series(LineSeries::new(o.sigma_p.iter().map(|s| (s.0, s.1)), col.stroke_width(2)))
                 .map_err(pe)?
-                .label(format!("N = {}: sigma_P (solid), worst HWP floor (dashed)", o.n_hwp))
+                .label(format!("N = {}", o.n_hwp))
                 .legend(move |(x, y)| {
                     EmptyElement::at((x, y))
                         + PathElement::new([(0, -3), (22, -3)], col.stroke_width(2))
@@ -185,18 +237,20 @@ pub fn accuracy_png(path: &Path, prec: &[PrecisionRow], obs: &[ObserverRow], nm:
             c.draw_series(DashedLineSeries::new([(smin, worst), (smax, worst)], 8, 6, col.stroke_width(2)))
                 .map_err(pe)?;
         }
-        legend(&mut c, SeriesLabelPosition::LowerLeft)?;
+        let data: Vec<(f64, f64)> = obs
+            .iter()
+            .flat_map(|o| {
+                let worst = o.floors.iter().map(|f| f.1).fold(0.0, f64::max).max(1e-6);
+                o.sigma_p.iter().flat_map(move |s| [(s.0, s.1), (s.0, worst)])
+            })
+            .collect();
+        legend_off_data(&mut c, &data, obs.len(), 6, CORNERS)?;
 
         // 3. Noise modes: relative sigma_P difference to Poisson vs SNR.
         let snrs: Vec<f64> = nm.iter().map(|r| r.snr).collect();
         let (a, b) = (snrs.iter().cloned().fold(f64::INFINITY, f64::min), snrs.iter().cloned().fold(0.0, f64::max));
-        let ax = Axes::new(
-            "fast noise modes vs exact Poisson: (sigma_P - sigma_P[poisson]) / sigma_P[poisson]",
-            "SNR",
-            "relative sigma_P difference",
-        )
-        .caption_size(18);
-        let mut c = chart(&areas[2], &ax, (a..b.max(a * 2.0)).log_scale(), -0.3f64..0.3)?;
+        let ax = Axes::new("fast noise modes vs exact Poisson", "SNR", "rel. sigma_P difference");
+        let mut c = chart(&areas[2], &ax, log_axis(a, b.max(a * 2.0)), -0.3f64..0.3)?;
         for (j, mode) in ["gauss-f", "gauss-qu"].iter().enumerate() {
             let col = if j == 0 { BLUE } else { RED };
             c.draw_series(LineSeries::new(
@@ -207,7 +261,8 @@ pub fn accuracy_png(path: &Path, prec: &[PrecisionRow], obs: &[ObserverRow], nm:
             .label(*mode)
             .legend(line_key(col.stroke_width(2)));
         }
-        legend(&mut c, SeriesLabelPosition::LowerRight)?;
+        let data: Vec<(f64, f64)> = nm.iter().map(|r| (r.snr, r.rms_rel_dev)).collect();
+        legend_off_data(&mut c, &data, 2, 8, CORNERS)?;
         Ok(())
-    })
+    }
 }

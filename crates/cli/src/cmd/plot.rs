@@ -91,7 +91,7 @@ pub fn run(a: Args) -> Result<()> {
     let stem = a.calibration.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_else(|| "cal".into());
     let files = plot_with(&a.out, &stem, &run, raytrace)?;
     if a.json {
-        crate::util::print_json(&serde_json::json!({ "files": files }))
+        crate::util::print_json(&serde_json::json!({ "outputs": files }))
     } else {
         for f in files {
             outln!("wrote {}", f.display());

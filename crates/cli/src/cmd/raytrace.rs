@@ -80,6 +80,7 @@ struct Out {
     instrument: String,
     prescription: String,
     wavelength_nm: f64,
+    #[serde(rename = "n_pupil_rays")]
     pupil_rays: usize,
     profile_alpha_deg: f64,
     radius_arcmin: Vec<f64>,
@@ -240,7 +241,6 @@ pub fn run(a: Args) -> Result<()> {
 
 /// p(r) in percent against the paper's V and I polynomials (section fors1).
 fn plot(path: &Path, r: &[f64], p: &[f64], lam: f64, name: &str) -> Result<()> {
-    use crate::plot::FONT;
     use plotters::prelude::*;
     crate::plot::font();
     let pe = |e: &dyn std::fmt::Debug| anyhow!("plot {}: {e:?}", path.display());
@@ -250,16 +250,12 @@ fn plot(path: &Path, r: &[f64], p: &[f64], lam: f64, name: &str) -> Result<()> {
     let grid: Vec<f64> = (0..=100).map(|k| rmax * k as f64 / 100.0).collect();
     let ymax = grid.iter().map(|&x| v(x).max(i(x))).chain(p.iter().map(|&x| 100.0 * x)).fold(0.0, f64::max) * 1.1;
     crate::plot::atomic(path, ".png", |tmp| {
+        crate::plot::set_figure_width(900);
         let root = BitMapBackend::new(tmp, (900, 600)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| pe(&e))?;
-        let mut ch = ChartBuilder::on(&root)
-            .caption(format!("{name}: ray-traced p(r) at {lam} nm vs paper fits"), (FONT, 22))
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(60)
-            .build_cartesian_2d(0.0..rmax, 0.0..ymax)
-            .map_err(|e| pe(&e))?;
-        ch.configure_mesh().x_desc("r (arcmin)").y_desc("p (%)").label_style((FONT, 14)).draw().map_err(|e| pe(&e))?;
+        // The shared frame (fonts sized for a journal column, crate::plot).
+        let ax = crate::plot::Axes::new(format!("{name}: ray trace at {lam} nm"), "r (arcmin)", "p (%)");
+        let mut ch = crate::plot::chart(&root, &ax, 0.0..rmax, 0.0..ymax)?;
         ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, v(x))), GREEN.stroke_width(2)))
             .map_err(|e| pe(&e))?
             .label("paper V fit")
@@ -274,12 +270,12 @@ fn plot(path: &Path, r: &[f64], p: &[f64], lam: f64, name: &str) -> Result<()> {
             .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
         ch.draw_series(r.iter().zip(p).map(|(&x, &y)| Circle::new((x, 100.0 * y), 3, BLACK.filled())))
             .map_err(|e| pe(&e))?;
-        ch.configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .label_font((FONT, 14))
-            .draw()
-            .map_err(|e| pe(&e))?;
+        let data: Vec<(f64, f64)> = grid
+            .iter()
+            .flat_map(|&x| [(x, v(x)), (x, i(x))])
+            .chain(r.iter().zip(p).map(|(&x, &y)| (x, 100.0 * y)))
+            .collect();
+        crate::plot::legend_off_data(&mut ch, &data, 3, 12, crate::plot::CORNERS)?;
         root.present().map_err(|e| pe(&e))
     })
 }

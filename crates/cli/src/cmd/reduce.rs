@@ -40,11 +40,15 @@ pub struct Args {
 
 #[derive(serde::Serialize)]
 struct Summary {
+    #[serde(rename = "output")]
     out: PathBuf,
     filter: String,
+    #[serde(rename = "hwp_deg")]
     hwp_angles_deg: Vec<f64>,
     bin_px: usize,
+    #[serde(rename = "n_bins")]
     bins: usize,
+    #[serde(rename = "n_valid_bins")]
     valid_bins: usize,
     median_p: f64,
     median_chi_deg: f64,

@@ -213,6 +213,7 @@ struct JsonOut {
     sigma_chi_deg: Option<f64>,
     a0: f64,
     kappa: Vec<f64>,
+    #[serde(rename = "mean_kappa")]
     kappa_mean: Option<f64>,
     fourier: Vec<JsonHarmonic>,
     warnings: Vec<String>,

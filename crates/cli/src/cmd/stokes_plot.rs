@@ -14,7 +14,7 @@ use plotters::series::DashedLineSeries;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::path::Path;
 
-use crate::plot::{chart, dashed_key, legend, line_key, pe, save_image, tick, Axes, FONT};
+use crate::plot::{chart, dashed_key, legend_off_data, line_key, pe, save_image, tick, Axes, CORNERS, FONT};
 
 /// Width and height of the PNG in pixels.
 pub const SIZE: (u32, u32) = (1000, 900);
@@ -49,26 +49,17 @@ fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) 
     let hi = ys.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     let chi = d.chi_deg.map_or("undefined".to_string(), |c| format!("{c:.2} deg"));
     let ax = Axes::new(
-        format!(
-            "fig:fourier  F_i against HWP angle (N = {}): P = {:.4} ± {:.4} %, χ = {chi}",
-            d.n,
-            pct(d.p),
-            pct(d.sigma_p)
-        ),
+        format!("N = {}: P = {:.3} ± {:.3} %, χ = {chi}", d.n, pct(d.p), pct(d.sigma_p)),
         "HWP angle θ (deg)",
         "F_i (%)",
-    )
-    .caption_size(20);
+    );
     // A little room either side, so that the points at 0 deg are not cut by the axis.
     let pad = d.theta_max_deg / 60.0;
-    let mut c = chart(area, &ax, -pad..d.theta_max_deg + pad, padded(lo, hi, 0.35))?;
-    let what = match d.a0 {
-        Some(_) => "a_0 + Q cos 4θ + U sin 4θ",
-        None => "Q cos 4θ + U sin 4θ (eq:system)",
-    };
+    // Headroom for the legend's three lines at 9 pt above the curve.
+    let mut c = chart(area, &ax, -pad..d.theta_max_deg + pad, padded(lo, hi, 1.0))?;
     c.draw_series(LineSeries::new(d.curve.iter().map(|(t, f)| (*t, pct(*f))), BLUE.stroke_width(2)))
         .map_err(pe)?
-        .label(format!("{what}, the solver's Q = {:.4} %, U = {:.4} %", pct(d.q), pct(d.u)))
+        .label(format!("Q = {:.3} %, U = {:.3} %", pct(d.q), pct(d.u)))
         .legend(line_key(BLUE.stroke_width(2)));
     if let Some(a0) = d.a0 {
         let grey = BLACK.mix(0.6);
@@ -79,7 +70,7 @@ fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) 
             grey.stroke_width(1),
         ))
         .map_err(pe)?
-        .label(format!("a_0 = mean F_i = {:.4} % (eq:a0)", pct(a0)))
+        .label(format!("a_0 = {:.3} % (eq:a0)", pct(a0)))
         .legend(dashed_key(grey));
     }
     // Error bars as one I-shaped path each (capped, cap width 1/200 of the axis).
@@ -91,9 +82,17 @@ fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) 
     .map_err(pe)?;
     c.draw_series(d.points.iter().map(|p| Circle::new((p.theta_deg, pct(p.f)), 4, BLACK.filled())))
         .map_err(pe)?
-        .label("F_i (eq:F) with 1-sigma errors")
+        .label("F_i ± 1σ (eq:F)")
         .legend(|(x, y)| Circle::new((x + 10, y), 4, BLACK.filled()));
-    legend(&mut c, SeriesLabelPosition::UpperRight)
+    let mut data: Vec<(f64, f64)> = d.curve.iter().map(|(t, f)| (*t, pct(*f))).collect();
+    data.extend(d.points.iter().flat_map(|p| {
+        let s = if p.sigma.is_finite() { p.sigma.max(0.0) } else { 0.0 };
+        [(p.theta_deg, pct(p.f)), (p.theta_deg, pct(p.f - s)), (p.theta_deg, pct(p.f + s))]
+    }));
+    if let Some(a0) = d.a0 {
+        data.extend(d.curve.iter().map(|(t, _)| (*t, pct(a0))));
+    }
+    legend_off_data(&mut c, &data, 2 + d.a0.is_some() as usize, 22, CORNERS)
 }
 
 /// Tick labels at the whole harmonic numbers only.
@@ -108,33 +107,25 @@ fn whole(v: &f64) -> String {
 fn draw_harmonics<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) -> Result<()> {
     if d.bars.is_empty() {
         let (w, h) = area.dim_in_pixel();
-        let style = TextStyle::from((FONT, 18).into_font()).pos(Pos::new(HPos::Center, VPos::Center));
-        area.draw(&Text::new(
-            "no harmonics: eq:fourcoeff needs the optimal angle set (theta_i = i × 22.5 deg, N = 4k)",
-            (w as i32 / 2, h as i32 / 2),
-            style,
-        ))
-        .map_err(pe)?;
+        let style = TextStyle::from((FONT, crate::plot::pt(crate::plot::AXIS_PT)).into_font())
+            .pos(Pos::new(HPos::Center, VPos::Center));
+        area.draw(&Text::new("no harmonics (needs θ_i = i × 22.5°)", (w as i32 / 2, h as i32 / 2), style))
+            .map_err(pe)?;
         return Ok(());
     }
     let kmax = d.bars.last().map_or(0, |b| b.k) as f64;
     let top = d.bars.iter().map(|b| 100.0 * b.amplitude.max(b.sigma)).fold(0.0, f64::max);
     let k_pol = d.k_pol.map_or("N/4".to_string(), |k| k.to_string());
-    let ax = Axes::new(
-        format!("harmonic amplitudes √(a_k² + b_k²) (eq:fourcoeff); k = {k_pol} is the polarization"),
-        "harmonic k",
-        "amplitude (%)",
-    )
-    .caption_size(20)
-    .x_ticks(d.bars.len() + 1, &whole);
-    let mut c = chart(area, &ax, -0.6..kmax + 0.6, 0.0..padded(0.0, top, 0.3).end)?;
+    let ax = Axes::new(format!("√(a_k² + b_k²) (eq:fourcoeff); P at k = {k_pol}"), "harmonic k", "amplitude (%)")
+        .x_ticks(d.bars.len() + 1, &whole);
+    let mut c = chart(area, &ax, -0.6..kmax + 0.6, 0.0..padded(0.0, top, 1.2).end)?;
     let pol = d.k_pol;
     c.draw_series(d.bars.iter().filter(|b| Some(b.k) != pol).map(|b| {
         let k = b.k as f64;
         Rectangle::new([(k - 0.35, 0.0), (k + 0.35, 100.0 * b.amplitude)], BLUE.mix(0.45).filled())
     }))
     .map_err(pe)?
-    .label(if d.n == 16 { "other harmonics (k = 1: dust, k = 2: pleochroism)" } else { "other harmonics" })
+    .label(if d.n == 16 { "k = 1 dust, 2 pleochroism" } else { "other harmonics" })
     .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], BLUE.mix(0.45).filled()));
     if let Some(b) = d.bars.iter().find(|b| Some(b.k) == pol) {
         let k = b.k as f64;
@@ -151,7 +142,22 @@ fn draw_harmonics<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &Fourier
         PathElement::new([(k - 0.45, 100.0 * b.sigma), (k + 0.45, 100.0 * b.sigma)], BLACK.stroke_width(2))
     }))
     .map_err(pe)?
-    .label("1-sigma noise of the amplitude")
+    .label("1σ noise")
     .legend(line_key(BLACK.stroke_width(2)));
-    legend(&mut c, SeriesLabelPosition::UpperRight)
+    let data: Vec<(f64, f64)> = d
+        .bars
+        .iter()
+        .flat_map(|b| {
+            let k = b.k as f64;
+            // The bar's top edge and its middle: a legend may not sit on a bar.
+            [
+                (k, 100.0 * b.amplitude),
+                (k, 50.0 * b.amplitude),
+                (k, 100.0 * b.sigma),
+                (k - 0.3, 100.0 * b.amplitude),
+                (k + 0.3, 100.0 * b.amplitude),
+            ]
+        })
+        .collect();
+    legend_off_data(&mut c, &data, 3, 25, CORNERS)
 }

@@ -13,7 +13,9 @@ use std::time::Instant;
 /// independent repetitions.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct PrecisionRow {
+    #[serde(rename = "n_trials")]
     pub trials: u64,
+    #[serde(rename = "n_repetitions")]
     pub repetitions: usize,
     /// Mean wall time of one run (s).
     pub seconds: f64,
@@ -167,6 +169,7 @@ pub struct NoiseRow {
     /// `(rms_p - rms_p[poisson]) / rms_p[poisson]`.
     pub rms_rel_dev: f64,
     pub trials_per_second: f64,
+    #[serde(rename = "n_rejected")]
     pub rejected: u64,
 }
 

@@ -128,6 +128,7 @@ pub struct LawFit {
     pub c: f64,
     pub k: f64,
     /// Points used (those with `x > x_min` and a positive bias).
+    #[serde(rename = "n_points")]
     pub points: usize,
 }
 

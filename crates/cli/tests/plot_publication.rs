@@ -1,0 +1,179 @@
+//! Plots for publication (issue 15 item 5), checked on the files the commands write:
+//! - every text of every SVG is at least 9 pt when the figure is printed one journal column
+//!   wide (8.8 cm = 249.45 pt; px per pt = the SVG's own width / 249.45), read from the SVG;
+//! - every decade inside a log axis carries a label (mc --sweep: the eta and SNR_P axes, whose
+//!   ranges are read from the command's JSON);
+//! - the bytes are the format the extension names (PNG magic, SVG text); .pdf is refused with
+//!   an error naming the supported extensions and no file.
+
+mod common;
+
+use common::run;
+use std::path::Path;
+
+/// One journal column in points: 8.8 cm / 2.54 cm per inch x 72 pt per inch.
+const COLUMN_PT: f64 = 8.8 / 2.54 * 72.0;
+
+fn svg_width(svg: &str) -> f64 {
+    let at = svg.find("<svg width=\"").expect("an <svg width=...> element") + 12;
+    svg[at..].split('"').next().unwrap().parse().unwrap()
+}
+
+/// Every (font-size in px, text) of an SVG written by plotters.
+fn texts(svg: &str) -> Vec<(f64, String)> {
+    let mut out = vec![];
+    for part in svg.split("<text ").skip(1) {
+        let fs = part.split("font-size=\"").nth(1).and_then(|r| r.split('"').next()).expect("font-size");
+        let body = part.split_once('>').map(|(_, b)| b.split("</text>").next().unwrap_or("")).unwrap_or("");
+        out.push((fs.parse().unwrap(), body.trim().to_string()));
+    }
+    out
+}
+
+/// The smallest text of `svg` in points at one column's width, and that text.
+fn smallest_pt(svg: &str) -> (f64, String) {
+    let px_per_pt = svg_width(svg) / COLUMN_PT;
+    texts(svg)
+        .into_iter()
+        .filter(|(_, t)| !t.is_empty())
+        .map(|(px, t)| (px / px_per_pt, t))
+        .fold((f64::INFINITY, String::new()), |a, b| if b.0 < a.0 { b } else { a })
+}
+
+fn assert_fonts(path: &Path) {
+    let svg = std::fs::read_to_string(path).unwrap();
+    assert!(!texts(&svg).is_empty(), "{}: no text", path.display());
+    let (size, text) = smallest_pt(&svg);
+    assert!(size >= 9.0 - 1e-9, "{}: '{text}' is {size:.2} pt at a {COLUMN_PT:.1} pt column", path.display());
+}
+
+fn magic(path: &Path) -> Vec<u8> {
+    std::fs::read(path).unwrap().into_iter().take(8).collect()
+}
+
+const PNG: &[u8] = b"\x89PNG\r\n\x1a\n";
+
+fn fluxes(dir: &Path) -> String {
+    let p = dir.join("f.csv");
+    std::fs::write(&p, "hwp_deg,f_o,f_e\n0,1000,1100\n22.5,1050,1010\n45,1100,1000\n67.5,1010,1050\n90,1000,1095\n112.5,1049,1012\n135,1101,1001\n157.5,1012,1049\n").unwrap();
+    p.to_str().unwrap().to_string()
+}
+
+#[test]
+fn stokes_plot_fonts_and_formats() {
+    let d = tempfile::tempdir().unwrap();
+    let input = fluxes(d.path());
+    for name in ["f.svg", "f.png", "F.SVG"] {
+        let out = d.path().join(name);
+        let (code, _, err) = run(&["stokes", "--input", &input, "--plot", out.to_str().unwrap()]);
+        assert_eq!(code, 0, "{err}");
+        let m = magic(&out);
+        if name.to_lowercase().ends_with(".png") {
+            assert_eq!(m, PNG, "{name}");
+        } else {
+            assert!(m.starts_with(b"<svg"), "{name}: {m:?}");
+            assert_fonts(&out);
+        }
+    }
+}
+
+#[test]
+fn pdf_is_refused_naming_the_supported_extensions() {
+    let d = tempfile::tempdir().unwrap();
+    let input = fluxes(d.path());
+    let pdf = d.path().join("f.pdf");
+    for args in [
+        vec!["stokes", "--input", &input, "--plot", pdf.to_str().unwrap()],
+        vec!["mc", "--sweep", "--trials", "10", "--plot", pdf.to_str().unwrap()],
+    ] {
+        let (code, out, err) = run(&args);
+        assert_eq!(code, 2, "{args:?}: {out}");
+        assert!(err.contains("f.pdf") && err.contains(".png and .svg"), "{err}");
+        assert!(!pdf.exists(), "a refused plot leaves no file");
+    }
+}
+
+#[test]
+fn calibration_plots_fonts_and_formats() {
+    let d = tempfile::tempdir().unwrap();
+    let cal = d.path().join("cal.fits");
+    let map = d.path().join("map.fits");
+    common::write_v_sky_map(&map, |_| true);
+    let (code, _, err) = run(&[
+        "calibrate",
+        "--map",
+        map.to_str().unwrap(),
+        "--sky-p",
+        "1.74",
+        "--sky-chi",
+        "-53.8",
+        "--out",
+        cal.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 0, "{err}");
+    let plots = d.path().join("plots");
+    let (code, out, err) = run(&["plot", cal.to_str().unwrap(), "--out", plots.to_str().unwrap(), "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let files: Vec<String> = j["outputs"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().to_string()).collect();
+    assert!(files.len() >= 4, "{files:?}");
+    for f in &files {
+        let p = Path::new(f);
+        match p.extension().and_then(|e| e.to_str()) {
+            Some("png") => assert_eq!(magic(p), PNG, "{f}"),
+            Some("svg") => {
+                assert!(magic(p).starts_with(b"<svg"), "{f}");
+                assert_fonts(p);
+            }
+            other => panic!("{f}: unexpected extension {other:?}"),
+        }
+    }
+}
+
+/// The label plotters writes for a decade (the CLI's tick format: 0.1, 1, 10, 1e-6).
+fn decade_label(k: i32) -> String {
+    if (-3..5).contains(&k) {
+        let v = 10f64.powi(k);
+        let s = format!("{v:.3}");
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        format!("1e{k}")
+    }
+}
+
+#[test]
+fn mc_sweep_log_axes_label_every_decade() {
+    let d = tempfile::tempdir().unwrap();
+    let svg = d.path().join("sweep.svg");
+    let (code, out, err) =
+        run(&["mc", "--sweep", "--trials", "300", "--noise", "gauss-qu", "--plot", svg.to_str().unwrap(), "--json"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(magic(&svg).starts_with(b"<svg"));
+    assert_fonts(&svg);
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let range = |key: &str, field: &str| {
+        let v: Vec<f64> = j[key].as_array().unwrap().iter().map(|p| p[field].as_f64().unwrap()).collect();
+        (v.iter().cloned().fold(f64::INFINITY, f64::min), v.iter().cloned().fold(0.0, f64::max))
+    };
+    let text = std::fs::read_to_string(&svg).unwrap();
+    let labels: Vec<String> = texts(&text).into_iter().map(|t| t.1).collect();
+    for (key, field) in [("deltap", "eta"), ("bias", "snr_p")] {
+        let (lo, hi) = range(key, field);
+        let (k0, k1) = ((lo.log10() - 1e-9).ceil() as i32, (hi.log10() + 1e-9).floor() as i32);
+        assert!(k1 > k0, "{key}: the axis spans {lo}..{hi}, at least two decades expected");
+        for k in k0..=k1 {
+            let want = decade_label(k);
+            assert!(labels.iter().any(|l| *l == want), "{key}.{field}: decade {want} has no label in {labels:?}");
+        }
+    }
+}
+
+#[test]
+fn mc_accuracy_png_magic() {
+    let d = tempfile::tempdir().unwrap();
+    let png = d.path().join("acc.png");
+    let (code, _, err) =
+        run(&["mc", "--accuracy-report", "--trials", "1000", "--noise", "gauss-qu", "--plot", png.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(magic(&png), PNG);
+}
