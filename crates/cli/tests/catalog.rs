@@ -329,7 +329,7 @@ fn catalog_corrects_with_a_calibration_in_the_same_run() {
         let c = &j["corrected"][k];
         let (q0, u0) = truth(p, chi);
         let f = |key: &str| c[key].as_f64().unwrap_or_else(|| panic!("{key}: {c}"));
-        let (pq, pu) = ((f("q0") - q0) / f("var_q0").sqrt(), (f("u0") - u0) / f("var_u0").sqrt());
+        let (pq, pu) = ((f("q0") - q0) / f("sigma_q0"), (f("u0") - u0) / f("sigma_u0"));
         assert!(pq.abs() < 4.0 && pu.abs() < 4.0, "star at ({x}, {y}): pulls {pq:.1}, {pu:.1}: {c}");
     }
     // Another filter's calibration.

@@ -124,7 +124,7 @@ fn efosc2_v_calibration_corrects_the_standards_through_the_cli() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(v[0]["output"].as_str().unwrap(), cal.to_str().unwrap());
-    let s = v[0]["chi2_reduced"].as_f64().unwrap().max(1.0).sqrt();
+    let s = v[0]["chi2_dof"].as_f64().unwrap().max(1.0).sqrt();
     // The standards as a catalog, read here without instpol.
     let mut csv = String::from("x,y,q,u,sigma_q,sigma_u,parang_deg\n");
     let mut raw_p = vec![];

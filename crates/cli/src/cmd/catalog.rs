@@ -60,13 +60,49 @@ pub struct Args {
     pub allow_extrapolation: bool,
 }
 
+/// A star's correction in the JSON: the columns of `instpol correct`.
+#[derive(serde::Serialize)]
+struct CorrRow {
+    q0: f64,
+    u0: f64,
+    sigma_q0: f64,
+    sigma_u0: f64,
+    cov_qu0: f64,
+    p0: f64,
+    sigma_p0: f64,
+    chi0_deg: f64,
+    sigma_chi0_deg: f64,
+    q_inst: f64,
+    u_inst: f64,
+    extrapolated: bool,
+}
+
+impl From<&fit::correct::Corrected> for CorrRow {
+    fn from(c: &fit::correct::Corrected) -> Self {
+        Self {
+            q0: c.q0,
+            u0: c.u0,
+            sigma_q0: c.var_q0.sqrt(),
+            sigma_u0: c.var_u0.sqrt(),
+            cov_qu0: c.cov_qu0,
+            p0: c.p0,
+            sigma_p0: c.sigma_p0,
+            chi0_deg: c.chi0.to_degrees(),
+            sigma_chi0_deg: c.sigma_chi0.to_degrees(),
+            q_inst: c.inst.q,
+            u_inst: c.inst.u,
+            extrapolated: c.extrapolated,
+        }
+    }
+}
+
 /// The JSON of a catalog corrected in the same run: the catalog, and per row its correction.
 #[derive(serde::Serialize)]
 struct CorrectedJson<'a> {
     #[serde(flatten)]
     catalog: &'a skyfield::catalog::Catalog,
     /// One entry per row (null for a star not measured).
-    corrected: Vec<Option<fit::correct::Corrected>>,
+    corrected: Vec<Option<CorrRow>>,
     calibration: String,
     chi_offset_applied_deg: f64,
     n_extrapolated: usize,
@@ -166,7 +202,7 @@ pub fn run(a: Args) -> Result<()> {
             None => crate::util::print_json(&cat)?,
             Some(c) => crate::util::print_json(&CorrectedJson {
                 catalog: &cat,
-                corrected: c.rows.clone(),
+                corrected: c.rows.iter().map(|r| r.as_ref().map(CorrRow::from)).collect(),
                 calibration: a.cal.as_ref().map(|p| p.display().to_string()).unwrap_or_default(),
                 chi_offset_applied_deg: c.chi_offset_applied_deg,
                 n_extrapolated: c.n_extrapolated,
