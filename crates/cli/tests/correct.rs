@@ -419,3 +419,48 @@ fn fors2_map_calibration_corrects_its_own_instrumental_values() {
     );
     assert!(rms < 2.0 * rad.rms_residual.max(2e-4), "RMS {rms} vs fit RMS residual {}", rad.rms_residual);
 }
+
+/// A catalog whose q, u already carry the instrument's HWP zero angle (the column
+/// `hwp_chi_offset_deg` that `instpol catalog` writes) is not turned by it twice: with a
+/// calibration of the same zero angle (3.5 deg) and no field, q0, u0 equal q, u; without the
+/// column (q, u as measured) they are turned by 2 x 3.5 deg (chi + 3.5 deg), computed here.
+#[test]
+fn a_catalog_in_the_sky_frame_is_not_turned_twice() {
+    let d = tempfile::tempdir().unwrap();
+    let mut cal = common::fors1_radial_calibration("V", [0.0, 0.0, 0.0]);
+    cal.hwp_chi_offset_deg = 3.5;
+    let calp = d.path().join("cal.fits");
+    cal.save(&calp).unwrap();
+    let (q, u) = (0.02, -0.01);
+    let run_one = |with_column: bool| -> (f64, f64) {
+        let (head, row) = if with_column {
+            ("x,y,q,u,sigma_q,sigma_u,hwp_chi_offset_deg", format!("1,1,{q},{u},0.001,0.001,3.5"))
+        } else {
+            ("x,y,q,u,sigma_q,sigma_u", format!("1,1,{q},{u},0.001,0.001"))
+        };
+        let inp = d.path().join(format!("in{with_column}.csv"));
+        std::fs::write(&inp, format!("{head}\n{row}\n")).unwrap();
+        let out = d.path().join(format!("out{with_column}.csv"));
+        let (c, _, e) = common::run(&[
+            "correct",
+            "--cal",
+            calp.to_str().unwrap(),
+            "--in",
+            inp.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert_eq!(c, 0, "{e}");
+        let mut rdr = csv::Reader::from_path(&out).unwrap();
+        let h = rdr.headers().unwrap().clone();
+        let rec = rdr.records().next().unwrap().unwrap();
+        let get = |k: &str| rec[h.iter().position(|x| x == k).unwrap()].parse::<f64>().unwrap();
+        (get("q0"), get("u0"))
+    };
+    let (q0, u0) = run_one(true);
+    assert!((q0 - q).abs() < 1e-15 && (u0 - u).abs() < 1e-15, "{q0} {u0}");
+    let (q0, u0) = run_one(false);
+    let a = (2.0 * 3.5f64).to_radians();
+    let (qr, ur) = (q * a.cos() - u * a.sin(), q * a.sin() + u * a.cos());
+    assert!((q0 - qr).abs() < 1e-12 && (u0 - ur).abs() < 1e-12, "{q0} {u0} vs {qr} {ur}");
+}

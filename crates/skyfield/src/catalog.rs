@@ -173,6 +173,12 @@ impl Catalog {
             fr("p", |x| x.p, "polarization degree (fraction)"),
             fr("sigma_p", |x| x.sigma_p, "1-sigma error of p"),
             Column::f64("chi_deg", Some("deg"), "polarization angle, HWP zero angle added", col(|x| x.chi_deg)),
+            Column::f64(
+                "hwp_chi_offset_deg",
+                Some("deg"),
+                "HWP zero angle already applied to q, u, chi (instpol correct applies only the calibration's difference)",
+                vec![self.chi_offset_deg; r.len()],
+            ),
             Column::f64("sigma_chi_deg", Some("deg"), "1-sigma error of chi", col(|x| x.sigma_chi_deg)),
             fr("a0", |x| x.a0, "a0 of the modulation fit"),
             fr("kappa", |x| x.kappa.unwrap_or(f64::NAN), "kappa of the modulation fit (NaN: not fitted)"),

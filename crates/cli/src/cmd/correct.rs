@@ -184,6 +184,7 @@ pub fn run(a: Args) -> Result<()> {
                     a.cal.display()
                 );
             }
+            let opts = zero_angle_of_the_table(&table, &cal, opts, &a.input)?;
             let meas = measurements(&table, cal.pixel, a.coords, &a.input)?;
             let cor = Corrector::new(&cal, opts);
             let mut out = vec![Corrected::default(); meas.len()];
@@ -225,6 +226,45 @@ pub fn run(a: Args) -> Result<()> {
         outln!("wrote {}", a.out.display());
         Ok(())
     }
+}
+
+/// The column a catalog carries when its q, u already have the instrument's HWP zero angle
+/// applied (`instpol catalog` writes it): they are then in the sky's frame.
+const ZERO_ANGLE: &str = "hwp_chi_offset_deg";
+
+/// The zero angle to apply to a table's q, u: the calibration's, less the one the table says
+/// its q, u already carry (column [`ZERO_ANGLE`], the same in every row), so that a catalog
+/// from `instpol catalog` is not turned by the zero angle twice. A table without the column
+/// holds q, u as measured (the calibration's zero angle is applied whole).
+fn zero_angle_of_the_table(
+    t: &Table,
+    cal: &Calibration,
+    mut opts: CorrectOptions,
+    path: &Path,
+) -> Result<CorrectOptions> {
+    if t.column(ZERO_ANGLE).is_none() {
+        return Ok(opts);
+    }
+    let z = t.numbers(ZERO_ANGLE, path)?;
+    let z0 = z.first().copied().unwrap_or(0.0);
+    if let Some(i) = z.iter().position(|v| !(v.is_finite() && (v - z0).abs() <= 1e-9)) {
+        bail!(
+            "{} {}: column '{ZERO_ANGLE}' = {} differs from the first row's {z0}: one catalog has one HWP zero angle",
+            path.display(),
+            t.row_label(i),
+            z[i]
+        );
+    }
+    let d = cal.hwp_chi_offset_deg - z0;
+    if d != 0.0 {
+        eprintln!(
+            "note: {}: q, u already carry the HWP zero angle {z0} deg (column '{ZERO_ANGLE}'); the calibration's is {} deg: the difference {d} deg is applied",
+            path.display(),
+            cal.hwp_chi_offset_deg
+        );
+    }
+    opts.chi_offset = d.to_radians();
+    Ok(opts)
 }
 
 /// The correction options for a calibration and the command's flags.
