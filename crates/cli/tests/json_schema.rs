@@ -450,6 +450,9 @@ fn out(f: &Fix, name: &str) -> String {
 type Args = fn(&Fix) -> Vec<String>;
 
 const CASES: &[(&str, Args)] = &[
+    ("plan", |_| {
+        v(&["plan", "--target-percent", "0.02", "--sky-rate", "2", "--candidate", "6.45:68.4", "--candidate", "4:10"])
+    }),
     ("simulate", |f| v(&["simulate", &s(&f.d.join("sky.toml")), "--out", &out(f, "sim")])),
     ("reduce", |f| {
         let mut a = v(&["reduce"]);
@@ -549,7 +552,7 @@ cases! {
     zero_angle_json => "zero-angle", calibrate_json => "calibrate", fit_json => "fit", plot_json => "plot",
     wavelength_law_json => "wavelength-law", correct_json => "correct", stokes_json => "stokes",
     bias_json => "bias", mc_json => "mc", mc_sweep_json => "mc-sweep", mc_accuracy_json => "mc-accuracy",
-    fresnel_json => "fresnel", raytrace_json => "raytrace", demo_json => "demo",
+    fresnel_json => "fresnel", raytrace_json => "raytrace", demo_json => "demo", plan_json => "plan",
 }
 
 /// The keys only some options print (residual map, RNG baseline) are in the schemas too:
