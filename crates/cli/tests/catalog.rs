@@ -6,22 +6,31 @@ mod common;
 
 use common::{fits_in, fors1_radial_calibration, run, tiny_fors1};
 use std::ffi::OsString;
+use std::path::{Path, PathBuf};
+
+/// The shipped maskless scene (`instruments/scenes/calcite_stars.toml`, `effects` appended to
+/// its [effects]) simulated by the binary through the calcite instrument with an HWP keyword:
+/// the instrument file and the frames.
+fn calcite_scene(dir: &Path, effects: &str) -> (PathBuf, Vec<PathBuf>) {
+    let text = include_str!("../../../instruments/calcite.toml")
+        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
+    let inst = dir.join("calcite.toml");
+    std::fs::write(&inst, text).unwrap();
+    let scene = include_str!("../../../instruments/scenes/calcite_stars.toml")
+        .replace("instrument = \"calcite\"", &format!("instrument = \"{}\"", inst.display()))
+        + effects;
+    let sp = dir.join("scene.toml");
+    std::fs::write(&sp, scene).unwrap();
+    let out = dir.join("f");
+    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert_eq!(code, 0, "{err}");
+    (inst, fits_in(&out))
+}
 
 #[test]
 fn catalog_of_the_maskless_scene() {
     let dir = tempfile::tempdir().unwrap();
-    let text = include_str!("../../../instruments/calcite.toml")
-        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
-    let inst = dir.path().join("calcite.toml");
-    std::fs::write(&inst, text).unwrap();
-    let scene = include_str!("../../../instruments/scenes/calcite_stars.toml")
-        .replace("instrument = \"calcite\"", &format!("instrument = \"{}\"", inst.display()));
-    let sp = dir.path().join("scene.toml");
-    std::fs::write(&sp, scene).unwrap();
-    let out = dir.path().join("f");
-    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
-    assert_eq!(code, 0, "{err}");
-    let frames = fits_in(&out);
+    let (inst, frames) = calcite_scene(dir.path(), "");
     let csv_path = dir.path().join("cat.csv");
     let mut args: Vec<OsString> = vec!["catalog".into()];
     args.extend(frames.iter().map(|f| f.clone().into_os_string()));
@@ -158,20 +167,9 @@ fn zero_angle_from_a_standard_then_a_catalog() {
 #[test]
 fn catalog_estimates_and_applies_kappa_in_one_run() {
     let dir = tempfile::tempdir().unwrap();
-    let text = include_str!("../../../instruments/calcite.toml")
-        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
-    let inst = dir.path().join("calcite.toml");
-    std::fs::write(&inst, text).unwrap();
-    let scene = include_str!("../../../instruments/scenes/calcite_stars.toml")
-        .replace("instrument = \"calcite\"", &format!("instrument = \"{}\"", inst.display()))
-        + "wollaston = { t = 0.54, s = 0.46 }\n";
-    let sp = dir.path().join("scene.toml");
-    std::fs::write(&sp, scene).unwrap();
-    let out = dir.path().join("f");
-    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
-    assert_eq!(code, 0, "{err}");
+    let (inst, frames) = calcite_scene(dir.path(), "wollaston = { t = 0.54, s = 0.46 }\n");
     let mut args: Vec<OsString> = vec!["catalog".into()];
-    args.extend(fits_in(&out).into_iter().map(|f| f.into_os_string()));
+    args.extend(frames.into_iter().map(|f| f.into_os_string()));
     for a in ["--instrument", inst.to_str().unwrap(), "--fwhm", "4.7", "--aperture", "9", "--annulus", "14,24"] {
         args.push(a.into());
     }
@@ -204,18 +202,7 @@ fn catalog_estimates_and_applies_kappa_in_one_run() {
 #[test]
 fn catalog_aperture_from_fwhm_or_best_snr() {
     let dir = tempfile::tempdir().unwrap();
-    let text = include_str!("../../../instruments/calcite.toml")
-        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
-    let inst = dir.path().join("calcite.toml");
-    std::fs::write(&inst, text).unwrap();
-    let scene = include_str!("../../../instruments/scenes/calcite_stars.toml")
-        .replace("instrument = \"calcite\"", &format!("instrument = \"{}\"", inst.display()));
-    let sp = dir.path().join("scene.toml");
-    std::fs::write(&sp, scene).unwrap();
-    let out = dir.path().join("f");
-    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
-    assert_eq!(code, 0, "{err}");
-    let frames = fits_in(&out);
+    let (inst, frames) = calcite_scene(dir.path(), "");
     let cat = |aperture: &str| {
         let mut args: Vec<OsString> = vec!["catalog".into()];
         args.extend(frames.iter().map(|f| f.clone().into_os_string()));

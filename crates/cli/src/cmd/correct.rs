@@ -168,14 +168,7 @@ pub fn run(a: Args) -> Result<()> {
     let summary = match kind {
         Kind::Map => correct_map(&cal, opts, &a)?,
         Kind::Text | Kind::FitsTable => {
-            let mut table = match kind {
-                Kind::Text => Table::read(&a.input, a.hdu.as_deref())?,
-                _ => Table::read_format(&a.input, Format::Fits, a.hdu.as_deref())?,
-            };
-            check_no_clash(&table.names(), &a.input)?;
-            if table.n_rows() == 0 {
-                bail!("{}: the catalog has no data rows", a.input.display());
-            }
+            let mut table = read_catalog(&a, kind)?;
             if table.column(PARANG[0]).is_some() {
                 eprintln!(
                     "warning: {} has a {} column but {} holds no telescope model: the telescope's polarization is NOT removed (fit one with instpol fit-standards --output)",
@@ -226,6 +219,20 @@ pub fn run(a: Args) -> Result<()> {
         outln!("wrote {}", a.out.display());
         Ok(())
     }
+}
+
+/// The catalog to correct (text formats by extension, or a FITS table), with no column the
+/// correction would overwrite and at least one row.
+fn read_catalog(a: &Args, kind: Kind) -> Result<Table> {
+    let table = match kind {
+        Kind::Text => Table::read(&a.input, a.hdu.as_deref())?,
+        _ => Table::read_format(&a.input, Format::Fits, a.hdu.as_deref())?,
+    };
+    check_no_clash(&table.names(), &a.input)?;
+    if table.n_rows() == 0 {
+        bail!("{}: the catalog has no data rows", a.input.display());
+    }
+    Ok(table)
 }
 
 /// The column a catalog carries when its q, u already have the instrument's HWP zero angle
@@ -580,14 +587,7 @@ fn run_telescope(
         bail!("--band {band}: the telescope model of {} has bands {}", a.cal.display(), bands.join(", "));
     }
     let out_format = Some(Format::from_path(&a.out)?);
-    let mut table = match kind {
-        Kind::Text => Table::read(&a.input, a.hdu.as_deref())?,
-        _ => Table::read_format(&a.input, Format::Fits, a.hdu.as_deref())?,
-    };
-    check_no_clash(&table.names(), &a.input)?;
-    if table.n_rows() == 0 {
-        bail!("{}: the catalog has no data rows", a.input.display());
-    }
+    let mut table = read_catalog(a, kind)?;
     if table.column(PARANG[0]).is_none() {
         bail!(
             "{}: no column '{}' (columns: {}): the telescope model of {} needs each row's parallactic angle (deg)",
