@@ -85,7 +85,7 @@ fn example_n4_and_kappa_correction() {
     // --kappa-from-data does both runs in one: the same kappa applied (stated in the output),
     // the same result as the second run above to rounding of the printed kappa.
     let one = json(&["--input", path.to_str().unwrap(), "--kappa-from-data"]);
-    assert!((f(&one, "kappa_correction") - f(&v, "kappa_mean")).abs() < 1e-15);
+    assert!((f(&one, "kappa_correction") - f(&v, "mean_kappa")).abs() < 1e-15);
     for k in ["q", "u", "p", "a0"] {
         assert!((f(&one, k) - f(&c, k)).abs() < 1e-12, "{k}: {} vs {}", f(&one, k), f(&c, k));
     }
