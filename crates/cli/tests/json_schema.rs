@@ -450,6 +450,16 @@ fn out(f: &Fix, name: &str) -> String {
 type Args = fn(&Fix) -> Vec<String>;
 
 const CASES: &[(&str, Args)] = &[
+    ("calibrate-mueller", |f| {
+        // The V map and a copy under two declared skies: the shape of the output, not physics.
+        let m = s(&f.d.join("vmap.fits"));
+        let m2 = out(f, "vmap2.fits");
+        std::fs::copy(&m, &m2).unwrap();
+        v(&["calibrate-mueller", "--field", &format!("{m}:6.45:68.4"), "--field", &format!("{m2}:4:10")])
+            .into_iter()
+            .chain(v(&["--out", &out(f, "mf.json")]))
+            .collect()
+    }),
     ("plan", |_| {
         v(&["plan", "--target-percent", "0.02", "--sky-rate", "2", "--candidate", "6.45:68.4", "--candidate", "4:10"])
     }),
@@ -553,6 +563,7 @@ cases! {
     wavelength_law_json => "wavelength-law", correct_json => "correct", stokes_json => "stokes",
     bias_json => "bias", mc_json => "mc", mc_sweep_json => "mc-sweep", mc_accuracy_json => "mc-accuracy",
     fresnel_json => "fresnel", raytrace_json => "raytrace", demo_json => "demo", plan_json => "plan",
+    calibrate_mueller_json => "calibrate-mueller",
 }
 
 /// The keys only some options print (residual map, RNG baseline) are in the schemas too:
