@@ -55,21 +55,11 @@ impl Combined {
     }
 }
 
-/// Combine exposures at the same plate position (angles in rad, equal modulo 2 pi) and flag
-/// exposures whose `F_j` lies more than `threshold` sigma from their position's mean.
-/// The inputs are taken as they are (their validity is [`crate::Measurement`]'s to check).
-pub fn combine_repeats(
-    theta: &[f64],
-    f_o: &[f64],
-    f_e: &[f64],
-    sigma_o: &[f64],
-    sigma_e: &[f64],
-    threshold: f64,
-) -> Combined {
-    let n = theta.len();
-    // Sort by the position modulo a full turn, then group neighbours: n log n.
+/// Plate positions (angles in rad, as [`combine_repeats`] groups them): the input order
+/// sorted by the angle modulo a full turn, and the groups of equal positions, wrap included.
+fn positions(theta: &[f64]) -> Vec<Vec<usize>> {
     let key = |i: usize| theta[i].rem_euclid(TAU);
-    let mut order: Vec<usize> = (0..n).collect();
+    let mut order: Vec<usize> = (0..theta.len()).collect();
     order.sort_by(|&a, &b| key(a).total_cmp(&key(b)).then(a.cmp(&b)));
     let mut groups: Vec<Vec<usize>> = Vec::new();
     for &i in &order {
@@ -93,6 +83,28 @@ pub fn combine_repeats(
             groups[0].extend(last);
         }
     }
+    groups
+}
+
+/// True when two angles (rad) are the same plate position (equal modulo a full turn).
+pub fn has_repeats(theta: &[f64]) -> bool {
+    positions(theta).len() < theta.len()
+}
+
+/// Combine exposures at the same plate position (angles in rad, equal modulo 2 pi) and flag
+/// exposures whose `F_j` lies more than `threshold` sigma from their position's mean.
+/// The inputs are taken as they are (their validity is [`crate::Measurement`]'s to check).
+pub fn combine_repeats(
+    theta: &[f64],
+    f_o: &[f64],
+    f_e: &[f64],
+    sigma_o: &[f64],
+    sigma_e: &[f64],
+    threshold: f64,
+) -> Combined {
+    let n = theta.len();
+    // Sorted by the position modulo a full turn, then grouped: n log n.
+    let mut groups = positions(theta);
     // Positions in the order of their first exposure; exposures in input order.
     groups.iter_mut().for_each(|g| g.sort_unstable());
     groups.sort_by_key(|g| g[0]);
@@ -158,5 +170,7 @@ mod tests {
         assert!((c.sigma_o[1] - 3f64.sqrt()).abs() < 1e-15);
         assert_eq!(c.theta, vec![0.5, 0.0]);
         assert!(c.any_repeats());
+        assert!(has_repeats(&th) && has_repeats(&[0.0, TAU - 1e-12]));
+        assert!(!has_repeats(&[0.0, 0.5, 1.0, TAU - 1e-3]));
     }
 }

@@ -113,13 +113,7 @@ struct JsonExposure {
 /// check; `None` when no position repeats (the table is returned as read).
 fn combine_repeats(t: Table, name: &str) -> Result<(Table, Option<Vec<JsonExposure>>)> {
     let theta: Vec<f64> = t.hwp_deg.iter().map(|d| d.to_radians()).collect();
-    let repeats = {
-        let mut k: Vec<f64> = theta.iter().map(|a| a.rem_euclid(std::f64::consts::TAU)).collect();
-        k.sort_by(f64::total_cmp);
-        k.windows(2).any(|w| w[1] - w[0] < 1e-9)
-            || k.len() > 1 && std::f64::consts::TAU - (k[k.len() - 1] - k[0]) < 1e-9
-    };
-    if !repeats {
+    if !stokes::repeats::has_repeats(&theta) {
         // The library checks the rows and names them (see `explain`).
         return Ok((t, None));
     }
