@@ -108,6 +108,24 @@ fn three_fields_give_the_lens_retardance_and_one_field_is_refused() {
     assert!(err.contains("retardance unconstrained") && err.contains("one sky polarization state"), "{err}");
     assert!(!out1.exists());
 
+    // A good fit has no chi^2 warning; a field declared under another sky's P, chi has one.
+    assert!(j["warnings"].as_array().unwrap().iter().all(|w| !w.as_str().unwrap().contains("chi^2")), "{j}");
+    let bad = d.join("bad.json");
+    let mut args = vec!["calibrate-mueller".to_string()];
+    args.extend(field(&f1, "6.45:68.4"));
+    args.extend(field(&f2, "8.0:130"));
+    args.extend(field(&f3, "4.0:10"));
+    args.extend(["--json", "--out"].map(String::from));
+    args.push(bad.display().to_string());
+    let o = run(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let jb: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(
+        jb["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains("far from 1")),
+        "chi2_dof {}: {jb}",
+        jb["chi2_dof"]
+    );
+
     // A bad --field spec names itself.
     let o = run(&["calibrate-mueller", "--field", "x.fits:abc:10", "--out", "y.json"].map(String::from));
     let err = String::from_utf8_lossy(&o.stderr);

@@ -578,6 +578,17 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
         warnings: Vec::new(),
     };
     mf.warnings = realizability(&mf, fields);
+    // Residuals far above their errors: a wrong model, wrong errors or a sky declared wrongly
+    // (the radial fit's bound); the numbers still come, with the warning. Below 1 is not
+    // warned here: noiseless simulated maps (the tests') give chi^2 ~ 0 legitimately.
+    // Only with the degrees of freedom to mean it, as the error scaling above (a per-bin fit
+    // has 2).
+    if dof >= 30.0 && !(mf.chi2_dof <= 10.0) {
+        mf.warnings.push(format!(
+            "reduced chi^2 of the joint fit is {:.3e}, far from 1: the model or the errors do not describe the fields (check each field's declared sky P and chi, and the maps' errors)",
+            mf.chi2_dof
+        ));
+    }
     Ok(mf)
 }
 
