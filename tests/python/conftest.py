@@ -30,7 +30,6 @@ ALIASES = {
     "median_p_inst": ["median_p_inst", "p_inst_median"],
     "interval": ["interval"],
     "sigma_chi_deg": ["sigma_chi_deg", "chi_err_deg"],
-    "kappa_mean": ["mean_kappa", "kappa_mean"],
 }
 
 

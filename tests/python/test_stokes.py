@@ -19,7 +19,7 @@ def read_csv(path):
     return t["hwp_deg"], t["f_o"], t["f_e"], sig
 
 
-SCALARS = ["q", "u", "p", "chi_deg", "sigma_p", "sigma_chi_deg", "a0", "kappa_mean", "sigma_q", "sigma_u",
+SCALARS = ["q", "u", "p", "chi_deg", "sigma_p", "sigma_chi_deg", "a0", "mean_kappa", "sigma_q", "sigma_u",
            "cov_qu", "snr", "sigma_p_analytic", "sigma_chi_analytic_deg", "sigma_a0"]
 
 

@@ -106,17 +106,7 @@ fn bad_input_is_a_clear_error() {
     // A calibration file from a newer format version.
     let full = dir.path().join("full.fits");
     write_map(&full, |_| true);
-    let (code, _, err) = instpol(&[
-        "calibrate",
-        "--map",
-        full.to_str().unwrap(),
-        "--sky-p",
-        "1.74",
-        "--sky-chi",
-        "-53.8",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let (code, _, err) = instpol(&common::calibrate_v_args(&full, &out));
     assert_eq!(code, 0, "{err}");
     {
         let mut f = fitsio::FitsFile::edit(&out).unwrap();

@@ -319,23 +319,8 @@ fn fors2_map_calibration_corrects_its_own_instrumental_values() {
     let Some(d) = fors2_dir() else { return };
     let dir = tempfile::tempdir().unwrap();
     let calp = dir.path().join("fors2_v.fits");
-    let o = run(&[
-        "import-map",
-        "--q",
-        d.join("v_HIGH_inlaQ_bin10.fits").to_str().unwrap(),
-        "--u",
-        d.join("v_HIGH_inlaU_bin10.fits").to_str().unwrap(),
-        "--pixel-scale",
-        "0.25",
-        "--bin",
-        "10",
-        "--filter",
-        "v_HIGH",
-        "--instrument",
-        "FORS2",
-        "--out",
-        calp.to_str().unwrap(),
-    ]);
+    let args = common::import_fors2_v_args(&d, &calp);
+    let o = run(&args.iter().map(String::as_str).collect::<Vec<_>>());
     if !o.status.success() {
         // import-map belongs to the calibration issue; say so rather than pass silently.
         panic!("instpol import-map failed (needed for this test): {}", String::from_utf8_lossy(&o.stderr));

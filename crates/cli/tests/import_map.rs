@@ -15,26 +15,9 @@ fn fors2_v_map_imports_fits_and_plots() {
     }
     let dir = tempfile::tempdir().unwrap();
     let cal = dir.path().join("fors2_v.fits");
-    let (code, out, err) = instpol(&[
-        "import-map",
-        "--q",
-        d.join("v_HIGH_inlaQ_bin10.fits").to_str().unwrap(),
-        "--u",
-        d.join("v_HIGH_inlaU_bin10.fits").to_str().unwrap(),
-        "--pixel-scale",
-        "0.25",
-        "--bin",
-        "10",
-        "--filter",
-        "v_HIGH",
-        "--instrument",
-        "FORS2",
-        "--lambda-nm",
-        "557",
-        "--out",
-        cal.to_str().unwrap(),
-        "--json",
-    ]);
+    let mut args = common::import_fors2_v_args(&d, &cal);
+    args.extend(["--lambda-nm", "557", "--json"].map(String::from));
+    let (code, out, err) = instpol(&args);
     assert_eq!(code, 0, "{err}");
     let j: serde_json::Value = serde_json::from_str(&out).unwrap();
     // About 25% of the 205 x 209 grid is NaN (README).

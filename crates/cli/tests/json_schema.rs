@@ -734,31 +734,12 @@ fn real_data_commands() {
         return;
     }
     let f = fix();
-    let u = d.join("fors2-instpol/v_HIGH_inlaU_bin10.fits");
     let cases = [
-        (
-            "import-map",
-            v(&[
-                "import-map",
-                "--q",
-                &s(&q),
-                "--u",
-                &s(&u),
-                "--pixel-scale",
-                "0.25",
-                "--bin",
-                "10",
-                "--filter",
-                "v_HIGH",
-                "--instrument",
-                "FORS2",
-                "--lambda-nm",
-                "557",
-                "--out",
-                &out(f, "imp.fits"),
-                "--json",
-            ]),
-        ),
+        ("import-map", {
+            let mut a = common::import_fors2_v_args(q.parent().unwrap(), Path::new(&out(f, "imp.fits")));
+            a.extend(["--lambda-nm", "557", "--json"].map(String::from));
+            a
+        }),
         ("fit-standards", v(&["fit-standards", &s(&st), "--json"])),
     ];
     for (name, a) in cases {

@@ -77,6 +77,30 @@ fn stokes_plot_fonts_and_formats() {
     }
 }
 
+/// raytrace and plan draw PNG or SVG by the extension (they drew PNG only), at >= 9 pt.
+#[test]
+fn raytrace_and_plan_plots_follow_the_extension() {
+    let d = tempfile::tempdir().unwrap();
+    for ext in ["svg", "png"] {
+        let rt = d.path().join(format!("rt.{ext}"));
+        let (code, _, err) =
+            run(&["raytrace", "--instrument", "fors1", "--filter", "V", "--plot", rt.to_str().unwrap()]);
+        assert_eq!(code, 0, "{err}");
+        let pl = d.path().join(format!("plan.{ext}"));
+        let args = ["plan", "--target-percent", "0.05", "--sky-rate", "2", "--bin", "200", "--candidate", "6.45:68.4"];
+        let (code, _, err) = run(&[&args[..], &["--candidate", "4:10", "--plot", pl.to_str().unwrap()]].concat());
+        assert_eq!(code, 0, "{err}");
+        for f in [&rt, &pl] {
+            if ext == "png" {
+                assert_eq!(magic(f), PNG, "{}", f.display());
+            } else {
+                assert!(magic(f).starts_with(b"<svg"), "{}", f.display());
+                assert_fonts(f);
+            }
+        }
+    }
+}
+
 #[test]
 fn pdf_is_refused_naming_the_supported_extensions() {
     let d = tempfile::tempdir().unwrap();
@@ -99,17 +123,7 @@ fn calibration_plots_fonts_and_formats() {
     let cal = d.path().join("cal.fits");
     let map = d.path().join("map.fits");
     common::write_v_sky_map(&map, |_| true);
-    let (code, _, err) = run(&[
-        "calibrate",
-        "--map",
-        map.to_str().unwrap(),
-        "--sky-p",
-        "1.74",
-        "--sky-chi",
-        "-53.8",
-        "--out",
-        cal.to_str().unwrap(),
-    ]);
+    let (code, _, err) = run(&common::calibrate_v_args(&map, &cal));
     assert_eq!(code, 0, "{err}");
     let plots = d.path().join("plots");
     let (code, out, err) = run(&["plot", cal.to_str().unwrap(), "--out", plots.to_str().unwrap(), "--json"]);

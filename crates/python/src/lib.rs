@@ -193,7 +193,7 @@ fn _stokes<'py>(
     d.set_item("sigma_chi_analytic_deg", arr1(py, col(&|r| r.sigma_chi_analytic.to_degrees())))?;
     d.set_item("a0", arr1(py, col(&|r| r.a0)))?;
     d.set_item("sigma_a0", arr1(py, col(&|r| r.sigma_a0)))?;
-    d.set_item("kappa_mean", arr1(py, col(&|r| opt(r.kappa_mean))))?;
+    d.set_item("mean_kappa", arr1(py, col(&|r| opt(r.kappa_mean))))?;
     // kappa_j and the harmonics depend on the angle set only for their number: the same for
     // every star.
     let nk = red.first().map_or(0, |r| r.kappa.len());

@@ -58,7 +58,7 @@ pub struct Args {
     /// Simulate the cheapest plan (4 noise draws) and report the accuracy it reaches.
     #[arg(long)]
     pub check: bool,
-    /// Plot accuracy against total observing time (PNG).
+    /// Plot accuracy against total observing time (.png or .svg, by the extension).
     #[arg(long)]
     pub plot: Option<PathBuf>,
     /// Print JSON instead of a table.
@@ -124,7 +124,7 @@ pub fn run(a: Args) -> Result<()> {
         None => None,
     };
     if let Some(p) = &a.plot {
-        crate::plot::require_png(p)?;
+        crate::plot::ImageFormat::of(p)?;
         crate::util::check_output(p)?;
     }
     let g = skyfield::maps::BinGeometry::covering(
@@ -202,32 +202,12 @@ pub fn run(a: Args) -> Result<()> {
             .iter()
             .flat_map(|c| c.2.iter().map(|p| 100.0 * p.1))
             .fold((f64::MAX, 0.0f64), |(a, b), y| (a.min(y), b.max(y)));
-        crate::plot::save_png(path, (900, 600), |root| {
-            let ax = crate::plot::Axes::new(
-                format!("Mueller-field calibration: accuracy against time (target {} %)", a.target_percent),
-                "total observing time (s)",
-                "RMS corrected q, u (%)",
-            );
-            let mut c = crate::plot::chart(root, &ax, (x0..x1).log_scale(), (y0..y1).log_scale())?;
-            let colours = [RED, BLUE, GREEN, MAGENTA, CYAN, BLACK, RGBColor(200, 120, 0), RGBColor(120, 60, 160)];
-            for (k, (n, f, pts)) in curves.iter().enumerate() {
-                let col = colours[k % colours.len()];
-                c.draw_series(LineSeries::new(pts.iter().map(|p| (p.0, 100.0 * p.1)), col.stroke_width(2)))
-                    .map_err(crate::plot::pe)?
-                    .label(format!("{n} field(s) {f:?}"))
-                    .legend(crate::plot::line_key(col.stroke_width(2)));
-            }
-            c.draw_series(LineSeries::new([(x0, a.target_percent), (x1, a.target_percent)], BLACK.stroke_width(1)))
-                .map_err(crate::plot::pe)?
-                .label("target")
-                .legend(crate::plot::line_key(BLACK.stroke_width(1)));
-            c.configure_series_labels()
-                .background_style(WHITE.mix(0.8))
-                .border_style(BLACK)
-                .draw()
-                .map_err(crate::plot::pe)?;
-            Ok(())
-        })?;
+        crate::plot::save_image(
+            path,
+            (900, 600),
+            |r| draw_plan(r, &curves, a.target_percent, (x0, x1), (y0, y1)),
+            |r| draw_plan(r, &curves, a.target_percent, (x0, x1), (y0, y1)),
+        )?;
     }
     let conv = |r: &PlanRow| Row {
         n_fields: r.n_fields,
@@ -295,4 +275,35 @@ fn check_result(missed: Option<f64>, target: f64) -> Result<()> {
         .into()),
         None => Ok(()),
     }
+}
+
+/// Accuracy against total observing time, one curve per number of fields (either backend).
+fn draw_plan<DB: DrawingBackend>(
+    root: &DrawingArea<DB, plotters::coord::Shift>,
+    curves: &[(usize, Vec<usize>, Vec<(f64, f64)>)],
+    target_percent: f64,
+    (x0, x1): (f64, f64),
+    (y0, y1): (f64, f64),
+) -> Result<()> {
+    let ax = crate::plot::Axes::new(
+        format!("Mueller-field calibration: accuracy against time (target {} %)", target_percent),
+        "total observing time (s)",
+        "RMS corrected q, u (%)",
+    );
+    let mut c = crate::plot::chart(root, &ax, (x0..x1).log_scale(), (y0..y1).log_scale())?;
+    let colours = [RED, BLUE, GREEN, MAGENTA, CYAN, BLACK, RGBColor(200, 120, 0), RGBColor(120, 60, 160)];
+    for (k, (n, f, pts)) in curves.iter().enumerate() {
+        let col = colours[k % colours.len()];
+        c.draw_series(LineSeries::new(pts.iter().map(|p| (p.0, 100.0 * p.1)), col.stroke_width(2)))
+            .map_err(crate::plot::pe)?
+            .label(format!("{n} field(s) {f:?}"))
+            .legend(crate::plot::line_key(col.stroke_width(2)));
+    }
+    c.draw_series(LineSeries::new([(x0, target_percent), (x1, target_percent)], BLACK.stroke_width(1)))
+        .map_err(crate::plot::pe)?
+        .label("target")
+        .legend(crate::plot::line_key(BLACK.stroke_width(1)));
+    let data: Vec<(f64, f64)> = curves.iter().flat_map(|c| c.2.iter().map(|p| (p.0, 100.0 * p.1))).collect();
+    let chars = curves.iter().map(|(n, f, _)| format!("{n} field(s) {f:?}").len()).max().unwrap_or(6);
+    crate::plot::legend_off_data(&mut c, &data, curves.len() + 1, chars, crate::plot::CORNERS)
 }

@@ -3,6 +3,7 @@
 
 use anyhow::{anyhow, bail, Result};
 use mueller::raytrace::{fit_radial, FieldFile, Sampling, PAPER_LAW_A, PAPER_LAW_B};
+use plotters::prelude::*;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -37,7 +38,7 @@ pub struct Args {
     /// Print JSON instead of tables.
     #[arg(long)]
     pub json: bool,
-    /// Draw p(r) against the paper's V and I fits into this PNG.
+    /// Draw p(r) against the paper's V and I fits into this image (.png or .svg, by its extension).
     #[arg(long)]
     pub plot: Option<PathBuf>,
     /// Write the field (format instpol-field-v1, JSON) for the simulator to this file.
@@ -99,7 +100,7 @@ pub fn run(a: Args) -> Result<()> {
         crate::util::check_output(o)?;
     }
     if let Some(p) = &a.plot {
-        crate::plot::require_png(p)?;
+        crate::plot::ImageFormat::of(p)?;
     }
     let inst = instrument::Instrument::load(&a.instrument)?;
     let presc = inst
@@ -241,41 +242,45 @@ pub fn run(a: Args) -> Result<()> {
 
 /// p(r) in percent against the paper's V and I polynomials (section fors1).
 fn plot(path: &Path, r: &[f64], p: &[f64], lam: f64, name: &str) -> Result<()> {
-    use plotters::prelude::*;
-    crate::plot::font();
-    let pe = |e: &dyn std::fmt::Debug| anyhow!("plot {}: {e:?}", path.display());
+    crate::plot::save_image(path, (900, 600), |root| draw(root, r, p, lam, name), |root| draw(root, r, p, lam, name))
+}
+
+/// The p(r) figure on either backend (PNG or SVG).
+fn draw<DB: DrawingBackend>(
+    root: &DrawingArea<DB, plotters::coord::Shift>,
+    r: &[f64],
+    p: &[f64],
+    lam: f64,
+    name: &str,
+) -> Result<()> {
+    let pe = |e: &dyn std::fmt::Debug| anyhow!("plot: {e:?}");
     let rmax = r.last().copied().unwrap_or(5.0).max(1.0);
     let v = |x: f64| 0.012 * x + 0.046 * x * x + 0.002 * x * x * x;
     let i = |x: f64| -0.017 * x + 0.105 * x * x - 0.006 * x * x * x;
     let grid: Vec<f64> = (0..=100).map(|k| rmax * k as f64 / 100.0).collect();
     let ymax = grid.iter().map(|&x| v(x).max(i(x))).chain(p.iter().map(|&x| 100.0 * x)).fold(0.0, f64::max) * 1.1;
-    crate::plot::atomic(path, ".png", |tmp| {
-        crate::plot::set_figure_width(900);
-        let root = BitMapBackend::new(tmp, (900, 600)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| pe(&e))?;
-        // The shared frame (fonts sized for a journal column, crate::plot).
-        let ax = crate::plot::Axes::new(format!("{name}: ray trace at {lam} nm"), "r (arcmin)", "p (%)");
-        let mut ch = crate::plot::chart(&root, &ax, 0.0..rmax, 0.0..ymax)?;
-        ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, v(x))), GREEN.stroke_width(2)))
-            .map_err(|e| pe(&e))?
-            .label("paper V fit")
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], GREEN));
-        ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, i(x))), RED.stroke_width(2)))
-            .map_err(|e| pe(&e))?
-            .label("paper I fit")
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED));
-        ch.draw_series(LineSeries::new(r.iter().zip(p).map(|(&x, &y)| (x, 100.0 * y)), BLACK.stroke_width(2)))
-            .map_err(|e| pe(&e))?
-            .label("ray trace")
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
-        ch.draw_series(r.iter().zip(p).map(|(&x, &y)| Circle::new((x, 100.0 * y), 3, BLACK.filled())))
-            .map_err(|e| pe(&e))?;
-        let data: Vec<(f64, f64)> = grid
-            .iter()
-            .flat_map(|&x| [(x, v(x)), (x, i(x))])
-            .chain(r.iter().zip(p).map(|(&x, &y)| (x, 100.0 * y)))
-            .collect();
-        crate::plot::legend_off_data(&mut ch, &data, 3, 12, crate::plot::CORNERS)?;
-        root.present().map_err(|e| pe(&e))
-    })
+    // The shared frame (fonts sized for a journal column, crate::plot).
+    let ax = crate::plot::Axes::new(format!("{name}: ray trace at {lam} nm"), "r (arcmin)", "p (%)");
+    let mut ch = crate::plot::chart(root, &ax, 0.0..rmax, 0.0..ymax)?;
+    ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, v(x))), GREEN.stroke_width(2)))
+        .map_err(|e| pe(&e))?
+        .label("paper V fit")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], GREEN));
+    ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, i(x))), RED.stroke_width(2)))
+        .map_err(|e| pe(&e))?
+        .label("paper I fit")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED));
+    ch.draw_series(LineSeries::new(r.iter().zip(p).map(|(&x, &y)| (x, 100.0 * y)), BLACK.stroke_width(2)))
+        .map_err(|e| pe(&e))?
+        .label("ray trace")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
+    ch.draw_series(r.iter().zip(p).map(|(&x, &y)| Circle::new((x, 100.0 * y), 3, BLACK.filled())))
+        .map_err(|e| pe(&e))?;
+    let data: Vec<(f64, f64)> = grid
+        .iter()
+        .flat_map(|&x| [(x, v(x)), (x, i(x))])
+        .chain(r.iter().zip(p).map(|(&x, &y)| (x, 100.0 * y)))
+        .collect();
+    crate::plot::legend_off_data(&mut ch, &data, 3, 12, crate::plot::CORNERS)?;
+    Ok(())
 }

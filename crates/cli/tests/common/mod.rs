@@ -214,3 +214,39 @@ pub fn run_json(sub: &str, args: &[&str]) -> serde_json::Value {
     assert_eq!(code, 0, "instpol {sub} {args:?}: {err}");
     serde_json::from_str(&out).unwrap()
 }
+
+/// `instpol import-map` arguments for the public FORS2 v_HIGH maps in `data_dir`
+/// (../shared/data/fors2-instpol: 10 x 10 binned 0.25"/px pixels, README there), writing `out`.
+pub fn import_fors2_v_args(data_dir: &Path, out: &Path) -> Vec<String> {
+    let p = |f: &str| data_dir.join(f).to_string_lossy().into_owned();
+    [
+        "import-map",
+        "--q",
+        &p("v_HIGH_inlaQ_bin10.fits"),
+        "--u",
+        &p("v_HIGH_inlaU_bin10.fits"),
+        "--pixel-scale",
+        "0.25",
+        "--bin",
+        "10",
+        "--filter",
+        "v_HIGH",
+        "--instrument",
+        "FORS2",
+        "--out",
+        &out.to_string_lossy(),
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect()
+}
+
+/// `instpol calibrate` arguments for a sky-field map of the paper's V field (the sky's
+/// P = 1.74 %, chi = -53.8 deg, Table tab:empty), writing `out`.
+pub fn calibrate_v_args(map: &Path, out: &Path) -> Vec<String> {
+    let (m, o) = (map.to_string_lossy(), out.to_string_lossy());
+    ["calibrate", "--map", &m, "--sky-p", "1.74", "--sky-chi", "-53.8", "--out", &o]
+        .iter()
+        .map(|s| s.to_string())
+        .collect()
+}

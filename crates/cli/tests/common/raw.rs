@@ -79,57 +79,34 @@ pub struct RawSet {
 pub fn write_raw_set(dir: &Path, inst: &Instrument) -> RawSet {
     let fl = flat(inst);
     let bp = bias_pattern(inst);
+    // One exposure's chip files: electrons, HWP angle, exposure number, flat applied or not,
+    // photon noise, seed and name.
+    let write = |e: &[f64], hwp: f64, no: i64, flat: bool, noise: bool, seed: u64, name: String| {
+        write_raw_exposure(
+            inst,
+            &exposure(e, Some(hwp), no),
+            flat.then_some(&fl[..]),
+            Some(&bp),
+            &CHIPS,
+            noise,
+            seed,
+            dir,
+            &name,
+        )
+        .unwrap()
+    };
     let mut s = RawSet { science: vec![], bias: vec![], flats: vec![] };
     for (k, &a) in ANGLES.iter().enumerate() {
         let e = sky_electrons(inst, a);
-        s.science.extend(
-            write_raw_exposure(
-                inst,
-                &exposure(&e, Some(a), k as i64),
-                Some(&fl),
-                Some(&bp),
-                &CHIPS,
-                true,
-                100 + k as u64,
-                dir,
-                &format!("sci{k}"),
-            )
-            .unwrap(),
-        );
+        s.science.extend(write(&e, a, k as i64, true, true, 100 + k as u64, format!("sci{k}")));
     }
     let zero = vec![0.0; inst.detector.nx * inst.detector.ny];
     for k in 0..5 {
-        s.bias.extend(
-            write_raw_exposure(
-                inst,
-                &exposure(&zero, Some(0.0), 10 + k),
-                None,
-                Some(&bp),
-                &CHIPS,
-                false,
-                200 + k as u64,
-                dir,
-                &format!("bias{k}"),
-            )
-            .unwrap(),
-        );
+        s.bias.extend(write(&zero, 0.0, 10 + k, false, false, 200 + k as u64, format!("bias{k}")));
     }
     let lamp = vec![30000.0; inst.detector.nx * inst.detector.ny];
     for k in 0..3 {
-        s.flats.extend(
-            write_raw_exposure(
-                inst,
-                &exposure(&lamp, Some(0.0), 20 + k),
-                Some(&fl),
-                Some(&bp),
-                &CHIPS,
-                true,
-                300 + k as u64,
-                dir,
-                &format!("flat{k}"),
-            )
-            .unwrap(),
-        );
+        s.flats.extend(write(&lamp, 0.0, 20 + k, true, true, 300 + k as u64, format!("flat{k}")));
     }
     s
 }

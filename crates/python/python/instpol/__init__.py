@@ -136,7 +136,7 @@ def stokes(
     dict
         ``q, u, p`` (fractions), ``chi_deg`` in [0, 180), ``sigma_q, sigma_u, cov_qu,
         sigma_p, sigma_chi_deg`` (NaN where chi is undetermined), ``a0, sigma_a0, snr,
-        sigma_p_analytic, sigma_chi_analytic_deg, kappa_mean`` (NaN when none),
+        sigma_p_analytic, sigma_chi_analytic_deg, mean_kappa`` (NaN when none),
         ``chi_defined``: floats for one star, (M,) arrays for M stars; ``f, sigma_f`` ((N,) or
         (M, N)), ``kappa`` (the kappa_j), ``fourier`` (dict of ``k, a, b, sigma_a, sigma_b,
         power``), ``estimator`` and ``warnings``.
