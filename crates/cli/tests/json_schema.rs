@@ -586,9 +586,11 @@ fn optional_keys_json() {
                 "--residual-map",
                 "--out",
                 &out(f, "cal_opt.fits"),
+                "--plots",
+                &out(f, "cal_opt_plots"),
                 "--json",
             ]),
-            vec!["rms_residual_loo", "approx_vs_exact", "centre_px"],
+            vec!["rms_residual_loo", "approx_vs_exact", "centre_px", "plot_outputs"],
         ),
         ("mc", v(&["mc", "--trials", "2000", "--rng-baseline", "--json"]), vec!["rng_seconds", "engine_over_rng"]),
     ];
@@ -596,6 +598,10 @@ fn optional_keys_json() {
         let (code, o, err) = common::run(&a);
         assert_eq!(code, 0, "{a:?}: {err}");
         let doc: Value = serde_json::from_str(&o).unwrap();
+        // The plots listed are the files drawn.
+        for p in doc.get("plot_outputs").and_then(Value::as_array).into_iter().flatten() {
+            assert!(Path::new(p.as_str().unwrap()).is_file(), "{name}: {p} listed but not written");
+        }
         for k in keys {
             assert!(doc.get(k).is_some(), "{name}: {k} not printed: {doc}");
         }

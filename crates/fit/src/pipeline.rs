@@ -250,6 +250,9 @@ pub struct FitSummary {
     #[serde(skip_serializing_if = "Option::is_none")]
     #[serde(rename = "output")]
     pub calibration_file: Option<String>,
+    /// The plots drawn (`--plots`), PNG and SVG; omitted when none.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub plot_outputs: Vec<String>,
 }
 
 impl FitSummary {
@@ -286,6 +289,7 @@ impl FitSummary {
             },
             approx_vs_exact: approx_vs_exact(&cal.bins),
             calibration_file: None,
+            plot_outputs: Vec::new(),
         }
     }
 }

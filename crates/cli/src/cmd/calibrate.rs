@@ -259,7 +259,8 @@ pub fn finish(run: &CalibrationRun, out: Option<&Path>, plots: Option<&Path>, js
         s.calibration_file = Some(out.display().to_string());
     }
     if let Some(dir) = plots {
-        crate::cmd::plot::plot_run(dir, &run.calibration.filter, run)?;
+        let files = crate::cmd::plot::plot_run(dir, &run.calibration.filter, run)?;
+        s.plot_outputs = files.iter().map(|p| p.display().to_string()).collect();
     }
     if json {
         crate::util::print_json(&s)
