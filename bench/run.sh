@@ -55,16 +55,16 @@ for r in $(seq "$REPS"); do
   echo "$s $e" | awk '{print $2-$1}' > "$LOG/ical_$r.txt"
 done
 echo "== read-only baseline and library reduction (crates/skyfield/benches/read.rs)" >&2
-BENCH_FRAMES="$FR" cargo bench -q -p skyfield --bench read 2>/dev/null | grep '^{' > "$LOG/read.json"
+BENCH_FRAMES="$FR" cargo bench -q -p instpol-skyfield --bench read 2>/dev/null | grep '^{' > "$LOG/read.json"
 echo "== raw FORS2 frames (16 x 2 chip files, master bias + flat + overscan) vs CFITSIO read alone (crates/sim/benches/raw_fors2.rs)" >&2
 # Frames made once in RAW_DIR when set (32 x 4 MB), else in the log folder.
-BENCH_RAW_DIR="${RAW_DIR:-$LOG/raw}" cargo bench -q -p sim --bench raw_fors2 2>/dev/null | grep '^{' > "$LOG/raw.json" || true
+BENCH_RAW_DIR="${RAW_DIR:-$LOG/raw}" cargo bench -q -p instpol-sim --bench raw_fors2 2>/dev/null | grep '^{' > "$LOG/raw.json" || true
 
 # 3. Correction throughput and 4. ray trace (criterion).
 echo "== fit correct bench" >&2
-cargo bench -q -p fit --bench correct 2>/dev/null | tee "$LOG/correct.txt" | grep -E 'thrpt|^correct' >&2 || true
+cargo bench -q -p instpol-fit --bench correct 2>/dev/null | tee "$LOG/correct.txt" | grep -E 'thrpt|^correct' >&2 || true
 echo "== mueller raytrace bench" >&2
-cargo bench -q -p mueller --bench raytrace 2>/dev/null | tee "$LOG/raytrace.txt" | grep -E 'thrpt|^raytrace' >&2 || true
+cargo bench -q -p instpol-mueller --bench raytrace 2>/dev/null | tee "$LOG/raytrace.txt" | grep -E 'thrpt|^raytrace' >&2 || true
 
 python3 - "$LOG" "$REPS" "$(nproc)" > "$LOG/table.md" <<'PY'
 import json, re, sys, glob, os

@@ -1,5 +1,5 @@
 //! End-to-end tests of `instpol stokes`: the binary on the shipped example inputs (made by
-//! `cargo run -p stokes --example make_example_data` with the mueller forward model; their
+//! `cargo run -p instpol-stokes --example make_example_data` with the mueller forward model; their
 //! true parameters are in the files' comment lines) and on bad input.
 
 use serde_json::Value;

@@ -1,5 +1,5 @@
 //! Throughput of the correction (issue 6 asks for >= 1e7 corrections per second per core with
-//! the polynomial model). Run: `cargo bench -p fit --bench correct`; criterion reports
+//! the polynomial model). Run: `cargo bench -p instpol-fit --bench correct`; criterion reports
 //! elements per second for batches of 100 000 catalog rows on one thread, for the exact
 //! inversion with full error propagation and for `eq:approx`.
 

@@ -1,5 +1,5 @@
 //! Print the paraxial check and the polarization field of the FORS1-like collimator
-//! (a design aid: `cargo run -p mueller --example collimator [file.toml]`).
+//! (a design aid: `cargo run -p instpol-mueller --example collimator [file.toml]`).
 
 use mueller::raytrace::{Prescription, Sampling};
 

@@ -1,5 +1,5 @@
 //! Write the shipped metal tables (`instruments/metals/`) from the Lorentz-Drude fits of
-//! Rakic et al. 1998 (Applied Optics 37, 5271): `cargo run -p mueller --example metal_tables`.
+//! Rakic et al. 1998 (Applied Optics 37, 5271): `cargo run -p instpol-mueller --example metal_tables`.
 
 use mueller::mirror::{lorentz_drude, LorentzDrude, ALUMINIUM_LD, SILVER_LD};
 use std::fmt::Write;
@@ -18,7 +18,10 @@ fn table(name: &str, m: &LorentzDrude) -> String {
         "# {} Lorentz oscillators), eps(w) = 1 - f0 wp^2/(w(w + i G0)) + sum f_j wp^2/(w_j^2 - w^2 - i w G_j),",
         m.oscillators.len()
     );
-    let _ = writeln!(s, "# n + i k = sqrt(eps), by `cargo run -p mueller --example metal_tables` (mueller::mirror).");
+    let _ = writeln!(
+        s,
+        "# n + i k = sqrt(eps), by `cargo run -p instpol-mueller --example metal_tables` (mueller::mirror)."
+    );
     let _ = writeln!(s, "lambda,n,k");
     let mut w: f64 = 0.30;
     while w <= 1.2001 {

@@ -7,7 +7,7 @@
 //! process. Prints one JSON line. Frames are made in `BENCH_RAW_DIR` (kept) or a temporary
 //! folder.
 //!
-//! `cargo bench -p sim --bench raw_fors2`
+//! `cargo bench -p instpol-sim --bench raw_fors2`
 
 use fitsio::FitsFile;
 use instrument::Instrument;

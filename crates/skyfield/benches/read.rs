@@ -7,7 +7,7 @@
 //! best of `REPS` (default 3). Frames: `BENCH_FRAMES=DIR` (FITS files `*.fits`, FORS1 layout;
 //! `bench/run.sh` makes them with `bench/peers/reduce_peer.py make`). Prints one JSON line.
 //!
-//! `BENCH_FRAMES=/tmp/frames cargo bench -p skyfield --bench read`
+//! `BENCH_FRAMES=/tmp/frames cargo bench -p instpol-skyfield --bench read`
 
 use fitsio::FitsFile;
 use skyfield::reduce::{read_frames, reduce_files, ReduceConfig};
