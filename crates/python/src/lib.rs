@@ -300,10 +300,28 @@ fn _bias<'py>(
 #[pyclass(module = "instpol._instpol", frozen)]
 struct _Calibration {
     cal: fit::Calibration,
+    /// The telescope model stored beside the field one (`instpol fit-standards --output
+    /// --field-cal`), applied after the field with each row's parallactic angle.
+    telescope: Option<fit::telescope::TelescopeFit>,
     path: PathBuf,
 }
 
 impl _Calibration {
+    /// The telescope model's band: `band`, else the field calibration's filter (the rule of
+    /// `instpol correct --band`); an error naming the bands the model has.
+    fn telescope_band(&self, t: &fit::telescope::TelescopeFit, band: Option<String>) -> PyResult<String> {
+        let b = band.unwrap_or_else(|| self.cal.filter.clone());
+        if t.band(&b).is_none() {
+            let bands: Vec<&str> = t.bands.iter().map(|x| x.0.as_str()).collect();
+            return Err(input_err(format!(
+                "band '{b}': the telescope model of {} has bands {}: choose one with band=",
+                self.path.display(),
+                bands.join(", ")
+            )));
+        }
+        Ok(b)
+    }
+
     /// Positions in arcmin from the detector centre, from `units` "px" (0-based pixels of the
     /// calibration's grid, converted as `instpol correct --coords pixel` does) or "arcmin".
     fn arcmin(&self, x: &[f64], y: &[f64], units: &str) -> PyResult<Option<(Vec<f64>, Vec<f64>)>> {
@@ -325,7 +343,9 @@ impl _Calibration {
 impl _Calibration {
     #[staticmethod]
     fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
-        let cal = py.detach(|| fit::Calibration::load(&path)).map_err(|e| {
+        // The reader `instpol correct` uses: a field model, and a telescope model when the
+        // file holds one (ignoring it would return the telescope's polarization as the sky's).
+        let loaded = py.detach(|| fit::telescope_cal::load(&path)).map_err(|e| {
             let file = matches!(e, fit::Error::Io { .. } | fit::Error::Fits { .. });
             let msg = format!("cannot load calibration {}: {e}", path.display());
             if file {
@@ -334,7 +354,14 @@ impl _Calibration {
                 input_err(msg)
             }
         })?;
-        Ok(Self { cal, path })
+        let cal = loaded.field.ok_or_else(|| {
+            input_err(format!(
+                "cannot load calibration {}: it holds only a telescope model; the Python package corrects with a \
+                 field model (with or without a telescope model): use `instpol correct` for a telescope-only file",
+                path.display()
+            ))
+        })?;
+        Ok(Self { cal, telescope: loaded.telescope, path })
     }
 
     #[getter]
@@ -374,6 +401,11 @@ impl _Calibration {
     fn has_pixel_grid(&self) -> bool {
         self.cal.pixel.is_some()
     }
+    /// The bands of the telescope model stored in the file (empty without one).
+    #[getter]
+    fn telescope_bands(&self) -> Vec<String> {
+        self.telescope.as_ref().map_or(vec![], |t| t.bands.iter().map(|b| b.0.clone()).collect())
+    }
 
     /// Instrumental `(q, u)` with the calibration's covariance at flat arrays `x`, `y`, and
     /// whether each position lies inside the calibrated field.
@@ -406,7 +438,7 @@ impl _Calibration {
 
     /// `instpol correct` on flat arrays: exact inversion of `eq:instpol` (or `eq:approx`), the
     /// HWP zero angle first, errors propagated; `estimator`: also the bias-corrected `P0`.
-    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator))]
+    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator, parang_deg, parang_end_deg, band))]
     #[allow(clippy::too_many_arguments)]
     fn _correct<'py>(
         &self,
@@ -423,6 +455,9 @@ impl _Calibration {
         allow_extrapolation: bool,
         extrapolation_error: f64,
         estimator: Option<&str>,
+        parang_deg: Option<PyReadonlyArray1<'py, f64>>,
+        parang_end_deg: Option<PyReadonlyArray1<'py, f64>>,
+        band: Option<String>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let method = match method {
             "exact" => Method::Exact,
@@ -441,6 +476,33 @@ impl _Calibration {
         if [y.len(), q.len(), u.len(), sq.len(), su.len(), cov.map_or(n, |c| c.len())].iter().any(|&l| l != n) {
             return Err(input_err("x, y, q, u, sigma_q, sigma_u and cov_qu must have one shape (after broadcasting)"));
         }
+        let pa = parang_deg.as_ref().map(|c| slice(c, "parang_deg")).transpose()?;
+        let pa_end = parang_end_deg.as_ref().map(|c| slice(c, "parang_end_deg")).transpose()?;
+        if [pa.map_or(n, |c| c.len()), pa_end.map_or(n, |c| c.len())].iter().any(|&l| l != n) {
+            return Err(input_err("parang_deg and parang_end_deg must have the shape of x (after broadcasting)"));
+        }
+        let telescope = match (&self.telescope, pa) {
+            (Some(t), Some(pa)) => Some((t, pa, self.telescope_band(t, band)?)),
+            (Some(t), None) => {
+                return Err(input_err(format!(
+                    "{} holds a telescope model ({}): give each row's parallactic angle, parang_deg= (deg, as the \
+                     standards were fitted with), as `instpol correct` reads it from the column parang_deg",
+                    self.path.display(),
+                    t.model.name()
+                )))
+            }
+            (None, Some(_)) => {
+                return Err(input_err(format!(
+                    "parang_deg given but {} holds no telescope model: the telescope's polarization would NOT be \
+                     removed (fit one with instpol fit-standards --output --field-cal)",
+                    self.path.display()
+                )))
+            }
+            (None, None) if pa_end.is_some() || band.is_some() => {
+                return Err(input_err("parang_end_deg and band are for calibrations with a telescope model"))
+            }
+            (None, None) => None,
+        };
         let conv = self.arcmin(x, y, units)?;
         let (x, y) = conv.as_ref().map_or((x, y), |(a, b)| (a.as_slice(), b.as_slice()));
         // The options `instpol correct` builds (cli::cmd::correct::options).
@@ -448,7 +510,9 @@ impl _Calibration {
             method,
             allow_extrapolation,
             extrapolation_rel_error: extrapolation_error,
-            chi_offset: self.cal.hwp_chi_offset_deg.to_radians(),
+            // With a telescope model its offset is the instrument's angle zero (module docs
+            // of fit::telescope_cal), as `instpol correct` does.
+            chi_offset: if telescope.is_some() { 0.0 } else { self.cal.hwp_chi_offset_deg.to_radians() },
         };
         let cal = &self.cal;
         let input = Inputs { x, y, q, u, sq, su, cov };
@@ -464,7 +528,10 @@ impl _Calibration {
                 extra: &mut extra,
                 start: 0,
             };
-            fill(&cor, &input, sink)
+            match &telescope {
+                Some((t, pa, b)) => fill_chain(&cor, t, b, &input, pa, pa_end, sink),
+                None => fill(&cor, &input, sink).map_err(|(k, e)| (k, e.to_string())),
+            }
         });
         let n_extra = res.map_err(|(row, e)| input_err(format!("index {row}: {e}")))?;
         let d = PyDict::new(py);
@@ -478,6 +545,10 @@ impl _Calibration {
         }
         d.set_item("extrapolated", bools(py, extra))?;
         d.set_item("n_extrapolated", n_extra)?;
+        if let Some((t, _, b)) = &telescope {
+            d.set_item("telescope_model", t.model.name())?;
+            d.set_item("telescope_band", b.as_str())?;
+        }
         Ok(d)
     }
 }
@@ -553,8 +624,7 @@ fn fill(
     let (x, y, q, u) = (&i.x[r0..r0 + n], &i.y[r0..r0 + n], &i.q[r0..r0 + n], &i.u[r0..r0 + n]);
     let (sq, su) = (&i.sq[r0..r0 + n], &i.su[r0..r0 + n]);
     let cov = i.cov.map(|c| &c[r0..r0 + n]);
-    let Sink { cols, mut p0e, extra, .. } = s;
-    let [c_q0, c_u0, c_sq0, c_su0, c_cov0, c_p0, c_sp0, c_chi0, c_sc0, c_qi, c_ui] = cols;
+    let Sink { mut cols, mut p0e, extra, .. } = s;
     let mut n_extra = 0;
     for k in 0..n {
         let m = Measurement {
@@ -567,25 +637,85 @@ fn fill(
             cov_qu: cov.map_or(0.0, |c| c[k]),
         };
         let r = cor.correct(&m).map_err(|e| (r0 + k, e))?;
-        // The values `instpol correct` writes (cli::cmd::correct::added_values).
-        c_q0[k] = r.q0;
-        c_u0[k] = r.u0;
-        c_sq0[k] = r.var_q0.sqrt();
-        c_su0[k] = r.var_u0.sqrt();
-        c_cov0[k] = r.cov_qu0;
-        c_p0[k] = r.p0;
-        c_sp0[k] = r.sigma_p0;
-        c_chi0[k] = r.chi0.to_degrees();
-        c_sc0[k] = r.sigma_chi0.to_degrees();
-        c_qi[k] = r.inst.q;
-        c_ui[k] = r.inst.u;
-        if let Some((c, e)) = p0e.as_mut() {
-            c[k] = r.p0_estimate(*e);
-        }
+        put_row(&mut cols, &mut p0e, k, &r);
         extra[k] = r.extrapolated;
         n_extra += r.extrapolated as usize;
     }
     Ok(n_extra)
+}
+
+/// Row `k` of the output columns: the values `instpol correct` writes
+/// (cli::cmd::correct::added_values), in [`OUT_NAMES`] order.
+#[inline]
+fn put_row(
+    cols: &mut [&mut [f64]; N_OUT],
+    p0e: &mut Option<(&mut [f64], Estimator)>,
+    k: usize,
+    r: &fit::correct::Corrected,
+) {
+    let v = [
+        r.q0,
+        r.u0,
+        r.var_q0.sqrt(),
+        r.var_u0.sqrt(),
+        r.cov_qu0,
+        r.p0,
+        r.sigma_p0,
+        r.chi0.to_degrees(),
+        r.sigma_chi0.to_degrees(),
+        r.inst.q,
+        r.inst.u,
+    ];
+    for (c, v) in cols.iter_mut().zip(v) {
+        c[k] = v;
+    }
+    if let Some((c, e)) = p0e.as_mut() {
+        c[k] = r.p0_estimate(*e);
+    }
+}
+
+/// The telescope chain (`instpol correct` with a calibration holding a telescope model): each
+/// row corrected for the field and then the telescope over its parallactic-angle track with
+/// `fit::telescope_cal::correct_chain`; `q_inst, u_inst` are the field's and the telescope's
+/// together, as the CLI writes them. Rows in parallel; the error is the lowest row's.
+fn fill_chain(
+    cor: &Corrector<'_, fit::Calibration>,
+    tel: &fit::telescope::TelescopeFit,
+    band: &str,
+    i: &Inputs<'_>,
+    pa: &[f64],
+    pa_end: Option<&[f64]>,
+    s: Sink<'_>,
+) -> Result<usize, (usize, String)> {
+    use fit::telescope::Track;
+    let n = s.extra.len();
+    let rows: Vec<fit::correct::Corrected> = (0..n)
+        .into_par_iter()
+        .map(|k| {
+            let m = Measurement {
+                x: i.x[k],
+                y: i.y[k],
+                q: i.q[k],
+                u: i.u[k],
+                sigma_q: i.sq[k],
+                sigma_u: i.su[k],
+                cov_qu: i.cov.map_or(0.0, |c| c[k]),
+            };
+            let track = Track::new(pa[k].to_radians(), pa_end.map(|e| e[k].to_radians()));
+            let r =
+                fit::telescope_cal::correct_chain(Some(cor), tel, band, &m, track).map_err(|e| (k, e.to_string()))?;
+            let mut c = r.corrected;
+            c.inst.q += r.q_tel;
+            c.inst.u += r.u_tel;
+            Ok(c)
+        })
+        .collect::<Result<_, _>>()?;
+    let Sink { mut cols, mut p0e, extra, .. } = s;
+    for (k, r) in rows.iter().enumerate() {
+        put_row(&mut cols, &mut p0e, k, r);
+        extra[k] = r.extrapolated;
+    }
+    Ok(rows.iter().filter(|r| r.extrapolated).count())
 }
 
 fn read_options(

@@ -233,6 +233,10 @@ class Calibration:
     rms_residual = property(lambda self: self._c.rms_residual, doc="RMS fit residual per component (fraction).")
     centre_arcmin = property(lambda self: self._c.centre_arcmin, doc="Optical-axis centre (arcmin).")
     has_pixel_grid = property(lambda self: self._c.has_pixel_grid, doc="True when positions may be given in px.")
+    telescope_bands = property(
+        lambda self: list(self._c.telescope_bands),
+        doc="Bands of the telescope model stored in the file (empty without one): correct() then needs parang_deg.",
+    )
 
     def __repr__(self) -> str:
         return f"<instpol.Calibration {self.instrument} {self.filter} ({self.model}) from {self.path!r}>"
@@ -264,6 +268,9 @@ class Calibration:
         allow_extrapolation: bool = False,
         extrapolation_error: float = 0.5,
         estimator: Optional[str] = None,
+        parang_deg: Optional[ArrayLike] = None,
+        parang_end_deg: Optional[ArrayLike] = None,
+        band: Optional[str] = None,
     ) -> Dict[str, Any]:
         """Remove the instrumental polarization from measured ``(q, u)`` at ``(x, y)``.
 
@@ -275,23 +282,36 @@ class Calibration:
         inflated by (F p)^2 (F = ``extrapolation_error``). ``units`` as in :meth:`evaluate`.
         The same function and numbers, bit for bit, as ``instpol correct``.
 
+        A calibration holding a telescope model (``telescope_bands`` not empty, from
+        ``instpol fit-standards --output --field-cal``) needs each row's parallactic angle
+        ``parang_deg`` (deg; ``parang_end_deg`` the exposure's end: the model is averaged over
+        the track); the field is undone first, then the telescope of ``band`` (default: the
+        calibration's filter), as ``instpol correct`` does with the columns ``parang_deg`` and
+        ``parang_end_deg``. Without such a model, ``parang_deg`` raises InputError (the
+        telescope's polarization would not be removed).
+
         Returns
         -------
         dict
             ``q0, u0, sigma_q0, sigma_u0, cov_qu0, p0, sigma_p0, chi0_deg, sigma_chi0_deg,
             q_inst, u_inst, extrapolated`` in the broadcast shape, ``p0_<estimator>`` when an
-            estimator is named (see :func:`bias`), and ``n_extrapolated``.
+            estimator is named (see :func:`bias`), ``n_extrapolated``, and with a telescope
+            model ``telescope_model`` and ``telescope_band`` (``q_inst, u_inst`` are then the
+            field's and the telescope's together).
         """
         names = ["x", "y", "q", "u", "sigma_q", "sigma_u"]
         arrs = [x, y, q, u, sigma_q, sigma_u]
-        if cov_qu is not None:
-            names.append("cov_qu")
-            arrs.append(cov_qu)
+        optional = {"cov_qu": cov_qu, "parang_deg": parang_deg, "parang_end_deg": parang_end_deg}
+        for name, a in optional.items():
+            if a is not None:
+                names.append(name)
+                arrs.append(a)
         shape, flat = _broadcast(names, arrs)
-        cov = flat[6] if cov_qu is not None else None
+        got = dict(zip(names, flat))
         d = self._c._correct(
-            *flat[:6], cov, str(units), str(method), bool(allow_extrapolation), float(extrapolation_error),
-            None if estimator is None else str(estimator),
+            *flat[:6], got.get("cov_qu"), str(units), str(method), bool(allow_extrapolation),
+            float(extrapolation_error), None if estimator is None else str(estimator),
+            got.get("parang_deg"), got.get("parang_end_deg"), None if band is None else str(band),
         )
         return _reshape(d, shape, flat[0].shape[0])
 

@@ -64,6 +64,8 @@ class Calibration:
     def centre_arcmin(self) -> Tuple[float, float]: ...
     @property
     def has_pixel_grid(self) -> bool: ...
+    @property
+    def telescope_bands(self) -> List[str]: ...
     def evaluate(self, x: ArrayLike, y: ArrayLike, units: str = ...) -> Dict[str, Any]:
         """Instrumental (q, u) = p (cos 2phi, sin 2phi) (eq:instpol) with errors at (x, y)."""
     def correct(
@@ -81,6 +83,9 @@ class Calibration:
         allow_extrapolation: bool = ...,
         extrapolation_error: float = ...,
         estimator: Optional[str] = ...,
+        parang_deg: Optional[ArrayLike] = ...,
+        parang_end_deg: Optional[ArrayLike] = ...,
+        band: Optional[str] = ...,
     ) -> Dict[str, Any]:
         """Exact inversion of eq:instpol (or eq:approx), as `instpol correct`, bit for bit."""
 
