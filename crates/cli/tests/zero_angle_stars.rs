@@ -90,6 +90,17 @@ fn zero_angle_from_three_standards_of_different_chi() {
     assert!(err.contains("disagrees"), "{err}");
     assert!(j["chi2_dof"].as_f64().unwrap() > 10.0, "{j}");
 
+    // A standard by name from the built-in list (Hiltner 652, V: 179.18 deg, Fossati et al.
+    // 2007) put on the wrong star: looked up, and the set's scatter is flagged. (A star 80 deg
+    // off drags the mean and can flip the sense; naming it needs a leave-one-out test, not
+    // done: see the report.)
+    let mut named = three.to_vec();
+    named.push("560,560:Hiltner 652");
+    let (code, j, err) = zero_angle(&inst, &frames, &named);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(j["standards"][3]["chi_catalogue_deg"].as_f64().unwrap(), 179.18, "{j}");
+    assert!(j["chi2_dof"].as_f64().unwrap() > 100.0, "{j}");
+
     // A bad --standard is a clear error naming it, exit code 2.
     let (code, _, err) = zero_angle(&inst, &frames, &["150;200:136"]);
     assert_eq!(code, 2);

@@ -128,7 +128,7 @@ fn parse_standard(spec: &str, list: &dyn Fn() -> Result<fit::standards::Standard
     };
     let (pos, what) = spec.split_once(':').ok_or_else(bad)?;
     let xy: Option<Vec<f64>> = pos.split(',').map(|t| t.trim().parse().ok()).collect();
-    let Some([x, y]) = xy.as_deref().map(|v| <[f64; 2]>::try_from(v).ok()).flatten() else { return Err(bad()) };
+    let Some([x, y]) = xy.as_deref().and_then(|v| <[f64; 2]>::try_from(v).ok()) else { return Err(bad()) };
     let what = what.trim();
     let num = what.replace('±', "+-");
     let angle = match num.split_once("+-") {
