@@ -9,6 +9,13 @@
 //! With two or more standards of different `chi`, the sense is the one with the smaller
 //! chi^2 (`chi_true = offset + chi_meas` for the IAU sense, `offset - chi_meas` mirrored); with
 //! one standard, or standards of one `chi`, it cannot be told and is reported so.
+//!
+//! With several standards the scatter is checked: the chi^2 of the offsets about their mean,
+//! each star's pull (its residual over the residual's own error, `sigma_i^2 - 1 / sum w`, since
+//! the mean contains the star), a scatter-based error (the propagated one times
+//! `sqrt(chi^2 / dof)`, the Birge ratio) beside the propagated one, and the star that disagrees
+//! (the largest pull beyond [`OUTLIER_PULL`], with three or more stars: with two, either could
+//! be the wrong one).
 
 /// One standard: measured and catalogued `chi` (rad) with their 1-sigma errors (rad).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -46,7 +53,18 @@ pub struct ZeroAngle {
     pub chi2_other_sense: Option<f64>,
     /// Each standard's own offset (rad).
     pub offsets: Vec<f64>,
+    /// Each standard's residual about the mean over its error (0 for a single star).
+    pub pulls: Vec<f64>,
+    /// The propagated error scaled by `sqrt(chi2 / dof)` (rad), with two or more standards.
+    pub sigma_scatter: Option<f64>,
+    /// Index (into the standards given) of the star whose pull exceeds [`OUTLIER_PULL`], the
+    /// largest one, with three or more standards.
+    pub outlier: Option<usize>,
 }
+
+/// A standard whose offset lies further than this (in sigma of its residual) from the mean of
+/// the others is named as an outlier.
+pub const OUTLIER_PULL: f64 = 3.0;
 
 pub use mueller::wrap_half_pi;
 
@@ -89,7 +107,32 @@ pub fn zero_angle(stds: &[StandardChi]) -> Option<ZeroAngle> {
         (Sense::Mirrored, m_mir, c_mir, mir, Some(c_iau))
     };
     let sw: f64 = w.iter().sum();
-    Some(ZeroAngle { offset, sigma: 1.0 / sw.sqrt(), chi2, dof: ok.len() - 1, sense, chi2_other_sense: other, offsets })
+    let sigma = 1.0 / sw.sqrt();
+    let dof = ok.len() - 1;
+    let pulls: Vec<f64> = offsets
+        .iter()
+        .zip(&w)
+        .map(|(&d, &wi)| {
+            let v = 1.0 / wi - 1.0 / sw;
+            if v > 0.0 {
+                wrap_half_pi(d - offset) / v.sqrt()
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let sigma_scatter = (dof > 0).then(|| sigma * (chi2 / dof as f64).sqrt());
+    // Map the worst pull back to the index among all standards given (non-finite ones skipped).
+    let idx: Vec<usize> =
+        stds.iter().enumerate().filter(|(_, s)| ok.iter().any(|o| std::ptr::eq(*o, *s))).map(|(i, _)| i).collect();
+    let outlier = if ok.len() >= 3 {
+        let (k, worst) =
+            pulls.iter().enumerate().map(|(k, p)| (k, p.abs())).fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+        (worst > OUTLIER_PULL).then(|| idx[k])
+    } else {
+        None
+    };
+    Some(ZeroAngle { offset, sigma, chi2, dof, sense, chi2_other_sense: other, offsets, pulls, sigma_scatter, outlier })
 }
 
 #[cfg(test)]
@@ -143,5 +186,46 @@ mod tests {
         assert_eq!(z.sense, Sense::Mirrored);
         assert!((z.offset.to_degrees() - off).abs() < 1e-9);
         assert!(z.chi2 < 1e-12 && z.chi2_other_sense.unwrap() > 100.0);
+        assert!(z.outlier.is_none() && z.sigma_scatter.unwrap() < 1e-9);
+    }
+
+    /// Four standards, one catalogued 3 deg off: its pull is the textbook
+    /// `(d - mean) / sqrt(sigma^2 - 1/sum w)` (mean of four equal weights: residual 3 * 3/4 deg,
+    /// error sigma sqrt(3/4)), it is named, the others are not, and the scatter-based error is
+    /// the propagated one times sqrt(chi2 / 3).
+    #[test]
+    fn a_discrepant_standard_is_named() {
+        let off = 10.0;
+        let chis = [20.0, 60.0, 100.0, 150.0];
+        let s: Vec<StandardChi> = chis
+            .iter()
+            .enumerate()
+            .map(|(k, &c): (usize, &f64)| StandardChi {
+                chi_measured: d(c - off),
+                sigma_measured: d(0.3),
+                chi_catalogue: d(c + if k == 2 { 3.0 } else { 0.0 }),
+                sigma_catalogue: d(0.4),
+            })
+            .collect();
+        let z = zero_angle(&s).unwrap();
+        assert_eq!(z.sense, Sense::Iau);
+        assert_eq!(z.outlier, Some(2));
+        let sig = 0.5f64; // hypot(0.3, 0.4)
+                          // The weighted mean on the circle (equal weights), written out here.
+        let ds = [off, off, off + 3.0, off];
+        let (sn, cs) = ds
+            .iter()
+            .fold((0.0, 0.0), |(a, b), x: &f64| (a + (2.0 * x.to_radians()).sin(), b + (2.0 * x.to_radians()).cos()));
+        let mean = 0.5 * sn.atan2(cs).to_degrees();
+        assert!((mean - (off + 0.75)).abs() < 0.01, "close to the arithmetic mean for a small spread");
+        assert!((z.offset.to_degrees() - mean).abs() < 1e-9);
+        let want = (off + 3.0 - mean) / (sig * 0.75f64.sqrt());
+        assert!((z.pulls[2] - want).abs() < 1e-9, "{} vs {want}", z.pulls[2]);
+        assert!(z.pulls.iter().enumerate().all(|(k, p)| k == 2 || p.abs() < OUTLIER_PULL));
+        let chi2: f64 = ds.iter().map(|x| (x - mean).powi(2) / (sig * sig)).sum();
+        assert!((z.chi2 - chi2).abs() < 1e-9 * chi2, "{} vs {chi2}", z.chi2);
+        let birge = z.sigma * (z.chi2 / 3.0).sqrt();
+        assert!((z.sigma_scatter.unwrap() - birge).abs() < 1e-15);
+        assert!((z.sigma.to_degrees() - sig / 2.0).abs() < 1e-12);
     }
 }

@@ -143,6 +143,60 @@ pub struct Catalog {
     /// Sources without a partner image (their positions).
     pub unpaired: Vec<(f64, f64)>,
     pub n_sources: usize,
+    /// Each frame's shift and rotation against the first, measured from the measured stars'
+    /// o-image centroids (`crate::align`); empty with fewer than three measured stars.
+    pub alignment: Vec<FrameAlignment>,
+}
+
+/// One frame's alignment against the first (JSON and the catalog's report).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct FrameAlignment {
+    pub hwp_deg: f64,
+    /// Shift of the stars' centroid (px).
+    pub dx_px: f64,
+    pub dy_px: f64,
+    /// Rotation about the stars' centroid (deg, counter-clockwise in pixels) and its error.
+    pub rotation_deg: f64,
+    pub sigma_rotation_deg: f64,
+    pub scale: f64,
+    /// rms residual of the stars about the similarity transform (px, per coordinate).
+    pub rms_px: f64,
+    pub n_stars: usize,
+    /// The rotation exceeds [`ROTATION_SIGNIFICANT_SIGMA`] times its error.
+    pub rotation_significant: bool,
+}
+
+/// A rotation beyond this many sigma is reported as measured (below, the frames are taken as
+/// shifted only).
+pub const ROTATION_SIGNIFICANT_SIGMA: f64 = 5.0;
+
+/// Every frame's similarity transform against the first from the stars' o centroids per frame
+/// (`centres[star][frame] = [x_o, y_o, x_e, y_e]`).
+pub fn frame_alignment(hwp_deg: &[f64], centres: &[&Vec<[f64; 4]>]) -> Vec<FrameAlignment> {
+    if centres.len() < 3 {
+        return vec![];
+    }
+    let from: Vec<(f64, f64)> = centres.iter().map(|c| (c[0][0], c[0][1])).collect();
+    hwp_deg
+        .iter()
+        .enumerate()
+        .filter_map(|(i, &h)| {
+            let to: Vec<(f64, f64)> =
+                centres.iter().map(|c| c.get(i).map_or((f64::NAN, f64::NAN), |v| (v[0], v[1]))).collect();
+            let t = crate::align::similarity(&from, &to)?;
+            Some(FrameAlignment {
+                hwp_deg: h,
+                dx_px: t.dx,
+                dy_px: t.dy,
+                rotation_deg: t.rotation.to_degrees(),
+                sigma_rotation_deg: t.sigma_rotation.to_degrees(),
+                scale: t.scale,
+                rms_px: t.rms_px,
+                n_stars: t.n_stars,
+                rotation_significant: i > 0 && t.rotation_significant(ROTATION_SIGNIFICANT_SIGMA),
+            })
+        })
+        .collect()
 }
 
 impl Catalog {
@@ -218,7 +272,7 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
     let chi_off = inst.filter(&set.filter).map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0);
     let opts = PhotOptions { weighting: cfg.weighting, recentre: true, kappa: cfg.kappa };
     // Stars are measured independently: in parallel, in catalog order.
-    let rows: Vec<Row> = pairs
+    let measured: Vec<(Row, Option<Vec<[f64; 4]>>)> = pairs
         .par_iter()
         .enumerate()
         .map(|(id, pr)| {
@@ -276,12 +330,14 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
             };
             if flags & flags::SATURATED != 0 {
                 row.note = "saturated: not measured".into();
-                return row;
+                return (row, None);
             }
             // The detection's FWHM of the o image, or the expected one if it could not be measured.
             let fwhm = if so.fwhm_px.is_finite() && so.fwhm_px > 0.0 { so.fwhm_px } else { cfg.detect.fwhm_px };
+            let mut centres = None;
             match photometry_sized(set, &g, so.x, so.y, cfg.radius, fwhm, cfg.annulus, &opts) {
                 Ok((ph, radius)) => {
+                    centres = Some(ph.centres.clone());
                     row.aperture_px = radius;
                     let r = &ph.reduction;
                     let n = r.n;
@@ -332,9 +388,12 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
                     row.note = m;
                 }
             }
-            row
+            (row, centres)
         })
         .collect();
+    let good: Vec<&Vec<[f64; 4]>> = measured.iter().filter_map(|(_, c)| c.as_ref()).collect();
+    let alignment = frame_alignment(&set.angles_deg, &good);
+    let rows: Vec<Row> = measured.into_iter().map(|(r, _)| r).collect();
     Ok(Catalog {
         hwp_deg: set.angles_deg.clone(),
         filter: set.filter.clone(),
@@ -343,5 +402,6 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
         rows,
         unpaired: unpaired.iter().map(|&k| (sources[k].x, sources[k].y)).collect(),
         n_sources: sources.len(),
+        alignment,
     })
 }

@@ -9,6 +9,7 @@
 //! the background removed vectorially ([`photometry`]). It does not fit field models (that is
 //! the `fit` crate) and does not simulate (that is `sim`).
 
+pub mod align;
 pub mod aperture;
 pub mod beams;
 pub mod bin;

@@ -118,6 +118,57 @@ pub fn photometry_with(
     ap: &Aperture,
     opts: &PhotOptions,
 ) -> Result<StarPhotometry, Error> {
+    let out = measure_fluxes(set, g, x, y, ap, opts)?;
+    let n = set.angles_deg.len();
+    if let Some(i) = (0..n).find(|&i| !(out.f_o[i] + out.f_e[i] > 0.0)) {
+        return Err(Error::Invalid(format!(
+            "no source at ({x:.1}, {y:.1}) px: the background-subtracted flux f_O + f_E = {:.1} e- at HWP angle {} deg ({}) is not positive",
+            out.f_o[i] + out.f_e[i],
+            set.angles_deg[i],
+            set.files[i].iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" + ")
+        )));
+    }
+    let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();
+    let m = stokes::Measurement::with_errors(
+        theta,
+        out.f_o.clone(),
+        out.f_e.clone(),
+        out.sigma_o.clone(),
+        out.sigma_e.clone(),
+    )?;
+    let (reduction, kappa_applied) = m.reduce_with(opts.kappa)?;
+    let Partial { hwp_deg, centres, f_o, f_e, sigma_o, sigma_e, bg_o, bg_e, n_aperture, aperture_area_px, n_annulus } =
+        out;
+    Ok(StarPhotometry {
+        x,
+        y,
+        hwp_deg,
+        centres,
+        f_o,
+        f_e,
+        sigma_o,
+        sigma_e,
+        bg_o,
+        bg_e,
+        n_aperture,
+        aperture_area_px,
+        n_annulus,
+        reduction,
+        kappa_applied,
+    })
+}
+
+/// The beams' background-subtracted fluxes and errors of the source at `(x, y)` in every
+/// frame of `set` (the measuring half of [`photometry_with`], shared with
+/// [`exposure_checks`]).
+fn measure_fluxes(
+    set: &FrameSet,
+    g: &BeamGeometry,
+    x: f64,
+    y: f64,
+    ap: &Aperture,
+    opts: &PhotOptions,
+) -> Result<Partial, Error> {
     check_aperture(ap)?;
     if !(x.is_finite() && y.is_finite()) || x < 0.0 || y < 0.0 || x >= g.nx as f64 || y >= g.ny as f64 {
         return Err(Error::Invalid(format!(
@@ -272,42 +323,110 @@ pub fn photometry_with(
         out.bg_o[i] = beam[0].2;
         out.bg_e[i] = beam[1].2;
     }
-    if let Some(i) = (0..n).find(|&i| !(out.f_o[i] + out.f_e[i] > 0.0)) {
-        return Err(Error::Invalid(format!(
-            "no source at ({x:.1}, {y:.1}) px: the background-subtracted flux f_O + f_E = {:.1} e- at HWP angle {} deg ({}) is not positive",
-            out.f_o[i] + out.f_e[i],
-            set.angles_deg[i],
-            set.files[i].iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" + ")
-        )));
+    Ok(out)
+}
+
+/// One exposure's own measurement of a star and its agreement with the other exposures
+/// (issue 13, item 6: frames summed at a repeated HWP position are also measured one by one).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ExposureCheck {
+    /// The frame's file.
+    pub file: String,
+    pub hwp_deg: f64,
+    /// Background-subtracted fluxes (e-) and their errors in this exposure alone.
+    pub f_o: f64,
+    pub f_e: f64,
+    pub sigma_o: f64,
+    pub sigma_e: f64,
+    /// `f_O + f_E` over the median of all exposures (1: as clear as the typical one) and its
+    /// error from this exposure's noise.
+    pub transparency: f64,
+    pub sigma_transparency: f64,
+    /// `F_j` (`eq:F`) about the mean of its repeats over the residual's error
+    /// (`stokes::repeats`, the check `instpol stokes` makes); 0 at a position taken once.
+    pub pull: f64,
+    /// Flagged: `|pull|` beyond the threshold (the exposure's `F_j` itself is off: a cosmic ray
+    /// in one beam, a plate out of position), or the star's light off the median by more than
+    /// [`TRANSPARENCY_TOL`] and the threshold in sigma (clouds, a shutter fault). Flagged
+    /// exposures stay in the sum: a change common to both beams cancels in `F_j`.
+    pub outlier: bool,
+    /// Why it is flagged (empty when not).
+    pub why: String,
+}
+
+/// An exposure whose `F_j` lies further than this (in sigma of its residual) from its repeats'
+/// mean is flagged (the threshold `instpol stokes` uses: one in 16 000 honest exposures).
+pub const EXPOSURE_OUTLIER_SIGMA: f64 = 4.0;
+
+/// A relative change of a star's `f_O + f_E` beyond this (and beyond its noise) flags the
+/// exposure: 10 % is more than seeing and guiding change the light in a fixed aperture.
+pub const TRANSPARENCY_TOL: f64 = 0.10;
+
+/// Measure the source at `(x, y)` in each exposure of `frames` on its own (apertures re-centred
+/// per exposure as `opts` says, the same aperture machinery as [`photometry_with`]), combine the
+/// exposures of each plate position with `stokes::repeats::combine_repeats` and flag outliers
+/// at `threshold` sigma (see [`ExposureCheck`]). `set` gives the frames' conversion and filter.
+#[allow(clippy::too_many_arguments)]
+pub fn exposure_checks(
+    frames: &[crate::io::Frame],
+    set: &FrameSet,
+    g: &BeamGeometry,
+    x: f64,
+    y: f64,
+    ap: &Aperture,
+    opts: &PhotOptions,
+    threshold: f64,
+) -> Result<Vec<ExposureCheck>, Error> {
+    let mut m = Vec::with_capacity(frames.len());
+    for f in frames {
+        let one = FrameSet {
+            filter: set.filter.clone(),
+            angles_deg: vec![f.hwp_deg],
+            data: vec![f.data.clone()],
+            files: vec![vec![f.path.clone()]],
+            nx: f.nx,
+            ny: f.ny,
+            warnings: vec![],
+            conversion: set.conversion,
+        };
+        let p = measure_fluxes(&one, g, x, y, ap, opts)?;
+        m.push((p.f_o[0], p.f_e[0], p.sigma_o[0], p.sigma_e[0]));
     }
-    let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();
-    let m = stokes::Measurement::with_errors(
-        theta,
-        out.f_o.clone(),
-        out.f_e.clone(),
-        out.sigma_o.clone(),
-        out.sigma_e.clone(),
-    )?;
-    let (reduction, kappa_applied) = m.reduce_with(opts.kappa)?;
-    let Partial { hwp_deg, centres, f_o, f_e, sigma_o, sigma_e, bg_o, bg_e, n_aperture, aperture_area_px, n_annulus } =
-        out;
-    Ok(StarPhotometry {
-        x,
-        y,
-        hwp_deg,
-        centres,
-        f_o,
-        f_e,
-        sigma_o,
-        sigma_e,
-        bg_o,
-        bg_e,
-        n_aperture,
-        aperture_area_px,
-        n_annulus,
-        reduction,
-        kappa_applied,
-    })
+    let theta: Vec<f64> = frames.iter().map(|f| f.hwp_deg.to_radians()).collect();
+    let col = |k: usize| m.iter().map(|t| [t.0, t.1, t.2, t.3][k]).collect::<Vec<f64>>();
+    let c = stokes::repeats::combine_repeats(&theta, &col(0), &col(1), &col(2), &col(3), threshold);
+    let mut tot: Vec<f64> = m.iter().map(|t| t.0 + t.1).collect();
+    tot.sort_by(f64::total_cmp);
+    let med = if tot.is_empty() { f64::NAN } else { 0.5 * (tot[(tot.len() - 1) / 2] + tot[tot.len() / 2]) };
+    Ok(frames
+        .iter()
+        .zip(&m)
+        .zip(&c.checks)
+        .map(|((f, &(fo, fe, so, se)), chk)| {
+            let t = (fo + fe) / med;
+            let st = so.hypot(se) / med;
+            let mut why = Vec::new();
+            if chk.outlier {
+                why.push(format!("F = {:.5} lies {:.1} sigma from its repeats' mean", chk.f, chk.pull));
+            }
+            if (t - 1.0).abs() > TRANSPARENCY_TOL && (t - 1.0).abs() > threshold * st {
+                why.push(format!("the star's light is {:.0} % of the median exposure's", 100.0 * t));
+            }
+            ExposureCheck {
+                file: f.path.display().to_string(),
+                hwp_deg: f.hwp_deg,
+                f_o: fo,
+                f_e: fe,
+                sigma_o: so,
+                sigma_e: se,
+                transparency: t,
+                sigma_transparency: st,
+                pull: chk.pull,
+                outlier: !why.is_empty(),
+                why: why.join("; "),
+            }
+        })
+        .collect())
 }
 
 /// How an aperture's radius is chosen (issue 13): given in pixels, a multiple of the star's

@@ -197,6 +197,14 @@ pub fn run(a: Args) -> Result<()> {
         t.write(out)?;
     }
     let measured = cat.rows.iter().filter(|r| r.q.is_finite()).count();
+    // Frames turned against each other: said, since apertures then follow each star by its
+    // own centroid only (a star too faint to centre would sit off its aperture).
+    for f in cat.alignment.iter().filter(|f| f.rotation_significant) {
+        eprintln!(
+            "warning: the frame at HWP {} deg is rotated by {:.3} +- {:.3} deg against the first (from {} stars): apertures follow each star's centroid",
+            f.hwp_deg, f.rotation_deg, f.sigma_rotation_deg, f.n_stars
+        );
+    }
     if a.json {
         match &corrected {
             None => crate::util::print_json(&cat)?,
@@ -220,6 +228,16 @@ pub fn run(a: Args) -> Result<()> {
             cat.hwp_deg.len(),
             cat.chi_offset_deg
         );
+        if !cat.alignment.is_empty() {
+            let shift = cat.alignment.iter().map(|f| f.dx_px.hypot(f.dy_px)).fold(0.0, f64::max);
+            let rot = cat.alignment.iter().map(|f| f.rotation_deg.abs()).fold(0.0, f64::max);
+            let n_rot = cat.alignment.iter().filter(|f| f.rotation_significant).count();
+            outln!(
+                "frames against the first: largest shift {shift:.2} px, largest rotation {rot:.3} deg ({} significant at {} sigma)",
+                if n_rot == 0 { "none".to_string() } else { format!("{n_rot} frames") },
+                skyfield::catalog::ROTATION_SIGNIFICANT_SIGMA
+            );
+        }
         outln!("  id        x        y      P %     +-   chi deg     +-  flags");
         for r in &cat.rows {
             outln!(

@@ -98,6 +98,10 @@ struct Out {
     kappa_applied: Option<f64>,
     /// The aperture radius used (px).
     aperture_px: f64,
+    /// With repeated HWP positions (frames summed per position): every exposure measured on
+    /// its own and checked against the others (null when no position repeats).
+    exposures: Option<Vec<skyfield::photometry::ExposureCheck>>,
+    n_outlier_exposures: usize,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -114,7 +118,12 @@ pub fn run(a: Args) -> Result<()> {
     let read = a.frame.read_options()?;
     let frames = skyfield::reduce::read_frames_with(&a.frames, &inst, &read, &|| bar.inc(1));
     bar.finish_and_clear();
-    let set = FrameSet::from_frames(frames?, &inst, true)?;
+    let frames = frames?;
+    // Repeated plate positions are summed into one frame each; keep the exposures to measure
+    // them one by one as well (issue 13: outlier exposures flagged by their residual).
+    let theta: Vec<f64> = frames.iter().map(|f| f.hwp_deg.to_radians()).collect();
+    let singles = stokes::repeats::has_repeats(&theta).then(|| frames.clone());
+    let set = FrameSet::from_frames(frames, &inst, true)?;
     for w in &set.warnings {
         eprintln!("warning: {w}");
     }
@@ -141,6 +150,23 @@ pub fn run(a: Args) -> Result<()> {
         (_, None) => bail!("--aperture {}: give the star's FWHM with --fwhm PX", a.aperture),
     };
     let (ph, radius_px) = skyfield::photometry::photometry_sized(&set, &g, x, y, radius, fwhm, annulus, &opts)?;
+    let exposures = match &singles {
+        Some(fr) => Some(skyfield::photometry::exposure_checks(
+            fr,
+            &set,
+            &g,
+            x,
+            y,
+            &skyfield::photometry::Aperture { radius_px, annulus },
+            &opts,
+            skyfield::photometry::EXPOSURE_OUTLIER_SIGMA,
+        )?),
+        None => None,
+    };
+    let n_outlier_exposures = exposures.iter().flatten().filter(|e| e.outlier).count();
+    for e in exposures.iter().flatten().filter(|e| e.outlier) {
+        eprintln!("warning: exposure {} (HWP {} deg): {} (flagged; kept in the sum)", e.file, e.hwp_deg, e.why);
+    }
     let r = &ph.reduction;
     // The HWP zero angle of the filter (the angle to add to a measured chi): Q, U and chi are
     // reported in the sky's frame, as the calibration and validation report them.
@@ -169,6 +195,8 @@ pub fn run(a: Args) -> Result<()> {
         centres_px: ph.centres.clone(),
         kappa_applied: ph.kappa_applied,
         aperture_px: radius_px,
+        exposures,
+        n_outlier_exposures,
     };
     if a.json {
         crate::util::print_json(&o)?;
@@ -181,6 +209,13 @@ pub fn run(a: Args) -> Result<()> {
         if let Some(k) = o.kappa_applied {
             let how = if a.kappa.kappa_from_data { ", estimated from these data (eq:kappa2)" } else { "" };
             outln!("  fluxes corrected for kappa = {k:.6e}{how}");
+        }
+        if let Some(ex) = &o.exposures {
+            outln!(
+                "  {} exposures measured one by one at repeated HWP positions: {} flagged",
+                ex.len(),
+                o.n_outlier_exposures
+            );
         }
         outln!("  Q/I = {:+.5} +- {:.5}", o.q, o.sigma_q);
         outln!("  U/I = {:+.5} +- {:.5}", o.u, o.sigma_u);

@@ -1,0 +1,102 @@
+//! `instpol photometry` on frames with repeated HWP positions (issue 13, item 6): the frames of
+//! a position are summed for the Stokes reduction, and every exposure is also measured on its
+//! own and checked against the others. The shipped maskless scene is simulated as two cycles of
+//! four HWP angles (two runs), and the second cycle once more with every star's and the sky's
+//! light times 0.8: one frame of the second cycle swapped for its dimmed twin is an exposure
+//! whose transparency dropped by 20 % (star and sky alike, the exposure time in the header
+//! unchanged as through a cloud). It must be the one exposure flagged, with its transparency
+//! 0.8; the star's q, u stay right (a change common to both beams cancels in F).
+
+mod common;
+
+use common::{fits_in, run};
+use std::ffi::OsString;
+use std::path::{Path, PathBuf};
+
+/// One cycle of the four HWP angles of the shipped scene (the simulator takes each plate
+/// position once; the second cycle is a second run with another seed).
+fn simulate(dir: &Path, inst: &Path, light: f64, seed: u64, tag: &str) -> Vec<PathBuf> {
+    let mut scene = include_str!("../../../instruments/scenes/calcite_stars.toml")
+        .replace("instrument = \"calcite\"", &format!("instrument = \"{}\"", inst.display()))
+        .replace("hwp_angles_deg = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]", "hwp_angles_deg = [0, 22.5, 45, 67.5]")
+        .replace(
+            "frame_shifts_px = [[0, 0], [1.3, -0.7], [2.6, 0.4], [-1.2, 2.9], [0.5, -2.2], [-2.8, -1.1], [3.0, 1.7], [-0.4, 0.9]]",
+            "frame_shifts_px = [[0, 0], [1.3, -0.7], [2.6, 0.4], [-1.2, 2.9]]",
+        )
+        .replace("seed = 7", &format!("seed = {seed}"));
+    // The light of every star and of the sky times `light` (the scene's fluxes are per frame).
+    for (key, v) in [("flux_e = 4e5", 4e5), ("flux_e = 2e5", 2e5), ("flux_e = 1e5", 1e5), ("brightness_e = 300", 300.0)]
+    {
+        assert_eq!(scene.matches(key).count(), 1, "the shipped scene changed: {key}");
+        let name = key.split(" = ").next().unwrap();
+        scene = scene.replace(key, &format!("{name} = {}", v * light));
+    }
+    assert!(scene.contains("[0, 22.5, 45, 67.5]\n") && scene.contains("[-1.2, 2.9]]"), "the shipped scene changed");
+    let sp = dir.join(format!("scene_{tag}.toml"));
+    std::fs::write(&sp, scene).unwrap();
+    let out = dir.join(tag);
+    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert_eq!(code, 0, "{err}");
+    let f = fits_in(&out);
+    assert_eq!(f.len(), 4, "{f:?}");
+    f
+}
+
+fn photometry(inst: &Path, frames: &[PathBuf]) -> (serde_json::Value, String) {
+    let mut args: Vec<OsString> = vec!["photometry".into()];
+    args.extend(frames.iter().map(|f| f.clone().into_os_string()));
+    for a in ["--instrument", inst.to_str().unwrap(), "--x", "150", "--y", "200", "--aperture", "9"] {
+        args.push(a.into());
+    }
+    for a in ["--annulus", "14,24", "--json"] {
+        args.push(a.into());
+    }
+    let (code, stdout, err) = run(&args);
+    assert_eq!(code, 0, "{err}");
+    (serde_json::from_str(&stdout).unwrap(), err)
+}
+
+#[test]
+fn a_frame_with_a_20_percent_transparency_drop_is_flagged() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = include_str!("../../../instruments/calcite.toml")
+        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
+    let inst = dir.path().join("calcite.toml");
+    std::fs::write(&inst, &text).unwrap();
+    let first = simulate(dir.path(), &inst, 1.0, 7, "first");
+    let second = simulate(dir.path(), &inst, 1.0, 8, "second");
+    let cloudy = simulate(dir.path(), &inst, 0.8, 8, "cloudy");
+    let clear: Vec<PathBuf> = first.iter().chain(&second).cloned().collect();
+
+    // All clear: every exposure measured, none flagged, transparencies near 1.
+    let (j, _) = photometry(&inst, &clear);
+    let ex = j["exposures"].as_array().unwrap_or_else(|| panic!("no exposures: {j}"));
+    assert_eq!(ex.len(), 8);
+    assert_eq!(j["n_outlier_exposures"], 0, "{j}");
+    for e in ex {
+        assert!((e["transparency"].as_f64().unwrap() - 1.0).abs() < 0.02, "{e}");
+    }
+    assert_eq!(j["hwp_deg"].as_array().unwrap().len(), 4, "repeats summed into four positions");
+
+    // Exposure 6 (the second 22.5 deg frame) through a cloud.
+    let mut frames = clear.clone();
+    frames[5] = cloudy[1].clone();
+    let (j, err) = photometry(&inst, &frames);
+    let ex = j["exposures"].as_array().unwrap();
+    let flagged: Vec<&serde_json::Value> = ex.iter().filter(|e| e["outlier"].as_bool().unwrap()).collect();
+    assert_eq!(flagged.len(), 1, "{j}");
+    assert_eq!(j["n_outlier_exposures"], 1);
+    let e = flagged[0];
+    assert_eq!(e["file"].as_str().unwrap(), frames[5].display().to_string());
+    let (t, st) = (e["transparency"].as_f64().unwrap(), e["sigma_transparency"].as_f64().unwrap());
+    assert!((t - 0.8).abs() < 0.01 + 4.0 * st, "transparency {t} +- {st}");
+    assert!(e["why"].as_str().unwrap().contains("80 %"), "{e}");
+    // F cancels the common drop: its pull about the repeat is ordinary.
+    assert!(e["pull"].as_f64().unwrap().abs() < 4.0, "{e}");
+    assert!(err.contains("warning") && err.contains(&frames[5].display().to_string()), "{err}");
+    // q, u of the 5.72 % star at 136 deg still within 4 sigma.
+    let (p, chi) = (0.0572f64, 136.0f64.to_radians());
+    let f = |k: &str| j[k].as_f64().unwrap();
+    assert!(((f("q") - p * (2.0 * chi).cos()) / f("sigma_q")).abs() < 4.0, "{j}");
+    assert!(((f("u") - p * (2.0 * chi).sin()) / f("sigma_u")).abs() < 4.0, "{j}");
+}

@@ -1,0 +1,115 @@
+//! The shipped standard-star list (`instruments/standards.toml`) checked entry by entry,
+//! independently of the loader: every value names a source, `P` in [0, 100) %, `chi` in
+//! [0, 180) deg, errors positive, a J2000 position when one is given parses; and a star
+//! published in three or more bands follows a Serkowski law (interstellar polarization,
+//! `P(lambda) = Pmax exp(-K ln^2(lambda_max / lambda))`, K = 1.15) within 5 %, a check on
+//! transcription typos that no single-value range test can catch.
+
+use std::collections::BTreeMap;
+
+const LIST: &str = include_str!("../../../instruments/standards.toml");
+
+/// Effective wavelengths (nm) of the bands, from the FORS1 instrument file (Bessell filters).
+fn band_nm() -> BTreeMap<String, f64> {
+    let inst = instrument::Instrument::load("fors1").unwrap();
+    ["B", "V", "R", "I"].iter().map(|b| (b.to_string(), inst.filter(b).unwrap().lambda_eff_nm)).collect()
+}
+
+/// Best Serkowski curve (K = 1.15) through `(lambda_nm, P)` points: `lambda_max` on a 1-nm grid
+/// over 300..1000 nm, `Pmax` the geometric-mean solution for each; returns the largest relative
+/// residual and `lambda_max`.
+fn serkowski_fit(pts: &[(f64, f64)]) -> (f64, f64) {
+    let k = 1.15;
+    let mut best = (f64::INFINITY, f64::NAN);
+    for lm in 300..=1000 {
+        let lm = lm as f64;
+        let shape: Vec<f64> = pts.iter().map(|&(l, _)| -k * (lm / l).ln().powi(2)).collect();
+        let lpmax = pts.iter().zip(&shape).map(|(&(_, p), s)| p.ln() - s).sum::<f64>() / pts.len() as f64;
+        let worst = pts.iter().zip(&shape).map(|(&(_, p), s)| (p / (lpmax + s).exp() - 1.0).abs()).fold(0.0, f64::max);
+        if worst < best.0 {
+            best = (worst, lm);
+        }
+    }
+    best
+}
+
+fn sexagesimal(s: &str, max: f64) -> Option<f64> {
+    let parts: Vec<f64> = s.trim_start_matches(['+', '-']).split(':').map(|x| x.parse().ok()).collect::<Option<_>>()?;
+    if parts.len() != 3 || parts[1] >= 60.0 || parts[2] >= 60.0 {
+        return None;
+    }
+    let v = parts[0] + parts[1] / 60.0 + parts[2] / 3600.0;
+    (v < max).then_some(v)
+}
+
+#[test]
+fn every_entry_is_sourced_and_in_range() {
+    let doc: toml::Value = toml::from_str(LIST).unwrap();
+    let stars = doc["star"].as_array().unwrap();
+    assert!(stars.len() >= 5, "the list shrank to {} stars", stars.len());
+    for s in stars {
+        let name = s["name"].as_str().unwrap();
+        let polarized = s["kind"].as_str().unwrap() == "polarized";
+        if let Some(ra) = s.get("ra") {
+            assert!(sexagesimal(ra.as_str().unwrap(), 24.0).is_some(), "{name}: ra {ra}");
+            let dec = s.get("dec").unwrap_or_else(|| panic!("{name}: ra without dec")).as_str().unwrap();
+            assert!(sexagesimal(dec, 90.0).is_some(), "{name}: dec {dec}");
+        }
+        for b in s["band"].as_array().unwrap() {
+            let band = b["band"].as_str().unwrap();
+            let f = |k: &str| b.get(k).and_then(|v| v.as_float());
+            let src = b["source"].as_str().unwrap_or("");
+            assert!(src.trim().len() > 5, "{name} {band}: no source");
+            let p = f("p_percent").unwrap();
+            assert!((0.0..100.0).contains(&p), "{name} {band}: P = {p}");
+            assert!(f("sigma_p_percent").unwrap() > 0.0, "{name} {band}: sigma_p");
+            if polarized {
+                let chi = f("chi_deg").unwrap_or_else(|| panic!("{name} {band}: polarized without chi"));
+                assert!((0.0..180.0).contains(&chi), "{name} {band}: chi = {chi}");
+                assert!(f("sigma_chi_deg").unwrap() > 0.0, "{name} {band}: sigma_chi");
+                // A polarized standard's P must be measured well above its error.
+                assert!(p > 10.0 * f("sigma_p_percent").unwrap(), "{name} {band}: P not significant");
+            } else {
+                assert!(f("chi_deg").is_none(), "{name} {band}: a null standard with a chi");
+            }
+        }
+    }
+}
+
+#[test]
+fn multi_band_stars_follow_a_serkowski_law() {
+    let nm = band_nm();
+    let doc: toml::Value = toml::from_str(LIST).unwrap();
+    let mut checked = 0;
+    for s in doc["star"].as_array().unwrap() {
+        if s["kind"].as_str() != Some("polarized") {
+            continue;
+        }
+        let name = s["name"].as_str().unwrap();
+        let pts: Vec<(f64, f64)> = s["band"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|b| Some((*nm.get(b["band"].as_str()?)?, b["p_percent"].as_float()?)))
+            .collect();
+        if pts.len() < 3 {
+            continue;
+        }
+        let (worst, lmax) = serkowski_fit(&pts);
+        assert!(worst < 0.05, "{name}: P across bands {pts:?} is {:.1} % off the best Serkowski law", 100.0 * worst);
+        assert!((350.0..900.0).contains(&lmax), "{name}: lambda_max = {lmax} nm is not interstellar");
+        checked += 1;
+    }
+    assert!(checked >= 2, "only {checked} stars with three bands were checked");
+}
+
+/// The Serkowski check has teeth: Hiltner 652's published V, R, I with one digit swapped
+/// (5.61 -> 6.51 in I) or R off by 1 % absolute fail it, the published values pass.
+#[test]
+fn serkowski_check_catches_typos() {
+    let nm = band_nm();
+    let (v, r, i) = (nm["V"], nm["R"], nm["I"]);
+    assert!(serkowski_fit(&[(v, 6.25), (r, 6.07), (i, 5.61)]).0 < 0.01);
+    assert!(serkowski_fit(&[(v, 6.25), (r, 6.07), (i, 6.51)]).0 > 0.05);
+    assert!(serkowski_fit(&[(v, 6.25), (r, 5.07), (i, 5.61)]).0 > 0.05);
+}
