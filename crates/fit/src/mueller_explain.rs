@@ -505,6 +505,7 @@ fn lm(
     let k = start.len();
     let scales = cause.scales();
     let res = |t: &[f64]| model(cause, t, target, ctx, rt).map(|v| target.residuals(&v));
+    // Central differences; one-sided at the edge of the physical domain, zero outside it.
     let jac = |t: &[f64], r0: &DVector<f64>| -> Option<DMatrix<f64>> {
         let mut j = DMatrix::zeros(r0.len(), k);
         for c in 0..k {
@@ -512,8 +513,13 @@ fn lm(
             let (mut a, mut b) = (t.to_vec(), t.to_vec());
             a[c] += h;
             b[c] -= h;
-            let (ra, rb) = (res(&a)?, res(&b)?);
-            j.set_column(c, &((ra - rb) / (2.0 * h)));
+            let col = match (res(&a), res(&b)) {
+                (Some(ra), Some(rb)) => (ra - rb) / (2.0 * h),
+                (Some(ra), None) => (ra - r0) / h,
+                (None, Some(rb)) => (r0 - rb) / h,
+                (None, None) => continue,
+            };
+            j.set_column(c, &col);
         }
         Some(j)
     };
@@ -559,7 +565,10 @@ fn lm(
         if !improved {
             break;
         }
-        j = jac(&t, &r)?;
+        match jac(&t, &r) {
+            Some(jj) => j = jj,
+            None => break,
+        }
     }
     Some((t, chi2, j))
 }
@@ -602,7 +611,9 @@ fn fit_cause(cause: Cause, target: &Target, ctx: &Context, rt: &[Option<[f64; 8]
         .iter()
         .enumerate()
         .map(|(i, &name)| {
-            let v = cov.as_ref().map(|c| c[(i, i)] * scale).filter(|v| *v >= 0.0 && v.is_finite());
+            // An error far beyond the parameter's whole range is no constraint at all.
+            let limit = 1e3 * cause.scales()[i].max(t[i].abs());
+            let v = cov.as_ref().map(|c| c[(i, i)] * scale).filter(|v| *v >= 0.0 && v.sqrt() < limit);
             Param { name, value: t[i], sigma: v.map_or(f64::INFINITY, f64::sqrt) }
         })
         .collect::<Vec<_>>();
@@ -689,4 +700,30 @@ pub fn explain(target: &Target, ctx: &Context, which: &[Cause]) -> Result<Explan
         ));
     }
     Ok(Explanation { fits, n_data: n, compared: target.compared_names(), best, not_told_apart, adequate, verdict })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The polarizing plate over a full turn, derived: the partial polarizer turning with the
+    /// plate passes the plate-rotated `(A, B)` as `A (1 - d sin^2 2a) + B d sin 2a cos 2a`
+    /// with `2a = 2 theta + psi`; the `4 theta` part of that is `(1 - d/2) (q, u)` (the rest is
+    /// at 0 and 8 theta), and the additive `d cos 2a` is at 2 theta: a uniform depolarization
+    /// `d / 2` and no offset, to first order in `d`.
+    #[test]
+    fn polarizing_plate_is_a_uniform_depolarization_of_half_its_diattenuation() {
+        let ctx = Context::new(&(0..16).map(|k| k as f64 * std::f64::consts::PI / 8.0).collect::<Vec<_>>(), 0.0, 3.4)
+            .unwrap();
+        for (d, psi) in [(0.01f64, 0.0f64), (0.003, 1.1)] {
+            let hwp = mueller::Hwp {
+                pleochroism: Some(mueller::Harmonic { amplitude: d, phase: psi }),
+                ..Default::default()
+            };
+            let b = stokes::equivalent::equivalent_block(&ctx.solver, |th| hwp.matrix(th)).unwrap();
+            let f = full_of_block(Kind::Physical { retardance: true, rotation: true, depolarization: true }, &b);
+            assert!((f[5] - d / 2.0).abs() < d * d, "{f:?}");
+            assert!(f[2].hypot(f[3]) < d * d && f[4].abs() < d * d && b.0[(1, 0)].abs() < 1e-15, "{f:?}");
+        }
+    }
 }

@@ -276,37 +276,39 @@ fn paper_three_fields_one_sky_per_band() {
     }
 }
 
-/// The tilted plate's effect on the demodulated q, u of the B sky: second order in the angle
-/// of incidence, its `2 theta` axis wobble removed by a full turn of angles and leaking for
-/// the four angles 0 ... 67.5 deg. Bounds from the closed forms: the retardance change is at
-/// most `pi sin^2 i / (2 n^2)`, so the depolarization `eps^2 / 4`; the projected axis moves by
-/// at most `(1 - cos i) / 2` rad, i.e. the measured angle by twice that.
+/// The tilted plate's effect after the demodulation: what a diattenuation cannot make
+/// (retardance vector, rotation, depolarization of `physical_of_block`) is fourth order in the
+/// angle of incidence, bounded by the depolarization `eps^2 / 4` of the closed-form retardance
+/// change `eps <= pi sin^2 i / (2 n^2)`, plus the `2 theta` axis wobble's leak (none over a
+/// full turn); what it does make is an offset along the plane of incidence (the two waves'
+/// fields are not orthogonal once projected on the ray's transverse plane: a weak polarizance),
+/// second order, below `sin^2 i`, which the comparison treats as diattenuation.
 #[test]
 fn tilted_plate_effect_is_second_order_in_incidence() {
     let plate = mueller::causes::UniaxialPlate::quartz_half_wave_b(0);
-    let (p, chi) = (0.0645f64, 68.4f64.to_radians());
-    let (q0, u0) = (p * (2.0 * chi).cos(), p * (2.0 * chi).sin());
     let four: Vec<f64> = (0..4).map(|k| k as f64 * PI / 8.0).collect();
     for inc_deg in [5.0f64, 10.0] {
         let i = inc_deg.to_radians();
-        let mut worst = [0.0f64; 2];
-        for (s, angles) in [full_turn(), four.clone()].iter().enumerate() {
-            let solver = stokes::StokesSolver::new(angles).unwrap();
+        let eps = PI * i.sin().powi(2) / (2.0 * plate.n_o * plate.n_o);
+        for (name, angles) in [("16 angles", full_turn()), ("4 angles", four.clone())] {
+            let solver = stokes::StokesSolver::new(&angles).unwrap();
+            let (mut ret, mut off) = (0.0f64, 0.0f64);
             for k in 0..12 {
                 let alpha = k as f64 * PI / 6.0;
                 let b =
                     stokes::equivalent::equivalent_block(&solver, |t| mueller::causes::tilted_hwp(&plate, t, i, alpha))
                         .unwrap();
-                let (q, u) = b.forward(q0, u0).unwrap();
-                worst[s] = worst[s].max((q - q0).hypot(u - u0));
+                let ph = mueller::causes::physical_of_block(&b);
+                ret = ret.max(ph[2].hypot(ph[3]).max(ph[4].abs()).max(ph[5].abs()));
+                off = off.max(b.0[(1, 0)].hypot(b.0[(2, 0)]));
+            }
+            eprintln!("tilt {inc_deg} deg, {name}: retardance/rotation/depolarization <= {ret:.2e}, offset {off:.2e}");
+            assert!(off < i.sin().powi(2), "{off}");
+            if angles.len() == 16 {
+                assert!(ret < eps * eps / 4.0 + 1e-7, "{ret} vs {}", eps * eps / 4.0);
+            } else {
+                assert!(ret < eps * eps / 4.0 + 2.0 * (1.0 - i.cos()), "{ret}");
             }
         }
-        let eps = PI * i.sin().powi(2) / (2.0 * plate.n_o * plate.n_o);
-        eprintln!(
-            "tilt {inc_deg} deg: largest shift on the B sky {:.2e} (16 angles), {:.2e} (4 angles)",
-            worst[0], worst[1]
-        );
-        assert!(worst[0] < p * (eps * eps / 4.0 + 2.0 * (1.0 - i.cos()) * 0.1) + 1e-12, "{worst:?}");
-        assert!(worst[1] < p * (eps * eps / 4.0 + 4.0 * (1.0 - i.cos())) + 1e-12, "{worst:?}");
     }
 }

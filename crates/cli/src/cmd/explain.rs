@@ -66,7 +66,7 @@ pub struct Args {
 #[derive(serde::Serialize)]
 struct ParamOut {
     name: &'static str,
-    value: f64,
+    value: Option<f64>,
     sigma_value: Option<f64>,
 }
 
@@ -74,7 +74,7 @@ struct ParamOut {
 struct CauseOut {
     cause: &'static str,
     params: Vec<ParamOut>,
-    chi2: f64,
+    chi2: Option<f64>,
     dof: usize,
     chi2_dof: Option<f64>,
     delta_bic: Option<f64>,
@@ -175,9 +175,9 @@ pub fn run(a: Args) -> Result<()> {
                 params: f
                     .params
                     .iter()
-                    .map(|p| ParamOut { name: p.name, value: p.value, sigma_value: finite(p.sigma) })
+                    .map(|p| ParamOut { name: p.name, value: finite(p.value), sigma_value: finite(p.sigma) })
                     .collect(),
-                chi2: f.chi2,
+                chi2: finite(f.chi2),
                 dof: f.dof,
                 chi2_dof: finite(f.chi2_dof),
                 delta_bic: finite(f.delta_bic),
@@ -204,15 +204,16 @@ pub fn run(a: Args) -> Result<()> {
         let ps: Vec<String> = c
             .params
             .iter()
-            .map(|p| match p.sigma_value {
-                Some(s) => format!("{} = {:.4} +- {:.4}", p.name, p.value, s),
-                None => format!("{} = {:.4} (unconstrained)", p.name, p.value),
+            .map(|p| match (p.value, p.sigma_value) {
+                (Some(v), Some(s)) => format!("{} = {v:.4} +- {s:.4}", p.name),
+                (Some(v), None) => format!("{} = {v:.4} (unconstrained)", p.name),
+                (None, _) => format!("{} = none", p.name),
             })
             .collect();
         outln!(
             "{:<20} {:>10.2} {:>5} {:>9.3} {:>10.1}  {}",
             c.cause,
-            c.chi2,
+            c.chi2.unwrap_or(f64::INFINITY),
             c.dof,
             c.chi2_dof.unwrap_or(f64::NAN),
             c.delta_bic.unwrap_or(f64::INFINITY),
