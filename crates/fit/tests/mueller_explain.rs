@@ -32,35 +32,34 @@ fn diat(x: f64, y: f64) -> (f64, f64) {
     (2e-4 * (x * x - y * y), 2e-4 * 2.0 * x * y)
 }
 
-/// Three noisy calibration fields of the measured `(q, u)` that `meas(x, y, q_sky, u_sky)`
-/// gives.
-fn fields(meas: &dyn Fn(f64, f64, f64, f64) -> (f64, f64), seed: u64) -> Vec<CalField> {
-    SKIES
-        .iter()
-        .enumerate()
-        .map(|(k, &(p, chi))| {
-            let chi = chi.to_radians();
-            let (q0, u0) = (p * (2.0 * chi).cos(), p * (2.0 * chi).sin());
-            let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed + k as u64);
-            let n = Normal::new(0.0, SIGMA).unwrap();
-            let obs = grid()
-                .into_iter()
-                .map(|(x, y)| {
-                    let (q, u) = meas(x, y, q0, u0);
-                    Observation {
-                        x_arcmin: x,
-                        y_arcmin: y,
-                        q: q + n.sample(&mut rng),
-                        u: u + n.sample(&mut rng),
-                        var_q: SIGMA * SIGMA,
-                        var_u: SIGMA * SIGMA,
-                        cov_qu: 0.0,
-                    }
-                })
-                .collect();
-            CalField::from_p_chi(&format!("sky{k}"), p, chi, 0.0, obs)
+/// One noisy calibration field of sky `(p, chi_deg)` whose measured `(q, u)` are what
+/// `meas(x, y, q_sky, u_sky)` gives.
+fn field_of(meas: &dyn Fn(f64, f64, f64, f64) -> (f64, f64), name: &str, p: f64, chi_deg: f64, seed: u64) -> CalField {
+    let chi = chi_deg.to_radians();
+    let (q0, u0) = (p * (2.0 * chi).cos(), p * (2.0 * chi).sin());
+    let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
+    let n = Normal::new(0.0, SIGMA).unwrap();
+    let obs = grid()
+        .into_iter()
+        .map(|(x, y)| {
+            let (q, u) = meas(x, y, q0, u0);
+            Observation {
+                x_arcmin: x,
+                y_arcmin: y,
+                q: q + n.sample(&mut rng),
+                u: u + n.sample(&mut rng),
+                var_q: SIGMA * SIGMA,
+                var_u: SIGMA * SIGMA,
+                cov_qu: 0.0,
+            }
         })
-        .collect()
+        .collect();
+    CalField::from_p_chi(name, p, chi, 0.0, obs)
+}
+
+/// The three sky fields of `SKIES`.
+fn fields(meas: &dyn Fn(f64, f64, f64, f64) -> (f64, f64), seed: u64) -> Vec<CalField> {
+    SKIES.iter().enumerate().map(|(k, &(p, chi))| field_of(meas, &format!("sky{k}"), p, chi, seed + k as u64)).collect()
 }
 
 fn full_turn() -> Vec<f64> {
@@ -236,26 +235,12 @@ fn paper_three_fields_one_sky_per_band() {
             })
             .fold(0.0, f64::max);
         shift.push(worst);
-        let mut rng = Xoshiro256PlusPlus::seed_from_u64(40 + k as u64);
-        let n = Normal::new(0.0, SIGMA).unwrap();
-        let obs: Vec<Observation> = grid()
-            .into_iter()
-            .map(|(x, y)| {
-                let (qd, ud) = diat(x, y);
-                let (d, ax) = mueller::causes::stressed_lens(x, y, 9f64.to_radians(), 3.4, [0.8, -0.4], 0.0);
-                let (q, u) = physical_block(qd, ud, retardance_vector(d, ax), 0.0, 0.0).forward(q0, u0).unwrap();
-                Observation {
-                    x_arcmin: x,
-                    y_arcmin: y,
-                    q: q + n.sample(&mut rng),
-                    u: u + n.sample(&mut rng),
-                    var_q: SIGMA * SIGMA,
-                    var_u: SIGMA * SIGMA,
-                    cov_qu: 0.0,
-                }
-            })
-            .collect();
-        let f = vec![CalField::from_p_chi(band, p, chi, 0.0, obs)];
+        let truth = |x: f64, y: f64, q: f64, u: f64| {
+            let (qd, ud) = diat(x, y);
+            let (d, ax) = mueller::causes::stressed_lens(x, y, 9f64.to_radians(), 3.4, [0.8, -0.4], 0.0);
+            physical_block(qd, ud, retardance_vector(d, ax), 0.0, 0.0).forward(q, u).unwrap()
+        };
+        let f = vec![field_of(&truth, band, p, chi.to_degrees(), 40 + k as u64)];
         let err = fit_mueller_field(&f, &opts(Kind::diattenuation_retardance())).err().unwrap().to_string();
         assert!(err.contains("retardance unconstrained"), "{band}: {err}");
         let none = Kind::Physical { retardance: false, rotation: false, depolarization: false };

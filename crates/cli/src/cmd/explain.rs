@@ -242,8 +242,20 @@ fn draw(path: &std::path::Path, e: &Explanation) -> Result<()> {
     let n = e.fits.len();
     let vals: Vec<f64> = e.fits.iter().map(|f| 1.0 + f.delta_bic.min(1e12)).collect();
     let top = vals.iter().cloned().filter(|v| v.is_finite()).fold(100.0, f64::max) * 2.0;
-    crate::plot::save_png(path, (900, 520), |root| {
-        let labels: Vec<&str> = e.fits.iter().map(|f| f.cause.name()).collect();
+    crate::plot::save_png(path, (900, 700), |root| {
+        // Short names: six candidates side by side in a one-column figure.
+        let labels: Vec<&str> = e
+            .fits
+            .iter()
+            .map(|f| match f.cause {
+                Cause::DiattenuationOnly => "none",
+                Cause::Raytrace => "trace",
+                Cause::StressedLens => "lens",
+                Cause::TiltedHwp => "tilt",
+                Cause::WedgedHwp => "wedge",
+                Cause::PolarizingHwp => "pol",
+            })
+            .collect();
         let fmt = move |x: &f64| {
             let k = x.round();
             if (x - k).abs() < 1e-6 && k >= 0.0 && (k as usize) < labels.len() {
@@ -252,8 +264,12 @@ fn draw(path: &std::path::Path, e: &Explanation) -> Result<()> {
                 String::new()
             }
         };
-        let ax = crate::plot::Axes::new("Which cause explains the Mueller field", "candidate", "1 + delta BIC")
-            .x_ticks(n + 1, &fmt);
+        let ax = crate::plot::Axes::new(
+            "Which cause explains the field",
+            "candidate (none, trace, lens, tilt/wedge/pol HWP)",
+            "1 + delta BIC",
+        )
+        .x_ticks(n + 1, &fmt);
         let mut c = crate::plot::chart(root, &ax, -0.5..(n as f64 - 0.5), (1.0..top).log_scale())?;
         for (k, v) in vals.iter().enumerate() {
             if v.is_finite() {
@@ -265,9 +281,9 @@ fn draw(path: &std::path::Path, e: &Explanation) -> Result<()> {
         let t = 1.0 + fit::mueller_explain::DELTA_BIC;
         c.draw_series(LineSeries::new(vec![(-0.5, t), (n as f64 - 0.5, t)], RED.stroke_width(2)))
             .map_err(crate::plot::pe)?
-            .label("delta BIC = 10: below, not told apart from the best")
+            .label("delta BIC = 10")
             .legend(crate::plot::line_key(RED));
-        crate::plot::legend(&mut c, SeriesLabelPosition::UpperRight)?;
+        crate::plot::legend(&mut c, SeriesLabelPosition::UpperLeft)?;
         Ok(())
     })
 }
