@@ -146,4 +146,24 @@ mod tests {
             assert!((q - 0.0645 * (0.5 * eps).cos().powi(2)).abs() < 1e-12 && u.abs() < 1e-12);
         }
     }
+
+    /// A scene calls for the plates by TOML; a tilt beyond 60 deg is refused naming the key.
+    #[test]
+    fn scenes_call_for_the_plates_and_bad_values_are_named() {
+        let min = "instrument = \"fors1\"\nfilter = \"B\"\nhwp_angles_deg = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]\n[sky]\nbrightness_e = 1000\np = 0.0645\n";
+        let path = std::path::Path::new("scene.toml");
+        let ok = format!(
+            "{min}[effects.tilted_hwp]\ntilt_deg = 5\nmagnification = 90\n[effects.wedged_hwp]\nretardance_error_deg = 3\n"
+        );
+        let sc = crate::scene::Scene::from_toml_str(&ok, path).unwrap();
+        let hc = HwpCauses::of_scene(&sc).unwrap().unwrap();
+        // At the centre the wedge depolarizes by sin^2(eps/2); the 5 deg tilt adds below 1e-5
+        // to that (fourth order; its second-order offset is not a depolarization).
+        let ph = mueller::causes::physical_of_block(&hc.block_at(0.0, 0.0));
+        let want = (1.5f64.to_radians()).sin().powi(2);
+        assert!((ph[5] - want).abs() < 1e-5, "{ph:?} vs {want}");
+        let bad = format!("{min}[effects.tilted_hwp]\ntilt_deg = 80\nmagnification = 90\n");
+        let e = crate::scene::Scene::from_toml_str(&bad, path).err().unwrap().to_string();
+        assert!(e.contains("effects.tilted_hwp"), "{e}");
+    }
 }
