@@ -264,12 +264,8 @@ fn draw(path: &std::path::Path, e: &Explanation) -> Result<()> {
                 String::new()
             }
         };
-        let ax = crate::plot::Axes::new(
-            "Which cause explains the field",
-            "candidate (none, trace, lens, tilt/wedge/pol HWP)",
-            "1 + delta BIC",
-        )
-        .x_ticks(n + 1, &fmt);
+        let ax =
+            crate::plot::Axes::new("Which cause explains the field", "candidate", "1 + delta BIC").x_ticks(n + 1, &fmt);
         let mut c = crate::plot::chart(root, &ax, -0.5..(n as f64 - 0.5), (1.0..top).log_scale())?;
         for (k, v) in vals.iter().enumerate() {
             if v.is_finite() {
