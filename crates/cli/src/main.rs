@@ -56,6 +56,8 @@ enum Command {
     Calibrate(cmd::calibrate::Args),
     #[command(about = "Fit the Mueller field (diattenuation, retardance, ...) jointly to several sky fields")]
     CalibrateMueller(cmd::calibrate_mueller::Args),
+    #[command(about = "Which physics explains a fitted Mueller field: ray trace, stressed lens, HWP defects")]
+    Explain(cmd::explain::Args),
     #[command(about = "Plan a Mueller-field calibration: fields and exposure for a target accuracy")]
     Plan(cmd::plan::Args),
     #[command(about = "Refit a calibration file (radial model, free centre, exclusions, residual map)")]
@@ -132,6 +134,7 @@ fn main() {
         Command::Catalog(a) => cmd::catalog::run(a),
         Command::Calibrate(a) => cmd::calibrate::run(a),
         Command::CalibrateMueller(a) => cmd::calibrate_mueller::run(a),
+        Command::Explain(a) => cmd::explain::run(a),
         Command::Plan(a) => cmd::plan::run(a),
         Command::Fit(a) => cmd::fit::run(a),
         Command::ImportMap(a) => cmd::import_map::run(a),

@@ -460,6 +460,17 @@ const CASES: &[(&str, Args)] = &[
             .chain(v(&["--out", &out(f, "mf.json")]))
             .collect()
     }),
+    ("explain", |f| {
+        // A field with a free retardance from two declared skies, then the candidates.
+        let m = s(&f.d.join("vmap.fits"));
+        let m2 = out(f, "vmap_explain.fits");
+        std::fs::copy(&m, &m2).unwrap();
+        let mf = out(f, "mf_explain.json");
+        let a = v(&["calibrate-mueller", "--field", &format!("{m}:6.45:68.4"), "--field", &format!("{m2}:4:10")]);
+        let (code, _, err) = common::run(&a.into_iter().chain(v(&["--deg", "2", "--out", &mf])).collect::<Vec<_>>());
+        assert_eq!(code, 0, "{err}");
+        v(&["explain", &mf, "--causes", "stressed_lens,polarizing_hwp", "--grid", "8"])
+    }),
     ("plan", |_| {
         v(&["plan", "--target-percent", "0.02", "--sky-rate", "2", "--candidate", "6.45:68.4", "--candidate", "4:10"])
     }),
@@ -563,7 +574,7 @@ cases! {
     wavelength_law_json => "wavelength-law", correct_json => "correct", stokes_json => "stokes",
     bias_json => "bias", mc_json => "mc", mc_sweep_json => "mc-sweep", mc_accuracy_json => "mc-accuracy",
     fresnel_json => "fresnel", raytrace_json => "raytrace", demo_json => "demo", plan_json => "plan",
-    calibrate_mueller_json => "calibrate-mueller",
+    calibrate_mueller_json => "calibrate-mueller", explain_json => "explain",
 }
 
 /// The keys only some options print (residual map, RNG baseline) are in the schemas too:

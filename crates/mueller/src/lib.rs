@@ -26,6 +26,7 @@ use nalgebra::{Matrix4, RowVector4, Vector4};
 use serde::{Deserialize, Serialize};
 
 pub mod analysis;
+pub mod causes;
 pub mod fresnel;
 pub mod linear;
 pub mod mirror;

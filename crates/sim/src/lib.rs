@@ -25,6 +25,7 @@
 //! per exposure plus a truth file (JSON), in parallel and atomically. Randomness is seeded per
 //! (scene seed, frame, detector row), so results do not depend on the number of threads.
 
+pub mod hwp_causes;
 pub mod plan;
 pub mod raw;
 pub mod scene;

@@ -317,6 +317,8 @@ impl Plan {
             (None, Some(spec)) => Some((load_field(spec, &inst)?, describe_instpol(spec))),
             (None, None) => None,
         };
+        // Half-wave-plate causes (tilted, wedged plate): equivalent blocks at the scene's angles.
+        let hwp_causes = crate::hwp_causes::HwpCauses::of_scene(scene)?;
         // Stars go frame by frame when the two beams overlap (maskless) or the frames move;
         // otherwise they are folded into the sky image once.
         let per_frame = geom.layout == instrument::Layout::Maskless || !scene.frame_shifts_px.is_empty();
@@ -343,6 +345,11 @@ impl Plan {
                     let o = sl.block_at(xa, ya).apply([v[0], v[1], v[2]]);
                     v = Stokes::new(o[0], o[1], o[2], 0.0);
                 }
+                if let Some(hc) = &hwp_causes {
+                    let (xa, ya) = inst.pixel_to_arcmin(x, y);
+                    let o = hc.block_at(xa, ya).apply([v[0], v[1], v[2]]);
+                    v = Stokes::new(o[0], o[1], o[2], 0.0);
+                }
                 moving.push(StarDraw { x, y, st: [v[0], v[1], v[2]], psf: PsfShape::of(st, &inst) });
             }
             if !scene.frame_shifts_px.is_empty() {
@@ -352,7 +359,8 @@ impl Plan {
         let needs_image = scene.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some())
             || (!scene.stars.is_empty() && !per_frame)
             || !scene.extended.is_empty()
-            || ((field.is_some() || fx.stressed_lens.is_some()) && geom.layout == instrument::Layout::Strips);
+            || ((field.is_some() || fx.stressed_lens.is_some() || hwp_causes.is_some())
+                && geom.layout == instrument::Layout::Strips);
         let sky = if !needs_image {
             let c = base.unwrap_or([0.0; 3]);
             match &scene.sky {
@@ -430,6 +438,15 @@ impl Plan {
                     let (x, y) = pos(o);
                     let (xa, ya) = coords.pixel_to_arcmin(x as f64, y as f64);
                     *s = sl.block_at(xa, ya).apply(*s);
+                });
+            }
+            if let Some(hc) = hwp_causes.as_ref().filter(|_| geom.layout == instrument::Layout::Strips) {
+                explain.push(format!("  x half-wave-plate causes (equivalent block per pixel): {}", hc.describe()));
+                let coords = inst.field_coords();
+                img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(s, &(o, _))| {
+                    let (x, y) = pos(o);
+                    let (xa, ya) = coords.pixel_to_arcmin(x as f64, y as f64);
+                    *s = hc.block_at(xa, ya).apply(*s);
                 });
             }
             SkyAtPlate::Image(img)

@@ -330,6 +330,10 @@ pub struct Effects {
     pub instpol: Option<InstPolSpec>,
     /// A stressed collimator lens: a retardance field applied after `instpol` ([`crate::stress`]).
     pub stressed_lens: Option<crate::stress::StressedLensSpec>,
+    /// A tilted half-wave plate, applied as its equivalent block ([`crate::hwp_causes`]).
+    pub tilted_hwp: Option<crate::hwp_causes::TiltedHwpSpec>,
+    /// A wedged half-wave plate, applied as its equivalent block ([`crate::hwp_causes`]).
+    pub wedged_hwp: Option<crate::hwp_causes::WedgedHwpSpec>,
     pub wollaston: Option<WollastonSpec>,
     pub hwp_retardance_error_deg: Option<f64>,
     /// HWP chromatic zero angle (deg, the correction instruments tabulate: added to measured chi).
@@ -416,6 +420,16 @@ impl Scene {
         if let Some(sl) = &self.effects.stressed_lens {
             if let Err(why) = sl.validate() {
                 return bad("effects.stressed_lens", format!("{sl:?}"), &why);
+            }
+        }
+        if let Some(t) = &self.effects.tilted_hwp {
+            if let Err(why) = t.validate() {
+                return bad("effects.tilted_hwp", format!("{t:?}"), &why);
+            }
+        }
+        if let Some(w) = &self.effects.wedged_hwp {
+            if let Err(why) = w.validate() {
+                return bad("effects.wedged_hwp", format!("{w:?}"), &why);
             }
         }
         if !(self.exposure_s.is_finite() && self.exposure_s > 0.0) {

@@ -48,14 +48,15 @@ impl StressedLensSpec {
 
     /// Retardance (rad) and fast-axis angle (rad) at `(x, y)` arcmin.
     pub fn retardance_at(&self, x: f64, y: f64) -> (f64, f64) {
-        let (dx, dy) = (x - self.centre_arcmin[0], y - self.centre_arcmin[1]);
-        let r2 = (dx * dx + dy * dy) / (self.radius_arcmin * self.radius_arcmin);
-        let delta = self.retardance_edge_deg.to_radians() * r2;
-        let mut axis = dy.atan2(dx) + self.axis_offset_deg.to_radians();
-        if self.tangential {
-            axis += std::f64::consts::FRAC_PI_2;
-        }
-        (delta, axis)
+        let tangential = if self.tangential { std::f64::consts::FRAC_PI_2 } else { 0.0 };
+        mueller::causes::stressed_lens(
+            x,
+            y,
+            self.retardance_edge_deg.to_radians(),
+            self.radius_arcmin,
+            self.centre_arcmin,
+            self.axis_offset_deg.to_radians() + tangential,
+        )
     }
 
     /// The linear block of the lens at `(x, y)` arcmin.

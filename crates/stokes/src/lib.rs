@@ -10,6 +10,7 @@
 //! There is exactly one `F_i` ([`normalized_difference`]) and one Stokes solver
 //! ([`StokesSolver`]); everything in the workspace that needs them calls these.
 
+pub mod equivalent;
 pub mod fourier;
 pub mod kappa;
 pub mod mc;

@@ -6,6 +6,7 @@ pub mod calibrate_mueller;
 pub mod catalog;
 pub mod correct;
 pub mod demo;
+pub mod explain;
 pub mod fit;
 pub mod fit_standards;
 pub mod frame_opts;

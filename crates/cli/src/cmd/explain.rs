@@ -1,0 +1,285 @@
+//! `instpol explain`: which physics explains a fitted Mueller field (issue 16 item 4). All
+//! numbers come from `fit::mueller_explain`; this file parses, prints and plots.
+
+use anyhow::{anyhow, bail, Context as _, Result};
+use fit::mueller_explain::{explain, Cause, Context, Explanation, Target};
+use fit::mueller_field::MuellerField;
+use std::path::PathBuf;
+
+/// Compare a Mueller field fitted by `calibrate-mueller` with candidate physical causes and say
+/// which explains it best, with the numbers: the collimator's polarization ray trace (its
+/// amplitude free; chi^2 as computed too), a stressed lens (retardance at --radius-arcmin,
+/// stress centre, axis), a tilted half-wave plate (tilt, azimuth), a wedged half-wave plate
+/// (retardance error and its gradient) and a polarizing half-wave plate (diattenuation,
+/// angle), against "nothing beyond the diattenuation".
+///
+/// The diattenuation (the paper's p, phi) is a nuisance every candidate may sit on: the
+/// comparison uses what a diattenuation cannot make (retardance, rotation, depolarization, or
+/// the Q, U block of a general fit) with its covariance. Each candidate is fitted by least
+/// squares; the table gives its parameters with 1-sigma errors, chi^2/dof and delta BIC
+/// (BIC = chi^2 + k ln n). Candidates within 10 of the best BIC are reported as not told
+/// apart: no winner is picked then. The plate causes act on the modulation and are compared
+/// through the demodulation at --hwp-angles. A fit with the diattenuation alone is refused
+/// (exit code 2): there is nothing to compare. Runs in seconds (progress bar).
+///
+/// Example: instpol calibrate-mueller --field b1.fits:6.45:68.4 --field b2.fits:4:10
+/// --field b3.fits:8:130 --out mueller_B.json && instpol explain mueller_B.json
+/// --instrument fors1 --band B --plot explain_B.png
+#[derive(clap::Args)]
+pub struct Args {
+    /// The Mueller field written by `calibrate-mueller --out` (JSON, instpol-mueller-field-v1).
+    pub mueller_cal: PathBuf,
+    /// Instrument name (built-in: fors1) or path to an instrument TOML; its [optics] give the
+    /// ray-trace candidate (left out, with a note, when it has none).
+    #[arg(long, default_value = "fors1")]
+    pub instrument: String,
+    /// Filter whose effective wavelength the ray trace uses.
+    #[arg(long, default_value = "B")]
+    pub band: String,
+    /// HWP angles of the data (deg, comma-separated); default the full turn 0, 22.5, ..., 337.5.
+    #[arg(long)]
+    pub hwp_angles: Option<String>,
+    /// Angular magnification at the plate (telescope aperture over collimated beam diameter)
+    /// for the tilted plate: a field angle becomes this times larger at the plate. 0: every
+    /// field point sees the same tilt. Give your instrument's value.
+    #[arg(long, default_value_t = 0.0)]
+    pub magnification: f64,
+    /// Radius (arcmin) at which the stressed lens's retardance is reported (the field radius).
+    #[arg(long, default_value_t = 3.4)]
+    pub radius_arcmin: f64,
+    /// Candidates, comma-separated (diattenuation_only, raytrace, stressed_lens, tilted_hwp,
+    /// wedged_hwp, polarizing_hwp) or all.
+    #[arg(long, default_value = "all")]
+    pub causes: String,
+    /// Grid (n x n) inside the field's bounds on which candidates are projected onto the
+    /// field's polynomial basis.
+    #[arg(long, default_value_t = 16)]
+    pub grid: usize,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+    /// Draw delta BIC per candidate into this PNG.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+}
+
+#[derive(serde::Serialize)]
+struct ParamOut {
+    name: &'static str,
+    value: Option<f64>,
+    sigma_value: Option<f64>,
+}
+
+#[derive(serde::Serialize)]
+struct CauseOut {
+    cause: &'static str,
+    params: Vec<ParamOut>,
+    chi2: Option<f64>,
+    dof: usize,
+    chi2_dof: Option<f64>,
+    delta_bic: Option<f64>,
+    chi2_as_computed: Option<f64>,
+    note: Option<String>,
+}
+
+#[derive(serde::Serialize)]
+struct Report {
+    input: PathBuf,
+    instrument: String,
+    band: String,
+    hwp_angles_deg: Vec<f64>,
+    n_data: usize,
+    compared: Vec<&'static str>,
+    causes: Vec<CauseOut>,
+    best: &'static str,
+    not_told_apart: Vec<&'static str>,
+    adequate: bool,
+    verdict: String,
+    notes: Vec<String>,
+    output: Option<PathBuf>,
+}
+
+fn finite(v: f64) -> Option<f64> {
+    v.is_finite().then_some(v)
+}
+
+pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs(std::iter::once(a.mueller_cal.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
+    if let Some(p) = &a.plot {
+        crate::util::check_output(p)?;
+        crate::plot::require_png(p)?;
+    }
+    if !(4..=64).contains(&a.grid) {
+        bail!("--grid {} must be in 4..=64", a.grid);
+    }
+    let which = Cause::parse_list(&a.causes).map_err(|e| anyhow!("--causes '{}': {e}", a.causes))?;
+    let angles_deg: Vec<f64> = match &a.hwp_angles {
+        None => (0..16).map(|k| 22.5 * k as f64).collect(),
+        Some(s) => s
+            .split(',')
+            .map(|w| w.trim().parse::<f64>().ok().filter(|v| v.is_finite()))
+            .collect::<Option<Vec<_>>>()
+            .ok_or_else(|| anyhow!("--hwp-angles '{s}': not a comma-separated list of numbers (deg)"))?,
+    };
+    if angles_deg.len() > 1024 {
+        bail!("--hwp-angles: {} angles, at most 1024", angles_deg.len());
+    }
+    let what = a.mueller_cal.display().to_string();
+    let text = std::fs::read_to_string(&a.mueller_cal).with_context(|| format!("reading {what}"))?;
+    let mf = MuellerField::from_json(&text, &what).map_err(|e| anyhow!("{e}"))?;
+    let target = Target::smooth(&mf, a.grid, &what).map_err(|e| anyhow!("{e}"))?;
+    let rad: Vec<f64> = angles_deg.iter().map(|d| d.to_radians()).collect();
+    let mut ctx = Context::new(&rad, a.magnification, a.radius_arcmin)
+        .map_err(|e| anyhow!("--hwp-angles / --magnification / --radius-arcmin: {e}"))?;
+    let mut notes = Vec::new();
+    let inst = instrument::Instrument::load(&a.instrument)?;
+    let lam = inst.filter(&a.band)?.lambda_eff_nm;
+    if which.contains(&Cause::Raytrace) {
+        match inst.optics.as_ref() {
+            Some(presc) => {
+                let c = presc.compile(lam)?;
+                let sampling = mueller::raytrace::Sampling::from_rays(64);
+                ctx.raytrace = Some(Box::new(move |x, y| {
+                    c.field_point(x, y, &sampling, None)
+                        .ok()
+                        .map(|fp| mueller::linear::LinearBlock::of_mueller(&fp.mueller))
+                }));
+            }
+            None => {
+                notes.push(format!("instrument {} has no [optics]: the ray-trace candidate is left out", inst.name))
+            }
+        }
+    }
+    let bar = (!a.json).then(|| {
+        let b = indicatif::ProgressBar::new_spinner();
+        b.set_message(format!("fitting {} candidates", which.len()));
+        b.enable_steady_tick(std::time::Duration::from_millis(200));
+        b
+    });
+    let e: Explanation = explain(&target, &ctx, &which).map_err(|e| anyhow!("{e}"))?;
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    let rep = Report {
+        input: a.mueller_cal.clone(),
+        instrument: inst.name.clone(),
+        band: a.band.clone(),
+        hwp_angles_deg: angles_deg,
+        n_data: e.n_data,
+        compared: e.compared.clone(),
+        causes: e
+            .fits
+            .iter()
+            .map(|f| CauseOut {
+                cause: f.cause.name(),
+                params: f
+                    .params
+                    .iter()
+                    .map(|p| ParamOut { name: p.name, value: finite(p.value), sigma_value: finite(p.sigma) })
+                    .collect(),
+                chi2: finite(f.chi2),
+                dof: f.dof,
+                chi2_dof: finite(f.chi2_dof),
+                delta_bic: finite(f.delta_bic),
+                chi2_as_computed: f.chi2_as_computed,
+                note: f.note.clone(),
+            })
+            .collect(),
+        best: e.best.name(),
+        not_told_apart: e.not_told_apart.iter().map(|c| c.name()).collect(),
+        adequate: e.adequate,
+        verdict: e.verdict.clone(),
+        notes,
+        output: a.plot.clone(),
+    };
+    if let Some(p) = &a.plot {
+        draw(p, &e)?;
+    }
+    if a.json {
+        return crate::util::print_json(&rep);
+    }
+    outln!("{}: {} numbers compared ({})", what, rep.n_data, rep.compared.join(", "));
+    outln!("{:<20} {:>10} {:>5} {:>9} {:>10}  parameters", "cause", "chi2", "dof", "chi2/dof", "dBIC");
+    for c in &rep.causes {
+        let ps: Vec<String> = c
+            .params
+            .iter()
+            .map(|p| match (p.value, p.sigma_value) {
+                (Some(v), Some(s)) => format!("{} = {v:.4} +- {s:.4}", p.name),
+                (Some(v), None) => format!("{} = {v:.4} (unconstrained)", p.name),
+                (None, _) => format!("{} = none", p.name),
+            })
+            .collect();
+        outln!(
+            "{:<20} {:>10.2} {:>5} {:>9.3} {:>10.1}  {}",
+            c.cause,
+            c.chi2.unwrap_or(f64::INFINITY),
+            c.dof,
+            c.chi2_dof.unwrap_or(f64::NAN),
+            c.delta_bic.unwrap_or(f64::INFINITY),
+            ps.join(", ")
+        );
+        if let Some(x) = c.chi2_as_computed {
+            outln!("{:<20} chi2 of the ray trace as computed (amplitude 1): {x:.2}", "");
+        }
+        if let Some(n) = &c.note {
+            outln!("{:<20} note: {n}", "");
+        }
+    }
+    for n in &rep.notes {
+        outln!("note: {n}");
+    }
+    outln!("verdict: {}", rep.verdict);
+    if let Some(p) = &a.plot {
+        outln!("wrote {}", p.display());
+    }
+    Ok(())
+}
+
+/// Delta BIC per candidate (log scale: 1 + delta BIC), the threshold of "told apart" marked.
+fn draw(path: &std::path::Path, e: &Explanation) -> Result<()> {
+    use plotters::prelude::*;
+    let n = e.fits.len();
+    let vals: Vec<f64> = e.fits.iter().map(|f| 1.0 + f.delta_bic.min(1e12)).collect();
+    let top = vals.iter().cloned().filter(|v| v.is_finite()).fold(100.0, f64::max) * 2.0;
+    crate::plot::save_png(path, (900, 700), |root| {
+        // Short names: six candidates side by side in a one-column figure.
+        let labels: Vec<&str> = e
+            .fits
+            .iter()
+            .map(|f| match f.cause {
+                Cause::DiattenuationOnly => "none",
+                Cause::Raytrace => "trace",
+                Cause::StressedLens => "lens",
+                Cause::TiltedHwp => "tilt",
+                Cause::WedgedHwp => "wedge",
+                Cause::PolarizingHwp => "pol",
+            })
+            .collect();
+        let fmt = move |x: &f64| {
+            let k = x.round();
+            if (x - k).abs() < 1e-6 && k >= 0.0 && (k as usize) < labels.len() {
+                labels[k as usize].to_string()
+            } else {
+                String::new()
+            }
+        };
+        let ax =
+            crate::plot::Axes::new("Which cause explains the field", "candidate", "1 + delta BIC").x_ticks(n + 1, &fmt);
+        let mut c = crate::plot::chart(root, &ax, -0.5..(n as f64 - 0.5), (1.0..top).log_scale())?;
+        for (k, v) in vals.iter().enumerate() {
+            if v.is_finite() {
+                let x = k as f64;
+                c.draw_series(std::iter::once(Rectangle::new([(x - 0.35, 1.0), (x + 0.35, *v)], BLUE.filled())))
+                    .map_err(crate::plot::pe)?;
+            }
+        }
+        let t = 1.0 + fit::mueller_explain::DELTA_BIC;
+        c.draw_series(LineSeries::new(vec![(-0.5, t), (n as f64 - 0.5, t)], RED.stroke_width(2)))
+            .map_err(crate::plot::pe)?
+            .label("delta BIC = 10")
+            .legend(crate::plot::line_key(RED));
+        crate::plot::legend(&mut c, SeriesLabelPosition::UpperLeft)?;
+        Ok(())
+    })
+}
