@@ -272,7 +272,7 @@ pub struct Validation {
 }
 
 /// Mahalanobis distance of `(dq, du)` for covariance `[[a, c], [c, b]]`.
-fn mahalanobis(dq: f64, du: f64, a: f64, b: f64, c: f64) -> Result<f64, Error> {
+pub(crate) fn mahalanobis(dq: f64, du: f64, a: f64, b: f64, c: f64) -> Result<f64, Error> {
     let det = a * b - c * c;
     if !(det > 0.0) || !det.is_finite() {
         return Err(Error::SingularCovariance);
