@@ -361,3 +361,61 @@ fn validate_applies_the_telescope_at_the_frames_parallactic_angles() {
     assert!(err.contains("HIERARCH ESO TEL PARANG START") && err.contains(&*frames[0].to_string_lossy()), "{err}");
     assert!(err.contains("--parang"), "{err}");
 }
+
+#[test]
+fn fit_standards_takes_the_mirror_from_the_instrument_and_warns_on_an_override() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // An instrument whose M3 carries 20 nm of alumina.
+    let base = with_telescope(&common::tiny_fors1(d, 12.0, 4));
+    let text = std::fs::read_to_string(&base).unwrap().replace(
+        "name = \"M3\"\nmetal = \"aluminium\"\naoi_deg = 45.0\n",
+        "name = \"M3\"\nmetal = \"aluminium\"\naoi_deg = 45.0\noverlayer = \"alumina\"\noverlayer_thickness_nm = 20.0\n",
+    );
+    assert!(text.contains("overlayer_thickness_nm = 20.0"));
+    let inst = d.join("coated.toml");
+    std::fs::write(&inst, text).unwrap();
+    // Standards from the closed form of that mirror (Fresnel + thin film, here) with factor 0.93.
+    let lambda_um = 0.554;
+    let n = mueller::mirror::MetalTable::builtin("aluminium").unwrap().index(lambda_um).unwrap();
+    let layer = mueller::thinfilm::Layer::new(mueller::mirror::alumina_index(lambda_um), 20.0);
+    let p = mueller::mirror::reflect(n * 0.93, &[layer], 1000.0 * lambda_um, std::f64::consts::FRAC_PI_4)
+        .unwrap()
+        .polarization;
+    let mut csv = String::from("star,parallactic_deg,q,sigma_q,u,sigma_u,wavelength_um,filter\n");
+    for k in 0..24 {
+        let pa = -170.0 + 14.5 * k as f64;
+        let a = 2.0 * (OFFSET_DEG - pa).to_radians();
+        let e = 2e-4 * (((k * 7) % 5) as f64 - 2.0) / 2.0;
+        csv += &format!("W{k},{pa},{},2e-4,{},2e-4,{lambda_um},V\n", p * a.cos() + e, -p * a.sin() - e);
+    }
+    let cat = d.join("coated.csv");
+    std::fs::write(&cat, csv).unwrap();
+    let run = |extra: &[&str]| {
+        let o = instpol()
+            .arg("fit-standards")
+            .arg(&cat)
+            .args(["--model", "wiersema", "--json", "--instrument"])
+            .arg(&inst)
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        (j, String::from_utf8_lossy(&o.stderr).into_owned())
+    };
+    let (j, _) = run(&[]);
+    assert_eq!(j[0]["mirror_source"], "instrument");
+    assert_eq!(j[0]["overlayer_nm"].as_f64(), Some(20.0));
+    let f = j[0]["params"].as_array().unwrap().iter().find(|p| p["name"] == "factor").unwrap().clone();
+    let (fa, sfa) = (f["value"].as_f64().unwrap(), f["sigma_value"].as_f64().unwrap());
+    assert!((fa - 0.93).abs() < 3.0 * sfa.max(1e-4), "factor {fa} +- {sfa}");
+    // --metal overrides the instrument's (bare) and says so loudly; the factor then absorbs the
+    // layer and moves.
+    let (k, err) = run(&["--metal", "aluminium"]);
+    assert!(err.contains("OVERRIDES") && err.contains("20 nm"), "{err}");
+    assert_eq!(k[0]["mirror_source"], "--metal");
+    let g =
+        k[0]["params"].as_array().unwrap().iter().find(|p| p["name"] == "factor").unwrap()["value"].as_f64().unwrap();
+    assert!((g - 0.93).abs() > 10.0 * sfa.max(1e-4), "bare-metal factor {g} vs {fa}");
+}
