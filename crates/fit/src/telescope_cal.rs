@@ -562,15 +562,7 @@ pub fn validate_chain(
             },
         )
     });
-    let m = Measurement {
-        x,
-        y,
-        q: measured.q,
-        u: measured.u,
-        sigma_q: measured.var_q.max(0.0).sqrt(),
-        sigma_u: measured.var_u.max(0.0).sqrt(),
-        cov_qu: measured.cov_qu,
-    };
+    let m = measured.at(x, y);
     let r = correct_chain(cor.as_ref(), tel, band, &m, track)?;
     let c = r.corrected;
     let e = star.1;

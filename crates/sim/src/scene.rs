@@ -777,7 +777,7 @@ impl Scene {
             for h in [a, b] {
                 let h = h.to_radians();
                 let sin_alt = phi.sin() * dec.sin() + phi.cos() * dec.cos() * h.cos();
-                if sin_alt < 0.0 || sin_alt > 1.0 - 1e-9 {
+                if !(0.0..=1.0 - 1e-9).contains(&sin_alt) {
                     return bad(
                         "dec_deg",
                         t.dec_deg.to_string(),

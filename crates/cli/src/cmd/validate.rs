@@ -218,29 +218,8 @@ pub fn run(a: Args) -> Result<()> {
         crate::cmd::correct::Coords::Pixel => (a.x, a.y),
         crate::cmd::correct::Coords::Arcmin => inst.arcmin_to_pixel(a.x, a.y),
     };
-    // A --standards file is read (and so checked) even when no --star is named.
-    let list = match &a.standards {
-        Some(p) => Some(Standards::load(p)?),
-        None => None,
-    };
-    let (name, expected) = match &a.star {
-        None => ("unpolarized".to_string(), Expected::unpolarized()),
-        Some(n) => {
-            let list = match list {
-                Some(l) => l,
-                None => Standards::builtin()?,
-            };
-            let s = list.star(n)?;
-            (s.name.clone(), s.expected(&cal.filter)?)
-        }
-    };
-    let opts = ValidateOptions {
-        aperture: Aperture { radius_px: a.aperture, annulus: parse_annulus(&a.annulus)? },
-        threshold: a.threshold,
-        model_error: parse_model_error(&a.model_error)?,
-        allow_extrapolation: a.allow_extrapolation,
-        read: a.frame.read_options()?,
-    };
+    let (name, expected) = expected_star(&a, &cal.filter)?;
+    let opts = validate_options(&a)?;
     let r = validate_star(&cal, &inst, &a.frames, x_px, y_px, (&name, expected), &opts)?;
     if r.validation.extrapolated {
         eprintln!(
@@ -264,7 +243,19 @@ pub fn run(a: Args) -> Result<()> {
     Ok(())
 }
 
-/// The named standard's expected polarization in `band` (unpolarized when none is named).
+/// The measuring and judging options of the arguments.
+fn validate_options(a: &Args) -> Result<ValidateOptions> {
+    Ok(ValidateOptions {
+        aperture: Aperture { radius_px: a.aperture, annulus: parse_annulus(&a.annulus)? },
+        threshold: a.threshold,
+        model_error: parse_model_error(&a.model_error)?,
+        allow_extrapolation: a.allow_extrapolation,
+        read: a.frame.read_options()?,
+    })
+}
+
+/// The named standard's expected polarization in `band` (unpolarized when none is named). A
+/// --standards file is read (and so checked) even when no --star is named.
 fn expected_star(a: &Args, band: &str) -> Result<(String, Expected)> {
     let list = match &a.standards {
         Some(p) => Some(Standards::load(p)?),
@@ -334,13 +325,7 @@ fn run_telescope(a: &Args) -> Result<()> {
         crate::cmd::correct::Coords::Pixel => (a.x, a.y),
         crate::cmd::correct::Coords::Arcmin => inst.arcmin_to_pixel(a.x, a.y),
     };
-    let opts = ValidateOptions {
-        aperture: Aperture { radius_px: a.aperture, annulus: parse_annulus(&a.annulus)? },
-        threshold: a.threshold,
-        model_error: parse_model_error(&a.model_error)?,
-        allow_extrapolation: a.allow_extrapolation,
-        read: a.frame.read_options()?,
-    };
+    let opts = validate_options(a)?;
     let (measured, filter) = fit::validate::measure_frames(&inst, &a.frames, x_px, y_px, &opts)?;
     let bands: Vec<&str> = tel.bands.iter().map(|b| b.0.as_str()).collect();
     let band = match (&a.band, field) {
