@@ -236,6 +236,21 @@ pub struct MeasuredStar {
     pub cov_qu: f64,
 }
 
+impl MeasuredStar {
+    /// The star as a [`Measurement`] at field position `(x, y)` (errors from the variances).
+    pub fn at(&self, x: f64, y: f64) -> Measurement {
+        Measurement {
+            x,
+            y,
+            q: self.q,
+            u: self.u,
+            sigma_q: self.var_q.max(0.0).sqrt(),
+            sigma_u: self.var_u.max(0.0).sqrt(),
+            cov_qu: self.cov_qu,
+        }
+    }
+}
+
 /// The outcome of validating a calibration on a standard star. The first eight fields are the
 /// JSON contract of `instpol validate` (issue 6).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -272,7 +287,7 @@ pub struct Validation {
 }
 
 /// Mahalanobis distance of `(dq, du)` for covariance `[[a, c], [c, b]]`.
-fn mahalanobis(dq: f64, du: f64, a: f64, b: f64, c: f64) -> Result<f64, Error> {
+pub(crate) fn mahalanobis(dq: f64, du: f64, a: f64, b: f64, c: f64) -> Result<f64, Error> {
     let det = a * b - c * c;
     if !(det > 0.0) || !det.is_finite() {
         return Err(Error::SingularCovariance);
@@ -330,15 +345,7 @@ pub fn validate_star<M: FieldModel + ?Sized>(
     let (pp, psp, pchi, _) = correct::p_chi_with_errors(pq, pu, pvq, pvu, pcv);
     let residual_sigma = mahalanobis(q1 - pq, u1 - pu, vq1 + pvq, vu1 + pvu, cv1 + pcv)?;
     // Corrected star vs expected intrinsic polarization.
-    let m = Measurement {
-        x,
-        y,
-        q: measured.q,
-        u: measured.u,
-        sigma_q: measured.var_q.max(0.0).sqrt(),
-        sigma_u: measured.var_u.max(0.0).sqrt(),
-        cov_qu: measured.cov_qu,
-    };
+    let m = measured.at(x, y);
     let r = cor.correct(&m)?;
     let corrected_residual_sigma = mahalanobis(
         r.q0 - expected.q,

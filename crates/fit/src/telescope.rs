@@ -44,6 +44,10 @@ pub struct Observation {
     pub wavelength_um: f64,
     /// The band: the `filter` column when given, else the wavelength ("0.550um").
     pub band: String,
+    /// Rotator / adapter angle (rad, `rotator_deg` column; 0 when absent): turns the
+    /// instrument frame by this much beyond `offset` ([`Track::rotator`]).
+    #[serde(default)]
+    pub rotator: f64,
     /// File and line, for reports.
     pub source: String,
 }
@@ -52,8 +56,8 @@ pub struct Observation {
 /// `star, parallactic_deg, q, sigma_q, u, sigma_u, wavelength_um`, comma-separated, trailing
 /// blanks allowed) or a CSV whose header names the columns `star`, `parallactic_deg` (or
 /// `pa_deg`, `parallactic`), `q`, `sigma_q`, `u`, `sigma_u`, `wavelength_um` (or
-/// `wavelength`) and optionally `filter` (or `band`), in any order. Errors name the file,
-/// line and column.
+/// `wavelength`) and optionally `filter` (or `band`) and `rotator_deg` (the rotator / adapter
+/// angle, [`Track::rotator`]), in any order. Errors name the file, line and column.
 pub fn read_observations(path: &Path) -> Result<Vec<Observation>> {
     let text = std::fs::read_to_string(path).map_err(|err| Error::Io { path: path.to_path_buf(), err })?;
     parse_observations(&text, path)
@@ -65,8 +69,8 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
         path: path.to_path_buf(),
         what: if col > 0 { format!("line {line}, column {col}: {what}") } else { format!("line {line}: {what}") },
     };
-    // Column positions: star, pa, q, sq, u, su, wavelength, optional filter.
-    let mut cols: [Option<usize>; 8] = [Some(0), Some(1), Some(2), Some(3), Some(4), Some(5), Some(6), None];
+    // Column positions: star, pa, q, sq, u, su, wavelength, optional filter and rotator.
+    let mut cols: [Option<usize>; 9] = [Some(0), Some(1), Some(2), Some(3), Some(4), Some(5), Some(6), None, None];
     let mut header_seen = false;
     let mut out = Vec::new();
     for (i, raw) in text.lines().enumerate() {
@@ -88,6 +92,7 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
                 &["sigma_u", "u_err", "su", "err_u"][..],
                 &["wavelength_um", "wavelength", "lambda_um", "lambda"][..],
                 &["filter", "band"][..],
+                &["rotator_deg", "rotator", "adapter_deg"][..],
             ];
             for (k, alts) in names.iter().enumerate() {
                 cols[k] = fields.iter().position(|f| alts.contains(&f.to_ascii_lowercase().as_str()));
@@ -132,6 +137,10 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
             Some(_) => get(7)?.to_string(),
             None => format!("{w:.3}um"),
         };
+        let rotator = match cols[8] {
+            Some(_) => num(8, "rotator angle (deg)")?.to_radians(),
+            None => 0.0,
+        };
         out.push(Observation {
             star,
             parallactic: pa.to_radians(),
@@ -141,6 +150,7 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
             sigma_u: su,
             wavelength_um: w,
             band,
+            rotator,
             source: format!("{}:{ln}", path.display()),
         });
     }
@@ -221,7 +231,8 @@ impl BandModel {
     /// ([`track_average`]; not the matrix at the mean angle).
     pub fn matrix_track(&self, track: Track) -> std::result::Result<Matrix4<f64>, mueller::Error> {
         let m3 = self.m3()?;
-        track_average(|q| Ok(wiersema_m3(&m3, q, self.offset)), track)
+        let turn = self.offset + track.rotator;
+        track_average(|q| Ok(wiersema_m3(&m3, q, turn)), track)
     }
 
     /// The sky's `(q, u)` as it reaches the instrument over `track` (without `q0, u0`): what a
@@ -291,12 +302,25 @@ pub fn exposure_track(lat: f64, dec: f64, ha_start: f64, ha_end: f64) -> Track {
 pub struct Track {
     pub start: f64,
     pub end: f64,
+    /// The rotator / adapter angle `rho` (rad) during the exposure, in the sense of
+    /// [`mueller::rotation`] (the instrument axes turned by `rho` from +x towards +y: a
+    /// polarization angle `chi` reads `chi - rho`): the chain is `R(offset + rho) M3(plane at
+    /// pi/2 - q)`, so `offset` is the instrument's angle zero at rotator angle 0. An
+    /// instrument whose rotator keeps one position (EFOSC2's adapter in Wiersema et al. 2018)
+    /// has `rho = 0` throughout and its fixed angle inside `offset`.
+    #[serde(default)]
+    pub rotator: f64,
 }
 
 impl Track {
     /// A track of zero length (an instant, or a measurement that gives one angle).
     pub fn at(parallactic: f64) -> Self {
-        Track { start: parallactic, end: parallactic }
+        Track { start: parallactic, end: parallactic, rotator: 0.0 }
+    }
+
+    /// This track with the rotator at `rho` (rad, [`Track::rotator`]).
+    pub fn with_rotator(self, rho: f64) -> Self {
+        Track { rotator: rho, ..self }
     }
 
     /// The track of an exposure from the angles (rad) at its start and end as a header or a
@@ -306,7 +330,7 @@ impl Track {
     pub fn new(start: f64, end: Option<f64>) -> Self {
         match end {
             None => Track::at(start),
-            Some(e) => Track { start, end: start + 2.0 * mueller::wrap_half_pi(0.5 * (e - start)) },
+            Some(e) => Track { start, end: start + 2.0 * mueller::wrap_half_pi(0.5 * (e - start)), rotator: 0.0 },
         }
     }
 }
@@ -368,11 +392,14 @@ pub struct FitOptions {
     /// `max(1, robust scatter)`), and refit; `None`: no flagging.
     pub clip: Option<f64>,
     pub error_scaling: ErrorScaling,
+    /// A fixed alumina over-layer (nm) under the Wiersema model's factor-scaled metal (an
+    /// instrument file's `[telescope]` mirror); the oxide model fits its own thickness.
+    pub overlayer_nm: f64,
 }
 
 impl Default for FitOptions {
     fn default() -> Self {
-        Self { clip: Some(4.0), error_scaling: ErrorScaling::Conservative }
+        Self { clip: Some(4.0), error_scaling: ErrorScaling::Conservative, overlayer_nm: 0.0 }
     }
 }
 
@@ -415,8 +442,33 @@ pub struct TelescopeFit {
     /// RMS of `q - q_model`, `u - u_model` over the used points.
     pub rms_q: f64,
     pub rms_u: f64,
+    /// The standards carried (non-zero) rotator angles: `offset` is then the angle zero at
+    /// rotator angle 0, and corrections apply each frame's rotator angle; otherwise `offset`
+    /// holds the rotator angle the standards were taken at, and a correction must not add a
+    /// header's rotator angle again.
+    #[serde(default)]
+    pub with_rotator: bool,
+    /// The oxide model's local minima in the over-layer thickness within `delta_chi2 < 4` of
+    /// the best (the best first; empty for the Wiersema model): the polarization of a thin
+    /// alumina layer is not monotonic in its thickness, so several thicknesses may fit.
+    #[serde(default)]
+    pub minima: Vec<LocalMinimum>,
     pub points: Vec<Point>,
 }
+
+/// One local minimum of the oxide model's chi^2 in the over-layer thickness (the other
+/// parameters fitted there too).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LocalMinimum {
+    pub thickness_nm: f64,
+    pub chi2: f64,
+    /// `chi2 - chi2` of the best minimum.
+    pub delta_chi2: f64,
+}
+
+/// How far from the best a local minimum may lie to be reported (`delta_chi2 < 4`: two
+/// sigma for one parameter).
+pub const MINIMA_DELTA_CHI2: f64 = 4.0;
 
 impl TelescopeFit {
     pub fn param(&self, name: &str) -> Option<&Param> {
@@ -472,6 +524,7 @@ impl TelescopeFit {
             self.bands.iter().map(|(n, m)| (n.clone(), m.wavelength_um, m.index)).collect(),
             self.bands.len() > 1,
         );
+        let spec = Spec { overlayer_nm: if self.model == ModelKind::Wiersema { b.thickness_nm } else { 0.0 }, ..spec };
         let p0: Vec<f64> = self.params.iter().map(|p| p.value).collect();
         let bi = self.bands.iter().position(|(n, _)| n == band).unwrap_or(0);
         let mut g = vec![[0.0; 2]; p0.len()];
@@ -501,11 +554,13 @@ struct Spec {
     model: ModelKind,
     bands: Vec<(String, f64, C64)>,
     joint: bool,
+    /// The Wiersema model's fixed over-layer (nm).
+    overlayer_nm: f64,
 }
 
 impl Spec {
     fn new(model: ModelKind, bands: Vec<(String, f64, C64)>, joint: bool) -> Self {
-        Self { model, bands, joint }
+        Self { model, bands, joint, overlayer_nm: 0.0 }
     }
     /// Per-band parameters: Wiersema (offset), Oxide (offset, q0, u0); plus one shared mirror
     /// parameter first when joint, or the mirror parameter first for a single band.
@@ -550,7 +605,7 @@ impl Spec {
         let base = 1 + self.per_band() * b;
         let (factor, thickness) = match self.model {
             // |.| keeps the mirror physical whatever the step: the model is even in it.
-            ModelKind::Wiersema => (p[0].abs(), 0.0),
+            ModelKind::Wiersema => (p[0].abs(), self.overlayer_nm),
             ModelKind::Oxide => (1.0, p[0].abs()),
         };
         let (q0, u0) = match self.model {
@@ -573,7 +628,7 @@ impl Problem<'_> {
         let mut r = DVector::zeros(2 * self.obs.len());
         for (i, (o, b)) in self.obs.iter().enumerate() {
             let m = &models[*b];
-            let s = wiersema_m3(&m3[*b], o.parallactic, m.offset) * Stokes::new(1.0, 0.0, 0.0, 0.0);
+            let s = wiersema_m3(&m3[*b], o.parallactic, m.offset + o.rotator) * Stokes::new(1.0, 0.0, 0.0, 0.0);
             r[2 * i] = (s[1] / s[0] + m.q0 - o.q) / o.sigma_q;
             r[2 * i + 1] = (s[2] / s[0] + m.u0 - o.u) / o.sigma_u;
         }
@@ -688,7 +743,10 @@ pub fn fit_joint(
             bands.iter().map(|b| b.0.as_str()).collect::<Vec<_>>().join(", ")
         )));
     }
-    let spec = Spec::new(model, bands.clone(), joint);
+    if !(opts.overlayer_nm.is_finite() && (0.0..=10_000.0).contains(&opts.overlayer_nm)) {
+        return Err(Error::Input(format!("over-layer thickness {} nm: must be 0 to 10000 nm", opts.overlayer_nm)));
+    }
+    let spec = Spec { overlayer_nm: opts.overlayer_nm, ..Spec::new(model, bands.clone(), joint) };
     let np = spec.n_params();
     let band_of = |o: &Observation| bands.iter().position(|b| b.0 == o.band).unwrap_or(0);
     let mut used = vec![true; obs.len()];
@@ -731,8 +789,24 @@ pub fn fit_joint(
         obs.iter().zip(&used).filter(|(_, &u)| u).map(|(o, _)| (o, band_of(o))).collect();
     let n_used = sel.len();
     let problem = Problem { spec: &spec, obs: sel };
-    let r = problem.residuals(&p).map_err(|e| Error::FitFailed(e.to_string()))?;
-    let chi2 = r.norm_squared();
+    let mut chi2 = chi2_of(&problem, &p);
+    let minima = match model {
+        ModelKind::Oxide => {
+            let (m, better) = thickness_minima(&problem, &p, chi2);
+            // A start elsewhere found a deeper minimum than the grid's: take it.
+            if let Some(b) = better {
+                p = b;
+                for b in 0..bands.len() {
+                    let i = 1 + spec.per_band() * b;
+                    p[i] = fold_offset(p[i]);
+                }
+                p[0] = p[0].abs();
+                chi2 = chi2_of(&problem, &p);
+            }
+            m
+        }
+        ModelKind::Wiersema => vec![],
+    };
     let dof = 2 * n_used - np;
     let chi2_reduced = chi2 / dof as f64;
     let j = problem.jac(&p).map_err(|e| Error::FitFailed(e.to_string()))?;
@@ -777,8 +851,54 @@ pub fn fit_joint(
         error_factor: factor,
         rms_q: rms(&|p| p.obs.q - p.q_model),
         rms_u: rms(&|p| p.obs.u - p.u_model),
+        with_rotator: obs.iter().any(|o| o.rotator != 0.0),
+        minima,
         points,
     })
+}
+
+/// The local minima of the oxide model's chi^2 in the thickness: Gauss-Newton started from
+/// every 10 nm from 0 to 300 nm (the other parameters from the best solution `best`), the
+/// converged solutions merged when within 1 nm, those with `delta_chi2 < 4` kept, the kept
+/// solution first, then by chi^2. (Thin-film interference repeats the layer's polarization
+/// about every 170 nm in V, and below ~30 nm two thicknesses give each value: a set of
+/// unpolarized standards, which measures only that polarization, fits them all equally.)
+/// Also a solution better than `best` by more than 1e-6 in chi^2, when a start found one.
+fn thickness_minima(problem: &Problem, best: &[f64], best_chi2: f64) -> (Vec<LocalMinimum>, Option<Vec<f64>>) {
+    let mut found: Vec<(f64, f64, Vec<f64>)> = vec![(best[0].abs(), best_chi2, best.to_vec())];
+    for k in 0..=30 {
+        let mut start = best.to_vec();
+        start[0] = 10.0 * k as f64;
+        let mut sol = gauss_newton(problem, start);
+        sol[0] = sol[0].abs();
+        let c = chi2_of(problem, &sol);
+        if !c.is_finite() {
+            continue;
+        }
+        match found.iter_mut().find(|f| (f.0 - sol[0]).abs() < 1.0) {
+            Some(f) if c < f.1 => *f = (sol[0], c, sol),
+            Some(_) => {}
+            None => found.push((sol[0], c, sol)),
+        }
+    }
+    found.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.total_cmp(&b.0)));
+    let min = found[0].1;
+    let better = (min < best_chi2 - 1e-6).then(|| found[0].2.clone());
+    // The solution kept leads (ties within 1e-6 in chi^2 are exact degeneracies: the data fix
+    // only the mirror's polarization, which thin-film interference repeats).
+    let lead = if better.is_some() { found[0].0 } else { best[0].abs() };
+    let lead_chi2 = if better.is_some() { min } else { best_chi2 };
+    let mut minima: Vec<LocalMinimum> = found
+        .iter()
+        .filter(|f| f.1 - min < MINIMA_DELTA_CHI2)
+        .map(|f| LocalMinimum { thickness_nm: f.0, chi2: f.1, delta_chi2: (f.1 - lead_chi2).max(0.0) })
+        .collect();
+    if let Some(i) = minima.iter().position(|m| (m.thickness_nm - lead).abs() < 1.0) {
+        let mut m = minima.remove(i);
+        m.delta_chi2 = 0.0;
+        minima.insert(0, m);
+    }
+    (minima, better)
 }
 
 /// Thicknesses (nm) tried first: the polarization is not monotonic in the thickness (it
@@ -860,6 +980,7 @@ mod tests {
                     sigma_u: sigma,
                     wavelength_um: truth.wavelength_um,
                     band: "V".into(),
+                    rotator: 0.0,
                     source: format!("sim:{i}"),
                 }
             })
@@ -966,7 +1087,7 @@ mod tests {
         };
         let d = f64::to_radians;
         for (a, e) in [(10.0, 10.0), (10.0, 12.0), (-30.0, 30.0), (170.0, 185.0), (-80.0, 120.0), (0.0, 360.0)] {
-            let track = Track { start: d(a), end: d(e) };
+            let track = Track { start: d(a), end: d(e), rotator: 0.0 };
             let avg = b.matrix_track(track).unwrap();
             // Midpoint rule over 20000 slices of the track, matrix by matrix.
             let n = 20_000;
@@ -993,7 +1114,7 @@ mod tests {
         }
         // The correction over a track inverts the track's mean matrix: a star measured through
         // it (the fine mean) comes back.
-        let track = Track { start: d(-40.0), end: d(25.0) };
+        let track = Track { start: d(-40.0), end: d(25.0), rotator: 0.0 };
         let sky = Stokes::new(1.0, 0.02, -0.01, 0.0);
         let n = 4000;
         let mut meas = Stokes::zeros();

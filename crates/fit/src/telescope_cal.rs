@@ -9,7 +9,9 @@
 //! `oxide`), `TEL JOINT`, `TEL BAND<k>` (band names, 1-based), `TEL NPAR`, `TEL PAR<k> NAME`,
 //! `TEL PAR<k>`, `TEL PAR<k> ERR` (angles in rad as fitted), `TEL COV <i> <j>` (upper triangle,
 //! 0-based, scaled as `TEL ERR SCALING` says, by `TEL ERR FACTOR`), `TEL CHI2`, `TEL DOF`,
-//! `TEL CHI2 DOF`, `TEL RMS Q`, `TEL RMS U`, `TEL N USED`, `TEL METAL`.
+//! `TEL CHI2 DOF`, `TEL RMS Q`, `TEL RMS U`, `TEL N USED`, `TEL METAL`, `TEL ROTATOR` (1: the
+//! standards carried rotator angles, so `offset` is the angle zero at rotator 0; 0 or absent:
+//! `offset` holds whatever fixed rotator angle the standards were taken at).
 //!
 //! The HDU sits beside a field model (after the field calibration's HDUs, written by
 //! [`save_with_field`] through [`Calibration::save_with`]) or alone (a file whose primary HDU
@@ -99,6 +101,7 @@ pub fn write_hdu(f: &mut FitsFile, path: &Path, fit: &TelescopeFit, metal: &str)
     w.real("TEL RMS Q", fit.rms_q)?;
     w.real("TEL RMS U", fit.rms_u)?;
     w.int("TEL N USED", fit.n_used() as i64)?;
+    w.int("TEL ROTATOR", fit.with_rotator as i64)?;
     Ok(())
 }
 
@@ -298,6 +301,8 @@ pub fn read_hdu(path: &Path) -> Result<Option<TelescopeFit>> {
         error_factor: r.opt_real("TEL ERR FACTOR").unwrap_or(f64::NAN),
         rms_q: r.opt_real("TEL RMS Q").unwrap_or(f64::NAN),
         rms_u: r.opt_real("TEL RMS U").unwrap_or(f64::NAN),
+        with_rotator: r.opt_int("TEL ROTATOR").unwrap_or(0) != 0,
+        minima: Vec::new(),
         points: Vec::new(),
     }))
 }
@@ -368,5 +373,242 @@ pub fn correct_chain<M: FieldModel + ?Sized>(
         },
         q_tel,
         u_tel,
+    })
+}
+
+/// One frame's telescope angles as its header gives them (deg, the header's own sense).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HeaderAngles {
+    pub parang_start_deg: f64,
+    pub parang_end_deg: Option<f64>,
+    pub rotator_deg: Option<f64>,
+}
+
+/// Read the parallactic angle at the start (and end, when the instrument names an end
+/// keyword) and the rotator angle (when it names one) from a frame's header, under the
+/// keywords of the instrument's `[telescope]` section: the primary header, else the first
+/// extension's. Errors name the frame and the missing or unreadable keyword.
+pub fn header_angles(path: &Path, tel: &instrument::Telescope) -> Result<HeaderAngles> {
+    if tel.parang_start_keyword.is_empty() {
+        return Err(Error::Input(format!(
+            "{}: the instrument's [telescope] section names no parang_start_keyword: give the angle by hand",
+            path.display()
+        )));
+    }
+    let mut f = FitsFile::open(path).map_err(fits_err(path, "opening the frame"))?;
+    let mut read = |key: &str| -> Result<Option<f64>> {
+        let mut value = None;
+        for i in 0..2usize {
+            let Ok(h) = f.hdu(i) else { break };
+            if let Ok(s) = skyfield::io::read_key_str(&mut f, &h, key) {
+                value = Some(s);
+                break;
+            }
+        }
+        let Some(s) = value else { return Ok(None) };
+        let v: f64 = s.trim().trim_matches('\'').trim().replace(['D', 'd'], "E").parse().map_err(|_| {
+            Error::BadFile { path: path.into(), what: format!("keyword {key} = '{s}' is not a number (deg)") }
+        })?;
+        if !v.is_finite() {
+            return Err(Error::BadFile { path: path.into(), what: format!("keyword {key} = {v} is not finite") });
+        }
+        Ok(Some(v))
+    };
+    let start = read(&tel.parang_start_keyword)?.ok_or_else(|| Error::BadFile {
+        path: path.into(),
+        what: format!(
+            "no keyword {} (the parallactic angle at the exposure's start, named by the instrument's [telescope] parang_start_keyword)",
+            tel.parang_start_keyword
+        ),
+    })?;
+    let end = if tel.parang_end_keyword.is_empty() { None } else { read(&tel.parang_end_keyword)? };
+    let rotator = if tel.rotator_keyword.is_empty() { None } else { read(&tel.rotator_keyword)? };
+    Ok(HeaderAngles { parang_start_deg: start, parang_end_deg: end, rotator_deg: rotator })
+}
+
+/// The parallactic-angle track of a set of frames (the exposures of one measurement, e.g. the
+/// HWP angles of a polarimetric set) from their headers ([`header_angles`]), the instrument's
+/// senses applied: from the first frame's start to the last frame's end (each angle unwrapped
+/// to within half a turn of the previous one, so a set may cross +-180 deg), with the rotator
+/// angle of the first frame (frames whose rotator angles differ by more than 0.5 deg are
+/// refused: they are not one measurement of the model). Counting the gaps between exposures
+/// as exposing is second order in the set's turn.
+pub fn frames_track(frames: &[std::path::PathBuf], tel: &instrument::Telescope) -> Result<Track> {
+    if frames.is_empty() {
+        return Err(Error::Input("no frames for the parallactic angle".into()));
+    }
+    let mut prev: Option<f64> = None;
+    let (mut start, mut end, mut rot) = (0.0, 0.0, None::<(f64, &Path)>);
+    for (k, p) in frames.iter().enumerate() {
+        let h = header_angles(p, tel)?;
+        let (s, e) = tel.parallactic_rad(h.parang_start_deg, h.parang_end_deg);
+        let unwrap = |a: f64, prev: Option<f64>| match prev {
+            Some(b) => b + 2.0 * mueller::wrap_half_pi(0.5 * (a - b)),
+            None => a,
+        };
+        let s = unwrap(s, prev);
+        let e = unwrap(e.unwrap_or(s), Some(s));
+        if k == 0 {
+            start = s;
+        }
+        end = e;
+        prev = Some(e);
+        let r = h.rotator_deg.map(|r| tel.rotator_sense as f64 * r.to_radians()).unwrap_or(0.0);
+        match rot {
+            None => rot = Some((r, p.as_path())),
+            Some((r0, p0)) if mueller::wrap_half_pi(0.5 * (r - r0)).abs() * 2.0 > 0.5f64.to_radians() => {
+                return Err(Error::Input(format!(
+                    "{}: rotator angle {:.3} deg ({}) differs from {:.3} deg in {}: the frames are not one measurement",
+                    p.display(),
+                    r.to_degrees(),
+                    tel.rotator_keyword,
+                    r0.to_degrees(),
+                    p0.display()
+                )))
+            }
+            _ => {}
+        }
+    }
+    Ok(Track { start, end, rotator: rot.map(|r| r.0).unwrap_or(0.0) })
+}
+
+/// Validating a telescope calibration (with or without a field model) on a standard star:
+/// the star as measured, what the telescope alone makes of an unpolarized star over the
+/// exposure's track, the star corrected through the chain ([`correct_chain`]) and its
+/// distance from its expected intrinsic polarization (Mahalanobis, in sigma). Polarization as
+/// fractions, angles in degrees.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct ChainValidation {
+    pub star: String,
+    pub band: String,
+    pub telescope_model: &'static str,
+    /// A field model was applied too (first, then the telescope).
+    pub field_model: bool,
+    pub x_arcmin: f64,
+    pub y_arcmin: f64,
+    pub parallactic_start_deg: f64,
+    pub parallactic_end_deg: f64,
+    /// The rotator angle applied (0 when the model was fitted without rotator angles).
+    pub rotator_deg: f64,
+    pub measured_q: f64,
+    pub measured_u: f64,
+    pub sigma_q: f64,
+    pub sigma_u: f64,
+    pub telescope_q: f64,
+    pub telescope_u: f64,
+    pub corrected_q: f64,
+    pub corrected_u: f64,
+    pub sigma_corrected_q: f64,
+    pub sigma_corrected_u: f64,
+    pub corrected_p: f64,
+    pub sigma_corrected_p: f64,
+    pub corrected_chi_deg: f64,
+    pub sigma_corrected_chi_deg: f64,
+    pub expected_q: f64,
+    pub expected_u: f64,
+    /// The corrected star against its expected polarization (sigma).
+    #[serde(rename = "corrected_pull")]
+    pub corrected_residual_sigma: f64,
+    /// The measured star, uncorrected, against its expected polarization (sigma): how much
+    /// the correction mattered.
+    #[serde(rename = "uncorrected_pull")]
+    pub uncorrected_residual_sigma: f64,
+    pub threshold: f64,
+    pub pass: bool,
+    pub extrapolated: bool,
+    /// Things a person should know (not in the JSON).
+    #[serde(skip)]
+    pub warnings: Vec<String>,
+}
+
+/// Validate the telescope model `tel` (band `band`) and, when given, the field calibration
+/// `field` on a star measured in the instrument frame (`measured`, the plate frame of the
+/// reduction: the telescope's fitted offset is the instrument's angle zero, so no HWP zero
+/// angle is applied) at field position `(x, y)` arcmin over the exposures' `track`. The field
+/// model's error at a position is its coefficient covariance plus `model_error` (default
+/// [`crate::validate::auto_model_error`]). Passes when the corrected star is within
+/// `threshold` sigma of `star`'s expected polarization. A model fitted without rotator angles
+/// ([`TelescopeFit::with_rotator`]) holds the standards' rotator angle in its offset: the
+/// track's rotator angle is then not applied (said in the warnings when it is not 0).
+#[allow(clippy::too_many_arguments)]
+pub fn validate_chain(
+    field: Option<&Calibration>,
+    tel: &TelescopeFit,
+    band: &str,
+    measured: &crate::standards::MeasuredStar,
+    (x, y): (f64, f64),
+    mut track: Track,
+    star: (&str, crate::standards::Expected),
+    opts: &crate::validate::ValidateOptions,
+) -> Result<ChainValidation> {
+    use crate::correct::{CorrectOptions, WithModelError};
+    let mut warnings = vec![];
+    if !tel.with_rotator && track.rotator != 0.0 {
+        warnings.push(format!(
+            "the telescope model was fitted without rotator angles (its offset holds the standards' rotator angle): the frames' rotator angle {:.2} deg is not applied",
+            track.rotator.to_degrees()
+        ));
+        track.rotator = 0.0;
+    }
+    let me = field.map(|c| opts.model_error.unwrap_or_else(|| crate::validate::auto_model_error(c)));
+    let wm = field.zip(me).map(|(c, me)| WithModelError { model: c, sigma: me });
+    let cor = wm.as_ref().zip(field).map(|(m, c)| {
+        Corrector::new(
+            m,
+            CorrectOptions {
+                chi_offset: 0.0,
+                allow_extrapolation: opts.allow_extrapolation,
+                ..CorrectOptions::for_calibration(c)
+            },
+        )
+    });
+    let m = measured.at(x, y);
+    let r = correct_chain(cor.as_ref(), tel, band, &m, track)?;
+    let c = r.corrected;
+    let e = star.1;
+    let dist = |dq: f64, du: f64, a: f64, b: f64, cv: f64| {
+        crate::standards::mahalanobis(dq, du, a, b, cv)
+            .map_err(|err| Error::Input(format!("validating {}: {err}", star.0)))
+    };
+    let corrected = dist(c.q0 - e.q, c.u0 - e.u, c.var_q0 + e.var_q, c.var_u0 + e.var_u, c.cov_qu0 + e.cov_qu)?;
+    let uncorrected = dist(
+        measured.q - e.q,
+        measured.u - e.u,
+        measured.var_q + e.var_q,
+        measured.var_u + e.var_u,
+        measured.cov_qu + e.cov_qu,
+    )?;
+    Ok(ChainValidation {
+        star: star.0.to_string(),
+        band: band.to_string(),
+        telescope_model: tel.model.name(),
+        field_model: field.is_some(),
+        x_arcmin: x,
+        y_arcmin: y,
+        parallactic_start_deg: track.start.to_degrees(),
+        parallactic_end_deg: track.end.to_degrees(),
+        rotator_deg: track.rotator.to_degrees(),
+        measured_q: measured.q,
+        measured_u: measured.u,
+        sigma_q: m.sigma_q,
+        sigma_u: m.sigma_u,
+        telescope_q: r.q_tel,
+        telescope_u: r.u_tel,
+        corrected_q: c.q0,
+        corrected_u: c.u0,
+        sigma_corrected_q: c.var_q0.max(0.0).sqrt(),
+        sigma_corrected_u: c.var_u0.max(0.0).sqrt(),
+        corrected_p: c.p0,
+        sigma_corrected_p: c.sigma_p0,
+        corrected_chi_deg: c.chi0.to_degrees(),
+        sigma_corrected_chi_deg: c.sigma_chi0.to_degrees(),
+        expected_q: e.q,
+        expected_u: e.u,
+        corrected_residual_sigma: corrected,
+        uncorrected_residual_sigma: uncorrected,
+        threshold: opts.threshold,
+        pass: corrected <= opts.threshold,
+        extrapolated: c.extrapolated,
+        warnings,
     })
 }

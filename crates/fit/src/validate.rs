@@ -113,23 +113,13 @@ pub fn validate_frames(
     if !cal.instrument.eq_ignore_ascii_case(&inst.name) {
         return Err(Error::WrongInstrument { cal: cal.instrument.clone(), frames: inst.name.clone() });
     }
-    let frames_err = |doing: &str| {
-        let doing = doing.to_string();
-        move |source| Error::Frames { doing, source }
-    };
-    let fr = read_frames_with(frames, inst, &opts.read, &|| {}).map_err(frames_err("reading the frames"))?;
-    let set = FrameSet::from_frames(fr, inst, true).map_err(frames_err("grouping the frames by HWP angle"))?;
+    let (measured, filter) = measure_frames(inst, frames, x_px, y_px, opts)?;
     // Another filter's calibration is allowed (it is how a wrong calibration is shown to
     // fail), but said.
     let mut warnings = vec![];
-    if !crate::setup::same_filter(Some(inst), &set.filter, &cal.filter) {
-        warnings
-            .push(format!("the frames are in filter {} but the calibration is for filter {}", set.filter, cal.filter));
+    if !crate::setup::same_filter(Some(inst), &filter, &cal.filter) {
+        warnings.push(format!("the frames are in filter {filter} but the calibration is for filter {}", cal.filter));
     }
-    let ph = photometry(&set, inst, x_px, y_px, &opts.aperture)
-        .map_err(frames_err(&format!("photometry of the star at ({x_px}, {y_px}) px")))?;
-    let qu = ph.reduction.qu;
-    let measured = MeasuredStar { q: qu.q, u: qu.u, var_q: qu.var_q, var_u: qu.var_u, cov_qu: qu.cov_qu };
     let (x, y) = inst.pixel_to_arcmin(x_px, y_px);
     let mut r = validate_measured(cal, &measured, (x, y), star, opts)?;
     r.x_px = x_px;
@@ -137,6 +127,29 @@ pub fn validate_frames(
     r.n_frames = frames.len();
     r.warnings = warnings;
     Ok(r)
+}
+
+/// Measure a star at 0-based ordinary-image pixel `(x_px, y_px)` in `frames` (all HWP angles
+/// of one filter, read as instrument `inst`): aperture photometry of both beams with the
+/// local background subtracted ([`skyfield::photometry::photometry`]). The normalized Stokes
+/// parameters in the plate frame (no zero angle applied) and the frames' filter.
+pub fn measure_frames(
+    inst: &Instrument,
+    frames: &[PathBuf],
+    x_px: f64,
+    y_px: f64,
+    opts: &ValidateOptions,
+) -> Result<(MeasuredStar, String), Error> {
+    let frames_err = |doing: &str| {
+        let doing = doing.to_string();
+        move |source| Error::Frames { doing, source }
+    };
+    let fr = read_frames_with(frames, inst, &opts.read, &|| {}).map_err(frames_err("reading the frames"))?;
+    let set = FrameSet::from_frames(fr, inst, true).map_err(frames_err("grouping the frames by HWP angle"))?;
+    let ph = photometry(&set, inst, x_px, y_px, &opts.aperture)
+        .map_err(frames_err(&format!("photometry of the star at ({x_px}, {y_px}) px")))?;
+    let qu = ph.reduction.qu;
+    Ok((MeasuredStar { q: qu.q, u: qu.u, var_q: qu.var_q, var_u: qu.var_u, cov_qu: qu.cov_qu }, set.filter.clone()))
 }
 
 /// Validate `cal` on a star already measured (`measured`, in the plate frame as the

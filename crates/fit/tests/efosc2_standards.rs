@@ -175,7 +175,7 @@ fn reference(d: &[[f64; 6]], n: C) -> ([f64; 2], [f64; 2], f64) {
 fn wiersema_model_reproduces_an_independent_fit_band_by_band() {
     let Some(dir) = data_dir() else { return };
     let table = MetalTable::read(&dir.join("METALS_Aluminium_Rakic.txt")).unwrap();
-    let abs = FitOptions { clip: None, error_scaling: ErrorScaling::Absolute };
+    let abs = FitOptions { clip: None, error_scaling: ErrorScaling::Absolute, ..Default::default() };
     eprintln!("band  factor (ours | ref)          offset deg (ours | ref)       chi2/dof  rms_q%  rms_u%");
     for (band, stem) in BANDS {
         let path = dir.join(format!("{stem}_standards.txt"));

@@ -183,6 +183,7 @@ fn polarized_standard_through_a_night_comes_back_with_its_catalogued_p_and_chi()
             sigma_u: sigma,
             wavelength_um: 0.55,
             band: "V".into(),
+            rotator: 0.0,
             source: format!("sim:{k}"),
         });
     }
@@ -207,7 +208,9 @@ fn polarized_standard_through_a_night_comes_back_with_its_catalogued_p_and_chi()
             sigma_u: sigma,
             cov_qu: 0.0,
         };
-        let c = correct_chain::<dyn FieldModel>(None, &tel, "V", &m, Track { start: a, end: b }).unwrap().corrected;
+        let c = correct_chain::<dyn FieldModel>(None, &tel, "V", &m, Track { start: a, end: b, rotator: 0.0 })
+            .unwrap()
+            .corrected;
         let dchi = mueller::wrap_half_pi(c.chi0 - chi_true);
         chi2 += ((c.p0 - p_true) / c.sigma_p0).powi(2) + (dchi / c.sigma_chi0).powi(2);
         n += 2;
@@ -272,6 +275,8 @@ fn the_chain_inverts_the_field_after_the_telescope_as_jones_matrices_say() {
         error_factor: 1.0,
         rms_q: 0.0,
         rms_u: 0.0,
+        with_rotator: false,
+        minima: vec![],
         points: vec![],
     };
     let field = Flat { p: 0.012, phi: 0.3 };
@@ -308,6 +313,7 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
                 sigma_u: 2e-4,
                 wavelength_um: 0.55,
                 band: "V".into(),
+                rotator: 0.0,
                 source: format!("t:{k}"),
             }
         })

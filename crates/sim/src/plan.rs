@@ -18,6 +18,39 @@ use std::sync::Arc;
 /// Normalized Stokes `(I, Q, U)` of one sky pixel at the plate (V = 0 throughout).
 type Iqu = [f64; 3];
 
+/// The `(I, Q, U)` block of a Mueller matrix. (The telescope's M3 turns some U into V; a
+/// dual-beam linear polarimeter with an ideal HWP does not see V, and the plan keeps none.)
+type Block = [[f64; 3]; 3];
+
+fn block(m: &mueller::Mueller) -> Block {
+    let mut b = [[0.0; 3]; 3];
+    for (i, row) in b.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = m[(i, j)];
+        }
+    }
+    b
+}
+
+#[inline]
+fn apply(b: &Block, s: &Iqu) -> Iqu {
+    [
+        b[0][0] * s[0] + b[0][1] * s[1] + b[0][2] * s[2],
+        b[1][0] * s[0] + b[1][1] * s[1] + b[1][2] * s[2],
+        b[2][0] * s[0] + b[2][1] * s[1] + b[2][2] * s[2],
+    ]
+}
+
+/// The telescope of a scene: per frame, the M3 matrix averaged over the exposure's
+/// parallactic-angle track (normalized to keep an unpolarized source's flux), and, when an
+/// instrumental field acts after it on a sky image, that field's block per sky pixel (the
+/// image then holds the light before the telescope).
+struct TelescopeTerm {
+    per_frame: Vec<Block>,
+    tracks: Vec<fit::telescope::Track>,
+    field: Option<Vec<Block>>,
+}
+
 /// The sky at the HWP: one vector for a uniform sky with no field-dependent effect, else one
 /// per sky pixel (in the order of `Plan::sky_pixels`).
 #[derive(Debug, Clone)]
@@ -71,6 +104,8 @@ pub struct Plan {
     moving: Vec<StarDraw>,
     /// Pointing offset of each frame (px).
     shifts: Vec<(f64, f64)>,
+    /// The telescope in front (scene `[telescope]`).
+    tel: Option<TelescopeTerm>,
 }
 
 /// A star drawn frame by frame: its position (px, o image, before the frame's shift), its
@@ -80,6 +115,9 @@ struct StarDraw {
     y: f64,
     st: Iqu,
     psf: PsfShape,
+    /// With a telescope: `st` is the light before it, and this the field's block at the star
+    /// (applied after the telescope's matrix of each frame).
+    field: Option<Block>,
 }
 
 /// A circular PSF profile of `r^2` (px^2) and the radius it is drawn to.
@@ -288,6 +326,10 @@ impl Plan {
             scene.hwp_angles_deg.len(),
             scene.hwp_angles_deg
         ));
+        let mut tel = match &scene.telescope {
+            Some(t) => Some(telescope_term(scene, t, &inst, &filter, &mut explain)?),
+            None => None,
+        };
         let sky_pixels: Vec<(u32, u32)> = geom
             .sky_pixels()
             .map(|(x, y)| {
@@ -319,6 +361,17 @@ impl Plan {
         };
         // Half-wave-plate causes (tilted, wedged plate): equivalent blocks at the scene's angles.
         let hwp_causes = crate::hwp_causes::HwpCauses::of_scene(scene)?;
+        // The telescope acts per exposure before the instrument's optics; the stressed lens and
+        // the plate causes are composed before it here, in the wrong order: refused together
+        // rather than simulated wrongly.
+        if tel.is_some() && (fx.stressed_lens.is_some() || hwp_causes.is_some()) {
+            return Err(Error::Scene {
+                path: PathBuf::from("<scene>"),
+                message: "[telescope] together with [effects.stressed_lens], [effects.tilted_hwp] or \
+                          [effects.wedged_hwp] is not simulated yet (the telescope must act before them): give one"
+                    .into(),
+            });
+        }
         // Stars go frame by frame when the two beams overlap (maskless) or the frames move;
         // otherwise they are folded into the sky image once.
         let per_frame = geom.layout == instrument::Layout::Maskless || !scene.frame_shifts_px.is_empty();
@@ -333,11 +386,17 @@ impl Plan {
                 explain.push(format!("  + star {} (drawn frame by frame in both beams)", describe_star(st)));
                 let (x, y) = source_pixel(&inst, st.x, st.y, st.coords);
                 let mut v = mueller::stokes_p_chi(st.flux_e, st.p, st.chi_deg.to_radians());
+                let mut at_star = None;
                 if let Some((f, _)) = &field {
                     let (xa, ya) = inst.pixel_to_arcmin(x, y);
                     let (p, phi) = f.p_phi(xa, ya);
                     if p != 0.0 && p.is_finite() && phi.is_finite() {
-                        v = Element::PartialPolarizer { p, phi }.matrix() * v;
+                        let m = Element::PartialPolarizer { p, phi }.matrix();
+                        if tel.is_some() {
+                            at_star = Some(block(&m));
+                        } else {
+                            v = m * v;
+                        }
                     }
                 }
                 if let Some(sl) = &fx.stressed_lens {
@@ -350,7 +409,7 @@ impl Plan {
                     let o = hc.block_at(xa, ya).apply([v[0], v[1], v[2]]);
                     v = Stokes::new(o[0], o[1], o[2], 0.0);
                 }
-                moving.push(StarDraw { x, y, st: [v[0], v[1], v[2]], psf: PsfShape::of(st, &inst) });
+                moving.push(StarDraw { x, y, st: [v[0], v[1], v[2]], psf: PsfShape::of(st, &inst), field: at_star });
             }
             if !scene.frame_shifts_px.is_empty() {
                 explain.push(format!("  frames moved by {:?} px", scene.frame_shifts_px));
@@ -421,15 +480,26 @@ impl Plan {
                     "  x instrumental field Element::PartialPolarizer{{p(x,y), phi(x,y)}} per pixel: {what}"
                 ));
                 let coords = inst.field_coords();
-                img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(s, &(o, _))| {
+                let at = |o: u32| -> Option<Block> {
                     let (x, y) = pos(o);
                     let (xa, ya) = coords.pixel_to_arcmin(x as f64, y as f64);
                     let (p, phi) = field.p_phi(xa, ya);
-                    if p != 0.0 && p.is_finite() && phi.is_finite() {
-                        let out = Element::PartialPolarizer { p, phi }.matrix() * Stokes::new(s[0], s[1], s[2], 0.0);
-                        *s = [out[0], out[1], out[2]];
+                    (p != 0.0 && p.is_finite() && phi.is_finite())
+                        .then(|| block(&Element::PartialPolarizer { p, phi }.matrix()))
+                };
+                match tel.as_mut() {
+                    // After the telescope, which changes frame by frame: kept per pixel.
+                    Some(t) => {
+                        const ONE: Block = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+                        explain.push("    (kept per pixel: it acts after each frame's telescope matrix)".into());
+                        t.field = Some(sky_pixels.par_iter().map(|&(o, _)| at(o).unwrap_or(ONE)).collect());
                     }
-                });
+                    None => img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(s, &(o, _))| {
+                        if let Some(b) = at(o) {
+                            *s = apply(&b, s);
+                        }
+                    }),
+                }
             }
             if let Some(sl) = fx.stressed_lens.as_ref().filter(|_| geom.layout == instrument::Layout::Strips) {
                 explain.push(format!("  x stressed lens (mueller::linear block per pixel, after the field): {sl:?}"));
@@ -575,6 +645,7 @@ impl Plan {
             explain,
             moving,
             shifts,
+            tel,
         })
     }
 
@@ -599,22 +670,51 @@ impl Plan {
         let mut img = vec![0.0; nx * ny];
         let (ro, re) = self.rows[k];
         let dot = |r: &Iqu, s: &Iqu| r[0] * s[0] + r[1] * s[1] + r[2] * s[2];
-        match &self.sky {
-            SkyAtPlate::Constant(s) if self.geom.layout == instrument::Layout::Maskless => {
-                // Every pixel takes the o light of one sky point and the e light of another.
-                img.fill(dot(&ro, s) + dot(&re, s));
-            }
-            SkyAtPlate::Constant(s) => {
-                let (fo, fe) = (dot(&ro, s), dot(&re, s));
-                for &(o, e) in &self.sky_pixels {
-                    img[o as usize] = fo;
-                    img[e as usize] = fe;
+        if let Some(t) = &self.tel {
+            // The telescope's matrix of this frame, then (per pixel) the field.
+            let m = &t.per_frame[k];
+            match &self.sky {
+                SkyAtPlate::Constant(s) => {
+                    let s = apply(m, s);
+                    let (fo, fe) = (dot(&ro, &s), dot(&re, &s));
+                    if self.geom.layout == instrument::Layout::Maskless {
+                        img.fill(fo + fe);
+                    } else {
+                        for &(o, e) in &self.sky_pixels {
+                            img[o as usize] = fo;
+                            img[e as usize] = fe;
+                        }
+                    }
+                }
+                SkyAtPlate::Image(v) => {
+                    for (i, (s, &(o, e))) in v.iter().zip(&self.sky_pixels).enumerate() {
+                        let mut s = apply(m, s);
+                        if let Some(f) = &t.field {
+                            s = apply(&f[i], &s);
+                        }
+                        img[o as usize] = dot(&ro, &s);
+                        img[e as usize] = dot(&re, &s);
+                    }
                 }
             }
-            SkyAtPlate::Image(v) => {
-                for (s, &(o, e)) in v.iter().zip(&self.sky_pixels) {
-                    img[o as usize] = dot(&ro, s);
-                    img[e as usize] = dot(&re, s);
+        } else {
+            match &self.sky {
+                SkyAtPlate::Constant(s) if self.geom.layout == instrument::Layout::Maskless => {
+                    // Every pixel takes the o light of one sky point and the e light of another.
+                    img.fill(dot(&ro, s) + dot(&re, s));
+                }
+                SkyAtPlate::Constant(s) => {
+                    let (fo, fe) = (dot(&ro, s), dot(&re, s));
+                    for &(o, e) in &self.sky_pixels {
+                        img[o as usize] = fo;
+                        img[e as usize] = fe;
+                    }
+                }
+                SkyAtPlate::Image(v) => {
+                    for (s, &(o, e)) in v.iter().zip(&self.sky_pixels) {
+                        img[o as usize] = dot(&ro, s);
+                        img[e as usize] = dot(&re, s);
+                    }
                 }
             }
         }
@@ -709,7 +809,14 @@ impl Plan {
     fn draw_star(&self, img: &mut [f64], s: &StarDraw, k: usize, rows: (&Iqu, &Iqu)) {
         let (nx, ny) = (self.geom.nx, self.geom.ny);
         let (x, y) = (s.x + self.shifts[k].0, s.y + self.shifts[k].1);
-        let dot = |r: &Iqu| r[0] * s.st[0] + r[1] * s.st[1] + r[2] * s.st[2];
+        let mut st = s.st;
+        if let Some(t) = &self.tel {
+            st = apply(&t.per_frame[k], &st);
+            if let Some(f) = &s.field {
+                st = apply(f, &st);
+            }
+        }
+        let dot = |r: &Iqu| r[0] * st[0] + r[1] * st[1] + r[2] * st[2];
         let Some((dx, dy)) = self.geom.e_offset(x, y) else { return };
         let radius = s.psf.radius();
         for (beam, (cx, cy), flux) in [(0, (x, y), dot(rows.0)), (1, (x + dx, y + dy), dot(rows.1))] {
@@ -745,6 +852,20 @@ impl Plan {
     fn keys(&self, k: usize) -> Vec<(String, KeyValue, String)> {
         let pol = &self.inst.polarimetry;
         let filt = self.inst.filter(&self.scene.filter).map(|f| f.aliases.first().cloned().unwrap_or(f.name.clone()));
+        let mut tel_keys = Vec::new();
+        if let (Some(t), Some(it)) = (&self.tel, &self.inst.telescope) {
+            let sense = it.parang_sense as f64;
+            let tr = t.tracks[k];
+            // Header angles in (-180, 180] as a telescope writes them, in the header's sense.
+            let deg = |a: f64| 2.0 * mueller::wrap_half_pi(0.5 * a).to_degrees();
+            for (key, v, what) in [
+                (&it.parang_start_keyword, sense * deg(tr.start), "parallactic angle at start [deg]"),
+                (&it.parang_end_keyword, sense * deg(tr.end), "parallactic angle at end [deg]"),
+                (&it.rotator_keyword, it.rotator_sense as f64 * deg(tr.rotator), "rotator angle [deg]"),
+            ] {
+                tel_keys.push((key.clone(), KeyValue::F64(v), what.to_string()));
+            }
+        }
         vec![
             ("INSTRUME".into(), KeyValue::Str(self.inst.name.clone()), String::new()),
             ("OBJECT".into(), KeyValue::Str("instpol simulation".into()), String::new()),
@@ -754,6 +875,7 @@ impl Plan {
             ("SIMSEED".into(), KeyValue::I64(self.scene.seed as i64), "instpol simulation seed".into()),
         ]
         .into_iter()
+        .chain(tel_keys)
         // An instrument whose headers carry no HWP angle gets none (as its real frames).
         .filter(|(k, _, _)| !k.is_empty())
         .collect()
@@ -763,6 +885,60 @@ impl Plan {
     pub fn frame_name(&self, k: usize) -> String {
         format!("{}_{:02}_hwp{:05.1}.fits", self.scene.output.prefix, k, self.scene.hwp_angles_deg[k])
     }
+}
+
+/// The telescope of a scene frame by frame: the mirror of `fit::telescope::BandModel` at the
+/// filter's effective wavelength, each exposure's parallactic-angle track from its hour
+/// angles (`fit::telescope::exposure_track`), and the matrix averaged over it
+/// (`BandModel::matrix_track`), divided by its `M_00` so that fluxes stay those of the scene.
+fn telescope_term(
+    scene: &Scene,
+    t: &crate::scene::TelescopeSpec,
+    inst: &Instrument,
+    filter: &instrument::Filter,
+    explain: &mut Vec<String>,
+) -> Result<TelescopeTerm, Error> {
+    use fit::telescope::{exposure_track, BandModel};
+    use mueller::mirror::MetalTable;
+    let bad = |m: String| Error::Scene { path: PathBuf::from("<scene>"), message: format!("telescope: {m}") };
+    let table = match MetalTable::builtin(&t.metal) {
+        Ok(t) => t,
+        Err(_) => MetalTable::read(Path::new(&t.metal)).map_err(|e| bad(format!("metal {}: {e}", t.metal)))?,
+    };
+    let w = filter.lambda_eff_nm / 1000.0;
+    let index = table.index(w).map_err(|e| bad(format!("metal {} at {w} micron: {e}", t.metal)))?;
+    let model = BandModel {
+        wavelength_um: w,
+        index,
+        factor: t.factor,
+        thickness_nm: t.overlayer_thickness_nm,
+        offset: t.offset_deg.to_radians(),
+        q0: 0.0,
+        u0: 0.0,
+    };
+    let lat = scene.site_latitude_deg(inst).ok_or_else(|| bad("no site latitude".into()))?.to_radians();
+    let dec = t.dec_deg.to_radians();
+    let (mut per_frame, mut tracks) = (Vec::new(), Vec::new());
+    explain.push(format!(
+        "telescope: M3 of {} (n, k x {}, alumina {} nm) at 45 deg, offset {} deg, rotator {} deg, dec {} deg, latitude {:.3} deg; per exposure the matrix averaged over its parallactic-angle track:",
+        t.metal, t.factor, t.overlayer_thickness_nm, t.offset_deg, t.rotator_deg, t.dec_deg, lat.to_degrees()
+    ));
+    for k in 0..scene.hwp_angles_deg.len() {
+        let (a, b) = t.hour_angles(k, scene.exposure_s);
+        let track = exposure_track(lat, dec, a.to_radians(), b.to_radians()).with_rotator(t.rotator_deg.to_radians());
+        let m = model.matrix_track(track).map_err(|e| bad(e.to_string()))?;
+        let m = m / m[(0, 0)];
+        explain.push(format!(
+            "  frame {k}: hour angle {a:.3} to {b:.3} deg, parallactic angle {:.3} to {:.3} deg: unpolarized light -> q = {:.5}, u = {:.5}",
+            track.start.to_degrees(),
+            track.end.to_degrees(),
+            m[(1, 0)],
+            m[(2, 0)]
+        ));
+        per_frame.push(block(&m));
+        tracks.push(track);
+    }
+    Ok(TelescopeTerm { per_frame, tracks, field: None })
 }
 
 fn describe_star(s: &Star) -> String {
@@ -933,6 +1109,15 @@ struct Truth<'a> {
 struct TruthFrame {
     file: String,
     hwp_deg: f64,
+    /// The exposure's parallactic-angle track (deg, the convention of `mueller::mirror`),
+    /// with a telescope.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    parallactic_start_deg: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    parallactic_end_deg: Option<f64>,
+    /// The `(q, u)` the telescope gives an unpolarized source over this exposure.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    telescope_qu: Option<[f64; 2]>,
 }
 
 /// Simulate a scene into `out` (created if needed): one FITS file per HWP angle and
@@ -981,9 +1166,13 @@ impl Plan {
             frames: frames
                 .iter()
                 .zip(&self.scene.hwp_angles_deg)
-                .map(|(p, &a)| TruthFrame {
+                .enumerate()
+                .map(|(k, (p, &a))| TruthFrame {
                     file: p.file_name().unwrap_or_default().to_string_lossy().into(),
                     hwp_deg: a,
+                    parallactic_start_deg: self.tel.as_ref().map(|t| t.tracks[k].start.to_degrees()),
+                    parallactic_end_deg: self.tel.as_ref().map(|t| t.tracks[k].end.to_degrees()),
+                    telescope_qu: self.tel.as_ref().map(|t| [t.per_frame[k][1][0], t.per_frame[k][2][0]]),
                 })
                 .collect(),
             explain: &self.explain,

@@ -44,6 +44,18 @@
 //! post_analyzer = { b = 0.004, phi_deg = 30 }
 //! flat = { pixel_rms_o = 0.01, pixel_rms_e = 0.012, large_scale_o = 0.02, large_scale_e = 0.03 }
 //! cosmic_rays = { rate_per_frame = 50 }
+//!
+//! [telescope]                   # optional: a Nasmyth M3 in front (fit::telescope::BandModel)
+//! metal = "aluminium"           # built-in table or a lambda,n,k file
+//! factor = 0.86                 # Wiersema factor on n, k (default 1)
+//! overlayer_thickness_nm = 0    # alumina over-layer (default 0)
+//! offset_deg = 40               # the instrument's angle zero (default 0)
+//! rotator_deg = 0               # rotator / adapter angle (default 0, fit::telescope::Track)
+//! dec_deg = -30                 # the target's declination
+//! ha_start_deg = 15             # hour angle at the first exposure's start; the next ones
+//! overhead_s = 30               #   follow every exposure_s + overhead_s (sidereal rate)
+//! # hour_angles_deg = [...]     # or the start of each exposure, one per HWP angle
+//! # site_latitude_deg = -29.26  # default: the instrument's [telescope] site_latitude_deg
 //! ```
 
 use crate::Error;
@@ -100,6 +112,70 @@ pub struct Scene {
     /// little between exposures): the stars move by them on the detector. Empty: none.
     #[serde(default)]
     pub frame_shifts_px: Vec<[f64; 2]>,
+    /// The telescope in front of the instrument (a Nasmyth M3 turned by each exposure's
+    /// parallactic-angle track); absent: none.
+    #[serde(default)]
+    pub telescope: Option<TelescopeSpec>,
+}
+
+fn default_metal() -> String {
+    "aluminium".into()
+}
+
+/// Sidereal rate of the hour angle (deg per second of time): 360 deg per 86164.0905 s.
+pub const HA_DEG_PER_S: f64 = 360.0 / 86164.0905;
+
+/// The telescope of a scene: the mirror of `fit::telescope::BandModel` (metal table, factor,
+/// alumina over-layer, angle offset), the site and the target, and when each exposure starts.
+/// Every source's Stokes vector passes through the mirror's matrix averaged over its
+/// exposure's parallactic-angle track (`BandModel::matrix_track`), before the instrumental
+/// field; frames carry the angles under the instrument's `[telescope]` keywords.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TelescopeSpec {
+    /// `aluminium` / `silver` (built-in tables) or a `lambda,n,k` table file (micron).
+    #[serde(default = "default_metal")]
+    pub metal: String,
+    /// Factor on the metal's `n` and `k` (Wiersema et al. 2018).
+    #[serde(default = "one")]
+    pub factor: f64,
+    /// Alumina over-layer (nm).
+    #[serde(default)]
+    pub overlayer_thickness_nm: f64,
+    /// The instrument's angle zero (deg): `R(offset + rotator) M3(plane at 90 deg - q)`.
+    #[serde(default)]
+    pub offset_deg: f64,
+    /// Rotator / adapter angle (deg, `fit::telescope::Track::rotator`), written to the
+    /// instrument's rotator keyword.
+    #[serde(default)]
+    pub rotator_deg: f64,
+    /// Site latitude (deg); default: the instrument's `[telescope] site_latitude_deg`.
+    #[serde(default)]
+    pub site_latitude_deg: Option<f64>,
+    /// The target's declination (deg).
+    pub dec_deg: f64,
+    /// Hour angle (deg, positive west) at the start of the first exposure; exposure `k` starts
+    /// `k (exposure_s + overhead_s)` seconds later.
+    #[serde(default)]
+    pub ha_start_deg: Option<f64>,
+    /// Seconds between the end of one exposure and the start of the next (with `ha_start_deg`).
+    #[serde(default)]
+    pub overhead_s: f64,
+    /// Hour angle (deg) at the start of each exposure, one per HWP angle (instead of
+    /// `ha_start_deg`).
+    #[serde(default)]
+    pub hour_angles_deg: Vec<f64>,
+}
+
+impl TelescopeSpec {
+    /// Hour angles (deg) at the start and end of exposure `k` of an `exposure_s` scene.
+    pub fn hour_angles(&self, k: usize, exposure_s: f64) -> (f64, f64) {
+        let start = match self.hour_angles_deg.get(k) {
+            Some(h) => *h,
+            None => self.ha_start_deg.unwrap_or(0.0) + k as f64 * (exposure_s + self.overhead_s) * HA_DEG_PER_S,
+        };
+        (start, start + exposure_s * HA_DEG_PER_S)
+    }
 }
 
 /// How frames are written.
@@ -405,6 +481,11 @@ impl Scene {
             Some(InstPolSpec::Raytrace { file, .. }) => fix(file),
             _ => {}
         }
+        if let Some(t) = &mut self.telescope {
+            if mueller::mirror::MetalTable::builtin(&t.metal).is_err() && Path::new(&t.metal).is_relative() {
+                t.metal = base.join(&t.metal).to_string_lossy().into_owned();
+            }
+        }
     }
 
     fn validate(&self, path: &Path) -> Result<(), Error> {
@@ -625,10 +706,110 @@ impl Scene {
                 "must be a plain file-name part (no '/', '\\', '..', not starting with '.', not empty): frames are written inside --out",
             );
         }
+        if let Some(t) = &self.telescope {
+            self.validate_telescope(t, &inst, path)?;
+        }
         if let Some(InstPolSpec::Radial { coeffs_percent, .. }) = &fx.instpol {
             if coeffs_percent.iter().any(|c| !c.is_finite()) {
                 return bad("effects.instpol.coeffs_percent", format!("{coeffs_percent:?}"), "must be finite numbers");
             }
+        }
+        Ok(())
+    }
+}
+
+impl Scene {
+    /// The site latitude of the scene's telescope (deg): its own, else the instrument's.
+    pub fn site_latitude_deg(&self, inst: &instrument::Instrument) -> Option<f64> {
+        self.telescope
+            .as_ref()
+            .and_then(|t| t.site_latitude_deg)
+            .or(inst.telescope.as_ref().and_then(|t| t.site_latitude_deg))
+    }
+
+    fn validate_telescope(&self, t: &TelescopeSpec, inst: &instrument::Instrument, path: &Path) -> Result<(), Error> {
+        let bad = |key: &str, value: String, why: &str| {
+            Err(Error::Invalid { path: path.into(), key: format!("telescope.{key}"), value, why: why.into() })
+        };
+        if mueller::mirror::MetalTable::builtin(&t.metal).is_err() && !Path::new(&t.metal).is_file() {
+            return bad("metal", t.metal.clone(), "is neither a built-in table (aluminium, silver) nor a table file");
+        }
+        if !(t.factor.is_finite() && t.factor > 0.0 && t.factor < 10.0) {
+            return bad("factor", t.factor.to_string(), "a factor on n and k in (0, 10)");
+        }
+        if !(t.overlayer_thickness_nm.is_finite() && (0.0..=10_000.0).contains(&t.overlayer_thickness_nm)) {
+            return bad("overlayer_thickness_nm", t.overlayer_thickness_nm.to_string(), "must be 0 to 10000 nm");
+        }
+        for (k, v) in [("offset_deg", t.offset_deg), ("rotator_deg", t.rotator_deg)] {
+            if !(v.is_finite() && v.abs() <= 360.0) {
+                return bad(k, v.to_string(), "an angle in degrees (-360 to 360)");
+            }
+        }
+        if !(t.dec_deg.is_finite() && t.dec_deg.abs() <= 90.0) {
+            return bad("dec_deg", t.dec_deg.to_string(), "a declination in degrees (-90 to 90)");
+        }
+        if !(t.overhead_s.is_finite() && t.overhead_s >= 0.0) {
+            return bad("overhead_s", t.overhead_s.to_string(), "must be a finite number >= 0");
+        }
+        let n = self.hwp_angles_deg.len();
+        match (t.ha_start_deg, t.hour_angles_deg.is_empty()) {
+            (Some(_), false) | (None, true) => {
+                return bad(
+                    "hour_angles_deg",
+                    format!("{} given, ha_start_deg {:?}", t.hour_angles_deg.len(), t.ha_start_deg),
+                    "give either ha_start_deg or hour_angles_deg (one per HWP angle)",
+                )
+            }
+            (None, false) if t.hour_angles_deg.len() != n => {
+                return bad(
+                    "hour_angles_deg",
+                    format!("{} values", t.hour_angles_deg.len()),
+                    &format!("give one hour angle per HWP angle ({n})"),
+                )
+            }
+            _ => {}
+        }
+        if let Some(h) = t.ha_start_deg.iter().chain(&t.hour_angles_deg).find(|h| !(h.is_finite() && h.abs() <= 180.0))
+        {
+            return bad("ha_start_deg", h.to_string(), "an hour angle in degrees (-180 to 180, positive west)");
+        }
+        let Some(lat) = self.site_latitude_deg(inst) else {
+            return bad(
+                "site_latitude_deg",
+                "(absent)".into(),
+                &format!("give the site latitude here or in the instrument's [telescope] section ({})", inst.name),
+            );
+        };
+        if !(lat.is_finite() && lat.abs() <= 90.0) {
+            return bad("site_latitude_deg", lat.to_string(), "a latitude in degrees (-90 to 90)");
+        }
+        // The target must be up during every exposure (and the parallactic angle defined: not
+        // through the zenith).
+        let (phi, dec) = (lat.to_radians(), t.dec_deg.to_radians());
+        for k in 0..n {
+            let (a, b) = t.hour_angles(k, self.exposure_s);
+            for h in [a, b] {
+                let h = h.to_radians();
+                let sin_alt = phi.sin() * dec.sin() + phi.cos() * dec.cos() * h.cos();
+                if !(0.0..=1.0 - 1e-9).contains(&sin_alt) {
+                    return bad(
+                        "dec_deg",
+                        t.dec_deg.to_string(),
+                        &format!(
+                            "exposure {k} at hour angle {:.3} deg: the target is {} from latitude {lat} deg",
+                            h.to_degrees(),
+                            if sin_alt < 0.0 { "below the horizon" } else { "at the zenith (no parallactic angle)" }
+                        ),
+                    );
+                }
+            }
+        }
+        if self.effects.stressed_lens.is_some() {
+            return bad(
+                "metal",
+                t.metal.clone(),
+                "a telescope and effects.stressed_lens together are not simulated (give one)",
+            );
         }
         Ok(())
     }
@@ -690,6 +871,36 @@ mod tests {
         }
         let t = format!("{MIN}[output]\nprefix = \"v_band-1\"\n");
         Scene::from_toml_str(&t, Path::new("s.toml")).unwrap();
+    }
+
+    #[test]
+    fn bad_telescope_sections_are_refused_by_key() {
+        // EFOSC2 carries the site latitude; FORS1 (Cassegrain, no latitude) does not.
+        let efosc = "instrument = \"efosc2\"\nfilter = \"V\"\n[sky]\nbrightness_e = 1000\n";
+        let ok = format!("{efosc}[telescope]\ndec_deg = -30\nha_start_deg = 20\n");
+        let s = Scene::from_toml_str(&ok, Path::new("s.toml")).unwrap();
+        let t = s.telescope.as_ref().unwrap();
+        assert_eq!((t.metal.as_str(), t.factor), ("aluminium", 1.0));
+        // Exposures follow each other at the sidereal rate: 300 s is 1.2534 deg of hour angle.
+        let (a, b) = t.hour_angles(1, 300.0);
+        assert!((a - 20.0 - 300.0 * HA_DEG_PER_S).abs() < 1e-12 && (b - a - 1.253_4).abs() < 1e-4, "{a} {b}");
+        for (text, key) in [
+            (format!("{efosc}[telescope]\ndec_deg = -30\n"), "telescope.hour_angles_deg"),
+            (
+                format!("{efosc}[telescope]\ndec_deg = -30\nha_start_deg = 0\nhour_angles_deg = [0, 1, 2, 3]\n"),
+                "telescope.hour_angles_deg",
+            ),
+            (format!("{efosc}[telescope]\ndec_deg = -30\nhour_angles_deg = [0, 1]\n"), "telescope.hour_angles_deg"),
+            (format!("{efosc}[telescope]\ndec_deg = 80\nha_start_deg = 10\n"), "below the horizon"),
+            (format!("{efosc}[telescope]\ndec_deg = -29.26\nha_start_deg = 0\n"), "zenith"),
+            (format!("{efosc}[telescope]\ndec_deg = -30\nha_start_deg = 20\nfactor = 0\n"), "telescope.factor"),
+            (format!("{efosc}[telescope]\ndec_deg = -30\nha_start_deg = 20\nmetal = \"gold\"\n"), "telescope.metal"),
+            (format!("{efosc}[telescope]\ndec_deg = -30\nha_start_deg = 20\nmirror = 1\n"), "mirror"),
+            (format!("{MIN}[telescope]\ndec_deg = -30\nha_start_deg = 20\n"), "telescope.site_latitude_deg"),
+        ] {
+            let e = Scene::from_toml_str(&text, Path::new("s.toml")).unwrap_err().to_string();
+            assert!(e.contains(key) && e.contains("s.toml"), "{key}: {e}");
+        }
     }
 
     #[test]

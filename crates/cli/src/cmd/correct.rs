@@ -40,7 +40,8 @@ use stokes::stats::{Estimator, PolMeasurement};
 /// The telescope (a calibration holding a TELESCOPE model, from `instpol fit-standards
 /// --output`, alone or beside a field model): catalogs then need the parallactic angle per
 /// row, column parang_deg (deg, as the standards were fitted with) and optionally
-/// parang_end_deg (the exposure's end: the model is averaged over the track). The field is
+/// parang_end_deg (the exposure's end: the model is averaged over the track), and rotator_deg
+/// when the model was fitted with rotator angles. The field is
 /// undone first, then the telescope (fit::telescope_cal); q_inst, u_inst are then the field's
 /// and the telescope's instrumental polarization together, to first order. --band picks the
 /// telescope model's band (default: the field calibration's filter, or its only band).
@@ -602,6 +603,12 @@ fn run_telescope(
         Some(_) => Some(table.numbers(PARANG[1], &a.input)?),
         None => None,
     };
+    // The rotator angle per row (deg), when the model was fitted with rotator angles
+    // (fit::telescope::Track::rotator); otherwise its offset already holds it.
+    let rot = match table.column("rotator_deg") {
+        Some(_) if tel.with_rotator => Some(table.numbers("rotator_deg", &a.input)?),
+        _ => None,
+    };
     let meas = measurements(&table, field.and_then(|c| c.pixel), a.coords, &a.input)?;
     // The telescope's offset is the instrument's angle zero (module docs of fit::telescope_cal).
     let opts = field.map(|c| CorrectOptions { chi_offset: 0.0, ..options(c, a) });
@@ -612,7 +619,7 @@ fn run_telescope(
     let mut out = Vec::with_capacity(meas.len());
     for (i, m) in meas.iter().enumerate() {
         let end = pa_end.as_ref().map(|e| e[i].to_radians());
-        let track = Track::new(pa[i].to_radians(), end);
+        let track = Track::new(pa[i].to_radians(), end).with_rotator(rot.as_ref().map_or(0.0, |r| r[i].to_radians()));
         let r = fit::telescope_cal::correct_chain(cor.as_ref(), tel, &band, m, track)
             .with_context(|| format!("{} {}", a.input.display(), table.row_label(i)))?;
         let mut c = r.corrected;

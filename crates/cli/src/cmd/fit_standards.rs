@@ -26,6 +26,11 @@ use std::path::{Path, PathBuf};
 /// and the fit repeated without them. Errors: sqrt of the covariance's diagonal times
 /// max(1, chi2/dof) by default (--error-scaling).
 ///
+/// The mirror: --instrument's [telescope] M3 (metal table, fixed alumina over-layer under the
+/// wiersema model's factor) unless --metal overrides it. The oxide model's chi2 has several
+/// minima in the thickness: every local minimum within delta chi2 < 4 of the best is listed
+/// (text and JSON "minima").
+///
 /// Calibration files (--output, --output-dir): the fitted model (--save-model, default
 /// wiersema) is written as a TELESCOPE HDU (fit::telescope_cal): with --field-cal beside that
 /// field calibration (its filter must be the band), else alone. `instpol correct` then takes
@@ -50,9 +55,11 @@ pub struct Args {
     #[arg(long)]
     pub joint: bool,
     /// The mirror metal: "aluminium" or "silver" (built-in tables, Rakic et al. 1998) or a
-    /// "lambda,n,k" table file (micron).
-    #[arg(long, default_value = "aluminium")]
-    pub metal: String,
+    /// "lambda,n,k" table file (micron). Default: the M3 of --instrument's [telescope] section
+    /// (its metal and alumina over-layer), else aluminium. Given with an instrument whose M3
+    /// differs, it overrides it (with a warning).
+    #[arg(long)]
+    pub metal: Option<String>,
     /// Flag points with a pull above this many sigma (0: no flagging).
     #[arg(long, default_value_t = 4.0)]
     pub clip: f64,
@@ -107,8 +114,23 @@ struct PointOut {
 }
 
 #[derive(Serialize)]
+struct MinimumOut {
+    thickness_nm: f64,
+    chi2: f64,
+    delta_chi2: f64,
+}
+
+#[derive(Serialize)]
 struct FitOut {
     model: &'static str,
+    /// The mirror's metal table, its fixed over-layer (nm) and where they came from
+    /// (instrument, --metal or default).
+    metal: String,
+    overlayer_nm: f64,
+    mirror_source: &'static str,
+    /// The oxide model's local minima in the thickness within delta chi2 < 4, best first.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    minima: Vec<MinimumOut>,
     bands: Vec<String>,
     joint: bool,
     params: Vec<ParamOut>,
@@ -130,9 +152,17 @@ struct FitOut {
     output: Option<PathBuf>,
 }
 
-fn out(f: &TelescopeFit, joint: bool) -> FitOut {
+fn out(f: &TelescopeFit, joint: bool, mirror: &Mirror) -> FitOut {
     FitOut {
         model: f.model.name(),
+        metal: mirror.metal.clone(),
+        overlayer_nm: mirror.overlayer_nm,
+        mirror_source: mirror.source,
+        minima: f
+            .minima
+            .iter()
+            .map(|m| MinimumOut { thickness_nm: m.thickness_nm, chi2: m.chi2, delta_chi2: m.delta_chi2 })
+            .collect(),
         bands: f.bands.iter().map(|b| b.0.clone()).collect(),
         joint,
         params: f
@@ -210,9 +240,71 @@ fn print_fit(o: &FitOut) {
         o.n_used,
         o.n_total
     );
+    if o.minima.len() > 1 {
+        outln!(
+            "  {} minima in the thickness within delta chi2 < 4 (the data do not choose between them):",
+            o.minima.len()
+        );
+        for m in &o.minima {
+            outln!("    {:>8.2} nm   chi2 = {:.2}   delta chi2 = {:.2}", m.thickness_nm, m.chi2, m.delta_chi2);
+        }
+    }
     for f in &o.flagged {
         outln!("  flagged: {f}");
     }
+}
+
+/// The mirror the models start from.
+struct Mirror {
+    table: MetalTable,
+    metal: String,
+    overlayer_nm: f64,
+    source: &'static str,
+}
+
+/// --metal, else --instrument's oblique mirror (metal, alumina over-layer), else aluminium.
+fn mirror(a: &Args, inst: Option<&instrument::Instrument>) -> Result<Mirror> {
+    let table_of = |m: &str, base: Option<&Path>| -> Result<MetalTable> {
+        if let Ok(t) = MetalTable::builtin(m) {
+            return Ok(t);
+        }
+        let p = match base {
+            Some(b) if Path::new(m).is_relative() && !Path::new(m).is_file() => b.join(m),
+            _ => PathBuf::from(m),
+        };
+        Ok(MetalTable::read(&p)?)
+    };
+    let m3 = inst.and_then(|i| i.telescope.as_ref()).and_then(|t| t.oblique_mirror());
+    if let (Some(i), Some(m)) = (inst, m3) {
+        let thick = match m.overlayer.as_deref() {
+            None => 0.0,
+            Some(o) if o.eq_ignore_ascii_case("alumina") => m.overlayer_thickness_nm,
+            Some(o) => bail!(
+                "--instrument {}: mirror {} has over-layer '{o}': fit-standards models alumina over-layers only (give --metal to fit the bare metal)",
+                i.name,
+                m.name
+            ),
+        };
+        if let Some(given) = &a.metal {
+            if !given.eq_ignore_ascii_case(&m.metal) || thick > 0.0 {
+                eprintln!(
+                    "warning: --metal {given} OVERRIDES the instrument {}'s {} (metal {}, alumina over-layer {thick} nm): fitting {given}, bare",
+                    i.name, m.name, m.metal
+                );
+            }
+        } else {
+            let base = a.instrument.as_deref().map(Path::new).filter(|p| p.is_file()).and_then(|p| p.parent());
+            let table = table_of(&m.metal, base)
+                .with_context(|| format!("--instrument {}: mirror {} metal {}", i.name, m.name, m.metal))?;
+            return Ok(Mirror { table, metal: m.metal.clone(), overlayer_nm: thick, source: "instrument" });
+        }
+    }
+    let (metal, source) = match &a.metal {
+        Some(m) => (m.clone(), "--metal"),
+        None => ("aluminium".to_string(), "default"),
+    };
+    let table = table_of(&metal, None).with_context(|| format!("--metal {metal}"))?;
+    Ok(Mirror { table, metal, overlayer_nm: 0.0, source })
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -226,13 +318,17 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--clip {} must be >= 0 (0: no flagging)", a.clip);
     }
     let error_scaling: ErrorScaling = a.error_scaling.parse().context("--error-scaling")?;
-    let opts = FitOptions { clip: if a.clip > 0.0 { Some(a.clip) } else { None }, error_scaling };
-    let table = if Path::new(&a.metal).is_file() {
-        MetalTable::read(Path::new(&a.metal))
-    } else {
-        MetalTable::builtin(&a.metal)
-    }
-    .with_context(|| format!("--metal {}", a.metal))?;
+    let inst = match &a.instrument {
+        Some(name) => Some(instrument::Instrument::load(name).with_context(|| format!("--instrument {name}"))?),
+        None => None,
+    };
+    let mirror = mirror(&a, inst.as_ref())?;
+    let opts = FitOptions {
+        clip: if a.clip > 0.0 { Some(a.clip) } else { None },
+        error_scaling,
+        overlayer_nm: mirror.overlayer_nm,
+    };
+    let table = &mirror.table;
     let mut obs: Vec<Observation> = Vec::new();
     for f in &a.files {
         obs.extend(read_observations(f)?);
@@ -247,19 +343,18 @@ pub fn run(a: Args) -> Result<()> {
     for b in &bands {
         let sel: Vec<Observation> = obs.iter().filter(|o| &o.band == b).cloned().collect();
         for &m in &models {
-            let f = fit_band(m, &sel, &table, &opts).with_context(|| format!("band {b}, model {}", m.name()))?;
+            let f = fit_band(m, &sel, table, &opts).with_context(|| format!("band {b}, model {}", m.name()))?;
             fits.push((f, false));
         }
     }
     if a.joint {
         for &m in &models {
-            let f =
-                fit_joint(m, &obs, &table, &opts, true).with_context(|| format!("joint fit, model {}", m.name()))?;
+            let f = fit_joint(m, &obs, table, &opts, true).with_context(|| format!("joint fit, model {}", m.name()))?;
             fits.push((f, true));
         }
     }
-    let outputs = write_calibrations(&a, &fits, &obs)?;
-    let mut outs: Vec<FitOut> = fits.iter().map(|(f, j)| out(f, *j)).collect();
+    let outputs = write_calibrations(&a, &fits, &obs, inst.as_ref(), &mirror.metal)?;
+    let mut outs: Vec<FitOut> = fits.iter().map(|(f, j)| out(f, *j, &mirror)).collect();
     for (i, p) in &outputs {
         outs[*i].output = Some(p.clone());
     }
@@ -291,7 +386,13 @@ pub fn run(a: Args) -> Result<()> {
 }
 
 /// The calibration files asked for (--output, --output-dir), written atomically; their paths.
-fn write_calibrations(a: &Args, fits: &[(TelescopeFit, bool)], obs: &[Observation]) -> Result<Vec<(usize, PathBuf)>> {
+fn write_calibrations(
+    a: &Args,
+    fits: &[(TelescopeFit, bool)],
+    obs: &[Observation],
+    inst: Option<&instrument::Instrument>,
+    metal: &str,
+) -> Result<Vec<(usize, PathBuf)>> {
     if a.output.is_none() && a.output_dir.is_none() {
         if a.field_cal.is_some() {
             bail!("--field-cal needs --output (the file that gets the field and the telescope model)");
@@ -304,9 +405,8 @@ fn write_calibrations(a: &Args, fits: &[(TelescopeFit, bool)], obs: &[Observatio
         "oxide" | "physical" => ModelKind::Oxide,
         other => bail!("--save-model '{other}': use wiersema or oxide"),
     };
-    let instrument = match &a.instrument {
-        Some(name) => {
-            let inst = instrument::Instrument::load(name).with_context(|| format!("--instrument {name}"))?;
+    let instrument = match (&a.instrument, inst) {
+        (Some(name), Some(inst)) => {
             match inst.telescope.as_ref().map(|t| t.focus) {
                 Some(instrument::Focus::Nasmyth) => {}
                 Some(instrument::Focus::Cassegrain) => bail!(
@@ -318,9 +418,9 @@ fn write_calibrations(a: &Args, fits: &[(TelescopeFit, bool)], obs: &[Observatio
                     inst.name
                 ),
             }
-            inst.name
+            inst.name.clone()
         }
-        None => "unknown".to_string(),
+        _ => "unknown".to_string(),
     };
     let inputs: Vec<String> = a.files.iter().map(|f| f.display().to_string()).collect();
     let pick = |joint: bool, band: Option<&str>| {
@@ -361,9 +461,9 @@ fn write_calibrations(a: &Args, fits: &[(TelescopeFit, bool)], obs: &[Observatio
                         f.bands.iter().map(|b| b.0.as_str()).collect::<Vec<_>>().join(", ")
                     );
                 }
-                fit::telescope_cal::save_with_field(path, &cal, f, &a.metal)?;
+                fit::telescope_cal::save_with_field(path, &cal, f, metal)?;
             }
-            None => fit::telescope_cal::save_alone(path, &instrument, f, &a.metal, &inputs)?,
+            None => fit::telescope_cal::save_alone(path, &instrument, f, metal, &inputs)?,
         }
         written.push((i, path.clone()));
     }
@@ -374,7 +474,7 @@ fn write_calibrations(a: &Args, fits: &[(TelescopeFit, bool)], obs: &[Observatio
                 .ok_or_else(|| anyhow::anyhow!("--save-model {}: that model was not fitted", save.name()))?;
             let path = dir.join(format!("telescope_{}.fits", sanitize(b)));
             crate::util::check_output(&path)?;
-            fit::telescope_cal::save_alone(&path, &instrument, f, &a.metal, &inputs)?;
+            fit::telescope_cal::save_alone(&path, &instrument, f, metal, &inputs)?;
             written.push((i, path));
         }
     }

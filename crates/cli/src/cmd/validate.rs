@@ -34,6 +34,23 @@ use std::path::{Path, PathBuf};
 /// y_px, x_arcmin, y_arcmin, model_error, hwp_chi_offset_deg, n_frames.
 ///
 /// Example: instpol validate --cal V.fits frames/*.fits --x 1782 --y 56 --threshold 3
+///
+/// A calibration holding a telescope model (instpol fit-standards: a Nasmyth M3, alone or
+/// beside a field model) is applied through the whole chain (fit::telescope_cal::correct_chain:
+/// the field first, then the telescope averaged over the exposures' parallactic-angle track).
+/// The track comes from the frames' headers, under the keywords of the instrument's
+/// [telescope] section (parallactic angle at start and end, rotator angle), from the first
+/// frame's start to the last frame's end; or from --parang START[,END] (deg, the convention of
+/// fit-standards). The star passes when, corrected, it is within --threshold sigma of its
+/// expected polarization. JSON: measured_q, measured_u, sigma_q, sigma_u, telescope_q,
+/// telescope_u (what the telescope makes of an unpolarized star there), corrected_q,
+/// corrected_u, their sigma_, corrected_p, corrected_chi_deg, expected_q, expected_u,
+/// corrected_pull, uncorrected_pull, pass, parallactic_start_deg, parallactic_end_deg,
+/// rotator_deg (schemas/validate-telescope.schema.json).
+///
+/// Example (EFOSC2 standard, telescope model from fit-standards):
+///
+///   instpol validate --cal tel_V.fits --instrument efosc2 std/*.fits --x 512 --y 300
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
@@ -78,6 +95,14 @@ pub struct Args {
     /// Validate at a position outside the calibrated field (errors inflated, flagged).
     #[arg(long)]
     pub allow_extrapolation: bool,
+    /// With a telescope calibration: the parallactic angle (deg) at the start and optionally
+    /// the end of the exposures, instead of the frames' headers.
+    #[arg(long, value_name = "START[,END]", allow_hyphen_values = true)]
+    pub parang: Option<String>,
+    /// With a telescope calibration: its band to use (default: the field model's filter, the
+    /// model's only band, or the frames' filter).
+    #[arg(long)]
+    pub band: Option<String>,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
@@ -180,44 +205,21 @@ pub fn run(a: Args) -> Result<()> {
     if !(a.threshold.is_finite() && a.threshold > 0.0) {
         bail!("--threshold {} must be a positive number of sigma", a.threshold);
     }
-    let cal = Calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
-    // A telescope model beside the field one would be ignored here: refused rather than
-    // judging a Nasmyth star by the field alone (issue 14: validate with the telescope is
-    // not done yet; `instpol correct` applies it per row).
+    // A telescope model (alone or beside a field model) goes through the whole chain.
     if fit::telescope_cal::read_hdu(&a.cal)?.is_some() {
-        bail!(
-            "{} holds a telescope model: validate does not apply it yet (it needs the frames' parallactic angles); correct the star's catalog row with `instpol correct` (column parang_deg) instead",
-            a.cal.display()
-        );
+        return run_telescope(&a);
     }
+    if a.parang.is_some() || a.band.is_some() {
+        bail!("--parang / --band: {} holds no telescope model (instpol fit-standards writes one)", a.cal.display());
+    }
+    let cal = Calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     let inst = Instrument::load(&a.instrument)?;
     let (x_px, y_px) = match a.coords {
         crate::cmd::correct::Coords::Pixel => (a.x, a.y),
         crate::cmd::correct::Coords::Arcmin => inst.arcmin_to_pixel(a.x, a.y),
     };
-    // A --standards file is read (and so checked) even when no --star is named.
-    let list = match &a.standards {
-        Some(p) => Some(Standards::load(p)?),
-        None => None,
-    };
-    let (name, expected) = match &a.star {
-        None => ("unpolarized".to_string(), Expected::unpolarized()),
-        Some(n) => {
-            let list = match list {
-                Some(l) => l,
-                None => Standards::builtin()?,
-            };
-            let s = list.star(n)?;
-            (s.name.clone(), s.expected(&cal.filter)?)
-        }
-    };
-    let opts = ValidateOptions {
-        aperture: Aperture { radius_px: a.aperture, annulus: parse_annulus(&a.annulus)? },
-        threshold: a.threshold,
-        model_error: parse_model_error(&a.model_error)?,
-        allow_extrapolation: a.allow_extrapolation,
-        read: a.frame.read_options()?,
-    };
+    let (name, expected) = expected_star(&a, &cal.filter)?;
+    let opts = validate_options(&a)?;
     let r = validate_star(&cal, &inst, &a.frames, x_px, y_px, (&name, expected), &opts)?;
     if r.validation.extrapolated {
         eprintln!(
@@ -235,6 +237,161 @@ pub fn run(a: Args) -> Result<()> {
         return Err(crate::util::CheckFailed(format!(
             "FAIL: {} differs from the calibration's prediction by {:.2} sigma (corrected: {:.2} sigma; threshold {} sigma)",
             r.star, v.residual_sigma, v.corrected_residual_sigma, v.threshold
+        ))
+        .into());
+    }
+    Ok(())
+}
+
+/// The measuring and judging options of the arguments.
+fn validate_options(a: &Args) -> Result<ValidateOptions> {
+    Ok(ValidateOptions {
+        aperture: Aperture { radius_px: a.aperture, annulus: parse_annulus(&a.annulus)? },
+        threshold: a.threshold,
+        model_error: parse_model_error(&a.model_error)?,
+        allow_extrapolation: a.allow_extrapolation,
+        read: a.frame.read_options()?,
+    })
+}
+
+/// The named standard's expected polarization in `band` (unpolarized when none is named). A
+/// --standards file is read (and so checked) even when no --star is named.
+fn expected_star(a: &Args, band: &str) -> Result<(String, Expected)> {
+    let list = match &a.standards {
+        Some(p) => Some(Standards::load(p)?),
+        None => None,
+    };
+    Ok(match &a.star {
+        None => ("unpolarized".to_string(), Expected::unpolarized()),
+        Some(n) => {
+            let list = match list {
+                Some(l) => l,
+                None => Standards::builtin()?,
+            };
+            let s = list.star(n)?;
+            (s.name.clone(), s.expected(band)?)
+        }
+    })
+}
+
+/// `--parang START[,END]` (deg) as a track (rad).
+fn parse_parang(s: &str) -> Result<fit::telescope::Track> {
+    let v: Vec<&str> = s.split(',').collect();
+    let num = |t: &str| -> Result<f64> {
+        let x: f64 = t.trim().parse().map_err(|_| anyhow!("--parang '{s}': '{t}' is not a number (deg)"))?;
+        if !x.is_finite() || x.abs() > 360.0 {
+            bail!("--parang '{s}': {x} is not an angle in degrees (-360 to 360)");
+        }
+        Ok(x.to_radians())
+    };
+    match v.as_slice() {
+        [a] => Ok(fit::telescope::Track::at(num(a)?)),
+        [a, b] => Ok(fit::telescope::Track::new(num(a)?, Some(num(b)?))),
+        _ => bail!("--parang '{s}': expected START or START,END in degrees"),
+    }
+}
+
+/// `validate` with a telescope calibration: the track from the headers (or --parang), the
+/// star measured, corrected through the chain and judged (fit::telescope_cal::validate_chain).
+fn run_telescope(a: &Args) -> Result<()> {
+    let loaded =
+        fit::telescope_cal::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
+    let tel = loaded.telescope.as_ref().expect("a TELESCOPE HDU");
+    let field = loaded.field.as_ref();
+    let inst = Instrument::load(&a.instrument)?;
+    if loaded.instrument != "unknown" && !loaded.instrument.eq_ignore_ascii_case(&inst.name) {
+        bail!(
+            "{} is for instrument {} but the frames are read as instrument {} (--instrument)",
+            a.cal.display(),
+            loaded.instrument,
+            inst.name
+        );
+    }
+    let track = match &a.parang {
+        Some(p) => parse_parang(p)?,
+        None => {
+            let Some(t) = inst.telescope.as_ref() else {
+                bail!(
+                    "instrument {} has no [telescope] section naming the header keywords of the parallactic angle: give --parang START[,END] (deg)",
+                    inst.name
+                );
+            };
+            fit::telescope_cal::frames_track(&a.frames, t).with_context(|| {
+                "the parallactic angle of the frames (the telescope model needs it): fix the headers or give --parang START[,END] (deg)"
+            })?
+        }
+    };
+    let (x_px, y_px) = match a.coords {
+        crate::cmd::correct::Coords::Pixel => (a.x, a.y),
+        crate::cmd::correct::Coords::Arcmin => inst.arcmin_to_pixel(a.x, a.y),
+    };
+    let opts = validate_options(a)?;
+    let (measured, filter) = fit::validate::measure_frames(&inst, &a.frames, x_px, y_px, &opts)?;
+    let bands: Vec<&str> = tel.bands.iter().map(|b| b.0.as_str()).collect();
+    let band = match (&a.band, field) {
+        (Some(b), _) => b.clone(),
+        (None, Some(c)) => c.filter.clone(),
+        (None, None) if bands.len() == 1 => bands[0].to_string(),
+        (None, None) if tel.band(&filter).is_some() => filter.clone(),
+        (None, None) => bail!(
+            "{}: the telescope model has bands {} and the frames' filter is {filter}: choose one with --band",
+            a.cal.display(),
+            bands.join(", ")
+        ),
+    };
+    if tel.band(&band).is_none() {
+        bail!("--band {band}: the telescope model of {} has bands {}", a.cal.display(), bands.join(", "));
+    }
+    if !fit::setup::same_filter(Some(&inst), &filter, &band) {
+        eprintln!("warning: the frames are in filter {filter} but the telescope model's band is {band}");
+    }
+    let (name, expected) = expected_star(a, &band)?;
+    let pos = inst.pixel_to_arcmin(x_px, y_px);
+    let r = fit::telescope_cal::validate_chain(field, tel, &band, &measured, pos, track, (&name, expected), &opts)?;
+    for w in &r.warnings {
+        eprintln!("warning: {w}");
+    }
+    if a.json {
+        crate::util::print_json(&r)?;
+    } else {
+        outln!(
+            "star {name} in {band} at ({x_px:.1}, {y_px:.1}) px, {} frames; parallactic angle {:.2} to {:.2} deg, rotator {:.2} deg",
+            a.frames.len(),
+            r.parallactic_start_deg,
+            r.parallactic_end_deg,
+            r.rotator_deg
+        );
+        outln!(
+            "calibration {} ({} telescope model{})",
+            a.cal.display(),
+            r.telescope_model,
+            if r.field_model { " after the field model" } else { "" }
+        );
+        outln!(
+            "  measured   q = {:.3} +- {:.3} %   u = {:.3} +- {:.3} %  (telescope alone: q = {:.3} %, u = {:.3} %)",
+            100.0 * r.measured_q,
+            100.0 * r.sigma_q,
+            100.0 * r.measured_u,
+            100.0 * r.sigma_u,
+            100.0 * r.telescope_q,
+            100.0 * r.telescope_u
+        );
+        outln!(
+            "  corrected  P0 = {:.3} +- {:.3} %  chi0 = {:.1} deg  (expected q = {:.3} %, u = {:.3} %): {:.2} sigma (uncorrected {:.2} sigma)",
+            100.0 * r.corrected_p,
+            100.0 * r.sigma_corrected_p,
+            r.corrected_chi_deg,
+            100.0 * r.expected_q,
+            100.0 * r.expected_u,
+            r.corrected_residual_sigma,
+            r.uncorrected_residual_sigma
+        );
+        outln!("{} (threshold {} sigma)", if r.pass { "PASS" } else { "FAIL" }, r.threshold);
+    }
+    if !r.pass {
+        return Err(crate::util::CheckFailed(format!(
+            "FAIL: {name} corrected through the telescope model is {:.2} sigma from its expected polarization (threshold {} sigma)",
+            r.corrected_residual_sigma, r.threshold
         ))
         .into());
     }
