@@ -496,6 +496,12 @@ impl Calibration {
                 what: "holds only a telescope model (instpol fit-standards), no field model: read it with fit::telescope_cal::load".into(),
             });
         }
+        if r.opt_str("MODEL").as_deref() == Some(crate::mueller_cal::MODEL_KIND) {
+            return Err(Error::BadFile {
+                path: path.into(),
+                what: "holds a Mueller field (instpol calibrate-mueller), not a partial polarizer p, phi: read it with fit::mueller_cal::MuellerCal::load".into(),
+            });
+        }
         let instrument = r.str("INSTRUMENT")?;
         let filter = r.str("FILTER")?;
         let lambda_nm = r.opt_real("LAMBDA NM").unwrap_or(f64::NAN);
