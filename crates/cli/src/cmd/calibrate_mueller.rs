@@ -2,6 +2,7 @@
 //! polarization (issue 16), fitted jointly by `fit::mueller_field`.
 
 use anyhow::{anyhow, bail, Context, Result};
+use fit::mueller_cal::{MuellerCal, SkyField};
 use fit::mueller_field::{
     fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions,
 };
@@ -20,8 +21,13 @@ use std::path::PathBuf;
 /// the parameters and the reason, what its inputs cannot separate, instead of printing
 /// numbers. It runs in well under a second (no progress bar).
 ///
+/// The output is a calibration file (--out CAL.fits: primary MODEL = 'MUELLER', tables MUELLER
+/// and MUELLER_BINS, image MUELLER_COV; docs/calibration-file.md) that `instpol correct --cal`
+/// inverts exactly for polarized targets, or the same field as JSON (--out X.json, format
+/// instpol-mueller-field-v1, what `instpol plan --expected` reads).
+///
 /// Example: instpol calibrate-mueller --field b_sky1.fits:6.45:68.4 --field b_sky2.fits:4.0:10
-/// --field b_sky3.fits:8.0:130 --free retardance --deg 4 --out mueller_B.json
+/// --field b_sky3.fits:8.0:130 --free retardance --deg 4 --out mueller_B.fits
 #[derive(clap::Args)]
 pub struct Args {
     /// A Stokes map (FITS written by `instpol reduce`) with its sky polarization:
@@ -45,7 +51,8 @@ pub struct Args {
     /// Also fit every bin on its own and report how many bins constrain the model.
     #[arg(long)]
     pub per_bin: bool,
-    /// Output Mueller-field file (JSON, format instpol-mueller-field-v1).
+    /// Output: a calibration file (.fits, for `instpol correct`) or the Mueller field as JSON
+    /// (.json, format instpol-mueller-field-v1).
     #[arg(long)]
     pub out: PathBuf,
     /// Print JSON instead of a table.
@@ -81,6 +88,11 @@ fn parse_field(spec: &str) -> Result<(PathBuf, f64, f64, f64)> {
     Ok((PathBuf::from(path), p / 100.0, chi.to_radians(), sig / 100.0))
 }
 
+/// One instrument, filter and field-coordinate system (names compared case-insensitively).
+fn same_setup(a: &(String, String, field::FieldCoords), b: &(String, String, field::FieldCoords)) -> bool {
+    a.0.eq_ignore_ascii_case(&b.0) && a.1.eq_ignore_ascii_case(&b.1) && a.2 == b.2
+}
+
 fn kind_of(a: &Args) -> Result<Kind> {
     if a.general {
         return Ok(Kind::General);
@@ -102,7 +114,8 @@ struct Report {
     n_fields: usize,
     n_obs: usize,
     deg: usize,
-    kind: String,
+    model: &'static str,
+    free: Vec<&'static str>,
     chi2_dof: f64,
     condition: f64,
     parameters: Vec<Param>,
@@ -129,12 +142,33 @@ pub fn run(a: Args) -> Result<()> {
     let specs: Vec<(PathBuf, f64, f64, f64)> = a.fields.iter().map(|s| parse_field(s)).collect::<Result<_>>()?;
     crate::util::inputs(specs.iter().map(|s| s.0.as_path()))?;
     crate::util::check_output(&a.out)?;
+    let fits_out = match a.out.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
+        Some("fits" | "fit" | "fts") => true,
+        Some("json") => false,
+        _ => bail!("--out {}: the extension says the format: .fits (calibration file) or .json", a.out.display()),
+    };
     let mut fields = Vec::new();
+    // The first map's instrument, filter and field coordinates: every field must share them.
+    let mut setup: Option<(String, String, field::FieldCoords)> = None;
     for (path, p, chi, sig) in &specs {
         let map = skyfield::maps::StokesMap::read_fits(path).with_context(|| format!("reading {}", path.display()))?;
         let obs = observations_of_map(&map);
         if obs.is_empty() {
             bail!("{}: the Stokes map has no valid bin", path.display());
+        }
+        let this = (map.instrument.clone(), map.filter.clone(), map.geometry.field_coords());
+        match &setup {
+            None => setup = Some(this),
+            Some(s) if !same_setup(s, &this) => bail!(
+                "{}: a {} {} map, but {} is {} {}: fit the fields of one instrument and filter together",
+                path.display(),
+                this.0,
+                this.1,
+                specs[0].0.display(),
+                s.0,
+                s.1
+            ),
+            Some(_) => {}
         }
         fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));
     }
@@ -144,7 +178,32 @@ pub fn run(a: Args) -> Result<()> {
     }
     let mf: MuellerField = fit_mueller_field(&fields, &opts).map_err(|e| anyhow!("{e}"))?;
     let per_bin = if a.per_bin { Some(fit_per_bin(&fields, &opts).map_err(|e| anyhow!("{e}"))?) } else { None };
-    crate::util::write_atomic(&a.out, mf.to_json().as_bytes())?;
+    if fits_out {
+        let (instrument, filter, coords) = setup.expect("at least one field (clap requires one)");
+        let cal = MuellerCal {
+            instrument,
+            filter,
+            field: mf.clone(),
+            coords: Some(coords),
+            skies: specs
+                .iter()
+                .map(|(path, p, chi, sig)| SkyField {
+                    name: path.display().to_string(),
+                    p: *p,
+                    chi_deg: chi.to_degrees(),
+                    sigma: *sig,
+                })
+                .collect(),
+            per_bin: per_bin.as_ref().map(|b| b.0.clone()).unwrap_or_default(),
+            provenance: fit::calfile::Provenance::now(
+                "instpol calibrate-mueller",
+                specs.iter().map(|s| s.0.display().to_string()).collect(),
+            ),
+        };
+        cal.save(&a.out).map_err(|e| anyhow!("{e}"))?;
+    } else {
+        crate::util::write_atomic(&a.out, mf.to_json().as_bytes())?;
+    }
 
     // Summaries over the observed positions.
     let pos: Vec<(f64, f64)> = fields[0].obs.iter().map(|o| (o.x_arcmin, o.y_arcmin)).collect();
@@ -183,7 +242,8 @@ pub fn run(a: Args) -> Result<()> {
         n_fields: fields.len(),
         n_obs: mf.n_obs,
         deg: mf.deg,
-        kind: format!("{kind:?}"),
+        model: kind.model_name(),
+        free: kind.free_words(),
         chi2_dof: mf.chi2_dof,
         condition: mf.condition,
         parameters,
@@ -198,7 +258,13 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         return crate::util::print_json(&rep);
     }
-    outln!("Mueller field from {} fields, {} observations: {}", rep.n_fields, rep.n_obs, rep.kind);
+    outln!(
+        "Mueller field from {} fields, {} observations: {} model, free {}",
+        rep.n_fields,
+        rep.n_obs,
+        rep.model,
+        rep.free.join(", ")
+    );
     outln!(
         "  degree {} polynomials, chi2/dof {:.3}, Fisher condition number {:.3e}",
         rep.deg,
