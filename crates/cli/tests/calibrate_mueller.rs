@@ -350,3 +350,74 @@ fn mueller_calibration_corrects_polarized_stars_where_p_phi_leaves_a_residual() 
     assert!(err.contains("far.csv") && err.contains("outside"), "{err}");
     assert!(!d.join("far_out.csv").exists());
 }
+
+/// Bad input around Mueller calibrations, each exit 2 with a message naming it and nothing
+/// written: an output of unknown format, fields of two filters, `--method first-order` with a
+/// Mueller file, a Mueller file where a p, phi calibration is needed (`plot`).
+#[test]
+fn mueller_calibration_bad_inputs_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (b1, b2) = (map(d, "b1.fits", 0.0645, 68.4), map(d, "b2.fits", 0.04, 10.0));
+    let field = |p: &Path, s: &str| format!("{}:{s}", p.display());
+    let base = |out: &Path| {
+        vec![
+            "calibrate-mueller".to_string(),
+            "--field".into(),
+            field(&b1, "6.45:68.4"),
+            "--field".into(),
+            field(&b2, "4.0:10"),
+            "--deg".into(),
+            "2".into(),
+            "--out".into(),
+            out.display().to_string(),
+        ]
+    };
+    let txt = d.join("cal.txt");
+    let o = run(&base(&txt));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("cal.txt") && err.contains(".fits"), "{err}");
+    assert!(!txt.exists());
+
+    // A V map among B maps.
+    let v = d.join("v.fits");
+    let mut m = StokesMap::read_fits(&b2).unwrap();
+    m.filter = "V".into();
+    m.write_fits(&v).unwrap();
+    let out = d.join("mixed.fits");
+    let mut args = base(&out);
+    args[4] = field(&v, "4.0:10");
+    let o = run(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("v.fits") && err.contains("one instrument and filter"), "{err}");
+    assert!(!out.exists());
+
+    let cal = d.join("cal.fits");
+    assert!(run(&base(&cal)).status.success());
+    let stars = d.join("s.csv");
+    std::fs::write(&stars, "x,y,q,u,sigma_q,sigma_u\n0,0,0.01,0,3e-4,3e-4\n").unwrap();
+    let o = run(&[
+        "correct".to_string(),
+        "--cal".into(),
+        cal.display().to_string(),
+        "--in".into(),
+        stars.display().to_string(),
+        "--out".into(),
+        d.join("s_out.csv").display().to_string(),
+        "--method".into(),
+        "first-order".into(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("first-order") && err.contains("Mueller field"), "{err}");
+    assert!(!d.join("s_out.csv").exists());
+
+    let png = d.join("cal.png");
+    let o = run(&["plot".to_string(), cal.display().to_string(), "--out".into(), png.display().to_string()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("Mueller field") && err.contains("cal.fits"), "{err}");
+    assert!(!png.exists());
+}
