@@ -4,7 +4,7 @@
 use anyhow::{anyhow, bail, Context, Result};
 use fit::mueller_cal::{MuellerCal, SkyField};
 use fit::mueller_field::{
-    fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions,
+    fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions, Observation,
 };
 use std::path::PathBuf;
 
@@ -14,6 +14,9 @@ use std::path::PathBuf;
 /// birefringence), a rotation of the polarization plane and a depolarization; or --general,
 /// the whole 3 x 3 block. Each free parameter is a 2-D polynomial of degree --deg in the field
 /// position; --per-bin also fits every bin on its own.
+///
+/// Polarized standards (--stars TABLE) join the fit as points of their own known
+/// polarization: stars at other angles than the sky's separate a retardance too.
 ///
 /// One sky field gives two numbers per position: it fixes p, phi and nothing else. A
 /// retardance needs >= 2 fields of different sky polarization, rotation and depolarization too
@@ -48,6 +51,14 @@ pub struct Args {
     /// Field scale (arcmin) the positions are divided by: about the field radius.
     #[arg(long, default_value_t = 3.4)]
     pub scale_arcmin: f64,
+    /// Polarized standards as further inputs: a table (.csv, .ecsv, .vot or FITS) with columns
+    /// x, y (or x_arcmin, y_arcmin; arcmin from the detector centre), q, u, sigma_q, sigma_u
+    /// (measured, fractions), p_true (fraction) and chi_true_deg (or chi_true, deg), and
+    /// optionally sigma_true (1-sigma of the true q, u, fraction). Each star is a point with its
+    /// own known input polarization: stars at other angles than the sky's constrain a
+    /// retardance that one sky field alone cannot.
+    #[arg(long, value_name = "TABLE")]
+    pub stars: Option<PathBuf>,
     /// Also fit every bin on its own and report how many bins constrain the model.
     #[arg(long)]
     pub per_bin: bool,
@@ -93,6 +104,58 @@ fn same_setup(a: &(String, String, field::FieldCoords), b: &(String, String, fie
     a.0.eq_ignore_ascii_case(&b.0) && a.1.eq_ignore_ascii_case(&b.1) && a.2 == b.2
 }
 
+/// The polarized standards of a `--stars` table, each a calibration "field" of one position
+/// whose known input polarization is the star's (rows named in errors).
+fn star_fields(path: &std::path::Path) -> Result<Vec<CalField>> {
+    let t = skyfield::table::Table::read(path, None)?;
+    let pick = |names: &[&str]| -> Result<Vec<f64>> {
+        for n in names {
+            if t.column(n).is_some() {
+                return Ok(t.numbers(n, path)?);
+            }
+        }
+        bail!(
+            "{}: no column {} (columns: {}); need x, y (or x_arcmin, y_arcmin), q, u, sigma_q, sigma_u, p_true, chi_true_deg",
+            path.display(),
+            names.join(" or "),
+            t.names().join(", ")
+        )
+    };
+    let (x, y) = (pick(&["x_arcmin", "x"])?, pick(&["y_arcmin", "y"])?);
+    let (q, u, sq, su) = (pick(&["q"])?, pick(&["u"])?, pick(&["sigma_q"])?, pick(&["sigma_u"])?);
+    let (pt, ct) = (pick(&["p_true"])?, pick(&["chi_true_deg", "chi_true"])?);
+    let st = if t.column("sigma_true").is_some() { t.numbers("sigma_true", path)? } else { vec![0.0; x.len()] };
+    if x.is_empty() {
+        bail!("{}: the star table has no data rows", path.display());
+    }
+    let mut out = Vec::with_capacity(x.len());
+    for i in 0..x.len() {
+        let what = format!("{} {}", path.display(), t.row_label(i));
+        let vals = [x[i], y[i], q[i], u[i], sq[i], su[i], pt[i], ct[i], st[i]];
+        if !vals.iter().all(|v| v.is_finite()) || !(sq[i] > 0.0 && su[i] > 0.0) || st[i] < 0.0 {
+            bail!("{what}: x, y, q, u, sigma_q, sigma_u, p_true, chi_true_deg, sigma_true = {vals:?}: need finite values and errors > 0");
+        }
+        if !(0.0..1.0).contains(&pt[i]) || q[i].hypot(u[i]) >= 1.0 {
+            bail!(
+                "{what}: p_true = {} and the measured P = {} must be fractions in [0, 1) (not percent)",
+                pt[i],
+                q[i].hypot(u[i])
+            );
+        }
+        let obs = Observation {
+            x_arcmin: x[i],
+            y_arcmin: y[i],
+            q: q[i],
+            u: u[i],
+            var_q: sq[i] * sq[i],
+            var_u: su[i] * su[i],
+            cov_qu: 0.0,
+        };
+        out.push(CalField::from_p_chi(&what, pt[i], ct[i].to_radians(), st[i], vec![obs]));
+    }
+    Ok(out)
+}
+
 fn kind_of(a: &Args) -> Result<Kind> {
     if a.general {
         return Ok(Kind::General);
@@ -112,6 +175,7 @@ struct Param {
 struct Report {
     output: PathBuf,
     n_fields: usize,
+    n_stars: usize,
     n_obs: usize,
     deg: usize,
     model: &'static str,
@@ -140,7 +204,7 @@ fn median(mut v: Vec<f64>) -> f64 {
 pub fn run(a: Args) -> Result<()> {
     let kind = kind_of(&a)?;
     let specs: Vec<(PathBuf, f64, f64, f64)> = a.fields.iter().map(|s| parse_field(s)).collect::<Result<_>>()?;
-    crate::util::inputs(specs.iter().map(|s| s.0.as_path()))?;
+    crate::util::inputs(specs.iter().map(|s| s.0.as_path()).chain(a.stars.as_deref()))?;
     crate::util::check_output(&a.out)?;
     let fits_out = match a.out.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
         Some("fits" | "fit" | "fts") => true,
@@ -172,6 +236,10 @@ pub fn run(a: Args) -> Result<()> {
         }
         fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));
     }
+    let n_maps = fields.len();
+    if let Some(t) = &a.stars {
+        fields.extend(star_fields(t)?);
+    }
     let opts = MuellerFitOptions { kind, deg: a.deg, scale_arcmin: a.scale_arcmin, ..Default::default() };
     if a.deg > 8 {
         bail!("--deg {}: at most 8", a.deg);
@@ -185,19 +253,21 @@ pub fn run(a: Args) -> Result<()> {
             filter,
             field: mf.clone(),
             coords: Some(coords),
-            skies: specs
+            skies: fields
                 .iter()
-                .map(|(path, p, chi, sig)| SkyField {
-                    name: path.display().to_string(),
-                    p: *p,
-                    chi_deg: chi.to_degrees(),
-                    sigma: *sig,
+                .map(|f| {
+                    let (p, chi) = stokes::polarization(f.sky_q, f.sky_u);
+                    SkyField { name: f.name.clone(), p, chi_deg: chi.to_degrees(), sigma: f.sigma_sky }
                 })
                 .collect(),
             per_bin: per_bin.as_ref().map(|b| b.0.clone()).unwrap_or_default(),
             provenance: fit::calfile::Provenance::now(
                 "instpol calibrate-mueller",
-                specs.iter().map(|s| s.0.display().to_string()).collect(),
+                specs
+                    .iter()
+                    .map(|s| s.0.display().to_string())
+                    .chain(a.stars.iter().map(|p| p.display().to_string()))
+                    .collect(),
             ),
         };
         cal.save(&a.out).map_err(|e| anyhow!("{e}"))?;
@@ -239,7 +309,8 @@ pub fn run(a: Args) -> Result<()> {
     };
     let rep = Report {
         output: a.out.clone(),
-        n_fields: fields.len(),
+        n_fields: n_maps,
+        n_stars: fields.len() - n_maps,
         n_obs: mf.n_obs,
         deg: mf.deg,
         model: kind.model_name(),
@@ -259,8 +330,9 @@ pub fn run(a: Args) -> Result<()> {
         return crate::util::print_json(&rep);
     }
     outln!(
-        "Mueller field from {} fields, {} observations: {} model, free {}",
+        "Mueller field from {} fields and {} stars, {} observations: {} model, free {}",
         rep.n_fields,
+        rep.n_stars,
         rep.n_obs,
         rep.model,
         rep.free.join(", ")
