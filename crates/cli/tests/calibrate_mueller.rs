@@ -185,6 +185,16 @@ fn plan_from_a_fitted_field_is_checked_by_simulation() {
     assert!(std::fs::metadata(&plot).unwrap().len() > 1000);
 }
 
+/// `instpol correct --cal CAL --in INPUT --out OUT` and further arguments.
+fn correct_args(cal: &Path, input: &Path, out: &Path, extra: &[&str]) -> Vec<String> {
+    let mut v = vec!["correct".to_string()];
+    for (k, p) in [("--cal", cal), ("--in", input), ("--out", out)] {
+        v.extend([k.to_string(), p.display().to_string()]);
+    }
+    v.extend(extra.iter().map(|s| s.to_string()));
+    v
+}
+
 /// A deterministic normal deviate stream (splitmix64 and Box-Muller), written here so the
 /// test needs no random-number crate.
 struct Gauss(u64);
@@ -281,16 +291,7 @@ fn mueller_calibration_corrects_polarized_stars_where_p_phi_leaves_a_residual() 
     std::fs::write(&stars, text).unwrap();
 
     let corrected = d.join("stars_mueller.csv");
-    let o = run(&[
-        "correct".to_string(),
-        "--cal".into(),
-        cal.display().to_string(),
-        "--in".into(),
-        stars.display().to_string(),
-        "--out".into(),
-        corrected.display().to_string(),
-        "--json".into(),
-    ]);
+    let o = run(&correct_args(&cal, &stars, &corrected, &["--json"]));
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let jc: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!((jc["n_rows"].as_u64(), jc["mueller_model"].as_str()), (Some(200), Some("physical")));
@@ -298,15 +299,7 @@ fn mueller_calibration_corrects_polarized_stars_where_p_phi_leaves_a_residual() 
     assert!(rms > 0.8 && rms < 1.25 && mean.abs() < 0.15, "Mueller: pull RMS {rms}, mean {mean}, residual {res}");
 
     let corrected_pphi = d.join("stars_pphi.csv");
-    let o = run(&[
-        "correct".to_string(),
-        "--cal".into(),
-        pphi.display().to_string(),
-        "--in".into(),
-        stars.display().to_string(),
-        "--out".into(),
-        corrected_pphi.display().to_string(),
-    ]);
+    let o = run(&correct_args(&pphi, &stars, &corrected_pphi, &[]));
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let (rms_p, _, res_p) = pulls(&corrected_pphi);
     eprintln!("pull RMS: Mueller {rms:.3} (residual {res:.2e}), p, phi {rms_p:.3} (residual {res_p:.2e})");
@@ -315,15 +308,7 @@ fn mueller_calibration_corrects_polarized_stars_where_p_phi_leaves_a_residual() 
     // A map of a fourth sky (5 %, 40 deg) comes back to that sky within its errors.
     let m4 = map(d, "b4.fits", 0.05, 40.0);
     let out4 = d.join("b4_corr.fits");
-    let o = run(&[
-        "correct".to_string(),
-        "--cal".into(),
-        cal.display().to_string(),
-        "--in".into(),
-        m4.display().to_string(),
-        "--out".into(),
-        out4.display().to_string(),
-    ]);
+    let o = run(&correct_args(&cal, &m4, &out4, &[]));
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let cm = StokesMap::read_fits(&out4).unwrap();
     let (qs, us) = (0.05 * 80f64.to_radians().cos(), 0.05 * 80f64.to_radians().sin());
@@ -336,15 +321,7 @@ fn mueller_calibration_corrects_polarized_stars_where_p_phi_leaves_a_residual() 
     // Outside the fitted field: refused naming the row, unless --allow-extrapolation.
     let far = d.join("far.csv");
     std::fs::write(&far, "x,y,q,u,sigma_q,sigma_u\n0,0,0.01,0,3e-4,3e-4\n5.0,0,0.01,0,3e-4,3e-4\n").unwrap();
-    let o = run(&[
-        "correct".to_string(),
-        "--cal".into(),
-        cal.display().to_string(),
-        "--in".into(),
-        far.display().to_string(),
-        "--out".into(),
-        d.join("far_out.csv").display().to_string(),
-    ]);
+    let o = run(&correct_args(&cal, &far, &d.join("far_out.csv"), &[]));
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("far.csv") && err.contains("outside"), "{err}");
@@ -398,17 +375,7 @@ fn mueller_calibration_bad_inputs_are_refused_by_name() {
     assert!(run(&base(&cal)).status.success());
     let stars = d.join("s.csv");
     std::fs::write(&stars, "x,y,q,u,sigma_q,sigma_u\n0,0,0.01,0,3e-4,3e-4\n").unwrap();
-    let o = run(&[
-        "correct".to_string(),
-        "--cal".into(),
-        cal.display().to_string(),
-        "--in".into(),
-        stars.display().to_string(),
-        "--out".into(),
-        d.join("s_out.csv").display().to_string(),
-        "--method".into(),
-        "first-order".into(),
-    ]);
+    let o = run(&correct_args(&cal, &stars, &d.join("s_out.csv"), &["--method", "first-order"]));
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("first-order") && err.contains("Mueller field"), "{err}");

@@ -26,7 +26,9 @@
 //! same rule as the `p, phi` path: the correction itself is trusted to a fraction `f`
 //! ([`CorrectOptions::extrapolation_rel_error`]), `(f |v0 - m|)^2` added to each variance.
 
-use crate::calfile::{fits_err, temp_error, KeyReader, KeyWriter, PixelGrid, Provenance, FORMAT_VERSION};
+use crate::calfile::{
+    fits_err, open_versioned, save_fits_atomically, KeyReader, KeyWriter, PixelGrid, Provenance, FORMAT_VERSION,
+};
 use crate::correct::{self, p_chi_with_errors, CorrectOptions, Corrected, Measurement};
 use crate::mueller_field::{monomial_powers, n_monomials, BinFit, Kind, MuellerField};
 use crate::{Error, Result};
@@ -143,25 +145,7 @@ impl MuellerCal {
     /// Write the calibration to `path` atomically (a temporary file beside it, renamed when
     /// complete and synced).
     pub fn save(&self, path: &Path) -> Result<()> {
-        let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-        let tmp = skyfield::io::temp_beside(path, ".fits")
-            .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
-        let tmp = tmp.into_temp_path();
-        {
-            let mut f = FitsFile::create(&tmp).overwrite().open().map_err(fits_err(path, "creating the file"))?;
-            self.write_to(&mut f, path)?;
-            skyfield::provenance::stamp(&mut f).map_err(|m| Error::Fits {
-                path: path.to_path_buf(),
-                doing: "writing the provenance".into(),
-                message: m,
-            })?;
-            skyfield::durable::close_fits(f).map_err(|m| Error::Fits {
-                path: path.to_path_buf(),
-                doing: "closing the file".into(),
-                message: m,
-            })?;
-        }
-        skyfield::durable::finish(tmp, path).map_err(|err| Error::Io { path: path.to_path_buf(), err })
+        save_fits_atomically(path, |f| self.write_to(f, path))
     }
 
     fn write_to(&self, f: &mut FitsFile, path: &Path) -> Result<()> {
@@ -306,21 +290,11 @@ impl MuellerCal {
     /// Read a Mueller-field calibration; every malformed part is refused naming the file and
     /// the keyword, column or row (a newer format version too).
     pub fn load(path: &Path) -> Result<Self> {
-        if !path.is_file() {
-            return Err(Error::Io {
-                path: path.into(),
-                err: std::io::Error::new(std::io::ErrorKind::NotFound, "no such calibration file"),
-            });
-        }
         let e = |doing: &str| fits_err(path, doing);
         let bad = |what: String| Error::BadFile { path: path.into(), what };
-        let mut f = FitsFile::open(path).map_err(e("opening"))?;
+        let mut f = open_versioned(path)?;
         let hdu = f.primary_hdu().map_err(e("reading the primary HDU"))?;
         let mut r = KeyReader { f: &mut f, hdu: &hdu, path };
-        let version = r.int("FORMAT VERSION")?;
-        if version > FORMAT_VERSION {
-            return Err(Error::NewerFormat { path: path.into(), found: version, supported: FORMAT_VERSION });
-        }
         let model = r.str("MODEL")?;
         if model != MODEL_KIND {
             return Err(bad(format!("MODEL = '{model}': not a Mueller-field calibration ('{MODEL_KIND}')")));

@@ -542,7 +542,12 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
         MethodArg::FirstOrder => "first order (eq:approx)",
     };
     write_corrected_map(a, &c.map, meth, cal.hwp_chi_offset_deg)?;
-    Ok(Summary {
+    Ok(map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg))
+}
+
+/// The summary of a corrected Stokes map.
+fn map_summary(a: &Args, c: fit::correct::CorrectedMap, filter: &str, hwp_chi_offset_deg: f64) -> Summary {
+    Summary {
         input: a.input.clone(),
         output: a.out.clone(),
         kind: "Stokes map",
@@ -551,15 +556,15 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
         method: a.method,
         estimator: a.estimator.clone(),
         coords: None,
-        filter: cal.filter.clone(),
-        hwp_chi_offset_deg: cal.hwp_chi_offset_deg,
+        filter: filter.to_string(),
+        hwp_chi_offset_deg,
         median_p0: median(c.p0.into_iter()),
         median_p_inst: median(c.p_inst.into_iter()),
         telescope_model: None,
         telescope_band: None,
         mueller_model: None,
         mueller_free: None,
-    })
+    }
 }
 
 fn map_error(e: fit::correct::MapError, input: &Path) -> anyhow::Error {
@@ -619,24 +624,7 @@ fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> 
         )?;
         let c = fit::correct::correct_map_with(&map, |m| cal.correct(m, &opts)).map_err(|e| map_error(e, &a.input))?;
         write_corrected_map(a, &c.map, "exact inverse of the Mueller field (calibrate-mueller)", 0.0)?;
-        Summary {
-            input: a.input.clone(),
-            output: a.out.clone(),
-            kind: "Stokes map",
-            rows: c.n_bins,
-            extrapolated: c.n_extrapolated,
-            method: a.method,
-            estimator: a.estimator.clone(),
-            coords: None,
-            filter: cal.filter.clone(),
-            hwp_chi_offset_deg: 0.0,
-            median_p0: median(c.p0.into_iter()),
-            median_p_inst: median(c.p_inst.into_iter()),
-            telescope_model: None,
-            telescope_band: None,
-            mueller_model: None,
-            mueller_free: None,
-        }
+        map_summary(a, c, &cal.filter, 0.0)
     } else {
         let out_format = Some(Format::from_path(&a.out)?);
         let mut table = read_catalog(a, kind)?;
