@@ -604,6 +604,41 @@ fn optional_keys_json() {
             vec!["rms_residual_loo", "approx_vs_exact", "centre_px", "plot_outputs"],
         ),
         ("mc", v(&["mc", "--trials", "2000", "--rng-baseline", "--json"]), vec!["rng_seconds", "engine_over_rng"]),
+        // A Mueller-field calibration file, then a correction with it (mueller_* keys).
+        (
+            "calibrate-mueller",
+            {
+                let m2 = out(f, "vmap_m2.fits");
+                std::fs::copy(&f.vmap, &m2).unwrap();
+                v(&[
+                    "calibrate-mueller",
+                    "--field",
+                    &format!("{}:6.45:68.4", s(&f.vmap)),
+                    "--field",
+                    &format!("{m2}:4:10"),
+                ])
+                .into_iter()
+                .chain(v(&["--out", &out(f, "mcal.fits"), "--json"]))
+                .collect()
+            },
+            vec!["model", "free"],
+        ),
+        (
+            "correct",
+            v(&[
+                "correct",
+                "--cal",
+                &out(f, "mcal.fits"),
+                "--in",
+                &s(&f.catalog),
+                "--out",
+                &out(f, "mcorr.csv"),
+                "--coords",
+                "pixel",
+                "--json",
+            ]),
+            vec!["mueller_model", "mueller_free"],
+        ),
     ];
     for (name, a, keys) in runs {
         let (code, o, err) = common::run(&a);

@@ -236,29 +236,10 @@ impl Calibration {
     /// [`Self::save`], with `extra` writing further HDUs (e.g. the telescope model,
     /// [`crate::telescope_cal`]) into the same temporary file before it is renamed.
     pub fn save_with(&self, path: &Path, extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()>) -> Result<()> {
-        let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-        let tmp = skyfield::io::temp_beside(path, ".fits")
-            .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
-        let tmp = tmp.into_temp_path();
-        {
-            let mut f = FitsFile::create(&tmp).overwrite().open().map_err(fits_err(path, "creating the file"))?;
-            self.write_to(&mut f, path)?;
-            extra(&mut f, path)?;
-            skyfield::provenance::stamp(&mut f).map_err(|m| Error::Fits {
-                path: path.to_path_buf(),
-                doing: "writing the provenance".into(),
-                message: m,
-            })?;
-            // Close with the status checked, fsync, then rename: a full disk is an error here,
-            // never a truncated calibration under the final name.
-            skyfield::durable::close_fits(f).map_err(|m| Error::Fits {
-                path: path.to_path_buf(),
-                doing: "closing the file".into(),
-                message: m,
-            })?;
-        }
-        skyfield::durable::finish(tmp, path).map_err(|err| Error::Io { path: path.to_path_buf(), err })?;
-        Ok(())
+        save_fits_atomically(path, |f| {
+            self.write_to(f, path)?;
+            extra(f, path)
+        })
     }
 
     fn write_to(&self, f: &mut FitsFile, path: &Path) -> Result<()> {
@@ -473,27 +454,21 @@ impl Calibration {
     /// Read a calibration file. Files of a newer format version are refused with an error
     /// that says so; missing keywords are named.
     pub fn load(path: &Path) -> Result<Self> {
-        if !path.is_file() {
-            return Err(Error::Io {
-                path: path.into(),
-                err: std::io::Error::new(std::io::ErrorKind::NotFound, "no such calibration file"),
-            });
-        }
         let e = |doing: &str| fits_err(path, doing);
-        let mut f = FitsFile::open(path).map_err(e("opening"))?;
+        let mut f = open_versioned(path)?;
         let hdu = f.primary_hdu().map_err(e("reading the primary HDU"))?;
         let mut r = KeyReader { f: &mut f, hdu: &hdu, path };
         let version = r.int("FORMAT VERSION")?;
-        if version > FORMAT_VERSION {
-            return Err(Error::NewerFormat { path: path.into(), found: version, supported: FORMAT_VERSION });
-        }
-        if version < 1 {
-            return Err(Error::BadFile { path: path.into(), what: format!("format version {version} is not valid") });
-        }
         if r.opt_str("MODEL").as_deref() == Some(crate::telescope_cal::MODEL_KIND) {
             return Err(Error::BadFile {
                 path: path.into(),
                 what: "holds only a telescope model (instpol fit-standards), no field model: read it with fit::telescope_cal::load".into(),
+            });
+        }
+        if r.opt_str("MODEL").as_deref() == Some(crate::mueller_cal::MODEL_KIND) {
+            return Err(Error::BadFile {
+                path: path.into(),
+                what: "holds a Mueller field (instpol calibrate-mueller), not a partial polarizer p, phi: read it with fit::mueller_cal::MuellerCal::load".into(),
             });
         }
         let instrument = r.str("INSTRUMENT")?;
@@ -795,6 +770,52 @@ impl FieldModel for Calibration {
     fn describe(&self) -> String {
         format!("calibration of {} {}, model {}", self.instrument, self.filter, self.model.kind())
     }
+}
+
+/// Write a new FITS file at `path` atomically: `write` fills a temporary file beside it, the
+/// provenance is stamped, the file is closed with its status checked and synced, then renamed
+/// (a full disk is an error here, never a truncated calibration under the final name).
+pub(crate) fn save_fits_atomically(path: &Path, write: impl FnOnce(&mut FitsFile) -> Result<()>) -> Result<()> {
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let tmp = skyfield::io::temp_beside(path, ".fits")
+        .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
+    let tmp = tmp.into_temp_path();
+    {
+        let mut f = FitsFile::create(&tmp).overwrite().open().map_err(fits_err(path, "creating the file"))?;
+        write(&mut f)?;
+        skyfield::provenance::stamp(&mut f).map_err(|m| Error::Fits {
+            path: path.to_path_buf(),
+            doing: "writing the provenance".into(),
+            message: m,
+        })?;
+        skyfield::durable::close_fits(f).map_err(|m| Error::Fits {
+            path: path.to_path_buf(),
+            doing: "closing the file".into(),
+            message: m,
+        })?;
+    }
+    skyfield::durable::finish(tmp, path).map_err(|err| Error::Io { path: path.to_path_buf(), err })
+}
+
+/// Open an existing calibration file and check its `IP FORMAT VERSION`: a missing file, a
+/// newer version and one below 1 are refused by name.
+pub(crate) fn open_versioned(path: &Path) -> Result<FitsFile> {
+    if !path.is_file() {
+        return Err(Error::Io {
+            path: path.into(),
+            err: std::io::Error::new(std::io::ErrorKind::NotFound, "no such calibration file"),
+        });
+    }
+    let mut f = FitsFile::open(path).map_err(fits_err(path, "opening"))?;
+    let hdu = f.primary_hdu().map_err(fits_err(path, "reading the primary HDU"))?;
+    let version = KeyReader { f: &mut f, hdu: &hdu, path }.int("FORMAT VERSION")?;
+    if version > FORMAT_VERSION {
+        return Err(Error::NewerFormat { path: path.into(), found: version, supported: FORMAT_VERSION });
+    }
+    if version < 1 {
+        return Err(Error::BadFile { path: path.into(), what: format!("format version {version} is not valid") });
+    }
+    Ok(f)
 }
 
 pub(crate) fn fits_err(path: &Path, doing: &str) -> impl Fn(fitsio::errors::Error) -> Error {

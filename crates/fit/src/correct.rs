@@ -74,6 +74,9 @@ pub enum Error {
     Singular { q: f64, u: f64, qi: f64, ui: f64, d: f64 },
     #[error("the calibration has no value at ({x}, {y}) arcmin (outside its map or hull)")]
     NoModelValue { x: f64, y: f64 },
+    /// A Mueller-field calibration ([`crate::mueller_cal`]) has no exact inverse here.
+    #[error("{0}")]
+    Mueller(String),
     #[error("row {row}: {source}")]
     Row { row: usize, source: Box<Error> },
     #[error("batch lengths differ: {inputs} inputs, {outputs} output slots")]
@@ -298,6 +301,26 @@ pub fn p_chi_with_errors(q: f64, u: f64, vq: f64, vu: f64, c: f64) -> (f64, f64,
     }
 }
 
+/// Refuse a measurement with a non-finite position or value, or a non-finite or negative
+/// error, naming the input.
+#[inline]
+pub(crate) fn check_measurement(m: &Measurement) -> Result<(), Error> {
+    for (what, v) in [("x", m.x), ("y", m.y), ("q", m.q), ("u", m.u), ("cov_qu", m.cov_qu)] {
+        if !v.is_finite() {
+            return Err(Error::NonFinite { what, value: v });
+        }
+    }
+    for (what, v) in [("sigma_q", m.sigma_q), ("sigma_u", m.sigma_u)] {
+        if !v.is_finite() {
+            return Err(Error::NonFinite { what, value: v });
+        }
+        if v < 0.0 {
+            return Err(Error::Negative { what, value: v });
+        }
+    }
+    Ok(())
+}
+
 /// Applies one calibration to many measurements: build it once, then call
 /// [`correct`](Self::correct) or [`correct_batch`](Self::correct_batch) as often as needed;
 /// nothing is re-read and nothing is allocated per call.
@@ -368,19 +391,7 @@ impl<'a, M: FieldModel + ?Sized> Corrector<'a, M> {
     /// Correct one measurement (`eq:instpol` inverted, or `eq:approx`), zero angle first.
     #[inline]
     pub fn correct(&self, m: &Measurement) -> Result<Corrected, Error> {
-        for (what, v) in [("x", m.x), ("y", m.y), ("q", m.q), ("u", m.u)] {
-            if !v.is_finite() {
-                return Err(Error::NonFinite { what, value: v });
-            }
-        }
-        for (what, v) in [("sigma_q", m.sigma_q), ("sigma_u", m.sigma_u)] {
-            if !v.is_finite() {
-                return Err(Error::NonFinite { what, value: v });
-            }
-            if v < 0.0 {
-                return Err(Error::Negative { what, value: v });
-            }
-        }
+        check_measurement(m)?;
         let (a, extrapolated) = self.instrumental(m.x, m.y)?;
         // Zero angle first: the measured (q, u) are at the plate; M_I lives in the sky frame.
         let (c, s) = (self.cos2off, self.sin2off);
@@ -538,8 +549,18 @@ pub fn correct_map<M: FieldModel + ?Sized>(
     map: &skyfield::StokesMap,
     opts: CorrectOptions,
 ) -> Result<CorrectedMap, MapError> {
-    let g = &map.geometry;
     let cor = Corrector::new(model, opts);
+    correct_map_with(map, |m| cor.correct(m))
+}
+
+/// [`correct_map`] with any correction of one measurement (`correct`, e.g. the Mueller
+/// field's [`crate::mueller_cal::MuellerCal::correct`]): every valid bin at its centre, the
+/// scatter and the photon-noise errors each propagated.
+pub fn correct_map_with(
+    map: &skyfield::StokesMap,
+    correct: impl Fn(&Measurement) -> Result<Corrected, Error>,
+) -> Result<CorrectedMap, MapError> {
+    let g = &map.geometry;
     let mut m = map.clone();
     let (mut n, mut n_extra) = (0usize, 0usize);
     let mut p0s = Vec::new();
@@ -561,15 +582,14 @@ pub fn correct_map<M: FieldModel + ?Sized>(
                 cov_qu: map.cov_qu[k],
             };
             let bin_err = |source| MapError::Bin { i, j, x, y, source };
-            let r = cor.correct(&meas).map_err(bin_err)?;
-            let rp = cor
-                .correct(&Measurement {
-                    sigma_q: map.sigma_q_phot[k],
-                    sigma_u: map.sigma_u_phot[k],
-                    cov_qu: 0.0,
-                    ..meas
-                })
-                .map_err(bin_err)?;
+            let r = correct(&meas).map_err(bin_err)?;
+            let rp = correct(&Measurement {
+                sigma_q: map.sigma_q_phot[k],
+                sigma_u: map.sigma_u_phot[k],
+                cov_qu: 0.0,
+                ..meas
+            })
+            .map_err(bin_err)?;
             m.q[k] = r.q0;
             m.u[k] = r.u0;
             m.sigma_q[k] = r.var_q0.sqrt();

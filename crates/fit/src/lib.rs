@@ -21,6 +21,7 @@ pub mod catalog_correct;
 pub mod correlation;
 pub mod import;
 pub mod model;
+pub mod mueller_cal;
 pub mod mueller_explain;
 pub mod mueller_field;
 pub mod mueller_plan;

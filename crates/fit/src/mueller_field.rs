@@ -90,6 +90,52 @@ impl Kind {
         Ok(Kind::Physical { retardance, rotation, depolarization })
     }
 
+    /// The model as a vocabulary word: `physical` or `general` (JSON `model`, the
+    /// calibration file's `MU MODEL`).
+    pub fn model_name(&self) -> &'static str {
+        match self {
+            Kind::Physical { .. } => "physical",
+            Kind::General => "general",
+        }
+    }
+
+    /// The effects fitted, as vocabulary words (JSON `free`, the calibration file's `MU FREE`):
+    /// `diattenuation` always for the physical form, then `retardance`, `rotation`,
+    /// `depolarization` when free; the general block names all eight elements' effect as
+    /// `general` (it has no physical split).
+    pub fn free_words(&self) -> Vec<&'static str> {
+        match *self {
+            Kind::Physical { retardance, rotation, depolarization } => {
+                let mut v = vec!["diattenuation"];
+                for (on, w) in [(retardance, "retardance"), (rotation, "rotation"), (depolarization, "depolarization")]
+                {
+                    if on {
+                        v.push(w);
+                    }
+                }
+                v
+            }
+            Kind::General => vec!["general"],
+        }
+    }
+
+    /// The kind of a model word and its effect words ([`model_name`](Self::model_name),
+    /// [`free_words`](Self::free_words)); an error naming the unknown word.
+    pub fn from_words(model: &str, free: &[&str]) -> std::result::Result<Self, String> {
+        match model {
+            "general" => Ok(Kind::General),
+            "physical" => {
+                let rest: Vec<&str> = free.iter().copied().filter(|w| *w != "diattenuation").collect();
+                if rest.is_empty() {
+                    Self::parse_free("none")
+                } else {
+                    Self::parse_free(&rest.join(","))
+                }
+            }
+            other => Err(format!("unknown Mueller model '{other}' (physical or general)")),
+        }
+    }
+
     /// Indices of the free parameters in the full vector of this kind.
     pub fn free(&self) -> Vec<usize> {
         match *self {
@@ -184,8 +230,20 @@ fn monomials(deg: usize, x: f64, y: f64, out: &mut Vec<f64>) {
     }
 }
 
-fn n_monomials(deg: usize) -> usize {
+pub(crate) fn n_monomials(deg: usize) -> usize {
     (deg + 1) * (deg + 2) / 2
+}
+
+/// The powers `(i, j)` of the monomials `x^i y^j` in the order of the coefficients (what the
+/// calibration file's `PX`, `PY` columns record).
+pub(crate) fn monomial_powers(deg: usize) -> Vec<(usize, usize)> {
+    let mut v = Vec::with_capacity(n_monomials(deg));
+    for tot in 0..=deg {
+        for j in 0..=tot {
+            v.push((tot - j, j));
+        }
+    }
+    v
 }
 
 /// A fitted Mueller field: every free parameter a polynomial over the field.
@@ -355,8 +413,10 @@ impl FieldModel for MuellerField {
     }
 
     fn contains(&self, x: f64, y: f64) -> bool {
-        let b = self.bounds;
-        x >= b[0] && x <= b[1] && y >= b[2] && y <= b[3]
+        // 1e-9 arcmin of slack: a box read back from FITS keywords (16 significant digits)
+        // must still hold the bin centres it was fitted on.
+        let (b, t) = (self.bounds, 1e-9);
+        x >= b[0] - t && x <= b[1] + t && y >= b[2] - t && y <= b[3] + t
     }
 
     fn params(&self) -> Vec<f64> {
@@ -369,7 +429,13 @@ impl FieldModel for MuellerField {
 
     fn describe(&self) -> String {
         let names: Vec<&str> = self.free.iter().map(|&i| self.kind.name(i)).collect();
-        format!("Mueller field ({:?}), parameters [{}] as degree-{} polynomials", self.kind, names.join(", "), self.deg)
+        format!(
+            "Mueller field ({}: {}), parameters [{}] as degree-{} polynomials",
+            self.kind.model_name(),
+            self.kind.free_words().join(", "),
+            names.join(", "),
+            self.deg
+        )
     }
 }
 
@@ -579,14 +645,22 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
     };
     mf.warnings = realizability(&mf, fields);
     // Residuals far above their errors: a wrong model, wrong errors or a sky declared wrongly
-    // (the radial fit's bound); the numbers still come, with the warning. Below 1 is not
-    // warned here: noiseless simulated maps (the tests') give chi^2 ~ 0 legitimately.
-    // Only with the degrees of freedom to mean it, as the error scaling above (a per-bin fit
-    // has 2).
+    // (the radial fit's bound); the numbers still come, with the warning. Far below 1: the
+    // maps' errors are larger than their scatter about the model (over-estimated errors, or
+    // noiseless simulated maps), and the coefficient errors, not scaled down, are too large by
+    // about 1 / sqrt(chi2_dof). Only with the degrees of freedom to mean it, as the error
+    // scaling above (a per-bin fit has 2).
     if dof >= 30.0 && !(mf.chi2_dof <= 10.0) {
         mf.warnings.push(format!(
             "reduced chi^2 of the joint fit is {:.3e}, far from 1: the model or the errors do not describe the fields (check each field's declared sky P and chi, and the maps' errors)",
             mf.chi2_dof
+        ));
+    }
+    if dof >= 30.0 && mf.chi2_dof < 0.1 {
+        mf.warnings.push(format!(
+            "reduced chi^2 of the joint fit is {:.3e} with {dof} degrees of freedom: the maps' errors look over-estimated by ~{:.1}x (1/sqrt(chi2_dof)); the coefficient errors are not scaled down and are as conservative",
+            mf.chi2_dof,
+            1.0 / mf.chi2_dof.max(1e-300).sqrt()
         ));
     }
     Ok(mf)

@@ -30,11 +30,16 @@ pub fn is_known(name: &str) -> bool {
 /// (ignoring case) and same filter ([`same_filter`] through the calibration's instrument when
 /// it is a known one). Unknown names ([`is_known`]) are not checked.
 pub fn matches_calibration(inst: &str, filter: &str, cal: &crate::Calibration) -> bool {
-    let same_inst =
-        !is_known(inst) || !is_known(&cal.instrument) || inst.trim().eq_ignore_ascii_case(cal.instrument.trim());
+    matches_setup(inst, filter, &cal.instrument, &cal.filter)
+}
+
+/// [`matches_calibration`] for any calibration of instrument `cal_inst` and filter
+/// `cal_filter` (e.g. a Mueller field, [`crate::mueller_cal`]).
+pub fn matches_setup(inst: &str, filter: &str, cal_inst: &str, cal_filter: &str) -> bool {
+    let same_inst = !is_known(inst) || !is_known(cal_inst) || inst.trim().eq_ignore_ascii_case(cal_inst.trim());
     let same_filter = !is_known(filter)
-        || !is_known(&cal.filter)
-        || same_filter(Instrument::load(&cal.instrument).ok().as_ref(), filter, &cal.filter);
+        || !is_known(cal_filter)
+        || same_filter(Instrument::load(cal_inst).ok().as_ref(), filter, cal_filter);
     same_inst && same_filter
 }
 

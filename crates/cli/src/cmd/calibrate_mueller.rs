@@ -2,8 +2,9 @@
 //! polarization (issue 16), fitted jointly by `fit::mueller_field`.
 
 use anyhow::{anyhow, bail, Context, Result};
+use fit::mueller_cal::{MuellerCal, SkyField};
 use fit::mueller_field::{
-    fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions,
+    fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions, Observation,
 };
 use std::path::PathBuf;
 
@@ -14,14 +15,22 @@ use std::path::PathBuf;
 /// the whole 3 x 3 block. Each free parameter is a 2-D polynomial of degree --deg in the field
 /// position; --per-bin also fits every bin on its own.
 ///
+/// Polarized standards (--stars TABLE) join the fit as points of their own known
+/// polarization: stars at other angles than the sky's separate a retardance too.
+///
 /// One sky field gives two numbers per position: it fixes p, phi and nothing else. A
 /// retardance needs >= 2 fields of different sky polarization, rotation and depolarization too
 /// need >= 3 whose sky (q, u) are not on one line. The command refuses (exit code 2), naming
 /// the parameters and the reason, what its inputs cannot separate, instead of printing
 /// numbers. It runs in well under a second (no progress bar).
 ///
+/// The output is a calibration file (--out CAL.fits: primary MODEL = 'MUELLER', tables MUELLER
+/// and MUELLER_BINS, image MUELLER_COV; docs/calibration-file.md) that `instpol correct --cal`
+/// inverts exactly for polarized targets, or the same field as JSON (--out X.json, format
+/// instpol-mueller-field-v1, what `instpol plan --expected` reads).
+///
 /// Example: instpol calibrate-mueller --field b_sky1.fits:6.45:68.4 --field b_sky2.fits:4.0:10
-/// --field b_sky3.fits:8.0:130 --free retardance --deg 4 --out mueller_B.json
+/// --field b_sky3.fits:8.0:130 --free retardance --deg 4 --out mueller_B.fits
 #[derive(clap::Args)]
 pub struct Args {
     /// A Stokes map (FITS written by `instpol reduce`) with its sky polarization:
@@ -42,10 +51,19 @@ pub struct Args {
     /// Field scale (arcmin) the positions are divided by: about the field radius.
     #[arg(long, default_value_t = 3.4)]
     pub scale_arcmin: f64,
+    /// Polarized standards as further inputs: a table (.csv, .ecsv, .vot or FITS) with columns
+    /// x, y (or x_arcmin, y_arcmin; arcmin from the detector centre), q, u, sigma_q, sigma_u
+    /// (measured, fractions), p_true (fraction) and chi_true_deg (or chi_true, deg), and
+    /// optionally sigma_true (1-sigma of the true q, u, fraction). Each star is a point with its
+    /// own known input polarization: stars at other angles than the sky's constrain a
+    /// retardance that one sky field alone cannot.
+    #[arg(long, value_name = "TABLE")]
+    pub stars: Option<PathBuf>,
     /// Also fit every bin on its own and report how many bins constrain the model.
     #[arg(long)]
     pub per_bin: bool,
-    /// Output Mueller-field file (JSON, format instpol-mueller-field-v1).
+    /// Output: a calibration file (.fits, for `instpol correct`) or the Mueller field as JSON
+    /// (.json, format instpol-mueller-field-v1).
     #[arg(long)]
     pub out: PathBuf,
     /// Print JSON instead of a table.
@@ -81,6 +99,63 @@ fn parse_field(spec: &str) -> Result<(PathBuf, f64, f64, f64)> {
     Ok((PathBuf::from(path), p / 100.0, chi.to_radians(), sig / 100.0))
 }
 
+/// One instrument, filter and field-coordinate system (names compared case-insensitively).
+fn same_setup(a: &(String, String, field::FieldCoords), b: &(String, String, field::FieldCoords)) -> bool {
+    a.0.eq_ignore_ascii_case(&b.0) && a.1.eq_ignore_ascii_case(&b.1) && a.2 == b.2
+}
+
+/// The polarized standards of a `--stars` table, each a calibration "field" of one position
+/// whose known input polarization is the star's (rows named in errors).
+fn star_fields(path: &std::path::Path) -> Result<Vec<CalField>> {
+    let t = skyfield::table::Table::read(path, None)?;
+    let pick = |names: &[&str]| -> Result<Vec<f64>> {
+        for n in names {
+            if t.column(n).is_some() {
+                return Ok(t.numbers(n, path)?);
+            }
+        }
+        bail!(
+            "{}: no column {} (columns: {}); need x, y (or x_arcmin, y_arcmin), q, u, sigma_q, sigma_u, p_true, chi_true_deg",
+            path.display(),
+            names.join(" or "),
+            t.names().join(", ")
+        )
+    };
+    let (x, y) = (pick(&["x_arcmin", "x"])?, pick(&["y_arcmin", "y"])?);
+    let (q, u, sq, su) = (pick(&["q"])?, pick(&["u"])?, pick(&["sigma_q"])?, pick(&["sigma_u"])?);
+    let (pt, ct) = (pick(&["p_true"])?, pick(&["chi_true_deg", "chi_true"])?);
+    let st = if t.column("sigma_true").is_some() { t.numbers("sigma_true", path)? } else { vec![0.0; x.len()] };
+    if x.is_empty() {
+        bail!("{}: the star table has no data rows", path.display());
+    }
+    let mut out = Vec::with_capacity(x.len());
+    for i in 0..x.len() {
+        let what = format!("{} {}", path.display(), t.row_label(i));
+        let vals = [x[i], y[i], q[i], u[i], sq[i], su[i], pt[i], ct[i], st[i]];
+        if !vals.iter().all(|v| v.is_finite()) || !(sq[i] > 0.0 && su[i] > 0.0) || st[i] < 0.0 {
+            bail!("{what}: x, y, q, u, sigma_q, sigma_u, p_true, chi_true_deg, sigma_true = {vals:?}: need finite values and errors > 0");
+        }
+        if !(0.0..1.0).contains(&pt[i]) || q[i].hypot(u[i]) >= 1.0 {
+            bail!(
+                "{what}: p_true = {} and the measured P = {} must be fractions in [0, 1) (not percent)",
+                pt[i],
+                q[i].hypot(u[i])
+            );
+        }
+        let obs = Observation {
+            x_arcmin: x[i],
+            y_arcmin: y[i],
+            q: q[i],
+            u: u[i],
+            var_q: sq[i] * sq[i],
+            var_u: su[i] * su[i],
+            cov_qu: 0.0,
+        };
+        out.push(CalField::from_p_chi(&what, pt[i], ct[i].to_radians(), st[i], vec![obs]));
+    }
+    Ok(out)
+}
+
 fn kind_of(a: &Args) -> Result<Kind> {
     if a.general {
         return Ok(Kind::General);
@@ -100,9 +175,11 @@ struct Param {
 struct Report {
     output: PathBuf,
     n_fields: usize,
+    n_stars: usize,
     n_obs: usize,
     deg: usize,
-    kind: String,
+    model: &'static str,
+    free: Vec<&'static str>,
     chi2_dof: f64,
     condition: f64,
     parameters: Vec<Param>,
@@ -127,16 +204,41 @@ fn median(mut v: Vec<f64>) -> f64 {
 pub fn run(a: Args) -> Result<()> {
     let kind = kind_of(&a)?;
     let specs: Vec<(PathBuf, f64, f64, f64)> = a.fields.iter().map(|s| parse_field(s)).collect::<Result<_>>()?;
-    crate::util::inputs(specs.iter().map(|s| s.0.as_path()))?;
+    crate::util::inputs(specs.iter().map(|s| s.0.as_path()).chain(a.stars.as_deref()))?;
     crate::util::check_output(&a.out)?;
+    let fits_out = match a.out.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
+        Some("fits" | "fit" | "fts") => true,
+        Some("json") => false,
+        _ => bail!("--out {}: the extension says the format: .fits (calibration file) or .json", a.out.display()),
+    };
     let mut fields = Vec::new();
+    // The first map's instrument, filter and field coordinates: every field must share them.
+    let mut setup: Option<(String, String, field::FieldCoords)> = None;
     for (path, p, chi, sig) in &specs {
         let map = skyfield::maps::StokesMap::read_fits(path).with_context(|| format!("reading {}", path.display()))?;
         let obs = observations_of_map(&map);
         if obs.is_empty() {
             bail!("{}: the Stokes map has no valid bin", path.display());
         }
+        let this = (map.instrument.clone(), map.filter.clone(), map.geometry.field_coords());
+        match &setup {
+            None => setup = Some(this),
+            Some(s) if !same_setup(s, &this) => bail!(
+                "{}: a {} {} map, but {} is {} {}: fit the fields of one instrument and filter together",
+                path.display(),
+                this.0,
+                this.1,
+                specs[0].0.display(),
+                s.0,
+                s.1
+            ),
+            Some(_) => {}
+        }
         fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));
+    }
+    let n_maps = fields.len();
+    if let Some(t) = &a.stars {
+        fields.extend(star_fields(t)?);
     }
     let opts = MuellerFitOptions { kind, deg: a.deg, scale_arcmin: a.scale_arcmin, ..Default::default() };
     if a.deg > 8 {
@@ -144,7 +246,34 @@ pub fn run(a: Args) -> Result<()> {
     }
     let mf: MuellerField = fit_mueller_field(&fields, &opts).map_err(|e| anyhow!("{e}"))?;
     let per_bin = if a.per_bin { Some(fit_per_bin(&fields, &opts).map_err(|e| anyhow!("{e}"))?) } else { None };
-    crate::util::write_atomic(&a.out, mf.to_json().as_bytes())?;
+    if fits_out {
+        let (instrument, filter, coords) = setup.expect("at least one field (clap requires one)");
+        let cal = MuellerCal {
+            instrument,
+            filter,
+            field: mf.clone(),
+            coords: Some(coords),
+            skies: fields
+                .iter()
+                .map(|f| {
+                    let (p, chi) = stokes::polarization(f.sky_q, f.sky_u);
+                    SkyField { name: f.name.clone(), p, chi_deg: chi.to_degrees(), sigma: f.sigma_sky }
+                })
+                .collect(),
+            per_bin: per_bin.as_ref().map(|b| b.0.clone()).unwrap_or_default(),
+            provenance: fit::calfile::Provenance::now(
+                "instpol calibrate-mueller",
+                specs
+                    .iter()
+                    .map(|s| s.0.display().to_string())
+                    .chain(a.stars.iter().map(|p| p.display().to_string()))
+                    .collect(),
+            ),
+        };
+        cal.save(&a.out).map_err(|e| anyhow!("{e}"))?;
+    } else {
+        crate::util::write_atomic(&a.out, mf.to_json().as_bytes())?;
+    }
 
     // Summaries over the observed positions.
     let pos: Vec<(f64, f64)> = fields[0].obs.iter().map(|o| (o.x_arcmin, o.y_arcmin)).collect();
@@ -180,10 +309,12 @@ pub fn run(a: Args) -> Result<()> {
     };
     let rep = Report {
         output: a.out.clone(),
-        n_fields: fields.len(),
+        n_fields: n_maps,
+        n_stars: fields.len() - n_maps,
         n_obs: mf.n_obs,
         deg: mf.deg,
-        kind: format!("{kind:?}"),
+        model: kind.model_name(),
+        free: kind.free_words(),
         chi2_dof: mf.chi2_dof,
         condition: mf.condition,
         parameters,
@@ -198,7 +329,14 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         return crate::util::print_json(&rep);
     }
-    outln!("Mueller field from {} fields, {} observations: {}", rep.n_fields, rep.n_obs, rep.kind);
+    outln!(
+        "Mueller field from {} fields and {} stars, {} observations: {} model, free {}",
+        rep.n_fields,
+        rep.n_stars,
+        rep.n_obs,
+        rep.model,
+        rep.free.join(", ")
+    );
     outln!(
         "  degree {} polynomials, chi2/dof {:.3}, Fisher condition number {:.3e}",
         rep.deg,

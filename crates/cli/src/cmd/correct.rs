@@ -47,9 +47,18 @@ use stokes::stats::{Estimator, PolMeasurement};
 /// telescope model's band (default: the field calibration's filter, or its only band).
 /// Example: instpol correct --cal tel_V.fits --in stars.csv --out stars_corr.csv
 ///
+/// A Mueller-field calibration (`instpol calibrate-mueller --out CAL.fits`, MODEL = 'MUELLER'):
+/// the fitted linear block of the pre-analyzer Mueller matrix (diattenuation and, as fitted,
+/// retardance, rotation, depolarization, or the general 3 x 3 block) is inverted exactly at
+/// each position, so polarized targets come out right where a p, phi calibration leaves a
+/// residual; the errors of the measurement and of the field's coefficients are propagated
+/// through the inversion. Its frame is the maps' (no HWP zero angle); --method exact only.
+/// Example: instpol correct --cal mueller_B.fits --in stars.csv --out stars_corr.csv
+///
 /// Positions outside the calibrated field are an error naming the row or bin, unless
 /// --allow-extrapolation: then they are corrected, flagged, and the calibration's variance
-/// is inflated by (F p)^2 per component (F = --extrapolation-error, default 0.5).
+/// is inflated by (F p)^2 per component (F = --extrapolation-error, default 0.5; for a
+/// Mueller field, (F |correction|)^2).
 ///
 /// Output files are written atomically (a temporary file renamed when complete). The summary
 /// goes to stdout (--json for scripts: input, output, kind, rows, extrapolated, method,
@@ -57,7 +66,8 @@ use stokes::stats::{Estimator, PolMeasurement};
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
-    /// Calibration file (instpol calibration FITS: `instpol calibrate` or `instpol import-map`).
+    /// Calibration file (instpol calibration FITS: `instpol calibrate`, `instpol import-map`,
+    /// `instpol fit-standards --output` or `instpol calibrate-mueller --out CAL.fits`).
     #[arg(long, value_name = "CAL.fits")]
     pub cal: PathBuf,
     /// Catalog (CSV or FITS table) or Stokes map (FITS) to correct.
@@ -138,6 +148,11 @@ struct Summary {
     telescope_model: Option<&'static str>,
     #[serde(skip_serializing_if = "Option::is_none")]
     telescope_band: Option<String>,
+    /// A Mueller-field calibration's model (physical / general) and free effects.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    mueller_model: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    mueller_free: Option<Vec<&'static str>>,
 }
 
 /// Names of the columns `instpol correct` adds, in order (the estimator column is
@@ -148,12 +163,17 @@ const ADDED: [&str; 9] =
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs([a.cal.as_path(), a.input.as_path()])?;
     crate::util::check_output(&a.out)?;
-    let loaded =
-        fit::telescope_cal::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     let est: Estimator = a.estimator.parse().map_err(|e| anyhow!("--estimator: {e}"))?;
     if !(a.extrapolation_error.is_finite() && a.extrapolation_error >= 0.0) {
         bail!("--extrapolation-error {} must be a non-negative number", a.extrapolation_error);
     }
+    if fit::mueller_cal::is_mueller(&a.cal) {
+        let cal = fit::mueller_cal::MuellerCal::load(&a.cal)
+            .with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
+        return run_mueller(&a, &cal, est);
+    }
+    let loaded =
+        fit::telescope_cal::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     let cal = match (loaded.telescope, loaded.field) {
         (Some(tel), field) => return run_telescope(&a, &tel, field.as_ref(), est),
         (None, Some(cal)) => cal,
@@ -178,7 +198,7 @@ pub fn run(a: Args) -> Result<()> {
                     a.cal.display()
                 );
             }
-            let opts = zero_angle_of_the_table(&table, &cal, opts, &a.input)?;
+            let opts = zero_angle_of_the_table(&table, cal.hwp_chi_offset_deg, opts, &a.input)?;
             let meas = measurements(&table, cal.pixel, a.coords, &a.input)?;
             let cor = Corrector::new(&cal, opts);
             let mut out = vec![Corrected::default(); meas.len()];
@@ -246,7 +266,7 @@ const ZERO_ANGLE: &str = "hwp_chi_offset_deg";
 /// holds q, u as measured (the calibration's zero angle is applied whole).
 fn zero_angle_of_the_table(
     t: &Table,
-    cal: &Calibration,
+    cal_offset_deg: f64,
     mut opts: CorrectOptions,
     path: &Path,
 ) -> Result<CorrectOptions> {
@@ -263,12 +283,11 @@ fn zero_angle_of_the_table(
             z[i]
         );
     }
-    let d = cal.hwp_chi_offset_deg - z0;
+    let d = cal_offset_deg - z0;
     if d != 0.0 {
         eprintln!(
-            "note: {}: q, u already carry the HWP zero angle {z0} deg (column '{ZERO_ANGLE}'); the calibration's is {} deg: the difference {d} deg is applied",
-            path.display(),
-            cal.hwp_chi_offset_deg
+            "note: {}: q, u already carry the HWP zero angle {z0} deg (column '{ZERO_ANGLE}'); the calibration's is {cal_offset_deg} deg: the difference {d} deg is applied",
+            path.display()
         );
     }
     opts.chi_offset = d.to_radians();
@@ -498,16 +517,16 @@ fn write_fits_table(
 /// A calibration applies to one instrument and filter: refuse a map of another (names
 /// compared case-insensitively, filters through the instrument's aliases when it is known;
 /// "unknown" or empty names are not checked).
-fn check_same_setup(inst: &str, filter: &str, cal: &Calibration, input: &Path, calp: &Path, allow: bool) -> Result<()> {
-    if !fit::setup::matches_calibration(inst, filter, cal) && !allow {
+fn check_same_setup(inst: &str, filter: &str, cal: (&str, &str), input: &Path, calp: &Path, allow: bool) -> Result<()> {
+    if !fit::setup::matches_setup(inst, filter, cal.0, cal.1) && !allow {
         bail!(
             "{} is a {} {} map but {} calibrates {} {}: use the calibration of the map's instrument and filter (or --allow-mismatch)",
             input.display(),
             inst,
             filter,
             calp.display(),
-            cal.instrument,
-            cal.filter
+            cal.0,
+            cal.1
         );
     }
     Ok(())
@@ -517,29 +536,19 @@ fn check_same_setup(inst: &str, filter: &str, cal: &Calibration, input: &Path, c
 fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summary> {
     let map = skyfield::StokesMap::read_fits(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
-    check_same_setup(&map.instrument, &map.filter, cal, &a.input, &a.cal, a.allow_mismatch)?;
-    let c = fit::correct::correct_map(cal, &map, opts).map_err(|e| match e {
-        fit::correct::MapError::NoValidBins => anyhow!("{}: {e}", a.input.display()),
-        e => anyhow!("{} {e}", a.input.display()),
-    })?;
-    let m = c.map;
-    // Written beside the output, stamped with the correction's provenance, then renamed.
-    crate::util::write_via_temp(&a.out, ".fits.tmp", |tmp| {
-        m.write_fits(tmp).with_context(|| format!("cannot write {}", a.out.display()))?;
-        let werr = |e: fitsio::errors::Error| anyhow!("cannot write {}: {e}", a.out.display());
-        let mut f = FitsFile::edit(tmp).map_err(werr)?;
-        let ph = f.primary_hdu().map_err(werr)?;
-        let name = a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
-        ph.write_key(&mut f, "INSTCORR", (name.as_str(), "instrumental polarization removed with")).map_err(werr)?;
-        let meth = match a.method {
-            MethodArg::Exact => "exact M_I inverse (eq:instpol)",
-            MethodArg::FirstOrder => "first order (eq:approx)",
-        };
-        ph.write_key(&mut f, "CORRMETH", meth).map_err(werr)?;
-        ph.write_key(&mut f, "CORRHWP", (cal.hwp_chi_offset_deg, "HWP zero angle added to chi [deg]")).map_err(werr)?;
-        skyfield::durable::close_fits(f).map_err(|m| anyhow!("cannot write {}: {m}", a.out.display()))
-    })?;
-    Ok(Summary {
+    check_same_setup(&map.instrument, &map.filter, (&cal.instrument, &cal.filter), &a.input, &a.cal, a.allow_mismatch)?;
+    let c = fit::correct::correct_map(cal, &map, opts).map_err(|e| map_error(e, &a.input))?;
+    let meth = match a.method {
+        MethodArg::Exact => "exact M_I inverse (eq:instpol)",
+        MethodArg::FirstOrder => "first order (eq:approx)",
+    };
+    write_corrected_map(a, &c.map, meth, cal.hwp_chi_offset_deg)?;
+    Ok(map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg))
+}
+
+/// The summary of a corrected Stokes map.
+fn map_summary(a: &Args, c: fit::correct::CorrectedMap, filter: &str, hwp_chi_offset_deg: f64) -> Summary {
+    Summary {
         input: a.input.clone(),
         output: a.out.clone(),
         kind: "Stokes map",
@@ -548,13 +557,120 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
         method: a.method,
         estimator: a.estimator.clone(),
         coords: None,
-        filter: cal.filter.clone(),
-        hwp_chi_offset_deg: cal.hwp_chi_offset_deg,
+        filter: filter.to_string(),
+        hwp_chi_offset_deg,
         median_p0: median(c.p0.into_iter()),
         median_p_inst: median(c.p_inst.into_iter()),
         telescope_model: None,
         telescope_band: None,
+        mueller_model: None,
+        mueller_free: None,
+    }
+}
+
+fn map_error(e: fit::correct::MapError, input: &Path) -> anyhow::Error {
+    match e {
+        fit::correct::MapError::NoValidBins => anyhow!("{}: {e}", input.display()),
+        e => anyhow!("{} {e}", input.display()),
+    }
+}
+
+/// Write a corrected Stokes map beside the output, stamped with the correction's provenance
+/// (calibration, method, HWP zero angle), then renamed.
+fn write_corrected_map(a: &Args, m: &skyfield::StokesMap, meth: &str, hwp_deg: f64) -> Result<()> {
+    // Written beside the output, stamped with the correction's provenance, then renamed.
+    crate::util::write_via_temp(&a.out, ".fits.tmp", |tmp| {
+        m.write_fits(tmp).with_context(|| format!("cannot write {}", a.out.display()))?;
+        let werr = |e: fitsio::errors::Error| anyhow!("cannot write {}: {e}", a.out.display());
+        let mut f = FitsFile::edit(tmp).map_err(werr)?;
+        let ph = f.primary_hdu().map_err(werr)?;
+        let name = a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+        ph.write_key(&mut f, "INSTCORR", (name.as_str(), "instrumental polarization removed with")).map_err(werr)?;
+        ph.write_key(&mut f, "CORRMETH", meth).map_err(werr)?;
+        ph.write_key(&mut f, "CORRHWP", (hwp_deg, "HWP zero angle added to chi [deg]")).map_err(werr)?;
+        skyfield::durable::close_fits(f).map_err(|m| anyhow!("cannot write {}: {m}", a.out.display()))
     })
+}
+
+/// `correct` with a Mueller-field calibration: every row or bin inverted exactly
+/// (`fit::mueller_cal::MuellerCal::correct`), in the maps' frame (HWP zero angle 0).
+fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> Result<()> {
+    use rayon::prelude::*;
+    if a.band.is_some() {
+        bail!("--band is for calibrations with a telescope model; {} holds a Mueller field", a.cal.display());
+    }
+    if a.method != MethodArg::Exact {
+        bail!(
+            "--method first-order: {} holds a Mueller field, which is inverted exactly (eq:approx is the p, phi model's first order)",
+            a.cal.display()
+        );
+    }
+    let opts = CorrectOptions {
+        method: Method::Exact,
+        allow_extrapolation: a.allow_extrapolation,
+        extrapolation_rel_error: a.extrapolation_error,
+        chi_offset: 0.0,
+    };
+    let kind = detect(&a.input)?;
+    let mut summary = if kind == Kind::Map {
+        let map = skyfield::StokesMap::read_fits(&a.input)
+            .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
+        check_same_setup(
+            &map.instrument,
+            &map.filter,
+            (&cal.instrument, &cal.filter),
+            &a.input,
+            &a.cal,
+            a.allow_mismatch,
+        )?;
+        let c = fit::correct::correct_map_with(&map, |m| cal.correct(m, &opts)).map_err(|e| map_error(e, &a.input))?;
+        write_corrected_map(a, &c.map, "exact inverse of the Mueller field (calibrate-mueller)", 0.0)?;
+        map_summary(a, c, &cal.filter, 0.0)
+    } else {
+        let out_format = Some(Format::from_path(&a.out)?);
+        let mut table = read_catalog(a, kind)?;
+        let opts = zero_angle_of_the_table(&table, 0.0, opts, &a.input)?;
+        let meas = measurements(&table, cal.pixel(), a.coords, &a.input)?;
+        let out: Vec<Corrected> = meas
+            .par_iter()
+            .enumerate()
+            .map(|(i, m)| {
+                cal.correct(m, &opts).map_err(|e| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)))
+            })
+            .collect::<Result<_>>()?;
+        let n_extra = out.iter().filter(|c| c.extrapolated).count();
+        write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, cal.filter.clone(), 0.0)?
+    };
+    summary.mueller_model = Some(cal.field.kind.model_name());
+    summary.mueller_free = Some(cal.field.kind.free_words());
+    if summary.extrapolated > 0 {
+        eprintln!(
+            "warning: {} of {} positions lie outside the fitted Mueller field; corrected by extrapolation with inflated errors (flagged)",
+            summary.extrapolated, summary.rows
+        );
+    }
+    if a.json {
+        return crate::util::print_json(&summary);
+    }
+    outln!(
+        "corrected {} {} with the Mueller field of {} ({} {}, {} model: {}), exact inverse",
+        summary.rows,
+        if kind == Kind::Map { "bins" } else { "rows" },
+        a.cal.display(),
+        cal.instrument,
+        cal.filter,
+        cal.field.kind.model_name(),
+        cal.field.kind.free_words().join(", ")
+    );
+    if let (Some(p0), Some(pi)) = (summary.median_p0, summary.median_p_inst) {
+        outln!(
+            "median instrumental p (unpolarized light) removed: {:.3} %, median corrected P0: {:.3} %",
+            100.0 * pi,
+            100.0 * p0
+        );
+    }
+    outln!("wrote {}", a.out.display());
+    Ok(())
 }
 
 /// `correct` with a telescope model (and maybe a field model): catalogs only, the parallactic
@@ -691,5 +807,7 @@ fn write_catalog(
         median_p_inst: median(out.iter().map(|r| r.inst.q.hypot(r.inst.u))),
         telescope_model: None,
         telescope_band: None,
+        mueller_model: None,
+        mueller_free: None,
     })
 }
