@@ -742,7 +742,8 @@ enum Rows<'a> {
     View(PixelView<'a>),
     /// The group's rows as stored in the file (big-endian), by group-buffer index.
     Raw(&'a [u8], RawKind),
-    /// The group's rows summed over repeated exposures, by group-buffer index.
+    /// The group's rows summed over repeated exposures (or one exposure's calibrated rows), by
+    /// group-buffer index.
     Sum(&'a [f64]),
 }
 
@@ -753,6 +754,8 @@ impl<'a> Rows<'a> {
             [Member::File(f, _)] => match &f.rows {
                 FrameRows::File(r) => Rows::Raw(raw, r.kind()),
                 FrameRows::Memory(p) => Rows::View(p.view()),
+                // Calibrated into the group buffer by `read_group`.
+                FrameRows::Calibrated(_) => Rows::Sum(sum),
             },
             _ => Rows::Sum(sum),
         }
@@ -808,8 +811,8 @@ impl Scratch {
             let sat = inp.det.2;
             match &inp.members[..] {
                 [Member::View(_)] => {}
-                [Member::File(f, _)] => {
-                    if let FrameRows::File(r) = &f.rows {
+                [Member::File(f, _)] => match &f.rows {
+                    FrameRows::File(r) => {
                         let b = r.kind().bytes();
                         let raw = &mut self.raw[i];
                         raw.resize(group.n_rows * nx * b, 0);
@@ -817,7 +820,17 @@ impl Scratch {
                             f.read_raw(r, r0, &mut raw[slot0 * nx * b..(slot0 + nr) * nx * b])?;
                         }
                     }
-                }
+                    // Raw chips: read and calibrated here, into the group buffer (the kernel
+                    // counts the bad values of a single exposure).
+                    FrameRows::Calibrated(c) => {
+                        let out = &mut self.sum[i];
+                        out.resize(group.n_rows * nx, 0.0);
+                        for &(r0, nr, slot0) in &group.runs {
+                            c.load_rows(r0, &mut out[slot0 * nx..(slot0 + nr) * nx], &mut self.bytes)?;
+                        }
+                    }
+                    FrameRows::Memory(_) => {}
+                },
                 members => {
                     let npx = group.n_rows * nx;
                     self.sum[i].resize(npx, 0.0);
@@ -1035,8 +1048,8 @@ pub fn reduce_files(
 }
 
 /// [`reduce_files`] with calibration frames and HWP angles ([`ReadOptions`]). Raw frames
-/// (chips, overscan, bias, flat) are calibrated to electrons in memory first (see
-/// [`crate::calib`]); plain frames keep the fast path of rows read straight from the files.
+/// (chips, overscan, bias, flat) are calibrated in the same pass, row by row as the bands read
+/// them (see [`crate::calib`]): no frame is held whole, raw or calibrated.
 pub fn reduce_files_with(
     paths: &[PathBuf],
     inst: &Instrument,
