@@ -288,7 +288,9 @@ impl PixelView<'_> {
         }
     }
 
-    /// Number of non-finite pixels and of pixels at or above `sat`, in one pass.
+    /// Number of non-finite pixels and of pixels at or above `sat`, in one pass (inlined, so a
+    /// vectorized caller counts with its own vector width).
+    #[inline(always)]
     pub(crate) fn count_bad(&self, sat: f64) -> (usize, usize) {
         // A plain loop with u64 counters (as wide as the f64 lanes): it vectorizes, where the
         // tuple fold did not (7 % of a raw FORS2 reduction's profile).
