@@ -51,9 +51,7 @@ pub fn inputs<'a>(paths: impl IntoIterator<Item = &'a Path>) -> Result<()> {
         }
     }
     INPUTS.lock().unwrap_or_else(|e| e.into_inner()).extend(paths.iter().map(|p| p.to_path_buf()));
-    for p in &paths {
-        skyfield::provenance::add_input(p);
-    }
+    skyfield::provenance::add_inputs(&paths);
     Ok(())
 }
 

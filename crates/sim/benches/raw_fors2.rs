@@ -3,9 +3,13 @@
 //! by `sim::raw` from a uniformly polarized sky), reduced with a master bias, a master flat and
 //! the overscan correction (`reduce_files_with`), against CFITSIO reading the same 32 files as
 //! stored (u16), one after the other. Same files, same page cache (every file read once before
-//! timing; the two timings alternate), best of `REPS` (default 3), wall and CPU time of the
-//! process. Prints one JSON line. Frames are made in `BENCH_RAW_DIR` (kept) or a temporary
-//! folder.
+//! timing; the timings alternate: read, reduce, binary, read, ...), `REPS` repetitions (default
+//! 7), wall and CPU time of each; the ratios are taken per repetition (each reduction against
+//! the read just before it) and their median is reported, with the medians of the times.
+//! With `INSTPOL_BIN` set to an `instpol` binary, `instpol reduce` on the same files
+//! (`--instrument fors2 --bias --flat`, map written to the temporary folder) is timed in the
+//! same loop: wall time, and CPU time of the child process. Prints one JSON line. Frames are
+//! made in `BENCH_RAW_DIR` (kept) or a temporary folder.
 //!
 //! `cargo bench -p instpol-sim --bench raw_fors2`
 
@@ -18,13 +22,44 @@ use skyfield::reduce::{reduce_files_with, ReduceConfig};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-/// User + system CPU seconds of this process so far (Linux `/proc/self/stat`).
-fn cpu_s() -> f64 {
+/// User + system CPU seconds of this process so far, and of its waited-for children
+/// (Linux `/proc/self/stat`: utime, stime, cutime, cstime).
+fn cpu_times() -> (f64, f64) {
     let s = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
     let f: Vec<&str> = s.rsplit(')').next().unwrap_or("").split_whitespace().collect();
     let tick = 100.0; // USER_HZ on Linux
     let t = |i: usize| f.get(i).and_then(|x| x.parse::<f64>().ok()).unwrap_or(0.0);
-    (t(11) + t(12)) / tick
+    ((t(11) + t(12)) / tick, (t(13) + t(14)) / tick)
+}
+
+/// CPU seconds of this process's threads so far, to the nanosecond (the sum over
+/// `/proc/self/task/*/schedstat`; rayon's threads live as long as the process), falling back to
+/// the 10 ms ticks of `/proc/self/stat`.
+fn cpu_s() -> f64 {
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else { return cpu_times().0 };
+    let ns: u64 = tasks
+        .flatten()
+        .filter_map(|t| std::fs::read_to_string(t.path().join("schedstat")).ok())
+        .filter_map(|s| s.split_whitespace().next().and_then(|x| x.parse::<u64>().ok()))
+        .sum();
+    if ns == 0 {
+        cpu_times().0
+    } else {
+        ns as f64 * 1e-9
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
 }
 
 fn timed<T>(f: impl FnOnce() -> T) -> (f64, f64, T) {
@@ -107,7 +142,7 @@ fn make(dir: &Path, inst: &Instrument) -> (Vec<PathBuf>, PathBuf, PathBuf) {
 }
 
 fn main() {
-    let reps: usize = std::env::var("REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(3);
+    let reps: usize = std::env::var("REPS").ok().and_then(|s| s.parse().ok()).unwrap_or(7);
     let tmp = tempfile::tempdir().unwrap();
     let dir = std::env::var("BENCH_RAW_DIR").map(PathBuf::from).unwrap_or_else(|_| tmp.path().to_path_buf());
     std::fs::create_dir_all(&dir).unwrap();
@@ -123,24 +158,71 @@ fn main() {
         }
         n
     };
-    read_all(); // page cache warm for both timings
-    let opts = ReadOptions { bias: Some(bias), flat: Some(flat), hwp_angles_deg: None };
+    read_all(); // page cache warm for every timing
+    let opts = ReadOptions { bias: Some(bias.clone()), flat: Some(flat.clone()), hwp_angles_deg: None };
     let cfg = ReduceConfig::default();
-    let (mut rw, mut rc, mut dw, mut dc) = (f64::INFINITY, f64::INFINITY, f64::INFINITY, f64::INFINITY);
+    let bin = std::env::var("INSTPOL_BIN").ok().filter(|b| !b.is_empty());
+    let map_out = tmp.path().join("raw_map.fits");
+    let run_bin = |b: &str| -> (f64, f64) {
+        let c0 = cpu_times().1;
+        let t0 = Instant::now();
+        let st = std::process::Command::new(b)
+            .arg("reduce")
+            .args(&paths)
+            .args(["--instrument", "fors2", "--bias"])
+            .arg(&bias)
+            .arg("--flat")
+            .arg(&flat)
+            .arg("--out")
+            .arg(&map_out)
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .unwrap();
+        let w = t0.elapsed().as_secs_f64();
+        assert!(st.success(), "{b} reduce failed");
+        (w, cpu_times().1 - c0)
+    };
+    let (mut rw, mut rc, mut dw, mut dc, mut bw, mut bc) = (vec![], vec![], vec![], vec![], vec![], vec![]);
     let (mut npix, mut bins) = (0, 0);
     for _ in 0..reps {
         let (w, c, n) = timed(read_all);
-        (rw, rc, npix) = (rw.min(w), rc.min(c), n);
+        rw.push(w);
+        rc.push(c);
+        npix = n;
         let (w, c, b) = timed(|| {
             reduce_files_with(&paths, &inst, &cfg, &opts, &|| {}).unwrap().map.valid.iter().filter(|v| **v).count()
         });
-        (dw, dc, bins) = (dw.min(w), dc.min(c), b);
+        dw.push(w);
+        dc.push(c);
+        bins = b;
+        if let Some(b) = &bin {
+            let (w, c) = run_bin(b);
+            bw.push(w);
+            bc.push(c);
+        }
     }
-    println!(
-        "{{\"files\": {}, \"pixels\": {npix}, \"cfitsio_read_wall_s\": {rw:.4}, \"cfitsio_read_cpu_s\": {rc:.4}, \"reduce_raw_wall_s\": {dw:.4}, \"reduce_raw_cpu_s\": {dc:.4}, \"ratio_wall\": {:.3}, \"ratio_cpu\": {:.3}, \"valid_bins\": {bins}, \"threads\": {}}}",
+    let ratios = |a: &[f64], r: &[f64]| median(a.iter().zip(r).map(|(x, y)| x / y.max(1e-9)).collect());
+    let mut json = format!(
+        "{{\"files\": {}, \"pixels\": {npix}, \"reps\": {reps}, \"cfitsio_read_wall_s\": {:.4}, \"cfitsio_read_cpu_s\": {:.4}, \"reduce_raw_wall_s\": {:.4}, \"reduce_raw_cpu_s\": {:.4}, \"ratio_wall\": {:.3}, \"ratio_cpu\": {:.3}, \"best_ratio_wall\": {:.3}",
         paths.len(),
-        dw / rw,
-        dc / rc.max(1e-9),
-        rayon::current_num_threads()
+        median(rw.clone()),
+        median(rc.clone()),
+        median(dw.clone()),
+        median(dc.clone()),
+        ratios(&dw, &rw),
+        ratios(&dc, &rc),
+        dw.iter().cloned().fold(f64::INFINITY, f64::min) / rw.iter().cloned().fold(f64::INFINITY, f64::min),
     );
+    if !bw.is_empty() {
+        json += &format!(
+            ", \"binary_wall_s\": {:.4}, \"binary_cpu_s\": {:.4}, \"binary_ratio_wall\": {:.3}, \"binary_ratio_cpu\": {:.3}",
+            median(bw.clone()),
+            median(bc.clone()),
+            ratios(&bw, &rw),
+            ratios(&bc, &rc)
+        );
+    }
+    json += &format!(", \"valid_bins\": {bins}, \"threads\": {}}}", rayon::current_num_threads());
+    println!("{json}");
 }

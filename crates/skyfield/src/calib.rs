@@ -7,6 +7,13 @@
 //! pixels NaN. The result is what every later stage sees: one image per exposure, in
 //! electrons ([`Conversion::electrons`]).
 //!
+//! The image is never made whole for the reduction: an exposure is its chip files' headers,
+//! bias levels and the shared masters ([`Calibrated`]), and the reduction's bands read its
+//! detector rows a few at a time, each raw row read once from its file, decoded and calibrated
+//! in one pass into the buffer the row kernel folds ([`Calibrated::load_rows`]); the masters
+//! are read once for all exposures. Whole frames ([`read_exposures`], the masters' inputs) are
+//! the same rows, all of them.
+//!
 //! It also makes the calibration frames: [`master_bias`] (overscan-corrected ADU) and
 //! [`master_flat`] (bias-free, normalized to a median of 1), each a sigma-clipped mean per
 //! pixel, written by [`Master::write`] as FITS with provenance keywords.
@@ -18,13 +25,14 @@
 //! Not done here: per-amplifier regions within one chip, flipped chip read-outs, non-linearity.
 
 use crate::io::{
-    check_bitpix, frame_header_with, open_image, parse_number, require_hwp, write_frame, Bitpix, Conversion, Frame,
-    FrameRows, ImageHdu, KeyValue, OpenFrame, Pixels, GAP, GAP_LIMIT, SATURATED, SATURATED_LIMIT,
+    check_bitpix, frame_header_with, open_image, parse_number, pixel_source, require_hwp, write_frame, Bitpix,
+    Conversion, Frame, FrameRows, ImageHdu, KeyValue, OpenFrame, Pixels, GAP, GAP_LIMIT, SATURATED, SATURATED_LIMIT,
 };
 use crate::{Error, Warning};
 use instrument::{Chip, Instrument, NumberOrKeyword};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// Options of reading: calibration frames and HWP angles given on the command line.
 #[derive(Debug, Clone, Default)]
@@ -235,15 +243,229 @@ struct Exposure {
     filter: String,
     exptime_s: Option<f64>,
     bitpix: i32,
-    data: Vec<f32>,
+    /// Its calibrated rows, computed as they are read.
+    rows: Calibrated,
     /// Largest read-noise variance (e-^2) of its chips.
     rn2: f64,
 }
 
-/// Loaded calibration frames: the bias (ADU) and the inverse of the flat.
+/// Loaded calibration frames: the bias (ADU) and the inverse of the flat, read once and shared
+/// by every exposure.
+#[derive(Debug)]
 struct Masters {
     bias: Option<Vec<f32>>,
     flat: Option<Vec<f32>>,
+}
+
+/// One chip of one exposure, calibrated row by row as its rows are read: trimmed, its bias
+/// level and the master bias subtracted, times its gain, times the master flat's inverse.
+#[derive(Debug)]
+struct ChipRows {
+    path: PathBuf,
+    /// The raw chip image: read by rows from the file, or held whole (compressed files).
+    src: FrameRows,
+    /// Raw row length (prescan + chip + overscan columns).
+    rnx: usize,
+    prx: usize,
+    pry: usize,
+    cx: usize,
+    cy: usize,
+    x0: usize,
+    y0: usize,
+    /// Subtracted from every raw value (ADU): the overscan level, or the instrument's constant
+    /// bias when neither overscan nor master bias is used.
+    level: f64,
+    /// ADU to what the stage wants (the gain, or 1 for a master bias).
+    to_e: f64,
+    /// Raw values at or above this are saturated.
+    sat: f64,
+    use_bias: bool,
+    use_flat: bool,
+}
+
+impl ChipRows {
+    /// Make raw rows `y .. y + n` (raw coordinates) available to [`ChipRows::decode`]: read as
+    /// stored into `bytes` from a file (one positioned read), nothing to do when in memory.
+    fn fetch(&self, y: usize, n: usize, bytes: &mut Vec<u8>) -> Result<(), Error> {
+        if let FrameRows::File(r) = &self.src {
+            let nb = n * self.rnx * r.kind().bytes();
+            bytes.resize(nb, 0);
+            r.read_at(&self.path, y * self.rnx, &mut bytes[..nb])?;
+        }
+        Ok(())
+    }
+
+    /// Raw values (f64 ADU, exact) of row `y + k` from column `x`, as many as fill `out`, after
+    /// [`ChipRows::fetch`]`(y, ..)`.
+    #[inline(always)]
+    fn decode(&self, y: usize, k: usize, x: usize, bytes: &[u8], out: &mut [f64]) {
+        match &self.src {
+            FrameRows::File(r) => r.kind().decode_at(bytes, k * self.rnx + x, out),
+            FrameRows::Memory(p) => p.view().load((y + k) * self.rnx + x, out),
+            FrameRows::Calibrated(_) => unreachable!("a chip's source is its raw image"),
+        }
+    }
+
+    /// Decode and calibrate raw rows `ry ..` (fetched) into `rows` (whole detector rows of
+    /// `nx`, the first at detector index `det0`): decoded into place, then calibrated in place
+    /// (both passes stay in L1). 4-wide AVX2 where the CPU has it: the same IEEE operations (no
+    /// FMA), so the same bits.
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    fn calibrate_rows(
+        &self,
+        ry: usize,
+        det0: usize,
+        nx: usize,
+        bias: Option<&[f32]>,
+        flat: Option<&[f32]>,
+        bytes: &[u8],
+        rows: &mut [f64],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 support was checked just above.
+            return unsafe { self.calibrate_rows_avx2(ry, det0, nx, bias, flat, bytes, rows) };
+        }
+        self.calibrate_rows_impl(ry, det0, nx, bias, flat, bytes, rows)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn calibrate_rows_avx2(
+        &self,
+        ry: usize,
+        det0: usize,
+        nx: usize,
+        bias: Option<&[f32]>,
+        flat: Option<&[f32]>,
+        bytes: &[u8],
+        rows: &mut [f64],
+    ) {
+        self.calibrate_rows_impl(ry, det0, nx, bias, flat, bytes, rows)
+    }
+
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn calibrate_rows_impl(
+        &self,
+        ry: usize,
+        det0: usize,
+        nx: usize,
+        bias: Option<&[f32]>,
+        flat: Option<&[f32]>,
+        bytes: &[u8],
+        rows: &mut [f64],
+    ) {
+        for (k, row) in rows.chunks_exact_mut(nx).enumerate() {
+            let base = det0 + k * nx + self.x0;
+            let o = &mut row[self.x0..self.x0 + self.cx];
+            self.decode(ry, k, self.prx, bytes, o);
+            let bias = bias.map(|m| &m[base..base + self.cx]);
+            let flat = flat.map(|m| &m[base..base + self.cx]);
+            calibrate_row(o, bias, flat, self.level, self.to_e, self.sat);
+        }
+    }
+
+    /// Raw row `y` whole.
+    fn raw_row(&self, y: usize, out: &mut [f64], bytes: &mut Vec<u8>) -> Result<(), Error> {
+        self.fetch(y, 1, bytes)?;
+        self.decode(y, 0, 0, bytes, out);
+        Ok(())
+    }
+}
+
+/// An exposure's detector frame, made on demand from its chips ([`ChipRows`]): what the
+/// reduction reads in place of a frame in memory, a few rows at a time, so that the raw rows
+/// are read, calibrated and folded into the bins in one pass (no whole-frame copies).
+#[derive(Debug)]
+pub(crate) struct Calibrated {
+    chips: Vec<ChipRows>,
+    masters: Arc<Masters>,
+    nx: usize,
+    ny: usize,
+}
+
+/// Raw rows of one chip calibrated at once (bounds the scratch buffer).
+const CAL_ROWS: usize = 64;
+
+impl Calibrated {
+    /// Detector rows `row0 ..` (as many as fill `out`, whole rows) in electrons (f32 values
+    /// widened to f64, as a calibrated frame in memory holds them): the gap is [`GAP`], raw
+    /// values at or above saturation [`SATURATED`], NaN raw values NaN. `bytes` is scratch.
+    pub(crate) fn load_rows(&self, row0: usize, out: &mut [f64], bytes: &mut Vec<u8>) -> Result<(), Error> {
+        let nx = self.nx;
+        let nrows = out.len() / nx;
+        debug_assert!(out.len() == nrows * nx && row0 + nrows <= self.ny);
+        out.fill(GAP as f32 as f64);
+        for c in &self.chips {
+            // Detector rows of this chip within the request.
+            let (a, b) = (row0.max(c.y0), (row0 + nrows).min(c.y0 + c.cy));
+            let mut y = a;
+            while y < b {
+                let n = CAL_ROWS.min(b - y);
+                let ry = c.pry + y - c.y0;
+                c.fetch(ry, n, bytes)?;
+                let rows = &mut out[(y - row0) * nx..(y - row0 + n) * nx];
+                let (bias, flat) = (self.masters.bias.as_deref(), self.masters.flat.as_deref());
+                let (bias, flat) = (bias.filter(|_| c.use_bias), flat.filter(|_| c.use_flat));
+                c.calibrate_rows(ry, y * nx, nx, bias, flat, bytes, rows);
+                y += n;
+            }
+        }
+        Ok(())
+    }
+
+    /// The whole detector frame.
+    fn whole(&self) -> Result<Vec<f64>, Error> {
+        let mut out = vec![0.0; self.nx * self.ny];
+        let mut bytes = Vec::new();
+        for (k, chunk) in out.chunks_mut(CAL_ROWS * self.nx).enumerate() {
+            self.load_rows(k * CAL_ROWS, chunk, &mut bytes)?;
+        }
+        Ok(out)
+    }
+}
+
+/// Calibrate one row of raw values (ADU) to electrons in place: `(raw - level - bias) * to_e *
+/// flat_inv` rounded to f32 (what a calibrated frame stores), saturated raw values
+/// [`SATURATED`], NaN raw values NaN. Absent masters are a zero bias and a unit inverse flat.
+#[inline(always)]
+fn calibrate_row(v: &mut [f64], bias: Option<&[f32]>, flat_inv: Option<&[f32]>, level: f64, to_e: f64, sat: f64) {
+    #[inline(always)]
+    fn one(r: f64, b: f64, fi: f64, level: f64, to_e: f64, sat: f64) -> f64 {
+        let e = ((r - level - b) * to_e * fi) as f32;
+        let e = if r >= sat { SATURATED as f32 } else { e };
+        (if r.is_nan() { f32::NAN } else { e }) as f64
+    }
+    let n = v.len();
+    // Four branch-free loops (so each vectorizes), by which masters are given.
+    match (bias, flat_inv) {
+        (Some(b), Some(f)) => {
+            let (b, f) = (&b[..n], &f[..n]);
+            for i in 0..n {
+                v[i] = one(v[i], b[i] as f64, f[i] as f64, level, to_e, sat);
+            }
+        }
+        (Some(b), None) => {
+            let b = &b[..n];
+            for i in 0..n {
+                v[i] = one(v[i], b[i] as f64, 1.0, level, to_e, sat);
+            }
+        }
+        (None, Some(f)) => {
+            let f = &f[..n];
+            for i in 0..n {
+                v[i] = one(v[i], 0.0, f[i] as f64, level, to_e, sat);
+            }
+        }
+        (None, None) => {
+            for i in 0..n {
+                v[i] = one(v[i], 0.0, 1.0, level, to_e, sat);
+            }
+        }
+    }
 }
 
 fn load_master(path: &Path, inst: &Instrument, kind: &str) -> Result<Vec<f32>, Error> {
@@ -278,7 +500,11 @@ fn load_master(path: &Path, inst: &Instrument, kind: &str) -> Result<Vec<f32>, E
             )));
         }
     }
-    Ok(img.read_pixels(path)?.into_f64().into_iter().map(|v| v as f32).collect())
+    // Masters are written as f32: kept as read (f32 -> f64 -> f32 would be the identity).
+    Ok(match img.read_pixels(path)? {
+        Pixels::F32(v) => v,
+        other => other.into_f64().into_iter().map(|v| v as f32).collect(),
+    })
 }
 
 /// Calibrate one exposure (its chip files) into the detector frame.
@@ -294,12 +520,12 @@ fn calibrate_exposure(
     inst: &Instrument,
     chips: &[Chip],
     stage: Stage,
-    masters: &Masters,
+    masters: &Arc<Masters>,
 ) -> Result<Exposure, Error> {
     let d = &inst.detector;
     let fmt = &inst.format;
     let (nx, ny) = (d.nx, d.ny);
-    let mut data = vec![GAP as f32; nx * ny];
+    let mut chip_rows = Vec::with_capacity(files.len());
     let mut rn2 = 0.0f64;
     let mut heads = Vec::new();
     let mut files: Vec<Opened> = files
@@ -388,18 +614,38 @@ fn calibrate_exposure(
         };
         rn2 = rn2.max(rn * rn);
         let sat = c.saturation_adu.unwrap_or(d.saturation_adu);
-        let pixels = cf.img.read_pixels(&path)?;
-        let view = pixels.view();
+        // The raw image stays in its file (read by rows later, as the reduction needs them)
+        // unless only CFITSIO can decode it.
+        let [x0, y0] = c.origin_px;
         let rnx = cf.img.nx;
+        let mut chip = ChipRows {
+            path: path.clone(),
+            src: pixel_source(&path, &mut cf.img)?,
+            rnx,
+            prx,
+            pry,
+            cx,
+            cy,
+            x0,
+            y0,
+            level: 0.0,
+            to_e: 1.0,
+            sat,
+            use_bias: false,
+            use_flat: false,
+        };
         let mut row = vec![0.0f64; rnx];
-        // The bias level from the prescan and overscan pixels.
+        let mut bytes = Vec::new();
+        // The bias level from the prescan and overscan pixels (in row-major order: the mean
+        // sums them in that order). Only those rows are read when the chip has no prescan or
+        // overscan columns.
         let mut scan = Vec::new();
         for y in 0..cf.img.ny {
             let in_rows = y < pry || y >= pry + cy;
             if !in_rows && prx + ovx == 0 {
                 continue;
             }
-            view.load(y * rnx, &mut row);
+            chip.raw_row(y, &mut row, &mut bytes)?;
             let take = |x: usize| in_rows || x < prx || x >= prx + cx;
             scan.extend((0..rnx).filter(|&x| take(x)).map(|x| row[x]).filter(|v| v.is_finite() && *v < sat));
         }
@@ -422,7 +668,7 @@ fn calibrate_exposure(
                 let mut sample: Vec<f64> = Vec::new();
                 let step = ((cx * cy) / 20000).max(1);
                 for y in (pry..pry + cy).step_by(1.max(step / cx.max(1))) {
-                    view.load(y * rnx, &mut row);
+                    chip.raw_row(y, &mut row, &mut bytes)?;
                     sample.extend(
                         row[prx..prx + cx].iter().step_by(step.min(cx).max(1)).copied().filter(|v| v.is_finite()),
                     );
@@ -440,27 +686,11 @@ fn calibrate_exposure(
         }
         // Without overscan or master bias, the instrument's constant bias (as for plain frames).
         let const_bias = if stage != Stage::Bias && !subtract_scan && bias_map.is_none() { d.bias_adu } else { 0.0 };
-        let flat_map = if stage == Stage::Science { masters.flat.as_ref() } else { None };
-        let [x0, y0] = c.origin_px;
-        let to_e = if stage == Stage::Bias { 1.0 } else { gain };
-        // One branch-free pass per row (so it vectorizes): absent masters are a zero bias and
-        // a unit inverse flat; NaN and saturated raw values are selected after.
-        let (zeros, ones) = (vec![0.0f32; cx], vec![1.0f32; cx]);
-        let level = level + const_bias;
-        for j in 0..cy {
-            view.load((pry + j) * rnx, &mut row);
-            let base = (y0 + j) * nx + x0;
-            let out = &mut data[base..base + cx];
-            let raw = &row[prx..prx + cx];
-            let b = bias_map.map_or(&zeros[..], |m| &m[base..base + cx]);
-            let fi = flat_map.map_or(&ones[..], |m| &m[base..base + cx]);
-            for i in 0..cx {
-                let r = raw[i];
-                let e = ((r - level - b[i] as f64) * to_e * fi[i] as f64) as f32;
-                let e = if r >= sat { SATURATED as f32 } else { e };
-                out[i] = if r.is_nan() { f32::NAN } else { e };
-            }
-        }
+        chip.level = level + const_bias;
+        chip.to_e = if stage == Stage::Bias { 1.0 } else { gain };
+        chip.use_bias = bias_map.is_some();
+        chip.use_flat = stage == Stage::Science && masters.flat.is_some();
+        chip_rows.push(chip);
     }
     // The chip files of one exposure must agree on what the exposure was.
     let pol = &inst.polarimetry;
@@ -496,7 +726,7 @@ fn calibrate_exposure(
         filter: h0.filter,
         exptime_s: h0.exptime_s,
         bitpix: files[0].img.bitpix,
-        data,
+        rows: Calibrated { chips: chip_rows, masters: masters.clone(), nx, ny },
         rn2,
     })
 }
@@ -509,18 +739,23 @@ fn calibrate_all(
     stage: Stage,
 ) -> Result<Vec<Exposure>, Error> {
     let chips = chips_of(inst);
-    let masters = Masters {
-        bias: opts.bias.as_deref().map(|p| load_master(p, inst, "BIAS")).transpose()?,
-        // Stored as its inverse (NaN where the response is not positive): a multiply per pixel.
-        flat: opts
-            .flat
-            .as_deref()
-            .map(|p| {
-                load_master(p, inst, "FLAT")
-                    .map(|v| v.into_iter().map(|f| if f > 0.0 { 1.0 / f } else { f32::NAN }).collect())
-            })
-            .transpose()?,
-    };
+    // Read once for all exposures, the two at the same time.
+    let (bias, flat) = rayon::join(
+        || opts.bias.as_deref().map(|p| load_master(p, inst, "BIAS")).transpose(),
+        || {
+            // Stored as its inverse (NaN where the response is not positive): a multiply per pixel.
+            opts.flat
+                .as_deref()
+                .map(|p| {
+                    load_master(p, inst, "FLAT").map(|mut v| {
+                        v.par_iter_mut().for_each(|f| *f = if *f > 0.0 { 1.0 / *f } else { f32::NAN });
+                        v
+                    })
+                })
+                .transpose()
+        },
+    );
+    let masters = Arc::new(Masters { bias: bias?, flat: flat? });
     let groups = group_exposures(paths, inst, &chips)?;
     let n = groups.len();
     // Errors in the order of the files (rayon's short-circuiting collect would pick any).
@@ -569,24 +804,27 @@ pub fn read_exposures(paths: &[PathBuf], inst: &Instrument, opts: &ReadOptions) 
         return Ok(frames);
     }
     let ex = calibrate_all(paths, inst, opts, Stage::Science)?;
-    Ok(ex
-        .into_iter()
-        .map(|e| Frame {
-            path: e.path,
-            nx: inst.detector.nx,
-            ny: inst.detector.ny,
-            data: e.data.iter().map(|&v| v as f64).collect(),
-            hwp_deg: e.hwp_deg.unwrap_or(f64::NAN),
-            filter: e.filter,
-            exptime_s: e.exptime_s,
-            bitpix: e.bitpix,
-            conversion: Conversion::electrons(e.rn2),
+    let res: Vec<Result<Frame, Error>> = ex
+        .into_par_iter()
+        .map(|e| {
+            Ok(Frame {
+                data: e.rows.whole()?,
+                path: e.path,
+                nx: inst.detector.nx,
+                ny: inst.detector.ny,
+                hwp_deg: e.hwp_deg.unwrap_or(f64::NAN),
+                filter: e.filter,
+                exptime_s: e.exptime_s,
+                bitpix: e.bitpix,
+                conversion: Conversion::electrons(e.rn2),
+            })
         })
-        .collect())
+        .collect();
+    res.into_iter().collect()
 }
 
-/// [`read_exposures`] for the reduction: plain frames stay on disk to be read by rows;
-/// calibrated ones are held in memory as f32 electrons.
+/// [`read_exposures`] for the reduction: plain frames stay on disk to be read by rows; raw
+/// ones too, calibrated row by row as the reduction reads them ([`Calibrated`]).
 pub(crate) fn open_exposures(
     paths: &[PathBuf],
     inst: &Instrument,
@@ -608,7 +846,7 @@ pub(crate) fn open_exposures(
             ny: inst.detector.ny,
             hwp_deg: e.hwp_deg.unwrap_or(f64::NAN),
             filter: e.filter,
-            rows: FrameRows::Memory(Pixels::F32(e.data)),
+            rows: FrameRows::Calibrated(e.rows),
             conversion: Conversion::electrons(e.rn2),
         })
         .collect())
@@ -676,6 +914,13 @@ fn combine(images: &[Vec<f32>], npx: usize, nsigma: f64) -> Vec<f64> {
     out
 }
 
+/// Every exposure's whole detector frame as f32 (the values are f32 already), in parallel.
+fn whole_frames_f32(ex: Vec<Exposure>) -> Result<Vec<Vec<f32>>, Error> {
+    let res: Vec<Result<Vec<f32>, Error>> =
+        ex.into_par_iter().map(|e| Ok(e.rows.whole()?.into_iter().map(|v| v as f32).collect())).collect();
+    res.into_iter().collect()
+}
+
 fn median_of(v: &[f64]) -> Option<f64> {
     let mut w: Vec<f64> =
         v.iter().copied().filter(|x| x.is_finite() && *x < SATURATED_LIMIT && *x > GAP_LIMIT).collect();
@@ -688,7 +933,7 @@ pub fn master_bias(paths: &[PathBuf], inst: &Instrument, nsigma: f64) -> Result<
     check_nsigma(nsigma)?;
     let ex = calibrate_all(paths, inst, &ReadOptions::default(), Stage::Bias)?;
     let npx = inst.detector.nx * inst.detector.ny;
-    let imgs: Vec<Vec<f32>> = ex.into_iter().map(|e| e.data).collect();
+    let imgs: Vec<Vec<f32>> = whole_frames_f32(ex)?;
     let data = combine(&imgs, npx, nsigma);
     Ok(Master {
         kind: "BIAS".into(),
@@ -713,18 +958,18 @@ pub fn master_flat(paths: &[PathBuf], inst: &Instrument, bias: Option<&Path>, ns
     let opts = ReadOptions { bias: bias.map(|p| p.to_path_buf()), flat: None, hwp_angles_deg: None };
     let ex = calibrate_all(paths, inst, &opts, Stage::Flat)?;
     let npx = inst.detector.nx * inst.detector.ny;
+    let names: Vec<PathBuf> = ex.iter().map(|e| e.path.clone()).collect();
     let mut imgs = Vec::with_capacity(ex.len());
-    for e in ex {
-        let v: Vec<f64> = e.data.iter().map(|&x| x as f64).collect();
+    for (data, path) in whole_frames_f32(ex)?.into_iter().zip(names) {
+        let v: Vec<f64> = data.iter().map(|&x| x as f64).collect();
         let m = median_of(&v).filter(|m| *m > 0.0).ok_or_else(|| {
             Error::Invalid(format!(
                 "{}: flat field has no positive signal (median after bias removal <= 0)",
-                e.path.display()
+                path.display()
             ))
         })?;
         imgs.push(
-            e.data
-                .iter()
+            data.iter()
                 .map(
                     |&x| if (x as f64) < SATURATED_LIMIT && (x as f64) > GAP_LIMIT { (x as f64 / m) as f32 } else { x },
                 )

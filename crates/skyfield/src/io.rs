@@ -288,13 +288,21 @@ impl PixelView<'_> {
         }
     }
 
-    /// Number of non-finite pixels and of pixels at or above `sat`, in one pass.
+    /// Number of non-finite pixels and of pixels at or above `sat`, in one pass (inlined, so a
+    /// vectorized caller counts with its own vector width).
+    #[inline(always)]
     pub(crate) fn count_bad(&self, sat: f64) -> (usize, usize) {
+        // A plain loop with u64 counters (as wide as the f64 lanes): it vectorizes, where the
+        // tuple fold did not (7 % of a raw FORS2 reduction's profile).
+        #[inline(always)]
         fn go<T: Copy>(v: &[T], f: impl Fn(T) -> f64, sat: f64) -> (usize, usize) {
-            v.iter().fold((0, 0), |(a, b), &x| {
+            let (mut a, mut b) = (0u64, 0u64);
+            for &x in v {
                 let x = f(x);
-                (a + !x.is_finite() as usize, b + (x >= sat) as usize)
-            })
+                a += !x.is_finite() as u64;
+                b += (x >= sat) as u64;
+            }
+            (a as usize, b as usize)
         }
         match self {
             PixelView::F32(v) => go(v, |x| x as f64, sat),
@@ -896,7 +904,7 @@ impl RawKind {
 
     /// Decode big-endian pixels into f64 (exact for every kind).
     #[inline(always)]
-    fn decode(self, bytes: &[u8], out: &mut [f64]) {
+    pub(crate) fn decode(self, bytes: &[u8], out: &mut [f64]) {
         match self {
             RawKind::F32 => out
                 .iter_mut()
@@ -946,14 +954,23 @@ impl RowFile {
     pub(crate) fn kind(&self) -> RawKind {
         self.kind
     }
+
+    /// Pixels from pixel index `px` of the image as stored (big-endian), as many as fill `out`.
+    pub(crate) fn read_at(&self, path: &Path, px: usize, out: &mut [u8]) -> Result<(), Error> {
+        use std::os::unix::fs::FileExt;
+        let at = self.data_start + (px * self.kind.bytes()) as u64;
+        self.file.read_exact_at(out, at).map_err(|e| read_error(path, e))
+    }
 }
 
-/// Where a frame's rows come from: the file itself, or pixels CFITSIO read whole (compressed
-/// files such as `.fits.gz`, scaled data).
+/// Where a frame's rows come from: the file itself, pixels CFITSIO read whole (compressed
+/// files such as `.fits.gz`, scaled data), or raw chip files calibrated row by row as they
+/// are read ([`crate::calib::Calibrated`]: overscan, bias, gain and flat applied on the fly).
 #[derive(Debug)]
 pub(crate) enum FrameRows {
     File(RowFile),
     Memory(Pixels),
+    Calibrated(crate::calib::Calibrated),
 }
 
 /// A frame opened for reduction, its header checked as by [`read_frame`].
@@ -974,14 +991,7 @@ pub(crate) struct OpenFrame {
 /// `hwp_optional`: a missing HWP angle is NaN (it comes from `--hwp-angles`).
 pub(crate) fn open_frame_with(path: &Path, inst: &Instrument, hwp_optional: bool) -> Result<OpenFrame, Error> {
     let (mut img, h) = open_checked(path, inst, hwp_optional)?;
-    let direct = match raw_kind(img.bitpix, img.bscale, img.bzero) {
-        Some(kind) if !img.compressed && !img.blank => direct_rows(path, &mut img, kind)?,
-        _ => None,
-    };
-    let rows = match direct {
-        Some(r) => FrameRows::File(r),
-        None => FrameRows::Memory(img.read_pixels(path)?),
-    };
+    let rows = pixel_source(path, &mut img)?;
     Ok(OpenFrame {
         path: path.into(),
         nx: img.nx,
@@ -990,6 +1000,19 @@ pub(crate) fn open_frame_with(path: &Path, inst: &Instrument, hwp_optional: bool
         filter: h.filter,
         rows,
         conversion: Conversion::of_instrument(inst),
+    })
+}
+
+/// Where the pixels of an opened image will be read from: the file itself by rows when it is
+/// plain FITS in a stored type the row decoder knows, else the whole image through CFITSIO now.
+pub(crate) fn pixel_source(path: &Path, img: &mut ImageHdu) -> Result<FrameRows, Error> {
+    let direct = match raw_kind(img.bitpix, img.bscale, img.bzero) {
+        Some(kind) if !img.compressed && !img.blank => direct_rows(path, img, kind)?,
+        _ => None,
+    };
+    Ok(match direct {
+        Some(r) => FrameRows::File(r),
+        None => FrameRows::Memory(img.read_pixels(path)?),
     })
 }
 
@@ -1041,6 +1064,7 @@ impl OpenFrame {
                 r.kind.decode(&bytes[..nb], out);
                 Ok(())
             }
+            FrameRows::Calibrated(c) => c.load_rows(row0, out, bytes),
         }
     }
 

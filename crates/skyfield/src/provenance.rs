@@ -224,6 +224,26 @@ pub fn add_input(path: &Path) {
     }
 }
 
+/// [`add_input`] for several files, in the order given, hashed in parallel (hashing 32 raw
+/// FORS2 chip files one after the other was a fifth of `instpol reduce`'s time on them).
+pub fn add_inputs(paths: &[&Path]) {
+    use rayon::prelude::*;
+    if SESSION.lock().unwrap_or_else(|e| e.into_inner()).is_none() {
+        return;
+    }
+    let hashes: Vec<(String, String)> = paths
+        .par_iter()
+        .map(|p| (p.display().to_string(), sha256_file(p).unwrap_or_else(|_| "unreadable".into())))
+        .collect();
+    if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
+        for (path, sha256) in hashes {
+            if !p.inputs.iter().any(|i| i.path == path) {
+                p.inputs.push(InputFile { path, sha256 });
+            }
+        }
+    }
+}
+
 /// Record the run's instrument; no effect before [`set_session`].
 pub fn set_instrument(name: &str, definition: &[u8]) {
     if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
