@@ -53,6 +53,22 @@ fn stressed_lens_file_is_explained_by_a_stressed_lens() {
     assert!(causes.iter().any(|c| c["cause"] == "raytrace"), "the FORS1 ray trace is a candidate: {out}");
     let lens = &causes[0]["params"][0];
     assert!((lens["value"].as_f64().unwrap().abs() - 18.0).abs() < 0.5, "{lens}");
+    // The plot in the format its extension names (PNG bytes, or an SVG document).
+    for (name, magic) in [("e.svg", &b"<svg"[..]), ("e.png", &b"\x89PNG"[..])] {
+        let plot = f.with_file_name(name);
+        let (code, _, err) = common::run(&[
+            "explain",
+            f.to_str().unwrap(),
+            "--instrument",
+            "fors1",
+            "--band",
+            "B",
+            "--plot",
+            plot.to_str().unwrap(),
+        ]);
+        assert_eq!(code, 0, "{err}");
+        assert!(std::fs::read(&plot).unwrap().starts_with(magic), "{name}");
+    }
 }
 
 #[test]

@@ -48,6 +48,12 @@ pub struct Observation {
     /// instrument frame by this much beyond `offset` ([`Track::rotator`]).
     #[serde(default)]
     pub rotator: f64,
+    /// The star's own polarization on the sky, `(q, u)` in the equatorial frame (fractions),
+    /// for a polarized standard (columns `p_true`, a fraction, and `chi_true_deg`, the
+    /// equatorial position angle); `(0, 0)` for an unpolarized one. The model passes it
+    /// through the telescope as it passes an unpolarized star's `(1, 0, 0, 0)`.
+    #[serde(default)]
+    pub sky: (f64, f64),
     /// File and line, for reports.
     pub source: String,
 }
@@ -57,9 +63,24 @@ pub struct Observation {
 /// blanks allowed) or a CSV whose header names the columns `star`, `parallactic_deg` (or
 /// `pa_deg`, `parallactic`), `q`, `sigma_q`, `u`, `sigma_u`, `wavelength_um` (or
 /// `wavelength`) and optionally `filter` (or `band`) and `rotator_deg` (the rotator / adapter
-/// angle, [`Track::rotator`]), in any order. Errors name the file, line and column.
+/// angle, [`Track::rotator`]), and for polarized standards `p_true` (a fraction) with
+/// `chi_true_deg` (their catalogued polarization, [`Observation::sky`]), in any order. Errors
+/// name the file, line and column.
+/// FITS binary tables, ECSV and VOTable (by the extension, `skyfield::table`) are read as
+/// the same columns. Row numbers in errors are then the CSV form's lines (header = line 1).
 pub fn read_observations(path: &Path) -> Result<Vec<Observation>> {
-    let text = std::fs::read_to_string(path).map_err(|err| Error::Io { path: path.to_path_buf(), err })?;
+    use skyfield::table::{Format, Table};
+    let text = match Format::from_path(path) {
+        // The one table reader for the structured formats, then the column rules below.
+        Ok(f) if f != Format::Csv => {
+            let t = Table::read_format(path, f, None)
+                .map_err(|e| Error::BadFile { path: path.to_path_buf(), what: e.to_string() })?;
+            let b = t.csv_bytes().map_err(|what| Error::BadFile { path: path.to_path_buf(), what })?;
+            String::from_utf8(b).map_err(|_| Error::BadFile { path: path.to_path_buf(), what: "not UTF-8".into() })?
+        }
+        // CSV and the EFOSC2 text files (.txt, .dat, ...) as text.
+        _ => std::fs::read_to_string(path).map_err(|err| Error::Io { path: path.to_path_buf(), err })?,
+    };
     parse_observations(&text, path)
 }
 
@@ -69,8 +90,10 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
         path: path.to_path_buf(),
         what: if col > 0 { format!("line {line}, column {col}: {what}") } else { format!("line {line}: {what}") },
     };
-    // Column positions: star, pa, q, sq, u, su, wavelength, optional filter and rotator.
-    let mut cols: [Option<usize>; 9] = [Some(0), Some(1), Some(2), Some(3), Some(4), Some(5), Some(6), None, None];
+    // Column positions: star, pa, q, sq, u, su, wavelength, optional filter, rotator, and a
+    // polarized standard's p_true, chi_true_deg.
+    let mut cols: [Option<usize>; 11] =
+        [Some(0), Some(1), Some(2), Some(3), Some(4), Some(5), Some(6), None, None, None, None];
     let mut header_seen = false;
     let mut out = Vec::new();
     for (i, raw) in text.lines().enumerate() {
@@ -79,7 +102,8 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
-        let fields: Vec<&str> = line.split(',').map(str::trim).collect();
+        // A quoted field (a CSV writer quotes names with blanks) loses its quotes.
+        let fields: Vec<&str> = line.split(',').map(|f| f.trim().trim_matches('"')).collect();
         if out.is_empty() && !header_seen && fields.get(1).is_some_and(|f| f.parse::<f64>().is_err()) {
             // A header line.
             header_seen = true;
@@ -93,6 +117,8 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
                 &["wavelength_um", "wavelength", "lambda_um", "lambda"][..],
                 &["filter", "band"][..],
                 &["rotator_deg", "rotator", "adapter_deg"][..],
+                &["p_true", "p_star"][..],
+                &["chi_true_deg", "chi_star_deg"][..],
             ];
             for (k, alts) in names.iter().enumerate() {
                 cols[k] = fields.iter().position(|f| alts.contains(&f.to_ascii_lowercase().as_str()));
@@ -103,6 +129,14 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
                         format!("the header has no column '{}' (columns: {})", alts[0], fields.join(", ")),
                     ));
                 }
+            }
+            if cols[9].is_some() != cols[10].is_some() {
+                return Err(bad(
+                    ln,
+                    0,
+                    "a polarized standard needs both columns p_true (a fraction) and chi_true_deg: one is missing"
+                        .into(),
+                ));
             }
             continue;
         }
@@ -141,6 +175,18 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
             Some(_) => num(8, "rotator angle (deg)")?.to_radians(),
             None => 0.0,
         };
+        // An empty p_true marks an unpolarized star in a file that mixes both kinds.
+        let sky = match (cols[9], fields.get(cols[9].unwrap_or(usize::MAX)).is_some_and(|f| !f.is_empty())) {
+            (Some(c), true) => {
+                let p = num(9, "p_true")?;
+                if !(0.0..1.0).contains(&p) {
+                    return Err(bad(ln, c + 1, format!("p_true {p} must be a fraction in [0, 1) (not percent)")));
+                }
+                let chi = num(10, "chi_true_deg")?.to_radians();
+                (p * (2.0 * chi).cos(), p * (2.0 * chi).sin())
+            }
+            _ => (0.0, 0.0),
+        };
         out.push(Observation {
             star,
             parallactic: pa.to_radians(),
@@ -151,6 +197,7 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
             wavelength_um: w,
             band,
             rotator,
+            sky,
             source: format!("{}:{ln}", path.display()),
         });
     }
@@ -628,7 +675,7 @@ impl Problem<'_> {
         let mut r = DVector::zeros(2 * self.obs.len());
         for (i, (o, b)) in self.obs.iter().enumerate() {
             let m = &models[*b];
-            let s = wiersema_m3(&m3[*b], o.parallactic, m.offset + o.rotator) * Stokes::new(1.0, 0.0, 0.0, 0.0);
+            let s = wiersema_m3(&m3[*b], o.parallactic, m.offset + o.rotator) * Stokes::new(1.0, o.sky.0, o.sky.1, 0.0);
             r[2 * i] = (s[1] / s[0] + m.q0 - o.q) / o.sigma_q;
             r[2 * i + 1] = (s[2] / s[0] + m.u0 - o.u) / o.sigma_u;
         }
@@ -981,6 +1028,7 @@ mod tests {
                     wavelength_um: truth.wavelength_um,
                     band: "V".into(),
                     rotator: 0.0,
+                    sky: (0.0, 0.0),
                     source: format!("sim:{i}"),
                 }
             })

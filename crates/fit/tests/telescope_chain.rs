@@ -184,6 +184,7 @@ fn polarized_standard_through_a_night_comes_back_with_its_catalogued_p_and_chi()
             wavelength_um: 0.55,
             band: "V".into(),
             rotator: 0.0,
+            sky: (0.0, 0.0),
             source: format!("sim:{k}"),
         });
     }
@@ -314,6 +315,7 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
                 wavelength_um: 0.55,
                 band: "V".into(),
                 rotator: 0.0,
+                sky: (0.0, 0.0),
                 source: format!("t:{k}"),
             }
         })

@@ -115,6 +115,7 @@ fn a_night_with_a_known_mirror_and_field_gives_both_back() {
                 wavelength_um: 0.55,
                 band: "V".into(),
                 rotator: 0.0,
+                sky: (0.0, 0.0),
                 source: format!("night:{k}:{ha:.3}"),
             });
             ha += 40.0 * minute;

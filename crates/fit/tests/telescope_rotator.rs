@@ -145,6 +145,7 @@ fn standards(offset: f64, factor: f64, rhos: &[f64], sigma: f64) -> Vec<Observat
                 wavelength_um: 0.55,
                 band: "V".into(),
                 rotator: rho,
+                sky: (0.0, 0.0),
                 source: format!("sim:{i}"),
             }
         })

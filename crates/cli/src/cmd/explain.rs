@@ -58,7 +58,7 @@ pub struct Args {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
-    /// Draw delta BIC per candidate into this PNG.
+    /// Draw delta BIC per candidate into this image (.png or .svg, by the extension).
     #[arg(long)]
     pub plot: Option<PathBuf>,
 }
@@ -107,7 +107,7 @@ pub fn run(a: Args) -> Result<()> {
     crate::util::inputs(std::iter::once(a.mueller_cal.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
     if let Some(p) = &a.plot {
         crate::util::check_output(p)?;
-        crate::plot::require_png(p)?;
+        crate::plot::ImageFormat::of(p)?;
     }
     if !(4..=64).contains(&a.grid) {
         bail!("--grid {} must be in 4..=64", a.grid);
@@ -238,11 +238,21 @@ pub fn run(a: Args) -> Result<()> {
 
 /// Delta BIC per candidate (log scale: 1 + delta BIC), the threshold of "told apart" marked.
 fn draw(path: &std::path::Path, e: &Explanation) -> Result<()> {
-    use plotters::prelude::*;
-    let n = e.fits.len();
     let vals: Vec<f64> = e.fits.iter().map(|f| 1.0 + f.delta_bic.min(1e12)).collect();
     let top = vals.iter().cloned().filter(|v| v.is_finite()).fold(100.0, f64::max) * 2.0;
-    crate::plot::save_png(path, (900, 700), |root| {
+    crate::plot::save_image(path, (900, 700), |r| draw_on(r, e, &vals, top), |r| draw_on(r, e, &vals, top))
+}
+
+/// The bar chart of [`draw`] on either backend (PNG or SVG by the file's extension).
+fn draw_on<DB: plotters::prelude::DrawingBackend>(
+    root: &plotters::prelude::DrawingArea<DB, plotters::coord::Shift>,
+    e: &Explanation,
+    vals: &[f64],
+    top: f64,
+) -> Result<()> {
+    use plotters::prelude::*;
+    let n = e.fits.len();
+    {
         // Short names: six candidates side by side in a one-column figure.
         let labels: Vec<&str> = e
             .fits
@@ -281,5 +291,5 @@ fn draw(path: &std::path::Path, e: &Explanation) -> Result<()> {
             .legend(crate::plot::line_key(RED));
         crate::plot::legend(&mut c, SeriesLabelPosition::UpperLeft)?;
         Ok(())
-    })
+    }
 }

@@ -10,7 +10,8 @@ use serde::Serialize;
 use std::path::{Path, PathBuf};
 
 /// Fit the instrumental polarization of a Nasmyth telescope's 45 deg tertiary mirror to
-/// unpolarized standard stars observed at many parallactic angles, band by band and jointly.
+/// standard stars (unpolarized, or polarized of known P, chi) observed at many parallactic
+/// angles, band by band and jointly.
 ///
 /// Models (sky to instrument: R(offset) M3(plane at 90 deg - parallactic angle), Wiersema et
 /// al. 2018, PASA 35, e012):
@@ -21,8 +22,10 @@ use std::path::{Path, PathBuf};
 ///
 /// Input files: one line per measurement, "star, parallactic_deg, q, sigma_q, u, sigma_u,
 /// wavelength_um" (no header; the EFOSC2 files of Wiersema et al.), or a CSV with a header
-/// naming those columns (any order) and optionally "filter". The band is the filter, or else
-/// the wavelength. Points whose pull exceeds --clip times max(1, robust scatter) are flagged
+/// naming those columns (any order) and optionally "filter", "rotator_deg", and for polarized
+/// standards "p_true" (a fraction) with "chi_true_deg" (their catalogued polarization, passed
+/// through the model; empty for unpolarized stars). The band is the filter, or else the
+/// wavelength. Points whose pull exceeds --clip times max(1, robust scatter) are flagged
 /// and the fit repeated without them. Errors: sqrt of the covariance's diagonal times
 /// max(1, chi2/dof) by default (--error-scaling).
 ///
