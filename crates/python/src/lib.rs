@@ -624,7 +624,8 @@ fn fill(
     let (x, y, q, u) = (&i.x[r0..r0 + n], &i.y[r0..r0 + n], &i.q[r0..r0 + n], &i.u[r0..r0 + n]);
     let (sq, su) = (&i.sq[r0..r0 + n], &i.su[r0..r0 + n]);
     let cov = i.cov.map(|c| &c[r0..r0 + n]);
-    let Sink { mut cols, mut p0e, extra, .. } = s;
+    let Sink { cols, mut p0e, extra, .. } = s;
+    let [c_q0, c_u0, c_sq0, c_su0, c_cov0, c_p0, c_sp0, c_chi0, c_sc0, c_qi, c_ui] = cols;
     let mut n_extra = 0;
     for k in 0..n {
         let m = Measurement {
@@ -637,7 +638,22 @@ fn fill(
             cov_qu: cov.map_or(0.0, |c| c[k]),
         };
         let r = cor.correct(&m).map_err(|e| (r0 + k, e))?;
-        put_row(&mut cols, &mut p0e, k, &r);
+        // Written column by column here, not through put_row: this loop is the 1e7/s path
+        // (bench/python_correct.sh) and the array-of-slices loop measured ~20 % slower.
+        c_q0[k] = r.q0;
+        c_u0[k] = r.u0;
+        c_sq0[k] = r.var_q0.sqrt();
+        c_su0[k] = r.var_u0.sqrt();
+        c_cov0[k] = r.cov_qu0;
+        c_p0[k] = r.p0;
+        c_sp0[k] = r.sigma_p0;
+        c_chi0[k] = r.chi0.to_degrees();
+        c_sc0[k] = r.sigma_chi0.to_degrees();
+        c_qi[k] = r.inst.q;
+        c_ui[k] = r.inst.u;
+        if let Some((c, e)) = p0e.as_mut() {
+            c[k] = r.p0_estimate(*e);
+        }
         extra[k] = r.extrapolated;
         n_extra += r.extrapolated as usize;
     }
