@@ -10,6 +10,19 @@ use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use std::path::Path;
 
+/// A V-band aluminium M3 of Wiersema factor `factor` and angle offset `offset_deg`.
+fn mirror(table: &MetalTable, factor: f64, offset_deg: f64) -> BandModel {
+    BandModel {
+        wavelength_um: 0.55,
+        index: table.index(0.55).unwrap(),
+        factor,
+        thickness_nm: 0.0,
+        offset: offset_deg.to_radians(),
+        q0: 0.0,
+        u0: 0.0,
+    }
+}
+
 /// The measurement file: unpolarized rows have empty p_true, chi_true_deg.
 fn night(truth: &BandModel) -> String {
     let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(77);
@@ -36,15 +49,7 @@ fn night(truth: &BandModel) -> String {
 #[test]
 fn polarized_standards_give_the_mirror_back_and_must_be_declared() {
     let table = MetalTable::builtin("aluminium").unwrap();
-    let truth = BandModel {
-        wavelength_um: 0.55,
-        index: table.index(0.55).unwrap(),
-        factor: 0.86,
-        thickness_nm: 0.0,
-        offset: f64::to_radians(40.0),
-        q0: 0.0,
-        u0: 0.0,
-    };
+    let truth = mirror(&table, 0.86, 40.0);
     let text = night(&truth);
     let obs = parse_observations(&text, Path::new("night.csv")).unwrap();
     assert_eq!(obs.iter().filter(|o| o.sky != (0.0, 0.0)).count(), 24);
@@ -81,15 +86,7 @@ fn polarized_standard_columns_are_checked() {
 #[test]
 fn structured_tables_read_as_the_csv() {
     let table = MetalTable::builtin("aluminium").unwrap();
-    let truth = BandModel {
-        wavelength_um: 0.55,
-        index: table.index(0.55).unwrap(),
-        factor: 0.9,
-        thickness_nm: 0.0,
-        offset: f64::to_radians(30.0),
-        q0: 0.0,
-        u0: 0.0,
-    };
+    let truth = mirror(&table, 0.9, 30.0);
     let dir = tempfile::tempdir().unwrap();
     let csv = dir.path().join("night.csv");
     std::fs::write(&csv, night(&truth)).unwrap();
