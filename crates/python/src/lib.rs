@@ -76,7 +76,35 @@ fn arr2<'py>(py: Python<'py>, v: Vec<f64>, rows: usize, cols: usize) -> PyResult
 
 /// A zeroed output column of `n` values (handed to numpy without a copy).
 fn column(n: usize) -> Vec<f64> {
-    vec![0.0f64; n]
+    let v = vec![0.0f64; n];
+    advise_huge_pages(&v);
+    v
+}
+
+/// Ask Linux for transparent huge pages under a large output column before its first write.
+/// Correcting 1e6 positions writes 11 columns (88 MB) into fresh pages: with 4 kB pages the
+/// page faults took a sixth of the time (bench/python_correct.sh, one core: 8.2e6 positions/s
+/// without the hint, 9.8e6 with it; reserving, advising and then zero-filling measured 9.6e6).
+/// A hint only: nothing changes where THP is off or the pages were touched already.
+fn advise_huge_pages(v: &[f64]) {
+    #[cfg(target_os = "linux")]
+    {
+        const HUGE: usize = 2 << 20;
+        let bytes = std::mem::size_of_val(v);
+        if bytes < 4 * HUGE {
+            return;
+        }
+        let start = v.as_ptr() as usize;
+        let (a, e) = ((start + HUGE - 1) & !(HUGE - 1), (start + bytes) & !(HUGE - 1));
+        if e > a {
+            // SAFETY: [a, e) lies inside `v`'s allocation; MADV_HUGEPAGE changes no contents.
+            unsafe {
+                libc::madvise(a as *mut libc::c_void, e - a, libc::MADV_HUGEPAGE);
+            }
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = v;
 }
 
 fn bools<'py>(py: Python<'py>, v: Vec<bool>) -> Bound<'py, PyArray1<bool>> {
