@@ -183,7 +183,32 @@ pub struct Corrected {
     pub extrapolated: bool,
 }
 
+/// The names of [`Corrected::output_values`], in order: the columns `instpol correct` appends
+/// (it puts the estimator's `p0_<name>` before `q_inst`) and the keys of the Python
+/// `Calibration.correct`. Angles in degrees, the rest fractions.
+pub const OUTPUT_NAMES: [&str; 11] =
+    ["q0", "u0", "sigma_q0", "sigma_u0", "cov_qu0", "p0", "sigma_p0", "chi0_deg", "sigma_chi0_deg", "q_inst", "u_inst"];
+
 impl Corrected {
+    /// The values written for a corrected row, named by [`OUTPUT_NAMES`]: errors as standard
+    /// deviations, angles in degrees, the instrumental `q, u` that was removed.
+    #[inline]
+    pub fn output_values(&self) -> [f64; 11] {
+        [
+            self.q0,
+            self.u0,
+            self.var_q0.sqrt(),
+            self.var_u0.sqrt(),
+            self.cov_qu0,
+            self.p0,
+            self.sigma_p0,
+            self.chi0.to_degrees(),
+            self.sigma_chi0.to_degrees(),
+            self.inst.q,
+            self.inst.u,
+        ]
+    }
+
     /// The bias-corrected `P0` with `est` (section `sec:bias`) from the corrected `(q0, u0)`
     /// and their errors; NaN when the errors are not usable (e.g. zero). The `p0_<name>` column
     /// of `instpol correct` and of the Python `Calibration.correct`.

@@ -28,6 +28,7 @@ use pyo3::exceptions::{PyOSError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 use std::path::PathBuf;
 use stokes::stats::{Estimator, IntervalKind};
 
@@ -74,11 +75,19 @@ fn arr2<'py>(py: Python<'py>, v: Vec<f64>, rows: usize, cols: usize) -> PyResult
     PyArray1::from_vec(py, v).reshape([rows, cols])
 }
 
-/// A zeroed output column of `n` values (handed to numpy without a copy).
-fn column(n: usize) -> Vec<f64> {
-    let v = vec![0.0f64; n];
-    advise_huge_pages(&v);
+/// An output column of `n` values that `fill` writes whole before it is read: reserved, not
+/// zeroed. Zeroing it first cost a memset of every column (6 % of `correct`, perf: glibc's
+/// calloc clears heap memory that malloc would hand back as it is) that the fill overwrites.
+fn reserved_column(n: usize) -> Vec<f64> {
+    let v = Vec::with_capacity(n);
+    #[cfg(target_os = "linux")]
+    advise_huge_pages(v.as_ptr() as usize, n * std::mem::size_of::<f64>());
     v
+}
+
+/// The first `n` slots of a [`reserved_column`], to be written.
+fn slots(v: &mut Vec<f64>, n: usize) -> &mut [MaybeUninit<f64>] {
+    &mut v.spare_capacity_mut()[..n]
 }
 
 /// Ask Linux for transparent huge pages under a large output column before its first write.
@@ -86,25 +95,19 @@ fn column(n: usize) -> Vec<f64> {
 /// page faults took a sixth of the time (bench/python_correct.sh, one core: 8.2e6 positions/s
 /// without the hint, 9.8e6 with it; reserving, advising and then zero-filling measured 9.6e6).
 /// A hint only: nothing changes where THP is off or the pages were touched already.
-fn advise_huge_pages(v: &[f64]) {
-    #[cfg(target_os = "linux")]
-    {
-        const HUGE: usize = 2 << 20;
-        let bytes = std::mem::size_of_val(v);
-        if bytes < 4 * HUGE {
-            return;
-        }
-        let start = v.as_ptr() as usize;
-        let (a, e) = ((start + HUGE - 1) & !(HUGE - 1), (start + bytes) & !(HUGE - 1));
-        if e > a {
-            // SAFETY: [a, e) lies inside `v`'s allocation; MADV_HUGEPAGE changes no contents.
-            unsafe {
-                libc::madvise(a as *mut libc::c_void, e - a, libc::MADV_HUGEPAGE);
-            }
+#[cfg(target_os = "linux")]
+fn advise_huge_pages(start: usize, bytes: usize) {
+    const HUGE: usize = 2 << 20;
+    if bytes < 4 * HUGE {
+        return;
+    }
+    let (a, e) = ((start + HUGE - 1) & !(HUGE - 1), (start + bytes) & !(HUGE - 1));
+    if e > a {
+        // SAFETY: [a, e) lies inside the allocation; MADV_HUGEPAGE changes no contents.
+        unsafe {
+            libc::madvise(a as *mut libc::c_void, e - a, libc::MADV_HUGEPAGE);
         }
     }
-    #[cfg(not(target_os = "linux"))]
-    let _ = v;
 }
 
 fn bools<'py>(py: Python<'py>, v: Vec<bool>) -> Bound<'py, PyArray1<bool>> {
@@ -545,14 +548,14 @@ impl _Calibration {
         let cal = &self.cal;
         let input = Inputs { x, y, q, u, sq, su, cov };
         let cor = Corrector::new(cal, opts);
-        let mut cols: Vec<Vec<f64>> = (0..N_OUT).map(|_| column(n)).collect();
-        let mut p0e: Option<Vec<f64>> = est.map(|_| column(n));
+        let mut cols: Vec<Vec<f64>> = (0..N_OUT).map(|_| reserved_column(n)).collect();
+        let mut p0e: Option<Vec<f64>> = est.map(|_| reserved_column(n));
         let mut extra = vec![false; n];
         let res = py.detach(|| {
             let mut it = cols.iter_mut();
             let sink = Sink {
-                cols: std::array::from_fn(|_| it.next().expect("N_OUT columns").as_mut_slice()),
-                p0e: p0e.as_mut().zip(est).map(|(c, e)| (c.as_mut_slice(), e)),
+                cols: std::array::from_fn(|_| slots(it.next().expect("N_OUT columns"), n)),
+                p0e: p0e.as_mut().zip(est).map(|(c, e)| (slots(c, n), e)),
                 extra: &mut extra,
                 start: 0,
             };
@@ -562,6 +565,12 @@ impl _Calibration {
             }
         });
         let n_extra = res.map_err(|(row, e)| input_err(format!("index {row}: {e}")))?;
+        for c in cols.iter_mut().chain(p0e.as_mut()) {
+            // SAFETY: `fill` and `fill_chain` return Ok only after writing every row 0..n of
+            // every output column (and of `p0e` when it is Some); on Err the columns are dropped
+            // with length 0 above.
+            unsafe { c.set_len(n) };
+        }
         let d = PyDict::new(py);
         for (name, c) in OUT_NAMES.iter().zip(cols) {
             d.set_item(*name, arr1(py, c))?;
@@ -594,22 +603,21 @@ struct Inputs<'a> {
 
 /// The output columns of a correction, in the order and with the names of the columns
 /// `instpol correct` adds (the estimator's `p0_<name>` apart).
-const OUT_NAMES: [&str; 11] =
-    ["q0", "u0", "sigma_q0", "sigma_u0", "cov_qu0", "p0", "sigma_p0", "chi0_deg", "sigma_chi0_deg", "q_inst", "u_inst"];
+const OUT_NAMES: [&str; 11] = fit::correct::OUTPUT_NAMES;
 const N_OUT: usize = OUT_NAMES.len();
 
 /// Mutable windows of the output columns for rows `start ..`.
 struct Sink<'a> {
-    cols: [&'a mut [f64]; N_OUT],
-    p0e: Option<(&'a mut [f64], Estimator)>,
+    cols: [&'a mut [MaybeUninit<f64>]; N_OUT],
+    p0e: Option<(&'a mut [MaybeUninit<f64>], Estimator)>,
     extra: &'a mut [bool],
     start: usize,
 }
 
 impl<'a> Sink<'a> {
     fn split(self, mid: usize) -> (Sink<'a>, Sink<'a>) {
-        let mut left: [&'a mut [f64]; N_OUT] = Default::default();
-        let mut right: [&'a mut [f64]; N_OUT] = Default::default();
+        let mut left: [&'a mut [MaybeUninit<f64>]; N_OUT] = Default::default();
+        let mut right: [&'a mut [MaybeUninit<f64>]; N_OUT] = Default::default();
         for (k, c) in self.cols.into_iter().enumerate() {
             (left[k], right[k]) = c.split_at_mut(mid);
         }
@@ -667,20 +675,21 @@ fn fill(
         };
         let r = cor.correct(&m).map_err(|e| (r0 + k, e))?;
         // Written column by column here, not through put_row: this loop is the 1e7/s path
-        // (bench/python_correct.sh) and the array-of-slices loop measured ~20 % slower.
-        c_q0[k] = r.q0;
-        c_u0[k] = r.u0;
-        c_sq0[k] = r.var_q0.sqrt();
-        c_su0[k] = r.var_u0.sqrt();
-        c_cov0[k] = r.cov_qu0;
-        c_p0[k] = r.p0;
-        c_sp0[k] = r.sigma_p0;
-        c_chi0[k] = r.chi0.to_degrees();
-        c_sc0[k] = r.sigma_chi0.to_degrees();
-        c_qi[k] = r.inst.q;
-        c_ui[k] = r.inst.u;
+        // (bench/python_correct.sh) and the array-of-slices loop measured ~20 % slower. The
+        // values are those of Corrected::output_values (pytest compares with the CLI's).
+        c_q0[k].write(r.q0);
+        c_u0[k].write(r.u0);
+        c_sq0[k].write(r.var_q0.sqrt());
+        c_su0[k].write(r.var_u0.sqrt());
+        c_cov0[k].write(r.cov_qu0);
+        c_p0[k].write(r.p0);
+        c_sp0[k].write(r.sigma_p0);
+        c_chi0[k].write(r.chi0.to_degrees());
+        c_sc0[k].write(r.sigma_chi0.to_degrees());
+        c_qi[k].write(r.inst.q);
+        c_ui[k].write(r.inst.u);
         if let Some((c, e)) = p0e.as_mut() {
-            c[k] = r.p0_estimate(*e);
+            c[k].write(r.p0_estimate(*e));
         }
         extra[k] = r.extrapolated;
         n_extra += r.extrapolated as usize;
@@ -688,33 +697,21 @@ fn fill(
     Ok(n_extra)
 }
 
-/// Row `k` of the output columns: the values `instpol correct` writes
-/// (cli::cmd::correct::added_values), in [`OUT_NAMES`] order.
+/// Row `k` of the output columns: `Corrected::output_values`, the values `instpol correct`
+/// writes, in [`OUT_NAMES`] order.
 #[inline]
 fn put_row(
-    cols: &mut [&mut [f64]; N_OUT],
-    p0e: &mut Option<(&mut [f64], Estimator)>,
+    cols: &mut [&mut [MaybeUninit<f64>]; N_OUT],
+    p0e: &mut Option<(&mut [MaybeUninit<f64>], Estimator)>,
     k: usize,
     r: &fit::correct::Corrected,
 ) {
-    let v = [
-        r.q0,
-        r.u0,
-        r.var_q0.sqrt(),
-        r.var_u0.sqrt(),
-        r.cov_qu0,
-        r.p0,
-        r.sigma_p0,
-        r.chi0.to_degrees(),
-        r.sigma_chi0.to_degrees(),
-        r.inst.q,
-        r.inst.u,
-    ];
+    let v = r.output_values();
     for (c, v) in cols.iter_mut().zip(v) {
-        c[k] = v;
+        c[k].write(v);
     }
     if let Some((c, e)) = p0e.as_mut() {
-        c[k] = r.p0_estimate(*e);
+        c[k].write(r.p0_estimate(*e));
     }
 }
 

@@ -157,8 +157,9 @@ struct Summary {
 
 /// Names of the columns `instpol correct` adds, in order (the estimator column is
 /// `p0_<name>`, inserted after `sigma_chi0_deg`).
-const ADDED: [&str; 9] =
-    ["q0", "u0", "sigma_q0", "sigma_u0", "cov_qu0", "p0", "sigma_p0", "chi0_deg", "sigma_chi0_deg"];
+/// The appended columns before the estimator's `p0_<name>`: the first nine of
+/// `fit::correct::OUTPUT_NAMES` (`q_inst`, `u_inst` follow it).
+const ADDED: &[&str] = fit::correct::OUTPUT_NAMES.split_at(9).0;
 
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs([a.cal.as_path(), a.input.as_path()])?;
@@ -434,21 +435,15 @@ fn estimates(out: &[Corrected], est: Estimator) -> Vec<f64> {
     v
 }
 
+/// The appended values of one row: `fit::correct::OUTPUT_NAMES` with the estimator's `p0_<name>`
+/// before `q_inst` (the column order of `added_names`).
 fn added_values(r: &Corrected, p0e: f64) -> [f64; 12] {
-    [
-        r.q0,
-        r.u0,
-        r.var_q0.sqrt(),
-        r.var_u0.sqrt(),
-        r.cov_qu0,
-        r.p0,
-        r.sigma_p0,
-        r.chi0.to_degrees(),
-        r.sigma_chi0.to_degrees(),
-        p0e,
-        r.inst.q,
-        r.inst.u,
-    ]
+    let v = r.output_values();
+    std::array::from_fn(|k| match k {
+        0..=8 => v[k],
+        9 => p0e,
+        _ => v[k - 1],
+    })
 }
 
 fn added_names(est: Estimator) -> Vec<String> {
