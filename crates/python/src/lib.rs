@@ -51,6 +51,18 @@ fn sky_err(e: skyfield::Error) -> PyErr {
     }
 }
 
+/// A calibration that cannot be loaded: FileError when the file cannot be read, InputError when
+/// it is not a valid calibration; the message of `instpol correct --cal`.
+fn load_err(path: &std::path::Path, e: fit::Error) -> PyErr {
+    let file = matches!(e, fit::Error::Io { .. } | fit::Error::Fits { .. });
+    let msg = format!("cannot load calibration {}: {e}", path.display());
+    if file {
+        FileError::new_err(msg)
+    } else {
+        input_err(msg)
+    }
+}
+
 fn inst_err(e: instrument::Error) -> PyErr {
     match e {
         instrument::Error::Io { .. } => FileError::new_err(e.to_string()),
@@ -326,11 +338,18 @@ fn _bias<'py>(
     Ok(d)
 }
 
-/// A calibration file (`fit::Calibration`): the instrumental polarization field of one
-/// instrument and filter.
+/// The field model a calibration file holds: a partial polarizer p, phi (`instpol calibrate`,
+/// `import-map`, `fit`) or a Mueller field (`instpol calibrate-mueller --out CAL.fits`).
+enum Field {
+    PPhi(fit::Calibration),
+    Mueller(fit::mueller_cal::MuellerCal),
+}
+
+/// A calibration file: the instrumental polarization field of one instrument and filter, as a
+/// partial polarizer (`fit::Calibration`) or a Mueller field (`fit::mueller_cal::MuellerCal`).
 #[pyclass(module = "instpol._instpol", frozen)]
 struct _Calibration {
-    cal: fit::Calibration,
+    field: Field,
     /// The telescope model stored beside the field one (`instpol fit-standards --output
     /// --field-cal`), applied after the field with each row's parallactic angle.
     telescope: Option<fit::telescope::TelescopeFit>,
@@ -338,10 +357,24 @@ struct _Calibration {
 }
 
 impl _Calibration {
+    fn instrument_filter(&self) -> (&str, &str) {
+        match &self.field {
+            Field::PPhi(c) => (&c.instrument, &c.filter),
+            Field::Mueller(m) => (&m.instrument, &m.filter),
+        }
+    }
+
+    fn pixel(&self) -> Option<fit::calfile::PixelGrid> {
+        match &self.field {
+            Field::PPhi(c) => c.pixel,
+            Field::Mueller(m) => m.pixel(),
+        }
+    }
+
     /// The telescope model's band: `band`, else the field calibration's filter (the rule of
     /// `instpol correct --band`); an error naming the bands the model has.
     fn telescope_band(&self, t: &fit::telescope::TelescopeFit, band: Option<String>) -> PyResult<String> {
-        let b = band.unwrap_or_else(|| self.cal.filter.clone());
+        let b = band.unwrap_or_else(|| self.instrument_filter().1.to_string());
         if t.band(&b).is_none() {
             let bands: Vec<&str> = t.bands.iter().map(|x| x.0.as_str()).collect();
             return Err(input_err(format!(
@@ -359,7 +392,7 @@ impl _Calibration {
         match units {
             "arcmin" => Ok(None),
             "px" | "pixel" => {
-                let g = self.cal.pixel.ok_or_else(|| {
+                let g = self.pixel().ok_or_else(|| {
                     input_err("the calibration has no pixel grid: give the positions in arcmin (units=\"arcmin\")")
                 })?;
                 let (ax, ay): (Vec<f64>, Vec<f64>) = x.iter().zip(y).map(|(&x, &y)| g.to_arcmin(x, y)).unzip();
@@ -374,17 +407,13 @@ impl _Calibration {
 impl _Calibration {
     #[staticmethod]
     fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+        if fit::mueller_cal::is_mueller(&path) {
+            let m = py.detach(|| fit::mueller_cal::MuellerCal::load(&path)).map_err(|e| load_err(&path, e))?;
+            return Ok(Self { field: Field::Mueller(m), telescope: None, path });
+        }
         // The reader `instpol correct` uses: a field model, and a telescope model when the
         // file holds one (ignoring it would return the telescope's polarization as the sky's).
-        let loaded = py.detach(|| fit::telescope_cal::load(&path)).map_err(|e| {
-            let file = matches!(e, fit::Error::Io { .. } | fit::Error::Fits { .. });
-            let msg = format!("cannot load calibration {}: {e}", path.display());
-            if file {
-                FileError::new_err(msg)
-            } else {
-                input_err(msg)
-            }
-        })?;
+        let loaded = py.detach(|| fit::telescope_cal::load(&path)).map_err(|e| load_err(&path, e))?;
         let cal = loaded.field.ok_or_else(|| {
             input_err(format!(
                 "cannot load calibration {}: it holds only a telescope model; the Python package corrects with a \
@@ -392,7 +421,7 @@ impl _Calibration {
                 path.display()
             ))
         })?;
-        Ok(Self { cal, telescope: loaded.telescope, path })
+        Ok(Self { field: Field::PPhi(cal), telescope: loaded.telescope, path })
     }
 
     #[getter]
@@ -401,36 +430,71 @@ impl _Calibration {
     }
     #[getter]
     fn instrument(&self) -> String {
-        self.cal.instrument.clone()
+        self.instrument_filter().0.to_string()
     }
     #[getter]
     fn filter(&self) -> String {
-        self.cal.filter.clone()
+        self.instrument_filter().1.to_string()
     }
     #[getter]
     fn lambda_nm(&self) -> f64 {
-        self.cal.lambda_nm
+        match &self.field {
+            Field::PPhi(c) => c.lambda_nm,
+            Field::Mueller(_) => f64::NAN,
+        }
     }
     #[getter]
     fn hwp_chi_offset_deg(&self) -> f64 {
-        self.cal.hwp_chi_offset_deg
+        match &self.field {
+            Field::PPhi(c) => c.hwp_chi_offset_deg,
+            // A Mueller field is fitted and applied in the maps' frame (instpol correct).
+            Field::Mueller(_) => 0.0,
+        }
     }
     #[getter]
     fn model(&self) -> &'static str {
-        self.cal.model.kind()
+        match &self.field {
+            Field::PPhi(c) => c.model.kind(),
+            Field::Mueller(_) => "MUELLER",
+        }
+    }
+    /// A Mueller field's model in words (`physical`, `general`), as `instpol correct --json`
+    /// says it; None for a p, phi calibration.
+    #[getter]
+    fn mueller_model(&self) -> Option<&'static str> {
+        match &self.field {
+            Field::Mueller(m) => Some(m.field.kind.model_name()),
+            Field::PPhi(_) => None,
+        }
+    }
+    /// A Mueller field's free effects (`diattenuation`, `retardance`, ...); empty otherwise.
+    #[getter]
+    fn mueller_free(&self) -> Vec<&'static str> {
+        match &self.field {
+            Field::Mueller(m) => m.field.kind.free_words(),
+            Field::PPhi(_) => vec![],
+        }
     }
     #[getter]
     fn rms_residual(&self) -> f64 {
-        self.cal.rms_residual
+        match &self.field {
+            Field::PPhi(c) => c.rms_residual,
+            Field::Mueller(_) => f64::NAN,
+        }
     }
     #[getter]
     fn centre_arcmin(&self) -> (f64, f64) {
-        let c = self.cal.centre_arcmin();
-        (c[0], c[1])
+        match &self.field {
+            Field::PPhi(c) => {
+                let c = c.centre_arcmin();
+                (c[0], c[1])
+            }
+            Field::Mueller(_) => (f64::NAN, f64::NAN),
+        }
     }
     #[getter]
     fn has_pixel_grid(&self) -> bool {
-        self.cal.pixel.is_some()
+        self.pixel().is_some()
     }
     /// The bands of the telescope model stored in the file (empty without one).
     #[getter]
@@ -454,9 +518,13 @@ impl _Calibration {
         }
         let conv = self.arcmin(x, y, units)?;
         let (x, y) = conv.as_ref().map_or((x, y), |(a, b)| (a.as_slice(), b.as_slice()));
-        let cal = &self.cal;
-        let v: Vec<(fit::model::InstPol, bool)> =
-            py.detach(|| x.par_iter().zip(y).map(|(&x, &y)| (cal.eval(x, y), cal.contains(x, y))).collect());
+        fn at<M: FieldModel + Sync>(m: &M, x: &[f64], y: &[f64]) -> Vec<(fit::model::InstPol, bool)> {
+            x.par_iter().zip(y).map(|(&x, &y)| (m.eval(x, y), m.contains(x, y))).collect()
+        }
+        let v = py.detach(|| match &self.field {
+            Field::PPhi(c) => at(c, x, y),
+            Field::Mueller(m) => at(&m.field, x, y),
+        });
         let d = PyDict::new(py);
         d.set_item("q", arr1(py, v.iter().map(|a| a.0.q).collect()))?;
         d.set_item("u", arr1(py, v.iter().map(|a| a.0.u).collect()))?;
@@ -512,6 +580,22 @@ impl _Calibration {
         if [pa.map_or(n, |c| c.len()), pa_end.map_or(n, |c| c.len())].iter().any(|&l| l != n) {
             return Err(input_err("parang_deg and parang_end_deg must have the shape of x (after broadcasting)"));
         }
+        if let Field::Mueller(_) = &self.field {
+            if method == Method::FirstOrder {
+                return Err(input_err(format!(
+                    "method \"first-order\": {} holds a Mueller field, which is inverted exactly (eq:approx is the p, \
+                     phi model's first order)",
+                    self.path.display()
+                )));
+            }
+            if pa.is_some() || pa_end.is_some() || band.is_some() {
+                return Err(input_err(format!(
+                    "parang_deg, parang_end_deg and band are for calibrations with a telescope model; {} holds a \
+                     Mueller field",
+                    self.path.display()
+                )));
+            }
+        }
         let telescope = match (&self.telescope, pa) {
             (Some(t), Some(pa)) => Some((t, pa, self.telescope_band(t, band)?)),
             (Some(t), None) => {
@@ -543,11 +627,10 @@ impl _Calibration {
             extrapolation_rel_error: extrapolation_error,
             // With a telescope model its offset is the instrument's angle zero (module docs
             // of fit::telescope_cal), as `instpol correct` does.
-            chi_offset: if telescope.is_some() { 0.0 } else { self.cal.hwp_chi_offset_deg.to_radians() },
+            // A Mueller field: the maps' frame (hwp_chi_offset_deg is 0).
+            chi_offset: if telescope.is_some() { 0.0 } else { self.hwp_chi_offset_deg().to_radians() },
         };
-        let cal = &self.cal;
         let input = Inputs { x, y, q, u, sq, su, cov };
-        let cor = Corrector::new(cal, opts);
         let mut cols: Vec<Vec<f64>> = (0..N_OUT).map(|_| reserved_column(n)).collect();
         let mut p0e: Option<Vec<f64>> = est.map(|_| reserved_column(n));
         let mut extra = vec![false; n];
@@ -559,9 +642,17 @@ impl _Calibration {
                 extra: &mut extra,
                 start: 0,
             };
-            match &telescope {
-                Some((t, pa, b)) => fill_chain(&cor, t, b, &input, pa, pa_end, sink),
-                None => fill(&cor, &input, sink).map_err(|(k, e)| (k, e.to_string())),
+            match (&self.field, &telescope) {
+                (Field::PPhi(c), Some((t, pa, b))) => {
+                    fill_chain(&Corrector::new(c, opts), t, b, &input, pa, pa_end, sink)
+                }
+                (Field::PPhi(c), None) => {
+                    let cor = Corrector::new(c, opts);
+                    fill(&|m: &Measurement| cor.correct(m), &input, sink).map_err(|(k, e)| (k, e.to_string()))
+                }
+                (Field::Mueller(mc), _) => {
+                    fill(&|m: &Measurement| mc.correct(m, &opts), &input, sink).map_err(|(k, e)| (k, e.to_string()))
+                }
             }
         });
         let n_extra = res.map_err(|(row, e)| input_err(format!("index {row}: {e}")))?;
@@ -636,16 +727,15 @@ impl<'a> Sink<'a> {
     }
 }
 
-/// Correct every row with `Corrector::correct` (the function `instpol correct` applies to each
-/// row through `par_correct_batch`), writing the output columns directly: no row structs in
-/// between, so the time is the library's and not the copying. Halves run on rayon's pool; the
+/// Correct every row with `cor` (`Corrector::correct` or `MuellerCal::correct`, the functions
+/// `instpol correct` applies to each row), writing the output columns directly: no row structs
+/// in between, so the time is the library's and not the copying. Halves run on rayon's pool; the
 /// error returned is the one of the lowest row, as `par_correct_batch` does. Returns the number
 /// of extrapolated rows.
-fn fill(
-    cor: &Corrector<'_, fit::Calibration>,
-    i: &Inputs<'_>,
-    s: Sink<'_>,
-) -> Result<usize, (usize, fit::correct::Error)> {
+fn fill<F>(cor: &F, i: &Inputs<'_>, s: Sink<'_>) -> Result<usize, (usize, fit::correct::Error)>
+where
+    F: Fn(&Measurement) -> Result<fit::correct::Corrected, fit::correct::Error> + Sync,
+{
     const CHUNK: usize = 4096;
     let n = s.extra.len();
     if n > CHUNK {
@@ -673,7 +763,7 @@ fn fill(
             sigma_u: su[k],
             cov_qu: cov.map_or(0.0, |c| c[k]),
         };
-        let r = cor.correct(&m).map_err(|e| (r0 + k, e))?;
+        let r = cor(&m).map_err(|e| (r0 + k, e))?;
         // Written column by column here, not through put_row: this loop is the 1e7/s path
         // (bench/python_correct.sh) and the array-of-slices loop measured ~20 % slower. The
         // values are those of Corrected::output_values (pytest compares with the CLI's).

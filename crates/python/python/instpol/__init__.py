@@ -207,7 +207,10 @@ def bias(
 class Calibration:
     """A calibration file (``instpol calibrate`` or ``instpol import-map``): the instrumental
     polarization field p(x, y), phi(x, y) of one instrument and filter, its covariance, the
-    region where it holds and the filter's HWP zero angle.
+    region where it holds and the filter's HWP zero angle. A Mueller-field calibration
+    (``instpol calibrate-mueller --out CAL.fits``, ``model == "MUELLER"``) loads too: its field
+    (diattenuation, retardance, ...) is inverted exactly for polarized targets, in the maps'
+    frame (``hwp_chi_offset_deg`` 0), as ``instpol correct`` does.
 
     Load it with :meth:`load`; :meth:`evaluate` gives the instrumental (q, u) at positions,
     :meth:`correct` removes it from measurements (eq:instpol inverted exactly, or eq:approx).
@@ -229,9 +232,21 @@ class Calibration:
     hwp_chi_offset_deg = property(
         lambda self: self._c.hwp_chi_offset_deg, doc="HWP chromatic zero angle added to a measured chi (deg)."
     )
-    model = property(lambda self: self._c.model, doc="Model kind: RADIAL, RADIAL+RESIDUAL or MAP.")
-    rms_residual = property(lambda self: self._c.rms_residual, doc="RMS fit residual per component (fraction).")
-    centre_arcmin = property(lambda self: self._c.centre_arcmin, doc="Optical-axis centre (arcmin).")
+    model = property(lambda self: self._c.model, doc="Model kind: RADIAL, RADIAL+RESIDUAL, MAP or MUELLER.")
+    mueller_model = property(
+        lambda self: self._c.mueller_model,
+        doc="A Mueller field's model in words (physical, general); None for a p, phi calibration.",
+    )
+    mueller_free = property(
+        lambda self: list(self._c.mueller_free),
+        doc="A Mueller field's free effects (diattenuation, retardance, ...); empty for a p, phi calibration.",
+    )
+    rms_residual = property(
+        lambda self: self._c.rms_residual, doc="RMS fit residual per component (fraction); NaN for a Mueller field."
+    )
+    centre_arcmin = property(
+        lambda self: self._c.centre_arcmin, doc="Optical-axis centre (arcmin); NaN for a Mueller field."
+    )
     has_pixel_grid = property(lambda self: self._c.has_pixel_grid, doc="True when positions may be given in px.")
     telescope_bands = property(
         lambda self: list(self._c.telescope_bands),
@@ -280,7 +295,10 @@ class Calibration:
         covariances are propagated. Positions outside the calibrated field raise InputError
         unless ``allow_extrapolation``; then they are flagged and the calibration variance is
         inflated by (F p)^2 (F = ``extrapolation_error``). ``units`` as in :meth:`evaluate`.
-        The same function and numbers, bit for bit, as ``instpol correct``.
+        The same function and numbers, bit for bit, as ``instpol correct``. With a Mueller
+        field (``model == "MUELLER"``) the field's linear block is inverted exactly (only
+        ``method="exact"``; no zero angle: the maps' frame) and ``parang_deg``, ``band`` raise
+        InputError.
 
         A calibration holding a telescope model (``telescope_bands`` not empty, from
         ``instpol fit-standards --output --field-cal``) needs each row's parallactic angle

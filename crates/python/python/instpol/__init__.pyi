@@ -42,7 +42,8 @@ def bias(
     """Bias-corrected P0 and an interval on it (section sec:bias), vectorized."""
 
 class Calibration:
-    """A calibration file: the instrumental polarization field of one instrument and filter."""
+    """A calibration file: the instrumental polarization field of one instrument and filter
+    (a partial polarizer p, phi, or a Mueller field from calibrate-mueller)."""
 
     @classmethod
     def load(cls, path: PathLike) -> Calibration: ...
@@ -58,6 +59,10 @@ class Calibration:
     def hwp_chi_offset_deg(self) -> float: ...
     @property
     def model(self) -> str: ...
+    @property
+    def mueller_model(self) -> Optional[str]: ...
+    @property
+    def mueller_free(self) -> List[str]: ...
     @property
     def rms_residual(self) -> float: ...
     @property
