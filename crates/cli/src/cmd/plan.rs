@@ -51,8 +51,9 @@ pub struct Args {
     /// Polarization degree of the targets (PERCENT).
     #[arg(long, default_value_t = 5.0)]
     pub target_p_percent: f64,
-    /// A Mueller-field file (calibrate-mueller --out) to linearize at and, with --check, to
-    /// simulate; without it: no instrumental effect.
+    /// A Mueller field (calibrate-mueller --out: the FITS calibration or the JSON, told apart
+    /// by content) to linearize at and, with --check, to simulate; without it: no
+    /// instrumental effect.
     #[arg(long)]
     pub expected: Option<PathBuf>,
     /// Simulate the cheapest plan (4 noise draws) and report the accuracy it reaches.
@@ -118,8 +119,7 @@ pub fn run(a: Args) -> Result<()> {
     let expected: Option<Arc<MuellerField>> = match &a.expected {
         Some(p) => {
             crate::util::inputs([p.as_path()])?;
-            let text = std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?;
-            Some(Arc::new(MuellerField::from_json(&text, &p.display().to_string()).map_err(|e| anyhow!("{e}"))?))
+            Some(Arc::new(fit::mueller_cal::load_field(p).map_err(|e| anyhow!("{e}"))?.0))
         }
         None => None,
     };
