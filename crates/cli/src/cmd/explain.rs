@@ -1,7 +1,7 @@
 //! `instpol explain`: which physics explains a fitted Mueller field (issue 16 item 4). All
 //! numbers come from `fit::mueller_explain`; this file parses, prints and plots.
 
-use anyhow::{anyhow, bail, Context as _, Result};
+use anyhow::{anyhow, bail, Result};
 use fit::mueller_explain::{explain, Cause, Context, Explanation, Target};
 use fit::mueller_field::Smooth;
 use std::path::PathBuf;

@@ -1,7 +1,7 @@
 //! `instpol plan`: what a Mueller-field calibration costs (issue 16): how many sky fields,
 //! which, and how long per HWP angle reach a target accuracy, from `fit::mueller_plan`.
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, Result};
 use fit::mueller_field::{Kind, MuellerField, MuellerFitOptions};
 use fit::mueller_plan::{simulate_plan, PlanRow, PlanSetup};
 use plotters::prelude::*;
