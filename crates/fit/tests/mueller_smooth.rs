@@ -231,3 +231,56 @@ fn stars_corrected_with_every_form_come_back_within_errors() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A file written before the smooth forms (no `MU SMOOTH` keyword, deleted here with
+/// cfitsio's own `ffdkey`) is read as the polynomial it holds; an unknown form is refused by
+/// name; an interpolant file whose per-bin table was dropped is refused naming MUELLER_BINS.
+#[test]
+fn older_files_read_as_poly_and_bad_forms_are_refused() {
+    let f = fields(&tilted_truth, 5, 2.0, 1e-4, 8);
+    let mf = fit_mueller_field(&f, &opts(1)).unwrap();
+    let (bins, _) = fit_per_bin(&f, &opts(0)).unwrap();
+    let dir = std::env::temp_dir().join(format!("instpol_mueller_smooth_old_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("poly.fits");
+    calibration(mf.clone(), vec![]).save(&path).unwrap();
+    let edit = |p: &std::path::Path, f: &dyn Fn(*mut fitsio::sys::fitsfile, &mut i32)| {
+        let mut ff = fitsio::FitsFile::edit(p).unwrap();
+        ff.hdu("MUELLER").unwrap();
+        let mut status = 0;
+        f(unsafe { ff.as_raw() }, &mut status);
+        assert_eq!(status, 0, "cfitsio status");
+    };
+    let old = dir.join("old.fits");
+    std::fs::copy(&path, &old).unwrap();
+    edit(&old, &|ptr, st| unsafe {
+        fitsio::sys::ffdkey(ptr, c"IP MU SMOOTH".as_ptr(), st);
+    });
+    let back = MuellerCal::load(&old).unwrap();
+    assert_eq!(back.field.smooth, Smooth::Poly);
+    assert_eq!(back.field.coeffs, mf.coeffs);
+
+    let bad = dir.join("spline.fits");
+    std::fs::copy(&path, &bad).unwrap();
+    edit(&bad, &|ptr, st| unsafe {
+        fitsio::sys::ffukys(ptr, c"HIERARCH IP MU SMOOTH".as_ptr(), c"SPLINE".as_ptr(), std::ptr::null(), st);
+    });
+    let e = MuellerCal::load(&bad).unwrap_err().to_string();
+    assert!(e.contains("spline.fits") && e.contains("MU SMOOTH") && e.contains("spline"), "{e}");
+
+    let ip = dir.join("interp.fits");
+    calibration(interp_field(&bins).unwrap(), bins.clone()).save(&ip).unwrap();
+    assert_eq!(MuellerCal::load(&ip).unwrap().field.smooth.name(), "interp");
+    edit(&ip, &|ptr, st| unsafe {
+        let mut ty = 0;
+        fitsio::sys::ffmnhd(ptr, -1, c"MUELLER_BINS".as_ptr() as *mut _, 0, st);
+        fitsio::sys::ffdhdu(ptr, &mut ty, st);
+    });
+    let e = MuellerCal::load(&ip).unwrap_err().to_string();
+    assert!(e.contains("interp.fits") && e.contains("MUELLER_BINS"), "{e}");
+    // Saving an interpolant without its per-bin fits is refused (it would not read back).
+    let e = calibration(interp_field(&bins).unwrap(), vec![]).save(&dir.join("x.fits")).unwrap_err().to_string();
+    assert!(e.contains("per-bin"), "{e}");
+    assert!(!dir.join("x.fits").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
