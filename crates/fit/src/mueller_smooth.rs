@@ -190,25 +190,24 @@ impl InterpForm {
         if points.iter().any(|p| p.vals.len() != nf || p.cov.len() != nf * nf) {
             return Err(Error::Input("interpolant points of different parameter counts".into()));
         }
-        let mut channels: Vec<Box<dyn Fn(&InterpPoint) -> f64>> = Vec::new();
-        for k in 0..nf {
-            channels.push(Box::new(move |p: &InterpPoint| p.vals[k]));
-        }
-        for k in 0..nf {
-            for l in k..nf {
-                channels.push(Box::new(move |p: &InterpPoint| p.cov[k * nf + l]));
-            }
-        }
+        // Per point: its values, then the upper triangle of its covariance row by row.
+        let channels: Vec<Vec<f64>> = points
+            .iter()
+            .map(|p| {
+                let mut c = p.vals.clone();
+                for k in 0..nf {
+                    c.extend_from_slice(&p.cov[k * nf + k..(k + 1) * nf]);
+                }
+                c
+            })
+            .collect();
+        let nc = nf + nf * (nf + 1) / 2;
         let mut maps = Vec::new();
-        for c in (0..channels.len()).step_by(2) {
+        for c in (0..nc).step_by(2) {
             let pts = points
                 .iter()
-                .map(|p| ResidualPoint {
-                    x: p.x,
-                    y: p.y,
-                    dq: channels[c](p),
-                    du: channels.get(c + 1).map_or(0.0, |f| f(p)),
-                })
+                .zip(&channels)
+                .map(|(p, ch)| ResidualPoint { x: p.x, y: p.y, dq: ch[c], du: ch.get(c + 1).copied().unwrap_or(0.0) })
                 .collect();
             let m = ResidualMap::new(pts)?;
             if m.points().len() != points.len() {
