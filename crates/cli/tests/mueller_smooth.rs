@@ -1,7 +1,8 @@
 //! The Mueller field's smooth forms through the CLI (issue 16 items 1 and 2):
 //! `calibrate-mueller --smooth radial|interp` on maps of a centred stressed lens (radial: its
 //! reduced chi^2 near 1) and of an off-centre one (radial: flagged), `correct` with each form
-//! giving a fourth sky back within its errors; `explain` and `plan --expected` giving the same
+//! giving a fourth sky back within its errors, `plan --expected` refusing bins outside the
+//! interpolant's hull; `explain` and `plan --expected` giving the same
 //! answer from the FITS calibration as from the JSON of one field, and refusing a p, phi
 //! calibration by name (exit 2).
 
@@ -74,6 +75,27 @@ fn radial_and_interp_forms_calibrate_and_correct() {
             .fold(0.0, f64::max);
         assert!(worst < 3.0, "{form}: worst bin of the corrected fourth sky: {worst} sigma");
     }
+    // plan --expected with the interpolant: bins outside its hull (64 px bins: centres 32 px
+    // from the edge, the maps' outermost 64 px) are refused, not planned on a NaN field.
+    let a: Vec<String> = [
+        "plan",
+        "--target-percent",
+        "0.05",
+        "--sky-rate",
+        "2",
+        "--candidate",
+        "6.45:68.4",
+        "--bin",
+        "64",
+        "--expected",
+        &s(&d.join("interp.fits")),
+    ]
+    .iter()
+    .map(|v| v.to_string())
+    .collect();
+    let (code, _, err) = run(&a);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("interp.fits") && err.contains("has no value"), "{err}");
     // An off-centre lens is not radial about the origin: the radial form says so.
     let off = lens_truth([0.8, -0.4]);
     let d2 = d.join("off");

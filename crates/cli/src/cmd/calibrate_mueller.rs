@@ -267,6 +267,15 @@ pub fn run(a: Args) -> Result<()> {
         ("interp", Some(b)) => fit::mueller_smooth::interp_field(&b.0).map_err(|e| anyhow!("--smooth interp: {e}"))?,
         _ => fit_mueller_field(&fields, &opts).map_err(|e| anyhow!("{e}"))?,
     };
+    let mut mf = mf;
+    if a.smooth != "poly" && fields.len() > n_maps {
+        // Each star is a position of its own, which no per-bin fit constrains.
+        mf.warnings.push(format!(
+            "the {} form is built from the per-bin fits of the sky maps: the {} polarized standards of --stars do not enter it (use --smooth poly to fit them with the maps)",
+            a.smooth,
+            fields.len() - n_maps
+        ));
+    }
     if fits_out {
         let (instrument, filter, coords) = setup.expect("at least one field (clap requires one)");
         let cal = MuellerCal {

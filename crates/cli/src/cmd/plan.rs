@@ -141,6 +141,16 @@ pub fn run(a: Args) -> Result<()> {
             positions.push(g.centre_arcmin(i, j));
         }
     }
+    if let (Some(m), Some(p)) = (&expected, &a.expected) {
+        // The interpolant has no value outside the hull of its bins: no silent NaN field.
+        if let Some(&(x, y)) = positions.iter().find(|&&(x, y)| !m.full_at(x, y).iter().all(|v| v.is_finite())) {
+            bail!(
+                "--expected {}: the {} form has no value at the plan's bin centre ({x:.2}, {y:.2}) arcmin (outside the bins it was built from): give a poly or radial field, or a --bin whose centres lie inside",
+                p.display(),
+                m.smooth.name()
+            );
+        }
+    }
     let radius = positions.iter().map(|&(x, y)| x.abs().max(y.abs())).fold(0.0, f64::max).max(0.1);
     let setup = PlanSetup {
         positions,
