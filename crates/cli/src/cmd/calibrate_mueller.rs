@@ -36,6 +36,10 @@ use std::path::PathBuf;
 ///
 /// Example: instpol calibrate-mueller --field b_sky1.fits:6.45:68.4 --field b_sky2.fits:4.0:10
 /// --field b_sky3.fits:8.0:130 --free retardance --deg 4 --out mueller_B.fits
+///
+/// Radial form (the field's chi2_dof says whether it is radial): instpol calibrate-mueller
+/// --field b_sky1.fits:6.45:68.4 --field b_sky2.fits:4.0:10 --field b_sky3.fits:8.0:130
+/// --smooth radial --deg 4 --out mueller_B_radial.fits
 #[derive(clap::Args)]
 pub struct Args {
     /// A Stokes map (FITS written by `instpol reduce`) with its sky polarization:
