@@ -5,7 +5,9 @@
 //!   `1 + 2 n_free` such passes (value and central differences);
 //! - `joint_deg4`, `joint_deg6`: the smooth fit (diattenuation + retardance vector, each a
 //!   degree-4 / degree-6 polynomial: 60 / 112 coefficients);
-//! - `per_bin`: 2700 independent 4-parameter fits (rayon).
+//! - `per_bin`: 2700 independent 4-parameter fits (rayon);
+//! - `radial_deg4_from_bins`, `interp_from_bins`: the radial and interpolant smooth forms
+//!   built from those per-bin fits (`fit::mueller_smooth`), on top of `per_bin`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use fit::mueller_field::{fit_mueller_field, fit_per_bin, CalField, Kind, MuellerFitOptions, Observation};
@@ -76,6 +78,12 @@ fn bench(c: &mut Criterion) {
         b.iter(|| black_box(fit_mueller_field(&f, &MuellerFitOptions { deg: 6, ..o }).unwrap()))
     });
     g.bench_function("per_bin", |b| b.iter(|| black_box(fit_per_bin(&f, &o).unwrap())));
+    // The other smooth forms, from the per-bin fits (their cost on top of `per_bin`).
+    let (bins, _) = fit_per_bin(&f, &o).unwrap();
+    g.bench_function("radial_deg4_from_bins", |b| {
+        b.iter(|| black_box(fit::mueller_smooth::radial_field(&bins, 4).unwrap()))
+    });
+    g.bench_function("interp_from_bins", |b| b.iter(|| black_box(fit::mueller_smooth::interp_field(&bins).unwrap())));
     g.finish();
 }
 

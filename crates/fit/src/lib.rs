@@ -25,6 +25,7 @@ pub mod mueller_cal;
 pub mod mueller_explain;
 pub mod mueller_field;
 pub mod mueller_plan;
+pub mod mueller_smooth;
 pub mod paper;
 pub mod pipeline;
 pub mod polar;

@@ -30,7 +30,8 @@ use crate::calfile::{
     fits_err, open_versioned, save_fits_atomically, KeyReader, KeyWriter, PixelGrid, Provenance, FORMAT_VERSION,
 };
 use crate::correct::{self, p_chi_with_errors, CorrectOptions, Corrected, Measurement};
-use crate::mueller_field::{monomial_powers, n_monomials, BinFit, Kind, MuellerField};
+use crate::mueller_field::{monomial_powers, BinFit, Kind, MuellerField, Smooth};
+use crate::mueller_smooth;
 use crate::{Error, Result};
 use field::{FieldCoords, FieldModel};
 use fitsio::images::{ImageDescription, ImageType};
@@ -79,6 +80,43 @@ pub fn is_mueller(path: &Path) -> bool {
     let Ok(hdu) = f.primary_hdu() else { return false };
     let mut r = KeyReader { f: &mut f, hdu: &hdu, path };
     r.opt_str("MODEL").as_deref() == Some(MODEL_KIND)
+}
+
+/// The Mueller field of a file that is either a calibration (FITS, [`MuellerCal::load`]) or
+/// the JSON of `calibrate-mueller --out X.json` ([`MuellerField::from_json`]), told apart by
+/// content (a FITS file begins with `SIMPLE  =`), with the per-bin fits when the file has them.
+/// A FITS file that is not a Mueller-field calibration (a `p, phi` calibration, a Stokes map)
+/// is refused naming its `HIERARCH IP MODEL`.
+pub fn load_field(path: &Path) -> Result<(MuellerField, Vec<BinFit>)> {
+    use std::io::Read;
+    let what = path.display().to_string();
+    let mut head = [0u8; 9];
+    let n = std::fs::File::open(path)
+        .and_then(|mut f| f.read(&mut head))
+        .map_err(|e| Error::Input(format!("{what}: cannot read: {e}")))?;
+    if n == 9 && &head == b"SIMPLE  =" {
+        if !is_mueller(path) {
+            let model = FitsFile::open(path).ok().and_then(|mut f| {
+                let hdu = f.primary_hdu().ok()?;
+                KeyReader { f: &mut f, hdu: &hdu, path }.opt_str("MODEL")
+            });
+            return Err(Error::BadFile {
+                path: path.into(),
+                what: match model {
+                    Some(m) => format!(
+                        "HIERARCH IP MODEL = '{m}': a partial-polarizer (p, phi) calibration, not a Mueller field ('{MODEL_KIND}', written by instpol calibrate-mueller)"
+                    ),
+                    None => format!(
+                        "a FITS file without HIERARCH IP MODEL: not a Mueller-field calibration ('{MODEL_KIND}', written by instpol calibrate-mueller)"
+                    ),
+                },
+            });
+        }
+        let cal = MuellerCal::load(path)?;
+        return Ok((cal.field, cal.per_bin));
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| Error::Input(format!("{what}: cannot read as text: {e}")))?;
+    Ok((MuellerField::from_json(&text, &what)?, vec![]))
 }
 
 impl MuellerCal {
@@ -179,9 +217,18 @@ impl MuellerCal {
         }
 
         // The coefficients, one row each.
-        let powers = monomial_powers(mf.deg);
-        let nm = powers.len();
+        let rows = coeff_rows(mf.kind, mf.smooth.name(), mf.deg)
+            .map_err(|m| Error::Input(format!("{}: {m}", path.display())))?;
         let n = mf.coeffs.len();
+        if rows.len() != n || mf.cov.len() != n * n {
+            return Err(Error::Input(format!("{}: the field's coefficients do not match its model", path.display())));
+        }
+        if matches!(mf.smooth, Smooth::Interp(_)) && self.per_bin.is_empty() {
+            return Err(Error::Input(format!(
+                "{}: the interpolant form is stored as its per-bin fits, and there are none",
+                path.display()
+            )));
+        }
         let mut descs = vec![];
         for (c, t) in [
             ("PARAM", ColumnDataType::Int),
@@ -193,16 +240,19 @@ impl MuellerCal {
             descs.push(ColumnDescription::new(c).with_type(t).create().map_err(e("describing MUELLER"))?);
         }
         let h = f.create_table(HDU, &descs).map_err(e("creating table MUELLER"))?;
-        let param: Vec<i32> = (0..n).map(|r| mf.free[r / nm] as i32).collect();
-        let px: Vec<i32> = (0..n).map(|r| powers[r % nm].0 as i32).collect();
-        let py: Vec<i32> = (0..n).map(|r| powers[r % nm].1 as i32).collect();
+        let param: Vec<i32> = rows.iter().map(|r| r.0 as i32).collect();
+        let px: Vec<i32> = rows.iter().map(|r| r.1 as i32).collect();
+        let py: Vec<i32> = rows.iter().map(|r| r.2 as i32).collect();
         let sigma: Vec<f64> = (0..n).map(|r| mf.cov[r * n + r].max(0.0).sqrt()).collect();
-        for (c, v) in [("PARAM", &param), ("PX", &px), ("PY", &py)] {
-            h.write_col(f, c, v).map_err(e(&format!("writing MUELLER column {c}")))?;
+        if n > 0 {
+            for (c, v) in [("PARAM", &param), ("PX", &px), ("PY", &py)] {
+                h.write_col(f, c, v).map_err(e(&format!("writing MUELLER column {c}")))?;
+            }
+            h.write_col(f, "COEFF", &mf.coeffs).map_err(e("writing MUELLER column COEFF"))?;
+            h.write_col(f, "SIGMA", &sigma).map_err(e("writing MUELLER column SIGMA"))?;
         }
-        h.write_col(f, "COEFF", &mf.coeffs).map_err(e("writing MUELLER column COEFF"))?;
-        h.write_col(f, "SIGMA", &sigma).map_err(e("writing MUELLER column SIGMA"))?;
         let mut w = KeyWriter { f, hdu: &h, path };
+        w.str("MU SMOOTH", &mf.smooth.name().to_ascii_uppercase())?;
         w.str("MU MODEL", mf.kind.model_name())?;
         w.str("MU FREE", &mf.kind.free_words().join(","))?;
         w.int("MU DEG", mf.deg as i64)?;
@@ -226,10 +276,12 @@ impl MuellerCal {
             w.str(&format!("MU WARN{}", k + 1), t)?;
         }
 
-        // The covariance.
-        let desc = ImageDescription { data_type: ImageType::Double, dimensions: &[n, n] };
-        let h = f.create_image(COV_HDU, &desc).map_err(e("creating image MUELLER_COV"))?;
-        h.write_image(f, &mf.cov).map_err(e("writing image MUELLER_COV"))?;
+        // The covariance (the interpolant has no coefficients: its errors are the bins').
+        if n > 0 {
+            let desc = ImageDescription { data_type: ImageType::Double, dimensions: &[n, n] };
+            let h = f.create_image(COV_HDU, &desc).map_err(e("creating image MUELLER_COV"))?;
+            h.write_image(f, &mf.cov).map_err(e("writing image MUELLER_COV"))?;
+        }
 
         if !self.per_bin.is_empty() {
             self.write_bins(f, path)?;
@@ -335,7 +387,9 @@ impl MuellerCal {
             fitsio::hdu::HduInfo::TableInfo { num_rows, .. } => *num_rows,
             _ => return Err(bad("MUELLER is not a table".into())),
         };
-        let (param, px, py, coeffs) = {
+        let (param, px, py, coeffs) = if nrows == 0 {
+            (vec![], vec![], vec![], vec![])
+        } else {
             let mut ints = |c: &str| -> Result<Vec<i32>> {
                 h.read_col::<i32>(&mut f, c).map_err(e(&format!("reading MUELLER column {c}")))
             };
@@ -344,6 +398,8 @@ impl MuellerCal {
             (a, b, c, d)
         };
         let mut r = KeyReader { f: &mut f, hdu: &h, path };
+        // Files written before the smooth forms hold the polynomial.
+        let smooth_word = r.opt_str("MU SMOOTH").unwrap_or_else(|| "POLY".into()).to_ascii_lowercase();
         let model_word = r.str("MU MODEL")?;
         let free_words = r.str("MU FREE")?;
         let words: Vec<&str> = free_words.split(',').map(str::trim).filter(|w| !w.is_empty()).collect();
@@ -360,18 +416,18 @@ impl MuellerCal {
             return Err(bad(format!("keyword HIERARCH IP MU SCALE ARCMIN = {scale_arcmin}: must be positive")));
         }
         let free = kind.free();
-        let nm = n_monomials(deg);
-        let n = free.len() * nm;
+        let rows = coeff_rows(kind, &smooth_word, deg)
+            .map_err(|m| bad(format!("keyword HIERARCH IP MU SMOOTH = '{smooth_word}': {m}")))?;
+        let n = rows.len();
         if nrows != n || coeffs.len() != n {
             return Err(bad(format!(
-                "MUELLER has {nrows} rows; the {} model ({}) of degree {deg} has {n} coefficients",
+                "MUELLER has {nrows} rows; the {} model ({}) in the {smooth_word} form of degree {deg} has {n} coefficients",
                 kind.model_name(),
                 kind.free_words().join(", ")
             )));
         }
-        let powers = monomial_powers(deg);
         for row in 0..n {
-            let want = (free[row / nm] as i32, powers[row % nm].0 as i32, powers[row % nm].1 as i32);
+            let want = (rows[row].0 as i32, rows[row].1 as i32, rows[row].2 as i32);
             if (param[row], px[row], py[row]) != want || !coeffs[row].is_finite() {
                 return Err(bad(format!(
                     "MUELLER row {}: PARAM, PX, PY, COEFF = {}, {}, {}, {}: expected {}, {}, {} and a finite coefficient",
@@ -409,18 +465,25 @@ impl MuellerCal {
         let nwarn = r.opt_int("MU NWARN").unwrap_or(0).clamp(0, 1000);
         let warnings = (1..=nwarn).filter_map(|k| r.opt_str(&format!("MU WARN{k}"))).collect();
 
-        let h = f.hdu(COV_HDU).map_err(e("finding image MUELLER_COV"))?;
-        match &h.info {
-            fitsio::hdu::HduInfo::ImageInfo { shape, .. } if shape.as_slice() == [n, n] => {}
-            fitsio::hdu::HduInfo::ImageInfo { shape, .. } => {
-                return Err(bad(format!("MUELLER_COV is {shape:?}, not the {n} x {n} covariance of the coefficients")))
+        let cov: Vec<f64> = if n == 0 {
+            vec![]
+        } else {
+            let h = f.hdu(COV_HDU).map_err(e("finding image MUELLER_COV"))?;
+            match &h.info {
+                fitsio::hdu::HduInfo::ImageInfo { shape, .. } if shape.as_slice() == [n, n] => {}
+                fitsio::hdu::HduInfo::ImageInfo { shape, .. } => {
+                    return Err(bad(format!(
+                        "MUELLER_COV is {shape:?}, not the {n} x {n} covariance of the coefficients"
+                    )))
+                }
+                _ => return Err(bad("MUELLER_COV is not an image".into())),
             }
-            _ => return Err(bad("MUELLER_COV is not an image".into())),
-        }
-        let cov: Vec<f64> = h.read_image(&mut f).map_err(e("reading image MUELLER_COV"))?;
-        check_covariance(&cov, n).map_err(|m| bad(format!("MUELLER_COV {m}")))?;
+            let cov: Vec<f64> = h.read_image(&mut f).map_err(e("reading image MUELLER_COV"))?;
+            check_covariance(&cov, n).map_err(|m| bad(format!("MUELLER_COV {m}")))?;
+            cov
+        };
 
-        let field = MuellerField {
+        let mut field = MuellerField {
             kind,
             deg,
             scale_arcmin,
@@ -432,12 +495,46 @@ impl MuellerCal {
             condition,
             bounds,
             warnings,
+            smooth: Smooth::Poly,
         };
         let per_bin = match f.hdu(BINS_HDU) {
             Err(_) => vec![],
             Ok(h) => read_bins(&mut f, &h, path, kind, &free)?,
         };
+        field.smooth = match smooth_word.as_str() {
+            "radial" => Smooth::Radial(
+                mueller_smooth::radial_form_of(kind, deg, &field.coeffs, &field.cov)
+                    .map_err(|m| bad(format!("table MUELLER: {m}")))?,
+            ),
+            "interp" => {
+                if per_bin.len() < 3 {
+                    return Err(bad(format!(
+                        "the interpolant form (MU SMOOTH = 'INTERP') is read from table MUELLER_BINS, which holds {} rows (>= 3 needed)",
+                        per_bin.len()
+                    )));
+                }
+                let built =
+                    mueller_smooth::interp_field(&per_bin).map_err(|e| bad(format!("table MUELLER_BINS: {e}")))?;
+                built.smooth
+            }
+            _ => Smooth::Poly,
+        };
         Ok(MuellerCal { instrument, filter, field, coords, skies, per_bin, provenance })
+    }
+}
+
+/// `(PARAM, PX, PY)` of each coefficient row of table MUELLER for a smooth form (`poly`:
+/// powers of `x / scale`, `y / scale` per free parameter; `radial`: the pair's first parameter
+/// and the power of `r`; `interp`: none, the per-bin table is the form).
+fn coeff_rows(kind: Kind, smooth: &str, deg: usize) -> std::result::Result<Vec<(usize, usize, usize)>, String> {
+    match smooth {
+        "poly" => {
+            let powers = monomial_powers(deg);
+            Ok(kind.free().into_iter().flat_map(|p| powers.iter().map(move |&(i, j)| (p, i, j))).collect())
+        }
+        "radial" => mueller_smooth::radial_rows(kind, deg),
+        "interp" => Ok(vec![]),
+        other => Err(format!("unknown smooth form '{other}' (POLY, RADIAL or INTERP)")),
     }
 }
 
@@ -522,6 +619,7 @@ fn read_bins(
                 condition: f64::NAN,
                 bounds: [x[r], x[r], y[r], y[r]],
                 warnings: vec![],
+                smooth: Smooth::Poly,
             },
         });
     }

@@ -18,6 +18,7 @@
 //! from one sky field) instead of returning numbers. Every fitted matrix is checked for
 //! physical realizability.
 
+pub use crate::mueller_smooth::Smooth;
 use crate::{Error, Result};
 use field::{FieldModel, InstPol};
 use mueller::linear::{self, LinearBlock};
@@ -266,6 +267,11 @@ pub struct MuellerField {
     pub bounds: [f64; 4],
     /// Realizability findings (empty when every checked matrix is realizable within 3 sigma).
     pub warnings: Vec<String>,
+    /// How the parameters vary over the field: the polynomial of `coeffs` (the joint fit), or
+    /// a form built from the per-bin fits ([`crate::mueller_smooth`]; `coeffs`, `cov` then
+    /// hold the radial form's coefficients, or nothing for the interpolant).
+    #[serde(default)]
+    pub smooth: Smooth,
 }
 
 impl MuellerField {
@@ -286,9 +292,13 @@ impl MuellerField {
         (vals, a)
     }
 
-    /// The full parameter vector at a position.
+    /// The full parameter vector at a position (NaN where the form has no value: outside
+    /// the interpolant's hull).
     pub fn full_at(&self, x: f64, y: f64) -> Vec<f64> {
-        let (vals, _) = self.local(x, y);
+        let vals = match &self.smooth {
+            Smooth::Poly => self.local(x, y).0,
+            _ => self.params_at(x, y).0,
+        };
         let mut full = self.kind.identity();
         for (k, &i) in self.free.iter().enumerate() {
             full[i] = vals[k];
@@ -298,6 +308,14 @@ impl MuellerField {
 
     /// The free parameters at a position with their covariance (`n_free x n_free`).
     pub fn params_at(&self, x: f64, y: f64) -> (Vec<f64>, Vec<f64>) {
+        match &self.smooth {
+            Smooth::Poly => {}
+            Smooth::Radial(r) => return r.params_at(x, y),
+            Smooth::Interp(i) => {
+                let nf = self.free.len();
+                return i.params_at(x, y).unwrap_or_else(|| (vec![f64::NAN; nf], vec![f64::NAN; nf * nf]));
+            }
+        }
         let (vals, a) = self.local(x, y);
         let (nf, nc) = (self.free.len(), self.coeffs.len());
         let a = DMatrix::from_row_slice(nf, nc, &a);
@@ -416,7 +434,11 @@ impl FieldModel for MuellerField {
         // 1e-9 arcmin of slack: a box read back from FITS keywords (16 significant digits)
         // must still hold the bin centres it was fitted on.
         let (b, t) = (self.bounds, 1e-9);
-        x >= b[0] - t && x <= b[1] + t && y >= b[2] - t && y <= b[3] + t
+        let in_box = x >= b[0] - t && x <= b[1] + t && y >= b[2] - t && y <= b[3] + t;
+        match &self.smooth {
+            Smooth::Interp(i) => in_box && i.params_at(x, y).is_some(),
+            _ => in_box,
+        }
     }
 
     fn params(&self) -> Vec<f64> {
@@ -429,12 +451,16 @@ impl FieldModel for MuellerField {
 
     fn describe(&self) -> String {
         let names: Vec<&str> = self.free.iter().map(|&i| self.kind.name(i)).collect();
+        let form = match &self.smooth {
+            Smooth::Poly => format!("degree-{} polynomials", self.deg),
+            Smooth::Radial(_) => format!("radial patterns about the origin, powers 1..{} of r", self.deg),
+            Smooth::Interp(i) => format!("natural-neighbour interpolants of {} per-bin fits", i.points().len()),
+        };
         format!(
-            "Mueller field ({}: {}), parameters [{}] as degree-{} polynomials",
+            "Mueller field ({}: {}), parameters [{}] as {form}",
             self.kind.model_name(),
             self.kind.free_words().join(", "),
             names.join(", "),
-            self.deg
         )
     }
 }
@@ -642,6 +668,7 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
         condition,
         bounds,
         warnings: Vec::new(),
+        smooth: Smooth::Poly,
     };
     mf.warnings = realizability(&mf, fields);
     // Residuals far above their errors: a wrong model, wrong errors or a sky declared wrongly
@@ -968,9 +995,20 @@ impl MuellerField {
             return Err(Error::Input(format!("{what}: format '{}' is not {FORMAT}", f.format)));
         }
         let m = f.field;
-        let n = m.free.len() * n_monomials(m.deg);
+        let n = match &m.smooth {
+            Smooth::Poly => m.free.len() * n_monomials(m.deg),
+            Smooth::Radial(_) => crate::mueller_smooth::radial_rows(m.kind, m.deg)
+                .map_err(|e| Error::Input(format!("{what}: {e}")))?
+                .len(),
+            Smooth::Interp(_) => 0,
+        };
         let full = m.kind.identity().len();
-        if m.deg > 12 || m.coeffs.len() != n || m.cov.len() != n * n || m.free.iter().any(|&i| i >= full) {
+        if m.deg > 12
+            || m.coeffs.len() != n
+            || m.cov.len() != n * n
+            || m.free.iter().any(|&i| i >= full)
+            || m.free != m.kind.free()
+        {
             return Err(Error::Input(format!("{what}: coefficient or covariance lengths do not match the model")));
         }
         if !m.coeffs.iter().chain(&m.cov).all(|v| v.is_finite()) || !(m.scale_arcmin > 0.0) {

@@ -13,7 +13,12 @@ use std::path::PathBuf;
 /// of the paper's M_I (eq:instpol) and, with --free, a linear retardance (stress
 /// birefringence), a rotation of the polarization plane and a depolarization; or --general,
 /// the whole 3 x 3 block. Each free parameter is a 2-D polynomial of degree --deg in the field
-/// position; --per-bin also fits every bin on its own.
+/// position (--smooth poly, the joint fit); --per-bin also fits every bin on its own. The
+/// other smooth forms are built from the per-bin fits: --smooth radial (the paper's radial
+/// family about the field origin: the diattenuation p(r) with a radial axis and the retardance
+/// with a radial or tangential axis, powers 1..--deg of r; its chi2_dof says whether the field
+/// is radial) and --smooth interp (natural-neighbour interpolation of the per-bin fits, no
+/// value outside their hull). `instpol correct` inverts every form the same way.
 ///
 /// Polarized standards (--stars TABLE) join the fit as points of their own known
 /// polarization: stars at other angles than the sky's separate a retardance too.
@@ -31,6 +36,10 @@ use std::path::PathBuf;
 ///
 /// Example: instpol calibrate-mueller --field b_sky1.fits:6.45:68.4 --field b_sky2.fits:4.0:10
 /// --field b_sky3.fits:8.0:130 --free retardance --deg 4 --out mueller_B.fits
+///
+/// Radial form (the field's chi2_dof says whether it is radial): instpol calibrate-mueller
+/// --field b_sky1.fits:6.45:68.4 --field b_sky2.fits:4.0:10 --field b_sky3.fits:8.0:130
+/// --smooth radial --deg 4 --out mueller_B_radial.fits
 #[derive(clap::Args)]
 pub struct Args {
     /// A Stokes map (FITS written by `instpol reduce`) with its sky polarization:
@@ -45,9 +54,14 @@ pub struct Args {
     /// Fit the general 3 x 3 block (8 parameters; needs >= 3 fields not on one line).
     #[arg(long, conflicts_with = "free")]
     pub general: bool,
-    /// Polynomial degree of every parameter over the field.
+    /// Degree of the smooth form: of the 2-D polynomials (poly), the highest power of r
+    /// (radial); not used by interp.
     #[arg(long, default_value_t = 4)]
     pub deg: usize,
+    /// Smooth form of the field: poly (joint fit of 2-D polynomials), radial or interp (both
+    /// built from the per-bin fits, which the FITS output then holds).
+    #[arg(long, default_value = "poly", value_parser = ["poly", "radial", "interp"])]
+    pub smooth: String,
     /// Field scale (arcmin) the positions are divided by: about the field radius.
     #[arg(long, default_value_t = 3.4)]
     pub scale_arcmin: f64,
@@ -178,10 +192,11 @@ struct Report {
     n_stars: usize,
     n_obs: usize,
     deg: usize,
+    smooth: &'static str,
     model: &'static str,
     free: Vec<&'static str>,
     chi2_dof: f64,
-    condition: f64,
+    condition: Option<f64>,
     parameters: Vec<Param>,
     median_p: Option<f64>,
     max_p: Option<f64>,
@@ -244,8 +259,27 @@ pub fn run(a: Args) -> Result<()> {
     if a.deg > 8 {
         bail!("--deg {}: at most 8", a.deg);
     }
-    let mf: MuellerField = fit_mueller_field(&fields, &opts).map_err(|e| anyhow!("{e}"))?;
-    let per_bin = if a.per_bin { Some(fit_per_bin(&fields, &opts).map_err(|e| anyhow!("{e}"))?) } else { None };
+    let per_bin = if a.per_bin || a.smooth != "poly" {
+        Some(fit_per_bin(&fields, &opts).map_err(|e| anyhow!("{e}"))?)
+    } else {
+        None
+    };
+    let mf: MuellerField = match (a.smooth.as_str(), &per_bin) {
+        ("radial", Some(b)) => {
+            fit::mueller_smooth::radial_field(&b.0, a.deg).map_err(|e| anyhow!("--smooth radial: {e}"))?
+        }
+        ("interp", Some(b)) => fit::mueller_smooth::interp_field(&b.0).map_err(|e| anyhow!("--smooth interp: {e}"))?,
+        _ => fit_mueller_field(&fields, &opts).map_err(|e| anyhow!("{e}"))?,
+    };
+    let mut mf = mf;
+    if a.smooth != "poly" && fields.len() > n_maps {
+        // Each star is a position of its own, which no per-bin fit constrains.
+        mf.warnings.push(format!(
+            "the {} form is built from the per-bin fits of the sky maps: the {} polarized standards of --stars do not enter it (use --smooth poly to fit them with the maps)",
+            a.smooth,
+            fields.len() - n_maps
+        ));
+    }
     if fits_out {
         let (instrument, filter, coords) = setup.expect("at least one field (clap requires one)");
         let cal = MuellerCal {
@@ -313,10 +347,11 @@ pub fn run(a: Args) -> Result<()> {
         n_stars: fields.len() - n_maps,
         n_obs: mf.n_obs,
         deg: mf.deg,
+        smooth: mf.smooth.name(),
         model: kind.model_name(),
         free: kind.free_words(),
         chi2_dof: mf.chi2_dof,
-        condition: mf.condition,
+        condition: mf.condition.is_finite().then_some(mf.condition),
         parameters,
         median_p,
         max_p,
@@ -337,12 +372,12 @@ pub fn run(a: Args) -> Result<()> {
         rep.model,
         rep.free.join(", ")
     );
-    outln!(
-        "  degree {} polynomials, chi2/dof {:.3}, Fisher condition number {:.3e}",
-        rep.deg,
-        rep.chi2_dof,
-        rep.condition
-    );
+    let form = match rep.smooth {
+        "poly" => format!("degree {} polynomials", rep.deg),
+        "radial" => format!("radial patterns, powers 1..{} of r", rep.deg),
+        _ => "interpolated per-bin fits".into(),
+    };
+    outln!("  {form}, chi2/dof {:.3}, Fisher condition number {:.3e}", rep.chi2_dof, mf.condition);
     outln!("  {:<16} {:>12} {:>12} {:>12}", "parameter", "median", "rms", "median sigma");
     for p in &rep.parameters {
         outln!("  {:<16} {:>12.3e} {:>12.3e} {:>12.3e}", p.name, p.median_value, p.rms_value, p.median_sigma);

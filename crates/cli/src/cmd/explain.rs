@@ -1,9 +1,9 @@
 //! `instpol explain`: which physics explains a fitted Mueller field (issue 16 item 4). All
 //! numbers come from `fit::mueller_explain`; this file parses, prints and plots.
 
-use anyhow::{anyhow, bail, Context as _, Result};
+use anyhow::{anyhow, bail, Result};
 use fit::mueller_explain::{explain, Cause, Context, Explanation, Target};
-use fit::mueller_field::MuellerField;
+use fit::mueller_field::Smooth;
 use std::path::PathBuf;
 
 /// Compare a Mueller field fitted by `calibrate-mueller` with candidate physical causes and say
@@ -23,11 +23,13 @@ use std::path::PathBuf;
 /// (exit code 2): there is nothing to compare. Runs in seconds (progress bar).
 ///
 /// Example: instpol calibrate-mueller --field b1.fits:6.45:68.4 --field b2.fits:4:10
-/// --field b3.fits:8:130 --out mueller_B.json && instpol explain mueller_B.json
+/// --field b3.fits:8:130 --out mueller_B.fits && instpol explain mueller_B.fits
 /// --instrument fors1 --band B --plot explain_B.png
 #[derive(clap::Args)]
 pub struct Args {
-    /// The Mueller field written by `calibrate-mueller --out` (JSON, instpol-mueller-field-v1).
+    /// The Mueller field written by `calibrate-mueller --out`: the calibration file (FITS,
+    /// MODEL = 'MUELLER') or the JSON (instpol-mueller-field-v1), told apart by content. A
+    /// field in the radial or interp form is compared through the file's per-bin fits.
     pub mueller_cal: PathBuf,
     /// Instrument name (built-in: fors1) or path to an instrument TOML; its [optics] give the
     /// ray-trace candidate (left out, with a note, when it has none).
@@ -125,13 +127,27 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--hwp-angles: {} angles, at most 1024", angles_deg.len());
     }
     let what = a.mueller_cal.display().to_string();
-    let text = std::fs::read_to_string(&a.mueller_cal).with_context(|| format!("reading {what}"))?;
-    let mf = MuellerField::from_json(&text, &what).map_err(|e| anyhow!("{e}"))?;
-    let target = Target::smooth(&mf, a.grid, &what).map_err(|e| anyhow!("{e}"))?;
+    let (mf, per_bin) = fit::mueller_cal::load_field(&a.mueller_cal).map_err(|e| anyhow!("{e}"))?;
+    let mut notes = Vec::new();
+    let target = match &mf.smooth {
+        Smooth::Poly => Target::smooth(&mf, a.grid, &what),
+        form if !per_bin.is_empty() => {
+            notes.push(format!(
+                "the field is in the {} form: the candidates are compared with its {} per-bin fits",
+                form.name(),
+                per_bin.len()
+            ));
+            Target::per_bin(&per_bin, &what)
+        }
+        form => bail!(
+            "{what}: the field is in the {} form and the file holds no per-bin fits to compare with: write the calibration as FITS (calibrate-mueller --out X.fits keeps them) or fit the poly form",
+            form.name()
+        ),
+    }
+    .map_err(|e| anyhow!("{e}"))?;
     let rad: Vec<f64> = angles_deg.iter().map(|d| d.to_radians()).collect();
     let mut ctx = Context::new(&rad, a.magnification, a.radius_arcmin)
         .map_err(|e| anyhow!("--hwp-angles / --magnification / --radius-arcmin: {e}"))?;
-    let mut notes = Vec::new();
     let inst = instrument::Instrument::load(&a.instrument)?;
     let lam = inst.filter(&a.band)?.lambda_eff_nm;
     if which.contains(&Cause::Raytrace) {

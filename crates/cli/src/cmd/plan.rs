@@ -1,7 +1,7 @@
 //! `instpol plan`: what a Mueller-field calibration costs (issue 16): how many sky fields,
 //! which, and how long per HWP angle reach a target accuracy, from `fit::mueller_plan`.
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, Result};
 use fit::mueller_field::{Kind, MuellerField, MuellerFitOptions};
 use fit::mueller_plan::{simulate_plan, PlanRow, PlanSetup};
 use plotters::prelude::*;
@@ -51,8 +51,9 @@ pub struct Args {
     /// Polarization degree of the targets (PERCENT).
     #[arg(long, default_value_t = 5.0)]
     pub target_p_percent: f64,
-    /// A Mueller-field file (calibrate-mueller --out) to linearize at and, with --check, to
-    /// simulate; without it: no instrumental effect.
+    /// A Mueller field (calibrate-mueller --out: the FITS calibration or the JSON, told apart
+    /// by content) to linearize at and, with --check, to simulate; without it: no
+    /// instrumental effect.
     #[arg(long)]
     pub expected: Option<PathBuf>,
     /// Simulate the cheapest plan (4 noise draws) and report the accuracy it reaches.
@@ -118,8 +119,7 @@ pub fn run(a: Args) -> Result<()> {
     let expected: Option<Arc<MuellerField>> = match &a.expected {
         Some(p) => {
             crate::util::inputs([p.as_path()])?;
-            let text = std::fs::read_to_string(p).with_context(|| format!("cannot read {}", p.display()))?;
-            Some(Arc::new(MuellerField::from_json(&text, &p.display().to_string()).map_err(|e| anyhow!("{e}"))?))
+            Some(Arc::new(fit::mueller_cal::load_field(p).map_err(|e| anyhow!("{e}"))?.0))
         }
         None => None,
     };
@@ -139,6 +139,16 @@ pub fn run(a: Args) -> Result<()> {
     for j in 0..g.ny {
         for i in 0..g.nx {
             positions.push(g.centre_arcmin(i, j));
+        }
+    }
+    if let (Some(m), Some(p)) = (&expected, &a.expected) {
+        // The interpolant has no value outside the hull of its bins: no silent NaN field.
+        if let Some(&(x, y)) = positions.iter().find(|&&(x, y)| !m.full_at(x, y).iter().all(|v| v.is_finite())) {
+            bail!(
+                "--expected {}: the {} form has no value at the plan's bin centre ({x:.2}, {y:.2}) arcmin (outside the bins it was built from): give a poly or radial field, or a --bin whose centres lie inside",
+                p.display(),
+                m.smooth.name()
+            );
         }
     }
     let radius = positions.iter().map(|&(x, y)| x.abs().max(y.abs())).fold(0.0, f64::max).max(0.1);
