@@ -30,13 +30,15 @@ fn fields(s: f64, seed: u64) -> Vec<CalField> {
 fn fields_n(s: f64, seed: u64, nf: usize) -> Vec<CalField> {
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
     let grid: Vec<(f64, f64)> = (0..81).map(|i| ((i % 9) as f64 * 0.6 - 2.4, (i / 9) as f64 * 0.6 - 2.4)).collect();
-    let meas = common::mueller::through(truth);
-    common::mueller::SKIES
+    let meas = common::mueller_fields::through(truth);
+    common::mueller_fields::SKIES
         .iter()
         .chain(&[(0.05, 40.0)])
         .take(nf)
         .enumerate()
-        .map(|(k, &(p, chi))| common::mueller::cal_field(&format!("sky{k}.fits"), p, chi, &grid, &meas, s, &mut rng))
+        .map(|(k, &(p, chi))| {
+            common::mueller_fields::cal_field(&format!("sky{k}.fits"), p, chi, &grid, &meas, s, &mut rng)
+        })
         .collect()
 }
 

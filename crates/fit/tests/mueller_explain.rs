@@ -13,14 +13,14 @@ use rand_xoshiro::Xoshiro256PlusPlus;
 use std::f64::consts::PI;
 
 mod common;
-use common::mueller::{diat, diat_and_lens, fors1_grid, sky_fields, LENS_CENTRE_ARCMIN, SIGMA};
+use common::mueller_fields::{diat, diat_and_lens, fors1_grid, sky_fields, LENS_CENTRE_ARCMIN, SIGMA};
 
 /// 30 x 22 bins over the FORS1 field.
 fn grid() -> Vec<(f64, f64)> {
     fors1_grid(30, 22)
 }
 
-/// The three sky fields of `common::mueller::SKIES` whose measured `(q, u)` are what
+/// The three sky fields of `common::mueller_fields::SKIES` whose measured `(q, u)` are what
 /// `meas(x, y, q_sky, u_sky)` gives.
 fn fields(meas: &dyn Fn(f64, f64, f64, f64) -> (f64, f64), seed: u64) -> Vec<CalField> {
     sky_fields(3, &grid(), meas, seed)
@@ -45,7 +45,7 @@ fn pick<'a>(e: &'a fit::mueller_explain::Explanation, c: Cause) -> &'a fit::muel
 fn stressed_lens_field_is_explained_by_a_stressed_lens() {
     let (a, c, off) = (18.0f64, [0.8, -0.4], 10.0f64);
     let truth = move |x: f64, y: f64| -> LinearBlock { diat_and_lens(x, y, a, c, off) };
-    let f = fields(&common::mueller::through(truth), 11);
+    let f = fields(&common::mueller_fields::through(truth), 11);
     let mf = fit_mueller_field(&f, &opts(Kind::diattenuation_retardance())).unwrap();
     let target = Target::smooth(&mf, 16, "test").unwrap();
     let ctx = Context::new(&full_turn(), 90.0, 3.4).unwrap();
@@ -195,9 +195,9 @@ fn paper_three_fields_one_sky_per_band() {
             })
             .fold(0.0, f64::max);
         shift.push(worst);
-        let truth = common::mueller::through(|x, y| diat_and_lens(x, y, 9.0, LENS_CENTRE_ARCMIN, 0.0));
+        let truth = common::mueller_fields::through(|x, y| diat_and_lens(x, y, 9.0, LENS_CENTRE_ARCMIN, 0.0));
         let mut rng = Xoshiro256PlusPlus::seed_from_u64(40 + k as u64);
-        let f = vec![common::mueller::cal_field(band, p, chi.to_degrees(), &grid(), &truth, SIGMA, &mut rng)];
+        let f = vec![common::mueller_fields::cal_field(band, p, chi.to_degrees(), &grid(), &truth, SIGMA, &mut rng)];
         let err = fit_mueller_field(&f, &opts(Kind::diattenuation_retardance())).err().unwrap().to_string();
         assert!(err.contains("retardance unconstrained"), "{band}: {err}");
         let none = Kind::Physical { retardance: false, rotation: false, depolarization: false };

@@ -16,7 +16,7 @@ use rand_distr::{Distribution, Normal};
 use rand_xoshiro::Xoshiro256PlusPlus;
 use sim::stress::StressedLensSpec;
 
-#[path = "../../fit/tests/common/mueller.rs"]
+#[path = "../../fit/tests/common/mueller_fields.rs"]
 mod mueller_fixtures;
 use mueller_fixtures::{b_truth as truth, diat, LENS_CENTRE_ARCMIN, LENS_EDGE_DEG, LENS_RADIUS_ARCMIN};
 

@@ -1,7 +1,8 @@
 //! Simulated Mueller-field calibration fields (issue 16): sky fields of known `(p, chi)` seen
 //! through a known block at bin centres, with Gaussian noise per bin. One copy for fit's tests
-//! (`common::mueller`) and sim's (`#[path = "../../fit/tests/common/mueller.rs"]`), so it uses
-//! nothing from `super`.
+//! (`common::mueller_fields`: not `mueller`, which would shadow the crate under
+//! `use common::*`) and sim's (`#[path = "../../fit/tests/common/mueller_fields.rs"]`), so it
+//! uses nothing from `super`.
 #![allow(dead_code)]
 
 use fit::mueller_field::{CalField, Observation};
