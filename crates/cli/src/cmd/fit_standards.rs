@@ -582,6 +582,9 @@ fn band_plot(f: &TelescopeFit, bi: usize) -> Result<BandPlot> {
     Ok(BandPlot { curve, points })
 }
 
+/// The legend's key of the polarized standards' triangles.
+const POL_KEY: &str = "polarized, own P removed";
+
 /// q and u against the parallactic angle with the model curve (upper panel), residuals
 /// (lower panel); flagged points hollow; polarized standards (triangles) with their own
 /// polarization removed as the model has it, so that they sit on the same curve ([`band_plot`]).
@@ -598,19 +601,12 @@ fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
     let rmax =
         pts.iter().map(|p| 100.0 * (p.resid_q.abs() + p.sigma_q).max(p.resid_u.abs() + p.sigma_u)).fold(0.05, f64::max)
             * 1.2;
-    let title = if pts.iter().any(|p| p.shifted) {
-        format!(
-            "{band}: {} model, chi2/dof = {:.2}; triangles: own polarization removed (model)",
-            f.model.name(),
-            f.chi2_reduced
-        )
-    } else {
-        format!("{band}: {} model, chi2/dof = {:.2}", f.model.name(), f.chi2_reduced)
-    };
+    let title = format!("{band}: {} model, chi2/dof = {:.2}", f.model.name(), f.chi2_reduced);
     crate::plot::save_png(path, (900, 800), |root| {
         let (top, bottom) = root.split_vertically(520);
         let ax = crate::plot::Axes::new(title.clone(), "parallactic angle (deg)", "q, u (%)");
         let mut c = crate::plot::chart(&top, &ax, -180.0..180.0, -ymax..ymax)?;
+        let mut keyed = false;
         for (col, idx, label) in [(RED, 0usize, "q"), (BLUE, 1, "u")] {
             c.draw_series(LineSeries::new(
                 curve.iter().map(|p| (p.0, if idx == 0 { p.1 } else { p.2 })),
@@ -626,8 +622,13 @@ fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
                     .map_err(crate::plot::pe)?;
                 let style = if p.flagged { col.stroke_width(2) } else { col.filled() };
                 if p.shifted {
-                    c.draw_series(std::iter::once(TriangleMarker::new((x, 100.0 * v), 6, style)))
+                    let a = c
+                        .draw_series(std::iter::once(TriangleMarker::new((x, 100.0 * v), 6, style)))
                         .map_err(crate::plot::pe)?;
+                    if !keyed && idx == 1 {
+                        keyed = true;
+                        a.label(POL_KEY).legend(|(x, y)| TriangleMarker::new((x + 10, y), 6, BLACK.filled()));
+                    }
                 } else {
                     c.draw_series(std::iter::once(Circle::new((x, 100.0 * v), 5, style))).map_err(crate::plot::pe)?;
                 }
@@ -646,7 +647,8 @@ fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
                 ]
             }))
             .collect();
-        crate::plot::legend_off_data(&mut c, &data, 2, 7, crate::plot::CORNERS)?;
+        let (entries, chars) = if keyed { (3, POL_KEY.len()) } else { (2, 7) };
+        crate::plot::legend_off_data(&mut c, &data, entries, chars, crate::plot::CORNERS)?;
         let ax = crate::plot::Axes::new(
             "residuals (data - model; hollow: flagged)",
             "parallactic angle (deg)",
