@@ -257,6 +257,41 @@ struct Masters {
     flat: Option<Vec<f32>>,
 }
 
+/// A method `$name` that runs `$imp` (an `#[inline(always)]` method with the same arguments)
+/// compiled for AVX2 where the CPU has it, else as compiled for the baseline: the compiler
+/// vectorizes the same IEEE operations 4-wide (FMA is not enabled), so both give the same
+/// bits. Writes the run-time check and the `#[target_feature]` wrapper `$avx` once; callable
+/// elsewhere in the crate as `crate::calib::avx2_dispatch!`.
+macro_rules! avx2_dispatch {
+    ($(#[$m:meta])* fn $name:ident / $avx:ident => $imp:ident(&$s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)?) => {
+        avx2_dispatch!(@ [$(#[$m])*] $name $avx $imp $s [&$s] [$($arg: $ty),*] [$($ret)?]);
+    };
+    ($(#[$m:meta])* fn $name:ident / $avx:ident => $imp:ident(&mut $s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)?) => {
+        avx2_dispatch!(@ [$(#[$m])*] $name $avx $imp $s [&mut $s] [$($arg: $ty),*] [$($ret)?]);
+    };
+    (@ [$($m:tt)*] $name:ident $avx:ident $imp:ident $s:ident [$($recv:tt)*] [$($arg:ident: $ty:ty),*] [$($ret:ty)?]) => {
+        $($m)*
+        #[inline]
+        fn $name($($recv)*, $($arg: $ty),*) $(-> $ret)? {
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: AVX2 support was checked just above.
+                return unsafe { $s.$avx($($arg),*) };
+            }
+            $s.$imp($($arg),*)
+        }
+
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2")]
+        #[allow(clippy::too_many_arguments)]
+        unsafe fn $avx($($recv)*, $($arg: $ty),*) $(-> $ret)? {
+            $s.$imp($($arg),*)
+        }
+    };
+}
+#[allow(unused_imports)]
+pub(crate) use avx2_dispatch;
+
 /// One chip of one exposure, calibrated row by row as its rows are read: trimmed, its bias
 /// level and the master bias subtracted, times its gain, times the master flat's inverse.
 #[derive(Debug)]
@@ -306,44 +341,22 @@ impl ChipRows {
         }
     }
 
-    /// Decode and calibrate raw rows `ry ..` (fetched) into `rows` (whole detector rows of
-    /// `nx`, the first at detector index `det0`): decoded into place, then calibrated in place
-    /// (both passes stay in L1). 4-wide AVX2 where the CPU has it: the same IEEE operations (no
-    /// FMA), so the same bits.
-    #[inline]
-    #[allow(clippy::too_many_arguments)]
-    fn calibrate_rows(
-        &self,
-        ry: usize,
-        det0: usize,
-        nx: usize,
-        bias: Option<&[f32]>,
-        flat: Option<&[f32]>,
-        bytes: &[u8],
-        rows: &mut [f64],
-    ) {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: AVX2 support was checked just above.
-            return unsafe { self.calibrate_rows_avx2(ry, det0, nx, bias, flat, bytes, rows) };
-        }
-        self.calibrate_rows_impl(ry, det0, nx, bias, flat, bytes, rows)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn calibrate_rows_avx2(
-        &self,
-        ry: usize,
-        det0: usize,
-        nx: usize,
-        bias: Option<&[f32]>,
-        flat: Option<&[f32]>,
-        bytes: &[u8],
-        rows: &mut [f64],
-    ) {
-        self.calibrate_rows_impl(ry, det0, nx, bias, flat, bytes, rows)
+    avx2_dispatch! {
+        /// Decode and calibrate raw rows `ry ..` (fetched) into `rows` (whole detector rows of
+        /// `nx`, the first at detector index `det0`): decoded into place, then calibrated in
+        /// place (both passes stay in L1). 4-wide AVX2 where the CPU has it: the same IEEE
+        /// operations (no FMA), so the same bits.
+        #[allow(clippy::too_many_arguments)]
+        fn calibrate_rows / calibrate_rows_avx2 => calibrate_rows_impl(
+            &self,
+            ry: usize,
+            det0: usize,
+            nx: usize,
+            bias: Option<&[f32]>,
+            flat: Option<&[f32]>,
+            bytes: &[u8],
+            rows: &mut [f64],
+        )
     }
 
     #[inline(always)]
