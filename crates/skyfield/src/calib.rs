@@ -257,19 +257,19 @@ struct Masters {
     flat: Option<Vec<f32>>,
 }
 
-/// A method `$name` that runs `$imp` (an `#[inline(always)]` method with the same arguments)
-/// compiled for AVX2 where the CPU has it, else as compiled for the baseline: the compiler
-/// vectorizes the same IEEE operations 4-wide (FMA is not enabled), so both give the same
-/// bits. Writes the run-time check and the `#[target_feature]` wrapper `$avx` once; callable
-/// elsewhere in the crate as `crate::calib::avx2_dispatch!`.
+/// A method `$name` whose body `$body` runs compiled for AVX2 where the CPU has it, else as
+/// compiled for the baseline: the compiler vectorizes the same IEEE operations 4-wide (FMA is
+/// not enabled), so both give the same bits. Writes, from one signature, the body as the
+/// `#[inline(always)]` method `$imp`, the `#[target_feature]` wrapper `$avx` and the run-time
+/// check; callable elsewhere in the crate as `crate::calib::avx2_dispatch!`.
 macro_rules! avx2_dispatch {
-    ($(#[$m:meta])* fn $name:ident / $avx:ident => $imp:ident(&$s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)?) => {
-        avx2_dispatch!(@ [$(#[$m])*] $name $avx $imp $s [&$s] [$($arg: $ty),*] [$($ret)?]);
+    ($(#[$m:meta])* fn $name:ident / $avx:ident => $imp:ident(&$s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
+        avx2_dispatch!(@ [$(#[$m])*] $name $avx $imp $s [&$s] [$($arg: $ty),*] [$($ret)?] $body);
     };
-    ($(#[$m:meta])* fn $name:ident / $avx:ident => $imp:ident(&mut $s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)?) => {
-        avx2_dispatch!(@ [$(#[$m])*] $name $avx $imp $s [&mut $s] [$($arg: $ty),*] [$($ret)?]);
+    ($(#[$m:meta])* fn $name:ident / $avx:ident => $imp:ident(&mut $s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
+        avx2_dispatch!(@ [$(#[$m])*] $name $avx $imp $s [&mut $s] [$($arg: $ty),*] [$($ret)?] $body);
     };
-    (@ [$($m:tt)*] $name:ident $avx:ident $imp:ident $s:ident [$($recv:tt)*] [$($arg:ident: $ty:ty),*] [$($ret:ty)?]) => {
+    (@ [$($m:tt)*] $name:ident $avx:ident $imp:ident $s:ident [$($recv:tt)*] [$($arg:ident: $ty:ty),*] [$($ret:ty)?] $body:block) => {
         $($m)*
         #[inline]
         fn $name($($recv)*, $($arg: $ty),*) $(-> $ret)? {
@@ -287,6 +287,10 @@ macro_rules! avx2_dispatch {
         unsafe fn $avx($($recv)*, $($arg: $ty),*) $(-> $ret)? {
             $s.$imp($($arg),*)
         }
+
+        #[inline(always)]
+        #[allow(clippy::too_many_arguments)]
+        fn $imp($($recv)*, $($arg: $ty),*) $(-> $ret)? $body
     };
 }
 #[allow(unused_imports)]
@@ -356,28 +360,15 @@ impl ChipRows {
             flat: Option<&[f32]>,
             bytes: &[u8],
             rows: &mut [f64],
-        )
-    }
-
-    #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    fn calibrate_rows_impl(
-        &self,
-        ry: usize,
-        det0: usize,
-        nx: usize,
-        bias: Option<&[f32]>,
-        flat: Option<&[f32]>,
-        bytes: &[u8],
-        rows: &mut [f64],
-    ) {
-        for (k, row) in rows.chunks_exact_mut(nx).enumerate() {
-            let base = det0 + k * nx + self.x0;
-            let o = &mut row[self.x0..self.x0 + self.cx];
-            self.decode(ry, k, self.prx, bytes, o);
-            let bias = bias.map(|m| &m[base..base + self.cx]);
-            let flat = flat.map(|m| &m[base..base + self.cx]);
-            calibrate_row(o, bias, flat, self.level, self.to_e, self.sat);
+        ) {
+            for (k, row) in rows.chunks_exact_mut(nx).enumerate() {
+                let base = det0 + k * nx + self.x0;
+                let o = &mut row[self.x0..self.x0 + self.cx];
+                self.decode(ry, k, self.prx, bytes, o);
+                let bias = bias.map(|m| &m[base..base + self.cx]);
+                let flat = flat.map(|m| &m[base..base + self.cx]);
+                calibrate_row(o, bias, flat, self.level, self.to_e, self.sat);
+            }
         }
     }
 
