@@ -134,30 +134,13 @@ fn bad_input_is_a_clear_error() {
     assert!(err.contains("sector:10"), "{err}");
 }
 
-/// A small FORS1-like instrument (512 x 512 px of 0.8", the same 6.8' field and strip layout)
-/// so that a whole frame chain runs in a test.
-fn small_instrument() -> String {
-    common::Mini {
-        name: "SMALL",
-        nx: 512,
-        pixel_scale_arcsec: 0.8,
-        gain_e_per_adu: 1.25,
-        read_noise_e: 5.0,
-        saturation_adu: 65535.0,
-        field_arcmin: 6.8,
-        throw_arcsec: 22.4,
-        strip_count: 9,
-    }
-    .toml()
-}
-
 #[test]
 fn calibrate_from_simulated_frames_through_the_whole_chain() {
     // sim -> FITS frames -> skyfield reduce -> sky-field solution -> radial fit. (The
     // simulator's coeffs_percent start at r^0; the paper's polynomial has no constant.)
     let dir = tempfile::tempdir().unwrap();
     let inst = dir.path().join("small.toml");
-    std::fs::write(&inst, small_instrument()).unwrap();
+    std::fs::write(&inst, common::SMALL.toml()).unwrap();
     let scene = format!(
         "instrument = {:?}\nfilter = \"V\"\nseed = 5\n[output]\nbitpix = -32\n[sky]\nbrightness_e = 40000.0\np = 0.0174\nchi_deg = -53.8\n\
          [effects]\nphoton_noise = true\n[effects.instpol]\nkind = \"radial\"\ncoeffs_percent = [0.0, 0.012, 0.046, 0.002]\n",

@@ -30,6 +30,16 @@ fn run(args: &[&str]) -> std::process::Output {
     common::instpol().args(args).output().unwrap()
 }
 
+/// `instpol correct --cal CAL --in INPUT --out OUT EXTRA...`, which must succeed.
+fn correct(cal: &Path, input: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec!["correct", "--cal", cal.to_str().unwrap(), "--in", input.to_str().unwrap()];
+    args.extend(["--out", out.to_str().unwrap()]);
+    args.extend(extra);
+    let o = run(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    o
+}
+
 fn read_csv(path: &Path) -> (Vec<String>, Vec<Vec<String>>) {
     let mut r = csv::Reader::from_path(path).unwrap();
     let h = r.headers().unwrap().iter().map(String::from).collect();
@@ -66,19 +76,7 @@ fn csv_catalog_round_trip_in_pixels() {
     let inp = dir.path().join("cat.csv");
     std::fs::write(&inp, text).unwrap();
     let out = dir.path().join("out.csv");
-    let o = run(&[
-        "correct",
-        "--cal",
-        calp.to_str().unwrap(),
-        "--in",
-        inp.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--coords",
-        "pixel",
-        "--json",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = correct(&calp, &inp, &out, &["--coords", "pixel", "--json"]);
     let js: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(js["n_rows"], 49);
     assert_eq!(js["n_extrapolated"], 0);
@@ -198,18 +196,7 @@ fn fits_table_catalog() {
         h.write_col(&mut f, "SIGMA_U", &vec![1e-4; 4]).unwrap();
     }
     let out = dir.path().join("out.fits");
-    let o = run(&[
-        "correct",
-        "--cal",
-        calp.to_str().unwrap(),
-        "--in",
-        inp.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--estimator",
-        "as",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    correct(&calp, &inp, &out, &["--estimator", "as"]);
     let mut f = FitsFile::open(&out).unwrap();
     assert_eq!(f.primary_hdu().unwrap().read_key::<String>(&mut f, "OBSERVER").unwrap(), "test");
     let h = f.hdu("STARS").unwrap();
@@ -259,17 +246,7 @@ fn stokes_map_corrected_bin_by_bin() {
     let inp = dir.path().join("map.fits");
     m.write_fits(&inp).unwrap();
     let out = dir.path().join("map_corr.fits");
-    let o = run(&[
-        "correct",
-        "--cal",
-        calp.to_str().unwrap(),
-        "--in",
-        inp.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--json",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = correct(&calp, &inp, &out, &["--json"]);
     let js: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(js["kind"], "Stokes map");
     assert_eq!(js["n_rows"], 63);
@@ -346,16 +323,7 @@ fn fors2_map_calibration_corrects_its_own_instrumental_values() {
     let inp = dir.path().join("cat.csv");
     std::fs::write(&inp, text).unwrap();
     let out = dir.path().join("out.csv");
-    let o = run(&[
-        "correct",
-        "--cal",
-        calp.to_str().unwrap(),
-        "--in",
-        inp.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    correct(&calp, &inp, &out, &[]);
     let (h, rows) = read_csv(&out);
     let mut pmax_inst = 0.0f64;
     for r in &rows {
@@ -376,17 +344,7 @@ fn fors2_map_calibration_corrects_its_own_instrumental_values() {
     assert!(o.status.success(), "instpol fit: {}", String::from_utf8_lossy(&o.stderr));
     let rad = Calibration::load(&radp).unwrap();
     let out2 = dir.path().join("out_radial.csv");
-    let o = run(&[
-        "correct",
-        "--cal",
-        radp.to_str().unwrap(),
-        "--in",
-        inp.to_str().unwrap(),
-        "--out",
-        out2.to_str().unwrap(),
-        "--allow-extrapolation",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    correct(&radp, &inp, &out2, &["--allow-extrapolation"]);
     let (h2, rows2) = read_csv(&out2);
     let (mut s2, mut n2) = (0.0, 0.0);
     for (r, r2) in rows.iter().zip(&rows2) {
@@ -426,20 +384,9 @@ fn a_catalog_in_the_sky_frame_is_not_turned_twice() {
         let inp = d.path().join(format!("in{with_column}.csv"));
         std::fs::write(&inp, format!("{head}\n{row}\n")).unwrap();
         let out = d.path().join(format!("out{with_column}.csv"));
-        let (c, _, e) = common::run(&[
-            "correct",
-            "--cal",
-            calp.to_str().unwrap(),
-            "--in",
-            inp.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ]);
-        assert_eq!(c, 0, "{e}");
-        let mut rdr = csv::Reader::from_path(&out).unwrap();
-        let h = rdr.headers().unwrap().clone();
-        let rec = rdr.records().next().unwrap().unwrap();
-        let get = |k: &str| rec[h.iter().position(|x| x == k).unwrap()].parse::<f64>().unwrap();
+        correct(&calp, &inp, &out, &[]);
+        let (h, rows) = read_csv(&out);
+        let get = |k: &str| rows[0][col(&h, k)].parse::<f64>().unwrap();
         (get("q0"), get("u0"))
     };
     let (q0, u0) = run_one(true);

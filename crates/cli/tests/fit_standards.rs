@@ -2,6 +2,8 @@
 //! aluminium M3 (Born & Wolf 14.2) turned by the parallactic angle, on the real EFOSC2 files
 //! when present, and on bad input.
 
+mod common;
+
 use std::process::Command;
 
 fn run(args: &[&str]) -> std::process::Output {
@@ -176,19 +178,25 @@ fn efosc2_v_calibration_corrects_the_standards_through_the_cli() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("parang_deg"), "{}", String::from_utf8_lossy(&o.stderr));
 }
 
+/// Eight standards per band of a 3.5 % mirror at offset 30 deg, `(filter, wavelength_um)`.
+fn mirror_csv(bands: &[(&str, f64)]) -> String {
+    let mut csv = String::from("filter,star,pa_deg,q,sigma_q,u,sigma_u,wavelength_um\n");
+    for (b, w) in bands {
+        for i in 0..8 {
+            let pa = -160.0 + 40.0 * i as f64;
+            let a = (2.0 * (30.0 - pa)).to_radians();
+            csv += &format!("{b},S{i},{pa},{},0.001,{},0.001,{w}\n", 0.035 * a.cos(), -0.035 * a.sin());
+        }
+    }
+    csv
+}
+
 /// Calibration output that cannot be right is refused (exit 2, naming the cause): several
 /// bands into one file, a Cassegrain instrument, an unknown saved model.
 #[test]
 fn calibration_output_refuses_what_it_cannot_write() {
     let dir = tempfile::tempdir().unwrap();
-    let mut csv = String::from("filter,star,pa_deg,q,sigma_q,u,sigma_u,wavelength_um\n");
-    for (b, w) in [("V", 0.55), ("R", 0.64)] {
-        for i in 0..8 {
-            let pa = -160.0 + 40.0 * i as f64;
-            let a = (2.0 * (30.0 - pa) as f64).to_radians();
-            csv += &format!("{b},S{i},{pa},{},0.001,{},0.001,{w}\n", 0.035 * a.cos(), -0.035 * a.sin());
-        }
-    }
+    let csv = mirror_csv(&[("V", 0.55), ("R", 0.64)]);
     let data = dir.path().join("std.csv");
     std::fs::write(&data, csv).unwrap();
     let out = dir.path().join("cal.fits");
@@ -214,4 +222,40 @@ fn calibration_output_refuses_what_it_cannot_write() {
     let r = run(&[d, "--output-dir", per.to_str().unwrap()]);
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     assert!(per.join("telescope_V.fits").is_file() && per.join("telescope_R.fits").is_file());
+}
+
+/// --field-cal of another instrument than --instrument: refused naming both (exit 2, nothing
+/// written); the same field calibration labelled with the instrument's name is taken.
+#[test]
+fn field_cal_of_another_instrument_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = mirror_csv(&[("V", 0.55)]);
+    let data = dir.path().join("std.csv");
+    std::fs::write(&data, csv).unwrap();
+    let fors1 = dir.path().join("fors1_v.fits");
+    let mut cal = common::fors1_radial_calibration("V", common::V_COEFFS);
+    cal.save(&fors1).unwrap();
+    let out = dir.path().join("tel.fits");
+    let args = |fc: &std::path::Path| {
+        run(&[
+            data.to_str().unwrap(),
+            "--instrument",
+            "efosc2",
+            "--field-cal",
+            fc.to_str().unwrap(),
+            "--output",
+            out.to_str().unwrap(),
+        ])
+    };
+    let r = args(&fors1);
+    let e = String::from_utf8_lossy(&r.stderr);
+    assert_eq!(r.status.code(), Some(2), "{e}");
+    assert!(e.contains("fors1_v.fits") && e.contains("FORS1") && e.contains("EFOSC2"), "{e}");
+    assert!(!out.exists(), "a refused --field-cal wrote {}", out.display());
+    cal.instrument = "EFOSC2".into();
+    let efosc2 = dir.path().join("efosc2_v.fits");
+    cal.save(&efosc2).unwrap();
+    let r = args(&efosc2);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    assert!(out.is_file());
 }

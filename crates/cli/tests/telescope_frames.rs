@@ -170,22 +170,7 @@ fn frames_of_a_night_give_the_mirror_and_the_field_back() {
 
     // --- a sky field through the same telescope (512 px of 0.8") ---
     let small = d.join("small.toml");
-    std::fs::write(
-        &small,
-        common::Mini {
-            name: "SMALL",
-            nx: 512,
-            pixel_scale_arcsec: 0.8,
-            gain_e_per_adu: 1.25,
-            read_noise_e: 5.0,
-            saturation_adu: 65535.0,
-            field_arcmin: 6.8,
-            throw_arcsec: 22.4,
-            strip_count: 9,
-        }
-        .toml(),
-    )
-    .unwrap();
+    std::fs::write(&small, common::SMALL.toml()).unwrap();
     let small = with_telescope(&small);
     let scene = format!(
         "instrument = {:?}\nfilter = \"V\"\nseed = 5\nexposure_s = 20\n[output]\nbitpix = -32\n\

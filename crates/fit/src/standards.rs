@@ -96,6 +96,13 @@ impl Expected {
     pub fn unpolarized() -> Self {
         Self::default()
     }
+
+    /// How many sigma `(q, u)` of covariance `[[var_q, cov_qu], [cov_qu, var_u]]` lies from this
+    /// expected polarization: the Mahalanobis distance with both covariances summed (the
+    /// `*_residual_sigma` of [`validate_star`] and of the telescope chain's validation).
+    pub(crate) fn sigma_from(&self, q: f64, u: f64, var_q: f64, var_u: f64, cov_qu: f64) -> Result<f64, Error> {
+        mahalanobis(q - self.q, u - self.u, var_q + self.var_q, var_u + self.var_u, cov_qu + self.cov_qu)
+    }
 }
 
 const BUILTIN: &str = include_str!("../../../instruments/standards.toml");
@@ -347,13 +354,7 @@ pub fn validate_star<M: FieldModel + ?Sized>(
     // Corrected star vs expected intrinsic polarization.
     let m = measured.at(x, y);
     let r = cor.correct(&m)?;
-    let corrected_residual_sigma = mahalanobis(
-        r.q0 - expected.q,
-        r.u0 - expected.u,
-        r.var_q0 + expected.var_q,
-        r.var_u0 + expected.var_u,
-        r.cov_qu0 + expected.cov_qu,
-    )?;
+    let corrected_residual_sigma = expected.sigma_from(r.q0, r.u0, r.var_q0, r.var_u0, r.cov_qu0)?;
     Ok(Validation {
         measured_p: mp,
         measured_chi_deg: mchi.to_degrees(),

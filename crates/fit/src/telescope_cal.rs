@@ -566,18 +566,11 @@ pub fn validate_chain(
     let r = correct_chain(cor.as_ref(), tel, band, &m, track)?;
     let c = r.corrected;
     let e = star.1;
-    let dist = |dq: f64, du: f64, a: f64, b: f64, cv: f64| {
-        crate::standards::mahalanobis(dq, du, a, b, cv)
-            .map_err(|err| Error::Input(format!("validating {}: {err}", star.0)))
+    let dist = |q: f64, u: f64, a: f64, b: f64, cv: f64| {
+        e.sigma_from(q, u, a, b, cv).map_err(|err| Error::Input(format!("validating {}: {err}", star.0)))
     };
-    let corrected = dist(c.q0 - e.q, c.u0 - e.u, c.var_q0 + e.var_q, c.var_u0 + e.var_u, c.cov_qu0 + e.cov_qu)?;
-    let uncorrected = dist(
-        measured.q - e.q,
-        measured.u - e.u,
-        measured.var_q + e.var_q,
-        measured.var_u + e.var_u,
-        measured.cov_qu + e.cov_qu,
-    )?;
+    let corrected = dist(c.q0, c.u0, c.var_q0, c.var_u0, c.cov_qu0)?;
+    let uncorrected = dist(measured.q, measured.u, measured.var_q, measured.var_u, measured.cov_qu)?;
     Ok(ChainValidation {
         star: star.0.to_string(),
         band: band.to_string(),

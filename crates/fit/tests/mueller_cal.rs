@@ -6,13 +6,13 @@
 
 use fit::correct::{CorrectOptions, Error as CorrError, Measurement};
 use fit::mueller_cal::{MuellerCal, SkyField};
-use fit::mueller_field::{
-    fit_mueller_field, fit_per_bin, CalField, Kind, MuellerField, MuellerFitOptions, Observation,
-};
+use fit::mueller_field::{fit_mueller_field, fit_per_bin, CalField, Kind, MuellerField, MuellerFitOptions};
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use rand_xoshiro::Xoshiro256PlusPlus;
+
+mod common;
 
 /// Truth: a diattenuation and a retardance varying over a 5 x 5 arcmin field.
 fn truth(x: f64, y: f64) -> mueller::linear::LinearBlock {
@@ -25,31 +25,19 @@ fn fields(s: f64, seed: u64) -> Vec<CalField> {
     fields_n(s, seed, 3)
 }
 
-/// The first `n` of four sky fields (the general block's 8 parameters need four).
+/// The first `n` of four sky fields (the general block's 8 parameters need four), all noise
+/// from one generator.
 fn fields_n(s: f64, seed: u64, nf: usize) -> Vec<CalField> {
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
-    let n = Normal::new(0.0, s).unwrap();
-    [(0.0645, 68.4f64), (0.04, 10.0), (0.08, 130.0), (0.05, 40.0)][..nf]
+    let grid: Vec<(f64, f64)> = (0..81).map(|i| ((i % 9) as f64 * 0.6 - 2.4, (i / 9) as f64 * 0.6 - 2.4)).collect();
+    let meas = common::mueller_fields::through(truth);
+    common::mueller_fields::SKIES
         .iter()
+        .chain(&[(0.05, 40.0)])
+        .take(nf)
         .enumerate()
         .map(|(k, &(p, chi))| {
-            let (sq, su) = (p * (2.0 * chi.to_radians()).cos(), p * (2.0 * chi.to_radians()).sin());
-            let obs = (0..81)
-                .map(|i| {
-                    let (x, y) = ((i % 9) as f64 * 0.6 - 2.4, (i / 9) as f64 * 0.6 - 2.4);
-                    let (q, u) = truth(x, y).forward(sq, su).unwrap();
-                    Observation {
-                        x_arcmin: x,
-                        y_arcmin: y,
-                        q: q + n.sample(&mut rng),
-                        u: u + n.sample(&mut rng),
-                        var_q: s * s,
-                        var_u: s * s,
-                        cov_qu: 0.0,
-                    }
-                })
-                .collect();
-            CalField::from_p_chi(&format!("sky{k}.fits"), p, chi.to_radians(), 0.0, obs)
+            common::mueller_fields::cal_field(&format!("sky{k}.fits"), p, chi, &grid, &meas, s, &mut rng)
         })
         .collect()
 }

@@ -6,60 +6,24 @@
 //! calculation with the simulator's own plate matrix at each angle.
 
 use fit::mueller_explain::{explain, Cause, Context, Target};
-use fit::mueller_field::{fit_mueller_field, CalField, Kind, MuellerFitOptions, Observation};
+use fit::mueller_field::{fit_mueller_field, CalField, Kind, MuellerFitOptions};
 use mueller::linear::{physical_block, retardance_vector, LinearBlock};
 use rand::SeedableRng;
-use rand_distr::{Distribution, Normal};
 use rand_xoshiro::Xoshiro256PlusPlus;
 use std::f64::consts::PI;
 
-/// The paper's B sky (tab:empty) and two other sky fields.
-const SKIES: [(f64, f64); 3] = [(0.0645, 68.4), (0.040, 10.0), (0.080, 130.0)];
-const SIGMA: f64 = 3e-4;
+mod common;
+use common::mueller_fields::{diat, diat_and_lens, fors1_grid, sky_fields, LENS_CENTRE_ARCMIN, SIGMA};
 
+/// 30 x 22 bins over the FORS1 field.
 fn grid() -> Vec<(f64, f64)> {
-    let mut v = Vec::new();
-    for j in 0..22 {
-        for i in 0..30 {
-            v.push((-3.4 + 6.8 * (i as f64 + 0.5) / 30.0, -3.4 + 6.8 * (j as f64 + 0.5) / 22.0));
-        }
-    }
-    v
+    fors1_grid(30, 22)
 }
 
-/// The paper's radial diattenuation form, p = 2e-4 r^2 along the polar angle.
-fn diat(x: f64, y: f64) -> (f64, f64) {
-    (2e-4 * (x * x - y * y), 2e-4 * 2.0 * x * y)
-}
-
-/// One noisy calibration field of sky `(p, chi_deg)` whose measured `(q, u)` are what
+/// The three sky fields of `common::mueller_fields::SKIES` whose measured `(q, u)` are what
 /// `meas(x, y, q_sky, u_sky)` gives.
-fn field_of(meas: &dyn Fn(f64, f64, f64, f64) -> (f64, f64), name: &str, p: f64, chi_deg: f64, seed: u64) -> CalField {
-    let chi = chi_deg.to_radians();
-    let (q0, u0) = (p * (2.0 * chi).cos(), p * (2.0 * chi).sin());
-    let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
-    let n = Normal::new(0.0, SIGMA).unwrap();
-    let obs = grid()
-        .into_iter()
-        .map(|(x, y)| {
-            let (q, u) = meas(x, y, q0, u0);
-            Observation {
-                x_arcmin: x,
-                y_arcmin: y,
-                q: q + n.sample(&mut rng),
-                u: u + n.sample(&mut rng),
-                var_q: SIGMA * SIGMA,
-                var_u: SIGMA * SIGMA,
-                cov_qu: 0.0,
-            }
-        })
-        .collect();
-    CalField::from_p_chi(name, p, chi, 0.0, obs)
-}
-
-/// The three sky fields of `SKIES`.
 fn fields(meas: &dyn Fn(f64, f64, f64, f64) -> (f64, f64), seed: u64) -> Vec<CalField> {
-    SKIES.iter().enumerate().map(|(k, &(p, chi))| field_of(meas, &format!("sky{k}"), p, chi, seed + k as u64)).collect()
+    sky_fields(3, &grid(), meas, seed)
 }
 
 fn full_turn() -> Vec<f64> {
@@ -80,12 +44,8 @@ fn pick<'a>(e: &'a fit::mueller_explain::Explanation, c: Cause) -> &'a fit::muel
 #[test]
 fn stressed_lens_field_is_explained_by_a_stressed_lens() {
     let (a, c, off) = (18.0f64, [0.8, -0.4], 10.0f64);
-    let truth = move |x: f64, y: f64| -> LinearBlock {
-        let (qd, ud) = diat(x, y);
-        let (d, ax) = mueller::causes::stressed_lens(x, y, a.to_radians(), 3.4, c, off.to_radians());
-        physical_block(qd, ud, retardance_vector(d, ax), 0.0, 0.0)
-    };
-    let f = fields(&|x, y, q, u| truth(x, y).forward(q, u).unwrap(), 11);
+    let truth = move |x: f64, y: f64| -> LinearBlock { diat_and_lens(x, y, a, c, off) };
+    let f = fields(&common::mueller_fields::through(truth), 11);
     let mf = fit_mueller_field(&f, &opts(Kind::diattenuation_retardance())).unwrap();
     let target = Target::smooth(&mf, 16, "test").unwrap();
     let ctx = Context::new(&full_turn(), 90.0, 3.4).unwrap();
@@ -235,12 +195,9 @@ fn paper_three_fields_one_sky_per_band() {
             })
             .fold(0.0, f64::max);
         shift.push(worst);
-        let truth = |x: f64, y: f64, q: f64, u: f64| {
-            let (qd, ud) = diat(x, y);
-            let (d, ax) = mueller::causes::stressed_lens(x, y, 9f64.to_radians(), 3.4, [0.8, -0.4], 0.0);
-            physical_block(qd, ud, retardance_vector(d, ax), 0.0, 0.0).forward(q, u).unwrap()
-        };
-        let f = vec![field_of(&truth, band, p, chi.to_degrees(), 40 + k as u64)];
+        let truth = common::mueller_fields::through(|x, y| diat_and_lens(x, y, 9.0, LENS_CENTRE_ARCMIN, 0.0));
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(40 + k as u64);
+        let f = vec![common::mueller_fields::cal_field(band, p, chi.to_degrees(), &grid(), &truth, SIGMA, &mut rng)];
         let err = fit_mueller_field(&f, &opts(Kind::diattenuation_retardance())).err().unwrap().to_string();
         assert!(err.contains("retardance unconstrained"), "{band}: {err}");
         let none = Kind::Physical { retardance: false, rotation: false, depolarization: false };

@@ -9,72 +9,36 @@
 //! (`LinearBlock::forward`) plus Gaussian noise; that the simulator's frames carry the same
 //! block is checked separately against the pixel F_i (`frames_carry_the_stressed_lens`).
 
-use fit::mueller_field::{fit_mueller_field, fit_per_bin, CalField, Kind, MuellerFitOptions, Observation};
-use mueller::linear::{physical_block, retardance_vector, LinearBlock};
+use fit::mueller_field::{fit_mueller_field, fit_per_bin, CalField, Kind, MuellerFitOptions};
+use mueller::linear::retardance_vector;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use rand_xoshiro::Xoshiro256PlusPlus;
 use sim::stress::StressedLensSpec;
 
-/// The paper's B sky (tab:empty) and two other sky fields at other helio-ecliptic positions.
-const SKIES: [(f64, f64); 3] = [(0.0645, 68.4), (0.040, 10.0), (0.080, 130.0)];
-const SIGMA: f64 = 3e-4;
+#[path = "../../fit/tests/common/mueller_fields.rs"]
+mod mueller_fixtures;
+use mueller_fixtures::{b_truth as truth, diat, LENS_CENTRE_ARCMIN, LENS_EDGE_DEG, LENS_RADIUS_ARCMIN};
 
+/// The B stressed lens of the fixtures as the simulator's effect.
 fn lens() -> StressedLensSpec {
     StressedLensSpec {
-        retardance_edge_deg: 18.0,
-        radius_arcmin: 3.4,
-        centre_arcmin: [0.8, -0.4],
+        retardance_edge_deg: LENS_EDGE_DEG,
+        radius_arcmin: LENS_RADIUS_ARCMIN,
+        centre_arcmin: LENS_CENTRE_ARCMIN,
         tangential: false,
         axis_offset_deg: 0.0,
     }
 }
 
-/// Diattenuation of the paper's radial form: p = 2e-4 r^2, phi = polar angle.
-fn diat(x: f64, y: f64) -> (f64, f64) {
-    (2e-4 * (x * x - y * y), 2e-4 * 2.0 * x * y)
-}
-
-/// The true block: M_I then the stressed lens (the order of mueller::linear's physical form).
-fn truth(x: f64, y: f64) -> LinearBlock {
-    let (qd, ud) = diat(x, y);
-    let (d, ax) = lens().retardance_at(x, y);
-    physical_block(qd, ud, retardance_vector(d, ax), 0.0, 0.0)
-}
-
 /// 60 x 45 = 2700 bins over the FORS1 6.8' x 6.8' field.
 fn grid() -> Vec<(f64, f64)> {
-    let mut v = Vec::new();
-    for j in 0..45 {
-        for i in 0..60 {
-            v.push((-3.4 + 6.8 * (i as f64 + 0.5) / 60.0, -3.4 + 6.8 * (j as f64 + 0.5) / 45.0));
-        }
-    }
-    v
+    mueller_fixtures::fors1_grid(60, 45)
 }
 
+/// Sky field `k` of the fixtures' three seen through the truth.
 fn field(k: usize, seed: u64) -> CalField {
-    let (p, chi) = SKIES[k];
-    let chi = f64::to_radians(chi);
-    let (q0, u0) = (p * (2.0 * chi).cos(), p * (2.0 * chi).sin());
-    let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed + k as u64);
-    let n = Normal::new(0.0, SIGMA).unwrap();
-    let obs = grid()
-        .into_iter()
-        .map(|(x, y)| {
-            let (q, u) = truth(x, y).forward(q0, u0).unwrap();
-            Observation {
-                x_arcmin: x,
-                y_arcmin: y,
-                q: q + n.sample(&mut rng),
-                u: u + n.sample(&mut rng),
-                var_q: SIGMA * SIGMA,
-                var_u: SIGMA * SIGMA,
-                cov_qu: 0.0,
-            }
-        })
-        .collect();
-    CalField::from_p_chi(&format!("sky{k}"), p, chi, 0.0, obs)
+    mueller_fixtures::sky_field(k, &grid(), &mueller_fixtures::through(truth), seed)
 }
 
 fn opts() -> MuellerFitOptions {

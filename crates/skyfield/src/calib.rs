@@ -257,6 +257,45 @@ struct Masters {
     flat: Option<Vec<f32>>,
 }
 
+/// A method `$name` whose body `$body` runs compiled for AVX2 where the CPU has it, else as
+/// compiled for the baseline: the compiler vectorizes the same IEEE operations 4-wide (FMA is
+/// not enabled), so both give the same bits. Writes, from one signature, the body as the
+/// `#[inline(always)]` method `$imp`, the `#[target_feature]` wrapper `$avx` and the run-time
+/// check; callable elsewhere in the crate as `crate::calib::avx2_dispatch!`.
+macro_rules! avx2_dispatch {
+    ($(#[$m:meta])* fn $name:ident / $avx:ident => $imp:ident(&$s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
+        avx2_dispatch!(@ [$(#[$m])*] $name $avx $imp $s [&$s] [$($arg: $ty),*] [$($ret)?] $body);
+    };
+    ($(#[$m:meta])* fn $name:ident / $avx:ident => $imp:ident(&mut $s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
+        avx2_dispatch!(@ [$(#[$m])*] $name $avx $imp $s [&mut $s] [$($arg: $ty),*] [$($ret)?] $body);
+    };
+    (@ [$($m:tt)*] $name:ident $avx:ident $imp:ident $s:ident [$($recv:tt)*] [$($arg:ident: $ty:ty),*] [$($ret:ty)?] $body:block) => {
+        $($m)*
+        #[inline]
+        fn $name($($recv)*, $($arg: $ty),*) $(-> $ret)? {
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: AVX2 support was checked just above.
+                return unsafe { $s.$avx($($arg),*) };
+            }
+            $s.$imp($($arg),*)
+        }
+
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx2")]
+        #[allow(clippy::too_many_arguments)]
+        unsafe fn $avx($($recv)*, $($arg: $ty),*) $(-> $ret)? {
+            $s.$imp($($arg),*)
+        }
+
+        #[inline(always)]
+        #[allow(clippy::too_many_arguments)]
+        fn $imp($($recv)*, $($arg: $ty),*) $(-> $ret)? $body
+    };
+}
+#[allow(unused_imports)]
+pub(crate) use avx2_dispatch;
+
 /// One chip of one exposure, calibrated row by row as its rows are read: trimmed, its bias
 /// level and the master bias subtracted, times its gain, times the master flat's inverse.
 #[derive(Debug)]
@@ -306,65 +345,30 @@ impl ChipRows {
         }
     }
 
-    /// Decode and calibrate raw rows `ry ..` (fetched) into `rows` (whole detector rows of
-    /// `nx`, the first at detector index `det0`): decoded into place, then calibrated in place
-    /// (both passes stay in L1). 4-wide AVX2 where the CPU has it: the same IEEE operations (no
-    /// FMA), so the same bits.
-    #[inline]
-    #[allow(clippy::too_many_arguments)]
-    fn calibrate_rows(
-        &self,
-        ry: usize,
-        det0: usize,
-        nx: usize,
-        bias: Option<&[f32]>,
-        flat: Option<&[f32]>,
-        bytes: &[u8],
-        rows: &mut [f64],
-    ) {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: AVX2 support was checked just above.
-            return unsafe { self.calibrate_rows_avx2(ry, det0, nx, bias, flat, bytes, rows) };
-        }
-        self.calibrate_rows_impl(ry, det0, nx, bias, flat, bytes, rows)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn calibrate_rows_avx2(
-        &self,
-        ry: usize,
-        det0: usize,
-        nx: usize,
-        bias: Option<&[f32]>,
-        flat: Option<&[f32]>,
-        bytes: &[u8],
-        rows: &mut [f64],
-    ) {
-        self.calibrate_rows_impl(ry, det0, nx, bias, flat, bytes, rows)
-    }
-
-    #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    fn calibrate_rows_impl(
-        &self,
-        ry: usize,
-        det0: usize,
-        nx: usize,
-        bias: Option<&[f32]>,
-        flat: Option<&[f32]>,
-        bytes: &[u8],
-        rows: &mut [f64],
-    ) {
-        for (k, row) in rows.chunks_exact_mut(nx).enumerate() {
-            let base = det0 + k * nx + self.x0;
-            let o = &mut row[self.x0..self.x0 + self.cx];
-            self.decode(ry, k, self.prx, bytes, o);
-            let bias = bias.map(|m| &m[base..base + self.cx]);
-            let flat = flat.map(|m| &m[base..base + self.cx]);
-            calibrate_row(o, bias, flat, self.level, self.to_e, self.sat);
+    avx2_dispatch! {
+        /// Decode and calibrate raw rows `ry ..` (fetched) into `rows` (whole detector rows of
+        /// `nx`, the first at detector index `det0`): decoded into place, then calibrated in
+        /// place (both passes stay in L1). 4-wide AVX2 where the CPU has it: the same IEEE
+        /// operations (no FMA), so the same bits.
+        #[allow(clippy::too_many_arguments)]
+        fn calibrate_rows / calibrate_rows_avx2 => calibrate_rows_impl(
+            &self,
+            ry: usize,
+            det0: usize,
+            nx: usize,
+            bias: Option<&[f32]>,
+            flat: Option<&[f32]>,
+            bytes: &[u8],
+            rows: &mut [f64],
+        ) {
+            for (k, row) in rows.chunks_exact_mut(nx).enumerate() {
+                let base = det0 + k * nx + self.x0;
+                let o = &mut row[self.x0..self.x0 + self.cx];
+                self.decode(ry, k, self.prx, bytes, o);
+                let bias = bias.map(|m| &m[base..base + self.cx]);
+                let flat = flat.map(|m| &m[base..base + self.cx]);
+                calibrate_row(o, bias, flat, self.level, self.to_e, self.sat);
+            }
         }
     }
 

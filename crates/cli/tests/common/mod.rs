@@ -75,6 +75,20 @@ pub const MINI: Mini = Mini {
     strip_count: 5,
 };
 
+/// A small FORS1-like instrument: 512 x 512 px of 0.8", FORS1's 6.8' field and nine strips,
+/// so that a whole frame chain (simulate, reduce, calibrate) runs in a test.
+pub const SMALL: Mini = Mini {
+    name: "SMALL",
+    nx: 512,
+    pixel_scale_arcsec: 0.8,
+    gain_e_per_adu: 1.25,
+    read_noise_e: 5.0,
+    saturation_adu: 65535.0,
+    field_arcmin: 6.8,
+    throw_arcsec: 22.4,
+    strip_count: 9,
+};
+
 impl Mini {
     /// The instrument file (TOML).
     pub fn toml(&self) -> String {

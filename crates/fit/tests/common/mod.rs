@@ -2,6 +2,8 @@
 //! (0.2"/px) in 30 x 30 px bins (section `sec:fors1`), with Gaussian noise per bin.
 #![allow(dead_code)]
 
+pub mod mueller_fields;
+
 use fit::Bin;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
