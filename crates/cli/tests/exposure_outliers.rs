@@ -56,17 +56,23 @@ fn photometry(inst: &Path, frames: &[PathBuf]) -> (serde_json::Value, String) {
     (serde_json::from_str(&stdout).unwrap(), err)
 }
 
+/// The instrument (HWP angle from the header), two clear cycles of the four angles (eight
+/// exposures), and the second cycle again through a cloud (light times 0.8).
+fn two_cycles_and_a_cloud(dir: &Path) -> (PathBuf, Vec<PathBuf>, Vec<PathBuf>) {
+    let text = include_str!("../../../instruments/calcite.toml")
+        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
+    let inst = dir.join("calcite.toml");
+    std::fs::write(&inst, &text).unwrap();
+    let first = simulate(dir, &inst, 1.0, 7, "first");
+    let second = simulate(dir, &inst, 1.0, 8, "second");
+    let cloudy = simulate(dir, &inst, 0.8, 8, "cloudy");
+    (inst, first.iter().chain(&second).cloned().collect(), cloudy)
+}
+
 #[test]
 fn a_frame_with_a_20_percent_transparency_drop_is_flagged() {
     let dir = tempfile::tempdir().unwrap();
-    let text = include_str!("../../../instruments/calcite.toml")
-        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
-    let inst = dir.path().join("calcite.toml");
-    std::fs::write(&inst, &text).unwrap();
-    let first = simulate(dir.path(), &inst, 1.0, 7, "first");
-    let second = simulate(dir.path(), &inst, 1.0, 8, "second");
-    let cloudy = simulate(dir.path(), &inst, 0.8, 8, "cloudy");
-    let clear: Vec<PathBuf> = first.iter().chain(&second).cloned().collect();
+    let (inst, clear, cloudy) = two_cycles_and_a_cloud(dir.path());
 
     // All clear: every exposure measured, none flagged, transparencies near 1.
     let (j, _) = photometry(&inst, &clear);
@@ -108,14 +114,7 @@ fn a_frame_with_a_20_percent_transparency_drop_is_flagged() {
 #[test]
 fn catalog_flags_the_dimmed_exposure_for_every_star() {
     let dir = tempfile::tempdir().unwrap();
-    let text = include_str!("../../../instruments/calcite.toml")
-        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
-    let inst = dir.path().join("calcite.toml");
-    std::fs::write(&inst, &text).unwrap();
-    let first = simulate(dir.path(), &inst, 1.0, 7, "first");
-    let second = simulate(dir.path(), &inst, 1.0, 8, "second");
-    let cloudy = simulate(dir.path(), &inst, 0.8, 8, "cloudy");
-    let clear: Vec<PathBuf> = first.iter().chain(&second).cloned().collect();
+    let (inst, clear, cloudy) = two_cycles_and_a_cloud(dir.path());
     let catalog = |frames: &[PathBuf], out: &Path| {
         let mut args: Vec<OsString> = vec!["catalog".into()];
         args.extend(frames.iter().map(|f| f.clone().into_os_string()));

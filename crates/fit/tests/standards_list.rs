@@ -76,22 +76,29 @@ fn every_entry_is_sourced_and_in_range() {
     }
 }
 
+/// The polarized stars of the list: name and band entries.
+fn polarized() -> Vec<(String, Vec<toml::Value>)> {
+    let doc: toml::Value = toml::from_str(LIST).unwrap();
+    doc["star"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|s| s["kind"].as_str() == Some("polarized"))
+        .map(|s| (s["name"].as_str().unwrap().to_string(), s["band"].as_array().unwrap().clone()))
+        .collect()
+}
+
+/// `(lambda_eff_nm, P %)` of a star's bands that have an effective wavelength.
+fn points(nm: &BTreeMap<String, f64>, bands: &[toml::Value]) -> Vec<(f64, f64)> {
+    bands.iter().filter_map(|b| Some((*nm.get(b["band"].as_str()?)?, b["p_percent"].as_float()?))).collect()
+}
+
 #[test]
 fn multi_band_stars_follow_a_serkowski_law() {
     let nm = band_nm();
-    let doc: toml::Value = toml::from_str(LIST).unwrap();
     let mut checked = 0;
-    for s in doc["star"].as_array().unwrap() {
-        if s["kind"].as_str() != Some("polarized") {
-            continue;
-        }
-        let name = s["name"].as_str().unwrap();
-        let pts: Vec<(f64, f64)> = s["band"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .filter_map(|b| Some((*nm.get(b["band"].as_str()?)?, b["p_percent"].as_float()?)))
-            .collect();
+    for (name, bands) in polarized() {
+        let pts = points(&nm, &bands);
         if pts.len() < 3 {
             continue;
         }
@@ -122,14 +129,8 @@ fn serkowski_check_catches_typos() {
 #[test]
 fn bands_of_a_star_agree_in_chi_and_two_band_ratios_are_serkowski() {
     let nm = band_nm();
-    let doc: toml::Value = toml::from_str(LIST).unwrap();
     let mut checked = 0;
-    for s in doc["star"].as_array().unwrap() {
-        if s["kind"].as_str() != Some("polarized") {
-            continue;
-        }
-        let name = s["name"].as_str().unwrap();
-        let bands = s["band"].as_array().unwrap();
+    for (name, bands) in polarized() {
         let chis: Vec<f64> = bands.iter().filter_map(|b| b["chi_deg"].as_float()).collect();
         for a in &chis {
             for b in &chis {

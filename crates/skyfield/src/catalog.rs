@@ -456,7 +456,7 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
 /// Check every measured star of `cat` exposure by exposure (issue 13, item 6, as `photometry`
 /// does for one star): `frames` are the exposures `set` was summed from, in the order given.
 /// Each star is measured in each exposure alone with its own aperture, its repeats compared
-/// through `stokes::repeats` (`crate::photometry::exposure_checks_on`); a star with a flagged
+/// through `stokes::repeats` (`crate::photometry::exposure_checks`); a star with a flagged
 /// exposure gets [`flags::OUTLIER_EXPOSURE`] and the exposures' indices, and the catalog a
 /// summary per exposure. Nothing is done when no HWP position repeats. Flagged exposures stay
 /// in the sum (a change common to both beams cancels in `F`): this reports, it does not cut.
@@ -467,7 +467,7 @@ pub fn check_exposures(
     inst: &Instrument,
     cfg: &CatalogConfig,
 ) -> Result<(), Error> {
-    use crate::photometry::{exposure_checks_on, single_exposures, Aperture, EXPOSURE_OUTLIER_SIGMA};
+    use crate::photometry::{exposure_checks, single_exposures, Aperture, EXPOSURE_OUTLIER_SIGMA};
     let theta: Vec<f64> = frames.iter().map(|f| f.hwp_deg.to_radians()).collect();
     if !stokes::repeats::has_repeats(&theta) {
         return Ok(());
@@ -485,7 +485,7 @@ pub fn check_exposures(
             let ap = Aperture { radius_px: r.aperture_px, annulus: cfg.annulus };
             // A star the whole set measures but one exposure cannot (shifted off the mask) is
             // left unchecked rather than failing the catalog.
-            exposure_checks_on(&singles, &g, r.x, r.y, &ap, &opts, EXPOSURE_OUTLIER_SIGMA).ok()
+            exposure_checks(&singles, &g, r.x, r.y, &ap, &opts, EXPOSURE_OUTLIER_SIGMA).ok()
         })
         .collect();
     let mut summary: Vec<ExposureSummary> = frames

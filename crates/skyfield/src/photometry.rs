@@ -363,7 +363,7 @@ pub const EXPOSURE_OUTLIER_SIGMA: f64 = 4.0;
 pub const TRANSPARENCY_TOL: f64 = 0.10;
 
 /// Each exposure of `frames` as a one-frame [`FrameSet`] (the conversion and filter of `set`),
-/// built once for [`exposure_checks_on`] (a catalog checks every star in the same exposures).
+/// built once for [`exposure_checks`] (a catalog checks every star in the same exposures).
 pub fn single_exposures(frames: &[crate::io::Frame], set: &FrameSet) -> Vec<FrameSet> {
     frames
         .iter()
@@ -380,26 +380,12 @@ pub fn single_exposures(frames: &[crate::io::Frame], set: &FrameSet) -> Vec<Fram
         .collect()
 }
 
-/// Measure the source at `(x, y)` in each exposure of `frames` on its own (apertures re-centred
-/// per exposure as `opts` says, the same aperture machinery as [`photometry_with`]), combine the
-/// exposures of each plate position with `stokes::repeats::combine_repeats` and flag outliers
-/// at `threshold` sigma (see [`ExposureCheck`]). `set` gives the frames' conversion and filter.
-#[allow(clippy::too_many_arguments)]
+/// Measure the source at `(x, y)` in each exposure on its own (`singles`, the frames split by
+/// [`single_exposures`]; apertures re-centred per exposure as `opts` says, the same aperture
+/// machinery as [`photometry_with`]), combine the exposures of each plate position with
+/// `stokes::repeats::combine_repeats` and flag outliers at `threshold` sigma (see
+/// [`ExposureCheck`]).
 pub fn exposure_checks(
-    frames: &[crate::io::Frame],
-    set: &FrameSet,
-    g: &BeamGeometry,
-    x: f64,
-    y: f64,
-    ap: &Aperture,
-    opts: &PhotOptions,
-    threshold: f64,
-) -> Result<Vec<ExposureCheck>, Error> {
-    exposure_checks_on(&single_exposures(frames, set), g, x, y, ap, opts, threshold)
-}
-
-/// [`exposure_checks`] on exposures already split by [`single_exposures`].
-pub fn exposure_checks_on(
     singles: &[FrameSet],
     g: &BeamGeometry,
     x: f64,
