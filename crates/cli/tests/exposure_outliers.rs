@@ -56,17 +56,23 @@ fn photometry(inst: &Path, frames: &[PathBuf]) -> (serde_json::Value, String) {
     (serde_json::from_str(&stdout).unwrap(), err)
 }
 
+/// The instrument (HWP angle from the header), two clear cycles of the four angles (eight
+/// exposures), and the second cycle again through a cloud (light times 0.8).
+fn two_cycles_and_a_cloud(dir: &Path) -> (PathBuf, Vec<PathBuf>, Vec<PathBuf>) {
+    let text = include_str!("../../../instruments/calcite.toml")
+        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
+    let inst = dir.join("calcite.toml");
+    std::fs::write(&inst, &text).unwrap();
+    let first = simulate(dir, &inst, 1.0, 7, "first");
+    let second = simulate(dir, &inst, 1.0, 8, "second");
+    let cloudy = simulate(dir, &inst, 0.8, 8, "cloudy");
+    (inst, first.iter().chain(&second).cloned().collect(), cloudy)
+}
+
 #[test]
 fn a_frame_with_a_20_percent_transparency_drop_is_flagged() {
     let dir = tempfile::tempdir().unwrap();
-    let text = include_str!("../../../instruments/calcite.toml")
-        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
-    let inst = dir.path().join("calcite.toml");
-    std::fs::write(&inst, &text).unwrap();
-    let first = simulate(dir.path(), &inst, 1.0, 7, "first");
-    let second = simulate(dir.path(), &inst, 1.0, 8, "second");
-    let cloudy = simulate(dir.path(), &inst, 0.8, 8, "cloudy");
-    let clear: Vec<PathBuf> = first.iter().chain(&second).cloned().collect();
+    let (inst, clear, cloudy) = two_cycles_and_a_cloud(dir.path());
 
     // All clear: every exposure measured, none flagged, transparencies near 1.
     let (j, _) = photometry(&inst, &clear);
@@ -99,4 +105,71 @@ fn a_frame_with_a_20_percent_transparency_drop_is_flagged() {
     let f = |k: &str| j[k].as_f64().unwrap();
     assert!(((f("q") - p * (2.0 * chi).cos()) / f("sigma_q")).abs() < 4.0, "{j}");
     assert!(((f("u") - p * (2.0 * chi).sin()) / f("sigma_u")).abs() < 4.0, "{j}");
+}
+
+/// `instpol catalog` on the same frames (issue 13: per-exposure checks in the catalog): every
+/// star is measured in each exposure alone; with the clear set no exposure is flagged, with
+/// exposure 6 through the cloud every star flags it (and only it: the row's flag bit and
+/// `outlier_exposures` = [5]), and the catalog names it with its stars' median light 0.8.
+#[test]
+fn catalog_flags_the_dimmed_exposure_for_every_star() {
+    let dir = tempfile::tempdir().unwrap();
+    let (inst, clear, cloudy) = two_cycles_and_a_cloud(dir.path());
+    let catalog = |frames: &[PathBuf], out: &Path| {
+        let mut args: Vec<OsString> = vec!["catalog".into()];
+        args.extend(frames.iter().map(|f| f.clone().into_os_string()));
+        for a in ["--instrument", inst.to_str().unwrap(), "--fwhm", "4.7", "--aperture", "9", "--annulus", "14,24"] {
+            args.push(a.into());
+        }
+        args.extend(["--out".into(), out.as_os_str().to_owned(), "--json".into()]);
+        let (code, stdout, err) = run(&args);
+        assert_eq!(code, 0, "{err}");
+        (serde_json::from_str::<serde_json::Value>(&stdout).unwrap(), err)
+    };
+
+    let (j, _) = catalog(&clear, &dir.path().join("clear.csv"));
+    let ex = j["exposures"].as_array().unwrap_or_else(|| panic!("no exposures: {j}"));
+    assert_eq!(ex.len(), 8);
+    let rows = j["rows"].as_array().unwrap();
+    let measured: Vec<&serde_json::Value> = rows.iter().filter(|r| r["q"].is_number()).collect();
+    assert_eq!(measured.len(), 3, "the scene's three stars: {j}");
+    for e in ex {
+        assert_eq!(e["n_stars"], 3, "{e}");
+        assert_eq!(e["n_stars_flagged"], 0, "{e}");
+        assert!((e["median_transparency"].as_f64().unwrap() - 1.0).abs() < 0.02, "{e}");
+    }
+    assert!(measured.iter().all(|r| r["outlier_exposures"].as_array().unwrap().is_empty()
+        && r["flags"].as_u64().unwrap() & skyfield::catalog::flags::OUTLIER_EXPOSURE as u64 == 0));
+
+    let mut frames = clear.clone();
+    frames[5] = cloudy[1].clone();
+    let out = dir.path().join("cloudy.csv");
+    let (j, err) = catalog(&frames, &out);
+    let ex = j["exposures"].as_array().unwrap();
+    for (i, e) in ex.iter().enumerate() {
+        assert_eq!(e["outlier"].as_bool().unwrap(), i == 5, "{e}");
+        assert_eq!(e["n_stars_flagged"], if i == 5 { 3 } else { 0 }, "{e}");
+    }
+    let t = ex[5]["median_transparency"].as_f64().unwrap();
+    assert!((t - 0.8).abs() < 0.02, "median transparency {t}");
+    assert_eq!(ex[5]["file"].as_str().unwrap(), frames[5].display().to_string());
+    for r in j["rows"].as_array().unwrap().iter().filter(|r| r["q"].is_number()) {
+        assert_eq!(r["outlier_exposures"], serde_json::json!([5]), "{r}");
+        assert!(r["flags"].as_u64().unwrap() & skyfield::catalog::flags::OUTLIER_EXPOSURE as u64 != 0, "{r}");
+    }
+    assert!(err.contains("warning") && err.contains(&frames[5].display().to_string()), "{err}");
+    // The table carries the flag and the exposures' indices.
+    let csv = std::fs::read_to_string(&out).unwrap();
+    let head: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+    let col = |n: &str| head.iter().position(|h| *h == n).unwrap_or_else(|| panic!("no column {n}: {head:?}"));
+    let (cf, cn, ci) = (col("flags"), col("n_outlier_exposures"), col("outlier_exposures"));
+    let mut flagged = 0;
+    for line in csv.lines().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        if f[cf].contains("outlier_exposure") {
+            assert_eq!((f[cn], f[ci]), ("1", "5"), "{line}");
+            flagged += 1;
+        }
+    }
+    assert_eq!(flagged, 3, "{csv}");
 }

@@ -3,7 +3,8 @@
 //! The three standards (chi 136, 12 and 70 deg) give one zero angle within its error, agree
 //! with each other (chi2/dof small, no outlier), and tell the sense of the angle (the
 //! simulator's plate turns chi counter-clockwise, as the IAU). A fourth "standard" catalogued
-//! 6 deg off its true chi is named as the outlier.
+//! 6 deg off its true chi (or 73 deg off, the wrong star) is named and left out: the zero angle
+//! stays the three good ones'.
 
 mod common;
 
@@ -81,25 +82,32 @@ fn zero_angle_from_three_standards_of_different_chi() {
     let scatter = f("sigma_scatter_zero_angle_deg");
     assert!((scatter - sz * f("chi2_dof").sqrt()).abs() < 1e-9);
 
-    // A fourth standard whose catalogue angle is 6 deg off (a misidentified star): named.
+    // A fourth standard whose catalogue angle is 6 deg off (a misidentified star): named and
+    // left out, so the zero angle, its error and chi2 are the three good ones' again.
     let mut four = three.to_vec();
     four.push("560,560:106+-0.05");
-    let (code, j, err) = zero_angle(&inst, &frames, &four);
+    let (code, j4, err) = zero_angle(&inst, &frames, &four);
     assert_eq!(code, 0, "{err}");
-    assert_eq!(j["outlier"].as_str().unwrap(), "chi 106 deg at (560, 560)", "{j}");
-    assert!(err.contains("disagrees"), "{err}");
-    assert!(j["chi2_dof"].as_f64().unwrap() > 10.0, "{j}");
+    assert_eq!(j4["outlier"].as_str().unwrap(), "chi 106 deg at (560, 560)", "{j4}");
+    assert_eq!(j4["excluded"].as_array().unwrap().len(), 1, "{j4}");
+    assert!(j4["standards"][3]["excluded"].as_bool().unwrap() && j4["standards"][3]["pull"].as_f64().unwrap() > 3.0);
+    assert!(err.contains("disagrees") && err.contains("left out"), "{err}");
+    assert_eq!(j4["n_standards"], 3);
+    for k in ["zero_angle_deg", "sigma_zero_angle_deg", "chi2_dof"] {
+        assert!((j4[k].as_f64().unwrap() - j[k].as_f64().unwrap()).abs() < 1e-9, "{k}: {j4} vs {j}");
+    }
 
     // A standard by name from the built-in list (Hiltner 652, V: 179.18 deg, Fossati et al.
-    // 2007) put on the wrong star: looked up, and the set's scatter is flagged. (A star 80 deg
-    // off drags the mean and can flip the sense; naming it needs a leave-one-out test, not
-    // done: see the report.)
+    // 2007) put on the wrong star (true chi 100 deg: 79 deg off): looked up, named, left out,
+    // and it neither drags the mean nor flips the sense.
     let mut named = three.to_vec();
     named.push("560,560:Hiltner 652");
-    let (code, j, err) = zero_angle(&inst, &frames, &named);
+    let (code, jn, err) = zero_angle(&inst, &frames, &named);
     assert_eq!(code, 0, "{err}");
-    assert_eq!(j["standards"][3]["chi_catalogue_deg"].as_f64().unwrap(), 179.18, "{j}");
-    assert!(j["chi2_dof"].as_f64().unwrap() > 100.0, "{j}");
+    assert_eq!(jn["standards"][3]["chi_catalogue_deg"].as_f64().unwrap(), 179.18, "{jn}");
+    assert_eq!(jn["outlier"].as_str().unwrap(), "Hiltner 652", "{jn}");
+    assert_eq!(jn["sense"], "iau", "{jn}");
+    assert!((jn["zero_angle_deg"].as_f64().unwrap() - z).abs() < 1e-9, "{jn}");
 
     // A bad --standard is a clear error naming it, exit code 2.
     let (code, _, err) = zero_angle(&inst, &frames, &["150;200:136"]);

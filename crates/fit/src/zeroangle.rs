@@ -11,11 +11,14 @@
 //! one standard, or standards of one `chi`, it cannot be told and is reported so.
 //!
 //! With several standards the scatter is checked: the chi^2 of the offsets about their mean,
-//! each star's pull (its residual over the residual's own error, `sigma_i^2 - 1 / sum w`, since
-//! the mean contains the star), a scatter-based error (the propagated one times
+//! each star's pull against the weighted circular mean of the OTHERS (leave-one-out: its
+//! residual over `sqrt(sigma_i^2 + 1 / sum_{k != i} w_k)`, so a grossly wrong star cannot hide
+//! by dragging the mean toward itself), a scatter-based error (the propagated one times
 //! `sqrt(chi^2 / dof)`, the Birge ratio) beside the propagated one, and the star that disagrees
 //! (the largest pull beyond [`OUTLIER_PULL`], with three or more stars: with two, either could
-//! be the wrong one).
+//! be the wrong one). Such a star is left out and the mean, the sense, the errors and the
+//! pulls are found again from the rest, as long as more than half the stars remain: a star
+//! catalogued 80 deg off (a misidentification) is named and does not move the result.
 
 /// One standard: measured and catalogued `chi` (rad) with their 1-sigma errors (rad).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -58,8 +61,12 @@ pub struct ZeroAngle {
     /// The propagated error scaled by `sqrt(chi2 / dof)` (rad), with two or more standards.
     pub sigma_scatter: Option<f64>,
     /// Index (into the standards given) of the star whose pull exceeds [`OUTLIER_PULL`], the
-    /// largest one, with three or more standards.
+    /// largest one, with three or more standards (the first of `excluded`).
     pub outlier: Option<usize>,
+    /// Indices (into the standards given) of the stars left out of the mean, worst first; the
+    /// offset, errors, chi^2 and sense are those of the others. `offsets` and `pulls` still
+    /// hold every star (an excluded star's pull is against the mean of the kept ones).
+    pub excluded: Vec<usize>,
 }
 
 /// A standard whose offset lies further than this (in sigma of its residual) from the mean of
@@ -77,62 +84,117 @@ fn mean_offset(d: &[f64], w: &[f64]) -> (f64, f64) {
     (m, chi2)
 }
 
+/// One sense's offsets `d` (all usable stars) with weights `w`, the worst disagreeing star left
+/// out at a time (leave-one-out pull beyond [`OUTLIER_PULL`], while three or more remain and
+/// more than half would stay).
+struct Clipped {
+    kept: Vec<usize>,
+    excluded: Vec<usize>,
+    mean: f64,
+    chi2: f64,
+    pulls: Vec<f64>,
+}
+
+fn clip(d: &[f64], w: &[f64]) -> Clipped {
+    let mut kept: Vec<usize> = (0..d.len()).collect();
+    let mut excluded = Vec::new();
+    loop {
+        let (mean, chi2) = mean_offset(
+            &kept.iter().map(|&k| d[k]).collect::<Vec<f64>>(),
+            &kept.iter().map(|&k| w[k]).collect::<Vec<f64>>(),
+        );
+        let pulls = loo_pulls(&kept, d, w);
+        if kept.len() >= 3 && 2 * (kept.len() - 1) > d.len() {
+            let (k, worst) =
+                kept.iter().map(|&k| (k, pulls[k].abs())).fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+            if worst > OUTLIER_PULL {
+                kept.retain(|&j| j != k);
+                excluded.push(k);
+                continue;
+            }
+        }
+        return Clipped { kept, excluded, mean, chi2, pulls };
+    }
+}
+
+/// Leave-one-out pulls: each star's offset against the weighted circular mean of the kept
+/// stars other than itself, over `sqrt(1/w_i + 1/sum_{kept, k != i} w_k)` (0 with no other).
+fn loo_pulls(kept: &[usize], d: &[f64], w: &[f64]) -> Vec<f64> {
+    (0..d.len())
+        .map(|i| {
+            let others: Vec<usize> = kept.iter().copied().filter(|&k| k != i).collect();
+            if others.is_empty() {
+                return 0.0;
+            }
+            let wo: Vec<f64> = others.iter().map(|&k| w[k]).collect();
+            let (m, _) = mean_offset(&others.iter().map(|&k| d[k]).collect::<Vec<f64>>(), &wo);
+            let v = 1.0 / w[i] + 1.0 / wo.iter().sum::<f64>();
+            wrap_half_pi(d[i] - m) / v.sqrt()
+        })
+        .collect()
+}
+
 /// The zero angle and sense from `stds` (see the module docs). `None` when no standard has a
 /// finite, positive error.
+///
+/// Each sense is fitted with its own outliers left out (a wrong star can make the wrong sense
+/// look better while it is in); the sense is the one whose kept stars scatter less (reduced
+/// chi^2), decided only when the kept stars' catalogued angles differ by more than five times
+/// their largest error. `chi2_other_sense` is the other sense's chi^2 over its own kept stars.
 pub fn zero_angle(stds: &[StandardChi]) -> Option<ZeroAngle> {
-    let ok: Vec<&StandardChi> = stds
+    // Indices (into `stds`) of the usable standards.
+    let idx: Vec<usize> = stds
         .iter()
-        .filter(|s| {
+        .enumerate()
+        .filter(|(_, s)| {
             let v = s.sigma_measured.powi(2) + s.sigma_catalogue.powi(2);
             s.chi_measured.is_finite() && s.chi_catalogue.is_finite() && v.is_finite() && v > 0.0
         })
+        .map(|(i, _)| i)
         .collect();
-    if ok.is_empty() {
+    if idx.is_empty() {
         return None;
     }
+    let ok: Vec<&StandardChi> = idx.iter().map(|&i| &stds[i]).collect();
     let w: Vec<f64> = ok.iter().map(|s| 1.0 / (s.sigma_measured.powi(2) + s.sigma_catalogue.powi(2))).collect();
     let iau: Vec<f64> = ok.iter().map(|s| wrap_half_pi(s.chi_catalogue - s.chi_measured)).collect();
     let mir: Vec<f64> = ok.iter().map(|s| wrap_half_pi(s.chi_catalogue + s.chi_measured)).collect();
-    let (m_iau, c_iau) = mean_offset(&iau, &w);
-    let (m_mir, c_mir) = mean_offset(&mir, &w);
-    // The sense is decidable only when the catalogued angles differ (by more than their errors).
-    let spread = ok.iter().map(|s| wrap_half_pi(s.chi_catalogue - ok[0].chi_catalogue).abs()).fold(0.0, f64::max);
-    let sig_max = ok.iter().map(|s| s.sigma_catalogue.max(s.sigma_measured)).fold(0.0, f64::max);
-    let decidable = ok.len() >= 2 && spread > 5.0 * sig_max;
-    let (sense, offset, chi2, offsets, other) = if !decidable {
-        (Sense::Undetermined, m_iau, c_iau, iau, None)
-    } else if c_iau <= c_mir {
-        (Sense::Iau, m_iau, c_iau, iau, Some(c_mir))
-    } else {
-        (Sense::Mirrored, m_mir, c_mir, mir, Some(c_iau))
+    let (ci, cm) = (clip(&iau, &w), clip(&mir, &w));
+    // The sense can be told only when the kept stars' catalogued angles differ.
+    let decidable = |c: &Clipped| {
+        let c0 = ok[c.kept[0]].chi_catalogue;
+        let spread = c.kept.iter().map(|&k| wrap_half_pi(ok[k].chi_catalogue - c0).abs()).fold(0.0, f64::max);
+        let sig_max = c.kept.iter().map(|&k| ok[k].sigma_catalogue.max(ok[k].sigma_measured)).fold(0.0, f64::max);
+        c.kept.len() >= 2 && spread > 5.0 * sig_max
     };
-    let sw: f64 = w.iter().sum();
+    let reduced = |c: &Clipped| c.chi2 / (c.kept.len().max(2) - 1) as f64;
+    let (sense, best, offsets, other) = if !decidable(&ci) {
+        (Sense::Undetermined, ci, iau, None)
+    } else if !decidable(&cm) || reduced(&ci) <= reduced(&cm) {
+        let o = cm.chi2;
+        (Sense::Iau, ci, iau, Some(o))
+    } else {
+        let o = ci.chi2;
+        (Sense::Mirrored, cm, mir, Some(o))
+    };
+    let sw: f64 = best.kept.iter().map(|&k| w[k]).sum();
     let sigma = 1.0 / sw.sqrt();
-    let dof = ok.len() - 1;
-    let pulls: Vec<f64> = offsets
-        .iter()
-        .zip(&w)
-        .map(|(&d, &wi)| {
-            let v = 1.0 / wi - 1.0 / sw;
-            if v > 0.0 {
-                wrap_half_pi(d - offset) / v.sqrt()
-            } else {
-                0.0
-            }
-        })
-        .collect();
-    let sigma_scatter = (dof > 0).then(|| sigma * (chi2 / dof as f64).sqrt());
-    // Map the worst pull back to the index among all standards given (non-finite ones skipped).
-    let idx: Vec<usize> =
-        stds.iter().enumerate().filter(|(_, s)| ok.iter().any(|o| std::ptr::eq(*o, *s))).map(|(i, _)| i).collect();
-    let outlier = if ok.len() >= 3 {
-        let (k, worst) =
-            pulls.iter().enumerate().map(|(k, p)| (k, p.abs())).fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
-        (worst > OUTLIER_PULL).then(|| idx[k])
-    } else {
-        None
-    };
-    Some(ZeroAngle { offset, sigma, chi2, dof, sense, chi2_other_sense: other, offsets, pulls, sigma_scatter, outlier })
+    let dof = best.kept.len() - 1;
+    let sigma_scatter = (dof > 0).then(|| sigma * (best.chi2 / dof as f64).sqrt());
+    let excluded: Vec<usize> = best.excluded.iter().map(|&k| idx[k]).collect();
+    Some(ZeroAngle {
+        offset: best.mean,
+        sigma,
+        chi2: best.chi2,
+        dof,
+        sense,
+        chi2_other_sense: other,
+        offsets,
+        pulls: best.pulls,
+        sigma_scatter,
+        outlier: excluded.first().copied(),
+        excluded,
+    })
 }
 
 #[cfg(test)]
@@ -189,10 +251,10 @@ mod tests {
         assert!(z.outlier.is_none() && z.sigma_scatter.unwrap() < 1e-9);
     }
 
-    /// Four standards, one catalogued 3 deg off: its pull is the textbook
-    /// `(d - mean) / sqrt(sigma^2 - 1/sum w)` (mean of four equal weights: residual 3 * 3/4 deg,
-    /// error sigma sqrt(3/4)), it is named, the others are not, and the scatter-based error is
-    /// the propagated one times sqrt(chi2 / 3).
+    /// Four standards, one catalogued 3 deg off: its leave-one-out pull is the textbook
+    /// `(d - mean of the others) / sqrt(sigma^2 + sigma^2 / 3)` (the three others agree
+    /// exactly: residual 3 deg), it is named and left out, the others are not, and the result
+    /// is the three others' (offset exact, chi^2 0, error sigma / sqrt 3).
     #[test]
     fn a_discrepant_standard_is_named() {
         let off = 10.0;
@@ -210,22 +272,45 @@ mod tests {
         let z = zero_angle(&s).unwrap();
         assert_eq!(z.sense, Sense::Iau);
         assert_eq!(z.outlier, Some(2));
+        assert_eq!(z.excluded, vec![2]);
         let sig = 0.5f64; // hypot(0.3, 0.4)
-                          // The weighted mean on the circle (equal weights), written out here.
-        let ds = [off, off, off + 3.0, off];
-        let (sn, cs) = ds
-            .iter()
-            .fold((0.0, 0.0), |(a, b), x: &f64| (a + (2.0 * x.to_radians()).sin(), b + (2.0 * x.to_radians()).cos()));
-        let mean = 0.5 * sn.atan2(cs).to_degrees();
-        assert!((mean - (off + 0.75)).abs() < 0.01, "close to the arithmetic mean for a small spread");
-        assert!((z.offset.to_degrees() - mean).abs() < 1e-9);
-        let want = (off + 3.0 - mean) / (sig * 0.75f64.sqrt());
+        let want = 3.0 / (sig * (1.0 + 1.0 / 3.0f64).sqrt());
         assert!((z.pulls[2] - want).abs() < 1e-9, "{} vs {want}", z.pulls[2]);
-        assert!(z.pulls.iter().enumerate().all(|(k, p)| k == 2 || p.abs() < OUTLIER_PULL));
-        let chi2: f64 = ds.iter().map(|x| (x - mean).powi(2) / (sig * sig)).sum();
-        assert!((z.chi2 - chi2).abs() < 1e-9 * chi2, "{} vs {chi2}", z.chi2);
-        let birge = z.sigma * (z.chi2 / 3.0).sqrt();
-        assert!((z.sigma_scatter.unwrap() - birge).abs() < 1e-15);
-        assert!((z.sigma.to_degrees() - sig / 2.0).abs() < 1e-12);
+        assert!(z.pulls.iter().enumerate().all(|(k, p)| k == 2 || p.abs() < 1e-9), "{:?}", z.pulls);
+        assert!((z.offset.to_degrees() - off).abs() < 1e-9);
+        assert!(z.chi2 < 1e-18 && z.dof == 2);
+        assert!((z.sigma.to_degrees() - sig / 3f64.sqrt()).abs() < 1e-12);
+        assert!(z.sigma_scatter.unwrap() < 1e-9);
+    }
+
+    /// Three good standards (offset 41.3 deg, errors 0.3 deg, one measured 0.2 deg off so the
+    /// mean is not exact) and one catalogued 80 deg off: the bad one is named and left out,
+    /// and the offset is the three good ones' weighted mean (written out here), within its
+    /// error of the truth. A plain mean with the bad star would be ~10 deg away and would
+    /// make the good stars the outliers.
+    #[test]
+    fn a_star_80_deg_off_does_not_drag_the_mean() {
+        let off = 41.3;
+        let rows = [(15.0, 0.0, 0.0), (70.0, 0.2, 0.0), (125.0, 0.0, 0.0), (160.0, 0.0, 80.0)];
+        let s: Vec<StandardChi> = rows
+            .iter()
+            .map(|&(c, dm, dc): &(f64, f64, f64)| StandardChi {
+                chi_measured: d((c - off + dm).rem_euclid(180.0)),
+                sigma_measured: d(0.3),
+                chi_catalogue: d((c + dc).rem_euclid(180.0)),
+                sigma_catalogue: d(0.1),
+            })
+            .collect();
+        let z = zero_angle(&s).unwrap();
+        assert_eq!(z.outlier, Some(3), "{z:?}");
+        assert_eq!(z.excluded, vec![3]);
+        assert_eq!(z.sense, Sense::Iau);
+        let mean = off - 0.2 / 3.0; // equal weights, small angles: the arithmetic mean
+        assert!((z.offset.to_degrees() - mean).abs() < 1e-4, "{} vs {mean}", z.offset.to_degrees());
+        assert!((z.offset.to_degrees() - off).abs() < 3.0 * z.sigma.to_degrees());
+        assert!(z.pulls[3].abs() > 100.0 && z.pulls[..3].iter().all(|p| p.abs() < 1.0), "{:?}", z.pulls);
+        // With two stars nothing is left out: either could be the wrong one.
+        let z2 = zero_angle(&s[2..]).unwrap();
+        assert!(z2.excluded.is_empty() && z2.outlier.is_none());
     }
 }

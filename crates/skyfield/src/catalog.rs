@@ -75,10 +75,20 @@ pub mod flags {
     pub const BLENDED: u32 = 4;
     /// The photometry failed for another reason (the message is in the row).
     pub const FAILED: u32 = 8;
+    /// With repeated HWP positions: some exposure, measured on its own, disagrees with its
+    /// repeats or lost light (`crate::photometry::ExposureCheck`); the star is measured, the
+    /// exposures are in the row's `outlier_exposures`.
+    pub const OUTLIER_EXPOSURE: u32 = 16;
     /// Names of the bits, for tables.
     pub fn names(f: u32) -> String {
         let mut v = Vec::new();
-        for (b, n) in [(SATURATED, "saturated"), (MASK_EDGE, "mask_edge"), (BLENDED, "blended"), (FAILED, "failed")] {
+        for (b, n) in [
+            (SATURATED, "saturated"),
+            (MASK_EDGE, "mask_edge"),
+            (BLENDED, "blended"),
+            (FAILED, "failed"),
+            (OUTLIER_EXPOSURE, "outlier_exposure"),
+        ] {
             if f & b != 0 {
                 v.push(n);
             }
@@ -130,6 +140,9 @@ pub struct Row {
     pub sigma_u_scatter: f64,
     pub flags: u32,
     pub note: String,
+    /// With repeated HWP positions ([`check_exposures`]): the exposures (0-based, in the order
+    /// the frames were given) flagged for this star; empty otherwise.
+    pub outlier_exposures: Vec<usize>,
 }
 
 /// The catalog and what was found but not measured.
@@ -146,6 +159,26 @@ pub struct Catalog {
     /// Each frame's shift and rotation against the first, measured from the measured stars'
     /// o-image centroids (`crate::align`); empty with fewer than three measured stars.
     pub alignment: Vec<FrameAlignment>,
+    /// With repeated HWP positions ([`check_exposures`]): each exposure and how many stars
+    /// flag it; `None` when no position repeats (nothing to compare an exposure with).
+    pub exposures: Option<Vec<ExposureSummary>>,
+}
+
+/// One exposure across the catalog's stars (issue 13: per-exposure checks).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ExposureSummary {
+    /// 0-based, in the order the frames were given.
+    pub index: usize,
+    pub file: String,
+    pub hwp_deg: f64,
+    /// Stars measured in it, and those that flag it.
+    pub n_stars: usize,
+    pub n_stars_flagged: usize,
+    /// Median over the stars of their light in this exposure over their median exposure's.
+    pub median_transparency: f64,
+    /// Flagged by at least half the stars measured in it (a fault of the exposure, not of
+    /// one star's aperture).
+    pub outlier: bool,
 }
 
 /// One frame's alignment against the first (JSON and the catalog's report).
@@ -247,10 +280,22 @@ impl Catalog {
             fr("sigma_u_scatter", |x| x.sigma_u_scatter, "scatter-based error of u"),
             Column::text(
                 "flags",
-                "saturated|mask_edge|blended|failed",
+                "saturated|mask_edge|blended|failed|outlier_exposure",
                 r.iter().map(|x| flags::names(x.flags)).collect(),
             ),
             Column::text("note", "why a star was not measured", r.iter().map(|x| x.note.clone()).collect()),
+            Column::i64(
+                "n_outlier_exposures",
+                "exposures flagged for this star (repeated HWP positions; 0 otherwise)",
+                r.iter().map(|x| x.outlier_exposures.len() as i64).collect(),
+            ),
+            Column::text(
+                "outlier_exposures",
+                "0-based indices (frames in the order given) of the flagged exposures, ';'-separated",
+                r.iter()
+                    .map(|x| x.outlier_exposures.iter().map(|i| i.to_string()).collect::<Vec<_>>().join(";"))
+                    .collect(),
+            ),
         ];
         for i in 0..self.hwp_deg.len() {
             let v = r.iter().map(|x| x.f.get(i).copied().unwrap_or(f64::NAN)).collect();
@@ -327,6 +372,7 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
                 sigma_u_scatter: nan,
                 flags,
                 note: String::new(),
+                outlier_exposures: vec![],
             };
             if flags & flags::SATURATED != 0 {
                 row.note = "saturated: not measured".into();
@@ -403,5 +449,81 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
         unpaired: unpaired.iter().map(|&k| (sources[k].x, sources[k].y)).collect(),
         n_sources: sources.len(),
         alignment,
+        exposures: None,
     })
+}
+
+/// Check every measured star of `cat` exposure by exposure (issue 13, item 6, as `photometry`
+/// does for one star): `frames` are the exposures `set` was summed from, in the order given.
+/// Each star is measured in each exposure alone with its own aperture, its repeats compared
+/// through `stokes::repeats` (`crate::photometry::exposure_checks`); a star with a flagged
+/// exposure gets [`flags::OUTLIER_EXPOSURE`] and the exposures' indices, and the catalog a
+/// summary per exposure. Nothing is done when no HWP position repeats. Flagged exposures stay
+/// in the sum (a change common to both beams cancels in `F`): this reports, it does not cut.
+pub fn check_exposures(
+    cat: &mut Catalog,
+    frames: &[crate::io::Frame],
+    set: &FrameSet,
+    inst: &Instrument,
+    cfg: &CatalogConfig,
+) -> Result<(), Error> {
+    use crate::photometry::{exposure_checks, single_exposures, Aperture, EXPOSURE_OUTLIER_SIGMA};
+    let theta: Vec<f64> = frames.iter().map(|f| f.hwp_deg.to_radians()).collect();
+    if !stokes::repeats::has_repeats(&theta) {
+        return Ok(());
+    }
+    let g: BeamGeometry = layout_for(set, inst)?;
+    let singles = single_exposures(frames, set);
+    let opts = PhotOptions { weighting: cfg.weighting, recentre: true, kappa: cfg.kappa };
+    let checks: Vec<Option<Vec<crate::photometry::ExposureCheck>>> = cat
+        .rows
+        .par_iter()
+        .map(|r| {
+            if !(r.q.is_finite() && r.aperture_px.is_finite()) {
+                return None;
+            }
+            let ap = Aperture { radius_px: r.aperture_px, annulus: cfg.annulus };
+            // A star the whole set measures but one exposure cannot (shifted off the mask) is
+            // left unchecked rather than failing the catalog.
+            exposure_checks(&singles, &g, r.x, r.y, &ap, &opts, EXPOSURE_OUTLIER_SIGMA).ok()
+        })
+        .collect();
+    let mut summary: Vec<ExposureSummary> = frames
+        .iter()
+        .enumerate()
+        .map(|(i, f)| ExposureSummary {
+            index: i,
+            file: f.path.display().to_string(),
+            hwp_deg: f.hwp_deg,
+            n_stars: 0,
+            n_stars_flagged: 0,
+            median_transparency: f64::NAN,
+            outlier: false,
+        })
+        .collect();
+    let mut trans: Vec<Vec<f64>> = vec![vec![]; frames.len()];
+    for (row, ch) in cat.rows.iter_mut().zip(&checks) {
+        let Some(ch) = ch else { continue };
+        for (i, e) in ch.iter().enumerate() {
+            summary[i].n_stars += 1;
+            trans[i].push(e.transparency);
+            if e.outlier {
+                summary[i].n_stars_flagged += 1;
+                row.outlier_exposures.push(i);
+            }
+        }
+        if !row.outlier_exposures.is_empty() {
+            row.flags |= flags::OUTLIER_EXPOSURE;
+        }
+    }
+    for (s, mut t) in summary.iter_mut().zip(trans) {
+        t.retain(|x| x.is_finite());
+        t.sort_by(f64::total_cmp);
+        if !t.is_empty() {
+            s.median_transparency = 0.5 * (t[(t.len() - 1) / 2] + t[t.len() / 2]);
+        }
+        s.outlier = s.n_stars > 0 && 2 * s.n_stars_flagged >= s.n_stars;
+    }
+    cat.exposures = Some(summary);
+    Ok(())
 }

@@ -362,24 +362,12 @@ pub const EXPOSURE_OUTLIER_SIGMA: f64 = 4.0;
 /// exposure: 10 % is more than seeing and guiding change the light in a fixed aperture.
 pub const TRANSPARENCY_TOL: f64 = 0.10;
 
-/// Measure the source at `(x, y)` in each exposure of `frames` on its own (apertures re-centred
-/// per exposure as `opts` says, the same aperture machinery as [`photometry_with`]), combine the
-/// exposures of each plate position with `stokes::repeats::combine_repeats` and flag outliers
-/// at `threshold` sigma (see [`ExposureCheck`]). `set` gives the frames' conversion and filter.
-#[allow(clippy::too_many_arguments)]
-pub fn exposure_checks(
-    frames: &[crate::io::Frame],
-    set: &FrameSet,
-    g: &BeamGeometry,
-    x: f64,
-    y: f64,
-    ap: &Aperture,
-    opts: &PhotOptions,
-    threshold: f64,
-) -> Result<Vec<ExposureCheck>, Error> {
-    let mut m = Vec::with_capacity(frames.len());
-    for f in frames {
-        let one = FrameSet {
+/// Each exposure of `frames` as a one-frame [`FrameSet`] (the conversion and filter of `set`),
+/// built once for [`exposure_checks`] (a catalog checks every star in the same exposures).
+pub fn single_exposures(frames: &[crate::io::Frame], set: &FrameSet) -> Vec<FrameSet> {
+    frames
+        .iter()
+        .map(|f| FrameSet {
             filter: set.filter.clone(),
             angles_deg: vec![f.hwp_deg],
             data: vec![f.data.clone()],
@@ -388,17 +376,36 @@ pub fn exposure_checks(
             ny: f.ny,
             warnings: vec![],
             conversion: set.conversion,
-        };
-        let p = measure_fluxes(&one, g, x, y, ap, opts)?;
+        })
+        .collect()
+}
+
+/// Measure the source at `(x, y)` in each exposure on its own (`singles`, the frames split by
+/// [`single_exposures`]; apertures re-centred per exposure as `opts` says, the same aperture
+/// machinery as [`photometry_with`]), combine the exposures of each plate position with
+/// `stokes::repeats::combine_repeats` and flag outliers at `threshold` sigma (see
+/// [`ExposureCheck`]).
+pub fn exposure_checks(
+    singles: &[FrameSet],
+    g: &BeamGeometry,
+    x: f64,
+    y: f64,
+    ap: &Aperture,
+    opts: &PhotOptions,
+    threshold: f64,
+) -> Result<Vec<ExposureCheck>, Error> {
+    let mut m = Vec::with_capacity(singles.len());
+    for one in singles {
+        let p = measure_fluxes(one, g, x, y, ap, opts)?;
         m.push((p.f_o[0], p.f_e[0], p.sigma_o[0], p.sigma_e[0]));
     }
-    let theta: Vec<f64> = frames.iter().map(|f| f.hwp_deg.to_radians()).collect();
+    let theta: Vec<f64> = singles.iter().map(|f| f.angles_deg[0].to_radians()).collect();
     let col = |k: usize| m.iter().map(|t| [t.0, t.1, t.2, t.3][k]).collect::<Vec<f64>>();
     let c = stokes::repeats::combine_repeats(&theta, &col(0), &col(1), &col(2), &col(3), threshold);
     let mut tot: Vec<f64> = m.iter().map(|t| t.0 + t.1).collect();
     tot.sort_by(f64::total_cmp);
     let med = if tot.is_empty() { f64::NAN } else { 0.5 * (tot[(tot.len() - 1) / 2] + tot[tot.len() / 2]) };
-    Ok(frames
+    Ok(singles
         .iter()
         .zip(&m)
         .zip(&c.checks)
@@ -413,8 +420,8 @@ pub fn exposure_checks(
                 why.push(format!("the star's light is {:.0} % of the median exposure's", 100.0 * t));
             }
             ExposureCheck {
-                file: f.path.display().to_string(),
-                hwp_deg: f.hwp_deg,
+                file: f.files[0][0].display().to_string(),
+                hwp_deg: f.angles_deg[0],
                 f_o: fo,
                 f_e: fe,
                 sigma_o: so,

@@ -11,7 +11,10 @@ use std::path::PathBuf;
 /// pair at every HWP angle: apertures re-centred per frame with exact pixel weights, the
 /// background removed in each beam before F_i (paper, section background), Q/I, U/I, P and
 /// chi with propagated and scatter-based errors, and flags (saturated, mask edge, blended)
-/// where a star cannot be measured honestly.
+/// where a star cannot be measured honestly. Frames repeating an HWP position are summed,
+/// and each star is also measured in every exposure alone: an exposure off its repeats or
+/// short of light (a cloud, a cosmic ray in one beam) flags the star (outlier_exposure, with
+/// the exposure's index in outlier_exposures) and is named when most stars flag it.
 ///
 /// Example:
 ///   instpol catalog frames/*.fits --instrument fors1 --fwhm 4 --out stars.csv
@@ -133,11 +136,29 @@ pub fn run(a: Args) -> Result<()> {
     let read = a.frame.read_options()?;
     let frames = skyfield::reduce::read_frames_with(&a.frames, &inst, &read, &|| bar.inc(1));
     bar.finish_and_clear();
-    let set = FrameSet::from_frames(frames?, &inst, true)?;
+    let frames = frames?;
+    // Repeated plate positions are summed into one frame each; keep the exposures to check
+    // every star in each of them alone (issue 13: outlier exposures flagged per star).
+    let theta: Vec<f64> = frames.iter().map(|f| f.hwp_deg.to_radians()).collect();
+    let singles = stokes::repeats::has_repeats(&theta).then(|| frames.clone());
+    let set = FrameSet::from_frames(frames, &inst, true)?;
     for w in &set.warnings {
         eprintln!("warning: {w}");
     }
-    let cat = catalog(&set, &inst, &cfg)?;
+    let mut cat = catalog(&set, &inst, &cfg)?;
+    if let Some(fr) = &singles {
+        skyfield::catalog::check_exposures(&mut cat, fr, &set, &inst, &cfg)?;
+    }
+    for e in cat.exposures.iter().flatten().filter(|e| e.outlier) {
+        eprintln!(
+            "warning: exposure {} (HWP {} deg) flagged by {} of {} stars (median light {:.0} % of their typical exposure's): kept in the sum",
+            e.file,
+            e.hwp_deg,
+            e.n_stars_flagged,
+            e.n_stars,
+            100.0 * e.median_transparency
+        );
+    }
     let corrected = match &a.cal {
         None => None,
         Some(path) => {

@@ -152,8 +152,7 @@ pub fn run(a: Args) -> Result<()> {
     let (ph, radius_px) = skyfield::photometry::photometry_sized(&set, &g, x, y, radius, fwhm, annulus, &opts)?;
     let exposures = match &singles {
         Some(fr) => Some(skyfield::photometry::exposure_checks(
-            fr,
-            &set,
+            &skyfield::photometry::single_exposures(fr, &set),
             &g,
             x,
             y,

@@ -4,7 +4,7 @@ use anyhow::{bail, Result};
 use fit::zeroangle::{zero_angle, Sense, StandardChi};
 use skyfield::photometry::{layout_for, photometry_with, Aperture, PhotOptions};
 use skyfield::reduce::FrameSet;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Measure polarized standard stars in frames and compare their chi with the catalogued ones:
 /// the difference is the HWP zero angle of the filter (the angle to add to a measured chi,
@@ -17,19 +17,33 @@ use std::path::PathBuf;
 /// published angles): `--standard X,Y:NAME` or `--standard X,Y:CHI+-SIGMA`, repeated. Their
 /// offsets are averaged on the circle of period 180 deg, weighted by their errors; the output
 /// gives the propagated error and the scatter-based one (times sqrt(chi2/dof)), each star's
-/// pull, the star that disagrees with the others (pull > 3, three or more stars), and the
+/// pull against the mean of the OTHER stars, the star that disagrees with the others (pull >
+/// 3, three or more stars: named and left out of the mean while most stars remain), and the
 /// sense of the angle (decided when the stars' chi differ: counter-clockwise as the IAU, or
 /// mirrored).
+///
+/// Standards measured in separate runs (other nights, other fields) are combined with
+/// `--measured FILE`, repeated: the --json output of an earlier zero-angle run, or a table
+/// (.csv, .fits, .ecsv, .vot) with columns label, chi_measured_deg, sigma_chi_measured_deg,
+/// chi_catalogue_deg, sigma_chi_catalogue_deg (optional: filter, x, y, p_measured,
+/// sigma_p_measured). Frames are then optional.
 ///
 /// Examples:
 ///   instpol zero-angle std/*.fits --instrument fors1 --x 1024 --y 90 --star "Hiltner 652"
 ///   instpol zero-angle field/*.fits --instrument calcite \
 ///       --standard "150,200:136+-0.05" --standard "300,600:12+-0.1" --standard "500,300:70+-0.1"
+///   instpol zero-angle --measured night1.json --measured night2.json --json
 #[derive(clap::Args)]
 pub struct Args {
     /// Frame files (FITS) of the standard(s).
-    #[arg(required = true)]
+    #[arg(required_unless_present = "measured")]
     pub frames: Vec<PathBuf>,
+    /// Standards measured before: a zero-angle --json output or a table (see above), repeated.
+    #[arg(long, value_name = "FILE")]
+    pub measured: Vec<PathBuf>,
+    /// The filter, when no frame or file names it (a table without a filter column).
+    #[arg(long)]
+    pub filter: Option<String>,
     /// Standard's x, y: 0-based pixel of its ordinary image (one standard).
     #[arg(long, allow_hyphen_values = true, requires = "y")]
     pub x: Option<f64>,
@@ -70,17 +84,23 @@ pub struct Args {
 struct StarOut {
     /// The star's name, or its catalogued angle when given by number.
     label: String,
-    x: f64,
-    y: f64,
+    /// Position (px; null for a row of a --measured table without one).
+    x: Option<f64>,
+    y: Option<f64>,
     chi_measured_deg: f64,
     sigma_chi_measured_deg: f64,
     chi_catalogue_deg: f64,
     sigma_chi_catalogue_deg: f64,
-    p_measured: f64,
-    sigma_p_measured: f64,
-    /// This star's own offset (deg, in the sense found) and its pull about the mean.
+    p_measured: Option<f64>,
+    sigma_p_measured: Option<f64>,
+    /// This star's own offset (deg, in the sense found) and its pull about the mean of the
+    /// other (kept) stars.
     offset_deg: f64,
     pull: f64,
+    /// Left out of the mean (it disagrees with the others).
+    excluded: bool,
+    /// Where the measurement came from: "frames" or the --measured file.
+    source: String,
 }
 
 #[derive(serde::Serialize)]
@@ -93,6 +113,8 @@ struct Out {
     n_standards: usize,
     sense: Sense,
     outlier: Option<String>,
+    /// Labels of the standards left out of the mean, worst first.
+    excluded: Vec<String>,
     standards: Vec<StarOut>,
     instrument_file_line: String,
 }
@@ -148,14 +170,147 @@ fn parse_standard(spec: &str, list: &dyn Fn() -> Result<fit::standards::Standard
     Ok(Std { label, x, y, chi, sigma })
 }
 
-pub fn run(a: Args) -> Result<()> {
-    let inst = instrument::Instrument::load(&a.instrument)?;
+/// One standard's measured and catalogued angle (deg), from the frames or a --measured file.
+struct Meas {
+    label: String,
+    x: Option<f64>,
+    y: Option<f64>,
+    chi_m: f64,
+    sigma_m: f64,
+    chi_c: f64,
+    sigma_c: f64,
+    p: Option<f64>,
+    sigma_p: Option<f64>,
+    source: String,
+}
+
+/// Check one row's angles: finite, errors in (0, 90) deg (measured) and [0, 90) (catalogue).
+fn check_row(m: &Meas, at: &str) -> Result<()> {
+    let ok = |v: f64| v.is_finite();
+    if !(ok(m.chi_m) && ok(m.chi_c) && ok(m.sigma_m) && ok(m.sigma_c)) {
+        bail!("{at}: chi and its errors must be numbers (got chi_measured_deg {}, sigma_chi_measured_deg {}, chi_catalogue_deg {}, sigma_chi_catalogue_deg {})", m.chi_m, m.sigma_m, m.chi_c, m.sigma_c);
+    }
+    if !(m.sigma_m > 0.0 && m.sigma_m < 90.0 && m.sigma_c >= 0.0 && m.sigma_c < 90.0) {
+        bail!(
+            "{at}: errors must lie in (0, 90) deg (measured) and [0, 90) deg (catalogue), got {} and {}",
+            m.sigma_m,
+            m.sigma_c
+        );
+    }
+    Ok(())
+}
+
+/// The rows of a --measured file and the filter it names (if any): a zero-angle --json output
+/// (.json) or a table in any format `skyfield::table` reads.
+fn read_measured(path: &Path) -> Result<(Option<String>, Vec<Meas>)> {
+    let src = path.display().to_string();
+    let is_json = path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("json"));
+    let mut rows = Vec::new();
+    let filter;
+    if is_json {
+        let text = std::fs::read_to_string(path).map_err(|e| anyhow::anyhow!("--measured {src}: {e}"))?;
+        let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| {
+            anyhow::anyhow!("--measured {src}: not JSON ({e}): give a zero-angle --json output or a table")
+        })?;
+        let stars = v.get("standards").and_then(|s| s.as_array()).ok_or_else(|| {
+            anyhow::anyhow!("--measured {src}: no 'standards' array (expected the --json output of instpol zero-angle)")
+        })?;
+        filter = v.get("filter").and_then(|f| f.as_str()).map(str::to_string);
+        for (i, s) in stars.iter().enumerate() {
+            let at = format!("--measured {src}: standards[{i}]");
+            let num = |k: &str| -> Result<f64> {
+                s.get(k).and_then(|x| x.as_f64()).ok_or_else(|| anyhow::anyhow!("{at}: no number '{k}'"))
+            };
+            let opt = |k: &str| s.get(k).and_then(|x| x.as_f64());
+            let m = Meas {
+                label: s.get("label").and_then(|l| l.as_str()).unwrap_or("").to_string(),
+                x: opt("x"),
+                y: opt("y"),
+                chi_m: num("chi_measured_deg")?,
+                sigma_m: num("sigma_chi_measured_deg")?,
+                chi_c: num("chi_catalogue_deg")?,
+                sigma_c: num("sigma_chi_catalogue_deg")?,
+                p: opt("p_measured"),
+                sigma_p: opt("sigma_p_measured"),
+                source: src.clone(),
+            };
+            check_row(&m, &at)?;
+            rows.push(m);
+        }
+    } else {
+        let t = skyfield::table::Table::read(path, None).map_err(|e| anyhow::anyhow!("--measured {e}"))?;
+        let num = |k: &str| t.numbers(k, path).map_err(|e| anyhow::anyhow!("--measured {e}"));
+        let opt = |k: &str| -> Result<Option<Vec<f64>>> {
+            if t.column(k).is_some() {
+                Ok(Some(num(k)?))
+            } else {
+                Ok(None)
+            }
+        };
+        let text = |k: &str| -> Option<Vec<String>> {
+            t.column(k).map(|c| match &c.data {
+                skyfield::table::Data::Str(v) => v.iter().map(|s| s.trim().to_string()).collect(),
+                skyfield::table::Data::F64(v) => v.iter().map(|x| x.to_string()).collect(),
+                skyfield::table::Data::I64(v) => v.iter().map(|x| x.to_string()).collect(),
+            })
+        };
+        let (cm, sm, cc, sc) = (
+            num("chi_measured_deg")?,
+            num("sigma_chi_measured_deg")?,
+            num("chi_catalogue_deg")?,
+            num("sigma_chi_catalogue_deg")?,
+        );
+        let (xs, ys, ps, sps) = (opt("x")?, opt("y")?, opt("p_measured")?, opt("sigma_p_measured")?);
+        let labels = text("label").or_else(|| text("name"));
+        let filters = text("filter");
+        filter = match &filters {
+            Some(f) => {
+                let first = f.first().cloned().unwrap_or_default();
+                if let Some(i) = f.iter().position(|x| !x.eq_ignore_ascii_case(&first)) {
+                    bail!(
+                        "--measured {src}: {}: filter '{}' differs from the first row's '{first}': one filter per run",
+                        t.row_label(i),
+                        f[i]
+                    );
+                }
+                Some(first)
+            }
+            None => None,
+        };
+        let pick = |v: &Option<Vec<f64>>, i: usize| v.as_ref().map(|v| v[i]).filter(|x| x.is_finite());
+        for i in 0..t.n_rows() {
+            let m = Meas {
+                label: labels.as_ref().map(|l| l[i].clone()).unwrap_or_default(),
+                x: pick(&xs, i),
+                y: pick(&ys, i),
+                chi_m: cm[i],
+                sigma_m: sm[i],
+                chi_c: cc[i],
+                sigma_c: sc[i],
+                p: pick(&ps, i),
+                sigma_p: pick(&sps, i),
+                source: src.clone(),
+            };
+            check_row(&m, &format!("--measured {src}: {}", t.row_label(i)))?;
+            rows.push(m);
+        }
+    }
+    if rows.is_empty() {
+        bail!("--measured {src}: no standards in the file");
+    }
+    for (i, m) in rows.iter_mut().enumerate() {
+        if m.label.is_empty() {
+            m.label = format!("{src} row {}", i + 1);
+        }
+    }
+    Ok((filter, rows))
+}
+
+/// Measure the standards given on the command line in the frames: their rows and the filter.
+fn measure_frames(a: &Args, inst: &instrument::Instrument) -> Result<(String, Vec<Meas>)> {
     let annulus = crate::util::parse_radii(&a.annulus)?;
-    crate::util::inputs(
-        a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)).chain(a.standards.as_deref()),
-    )?;
-    let frames = skyfield::reduce::read_frames_with(&a.frames, &inst, &a.frame.read_options()?, &|| {})?;
-    let set = FrameSet::from_frames(frames, &inst, true)?;
+    let frames = skyfield::reduce::read_frames_with(&a.frames, inst, &a.frame.read_options()?, &|| {})?;
+    let set = FrameSet::from_frames(frames, inst, true)?;
     for w in &set.warnings {
         eprintln!("warning: {w}");
     }
@@ -188,10 +343,10 @@ pub fn run(a: Args) -> Result<()> {
             );
         }
     }
-    let g = layout_for(&set, &inst)?;
+    let g = layout_for(&set, inst)?;
     let ap = Aperture { radius_px: a.aperture, annulus: Some(annulus) };
-    let mut meas = Vec::with_capacity(stds.len());
-    for s in &stds {
+    let mut rows = Vec::with_capacity(stds.len());
+    for s in stds {
         let ph = photometry_with(&set, &g, s.x, s.y, &ap, &PhotOptions::default())
             .map_err(|e| anyhow::anyhow!("standard {}: {e}", s.label))?;
         let r = ph.reduction;
@@ -205,56 +360,107 @@ pub fn run(a: Args) -> Result<()> {
                 100.0 * r.sigma_p
             );
         }
-        meas.push(r);
+        rows.push(Meas {
+            label: s.label,
+            x: Some(s.x),
+            y: Some(s.y),
+            chi_m: r.chi.to_degrees(),
+            sigma_m: r.sigma_chi.to_degrees(),
+            chi_c: s.chi,
+            sigma_c: s.sigma,
+            p: Some(r.p),
+            sigma_p: Some(r.sigma_p),
+            source: "frames".into(),
+        });
     }
-    let chis: Vec<StandardChi> = stds
+    Ok((set.filter.clone(), rows))
+}
+
+pub fn run(a: Args) -> Result<()> {
+    crate::util::inputs(
+        a.frames
+            .iter()
+            .map(|p| p.as_path())
+            .chain(a.measured.iter().map(|p| p.as_path()))
+            .chain(crate::util::file_arg(&a.instrument))
+            .chain(a.standards.as_deref()),
+    )?;
+    // Every filter named (frames, files, --filter) must be one: a zero angle is per filter.
+    let mut filters: Vec<(String, String)> = a.filter.iter().map(|f| (f.clone(), "--filter".to_string())).collect();
+    let mut rows: Vec<Meas> = Vec::new();
+    if !a.frames.is_empty() {
+        let inst = instrument::Instrument::load(&a.instrument)?;
+        let (f, r) = measure_frames(&a, &inst)?;
+        filters.push((f, "the frames".into()));
+        rows.extend(r);
+    } else if a.x.is_some() || a.star.is_some() || !a.standard.is_empty() || a.chi_deg.is_some() {
+        bail!("--x/--y, --star, --standard and --chi-deg name stars in frames: give the frames too (or only --measured files)");
+    }
+    for p in &a.measured {
+        let (f, r) = read_measured(p)?;
+        if let Some(f) = f {
+            filters.push((f, format!("--measured {}", p.display())));
+        }
+        rows.extend(r);
+    }
+    let Some((filter, from)) = filters.first().cloned() else {
+        bail!("no filter is named by the --measured files: give it with --filter NAME");
+    };
+    if let Some((f, w)) = filters.iter().find(|(f, _)| !f.eq_ignore_ascii_case(&filter)) {
+        bail!("{w} is in filter '{f}', {from} in '{filter}': a zero angle is per filter, combine one filter at a time");
+    }
+    let chis: Vec<StandardChi> = rows
         .iter()
-        .zip(&meas)
-        .map(|(s, r)| StandardChi {
-            chi_measured: r.chi,
-            sigma_measured: r.sigma_chi,
-            chi_catalogue: s.chi.to_radians(),
-            sigma_catalogue: s.sigma.to_radians(),
+        .map(|m| StandardChi {
+            chi_measured: m.chi_m.to_radians(),
+            sigma_measured: m.sigma_m.to_radians(),
+            chi_catalogue: m.chi_c.to_radians(),
+            sigma_catalogue: m.sigma_c.to_radians(),
         })
         .collect();
     let z = zero_angle(&chis).ok_or_else(|| anyhow::anyhow!("the angles have no finite error"))?;
-    if z.offsets.len() != stds.len() {
+    if z.offsets.len() != rows.len() {
         bail!("some standards' angles have no finite error: cannot combine them");
     }
     let zd = z.offset.to_degrees();
+    let instrument_file_line = format!("hwp_chi_offset_deg = {zd:.2}   # filter {filter}");
     let o = Out {
-        filter: set.filter.clone(),
+        filter,
         zero_angle_deg: zd,
         sigma_zero_angle_deg: z.sigma.to_degrees(),
         sigma_scatter_zero_angle_deg: z.sigma_scatter.map(f64::to_degrees),
         chi2_dof: (z.dof > 0).then(|| z.chi2 / z.dof as f64),
-        n_standards: stds.len(),
+        n_standards: rows.len() - z.excluded.len(),
         sense: z.sense,
-        outlier: z.outlier.map(|k| stds[k].label.clone()),
-        standards: stds
+        outlier: z.outlier.map(|k| rows[k].label.clone()),
+        excluded: z.excluded.iter().map(|&k| rows[k].label.clone()).collect(),
+        standards: rows
             .iter()
-            .zip(&meas)
+            .enumerate()
             .zip(z.offsets.iter().zip(&z.pulls))
-            .map(|((s, r), (d, p))| StarOut {
-                label: s.label.clone(),
-                x: s.x,
-                y: s.y,
-                chi_measured_deg: r.chi.to_degrees(),
-                sigma_chi_measured_deg: r.sigma_chi.to_degrees(),
-                chi_catalogue_deg: s.chi,
-                sigma_chi_catalogue_deg: s.sigma,
-                p_measured: r.p,
-                sigma_p_measured: r.sigma_p,
+            .map(|((k, m), (d, p))| StarOut {
+                label: m.label.clone(),
+                x: m.x,
+                y: m.y,
+                chi_measured_deg: m.chi_m,
+                sigma_chi_measured_deg: m.sigma_m,
+                chi_catalogue_deg: m.chi_c,
+                sigma_chi_catalogue_deg: m.sigma_c,
+                p_measured: m.p,
+                sigma_p_measured: m.sigma_p,
                 offset_deg: d.to_degrees(),
                 pull: *p,
+                excluded: z.excluded.contains(&k),
+                source: m.source.clone(),
             })
             .collect(),
-        instrument_file_line: format!("hwp_chi_offset_deg = {zd:.2}   # filter {}", set.filter),
+        instrument_file_line,
     };
-    if let Some(name) = &o.outlier {
+    for &k in &z.excluded {
         eprintln!(
-            "warning: standard {name} disagrees with the others (pull {:.1} > {}): check its identification and catalogue value, or leave it out",
-            z.pulls[z.outlier.unwrap()],
+            "warning: standard {} disagrees with the others (pull {:.1} > {} against their mean): left out of the zero angle; check its identification and catalogue value",
+            rows[k].label,
+            z.pulls[k],
             fit::zeroangle::OUTLIER_PULL
         );
     }
@@ -270,17 +476,20 @@ pub fn run(a: Args) -> Result<()> {
         crate::util::print_json(&o)?;
     } else {
         for s in &o.standards {
+            let p = match (s.p_measured, s.sigma_p_measured) {
+                (Some(p), Some(sp)) => format!(" (P = {:.3} +- {:.3} %)", 100.0 * p, 100.0 * sp),
+                _ => String::new(),
+            };
             outln!(
-                "{}: measured chi = {:.2} +- {:.2} deg (P = {:.3} +- {:.3} %), catalogue {:.2} +- {:.2} deg, offset {:.2} deg (pull {:+.1})",
+                "{}: measured chi = {:.2} +- {:.2} deg{p}, catalogue {:.2} +- {:.2} deg, offset {:.2} deg (pull {:+.1}){}",
                 s.label,
                 s.chi_measured_deg,
                 s.sigma_chi_measured_deg,
-                100.0 * s.p_measured,
-                100.0 * s.sigma_p_measured,
                 s.chi_catalogue_deg,
                 s.sigma_chi_catalogue_deg,
                 s.offset_deg,
-                s.pull
+                s.pull,
+                if s.excluded { "  LEFT OUT" } else { "" }
             );
         }
         out!(
