@@ -54,7 +54,7 @@ fn from_total_key(k: i64) -> f64 {
 /// `window` `[lo, hi]` believed to hold it: see [`median_near_by`].
 #[cfg(test)]
 fn median_near(v: &[f64], window: Option<(f64, f64)>) -> f64 {
-    median_near_by(v.len(), |i| v[i], window, &mut Vec::new(), &mut Vec::new(), &mut 0.0)
+    median_near_by(v, None, window, &mut Vec::new(), &mut Vec::new())
 }
 
 /// For finite values IEEE comparisons are the total order except -0 against +0, so a window
@@ -64,26 +64,82 @@ fn usable(window: Option<(f64, f64)>) -> Option<(f64, f64)> {
     window.filter(|&(lo, hi)| lo != 0.0 && hi != 0.0)
 }
 
-/// One pass over the `n` values `val(0..n)`: the number below `lo`, and the [`total_key`]s of
-/// those inside `[lo, hi]` gathered into `win` (truncated to them). Also the largest value
-/// (`max`, raised, never lowered).
+/// The values a median is taken of: `v` itself, or the deviations `|v - c|` from a centre.
 #[inline(always)]
-fn window_pass(n: usize, val: impl Fn(usize) -> f64, (lo, hi): (f64, f64), win: &mut Vec<i64>, max: &mut f64) -> usize {
+fn value(v: f64, centre: Option<f64>) -> f64 {
+    match centre {
+        Some(c) => (v - c).abs(),
+        None => v,
+    }
+}
+
+/// One pass over the values ([`value`] of `vals`): the number below `lo`, and the
+/// [`total_key`]s of those inside `[lo, hi]` gathered into `win` (truncated to them).
+#[inline(always)]
+fn window_pass(vals: &[f64], centre: Option<f64>, (lo, hi): (f64, f64), win: &mut Vec<i64>) -> usize {
+    let n = vals.len();
+    // Room for whole vectors written past the last key kept.
+    win.resize(n + 8, 0);
+    #[cfg(target_arch = "x86_64")]
+    if n >= 8 && std::arch::is_x86_feature_detected!("avx512f") {
+        // SAFETY: AVX-512F support was checked just above; win holds n + 8 keys.
+        let (below, m) = unsafe { window_pass_avx512(vals, centre, lo, hi, win) };
+        win.truncate(m);
+        return below;
+    }
     // Branch-free: every value is written, the count advances only for values inside.
-    win.resize(n + 1, 0);
-    let (mut below, mut m, mut top) = (0, 0, *max);
+    let (mut below, mut m) = (0, 0);
     let w = win.as_mut_ptr();
-    for i in 0..n {
-        let x = val(i);
+    for &v in vals {
+        let x = value(v, centre);
         below += (x < lo) as usize;
-        top = top.max(x);
-        // SAFETY: m <= i < n + 1 = win.len() (m counts a subset of the i values seen).
+        // SAFETY: m <= i < n + 8 = win.len() (m counts a subset of the i values seen).
         unsafe { *w.add(m) = total_key(x) };
         m += ((x >= lo) & (x <= hi)) as usize;
     }
     win.truncate(m);
-    *max = top;
     below
+}
+
+/// [`window_pass`] eight values at a time: the same IEEE operations (subtraction, clearing the
+/// sign bit, ordered comparisons), the same [`total_key`] transform in integer lanes, the keys
+/// inside the window compressed into a register and stored whole (a compressing store to
+/// memory is slow on some CPUs), so the same count and keys in the same order.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn window_pass_avx512(vals: &[f64], centre: Option<f64>, lo: f64, hi: f64, win: &mut [i64]) -> (usize, usize) {
+    use std::arch::x86_64::*;
+    let n = vals.len();
+    debug_assert!(win.len() >= n + 8);
+    let (vlo, vhi) = (_mm512_set1_pd(lo), _mm512_set1_pd(hi));
+    let (mut below, mut m) = (0usize, 0usize);
+    let w = win.as_mut_ptr();
+    let mut i = 0;
+    while i + 8 <= n {
+        // SAFETY: i + 8 <= n.
+        let mut x = unsafe { _mm512_loadu_pd(vals.as_ptr().add(i)) };
+        if let Some(c) = centre {
+            let d = _mm512_sub_pd(x, _mm512_set1_pd(c));
+            // |d|: the sign bit cleared, as f64::abs does.
+            x = _mm512_castsi512_pd(_mm512_and_si512(_mm512_castpd_si512(d), _mm512_set1_epi64(i64::MAX)));
+        }
+        let b = _mm512_castpd_si512(x);
+        let key = _mm512_xor_si512(b, _mm512_srli_epi64::<1>(_mm512_srai_epi64::<63>(b)));
+        below += (_mm512_cmp_pd_mask::<_CMP_LT_OQ>(x, vlo) as u32).count_ones() as usize;
+        let inside = _mm512_cmp_pd_mask::<_CMP_GE_OQ>(x, vlo) & _mm512_cmp_pd_mask::<_CMP_LE_OQ>(x, vhi);
+        // SAFETY: m <= i, so m + 8 <= n + 8 <= win.len().
+        unsafe { _mm512_storeu_si512(w.add(m).cast(), _mm512_maskz_compress_epi64(inside, key)) };
+        m += (inside as u32).count_ones() as usize;
+        i += 8;
+    }
+    for &v in &vals[i..] {
+        let x = value(v, centre);
+        below += (x < lo) as usize;
+        // SAFETY: m <= (index of v) < n + 8.
+        unsafe { *w.add(m) = total_key(x) };
+        m += ((x >= lo) & (x <= hi)) as usize;
+    }
+    (below, m)
 }
 
 /// The median of `n` values of which `below` lie under a window and `win` holds the keys of
@@ -119,36 +175,28 @@ fn median_of_keys(keys: &mut [i64]) -> f64 {
     }
 }
 
-/// The median of the `n` finite values `val(0..n)` (`n > 0`) in the order of
+/// The median of the finite values ([`value`] of `vals`, not empty) in the order of
 /// `f64::total_cmp` (what [`median_in_place`] gives), exactly, helped by a `window`
 /// `[lo, hi]` believed to hold it (the previous clipping iteration's median, or a neighbouring
 /// bin's: both move little). One pass counts the values below the window and gathers those
 /// inside (`win`, scratch); when the median's ranks fall inside, only those are searched.
 /// Otherwise, or without a window, all values are (`keys`, scratch). Searches run on
-/// [`total_key`]s. `max` is raised to the largest value (every value is visited once).
+/// [`total_key`]s.
 fn median_near_by(
-    n: usize,
-    val: impl Fn(usize) -> f64,
+    vals: &[f64],
+    centre: Option<f64>,
     window: Option<(f64, f64)>,
     keys: &mut Vec<i64>,
     win: &mut Vec<i64>,
-    max: &mut f64,
 ) -> f64 {
     if let Some(w) = usable(window) {
-        let below = window_pass(n, &val, w, win, max);
-        if let Some(m) = median_in_window(n, below, win) {
+        let below = window_pass(vals, centre, w, win);
+        if let Some(m) = median_in_window(vals.len(), below, win) {
             return m;
         }
-        keys.clear();
-        keys.extend((0..n).map(|i| total_key(val(i))));
-        return median_of_keys(keys);
     }
     keys.clear();
-    keys.extend((0..n).map(|i| {
-        let x = val(i);
-        *max = max.max(x);
-        total_key(x)
-    }));
+    keys.extend(vals.iter().map(|&v| total_key(value(v, centre))));
     median_of_keys(keys)
 }
 
@@ -202,8 +250,7 @@ impl Column {
         self.med_win = usable(w);
         match self.med_win {
             Some(w) => {
-                let (v, mut top) = (&self.vals, f64::NEG_INFINITY);
-                self.below = window_pass(n, |i| v[i], w, &mut self.win, &mut top);
+                self.below = window_pass(&self.vals, None, w, &mut self.win);
                 if let Some(m) = median_in_window(n, self.below, &mut self.win) {
                     return m;
                 }
@@ -258,27 +305,27 @@ pub fn sigma_clip_columns_hinted(cols: &[&[f64]], cfg: ClipConfig, hints: &mut [
             break;
         }
         centre.clear();
-        // The largest deviation from its median in any column beyond that column's limit means
-        // some row goes: found in the MAD passes, which visit every deviation anyway.
-        let mut any_out = false;
         for (ci, c) in state.iter_mut().enumerate() {
             let hint = hints[ci];
             let med = c.median(hint.map(|(m, _, s)| window(m, MEDIAN_WINDOW * s)), &mut buf);
             let w_mad = hint.map(|(_, d, s)| window(d, MAD_WINDOW * s));
             let v = &c.vals;
-            let mut top = f64::NEG_INFINITY;
-            let mad = median_near_by(m, |r| (v[r] - med).abs(), w_mad, &mut buf, &mut win, &mut top);
+            let mad = median_near_by(v, Some(med), w_mad, &mut buf, &mut win);
             let mut sigma = MAD_TO_SIGMA * mad;
             if sigma == 0.0 {
                 let mean = v.iter().sum::<f64>() / m as f64;
                 sigma = (v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / m as f64).sqrt();
             }
             hints[ci] = Some((med, mad, sigma));
-            let lim = cfg.nsigma * sigma;
-            any_out |= top > lim;
-            centre.push((med, lim));
+            centre.push((med, cfg.nsigma * sigma));
         }
-        // Most iterations reject nothing (the last one always).
+        // Most iterations reject nothing (the last one always): check that first, in passes
+        // that vectorize (an OR of comparisons; a running maximum in the MAD pass would not,
+        // and cost more than this pass).
+        let any_out = state
+            .iter()
+            .zip(&centre)
+            .any(|(c, &(med, lim))| c.vals.iter().fold(false, |a, &x| a | ((x - med).abs() > lim)));
         if !any_out {
             break;
         }
