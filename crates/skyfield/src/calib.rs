@@ -323,32 +323,10 @@ impl ChipRows {
         rows: &mut [f64],
     ) {
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx512f") {
-            // SAFETY: AVX-512F support was checked just above.
-            return unsafe { self.calibrate_rows_avx512(ry, det0, nx, bias, flat, bytes, rows) };
-        }
-        #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: AVX2 support was checked just above.
             return unsafe { self.calibrate_rows_avx2(ry, det0, nx, bias, flat, bytes, rows) };
         }
-        self.calibrate_rows_impl(ry, det0, nx, bias, flat, bytes, rows)
-    }
-
-    /// 8-wide where the CPU has AVX-512F (same IEEE operations, same bits).
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx512f")]
-    #[allow(clippy::too_many_arguments)]
-    unsafe fn calibrate_rows_avx512(
-        &self,
-        ry: usize,
-        det0: usize,
-        nx: usize,
-        bias: Option<&[f32]>,
-        flat: Option<&[f32]>,
-        bytes: &[u8],
-        rows: &mut [f64],
-    ) {
         self.calibrate_rows_impl(ry, det0, nx, bias, flat, bytes, rows)
     }
 
