@@ -77,11 +77,16 @@ fn make(dir: &Path, inst: &Instrument) -> (Vec<PathBuf>, PathBuf, PathBuf) {
     let (nx, ny) = (inst.detector.nx, inst.detector.ny);
     let g = BeamGeometry::new(inst);
     let flat: Vec<f64> = (0..nx * ny).map(|p| 1.0 + 0.05 * ((p % nx) as f64 / 40.0).sin()).collect();
+    // Frames kept in BENCH_RAW_DIR from another beam layout (an older instrument file) would be
+    // timed as if current: made again when the layout they were made with differs.
+    let stamp = dir.join("layout.txt");
+    let layout = format!("{:?} {:?}\n", inst.strips(), inst.polarimetry.throw_terms);
+    let current = std::fs::read_to_string(&stamp).ok().as_deref() == Some(layout.as_str());
     let mut science = Vec::new();
     for k in 0..16 {
         let a = (k % 4) as f64 * 22.5;
         let stem = format!("sci{k:02}");
-        if !dir.join(format!("{stem}_CHIP2.fits")).exists() {
+        if !current || !dir.join(format!("{stem}_CHIP2.fits")).exists() {
             let t = 4.0 * a.to_radians();
             let f = 0.02 * t.cos() - 0.01 * t.sin();
             let mut e = vec![0.0; nx * ny];
@@ -104,7 +109,7 @@ fn make(dir: &Path, inst: &Instrument) -> (Vec<PathBuf>, PathBuf, PathBuf) {
         science.push(dir.join(format!("{stem}_CHIP2.fits")));
     }
     let (bias, flatp) = (dir.join("BIAS.fits"), dir.join("FLAT.fits"));
-    if !flatp.exists() {
+    if !current || !flatp.exists() {
         let zero = vec![0.0; nx * ny];
         let lamp = vec![20000.0; nx * ny];
         let mut b = Vec::new();
@@ -138,6 +143,7 @@ fn make(dir: &Path, inst: &Instrument) -> (Vec<PathBuf>, PathBuf, PathBuf) {
         skyfield::calib::master_bias(&b, inst, 3.0).unwrap().write(&bias, inst).unwrap();
         skyfield::calib::master_flat(&fl, inst, Some(&bias), 3.0).unwrap().write(&flatp, inst).unwrap();
     }
+    std::fs::write(&stamp, &layout).unwrap();
     (science, bias, flatp)
 }
 

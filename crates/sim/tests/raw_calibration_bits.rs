@@ -32,9 +32,15 @@ fn tiny_text() -> String {
         .replace("origin_px = [0, 1040]", "origin_px = [0, 40]")
         .replace("size_px = [2048, 1024]", "size_px = [96, 36]")
         .replace("throw_arcsec = 22.0", "throw_arcsec = 2.0")
-        .replace("strip_count = 9 ", "strip_count = 3 ")
-        .replace("first_strip_y_px = 240", "first_strip_y_px = 3")
-        .replace("strip_margin_px = 2 ", "strip_margin_px = 0 ")
+        // Three evenly spaced strips, e above o, one whole-pixel throw (not FORS2's published
+        // strips and o/e offset polynomial, which need the full-size detector).
+        .replace(
+            "strip_starts_px = [432.0, 613.5, 796.0, 975.5, 1156.5, 1338.0, 1520.5, 1701.5, 1884.0]",
+            "strip_count = 3\nfirst_strip_y_px = 3",
+        )
+        .replace("strip_margin_px = 8.6 ", "strip_margin_px = 0 ")
+        .replace("extraordinary_offset_sign = -1", "extraordinary_offset_sign = 1")
+        .replace("\nthrow_terms = [", "\n# throw_terms = [")
 }
 
 /// Chip 1 has 3 prescan and 4 overscan columns besides its 5 + 5 rows; chip 2 rows only.

@@ -106,6 +106,15 @@ impl BeamGeometry {
         self.terms.is_empty()
     }
 
+    /// True when the o/e shift of a strip layout is the same along every detector line across
+    /// the strip axis (rows, for strips stacked along y): the throw's variation depends on the
+    /// position along the strip axis only (FORS2's published quadratic in y). The reduction
+    /// then plans a row as one run instead of pixel by pixel.
+    #[inline]
+    pub fn shift_constant_across(&self) -> bool {
+        self.layout == Layout::Strips && self.terms.iter().all(|t| if self.along_y { t.i == 0 } else { t.j == 0 })
+    }
+
     /// The offset `(dx, dy)` (px) from the o image of the sky point seen at o position `(x, y)`
     /// to its e image: along the strip axis the throw plus its variation (strips), or the fixed
     /// 2-D vector (maskless; `None` while unknown).

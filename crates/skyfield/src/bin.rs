@@ -54,52 +54,121 @@ fn from_total_key(k: i64) -> f64 {
 /// `window` `[lo, hi]` believed to hold it: see [`median_near_by`].
 #[cfg(test)]
 fn median_near(v: &[f64], window: Option<(f64, f64)>) -> f64 {
-    median_near_by(v.len(), |i| v[i], window, &mut Vec::new(), &mut Vec::new())
+    median_near_by(v, None, window, &mut Vec::new(), &mut Vec::new())
 }
 
-/// The median of the `n` finite values `val(0..n)` (`n > 0`) in the order of
-/// `f64::total_cmp` (what [`median_in_place`] gives), exactly, helped by a `window`
-/// `[lo, hi]` believed to hold it (the previous clipping iteration's median, or a neighbouring
-/// bin's: both move little). One pass counts the values below the window and gathers those
-/// inside (`win`, scratch); when the median's ranks fall inside, only those are searched. Otherwise, or without a window,
-/// all values are (`keys`, scratch). Searches run on [`total_key`]s.
-fn median_near_by(
-    n: usize,
-    val: impl Fn(usize) -> f64,
-    window: Option<(f64, f64)>,
-    keys: &mut Vec<i64>,
-    win: &mut Vec<i64>,
-) -> f64 {
-    let k = n / 2;
-    // For finite values IEEE comparisons are the total order except -0 against +0, so a
-    // window with a zero bound is not used.
-    if let Some((lo, hi)) = window.filter(|&(lo, hi)| lo != 0.0 && hi != 0.0) {
-        // Branch-free: every value is written, the count advances only for values inside.
-        win.resize(n + 1, 0);
-        let (mut below, mut m) = (0, 0);
-        let w = win.as_mut_ptr();
-        for i in 0..n {
-            let x = val(i);
-            below += (x < lo) as usize;
-            // SAFETY: m <= i < n + 1 = win.len() (m counts a subset of the i values seen).
-            unsafe { *w.add(m) = total_key(x) };
-            m += ((x >= lo) & (x <= hi)) as usize;
-        }
-        let win = &mut win[..m];
-        // Both middle ranks (k - 1 and k for even n) must be inside the window.
-        let first = if n % 2 == 1 { k } else { k - 1 };
-        if below <= first && k < below + m {
-            let (left, m, _) = win.select_nth_unstable(k - below);
-            let hi_v = from_total_key(*m);
-            if n % 2 == 1 {
-                return hi_v;
-            }
-            let lo_v = from_total_key(*left.iter().max().expect("rank k - 1 is in the window"));
-            return 0.5 * (lo_v + hi_v);
-        }
+/// For finite values IEEE comparisons are the total order except -0 against +0, so a window
+/// with a zero bound is never used.
+#[inline]
+fn usable(window: Option<(f64, f64)>) -> Option<(f64, f64)> {
+    window.filter(|&(lo, hi)| lo != 0.0 && hi != 0.0)
+}
+
+/// The values a median is taken of: `v` itself, or the deviations `|v - c|` from a centre.
+#[inline(always)]
+fn value(v: f64, centre: Option<f64>) -> f64 {
+    match centre {
+        Some(c) => (v - c).abs(),
+        None => v,
     }
-    keys.clear();
-    keys.extend((0..n).map(|i| total_key(val(i))));
+}
+
+/// One pass over the values ([`value`] of `vals`): the number below `lo`, and the
+/// [`total_key`]s of those inside `[lo, hi]` gathered into `win` (truncated to them).
+#[inline(always)]
+fn window_pass(vals: &[f64], centre: Option<f64>, (lo, hi): (f64, f64), win: &mut Vec<i64>) -> usize {
+    let n = vals.len();
+    // Room for whole vectors written past the last key kept.
+    win.resize(n + 8, 0);
+    #[cfg(target_arch = "x86_64")]
+    if n >= 8 && std::arch::is_x86_feature_detected!("avx512f") {
+        // SAFETY: AVX-512F support was checked just above; win holds n + 8 keys.
+        let (below, m) = unsafe { window_pass_avx512(vals, centre, lo, hi, win) };
+        win.truncate(m);
+        return below;
+    }
+    let (below, m) = window_pass_scalar(vals, centre, lo, hi, win);
+    win.truncate(m);
+    below
+}
+
+/// [`window_pass`] one value at a time: `(below, kept)`, the kept keys at the start of `win`
+/// (which holds at least `vals.len()` keys).
+#[inline(always)]
+fn window_pass_scalar(vals: &[f64], centre: Option<f64>, lo: f64, hi: f64, win: &mut [i64]) -> (usize, usize) {
+    assert!(win.len() >= vals.len());
+    // Branch-free: every value is written, the count advances only for values inside.
+    let (mut below, mut m) = (0, 0);
+    let w = win.as_mut_ptr();
+    for &v in vals {
+        let x = value(v, centre);
+        below += (x < lo) as usize;
+        // SAFETY: m <= (index of v) < vals.len() <= win.len() (m counts a subset of the values seen).
+        unsafe { *w.add(m) = total_key(x) };
+        m += ((x >= lo) & (x <= hi)) as usize;
+    }
+    (below, m)
+}
+
+/// [`window_pass`] eight values at a time: the same IEEE operations (subtraction, clearing the
+/// sign bit, ordered comparisons), the same [`total_key`] transform in integer lanes, the keys
+/// inside the window compressed into a register and stored whole (a compressing store to
+/// memory is slow on some CPUs), so the same count and keys in the same order.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn window_pass_avx512(vals: &[f64], centre: Option<f64>, lo: f64, hi: f64, win: &mut [i64]) -> (usize, usize) {
+    use std::arch::x86_64::*;
+    let n = vals.len();
+    assert!(win.len() >= n + 8);
+    let (vlo, vhi) = (_mm512_set1_pd(lo), _mm512_set1_pd(hi));
+    let (mut below, mut m) = (0usize, 0usize);
+    let w = win.as_mut_ptr();
+    let mut i = 0;
+    while i + 8 <= n {
+        // SAFETY: i + 8 <= n.
+        let mut x = unsafe { _mm512_loadu_pd(vals.as_ptr().add(i)) };
+        if let Some(c) = centre {
+            let d = _mm512_sub_pd(x, _mm512_set1_pd(c));
+            // |d|: the sign bit cleared, as f64::abs does.
+            x = _mm512_castsi512_pd(_mm512_and_si512(_mm512_castpd_si512(d), _mm512_set1_epi64(i64::MAX)));
+        }
+        let b = _mm512_castpd_si512(x);
+        let key = _mm512_xor_si512(b, _mm512_srli_epi64::<1>(_mm512_srai_epi64::<63>(b)));
+        below += (_mm512_cmp_pd_mask::<_CMP_LT_OQ>(x, vlo) as u32).count_ones() as usize;
+        let inside = _mm512_cmp_pd_mask::<_CMP_GE_OQ>(x, vlo) & _mm512_cmp_pd_mask::<_CMP_LE_OQ>(x, vhi);
+        // SAFETY: m <= i, so m + 8 <= n + 8 <= win.len().
+        unsafe { _mm512_storeu_si512(w.add(m).cast(), _mm512_maskz_compress_epi64(inside, key)) };
+        m += (inside as u32).count_ones() as usize;
+        i += 8;
+    }
+    // The tail: m <= i, so win[m..] holds at least n - i keys.
+    let (b, k) = window_pass_scalar(&vals[i..], centre, lo, hi, &mut win[m..]);
+    (below + b, m + k)
+}
+
+/// The median of `n` values of which `below` lie under a window and `win` holds the keys of
+/// those inside it, if both middle ranks (`k - 1` and `k` for even `n`) fall inside (`win` is
+/// reordered, the same multiset).
+#[inline]
+fn median_in_window(n: usize, below: usize, win: &mut [i64]) -> Option<f64> {
+    let k = n / 2;
+    let first = if n % 2 == 1 { k } else { k - 1 };
+    if !(below <= first && k < below + win.len()) {
+        return None;
+    }
+    let (left, m, _) = win.select_nth_unstable(k - below);
+    let hi_v = from_total_key(*m);
+    if n % 2 == 1 {
+        return Some(hi_v);
+    }
+    let lo_v = from_total_key(*left.iter().max().expect("rank k - 1 is in the window"));
+    Some(0.5 * (lo_v + hi_v))
+}
+
+/// The median of all `n` keys (`n > 0`), selected in place.
+fn median_of_keys(keys: &mut [i64]) -> f64 {
+    let n = keys.len();
+    let k = n / 2;
     let (_, m, _) = keys.select_nth_unstable(k);
     let hi = from_total_key(*m);
     if n % 2 == 1 {
@@ -108,6 +177,31 @@ fn median_near_by(
         let lo = from_total_key(*keys[..k].iter().max().expect("n >= 2"));
         0.5 * (lo + hi)
     }
+}
+
+/// The median of the finite values ([`value`] of `vals`, not empty) in the order of
+/// `f64::total_cmp` (what [`median_in_place`] gives), exactly, helped by a `window`
+/// `[lo, hi]` believed to hold it (the previous clipping iteration's median, or a neighbouring
+/// bin's: both move little). One pass counts the values below the window and gathers those
+/// inside (`win`, scratch); when the median's ranks fall inside, only those are searched.
+/// Otherwise, or without a window, all values are (`keys`, scratch). Searches run on
+/// [`total_key`]s.
+fn median_near_by(
+    vals: &[f64],
+    centre: Option<f64>,
+    window: Option<(f64, f64)>,
+    keys: &mut Vec<i64>,
+    win: &mut Vec<i64>,
+) -> f64 {
+    if let Some(w) = usable(window) {
+        let below = window_pass(vals, centre, w, win);
+        if let Some(m) = median_in_window(vals.len(), below, win) {
+            return m;
+        }
+    }
+    keys.clear();
+    keys.extend(vals.iter().map(|&v| total_key(value(v, centre))));
+    median_of_keys(keys)
 }
 
 /// `[c - w, c + w]`, the window [`median_near_by`] searches first.
@@ -135,6 +229,59 @@ pub fn sigma_clip_columns(cols: &[&[f64]], cfg: ClipConfig) -> Vec<bool> {
     sigma_clip_columns_hinted(cols, cfg, &mut vec![None; cols.len()])
 }
 
+/// One column of a clipping in progress: its kept values (compacted, row order), and the
+/// window its last median was searched in with what that pass found (the count of values
+/// below it and the keys inside), kept up to date as rows are rejected, so that the next
+/// iteration's median is selected among those keys without another pass over the values.
+struct Column {
+    vals: Vec<f64>,
+    med_win: Option<(f64, f64)>,
+    below: usize,
+    win: Vec<i64>,
+}
+
+impl Column {
+    /// The median of the kept values, from the window of the previous pass while both middle
+    /// ranks are still inside it; otherwise after a pass over the values with the window
+    /// `w` (which becomes the kept one).
+    fn median(&mut self, w: Option<(f64, f64)>, keys: &mut Vec<i64>) -> f64 {
+        let n = self.vals.len();
+        if self.med_win.is_some() {
+            if let Some(m) = median_in_window(n, self.below, &mut self.win) {
+                return m;
+            }
+        }
+        self.med_win = usable(w);
+        match self.med_win {
+            Some(w) => {
+                self.below = window_pass(&self.vals, None, w, &mut self.win);
+                if let Some(m) = median_in_window(n, self.below, &mut self.win) {
+                    return m;
+                }
+            }
+            None => self.win.clear(),
+        }
+        keys.clear();
+        keys.extend(self.vals.iter().map(|&x| total_key(x)));
+        median_of_keys(keys)
+    }
+
+    /// Account for the rejection of value `x` in the kept window.
+    #[inline]
+    fn forget(&mut self, x: f64) {
+        if let Some((lo, hi)) = self.med_win {
+            // The window pass's own tests (a NaN bound counts nothing anywhere).
+            if x < lo {
+                self.below -= 1;
+            } else if (x >= lo) & (x <= hi) {
+                let key = total_key(x);
+                let p = self.win.iter().position(|&k| k == key).expect("a value inside the window has its key there");
+                self.win.swap_remove(p);
+            }
+        }
+    }
+}
+
 /// [`sigma_clip_columns`] with one [`ClipHint`] per column: on entry where the medians and
 /// MADs are probably (a neighbouring bin's: the sky changes little from bin to bin), on return
 /// where this clipping ended. The result is the same whatever the hints.
@@ -144,10 +291,15 @@ pub fn sigma_clip_columns_hinted(cols: &[&[f64]], cfg: ClipConfig, hints: &mut [
     // The kept rows, compacted (row order kept): their indices and each column's values, so
     // that every pass below runs over contiguous memory without a mask.
     let mut rows: Vec<usize> = (0..n).filter(|&r| cols.iter().all(|c| c[r].is_finite())).collect();
-    let mut vals: Vec<Vec<f64>> = cols.iter().map(|c| rows.iter().map(|&r| c[r]).collect()).collect();
+    let mut state: Vec<Column> = cols
+        .iter()
+        .map(|c| Column { vals: rows.iter().map(|&r| c[r]).collect(), med_win: None, below: 0, win: Vec::new() })
+        .collect();
     // Medians are selected on integer keys of the IEEE total order (what `median_in_place`
     // compares with `total_cmp`, without the per-comparison transform): same values. Each
-    // median and MAD is first looked for near the previous iteration's (the hint's, at first).
+    // median and MAD is first looked for near the previous iteration's (the hint's, at first);
+    // a median whose ranks stay inside the previous iteration's window (a few rows rejected)
+    // needs no pass at all.
     let mut buf: Vec<i64> = Vec::with_capacity(n);
     let mut win: Vec<i64> = Vec::new();
     let mut centre: Vec<(f64, f64)> = Vec::with_capacity(cols.len());
@@ -157,12 +309,12 @@ pub fn sigma_clip_columns_hinted(cols: &[&[f64]], cfg: ClipConfig, hints: &mut [
             break;
         }
         centre.clear();
-        for (ci, v) in vals.iter().enumerate() {
+        for (ci, c) in state.iter_mut().enumerate() {
             let hint = hints[ci];
-            let w_med = hint.map(|(m, _, s)| window(m, MEDIAN_WINDOW * s));
-            let med = median_near_by(m, |r| v[r], w_med, &mut buf, &mut win);
+            let med = c.median(hint.map(|(m, _, s)| window(m, MEDIAN_WINDOW * s)), &mut buf);
             let w_mad = hint.map(|(_, d, s)| window(d, MAD_WINDOW * s));
-            let mad = median_near_by(m, |r| (v[r] - med).abs(), w_mad, &mut buf, &mut win);
+            let v = &c.vals;
+            let mad = median_near_by(v, Some(med), w_mad, &mut buf, &mut win);
             let mut sigma = MAD_TO_SIGMA * mad;
             if sigma == 0.0 {
                 let mean = v.iter().sum::<f64>() / m as f64;
@@ -172,30 +324,38 @@ pub fn sigma_clip_columns_hinted(cols: &[&[f64]], cfg: ClipConfig, hints: &mut [
             centre.push((med, cfg.nsigma * sigma));
         }
         // Most iterations reject nothing (the last one always): check that first, in passes
-        // that vectorize.
-        let any_out =
-            vals.iter().zip(&centre).any(|(v, &(med, lim))| v.iter().fold(false, |a, &x| a | ((x - med).abs() > lim)));
+        // that vectorize (an OR of comparisons; a running maximum in the MAD pass would not,
+        // and cost more than this pass).
+        let any_out = state
+            .iter()
+            .zip(&centre)
+            .any(|(c, &(med, lim))| c.vals.iter().fold(false, |a, &x| a | ((x - med).abs() > lim)));
         if !any_out {
             break;
         }
         // Keep the rows within every column's limit, compacting in place.
         let mut w = 0;
         for k in 0..m {
-            let inside = vals.iter().zip(&centre).all(|(v, &(med, lim))| !((v[k] - med).abs() > lim));
+            let inside = state.iter().zip(&centre).all(|(c, &(med, lim))| !((c.vals[k] - med).abs() > lim));
             if inside {
                 rows[w] = rows[k];
-                for v in vals.iter_mut() {
-                    v[w] = v[k];
+                for c in state.iter_mut() {
+                    c.vals[w] = c.vals[k];
                 }
                 w += 1;
+            } else {
+                for c in state.iter_mut() {
+                    let x = c.vals[k];
+                    c.forget(x);
+                }
             }
         }
         if w == m {
             break;
         }
         rows.truncate(w);
-        for v in vals.iter_mut() {
-            v.truncate(w);
+        for c in state.iter_mut() {
+            c.vals.truncate(w);
         }
     }
     let mut keep = vec![false; n];
@@ -375,6 +535,36 @@ mod tests {
             ] {
                 let got = median_near(v, Some(window(c, w)));
                 assert_eq!(got.to_bits(), want.to_bits(), "n {}, window {c} +- {w}", v.len());
+            }
+        }
+    }
+
+    /// The 8-wide window pass gives the one-at-a-time pass's count and keys, in order, for
+    /// values and for deviations, windows inside, outside, inverted and NaN, lengths with and
+    /// without a tail (on a CPU without AVX-512F there is nothing to compare: said so).
+    #[test]
+    fn vector_window_pass_is_the_scalar_one() {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if !std::arch::is_x86_feature_detected!("avx512f") {
+                eprintln!("SKIPPED vector_window_pass_is_the_scalar_one: this CPU has no AVX-512F");
+                return;
+            }
+            let mut v = rand_like::quantiles(203, 1.0);
+            v[7] = -0.0;
+            v[8] = 0.0;
+            v[9] = 1e-310;
+            for n in [8, 9, 15, 16, 64, 203] {
+                for centre in [None, Some(0.1), Some(-0.3)] {
+                    for (lo, hi) in [(-0.1, 0.1), (0.5, 2.0), (1.0, -1.0), (f64::NAN, 1.0), (-5.0, f64::INFINITY)] {
+                        let (mut a, mut b) = (vec![0; n + 8], vec![0; n + 8]);
+                        let s = window_pass_scalar(&v[..n], centre, lo, hi, &mut a);
+                        // SAFETY: AVX-512F checked above; b holds n + 8 keys.
+                        let x = unsafe { window_pass_avx512(&v[..n], centre, lo, hi, &mut b) };
+                        assert_eq!(s, x, "n {n} centre {centre:?} window {lo}..{hi}");
+                        assert_eq!(a[..s.1], b[..x.1], "n {n} centre {centre:?} window {lo}..{hi}");
+                    }
+                }
             }
         }
     }

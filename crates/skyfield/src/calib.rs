@@ -402,7 +402,26 @@ impl Calibrated {
         let nx = self.nx;
         let nrows = out.len() / nx;
         debug_assert!(out.len() == nrows * nx && row0 + nrows <= self.ny);
-        out.fill(GAP as f32 as f64);
+        // The gap: whatever no chip covers (chips never overlap; each writes all its columns
+        // of its rows below), so the chips' pixels are written once, not filled first.
+        let gap = GAP as f32 as f64;
+        let mut spans: Vec<(usize, usize)> = Vec::with_capacity(self.chips.len());
+        for (k, row) in out.chunks_exact_mut(nx).enumerate() {
+            let y = row0 + k;
+            spans.clear();
+            spans.extend(self.chips.iter().filter(|c| y >= c.y0 && y < c.y0 + c.cy).map(|c| (c.x0, c.x0 + c.cx)));
+            spans.sort_unstable();
+            let mut x = 0;
+            for &(a, b) in &spans {
+                if a > x {
+                    row[x..a].fill(gap);
+                }
+                x = x.max(b);
+            }
+            if x < nx {
+                row[x..].fill(gap);
+            }
+        }
         for c in &self.chips {
             // Detector rows of this chip within the request.
             let (a, b) = (row0.max(c.y0), (row0 + nrows).min(c.y0 + c.cy));

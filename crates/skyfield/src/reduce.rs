@@ -1041,9 +1041,9 @@ fn segments_of_row(g: &BeamGeometry, y: usize, xa: usize, xb: usize, segs: &mut 
     if xa >= xb {
         return;
     }
-    if g.along_y && g.uniform_shift() {
-        // Strips stacked along y with one whole-pixel throw: a row is all sky or all masked,
-        // with one e shift.
+    if g.along_y && g.shift_constant_across() {
+        // Strips stacked along y with a throw that varies along y only (or not at all): a row
+        // is all sky or all masked, with one e shift.
         if let Some((o, e)) = g.beams_of_sky(xa, y) {
             segs.push((xa, xb, o, e));
         }
