@@ -4,6 +4,7 @@
 //! refused with the reason (exit 2, nothing written); a bad --field names itself.
 
 mod common;
+mod mueller_maps;
 
 use mueller::linear::{physical_block, retardance_vector, LinearBlock};
 use skyfield::maps::{BinGeometry, StokesMap};
@@ -24,35 +25,9 @@ fn truth(x: f64, y: f64) -> LinearBlock {
     physical_block(2e-4 * (x * x - y * y), 4e-4 * x * y, retardance_vector(d, ax), 0.0, 0.0)
 }
 
-/// A noiseless map (errors 3e-4) of a sky of `p`, `chi_deg` seen through the truth.
+/// A noiseless map (64 px bins, errors 3e-4) of a sky of `p`, `chi_deg` seen through the truth.
 fn map(dir: &Path, name: &str, p: f64, chi_deg: f64) -> PathBuf {
-    let g = BinGeometry::covering(64, 0, 0, 2048, 2048, 0.2);
-    let mut m = StokesMap::empty(g.clone(), "fors1", "B", vec![0.0, 22.5, 45.0, 67.5]);
-    let c = 2.0 * chi_deg.to_radians();
-    for j in 0..g.ny {
-        for i in 0..g.nx {
-            let k = j * g.nx + i;
-            let (x, y) = g.centre_arcmin(i, j);
-            let (q, u) = truth(x, y).forward(p * c.cos(), p * c.sin()).unwrap();
-            m.q[k] = q;
-            m.u[k] = u;
-            m.sigma_q[k] = 3e-4;
-            m.sigma_u[k] = 3e-4;
-            m.cov_qu[k] = 0.0;
-            m.sigma_q_phot[k] = 3e-4;
-            m.sigma_u_phot[k] = 3e-4;
-            let (pp, ch) = stokes::polarization(q, u);
-            m.p[k] = pp;
-            m.chi[k] = ch;
-            m.n_pixels[k] = 4096;
-            m.intensity[k] = 1000.0;
-            m.intensity_snr[k] = 100.0;
-            m.valid[k] = true;
-        }
-    }
-    let path = dir.join(name);
-    m.write_fits(&path).unwrap();
-    path
+    mueller_maps::map_binned(dir, name, p, chi_deg, 3e-4, &truth, 64)
 }
 
 fn run(args: &[String]) -> std::process::Output {

@@ -1,5 +1,7 @@
 //! Stokes maps of sky fields seen through a given Mueller field (a closure), for the tests of
-//! the Mueller-field smooth forms and of explain / plan reading the calibration file.
+//! the Mueller-field smooth forms and of explain / plan reading the calibration file, and of
+//! calibrate-mueller itself (each test binary uses a part of it).
+#![allow(dead_code)]
 
 use mueller::linear::LinearBlock;
 use skyfield::maps::{BinGeometry, StokesMap};
@@ -15,7 +17,20 @@ pub fn map(
     sigma: f64,
     truth: &dyn Fn(f64, f64) -> LinearBlock,
 ) -> PathBuf {
-    let g = BinGeometry::covering(128, 0, 0, 2048, 2048, 0.2);
+    map_binned(dir, name, p, chi_deg, sigma, truth, 128)
+}
+
+/// [`map`] with bins of `bin_px` detector pixels.
+pub fn map_binned(
+    dir: &Path,
+    name: &str,
+    p: f64,
+    chi_deg: f64,
+    sigma: f64,
+    truth: &dyn Fn(f64, f64) -> LinearBlock,
+    bin_px: usize,
+) -> PathBuf {
+    let g = BinGeometry::covering(bin_px, 0, 0, 2048, 2048, 0.2);
     let mut m = StokesMap::empty(g.clone(), "fors1", "B", vec![0.0, 22.5, 45.0, 67.5]);
     let c = 2.0 * chi_deg.to_radians();
     for j in 0..g.ny {
@@ -27,7 +42,7 @@ pub fn map(
             (m.sigma_q[k], m.sigma_u[k], m.cov_qu[k]) = (sigma, sigma, 0.0);
             (m.sigma_q_phot[k], m.sigma_u_phot[k]) = (sigma, sigma);
             (m.p[k], m.chi[k]) = stokes::polarization(q, u);
-            (m.n_pixels[k], m.intensity[k], m.intensity_snr[k]) = (128 * 128, 1000.0, 100.0);
+            (m.n_pixels[k], m.intensity[k], m.intensity_snr[k]) = ((bin_px * bin_px) as u32, 1000.0, 100.0);
             m.valid[k] = true;
         }
     }
