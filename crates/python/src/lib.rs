@@ -14,7 +14,7 @@
 //! | `Calibration.evaluate`     | `fit::correct::Corrector::instrumental`                    |
 //! | `Calibration.correct`      | `fit::correct::Corrector::par_correct_batch` (`correct`)   |
 //! | `instpol.reduce`           | `skyfield::reduce::reduce_files_with` (`instpol reduce`)   |
-//! | `instpol.catalog`          | `skyfield::catalog::catalog` (`instpol catalog`)           |
+//! | `instpol.catalog`          | `skyfield::catalog::catalog_files` (`instpol catalog`)     |
 //!
 //! Errors: `instpol.InputError` (a `ValueError`) for bad values or file contents,
 //! `instpol.FileError` (an `OSError`) for files that cannot be opened, read or written; the
@@ -979,7 +979,7 @@ fn _catalog<'py>(
     kappa: Option<f64>,
     kappa_from_data: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
-    use skyfield::catalog::{catalog, CatalogConfig};
+    use skyfield::catalog::{catalog_files, CatalogConfig};
     let radius = skyfield::photometry::ApertureRadius::parse(aperture).ok_or_else(|| {
         InputError::new_err(format!(
             "aperture '{aperture}': expected a radius in px (8), a multiple of the FWHM ('2.5fwhm') or 'best'"
@@ -1003,10 +1003,8 @@ fn _catalog<'py>(
     let read = read_options(bias, flat, hwp_angles)?;
     let (cat, warnings) = py
         .detach(|| {
-            let frames = skyfield::reduce::read_frames_with(&frames, &inst, &read, &|| {})?;
-            let set = skyfield::reduce::FrameSet::from_frames(frames, &inst, true)?;
-            let cat = catalog(&set, &inst, &cfg)?;
-            Ok::<_, skyfield::Error>((cat, set.warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>()))
+            let (cat, warnings) = catalog_files(&frames, &inst, &read, &cfg, Box::new(|| {}))?;
+            Ok::<_, skyfield::Error>((cat, warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>()))
         })
         .map_err(sky_err)?;
     let rows = &cat.rows;

@@ -24,18 +24,22 @@ pub fn circle_rect_area(r: f64, x0: f64, x1: f64, y0: f64, y1: f64) -> f64 {
     if a >= b {
         return 0.0;
     }
-    let mut cuts = vec![a, b];
+    // At most six cuts: on the stack (this runs for every edge pixel of every aperture).
+    let (mut cuts, mut n) = ([0.0; 6], 2);
+    (cuts[0], cuts[1]) = (a, b);
     for y in [y0, y1] {
         if y.abs() < r {
             let u = (r * r - y * y).sqrt();
             for c in [-u, u] {
                 if c > a && c < b {
-                    cuts.push(c);
+                    cuts[n] = c;
+                    n += 1;
                 }
             }
         }
     }
-    cuts.sort_by(f64::total_cmp);
+    let cuts = &mut cuts[..n];
+    cuts.sort_unstable_by(f64::total_cmp);
     let mut area = 0.0;
     for w in cuts.windows(2) {
         let (p, q) = (w[0], w[1]);
@@ -131,19 +135,54 @@ pub fn centroid(
     r: f64,
     usable: impl Fn(usize, usize) -> bool,
 ) -> Option<(f64, f64)> {
+    let last_x = nx.checked_sub(1)?;
+    let last_y = ny.checked_sub(1)?;
+    if !(x.is_finite() && y.is_finite() && r.is_finite() && r > 0.0) {
+        return None;
+    }
+    // Every window of the iterations lies within r + 4 of an estimate, and every estimate
+    // within r of (x, y): the pixels they can use are copied once, NaN where not usable, so
+    // the iterations neither call `usable` nor test finiteness twice per pixel (same pixels,
+    // same order, same sums as reading the image each time).
+    let reach = 2.0 * r + 5.0;
+    let sx0 = (x - reach).floor().max(0.0) as usize;
+    let sy0 = (y - reach).floor().max(0.0) as usize;
+    let sx1 = ((x + reach).ceil().max(0.0) as usize).min(last_x);
+    let sy1 = ((y + reach).ceil().max(0.0) as usize).min(last_y);
+    if sx0 > sx1 || sy0 > sy1 {
+        return None;
+    }
+    let sw_ = sx1 - sx0 + 1;
+    let mut stamp = Vec::with_capacity(sw_ * (sy1 - sy0 + 1));
+    for py in sy0..=sy1 {
+        for px in sx0..=sx1 {
+            let v = img[py * nx + px];
+            stamp.push(if v.is_finite() && usable(px, py) { v } else { f64::NAN });
+        }
+    }
+    let at = |px: usize, py: usize| stamp[(py - sy0) * sw_ + (px - sx0)];
     let (mut cx, mut cy) = (x, y);
+    let (mut ring, mut inner) = (Vec::new(), Vec::new());
     for _ in 0..30 {
         let xa = (cx - r - 4.0).floor().max(0.0) as usize;
         let ya = (cy - r - 4.0).floor().max(0.0) as usize;
-        let xb = ((cx + r + 4.0).ceil().max(0.0) as usize).min(nx.checked_sub(1)?);
-        let yb = ((cy + r + 4.0).ceil().max(0.0) as usize).min(ny.checked_sub(1)?);
-        let mut ring = Vec::new();
+        let xb = ((cx + r + 4.0).ceil().max(0.0) as usize).min(last_x);
+        let yb = ((cy + r + 4.0).ceil().max(0.0) as usize).min(last_y);
+        if xa < sx0 || ya < sy0 || xb > sx1 || yb > sy1 {
+            return None; // cannot happen (see above); refuse rather than read outside
+        }
+        // One pass: the ring's values, and the pixels inside r (summed after the ring's
+        // median, in the same order as a second pass over the window would sum them).
+        ring.clear();
+        inner.clear();
         for py in ya..=yb {
             for px in xa..=xb {
                 let d2 = (px as f64 - cx).powi(2) + (py as f64 - cy).powi(2);
-                let v = img[py * nx + px];
-                if d2 > r * r && d2 <= (r + 4.0) * (r + 4.0) && v.is_finite() && usable(px, py) {
+                let v = at(px, py);
+                if d2 > r * r && d2 <= (r + 4.0) * (r + 4.0) && v.is_finite() {
                     ring.push(v);
+                } else if d2 <= r * r && v.is_finite() {
+                    inner.push((v, px as f64, py as f64));
                 }
             }
         }
@@ -153,15 +192,12 @@ pub fn centroid(
         let mid = ring.len() / 2;
         let bg = *ring.select_nth_unstable_by(mid, f64::total_cmp).1;
         let (mut sw, mut sx, mut sy) = (0.0, 0.0, 0.0);
-        for py in ya..=yb {
-            for px in xa..=xb {
-                let d2 = (px as f64 - cx).powi(2) + (py as f64 - cy).powi(2);
-                let v = img[py * nx + px] - bg;
-                if d2 <= r * r && v.is_finite() && v > 0.0 && usable(px, py) {
-                    sw += v;
-                    sx += v * px as f64;
-                    sy += v * py as f64;
-                }
+        for &(v, px, py) in &inner {
+            let v = v - bg;
+            if v > 0.0 {
+                sw += v;
+                sx += v * px;
+                sy += v * py;
             }
         }
         if !(sw > 0.0) {

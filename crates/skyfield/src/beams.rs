@@ -40,6 +40,25 @@ pub struct BeamGeometry {
     /// Maskless: the e image's offset from the o image (px), when known.
     pub oe_offset: Option<(f64, f64)>,
     name: String,
+    /// Strips: the kind of every detector line across the strip axis, indexed by the
+    /// coordinate along it (what [`BeamGeometry::kind`] answers). A table, because the
+    /// photometry asks for every pixel of every aperture, annulus and centroid window: the
+    /// loop over the strips was the largest part of a 500-star catalog's time.
+    kinds: Vec<PixelKind>,
+}
+
+/// The kind of the detector line at coordinate `a` along the strip axis: the first strip
+/// whose o image, then e image, holds it.
+fn kind_along(strips: &[Strip], a: usize) -> PixelKind {
+    for s in strips {
+        if a >= s.o_start && a < s.o_start + s.height {
+            return PixelKind::Ordinary(s.index);
+        }
+        if a >= s.e_start && a < s.e_start + s.height {
+            return PixelKind::Extraordinary(s.index);
+        }
+    }
+    PixelKind::Masked
 }
 
 /// Which image a detector pixel belongs to.
@@ -58,17 +77,24 @@ impl BeamGeometry {
     pub fn new(inst: &Instrument) -> Self {
         let p = &inst.polarimetry;
         let (nx, ny) = (inst.detector.nx, inst.detector.ny);
+        let strips = inst.strips();
+        let along_y = p.strip_axis == "y";
+        let kinds = match p.layout {
+            Layout::Maskless => vec![],
+            Layout::Strips => (0..if along_y { ny } else { nx }).map(|a| kind_along(&strips, a)).collect(),
+        };
         Self {
             nx,
             ny,
             layout: p.layout,
-            along_y: p.strip_axis == "y",
-            strips: inst.strips(),
+            along_y,
+            strips,
             throw: p.extraordinary_offset_sign as f64 * inst.throw_px_exact(),
             terms: p.throw_terms.clone(),
             centre: (0.5 * (nx as f64 - 1.0), 0.5 * (ny as f64 - 1.0)),
             oe_offset: p.oe_offset_px.map(|[dx, dy]| (dx, dy)),
             name: inst.name.clone(),
+            kinds,
         }
     }
 
@@ -194,20 +220,12 @@ impl BeamGeometry {
     }
 
     /// What detector pixel `(x, y)` shows.
+    #[inline]
     pub fn kind(&self, x: usize, y: usize) -> PixelKind {
         if self.layout == Layout::Maskless {
             return PixelKind::Both;
         }
-        let a = self.along(x, y);
-        for s in &self.strips {
-            if a >= s.o_start && a < s.o_start + s.height {
-                return PixelKind::Ordinary(s.index);
-            }
-            if a >= s.e_start && a < s.e_start + s.height {
-                return PixelKind::Extraordinary(s.index);
-            }
-        }
-        PixelKind::Masked
+        self.kinds.get(self.along(x, y)).copied().unwrap_or(PixelKind::Masked)
     }
 
     /// Ranges of sky coordinates along the strip axis that the mask lets through, one per strip.

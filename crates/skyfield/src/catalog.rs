@@ -7,12 +7,18 @@
 
 use crate::aperture::Weighting;
 use crate::beams::BeamGeometry;
+use crate::calib::ReadOptions;
 use crate::detect::{detect, pair, DetectConfig, Source};
-use crate::photometry::{layout_for, photometry_sized, ApertureRadius, PhotOptions};
-use crate::reduce::FrameSet;
+use crate::photometry::{
+    candidate_radii, check_placement, finish, layout_for, layout_of_image, measure_frame, pick_radius, Aperture,
+    ApertureRadius, FrameFacts, FrameFluxes, Partial, PhotOptions,
+};
+use crate::reduce::{DiskFrames, FrameSet, FrameSource};
 use crate::Error;
+use crate::Warning;
 use instrument::Instrument;
 use rayon::prelude::*;
+use std::path::PathBuf;
 
 /// Catalog settings.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -64,6 +70,9 @@ impl CatalogConfig {
         Ok(())
     }
 }
+
+/// An aperture radius to measure a star with, and whether the aperture fits where it is.
+type Try = (f64, Result<(), Error>);
 
 /// Row flags (bits).
 pub mod flags {
@@ -305,19 +314,63 @@ impl Catalog {
     }
 }
 
-/// Build the catalog of `set`.
+/// The catalog of frame files and the warnings of their reading (those of
+/// [`FrameSet::from_frames`]); `on_read` is called once per exposure read (a progress bar).
+/// Without repeated HWP positions the frames are read one at a time ([`DiskFrames`]); with
+/// repeats every exposure is also measured alone ([`check_exposures`]), which needs them all
+/// in memory.
+pub fn catalog_files(
+    paths: &[PathBuf],
+    inst: &Instrument,
+    opts: &ReadOptions,
+    cfg: &CatalogConfig,
+    on_read: Box<dyn Fn() + Send + Sync>,
+) -> Result<(Catalog, Vec<Warning>), Error> {
+    let mut disk = DiskFrames::open(paths, inst, opts, true)?;
+    let theta: Vec<f64> = disk.exposure_angles_deg().iter().map(|a| a.to_radians()).collect();
+    if stokes::repeats::has_repeats(&theta) {
+        drop(disk);
+        let frames = crate::reduce::read_frames_with(paths, inst, opts, &on_read)?;
+        let singles = frames.clone();
+        let set = FrameSet::from_frames(frames, inst, true)?;
+        let mut cat = catalog(&set, inst, cfg)?;
+        check_exposures(&mut cat, &singles, &set, inst, cfg)?;
+        return Ok((cat, set.warnings));
+    }
+    disk.set_on_read(on_read);
+    let cat = catalog_of(&disk, inst, cfg)?;
+    let warnings = disk.bad_pixel_warnings()?;
+    Ok((cat, warnings))
+}
+
+/// Build the catalog of `set` (frames in memory; see [`catalog_of`]).
 pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result<Catalog, Error> {
-    let g: BeamGeometry = layout_for(set, inst)?;
-    let first = set.data.first().ok_or(Error::NoFrames)?;
-    let nexp = set.files[0].len() as f64;
+    catalog_of(set, inst, cfg)
+}
+
+/// Build the catalog of the frames of `src`: the layout and the sources from the first
+/// angle's frame, then every star measured in every frame, one frame at a time (so that frames
+/// read from disk are read once each and need not all be held), and each star reduced.
+pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfig) -> Result<Catalog, Error> {
+    let (nx, ny, n) = (src.nx(), src.ny(), src.angles_deg().len());
+    let files = src.files();
+    if n == 0 || files.iter().any(|f| f.is_empty()) {
+        return Err(Error::NoFrames);
+    }
+    let nexp = files[0].len() as f64;
     let mut dcfg = cfg.detect;
-    dcfg.saturation = set.conversion.det().2 * nexp;
-    let sources: Vec<Source> = detect(first, &g, &dcfg);
+    dcfg.saturation = src.conversion().det().2 * nexp;
+    let (g, sources) = src.with_frame(0, |first| -> Result<(BeamGeometry, Vec<Source>), Error> {
+        let g = layout_of_image(first, nx, ny, &files[0][0], inst)?;
+        let sources = detect(first, &g, &dcfg);
+        Ok((g, sources))
+    })??;
     let (pairs, unpaired) = pair(&sources, &g, dcfg.pair_tol_px);
-    let chi_off = inst.filter(&set.filter).map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0);
+    let chi_off = inst.filter(src.filter()).map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0);
     let opts = PhotOptions { weighting: cfg.weighting, recentre: true, kappa: cfg.kappa };
-    // Stars are measured independently: in parallel, in catalog order.
-    let measured: Vec<(Row, Option<Vec<[f64; 4]>>)> = pairs
+    // Each star's row as far as the detection tells (its flags), and the aperture radii to
+    // measure it with, each with its placement checked (nothing to measure when saturated).
+    let planned: Vec<(Row, Result<Vec<Try>, Error>)> = pairs
         .par_iter()
         .enumerate()
         .map(|(id, pr)| {
@@ -335,8 +388,14 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
                 ApertureRadius::BestSnr => 2.0 * so.fwhm_px,
             };
             let blend_r = 2.0 * if r_nominal.is_finite() { r_nominal } else { 2.0 * cfg.detect.fwhm_px };
+            // (The box test first: it is exact and spares the hypot of far sources.)
             let near = |s: &Source, skip: [usize; 2]| {
-                sources.iter().enumerate().any(|(k, t)| !skip.contains(&k) && (t.x - s.x).hypot(t.y - s.y) < blend_r)
+                sources.iter().enumerate().any(|(k, t)| {
+                    (t.x - s.x).abs() < blend_r
+                        && (t.y - s.y).abs() < blend_r
+                        && !skip.contains(&k)
+                        && (t.x - s.x).hypot(t.y - s.y) < blend_r
+                })
             };
             if near(so, [pr.o, pr.e]) || near(se, [pr.o, pr.e]) {
                 flags |= flags::BLENDED;
@@ -376,12 +435,92 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
             };
             if flags & flags::SATURATED != 0 {
                 row.note = "saturated: not measured".into();
-                return (row, None);
+                return (row, Ok(vec![]));
             }
             // The detection's FWHM of the o image, or the expected one if it could not be measured.
             let fwhm = if so.fwhm_px.is_finite() && so.fwhm_px > 0.0 { so.fwhm_px } else { cfg.detect.fwhm_px };
+            let tries = candidate_radii(so.x, so.y, cfg.radius, fwhm, cfg.annulus).map(|radii| {
+                radii
+                    .into_iter()
+                    .map(|r| {
+                        let ap = Aperture { radius_px: r, annulus: cfg.annulus };
+                        (r, check_placement(&g, so.x, so.y, &ap, &opts))
+                    })
+                    .collect()
+            });
+            (row, tries)
+        })
+        .collect();
+    // Every star in each frame: the frames in parallel, each read once.
+    let per_frame: Vec<Vec<Vec<Option<Result<FrameFluxes, Error>>>>> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let facts = FrameFacts {
+                conversion: src.conversion(),
+                nexp: files[i].len(),
+                file: &files[i][0],
+                hwp_deg: src.angles_deg()[i],
+            };
+            src.with_frame(i, |data| {
+                planned
+                    .iter()
+                    .map(|(row, tries)| match tries {
+                        Ok(t) if row.flags & flags::SATURATED == 0 => t
+                            .iter()
+                            .map(|(r, placed)| {
+                                let ap = Aperture { radius_px: *r, annulus: cfg.annulus };
+                                placed.is_ok().then(|| measure_frame(data, &g, row.x, row.y, &ap, &opts, &facts))
+                            })
+                            .collect(),
+                        _ => vec![],
+                    })
+                    .collect()
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    // By star: [star][frame][radius].
+    let mut by_star: Vec<Vec<Vec<Option<Result<FrameFluxes, Error>>>>> =
+        planned.iter().map(|_| Vec::with_capacity(n)).collect();
+    for frame in per_frame {
+        for (s, v) in frame.into_iter().enumerate() {
+            by_star[s].push(v);
+        }
+    }
+    // Each star reduced at each radius (the first failing frame, in angle order, is its error,
+    // as when it is measured alone), its radius chosen, its row filled.
+    let measured: Vec<(Row, Option<Vec<[f64; 4]>>)> = planned
+        .into_par_iter()
+        .zip(by_star)
+        .map(|((mut row, tries), frames)| {
+            if row.flags & flags::SATURATED != 0 {
+                return (row, None);
+            }
+            let (x, y) = (row.x, row.y);
+            let result = tries.and_then(|tries| {
+                let mut per_try: Vec<Vec<Result<FrameFluxes, Error>>> =
+                    tries.iter().map(|_| Vec::with_capacity(n)).collect();
+                for f in frames {
+                    for (k, r) in f.into_iter().enumerate() {
+                        if let Some(r) = r {
+                            per_try[k].push(r);
+                        }
+                    }
+                }
+                let tried = tries
+                    .into_iter()
+                    .zip(per_try)
+                    .map(|((r, placed), m)| {
+                        let ph = placed.and_then(|()| {
+                            let m: Vec<FrameFluxes> = m.into_iter().collect::<Result<_, _>>()?;
+                            finish(Partial::from_frames(src.angles_deg(), &m), files, x, y, &opts)
+                        });
+                        (r, ph)
+                    })
+                    .collect();
+                pick_radius(cfg.radius, tried)
+            });
             let mut centres = None;
-            match photometry_sized(set, &g, so.x, so.y, cfg.radius, fwhm, cfg.annulus, &opts) {
+            match result {
                 Ok((ph, radius)) => {
                     centres = Some(ph.centres.clone());
                     row.aperture_px = radius;
@@ -418,7 +557,7 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
                     let dof = n.saturating_sub(3);
                     row.chi2_mod = chi2;
                     row.dof_mod = dof;
-                    let scale = if dof > 0 { (chi2 / dof as f64).sqrt() } else { nan };
+                    let scale = if dof > 0 { (chi2 / dof as f64).sqrt() } else { f64::NAN };
                     row.sigma_q_scatter = row.sigma_q * scale;
                     row.sigma_u_scatter = row.sigma_u * scale;
                 }
@@ -438,11 +577,11 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
         })
         .collect();
     let good: Vec<&Vec<[f64; 4]>> = measured.iter().filter_map(|(_, c)| c.as_ref()).collect();
-    let alignment = frame_alignment(&set.angles_deg, &good);
+    let alignment = frame_alignment(src.angles_deg(), &good);
     let rows: Vec<Row> = measured.into_iter().map(|(r, _)| r).collect();
     Ok(Catalog {
-        hwp_deg: set.angles_deg.clone(),
-        filter: set.filter.clone(),
+        hwp_deg: src.angles_deg().to_vec(),
+        filter: src.filter().to_string(),
         chi_offset_deg: chi_off,
         oe_offset_px: g.oe_offset,
         rows,

@@ -17,9 +17,11 @@
 use crate::aperture::{centroid, weights, Weighting};
 use crate::beams::{BeamGeometry, PixelKind};
 use crate::bin::{sigma_clip_columns, ClipConfig};
+use crate::io::Conversion;
 use crate::reduce::FrameSet;
 use crate::Error;
 use instrument::{Instrument, Layout};
+use std::path::{Path, PathBuf};
 
 /// Aperture and background annulus (px).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -85,9 +87,21 @@ pub fn photometry(set: &FrameSet, inst: &Instrument, x: f64, y: f64, ap: &Apertu
 /// The instrument's layout for these frames: for a maskless layout without a given o/e
 /// offset, the offset measured from the frames' stars ([`measure_oe_offset`]).
 pub fn layout_for(set: &FrameSet, inst: &Instrument) -> Result<BeamGeometry, Error> {
+    let img = set.data.first().ok_or(Error::NoFrames)?;
+    layout_of_image(img, set.nx, set.ny, &set.files[0][0], inst)
+}
+
+/// [`layout_for`] from one frame (`img`, `nx` x `ny`, read from `file`).
+pub(crate) fn layout_of_image(
+    img: &[f64],
+    nx: usize,
+    ny: usize,
+    file: &Path,
+    inst: &Instrument,
+) -> Result<BeamGeometry, Error> {
     let g = BeamGeometry::new(inst);
     if g.layout == Layout::Maskless && g.oe_offset.is_none() {
-        let (dx, dy, _) = measure_oe_offset(set, inst)?;
+        let (dx, dy, _) = oe_offset_of_image(img, nx, ny, file, inst)?;
         return Ok(g.with_oe_offset(dx, dy));
     }
     Ok(g)
@@ -119,16 +133,29 @@ pub fn photometry_with(
     opts: &PhotOptions,
 ) -> Result<StarPhotometry, Error> {
     let out = measure_fluxes(set, g, x, y, ap, opts)?;
-    let n = set.angles_deg.len();
+    finish(out, &set.files, x, y, opts)
+}
+
+/// The reduction of a source's fluxes in every frame (`files`: each angle's exposures, for
+/// messages): refused where `f_O + f_E` is not positive (no source there), else the one
+/// Stokes solver with the kappa correction `opts` asks for.
+pub(crate) fn finish(
+    out: Partial,
+    files: &[Vec<PathBuf>],
+    x: f64,
+    y: f64,
+    opts: &PhotOptions,
+) -> Result<StarPhotometry, Error> {
+    let n = out.hwp_deg.len();
     if let Some(i) = (0..n).find(|&i| !(out.f_o[i] + out.f_e[i] > 0.0)) {
         return Err(Error::Invalid(format!(
             "no source at ({x:.1}, {y:.1}) px: the background-subtracted flux f_O + f_E = {:.1} e- at HWP angle {} deg ({}) is not positive",
             out.f_o[i] + out.f_e[i],
-            set.angles_deg[i],
-            set.files[i].iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" + ")
+            out.hwp_deg[i],
+            files[i].iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" + ")
         )));
     }
-    let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();
+    let theta: Vec<f64> = out.hwp_deg.iter().map(|a| a.to_radians()).collect();
     let m = stokes::Measurement::with_errors(
         theta,
         out.f_o.clone(),
@@ -160,7 +187,7 @@ pub fn photometry_with(
 
 /// The beams' background-subtracted fluxes and errors of the source at `(x, y)` in every
 /// frame of `set` (the measuring half of [`photometry_with`], shared with
-/// [`exposure_checks`]).
+/// [`exposure_checks`]): the placement checked once, then each frame measured.
 fn measure_fluxes(
     set: &FrameSet,
     g: &BeamGeometry,
@@ -169,6 +196,90 @@ fn measure_fluxes(
     ap: &Aperture,
     opts: &PhotOptions,
 ) -> Result<Partial, Error> {
+    check_placement(g, x, y, ap, opts)?;
+    let m = (0..set.data.len())
+        .map(|i| measure_frame(&set.data[i], g, x, y, ap, opts, &FrameFacts::of(set, i)))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Partial::from_frames(&set.angles_deg, &m))
+}
+
+/// What the measurement of one frame needs besides its pixels: how its values become
+/// electrons, how many exposures it sums, and its file and HWP angle for messages.
+#[derive(Debug, Clone)]
+pub(crate) struct FrameFacts<'a> {
+    pub conversion: Conversion,
+    pub nexp: usize,
+    pub file: &'a Path,
+    pub hwp_deg: f64,
+}
+
+impl<'a> FrameFacts<'a> {
+    /// Angle `i` of `set`.
+    pub(crate) fn of(set: &'a FrameSet, i: usize) -> Self {
+        Self {
+            conversion: set.conversion,
+            nexp: set.files[i].len(),
+            file: &set.files[i][0],
+            hwp_deg: set.angles_deg[i],
+        }
+    }
+}
+
+/// One frame's measurement of a source: the aperture centres `[x_o, y_o, x_e, y_e]`, each
+/// beam's background-subtracted flux, its error and the background per pixel (e-), and the
+/// aperture's size.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct FrameFluxes {
+    pub centre: [f64; 4],
+    pub f_o: f64,
+    pub f_e: f64,
+    pub sigma_o: f64,
+    pub sigma_e: f64,
+    pub bg_o: f64,
+    pub bg_e: f64,
+    pub n_aperture: usize,
+    pub aperture_area_px: f64,
+    pub n_annulus: usize,
+}
+
+/// The aperture weights about `(cx, cy)` as the o image's weights `w` about `o` (both of
+/// radius `r`), when both centres sit at the same sub-pixel phase and neither aperture's
+/// window meets the detector's edge; `None` otherwise. Then every pixel offset from the centre
+/// is the same number to the bit (a pixel's offset from a centre is the exact difference of
+/// a whole number and the centre's fraction, rounded once), so the weights are too: a whole-
+/// pixel o/e throw (FORS) needs the circle-pixel areas once per frame, not twice.
+fn shifted_weights(
+    w: &[(usize, usize, f64)],
+    o: (f64, f64),
+    (cx, cy): (f64, f64),
+    r: f64,
+    nx: usize,
+    ny: usize,
+) -> Option<Vec<(usize, usize, f64)>> {
+    let phase = |v: f64| v - v.floor();
+    if phase(cx).to_bits() != phase(o.0).to_bits() || phase(cy).to_bits() != phase(o.1).to_bits() {
+        return None;
+    }
+    let inside = |x: f64, y: f64| {
+        x - r - 2.0 >= 0.0 && y - r - 2.0 >= 0.0 && x + r + 2.0 <= nx as f64 - 1.0 && y + r + 2.0 <= ny as f64 - 1.0
+    };
+    if !(inside(o.0, o.1) && inside(cx, cy) && o.0 >= 1.0 && o.1 >= 1.0) {
+        return None;
+    }
+    let (sx, sy) = (cx.floor() - o.0.floor(), cy.floor() - o.1.floor());
+    Some(w.iter().map(|&(x, y, v)| ((x as f64 + sx) as usize, (y as f64 + sy) as usize, v)).collect())
+}
+
+/// The checks of a source's placement that need no pixels: the aperture and annulus radii,
+/// the position on the detector and, for strip layouts, on sky the mask lets through with
+/// the whole aperture.
+pub(crate) fn check_placement(
+    g: &BeamGeometry,
+    x: f64,
+    y: f64,
+    ap: &Aperture,
+    opts: &PhotOptions,
+) -> Result<(), Error> {
     check_aperture(ap)?;
     if !(x.is_finite() && y.is_finite()) || x < 0.0 || y < 0.0 || x >= g.nx as f64 || y >= g.ny as f64 {
         return Err(Error::Invalid(format!(
@@ -194,136 +305,146 @@ fn measure_fluxes(
             }
         }
     }
+    Ok(())
+}
+
+/// Measure the source at `(x, y)` in one frame (`data`, row-major, values as `facts` says):
+/// the o aperture re-centred on the star (if `opts` says so), the e aperture where the layout
+/// puts the e image, exact pixel weights, the annulus background removed in each beam. Call
+/// [`check_placement`] first.
+pub(crate) fn measure_frame(
+    data: &[f64],
+    g: &BeamGeometry,
+    x: f64,
+    y: f64,
+    ap: &Aperture,
+    opts: &PhotOptions,
+    facts: &FrameFacts,
+) -> Result<FrameFluxes, Error> {
     // The frames' own conversion: the instrument's ADU, or electrons for calibrated frames.
-    let (bias, gain, sat, rn2) = set.conversion.det();
-    let n = set.angles_deg.len();
-    let mut out = Partial {
-        hwp_deg: set.angles_deg.clone(),
-        centres: Vec::with_capacity(n),
-        f_o: vec![0.0; n],
-        f_e: vec![0.0; n],
-        sigma_o: vec![0.0; n],
-        sigma_e: vec![0.0; n],
-        bg_o: vec![0.0; n],
-        bg_e: vec![0.0; n],
-        n_aperture: 0,
-        aperture_area_px: 0.0,
-        n_annulus: 0,
+    let (bias, gain, sat, rn2) = facts.conversion.det();
+    let nexp = facts.nexp as f64;
+    let file = facts.file.display();
+    let to_e = |v: f64| (v - bias * nexp) * gain;
+    let strip0 = g.strip_of_sky(x.round() as usize, y.round() as usize);
+    let o_pixel = |px: usize, py: usize| match g.kind(px, py) {
+        PixelKind::Both => true,
+        PixelKind::Ordinary(k) => Some(k) == strip0,
+        _ => false,
     };
-    for (i, data) in set.data.iter().enumerate() {
-        let nexp = set.files[i].len() as f64;
-        let file = set.files[i][0].display().to_string();
-        let to_e = |v: f64| (v - bias * nexp) * gain;
-        let strip0 = g.strip_of_sky(x.round() as usize, y.round() as usize);
-        let o_pixel = |px: usize, py: usize| match g.kind(px, py) {
-            PixelKind::Both => true,
-            PixelKind::Ordinary(k) => Some(k) == strip0,
+    let (xo, yo) = if opts.recentre {
+        centroid(data, g.nx, g.ny, x, y, ap.radius_px, o_pixel).ok_or_else(|| {
+            Error::Invalid(format!(
+                "no source at ({x:.1}, {y:.1}) px in {file} (HWP angle {} deg): nothing rises above the local background within the aperture radius {} px, so the aperture cannot be centred (turn re-centring off to measure a fixed position)",
+                facts.hwp_deg, ap.radius_px
+            ))
+        })?
+    } else {
+        (x, y)
+    };
+    let (xe, ye) = g.e_position(xo, yo).ok_or_else(|| {
+        Error::Invalid(format!(
+            "the e image of ({xo:.1}, {yo:.1}) px falls behind the mask or off the detector ({file})"
+        ))
+    })?;
+    let strip = g.strip_of_sky(xo.round().max(0.0) as usize, yo.round().max(0.0) as usize);
+    let mut beam = [(0.0, 0.0, 0.0); 2];
+    let (mut n_aperture, mut area_o, mut n_annulus) = (0, 0.0, 0);
+    let mut o_weights: Option<(f64, f64, Vec<(usize, usize, f64)>)> = None;
+    for (b, (cx, cy)) in [(xo, yo), (xe, ye)].into_iter().enumerate() {
+        let name = if b == 0 { "o" } else { "e" };
+        // Pixels of this beam's image of the strip (strips), or any pixel (maskless).
+        let in_beam = |px: usize, py: usize| match (g.kind(px, py), strip) {
+            (PixelKind::Both, _) => true,
+            (PixelKind::Ordinary(k), Some(s)) => b == 0 && k == s,
+            (PixelKind::Extraordinary(k), Some(s)) => b == 1 && k == s,
             _ => false,
         };
-        let (xo, yo) = if opts.recentre {
-            centroid(data, g.nx, g.ny, x, y, ap.radius_px, o_pixel).ok_or_else(|| {
-                Error::Invalid(format!(
-                    "no source at ({x:.1}, {y:.1}) px in {file} (HWP angle {} deg): nothing rises above the local background within the aperture radius {} px, so the aperture cannot be centred (turn re-centring off to measure a fixed position)",
-                    set.angles_deg[i], ap.radius_px
-                ))
-            })?
-        } else {
-            (x, y)
+        let w = match &o_weights {
+            Some((ox, oy, ow)) if b == 1 => shifted_weights(ow, (*ox, *oy), (cx, cy), ap.radius_px, g.nx, g.ny)
+                .unwrap_or_else(|| weights(cx, cy, ap.radius_px, g.nx, g.ny, opts.weighting)),
+            _ => weights(cx, cy, ap.radius_px, g.nx, g.ny, opts.weighting),
         };
-        let (xe, ye) = g.e_position(xo, yo).ok_or_else(|| {
-            Error::Invalid(format!(
-                "the e image of ({xo:.1}, {yo:.1}) px falls behind the mask or off the detector ({file})"
-            ))
-        })?;
-        out.centres.push([xo, yo, xe, ye]);
-        let strip = g.strip_of_sky(xo.round().max(0.0) as usize, yo.round().max(0.0) as usize);
-        let mut beam = [(0.0, 0.0, 0.0, 0.0); 2];
-        for (b, (cx, cy)) in [(xo, yo), (xe, ye)].into_iter().enumerate() {
-            let name = if b == 0 { "o" } else { "e" };
-            // Pixels of this beam's image of the strip (strips), or any pixel (maskless).
-            let in_beam = |px: usize, py: usize| match (g.kind(px, py), strip) {
-                (PixelKind::Both, _) => true,
-                (PixelKind::Ordinary(k), Some(s)) => b == 0 && k == s,
-                (PixelKind::Extraordinary(k), Some(s)) => b == 1 && k == s,
-                _ => false,
-            };
-            let w = weights(cx, cy, ap.radius_px, g.nx, g.ny, opts.weighting);
-            let r = ap.radius_px;
-            let covered =
-                cx - r >= -0.5 && cy - r >= -0.5 && cx + r <= g.nx as f64 - 0.5 && cy + r <= g.ny as f64 - 0.5;
-            if !covered {
+        let r = ap.radius_px;
+        let covered = cx - r >= -0.5 && cy - r >= -0.5 && cx + r <= g.nx as f64 - 0.5 && cy + r <= g.ny as f64 - 0.5;
+        if !covered {
+            return Err(Error::Invalid(format!(
+                "the {name} aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches off the {} x {} detector",
+                g.nx, g.ny
+            )));
+        }
+        let (mut s, mut v, mut area) = (0.0, 0.0, 0.0);
+        for &(px, py, wt) in &w {
+            if !in_beam(px, py) {
                 return Err(Error::Invalid(format!(
-                    "the {name} aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches off the {} x {} detector",
-                    g.nx, g.ny
+                    "aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches pixel ({px}, {py}) behind the mask; use a smaller aperture"
                 )));
             }
-            let (mut s, mut v, mut area) = (0.0, 0.0, 0.0);
-            for &(px, py, wt) in &w {
-                if !in_beam(px, py) {
-                    return Err(Error::Invalid(format!(
-                        "aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches pixel ({px}, {py}) behind the mask; use a smaller aperture"
-                    )));
-                }
-                let val = data[py * g.nx + px];
-                if val <= crate::io::GAP_LIMIT {
-                    return Err(Error::Invalid(format!(
-                        "aperture pixel ({px}, {py}) of the {name} beam lies in the gap between the chips; photometry needs clean aperture pixels"
-                    )));
-                }
-                if !val.is_finite() || val >= sat * nexp {
-                    return Err(Error::Invalid(format!(
-                        "aperture pixel ({px}, {py}) of the {name} beam in {file} is {}; photometry needs clean aperture pixels",
-                        if val.is_finite() { "saturated".to_string() } else { val.to_string() }
-                    )));
-                }
-                let e = to_e(val);
-                s += wt * e;
-                // Photon (e-) and read-noise variance of the weighted sum.
-                v += wt * wt * (e.max(0.0) + nexp * rn2);
-                area += wt;
+            let val = data[py * g.nx + px];
+            if val <= crate::io::GAP_LIMIT {
+                return Err(Error::Invalid(format!(
+                    "aperture pixel ({px}, {py}) of the {name} beam lies in the gap between the chips; photometry needs clean aperture pixels"
+                )));
             }
-            if b == 0 {
-                out.n_aperture = w.len();
-                out.aperture_area_px = area;
+            if !val.is_finite() || val >= sat * nexp {
+                return Err(Error::Invalid(format!(
+                    "aperture pixel ({px}, {py}) of the {name} beam in {file} is {}; photometry needs clean aperture pixels",
+                    if val.is_finite() { "saturated".to_string() } else { val.to_string() }
+                )));
             }
-            let (mut bg, mut vbg) = (0.0, 0.0);
-            if let Some((ra, rb)) = ap.annulus {
-                let mut vals = Vec::new();
-                let (xa, xb) = ((cx - rb).floor().max(0.0) as usize, ((cx + rb).ceil() as usize).min(g.nx - 1));
-                let (ya, yb) = ((cy - rb).floor().max(0.0) as usize, ((cy + rb).ceil() as usize).min(g.ny - 1));
-                for py in ya..=yb {
-                    for px in xa..=xb {
-                        let r2 = (px as f64 - cx).powi(2) + (py as f64 - cy).powi(2);
-                        if r2 >= ra * ra && r2 < rb * rb && in_beam(px, py) {
-                            let val = data[py * g.nx + px];
-                            if val.is_finite() && val < sat * nexp && val > crate::io::GAP_LIMIT {
-                                vals.push(to_e(val));
-                            }
+            let e = to_e(val);
+            s += wt * e;
+            // Photon (e-) and read-noise variance of the weighted sum.
+            v += wt * wt * (e.max(0.0) + nexp * rn2);
+            area += wt;
+        }
+        if b == 0 {
+            n_aperture = w.len();
+            area_o = area;
+            o_weights = Some((cx, cy, w));
+        }
+        let (mut bg, mut vbg) = (0.0, 0.0);
+        if let Some((ra, rb)) = ap.annulus {
+            let mut vals = Vec::new();
+            let (xa, xb) = ((cx - rb).floor().max(0.0) as usize, ((cx + rb).ceil() as usize).min(g.nx - 1));
+            let (ya, yb) = ((cy - rb).floor().max(0.0) as usize, ((cy + rb).ceil() as usize).min(g.ny - 1));
+            for py in ya..=yb {
+                for px in xa..=xb {
+                    let r2 = (px as f64 - cx).powi(2) + (py as f64 - cy).powi(2);
+                    if r2 >= ra * ra && r2 < rb * rb && in_beam(px, py) {
+                        let val = data[py * g.nx + px];
+                        if val.is_finite() && val < sat * nexp && val > crate::io::GAP_LIMIT {
+                            vals.push(to_e(val));
                         }
                     }
                 }
-                if vals.len() < 5 {
-                    return Err(Error::Invalid(format!(
-                        "background annulus of the {name} beam at ({cx:.1}, {cy:.1}) has {} usable sky pixels (need 5): move it or widen it",
-                        vals.len()
-                    )));
-                }
-                let (m, vm, kept) = clipped_mean(&vals);
-                if b == 0 {
-                    out.n_annulus = kept;
-                }
-                (bg, vbg) = (m, vm);
             }
-            beam[b] = (s - area * bg, v + area * area * vbg, bg, area);
+            if vals.len() < 5 {
+                return Err(Error::Invalid(format!(
+                    "background annulus of the {name} beam at ({cx:.1}, {cy:.1}) has {} usable sky pixels (need 5): move it or widen it",
+                    vals.len()
+                )));
+            }
+            let (m, vm, kept) = clipped_mean(&vals);
+            if b == 0 {
+                n_annulus = kept;
+            }
+            (bg, vbg) = (m, vm);
         }
-        out.f_o[i] = beam[0].0;
-        out.f_e[i] = beam[1].0;
-        out.sigma_o[i] = beam[0].1.sqrt();
-        out.sigma_e[i] = beam[1].1.sqrt();
-        out.bg_o[i] = beam[0].2;
-        out.bg_e[i] = beam[1].2;
+        beam[b] = (s - area * bg, v + area * area * vbg, bg);
     }
-    Ok(out)
+    Ok(FrameFluxes {
+        centre: [xo, yo, xe, ye],
+        f_o: beam[0].0,
+        f_e: beam[1].0,
+        sigma_o: beam[0].1.sqrt(),
+        sigma_e: beam[1].1.sqrt(),
+        bg_o: beam[0].2,
+        bg_e: beam[1].2,
+        n_aperture,
+        aperture_area_px: area_o,
+        n_annulus,
+    })
 }
 
 /// One exposure's own measurement of a star and its agreement with the other exposures
@@ -489,6 +610,24 @@ pub fn photometry_sized(
     annulus: Option<(f64, f64)>,
     opts: &PhotOptions,
 ) -> Result<(StarPhotometry, f64), Error> {
+    let tried = candidate_radii(x, y, radius, fwhm_px, annulus)?
+        .into_iter()
+        .map(|r| (r, photometry_with(set, g, x, y, &Aperture { radius_px: r, annulus }, opts)))
+        .collect();
+    pick_radius(radius, tried)
+}
+
+/// The aperture radii [`photometry_sized`] measures a star of FWHM `fwhm_px` with: the one
+/// radius of [`ApertureRadius::Px`] or [`ApertureRadius::FwhmMultiple`], or every candidate of
+/// [`ApertureRadius::BestSnr`] inside the annulus (refused when there is none, or when the
+/// choice needs a FWHM the star lacks).
+pub(crate) fn candidate_radii(
+    x: f64,
+    y: f64,
+    radius: ApertureRadius,
+    fwhm_px: f64,
+    annulus: Option<(f64, f64)>,
+) -> Result<Vec<f64>, Error> {
     let need_fwhm = || {
         if fwhm_px.is_finite() && fwhm_px > 0.0 {
             Ok(fwhm_px)
@@ -498,47 +637,57 @@ pub fn photometry_sized(
             )))
         }
     };
-    let fixed = |r: f64| photometry_with(set, g, x, y, &Aperture { radius_px: r, annulus }, opts).map(|p| (p, r));
     match radius {
-        ApertureRadius::Px(r) => fixed(r),
-        ApertureRadius::FwhmMultiple(k) => fixed(k * need_fwhm()?),
+        ApertureRadius::Px(r) => Ok(vec![r]),
+        ApertureRadius::FwhmMultiple(k) => Ok(vec![k * need_fwhm()?]),
         ApertureRadius::BestSnr => {
             let fwhm = need_fwhm()?;
             let r_max = annulus.map_or(f64::INFINITY, |(a, _)| a);
-            let mut best: Option<(f64, StarPhotometry, f64)> = None;
-            let mut first_err = None;
-            for k in (5..=40).map(|i| i as f64 * 0.1) {
-                let r = k * fwhm;
-                if r > r_max {
-                    break;
-                }
-                match fixed(r) {
-                    Ok((ph, r)) => {
-                        let flux: f64 = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum();
-                        let var: f64 = ph.sigma_o.iter().zip(&ph.sigma_e).map(|(a, b)| a * a + b * b).sum();
-                        let snr = flux / var.sqrt();
-                        if snr.is_finite() && best.as_ref().is_none_or(|b| snr > b.0) {
-                            best = Some((snr, ph, r));
-                        }
-                    }
-                    Err(e) => {
-                        first_err.get_or_insert(e);
-                    }
-                }
-            }
-            match (best, first_err) {
-                (Some((_, ph, r)), _) => Ok((ph, r)),
-                (None, Some(e)) => Err(e),
-                (None, None) => Err(Error::Invalid(format!(
+            let v: Vec<f64> = (5..=40).map(|i| i as f64 * 0.1 * fwhm).take_while(|&r| r <= r_max).collect();
+            if v.is_empty() {
+                return Err(Error::Invalid(format!(
                     "no aperture radius between 0.5 and 4 FWHM ({fwhm:.2} px) fits inside the background annulus's inner radius {r_max} px"
-                ))),
+                )));
             }
+            Ok(v)
         }
     }
 }
 
+/// The photometry [`photometry_sized`] keeps of those measured at each candidate radius
+/// (`tried`, in [`candidate_radii`]'s order): the one of a fixed radius as it came, or the
+/// best S/N of the total flux; when every radius failed, the first failure.
+pub(crate) fn pick_radius(
+    radius: ApertureRadius,
+    tried: Vec<(f64, Result<StarPhotometry, Error>)>,
+) -> Result<(StarPhotometry, f64), Error> {
+    let mut best: Option<(f64, StarPhotometry, f64)> = None;
+    let mut first_err = None;
+    for (r, res) in tried {
+        match res {
+            Ok(ph) if !matches!(radius, ApertureRadius::BestSnr) => return Ok((ph, r)),
+            Ok(ph) => {
+                let flux: f64 = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum();
+                let var: f64 = ph.sigma_o.iter().zip(&ph.sigma_e).map(|(a, b)| a * a + b * b).sum();
+                let snr = flux / var.sqrt();
+                if snr.is_finite() && best.as_ref().is_none_or(|b| snr > b.0) {
+                    best = Some((snr, ph, r));
+                }
+            }
+            Err(e) => {
+                first_err.get_or_insert(e);
+            }
+        }
+    }
+    match (best, first_err) {
+        (Some((_, ph, r)), _) => Ok((ph, r)),
+        (None, Some(e)) => Err(e),
+        (None, None) => Err(Error::Invalid("no aperture radius gave a finite S/N of the star's flux".into())),
+    }
+}
+
 /// [`StarPhotometry`] while it is being measured.
-struct Partial {
+pub(crate) struct Partial {
     hwp_deg: Vec<f64>,
     centres: Vec<[f64; 4]>,
     f_o: Vec<f64>,
@@ -552,6 +701,27 @@ struct Partial {
     n_annulus: usize,
 }
 
+impl Partial {
+    /// The frames' measurements in angle order (the aperture's size as the last frame saw it).
+    pub(crate) fn from_frames(hwp_deg: &[f64], m: &[FrameFluxes]) -> Self {
+        let col = |f: fn(&FrameFluxes) -> f64| m.iter().map(f).collect::<Vec<f64>>();
+        let last = m.last();
+        Self {
+            hwp_deg: hwp_deg.to_vec(),
+            centres: m.iter().map(|f| f.centre).collect(),
+            f_o: col(|f| f.f_o),
+            f_e: col(|f| f.f_e),
+            sigma_o: col(|f| f.sigma_o),
+            sigma_e: col(|f| f.sigma_e),
+            bg_o: col(|f| f.bg_o),
+            bg_e: col(|f| f.bg_e),
+            n_aperture: last.map_or(0, |f| f.n_aperture),
+            aperture_area_px: last.map_or(0.0, |f| f.aperture_area_px),
+            n_annulus: last.map_or(0, |f| f.n_annulus),
+        }
+    }
+}
+
 /// Measure the o/e offset `(dx, dy)` (px) of a maskless layout from the stars of the first
 /// frame of `set`, and the number of star pairs it rests on. Bright local maxima are found
 /// (above the median by 10 robust sigma), every pair of them with about equal peaks votes for
@@ -560,8 +730,18 @@ struct Partial {
 /// opposite) wins over chance separations. Which image is the ordinary one cannot be told from
 /// the frames: the offset is taken with a positive x component (positive y when x is ~0).
 pub fn measure_oe_offset(set: &FrameSet, inst: &Instrument) -> Result<(f64, f64, usize), Error> {
-    let (nx, ny) = (set.nx, set.ny);
     let img = set.data.first().ok_or(Error::NoFrames)?;
+    oe_offset_of_image(img, set.nx, set.ny, &set.files[0][0], inst)
+}
+
+/// [`measure_oe_offset`] from one frame (`img`, `nx` x `ny`, read from `file`).
+fn oe_offset_of_image(
+    img: &[f64],
+    nx: usize,
+    ny: usize,
+    file: &Path,
+    inst: &Instrument,
+) -> Result<(f64, f64, usize), Error> {
     let mut vals: Vec<f64> = img.iter().copied().filter(|v| v.is_finite()).collect();
     if vals.len() < 9 {
         return Err(Error::Invalid("cannot measure the o/e offset: the frame has no finite pixels".into()));
@@ -616,7 +796,7 @@ pub fn measure_oe_offset(set: &FrameSet, inst: &Instrument) -> Result<(f64, f64,
         return Err(Error::Invalid(format!(
             "cannot measure the o/e offset of instrument {}: fewer than three star pairs share one separation in {} ({} bright peaks); give [polarimetry] oe_offset_px in the instrument file",
             inst.name,
-            set.files[0][0].display(),
+            file.display(),
             peaks.len()
         )));
     };
@@ -663,4 +843,54 @@ fn clipped_mean(v: &[f64]) -> (f64, f64, usize) {
     let m = kept.iter().sum::<f64>() / n;
     let var = if n > 1.0 { kept.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / (n - 1.0) } else { 0.0 };
     (m, var / n, kept.len())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{RngExt, SeedableRng};
+
+    /// The e aperture's weights taken from the o aperture's (a whole-pixel throw) are, pixel
+    /// for pixel and bit for bit, the weights computed afresh about the e centre; at another
+    /// sub-pixel phase the shortcut declines.
+    #[test]
+    fn shifted_weights_are_the_weights_to_the_bit() {
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(7);
+        let (nx, ny) = (2048, 2048);
+        let mut used = 0;
+        for _ in 0..2000 {
+            let (x, y) = (rng.random_range(10.0..1900.0), rng.random_range(10.0..1900.0));
+            let r = rng.random_range(0.7..12.0);
+            let (dx, dy) = (rng.random_range(-8..140) as f64, rng.random_range(-8..140) as f64);
+            let (xe, ye) = (x + dx, y + dy);
+            let w = weights(x, y, r, nx, ny, Weighting::Exact);
+            let fresh = weights(xe, ye, r, nx, ny, Weighting::Exact);
+            match shifted_weights(&w, (x, y), (xe, ye), r, nx, ny) {
+                Some(s) => {
+                    used += 1;
+                    assert_eq!(s.len(), fresh.len());
+                    for (a, b) in s.iter().zip(&fresh) {
+                        assert_eq!(
+                            (a.0, a.1, a.2.to_bits()),
+                            (b.0, b.1, b.2.to_bits()),
+                            "centre ({x}, {y}) + ({dx}, {dy}), r {r}"
+                        );
+                    }
+                }
+                None => {
+                    let p = |v: f64| v - v.floor();
+                    assert!(
+                        p(x) != p(xe)
+                            || p(y) != p(ye)
+                            || xe + r + 2.0 > (nx - 1) as f64
+                            || ye + r + 2.0 > (ny - 1) as f64
+                    );
+                }
+            }
+        }
+        // Most integer shifts keep the phase (the sum is exact in the same binade).
+        assert!(used > 1000, "{used}");
+        let w = weights(100.3, 200.7, 5.0, nx, ny, Weighting::Exact);
+        assert!(shifted_weights(&w, (100.3, 200.7), (210.35, 200.7), 5.0, nx, ny).is_none());
+    }
 }

@@ -279,6 +279,195 @@ impl FrameSet {
     }
 }
 
+/// Frames by HWP angle as the catalog measures them, one angle at a time: held in memory
+/// ([`FrameSet`]) or read from disk when asked for ([`DiskFrames`]). Either way, angle `i`'s
+/// pixels are its exposures summed, in the instrument's ADU or in electrons
+/// ([`FrameSource::conversion`]).
+pub trait FrameSource: Sync {
+    fn nx(&self) -> usize;
+    fn ny(&self) -> usize;
+    fn filter(&self) -> &str;
+    /// HWP angles (deg), sorted.
+    fn angles_deg(&self) -> &[f64];
+    /// The exposures of each angle.
+    fn files(&self) -> &[Vec<PathBuf>];
+    fn conversion(&self) -> Conversion;
+    /// `f` applied to angle `i`'s pixels (row-major).
+    fn with_frame<R>(&self, i: usize, f: impl FnOnce(&[f64]) -> R) -> Result<R, Error>;
+}
+
+impl FrameSource for FrameSet {
+    fn nx(&self) -> usize {
+        self.nx
+    }
+    fn ny(&self) -> usize {
+        self.ny
+    }
+    fn filter(&self) -> &str {
+        &self.filter
+    }
+    fn angles_deg(&self) -> &[f64] {
+        &self.angles_deg
+    }
+    fn files(&self) -> &[Vec<PathBuf>] {
+        &self.files
+    }
+    fn conversion(&self) -> Conversion {
+        self.conversion
+    }
+    fn with_frame<R>(&self, i: usize, f: impl FnOnce(&[f64]) -> R) -> Result<R, Error> {
+        Ok(f(&self.data[i]))
+    }
+}
+
+/// Rows read per call when a frame is loaded: small enough that the raw bytes stay in cache
+/// between the read and the decoding.
+const LOAD_ROWS: usize = 64;
+
+/// A set of frames opened, grouped and checked like a [`FrameSet`], whose pixels stay on disk
+/// until an angle is asked for ([`FrameSource::with_frame`]); each request reads its
+/// exposures into a buffer taken from a pool and given back after, so that a catalog of 16
+/// frames of 2048 x 2048 holds about one frame per thread instead of all of them (fresh
+/// memory for every frame, zeroed by the kernel page by page, was a third of a catalog's time).
+/// Bad pixels are counted as the frames are read ([`DiskFrames::bad_pixel_warnings`]).
+pub struct DiskFrames {
+    frames: Vec<OpenFrame>,
+    members: Vec<Vec<usize>>,
+    filter: String,
+    angles: Vec<f64>,
+    files: Vec<Vec<PathBuf>>,
+    nx: usize,
+    ny: usize,
+    conversion: Conversion,
+    /// The grouping's notes (frames summed, angles completed, ...).
+    pub warnings: Vec<Warning>,
+    pool: std::sync::Mutex<Vec<(Vec<f64>, Vec<f64>, Vec<u8>)>>,
+    bad: std::sync::Mutex<Vec<Option<BadCounts>>>,
+    on_read: Option<Box<dyn Fn() + Send + Sync>>,
+}
+
+impl DiskFrames {
+    /// Open `paths` (headers checked, calibration frames of `opts` prepared) and group them by
+    /// HWP angle as [`FrameSet::from_frames`] does.
+    pub fn open(
+        paths: &[PathBuf],
+        inst: &Instrument,
+        opts: &ReadOptions,
+        require_complete: bool,
+    ) -> Result<Self, Error> {
+        if paths.is_empty() {
+            return Err(Error::NoFrames);
+        }
+        let frames: Vec<OpenFrame> = crate::calib::open_exposures(paths, inst, opts)?;
+        let conversion = common_conversion(frames.iter().map(|f| &f.conversion), inst)?;
+        let meta: Vec<_> =
+            frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
+        let g = group_frames(&meta, inst, require_complete)?;
+        let files = g.members.iter().map(|m| m.iter().map(|&k| frames[k].path.clone()).collect()).collect();
+        let n = frames.len();
+        Ok(Self {
+            members: g.members,
+            filter: g.filter,
+            angles: g.angles,
+            files,
+            nx: g.nx,
+            ny: g.ny,
+            conversion,
+            warnings: g.warnings,
+            pool: std::sync::Mutex::new(Vec::new()),
+            bad: std::sync::Mutex::new(vec![None; n]),
+            frames,
+            on_read: None,
+        })
+    }
+
+    /// Call `f` once for every exposure the first time it is read (a progress bar).
+    pub fn set_on_read(&mut self, f: Box<dyn Fn() + Send + Sync>) {
+        self.on_read = Some(f);
+    }
+
+    /// Each exposure's HWP angle (deg), in the order given.
+    pub fn exposure_angles_deg(&self) -> Vec<f64> {
+        self.frames.iter().map(|f| f.hwp_deg).collect()
+    }
+
+    /// The warnings of [`FrameSet::from_frames`] for the frames read so far: masked NaN and
+    /// saturated pixels per file, then the grouping's notes; an error for a frame none of
+    /// whose pixels is finite.
+    pub fn bad_pixel_warnings(&self) -> Result<Vec<Warning>, Error> {
+        let bad = self.bad.lock().unwrap_or_else(|e| e.into_inner());
+        let read: Vec<usize> = (0..self.frames.len()).filter(|&k| bad[k].is_some()).collect();
+        let meta: Vec<_> = read
+            .iter()
+            .map(|&k| {
+                let f = &self.frames[k];
+                (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)
+            })
+            .collect();
+        let counts: Vec<BadCounts> = read.iter().map(|&k| bad[k].unwrap_or_default()).collect();
+        let mut w = bad_pixel_notes(&meta, &counts, self.nx * self.ny, &self.conversion)?;
+        w.extend(self.warnings.iter().cloned());
+        Ok(w)
+    }
+
+    /// Read exposure `k` whole into `out` (`bytes`: scratch), counting its bad pixels.
+    fn load(&self, k: usize, out: &mut [f64], bytes: &mut Vec<u8>) -> Result<(), Error> {
+        let nx = self.nx;
+        let mut counts: BadCounts = (0, 0);
+        for (c, rows) in out.chunks_mut(LOAD_ROWS * nx).enumerate() {
+            self.frames[k].load_rows(c * LOAD_ROWS, rows, bytes)?;
+            // Counted while the rows are still in cache.
+            let (a, b) = PixelView::F64(rows).count_bad(self.conversion.saturation);
+            counts = (counts.0 + a, counts.1 + b);
+        }
+        let first = self.bad.lock().unwrap_or_else(|e| e.into_inner())[k].replace(counts).is_none();
+        if let (true, Some(f)) = (first, &self.on_read) {
+            f();
+        }
+        Ok(())
+    }
+}
+
+impl FrameSource for DiskFrames {
+    fn nx(&self) -> usize {
+        self.nx
+    }
+    fn ny(&self) -> usize {
+        self.ny
+    }
+    fn filter(&self) -> &str {
+        &self.filter
+    }
+    fn angles_deg(&self) -> &[f64] {
+        &self.angles
+    }
+    fn files(&self) -> &[Vec<PathBuf>] {
+        &self.files
+    }
+    fn conversion(&self) -> Conversion {
+        self.conversion
+    }
+    fn with_frame<R>(&self, i: usize, f: impl FnOnce(&[f64]) -> R) -> Result<R, Error> {
+        let taken = self.pool.lock().unwrap_or_else(|e| e.into_inner()).pop();
+        let (mut sum, mut one, mut bytes) = taken.unwrap_or_default();
+        let n = self.nx * self.ny;
+        sum.resize(n, 0.0);
+        let res = (|| {
+            let m = &self.members[i];
+            self.load(m[0], &mut sum, &mut bytes)?;
+            // Repeats are added in the order FrameSet::from_frames adds them (same sums).
+            for &k in &m[1..] {
+                one.resize(n, 0.0);
+                self.load(k, &mut one, &mut bytes)?;
+                sum.iter_mut().zip(&one).for_each(|(a, s)| *a += s);
+            }
+            Ok(f(&sum))
+        })();
+        self.pool.lock().unwrap_or_else(|e| e.into_inner()).push((sum, one, bytes));
+        res
+    }
+}
+
 /// The one conversion of a set of frames: all in the instrument's ADU, or all in electrons
 /// (then with the largest read noise of them, a conservative noise model).
 fn common_conversion<'a>(convs: impl Iterator<Item = &'a Conversion>, inst: &Instrument) -> Result<Conversion, Error> {

@@ -1,9 +1,8 @@
 //! `instpol catalog`: every paired star of a frame set, measured in one run.
 
 use anyhow::{bail, Context, Result};
-use skyfield::catalog::{catalog, flags, CatalogConfig};
+use skyfield::catalog::{flags, CatalogConfig};
 use skyfield::detect::DetectConfig;
-use skyfield::reduce::FrameSet;
 use std::path::PathBuf;
 
 /// Find every star in the frames, pair its ordinary image with its extraordinary one through
@@ -134,20 +133,12 @@ pub fn run(a: Args) -> Result<()> {
         if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(a.frames.len() as u64) };
     bar.set_message("reading");
     let read = a.frame.read_options()?;
-    let frames = skyfield::reduce::read_frames_with(&a.frames, &inst, &read, &|| bar.inc(1));
+    let tick = bar.clone();
+    let res = skyfield::catalog::catalog_files(&a.frames, &inst, &read, &cfg, Box::new(move || tick.inc(1)));
     bar.finish_and_clear();
-    let frames = frames?;
-    // Repeated plate positions are summed into one frame each; keep the exposures to check
-    // every star in each of them alone (issue 13: outlier exposures flagged per star).
-    let theta: Vec<f64> = frames.iter().map(|f| f.hwp_deg.to_radians()).collect();
-    let singles = stokes::repeats::has_repeats(&theta).then(|| frames.clone());
-    let set = FrameSet::from_frames(frames, &inst, true)?;
-    for w in &set.warnings {
+    let (cat, warnings) = res?;
+    for w in &warnings {
         eprintln!("warning: {w}");
-    }
-    let mut cat = catalog(&set, &inst, &cfg)?;
-    if let Some(fr) = &singles {
-        skyfield::catalog::check_exposures(&mut cat, fr, &set, &inst, &cfg)?;
     }
     for e in cat.exposures.iter().flatten().filter(|e| e.outlier) {
         eprintln!(
