@@ -231,3 +231,30 @@ fn entries_match_the_printed_source() {
         );
     }
 }
+
+/// Positions against the J2000 degrees as printed in the source read for them, SOLVEPOL
+/// `polstdstars.dat` (commit a3ff3e2; columns NAMEPOL RA(2000) DEC(2000) ...), which prints
+///   HD110984  191.687  -61.1865      HD111579  192.765  -61.2438
+///   HD155197  257.566  -4.83435      HD155528  258.083  -4.40258
+///   HD161056  265.946  -7.0796
+/// (typed here from that print): the TOML's sexagesimal strings, read back with this test's own
+/// parser, must lie within 0.001 deg (the print's last digit) of them.
+#[test]
+fn positions_match_the_printed_degrees() {
+    let printed: &[(&str, f64, f64)] = &[
+        ("HD 110984", 191.687, -61.1865),
+        ("HD 111579", 192.765, -61.2438),
+        ("HD 155197", 257.566, -4.83435),
+        ("HD 155528", 258.083, -4.40258),
+        ("HD 161056", 265.946, -7.0796),
+    ];
+    let doc: toml::Value = toml::from_str(LIST).unwrap();
+    for &(star, ra_deg, dec_deg) in printed {
+        let s = doc["star"].as_array().unwrap().iter().find(|s| s["name"].as_str() == Some(star)).unwrap();
+        let ra = 15.0 * sexagesimal(s["ra"].as_str().unwrap(), 24.0).unwrap();
+        let dec_s = s["dec"].as_str().unwrap();
+        let dec = sexagesimal(dec_s, 90.0).unwrap() * if dec_s.starts_with('-') { -1.0 } else { 1.0 };
+        assert!((ra - ra_deg).abs() < 1e-3, "{star}: ra {ra} deg against {ra_deg}");
+        assert!((dec - dec_deg).abs() < 1e-3, "{star}: dec {dec} deg against {dec_deg}");
+    }
+}
