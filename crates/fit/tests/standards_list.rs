@@ -167,10 +167,22 @@ fn bands_of_a_star_agree_in_chi_and_two_band_ratios_are_serkowski() {
 ///   NGC 2024     R-Bessel  ... $9.62\pm 0.01$ & ... & $135.84\pm0.02$
 ///   NGC 2024     I-Bessel  ... $9.12\pm 0.04$ & ... & $136.26\pm0.15$
 ///   BD-125133    I-Bessel  ... $3.57\pm0.09$  & ... & $143.99\pm2.27$
-/// (read for this test; the numbers are typed here from that print, not from the TOML).
+/// and the rows of pyhdust `refs/pol_padroes.txt` (commit 6cfd548; columns chi in U B V R I,
+/// their errors, P % in U B V R I, their errors, variable?, reference), which print
+///   h110984  0  92.05  91.65  91.25  90.82  0 0.04 0.04 0.03 0.04  0 5.31 5.70 5.67 5.17
+///            0 0.007 0.007 0.006 0.007  -  Tapia, 1988
+///   h111579  0 103.40 103.11 102.47 102.00  0 0.07 0.06 0.06 0.09  0 6.15 6.46 6.21 5.59
+///            0 0.015 0.014 0.013 0.017  -  Tapia, 1988
+///   h155197  0 103.1 102.8 102.9 103.2  0 0.33 0.15 0.18 0.30  0 4.11 4.32 4.27 3.91
+///            0 0.047 0.023 0.027 0.041  -  Schmidt et al, 1992
+///   h155528  0  91.24  92.61  0  0  0 0.24 0.37 0 0  0 4.61 4.99 0 0  0 0.038 0.064 0 0  -
+///            Schmidt et al,1992
+///   h161056  0  66.56  66.93  67.33  67.78  0 0.42 0.18 0.23 0.24  0 3.78 4.03 4.01 3.58
+///            0 0.055 0.025 0.032 0.030  n?  Schmidt et al, 1992
+/// (read for this test; the numbers are typed here from those prints, not from the TOML).
 #[test]
 fn entries_match_the_printed_source() {
-    let printed: [(&str, &str, f64, f64, f64, f64); 7] = [
+    let printed: &[(&str, &str, f64, f64, f64, f64)] = &[
         ("Hiltner 652", "V", 6.25, 0.01, 179.18, 0.20),
         ("Hiltner 652", "R", 6.07, 0.02, 179.39, 0.10),
         ("Hiltner 652", "I", 5.61, 0.04, 179.18, 0.11),
@@ -178,9 +190,27 @@ fn entries_match_the_printed_source() {
         ("NGC 2024-1", "R", 9.62, 0.01, 135.84, 0.02),
         ("NGC 2024-1", "I", 9.12, 0.04, 136.26, 0.15),
         ("BD-12 5133", "I", 3.57, 0.09, 143.99, 2.27),
+        ("HD 110984", "B", 5.31, 0.007, 92.05, 0.04),
+        ("HD 110984", "V", 5.70, 0.007, 91.65, 0.04),
+        ("HD 110984", "R", 5.67, 0.006, 91.25, 0.03),
+        ("HD 110984", "I", 5.17, 0.007, 90.82, 0.04),
+        ("HD 111579", "B", 6.15, 0.015, 103.40, 0.07),
+        ("HD 111579", "V", 6.46, 0.014, 103.11, 0.06),
+        ("HD 111579", "R", 6.21, 0.013, 102.47, 0.06),
+        ("HD 111579", "I", 5.59, 0.017, 102.00, 0.09),
+        ("HD 155197", "B", 4.11, 0.047, 103.1, 0.33),
+        ("HD 155197", "V", 4.32, 0.023, 102.8, 0.15),
+        ("HD 155197", "R", 4.27, 0.027, 102.9, 0.18),
+        ("HD 155197", "I", 3.91, 0.041, 103.2, 0.30),
+        ("HD 155528", "B", 4.61, 0.038, 91.24, 0.24),
+        ("HD 155528", "V", 4.99, 0.064, 92.61, 0.37),
+        ("HD 161056", "B", 3.78, 0.055, 66.56, 0.42),
+        ("HD 161056", "V", 4.03, 0.025, 66.93, 0.18),
+        ("HD 161056", "R", 4.01, 0.032, 67.33, 0.23),
+        ("HD 161056", "I", 3.58, 0.030, 67.78, 0.24),
     ];
     let doc: toml::Value = toml::from_str(LIST).unwrap();
-    for (star, band, p, sp, chi, sc) in printed {
+    for &(star, band, p, sp, chi, sc) in printed {
         let s = doc["star"]
             .as_array()
             .unwrap()
@@ -199,5 +229,32 @@ fn entries_match_the_printed_source() {
             (p, sp, chi, sc),
             "{star} {band}"
         );
+    }
+}
+
+/// Positions against the J2000 degrees as printed in the source read for them, SOLVEPOL
+/// `polstdstars.dat` (commit a3ff3e2; columns NAMEPOL RA(2000) DEC(2000) ...), which prints
+///   HD110984  191.687  -61.1865      HD111579  192.765  -61.2438
+///   HD155197  257.566  -4.83435      HD155528  258.083  -4.40258
+///   HD161056  265.946  -7.0796
+/// (typed here from that print): the TOML's sexagesimal strings, read back with this test's own
+/// parser, must lie within 0.001 deg (the print's last digit) of them.
+#[test]
+fn positions_match_the_printed_degrees() {
+    let printed: &[(&str, f64, f64)] = &[
+        ("HD 110984", 191.687, -61.1865),
+        ("HD 111579", 192.765, -61.2438),
+        ("HD 155197", 257.566, -4.83435),
+        ("HD 155528", 258.083, -4.40258),
+        ("HD 161056", 265.946, -7.0796),
+    ];
+    let doc: toml::Value = toml::from_str(LIST).unwrap();
+    for &(star, ra_deg, dec_deg) in printed {
+        let s = doc["star"].as_array().unwrap().iter().find(|s| s["name"].as_str() == Some(star)).unwrap();
+        let ra = 15.0 * sexagesimal(s["ra"].as_str().unwrap(), 24.0).unwrap();
+        let dec_s = s["dec"].as_str().unwrap();
+        let dec = sexagesimal(dec_s, 90.0).unwrap() * if dec_s.starts_with('-') { -1.0 } else { 1.0 };
+        assert!((ra - ra_deg).abs() < 1e-3, "{star}: ra {ra} deg against {ra_deg}");
+        assert!((dec - dec_deg).abs() < 1e-3, "{star}: dec {dec} deg against {dec_deg}");
     }
 }
