@@ -294,6 +294,10 @@ pub trait FrameSource: Sync {
     fn conversion(&self) -> Conversion;
     /// `f` applied to angle `i`'s pixels (row-major).
     fn with_frame<R>(&self, i: usize, f: impl FnOnce(&[f64]) -> R) -> Result<R, Error>;
+    /// `f` called as angle `i`'s rows arrive, with the rows read so far from the top
+    /// (`rows.len() / nx` whole rows), band after band, the last call with the whole frame; a
+    /// frame in memory comes in one call. Work on rows just read finds them in cache.
+    fn with_frame_rows(&self, i: usize, f: &mut dyn FnMut(&[f64])) -> Result<(), Error>;
 }
 
 impl FrameSource for FrameSet {
@@ -317,6 +321,10 @@ impl FrameSource for FrameSet {
     }
     fn with_frame<R>(&self, i: usize, f: impl FnOnce(&[f64]) -> R) -> Result<R, Error> {
         Ok(f(&self.data[i]))
+    }
+    fn with_frame_rows(&self, i: usize, f: &mut dyn FnMut(&[f64])) -> Result<(), Error> {
+        f(&self.data[i]);
+        Ok(())
     }
 }
 
@@ -410,21 +418,19 @@ impl DiskFrames {
         Ok(w)
     }
 
-    /// Read exposure `k` whole into `out` (`bytes`: scratch), counting its bad pixels.
-    fn load(&self, k: usize, out: &mut [f64], bytes: &mut Vec<u8>) -> Result<(), Error> {
-        let nx = self.nx;
-        let mut counts: BadCounts = (0, 0);
-        for (c, rows) in out.chunks_mut(LOAD_ROWS * nx).enumerate() {
-            self.frames[k].load_rows(c * LOAD_ROWS, rows, bytes)?;
-            // Counted while the rows are still in cache.
-            let (a, b) = PixelView::F64(rows).count_bad(self.conversion.saturation);
-            counts = (counts.0 + a, counts.1 + b);
-        }
+    /// Rows `row0 ..` of exposure `k` into `out` (whole rows; `bytes`: scratch), and their
+    /// NaN and saturated pixels (counted while the rows are in cache).
+    fn load_band(&self, k: usize, row0: usize, out: &mut [f64], bytes: &mut Vec<u8>) -> Result<BadCounts, Error> {
+        self.frames[k].load_rows(row0, out, bytes)?;
+        Ok(PixelView::F64(out).count_bad(self.conversion.saturation))
+    }
+
+    /// Record exposure `k`'s bad-pixel counts (and tell the progress bar the first time).
+    fn record(&self, k: usize, counts: BadCounts) {
         let first = self.bad.lock().unwrap_or_else(|e| e.into_inner())[k].replace(counts).is_none();
         if let (true, Some(f)) = (first, &self.on_read) {
             f();
         }
-        Ok(())
     }
 }
 
@@ -448,20 +454,43 @@ impl FrameSource for DiskFrames {
         self.conversion
     }
     fn with_frame<R>(&self, i: usize, f: impl FnOnce(&[f64]) -> R) -> Result<R, Error> {
+        let (n, mut f, mut out) = (self.nx * self.ny, Some(f), None);
+        self.with_frame_rows(i, &mut |rows| {
+            if rows.len() == n {
+                out = f.take().map(|f| f(rows));
+            }
+        })?;
+        out.ok_or(Error::NoFrames)
+    }
+
+    fn with_frame_rows(&self, i: usize, f: &mut dyn FnMut(&[f64])) -> Result<(), Error> {
         let taken = self.pool.lock().unwrap_or_else(|e| e.into_inner()).pop();
         let (mut sum, mut one, mut bytes) = taken.unwrap_or_default();
-        let n = self.nx * self.ny;
-        sum.resize(n, 0.0);
+        let (nx, ny) = (self.nx, self.ny);
+        sum.resize(nx * ny, 0.0);
+        let m = &self.members[i];
         let res = (|| {
-            let m = &self.members[i];
-            self.load(m[0], &mut sum, &mut bytes)?;
-            // Repeats are added in the order FrameSet::from_frames adds them (same sums).
-            for &k in &m[1..] {
-                one.resize(n, 0.0);
-                self.load(k, &mut one, &mut bytes)?;
-                sum.iter_mut().zip(&one).for_each(|(a, s)| *a += s);
+            let mut counts: Vec<BadCounts> = vec![(0, 0); m.len()];
+            let mut row0 = 0;
+            while row0 < ny {
+                let rows = LOAD_ROWS.min(ny - row0);
+                let band = &mut sum[row0 * nx..(row0 + rows) * nx];
+                let c = self.load_band(m[0], row0, band, &mut bytes)?;
+                counts[0] = (counts[0].0 + c.0, counts[0].1 + c.1);
+                // Repeats are added in the order FrameSet::from_frames adds them (same sums).
+                for (j, &k) in m.iter().enumerate().skip(1) {
+                    one.resize(rows * nx, 0.0);
+                    let c = self.load_band(k, row0, &mut one[..rows * nx], &mut bytes)?;
+                    counts[j] = (counts[j].0 + c.0, counts[j].1 + c.1);
+                    band.iter_mut().zip(&one).for_each(|(a, s)| *a += s);
+                }
+                row0 += rows;
+                f(&sum[..row0 * nx]);
             }
-            Ok(f(&sum))
+            for (&k, &c) in m.iter().zip(&counts) {
+                self.record(k, c);
+            }
+            Ok(())
         })();
         self.pool.lock().unwrap_or_else(|e| e.into_inner()).push((sum, one, bytes));
         res
