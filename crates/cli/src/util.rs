@@ -40,6 +40,25 @@ fn same_file(a: &Path, b: &Path) -> bool {
 /// too (their reader reports them).
 pub fn inputs<'a>(paths: impl IntoIterator<Item = &'a Path>) -> Result<()> {
     let paths: Vec<&Path> = paths.into_iter().collect();
+    register_inputs(&paths)?;
+    skyfield::provenance::add_inputs(&paths);
+    Ok(())
+}
+
+/// [`inputs`] where the command reads `streamed` whole and in order itself (the catalog's
+/// frames): their provenance hashes are taken as they are read
+/// (`skyfield::provenance::add_inputs_read_in_order`); `others` are hashed as by [`inputs`].
+pub fn inputs_read_in_order<'a>(streamed: &[&'a Path], others: impl IntoIterator<Item = &'a Path>) -> Result<()> {
+    let others: Vec<&Path> = others.into_iter().collect();
+    let all: Vec<&Path> = streamed.iter().copied().chain(others.iter().copied()).collect();
+    register_inputs(&all)?;
+    skyfield::provenance::add_inputs_read_in_order(streamed);
+    skyfield::provenance::add_inputs(&others);
+    Ok(())
+}
+
+/// The checks of [`inputs`] (no file twice) and the registration against overwriting.
+fn register_inputs(paths: &[&Path]) -> Result<()> {
     for (i, a) in paths.iter().enumerate() {
         for b in &paths[..i] {
             if file_id(a).is_some() && same_file(a, b) {
@@ -51,7 +70,6 @@ pub fn inputs<'a>(paths: impl IntoIterator<Item = &'a Path>) -> Result<()> {
         }
     }
     INPUTS.lock().unwrap_or_else(|e| e.into_inner()).extend(paths.iter().map(|p| p.to_path_buf()));
-    skyfield::provenance::add_inputs(&paths);
     Ok(())
 }
 

@@ -227,21 +227,30 @@ pub fn detect(img: &[f64], g: &BeamGeometry, cfg: &DetectConfig) -> Vec<Source> 
     // Noise of the smoothed image: sigma times the kernel's 2-D norm.
     let k2: f64 = k.iter().map(|v| v * v).sum::<f64>();
     let thr = cfg.threshold_sigma * bg.sigma * k2;
-    let mut found: Vec<Source> = Vec::new();
     let rc = (1.5 * cfg.fwhm_px).max(3.0);
-    for y in 1..ny.saturating_sub(1) {
-        for x in 1..nx.saturating_sub(1) {
-            let v = sm[y * nx + x];
-            if !(v > thr) || !usable(g, x, y) {
-                continue;
-            }
-            let is_max = (y - 1..=y + 1).all(|yy| (x - 1..=x + 1).all(|xx| (xx, yy) == (x, y) || sm[yy * nx + xx] < v));
-            if !is_max {
-                continue;
-            }
+    // The local maxima above the threshold, in row-major order (rows scanned in parallel).
+    let maxima: Vec<(usize, usize)> = (1..ny.saturating_sub(1))
+        .into_par_iter()
+        .flat_map_iter(|y| {
+            let (sm, thr) = (&sm, thr);
+            (1..nx.saturating_sub(1))
+                .filter(move |&x| {
+                    let v = sm[y * nx + x];
+                    v > thr
+                        && usable(g, x, y)
+                        && (y - 1..=y + 1)
+                            .all(|yy| (x - 1..=x + 1).all(|xx| (xx, yy) == (x, y) || sm[yy * nx + xx] < v))
+                })
+                .map(move |x| (x, y))
+        })
+        .collect();
+    // Each maximum centred and measured on its own (in parallel, order kept).
+    let measured: Vec<Option<Source>> = maxima
+        .par_iter()
+        .map(|&(x, y)| {
             let kind = g.kind(x, y);
             let same = |px: usize, py: usize| g.kind(px, py) == kind;
-            let Some((cx, cy)) = centroid(&sub, nx, ny, x as f64, y as f64, rc, same) else { continue };
+            let (cx, cy) = centroid(&sub, nx, ny, x as f64, y as f64, rc, same)?;
             // FWHM from the second moments inside the centroid radius, and the peak.
             let (mut sw, mut s2, mut peak, mut sat) = (0.0, 0.0, 0.0f64, false);
             let (xa, xb) = ((cx - rc).floor().max(0.0) as usize, ((cx + rc).ceil() as usize).min(nx - 1));
@@ -264,10 +273,17 @@ pub fn detect(img: &[f64], g: &BeamGeometry, cfg: &DetectConfig) -> Vec<Source> 
                 }
             }
             let fwhm = if sw > 0.0 { 2.3548 * (s2 / (2.0 * sw)).sqrt() } else { f64::NAN };
-            if found.iter().any(|f| (f.x - cx).hypot(f.y - cy) < 1.5) {
-                continue;
-            }
-            found.push(Source { x: cx, y: cy, peak, fwhm_px: fwhm, kind, saturated: sat });
+            Some(Source { x: cx, y: cy, peak, fwhm_px: fwhm, kind, saturated: sat })
+        })
+        .collect();
+    // A maximum whose centroid lands on an earlier source's is the same source (taken in the
+    // scan order, as one pass would).
+    let mut found: Vec<Source> = Vec::new();
+    for s in measured.into_iter().flatten() {
+        let near =
+            |f: &Source| (f.x - s.x).abs() < 1.5 && (f.y - s.y).abs() < 1.5 && (f.x - s.x).hypot(f.y - s.y) < 1.5;
+        if !found.iter().any(near) {
+            found.push(s);
         }
     }
     found.sort_by(|a, b| b.peak.total_cmp(&a.peak));

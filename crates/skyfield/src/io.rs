@@ -961,6 +961,22 @@ impl RowFile {
         let at = self.data_start + (px * self.kind.bytes()) as u64;
         self.file.read_exact_at(out, at).map_err(|e| read_error(path, e))
     }
+
+    /// The file's bytes before its image data and after the data's `ny` rows: with the rows'
+    /// bytes as they are read in order, the whole file (its provenance hash from one read).
+    pub(crate) fn bytes_around_data(&self, path: &Path, ny: usize) -> Result<(Vec<u8>, Vec<u8>), Error> {
+        use std::os::unix::fs::FileExt;
+        let len = self.file.metadata().map_err(|e| read_error(path, e))?.len();
+        let end = self.data_start + (self.nx * ny * self.kind.bytes()) as u64;
+        let (Ok(h), Some(t)) = (usize::try_from(self.data_start), len.checked_sub(end)) else {
+            return Err(read_error(path, "the file is shorter than its header says"));
+        };
+        let mut head = vec![0u8; h];
+        self.file.read_exact_at(&mut head, 0).map_err(|e| read_error(path, e))?;
+        let mut tail = vec![0u8; t as usize];
+        self.file.read_exact_at(&mut tail, end).map_err(|e| read_error(path, e))?;
+        Ok((head, tail))
+    }
 }
 
 /// Where a frame's rows come from: the file itself, pixels CFITSIO read whole (compressed

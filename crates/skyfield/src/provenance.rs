@@ -267,6 +267,55 @@ pub fn add_inputs(paths: &[&Path]) {
     PENDING.lock().unwrap_or_else(|e| e.into_inner()).push(worker);
 }
 
+/// [`add_inputs`] for files the command itself reads whole and in order: each gets its place
+/// in the inputs now and its hash from [`record_hash`] as the command reads it (one read of
+/// the file instead of two); a file not recorded by the time the provenance is read is hashed
+/// then, so the provenance is the same either way.
+pub fn add_inputs_read_in_order(paths: &[&Path]) {
+    if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
+        for path in paths {
+            let name = path.display().to_string();
+            if !p.inputs.iter().any(|i| i.path == name) {
+                p.inputs.push(InputFile { path: name, sha256: String::new() });
+            }
+        }
+    }
+}
+
+/// The hash of an input registered by [`add_inputs_read_in_order`], computed by its reader
+/// ([`StreamHash`]); no effect for a path not waiting for one.
+pub fn record_hash(path: &Path, sha256: String) {
+    let name = path.display().to_string();
+    if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
+        if let Some(i) = p.inputs.iter_mut().find(|i| i.path == name && i.sha256.is_empty()) {
+            i.sha256 = sha256;
+        }
+    }
+}
+
+/// True when the run's provenance waits for `path`'s hash from its reader.
+pub fn wants_hash(path: &Path) -> bool {
+    let name = path.display().to_string();
+    SESSION
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .as_ref()
+        .is_some_and(|p| p.inputs.iter().any(|i| i.path == name && i.sha256.is_empty()))
+}
+
+/// A file's SHA-256 fed piece by piece as it is read (`sha256:<hex>`, as [`sha256_file`]).
+#[derive(Default)]
+pub struct StreamHash(Sha256);
+
+impl StreamHash {
+    pub fn update(&mut self, bytes: &[u8]) {
+        self.0.update(bytes);
+    }
+    pub fn finish(self) -> String {
+        hex(&self.0.finalize())
+    }
+}
+
 /// Hashes being computed by [`add_inputs`].
 type Hashes = Vec<(String, String)>;
 static PENDING: Mutex<Vec<std::thread::JoinHandle<Hashes>>> = Mutex::new(Vec::new());
@@ -284,10 +333,20 @@ fn settle() {
             }
         }
     }
-    // Every worker has answered: a hash still missing (a worker that failed) is said so.
-    if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
-        for i in p.inputs.iter_mut().filter(|i| i.sha256.is_empty()) {
-            i.sha256 = "unreadable".into();
+    // Every worker has answered: a hash still missing (a file its reader did not read whole,
+    // a worker that failed) is computed now, or the file said unreadable.
+    let missing: Vec<String> = SESSION
+        .lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .as_ref()
+        .map(|p| p.inputs.iter().filter(|i| i.sha256.is_empty()).map(|i| i.path.clone()).collect())
+        .unwrap_or_default();
+    for path in missing {
+        let h = sha256_file(Path::new(&path)).unwrap_or_else(|_| "unreadable".into());
+        if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
+            if let Some(i) = p.inputs.iter_mut().find(|i| i.path == path && i.sha256.is_empty()) {
+                i.sha256 = h;
+            }
         }
     }
 }

@@ -425,6 +425,28 @@ impl DiskFrames {
         Ok(PixelView::F64(out).count_bad(self.conversion.saturation))
     }
 
+    /// A hash of exposure `k`'s file to feed as its rows are read, with the bytes after its
+    /// data (to add last), when the run's provenance waits for it and the rows come straight
+    /// from the file as stored; `None` otherwise (the provenance then hashes the file itself).
+    fn start_hash(&self, k: usize) -> Result<Option<(crate::provenance::StreamHash, Vec<u8>)>, Error> {
+        let fr = &self.frames[k];
+        let crate::io::FrameRows::File(r) = &fr.rows else { return Ok(None) };
+        if !(fr.path.is_file() && crate::provenance::wants_hash(&fr.path)) {
+            return Ok(None);
+        }
+        let (head, tail) = r.bytes_around_data(&fr.path, self.ny)?;
+        let mut h = crate::provenance::StreamHash::default();
+        h.update(&head);
+        Ok(Some((h, tail)))
+    }
+
+    /// Feed the `rows` rows of exposure `k` just read (their stored bytes, in `bytes`) to its hash.
+    fn feed(&self, k: usize, h: &mut Option<(crate::provenance::StreamHash, Vec<u8>)>, rows: usize, bytes: &[u8]) {
+        if let (Some((h, _)), crate::io::FrameRows::File(r)) = (h.as_mut(), &self.frames[k].rows) {
+            h.update(&bytes[..rows * self.nx * r.kind().bytes()]);
+        }
+    }
+
     /// Record exposure `k`'s bad-pixel counts (and tell the progress bar the first time).
     fn record(&self, k: usize, counts: BadCounts) {
         let first = self.bad.lock().unwrap_or_else(|e| e.into_inner())[k].replace(counts).is_none();
@@ -471,24 +493,34 @@ impl FrameSource for DiskFrames {
         let m = &self.members[i];
         let res = (|| {
             let mut counts: Vec<BadCounts> = vec![(0, 0); m.len()];
+            // The provenance's hash of each file read straight from disk, fed the rows' bytes
+            // as they pass (the file is then read once, not once more by the hashing).
+            let mut hashes: Vec<Option<(crate::provenance::StreamHash, Vec<u8>)>> =
+                m.iter().map(|&k| self.start_hash(k)).collect::<Result<_, _>>()?;
             let mut row0 = 0;
             while row0 < ny {
                 let rows = LOAD_ROWS.min(ny - row0);
                 let band = &mut sum[row0 * nx..(row0 + rows) * nx];
                 let c = self.load_band(m[0], row0, band, &mut bytes)?;
                 counts[0] = (counts[0].0 + c.0, counts[0].1 + c.1);
+                self.feed(m[0], &mut hashes[0], rows, &bytes);
                 // Repeats are added in the order FrameSet::from_frames adds them (same sums).
                 for (j, &k) in m.iter().enumerate().skip(1) {
                     one.resize(rows * nx, 0.0);
                     let c = self.load_band(k, row0, &mut one[..rows * nx], &mut bytes)?;
                     counts[j] = (counts[j].0 + c.0, counts[j].1 + c.1);
+                    self.feed(k, &mut hashes[j], rows, &bytes);
                     band.iter_mut().zip(&one).for_each(|(a, s)| *a += s);
                 }
                 row0 += rows;
                 f(&sum[..row0 * nx]);
             }
-            for (&k, &c) in m.iter().zip(&counts) {
+            for ((&k, &c), h) in m.iter().zip(&counts).zip(hashes) {
                 self.record(k, c);
+                if let Some((mut h, tail)) = h {
+                    h.update(&tail);
+                    crate::provenance::record_hash(&self.frames[k].path, h.finish());
+                }
             }
             Ok(())
         })();

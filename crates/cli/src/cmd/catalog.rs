@@ -125,7 +125,13 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(out) = &a.out {
         skyfield::table::Format::from_path(out).map_err(|e| anyhow::anyhow!("--out {e}"))?;
     }
-    crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
+    let frames: Vec<&std::path::Path> = a.frames.iter().map(|p| p.as_path()).collect();
+    // The calibration frames and file are inputs too (provenance, and never written over).
+    let others = [a.frame.bias.as_deref(), a.frame.flat.as_deref(), a.cal.as_deref()];
+    crate::util::inputs_read_in_order(
+        &frames,
+        others.into_iter().flatten().chain(crate::util::file_arg(&a.instrument)),
+    )?;
     if let Some(out) = &a.out {
         crate::util::check_output(out)?;
     }
