@@ -320,6 +320,8 @@ pub fn pair(sources: &[Source], g: &BeamGeometry, tol: f64) -> (Vec<Pair>, Vec<u
         let Some((ex, ey)) = g.e_position(s.x, s.y) else { continue };
         let best = (0..sources.len())
             .filter(|&j| j != i && !used[j] && !matches!(sources[j].kind, PixelKind::Ordinary(_)))
+            // (The box test is exact and spares the hypot of far sources.)
+            .filter(|&j| (sources[j].x - ex).abs() <= tol && (sources[j].y - ey).abs() <= tol)
             .map(|j| (j, (sources[j].x - ex).hypot(sources[j].y - ey)))
             .filter(|&(_, d)| d <= tol)
             .min_by(|a, b| a.1.total_cmp(&b.1));
