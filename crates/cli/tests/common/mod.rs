@@ -264,3 +264,23 @@ pub fn calibrate_v_args(map: &Path, out: &Path) -> Vec<String> {
         .map(|s| s.to_string())
         .collect()
 }
+
+/// Check a JSON output's provenance inputs (`inputs`, in order) against `sha256sum` of
+/// `files`: each path and each hash. Says so loudly and checks nothing when coreutils'
+/// `sha256sum` is missing.
+#[allow(dead_code)]
+pub fn assert_inputs_hashed_as_sha256sum<P: AsRef<std::ffi::OsStr>>(inputs: &[serde_json::Value], files: &[P]) {
+    assert_eq!(inputs.len(), files.len(), "{inputs:?}");
+    let sum = match std::process::Command::new("sha256sum").args(files).output() {
+        Ok(s) if s.status.success() => String::from_utf8(s.stdout).unwrap(),
+        _ => {
+            eprintln!("WARNING: sha256sum (coreutils) not found: provenance hashes not checked against it");
+            return;
+        }
+    };
+    for (line, inp) in sum.lines().zip(inputs) {
+        let (hex, path) = line.split_once("  ").unwrap();
+        assert_eq!(inp["path"], path);
+        assert_eq!(inp["sha256"], format!("sha256:{hex}"), "{path}");
+    }
+}
