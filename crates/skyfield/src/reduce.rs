@@ -25,7 +25,7 @@
 
 use crate::beams::BeamGeometry;
 use crate::bin::{clipped_bin_hinted, BinSamples, ClipConfig, PixelSample};
-use crate::calib::ReadOptions;
+use crate::calib::{avx2_dispatch, ReadOptions};
 use crate::io::{Conversion, Frame, FrameRows, OpenFrame, PixelView, RawKind};
 use crate::maps::{BinGeometry, StokesMap};
 use crate::{Error, Warning};
@@ -1058,102 +1058,76 @@ impl Scratch {
         }
     }
 
-    /// Read a group's rows of every angle that comes from files: a single exposure's rows as
-    /// stored (decoded and counted by the kernel); repeated exposures decoded and summed in
-    /// order, each exposure's bad values counted on the group's o and e pixels. The counting
-    /// and summing loops in 4-wide AVX2 where the CPU has it (the same IEEE additions in the
-    /// same order, so the same bits): they were 9 % of a raw FORS2 reduction's profile.
-    fn read_group(
-        &mut self,
-        inputs: &[AngleInput],
-        group: &Group,
-        nx: usize,
-        bad: &mut [BadCounts],
-    ) -> Result<(), Error> {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: AVX2 support was checked just above.
-            return unsafe { self.read_group_avx2(inputs, group, nx, bad) };
-        }
-        self.read_group_impl(inputs, group, nx, bad)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn read_group_avx2(
-        &mut self,
-        inputs: &[AngleInput],
-        group: &Group,
-        nx: usize,
-        bad: &mut [BadCounts],
-    ) -> Result<(), Error> {
-        self.read_group_impl(inputs, group, nx, bad)
-    }
-
-    #[inline(always)]
-    fn read_group_impl(
-        &mut self,
-        inputs: &[AngleInput],
-        group: &Group,
-        nx: usize,
-        bad: &mut [BadCounts],
-    ) -> Result<(), Error> {
-        for (i, inp) in inputs.iter().enumerate() {
-            let sat = inp.det.2;
-            match &inp.members[..] {
-                [Member::View(_)] => {}
-                [Member::File(f, _)] => match &f.rows {
-                    FrameRows::File(r) => {
-                        let b = r.kind().bytes();
-                        let raw = &mut self.raw[i];
-                        raw.resize(group.n_rows * nx * b, 0);
-                        for &(r0, nr, slot0) in &group.runs {
-                            f.read_raw(r, r0, &mut raw[slot0 * nx * b..(slot0 + nr) * nx * b])?;
-                        }
-                    }
-                    // Raw chips: read and calibrated here, into the group buffer (the kernel
-                    // counts the bad values of a single exposure).
-                    FrameRows::Calibrated(c) => {
-                        let out = &mut self.sum[i];
-                        out.resize(group.n_rows * nx, 0.0);
-                        for &(r0, nr, slot0) in &group.runs {
-                            c.load_rows(r0, &mut out[slot0 * nx..(slot0 + nr) * nx], &mut self.bytes)?;
-                        }
-                    }
-                    FrameRows::Memory(_) => {}
-                },
-                members => {
-                    let npx = group.n_rows * nx;
-                    self.sum[i].resize(npx, 0.0);
-                    self.tmp.resize(npx, 0.0);
-                    for (m_i, m) in members.iter().enumerate() {
-                        let dst = if m_i == 0 { &mut self.sum[i][..] } else { &mut self.tmp[..] };
-                        for &(r0, nr, slot0) in &group.runs {
-                            let out = &mut dst[slot0 * nx..(slot0 + nr) * nx];
-                            match m {
-                                Member::View(v) => v.load(r0 * nx, out),
-                                Member::File(f, _) => f.load_rows(r0, out, &mut self.bytes)?,
+    avx2_dispatch! {
+        /// Read a group's rows of every angle that comes from files: a single exposure's rows as
+        /// stored (decoded and counted by the kernel); repeated exposures decoded and summed in
+        /// order, each exposure's bad values counted on the group's o and e pixels. The counting
+        /// and summing loops in 4-wide AVX2 where the CPU has it (the same IEEE additions in the
+        /// same order, so the same bits): they were 9 % of a raw FORS2 reduction's profile.
+        fn read_group / read_group_avx2 => read_group_impl(
+            &mut self,
+            inputs: &[AngleInput],
+            group: &Group,
+            nx: usize,
+            bad: &mut [BadCounts],
+        ) -> Result<(), Error> {
+            for (i, inp) in inputs.iter().enumerate() {
+                let sat = inp.det.2;
+                match &inp.members[..] {
+                    [Member::View(_)] => {}
+                    [Member::File(f, _)] => match &f.rows {
+                        FrameRows::File(r) => {
+                            let b = r.kind().bytes();
+                            let raw = &mut self.raw[i];
+                            raw.resize(group.n_rows * nx * b, 0);
+                            for &(r0, nr, slot0) in &group.runs {
+                                f.read_raw(r, r0, &mut raw[slot0 * nx * b..(slot0 + nr) * nx * b])?;
                             }
                         }
-                        if let Member::File(_, fi) = m {
-                            for &(x0, x1, _, _, os, es) in &group.segs {
-                                for start in [os, es] {
-                                    let (a, s) = PixelView::F64(&dst[start..start + x1 - x0]).count_bad(sat);
-                                    bad[*fi].0 += a;
-                                    bad[*fi].1 += s;
+                        // Raw chips: read and calibrated here, into the group buffer (the kernel
+                        // counts the bad values of a single exposure).
+                        FrameRows::Calibrated(c) => {
+                            let out = &mut self.sum[i];
+                            out.resize(group.n_rows * nx, 0.0);
+                            for &(r0, nr, slot0) in &group.runs {
+                                c.load_rows(r0, &mut out[slot0 * nx..(slot0 + nr) * nx], &mut self.bytes)?;
+                            }
+                        }
+                        FrameRows::Memory(_) => {}
+                    },
+                    members => {
+                        let npx = group.n_rows * nx;
+                        self.sum[i].resize(npx, 0.0);
+                        self.tmp.resize(npx, 0.0);
+                        for (m_i, m) in members.iter().enumerate() {
+                            let dst = if m_i == 0 { &mut self.sum[i][..] } else { &mut self.tmp[..] };
+                            for &(r0, nr, slot0) in &group.runs {
+                                let out = &mut dst[slot0 * nx..(slot0 + nr) * nx];
+                                match m {
+                                    Member::View(v) => v.load(r0 * nx, out),
+                                    Member::File(f, _) => f.load_rows(r0, out, &mut self.bytes)?,
                                 }
                             }
-                        }
-                        if m_i > 0 {
-                            for (a, s) in self.sum[i].iter_mut().zip(self.tmp.iter()) {
-                                *a += s;
+                            if let Member::File(_, fi) = m {
+                                for &(x0, x1, _, _, os, es) in &group.segs {
+                                    for start in [os, es] {
+                                        let (a, s) = PixelView::F64(&dst[start..start + x1 - x0]).count_bad(sat);
+                                        bad[*fi].0 += a;
+                                        bad[*fi].1 += s;
+                                    }
+                                }
+                            }
+                            if m_i > 0 {
+                                for (a, s) in self.sum[i].iter_mut().zip(self.tmp.iter()) {
+                                    *a += s;
+                                }
                             }
                         }
                     }
                 }
             }
+            Ok(())
         }
-        Ok(())
     }
 }
 
@@ -1208,41 +1182,27 @@ impl Kernel {
         self.ok[..len].fill(1);
     }
 
-    /// Fold one HWP angle into the running sums of the chunk's pixels (see [`Fold`]): the
-    /// per-pixel steps of the module docs (mask, electrons, the one `F_i`, its photon + read
-    /// noise variance, `Q`, `U` by the solver's weights), in the order a per-pixel
-    /// `StokesSolver::solve` uses, so sums are the same to the bit. For a single exposure, also
-    /// returns the chunk's counts of bad values ([`FoldCounts`]).
-    #[inline]
-    fn fold_angle(&mut self, a: Fold) -> Option<FoldCounts> {
-        // Decoding and one pass bound by its two divisions: 4-wide AVX2 vectors where the CPU
-        // has them (same IEEE operations, so the same bits; no FMA is enabled).
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: AVX2 support was checked just above.
-            return unsafe { self.fold_avx2(a) };
-        }
-        self.fold_impl(a)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn fold_avx2(&mut self, a: Fold) -> Option<FoldCounts> {
-        self.fold_impl(a)
-    }
-
-    #[inline(always)]
-    fn fold_impl(&mut self, a: Fold) -> Option<FoldCounts> {
-        let len = a.len;
-        a.rows.load(a.o.0, a.o.1, &mut self.ro[..len]);
-        a.rows.load(a.e.0, a.e.1, &mut self.re[..len]);
-        // Separate loops for one and several exposures: x / 1 is x exactly, so the single
-        // exposure's loop skips a division.
-        if a.nexp == 1 {
-            Some(self.fold_loop::<true>(len, 1.0, a.w, a.det))
-        } else {
-            self.fold_loop::<false>(len, a.nexp as f64, a.w, a.det);
-            None
+    avx2_dispatch! {
+        /// Fold one HWP angle into the running sums of the chunk's pixels (see [`Fold`]): the
+        /// per-pixel steps of the module docs (mask, electrons, the one `F_i`, its photon + read
+        /// noise variance, `Q`, `U` by the solver's weights), in the order a per-pixel
+        /// `StokesSolver::solve` uses, so sums are the same to the bit. For a single exposure, also
+        /// returns the chunk's counts of bad values ([`FoldCounts`]).
+        ///
+        /// Decoding and one pass bound by its two divisions: 4-wide AVX2 vectors where the CPU
+        /// has them (same IEEE operations, so the same bits; no FMA is enabled).
+        fn fold_angle / fold_avx2 => fold_impl(&mut self, a: Fold) -> Option<FoldCounts> {
+            let len = a.len;
+            a.rows.load(a.o.0, a.o.1, &mut self.ro[..len]);
+            a.rows.load(a.e.0, a.e.1, &mut self.re[..len]);
+            // Separate loops for one and several exposures: x / 1 is x exactly, so the single
+            // exposure's loop skips a division.
+            if a.nexp == 1 {
+                Some(self.fold_loop::<true>(len, 1.0, a.w, a.det))
+            } else {
+                self.fold_loop::<false>(len, a.nexp as f64, a.w, a.det);
+                None
+            }
         }
     }
 
