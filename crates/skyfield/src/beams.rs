@@ -228,6 +228,17 @@ impl BeamGeometry {
         self.kinds.get(self.along(x, y)).copied().unwrap_or(PixelKind::Masked)
     }
 
+    /// What every pixel of detector row `y` shows, when the whole row shows the same
+    /// (maskless layouts; strips stacked along y); `None` when it varies along the row.
+    #[inline]
+    pub fn row_kind(&self, y: usize) -> Option<PixelKind> {
+        match self.layout {
+            Layout::Maskless => Some(PixelKind::Both),
+            Layout::Strips if self.along_y => Some(self.kind(0, y)),
+            Layout::Strips => None,
+        }
+    }
+
     /// Ranges of sky coordinates along the strip axis that the mask lets through, one per strip.
     pub fn sky_bands(&self) -> Vec<std::ops::Range<usize>> {
         self.strips.iter().map(|s| s.o_start..s.o_start + s.height).collect()

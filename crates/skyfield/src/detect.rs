@@ -164,8 +164,8 @@ pub fn detect(img: &[f64], g: &BeamGeometry, cfg: &DetectConfig) -> Vec<Source> 
     // Background-subtracted image, zero where nothing is illuminated or the value is bad.
     let mut sub = vec![0.0; nx * ny];
     sub.par_chunks_mut(nx.max(1)).enumerate().for_each(|(y, row)| {
-        // Strips across y: one answer per row.
-        let whole_row = (g.layout == Layout::Strips && g.along_y).then(|| usable(g, 0, y));
+        // One answer per row where the layout gives one.
+        let whole_row = g.row_kind(y).map(|k| k != PixelKind::Masked);
         if whole_row == Some(false) {
             return;
         }

@@ -229,24 +229,10 @@ pub fn add_input(path: &Path) {
 /// [`current`] waits for the hashes: hashing 256 MB of frames before a catalog's work was a
 /// fifth of its time, and the work it overlaps reads the same files anyway.
 pub fn add_inputs(paths: &[&Path]) {
-    let mut fresh: Vec<String> = Vec::new();
-    {
-        let mut s = SESSION.lock().unwrap_or_else(|e| e.into_inner());
-        let Some(p) = s.as_mut() else { return };
-        for path in paths {
-            let name = path.display().to_string();
-            if !p.inputs.iter().any(|i| i.path == name) && !fresh.contains(&name) {
-                // A place in the order now; the hash when it is known.
-                p.inputs.push(InputFile { path: name.clone(), sha256: String::new() });
-                fresh.push(name);
-            }
-        }
-    }
-    if fresh.is_empty() {
+    let files = register(paths);
+    if files.is_empty() {
         return;
     }
-    let files: Vec<(String, std::path::PathBuf)> =
-        paths.iter().map(|p| (p.display().to_string(), p.to_path_buf())).filter(|(n, _)| fresh.contains(n)).collect();
     let worker = std::thread::spawn(move || {
         let threads = std::thread::available_parallelism().map_or(1, |n| n.get()).min(files.len()).max(1);
         let chunk = files.len().div_ceil(threads);
@@ -272,20 +258,33 @@ pub fn add_inputs(paths: &[&Path]) {
 /// the file instead of two); a file not recorded by the time the provenance is read is hashed
 /// then, so the provenance is the same either way.
 pub fn add_inputs_read_in_order(paths: &[&Path]) {
+    register(paths);
+}
+
+/// Give each of `paths` not yet among the session's inputs its place in their order, its hash
+/// to come; returns those (name and path). Nothing before [`set_session`].
+fn register(paths: &[&Path]) -> Vec<(String, std::path::PathBuf)> {
+    let mut fresh = Vec::new();
     if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
         for path in paths {
             let name = path.display().to_string();
             if !p.inputs.iter().any(|i| i.path == name) {
-                p.inputs.push(InputFile { path: name, sha256: String::new() });
+                p.inputs.push(InputFile { path: name.clone(), sha256: String::new() });
+                fresh.push((name, path.to_path_buf()));
             }
         }
     }
+    fresh
 }
 
 /// The hash of an input registered by [`add_inputs_read_in_order`], computed by its reader
 /// ([`StreamHash`]); no effect for a path not waiting for one.
 pub fn record_hash(path: &Path, sha256: String) {
-    let name = path.display().to_string();
+    fill(&path.display().to_string(), sha256);
+}
+
+/// Write `sha256` into the input named `name` if it still waits for its hash.
+fn fill(name: &str, sha256: String) {
     if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
         if let Some(i) = p.inputs.iter_mut().find(|i| i.path == name && i.sha256.is_empty()) {
             i.sha256 = sha256;
@@ -324,13 +323,8 @@ static PENDING: Mutex<Vec<std::thread::JoinHandle<Hashes>>> = Mutex::new(Vec::ne
 fn settle() {
     let workers: Vec<_> = std::mem::take(&mut *PENDING.lock().unwrap_or_else(|e| e.into_inner()));
     for w in workers {
-        let hashes = w.join().unwrap_or_default();
-        if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
-            for (path, sha256) in hashes {
-                if let Some(i) = p.inputs.iter_mut().find(|i| i.path == path && i.sha256.is_empty()) {
-                    i.sha256 = sha256;
-                }
-            }
+        for (path, sha256) in w.join().unwrap_or_default() {
+            fill(&path, sha256);
         }
     }
     // Every worker has answered: a hash still missing (a file its reader did not read whole,
@@ -342,12 +336,7 @@ fn settle() {
         .map(|p| p.inputs.iter().filter(|i| i.sha256.is_empty()).map(|i| i.path.clone()).collect())
         .unwrap_or_default();
     for path in missing {
-        let h = sha256_file(Path::new(&path)).unwrap_or_else(|_| "unreadable".into());
-        if let Some(p) = SESSION.lock().unwrap_or_else(|e| e.into_inner()).as_mut() {
-            if let Some(i) = p.inputs.iter_mut().find(|i| i.path == path && i.sha256.is_empty()) {
-                i.sha256 = h;
-            }
-        }
+        fill(&path, sha256_file(Path::new(&path)).unwrap_or_else(|_| "unreadable".into()));
     }
 }
 

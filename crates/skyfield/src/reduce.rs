@@ -79,6 +79,11 @@ pub fn read_frames_with(
     Ok(frames)
 }
 
+/// An opened frame's facts as [`group_frames`] and [`bad_pixel_notes`] take them.
+fn open_meta(f: &OpenFrame) -> (&Path, &str, usize, usize, f64) {
+    (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)
+}
+
 /// Non-finite and saturated pixel counts of one frame.
 type BadCounts = (usize, usize);
 
@@ -368,8 +373,7 @@ impl DiskFrames {
         }
         let frames: Vec<OpenFrame> = crate::calib::open_exposures(paths, inst, opts)?;
         let conversion = common_conversion(frames.iter().map(|f| &f.conversion), inst)?;
-        let meta: Vec<_> =
-            frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
+        let meta: Vec<_> = frames.iter().map(open_meta).collect();
         let g = group_frames(&meta, inst, require_complete)?;
         let files = g.members.iter().map(|m| m.iter().map(|&k| frames[k].path.clone()).collect()).collect();
         let n = frames.len();
@@ -405,13 +409,7 @@ impl DiskFrames {
     pub fn bad_pixel_warnings(&self) -> Result<Vec<Warning>, Error> {
         let bad = self.bad.lock().unwrap_or_else(|e| e.into_inner());
         let read: Vec<usize> = (0..self.frames.len()).filter(|&k| bad[k].is_some()).collect();
-        let meta: Vec<_> = read
-            .iter()
-            .map(|&k| {
-                let f = &self.frames[k];
-                (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)
-            })
-            .collect();
+        let meta: Vec<_> = read.iter().map(|&k| open_meta(&self.frames[k])).collect();
         let counts: Vec<BadCounts> = read.iter().map(|&k| bad[k].unwrap_or_default()).collect();
         let mut w = bad_pixel_notes(&meta, &counts, self.nx * self.ny, &self.conversion)?;
         w.extend(self.warnings.iter().cloned());
@@ -1308,14 +1306,11 @@ pub fn reduce_files_with(
     opts: &ReadOptions,
     on_read: &(dyn Fn() + Sync),
 ) -> Result<Reduced, Error> {
-    if paths.is_empty() {
-        return Err(Error::NoFrames);
-    }
-    let frames: Vec<OpenFrame> = crate::calib::open_exposures(paths, inst, opts)?;
-    let conversion = common_conversion(frames.iter().map(|f| &f.conversion), inst)?;
-    let meta: Vec<_> = frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
-    let g = group_frames(&meta, inst, cfg.require_complete_set)?;
-    let inputs: Vec<AngleInput> = g
+    // Opened and grouped as the catalog opens them; the bands below read the rows.
+    let set = DiskFrames::open(paths, inst, opts, cfg.require_complete_set)?;
+    let (frames, conversion) = (&set.frames, set.conversion);
+    let meta: Vec<_> = frames.iter().map(open_meta).collect();
+    let inputs: Vec<AngleInput> = set
         .members
         .iter()
         .map(|m| AngleInput {
@@ -1328,10 +1323,10 @@ pub fn reduce_files_with(
             .det(),
         })
         .collect();
-    let pass = reduce_bands(&inputs, frames.len(), g.nx, g.ny, &g.angles, inst, cfg, on_read)?;
+    let pass = reduce_bands(&inputs, frames.len(), set.nx, set.ny, &set.angles, inst, cfg, on_read)?;
     let mut warnings = bad_pixel_notes(&meta, &pass.bad, pass.used_px, &conversion)?;
-    warnings.extend(g.warnings);
-    let mut map = match assemble_map(pass.stats, inst, cfg, &g.filter, &g.angles, &inputs) {
+    warnings.extend(set.warnings.iter().cloned());
+    let mut map = match assemble_map(pass.stats, inst, cfg, &set.filter, &set.angles, &inputs) {
         // Say why when it is that some frames hold no flux above the bias anywhere.
         Err(Error::NoValidBins) => {
             let dark: Vec<String> = meta
