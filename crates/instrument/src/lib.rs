@@ -123,6 +123,10 @@ pub struct Polarimetry {
     /// are given with the frames (`--hwp-angles`).
     #[serde(default)]
     pub hwp_angle_keyword: String,
+    /// Keywords read in order when a frame lacks `hwp_angle_keyword` (archives of one
+    /// instrument write the plate angle under more than one name); the first present is used.
+    #[serde(default)]
+    pub hwp_angle_fallback_keywords: Vec<String>,
     pub filter_keyword: String,
     #[serde(default = "default_exptime_keyword")]
     pub exptime_keyword: String,

@@ -11,7 +11,9 @@
 //! (characteristic-matrix coatings), [`mirror`] (telescope mirrors: metals with over-layers,
 //! tabulated n, k, the sky / alt-az / instrument rotations and the Nasmyth train), [`analysis`] (Jones to Mueller, realizability, inverse,
 //! diattenuation / retardance), [`raytrace`] (polarization ray tracing of a lens collimator
-//! from its prescription: the field pattern `p(r)`, `phi(alpha)` and its wavelength law).
+//! from its prescription: the field pattern `p(r)`, `phi(alpha)` and its wavelength law),
+//! [`telescope`] (the telescope term: M3 with the parallactic and rotator angles, averaged over
+//! an exposure's track; fitted by `fit::telescope`, simulated by `sim`).
 //!
 //! Conventions (see DESIGN.md):
 //! - angles in radians; polarization angle `chi` measured as `eq:polang`, `Q/I = P cos 2chi`;
@@ -31,6 +33,7 @@ pub mod fresnel;
 pub mod linear;
 pub mod mirror;
 pub mod raytrace;
+pub mod telescope;
 pub mod thinfilm;
 
 pub use analysis::{inverse, is_physical, jones_to_mueller};

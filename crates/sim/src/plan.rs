@@ -47,7 +47,7 @@ fn apply(b: &Block, s: &Iqu) -> Iqu {
 /// image then holds the light before the telescope).
 struct TelescopeTerm {
     per_frame: Vec<Block>,
-    tracks: Vec<fit::telescope::Track>,
+    tracks: Vec<mueller::telescope::Track>,
     field: Option<Vec<Block>>,
 }
 
@@ -887,9 +887,9 @@ impl Plan {
     }
 }
 
-/// The telescope of a scene frame by frame: the mirror of `fit::telescope::BandModel` at the
+/// The telescope of a scene frame by frame: the mirror of `mueller::telescope::BandModel` at the
 /// filter's effective wavelength, each exposure's parallactic-angle track from its hour
-/// angles (`fit::telescope::exposure_track`), and the matrix averaged over it
+/// angles (`mueller::telescope::exposure_track`), and the matrix averaged over it
 /// (`BandModel::matrix_track`), divided by its `M_00` so that fluxes stay those of the scene.
 fn telescope_term(
     scene: &Scene,
@@ -898,7 +898,7 @@ fn telescope_term(
     filter: &instrument::Filter,
     explain: &mut Vec<String>,
 ) -> Result<TelescopeTerm, Error> {
-    use fit::telescope::{exposure_track, BandModel};
+    use mueller::telescope::{exposure_track, BandModel};
     use mueller::mirror::MetalTable;
     let bad = |m: String| Error::Scene { path: PathBuf::from("<scene>"), message: format!("telescope: {m}") };
     let table = match MetalTable::builtin(&t.metal) {

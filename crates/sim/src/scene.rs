@@ -45,12 +45,12 @@
 //! flat = { pixel_rms_o = 0.01, pixel_rms_e = 0.012, large_scale_o = 0.02, large_scale_e = 0.03 }
 //! cosmic_rays = { rate_per_frame = 50 }
 //!
-//! [telescope]                   # optional: a Nasmyth M3 in front (fit::telescope::BandModel)
+//! [telescope]                   # optional: a Nasmyth M3 in front (mueller::telescope::BandModel)
 //! metal = "aluminium"           # built-in table or a lambda,n,k file
 //! factor = 0.86                 # Wiersema factor on n, k (default 1)
 //! overlayer_thickness_nm = 0    # alumina over-layer (default 0)
 //! offset_deg = 40               # the instrument's angle zero (default 0)
-//! rotator_deg = 0               # rotator / adapter angle (default 0, fit::telescope::Track)
+//! rotator_deg = 0               # rotator / adapter angle (default 0, mueller::telescope::Track)
 //! dec_deg = -30                 # the target's declination
 //! ha_start_deg = 15             # hour angle at the first exposure's start; the next ones
 //! overhead_s = 30               #   follow every exposure_s + overhead_s (sidereal rate)
@@ -125,7 +125,7 @@ fn default_metal() -> String {
 /// Sidereal rate of the hour angle (deg per second of time): 360 deg per 86164.0905 s.
 pub const HA_DEG_PER_S: f64 = 360.0 / 86164.0905;
 
-/// The telescope of a scene: the mirror of `fit::telescope::BandModel` (metal table, factor,
+/// The telescope of a scene: the mirror of `mueller::telescope::BandModel` (metal table, factor,
 /// alumina over-layer, angle offset), the site and the target, and when each exposure starts.
 /// Every source's Stokes vector passes through the mirror's matrix averaged over its
 /// exposure's parallactic-angle track (`BandModel::matrix_track`), before the instrumental
@@ -145,7 +145,7 @@ pub struct TelescopeSpec {
     /// The instrument's angle zero (deg): `R(offset + rotator) M3(plane at 90 deg - q)`.
     #[serde(default)]
     pub offset_deg: f64,
-    /// Rotator / adapter angle (deg, `fit::telescope::Track::rotator`), written to the
+    /// Rotator / adapter angle (deg, `mueller::telescope::Track::rotator`), written to the
     /// instrument's rotator keyword.
     #[serde(default)]
     pub rotator_deg: f64,

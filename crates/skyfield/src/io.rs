@@ -789,15 +789,21 @@ pub(crate) fn frame_header_with(
 ) -> Result<FrameHeader, Error> {
     let pol = &inst.polarimetry;
     let mut keys = vec![pol.hwp_angle_keyword.as_str(), pol.filter_keyword.as_str(), pol.exptime_keyword.as_str()];
+    keys.extend(pol.hwp_angle_fallback_keywords.iter().map(|s| s.as_str()));
     keys.extend(inst.format.binning_keywords.iter().map(|s| s.as_str()));
     keys.extend(inst.format.chips.iter().filter_map(|c| c.match_keyword.as_deref()));
     keys.extend(inst.format.exposure_keywords.iter().map(|s| s.as_str()));
     img.check_duplicates(path, &keys)?;
-    let hwp_deg = if pol.hwp_angle_keyword.is_empty() {
-        None
-    } else {
-        img.number(path, &pol.hwp_angle_keyword, "an angle in degrees")?
-    };
+    // The instrument's keyword, else its fallbacks in order: the first one present.
+    let mut hwp_deg = None;
+    if !pol.hwp_angle_keyword.is_empty() {
+        for k in std::iter::once(&pol.hwp_angle_keyword).chain(&pol.hwp_angle_fallback_keywords) {
+            hwp_deg = img.number(path, k, "an angle in degrees")?;
+            if hwp_deg.is_some() {
+                break;
+            }
+        }
+    }
     let filter = match img.key(&pol.filter_keyword) {
         Some(f) => f,
         None if !need_filter => String::new(),
@@ -818,7 +824,11 @@ pub(crate) fn require_hwp(h: Option<f64>, path: &Path, inst: &Instrument) -> Res
                 inst.name
             ))
         } else {
-            Error::MissingKeyword { path: path.into(), keyword: k.clone() }
+            let mut keyword = k.clone();
+            for f in &inst.polarimetry.hwp_angle_fallback_keywords {
+                keyword.push_str(&format!("' or '{f}"));
+            }
+            Error::MissingKeyword { path: path.into(), keyword }
         }
     })
 }

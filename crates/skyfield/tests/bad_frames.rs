@@ -158,6 +158,39 @@ fn missing_keyword_mixed_filters_missing_angle() {
     assert!(matches!(reduce(&[], &inst), Err(Error::NoFrames)));
 }
 
+/// An instrument that names a fallback HWP keyword (FORS2: `RETA2 POSANG`, else `RETA2 ROT`):
+/// a frame with only the fallback reads its angle from it (the same map as the good set), the
+/// primary wins when both are there, and a frame with neither is refused naming both.
+#[test]
+fn hwp_angle_from_the_fallback_keyword() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut inst = tiny();
+    let alt = "HIERARCH ESO INS RETA2 ROT".to_string();
+    inst.polarimetry.hwp_angle_fallback_keywords = vec![alt.clone()];
+    let p = good_set(dir.path(), &inst);
+    let bits = |m: &skyfield::StokesMap| m.q.iter().chain(&m.u).map(|v| v.to_bits()).collect::<Vec<_>>();
+    let good = reduce(&p, &inst).unwrap();
+    // Frame 2 (45 deg) with the angle under the fallback name only.
+    let mut k = keys(&inst, 45.0, "V_BESS");
+    k[0].0 = alt.clone();
+    write_frame(&p[2], 64, 64, &image(&inst, 45.0), Bitpix::F64, &k).unwrap();
+    let r = reduce(&p, &inst).unwrap();
+    assert_eq!(r.map.hwp_angles_deg, good.map.hwp_angles_deg);
+    assert_eq!(bits(&r.map), bits(&good.map));
+    // Both present: the primary's 45 deg is used (the fallback's 10 deg would make a set of
+    // angles without 45 and be refused).
+    let mut k = keys(&inst, 45.0, "V_BESS");
+    k.push((alt.clone(), KeyValue::F64(10.0), String::new()));
+    write_frame(&p[2], 64, 64, &image(&inst, 45.0), Bitpix::F64, &k).unwrap();
+    assert_eq!(bits(&reduce(&p, &inst).unwrap().map), bits(&good.map));
+    // Neither: the error names both keywords and the file.
+    let mut k = keys(&inst, 45.0, "V_BESS");
+    k.remove(0);
+    write_frame(&p[2], 64, 64, &image(&inst, 45.0), Bitpix::F64, &k).unwrap();
+    let e = reduce(&p, &inst).unwrap_err().to_string();
+    assert!(e.contains("'HIERARCH ESO INS RETA2 POSANG' or 'HIERARCH ESO INS RETA2 ROT'") && e.contains("f2.fits"), "{e}");
+}
+
 /// Frames with no flux above the bias (already bias-subtracted, or the instrument's bias_adu
 /// wrong): the error names those frames and the likely cause instead of "no valid bins".
 #[test]
