@@ -131,8 +131,8 @@ fn zero_angle_from_a_standard_then_a_catalog() {
     assert!((z - 41.3).abs() < 4.0 * sz && sz < 0.5, "zero angle {z} +- {sz}");
     // The instrument file with the measured zero angle for V: the catalog's chi are the sky's.
     let fixed = text.replacen(
-        "hwp_chi_offset_deg = 0.0       # [example]: measure it on a polarized standard",
-        &format!("hwp_chi_offset_deg = {z}"),
+        "lambda_eff_nm = 530.0          # [example]\n",
+        &format!("lambda_eff_nm = 530.0\nhwp_chi_offset_deg = {z}\n"),
         1,
     );
     assert_ne!(fixed, text);
@@ -147,6 +147,7 @@ fn zero_angle_from_a_standard_then_a_catalog() {
     }
     let (code, stdout, err) = run(&args);
     assert_eq!(code, 0, "{err}");
+    assert!(!err.contains("no HWP zero angle"), "{err}");
     let j: serde_json::Value = serde_json::from_str(&stdout).unwrap();
     let r = j["rows"]
         .as_array()
@@ -158,6 +159,12 @@ fn zero_angle_from_a_standard_then_a_catalog() {
     let (chi, s) = (r["chi_deg"].as_f64().unwrap(), r["sigma_chi_deg"].as_f64().unwrap());
     let d = (chi - 12.0 + 90.0).rem_euclid(180.0) - 90.0;
     assert!(d.abs() < 4.0 * s.hypot(sz), "chi {chi} +- {s} vs 12");
+    // With the shipped file (no zero angle for V) the same catalog says its chi are the plate's.
+    let pos = args.iter().position(|a| a == inst2.as_os_str()).unwrap();
+    args[pos] = inst.clone().into_os_string();
+    let (code, _, err) = run(&args);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("warning: instrument CALCITE gives no HWP zero angle for filter V"), "{err}");
 }
 
 /// `catalog --kappa-from-data`: frames of the maskless scene through a Wollaston transmitting

@@ -30,6 +30,8 @@ fn star_polarization_after_vectorial_background_subtraction() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // No zero angle in the file: said so, not silently taken as the sky's frame.
+    assert!(String::from_utf8_lossy(&o.stderr).contains("gives no HWP zero angle for filter V"));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert!((j["p"].as_f64().unwrap() - 0.03).abs() < 1e-6, "{j}");
     assert!((j["chi_deg"].as_f64().unwrap() - 20.0).abs() < 1e-3, "{j}");
@@ -39,8 +41,9 @@ fn star_polarization_after_vectorial_background_subtraction() {
     // U = P sin 55 deg, P unchanged.
     let text = std::fs::read_to_string(&inst).unwrap();
     let v = text.find("name = \"V\"").unwrap();
-    let at = v + text[v..].find("hwp_chi_offset_deg = 0.0").unwrap();
-    let text = format!("{}hwp_chi_offset_deg = 7.5{}", &text[..at], &text[at + "hwp_chi_offset_deg = 0.0".len()..]);
+    // The shipped V block gives no zero angle (chi then the plate's, with a warning): add one.
+    let at = v + text[v..].find("lambda_eff_nm").unwrap();
+    let text = format!("{}hwp_chi_offset_deg = 7.5\n{}", &text[..at], &text[at..]);
     let inst2 = dir.path().join("offset.toml");
     std::fs::write(&inst2, text).unwrap();
     let o = instpol()
@@ -51,6 +54,7 @@ fn star_polarization_after_vectorial_background_subtraction() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!String::from_utf8_lossy(&o.stderr).contains("no HWP zero angle"));
     let k: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert!((k["chi_deg"].as_f64().unwrap() - 27.5).abs() < 1e-3, "{k}");
     assert!((k["p"].as_f64().unwrap() - 0.03).abs() < 1e-6, "{k}");

@@ -67,7 +67,7 @@ impl CalibrationMeta {
             instrument: inst.name.clone(),
             filter: filter.map(|f| f.name.clone()).unwrap_or_else(|| map_filter.to_string()),
             lambda_nm: filter.map(|f| f.lambda_eff_nm).unwrap_or(f64::NAN),
-            hwp_chi_offset_deg: filter.map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0),
+            hwp_chi_offset_deg: filter.map(|f| f.chi_offset_deg()).unwrap_or(0.0),
             pixel: Some(PixelGrid::of_instrument(inst)),
             provenance,
         }

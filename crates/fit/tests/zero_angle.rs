@@ -41,9 +41,11 @@ fn sky() -> SkyPolarization {
 fn instrument_with_v_offset(offset_deg: f64) -> (tempfile::TempDir, instrument::Instrument) {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../instruments/fors1.toml");
     let text = std::fs::read_to_string(path).unwrap();
-    let v_block = "lambda_eff_nm = 554.0\nhwp_chi_offset_deg = 0.0";
+    // FORS1's file gives no zero angles (not measured): the V block gains one.
+    let v_block = "lambda_eff_nm = 554.0\n";
     assert_eq!(text.matches(v_block).count(), 1, "fors1.toml's V block changed; update the test");
-    let edited = text.replace(v_block, &format!("lambda_eff_nm = 554.0\nhwp_chi_offset_deg = {offset_deg:.1}"));
+    assert!(!text.lines().any(|l| l.starts_with("hwp_chi_offset_deg")), "fors1.toml now gives zero angles; update the test");
+    let edited = text.replace(v_block, &format!("lambda_eff_nm = 554.0\nhwp_chi_offset_deg = {offset_deg:.1}\n"));
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("fors1_v_offset.toml");
     std::fs::write(&p, edited).unwrap();
@@ -108,7 +110,7 @@ fn calibrate(inst: &instrument::Instrument, map: &StokesMap) -> CalibrationRun {
         instrument: inst.name.clone(),
         filter: f.name.clone(),
         lambda_nm: f.lambda_eff_nm,
-        hwp_chi_offset_deg: f.hwp_chi_offset_deg,
+        hwp_chi_offset_deg: f.chi_offset_deg(),
         pixel: None,
         provenance: fit::calfile::Provenance::now("test", vec![]),
     };
@@ -132,7 +134,7 @@ fn correct_star(run: &CalibrationRun, data_offset_deg: f64) -> (f64, f64, f64) {
 #[test]
 fn sky_field_calibration_with_hwp_zero_angle_is_radial_and_corrects_a_star() {
     let (_dir, inst) = instrument_with_v_offset(OFFSET_DEG);
-    assert_eq!(inst.filter("V").unwrap().hwp_chi_offset_deg, OFFSET_DEG);
+    assert_eq!(inst.filter("V").unwrap().hwp_chi_offset_deg, Some(OFFSET_DEG));
     let map = sky_field_map(&inst, OFFSET_DEG);
     let run = calibrate(&inst, &map);
     assert_eq!(run.calibration.hwp_chi_offset_deg, OFFSET_DEG);

@@ -152,9 +152,32 @@ pub struct Filter {
     #[serde(default)]
     pub aliases: Vec<String>,
     pub lambda_eff_nm: f64,
-    /// HWP chromatic zero angle: degrees to add to a measured chi (section `sec:HWP`).
+    /// HWP chromatic zero angle: degrees to add to a measured chi (section `sec:HWP`); `None`
+    /// when the instrument file gives none (not yet measured): chi is then reported in the
+    /// plate's frame ([`Filter::chi_offset_deg`] is 0) with [`Filter::zero_angle_warning`].
     #[serde(default)]
-    pub hwp_chi_offset_deg: f64,
+    pub hwp_chi_offset_deg: Option<f64>,
+}
+
+impl Filter {
+    /// The zero angle to add to a measured chi (deg): the file's, or 0 when it gives none.
+    pub fn chi_offset_deg(&self) -> f64 {
+        self.hwp_chi_offset_deg.unwrap_or(0.0)
+    }
+
+    /// What to tell whoever reads a chi measured in this filter of instrument `inst` when the
+    /// instrument file gives no zero angle: the angle is the plate's, off the sky's by an
+    /// unknown few degrees.
+    pub fn zero_angle_warning(&self, inst: &str) -> Option<String> {
+        self.hwp_chi_offset_deg.is_none().then(|| {
+            format!(
+                "instrument {inst} gives no HWP zero angle for filter {} (hwp_chi_offset_deg): chi is the plate's angle, \
+                 off the sky's by the plate's chromatic zero angle (typically a few degrees); measure it on a polarized \
+                 standard with `instpol zero-angle` and put it in the instrument file",
+                self.name
+            )
+        })
+    }
 }
 
 /// A whole instrument definition.

@@ -18,7 +18,7 @@ fn fors2_chi_offsets_are_minus_the_manual_zero_angles() {
     for (name, theta0) in MANUAL_ZERO_ANGLE_DEG {
         let f = inst.filter(name).unwrap();
         // chi_sky = chi_measured - theta0 (the sources) = chi_measured + hwp_chi_offset_deg.
-        assert_eq!(f.hwp_chi_offset_deg, -theta0, "{name}");
+        assert_eq!(f.hwp_chi_offset_deg, Some(-theta0), "{name}");
     }
     // Every FORS2 filter has its table entry (none left at an assumed 0).
     assert_eq!(inst.filters.len(), MANUAL_ZERO_ANGLE_DEG.len());

@@ -530,7 +530,7 @@ impl Plan {
             optics.push(format!("HWP retardance error {d} deg"));
         }
         let chi_off =
-            if fx.hwp_chi_offset_from_filter { Some(filter.hwp_chi_offset_deg) } else { fx.hwp_chi_offset_deg };
+            if fx.hwp_chi_offset_from_filter { Some(filter.chi_offset_deg()) } else { fx.hwp_chi_offset_deg };
         if let Some(c) = chi_off {
             hwp.chi_offset = c.to_radians();
             optics.push(format!("HWP chromatic zero angle {c} deg"));

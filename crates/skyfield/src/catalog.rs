@@ -335,12 +335,21 @@ pub fn catalog_files(
         let set = FrameSet::from_frames(frames, inst, true)?;
         let mut cat = catalog(&set, inst, cfg)?;
         check_exposures(&mut cat, &singles, &set, inst, cfg)?;
-        return Ok((cat, set.warnings));
+        let mut warnings = set.warnings.clone();
+        warnings.extend(zero_angle_warning(inst, &cat.filter));
+        return Ok((cat, warnings));
     }
     disk.set_on_read(on_read);
     let cat = catalog_of(&disk, inst, cfg)?;
-    let warnings = disk.bad_pixel_warnings()?;
+    let mut warnings = disk.bad_pixel_warnings()?;
+    warnings.extend(zero_angle_warning(inst, &cat.filter));
     Ok((cat, warnings))
+}
+
+/// The warning for chi values of `filter` when the instrument file gives no zero angle.
+pub fn zero_angle_warning(inst: &Instrument, filter: &str) -> Option<Warning> {
+    let f = inst.filter(filter).ok()?;
+    f.zero_angle_warning(&inst.name).map(|message| Warning { file: None, message })
 }
 
 /// Build the catalog of `set` (frames in memory; see [`catalog_of`]).
@@ -366,7 +375,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         Ok((g, sources))
     })??;
     let (pairs, unpaired) = pair(&sources, &g, dcfg.pair_tol_px);
-    let chi_off = inst.filter(src.filter()).map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0);
+    let chi_off = inst.filter(src.filter()).map(|f| f.chi_offset_deg()).unwrap_or(0.0);
     let opts = PhotOptions { weighting: cfg.weighting, recentre: true, kappa: cfg.kappa };
     // Each star's row as far as the detection tells (its flags), and the aperture radii to
     // measure it with, each with its placement checked (nothing to measure when saturated).

@@ -169,7 +169,10 @@ pub fn run(a: Args) -> Result<()> {
     let r = &ph.reduction;
     // The HWP zero angle of the filter (the angle to add to a measured chi): Q, U and chi are
     // reported in the sky's frame, as the calibration and validation report them.
-    let offset = inst.filter(&set.filter).map(|f| f.hwp_chi_offset_deg).unwrap_or(0.0);
+    let offset = inst.filter(&set.filter).map(|f| f.chi_offset_deg()).unwrap_or(0.0);
+    if let Some(w) = skyfield::catalog::zero_angle_warning(&inst, &set.filter) {
+        eprintln!("warning: {w}");
+    }
     let sky = r.qu.rotated(offset.to_radians());
     let (q, u, var_q, var_u) = (sky.q, sky.u, sky.var_q, sky.var_u);
     let o = Out {
