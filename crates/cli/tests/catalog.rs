@@ -363,3 +363,85 @@ fn catalog_provenance_hashes_are_the_files_sha256() {
     let files: Vec<PathBuf> = frames.iter().cloned().chain([inst]).collect();
     common::assert_inputs_hashed_as_sha256sum(inputs, &files);
 }
+
+/// Frames of a strip layout whose instrument file puts the e images 2.5 px off (a throw made
+/// for another filter, as FORS2's v_HIGH offset is for b_HIGH): most stars go unpaired, and the
+/// catalog says so with the shift it finds (-2.5 px along y, the error put in the file) instead
+/// of a silently short catalog; `--pair-tol` then pairs them and they measure the scene's P.
+/// With the file that made the frames, every star pairs and nothing is said.
+#[test]
+fn a_wrong_throw_is_named_with_its_shift_and_pair_tol_recovers_the_stars() {
+    let dir = tempfile::tempdir().unwrap();
+    let base = include_str!("../../../instruments/fors1.toml")
+        .replace("nx = 2048", "nx = 200")
+        .replace("ny = 2048", "ny = 220")
+        .replace("throw_arcsec = 22.0", "throw_arcsec = 10.0\nstrip_margin_px = 3.0")
+        .replace("strip_count = 9", "strip_count = 2")
+        .replace("first_strip_y_px = 34", "first_strip_y_px = 10");
+    let (truth, file) = (dir.path().join("truth.toml"), dir.path().join("file.toml"));
+    std::fs::write(&truth, &base).unwrap();
+    let shifted =
+        base.replace("strip_margin_px = 3.0", "strip_margin_px = 3.0\nthrow_terms = [{ i = 0, j = 0, c = 2.5 }]");
+    assert_ne!(shifted, base);
+    std::fs::write(&file, shifted).unwrap();
+    // Twelve 2 % stars at chi 30 deg, six in each strip's o image (rows 13..57 and 113..157).
+    let mut scene = format!(
+        "instrument = \"{}\"\nfilter = \"V\"\nseed = 7\n[sky]\nbrightness_e = 200\np = 0.0\nchi_deg = 0\n",
+        truth.display()
+    );
+    for y in [35, 135] {
+        for x in (25..=175).step_by(30) {
+            scene += &format!(
+                "[[stars]]\nx = {x}\ny = {y}\ncoords = \"pixel\"\nflux_e = 3e5\np = 0.02\nchi_deg = 30\nfwhm_arcsec = 0.8\n"
+            );
+        }
+    }
+    let sp = dir.path().join("scene.toml");
+    std::fs::write(&sp, scene).unwrap();
+    let out = dir.path().join("f");
+    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert_eq!(code, 0, "{err}");
+    let frames = fits_in(&out);
+    let catalog = |inst: &Path, extra: &[&str]| {
+        let mut args: Vec<OsString> = vec!["catalog".into()];
+        args.extend(frames.iter().map(|f| f.clone().into_os_string()));
+        for a in
+            ["--instrument", inst.to_str().unwrap(), "--fwhm", "4", "--aperture", "6", "--annulus", "9,14", "--json"]
+                .iter()
+                .chain(extra)
+        {
+            args.push(a.into());
+        }
+        let (code, stdout, err) = run(&args);
+        assert_eq!(code, 0, "{err}");
+        (serde_json::from_str::<serde_json::Value>(&stdout).unwrap(), err)
+    };
+    let measured = |j: &serde_json::Value| -> Vec<(f64, f64)> {
+        j["rows"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|r| r["p"].is_number())
+            .map(|r| (r["p"].as_f64().unwrap(), r["sigma_p"].as_f64().unwrap()))
+            .collect()
+    };
+    // The right file: all twelve, no pairing warning.
+    let (j, err) = catalog(&truth, &[]);
+    assert_eq!(measured(&j).len(), 12, "{err}");
+    assert!(!err.contains("unpaired sources"), "{err}");
+    // The wrong file: the shift is found and named.
+    let (j, err) = catalog(&file, &[]);
+    assert!(measured(&j).len() < 6, "{}", j["rows"]);
+    let s = j["unpaired_shift_px"].as_array().unwrap();
+    let (dx, dy, n) = (s[0].as_f64().unwrap(), s[1].as_f64().unwrap(), s[2].as_f64().unwrap());
+    assert!(dx.abs() < 0.3 && (dy + 2.5).abs() < 0.3 && n >= 6.0, "shift ({dx}, {dy}) from {n}");
+    assert!(err.contains("unpaired sources have their other image at (") && err.contains("--pair-tol 4"), "{err}");
+    // Paired within 3.5 px, every star measures the scene's 2 % (4 sigma).
+    let (j, err) = catalog(&file, &["--pair-tol", "3.5"]);
+    let m = measured(&j);
+    assert_eq!(m.len(), 12, "{err}");
+    for (p, sp) in m {
+        assert!((p - 0.02).abs() < 4.0 * sp, "p {p} +- {sp}");
+    }
+    assert!(!err.contains("unpaired sources"), "{err}");
+}

@@ -44,7 +44,10 @@ fn instrument_with_v_offset(offset_deg: f64) -> (tempfile::TempDir, instrument::
     // FORS1's file gives no zero angles (not measured): the V block gains one.
     let v_block = "lambda_eff_nm = 554.0\n";
     assert_eq!(text.matches(v_block).count(), 1, "fors1.toml's V block changed; update the test");
-    assert!(!text.lines().any(|l| l.starts_with("hwp_chi_offset_deg")), "fors1.toml now gives zero angles; update the test");
+    assert!(
+        !text.lines().any(|l| l.starts_with("hwp_chi_offset_deg")),
+        "fors1.toml now gives zero angles; update the test"
+    );
     let edited = text.replace(v_block, &format!("lambda_eff_nm = 554.0\nhwp_chi_offset_deg = {offset_deg:.1}\n"));
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("fors1_v_offset.toml");

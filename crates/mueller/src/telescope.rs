@@ -84,13 +84,7 @@ impl BandModel {
     /// `P sin(retardance)`; with `V = 0` on the sky the measured `m_k = (M S)_k / (M S)_0`,
     /// `S = (1, q, u, 0)`, are two linear equations in `(q, u)`:
     /// `(M_k1 - m_k M_01) q + (M_k2 - m_k M_02) u = m_k M_00 - M_k0`, `k = 1, 2`.
-    pub fn correct_track(
-        &self,
-        q: f64,
-        u: f64,
-        track: Track,
-        constant: bool,
-    ) -> Result<(f64, f64), crate::Error> {
+    pub fn correct_track(&self, q: f64, u: f64, track: Track, constant: bool) -> Result<(f64, f64), crate::Error> {
         let m = self.matrix_track(track)?;
         let (c0, c1) = if constant { (self.q0, self.u0) } else { (0.0, 0.0) };
         let meas = [q - c0, u - c1];
@@ -184,10 +178,7 @@ fn sinc(x: f64) -> f64 {
 /// a period (a discrete Fourier transform; degree 2 < 8 / 2, no aliasing), and each averages in
 /// closed form: `mean of exp(2inq) over [a, b] = exp(2in (a+b)/2) sinc(n (b - a))`. Exact for
 /// any track length, and the matrix at the angle itself for a zero-length track.
-pub fn track_average<E>(
-    m: impl Fn(f64) -> Result<Matrix4<f64>, E>,
-    track: Track,
-) -> Result<Matrix4<f64>, E> {
+pub fn track_average<E>(m: impl Fn(f64) -> Result<Matrix4<f64>, E>, track: Track) -> Result<Matrix4<f64>, E> {
     let len = track.end - track.start;
     if len == 0.0 {
         return m(track.start);
@@ -217,7 +208,6 @@ pub fn track_average<E>(
     }
     Ok(out)
 }
-
 
 #[cfg(test)]
 mod tests {

@@ -963,7 +963,7 @@ fn _reduce<'py>(
 /// Every paired star of a frame set (`instpol catalog`): one entry per column, one value per
 /// star, plus the catalog's metadata.
 #[pyfunction]
-#[pyo3(signature = (frames, instrument, fwhm, threshold, aperture, annulus, bias, flat, hwp_angles, kappa, kappa_from_data))]
+#[pyo3(signature = (frames, instrument, fwhm, threshold, aperture, annulus, bias, flat, hwp_angles, kappa, kappa_from_data, pair_tol))]
 #[allow(clippy::too_many_arguments)]
 fn _catalog<'py>(
     py: Python<'py>,
@@ -978,6 +978,7 @@ fn _catalog<'py>(
     hwp_angles: Option<Vec<f64>>,
     kappa: Option<f64>,
     kappa_from_data: bool,
+    pair_tol: f64,
 ) -> PyResult<Bound<'py, PyDict>> {
     use skyfield::catalog::{catalog_files, CatalogConfig};
     let radius = skyfield::photometry::ApertureRadius::parse(aperture).ok_or_else(|| {
@@ -993,7 +994,12 @@ fn _catalog<'py>(
     };
     let inst = instrument::Instrument::load(instrument).map_err(inst_err)?;
     let cfg = CatalogConfig {
-        detect: skyfield::detect::DetectConfig { fwhm_px: fwhm, threshold_sigma: threshold, ..Default::default() },
+        detect: skyfield::detect::DetectConfig {
+            fwhm_px: fwhm,
+            threshold_sigma: threshold,
+            pair_tol_px: pair_tol,
+            ..Default::default()
+        },
         radius,
         annulus: Some(annulus),
         weighting: skyfield::aperture::Weighting::Exact,
@@ -1047,6 +1053,7 @@ fn _catalog<'py>(
     d.set_item("chi_offset_deg", cat.chi_offset_deg)?;
     d.set_item("oe_offset_px", cat.oe_offset_px)?;
     d.set_item("unpaired", cat.unpaired.clone())?;
+    d.set_item("unpaired_shift_px", cat.unpaired_shift_px)?;
     d.set_item("n_sources", cat.n_sources)?;
     d.set_item("warnings", warnings)?;
     Ok(d)

@@ -529,8 +529,7 @@ impl Plan {
             hwp.retardance_error = d.to_radians();
             optics.push(format!("HWP retardance error {d} deg"));
         }
-        let chi_off =
-            if fx.hwp_chi_offset_from_filter { Some(filter.chi_offset_deg()) } else { fx.hwp_chi_offset_deg };
+        let chi_off = if fx.hwp_chi_offset_from_filter { Some(filter.chi_offset_deg()) } else { fx.hwp_chi_offset_deg };
         if let Some(c) = chi_off {
             hwp.chi_offset = c.to_radians();
             optics.push(format!("HWP chromatic zero angle {c} deg"));
@@ -898,8 +897,8 @@ fn telescope_term(
     filter: &instrument::Filter,
     explain: &mut Vec<String>,
 ) -> Result<TelescopeTerm, Error> {
-    use mueller::telescope::{exposure_track, BandModel};
     use mueller::mirror::MetalTable;
+    use mueller::telescope::{exposure_track, BandModel};
     let bad = |m: String| Error::Scene { path: PathBuf::from("<scene>"), message: format!("telescope: {m}") };
     let table = match MetalTable::builtin(&t.metal) {
         Ok(t) => t,

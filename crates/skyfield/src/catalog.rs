@@ -67,6 +67,10 @@ impl CatalogConfig {
         if !(t.is_finite() && t > 0.0) {
             return Err(Error::Invalid(format!("threshold {t}: must be a positive number of sigma")));
         }
+        let tol = self.detect.pair_tol_px;
+        if !(tol.is_finite() && tol > 0.0 && tol <= 20.0) {
+            return Err(Error::Invalid(format!("pair-tol {tol} px: expected a distance between 0 and 20 px")));
+        }
         Ok(())
     }
 }
@@ -164,6 +168,9 @@ pub struct Catalog {
     pub rows: Vec<Row>,
     /// Sources without a partner image (their positions).
     pub unpaired: Vec<(f64, f64)>,
+    /// How far the unpaired sources' other images sit from the layout's prediction: median
+    /// `(dx, dy)` px and how many agree with it within 1 px (`detect::unpaired_shift`).
+    pub unpaired_shift_px: Option<(f64, f64, usize)>,
     pub n_sources: usize,
     /// Each frame's shift and rotation against the first, measured from the measured stars'
     /// o-image centroids (`crate::align`); empty with fewer than three measured stars.
@@ -337,13 +344,39 @@ pub fn catalog_files(
         check_exposures(&mut cat, &singles, &set, inst, cfg)?;
         let mut warnings = set.warnings.clone();
         warnings.extend(zero_angle_warning(inst, &cat.filter));
+        warnings.extend(pairing_warning(&cat, inst, cfg.detect.pair_tol_px));
         return Ok((cat, warnings));
     }
     disk.set_on_read(on_read);
     let cat = catalog_of(&disk, inst, cfg)?;
     let mut warnings = disk.bad_pixel_warnings()?;
     warnings.extend(zero_angle_warning(inst, &cat.filter));
+    warnings.extend(pairing_warning(&cat, inst, cfg.detect.pair_tol_px));
     Ok((cat, warnings))
+}
+
+/// How far from its predicted place an unpaired source's other image is looked for
+/// ([`Catalog::unpaired_shift_px`]): a few FWHM, beyond any pairing tolerance in use.
+const UNPAIRED_REACH_PX: f64 = 8.0;
+
+/// The warning when many unpaired sources share one shift from the layout's prediction beyond
+/// the pairing tolerance `tol` (at least three of them, and at least a quarter as many as the
+/// pairs found): the instrument file's o/e offset does not fit these frames.
+pub fn pairing_warning(cat: &Catalog, inst: &Instrument, tol: f64) -> Option<Warning> {
+    let (dx, dy, n) = cat.unpaired_shift_px?;
+    let pairs = cat.rows.len();
+    if n < 3 || 4 * n < pairs || dx.hypot(dy) <= tol {
+        return None;
+    }
+    let message = format!(
+        "{n} unpaired sources have their other image at ({dx:+.2}, {dy:+.2}) px from where instrument {}'s o/e offset puts it \
+         ({pairs} stars paired within the {tol} px tolerance): the instrument file's offset does not fit these frames (filter {}); \
+         correct its throw_terms or oe_offset_px, or pair with --pair-tol {:.1}",
+        inst.name,
+        cat.filter,
+        (dx.hypot(dy) + 1.0).ceil()
+    );
+    Some(Warning { file: None, message })
 }
 
 /// The warning for chi values of `filter` when the instrument file gives no zero angle.
@@ -621,6 +654,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         oe_offset_px: g.oe_offset,
         rows,
         unpaired: unpaired.iter().map(|&k| (sources[k].x, sources[k].y)).collect(),
+        unpaired_shift_px: crate::detect::unpaired_shift(&sources, &unpaired, &g, UNPAIRED_REACH_PX),
         n_sources: sources.len(),
         alignment,
         exposures: None,

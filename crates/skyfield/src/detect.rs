@@ -334,3 +334,48 @@ pub fn pair(sources: &[Source], g: &BeamGeometry, tol: f64) -> (Vec<Pair>, Vec<u
     let unpaired = (0..sources.len()).filter(|&k| !used[k]).collect();
     (pairs, unpaired)
 }
+
+/// Where the unpaired sources' other images sit against the layout's prediction: for each
+/// unpaired source outside the e images, the nearest unpaired source outside the o images
+/// within `reach` px of where `g` puts its e image. Returns the median residual `(dx, dy)` (px)
+/// and how many residuals lie within 1 px of it, or `None` with fewer than three residuals. A
+/// shift shared by many sources, beyond the pairing tolerance, says the instrument file's o/e
+/// offset does not fit these frames (another filter's throw, a different Wollaston).
+pub fn unpaired_shift(
+    sources: &[Source],
+    unpaired: &[usize],
+    g: &BeamGeometry,
+    reach: f64,
+) -> Option<(f64, f64, usize)> {
+    let is = |k: usize, o: bool| match sources[k].kind {
+        PixelKind::Ordinary(_) => o,
+        PixelKind::Extraordinary(_) => !o,
+        _ => true,
+    };
+    let mut res: Vec<(f64, f64)> = Vec::new();
+    for &i in unpaired.iter().filter(|&&i| is(i, true)) {
+        let Some((ex, ey)) = g.e_position(sources[i].x, sources[i].y) else { continue };
+        let best = unpaired
+            .iter()
+            .filter(|&&j| j != i && is(j, false))
+            .map(|&j| (sources[j].x - ex, sources[j].y - ey))
+            .filter(|d| d.0.hypot(d.1) <= reach)
+            .min_by(|a, b| a.0.hypot(a.1).total_cmp(&b.0.hypot(b.1)));
+        res.extend(best);
+    }
+    if res.len() < 3 {
+        return None;
+    }
+    let med = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        let n = v.len();
+        if n % 2 == 1 {
+            v[n / 2]
+        } else {
+            0.5 * (v[n / 2 - 1] + v[n / 2])
+        }
+    };
+    let (dx, dy) = (med(res.iter().map(|r| r.0).collect()), med(res.iter().map(|r| r.1).collect()));
+    let n = res.iter().filter(|r| (r.0 - dx).hypot(r.1 - dy) <= 1.0).count();
+    Some((dx, dy, n))
+}

@@ -188,7 +188,10 @@ fn hwp_angle_from_the_fallback_keyword() {
     k.remove(0);
     write_frame(&p[2], 64, 64, &image(&inst, 45.0), Bitpix::F64, &k).unwrap();
     let e = reduce(&p, &inst).unwrap_err().to_string();
-    assert!(e.contains("'HIERARCH ESO INS RETA2 POSANG' or 'HIERARCH ESO INS RETA2 ROT'") && e.contains("f2.fits"), "{e}");
+    assert!(
+        e.contains("'HIERARCH ESO INS RETA2 POSANG' or 'HIERARCH ESO INS RETA2 ROT'") && e.contains("f2.fits"),
+        "{e}"
+    );
 }
 
 /// Frames with no flux above the bias (already bias-subtracted, or the instrument's bias_adu

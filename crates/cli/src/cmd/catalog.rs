@@ -31,6 +31,11 @@ pub struct Args {
     /// Detection threshold (sigma of the filtered image's noise).
     #[arg(long, default_value_t = 5.0)]
     pub threshold: f64,
+    /// Largest distance (px) between where the instrument's o/e offset puts a star's e image
+    /// and a detected source, for the two to pair. Widen it when a warning says the partner
+    /// images sit off by a common shift (an instrument file made for another filter).
+    #[arg(long, default_value_t = DetectConfig::default().pair_tol_px, value_name = "PX")]
+    pub pair_tol: f64,
     /// Aperture radius: pixels (8), a multiple of each star's measured FWHM (2.5fwhm) or
     /// 'best': per star, the radius of best S/N of its total flux on the curve of growth,
     /// 0.5 to 4 FWHM inside the annulus (the radius used is the aperture_px column).
@@ -115,7 +120,12 @@ pub fn run(a: Args) -> Result<()> {
     let annulus = crate::util::parse_radii(&a.annulus)?;
     let radius = crate::util::parse_aperture(&a.aperture)?;
     let cfg = CatalogConfig {
-        detect: DetectConfig { fwhm_px: a.fwhm, threshold_sigma: a.threshold, ..Default::default() },
+        detect: DetectConfig {
+            fwhm_px: a.fwhm,
+            threshold_sigma: a.threshold,
+            pair_tol_px: a.pair_tol,
+            ..Default::default()
+        },
         radius,
         annulus: Some(annulus),
         weighting: skyfield::aperture::Weighting::Exact,

@@ -417,6 +417,7 @@ def catalog(
     hwp_angles: Optional[Sequence[float]] = None,
     kappa: Optional[float] = None,
     kappa_from_data: bool = False,
+    pair_tol: float = 1.5,
 ) -> Dict[str, Any]:
     """Every paired star of a frame set measured, as ``instpol catalog``: detection on the
     first frame, ordinary/extraordinary pairing through the instrument's beam layout, aperture
@@ -427,11 +428,13 @@ def catalog(
     fwhm_px, aperture_px, flux_e, q, u, sigma_q, sigma_u, cov_qu, p, sigma_p, chi_deg, sigma_chi_deg, a0,
     kappa, kappa_applied, chi2_mod, dof_mod, sigma_q_scatter, sigma_u_scatter, flags, flag_names, note``, and
     ``f`` of shape (stars, N)) and metadata (``hwp_deg, filter, chi_offset_deg, oe_offset_px,
-    unpaired, n_sources, warnings``).
+    unpaired, unpaired_shift_px, n_sources, warnings``).
 
     ``aperture``: a radius in px, ``"2.5fwhm"`` (a multiple of each star's FWHM) or ``"best"``
     (the radius of best S/N on each star's curve of growth). ``kappa`` applies a known Wollaston
     imbalance; ``kappa_from_data=True`` estimates it per star (eq:kappa2) and applies it.
+    ``pair_tol``: how far (px) a detected e image may sit from where the instrument's o/e offset
+    puts it (a warning gives the shift when many sit further off, e.g. another filter's throw).
     """
     try:
         r_in, r_out = (float(a) for a in annulus)
@@ -440,5 +443,5 @@ def catalog(
     return _instpol._catalog(
         _paths(frames), str(instrument), float(fwhm), float(threshold), str(aperture), (r_in, r_out),
         _opt_path(bias), _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles],
-        None if kappa is None else float(kappa), bool(kappa_from_data),
+        None if kappa is None else float(kappa), bool(kappa_from_data), float(pair_tol),
     )

@@ -140,5 +140,6 @@ def catalog(
     hwp_angles: Optional[Sequence[float]] = ...,
     kappa: Optional[float] = ...,
     kappa_from_data: bool = ...,
+    pair_tol: float = ...,
 ) -> Dict[str, Any]:
     """Every paired star measured: Q/I, U/I, P, chi with errors and flags."""
