@@ -366,16 +366,8 @@ pub fn unpaired_shift(
     if res.len() < 3 {
         return None;
     }
-    let med = |mut v: Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        let n = v.len();
-        if n % 2 == 1 {
-            v[n / 2]
-        } else {
-            0.5 * (v[n / 2 - 1] + v[n / 2])
-        }
-    };
-    let (dx, dy) = (med(res.iter().map(|r| r.0).collect()), med(res.iter().map(|r| r.1).collect()));
+    let dx = median(&mut res.iter().map(|r| r.0).collect::<Vec<_>>())?;
+    let dy = median(&mut res.iter().map(|r| r.1).collect::<Vec<_>>())?;
     let n = res.iter().filter(|r| (r.0 - dx).hypot(r.1 - dy) <= 1.0).count();
     Some((dx, dy, n))
 }
