@@ -258,7 +258,7 @@ fn templates(f: &Fixture) -> Vec<Template> {
                 "{OUT}",
                 "--json",
             ])),
-            numeric: vec!["--fwhm", "--threshold", "--aperture"],
+            numeric: vec!["--fwhm", "--threshold", "--pair-tol", "--aperture"],
             files: vec![FileArg::Positional(12), FileArg::Flag("--instrument")],
             out_name: Some("cat.csv"),
         },
