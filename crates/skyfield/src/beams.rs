@@ -10,7 +10,8 @@
 //!   `strip_axis = "y"`, `extraordinary_offset_sign = +1`; the throw may vary slowly across the
 //!   field, `throw_terms`). Strip `k`'s o image covers the whole pixel rows
 //!   `[o_start, o_start + h)` ([`instrument::Instrument::strips`]); the band it shows is imaged
-//!   again at `[e_start, e_start + h)` (e). Detector pixels in neither image are dark (masked).
+//!   again at `[e_start, e_start + h)` (e), or, with `throw_terms`, on the lines those o lines
+//!   reach through the varying throw. Detector pixels in neither image are dark (masked).
 //! - **Maskless** (calcite or Savart plate, no mask): every sky point is imaged twice, the e
 //!   image at a fixed 2-D offset `(dx, dy)` from the o image, and every detector pixel receives
 //!   o light from one sky point and e light from another. The sky of the two beams overlaps,
@@ -47,20 +48,6 @@ pub struct BeamGeometry {
     kinds: Vec<PixelKind>,
 }
 
-/// The kind of the detector line at coordinate `a` along the strip axis: the first strip
-/// whose o image, then e image, holds it.
-fn kind_along(strips: &[Strip], a: usize) -> PixelKind {
-    for s in strips {
-        if a >= s.o_start && a < s.o_start + s.height {
-            return PixelKind::Ordinary(s.index);
-        }
-        if a >= s.e_start && a < s.e_start + s.height {
-            return PixelKind::Extraordinary(s.index);
-        }
-    }
-    PixelKind::Masked
-}
-
 /// Which image a detector pixel belongs to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PixelKind {
@@ -79,11 +66,7 @@ impl BeamGeometry {
         let (nx, ny) = (inst.detector.nx, inst.detector.ny);
         let strips = inst.strips();
         let along_y = p.strip_axis == "y";
-        let kinds = match p.layout {
-            Layout::Maskless => vec![],
-            Layout::Strips => (0..if along_y { ny } else { nx }).map(|a| kind_along(&strips, a)).collect(),
-        };
-        Self {
+        let mut g = Self {
             nx,
             ny,
             layout: p.layout,
@@ -94,8 +77,63 @@ impl BeamGeometry {
             centre: (0.5 * (nx as f64 - 1.0), 0.5 * (ny as f64 - 1.0)),
             oe_offset: p.oe_offset_px.map(|[dx, dy]| (dx, dy)),
             name: inst.name.clone(),
-            kinds,
+            kinds: vec![],
+        };
+        if g.layout == Layout::Strips {
+            g.kinds = g.line_kinds();
         }
+        g
+    }
+
+    /// The kind of every detector line across the strip axis: each strip's o lines, then the
+    /// lines its e image covers. Without `throw_terms` those are `[e_start, e_start + h)`; with
+    /// them, the o lines moved by the varying throw, rounded as [`BeamGeometry::beams_of_sky`]
+    /// rounds it (FORS2's e images sit 2.6 to 7.9 rows below the nominal e strip: taken as
+    /// masked, their stars' e images went undetected, flagged, or cut by the simulator).
+    fn line_kinds(&self) -> Vec<PixelKind> {
+        let n = if self.along_y { self.ny } else { self.nx };
+        let across = if self.along_y { self.nx } else { self.ny };
+        // Lines across the axis to sample the e position on: one when the variation does not
+        // depend on the position across (FORS2), else every 8th and the last.
+        let samples: Vec<usize> =
+            if self.shift_constant_across() { vec![0] } else { (0..across).step_by(8).chain([across - 1]).collect() };
+        let e_ranges: Vec<(usize, usize)> = self
+            .strips
+            .iter()
+            .map(|s| {
+                if self.terms.is_empty() {
+                    return (s.e_start, s.e_start + s.height);
+                }
+                let (mut lo, mut hi) = (isize::MAX, isize::MIN);
+                for a in s.o_start..s.o_start + s.height {
+                    for &c in &samples {
+                        let (x, y) = if self.along_y { (c, a) } else { (a, c) };
+                        if let Some((dx, dy)) = self.e_offset(x as f64, y as f64) {
+                            let e = a as isize + (if self.along_y { dy } else { dx }).round() as isize;
+                            lo = lo.min(e);
+                            hi = hi.max(e);
+                        }
+                    }
+                }
+                if lo > hi {
+                    return (0, 0);
+                }
+                (lo.clamp(0, n as isize) as usize, (hi + 1).clamp(0, n as isize) as usize)
+            })
+            .collect();
+        (0..n)
+            .map(|a| {
+                for (s, &(elo, ehi)) in self.strips.iter().zip(&e_ranges) {
+                    if a >= s.o_start && a < s.o_start + s.height {
+                        return PixelKind::Ordinary(s.index);
+                    }
+                    if a >= elo && a < ehi {
+                        return PixelKind::Extraordinary(s.index);
+                    }
+                }
+                PixelKind::Masked
+            })
+            .collect()
     }
 
     /// The same layout with the maskless o/e offset set (measured from the frames, say).
