@@ -445,3 +445,55 @@ fn a_wrong_throw_is_named_with_its_shift_and_pair_tol_recovers_the_stars() {
     }
     assert!(!err.contains("unpaired sources"), "{err}");
 }
+
+/// A filter with its own o/e offset (`[[filters]] throw_terms`, as FORS2's b_HIGH has): frames
+/// simulated in that filter put the e images at its throw (53 px here, against the 50 px of
+/// the other filters), and the catalog pairs every star with the default 1.5 px tolerance
+/// there, which it could not if either the simulator or the catalog used the instrument's
+/// offset (the 3 px difference is twice the tolerance).
+#[test]
+fn a_filter_with_its_own_throw_is_simulated_and_paired_with_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = include_str!("../../../instruments/fors1.toml")
+        .replace("nx = 2048", "nx = 200")
+        .replace("ny = 2048", "ny = 220")
+        .replace("throw_arcsec = 22.0", "throw_arcsec = 10.0\nstrip_margin_px = 3.0")
+        .replace("strip_count = 9", "strip_count = 2")
+        .replace("first_strip_y_px = 34", "first_strip_y_px = 10")
+        .replace("lambda_eff_nm = 429.0\n", "lambda_eff_nm = 429.0\nthrow_terms = [{ i = 0, j = 0, c = 3.0 }]\n");
+    assert!(text.contains("c = 3.0"));
+    let inst = dir.path().join("inst.toml");
+    std::fs::write(&inst, &text).unwrap();
+    let mut scene = format!(
+        "instrument = \"{}\"\nfilter = \"B\"\nseed = 9\n[sky]\nbrightness_e = 200\np = 0.0\nchi_deg = 0\n",
+        inst.display()
+    );
+    for y in [35, 135] {
+        for x in (25..=175).step_by(30) {
+            scene += &format!(
+                "[[stars]]\nx = {x}\ny = {y}\ncoords = \"pixel\"\nflux_e = 3e5\np = 0.02\nchi_deg = 30\nfwhm_arcsec = 0.8\n"
+            );
+        }
+    }
+    let sp = dir.path().join("scene.toml");
+    std::fs::write(&sp, scene).unwrap();
+    let out = dir.path().join("f");
+    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert_eq!(code, 0, "{err}");
+    let mut args: Vec<OsString> = vec!["catalog".into()];
+    args.extend(fits_in(&out).into_iter().map(|f| f.into_os_string()));
+    for a in ["--instrument", inst.to_str().unwrap(), "--fwhm", "4", "--aperture", "6", "--annulus", "9,14", "--json"] {
+        args.push(a.into());
+    }
+    let (code, stdout, err) = run(&args);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let rows: Vec<&serde_json::Value> = j["rows"].as_array().unwrap().iter().filter(|r| r["p"].is_number()).collect();
+    assert_eq!(rows.len(), 12, "{err}");
+    for r in rows {
+        let dy = r["y_e"].as_f64().unwrap() - r["y"].as_f64().unwrap();
+        assert!((dy - 53.0).abs() < 0.3, "e image {dy} px from the o image, not B's 53");
+        let (p, sp) = (r["p"].as_f64().unwrap(), r["sigma_p"].as_f64().unwrap());
+        assert!((p - 0.02).abs() < 4.0 * sp, "p {p} +- {sp}");
+    }
+}

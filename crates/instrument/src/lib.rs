@@ -157,6 +157,12 @@ pub struct Filter {
     /// plate's frame ([`Filter::chi_offset_deg`] is 0) with [`Filter::zero_angle_warning`].
     #[serde(default)]
     pub hwp_chi_offset_deg: Option<f64>,
+    /// Strips: this filter's variation of the o/e offset, in place of `polarimetry.throw_terms`
+    /// (a Wollaston's throw is chromatic: FORS2's differs by 2 px between b_HIGH and v_HIGH).
+    /// Frames of this filter are reduced, measured and simulated with it
+    /// ([`Instrument::for_filter`]).
+    #[serde(default)]
+    pub throw_terms: Option<Vec<OffsetTerm>>,
 }
 
 impl Filter {
@@ -316,6 +322,74 @@ impl Instrument {
                     f.lambda_eff_nm.to_string(),
                     "must be a wavelength in nm",
                 );
+            }
+            if let Some(t) = &f.throw_terms {
+                let key = format!("filters.{}.throw_terms", f.name);
+                let value = format!("{} term(s)", t.len());
+                if self.polarimetry.layout != Layout::Strips {
+                    return bad(&key, value, "only a strip layout has a throw");
+                }
+                if let Some(k) = t.iter().find(|k| !k.c.is_finite() || k.i > 8 || k.j > 8) {
+                    return bad(
+                        &key,
+                        format!("{{ i = {}, j = {}, c = {} }}", k.i, k.j, k.c),
+                        "each term needs a finite c and powers i, j of at most 8",
+                    );
+                }
+                if let Err(why) = self.for_filter(&f.name).e_lines_clear() {
+                    return bad(&key, value, &why);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// This instrument as frames in filter `filter` see it: the filter's `throw_terms` in place
+    /// of the instrument's; the instrument itself when the filter has none (or is unknown).
+    pub fn for_filter(&self, filter: &str) -> std::borrow::Cow<'_, Instrument> {
+        match self.filter(filter).ok().and_then(|f| f.throw_terms.as_ref()) {
+            Some(t) => {
+                let mut i = self.clone();
+                i.polarimetry.throw_terms = t.clone();
+                std::borrow::Cow::Owned(i)
+            }
+            None => std::borrow::Cow::Borrowed(self),
+        }
+    }
+
+    /// Strips: `Err` with the reason when the e image of some strip's used lines (those lines
+    /// moved by the throw and its variation, sampled every 8 px across) leaves the detector or
+    /// reaches the o lines of a strip.
+    fn e_lines_clear(&self) -> Result<(), String> {
+        let p = &self.polarimetry;
+        let (nx, ny) = (self.detector.nx, self.detector.ny);
+        let along_y = p.strip_axis == "y";
+        let (n, across) = if along_y { (ny, nx) } else { (nx, ny) };
+        let strips = self.strips();
+        let throw = p.extraordinary_offset_sign as f64 * self.throw_px_exact();
+        // Lines across the axis to sample: one when no term depends on the position across.
+        let across_free = p.throw_terms.iter().all(|t| if along_y { t.i == 0 } else { t.j == 0 });
+        let samples: Vec<usize> =
+            if across_free { vec![0] } else { (0..across).step_by(8).chain([across.saturating_sub(1)]).collect() };
+        for s in &strips {
+            for a in s.o_start..s.o_start + s.height {
+                for &c in &samples {
+                    let (x, y) = if along_y { (c, a) } else { (a, c) };
+                    let e = a as f64 + (throw + self.throw_variation_px(x as f64, y as f64)).round();
+                    if !(e >= 0.0 && e < n as f64) {
+                        return Err(format!(
+                            "the e image of strip {}'s line {a} falls at {e}, off the detector",
+                            s.index
+                        ));
+                    }
+                    let e = e as usize;
+                    if let Some(o) = strips.iter().find(|o| e >= o.o_start && e < o.o_start + o.height) {
+                        return Err(format!(
+                            "the e image of strip {}'s line {a} falls at line {e}, on the o image of strip {}",
+                            s.index, o.index
+                        ));
+                    }
+                }
             }
         }
         Ok(())

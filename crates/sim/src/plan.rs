@@ -311,7 +311,8 @@ impl Plan {
     pub fn build_with_field(scene: &Scene, field: Option<Arc<dyn FieldModel>>) -> Result<Self, Error> {
         let inst = Instrument::load(&scene.instrument)?;
         let filter = inst.filter(&scene.filter)?.clone();
-        let geom = BeamGeometry::new(&inst);
+        // The beam layout of the scene's filter (its own throw, when the instrument gives one).
+        let geom = BeamGeometry::new(&inst.for_filter(&scene.filter));
         let mut explain = Vec::new();
         let layout = match geom.layout {
             instrument::Layout::Strips => format!("{} strips, throw {} px", geom.strips.len(), inst.throw_px_exact()),

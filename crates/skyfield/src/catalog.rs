@@ -394,6 +394,8 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
 /// angle's frame, then every star measured in every frame, one frame at a time (so that frames
 /// read from disk are read once each and need not all be held), and each star reduced.
 pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfig) -> Result<Catalog, Error> {
+    // The beam layout of the frames' filter (its own throw, when the instrument gives one).
+    let inst = &*inst.for_filter(src.filter());
     let (nx, ny, n) = (src.nx(), src.ny(), src.angles_deg().len());
     let files = src.files();
     if n == 0 || files.iter().any(|f| f.is_empty()) {

@@ -88,7 +88,7 @@ pub fn photometry(set: &FrameSet, inst: &Instrument, x: f64, y: f64, ap: &Apertu
 /// offset, the offset measured from the frames' stars ([`measure_oe_offset`]).
 pub fn layout_for(set: &FrameSet, inst: &Instrument) -> Result<BeamGeometry, Error> {
     let img = set.data.first().ok_or(Error::NoFrames)?;
-    layout_of_image(img, set.nx, set.ny, &set.files[0][0], inst)
+    layout_of_image(img, set.nx, set.ny, &set.files[0][0], &inst.for_filter(&set.filter))
 }
 
 /// [`layout_for`] from one frame (`img`, `nx` x `ny`, read from `file`).

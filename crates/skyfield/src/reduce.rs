@@ -614,6 +614,7 @@ pub fn bin_geometry(inst: &Instrument, bin_px: usize) -> BinGeometry {
 /// row-major over the detector in o coordinates: for inspection and tests. Computed by the
 /// reduction's own kernel, row by row.
 pub fn pixel_qu(set: &FrameSet, inst: &Instrument) -> Result<(Vec<f64>, Vec<f64>), Error> {
+    let inst = &*inst.for_filter(&set.filter);
     let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();
     let solver = StokesSolver::new(&theta)?;
     let (cq, cu) = solver.weights();
@@ -646,6 +647,8 @@ pub fn pixel_qu(set: &FrameSet, inst: &Instrument) -> Result<(Vec<f64>, Vec<f64>
 
 /// Reduce a checked frame set to a binned Stokes map.
 pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Result<Reduced, Error> {
+    // The beam layout of the frames' filter (its own throw, when the instrument gives one).
+    let inst = &*inst.for_filter(&set.filter);
     let inputs: Vec<AngleInput> = set
         .data
         .iter()
@@ -1308,6 +1311,7 @@ pub fn reduce_files_with(
 ) -> Result<Reduced, Error> {
     // Opened and grouped as the catalog opens them; the bands below read the rows.
     let set = DiskFrames::open(paths, inst, opts, cfg.require_complete_set)?;
+    let inst = &*inst.for_filter(&set.filter);
     let (frames, conversion) = (&set.frames, set.conversion);
     let meta: Vec<_> = frames.iter().map(open_meta).collect();
     let inputs: Vec<AngleInput> = set

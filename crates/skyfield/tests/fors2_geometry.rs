@@ -166,19 +166,35 @@ fn strips(t: &Table) -> (Vec<(i64, i64)>, Vec<(i64, i64)>) {
     (o, e)
 }
 
+/// `default_quadpars.dat`: each broad-band filter's `P1` (px) and `P3` (px^-1), `P0 = 450`.
+const QUADPARS: [(&str, f64, f64); 4] = [
+    ("b_HIGH", 92.5609853356, 2.41646229638e-06),
+    ("v_HIGH", 90.5587463591, 2.29758491222e-06),
+    ("R_SPECIAL", 89.5308957802, 2.30830075534e-06),
+    ("I_BESS", 88.3922576965, 2.33049539846e-06),
+];
+
+/// The layout frames of `filter` are reduced and measured with.
+fn layout(inst: &Instrument, filter: &str) -> BeamGeometry {
+    BeamGeometry::new(&inst.for_filter(filter))
+}
+
 #[test]
 fn fors2_offset_is_the_published_quadratic() {
     let inst = Instrument::load("fors2").unwrap();
-    let g = BeamGeometry::new(&inst);
-    let (p0, p1, p3) = (450.0, 90.5587463591, 2.29758491222e-06);
-    for y in [0.0, 100.0, 450.0, 777.7, 1031.5, 1500.0, 1968.0, 2063.0] {
-        for x in [0.0, 1024.0, 2047.0] {
-            let (dx, dy) = BeamGeometry::e_offset(&g, x, y).unwrap();
-            let want = -(p1 + p3 * (y - p0) * (y - p0));
-            assert_eq!(dx, 0.0);
-            assert!((dy - want).abs() < 1e-9, "({x}, {y}): {dy} vs published {want}");
+    for (filter, p1, p3) in QUADPARS {
+        let g = layout(&inst, filter);
+        let p0 = 450.0;
+        for y in [0.0, 100.0, 450.0, 777.7, 1031.5, 1500.0, 1968.0, 2063.0] {
+            for x in [0.0, 1024.0, 2047.0] {
+                let (dx, dy) = BeamGeometry::e_offset(&g, x, y).unwrap();
+                let want = -(p1 + p3 * (y - p0) * (y - p0));
+                assert_eq!(dx, 0.0);
+                assert!((dy - want).abs() < 1e-9, "{filter} ({x}, {y}): {dy} vs published {want}");
+            }
         }
     }
+    let g = BeamGeometry::new(&inst);
     // The published values at the strips' ends: 90.56 px at row 450, 95.85 px at row 1968.
     assert!((g.e_offset(5.0, 1968.0).unwrap().1 + 95.8531).abs() < 1e-3);
     assert!(g.strips.len() == 9);
@@ -187,10 +203,11 @@ fn fors2_offset_is_the_published_quadratic() {
 #[test]
 fn fors2_used_rows_lie_in_the_published_strips() {
     let inst = Instrument::load("fors2").unwrap();
-    let g = BeamGeometry::new(&inst);
-    let bands = g.sky_bands();
-    assert_eq!(bands.len(), 9);
     for t in &STRIPS {
+        // Each filter's e rows through its own published offset.
+        let g = layout(&inst, t.0);
+        let bands = g.sky_bands();
+        assert_eq!(bands.len(), 9);
         let (o, e) = strips(t);
         assert_eq!((o.len(), e.len()), (9, 9), "{}: nine strip pairs", t.0);
         for (k, band) in bands.iter().enumerate() {
@@ -222,16 +239,21 @@ fn fors2_used_rows_lie_in_the_published_strips() {
 #[test]
 fn fors2_e_pixels_of_the_sky_are_e_pixels() {
     let inst = Instrument::load("fors2").unwrap();
-    let g = BeamGeometry::new(&inst);
     let mut n = 0;
-    for x in [0, 700, 2047] {
-        for y in 0..g.ny {
-            let Some(k) = g.strip_of_sky(x, y) else { continue };
-            let (xe, ye) = g.e_pixel_of_sky(x, y).unwrap();
-            assert_eq!(g.kind(x, y), skyfield::beams::PixelKind::Ordinary(k));
-            assert_eq!(g.kind(xe, ye), skyfield::beams::PixelKind::Extraordinary(k), "sky ({x}, {y}) -> e row {ye}");
-            n += 1;
+    for g in QUADPARS.map(|(f, _, _)| layout(&inst, f)) {
+        for x in [0, 700, 2047] {
+            for y in 0..g.ny {
+                let Some(k) = g.strip_of_sky(x, y) else { continue };
+                let (xe, ye) = g.e_pixel_of_sky(x, y).unwrap();
+                assert_eq!(g.kind(x, y), skyfield::beams::PixelKind::Ordinary(k));
+                assert_eq!(
+                    g.kind(xe, ye),
+                    skyfield::beams::PixelKind::Extraordinary(k),
+                    "sky ({x}, {y}) -> e row {ye}"
+                );
+                n += 1;
+            }
         }
     }
-    assert!(n > 3 * 9 * 68, "{n}");
+    assert!(n > 4 * 3 * 9 * 68, "{n}");
 }
