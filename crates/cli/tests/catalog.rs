@@ -364,30 +364,25 @@ fn catalog_provenance_hashes_are_the_files_sha256() {
     common::assert_inputs_hashed_as_sha256sum(inputs, &files);
 }
 
-/// Frames of a strip layout whose instrument file puts the e images 2.5 px off (a throw made
-/// for another filter, as FORS2's v_HIGH offset is for b_HIGH): most stars go unpaired, and the
-/// catalog says so with the shift it finds (-2.5 px along y, the error put in the file) instead
-/// of a silently short catalog; `--pair-tol` then pairs them and they measure the scene's P.
-/// With the file that made the frames, every star pairs and nothing is said.
-#[test]
-fn a_wrong_throw_is_named_with_its_shift_and_pair_tol_recovers_the_stars() {
-    let dir = tempfile::tempdir().unwrap();
-    let base = include_str!("../../../instruments/fors1.toml")
-        .replace("nx = 2048", "nx = 200")
-        .replace("ny = 2048", "ny = 220")
-        .replace("throw_arcsec = 22.0", "throw_arcsec = 10.0\nstrip_margin_px = 3.0")
-        .replace("strip_count = 9", "strip_count = 2")
-        .replace("first_strip_y_px = 34", "first_strip_y_px = 10");
-    let (truth, file) = (dir.path().join("truth.toml"), dir.path().join("file.toml"));
-    std::fs::write(&truth, &base).unwrap();
-    let shifted =
-        base.replace("strip_margin_px = 3.0", "strip_margin_px = 3.0\nthrow_terms = [{ i = 0, j = 0, c = 2.5 }]");
-    assert_ne!(shifted, base);
-    std::fs::write(&file, shifted).unwrap();
-    // Twelve 2 % stars at chi 30 deg, six in each strip's o image (rows 13..57 and 113..157).
+/// A small FORS1-like strip instrument (200 x 220 px, 0.2"/px, two strips, a 50 px throw,
+/// 3 px margins; o images on rows 13..57 and 113..157), edited by `edit`.
+fn small_strips(edit: impl Fn(String) -> String) -> String {
+    edit(
+        include_str!("../../../instruments/fors1.toml")
+            .replace("nx = 2048", "nx = 200")
+            .replace("ny = 2048", "ny = 220")
+            .replace("throw_arcsec = 22.0", "throw_arcsec = 10.0\nstrip_margin_px = 3.0")
+            .replace("strip_count = 9", "strip_count = 2")
+            .replace("first_strip_y_px = 34", "first_strip_y_px = 10"),
+    )
+}
+
+/// Twelve 2 % stars at chi 30 deg, six in each strip's o image of [`small_strips`], simulated
+/// by the binary through instrument file `inst` in `filter`: the frames.
+fn twelve_stars(dir: &Path, inst: &Path, filter: &str, seed: u64) -> Vec<PathBuf> {
     let mut scene = format!(
-        "instrument = \"{}\"\nfilter = \"V\"\nseed = 7\n[sky]\nbrightness_e = 200\np = 0.0\nchi_deg = 0\n",
-        truth.display()
+        "instrument = \"{}\"\nfilter = \"{filter}\"\nseed = {seed}\n[sky]\nbrightness_e = 200\np = 0.0\nchi_deg = 0\n",
+        inst.display()
     );
     for y in [35, 135] {
         for x in (25..=175).step_by(30) {
@@ -396,26 +391,47 @@ fn a_wrong_throw_is_named_with_its_shift_and_pair_tol_recovers_the_stars() {
             );
         }
     }
-    let sp = dir.path().join("scene.toml");
+    let sp = dir.join("scene.toml");
     std::fs::write(&sp, scene).unwrap();
-    let out = dir.path().join("f");
+    let out = dir.join("f");
     let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
     assert_eq!(code, 0, "{err}");
-    let frames = fits_in(&out);
-    let catalog = |inst: &Path, extra: &[&str]| {
-        let mut args: Vec<OsString> = vec!["catalog".into()];
-        args.extend(frames.iter().map(|f| f.clone().into_os_string()));
-        for a in
-            ["--instrument", inst.to_str().unwrap(), "--fwhm", "4", "--aperture", "6", "--annulus", "9,14", "--json"]
-                .iter()
-                .chain(extra)
-        {
-            args.push(a.into());
-        }
-        let (code, stdout, err) = run(&args);
-        assert_eq!(code, 0, "{err}");
-        (serde_json::from_str::<serde_json::Value>(&stdout).unwrap(), err)
-    };
+    fits_in(&out)
+}
+
+/// `instpol catalog FRAMES --instrument INST` with the small layout's apertures and `extra`
+/// arguments: the JSON and the standard error.
+fn small_catalog(frames: &[PathBuf], inst: &Path, extra: &[&str]) -> (serde_json::Value, String) {
+    let mut args: Vec<OsString> = vec!["catalog".into()];
+    args.extend(frames.iter().map(|f| f.clone().into_os_string()));
+    for a in ["--instrument", inst.to_str().unwrap(), "--fwhm", "4", "--aperture", "6", "--annulus", "9,14", "--json"]
+        .iter()
+        .chain(extra)
+    {
+        args.push(a.into());
+    }
+    let (code, stdout, err) = run(&args);
+    assert_eq!(code, 0, "{err}");
+    (serde_json::from_str(&stdout).unwrap(), err)
+}
+
+/// Frames of a strip layout whose instrument file puts the e images 2.5 px off (a throw made
+/// for another filter, as FORS2's v_HIGH offset is for b_HIGH): most stars go unpaired, and the
+/// catalog says so with the shift it finds (-2.5 px along y, the error put in the file) instead
+/// of a silently short catalog; `--pair-tol` then pairs them and they measure the scene's P.
+/// With the file that made the frames, every star pairs and nothing is said.
+#[test]
+fn a_wrong_throw_is_named_with_its_shift_and_pair_tol_recovers_the_stars() {
+    let dir = tempfile::tempdir().unwrap();
+    let base = small_strips(|t| t);
+    let (truth, file) = (dir.path().join("truth.toml"), dir.path().join("file.toml"));
+    std::fs::write(&truth, &base).unwrap();
+    let shifted =
+        base.replace("strip_margin_px = 3.0", "strip_margin_px = 3.0\nthrow_terms = [{ i = 0, j = 0, c = 2.5 }]");
+    assert_ne!(shifted, base);
+    std::fs::write(&file, shifted).unwrap();
+    let frames = twelve_stars(dir.path(), &truth, "V", 7);
+    let catalog = |inst: &Path, extra: &[&str]| small_catalog(&frames, inst, extra);
     let measured = |j: &serde_json::Value| -> Vec<(f64, f64)> {
         j["rows"]
             .as_array()
@@ -454,40 +470,14 @@ fn a_wrong_throw_is_named_with_its_shift_and_pair_tol_recovers_the_stars() {
 #[test]
 fn a_filter_with_its_own_throw_is_simulated_and_paired_with_it() {
     let dir = tempfile::tempdir().unwrap();
-    let text = include_str!("../../../instruments/fors1.toml")
-        .replace("nx = 2048", "nx = 200")
-        .replace("ny = 2048", "ny = 220")
-        .replace("throw_arcsec = 22.0", "throw_arcsec = 10.0\nstrip_margin_px = 3.0")
-        .replace("strip_count = 9", "strip_count = 2")
-        .replace("first_strip_y_px = 34", "first_strip_y_px = 10")
-        .replace("lambda_eff_nm = 429.0\n", "lambda_eff_nm = 429.0\nthrow_terms = [{ i = 0, j = 0, c = 3.0 }]\n");
+    let text = small_strips(|t| {
+        t.replace("lambda_eff_nm = 429.0\n", "lambda_eff_nm = 429.0\nthrow_terms = [{ i = 0, j = 0, c = 3.0 }]\n")
+    });
     assert!(text.contains("c = 3.0"));
     let inst = dir.path().join("inst.toml");
     std::fs::write(&inst, &text).unwrap();
-    let mut scene = format!(
-        "instrument = \"{}\"\nfilter = \"B\"\nseed = 9\n[sky]\nbrightness_e = 200\np = 0.0\nchi_deg = 0\n",
-        inst.display()
-    );
-    for y in [35, 135] {
-        for x in (25..=175).step_by(30) {
-            scene += &format!(
-                "[[stars]]\nx = {x}\ny = {y}\ncoords = \"pixel\"\nflux_e = 3e5\np = 0.02\nchi_deg = 30\nfwhm_arcsec = 0.8\n"
-            );
-        }
-    }
-    let sp = dir.path().join("scene.toml");
-    std::fs::write(&sp, scene).unwrap();
-    let out = dir.path().join("f");
-    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
-    assert_eq!(code, 0, "{err}");
-    let mut args: Vec<OsString> = vec!["catalog".into()];
-    args.extend(fits_in(&out).into_iter().map(|f| f.into_os_string()));
-    for a in ["--instrument", inst.to_str().unwrap(), "--fwhm", "4", "--aperture", "6", "--annulus", "9,14", "--json"] {
-        args.push(a.into());
-    }
-    let (code, stdout, err) = run(&args);
-    assert_eq!(code, 0, "{err}");
-    let j: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let frames = twelve_stars(dir.path(), &inst, "B", 9);
+    let (j, err) = small_catalog(&frames, &inst, &[]);
     let rows: Vec<&serde_json::Value> = j["rows"].as_array().unwrap().iter().filter(|r| r["p"].is_number()).collect();
     assert_eq!(rows.len(), 12, "{err}");
     for r in rows {
