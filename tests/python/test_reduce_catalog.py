@@ -65,6 +65,8 @@ def test_catalog_is_the_cli_catalog(run_json, star_frames):
     assert same(c["f"], [num(r["f"]) for r in rows])
     assert list(c["id"]) == [r["id"] for r in rows] and list(c["flags"]) == [r["flags"] for r in rows]
     assert c["hwp_deg"] == j["hwp_deg"] and c["n_sources"] == j["n_sources"]
+    shift = j["unpaired_shift_px"]
+    assert c["unpaired_shift_px"] == (None if shift is None else tuple(shift))
     # the 5.7 % standard at (150, 200) px, chi = 136 deg, comes back within 4 sigma
     i = int(np.argmin(np.hypot(c["x"] - 150, c["y"] - 200)))
     assert abs(c["p"][i] - 0.0572) < 4 * c["sigma_p"][i]
@@ -77,6 +79,8 @@ def test_catalog_errors(star_frames):
         instpol.catalog(frames, instrument=inst, aperture=0.0)
     with pytest.raises(instpol.InputError, match="annulus"):
         instpol.catalog(frames, instrument=inst, annulus=(12.0,))
+    with pytest.raises(instpol.InputError, match="pair-tol 0 px: expected a distance between 0 and 20 px"):
+        instpol.catalog(frames, instrument=inst, pair_tol=0.0)
 
 
 def test_reduce_refuses_to_write_over_an_input(sky_frames, tmp_path):
