@@ -186,6 +186,18 @@ impl Filter {
     }
 }
 
+/// Why a throw term is refused ([`bad_term`]).
+const BAD_TERM: &str = "each term needs a finite c and powers i, j of at most 8";
+
+/// The first of `terms` without a finite coefficient or with a power above 8, as the file
+/// writes it.
+fn bad_term(terms: &[OffsetTerm]) -> Option<String> {
+    terms
+        .iter()
+        .find(|t| !t.c.is_finite() || t.i > 8 || t.j > 8)
+        .map(|t| format!("{{ i = {}, j = {}, c = {} }}", t.i, t.j, t.c))
+}
+
 /// A whole instrument definition.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -329,12 +341,8 @@ impl Instrument {
                 if self.polarimetry.layout != Layout::Strips {
                     return bad(&key, value, "only a strip layout has a throw");
                 }
-                if let Some(k) = t.iter().find(|k| !k.c.is_finite() || k.i > 8 || k.j > 8) {
-                    return bad(
-                        &key,
-                        format!("{{ i = {}, j = {}, c = {} }}", k.i, k.j, k.c),
-                        "each term needs a finite c and powers i, j of at most 8",
-                    );
+                if let Some(k) = bad_term(t) {
+                    return bad(&key, k, BAD_TERM);
                 }
                 if let Err(why) = self.for_filter(&f.name).e_lines_clear() {
                     return bad(&key, value, &why);
@@ -357,42 +365,66 @@ impl Instrument {
         }
     }
 
-    /// Strips: `Err` with the reason when the e image of some strip's used lines (those lines
-    /// moved by the throw and its variation, sampled every 8 px across) leaves the detector or
-    /// reaches the o lines of a strip.
+    /// Strips: `Err` with the reason when the e image of some strip ([`Instrument::e_line_ranges`])
+    /// leaves the detector or reaches the o lines of a strip.
     fn e_lines_clear(&self) -> Result<(), String> {
         let p = &self.polarimetry;
-        let (nx, ny) = (self.detector.nx, self.detector.ny);
-        let along_y = p.strip_axis == "y";
-        let (n, across) = if along_y { (ny, nx) } else { (nx, ny) };
+        let n = if p.strip_axis == "y" { self.detector.ny } else { self.detector.nx } as i64;
         let strips = self.strips();
-        let throw = p.extraordinary_offset_sign as f64 * self.throw_px_exact();
-        // Lines across the axis to sample: one when no term depends on the position across.
-        let across_free = p.throw_terms.iter().all(|t| if along_y { t.i == 0 } else { t.j == 0 });
-        let samples: Vec<usize> =
-            if across_free { vec![0] } else { (0..across).step_by(8).chain([across.saturating_sub(1)]).collect() };
-        for s in &strips {
-            for a in s.o_start..s.o_start + s.height {
-                for &c in &samples {
-                    let (x, y) = if along_y { (c, a) } else { (a, c) };
-                    let e = a as f64 + (throw + self.throw_variation_px(x as f64, y as f64)).round();
-                    if !(e >= 0.0 && e < n as f64) {
-                        return Err(format!(
-                            "the e image of strip {}'s line {a} falls at {e}, off the detector",
-                            s.index
-                        ));
-                    }
-                    let e = e as usize;
-                    if let Some(o) = strips.iter().find(|o| e >= o.o_start && e < o.o_start + o.height) {
-                        return Err(format!(
-                            "the e image of strip {}'s line {a} falls at line {e}, on the o image of strip {}",
-                            s.index, o.index
-                        ));
-                    }
-                }
+        for (s, (lo, hi)) in strips.iter().zip(self.e_line_ranges()) {
+            if lo > hi {
+                continue;
+            }
+            if lo < 0 || hi >= n {
+                return Err(format!(
+                    "the e image of strip {} covers lines {lo}..={hi}, off the detector's {n}",
+                    s.index
+                ));
+            }
+            let hit = |o: &&Strip| (o.o_start as i64) <= hi && lo < (o.o_start + o.height) as i64;
+            if let Some(o) = strips.iter().find(hit) {
+                return Err(format!(
+                    "the e image of strip {} covers lines {lo}..={hi}, on the o image of strip {}",
+                    s.index, o.index
+                ));
             }
         }
         Ok(())
+    }
+
+    /// Strips: the first and last line along the strip axis that each strip's e image covers,
+    /// one pair per strip of [`Instrument::strips`] (first > last for an empty strip; the
+    /// lines may lie off the detector). Without `throw_terms`, the strip's lines from
+    /// `e_start`; with them, its o lines moved by the throw and its variation, rounded to whole
+    /// lines as the reduction pairs pixels, sampled across the axis every 8 px and at the last
+    /// line (once when no term depends on the position across). The one place this is worked
+    /// out: the loader checks these lines and the beam layout marks them as e lines.
+    pub fn e_line_ranges(&self) -> Vec<(i64, i64)> {
+        let p = &self.polarimetry;
+        let strips = self.strips();
+        if p.throw_terms.is_empty() {
+            return strips.iter().map(|s| (s.e_start as i64, (s.e_start + s.height) as i64 - 1)).collect();
+        }
+        let along_y = p.strip_axis == "y";
+        let across = if along_y { self.detector.nx } else { self.detector.ny };
+        let across_free = p.throw_terms.iter().all(|t| if along_y { t.i == 0 } else { t.j == 0 });
+        let samples: Vec<usize> =
+            if across_free { vec![0] } else { (0..across).step_by(8).chain([across.saturating_sub(1)]).collect() };
+        let throw = p.extraordinary_offset_sign as f64 * self.throw_px_exact();
+        strips
+            .iter()
+            .map(|s| {
+                let (mut lo, mut hi) = (0, -1);
+                for a in s.o_start..s.o_start + s.height {
+                    for &c in &samples {
+                        let (x, y) = if along_y { (c, a) } else { (a, c) };
+                        let e = a as i64 + (throw + self.throw_variation_px(x as f64, y as f64)).round() as i64;
+                        (lo, hi) = if lo > hi { (e, e) } else { (lo.min(e), hi.max(e)) };
+                    }
+                }
+                (lo, hi)
+            })
+            .collect()
     }
 
     fn validate_strips(&self, path: &Path) -> Result<(), Error> {
@@ -448,17 +480,10 @@ impl Instrument {
         }
         // The largest change of the throw over the field (|u|, |v| <= 1): it must fit inside
         // the margins, or e pixels near a strip edge would fall behind the mask.
-        let mut swing = 0.0;
-        for t in &p.throw_terms {
-            if !t.c.is_finite() || t.i > 8 || t.j > 8 {
-                return bad(
-                    "polarimetry.throw_terms",
-                    format!("{{ i = {}, j = {}, c = {} }}", t.i, t.j, t.c),
-                    "each term needs a finite c and powers i, j of at most 8",
-                );
-            }
-            swing += t.c.abs();
+        if let Some(t) = bad_term(&p.throw_terms) {
+            return bad("polarimetry.throw_terms", t, BAD_TERM);
         }
+        let swing: f64 = p.throw_terms.iter().map(|t| t.c.abs()).sum();
         if swing > m + 1e-9 {
             return bad(
                 "polarimetry.throw_terms",

@@ -80,54 +80,25 @@ impl BeamGeometry {
             kinds: vec![],
         };
         if g.layout == Layout::Strips {
-            g.kinds = g.line_kinds();
+            g.kinds = g.line_kinds(&inst.e_line_ranges());
         }
         g
     }
 
     /// The kind of every detector line across the strip axis: each strip's o lines, then the
-    /// lines its e image covers. Without `throw_terms` those are `[e_start, e_start + h)`; with
-    /// them, the o lines moved by the varying throw, rounded as [`BeamGeometry::beams_of_sky`]
-    /// rounds it (FORS2's e images sit 2.6 to 7.9 rows below the nominal e strip: taken as
-    /// masked, their stars' e images went undetected, flagged, or cut by the simulator).
-    fn line_kinds(&self) -> Vec<PixelKind> {
+    /// lines its e image covers (`e_ranges`, [`Instrument::e_line_ranges`]: with
+    /// `throw_terms`, the o lines moved by the varying throw; FORS2's e images sit 2.6 to 7.9
+    /// rows below the nominal e strip, and taken as masked, their stars' e images went
+    /// undetected, flagged, or cut by the simulator).
+    fn line_kinds(&self, e_ranges: &[(i64, i64)]) -> Vec<PixelKind> {
         let n = if self.along_y { self.ny } else { self.nx };
-        let across = if self.along_y { self.nx } else { self.ny };
-        // Lines across the axis to sample the e position on: one when the variation does not
-        // depend on the position across (FORS2), else every 8th and the last.
-        let samples: Vec<usize> =
-            if self.shift_constant_across() { vec![0] } else { (0..across).step_by(8).chain([across - 1]).collect() };
-        let e_ranges: Vec<(usize, usize)> = self
-            .strips
-            .iter()
-            .map(|s| {
-                if self.terms.is_empty() {
-                    return (s.e_start, s.e_start + s.height);
-                }
-                let (mut lo, mut hi) = (isize::MAX, isize::MIN);
-                for a in s.o_start..s.o_start + s.height {
-                    for &c in &samples {
-                        let (x, y) = if self.along_y { (c, a) } else { (a, c) };
-                        if let Some((dx, dy)) = self.e_offset(x as f64, y as f64) {
-                            let e = a as isize + (if self.along_y { dy } else { dx }).round() as isize;
-                            lo = lo.min(e);
-                            hi = hi.max(e);
-                        }
-                    }
-                }
-                if lo > hi {
-                    return (0, 0);
-                }
-                (lo.clamp(0, n as isize) as usize, (hi + 1).clamp(0, n as isize) as usize)
-            })
-            .collect();
         (0..n)
             .map(|a| {
-                for (s, &(elo, ehi)) in self.strips.iter().zip(&e_ranges) {
+                for (s, &(elo, ehi)) in self.strips.iter().zip(e_ranges) {
                     if a >= s.o_start && a < s.o_start + s.height {
                         return PixelKind::Ordinary(s.index);
                     }
-                    if a >= elo && a < ehi {
+                    if (elo..=ehi).contains(&(a as i64)) {
                         return PixelKind::Extraordinary(s.index);
                     }
                 }

@@ -335,21 +335,19 @@ pub fn catalog_files(
 ) -> Result<(Catalog, Vec<Warning>), Error> {
     let mut disk = DiskFrames::open(paths, inst, opts, true)?;
     let theta: Vec<f64> = disk.exposure_angles_deg().iter().map(|a| a.to_radians()).collect();
-    if stokes::repeats::has_repeats(&theta) {
+    let (cat, mut warnings) = if stokes::repeats::has_repeats(&theta) {
         drop(disk);
         let frames = crate::reduce::read_frames_with(paths, inst, opts, &on_read)?;
         let singles = frames.clone();
         let set = FrameSet::from_frames(frames, inst, true)?;
         let mut cat = catalog(&set, inst, cfg)?;
         check_exposures(&mut cat, &singles, &set, inst, cfg)?;
-        let mut warnings = set.warnings.clone();
-        warnings.extend(zero_angle_warning(inst, &cat.filter));
-        warnings.extend(pairing_warning(&cat, inst, cfg.detect.pair_tol_px));
-        return Ok((cat, warnings));
-    }
-    disk.set_on_read(on_read);
-    let cat = catalog_of(&disk, inst, cfg)?;
-    let mut warnings = disk.bad_pixel_warnings()?;
+        (cat, set.warnings)
+    } else {
+        disk.set_on_read(on_read);
+        let cat = catalog_of(&disk, inst, cfg)?;
+        (cat, disk.bad_pixel_warnings()?)
+    };
     warnings.extend(zero_angle_warning(inst, &cat.filter));
     warnings.extend(pairing_warning(&cat, inst, cfg.detect.pair_tol_px));
     Ok((cat, warnings))
