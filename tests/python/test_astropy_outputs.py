@@ -136,7 +136,7 @@ def check_fits_file(f):
             with fits.open(f) as h:
                 h.verify("exception")
                 assert h[0].header.get("PROGRAM") == "instpol", f"{f}: no provenance"
-                assert any("sha256:" in str(c) for c in h[0].header.get("HISTORY", [])) or f.parent.name in (
+                assert any("blake3:" in str(c) for c in h[0].header.get("HISTORY", [])) or f.parent.name in (
                     "demo", "stars", "empty"), f"{f}: no input hashes in HISTORY"
                 for k, hdu in enumerate(h):
                     if isinstance(hdu, (fits.BinTableHDU, fits.TableHDU)):

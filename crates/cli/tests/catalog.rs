@@ -335,10 +335,10 @@ fn catalog_corrects_with_a_calibration_in_the_same_run() {
 }
 
 /// The catalog's provenance hashes its frames as it reads them (one read of each file, not
-/// two): every input's hash is the one `sha256sum` gives, for frames read straight from disk
+/// two): every input's hash is the one `b3sum` gives, for frames read straight from disk
 /// and for a gzipped one (read through CFITSIO, hashed apart), and the instrument file.
 #[test]
-fn catalog_provenance_hashes_are_the_files_sha256() {
+fn catalog_provenance_hashes_are_the_files_blake3() {
     let dir = tempfile::tempdir().unwrap();
     let (inst, mut frames) = calcite_scene(dir.path(), "");
     let last = frames.pop().unwrap();
@@ -361,7 +361,7 @@ fn catalog_provenance_hashes_are_the_files_sha256() {
     let j: serde_json::Value = serde_json::from_str(&stdout).unwrap();
     let inputs = j["provenance"]["inputs"].as_array().unwrap();
     let files: Vec<PathBuf> = frames.iter().cloned().chain([inst]).collect();
-    common::assert_inputs_hashed_as_sha256sum(inputs, &files);
+    common::assert_inputs_hashed_as_b3sum(inputs, &files);
 }
 
 /// A small FORS1-like strip instrument (200 x 220 px, 0.2"/px, two strips, a 50 px throw,

@@ -2,7 +2,7 @@
 //! ECSV and VOTable and writes each format (the corrected numbers identical whatever the
 //! formats: all go through `skyfield::table` and the one `Corrector`); unknown extensions
 //! refused with exit 2 and nothing written; the `--json` provenance hashes the inputs as
-//! `sha256sum` (coreutils, written separately) does.
+//! `b3sum` (the BLAKE3 team's tool, or Python's `blake3` package) does.
 
 mod common;
 
@@ -83,7 +83,7 @@ fn unknown_extensions_are_refused_and_nothing_is_written() {
 }
 
 #[test]
-fn json_provenance_hashes_inputs_as_sha256sum_does() {
+fn json_provenance_hashes_inputs_as_b3sum_does() {
     let dir = tempfile::tempdir().unwrap();
     let (cal, cat) = setup(dir.path());
     let out = dir.path().join("o.csv");
@@ -95,5 +95,5 @@ fn json_provenance_hashes_inputs_as_sha256sum_does() {
     assert_eq!(p["version"], env!("CARGO_PKG_VERSION"));
     assert!(p["command_line"].as_str().unwrap().contains(" correct --cal "));
     let inputs = p["inputs"].as_array().unwrap();
-    common::assert_inputs_hashed_as_sha256sum(inputs, &[&cal, &cat]);
+    common::assert_inputs_hashed_as_b3sum(inputs, &[&cal, &cat]);
 }

@@ -265,22 +265,45 @@ pub fn calibrate_v_args(map: &Path, out: &Path) -> Vec<String> {
         .collect()
 }
 
-/// Check a JSON output's provenance inputs (`inputs`, in order) against `sha256sum` of
-/// `files`: each path and each hash. Says so loudly and checks nothing when coreutils'
-/// `sha256sum` is missing.
+/// BLAKE3 hashes of `files` (`blake3:<hex>`, in order) from an implementation other than the
+/// tool's: the BLAKE3 team's `b3sum`, or Python's `blake3` package. `None`, said loudly, when
+/// neither is here; with `INSTPOL_REQUIRE_B3=1` (CI sets it) that is a failure.
 #[allow(dead_code)]
-pub fn assert_inputs_hashed_as_sha256sum<P: AsRef<std::ffi::OsStr>>(inputs: &[serde_json::Value], files: &[P]) {
-    assert_eq!(inputs.len(), files.len(), "{inputs:?}");
-    let sum = match std::process::Command::new("sha256sum").args(files).output() {
-        Ok(s) if s.status.success() => String::from_utf8(s.stdout).unwrap(),
+pub fn b3sum<P: AsRef<std::ffi::OsStr>>(files: &[P]) -> Option<Vec<String>> {
+    let from_b3sum = std::process::Command::new("b3sum").arg("--no-names").args(files).output();
+    let out = match from_b3sum {
+        Ok(o) if o.status.success() => Some(o.stdout),
         _ => {
-            eprintln!("WARNING: sha256sum (coreutils) not found: provenance hashes not checked against it");
-            return;
+            let py = "import sys, blake3\nfor f in sys.argv[1:]:\n    print(blake3.blake3(open(f, 'rb').read()).hexdigest())";
+            match std::process::Command::new("python3").arg("-c").arg(py).args(files).output() {
+                Ok(o) if o.status.success() => Some(o.stdout),
+                _ => None,
+            }
         }
     };
-    for (line, inp) in sum.lines().zip(inputs) {
-        let (hex, path) = line.split_once("  ").unwrap();
-        assert_eq!(inp["path"], path);
-        assert_eq!(inp["sha256"], format!("sha256:{hex}"), "{path}");
+    match out {
+        Some(o) => Some(String::from_utf8(o).unwrap().lines().map(|h| format!("blake3:{}", h.trim())).collect()),
+        None => {
+            assert!(
+                std::env::var("INSTPOL_REQUIRE_B3").map_or(true, |v| v != "1"),
+                "INSTPOL_REQUIRE_B3=1 but neither b3sum nor Python's blake3 package is here"
+            );
+            eprintln!("WARNING: neither b3sum nor Python's blake3 package found: provenance hashes not checked against another BLAKE3");
+            None
+        }
+    }
+}
+
+/// Check a JSON output's provenance inputs (`inputs`, in order) against [`b3sum`] of `files`:
+/// each path and each hash (nothing checked, loudly, without another BLAKE3).
+#[allow(dead_code)]
+pub fn assert_inputs_hashed_as_b3sum<P: AsRef<std::ffi::OsStr>>(inputs: &[serde_json::Value], files: &[P]) {
+    assert_eq!(inputs.len(), files.len(), "{inputs:?}");
+    let Some(sums) = b3sum(files) else { return };
+    assert_eq!(sums.len(), files.len());
+    for ((want, inp), f) in sums.iter().zip(inputs).zip(files) {
+        let path = std::path::Path::new(f.as_ref()).display().to_string();
+        assert_eq!(inp["path"], path.as_str());
+        assert_eq!(inp["hash"], want.as_str(), "{path}");
     }
 }
