@@ -104,6 +104,13 @@ fn clipped_stats(v: &[f64]) -> Option<(f64, f64)> {
 
 /// Background mesh and noise of `img` over the pixels the layout illuminates.
 pub fn background(img: &[f64], g: &BeamGeometry, box_px: usize) -> Background {
+    let level = background_level(img, g, box_px);
+    let sigma = background_noise(img, &level, g);
+    Background { level, sigma }
+}
+
+/// The background mesh of [`background`], interpolated to every pixel.
+fn background_level(img: &[f64], g: &BeamGeometry, box_px: usize) -> Vec<f64> {
     let (nx, ny) = (g.nx, g.ny);
     let b = box_px.max(8);
     let (mx, my) = (nx.div_ceil(b), ny.div_ceil(b));
@@ -139,7 +146,8 @@ pub fn background(img: &[f64], g: &BeamGeometry, box_px: usize) -> Background {
             (clamp(i0, mx), clamp(i0 + 1, mx), tx)
         })
         .collect();
-    let mut level = vec![f64::NAN; nx * ny];
+    let mut level = Vec::new();
+    crate::par_resize(&mut level, nx * ny, f64::NAN);
     level.par_chunks_mut(nx.max(1)).enumerate().for_each(|(y, row)| {
         let fy = (y as f64 + 0.5) / b as f64 - 0.5;
         let (j0, ty) = (fy.floor() as isize, fy - fy.floor());
@@ -148,19 +156,24 @@ pub fn background(img: &[f64], g: &BeamGeometry, box_px: usize) -> Background {
             *l = (1.0 - ty) * ((1.0 - tx) * r0[ia] + tx * r0[ib]) + ty * ((1.0 - tx) * r1[ia] + tx * r1[ib]);
         }
     });
+    level
+}
+
+/// The noise of [`background`]: the robust rms of `img - level` over the illuminated pixels.
+fn background_noise(img: &[f64], level: &[f64], g: &BeamGeometry) -> f64 {
+    let (nx, ny) = (g.nx, g.ny);
     // The noise from at most ~250 000 illuminated pixels spread over the frame: plenty for a
     // robust rms, and it keeps the clipping's selections off the whole 4-Mpixel frame.
     let step = (nx * ny / 250_000).max(1);
     let resid: Vec<f64> =
         (0..nx * ny).step_by(step).filter(|&k| usable(g, k % nx, k / nx)).map(|k| img[k] - level[k]).collect();
-    let sigma = clipped_stats(&resid).map_or(0.0, |s| s.1);
-    Background { level, sigma }
+    clipped_stats(&resid).map_or(0.0, |s| s.1)
 }
 
 /// Detect the sources of `img` (one frame, or a sum of frames, in any linear unit).
 pub fn detect(img: &[f64], g: &BeamGeometry, cfg: &DetectConfig) -> Vec<Source> {
     let (nx, ny) = (g.nx, g.ny);
-    let bg = background(img, g, cfg.box_px);
+    let level = background_level(img, g, cfg.box_px);
     // Background-subtracted image, zero where nothing is illuminated or the value is bad.
     let mut sub = vec![0.0; nx * ny];
     sub.par_chunks_mut(nx.max(1)).enumerate().for_each(|(y, row)| {
@@ -171,7 +184,7 @@ pub fn detect(img: &[f64], g: &BeamGeometry, cfg: &DetectConfig) -> Vec<Source> 
         }
         for (x, o) in row.iter_mut().enumerate() {
             let k = y * nx + x;
-            let v = img[k] - bg.level[k];
+            let v = img[k] - level[k];
             if whole_row.unwrap_or_else(|| usable(g, x, y)) && v.is_finite() {
                 *o = v;
             }
@@ -192,7 +205,7 @@ pub fn detect(img: &[f64], g: &BeamGeometry, cfg: &DetectConfig) -> Vec<Source> 
     // a TLB flush on every core per page, which was an eighth of a catalog's time.
     let conv = |src: &[f64], along_x: bool, mut out: Vec<f64>| -> Vec<f64> {
         out.clear();
-        out.resize(nx * ny, 0.0);
+        crate::par_resize(&mut out, nx * ny, 0.0);
         out.par_chunks_mut(nx.max(1)).enumerate().for_each(|(y, row)| {
             for (t, &w) in k.iter().enumerate() {
                 let d = t as isize - r;
@@ -221,12 +234,13 @@ pub fn detect(img: &[f64], g: &BeamGeometry, cfg: &DetectConfig) -> Vec<Source> 
         });
         out
     };
-    // The background mesh's buffer is free once `sub` is made: the first pass goes there.
-    let across = conv(&sub, true, bg.level);
-    let sm = conv(&across, false, Vec::new());
+    // The background's noise (a clipping of 250 000 values on one thread) is found while the
+    // other threads filter along x; the background map's buffer then takes the pass along y.
+    let (sigma, across) = rayon::join(|| background_noise(img, &level, g), || conv(&sub, true, Vec::new()));
+    let sm = conv(&across, false, level);
     // Noise of the smoothed image: sigma times the kernel's 2-D norm.
     let k2: f64 = k.iter().map(|v| v * v).sum::<f64>();
-    let thr = cfg.threshold_sigma * bg.sigma * k2;
+    let thr = cfg.threshold_sigma * sigma * k2;
     let rc = (1.5 * cfg.fwhm_px).max(3.0);
     // The local maxima above the threshold, in row-major order (rows scanned in parallel).
     let maxima: Vec<(usize, usize)> = (1..ny.saturating_sub(1))

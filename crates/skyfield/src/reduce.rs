@@ -487,7 +487,7 @@ impl FrameSource for DiskFrames {
         let taken = self.pool.lock().unwrap_or_else(|e| e.into_inner()).pop();
         let (mut sum, mut one, mut bytes) = taken.unwrap_or_default();
         let (nx, ny) = (self.nx, self.ny);
-        sum.resize(nx * ny, 0.0);
+        crate::par_resize(&mut sum, nx * ny, 0.0);
         let m = &self.members[i];
         let res = (|| {
             let mut counts: Vec<BadCounts> = vec![(0, 0); m.len()];
