@@ -78,6 +78,20 @@ pub struct OffsetTerm {
     pub c: f64,
 }
 
+impl OffsetTerm {
+    /// The sum of `terms` at o pixel `(x, y)` of an `nx` x `ny` detector (px): the one
+    /// evaluation of a varying o/e offset, for the instrument's checks and the beam layout.
+    pub fn sum(terms: &[OffsetTerm], nx: usize, ny: usize, x: f64, y: f64) -> f64 {
+        if terms.is_empty() {
+            return 0.0;
+        }
+        let cx = 0.5 * (nx as f64 - 1.0);
+        let cy = 0.5 * (ny as f64 - 1.0);
+        let (u, v) = ((x - cx) / cx.max(0.5), (y - cy) / cy.max(0.5));
+        terms.iter().map(|k| k.c * u.powi(k.i as i32) * v.powi(k.j as i32)).sum()
+    }
+}
+
 /// Polarimetric optics as the detector sees them: beam layout, mask strips, throw, header
 /// keywords.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -614,14 +628,7 @@ impl Instrument {
     /// Strips: the variation of the o/e offset along the strip axis at o pixel `(x, y)` (px,
     /// added to the throw; 0 without `throw_terms`).
     pub fn throw_variation_px(&self, x: f64, y: f64) -> f64 {
-        let t = &self.polarimetry.throw_terms;
-        if t.is_empty() {
-            return 0.0;
-        }
-        let cx = 0.5 * (self.detector.nx as f64 - 1.0);
-        let cy = 0.5 * (self.detector.ny as f64 - 1.0);
-        let (u, v) = ((x - cx) / cx.max(0.5), (y - cy) / cy.max(0.5));
-        t.iter().map(|k| k.c * u.powi(k.i as i32) * v.powi(k.j as i32)).sum()
+        OffsetTerm::sum(&self.polarimetry.throw_terms, self.detector.nx, self.detector.ny, x, y)
     }
 
     /// The mask strips with the whole pixel rows (along the strip axis) of their o and e

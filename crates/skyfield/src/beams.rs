@@ -34,10 +34,8 @@ pub struct BeamGeometry {
     pub strips: Vec<Strip>,
     /// Strips: the signed o/e offset along the strip axis (px, real) before its variation.
     throw: f64,
-    /// Strips: the variation of the throw across the field and the detector centre it is
-    /// measured from.
+    /// Strips: the variation of the throw across the field (`OffsetTerm::sum`).
     terms: Vec<OffsetTerm>,
-    centre: (f64, f64),
     /// Maskless: the e image's offset from the o image (px), when known.
     pub oe_offset: Option<(f64, f64)>,
     name: String,
@@ -74,7 +72,6 @@ impl BeamGeometry {
             strips,
             throw: p.extraordinary_offset_sign as f64 * inst.throw_px_exact(),
             terms: p.throw_terms.clone(),
-            centre: (0.5 * (nx as f64 - 1.0), 0.5 * (ny as f64 - 1.0)),
             oe_offset: p.oe_offset_px.map(|[dx, dy]| (dx, dy)),
             name: inst.name.clone(),
             kinds: vec![],
@@ -159,9 +156,7 @@ impl BeamGeometry {
             Layout::Strips => {
                 let mut d = self.throw;
                 if !self.terms.is_empty() {
-                    let u = (x - self.centre.0) / self.centre.0.max(0.5);
-                    let v = (y - self.centre.1) / self.centre.1.max(0.5);
-                    d += self.terms.iter().map(|t| t.c * u.powi(t.i as i32) * v.powi(t.j as i32)).sum::<f64>();
+                    d += OffsetTerm::sum(&self.terms, self.nx, self.ny, x, y);
                 }
                 Some(if self.along_y { (0.0, d) } else { (d, 0.0) })
             }
