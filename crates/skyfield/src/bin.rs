@@ -186,7 +186,7 @@ fn median_of_keys(keys: &mut [i64]) -> f64 {
 /// inside (`win`, scratch); when the median's ranks fall inside, only those are searched.
 /// Otherwise, or without a window, all values are (`keys`, scratch). Searches run on
 /// [`total_key`]s.
-fn median_near_by(
+pub(crate) fn median_near_by(
     vals: &[f64],
     centre: Option<f64>,
     window: Option<(f64, f64)>,
@@ -205,7 +205,7 @@ fn median_near_by(
 }
 
 /// `[c - w, c + w]`, the window [`median_near_by`] searches first.
-fn window(c: f64, w: f64) -> (f64, f64) {
+pub(crate) fn window(c: f64, w: f64) -> (f64, f64) {
     (c - w, c + w)
 }
 

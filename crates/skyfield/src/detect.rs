@@ -12,6 +12,7 @@
 //! source within `pair_tol_px` there.
 
 use crate::aperture::centroid;
+use crate::bin::{median_near_by, window};
 use crate::beams::{BeamGeometry, PixelKind};
 use instrument::Layout;
 use rayon::prelude::*;
@@ -79,16 +80,20 @@ fn median(v: &mut [f64]) -> Option<f64> {
 
 /// Median and robust sigma (1.4826 MAD) after three 3-sigma clipping passes.
 fn clipped_stats(v: &[f64]) -> Option<(f64, f64)> {
-    // The values are a multiset: selections may reorder them in place (a median does not
-    // depend on the order), and a pass that rejects nothing leaves every later pass the same.
     let mut w: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-    let mut med = median(&mut w)?;
-    let mut sig = 0.0;
-    let mut dev = Vec::with_capacity(w.len());
+    if w.is_empty() {
+        return None;
+    }
+    // Each pass's median and MAD are first looked for near the previous pass's (a few values
+    // rejected move them little): exactly the medians a selection over all values gives
+    // (`bin::median_near_by`), found by one counting pass and a selection among the few values
+    // near them. The mesh's selections were a tenth of a catalog's CPU time.
+    let (mut keys, mut win) = (Vec::new(), Vec::new());
+    let mut med = median_near_by(&w, None, None, &mut keys, &mut win);
+    let (mut sig, mut mad_window) = (0.0, None);
     for _ in 0..3 {
-        dev.clear();
-        dev.extend(w.iter().map(|x| (x - med).abs()));
-        sig = 1.4826 * median(&mut dev)?;
+        let mad = median_near_by(&w, Some(med), mad_window, &mut keys, &mut win);
+        sig = 1.4826 * mad;
         if !(sig > 0.0) {
             break;
         }
@@ -97,7 +102,11 @@ fn clipped_stats(v: &[f64]) -> Option<(f64, f64)> {
         if w.len() == before {
             break;
         }
-        med = median(&mut w)?;
+        if w.is_empty() {
+            return None;
+        }
+        med = median_near_by(&w, None, Some(window(med, 0.125 * sig)), &mut keys, &mut win);
+        mad_window = Some(window(mad, 0.15 * sig));
     }
     Some((med, sig))
 }
@@ -384,4 +393,88 @@ pub fn unpaired_shift(
     let dy = median(&mut res.iter().map(|r| r.1).collect::<Vec<_>>())?;
     let n = res.iter().filter(|r| (r.0 - dx).hypot(r.1 - dy) <= 1.0).count();
     Some((dx, dy, n))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{RngExt, SeedableRng};
+
+    /// The clipping as documented, written plainly: every median by a full sort.
+    fn reference(v: &[f64]) -> Option<(f64, f64)> {
+        let median = |v: &[f64]| {
+            let mut s = v.to_vec();
+            s.sort_by(f64::total_cmp);
+            let n = s.len();
+            if n % 2 == 1 {
+                s[n / 2]
+            } else {
+                0.5 * (s[n / 2 - 1] + s[n / 2])
+            }
+        };
+        let mut w: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+        if w.is_empty() {
+            return None;
+        }
+        let mut med = median(&w);
+        let mut sig = 0.0;
+        for _ in 0..3 {
+            let dev: Vec<f64> = w.iter().map(|x| (x - med).abs()).collect();
+            sig = 1.4826 * median(&dev);
+            if !(sig > 0.0) {
+                break;
+            }
+            let before = w.len();
+            w.retain(|x| (x - med).abs() <= 3.0 * sig);
+            if w.len() == before {
+                break;
+            }
+            if w.is_empty() {
+                return None;
+            }
+            med = median(&w);
+        }
+        Some((med, sig))
+    }
+
+    /// The mesh's clipping (medians searched near the previous pass's) gives the plain
+    /// clipping's median and sigma to the bit: sky boxes with stars in them, integer ADU (ties
+    /// everywhere), a constant box (MAD zero), NaNs, tiny boxes, a box that is mostly star.
+    #[test]
+    fn clipped_stats_is_the_plain_clipping() {
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(11);
+        let mut cases: Vec<Vec<f64>> = vec![vec![], vec![f64::NAN; 5], vec![7.0; 100], vec![1.0, 2.0], vec![3.0]];
+        for k in 0..300 {
+            let n = rng.random_range(1..5000);
+            let sky = rng.random_range(-50.0..5000.0);
+            let noise = rng.random_range(0.5..80.0);
+            let mut v: Vec<f64> = (0..n)
+                .map(|_| {
+                    // Box-Muller: a Gaussian sky.
+                    let (a, b): (f64, f64) = (rng.random_range(1e-12..1.0), rng.random_range(0.0..1.0));
+                    sky + noise * (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
+                })
+                .collect();
+            // Stars: a tail of bright values, sometimes most of the box.
+            let stars = rng.random_range(0..n / (1 + k % 7) + 1);
+            for x in v.iter_mut().take(stars) {
+                *x += rng.random_range(0.0..50.0 * noise);
+            }
+            if k % 3 == 0 {
+                v.iter_mut().for_each(|x| *x = x.round());
+            }
+            if k % 11 == 0 {
+                v[0] = f64::NAN;
+            }
+            cases.push(v);
+        }
+        for (k, v) in cases.iter().enumerate() {
+            let (got, want) = (clipped_stats(v), reference(v));
+            assert_eq!(
+                got.map(|(m, s)| (m.to_bits(), s.to_bits())),
+                want.map(|(m, s)| (m.to_bits(), s.to_bits())),
+                "case {k}: {got:?} vs {want:?}"
+            );
+        }
+    }
 }
