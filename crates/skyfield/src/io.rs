@@ -1102,7 +1102,56 @@ impl OpenFrame {
     }
 }
 
+impl OpenFrame {
+    /// [`OpenFrame::load_rows`] and [`PixelView::count_bad`] of the rows loaded, in one pass
+    /// over them where the rows come from the file as stored (the count re-read every row
+    /// decoded: 3 % of a catalog's CPU time).
+    pub(crate) fn load_rows_counting(
+        &self,
+        row0: usize,
+        out: &mut [f64],
+        bytes: &mut Vec<u8>,
+        sat: f64,
+    ) -> Result<(usize, usize), Error> {
+        match &self.rows {
+            FrameRows::File(r) => {
+                let nb = out.len() * r.kind.bytes();
+                bytes.resize(nb, 0);
+                self.read_raw(r, row0, &mut bytes[..nb])?;
+                Ok(r.kind.decode_counting(&bytes[..nb], out, sat))
+            }
+            _ => {
+                self.load_rows(row0, out, bytes)?;
+                Ok(PixelView::F64(out).count_bad(sat))
+            }
+        }
+    }
+}
+
 impl RawKind {
+    /// [`RawKind::decode`], counting as it goes the non-finite values and those at or above
+    /// `sat` ([`PixelView::count_bad`] of `out`).
+    pub(crate) fn decode_counting(self, bytes: &[u8], out: &mut [f64], sat: f64) -> (usize, usize) {
+        #[inline(always)]
+        fn go<const B: usize>(bytes: &[u8], out: &mut [f64], sat: f64, f: impl Fn(&[u8; B]) -> f64) -> (usize, usize) {
+            let (mut a, mut b) = (0u64, 0u64);
+            for (o, c) in out.iter_mut().zip(bytes.chunks_exact(B)) {
+                let x = f(c.try_into().expect("B bytes"));
+                *o = x;
+                a += !x.is_finite() as u64;
+                b += (x >= sat) as u64;
+            }
+            (a as usize, b as usize)
+        }
+        match self {
+            RawKind::F32 => go::<4>(bytes, out, sat, |b| f32::from_be_bytes(*b) as f64),
+            RawKind::F64 => go::<8>(bytes, out, sat, |b| f64::from_be_bytes(*b)),
+            RawKind::I16 => go::<2>(bytes, out, sat, |b| i16::from_be_bytes(*b) as f64),
+            // Flipping the sign bit adds 32768 to a two's-complement i16.
+            RawKind::U16 => go::<2>(bytes, out, sat, |b| u16::from_be_bytes([b[0] ^ 0x80, b[1]]) as f64),
+        }
+    }
+
     /// Decode `out.len()` pixels starting at pixel `start` of `bytes` (exact for every kind);
     /// always inlined so that a vectorized caller decodes with its own vector width.
     #[inline(always)]

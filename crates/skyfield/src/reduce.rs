@@ -419,8 +419,7 @@ impl DiskFrames {
     /// Rows `row0 ..` of exposure `k` into `out` (whole rows; `bytes`: scratch), and their
     /// NaN and saturated pixels (counted while the rows are in cache).
     fn load_band(&self, k: usize, row0: usize, out: &mut [f64], bytes: &mut Vec<u8>) -> Result<BadCounts, Error> {
-        self.frames[k].load_rows(row0, out, bytes)?;
-        Ok(PixelView::F64(out).count_bad(self.conversion.saturation))
+        self.frames[k].load_rows_counting(row0, out, bytes, self.conversion.saturation)
     }
 
     /// A hash of exposure `k`'s file to feed as its rows are read, with the bytes after its
