@@ -12,8 +12,8 @@
 //! source within `pair_tol_px` there.
 
 use crate::aperture::centroid;
-use crate::bin::{median_near_by, window};
 use crate::beams::{BeamGeometry, PixelKind};
+use crate::bin::{median_near_by, window};
 use instrument::Layout;
 use rayon::prelude::*;
 

@@ -6,8 +6,8 @@
 //! BZERO only CFITSIO applies.
 
 use instrument::Instrument;
-use skyfield::io::{write_frame, Bitpix, KeyValue};
 use skyfield::calib::ReadOptions;
+use skyfield::io::{write_frame, Bitpix, KeyValue};
 use skyfield::reduce::{read_frames, reduce_files, reduce_set, DiskFrames, FrameSet, FrameSource, ReduceConfig};
 use std::path::{Path, PathBuf};
 
