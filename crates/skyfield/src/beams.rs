@@ -154,10 +154,8 @@ impl BeamGeometry {
         match self.layout {
             Layout::Maskless => self.oe_offset,
             Layout::Strips => {
-                let mut d = self.throw;
-                if !self.terms.is_empty() {
-                    d += OffsetTerm::sum(&self.terms, self.nx, self.ny, x, y);
-                }
+                // (`OffsetTerm::sum` is 0 without terms.)
+                let d = self.throw + OffsetTerm::sum(&self.terms, self.nx, self.ny, x, y);
                 Some(if self.along_y { (0.0, d) } else { (d, 0.0) })
             }
         }
