@@ -231,3 +231,53 @@ fn scatter_error_against_propagated() {
     let ratio = flat.iter().map(|r| r.sigma_q_scatter / r.sigma_q).sum::<f64>() / flat.len() as f64;
     assert!(ratio > 1.3, "{ratio}");
 }
+
+/// A star that cannot be measured is flagged by why (its error's kind), not by the words of
+/// its note, which hold the frames' file names: frames in a folder whose name says "saturated"
+/// and "off the", one star given a NaN and another a saturated pixel in the fourth frame only
+/// (after the detection, which looks at the first). The NaN star is FAILED, the other
+/// SATURATED, the rest measured.
+#[test]
+fn failed_stars_are_flagged_by_kind_not_by_file_names() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = include_str!("../../../instruments/calcite.toml")
+        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
+    let ip = dir.path().join("calcite.toml");
+    std::fs::write(&ip, text).unwrap();
+    let mut s = format!(
+        "instrument = \"{}\"\nfilter = \"V\"\nseed = 5\nhwp_angles_deg = [0, 22.5, 45, 67.5]\n[output]\nbitpix = -64\n[sky]\nbrightness_e = 100\n[effects]\nphoton_noise = true\n",
+        ip.display()
+    );
+    let stars = [(100.0, 120.0), (300.0, 320.0), (200.0, 520.0)];
+    for (x, y) in stars {
+        s += &format!("[[stars]]\nx = {x}\ny = {y}\ncoords = \"pixel\"\nflux_e = 2e5\np = 0.01\nchi_deg = 30\nfwhm_arcsec = 1.0\n");
+    }
+    let frames_dir = dir.path().join("saturated, off the shelf");
+    std::fs::create_dir(&frames_dir).unwrap();
+    let sc = Scene::from_toml_str(&s, &frames_dir.join("s.toml")).unwrap();
+    let out = sim::simulate(&sc, &frames_dir.join("f"), &|| {}).unwrap();
+    let inst = instrument::Instrument::load(ip.to_str().unwrap()).unwrap();
+    let mut set = FrameSet::from_frames(read_frames(&out.frames, &inst, &|| {}).unwrap(), &inst, true).unwrap();
+    let nx = set.nx;
+    set.data[3][120 * nx + 100] = f64::NAN;
+    set.data[3][320 * nx + 300] = inst.detector.saturation_adu + 1.0;
+    let cfg = CatalogConfig {
+        detect: DetectConfig { fwhm_px: 4.7, ..Default::default() },
+        radius: skyfield::photometry::ApertureRadius::Px(9.0),
+        annulus: Some((14.0, 24.0)),
+        weighting: skyfield::aperture::Weighting::Exact,
+        kappa: Default::default(),
+    };
+    let cat = catalog(&set, &inst, &cfg).unwrap();
+    let row = |x: f64, y: f64| {
+        cat.rows.iter().find(|r| (r.x - x).hypot(r.y - y) < 2.0).unwrap_or_else(|| panic!("no row at ({x}, {y})"))
+    };
+    let nan = row(100.0, 120.0);
+    assert!(nan.note.contains("saturated, off the shelf") && nan.note.contains("NaN"), "{}", nan.note);
+    assert_eq!(nan.flags, flags::FAILED, "{nan:?}");
+    let sat = row(300.0, 320.0);
+    assert_eq!(sat.flags, flags::SATURATED, "{sat:?}");
+    assert!(sat.note.contains("is saturated"), "{}", sat.note);
+    let good = row(200.0, 520.0);
+    assert!(good.flags == 0 && good.q.is_finite(), "{good:?}");
+}

@@ -14,8 +14,8 @@ use crate::photometry::{
     ApertureRadius, FrameFacts, FrameFluxes, Partial, PhotOptions,
 };
 use crate::reduce::{DiskFrames, FrameSet, FrameSource};
-use crate::Error;
 use crate::Warning;
+use crate::{Error, Unmeasurable};
 use instrument::Instrument;
 use rayon::prelude::*;
 use std::path::PathBuf;
@@ -82,7 +82,8 @@ type Try = (f64, Result<(), Error>);
 pub mod flags {
     /// A pixel near the centre of either image reaches saturation: not measured.
     pub const SATURATED: u32 = 1;
-    /// The aperture reaches behind the focal-plane mask or off the detector: not measured.
+    /// The star, its aperture or its e image reaches behind the focal-plane mask, off the
+    /// detector or into the gap between chips: not measured.
     pub const MASK_EDGE: u32 = 2;
     /// Another source lies within two aperture radii of either image.
     pub const BLENDED: u32 = 4;
@@ -630,15 +631,12 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                     row.sigma_u_scatter = row.sigma_u * scale;
                 }
                 Err(e) => {
-                    let m = e.to_string();
-                    row.flags |= if m.contains("behind the mask") || m.contains("off the") {
-                        flags::MASK_EDGE
-                    } else if m.contains("saturated") {
-                        flags::SATURATED
-                    } else {
-                        flags::FAILED
+                    row.flags |= match &e {
+                        Error::Unmeasurable { why: Unmeasurable::MaskEdge, .. } => flags::MASK_EDGE,
+                        Error::Unmeasurable { why: Unmeasurable::Saturated, .. } => flags::SATURATED,
+                        _ => flags::FAILED,
                     };
-                    row.note = m;
+                    row.note = e.to_string();
                 }
             }
             (row, centres)

@@ -63,12 +63,26 @@ pub enum Error {
     NoValidBins,
     #[error("{0}")]
     Invalid(String),
+    /// A star that cannot be measured where it is, and why: the catalog flags its row by
+    /// `why` (`catalog::flags`), never by the message's words, which hold file names.
+    #[error("{message}")]
+    Unmeasurable { why: Unmeasurable, message: String },
     #[error("{path}: {message}")]
     Table { path: PathBuf, message: String },
     #[error(transparent)]
     Stokes(#[from] stokes::Error),
     #[error(transparent)]
     Instrument(#[from] instrument::Error),
+}
+
+/// Why a star cannot be measured ([`Error::Unmeasurable`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Unmeasurable {
+    /// Its position, aperture or e image lies behind the focal-plane mask, off the detector or
+    /// in the gap between chips.
+    MaskEdge,
+    /// An aperture pixel reaches the saturation level.
+    Saturated,
 }
 
 /// A non-fatal problem worth telling the user (NaN or saturated pixels masked, ...).

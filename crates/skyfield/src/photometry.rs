@@ -19,7 +19,7 @@ use crate::beams::{BeamGeometry, PixelKind};
 use crate::bin::{sigma_clip_columns, ClipConfig};
 use crate::io::Conversion;
 use crate::reduce::FrameSet;
-use crate::Error;
+use crate::{Error, Unmeasurable};
 use instrument::{Instrument, Layout};
 use std::path::{Path, PathBuf};
 
@@ -288,20 +288,26 @@ pub(crate) fn check_placement(
         )));
     }
     if g.layout == Layout::Strips && g.strip_of_sky(x.round() as usize, y.round() as usize).is_none() {
-        return Err(Error::Invalid(format!(
-            "source position ({x:.1}, {y:.1}) px is behind the focal-plane mask: the sky there is not imaged (sky bands: {:?})",
-            g.sky_bands()
-        )));
+        return Err(Error::Unmeasurable {
+            why: Unmeasurable::MaskEdge,
+            message: format!(
+                "source position ({x:.1}, {y:.1}) px is behind the focal-plane mask: the sky there is not imaged (sky bands: {:?})",
+                g.sky_bands()
+            ),
+        });
     }
     if g.layout == Layout::Strips {
         // The aperture at the given position must see sky only: say so before any centring.
         let k = g.strip_of_sky(x.round() as usize, y.round() as usize);
         for (px, py, _) in weights(x, y, ap.radius_px, g.nx, g.ny, opts.weighting) {
             if !matches!(g.kind(px, py), PixelKind::Ordinary(s) if Some(s) == k) {
-                return Err(Error::Invalid(format!(
-                    "aperture of radius {} px at ({x:.1}, {y:.1}) reaches pixel ({px}, {py}) behind the mask; use a smaller aperture",
-                    ap.radius_px
-                )));
+                return Err(Error::Unmeasurable {
+                    why: Unmeasurable::MaskEdge,
+                    message: format!(
+                        "aperture of radius {} px at ({x:.1}, {y:.1}) reaches pixel ({px}, {py}) behind the mask; use a smaller aperture",
+                        ap.radius_px
+                    ),
+                });
             }
         }
     }
@@ -342,10 +348,9 @@ pub(crate) fn measure_frame(
     } else {
         (x, y)
     };
-    let (xe, ye) = g.e_position(xo, yo).ok_or_else(|| {
-        Error::Invalid(format!(
-            "the e image of ({xo:.1}, {yo:.1}) px falls behind the mask or off the detector ({file})"
-        ))
+    let (xe, ye) = g.e_position(xo, yo).ok_or_else(|| Error::Unmeasurable {
+        why: Unmeasurable::MaskEdge,
+        message: format!("the e image of ({xo:.1}, {yo:.1}) px falls behind the mask or off the detector ({file})"),
     })?;
     let strip = g.strip_of_sky(xo.round().max(0.0) as usize, yo.round().max(0.0) as usize);
     let mut beam = [(0.0, 0.0, 0.0); 2];
@@ -368,29 +373,45 @@ pub(crate) fn measure_frame(
         let r = ap.radius_px;
         let covered = cx - r >= -0.5 && cy - r >= -0.5 && cx + r <= g.nx as f64 - 0.5 && cy + r <= g.ny as f64 - 0.5;
         if !covered {
-            return Err(Error::Invalid(format!(
-                "the {name} aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches off the {} x {} detector",
-                g.nx, g.ny
-            )));
+            return Err(Error::Unmeasurable {
+                why: Unmeasurable::MaskEdge,
+                message: format!(
+                    "the {name} aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches off the {} x {} detector",
+                    g.nx, g.ny
+                ),
+            });
         }
         let (mut s, mut v, mut area) = (0.0, 0.0, 0.0);
         for &(px, py, wt) in &w {
             if !in_beam(px, py) {
-                return Err(Error::Invalid(format!(
-                    "aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches pixel ({px}, {py}) behind the mask; use a smaller aperture"
-                )));
+                return Err(Error::Unmeasurable {
+                    why: Unmeasurable::MaskEdge,
+                    message: format!(
+                        "aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches pixel ({px}, {py}) behind the mask; use a smaller aperture"
+                    ),
+                });
             }
             let val = data[py * g.nx + px];
             if val <= crate::io::GAP_LIMIT {
+                return Err(Error::Unmeasurable {
+                    why: Unmeasurable::MaskEdge,
+                    message: format!(
+                        "aperture pixel ({px}, {py}) of the {name} beam lies in the gap between the chips; photometry needs clean aperture pixels"
+                    ),
+                });
+            }
+            if !val.is_finite() {
                 return Err(Error::Invalid(format!(
-                    "aperture pixel ({px}, {py}) of the {name} beam lies in the gap between the chips; photometry needs clean aperture pixels"
+                    "aperture pixel ({px}, {py}) of the {name} beam in {file} is {val}; photometry needs clean aperture pixels"
                 )));
             }
-            if !val.is_finite() || val >= sat * nexp {
-                return Err(Error::Invalid(format!(
-                    "aperture pixel ({px}, {py}) of the {name} beam in {file} is {}; photometry needs clean aperture pixels",
-                    if val.is_finite() { "saturated".to_string() } else { val.to_string() }
-                )));
+            if val >= sat * nexp {
+                return Err(Error::Unmeasurable {
+                    why: Unmeasurable::Saturated,
+                    message: format!(
+                        "aperture pixel ({px}, {py}) of the {name} beam in {file} is saturated; photometry needs clean aperture pixels"
+                    ),
+                });
             }
             let e = to_e(val);
             s += wt * e;
