@@ -192,8 +192,8 @@ fn fits_table_catalog() {
         for (n, v) in [("X", &xs), ("Y", &ys), ("Q", &qs), ("U", &us)] {
             h.write_col(&mut f, n, v).unwrap();
         }
-        h.write_col(&mut f, "SIGMA_Q", &vec![1e-4; 4]).unwrap();
-        h.write_col(&mut f, "SIGMA_U", &vec![1e-4; 4]).unwrap();
+        h.write_col(&mut f, "SIGMA_Q", &[1e-4; 4]).unwrap();
+        h.write_col(&mut f, "SIGMA_U", &[1e-4; 4]).unwrap();
     }
     let out = dir.path().join("out.fits");
     correct(&calp, &inp, &out, &["--estimator", "as"]);

@@ -180,9 +180,7 @@ fn closed_objects(s: &Value, path: &str, errs: &mut Vec<String>) {
                 o.get("properties").and_then(Value::as_object).map_or(vec![], |p| p.keys().collect());
             for p in &props {
                 let d = &o["properties"][p.as_str()]["description"];
-                if !d.as_str().is_some_and(|d| !d.trim().is_empty())
-                    && o["properties"][p.as_str()].get("$ref").is_none()
-                {
+                if d.as_str().is_none_or(|d| d.trim().is_empty()) && o["properties"][p.as_str()].get("$ref").is_none() {
                     errs.push(format!("{path}.{p}: no description (meaning and unit)"));
                 }
             }

@@ -177,7 +177,7 @@ fn mc_sweep_log_axes_label_every_decade() {
         assert!(k1 > k0, "{key}: the axis spans {lo}..{hi}, at least two decades expected");
         for k in k0..=k1 {
             let want = decade_label(k);
-            assert!(labels.iter().any(|l| *l == want), "{key}.{field}: decade {want} has no label in {labels:?}");
+            assert!(labels.contains(&want), "{key}.{field}: decade {want} has no label in {labels:?}");
         }
     }
 }

@@ -684,7 +684,7 @@ impl Calibration {
             let h = f.hdu("INPUTS").map_err(e("finding table INPUTS"))?;
             let bytes: Vec<u8> = h.read_col(&mut f, "FILE_BYTES").map_err(e("reading INPUTS column FILE_BYTES"))?;
             let n = ninput as usize;
-            if n == 0 || bytes.is_empty() || bytes.len() % n != 0 {
+            if n == 0 || bytes.is_empty() || !bytes.len().is_multiple_of(n) {
                 return Err(Error::BadFile {
                     path: path.into(),
                     what: format!("INPUTS holds {} bytes, not a whole number of {n} names", bytes.len()),

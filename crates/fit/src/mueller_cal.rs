@@ -158,7 +158,7 @@ impl MuellerCal {
             cov[0] += add;
             cov[2] += add;
         }
-        if !cov.iter().all(|v| v.is_finite()) || !(q0.is_finite() && u0.is_finite()) {
+        if !(cov.iter().all(|v| v.is_finite()) && q0.is_finite() && u0.is_finite()) {
             return Err(correct::Error::Mueller(format!(
                 "the Mueller field at ({}, {}) arcmin gives no finite correction",
                 m.x, m.y
@@ -358,10 +358,11 @@ impl MuellerCal {
             Some(scale) => {
                 let origin = [r.real("PIX ORIGIN X")?, r.real("PIX ORIGIN Y")?];
                 let binning = r.opt_int("PIX BINNING").unwrap_or(1);
-                if !(scale > 0.0 && scale.is_finite())
-                    || !origin.iter().all(|v| v.is_finite())
-                    || !(1..=64).contains(&binning)
-                {
+                let valid = scale > 0.0
+                    && scale.is_finite()
+                    && origin.iter().all(|v| v.is_finite())
+                    && (1..=64).contains(&binning);
+                if !valid {
                     return Err(bad(format!(
                         "pixel grid PIX SCALE ARCSEC = {scale}, PIX ORIGIN = {origin:?}, PIX BINNING = {binning} is not valid"
                     )));

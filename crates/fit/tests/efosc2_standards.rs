@@ -10,7 +10,7 @@ use common::jones::{mul, rot, C, J};
 use fit::telescope::{fit_band, fit_joint, read_observations, FitOptions, ModelKind};
 use fit::ErrorScaling;
 use mueller::mirror::MetalTable;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 fn data_dir() -> Option<PathBuf> {
     let d = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/efosc2-standards");
@@ -38,7 +38,7 @@ fn rows(path: &PathBuf) -> Vec<[f64; 6]> {
 }
 
 /// n, k of the shared Rakic table, linear interpolation between the bracketing rows.
-fn rakic(dir: &PathBuf, w: f64) -> C {
+fn rakic(dir: &Path, w: f64) -> C {
     let t: Vec<[f64; 3]> = std::fs::read_to_string(dir.join("METALS_Aluminium_Rakic.txt"))
         .unwrap()
         .lines()

@@ -75,6 +75,6 @@ fn calibration_with_empty_inputs_table_is_refused_by_name() {
     let card = start + b[start..ext].windows(9).position(|w| w == b"NAXIS2  =").unwrap();
     b[card + 10..card + 30].copy_from_slice(format!("{:>20}", 0).as_bytes());
     std::fs::write(&p, b).unwrap();
-    let e = fit::Calibration::load(&p).err().expect("empty INPUTS refused").to_string();
+    let e = fit::Calibration::load(&p).expect_err("empty INPUTS refused").to_string();
     assert!(e.contains("cal.fits") && e.contains("INPUTS"), "{e}");
 }

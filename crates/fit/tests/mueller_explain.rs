@@ -34,7 +34,7 @@ fn opts(kind: Kind) -> MuellerFitOptions {
     MuellerFitOptions { kind, deg: 4, scale_arcmin: 3.4, ..Default::default() }
 }
 
-fn pick<'a>(e: &'a fit::mueller_explain::Explanation, c: Cause) -> &'a fit::mueller_explain::CauseFit {
+fn pick(e: &fit::mueller_explain::Explanation, c: Cause) -> &fit::mueller_explain::CauseFit {
     e.fits.iter().find(|f| f.cause == c).unwrap()
 }
 

@@ -262,7 +262,7 @@ mod tests {
             (Box::new(move |t| partial_polarizer(a, t)), "partial_polarizer"),
             (Box::new(move |t| diattenuator(a, b, t)), "diattenuator"),
             (Box::new(move |t| retarder(c, t)), "retarder"),
-            (Box::new(move |t| polarizer(t)), "polarizer"),
+            (Box::new(polarizer), "polarizer"),
             (Box::new(move |t| Hwp { retardance_error: c - PI, ..Hwp::ideal() }.matrix(t)), "hwp"),
             (
                 Box::new(move |t| {

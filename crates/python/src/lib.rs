@@ -340,6 +340,7 @@ fn _bias<'py>(
 
 /// The field model a calibration file holds: a partial polarizer p, phi (`instpol calibrate`,
 /// `import-map`, `fit`) or a Mueller field (`instpol calibrate-mueller --out CAL.fits`).
+#[allow(clippy::large_enum_variant)] // one per loaded calibration: the size does not matter
 enum Field {
     PPhi(fit::Calibration),
     Mueller(fit::mueller_cal::MuellerCal),

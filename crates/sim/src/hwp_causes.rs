@@ -140,8 +140,8 @@ mod tests {
     fn wedge_scales_polarization_by_cos_squared_half() {
         let w = WedgedHwpSpec { retardance_error_deg: 10.0, gradient_deg_per_arcmin: [5.0, 0.0] };
         let s = StokesSolver::new(&(0..8).map(|k| k as f64 * std::f64::consts::PI / 8.0).collect::<Vec<_>>()).unwrap();
-        for x in [-3.0, 0.0, 2.0] {
-            let eps = (10.0 + 5.0 * x as f64).to_radians();
+        for x in [-3.0f64, 0.0, 2.0] {
+            let eps = (10.0 + 5.0 * x).to_radians();
             let (q, u) = w.block_at(&s, x, 1.0).forward(0.0645, 0.0).unwrap();
             assert!((q - 0.0645 * (0.5 * eps).cos().powi(2)).abs() < 1e-12 && u.abs() < 1e-12);
         }

@@ -241,11 +241,13 @@ mod tests {
     }
 
     /// The weights of a circle wholly on the detector add up to pi r^2 (to rounding), at any
-    /// sub-pixel phase and radius, including radii below one pixel.
+    /// sub-pixel phase and radius, including radii below one pixel and 1/sqrt(2), the circle
+    /// through the corners of the pixel it is centred on, and 0.7071 just inside them.
     #[test]
+    #[allow(clippy::approx_constant)] // 0.7071 is meant to miss 1/sqrt(2)
     fn exact_weights_sum_to_the_circle_area() {
         for &(xc, yc) in &[(20.0, 20.0), (20.5, 20.5), (20.13, 19.77), (19.999, 20.25)] {
-            for &r in &[0.2, 0.5, 0.7071, 1.0, 2.5, 7.3] {
+            for &r in &[0.2, 0.5, std::f64::consts::FRAC_1_SQRT_2, 0.7071, 1.0, 2.5, 7.3] {
                 let s: f64 = weights(xc, yc, r, 64, 64, Weighting::Exact).iter().map(|w| w.2).sum();
                 let area = std::f64::consts::PI * r * r;
                 assert!((s - area).abs() < 1e-12 * area.max(1.0), "({xc}, {yc}) r = {r}: {s} vs {area}");

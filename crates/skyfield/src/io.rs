@@ -953,10 +953,10 @@ impl RawKind {
 
 fn raw_kind(bitpix: i32, bscale: f64, bzero: f64) -> Option<RawKind> {
     match (bitpix, bscale == 1.0, bzero) {
-        (-32, true, z) if z == 0.0 => Some(RawKind::F32),
-        (-64, true, z) if z == 0.0 => Some(RawKind::F64),
-        (16, true, z) if z == 0.0 => Some(RawKind::I16),
-        (16, true, z) if z == 32768.0 => Some(RawKind::U16),
+        (-32, true, 0.0) => Some(RawKind::F32),
+        (-64, true, 0.0) => Some(RawKind::F64),
+        (16, true, 0.0) => Some(RawKind::I16),
+        (16, true, 32768.0) => Some(RawKind::U16),
         _ => None,
     }
 }

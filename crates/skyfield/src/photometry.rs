@@ -798,10 +798,8 @@ fn oe_offset_of_image(
             // stars seldom are, so only such pairs vote.
             let (fa, fb) = (a.0 - med, b.0 - med);
             let similar = fa < 1.6 * fb && fb < 1.6 * fa;
-            if similar && (dx > 0 || (dx == 0 && dy > 0)) {
-                if dx * dx + dy * dy >= 4 {
-                    *votes.entry((dx, dy)).or_default() += 1;
-                }
+            if similar && (dx > 0 || (dx == 0 && dy > 0)) && dx * dx + dy * dy >= 4 {
+                *votes.entry((dx, dy)).or_default() += 1;
             }
         }
     }

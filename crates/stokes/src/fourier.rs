@@ -51,7 +51,7 @@ impl Harmonic {
 /// harmonics that are absent come out as exact zeros where the sampling allows.
 pub(crate) fn cis(m: usize, n: usize) -> (f64, f64) {
     let m = m % n;
-    if (4 * m) % n == 0 {
+    if (4 * m).is_multiple_of(n) {
         return match 4 * m / n {
             0 => (1.0, 0.0),
             1 => (0.0, 1.0),
@@ -90,7 +90,7 @@ pub fn fourier_coefficients(f: &[f64], sigma_f: &[f64]) -> Result<Vec<Harmonic>,
     let nf = n as f64;
     (0..=n / 2)
         .map(|k| {
-            let nyquist = n % 2 == 0 && k == n / 2;
+            let nyquist = n.is_multiple_of(2) && k == n / 2;
             let norm = if k == 0 || nyquist { 1.0 / nf } else { 2.0 / nf };
             let (mut a, mut b, mut va, mut vb) = (0.0, 0.0, 0.0, 0.0);
             for i in 0..n {

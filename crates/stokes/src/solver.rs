@@ -193,7 +193,8 @@ impl StokesSolver {
         let inv = [[c / det, -b / det], [-b / det, a / det]];
         let cq: Vec<f64> = (0..n).map(|i| inv[0][0] * c4[i] + inv[0][1] * s4[i]).collect();
         let cu: Vec<f64> = (0..n).map(|i| inv[1][0] * c4[i] + inv[1][1] * s4[i]).collect();
-        let optimal = n % 4 == 0 && theta.iter().enumerate().all(|(i, &t)| ((t - i as f64 * PI / 8.0).abs()) < 1e-9);
+        let optimal =
+            n.is_multiple_of(4) && theta.iter().enumerate().all(|(i, &t)| ((t - i as f64 * PI / 8.0).abs()) < 1e-9);
         Ok(Self { theta: theta.to_vec(), c4, s4, cq, cu, inv, optimal })
     }
 

@@ -264,7 +264,7 @@ fn hwp_dust_and_pleochroism_harmonics() {
 /// From the Mueller algebra (the paper's printed F_i has the wrong sign on its
 /// sin^2 2theta (1 - cos Delta beta) term: a plate with zero retardance must act as the
 /// identity): F_i = Q [cos 4theta + sin^2 2theta (1 - cos db)] + U sin 4theta (1 + cos db)/2
-/// + sigma V sin 2theta sin db. The sign sigma of the V term depends on the circular
+/// plus sigma V sin 2theta sin db. The sign sigma of the V term depends on the circular
 /// convention: with the `mueller` retarder (IAU V, documented there) it is -1, the paper
 /// prints +1 without stating its convention; so both signs of V are checked. N = 16 gives
 /// exactly P (1 + cos db)/2 (the V term cancels over the full turn: 0.011%); for N = 4 the V

@@ -146,7 +146,7 @@ fn star_fields(path: &std::path::Path) -> Result<Vec<CalField>> {
     for i in 0..x.len() {
         let what = format!("{} {}", path.display(), t.row_label(i));
         let vals = [x[i], y[i], q[i], u[i], sq[i], su[i], pt[i], ct[i], st[i]];
-        if !vals.iter().all(|v| v.is_finite()) || !(sq[i] > 0.0 && su[i] > 0.0) || st[i] < 0.0 {
+        if !(vals.iter().all(|v| v.is_finite()) && sq[i] > 0.0 && su[i] > 0.0) || st[i] < 0.0 {
             bail!("{what}: x, y, q, u, sigma_q, sigma_u, p_true, chi_true_deg, sigma_true = {vals:?}: need finite values and errors > 0");
         }
         if !(0.0..1.0).contains(&pt[i]) || q[i].hypot(u[i]) >= 1.0 {
