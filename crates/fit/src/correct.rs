@@ -77,6 +77,9 @@ pub enum Error {
     /// A Mueller-field calibration ([`crate::mueller_cal`]) has no exact inverse here.
     #[error("{0}")]
     Mueller(String),
+    /// The telescope step of the chain failed here ([`crate::telescope_cal::correct_chain`]).
+    #[error("telescope: {0}")]
+    Telescope(String),
     #[error("row {row}: {source}")]
     Row { row: usize, source: Box<Error> },
     #[error("batch lengths differ: {inputs} inputs, {outputs} output slots")]

@@ -319,6 +319,36 @@ pub struct ChainCorrected {
     pub u_tel: f64,
 }
 
+impl ChainCorrected {
+    /// The correction with `inst` holding the field's and the telescope's instrumental
+    /// polarization together (their sum: first order), as catalogs and maps report it.
+    pub fn with_telescope_in_inst(&self) -> Corrected {
+        let mut c = self.corrected;
+        c.inst.q += self.q_tel;
+        c.inst.u += self.u_tel;
+        c
+    }
+}
+
+/// Correct every valid bin of a Stokes map through the chain ([`correct_chain`] at the bin's
+/// centre): the bins of a map share their exposures, hence one parallactic-angle `track` for
+/// all of them. The scatter and the photon-noise errors are each propagated
+/// ([`crate::correct::correct_map_with`]); each bin's `inst` is the field's and the
+/// telescope's polarization together ([`ChainCorrected::with_telescope_in_inst`]).
+pub fn correct_map_chain<M: FieldModel + ?Sized>(
+    field: Option<&Corrector<M>>,
+    tel: &TelescopeFit,
+    band: &str,
+    map: &skyfield::StokesMap,
+    track: Track,
+) -> std::result::Result<crate::correct::CorrectedMap, crate::correct::MapError> {
+    crate::correct::correct_map_with(map, |m| {
+        correct_chain(field, tel, band, m, track)
+            .map(|r| r.with_telescope_in_inst())
+            .map_err(|e| crate::correct::Error::Telescope(e.to_string()))
+    })
+}
+
 /// Correct `m` (instrument frame) for the field (when `field` is given) and then the telescope
 /// of `band` over `track` (see the module docs for the order and what each step uses).
 pub fn correct_chain<M: FieldModel + ?Sized>(

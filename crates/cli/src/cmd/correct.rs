@@ -44,8 +44,17 @@ use stokes::stats::{Estimator, PolMeasurement};
 /// when the model was fitted with rotator angles. The field is
 /// undone first, then the telescope (fit::telescope_cal); q_inst, u_inst are then the field's
 /// and the telescope's instrumental polarization together, to first order. --band picks the
-/// telescope model's band (default: the field calibration's filter, or its only band).
+/// telescope model's band (default: the field calibration's filter, the map's filter, or the
+/// model's only band).
 /// Example: instpol correct --cal tel_V.fits --in stars.csv --out stars_corr.csv
+///
+/// A Stokes map's bins share their exposures, hence one parallactic-angle track: give it with
+/// --parang START[,END] (deg: the first frame's start, the last frame's end, as their headers
+/// say), and --rotator DEG when the model was fitted with rotator angles. A catalog without a
+/// parang_deg column (every star from the same frames, as `instpol catalog` writes them) takes
+/// the same options for all its rows. The output map records the model, band and track
+/// (TELMODEL, TELBAND, PARANG1, PARANG2, ROTANG).
+/// Example: instpol correct --cal tel_V.fits --in map_V.fits --out map_V_corr.fits --parang -41.2,-37.9
 ///
 /// A Mueller-field calibration (`instpol calibrate-mueller --out CAL.fits`, MODEL = 'MUELLER'):
 /// the fitted linear block of the pre-analyzer Mueller matrix (diattenuation and, as fitted,
@@ -108,6 +117,14 @@ pub struct Args {
     /// calibration's filter, or the model's only band).
     #[arg(long, value_name = "BAND")]
     pub band: Option<String>,
+    /// With a telescope model: the parallactic angle (deg) over the exposures, START or
+    /// START,END, for a Stokes map or a catalog without a parang_deg column.
+    #[arg(long, value_name = "START[,END]", allow_hyphen_values = true)]
+    pub parang: Option<String>,
+    /// With a telescope model fitted with rotator angles: the exposures' rotator / adapter
+    /// angle (deg), for a Stokes map or a catalog without a rotator_deg column.
+    #[arg(long, value_name = "DEG", allow_hyphen_values = true)]
+    pub rotator: Option<f64>,
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
@@ -180,8 +197,8 @@ pub fn run(a: Args) -> Result<()> {
         (None, Some(cal)) => cal,
         (None, None) => bail!("{}: holds no model", a.cal.display()),
     };
-    if a.band.is_some() {
-        bail!("--band is for calibrations with a telescope model; {} has none", a.cal.display());
+    if a.band.is_some() || a.parang.is_some() || a.rotator.is_some() {
+        bail!("--band, --parang, --rotator are for calibrations with a telescope model; {} has none", a.cal.display());
     }
     let opts = options(&cal, &a);
     let kind = detect(&a.input)?;
@@ -527,6 +544,70 @@ fn check_same_setup(inst: &str, filter: &str, cal: (&str, &str), input: &Path, c
     Ok(())
 }
 
+/// A Stokes map through the chain: the field (when the calibration has one) at each bin's
+/// centre, then the telescope over the exposures' one track (--parang, --rotator).
+fn telescope_map(
+    a: &Args,
+    tel: &fit::telescope::TelescopeFit,
+    field: Option<&Calibration>,
+    cor: Option<&Corrector<Calibration>>,
+) -> Result<()> {
+    let map = skyfield::StokesMap::read_fits(&a.input)
+        .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
+    if let Some(c) = field {
+        check_same_setup(&map.instrument, &map.filter, (&c.instrument, &c.filter), &a.input, &a.cal, a.allow_mismatch)?;
+    }
+    let band = telescope_band(a, tel, field, Some(&map.filter))?;
+    if field.is_none() && !fit::setup::same_filter(None, &map.filter, &band) && !a.allow_mismatch {
+        bail!(
+            "{} is a {} map but the telescope model's band is {band}: use the band of the map's filter (--band), or --allow-mismatch",
+            a.input.display(),
+            map.filter
+        );
+    }
+    let track = shared_track(a, tel, "a Stokes map")?;
+    let c = fit::telescope_cal::correct_map_chain(cor, tel, &band, &map, track).map_err(|e| map_error(e, &a.input))?;
+    let meth = match (field, a.method) {
+        (None, _) => "telescope model only",
+        (Some(_), MethodArg::Exact) => "exact M_I inverse (eq:instpol), then the telescope",
+        (Some(_), MethodArg::FirstOrder) => "first order (eq:approx), then the telescope",
+    };
+    write_corrected_map_with(a, &c.map, meth, 0.0, |f, ph| {
+        ph.write_key(f, "TELMODEL", (tel.model.name(), "telescope model removed"))?;
+        ph.write_key(f, "TELBAND", (band.as_str(), "band of the telescope model"))?;
+        ph.write_key(f, "PARANG1", (track.start.to_degrees(), "parallactic angle, first start [deg]"))?;
+        ph.write_key(f, "PARANG2", (track.end.to_degrees(), "parallactic angle, last end [deg]"))?;
+        ph.write_key(f, "ROTANG", (track.rotator.to_degrees(), "rotator angle used [deg]"))
+    })?;
+    let mut summary = map_summary(a, c, &map.filter, 0.0);
+    summary.telescope_model = Some(tel.model.name());
+    summary.telescope_band = Some(band.clone());
+    if a.json {
+        return crate::util::print_json(&summary);
+    }
+    outln!(
+        "corrected {} bins of {} with {} ({} model, band {band}{}), parallactic angle {:.2} to {:.2} deg",
+        summary.rows,
+        a.input.display(),
+        a.cal.display(),
+        tel.model.name(),
+        if field.is_some() { ", field model first" } else { ", no field model" },
+        track.start.to_degrees(),
+        track.end.to_degrees()
+    );
+    if let (Some(p0), Some(pi)) = (summary.median_p0, summary.median_p_inst) {
+        outln!("median instrumental p removed: {:.3} %, median corrected P0: {:.3} %", 100.0 * pi, 100.0 * p0);
+    }
+    if summary.extrapolated > 0 {
+        eprintln!(
+            "warning: {} of {} bins lie outside the calibrated field; corrected by extrapolation with inflated errors",
+            summary.extrapolated, summary.rows
+        );
+    }
+    outln!("wrote {}", a.out.display());
+    Ok(())
+}
+
 /// Correct a Stokes map bin by bin at the bin centres.
 fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summary> {
     let map = skyfield::StokesMap::read_fits(&a.input)
@@ -573,6 +654,17 @@ fn map_error(e: fit::correct::MapError, input: &Path) -> anyhow::Error {
 /// Write a corrected Stokes map beside the output, stamped with the correction's provenance
 /// (calibration, method, HWP zero angle), then renamed.
 fn write_corrected_map(a: &Args, m: &skyfield::StokesMap, meth: &str, hwp_deg: f64) -> Result<()> {
+    write_corrected_map_with(a, m, meth, hwp_deg, |_, _| Ok(()))
+}
+
+/// [`write_corrected_map`] with more primary-header keywords (`extra`).
+fn write_corrected_map_with(
+    a: &Args,
+    m: &skyfield::StokesMap,
+    meth: &str,
+    hwp_deg: f64,
+    extra: impl FnOnce(&mut FitsFile, &fitsio::hdu::FitsHdu) -> Result<(), fitsio::errors::Error>,
+) -> Result<()> {
     // Written beside the output, stamped with the correction's provenance, then renamed.
     crate::util::write_via_temp(&a.out, ".fits.tmp", |tmp| {
         m.write_fits(tmp).with_context(|| format!("cannot write {}", a.out.display()))?;
@@ -583,6 +675,7 @@ fn write_corrected_map(a: &Args, m: &skyfield::StokesMap, meth: &str, hwp_deg: f
         ph.write_key(&mut f, "INSTCORR", (name.as_str(), "instrumental polarization removed with")).map_err(werr)?;
         ph.write_key(&mut f, "CORRMETH", meth).map_err(werr)?;
         ph.write_key(&mut f, "CORRHWP", (hwp_deg, "HWP zero angle added to chi [deg]")).map_err(werr)?;
+        extra(&mut f, &ph).map_err(werr)?;
         skyfield::durable::close_fits(f).map_err(|m| anyhow!("cannot write {}: {m}", a.out.display()))
     })
 }
@@ -591,8 +684,11 @@ fn write_corrected_map(a: &Args, m: &skyfield::StokesMap, meth: &str, hwp_deg: f
 /// (`fit::mueller_cal::MuellerCal::correct`), in the maps' frame (HWP zero angle 0).
 fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> Result<()> {
     use rayon::prelude::*;
-    if a.band.is_some() {
-        bail!("--band is for calibrations with a telescope model; {} holds a Mueller field", a.cal.display());
+    if a.band.is_some() || a.parang.is_some() || a.rotator.is_some() {
+        bail!(
+            "--band, --parang, --rotator are for calibrations with a telescope model; {} holds a Mueller field",
+            a.cal.display()
+        );
     }
     if a.method != MethodArg::Exact {
         bail!(
@@ -668,8 +764,61 @@ fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> 
     Ok(())
 }
 
-/// `correct` with a telescope model (and maybe a field model): catalogs only, the parallactic
-/// angle per row; the field first, then the telescope over each row's track.
+/// The band of the telescope model to use: --band, the field calibration's filter, the map's
+/// filter (when the model has it), or the model's only band.
+fn telescope_band(
+    a: &Args,
+    tel: &fit::telescope::TelescopeFit,
+    field: Option<&Calibration>,
+    map_filter: Option<&str>,
+) -> Result<String> {
+    let bands: Vec<&str> = tel.bands.iter().map(|b| b.0.as_str()).collect();
+    let band = match (&a.band, field, map_filter) {
+        (Some(b), _, _) => b.clone(),
+        (None, Some(c), _) => c.filter.clone(),
+        (None, None, Some(f)) if tel.band(f).is_some() => f.to_string(),
+        (None, None, _) if bands.len() == 1 => bands[0].to_string(),
+        (None, None, _) => {
+            bail!("{}: the telescope model has bands {}: choose one with --band", a.cal.display(), bands.join(", "))
+        }
+    };
+    if tel.band(&band).is_none() {
+        bail!("--band {band}: the telescope model of {} has bands {}", a.cal.display(), bands.join(", "));
+    }
+    Ok(band)
+}
+
+/// The one track of a Stokes map, or of a catalog without a parallactic-angle column: from
+/// --parang and --rotator (the rotator is needed when, and only used when, the model was
+/// fitted with rotator angles; otherwise its offset already holds it).
+fn shared_track(a: &Args, tel: &fit::telescope::TelescopeFit, what: &str) -> Result<fit::telescope::Track> {
+    let Some(p) = &a.parang else {
+        bail!(
+            "{}: {what} needs the parallactic angle of its exposures for the telescope model of {}: give --parang START[,END] (deg: the first frame's start, the last frame's end, as their headers say)",
+            a.input.display(),
+            a.cal.display()
+        );
+    };
+    let track = crate::util::parse_parang(p)?;
+    match (tel.with_rotator, a.rotator) {
+        (true, Some(r)) => Ok(track.with_rotator(crate::util::parse_rotator(r)?)),
+        (true, None) => bail!(
+            "the telescope model of {} was fitted with rotator angles: give the exposures' with --rotator DEG",
+            a.cal.display()
+        ),
+        (false, Some(_)) => {
+            eprintln!(
+                "warning: --rotator is ignored: the telescope model of {} was fitted without rotator angles (its offset holds the rotator's)",
+                a.cal.display()
+            );
+            Ok(track)
+        }
+        (false, None) => Ok(track),
+    }
+}
+
+/// `correct` with a telescope model (and maybe a field model): the field first, then the
+/// telescope over each row's track (a catalog) or the exposures' one track (a Stokes map).
 fn run_telescope(
     a: &Args,
     tel: &fit::telescope::TelescopeFit,
@@ -678,65 +827,60 @@ fn run_telescope(
 ) -> Result<()> {
     use fit::telescope::Track;
     let kind = detect(&a.input)?;
-    if kind == Kind::Map {
-        bail!(
-            "{}: a Stokes map has no parallactic angle per bin; with a telescope model ({}) correct catalogs (column {})",
-            a.input.display(),
-            a.cal.display(),
-            PARANG[0]
-        );
-    }
-    let bands: Vec<&str> = tel.bands.iter().map(|b| b.0.as_str()).collect();
-    let band = match (&a.band, field) {
-        (Some(b), _) => b.clone(),
-        (None, Some(c)) => c.filter.clone(),
-        (None, None) if bands.len() == 1 => bands[0].to_string(),
-        (None, None) => {
-            bail!("{}: the telescope model has bands {}: choose one with --band", a.cal.display(), bands.join(", "))
-        }
-    };
-    if tel.band(&band).is_none() {
-        bail!("--band {band}: the telescope model of {} has bands {}", a.cal.display(), bands.join(", "));
-    }
-    let out_format = Some(Format::from_path(&a.out)?);
-    let mut table = read_catalog(a, kind)?;
-    if table.column(PARANG[0]).is_none() {
-        bail!(
-            "{}: no column '{}' (columns: {}): the telescope model of {} needs each row's parallactic angle (deg)",
-            a.input.display(),
-            PARANG[0],
-            table.names().join(", "),
-            a.cal.display()
-        );
-    }
-    let pa = table.numbers(PARANG[0], &a.input)?;
-    let pa_end = match table.column(PARANG[1]) {
-        Some(_) => Some(table.numbers(PARANG[1], &a.input)?),
-        None => None,
-    };
-    // The rotator angle per row (deg), when the model was fitted with rotator angles
-    // (fit::telescope::Track::rotator); otherwise its offset already holds it.
-    let rot = match table.column("rotator_deg") {
-        Some(_) if tel.with_rotator => Some(table.numbers("rotator_deg", &a.input)?),
-        _ => None,
-    };
-    let meas = measurements(&table, field.and_then(|c| c.pixel), a.coords, &a.input)?;
     // The telescope's offset is the instrument's angle zero (module docs of fit::telescope_cal).
     let opts = field.map(|c| CorrectOptions { chi_offset: 0.0, ..options(c, a) });
     let cor = match (field, opts) {
         (Some(c), Some(o)) => Some(Corrector::new(c, o)),
         _ => None,
     };
+    if kind == Kind::Map {
+        return telescope_map(a, tel, field, cor.as_ref());
+    }
+    let band = telescope_band(a, tel, field, None)?;
+    let out_format = Some(Format::from_path(&a.out)?);
+    let mut table = read_catalog(a, kind)?;
+    let meas = measurements(&table, field.and_then(|c| c.pixel), a.coords, &a.input)?;
+    let tracks: Vec<Track> = if table.column(PARANG[0]).is_some() {
+        if a.parang.is_some() {
+            bail!(
+                "{} has a {} column and --parang is given: use one (the column gives each row's angle)",
+                a.input.display(),
+                PARANG[0]
+            );
+        }
+        let pa = table.numbers(PARANG[0], &a.input)?;
+        let pa_end = match table.column(PARANG[1]) {
+            Some(_) => Some(table.numbers(PARANG[1], &a.input)?),
+            None => None,
+        };
+        // The rotator angle per row (deg), when the model was fitted with rotator angles
+        // (fit::telescope::Track::rotator); otherwise its offset already holds it.
+        let rot = match table.column("rotator_deg") {
+            Some(_) if tel.with_rotator => Some(table.numbers("rotator_deg", &a.input)?),
+            _ => None,
+        };
+        (0..meas.len())
+            .map(|i| {
+                let end = pa_end.as_ref().map(|e| e[i].to_radians());
+                Track::new(pa[i].to_radians(), end).with_rotator(rot.as_ref().map_or(0.0, |r| r[i].to_radians()))
+            })
+            .collect()
+    } else if a.parang.is_some() {
+        vec![shared_track(a, tel, "the catalog")?; meas.len()]
+    } else {
+        bail!(
+            "{}: no column '{}' (columns: {}): the telescope model of {} needs each row's parallactic angle (deg), or --parang START[,END] when every row comes from the same frames",
+            a.input.display(),
+            PARANG[0],
+            table.names().join(", "),
+            a.cal.display()
+        );
+    };
     let mut out = Vec::with_capacity(meas.len());
-    for (i, m) in meas.iter().enumerate() {
-        let end = pa_end.as_ref().map(|e| e[i].to_radians());
-        let track = Track::new(pa[i].to_radians(), end).with_rotator(rot.as_ref().map_or(0.0, |r| r[i].to_radians()));
+    for (i, (m, track)) in meas.iter().zip(tracks).enumerate() {
         let r = fit::telescope_cal::correct_chain(cor.as_ref(), tel, &band, m, track)
             .with_context(|| format!("{} {}", a.input.display(), table.row_label(i)))?;
-        let mut c = r.corrected;
-        c.inst.q += r.q_tel;
-        c.inst.u += r.u_tel;
-        out.push(c);
+        out.push(r.with_telescope_in_inst());
     }
     let n_extra = out.iter().filter(|c| c.extrapolated).count();
     if n_extra > 0 {

@@ -274,23 +274,6 @@ fn expected_star(a: &Args, band: &str) -> Result<(String, Expected)> {
     })
 }
 
-/// `--parang START[,END]` (deg) as a track (rad).
-fn parse_parang(s: &str) -> Result<fit::telescope::Track> {
-    let v: Vec<&str> = s.split(',').collect();
-    let num = |t: &str| -> Result<f64> {
-        let x: f64 = t.trim().parse().map_err(|_| anyhow!("--parang '{s}': '{t}' is not a number (deg)"))?;
-        if !x.is_finite() || x.abs() > 360.0 {
-            bail!("--parang '{s}': {x} is not an angle in degrees (-360 to 360)");
-        }
-        Ok(x.to_radians())
-    };
-    match v.as_slice() {
-        [a] => Ok(fit::telescope::Track::at(num(a)?)),
-        [a, b] => Ok(fit::telescope::Track::new(num(a)?, Some(num(b)?))),
-        _ => bail!("--parang '{s}': expected START or START,END in degrees"),
-    }
-}
-
 /// `validate` with a telescope calibration: the track from the headers (or --parang), the
 /// star measured, corrected through the chain and judged (fit::telescope_cal::validate_chain).
 fn run_telescope(a: &Args) -> Result<()> {
@@ -308,7 +291,7 @@ fn run_telescope(a: &Args) -> Result<()> {
         );
     }
     let track = match &a.parang {
-        Some(p) => parse_parang(p)?,
+        Some(p) => crate::util::parse_parang(p)?,
         None => {
             let Some(t) = inst.telescope.as_ref() else {
                 bail!(
