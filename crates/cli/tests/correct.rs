@@ -268,6 +268,36 @@ fn stokes_map_corrected_bin_by_bin() {
     let c = StokesMap::read_fits(&out).unwrap();
     let mut f = FitsFile::open(&out).unwrap();
     assert_eq!(f.primary_hdu().unwrap().read_key::<String>(&mut f, "INSTCORR").unwrap(), "v.fits");
+    // The corrected map corrected again would lose the instrumental polarization twice (every
+    // bin would move by -(q_i, u_i) once more): refused, naming INSTCORR, nothing written; and
+    // it is no sky-field input to calibrate on either.
+    let twice = dir.path().join("map_corr2.fits");
+    let o = run(&[
+        "correct",
+        "--cal",
+        calp.to_str().unwrap(),
+        "--in",
+        out.to_str().unwrap(),
+        "--out",
+        twice.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.code() == Some(2) && err.contains("INSTCORR") && err.contains("twice"), "{err}");
+    assert!(!twice.exists());
+    let o = run(&[
+        "calibrate",
+        "--map",
+        out.to_str().unwrap(),
+        "--sky-p",
+        "0",
+        "--sky-chi",
+        "0",
+        "--out",
+        twice.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.code() == Some(2) && err.contains("INSTCORR"), "{err}");
+    assert!(!twice.exists());
     for k in 0..g.len() {
         if k == 5 {
             assert!(!c.valid[k]);

@@ -18,8 +18,8 @@
 //! What is assumed of the other ways in:
 //! - a map read from FITS (`instpol calibrate --map`) is an *uncorrected* instpol map, in the
 //!   plate frame, like one fresh from the reduction (a map already corrected by
-//!   `instpol correct` carries `INSTCORR`/`CORRHWP` but `StokesMap` does not keep them; it is
-//!   not a sky-field input);
+//!   `instpol correct` carries `INSTCORR`/`CORRHWP`, and `StokesMap::read_uncorrected`, which
+//!   the commands read such inputs with, refuses it);
 //! - [`refit`] starts from a calibration's bins, which are already solved instrumental `(q, u)`
 //!   in that calibration's frame: nothing is rotated again;
 //! - an imported third-party map (`crate::import`) is taken as is, in its producer's frame, and

@@ -468,6 +468,23 @@ impl StokesMap {
     }
 
     /// Read a map written by [`Self::write_fits`].
+    /// [`StokesMap::read_fits`] for inputs that must still hold the instrumental polarization
+    /// (`instpol correct`, a sky-field calibration): a map that `instpol correct` wrote
+    /// (primary keyword `INSTCORR`, the calibration it was corrected with) is refused, as
+    /// correcting it again, or calibrating on it, would take the instrumental polarization
+    /// out twice. (The error does not name the file: callers say which input it was.)
+    pub fn read_uncorrected(path: &Path) -> Result<Self, Error> {
+        let map = Self::read_fits(path)?;
+        let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
+        let ph = f.primary_hdu().map_err(|e| fits_err(path, e))?;
+        if let Ok(cal) = crate::io::read_key_str(&mut f, &ph, "INSTCORR") {
+            return Err(Error::Invalid(format!(
+                "already corrected for the instrumental polarization (INSTCORR = '{cal}', by instpol correct); correcting it again or calibrating on it would remove that polarization twice: use the map from instpol reduce"
+            )));
+        }
+        Ok(map)
+    }
+
     pub fn read_fits(path: &Path) -> Result<Self, Error> {
         let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
         let ph = f.primary_hdu().map_err(|e| fits_err(path, e))?;

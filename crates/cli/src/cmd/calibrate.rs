@@ -212,7 +212,11 @@ pub fn run(a: Args) -> Result<()> {
     let inst = instrument::Instrument::load(&a.instrument)?;
     crate::util::check_bin(a.bin, &inst)?;
     let (map, inputs) = if let Some(m) = &a.map {
-        (skyfield::StokesMap::read_fits(m)?, vec![m.display().to_string()])
+        (
+            skyfield::StokesMap::read_uncorrected(m)
+                .with_context(|| format!("cannot read Stokes map {}", m.display()))?,
+            vec![m.display().to_string()],
+        )
     } else {
         if a.frames.is_empty() {
             bail!("no frames given: list the FITS frames of one filter (or give --map MAP.fits)");

@@ -230,7 +230,8 @@ pub fn run(a: Args) -> Result<()> {
     // The first map's instrument, filter and field coordinates: every field must share them.
     let mut setup: Option<(String, String, field::FieldCoords)> = None;
     for (path, p, chi, sig) in &specs {
-        let map = skyfield::maps::StokesMap::read_fits(path).with_context(|| format!("reading {}", path.display()))?;
+        let map =
+            skyfield::maps::StokesMap::read_uncorrected(path).with_context(|| format!("reading {}", path.display()))?;
         let obs = observations_of_map(&map);
         if obs.is_empty() {
             bail!("{}: the Stokes map has no valid bin", path.display());

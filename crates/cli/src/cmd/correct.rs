@@ -552,7 +552,7 @@ fn telescope_map(
     field: Option<&Calibration>,
     cor: Option<&Corrector<Calibration>>,
 ) -> Result<()> {
-    let map = skyfield::StokesMap::read_fits(&a.input)
+    let map = skyfield::StokesMap::read_uncorrected(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
     if let Some(c) = field {
         check_same_setup(&map.instrument, &map.filter, (&c.instrument, &c.filter), &a.input, &a.cal, a.allow_mismatch)?;
@@ -610,7 +610,7 @@ fn telescope_map(
 
 /// Correct a Stokes map bin by bin at the bin centres.
 fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summary> {
-    let map = skyfield::StokesMap::read_fits(&a.input)
+    let map = skyfield::StokesMap::read_uncorrected(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
     check_same_setup(&map.instrument, &map.filter, (&cal.instrument, &cal.filter), &a.input, &a.cal, a.allow_mismatch)?;
     let c = fit::correct::correct_map(cal, &map, opts).map_err(|e| map_error(e, &a.input))?;
@@ -704,7 +704,7 @@ fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> 
     };
     let kind = detect(&a.input)?;
     let mut summary = if kind == Kind::Map {
-        let map = skyfield::StokesMap::read_fits(&a.input)
+        let map = skyfield::StokesMap::read_uncorrected(&a.input)
             .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
         check_same_setup(
             &map.instrument,
