@@ -430,8 +430,9 @@ fn median_pull(v: &[f64], s: &[f64], valid: &[f64], truth: f64) -> f64 {
 /// A sky field seen through the M3 reduced to a Stokes map: `instpol correct` with the fitted
 /// telescope model and the frames' parallactic track (--parang, read from their headers here)
 /// gives the sky's q, u back in every bin, where the uncorrected map is tens of sigma off.
-/// Without --parang, or with --parang on a field-only calibration, it refuses and writes
-/// nothing.
+/// `reduce` recorded the same track in the map (PARANG1, PARANG2), so `correct` needs no
+/// --parang and writes the same map. A map without a track and no --parang, or --parang on a
+/// field-only calibration, is refused and nothing is written.
 #[test]
 fn correct_removes_the_telescope_from_a_stokes_map() {
     let dir = tempfile::tempdir().unwrap();
@@ -464,6 +465,7 @@ fn correct_removes_the_telescope_from_a_stokes_map() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let start = key(&frames[0], "HIERARCH ESO TEL PARANG START");
     let end = key(frames.last().unwrap(), "HIERARCH ESO TEL PARANG END");
+    assert!((key(&map, "PARANG1") - start).abs() < 1e-9 && (key(&map, "PARANG2") - end).abs() < 1e-9);
     let corrected = d.join("map_corr.fits");
     let correct = |extra: &[&str], cal: &Path| {
         instpol()
@@ -517,8 +519,28 @@ fn correct_removes_the_telescope_from_a_stokes_map() {
     assert!((h.read_key::<f64>(&mut f, "PARANG2").unwrap() - end).abs() < 1e-9);
     assert_eq!(h.read_key::<String>(&mut f, "TELMODEL").unwrap(), "wiersema");
 
-    // No track: refused, naming --parang, nothing written.
+    // The track the map recorded serves as well: the same corrected bins.
+    let q_given = map_image(&corrected, "Q");
     std::fs::remove_file(&corrected).unwrap();
+    let o = correct(&[], &tel);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let same = |a: &[f64], b: &[f64]| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
+    assert!(same(&q_given, &map_image(&corrected, "Q")));
+    std::fs::remove_file(&corrected).unwrap();
+    // Reduced as an instrument that names no parallactic keywords, the map has no track:
+    // refused without --parang, naming it, nothing written.
+    let plain = d.join("plain.toml");
+    std::fs::write(&plain, common::SMALL.toml()).unwrap();
+    let o = instpol()
+        .arg("reduce")
+        .args(&frames)
+        .arg("--instrument")
+        .arg(&plain)
+        .args(["--bin", "30", "--out"])
+        .arg(&map)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let o = correct(&[], &tel);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");

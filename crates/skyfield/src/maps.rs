@@ -23,7 +23,10 @@
 //! 'DETECTOR'`) and arcmin from the detector centre (alternate `A`, `WCSNAMEA = 'FIELD'`). When
 //! the frames have a celestial WCS it is carried through the binning ([`CelestialWcs::binned`])
 //! and becomes the primary WCS (`WCSNAME = 'SKY'`), the detector grid moving to alternate `D`.
-//! The primary header carries the run's provenance ([`crate::provenance`]).
+//! The primary header carries the run's provenance ([`crate::provenance`]), and, when the
+//! frames' headers gave them, the exposures' parallactic angle `PARANG1` (the first frame's
+//! start), `PARANG2` (the last frame's end) and rotator angle `ROTANG` (deg, the instrument's
+//! sense): optional keywords, within format version 1.
 
 use crate::{fits_err, Error};
 use fitsio::images::{ImageDescription, ImageType};
@@ -209,6 +212,15 @@ pub struct StokesMap {
     /// The celestial WCS of the map's bins (the frames' WCS carried through the binning, see
     /// [`CelestialWcs::binned`]), when the frames had one.
     pub celestial_wcs: Option<CelestialWcs>,
+    /// The exposures' parallactic angle (rad): the first frame's start and the last frame's
+    /// end, in the instrument's sense, when the frames' headers gave it (what a telescope
+    /// model needs to correct the map; `instpol reduce` records it).
+    #[serde(default)]
+    pub parallactic_rad: Option<(f64, f64)>,
+    /// The exposures' rotator / adapter angle (rad, the instrument's sense), when the
+    /// instrument names its keyword and the frames' headers gave it.
+    #[serde(default)]
+    pub rotator_rad: Option<f64>,
 }
 
 /// A celestial FITS WCS without distortion terms: `CTYPEi` (e.g. `RA---TAN`, `DEC--TAN`),
@@ -340,6 +352,8 @@ impl StokesMap {
             intensity_snr: nan,
             valid: vec![false; n],
             celestial_wcs: None,
+            parallactic_rad: None,
+            rotator_rad: None,
         }
     }
 
@@ -406,6 +420,13 @@ impl StokesMap {
         ph.write_key(f, "PIXSCALE", (g.pixel_scale_arcsec, "detector scale [arcsec/px]")).map_err(e)?;
         ph.write_key(f, "DETNX", (g.detector_nx as i64, "detector size x [px]")).map_err(e)?;
         ph.write_key(f, "DETNY", (g.detector_ny as i64, "detector size y [px]")).map_err(e)?;
+        if let Some((a, b)) = self.parallactic_rad {
+            ph.write_key(f, "PARANG1", (a.to_degrees(), "parallactic angle, first start [deg]")).map_err(e)?;
+            ph.write_key(f, "PARANG2", (b.to_degrees(), "parallactic angle, last end [deg]")).map_err(e)?;
+        }
+        if let Some(r) = self.rotator_rad {
+            ph.write_key(f, "ROTANG", (r.to_degrees(), "rotator / adapter angle [deg]")).map_err(e)?;
+        }
         let dims = [g.ny, g.nx];
         let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
         // Units as FITS/astropy unit strings; '' for the dimensionless Stokes fractions (an
@@ -564,6 +585,31 @@ impl StokesMap {
             Ok(h) => CelestialWcs::read(&mut f, &h).ok().flatten(),
             Err(_) => None,
         };
+        // The exposures' angles, optional; present but not a finite angle is an error (a
+        // telescope correction would use it).
+        let ph = f.primary_hdu().map_err(|e| fits_err(path, e))?;
+        let mut angle = |k: &str| -> Result<Option<f64>, Error> {
+            match crate::io::read_key_str(&mut f, &ph, k) {
+                Err(_) => Ok(None),
+                Ok(s) => match s.trim().parse::<f64>() {
+                    Ok(v) if v.is_finite() && v.abs() <= 720.0 => Ok(Some(v.to_radians())),
+                    _ => Err(Error::BadKeyword {
+                        path: path.into(),
+                        keyword: k.into(),
+                        value: s,
+                        expected: "an angle in degrees".into(),
+                    }),
+                },
+            }
+        };
+        let parallactic_rad = match (angle("PARANG1")?, angle("PARANG2")?) {
+            (Some(a), b) => Some((a, b.unwrap_or(a))),
+            (None, None) => None,
+            (None, Some(_)) => {
+                return Err(Error::MissingKeyword { path: path.into(), keyword: "PARANG1 (beside PARANG2)".into() })
+            }
+        };
+        let rotator_rad = angle("ROTANG")?;
         // A map made elsewhere (or edited) is checked before anything is fitted to it: every
         // valid bin holds a physical polarization and a covariance that is one.
         for k in (0..n).filter(|&k| valid[k]) {
@@ -607,6 +653,8 @@ impl StokesMap {
             intensity_snr,
             valid,
             celestial_wcs,
+            parallactic_rad,
+            rotator_rad,
         })
     }
 }

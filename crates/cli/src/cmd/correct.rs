@@ -48,12 +48,15 @@ use stokes::stats::{Estimator, PolMeasurement};
 /// model's only band).
 /// Example: instpol correct --cal tel_V.fits --in stars.csv --out stars_corr.csv
 ///
-/// A Stokes map's bins share their exposures, hence one parallactic-angle track: give it with
-/// --parang START[,END] (deg: the first frame's start, the last frame's end, as their headers
-/// say), and --rotator DEG when the model was fitted with rotator angles. A catalog without a
-/// parang_deg column (every star from the same frames, as `instpol catalog` writes them) takes
-/// the same options for all its rows. The output map records the model, band and track
-/// (TELMODEL, TELBAND, PARANG1, PARANG2, ROTANG).
+/// A Stokes map's bins share their exposures, hence one parallactic-angle track: the one
+/// `instpol reduce` recorded in the map (PARANG1, PARANG2, ROTANG: when the instrument's
+/// [telescope] section names the header keywords), or --parang START[,END] (deg: the first
+/// frame's start, the last frame's end, as their headers say), and --rotator DEG when the
+/// model was fitted with rotator angles. A catalog without a parang_deg column (every star from
+/// the same frames, as `instpol catalog` writes them) takes the same options for all its rows.
+/// The output map records the model, band and track (TELMODEL, TELBAND, TELROT, PARANG1,
+/// PARANG2).
+/// Example: instpol correct --cal tel_V.fits --in map_V.fits --out map_V_corr.fits
 /// Example: instpol correct --cal tel_V.fits --in map_V.fits --out map_V_corr.fits --parang -41.2,-37.9
 ///
 /// A Mueller-field calibration (`instpol calibrate-mueller --out CAL.fits`, MODEL = 'MUELLER'):
@@ -565,8 +568,14 @@ fn telescope_map(
             map.filter
         );
     }
-    let track = shared_track(a, tel, "a Stokes map")?;
-    let c = fit::telescope_cal::correct_map_chain(cor, tel, &band, &map, track).map_err(|e| map_error(e, &a.input))?;
+    let track = shared_track(a, tel, "a Stokes map", (map.parallactic_rad, map.rotator_rad))?;
+    let mut c =
+        fit::telescope_cal::correct_map_chain(cor, tel, &band, &map, track).map_err(|e| map_error(e, &a.input))?;
+    // The output records the track the correction used (the map's own, or --parang, --rotator).
+    c.map.parallactic_rad = Some((track.start, track.end));
+    if a.rotator.is_some() {
+        c.map.rotator_rad = Some(track.rotator);
+    }
     let meth = match (field, a.method) {
         (None, _) => "telescope model only",
         (Some(_), MethodArg::Exact) => "exact M_I inverse (eq:instpol), then the telescope",
@@ -575,9 +584,7 @@ fn telescope_map(
     write_corrected_map_with(a, &c.map, meth, 0.0, |f, ph| {
         ph.write_key(f, "TELMODEL", (tel.model.name(), "telescope model removed"))?;
         ph.write_key(f, "TELBAND", (band.as_str(), "band of the telescope model"))?;
-        ph.write_key(f, "PARANG1", (track.start.to_degrees(), "parallactic angle, first start [deg]"))?;
-        ph.write_key(f, "PARANG2", (track.end.to_degrees(), "parallactic angle, last end [deg]"))?;
-        ph.write_key(f, "ROTANG", (track.rotator.to_degrees(), "rotator angle used [deg]"))
+        ph.write_key(f, "TELROT", (track.rotator.to_degrees(), "rotator angle the model used [deg]"))
     })?;
     let mut summary = map_summary(a, c, &map.filter, 0.0);
     summary.telescope_model = Some(tel.model.name());
@@ -789,31 +796,53 @@ fn telescope_band(
 }
 
 /// The one track of a Stokes map, or of a catalog without a parallactic-angle column: from
-/// --parang and --rotator (the rotator is needed when, and only used when, the model was
-/// fitted with rotator angles; otherwise its offset already holds it).
-fn shared_track(a: &Args, tel: &fit::telescope::TelescopeFit, what: &str) -> Result<fit::telescope::Track> {
-    let Some(p) = &a.parang else {
-        bail!(
-            "{}: {what} needs the parallactic angle of its exposures for the telescope model of {}: give --parang START[,END] (deg: the first frame's start, the last frame's end, as their headers say)",
+/// --parang and --rotator, or else what the map recorded (`recorded`: its PARANG1, PARANG2 and
+/// ROTANG, rad). The rotator is needed when, and only used when, the model was fitted with
+/// rotator angles; otherwise its offset already holds it.
+fn shared_track(
+    a: &Args,
+    tel: &fit::telescope::TelescopeFit,
+    what: &str,
+    recorded: (Option<(f64, f64)>, Option<f64>),
+) -> Result<fit::telescope::Track> {
+    let track = match (&a.parang, recorded.0) {
+        (Some(p), rec) => {
+            let t = crate::util::parse_parang(p)?;
+            if let Some((s, e)) = rec {
+                let off = |x: f64, y: f64| mueller::wrap_half_pi(0.5 * (x - y)).abs() * 2.0;
+                if off(s, t.start).max(off(e, t.end)) > 0.01f64.to_radians() {
+                    eprintln!(
+                        "warning: --parang {p} replaces the parallactic angle {} recorded ({:.3} to {:.3} deg)",
+                        a.input.display(),
+                        s.to_degrees(),
+                        e.to_degrees()
+                    );
+                }
+            }
+            t
+        }
+        (None, Some((s, e))) => fit::telescope::Track::new(s, Some(e)),
+        (None, None) => bail!(
+            "{}: {what} needs the parallactic angle of its exposures for the telescope model of {}: give --parang START[,END] (deg: the first frame's start, the last frame's end, as their headers say; instpol reduce records it in the map when the instrument's [telescope] section names the header keywords)",
             a.input.display(),
             a.cal.display()
-        );
+        ),
     };
-    let track = crate::util::parse_parang(p)?;
-    match (tel.with_rotator, a.rotator) {
-        (true, Some(r)) => Ok(track.with_rotator(crate::util::parse_rotator(r)?)),
-        (true, None) => bail!(
+    match (tel.with_rotator, a.rotator, recorded.1) {
+        (true, Some(r), _) => Ok(track.with_rotator(crate::util::parse_rotator(r)?)),
+        (true, None, Some(r)) => Ok(track.with_rotator(r)),
+        (true, None, None) => bail!(
             "the telescope model of {} was fitted with rotator angles: give the exposures' with --rotator DEG",
             a.cal.display()
         ),
-        (false, Some(_)) => {
+        (false, Some(_), _) => {
             eprintln!(
                 "warning: --rotator is ignored: the telescope model of {} was fitted without rotator angles (its offset holds the rotator's)",
                 a.cal.display()
             );
             Ok(track)
         }
-        (false, None) => Ok(track),
+        (false, None, _) => Ok(track),
     }
 }
 
@@ -866,7 +895,7 @@ fn run_telescope(
             })
             .collect()
     } else if a.parang.is_some() {
-        vec![shared_track(a, tel, "the catalog")?; meas.len()]
+        vec![shared_track(a, tel, "the catalog", (None, None))?; meas.len()]
     } else {
         bail!(
             "{}: no column '{}' (columns: {}): the telescope model of {} needs each row's parallactic angle (deg), or --parang START[,END] when every row comes from the same frames",

@@ -10,7 +10,10 @@ use std::path::PathBuf;
 /// cosmic rays and bad pixels. Writes a multi-extension FITS map (Q, U, errors, P, CHI in deg,
 /// COVERAGE, INTENSITY, ...; bin geometry in the header). NaN and saturated pixels are masked
 /// with a warning; an incomplete angle set, mixed filters or sizes, a missing keyword or an
-/// unreadable file are errors (exit 2) and leave no output file.
+/// unreadable file are errors (exit 2) and leave no output file. When the instrument's
+/// [telescope] section names the parallactic-angle keywords and the frames carry them, the map
+/// records the exposures' track (PARANG1, PARANG2, ROTANG), which `correct` uses to remove a
+/// telescope model.
 #[derive(clap::Args)]
 pub struct Args {
     /// Frame files (FITS), real or simulated.
@@ -83,9 +86,19 @@ pub fn run(a: Args) -> Result<()> {
     let read = a.frame.read_options()?;
     let r = skyfield::reduce::reduce_files_with(&a.frames, &inst, &cfg, &read, &|| bar.inc(1));
     bar.finish_and_clear();
-    let r = r?;
+    let mut r = r?;
     for w in &r.warnings {
         eprintln!("warning: {w}");
+    }
+    // The exposures' parallactic angle (and rotator angle), when the instrument names their
+    // header keywords and every frame has them: what `correct` needs to remove a telescope
+    // model from this map. Frames without them make a map without them, silently: most
+    // instruments and uses need no telescope model.
+    if let Some(t) = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty()) {
+        if let Ok(track) = fit::telescope_cal::frames_track(&a.frames, t) {
+            r.map.parallactic_rad = Some((track.start, track.end));
+            r.map.rotator_rad = (!t.rotator_keyword.is_empty()).then_some(track.rotator);
+        }
     }
     r.map.write_fits(&a.out)?;
     let m = &r.map;
