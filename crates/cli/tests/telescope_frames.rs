@@ -223,12 +223,13 @@ fn frames_of_a_night_give_the_mirror_and_the_field_back() {
 /// pa), u = -P sin 2(offset - pa), P from the Fresnel reflection of the factor-scaled index)
 /// with Gaussian noise of 3e-4.
 fn telescope_calibration(d: &Path, inst: &Path) -> PathBuf {
-    telescope_calibration_with_noise(d, inst, 3e-4)
+    telescope_calibration_with_noise(d, inst, 3e-4, None)
 }
 
 /// [`telescope_calibration`] with standards of Gaussian noise `noise` (their stated errors stay
-/// 3e-4).
-fn telescope_calibration_with_noise(d: &Path, inst: &Path, noise: f64) -> PathBuf {
+/// 3e-4), taken at rotator angle `rotator_deg` when given (the model is then fitted with rotator
+/// angles; these standards' rotator is not in their q, u, so its offset comes out turned).
+fn telescope_calibration_with_noise(d: &Path, inst: &Path, noise: f64, rotator_deg: Option<f64>) -> PathBuf {
     let lambda_um =
         instrument::Instrument::load(inst.to_str().unwrap()).unwrap().filter("V").unwrap().lambda_eff_nm / 1000.0;
     let n = mueller::mirror::MetalTable::builtin("aluminium").unwrap().index(lambda_um).unwrap();
@@ -244,15 +245,18 @@ fn telescope_calibration_with_noise(d: &Path, inst: &Path, noise: f64) -> PathBu
         ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
     };
     let mut gauss = move || noise * (-2.0 * uniform().ln()).sqrt() * (std::f64::consts::TAU * uniform()).cos();
-    let mut csv = String::from("star,parallactic_deg,q,sigma_q,u,sigma_u,wavelength_um,filter\n");
+    let mut csv = String::from("star,parallactic_deg,q,sigma_q,u,sigma_u,wavelength_um,filter");
+    csv += if rotator_deg.is_some() { ",rotator_deg\n" } else { "\n" };
     for k in 0..30 {
         let pa = -170.0 + 11.7 * k as f64;
         let a = 2.0 * (OFFSET_DEG - pa).to_radians();
-        csv += &format!("W{k},{pa},{},3e-4,{},3e-4,{lambda_um},V\n", p * a.cos() + gauss(), -p * a.sin() + gauss());
+        csv += &format!("W{k},{pa},{},3e-4,{},3e-4,{lambda_um},V", p * a.cos() + gauss(), -p * a.sin() + gauss());
+        csv += &rotator_deg.map_or("\n".to_string(), |r| format!(",{r}\n"));
     }
-    let cat = d.join("closed_form.csv");
+    let tag = rotator_deg.map_or(String::new(), |r| format!("_rot{r}"));
+    let cat = d.join(format!("closed_form{tag}.csv"));
     std::fs::write(&cat, csv).unwrap();
-    let tel = d.join("tel_closed.fits");
+    let tel = d.join(format!("tel_closed{tag}.fits"));
     let o = instpol()
         .arg("fit-standards")
         .arg(&cat)
@@ -442,7 +446,7 @@ fn correct_removes_the_telescope_from_a_stokes_map() {
     let small = with_telescope(&small);
     // Standards 100 times less noisy than their stated errors: the model's own error is then
     // far below a bin's, and the corrected bins must scatter about the sky as their errors say.
-    let tel = telescope_calibration_with_noise(d, &small, 3e-6);
+    let tel = telescope_calibration_with_noise(d, &small, 3e-6, None);
     let (p, chi_deg) = (0.0174, -53.8f64);
     let scene = format!(
         "instrument = {:?}\nfilter = \"V\"\nseed = 17\nexposure_s = 20\n[output]\nbitpix = -32\n\
@@ -614,4 +618,45 @@ fn correct_gives_a_catalog_without_angles_the_frames_track() {
     assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("--parang") && err.contains("parang_deg"), "{err}");
     assert!(!d.join("c.csv").exists());
+
+    // A model fitted with rotator angles needs the rows' rotator angle: never an assumed 0.
+    let tel_rot = telescope_calibration_with_noise(d, &tiny, 3e-4, Some(12.0));
+    let correct_rot = |input: &Path, out: &str, extra: &[&str]| {
+        let o = instpol()
+            .arg("correct")
+            .arg("--cal")
+            .arg(&tel_rot)
+            .arg("--in")
+            .arg(input)
+            .arg("--out")
+            .arg(d.join(out))
+            .args(extra)
+            .output()
+            .unwrap();
+        (o.status.code(), String::from_utf8_lossy(&o.stderr).to_string())
+    };
+    let (code, err) = correct_rot(&cw, "r.csv", &[]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("rotator_deg") && err.contains("--rotator"), "{err}");
+    assert!(!d.join("r.csv").exists());
+    let (code, err) = correct_rot(&cb, "r.csv", &["--parang", "-41.5,-37.25"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("--rotator"), "{err}");
+    // Given, for every row, as --rotator or as a column: the same rows.
+    assert_eq!(correct_rot(&cw, "r1.csv", &["--rotator", "12"]).0, Some(0));
+    let mut with_rot = String::new();
+    for (k, l) in std::fs::read_to_string(&cw).unwrap().lines().enumerate() {
+        with_rot += l;
+        with_rot += if k == 0 { ",rotator_deg\n" } else { ",12\n" };
+    }
+    let cr = d.join("with_rot.csv");
+    std::fs::write(&cr, with_rot).unwrap();
+    assert_eq!(correct_rot(&cr, "r2.csv", &[]).0, Some(0));
+    assert_eq!(correct_rot(&cb, "r3.csv", &["--parang", "-41.5,-37.25", "--rotator", "12"]).0, Some(0));
+    let (r1, r2, r3) = (columns("r1.csv"), columns("r2.csv"), columns("r3.csv"));
+    assert_eq!(r1, r2);
+    assert_eq!(r1, r3);
+    // The rotator counts: another angle gives other rows.
+    assert_eq!(correct_rot(&cw, "r4.csv", &["--rotator", "40"]).0, Some(0));
+    assert_ne!(r1, columns("r4.csv"));
 }

@@ -883,10 +883,20 @@ fn run_telescope(
             None => None,
         };
         // The rotator angle per row (deg), when the model was fitted with rotator angles
-        // (fit::telescope::Track::rotator); otherwise its offset already holds it.
-        let rot = match table.column("rotator_deg") {
-            Some(_) if tel.with_rotator => Some(table.numbers("rotator_deg", &a.input)?),
-            _ => None,
+        // (fit::telescope::Track::rotator): the column, or --rotator for every row; never an
+        // assumed 0. Otherwise the model's offset already holds it.
+        let rot = match (tel.with_rotator, table.column("rotator_deg").is_some(), a.rotator) {
+            (true, true, _) => Some(table.numbers("rotator_deg", &a.input)?),
+            (true, false, Some(r)) => {
+                crate::util::parse_rotator(r)?;
+                Some(vec![r; meas.len()])
+            }
+            (true, false, None) => bail!(
+                "{}: no column 'rotator_deg': the telescope model of {} was fitted with rotator angles and needs each row's (or --rotator DEG for all)",
+                a.input.display(),
+                a.cal.display()
+            ),
+            (false, _, _) => None,
         };
         (0..meas.len())
             .map(|i| {
