@@ -470,6 +470,24 @@ fn correct_removes_the_telescope_from_a_stokes_map() {
     let start = key(&frames[0], "HIERARCH ESO TEL PARANG START");
     let end = key(frames.last().unwrap(), "HIERARCH ESO TEL PARANG END");
     assert!((key(&map, "PARANG1") - start).abs() < 1e-9 && (key(&map, "PARANG2") - end).abs() < 1e-9);
+    // The frames in another order (the headers hold no time to sort them by) give the same
+    // track: the span of their angles in the sense they move.
+    let mut shuffled = frames.clone();
+    shuffled.reverse();
+    shuffled.swap(0, 1);
+    let map2 = d.join("map_shuffled.fits");
+    let o = instpol()
+        .arg("reduce")
+        .args(&shuffled)
+        .arg("--instrument")
+        .arg(&small)
+        .args(["--bin", "30", "--out"])
+        .arg(&map2)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!((key(&map2, "PARANG1") - start).abs() < 1e-9 && (key(&map2, "PARANG2") - end).abs() < 1e-9);
+    assert!((end - start).abs() > 0.05, "the set turned by {} deg only", end - start);
     let corrected = d.join("map_corr.fits");
     let correct = |extra: &[&str], cal: &Path| {
         instpol()

@@ -458,31 +458,41 @@ pub fn header_angles(path: &Path, tel: &instrument::Telescope) -> Result<HeaderA
 
 /// The parallactic-angle track of a set of frames (the exposures of one measurement, e.g. the
 /// HWP angles of a polarimetric set) from their headers ([`header_angles`]), the instrument's
-/// senses applied: from the first frame's start to the last frame's end (each angle unwrapped
-/// to within half a turn of the previous one, so a set may cross +-180 deg), with the rotator
-/// angle of the first frame (frames whose rotator angles differ by more than 0.5 deg are
-/// refused: they are not one measurement of the model). Counting the gaps between exposures
-/// as exposing is second order in the set's turn.
+/// senses applied: the span of every frame's start and end angle (each unwrapped to within
+/// half a turn of the first frame's start, so a set may cross +-180 deg), from the earliest
+/// to the latest in the sense the angle moves (the sense of the frames' own start-to-end
+/// motion, or of the frames' order when they give no end angle). For frames given in time
+/// order that is the first frame's start to the last frame's end; frames in any other order
+/// (sorted by HWP angle, say) give the same track, the headers holding no time to sort them
+/// by. With the rotator angle of the first frame (frames whose rotator angles differ by more
+/// than 0.5 deg are refused: they are not one measurement of the model). Counting the gaps
+/// between exposures as exposing is second order in the set's turn.
 pub fn frames_track(frames: &[std::path::PathBuf], tel: &instrument::Telescope) -> Result<Track> {
     if frames.is_empty() {
         return Err(Error::Input("no frames for the parallactic angle".into()));
     }
-    let mut prev: Option<f64> = None;
-    let (mut start, mut end, mut rot) = (0.0, 0.0, None::<(f64, &Path)>);
-    for (k, p) in frames.iter().enumerate() {
+    let (mut first, mut lo, mut hi) = (None::<f64>, f64::INFINITY, f64::NEG_INFINITY);
+    // The sense of the motion: the frames' own start-to-end turns, else the order's.
+    let (mut own, mut by_order, mut last_start) = (0.0, 0.0, None::<f64>);
+    let mut rot = None::<(f64, &Path)>;
+    for p in frames {
         let h = header_angles(p, tel)?;
         let (s, e) = tel.parallactic_rad(h.parang_start_deg, h.parang_end_deg);
-        let unwrap = |a: f64, prev: Option<f64>| match prev {
-            Some(b) => b + 2.0 * mueller::wrap_half_pi(0.5 * (a - b)),
-            None => a,
-        };
-        let s = unwrap(s, prev);
-        let e = unwrap(e.unwrap_or(s), Some(s));
-        if k == 0 {
-            start = s;
+        let f0 = *first.get_or_insert(s);
+        let unwrap = |a: f64| f0 + 2.0 * mueller::wrap_half_pi(0.5 * (a - f0));
+        let s = unwrap(s);
+        let e = e.map(unwrap);
+        if let Some(e) = e {
+            own += e - s;
         }
-        end = e;
-        prev = Some(e);
+        if let Some(l) = last_start {
+            by_order += s - l;
+        }
+        last_start = Some(s);
+        for a in [Some(s), e].into_iter().flatten() {
+            lo = lo.min(a);
+            hi = hi.max(a);
+        }
         let r = h.rotator_deg.map(|r| tel.rotator_sense as f64 * r.to_radians()).unwrap_or(0.0);
         match rot {
             None => rot = Some((r, p.as_path())),
@@ -499,6 +509,8 @@ pub fn frames_track(frames: &[std::path::PathBuf], tel: &instrument::Telescope) 
             _ => {}
         }
     }
+    let rising = if own != 0.0 { own > 0.0 } else { by_order >= 0.0 };
+    let (start, end) = if rising { (lo, hi) } else { (hi, lo) };
     Ok(Track { start, end, rotator: rot.map(|r| r.0).unwrap_or(0.0) })
 }
 
