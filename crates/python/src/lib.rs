@@ -339,11 +339,14 @@ fn _bias<'py>(
 }
 
 /// The field model a calibration file holds: a partial polarizer p, phi (`instpol calibrate`,
-/// `import-map`, `fit`) or a Mueller field (`instpol calibrate-mueller --out CAL.fits`).
+/// `import-map`, `fit`) or a Mueller field (`instpol calibrate-mueller --out CAL.fits`); or
+/// none, in a telescope-only file (`instpol fit-standards --output`), named by its instrument
+/// and its telescope model's only band ("" with several).
 #[allow(clippy::large_enum_variant)] // one per loaded calibration: the size does not matter
 enum Field {
     PPhi(fit::Calibration),
     Mueller(fit::mueller_cal::MuellerCal),
+    TelescopeOnly { instrument: String, filter: String },
 }
 
 /// A calibration file: the instrumental polarization field of one instrument and filter, as a
@@ -362,6 +365,7 @@ impl _Calibration {
         match &self.field {
             Field::PPhi(c) => (&c.instrument, &c.filter),
             Field::Mueller(m) => (&m.instrument, &m.filter),
+            Field::TelescopeOnly { instrument, filter } => (instrument, filter),
         }
     }
 
@@ -369,6 +373,7 @@ impl _Calibration {
         match &self.field {
             Field::PPhi(c) => c.pixel,
             Field::Mueller(m) => m.pixel(),
+            Field::TelescopeOnly { .. } => None,
         }
     }
 
@@ -378,6 +383,13 @@ impl _Calibration {
         let b = band.unwrap_or_else(|| self.instrument_filter().1.to_string());
         if t.band(&b).is_none() {
             let bands: Vec<&str> = t.bands.iter().map(|x| x.0.as_str()).collect();
+            if b.is_empty() {
+                return Err(input_err(format!(
+                    "the telescope model of {} has bands {}: choose one with band=",
+                    self.path.display(),
+                    bands.join(", ")
+                )));
+            }
             return Err(input_err(format!(
                 "band '{b}': the telescope model of {} has bands {}: choose one with band=",
                 self.path.display(),
@@ -415,14 +427,19 @@ impl _Calibration {
         // The reader `instpol correct` uses: a field model, and a telescope model when the
         // file holds one (ignoring it would return the telescope's polarization as the sky's).
         let loaded = py.detach(|| fit::telescope_cal::load(&path)).map_err(|e| load_err(&path, e))?;
-        let cal = loaded.field.ok_or_else(|| {
-            input_err(format!(
-                "cannot load calibration {}: it holds only a telescope model; the Python package corrects with a \
-                 field model (with or without a telescope model): use `instpol correct` for a telescope-only file",
-                path.display()
-            ))
-        })?;
-        Ok(Self { field: Field::PPhi(cal), telescope: loaded.telescope, path })
+        let field = match (loaded.field, &loaded.telescope) {
+            (Some(cal), _) => Field::PPhi(cal),
+            // A telescope-only file (instpol fit-standards --output): correct() applies the
+            // telescope alone, as `instpol correct` does.
+            (None, Some(t)) => Field::TelescopeOnly {
+                instrument: loaded.instrument.clone(),
+                filter: if t.bands.len() == 1 { t.bands[0].0.clone() } else { String::new() },
+            },
+            (None, None) => {
+                return Err(input_err(format!("cannot load calibration {}: it holds no model", path.display())))
+            }
+        };
+        Ok(Self { field, telescope: loaded.telescope, path })
     }
 
     #[getter]
@@ -441,15 +458,16 @@ impl _Calibration {
     fn lambda_nm(&self) -> f64 {
         match &self.field {
             Field::PPhi(c) => c.lambda_nm,
-            Field::Mueller(_) => f64::NAN,
+            Field::Mueller(_) | Field::TelescopeOnly { .. } => f64::NAN,
         }
     }
     #[getter]
     fn hwp_chi_offset_deg(&self) -> f64 {
         match &self.field {
             Field::PPhi(c) => c.hwp_chi_offset_deg,
-            // A Mueller field is fitted and applied in the maps' frame (instpol correct).
-            Field::Mueller(_) => 0.0,
+            // A Mueller field is fitted and applied in the maps' frame (instpol correct); a
+            // telescope model's offset is the instrument's angle zero (fit::telescope_cal).
+            Field::Mueller(_) | Field::TelescopeOnly { .. } => 0.0,
         }
     }
     #[getter]
@@ -457,6 +475,7 @@ impl _Calibration {
         match &self.field {
             Field::PPhi(c) => c.model.kind(),
             Field::Mueller(_) => "MUELLER",
+            Field::TelescopeOnly { .. } => "TELESCOPE",
         }
     }
     /// A Mueller field's model in words (`physical`, `general`), as `instpol correct --json`
@@ -465,7 +484,7 @@ impl _Calibration {
     fn mueller_model(&self) -> Option<&'static str> {
         match &self.field {
             Field::Mueller(m) => Some(m.field.kind.model_name()),
-            Field::PPhi(_) => None,
+            Field::PPhi(_) | Field::TelescopeOnly { .. } => None,
         }
     }
     /// A Mueller field's free effects (`diattenuation`, `retardance`, ...); empty otherwise.
@@ -473,14 +492,14 @@ impl _Calibration {
     fn mueller_free(&self) -> Vec<&'static str> {
         match &self.field {
             Field::Mueller(m) => m.field.kind.free_words(),
-            Field::PPhi(_) => vec![],
+            Field::PPhi(_) | Field::TelescopeOnly { .. } => vec![],
         }
     }
     #[getter]
     fn rms_residual(&self) -> f64 {
         match &self.field {
             Field::PPhi(c) => c.rms_residual,
-            Field::Mueller(_) => f64::NAN,
+            Field::Mueller(_) | Field::TelescopeOnly { .. } => f64::NAN,
         }
     }
     #[getter]
@@ -490,7 +509,7 @@ impl _Calibration {
                 let c = c.centre_arcmin();
                 (c[0], c[1])
             }
-            Field::Mueller(_) => (f64::NAN, f64::NAN),
+            Field::Mueller(_) | Field::TelescopeOnly { .. } => (f64::NAN, f64::NAN),
         }
     }
     #[getter]
@@ -517,6 +536,12 @@ impl _Calibration {
         if x.len() != y.len() {
             return Err(input_err("x and y must have one shape (after broadcasting)"));
         }
+        if let Field::TelescopeOnly { .. } = &self.field {
+            return Err(input_err(format!(
+                "{} holds only a telescope model: it has no field to evaluate (correct() applies it with parang_deg=)",
+                self.path.display()
+            )));
+        }
         let conv = self.arcmin(x, y, units)?;
         let (x, y) = conv.as_ref().map_or((x, y), |(a, b)| (a.as_slice(), b.as_slice()));
         fn at<M: FieldModel + Sync>(m: &M, x: &[f64], y: &[f64]) -> Vec<(fit::model::InstPol, bool)> {
@@ -525,6 +550,7 @@ impl _Calibration {
         let v = py.detach(|| match &self.field {
             Field::PPhi(c) => at(c, x, y),
             Field::Mueller(m) => at(&m.field, x, y),
+            Field::TelescopeOnly { .. } => vec![],
         });
         let d = PyDict::new(py);
         d.set_item("q", arr1(py, v.iter().map(|a| a.0.q).collect()))?;
@@ -645,8 +671,10 @@ impl _Calibration {
             };
             match (&self.field, &telescope) {
                 (Field::PPhi(c), Some((t, pa, b))) => {
-                    fill_chain(&Corrector::new(c, opts), t, b, &input, pa, pa_end, sink)
+                    fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, pa, pa_end, sink)
                 }
+                (Field::TelescopeOnly { .. }, Some((t, pa, b))) => fill_chain(None, t, b, &input, pa, pa_end, sink),
+                (Field::TelescopeOnly { .. }, None) => Err((0, "a telescope-only calibration needs parang_deg".into())),
                 (Field::PPhi(c), None) => {
                     let cor = Corrector::new(c, opts);
                     fill(&|m: &Measurement| cor.correct(m), &input, sink).map_err(|(k, e)| (k, e.to_string()))
@@ -811,7 +839,7 @@ fn put_row(
 /// `fit::telescope_cal::correct_chain`; `q_inst, u_inst` are the field's and the telescope's
 /// together, as the CLI writes them. Rows in parallel; the error is the lowest row's.
 fn fill_chain(
-    cor: &Corrector<'_, fit::Calibration>,
+    cor: Option<&Corrector<'_, fit::Calibration>>,
     tel: &fit::telescope::TelescopeFit,
     band: &str,
     i: &Inputs<'_>,
@@ -834,12 +862,8 @@ fn fill_chain(
                 cov_qu: i.cov.map_or(0.0, |c| c[k]),
             };
             let track = Track::new(pa[k].to_radians(), pa_end.map(|e| e[k].to_radians()));
-            let r =
-                fit::telescope_cal::correct_chain(Some(cor), tel, band, &m, track).map_err(|e| (k, e.to_string()))?;
-            let mut c = r.corrected;
-            c.inst.q += r.q_tel;
-            c.inst.u += r.u_tel;
-            Ok(c)
+            let r = fit::telescope_cal::correct_chain(cor, tel, band, &m, track).map_err(|e| (k, e.to_string()))?;
+            Ok(r.with_telescope_in_inst())
         })
         .collect::<Result<_, _>>()?;
     let Sink { mut cols, mut p0e, extra, .. } = s;

@@ -210,7 +210,10 @@ class Calibration:
     region where it holds and the filter's HWP zero angle. A Mueller-field calibration
     (``instpol calibrate-mueller --out CAL.fits``, ``model == "MUELLER"``) loads too: its field
     (diattenuation, retardance, ...) is inverted exactly for polarized targets, in the maps'
-    frame (``hwp_chi_offset_deg`` 0), as ``instpol correct`` does.
+    frame (``hwp_chi_offset_deg`` 0), as ``instpol correct`` does. A telescope-only file
+    (``instpol fit-standards --output``, ``model == "TELESCOPE"``) loads too: :meth:`correct`
+    then removes the telescope alone, with each row's ``parang_deg``; it has no field to
+    :meth:`evaluate`.
 
     Load it with :meth:`load`; :meth:`evaluate` gives the instrumental (q, u) at positions,
     :meth:`correct` removes it from measurements (eq:instpol inverted exactly, or eq:approx).
@@ -232,7 +235,10 @@ class Calibration:
     hwp_chi_offset_deg = property(
         lambda self: self._c.hwp_chi_offset_deg, doc="HWP chromatic zero angle added to a measured chi (deg)."
     )
-    model = property(lambda self: self._c.model, doc="Model kind: RADIAL, RADIAL+RESIDUAL, MAP or MUELLER.")
+    model = property(
+        lambda self: self._c.model,
+        doc="Model kind: RADIAL, RADIAL+RESIDUAL, MAP, MUELLER or TELESCOPE (a telescope-only file).",
+    )
     mueller_model = property(
         lambda self: self._c.mueller_model,
         doc="A Mueller field's model in words (physical, general); None for a p, phi calibration.",
@@ -301,12 +307,13 @@ class Calibration:
         InputError.
 
         A calibration holding a telescope model (``telescope_bands`` not empty, from
-        ``instpol fit-standards --output --field-cal``) needs each row's parallactic angle
-        ``parang_deg`` (deg; ``parang_end_deg`` the exposure's end: the model is averaged over
-        the track); the field is undone first, then the telescope of ``band`` (default: the
-        calibration's filter), as ``instpol correct`` does with the columns ``parang_deg`` and
-        ``parang_end_deg``. Without such a model, ``parang_deg`` raises InputError (the
-        telescope's polarization would not be removed).
+        ``instpol fit-standards --output``, with ``--field-cal`` beside a field model, or
+        alone: ``model == "TELESCOPE"``) needs each row's parallactic angle ``parang_deg``
+        (deg; ``parang_end_deg`` the exposure's end: the model is averaged over the track);
+        the field is undone first, then the telescope of ``band`` (default: the calibration's
+        filter, or a telescope-only file's only band), as ``instpol correct`` does with the
+        columns ``parang_deg`` and ``parang_end_deg``. Without such a model, ``parang_deg``
+        raises InputError (the telescope's polarization would not be removed).
 
         Returns
         -------
