@@ -677,4 +677,19 @@ fn correct_gives_a_catalog_without_angles_the_frames_track() {
     // The rotator counts: another angle gives other rows.
     assert_eq!(correct_rot(&cw, "r4.csv", &["--rotator", "40"]).0, Some(0));
     assert_ne!(r1, columns("r4.csv"));
+
+    // A catalog whose q, u carry a HWP zero angle: the chain does not yet turn it into the
+    // models' frame, and says so loudly.
+    let mut zero = String::new();
+    for (k, l) in std::fs::read_to_string(&cw).unwrap().lines().enumerate() {
+        zero += l;
+        zero += if k == 0 { ",hwp_chi_offset_deg\n" } else { ",2.5\n" };
+    }
+    let cz = d.join("zero.csv");
+    std::fs::write(&cz, zero).unwrap();
+    let (code, err) = correct(&cz, "z.csv", &[]);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(err.contains("WARNING") && err.contains("HWP zero angle of 2.5 deg"), "{err}");
+    let (_, err) = correct(&cw, "z2.csv", &[]);
+    assert!(!err.contains("WARNING"), "{err}");
 }

@@ -862,12 +862,33 @@ fn run_telescope(
         (Some(c), Some(o)) => Some(Corrector::new(c, o)),
         _ => None,
     };
+    // The chain takes the field's and the telescope's angles as they were fitted (module docs
+    // of fit::telescope_cal): consistent while the HWP zero angle is 0. With one, maps (plate
+    // frame) and catalogs (zero angle added) differ from each other by it, and the field and
+    // telescope fits need not share a frame: say so rather than correct in silence.
+    let zero_angle_warning = |z: f64, whose: &str| {
+        if z != 0.0 {
+            eprintln!(
+                "WARNING: {whose} carries a HWP zero angle of {z} deg, and the chain of a field and a telescope model does not yet turn its inputs into one frame: the telescope's (and field's) angles may be off by it; check on a standard (instpol validate)"
+            );
+        }
+    };
+    if let Some(c) = field {
+        zero_angle_warning(c.hwp_chi_offset_deg, &format!("the field calibration {}", a.cal.display()));
+    }
     if kind == Kind::Map {
         return telescope_map(a, tel, field, cor.as_ref());
     }
     let band = telescope_band(a, tel, field, None)?;
     let out_format = Some(Format::from_path(&a.out)?);
     let mut table = read_catalog(a, kind)?;
+    if table.column(ZERO_ANGLE).is_some() {
+        let z = table.numbers(ZERO_ANGLE, &a.input)?;
+        zero_angle_warning(
+            z.iter().copied().find(|v| *v != 0.0).unwrap_or(0.0),
+            &format!("the catalog {}", a.input.display()),
+        );
+    }
     let meas = measurements(&table, field.and_then(|c| c.pixel), a.coords, &a.input)?;
     let tracks: Vec<Track> = if table.column(PARANG[0]).is_some() {
         if a.parang.is_some() {
