@@ -488,27 +488,31 @@ impl StokesMap {
         Ok(())
     }
 
-    /// Read a map written by [`Self::write_fits`].
     /// [`StokesMap::read_fits`] for inputs that must still hold the instrumental polarization
     /// (`instpol correct`, a sky-field calibration): a map that `instpol correct` wrote
     /// (primary keyword `INSTCORR`, the calibration it was corrected with) is refused, as
     /// correcting it again, or calibrating on it, would take the instrumental polarization
     /// out twice. (The error does not name the file: callers say which input it was.)
     pub fn read_uncorrected(path: &Path) -> Result<Self, Error> {
-        let map = Self::read_fits(path)?;
-        let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
-        let ph = f.primary_hdu().map_err(|e| fits_err(path, e))?;
-        if let Ok(cal) = crate::io::read_key_str(&mut f, &ph, "INSTCORR") {
-            return Err(Error::Invalid(format!(
-                "already corrected for the instrumental polarization (INSTCORR = '{cal}', by instpol correct); correcting it again or calibrating on it would remove that polarization twice: use the map from instpol reduce"
-            )));
-        }
-        Ok(map)
+        Self::read(path, true)
     }
 
+    /// Read a map written by [`Self::write_fits`].
     pub fn read_fits(path: &Path) -> Result<Self, Error> {
+        Self::read(path, false)
+    }
+
+    /// [`Self::read_fits`], refusing a corrected map first when `uncorrected_only`.
+    fn read(path: &Path, uncorrected_only: bool) -> Result<Self, Error> {
         let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
         let ph = f.primary_hdu().map_err(|e| fits_err(path, e))?;
+        if uncorrected_only {
+            if let Ok(cal) = crate::io::read_key_str(&mut f, &ph, "INSTCORR") {
+                return Err(Error::Invalid(format!(
+                    "already corrected for the instrumental polarization (INSTCORR = '{cal}', by instpol correct); correcting it again or calibrating on it would remove that polarization twice: use the map from instpol reduce"
+                )));
+            }
+        }
         let key_i = |f: &mut FitsFile, k: &str| -> Result<i64, Error> {
             ph.read_key::<i64>(f, k).map_err(|_| Error::MissingKeyword { path: path.into(), keyword: k.into() })
         };
@@ -587,7 +591,6 @@ impl StokesMap {
         };
         // The exposures' angles, optional; present but not a finite angle is an error (a
         // telescope correction would use it).
-        let ph = f.primary_hdu().map_err(|e| fits_err(path, e))?;
         let mut angle = |k: &str| -> Result<Option<f64>, Error> {
             match crate::io::read_key_str(&mut f, &ph, k) {
                 Err(_) => Ok(None),
