@@ -200,9 +200,7 @@ pub fn run(a: Args) -> Result<()> {
         (None, Some(cal)) => cal,
         (None, None) => bail!("{}: holds no model", a.cal.display()),
     };
-    if a.band.is_some() || a.parang.is_some() || a.rotator.is_some() {
-        bail!("--band, --parang, --rotator are for calibrations with a telescope model; {} has none", a.cal.display());
-    }
+    refuse_telescope_options(&a, "has none")?;
     let opts = options(&cal, &a);
     let kind = detect(&a.input)?;
     // The output's format is known before any work: an unknown extension fails now.
@@ -237,16 +235,11 @@ pub fn run(a: Args) -> Result<()> {
             )?
         }
     };
-    if summary.extrapolated > 0 {
-        eprintln!(
-            "warning: {} of {} positions lie outside the calibrated field; corrected by extrapolation with inflated errors (flagged)",
-            summary.extrapolated, summary.rows
-        );
-    }
-    if a.json {
-        crate::util::print_json(&summary)
-    } else {
-        outln!(
+    warn_extrapolated(&summary, "calibrated field");
+    report(
+        &a,
+        &summary,
+        format_args!(
             "corrected {} {} with {} ({} {}, HWP zero angle {:+.2} deg)",
             summary.rows,
             if kind == Kind::Map { "bins" } else { "rows" },
@@ -254,13 +247,9 @@ pub fn run(a: Args) -> Result<()> {
             cal.instrument,
             cal.filter,
             cal.hwp_chi_offset_deg
-        );
-        if let (Some(p0), Some(pi)) = (summary.median_p0, summary.median_p_inst) {
-            outln!("median instrumental p removed: {:.3} %, median corrected P0: {:.3} %", 100.0 * pi, 100.0 * p0);
-        }
-        outln!("wrote {}", a.out.display());
-        Ok(())
-    }
+        ),
+        "",
+    )
 }
 
 /// The catalog to correct (text formats by extension, or a FITS table), with no column the
@@ -313,6 +302,40 @@ fn zero_angle_of_the_table(
     }
     opts.chi_offset = d.to_radians();
     Ok(opts)
+}
+
+/// --band, --parang and --rotator given for a calibration without a telescope model (`what`
+/// it holds instead): refused, as they would change nothing.
+fn refuse_telescope_options(a: &Args, what: &str) -> Result<()> {
+    if a.band.is_some() || a.parang.is_some() || a.rotator.is_some() {
+        bail!("--band, --parang, --rotator are for calibrations with a telescope model; {} {what}", a.cal.display());
+    }
+    Ok(())
+}
+
+/// The summary on stdout: the JSON object (--json), or `line`, the medians of the
+/// instrumental p removed (`of`: what it is the p of, "" or " (unpolarized light)") and of
+/// the corrected P0, and the output written.
+fn report(a: &Args, s: &Summary, line: std::fmt::Arguments, of: &str) -> Result<()> {
+    if a.json {
+        return crate::util::print_json(s);
+    }
+    outln!("{line}");
+    if let (Some(p0), Some(pi)) = (s.median_p0, s.median_p_inst) {
+        outln!("median instrumental p{of} removed: {:.3} %, median corrected P0: {:.3} %", 100.0 * pi, 100.0 * p0);
+    }
+    outln!("wrote {}", a.out.display());
+    Ok(())
+}
+
+/// The warning for corrected positions outside the model's field (`field`: which).
+fn warn_extrapolated(s: &Summary, field: &str) {
+    if s.extrapolated > 0 {
+        eprintln!(
+            "warning: {} of {} positions lie outside the {field}; corrected by extrapolation with inflated errors (flagged)",
+            s.extrapolated, s.rows
+        );
+    }
 }
 
 /// The correction options for a calibration and the command's flags.
@@ -589,30 +612,22 @@ fn telescope_map(
     let mut summary = map_summary(a, c, &map.filter, 0.0);
     summary.telescope_model = Some(tel.model.name());
     summary.telescope_band = Some(band.clone());
-    if a.json {
-        return crate::util::print_json(&summary);
-    }
-    outln!(
-        "corrected {} bins of {} with {} ({} model, band {band}{}), parallactic angle {:.2} to {:.2} deg",
-        summary.rows,
-        a.input.display(),
-        a.cal.display(),
-        tel.model.name(),
-        if field.is_some() { ", field model first" } else { ", no field model" },
-        track.start.to_degrees(),
-        track.end.to_degrees()
-    );
-    if let (Some(p0), Some(pi)) = (summary.median_p0, summary.median_p_inst) {
-        outln!("median instrumental p removed: {:.3} %, median corrected P0: {:.3} %", 100.0 * pi, 100.0 * p0);
-    }
-    if summary.extrapolated > 0 {
-        eprintln!(
-            "warning: {} of {} bins lie outside the calibrated field; corrected by extrapolation with inflated errors",
-            summary.extrapolated, summary.rows
-        );
-    }
-    outln!("wrote {}", a.out.display());
-    Ok(())
+    warn_extrapolated(&summary, "calibrated field");
+    report(
+        a,
+        &summary,
+        format_args!(
+            "corrected {} bins of {} with {} ({} model, band {band}{}), parallactic angle {:.2} to {:.2} deg",
+            summary.rows,
+            a.input.display(),
+            a.cal.display(),
+            tel.model.name(),
+            if field.is_some() { ", field model first" } else { ", no field model" },
+            track.start.to_degrees(),
+            track.end.to_degrees()
+        ),
+        "",
+    )
 }
 
 /// Correct a Stokes map bin by bin at the bin centres.
@@ -691,12 +706,7 @@ fn write_corrected_map_with(
 /// (`fit::mueller_cal::MuellerCal::correct`), in the maps' frame (HWP zero angle 0).
 fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> Result<()> {
     use rayon::prelude::*;
-    if a.band.is_some() || a.parang.is_some() || a.rotator.is_some() {
-        bail!(
-            "--band, --parang, --rotator are for calibrations with a telescope model; {} holds a Mueller field",
-            a.cal.display()
-        );
-    }
+    refuse_telescope_options(a, "holds a Mueller field")?;
     if a.method != MethodArg::Exact {
         bail!(
             "--method first-order: {} holds a Mueller field, which is inverted exactly (eq:approx is the p, phi model's first order)",
@@ -741,34 +751,22 @@ fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> 
     };
     summary.mueller_model = Some(cal.field.kind.model_name());
     summary.mueller_free = Some(cal.field.kind.free_words());
-    if summary.extrapolated > 0 {
-        eprintln!(
-            "warning: {} of {} positions lie outside the fitted Mueller field; corrected by extrapolation with inflated errors (flagged)",
-            summary.extrapolated, summary.rows
-        );
-    }
-    if a.json {
-        return crate::util::print_json(&summary);
-    }
-    outln!(
-        "corrected {} {} with the Mueller field of {} ({} {}, {} model: {}), exact inverse",
-        summary.rows,
-        if kind == Kind::Map { "bins" } else { "rows" },
-        a.cal.display(),
-        cal.instrument,
-        cal.filter,
-        cal.field.kind.model_name(),
-        cal.field.kind.free_words().join(", ")
-    );
-    if let (Some(p0), Some(pi)) = (summary.median_p0, summary.median_p_inst) {
-        outln!(
-            "median instrumental p (unpolarized light) removed: {:.3} %, median corrected P0: {:.3} %",
-            100.0 * pi,
-            100.0 * p0
-        );
-    }
-    outln!("wrote {}", a.out.display());
-    Ok(())
+    warn_extrapolated(&summary, "fitted Mueller field");
+    report(
+        a,
+        &summary,
+        format_args!(
+            "corrected {} {} with the Mueller field of {} ({} {}, {} model: {}), exact inverse",
+            summary.rows,
+            if kind == Kind::Map { "bins" } else { "rows" },
+            a.cal.display(),
+            cal.instrument,
+            cal.filter,
+            cal.field.kind.model_name(),
+            cal.field.kind.free_words().join(", ")
+        ),
+        " (unpolarized light)",
+    )
 }
 
 /// The band of the telescope model to use: --band, the field calibration's filter, the map's
@@ -906,12 +904,9 @@ fn run_telescope(
         // The rotator angle per row (deg), when the model was fitted with rotator angles
         // (fit::telescope::Track::rotator): the column, or --rotator for every row; never an
         // assumed 0. Otherwise the model's offset already holds it.
-        let rot = match (tel.with_rotator, table.column("rotator_deg").is_some(), a.rotator) {
-            (true, true, _) => Some(table.numbers("rotator_deg", &a.input)?),
-            (true, false, Some(r)) => {
-                crate::util::parse_rotator(r)?;
-                Some(vec![r; meas.len()])
-            }
+        let rot: Option<Vec<f64>> = match (tel.with_rotator, table.column("rotator_deg").is_some(), a.rotator) {
+            (true, true, _) => Some(table.numbers("rotator_deg", &a.input)?.iter().map(|r| r.to_radians()).collect()),
+            (true, false, Some(r)) => Some(vec![crate::util::parse_rotator(r)?; meas.len()]),
             (true, false, None) => bail!(
                 "{}: no column 'rotator_deg': the telescope model of {} was fitted with rotator angles and needs each row's (or --rotator DEG for all)",
                 a.input.display(),
@@ -922,7 +917,7 @@ fn run_telescope(
         (0..meas.len())
             .map(|i| {
                 let end = pa_end.as_ref().map(|e| e[i].to_radians());
-                Track::new(pa[i].to_radians(), end).with_rotator(rot.as_ref().map_or(0.0, |r| r[i].to_radians()))
+                Track::new(pa[i].to_radians(), end).with_rotator(rot.as_ref().map_or(0.0, |r| r[i]))
             })
             .collect()
     } else if a.parang.is_some() {
@@ -943,31 +938,23 @@ fn run_telescope(
         out.push(r.with_telescope_in_inst());
     }
     let n_extra = out.iter().filter(|c| c.extrapolated).count();
-    if n_extra > 0 {
-        eprintln!(
-            "warning: {n_extra} of {} positions lie outside the calibrated field; corrected by extrapolation with inflated errors (flagged)",
-            out.len()
-        );
-    }
     let filter = field.map(|c| c.filter.clone()).unwrap_or_else(|| band.clone());
     let mut summary = write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, filter, 0.0)?;
     summary.telescope_model = Some(tel.model.name());
     summary.telescope_band = Some(band.clone());
-    if a.json {
-        return crate::util::print_json(&summary);
-    }
-    outln!(
-        "corrected {} rows with {} ({} model, band {band}{}), the parallactic angle per row",
-        summary.rows,
-        a.cal.display(),
-        tel.model.name(),
-        if field.is_some() { ", field model first" } else { ", no field model" }
-    );
-    if let (Some(p0), Some(pi)) = (summary.median_p0, summary.median_p_inst) {
-        outln!("median instrumental p removed: {:.3} %, median corrected P0: {:.3} %", 100.0 * pi, 100.0 * p0);
-    }
-    outln!("wrote {}", a.out.display());
-    Ok(())
+    warn_extrapolated(&summary, "calibrated field");
+    report(
+        a,
+        &summary,
+        format_args!(
+            "corrected {} rows with {} ({} model, band {band}{}), the parallactic angle per row",
+            summary.rows,
+            a.cal.display(),
+            tel.model.name(),
+            if field.is_some() { ", field model first" } else { ", no field model" }
+        ),
+        "",
+    )
 }
 
 /// Write a corrected catalog in the output's format and make its summary.
