@@ -217,20 +217,27 @@ def test_the_gil_is_released_during_a_correction(cal_v):
 EFOSC2 = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "efosc2-standards"
 
 
-@pytest.fixture(scope="module")
-def cal_v_telescope(run, cal_v, tmp_path_factory):
-    """The V field calibration with a telescope model fitted to the real EFOSC2 V standards
-    beside it (`fit-standards --output --field-cal`): the file `correct` applies as a chain."""
+def v_standards(d, skipped):
+    """The real EFOSC2 V standards as a fit-standards table in folder `d` (skipped loudly,
+    saying what was `skipped`, when the data are absent)."""
     src = EFOSC2 / "pv_standards.txt"
     if not src.is_file():
-        pytest.skip(f"*** SKIPPED LOUDLY: {src} not found: the telescope chain was not compared ***")
-    d = tmp_path_factory.mktemp("tel")
+        pytest.skip(f"*** SKIPPED LOUDLY: {src} not found: {skipped} ***")
     std = d / "std_V.csv"
     with open(src) as f, open(std, "w") as out:
         out.write("star,parallactic_deg,q,sigma_q,u,sigma_u,wavelength_um,filter\n")
         for line in f:
             if line.strip():
                 out.write(line.strip() + ",V\n")
+    return std
+
+
+@pytest.fixture(scope="module")
+def cal_v_telescope(run, cal_v, tmp_path_factory):
+    """The V field calibration with a telescope model fitted to the real EFOSC2 V standards
+    beside it (`fit-standards --output --field-cal`): the file `correct` applies as a chain."""
+    d = tmp_path_factory.mktemp("tel")
+    std = v_standards(d, "the telescope chain was not compared")
     # The demo's FORS1 V field stands in for an EFOSC2 field calibration (fit-standards refuses
     # a field and a telescope of two instruments); what is compared is the chain's arithmetic.
     from astropy.io import fits
@@ -275,15 +282,7 @@ def test_telescope_chain_is_the_cli_bit_for_bit(run, cal_v_telescope, cal_v, tmp
 def test_telescope_only_file_is_the_cli_bit_for_bit(run, tmp_path):
     """A telescope-only calibration (fit-standards --output without --field-cal) loads and
     corrects rows as `instpol correct` does, bit for bit: the telescope alone."""
-    src = EFOSC2 / "pv_standards.txt"
-    if not src.is_file():
-        pytest.skip(f"*** SKIPPED LOUDLY: {src} not found: the telescope-only file was not compared ***")
-    std = tmp_path / "std_V.csv"
-    with open(src) as f, open(std, "w") as out:
-        out.write("star,parallactic_deg,q,sigma_q,u,sigma_u,wavelength_um,filter\n")
-        for line in f:
-            if line.strip():
-                out.write(line.strip() + ",V\n")
+    std = v_standards(tmp_path, "the telescope-only file was not compared")
     tel = tmp_path / "tel_V.fits"
     run("fit-standards", std, "--instrument", "efosc2", "--model", "wiersema", "--output", tel)
     c = instpol.Calibration.load(tel)

@@ -600,11 +600,11 @@ fn correct_gives_a_catalog_without_angles_the_frames_track() {
     let (cw, cb) = (d.join("with.csv"), d.join("bare.csv"));
     std::fs::write(&cw, with).unwrap();
     std::fs::write(&cb, bare).unwrap();
-    let correct = |input: &Path, out: &str, extra: &[&str]| {
+    let correct_with = |cal: &Path, input: &Path, out: &str, extra: &[&str]| {
         let o = instpol()
             .arg("correct")
             .arg("--cal")
-            .arg(&tel)
+            .arg(cal)
             .arg("--in")
             .arg(input)
             .arg("--out")
@@ -614,6 +614,7 @@ fn correct_gives_a_catalog_without_angles_the_frames_track() {
             .unwrap();
         (o.status.code(), String::from_utf8_lossy(&o.stderr).to_string())
     };
+    let correct = |input: &Path, out: &str, extra: &[&str]| correct_with(&tel, input, out, extra);
     assert_eq!(correct(&cw, "a.csv", &[]).0, Some(0));
     assert_eq!(correct(&cb, "b.csv", &["--parang", "-41.5,-37.25"]).0, Some(0));
     let columns = |f: &str| -> Vec<Vec<String>> {
@@ -639,20 +640,7 @@ fn correct_gives_a_catalog_without_angles_the_frames_track() {
 
     // A model fitted with rotator angles needs the rows' rotator angle: never an assumed 0.
     let tel_rot = telescope_calibration_with_noise(d, &tiny, 3e-4, Some(12.0));
-    let correct_rot = |input: &Path, out: &str, extra: &[&str]| {
-        let o = instpol()
-            .arg("correct")
-            .arg("--cal")
-            .arg(&tel_rot)
-            .arg("--in")
-            .arg(input)
-            .arg("--out")
-            .arg(d.join(out))
-            .args(extra)
-            .output()
-            .unwrap();
-        (o.status.code(), String::from_utf8_lossy(&o.stderr).to_string())
-    };
+    let correct_rot = |input: &Path, out: &str, extra: &[&str]| correct_with(&tel_rot, input, out, extra);
     let (code, err) = correct_rot(&cw, "r.csv", &[]);
     assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("rotator_deg") && err.contains("--rotator"), "{err}");
@@ -662,13 +650,16 @@ fn correct_gives_a_catalog_without_angles_the_frames_track() {
     assert!(err.contains("--rotator"), "{err}");
     // Given, for every row, as --rotator or as a column: the same rows.
     assert_eq!(correct_rot(&cw, "r1.csv", &["--rotator", "12"]).0, Some(0));
-    let mut with_rot = String::new();
-    for (k, l) in std::fs::read_to_string(&cw).unwrap().lines().enumerate() {
-        with_rot += l;
-        with_rot += if k == 0 { ",rotator_deg\n" } else { ",12\n" };
-    }
-    let cr = d.join("with_rot.csv");
-    std::fs::write(&cr, with_rot).unwrap();
+    // The catalog with parang columns, plus one more column of one value on every row.
+    let plus_column = |name: &str, value: &str, file: &str| -> PathBuf {
+        let mut text = String::new();
+        for (k, l) in std::fs::read_to_string(&cw).unwrap().lines().enumerate() {
+            text += &format!("{l},{}\n", if k == 0 { name } else { value });
+        }
+        std::fs::write(d.join(file), text).unwrap();
+        d.join(file)
+    };
+    let cr = plus_column("rotator_deg", "12", "with_rot.csv");
     assert_eq!(correct_rot(&cr, "r2.csv", &[]).0, Some(0));
     assert_eq!(correct_rot(&cb, "r3.csv", &["--parang", "-41.5,-37.25", "--rotator", "12"]).0, Some(0));
     let (r1, r2, r3) = (columns("r1.csv"), columns("r2.csv"), columns("r3.csv"));
@@ -680,13 +671,7 @@ fn correct_gives_a_catalog_without_angles_the_frames_track() {
 
     // A catalog whose q, u carry a HWP zero angle: the chain does not yet turn it into the
     // models' frame, and says so loudly.
-    let mut zero = String::new();
-    for (k, l) in std::fs::read_to_string(&cw).unwrap().lines().enumerate() {
-        zero += l;
-        zero += if k == 0 { ",hwp_chi_offset_deg\n" } else { ",2.5\n" };
-    }
-    let cz = d.join("zero.csv");
-    std::fs::write(&cz, zero).unwrap();
+    let cz = plus_column("hwp_chi_offset_deg", "2.5", "zero.csv");
     let (code, err) = correct(&cz, "z.csv", &[]);
     assert_eq!(code, Some(0), "{err}");
     assert!(err.contains("WARNING") && err.contains("HWP zero angle of 2.5 deg"), "{err}");

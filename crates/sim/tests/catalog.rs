@@ -126,10 +126,7 @@ fn check(dir: &Path, inst_path: &Path, stars: &[Truth], fwhm_arcsec: f64, ap: Ap
 #[test]
 fn maskless_catalog_of_55_stars() {
     let dir = tempfile::tempdir().unwrap();
-    let text = include_str!("../../../instruments/calcite.toml")
-        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
-    let ip = dir.path().join("calcite.toml");
-    std::fs::write(&ip, text).unwrap();
+    let ip = calcite_with_hwp_keyword(dir.path());
     let mut stars = Vec::new();
     let mut k = 0;
     for j in 0..11 {
@@ -172,12 +169,31 @@ fn strip_catalog_of_55_stars_with_an_edge_star() {
     check(dir.path(), &ip, &stars, 0.8, Aperture { radius_px: 6.0, annulus: Some((9.0, 14.0)) });
 }
 
-/// The catalog's rows for 40 bright stars through the maskless example with extra effects.
-fn bright_rows(dir: &Path, effects: &str) -> Vec<skyfield::catalog::Row> {
+/// The maskless example instrument, its HWP angle read from the simulator's HWPANG keyword,
+/// written into `dir`.
+fn calcite_with_hwp_keyword(dir: &Path) -> std::path::PathBuf {
     let text = include_str!("../../../instruments/calcite.toml")
         .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
     let ip = dir.join("calcite.toml");
     std::fs::write(&ip, text).unwrap();
+    ip
+}
+
+/// The catalog settings for bright stars of 1" FWHM through the maskless example: 9 px
+/// apertures, a 14-24 px annulus.
+fn bright_config() -> CatalogConfig {
+    CatalogConfig {
+        detect: DetectConfig { fwhm_px: 4.7, ..Default::default() },
+        radius: skyfield::photometry::ApertureRadius::Px(9.0),
+        annulus: Some((14.0, 24.0)),
+        weighting: skyfield::aperture::Weighting::Exact,
+        kappa: Default::default(),
+    }
+}
+
+/// The catalog's rows for 40 bright stars through the maskless example with extra effects.
+fn bright_rows(dir: &Path, effects: &str) -> Vec<skyfield::catalog::Row> {
+    let ip = calcite_with_hwp_keyword(dir);
     let mut s = format!(
         "instrument = \"{}\"\nfilter = \"V\"\nseed = 9\nhwp_angles_deg = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]\n{SHIFTS}\n[output]\nbitpix = -64\n[sky]\nbrightness_e = 100\n[effects]\nphoton_noise = true\n{effects}\n",
         ip.display()
@@ -196,13 +212,7 @@ fn bright_rows(dir: &Path, effects: &str) -> Vec<skyfield::catalog::Row> {
     let out = sim::simulate(&sc, &dir.join("f"), &|| {}).unwrap();
     let inst = instrument::Instrument::load(ip.to_str().unwrap()).unwrap();
     let set = FrameSet::from_frames(read_frames(&out.frames, &inst, &|| {}).unwrap(), &inst, true).unwrap();
-    let cfg = CatalogConfig {
-        detect: DetectConfig { fwhm_px: 4.7, ..Default::default() },
-        radius: skyfield::photometry::ApertureRadius::Px(9.0),
-        annulus: Some((14.0, 24.0)),
-        weighting: skyfield::aperture::Weighting::Exact,
-        kappa: Default::default(),
-    };
+    let cfg = bright_config();
     catalog(&set, &inst, &cfg).unwrap().rows.into_iter().filter(|r| r.q.is_finite()).collect()
 }
 
@@ -240,10 +250,7 @@ fn scatter_error_against_propagated() {
 #[test]
 fn failed_stars_are_flagged_by_kind_not_by_file_names() {
     let dir = tempfile::tempdir().unwrap();
-    let text = include_str!("../../../instruments/calcite.toml")
-        .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
-    let ip = dir.path().join("calcite.toml");
-    std::fs::write(&ip, text).unwrap();
+    let ip = calcite_with_hwp_keyword(dir.path());
     let mut s = format!(
         "instrument = \"{}\"\nfilter = \"V\"\nseed = 5\nhwp_angles_deg = [0, 22.5, 45, 67.5]\n[output]\nbitpix = -64\n[sky]\nbrightness_e = 100\n[effects]\nphoton_noise = true\n",
         ip.display()
@@ -261,13 +268,7 @@ fn failed_stars_are_flagged_by_kind_not_by_file_names() {
     let nx = set.nx;
     set.data[3][120 * nx + 100] = f64::NAN;
     set.data[3][320 * nx + 300] = inst.detector.saturation_adu + 1.0;
-    let cfg = CatalogConfig {
-        detect: DetectConfig { fwhm_px: 4.7, ..Default::default() },
-        radius: skyfield::photometry::ApertureRadius::Px(9.0),
-        annulus: Some((14.0, 24.0)),
-        weighting: skyfield::aperture::Weighting::Exact,
-        kappa: Default::default(),
-    };
+    let cfg = bright_config();
     let cat = catalog(&set, &inst, &cfg).unwrap();
     let row = |x: f64, y: f64| {
         cat.rows.iter().find(|r| (r.x - x).hypot(r.y - y) < 2.0).unwrap_or_else(|| panic!("no row at ({x}, {y})"))
