@@ -233,6 +233,7 @@ pub fn sigma_clip_columns(cols: &[&[f64]], cfg: ClipConfig) -> Vec<bool> {
 /// window its last median was searched in with what that pass found (the count of values
 /// below it and the keys inside), kept up to date as rows are rejected, so that the next
 /// iteration's median is selected among those keys without another pass over the values.
+#[derive(Default)]
 struct Column {
     vals: Vec<f64>,
     med_win: Option<(f64, f64)>,
@@ -241,6 +242,15 @@ struct Column {
 }
 
 impl Column {
+    /// A fresh column holding `vals` (buffers kept).
+    fn reset(&mut self, vals: &[f64]) {
+        self.vals.clear();
+        self.vals.extend_from_slice(vals);
+        self.med_win = None;
+        self.below = 0;
+        self.win.clear();
+    }
+
     /// The median of the kept values, from the window of the previous pass while both middle
     /// ranks are still inside it; otherwise after a pass over the values with the window
     /// `w` (which becomes the kept one).
@@ -286,83 +296,134 @@ impl Column {
 /// MADs are probably (a neighbouring bin's: the sky changes little from bin to bin), on return
 /// where this clipping ended. The result is the same whatever the hints.
 pub fn sigma_clip_columns_hinted(cols: &[&[f64]], cfg: ClipConfig, hints: &mut [ClipHint]) -> Vec<bool> {
-    assert_eq!(hints.len(), cols.len(), "one hint per column");
     let n = cols.first().map_or(0, |c| c.len());
-    // The kept rows, compacted (row order kept): their indices and each column's values, so
-    // that every pass below runs over contiguous memory without a mask.
-    let mut rows: Vec<usize> = (0..n).filter(|&r| cols.iter().all(|c| c[r].is_finite())).collect();
-    let mut state: Vec<Column> = cols
-        .iter()
-        .map(|c| Column { vals: rows.iter().map(|&r| c[r]).collect(), med_win: None, below: 0, win: Vec::new() })
-        .collect();
-    // Medians are selected on integer keys of the IEEE total order (what `median_in_place`
-    // compares with `total_cmp`, without the per-comparison transform): same values. Each
-    // median and MAD is first looked for near the previous iteration's (the hint's, at first);
-    // a median whose ranks stay inside the previous iteration's window (a few rows rejected)
-    // needs no pass at all.
-    let mut buf: Vec<i64> = Vec::with_capacity(n);
-    let mut win: Vec<i64> = Vec::new();
-    let mut centre: Vec<(f64, f64)> = Vec::with_capacity(cols.len());
-    for _ in 0..cfg.max_iter {
-        let m = rows.len();
-        if m < 3 {
-            break;
+    with_scratch(|sc| {
+        sc.clip(cols, cfg, hints);
+        let mut keep = vec![false; n];
+        for &r in &sc.rows {
+            keep[r as usize] = true;
         }
-        centre.clear();
-        for (ci, c) in state.iter_mut().enumerate() {
-            let hint = hints[ci];
-            let med = c.median(hint.map(|(m, _, s)| window(m, MEDIAN_WINDOW * s)), &mut buf);
-            let w_mad = hint.map(|(_, d, s)| window(d, MAD_WINDOW * s));
-            let v = &c.vals;
-            let mad = median_near_by(v, Some(med), w_mad, &mut buf, &mut win);
-            let mut sigma = MAD_TO_SIGMA * mad;
-            if sigma == 0.0 {
-                let mean = v.iter().sum::<f64>() / m as f64;
-                sigma = (v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / m as f64).sqrt();
+        keep
+    })
+}
+
+/// The buffers of a clipping, reused from bin to bin on a thread (a bin's clipping takes a few
+/// microseconds, and allocating these for each bin was a fifth of it): the kept rows and each
+/// column's kept values, compacted in row order, which is what the clipping returns.
+#[derive(Default)]
+struct Clip {
+    rows: Vec<u32>,
+    state: Vec<Column>,
+    /// Per kept row: non-zero when a column's value is beyond its limit.
+    out: Vec<u8>,
+    buf: Vec<i64>,
+    win: Vec<i64>,
+    centre: Vec<(f64, f64)>,
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Clip> = std::cell::RefCell::new(Clip::default());
+}
+
+/// Runs `f` with this thread's clipping buffers.
+fn with_scratch<T>(f: impl FnOnce(&mut Clip) -> T) -> T {
+    SCRATCH.with(|c| match c.try_borrow_mut() {
+        Ok(mut sc) => f(&mut sc),
+        // Not reentrant; a fresh set should a caller ever nest clippings.
+        Err(_) => f(&mut Clip::default()),
+    })
+}
+
+/// `true` when every value is finite; in blocks that vectorize (`Iterator::all` stops at the
+/// first failure, so it tests one value at a time).
+fn all_finite(v: &[f64]) -> bool {
+    v.chunks(16).all(|b| b.iter().fold(true, |a, x| a & x.is_finite()))
+}
+
+impl Clip {
+    /// The clipping of [`sigma_clip_columns_hinted`]: on return `rows` holds the kept rows and
+    /// `state[c].vals` column `c`'s kept values, both in row order.
+    fn clip(&mut self, cols: &[&[f64]], cfg: ClipConfig, hints: &mut [ClipHint]) {
+        assert_eq!(hints.len(), cols.len(), "one hint per column");
+        let n = cols.first().map_or(0, |c| c.len());
+        assert!(n <= u32::MAX as usize, "a bin of more than 2^32 pixels");
+        // The kept rows, compacted (row order kept): their indices and each column's values, so
+        // that every pass below runs over contiguous memory without a mask.
+        self.rows.clear();
+        self.state.resize_with(cols.len(), Column::default);
+        self.state.truncate(cols.len());
+        if cols.iter().all(|c| all_finite(c)) {
+            self.rows.extend(0..n as u32);
+            for (c, col) in self.state.iter_mut().zip(cols) {
+                c.reset(col);
             }
-            hints[ci] = Some((med, mad, sigma));
-            centre.push((med, cfg.nsigma * sigma));
+        } else {
+            self.rows.extend((0..n as u32).filter(|&r| cols.iter().all(|c| c[r as usize].is_finite())));
+            for (c, col) in self.state.iter_mut().zip(cols) {
+                c.reset(&[]);
+                c.vals.extend(self.rows.iter().map(|&r| col[r as usize]));
+            }
         }
-        // Most iterations reject nothing (the last one always): check that first, in passes
-        // that vectorize (an OR of comparisons; a running maximum in the MAD pass would not,
-        // and cost more than this pass).
-        let any_out = state
-            .iter()
-            .zip(&centre)
-            .any(|(c, &(med, lim))| c.vals.iter().fold(false, |a, &x| a | ((x - med).abs() > lim)));
-        if !any_out {
-            break;
-        }
-        // Keep the rows within every column's limit, compacting in place.
-        let mut w = 0;
-        for k in 0..m {
-            let inside = state.iter().zip(&centre).all(|(c, &(med, lim))| !((c.vals[k] - med).abs() > lim));
-            if inside {
-                rows[w] = rows[k];
-                for c in state.iter_mut() {
-                    c.vals[w] = c.vals[k];
+        // Medians are selected on integer keys of the IEEE total order (what `median_in_place`
+        // compares with `total_cmp`, without the per-comparison transform): same values. Each
+        // median and MAD is first looked for near the previous iteration's (the hint's, at
+        // first); a median whose ranks stay inside the previous iteration's window (a few rows
+        // rejected) needs no pass at all.
+        let Self { rows, state, out, buf, win, centre } = self;
+        for _ in 0..cfg.max_iter {
+            let m = rows.len();
+            if m < 3 {
+                break;
+            }
+            centre.clear();
+            for (ci, c) in state.iter_mut().enumerate() {
+                let hint = hints[ci];
+                let med = c.median(hint.map(|(m, _, s)| window(m, MEDIAN_WINDOW * s)), buf);
+                let w_mad = hint.map(|(_, d, s)| window(d, MAD_WINDOW * s));
+                let v = &c.vals;
+                let mad = median_near_by(v, Some(med), w_mad, buf, win);
+                let mut sigma = MAD_TO_SIGMA * mad;
+                if sigma == 0.0 {
+                    let mean = v.iter().sum::<f64>() / m as f64;
+                    sigma = (v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / m as f64).sqrt();
                 }
-                w += 1;
-            } else {
-                for c in state.iter_mut() {
+                hints[ci] = Some((med, mad, sigma));
+                centre.push((med, cfg.nsigma * sigma));
+            }
+            // Which rows are out, column by column in passes that vectorize; most iterations
+            // reject nothing (the last one always).
+            out.clear();
+            out.resize(m, 0);
+            for (c, &(med, lim)) in state.iter().zip(centre.iter()) {
+                for (o, &x) in out.iter_mut().zip(&c.vals) {
+                    *o |= ((x - med).abs() > lim) as u8;
+                }
+            }
+            if out.chunks(64).all(|b| b.iter().fold(0, |a, &o| a | o) == 0) {
+                break;
+            }
+            // Keep the rows within every column's limit, compacting in place, and take the
+            // rejected values out of each column's kept median window.
+            for c in state.iter_mut() {
+                let mut w = 0;
+                for k in 0..m {
                     let x = c.vals[k];
-                    c.forget(x);
+                    c.vals[w] = x;
+                    if out[k] != 0 {
+                        c.forget(x);
+                    }
+                    w += (out[k] == 0) as usize;
                 }
+                c.vals.truncate(w);
             }
-        }
-        if w == m {
-            break;
-        }
-        rows.truncate(w);
-        for c in state.iter_mut() {
-            c.vals.truncate(w);
+            let mut w = 0;
+            for k in 0..m {
+                rows[w] = rows[k];
+                w += (out[k] == 0) as usize;
+            }
+            rows.truncate(w);
         }
     }
-    let mut keep = vec![false; n];
-    for r in rows {
-        keep[r] = true;
-    }
-    keep
 }
 
 /// One pixel's contribution to a bin.
@@ -451,36 +512,40 @@ pub fn clipped_bin_hinted(
     min_pixels: usize,
     hints: &mut [ClipHint; 3],
 ) -> Option<BinStats> {
-    let keep = sigma_clip_columns_hinted(&[&s.q, &s.u, &s.i], cfg, hints);
-    let kept: Vec<usize> = (0..s.len()).filter(|&r| keep[r]).collect();
-    let n = kept.len();
-    if n < min_pixels.max(2) {
-        return None;
-    }
-    let nf = n as f64;
-    let mean = |c: &[f64]| kept.iter().map(|&r| c[r]).sum::<f64>() / nf;
-    let (mq, mu, mi) = (mean(&s.q), mean(&s.u), mean(&s.i));
-    let (mut vq, mut vu, mut cqu, mut pq, mut pu) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for &r in &kept {
-        let (dq, du) = (s.q[r] - mq, s.u[r] - mu);
-        vq += dq * dq;
-        vu += du * du;
-        cqu += dq * du;
-        pq += s.var_q[r];
-        pu += s.var_u[r];
-    }
-    // Sample (co)variances with n - 1, then of the mean: / n.
-    let d = (nf - 1.0) * nf;
-    Some(BinStats {
-        q: mq,
-        u: mu,
-        sigma_q: (vq / d).sqrt(),
-        sigma_u: (vu / d).sqrt(),
-        cov_qu: cqu / d,
-        sigma_q_phot: pq.sqrt() / nf,
-        sigma_u_phot: pu.sqrt() / nf,
-        intensity: mi,
-        n_kept: n,
+    with_scratch(|sc| {
+        sc.clip(&[&s.q, &s.u, &s.i], cfg, hints);
+        // The clipping leaves the kept q, u and I compacted in row order: the sums below add
+        // the kept rows in row order, as over the rows of a keep mask.
+        let (q, u, i) = (&sc.state[0].vals, &sc.state[1].vals, &sc.state[2].vals);
+        let n = sc.rows.len();
+        if n < min_pixels.max(2) {
+            return None;
+        }
+        let nf = n as f64;
+        let mean = |c: &[f64]| c.iter().sum::<f64>() / nf;
+        let (mq, mu, mi) = (mean(q), mean(u), mean(i));
+        let (mut vq, mut vu, mut cqu, mut pq, mut pu) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for ((&qk, &uk), &r) in q.iter().zip(u).zip(&sc.rows) {
+            let (dq, du) = (qk - mq, uk - mu);
+            vq += dq * dq;
+            vu += du * du;
+            cqu += dq * du;
+            pq += s.var_q[r as usize];
+            pu += s.var_u[r as usize];
+        }
+        // Sample (co)variances with n - 1, then of the mean: / n.
+        let d = (nf - 1.0) * nf;
+        Some(BinStats {
+            q: mq,
+            u: mu,
+            sigma_q: (vq / d).sqrt(),
+            sigma_u: (vu / d).sqrt(),
+            cov_qu: cqu / d,
+            sigma_q_phot: pq.sqrt() / nf,
+            sigma_u_phot: pu.sqrt() / nf,
+            intensity: mi,
+            n_kept: n,
+        })
     })
 }
 

@@ -249,12 +249,111 @@ struct Exposure {
     rn2: f64,
 }
 
-/// Loaded calibration frames: the bias (ADU) and the inverse of the flat, read once and shared
-/// by every exposure.
+/// The calibration frames of a run: the bias (ADU) and the inverse of the flat, opened once
+/// (headers checked) and shared by every exposure.
+#[derive(Debug, Default)]
+pub(crate) struct Masters {
+    bias: Option<OpenMaster>,
+    flat: Option<OpenMaster>,
+}
+
+/// One master: its file, read by rows where the reduction needs them (each band reads the
+/// masters' rows of its detector rows once for all exposures, see [`Masters::rows`]), or whole
+/// for the callers that take whole frames (read once, on first use). Reading the two FORS2
+/// masters whole was 7-11 ms, one eighth of a raw reduction, before its first row: fresh pages
+/// for 34 MB, faulted in and filled on two threads while the other work waited.
 #[derive(Debug)]
-struct Masters {
-    bias: Option<Vec<f32>>,
-    flat: Option<Vec<f32>>,
+struct OpenMaster {
+    path: PathBuf,
+    /// Positioned reads of the stored rows, when the master is plain BITPIX -32 data.
+    file: Option<crate::io::RowFile>,
+    nx: usize,
+    /// Stored as the inverse (a flat): NaN where the response is not positive.
+    inverse: bool,
+    whole: std::sync::OnceLock<Vec<f32>>,
+    loading: std::sync::Mutex<()>,
+}
+
+impl OpenMaster {
+    #[inline(always)]
+    fn value(&self, f: f32) -> f32 {
+        if !self.inverse {
+            f
+        } else if f > 0.0 {
+            1.0 / f
+        } else {
+            f32::NAN
+        }
+    }
+
+    /// The whole frame (inverted for a flat), read on first use.
+    fn whole(&self) -> Result<&[f32], Error> {
+        if let Some(v) = self.whole.get() {
+            return Ok(v);
+        }
+        let _one_reader = self.loading.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(v) = self.whole.get() {
+            return Ok(v);
+        }
+        let mut img = open_image(&self.path, "")?;
+        // Masters are written as f32: kept as read (f32 -> f64 -> f32 would be the identity).
+        let mut v = match img.read_pixels(&self.path)? {
+            Pixels::F32(v) => v,
+            other => other.into_f64().into_iter().map(|v| v as f32).collect(),
+        };
+        if self.inverse {
+            v.par_iter_mut().for_each(|f| *f = self.value(*f));
+        }
+        Ok(self.whole.get_or_init(|| v))
+    }
+
+    /// Detector rows `row0 ..` (as many as fill `out`, whole rows).
+    fn rows(&self, row0: usize, out: &mut [f32], bytes: &mut Vec<u8>) -> Result<(), Error> {
+        let at = row0 * self.nx;
+        match (&self.file, self.whole.get()) {
+            (Some(r), None) => {
+                bytes.resize(4 * out.len(), 0);
+                r.read_at(&self.path, at, bytes)?;
+                for (o, b) in out.iter_mut().zip(bytes.chunks_exact(4)) {
+                    *o = self.value(f32::from_be_bytes(b.try_into().expect("4 bytes")));
+                }
+            }
+            _ => out.copy_from_slice(&self.whole()?[at..at + out.len()]),
+        }
+        Ok(())
+    }
+}
+
+impl Masters {
+    /// Whether a bias and a flat are given.
+    fn given(&self) -> (bool, bool) {
+        (self.bias.is_some(), self.flat.is_some())
+    }
+
+    /// Detector rows `row0 ..` of the bias and the inverse flat, those given (each as many
+    /// rows as fill its slice).
+    pub(crate) fn rows(
+        &self,
+        row0: usize,
+        bias: &mut [f32],
+        flat: &mut [f32],
+        bytes: &mut Vec<u8>,
+    ) -> Result<(), Error> {
+        for (m, out) in [(&self.bias, bias), (&self.flat, flat)] {
+            if let Some(m) = m {
+                m.rows(row0, out, bytes)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Master rows a caller read for detector rows `row0 ..` (see [`Calibrated::load_rows_with`]).
+#[derive(Clone, Copy)]
+pub(crate) struct MasterRows<'a> {
+    pub(crate) row0: usize,
+    pub(crate) bias: &'a [f32],
+    pub(crate) flat: &'a [f32],
 }
 
 /// A method `$name` whose body `$body` runs compiled for AVX2 where the CPU has it, else as
@@ -398,10 +497,47 @@ impl Calibrated {
     /// Detector rows `row0 ..` (as many as fill `out`, whole rows) in electrons (f32 values
     /// widened to f64, as a calibrated frame in memory holds them): the gap is [`GAP`], raw
     /// values at or above saturation [`SATURATED`], NaN raw values NaN. `bytes` is scratch.
+    /// The masters are read whole (once); see [`Calibrated::load_rows_with`].
     pub(crate) fn load_rows(&self, row0: usize, out: &mut [f64], bytes: &mut Vec<u8>) -> Result<(), Error> {
+        fn whole(m: &Option<OpenMaster>) -> Result<Option<&[f32]>, Error> {
+            m.as_ref().map(|m| m.whole()).transpose()
+        }
+        let (bias, flat) = (whole(&self.masters.bias)?, whole(&self.masters.flat)?);
+        self.load(row0, out, bytes, 0, bias, flat)
+    }
+
+    /// The masters this exposure is calibrated with (shared by the exposures of a run).
+    pub(crate) fn masters(&self) -> &Arc<Masters> {
+        &self.masters
+    }
+
+    /// [`Calibrated::load_rows`] with the masters' rows the caller read ([`Masters::rows`] of
+    /// [`Calibrated::masters`]) for at least the rows loaded: the reduction's bands read them
+    /// once for all the exposures of a group of rows.
+    pub(crate) fn load_rows_with(
+        &self,
+        row0: usize,
+        out: &mut [f64],
+        bytes: &mut Vec<u8>,
+        m: MasterRows,
+    ) -> Result<(), Error> {
+        let (bias, flat) = self.masters.given();
+        self.load(row0, out, bytes, m.row0, bias.then_some(m.bias), flat.then_some(m.flat))
+    }
+
+    /// The rows, with the masters' pixels from detector row `m_row0` on.
+    fn load(
+        &self,
+        row0: usize,
+        out: &mut [f64],
+        bytes: &mut Vec<u8>,
+        m_row0: usize,
+        bias: Option<&[f32]>,
+        flat: Option<&[f32]>,
+    ) -> Result<(), Error> {
         let nx = self.nx;
         let nrows = out.len() / nx;
-        debug_assert!(out.len() == nrows * nx && row0 + nrows <= self.ny);
+        debug_assert!(out.len() == nrows * nx && row0 + nrows <= self.ny && m_row0 <= row0);
         // The gap: whatever no chip covers (chips never overlap; each writes all its columns
         // of its rows below), so the chips' pixels are written once, not filled first.
         let gap = GAP as f32 as f64;
@@ -431,9 +567,8 @@ impl Calibrated {
                 let ry = c.pry + y - c.y0;
                 c.fetch(ry, n, bytes)?;
                 let rows = &mut out[(y - row0) * nx..(y - row0 + n) * nx];
-                let (bias, flat) = (self.masters.bias.as_deref(), self.masters.flat.as_deref());
                 let (bias, flat) = (bias.filter(|_| c.use_bias), flat.filter(|_| c.use_flat));
-                c.calibrate_rows(ry, y * nx, nx, bias, flat, bytes, rows);
+                c.calibrate_rows(ry, (y - m_row0) * nx, nx, bias, flat, bytes, rows);
                 y += n;
             }
         }
@@ -491,7 +626,9 @@ fn calibrate_row(v: &mut [f64], bias: Option<&[f32]>, flat_inv: Option<&[f32]>, 
     }
 }
 
-fn load_master(path: &Path, inst: &Instrument, kind: &str) -> Result<Vec<f32>, Error> {
+/// A master's header checked against the instrument and the role it is given in; its pixels
+/// are read later, by rows or whole ([`OpenMaster`]).
+fn open_master(path: &Path, inst: &Instrument, kind: &str) -> Result<OpenMaster, Error> {
     let mut img = open_image(path, "")?;
     check_bitpix(path, img.bitpix)?;
     let d = &inst.detector;
@@ -523,10 +660,16 @@ fn load_master(path: &Path, inst: &Instrument, kind: &str) -> Result<Vec<f32>, E
             )));
         }
     }
-    // Masters are written as f32: kept as read (f32 -> f64 -> f32 would be the identity).
-    Ok(match img.read_pixels(path)? {
-        Pixels::F32(v) => v,
-        other => other.into_f64().into_iter().map(|v| v as f32).collect(),
+    use crate::io::{direct_rows, raw_kind, RawKind};
+    let plain = !img.compressed && !img.blank && raw_kind(img.bitpix, img.bscale, img.bzero) == Some(RawKind::F32);
+    let file = if plain { direct_rows(path, &mut img, RawKind::F32)? } else { None };
+    Ok(OpenMaster {
+        path: path.into(),
+        file,
+        nx: d.nx,
+        inverse: kind == "FLAT",
+        whole: Default::default(),
+        loading: Default::default(),
     })
 }
 
@@ -762,23 +905,9 @@ fn calibrate_all(
     stage: Stage,
 ) -> Result<Vec<Exposure>, Error> {
     let chips = chips_of(inst);
-    // Read once for all exposures, the two at the same time.
-    let (bias, flat) = rayon::join(
-        || opts.bias.as_deref().map(|p| load_master(p, inst, "BIAS")).transpose(),
-        || {
-            // Stored as its inverse (NaN where the response is not positive): a multiply per pixel.
-            opts.flat
-                .as_deref()
-                .map(|p| {
-                    load_master(p, inst, "FLAT").map(|mut v| {
-                        v.par_iter_mut().for_each(|f| *f = if *f > 0.0 { 1.0 / *f } else { f32::NAN });
-                        v
-                    })
-                })
-                .transpose()
-        },
-    );
-    let masters = Arc::new(Masters { bias: bias?, flat: flat? });
+    // Opened once for all exposures (headers checked); their pixels are read as needed.
+    let master = |p: &Option<PathBuf>, kind| p.as_deref().map(|p| open_master(p, inst, kind)).transpose();
+    let masters = Arc::new(Masters { bias: master(&opts.bias, "BIAS")?, flat: master(&opts.flat, "FLAT")? });
     let groups = group_exposures(paths, inst, &chips)?;
     let n = groups.len();
     // Errors in the order of the files (rayon's short-circuiting collect would pick any).

@@ -951,7 +951,7 @@ impl RawKind {
     }
 }
 
-fn raw_kind(bitpix: i32, bscale: f64, bzero: f64) -> Option<RawKind> {
+pub(crate) fn raw_kind(bitpix: i32, bscale: f64, bzero: f64) -> Option<RawKind> {
     match (bitpix, bscale == 1.0, bzero) {
         (-32, true, 0.0) => Some(RawKind::F32),
         (-64, true, 0.0) => Some(RawKind::F64),
@@ -1059,7 +1059,7 @@ pub(crate) fn pixel_source(path: &Path, img: &mut ImageHdu) -> Result<FrameRows,
 /// The data offset of the image when the file on disk is plain FITS (not a compressed stream
 /// CFITSIO inflates); `None` sends the frame through CFITSIO. A file too short for its image
 /// is refused here, as CFITSIO would refuse it when reading.
-fn direct_rows(path: &Path, img: &mut ImageHdu, kind: RawKind) -> Result<Option<RowFile>, Error> {
+pub(crate) fn direct_rows(path: &Path, img: &mut ImageHdu, kind: RawKind) -> Result<Option<RowFile>, Error> {
     use std::os::unix::fs::FileExt;
     if move_to(&mut img.f, img.index).is_err() {
         return Ok(None);

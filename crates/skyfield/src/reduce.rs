@@ -25,7 +25,7 @@
 
 use crate::beams::BeamGeometry;
 use crate::bin::{clipped_bin_hinted, BinSamples, ClipConfig, PixelSample};
-use crate::calib::{avx2_dispatch, ReadOptions};
+use crate::calib::{avx2_dispatch, Calibrated, MasterRows, ReadOptions};
 use crate::io::{Conversion, Frame, FrameRows, OpenFrame, PixelView, RawKind};
 use crate::maps::{BinGeometry, StokesMap};
 use crate::{Error, Warning};
@@ -1034,6 +1034,12 @@ impl<'a> Rows<'a> {
     }
 }
 
+/// The masters' rows of a group (read by [`Scratch::group_masters`]) from detector row `r0`,
+/// which sits at `at` in the group buffer's layout.
+fn master_rows<'a>(bias: &'a [f32], flat: &'a [f32], r0: usize, at: usize) -> MasterRows<'a> {
+    MasterRows { row0: r0, bias: bias.get(at..).unwrap_or(&[]), flat: flat.get(at..).unwrap_or(&[]) }
+}
+
 /// Per-thread buffers of [`reduce_bands`], reused across bands: each angle's group of rows
 /// (as stored, or summed over repeated exposures), the kernel, and the samples of each bin of
 /// the band.
@@ -1042,6 +1048,11 @@ struct Scratch {
     sum: Vec<Vec<f64>>,
     tmp: Vec<f64>,
     bytes: Vec<u8>,
+    /// The group's rows of the masters of its raw exposures (bias, inverse flat), in the
+    /// group buffer's layout, and which masters they are (their address; 0 for none yet).
+    mbias: Vec<f32>,
+    mflat: Vec<f32>,
+    mkey: usize,
     k: Kernel,
     bins: Vec<BinSamples>,
 }
@@ -1053,9 +1064,32 @@ impl Scratch {
             sum: vec![Vec::new(); n_angles],
             tmp: Vec::new(),
             bytes: Vec::new(),
+            mbias: Vec::new(),
+            mflat: Vec::new(),
+            mkey: 0,
             k: Kernel::new(),
             bins: vec![BinSamples::default(); nbins],
         }
+    }
+
+    /// The masters' rows of `group` for the raw exposure `c`, read once per group: the
+    /// exposures of a run share their masters, so the first raw exposure of the group reads
+    /// them and the others find them (see [`Calibrated::load_rows_with`]).
+    fn group_masters(&mut self, c: &Calibrated, group: &Group, nx: usize) -> Result<(), Error> {
+        let m = c.masters();
+        let key = std::sync::Arc::as_ptr(m) as usize;
+        if self.mkey == key {
+            return Ok(());
+        }
+        let n = group.n_rows * nx;
+        self.mbias.resize(n, 0.0);
+        self.mflat.resize(n, 0.0);
+        for &(r0, nr, slot0) in &group.runs {
+            let span = slot0 * nx..(slot0 + nr) * nx;
+            m.rows(r0, &mut self.mbias[span.clone()], &mut self.mflat[span], &mut self.bytes)?;
+        }
+        self.mkey = key;
+        Ok(())
     }
 
     avx2_dispatch! {
@@ -1071,6 +1105,7 @@ impl Scratch {
             nx: usize,
             bad: &mut [BadCounts],
         ) -> Result<(), Error> {
+            self.mkey = 0;
             for (i, inp) in inputs.iter().enumerate() {
                 let sat = inp.det.2;
                 match &inp.members[..] {
@@ -1087,10 +1122,12 @@ impl Scratch {
                         // Raw chips: read and calibrated here, into the group buffer (the kernel
                         // counts the bad values of a single exposure).
                         FrameRows::Calibrated(c) => {
+                            self.group_masters(c, group, nx)?;
                             let out = &mut self.sum[i];
                             out.resize(group.n_rows * nx, 0.0);
                             for &(r0, nr, slot0) in &group.runs {
-                                c.load_rows(r0, &mut out[slot0 * nx..(slot0 + nr) * nx], &mut self.bytes)?;
+                                let m = master_rows(&self.mbias, &self.mflat, r0, slot0 * nx);
+                                c.load_rows_with(r0, &mut out[slot0 * nx..(slot0 + nr) * nx], &mut self.bytes, m)?;
                             }
                         }
                         FrameRows::Memory(_) => {}
@@ -1100,11 +1137,18 @@ impl Scratch {
                         self.sum[i].resize(npx, 0.0);
                         self.tmp.resize(npx, 0.0);
                         for (m_i, m) in members.iter().enumerate() {
+                            if let Member::File(OpenFrame { rows: FrameRows::Calibrated(c), .. }, _) = m {
+                                self.group_masters(c, group, nx)?;
+                            }
                             let dst = if m_i == 0 { &mut self.sum[i][..] } else { &mut self.tmp[..] };
                             for &(r0, nr, slot0) in &group.runs {
                                 let out = &mut dst[slot0 * nx..(slot0 + nr) * nx];
                                 match m {
                                     Member::View(v) => v.load(r0 * nx, out),
+                                    Member::File(OpenFrame { rows: FrameRows::Calibrated(c), .. }, _) => {
+                                        let mr = master_rows(&self.mbias, &self.mflat, r0, slot0 * nx);
+                                        c.load_rows_with(r0, out, &mut self.bytes, mr)?
+                                    }
                                     Member::File(f, _) => f.load_rows(r0, out, &mut self.bytes)?,
                                 }
                             }
