@@ -316,6 +316,8 @@ struct Clip {
     state: Vec<Column>,
     /// Per kept row: non-zero when a column's value is beyond its limit.
     out: Vec<u8>,
+    /// The indices of those rows.
+    outs: Vec<usize>,
     buf: Vec<i64>,
     win: Vec<i64>,
     centre: Vec<(f64, f64)>,
@@ -334,10 +336,30 @@ fn with_scratch<T>(f: impl FnOnce(&mut Clip) -> T) -> T {
     })
 }
 
-/// `true` when every value is finite; in blocks that vectorize (`Iterator::all` stops at the
-/// first failure, so it tests one value at a time).
+/// `true` when every value is finite: an exponent field of all ones marks infinities and NaN,
+/// tested in integer lanes eight at a time (`Iterator::all` stops at the first failure, so it
+/// tests one value at a time).
 fn all_finite(v: &[f64]) -> bool {
-    v.chunks(16).all(|b| b.iter().fold(true, |a, x| a & x.is_finite()))
+    let exp = f64::INFINITY.to_bits();
+    let mut acc = [0u64; 8];
+    let mut blocks = v.chunks_exact(8);
+    for b in &mut blocks {
+        for j in 0..8 {
+            acc[j] |= ((b[j].to_bits() & exp) == exp) as u64;
+        }
+    }
+    acc.iter().all(|&a| a == 0) && blocks.remainder().iter().all(|x| x.is_finite())
+}
+
+/// Removes the elements at `outs` (ascending, not empty) from `v`, keeping the others' order.
+fn remove_sorted<T: Copy>(v: &mut Vec<T>, outs: &[usize]) {
+    let mut w = outs[0];
+    for (j, &o) in outs.iter().enumerate() {
+        let end = outs.get(j + 1).copied().unwrap_or(v.len());
+        v.copy_within(o + 1..end, w);
+        w += end - o - 1;
+    }
+    v.truncate(w);
 }
 
 impl Clip {
@@ -369,7 +391,7 @@ impl Clip {
         // median and MAD is first looked for near the previous iteration's (the hint's, at
         // first); a median whose ranks stay inside the previous iteration's window (a few rows
         // rejected) needs no pass at all.
-        let Self { rows, state, out, buf, win, centre } = self;
+        let Self { rows, state, out, outs, buf, win, centre } = self;
         for _ in 0..cfg.max_iter {
             let m = rows.len();
             if m < 3 {
@@ -399,29 +421,28 @@ impl Clip {
                     *o |= ((x - med).abs() > lim) as u8;
                 }
             }
-            if out.chunks(64).all(|b| b.iter().fold(0, |a, &o| a | o) == 0) {
+            // The rows out, in order: few, so they are found by blocks of the mask and taken
+            // out by moving the runs between them (a copy per kept value was most of a
+            // clipping's time).
+            outs.clear();
+            for (b, block) in out.chunks(64).enumerate() {
+                if block.iter().fold(0, |a, &o| a | o) != 0 {
+                    outs.extend(block.iter().enumerate().filter(|(_, &o)| o != 0).map(|(j, _)| b * 64 + j));
+                }
+            }
+            if outs.is_empty() {
                 break;
             }
-            // Keep the rows within every column's limit, compacting in place, and take the
-            // rejected values out of each column's kept median window.
+            // Keep the rows within every column's limit, and take the rejected values out of
+            // each column's kept median window.
             for c in state.iter_mut() {
-                let mut w = 0;
-                for k in 0..m {
+                for &k in outs.iter() {
                     let x = c.vals[k];
-                    c.vals[w] = x;
-                    if out[k] != 0 {
-                        c.forget(x);
-                    }
-                    w += (out[k] == 0) as usize;
+                    c.forget(x);
                 }
-                c.vals.truncate(w);
+                remove_sorted(&mut c.vals, outs);
             }
-            let mut w = 0;
-            for k in 0..m {
-                rows[w] = rows[k];
-                w += (out[k] == 0) as usize;
-            }
-            rows.truncate(w);
+            remove_sorted(rows, outs);
         }
     }
 }
@@ -630,6 +651,31 @@ mod tests {
                         assert_eq!(a[..s.1], b[..x.1], "n {n} centre {centre:?} window {lo}..{hi}");
                     }
                 }
+            }
+        }
+    }
+
+    /// The block-wise finiteness test and the run-moving removal against their plain forms:
+    /// NaN and infinities in the blocks and in the tail; removals at the ends, adjacent and
+    /// alone.
+    #[test]
+    fn finite_test_and_removal_are_the_plain_ones() {
+        for n in [0, 1, 7, 8, 9, 17, 64, 70] {
+            for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY, f64::MAX, -0.0, 1e-310] {
+                for at in 0..n {
+                    let mut v: Vec<f64> = (0..n).map(|k| k as f64 - 3.5).collect();
+                    v[at] = bad;
+                    assert_eq!(all_finite(&v), v.iter().all(|x| x.is_finite()), "n {n}, {bad} at {at}");
+                }
+            }
+            let v: Vec<u32> = (0..n as u32).collect();
+            let sets: Vec<Vec<usize>> =
+                vec![vec![0], vec![n.saturating_sub(1)], vec![0, 1, 2], (0..n).step_by(3).collect(), (0..n).collect()];
+            for outs in sets.into_iter().filter(|o| !o.is_empty() && o.iter().all(|&k| k < n)) {
+                let mut got = v.clone();
+                remove_sorted(&mut got, &outs);
+                let want: Vec<u32> = v.iter().copied().filter(|&x| !outs.contains(&(x as usize))).collect();
+                assert_eq!(got, want, "n {n}, removing {outs:?}");
             }
         }
     }
