@@ -27,12 +27,17 @@ fn resolved(p: &Path) -> Option<PathBuf> {
     Some(std::fs::canonicalize(dir).ok()?.join(p.file_name()?))
 }
 
-fn same_file(a: &Path, b: &Path) -> bool {
-    match (file_id(a), file_id(b)) {
-        (Some(x), Some(y)) if x == y => return true,
-        _ => {}
+/// Whether `a` and `b` name the same file: the same identity when both exist; the same
+/// resolved path when neither does (an existing file and a missing one are never the same).
+/// `id_a` is `file_id(a)`, taken once by a caller comparing `a` with many files: each
+/// comparison then costs one `stat` (resolving every path each time was 6 ms of a 34-file
+/// reduction's start).
+fn same_file_as(a: &Path, id_a: Option<(u64, u64)>, b: &Path) -> bool {
+    match (id_a, file_id(b)) {
+        (Some(x), Some(y)) => x == y,
+        (None, None) => matches!((resolved(a), resolved(b)), (Some(x), Some(y)) if x == y),
+        _ => false,
     }
-    matches!((resolved(a), resolved(b)), (Some(x), Some(y)) if x == y)
 }
 
 /// Register the files this command reads, after refusing one passed twice (it would be summed
@@ -59,14 +64,15 @@ pub fn inputs_read_in_order<'a>(streamed: &[&'a Path], others: impl IntoIterator
 
 /// The checks of [`inputs`] (no file twice) and the registration against overwriting.
 fn register_inputs(paths: &[&Path]) -> Result<()> {
-    for (i, a) in paths.iter().enumerate() {
-        for b in &paths[..i] {
-            if file_id(a).is_some() && same_file(a, b) {
-                if a == b {
-                    bail!("{} is given twice: each input file may be given once", a.display());
-                }
-                bail!("{} and {} are the same file: each input file may be given once", b.display(), a.display());
+    // Existing files by identity, each stat'ed once (a missing file is reported by its reader).
+    let mut seen: std::collections::HashMap<(u64, u64), &Path> = std::collections::HashMap::new();
+    for a in paths {
+        let Some(id) = file_id(a) else { continue };
+        if let Some(b) = seen.insert(id, a) {
+            if *a == b {
+                bail!("{} is given twice: each input file may be given once", a.display());
             }
+            bail!("{} and {} are the same file: each input file may be given once", b.display(), a.display());
         }
     }
     INPUTS.lock().unwrap_or_else(|e| e.into_inner()).extend(paths.iter().map(|p| p.to_path_buf()));
@@ -110,8 +116,9 @@ pub fn file_arg(s: &str) -> Option<&Path> {
 /// symlinks and `..`, or same device and inode), naming both.
 pub fn check_output(out: &Path) -> Result<()> {
     let ins = INPUTS.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    let id = file_id(out);
     for i in &ins {
-        if same_file(out, i) {
+        if same_file_as(out, id, i) {
             bail!(
                 "output {} is the input {} (the same file): refusing to write over an input; choose another output name",
                 out.display(),

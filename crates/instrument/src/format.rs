@@ -120,8 +120,7 @@ impl FrameFormat {
                 "either every chip is found by match_keyword (one file per chip) or none (chips as HDUs of one file)",
             );
         }
-        let mut covered = vec![false; nx.saturating_mul(ny).min(1 << 28)];
-        for c in &self.chips {
+        for (i, c) in self.chips.iter().enumerate() {
             let k = format!("chips.{}", c.name);
             if c.match_keyword.is_some() != c.match_value.is_some() {
                 return bad(&k, c.name.clone(), "match_keyword and match_value go together");
@@ -169,13 +168,13 @@ impl FrameFormat {
                     return bad(&format!("{k}.saturation_adu"), s.to_string(), "must be a positive number");
                 }
             }
-            if covered.len() == nx * ny {
-                for y in y0..y0 + cy {
-                    for x in x0..x0 + cx {
-                        if std::mem::replace(&mut covered[y * nx + x], true) {
-                            return bad(&k, c.name.clone(), &format!("overlaps another chip at pixel ({x}, {y})"));
-                        }
-                    }
+            // Chips are rectangles: two overlap when their spans overlap on both axes (a
+            // per-pixel coverage map of the detector took 2 ms of every command's start).
+            for o in &self.chips[..i] {
+                let (xa, xb) = (x0.max(o.origin_px[0]), (x0 + cx).min(o.origin_px[0] + o.size_px[0]));
+                let (ya, yb) = (y0.max(o.origin_px[1]), (y0 + cy).min(o.origin_px[1] + o.size_px[1]));
+                if xa < xb && ya < yb {
+                    return bad(&k, c.name.clone(), &format!("overlaps chip {} at pixel ({xa}, {ya})", o.name));
                 }
             }
         }

@@ -718,6 +718,27 @@ mod tests {
         assert!(e.contains("strip_count"), "{e}");
     }
 
+    /// FORS2's chips moved onto each other by a few rows, or side by side, or apart: refused
+    /// where they share pixels (named with the first shared pixel), loaded where they do not.
+    #[test]
+    fn overlapping_chips_rejected() {
+        let base = include_str!("../../../instruments/fors2.toml");
+        let chip1 = base.find("origin_px = [0, 1040]").expect("CHIP1's origin in fors2.toml");
+        let with = |origin: &str| {
+            let text = format!("{}{origin}{}", &base[..chip1], &base[chip1 + "origin_px = [0, 1040]".len()..]);
+            Instrument::from_toml_str(&text, Path::new("x.toml")).map(|_| ()).map_err(|e| e.to_string())
+        };
+        with("origin_px = [0, 1040]").unwrap();
+        // CHIP2 (given after CHIP1) is rows 0..1024 (x 0..2048): CHIP1 from row 1020 shares
+        // rows 1020..1023.
+        let e = with("origin_px = [0, 1020]").unwrap_err();
+        assert!(e.contains("overlaps chip CHIP1 at pixel (0, 1020)"), "{e}");
+        let e = with("origin_px = [0, 0]").unwrap_err();
+        assert!(e.contains("overlaps chip CHIP1 at pixel (0, 0)"), "{e}");
+        // Touching rows 1024.. is no overlap.
+        with("origin_px = [0, 1024]").unwrap();
+    }
+
     #[test]
     fn pixel_arcmin_round_trip() {
         let f = Instrument::load("fors1").unwrap();
