@@ -39,14 +39,14 @@ pub fn median_in_place(v: &mut [f64]) -> f64 {
 
 /// `x` as an integer whose order is `f64::total_cmp`'s (the same transform).
 #[inline]
-fn total_key(x: f64) -> i64 {
+pub(crate) fn total_key(x: f64) -> i64 {
     let b = x.to_bits() as i64;
     b ^ ((((b >> 63) as u64) >> 1) as i64)
 }
 
 /// Inverse of [`total_key`] (the transform is its own inverse: it never touches the sign bit).
 #[inline]
-fn from_total_key(k: i64) -> f64 {
+pub(crate) fn from_total_key(k: i64) -> f64 {
     f64::from_bits(total_key(f64::from_bits(k as u64)) as u64)
 }
 
@@ -304,6 +304,15 @@ pub fn sigma_clip_columns_hinted(cols: &[&[f64]], cfg: ClipConfig, hints: &mut [
             keep[r as usize] = true;
         }
         keep
+    })
+}
+
+/// The clipping of one column ([`sigma_clip_columns_hinted`]): `f` gets the kept values, in
+/// order.
+pub(crate) fn with_clipped<T>(v: &[f64], cfg: ClipConfig, hint: &mut ClipHint, f: impl FnOnce(&[f64]) -> T) -> T {
+    with_scratch(|sc| {
+        sc.clip(&[v], cfg, std::slice::from_mut(hint));
+        f(&sc.state[0].vals)
     })
 }
 
