@@ -270,6 +270,10 @@ def test_telescope_chain_is_the_cli_bit_for_bit(run, cal_v_telescope, cal_v, tmp
         **{k: v for k, v in cols.items() if not k.startswith("parang")})
     assert np.median(np.hypot(py["q0"] - field_only["q0"], py["u0"] - field_only["u0"])) > 0.01
     # A telescope model without the angles, or angles without a telescope model: refused.
+    # The band rule is the CLI's (fit::telescope::TelescopeFit::choose_band): a band the model
+    # lacks is refused by name.
+    with pytest.raises(instpol.InputError, match="band 'B': the telescope model .* has bands V"):
+        c.correct(**cols, band="B")
     bare = {k: v for k, v in cols.items() if not k.startswith("parang")}
     with pytest.raises(instpol.InputError, match="parang_deg"):
         c.correct(**bare)
@@ -298,6 +302,10 @@ def test_telescope_only_file_is_the_cli_bit_for_bit(run, tmp_path):
     assert py["telescope_model"] == cli["summary"]["telescope_model"] == "wiersema"
     # The mirror's few per cent came out of the rows.
     assert np.median(np.hypot(py["q0"] - cols["q"], py["u0"] - cols["u"])) > 0.01
+    # The band rule is the CLI's (fit::telescope::TelescopeFit::choose_band): a band the model
+    # lacks is refused by name.
+    with pytest.raises(instpol.InputError, match="band 'B': the telescope model .* has bands V"):
+        c.correct(**cols, band="B")
     bare = {k: v for k, v in cols.items() if not k.startswith("parang")}
     with pytest.raises(instpol.InputError, match="parang_deg"):
         c.correct(**bare)

@@ -112,6 +112,28 @@ pub fn file_arg(s: &str) -> Option<&Path> {
     p.is_file().then_some(p)
 }
 
+/// The message for a telescope band that cannot be chosen
+/// (`fit::telescope::TelescopeFit::choose_band`), for calibration `cal` and the frames' filter.
+pub fn band_choice_error(e: fit::telescope::BandChoiceError, cal: &Path, frames_filter: Option<&str>) -> anyhow::Error {
+    use fit::telescope::{BandChoiceError, BandSource};
+    match e {
+        BandChoiceError::Missing { band, source: BandSource::Asked, bands } => {
+            anyhow::anyhow!("--band {band}: the telescope model of {} has bands {}", cal.display(), bands.join(", "))
+        }
+        BandChoiceError::Missing { band, source: BandSource::FieldCalibration, bands } => anyhow::anyhow!(
+            "{}: the field calibration is for filter {band}, a band the telescope model does not have (it has {}): choose one with --band",
+            cal.display(),
+            bands.join(", ")
+        ),
+        BandChoiceError::Ambiguous { bands } => anyhow::anyhow!(
+            "{}: the telescope model has bands {}{}: choose one with --band",
+            cal.display(),
+            bands.join(", "),
+            frames_filter.map_or(String::new(), |f| format!(" and the frames' filter is {f}"))
+        ),
+    }
+}
+
 /// Refuse an output that resolves to one of the registered inputs (same path after resolving
 /// symlinks and `..`, or same device and inode), naming both.
 pub fn check_output(out: &Path) -> Result<()> {

@@ -265,6 +265,24 @@ pub struct Point {
     pub flagged: bool,
 }
 
+/// Where the band asked of a telescope model came from ([`BandChoiceError::Missing`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BandSource {
+    /// The user named it (`--band`, `band=`).
+    Asked,
+    /// The field calibration corrected first is for that filter.
+    FieldCalibration,
+}
+
+/// Why no band of a telescope model could be chosen ([`TelescopeFit::choose_band`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum BandChoiceError {
+    /// The band named, or the field calibration's filter, is not one of the model's.
+    Missing { band: String, source: BandSource, bands: Vec<String> },
+    /// The model has several bands and nothing says which.
+    Ambiguous { bands: Vec<String> },
+}
+
 /// Result of a fit (one band or joint).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TelescopeFit {
@@ -320,6 +338,33 @@ impl TelescopeFit {
     }
     pub fn band(&self, band: &str) -> Option<&BandModel> {
         self.bands.iter().find(|(b, _)| b == band).map(|(_, m)| m)
+    }
+
+    /// The band a correction uses: the one `asked`; else the field calibration's filter (a
+    /// chain corrects the field and the telescope in one band); else the data's filter (the
+    /// frames' or the map's) when the model has it; else the model's only band. The one rule of
+    /// `instpol correct`, `instpol validate` and the Python package.
+    pub fn choose_band(
+        &self,
+        asked: Option<&str>,
+        field_filter: Option<&str>,
+        data_filter: Option<&str>,
+    ) -> std::result::Result<String, BandChoiceError> {
+        let bands = || self.bands.iter().map(|b| b.0.clone()).collect::<Vec<_>>();
+        let named = asked.map(|b| (b, BandSource::Asked)).or(field_filter.map(|f| (f, BandSource::FieldCalibration)));
+        if let Some((b, source)) = named {
+            return match self.band(b) {
+                Some(_) => Ok(b.to_string()),
+                None => Err(BandChoiceError::Missing { band: b.to_string(), source, bands: bands() }),
+            };
+        }
+        if let Some(f) = data_filter.filter(|f| self.band(f).is_some()) {
+            return Ok(f.to_string());
+        }
+        match &self.bands[..] {
+            [(only, _)] => Ok(only.clone()),
+            _ => Err(BandChoiceError::Ambiguous { bands: bands() }),
+        }
     }
 
     /// Corrected sky `(q, u)` and their 1-sigma errors for a measurement in `band`: the
@@ -827,6 +872,50 @@ mod tests {
                 }
             })
             .collect()
+    }
+
+    /// The band rule: asked, then the field calibration's filter (both refused when the model
+    /// lacks them, saying which), then the data's filter when the model has it, then the only
+    /// band; several bands and nothing to choose by is an error listing them.
+    #[test]
+    fn band_choice_follows_its_order() {
+        let t = table();
+        let truth = BandModel {
+            wavelength_um: 0.55,
+            index: t.index(0.55).unwrap(),
+            factor: 0.8,
+            thickness_nm: 0.0,
+            offset: 0.6,
+            q0: 0.0,
+            u0: 0.0,
+        };
+        let one = fit_band(ModelKind::Wiersema, &simulate(&truth, 12, 0.001, 3), &t, &FitOptions::default()).unwrap();
+        assert_eq!(one.bands.len(), 1);
+        let mut two = one.clone();
+        two.bands.push(("B".into(), one.bands[0].1));
+        let v = one.bands[0].0.clone();
+        let missing = |band: &str, source| BandChoiceError::Missing { band: band.into(), source, bands: vec![] };
+        let strip = |r: std::result::Result<String, BandChoiceError>| {
+            r.map_err(|e| match e {
+                BandChoiceError::Missing { band, source, .. } => missing(&band, source),
+                other => other,
+            })
+        };
+        // The only band, whatever the data's filter.
+        assert_eq!(one.choose_band(None, None, None), Ok(v.clone()));
+        assert_eq!(one.choose_band(None, None, Some("R")), Ok(v.clone()));
+        // Asked and field filters come first and must exist.
+        assert_eq!(two.choose_band(Some("B"), Some(&v), Some(&v)), Ok("B".into()));
+        assert_eq!(two.choose_band(None, Some("B"), Some(&v)), Ok("B".into()));
+        assert_eq!(strip(one.choose_band(Some("B"), None, None)), Err(missing("B", BandSource::Asked)));
+        assert_eq!(strip(one.choose_band(None, Some("I"), None)), Err(missing("I", BandSource::FieldCalibration)));
+        // Then the data's filter, if the model has it.
+        assert_eq!(two.choose_band(None, None, Some("B")), Ok("B".into()));
+        assert_eq!(
+            two.choose_band(None, None, Some("R")),
+            Err(BandChoiceError::Ambiguous { bands: vec![v.clone(), "B".into()] })
+        );
+        assert_eq!(two.choose_band(None, None, None), Err(BandChoiceError::Ambiguous { bands: vec![v, "B".into()] }));
     }
 
     #[test]

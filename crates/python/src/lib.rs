@@ -380,23 +380,28 @@ impl _Calibration {
     /// The telescope model's band: `band`, else the field calibration's filter (the rule of
     /// `instpol correct --band`); an error naming the bands the model has.
     fn telescope_band(&self, t: &fit::telescope::TelescopeFit, band: Option<String>) -> PyResult<String> {
-        let b = band.unwrap_or_else(|| self.instrument_filter().1.to_string());
-        if t.band(&b).is_none() {
-            let bands: Vec<&str> = t.bands.iter().map(|x| x.0.as_str()).collect();
-            if b.is_empty() {
-                return Err(input_err(format!(
-                    "the telescope model of {} has bands {}: choose one with band=",
-                    self.path.display(),
+        use fit::telescope::{BandChoiceError, BandSource};
+        // The CLI's rule (`TelescopeFit::choose_band`): the field calibration's filter comes
+        // before the data's; a telescope-only file's filter counts as the data's.
+        let (field, data) = match &self.field {
+            Field::TelescopeOnly { filter, .. } => (None, Some(filter.as_str()).filter(|f| !f.is_empty())),
+            _ => (Some(self.instrument_filter().1), None),
+        };
+        t.choose_band(band.as_deref(), field, data).map_err(|e| {
+            let path = self.path.display();
+            input_err(match e {
+                BandChoiceError::Missing { band, source: BandSource::Asked, bands } => {
+                    format!("band '{band}': the telescope model of {path} has bands {}: choose one with band=", bands.join(", "))
+                }
+                BandChoiceError::Missing { band, source: BandSource::FieldCalibration, bands } => format!(
+                    "{path}: the field calibration is for filter {band}, a band the telescope model does not have (it has {}): choose one with band=",
                     bands.join(", ")
-                )));
-            }
-            return Err(input_err(format!(
-                "band '{b}': the telescope model of {} has bands {}: choose one with band=",
-                self.path.display(),
-                bands.join(", ")
-            )));
-        }
-        Ok(b)
+                ),
+                BandChoiceError::Ambiguous { bands } => {
+                    format!("the telescope model of {path} has bands {}: choose one with band=", bands.join(", "))
+                }
+            })
+        })
     }
 
     /// Positions in arcmin from the detector centre, from `units` "px" (0-based pixels of the

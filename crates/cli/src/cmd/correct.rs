@@ -769,28 +769,16 @@ fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> 
     )
 }
 
-/// The band of the telescope model to use: --band, the field calibration's filter, the map's
-/// filter (when the model has it), or the model's only band.
+/// The band of the telescope model to use (`fit::telescope::TelescopeFit::choose_band`: --band,
+/// the field calibration's filter, the map's filter when the model has it, the only band).
 fn telescope_band(
     a: &Args,
     tel: &fit::telescope::TelescopeFit,
     field: Option<&Calibration>,
     map_filter: Option<&str>,
 ) -> Result<String> {
-    let bands: Vec<&str> = tel.bands.iter().map(|b| b.0.as_str()).collect();
-    let band = match (&a.band, field, map_filter) {
-        (Some(b), _, _) => b.clone(),
-        (None, Some(c), _) => c.filter.clone(),
-        (None, None, Some(f)) if tel.band(f).is_some() => f.to_string(),
-        (None, None, _) if bands.len() == 1 => bands[0].to_string(),
-        (None, None, _) => {
-            bail!("{}: the telescope model has bands {}: choose one with --band", a.cal.display(), bands.join(", "))
-        }
-    };
-    if tel.band(&band).is_none() {
-        bail!("--band {band}: the telescope model of {} has bands {}", a.cal.display(), bands.join(", "));
-    }
-    Ok(band)
+    tel.choose_band(a.band.as_deref(), field.map(|c| c.filter.as_str()), map_filter)
+        .map_err(|e| crate::util::band_choice_error(e, &a.cal, None))
 }
 
 /// The one track of a Stokes map, or of a catalog without a parallactic-angle column: from

@@ -310,21 +310,9 @@ fn run_telescope(a: &Args) -> Result<()> {
     };
     let opts = validate_options(a)?;
     let (measured, filter) = fit::validate::measure_frames(&inst, &a.frames, x_px, y_px, &opts)?;
-    let bands: Vec<&str> = tel.bands.iter().map(|b| b.0.as_str()).collect();
-    let band = match (&a.band, field) {
-        (Some(b), _) => b.clone(),
-        (None, Some(c)) => c.filter.clone(),
-        (None, None) if bands.len() == 1 => bands[0].to_string(),
-        (None, None) if tel.band(&filter).is_some() => filter.clone(),
-        (None, None) => bail!(
-            "{}: the telescope model has bands {} and the frames' filter is {filter}: choose one with --band",
-            a.cal.display(),
-            bands.join(", ")
-        ),
-    };
-    if tel.band(&band).is_none() {
-        bail!("--band {band}: the telescope model of {} has bands {}", a.cal.display(), bands.join(", "));
-    }
+    let band = tel
+        .choose_band(a.band.as_deref(), field.map(|c| c.filter.as_str()), Some(&filter))
+        .map_err(|e| crate::util::band_choice_error(e, &a.cal, Some(&filter)))?;
     if !fit::setup::same_filter(Some(&inst), &filter, &band) {
         eprintln!("warning: the frames are in filter {filter} but the telescope model's band is {band}");
     }
