@@ -85,6 +85,19 @@ pub enum Unmeasurable {
     Saturated,
 }
 
+impl Error {
+    /// A star that cannot be measured where it is: behind the mask, off the detector, in a
+    /// chip gap ([`Unmeasurable::MaskEdge`]).
+    pub(crate) fn mask_edge(message: String) -> Self {
+        Error::Unmeasurable { why: Unmeasurable::MaskEdge, message }
+    }
+
+    /// A star whose aperture reaches the saturation level ([`Unmeasurable::Saturated`]).
+    pub(crate) fn saturated(message: String) -> Self {
+        Error::Unmeasurable { why: Unmeasurable::Saturated, message }
+    }
+}
+
 /// A non-fatal problem worth telling the user (NaN or saturated pixels masked, ...).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Warning {

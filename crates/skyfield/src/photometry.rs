@@ -19,7 +19,7 @@ use crate::beams::{BeamGeometry, PixelKind};
 use crate::bin::{with_clipped, ClipConfig, ClipHint};
 use crate::io::Conversion;
 use crate::reduce::FrameSet;
-use crate::{Error, Unmeasurable};
+use crate::Error;
 use instrument::{Instrument, Layout};
 use std::path::{Path, PathBuf};
 
@@ -270,6 +270,15 @@ fn shifted_weights(
     Some(w.iter().map(|&(x, y, v)| ((x as f64 + sx) as usize, (y as f64 + sy) as usize, v)).collect())
 }
 
+/// An aperture of radius `r` at `at` reaching pixel `px` behind the mask (before centring, by
+/// [`check_placement`]; after, in either beam, by [`measure_frame`]).
+fn behind_mask(r: f64, at: (f64, f64), px: (usize, usize)) -> Error {
+    Error::mask_edge(format!(
+        "aperture of radius {r} px at ({:.1}, {:.1}) reaches pixel ({}, {}) behind the mask; use a smaller aperture",
+        at.0, at.1, px.0, px.1
+    ))
+}
+
 /// The checks of a source's placement that need no pixels: the aperture and annulus radii,
 /// the position on the detector and, for strip layouts, on sky the mask lets through with
 /// the whole aperture.
@@ -288,26 +297,17 @@ pub(crate) fn check_placement(
         )));
     }
     if g.layout == Layout::Strips && g.strip_of_sky(x.round() as usize, y.round() as usize).is_none() {
-        return Err(Error::Unmeasurable {
-            why: Unmeasurable::MaskEdge,
-            message: format!(
+        return Err(Error::mask_edge(format!(
                 "source position ({x:.1}, {y:.1}) px is behind the focal-plane mask: the sky there is not imaged (sky bands: {:?})",
                 g.sky_bands()
-            ),
-        });
+            )));
     }
     if g.layout == Layout::Strips {
         // The aperture at the given position must see sky only: say so before any centring.
         let k = g.strip_of_sky(x.round() as usize, y.round() as usize);
         for (px, py, _) in weights(x, y, ap.radius_px, g.nx, g.ny, opts.weighting) {
             if !matches!(g.kind(px, py), PixelKind::Ordinary(s) if Some(s) == k) {
-                return Err(Error::Unmeasurable {
-                    why: Unmeasurable::MaskEdge,
-                    message: format!(
-                        "aperture of radius {} px at ({x:.1}, {y:.1}) reaches pixel ({px}, {py}) behind the mask; use a smaller aperture",
-                        ap.radius_px
-                    ),
-                });
+                return Err(behind_mask(ap.radius_px, (x, y), (px, py)));
             }
         }
     }
@@ -348,9 +348,10 @@ pub(crate) fn measure_frame(
     } else {
         (x, y)
     };
-    let (xe, ye) = g.e_position(xo, yo).ok_or_else(|| Error::Unmeasurable {
-        why: Unmeasurable::MaskEdge,
-        message: format!("the e image of ({xo:.1}, {yo:.1}) px falls behind the mask or off the detector ({file})"),
+    let (xe, ye) = g.e_position(xo, yo).ok_or_else(|| {
+        Error::mask_edge(format!(
+            "the e image of ({xo:.1}, {yo:.1}) px falls behind the mask or off the detector ({file})"
+        ))
     })?;
     let strip = g.strip_of_sky(xo.round().max(0.0) as usize, yo.round().max(0.0) as usize);
     let mut beam = [(0.0, 0.0, 0.0); 2];
@@ -373,32 +374,21 @@ pub(crate) fn measure_frame(
         let r = ap.radius_px;
         let covered = cx - r >= -0.5 && cy - r >= -0.5 && cx + r <= g.nx as f64 - 0.5 && cy + r <= g.ny as f64 - 0.5;
         if !covered {
-            return Err(Error::Unmeasurable {
-                why: Unmeasurable::MaskEdge,
-                message: format!(
-                    "the {name} aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches off the {} x {} detector",
-                    g.nx, g.ny
-                ),
-            });
+            return Err(Error::mask_edge(format!(
+                "the {name} aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches off the {} x {} detector",
+                g.nx, g.ny
+            )));
         }
         let (mut s, mut v, mut area) = (0.0, 0.0, 0.0);
         for &(px, py, wt) in &w {
             if !in_beam(px, py) {
-                return Err(Error::Unmeasurable {
-                    why: Unmeasurable::MaskEdge,
-                    message: format!(
-                        "aperture of radius {r} px at ({cx:.1}, {cy:.1}) reaches pixel ({px}, {py}) behind the mask; use a smaller aperture"
-                    ),
-                });
+                return Err(behind_mask(r, (cx, cy), (px, py)));
             }
             let val = data[py * g.nx + px];
             if val <= crate::io::GAP_LIMIT {
-                return Err(Error::Unmeasurable {
-                    why: Unmeasurable::MaskEdge,
-                    message: format!(
+                return Err(Error::mask_edge(format!(
                         "aperture pixel ({px}, {py}) of the {name} beam lies in the gap between the chips; photometry needs clean aperture pixels"
-                    ),
-                });
+                    )));
             }
             if !val.is_finite() {
                 return Err(Error::Invalid(format!(
@@ -406,12 +396,9 @@ pub(crate) fn measure_frame(
                 )));
             }
             if val >= sat * nexp {
-                return Err(Error::Unmeasurable {
-                    why: Unmeasurable::Saturated,
-                    message: format!(
+                return Err(Error::saturated(format!(
                         "aperture pixel ({px}, {py}) of the {name} beam in {file} is saturated; photometry needs clean aperture pixels"
-                    ),
-                });
+                    )));
             }
             let e = to_e(val);
             s += wt * e;
