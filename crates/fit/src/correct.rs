@@ -570,8 +570,8 @@ pub enum MapError {
 /// Correct every valid bin of a Stokes map at its centre (`eq:instpol` inverted, or
 /// `eq:approx`, as `opts` says): the scatter errors (`sigma_q/u`, `cov_qu`) and the
 /// photon-noise errors (`sigma_q/u_phot`) are each propagated with the calibration's own
-/// error. The map's instrument and filter are not checked here (see
-/// [`crate::setup::check_map_setup`]).
+/// error. The map's instrument and filter are not checked here: the caller does (`instpol
+/// correct` refuses a map of another instrument or filter, [`crate::setup::same_filter`]).
 pub fn correct_map<M: FieldModel + ?Sized>(
     model: &M,
     map: &skyfield::StokesMap,

@@ -10,7 +10,7 @@
 //! model's full vector; `PX`, `PY`: powers of `x / scale`, `y / scale`; `COEFF`, `SIGMA`) and
 //! in its header the model as vocabulary words (`MU MODEL`, `MU FREE`), the degree, scale,
 //! fit statistics, box and the sky fields used; the image `MUELLER_COV` is the coefficients'
-//! covariance; the optional table `MUELLER_BINS` is the per-bin fit. [`Calibration::load`]
+//! covariance; the optional table `MUELLER_BINS` is the per-bin fit. [`crate::calfile::Calibration::load`]
 //! refuses such a file by name (it is not a partial polarizer), so every consumer of today's
 //! calibrations keeps reading exactly what it read before.
 //!

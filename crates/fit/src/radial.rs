@@ -198,7 +198,7 @@ fn radial_eval(
     (p * c2, p * s2)
 }
 
-/// The variance of `(q, u)` is `g^T C g` with the gradient `g` of [`radial_eval`]. Its
+/// The variance of `(q, u)` is `g^T C g` with the gradient `g` of `radial_eval`. Its
 /// coefficient part is `g_i = r^(f+i) (cos 2a, sin 2a)`, so the coefficient block reduces to
 /// `V = sum_ij r^(f+i) C_ij r^(f+j)` (the variance of `p(r)`, nested Horner) times `cos^2`,
 /// `sin^2`, `cos sin`; the centre enters only when it was fitted (a fixed centre is not a

@@ -8,12 +8,12 @@
 //! electrons ([`Conversion::electrons`]).
 //!
 //! The image is never made whole for the reduction: an exposure is its chip files' headers,
-//! bias levels and the shared masters ([`Calibrated`]), and the reduction's bands read its
+//! bias levels and the shared masters (`Calibrated`), and the reduction's bands read its
 //! detector rows a few at a time, each raw row read once from its file, decoded and calibrated
-//! in one pass into the buffer the row kernel folds ([`Calibrated::load_rows_with`]); the
+//! in one pass into the buffer the row kernel folds (`Calibrated::load_rows_with`); the
 //! masters' rows are read there too, once per group of rows for all its exposures
-//! ([`Masters::rows`]). Whole frames ([`read_exposures`], the masters' inputs) are the same
-//! rows, all of them, with the masters read whole once ([`Calibrated::load_rows`]).
+//! (`Masters::rows`). Whole frames ([`read_exposures`], the masters' inputs) are the same
+//! rows, all of them, with the masters read whole once (`Calibrated::load_rows`).
 //!
 //! It also makes the calibration frames: [`master_bias`] (overscan-corrected ADU) and
 //! [`master_flat`] (bias-free, normalized to a median of 1), each a sigma-clipped mean per

@@ -398,7 +398,7 @@ impl RawFrame {
 }
 
 /// Read one frame, checking what reduction needs: a 2-D image of a detector pixel type (in
-/// the primary HDU or an extension, see [`open_image`]), the size of `inst`'s detector, and the
+/// the primary HDU or an extension, see `open_image`), the size of `inst`'s detector, and the
 /// HWP-angle and filter keywords the instrument names (the exposure-time keyword is optional).
 /// Frames of instruments whose `[format]` declares chips or a raw bias level go through
 /// [`crate::calib`] (trimmed, overscan-corrected, assembled, in electrons).
