@@ -845,6 +845,11 @@ mod tests {
         MetalTable::builtin("aluminium").unwrap()
     }
 
+    /// A Wiersema band (bare metal, no constant term) at wavelength `w` (um).
+    fn wiersema(t: &MetalTable, w: f64, factor: f64, offset: f64) -> BandModel {
+        BandModel { wavelength_um: w, index: t.index(w).unwrap(), factor, thickness_nm: 0.0, offset, q0: 0.0, u0: 0.0 }
+    }
+
     /// Observations of unpolarized stars drawn from `truth` at `n` parallactic angles, with
     /// Gaussian noise `sigma`; the model is evaluated here by the closed form of the chain
     /// (q = P cos 2(offset - pa) + q0, u = -P sin 2(offset - pa) + u0, P from the Fresnel
@@ -880,15 +885,7 @@ mod tests {
     #[test]
     fn band_choice_follows_its_order() {
         let t = table();
-        let truth = BandModel {
-            wavelength_um: 0.55,
-            index: t.index(0.55).unwrap(),
-            factor: 0.8,
-            thickness_nm: 0.0,
-            offset: 0.6,
-            q0: 0.0,
-            u0: 0.0,
-        };
+        let truth = wiersema(&t, 0.55, 0.8, 0.6);
         let one = fit_band(ModelKind::Wiersema, &simulate(&truth, 12, 0.001, 3), &t, &FitOptions::default()).unwrap();
         assert_eq!(one.bands.len(), 1);
         let mut two = one.clone();
@@ -921,16 +918,7 @@ mod tests {
     #[test]
     fn simulated_wiersema_and_oxide_are_recovered_within_errors() {
         let t = table();
-        let idx = t.index(0.55).unwrap();
-        let truth = BandModel {
-            wavelength_um: 0.55,
-            index: idx,
-            factor: 0.8,
-            thickness_nm: 0.0,
-            offset: 0.6,
-            q0: 0.0,
-            u0: 0.0,
-        };
+        let truth = wiersema(&t, 0.55, 0.8, 0.6);
         let obs = simulate(&truth, 24, 0.001, 7);
         let f = fit_band(ModelKind::Wiersema, &obs, &t, &FitOptions::default()).unwrap();
         let (fa, off) = (f.param("factor").unwrap(), f.param("offset").unwrap());
@@ -954,15 +942,7 @@ mod tests {
     #[test]
     fn an_outlier_is_flagged_by_its_pull() {
         let t = table();
-        let truth = BandModel {
-            wavelength_um: 0.44,
-            index: t.index(0.44).unwrap(),
-            factor: 1.2,
-            thickness_nm: 0.0,
-            offset: 0.3,
-            q0: 0.0,
-            u0: 0.0,
-        };
+        let truth = wiersema(&t, 0.44, 1.2, 0.3);
         let mut obs = simulate(&truth, 16, 0.001, 3);
         obs[5].q += 0.02;
         let f = fit_band(ModelKind::Wiersema, &obs, &t, &FitOptions::default()).unwrap();

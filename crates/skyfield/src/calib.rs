@@ -260,8 +260,8 @@ fn robust_mean_of_counts(v: &[f64]) -> Option<f64> {
     for &x in v {
         counts[(x - lo) as usize] += 1;
     }
-    // The value of rank `r` (0-based, ascending) of the multiset `counts` (values `base + k
-    // * step`).
+    // The index into `counts` of the value of rank `r` (0-based, ascending) of the multiset
+    // `counts` describes (`counts[k]` copies of value `k`, in its own units).
     let rank = |counts: &[usize], r: usize| {
         let mut seen = 0;
         counts.iter().position(|&c| {
@@ -1257,16 +1257,7 @@ mod tests {
 
     /// The definition written plainly: medians by a full sort, the kept values summed in order.
     fn by_sorting(v: &[f64]) -> f64 {
-        let median = |w: &[f64]| {
-            let mut s = w.to_vec();
-            s.sort_by(f64::total_cmp);
-            let n = s.len();
-            if n % 2 == 1 {
-                s[n / 2]
-            } else {
-                0.5 * (s[n / 2 - 1] + s[n / 2])
-            }
-        };
+        use crate::reference::sorted_median as median;
         let med = median(v);
         let dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
         let s = 1.4826 * median(&dev);

@@ -417,16 +417,7 @@ mod tests {
 
     /// The clipping as documented, written plainly: every median by a full sort.
     fn reference(v: &[f64]) -> Option<(f64, f64)> {
-        let median = |v: &[f64]| {
-            let mut s = v.to_vec();
-            s.sort_by(f64::total_cmp);
-            let n = s.len();
-            if n % 2 == 1 {
-                s[n / 2]
-            } else {
-                0.5 * (s[n / 2 - 1] + s[n / 2])
-            }
-        };
+        use crate::reference::sorted_median as median;
         let mut w: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
         if w.is_empty() {
             return None;

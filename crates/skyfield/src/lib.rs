@@ -131,3 +131,21 @@ pub(crate) fn par_resize(v: &mut Vec<f64>, n: usize, x: f64) {
         v.par_extend(rayon::iter::repeat_n(x, more));
     }
 }
+
+/// Plain references the modules' tests check the library against (written independently of
+/// the code they check).
+#[cfg(test)]
+pub(crate) mod reference {
+    /// The median by a full sort in `f64::total_cmp` order; for an even count, the mean of the
+    /// two middle values.
+    pub(crate) fn sorted_median(v: &[f64]) -> f64 {
+        let mut s = v.to_vec();
+        s.sort_by(f64::total_cmp);
+        let n = s.len();
+        if n % 2 == 1 {
+            s[n / 2]
+        } else {
+            0.5 * (s[n / 2 - 1] + s[n / 2])
+        }
+    }
+}

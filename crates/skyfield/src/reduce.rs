@@ -1034,10 +1034,10 @@ impl<'a> Rows<'a> {
     }
 }
 
-/// The masters' rows of a group (read by [`Scratch::group_masters`]) from detector row `r0`,
-/// which sits at `at` in the group buffer's layout.
+/// The masters' rows of a group (read by [`Scratch::group_masters`], which sizes both buffers
+/// for the whole group) from detector row `r0`, which sits at `at` in the group buffer's layout.
 fn master_rows<'a>(bias: &'a [f32], flat: &'a [f32], r0: usize, at: usize) -> MasterRows<'a> {
-    MasterRows { row0: r0, bias: bias.get(at..).unwrap_or(&[]), flat: flat.get(at..).unwrap_or(&[]) }
+    MasterRows { row0: r0, bias: &bias[at..], flat: &flat[at..] }
 }
 
 /// Per-thread buffers of [`reduce_bands`], reused across bands: each angle's group of rows
