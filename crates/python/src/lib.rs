@@ -92,34 +92,16 @@ fn arr2<'py>(py: Python<'py>, v: Vec<f64>, rows: usize, cols: usize) -> PyResult
 /// calloc clears heap memory that malloc would hand back as it is) that the fill overwrites.
 fn reserved_column(n: usize) -> Vec<f64> {
     let v = Vec::with_capacity(n);
-    #[cfg(target_os = "linux")]
-    advise_huge_pages(v.as_ptr() as usize, n * std::mem::size_of::<f64>());
+    // Correcting 1e6 positions writes 11 columns (88 MB) into fresh pages: in 4 kB pages the
+    // page faults took a sixth of the time (bench/python_correct.sh, one core: 8.2e6
+    // positions/s without the hint, 9.8e6 with it).
+    skyfield::advise_huge_pages(v.as_ptr() as usize, n * std::mem::size_of::<f64>());
     v
 }
 
 /// The first `n` slots of a [`reserved_column`], to be written.
 fn slots(v: &mut Vec<f64>, n: usize) -> &mut [MaybeUninit<f64>] {
     &mut v.spare_capacity_mut()[..n]
-}
-
-/// Ask Linux for transparent huge pages under a large output column before its first write.
-/// Correcting 1e6 positions writes 11 columns (88 MB) into fresh pages: with 4 kB pages the
-/// page faults took a sixth of the time (bench/python_correct.sh, one core: 8.2e6 positions/s
-/// without the hint, 9.8e6 with it; reserving, advising and then zero-filling measured 9.6e6).
-/// A hint only: nothing changes where THP is off or the pages were touched already.
-#[cfg(target_os = "linux")]
-fn advise_huge_pages(start: usize, bytes: usize) {
-    const HUGE: usize = 2 << 20;
-    if bytes < 4 * HUGE {
-        return;
-    }
-    let (a, e) = ((start + HUGE - 1) & !(HUGE - 1), (start + bytes) & !(HUGE - 1));
-    if e > a {
-        // SAFETY: [a, e) lies inside the allocation; MADV_HUGEPAGE changes no contents.
-        unsafe {
-            libc::madvise(a as *mut libc::c_void, e - a, libc::MADV_HUGEPAGE);
-        }
-    }
 }
 
 fn bools<'py>(py: Python<'py>, v: Vec<bool>) -> Bound<'py, PyArray1<bool>> {

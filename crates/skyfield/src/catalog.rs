@@ -8,7 +8,7 @@
 use crate::aperture::Weighting;
 use crate::beams::BeamGeometry;
 use crate::calib::ReadOptions;
-use crate::detect::{detect, pair, DetectConfig, Source};
+use crate::detect::{detect_reusing, pair, DetectConfig, Source};
 use crate::photometry::{
     candidate_radii, check_placement, finish, layout_for, layout_of_image, measure_frame, pick_radius, Aperture,
     ApertureRadius, FrameFacts, FrameFluxes, Partial, PhotOptions,
@@ -403,11 +403,14 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
     let nexp = files[0].len() as f64;
     let mut dcfg = cfg.detect;
     dcfg.saturation = src.conversion().det().2 * nexp;
+    let mut spare = Vec::new();
     let (g, sources) = src.with_frame(0, |first| -> Result<(BeamGeometry, Vec<Source>), Error> {
         let g = layout_of_image(first, nx, ny, &files[0][0], inst)?;
-        let sources = detect(first, &g, &dcfg);
+        let sources = detect_reusing(first, &g, &dcfg, &mut spare);
         Ok((g, sources))
     })??;
+    // The detection's work images take the measuring pass's frames.
+    src.recycle(spare);
     let (pairs, unpaired) = pair(&sources, &g, dcfg.pair_tol_px);
     let chi_off = inst.filter(src.filter()).map(|f| f.chi_offset_deg()).unwrap_or(0.0);
     let opts = PhotOptions { weighting: cfg.weighting, recentre: true, kappa: cfg.kappa };

@@ -303,6 +303,9 @@ pub trait FrameSource: Sync {
     /// (`rows.len() / nx` whole rows), band after band, the last call with the whole frame; a
     /// frame in memory comes in one call. Work on rows just read finds them in cache.
     fn with_frame_rows(&self, i: usize, f: &mut dyn FnMut(&[f64])) -> Result<(), Error>;
+    /// Frame-sized buffers the caller is done with, for the next frames read (frames held in
+    /// memory need none).
+    fn recycle(&self, _buffers: Vec<Vec<f64>>) {}
 }
 
 impl FrameSource for FrameSet {
@@ -523,6 +526,10 @@ impl FrameSource for DiskFrames {
         })();
         self.pool.lock().unwrap_or_else(|e| e.into_inner()).push((sum, one, bytes));
         res
+    }
+    fn recycle(&self, buffers: Vec<Vec<f64>>) {
+        let mut pool = self.pool.lock().unwrap_or_else(|e| e.into_inner());
+        pool.extend(buffers.into_iter().map(|b| (b, Vec::new(), Vec::new())));
     }
 }
 
