@@ -638,3 +638,83 @@ pub fn correct_map_with(
     }
     Ok(CorrectedMap { map: m, n_bins: n, n_extrapolated: n_extra, p0: p0s, p_inst: pis })
 }
+
+/// What corrects a Stokes map ([`correct_stokes_map`]): the pieces of a calibration file, as
+/// `instpol correct` and the Python package load them.
+#[derive(Debug, Clone, Copy)]
+pub enum MapCorrection<'a> {
+    /// A partial-polarizer field (`eq:instpol` inverted, or `eq:approx`), with the HWP zero
+    /// angle of the calibration.
+    Field { cal: &'a crate::Calibration, method: Method },
+    /// A Mueller field (`instpol calibrate-mueller`), inverted exactly in the maps' frame.
+    Mueller(&'a crate::mueller_cal::MuellerCal),
+    /// A telescope model over the exposures' one track, after the field when there is one
+    /// ([`crate::telescope_cal::correct_map_chain`]); the band and the track chosen by the
+    /// caller ([`crate::telescope::TelescopeFit::choose_band`],
+    /// [`crate::telescope::TelescopeFit::choose_track`]).
+    Chain {
+        field: Option<(&'a crate::Calibration, Method)>,
+        telescope: &'a crate::telescope::TelescopeFit,
+        band: &'a str,
+        track: crate::telescope::Track,
+    },
+}
+
+/// Correct a whole Stokes map with a calibration's pieces, and the record the corrected map
+/// carries ([`skyfield::StokesMap::write_corrected_fits`]; `calibration`: the file's name).
+/// The one map correction of `instpol correct` and the Python package; the caller checks the
+/// map's instrument and filter against the calibration's ([`crate::setup::matches_setup`]).
+/// - A field: the calibration's HWP zero angle is added to chi (`CORRHWP`).
+/// - A Mueller field: inverted exactly, in the maps' frame, no zero angle (`eq:approx` is the
+///   p, phi model's first order: the front ends refuse it for a Mueller field).
+/// - A chain: the telescope's offset is the instrument's angle zero (module docs of
+///   [`crate::telescope_cal`]), so no zero angle is added; the corrected map records the
+///   track used (its parallactic and rotator angles).
+pub fn correct_stokes_map(
+    map: &skyfield::StokesMap,
+    with: MapCorrection<'_>,
+    allow_extrapolation: bool,
+    extrapolation_rel_error: f64,
+    calibration: &str,
+) -> Result<(CorrectedMap, skyfield::CorrectionStamp), MapError> {
+    let opts = |method, chi_offset| CorrectOptions { method, allow_extrapolation, extrapolation_rel_error, chi_offset };
+    let meth = |m: Method| match m {
+        Method::Exact => "exact M_I inverse (eq:instpol)",
+        Method::FirstOrder => "first order (eq:approx)",
+    };
+    let stamp = |method: String, hwp: f64, telescope| skyfield::CorrectionStamp {
+        calibration: calibration.to_string(),
+        method,
+        hwp_chi_offset_deg: hwp,
+        telescope,
+    };
+    match with {
+        MapCorrection::Field { cal, method } => {
+            let c = correct_map(cal, map, opts(method, cal.hwp_chi_offset_deg.to_radians()))?;
+            Ok((c, stamp(meth(method).into(), cal.hwp_chi_offset_deg, None)))
+        }
+        MapCorrection::Mueller(mc) => {
+            let o = opts(Method::Exact, 0.0);
+            let c = correct_map_with(map, |m| mc.correct(m, &o))?;
+            Ok((c, stamp("exact inverse of the Mueller field (calibrate-mueller)".into(), 0.0, None)))
+        }
+        MapCorrection::Chain { field, telescope, band, track } => {
+            let cor = field.map(|(cal, method)| Corrector::new(cal, opts(method, 0.0)));
+            let mut c = crate::telescope_cal::correct_map_chain(cor.as_ref(), telescope, band, map, track)?;
+            c.map.parallactic_rad = Some((track.start, track.end));
+            if telescope.with_rotator {
+                c.map.rotator_rad = Some(track.rotator);
+            }
+            let method = match field {
+                None => "telescope model only".to_string(),
+                Some((_, m)) => format!("{}, then the telescope", meth(m)),
+            };
+            let t = skyfield::TelescopeStamp {
+                model: telescope.model.name().to_string(),
+                band: band.to_string(),
+                rotator_deg: track.rotator.to_degrees(),
+            };
+            Ok((c, stamp(method, 0.0, Some(t))))
+        }
+    }
+}

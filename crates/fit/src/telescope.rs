@@ -283,6 +283,28 @@ pub enum BandChoiceError {
     Ambiguous { bands: Vec<String> },
 }
 
+/// The track a correction uses for data whose exposures share one ([`TelescopeFit::choose_track`]),
+/// with what the caller should tell the user about it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackChoice {
+    pub track: Track,
+    /// The parallactic angles the data recorded (rad, start and end) when the track given
+    /// replaced them and differs from them by more than 0.01 deg (modulo a turn).
+    pub replaced: Option<(f64, f64)>,
+    /// A rotator angle was given but the model was fitted without rotator angles (its offset
+    /// holds the rotator's): it is not used.
+    pub rotator_ignored: bool,
+}
+
+/// Why no track could be chosen ([`TelescopeFit::choose_track`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TrackChoiceError {
+    /// Neither given nor recorded: the parallactic angle of the exposures is unknown.
+    NoParallactic,
+    /// The model was fitted with rotator angles and the data's is neither given nor recorded.
+    NoRotator,
+}
+
 /// Result of a fit (one band or joint).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TelescopeFit {
@@ -364,6 +386,34 @@ impl TelescopeFit {
         match &self.bands[..] {
             [(only, _)] => Ok(only.clone()),
             _ => Err(BandChoiceError::Ambiguous { bands: bands() }),
+        }
+    }
+
+    /// The one track of data whose exposures share it (a Stokes map, a catalog without
+    /// per-row angles): the parallactic angles `given` (their rotator ignored), else the ones
+    /// the data `recorded` (rad, start and end); the rotator angle, only for a model fitted
+    /// with rotator angles ([`TelescopeFit::with_rotator`]): `rotator` given, else the one
+    /// recorded. The one rule of `instpol correct` and the Python package.
+    pub fn choose_track(
+        &self,
+        given: Option<Track>,
+        recorded: Option<(f64, f64)>,
+        rotator: Option<f64>,
+        recorded_rotator: Option<f64>,
+    ) -> std::result::Result<TrackChoice, TrackChoiceError> {
+        // Angles compared modulo a whole turn, to 0.01 deg.
+        let off = |x: f64, y: f64| mueller::wrap_half_pi(0.5 * (x - y)).abs() * 2.0;
+        let (track, replaced) = match (given, recorded) {
+            (Some(t), Some((s, e))) if off(s, t.start).max(off(e, t.end)) > 0.01f64.to_radians() => (t, Some((s, e))),
+            (Some(t), _) => (t, None),
+            (None, Some((s, e))) => (Track::new(s, Some(e)), None),
+            (None, None) => return Err(TrackChoiceError::NoParallactic),
+        };
+        let track = Track { rotator: 0.0, ..track };
+        match (self.with_rotator, rotator.or(recorded_rotator)) {
+            (true, Some(r)) => Ok(TrackChoice { track: track.with_rotator(r), replaced, rotator_ignored: false }),
+            (true, None) => Err(TrackChoiceError::NoRotator),
+            (false, _) => Ok(TrackChoice { track, replaced, rotator_ignored: rotator.is_some() }),
         }
     }
 
@@ -913,6 +963,46 @@ mod tests {
             Err(BandChoiceError::Ambiguous { bands: vec![v.clone(), "B".into()] })
         );
         assert_eq!(two.choose_band(None, None, None), Err(BandChoiceError::Ambiguous { bands: vec![v, "B".into()] }));
+    }
+
+    /// The track rule of data that share one track: given angles replace recorded ones (the
+    /// replacement reported only beyond 0.01 deg, angles compared modulo 360 deg); the rotator
+    /// only for a model fitted with it, given before recorded, and a given one reported as
+    /// ignored otherwise; nothing to go by is an error that says what is missing.
+    #[test]
+    fn track_choice_follows_its_order() {
+        let t = table();
+        let truth = wiersema(&t, 0.55, 0.8, 0.6);
+        let plain = fit_band(ModelKind::Wiersema, &simulate(&truth, 12, 0.001, 3), &t, &FitOptions::default()).unwrap();
+        assert!(!plain.with_rotator);
+        let mut rot = plain.clone();
+        rot.with_rotator = true;
+        let d = f64::to_radians;
+        let rec = Some((d(10.0), d(20.0)));
+        let given = Track::new(d(30.0), Some(d(35.0)));
+        // Recorded only: the recorded track, nothing to report.
+        let close = |a: f64, b: f64| (a - b).abs() < 1e-15;
+        let c = plain.choose_track(None, rec, None, None).unwrap();
+        assert!(close(c.track.start, d(10.0)) && close(c.track.end, d(20.0)) && c.track.rotator == 0.0);
+        assert_eq!((c.replaced, c.rotator_ignored), (None, false));
+        // Given replaces recorded, and says so; a given equal to the recorded one (a turn
+        // away) is no replacement.
+        let c = plain.choose_track(Some(given), rec, None, None).unwrap();
+        assert!(close(c.track.start, d(30.0)) && close(c.track.end, d(35.0)));
+        assert_eq!(c.replaced, rec);
+        let same = Track::new(d(370.0), Some(d(380.0)));
+        assert_eq!(plain.choose_track(Some(same), rec, None, None).unwrap().replaced, None);
+        // Nothing: no parallactic angle.
+        assert_eq!(plain.choose_track(None, None, None, Some(1.0)), Err(TrackChoiceError::NoParallactic));
+        // A model without rotator angles ignores one (reported when given, silent when recorded).
+        let c = plain.choose_track(None, rec, Some(d(5.0)), Some(d(7.0))).unwrap();
+        assert_eq!((c.track.rotator, c.rotator_ignored), (0.0, true));
+        let c = plain.choose_track(None, rec, None, Some(d(7.0))).unwrap();
+        assert_eq!((c.track.rotator, c.rotator_ignored), (0.0, false));
+        // A model with rotator angles: given, else recorded, else an error.
+        assert_eq!(rot.choose_track(None, rec, Some(d(5.0)), Some(d(7.0))).unwrap().track.rotator, d(5.0));
+        assert_eq!(rot.choose_track(None, rec, None, Some(d(7.0))).unwrap().track.rotator, d(7.0));
+        assert_eq!(rot.choose_track(Some(given), None, None, None), Err(TrackChoiceError::NoRotator));
     }
 
     #[test]

@@ -361,13 +361,21 @@ impl _Calibration {
 
     /// The telescope model's band: `band`, else the field calibration's filter (the rule of
     /// `instpol correct --band`); an error naming the bands the model has.
-    fn telescope_band(&self, t: &fit::telescope::TelescopeFit, band: Option<String>) -> PyResult<String> {
+    fn telescope_band(
+        &self,
+        t: &fit::telescope::TelescopeFit,
+        band: Option<String>,
+        data_filter: Option<&str>,
+    ) -> PyResult<String> {
         use fit::telescope::{BandChoiceError, BandSource};
         // The CLI's rule (`TelescopeFit::choose_band`): the field calibration's filter comes
-        // before the data's; a telescope-only file's filter counts as the data's.
+        // before the data's (`data_filter`: a map's); without one, a telescope-only file's
+        // filter counts as the data's.
         let (field, data) = match &self.field {
-            Field::TelescopeOnly { filter, .. } => (None, Some(filter.as_str()).filter(|f| !f.is_empty())),
-            _ => (Some(self.instrument_filter().1), None),
+            Field::TelescopeOnly { filter, .. } => {
+                (None, data_filter.or(Some(filter.as_str())).filter(|f| !f.is_empty()))
+            }
+            _ => (Some(self.instrument_filter().1), data_filter),
         };
         t.choose_band(band.as_deref(), field, data).map_err(|e| {
             let path = self.path.display();
@@ -572,14 +580,7 @@ impl _Calibration {
         parang_end_deg: Option<PyReadonlyArray1<'py, f64>>,
         band: Option<String>,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let method = match method {
-            "exact" => Method::Exact,
-            "first-order" | "first_order" => Method::FirstOrder,
-            m => return Err(input_err(format!("method '{m}': expected \"exact\" or \"first-order\""))),
-        };
-        if !(extrapolation_error.is_finite() && extrapolation_error >= 0.0) {
-            return Err(input_err(format!("extrapolation_error {extrapolation_error} must be a non-negative number")));
-        }
+        let method = parse_method(method, extrapolation_error)?;
         let est: Option<Estimator> =
             estimator.map(|e| e.parse().map_err(|e| input_err(format!("estimator: {e}")))).transpose()?;
         let (x, y, q, u) = (slice(&x, "x")?, slice(&y, "y")?, slice(&q, "q")?, slice(&u, "u")?);
@@ -611,7 +612,7 @@ impl _Calibration {
             }
         }
         let telescope = match (&self.telescope, pa) {
-            (Some(t), Some(pa)) => Some((t, pa, self.telescope_band(t, band)?)),
+            (Some(t), Some(pa)) => Some((t, pa, self.telescope_band(t, band, None)?)),
             (Some(t), None) => {
                 return Err(input_err(format!(
                     "{} holds a telescope model ({}): give each row's parallactic angle, parang_deg= (deg, as the \
@@ -693,6 +694,189 @@ impl _Calibration {
             d.set_item("telescope_model", t.model.name())?;
             d.set_item("telescope_band", b.as_str())?;
         }
+        Ok(d)
+    }
+
+    /// `instpol correct` on a Stokes map file (from `instpol reduce` or `reduce(output=)`): the
+    /// calibration's field, Mueller field or telescope chain over every valid bin
+    /// (`fit::correct::correct_stokes_map`), the map's instrument and filter checked, the
+    /// telescope's band and track by the CLI's rules; `output`: the corrected map, written with
+    /// the correction's record (`INSTCORR`, ...). Returns the corrected map as `_reduce` does,
+    /// with the correction's summary.
+    #[pyo3(signature = (input, output, method, allow_extrapolation, extrapolation_error, parang_deg, rotator_deg, band, allow_mismatch))]
+    #[allow(clippy::too_many_arguments)]
+    fn _correct_map<'py>(
+        &self,
+        py: Python<'py>,
+        input: PathBuf,
+        output: Option<PathBuf>,
+        method: &str,
+        allow_extrapolation: bool,
+        extrapolation_error: f64,
+        parang_deg: Option<Vec<f64>>,
+        rotator_deg: Option<f64>,
+        band: Option<String>,
+        allow_mismatch: bool,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        use fit::correct::MapCorrection;
+        use fit::telescope::{Track, TrackChoiceError};
+        let method = parse_method(method, extrapolation_error)?;
+        let angle = |name: &str, x: f64| -> PyResult<f64> {
+            if x.is_finite() && x.abs() <= 360.0 {
+                Ok(x.to_radians())
+            } else {
+                Err(input_err(format!("{name} {x}: not an angle in degrees (-360 to 360)")))
+            }
+        };
+        let given = match parang_deg.as_deref() {
+            None => None,
+            Some([a]) => Some(Track::at(angle("parang_deg", *a)?)),
+            Some([a, b]) => Some(Track::new(angle("parang_deg", *a)?, Some(angle("parang_deg", *b)?))),
+            Some(_) => return Err(input_err("parang_deg: expected START or (START, END) in degrees")),
+        };
+        let rotator = rotator_deg.map(|r| angle("rotator_deg", r)).transpose()?;
+        if let Some(out) = &output {
+            // No command writes over its own input (the CLI's rule).
+            let same = |a: &PathBuf| match (std::fs::canonicalize(a), std::fs::canonicalize(out)) {
+                (Ok(x), Ok(y)) => x == y,
+                _ => false,
+            };
+            if let Some(f) = [&input, &self.path].into_iter().find(|f| same(f)) {
+                return Err(input_err(format!(
+                    "output {} is the input {} (the same file): refusing to write over an input; choose another output name",
+                    out.display(),
+                    f.display()
+                )));
+            }
+        }
+        let map = py
+            .detach(|| skyfield::StokesMap::read_uncorrected(&input))
+            .map_err(|e| input_err(format!("Stokes map {}: {e}", input.display())))?;
+        let (ci, cf) = self.instrument_filter();
+        let cal_path = self.path.display();
+        if !matches!(self.field, Field::TelescopeOnly { .. })
+            && !allow_mismatch
+            && !fit::setup::matches_setup(&map.instrument, &map.filter, ci, cf)
+        {
+            return Err(input_err(format!(
+                "{} is a {} {} map but {cal_path} calibrates {ci} {cf}: use the calibration of the map's instrument and filter (or allow_mismatch=True)",
+                input.display(),
+                map.instrument,
+                map.filter
+            )));
+        }
+        let mut notes: Vec<String> = vec![];
+        let chosen = match (&self.field, &self.telescope) {
+            (Field::Mueller(_), _) => {
+                if method == Method::FirstOrder {
+                    return Err(input_err(format!(
+                        "method \"first-order\": {cal_path} holds a Mueller field, which is inverted exactly (eq:approx is the p, phi model's first order)"
+                    )));
+                }
+                if given.is_some() || rotator.is_some() || band.is_some() {
+                    return Err(input_err(format!(
+                        "parang_deg, rotator_deg and band are for calibrations with a telescope model; {cal_path} holds a Mueller field"
+                    )));
+                }
+                None
+            }
+            (_, Some(t)) => {
+                let b = self.telescope_band(t, band, Some(&map.filter))?;
+                if matches!(self.field, Field::TelescopeOnly { .. })
+                    && !allow_mismatch
+                    && !fit::setup::same_filter(None, &map.filter, &b)
+                {
+                    return Err(input_err(format!(
+                        "{} is a {} map but the telescope model's band is {b}: use the band of the map's filter (band=), or allow_mismatch=True",
+                        input.display(),
+                        map.filter
+                    )));
+                }
+                let c = t.choose_track(given, map.parallactic_rad, rotator, map.rotator_rad).map_err(|e| {
+                    input_err(match e {
+                        TrackChoiceError::NoParallactic => format!(
+                            "{}: the map needs the parallactic angle of its exposures for the telescope model of {cal_path}: give parang_deg=(START, END) (deg: the first frame's start, the last frame's end; instpol reduce records it when the instrument's [telescope] section names the header keywords)",
+                            input.display()
+                        ),
+                        TrackChoiceError::NoRotator => format!(
+                            "the telescope model of {cal_path} was fitted with rotator angles: give the exposures' with rotator_deg="
+                        ),
+                    })
+                })?;
+                if let Some((s, e)) = c.replaced {
+                    notes.push(format!(
+                        "parang_deg replaces the parallactic angle {} recorded ({:.3} to {:.3} deg)",
+                        input.display(),
+                        s.to_degrees(),
+                        e.to_degrees()
+                    ));
+                }
+                if c.rotator_ignored {
+                    notes.push(format!(
+                        "rotator_deg is ignored: the telescope model of {cal_path} was fitted without rotator angles (its offset holds the rotator's)"
+                    ));
+                }
+                if let Field::PPhi(f) = &self.field {
+                    if f.hwp_chi_offset_deg != 0.0 {
+                        notes.push(format!(
+                            "the field calibration {cal_path} carries a HWP zero angle of {} deg, and the chain of a field and a telescope model does not yet turn its inputs into one frame: the telescope's (and field's) angles may be off by it; check on a standard (instpol validate)",
+                            f.hwp_chi_offset_deg
+                        ));
+                    }
+                }
+                Some((t, b, c.track))
+            }
+            (_, None) => {
+                if given.is_some() || rotator.is_some() || band.is_some() {
+                    return Err(input_err(format!(
+                        "parang_deg, rotator_deg and band are for calibrations with a telescope model; {cal_path} holds none"
+                    )));
+                }
+                None
+            }
+        };
+        let with = match (&self.field, &chosen) {
+            (Field::Mueller(mc), _) => MapCorrection::Mueller(mc),
+            (Field::PPhi(cal), None) => MapCorrection::Field { cal, method },
+            (Field::PPhi(cal), Some((t, b, track))) => {
+                MapCorrection::Chain { field: Some((cal, method)), telescope: t, band: b, track: *track }
+            }
+            (Field::TelescopeOnly { .. }, Some((t, b, track))) => {
+                MapCorrection::Chain { field: None, telescope: t, band: b, track: *track }
+            }
+            (Field::TelescopeOnly { .. }, None) => {
+                return Err(input_err(format!(
+                    "{cal_path} holds only a telescope model, and no telescope model was loaded"
+                )))
+            }
+        };
+        let name = self.path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+        let (c, stamp) = py
+            .detach(|| {
+                let r = fit::correct::correct_stokes_map(&map, with, allow_extrapolation, extrapolation_error, &name);
+                let (c, stamp) = r.map_err(|e| format!("{} {e}", input.display()))?;
+                if let Some(out) = &output {
+                    c.map.write_corrected_fits(out, &stamp).map_err(|e| e.to_string())?;
+                }
+                Ok::<_, String>((c, stamp))
+            })
+            .map_err(input_err)?;
+        let d = map_dict(py, &c.map, notes)?;
+        let r = PyDict::new(py);
+        r.set_item("calibration", &stamp.calibration)?;
+        r.set_item("method", &stamp.method)?;
+        r.set_item("hwp_chi_offset_deg", stamp.hwp_chi_offset_deg)?;
+        r.set_item("n_bins", c.n_bins)?;
+        r.set_item("n_extrapolated", c.n_extrapolated)?;
+        if let Some(t) = &stamp.telescope {
+            r.set_item("telescope_model", &t.model)?;
+            r.set_item("telescope_band", &t.band)?;
+            r.set_item("rotator_deg", t.rotator_deg)?;
+        }
+        if let Some((a, b)) = c.map.parallactic_rad {
+            r.set_item("parang_deg", (a.to_degrees(), b.to_degrees()))?;
+        }
+        d.set_item("correction", r)?;
         Ok(d)
     }
 }
@@ -876,6 +1060,19 @@ fn read_options(
     Ok(skyfield::calib::ReadOptions { bias, flat, hwp_angles_deg: hwp_angles })
 }
 
+/// `method=` of the corrections ("exact" or "first-order"), with `extrapolation_error=` checked.
+fn parse_method(method: &str, extrapolation_error: f64) -> PyResult<Method> {
+    let m = match method {
+        "exact" => Method::Exact,
+        "first-order" | "first_order" => Method::FirstOrder,
+        m => return Err(input_err(format!("method '{m}': expected \"exact\" or \"first-order\""))),
+    };
+    if !(extrapolation_error.is_finite() && extrapolation_error >= 0.0) {
+        return Err(input_err(format!("extrapolation_error {extrapolation_error} must be a non-negative number")));
+    }
+    Ok(m)
+}
+
 /// Frames to a binned Stokes map (`instpol reduce`): returns the map's arrays flat, in bin order
 /// (row j, column i at j * nx + i), its header values and the warnings.
 #[pyfunction]
@@ -925,7 +1122,12 @@ fn _reduce<'py>(
             Ok::<_, skyfield::Error>(r)
         })
         .map_err(sky_err)?;
-    let m = &r.map;
+    map_dict(py, &r.map, r.warnings.iter().map(|w| w.to_string()).collect())
+}
+
+/// A Stokes map as the Python package returns it: its arrays flat, in bin order (row j,
+/// column i at j * nx + i), its header values and `warnings`.
+fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>) -> PyResult<Bound<'py, PyDict>> {
     let g = &m.geometry;
     let d = PyDict::new(py);
     let h = PyDict::new(py);
@@ -968,7 +1170,7 @@ fn _reduce<'py>(
     }
     d.set_item("x_arcmin", arr1(py, xa))?;
     d.set_item("y_arcmin", arr1(py, ya))?;
-    d.set_item("warnings", r.warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>())?;
+    d.set_item("warnings", warnings)?;
     Ok(d)
 }
 

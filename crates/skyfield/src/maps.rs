@@ -177,6 +177,45 @@ impl BinGeometry {
     }
 }
 
+/// The record a corrected Stokes map carries in its primary header
+/// ([`StokesMap::write_corrected_fits`]): `INSTCORR` (the calibration file's name), `CORRMETH`,
+/// `CORRHWP` and, when a telescope model was removed, `TELMODEL`, `TELBAND`, `TELROT`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CorrectionStamp {
+    /// The calibration file's name (without its folder).
+    pub calibration: String,
+    /// How the instrumental polarization was removed (e.g. "exact M_I inverse (eq:instpol)").
+    pub method: String,
+    /// The HWP zero angle added to chi (deg).
+    pub hwp_chi_offset_deg: f64,
+    pub telescope: Option<TelescopeStamp>,
+}
+
+/// The telescope model a corrected map had removed ([`CorrectionStamp::telescope`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TelescopeStamp {
+    /// The model's name (`fit::telescope::ModelKind::name`).
+    pub model: String,
+    pub band: String,
+    /// The rotator angle the model used (deg).
+    pub rotator_deg: f64,
+}
+
+impl CorrectionStamp {
+    fn write_into(&self, f: &mut FitsFile) -> fitsio::errors::Result<()> {
+        let ph = f.primary_hdu()?;
+        ph.write_key(f, "INSTCORR", (self.calibration.as_str(), "instrumental polarization removed with"))?;
+        ph.write_key(f, "CORRMETH", self.method.as_str())?;
+        ph.write_key(f, "CORRHWP", (self.hwp_chi_offset_deg, "HWP zero angle added to chi [deg]"))?;
+        if let Some(t) = &self.telescope {
+            ph.write_key(f, "TELMODEL", (t.model.as_str(), "telescope model removed"))?;
+            ph.write_key(f, "TELBAND", (t.band.as_str(), "band of the telescope model"))?;
+            ph.write_key(f, "TELROT", (t.rotator_deg, "rotator angle the model used [deg]"))?;
+        }
+        Ok(())
+    }
+}
+
 /// A binned Stokes map of one filter. All per-bin arrays have `geometry.len()` entries,
 /// row-major (`j * nx + i`).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -486,6 +525,17 @@ impl StokesMap {
         hdu.write_key(f, "CONTENT", "1 = usable bin").map_err(e)?;
         put(f, &hdu, ("", "flag"))?;
         Ok(())
+    }
+
+    /// Write a map corrected for the instrumental polarization ([`StokesMap::write_fits`], the
+    /// same layout) with the correction's record in the primary header (`stamp`): what
+    /// [`StokesMap::read_uncorrected`] refuses, so that a map is never corrected twice.
+    pub fn write_corrected_fits(&self, path: &Path, stamp: &CorrectionStamp) -> Result<(), Error> {
+        self.check_lengths()?;
+        crate::io::write_fits_atomic(path, |f| {
+            self.write_into(f, path)?;
+            stamp.write_into(f).map_err(|x| Error::Write { path: path.into(), message: x.to_string() })
+        })
     }
 
     /// [`StokesMap::read_fits`] for inputs that must still hold the instrumental polarization

@@ -572,12 +572,7 @@ fn check_same_setup(inst: &str, filter: &str, cal: (&str, &str), input: &Path, c
 
 /// A Stokes map through the chain: the field (when the calibration has one) at each bin's
 /// centre, then the telescope over the exposures' one track (--parang, --rotator).
-fn telescope_map(
-    a: &Args,
-    tel: &fit::telescope::TelescopeFit,
-    field: Option<&Calibration>,
-    cor: Option<&Corrector<Calibration>>,
-) -> Result<()> {
+fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Calibration>) -> Result<()> {
     let map = skyfield::StokesMap::read_uncorrected(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
     if let Some(c) = field {
@@ -592,23 +587,16 @@ fn telescope_map(
         );
     }
     let track = shared_track(a, tel, "a Stokes map", (map.parallactic_rad, map.rotator_rad))?;
-    let mut c =
-        fit::telescope_cal::correct_map_chain(cor, tel, &band, &map, track).map_err(|e| map_error(e, &a.input))?;
-    // The output records the track the correction used (the map's own, or --parang, --rotator).
-    c.map.parallactic_rad = Some((track.start, track.end));
-    if a.rotator.is_some() {
-        c.map.rotator_rad = Some(track.rotator);
-    }
-    let meth = match (field, a.method) {
-        (None, _) => "telescope model only",
-        (Some(_), MethodArg::Exact) => "exact M_I inverse (eq:instpol), then the telescope",
-        (Some(_), MethodArg::FirstOrder) => "first order (eq:approx), then the telescope",
+    let with = fit::correct::MapCorrection::Chain {
+        field: field.map(|c| (c, options(c, a).method)),
+        telescope: tel,
+        band: &band,
+        track,
     };
-    write_corrected_map_with(a, &c.map, meth, 0.0, |f, ph| {
-        ph.write_key(f, "TELMODEL", (tel.model.name(), "telescope model removed"))?;
-        ph.write_key(f, "TELBAND", (band.as_str(), "band of the telescope model"))?;
-        ph.write_key(f, "TELROT", (track.rotator.to_degrees(), "rotator angle the model used [deg]"))
-    })?;
+    let (c, stamp) =
+        fit::correct::correct_stokes_map(&map, with, a.allow_extrapolation, a.extrapolation_error, &cal_name(a))
+            .map_err(|e| map_error(e, &a.input))?;
+    write_corrected_map(a, &c.map, &stamp)?;
     let mut summary = map_summary(a, c, &map.filter, 0.0);
     summary.telescope_model = Some(tel.model.name());
     summary.telescope_band = Some(band.clone());
@@ -635,12 +623,16 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
     let map = skyfield::StokesMap::read_uncorrected(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
     check_same_setup(&map.instrument, &map.filter, (&cal.instrument, &cal.filter), &a.input, &a.cal, a.allow_mismatch)?;
-    let c = fit::correct::correct_map(cal, &map, opts).map_err(|e| map_error(e, &a.input))?;
-    let meth = match a.method {
-        MethodArg::Exact => "exact M_I inverse (eq:instpol)",
-        MethodArg::FirstOrder => "first order (eq:approx)",
-    };
-    write_corrected_map(a, &c.map, meth, cal.hwp_chi_offset_deg)?;
+    let with = fit::correct::MapCorrection::Field { cal, method: opts.method };
+    let (c, stamp) = fit::correct::correct_stokes_map(
+        &map,
+        with,
+        opts.allow_extrapolation,
+        opts.extrapolation_rel_error,
+        &cal_name(a),
+    )
+    .map_err(|e| map_error(e, &a.input))?;
+    write_corrected_map(a, &c.map, &stamp)?;
     Ok(map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg))
 }
 
@@ -673,33 +665,15 @@ fn map_error(e: fit::correct::MapError, input: &Path) -> anyhow::Error {
     }
 }
 
-/// Write a corrected Stokes map beside the output, stamped with the correction's provenance
-/// (calibration, method, HWP zero angle), then renamed.
-fn write_corrected_map(a: &Args, m: &skyfield::StokesMap, meth: &str, hwp_deg: f64) -> Result<()> {
-    write_corrected_map_with(a, m, meth, hwp_deg, |_, _| Ok(()))
+/// The calibration file's name, as a corrected map records it (`INSTCORR`).
+fn cal_name(a: &Args) -> String {
+    a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default()
 }
 
-/// [`write_corrected_map`] with more primary-header keywords (`extra`).
-fn write_corrected_map_with(
-    a: &Args,
-    m: &skyfield::StokesMap,
-    meth: &str,
-    hwp_deg: f64,
-    extra: impl FnOnce(&mut FitsFile, &fitsio::hdu::FitsHdu) -> Result<(), fitsio::errors::Error>,
-) -> Result<()> {
-    // Written beside the output, stamped with the correction's provenance, then renamed.
-    crate::util::write_via_temp(&a.out, ".fits.tmp", |tmp| {
-        m.write_fits(tmp).with_context(|| format!("cannot write {}", a.out.display()))?;
-        let werr = |e: fitsio::errors::Error| anyhow!("cannot write {}: {e}", a.out.display());
-        let mut f = FitsFile::edit(tmp).map_err(werr)?;
-        let ph = f.primary_hdu().map_err(werr)?;
-        let name = a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
-        ph.write_key(&mut f, "INSTCORR", (name.as_str(), "instrumental polarization removed with")).map_err(werr)?;
-        ph.write_key(&mut f, "CORRMETH", meth).map_err(werr)?;
-        ph.write_key(&mut f, "CORRHWP", (hwp_deg, "HWP zero angle added to chi [deg]")).map_err(werr)?;
-        extra(&mut f, &ph).map_err(werr)?;
-        skyfield::durable::close_fits(f).map_err(|m| anyhow!("cannot write {}: {m}", a.out.display()))
-    })
+/// Write a corrected Stokes map with the correction's record (`stamp`).
+fn write_corrected_map(a: &Args, m: &skyfield::StokesMap, stamp: &skyfield::CorrectionStamp) -> Result<()> {
+    crate::util::check_output(&a.out)?;
+    m.write_corrected_fits(&a.out, stamp).with_context(|| format!("cannot write {}", a.out.display()))
 }
 
 /// `correct` with a Mueller-field calibration: every row or bin inverted exactly
@@ -731,8 +705,16 @@ fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> 
             &a.cal,
             a.allow_mismatch,
         )?;
-        let c = fit::correct::correct_map_with(&map, |m| cal.correct(m, &opts)).map_err(|e| map_error(e, &a.input))?;
-        write_corrected_map(a, &c.map, "exact inverse of the Mueller field (calibrate-mueller)", 0.0)?;
+        let with = fit::correct::MapCorrection::Mueller(cal);
+        let (c, stamp) = fit::correct::correct_stokes_map(
+            &map,
+            with,
+            opts.allow_extrapolation,
+            opts.extrapolation_rel_error,
+            &cal_name(a),
+        )
+        .map_err(|e| map_error(e, &a.input))?;
+        write_corrected_map(a, &c.map, &stamp)?;
         map_summary(a, c, &cal.filter, 0.0)
     } else {
         let out_format = Some(Format::from_path(&a.out)?);
@@ -791,45 +773,35 @@ fn shared_track(
     what: &str,
     recorded: (Option<(f64, f64)>, Option<f64>),
 ) -> Result<fit::telescope::Track> {
-    let track = match (&a.parang, recorded.0) {
-        (Some(p), rec) => {
-            let t = crate::util::parse_parang(p)?;
-            if let Some((s, e)) = rec {
-                let off = |x: f64, y: f64| mueller::wrap_half_pi(0.5 * (x - y)).abs() * 2.0;
-                if off(s, t.start).max(off(e, t.end)) > 0.01f64.to_radians() {
-                    eprintln!(
-                        "warning: --parang {p} replaces the parallactic angle {} recorded ({:.3} to {:.3} deg)",
-                        a.input.display(),
-                        s.to_degrees(),
-                        e.to_degrees()
-                    );
-                }
-            }
-            t
-        }
-        (None, Some((s, e))) => fit::telescope::Track::new(s, Some(e)),
-        (None, None) => bail!(
+    use fit::telescope::TrackChoiceError;
+    let given = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
+    let rotator = a.rotator.map(crate::util::parse_rotator).transpose()?;
+    let c = tel.choose_track(given, recorded.0, rotator, recorded.1).map_err(|e| match e {
+        TrackChoiceError::NoParallactic => anyhow!(
             "{}: {what} needs the parallactic angle of its exposures for the telescope model of {}: give --parang START[,END] (deg: the first frame's start, the last frame's end, as their headers say; instpol reduce records it in the map when the instrument's [telescope] section names the header keywords)",
             a.input.display(),
             a.cal.display()
         ),
-    };
-    match (tel.with_rotator, a.rotator, recorded.1) {
-        (true, Some(r), _) => Ok(track.with_rotator(crate::util::parse_rotator(r)?)),
-        (true, None, Some(r)) => Ok(track.with_rotator(r)),
-        (true, None, None) => bail!(
+        TrackChoiceError::NoRotator => anyhow!(
             "the telescope model of {} was fitted with rotator angles: give the exposures' with --rotator DEG",
             a.cal.display()
         ),
-        (false, Some(_), _) => {
-            eprintln!(
-                "warning: --rotator is ignored: the telescope model of {} was fitted without rotator angles (its offset holds the rotator's)",
-                a.cal.display()
-            );
-            Ok(track)
-        }
-        (false, None, _) => Ok(track),
+    })?;
+    if let (Some((s, e)), Some(p)) = (c.replaced, &a.parang) {
+        eprintln!(
+            "warning: --parang {p} replaces the parallactic angle {} recorded ({:.3} to {:.3} deg)",
+            a.input.display(),
+            s.to_degrees(),
+            e.to_degrees()
+        );
     }
+    if c.rotator_ignored {
+        eprintln!(
+            "warning: --rotator is ignored: the telescope model of {} was fitted without rotator angles (its offset holds the rotator's)",
+            a.cal.display()
+        );
+    }
+    Ok(c.track)
 }
 
 /// `correct` with a telescope model (and maybe a field model): the field first, then the
@@ -863,7 +835,7 @@ fn run_telescope(
         zero_angle_warning(c.hwp_chi_offset_deg, &format!("the field calibration {}", a.cal.display()));
     }
     if kind == Kind::Map {
-        return telescope_map(a, tel, field, cor.as_ref());
+        return telescope_map(a, tel, field);
     }
     let band = telescope_band(a, tel, field, None)?;
     let out_format = Some(Format::from_path(&a.out)?);

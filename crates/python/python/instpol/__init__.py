@@ -27,6 +27,7 @@ Example::
 from __future__ import annotations
 
 import os
+import warnings
 from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -340,6 +341,57 @@ class Calibration:
         )
         return _reshape(d, shape, flat[0].shape[0])
 
+    def correct_map(
+        self,
+        input: PathLike,
+        output: Optional[PathLike] = None,
+        *,
+        method: str = "exact",
+        allow_extrapolation: bool = False,
+        extrapolation_error: float = 0.5,
+        parang_deg: Optional[Union[float, Sequence[float]]] = None,
+        rotator_deg: Optional[float] = None,
+        band: Optional[str] = None,
+        allow_mismatch: bool = False,
+    ) -> "StokesMap":
+        """Remove the instrumental polarization from a whole Stokes map file, as
+        ``instpol correct --cal CAL --in MAP.fits --out OUT.fits`` does.
+
+        ``input``: a map from :func:`reduce` (``output=``) or ``instpol reduce``; a map that
+        was already corrected (``INSTCORR`` in its header) raises InputError, as does a map of
+        another instrument or filter unless ``allow_mismatch``. Every valid bin is corrected
+        at its centre with the scatter and the photon-noise errors each propagated: the field
+        (``method`` as in :meth:`correct`, the HWP zero angle added to chi), or a Mueller field
+        (exactly), or, with a telescope model, the field then the telescope over the
+        exposures' one track: ``parang_deg`` ``(START, END)`` (deg) or the one the map recorded,
+        ``rotator_deg`` for a model fitted with rotator angles, ``band`` as in :meth:`correct`
+        (default: the field calibration's filter, else the map's). ``output``: the corrected
+        map, written atomically with the correction's record in its primary header
+        (``INSTCORR``, ``CORRMETH``, ``CORRHWP``; ``TELMODEL``, ``TELBAND``, ``TELROT`` with a
+        telescope model).
+
+        Returns
+        -------
+        StokesMap
+            The corrected map; ``correction`` holds ``calibration``, ``method``,
+            ``hwp_chi_offset_deg``, ``n_bins``, ``n_extrapolated`` (and ``telescope_model``,
+            ``telescope_band``, ``rotator_deg``, ``parang_deg`` with a telescope model).
+            Notes (a recorded parallactic angle replaced, a rotator angle ignored) are in
+            ``warnings`` and issued as Python warnings.
+        """
+        pa = None
+        if parang_deg is not None:
+            pa = [float(parang_deg)] if np.ndim(parang_deg) == 0 else [float(a) for a in parang_deg]
+        d = self._c._correct_map(
+            os.fspath(input), _opt_path(output), str(method), bool(allow_extrapolation),
+            float(extrapolation_error), pa, None if rotator_deg is None else float(rotator_deg),
+            None if band is None else str(band), bool(allow_mismatch),
+        )
+        for w in d["warnings"]:
+            warnings.warn(w, stacklevel=2)
+        return StokesMap(d)
+
+
 
 class StokesMap:
     """A binned Stokes map from :func:`reduce`: 2-D arrays of shape ``(ny, nx)`` (bin row j,
@@ -361,6 +413,8 @@ class StokesMap:
     def __init__(self, d: Dict[str, Any]) -> None:
         self.header: Dict[str, Any] = d["header"]
         self.warnings = list(d["warnings"])
+        # A corrected map's record (Calibration.correct_map); None for a map from reduce().
+        self.correction: Optional[Dict[str, Any]] = d.get("correction")
         shape = (self.header["ny"], self.header["nx"])
         for k in self._ARRAYS:
             setattr(self, k, d[k].reshape(shape))

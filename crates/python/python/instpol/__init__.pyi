@@ -93,10 +93,25 @@ class Calibration:
         band: Optional[str] = ...,
     ) -> Dict[str, Any]:
         """Exact inversion of eq:instpol (or eq:approx), as `instpol correct`, bit for bit."""
+    def correct_map(
+        self,
+        input: PathLike,
+        output: Optional[PathLike] = ...,
+        *,
+        method: str = ...,
+        allow_extrapolation: bool = ...,
+        extrapolation_error: float = ...,
+        parang_deg: Optional[Union[float, Sequence[float]]] = ...,
+        rotator_deg: Optional[float] = ...,
+        band: Optional[str] = ...,
+        allow_mismatch: bool = ...,
+    ) -> StokesMap:
+        """A whole Stokes map file corrected, as `instpol correct --in MAP.fits`, bit for bit."""
 
 class StokesMap:
     header: Dict[str, Any]
     warnings: List[str]
+    correction: Optional[Dict[str, Any]]
     q: npt.NDArray[np.float64]
     u: npt.NDArray[np.float64]
     sigma_q: npt.NDArray[np.float64]
