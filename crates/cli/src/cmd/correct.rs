@@ -593,10 +593,7 @@ fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Ca
         band: &band,
         track,
     };
-    let (c, stamp) =
-        fit::correct::correct_stokes_map(&map, with, a.allow_extrapolation, a.extrapolation_error, &cal_name(a))
-            .map_err(|e| map_error(e, &a.input))?;
-    write_corrected_map(a, &c.map, &stamp)?;
+    let c = correct_and_write(a, &map, with)?;
     let mut summary = map_summary(a, c, &map.filter, 0.0);
     summary.telescope_model = Some(tel.model.name());
     summary.telescope_band = Some(band.clone());
@@ -624,15 +621,7 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
     check_same_setup(&map.instrument, &map.filter, (&cal.instrument, &cal.filter), &a.input, &a.cal, a.allow_mismatch)?;
     let with = fit::correct::MapCorrection::Field { cal, method: opts.method };
-    let (c, stamp) = fit::correct::correct_stokes_map(
-        &map,
-        with,
-        opts.allow_extrapolation,
-        opts.extrapolation_rel_error,
-        &cal_name(a),
-    )
-    .map_err(|e| map_error(e, &a.input))?;
-    write_corrected_map(a, &c.map, &stamp)?;
+    let c = correct_and_write(a, &map, with)?;
     Ok(map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg))
 }
 
@@ -670,10 +659,19 @@ fn cal_name(a: &Args) -> String {
     a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default()
 }
 
-/// Write a corrected Stokes map with the correction's record (`stamp`).
-fn write_corrected_map(a: &Args, m: &skyfield::StokesMap, stamp: &skyfield::CorrectionStamp) -> Result<()> {
+/// Correct a Stokes map (`fit::correct::correct_stokes_map`) and write it with the
+/// correction's record.
+fn correct_and_write(
+    a: &Args,
+    map: &skyfield::StokesMap,
+    with: fit::correct::MapCorrection<'_>,
+) -> Result<fit::correct::CorrectedMap> {
+    let (c, stamp) =
+        fit::correct::correct_stokes_map(map, with, a.allow_extrapolation, a.extrapolation_error, &cal_name(a))
+            .map_err(|e| map_error(e, &a.input))?;
     crate::util::check_output(&a.out)?;
-    m.write_corrected_fits(&a.out, stamp).with_context(|| format!("cannot write {}", a.out.display()))
+    c.map.write_corrected_fits(&a.out, &stamp).with_context(|| format!("cannot write {}", a.out.display()))?;
+    Ok(c)
 }
 
 /// `correct` with a Mueller-field calibration: every row or bin inverted exactly
@@ -706,15 +704,7 @@ fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> 
             a.allow_mismatch,
         )?;
         let with = fit::correct::MapCorrection::Mueller(cal);
-        let (c, stamp) = fit::correct::correct_stokes_map(
-            &map,
-            with,
-            opts.allow_extrapolation,
-            opts.extrapolation_rel_error,
-            &cal_name(a),
-        )
-        .map_err(|e| map_error(e, &a.input))?;
-        write_corrected_map(a, &c.map, &stamp)?;
+        let c = correct_and_write(a, &map, with)?;
         map_summary(a, c, &cal.filter, 0.0)
     } else {
         let out_format = Some(Format::from_path(&a.out)?);
