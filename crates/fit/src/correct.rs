@@ -657,6 +657,11 @@ pub enum MapCorrection<'a> {
         telescope: &'a crate::telescope::TelescopeFit,
         band: &'a str,
         track: crate::telescope::Track,
+        /// Undo the telescope exposure by exposure where the map recorded each one's angles
+        /// ([`skyfield::StokesMap::exposure_tracks`]): true when `track` is the map's own,
+        /// false when the caller replaced it (the exposures' recorded angles would then
+        /// contradict it).
+        by_exposure: bool,
     },
 }
 
@@ -698,17 +703,24 @@ pub fn correct_stokes_map(
             let c = correct_map_with(map, |m| mc.correct(m, &o))?;
             Ok((c, stamp("exact inverse of the Mueller field (calibrate-mueller)".into(), 0.0, None)))
         }
-        MapCorrection::Chain { field, telescope, band, track } => {
+        MapCorrection::Chain { field, telescope, band, track, by_exposure } => {
             let cor = field.map(|(cal, method)| Corrector::new(cal, opts(method, 0.0)));
-            let mut c = crate::telescope_cal::correct_map_chain(cor.as_ref(), telescope, band, map, track)?;
+            let exposures = if by_exposure { &map.exposure_tracks[..] } else { &[] };
+            let mut c = crate::telescope_cal::correct_map_chain(cor.as_ref(), telescope, band, map, track, exposures)?;
+            if !by_exposure {
+                c.map.exposure_tracks.clear();
+            }
             c.map.parallactic_rad = Some((track.start, track.end));
             if telescope.with_rotator {
                 c.map.rotator_rad = Some(track.rotator);
             }
-            let method = match field {
+            let mut method = match field {
                 None => "telescope model only".to_string(),
                 Some((_, m)) => format!("{}, then the telescope", meth(m)),
             };
+            if !exposures.is_empty() {
+                method += &format!(" (exposure by exposure, {})", exposures.len());
+            }
             let t = skyfield::TelescopeStamp {
                 model: telescope.model.name().to_string(),
                 band: band.to_string(),

@@ -283,6 +283,16 @@ pub enum BandChoiceError {
     Ambiguous { bands: Vec<String> },
 }
 
+/// How data saw the telescope ([`TelescopeFit::correct_cov_seen`]): over one track (a star's
+/// exposure, a set taken as one), or as exposures demodulated together (eq:Q, eq:U), each over
+/// its own track (a Stokes map that recorded them); `whole` is the set's span, where the
+/// inversion starts.
+#[derive(Debug, Clone, Copy)]
+pub enum Seen<'a> {
+    Track(Track),
+    Exposures { whole: Track, exposures: &'a [mueller::telescope::Exposure] },
+}
+
 /// The track a correction uses for data whose exposures share one ([`TelescopeFit::choose_track`]),
 /// with what the caller should tell the user about it.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -438,6 +448,21 @@ impl TelescopeFit {
         track: Track,
         constant: bool,
     ) -> Result<[f64; 5]> {
+        self.correct_cov_seen(band, q, u, cov, Seen::Track(track), constant)
+    }
+
+    /// [`TelescopeFit::correct_cov`] for data that saw the telescope as `seen` says: over one
+    /// track, or as exposures demodulated together, each over its own track
+    /// ([`BandModel::correct_exposures`]).
+    pub fn correct_cov_seen(
+        &self,
+        band: &str,
+        q: f64,
+        u: f64,
+        cov: [f64; 3],
+        seen: Seen<'_>,
+        constant: bool,
+    ) -> Result<[f64; 5]> {
         let b = self.band(band).ok_or_else(|| {
             Error::Input(format!(
                 "band '{band}' was not fitted (the telescope model has: {})",
@@ -445,13 +470,33 @@ impl TelescopeFit {
             ))
         })?;
         let me = |e: mueller::Error| Error::FitFailed(format!("telescope correction: {e}"));
-        let f = |m: &BandModel, q: f64, u: f64| m.correct_track(q, u, track, constant).map_err(me);
-        let (qs, us) = f(b, q, u)?;
+        // The band's inversion as `seen` says (a demodulation of the exposures is built once
+        // per band model: the base one serves the five evaluations below).
+        enum Inv {
+            Track(Track),
+            Demod(mueller::telescope::Demodulation, Track),
+        }
+        let prep = |m: &BandModel| -> Result<Inv> {
+            match seen {
+                Seen::Track(t) => Ok(Inv::Track(t)),
+                Seen::Exposures { whole, exposures } => Ok(Inv::Demod(m.demodulation(exposures).map_err(me)?, whole)),
+            }
+        };
+        let run = |m: &BandModel, inv: &Inv, q: f64, u: f64| {
+            match inv {
+                Inv::Track(t) => m.correct_track(q, u, *t, constant),
+                Inv::Demod(d, whole) => m.correct_exposures(q, u, d, *whole, constant),
+            }
+            .map_err(me)
+        };
+        let f = |m: &BandModel, q: f64, u: f64| run(m, &prep(m)?, q, u);
+        let inv = prep(b)?;
+        let (qs, us) = run(b, &inv, q, u)?;
         let h = 1e-6;
-        let (qa, ua) = f(b, q + h, u)?;
-        let (qa2, ua2) = f(b, q - h, u)?;
-        let (qb, ub) = f(b, q, u + h)?;
-        let (qb2, ub2) = f(b, q, u - h)?;
+        let (qa, ua) = run(b, &inv, q + h, u)?;
+        let (qa2, ua2) = run(b, &inv, q - h, u)?;
+        let (qb, ub) = run(b, &inv, q, u + h)?;
+        let (qb2, ub2) = run(b, &inv, q, u - h)?;
         let jm = [[(qa - qa2) / (2.0 * h), (qb - qb2) / (2.0 * h)], [(ua - ua2) / (2.0 * h), (ub - ub2) / (2.0 * h)]];
         let (mut vq, mut vu, mut cv) = crate::correct::sandwich(&jm, cov[0], cov[1], cov[2]);
         // Parameter covariance: derivatives of the correction with respect to each parameter.

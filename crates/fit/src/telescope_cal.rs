@@ -35,7 +35,7 @@ use crate::calfile::{fits_err, temp_error, KeyReader, KeyWriter};
 use crate::correct::{p_chi_with_errors, Corrected, Corrector, Measurement};
 use crate::model::{FieldModel, InstPol};
 use crate::radial::ErrorScaling;
-use crate::telescope::{BandModel, ModelKind, Param, TelescopeFit, Track};
+use crate::telescope::{BandModel, ModelKind, Param, Seen, TelescopeFit, Track};
 use crate::{Calibration, Error, Result};
 use fitsio::tables::{ColumnDataType, ColumnDescription};
 use fitsio::FitsFile;
@@ -332,18 +332,30 @@ impl ChainCorrected {
 
 /// Correct every valid bin of a Stokes map through the chain ([`correct_chain`] at the bin's
 /// centre): the bins of a map share their exposures, hence one parallactic-angle `track` for
-/// all of them. The scatter and the photon-noise errors are each propagated
-/// ([`crate::correct::correct_map_with`]); each bin's `inst` is the field's and the
-/// telescope's polarization together ([`ChainCorrected::with_telescope_in_inst`]).
+/// all of them. With `exposures` (the map's [`skyfield::StokesMap::exposure_tracks`], their
+/// rotator `track`'s), the telescope is undone as the exposures saw it, each at its own
+/// angles, demodulated together ([`Seen::Exposures`]); without, over `track`. The scatter and
+/// the photon-noise errors are each propagated ([`crate::correct::correct_map_with`]); each
+/// bin's `inst` is the field's and the telescope's polarization together
+/// ([`ChainCorrected::with_telescope_in_inst`]).
 pub fn correct_map_chain<M: FieldModel + ?Sized>(
     field: Option<&Corrector<M>>,
     tel: &TelescopeFit,
     band: &str,
     map: &skyfield::StokesMap,
     track: Track,
+    exposures: &[skyfield::ExposureTrack],
 ) -> std::result::Result<crate::correct::CorrectedMap, crate::correct::MapError> {
+    let ex: Vec<mueller::telescope::Exposure> = exposures
+        .iter()
+        .map(|x| mueller::telescope::Exposure {
+            hwp: x.hwp_deg.to_radians(),
+            track: Track::new(x.start, Some(x.end)).with_rotator(track.rotator),
+        })
+        .collect();
+    let seen = if ex.is_empty() { Seen::Track(track) } else { Seen::Exposures { whole: track, exposures: &ex } };
     crate::correct::correct_map_with(map, |m| {
-        correct_chain(field, tel, band, m, track)
+        correct_chain_seen(field, tel, band, m, seen)
             .map(|r| r.with_telescope_in_inst())
             .map_err(|e| crate::correct::Error::Telescope(e.to_string()))
     })
@@ -358,9 +370,29 @@ pub fn correct_chain<M: FieldModel + ?Sized>(
     m: &Measurement,
     track: Track,
 ) -> Result<ChainCorrected> {
-    for (what, v) in [("parallactic angle (start)", track.start), ("parallactic angle (end)", track.end)] {
-        if !v.is_finite() {
-            return Err(Error::Input(format!("{what} = {v} is not a finite number")));
+    correct_chain_seen(field, tel, band, m, Seen::Track(track))
+}
+
+/// [`correct_chain`] for a measurement that saw the telescope as `seen` says; `q_tel, u_tel`
+/// are then what the telescope makes of an unpolarized sky as these data saw it.
+pub fn correct_chain_seen<M: FieldModel + ?Sized>(
+    field: Option<&Corrector<M>>,
+    tel: &TelescopeFit,
+    band: &str,
+    m: &Measurement,
+    seen: Seen<'_>,
+) -> Result<ChainCorrected> {
+    let tracks: Vec<Track> = match seen {
+        Seen::Track(t) => vec![t],
+        Seen::Exposures { whole, exposures } => {
+            std::iter::once(whole).chain(exposures.iter().map(|e| e.track)).collect()
+        }
+    };
+    for t in &tracks {
+        for (what, v) in [("parallactic angle (start)", t.start), ("parallactic angle (end)", t.end)] {
+            if !v.is_finite() {
+                return Err(Error::Input(format!("{what} = {v} is not a finite number")));
+            }
         }
     }
     let (q1, u1, cov, inst, extrapolated) = match field {
@@ -378,10 +410,16 @@ pub fn correct_chain<M: FieldModel + ?Sized>(
         }
     };
     let constant = field.is_none();
-    let [q0, u0, vq, vu, cv] = tel.correct_cov(band, q1, u1, cov, track, constant)?;
+    let [q0, u0, vq, vu, cv] = tel.correct_cov_seen(band, q1, u1, cov, seen, constant)?;
     let b = tel.band(band).ok_or_else(|| Error::Input(format!("band '{band}' was not fitted")))?;
-    let mt = b.matrix_track(track).map_err(|e| Error::FitFailed(format!("telescope model: {e}")))?;
-    let (mut q_tel, mut u_tel) = (mt[(1, 0)] / mt[(0, 0)], mt[(2, 0)] / mt[(0, 0)]);
+    let model_err = |e: mueller::Error| Error::FitFailed(format!("telescope model: {e}"));
+    let (mut q_tel, mut u_tel) = match seen {
+        Seen::Track(track) => {
+            let mt = b.matrix_track(track).map_err(model_err)?;
+            (mt[(1, 0)] / mt[(0, 0)], mt[(2, 0)] / mt[(0, 0)])
+        }
+        Seen::Exposures { exposures, .. } => b.demodulation(exposures).map_err(model_err)?.forward(0.0, 0.0),
+    };
     if constant {
         q_tel += b.q0;
         u_tel += b.u0;
@@ -512,6 +550,35 @@ pub fn frames_track(frames: &[std::path::PathBuf], tel: &instrument::Telescope) 
     let rising = if own != 0.0 { own > 0.0 } else { by_order >= 0.0 };
     let (start, end) = if rising { (lo, hi) } else { (hi, lo) };
     Ok(Track { start, end, rotator: rot.map(|r| r.0).unwrap_or(0.0) })
+}
+
+/// Record in a reduced map the exposures' telescope angles, when the instrument names their
+/// header keywords and every exposure's header has them (`exposures`: each one's file and HWP
+/// angle, [`skyfield::reduce::Reduced::exposures`]): the set's track (`PARANG1`, `PARANG2`,
+/// [`frames_track`]), the rotator angle, and each exposure's own track
+/// ([`skyfield::StokesMap::exposure_tracks`]), which `correct` uses to undo the telescope as
+/// the exposures saw it. Frames without the angles leave the map without them, silently: most
+/// instruments and uses need no telescope model. The one recording of `instpol reduce` and the
+/// Python package's `reduce`.
+pub fn record_telescope_angles(
+    map: &mut skyfield::StokesMap,
+    exposures: &[(std::path::PathBuf, f64)],
+    inst: &instrument::Instrument,
+) {
+    let Some(t) = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty()) else { return };
+    let files: Vec<std::path::PathBuf> = exposures.iter().map(|e| e.0.clone()).collect();
+    let Ok(track) = frames_track(&files, t) else { return };
+    map.parallactic_rad = Some((track.start, track.end));
+    map.rotator_rad = (!t.rotator_keyword.is_empty()).then_some(track.rotator);
+    let each: Option<Vec<skyfield::ExposureTrack>> = exposures
+        .iter()
+        .map(|(p, hwp)| {
+            let h = header_angles(p, t).ok()?;
+            let (s, e) = t.parallactic_rad(h.parang_start_deg, h.parang_end_deg);
+            Some(skyfield::ExposureTrack { hwp_deg: *hwp, start: s, end: e.unwrap_or(s) })
+        })
+        .collect();
+    map.exposure_tracks = each.unwrap_or_default();
 }
 
 /// Validating a telescope calibration (with or without a field model) on a standard star:

@@ -824,7 +824,7 @@ impl _Calibration {
                         ));
                     }
                 }
-                Some((t, b, c.track))
+                Some((t, b, c.track, given.is_none()))
             }
             (_, None) => {
                 if given.is_some() || rotator.is_some() || band.is_some() {
@@ -838,11 +838,15 @@ impl _Calibration {
         let with = match (&self.field, &chosen) {
             (Field::Mueller(mc), _) => MapCorrection::Mueller(mc),
             (Field::PPhi(cal), None) => MapCorrection::Field { cal, method },
-            (Field::PPhi(cal), Some((t, b, track))) => {
-                MapCorrection::Chain { field: Some((cal, method)), telescope: t, band: b, track: *track }
-            }
-            (Field::TelescopeOnly { .. }, Some((t, b, track))) => {
-                MapCorrection::Chain { field: None, telescope: t, band: b, track: *track }
+            (Field::PPhi(cal), Some((t, b, track, by_exposure))) => MapCorrection::Chain {
+                field: Some((cal, method)),
+                telescope: t,
+                band: b,
+                track: *track,
+                by_exposure: *by_exposure,
+            },
+            (Field::TelescopeOnly { .. }, Some((t, b, track, by_exposure))) => {
+                MapCorrection::Chain { field: None, telescope: t, band: b, track: *track, by_exposure: *by_exposure }
             }
             (Field::TelescopeOnly { .. }, None) => {
                 return Err(input_err(format!(
@@ -1115,7 +1119,9 @@ fn _reduce<'py>(
     }
     let r = py
         .detach(|| {
-            let r = skyfield::reduce::reduce_files_with(&frames, &inst, &cfg, &read, &|| {})?;
+            let mut r = skyfield::reduce::reduce_files_with(&frames, &inst, &cfg, &read, &|| {})?;
+            // The exposures' telescope angles, as `instpol reduce` records them.
+            fit::telescope_cal::record_telescope_angles(&mut r.map, &r.exposures, &inst);
             if let Some(out) = &output {
                 r.map.write_fits(out)?;
             }

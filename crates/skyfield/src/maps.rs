@@ -26,7 +26,10 @@
 //! The primary header carries the run's provenance ([`crate::provenance`]), and, when the
 //! frames' headers gave them, the exposures' parallactic angle `PARANG1` (the first frame's
 //! start), `PARANG2` (the last frame's end) and rotator angle `ROTANG` (deg, the instrument's
-//! sense): optional keywords, within format version 1.
+//! sense), and each exposure's HWP angle and parallactic angles at its start and end
+//! (`NEXPTRK` exposures, `XHWPk`, `XPASk`, `XPAEk`, deg): optional keywords, within format
+//! version 1 (a reader that ignores them corrects over the whole set's track). A corrected map
+//! also carries the correction's record ([`CorrectionStamp`]).
 
 use crate::{fits_err, Error};
 use fitsio::images::{ImageDescription, ImageType};
@@ -260,6 +263,20 @@ pub struct StokesMap {
     /// instrument names its keyword and the frames' headers gave it.
     #[serde(default)]
     pub rotator_rad: Option<f64>,
+    /// Each exposure's HWP angle and parallactic-angle track, when the frames' headers gave
+    /// them: a telescope model is then undone exposure by exposure as the map's Q/I, U/I
+    /// demodulated them (eq:Q, eq:U), instead of at the whole set's average angle.
+    #[serde(default)]
+    pub exposure_tracks: Vec<ExposureTrack>,
+}
+
+/// One exposure of a map ([`StokesMap::exposure_tracks`]): its HWP angle (deg) and the
+/// parallactic angle at its start and end (rad, the instrument's sense).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ExposureTrack {
+    pub hwp_deg: f64,
+    pub start: f64,
+    pub end: f64,
 }
 
 /// A celestial FITS WCS without distortion terms: `CTYPEi` (e.g. `RA---TAN`, `DEC--TAN`),
@@ -393,6 +410,7 @@ impl StokesMap {
             celestial_wcs: None,
             parallactic_rad: None,
             rotator_rad: None,
+            exposure_tracks: vec![],
         }
     }
 
@@ -465,6 +483,18 @@ impl StokesMap {
         }
         if let Some(r) = self.rotator_rad {
             ph.write_key(f, "ROTANG", (r.to_degrees(), "rotator / adapter angle [deg]")).map_err(e)?;
+        }
+        if !self.exposure_tracks.is_empty() {
+            let n = self.exposure_tracks.len() as i64;
+            ph.write_key(f, "NEXPTRK", (n, "exposures with their parallactic angles")).map_err(e)?;
+            for (k, x) in self.exposure_tracks.iter().enumerate() {
+                let k = k + 1;
+                ph.write_key(f, &format!("XHWP{k}"), (x.hwp_deg, "exposure's HWP angle [deg]")).map_err(e)?;
+                ph.write_key(f, &format!("XPAS{k}"), (x.start.to_degrees(), "its parallactic angle, start [deg]"))
+                    .map_err(e)?;
+                ph.write_key(f, &format!("XPAE{k}"), (x.end.to_degrees(), "its parallactic angle, end [deg]"))
+                    .map_err(e)?;
+            }
         }
         let dims = [g.ny, g.nx];
         let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
@@ -639,6 +669,7 @@ impl StokesMap {
             Ok(h) => CelestialWcs::read(&mut f, &h).ok().flatten(),
             Err(_) => None,
         };
+        let count = crate::io::read_key_str(&mut f, &ph, "NEXPTRK").ok();
         // The exposures' angles, optional; present but not a finite angle is an error (a
         // telescope correction would use it).
         let mut angle = |k: &str| -> Result<Option<f64>, Error> {
@@ -663,6 +694,32 @@ impl StokesMap {
             }
         };
         let rotator_rad = angle("ROTANG")?;
+        // Each exposure's angles (NEXPTRK of them), all three keywords each, or none.
+        let mut exposure_tracks = vec![];
+        if let Some(text) = count {
+            let n = match text.trim().parse::<usize>() {
+                Ok(n) if n <= 4096 => n,
+                _ => {
+                    return Err(Error::BadKeyword {
+                        path: path.into(),
+                        keyword: "NEXPTRK".into(),
+                        value: text,
+                        expected: "a number of exposures (0 to 4096)".into(),
+                    })
+                }
+            };
+            for k in 1..=n {
+                let mut get = |name: String| -> Result<f64, Error> {
+                    angle(&name)?.ok_or(Error::MissingKeyword { path: path.into(), keyword: name })
+                };
+                let hwp_deg = get(format!("XHWP{k}"))?.to_degrees();
+                exposure_tracks.push(ExposureTrack {
+                    hwp_deg,
+                    start: get(format!("XPAS{k}"))?,
+                    end: get(format!("XPAE{k}"))?,
+                });
+            }
+        }
         // A map made elsewhere (or edited) is checked before anything is fitted to it: every
         // valid bin holds a physical polarization and a covariance that is one.
         for k in (0..n).filter(|&k| valid[k]) {
@@ -708,6 +765,7 @@ impl StokesMap {
             celestial_wcs,
             parallactic_rad,
             rotator_rad,
+            exposure_tracks,
         })
     }
 }
@@ -856,5 +914,54 @@ mod tests {
         let path = dir.path().join("good.fits");
         sample().write_fits(&path).unwrap();
         StokesMap::read_fits(&path).unwrap();
+    }
+
+    /// Each exposure's HWP angle and parallactic-angle track are written as header keywords
+    /// (read back here with CFITSIO, in degrees) and read back; a count beyond the keywords
+    /// written, an angle that is no number, or a count that is none are refused by name.
+    #[test]
+    fn exposure_tracks_are_kept_and_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("map.fits");
+        let mut m = sample();
+        let d = f64::to_radians;
+        m.exposure_tracks = vec![
+            ExposureTrack { hwp_deg: 0.0, start: d(-40.5), end: d(-31.25) },
+            ExposureTrack { hwp_deg: 22.5, start: d(-30.0), end: d(-21.0) },
+        ];
+        m.write_fits(&path).unwrap();
+        {
+            let mut f = FitsFile::open(&path).unwrap();
+            let ph = f.primary_hdu().unwrap();
+            assert_eq!(ph.read_key::<i64>(&mut f, "NEXPTRK").unwrap(), 2);
+            assert_eq!(ph.read_key::<f64>(&mut f, "XHWP2").unwrap(), 22.5);
+            assert!((ph.read_key::<f64>(&mut f, "XPAS1").unwrap() + 40.5).abs() < 1e-12);
+            assert!((ph.read_key::<f64>(&mut f, "XPAE1").unwrap() + 31.25).abs() < 1e-12);
+        }
+        let r = StokesMap::read_fits(&path).unwrap();
+        assert_eq!(r.exposure_tracks.len(), 2);
+        for (a, b) in r.exposure_tracks.iter().zip(&m.exposure_tracks) {
+            assert!(a.hwp_deg == b.hwp_deg && (a.start - b.start).abs() < 1e-15 && (a.end - b.end).abs() < 1e-15);
+        }
+        let edit = |key: &str, value: &str| {
+            let p = dir.path().join(format!("bad_{key}.fits"));
+            std::fs::copy(&path, &p).unwrap();
+            let mut f = FitsFile::edit(&p).unwrap();
+            f.primary_hdu().unwrap();
+            let (k, v) = (std::ffi::CString::new(key).unwrap(), std::ffi::CString::new(value).unwrap());
+            let mut status = 0;
+            // SAFETY: an open file at its primary HDU; NUL-terminated strings (CFITSIO's update,
+            // which replaces the card: `write_key` would add a second one after it).
+            unsafe { fitsio::sys::ffukys(f.as_raw(), k.as_ptr(), v.as_ptr(), std::ptr::null(), &mut status) };
+            assert_eq!(status, 0);
+            drop(f);
+            StokesMap::read_fits(&p).unwrap_err().to_string()
+        };
+        let e = edit("NEXPTRK", "3");
+        assert!(e.contains("XHWP3") && e.contains("bad_NEXPTRK.fits"), "{e}");
+        let e = edit("XPAE2", "north");
+        assert!(e.contains("XPAE2") && e.contains("north"), "{e}");
+        let e = edit("NEXPTRK", "many");
+        assert!(e.contains("NEXPTRK") && e.contains("many"), "{e}");
     }
 }

@@ -592,6 +592,15 @@ fn check_complete(filter: &str, angles: &[f64]) -> Result<(), Error> {
 pub struct Reduced {
     pub map: StokesMap,
     pub warnings: Vec<Warning>,
+    /// Each exposure's file and the HWP angle (deg) it was reduced at, angle by angle: what a
+    /// caller needs to record the exposures' telescope angles in the map
+    /// ([`StokesMap::exposure_tracks`]).
+    pub exposures: Vec<(PathBuf, f64)>,
+}
+
+/// Each exposure's file and HWP angle, from the files grouped by angle.
+fn exposures_of(files: &[Vec<PathBuf>], angles_deg: &[f64]) -> Vec<(PathBuf, f64)> {
+    files.iter().zip(angles_deg).flat_map(|(f, &a)| f.iter().map(move |p| (p.clone(), a))).collect()
 }
 
 /// A bin side must be a number of pixels that fits the detector (1 ..= its longer side): a bin
@@ -667,7 +676,7 @@ pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Resu
         .collect();
     let pass = reduce_bands(&inputs, 0, set.nx, set.ny, &set.angles_deg, inst, cfg, &|| {})?;
     let map = assemble_map(pass.stats, inst, cfg, &set.filter, &set.angles_deg, &inputs)?;
-    Ok(Reduced { map, warnings: set.warnings.clone() })
+    Ok(Reduced { map, warnings: set.warnings.clone(), exposures: exposures_of(&set.files, &set.angles_deg) })
 }
 
 /// One HWP angle's input: the exposures taken at it (summed) and how many exposures the
@@ -1411,7 +1420,7 @@ pub fn reduce_files_with(
             message: format!("celestial WCS not carried to the map: {why}"),
         }),
     }
-    Ok(Reduced { map, warnings })
+    Ok(Reduced { map, warnings, exposures: exposures_of(&set.files, &set.angles) })
 }
 
 #[cfg(test)]

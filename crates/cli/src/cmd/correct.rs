@@ -592,6 +592,7 @@ fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Ca
         telescope: tel,
         band: &band,
         track,
+        by_exposure: a.parang.is_none(),
     };
     let c = correct_and_write(a, &map, with)?;
     let mut summary = map_summary(a, c, &map.filter, 0.0);

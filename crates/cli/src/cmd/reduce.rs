@@ -90,16 +90,9 @@ pub fn run(a: Args) -> Result<()> {
     for w in &r.warnings {
         eprintln!("warning: {w}");
     }
-    // The exposures' parallactic angle (and rotator angle), when the instrument names their
-    // header keywords and every frame has them: what `correct` needs to remove a telescope
-    // model from this map. Frames without them make a map without them, silently: most
-    // instruments and uses need no telescope model.
-    if let Some(t) = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty()) {
-        if let Ok(track) = fit::telescope_cal::frames_track(&a.frames, t) {
-            r.map.parallactic_rad = Some((track.start, track.end));
-            r.map.rotator_rad = (!t.rotator_keyword.is_empty()).then_some(track.rotator);
-        }
-    }
+    // The exposures' telescope angles, when the headers have them (what `correct` needs to
+    // remove a telescope model from this map).
+    fit::telescope_cal::record_telescope_angles(&mut r.map, &r.exposures, &inst);
     r.map.write_fits(&a.out)?;
     let m = &r.map;
     let pick = |v: &[f64]| median(m.valid_bins().map(|(k, _, _)| v[k]).collect());
