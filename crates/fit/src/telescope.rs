@@ -290,7 +290,12 @@ pub enum BandChoiceError {
 #[derive(Debug, Clone, Copy)]
 pub enum Seen<'a> {
     Track(Track),
-    Exposures { whole: Track, exposures: &'a [mueller::telescope::Exposure] },
+    Exposures {
+        whole: Track,
+        exposures: &'a [mueller::telescope::Exposure],
+    },
+    /// Exposures whose demodulations were built once ([`TelescopeFit::prepare_exposures`]).
+    Prepared(&'a PreparedExposures),
 }
 
 /// The track a correction uses for data whose exposures share one ([`TelescopeFit::choose_track`]),
@@ -470,27 +475,40 @@ impl TelescopeFit {
             ))
         })?;
         let me = |e: mueller::Error| Error::FitFailed(format!("telescope correction: {e}"));
-        // The band's inversion as `seen` says (a demodulation of the exposures is built once
-        // per band model: the base one serves the five evaluations below).
-        enum Inv {
+        // The band's inversion as `seen` says: over a track, or through a demodulation of the
+        // exposures, built here once per band model or taken prepared
+        // ([`TelescopeFit::prepare_exposures`]: a map's bins share them).
+        enum Inv<'x> {
             Track(Track),
-            Demod(mueller::telescope::Demodulation, Track),
+            Owned(mueller::telescope::Demodulation, Track),
+            Borrowed(&'x mueller::telescope::Demodulation, Track),
         }
-        let prep = |m: &BandModel| -> Result<Inv> {
-            match seen {
-                Seen::Track(t) => Ok(Inv::Track(t)),
-                Seen::Exposures { whole, exposures } => Ok(Inv::Demod(m.demodulation(exposures).map_err(me)?, whole)),
-            }
-        };
+        fn prep<'x>(
+            seen: Seen<'x>,
+            m: &BandModel,
+            prepared: Option<&'x mueller::telescope::Demodulation>,
+        ) -> std::result::Result<Inv<'x>, mueller::Error> {
+            Ok(match (seen, prepared) {
+                (Seen::Track(t), _) => Inv::Track(t),
+                (Seen::Exposures { whole, exposures }, _) => Inv::Owned(m.demodulation(exposures)?, whole),
+                (Seen::Prepared(p), Some(d)) => Inv::Borrowed(d, p.whole),
+                (Seen::Prepared(p), None) => Inv::Borrowed(&p.base, p.whole),
+            })
+        }
         let run = |m: &BandModel, inv: &Inv, q: f64, u: f64| {
             match inv {
                 Inv::Track(t) => m.correct_track(q, u, *t, constant),
-                Inv::Demod(d, whole) => m.correct_exposures(q, u, d, *whole, constant),
+                Inv::Owned(d, whole) => m.correct_exposures(q, u, d, *whole, constant),
+                Inv::Borrowed(d, whole) => m.correct_exposures(q, u, d, *whole, constant),
             }
             .map_err(me)
         };
-        let f = |m: &BandModel, q: f64, u: f64| run(m, &prep(m)?, q, u);
-        let inv = prep(b)?;
+        if let Seen::Prepared(p) = seen {
+            if p.band != band {
+                return Err(Error::Input(format!("exposures prepared for band {} used for band {band}", p.band)));
+            }
+        }
+        let inv = prep(seen, b, None).map_err(me)?;
         let (qs, us) = run(b, &inv, q, u)?;
         let h = 1e-6;
         let (qa, ua) = run(b, &inv, q + h, u)?;
@@ -500,22 +518,15 @@ impl TelescopeFit {
         let jm = [[(qa - qa2) / (2.0 * h), (qb - qb2) / (2.0 * h)], [(ua - ua2) / (2.0 * h), (ub - ub2) / (2.0 * h)]];
         let (mut vq, mut vu, mut cv) = crate::correct::sandwich(&jm, cov[0], cov[1], cov[2]);
         // Parameter covariance: derivatives of the correction with respect to each parameter.
-        let spec = Spec::new(
-            self.model,
-            self.bands.iter().map(|(n, m)| (n.clone(), m.wavelength_um, m.index)).collect(),
-            self.bands.len() > 1,
-        );
-        let spec = Spec { overlayer_nm: if self.model == ModelKind::Wiersema { b.thickness_nm } else { 0.0 }, ..spec };
-        let p0: Vec<f64> = self.params.iter().map(|p| p.value).collect();
-        let bi = self.bands.iter().position(|(n, _)| n == band).unwrap_or(0);
+        let (p0, perturbed) = self.perturbed_band_models(band, b);
         let mut g = vec![[0.0; 2]; p0.len()];
-        for (k, gk) in g.iter_mut().enumerate() {
-            let step = spec.step(k);
-            let (mut pa, mut pb) = (p0.clone(), p0.clone());
-            pa[k] += step;
-            pb[k] -= step;
-            let (q1, u1) = f(&spec.band_model(&pa, bi), q, u)?;
-            let (q2, u2) = f(&spec.band_model(&pb, bi), q, u)?;
+        for (k, (gk, (plus, minus, step))) in g.iter_mut().zip(&perturbed).enumerate() {
+            let pre = |i: usize| match seen {
+                Seen::Prepared(p) => Some(if i == 0 { &p.per_param[k].0 } else { &p.per_param[k].1 }),
+                _ => None,
+            };
+            let (q1, u1) = run(plus, &prep(seen, plus, pre(0)).map_err(me)?, q, u)?;
+            let (q2, u2) = run(minus, &prep(seen, minus, pre(1)).map_err(me)?, q, u)?;
             *gk = [(q1 - q2) / (2.0 * step), (u1 - u2) / (2.0 * step)];
         }
         for i in 0..p0.len() {
@@ -527,6 +538,68 @@ impl TelescopeFit {
             }
         }
         Ok([qs, us, vq, vu, cv])
+    }
+
+    /// The fitted parameters and, per parameter, the band model of `band` (`b`) with that
+    /// parameter moved up and down by its differentiation step, and the step: what the
+    /// corrections' parameter covariance is propagated through.
+    fn perturbed_band_models(&self, band: &str, b: &BandModel) -> (Vec<f64>, Vec<(BandModel, BandModel, f64)>) {
+        let spec = Spec::new(
+            self.model,
+            self.bands.iter().map(|(n, m)| (n.clone(), m.wavelength_um, m.index)).collect(),
+            self.bands.len() > 1,
+        );
+        let spec = Spec { overlayer_nm: if self.model == ModelKind::Wiersema { b.thickness_nm } else { 0.0 }, ..spec };
+        let p0: Vec<f64> = self.params.iter().map(|p| p.value).collect();
+        let bi = self.bands.iter().position(|(n, _)| n == band).unwrap_or(0);
+        let perturbed = (0..p0.len())
+            .map(|k| {
+                let step = spec.step(k);
+                let (mut pa, mut pb) = (p0.clone(), p0.clone());
+                pa[k] += step;
+                pb[k] -= step;
+                (spec.band_model(&pa, bi), spec.band_model(&pb, bi), step)
+            })
+            .collect();
+        (p0, perturbed)
+    }
+
+    /// The demodulations of `exposures` through `band`'s model and through each parameter's
+    /// perturbed models, built once for data that share them (a Stokes map's bins;
+    /// [`Seen::Prepared`]): the same corrections as [`Seen::Exposures`], without rebuilding
+    /// every exposure's matrices for every bin.
+    pub fn prepare_exposures(
+        &self,
+        band: &str,
+        whole: Track,
+        exposures: &[mueller::telescope::Exposure],
+    ) -> Result<PreparedExposures> {
+        let b = self.band(band).ok_or_else(|| Error::Input(format!("band '{band}' was not fitted")))?;
+        let me = |e: mueller::Error| Error::FitFailed(format!("telescope correction: {e}"));
+        let (_, perturbed) = self.perturbed_band_models(band, b);
+        let per_param = perturbed
+            .iter()
+            .map(|(plus, minus, _)| {
+                Ok((plus.demodulation(exposures).map_err(me)?, minus.demodulation(exposures).map_err(me)?))
+            })
+            .collect::<Result<_>>()?;
+        Ok(PreparedExposures { band: band.to_string(), whole, base: b.demodulation(exposures).map_err(me)?, per_param })
+    }
+}
+
+/// Demodulations of a set of exposures prepared once ([`TelescopeFit::prepare_exposures`]).
+#[derive(Debug)]
+pub struct PreparedExposures {
+    band: String,
+    whole: Track,
+    base: mueller::telescope::Demodulation,
+    per_param: Vec<(mueller::telescope::Demodulation, mueller::telescope::Demodulation)>,
+}
+
+impl PreparedExposures {
+    /// The demodulation through the fitted model.
+    pub fn base(&self) -> &mueller::telescope::Demodulation {
+        &self.base
     }
 }
 
@@ -1048,6 +1121,46 @@ mod tests {
         assert_eq!(rot.choose_track(None, rec, Some(d(5.0)), Some(d(7.0))).unwrap().track.rotator, d(5.0));
         assert_eq!(rot.choose_track(None, rec, None, Some(d(7.0))).unwrap().track.rotator, d(7.0));
         assert_eq!(rot.choose_track(Some(given), None, None, None), Err(TrackChoiceError::NoRotator));
+    }
+
+    /// A map's prepared demodulations give the same corrections and covariances, to the bit, as
+    /// building them for each measurement; exposures that all share one track give the
+    /// track's correction and covariance (to the differentiation's rounding).
+    #[test]
+    fn prepared_exposures_are_the_exposures() {
+        use mueller::telescope::Exposure;
+        let t = table();
+        let truth = wiersema(&t, 0.55, 0.8, 0.6);
+        let fit = fit_band(ModelKind::Wiersema, &simulate(&truth, 12, 0.001, 3), &t, &FitOptions::default()).unwrap();
+        let band = fit.bands[0].0.clone();
+        let d = f64::to_radians;
+        let ex: Vec<Exposure> = (0..8)
+            .map(|i| Exposure {
+                hwp: d(22.5 * i as f64),
+                track: Track::new(d(-60.0 + 12.0 * i as f64), Some(d(-50.0 + 12.0 * i as f64))),
+            })
+            .collect();
+        let whole = Track::new(d(-60.0), Some(d(34.0)));
+        let prepared = fit.prepare_exposures(&band, whole, &ex).unwrap();
+        let cov = [1e-8, 2e-8, 3e-9];
+        for (q, u) in [(0.0, 0.0), (0.03, -0.01), (-0.05, 0.02)] {
+            let a = fit.correct_cov_seen(&band, q, u, cov, Seen::Exposures { whole, exposures: &ex }, true).unwrap();
+            let b = fit.correct_cov_seen(&band, q, u, cov, Seen::Prepared(&prepared), true).unwrap();
+            assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits));
+            // The average track is not the exposures' answer (this set spans 94 deg).
+            let c = fit.correct_cov(&band, q, u, cov, whole, true).unwrap();
+            assert!((a[0] - c[0]).hypot(a[1] - c[1]) > 1e-5, "{a:?} vs {c:?}");
+        }
+        let one = Track::new(d(10.0), Some(d(18.0)));
+        let same: Vec<Exposure> = (0..4).map(|i| Exposure { hwp: d(22.5 * i as f64), track: one }).collect();
+        let a = fit
+            .correct_cov_seen(&band, 0.02, 0.01, cov, Seen::Exposures { whole: one, exposures: &same }, true)
+            .unwrap();
+        let c = fit.correct_cov(&band, 0.02, 0.01, cov, one, true).unwrap();
+        for k in 0..5 {
+            assert!((a[k] - c[k]).abs() <= 1e-12 * (1.0 + c[k].abs()) + 1e-15, "{k}: {a:?} vs {c:?}");
+        }
+        assert!(fit.correct_cov_seen("B", 0.0, 0.0, cov, Seen::Prepared(&prepared), true).is_err());
     }
 
     #[test]

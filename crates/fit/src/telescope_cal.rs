@@ -353,7 +353,20 @@ pub fn correct_map_chain<M: FieldModel + ?Sized>(
             track: Track::new(x.start, Some(x.end)).with_rotator(track.rotator),
         })
         .collect();
-    let seen = if ex.is_empty() { Seen::Track(track) } else { Seen::Exposures { whole: track, exposures: &ex } };
+    // The exposures' demodulations are the same for every bin: built once.
+    let prepared = if ex.is_empty() {
+        None
+    } else {
+        let p = tel.prepare_exposures(band, track, &ex).map_err(|e| crate::correct::MapError::Bin {
+            i: 0,
+            j: 0,
+            x: f64::NAN,
+            y: f64::NAN,
+            source: crate::correct::Error::Telescope(e.to_string()),
+        })?;
+        Some(p)
+    };
+    let seen = prepared.as_ref().map_or(Seen::Track(track), Seen::Prepared);
     crate::correct::correct_map_with(map, |m| {
         correct_chain_seen(field, tel, band, m, seen)
             .map(|r| r.with_telescope_in_inst())
@@ -387,6 +400,7 @@ pub fn correct_chain_seen<M: FieldModel + ?Sized>(
         Seen::Exposures { whole, exposures } => {
             std::iter::once(whole).chain(exposures.iter().map(|e| e.track)).collect()
         }
+        Seen::Prepared(_) => vec![],
     };
     for t in &tracks {
         for (what, v) in [("parallactic angle (start)", t.start), ("parallactic angle (end)", t.end)] {
@@ -419,6 +433,7 @@ pub fn correct_chain_seen<M: FieldModel + ?Sized>(
             (mt[(1, 0)] / mt[(0, 0)], mt[(2, 0)] / mt[(0, 0)])
         }
         Seen::Exposures { exposures, .. } => b.demodulation(exposures).map_err(model_err)?.forward(0.0, 0.0),
+        Seen::Prepared(p) => p.base().forward(0.0, 0.0),
     };
     if constant {
         q_tel += b.q0;

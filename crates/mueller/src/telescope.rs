@@ -118,6 +118,7 @@ pub struct Exposure {
 /// matrix over its own track, grouped by HWP angle (repeats at one angle are summed before
 /// `F_i` is formed: equal exposures of one sky, their `F` weighted by the intensity the chain
 /// passes), with each angle's `cos 4 theta`, `sin 4 theta`.
+#[derive(Debug, Clone)]
 pub struct Demodulation {
     /// Per HWP angle: `(cos 4 theta, sin 4 theta)` and its exposures' matrices.
     angles: Vec<((f64, f64), Vec<Matrix4<f64>>)>,
