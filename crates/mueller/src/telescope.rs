@@ -333,18 +333,15 @@ mod tests {
     use super::*;
     use crate::mirror::MetalTable;
 
+    /// An aluminium M3 in V with a 7 nm oxide, offset 0.7 rad.
+    fn aluminium_v(factor: f64, q0: f64, u0: f64) -> BandModel {
+        let t = MetalTable::builtin("aluminium").unwrap();
+        BandModel { wavelength_um: 0.55, index: t.index(0.55).unwrap(), factor, thickness_nm: 7.0, offset: 0.7, q0, u0 }
+    }
+
     #[test]
     fn track_average_is_the_fine_numerical_mean_not_the_matrix_at_the_mean_angle() {
-        let t = MetalTable::builtin("aluminium").unwrap();
-        let b = BandModel {
-            wavelength_um: 0.55,
-            index: t.index(0.55).unwrap(),
-            factor: 0.85,
-            thickness_nm: 7.0,
-            offset: 0.7,
-            q0: 0.0,
-            u0: 0.0,
-        };
+        let b = aluminium_v(0.85, 0.0, 0.0);
         let d = f64::to_radians;
         for (a, e) in [(10.0, 10.0), (10.0, 12.0), (-30.0, 30.0), (170.0, 185.0), (-80.0, 120.0), (0.0, 360.0)] {
             let track = Track { start: d(a), end: d(e), rotator: 0.0 };
@@ -437,16 +434,7 @@ mod tests {
     /// `correct_track`'s answer; one angle alone is refused.
     #[test]
     fn exposures_are_undone_each_at_its_own_track() {
-        let t = MetalTable::builtin("aluminium").unwrap();
-        let b = BandModel {
-            wavelength_um: 0.55,
-            index: t.index(0.55).unwrap(),
-            factor: 0.86,
-            thickness_nm: 7.0,
-            offset: 0.7,
-            q0: 0.001,
-            u0: -0.0005,
-        };
+        let b = aluminium_v(0.86, 0.001, -0.0005);
         let d = f64::to_radians;
         let sky = (0.012, -0.021);
         let sets: Vec<Vec<(f64, Track)>> = vec![
