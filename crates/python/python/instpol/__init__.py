@@ -363,7 +363,10 @@ class Calibration:
         at its centre with the scatter and the photon-noise errors each propagated: the field
         (``method`` as in :meth:`correct`, the HWP zero angle added to chi), or a Mueller field
         (exactly), or, with a telescope model, the field then the telescope over the
-        exposures' one track: ``parang_deg`` ``(START, END)`` (deg) or the one the map recorded,
+        exposures' angles: each exposure at its own when the map recorded them (:func:`reduce`
+        and ``instpol reduce`` do when the instrument's ``[telescope]`` names the header
+        keywords), else one track for the set, ``parang_deg`` ``(START, END)`` (deg, which
+        replaces any recorded angles) or the one the map recorded,
         ``rotator_deg`` for a model fitted with rotator angles, ``band`` as in :meth:`correct`
         (default: the field calibration's filter, else the map's). ``output``: the corrected
         map, written atomically with the correction's record in its primary header
