@@ -365,9 +365,9 @@ class Calibration:
         (exactly), or, with a telescope model, the field then the telescope over the
         exposures' angles: each exposure at its own when the map recorded them (:func:`reduce`
         and ``instpol reduce`` do when the instrument's ``[telescope]`` names the header
-        keywords), else one track for the set, ``parang_deg`` ``(START, END)`` (deg, which
-        replaces any recorded angles) or the one the map recorded,
-        ``rotator_deg`` for a model fitted with rotator angles, ``band`` as in :meth:`correct`
+        keywords), else over the set's recorded track; ``parang_deg`` ``(START, END)`` (deg)
+        replaces the recorded angles with one track for the whole set; ``rotator_deg`` for a
+        model fitted with rotator angles, ``band`` as in :meth:`correct`
         (default: the field calibration's filter, else the map's). ``output``: the corrected
         map, written atomically with the correction's record in its primary header
         (``INSTCORR``, ``CORRMETH``, ``CORRHWP``; ``TELMODEL``, ``TELBAND``, ``TELROT`` with a
