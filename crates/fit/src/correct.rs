@@ -586,19 +586,18 @@ pub fn correct_map<M: FieldModel + ?Sized>(
 /// scatter and the photon-noise errors each propagated.
 pub fn correct_map_with(
     map: &skyfield::StokesMap,
-    correct: impl Fn(&Measurement) -> Result<Corrected, Error>,
+    correct: impl Fn(&Measurement) -> Result<Corrected, Error> + Sync,
 ) -> Result<CorrectedMap, MapError> {
+    use rayon::prelude::*;
     let g = &map.geometry;
-    let mut m = map.clone();
-    let (mut n, mut n_extra) = (0usize, 0usize);
-    let mut p0s = Vec::new();
-    let mut pis = Vec::new();
-    for j in 0..g.ny {
-        for i in 0..g.nx {
-            let k = j * g.nx + i;
-            if !map.valid[k] {
-                continue;
-            }
+    // The bins are independent: corrected in parallel (a telescope chain undone exposure by
+    // exposure is a Newton solve per model and bin), then assembled in bin order, the first
+    // failing bin in that order being the error, as a serial loop gives.
+    let valid: Vec<usize> = (0..g.len()).filter(|&k| map.valid[k]).collect();
+    let results: Vec<Result<(Corrected, Corrected), MapError>> = valid
+        .par_iter()
+        .map(|&k| {
+            let (i, j) = (k % g.nx, k / g.nx);
             let (x, y) = g.centre_arcmin(i, j);
             let meas = Measurement {
                 x,
@@ -618,20 +617,28 @@ pub fn correct_map_with(
                 ..meas
             })
             .map_err(bin_err)?;
-            m.q[k] = r.q0;
-            m.u[k] = r.u0;
-            m.sigma_q[k] = r.var_q0.sqrt();
-            m.sigma_u[k] = r.var_u0.sqrt();
-            m.cov_qu[k] = r.cov_qu0;
-            m.sigma_q_phot[k] = rp.var_q0.sqrt();
-            m.sigma_u_phot[k] = rp.var_u0.sqrt();
-            m.p[k] = r.p0;
-            m.chi[k] = r.chi0;
-            n += 1;
-            n_extra += r.extrapolated as usize;
-            p0s.push(r.p0);
-            pis.push(r.inst.q.hypot(r.inst.u));
-        }
+            Ok((r, rp))
+        })
+        .collect();
+    let mut m = map.clone();
+    let (mut n, mut n_extra) = (0usize, 0usize);
+    let mut p0s = Vec::with_capacity(valid.len());
+    let mut pis = Vec::with_capacity(valid.len());
+    for (&k, res) in valid.iter().zip(results) {
+        let (r, rp) = res?;
+        m.q[k] = r.q0;
+        m.u[k] = r.u0;
+        m.sigma_q[k] = r.var_q0.sqrt();
+        m.sigma_u[k] = r.var_u0.sqrt();
+        m.cov_qu[k] = r.cov_qu0;
+        m.sigma_q_phot[k] = rp.var_q0.sqrt();
+        m.sigma_u_phot[k] = rp.var_u0.sqrt();
+        m.p[k] = r.p0;
+        m.chi[k] = r.chi0;
+        n += 1;
+        n_extra += r.extrapolated as usize;
+        p0s.push(r.p0);
+        pis.push(r.inst.q.hypot(r.inst.u));
     }
     if n == 0 {
         return Err(MapError::NoValidBins);
