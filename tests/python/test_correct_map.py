@@ -114,3 +114,72 @@ def test_telescope_chain_on_a_map_is_the_cli_bit_for_bit(run, v_map, cal_v, cal_
     field = instpol.Calibration.load(cal_v).correct_map(v_map)
     ok = field.valid
     assert np.median(np.hypot(m.q[ok] - field.q[ok], m.u[ok] - field.u[ok])) > 0.01
+
+
+NASMYTH = """
+[telescope]
+focus = "nasmyth"
+site_latitude_deg = -29.26
+parang_start_keyword = "HIERARCH ESO TEL PARANG START"
+parang_end_keyword = "HIERARCH ESO TEL PARANG END"
+rotator_keyword = "HIERARCH ESO ADA POSANG"
+
+[[telescope.mirrors]]
+name = "M3"
+metal = "aluminium"
+aoi_deg = 45.0
+"""
+
+
+def test_reduce_records_each_exposure_and_correct_map_undoes_it(run, tmp_path):
+    """Frames of a polarized sky seen through an M3 (the tiny FORS1 put on a Nasmyth focus,
+    simulated with each exposure's parallactic angles in its header): the package's reduce
+    records every exposure's HWP angle and track as `instpol reduce` does (and as the frames'
+    headers say, read with astropy), and correct_map undoes the telescope exposure by
+    exposure, bit for bit the CLI's file."""
+    from conftest import tiny_fors1
+    from test_correct import v_standards
+
+    std = v_standards(tmp_path, "the exposure-by-exposure map correction was not compared")
+    tel = tmp_path / "tel_V.fits"
+    run("fit-standards", std, "--instrument", "efosc2", "--model", "wiersema", "--output", tel)
+    text = tiny_fors1(tmp_path).read_text()
+    head, _, rest = text.partition("[telescope]")
+    assert rest, "instruments/fors1.toml no longer has a [telescope] section"
+    # The FORS1 [telescope] section (the Cassegrain focus) is the file's last: replaced whole.
+    assert "\n[" not in rest.replace("\n[[telescope", ""), "a section follows [telescope] in fors1.toml"
+    inst = tmp_path / "nasmyth.toml"
+    inst.write_text(head + NASMYTH)
+    scene = tmp_path / "scene.toml"
+    scene.write_text(
+        f'instrument = "{inst}"\nfilter = "V"\nseed = 5\nexposure_s = 20\nhwp_angles_deg = [0, 22.5, 45, 67.5]\n'
+        "[output]\nbitpix = -32\n[sky]\nbrightness_e = 20000.0\np = 0.02\nchi_deg = 30\n"
+        "[telescope]\nfactor = 0.86\noffset_deg = 40\ndec_deg = -40\nha_start_deg = 30\noverhead_s = 5\n"
+    )
+    run("simulate", scene, "--out", tmp_path / "frames")
+    frames = sorted((tmp_path / "frames").glob("*.fits"))
+    py_map, cli_map = tmp_path / "py_map.fits", tmp_path / "cli_map.fits"
+    instpol.reduce(frames, instrument=inst, bin=16, output=py_map)
+    run("reduce", *frames, "--instrument", inst, "--bin", "16", "--out", cli_map)
+    with fits.open(py_map) as a, fits.open(cli_map) as b:
+        ha, hb = a[0].header, b[0].header
+        assert ha["NEXPTRK"] == hb["NEXPTRK"] == len(frames) == 4
+        keys = ["PARANG1", "PARANG2"] + [f"{k}{i}" for i in range(1, 5) for k in ("XHWP", "XPAS", "XPAE")]
+        for k in keys:
+            assert ha[k] == hb[k], k
+        starts = sorted(fits.getheader(f)["HIERARCH ESO TEL PARANG START"] for f in frames)
+        assert sorted(ha[f"XPAS{i}"] for i in range(1, 5)) == pytest.approx(starts, abs=1e-9)
+        assert ha["XPAS4"] != ha["XPAS1"]
+    c = instpol.Calibration.load(tel)
+    py_corr, cli_corr = tmp_path / "py_corr.fits", tmp_path / "cli_corr.fits"
+    run("correct", "--cal", tel, "--in", cli_map, "--out", cli_corr)
+    m = c.correct_map(py_map, py_corr)
+    same_files(cli_corr, py_corr)
+    assert "exposure by exposure, 4" in m.correction["method"]
+    # One track for the set (parang_deg) is another correction, by the exposures' spread.
+    with fits.open(py_map) as h:
+        track = (h[0].header["PARANG1"], h[0].header["PARANG2"])
+    one = c.correct_map(py_map, parang_deg=track)
+    ok = m.valid
+    assert "exposure by exposure" not in one.correction["method"]
+    assert np.max(np.abs(one.q[ok] - m.q[ok])) > 1e-6
