@@ -565,6 +565,9 @@ pub enum MapError {
     Bin { i: usize, j: usize, x: f64, y: f64, source: Error },
     #[error("the Stokes map has no valid bins")]
     NoValidBins,
+    /// The telescope model could not be set up for the map's exposures (before any bin).
+    #[error("the exposures' telescope chain: {0}")]
+    Exposures(Error),
 }
 
 /// Correct every valid bin of a Stokes map at its centre (`eq:instpol` inverted, or

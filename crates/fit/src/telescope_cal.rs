@@ -357,13 +357,9 @@ pub fn correct_map_chain<M: FieldModel + ?Sized>(
     let prepared = if ex.is_empty() {
         None
     } else {
-        let p = tel.prepare_exposures(band, track, &ex).map_err(|e| crate::correct::MapError::Bin {
-            i: 0,
-            j: 0,
-            x: f64::NAN,
-            y: f64::NAN,
-            source: crate::correct::Error::Telescope(e.to_string()),
-        })?;
+        let p = tel
+            .prepare_exposures(band, track, &ex)
+            .map_err(|e| crate::correct::MapError::Exposures(crate::correct::Error::Telescope(e.to_string())))?;
         Some(p)
     };
     let seen = prepared.as_ref().map_or(Seen::Track(track), Seen::Prepared);
@@ -521,6 +517,16 @@ pub fn header_angles(path: &Path, tel: &instrument::Telescope) -> Result<HeaderA
 /// than 0.5 deg are refused: they are not one measurement of the model). Counting the gaps
 /// between exposures as exposing is second order in the set's turn.
 pub fn frames_track(frames: &[std::path::PathBuf], tel: &instrument::Telescope) -> Result<Track> {
+    let angles: Vec<HeaderAngles> = frames.iter().map(|p| header_angles(p, tel)).collect::<Result<_>>()?;
+    track_of_headers(frames, &angles, tel)
+}
+
+/// [`frames_track`] from the frames' header angles already read (`angles[i]` of `frames[i]`).
+fn track_of_headers(
+    frames: &[std::path::PathBuf],
+    angles: &[HeaderAngles],
+    tel: &instrument::Telescope,
+) -> Result<Track> {
     if frames.is_empty() {
         return Err(Error::Input("no frames for the parallactic angle".into()));
     }
@@ -528,8 +534,7 @@ pub fn frames_track(frames: &[std::path::PathBuf], tel: &instrument::Telescope) 
     // The sense of the motion: the frames' own start-to-end turns, else the order's.
     let (mut own, mut by_order, mut last_start) = (0.0, 0.0, None::<f64>);
     let mut rot = None::<(f64, &Path)>;
-    for p in frames {
-        let h = header_angles(p, tel)?;
+    for (p, h) in frames.iter().zip(angles) {
         let (s, e) = tel.parallactic_rad(h.parang_start_deg, h.parang_end_deg);
         let f0 = *first.get_or_insert(s);
         let unwrap = |a: f64| f0 + 2.0 * mueller::wrap_half_pi(0.5 * (a - f0));
@@ -581,19 +586,20 @@ pub fn record_telescope_angles(
     inst: &instrument::Instrument,
 ) {
     let Some(t) = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty()) else { return };
+    // Each header read once: for the set's track and for each exposure's own.
     let files: Vec<std::path::PathBuf> = exposures.iter().map(|e| e.0.clone()).collect();
-    let Ok(track) = frames_track(&files, t) else { return };
+    let Ok(angles) = files.iter().map(|p| header_angles(p, t)).collect::<Result<Vec<_>>>() else { return };
+    let Ok(track) = track_of_headers(&files, &angles, t) else { return };
     map.parallactic_rad = Some((track.start, track.end));
     map.rotator_rad = (!t.rotator_keyword.is_empty()).then_some(track.rotator);
-    let each: Option<Vec<skyfield::ExposureTrack>> = exposures
+    map.exposure_tracks = exposures
         .iter()
-        .map(|(p, hwp)| {
-            let h = header_angles(p, t).ok()?;
+        .zip(&angles)
+        .map(|((_, hwp), h)| {
             let (s, e) = t.parallactic_rad(h.parang_start_deg, h.parang_end_deg);
-            Some(skyfield::ExposureTrack { hwp_deg: *hwp, start: s, end: e.unwrap_or(s) })
+            skyfield::ExposureTrack { hwp_deg: *hwp, start: s, end: e.unwrap_or(s) }
         })
         .collect();
-    map.exposure_tracks = each.unwrap_or_default();
 }
 
 /// Validating a telescope calibration (with or without a field model) on a standard star:

@@ -735,20 +735,7 @@ impl _Calibration {
             Some(_) => return Err(input_err("parang_deg: expected START or (START, END) in degrees")),
         };
         let rotator = rotator_deg.map(|r| angle("rotator_deg", r)).transpose()?;
-        if let Some(out) = &output {
-            // No command writes over its own input (the CLI's rule).
-            let same = |a: &PathBuf| match (std::fs::canonicalize(a), std::fs::canonicalize(out)) {
-                (Ok(x), Ok(y)) => x == y,
-                _ => false,
-            };
-            if let Some(f) = [&input, &self.path].into_iter().find(|f| same(f)) {
-                return Err(input_err(format!(
-                    "output {} is the input {} (the same file): refusing to write over an input; choose another output name",
-                    out.display(),
-                    f.display()
-                )));
-            }
-        }
+        refuse_overwrite(output.as_deref(), [&input, &self.path])?;
         let map = py
             .detach(|| skyfield::StokesMap::read_uncorrected(&input))
             .map_err(|e| input_err(format!("Stokes map {}: {e}", input.display())))?;
@@ -1064,6 +1051,27 @@ fn read_options(
     Ok(skyfield::calib::ReadOptions { bias, flat, hwp_angles_deg: hwp_angles })
 }
 
+/// No function writes over one of its own inputs (the CLI's rule), whatever name `output`
+/// gives it.
+fn refuse_overwrite<'a>(
+    output: Option<&std::path::Path>,
+    inputs: impl IntoIterator<Item = &'a PathBuf>,
+) -> PyResult<()> {
+    let Some(out) = output else { return Ok(()) };
+    let same = |a: &PathBuf| match (std::fs::canonicalize(a), std::fs::canonicalize(out)) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => false,
+    };
+    match inputs.into_iter().find(|f| same(f)) {
+        Some(f) => Err(input_err(format!(
+            "output {} is the input {} (the same file): refusing to write over an input; choose another output name",
+            out.display(),
+            f.display()
+        ))),
+        None => Ok(()),
+    }
+}
+
 /// `method=` of the corrections ("exact" or "first-order"), with `extrapolation_error=` checked.
 fn parse_method(method: &str, extrapolation_error: f64) -> PyResult<Method> {
     let m = match method {
@@ -1103,20 +1111,7 @@ fn _reduce<'py>(
         require_complete_set: !allow_incomplete,
     };
     let read = read_options(bias, flat, hwp_angles)?;
-    if let Some(out) = &output {
-        // No command writes over its own input (the CLI's rule), whatever name it is given by.
-        let same = |a: &PathBuf| match (std::fs::canonicalize(a), std::fs::canonicalize(out)) {
-            (Ok(x), Ok(y)) => x == y,
-            _ => false,
-        };
-        if let Some(f) = frames.iter().chain(&read.bias).chain(&read.flat).find(|f| same(f)) {
-            return Err(input_err(format!(
-                "output {} is the input {} (the same file): refusing to write over an input; choose another output name",
-                out.display(),
-                f.display()
-            )));
-        }
-    }
+    refuse_overwrite(output.as_deref(), frames.iter().chain(&read.bias).chain(&read.flat))?;
     let r = py
         .detach(|| {
             let mut r = skyfield::reduce::reduce_files_with(&frames, &inst, &cfg, &read, &|| {})?;

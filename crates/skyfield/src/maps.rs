@@ -672,11 +672,12 @@ impl StokesMap {
         let count = crate::io::read_key_str(&mut f, &ph, "NEXPTRK").ok();
         // The exposures' angles, optional; present but not a finite angle is an error (a
         // telescope correction would use it).
-        let mut angle = |k: &str| -> Result<Option<f64>, Error> {
+        // Degrees as written (the HWP angles are kept in degrees; the others become radians).
+        let mut degrees = |k: &str| -> Result<Option<f64>, Error> {
             match crate::io::read_key_str(&mut f, &ph, k) {
                 Err(_) => Ok(None),
                 Ok(s) => match s.trim().parse::<f64>() {
-                    Ok(v) if v.is_finite() && v.abs() <= 720.0 => Ok(Some(v.to_radians())),
+                    Ok(v) if v.is_finite() && v.abs() <= 720.0 => Ok(Some(v)),
                     _ => Err(Error::BadKeyword {
                         path: path.into(),
                         keyword: k.into(),
@@ -686,6 +687,7 @@ impl StokesMap {
                 },
             }
         };
+        let mut angle = |k: &str| degrees(k).map(|v| v.map(f64::to_radians));
         let parallactic_rad = match (angle("PARANG1")?, angle("PARANG2")?) {
             (Some(a), b) => Some((a, b.unwrap_or(a))),
             (None, None) => None,
@@ -710,13 +712,12 @@ impl StokesMap {
             };
             for k in 1..=n {
                 let mut get = |name: String| -> Result<f64, Error> {
-                    angle(&name)?.ok_or(Error::MissingKeyword { path: path.into(), keyword: name })
+                    degrees(&name)?.ok_or(Error::MissingKeyword { path: path.into(), keyword: name })
                 };
-                let hwp_deg = get(format!("XHWP{k}"))?.to_degrees();
                 exposure_tracks.push(ExposureTrack {
-                    hwp_deg,
-                    start: get(format!("XPAS{k}"))?,
-                    end: get(format!("XPAE{k}"))?,
+                    hwp_deg: get(format!("XHWP{k}"))?,
+                    start: get(format!("XPAS{k}"))?.to_radians(),
+                    end: get(format!("XPAE{k}"))?.to_radians(),
                 });
             }
         }

@@ -828,17 +828,8 @@ fn oe_offset_of_image(
             dxs.len()
         )));
     }
-    let median = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        let k = v.len();
-        if k % 2 == 1 {
-            v[k / 2]
-        } else {
-            0.5 * (v[k / 2 - 1] + v[k / 2])
-        }
-    };
     let npairs = dxs.len();
-    Ok((median(&mut dxs), median(&mut dys), npairs))
+    Ok((crate::bin::median_in_place(&mut dxs), crate::bin::median_in_place(&mut dys), npairs))
 }
 
 /// Sigma-clipped mean, the variance of that mean, and the number kept. The clipping starts its
