@@ -138,14 +138,7 @@ fn efosc2_frames_without_a_master_bias_are_refused() {
     use sim::raw::{write_raw_exposure, RawChip, RawExposure};
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let text = include_str!("../../../instruments/efosc2.toml")
-        .replace("nx = 1024", "nx = 64")
-        .replace("ny = 1024", "ny = 64")
-        .replace("size_px = [1024, 1024]", "size_px = [64, 64]")
-        .replace("throw_arcsec = 20.0", "throw_arcsec = 1.92")
-        .replace("strip_count = 6 ", "strip_count = 3 ")
-        .replace("first_strip_y_px = 12 ", "first_strip_y_px = 2 ")
-        .replace("strip_margin_px = 1 ", "strip_margin_px = 0 ");
+    let text = common::raw::efosc2_tiny_text();
     let ip = d.join("efosc2_tiny.toml");
     std::fs::write(&ip, &text).unwrap();
     let inst = instrument::Instrument::from_toml_str(&text, &ip).unwrap();

@@ -51,3 +51,123 @@ fn unknown_key_exits_2_naming_it() {
     assert!(err.starts_with("error:") && err.contains("photonnoise"), "{err}");
     assert!(!out.exists());
 }
+
+/// A chip instrument's scene (`[format]` with chips): a uniform sky of P = 2%, chi = 30 deg
+/// behind the strip mask, with photon and read noise.
+fn chip_scene(dir: &Path, inst_text: &str, filter: &str) -> (PathBuf, PathBuf) {
+    let inst = dir.join("inst.toml");
+    std::fs::write(&inst, inst_text).unwrap();
+    let scene = dir.join("s.toml");
+    std::fs::write(
+        &scene,
+        format!(
+            "instrument = \"{}\"\nfilter = \"{filter}\"\nseed = 11\n[sky]\nbrightness_e = 40000\np = 0.02\nchi_deg = 30\n[effects]\nphoton_noise = true\nread_noise = true\n",
+            inst.display()
+        ),
+    )
+    .unwrap();
+    (inst, scene)
+}
+
+/// Every valid bin of the map within 5 sigma of the scene's (q, u) = p (cos 2chi, sin 2chi)
+/// (eq:poldeg, eq:polang inverted), their mean within 4 standard errors.
+fn assert_scene_sky(map: &Path) {
+    let m = skyfield::StokesMap::read_fits(map).unwrap();
+    let (q0, u0) = (0.02 * 60f64.to_radians().cos(), 0.02 * 60f64.to_radians().sin());
+    let v: Vec<usize> = (0..m.q.len()).filter(|&k| m.valid[k]).collect();
+    assert!(v.len() >= 10, "{} valid bins", v.len());
+    let (mut sq, mut su, mut se) = (0.0, 0.0, 0.0);
+    for &k in &v {
+        assert!((m.q[k] - q0).abs() < 5.0 * m.sigma_q[k], "bin {k}: Q {} +- {} vs {q0}", m.q[k], m.sigma_q[k]);
+        assert!((m.u[k] - u0).abs() < 5.0 * m.sigma_u[k], "bin {k}: U {} +- {} vs {u0}", m.u[k], m.sigma_u[k]);
+        sq += m.q[k];
+        su += m.u[k];
+        se += m.sigma_q[k];
+    }
+    let n = v.len() as f64;
+    let se = se / n / n.sqrt();
+    assert!((sq / n - q0).abs() < 4.0 * se && (su / n - u0).abs() < 4.0 * se, "mean Q {} U {} +- {se}", sq / n, su / n);
+}
+
+fn s(p: &Path) -> String {
+    p.display().to_string()
+}
+
+/// FORS2 (shrunk): `simulate` writes each exposure as the two raw chip files the archive
+/// delivers (EXTNAME, 5 prescan and 5 overscan rows on a bias level, ESO keywords), and
+/// `reduce` takes them as written (overscan subtracted) to the scene's sky.
+#[test]
+fn fors2_scene_is_written_as_raw_chip_files_that_reduce_to_its_sky() {
+    let dir = tempfile::tempdir().unwrap();
+    let (inst, scene) = chip_scene(dir.path(), &common::raw::fors2_tiny_text(), "v_HIGH");
+    let out = dir.path().join("f");
+    let o = instpol().arg("simulate").arg(&scene).arg("--out").arg(&out).arg("--json").output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let files: Vec<String> = j["outputs"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().into()).collect();
+    assert_eq!(files.len(), 8, "{files:?}");
+    assert!(j.get("bias_outputs").is_none(), "FORS2's overscan removes its bias: no bias frames");
+    // Each chip file as the archive's, read here with fitsio: 64 x (32 + 5 + 5) px, its chip
+    // named in EXTNAME, the scan rows at the default 200 ADU pedestal (read noise 3 e-).
+    for (i, f) in files.iter().enumerate() {
+        let chip = if i % 2 == 0 { "CHIP1" } else { "CHIP2" };
+        assert!(f.ends_with(&format!("_{chip}.fits")), "{f}");
+        let mut fits = fitsio::FitsFile::open(f).unwrap();
+        let h = fits.primary_hdu().unwrap();
+        assert_eq!(h.read_key::<String>(&mut fits, "EXTNAME").unwrap(), chip);
+        assert_eq!(h.read_key::<i64>(&mut fits, "HIERARCH ESO DET OUT1 PRSCY").unwrap(), 5);
+        assert_eq!(h.read_key::<i64>(&mut fits, "HIERARCH ESO DET WIN1 BINX").unwrap(), 2);
+        assert_eq!(h.read_key::<i64>(&mut fits, "HIERARCH ESO DET EXP NO").unwrap(), 1 + i as i64 / 2);
+        let px: Vec<f64> = h.read_image(&mut fits).unwrap();
+        assert_eq!(px.len(), 64 * 42);
+        let scan: Vec<f64> = px[..64 * 5].iter().chain(&px[64 * 37..]).copied().collect();
+        let mean = scan.iter().sum::<f64>() / scan.len() as f64;
+        assert!((mean - 200.0).abs() < 0.5, "{f}: scan rows at {mean} ADU");
+    }
+    let mut a = vec!["reduce".to_string()];
+    a.extend(files);
+    a.extend(["--instrument", &s(&inst), "--bin", "8", "--out", &s(&dir.path().join("map.fits"))].map(String::from));
+    let (code, _, err) = common::run(&a);
+    assert_eq!(code, 0, "{err}");
+    assert_scene_sky(&dir.path().join("map.fits"));
+}
+
+/// EFOSC2 (shrunk): its over-scan cannot be used, so `simulate` also writes bias frames (in
+/// `bias/`, apart from the science frames); the frames are refused without a master bias and
+/// reduce to the scene's sky with the one `master-bias` makes of them.
+#[test]
+fn efosc2_scene_comes_with_bias_frames_for_its_master_bias() {
+    let dir = tempfile::tempdir().unwrap();
+    let (inst, scene) = chip_scene(dir.path(), &common::raw::efosc2_tiny_text(), "V");
+    let out = dir.path().join("e");
+    let o = instpol().arg("simulate").arg(&scene).arg("--out").arg(&out).arg("--json").output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let bias: Vec<String> = j["bias_outputs"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().into()).collect();
+    assert_eq!(bias.len(), 5);
+    assert!(bias.iter().all(|b| Path::new(b).parent().unwrap() == out.join("bias")), "{bias:?}");
+    let truth: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("truth.json")).unwrap()).unwrap();
+    assert_eq!(truth["frames"][2]["chip_files"][0], "frame_02_hwp045.0_CCD40.fits");
+    assert_eq!(truth["bias_frames"].as_array().unwrap().len(), 5);
+    let ip = s(&inst);
+    let reduce = |extra: &[&str]| {
+        let mut a = vec!["reduce".to_string()];
+        a.extend(common::listing(&out).iter().filter(|f| f.ends_with(".fits")).map(|f| s(&out.join(f))));
+        a.extend(["--instrument", &ip, "--bin", "8", "--out", &s(&dir.path().join("map.fits"))].map(String::from));
+        a.extend(extra.iter().map(|x| x.to_string()));
+        common::run(&a)
+    };
+    let (code, _, err) = reduce(&[]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("still carries its bias level") && err.contains("--bias"), "{err}");
+    let mb = s(&dir.path().join("mb.fits"));
+    let mut a = vec!["master-bias".to_string()];
+    a.extend(bias);
+    a.extend(["--instrument", &ip, "--out", &mb].map(String::from));
+    let (code, _, err) = common::run(&a);
+    assert_eq!(code, 0, "{err}");
+    let (code, _, err) = reduce(&["--bias", &mb]);
+    assert_eq!(code, 0, "{err}");
+    assert_scene_sky(&dir.path().join("map.fits"));
+}

@@ -164,6 +164,10 @@ pub struct Simulated {
     pub frames: Vec<PathBuf>,
     #[serde(rename = "truth_output")]
     pub truth: PathBuf,
+    /// Bias frames' chip files (chip instruments whose bias no overscan removes), for
+    /// `instpol master-bias`; in the output's `bias/` folder, apart from the science frames.
+    #[serde(rename = "bias_outputs", skip_serializing_if = "Vec::is_empty")]
+    pub bias: Vec<PathBuf>,
 }
 
 /// A random stream for (seed, purpose, frame, row): independent of thread scheduling.
@@ -181,6 +185,8 @@ const STREAM_FLAT: u64 = 1;
 const STREAM_PIXELS: u64 = 2;
 const STREAM_COSMIC: u64 = 3;
 const STREAM_TRANSPARENCY: u64 = 4;
+/// The read noise of raw files' pre/overscan regions and of bias frames.
+const STREAM_READOUT: u64 = 5;
 
 fn file_err(path: &Path, m: impl std::fmt::Display) -> Error {
     Error::File { path: path.into(), message: m.to_string() }
@@ -881,9 +887,121 @@ impl Plan {
         .collect()
     }
 
-    /// File name of frame `k`.
+    /// File name of frame `k` (for a chip instrument, the stem of its chip files).
     pub fn frame_name(&self, k: usize) -> String {
         format!("{}_{:02}_hwp{:05.1}.fits", self.scene.output.prefix, k, self.scene.hwp_angles_deg[k])
+    }
+
+    /// True when frames are written as raw chip files (the instrument's `[format]` has chips).
+    pub fn writes_chips(&self) -> bool {
+        !self.inst.format.chips.is_empty()
+    }
+
+    /// The files of frame `k` (relative to the output folder): one, or one per chip named as
+    /// `sim::raw` names them (`STEM_<chip>.fits`).
+    pub fn frame_files(&self, k: usize) -> Vec<String> {
+        self.chip_names(self.frame_name(k).trim_end_matches(".fits"))
+    }
+
+    fn chip_names(&self, stem: &str) -> Vec<String> {
+        if !self.writes_chips() {
+            return vec![format!("{stem}.fits")];
+        }
+        self.inst.format.chips.iter().map(|c| format!("{stem}_{}.fits", c.name)).collect()
+    }
+
+    /// Number of bias frames written: a chip instrument with a chip whose bias level no
+    /// overscan removes (subtraction off, or no pre/overscan region) cannot be reduced without
+    /// a master bias, so its simulation writes the frames to make one; none otherwise.
+    pub fn n_bias_frames(&self) -> usize {
+        let needs = self.writes_chips()
+            && self.inst.format.chips.iter().any(|c| {
+                !c.subtract_overscan
+                    || (c.prescan_x.is_none()
+                        && c.overscan_x.is_none()
+                        && c.prescan_y.is_none()
+                        && c.overscan_y.is_none())
+            });
+        if needs {
+            self.scene.output.bias_frames.unwrap_or(crate::scene::DEFAULT_BIAS_FRAMES)
+        } else {
+            0
+        }
+    }
+
+    /// The chip files of bias frame `i` (relative to the output folder, in `bias/`).
+    pub fn bias_files(&self, i: usize) -> Vec<String> {
+        self.chip_names(&format!("bias/{}", self.bias_stem(i)))
+    }
+
+    fn bias_stem(&self, i: usize) -> String {
+        format!("{}_bias_{:02}", self.scene.output.prefix, i)
+    }
+
+    /// Every file [`Plan::write`] writes (relative to the output folder), `truth.json` last.
+    pub fn output_files(&self) -> Vec<String> {
+        (0..self.n_frames())
+            .flat_map(|k| self.frame_files(k))
+            .chain((0..self.n_bias_frames()).flat_map(|i| self.bias_files(i)))
+            .chain(["truth.json".to_string()])
+            .collect()
+    }
+
+    /// Each chip's read-out in the raw files: the scene's (or format's) bias level, the gain
+    /// and read noise the frames were rendered with, the scene's keyword-declared scan sizes.
+    fn readouts(&self) -> Vec<crate::raw::RawChip> {
+        let out = &self.scene.output;
+        let bias = out.raw_bias_adu.or(self.inst.format.raw_bias_adu).unwrap_or(crate::scene::DEFAULT_RAW_BIAS_ADU);
+        let gain = self.steps.iter().find_map(|s| if let DetStep::Gain(g) = s { Some(*g) } else { None });
+        let rn = self.steps.iter().find_map(|s| if let DetStep::ReadNoise(r) = s { Some(*r) } else { None });
+        let rc = crate::raw::RawChip {
+            bias_adu: bias,
+            gain_e_per_adu: gain.unwrap_or(self.inst.detector.gain_e_per_adu),
+            read_noise_e: rn.unwrap_or(0.0),
+            scan: out.raw_scan_px.unwrap_or(crate::scene::DEFAULT_RAW_SCAN_PX),
+        };
+        vec![rc; self.inst.format.chips.len()]
+    }
+
+    /// Write frame `k` (or, `bias`, bias frame `k`) as raw chip files: the rendered ADU (a
+    /// bias frame: none) placed in each chip on its bias level, pre/overscan regions of bias
+    /// and read noise (a bias frame: read noise everywhere).
+    fn write_chips(&self, out: &Path, k: usize, bias: bool, img: &[f64]) -> Result<Vec<PathBuf>, Error> {
+        let chips = self.readouts();
+        let readout = crate::raw::Readout {
+            chips: &chips,
+            exposure_no: if bias { 1001 + k as i64 } else { 1 + k as i64 },
+            binning: None,
+            bitpix: self.bitpix,
+        };
+        let keys = if bias { self.bias_keys() } else { self.keys(k) };
+        let mut rng = stream(self.scene.seed, STREAM_READOUT, k as u64, bias as u64);
+        let (dir, stem) = if bias {
+            (out.join("bias"), self.bias_stem(k))
+        } else {
+            (out.to_path_buf(), self.frame_name(k).trim_end_matches(".fits").to_string())
+        };
+        crate::raw::write_chip_files(&self.inst, &readout, &keys, bias, &mut rng, &dir, &stem, &mut |_, p, _| {
+            // The rendered frame carries its own read noise and photon noise.
+            if bias {
+                0.0
+            } else {
+                img[p]
+            }
+        })
+    }
+
+    /// The header keywords of a bias frame: no HWP angle, no exposure time.
+    fn bias_keys(&self) -> Vec<(String, KeyValue, String)> {
+        let pol = &self.inst.polarimetry;
+        let filt = self.inst.filter(&self.scene.filter).map(|f| f.aliases.first().cloned().unwrap_or(f.name.clone()));
+        vec![
+            ("INSTRUME".into(), KeyValue::Str(self.inst.name.clone()), String::new()),
+            ("OBJECT".into(), KeyValue::Str("BIAS".into()), "instpol simulation".into()),
+            (pol.filter_keyword.clone(), KeyValue::Str(filt.unwrap_or(self.scene.filter.clone())), String::new()),
+            (pol.exptime_keyword.clone(), KeyValue::F64(0.0), "exposure time [s]".into()),
+            ("SIMSEED".into(), KeyValue::I64(self.scene.seed as i64), "instpol simulation seed".into()),
+        ]
     }
 }
 
@@ -1099,6 +1217,9 @@ struct Truth<'a> {
     scene: &'a Scene,
     instrument: &'a Instrument,
     frames: Vec<TruthFrame>,
+    /// Bias frames' chip files (chip instruments that need a master bias).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    bias_frames: Vec<String>,
     explain: &'a [String],
     /// Sky normalized Stokes parameters (fractions) as given.
     sky_q: Option<f64>,
@@ -1107,7 +1228,11 @@ struct Truth<'a> {
 
 #[derive(serde::Serialize)]
 struct TruthFrame {
+    /// The frame's file (a chip instrument's: its first chip file).
     file: String,
+    /// A chip instrument's files of this frame, in chip order.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    chip_files: Vec<String>,
     hwp_deg: f64,
     /// The exposure's parallactic-angle track (deg, the convention of `mueller::mirror`),
     /// with a telescope.
@@ -1143,16 +1268,34 @@ impl Plan {
     pub fn write(&self, out: &Path, on_frame: &(dyn Fn() + Sync)) -> Result<Simulated, Error> {
         std::fs::create_dir_all(out).map_err(|e| file_err(out, format!("cannot create output folder: {e}")))?;
         let (nx, ny) = self.size();
-        let frames: Vec<PathBuf> = (0..self.n_frames())
+        let files: Vec<Vec<PathBuf>> = (0..self.n_frames())
             .into_par_iter()
             .map(|k| {
                 let img = self.render(k);
-                let path = out.join(self.frame_name(k));
-                write_frame(&path, nx, ny, &img, self.bitpix, &self.keys(k))?;
+                let written = if self.writes_chips() {
+                    self.write_chips(out, k, false, &img)?
+                } else {
+                    let path = out.join(self.frame_name(k));
+                    write_frame(&path, nx, ny, &img, self.bitpix, &self.keys(k))?;
+                    vec![path]
+                };
                 on_frame();
-                Ok(path)
+                Ok(written)
             })
             .collect::<Result<_, Error>>()?;
+        let nb = self.n_bias_frames();
+        if nb > 0 {
+            let d = out.join("bias");
+            std::fs::create_dir_all(&d).map_err(|e| file_err(&d, format!("cannot create output folder: {e}")))?;
+        }
+        let bias: Vec<PathBuf> = (0..nb)
+            .into_par_iter()
+            .map(|i| self.write_chips(out, i, true, &[]))
+            .collect::<Result<Vec<_>, Error>>()?
+            .into_iter()
+            .flatten()
+            .collect();
+        let rel = |p: &PathBuf| p.strip_prefix(out).unwrap_or(p).to_string_lossy().into_owned();
         let (sky_q, sky_u) = match &self.scene.sky {
             Some(s) => {
                 (Some(s.p * (2.0 * s.chi_deg.to_radians()).cos()), Some(s.p * (2.0 * s.chi_deg.to_radians()).sin()))
@@ -1163,18 +1306,20 @@ impl Plan {
             format: "instpol-sim-truth-1",
             scene: &self.scene,
             instrument: &self.inst,
-            frames: frames
+            frames: files
                 .iter()
                 .zip(&self.scene.hwp_angles_deg)
                 .enumerate()
                 .map(|(k, (p, &a))| TruthFrame {
-                    file: p.file_name().unwrap_or_default().to_string_lossy().into(),
+                    file: rel(&p[0]),
+                    chip_files: if self.writes_chips() { p.iter().map(rel).collect() } else { vec![] },
                     hwp_deg: a,
                     parallactic_start_deg: self.tel.as_ref().map(|t| t.tracks[k].start.to_degrees()),
                     parallactic_end_deg: self.tel.as_ref().map(|t| t.tracks[k].end.to_degrees()),
                     telescope_qu: self.tel.as_ref().map(|t| [t.per_frame[k][1][0], t.per_frame[k][2][0]]),
                 })
                 .collect(),
+            bias_frames: bias.iter().map(rel).collect(),
             explain: &self.explain,
             sky_q,
             sky_u,
@@ -1184,6 +1329,6 @@ impl Plan {
         let mut tmp = skyfield::io::temp_beside(&tpath, ".json").map_err(|e| file_err(&tpath, e))?;
         std::io::Write::write_all(&mut tmp, text.as_bytes()).map_err(|e| file_err(&tpath, e))?;
         tmp.persist(&tpath).map_err(|e| file_err(&tpath, e))?;
-        Ok(Simulated { frames, truth: tpath })
+        Ok(Simulated { frames: files.into_iter().flatten().collect(), truth: tpath, bias })
     }
 }

@@ -18,6 +18,10 @@
 //!
 //! [output]
 //! bitpix = 16                   # 16 (raw-like unsigned, default), -32 or -64
+//! # Instruments whose [format] has chips (FORS2, EFOSC2) get raw chip files, as they read out:
+//! # raw_bias_adu = 220          # bias level (default: the format's raw_bias_adu, else 200)
+//! # raw_scan_px = [0, 0, 5, 5]  # pre/overscan sizes where the format names a keyword
+//! # bias_frames = 5             # bias frames, written when no overscan removes the bias
 //!
 //! [sky]
 //! brightness_e = 20000          # e-/px per exposure at the detector centre
@@ -188,7 +192,28 @@ pub struct Output {
     /// File name prefix.
     #[serde(default = "default_prefix")]
     pub prefix: String,
+    /// Chip instruments (a `[format]` with chips): the raw files' bias level (ADU). Default:
+    /// the format's `raw_bias_adu`, else [`DEFAULT_RAW_BIAS_ADU`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raw_bias_adu: Option<f64>,
+    /// Chip instruments: `[prescan x, overscan x, prescan y, overscan y]` (binned px) written
+    /// where the format reads a size from a keyword. Default [`DEFAULT_RAW_SCAN_PX`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raw_scan_px: Option<[usize; 4]>,
+    /// Chip instruments with a chip whose bias no overscan removes: how many bias frames to
+    /// write for a master bias (default [`DEFAULT_BIAS_FRAMES`]; at least 3 for its clipping).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bias_frames: Option<usize>,
 }
+
+/// Raw files' bias level when neither the scene nor the format gives one: a pedestal that
+/// keeps the read noise of an empty pixel above the 16-bit floor (no instrument's value).
+pub const DEFAULT_RAW_BIAS_ADU: f64 = 200.0;
+/// Pre/overscan sizes of keyword-declared regions: FORS2's standard 2x2 read-out, 5 prescan
+/// and 5 overscan rows, no columns (ESO QC "FORS2 Pipeline: General Information").
+pub const DEFAULT_RAW_SCAN_PX: [usize; 4] = [0, 0, 5, 5];
+/// Bias frames written for a master bias: enough for a per-pixel sigma clip.
+pub const DEFAULT_BIAS_FRAMES: usize = 5;
 
 fn default_prefix() -> String {
     "frame".into()
@@ -196,7 +221,7 @@ fn default_prefix() -> String {
 
 impl Default for Output {
     fn default() -> Self {
-        Self { bitpix: 16, prefix: default_prefix() }
+        Self { bitpix: 16, prefix: default_prefix(), raw_bias_adu: None, raw_scan_px: None, bias_frames: None }
     }
 }
 
@@ -557,6 +582,21 @@ impl Scene {
         }
         if ![16, -32, -64].contains(&self.output.bitpix) {
             return bad("output.bitpix", self.output.bitpix.to_string(), "must be 16, -32 or -64");
+        }
+        if let Some(b) = self.output.raw_bias_adu {
+            if !(b.is_finite() && (0.0..60000.0).contains(&b)) {
+                return bad("output.raw_bias_adu", b.to_string(), "must be a level in [0, 60000) ADU");
+            }
+        }
+        if let Some(s) = self.output.raw_scan_px {
+            if s.iter().any(|&n| n > 1000) {
+                return bad("output.raw_scan_px", format!("{s:?}"), "pre/overscan sizes must be at most 1000 px");
+            }
+        }
+        if let Some(n) = self.output.bias_frames {
+            if !(3..=100).contains(&n) {
+                return bad("output.bias_frames", n.to_string(), "must be 3 to 100 (a per-pixel sigma clip needs 3)");
+            }
         }
         let frac = |key: &str, v: f64| -> Result<(), Error> {
             if !(v.is_finite() && (0.0..1.0).contains(&v)) {

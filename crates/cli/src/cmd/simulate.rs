@@ -53,15 +53,16 @@ pub fn run(a: Args) -> Result<()> {
     let plan = sim::Plan::build_with_field(&scene, field).with_context(|| format!("scene {}", a.scene.display()))?;
     // No frame or truth file may land on the scene or its instrument file.
     crate::util::inputs(crate::util::file_arg(&scene.instrument))?;
-    for k in 0..plan.n_frames() {
-        crate::util::check_output(&a.out.join(plan.frame_name(k)))?;
+    let planned: Vec<PathBuf> = plan.output_files().iter().map(|f| a.out.join(f)).collect();
+    for p in &planned {
+        crate::util::check_output(p)?;
     }
-    crate::util::check_output(&a.out.join("truth.json"))?;
     if a.explain {
         eprintln!("{}", plan.explain());
     }
     let bar =
         if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(plan.n_frames() as u64) };
+    // (Bias frames, when written, take a fraction of a frame's time each: not counted.)
     bar.set_style(
         indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} frames ({elapsed})")
             .expect("template")
@@ -70,8 +71,6 @@ pub fn run(a: Args) -> Result<()> {
     bar.set_message("writing");
     // A failed run (a full disk at frame 3) must not leave the frames it did write: they look
     // like a complete set to the next command. Only files this run created are removed.
-    let planned: Vec<std::path::PathBuf> =
-        (0..plan.n_frames()).map(|k| a.out.join(plan.frame_name(k))).chain([a.out.join("truth.json")]).collect();
     let existed: Vec<bool> = planned.iter().map(|p| p.exists()).collect();
     let out = match plan.write(&a.out, &|| bar.inc(1)) {
         Ok(o) => o,
@@ -89,7 +88,26 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&out)?;
     } else {
-        outln!("wrote {} frames and {} to {}", out.frames.len(), out.truth.display(), a.out.display());
+        outln!("wrote {} frames and {} to {}", plan.n_frames(), out.truth.display(), a.out.display());
+        if plan.writes_chips() {
+            outln!(
+                "{}'s frames are raw chip files ({} files, {} per frame, with pre/overscan and a bias level): reduce them with --instrument {}",
+                plan.inst.name,
+                out.frames.len(),
+                plan.inst.format.chips.len(),
+                scene.instrument
+            );
+        }
+        if !out.bias.is_empty() {
+            let dir = a.out.join("bias");
+            outln!(
+                "its bias level needs a master bias: {} bias frames in {}; make it (outside the frames' folder) with\n  instpol master-bias {}/*.fits --instrument {} --out master_bias.fits\nthen give --bias master_bias.fits to reduce",
+                out.bias.len() / plan.inst.format.chips.len().max(1),
+                dir.display(),
+                dir.display(),
+                scene.instrument,
+            );
+        }
     }
     Ok(())
 }

@@ -34,6 +34,19 @@ pub fn fors2_tiny_text() -> String {
         .replace("\nthrow_terms = [", "\n# throw_terms = [")
 }
 
+/// EFOSC2 shrunk to one 64 x 64 px chip (three strips, a 1.92" = 8 px throw), its 6 + 6
+/// unusable over-scan rows and columns and its declared raw bias level kept.
+pub fn efosc2_tiny_text() -> String {
+    include_str!("../../../../instruments/efosc2.toml")
+        .replace("nx = 1024", "nx = 64")
+        .replace("ny = 1024", "ny = 64")
+        .replace("size_px = [1024, 1024]", "size_px = [64, 64]")
+        .replace("throw_arcsec = 20.0", "throw_arcsec = 1.92")
+        .replace("strip_count = 6 ", "strip_count = 3 ")
+        .replace("first_strip_y_px = 12 ", "first_strip_y_px = 2 ")
+        .replace("strip_margin_px = 1 ", "strip_margin_px = 0 ")
+}
+
 pub fn fors2_tiny() -> Instrument {
     Instrument::from_toml_str(&fors2_tiny_text(), Path::new("fors2_tiny.toml")).unwrap()
 }
