@@ -249,7 +249,10 @@ fn robust_mean_of_counts(v: &[f64]) -> Option<f64> {
     for &x in v {
         lo = lo.min(x);
         hi = hi.max(x);
-        whole &= x.fract() == 0.0 && !(x == 0.0 && x.is_sign_negative());
+        // Whole: the round trip through i64 is exact (`fract` is a libm call per value on
+        // the baseline target, most of this loop's time); NaN, infinities and values beyond
+        // 2^63 fail it, and those make the function answer None below anyway.
+        whole &= (x as i64) as f64 == x && !(x == 0.0 && x.is_sign_negative());
     }
     let n = v.len();
     let big = lo.abs().max(hi.abs());
@@ -419,22 +422,29 @@ pub(crate) struct MasterRows<'a> {
     pub(crate) flat: &'a [f32],
 }
 
-/// A method `$name` whose body `$body` runs compiled for AVX2 where the CPU has it, else as
-/// compiled for the baseline: the compiler vectorizes the same IEEE operations 4-wide (FMA is
-/// not enabled), so both give the same bits. Writes, from one signature, the body as the
-/// `#[inline(always)]` method `$imp`, the `#[target_feature]` wrapper `$avx` and the run-time
-/// check; callable elsewhere in the crate as `crate::calib::avx2_dispatch!`.
+/// A method `$name` whose body `$body` runs compiled for AVX-512 or AVX2 where the CPU has
+/// them, else as compiled for the baseline: the compiler vectorizes the same IEEE operations 8-
+/// or 4-wide (FMA is not enabled), so all give the same bits. Writes, from one signature, the
+/// body as the `#[inline(always)]` method `$imp`, the `#[target_feature]` wrappers `$avx512`
+/// and `$avx` and the run-time check; callable elsewhere in the crate as
+/// `crate::calib::avx2_dispatch!`. (AVX-512 since the CPUs with full 512-bit units halve these
+/// memory-resident loops' time: measured in `bench/run.sh`'s raw FORS2 benchmark.)
 macro_rules! avx2_dispatch {
-    ($(#[$m:meta])* fn $name:ident / $avx:ident => $imp:ident(&$s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
-        avx2_dispatch!(@ [$(#[$m])*] $name $avx $imp $s [&$s] [$($arg: $ty),*] [$($ret)?] $body);
+    ($(#[$m:meta])* fn $name:ident / $avx:ident / $avx512:ident => $imp:ident(&$s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
+        avx2_dispatch!(@ [$(#[$m])*] $name $avx $avx512 $imp $s [&$s] [$($arg: $ty),*] [$($ret)?] $body);
     };
-    ($(#[$m:meta])* fn $name:ident / $avx:ident => $imp:ident(&mut $s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
-        avx2_dispatch!(@ [$(#[$m])*] $name $avx $imp $s [&mut $s] [$($arg: $ty),*] [$($ret)?] $body);
+    ($(#[$m:meta])* fn $name:ident / $avx:ident / $avx512:ident => $imp:ident(&mut $s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
+        avx2_dispatch!(@ [$(#[$m])*] $name $avx $avx512 $imp $s [&mut $s] [$($arg: $ty),*] [$($ret)?] $body);
     };
-    (@ [$($m:tt)*] $name:ident $avx:ident $imp:ident $s:ident [$($recv:tt)*] [$($arg:ident: $ty:ty),*] [$($ret:ty)?] $body:block) => {
+    (@ [$($m:tt)*] $name:ident $avx:ident $avx512:ident $imp:ident $s:ident [$($recv:tt)*] [$($arg:ident: $ty:ty),*] [$($ret:ty)?] $body:block) => {
         $($m)*
         #[inline]
         fn $name($($recv)*, $($arg: $ty),*) $(-> $ret)? {
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512bw") {
+                // SAFETY: AVX-512 F and BW support was checked just above.
+                return unsafe { $s.$avx512($($arg),*) };
+            }
             #[cfg(target_arch = "x86_64")]
             if std::arch::is_x86_feature_detected!("avx2") {
                 // SAFETY: AVX2 support was checked just above.
@@ -447,6 +457,13 @@ macro_rules! avx2_dispatch {
         #[target_feature(enable = "avx2")]
         #[allow(clippy::too_many_arguments)]
         unsafe fn $avx($($recv)*, $($arg: $ty),*) $(-> $ret)? {
+            $s.$imp($($arg),*)
+        }
+
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = "avx512f,avx512bw,avx512dq,avx512vl")]
+        #[allow(clippy::too_many_arguments)]
+        unsafe fn $avx512($($recv)*, $($arg: $ty),*) $(-> $ret)? {
             $s.$imp($($arg),*)
         }
 
@@ -513,7 +530,7 @@ impl ChipRows {
         /// place (both passes stay in L1). 4-wide AVX2 where the CPU has it: the same IEEE
         /// operations (no FMA), so the same bits.
         #[allow(clippy::too_many_arguments)]
-        fn calibrate_rows / calibrate_rows_avx2 => calibrate_rows_impl(
+        fn calibrate_rows / calibrate_rows_avx2 / calibrate_rows_avx512 => calibrate_rows_impl(
             &self,
             ry: usize,
             det0: usize,

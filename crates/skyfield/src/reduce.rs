@@ -1114,7 +1114,7 @@ impl Scratch {
         /// order, each exposure's bad values counted on the group's o and e pixels. The counting
         /// and summing loops in 4-wide AVX2 where the CPU has it (the same IEEE additions in the
         /// same order, so the same bits): they were 9 % of a raw FORS2 reduction's profile.
-        fn read_group / read_group_avx2 => read_group_impl(
+        fn read_group / read_group_avx2 / read_group_avx512 => read_group_impl(
             &mut self,
             inputs: &[AngleInput],
             group: &Group,
@@ -1251,7 +1251,7 @@ impl Kernel {
         ///
         /// Decoding and one pass bound by its two divisions: 4-wide AVX2 vectors where the CPU
         /// has them (same IEEE operations, so the same bits; no FMA is enabled).
-        fn fold_angle / fold_avx2 => fold_impl(&mut self, a: Fold) -> Option<FoldCounts> {
+        fn fold_angle / fold_avx2 / fold_avx512 => fold_impl(&mut self, a: Fold) -> Option<FoldCounts> {
             let len = a.len;
             a.rows.load(a.o.0, a.o.1, &mut self.ro[..len]);
             a.rows.load(a.e.0, a.e.1, &mut self.re[..len]);
