@@ -8,8 +8,12 @@
 //! the read just before it) and their median is reported, with the medians of the times.
 //! With `INSTPOL_BIN` set to an `instpol` binary, `instpol reduce` on the same files
 //! (`--instrument fors2 --bias --flat`, map written to the temporary folder) is timed in the
-//! same loop: wall time, and CPU time of the child process. Prints one JSON line. Frames are
-//! made in `BENCH_RAW_DIR` (kept) or a temporary folder.
+//! same loop: wall time, and CPU time of the child process. The binary also hashes every input
+//! for its provenance record (BLAKE3, `skyfield::provenance`), a second pass over every byte
+//! that the read does not make: its bound is against the read plus that hash, each file hashed
+//! in turn on one core as `provenance::hash_file` does (`read_hash_wall_s`; the ratio
+//! `binary_ratio_read_hash`), with the ratio against the read alone reported beside it. Prints
+//! one JSON line. Frames are made in `BENCH_RAW_DIR` (kept) or a temporary folder.
 //!
 //! `cargo bench -p instpol-sim --bench raw_fors2`
 
@@ -164,7 +168,11 @@ fn main() {
         }
         n
     };
+    // The binary's inputs, as its provenance record hashes them.
+    let hashed: Vec<PathBuf> = paths.iter().cloned().chain([bias.clone(), flat.clone()]).collect();
+    let hash_all = || hashed.iter().map(|p| skyfield::provenance::hash_file(p).unwrap().len()).sum::<usize>();
     read_all(); // page cache warm for every timing
+    hash_all();
     let opts = ReadOptions { bias: Some(bias.clone()), flat: Some(flat.clone()), hwp_angles_deg: None };
     let cfg = ReduceConfig::default();
     let bin = std::env::var("INSTPOL_BIN").ok().filter(|b| !b.is_empty());
@@ -190,6 +198,7 @@ fn main() {
         (w, cpu_times().1 - c0)
     };
     let (mut rw, mut rc, mut dw, mut dc, mut bw, mut bc) = (vec![], vec![], vec![], vec![], vec![], vec![]);
+    let mut hw = vec![];
     let (mut npix, mut bins) = (0, 0);
     for _ in 0..reps {
         let (w, c, n) = timed(read_all);
@@ -203,6 +212,8 @@ fn main() {
         dc.push(c);
         bins = b;
         if let Some(b) = &bin {
+            let (w, _, _) = timed(hash_all);
+            hw.push(w);
             let (w, c) = run_bin(b);
             bw.push(w);
             bc.push(c);
@@ -222,11 +233,14 @@ fn main() {
     );
     if !bw.is_empty() {
         json += &format!(
-            ", \"binary_wall_s\": {:.4}, \"binary_cpu_s\": {:.4}, \"binary_ratio_wall\": {:.3}, \"binary_ratio_cpu\": {:.3}",
+            ", \"binary_wall_s\": {:.4}, \"binary_cpu_s\": {:.4}, \"binary_ratio_wall\": {:.3}, \"binary_ratio_cpu\": {:.3}, \"hash_wall_s\": {:.4}, \"read_hash_wall_s\": {:.4}, \"binary_ratio_read_hash\": {:.3}",
             median(bw.clone()),
             median(bc.clone()),
             ratios(&bw, &rw),
-            ratios(&bc, &rc)
+            ratios(&bc, &rc),
+            median(hw.clone()),
+            median(rw.iter().zip(&hw).map(|(r, h)| r + h).collect()),
+            ratios(&bw, &rw.iter().zip(&hw).map(|(r, h)| r + h).collect::<Vec<_>>()),
         );
     }
     json += &format!(", \"valid_bins\": {bins}, \"threads\": {}}}", rayon::current_num_threads());
