@@ -1040,6 +1040,7 @@ fn read_options(
     bias: Option<PathBuf>,
     flat: Option<PathBuf>,
     hwp_angles: Option<Vec<f64>>,
+    assembled: bool,
 ) -> PyResult<skyfield::calib::ReadOptions> {
     if let Some(v) = &hwp_angles {
         if v.is_empty() || v.iter().any(|x| !x.is_finite()) {
@@ -1048,7 +1049,7 @@ fn read_options(
             ));
         }
     }
-    Ok(skyfield::calib::ReadOptions { bias, flat, hwp_angles_deg: hwp_angles })
+    Ok(skyfield::calib::ReadOptions { bias, flat, hwp_angles_deg: hwp_angles, assembled })
 }
 
 /// No function writes over one of its own inputs (the CLI's rule), whatever name `output`
@@ -1088,7 +1089,7 @@ fn parse_method(method: &str, extrapolation_error: f64) -> PyResult<Method> {
 /// Frames to a binned Stokes map (`instpol reduce`): returns the map's arrays flat, in bin order
 /// (row j, column i at j * nx + i), its header values and the warnings.
 #[pyfunction]
-#[pyo3(signature = (frames, instrument, bin, nsigma, allow_incomplete, bias, flat, hwp_angles, output))]
+#[pyo3(signature = (frames, instrument, bin, nsigma, allow_incomplete, bias, flat, hwp_angles, assembled, output))]
 #[allow(clippy::too_many_arguments)]
 fn _reduce<'py>(
     py: Python<'py>,
@@ -1100,6 +1101,7 @@ fn _reduce<'py>(
     bias: Option<PathBuf>,
     flat: Option<PathBuf>,
     hwp_angles: Option<Vec<f64>>,
+    assembled: bool,
     output: Option<PathBuf>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let inst = instrument::Instrument::load(instrument).map_err(inst_err)?;
@@ -1110,7 +1112,7 @@ fn _reduce<'py>(
         min_pixels: None,
         require_complete_set: !allow_incomplete,
     };
-    let read = read_options(bias, flat, hwp_angles)?;
+    let read = read_options(bias, flat, hwp_angles, assembled)?;
     refuse_overwrite(output.as_deref(), frames.iter().chain(&read.bias).chain(&read.flat))?;
     let r = py
         .detach(|| {
@@ -1178,7 +1180,7 @@ fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>
 /// Every paired star of a frame set (`instpol catalog`): one entry per column, one value per
 /// star, plus the catalog's metadata.
 #[pyfunction]
-#[pyo3(signature = (frames, instrument, fwhm, threshold, aperture, annulus, bias, flat, hwp_angles, kappa, kappa_from_data, pair_tol))]
+#[pyo3(signature = (frames, instrument, fwhm, threshold, aperture, annulus, bias, flat, hwp_angles, assembled, kappa, kappa_from_data, pair_tol))]
 #[allow(clippy::too_many_arguments)]
 fn _catalog<'py>(
     py: Python<'py>,
@@ -1191,6 +1193,7 @@ fn _catalog<'py>(
     bias: Option<PathBuf>,
     flat: Option<PathBuf>,
     hwp_angles: Option<Vec<f64>>,
+    assembled: bool,
     kappa: Option<f64>,
     kappa_from_data: bool,
     pair_tol: f64,
@@ -1221,7 +1224,7 @@ fn _catalog<'py>(
         kappa,
     };
     cfg.check().map_err(sky_err)?;
-    let read = read_options(bias, flat, hwp_angles)?;
+    let read = read_options(bias, flat, hwp_angles, assembled)?;
     let (cat, warnings) = py
         .detach(|| {
             let (cat, warnings) = catalog_files(&frames, &inst, &read, &cfg, Box::new(|| {}))?;

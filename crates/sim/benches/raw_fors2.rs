@@ -173,7 +173,7 @@ fn main() {
     let hash_all = || hashed.iter().map(|p| skyfield::provenance::hash_file(p).unwrap().len()).sum::<usize>();
     read_all(); // page cache warm for every timing
     hash_all();
-    let opts = ReadOptions { bias: Some(bias.clone()), flat: Some(flat.clone()), hwp_angles_deg: None };
+    let opts = ReadOptions { bias: Some(bias.clone()), flat: Some(flat.clone()), ..Default::default() };
     let cfg = ReduceConfig::default();
     let bin = std::env::var("INSTPOL_BIN").ok().filter(|b| !b.is_empty());
     let map_out = tmp.path().join("raw_map.fits");

@@ -249,7 +249,7 @@ fn raw_calibration_and_reduction_are_the_straightforward_computation_to_the_bit(
         for with_masters in [true, false] {
             let label = format!("{per_angle} exposure(s) per angle, masters {with_masters}");
             let opts = if with_masters {
-                ReadOptions { bias: Some(set.bias.clone()), flat: Some(set.flat.clone()), hwp_angles_deg: None }
+                ReadOptions { bias: Some(set.bias.clone()), flat: Some(set.flat.clone()), ..Default::default() }
             } else {
                 ReadOptions::default()
             };

@@ -44,12 +44,30 @@ pub struct ReadOptions {
     pub flat: Option<PathBuf>,
     /// HWP angles (deg), one per exposure in the order given, for headers that have none.
     pub hwp_angles_deg: Option<Vec<f64>>,
+    /// The frames are already trimmed, bias-subtracted and assembled into the detector frame
+    /// (another pipeline's products): read as one image of the detector's size in ADU, not as
+    /// the instrument's raw chip files ([`ReadOptions::instrument`]).
+    pub assembled: bool,
 }
 
 impl ReadOptions {
     /// True when frames are read as they are (the instrument's ADU, no calibration step).
     pub fn is_plain(&self, inst: &Instrument) -> bool {
-        !inst.format.is_raw() && self.bias.is_none() && self.flat.is_none()
+        !self.instrument(inst).format.is_raw() && self.bias.is_none() && self.flat.is_none()
+    }
+
+    /// The instrument as these options read its frames: for [`ReadOptions::assembled`]
+    /// frames, without its chips (one image of the detector's size, no pre/overscan, the
+    /// detector's gain). A declared `raw_bias_adu` stays, so that assembled frames still
+    /// carrying that bias are refused as raw ones are.
+    pub fn instrument<'a>(&self, inst: &'a Instrument) -> std::borrow::Cow<'a, Instrument> {
+        if self.assembled && !inst.format.chips.is_empty() {
+            let mut i = inst.clone();
+            i.format.chips.clear();
+            std::borrow::Cow::Owned(i)
+        } else {
+            std::borrow::Cow::Borrowed(inst)
+        }
     }
 }
 
@@ -155,10 +173,11 @@ fn group_exposures(paths: &[PathBuf], inst: &Instrument, chips: &[Chip]) -> Resu
             let chip = found.ok_or_else(|| {
                 let v = img.key(&key).unwrap_or_default();
                 Error::Invalid(format!(
-                    "{}: header keyword '{key}' = '{v}' names none of instrument {}'s chips ({})",
+                    "{}: header keyword '{key}' = '{v}' names none of instrument {}'s chips ({}){}",
                     p.display(),
                     inst.name,
-                    chips.iter().map(|c| c.match_value.clone().unwrap_or_default()).collect::<Vec<_>>().join(", ")
+                    chips.iter().map(|c| c.match_value.clone().unwrap_or_default()).collect::<Vec<_>>().join(", "),
+                    assembled_hint(img.nx, img.ny, inst)
                 ))
             })?;
             Ok(ChipFile { path: p.clone(), chip, spec: inst.format.hdu.clone() })
@@ -181,6 +200,18 @@ fn group_exposures(paths: &[PathBuf], inst: &Instrument, chips: &[Chip]) -> Resu
         return Err(incomplete(&cur, chips, inst));
     }
     Ok(groups)
+}
+
+/// For an image of the assembled detector's size read as a raw chip file: what to do if it is
+/// another pipeline's trimmed, assembled frame.
+fn assembled_hint(nx: usize, ny: usize, inst: &Instrument) -> String {
+    if (nx, ny) == (inst.detector.nx, inst.detector.ny) {
+        format!(
+            "; it has the size of the instrument's assembled detector ({nx} x {ny} px): if it is already trimmed and assembled (another pipeline's frame), give --assembled"
+        )
+    } else {
+        String::new()
+    }
 }
 
 fn incomplete(cur: &[ChipFile], chips: &[Chip], inst: &Instrument) -> Error {
@@ -844,8 +875,10 @@ fn calibrate_exposure(
                 got_nx: cf.img.nx,
                 got_ny: cf.img.ny,
                 expected: format!(
-                    "chip {} of instrument {} is {cx} x {cy} px plus prescan/overscan {prx} + {ovx} columns and {pry} + {ovy} rows",
-                    c.name, inst.name
+                    "chip {} of instrument {} is {cx} x {cy} px plus prescan/overscan {prx} + {ovx} columns and {pry} + {ovy} rows{}",
+                    c.name,
+                    inst.name,
+                    if fmt.chips.is_empty() { String::new() } else { assembled_hint(cf.img.nx, cf.img.ny, inst) }
                 ),
             });
         }
@@ -1030,6 +1063,7 @@ fn calibrate_all(
 /// chip files of one exposure given next to each other), or read them as they are when
 /// nothing needs calibrating ([`ReadOptions::is_plain`]); `--hwp-angles` applied either way.
 pub fn read_exposures(paths: &[PathBuf], inst: &Instrument, opts: &ReadOptions) -> Result<Vec<Frame>, Error> {
+    let inst = &*opts.instrument(inst);
     if opts.is_plain(inst) {
         let res: Vec<Result<Frame, Error>> = paths
             .par_iter()
@@ -1066,6 +1100,7 @@ pub(crate) fn open_exposures(
     inst: &Instrument,
     opts: &ReadOptions,
 ) -> Result<Vec<OpenFrame>, Error> {
+    let inst = &*opts.instrument(inst);
     if opts.is_plain(inst) {
         let res: Vec<Result<OpenFrame, Error>> =
             paths.par_iter().map(|p| crate::io::open_frame_with(p, inst, opts.hwp_angles_deg.is_some())).collect();
@@ -1191,7 +1226,7 @@ pub fn master_bias(paths: &[PathBuf], inst: &Instrument, nsigma: f64) -> Result<
 /// mean per pixel, normalized to a median of 1 over the detector (gap excluded).
 pub fn master_flat(paths: &[PathBuf], inst: &Instrument, bias: Option<&Path>, nsigma: f64) -> Result<Master, Error> {
     check_nsigma(nsigma)?;
-    let opts = ReadOptions { bias: bias.map(|p| p.to_path_buf()), flat: None, hwp_angles_deg: None };
+    let opts = ReadOptions { bias: bias.map(|p| p.to_path_buf()), ..Default::default() };
     let ex = calibrate_all(paths, inst, &opts, Stage::Flat)?;
     let npx = inst.detector.nx * inst.detector.ny;
     let names: Vec<PathBuf> = ex.iter().map(|e| e.path.clone()).collect();

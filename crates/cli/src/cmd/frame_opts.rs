@@ -17,6 +17,12 @@ pub struct FrameOpts {
     /// an HWP-angle keyword), e.g. 0,22.5,45,67.5.
     #[arg(long, value_name = "DEG,DEG,...", allow_hyphen_values = true)]
     pub hwp_angles: Option<String>,
+    /// The frames are already trimmed and assembled into the detector frame (another
+    /// pipeline's products, bias-subtracted), for an instrument whose raw frames are chip
+    /// files (FORS2, EFOSC2): each is read as one image of the detector's size in ADU, with no
+    /// overscan; --bias and --flat still apply when given.
+    #[arg(long)]
+    pub assembled: bool,
 }
 
 impl FrameOpts {
@@ -35,7 +41,12 @@ impl FrameOpts {
                 }
             }
         };
-        Ok(skyfield::calib::ReadOptions { bias: self.bias.clone(), flat: self.flat.clone(), hwp_angles_deg })
+        Ok(skyfield::calib::ReadOptions {
+            bias: self.bias.clone(),
+            flat: self.flat.clone(),
+            hwp_angles_deg,
+            assembled: self.assembled,
+        })
     }
 }
 

@@ -450,6 +450,7 @@ def reduce(
     bias: Optional[PathLike] = None,
     flat: Optional[PathLike] = None,
     hwp_angles: Optional[Sequence[float]] = None,
+    assembled: bool = False,
     output: Optional[PathLike] = None,
 ) -> StokesMap:
     """Reduce dual-beam frames (one filter, N HWP angles) to a binned Stokes map, as
@@ -457,13 +458,16 @@ def reduce(
     extraordinary images of every mask strip, then a sigma-clipped mean per ``bin`` x ``bin``
     px bin. ``instrument``: a built-in name or an instrument TOML file; ``bias``, ``flat``:
     master frames; ``hwp_angles``: degrees per frame for headers without the keyword;
-    ``output``: also write the FITS map there (atomically).
+    ``assembled=True``: frames already trimmed and assembled by another pipeline (bias-
+    subtracted, one detector-sized image each), for an instrument whose raw frames are chip
+    files (FORS2, EFOSC2); ``output``: also write the FITS map there (atomically).
     """
     if isinstance(bin, bool) or not isinstance(bin, (int, np.integer)) or bin < 0:
         raise InputError(f"bin {bin!r}: expected a bin side in pixels (a positive integer)")
     d = _instpol._reduce(
         _paths(frames), str(instrument), int(bin), float(nsigma), bool(allow_incomplete), _opt_path(bias),
-        _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles], _opt_path(output),
+        _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles], bool(assembled),
+        _opt_path(output),
     )
     return StokesMap(d)
 
@@ -479,6 +483,7 @@ def catalog(
     bias: Optional[PathLike] = None,
     flat: Optional[PathLike] = None,
     hwp_angles: Optional[Sequence[float]] = None,
+    assembled: bool = False,
     kappa: Optional[float] = None,
     kappa_from_data: bool = False,
     pair_tol: float = 1.5,
@@ -499,6 +504,7 @@ def catalog(
     imbalance; ``kappa_from_data=True`` estimates it per star (eq:kappa2) and applies it.
     ``pair_tol``: how far (px) a detected e image may sit from where the instrument's o/e offset
     puts it (a warning gives the shift when many sit further off, e.g. another filter's throw).
+    ``assembled=True``: frames already trimmed and assembled (as for :func:`reduce`).
     """
     try:
         r_in, r_out = (float(a) for a in annulus)
@@ -507,5 +513,5 @@ def catalog(
     return _instpol._catalog(
         _paths(frames), str(instrument), float(fwhm), float(threshold), str(aperture), (r_in, r_out),
         _opt_path(bias), _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles],
-        None if kappa is None else float(kappa), bool(kappa_from_data), float(pair_tol),
+        bool(assembled), None if kappa is None else float(kappa), bool(kappa_from_data), float(pair_tol),
     )

@@ -138,6 +138,7 @@ def reduce(
     bias: Optional[PathLike] = ...,
     flat: Optional[PathLike] = ...,
     hwp_angles: Optional[Sequence[float]] = ...,
+    assembled: bool = ...,
     output: Optional[PathLike] = ...,
 ) -> StokesMap:
     """Frames to a binned Stokes map (eq:F, eq:Q, eq:U per pixel, clipped bin means)."""
@@ -153,6 +154,7 @@ def catalog(
     bias: Optional[PathLike] = ...,
     flat: Optional[PathLike] = ...,
     hwp_angles: Optional[Sequence[float]] = ...,
+    assembled: bool = ...,
     kappa: Optional[float] = ...,
     kappa_from_data: bool = ...,
     pair_tol: float = ...,
