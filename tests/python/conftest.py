@@ -110,21 +110,26 @@ def cal_b(demo_dir):
     return demo_dir / "cal_B.fits"
 
 
+def shrunk(name: str, replacements, dest: Path) -> Path:
+    """instruments/NAME.toml with each (a, b) of `replacements` applied (each must be there),
+    written to `dest`."""
+    text = (ROOT / "instruments" / f"{name}.toml").read_text()
+    for a, b in replacements:
+        assert a in text, f"instruments/{name}.toml no longer has '{a}'"
+        text = text.replace(a, b)
+    dest.write_text(text)
+    return dest
+
+
 def tiny_fors1(dir_: Path) -> Path:
     """instruments/fors1.toml shrunk to 128 x 128 px with one strip (as crates/cli/tests)."""
-    text = (ROOT / "instruments" / "fors1.toml").read_text()
-    for a, b in [
+    return shrunk("fors1", [
         ("nx = 2048", "nx = 128"),
         ("ny = 2048", "ny = 128"),
         ("throw_arcsec = 22.0", "throw_arcsec = 8.0"),
         ("strip_count = 9", "strip_count = 1"),
         ("first_strip_y_px = 34", "first_strip_y_px = 20"),
-    ]:
-        assert a in text, f"instruments/fors1.toml no longer has '{a}'"
-        text = text.replace(a, b)
-    p = dir_ / "tiny.toml"
-    p.write_text(text)
-    return p
+    ], dir_ / "tiny.toml")
 
 
 @pytest.fixture(scope="session")

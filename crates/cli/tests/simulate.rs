@@ -93,6 +93,26 @@ fn s(p: &Path) -> String {
     p.display().to_string()
 }
 
+/// `instpol simulate SCENE --out OUT --json`, which must succeed: its JSON.
+fn simulate_json(scene: &Path, out: &Path) -> serde_json::Value {
+    let o = instpol().arg("simulate").arg(scene).arg("--out").arg(out).arg("--json").output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+fn strings(v: &serde_json::Value) -> Vec<String> {
+    v.as_array().unwrap().iter().map(|v| v.as_str().unwrap().into()).collect()
+}
+
+/// `instpol reduce FRAMES --instrument INST --bin 8 --out MAP EXTRA...`: (exit code, stdout, stderr).
+fn reduce_to(frames: &[String], inst: &Path, map: &Path, extra: &[&str]) -> (i32, String, String) {
+    let mut a = vec!["reduce".to_string()];
+    a.extend(frames.iter().cloned());
+    a.extend(["--instrument", &s(inst), "--bin", "8", "--out", &s(map)].map(String::from));
+    a.extend(extra.iter().map(|x| x.to_string()));
+    common::run(&a)
+}
+
 /// FORS2 (shrunk): `simulate` writes each exposure as the two raw chip files the archive
 /// delivers (EXTNAME, 5 prescan and 5 overscan rows on a bias level, ESO keywords), and
 /// `reduce` takes them as written (overscan subtracted) to the scene's sky.
@@ -101,10 +121,8 @@ fn fors2_scene_is_written_as_raw_chip_files_that_reduce_to_its_sky() {
     let dir = tempfile::tempdir().unwrap();
     let (inst, scene) = chip_scene(dir.path(), &common::raw::fors2_tiny_text(), "v_HIGH");
     let out = dir.path().join("f");
-    let o = instpol().arg("simulate").arg(&scene).arg("--out").arg(&out).arg("--json").output().unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    let files: Vec<String> = j["outputs"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().into()).collect();
+    let j = simulate_json(&scene, &out);
+    let files = strings(&j["outputs"]);
     assert_eq!(files.len(), 8, "{files:?}");
     assert!(j.get("bias_outputs").is_none(), "FORS2's overscan removes its bias: no bias frames");
     // Each chip file as the archive's, read here with fitsio: 64 x (32 + 5 + 5) px, its chip
@@ -124,10 +142,7 @@ fn fors2_scene_is_written_as_raw_chip_files_that_reduce_to_its_sky() {
         let mean = scan.iter().sum::<f64>() / scan.len() as f64;
         assert!((mean - 200.0).abs() < 0.5, "{f}: scan rows at {mean} ADU");
     }
-    let mut a = vec!["reduce".to_string()];
-    a.extend(files);
-    a.extend(["--instrument", &s(&inst), "--bin", "8", "--out", &s(&dir.path().join("map.fits"))].map(String::from));
-    let (code, _, err) = common::run(&a);
+    let (code, _, err) = reduce_to(&files, &inst, &dir.path().join("map.fits"), &[]);
     assert_eq!(code, 0, "{err}");
     assert_scene_sky(&dir.path().join("map.fits"));
 }
@@ -140,10 +155,8 @@ fn efosc2_scene_comes_with_bias_frames_for_its_master_bias() {
     let dir = tempfile::tempdir().unwrap();
     let (inst, scene) = chip_scene(dir.path(), &common::raw::efosc2_tiny_text(), "V");
     let out = dir.path().join("e");
-    let o = instpol().arg("simulate").arg(&scene).arg("--out").arg(&out).arg("--json").output().unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    let bias: Vec<String> = j["bias_outputs"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().into()).collect();
+    let j = simulate_json(&scene, &out);
+    let bias = strings(&j["bias_outputs"]);
     assert_eq!(bias.len(), 5);
     assert!(bias.iter().all(|b| Path::new(b).parent().unwrap() == out.join("bias")), "{bias:?}");
     let truth: serde_json::Value =
@@ -151,13 +164,9 @@ fn efosc2_scene_comes_with_bias_frames_for_its_master_bias() {
     assert_eq!(truth["frames"][2]["chip_files"][0], "frame_02_hwp045.0_CCD40.fits");
     assert_eq!(truth["bias_frames"].as_array().unwrap().len(), 5);
     let ip = s(&inst);
-    let reduce = |extra: &[&str]| {
-        let mut a = vec!["reduce".to_string()];
-        a.extend(common::listing(&out).iter().filter(|f| f.ends_with(".fits")).map(|f| s(&out.join(f))));
-        a.extend(["--instrument", &ip, "--bin", "8", "--out", &s(&dir.path().join("map.fits"))].map(String::from));
-        a.extend(extra.iter().map(|x| x.to_string()));
-        common::run(&a)
-    };
+    let frames: Vec<String> =
+        common::listing(&out).iter().filter(|f| f.ends_with(".fits")).map(|f| s(&out.join(f))).collect();
+    let reduce = |extra: &[&str]| reduce_to(&frames, &inst, &dir.path().join("map.fits"), extra);
     let (code, _, err) = reduce(&[]);
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("still carries its bias level") && err.contains("--bias"), "{err}");
@@ -182,10 +191,8 @@ fn assembled_frames_reduce_to_the_raw_files_map() {
     let dir = tempfile::tempdir().unwrap();
     let (inst, scene) = chip_scene(dir.path(), &common::raw::fors2_tiny_text(), "v_HIGH");
     let out = dir.path().join("f");
-    let o = instpol().arg("simulate").arg(&scene).arg("--out").arg(&out).arg("--json").output().unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    let files: Vec<String> = j["outputs"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().into()).collect();
+    let j = simulate_json(&scene, &out);
+    let files = strings(&j["outputs"]);
     // Chip geometry of the shrunk FORS2: 64 x 32 px chips with 5 scan rows below and above,
     // CHIP1 at detector row 36, CHIP2 at row 0, the gap rows 32..36 between them.
     let adir = dir.path().join("assembled");
@@ -220,13 +227,7 @@ fn assembled_frames_reduce_to_the_raw_files_map() {
         skyfield::io::write_frame(&p, 64, 68, &det, skyfield::io::Bitpix::F32, &keys).unwrap();
         assembled.push(s(&p));
     }
-    let reduce = |frames: &[String], extra: &[&str], map: &str| {
-        let mut a = vec!["reduce".to_string()];
-        a.extend(frames.iter().cloned());
-        a.extend(["--instrument", &s(&inst), "--bin", "8", "--out", &s(&dir.path().join(map))].map(String::from));
-        a.extend(extra.iter().map(|x| x.to_string()));
-        common::run(&a)
-    };
+    let reduce = |frames: &[String], extra: &[&str], map: &str| reduce_to(frames, &inst, &dir.path().join(map), extra);
     let (code, _, err) = reduce(&assembled, &[], "refused.fits");
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("a0.fits") && err.contains("64 x 68 px") && err.contains("--assembled"), "{err}");

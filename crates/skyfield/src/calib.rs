@@ -164,7 +164,20 @@ fn group_exposures(paths: &[PathBuf], inst: &Instrument, chips: &[Chip]) -> Resu
             let mut found = None;
             for (k, c) in chips.iter().enumerate() {
                 let kw = c.match_keyword.as_deref().unwrap_or_default();
-                let v = img.key(kw).ok_or_else(|| Error::MissingKeyword { path: p.clone(), keyword: kw.into() })?;
+                let v = match img.key(kw) {
+                    Some(v) => v,
+                    // A frame of the assembled detector's size without the chip keyword is most
+                    // likely another pipeline's product: say what to do with it.
+                    None if (img.nx, img.ny) == (inst.detector.nx, inst.detector.ny) => {
+                        return Err(Error::Invalid(format!(
+                            "{}: missing header keyword '{kw}' (the name of a chip of instrument {}){}",
+                            p.display(),
+                            inst.name,
+                            assembled_hint(img.nx, img.ny, inst)
+                        )))
+                    }
+                    None => return Err(Error::MissingKeyword { path: p.clone(), keyword: kw.into() }),
+                };
                 if c.match_value.as_deref().is_some_and(|m| m.trim() == v) {
                     found = Some(k);
                     break;
@@ -207,7 +220,7 @@ fn group_exposures(paths: &[PathBuf], inst: &Instrument, chips: &[Chip]) -> Resu
 fn assembled_hint(nx: usize, ny: usize, inst: &Instrument) -> String {
     if (nx, ny) == (inst.detector.nx, inst.detector.ny) {
         format!(
-            "; it has the size of the instrument's assembled detector ({nx} x {ny} px): if it is already trimmed and assembled (another pipeline's frame), give --assembled"
+            "; it has the size of the instrument's assembled detector ({nx} x {ny} px): if it is already trimmed and assembled (another pipeline's frame), give --assembled (Python: assembled=True)"
         )
     } else {
         String::new()

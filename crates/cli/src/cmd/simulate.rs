@@ -5,9 +5,14 @@ use std::path::PathBuf;
 
 /// Simulate raw-like dual-beam frames of a scene: one FITS file per HWP angle (the detector,
 /// mask strips, o/e images and header keywords as the instrument file describes them) and a
-/// truth.json with every input. Only the effects the scene's [effects] table lists are
-/// computed. Scene format: see the `sim::scene` docs and instruments/scenes/*.toml; fluxes in
-/// e- per exposure, polarization as fractions, angles in degrees.
+/// truth.json with every input. An instrument whose [format] has chips (fors2, efosc2) gets
+/// raw chip files instead, one per chip and frame with pre/overscan on a bias level, and bias
+/// frames in OUT/bias/ when no overscan removes the bias (make a master bias of them with
+/// `instpol master-bias`). Only the effects the scene's [effects] table lists are computed.
+/// Scene format: see the `sim::scene` docs and instruments/scenes/*.toml; fluxes in e- per
+/// exposure, polarization as fractions, angles in degrees.
+///
+/// Example: instpol simulate instruments/scenes/empty_V.toml --out frames_V
 #[derive(clap::Args)]
 pub struct Args {
     /// Scene file (TOML).
