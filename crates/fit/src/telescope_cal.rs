@@ -346,13 +346,7 @@ pub fn correct_map_chain<M: FieldModel + ?Sized>(
     track: Track,
     exposures: &[skyfield::ExposureTrack],
 ) -> std::result::Result<crate::correct::CorrectedMap, crate::correct::MapError> {
-    let ex: Vec<mueller::telescope::Exposure> = exposures
-        .iter()
-        .map(|x| mueller::telescope::Exposure {
-            hwp: x.hwp_deg.to_radians(),
-            track: Track::new(x.start, Some(x.end)).with_rotator(track.rotator),
-        })
-        .collect();
+    let ex = telescope_exposures(exposures, track.rotator);
     // The exposures' demodulations are the same for every bin: built once.
     let prepared = if ex.is_empty() {
         None
@@ -572,34 +566,66 @@ fn track_of_headers(
     Ok(Track { start, end, rotator: rot.map(|r| r.0).unwrap_or(0.0) })
 }
 
-/// Record in a reduced map the exposures' telescope angles, when the instrument names their
-/// header keywords and every exposure's header has them (`exposures`: each one's file and HWP
-/// angle, [`skyfield::reduce::Reduced::exposures`]): the set's track (`PARANG1`, `PARANG2`,
-/// [`frames_track`]), the rotator angle, and each exposure's own track
-/// ([`skyfield::StokesMap::exposure_tracks`]), which `correct` uses to undo the telescope as
-/// the exposures saw it. Frames without the angles leave the map without them, silently: most
-/// instruments and uses need no telescope model. The one recording of `instpol reduce` and the
-/// Python package's `reduce`.
-pub fn record_telescope_angles(
-    map: &mut skyfield::StokesMap,
+/// The exposures' telescope angles from their headers (`exposures`: each one's file and HWP
+/// angle in deg, as [`skyfield::reduce::Reduced::exposures`] or
+/// [`skyfield::reduce::FrameSet::exposures`] list them, angle by angle), each header read
+/// once: the set's track ([`frames_track`], with the rotator angle) and each exposure's own
+/// track. Both in the order of `frames` (the files as given, taken to be the order they were
+/// observed in: the track's sense comes from it when the headers give no end angles).
+/// Errors name the frame and the keyword.
+pub fn exposure_tracks(
     exposures: &[(std::path::PathBuf, f64)],
-    inst: &instrument::Instrument,
-) {
-    let Some(t) = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty()) else { return };
-    // Each header read once: for the set's track and for each exposure's own.
+    frames: &[std::path::PathBuf],
+    tel: &instrument::Telescope,
+) -> Result<(Track, Vec<skyfield::ExposureTrack>)> {
+    let mut exposures = exposures.to_vec();
+    exposures.sort_by_key(|(p, _)| frames.iter().position(|f| f == p).unwrap_or(usize::MAX));
     let files: Vec<std::path::PathBuf> = exposures.iter().map(|e| e.0.clone()).collect();
-    let Ok(angles) = files.iter().map(|p| header_angles(p, t)).collect::<Result<Vec<_>>>() else { return };
-    let Ok(track) = track_of_headers(&files, &angles, t) else { return };
-    map.parallactic_rad = Some((track.start, track.end));
-    map.rotator_rad = (!t.rotator_keyword.is_empty()).then_some(track.rotator);
-    map.exposure_tracks = exposures
+    let angles = files.iter().map(|p| header_angles(p, tel)).collect::<Result<Vec<_>>>()?;
+    let track = track_of_headers(&files, &angles, tel)?;
+    let each = exposures
         .iter()
         .zip(&angles)
         .map(|((_, hwp), h)| {
-            let (s, e) = t.parallactic_rad(h.parang_start_deg, h.parang_end_deg);
+            let (s, e) = tel.parallactic_rad(h.parang_start_deg, h.parang_end_deg);
             skyfield::ExposureTrack { hwp_deg: *hwp, start: s, end: e.unwrap_or(s) }
         })
         .collect();
+    Ok((track, each))
+}
+
+/// The exposures of `tracks` as the telescope model takes them (HWP angle in rad, each
+/// exposure's parallactic track with the set's `rotator`).
+pub fn telescope_exposures(tracks: &[skyfield::ExposureTrack], rotator: f64) -> Vec<mueller::telescope::Exposure> {
+    tracks
+        .iter()
+        .map(|x| mueller::telescope::Exposure {
+            hwp: x.hwp_deg.to_radians(),
+            track: Track::new(x.start, Some(x.end)).with_rotator(rotator),
+        })
+        .collect()
+}
+
+/// Record in a reduced map the exposures' telescope angles, when the instrument names their
+/// header keywords and every exposure's header has them (`exposures`: each one's file and HWP
+/// angle, [`skyfield::reduce::Reduced::exposures`]; `frames` as given, for their order): the
+/// set's track (`PARANG1`, `PARANG2`,
+/// [`frames_track`]), the rotator angle, and each exposure's own track
+/// ([`skyfield::StokesMap::exposure_tracks`], [`exposure_tracks`]), which `correct` uses to
+/// undo the telescope as the exposures saw it. Frames without the angles leave the map without
+/// them, silently: most instruments and uses need no telescope model. The one recording of
+/// `instpol reduce` and the Python package's `reduce`.
+pub fn record_telescope_angles(
+    map: &mut skyfield::StokesMap,
+    exposures: &[(std::path::PathBuf, f64)],
+    frames: &[std::path::PathBuf],
+    inst: &instrument::Instrument,
+) {
+    let Some(t) = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty()) else { return };
+    let Ok((track, each)) = exposure_tracks(exposures, frames, t) else { return };
+    map.parallactic_rad = Some((track.start, track.end));
+    map.rotator_rad = (!t.rotator_keyword.is_empty()).then_some(track.rotator);
+    map.exposure_tracks = each;
 }
 
 /// Validating a telescope calibration (with or without a field model) on a standard star:
@@ -620,6 +646,9 @@ pub struct ChainValidation {
     pub parallactic_end_deg: f64,
     /// The rotator angle applied (0 when the model was fitted without rotator angles).
     pub rotator_deg: f64,
+    /// Exposures whose telescope was undone one by one, each over its own parallactic track
+    /// and demodulated together; 0 when the set's one track was used.
+    pub exposures: usize,
     pub measured_q: f64,
     pub measured_u: f64,
     pub sigma_q: f64,
@@ -654,7 +683,9 @@ pub struct ChainValidation {
 /// Validate the telescope model `tel` (band `band`) and, when given, the field calibration
 /// `field` on a star measured in the instrument frame (`measured`, the plate frame of the
 /// reduction: the telescope's fitted offset is the instrument's angle zero, so no HWP zero
-/// angle is applied) at field position `(x, y)` arcmin over the exposures' `track`. The field
+/// angle is applied) at field position `(x, y)` arcmin as its exposures saw the telescope: each
+/// over its own track when `exposures` lists them ([`exposure_tracks`]), else over the set's
+/// `track` (which also gives the rotator angle and the reported angles). The field
 /// model's error at a position is its coefficient covariance plus `model_error` (default
 /// [`crate::validate::auto_model_error`]). Passes when the corrected star is within
 /// `threshold` sigma of `star`'s expected polarization. A model fitted without rotator angles
@@ -668,6 +699,7 @@ pub fn validate_chain(
     measured: &crate::standards::MeasuredStar,
     (x, y): (f64, f64),
     mut track: Track,
+    exposures: &[skyfield::ExposureTrack],
     star: (&str, crate::standards::Expected),
     opts: &crate::validate::ValidateOptions,
 ) -> Result<ChainValidation> {
@@ -693,7 +725,9 @@ pub fn validate_chain(
         )
     });
     let m = measured.at(x, y);
-    let r = correct_chain(cor.as_ref(), tel, band, &m, track)?;
+    let ex = telescope_exposures(exposures, track.rotator);
+    let seen = if ex.is_empty() { Seen::Track(track) } else { Seen::Exposures { whole: track, exposures: &ex } };
+    let r = correct_chain_seen(cor.as_ref(), tel, band, &m, seen)?;
     let c = r.corrected;
     let e = star.1;
     let dist = |q: f64, u: f64, a: f64, b: f64, cv: f64| {
@@ -711,6 +745,7 @@ pub fn validate_chain(
         parallactic_start_deg: track.start.to_degrees(),
         parallactic_end_deg: track.end.to_degrees(),
         rotator_deg: track.rotator.to_degrees(),
+        exposures: ex.len(),
         measured_q: measured.q,
         measured_u: measured.u,
         sigma_q: m.sigma_q,

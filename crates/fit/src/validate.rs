@@ -113,7 +113,7 @@ pub fn validate_frames(
     if !cal.instrument.eq_ignore_ascii_case(&inst.name) {
         return Err(Error::WrongInstrument { cal: cal.instrument.clone(), frames: inst.name.clone() });
     }
-    let (measured, filter) = measure_frames(inst, frames, x_px, y_px, opts)?;
+    let MeasuredFrames { star: measured, filter, .. } = measure_frames(inst, frames, x_px, y_px, opts)?;
     // Another filter's calibration is allowed (it is how a wrong calibration is shown to
     // fail), but said.
     let mut warnings = vec![];
@@ -129,17 +129,28 @@ pub fn validate_frames(
     Ok(r)
 }
 
+/// A star measured from frames ([`measure_frames`]).
+#[derive(Debug, Clone)]
+pub struct MeasuredFrames {
+    /// Normalized Stokes parameters in the plate frame (no zero angle applied).
+    pub star: MeasuredStar,
+    /// The frames' filter.
+    pub filter: String,
+    /// Each exposure's file and HWP angle (deg), angle by angle: what the telescope's
+    /// exposure-by-exposure correction needs (`telescope_cal::exposure_tracks`).
+    pub exposures: Vec<(PathBuf, f64)>,
+}
+
 /// Measure a star at 0-based ordinary-image pixel `(x_px, y_px)` in `frames` (all HWP angles
 /// of one filter, read as instrument `inst`): aperture photometry of both beams with the
-/// local background subtracted ([`skyfield::photometry::photometry`]). The normalized Stokes
-/// parameters in the plate frame (no zero angle applied) and the frames' filter.
+/// local background subtracted ([`skyfield::photometry::photometry`]).
 pub fn measure_frames(
     inst: &Instrument,
     frames: &[PathBuf],
     x_px: f64,
     y_px: f64,
     opts: &ValidateOptions,
-) -> Result<(MeasuredStar, String), Error> {
+) -> Result<MeasuredFrames, Error> {
     let frames_err = |doing: &str| {
         let doing = doing.to_string();
         move |source| Error::Frames { doing, source }
@@ -149,7 +160,11 @@ pub fn measure_frames(
     let ph = photometry(&set, inst, x_px, y_px, &opts.aperture)
         .map_err(frames_err(&format!("photometry of the star at ({x_px}, {y_px}) px")))?;
     let qu = ph.reduction.qu;
-    Ok((MeasuredStar { q: qu.q, u: qu.u, var_q: qu.var_q, var_u: qu.var_u, cov_qu: qu.cov_qu }, set.filter.clone()))
+    Ok(MeasuredFrames {
+        star: MeasuredStar { q: qu.q, u: qu.u, var_q: qu.var_q, var_u: qu.var_u, cov_qu: qu.cov_qu },
+        filter: set.filter.clone(),
+        exposures: set.exposures(),
+    })
 }
 
 /// Validate `cal` on a star already measured (`measured`, in the plate frame as the

@@ -1118,7 +1118,7 @@ fn _reduce<'py>(
         .detach(|| {
             let mut r = skyfield::reduce::reduce_files_with(&frames, &inst, &cfg, &read, &|| {})?;
             // The exposures' telescope angles, as `instpol reduce` records them.
-            fit::telescope_cal::record_telescope_angles(&mut r.map, &r.exposures, &inst);
+            fit::telescope_cal::record_telescope_angles(&mut r.map, &r.exposures, &frames, &inst);
             if let Some(out) = &output {
                 r.map.write_fits(out)?;
             }

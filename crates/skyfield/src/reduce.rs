@@ -255,6 +255,11 @@ fn fmt_angles(a: &[f64]) -> String {
 }
 
 impl FrameSet {
+    /// Each exposure's file and the HWP angle (deg) it is grouped at, angle by angle.
+    pub fn exposures(&self) -> Vec<(PathBuf, f64)> {
+        exposures_of(&self.files, &self.angles_deg)
+    }
+
     /// Group and check frames (see the module docs).
     pub fn from_frames(mut frames: Vec<Frame>, inst: &Instrument, require_complete: bool) -> Result<Self, Error> {
         let conversion = common_conversion(frames.iter().map(|f| &f.conversion), inst)?;

@@ -36,17 +36,18 @@ use std::path::{Path, PathBuf};
 /// Example: instpol validate --cal V.fits frames/*.fits --x 1782 --y 56 --threshold 3
 ///
 /// A calibration holding a telescope model (instpol fit-standards: a Nasmyth M3, alone or
-/// beside a field model) is applied through the whole chain (fit::telescope_cal::correct_chain:
-/// the field first, then the telescope averaged over the exposures' parallactic-angle track).
-/// The track comes from the frames' headers, under the keywords of the instrument's
-/// [telescope] section (parallactic angle at start and end, rotator angle), from the first
-/// frame's start to the last frame's end; or from --parang START[,END] (deg, the convention of
-/// fit-standards). The star passes when, corrected, it is within --threshold sigma of its
+/// beside a field model) is applied through the whole chain (fit::telescope_cal::validate_chain:
+/// the field first, then the telescope as each exposure saw it). The angles come from the
+/// frames' headers, under the keywords of the instrument's [telescope] section (parallactic
+/// angle at start and end, rotator angle): each exposure is undone over its own track, the
+/// exposures demodulated together (JSON exposures: their number); or one track for all from
+/// --parang START[,END] (deg, the convention of fit-standards). The star passes when, corrected, it is within --threshold sigma of its
 /// expected polarization. JSON: measured_q, measured_u, sigma_q, sigma_u, telescope_q,
 /// telescope_u (what the telescope makes of an unpolarized star there), corrected_q,
 /// corrected_u, their sigma_, corrected_p, corrected_chi_deg, expected_q, expected_u,
-/// corrected_pull, uncorrected_pull, pass, parallactic_start_deg, parallactic_end_deg,
-/// rotator_deg (schemas/validate-telescope.schema.json).
+/// corrected_pull, uncorrected_pull, pass, parallactic_start_deg, parallactic_end_deg (the
+/// set's first start and last end), rotator_deg, exposures
+/// (schemas/validate-telescope.schema.json).
 ///
 /// Example (EFOSC2 standard, telescope model from fit-standards):
 ///
@@ -290,26 +291,31 @@ fn run_telescope(a: &Args) -> Result<()> {
             inst.name
         );
     }
-    let track = match &a.parang {
-        Some(p) => crate::util::parse_parang(p)?,
-        None => {
-            let Some(t) = inst.telescope.as_ref() else {
-                bail!(
-                    "instrument {} has no [telescope] section naming the header keywords of the parallactic angle: give --parang START[,END] (deg)",
-                    inst.name
-                );
-            };
-            fit::telescope_cal::frames_track(&a.frames, t).with_context(|| {
-                "the parallactic angle of the frames (the telescope model needs it): fix the headers or give --parang START[,END] (deg)"
-            })?
-        }
+    let given = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
+    let tel_keys = match (&given, inst.telescope.as_ref()) {
+        (Some(_), _) => None,
+        (None, Some(t)) => Some(t),
+        (None, None) => bail!(
+            "instrument {} has no [telescope] section naming the header keywords of the parallactic angle: give --parang START[,END] (deg)",
+            inst.name
+        ),
     };
     let (x_px, y_px) = match a.coords {
         crate::cmd::correct::Coords::Pixel => (a.x, a.y),
         crate::cmd::correct::Coords::Arcmin => inst.arcmin_to_pixel(a.x, a.y),
     };
     let opts = validate_options(a)?;
-    let (measured, filter) = fit::validate::measure_frames(&inst, &a.frames, x_px, y_px, &opts)?;
+    let fit::validate::MeasuredFrames { star: measured, filter, exposures } =
+        fit::validate::measure_frames(&inst, &a.frames, x_px, y_px, &opts)?;
+    // The headers' angles: the set's track and each exposure's own, so that the telescope is
+    // undone as each exposure saw it; --parang gives one track for all.
+    let (track, each) = match (given, tel_keys) {
+        (Some(t), _) => (t, vec![]),
+        (None, Some(t)) => fit::telescope_cal::exposure_tracks(&exposures, &a.frames, t).with_context(|| {
+            "the parallactic angle of the frames (the telescope model needs it): fix the headers or give --parang START[,END] (deg)"
+        })?,
+        (None, None) => unreachable!("refused above"),
+    };
     let band = tel
         .choose_band(a.band.as_deref(), field.map(|c| c.filter.as_str()), Some(&filter))
         .map_err(|e| crate::util::band_choice_error(e, &a.cal, Some(&filter)))?;
@@ -318,7 +324,8 @@ fn run_telescope(a: &Args) -> Result<()> {
     }
     let (name, expected) = expected_star(a, &band)?;
     let pos = inst.pixel_to_arcmin(x_px, y_px);
-    let r = fit::telescope_cal::validate_chain(field, tel, &band, &measured, pos, track, (&name, expected), &opts)?;
+    let r =
+        fit::telescope_cal::validate_chain(field, tel, &band, &measured, pos, track, &each, (&name, expected), &opts)?;
     for w in &r.warnings {
         eprintln!("warning: {w}");
     }
