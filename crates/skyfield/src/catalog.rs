@@ -179,6 +179,11 @@ pub struct Catalog {
     /// With repeated HWP positions ([`check_exposures`]): each exposure and how many stars
     /// flag it; `None` when no position repeats (nothing to compare an exposure with).
     pub exposures: Option<Vec<ExposureSummary>>,
+    /// Each exposure's file (a chip instrument's: its first chip file) and HWP angle (deg), in
+    /// the order the frames were given: what undoing a telescope exposure by exposure needs
+    /// (their headers' parallactic angles). Set by [`catalog_files`]; empty otherwise.
+    #[serde(skip)]
+    pub frames: Vec<(PathBuf, f64)>,
 }
 
 /// One exposure across the catalog's stars (issue 13: per-exposure checks).
@@ -336,7 +341,8 @@ pub fn catalog_files(
 ) -> Result<(Catalog, Vec<Warning>), Error> {
     let mut disk = DiskFrames::open(paths, inst, opts, true)?;
     let theta: Vec<f64> = disk.exposure_angles_deg().iter().map(|a| a.to_radians()).collect();
-    let (cat, mut warnings) = if stokes::repeats::has_repeats(&theta) {
+    let exposures = disk.exposures();
+    let (mut cat, mut warnings) = if stokes::repeats::has_repeats(&theta) {
         drop(disk);
         let frames = crate::reduce::read_frames_with(paths, inst, opts, &on_read)?;
         let singles = frames.clone();
@@ -349,6 +355,7 @@ pub fn catalog_files(
         let cat = catalog_of(&disk, inst, cfg)?;
         (cat, disk.bad_pixel_warnings()?)
     };
+    cat.frames = exposures;
     warnings.extend(zero_angle_warning(inst, &cat.filter));
     warnings.extend(pairing_warning(&cat, inst, cfg.detect.pair_tol_px));
     Ok((cat, warnings))
@@ -670,6 +677,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         n_sources: sources.len(),
         alignment,
         exposures: None,
+        frames: vec![],
     })
 }
 

@@ -411,6 +411,12 @@ impl DiskFrames {
         self.frames.iter().map(|f| f.hwp_deg).collect()
     }
 
+    /// Each exposure's file (a chip instrument's: its first chip file) and HWP angle (deg), in
+    /// the order given.
+    pub fn exposures(&self) -> Vec<(PathBuf, f64)> {
+        self.frames.iter().map(|f| (f.path.clone(), f.hwp_deg)).collect()
+    }
+
     /// The warnings of [`FrameSet::from_frames`] for the frames read so far: masked NaN and
     /// saturated pixels per file, then the grouping's notes; an error for a frame none of
     /// whose pixels is finite.

@@ -59,7 +59,10 @@ pub struct Args {
     /// `instpol correct`: q0, u0, sigma_q0, sigma_u0, cov_qu0, p0, sigma_p0, chi0_deg,
     /// sigma_chi0_deg, q_inst, u_inst, extrapolated), exact inversion of eq:instpol. The
     /// catalog's q, u already carry the instrument file's HWP zero angle, so only the
-    /// calibration's difference from it is applied.
+    /// calibration's difference from it is applied. A calibration holding a telescope model
+    /// (instpol fit-standards, alone or beside a field model) is undone after the field, as each
+    /// exposure saw it: each over its own parallactic track from its header (the instrument's
+    /// [telescope] keywords), demodulated together.
     #[arg(long, value_name = "CAL.fits")]
     pub cal: Option<PathBuf>,
     /// With --cal: correct stars outside the calibrated field too (flagged, errors inflated).
@@ -113,6 +116,60 @@ struct CorrectedJson<'a> {
     calibration: String,
     chi_offset_applied_deg: f64,
     n_extrapolated: usize,
+    /// With a telescope model: its name, its band used, and the exposures undone one by one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    telescope_model: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    telescope_band: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    telescope_exposures: Option<usize>,
+}
+
+/// The telescope of a catalog corrected in the same run: the band (the field model's filter,
+/// the frames' filter, or the model's only band), the set's track and each exposure's own from
+/// the frames' headers (the instrument's `[telescope]` keywords), with the rotator angle only
+/// for a model fitted with rotator angles; the zero-angle caveat of `instpol correct` said.
+fn catalog_telescope(
+    a: &Args,
+    inst: &instrument::Instrument,
+    cat: &skyfield::catalog::Catalog,
+    path: &std::path::Path,
+    tel: &fit::telescope::TelescopeFit,
+    field: Option<&fit::Calibration>,
+) -> Result<(String, fit::telescope::Track, Vec<skyfield::ExposureTrack>)> {
+    let Some(t) = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty()) else {
+        bail!(
+            "{}: the calibration holds a telescope model, which needs the frames' parallactic angles, but instrument {} names no header keyword for them ([telescope] parang_start_keyword): write the catalog and correct it with `instpol correct --parang START[,END]`",
+            path.display(),
+            inst.name
+        );
+    };
+    let (recorded, each) = fit::telescope_cal::exposure_tracks(&cat.frames, &a.frames, t).with_context(|| {
+        "the parallactic angle of the frames (the telescope model needs it): fix the headers, or write the catalog and correct it with `instpol correct --parang START[,END]`"
+    })?;
+    let band = tel
+        .choose_band(None, field.map(|c| c.filter.as_str()), Some(&cat.filter))
+        .map_err(|e| crate::util::band_choice_error(e, path, Some(&cat.filter)))?;
+    let rot = (!t.rotator_keyword.is_empty()).then_some(recorded.rotator);
+    // The parallactic angles are recorded, so only a missing rotator angle can stop the choice.
+    let choice = tel.choose_track(None, Some((recorded.start, recorded.end)), None, rot).map_err(|_| {
+        anyhow::anyhow!(
+            "{}: the telescope model was fitted with rotator angles, but instrument {} names no rotator keyword ([telescope] rotator_keyword): write the catalog and correct it with `instpol correct --parang START[,END] --rotator DEG`",
+            path.display(),
+            inst.name
+        )
+    })?;
+    for (z, whose) in [
+        (field.map_or(0.0, |c| c.hwp_chi_offset_deg), format!("the field calibration {}", path.display())),
+        (cat.chi_offset_deg, format!("filter {} of instrument {}", cat.filter, inst.name)),
+    ] {
+        if z != 0.0 {
+            eprintln!(
+                "WARNING: {whose} carries a HWP zero angle of {z} deg, and the chain of a field and a telescope model does not yet turn its inputs into one frame: the telescope's (and field's) angles may be off by it; check on a standard (instpol validate)"
+            );
+        }
+    }
+    Ok((band, choice.track, each))
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -166,23 +223,39 @@ pub fn run(a: Args) -> Result<()> {
             100.0 * e.median_transparency
         );
     }
+    // With a telescope model: its name, the band used and how many exposures were undone one by one.
+    let mut telescope_used: Option<(&'static str, String, usize)> = None;
     let corrected = match &a.cal {
         None => None,
         Some(path) => {
             let loaded = fit::telescope_cal::load(path)
                 .with_context(|| format!("cannot load calibration {}", path.display()))?;
-            if loaded.telescope.is_some() {
-                bail!(
-                    "{}: the calibration holds a telescope model, which needs each star's parallactic angle: write the catalog and correct it with `instpol correct` and a parang_deg column",
-                    path.display()
-                );
-            }
-            let cal =
-                loaded.field.ok_or_else(|| anyhow::anyhow!("{}: no field model to correct with", path.display()))?;
             let opts =
                 fit::correct::CorrectOptions { allow_extrapolation: a.allow_extrapolation, ..Default::default() };
-            let c = fit::catalog_correct::correct_catalog(&cat, &inst.name, &cal, opts)
-                .with_context(|| format!("--cal {}", path.display()))?;
+            let c = match &loaded.telescope {
+                None => {
+                    let cal = loaded
+                        .field
+                        .as_ref()
+                        .ok_or_else(|| anyhow::anyhow!("{}: no field model to correct with", path.display()))?;
+                    fit::catalog_correct::correct_catalog(&cat, &inst.name, cal, opts)
+                }
+                Some(tel) => {
+                    let (band, track, each) = catalog_telescope(&a, &inst, &cat, path, tel, loaded.field.as_ref())?;
+                    telescope_used = Some((tel.model.name(), band.clone(), each.len()));
+                    fit::catalog_correct::correct_catalog_chain(
+                        &cat,
+                        &inst.name,
+                        loaded.field.as_ref(),
+                        opts,
+                        tel,
+                        &band,
+                        track,
+                        &each,
+                    )
+                }
+            }
+            .with_context(|| format!("--cal {}", path.display()))?;
             if c.n_extrapolated > 0 {
                 eprintln!(
                     "warning: {} stars lie outside the calibrated field; corrected by extrapolation with inflated errors (flagged)",
@@ -242,6 +315,9 @@ pub fn run(a: Args) -> Result<()> {
                 calibration: a.cal.as_ref().map(|p| p.display().to_string()).unwrap_or_default(),
                 chi_offset_applied_deg: c.chi_offset_applied_deg,
                 n_extrapolated: c.n_extrapolated,
+                telescope_model: telescope_used.as_ref().map(|t| t.0),
+                telescope_band: telescope_used.as_ref().map(|t| t.1.clone()),
+                telescope_exposures: telescope_used.as_ref().map(|t| t.2),
             })?,
         }
     } else {
