@@ -34,6 +34,85 @@ pub enum Error {
     Chain { id: usize, x: f64, y: f64, source: crate::Error },
     #[error("the catalog's exposures: {0}")]
     Exposures(crate::Error),
+    #[error("no field model to correct with")]
+    NoModel,
+    #[error(
+        "the calibration holds a telescope model, which needs the frames' parallactic angles, but instrument {0} names no header keyword for them ([telescope] parang_start_keyword): correct a written catalog with the set's parallactic track instead (instpol correct --parang)"
+    )]
+    NoParallacticKeyword(String),
+    #[error("the parallactic angle of the frames (the telescope model needs it): {0}")]
+    Headers(crate::Error),
+    #[error(
+        "the telescope model has bands {bands}{}: it cannot tell which to use (correct a written catalog with instpol correct --band)",
+        frames.as_deref().map_or(String::new(), |f| format!(" and the frames' filter is {f}"))
+    )]
+    Band { bands: String, frames: Option<String> },
+    #[error(
+        "the telescope model was fitted with rotator angles, but instrument {0} names no rotator keyword ([telescope] rotator_keyword): correct a written catalog with instpol correct --rotator"
+    )]
+    NoRotator(String),
+}
+
+/// The telescope model a catalog was corrected with: its name, the band used, and how many
+/// exposures were undone one by one.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TelescopeUsed {
+    pub model: &'static str,
+    pub band: String,
+    pub exposures: usize,
+}
+
+/// Correct a catalog made by `skyfield::catalog::catalog_files` from `frames` (as given) with
+/// a calibration file's models (`telescope_cal::load`): the field model alone
+/// ([`correct_catalog`]), or the chain with its telescope model ([`correct_catalog_chain`])
+/// over each exposure's own track from the frames' headers (the instrument's `[telescope]`
+/// keywords; the rotator angle only for a model fitted with it), in the band the field model's
+/// filter, else the frames' filter, else the model's only band, names. Also returns what
+/// should be said: the zero-angle caveat of the chain (`telescope_cal` module docs). The one
+/// rule of `instpol catalog --cal` and the Python package's `catalog(cal=...)`.
+pub fn correct_catalog_loaded(
+    cat: &Catalog,
+    inst: &instrument::Instrument,
+    frames: &[std::path::PathBuf],
+    loaded: &crate::telescope_cal::Loaded,
+    opts: CorrectOptions,
+) -> Result<(CorrectedCatalog, Option<TelescopeUsed>, Vec<String>), Error> {
+    let Some(tel) = &loaded.telescope else {
+        let cal = loaded.field.as_ref().ok_or(Error::NoModel)?;
+        return Ok((correct_catalog(cat, &inst.name, cal, opts)?, None, vec![]));
+    };
+    let field = loaded.field.as_ref();
+    let t = inst
+        .telescope
+        .as_ref()
+        .filter(|t| !t.parang_start_keyword.is_empty())
+        .ok_or_else(|| Error::NoParallacticKeyword(inst.name.clone()))?;
+    let (recorded, each) = crate::telescope_cal::exposure_tracks(&cat.frames, frames, t).map_err(Error::Headers)?;
+    let band = tel.choose_band(None, field.map(|c| c.filter.as_str()), Some(&cat.filter)).map_err(|e| match e {
+        crate::telescope::BandChoiceError::Missing { bands, .. }
+        | crate::telescope::BandChoiceError::Ambiguous { bands } => {
+            Error::Band { bands: bands.join(", "), frames: Some(cat.filter.clone()) }
+        }
+    })?;
+    let rot = (!t.rotator_keyword.is_empty()).then_some(recorded.rotator);
+    // The parallactic angles are recorded, so only a missing rotator angle can stop the choice.
+    let choice = tel
+        .choose_track(None, Some((recorded.start, recorded.end)), None, rot)
+        .map_err(|_| Error::NoRotator(inst.name.clone()))?;
+    let mut warnings = vec![];
+    for (z, whose) in [
+        (field.map_or(0.0, |c| c.hwp_chi_offset_deg), "the field calibration".to_string()),
+        (cat.chi_offset_deg, format!("filter {} of instrument {}", cat.filter, inst.name)),
+    ] {
+        if z != 0.0 {
+            warnings.push(format!(
+                "{whose} carries a HWP zero angle of {z} deg, and the chain of a field and a telescope model does not yet turn its inputs into one frame: the telescope's (and field's) angles may be off by it; check on a standard (instpol validate)"
+            ));
+        }
+    }
+    let c = correct_catalog_chain(cat, &inst.name, field, opts, tel, &band, choice.track, &each)?;
+    let used = TelescopeUsed { model: tel.model.name(), band, exposures: each.len() };
+    Ok((c, Some(used), warnings))
 }
 
 /// The corrections of a catalog's rows (in row order; `None` for a star not measured).

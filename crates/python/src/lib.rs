@@ -1180,7 +1180,7 @@ fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>
 /// Every paired star of a frame set (`instpol catalog`): one entry per column, one value per
 /// star, plus the catalog's metadata.
 #[pyfunction]
-#[pyo3(signature = (frames, instrument, fwhm, threshold, aperture, annulus, bias, flat, hwp_angles, assembled, kappa, kappa_from_data, pair_tol))]
+#[pyo3(signature = (frames, instrument, fwhm, threshold, aperture, annulus, bias, flat, hwp_angles, assembled, kappa, kappa_from_data, pair_tol, cal, allow_extrapolation))]
 #[allow(clippy::too_many_arguments)]
 fn _catalog<'py>(
     py: Python<'py>,
@@ -1197,6 +1197,8 @@ fn _catalog<'py>(
     kappa: Option<f64>,
     kappa_from_data: bool,
     pair_tol: f64,
+    cal: Option<PathBuf>,
+    allow_extrapolation: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     use skyfield::catalog::{catalog_files, CatalogConfig};
     let radius = skyfield::photometry::ApertureRadius::parse(aperture).ok_or_else(|| {
@@ -1225,12 +1227,27 @@ fn _catalog<'py>(
     };
     cfg.check().map_err(sky_err)?;
     let read = read_options(bias, flat, hwp_angles, assembled)?;
-    let (cat, warnings) = py
+    let loaded = match &cal {
+        Some(p) => Some(py.detach(|| fit::telescope_cal::load(p)).map_err(|e| load_err(p, e))?),
+        None => None,
+    };
+    let (cat, mut warnings) = py
         .detach(|| {
             let (cat, warnings) = catalog_files(&frames, &inst, &read, &cfg, Box::new(|| {}))?;
             Ok::<_, skyfield::Error>((cat, warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>()))
         })
         .map_err(sky_err)?;
+    // Corrected in the same run, as `instpol catalog --cal` (the one rule in fit::catalog_correct).
+    let corrected = match (&loaded, &cal) {
+        (Some(l), Some(p)) => {
+            let opts = fit::correct::CorrectOptions { allow_extrapolation, ..Default::default() };
+            let (c, used, notes) = fit::catalog_correct::correct_catalog_loaded(&cat, &inst, &frames, l, opts)
+                .map_err(|e| input_err(format!("cal {}: {e}", p.display())))?;
+            warnings.extend(notes);
+            Some((c, used))
+        }
+        _ => None,
+    };
     let rows = &cat.rows;
     let n = cat.hwp_deg.len();
     let d = PyDict::new(py);
@@ -1273,6 +1290,32 @@ fn _catalog<'py>(
     d.set_item("unpaired", cat.unpaired.clone())?;
     d.set_item("unpaired_shift_px", cat.unpaired_shift_px)?;
     d.set_item("n_sources", cat.n_sources)?;
+    if let Some((c, used)) = &corrected {
+        // The columns of `instpol correct` (NaN for a star not measured).
+        let ccol = |g: fn(&fit::correct::Corrected) -> f64| {
+            arr1(py, c.rows.iter().map(|r| r.as_ref().map_or(f64::NAN, g)).collect())
+        };
+        d.set_item("q0", ccol(|r| r.q0))?;
+        d.set_item("u0", ccol(|r| r.u0))?;
+        d.set_item("sigma_q0", ccol(|r| r.var_q0.sqrt()))?;
+        d.set_item("sigma_u0", ccol(|r| r.var_u0.sqrt()))?;
+        d.set_item("cov_qu0", ccol(|r| r.cov_qu0))?;
+        d.set_item("p0", ccol(|r| r.p0))?;
+        d.set_item("sigma_p0", ccol(|r| r.sigma_p0))?;
+        d.set_item("chi0_deg", ccol(|r| r.chi0.to_degrees()))?;
+        d.set_item("sigma_chi0_deg", ccol(|r| r.sigma_chi0.to_degrees()))?;
+        d.set_item("q_inst", ccol(|r| r.inst.q))?;
+        d.set_item("u_inst", ccol(|r| r.inst.u))?;
+        d.set_item(
+            "extrapolated",
+            PyArray1::from_vec(py, c.rows.iter().map(|r| r.as_ref().is_some_and(|r| r.extrapolated)).collect()),
+        )?;
+        d.set_item("chi_offset_applied_deg", c.chi_offset_applied_deg)?;
+        d.set_item("n_extrapolated", c.n_extrapolated)?;
+        d.set_item("telescope_model", used.as_ref().map(|t| t.model))?;
+        d.set_item("telescope_band", used.as_ref().map(|t| t.band.clone()))?;
+        d.set_item("telescope_exposures", used.as_ref().map(|t| t.exposures))?;
+    }
     d.set_item("warnings", warnings)?;
     Ok(d)
 }

@@ -1,6 +1,6 @@
 //! `instpol catalog`: every paired star of a frame set, measured in one run.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use skyfield::catalog::{flags, CatalogConfig};
 use skyfield::detect::DetectConfig;
 use std::path::PathBuf;
@@ -125,53 +125,6 @@ struct CorrectedJson<'a> {
     telescope_exposures: Option<usize>,
 }
 
-/// The telescope of a catalog corrected in the same run: the band (the field model's filter,
-/// the frames' filter, or the model's only band), the set's track and each exposure's own from
-/// the frames' headers (the instrument's `[telescope]` keywords), with the rotator angle only
-/// for a model fitted with rotator angles; the zero-angle caveat of `instpol correct` said.
-fn catalog_telescope(
-    a: &Args,
-    inst: &instrument::Instrument,
-    cat: &skyfield::catalog::Catalog,
-    path: &std::path::Path,
-    tel: &fit::telescope::TelescopeFit,
-    field: Option<&fit::Calibration>,
-) -> Result<(String, fit::telescope::Track, Vec<skyfield::ExposureTrack>)> {
-    let Some(t) = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty()) else {
-        bail!(
-            "{}: the calibration holds a telescope model, which needs the frames' parallactic angles, but instrument {} names no header keyword for them ([telescope] parang_start_keyword): write the catalog and correct it with `instpol correct --parang START[,END]`",
-            path.display(),
-            inst.name
-        );
-    };
-    let (recorded, each) = fit::telescope_cal::exposure_tracks(&cat.frames, &a.frames, t).with_context(|| {
-        "the parallactic angle of the frames (the telescope model needs it): fix the headers, or write the catalog and correct it with `instpol correct --parang START[,END]`"
-    })?;
-    let band = tel
-        .choose_band(None, field.map(|c| c.filter.as_str()), Some(&cat.filter))
-        .map_err(|e| crate::util::band_choice_error(e, path, Some(&cat.filter)))?;
-    let rot = (!t.rotator_keyword.is_empty()).then_some(recorded.rotator);
-    // The parallactic angles are recorded, so only a missing rotator angle can stop the choice.
-    let choice = tel.choose_track(None, Some((recorded.start, recorded.end)), None, rot).map_err(|_| {
-        anyhow::anyhow!(
-            "{}: the telescope model was fitted with rotator angles, but instrument {} names no rotator keyword ([telescope] rotator_keyword): write the catalog and correct it with `instpol correct --parang START[,END] --rotator DEG`",
-            path.display(),
-            inst.name
-        )
-    })?;
-    for (z, whose) in [
-        (field.map_or(0.0, |c| c.hwp_chi_offset_deg), format!("the field calibration {}", path.display())),
-        (cat.chi_offset_deg, format!("filter {} of instrument {}", cat.filter, inst.name)),
-    ] {
-        if z != 0.0 {
-            eprintln!(
-                "WARNING: {whose} carries a HWP zero angle of {z} deg, and the chain of a field and a telescope model does not yet turn its inputs into one frame: the telescope's (and field's) angles may be off by it; check on a standard (instpol validate)"
-            );
-        }
-    }
-    Ok((band, choice.track, each))
-}
-
 pub fn run(a: Args) -> Result<()> {
     let inst = instrument::Instrument::load(&a.instrument)?;
     let annulus = crate::util::parse_radii(&a.annulus)?;
@@ -224,7 +177,7 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     // With a telescope model: its name, the band used and how many exposures were undone one by one.
-    let mut telescope_used: Option<(&'static str, String, usize)> = None;
+    let mut telescope_used: Option<fit::catalog_correct::TelescopeUsed> = None;
     let corrected = match &a.cal {
         None => None,
         Some(path) => {
@@ -232,30 +185,12 @@ pub fn run(a: Args) -> Result<()> {
                 .with_context(|| format!("cannot load calibration {}", path.display()))?;
             let opts =
                 fit::correct::CorrectOptions { allow_extrapolation: a.allow_extrapolation, ..Default::default() };
-            let c = match &loaded.telescope {
-                None => {
-                    let cal = loaded
-                        .field
-                        .as_ref()
-                        .ok_or_else(|| anyhow::anyhow!("{}: no field model to correct with", path.display()))?;
-                    fit::catalog_correct::correct_catalog(&cat, &inst.name, cal, opts)
-                }
-                Some(tel) => {
-                    let (band, track, each) = catalog_telescope(&a, &inst, &cat, path, tel, loaded.field.as_ref())?;
-                    telescope_used = Some((tel.model.name(), band.clone(), each.len()));
-                    fit::catalog_correct::correct_catalog_chain(
-                        &cat,
-                        &inst.name,
-                        loaded.field.as_ref(),
-                        opts,
-                        tel,
-                        &band,
-                        track,
-                        &each,
-                    )
-                }
+            let (c, used, notes) = fit::catalog_correct::correct_catalog_loaded(&cat, &inst, &a.frames, &loaded, opts)
+                .with_context(|| format!("--cal {}", path.display()))?;
+            for n in notes {
+                eprintln!("WARNING: {n}");
             }
-            .with_context(|| format!("--cal {}", path.display()))?;
+            telescope_used = used;
             if c.n_extrapolated > 0 {
                 eprintln!(
                     "warning: {} stars lie outside the calibrated field; corrected by extrapolation with inflated errors (flagged)",
@@ -315,9 +250,9 @@ pub fn run(a: Args) -> Result<()> {
                 calibration: a.cal.as_ref().map(|p| p.display().to_string()).unwrap_or_default(),
                 chi_offset_applied_deg: c.chi_offset_applied_deg,
                 n_extrapolated: c.n_extrapolated,
-                telescope_model: telescope_used.as_ref().map(|t| t.0),
-                telescope_band: telescope_used.as_ref().map(|t| t.1.clone()),
-                telescope_exposures: telescope_used.as_ref().map(|t| t.2),
+                telescope_model: telescope_used.as_ref().map(|t| t.model),
+                telescope_band: telescope_used.as_ref().map(|t| t.band.clone()),
+                telescope_exposures: telescope_used.as_ref().map(|t| t.exposures),
             })?,
         }
     } else {

@@ -487,6 +487,8 @@ def catalog(
     kappa: Optional[float] = None,
     kappa_from_data: bool = False,
     pair_tol: float = 1.5,
+    cal: Optional[PathLike] = None,
+    allow_extrapolation: bool = False,
 ) -> Dict[str, Any]:
     """Every paired star of a frame set measured, as ``instpol catalog``: detection on the
     first frame, ordinary/extraordinary pairing through the instrument's beam layout, aperture
@@ -505,6 +507,14 @@ def catalog(
     ``pair_tol``: how far (px) a detected e image may sit from where the instrument's o/e offset
     puts it (a warning gives the shift when many sit further off, e.g. another filter's throw).
     ``assembled=True``: frames already trimmed and assembled (as for :func:`reduce`).
+
+    ``cal``: a calibration file to remove the instrumental polarization with in the same run, as
+    ``instpol catalog --cal``: adds the columns ``q0, u0, sigma_q0, sigma_u0, cov_qu0, p0,
+    sigma_p0, chi0_deg, sigma_chi0_deg, q_inst, u_inst, extrapolated`` and ``chi_offset_applied_deg,
+    n_extrapolated, telescope_model, telescope_band, telescope_exposures``. A telescope model in
+    it is undone after the field exposure by exposure, each over its own parallactic track from
+    the frames' headers. ``allow_extrapolation``: correct stars outside the calibrated field
+    too (flagged, errors inflated).
     """
     try:
         r_in, r_out = (float(a) for a in annulus)
@@ -514,4 +524,5 @@ def catalog(
         _paths(frames), str(instrument), float(fwhm), float(threshold), str(aperture), (r_in, r_out),
         _opt_path(bias), _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles],
         bool(assembled), None if kappa is None else float(kappa), bool(kappa_from_data), float(pair_tol),
+        _opt_path(cal), bool(allow_extrapolation),
     )

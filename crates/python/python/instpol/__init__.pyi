@@ -158,5 +158,7 @@ def catalog(
     kappa: Optional[float] = ...,
     kappa_from_data: bool = ...,
     pair_tol: float = ...,
+    cal: Optional[PathLike] = ...,
+    allow_extrapolation: bool = ...,
 ) -> Dict[str, Any]:
     """Every paired star measured: Q/I, U/I, P, chi with errors and flags."""
