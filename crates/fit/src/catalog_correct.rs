@@ -142,18 +142,25 @@ pub fn correct_catalog(
     let dchi = cal.hwp_chi_offset_deg - cat.chi_offset_deg;
     opts.chi_offset = dchi.to_radians();
     let cor = Corrector::new(cal, opts);
-    let mut n_extrapolated = 0;
+    let (rows, n_extrapolated) = correct_rows(cat, |r, m| {
+        cor.correct(m).map_err(|source| Error::Star { id: r.id, x: r.x_arcmin, y: r.y_arcmin, source })
+    })?;
+    Ok(CorrectedCatalog { rows, n_extrapolated, chi_offset_applied_deg: dchi })
+}
+
+/// Every row of `cat` through `correct` (`None` for a star not measured), and how many of the
+/// corrections extrapolated.
+fn correct_rows(
+    cat: &Catalog,
+    mut correct: impl FnMut(&skyfield::catalog::Row, &Measurement) -> Result<Corrected, Error>,
+) -> Result<(Vec<Option<Corrected>>, usize), Error> {
     let rows = cat
         .rows
         .iter()
-        .map(|r| {
-            let Some(m) = measurement(r) else { return Ok(None) };
-            let c = cor.correct(&m).map_err(|source| Error::Star { id: r.id, x: r.x_arcmin, y: r.y_arcmin, source })?;
-            n_extrapolated += c.extrapolated as usize;
-            Ok(Some(c))
-        })
+        .map(|r| measurement(r).map(|m| correct(r, &m)).transpose())
         .collect::<Result<Vec<_>, Error>>()?;
-    Ok(CorrectedCatalog { rows, n_extrapolated, chi_offset_applied_deg: dchi })
+    let n = rows.iter().flatten().filter(|c| c.extrapolated).count();
+    Ok((rows, n))
 }
 
 /// The measurement of a catalog row (`None` for a star not measured).
@@ -199,18 +206,10 @@ pub fn correct_catalog_chain(
     let prepared =
         if ex.is_empty() { None } else { Some(tel.prepare_exposures(band, track, &ex).map_err(Error::Exposures)?) };
     let seen = prepared.as_ref().map_or(Seen::Track(track), Seen::Prepared);
-    let mut n_extrapolated = 0;
-    let rows = cat
-        .rows
-        .iter()
-        .map(|r| {
-            let Some(m) = measurement(r) else { return Ok(None) };
-            let c = crate::telescope_cal::correct_chain_seen(cor.as_ref(), tel, band, &m, seen)
-                .map_err(|source| Error::Chain { id: r.id, x: r.x_arcmin, y: r.y_arcmin, source })?
-                .with_telescope_in_inst();
-            n_extrapolated += c.extrapolated as usize;
-            Ok(Some(c))
-        })
-        .collect::<Result<Vec<_>, Error>>()?;
+    let (rows, n_extrapolated) = correct_rows(cat, |r, m| {
+        crate::telescope_cal::correct_chain_seen(cor.as_ref(), tel, band, m, seen)
+            .map(|c| c.with_telescope_in_inst())
+            .map_err(|source| Error::Chain { id: r.id, x: r.x_arcmin, y: r.y_arcmin, source })
+    })?;
     Ok(CorrectedCatalog { rows, n_extrapolated, chi_offset_applied_deg: 0.0 })
 }
