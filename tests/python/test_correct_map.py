@@ -220,3 +220,43 @@ def test_catalog_with_a_telescope_model_is_the_cli_catalog(run_json, run, tmp_pa
     # The star is unpolarized: the telescope's few percent removed, within the errors.
     assert np.hypot(c["q"][0], c["u"][0]) > 0.01
     assert abs(c["q0"][0]) < 4 * c["sigma_q0"][0] and abs(c["u0"][0]) < 4 * c["sigma_u0"][0]
+
+
+def test_catalog_tables_record_the_exposures_angles_for_astropy(run, tmp_path):
+    """`instpol catalog --out` in ECSV, FITS and VOTable records its exposures' telescope
+    angles as the table's numbers, read here with astropy: the ECSV header's meta, the FITS
+    table HDU's keywords, the VOTable's PARAMs, equal to the frames' headers (PARANG START/END
+    of each exposure); `instpol correct` then needs no --parang."""
+    from astropy.io.votable import parse
+    from astropy.table import Table
+
+    _, inst = nasmyth_setup(run, tmp_path, "the catalog tables' recorded angles were not checked")
+    scene = tmp_path / "stars.toml"
+    scene.write_text(
+        f'instrument = "{inst}"\nfilter = "V"\nseed = 8\nexposure_s = 60\nhwp_angles_deg = [0, 22.5, 45, 67.5]\n'
+        '[output]\nbitpix = -64\n[[stars]]\nx = 64\ny = 34\ncoords = "pixel"\nflux_e = 4e6\nfwhm_arcsec = 1.6\n'
+        "[telescope]\nfactor = 0.86\noffset_deg = 40\ndec_deg = -24\nha_start_deg = -2.5\noverhead_s = 20\n"
+    )
+    run("simulate", scene, "--out", tmp_path / "stars")
+    frames = sorted((tmp_path / "stars").glob("*.fits"))
+    starts = [fits.getheader(f)["HIERARCH ESO TEL PARANG START"] for f in frames]
+    ends = [fits.getheader(f)["HIERARCH ESO TEL PARANG END"] for f in frames]
+    hwp = [fits.getheader(f)["HIERARCH ESO INS RETA2 POSANG"] for f in frames]
+    metas = {}
+    for ext in ["ecsv", "fits", "vot"]:
+        out = tmp_path / f"stars.{ext}"
+        run("catalog", *frames, "--instrument", inst, "--fwhm", "4", "--aperture", "10", "--annulus", "14,24",
+            "--out", out)
+        if ext == "ecsv":
+            metas[ext] = dict(Table.read(out, format="ascii.ecsv").meta)
+        elif ext == "fits":
+            metas[ext] = dict(fits.getheader(out, "CATALOG"))
+        else:
+            metas[ext] = {p.name: float(p.value) for p in parse(str(out)).get_first_table().params}
+    for ext, m in metas.items():
+        assert m["NEXPTRK"] == 4, ext
+        got = sorted((m[f"XHWP{k}"], m[f"XPAS{k}"], m[f"XPAE{k}"]) for k in range(1, 5))
+        want = sorted(zip(hwp, starts, ends))
+        assert np.allclose(got, want, atol=1e-9, rtol=0), (ext, got, want)
+        assert m["PARANG1"] == pytest.approx(starts[0], abs=1e-9), ext
+        assert m["PARANG2"] == pytest.approx(ends[-1], abs=1e-9), ext

@@ -815,4 +815,59 @@ fn catalog_undoes_the_telescope_exposure_by_exposure() {
     eprintln!("catalog --cal exposure by exposure: worst star off by {worst_ex:.2e}; one track: {worst_one:.2e}");
     assert!(worst_ex < 1e-5, "exposure by exposure: {worst_ex:.2e}");
     assert!(worst_one > 10.0 * worst_ex && worst_one > 1e-4, "one track {worst_one:.2e}");
+
+    // Written as ECSV, FITS or VOTable, the catalog records its exposures' angles, and `instpol
+    // correct` (no --parang) undoes the telescope as `catalog --cal` did, to 1e-12 (the angles
+    // go through degrees in the file). A CSV table has no place for them: refused, naming
+    // the formats that have.
+    let by_x = |x: f64| {
+        let i = rows.iter().position(|r| (r["x"].as_f64().unwrap() - x).abs() < 1e-9).unwrap();
+        let c = &j["corrected"][i];
+        (c["q0"].as_f64().unwrap(), c["u0"].as_f64().unwrap())
+    };
+    for ext in ["ecsv", "fits", "vot"] {
+        let t = d.join(format!("stars.{ext}"));
+        let o = cat_args(&["--out", t.to_str().unwrap()]).output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let out = d.join(format!("corr_{ext}.csv"));
+        let o = instpol()
+            .args(["correct", "--cal"])
+            .arg(&tel)
+            .arg("--in")
+            .arg(&t)
+            .arg("--out")
+            .arg(&out)
+            .args(["--coords", "arcmin"])
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{ext}: {}", String::from_utf8_lossy(&o.stderr));
+        assert!(String::from_utf8_lossy(&o.stdout).contains("exposure by exposure (8"), "{ext}");
+        let mut rdr = csv::Reader::from_path(&out).unwrap();
+        let h = rdr.headers().unwrap().clone();
+        let col = |name: &str| h.iter().position(|c| c == name).unwrap();
+        for rec in rdr.records() {
+            let rec = rec.unwrap();
+            let v = |name: &str| rec[col(name)].parse::<f64>().unwrap();
+            let (q, u) = by_x(v("x"));
+            assert!(
+                (v("q0") - q).abs() < 1e-12 && (v("u0") - u).abs() < 1e-12,
+                "{ext}: {} {} vs {q} {u}",
+                v("q0"),
+                v("u0")
+            );
+        }
+    }
+    let o = instpol()
+        .args(["correct", "--cal"])
+        .arg(&tel)
+        .arg("--in")
+        .arg(&table)
+        .arg("--out")
+        .arg(d.join("csv_refused.csv"))
+        .args(["--coords", "arcmin"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("no recorded parallactic angles") && err.contains("ECSV, FITS and VOTable"), "{err}");
 }

@@ -594,6 +594,24 @@ pub fn exposure_tracks(
     Ok((track, each))
 }
 
+/// The telescope angles of a catalog's exposures for its table ([`skyfield::RecordedAngles`],
+/// written as the table's numbers), when the instrument names their header keywords and every
+/// exposure's header has them (`frames` as given, for their order); `None` otherwise, silently,
+/// as for maps ([`record_telescope_angles`]).
+pub fn catalog_angles(
+    cat: &skyfield::catalog::Catalog,
+    frames: &[std::path::PathBuf],
+    inst: &instrument::Instrument,
+) -> Option<skyfield::RecordedAngles> {
+    let t = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty())?;
+    let (track, each) = exposure_tracks(&cat.frames, frames, t).ok()?;
+    Some(skyfield::RecordedAngles {
+        parallactic_rad: Some((track.start, track.end)),
+        rotator_rad: (!t.rotator_keyword.is_empty()).then_some(track.rotator),
+        exposure_tracks: each,
+    })
+}
+
 /// The exposures of `tracks` as the telescope model takes them (HWP angle in rad, each
 /// exposure's parallactic track with the set's `rotator`).
 pub fn telescope_exposures(tracks: &[skyfield::ExposureTrack], rotator: f64) -> Vec<mueller::telescope::Exposure> {

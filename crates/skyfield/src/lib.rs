@@ -26,7 +26,7 @@ pub mod solve;
 pub mod table;
 
 pub use beams::BeamGeometry;
-pub use maps::{BinGeometry, CorrectionStamp, ExposureTrack, StokesMap, TelescopeStamp};
+pub use maps::{BinGeometry, CorrectionStamp, ExposureTrack, RecordedAngles, StokesMap, TelescopeStamp};
 
 use std::path::PathBuf;
 

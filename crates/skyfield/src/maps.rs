@@ -279,6 +279,123 @@ pub struct ExposureTrack {
     pub end: f64,
 }
 
+/// The telescope angles data record for a later correction (module docs): the set's
+/// parallactic track, the rotator angle, each exposure's HWP angle and track. As keywords they
+/// are `PARANG1`, `PARANG2`, `ROTANG`, `NEXPTRK`, `XHWPk`, `XPASk`, `XPAEk` (deg), all
+/// optional: the primary header of a Stokes map, the table-level numbers of a catalog table
+/// ([`crate::table::Table::meta`]). One writing and one reading of those names.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RecordedAngles {
+    /// Rad: the first exposure's start, the last one's end.
+    pub parallactic_rad: Option<(f64, f64)>,
+    pub rotator_rad: Option<f64>,
+    pub exposure_tracks: Vec<ExposureTrack>,
+}
+
+impl RecordedAngles {
+    /// The keywords, with their comments (`NEXPTRK` a count, the others degrees).
+    pub fn keywords(&self) -> Vec<(String, crate::io::KeyValue, &'static str)> {
+        use crate::io::KeyValue::{F64, I64};
+        let mut k = Vec::new();
+        if let Some((a, b)) = self.parallactic_rad {
+            k.push(("PARANG1".to_string(), F64(a.to_degrees()), "parallactic angle, first start [deg]"));
+            k.push(("PARANG2".to_string(), F64(b.to_degrees()), "parallactic angle, last end [deg]"));
+        }
+        if let Some(r) = self.rotator_rad {
+            k.push(("ROTANG".to_string(), F64(r.to_degrees()), "rotator / adapter angle [deg]"));
+        }
+        if !self.exposure_tracks.is_empty() {
+            k.push((
+                "NEXPTRK".to_string(),
+                I64(self.exposure_tracks.len() as i64),
+                "exposures with their parallactic angles",
+            ));
+            for (n, x) in self.exposure_tracks.iter().enumerate() {
+                let n = n + 1;
+                k.push((format!("XHWP{n}"), F64(x.hwp_deg), "exposure's HWP angle [deg]"));
+                k.push((format!("XPAS{n}"), F64(x.start.to_degrees()), "its parallactic angle, start [deg]"));
+                k.push((format!("XPAE{n}"), F64(x.end.to_degrees()), "its parallactic angle, end [deg]"));
+            }
+        }
+        k
+    }
+
+    /// Read the keywords back: `get` gives a keyword's text (None when absent). A keyword
+    /// present but not an angle in degrees (or `NEXPTRK` not a count up to 4096) is an error
+    /// naming it and `path`; so is an exposure's keyword missing, or `PARANG2` without `PARANG1`.
+    pub fn from_keywords(mut get: impl FnMut(&str) -> Option<String>, path: &Path) -> Result<Self, Error> {
+        let count = get("NEXPTRK");
+        // Degrees as written (the HWP angles are kept in degrees; the others become radians).
+        let mut degrees = |k: &str| -> Result<Option<f64>, Error> {
+            match get(k) {
+                None => Ok(None),
+                Some(s) => match s.trim().parse::<f64>() {
+                    Ok(v) if v.is_finite() && v.abs() <= 720.0 => Ok(Some(v)),
+                    _ => Err(Error::BadKeyword {
+                        path: path.into(),
+                        keyword: k.into(),
+                        value: s,
+                        expected: "an angle in degrees".into(),
+                    }),
+                },
+            }
+        };
+        let mut angle = |k: &str| degrees(k).map(|v| v.map(f64::to_radians));
+        let parallactic_rad = match (angle("PARANG1")?, angle("PARANG2")?) {
+            (Some(a), b) => Some((a, b.unwrap_or(a))),
+            (None, None) => None,
+            (None, Some(_)) => {
+                return Err(Error::MissingKeyword { path: path.into(), keyword: "PARANG1 (beside PARANG2)".into() })
+            }
+        };
+        let rotator_rad = angle("ROTANG")?;
+        // Each exposure's angles (NEXPTRK of them), all three keywords each, or none.
+        let mut exposure_tracks = vec![];
+        if let Some(text) = count {
+            let n = match text.trim().parse::<f64>() {
+                Ok(n) if (0.0..=4096.0).contains(&n) && n.fract() == 0.0 => n as usize,
+                _ => {
+                    return Err(Error::BadKeyword {
+                        path: path.into(),
+                        keyword: "NEXPTRK".into(),
+                        value: text,
+                        expected: "a number of exposures (0 to 4096)".into(),
+                    })
+                }
+            };
+            for k in 1..=n {
+                let mut need = |name: String| -> Result<f64, Error> {
+                    degrees(&name)?.ok_or(Error::MissingKeyword { path: path.into(), keyword: name })
+                };
+                exposure_tracks.push(ExposureTrack {
+                    hwp_deg: need(format!("XHWP{k}"))?,
+                    start: need(format!("XPAS{k}"))?.to_radians(),
+                    end: need(format!("XPAE{k}"))?.to_radians(),
+                });
+            }
+        }
+        Ok(Self { parallactic_rad, rotator_rad, exposure_tracks })
+    }
+
+    /// As a table's numbers ([`crate::table::Table::meta`]).
+    pub fn to_meta(&self) -> Vec<(String, f64)> {
+        self.keywords()
+            .into_iter()
+            .filter_map(|(k, v, _)| match v {
+                crate::io::KeyValue::F64(x) => Some((k, x)),
+                crate::io::KeyValue::I64(n) => Some((k, n as f64)),
+                crate::io::KeyValue::Str(_) => None,
+            })
+            .collect()
+    }
+
+    /// Read back from a table's numbers ([`RecordedAngles::from_keywords`]; `path` names the
+    /// table in errors).
+    pub fn from_meta(meta: &[(String, f64)], path: &Path) -> Result<Self, Error> {
+        Self::from_keywords(|k| meta.iter().find(|(n, _)| n == k).map(|(_, v)| format!("{v:?}")), path)
+    }
+}
+
 /// A celestial FITS WCS without distortion terms: `CTYPEi` (e.g. `RA---TAN`, `DEC--TAN`),
 /// `CRPIXi`, `CRVALi` (deg) and the `CD` matrix (deg/px), with `RADESYS`/`EQUINOX` when given.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -385,6 +502,15 @@ impl CelestialWcs {
 }
 
 impl StokesMap {
+    /// The telescope angles the map records ([`RecordedAngles`]).
+    pub fn recorded_angles(&self) -> RecordedAngles {
+        RecordedAngles {
+            parallactic_rad: self.parallactic_rad,
+            rotator_rad: self.rotator_rad,
+            exposure_tracks: self.exposure_tracks.clone(),
+        }
+    }
+
     /// An all-invalid map on `geometry`.
     pub fn empty(geometry: BinGeometry, instrument: &str, filter: &str, hwp_angles_deg: Vec<f64>) -> Self {
         let n = geometry.len();
@@ -477,24 +603,13 @@ impl StokesMap {
         ph.write_key(f, "PIXSCALE", (g.pixel_scale_arcsec, "detector scale [arcsec/px]")).map_err(e)?;
         ph.write_key(f, "DETNX", (g.detector_nx as i64, "detector size x [px]")).map_err(e)?;
         ph.write_key(f, "DETNY", (g.detector_ny as i64, "detector size y [px]")).map_err(e)?;
-        if let Some((a, b)) = self.parallactic_rad {
-            ph.write_key(f, "PARANG1", (a.to_degrees(), "parallactic angle, first start [deg]")).map_err(e)?;
-            ph.write_key(f, "PARANG2", (b.to_degrees(), "parallactic angle, last end [deg]")).map_err(e)?;
-        }
-        if let Some(r) = self.rotator_rad {
-            ph.write_key(f, "ROTANG", (r.to_degrees(), "rotator / adapter angle [deg]")).map_err(e)?;
-        }
-        if !self.exposure_tracks.is_empty() {
-            let n = self.exposure_tracks.len() as i64;
-            ph.write_key(f, "NEXPTRK", (n, "exposures with their parallactic angles")).map_err(e)?;
-            for (k, x) in self.exposure_tracks.iter().enumerate() {
-                let k = k + 1;
-                ph.write_key(f, &format!("XHWP{k}"), (x.hwp_deg, "exposure's HWP angle [deg]")).map_err(e)?;
-                ph.write_key(f, &format!("XPAS{k}"), (x.start.to_degrees(), "its parallactic angle, start [deg]"))
-                    .map_err(e)?;
-                ph.write_key(f, &format!("XPAE{k}"), (x.end.to_degrees(), "its parallactic angle, end [deg]"))
-                    .map_err(e)?;
+        for (k, v, comment) in self.recorded_angles().keywords() {
+            match v {
+                crate::io::KeyValue::I64(n) => ph.write_key(f, &k, (n, comment)),
+                crate::io::KeyValue::F64(x) => ph.write_key(f, &k, (x, comment)),
+                crate::io::KeyValue::Str(t) => ph.write_key(f, &k, (t, comment)),
             }
+            .map_err(e)?;
         }
         let dims = [g.ny, g.nx];
         let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
@@ -669,58 +784,8 @@ impl StokesMap {
             Ok(h) => CelestialWcs::read(&mut f, &h).ok().flatten(),
             Err(_) => None,
         };
-        let count = crate::io::read_key_str(&mut f, &ph, "NEXPTRK").ok();
-        // The exposures' angles, optional; present but not a finite angle is an error (a
-        // telescope correction would use it).
-        // Degrees as written (the HWP angles are kept in degrees; the others become radians).
-        let mut degrees = |k: &str| -> Result<Option<f64>, Error> {
-            match crate::io::read_key_str(&mut f, &ph, k) {
-                Err(_) => Ok(None),
-                Ok(s) => match s.trim().parse::<f64>() {
-                    Ok(v) if v.is_finite() && v.abs() <= 720.0 => Ok(Some(v)),
-                    _ => Err(Error::BadKeyword {
-                        path: path.into(),
-                        keyword: k.into(),
-                        value: s,
-                        expected: "an angle in degrees".into(),
-                    }),
-                },
-            }
-        };
-        let mut angle = |k: &str| degrees(k).map(|v| v.map(f64::to_radians));
-        let parallactic_rad = match (angle("PARANG1")?, angle("PARANG2")?) {
-            (Some(a), b) => Some((a, b.unwrap_or(a))),
-            (None, None) => None,
-            (None, Some(_)) => {
-                return Err(Error::MissingKeyword { path: path.into(), keyword: "PARANG1 (beside PARANG2)".into() })
-            }
-        };
-        let rotator_rad = angle("ROTANG")?;
-        // Each exposure's angles (NEXPTRK of them), all three keywords each, or none.
-        let mut exposure_tracks = vec![];
-        if let Some(text) = count {
-            let n = match text.trim().parse::<usize>() {
-                Ok(n) if n <= 4096 => n,
-                _ => {
-                    return Err(Error::BadKeyword {
-                        path: path.into(),
-                        keyword: "NEXPTRK".into(),
-                        value: text,
-                        expected: "a number of exposures (0 to 4096)".into(),
-                    })
-                }
-            };
-            for k in 1..=n {
-                let mut get = |name: String| -> Result<f64, Error> {
-                    degrees(&name)?.ok_or(Error::MissingKeyword { path: path.into(), keyword: name })
-                };
-                exposure_tracks.push(ExposureTrack {
-                    hwp_deg: get(format!("XHWP{k}"))?,
-                    start: get(format!("XPAS{k}"))?.to_radians(),
-                    end: get(format!("XPAE{k}"))?.to_radians(),
-                });
-            }
-        }
+        let RecordedAngles { parallactic_rad, rotator_rad, exposure_tracks } =
+            RecordedAngles::from_keywords(|k| crate::io::read_key_str(&mut f, &ph, k).ok(), path)?;
         // A map made elsewhere (or edited) is checked before anything is fitted to it: every
         // valid bin holds a physical polarization and a covariance that is one.
         for k in (0..n).filter(|&k| valid[k]) {

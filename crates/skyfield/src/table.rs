@@ -12,6 +12,10 @@
 //! 64-bit integers, or text. A CSV column is an integer when every field is one, a float when
 //! every field is a number (an empty field is NaN), else text.
 //!
+//! A table may carry table-level numbers ([`Table::meta`]): keywords of the FITS table HDU, the
+//! ECSV header's `meta` mapping, VOTable `PARAM`s; a CSV file has no place for them (they are
+//! left out, and read as none).
+//!
 //! The ECSV and VOTable readers are strict subsets, enough for what astropy writes for a plain
 //! table (scalar columns; the tests read files astropy wrote, `tests/data/tables/`): a
 //! multidimensional column, an ECSV column of `complex`/`object` type, or a VOTable in a
@@ -129,6 +133,9 @@ pub struct Table {
     pub columns: Vec<Column>,
     /// Source line of each data row (CSV and ECSV), for messages; empty otherwise.
     pub lines: Vec<u64>,
+    /// Table-level numbers (module docs): keyword-like names (at most 8 characters, upper case,
+    /// digits, `_` or `-`, as FITS keywords), finite values.
+    pub meta: Vec<(String, f64)>,
 }
 
 fn terr(path: &Path, message: impl Into<String>) -> Error {
@@ -137,7 +144,7 @@ fn terr(path: &Path, message: impl Into<String>) -> Error {
 
 impl Table {
     pub fn new(columns: Vec<Column>) -> Self {
-        Self { columns, lines: Vec::new() }
+        Self { columns, lines: Vec::new(), meta: Vec::new() }
     }
 
     pub fn n_rows(&self) -> usize {
@@ -200,6 +207,17 @@ impl Table {
         for (i, c) in self.columns.iter().enumerate() {
             if self.columns[..i].iter().any(|d| d.name.eq_ignore_ascii_case(&c.name)) {
                 return Err(terr(path, format!("column '{}' appears twice", c.name)));
+            }
+        }
+        for (k, v) in &self.meta {
+            let name_ok = !k.is_empty()
+                && k.len() <= 8
+                && k.chars().all(|c| c.is_ascii_uppercase() || c.is_ascii_digit() || c == '_' || c == '-');
+            if !name_ok || !v.is_finite() {
+                return Err(terr(
+                    path,
+                    format!("table value {k} = {v}: a name of up to 8 of A-Z 0-9 _ - and a finite number"),
+                ));
             }
         }
         Ok(())
@@ -281,6 +299,12 @@ impl Table {
             }
             s.push_str("}\n");
         }
+        if !self.meta.is_empty() {
+            s.push_str("# meta: !!omap\n");
+            for (k, v) in &self.meta {
+                s.push_str(&format!("# - {{{}: {v:?}}}\n", yaml_scalar(k)));
+            }
+        }
         s.push_str("# schema: astropy-2.0\n");
         let line = |fields: Vec<String>| fields.iter().map(|f| ecsv_field(f)).collect::<Vec<_>>().join(" ") + "\n";
         s.push_str(&line(self.names()));
@@ -299,6 +323,9 @@ impl Table {
              xsi:schemaLocation=\"http://www.ivoa.net/xml/VOTable/v1.3 http://www.ivoa.net/xml/VOTable/VOTable-1.4.xsd\">\n\
              <RESOURCE type=\"results\">\n<TABLE>\n",
         );
+        for (k, v) in &self.meta {
+            s.push_str(&format!("<PARAM name=\"{}\" datatype=\"double\" value=\"{v:?}\"/>\n", xml_escape(k)));
+        }
         for c in &self.columns {
             let dt = match c.data {
                 Data::F64(_) => "datatype=\"double\"",
@@ -364,6 +391,9 @@ impl Table {
                 Data::Str(v) => h.write_col(f, &c.name, v),
             }
             .map_err(|x| e(format!("column {}: {x}", c.name)))?;
+        }
+        for (k, v) in &self.meta {
+            write_key_exact(f, k, *v).map_err(|x| e(format!("keyword {k}: {x}")))?;
         }
         Ok(())
     }
@@ -456,7 +486,7 @@ fn read_csv(path: &Path) -> Result<Table, Error> {
         }
         lines.push(rec.position().map_or(0, |p| p.line()));
     }
-    Ok(Table { columns: typed(names, cells), lines })
+    Ok(Table { columns: typed(names, cells), lines, meta: Vec::new() })
 }
 
 /// Split one `{k: v, k: 'v, w'}` YAML flow mapping into pairs (quotes honoured).
@@ -530,14 +560,28 @@ fn read_ecsv(path: &Path) -> Result<Table, Error> {
     }
     let mut entries: Vec<(usize, String)> = Vec::new();
     let mut delimiter = b' ';
-    let mut in_dt = false;
+    let (mut in_dt, mut in_meta) = (false, false);
+    // The header's `meta` mapping: its numeric entries (`- {KEY: 1.5}` as astropy writes an
+    // ordered map, or `KEY: 1.5` lines of a block mapping); others are not this reader's.
+    let mut table_meta: Vec<(String, f64)> = Vec::new();
     for (ln, h) in &header {
         if h.trim() == "---" || h.trim().is_empty() {
             continue;
         }
         let top = !h.starts_with(' ') && !h.starts_with('-');
+        if !top && in_meta {
+            let item = h.trim().trim_start_matches("- ").trim();
+            let item = item.strip_prefix('{').and_then(|i| i.strip_suffix('}')).unwrap_or(item);
+            if let Some((k, v)) = item.split_once(':') {
+                if let (Some(k), Ok(v)) = (yaml_unquote(k.trim()), v.trim().parse::<f64>()) {
+                    table_meta.push((k, v));
+                }
+            }
+            continue;
+        }
         if top {
             in_dt = h.trim_end() == "datatype:";
+            in_meta = h.starts_with("meta:");
             if let Some(d) = h.strip_prefix("delimiter:") {
                 delimiter = match yaml_unquote(d.trim()).as_deref() {
                     Some(",") => b',',
@@ -640,7 +684,7 @@ fn read_ecsv(path: &Path) -> Result<Table, Error> {
         let data = cells_to_data(v, kind, num, bad)?;
         columns.push(Column { name, unit, description, data });
     }
-    Ok(Table { columns, lines: src_lines })
+    Ok(Table { columns, lines: src_lines, meta: table_meta })
 }
 
 /// What a column's declared type makes of its text cells.
@@ -695,6 +739,9 @@ fn read_votable(path: &Path) -> Result<Table, Error> {
     }
     let mut fields: Vec<Field> = Vec::new();
     let mut rows: Vec<Vec<String>> = Vec::new();
+    // The table's numeric PARAMs (Table::meta); a PARAM's own DESCRIPTION is not a FIELD's.
+    let mut params: Vec<(String, f64)> = Vec::new();
+    let mut in_param = false;
     let (mut in_table, mut seen_table, mut in_desc, mut in_td, mut in_tabledata) = (false, false, false, false, false);
     let mut td = String::new();
     let mut desc = String::new();
@@ -732,7 +779,15 @@ fn read_votable(path: &Path) -> Result<Table, Error> {
                     }
                     fields.push(Field { name, datatype, unit: attr("unit")?, description: None });
                 }
-                "DESCRIPTION" if in_table && !empty => {
+                "PARAM" if in_table => {
+                    if let (Some(n), Some(v)) = (attr("name")?, attr("value")?) {
+                        if let Ok(x) = v.trim().parse::<f64>() {
+                            params.push((n, x));
+                        }
+                    }
+                    in_param = !empty;
+                }
+                "DESCRIPTION" if in_table && !in_param && !empty => {
                     in_desc = true;
                     desc.clear();
                 }
@@ -781,6 +836,7 @@ fn read_votable(path: &Path) -> Result<Table, Error> {
                         f.description = Some(desc.trim().to_string());
                     }
                 }
+                b"PARAM" => in_param = false,
                 b"TABLEDATA" => in_tabledata = false,
                 b"TABLE" => in_table = false,
                 _ => {}
@@ -830,7 +886,7 @@ fn read_votable(path: &Path) -> Result<Table, Error> {
         let data = cells_to_data(v, kind, num, bad)?;
         columns.push(Column { name: f.name, unit: f.unit, description: f.description, data });
     }
-    Ok(Table::new(columns))
+    Ok(Table { meta: params, ..Table::new(columns) })
 }
 
 /// The table HDU `name`, or the first table HDU, with its column descriptions and row count.
@@ -934,5 +990,70 @@ fn read_fits(path: &Path, name: Option<&str>) -> Result<Table, Error> {
         };
         columns.push(Column { name: d.name.clone(), unit, description, data });
     }
-    Ok(Table::new(columns))
+    let meta =
+        fits_table_numbers(&mut f, &hdu).map_err(|e| terr(path, format!("reading the table's keywords: {e}")))?;
+    Ok(Table { meta, ..Table::new(columns) })
+}
+
+/// A number as a keyword of the current HDU with 17 significant digits, so that it reads back
+/// to the bit (fitsio's `write_key` keeps 15).
+fn write_key_exact(f: &mut fitsio::FitsFile, name: &str, v: f64) -> Result<(), String> {
+    let key = std::ffi::CString::new(name).map_err(|x| x.to_string())?;
+    let mut st = 0;
+    // SAFETY: an open file positioned on the table HDU just created; a NUL-terminated name; a
+    // null comment is allowed.
+    unsafe { fitsio::sys::ffpkyd(f.as_raw(), key.as_ptr(), v, -17, std::ptr::null_mut(), &mut st) };
+    if st == 0 {
+        Ok(())
+    } else {
+        Err(format!("CFITSIO status {st}"))
+    }
+}
+
+/// The numeric keywords of a table HDU other than the ones that describe its columns and
+/// layout ([`Table::meta`]).
+fn fits_table_numbers(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<Vec<(String, f64)>, String> {
+    use std::ffi::CStr;
+    let mut st = 0;
+    let mut ty = 0;
+    // SAFETY: an open file; a valid HDU number.
+    unsafe { fitsio::sys::ffmahd(f.as_raw(), hdu.number as i32 + 1, &mut ty, &mut st) };
+    let (mut nkeys, mut more) = (0, 0);
+    // SAFETY: an open file positioned on the HDU; out-parameters of the right types.
+    unsafe { fitsio::sys::ffghsp(f.as_raw(), &mut nkeys, &mut more, &mut st) };
+    if st != 0 {
+        return Err(format!("CFITSIO status {st}"));
+    }
+    let structural = |k: &str| {
+        matches!(k, "XTENSION" | "BITPIX" | "PCOUNT" | "GCOUNT" | "TFIELDS" | "THEAP" | "EXTVER" | "EXTLEVEL")
+            || k.starts_with("NAXIS")
+            || ["TTYPE", "TFORM", "TUNIT", "TCOMM", "TNULL", "TDISP", "TSCAL", "TZERO", "TDIM"]
+                .iter()
+                .any(|p| k.strip_prefix(p).is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit())))
+    };
+    let mut out = Vec::new();
+    for i in 1..=nkeys {
+        let mut name = [0 as std::os::raw::c_char; 80];
+        let mut value = [0 as std::os::raw::c_char; 80];
+        let mut comment = [0 as std::os::raw::c_char; 80];
+        // SAFETY: buffers of FLEN_KEYWORD/FLEN_VALUE/FLEN_COMMENT (<= 80) characters.
+        unsafe {
+            fitsio::sys::ffgkyn(f.as_raw(), i, name.as_mut_ptr(), value.as_mut_ptr(), comment.as_mut_ptr(), &mut st)
+        };
+        if st != 0 {
+            return Err(format!("CFITSIO status {st} at keyword {i}"));
+        }
+        // SAFETY: CFITSIO wrote NUL-terminated strings.
+        let (k, v) = unsafe { (CStr::from_ptr(name.as_ptr()), CStr::from_ptr(value.as_ptr())) };
+        let (k, v) = (k.to_string_lossy().into_owned(), v.to_string_lossy().replace(['D', 'd'], "E"));
+        if k.is_empty() || structural(&k) {
+            continue;
+        }
+        if let Ok(x) = v.trim().parse::<f64>() {
+            if x.is_finite() {
+                out.push((k, x));
+            }
+        }
+    }
+    Ok(out)
 }

@@ -116,6 +116,39 @@ fn every_format_keeps_every_bit_units_and_text() {
     }
 }
 
+/// Table-level numbers (`Table::meta`) come back exactly from ECSV, FITS and VOTable (whole
+/// numbers, negatives, fractions that need every digit), are left out of CSV, and a name that
+/// is no FITS keyword or a value that is not finite is refused before anything is written.
+/// (That astropy reads them: tests/python/test_correct_map.py.)
+#[test]
+fn every_format_but_csv_keeps_the_table_numbers() {
+    let mut t = Table::new(vec![Column::f64("v", None, "", vec![1.0, 2.0])]);
+    t.meta = vec![("NEXPTRK".into(), 4.0), ("XPAS1".into(), -157.531404512083), ("ROTANG".into(), 0.1 + 0.2)];
+    let dir = tempfile::tempdir().unwrap();
+    for ext in ["ecsv", "vot", "fits", "csv"] {
+        let p = dir.path().join(format!("m.{ext}"));
+        t.write(&p).unwrap();
+        let r = Table::read(&p, None).unwrap();
+        if ext == "csv" {
+            assert!(r.meta.is_empty(), "{:?}", r.meta);
+            continue;
+        }
+        assert_eq!(r.meta.len(), 3, "{ext}: {:?}", r.meta);
+        for ((a, x), (b, y)) in t.meta.iter().zip(&r.meta) {
+            assert_eq!(a, b, "{ext}");
+            assert_eq!(x.to_bits(), y.to_bits(), "{ext}: {a} {x} -> {y}");
+        }
+    }
+    for bad in [("lower", 1.0), ("TOOLONGNAME", 1.0), ("NAN", f64::NAN)] {
+        let mut b = t.clone();
+        b.meta = vec![(bad.0.to_string(), bad.1)];
+        let p = dir.path().join("bad.ecsv");
+        let e = b.write(&p).unwrap_err().to_string();
+        assert!(e.contains(bad.0), "{e}");
+        assert!(!p.exists());
+    }
+}
+
 #[test]
 fn bad_tables_are_refused_with_the_file_and_row() {
     let dir = tempfile::tempdir().unwrap();

@@ -203,6 +203,11 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(out) = &a.out {
         crate::util::check_output(out)?;
         let mut t = cat.to_table();
+        // The exposures' telescope angles, for `instpol correct` (ECSV, FITS and VOTable carry
+        // them; CSV has no place for them).
+        if let Some(angles) = fit::telescope_cal::catalog_angles(&cat, &a.frames, &inst) {
+            t.meta = angles.to_meta();
+        }
         if let Some(c) = &corrected {
             // The columns of `instpol correct`, for the stars measured (NaN for the others).
             let col = |g: fn(&fit::correct::Corrected) -> f64| -> Vec<f64> {

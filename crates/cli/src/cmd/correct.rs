@@ -53,7 +53,10 @@ use stokes::stats::{Estimator, PolMeasurement};
 /// [telescope] section names the header keywords), or --parang START[,END] (deg: the first
 /// frame's start, the last frame's end, as their headers say), and --rotator DEG when the
 /// model was fitted with rotator angles. A catalog without a parang_deg column (every star from
-/// the same frames, as `instpol catalog` writes them) takes the same options for all its rows.
+/// the same frames, as `instpol catalog` writes them) takes the same options for all its rows;
+/// an ECSV, FITS or VOTable catalog from `instpol catalog` records its exposures' angles (the
+/// maps' keywords, as the table's numbers) and is then undone exposure by exposure without
+/// --parang (--parang replaces them with one track).
 /// The output map records the model, band and track (TELMODEL, TELBAND, TELROT, PARANG1,
 /// PARANG2).
 /// Example: instpol correct --cal tel_V.fits --in map_V.fits --out map_V_corr.fits
@@ -839,6 +842,7 @@ fn run_telescope(
         );
     }
     let meas = measurements(&table, field.and_then(|c| c.pixel), a.coords, &a.input)?;
+    let mut by_exposure: Vec<skyfield::ExposureTrack> = vec![];
     let tracks: Vec<Track> = if table.column(PARANG[0]).is_some() {
         if a.parang.is_some() {
             bail!(
@@ -871,20 +875,40 @@ fn run_telescope(
                 Track::new(pa[i].to_radians(), end).with_rotator(rot.as_ref().map_or(0.0, |r| r[i]))
             })
             .collect()
-    } else if a.parang.is_some() {
-        vec![shared_track(a, tel, "the catalog", (None, None))?; meas.len()]
     } else {
-        bail!(
-            "{}: no column '{}' (columns: {}): the telescope model of {} needs each row's parallactic angle (deg), or --parang START[,END] when every row comes from the same frames",
-            a.input.display(),
-            PARANG[0],
-            table.names().join(", "),
-            a.cal.display()
-        );
+        // Every row from the same frames: the track the catalog recorded (instpol catalog
+        // writes its exposures' angles into ECSV, FITS and VOTable tables), or --parang.
+        let rec = skyfield::RecordedAngles::from_meta(&table.meta, &a.input)?;
+        if a.parang.is_none() && rec.parallactic_rad.is_none() {
+            bail!(
+                "{}: no column '{}' (columns: {}) and no recorded parallactic angles: the telescope model of {} needs each row's parallactic angle (deg), or --parang START[,END] when every row comes from the same frames (instpol catalog records them in ECSV, FITS and VOTable outputs when the instrument's [telescope] section names the header keywords)",
+                a.input.display(),
+                PARANG[0],
+                table.names().join(", "),
+                a.cal.display()
+            );
+        }
+        let track = shared_track(a, tel, "the catalog", (rec.parallactic_rad, rec.rotator_rad))?;
+        if a.parang.is_none() {
+            by_exposure = rec.exposure_tracks;
+        }
+        vec![track; meas.len()]
+    };
+    // Recorded exposures: the telescope undone as each saw it, their demodulations built once.
+    let prepared = match (by_exposure.is_empty(), tracks.first()) {
+        (false, Some(&track)) => {
+            let ex = fit::telescope_cal::telescope_exposures(&by_exposure, track.rotator);
+            Some(
+                tel.prepare_exposures(&band, track, &ex)
+                    .with_context(|| format!("{}: its exposures", a.input.display()))?,
+            )
+        }
+        _ => None,
     };
     let mut out = Vec::with_capacity(meas.len());
     for (i, (m, track)) in meas.iter().zip(tracks).enumerate() {
-        let r = fit::telescope_cal::correct_chain(cor.as_ref(), tel, &band, m, track)
+        let seen = prepared.as_ref().map_or(fit::telescope::Seen::Track(track), fit::telescope::Seen::Prepared);
+        let r = fit::telescope_cal::correct_chain_seen(cor.as_ref(), tel, &band, m, seen)
             .with_context(|| format!("{} {}", a.input.display(), table.row_label(i)))?;
         out.push(r.with_telescope_in_inst());
     }
@@ -898,11 +922,16 @@ fn run_telescope(
         a,
         &summary,
         format_args!(
-            "corrected {} rows with {} ({} model, band {band}{}), the parallactic angle per row",
+            "corrected {} rows with {} ({} model, band {band}{}), {}",
             summary.rows,
             a.cal.display(),
             tel.model.name(),
-            if field.is_some() { ", field model first" } else { ", no field model" }
+            if field.is_some() { ", field model first" } else { ", no field model" },
+            if by_exposure.is_empty() {
+                "the parallactic angle per row".to_string()
+            } else {
+                format!("exposure by exposure ({}, as the catalog recorded them)", by_exposure.len())
+            }
         ),
         "",
     )
