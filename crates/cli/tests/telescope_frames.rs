@@ -857,6 +857,25 @@ fn catalog_undoes_the_telescope_exposure_by_exposure() {
             );
         }
     }
+    // The JSON summary says so, and its keys are the schema's (closed: no key it lacks).
+    let o = instpol()
+        .args(["correct", "--json", "--cal"])
+        .arg(&tel)
+        .arg("--in")
+        .arg(d.join("stars.ecsv"))
+        .arg("--out")
+        .arg(d.join("corr_json.ecsv"))
+        .args(["--coords", "arcmin"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let sj: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(sj["telescope_exposures"], 8, "{sj}");
+    let schema: serde_json::Value =
+        serde_json::from_str(include_str!("../../../schemas/correct.schema.json")).unwrap();
+    for k in sj.as_object().unwrap().keys() {
+        assert!(schema["properties"].get(k).is_some(), "correct --json key '{k}' is not in its schema");
+    }
     let o = instpol()
         .args(["correct", "--cal"])
         .arg(&tel)

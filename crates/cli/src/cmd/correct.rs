@@ -171,6 +171,9 @@ struct Summary {
     telescope_model: Option<&'static str>,
     #[serde(skip_serializing_if = "Option::is_none")]
     telescope_band: Option<String>,
+    /// The exposures undone one by one (a map's or catalog's recorded ones); absent: one track.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    telescope_exposures: Option<usize>,
     /// A Mueller-field calibration's model (physical / general) and free effects.
     #[serde(skip_serializing_if = "Option::is_none")]
     mueller_model: Option<&'static str>,
@@ -601,6 +604,8 @@ fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Ca
     let mut summary = map_summary(a, c, &map.filter, 0.0);
     summary.telescope_model = Some(tel.model.name());
     summary.telescope_band = Some(band.clone());
+    summary.telescope_exposures =
+        (a.parang.is_none() && !map.exposure_tracks.is_empty()).then_some(map.exposure_tracks.len());
     warn_extrapolated(&summary, "calibrated field");
     report(
         a,
@@ -646,6 +651,7 @@ fn map_summary(a: &Args, c: fit::correct::CorrectedMap, filter: &str, hwp_chi_of
         median_p_inst: median(c.p_inst.into_iter()),
         telescope_model: None,
         telescope_band: None,
+        telescope_exposures: None,
         mueller_model: None,
         mueller_free: None,
     }
@@ -917,6 +923,7 @@ fn run_telescope(
     let mut summary = write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, filter, 0.0)?;
     summary.telescope_model = Some(tel.model.name());
     summary.telescope_band = Some(band.clone());
+    summary.telescope_exposures = (!by_exposure.is_empty()).then_some(by_exposure.len());
     warn_extrapolated(&summary, "calibrated field");
     report(
         a,
@@ -973,6 +980,7 @@ fn write_catalog(
         median_p_inst: median(out.iter().map(|r| r.inst.q.hypot(r.inst.u))),
         telescope_model: None,
         telescope_band: None,
+        telescope_exposures: None,
         mueller_model: None,
         mueller_free: None,
     })
