@@ -871,8 +871,7 @@ fn catalog_undoes_the_telescope_exposure_by_exposure() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let sj: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(sj["telescope_exposures"], 8, "{sj}");
-    let schema: serde_json::Value =
-        serde_json::from_str(include_str!("../../../schemas/correct.schema.json")).unwrap();
+    let schema: serde_json::Value = serde_json::from_str(include_str!("../../../schemas/correct.schema.json")).unwrap();
     for k in sj.as_object().unwrap().keys() {
         assert!(schema["properties"].get(k).is_some(), "correct --json key '{k}' is not in its schema");
     }

@@ -471,8 +471,8 @@ pub(crate) struct MasterRows<'a> {
 /// or 4-wide (FMA is not enabled), so all give the same bits. Writes, from one signature, the
 /// body as the `#[inline(always)]` method `$imp`, the `#[target_feature]` wrappers `$avx512`
 /// and `$avx` and the run-time check; callable elsewhere in the crate as
-/// `crate::calib::avx2_dispatch!`. (AVX-512 since the CPUs with full 512-bit units halve these
-/// memory-resident loops' time: measured in `bench/run.sh`'s raw FORS2 benchmark.)
+/// `crate::calib::avx2_dispatch!`. (AVX-512 because it took the raw calibration's share of a
+/// raw FORS2 reduction's profile from 18 % to 12 %, the fold's from 8 % to 4 %: bench/RESULTS.md.)
 macro_rules! avx2_dispatch {
     ($(#[$m:meta])* fn $name:ident / $avx:ident / $avx512:ident => $imp:ident(&$s:ident, $($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
         avx2_dispatch!(@ [$(#[$m])*] $name $avx $avx512 $imp $s [&$s] [$($arg: $ty),*] [$($ret)?] $body);
@@ -485,8 +485,12 @@ macro_rules! avx2_dispatch {
         #[inline]
         fn $name($($recv)*, $($arg: $ty),*) $(-> $ret)? {
             #[cfg(target_arch = "x86_64")]
-            if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512bw") {
-                // SAFETY: AVX-512 F and BW support was checked just above.
+            if std::arch::is_x86_feature_detected!("avx512f")
+                && std::arch::is_x86_feature_detected!("avx512bw")
+                && std::arch::is_x86_feature_detected!("avx512dq")
+                && std::arch::is_x86_feature_detected!("avx512vl")
+            {
+                // SAFETY: every feature the wrapper is compiled with was checked just above.
                 return unsafe { $s.$avx512($($arg),*) };
             }
             #[cfg(target_arch = "x86_64")]
