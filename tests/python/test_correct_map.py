@@ -260,3 +260,34 @@ def test_catalog_tables_record_the_exposures_angles_for_astropy(run, tmp_path):
         assert np.allclose(got, want, atol=1e-9, rtol=0), (ext, got, want)
         assert m["PARANG1"] == pytest.approx(starts[0], abs=1e-9), ext
         assert m["PARANG2"] == pytest.approx(ends[-1], abs=1e-9), ext
+
+
+def test_correct_with_a_catalogs_recorded_angles_is_catalog_cal(run, tmp_path):
+    """catalog(frames)["recorded_angles"] given to Calibration.correct(recorded=...) undoes the
+    telescope exposure by exposure: the corrected columns of catalog(frames, cal=...) to 1e-12
+    (the angles pass through degrees), 8 exposures; recorded with parang_deg, or on a
+    calibration without a telescope model, raises InputError."""
+    tel, inst = nasmyth_setup(run, tmp_path, "correct(recorded=) was not compared")
+    scene = tmp_path / "stars.toml"
+    scene.write_text(
+        f'instrument = "{inst}"\nfilter = "V"\nseed = 9\nexposure_s = 60\n'
+        "hwp_angles_deg = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]\n[output]\nbitpix = -64\n"
+        '[[stars]]\nx = 64\ny = 34\ncoords = "pixel"\nflux_e = 4e6\nfwhm_arcsec = 1.6\n'
+        "[telescope]\nfactor = 0.86\noffset_deg = 40\ndec_deg = -24\nha_start_deg = -2.5\noverhead_s = 20\n"
+    )
+    run("simulate", scene, "--out", tmp_path / "stars")
+    frames = sorted((tmp_path / "stars").glob("*.fits"))
+    args = dict(instrument=str(inst), fwhm=4.0, aperture=10.0, annulus=(14.0, 24.0))
+    cat = instpol.catalog(frames, **args)
+    ref = instpol.catalog(frames, cal=tel, **args)
+    rec = cat["recorded_angles"]
+    assert rec is not None and len(rec["exposures"]) == 8
+    c = instpol.Calibration.load(tel)
+    r = c.correct(cat["x_arcmin"], cat["y_arcmin"], cat["q"], cat["u"], cat["sigma_q"], cat["sigma_u"],
+                  cat["cov_qu"], recorded=rec)
+    assert r["telescope_exposures"] == 8
+    for k in ["q0", "u0", "sigma_q0", "sigma_u0"]:
+        assert np.max(np.abs(r[k] - ref[k])) < 1e-12, k
+    with pytest.raises(instpol.InputError, match="not both"):
+        c.correct(cat["x_arcmin"], cat["y_arcmin"], cat["q"], cat["u"], cat["sigma_q"], cat["sigma_u"],
+                  parang_deg=[10.0], recorded=rec)

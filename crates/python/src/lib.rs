@@ -559,7 +559,7 @@ impl _Calibration {
 
     /// `instpol correct` on flat arrays: exact inversion of `eq:instpol` (or `eq:approx`), the
     /// HWP zero angle first, errors propagated; `estimator`: also the bias-corrected `P0`.
-    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator, parang_deg, parang_end_deg, band))]
+    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator, parang_deg, parang_end_deg, band, recorded))]
     #[allow(clippy::too_many_arguments)]
     fn _correct<'py>(
         &self,
@@ -579,6 +579,7 @@ impl _Calibration {
         parang_deg: Option<PyReadonlyArray1<'py, f64>>,
         parang_end_deg: Option<PyReadonlyArray1<'py, f64>>,
         band: Option<String>,
+        recorded: Option<Recorded>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let method = parse_method(method, extrapolation_error)?;
         let est: Option<Estimator> =
@@ -611,6 +612,36 @@ impl _Calibration {
                 )));
             }
         }
+        if recorded.is_some() && (pa.is_some() || pa_end.is_some()) {
+            return Err(input_err(
+                "give parang_deg (each row's track) or recorded (the catalog's exposures), not both",
+            ));
+        }
+        // The catalog's recorded exposures (catalog()["recorded_angles"]): every row undone as
+        // those exposures saw the telescope, their demodulations built once.
+        let prepared = match (&self.telescope, &recorded) {
+            (Some(t), Some(r)) => {
+                let b = self.telescope_band(t, band.clone(), None)?;
+                let track = t
+                    .choose_track(None, Some(r.track), None, r.rotator)
+                    .map_err(|_| input_err("recorded: the telescope model was fitted with rotator angles and the catalog recorded none"))?
+                    .track;
+                let ex = fit::telescope_cal::telescope_exposures(&r.exposures, track.rotator);
+                let p = t.prepare_exposures(&b, track, &ex).map_err(|e| input_err(format!("recorded: {e}")))?;
+                Some((p, b))
+            }
+            (None, Some(_)) => {
+                return Err(input_err(format!(
+                    "recorded given but {} holds no telescope model: the telescope's polarization would NOT be removed",
+                    self.path.display()
+                )))
+            }
+            _ => None,
+        };
+        // With recorded exposures no row has its own track: the chain below takes the prepared
+        // exposures and never reads these placeholder angles.
+        let zero_pa = vec![0.0; n];
+        let pa = if prepared.is_some() { Some(&zero_pa[..]) } else { pa };
         let telescope = match (&self.telescope, pa) {
             (Some(t), Some(pa)) => Some((t, pa, self.telescope_band(t, band, None)?)),
             (Some(t), None) => {
@@ -657,11 +688,14 @@ impl _Calibration {
                 extra: &mut extra,
                 start: 0,
             };
+            let pre = prepared.as_ref().map(|(p, _)| p);
             match (&self.field, &telescope) {
                 (Field::PPhi(c), Some((t, pa, b))) => {
-                    fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, pa, pa_end, sink)
+                    fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, (pa, pa_end, pre), sink)
                 }
-                (Field::TelescopeOnly { .. }, Some((t, pa, b))) => fill_chain(None, t, b, &input, pa, pa_end, sink),
+                (Field::TelescopeOnly { .. }, Some((t, pa, b))) => {
+                    fill_chain(None, t, b, &input, (pa, pa_end, pre), sink)
+                }
                 (Field::TelescopeOnly { .. }, None) => Err((0, "a telescope-only calibration needs parang_deg".into())),
                 (Field::PPhi(c), None) => {
                     let cor = Corrector::new(c, opts);
@@ -693,6 +727,7 @@ impl _Calibration {
         if let Some((t, _, b)) = &telescope {
             d.set_item("telescope_model", t.model.name())?;
             d.set_item("telescope_band", b.as_str())?;
+            d.set_item("telescope_exposures", recorded.as_ref().map(|r| r.exposures.len()))?;
         }
         Ok(d)
     }
@@ -1000,16 +1035,57 @@ fn put_row(
 /// row corrected for the field and then the telescope over its parallactic-angle track with
 /// `fit::telescope_cal::correct_chain`; `q_inst, u_inst` are the field's and the telescope's
 /// together, as the CLI writes them. Rows in parallel; the error is the lowest row's.
+/// A catalog's recorded telescope angles as the package passes them (`catalog()`'s
+/// `recorded_angles`: the set's track and rotator in deg, each exposure's HWP angle and track
+/// in deg), in radians.
+struct Recorded {
+    track: (f64, f64),
+    rotator: Option<f64>,
+    exposures: Vec<skyfield::ExposureTrack>,
+}
+
+impl<'a, 'py> FromPyObject<'a, 'py> for Recorded {
+    type Error = PyErr;
+    fn extract(ob: pyo3::Borrowed<'a, 'py, PyAny>) -> PyResult<Self> {
+        let bad = || {
+            input_err("recorded: expected catalog()['recorded_angles'] (a dict of parang_deg, rotator_deg, exposures)")
+        };
+        let d = ob.cast::<PyDict>().map_err(|_| bad())?;
+        let get = |k: &str| d.get_item(k).ok().flatten().ok_or_else(bad);
+        let (s, e): (f64, f64) = get("parang_deg")?.extract().map_err(|_| bad())?;
+        let rot: Option<f64> = get("rotator_deg")?.extract().map_err(|_| bad())?;
+        let ex: Vec<(f64, f64, f64)> = get("exposures")?.extract().map_err(|_| bad())?;
+        let finite = |v: f64| v.is_finite() && v.abs() <= 720.0;
+        if !(finite(s)
+            && finite(e)
+            && rot.is_none_or(finite)
+            && ex.iter().all(|x| finite(x.0) && finite(x.1) && finite(x.2)))
+            || ex.is_empty()
+        {
+            return Err(input_err("recorded: angles must be finite degrees and list at least one exposure"));
+        }
+        Ok(Self {
+            track: (s.to_radians(), e.to_radians()),
+            rotator: rot.map(f64::to_radians),
+            exposures: ex
+                .into_iter()
+                .map(|(h, a, b)| skyfield::ExposureTrack { hwp_deg: h, start: a.to_radians(), end: b.to_radians() })
+                .collect(),
+        })
+    }
+}
+
+/// Each row through the chain: over its own track (`pa`, `pa_end`, deg), or as the recorded
+/// exposures saw the telescope when they are `prepared` (then `pa` is unused).
 fn fill_chain(
     cor: Option<&Corrector<'_, fit::Calibration>>,
     tel: &fit::telescope::TelescopeFit,
     band: &str,
     i: &Inputs<'_>,
-    pa: &[f64],
-    pa_end: Option<&[f64]>,
+    (pa, pa_end, prepared): (&[f64], Option<&[f64]>, Option<&fit::telescope::PreparedExposures>),
     s: Sink<'_>,
 ) -> Result<usize, (usize, String)> {
-    use fit::telescope::Track;
+    use fit::telescope::{Seen, Track};
     let n = s.extra.len();
     let rows: Vec<fit::correct::Corrected> = (0..n)
         .into_par_iter()
@@ -1023,8 +1099,11 @@ fn fill_chain(
                 sigma_u: i.su[k],
                 cov_qu: i.cov.map_or(0.0, |c| c[k]),
             };
-            let track = Track::new(pa[k].to_radians(), pa_end.map(|e| e[k].to_radians()));
-            let r = fit::telescope_cal::correct_chain(cor, tel, band, &m, track).map_err(|e| (k, e.to_string()))?;
+            let seen = match prepared {
+                Some(p) => Seen::Prepared(p),
+                None => Seen::Track(Track::new(pa[k].to_radians(), pa_end.map(|e| e[k].to_radians()))),
+            };
+            let r = fit::telescope_cal::correct_chain_seen(cor, tel, band, &m, seen).map_err(|e| (k, e.to_string()))?;
             Ok(r.with_telescope_in_inst())
         })
         .collect::<Result<_, _>>()?;
@@ -1290,6 +1369,21 @@ fn _catalog<'py>(
     d.set_item("unpaired", cat.unpaired.clone())?;
     d.set_item("unpaired_shift_px", cat.unpaired_shift_px)?;
     d.set_item("n_sources", cat.n_sources)?;
+    // The exposures' telescope angles, as `instpol catalog` records them in its tables: what
+    // `Calibration.correct(..., recorded=...)` takes.
+    match fit::telescope_cal::catalog_angles(&cat, &frames, &inst) {
+        Some(r) => {
+            let rd = PyDict::new(py);
+            let (s, e) = r.parallactic_rad.unwrap_or_default();
+            rd.set_item("parang_deg", (s.to_degrees(), e.to_degrees()))?;
+            rd.set_item("rotator_deg", r.rotator_rad.map(f64::to_degrees))?;
+            let ex: Vec<(f64, f64, f64)> =
+                r.exposure_tracks.iter().map(|x| (x.hwp_deg, x.start.to_degrees(), x.end.to_degrees())).collect();
+            rd.set_item("exposures", ex)?;
+            d.set_item("recorded_angles", rd)?;
+        }
+        None => d.set_item("recorded_angles", py.None())?,
+    }
     if let Some((c, used)) = &corrected {
         // The columns of `instpol correct` (NaN for a star not measured).
         let ccol = |g: fn(&fit::correct::Corrected) -> f64| {

@@ -293,6 +293,7 @@ class Calibration:
         parang_deg: Optional[ArrayLike] = None,
         parang_end_deg: Optional[ArrayLike] = None,
         band: Optional[str] = None,
+        recorded: Optional[Dict[str, Any]] = None,
     ) -> Dict[str, Any]:
         """Remove the instrumental polarization from measured ``(q, u)`` at ``(x, y)``.
 
@@ -314,7 +315,11 @@ class Calibration:
         the field is undone first, then the telescope of ``band`` (default: the calibration's
         filter, or a telescope-only file's only band), as ``instpol correct`` does with the
         columns ``parang_deg`` and ``parang_end_deg``. Without such a model, ``parang_deg``
-        raises InputError (the telescope's polarization would not be removed).
+        raises InputError (the telescope's polarization would not be removed). For stars all
+        measured in the same exposures, ``recorded=catalog(...)["recorded_angles"]`` (instead
+        of ``parang_deg``) undoes the telescope as each exposure saw it, each over its own
+        parallactic track, demodulated together, as ``instpol correct`` does with a catalog
+        table that recorded them (``telescope_exposures`` in the result).
 
         Returns
         -------
@@ -337,7 +342,7 @@ class Calibration:
         d = self._c._correct(
             *flat[:6], got.get("cov_qu"), str(units), str(method), bool(allow_extrapolation),
             float(extrapolation_error), None if estimator is None else str(estimator),
-            got.get("parang_deg"), got.get("parang_end_deg"), None if band is None else str(band),
+            got.get("parang_deg"), got.get("parang_end_deg"), None if band is None else str(band), recorded,
         )
         return _reshape(d, shape, flat[0].shape[0])
 
@@ -499,7 +504,10 @@ def catalog(
     fwhm_px, aperture_px, flux_e, q, u, sigma_q, sigma_u, cov_qu, p, sigma_p, chi_deg, sigma_chi_deg, a0,
     kappa, kappa_applied, chi2_mod, dof_mod, sigma_q_scatter, sigma_u_scatter, flags, flag_names, note``, and
     ``f`` of shape (stars, N)) and metadata (``hwp_deg, filter, chi_offset_deg, oe_offset_px,
-    unpaired, unpaired_shift_px, n_sources, warnings``).
+    unpaired, unpaired_shift_px, n_sources, warnings``, and ``recorded_angles``: the exposures'
+    telescope angles from their headers, ``{"parang_deg": (start, end), "rotator_deg": ...,
+    "exposures": [(hwp_deg, start_deg, end_deg), ...]}``, or None when the instrument names no
+    header keyword for them; :meth:`Calibration.correct` takes it as ``recorded``).
 
     ``aperture``: a radius in px, ``"2.5fwhm"`` (a multiple of each star's FWHM) or ``"best"``
     (the radius of best S/N on each star's curve of growth). ``kappa`` applies a known Wollaston

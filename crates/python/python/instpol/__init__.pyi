@@ -91,6 +91,7 @@ class Calibration:
         parang_deg: Optional[ArrayLike] = ...,
         parang_end_deg: Optional[ArrayLike] = ...,
         band: Optional[str] = ...,
+        recorded: Optional[Dict[str, Any]] = ...,
     ) -> Dict[str, Any]:
         """Exact inversion of eq:instpol (or eq:approx), as `instpol correct`, bit for bit."""
     def correct_map(
