@@ -173,6 +173,23 @@ def test_reduce_records_each_exposure_and_correct_map_undoes_it(run, tmp_path):
     assert np.max(np.abs(one.q[ok] - m.q[ok])) > 1e-6
 
 
+EIGHT = "[0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]"
+
+
+def meridian_star(run, tmp_path, inst, seed, hwp_angles, effects=""):
+    """Frames of one star through the M3 of the Nasmyth `inst` (NASMYTH), observed through the
+    meridian 5 deg from the zenith (60 s exposures at `hwp_angles`, a TOML list), simulated by
+    `instpol simulate`: the frames' paths in time order."""
+    scene = tmp_path / "stars.toml"
+    scene.write_text(
+        f'instrument = "{inst}"\nfilter = "V"\nseed = {seed}\nexposure_s = 60\nhwp_angles_deg = {hwp_angles}\n'
+        '[output]\nbitpix = -64\n[[stars]]\nx = 64\ny = 34\ncoords = "pixel"\nflux_e = 4e6\nfwhm_arcsec = 1.6\n'
+        f"{effects}[telescope]\nfactor = 0.86\noffset_deg = 40\ndec_deg = -24\nha_start_deg = -2.5\noverhead_s = 20\n"
+    )
+    run("simulate", scene, "--out", tmp_path / "stars")
+    return sorted((tmp_path / "stars").glob("*.fits"))
+
+
 def nasmyth_setup(run, tmp_path, what):
     """A telescope model fitted to the EFOSC2 V standards (`instpol fit-standards`), and the
     tiny FORS1 put on a Nasmyth focus (its [telescope] section replaced by NASMYTH)."""
@@ -197,16 +214,7 @@ def test_catalog_with_a_telescope_model_is_the_cli_catalog(run_json, run, tmp_pa
     catalog --cal --json` gives it, bit for bit, the telescope undone exposure by exposure from
     the frames' headers (8 exposures); the unpolarized star comes back within 4 sigma of 0."""
     tel, inst = nasmyth_setup(run, tmp_path, "the catalog's telescope correction was not compared")
-    scene = tmp_path / "stars.toml"
-    scene.write_text(
-        f'instrument = "{inst}"\nfilter = "V"\nseed = 7\nexposure_s = 60\n'
-        "hwp_angles_deg = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]\n[output]\nbitpix = -64\n"
-        '[[stars]]\nx = 64\ny = 34\ncoords = "pixel"\nflux_e = 4e6\nfwhm_arcsec = 1.6\n'
-        "[effects]\nphoton_noise = true\n"
-        "[telescope]\nfactor = 0.86\noffset_deg = 40\ndec_deg = -24\nha_start_deg = -2.5\noverhead_s = 20\n"
-    )
-    run("simulate", scene, "--out", tmp_path / "stars")
-    frames = sorted((tmp_path / "stars").glob("*.fits"))
+    frames = meridian_star(run, tmp_path, inst, 7, EIGHT, "[effects]\nphoton_noise = true\n")
     args = ["--fwhm", "4", "--aperture", "10", "--annulus", "14,24"]
     j = run_json("catalog", *frames, "--instrument", inst, *args, "--cal", tel)
     c = instpol.catalog(frames, instrument=str(inst), fwhm=4.0, aperture=10.0, annulus=(14.0, 24.0), cal=tel)
@@ -231,14 +239,7 @@ def test_catalog_tables_record_the_exposures_angles_for_astropy(run, tmp_path):
     from astropy.table import Table
 
     _, inst = nasmyth_setup(run, tmp_path, "the catalog tables' recorded angles were not checked")
-    scene = tmp_path / "stars.toml"
-    scene.write_text(
-        f'instrument = "{inst}"\nfilter = "V"\nseed = 8\nexposure_s = 60\nhwp_angles_deg = [0, 22.5, 45, 67.5]\n'
-        '[output]\nbitpix = -64\n[[stars]]\nx = 64\ny = 34\ncoords = "pixel"\nflux_e = 4e6\nfwhm_arcsec = 1.6\n'
-        "[telescope]\nfactor = 0.86\noffset_deg = 40\ndec_deg = -24\nha_start_deg = -2.5\noverhead_s = 20\n"
-    )
-    run("simulate", scene, "--out", tmp_path / "stars")
-    frames = sorted((tmp_path / "stars").glob("*.fits"))
+    frames = meridian_star(run, tmp_path, inst, 8, "[0, 22.5, 45, 67.5]")
     starts = [fits.getheader(f)["HIERARCH ESO TEL PARANG START"] for f in frames]
     ends = [fits.getheader(f)["HIERARCH ESO TEL PARANG END"] for f in frames]
     hwp = [fits.getheader(f)["HIERARCH ESO INS RETA2 POSANG"] for f in frames]
@@ -268,15 +269,7 @@ def test_correct_with_a_catalogs_recorded_angles_is_catalog_cal(run, tmp_path):
     (the angles pass through degrees), 8 exposures; recorded with parang_deg, or on a
     calibration without a telescope model, raises InputError."""
     tel, inst = nasmyth_setup(run, tmp_path, "correct(recorded=) was not compared")
-    scene = tmp_path / "stars.toml"
-    scene.write_text(
-        f'instrument = "{inst}"\nfilter = "V"\nseed = 9\nexposure_s = 60\n'
-        "hwp_angles_deg = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]\n[output]\nbitpix = -64\n"
-        '[[stars]]\nx = 64\ny = 34\ncoords = "pixel"\nflux_e = 4e6\nfwhm_arcsec = 1.6\n'
-        "[telescope]\nfactor = 0.86\noffset_deg = 40\ndec_deg = -24\nha_start_deg = -2.5\noverhead_s = 20\n"
-    )
-    run("simulate", scene, "--out", tmp_path / "stars")
-    frames = sorted((tmp_path / "stars").glob("*.fits"))
+    frames = meridian_star(run, tmp_path, inst, 9, EIGHT)
     args = dict(instrument=str(inst), fwhm=4.0, aperture=10.0, annulus=(14.0, 24.0))
     cat = instpol.catalog(frames, **args)
     ref = instpol.catalog(frames, cal=tel, **args)

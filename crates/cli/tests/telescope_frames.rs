@@ -695,6 +695,23 @@ fn correct_gives_a_catalog_without_angles_the_frames_track() {
     assert!(!err.contains("WARNING"), "{err}");
 }
 
+/// Ideal frames (`stars` as scene text) through the meridian 5 deg from the zenith on the tiny
+/// FORS1 put on the Nasmyth focus: 8 exposures of 60 s at 8 HWP angles, the parallactic angle
+/// turning by 3 deg from one to the next; with a telescope model fitted to noise-free
+/// standards. Returns the instrument file, the model and the frames.
+fn meridian(d: &Path, seed: u64, stars: &str) -> (PathBuf, PathBuf, Vec<PathBuf>) {
+    let tiny = with_telescope(&common::tiny_fors1(d, 12.0, 4));
+    let tel = telescope_calibration_with_noise(d, &tiny, 0.0, None);
+    let scene = format!(
+        "instrument = {:?}\nfilter = \"V\"\nseed = {seed}\nexposure_s = 60\n\
+         hwp_angles_deg = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]\n[output]\nbitpix = -64\n{stars}\
+         [telescope]\nfactor = {FACTOR}\noffset_deg = {OFFSET_DEG}\ndec_deg = -24\nha_start_deg = -2.5\noverhead_s = 20\n",
+        tiny.display().to_string()
+    );
+    let frames = simulate(&scene, d, &format!("meridian{seed}"));
+    (tiny, tel, frames)
+}
+
 /// An unpolarized standard observed through the meridian close to the zenith (8 exposures at
 /// 8 HWP angles, the parallactic angle turning by tens of degrees from one to the next), on
 /// ideal frames and with a model fitted to noise-free standards: `validate` undoes the
@@ -705,16 +722,8 @@ fn correct_gives_a_catalog_without_angles_the_frames_track() {
 fn validate_undoes_the_telescope_exposure_by_exposure() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let tiny = with_telescope(&common::tiny_fors1(d, 12.0, 4));
-    let tel = telescope_calibration_with_noise(d, &tiny, 0.0, None);
-    let scene = format!(
-        "instrument = {:?}\nfilter = \"V\"\nseed = 41\nexposure_s = 60\n\
-         hwp_angles_deg = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]\n[output]\nbitpix = -64\n\
-         [[stars]]\nx = 64\ny = 34\ncoords = \"pixel\"\nflux_e = 4e6\nfwhm_arcsec = 1.6\n\
-         [telescope]\nfactor = {FACTOR}\noffset_deg = {OFFSET_DEG}\ndec_deg = -24\nha_start_deg = -2.5\noverhead_s = 20\n",
-        tiny.display().to_string()
-    );
-    let frames = simulate(&scene, d, "meridian");
+    let stars = "[[stars]]\nx = 64\ny = 34\ncoords = \"pixel\"\nflux_e = 4e6\nfwhm_arcsec = 1.6\n";
+    let (tiny, tel, frames) = meridian(d, 41, stars);
     let starts: Vec<f64> = frames.iter().map(|f| key(f, "HIERARCH ESO TEL PARANG START")).collect();
     let run = |extra: &[&str]| -> serde_json::Value {
         let mut args = vec!["--json"];
@@ -751,17 +760,9 @@ fn validate_undoes_the_telescope_exposure_by_exposure() {
 fn catalog_undoes_the_telescope_exposure_by_exposure() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let tiny = with_telescope(&common::tiny_fors1(d, 12.0, 4));
-    let tel = telescope_calibration_with_noise(d, &tiny, 0.0, None);
-    let scene = format!(
-        "instrument = {:?}\nfilter = \"V\"\nseed = 43\nexposure_s = 60\n\
-         hwp_angles_deg = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]\n[output]\nbitpix = -64\n\
-         [[stars]]\nx = 34\ny = 34\ncoords = \"pixel\"\nflux_e = 4e6\nfwhm_arcsec = 1.6\n\
-         [[stars]]\nx = 94\ny = 34\ncoords = \"pixel\"\nflux_e = 4e6\nfwhm_arcsec = 1.6\np = 0.03\nchi_deg = 20\n\
-         [telescope]\nfactor = {FACTOR}\noffset_deg = {OFFSET_DEG}\ndec_deg = -24\nha_start_deg = -2.5\noverhead_s = 20\n",
-        tiny.display().to_string()
-    );
-    let frames = simulate(&scene, d, "stars");
+    let stars = "[[stars]]\nx = 34\ny = 34\ncoords = \"pixel\"\nflux_e = 4e6\nfwhm_arcsec = 1.6\n\
+                 [[stars]]\nx = 94\ny = 34\ncoords = \"pixel\"\nflux_e = 4e6\nfwhm_arcsec = 1.6\np = 0.03\nchi_deg = 20\n";
+    let (tiny, tel, frames) = meridian(d, 43, stars);
     let cat_args = |extra: &[&str]| {
         let mut c = instpol();
         c.arg("catalog").args(&frames).arg("--instrument").arg(&tiny);
