@@ -769,6 +769,12 @@ fn catalog_undoes_the_telescope_exposure_by_exposure() {
         c.args(["--fwhm", "4", "--aperture", "10", "--annulus", "14,24"]).args(extra);
         c
     };
+    // `instpol correct --cal TEL --in INPUT --out OUT --coords arcmin EXTRA...`.
+    let correct = |input: &Path, out: &Path, extra: &[&str]| {
+        let mut c = instpol();
+        c.args(["correct", "--cal"]).arg(&tel).arg("--in").arg(input).arg("--out").arg(out);
+        c.args(["--coords", "arcmin"]).args(extra).output().unwrap()
+    };
     let o = cat_args(&["--json"]).arg("--cal").arg(&tel).output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
@@ -792,16 +798,7 @@ fn catalog_undoes_the_telescope_exposure_by_exposure() {
     let pa0 = key(&frames[0], "HIERARCH ESO TEL PARANG START");
     let pa1 = key(frames.last().unwrap(), "HIERARCH ESO TEL PARANG END");
     let one = d.join("one.csv");
-    let o = instpol()
-        .args(["correct", "--cal"])
-        .arg(&tel)
-        .arg("--in")
-        .arg(&table)
-        .arg("--out")
-        .arg(&one)
-        .args(["--coords", "arcmin", "--parang", &format!("{pa0},{pa1}")])
-        .output()
-        .unwrap();
+    let o = correct(&table, &one, &["--parang", &format!("{pa0},{pa1}")]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let mut rdr = csv::Reader::from_path(&one).unwrap();
     let h = rdr.headers().unwrap().clone();
@@ -831,16 +828,7 @@ fn catalog_undoes_the_telescope_exposure_by_exposure() {
         let o = cat_args(&["--out", t.to_str().unwrap()]).output().unwrap();
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let out = d.join(format!("corr_{ext}.csv"));
-        let o = instpol()
-            .args(["correct", "--cal"])
-            .arg(&tel)
-            .arg("--in")
-            .arg(&t)
-            .arg("--out")
-            .arg(&out)
-            .args(["--coords", "arcmin"])
-            .output()
-            .unwrap();
+        let o = correct(&t, &out, &[]);
         assert!(o.status.success(), "{ext}: {}", String::from_utf8_lossy(&o.stderr));
         assert!(String::from_utf8_lossy(&o.stdout).contains("exposure by exposure (8"), "{ext}");
         let mut rdr = csv::Reader::from_path(&out).unwrap();
@@ -859,16 +847,7 @@ fn catalog_undoes_the_telescope_exposure_by_exposure() {
         }
     }
     // The JSON summary says so, and its keys are the schema's (closed: no key it lacks).
-    let o = instpol()
-        .args(["correct", "--json", "--cal"])
-        .arg(&tel)
-        .arg("--in")
-        .arg(d.join("stars.ecsv"))
-        .arg("--out")
-        .arg(d.join("corr_json.ecsv"))
-        .args(["--coords", "arcmin"])
-        .output()
-        .unwrap();
+    let o = correct(&d.join("stars.ecsv"), &d.join("corr_json.ecsv"), &["--json"]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let sj: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(sj["telescope_exposures"], 8, "{sj}");
@@ -876,16 +855,7 @@ fn catalog_undoes_the_telescope_exposure_by_exposure() {
     for k in sj.as_object().unwrap().keys() {
         assert!(schema["properties"].get(k).is_some(), "correct --json key '{k}' is not in its schema");
     }
-    let o = instpol()
-        .args(["correct", "--cal"])
-        .arg(&tel)
-        .arg("--in")
-        .arg(&table)
-        .arg("--out")
-        .arg(d.join("csv_refused.csv"))
-        .args(["--coords", "arcmin"])
-        .output()
-        .unwrap();
+    let o = correct(&table, &d.join("csv_refused.csv"), &[]);
     assert_eq!(o.status.code(), Some(2));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("no recorded parallactic angles") && err.contains("ECSV, FITS and VOTable"), "{err}");
