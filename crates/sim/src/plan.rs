@@ -856,8 +856,6 @@ impl Plan {
 
     /// The header keywords of frame `k`.
     fn keys(&self, k: usize) -> Vec<(String, KeyValue, String)> {
-        let pol = &self.inst.polarimetry;
-        let filt = self.inst.filter(&self.scene.filter).map(|f| f.aliases.first().cloned().unwrap_or(f.name.clone()));
         let mut tel_keys = Vec::new();
         if let (Some(t), Some(it)) = (&self.tel, &self.inst.telescope) {
             let sense = it.parang_sense as f64;
@@ -872,24 +870,43 @@ impl Plan {
                 tel_keys.push((key.clone(), KeyValue::F64(v), what.to_string()));
             }
         }
-        vec![
-            ("INSTRUME".into(), KeyValue::Str(self.inst.name.clone()), String::new()),
-            ("OBJECT".into(), KeyValue::Str("instpol simulation".into()), String::new()),
-            (pol.hwp_angle_keyword.clone(), KeyValue::F64(self.scene.hwp_angles_deg[k]), "HWP angle [deg]".into()),
-            (pol.filter_keyword.clone(), KeyValue::Str(filt.unwrap_or(self.scene.filter.clone())), String::new()),
-            (pol.exptime_keyword.clone(), KeyValue::F64(self.scene.exposure_s), "exposure time [s]".into()),
-            ("SIMSEED".into(), KeyValue::I64(self.scene.seed as i64), "instpol simulation seed".into()),
-        ]
-        .into_iter()
-        .chain(tel_keys)
+        let mut keys =
+            self.header_keys("instpol simulation", Some(self.scene.hwp_angles_deg[k]), self.scene.exposure_s);
+        keys.extend(tel_keys);
         // An instrument whose headers carry no HWP angle gets none (as its real frames).
-        .filter(|(k, _, _)| !k.is_empty())
-        .collect()
+        keys.retain(|(k, _, _)| !k.is_empty());
+        keys
     }
 
-    /// File name of frame `k` (for a chip instrument, the stem of its chip files).
+    /// The keywords every simulated file carries: instrument, `object`, the HWP angle (when
+    /// given), filter (its first alias, as the instrument's headers name it), exposure time and
+    /// the simulation's seed.
+    fn header_keys(&self, object: &str, hwp_deg: Option<f64>, exptime_s: f64) -> Vec<(String, KeyValue, String)> {
+        let pol = &self.inst.polarimetry;
+        let filt = self.inst.filter(&self.scene.filter).map(|f| f.aliases.first().cloned().unwrap_or(f.name.clone()));
+        let mut keys = vec![
+            ("INSTRUME".into(), KeyValue::Str(self.inst.name.clone()), String::new()),
+            ("OBJECT".into(), KeyValue::Str(object.into()), String::new()),
+        ];
+        if let Some(h) = hwp_deg {
+            keys.push((pol.hwp_angle_keyword.clone(), KeyValue::F64(h), "HWP angle [deg]".into()));
+        }
+        keys.extend([
+            (pol.filter_keyword.clone(), KeyValue::Str(filt.unwrap_or(self.scene.filter.clone())), String::new()),
+            (pol.exptime_keyword.clone(), KeyValue::F64(exptime_s), "exposure time [s]".into()),
+            ("SIMSEED".into(), KeyValue::I64(self.scene.seed as i64), "instpol simulation seed".into()),
+        ]);
+        keys
+    }
+
+    /// File name of frame `k` (for a chip instrument, [`Plan::frame_files`]).
     pub fn frame_name(&self, k: usize) -> String {
-        format!("{}_{:02}_hwp{:05.1}.fits", self.scene.output.prefix, k, self.scene.hwp_angles_deg[k])
+        format!("{}.fits", self.frame_stem(k))
+    }
+
+    /// Frame `k`'s file name without `.fits` (a chip instrument's chip files add `_<chip>`).
+    fn frame_stem(&self, k: usize) -> String {
+        format!("{}_{:02}_hwp{:05.1}", self.scene.output.prefix, k, self.scene.hwp_angles_deg[k])
     }
 
     /// True when frames are written as raw chip files (the instrument's `[format]` has chips).
@@ -900,7 +917,7 @@ impl Plan {
     /// The files of frame `k` (relative to the output folder): one, or one per chip named as
     /// `sim::raw` names them (`STEM_<chip>.fits`).
     pub fn frame_files(&self, k: usize) -> Vec<String> {
-        self.chip_names(self.frame_name(k).trim_end_matches(".fits"))
+        self.chip_names(&self.frame_stem(k))
     }
 
     fn chip_names(&self, stem: &str) -> Vec<String> {
@@ -974,13 +991,11 @@ impl Plan {
             binning: None,
             bitpix: self.bitpix,
         };
-        let keys = if bias { self.bias_keys() } else { self.keys(k) };
+        // A bias frame: no HWP angle, no exposure time.
+        let keys = if bias { self.header_keys("BIAS", None, 0.0) } else { self.keys(k) };
         let mut rng = stream(self.scene.seed, STREAM_READOUT, k as u64, bias as u64);
-        let (dir, stem) = if bias {
-            (out.join("bias"), self.bias_stem(k))
-        } else {
-            (out.to_path_buf(), self.frame_name(k).trim_end_matches(".fits").to_string())
-        };
+        let (dir, stem) =
+            if bias { (out.join("bias"), self.bias_stem(k)) } else { (out.to_path_buf(), self.frame_stem(k)) };
         crate::raw::write_chip_files(&self.inst, &readout, &keys, bias, &mut rng, &dir, &stem, &mut |_, p, _| {
             // The rendered frame carries its own read noise and photon noise.
             if bias {
@@ -989,19 +1004,6 @@ impl Plan {
                 img[p]
             }
         })
-    }
-
-    /// The header keywords of a bias frame: no HWP angle, no exposure time.
-    fn bias_keys(&self) -> Vec<(String, KeyValue, String)> {
-        let pol = &self.inst.polarimetry;
-        let filt = self.inst.filter(&self.scene.filter).map(|f| f.aliases.first().cloned().unwrap_or(f.name.clone()));
-        vec![
-            ("INSTRUME".into(), KeyValue::Str(self.inst.name.clone()), String::new()),
-            ("OBJECT".into(), KeyValue::Str("BIAS".into()), "instpol simulation".into()),
-            (pol.filter_keyword.clone(), KeyValue::Str(filt.unwrap_or(self.scene.filter.clone())), String::new()),
-            (pol.exptime_keyword.clone(), KeyValue::F64(0.0), "exposure time [s]".into()),
-            ("SIMSEED".into(), KeyValue::I64(self.scene.seed as i64), "instpol simulation seed".into()),
-        ]
     }
 }
 

@@ -107,7 +107,7 @@ pub fn run(a: Args) -> Result<()> {
             let dir = a.out.join("bias");
             outln!(
                 "its bias level needs a master bias: {} bias frames in {}; make it (outside the frames' folder) with\n  instpol master-bias {}/*.fits --instrument {} --out master_bias.fits\nthen give --bias master_bias.fits to reduce",
-                out.bias.len() / plan.inst.format.chips.len().max(1),
+                plan.n_bias_frames(),
                 dir.display(),
                 dir.display(),
                 scene.instrument,
