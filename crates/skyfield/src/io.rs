@@ -66,6 +66,23 @@ pub enum KeyValue {
     Str(String),
 }
 
+impl KeyValue {
+    /// Write it as keyword `key` of `hdu`, numbers with their `comment` (text without one).
+    pub(crate) fn write(
+        &self,
+        f: &mut FitsFile,
+        hdu: &fitsio::hdu::FitsHdu,
+        key: &str,
+        comment: &str,
+    ) -> fitsio::errors::Result<()> {
+        match self {
+            KeyValue::F64(x) => hdu.write_key(f, key, (*x, comment)),
+            KeyValue::I64(x) => hdu.write_key(f, key, (*x, comment)),
+            KeyValue::Str(s) => hdu.write_key(f, key, s.as_str()),
+        }
+    }
+}
+
 /// Write a FITS file through a temporary file in the same folder and a rename. `fill`
 /// creates the content; if it fails, nothing is left behind.
 pub fn write_fits_atomic(path: &Path, fill: impl FnOnce(&mut FitsFile) -> Result<(), Error>) -> Result<(), Error> {
@@ -172,12 +189,8 @@ pub fn write_frame(
                 }
                 continue;
             }
-            match v {
-                KeyValue::F64(x) => hdu.write_key(f, k, (*x, c.as_str())),
-                KeyValue::I64(x) => hdu.write_key(f, k, (*x, c.as_str())),
-                KeyValue::Str(s) => hdu.write_key(f, k, s.as_str()),
-            }
-            .map_err(|x| Error::Write { path: path.into(), message: format!("keyword {k}: {x}") })?;
+            v.write(f, &hdu, k, c)
+                .map_err(|x| Error::Write { path: path.into(), message: format!("keyword {k}: {x}") })?;
         }
         Ok(())
     })

@@ -604,12 +604,7 @@ impl StokesMap {
         ph.write_key(f, "DETNX", (g.detector_nx as i64, "detector size x [px]")).map_err(e)?;
         ph.write_key(f, "DETNY", (g.detector_ny as i64, "detector size y [px]")).map_err(e)?;
         for (k, v, comment) in self.recorded_angles().keywords() {
-            match v {
-                crate::io::KeyValue::I64(n) => ph.write_key(f, &k, (n, comment)),
-                crate::io::KeyValue::F64(x) => ph.write_key(f, &k, (x, comment)),
-                crate::io::KeyValue::Str(t) => ph.write_key(f, &k, (t, comment)),
-            }
-            .map_err(e)?;
+            v.write(f, &ph, &k, comment).map_err(e)?;
         }
         let dims = [g.ny, g.nx];
         let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
