@@ -99,17 +99,13 @@ pub fn correct_catalog_loaded(
     let choice = tel
         .choose_track(None, Some((recorded.start, recorded.end)), None, rot)
         .map_err(|_| Error::NoRotator(inst.name.clone()))?;
-    let mut warnings = vec![];
-    for (z, whose) in [
+    let warnings: Vec<String> = [
         (field.map_or(0.0, |c| c.hwp_chi_offset_deg), "the field calibration".to_string()),
         (cat.chi_offset_deg, format!("filter {} of instrument {}", cat.filter, inst.name)),
-    ] {
-        if z != 0.0 {
-            warnings.push(format!(
-                "{whose} carries a HWP zero angle of {z} deg, and the chain of a field and a telescope model does not yet turn its inputs into one frame: the telescope's (and field's) angles may be off by it; check on a standard (instpol validate)"
-            ));
-        }
-    }
+    ]
+    .into_iter()
+    .filter_map(|(z, whose)| crate::telescope_cal::zero_angle_caveat(z, &whose))
+    .collect();
     let c = correct_catalog_chain(cat, &inst.name, field, opts, tel, &band, choice.track, &each)?;
     let used = TelescopeUsed { model: tel.model.name(), band, exposures: each.len() };
     Ok((c, Some(used), warnings))
@@ -202,9 +198,7 @@ pub fn correct_catalog_chain(
         }
     }
     let cor = field.map(|c| Corrector::new(c, CorrectOptions { chi_offset: 0.0, ..opts }));
-    let ex = crate::telescope_cal::telescope_exposures(exposures, track.rotator);
-    let prepared =
-        if ex.is_empty() { None } else { Some(tel.prepare_exposures(band, track, &ex).map_err(Error::Exposures)?) };
+    let prepared = crate::telescope_cal::prepare_recorded(tel, band, track, exposures).map_err(Error::Exposures)?;
     let seen = prepared.as_ref().map_or(Seen::Track(track), Seen::Prepared);
     let (rows, n_extrapolated) = correct_rows(cat, |r, m| {
         crate::telescope_cal::correct_chain_seen(cor.as_ref(), tel, band, m, seen)

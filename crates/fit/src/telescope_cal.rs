@@ -346,16 +346,9 @@ pub fn correct_map_chain<M: FieldModel + ?Sized>(
     track: Track,
     exposures: &[skyfield::ExposureTrack],
 ) -> std::result::Result<crate::correct::CorrectedMap, crate::correct::MapError> {
-    let ex = telescope_exposures(exposures, track.rotator);
     // The exposures' demodulations are the same for every bin: built once.
-    let prepared = if ex.is_empty() {
-        None
-    } else {
-        let p = tel
-            .prepare_exposures(band, track, &ex)
-            .map_err(|e| crate::correct::MapError::Exposures(crate::correct::Error::Telescope(e.to_string())))?;
-        Some(p)
-    };
+    let prepared = prepare_recorded(tel, band, track, exposures)
+        .map_err(|e| crate::correct::MapError::Exposures(crate::correct::Error::Telescope(e.to_string())))?;
     let seen = prepared.as_ref().map_or(Seen::Track(track), Seen::Prepared);
     crate::correct::correct_map_with(map, |m| {
         correct_chain_seen(field, tel, band, m, seen)
@@ -594,21 +587,49 @@ pub fn exposure_tracks(
     Ok((track, each))
 }
 
-/// The telescope angles of a catalog's exposures for its table ([`skyfield::RecordedAngles`],
-/// written as the table's numbers), when the instrument names their header keywords and every
-/// exposure's header has them (`frames` as given, for their order); `None` otherwise, silently,
-/// as for maps ([`record_telescope_angles`]).
-pub fn catalog_angles(
-    cat: &skyfield::catalog::Catalog,
+/// The exposures' telescope angles as a map or a catalog table records them
+/// ([`skyfield::RecordedAngles`]: the set's track, the rotator angle when the instrument names
+/// its keyword, each exposure's own track), when the instrument names their header keywords
+/// and every exposure's header has them (`exposures` and `frames` as for [`exposure_tracks`]);
+/// `None` otherwise, silently: most instruments and uses need no telescope model.
+pub fn recorded_angles(
+    exposures: &[(std::path::PathBuf, f64)],
     frames: &[std::path::PathBuf],
     inst: &instrument::Instrument,
 ) -> Option<skyfield::RecordedAngles> {
     let t = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty())?;
-    let (track, each) = exposure_tracks(&cat.frames, frames, t).ok()?;
+    let (track, each) = exposure_tracks(exposures, frames, t).ok()?;
     Some(skyfield::RecordedAngles {
         parallactic_rad: Some((track.start, track.end)),
         rotator_rad: (!t.rotator_keyword.is_empty()).then_some(track.rotator),
         exposure_tracks: each,
+    })
+}
+
+/// The exposures' demodulations for `tel`'s `band`, built once for every measurement that
+/// shares them ([`TelescopeFit::prepare_exposures`] of [`telescope_exposures`], over the set's
+/// `track` and with its rotator): `None` when no exposures are listed (the data are then undone
+/// over `track`).
+pub fn prepare_recorded(
+    tel: &TelescopeFit,
+    band: &str,
+    track: Track,
+    exposures: &[skyfield::ExposureTrack],
+) -> Result<Option<crate::telescope::PreparedExposures>> {
+    if exposures.is_empty() {
+        return Ok(None);
+    }
+    tel.prepare_exposures(band, track, &telescope_exposures(exposures, track.rotator)).map(Some)
+}
+
+/// The caveat to give when `whose` (a field calibration, a filter of the catalog) carries a
+/// HWP zero angle `z` (deg, not 0): the chain of a field and a telescope model takes each
+/// model's angles as fitted (module docs), so it may be off by that angle.
+pub fn zero_angle_caveat(z: f64, whose: &str) -> Option<String> {
+    (z != 0.0).then(|| {
+        format!(
+            "{whose} carries a HWP zero angle of {z} deg, and the chain of a field and a telescope model does not yet turn its inputs into one frame: the telescope's (and field's) angles may be off by it; check on a standard (instpol validate)"
+        )
     })
 }
 
@@ -624,26 +645,23 @@ pub fn telescope_exposures(tracks: &[skyfield::ExposureTrack], rotator: f64) -> 
         .collect()
 }
 
-/// Record in a reduced map the exposures' telescope angles, when the instrument names their
-/// header keywords and every exposure's header has them (`exposures`: each one's file and HWP
-/// angle, [`skyfield::reduce::Reduced::exposures`]; `frames` as given, for their order): the
-/// set's track (`PARANG1`, `PARANG2`,
-/// [`frames_track`]), the rotator angle, and each exposure's own track
-/// ([`skyfield::StokesMap::exposure_tracks`], [`exposure_tracks`]), which `correct` uses to
-/// undo the telescope as the exposures saw it. Frames without the angles leave the map without
-/// them, silently: most instruments and uses need no telescope model. The one recording of
-/// `instpol reduce` and the Python package's `reduce`.
+/// Record in a reduced map the exposures' telescope angles ([`recorded_angles`]; `exposures`:
+/// each one's file and HWP angle, [`skyfield::reduce::Reduced::exposures`]; `frames` as
+/// given, for their order): the set's track (`PARANG1`, `PARANG2`), the rotator angle, and
+/// each exposure's own track ([`skyfield::StokesMap::exposure_tracks`]), which `correct` uses
+/// to undo the telescope as the exposures saw it. Frames without the angles leave the map
+/// without them, silently. The one recording of `instpol reduce` and the Python package's
+/// `reduce`.
 pub fn record_telescope_angles(
     map: &mut skyfield::StokesMap,
     exposures: &[(std::path::PathBuf, f64)],
     frames: &[std::path::PathBuf],
     inst: &instrument::Instrument,
 ) {
-    let Some(t) = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty()) else { return };
-    let Ok((track, each)) = exposure_tracks(exposures, frames, t) else { return };
-    map.parallactic_rad = Some((track.start, track.end));
-    map.rotator_rad = (!t.rotator_keyword.is_empty()).then_some(track.rotator);
-    map.exposure_tracks = each;
+    let Some(r) = recorded_angles(exposures, frames, inst) else { return };
+    map.parallactic_rad = r.parallactic_rad;
+    map.rotator_rad = r.rotator_rad;
+    map.exposure_tracks = r.exposure_tracks;
 }
 
 /// Validating a telescope calibration (with or without a field model) on a standard star:

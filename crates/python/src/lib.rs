@@ -626,8 +626,9 @@ impl _Calibration {
                     .choose_track(None, Some(r.track), None, r.rotator)
                     .map_err(|_| input_err("recorded: the telescope model was fitted with rotator angles and the catalog recorded none"))?
                     .track;
-                let ex = fit::telescope_cal::telescope_exposures(&r.exposures, track.rotator);
-                let p = t.prepare_exposures(&b, track, &ex).map_err(|e| input_err(format!("recorded: {e}")))?;
+                let p = fit::telescope_cal::prepare_recorded(t, &b, track, &r.exposures)
+                    .map_err(|e| input_err(format!("recorded: {e}")))?
+                    .ok_or_else(|| input_err("recorded: no exposures"))?;
                 Some((p, b))
             }
             (None, Some(_)) => {
@@ -839,12 +840,10 @@ impl _Calibration {
                     ));
                 }
                 if let Field::PPhi(f) = &self.field {
-                    if f.hwp_chi_offset_deg != 0.0 {
-                        notes.push(format!(
-                            "the field calibration {cal_path} carries a HWP zero angle of {} deg, and the chain of a field and a telescope model does not yet turn its inputs into one frame: the telescope's (and field's) angles may be off by it; check on a standard (instpol validate)",
-                            f.hwp_chi_offset_deg
-                        ));
-                    }
+                    notes.extend(fit::telescope_cal::zero_angle_caveat(
+                        f.hwp_chi_offset_deg,
+                        &format!("the field calibration {cal_path}"),
+                    ));
                 }
                 Some((t, b, c.track, given.is_none()))
             }
@@ -1371,7 +1370,7 @@ fn _catalog<'py>(
     d.set_item("n_sources", cat.n_sources)?;
     // The exposures' telescope angles, as `instpol catalog` records them in its tables: what
     // `Calibration.correct(..., recorded=...)` takes.
-    match fit::telescope_cal::catalog_angles(&cat, &frames, &inst) {
+    match fit::telescope_cal::recorded_angles(&cat.frames, &frames, &inst) {
         Some(r) => {
             let rd = PyDict::new(py);
             let (s, e) = r.parallactic_rad.unwrap_or_default();

@@ -205,7 +205,7 @@ pub fn run(a: Args) -> Result<()> {
         let mut t = cat.to_table();
         // The exposures' telescope angles, for `instpol correct` (ECSV, FITS and VOTable carry
         // them; CSV has no place for them).
-        if let Some(angles) = fit::telescope_cal::catalog_angles(&cat, &a.frames, &inst) {
+        if let Some(angles) = fit::telescope_cal::recorded_angles(&cat.frames, &a.frames, &inst) {
             t.meta = angles.to_meta();
         }
         if let Some(c) = &corrected {

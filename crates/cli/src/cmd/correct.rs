@@ -825,10 +825,8 @@ fn run_telescope(
     // frame) and catalogs (zero angle added) differ from each other by it, and the field and
     // telescope fits need not share a frame: say so rather than correct in silence.
     let zero_angle_warning = |z: f64, whose: &str| {
-        if z != 0.0 {
-            eprintln!(
-                "WARNING: {whose} carries a HWP zero angle of {z} deg, and the chain of a field and a telescope model does not yet turn its inputs into one frame: the telescope's (and field's) angles may be off by it; check on a standard (instpol validate)"
-            );
+        if let Some(w) = fit::telescope_cal::zero_angle_caveat(z, whose) {
+            eprintln!("WARNING: {w}");
         }
     };
     if let Some(c) = field {
@@ -901,15 +899,10 @@ fn run_telescope(
         vec![track; meas.len()]
     };
     // Recorded exposures: the telescope undone as each saw it, their demodulations built once.
-    let prepared = match (by_exposure.is_empty(), tracks.first()) {
-        (false, Some(&track)) => {
-            let ex = fit::telescope_cal::telescope_exposures(&by_exposure, track.rotator);
-            Some(
-                tel.prepare_exposures(&band, track, &ex)
-                    .with_context(|| format!("{}: its exposures", a.input.display()))?,
-            )
-        }
-        _ => None,
+    let prepared = match tracks.first() {
+        Some(&track) => fit::telescope_cal::prepare_recorded(tel, &band, track, &by_exposure)
+            .with_context(|| format!("{}: its exposures", a.input.display()))?,
+        None => None,
     };
     let mut out = Vec::with_capacity(meas.len());
     for (i, (m, track)) in meas.iter().zip(tracks).enumerate() {
