@@ -639,13 +639,10 @@ impl _Calibration {
             }
             _ => None,
         };
-        // With recorded exposures no row has its own track: the chain below takes the prepared
-        // exposures and never reads these placeholder angles.
-        let zero_pa = vec![0.0; n];
-        let pa = if prepared.is_some() { Some(&zero_pa[..]) } else { pa };
-        let telescope = match (&self.telescope, pa) {
-            (Some(t), Some(pa)) => Some((t, pa, self.telescope_band(t, band, None)?)),
-            (Some(t), None) => {
+        let telescope = match (&self.telescope, &prepared, pa) {
+            (Some(t), Some((p, b)), _) => Some((t, Tracks::Recorded(p), b.clone())),
+            (Some(t), None, Some(pa)) => Some((t, Tracks::Rows(pa, pa_end), self.telescope_band(t, band, None)?)),
+            (Some(t), None, None) => {
                 return Err(input_err(format!(
                     "{} holds a telescope model ({}): give each row's parallactic angle, parang_deg= (deg, as the \
                      standards were fitted with), as `instpol correct` reads it from the column parang_deg",
@@ -653,17 +650,17 @@ impl _Calibration {
                     t.model.name()
                 )))
             }
-            (None, Some(_)) => {
+            (None, _, Some(_)) => {
                 return Err(input_err(format!(
                     "parang_deg given but {} holds no telescope model: the telescope's polarization would NOT be \
                      removed (fit one with instpol fit-standards --output --field-cal)",
                     self.path.display()
                 )))
             }
-            (None, None) if pa_end.is_some() || band.is_some() => {
+            (None, _, None) if pa_end.is_some() || band.is_some() => {
                 return Err(input_err("parang_end_deg and band are for calibrations with a telescope model"))
             }
-            (None, None) => None,
+            (None, _, None) => None,
         };
         let conv = self.arcmin(x, y, units)?;
         let (x, y) = conv.as_ref().map_or((x, y), |(a, b)| (a.as_slice(), b.as_slice()));
@@ -689,14 +686,11 @@ impl _Calibration {
                 extra: &mut extra,
                 start: 0,
             };
-            let pre = prepared.as_ref().map(|(p, _)| p);
             match (&self.field, &telescope) {
-                (Field::PPhi(c), Some((t, pa, b))) => {
-                    fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, (pa, pa_end, pre), sink)
+                (Field::PPhi(c), Some((t, tracks, b))) => {
+                    fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, *tracks, sink)
                 }
-                (Field::TelescopeOnly { .. }, Some((t, pa, b))) => {
-                    fill_chain(None, t, b, &input, (pa, pa_end, pre), sink)
-                }
+                (Field::TelescopeOnly { .. }, Some((t, tracks, b))) => fill_chain(None, t, b, &input, *tracks, sink),
                 (Field::TelescopeOnly { .. }, None) => Err((0, "a telescope-only calibration needs parang_deg".into())),
                 (Field::PPhi(c), None) => {
                     let cor = Corrector::new(c, opts);
@@ -1074,14 +1068,22 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Recorded {
     }
 }
 
-/// Each row through the chain: over its own track (`pa`, `pa_end`, deg), or as the recorded
-/// exposures saw the telescope when they are `prepared` (then `pa` is unused).
+/// How the rows of a correction saw the telescope.
+#[derive(Clone, Copy)]
+enum Tracks<'a> {
+    /// Each row over its own track: `parang_deg` and optionally `parang_end_deg` (deg).
+    Rows(&'a [f64], Option<&'a [f64]>),
+    /// Every row as the recorded exposures saw it (their demodulations built once).
+    Recorded(&'a fit::telescope::PreparedExposures),
+}
+
+/// Each row through the chain, as `tracks` says it saw the telescope.
 fn fill_chain(
     cor: Option<&Corrector<'_, fit::Calibration>>,
     tel: &fit::telescope::TelescopeFit,
     band: &str,
     i: &Inputs<'_>,
-    (pa, pa_end, prepared): (&[f64], Option<&[f64]>, Option<&fit::telescope::PreparedExposures>),
+    tracks: Tracks<'_>,
     s: Sink<'_>,
 ) -> Result<usize, (usize, String)> {
     use fit::telescope::{Seen, Track};
@@ -1098,9 +1100,11 @@ fn fill_chain(
                 sigma_u: i.su[k],
                 cov_qu: i.cov.map_or(0.0, |c| c[k]),
             };
-            let seen = match prepared {
-                Some(p) => Seen::Prepared(p),
-                None => Seen::Track(Track::new(pa[k].to_radians(), pa_end.map(|e| e[k].to_radians()))),
+            let seen = match tracks {
+                Tracks::Recorded(p) => Seen::Prepared(p),
+                Tracks::Rows(pa, pa_end) => {
+                    Seen::Track(Track::new(pa[k].to_radians(), pa_end.map(|e| e[k].to_radians())))
+                }
             };
             let r = fit::telescope_cal::correct_chain_seen(cor, tel, band, &m, seen).map_err(|e| (k, e.to_string()))?;
             Ok(r.with_telescope_in_inst())
