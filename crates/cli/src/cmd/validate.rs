@@ -291,10 +291,16 @@ fn run_telescope(a: &Args) -> Result<()> {
             inst.name
         );
     }
+    // Where the parallactic angles come from: --parang (one track for all), else the frames'
+    // headers under the instrument's [telescope] keywords (each exposure's own track).
+    enum Angles<'a> {
+        Given(fit::telescope::Track),
+        Headers(&'a instrument::Telescope),
+    }
     let given = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
-    let tel_keys = match (&given, inst.telescope.as_ref()) {
-        (Some(_), _) => None,
-        (None, Some(t)) => Some(t),
+    let angles = match (given, inst.telescope.as_ref()) {
+        (Some(t), _) => Angles::Given(t),
+        (None, Some(t)) => Angles::Headers(t),
         (None, None) => bail!(
             "instrument {} has no [telescope] section naming the header keywords of the parallactic angle: give --parang START[,END] (deg)",
             inst.name
@@ -307,14 +313,11 @@ fn run_telescope(a: &Args) -> Result<()> {
     let opts = validate_options(a)?;
     let fit::validate::MeasuredFrames { star: measured, filter, exposures } =
         fit::validate::measure_frames(&inst, &a.frames, x_px, y_px, &opts)?;
-    // The headers' angles: the set's track and each exposure's own, so that the telescope is
-    // undone as each exposure saw it; --parang gives one track for all.
-    let (track, each) = match (given, tel_keys) {
-        (Some(t), _) => (t, vec![]),
-        (None, Some(t)) => fit::telescope_cal::exposure_tracks(&exposures, &a.frames, t).with_context(|| {
+    let (track, each) = match angles {
+        Angles::Given(t) => (t, vec![]),
+        Angles::Headers(t) => fit::telescope_cal::exposure_tracks(&exposures, &a.frames, t).with_context(|| {
             "the parallactic angle of the frames (the telescope model needs it): fix the headers or give --parang START[,END] (deg)"
         })?,
-        (None, None) => unreachable!("refused above"),
     };
     let band = tel
         .choose_band(a.band.as_deref(), field.map(|c| c.filter.as_str()), Some(&filter))
