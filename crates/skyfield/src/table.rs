@@ -570,10 +570,12 @@ fn read_ecsv(path: &Path) -> Result<Table, Error> {
         }
         let top = !h.starts_with(' ') && !h.starts_with('-');
         if !top && in_meta {
+            // An entry of the ordered map (`- {KEY: 1.5}`) or a line of a block mapping
+            // (`KEY: 1.5`), read as the column entries' flow mappings are.
             let item = h.trim().trim_start_matches("- ").trim();
-            let item = item.strip_prefix('{').and_then(|i| i.strip_suffix('}')).unwrap_or(item);
-            if let Some((k, v)) = item.split_once(':') {
-                if let (Some(k), Ok(v)) = (yaml_unquote(k.trim()), v.trim().parse::<f64>()) {
+            let pairs = if item.starts_with('{') { flow_mapping(item) } else { flow_mapping(&format!("{{{item}}}")) };
+            for (k, v) in pairs.into_iter().flatten() {
+                if let (Some(k), Ok(v)) = (yaml_unquote(&k), v.parse::<f64>()) {
                     table_meta.push((k, v));
                 }
             }

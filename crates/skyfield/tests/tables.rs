@@ -41,6 +41,9 @@ fn reads_what_astropy_wrote_in_every_format() {
     assert_eq!(ecsv.column("q").unwrap().description.as_deref(), Some("Q/I, dimensionless fraction"));
     // ECSV rows are named by their line in the file: the first data row is line 13.
     assert_eq!(ecsv.row_label(0), "row 1 (line 13)");
+    // Its header's meta holds one text entry (`comment: made by make_tables.py`): not a number,
+    // so no table number.
+    assert!(ecsv.meta.is_empty(), "{:?}", ecsv.meta);
     let vot = Table::read(&data("astropy.vot"), None).unwrap();
     check_astropy_catalog(&vot, "votable", "pixel");
     assert_eq!(vot.column("q").unwrap().description.as_deref(), Some("Q/I, dimensionless fraction"));
