@@ -175,6 +175,13 @@ fn main() {
     hash_all();
     let opts = ReadOptions { bias: Some(bias.clone()), flat: Some(flat.clone()), ..Default::default() };
     let cfg = ReduceConfig::default();
+    // `PROFILE_REDUCE=N`: only the library's reduction, N times (for a profiler), no timings.
+    if let Some(n) = std::env::var("PROFILE_REDUCE").ok().and_then(|s| s.parse::<usize>().ok()) {
+        for _ in 0..n {
+            reduce_files_with(&paths, &inst, &cfg, &opts, &|| {}).unwrap();
+        }
+        return;
+    }
     let bin = std::env::var("INSTPOL_BIN").ok().filter(|b| !b.is_empty());
     let map_out = tmp.path().join("raw_map.fits");
     let run_bin = |b: &str| -> (f64, f64) {

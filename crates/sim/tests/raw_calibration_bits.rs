@@ -235,6 +235,21 @@ fn reference_frames(inst: &Instrument, science: &[PathBuf], masters: Option<(&Pa
     frames
 }
 
+/// Saturated values (the calibration's marker) among the o and e pixels of the sky pixels the
+/// bins of `cfg` cover, each pixel counted once per beam it serves.
+fn saturated_used(inst: &Instrument, cfg: &ReduceConfig, frame: &[f64]) -> usize {
+    let g = BeamGeometry::new(inst);
+    let geom = skyfield::reduce::bin_geometry(inst, cfg.bin_px);
+    let xs = geom.origin_x..geom.origin_x + geom.nx * geom.bin_px;
+    let ys = geom.origin_y..geom.origin_y + geom.ny * geom.bin_px;
+    let sat = SATURATED as f32 as f64;
+    g.sky_pixels()
+        .filter(|(x, y)| xs.contains(x) && ys.contains(y))
+        .filter_map(|(x, y)| g.beams_of_sky(x, y))
+        .map(|(o, e)| usize::from(frame[o] == sat) + usize::from(frame[e] == sat))
+        .sum()
+}
+
 fn same_bits(a: &[f64], b: &[f64]) -> bool {
     a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
 }
@@ -268,8 +283,22 @@ fn raw_calibration_and_reduction_are_the_straightforward_computation_to_the_bit(
                 assert_eq!(a.conversion, b.conversion, "{label}");
             }
 
+            // Saturated values each file's reduction counts: over the o and e pixels of every
+            // binned sky pixel, counted here from the reference frames.
+            let want_sat: Vec<usize> = reference.iter().map(|f| saturated_used(&inst, &cfg, &f.data)).collect();
+            assert!(want_sat.iter().any(|&n| n > 0), "{label}: no saturated pixel among those used");
             let want = reduce_set(&FrameSet::from_frames(reference, &inst, true).unwrap(), &inst, &cfg).unwrap().map;
-            let got = reduce_files_with(&set.science, &inst, &cfg, &opts, &|| {}).unwrap().map;
+            let reduced = reduce_files_with(&set.science, &inst, &cfg, &opts, &|| {}).unwrap();
+            for (p, &n) in set.science.iter().filter(|p| p.to_string_lossy().contains("CHIP1")).zip(&want_sat) {
+                let said = reduced
+                    .warnings
+                    .iter()
+                    .filter(|w| w.file.as_deref() == Some(p.as_path()) && w.message.contains("saturated"))
+                    .map(|w| w.message.split_whitespace().next().unwrap().parse::<usize>().unwrap())
+                    .sum::<usize>();
+                assert_eq!(said, n, "{label}: saturated values counted for {}", p.display());
+            }
+            let got = reduced.map;
             assert!(want.n_valid() > 20, "{label}: {} valid bins", want.n_valid());
             assert_eq!(got.valid, want.valid, "{label}");
             assert_eq!(got.n_pixels, want.n_pixels, "{label}");

@@ -27,7 +27,8 @@
 
 use crate::io::{
     check_bitpix, frame_header_with, open_image, parse_number, pixel_source, require_hwp, write_frame, Bitpix,
-    Conversion, Frame, FrameRows, ImageHdu, KeyValue, OpenFrame, Pixels, GAP, GAP_LIMIT, SATURATED, SATURATED_LIMIT,
+    Conversion, Frame, FrameRows, ImageHdu, KeyValue, OpenFrame, Pixels, RawKind, GAP, GAP_LIMIT, SATURATED,
+    SATURATED_LIMIT,
 };
 use crate::{Error, Warning};
 use instrument::{Chip, Instrument, NumberOrKeyword};
@@ -621,6 +622,68 @@ pub(crate) struct Calibrated {
 /// Raw rows of one chip calibrated at once (bounds the scratch buffer).
 const CAL_ROWS: usize = 64;
 
+/// Scratch of [`Calibrated::load_rows_summed`], kept between calls: each exposure's raw rows,
+/// a decoded row (rows not read straight from a file) and the count weights of a row.
+#[derive(Default)]
+pub(crate) struct SumScratch {
+    bytes: Vec<Vec<u8>>,
+    row: Vec<f64>,
+    w: Vec<u64>,
+}
+
+/// One row's calibration as [`Cal::sum`] applies it: the masters' pixels of the row (a zero
+/// bias and a unit inverse flat when absent), how many counted ranges cover each pixel, and
+/// the chip's level, gain and saturation (raw ADU), and the level at which a calibrated value
+/// is counted as saturated (the frames' conversion's).
+struct Cal<'a> {
+    bias: &'a [f32],
+    flat: &'a [f32],
+    w: &'a [u64],
+    level: f64,
+    to_e: f64,
+    sat: f64,
+    count_sat: f64,
+}
+
+impl Cal<'_> {
+    /// Calibrate the raw values `raw` (ADU as `value` decodes them, at least `out.len()`) as
+    /// `calibrate_row` does, and set (`first`) or add them to `out`; returns the non-finite
+    /// and saturated (`>= count_sat`) calibrated values, each counted `w[i]` times.
+    #[inline(always)]
+    fn sum<T: Copy>(&self, first: bool, out: &mut [f64], raw: &[T], value: impl Fn(T) -> f64) -> (usize, usize) {
+        let n = out.len();
+        let (bias, flat, w, raw) = (&self.bias[..n], &self.flat[..n], &self.w[..n], &raw[..n]);
+        let (mut nb, mut ns) = (0u64, 0u64);
+        #[inline(always)]
+        fn one(r: f64, b: f64, fi: f64, level: f64, to_e: f64, sat: f64) -> f64 {
+            let e = ((r - level - b) * to_e * fi) as f32;
+            let e = if r >= sat { SATURATED as f32 } else { e };
+            (if r.is_nan() { f32::NAN } else { e }) as f64
+        }
+        // Two loops, so that neither tests `first` per value.
+        if first {
+            for i in 0..n {
+                let e = one(value(raw[i]), bias[i] as f64, flat[i] as f64, self.level, self.to_e, self.sat);
+                nb += if e.is_finite() { 0 } else { w[i] };
+                ns += if e >= self.count_sat { w[i] } else { 0 };
+                out[i] = e;
+            }
+        } else {
+            for i in 0..n {
+                let e = one(value(raw[i]), bias[i] as f64, flat[i] as f64, self.level, self.to_e, self.sat);
+                nb += if e.is_finite() { 0 } else { w[i] };
+                ns += if e >= self.count_sat { w[i] } else { 0 };
+                out[i] += e;
+            }
+        }
+        (nb as usize, ns as usize)
+    }
+}
+
+/// Raw rows of one chip of every exposure fetched at once when summing exposures
+/// ([`Calibrated::load_rows_summed`]): all of them stay in cache until summed.
+const SUM_ROWS: usize = 8;
+
 impl Calibrated {
     /// Detector rows `row0 ..` (as many as fill `out`, whole rows) in electrons (f32 values
     /// widened to f64, as a calibrated frame in memory holds them): the gap is [`GAP`], raw
@@ -669,23 +732,7 @@ impl Calibrated {
         // The gap: whatever no chip covers (chips never overlap; each writes all its columns
         // of its rows below), so the chips' pixels are written once, not filled first.
         let gap = GAP as f32 as f64;
-        let mut spans: Vec<(usize, usize)> = Vec::with_capacity(self.chips.len());
-        for (k, row) in out.chunks_exact_mut(nx).enumerate() {
-            let y = row0 + k;
-            spans.clear();
-            spans.extend(self.chips.iter().filter(|c| y >= c.y0 && y < c.y0 + c.cy).map(|c| (c.x0, c.x0 + c.cx)));
-            spans.sort_unstable();
-            let mut x = 0;
-            for &(a, b) in &spans {
-                if a > x {
-                    row[x..a].fill(gap);
-                }
-                x = x.max(b);
-            }
-            if x < nx {
-                row[x..].fill(gap);
-            }
-        }
+        self.fill_gap(row0, out, |v| *v = gap);
         for c in &self.chips {
             // Detector rows of this chip within the request.
             let (a, b) = (row0.max(c.y0), (row0 + nrows).min(c.y0 + c.cy));
@@ -701,6 +748,174 @@ impl Calibrated {
             }
         }
         Ok(())
+    }
+
+    /// Whether `other`'s rows can be summed with this exposure's by
+    /// [`Calibrated::load_rows_summed`]: the same masters and the same chips in the same places.
+    pub(crate) fn summable_with(&self, other: &Calibrated) -> bool {
+        let place = |c: &ChipRows| (c.x0, c.y0, c.cx, c.cy, c.use_bias, c.use_flat);
+        Arc::ptr_eq(&self.masters, &other.masters)
+            && (self.nx, self.ny) == (other.nx, other.ny)
+            && self.chips.len() == other.chips.len()
+            && self.chips.iter().zip(&other.chips).all(|(a, b)| place(a) == place(b))
+    }
+
+    /// Detector rows `row0 ..` of the exposures `exps` (each [`Calibrated::summable_with`] the
+    /// first) calibrated as [`Calibrated::load_rows_with`] makes them and summed in the order
+    /// given (the same values and the same additions in the same order, so the same bits as
+    /// loading each and adding), one row at a time so that the row being summed stays in L1
+    /// (summing whole groups of rows went through L2: a fifth of a raw FORS2 reduction). Each
+    /// exposure's non-finite values and values at or above `sat` are counted into `counts`
+    /// over the index ranges `counted` of `out` (ranges may overlap: a pixel is counted once
+    /// per range, as the reduction counts its o and e pixels).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn load_rows_summed(
+        exps: &[&Calibrated],
+        row0: usize,
+        out: &mut [f64],
+        sc: &mut SumScratch,
+        m: MasterRows,
+        counted: &[(usize, usize)],
+        sat: f64,
+        counts: &mut [(usize, usize)],
+    ) -> Result<(), Error> {
+        let Some(first) = exps.first() else { return Ok(()) };
+        debug_assert!(exps.iter().all(|e| first.summable_with(e)));
+        let SumScratch { bytes, row, w } = sc;
+        bytes.resize_with(exps.len(), Vec::new);
+        let nx = first.nx;
+        let nrows = out.len() / nx;
+        // The gap, summed as each exposure's gap value would be.
+        let gap = GAP as f32 as f64;
+        first.fill_gap(row0, out, |v| {
+            *v = gap;
+            for _ in 1..exps.len() {
+                *v += gap;
+            }
+        });
+        // Absent masters as a zero bias and a unit inverse flat: `x - 0` and `x * 1` are `x`
+        // exactly, so the values are those of `calibrate_row`'s loops without them.
+        let (has_bias, has_flat) = first.masters.given();
+        let need = |given: bool, used: fn(&ChipRows) -> bool| !(given && first.chips.iter().all(used));
+        let zeros = if need(has_bias, |c| c.use_bias) { vec![0.0f32; nx * nrows] } else { Vec::new() };
+        let ones = if need(has_flat, |c| c.use_flat) { vec![1.0f32; nx * nrows] } else { Vec::new() };
+        for (ci, c) in first.chips.iter().enumerate() {
+            let (a, b) = (row0.max(c.y0), (row0 + nrows).min(c.y0 + c.cy));
+            let mut y = a;
+            while y < b {
+                // Few rows at a time: every exposure's raw rows stay in cache until summed.
+                let n = SUM_ROWS.min(b - y);
+                let ry = c.pry + y - c.y0;
+                for (e, buf) in exps.iter().zip(bytes.iter_mut()) {
+                    e.chips[ci].fetch(ry, n, buf)?;
+                }
+                let bias = if has_bias && c.use_bias { (m.bias, m.row0) } else { (&zeros[..], row0) };
+                let flat = if has_flat && c.use_flat { (m.flat, m.row0) } else { (&ones[..], row0) };
+                first.sum_chip_rows(
+                    exps,
+                    ci,
+                    (y, ry, n),
+                    row0,
+                    (bias, flat),
+                    bytes,
+                    (row, w),
+                    out,
+                    counted,
+                    sat,
+                    counts,
+                );
+                y += n;
+            }
+        }
+        Ok(())
+    }
+
+    avx2_dispatch! {
+        /// The rows `y .. y + n` (raw rows `ry ..`, fetched into `bytes`) of chip `ci` of every
+        /// exposure, calibrated, counted and summed into `out` (see
+        /// [`Calibrated::load_rows_summed`]). Each raw value is decoded, calibrated, counted and
+        /// added in one step (no row of calibrated values is stored: stores were this loop's
+        /// bound); `w` holds how many of the `counted` ranges cover each pixel of the row.
+        #[allow(clippy::too_many_arguments)]
+        fn sum_chip_rows / sum_chip_rows_avx2 / sum_chip_rows_avx512 => sum_chip_rows_impl(
+            &self,
+            exps: &[&Calibrated],
+            ci: usize,
+            rows: (usize, usize, usize),
+            row0: usize,
+            masters: ((&[f32], usize), (&[f32], usize)),
+            bytes: &[Vec<u8>],
+            scratch: (&mut Vec<f64>, &mut Vec<u64>),
+            out: &mut [f64],
+            counted: &[(usize, usize)],
+            sat: f64,
+            counts: &mut [(usize, usize)],
+        ) {
+            let ((y, ry, n), ((bias, b_row0), (flat, f_row0)), (row, w)) = (rows, masters, scratch);
+            let (nx, c) = (self.nx, &self.chips[ci]);
+            w.resize(c.cx, 0);
+            for k in 0..n {
+                let at = (y + k - row0) * nx + c.x0;
+                let (b0, f0) = ((y + k - b_row0) * nx + c.x0, (y + k - f_row0) * nx + c.x0);
+                let (bias, flat) = (&bias[b0..b0 + c.cx], &flat[f0..f0 + c.cx]);
+                w.fill(0);
+                for &(lo, hi) in counted {
+                    let (lo, hi) = (lo.max(at), hi.min(at + c.cx));
+                    if lo < hi {
+                        w[lo - at..hi - at].iter_mut().for_each(|x| *x += 1);
+                    }
+                }
+                let o = &mut out[at..at + c.cx];
+                for (j, (e, buf)) in exps.iter().zip(bytes).enumerate() {
+                    let ch = &e.chips[ci];
+                    let cal = Cal { bias, flat, w, level: ch.level, to_e: ch.to_e, sat: ch.sat, count_sat: sat };
+                    let first = j == 0;
+                    let (a, s) = match &ch.src {
+                        FrameRows::File(r) => {
+                            let b = &buf[(k * ch.rnx + ch.prx) * r.kind().bytes()..];
+                            match r.kind() {
+                                RawKind::U16 => {
+                                    cal.sum(first, o, b.as_chunks::<2>().0, |b| u16::from_be_bytes([b[0] ^ 0x80, b[1]]) as f64)
+                                }
+                                RawKind::I16 => cal.sum(first, o, b.as_chunks::<2>().0, |b| i16::from_be_bytes(b) as f64),
+                                RawKind::F32 => cal.sum(first, o, b.as_chunks::<4>().0, |b| f32::from_be_bytes(b) as f64),
+                                RawKind::F64 => cal.sum(first, o, b.as_chunks::<8>().0, f64::from_be_bytes),
+                            }
+                        }
+                        _ => {
+                            row.resize(c.cx, 0.0);
+                            ch.decode(ry, k, ch.prx, buf, row);
+                            cal.sum(first, o, row, |x| x)
+                        }
+                    };
+                    counts[j].0 += a;
+                    counts[j].1 += s;
+                }
+            }
+        }
+    }
+
+    /// Calls `fill` on every pixel of detector rows `row0 ..` (as many as `out` holds) that no
+    /// chip covers.
+    fn fill_gap(&self, row0: usize, out: &mut [f64], mut fill: impl FnMut(&mut f64)) {
+        let nx = self.nx;
+        let mut spans: Vec<(usize, usize)> = Vec::with_capacity(self.chips.len());
+        for (k, row) in out.chunks_exact_mut(nx).enumerate() {
+            let y = row0 + k;
+            spans.clear();
+            spans.extend(self.chips.iter().filter(|c| y >= c.y0 && y < c.y0 + c.cy).map(|c| (c.x0, c.x0 + c.cx)));
+            spans.sort_unstable();
+            let mut x = 0;
+            for &(a, b) in &spans {
+                if a > x {
+                    row[x..a].iter_mut().for_each(&mut fill);
+                }
+                x = x.max(b);
+            }
+            if x < nx {
+                row[x..].iter_mut().for_each(&mut fill);
+            }
+        }
     }
 
     /// The whole detector frame.
@@ -719,6 +934,21 @@ impl Calibrated {
 /// [`SATURATED`], NaN raw values NaN. Absent masters are a zero bias and a unit inverse flat.
 #[inline(always)]
 fn calibrate_row(v: &mut [f64], bias: Option<&[f32]>, flat_inv: Option<&[f32]>, level: f64, to_e: f64, sat: f64) {
+    calibrate_each(v, bias, flat_inv, level, to_e, sat, |_, _| {});
+}
+
+/// [`calibrate_row`], also handing each calibrated value and its index to `sink` (which the
+/// loop inlines: summing exposures as they are calibrated).
+#[inline(always)]
+fn calibrate_each(
+    v: &mut [f64],
+    bias: Option<&[f32]>,
+    flat_inv: Option<&[f32]>,
+    level: f64,
+    to_e: f64,
+    sat: f64,
+    mut sink: impl FnMut(usize, f64),
+) {
     #[inline(always)]
     fn one(r: f64, b: f64, fi: f64, level: f64, to_e: f64, sat: f64) -> f64 {
         let e = ((r - level - b) * to_e * fi) as f32;
@@ -732,23 +962,27 @@ fn calibrate_row(v: &mut [f64], bias: Option<&[f32]>, flat_inv: Option<&[f32]>, 
             let (b, f) = (&b[..n], &f[..n]);
             for i in 0..n {
                 v[i] = one(v[i], b[i] as f64, f[i] as f64, level, to_e, sat);
+                sink(i, v[i]);
             }
         }
         (Some(b), None) => {
             let b = &b[..n];
             for i in 0..n {
                 v[i] = one(v[i], b[i] as f64, 1.0, level, to_e, sat);
+                sink(i, v[i]);
             }
         }
         (None, Some(f)) => {
             let f = &f[..n];
             for i in 0..n {
                 v[i] = one(v[i], 0.0, f[i] as f64, level, to_e, sat);
+                sink(i, v[i]);
             }
         }
         (None, None) => {
             for i in 0..n {
                 v[i] = one(v[i], 0.0, 1.0, level, to_e, sat);
+                sink(i, v[i]);
             }
         }
     }

@@ -25,7 +25,7 @@
 
 use crate::beams::BeamGeometry;
 use crate::bin::{clipped_bin_hinted, BinSamples, ClipConfig, PixelSample};
-use crate::calib::{avx2_dispatch, Calibrated, MasterRows, ReadOptions};
+use crate::calib::{avx2_dispatch, Calibrated, MasterRows, ReadOptions, SumScratch};
 use crate::io::{Conversion, Frame, FrameRows, OpenFrame, PixelView, RawKind};
 use crate::maps::{BinGeometry, StokesMap};
 use crate::{Error, Warning};
@@ -729,7 +729,7 @@ struct Band {
 }
 
 /// Bytes of raw rows a group should hold (all angles): well inside a core's L2 + its L3 share.
-const GROUP_BYTES: usize = 3 << 18;
+const GROUP_BYTES: usize = 3 << 19;
 
 /// The bands of bin rows `0..geom.ny` (see [`Band`]) for `n` angles, and how many detector
 /// pixels of each frame the reduction uses (o and e pixels of the binned sky pixels).
@@ -1080,6 +1080,11 @@ struct Scratch {
     mbias: Vec<f32>,
     mflat: Vec<f32>,
     mkey: usize,
+    /// Scratch of [`Calibrated::load_rows_summed`], the o and e ranges of a run and each
+    /// exposure's bad-value counts.
+    summing: SumScratch,
+    ranges: Vec<(usize, usize)>,
+    counts: Vec<BadCounts>,
     k: Kernel,
     bins: Vec<BinSamples>,
 }
@@ -1094,6 +1099,9 @@ impl Scratch {
             mbias: Vec::new(),
             mflat: Vec::new(),
             mkey: 0,
+            summing: SumScratch::default(),
+            ranges: Vec::new(),
+            counts: Vec::new(),
             k: Kernel::new(),
             bins: vec![BinSamples::default(); nbins],
         }
@@ -1159,6 +1167,45 @@ impl Scratch {
                         }
                         FrameRows::Memory(_) => {}
                     },
+                    // Repeated raw exposures: calibrated and summed row by row in one pass.
+                    members if summed_raw(members).is_some() => {
+                        let exps = summed_raw(members).unwrap_or_default();
+                        let first = exps[0];
+                        self.group_masters(first, group, nx)?;
+                        self.sum[i].resize(group.n_rows * nx, 0.0);
+                        self.counts.clear();
+                        self.counts.resize(exps.len(), (0, 0));
+                        for &(r0, nr, slot0) in &group.runs {
+                            let (a, b) = (slot0 * nx, (slot0 + nr) * nx);
+                            // The group's o and e ranges within this run, as indices into it.
+                            self.ranges.clear();
+                            for &(x0, x1, _, _, os, es) in &group.segs {
+                                for start in [os, es] {
+                                    let (lo, hi) = (start.max(a), (start + x1 - x0).min(b));
+                                    if lo < hi {
+                                        self.ranges.push((lo - a, hi - a));
+                                    }
+                                }
+                            }
+                            let m = master_rows(&self.mbias, &self.mflat, r0, a);
+                            Calibrated::load_rows_summed(
+                                &exps,
+                                r0,
+                                &mut self.sum[i][a..b],
+                                &mut self.summing,
+                                m,
+                                &self.ranges,
+                                sat,
+                                &mut self.counts,
+                            )?;
+                        }
+                        for (m, c) in members.iter().zip(&self.counts) {
+                            if let Member::File(_, fi) = m {
+                                bad[*fi].0 += c.0;
+                                bad[*fi].1 += c.1;
+                            }
+                        }
+                    }
                     members => {
                         let npx = group.n_rows * nx;
                         self.sum[i].resize(npx, 0.0);
@@ -1200,6 +1247,20 @@ impl Scratch {
             Ok(())
         }
     }
+}
+
+/// The exposures of `members` when all are raw exposures that can be calibrated and summed in
+/// one pass ([`Calibrated::load_rows_summed`]); `None` otherwise.
+fn summed_raw<'a>(members: &[Member<'a>]) -> Option<Vec<&'a Calibrated>> {
+    let exps: Vec<&Calibrated> = members
+        .iter()
+        .map(|m| match m {
+            Member::File(OpenFrame { rows: FrameRows::Calibrated(c), .. }, _) => Some(c),
+            _ => None,
+        })
+        .collect::<Option<_>>()?;
+    let first = exps.first()?;
+    exps.iter().all(|e| first.summable_with(e)).then_some(exps)
 }
 
 /// One HWP angle's part of a chunk, as [`Kernel::fold_angle`] takes it: `len` pixels whose o
@@ -1264,55 +1325,80 @@ impl Kernel {
         /// has them (same IEEE operations, so the same bits; no FMA is enabled).
         fn fold_angle / fold_avx2 / fold_avx512 => fold_impl(&mut self, a: Fold) -> Option<FoldCounts> {
             let len = a.len;
-            a.rows.load(a.o.0, a.o.1, &mut self.ro[..len]);
-            a.rows.load(a.e.0, a.e.1, &mut self.re[..len]);
+            // Rows already in f64 (summed or calibrated) are read where they are; others are
+            // decoded into the kernel's buffers first.
+            let (ro, re): (&[f64], &[f64]) = match a.rows {
+                Rows::Sum(s) => (&s[a.o.1..a.o.1 + len], &s[a.e.1..a.e.1 + len]),
+                rows => {
+                    rows.load(a.o.0, a.o.1, &mut self.ro[..len]);
+                    rows.load(a.e.0, a.e.1, &mut self.re[..len]);
+                    (&self.ro[..len], &self.re[..len])
+                }
+            };
+            let Self { q, u, vq, vu, isum, ok, .. } = self;
+            let acc = Acc { q: &mut q[..len], u: &mut u[..len], vq: &mut vq[..len], vu: &mut vu[..len], isum: &mut isum[..len], ok: &mut ok[..len] };
             // Separate loops for one and several exposures: x / 1 is x exactly, so the single
             // exposure's loop skips a division.
             if a.nexp == 1 {
-                Some(self.fold_loop::<true>(len, 1.0, a.w, a.det))
+                Some(fold_loop::<true>(ro, re, acc, 1.0, a.w, a.det))
             } else {
-                self.fold_loop::<false>(len, a.nexp as f64, a.w, a.det);
+                fold_loop::<false>(ro, re, acc, a.nexp as f64, a.w, a.det);
                 None
             }
         }
     }
+}
 
-    #[inline(always)]
-    fn fold_loop<const ONE: bool>(
-        &mut self,
-        len: usize,
-        ne: f64,
-        (cqi, cui): (f64, f64),
-        (bias, gain, sat, rn2): (f64, f64, f64, f64),
-    ) -> FoldCounts {
-        let (bias_n, sat_n, rn2_n) = (bias * ne, sat * ne, ne * rn2);
-        let (cq2, cu2) = (cqi * cqi, cui * cui);
-        let (ro, re) = (&self.ro[..len], &self.re[..len]);
-        let (q, u, vq, vu) = (&mut self.q[..len], &mut self.u[..len], &mut self.vq[..len], &mut self.vu[..len]);
-        let (isum, ok) = (&mut self.isum[..len], &mut self.ok[..len]);
-        let (mut n_nonfinite, mut n_sat, mut n_dark) = (0usize, 0usize, 0usize);
-        for k in 0..len {
-            let (r_o, r_e) = (ro[k], re[k]);
-            let (fin_o, fin_e) = (r_o.is_finite(), r_e.is_finite());
-            let (sat_o, sat_e) = (r_o >= sat_n, r_e >= sat_n);
-            n_nonfinite += !fin_o as usize + !fin_e as usize;
-            n_sat += sat_o as usize + sat_e as usize;
-            let f_o = (r_o - bias_n) * gain;
-            let f_e = (r_e - bias_n) * gain;
-            let tot = f_o + f_e;
-            n_dark += (fin_o & fin_e & !(tot > 0.0)) as usize;
-            let f = normalized_difference(f_o, f_e);
-            // Photon (e-) plus read-noise variance of each beam, propagated to F.
-            let vf = variance_normalized_difference_fast(f_o, f_e, f_o.max(0.0) + rn2_n, f_e.max(0.0) + rn2_n);
-            ok[k] &= (fin_o & fin_e & !sat_o & !sat_e & (tot > 0.0) & fast_variance_in_range(vf)) as u64;
-            q[k] += cqi * f;
-            u[k] += cui * f;
-            isum[k] += if ONE { tot } else { tot / ne };
-            vq[k] += cq2 * vf;
-            vu[k] += cu2 * vf;
-        }
-        FoldCounts { nonfinite: n_nonfinite, saturated: n_sat, dark: n_dark }
+/// A chunk's running sums, as [`fold_loop`] updates them (the [`Kernel`]'s, `len` long).
+struct Acc<'a> {
+    q: &'a mut [f64],
+    u: &'a mut [f64],
+    vq: &'a mut [f64],
+    vu: &'a mut [f64],
+    isum: &'a mut [f64],
+    ok: &'a mut [u64],
+}
+
+/// The per-pixel loop of [`Kernel::fold_angle`]: one angle's o and e values (`ro`, `re`, the
+/// chunk's length) folded into the running sums `acc`.
+#[inline(always)]
+fn fold_loop<const ONE: bool>(
+    ro: &[f64],
+    re: &[f64],
+    acc: Acc,
+    ne: f64,
+    (cqi, cui): (f64, f64),
+    (bias, gain, sat, rn2): (f64, f64, f64, f64),
+) -> FoldCounts {
+    let len = ro.len();
+    let (bias_n, sat_n, rn2_n) = (bias * ne, sat * ne, ne * rn2);
+    let (cq2, cu2) = (cqi * cqi, cui * cui);
+    let re = &re[..len];
+    let Acc { q, u, vq, vu, isum, ok } = acc;
+    let (q, u, vq, vu, isum, ok) =
+        (&mut q[..len], &mut u[..len], &mut vq[..len], &mut vu[..len], &mut isum[..len], &mut ok[..len]);
+    let (mut n_nonfinite, mut n_sat, mut n_dark) = (0usize, 0usize, 0usize);
+    for k in 0..len {
+        let (r_o, r_e) = (ro[k], re[k]);
+        let (fin_o, fin_e) = (r_o.is_finite(), r_e.is_finite());
+        let (sat_o, sat_e) = (r_o >= sat_n, r_e >= sat_n);
+        n_nonfinite += !fin_o as usize + !fin_e as usize;
+        n_sat += sat_o as usize + sat_e as usize;
+        let f_o = (r_o - bias_n) * gain;
+        let f_e = (r_e - bias_n) * gain;
+        let tot = f_o + f_e;
+        n_dark += (fin_o & fin_e & !(tot > 0.0)) as usize;
+        let f = normalized_difference(f_o, f_e);
+        // Photon (e-) plus read-noise variance of each beam, propagated to F.
+        let vf = variance_normalized_difference_fast(f_o, f_e, f_o.max(0.0) + rn2_n, f_e.max(0.0) + rn2_n);
+        ok[k] &= (fin_o & fin_e & !sat_o & !sat_e & (tot > 0.0) & fast_variance_in_range(vf)) as u64;
+        q[k] += cqi * f;
+        u[k] += cui * f;
+        isum[k] += if ONE { tot } else { tot / ne };
+        vq[k] += cq2 * vf;
+        vu[k] += cu2 * vf;
     }
+    FoldCounts { nonfinite: n_nonfinite, saturated: n_sat, dark: n_dark }
 }
 
 /// The runs of sky pixels of row `y` within columns `[xa, xb)` into `segs`: `(x0, x1, o index
