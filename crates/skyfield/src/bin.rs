@@ -385,27 +385,47 @@ impl Clip {
     /// The clipping of [`sigma_clip_columns_hinted`]: on return `rows` holds the kept rows and
     /// `state[c].vals` column `c`'s kept values, both in row order.
     fn clip(&mut self, cols: &[&[f64]], cfg: ClipConfig, hints: &mut [ClipHint]) {
-        assert_eq!(hints.len(), cols.len(), "one hint per column");
-        let n = cols.first().map_or(0, |c| c.len());
+        self.state.resize_with(cols.len(), Column::default);
+        self.state.truncate(cols.len());
+        for (c, col) in self.state.iter_mut().zip(cols) {
+            c.reset(col);
+        }
+        self.clip_loaded(cfg, hints);
+    }
+
+    /// [`Clip::clip`] of columns the caller gives up: moved in rather than copied (the
+    /// caller's vectors get this clipping's previous buffers, of no particular content). A
+    /// reduction's bins are cleared after their clipping, and copying their three columns was
+    /// a twentieth of it.
+    fn clip_taking(&mut self, cols: &mut [&mut Vec<f64>], cfg: ClipConfig, hints: &mut [ClipHint]) {
+        self.state.resize_with(cols.len(), Column::default);
+        self.state.truncate(cols.len());
+        for (c, col) in self.state.iter_mut().zip(cols.iter_mut()) {
+            c.reset(&[]);
+            std::mem::swap(&mut c.vals, col);
+        }
+        self.clip_loaded(cfg, hints);
+    }
+
+    /// The clipping of the columns in `state` (all of one length).
+    fn clip_loaded(&mut self, cfg: ClipConfig, hints: &mut [ClipHint]) {
+        assert_eq!(hints.len(), self.state.len(), "one hint per column");
+        let n = self.state.first().map_or(0, |c| c.vals.len());
+        assert!(self.state.iter().all(|c| c.vals.len() == n), "columns of one length");
         assert!(n <= u32::MAX as usize, "a bin of more than 2^32 pixels");
         // The kept rows, compacted (row order kept): their indices and each column's values, so
         // that every pass below runs over contiguous memory without a mask.
         self.rows.clear();
-        self.state.resize_with(cols.len(), Column::default);
-        self.state.truncate(cols.len());
-        // Copied and checked in one pass (the bin's values come from memory once).
-        let mut finite = true;
-        for (c, col) in self.state.iter_mut().zip(cols) {
-            c.reset(col);
-            finite &= all_finite(&c.vals);
-        }
-        if finite {
+        if self.state.iter().all(|c| all_finite(&c.vals)) {
             self.rows.extend(0..n as u32);
         } else {
-            self.rows.extend((0..n as u32).filter(|&r| cols.iter().all(|c| c[r as usize].is_finite())));
-            for (c, col) in self.state.iter_mut().zip(cols) {
-                c.reset(&[]);
-                c.vals.extend(self.rows.iter().map(|&r| col[r as usize]));
+            let state = &self.state;
+            self.rows.extend((0..n as u32).filter(|&r| state.iter().all(|c| c.vals[r as usize].is_finite())));
+            for c in self.state.iter_mut() {
+                for (w, &r) in self.rows.iter().enumerate() {
+                    c.vals[w] = c.vals[r as usize];
+                }
+                c.vals.truncate(self.rows.len());
             }
         }
         // Medians are selected on integer keys of the IEEE total order (what `median_in_place`
@@ -562,44 +582,65 @@ pub fn clipped_bin_hinted(
 ) -> Option<BinStats> {
     with_scratch(|sc| {
         sc.clip(&[&s.q, &s.u, &s.i], cfg, hints);
-        // The clipping leaves the kept q, u and I compacted in row order: the sums below add
-        // the kept rows in row order, as over the rows of a keep mask.
-        let (q, u, i) = (&sc.state[0].vals, &sc.state[1].vals, &sc.state[2].vals);
-        let n = sc.rows.len();
-        if n < min_pixels.max(2) {
-            return None;
-        }
-        let nf = n as f64;
-        // The three sums side by side (three chains of additions at once), each in row order.
-        let (mut sq, mut su, mut si) = (0.0, 0.0, 0.0);
-        for ((&a, &b), &c) in q.iter().zip(u).zip(i) {
-            sq += a;
-            su += b;
-            si += c;
-        }
-        let (mq, mu, mi) = (sq / nf, su / nf, si / nf);
-        let (mut vq, mut vu, mut cqu, mut pq, mut pu) = (0.0, 0.0, 0.0, 0.0, 0.0);
-        for ((&qk, &uk), &r) in q.iter().zip(u).zip(&sc.rows) {
-            let (dq, du) = (qk - mq, uk - mu);
-            vq += dq * dq;
-            vu += du * du;
-            cqu += dq * du;
-            pq += s.var_q[r as usize];
-            pu += s.var_u[r as usize];
-        }
-        // Sample (co)variances with n - 1, then of the mean: / n.
-        let d = (nf - 1.0) * nf;
-        Some(BinStats {
-            q: mq,
-            u: mu,
-            sigma_q: (vq / d).sqrt(),
-            sigma_u: (vu / d).sqrt(),
-            cov_qu: cqu / d,
-            sigma_q_phot: pq.sqrt() / nf,
-            sigma_u_phot: pu.sqrt() / nf,
-            intensity: mi,
-            n_kept: n,
-        })
+        kept_stats(sc, s, min_pixels)
+    })
+}
+
+/// [`clipped_bin_hinted`] of a bin whose q, u and intensity columns the caller gives up (the
+/// reduction's, cleared after): moved into the clipping instead of copied. The same result.
+pub(crate) fn clipped_bin_taking(
+    s: &mut BinSamples,
+    cfg: ClipConfig,
+    min_pixels: usize,
+    hints: &mut [ClipHint; 3],
+) -> Option<BinStats> {
+    with_scratch(|sc| {
+        sc.clip_taking(&mut [&mut s.q, &mut s.u, &mut s.i], cfg, hints);
+        kept_stats(sc, s, min_pixels)
+    })
+}
+
+/// The statistics of the rows a clipping kept (`None` below `min_pixels`, at least 2): means
+/// of q, u and intensity, their scatter errors and covariance, and the propagated errors from
+/// the kept rows' variances in `s`.
+fn kept_stats(sc: &Clip, s: &BinSamples, min_pixels: usize) -> Option<BinStats> {
+    // The clipping leaves the kept q, u and I compacted in row order: the sums below add
+    // the kept rows in row order, as over the rows of a keep mask.
+    let (q, u, i) = (&sc.state[0].vals, &sc.state[1].vals, &sc.state[2].vals);
+    let n = sc.rows.len();
+    if n < min_pixels.max(2) {
+        return None;
+    }
+    let nf = n as f64;
+    // The three sums side by side (three chains of additions at once), each in row order.
+    let (mut sq, mut su, mut si) = (0.0, 0.0, 0.0);
+    for ((&a, &b), &c) in q.iter().zip(u).zip(i) {
+        sq += a;
+        su += b;
+        si += c;
+    }
+    let (mq, mu, mi) = (sq / nf, su / nf, si / nf);
+    let (mut vq, mut vu, mut cqu, mut pq, mut pu) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for ((&qk, &uk), &r) in q.iter().zip(u).zip(&sc.rows) {
+        let (dq, du) = (qk - mq, uk - mu);
+        vq += dq * dq;
+        vu += du * du;
+        cqu += dq * du;
+        pq += s.var_q[r as usize];
+        pu += s.var_u[r as usize];
+    }
+    // Sample (co)variances with n - 1, then of the mean: / n.
+    let d = (nf - 1.0) * nf;
+    Some(BinStats {
+        q: mq,
+        u: mu,
+        sigma_q: (vq / d).sqrt(),
+        sigma_u: (vu / d).sqrt(),
+        cov_qu: cqu / d,
+        sigma_q_phot: pq.sqrt() / nf,
+        sigma_u_phot: pu.sqrt() / nf,
+        intensity: mi,
+        n_kept: n,
     })
 }
 

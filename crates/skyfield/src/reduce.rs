@@ -24,7 +24,7 @@
 //! the two agree for pure photon noise (`eq:sigp` divided by `sqrt(n)`).
 
 use crate::beams::BeamGeometry;
-use crate::bin::{clipped_bin_hinted, BinSamples, ClipConfig, PixelSample};
+use crate::bin::{clipped_bin_taking, BinSamples, ClipConfig, PixelSample};
 use crate::calib::{avx2_dispatch, Calibrated, MasterRows, ReadOptions, SumScratch};
 use crate::io::{Conversion, Frame, FrameRows, OpenFrame, PixelView, RawKind};
 use crate::maps::{BinGeometry, StokesMap};
@@ -923,7 +923,8 @@ fn reduce_bands(
                 // Along a row of bins the sky changes little: each bin's clipping starts its
                 // median searches where the previous bin's ended.
                 let mut hints = [None; 3];
-                let stats = sc.bins.iter().map(|b| clipped_bin_hinted(b, cfg.clip, min_pixels, &mut hints)).collect();
+                let stats =
+                    sc.bins.iter_mut().map(|b| clipped_bin_taking(b, cfg.clip, min_pixels, &mut hints)).collect();
                 let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
                 for _ in (d - 1) * nfiles / nb..d * nfiles / nb {
                     on_file();
