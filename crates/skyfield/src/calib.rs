@@ -675,23 +675,17 @@ impl Cal<'_> {
         let n = out.len();
         let (bias, flat, w, raw) = (&self.bias[..n], &self.flat[..n], &self.w[..n], &raw[..n]);
         let (mut nb, mut ns) = (0u64, 0u64);
-        #[inline(always)]
-        fn one(r: f64, b: f64, fi: f64, level: f64, to_e: f64, sat: f64) -> f64 {
-            let e = ((r - level - b) * to_e * fi) as f32;
-            let e = if r >= sat { SATURATED as f32 } else { e };
-            (if r.is_nan() { f32::NAN } else { e }) as f64
-        }
         // Two loops, so that neither tests `first` per value.
         if first {
             for i in 0..n {
-                let e = one(value(raw[i]), bias[i] as f64, flat[i] as f64, self.level, self.to_e, self.sat);
+                let e = calibrated(value(raw[i]), bias[i] as f64, flat[i] as f64, self.level, self.to_e, self.sat);
                 nb += if e.is_finite() { 0 } else { w[i] };
                 ns += if e >= self.count_sat { w[i] } else { 0 };
                 out[i] = e;
             }
         } else {
             for i in 0..n {
-                let e = one(value(raw[i]), bias[i] as f64, flat[i] as f64, self.level, self.to_e, self.sat);
+                let e = calibrated(value(raw[i]), bias[i] as f64, flat[i] as f64, self.level, self.to_e, self.sat);
                 nb += if e.is_finite() { 0 } else { w[i] };
                 ns += if e >= self.count_sat { w[i] } else { 0 };
                 out[i] += e;
@@ -699,6 +693,97 @@ impl Cal<'_> {
         }
         (nb as usize, ns as usize)
     }
+}
+
+/// Most exposures [`sum_u16_blocked`] sums at once (more go exposure by exposure).
+const MAX_BLOCKED: usize = 16;
+
+/// A raw u16 value as stored (big-endian, `BZERO = 32768`: the sign bit flipped), exactly.
+#[inline(always)]
+fn u16_value(b: [u8; 2]) -> f64 {
+    u16::from_be_bytes([b[0] ^ 0x80, b[1]]) as f64
+}
+
+/// One raw value calibrated as `calibrate_row` does it (`calibrate_each`'s formula).
+#[inline(always)]
+fn calibrated(r: f64, b: f64, fi: f64, level: f64, to_e: f64, sat: f64) -> f64 {
+    let e = ((r - level - b) * to_e * fi) as f32;
+    let e = if r >= sat { SATURATED as f32 } else { e };
+    (if r.is_nan() { f32::NAN } else { e }) as f64
+}
+
+/// The raw u16 rows `raws` of several exposures (each `(level, gain, saturation ADU)` in
+/// `cals`) calibrated and summed in order into `out`, sixteen pixels at a time across all the
+/// exposures, so that each sum is stored once rather than once per exposure (the same values
+/// and additions in the same order: the same bits). Returns `true` when some calibrated value
+/// may be non-finite or at or above `count_sat` (the caller then counts them with
+/// [`count_u16`]; `false` means none is).
+#[inline(always)]
+fn sum_u16_blocked(
+    out: &mut [f64],
+    raws: &[&[[u8; 2]]],
+    cals: &[(f64, f64, f64)],
+    bias: &[f32],
+    flat: &[f32],
+    count_sat: f64,
+) -> bool {
+    const B: usize = 16;
+    let n = out.len();
+    let (bias, flat) = (&bias[..n], &flat[..n]);
+    // The largest |e| seen, as bits: for values without their sign the integer order of the
+    // bits is the order of the values, with infinities and NaN above every finite value. Two
+    // integer operations per value (a mask and a max) instead of two comparisons and their
+    // combination; it flags a superset of the bad values (a large negative one too), and the
+    // flagged rows are counted exactly.
+    const MAGNITUDE: u64 = !(1u64 << 63);
+    let mut big = [0u64; B];
+    let mut x = 0;
+    while x + B <= n {
+        let (b, f) = (&bias[x..x + B], &flat[x..x + B]);
+        let mut acc = [0.0f64; B];
+        for (j, (raw, &(level, to_e, sat))) in raws.iter().zip(cals).enumerate() {
+            let r = &raw[x..x + B];
+            for i in 0..B {
+                let e = calibrated(u16_value(r[i]), b[i] as f64, f[i] as f64, level, to_e, sat);
+                big[i] = big[i].max(e.to_bits() & MAGNITUDE);
+                acc[i] = if j == 0 { e } else { acc[i] + e };
+            }
+        }
+        out[x..x + B].copy_from_slice(&acc);
+        x += B;
+    }
+    let mut big = big.iter().copied().max().unwrap_or(0);
+    for i in x..n {
+        for (j, (raw, &(level, to_e, sat))) in raws.iter().zip(cals).enumerate() {
+            let e = calibrated(u16_value(raw[i]), bias[i] as f64, flat[i] as f64, level, to_e, sat);
+            big = big.max(e.to_bits() & MAGNITUDE);
+            out[i] = if j == 0 { e } else { out[i] + e };
+        }
+    }
+    // A threshold that is not a positive number: every row is counted.
+    !(count_sat > 0.0) || big >= count_sat.to_bits()
+}
+
+/// One exposure's non-finite and saturated (`>= count_sat`) calibrated values of a raw u16
+/// row, each counted `w[i]` times (what `Cal::sum` counts).
+#[inline(always)]
+fn count_u16(
+    raw: &[[u8; 2]],
+    bias: &[f32],
+    flat: &[f32],
+    w: &[u64],
+    (level, to_e, sat): (f64, f64, f64),
+    count_sat: f64,
+) -> (usize, usize) {
+    let n = raw.len();
+    let (bias, flat, w) = (&bias[..n], &flat[..n], &w[..n]);
+    let (mut nb, mut ns) = (0u64, 0u64);
+    for i in 0..n {
+        let e = calibrated(u16_value(raw[i]), bias[i] as f64, flat[i] as f64, level, to_e, sat);
+        nb += if e.is_finite() { 0 } else { w[i] };
+        ns += if e >= count_sat { w[i] } else { 0 };
+    }
+    (nb as usize, ns as usize)
 }
 
 /// Raw rows of one chip of every exposure fetched at once when summing exposures
@@ -887,6 +972,36 @@ impl Calibrated {
                     }
                 }
                 let o = &mut out[at..at + c.cx];
+                // The usual raw chip (u16 as stored, a few exposures): all exposures at once.
+                if exps.len() <= MAX_BLOCKED {
+                    let mut raws: [&[[u8; 2]]; MAX_BLOCKED] = [&[]; MAX_BLOCKED];
+                    let mut cals = [(0.0, 0.0, 0.0); MAX_BLOCKED];
+                    let mut all = true;
+                    for (j, (e, buf)) in exps.iter().zip(bytes).enumerate() {
+                        let ch = &e.chips[ci];
+                        match &ch.src {
+                            FrameRows::File(r) if r.kind() == RawKind::U16 => {
+                                let at = (k * ch.rnx + ch.prx) * 2;
+                                raws[j] = buf[at..at + 2 * c.cx].as_chunks::<2>().0;
+                                cals[j] = (ch.level, ch.to_e, ch.sat);
+                            }
+                            _ => all = false,
+                        }
+                    }
+                    if all {
+                        let m = exps.len();
+                        if sum_u16_blocked(o, &raws[..m], &cals[..m], bias, flat, sat) {
+                            // Some value is bad: counted exposure by exposure (rows without
+                            // one, nearly all, skip this).
+                            for (j, (raw, &(level, to_e, sat_adu))) in raws[..m].iter().zip(&cals[..m]).enumerate() {
+                                let (a, s) = count_u16(raw, bias, flat, w, (level, to_e, sat_adu), sat);
+                                counts[j].0 += a;
+                                counts[j].1 += s;
+                            }
+                        }
+                        continue;
+                    }
+                }
                 for (j, (e, buf)) in exps.iter().zip(bytes).enumerate() {
                     let ch = &e.chips[ci];
                     let cal = Cal { bias, flat, w, level: ch.level, to_e: ch.to_e, sat: ch.sat, count_sat: sat };
@@ -970,39 +1085,33 @@ fn calibrate_each(
     sat: f64,
     mut sink: impl FnMut(usize, f64),
 ) {
-    #[inline(always)]
-    fn one(r: f64, b: f64, fi: f64, level: f64, to_e: f64, sat: f64) -> f64 {
-        let e = ((r - level - b) * to_e * fi) as f32;
-        let e = if r >= sat { SATURATED as f32 } else { e };
-        (if r.is_nan() { f32::NAN } else { e }) as f64
-    }
     let n = v.len();
     // Four branch-free loops (so each vectorizes), by which masters are given.
     match (bias, flat_inv) {
         (Some(b), Some(f)) => {
             let (b, f) = (&b[..n], &f[..n]);
             for i in 0..n {
-                v[i] = one(v[i], b[i] as f64, f[i] as f64, level, to_e, sat);
+                v[i] = calibrated(v[i], b[i] as f64, f[i] as f64, level, to_e, sat);
                 sink(i, v[i]);
             }
         }
         (Some(b), None) => {
             let b = &b[..n];
             for i in 0..n {
-                v[i] = one(v[i], b[i] as f64, 1.0, level, to_e, sat);
+                v[i] = calibrated(v[i], b[i] as f64, 1.0, level, to_e, sat);
                 sink(i, v[i]);
             }
         }
         (None, Some(f)) => {
             let f = &f[..n];
             for i in 0..n {
-                v[i] = one(v[i], 0.0, f[i] as f64, level, to_e, sat);
+                v[i] = calibrated(v[i], 0.0, f[i] as f64, level, to_e, sat);
                 sink(i, v[i]);
             }
         }
         (None, None) => {
             for i in 0..n {
-                v[i] = one(v[i], 0.0, 1.0, level, to_e, sat);
+                v[i] = calibrated(v[i], 0.0, 1.0, level, to_e, sat);
                 sink(i, v[i]);
             }
         }
@@ -1629,5 +1738,67 @@ mod tests {
             assert_eq!(got.to_bits(), want.to_bits(), "case {k} ({} values): {got} vs {want}", v.len());
         }
         assert_eq!(robust_mean(Vec::new()), None);
+    }
+
+    /// The all-exposures-at-once sum of raw u16 rows gives the bits of the exposure-by-exposure
+    /// sum (`Cal::sum`, each exposure set or added in turn) and the same counts, over rows with
+    /// saturated values, NaN and zero flat responses, huge inverse flats (values beyond f32:
+    /// infinities) and a length that is not a multiple of the block. (The blocked sum itself is
+    /// checked against an independent calibration by `sim/tests/raw_calibration_bits.rs`.)
+    #[test]
+    fn blocked_u16_sum_is_the_exposure_by_exposure_sum() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(7);
+        let n = 203;
+        for nexp in [1, 2, 4, 5] {
+            for case in 0..4 {
+                let raws: Vec<Vec<[u8; 2]>> = (0..nexp)
+                    .map(|_| {
+                        (0..n)
+                            .map(|_| {
+                                let v: u16 =
+                                    if rng.random::<f64>() < 0.03 { 65535 } else { rng.random_range(150..4000) };
+                                [(v >> 8) as u8 ^ 0x80, v as u8]
+                            })
+                            .collect()
+                    })
+                    .collect();
+                let bias: Vec<f32> = (0..n).map(|_| rng.random_range(-3.0..3.0)).collect();
+                let flat: Vec<f32> = (0..n)
+                    .map(|i| match (case, i % 17) {
+                        (1, 3) => f32::NAN,
+                        (2, 5) => 3e38,
+                        (3, _) => 1.0,
+                        _ => rng.random_range(0.8..1.2),
+                    })
+                    .collect();
+                let w: Vec<u64> = (0..n).map(|i| [0, 1, 1, 2][i % 4]).collect();
+                let cals: Vec<(f64, f64, f64)> =
+                    (0..nexp).map(|j| (200.0 + j as f64, 1.25, if case == 3 { 70000.0 } else { 60000.0 })).collect();
+                let count_sat = SATURATED_LIMIT;
+                let mut want = vec![0.0; n];
+                let mut want_counts = Vec::new();
+                for (j, raw) in raws.iter().enumerate() {
+                    let (level, to_e, sat) = cals[j];
+                    let cal = Cal { bias: &bias, flat: &flat, w: &w, level, to_e, sat, count_sat };
+                    want_counts.push(cal.sum(j == 0, &mut want, raw, u16_value));
+                }
+                let mut got = vec![0.0; n];
+                let refs: Vec<&[[u8; 2]]> = raws.iter().map(|r| &r[..]).collect();
+                let flagged = sum_u16_blocked(&mut got, &refs, &cals, &bias, &flat, count_sat);
+                assert!(
+                    got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()),
+                    "{nexp} exposures, case {case}: sums differ"
+                );
+                let any_bad = want_counts.iter().any(|&(a, s)| a + s > 0);
+                assert!(flagged || !any_bad, "{nexp} exposures, case {case}: bad values not flagged");
+                let got_counts: Vec<(usize, usize)> =
+                    refs.iter().zip(&cals).map(|(r, &c)| count_u16(r, &bias, &flat, &w, c, count_sat)).collect();
+                assert_eq!(got_counts, want_counts, "{nexp} exposures, case {case}");
+                if case != 3 {
+                    assert!(any_bad, "case {case}: the row holds bad values");
+                }
+            }
+        }
     }
 }
