@@ -74,40 +74,43 @@ fn value(v: f64, centre: Option<f64>) -> f64 {
 }
 
 /// One pass over the values ([`value`] of `vals`): the number below `lo`, and the
-/// [`total_key`]s of those inside `[lo, hi]` gathered into `win` (truncated to them).
+/// [`total_key`]s of those inside `[lo, hi]` gathered into `win` (truncated to them); also the
+/// largest value's bits as an unsigned integer (the largest value when all are non-negative,
+/// as deviations from a `centre` are: their bits are in the order of the values).
 #[inline(always)]
-fn window_pass(vals: &[f64], centre: Option<f64>, (lo, hi): (f64, f64), win: &mut Vec<i64>) -> usize {
+fn window_pass(vals: &[f64], centre: Option<f64>, (lo, hi): (f64, f64), win: &mut Vec<i64>) -> (usize, u64) {
     let n = vals.len();
     // Room for whole vectors written past the last key kept.
     win.resize(n + 8, 0);
     #[cfg(target_arch = "x86_64")]
     if n >= 8 && std::arch::is_x86_feature_detected!("avx512f") {
         // SAFETY: AVX-512F support was checked just above; win holds n + 8 keys.
-        let (below, m) = unsafe { window_pass_avx512(vals, centre, lo, hi, win) };
+        let (below, m, top) = unsafe { window_pass_avx512(vals, centre, lo, hi, win) };
         win.truncate(m);
-        return below;
+        return (below, top);
     }
-    let (below, m) = window_pass_scalar(vals, centre, lo, hi, win);
+    let (below, m, top) = window_pass_scalar(vals, centre, lo, hi, win);
     win.truncate(m);
-    below
+    (below, top)
 }
 
-/// [`window_pass`] one value at a time: `(below, kept)`, the kept keys at the start of `win`
-/// (which holds at least `vals.len()` keys).
+/// [`window_pass`] one value at a time: `(below, kept, largest bits)`, the kept keys at the
+/// start of `win` (which holds at least `vals.len()` keys).
 #[inline(always)]
-fn window_pass_scalar(vals: &[f64], centre: Option<f64>, lo: f64, hi: f64, win: &mut [i64]) -> (usize, usize) {
+fn window_pass_scalar(vals: &[f64], centre: Option<f64>, lo: f64, hi: f64, win: &mut [i64]) -> (usize, usize, u64) {
     assert!(win.len() >= vals.len());
     // Branch-free: every value is written, the count advances only for values inside.
-    let (mut below, mut m) = (0, 0);
+    let (mut below, mut m, mut top) = (0, 0, 0u64);
     let w = win.as_mut_ptr();
     for &v in vals {
         let x = value(v, centre);
         below += (x < lo) as usize;
+        top = top.max(x.to_bits());
         // SAFETY: m <= (index of v) < vals.len() <= win.len() (m counts a subset of the values seen).
         unsafe { *w.add(m) = total_key(x) };
         m += ((x >= lo) & (x <= hi)) as usize;
     }
-    (below, m)
+    (below, m, top)
 }
 
 /// [`window_pass`] eight values at a time: the same IEEE operations (subtraction, clearing the
@@ -116,12 +119,19 @@ fn window_pass_scalar(vals: &[f64], centre: Option<f64>, lo: f64, hi: f64, win: 
 /// memory is slow on some CPUs), so the same count and keys in the same order.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-unsafe fn window_pass_avx512(vals: &[f64], centre: Option<f64>, lo: f64, hi: f64, win: &mut [i64]) -> (usize, usize) {
+unsafe fn window_pass_avx512(
+    vals: &[f64],
+    centre: Option<f64>,
+    lo: f64,
+    hi: f64,
+    win: &mut [i64],
+) -> (usize, usize, u64) {
     use std::arch::x86_64::*;
     let n = vals.len();
     assert!(win.len() >= n + 8);
     let (vlo, vhi) = (_mm512_set1_pd(lo), _mm512_set1_pd(hi));
     let (mut below, mut m) = (0usize, 0usize);
+    let mut top = _mm512_setzero_si512();
     let w = win.as_mut_ptr();
     let mut i = 0;
     while i + 8 <= n {
@@ -133,6 +143,7 @@ unsafe fn window_pass_avx512(vals: &[f64], centre: Option<f64>, lo: f64, hi: f64
             x = _mm512_castsi512_pd(_mm512_and_si512(_mm512_castpd_si512(d), _mm512_set1_epi64(i64::MAX)));
         }
         let b = _mm512_castpd_si512(x);
+        top = _mm512_max_epu64(top, b);
         let key = _mm512_xor_si512(b, _mm512_srli_epi64::<1>(_mm512_srai_epi64::<63>(b)));
         below += (_mm512_cmp_pd_mask::<_CMP_LT_OQ>(x, vlo) as u32).count_ones() as usize;
         let inside = _mm512_cmp_pd_mask::<_CMP_GE_OQ>(x, vlo) & _mm512_cmp_pd_mask::<_CMP_LE_OQ>(x, vhi);
@@ -142,8 +153,8 @@ unsafe fn window_pass_avx512(vals: &[f64], centre: Option<f64>, lo: f64, hi: f64
         i += 8;
     }
     // The tail: m <= i, so win[m..] holds at least n - i keys.
-    let (b, k) = window_pass_scalar(&vals[i..], centre, lo, hi, &mut win[m..]);
-    (below + b, m + k)
+    let (b, k, t) = window_pass_scalar(&vals[i..], centre, lo, hi, &mut win[m..]);
+    (below + b, m + k, _mm512_reduce_max_epu64(top).max(t))
 }
 
 /// The median of `n` values of which `below` lie under a window and `win` holds the keys of
@@ -193,15 +204,32 @@ pub(crate) fn median_near_by(
     keys: &mut Vec<i64>,
     win: &mut Vec<i64>,
 ) -> f64 {
+    median_and_top(vals, centre, window, keys, win).0
+}
+
+/// [`median_near_by`], and the largest value's bits (see [`window_pass`]): with a `centre`,
+/// the largest deviation from it, found in the same pass.
+fn median_and_top(
+    vals: &[f64],
+    centre: Option<f64>,
+    window: Option<(f64, f64)>,
+    keys: &mut Vec<i64>,
+    win: &mut Vec<i64>,
+) -> (f64, u64) {
     if let Some(w) = usable(window) {
-        let below = window_pass(vals, centre, w, win);
+        let (below, top) = window_pass(vals, centre, w, win);
         if let Some(m) = median_in_window(vals.len(), below, win) {
-            return m;
+            return (m, top);
         }
     }
     keys.clear();
-    keys.extend(vals.iter().map(|&v| total_key(value(v, centre))));
-    median_of_keys(keys)
+    let mut top = 0u64;
+    keys.extend(vals.iter().map(|&v| {
+        let x = value(v, centre);
+        top = top.max(x.to_bits());
+        total_key(x)
+    }));
+    (median_of_keys(keys), top)
 }
 
 /// `[c - w, c + w]`, the window [`median_near_by`] searches first.
@@ -274,7 +302,7 @@ impl Column {
         self.med_win = usable(w);
         match self.med_win {
             Some(w) => {
-                self.below = window_pass(&self.vals, None, w, &mut self.win);
+                self.below = window_pass(&self.vals, None, w, &mut self.win).0;
                 if let Some(m) = median_in_window(n, self.below, &mut self.win) {
                     return m;
                 }
@@ -339,7 +367,8 @@ struct Clip {
     outs: Vec<usize>,
     buf: Vec<i64>,
     win: Vec<i64>,
-    centre: Vec<(f64, f64)>,
+    /// Per column: its median, its rejection limit, and whether any value lies beyond it.
+    centre: Vec<(f64, f64, bool)>,
 }
 
 thread_local! {
@@ -449,20 +478,28 @@ impl Clip {
                 let med = c.median(hint.map(|(m, _, s)| window(m, MEDIAN_WINDOW * s)), buf);
                 let w_mad = hint.map(|(_, d, s)| window(d, mad_w * s));
                 let v = &c.vals;
-                let mad = median_near_by(v, Some(med), w_mad, buf, win);
+                // The MAD's pass also finds the largest deviation |x - med| (the same IEEE
+                // operations as the test below).
+                let (mad, top) = median_and_top(v, Some(med), w_mad, buf, win);
                 let mut sigma = MAD_TO_SIGMA * mad;
                 if sigma == 0.0 {
                     let mean = v.iter().sum::<f64>() / m as f64;
                     sigma = (v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / m as f64).sqrt();
                 }
                 hints[ci] = Some((med, mad, sigma));
-                centre.push((med, cfg.nsigma * sigma));
+                let lim = cfg.nsigma * sigma;
+                // A column whose largest deviation is within its limit rejects nothing: its
+                // test below is skipped (in most iterations, and always the last, no column
+                // rejects anything).
+                centre.push((med, lim, !(f64::from_bits(top) <= lim)));
             }
-            // Which rows are out, column by column in passes that vectorize; most iterations
-            // reject nothing (the last one always).
+            if centre.iter().all(|c| !c.2) {
+                break;
+            }
+            // Which rows are out, column by column in passes that vectorize.
             out.clear();
             out.resize(m, 0);
-            for (c, &(med, lim)) in state.iter().zip(centre.iter()) {
+            for (c, &(med, lim, _)) in state.iter().zip(centre.iter()).filter(|(_, c)| c.2) {
                 for (o, &x) in out.iter_mut().zip(&c.vals) {
                     *o |= ((x - med).abs() > lim) as u8;
                 }
@@ -722,6 +759,8 @@ mod tests {
                         // SAFETY: AVX-512F checked above; b holds n + 8 keys.
                         let x = unsafe { window_pass_avx512(&v[..n], centre, lo, hi, &mut b) };
                         assert_eq!(s, x, "n {n} centre {centre:?} window {lo}..{hi}");
+                        let top = v[..n].iter().map(|&x| value(x, centre).to_bits()).max();
+                        assert_eq!(Some(s.2), top, "n {n} centre {centre:?}: largest value");
                         assert_eq!(a[..s.1], b[..x.1], "n {n} centre {centre:?} window {lo}..{hi}");
                     }
                 }
