@@ -207,6 +207,34 @@ pub(crate) fn median_near_by(
     median_and_top(vals, centre, window, keys, win).0
 }
 
+/// The median of the deviations `|x - centre|` of `vals` as [`median_near_by`] finds it, and
+/// the largest deviation; but `None` for the median when a window was searched, the median's
+/// ranks are not below it (so the median is at least the window's lower end `lo`), `lo` is
+/// positive, and `enough(lo, largest deviation)` says that bound is all the caller needs.
+fn mad_or_floor(
+    vals: &[f64],
+    centre: f64,
+    window: Option<(f64, f64)>,
+    keys: &mut Vec<i64>,
+    win: &mut Vec<i64>,
+    enough: impl Fn(f64, f64) -> bool,
+) -> (Option<f64>, f64) {
+    if let Some(w) = usable(window) {
+        let (below, top) = window_pass(vals, Some(centre), w, win);
+        let n = vals.len();
+        let first = if n % 2 == 1 { n / 2 } else { n / 2 - 1 };
+        let top = f64::from_bits(top);
+        if w.0 > 0.0 && below <= first && enough(w.0, top) {
+            return (None, top);
+        }
+        if let Some(m) = median_in_window(n, below, win) {
+            return (Some(m), top);
+        }
+    }
+    let (m, top) = median_and_top(vals, Some(centre), None, keys, win);
+    (Some(m), f64::from_bits(top))
+}
+
 /// [`median_near_by`], and the largest value's bits (see [`window_pass`]): with a `centre`,
 /// the largest deviation from it, found in the same pass.
 fn median_and_top(
@@ -479,8 +507,22 @@ impl Clip {
                 let w_mad = hint.map(|(_, d, s)| window(d, mad_w * s));
                 let v = &c.vals;
                 // The MAD's pass also finds the largest deviation |x - med| (the same IEEE
-                // operations as the test below).
-                let (mad, top) = median_and_top(v, Some(med), w_mad, buf, win);
+                // operations as the test below). When even the window's lower end, which the
+                // MAD cannot be below, gives a limit beyond that deviation, the column rejects
+                // nothing whatever its MAD: the MAD is not selected (its hint stays the
+                // previous one, which only decides where the next search looks first).
+                let mad_floor = |lo: f64| cfg.nsigma * (MAD_TO_SIGMA * lo);
+                let bounded = cfg.nsigma > 0.0;
+                let (mad, top) = match mad_or_floor(v, med, w_mad, buf, win, |lo, top| bounded && top <= mad_floor(lo))
+                {
+                    (Some(mad), top) => (mad, top),
+                    (None, _) => {
+                        let (_, d, s) = hint.expect("a window came from the hint");
+                        hints[ci] = Some((med, d, s));
+                        centre.push((med, f64::NAN, false));
+                        continue;
+                    }
+                };
                 let mut sigma = MAD_TO_SIGMA * mad;
                 if sigma == 0.0 {
                     let mean = v.iter().sum::<f64>() / m as f64;
@@ -491,7 +533,7 @@ impl Clip {
                 // A column whose largest deviation is within its limit rejects nothing: its
                 // test below is skipped (in most iterations, and always the last, no column
                 // rejects anything).
-                centre.push((med, lim, !(f64::from_bits(top) <= lim)));
+                centre.push((med, lim, !(top <= lim)));
             }
             if centre.iter().all(|c| !c.2) {
                 break;
