@@ -964,13 +964,17 @@ impl Calibrated {
                 let at = (y + k - row0) * nx + c.x0;
                 let (b0, f0) = ((y + k - b_row0) * nx + c.x0, (y + k - f_row0) * nx + c.x0);
                 let (bias, flat) = (&bias[b0..b0 + c.cx], &flat[f0..f0 + c.cx]);
-                w.fill(0);
-                for &(lo, hi) in counted {
-                    let (lo, hi) = (lo.max(at), hi.min(at + c.cx));
-                    if lo < hi {
-                        w[lo - at..hi - at].iter_mut().for_each(|x| *x += 1);
+                // How many counted ranges cover each pixel of the row (made only where counts
+                // are taken: the blocked sum needs them on flagged rows alone).
+                let weights = |w: &mut Vec<u64>| {
+                    w.fill(0);
+                    for &(lo, hi) in counted {
+                        let (lo, hi) = (lo.max(at), hi.min(at + c.cx));
+                        if lo < hi {
+                            w[lo - at..hi - at].iter_mut().for_each(|x| *x += 1);
+                        }
                     }
-                }
+                };
                 let o = &mut out[at..at + c.cx];
                 // The usual raw chip (u16 as stored, a few exposures): all exposures at once.
                 if exps.len() <= MAX_BLOCKED {
@@ -993,6 +997,7 @@ impl Calibrated {
                         if sum_u16_blocked(o, &raws[..m], &cals[..m], bias, flat, sat) {
                             // Some value is bad: counted exposure by exposure (rows without
                             // one, nearly all, skip this).
+                            weights(w);
                             for (j, (raw, &(level, to_e, sat_adu))) in raws[..m].iter().zip(&cals[..m]).enumerate() {
                                 let (a, s) = count_u16(raw, bias, flat, w, (level, to_e, sat_adu), sat);
                                 counts[j].0 += a;
@@ -1002,6 +1007,7 @@ impl Calibrated {
                         continue;
                     }
                 }
+                weights(w);
                 for (j, (e, buf)) in exps.iter().zip(bytes).enumerate() {
                     let ch = &e.chips[ci];
                     let cal = Cal { bias, flat, w, level: ch.level, to_e: ch.to_e, sat: ch.sat, count_sat: sat };
