@@ -284,3 +284,34 @@ def test_correct_with_a_catalogs_recorded_angles_is_catalog_cal(run, tmp_path):
     with pytest.raises(instpol.InputError, match="not both"):
         c.correct(cat["x_arcmin"], cat["y_arcmin"], cat["q"], cat["u"], cat["sigma_q"], cat["sigma_u"],
                   parang_deg=[10.0], recorded=rec)
+
+
+def test_a_wavelength_band_corrects_the_filter_at_that_wavelength(run, v_map, tmp_path):
+    """A telescope model fitted from the real EFOSC2 V standards without a filter column names
+    its band by wavelength (0.550um); an EFOSC2 V map is corrected with it without
+    allow_mismatch (the band is the filter at that wavelength), as the CLI does, bit for bit;
+    a B map is refused naming the band."""
+    from test_correct import EFOSC2
+
+    src = EFOSC2 / "pv_standards.txt"
+    if not src.is_file():
+        pytest.skip(f"*** SKIPPED LOUDLY: {src} not found: the wavelength band was not checked ***")
+    tel = tmp_path / "tel.fits"
+    run("fit-standards", src, "--instrument", "efosc2", "--model", "wiersema", "--output", tel)
+    c = instpol.Calibration.load(tel)
+    assert c.telescope_bands == ["0.550um"]
+    maps = {}
+    for f in ["V", "B"]:
+        maps[f] = tmp_path / f"efosc2_{f}.fits"
+        with fits.open(v_map) as h:
+            h[0].header["INSTRUME"] = "EFOSC2"
+            h[0].header["FILTER"] = f
+            h.writeto(maps[f])
+    cli, py = tmp_path / "cli.fits", tmp_path / "py.fits"
+    run("correct", "--cal", tel, "--in", maps["V"], "--out", cli, "--parang", "10,25")
+    c.correct_map(maps["V"], py, parang_deg=(10, 25))
+    same_files(cli, py)
+    with fits.open(py) as h:
+        assert h[0].header["TELBAND"] == "0.550um"
+    with pytest.raises(instpol.InputError, match="B map but the telescope model's band is 0.550um"):
+        c.correct_map(maps["B"], tmp_path / "b.fits", parang_deg=(10, 25))

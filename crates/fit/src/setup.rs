@@ -4,8 +4,10 @@
 use instrument::Instrument;
 
 /// Whether two filter names mean the same filter of `inst`: equal ignoring case and
-/// surrounding blanks, or both names (or aliases) of one filter of the instrument. Without an
-/// instrument only the names are compared.
+/// surrounding blanks, or both names (or aliases) of one filter of the instrument, or one of
+/// them a filter of the instrument and the other a band named by its wavelength (`0.550um`,
+/// what a telescope model fitted from standards without a filter column calls its band) that
+/// is that filter's ([`band_is_filter`]). Without an instrument only the names are compared.
 pub fn same_filter(inst: Option<&Instrument>, a: &str, b: &str) -> bool {
     let (a, b) = (a.trim(), b.trim());
     if a.eq_ignore_ascii_case(b) {
@@ -14,10 +16,35 @@ pub fn same_filter(inst: Option<&Instrument>, a: &str, b: &str) -> bool {
     match inst {
         Some(i) => match (i.filter(a), i.filter(b)) {
             (Ok(x), Ok(y)) => x.name == y.name,
+            (Ok(x), Err(_)) => band_is_filter(i, &x.name, b),
+            (Err(_), Ok(y)) => band_is_filter(i, &y.name, a),
             _ => false,
         },
         None => false,
     }
+}
+
+/// The wavelength (nm) of a band named by it in micrometres (`0.550um`, as
+/// `telescope::StandardObs` names a band without a filter); `None` for other names.
+pub fn band_wavelength_nm(band: &str) -> Option<f64> {
+    let um: f64 = band.trim().strip_suffix("um")?.trim().parse().ok()?;
+    (um.is_finite() && um > 0.0).then_some(1000.0 * um)
+}
+
+/// How far (as a fraction of the filter's effective wavelength) a band named by its wavelength
+/// may lie from a filter and still be that filter's: 2.5 %, well inside a broad-band filter's
+/// width (about 15-20 % of its wavelength for Bessell B, V, R, I) and less than half the
+/// spacing of neighbouring ones (V and R: 16 %), so that a band is never two filters'.
+pub const BAND_WAVELENGTH_TOL: f64 = 0.025;
+
+/// Whether the band `band`, named by its wavelength ([`band_wavelength_nm`]), is filter
+/// `filter` of `inst`: the instrument's filter nearest that wavelength, within
+/// [`BAND_WAVELENGTH_TOL`] of its effective wavelength.
+pub fn band_is_filter(inst: &Instrument, filter: &str, band: &str) -> bool {
+    let Some(w) = band_wavelength_nm(band) else { return false };
+    let nearest =
+        inst.filters.iter().min_by(|p, q| (p.lambda_eff_nm - w).abs().total_cmp(&(q.lambda_eff_nm - w).abs()));
+    nearest.is_some_and(|f| f.name == filter && (f.lambda_eff_nm - w).abs() <= BAND_WAVELENGTH_TOL * f.lambda_eff_nm)
 }
 
 /// A name that says something: not empty and not "unknown" (maps of unknown origin are not
@@ -55,5 +82,25 @@ mod tests {
         assert!(!same_filter(Some(&f), "V", "I"));
         assert!(!same_filter(None, "v_bess", "V"), "aliases need the instrument");
         assert!(!same_filter(Some(&f), "Z", "V"));
+    }
+
+    /// A band named by its wavelength is the instrument's filter at that wavelength (EFOSC2's
+    /// B, V, R at 440, 550, 640 nm), within 2.5 % and only the nearest one; never without the
+    /// instrument.
+    #[test]
+    fn wavelength_bands_are_the_filters_there() {
+        let e = Instrument::load("efosc2").unwrap();
+        assert!(same_filter(Some(&e), "V", "0.550um"));
+        assert!(same_filter(Some(&e), "0.550um", "V#641"), "either order, aliases too");
+        assert!(same_filter(Some(&e), "V", "0.562um"), "12 nm off: 2.2 %");
+        assert!(!same_filter(Some(&e), "V", "0.565um"), "15 nm off: 2.7 %");
+        assert!(!same_filter(Some(&e), "B", "0.550um"));
+        assert!(same_filter(Some(&e), "R", "0.640um"));
+        assert!(!same_filter(Some(&e), "R", "0.600um"), "nearer R than V, but 6 % from R");
+        assert!(!same_filter(None, "V", "0.550um"));
+        assert!(!same_filter(Some(&e), "V", "550nm"), "micrometres only, as the models name bands");
+        assert_eq!(band_wavelength_nm(" 0.550um "), Some(550.0));
+        assert_eq!(band_wavelength_nm("-0.5um"), None);
+        assert_eq!(band_wavelength_nm("Vum"), None);
     }
 }
