@@ -267,6 +267,21 @@ fn resolve(
     }
 }
 
+/// Append the finite values of `v` below `sat` to `out`, in order: every value written, the
+/// length advanced only for those kept (no branch per value: nearly all are kept, and the
+/// filtering iterator's branches were a third of the overscan's time).
+fn push_usable(out: &mut Vec<f64>, v: &[f64], sat: f64) {
+    let start = out.len();
+    out.resize(start + v.len(), 0.0);
+    let dst = &mut out[start..];
+    let mut m = 0;
+    for &x in v {
+        dst[m] = x;
+        m += (x.is_finite() & (x < sat)) as usize;
+    }
+    out.truncate(start + m);
+}
+
 /// Robust mean: the mean of the values within 3 robust sigmas (1.4826 MAD) of the median.
 fn robust_mean(mut v: Vec<f64>) -> Option<f64> {
     if v.is_empty() {
@@ -325,8 +340,18 @@ fn robust_mean_of_counts(v: &[f64]) -> Option<f64> {
     if !whole || !(hi - lo < 65536.0) || !(big * n as f64 * 2.0 < 9.0e15) {
         return None;
     }
-    let mut counts = vec![0usize; (hi - lo) as usize + 1];
-    for &x in v {
+    // Four interleaved histograms, added after: a narrow distribution sends neighbouring
+    // values to one counter, and one histogram waited on each increment's store.
+    let len = (hi - lo) as usize + 1;
+    let mut parts = vec![[0u32; 4]; len];
+    let mut quads = v.chunks_exact(4);
+    for q in &mut quads {
+        for j in 0..4 {
+            parts[(q[j] - lo) as usize][j] += 1;
+        }
+    }
+    let mut counts: Vec<usize> = parts.iter().map(|p| p.iter().map(|&c| c as usize).sum()).collect();
+    for &x in quads.remainder() {
         counts[(x - lo) as usize] += 1;
     }
     // The index into `counts` of the value of rank `r` (0-based, ascending) of the multiset
@@ -1312,11 +1337,11 @@ fn calibrate_exposure(
                 continue;
             }
             chip.raw_row(y, &mut row, &mut bytes)?;
-            let usable = |v: &&f64| v.is_finite() && **v < sat;
             if in_rows {
-                scan.extend(row.iter().filter(usable));
+                push_usable(&mut scan, &row, sat);
             } else {
-                scan.extend(row[..prx].iter().chain(&row[prx + cx..]).filter(usable));
+                push_usable(&mut scan, &row[..prx], sat);
+                push_usable(&mut scan, &row[prx + cx..], sat);
             }
         }
         let scan_level = robust_mean(scan);
