@@ -62,11 +62,7 @@ fn synthetic_csv_recovers_factor_and_offset() {
 
 #[test]
 fn real_efosc2_files_fit_in_every_band() {
-    let d = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/efosc2-standards");
-    if !d.is_dir() {
-        eprintln!("\n*** SKIPPED: {} not found ***\n", d.display());
-        return;
-    }
+    let Some(d) = efosc2_dir("the fit of every band of the real EFOSC2 files") else { return };
     let files: Vec<String> = ["pu", "pb", "pv", "pr", "pi"]
         .iter()
         .map(|b| d.join(format!("{b}_standards.txt")).display().to_string())
@@ -100,30 +96,44 @@ fn bad_input_is_named_and_help_has_an_example() {
         .contains("instpol fit-standards ../shared/data/efosc2-standards/p?_standards.txt"));
 }
 
+/// The real EFOSC2 standards' folder, or `None` after saying loudly that `what` did not run.
+fn efosc2_dir(what: &str) -> Option<std::path::PathBuf> {
+    let d = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/efosc2-standards");
+    if !d.is_dir() {
+        eprintln!("\n*** SKIPPED: {} not found: {what} did not run ***\n", d.display());
+        return None;
+    }
+    Some(d)
+}
+
+/// `fit-standards` of the real V standards (Wiersema model, EFOSC2's mirror) written to `cal`,
+/// with `extra` arguments; it must succeed.
+fn fit_v_standards(d: &std::path::Path, cal: &std::path::Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
+        d.join("pv_standards.txt").to_str().unwrap().to_string(),
+        "--model".into(),
+        "wiersema".into(),
+        "--instrument".into(),
+        "efosc2".into(),
+        "--output".into(),
+        cal.to_str().unwrap().into(),
+    ];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    let o = run(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    o
+}
+
 /// The real EFOSC2 V standards: fitted and written as a calibration (`--output`), then each
 /// standard's own measurement corrected by `instpol correct` with its parallactic angle per
 /// row: unpolarized within the errors (scaled by the fit's sqrt(chi2/dof)), where raw they
 /// show the M3's 3-4 %. Without the angle column the correction is refused, naming it.
 #[test]
 fn efosc2_v_calibration_corrects_the_standards_through_the_cli() {
-    let d = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/efosc2-standards");
-    if !d.is_dir() {
-        eprintln!("\n*** SKIPPED: {} not found: the EFOSC2 CLI chain test did not run ***\n", d.display());
-        return;
-    }
+    let Some(d) = efosc2_dir("the EFOSC2 CLI chain test") else { return };
     let dir = tempfile::tempdir().unwrap();
     let cal = dir.path().join("tel_V.fits");
-    let o = run(&[
-        d.join("pv_standards.txt").to_str().unwrap(),
-        "--model",
-        "wiersema",
-        "--instrument",
-        "efosc2",
-        "--output",
-        cal.to_str().unwrap(),
-        "--json",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = fit_v_standards(&d, &cal, &["--json"]);
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(v[0]["output"].as_str().unwrap(), cal.to_str().unwrap());
     let s = v[0]["chi2_dof"].as_f64().unwrap().max(1.0).sqrt();
@@ -267,23 +277,10 @@ fn field_cal_of_another_instrument_is_refused() {
 #[test]
 fn a_wavelength_band_corrects_the_filter_at_that_wavelength() {
     use skyfield::{BinGeometry, StokesMap};
-    let d = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/efosc2-standards");
-    if !d.is_dir() {
-        eprintln!("\n*** SKIPPED: {} not found: the EFOSC2 band test did not run ***\n", d.display());
-        return;
-    }
+    let Some(d) = efosc2_dir("the EFOSC2 band test") else { return };
     let dir = tempfile::tempdir().unwrap();
     let cal = dir.path().join("tel_V.fits");
-    let o = run(&[
-        d.join("pv_standards.txt").to_str().unwrap(),
-        "--model",
-        "wiersema",
-        "--instrument",
-        "efosc2",
-        "--output",
-        cal.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    fit_v_standards(&d, &cal, &[]);
     let inst = instrument::Instrument::load("efosc2").unwrap();
     let g = BinGeometry::covering(256, 0, 0, inst.detector.nx, inst.detector.ny, inst.detector.pixel_scale_arcsec);
     let map = |filter: &str, path: &std::path::Path| {
