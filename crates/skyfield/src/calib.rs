@@ -729,7 +729,9 @@ fn u16_value(b: [u8; 2]) -> f64 {
     u16::from_be_bytes([b[0] ^ 0x80, b[1]]) as f64
 }
 
-/// One raw value calibrated as `calibrate_row` does it (`calibrate_each`'s formula).
+/// One raw value calibrated: `(raw - level - bias) * to_e * flat_inv` rounded to f32, saturated
+/// raw values [`SATURATED`], NaN raw values NaN (the formula of `calibrate_row`, `Cal::sum` and
+/// `sum_u16_blocked`).
 #[inline(always)]
 fn calibrated(r: f64, b: f64, fi: f64, level: f64, to_e: f64, sat: f64) -> f64 {
     let e = ((r - level - b) * to_e * fi) as f32;
@@ -1101,21 +1103,6 @@ impl Calibrated {
 /// [`SATURATED`], NaN raw values NaN. Absent masters are a zero bias and a unit inverse flat.
 #[inline(always)]
 fn calibrate_row(v: &mut [f64], bias: Option<&[f32]>, flat_inv: Option<&[f32]>, level: f64, to_e: f64, sat: f64) {
-    calibrate_each(v, bias, flat_inv, level, to_e, sat, |_, _| {});
-}
-
-/// [`calibrate_row`], also handing each calibrated value and its index to `sink` (which the
-/// loop inlines: summing exposures as they are calibrated).
-#[inline(always)]
-fn calibrate_each(
-    v: &mut [f64],
-    bias: Option<&[f32]>,
-    flat_inv: Option<&[f32]>,
-    level: f64,
-    to_e: f64,
-    sat: f64,
-    mut sink: impl FnMut(usize, f64),
-) {
     let n = v.len();
     // Four branch-free loops (so each vectorizes), by which masters are given.
     match (bias, flat_inv) {
@@ -1123,27 +1110,23 @@ fn calibrate_each(
             let (b, f) = (&b[..n], &f[..n]);
             for i in 0..n {
                 v[i] = calibrated(v[i], b[i] as f64, f[i] as f64, level, to_e, sat);
-                sink(i, v[i]);
             }
         }
         (Some(b), None) => {
             let b = &b[..n];
             for i in 0..n {
                 v[i] = calibrated(v[i], b[i] as f64, 1.0, level, to_e, sat);
-                sink(i, v[i]);
             }
         }
         (None, Some(f)) => {
             let f = &f[..n];
             for i in 0..n {
                 v[i] = calibrated(v[i], 0.0, f[i] as f64, level, to_e, sat);
-                sink(i, v[i]);
             }
         }
         (None, None) => {
             for i in 0..n {
                 v[i] = calibrated(v[i], 0.0, 1.0, level, to_e, sat);
-                sink(i, v[i]);
             }
         }
     }

@@ -1128,6 +1128,49 @@ impl Scratch {
         Ok(())
     }
 
+    /// Angle `i`'s repeated raw exposures `exps` (its `members`, all summable) calibrated and
+    /// summed into its group buffer ([`Calibrated::load_rows_summed`]), each exposure's bad
+    /// values counted over the group's o and e pixels into `bad`.
+    #[allow(clippy::too_many_arguments)]
+    fn read_summed(
+        &mut self,
+        i: usize,
+        members: &[Member],
+        exps: &[&Calibrated],
+        group: &Group,
+        nx: usize,
+        sat: f64,
+        bad: &mut [BadCounts],
+    ) -> Result<(), Error> {
+        self.group_masters(exps[0], group, nx)?;
+        self.sum[i].resize(group.n_rows * nx, 0.0);
+        self.counts.clear();
+        self.counts.resize(exps.len(), (0, 0));
+        for &(r0, nr, slot0) in &group.runs {
+            let (a, b) = (slot0 * nx, (slot0 + nr) * nx);
+            // The group's o and e ranges within this run, as indices into it.
+            self.ranges.clear();
+            for &(x0, x1, _, _, os, es) in &group.segs {
+                for start in [os, es] {
+                    let (lo, hi) = (start.max(a), (start + x1 - x0).min(b));
+                    if lo < hi {
+                        self.ranges.push((lo - a, hi - a));
+                    }
+                }
+            }
+            let m = master_rows(&self.mbias, &self.mflat, r0, a);
+            let out = &mut self.sum[i][a..b];
+            Calibrated::load_rows_summed(exps, r0, out, &mut self.summing, m, &self.ranges, sat, &mut self.counts)?;
+        }
+        for (m, c) in members.iter().zip(&self.counts) {
+            if let Member::File(_, fi) = m {
+                bad[*fi].0 += c.0;
+                bad[*fi].1 += c.1;
+            }
+        }
+        Ok(())
+    }
+
     avx2_dispatch! {
         /// Read a group's rows of every angle that comes from files: a single exposure's rows as
         /// stored (decoded and counted by the kernel); repeated exposures decoded and summed in
@@ -1169,43 +1212,8 @@ impl Scratch {
                         FrameRows::Memory(_) => {}
                     },
                     // Repeated raw exposures: calibrated and summed row by row in one pass.
-                    members if summed_raw(members).is_some() => {
-                        let exps = summed_raw(members).unwrap_or_default();
-                        let first = exps[0];
-                        self.group_masters(first, group, nx)?;
-                        self.sum[i].resize(group.n_rows * nx, 0.0);
-                        self.counts.clear();
-                        self.counts.resize(exps.len(), (0, 0));
-                        for &(r0, nr, slot0) in &group.runs {
-                            let (a, b) = (slot0 * nx, (slot0 + nr) * nx);
-                            // The group's o and e ranges within this run, as indices into it.
-                            self.ranges.clear();
-                            for &(x0, x1, _, _, os, es) in &group.segs {
-                                for start in [os, es] {
-                                    let (lo, hi) = (start.max(a), (start + x1 - x0).min(b));
-                                    if lo < hi {
-                                        self.ranges.push((lo - a, hi - a));
-                                    }
-                                }
-                            }
-                            let m = master_rows(&self.mbias, &self.mflat, r0, a);
-                            Calibrated::load_rows_summed(
-                                &exps,
-                                r0,
-                                &mut self.sum[i][a..b],
-                                &mut self.summing,
-                                m,
-                                &self.ranges,
-                                sat,
-                                &mut self.counts,
-                            )?;
-                        }
-                        for (m, c) in members.iter().zip(&self.counts) {
-                            if let Member::File(_, fi) = m {
-                                bad[*fi].0 += c.0;
-                                bad[*fi].1 += c.1;
-                            }
-                        }
+                    members if let Some(exps) = summed_raw(members) => {
+                        self.read_summed(i, members, &exps, group, nx, sat, bad)?;
                     }
                     members => {
                         let npx = group.n_rows * nx;
@@ -1337,7 +1345,14 @@ impl Kernel {
                 }
             };
             let Self { q, u, vq, vu, isum, ok, .. } = self;
-            let acc = Acc { q: &mut q[..len], u: &mut u[..len], vq: &mut vq[..len], vu: &mut vu[..len], isum: &mut isum[..len], ok: &mut ok[..len] };
+            let acc = Acc {
+                q: &mut q[..len],
+                u: &mut u[..len],
+                vq: &mut vq[..len],
+                vu: &mut vu[..len],
+                isum: &mut isum[..len],
+                ok: &mut ok[..len],
+            };
             // Separate loops for one and several exposures: x / 1 is x exactly, so the single
             // exposure's loop skips a division.
             if a.nexp == 1 {
