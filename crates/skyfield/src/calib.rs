@@ -675,6 +675,10 @@ pub(crate) struct SumScratch {
     bytes: Vec<Vec<u8>>,
     row: Vec<f64>,
     w: Vec<u64>,
+    /// A zero bias and a unit inverse flat for absent masters (only ever grown, with those
+    /// values).
+    zeros: Vec<f32>,
+    ones: Vec<f32>,
 }
 
 /// One row's calibration as [`Cal::sum`] applies it: the masters' pixels of the row (a zero
@@ -692,29 +696,49 @@ struct Cal<'a> {
 }
 
 impl Cal<'_> {
-    /// Calibrate the raw values `raw` (ADU as `value` decodes them, at least `out.len()`) as
-    /// `calibrate_row` does, and set (`first`) or add them to `out`; returns the non-finite
-    /// and saturated (`>= count_sat`) calibrated values, each counted `w[i]` times.
+    /// How value `e` of a pixel covered `w` times counts: `(non-finite, saturated)`.
     #[inline(always)]
-    fn sum<T: Copy>(&self, first: bool, out: &mut [f64], raw: &[T], value: impl Fn(T) -> f64) -> (usize, usize) {
+    fn weigh(&self, e: f64, w: u64) -> (u64, u64) {
+        (if e.is_finite() { 0 } else { w }, if e >= self.count_sat { w } else { 0 })
+    }
+
+    /// Calibrate the decoded raw values `raw` (ADU, at least `out.len()`) as `calibrate_row`
+    /// does, and set (`first`) or add them to `out`; returns the non-finite and saturated
+    /// (`>= count_sat`) calibrated values, each counted `w[i]` times.
+    #[inline(always)]
+    fn sum(&self, first: bool, out: &mut [f64], raw: &[f64]) -> (usize, usize) {
         let n = out.len();
         let (bias, flat, w, raw) = (&self.bias[..n], &self.flat[..n], &self.w[..n], &raw[..n]);
         let (mut nb, mut ns) = (0u64, 0u64);
         // Two loops, so that neither tests `first` per value.
         if first {
             for i in 0..n {
-                let e = calibrated(value(raw[i]), bias[i] as f64, flat[i] as f64, self.level, self.to_e, self.sat);
-                nb += if e.is_finite() { 0 } else { w[i] };
-                ns += if e >= self.count_sat { w[i] } else { 0 };
+                let e = calibrated(raw[i], bias[i] as f64, flat[i] as f64, self.level, self.to_e, self.sat);
+                let (b, s) = self.weigh(e, w[i]);
+                (nb, ns) = (nb + b, ns + s);
                 out[i] = e;
             }
         } else {
             for i in 0..n {
-                let e = calibrated(value(raw[i]), bias[i] as f64, flat[i] as f64, self.level, self.to_e, self.sat);
-                nb += if e.is_finite() { 0 } else { w[i] };
-                ns += if e >= self.count_sat { w[i] } else { 0 };
+                let e = calibrated(raw[i], bias[i] as f64, flat[i] as f64, self.level, self.to_e, self.sat);
+                let (b, s) = self.weigh(e, w[i]);
+                (nb, ns) = (nb + b, ns + s);
                 out[i] += e;
             }
+        }
+        (nb as usize, ns as usize)
+    }
+
+    /// What [`Cal::sum`] counts, without summing: for the rows [`sum_u16_blocked`] flags.
+    #[inline(always)]
+    fn count<T: Copy>(&self, raw: &[T], value: impl Fn(T) -> f64) -> (usize, usize) {
+        let n = raw.len();
+        let (bias, flat, w) = (&self.bias[..n], &self.flat[..n], &self.w[..n]);
+        let (mut nb, mut ns) = (0u64, 0u64);
+        for i in 0..n {
+            let e = calibrated(value(raw[i]), bias[i] as f64, flat[i] as f64, self.level, self.to_e, self.sat);
+            let (b, s) = self.weigh(e, w[i]);
+            (nb, ns) = (nb + b, ns + s);
         }
         (nb as usize, ns as usize)
     }
@@ -744,7 +768,7 @@ fn calibrated(r: f64, b: f64, fi: f64, level: f64, to_e: f64, sat: f64) -> f64 {
 /// exposures, so that each sum is stored once rather than once per exposure (the same values
 /// and additions in the same order: the same bits). Returns `true` when some calibrated value
 /// may be non-finite or at or above `count_sat` (the caller then counts them with
-/// [`count_u16`]; `false` means none is).
+/// [`Cal::count`]; `false` means none is).
 #[inline(always)]
 fn sum_u16_blocked(
     out: &mut [f64],
@@ -789,28 +813,6 @@ fn sum_u16_blocked(
     }
     // A threshold that is not a positive number: every row is counted.
     !(count_sat > 0.0) || big >= count_sat.to_bits()
-}
-
-/// One exposure's non-finite and saturated (`>= count_sat`) calibrated values of a raw u16
-/// row, each counted `w[i]` times (what `Cal::sum` counts).
-#[inline(always)]
-fn count_u16(
-    raw: &[[u8; 2]],
-    bias: &[f32],
-    flat: &[f32],
-    w: &[u64],
-    (level, to_e, sat): (f64, f64, f64),
-    count_sat: f64,
-) -> (usize, usize) {
-    let n = raw.len();
-    let (bias, flat, w) = (&bias[..n], &flat[..n], &w[..n]);
-    let (mut nb, mut ns) = (0u64, 0u64);
-    for i in 0..n {
-        let e = calibrated(u16_value(raw[i]), bias[i] as f64, flat[i] as f64, level, to_e, sat);
-        nb += if e.is_finite() { 0 } else { w[i] };
-        ns += if e >= count_sat { w[i] } else { 0 };
-    }
-    (nb as usize, ns as usize)
 }
 
 /// Raw rows of one chip of every exposure fetched at once when summing exposures
@@ -914,7 +916,7 @@ impl Calibrated {
     ) -> Result<(), Error> {
         let Some(first) = exps.first() else { return Ok(()) };
         debug_assert!(exps.iter().all(|e| first.summable_with(e)));
-        let SumScratch { bytes, row, w } = sc;
+        let SumScratch { bytes, row, w, zeros, ones } = sc;
         bytes.resize_with(exps.len(), Vec::new);
         let nx = first.nx;
         let nrows = out.len() / nx;
@@ -929,9 +931,10 @@ impl Calibrated {
         // Absent masters as a zero bias and a unit inverse flat: `x - 0` and `x * 1` are `x`
         // exactly, so the values are those of `calibrate_row`'s loops without them.
         let (has_bias, has_flat) = first.masters.given();
-        let need = |given: bool, used: fn(&ChipRows) -> bool| !(given && first.chips.iter().all(used));
-        let zeros = if need(has_bias, |c| c.use_bias) { vec![0.0f32; nx * nrows] } else { Vec::new() };
-        let ones = if need(has_flat, |c| c.use_flat) { vec![1.0f32; nx * nrows] } else { Vec::new() };
+        if zeros.len() < nx * nrows {
+            zeros.resize(nx * nrows, 0.0);
+            ones.resize(nx * nrows, 1.0);
+        }
         for (ci, c) in first.chips.iter().enumerate() {
             let (a, b) = (row0.max(c.y0), (row0 + nrows).min(c.y0 + c.cy));
             let mut y = a;
@@ -987,6 +990,7 @@ impl Calibrated {
             let ((y, ry, n), ((bias, b_row0), (flat, f_row0)), (row, w)) = (rows, masters, scratch);
             let (nx, c) = (self.nx, &self.chips[ci]);
             w.resize(c.cx, 0);
+            row.resize(c.cx, 0.0);
             for k in 0..n {
                 let at = (y + k - row0) * nx + c.x0;
                 let (b0, f0) = ((y + k - b_row0) * nx + c.x0, (y + k - f_row0) * nx + c.x0);
@@ -1026,7 +1030,8 @@ impl Calibrated {
                             // one, nearly all, skip this).
                             weights(w);
                             for (j, (raw, &(level, to_e, sat_adu))) in raws[..m].iter().zip(&cals[..m]).enumerate() {
-                                let (a, s) = count_u16(raw, bias, flat, w, (level, to_e, sat_adu), sat);
+                                let cal = Cal { bias, flat, w, level, to_e, sat: sat_adu, count_sat: sat };
+                                let (a, s) = cal.count(raw, u16_value);
                                 counts[j].0 += a;
                                 counts[j].1 += s;
                             }
@@ -1039,24 +1044,10 @@ impl Calibrated {
                     let ch = &e.chips[ci];
                     let cal = Cal { bias, flat, w, level: ch.level, to_e: ch.to_e, sat: ch.sat, count_sat: sat };
                     let first = j == 0;
-                    let (a, s) = match &ch.src {
-                        FrameRows::File(r) => {
-                            let b = &buf[(k * ch.rnx + ch.prx) * r.kind().bytes()..];
-                            match r.kind() {
-                                RawKind::U16 => {
-                                    cal.sum(first, o, b.as_chunks::<2>().0, |b| u16::from_be_bytes([b[0] ^ 0x80, b[1]]) as f64)
-                                }
-                                RawKind::I16 => cal.sum(first, o, b.as_chunks::<2>().0, |b| i16::from_be_bytes(b) as f64),
-                                RawKind::F32 => cal.sum(first, o, b.as_chunks::<4>().0, |b| f32::from_be_bytes(b) as f64),
-                                RawKind::F64 => cal.sum(first, o, b.as_chunks::<8>().0, f64::from_be_bytes),
-                            }
-                        }
-                        _ => {
-                            row.resize(c.cx, 0.0);
-                            ch.decode(ry, k, ch.prx, buf, row);
-                            cal.sum(first, o, row, |x| x)
-                        }
-                    };
+                    // The rarer cases (other encodings, rows in memory, many exposures):
+                    // decoded by the chip's own decoder, then calibrated and added.
+                    ch.decode(ry, k, ch.prx, buf, row);
+                    let (a, s) = cal.sum(first, o, row);
                     counts[j].0 += a;
                     counts[j].1 += s;
                 }
@@ -1795,7 +1786,8 @@ mod tests {
                 for (j, raw) in raws.iter().enumerate() {
                     let (level, to_e, sat) = cals[j];
                     let cal = Cal { bias: &bias, flat: &flat, w: &w, level, to_e, sat, count_sat };
-                    want_counts.push(cal.sum(j == 0, &mut want, raw, u16_value));
+                    let decoded: Vec<f64> = raw.iter().map(|&b| u16_value(b)).collect();
+                    want_counts.push(cal.sum(j == 0, &mut want, &decoded));
                 }
                 let mut got = vec![0.0; n];
                 let refs: Vec<&[[u8; 2]]> = raws.iter().map(|r| &r[..]).collect();
@@ -1806,8 +1798,13 @@ mod tests {
                 );
                 let any_bad = want_counts.iter().any(|&(a, s)| a + s > 0);
                 assert!(flagged || !any_bad, "{nexp} exposures, case {case}: bad values not flagged");
-                let got_counts: Vec<(usize, usize)> =
-                    refs.iter().zip(&cals).map(|(r, &c)| count_u16(r, &bias, &flat, &w, c, count_sat)).collect();
+                let got_counts: Vec<(usize, usize)> = refs
+                    .iter()
+                    .zip(&cals)
+                    .map(|(r, &(level, to_e, sat))| {
+                        Cal { bias: &bias, flat: &flat, w: &w, level, to_e, sat, count_sat }.count(r, u16_value)
+                    })
+                    .collect();
                 assert_eq!(got_counts, want_counts, "{nexp} exposures, case {case}");
                 if case != 3 {
                     assert!(any_bad, "case {case}: the row holds bad values");
