@@ -168,13 +168,23 @@ unsafe fn window_pass_avx512(
     (below + b, m + k, _mm512_reduce_max_epu64(top).max(t))
 }
 
+/// The lower of the ranks (0-based) a median of `n > 0` values is taken from: `n / 2` for odd
+/// `n`, `n / 2 - 1` (with `n / 2`) for even.
+#[inline]
+fn lower_middle(n: usize) -> usize {
+    if n % 2 == 1 {
+        n / 2
+    } else {
+        n / 2 - 1
+    }
+}
+
 /// The median of `n` values of which `below` lie under a window and `win` holds the keys of
 /// those inside it, if both middle ranks (`k - 1` and `k` for even `n`) fall inside (`win` is
 /// reordered, the same multiset).
 #[inline]
 fn median_in_window(n: usize, below: usize, win: &mut [i64]) -> Option<f64> {
-    let k = n / 2;
-    let first = if n % 2 == 1 { k } else { k - 1 };
+    let (k, first) = (n / 2, lower_middle(n));
     if !(below <= first && k < below + win.len()) {
         return None;
     }
@@ -215,50 +225,31 @@ pub(crate) fn median_near_by(
     keys: &mut Vec<i64>,
     win: &mut Vec<i64>,
 ) -> f64 {
-    median_and_top(vals, centre, window, keys, win).0
+    // Never None: no bound is enough.
+    median_and_top(vals, centre, window, keys, win, |_, _| false).0.unwrap_or(f64::NAN)
 }
 
-/// The median of the deviations `|x - centre|` of `vals` as [`median_near_by`] finds it, and
-/// the largest deviation; but `None` for the median when a window was searched, the median's
-/// ranks are not below it (so the median is at least the window's lower end `lo`), `lo` is
-/// positive, and `enough(lo, largest deviation)` says that bound is all the caller needs.
-fn mad_or_floor(
-    vals: &[f64],
-    centre: f64,
-    window: Option<(f64, f64)>,
-    keys: &mut Vec<i64>,
-    win: &mut Vec<i64>,
-    enough: impl Fn(f64, f64) -> bool,
-) -> (Option<f64>, f64) {
-    if let Some(w) = usable(window) {
-        let (below, top) = window_pass(vals, Some(centre), w, win);
-        let n = vals.len();
-        let first = if n % 2 == 1 { n / 2 } else { n / 2 - 1 };
-        let top = f64::from_bits(top);
-        if w.0 > 0.0 && below <= first && enough(w.0, top) {
-            return (None, top);
-        }
-        if let Some(m) = median_in_window(n, below, win) {
-            return (Some(m), top);
-        }
-    }
-    let (m, top) = median_and_top(vals, Some(centre), None, keys, win);
-    (Some(m), f64::from_bits(top))
-}
-
-/// [`median_near_by`], and the largest value's bits (see [`window_pass`]): with a `centre`,
-/// the largest deviation from it, found in the same pass.
+/// [`median_near_by`], and the largest value's bits (see [`window_pass`]; with a `centre`, the
+/// largest deviation from it), found in the same pass. The median is `None` when a window was
+/// searched, the median's ranks are not below it (so the median is at least the window's
+/// lower end `lo`), `lo` is positive, and `enough(lo, largest value)` says that bound is all
+/// the caller needs (the clipping's test of whether a column can reject anything).
 fn median_and_top(
     vals: &[f64],
     centre: Option<f64>,
     window: Option<(f64, f64)>,
     keys: &mut Vec<i64>,
     win: &mut Vec<i64>,
-) -> (f64, u64) {
+    enough: impl Fn(f64, f64) -> bool,
+) -> (Option<f64>, u64) {
     if let Some(w) = usable(window) {
         let (below, top) = window_pass(vals, centre, w, win);
-        if let Some(m) = median_in_window(vals.len(), below, win) {
-            return (m, top);
+        let n = vals.len();
+        if w.0 > 0.0 && below <= lower_middle(n) && enough(w.0, f64::from_bits(top)) {
+            return (None, top);
+        }
+        if let Some(m) = median_in_window(n, below, win) {
+            return (Some(m), top);
         }
     }
     keys.clear();
@@ -268,7 +259,7 @@ fn median_and_top(
         top = top.max(x.to_bits());
         total_key(x)
     }));
-    (median_of_keys(keys), top)
+    (Some(median_of_keys(keys)), top)
 }
 
 /// `[c - w, c + w]`, the window [`median_near_by`] searches first.
@@ -524,16 +515,16 @@ impl Clip {
                 // previous one, which only decides where the next search looks first).
                 let mad_floor = |lo: f64| cfg.nsigma * (MAD_TO_SIGMA * lo);
                 let bounded = cfg.nsigma > 0.0;
-                let (mad, top) = match mad_or_floor(v, med, w_mad, buf, win, |lo, top| bounded && top <= mad_floor(lo))
-                {
-                    (Some(mad), top) => (mad, top),
-                    (None, _) => {
-                        let (_, d, s) = hint.expect("a window came from the hint");
-                        hints[ci] = Some((med, d, s));
-                        centre.push((med, f64::NAN, false));
-                        continue;
-                    }
-                };
+                let (mad, top) =
+                    match median_and_top(v, Some(med), w_mad, buf, win, |lo, top| bounded && top <= mad_floor(lo)) {
+                        (Some(mad), top) => (mad, f64::from_bits(top)),
+                        (None, _) => {
+                            let (_, d, s) = hint.expect("a window came from the hint");
+                            hints[ci] = Some((med, d, s));
+                            centre.push((med, f64::NAN, false));
+                            continue;
+                        }
+                    };
                 let mut sigma = MAD_TO_SIGMA * mad;
                 if sigma == 0.0 {
                     let mean = v.iter().sum::<f64>() / m as f64;
