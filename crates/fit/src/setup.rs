@@ -24,6 +24,13 @@ pub fn same_filter(inst: Option<&Instrument>, a: &str, b: &str) -> bool {
     }
 }
 
+/// Whether data of instrument `inst` (a name) in `filter` may be corrected with a telescope
+/// model's band `band` on its own ([`same_filter`] through that instrument when it is a known
+/// one): the check of the CLI's and the Python package's map corrections.
+pub fn band_fits_data(inst: &str, filter: &str, band: &str) -> bool {
+    same_filter(Instrument::load(inst).ok().as_ref(), filter, band)
+}
+
 /// The wavelength (nm) of a band named by it in micrometres (`0.550um`, as
 /// `telescope::StandardObs` names a band without a filter); `None` for other names.
 pub fn band_wavelength_nm(band: &str) -> Option<f64> {

@@ -801,11 +801,7 @@ impl _Calibration {
                 let b = self.telescope_band(t, band, Some(&map.filter))?;
                 if matches!(self.field, Field::TelescopeOnly { .. })
                     && !allow_mismatch
-                    && !fit::setup::same_filter(
-                        instrument::Instrument::load(&map.instrument).ok().as_ref(),
-                        &map.filter,
-                        &b,
-                    )
+                    && !fit::setup::band_fits_data(&map.instrument, &map.filter, &b)
                 {
                     return Err(input_err(format!(
                         "{} is a {} map but the telescope model's band is {b}: use the band of the map's filter (band=), or allow_mismatch=True",

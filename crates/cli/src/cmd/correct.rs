@@ -585,8 +585,7 @@ fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Ca
         check_same_setup(&map.instrument, &map.filter, (&c.instrument, &c.filter), &a.input, &a.cal, a.allow_mismatch)?;
     }
     let band = telescope_band(a, tel, field, Some(&map.filter))?;
-    let map_inst = instrument::Instrument::load(&map.instrument).ok();
-    if field.is_none() && !fit::setup::same_filter(map_inst.as_ref(), &map.filter, &band) && !a.allow_mismatch {
+    if field.is_none() && !fit::setup::band_fits_data(&map.instrument, &map.filter, &band) && !a.allow_mismatch {
         bail!(
             "{} is a {} map but the telescope model's band is {band}: use the band of the map's filter (--band), or --allow-mismatch",
             a.input.display(),
