@@ -67,19 +67,18 @@ pub struct TelescopeUsed {
 /// ([`correct_catalog`]), or the chain with its telescope model ([`correct_catalog_chain`])
 /// over each exposure's own track from the frames' headers (the instrument's `[telescope]`
 /// keywords; the rotator angle only for a model fitted with it), in the band the field model's
-/// filter, else the frames' filter, else the model's only band, names. Also returns what
-/// should be said: the zero-angle caveat of the chain (`telescope_cal` module docs). The one
-/// rule of `instpol catalog --cal` and the Python package's `catalog(cal=...)`.
+/// filter, else the frames' filter, else the model's only band, names. The one rule of
+/// `instpol catalog --cal` and the Python package's `catalog(cal=...)`.
 pub fn correct_catalog_loaded(
     cat: &Catalog,
     inst: &instrument::Instrument,
     frames: &[std::path::PathBuf],
     loaded: &crate::telescope_cal::Loaded,
     opts: CorrectOptions,
-) -> Result<(CorrectedCatalog, Option<TelescopeUsed>, Vec<String>), Error> {
+) -> Result<(CorrectedCatalog, Option<TelescopeUsed>), Error> {
     let Some(tel) = &loaded.telescope else {
         let cal = loaded.field.as_ref().ok_or(Error::NoModel)?;
-        return Ok((correct_catalog(cat, &inst.name, cal, opts)?, None, vec![]));
+        return Ok((correct_catalog(cat, &inst.name, cal, opts)?, None));
     };
     let field = loaded.field.as_ref();
     let t = inst
@@ -99,16 +98,9 @@ pub fn correct_catalog_loaded(
     let choice = tel
         .choose_track(None, Some((recorded.start, recorded.end)), None, rot)
         .map_err(|_| Error::NoRotator(inst.name.clone()))?;
-    let warnings: Vec<String> = [
-        (field.map_or(0.0, |c| c.hwp_chi_offset_deg), "the field calibration".to_string()),
-        (cat.chi_offset_deg, format!("filter {} of instrument {}", cat.filter, inst.name)),
-    ]
-    .into_iter()
-    .filter_map(|(z, whose)| crate::telescope_cal::zero_angle_caveat(z, &whose))
-    .collect();
     let c = correct_catalog_chain(cat, &inst.name, field, opts, tel, &band, choice.track, &each)?;
     let used = TelescopeUsed { model: tel.model.name(), band, exposures: each.len() };
-    Ok((c, Some(used), warnings))
+    Ok((c, Some(used)))
 }
 
 /// The corrections of a catalog's rows (in row order; `None` for a star not measured).
@@ -173,8 +165,10 @@ fn measurement(r: &skyfield::catalog::Row) -> Option<Measurement> {
 }
 
 /// Correct every measured star of `cat` (taken with `instrument`) through the chain of the
-/// field calibration `field` (when given; `opts` as for [`Corrector`], its zero angle left 0)
-/// and the telescope model `tel` in `band` (module docs): over each exposure's own track when
+/// field calibration `field` (when given; `opts` as for [`Corrector`], except its zero angle)
+/// and the telescope model `tel` in `band` (module docs), in the sky frame
+/// (`telescope_cal` module docs: the catalog's q, u carry its zero angle already, so only a
+/// field calibration's different one is applied, as [`correct_catalog`] does): over each exposure's own track when
 /// `exposures` lists them (`telescope_cal::exposure_tracks` of [`Catalog::frames`], their
 /// rotator `track`'s), else over `track`. Each row's `inst` is the field's and the
 /// telescope's polarization together.
@@ -198,12 +192,15 @@ pub fn correct_catalog_chain(
         }
     }
     let cor = field.map(|c| Corrector::new(c, CorrectOptions { chi_offset: 0.0, ..opts }));
-    let prepared = crate::telescope_cal::prepare_recorded(tel, band, track, exposures).map_err(Error::Exposures)?;
+    let dchi = field.map_or(0.0, |c| c.hwp_chi_offset_deg - cat.chi_offset_deg);
+    // The exposures were taken through the plate whose zero angle the catalog carries.
+    let prepared = crate::telescope_cal::prepare_recorded(tel, band, track, exposures, cat.chi_offset_deg.to_radians())
+        .map_err(Error::Exposures)?;
     let seen = prepared.as_ref().map_or(Seen::Track(track), Seen::Prepared);
     let (rows, n_extrapolated) = correct_rows(cat, |r, m| {
-        crate::telescope_cal::correct_chain_seen(cor.as_ref(), tel, band, m, seen)
+        crate::telescope_cal::correct_chain_seen(cor.as_ref(), tel, band, m, seen, dchi.to_radians())
             .map(|c| c.with_telescope_in_inst())
             .map_err(|source| Error::Chain { id: r.id, x: r.x_arcmin, y: r.y_arcmin, source })
     })?;
-    Ok(CorrectedCatalog { rows, n_extrapolated, chi_offset_applied_deg: 0.0 })
+    Ok(CorrectedCatalog { rows, n_extrapolated, chi_offset_applied_deg: dchi })
 }

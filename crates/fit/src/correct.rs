@@ -304,6 +304,28 @@ pub fn exact_jacobian(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<((f64, f64),
     Ok(((q0, u0), jm, ja))
 }
 
+/// `(q, u)` of `m` and their covariance `(var_q, var_u, cov_qu)` in a frame where every chi is
+/// larger by `offset` (`cos2 = cos 2 offset`, `sin2 = sin 2 offset`): `R (q, u)` and `R C R^T`
+/// with `R = [[cos2, -sin2], [sin2, cos2]]`. How a measurement at the plate is brought into the
+/// sky frame by the HWP zero angle (module docs).
+#[inline]
+fn rotated(m: &Measurement, cos2: f64, sin2: f64) -> [f64; 5] {
+    let (c, s) = (cos2, sin2);
+    let (vq, vu, cv) = sandwich(&[[c, -s], [s, c]], m.sigma_q * m.sigma_q, m.sigma_u * m.sigma_u, m.cov_qu);
+    [c * m.q - s * m.u, s * m.q + c * m.u, vq, vu, cv]
+}
+
+/// `m` in the sky frame: its chi larger by the HWP zero angle `offset` (rad), its covariance
+/// turned alike ([`rotated`]). `m` itself when `offset` is 0.
+pub fn to_sky_frame(m: &Measurement, offset: f64) -> Measurement {
+    if offset == 0.0 {
+        return *m;
+    }
+    let (s, c) = (2.0 * offset).sin_cos();
+    let [q, u, vq, vu, cov_qu] = rotated(m, c, s);
+    Measurement { q, u, sigma_q: vq.max(0.0).sqrt(), sigma_u: vu.max(0.0).sqrt(), cov_qu, ..*m }
+}
+
 /// `J C J^T` for symmetric `C = [[a, c], [c, b]]`, returned as `(var_q, var_u, cov)`.
 #[inline]
 pub(crate) fn sandwich(j: &[[f64; 2]; 2], a: f64, b: f64, c: f64) -> (f64, f64, f64) {
@@ -422,12 +444,7 @@ impl<'a, M: FieldModel + ?Sized> Corrector<'a, M> {
         check_measurement(m)?;
         let (a, extrapolated) = self.instrumental(m.x, m.y)?;
         // Zero angle first: the measured (q, u) are at the plate; M_I lives in the sky frame.
-        let (c, s) = (self.cos2off, self.sin2off);
-        let q1 = c * m.q - s * m.u;
-        let u1 = s * m.q + c * m.u;
-        let (vq, vu, cv) = (m.sigma_q * m.sigma_q, m.sigma_u * m.sigma_u, m.cov_qu);
-        let rot = [[c, -s], [s, c]];
-        let (vq1, vu1, cv1) = sandwich(&rot, vq, vu, cv);
+        let [q1, u1, vq1, vu1, cv1] = rotated(m, self.cos2off, self.sin2off);
         let (q0, u0, vq0, vu0, cv0) = match self.opts.method {
             Method::Exact => {
                 let ((q0, u0), jm, ja) = exact_jacobian(a.q, a.u, q1, u1).map_err(|e| match e {
@@ -672,6 +689,10 @@ pub enum MapCorrection<'a> {
         /// false when the caller replaced it (the exposures' recorded angles would then
         /// contradict it).
         by_exposure: bool,
+        /// The HWP zero angle (deg) of the map's instrument in its filter: what brings the map
+        /// (at the plate) into the chain's sky frame when no field calibration gives its own
+        /// ([`crate::telescope_cal`] module docs); 0 where the instrument gives none.
+        zero_angle_deg: f64,
     },
 }
 
@@ -682,9 +703,10 @@ pub enum MapCorrection<'a> {
 /// - A field: the calibration's HWP zero angle is added to chi (`CORRHWP`).
 /// - A Mueller field: inverted exactly, in the maps' frame, no zero angle (`eq:approx` is the
 ///   p, phi model's first order: the front ends refuse it for a Mueller field).
-/// - A chain: the telescope's offset is the instrument's angle zero (module docs of
-///   [`crate::telescope_cal`]), so no zero angle is added; the corrected map records the
-///   track used (its parallactic and rotator angles).
+/// - A chain: the map is brought into the sky frame by the field calibration's HWP zero
+///   angle, or without a field by its instrument's (`CORRHWP`), then corrected by both models
+///   there (module docs of [`crate::telescope_cal`]); the corrected map records the track used
+///   (its parallactic and rotator angles).
 pub fn correct_stokes_map(
     map: &skyfield::StokesMap,
     with: MapCorrection<'_>,
@@ -713,10 +735,19 @@ pub fn correct_stokes_map(
             let c = correct_map_with(map, |m| mc.correct(m, &o))?;
             Ok((c, stamp("exact inverse of the Mueller field (calibrate-mueller)".into(), 0.0, None)))
         }
-        MapCorrection::Chain { field, telescope, band, track, by_exposure } => {
+        MapCorrection::Chain { field, telescope, band, track, by_exposure, zero_angle_deg } => {
             let cor = field.map(|(cal, method)| Corrector::new(cal, opts(method, 0.0)));
+            let z = field.map_or(zero_angle_deg, |(cal, _)| cal.hwp_chi_offset_deg);
             let exposures = if by_exposure { &map.exposure_tracks[..] } else { &[] };
-            let mut c = crate::telescope_cal::correct_map_chain(cor.as_ref(), telescope, band, map, track, exposures)?;
+            let mut c = crate::telescope_cal::correct_map_chain(
+                cor.as_ref(),
+                telescope,
+                band,
+                map,
+                track,
+                exposures,
+                z.to_radians(),
+            )?;
             if !by_exposure {
                 c.map.exposure_tracks.clear();
             }
@@ -736,7 +767,7 @@ pub fn correct_stokes_map(
                 band: band.to_string(),
                 rotator_deg: track.rotator.to_degrees(),
             };
-            Ok((c, stamp(method, 0.0, Some(t))))
+            Ok((c, stamp(method, z, Some(t))))
         }
     }
 }

@@ -31,6 +31,13 @@ pub fn band_fits_data(inst: &str, filter: &str, band: &str) -> bool {
     same_filter(Instrument::load(inst).ok().as_ref(), filter, band)
 }
 
+/// The HWP zero angle (deg) of instrument `inst` (a name, as a Stokes map records it) in
+/// `filter`: 0 for a filter without one; `None` when the name is not an instrument known here
+/// or the filter not one of its own.
+pub fn zero_angle_of(inst: &str, filter: &str) -> Option<f64> {
+    Instrument::load(inst).ok()?.filter(filter).ok().map(|f| f.chi_offset_deg())
+}
+
 /// The wavelength (nm) of a band named by it in micrometres (`0.550um`, as
 /// `telescope::StandardObs` names a band without a filter); `None` for other names.
 pub fn band_wavelength_nm(band: &str) -> Option<f64> {

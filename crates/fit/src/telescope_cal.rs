@@ -27,9 +27,24 @@
 //! the field first ([`Corrector`], with its covariance), then the telescope
 //! ([`TelescopeFit::correct_cov`], with the measurement-plus-field covariance and the telescope
 //! parameters' covariance). With a field model the telescope's constant `(q0, u0)` is left out
-//! (the field model is the instrument's own polarization; counting both would remove it twice)
-//! and the field corrector's HWP zero angle is not applied (the telescope's fitted `offset`
-//! is the instrument's angle zero, measured on standards reduced the same way).
+//! (the field model is the instrument's own polarization; counting both would remove it twice).
+//!
+//! # One frame: the sky frame
+//!
+//! Both models live in the sky frame, the frame in which chi has the instrument's HWP zero
+//! angle added (`crate::correct` module docs): the field because the sky-field solution is
+//! made there (`crate::pipeline`), the telescope because its standards' `q, u` are there (what
+//! `instpol photometry`, `catalog` and `zero-angle` report, and what published standards are).
+//! So the chain first brings the measurement into that frame, by the zero angle it does not
+//! carry yet (`to_sky`: a Stokes map or a star measured by `validate` is at the plate and needs
+//! the whole zero angle; a catalog of `instpol catalog` already carries it), with the
+//! covariance turned alike, and the field corrector it is given applies none of its own.
+//! The exposures' demodulations take each plate angle in that frame too
+//! ([`telescope_exposures`]). Before this (session 15), a plate-frame measurement was corrected
+//! by models turned by the zero angle against it, off by about `2 sin(z) P` (9e-3 for the
+//! 3.6 % an unpolarized star shows through the test's M3 with `z` = 7 deg, an estimate), and
+//! the front ends only warned; now such a star comes back to 1e-16
+//! (`crates/cli/tests/telescope_frames.rs`, `the_chain_undoes_the_telescope_through_a_hwp_zero_angle`).
 
 use crate::calfile::{fits_err, temp_error, KeyReader, KeyWriter};
 use crate::correct::{p_chi_with_errors, Corrected, Corrector, Measurement};
@@ -331,8 +346,9 @@ impl ChainCorrected {
 }
 
 /// Correct every valid bin of a Stokes map through the chain ([`correct_chain`] at the bin's
-/// centre): the bins of a map share their exposures, hence one parallactic-angle `track` for
-/// all of them. With `exposures` (the map's [`skyfield::StokesMap::exposure_tracks`], their
+/// centre; `to_sky` (rad): the zero angle the map does not carry, the whole zero angle for a
+/// map fresh from the reduction): the bins of a map share their exposures, hence one
+/// parallactic-angle `track` for all of them. With `exposures` (the map's [`skyfield::StokesMap::exposure_tracks`], their
 /// rotator `track`'s), the telescope is undone as the exposures saw it, each at its own
 /// angles, demodulated together ([`Seen::Exposures`]); without, over `track`. The scatter and
 /// the photon-noise errors are each propagated ([`crate::correct::correct_map_with`]); each
@@ -345,39 +361,48 @@ pub fn correct_map_chain<M: FieldModel + ?Sized>(
     map: &skyfield::StokesMap,
     track: Track,
     exposures: &[skyfield::ExposureTrack],
+    to_sky: f64,
 ) -> std::result::Result<crate::correct::CorrectedMap, crate::correct::MapError> {
     // The exposures' demodulations are the same for every bin: built once.
-    let prepared = prepare_recorded(tel, band, track, exposures)
+    let prepared = prepare_recorded(tel, band, track, exposures, to_sky)
         .map_err(|e| crate::correct::MapError::Exposures(crate::correct::Error::Telescope(e.to_string())))?;
     let seen = prepared.as_ref().map_or(Seen::Track(track), Seen::Prepared);
     crate::correct::correct_map_with(map, |m| {
-        correct_chain_seen(field, tel, band, m, seen)
+        correct_chain_seen(field, tel, band, m, seen, to_sky)
             .map(|r| r.with_telescope_in_inst())
             .map_err(|e| crate::correct::Error::Telescope(e.to_string()))
     })
 }
 
-/// Correct `m` (instrument frame) for the field (when `field` is given) and then the telescope
-/// of `band` over `track` (see the module docs for the order and what each step uses).
+/// Correct `m` for the field (when `field` is given, its corrector without a zero angle of its
+/// own) and then the telescope of `band` over `track`, after bringing `m` into the sky frame
+/// by `to_sky` (rad: the HWP zero angle `m` does not carry yet; see the module docs for the
+/// frame, the order and what each step uses).
 pub fn correct_chain<M: FieldModel + ?Sized>(
     field: Option<&Corrector<M>>,
     tel: &TelescopeFit,
     band: &str,
     m: &Measurement,
     track: Track,
+    to_sky: f64,
 ) -> Result<ChainCorrected> {
-    correct_chain_seen(field, tel, band, m, Seen::Track(track))
+    correct_chain_seen(field, tel, band, m, Seen::Track(track), to_sky)
 }
 
 /// [`correct_chain`] for a measurement that saw the telescope as `seen` says; `q_tel, u_tel`
-/// are then what the telescope makes of an unpolarized sky as these data saw it.
+/// are then what the telescope makes of an unpolarized sky as these data saw it (sky frame).
 pub fn correct_chain_seen<M: FieldModel + ?Sized>(
     field: Option<&Corrector<M>>,
     tel: &TelescopeFit,
     band: &str,
     m: &Measurement,
     seen: Seen<'_>,
+    to_sky: f64,
 ) -> Result<ChainCorrected> {
+    if field.is_some_and(|c| c.options().chi_offset != 0.0) {
+        // One zero angle, applied once: here (module docs).
+        return Err(Error::Input("the chain's field corrector must not apply a zero angle of its own".into()));
+    }
     let tracks: Vec<Track> = match seen {
         Seen::Track(t) => vec![t],
         Seen::Exposures { whole, exposures } => {
@@ -392,19 +417,22 @@ pub fn correct_chain_seen<M: FieldModel + ?Sized>(
             }
         }
     }
+    // Checked as given (turning would hide a negative error), then brought into the sky frame.
+    for (what, v) in [("q", m.q), ("u", m.u), ("sigma_q", m.sigma_q), ("sigma_u", m.sigma_u)] {
+        if !v.is_finite() || (what.starts_with("sigma") && v < 0.0) {
+            return Err(Error::Input(format!("{what} = {v} is not a finite number (>= 0 for errors)")));
+        }
+    }
+    if !to_sky.is_finite() {
+        return Err(Error::Input(format!("HWP zero angle {to_sky} rad is not a finite number")));
+    }
+    let m = &crate::correct::to_sky_frame(m, to_sky);
     let (q1, u1, cov, inst, extrapolated) = match field {
         Some(c) => {
             let r = c.correct(m).map_err(|e| Error::Input(e.to_string()))?;
             (r.q0, r.u0, [r.var_q0, r.var_u0, r.cov_qu0], r.inst, r.extrapolated)
         }
-        None => {
-            for (what, v) in [("q", m.q), ("u", m.u), ("sigma_q", m.sigma_q), ("sigma_u", m.sigma_u)] {
-                if !v.is_finite() || (what.starts_with("sigma") && v < 0.0) {
-                    return Err(Error::Input(format!("{what} = {v} is not a finite number (>= 0 for errors)")));
-                }
-            }
-            (m.q, m.u, [m.sigma_q * m.sigma_q, m.sigma_u * m.sigma_u, m.cov_qu], InstPol::default(), false)
-        }
+        None => (m.q, m.u, [m.sigma_q * m.sigma_q, m.sigma_u * m.sigma_u, m.cov_qu], InstPol::default(), false),
     };
     let constant = field.is_none();
     let [q0, u0, vq, vu, cv] = tel.correct_cov_seen(band, q1, u1, cov, seen, constant)?;
@@ -608,38 +636,38 @@ pub fn recorded_angles(
 
 /// The exposures' demodulations for `tel`'s `band`, built once for every measurement that
 /// shares them ([`TelescopeFit::prepare_exposures`] of [`telescope_exposures`], over the set's
-/// `track` and with its rotator): `None` when no exposures are listed (the data are then undone
-/// over `track`).
+/// `track` and with its rotator; `zero_angle`: the HWP zero angle (rad) of the plate the
+/// exposures were taken through): `None` when no exposures are listed (the data are then
+/// undone over `track`).
 pub fn prepare_recorded(
     tel: &TelescopeFit,
     band: &str,
     track: Track,
     exposures: &[skyfield::ExposureTrack],
+    zero_angle: f64,
 ) -> Result<Option<crate::telescope::PreparedExposures>> {
     if exposures.is_empty() {
         return Ok(None);
     }
-    tel.prepare_exposures(band, track, &telescope_exposures(exposures, track.rotator)).map(Some)
-}
-
-/// The caveat to give when `whose` (a field calibration, a filter of the catalog) carries a
-/// HWP zero angle `z` (deg, not 0): the chain of a field and a telescope model takes each
-/// model's angles as fitted (module docs), so it may be off by that angle.
-pub fn zero_angle_caveat(z: f64, whose: &str) -> Option<String> {
-    (z != 0.0).then(|| {
-        format!(
-            "{whose} carries a HWP zero angle of {z} deg, and the chain of a field and a telescope model does not yet turn its inputs into one frame: the telescope's (and field's) angles may be off by it; check on a standard (instpol validate)"
-        )
-    })
+    tel.prepare_exposures(band, track, &telescope_exposures(exposures, track.rotator, zero_angle)).map(Some)
 }
 
 /// The exposures of `tracks` as the telescope model takes them (HWP angle in rad, each
-/// exposure's parallactic track with the set's `rotator`).
-pub fn telescope_exposures(tracks: &[skyfield::ExposureTrack], rotator: f64) -> Vec<mueller::telescope::Exposure> {
+/// exposure's parallactic track with the set's `rotator`), in the sky frame of the chain
+/// (module docs): a plate of zero angle `zero_angle` (rad) read at `theta` modulates the sky
+/// frame's `q, u` as `cos, sin (4 theta + 2 zero_angle)`, so each exposure's plate angle is
+/// `theta + zero_angle / 2` there. (With the telescope's polarization changing from exposure
+/// to exposure this is not the same as turning the demodulated result: 9e-4 on an
+/// unpolarized star through the meridian near the zenith, 7 deg zero angle.)
+pub fn telescope_exposures(
+    tracks: &[skyfield::ExposureTrack],
+    rotator: f64,
+    zero_angle: f64,
+) -> Vec<mueller::telescope::Exposure> {
     tracks
         .iter()
         .map(|x| mueller::telescope::Exposure {
-            hwp: x.hwp_deg.to_radians(),
+            hwp: x.hwp_deg.to_radians() + 0.5 * zero_angle,
             track: Track::new(x.start, Some(x.end)).with_rotator(rotator),
         })
         .collect()
@@ -717,9 +745,10 @@ pub struct ChainValidation {
 }
 
 /// Validate the telescope model `tel` (band `band`) and, when given, the field calibration
-/// `field` on a star measured in the instrument frame (`measured`, the plate frame of the
-/// reduction: the telescope's fitted offset is the instrument's angle zero, so no HWP zero
-/// angle is applied) at field position `(x, y)` arcmin as its exposures saw the telescope: each
+/// `field` on a star measured at the plate (`measured`, as the reduction sees it; brought into
+/// the sky frame by the field calibration's HWP zero angle, or without one by `zero_angle_deg`,
+/// the instrument's for the frames' filter: module docs) at field position `(x, y)` arcmin as
+/// its exposures saw the telescope: each
 /// over its own track when `exposures` lists them ([`exposure_tracks`]), else over the set's
 /// `track` (which also gives the rotator angle and the reported angles). The field
 /// model's error at a position is its coefficient covariance plus `model_error` (default
@@ -738,9 +767,16 @@ pub fn validate_chain(
     exposures: &[skyfield::ExposureTrack],
     star: (&str, crate::standards::Expected),
     opts: &crate::validate::ValidateOptions,
+    zero_angle_deg: f64,
 ) -> Result<ChainValidation> {
     use crate::correct::{CorrectOptions, WithModelError};
     let mut warnings = vec![];
+    let zero_angle = field.map_or(zero_angle_deg, |c| c.hwp_chi_offset_deg);
+    if zero_angle != zero_angle_deg {
+        warnings.push(format!(
+            "the field calibration's HWP zero angle {zero_angle} deg is applied; the instrument's for this filter is {zero_angle_deg} deg"
+        ));
+    }
     if !tel.with_rotator && track.rotator != 0.0 {
         warnings.push(format!(
             "the telescope model was fitted without rotator angles (its offset holds the standards' rotator angle): the frames' rotator angle {:.2} deg is not applied",
@@ -761,9 +797,9 @@ pub fn validate_chain(
         )
     });
     let m = measured.at(x, y);
-    let ex = telescope_exposures(exposures, track.rotator);
+    let ex = telescope_exposures(exposures, track.rotator, zero_angle.to_radians());
     let seen = if ex.is_empty() { Seen::Track(track) } else { Seen::Exposures { whole: track, exposures: &ex } };
-    let r = correct_chain_seen(cor.as_ref(), tel, band, &m, seen)?;
+    let r = correct_chain_seen(cor.as_ref(), tel, band, &m, seen, zero_angle.to_radians())?;
     let c = r.corrected;
     let e = star.1;
     let dist = |q: f64, u: f64, a: f64, b: f64, cv: f64| {

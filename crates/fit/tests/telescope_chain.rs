@@ -108,7 +108,7 @@ fn real_efosc2_standards_leave_one_out_through_the_calibration_file_are_unpolari
                 sigma_u: o.sigma_u * s,
                 cov_qu: 0.0,
             };
-            let r = correct_chain::<dyn FieldModel>(None, &tel, &o.band, &m, Track::at(o.parallactic)).unwrap();
+            let r = correct_chain::<dyn FieldModel>(None, &tel, &o.band, &m, Track::at(o.parallactic), 0.0).unwrap();
             let c = r.corrected;
             // 2-dof chi^2 of (q0, u0) against zero with the full covariance.
             let det = c.var_q0 * c.var_u0 - c.cov_qu0 * c.cov_qu0;
@@ -209,7 +209,7 @@ fn polarized_standard_through_a_night_comes_back_with_its_catalogued_p_and_chi()
             sigma_u: sigma,
             cov_qu: 0.0,
         };
-        let c = correct_chain::<dyn FieldModel>(None, &tel, "V", &m, Track { start: a, end: b, rotator: 0.0 })
+        let c = correct_chain::<dyn FieldModel>(None, &tel, "V", &m, Track { start: a, end: b, rotator: 0.0 }, 0.0)
             .unwrap()
             .corrected;
         let dchi = mueller::wrap_half_pi(c.chi0 - chi_true);
@@ -287,7 +287,7 @@ fn the_chain_inverts_the_field_after_the_telescope_as_jones_matrices_say() {
         let o = partial_after(field.p, field.phi, &transform(&chain(n * 0.9, 0.5, pa), &coherency(sky)));
         let m =
             Measurement { x: 0.1, y: 0.2, q: o[1] / o[0], u: o[2] / o[0], sigma_q: 1e-4, sigma_u: 1e-4, cov_qu: 0.0 };
-        let c = correct_chain(Some(&cor), &tel, "V", &m, Track::at(pa)).unwrap().corrected;
+        let c = correct_chain(Some(&cor), &tel, "V", &m, Track::at(pa), 0.0).unwrap().corrected;
         assert!((c.q0 - sky[1]).abs() < 1e-9 && (c.u0 - sky[2]).abs() < 1e-9, "{} {} vs {:?}", c.q0, c.u0, sky);
         // The inverse order differs by terms of size p_field x P_M3.
         let [qa, ua, ..] = tel.correct_cov("V", m.q, m.u, [0.0; 3], Track::at(pa), false).unwrap();
@@ -295,6 +295,35 @@ fn the_chain_inverts_the_field_after_the_telescope_as_jones_matrices_say() {
         assert!((qb - sky[1]).hypot(ub - sky[2]) > 1e-5, "order should matter");
         // Errors: the measurement's 1e-4 passes through nearly unchanged (|M| ~ 1).
         assert!(c.var_q0.sqrt() > 0.9e-4 && c.var_q0.sqrt() < 1.2e-4, "{}", c.var_q0.sqrt());
+
+        // The same light read by a plate whose zero angle z makes every chi smaller by z (the
+        // plate frame, written here as the rotation of (q, u) by -2z): the chain given z
+        // brings it into the models' sky frame first and gives the sky back; given 0 it
+        // corrects with models turned by z against the data, off by about 2 z P.
+        let z = 7f64.to_radians();
+        let (s2, c2) = (2.0 * z).sin_cos();
+        let (qp, up) = (c2 * m.q + s2 * m.u, -s2 * m.q + c2 * m.u);
+        // Unequal errors with a covariance, to see them turned back too.
+        let (vq, vu, cv) = (c2 * c2 * 1e-8 + s2 * s2 * 4e-8, s2 * s2 * 1e-8 + c2 * c2 * 4e-8, s2 * c2 * 3e-8);
+        let plate = Measurement { q: qp, u: up, sigma_q: vq.sqrt(), sigma_u: vu.sqrt(), cov_qu: cv, ..m };
+        let c = correct_chain(Some(&cor), &tel, "V", &plate, Track::at(pa), z).unwrap().corrected;
+        assert!((c.q0 - sky[1]).abs() < 1e-9 && (c.u0 - sky[2]).abs() < 1e-9, "{} {} vs {:?}", c.q0, c.u0, sky);
+        let unturned = correct_chain(Some(&cor), &tel, "V", &plate, Track::at(pa), 0.0).unwrap().corrected;
+        let off = (unturned.q0 - sky[1]).hypot(unturned.u0 - sky[2]);
+        let p_meas = m.q.hypot(m.u);
+        assert!(off > 0.5 * 2.0 * z.sin() * p_meas, "zero angle ignored: off by {off:e} only");
+        // Errors turned back into the sky frame: the same as those of the measurement made
+        // there with errors (1e-4, 2e-4) along q, u and no covariance.
+        let c0 = correct_chain::<dyn FieldModel>(None, &tel, "V", &plate, Track::at(pa), z).unwrap().corrected;
+        let there = Measurement { sigma_q: 1e-4, sigma_u: 2e-4, cov_qu: 0.0, ..m };
+        let c1 = correct_chain::<dyn FieldModel>(None, &tel, "V", &there, Track::at(pa), 0.0).unwrap().corrected;
+        for (a, b) in [(c0.var_q0, c1.var_q0), (c0.var_u0, c1.var_u0), (c0.cov_qu0, c1.cov_qu0)] {
+            assert!((a - b).abs() < 1e-9 * c1.var_u0, "{a:e} vs {b:e}");
+        }
+        assert!((c0.q0 - c1.q0).abs() < 1e-12 && (c0.u0 - c1.u0).abs() < 1e-12);
+        // A field corrector with a zero angle of its own would apply it twice: refused.
+        let twice = Corrector::new(&field, CorrectOptions { chi_offset: z, ..CorrectOptions::default() });
+        assert!(correct_chain(Some(&twice), &tel, "V", &plate, Track::at(pa), z).is_err());
     }
 }
 

@@ -626,7 +626,9 @@ impl _Calibration {
                     .choose_track(None, Some(r.track), None, r.rotator)
                     .map_err(|_| input_err("recorded: the telescope model was fitted with rotator angles and the catalog recorded none"))?
                     .track;
-                let p = fit::telescope_cal::prepare_recorded(t, &b, track, &r.exposures)
+                // The plate's zero angle: the field calibration's (none known without one).
+                let z = self.hwp_chi_offset_deg().to_radians();
+                let p = fit::telescope_cal::prepare_recorded(t, &b, track, &r.exposures, z)
                     .map_err(|e| input_err(format!("recorded: {e}")))?
                     .ok_or_else(|| input_err("recorded: no exposures"))?;
                 Some((p, b))
@@ -669,8 +671,8 @@ impl _Calibration {
             method,
             allow_extrapolation,
             extrapolation_rel_error: extrapolation_error,
-            // With a telescope model its offset is the instrument's angle zero (module docs
-            // of fit::telescope_cal), as `instpol correct` does.
+            // With a telescope model the chain applies the zero angle itself, once, before
+            // both models (module docs of fit::telescope_cal), as `instpol correct` does.
             // A Mueller field: the maps' frame (hwp_chi_offset_deg is 0).
             chi_offset: if telescope.is_some() { 0.0 } else { self.hwp_chi_offset_deg().to_radians() },
         };
@@ -688,9 +690,12 @@ impl _Calibration {
             };
             match (&self.field, &telescope) {
                 (Field::PPhi(c), Some((t, tracks, b))) => {
-                    fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, *tracks, sink)
+                    let to_sky = c.hwp_chi_offset_deg.to_radians();
+                    fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, *tracks, to_sky, sink)
                 }
-                (Field::TelescopeOnly { .. }, Some((t, tracks, b))) => fill_chain(None, t, b, &input, *tracks, sink),
+                (Field::TelescopeOnly { .. }, Some((t, tracks, b))) => {
+                    fill_chain(None, t, b, &input, *tracks, 0.0, sink)
+                }
                 (Field::TelescopeOnly { .. }, None) => Err((0, "a telescope-only calibration needs parang_deg".into())),
                 (Field::PPhi(c), None) => {
                     let cor = Corrector::new(c, opts);
@@ -833,12 +838,6 @@ impl _Calibration {
                         "rotator_deg is ignored: the telescope model of {cal_path} was fitted without rotator angles (its offset holds the rotator's)"
                     ));
                 }
-                if let Field::PPhi(f) = &self.field {
-                    notes.extend(fit::telescope_cal::zero_angle_caveat(
-                        f.hwp_chi_offset_deg,
-                        &format!("the field calibration {cal_path}"),
-                    ));
-                }
                 Some((t, b, c.track, given.is_none()))
             }
             (_, None) => {
@@ -859,9 +858,26 @@ impl _Calibration {
                 band: b,
                 track: *track,
                 by_exposure: *by_exposure,
+                zero_angle_deg: cal.hwp_chi_offset_deg,
             },
             (Field::TelescopeOnly { .. }, Some((t, b, track, by_exposure))) => {
-                MapCorrection::Chain { field: None, telescope: t, band: b, track: *track, by_exposure: *by_exposure }
+                // The map is at the plate: its instrument's zero angle (a built-in one known by
+                // the name the map records), as `instpol correct` takes it.
+                let zero_angle_deg = fit::setup::zero_angle_of(&map.instrument, &map.filter).unwrap_or_else(|| {
+                    notes.push(format!(
+                        "instrument {} is not a built-in one, so its HWP zero angle in filter {} is not known here and is taken as 0: chi would be off by it",
+                        map.instrument, map.filter
+                    ));
+                    0.0
+                });
+                MapCorrection::Chain {
+                    field: None,
+                    telescope: t,
+                    band: b,
+                    track: *track,
+                    by_exposure: *by_exposure,
+                    zero_angle_deg,
+                }
             }
             (Field::TelescopeOnly { .. }, None) => {
                 return Err(input_err(format!(
@@ -1077,13 +1093,16 @@ enum Tracks<'a> {
     Recorded(&'a fit::telescope::PreparedExposures),
 }
 
-/// Each row through the chain, as `tracks` says it saw the telescope.
+/// Each row through the chain, as `tracks` says it saw the telescope, after the zero angle
+/// `to_sky` (rad) that brings it into the models' sky frame.
+#[allow(clippy::too_many_arguments)]
 fn fill_chain(
     cor: Option<&Corrector<'_, fit::Calibration>>,
     tel: &fit::telescope::TelescopeFit,
     band: &str,
     i: &Inputs<'_>,
     tracks: Tracks<'_>,
+    to_sky: f64,
     s: Sink<'_>,
 ) -> Result<usize, (usize, String)> {
     use fit::telescope::{Seen, Track};
@@ -1106,7 +1125,8 @@ fn fill_chain(
                     Seen::Track(Track::new(pa[k].to_radians(), pa_end.map(|e| e[k].to_radians())))
                 }
             };
-            let r = fit::telescope_cal::correct_chain_seen(cor, tel, band, &m, seen).map_err(|e| (k, e.to_string()))?;
+            let r = fit::telescope_cal::correct_chain_seen(cor, tel, band, &m, seen, to_sky)
+                .map_err(|e| (k, e.to_string()))?;
             Ok(r.with_telescope_in_inst())
         })
         .collect::<Result<_, _>>()?;
@@ -1313,7 +1333,7 @@ fn _catalog<'py>(
         Some(p) => Some(py.detach(|| fit::telescope_cal::load(p)).map_err(|e| load_err(p, e))?),
         None => None,
     };
-    let (cat, mut warnings) = py
+    let (cat, warnings) = py
         .detach(|| {
             let (cat, warnings) = catalog_files(&frames, &inst, &read, &cfg, Box::new(|| {}))?;
             Ok::<_, skyfield::Error>((cat, warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>()))
@@ -1323,9 +1343,8 @@ fn _catalog<'py>(
     let corrected = match (&loaded, &cal) {
         (Some(l), Some(p)) => {
             let opts = fit::correct::CorrectOptions { allow_extrapolation, ..Default::default() };
-            let (c, used, notes) = fit::catalog_correct::correct_catalog_loaded(&cat, &inst, &frames, l, opts)
+            let (c, used) = fit::catalog_correct::correct_catalog_loaded(&cat, &inst, &frames, l, opts)
                 .map_err(|e| input_err(format!("cal {}: {e}", p.display())))?;
-            warnings.extend(notes);
             Some((c, used))
         }
         _ => None,

@@ -185,11 +185,8 @@ pub fn run(a: Args) -> Result<()> {
                 .with_context(|| format!("cannot load calibration {}", path.display()))?;
             let opts =
                 fit::correct::CorrectOptions { allow_extrapolation: a.allow_extrapolation, ..Default::default() };
-            let (c, used, notes) = fit::catalog_correct::correct_catalog_loaded(&cat, &inst, &a.frames, &loaded, opts)
+            let (c, used) = fit::catalog_correct::correct_catalog_loaded(&cat, &inst, &a.frames, &loaded, opts)
                 .with_context(|| format!("--cal {}", path.display()))?;
-            for n in notes {
-                eprintln!("WARNING: {n}");
-            }
             telescope_used = used;
             if c.n_extrapolated > 0 {
                 eprintln!(

@@ -593,15 +593,31 @@ fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Ca
         );
     }
     let track = shared_track(a, tel, "a Stokes map", (map.parallactic_rad, map.rotator_rad))?;
+    // The map is at the plate: without a field calibration its zero angle is its instrument's
+    // (a built-in one known by the name the map records).
+    let zero_angle_deg = match (field, fit::setup::zero_angle_of(&map.instrument, &map.filter)) {
+        (Some(c), _) => c.hwp_chi_offset_deg,
+        (None, Some(z)) => z,
+        (None, None) => {
+            eprintln!(
+                "warning: {}: instrument {} is not a built-in one, so its HWP zero angle in filter {} is not known here and is taken as 0: chi would be off by it",
+                a.input.display(),
+                map.instrument,
+                map.filter
+            );
+            0.0
+        }
+    };
     let with = fit::correct::MapCorrection::Chain {
         field: field.map(|c| (c, options(c, a).method)),
         telescope: tel,
         band: &band,
         track,
         by_exposure: a.parang.is_none(),
+        zero_angle_deg,
     };
     let c = correct_and_write(a, &map, with)?;
-    let mut summary = map_summary(a, c, &map.filter, 0.0);
+    let mut summary = map_summary(a, c, &map.filter, zero_angle_deg);
     summary.telescope_model = Some(tel.model.name());
     summary.telescope_band = Some(band.clone());
     summary.telescope_exposures =
@@ -820,31 +836,28 @@ fn run_telescope(
         (Some(c), Some(o)) => Some(Corrector::new(c, o)),
         _ => None,
     };
-    // The chain takes the field's and the telescope's angles as they were fitted (module docs
-    // of fit::telescope_cal): consistent while the HWP zero angle is 0. With one, maps (plate
-    // frame) and catalogs (zero angle added) differ from each other by it, and the field and
-    // telescope fits need not share a frame: say so rather than correct in silence.
-    let zero_angle_warning = |z: f64, whose: &str| {
-        if let Some(w) = fit::telescope_cal::zero_angle_caveat(z, whose) {
-            eprintln!("WARNING: {w}");
-        }
-    };
-    if let Some(c) = field {
-        zero_angle_warning(c.hwp_chi_offset_deg, &format!("the field calibration {}", a.cal.display()));
-    }
     if kind == Kind::Map {
         return telescope_map(a, tel, field);
     }
     let band = telescope_band(a, tel, field, None)?;
     let out_format = Some(Format::from_path(&a.out)?);
     let mut table = read_catalog(a, kind)?;
-    if table.column(ZERO_ANGLE).is_some() {
-        let z = table.numbers(ZERO_ANGLE, &a.input)?;
-        zero_angle_warning(
-            z.iter().copied().find(|v| *v != 0.0).unwrap_or(0.0),
-            &format!("the catalog {}", a.input.display()),
-        );
-    }
+    // Both models live in the sky frame (fit::telescope_cal module docs): the rows are brought
+    // there by the field calibration's zero angle less the one they carry (as without a
+    // telescope). Without a field, rows are taken in the frame they are in: instpol catalogs
+    // carry their zero angle, as the standards the telescope model was fitted to did.
+    let to_sky_deg = match field {
+        Some(c) => {
+            zero_angle_of_the_table(&table, c.hwp_chi_offset_deg, options(c, a), &a.input)?.chi_offset.to_degrees()
+        }
+        None => 0.0,
+    };
+    // The zero angle of the plate the rows were taken through (for their exposures'
+    // demodulations): the one the table says it carries, else the field calibration's.
+    let plate_zero_deg = match table.column(ZERO_ANGLE) {
+        Some(_) => table.numbers(ZERO_ANGLE, &a.input)?.first().copied().unwrap_or(0.0),
+        None => field.map_or(0.0, |c| c.hwp_chi_offset_deg),
+    };
     let meas = measurements(&table, field.and_then(|c| c.pixel), a.coords, &a.input)?;
     let mut by_exposure: Vec<skyfield::ExposureTrack> = vec![];
     let tracks: Vec<Track> = if table.column(PARANG[0]).is_some() {
@@ -900,20 +913,22 @@ fn run_telescope(
     };
     // Recorded exposures: the telescope undone as each saw it, their demodulations built once.
     let prepared = match tracks.first() {
-        Some(&track) => fit::telescope_cal::prepare_recorded(tel, &band, track, &by_exposure)
-            .with_context(|| format!("{}: its exposures", a.input.display()))?,
+        Some(&track) => {
+            fit::telescope_cal::prepare_recorded(tel, &band, track, &by_exposure, plate_zero_deg.to_radians())
+                .with_context(|| format!("{}: its exposures", a.input.display()))?
+        }
         None => None,
     };
     let mut out = Vec::with_capacity(meas.len());
     for (i, (m, track)) in meas.iter().zip(tracks).enumerate() {
         let seen = prepared.as_ref().map_or(fit::telescope::Seen::Track(track), fit::telescope::Seen::Prepared);
-        let r = fit::telescope_cal::correct_chain_seen(cor.as_ref(), tel, &band, m, seen)
+        let r = fit::telescope_cal::correct_chain_seen(cor.as_ref(), tel, &band, m, seen, to_sky_deg.to_radians())
             .with_context(|| format!("{} {}", a.input.display(), table.row_label(i)))?;
         out.push(r.with_telescope_in_inst());
     }
     let n_extra = out.iter().filter(|c| c.extrapolated).count();
     let filter = field.map(|c| c.filter.clone()).unwrap_or_else(|| band.clone());
-    let mut summary = write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, filter, 0.0)?;
+    let mut summary = write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, filter, to_sky_deg)?;
     summary.telescope_model = Some(tel.model.name());
     summary.telescope_band = Some(band.clone());
     summary.telescope_exposures = (!by_exposure.is_empty()).then_some(by_exposure.len());

@@ -327,8 +327,22 @@ fn run_telescope(a: &Args) -> Result<()> {
     }
     let (name, expected) = expected_star(a, &band)?;
     let pos = inst.pixel_to_arcmin(x_px, y_px);
-    let r =
-        fit::telescope_cal::validate_chain(field, tel, &band, &measured, pos, track, &each, (&name, expected), &opts)?;
+    let r = fit::telescope_cal::validate_chain(
+        field,
+        tel,
+        &band,
+        &measured,
+        pos,
+        track,
+        &each,
+        (&name, expected),
+        &opts,
+        {
+            // The frames are at the plate: their filter's zero angle brings them into the sky
+            // frame of the models (fit::telescope_cal module docs).
+            inst.filter(&filter).map_or(0.0, |f| f.chi_offset_deg())
+        },
+    )?;
     for w in &r.warnings {
         eprintln!("warning: {w}");
     }
