@@ -28,8 +28,12 @@
 //! start), `PARANG2` (the last frame's end) and rotator angle `ROTANG` (deg, the instrument's
 //! sense), and each exposure's HWP angle and parallactic angles at its start and end
 //! (`NEXPTRK` exposures, `XHWPk`, `XPASk`, `XPAEk`, deg): optional keywords, within format
-//! version 1 (a reader that ignores them corrects over the whole set's track). A corrected map
-//! also carries the correction's record ([`CorrectionStamp`]).
+//! version 1 (a reader that ignores them corrects over the whole set's track). `HWPZERO` (deg,
+//! optional too) is the HWP zero angle of the instrument's filter when the reduction knew it:
+//! `Q`, `U` and `CHI` of a map from `instpol reduce` do not carry it (they are at the plate),
+//! and a correction that must bring them into the sky frame takes it from there (a name in
+//! `INSTRUME` may be a custom instrument file's, whose zero angle no lookup by name can find).
+//! A corrected map also carries the correction's record ([`CorrectionStamp`]).
 
 use crate::{fits_err, Error};
 use fitsio::images::{ImageDescription, ImageType};
@@ -268,6 +272,11 @@ pub struct StokesMap {
     /// demodulated them (eq:Q, eq:U), instead of at the whole set's average angle.
     #[serde(default)]
     pub exposure_tracks: Vec<ExposureTrack>,
+    /// The HWP zero angle (deg) of the instrument's filter, which the map's Q/I, U/I and chi do
+    /// not carry (they are at the plate): set by the reduction from the instrument file,
+    /// `HWPZERO` in FITS (module docs); `None` for a map that does not say.
+    #[serde(default)]
+    pub hwp_zero_angle_deg: Option<f64>,
 }
 
 /// One exposure of a map ([`StokesMap::exposure_tracks`]): its HWP angle (deg) and the
@@ -537,6 +546,7 @@ impl StokesMap {
             parallactic_rad: None,
             rotator_rad: None,
             exposure_tracks: vec![],
+            hwp_zero_angle_deg: None,
         }
     }
 
@@ -605,6 +615,11 @@ impl StokesMap {
         ph.write_key(f, "DETNY", (g.detector_ny as i64, "detector size y [px]")).map_err(e)?;
         for (k, v, comment) in self.recorded_angles().keywords() {
             v.write(f, &ph, &k, comment).map_err(e)?;
+        }
+        if let Some(z) = self.hwp_zero_angle_deg {
+            crate::io::KeyValue::F64(z)
+                .write(f, &ph, "HWPZERO", "HWP zero angle of the filter, not in Q, U [deg]")
+                .map_err(e)?;
         }
         let dims = [g.ny, g.nx];
         let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
@@ -781,6 +796,20 @@ impl StokesMap {
         };
         let RecordedAngles { parallactic_rad, rotator_rad, exposure_tracks } =
             RecordedAngles::from_keywords(|k| crate::io::read_key_str(&mut f, &ph, k).ok(), path)?;
+        let hwp_zero_angle_deg = match crate::io::read_key_str(&mut f, &ph, "HWPZERO").ok() {
+            None => None,
+            Some(v) => match v.trim().parse::<f64>() {
+                Ok(z) if z.is_finite() => Some(z),
+                _ => {
+                    return Err(Error::BadKeyword {
+                        path: path.into(),
+                        keyword: "HWPZERO".into(),
+                        value: v,
+                        expected: "a finite angle in degrees".into(),
+                    })
+                }
+            },
+        };
         // A map made elsewhere (or edited) is checked before anything is fitted to it: every
         // valid bin holds a physical polarization and a covariance that is one.
         for k in (0..n).filter(|&k| valid[k]) {
@@ -827,6 +856,7 @@ impl StokesMap {
             parallactic_rad,
             rotator_rad,
             exposure_tracks,
+            hwp_zero_angle_deg,
         })
     }
 }

@@ -963,6 +963,8 @@ fn assemble_map(
     let rn2 = inputs.first().map_or(inst.detector.read_noise_e.powi(2), |a| a.det.3);
     let nexp_total: f64 = inputs.iter().map(|a| a.nexp as f64).sum();
     let mut map = StokesMap::empty(geom, &inst.name, filter, angles_deg.to_vec());
+    // The map stays at the plate; what turns it into the sky frame is recorded with it.
+    map.hwp_zero_angle_deg = inst.filter(filter).ok().map(|f| f.chi_offset_deg());
     for (k, s) in stats.into_iter().enumerate() {
         let Some(s) = s else { continue };
         let (p, chi) = stokes::polarization(s.q, s.u);
