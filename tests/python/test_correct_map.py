@@ -286,6 +286,37 @@ def test_correct_with_a_catalogs_recorded_angles_is_catalog_cal(run, tmp_path):
                   parang_deg=[10.0], recorded=rec)
 
 
+def test_recorded_angles_carry_the_zero_angle_of_the_catalog(run, tmp_path):
+    """Through a half-wave plate whose zero angle is 7 deg (the instrument's V filter says so,
+    the frames are taken through it), catalog()'s q, u carry that angle and its
+    recorded_angles say so (hwp_chi_offset_deg); Calibration.correct(recorded=...) with a
+    telescope model alone then gives catalog(cal=...)'s corrected columns to 1e-12 (the
+    exposures' plate angles taken in the sky frame: without the recorded zero angle they
+    differ by 9e-4)."""
+    tel, inst = nasmyth_setup(run, tmp_path, "correct(recorded=) through a zero angle was not compared")
+    v = 'name = "V"\naliases = ["V_BESS"]\nlambda_eff_nm = 554.0\n'
+    text = inst.read_text()
+    assert v in text, "the V filter of FORS1's file"
+    inst.write_text(text.replace(v, v + "hwp_chi_offset_deg = 7.0\n"))
+    frames = meridian_star(run, tmp_path, inst, 11, EIGHT, "[effects]\nhwp_chi_offset_from_filter = true\n")
+    args = dict(instrument=str(inst), fwhm=4.0, aperture=10.0, annulus=(14.0, 24.0))
+    cat = instpol.catalog(frames, **args)
+    assert cat["chi_offset_deg"] == 7.0
+    rec = cat["recorded_angles"]
+    assert rec["hwp_chi_offset_deg"] == 7.0
+    ref = instpol.catalog(frames, cal=tel, **args)
+    c = instpol.Calibration.load(tel)
+    cols = [cat[k] for k in ("x_arcmin", "y_arcmin", "q", "u", "sigma_q", "sigma_u", "cov_qu")]
+    r = c.correct(*cols, recorded=rec)
+    for k in ["q0", "u0", "sigma_q0", "sigma_u0"]:
+        assert np.max(np.abs(r[k] - ref[k])) < 1e-12, k
+    # The plate's zero angle matters: recorded angles that do not say it give other numbers.
+    bare = {k: v for k, v in rec.items() if k != "hwp_chi_offset_deg"}
+    r0 = c.correct(*cols, recorded=bare)
+    d0 = np.max(np.hypot(r0["q0"] - r["q0"], r0["u0"] - r["u0"]))
+    assert d0 > 1e-4
+
+
 def test_a_wavelength_band_corrects_the_filter_at_that_wavelength(run, v_map, tmp_path):
     """A telescope model fitted from the real EFOSC2 V standards without a filter column names
     its band by wavelength (0.550um); an EFOSC2 V map is corrected with it without

@@ -626,8 +626,9 @@ impl _Calibration {
                     .choose_track(None, Some(r.track), None, r.rotator)
                     .map_err(|_| input_err("recorded: the telescope model was fitted with rotator angles and the catalog recorded none"))?
                     .track;
-                // The plate's zero angle: the field calibration's (none known without one).
-                let z = self.hwp_chi_offset_deg().to_radians();
+                // The zero angle of the plate the exposures were taken through: the one the
+                // catalog's q, u carry, else the field calibration's (none without either).
+                let z = r.zero_angle_deg.unwrap_or(self.hwp_chi_offset_deg()).to_radians();
                 let p = fit::telescope_cal::prepare_recorded(t, &b, track, &r.exposures, z)
                     .map_err(|e| input_err(format!("recorded: {e}")))?
                     .ok_or_else(|| input_err("recorded: no exposures"))?;
@@ -690,7 +691,10 @@ impl _Calibration {
             };
             match (&self.field, &telescope) {
                 (Field::PPhi(c), Some((t, tracks, b))) => {
-                    let to_sky = c.hwp_chi_offset_deg.to_radians();
+                    // The calibration's zero angle less the one recorded rows carry (as the
+                    // CLI takes a table's hwp_chi_offset_deg column).
+                    let carried = recorded.as_ref().and_then(|r| r.zero_angle_deg).unwrap_or(0.0);
+                    let to_sky = (c.hwp_chi_offset_deg - carried).to_radians();
                     fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, *tracks, to_sky, sink)
                 }
                 (Field::TelescopeOnly { .. }, Some((t, tracks, b))) => {
@@ -1049,11 +1053,13 @@ fn put_row(
 /// together, as the CLI writes them. Rows in parallel; the error is the lowest row's.
 /// A catalog's recorded telescope angles as the package passes them (`catalog()`'s
 /// `recorded_angles`: the set's track and rotator in deg, each exposure's HWP angle and track
-/// in deg), in radians.
+/// in deg), in radians, and the HWP zero angle (deg) the catalog's q, u carry
+/// (`hwp_chi_offset_deg`, as the CLI's tables carry it in a column; `None` when not given).
 struct Recorded {
     track: (f64, f64),
     rotator: Option<f64>,
     exposures: Vec<skyfield::ExposureTrack>,
+    zero_angle_deg: Option<f64>,
 }
 
 impl<'a, 'py> FromPyObject<'a, 'py> for Recorded {
@@ -1067,7 +1073,14 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Recorded {
         let (s, e): (f64, f64) = get("parang_deg")?.extract().map_err(|_| bad())?;
         let rot: Option<f64> = get("rotator_deg")?.extract().map_err(|_| bad())?;
         let ex: Vec<(f64, f64, f64)> = get("exposures")?.extract().map_err(|_| bad())?;
+        let zero_angle_deg: Option<f64> = match d.get_item("hwp_chi_offset_deg").ok().flatten() {
+            Some(z) => Some(z.extract().map_err(|_| bad())?),
+            None => None,
+        };
         let finite = |v: f64| v.is_finite() && v.abs() <= 720.0;
+        if !zero_angle_deg.is_none_or(finite) {
+            return Err(input_err("recorded: hwp_chi_offset_deg must be finite degrees"));
+        }
         if !(finite(s)
             && finite(e)
             && rot.is_none_or(finite)
@@ -1083,6 +1096,7 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Recorded {
                 .into_iter()
                 .map(|(h, a, b)| skyfield::ExposureTrack { hwp_deg: h, start: a.to_radians(), end: b.to_radians() })
                 .collect(),
+            zero_angle_deg,
         })
     }
 }
@@ -1405,6 +1419,9 @@ fn _catalog<'py>(
             let ex: Vec<(f64, f64, f64)> =
                 r.exposure_tracks.iter().map(|x| (x.hwp_deg, x.start.to_degrees(), x.end.to_degrees())).collect();
             rd.set_item("exposures", ex)?;
+            // What the q, u carry: correct(recorded=...) takes it as the CLI takes a table's
+            // hwp_chi_offset_deg column.
+            rd.set_item("hwp_chi_offset_deg", cat.chi_offset_deg)?;
             d.set_item("recorded_angles", rd)?;
         }
         None => d.set_item("recorded_angles", py.None())?,

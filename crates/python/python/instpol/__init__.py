@@ -319,7 +319,11 @@ class Calibration:
         measured in the same exposures, ``recorded=catalog(...)["recorded_angles"]`` (instead
         of ``parang_deg``) undoes the telescope as each exposure saw it, each over its own
         parallactic track, demodulated together, as ``instpol correct`` does with a catalog
-        table that recorded them (``telescope_exposures`` in the result).
+        table that recorded them (``telescope_exposures`` in the result). Both models live in
+        the sky frame, where chi carries the HWP zero angle: rows are turned there by the field
+        calibration's zero angle, less the one ``recorded["hwp_chi_offset_deg"]`` says the
+        catalog's q, u carry already (a telescope model alone turns nothing), and the
+        exposures' plate angles are taken there too.
 
         Returns
         -------
@@ -506,8 +510,9 @@ def catalog(
     ``f`` of shape (stars, N)) and metadata (``hwp_deg, filter, chi_offset_deg, oe_offset_px,
     unpaired, unpaired_shift_px, n_sources, warnings``, and ``recorded_angles``: the exposures'
     telescope angles from their headers, ``{"parang_deg": (start, end), "rotator_deg": ...,
-    "exposures": [(hwp_deg, start_deg, end_deg), ...]}``, or None when the instrument names no
-    header keyword for them; :meth:`Calibration.correct` takes it as ``recorded``).
+    "exposures": [(hwp_deg, start_deg, end_deg), ...], "hwp_chi_offset_deg": ...}`` (the last:
+    the HWP zero angle the stars' q, u carry, ``chi_offset_deg``), or None when the instrument
+    names no header keyword for them; :meth:`Calibration.correct` takes it as ``recorded``).
 
     ``aperture``: a radius in px, ``"2.5fwhm"`` (a multiple of each star's FWHM) or ``"best"``
     (the radius of best S/N on each star's curve of growth). ``kappa`` applies a known Wollaston
