@@ -41,8 +41,11 @@ use std::path::{Path, PathBuf};
 /// frames' headers, under the keywords of the instrument's [telescope] section (parallactic
 /// angle at start and end, rotator angle): each exposure is undone over its own track, the
 /// exposures demodulated together (JSON exposures: their number); or one track for all from
-/// --parang START[,END] (deg, the convention of fit-standards). The star passes when, corrected, it is within --threshold sigma of its
-/// expected polarization. JSON: measured_q, measured_u, sigma_q, sigma_u, telescope_q,
+/// --parang START[,END] (deg, the convention of fit-standards). Both models live in the sky
+/// frame, where chi carries the HWP zero angle (the telescope's standards are quoted there):
+/// the star, measured at the plate, is turned there by the field calibration's zero angle, or
+/// without one by the instrument's for the frames' filter. The star passes when, corrected, it
+/// is within --threshold sigma of its expected polarization. JSON: measured_q, measured_u, sigma_q, sigma_u, telescope_q,
 /// telescope_u (what the telescope makes of an unpolarized star there), corrected_q,
 /// corrected_u, their sigma_, corrected_p, corrected_chi_deg, expected_q, expected_u,
 /// corrected_pull, uncorrected_pull, pass, parallactic_start_deg, parallactic_end_deg (the
