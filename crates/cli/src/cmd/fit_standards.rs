@@ -24,7 +24,9 @@ use std::path::{Path, PathBuf};
 /// wavelength_um" (no header; the EFOSC2 files of Wiersema et al.), or a CSV with a header
 /// naming those columns (any order) and optionally "filter", "rotator_deg", and for polarized
 /// standards "p_true" (a fraction) with "chi_true_deg" (their catalogued polarization, passed
-/// through the model; empty for unpolarized stars). The band is the filter, or else the
+/// through the model; empty for unpolarized stars). q, u are taken in the sky frame, with the
+/// HWP zero angle already added to chi (as published standards, photometry and catalog give
+/// them): the frame in which correct and validate use the model. The band is the filter, or else the
 /// wavelength. Points whose pull exceeds --clip times max(1, robust scatter) are flagged
 /// and the fit repeated without them. Errors: sqrt of the covariance's diagonal times
 /// max(1, chi2/dof) by default (--error-scaling).
