@@ -311,3 +311,43 @@ def test_telescope_only_file_is_the_cli_bit_for_bit(run, tmp_path):
         c.correct(**bare)
     with pytest.raises(instpol.InputError, match="only a telescope model"):
         c.evaluate(0.0, 0.0)
+
+
+def test_catalog_columns_are_not_turned_twice(run, cal_v_offset, tmp_path):
+    """catalog()'s q, u carry the filter's HWP zero angle (here 3.5 deg, the calibration's
+    too): Calibration.correct(..., hwp_chi_offset_deg=cat["chi_offset_deg"]) applies only the
+    difference, as `instpol correct` does with a table's column, and gives catalog(cal=...)'s
+    columns to 1e-12; without it the zero angle is applied a second time: chi 3.5 deg off on
+    the 3 % star."""
+    from conftest import tiny_fors1
+
+    text = tiny_fors1(tmp_path).read_text()
+    v = 'name = "V"\naliases = ["V_BESS"]\nlambda_eff_nm = 554.0\n'
+    assert v in text, "the V filter of FORS1's file"
+    inst = tmp_path / "zero.toml"
+    inst.write_text(text.replace(v, v + "hwp_chi_offset_deg = 3.5\n"))
+    scene = tmp_path / "scene.toml"
+    scene.write_text(
+        f'instrument = "{inst}"\nfilter = "V"\nseed = 5\nhwp_angles_deg = [0, 22.5, 45, 67.5]\n'
+        '[output]\nbitpix = -64\n'
+        '[[stars]]\nx = 40\ny = 34\ncoords = "pixel"\nflux_e = 4e6\nfwhm_arcsec = 1.6\np = 0.03\nchi_deg = 20\n'
+        '[[stars]]\nx = 90\ny = 34\ncoords = "pixel"\nflux_e = 4e6\nfwhm_arcsec = 1.6\n'
+        "[effects]\nhwp_chi_offset_from_filter = true\n"
+    )
+    run("simulate", scene, "--out", tmp_path / "frames")
+    frames = sorted((tmp_path / "frames").glob("*.fits"))
+    args = dict(instrument=str(inst), fwhm=4.0, aperture=10.0, annulus=(14.0, 24.0))
+    cat = instpol.catalog(frames, **args)
+    assert cat["chi_offset_deg"] == 3.5 and len(cat["x"]) == 2
+    ref = instpol.catalog(frames, cal=cal_v_offset, **args)
+    c = instpol.Calibration.load(cal_v_offset)
+    cols = [cat[k] for k in ("x_arcmin", "y_arcmin", "q", "u", "sigma_q", "sigma_u", "cov_qu")]
+    r = c.correct(*cols, hwp_chi_offset_deg=cat["chi_offset_deg"])
+    for k in ["q0", "u0", "sigma_q0", "sigma_u0"]:
+        assert np.max(np.abs(r[k] - ref[k])) < 1e-12, k
+    twice = c.correct(*cols)
+    i = int(np.argmax(cat["p"]))
+    dchi = (twice["chi0_deg"][i] - r["chi0_deg"][i] + 90) % 180 - 90
+    assert abs(dchi - 3.5) < 0.05, dchi
+    with pytest.raises(instpol.InputError, match="hwp_chi_offset_deg"):
+        c.correct(*cols, hwp_chi_offset_deg=float("nan"))

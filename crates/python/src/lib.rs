@@ -461,7 +461,7 @@ impl _Calibration {
         match &self.field {
             Field::PPhi(c) => c.hwp_chi_offset_deg,
             // A Mueller field is fitted and applied in the maps' frame (instpol correct); a
-            // telescope model's offset is the instrument's angle zero (fit::telescope_cal).
+            // telescope model alone records no zero angle (its frame: fit::telescope_cal).
             Field::Mueller(_) | Field::TelescopeOnly { .. } => 0.0,
         }
     }
@@ -559,7 +559,7 @@ impl _Calibration {
 
     /// `instpol correct` on flat arrays: exact inversion of `eq:instpol` (or `eq:approx`), the
     /// HWP zero angle first, errors propagated; `estimator`: also the bias-corrected `P0`.
-    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator, parang_deg, parang_end_deg, band, recorded))]
+    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator, parang_deg, parang_end_deg, band, recorded, carried_deg))]
     #[allow(clippy::too_many_arguments)]
     fn _correct<'py>(
         &self,
@@ -580,8 +580,17 @@ impl _Calibration {
         parang_end_deg: Option<PyReadonlyArray1<'py, f64>>,
         band: Option<String>,
         recorded: Option<Recorded>,
+        carried_deg: Option<f64>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let method = parse_method(method, extrapolation_error)?;
+        // The zero angle q, u already carry (catalog()'s do): given, else what `recorded`
+        // says, else none (q, u at the plate); the calibration's less it is applied, as
+        // `instpol correct` takes a table's hwp_chi_offset_deg column.
+        if carried_deg.is_some_and(|z| !(z.is_finite() && z.abs() <= 720.0)) {
+            return Err(input_err("hwp_chi_offset_deg must be finite degrees"));
+        }
+        let carried_given = carried_deg.or_else(|| recorded.as_ref().and_then(|r| r.zero_angle_deg));
+        let carried = carried_given.unwrap_or(0.0);
         let est: Option<Estimator> =
             estimator.map(|e| e.parse().map_err(|e| input_err(format!("estimator: {e}")))).transpose()?;
         let (x, y, q, u) = (slice(&x, "x")?, slice(&y, "y")?, slice(&q, "q")?, slice(&u, "u")?);
@@ -628,7 +637,7 @@ impl _Calibration {
                     .track;
                 // The zero angle of the plate the exposures were taken through: the one the
                 // catalog's q, u carry, else the field calibration's (none without either).
-                let z = r.zero_angle_deg.unwrap_or(self.hwp_chi_offset_deg()).to_radians();
+                let z = carried_given.unwrap_or(self.hwp_chi_offset_deg()).to_radians();
                 let p = fit::telescope_cal::prepare_recorded(t, &b, track, &r.exposures, z)
                     .map_err(|e| input_err(format!("recorded: {e}")))?
                     .ok_or_else(|| input_err("recorded: no exposures"))?;
@@ -675,7 +684,10 @@ impl _Calibration {
             // With a telescope model the chain applies the zero angle itself, once, before
             // both models (module docs of fit::telescope_cal), as `instpol correct` does.
             // A Mueller field: the maps' frame (hwp_chi_offset_deg is 0).
-            chi_offset: if telescope.is_some() { 0.0 } else { self.hwp_chi_offset_deg().to_radians() },
+            chi_offset: match (&self.field, &telescope) {
+                (Field::PPhi(c), None) => (c.hwp_chi_offset_deg - carried).to_radians(),
+                _ => 0.0,
+            },
         };
         let input = Inputs { x, y, q, u, sq, su, cov };
         let mut cols: Vec<Vec<f64>> = (0..N_OUT).map(|_| reserved_column(n)).collect();
@@ -691,9 +703,6 @@ impl _Calibration {
             };
             match (&self.field, &telescope) {
                 (Field::PPhi(c), Some((t, tracks, b))) => {
-                    // The calibration's zero angle less the one recorded rows carry (as the
-                    // CLI takes a table's hwp_chi_offset_deg column).
-                    let carried = recorded.as_ref().and_then(|r| r.zero_angle_deg).unwrap_or(0.0);
                     let to_sky = (c.hwp_chi_offset_deg - carried).to_radians();
                     fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, *tracks, to_sky, sink)
                 }

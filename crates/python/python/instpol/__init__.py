@@ -294,8 +294,15 @@ class Calibration:
         parang_end_deg: Optional[ArrayLike] = None,
         band: Optional[str] = None,
         recorded: Optional[Dict[str, Any]] = None,
+        hwp_chi_offset_deg: Optional[float] = None,
     ) -> Dict[str, Any]:
         """Remove the instrumental polarization from measured ``(q, u)`` at ``(x, y)``.
+
+        ``hwp_chi_offset_deg``: the HWP zero angle (deg) that ``q, u`` already carry, as
+        ``catalog()``'s do (its ``chi_offset_deg``; ``instpol correct`` reads it from a table's
+        column of that name): only the calibration's zero angle less this one is applied, so
+        that it is not applied twice. Default: ``recorded["hwp_chi_offset_deg"]`` when given,
+        else 0 (``q, u`` as measured at the plate).
 
         The HWP zero angle of the calibration's filter is applied first, then ``M_I`` is
         inverted exactly (``method="exact"``, eq:instpol) or to first order
@@ -347,6 +354,7 @@ class Calibration:
             *flat[:6], got.get("cov_qu"), str(units), str(method), bool(allow_extrapolation),
             float(extrapolation_error), None if estimator is None else str(estimator),
             got.get("parang_deg"), got.get("parang_end_deg"), None if band is None else str(band), recorded,
+            None if hwp_chi_offset_deg is None else float(hwp_chi_offset_deg),
         )
         return _reshape(d, shape, flat[0].shape[0])
 

@@ -92,6 +92,7 @@ class Calibration:
         parang_end_deg: Optional[ArrayLike] = ...,
         band: Optional[str] = ...,
         recorded: Optional[Dict[str, Any]] = ...,
+        hwp_chi_offset_deg: Optional[float] = ...,
     ) -> Dict[str, Any]:
         """Exact inversion of eq:instpol (or eq:approx), as `instpol correct`, bit for bit."""
     def correct_map(
