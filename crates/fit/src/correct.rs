@@ -316,7 +316,7 @@ fn rotated(m: &Measurement, cos2: f64, sin2: f64) -> [f64; 5] {
 }
 
 /// `m` in the sky frame: its chi larger by the HWP zero angle `offset` (rad), its covariance
-/// turned alike ([`rotated`]). `m` itself when `offset` is 0.
+/// turned alike (`R C R^T`). `m` itself when `offset` is 0.
 pub fn to_sky_frame(m: &Measurement, offset: f64) -> Measurement {
     if offset == 0.0 {
         return *m;
