@@ -147,3 +147,32 @@ def test_mueller_refusals_name_the_file(mueller_cal):
         c.correct(**cols, method="first-order")
     with pytest.raises(instpol.InputError, match="Mueller field"):
         c.correct(**cols, parang_deg=10.0)
+
+
+def test_rows_carrying_a_zero_angle_are_turned_back(run, mueller_cal, tmp_path):
+    """A Mueller field lives in the maps' frame (no zero angle): rows whose chi carries a zero
+    angle z (turned here with numpy by 2z, their covariance alike) and say so
+    (hwp_chi_offset_deg=z) give the rows' own correction back to 1e-12, and the CLI does the
+    same with a table's hwp_chi_offset_deg column, bit for bit."""
+    c = instpol.Calibration.load(mueller_cal)
+    cols = sky_catalog(*SKIES[1])
+    ref = c.correct(**cols)
+    z = np.radians(2.89)
+    cz, sz = np.cos(2 * z), np.sin(2 * z)
+    turned = dict(cols)
+    turned["q"] = cz * cols["q"] - sz * cols["u"]
+    turned["u"] = sz * cols["q"] + cz * cols["u"]
+    vq, vu = cols["sigma_q"] ** 2, cols["sigma_u"] ** 2
+    turned["sigma_q"] = np.sqrt(cz * cz * vq + sz * sz * vu)
+    turned["sigma_u"] = np.sqrt(sz * sz * vq + cz * cz * vu)
+    turned["cov_qu"] = cz * sz * (vq - vu)
+    r = c.correct(**turned, hwp_chi_offset_deg=2.89)
+    for k in ["q0", "u0", "sigma_q0", "sigma_u0"]:
+        assert np.max(np.abs(r[k] - ref[k])) < 1e-12, k
+    assert np.max(np.abs(c.correct(**turned)["q0"] - ref["q0"])) > 1e-4
+    turned["hwp_chi_offset_deg"] = np.full(turned["x"].size, 2.89)
+    cli = cli_correct(run, mueller_cal, turned, tmp_path, "--coords", "arcmin")
+    del turned["hwp_chi_offset_deg"]
+    py = c.correct(**turned, hwp_chi_offset_deg=2.89, estimator="mas")
+    for k in ADDED:
+        assert same(py[k], cli[k]), k

@@ -684,10 +684,9 @@ impl _Calibration {
             // With a telescope model the chain applies the zero angle itself, once, before
             // both models (module docs of fit::telescope_cal), as `instpol correct` does.
             // A Mueller field: the maps' frame (hwp_chi_offset_deg is 0).
-            chi_offset: match (&self.field, &telescope) {
-                (Field::PPhi(c), None) => (c.hwp_chi_offset_deg - carried).to_radians(),
-                _ => 0.0,
-            },
+            // Rows that carry a zero angle are turned back by it for a Mueller field, as
+            // `instpol correct` does with a table's column.
+            chi_offset: if telescope.is_some() { 0.0 } else { (self.hwp_chi_offset_deg() - carried).to_radians() },
         };
         let input = Inputs { x, y, q, u, sq, su, cov };
         let mut cols: Vec<Vec<f64>> = (0..N_OUT).map(|_| reserved_column(n)).collect();
