@@ -429,3 +429,116 @@ fn polarized_standards_constrain_the_retardance_one_sky_field_cannot() {
     assert!(err.contains("bad.csv row 1") && err.contains("p_true"), "{err}");
     assert!(!out.exists());
 }
+
+/// The three sky fields as a plate of HWP zero angle 2.89 deg (FORS2 I_BESS's) reads them: each
+/// map's q, u turned by -2z here (the plate's frame), recording z (`HWPZERO`).
+fn plate_map(dir: &Path, name: &str, p: f64, chi_deg: f64, z_deg: f64) -> PathBuf {
+    let path = map(dir, name, p, chi_deg);
+    let mut m = StokesMap::read_fits(&path).unwrap();
+    let (s, c) = (2.0 * z_deg.to_radians()).sin_cos();
+    for k in 0..m.q.len() {
+        let (q, u) = (m.q[k], m.u[k]);
+        (m.q[k], m.u[k]) = (c * q + s * u, -s * q + c * u);
+        (m.p[k], m.chi[k]) = stokes::polarization(m.q[k], m.u[k]);
+    }
+    m.hwp_zero_angle_deg = Some(z_deg);
+    m.write_fits(&path).unwrap();
+    path
+}
+
+/// Maps that record an HWP zero angle are turned by it into the sky frame of their known
+/// polarization before the fit: the same field as from the sky-frame maps (chi2/dof, the
+/// retardance at a point), the calibration records the angle (`HWP CHI OFFSET DEG`), and
+/// `correct` turns a catalog measured at the plate by it first, giving the stars of the
+/// sky-frame calibration back to 1e-12. Fitted as they are (the angle not recorded), the same
+/// maps need a rotation the model has not got: chi2/dof far from 1. Maps of two zero angles
+/// are refused, naming both.
+#[test]
+fn maps_are_turned_by_their_recorded_zero_angle_before_the_fit() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let z = 2.89;
+    let skies = [
+        ("b1.fits", 0.0645, 68.4, "6.45:68.4"),
+        ("b2.fits", 0.04, 10.0, "4.0:10"),
+        ("b3.fits", 0.08, 130.0, "8.0:130"),
+    ];
+    let fit = |maps: &[PathBuf], out: &Path| -> serde_json::Value {
+        let mut args = vec!["calibrate-mueller".to_string()];
+        for (m, s) in maps.iter().zip(skies.iter().map(|s| s.3)) {
+            args.extend(["--field".to_string(), format!("{}:{s}", m.display())]);
+        }
+        args.extend(["--deg", "6", "--json", "--out"].map(String::from));
+        args.push(out.display().to_string());
+        let o = run(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_slice(&o.stdout).unwrap()
+    };
+    let sky_dir = d.join("sky");
+    let plate_dir = d.join("plate");
+    std::fs::create_dir_all(&sky_dir).unwrap();
+    std::fs::create_dir_all(&plate_dir).unwrap();
+    let sky_maps: Vec<PathBuf> = skies.iter().map(|s| map(&sky_dir, s.0, s.1, s.2)).collect();
+    let plate_maps: Vec<PathBuf> = skies.iter().map(|s| plate_map(&plate_dir, s.0, s.1, s.2, z)).collect();
+    let (cal_sky, cal_plate) = (d.join("sky.fits"), d.join("plate.fits"));
+    let (js, jp) = (fit(&sky_maps, &cal_sky), fit(&plate_maps, &cal_plate));
+    let c2 = |j: &serde_json::Value| j["chi2_dof"].as_f64().unwrap();
+    assert!((c2(&js) - c2(&jp)).abs() < 1e-6 * c2(&js).max(1e-3), "{} vs {}", c2(&js), c2(&jp));
+    let (a, b) = (
+        fit::mueller_cal::MuellerCal::load(&cal_sky).unwrap(),
+        fit::mueller_cal::MuellerCal::load(&cal_plate).unwrap(),
+    );
+    assert_eq!((a.hwp_chi_offset_deg, b.hwp_chi_offset_deg), (0.0, z));
+    let (pa, pb) = (a.field.physical_at(2.0, 1.0).unwrap(), b.field.physical_at(2.0, 1.0).unwrap());
+    assert!((pa.retardance - pb.retardance).abs() < 1e-9, "{} vs {}", pa.retardance, pb.retardance);
+
+    // Stars measured at the plate, corrected with the plate calibration, are the sky-frame
+    // stars corrected with the sky-frame calibration.
+    let (sky_csv, plate_csv) = (d.join("stars_sky.csv"), d.join("stars_plate.csv"));
+    let (s2, c2z) = (2.0 * f64::to_radians(z)).sin_cos();
+    let mut ts = String::from("x,y,q,u,sigma_q,sigma_u\n");
+    let mut tp = ts.clone();
+    for k in 0..12 {
+        let (x, y) = (-2.5 + 0.45 * k as f64, 1.8 - 0.3 * k as f64);
+        let (q, u) = (0.01 * (k as f64).cos(), 0.02 * (0.7 * k as f64).sin());
+        ts += &format!("{x},{y},{q},{u},3e-4,3e-4\n");
+        tp += &format!("{x},{y},{},{},3e-4,3e-4\n", c2z * q + s2 * u, -s2 * q + c2z * u);
+    }
+    std::fs::write(&sky_csv, ts).unwrap();
+    std::fs::write(&plate_csv, tp).unwrap();
+    let (out_s, out_p) = (d.join("out_s.csv"), d.join("out_p.csv"));
+    for (cal, inp, out) in [(&cal_sky, &sky_csv, &out_s), (&cal_plate, &plate_csv, &out_p)] {
+        let o = run(&correct_args(cal, inp, out, &["--coords", "arcmin"]));
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let cols = |p: &Path| -> Vec<(f64, f64)> {
+        let mut r = csv::Reader::from_path(p).unwrap();
+        let h = r.headers().unwrap().clone();
+        let (iq, iu) = (h.iter().position(|c| c == "q0").unwrap(), h.iter().position(|c| c == "u0").unwrap());
+        r.records().map(|x| x.unwrap()).map(|x| (x[iq].parse().unwrap(), x[iu].parse().unwrap())).collect()
+    };
+    for ((qa, ua), (qb, ub)) in cols(&out_s).into_iter().zip(cols(&out_p)) {
+        assert!((qa - qb).abs() < 1e-12 && (ua - ub).abs() < 1e-12, "({qa}, {ua}) vs ({qb}, {ub})");
+    }
+
+    // The plate maps fitted without their zero angle: a rotation the retardance model cannot
+    // make, chi2/dof far from the sky frame's.
+    for m in &plate_maps {
+        let mut s = StokesMap::read_fits(m).unwrap();
+        s.hwp_zero_angle_deg = None;
+        s.write_fits(m).unwrap();
+    }
+    let jn = fit(&plate_maps, &d.join("unturned.fits"));
+    assert!(c2(&jn) > 100.0 * c2(&js).max(1.0), "unturned chi2/dof {} vs {}", c2(&jn), c2(&js));
+
+    // Maps of two zero angles: refused, naming both.
+    let other = plate_map(&plate_dir, "b9.fits", 0.04, 10.0, 1.5);
+    let mut args = vec!["calibrate-mueller".to_string()];
+    args.extend(["--field".to_string(), format!("{}:6.45:68.4", sky_maps[0].display())]);
+    args.extend(["--field".to_string(), format!("{}:4.0:10", other.display())]);
+    args.extend(["--out".to_string(), d.join("mixed.fits").display().to_string()]);
+    let o = run(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("b9.fits") && err.contains("HWPZERO") && err.contains("b1.fits"), "{err}");
+}

@@ -701,8 +701,9 @@ pub enum MapCorrection<'a> {
 /// The one map correction of `instpol correct` and the Python package; the caller checks the
 /// map's instrument and filter against the calibration's ([`crate::setup::matches_setup`]).
 /// - A field: the calibration's HWP zero angle is added to chi (`CORRHWP`).
-/// - A Mueller field: inverted exactly, in the maps' frame, no zero angle (`eq:approx` is the
-///   p, phi model's first order: the front ends refuse it for a Mueller field).
+/// - A Mueller field: inverted exactly after the zero angle its maps were turned by (`CORRHWP`;
+///   0 for maps that recorded none), (`eq:approx` is the p, phi model's first order: the front
+///   ends refuse it for a Mueller field).
 /// - A chain: the map is brought into the sky frame by the field calibration's HWP zero
 ///   angle, or without a field by its instrument's (`CORRHWP`), then corrected by both models
 ///   there (module docs of [`crate::telescope_cal`]); the corrected map records the track used
@@ -731,9 +732,9 @@ pub fn correct_stokes_map(
             Ok((c, stamp(meth(method).into(), cal.hwp_chi_offset_deg, None)))
         }
         MapCorrection::Mueller(mc) => {
-            let o = opts(Method::Exact, 0.0);
+            let o = opts(Method::Exact, mc.hwp_chi_offset_deg.to_radians());
             let c = correct_map_with(map, |m| mc.correct(m, &o))?;
-            Ok((c, stamp("exact inverse of the Mueller field (calibrate-mueller)".into(), 0.0, None)))
+            Ok((c, stamp("exact inverse of the Mueller field (calibrate-mueller)".into(), mc.hwp_chi_offset_deg, None)))
         }
         MapCorrection::Chain { field, telescope, band, track, by_exposure, zero_angle_deg } => {
             let cor = field.map(|(cal, method)| Corrector::new(cal, opts(method, 0.0)));

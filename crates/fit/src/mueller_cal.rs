@@ -19,10 +19,14 @@
 //! [`MuellerCal::correct`] inverts the fitted linear block exactly at the target's position
 //! ([`MuellerField::correct`], the one inverse [`mueller::linear::LinearBlock::invert`]),
 //! propagating the measurement's covariance and the model's coefficient covariance through
-//! the inversion's Jacobian. The frame is the one of the maps the field was fitted to (as
-//! `instpol reduce` writes them, no HWP zero angle applied: a zero angle is a rotation of the
-//! polarization plane, fitted when `rotation` is free), so the file's `HWP CHI OFFSET DEG` is
-//! 0. Positions outside the fitted box are refused unless extrapolation is allowed, then the
+//! the inversion's Jacobian. The frame is the sky frame, as for a `p, phi` calibration
+//! (`crate::correct` module docs): `instpol calibrate-mueller` turns each map by the HWP zero
+//! angle it records (`HWPZERO`, [`skyfield::StokesMap::hwp_zero_angle_deg`]) before the fit,
+//! and the file's `HWP CHI OFFSET DEG` ([`MuellerCal::hwp_chi_offset_deg`]) says by how much,
+//! so that `correct` turns a measurement at the plate by it first. Maps that record none (and
+//! files written before session 15) are fitted as they are, in the maps' frame, and hold 0: a
+//! zero angle is then a rotation of the polarization plane, fitted only when `rotation` is
+//! free (and `explain` would read it as a physical rotation). Positions outside the fitted box are refused unless extrapolation is allowed, then the
 //! same rule as the `p, phi` path: the correction itself is trusted to a fraction `f`
 //! ([`CorrectOptions::extrapolation_rel_error`]), `(f |v0 - m|)^2` added to each variance.
 
@@ -71,6 +75,9 @@ pub struct MuellerCal {
     /// The per-bin fits, when they were made (each a degree-0 field).
     pub per_bin: Vec<BinFit>,
     pub provenance: Provenance,
+    /// The HWP zero angle (deg) the maps were turned by into the sky frame before the fit
+    /// (module docs): what `correct` applies to a measurement at the plate first.
+    pub hwp_chi_offset_deg: f64,
 }
 
 /// Whether `path` is a Mueller-field calibration (primary `HIERARCH IP MODEL = 'MUELLER'`).
@@ -134,7 +141,8 @@ impl MuellerCal {
     /// Correct one measurement exactly (module docs): the source's `(q0, u0)` with the
     /// measurement's and the model's covariance propagated; `inst` is the field's
     /// instrumental polarization of unpolarized light there. The HWP zero angle of `opts` is
-    /// applied first, as in [`correct::Corrector`] (0 for a catalog in the maps' frame).
+    /// applied first, as in [`correct::Corrector`] (the file's [`MuellerCal::hwp_chi_offset_deg`]
+    /// for a measurement at the plate, less what it carries already).
     pub fn correct(&self, m: &Measurement, opts: &CorrectOptions) -> std::result::Result<Corrected, correct::Error> {
         correct::check_measurement(m)?;
         let inside = self.field.contains(m.x, m.y);
@@ -196,7 +204,7 @@ impl MuellerCal {
         w.str("INSTRUMENT", &self.instrument)?;
         w.str("FILTER", &self.filter)?;
         w.str("MODEL", MODEL_KIND)?;
-        w.real("HWP CHI OFFSET DEG", 0.0)?;
+        w.real("HWP CHI OFFSET DEG", self.hwp_chi_offset_deg)?;
         w.str("UNITS", "fractions; arcmin from detector centre; degrees")?;
         for (k, v) in ["REGION XMIN", "REGION XMAX", "REGION YMIN", "REGION YMAX"].iter().zip(b) {
             w.real(k, v)?;
@@ -353,6 +361,10 @@ impl MuellerCal {
         }
         let instrument = r.str("INSTRUMENT")?;
         let filter = r.str("FILTER")?;
+        let hwp_chi_offset_deg = r.opt_real("HWP CHI OFFSET DEG").unwrap_or(0.0);
+        if !hwp_chi_offset_deg.is_finite() {
+            return Err(bad(format!("HWP CHI OFFSET DEG = {hwp_chi_offset_deg}: not a finite angle")));
+        }
         let coords = match r.opt_real("PIX SCALE ARCSEC") {
             None => None,
             Some(scale) => {
@@ -520,7 +532,7 @@ impl MuellerCal {
             }
             _ => Smooth::Poly,
         };
-        Ok(MuellerCal { instrument, filter, field, coords, skies, per_bin, provenance })
+        Ok(MuellerCal { instrument, filter, field, coords, skies, per_bin, provenance, hwp_chi_offset_deg })
     }
 }
 

@@ -54,6 +54,8 @@ fn calibration(mf: MuellerField, per_bin: Vec<fit::mueller_field::BinFit>) -> Mu
         ],
         per_bin,
         provenance: fit::calfile::Provenance::now("instpol calibrate-mueller", vec!["sky0.fits".into()]),
+        // FORS2 b_HIGH's (instruments/fors2.toml), so that the keyword is written and read.
+        hwp_chi_offset_deg: -1.54,
     }
 }
 

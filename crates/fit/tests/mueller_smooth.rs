@@ -169,6 +169,7 @@ fn calibration(mf: MuellerField, per_bin: Vec<BinFit>) -> MuellerCal {
             .collect(),
         per_bin,
         provenance: fit::calfile::Provenance::now("instpol calibrate-mueller", vec!["sky0.fits".into()]),
+        hwp_chi_offset_deg: 0.0,
     }
 }
 

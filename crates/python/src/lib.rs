@@ -460,9 +460,10 @@ impl _Calibration {
     fn hwp_chi_offset_deg(&self) -> f64 {
         match &self.field {
             Field::PPhi(c) => c.hwp_chi_offset_deg,
-            // A Mueller field is fitted and applied in the maps' frame (instpol correct); a
-            // telescope model alone records no zero angle (its frame: fit::telescope_cal).
-            Field::Mueller(_) | Field::TelescopeOnly { .. } => 0.0,
+            // A Mueller field: the zero angle its maps were turned by (fit::mueller_cal); a
+            // telescope model alone records none (its frame: fit::telescope_cal).
+            Field::Mueller(m) => m.hwp_chi_offset_deg,
+            Field::TelescopeOnly { .. } => 0.0,
         }
     }
     #[getter]
@@ -683,9 +684,7 @@ impl _Calibration {
             extrapolation_rel_error: extrapolation_error,
             // With a telescope model the chain applies the zero angle itself, once, before
             // both models (module docs of fit::telescope_cal), as `instpol correct` does.
-            // A Mueller field: the maps' frame (hwp_chi_offset_deg is 0).
-            // Rows that carry a zero angle are turned back by it for a Mueller field, as
-            // `instpol correct` does with a table's column.
+            // A Mueller field likewise: its maps' zero angle less what the rows carry.
             chi_offset: if telescope.is_some() { 0.0 } else { (self.hwp_chi_offset_deg() - carried).to_radians() },
         };
         let input = Inputs { x, y, q, u, sq, su, cov };

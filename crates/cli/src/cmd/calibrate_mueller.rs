@@ -119,9 +119,27 @@ fn same_setup(a: &(String, String, field::FieldCoords), b: &(String, String, fie
 }
 
 /// The polarized standards of a `--stars` table, each a calibration "field" of one position
-/// whose known input polarization is the star's (rows named in errors).
-fn star_fields(path: &std::path::Path) -> Result<Vec<CalField>> {
+/// whose known input polarization is the star's (rows named in errors), in the maps' sky frame:
+/// turned by the maps' zero angle `zero_angle_deg` less the one the table's q, u carry (its
+/// column `hwp_chi_offset_deg`, as `instpol catalog` writes it; q, u at the plate without it).
+fn star_fields(path: &std::path::Path, zero_angle_deg: f64) -> Result<Vec<CalField>> {
     let t = skyfield::table::Table::read(path, None)?;
+    let carried = if t.column("hwp_chi_offset_deg").is_some() {
+        let z = t.numbers("hwp_chi_offset_deg", path)?;
+        let z0 = z.first().copied().unwrap_or(0.0);
+        if let Some(i) = z.iter().position(|v| !(v.is_finite() && (v - z0).abs() <= 1e-9)) {
+            bail!(
+                "{} {}: column 'hwp_chi_offset_deg' = {} differs from the first row's {z0}: one table has one HWP zero angle",
+                path.display(),
+                t.row_label(i),
+                z[i]
+            );
+        }
+        z0
+    } else {
+        0.0
+    };
+    let turn = (zero_angle_deg - carried).to_radians();
     let pick = |names: &[&str]| -> Result<Vec<f64>> {
         for n in names {
             if t.column(n).is_some() {
@@ -156,14 +174,26 @@ fn star_fields(path: &std::path::Path) -> Result<Vec<CalField>> {
                 q[i].hypot(u[i])
             );
         }
+        let m = fit::correct::to_sky_frame(
+            &fit::correct::Measurement {
+                x: x[i],
+                y: y[i],
+                q: q[i],
+                u: u[i],
+                sigma_q: sq[i],
+                sigma_u: su[i],
+                cov_qu: 0.0,
+            },
+            turn,
+        );
         let obs = Observation {
             x_arcmin: x[i],
             y_arcmin: y[i],
-            q: q[i],
-            u: u[i],
-            var_q: sq[i] * sq[i],
-            var_u: su[i] * su[i],
-            cov_qu: 0.0,
+            q: m.q,
+            u: m.u,
+            var_q: m.sigma_q * m.sigma_q,
+            var_u: m.sigma_u * m.sigma_u,
+            cov_qu: m.cov_qu,
         };
         out.push(CalField::from_p_chi(&what, pt[i], ct[i].to_radians(), st[i], vec![obs]));
     }
@@ -229,9 +259,23 @@ pub fn run(a: Args) -> Result<()> {
     let mut fields = Vec::new();
     // The first map's instrument, filter and field coordinates: every field must share them.
     let mut setup: Option<(String, String, field::FieldCoords)> = None;
+    // The HWP zero angle the maps record (HWPZERO): each is turned by it into the sky frame of
+    // its known polarization (fit::mueller_cal module docs); one value for all of them.
+    let mut zero: Option<(f64, &PathBuf)> = None;
     for (path, p, chi, sig) in &specs {
         let map =
             skyfield::maps::StokesMap::read_uncorrected(path).with_context(|| format!("reading {}", path.display()))?;
+        let z = map.hwp_zero_angle_deg.unwrap_or(0.0);
+        match zero {
+            None => zero = Some((z, path)),
+            Some((z0, first)) if z0 != z => bail!(
+                "{}: records an HWP zero angle of {z} deg (HWPZERO), but {} records {z0} deg: fit the maps of one instrument and filter together",
+                path.display(),
+                first.display()
+            ),
+            Some(_) => {}
+        }
+        let map = fit::pipeline::map_to_sky_frame(&map, z.to_radians());
         let obs = observations_of_map(&map);
         if obs.is_empty() {
             bail!("{}: the Stokes map has no valid bin", path.display());
@@ -253,8 +297,9 @@ pub fn run(a: Args) -> Result<()> {
         fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));
     }
     let n_maps = fields.len();
+    let zero_angle_deg = zero.map_or(0.0, |z| z.0);
     if let Some(t) = &a.stars {
-        fields.extend(star_fields(t)?);
+        fields.extend(star_fields(t, zero_angle_deg)?);
     }
     let opts = MuellerFitOptions { kind, deg: a.deg, scale_arcmin: a.scale_arcmin, ..Default::default() };
     if a.deg > 8 {
@@ -296,6 +341,7 @@ pub fn run(a: Args) -> Result<()> {
                 })
                 .collect(),
             per_bin: per_bin.as_ref().map(|b| b.0.clone()).unwrap_or_default(),
+            hwp_chi_offset_deg: zero_angle_deg,
             provenance: fit::calfile::Provenance::now(
                 "instpol calibrate-mueller",
                 specs

@@ -67,7 +67,9 @@ use stokes::stats::{Estimator, PolMeasurement};
 /// retardance, rotation, depolarization, or the general 3 x 3 block) is inverted exactly at
 /// each position, so polarized targets come out right where a p, phi calibration leaves a
 /// residual; the errors of the measurement and of the field's coefficients are propagated
-/// through the inversion. Its frame is the maps' (no HWP zero angle); --method exact only.
+/// through the inversion. Its frame is the one its maps were turned into by the HWP zero angle
+/// they record (the calibration's, applied first as for a p, phi calibration; 0 for maps that
+/// record none: the maps' frame); --method exact only.
 /// Example: instpol correct --cal mueller_B.fits --in stars.csv --out stars_corr.csv
 ///
 /// Positions outside the calibrated field are an error naming the row or bin, unless
@@ -702,7 +704,8 @@ fn correct_and_write(
 }
 
 /// `correct` with a Mueller-field calibration: every row or bin inverted exactly
-/// (`fit::mueller_cal::MuellerCal::correct`), in the maps' frame (HWP zero angle 0).
+/// (`fit::mueller_cal::MuellerCal::correct`), after the calibration's HWP zero angle (the one
+/// its maps were turned by; 0 for maps that recorded none), less what a table carries.
 fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> Result<()> {
     use rayon::prelude::*;
     refuse_telescope_options(a, "holds a Mueller field")?;
@@ -716,7 +719,7 @@ fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> 
         method: Method::Exact,
         allow_extrapolation: a.allow_extrapolation,
         extrapolation_rel_error: a.extrapolation_error,
-        chi_offset: 0.0,
+        chi_offset: cal.hwp_chi_offset_deg.to_radians(),
     };
     let kind = detect(&a.input)?;
     let mut summary = if kind == Kind::Map {
@@ -732,11 +735,11 @@ fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> 
         )?;
         let with = fit::correct::MapCorrection::Mueller(cal);
         let c = correct_and_write(a, &map, with)?;
-        map_summary(a, c, &cal.filter, 0.0)
+        map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg)
     } else {
         let out_format = Some(Format::from_path(&a.out)?);
         let mut table = read_catalog(a, kind)?;
-        let opts = zero_angle_of_the_table(&table, 0.0, opts, &a.input)?;
+        let opts = zero_angle_of_the_table(&table, cal.hwp_chi_offset_deg, opts, &a.input)?;
         let meas = measurements(&table, cal.pixel(), a.coords, &a.input)?;
         let out: Vec<Corrected> = meas
             .par_iter()
@@ -746,7 +749,8 @@ fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> 
             })
             .collect::<Result<_>>()?;
         let n_extra = out.iter().filter(|c| c.extrapolated).count();
-        write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, cal.filter.clone(), 0.0)?
+        let applied = opts.chi_offset.to_degrees();
+        write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, cal.filter.clone(), applied)?
     };
     summary.mueller_model = Some(cal.field.kind.model_name());
     summary.mueller_free = Some(cal.field.kind.free_words());

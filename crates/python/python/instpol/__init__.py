@@ -312,7 +312,7 @@ class Calibration:
         inflated by (F p)^2 (F = ``extrapolation_error``). ``units`` as in :meth:`evaluate`.
         The same function and numbers, bit for bit, as ``instpol correct``. With a Mueller
         field (``model == "MUELLER"``) the field's linear block is inverted exactly (only
-        ``method="exact"``; no zero angle: the maps' frame) and ``parang_deg``, ``band`` raise
+        ``method="exact"``; the zero angle its maps were turned by) and ``parang_deg``, ``band`` raise
         InputError.
 
         A calibration holding a telescope model (``telescope_bands`` not empty, from
