@@ -993,6 +993,10 @@ fn correct_turns_a_map_by_its_recorded_zero_angle() {
     assert!(o.status.success(), "{err}");
     assert!(!err.contains("warning"), "{err}");
     assert_eq!(key(&corrected, "CORRHWP"), 7.0);
+    // Its Q, U carry the zero angle now: no HWPZERO says they lack one.
+    let mut f = fitsio::FitsFile::open(&corrected).unwrap();
+    let h = f.primary_hdu().unwrap();
+    assert!(h.read_key::<f64>(&mut f, "HWPZERO").is_err(), "a corrected map records HWPZERO");
     let (q_true, u_true) = (p * (2.0 * chi_deg.to_radians()).cos(), p * (2.0 * chi_deg.to_radians()).sin());
     let valid = map_image(&map, "VALID");
     let (q, u) = (map_image(&corrected, "Q"), map_image(&corrected, "U"));

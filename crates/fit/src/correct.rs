@@ -726,7 +726,7 @@ pub fn correct_stokes_map(
         hwp_chi_offset_deg: hwp,
         telescope,
     };
-    match with {
+    let corrected = match with {
         MapCorrection::Field { cal, method } => {
             let c = correct_map(cal, map, opts(method, cal.hwp_chi_offset_deg.to_radians()))?;
             Ok((c, stamp(meth(method).into(), cal.hwp_chi_offset_deg, None)))
@@ -770,5 +770,11 @@ pub fn correct_stokes_map(
             };
             Ok((c, stamp(method, z, Some(t))))
         }
-    }
+    };
+    // The corrected map is in the sky frame, its zero angle applied (CORRHWP): it no longer
+    // lacks one (HWPZERO).
+    corrected.map(|(mut c, s)| {
+        c.map.hwp_zero_angle_deg = None;
+        (c, s)
+    })
 }
