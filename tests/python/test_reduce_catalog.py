@@ -37,6 +37,30 @@ def test_reduce_is_the_cli_map(run_json, sky_frames, tmp_path):
     assert np.max(np.abs(m.chi_deg[v] - 68.4)) < 1e-7
     # bin centres step by bin * scale (the last, partial bin excepted)
     assert np.allclose(np.diff(m.x_arcmin[:, :-1], axis=1), 10 * m.header["pixel_scale_arcsec"] / 60)
+    # FORS1's V filter states no zero angle: the map records 0, which its q, u lack.
+    assert m.header["hwp_zero_angle_deg"] == 0.0
+    with fits.open(out) as h:
+        assert h[0].header["HWPZERO"] == 0.0
+
+
+def test_reduce_records_the_filters_zero_angle(sky_frames, tmp_path):
+    """An instrument file whose filter has an HWP zero angle: the map records it (HWPZERO, as
+    astropy reads it, and the header dict), while its q, u stay at the plate (the same as
+    without it: the zero angle is not applied by the reduction)."""
+    from astropy.io import fits
+
+    frames, inst = sky_frames
+    v = 'lambda_eff_nm = 554.0\n'
+    text = inst.read_text()
+    assert v in text
+    z_inst = tmp_path / "zero.toml"
+    z_inst.write_text(text.replace(v, v + "hwp_chi_offset_deg = 1.8\n", 1))
+    m = instpol.reduce(frames, instrument=z_inst, bin=10, output=tmp_path / "z.fits")
+    plain = instpol.reduce(frames, instrument=inst, bin=10)
+    assert m.header["hwp_zero_angle_deg"] == 1.8
+    with fits.open(tmp_path / "z.fits") as h:
+        assert h[0].header["HWPZERO"] == 1.8
+    assert same(m.q, plain.q) and same(m.u, plain.u)
 
 
 def test_reduce_errors(sky_frames, tmp_path):

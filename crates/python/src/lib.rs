@@ -1271,6 +1271,8 @@ fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>
     h.set_item("pixel_scale_arcsec", g.pixel_scale_arcsec)?;
     h.set_item("detector_nx", g.detector_nx)?;
     h.set_item("detector_ny", g.detector_ny)?;
+    // What the map's q, u lack to be in the sky frame (HWPZERO; None when not recorded).
+    h.set_item("hwp_zero_angle_deg", m.hwp_zero_angle_deg)?;
     d.set_item("header", h)?;
     for (name, v) in [
         ("q", &m.q),

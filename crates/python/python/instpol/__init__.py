@@ -422,7 +422,8 @@ class StokesMap:
     ``chi_deg`` (eq:polang, [0, 180)), ``n_pixels``, ``intensity``, ``intensity_snr``,
     ``valid``, ``x_arcmin, y_arcmin`` (bin centres from the detector centre), ``header``
     (instrument, filter, hwp_angles_deg, bin_px, origin_x/y, nx, ny, pixel_scale_arcsec,
-    detector_nx/ny) and ``warnings``.
+    detector_nx/ny, and hwp_zero_angle_deg: the HWP zero angle of the filter, which the map's
+    q, u do not carry, ``HWPZERO``; None when not recorded) and ``warnings``.
     """
 
     _ARRAYS = (
