@@ -425,4 +425,22 @@ fn a_catalog_in_the_sky_frame_is_not_turned_twice() {
     let a = (2.0 * 3.5f64).to_radians();
     let (qr, ur) = (q * a.cos() - u * a.sin(), q * a.sin() + u * a.cos());
     assert!((q0 - qr).abs() < 1e-12 && (u0 - ur).abs() < 1e-12, "{q0} {u0} vs {qr} {ur}");
+    // Rows that say different zero angles are not one catalog: refused, naming the row and the
+    // column, nothing written.
+    let inp = d.path().join("mixed.csv");
+    std::fs::write(
+        &inp,
+        format!(
+            "x,y,q,u,sigma_q,sigma_u,hwp_chi_offset_deg\n1,1,{q},{u},0.001,0.001,3.5\n1,1,{q},{u},0.001,0.001,1.5\n"
+        ),
+    )
+    .unwrap();
+    let out = d.path().join("mixed_out.csv");
+    let args =
+        ["correct", "--cal", calp.to_str().unwrap(), "--in", inp.to_str().unwrap(), "--out", out.to_str().unwrap()];
+    let o = run(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("mixed.csv") && err.contains("row 2") && err.contains("hwp_chi_offset_deg"), "{err}");
+    assert!(!out.exists());
 }

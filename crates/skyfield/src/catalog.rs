@@ -283,7 +283,7 @@ impl Catalog {
             fr("sigma_p", |x| x.sigma_p, "1-sigma error of p"),
             Column::f64("chi_deg", Some("deg"), "polarization angle, HWP zero angle added", col(|x| x.chi_deg)),
             Column::f64(
-                "hwp_chi_offset_deg",
+                crate::table::ZERO_ANGLE_COLUMN,
                 Some("deg"),
                 "HWP zero angle already applied to q, u, chi (instpol correct applies only the calibration's difference)",
                 vec![self.chi_offset_deg; r.len()],

@@ -138,6 +138,10 @@ pub struct Table {
     pub meta: Vec<(String, f64)>,
 }
 
+/// The column of a catalog table holding the HWP zero angle (deg) its q, u already carry
+/// ([`Table::carried_zero_angle`]).
+pub const ZERO_ANGLE_COLUMN: &str = "hwp_chi_offset_deg";
+
 fn terr(path: &Path, message: impl Into<String>) -> Error {
     Error::Table { path: path.to_path_buf(), message: message.into() }
 }
@@ -168,6 +172,29 @@ impl Table {
     /// The column names, for messages.
     pub fn names(&self) -> Vec<String> {
         self.columns.iter().map(|c| c.name.clone()).collect()
+    }
+
+    /// The HWP zero angle (deg) the table's q, u already carry, from its column
+    /// [`ZERO_ANGLE_COLUMN`] (what `instpol catalog` writes; one value for every row, else an
+    /// error naming the first row that differs); `None` without the column (q, u as measured,
+    /// at the plate).
+    pub fn carried_zero_angle(&self, path: &Path) -> Result<Option<f64>, Error> {
+        if self.column(ZERO_ANGLE_COLUMN).is_none() {
+            return Ok(None);
+        }
+        let z = self.numbers(ZERO_ANGLE_COLUMN, path)?;
+        let z0 = z.first().copied().unwrap_or(0.0);
+        if let Some(i) = z.iter().position(|v| !(v.is_finite() && (v - z0).abs() <= 1e-9)) {
+            return Err(terr(
+                path,
+                format!(
+                    "{}: column '{ZERO_ANGLE_COLUMN}' = {} differs from the first row's {z0}: one catalog has one HWP zero angle",
+                    self.row_label(i),
+                    z[i]
+                ),
+            ));
+        }
+        Ok(Some(z0))
     }
 
     /// Column `name` as numbers (an empty text field is NaN); an error names the file, the column and the first row that is

@@ -124,21 +124,7 @@ fn same_setup(a: &(String, String, field::FieldCoords), b: &(String, String, fie
 /// column `hwp_chi_offset_deg`, as `instpol catalog` writes it; q, u at the plate without it).
 fn star_fields(path: &std::path::Path, zero_angle_deg: f64) -> Result<Vec<CalField>> {
     let t = skyfield::table::Table::read(path, None)?;
-    let carried = if t.column("hwp_chi_offset_deg").is_some() {
-        let z = t.numbers("hwp_chi_offset_deg", path)?;
-        let z0 = z.first().copied().unwrap_or(0.0);
-        if let Some(i) = z.iter().position(|v| !(v.is_finite() && (v - z0).abs() <= 1e-9)) {
-            bail!(
-                "{} {}: column 'hwp_chi_offset_deg' = {} differs from the first row's {z0}: one table has one HWP zero angle",
-                path.display(),
-                t.row_label(i),
-                z[i]
-            );
-        }
-        z0
-    } else {
-        0.0
-    };
+    let carried = t.carried_zero_angle(path)?.unwrap_or(0.0);
     let turn = (zero_angle_deg - carried).to_radians();
     let pick = |names: &[&str]| -> Result<Vec<f64>> {
         for n in names {

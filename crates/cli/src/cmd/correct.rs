@@ -274,9 +274,9 @@ fn read_catalog(a: &Args, kind: Kind) -> Result<Table> {
     Ok(table)
 }
 
-/// The column a catalog carries when its q, u already have the instrument's HWP zero angle
-/// applied (`instpol catalog` writes it): they are then in the sky's frame.
-const ZERO_ANGLE: &str = "hwp_chi_offset_deg";
+// The column a catalog carries when its q, u already have the instrument's HWP zero angle
+// applied (`instpol catalog` writes it): they are then in the sky's frame.
+use skyfield::table::ZERO_ANGLE_COLUMN as ZERO_ANGLE;
 
 /// The zero angle to apply to a table's q, u: the calibration's, less the one the table says
 /// its q, u already carry (column [`ZERO_ANGLE`], the same in every row), so that a catalog
@@ -288,19 +288,7 @@ fn zero_angle_of_the_table(
     mut opts: CorrectOptions,
     path: &Path,
 ) -> Result<CorrectOptions> {
-    if t.column(ZERO_ANGLE).is_none() {
-        return Ok(opts);
-    }
-    let z = t.numbers(ZERO_ANGLE, path)?;
-    let z0 = z.first().copied().unwrap_or(0.0);
-    if let Some(i) = z.iter().position(|v| !(v.is_finite() && (v - z0).abs() <= 1e-9)) {
-        bail!(
-            "{} {}: column '{ZERO_ANGLE}' = {} differs from the first row's {z0}: one catalog has one HWP zero angle",
-            path.display(),
-            t.row_label(i),
-            z[i]
-        );
-    }
+    let Some(z0) = t.carried_zero_angle(path)? else { return Ok(opts) };
     let d = cal_offset_deg - z0;
     if d != 0.0 {
         eprintln!(
@@ -859,8 +847,8 @@ fn run_telescope(
     };
     // The zero angle of the plate the rows were taken through (for their exposures'
     // demodulations): the one the table says it carries, else the field calibration's.
-    let plate_zero_deg = match table.column(ZERO_ANGLE) {
-        Some(_) => table.numbers(ZERO_ANGLE, &a.input)?.first().copied().unwrap_or(0.0),
+    let plate_zero_deg = match table.carried_zero_angle(&a.input)? {
+        Some(z) => z,
         None => field.map_or(0.0, |c| c.hwp_chi_offset_deg),
     };
     let meas = measurements(&table, field.and_then(|c| c.pixel), a.coords, &a.input)?;
