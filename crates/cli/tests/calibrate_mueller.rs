@@ -540,5 +540,8 @@ fn maps_are_turned_by_their_recorded_zero_angle_before_the_fit() {
     let o = run(&args);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
-    assert!(err.contains("b9.fits") && err.contains("HWPZERO") && err.contains("b1.fits"), "{err}");
+    assert!(
+        err.contains("b9.fits") && err.contains("1.5 deg (HWPZERO)") && err.contains("b1.fits records none"),
+        "{err}"
+    );
 }

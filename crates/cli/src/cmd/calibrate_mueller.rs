@@ -247,17 +247,20 @@ pub fn run(a: Args) -> Result<()> {
     let mut setup: Option<(String, String, field::FieldCoords)> = None;
     // The HWP zero angle the maps record (HWPZERO): each is turned by it into the sky frame of
     // its known polarization (fit::mueller_cal module docs); one value for all of them.
-    let mut zero: Option<(f64, &PathBuf)> = None;
+    let mut zero: Option<(Option<f64>, &PathBuf)> = None;
+    let says = |z: Option<f64>| z.map_or("none (taken as 0 deg)".to_string(), |z| format!("{z} deg"));
     for (path, p, chi, sig) in &specs {
         let map =
             skyfield::maps::StokesMap::read_uncorrected(path).with_context(|| format!("reading {}", path.display()))?;
         let z = map.hwp_zero_angle_deg.unwrap_or(0.0);
         match zero {
-            None => zero = Some((z, path)),
-            Some((z0, first)) if z0 != z => bail!(
-                "{}: records an HWP zero angle of {z} deg (HWPZERO), but {} records {z0} deg: fit the maps of one instrument and filter together",
+            None => zero = Some((map.hwp_zero_angle_deg, path)),
+            Some((z0, first)) if z0.unwrap_or(0.0) != z => bail!(
+                "{}: records an HWP zero angle of {} (HWPZERO), but {} records {}: fit the maps of one instrument and filter together",
                 path.display(),
-                first.display()
+                says(map.hwp_zero_angle_deg),
+                first.display(),
+                says(z0)
             ),
             Some(_) => {}
         }
@@ -283,7 +286,7 @@ pub fn run(a: Args) -> Result<()> {
         fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));
     }
     let n_maps = fields.len();
-    let zero_angle_deg = zero.map_or(0.0, |z| z.0);
+    let zero_angle_deg = zero.and_then(|z| z.0).unwrap_or(0.0);
     if let Some(t) = &a.stars {
         fields.extend(star_fields(t, zero_angle_deg)?);
     }
