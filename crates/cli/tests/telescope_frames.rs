@@ -939,6 +939,18 @@ fn the_chain_undoes_the_telescope_through_a_hwp_zero_angle() {
         eprintln!("catalog --cal through a 7 deg zero angle: star at x = {}: off by {off:.2e}", r["x"]);
         assert!(off < 1e-10, "catalog --cal: {r} {c}");
     }
+    // zero-angle on these Nasmyth frames measures the mirror's turn with the plate's: it says so.
+    let o = instpol()
+        .arg("zero-angle")
+        .args(&frames)
+        .arg("--instrument")
+        .arg(&tiny)
+        .args(["--x", "94", "--y", "34", "--chi-deg", "20", "--aperture", "10", "--annulus", "14,24"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("WARNING") && err.contains("Nasmyth") && err.contains("fit-standards"), "{err}");
 }
 
 /// A sky field through the M3 and a half-wave plate whose zero angle is 7 deg, on ideal frames

@@ -390,6 +390,15 @@ pub fn run(a: Args) -> Result<()> {
     let mut rows: Vec<Meas> = Vec::new();
     if !a.frames.is_empty() {
         let inst = instrument::Instrument::load(&a.instrument)?;
+        if inst.telescope.as_ref().is_some_and(|t| t.focus == instrument::telescope::Focus::Nasmyth) {
+            // The M3's polarization and its turn of a polarized star's angle change with the
+            // parallactic angle, and a Nasmyth telescope model's fitted offset already holds a
+            // constant turn (fit::telescope_cal): the offset measured here mixes the two.
+            eprintln!(
+                "WARNING: instrument {} sits at a Nasmyth focus: the tertiary mirror adds polarization and turns a polarized star's angle by an amount that changes with the parallactic angle, so the offset measured here holds the mirror's turn at these frames' angles besides the plate's zero angle. Fit the mirror with instpol fit-standards (its offset then holds the constant turn) rather than put this value in the instrument file",
+                inst.name
+            );
+        }
         let (f, r) = measure_frames(&a, &inst)?;
         filters.push((f, "the frames".into()));
         rows.extend(r);
