@@ -179,3 +179,41 @@ fn calibrate_from_simulated_frames_through_the_whole_chain() {
     // Only the strips see the sky: about half the field.
     assert!(j["n_bins_used"].as_u64().unwrap() > 1000, "{out}");
 }
+
+/// A map that records another HWP zero angle (`HWPZERO` = 2 deg) than the instrument file gives
+/// its filter now (FORS1 V: 0): `calibrate --map` says so and records the instrument's (the
+/// calibration file's `HWP CHI OFFSET DEG`, read back here); a map that records the same, or
+/// none, draws no such warning.
+#[test]
+fn a_map_reduced_with_another_zero_angle_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let calibrate = |map: &std::path::Path, cal: &std::path::Path| {
+        instpol(&[
+            "calibrate",
+            "--map",
+            map.to_str().unwrap(),
+            "--sky-p",
+            "1.74",
+            "--sky-chi",
+            "-53.8",
+            "--out",
+            cal.to_str().unwrap(),
+        ])
+    };
+    for (recorded, warned) in [(Some(2.0), true), (Some(0.0), false), (None, false)] {
+        let map = dir.path().join("map.fits");
+        write_map(&map, |_| true);
+        let mut m = skyfield::StokesMap::read_fits(&map).unwrap();
+        m.hwp_zero_angle_deg = recorded;
+        std::fs::remove_file(&map).unwrap();
+        m.write_fits(&map).unwrap();
+        let cal = dir.path().join(format!("cal_{recorded:?}.fits"));
+        let (code, _, err) = calibrate(&map, &cal);
+        assert_eq!(code, 0, "{err}");
+        assert_eq!(err.contains("HWPZERO"), warned, "{recorded:?}: {err}");
+        if warned {
+            assert!(err.contains("2 deg") && err.contains("0 deg is used"), "{err}");
+        }
+        assert_eq!(fit::Calibration::load(&cal).unwrap().hwp_chi_offset_deg, 0.0);
+    }
+}

@@ -38,6 +38,20 @@ pub fn zero_angle_of(inst: &str, filter: &str) -> Option<f64> {
     Instrument::load(inst).ok()?.filter(filter).ok().map(|f| f.chi_offset_deg())
 }
 
+/// What to say when a Stokes map records an HWP zero angle (`HWPZERO`, from the instrument file
+/// it was reduced with) other than the one `inst` gives its filter now: the calibration takes
+/// `inst`'s. `None` when they agree or the map records none.
+pub fn zero_angle_disagreement(map: &skyfield::StokesMap, inst: &Instrument) -> Option<String> {
+    let recorded = map.hwp_zero_angle_deg?;
+    let now = inst.filter(&map.filter).ok()?.chi_offset_deg();
+    (recorded != now).then(|| {
+        format!(
+            "the map records an HWP zero angle of {recorded} deg for filter {} (HWPZERO: the instrument file it was reduced with), instrument {} gives {now} deg now: {now} deg is used",
+            map.filter, inst.name
+        )
+    })
+}
+
 /// The wavelength (nm) of a band named by it in micrometres (`0.550um`, as
 /// `telescope::StandardObs` names a band without a filter); `None` for other names.
 pub fn band_wavelength_nm(band: &str) -> Option<f64> {

@@ -231,6 +231,9 @@ pub fn run(a: Args) -> Result<()> {
         }
         (red.map, a.frames.iter().map(|p| p.display().to_string()).collect())
     };
+    if let Some(w) = fit::setup::zero_angle_disagreement(&map, &inst) {
+        eprintln!("warning: {w}");
+    }
     let run = calibrate_map(&map, &sky, &inst, inputs, &opts)?;
     finish(&run, Some(&a.out), a.plots.as_deref(), a.json)
 }
