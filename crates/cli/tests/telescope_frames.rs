@@ -1024,4 +1024,21 @@ fn correct_turns_a_map_by_its_recorded_zero_angle() {
     eprintln!("map through a 7 deg zero angle: {n} bins, worst off the sky by {worst:.2e}");
     assert!(n > 20, "{n} valid bins");
     assert!(worst < 1e-9, "corrected map off the sky by {worst:e}");
+
+    // The same map without its record (as maps before HWPZERO): MINI is no built-in
+    // instrument, so its zero angle is unknown here; correct says so loudly and takes 0.
+    let mut m = skyfield::StokesMap::read_fits(&map).unwrap();
+    m.hwp_zero_angle_deg = None;
+    let bare = d.join("bare.fits");
+    m.write_fits(&bare).unwrap();
+    let out = d.join("bare_corr.fits");
+    let o =
+        instpol().args(["correct", "--cal"]).arg(&tel).arg("--in").arg(&bare).arg("--out").arg(&out).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("warning") && err.contains("HWPZERO") && err.contains("MINI") && err.contains("taken as 0"),
+        "{err}"
+    );
+    assert_eq!(key(&out, "CORRHWP"), 0.0);
 }

@@ -31,11 +31,25 @@ pub fn band_fits_data(inst: &str, filter: &str, band: &str) -> bool {
     same_filter(Instrument::load(inst).ok().as_ref(), filter, band)
 }
 
-/// The HWP zero angle (deg) of instrument `inst` (a name, as a Stokes map records it) in
-/// `filter`: 0 for a filter without one; `None` when the name is not an instrument known here
-/// or the filter not one of its own.
-pub fn zero_angle_of(inst: &str, filter: &str) -> Option<f64> {
-    Instrument::load(inst).ok()?.filter(filter).ok().map(|f| f.chi_offset_deg())
+/// The HWP zero angle (deg) a Stokes map's q, u lack to be in the sky frame: the one it
+/// records (`HWPZERO`), else that of the built-in instrument its `INSTRUME` names in its
+/// filter (maps made before `HWPZERO` was recorded); when neither is known, 0 and what to
+/// say about it. The one rule of the CLI's and the Python package's map corrections with a
+/// telescope model alone.
+pub fn map_zero_angle(map: &skyfield::StokesMap) -> (f64, Option<String>) {
+    let known = map
+        .hwp_zero_angle_deg
+        .or_else(|| Instrument::load(&map.instrument).ok()?.filter(&map.filter).ok().map(|f| f.chi_offset_deg()));
+    match known {
+        Some(z) => (z, None),
+        None => (
+            0.0,
+            Some(format!(
+                "the map records no HWP zero angle (HWPZERO) and instrument {} is not a built-in one, so its zero angle in filter {} is not known here and is taken as 0: chi would be off by it",
+                map.instrument, map.filter
+            )),
+        ),
+    }
 }
 
 /// What to say when a Stokes map records an HWP zero angle (`HWPZERO`, from the instrument file

@@ -875,15 +875,8 @@ impl _Calibration {
                 // The map is at the plate: the zero angle it records (HWPZERO), else its
                 // instrument's (a built-in one known by the name the map records), as
                 // `instpol correct` takes it.
-                let recorded =
-                    map.hwp_zero_angle_deg.or_else(|| fit::setup::zero_angle_of(&map.instrument, &map.filter));
-                let zero_angle_deg = recorded.unwrap_or_else(|| {
-                    notes.push(format!(
-                        "the map records no HWP zero angle (HWPZERO) and instrument {} is not a built-in one, so its zero angle in filter {} is not known here and is taken as 0: chi would be off by it",
-                        map.instrument, map.filter
-                    ));
-                    0.0
-                });
+                let (zero_angle_deg, unknown) = fit::setup::map_zero_angle(&map);
+                notes.extend(unknown);
                 MapCorrection::Chain {
                     field: None,
                     telescope: t,

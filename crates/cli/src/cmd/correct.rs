@@ -585,18 +585,14 @@ fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Ca
     let track = shared_track(a, tel, "a Stokes map", (map.parallactic_rad, map.rotator_rad))?;
     // The map is at the plate: without a field calibration its zero angle is the one it
     // records (HWPZERO), else its instrument's (a built-in one known by the name it records).
-    let recorded = map.hwp_zero_angle_deg.or_else(|| fit::setup::zero_angle_of(&map.instrument, &map.filter));
-    let zero_angle_deg = match (field, recorded) {
-        (Some(c), _) => c.hwp_chi_offset_deg,
-        (None, Some(z)) => z,
-        (None, None) => {
-            eprintln!(
-                "warning: {}: the map records no HWP zero angle (HWPZERO) and instrument {} is not a built-in one, so its zero angle in filter {} is not known here and is taken as 0: chi would be off by it",
-                a.input.display(),
-                map.instrument,
-                map.filter
-            );
-            0.0
+    let zero_angle_deg = match field {
+        Some(c) => c.hwp_chi_offset_deg,
+        None => {
+            let (z, unknown) = fit::setup::map_zero_angle(&map);
+            if let Some(w) = unknown {
+                eprintln!("warning: {}: {w}", a.input.display());
+            }
+            z
         }
     };
     let with = fit::correct::MapCorrection::Chain {
