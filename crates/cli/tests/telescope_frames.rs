@@ -913,6 +913,7 @@ fn the_chain_undoes_the_telescope_through_a_hwp_zero_angle() {
     assert_eq!(o.status.code(), Some(0), "{out} {err}");
     let j: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert_eq!(j["exposures"], 8, "{j}");
+    assert_eq!(j["hwp_chi_offset_deg"], 7.0, "{j}");
     let r = j["corrected_q"].as_f64().unwrap().hypot(j["corrected_u"].as_f64().unwrap());
     let measured = j["measured_q"].as_f64().unwrap().hypot(j["measured_u"].as_f64().unwrap());
     eprintln!("validate through a 7 deg zero angle: measured {measured:.2e}, corrected {r:.2e}");

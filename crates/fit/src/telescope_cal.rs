@@ -710,6 +710,9 @@ pub struct ChainValidation {
     pub parallactic_end_deg: f64,
     /// The rotator angle applied (0 when the model was fitted without rotator angles).
     pub rotator_deg: f64,
+    /// The HWP zero angle (deg) the star, measured at the plate, was turned by into the sky
+    /// frame (module docs).
+    pub hwp_chi_offset_deg: f64,
     /// Exposures whose telescope was undone one by one, each over its own parallactic track
     /// and demodulated together; 0 when the set's one track was used.
     pub exposures: usize,
@@ -817,6 +820,7 @@ pub fn validate_chain(
         parallactic_start_deg: track.start.to_degrees(),
         parallactic_end_deg: track.end.to_degrees(),
         rotator_deg: track.rotator.to_degrees(),
+        hwp_chi_offset_deg: zero_angle,
         exposures: ex.len(),
         measured_q: measured.q,
         measured_u: measured.u,

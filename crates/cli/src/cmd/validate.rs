@@ -49,7 +49,8 @@ use std::path::{Path, PathBuf};
 /// telescope_u (what the telescope makes of an unpolarized star there), corrected_q,
 /// corrected_u, their sigma_, corrected_p, corrected_chi_deg, expected_q, expected_u,
 /// corrected_pull, uncorrected_pull, pass, parallactic_start_deg, parallactic_end_deg (the
-/// set's first start and last end), rotator_deg, exposures
+/// set's first start and last end), rotator_deg, hwp_chi_offset_deg (the zero angle the star
+/// was turned by), exposures
 /// (schemas/validate-telescope.schema.json).
 ///
 /// Example (EFOSC2 standard, telescope model from fit-standards):
@@ -360,10 +361,11 @@ fn run_telescope(a: &Args) -> Result<()> {
             r.rotator_deg
         );
         outln!(
-            "calibration {} ({} telescope model{})",
+            "calibration {} ({} telescope model{}, HWP zero angle {:+.2} deg)",
             a.cal.display(),
             r.telescope_model,
-            if r.field_model { " after the field model" } else { "" }
+            if r.field_model { " after the field model" } else { "" },
+            r.hwp_chi_offset_deg
         );
         outln!(
             "  measured   q = {:.3} +- {:.3} %   u = {:.3} +- {:.3} %  (telescope alone: q = {:.3} %, u = {:.3} %)",
