@@ -192,9 +192,8 @@ pub fn correct_catalog_chain(
         }
     }
     let cor = field.map(|c| Corrector::new(c, CorrectOptions { chi_offset: 0.0, ..opts }));
-    let dchi = field.map_or(0.0, |c| c.hwp_chi_offset_deg - cat.chi_offset_deg);
-    // The exposures were taken through the plate whose zero angle the catalog carries.
-    let prepared = crate::telescope_cal::prepare_recorded(tel, band, track, exposures, cat.chi_offset_deg.to_radians())
+    let (dchi, plate) = crate::correct::row_zero_angles(field.map(|c| c.hwp_chi_offset_deg), Some(cat.chi_offset_deg));
+    let prepared = crate::telescope_cal::prepare_recorded(tel, band, track, exposures, plate.to_radians())
         .map_err(Error::Exposures)?;
     let seen = prepared.as_ref().map_or(Seen::Track(track), Seen::Prepared);
     let (rows, n_extrapolated) = correct_rows(cat, |r, m| {

@@ -326,6 +326,19 @@ pub fn to_sky_frame(m: &Measurement, offset: f64) -> Measurement {
     Measurement { q, u, sigma_q: vq.max(0.0).sqrt(), sigma_u: vu.max(0.0).sqrt(), cov_qu, ..*m }
 }
 
+/// The HWP zero angles (deg) for correcting rows whose q, u carry `carried` already (`None`:
+/// at the plate, as measured) with a field calibration of zero angle `field` (`None`: a
+/// telescope model alone): `(to_sky, plate)`. `to_sky` is what the rows are turned by: the
+/// field's less what they carry (so that a catalog of `instpol catalog` is not turned twice),
+/// nothing without a field (the rows are taken in their own frame, as the telescope's
+/// standards were). `plate` is the zero angle of the plate the exposures were taken through,
+/// for their demodulation (`telescope_cal::telescope_exposures`): the carried one, else the
+/// field's, else 0. The one rule of the CLI's tables, `catalog_correct` and the Python package.
+pub fn row_zero_angles(field: Option<f64>, carried: Option<f64>) -> (f64, f64) {
+    let to_sky = field.map_or(0.0, |z| z - carried.unwrap_or(0.0));
+    (to_sky, carried.or(field).unwrap_or(0.0))
+}
+
 /// `J C J^T` for symmetric `C = [[a, c], [c, b]]`, returned as `(var_q, var_u, cov)`.
 #[inline]
 pub(crate) fn sandwich(j: &[[f64; 2]; 2], a: f64, b: f64, c: f64) -> (f64, f64, f64) {

@@ -590,8 +590,14 @@ impl _Calibration {
         if carried_deg.is_some_and(|z| !(z.is_finite() && z.abs() <= 720.0)) {
             return Err(input_err("hwp_chi_offset_deg must be finite degrees"));
         }
-        let carried_given = carried_deg.or_else(|| recorded.as_ref().and_then(|r| r.zero_angle_deg));
-        let carried = carried_given.unwrap_or(0.0);
+        let carried = carried_deg.or_else(|| recorded.as_ref().and_then(|r| r.zero_angle_deg));
+        // (to_sky, plate) of fit::correct::row_zero_angles: the field's (or a Mueller field's)
+        // zero angle less the carried one; without a field, none.
+        let field_zero = match &self.field {
+            Field::TelescopeOnly { .. } => None,
+            _ => Some(self.hwp_chi_offset_deg()),
+        };
+        let (to_sky_deg, plate_deg) = fit::correct::row_zero_angles(field_zero, carried);
         let est: Option<Estimator> =
             estimator.map(|e| e.parse().map_err(|e| input_err(format!("estimator: {e}")))).transpose()?;
         let (x, y, q, u) = (slice(&x, "x")?, slice(&y, "y")?, slice(&q, "q")?, slice(&u, "u")?);
@@ -636,9 +642,8 @@ impl _Calibration {
                     .choose_track(None, Some(r.track), None, r.rotator)
                     .map_err(|_| input_err("recorded: the telescope model was fitted with rotator angles and the catalog recorded none"))?
                     .track;
-                // The zero angle of the plate the exposures were taken through: the one the
-                // catalog's q, u carry, else the field calibration's (none without either).
-                let z = carried_given.unwrap_or(self.hwp_chi_offset_deg()).to_radians();
+                // The zero angle of the plate the exposures were taken through.
+                let z = plate_deg.to_radians();
                 let p = fit::telescope_cal::prepare_recorded(t, &b, track, &r.exposures, z)
                     .map_err(|e| input_err(format!("recorded: {e}")))?
                     .ok_or_else(|| input_err("recorded: no exposures"))?;
@@ -685,7 +690,7 @@ impl _Calibration {
             // With a telescope model the chain applies the zero angle itself, once, before
             // both models (module docs of fit::telescope_cal), as `instpol correct` does.
             // A Mueller field likewise: its maps' zero angle less what the rows carry.
-            chi_offset: if telescope.is_some() { 0.0 } else { (self.hwp_chi_offset_deg() - carried).to_radians() },
+            chi_offset: if telescope.is_some() { 0.0 } else { to_sky_deg.to_radians() },
         };
         let input = Inputs { x, y, q, u, sq, su, cov };
         let mut cols: Vec<Vec<f64>> = (0..N_OUT).map(|_| reserved_column(n)).collect();
@@ -701,11 +706,10 @@ impl _Calibration {
             };
             match (&self.field, &telescope) {
                 (Field::PPhi(c), Some((t, tracks, b))) => {
-                    let to_sky = (c.hwp_chi_offset_deg - carried).to_radians();
-                    fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, *tracks, to_sky, sink)
+                    fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, *tracks, to_sky_deg.to_radians(), sink)
                 }
                 (Field::TelescopeOnly { .. }, Some((t, tracks, b))) => {
-                    fill_chain(None, t, b, &input, *tracks, 0.0, sink)
+                    fill_chain(None, t, b, &input, *tracks, to_sky_deg.to_radians(), sink)
                 }
                 (Field::TelescopeOnly { .. }, None) => Err((0, "a telescope-only calibration needs parang_deg".into())),
                 (Field::PPhi(c), None) => {

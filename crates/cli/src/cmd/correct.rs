@@ -288,16 +288,22 @@ fn zero_angle_of_the_table(
     mut opts: CorrectOptions,
     path: &Path,
 ) -> Result<CorrectOptions> {
-    let Some(z0) = t.carried_zero_angle(path)? else { return Ok(opts) };
-    let d = cal_offset_deg - z0;
-    if d != 0.0 {
+    let carried = t.carried_zero_angle(path)?;
+    let (d, _) = fit::correct::row_zero_angles(Some(cal_offset_deg), carried);
+    note_carried(path, carried, cal_offset_deg, d);
+    opts.chi_offset = d.to_radians();
+    Ok(opts)
+}
+
+/// Say when a table's q, u carry a zero angle (`carried`) and only the calibration's
+/// difference `d` is applied to them.
+fn note_carried(path: &Path, carried: Option<f64>, cal_offset_deg: f64, d: f64) {
+    if let Some(z0) = carried.filter(|_| d != 0.0) {
         eprintln!(
             "note: {}: q, u already carry the HWP zero angle {z0} deg (column '{ZERO_ANGLE}'); the calibration's is {cal_offset_deg} deg: the difference {d} deg is applied",
             path.display()
         );
     }
-    opts.chi_offset = d.to_radians();
-    Ok(opts)
 }
 
 /// --band, --parang and --rotator given for a calibration without a telescope model (`what`
@@ -835,18 +841,13 @@ fn run_telescope(
     // there by the field calibration's zero angle less the one they carry (as without a
     // telescope). Without a field, rows are taken in the frame they are in: instpol catalogs
     // carry their zero angle, as the standards the telescope model was fitted to did.
-    let to_sky_deg = match field {
-        Some(c) => {
-            zero_angle_of_the_table(&table, c.hwp_chi_offset_deg, options(c, a), &a.input)?.chi_offset.to_degrees()
-        }
-        None => 0.0,
-    };
-    // The zero angle of the plate the rows were taken through (for their exposures'
-    // demodulations): the one the table says it carries, else the field calibration's.
-    let plate_zero_deg = match table.carried_zero_angle(&a.input)? {
-        Some(z) => z,
-        None => field.map_or(0.0, |c| c.hwp_chi_offset_deg),
-    };
+    // The plate's zero angle (for the exposures' demodulations) is the one the table carries,
+    // else the field calibration's.
+    let carried = table.carried_zero_angle(&a.input)?;
+    let (to_sky_deg, plate_zero_deg) = fit::correct::row_zero_angles(field.map(|c| c.hwp_chi_offset_deg), carried);
+    if let Some(c) = field {
+        note_carried(&a.input, carried, c.hwp_chi_offset_deg, to_sky_deg);
+    }
     let meas = measurements(&table, field.and_then(|c| c.pixel), a.coords, &a.input)?;
     let mut by_exposure: Vec<skyfield::ExposureTrack> = vec![];
     let tracks: Vec<Track> = if table.column(PARANG[0]).is_some() {
