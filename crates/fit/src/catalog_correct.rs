@@ -127,7 +127,7 @@ pub fn correct_catalog(
     if !cal.instrument.eq_ignore_ascii_case(instrument) {
         return Err(Error::Instrument { cal: cal.instrument.clone(), frames: instrument.to_string() });
     }
-    let dchi = cal.hwp_chi_offset_deg - cat.chi_offset_deg;
+    let (dchi, _) = crate::correct::row_zero_angles(Some(cal.hwp_chi_offset_deg), Some(cat.chi_offset_deg));
     opts.chi_offset = dchi.to_radians();
     let cor = Corrector::new(cal, opts);
     let (rows, n_extrapolated) = correct_rows(cat, |r, m| {

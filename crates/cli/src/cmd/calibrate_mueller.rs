@@ -124,8 +124,8 @@ fn same_setup(a: &(String, String, field::FieldCoords), b: &(String, String, fie
 /// column `hwp_chi_offset_deg`, as `instpol catalog` writes it; q, u at the plate without it).
 fn star_fields(path: &std::path::Path, zero_angle_deg: f64) -> Result<Vec<CalField>> {
     let t = skyfield::table::Table::read(path, None)?;
-    let carried = t.carried_zero_angle(path)?.unwrap_or(0.0);
-    let turn = (zero_angle_deg - carried).to_radians();
+    let (turn, _) = fit::correct::row_zero_angles(Some(zero_angle_deg), t.carried_zero_angle(path)?);
+    let turn = turn.to_radians();
     let pick = |names: &[&str]| -> Result<Vec<f64>> {
         for n in names {
             if t.column(n).is_some() {
