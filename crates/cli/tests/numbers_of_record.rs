@@ -53,11 +53,7 @@ fn normalize(v: &mut Value, out: &str) {
             m.values_mut().for_each(|x| normalize(x, out));
         }
         Value::Array(a) => a.iter_mut().for_each(|x| normalize(x, out)),
-        Value::String(s) => {
-            if s.contains(out) {
-                *s = s.replace(out, "{OUT}");
-            }
-        }
+        Value::String(s) if s.contains(out) => *s = s.replace(out, "{OUT}"),
         _ => {}
     }
 }
