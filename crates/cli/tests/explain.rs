@@ -22,7 +22,7 @@ fn fields(ret_deg: f64) -> Vec<CalField> {
                     let b = physical_block(2e-4 * (x * x - y * y), 4e-4 * x * y, retardance_vector(d, ax), 0.0, 0.0);
                     let (q, u) = b.forward(q0, u0).unwrap();
                     let v = 1e-8;
-                    obs.push(Observation { x_arcmin: x, y_arcmin: y, q, u, var_q: v, var_u: v, cov_qu: 0.0 });
+                    obs.push(Observation::new(x, y, q, u, v, v, 0.0));
                 }
             }
             CalField::from_p_chi("f", p, chi, 0.0, obs)

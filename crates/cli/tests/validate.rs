@@ -40,7 +40,7 @@ fn paper_star_px(inst: &Instrument) -> (f64, f64) {
 fn write_star_frames(dir: &Path, inst: &Instrument, x: f64, y: f64, p0: f64, chi0: f64) -> Vec<PathBuf> {
     let v = v_cal();
     let (xa, ya) = inst.pixel_to_arcmin(x, y);
-    let (p, phi) = v.eval(xa, ya).p_phi();
+    let (p, phi) = v.eval(xa, ya).p_chi();
     let train = DualBeam { pre: vec![Element::PartialPolarizer { p, phi }], ..Default::default() }.compile();
     let g = BeamGeometry::new(inst);
     let (nx, ny) = (inst.detector.nx, inst.detector.ny);

@@ -3,21 +3,8 @@
 /// The instrumental polarization at one field position: the normalized Stokes parameters
 /// `q = p cos 2phi`, `u = p sin 2phi` of the partial polarizer `M_I(p, phi)` (`eq:instpol`)
 /// with the model's own uncertainty (covariance of q, u from the fit or the interpolation).
-#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
-pub struct InstPol {
-    pub q: f64,
-    pub u: f64,
-    pub var_q: f64,
-    pub var_u: f64,
-    pub cov_qu: f64,
-}
-
-impl InstPol {
-    /// `(p, phi)` with phi in [0, pi).
-    pub fn p_phi(&self) -> (f64, f64) {
-        stokes::polarization(self.q, self.u)
-    }
-}
+/// It is the one `(q, u)` value of the workspace, [`mueller::Qu`]: `p_chi()` gives `(p, phi)`.
+pub type InstPol = mueller::Qu;
 
 /// A model of the instrumental polarization over the field: a value that says what `M_I`
 /// is at a position. Positions are in arcminutes about the field origin of
@@ -49,7 +36,7 @@ pub trait FieldModel: Send + Sync {
     /// and `phi` (a radial pattern) returns them directly, without the round trip through
     /// `(q, u)`.
     fn p_phi(&self, x_arcmin: f64, y_arcmin: f64) -> (f64, f64) {
-        self.eval(x_arcmin, y_arcmin).p_phi()
+        self.eval(x_arcmin, y_arcmin).p_chi()
     }
 
     /// The model's free parameters, in the order of [`covariance`](Self::covariance) and

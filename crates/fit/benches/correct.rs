@@ -35,15 +35,15 @@ fn catalog(n: usize) -> Vec<Measurement> {
     (0..n)
         .map(|i| {
             let t = i as f64;
-            Measurement {
-                x: 3.4 * (0.618_033_988_7 * t).fract() * 2.0 - 3.4,
-                y: 3.4 * (0.754_877_666_2 * t).fract() * 2.0 - 3.4,
-                q: 0.01 * (0.1 * t).cos(),
-                u: 0.01 * (0.1 * t).sin(),
-                sigma_q: 5e-4,
-                sigma_u: 5e-4,
-                cov_qu: 0.0,
-            }
+            Measurement::new(
+                3.4 * (0.618_033_988_7 * t).fract() * 2.0 - 3.4,
+                3.4 * (0.754_877_666_2 * t).fract() * 2.0 - 3.4,
+                0.01 * (0.1 * t).cos(),
+                0.01 * (0.1 * t).sin(),
+                5e-4,
+                5e-4,
+                0.0,
+            )
         })
         .collect()
 }

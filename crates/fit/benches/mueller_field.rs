@@ -38,15 +38,7 @@ fn fields() -> Vec<CalField> {
                 for i in 0..60 {
                     let (x, y) = (-3.4 + 6.8 * (i as f64 + 0.5) / 60.0, -3.4 + 6.8 * (j as f64 + 0.5) / 45.0);
                     let (q, u) = truth(x, y).forward(q0, u0).unwrap();
-                    obs.push(Observation {
-                        x_arcmin: x,
-                        y_arcmin: y,
-                        q: q + n.sample(&mut rng),
-                        u: u + n.sample(&mut rng),
-                        var_q: 9e-8,
-                        var_u: 9e-8,
-                        cov_qu: 0.0,
-                    });
+                    obs.push(Observation::new(x, y, q + n.sample(&mut rng), u + n.sample(&mut rng), 9e-8, 9e-8, 0.0));
                 }
             }
             CalField::from_p_chi(&format!("sky{k}"), p, chi, 0.0, obs)

@@ -153,15 +153,8 @@ fn correct_rows(
 
 /// The measurement of a catalog row (`None` for a star not measured).
 fn measurement(r: &skyfield::catalog::Row) -> Option<Measurement> {
-    (r.q.is_finite() && r.u.is_finite()).then_some(Measurement {
-        x: r.x_arcmin,
-        y: r.y_arcmin,
-        q: r.q,
-        u: r.u,
-        sigma_q: r.sigma_q,
-        sigma_u: r.sigma_u,
-        cov_qu: r.cov_qu,
-    })
+    (r.q.is_finite() && r.u.is_finite())
+        .then_some(Measurement::new(r.x_arcmin, r.y_arcmin, r.q, r.u, r.sigma_q, r.sigma_u, r.cov_qu))
 }
 
 /// Correct every measured star of `cat` (taken with `instrument`) through the chain of the

@@ -56,6 +56,7 @@
 //! (`M_I`, then a plate with a zero-angle offset) and recovers the sky exactly.
 
 use crate::model::{FieldModel, InstPol};
+use mueller::Qu;
 
 /// Errors of the correction; each names the position or the input that was wrong.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -149,18 +150,26 @@ impl<M: FieldModel + ?Sized> FieldModel for WithModelError<'_, M> {
     }
 }
 
-/// A measurement to correct: position in arcmin from the detector centre, normalized Stokes
-/// parameters as fractions, their 1-sigma errors and covariance.
+/// A measurement to correct: position in arcmin from the detector centre and the measured
+/// normalized Stokes parameters with their covariance (fractions).
 #[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub struct Measurement {
     pub x: f64,
     pub y: f64,
-    pub q: f64,
-    pub u: f64,
-    pub sigma_q: f64,
-    pub sigma_u: f64,
-    #[serde(default)]
-    pub cov_qu: f64,
+    #[serde(flatten)]
+    pub qu: Qu,
+}
+
+impl Measurement {
+    /// `(q, u)` at `(x, y)` arcmin with 1-sigma errors and a covariance, as tables give them.
+    pub fn new(x: f64, y: f64, q: f64, u: f64, sigma_q: f64, sigma_u: f64, cov_qu: f64) -> Self {
+        Self { x, y, qu: Qu::from_sigmas(q, u, sigma_q, sigma_u, cov_qu) }
+    }
+
+    /// `qu` at `(x, y)` arcmin.
+    pub fn at(x: f64, y: f64, qu: Qu) -> Self {
+        Self { x, y, qu }
+    }
 }
 
 /// The intrinsic polarization of a source after correction.
@@ -224,11 +233,11 @@ impl Corrected {
 }
 
 /// Rotate normalized Stokes parameters for a polarization-angle change of `+offset` (rad):
-/// `chi -> chi + offset`.
+/// `chi -> chi + offset` ([`Qu::rotated`] of an exact value).
 #[inline]
 pub fn rotate_chi(q: f64, u: f64, offset: f64) -> (f64, f64) {
-    let (s, c) = (2.0 * offset).sin_cos();
-    (c * q - s * u, s * q + c * u)
+    let r = Qu::new(q, u, 0.0, 0.0, 0.0).rotated(offset);
+    (r.q, r.u)
 }
 
 /// Exact inversion of `eq:instpol` by nalgebra: `S0 ∝ M_I(p, phi)^-1 (1, q1, u1, 0)`,
@@ -304,26 +313,10 @@ pub fn exact_jacobian(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<((f64, f64),
     Ok(((q0, u0), jm, ja))
 }
 
-/// `(q, u)` of `m` and their covariance `(var_q, var_u, cov_qu)` in a frame where every chi is
-/// larger by `offset` (`cos2 = cos 2 offset`, `sin2 = sin 2 offset`): `R (q, u)` and `R C R^T`
-/// with `R = [[cos2, -sin2], [sin2, cos2]]`. How a measurement at the plate is brought into the
-/// sky frame by the HWP zero angle (module docs).
-#[inline]
-fn rotated(m: &Measurement, cos2: f64, sin2: f64) -> [f64; 5] {
-    let (c, s) = (cos2, sin2);
-    let (vq, vu, cv) = sandwich(&[[c, -s], [s, c]], m.sigma_q * m.sigma_q, m.sigma_u * m.sigma_u, m.cov_qu);
-    [c * m.q - s * m.u, s * m.q + c * m.u, vq, vu, cv]
-}
-
 /// `m` in the sky frame: its chi larger by the HWP zero angle `offset` (rad), its covariance
-/// turned alike (`R C R^T`). `m` itself when `offset` is 0.
+/// turned alike (`R C R^T`, [`Qu::rotated`]). `m` itself when `offset` is 0.
 pub fn to_sky_frame(m: &Measurement, offset: f64) -> Measurement {
-    if offset == 0.0 {
-        return *m;
-    }
-    let (s, c) = (2.0 * offset).sin_cos();
-    let [q, u, vq, vu, cov_qu] = rotated(m, c, s);
-    Measurement { q, u, sigma_q: vq.max(0.0).sqrt(), sigma_u: vu.max(0.0).sqrt(), cov_qu, ..*m }
+    Measurement { qu: m.qu.rotated(offset), ..*m }
 }
 
 /// The HWP zero angles (deg) for correcting rows whose q, u carry `carried` already (`None`:
@@ -339,46 +332,32 @@ pub fn row_zero_angles(field: Option<f64>, carried: Option<f64>) -> (f64, f64) {
     (to_sky, carried.or(field).unwrap_or(0.0))
 }
 
-/// `J C J^T` for symmetric `C = [[a, c], [c, b]]`, returned as `(var_q, var_u, cov)`.
-#[inline]
-pub(crate) fn sandwich(j: &[[f64; 2]; 2], a: f64, b: f64, c: f64) -> (f64, f64, f64) {
-    let r0 = [j[0][0] * a + j[0][1] * c, j[0][0] * c + j[0][1] * b];
-    let r1 = [j[1][0] * a + j[1][1] * c, j[1][0] * c + j[1][1] * b];
-    (r0[0] * j[0][0] + r0[1] * j[0][1], r1[0] * j[1][0] + r1[1] * j[1][1], r0[0] * j[1][0] + r0[1] * j[1][1])
-}
-
 /// `P`, `chi` of `(q, u)` with their linearized errors (`eq:sigp`, `eq:sigchi` generalized to a
-/// full covariance). At `P = 0` the error of `P` is `sqrt((var_q + var_u) / 2)` and the angle is
-/// unconstrained; the angle error is capped at `pi / sqrt(12)` (a uniform angle).
+/// full covariance): [`Qu::p_chi_with_errors`], as a tuple `(P, sigma_P, chi, sigma_chi)`.
 #[inline]
 pub fn p_chi_with_errors(q: f64, u: f64, vq: f64, vu: f64, c: f64) -> (f64, f64, f64, f64) {
-    const SIGMA_CHI_MAX: f64 = 0.906_899_682_117_108_9; // pi / sqrt(12)
-    let (p, chi) = stokes::polarization(q, u);
-    if p > 0.0 {
-        let p2 = p * p;
-        let sp = ((q * q * vq + u * u * vu + 2.0 * q * u * c).max(0.0) / p2).sqrt();
-        let sc = 0.5 * ((u * u * vq + q * q * vu - 2.0 * q * u * c).max(0.0)).sqrt() / p2;
-        (p, sp, chi, sc.min(SIGMA_CHI_MAX))
-    } else {
-        (p, (0.5 * (vq + vu)).max(0.0).sqrt(), chi, SIGMA_CHI_MAX)
-    }
+    let e = Qu::new(q, u, vq, vu, c).p_chi_with_errors();
+    (e.p, e.sigma_p, e.chi, e.sigma_chi)
 }
 
 /// Refuse a measurement with a non-finite position or value, or a non-finite or negative
 /// error, naming the input.
 #[inline]
 pub(crate) fn check_measurement(m: &Measurement) -> Result<(), Error> {
-    for (what, v) in [("x", m.x), ("y", m.y), ("q", m.q), ("u", m.u), ("cov_qu", m.cov_qu)] {
+    for (what, v) in [("x", m.x), ("y", m.y), ("q", m.qu.q), ("u", m.qu.u), ("cov_qu", m.qu.cov_qu)] {
         if !v.is_finite() {
             return Err(Error::NonFinite { what, value: v });
         }
     }
-    for (what, v) in [("sigma_q", m.sigma_q), ("sigma_u", m.sigma_u)] {
+    // The errors are held as variances; a negative error is held as a negative variance
+    // (`Qu::from_sigmas`) and a square that overflowed as infinity: both refused here, with the
+    // error's own value where it is known.
+    for (what, v) in [("sigma_q", m.qu.var_q), ("sigma_u", m.qu.var_u)] {
         if !v.is_finite() {
-            return Err(Error::NonFinite { what, value: v });
+            return Err(Error::NonFinite { what, value: if v.is_nan() { v } else { v.abs().sqrt() } });
         }
         if v < 0.0 {
-            return Err(Error::Negative { what, value: v });
+            return Err(Error::Negative { what, value: -(-v).sqrt() });
         }
     }
     Ok(())
@@ -405,7 +384,7 @@ pub(crate) fn check_measurement(m: &Measurement) -> Result<(), Error> {
 /// }
 ///
 /// let c = Corrector::new(&Flat, CorrectOptions::default());
-/// let m = Measurement { x: 1.0, y: -0.5, q: 0.01, u: 0.0, sigma_q: 1e-4, sigma_u: 1e-4, cov_qu: 0.0 };
+/// let m = Measurement::new(1.0, -0.5, 0.01, 0.0, 1e-4, 1e-4, 0.0);
 /// let r = c.correct(&m).unwrap();
 /// assert!(r.p0 < 1e-12); // an unpolarized star seen through the instrument
 /// assert!(c.correct(&Measurement { x: 3.0, ..m }).is_err()); // outside the field
@@ -457,15 +436,15 @@ impl<'a, M: FieldModel + ?Sized> Corrector<'a, M> {
         check_measurement(m)?;
         let (a, extrapolated) = self.instrumental(m.x, m.y)?;
         // Zero angle first: the measured (q, u) are at the plate; M_I lives in the sky frame.
-        let [q1, u1, vq1, vu1, cv1] = rotated(m, self.cos2off, self.sin2off);
+        let Qu { q: q1, u: u1, var_q: vq1, var_u: vu1, cov_qu: cv1 } = m.qu.rotated_cos_sin(self.cos2off, self.sin2off);
         let (q0, u0, vq0, vu0, cv0) = match self.opts.method {
             Method::Exact => {
                 let ((q0, u0), jm, ja) = exact_jacobian(a.q, a.u, q1, u1).map_err(|e| match e {
                     Error::Unphysical { p, .. } => Error::Unphysical { p, x: m.x, y: m.y },
                     e => e,
                 })?;
-                let (aq, au, ac) = sandwich(&jm, vq1, vu1, cv1);
-                let (bq, bu, bc) = sandwich(&ja, a.var_q, a.var_u, a.cov_qu);
+                let (aq, au, ac) = mueller::sandwich(&jm, vq1, vu1, cv1);
+                let (bq, bu, bc) = mueller::sandwich(&ja, a.var_q, a.var_u, a.cov_qu);
                 (q0, u0, aq + bq, au + bu, ac + bc)
             }
             Method::FirstOrder => {
@@ -632,24 +611,12 @@ pub fn correct_map_with(
         .map(|&k| {
             let (i, j) = (k % g.nx, k / g.nx);
             let (x, y) = g.centre_arcmin(i, j);
-            let meas = Measurement {
-                x,
-                y,
-                q: map.q[k],
-                u: map.u[k],
-                sigma_q: map.sigma_q[k],
-                sigma_u: map.sigma_u[k],
-                cov_qu: map.cov_qu[k],
-            };
+            let meas = Measurement::new(x, y, map.q[k], map.u[k], map.sigma_q[k], map.sigma_u[k], map.cov_qu[k]);
             let bin_err = |source| MapError::Bin { i, j, x, y, source };
             let r = correct(&meas).map_err(bin_err)?;
-            let rp = correct(&Measurement {
-                sigma_q: map.sigma_q_phot[k],
-                sigma_u: map.sigma_u_phot[k],
-                cov_qu: 0.0,
-                ..meas
-            })
-            .map_err(bin_err)?;
+            let rp =
+                correct(&Measurement::new(x, y, map.q[k], map.u[k], map.sigma_q_phot[k], map.sigma_u_phot[k], 0.0))
+                    .map_err(bin_err)?;
             Ok((r, rp))
         })
         .collect();

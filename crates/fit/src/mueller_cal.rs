@@ -149,15 +149,9 @@ impl MuellerCal {
         if !inside && !opts.allow_extrapolation {
             return Err(correct::Error::OutsideField { x: m.x, y: m.y });
         }
-        let (s, c) = (2.0 * opts.chi_offset).sin_cos();
-        let (q1, u1) = (c * m.q - s * m.u, s * m.q + c * m.u);
-        let (vq, vu, cv) = (m.sigma_q * m.sigma_q, m.sigma_u * m.sigma_u, m.cov_qu);
-        // The rotation's sandwich on [[vq, cv], [cv, vu]].
-        let var1 = [
-            c * c * vq - 2.0 * c * s * cv + s * s * vu,
-            c * s * (vq - vu) + (c * c - s * s) * cv,
-            s * s * vq + 2.0 * c * s * cv + c * c * vu,
-        ];
+        let m1 = m.qu.rotated(opts.chi_offset);
+        let (q1, u1) = (m1.q, m1.u);
+        let var1 = [m1.var_q, m1.cov_qu, m1.var_u];
         let ((q0, u0), mut cov) =
             self.field.correct(m.x, m.y, q1, u1, var1).map_err(|e| correct::Error::Mueller(e.to_string()))?;
         if !inside {

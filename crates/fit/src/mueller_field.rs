@@ -29,11 +29,15 @@ use nalgebra::{DMatrix, DVector, Matrix3};
 pub struct Observation {
     pub x_arcmin: f64,
     pub y_arcmin: f64,
-    pub q: f64,
-    pub u: f64,
-    pub var_q: f64,
-    pub var_u: f64,
-    pub cov_qu: f64,
+    #[serde(flatten)]
+    pub qu: mueller::Qu,
+}
+
+impl Observation {
+    /// `(q, u)` with its covariance at `(x, y)` arcmin.
+    pub fn new(x_arcmin: f64, y_arcmin: f64, q: f64, u: f64, var_q: f64, var_u: f64, cov_qu: f64) -> Self {
+        Self { x_arcmin, y_arcmin, qu: mueller::Qu::new(q, u, var_q, var_u, cov_qu) }
+    }
 }
 
 /// A calibration field: its known sky polarization (with a 1-sigma uncertainty on each of
@@ -547,16 +551,18 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
         let before = keyed.len();
         let s2 = f.sigma_sky * f.sigma_sky;
         for o in &f.obs {
-            let (a, b, c) = (o.var_q + s2, o.cov_qu, o.var_u + s2);
+            let (a, b, c) = (o.qu.var_q + s2, o.qu.cov_qu, o.qu.var_u + s2);
             let det = a * c - b * b;
-            let ok =
-                [o.x_arcmin, o.y_arcmin, o.q, o.u].iter().all(|v| v.is_finite()) && a > 0.0 && c > 0.0 && det > 0.0;
+            let ok = [o.x_arcmin, o.y_arcmin, o.qu.q, o.qu.u].iter().all(|v| v.is_finite())
+                && a > 0.0
+                && c > 0.0
+                && det > 0.0;
             if !ok {
                 continue;
             }
             keyed.push((
                 (o.x_arcmin.to_bits(), o.y_arcmin.to_bits()),
-                Row { sky: (f.sky_q, f.sky_u), meas: (o.q, o.u), w: [c / det, -b / det, a / det] },
+                Row { sky: (f.sky_q, f.sky_u), meas: (o.qu.q, o.qu.u), w: [c / det, -b / det, a / det] },
             ));
             bounds = [
                 bounds[0].min(o.x_arcmin),
@@ -1024,15 +1030,15 @@ pub fn observations_of_map(map: &skyfield::maps::StokesMap) -> Vec<Observation> 
     map.valid_bins()
         .map(|(k, i, j)| {
             let (x, y) = map.geometry.centre_arcmin(i, j);
-            Observation {
-                x_arcmin: x,
-                y_arcmin: y,
-                q: map.q[k],
-                u: map.u[k],
-                var_q: map.sigma_q[k] * map.sigma_q[k],
-                var_u: map.sigma_u[k] * map.sigma_u[k],
-                cov_qu: map.cov_qu[k],
-            }
+            Observation::new(
+                x,
+                y,
+                map.q[k],
+                map.u[k],
+                map.sigma_q[k] * map.sigma_q[k],
+                map.sigma_u[k] * map.sigma_u[k],
+                map.cov_qu[k],
+            )
         })
         .collect()
 }
@@ -1042,17 +1048,7 @@ mod tests {
     use super::*;
 
     fn obs(q: f64, u: f64) -> Vec<Observation> {
-        (0..25)
-            .map(|k| Observation {
-                x_arcmin: (k % 5) as f64 - 2.0,
-                y_arcmin: (k / 5) as f64 - 2.0,
-                q,
-                u,
-                var_q: 1e-8,
-                var_u: 1e-8,
-                cov_qu: 0.0,
-            })
-            .collect()
+        (0..25).map(|k| Observation::new((k % 5) as f64 - 2.0, (k / 5) as f64 - 2.0, q, u, 1e-8, 1e-8, 0.0)).collect()
     }
 
     /// With the diattenuation alone, the Mueller correction is the paper's exact inversion of

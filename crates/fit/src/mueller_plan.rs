@@ -99,15 +99,7 @@ impl PlanSetup {
                             Some(r) => (n.sample(r), n.sample(r)),
                             None => (0.0, 0.0),
                         };
-                        Observation {
-                            x_arcmin: x,
-                            y_arcmin: y,
-                            q: q + dq,
-                            u: u + du,
-                            var_q: sigma * sigma,
-                            var_u: sigma * sigma,
-                            cov_qu: 0.0,
-                        }
+                        Observation::new(x, y, q + dq, u + du, sigma * sigma, sigma * sigma, 0.0)
                     })
                     .collect();
                 CalField::from_p_chi(&format!("candidate {k}"), p, chi, 0.0, obs)

@@ -305,18 +305,20 @@ pub fn map_to_sky_frame(map: &skyfield::StokesMap, chi_offset: f64) -> skyfield:
     }
     let (s, c) = (2.0 * chi_offset).sin_cos();
     for k in 0..out.q.len() {
-        let (q, u) = (map.q[k], map.u[k]);
-        out.q[k] = c * q - s * u;
-        out.u[k] = s * q + c * u;
-        // R C R^T with R = [[c, -s], [s, c]].
-        let (vq, vu, cv) = (map.sigma_q[k].powi(2), map.sigma_u[k].powi(2), map.cov_qu[k]);
-        let cv0 = if cv.is_finite() { cv } else { 0.0 };
-        out.sigma_q[k] = (c * c * vq - 2.0 * c * s * cv0 + s * s * vu).max(0.0).sqrt();
-        out.sigma_u[k] = (s * s * vq + 2.0 * c * s * cv0 + c * c * vu).max(0.0).sqrt();
-        out.cov_qu[k] = if cv.is_finite() { c * s * (vq - vu) + (c * c - s * s) * cv } else { cv };
-        let (pq, pu) = (map.sigma_q_phot[k].powi(2), map.sigma_u_phot[k].powi(2));
-        out.sigma_q_phot[k] = (c * c * pq + s * s * pu).sqrt();
-        out.sigma_u_phot[k] = (s * s * pq + c * c * pu).sqrt();
+        // An unknown covariance (NaN, a map that records none) is turned as 0 and stays unknown.
+        let cv = map.cov_qu[k];
+        let qu = mueller::Qu::new(map.q[k], map.u[k], map.sigma_q[k].powi(2), map.sigma_u[k].powi(2), cv);
+        let r = mueller::Qu { cov_qu: if cv.is_finite() { cv } else { 0.0 }, ..qu }.rotated_cos_sin(c, s);
+        out.q[k] = r.q;
+        out.u[k] = r.u;
+        out.sigma_q[k] = r.sigma_q();
+        out.sigma_u[k] = r.sigma_u();
+        out.cov_qu[k] = if cv.is_finite() { r.cov_qu } else { cv };
+        // The photon-noise errors: a diagonal covariance.
+        let phot = mueller::Qu::new(0.0, 0.0, map.sigma_q_phot[k].powi(2), map.sigma_u_phot[k].powi(2), 0.0);
+        let rp = phot.rotated_cos_sin(c, s);
+        out.sigma_q_phot[k] = rp.sigma_q();
+        out.sigma_u_phot[k] = rp.sigma_u();
         out.chi[k] = mueller::fold_pi(map.chi[k] + chi_offset);
     }
     out

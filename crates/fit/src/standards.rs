@@ -8,6 +8,7 @@
 
 use crate::correct::{self, CorrectOptions, Corrector, Measurement};
 use crate::model::FieldModel;
+use mueller::Qu;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -81,28 +82,20 @@ pub struct Standards {
 }
 
 /// What a standard is expected to be, intrinsically, in one band: normalized `(q, u)` with a
-/// covariance (fractions).
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
-pub struct Expected {
-    pub q: f64,
-    pub u: f64,
-    pub var_q: f64,
-    pub var_u: f64,
-    pub cov_qu: f64,
-}
+/// covariance (fractions); an unpolarized star is [`Qu::ZERO`].
+pub type Expected = Qu;
 
-impl Expected {
-    /// An unpolarized star, exactly.
-    pub fn unpolarized() -> Self {
-        Self::default()
-    }
-
-    /// How many sigma `(q, u)` of covariance `[[var_q, cov_qu], [cov_qu, var_u]]` lies from this
-    /// expected polarization: the Mahalanobis distance with both covariances summed (the
-    /// `*_residual_sigma` of [`validate_star`] and of the telescope chain's validation).
-    pub(crate) fn sigma_from(&self, q: f64, u: f64, var_q: f64, var_u: f64, cov_qu: f64) -> Result<f64, Error> {
-        mahalanobis(q - self.q, u - self.u, var_q + self.var_q, var_u + self.var_u, cov_qu + self.cov_qu)
-    }
+/// How many sigma `got` lies from the `expected` polarization: the Mahalanobis distance with
+/// both covariances summed (the `*_residual_sigma` of [`validate_star`] and of the telescope
+/// chain's validation).
+pub(crate) fn sigma_from(expected: &Qu, got: &Qu) -> Result<f64, Error> {
+    mahalanobis(
+        got.q - expected.q,
+        got.u - expected.u,
+        got.var_q + expected.var_q,
+        got.var_u + expected.var_u,
+        got.cov_qu + expected.cov_qu,
+    )
 }
 
 const BUILTIN: &str = include_str!("../../../instruments/standards.toml");
@@ -216,7 +209,7 @@ impl Star {
             (Some(chi), Some(sc)) => {
                 let (s2, c2) = (2.0 * chi.to_radians()).sin_cos();
                 let sperp = 2.0 * p * sc.to_radians();
-                Expected {
+                Qu {
                     q: p * c2,
                     u: p * s2,
                     var_q: sp * sp * c2 * c2 + sperp * sperp * s2 * s2,
@@ -226,7 +219,7 @@ impl Star {
             }
             _ => {
                 let v = 0.5 * (p * p + sp * sp);
-                Expected { q: 0.0, u: 0.0, var_q: v, var_u: v, cov_qu: 0.0 }
+                Qu::new(0.0, 0.0, v, v, 0.0)
             }
         })
     }
@@ -234,29 +227,7 @@ impl Star {
 
 /// A star's measured normalized Stokes parameters as the reduction gives them (before any
 /// correction, chi as measured), with their covariance.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
-pub struct MeasuredStar {
-    pub q: f64,
-    pub u: f64,
-    pub var_q: f64,
-    pub var_u: f64,
-    pub cov_qu: f64,
-}
-
-impl MeasuredStar {
-    /// The star as a [`Measurement`] at field position `(x, y)` (errors from the variances).
-    pub fn at(&self, x: f64, y: f64) -> Measurement {
-        Measurement {
-            x,
-            y,
-            q: self.q,
-            u: self.u,
-            sigma_q: self.var_q.max(0.0).sqrt(),
-            sigma_u: self.var_u.max(0.0).sqrt(),
-            cov_qu: self.cov_qu,
-        }
-    }
-}
+pub type MeasuredStar = Qu;
 
 /// The outcome of validating a calibration on a standard star. The first eight fields are the
 /// JSON contract of `instpol validate` (issue 6).
@@ -327,10 +298,10 @@ pub fn validate_star<M: FieldModel + ?Sized>(
     let cor = Corrector::new(model, CorrectOptions { method: correct::Method::Exact, ..opts });
     let (a, extrapolated) = cor.instrumental(x, y)?;
     // Measured, in the sky frame (zero angle undone), with its covariance rotated alike.
-    let (q1, u1) = correct::rotate_chi(measured.q, measured.u, opts.chi_offset);
-    let (s, c) = (2.0 * opts.chi_offset).sin_cos();
-    let (vq1, vu1, cv1) = correct::sandwich(&[[c, -s], [s, c]], measured.var_q, measured.var_u, measured.cov_qu);
-    let (mp, msp, mchi, msc) = correct::p_chi_with_errors(q1, u1, vq1, vu1, cv1);
+    let sky = measured.rotated(opts.chi_offset);
+    let Qu { q: q1, u: u1, var_q: vq1, var_u: vu1, cov_qu: cv1 } = sky;
+    let e = sky.p_chi_with_errors();
+    let (mp, msp, mchi, msc) = (e.p, e.sigma_p, e.chi, e.sigma_chi);
     // Prediction and its covariance: Jacobians of the forward map by central differences
     // (step 1e-7 on quantities of order 1e-2: truncation ~1e-14, rounding ~1e-9 relative).
     let (pq, pu) = forward(a.q, a.u, expected.q, expected.u);
@@ -344,7 +315,7 @@ pub fn validate_star<M: FieldModel + ?Sized>(
     let js_q = jac(&|d| forward(a.q, a.u, expected.q + d, expected.u));
     let js_u = jac(&|d| forward(a.q, a.u, expected.q, expected.u + d));
     let prop = |jq: (f64, f64), ju: (f64, f64), va: f64, vb: f64, cab: f64| {
-        correct::sandwich(&[[jq.0, ju.0], [jq.1, ju.1]], va, vb, cab)
+        mueller::sandwich(&[[jq.0, ju.0], [jq.1, ju.1]], va, vb, cab)
     };
     let (aq, au, ac) = prop(ja_q, ja_u, a.var_q, a.var_u, a.cov_qu);
     let (sq, su, sc) = prop(js_q, js_u, expected.var_q, expected.var_u, expected.cov_qu);
@@ -352,9 +323,8 @@ pub fn validate_star<M: FieldModel + ?Sized>(
     let (pp, psp, pchi, _) = correct::p_chi_with_errors(pq, pu, pvq, pvu, pcv);
     let residual_sigma = mahalanobis(q1 - pq, u1 - pu, vq1 + pvq, vu1 + pvu, cv1 + pcv)?;
     // Corrected star vs expected intrinsic polarization.
-    let m = measured.at(x, y);
-    let r = cor.correct(&m)?;
-    let corrected_residual_sigma = expected.sigma_from(r.q0, r.u0, r.var_q0, r.var_u0, r.cov_qu0)?;
+    let r = cor.correct(&Measurement::at(x, y, *measured))?;
+    let corrected_residual_sigma = sigma_from(expected, &Qu::new(r.q0, r.u0, r.var_q0, r.var_u0, r.cov_qu0))?;
     Ok(Validation {
         measured_p: mp,
         measured_chi_deg: mchi.to_degrees(),

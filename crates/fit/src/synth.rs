@@ -48,7 +48,7 @@ pub fn sky_field(
         .iter()
         .map(|&(x, y)| {
             let ip = truth.eval(x, y);
-            let (p, phi) = ip.p_phi();
+            let (p, phi) = ip.p_chi();
             let s1 = mueller::partial_polarizer(p, phi) * s0;
             MeasuredBin { x, y, q1: s1[1] / s1[0] + n.sample(&mut rng), u1: s1[2] / s1[0] + n.sample(&mut rng), sigma }
         })

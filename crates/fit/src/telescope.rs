@@ -35,10 +35,9 @@ pub struct Observation {
     pub star: String,
     /// Parallactic angle (rad).
     pub parallactic: f64,
-    pub q: f64,
-    pub sigma_q: f64,
-    pub u: f64,
-    pub sigma_u: f64,
+    /// The measured `(q, u)` with their errors (no covariance: the tables give none).
+    #[serde(flatten)]
+    pub qu: mueller::Qu,
     pub wavelength_um: f64,
     /// The band: the `filter` column when given, else the wavelength ("0.550um").
     pub band: String,
@@ -188,10 +187,7 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
         out.push(Observation {
             star,
             parallactic: pa.to_radians(),
-            q,
-            sigma_q: sq,
-            u,
-            sigma_u: su,
+            qu: mueller::Qu::from_sigmas(q, u, sq, su, 0.0),
             wavelength_um: w,
             band,
             rotator,
@@ -516,7 +512,7 @@ impl TelescopeFit {
         let (qb, ub) = run(b, &inv, q, u + h)?;
         let (qb2, ub2) = run(b, &inv, q, u - h)?;
         let jm = [[(qa - qa2) / (2.0 * h), (qb - qb2) / (2.0 * h)], [(ua - ua2) / (2.0 * h), (ub - ub2) / (2.0 * h)]];
-        let (mut vq, mut vu, mut cv) = crate::correct::sandwich(&jm, cov[0], cov[1], cov[2]);
+        let (mut vq, mut vu, mut cv) = mueller::sandwich(&jm, cov[0], cov[1], cov[2]);
         // Parameter covariance: derivatives of the correction with respect to each parameter.
         let (p0, perturbed) = self.perturbed_band_models(band, b);
         let mut g = vec![[0.0; 2]; p0.len()];
@@ -683,8 +679,8 @@ impl Problem<'_> {
         for (i, (o, b)) in self.obs.iter().enumerate() {
             let m = &models[*b];
             let s = wiersema_m3(&m3[*b], o.parallactic, m.offset + o.rotator) * Stokes::new(1.0, o.sky.0, o.sky.1, 0.0);
-            r[2 * i] = (s[1] / s[0] + m.q0 - o.q) / o.sigma_q;
-            r[2 * i + 1] = (s[2] / s[0] + m.u0 - o.u) / o.sigma_u;
+            r[2 * i] = (s[1] / s[0] + m.q0 - o.qu.q) / o.qu.sigma_q();
+            r[2 * i + 1] = (s[2] / s[0] + m.u0 - o.qu.u) / o.qu.sigma_u();
         }
         Ok(r)
     }
@@ -883,8 +879,8 @@ pub fn fit_joint(
         .enumerate()
         .map(|(i, o)| Point {
             obs: o.clone(),
-            q_model: o.q + rall[2 * i] * o.sigma_q,
-            u_model: o.u + rall[2 * i + 1] * o.sigma_u,
+            q_model: o.qu.q + rall[2 * i] * o.qu.sigma_q(),
+            u_model: o.qu.u + rall[2 * i + 1] * o.qu.sigma_u(),
             pull: rall[2 * i].abs().max(rall[2 * i + 1].abs()),
             flagged: !used[i],
         })
@@ -903,8 +899,8 @@ pub fn fit_joint(
         chi2_reduced,
         error_scaling: opts.error_scaling,
         error_factor: factor,
-        rms_q: rms(&|p| p.obs.q - p.q_model),
-        rms_u: rms(&|p| p.obs.u - p.u_model),
+        rms_q: rms(&|p| p.obs.qu.q - p.q_model),
+        rms_u: rms(&|p| p.obs.qu.u - p.u_model),
         with_rotator: obs.iter().any(|o| o.rotator != 0.0),
         minima,
         points,
@@ -1033,10 +1029,13 @@ mod tests {
                 Observation {
                     star: format!("S{i}"),
                     parallactic: pa,
-                    q: p * a.cos() + truth.q0 + g.sample(&mut rng),
-                    sigma_q: sigma,
-                    u: -p * a.sin() + truth.u0 + g.sample(&mut rng),
-                    sigma_u: sigma,
+                    qu: mueller::Qu::from_sigmas(
+                        p * a.cos() + truth.q0 + g.sample(&mut rng),
+                        -p * a.sin() + truth.u0 + g.sample(&mut rng),
+                        sigma,
+                        sigma,
+                        0.0,
+                    ),
                     wavelength_um: truth.wavelength_um,
                     band: "V".into(),
                     rotator: 0.0,
@@ -1192,7 +1191,7 @@ mod tests {
         let t = table();
         let truth = wiersema(&t, 0.44, 1.2, 0.3);
         let mut obs = simulate(&truth, 16, 0.001, 3);
-        obs[5].q += 0.02;
+        obs[5].qu.q += 0.02;
         let f = fit_band(ModelKind::Wiersema, &obs, &t, &FitOptions::default()).unwrap();
         let flagged: Vec<&str> = f.points.iter().filter(|p| p.flagged).map(|p| p.obs.star.as_str()).collect();
         assert_eq!(flagged, vec!["S5"]);
@@ -1245,7 +1244,7 @@ mod tests {
             p,
         )
         .unwrap();
-        assert_eq!((c[0].band.as_str(), c[0].q, c[0].u), ("V", 0.02, 0.01));
+        assert_eq!((c[0].band.as_str(), c[0].qu.q, c[0].qu.u), ("V", 0.02, 0.01));
         let e = parse_observations("A, 10, 0.01, x, 0.0, 0.001, 0.55\n", p).unwrap_err().to_string();
         assert!(e.contains("pv.txt") && e.contains("line 1, column 4") && e.contains("sigma_q"), "{e}");
         let e = parse_observations("A, 10, 0.01, 0.001, 0.0, 0.001\n", p).unwrap_err().to_string();

@@ -418,7 +418,10 @@ pub fn correct_chain_seen<M: FieldModel + ?Sized>(
         }
     }
     // Checked as given (turning would hide a negative error), then brought into the sky frame.
-    for (what, v) in [("q", m.q), ("u", m.u), ("sigma_q", m.sigma_q), ("sigma_u", m.sigma_u)] {
+    // The errors are held as variances, a negative error as a negative variance
+    // (`Qu::from_sigmas`): the error's own value is given back in the message.
+    let sigma = |v: f64| if v < 0.0 { -(-v).sqrt() } else { v.sqrt() };
+    for (what, v) in [("q", m.qu.q), ("u", m.qu.u), ("sigma_q", sigma(m.qu.var_q)), ("sigma_u", sigma(m.qu.var_u))] {
         if !v.is_finite() || (what.starts_with("sigma") && v < 0.0) {
             return Err(Error::Input(format!("{what} = {v} is not a finite number (>= 0 for errors)")));
         }
@@ -432,7 +435,7 @@ pub fn correct_chain_seen<M: FieldModel + ?Sized>(
             let r = c.correct(m).map_err(|e| Error::Input(e.to_string()))?;
             (r.q0, r.u0, [r.var_q0, r.var_u0, r.cov_qu0], r.inst, r.extrapolated)
         }
-        None => (m.q, m.u, [m.sigma_q * m.sigma_q, m.sigma_u * m.sigma_u, m.cov_qu], InstPol::default(), false),
+        None => (m.qu.q, m.qu.u, [m.qu.var_q, m.qu.var_u, m.qu.cov_qu], InstPol::default(), false),
     };
     let constant = field.is_none();
     let [q0, u0, vq, vu, cv] = tel.correct_cov_seen(band, q1, u1, cov, seen, constant)?;
@@ -799,17 +802,17 @@ pub fn validate_chain(
             },
         )
     });
-    let m = measured.at(x, y);
+    let m = crate::correct::Measurement::at(x, y, *measured);
     let ex = telescope_exposures(exposures, track.rotator, zero_angle.to_radians());
     let seen = if ex.is_empty() { Seen::Track(track) } else { Seen::Exposures { whole: track, exposures: &ex } };
     let r = correct_chain_seen(cor.as_ref(), tel, band, &m, seen, zero_angle.to_radians())?;
     let c = r.corrected;
     let e = star.1;
-    let dist = |q: f64, u: f64, a: f64, b: f64, cv: f64| {
-        e.sigma_from(q, u, a, b, cv).map_err(|err| Error::Input(format!("validating {}: {err}", star.0)))
+    let dist = |got: &mueller::Qu| {
+        crate::standards::sigma_from(&e, got).map_err(|err| Error::Input(format!("validating {}: {err}", star.0)))
     };
-    let corrected = dist(c.q0, c.u0, c.var_q0, c.var_u0, c.cov_qu0)?;
-    let uncorrected = dist(measured.q, measured.u, measured.var_q, measured.var_u, measured.cov_qu)?;
+    let corrected = dist(&mueller::Qu::new(c.q0, c.u0, c.var_q0, c.var_u0, c.cov_qu0))?;
+    let uncorrected = dist(measured)?;
     Ok(ChainValidation {
         star: star.0.to_string(),
         band: band.to_string(),
@@ -824,8 +827,8 @@ pub fn validate_chain(
         exposures: ex.len(),
         measured_q: measured.q,
         measured_u: measured.u,
-        sigma_q: m.sigma_q,
-        sigma_u: m.sigma_u,
+        sigma_q: m.qu.sigma_q(),
+        sigma_u: m.qu.sigma_u(),
         telescope_q: r.q_tel,
         telescope_u: r.u_tel,
         corrected_q: c.q0,

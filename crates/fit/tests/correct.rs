@@ -7,6 +7,7 @@ use fit::correct::{
     exact_jacobian, invert_exact, invert_first_order, CorrectOptions, Corrected, Corrector, Error, Measurement, Method,
 };
 use fit::model::{FieldModel, InstPol};
+use mueller::Qu;
 use mueller::{optimal_angles, partial_polarizer, stokes_p_chi, DualBeam, Element, Hwp};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
@@ -97,11 +98,11 @@ fn round_trip_polarized_star_over_the_field_exact() {
     let mut max_p = 0.0f64;
     for (x, y) in grid() {
         let inst = model.eval(x, y);
-        let (p, phi) = inst.p_phi();
+        let (p, phi) = inst.p_chi();
         max_p = max_p.max(p);
         for chi0 in [0.0, 0.4, 1.0, 2.2, 3.0] {
             let (q1, u1) = observe(p, phi, 0.01, chi0, 0.0);
-            let r = c.correct(&Measurement { x, y, q: q1, u: u1, sigma_q: 1e-4, sigma_u: 1e-4, cov_qu: 0.0 }).unwrap();
+            let r = c.correct(&Measurement::new(x, y, q1, u1, 1e-4, 1e-4, 0.0)).unwrap();
             assert!((r.p0 - 0.01).abs() < 1e-12, "P0 at ({x},{y}) chi0={chi0}: {}", r.p0);
             assert!(angle_diff(r.chi0, chi0) < 1e-9, "chi0 at ({x},{y}): {} vs {chi0}", r.chi0);
             worst = worst.max((r.p0 - 0.01).abs());
@@ -126,7 +127,7 @@ fn round_trip_with_noise_recovered_within_errors_everywhere() {
     let (mut sum2, mut n, mut worst) = (0.0, 0usize, 0.0f64);
     for (x, y) in grid() {
         let truth = model.eval(x, y);
-        let (p, phi) = truth.p_phi();
+        let (p, phi) = truth.p_chi();
         for k in 0..8 {
             let chi0 = k as f64 * PI / 8.0 + 0.1;
             let (q1, u1) = observe(p, phi, 0.01, chi0, 0.0);
@@ -134,15 +135,15 @@ fn round_trip_with_noise_recovered_within_errors_everywhere() {
             let noisy_cal =
                 Shifted { inner: &model, dq: model.sigma * g.sample(&mut rng), du: model.sigma * g.sample(&mut rng) };
             let cn = Corrector::new(&noisy_cal, CorrectOptions::default());
-            let m = Measurement {
+            let m = Measurement::new(
                 x,
                 y,
-                q: q1 + s_meas * g.sample(&mut rng),
-                u: u1 + s_meas * g.sample(&mut rng),
-                sigma_q: s_meas,
-                sigma_u: s_meas,
-                cov_qu: 0.0,
-            };
+                q1 + s_meas * g.sample(&mut rng),
+                u1 + s_meas * g.sample(&mut rng),
+                s_meas,
+                s_meas,
+                0.0,
+            );
             let r = cn.correct(&m).unwrap();
             let (tq, tu) = (0.01 * (2.0 * chi0).cos(), 0.01 * (2.0 * chi0).sin());
             for z in [(r.q0 - tq) / r.var_q0.sqrt(), (r.u0 - tu) / r.var_u0.sqrt()] {
@@ -299,7 +300,7 @@ fn reported_errors_match_monte_carlo_scatter() {
     let (q1, u1) = observe(p, phi, p0, chi0, 0.0);
     let (sq, su, rho) = (0.003, 0.002, -0.3);
     let reported = Corrector::new(&Const(truth), CorrectOptions::default())
-        .correct(&Measurement { x: 0.0, y: 0.0, q: q1, u: u1, sigma_q: sq, sigma_u: su, cov_qu: rho * sq * su })
+        .correct(&Measurement::new(0.0, 0.0, q1, u1, sq, su, rho * sq * su))
         .unwrap();
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(2006);
     let g = Normal::new(0.0, 1.0).unwrap();
@@ -315,7 +316,7 @@ fn reported_errors_match_monte_carlo_scatter() {
         let (cq, cu) = draw(&mut rng, 0.002, 0.0015, 0.5);
         let cal = Const(InstPol { q: truth.q + cq, u: truth.u + cu, ..truth });
         let r = Corrector::new(&cal, CorrectOptions::default())
-            .correct(&Measurement { x: 0.0, y: 0.0, q: q1 + dq, u: u1 + du, sigma_q: sq, sigma_u: su, cov_qu: 0.0 })
+            .correct(&Measurement::new(0.0, 0.0, q1 + dq, u1 + du, sq, su, 0.0))
             .unwrap();
         out.push(r);
     }
@@ -361,7 +362,7 @@ fn forward_model_with_hwp_offset_round_trip() {
     let (q1, u1) = observe(p, phi, p0, chi0, off);
     let model = Const(InstPol { q: p * (2.0 * phi).cos(), u: p * (2.0 * phi).sin(), ..Default::default() });
     let opts = CorrectOptions { chi_offset: off, ..Default::default() };
-    let m = Measurement { x: 0.0, y: 0.0, q: q1, u: u1, sigma_q: 1e-4, sigma_u: 1e-4, cov_qu: 0.0 };
+    let m = Measurement::new(0.0, 0.0, q1, u1, 1e-4, 1e-4, 0.0);
     let r = Corrector::new(&model, opts).correct(&m).unwrap();
     assert!((r.p0 - p0).abs() < 1e-13);
     assert!(angle_diff(r.chi0, chi0) < 1e-11);
@@ -381,7 +382,7 @@ fn forward_model_with_hwp_offset_round_trip() {
 #[test]
 fn outside_the_field_is_an_error_or_an_inflated_extrapolation() {
     let model = Radial::fors1_v();
-    let m = Measurement { x: 3.6, y: -1.0, q: 0.01, u: 0.0, sigma_q: 1e-4, sigma_u: 1e-4, cov_qu: 0.0 };
+    let m = Measurement::new(3.6, -1.0, 0.01, 0.0, 1e-4, 1e-4, 0.0);
     let e = Corrector::new(&model, CorrectOptions::default()).correct(&m).unwrap_err();
     assert_eq!(e, Error::OutsideField { x: 3.6, y: -1.0 });
     assert!(e.to_string().contains("3.6"));
@@ -414,7 +415,7 @@ fn model_without_value_is_an_error() {
             x <= 1.0
         }
     }
-    let m = Measurement { x: 2.0, y: 0.0, q: 0.01, u: 0.0, sigma_q: 1e-4, sigma_u: 1e-4, cov_qu: 0.0 };
+    let m = Measurement::new(2.0, 0.0, 0.01, 0.0, 1e-4, 1e-4, 0.0);
     let opts = CorrectOptions { allow_extrapolation: true, ..Default::default() };
     let e = Corrector::new(&Holey, opts).correct(&m).unwrap_err();
     assert_eq!(e, Error::NoModelValue { x: 2.0, y: 0.0 });
@@ -426,9 +427,15 @@ fn model_without_value_is_an_error() {
 fn bad_input_and_batches() {
     let model = Radial::fors1_v();
     let c = Corrector::new(&model, CorrectOptions::default());
-    let good = Measurement { x: 1.0, y: 1.0, q: 0.01, u: 0.0, sigma_q: 1e-3, sigma_u: 1e-3, cov_qu: 0.0 };
-    assert!(matches!(c.correct(&Measurement { q: f64::NAN, ..good }), Err(Error::NonFinite { what: "q", .. })));
-    assert!(matches!(c.correct(&Measurement { sigma_u: -1.0, ..good }), Err(Error::Negative { what: "sigma_u", .. })));
+    let good = Measurement::new(1.0, 1.0, 0.01, 0.0, 1e-3, 1e-3, 0.0);
+    assert!(matches!(
+        c.correct(&Measurement { qu: Qu { q: f64::NAN, ..good.qu }, ..good }),
+        Err(Error::NonFinite { what: "q", .. })
+    ));
+    assert!(matches!(
+        c.correct(&Measurement::new(good.x, good.y, good.qu.q, good.qu.u, good.qu.sigma_q(), -1.0, good.qu.cov_qu)),
+        Err(Error::Negative { what: "sigma_u", .. })
+    ));
     let mut inputs = vec![good; 10000];
     let mut out = vec![Corrected::default(); inputs.len()];
     assert_eq!(c.correct_batch(&inputs, &mut out).unwrap(), 0);
@@ -456,14 +463,11 @@ fn edges_zero_polarization_and_zero_instrumental() {
     let model = Radial::fors1_v();
     let c = Corrector::new(&model, CorrectOptions::default());
     let a = model.eval(2.0, -1.0);
-    let r =
-        c.correct(&Measurement { x: 2.0, y: -1.0, q: a.q, u: a.u, sigma_q: 1e-3, sigma_u: 1e-3, cov_qu: 0.0 }).unwrap();
+    let r = c.correct(&Measurement::new(2.0, -1.0, a.q, a.u, 1e-3, 1e-3, 0.0)).unwrap();
     assert!(r.p0 < 1e-15);
     assert_relative_eq!(r.sigma_chi0, PI / 12f64.sqrt(), epsilon = 1e-12);
     assert!(r.sigma_p0 > 0.0 && r.sigma_p0.is_finite());
-    let r = c
-        .correct(&Measurement { x: 0.0, y: 0.0, q: 0.02, u: -0.01, sigma_q: 1e-3, sigma_u: 1e-3, cov_qu: 0.0 })
-        .unwrap();
+    let r = c.correct(&Measurement::new(0.0, 0.0, 0.02, -0.01, 1e-3, 1e-3, 0.0)).unwrap();
     assert_eq!((r.q0, r.u0), (0.02, -0.01));
     let (p, chi) = polarization(0.02, -0.01);
     assert_eq!((r.p0, r.chi0), (p, chi));
@@ -491,16 +495,16 @@ fn paper_validation_position_in_fors1_v_field() {
     let alpha = (-51.9f64).to_radians();
     let (x, y) = (r * alpha.cos(), r * alpha.sin());
     assert!(v.contains(x, y) && x > 2.5 && y < -3.2, "({x}, {y})");
-    let (p, phi) = v.eval(x, y).p_phi();
+    let (p, phi) = v.eval(x, y).p_chi();
     assert_relative_eq!(p, 0.0096, epsilon = 1e-9);
     assert_relative_eq!(phi.to_degrees(), 128.1, epsilon = 1e-9);
     // The corner itself.
-    let (pc, phic) = v.eval(v.half, -v.half).p_phi();
+    let (pc, phic) = v.eval(v.half, -v.half).p_chi();
     assert!((pc - 0.01355).abs() < 0.0001, "corner p = {pc}");
     assert_relative_eq!(phic.to_degrees(), 135.0, epsilon = 1e-9);
     // The I polynomial there predicts a different instrumental polarization (1.28%), six times
     // the paper's 0.05% fit RMS away.
-    let (pi_, _) = Radial::fors1_i().eval(x, y).p_phi();
+    let (pi_, _) = Radial::fors1_i().eval(x, y).p_chi();
     assert!((pi_ - 0.0096).abs() > 0.003, "I prediction {pi_}");
     // An unpolarized star seen there (M_I applied to (1, 0, 0)) has exactly (p, phi).
     let s1 = partial_polarizer(p, phi) * mueller::stokes_qu(1.0, 0.0, 0.0);

@@ -13,7 +13,7 @@ fn map_through(model: &dyn FieldModel, q0: f64, u0: f64) -> StokesMap {
     let mut map = StokesMap::empty(geom.clone(), "FORS1", "V", vec![0.0, 22.5, 45.0, 67.5]);
     for k in 0..geom.len() {
         let (x, y) = geom.centre_arcmin(k % geom.nx, k / geom.nx);
-        let (p, phi) = model.eval(x, y).p_phi();
+        let (p, phi) = model.eval(x, y).p_chi();
         let s1 = mueller::partial_polarizer(p, phi) * mueller::stokes_qu(1.0, q0, u0);
         map.q[k] = s1[1] / s1[0];
         map.u[k] = s1[2] / s1[0];
@@ -50,7 +50,7 @@ fn a_map_through_m_i_is_corrected_back_bin_by_bin() {
         let (x, y) = map.geometry.centre_arcmin(k % map.geometry.nx, k / map.geometry.nx);
         let cor = Corrector::new(&model, CorrectOptions::default());
         let at = |dq: f64, du: f64| {
-            let m = Measurement { x, y, q: map.q[k] + dq, u: map.u[k] + du, ..Default::default() };
+            let m = Measurement::new(x, y, map.q[k] + dq, map.u[k] + du, 0.0, 0.0, 0.0);
             let r = cor.correct(&m).unwrap();
             (r.q0, r.u0)
         };

@@ -77,7 +77,7 @@ fn from_p_chi(p: f64, sp: f64, chi_deg: f64, schi_deg: f64) -> MeasuredStar {
 fn paper_unpolarized_standard_passes_with_v_and_fails_with_i() {
     let (x, y) = paper_position();
     let m = from_p_chi(0.0092, 0.0004, -48.0 + 180.0, 1.4);
-    let v = validate_star(&Radial::v(), x, y, &m, &Expected::unpolarized(), CorrectOptions::default(), 3.0).unwrap();
+    let v = validate_star(&Radial::v(), x, y, &m, &Expected::ZERO, CorrectOptions::default(), 3.0).unwrap();
     assert!((v.predicted_p - 0.0096).abs() < 1e-12, "predicted {}", v.predicted_p);
     assert!((v.predicted_chi_deg - 128.1).abs() < 1e-9, "predicted chi {}", v.predicted_chi_deg);
     assert!((v.measured_p - 0.0092).abs() < 1e-12 && (v.measured_chi_deg - 132.0).abs() < 1e-9);
@@ -85,7 +85,7 @@ fn paper_unpolarized_standard_passes_with_v_and_fails_with_i() {
     assert!(v.pass, "{v:?}");
     // For a null standard the two residuals test the same thing.
     assert!((v.corrected_residual_sigma - v.residual_sigma).abs() < 0.1 * v.residual_sigma);
-    let i = validate_star(&Radial::i(), x, y, &m, &Expected::unpolarized(), CorrectOptions::default(), 3.0).unwrap();
+    let i = validate_star(&Radial::i(), x, y, &m, &Expected::ZERO, CorrectOptions::default(), 3.0).unwrap();
     assert!(i.residual_sigma > 4.0, "I calibration: {} sigma", i.residual_sigma);
     assert!(!i.pass);
 }
@@ -112,8 +112,8 @@ fn simulated_null_standard_in_the_corner() {
             cov_qu: 0.0,
         };
         let o = CorrectOptions::default();
-        pass_v += validate_star(&v, x, y, &m, &Expected::unpolarized(), o, 3.0).unwrap().pass as usize;
-        pass_i += validate_star(&Radial::i(), x, y, &m, &Expected::unpolarized(), o, 3.0).unwrap().pass as usize;
+        pass_v += validate_star(&v, x, y, &m, &Expected::ZERO, o, 3.0).unwrap().pass as usize;
+        pass_i += validate_star(&Radial::i(), x, y, &m, &Expected::ZERO, o, 3.0).unwrap().pass as usize;
     }
     // The statistic is chi with 2 dof: P(> 3) = exp(-4.5) = 1.1% per test, two tests.
     assert!(pass_v as f64 > 0.95 * n as f64, "V passes {pass_v}/{n}");
@@ -137,7 +137,7 @@ fn polarized_standard_through_the_field() {
     assert!((r.corrected_chi_deg - 179.18).abs() < 1e-8);
     assert!(r.pass);
     // The same star claimed to be unpolarized fails.
-    let r = validate_star(&v, x, y, &m, &Expected::unpolarized(), CorrectOptions::default(), 3.0).unwrap();
+    let r = validate_star(&v, x, y, &m, &Expected::ZERO, CorrectOptions::default(), 3.0).unwrap();
     assert!(!r.pass);
 }
 
@@ -164,8 +164,8 @@ fn hwp_zero_angle_is_applied_before_comparing() {
 #[test]
 fn outside_the_field() {
     let m = MeasuredStar { q: 0.01, u: 0.0, var_q: 1e-8, var_u: 1e-8, cov_qu: 0.0 };
-    let e = validate_star(&Radial::v(), 4.0, 0.0, &m, &Expected::unpolarized(), CorrectOptions::default(), 3.0);
+    let e = validate_star(&Radial::v(), 4.0, 0.0, &m, &Expected::ZERO, CorrectOptions::default(), 3.0);
     assert!(e.unwrap_err().to_string().contains("outside the calibrated field"));
     let o = CorrectOptions { allow_extrapolation: true, ..Default::default() };
-    assert!(validate_star(&Radial::v(), 4.0, 0.0, &m, &Expected::unpolarized(), o, 3.0).unwrap().extrapolated);
+    assert!(validate_star(&Radial::v(), 4.0, 0.0, &m, &Expected::ZERO, o, 3.0).unwrap().extrapolated);
 }

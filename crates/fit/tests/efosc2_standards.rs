@@ -291,14 +291,15 @@ fn efosc2_standards_corrected_leave_one_out_are_unpolarized() {
             let f = fit_band(ModelKind::Wiersema, &rest, &table, &FitOptions::default()).unwrap();
             let o = &obs[k];
             let s = f.chi2_reduced.max(1.0).sqrt();
-            let [q, sq, u, su] = f.correct(&o.band, o.q, o.sigma_q * s, o.u, o.sigma_u * s, o.parallactic).unwrap();
+            let [q, sq, u, su] =
+                f.correct(&o.band, o.qu.q, o.qu.sigma_q() * s, o.qu.u, o.qu.sigma_u() * s, o.parallactic).unwrap();
             let z2 = (q / sq).powi(2) + (u / su).powi(2);
             n += 1;
             // 2-dof chi^2 below 11.83: 3 sigma.
             if z2 < 11.83 {
                 within += 1;
             }
-            raw_p.push(o.q.hypot(o.u));
+            raw_p.push(o.qu.q.hypot(o.qu.u));
             cor_p.push(q.hypot(u));
         }
     }

@@ -7,6 +7,7 @@
 use fit::correct::{CorrectOptions, Error as CorrError, Measurement};
 use fit::mueller_cal::{MuellerCal, SkyField};
 use fit::mueller_field::{fit_mueller_field, fit_per_bin, CalField, Kind, MuellerField, MuellerFitOptions};
+use mueller::Qu;
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
@@ -188,16 +189,16 @@ fn propagated_errors_match_a_monte_carlo() {
     let mf = fit_mueller_field(&f, &MuellerFitOptions { deg: 2, scale_arcmin: 2.4, ..Default::default() }).unwrap();
     let cal = calibration(mf.clone(), vec![]);
     let (x, y) = (1.7, -0.9);
-    let m = Measurement { x, y, q: 0.031, u: -0.018, sigma_q: 2e-4, sigma_u: 3e-4, cov_qu: 2e-8 };
+    let m = Measurement::new(x, y, 0.031, -0.018, 2e-4, 3e-4, 2e-8);
     let r = cal.correct(&m, &CorrectOptions::default()).unwrap();
     // The central value is the hand inverse of the fitted block.
-    let (qh, uh) = invert_by_hand(&mf.block_at(x, y).0, m.q, m.u);
+    let (qh, uh) = invert_by_hand(&mf.block_at(x, y).0, m.qu.q, m.qu.u);
     assert!((r.q0 - qh).abs() < 1e-13 && (r.u0 - uh).abs() < 1e-13);
 
     let n = mf.coeffs.len();
     let c = DMatrix::from_row_slice(n, n, &mf.cov);
     let l = c.cholesky().unwrap().l();
-    let sm = nalgebra::Matrix2::new(m.sigma_q * m.sigma_q, m.cov_qu, m.cov_qu, m.sigma_u * m.sigma_u);
+    let sm = nalgebra::Matrix2::new(m.qu.var_q, m.qu.cov_qu, m.qu.cov_qu, m.qu.var_u);
     let lm = sm.cholesky().unwrap().l();
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(16);
     let g = Normal::new(0.0, 1.0).unwrap();
@@ -212,7 +213,7 @@ fn propagated_errors_match_a_monte_carlo() {
             draw.coeffs[i] = mf.coeffs[i] + dc[i];
         }
         let zm = lm * nalgebra::Vector2::new(g.sample(&mut rng), g.sample(&mut rng));
-        let (q0, u0) = invert_by_hand(&draw.block_at(x, y).0, m.q + zm[0], m.u + zm[1]);
+        let (q0, u0) = invert_by_hand(&draw.block_at(x, y).0, m.qu.q + zm[0], m.qu.u + zm[1]);
         samples.push((q0, u0));
         mq += q0;
         mu += u0;
@@ -231,7 +232,7 @@ fn propagated_errors_match_a_monte_carlo() {
     // The covariance against the MC's, on the scale of the standard deviations.
     assert!((r.cov_qu0 - cqu).abs() < 0.04 * (vq * vu).sqrt(), "cov: propagated {} MC {cqu}", r.cov_qu0);
     // The model's part matters here (it is not only the measurement's error).
-    assert!(r.var_q0 > 1.2 * m.sigma_q * m.sigma_q, "{} vs {}", r.var_q0, m.sigma_q * m.sigma_q);
+    assert!(r.var_q0 > 1.2 * m.qu.var_q, "{} vs {}", r.var_q0, m.qu.var_q);
 }
 
 /// Outside the fitted box: refused as on the p, phi path; with extrapolation allowed, flagged,
@@ -242,18 +243,18 @@ fn outside_the_field_is_refused_unless_extrapolation_is_allowed() {
     let f = fields(3e-4, 5);
     let mf = fit_mueller_field(&f, &MuellerFitOptions { deg: 1, scale_arcmin: 2.4, ..Default::default() }).unwrap();
     let cal = calibration(mf.clone(), vec![]);
-    let m = Measurement { x: 3.0, y: 0.0, q: 0.05, u: 0.01, sigma_q: 3e-4, sigma_u: 3e-4, cov_qu: 0.0 };
+    let m = Measurement::new(3.0, 0.0, 0.05, 0.01, 3e-4, 3e-4, 0.0);
     let e = cal.correct(&m, &CorrectOptions::default()).unwrap_err();
     assert!(matches!(e, CorrError::OutsideField { .. }), "{e}");
     let opts = CorrectOptions { allow_extrapolation: true, extrapolation_rel_error: 0.5, ..Default::default() };
     let r = cal.correct(&m, &opts).unwrap();
     assert!(r.extrapolated);
-    let ((q0, u0), cov) = mf.correct(3.0, 0.0, m.q, m.u, [9e-8, 0.0, 9e-8]).unwrap();
+    let ((q0, u0), cov) = mf.correct(3.0, 0.0, m.qu.q, m.qu.u, [9e-8, 0.0, 9e-8]).unwrap();
     assert_eq!((r.q0, r.u0), (q0, u0));
-    let add = 0.25 * ((q0 - m.q).powi(2) + (u0 - m.u).powi(2));
+    let add = 0.25 * ((q0 - m.qu.q).powi(2) + (u0 - m.qu.u).powi(2));
     assert!(add > 0.0);
     assert!((r.var_q0 - (cov[0] + add)).abs() < 1e-18 && (r.var_u0 - (cov[2] + add)).abs() < 1e-18);
     // Bad input names itself.
-    let e = cal.correct(&Measurement { sigma_q: f64::NAN, ..m }, &opts).unwrap_err();
+    let e = cal.correct(&Measurement { qu: Qu { var_q: f64::NAN, ..m.qu }, ..m }, &opts).unwrap_err();
     assert!(e.to_string().contains("sigma_q"), "{e}");
 }

@@ -99,15 +99,7 @@ fn real_efosc2_standards_leave_one_out_through_the_calibration_file_are_unpolari
             // The measurement errors scaled as the fit scaled its own (the standards scatter
             // by sqrt(chi2/dof) more than their errors say).
             let s = tel.chi2_reduced.max(1.0).sqrt();
-            let m = Measurement {
-                x: 0.0,
-                y: 0.0,
-                q: o.q,
-                u: o.u,
-                sigma_q: o.sigma_q * s,
-                sigma_u: o.sigma_u * s,
-                cov_qu: 0.0,
-            };
+            let m = Measurement::new(0.0, 0.0, o.qu.q, o.qu.u, o.qu.sigma_q() * s, o.qu.sigma_u() * s, 0.0);
             let r = correct_chain::<dyn FieldModel>(None, &tel, &o.band, &m, Track::at(o.parallactic), 0.0).unwrap();
             let c = r.corrected;
             // 2-dof chi^2 of (q0, u0) against zero with the full covariance.
@@ -115,10 +107,10 @@ fn real_efosc2_standards_leave_one_out_through_the_calibration_file_are_unpolari
             let z2 = (c.q0 * c.q0 * c.var_u0 - 2.0 * c.q0 * c.u0 * c.cov_qu0 + c.u0 * c.u0 * c.var_q0) / det;
             n += 1;
             within += (z2 < 11.83) as usize; // 3 sigma
-            raw.push(o.q.hypot(o.u));
+            raw.push(o.qu.q.hypot(o.qu.u));
             cor.push(c.p0);
             // What the telescope removes is what the star showed, to the scatter.
-            assert!((r.q_tel - o.q).hypot(r.u_tel - o.u) < 0.012, "{}: {} {}", o.source, r.q_tel, r.u_tel);
+            assert!((r.q_tel - o.qu.q).hypot(r.u_tel - o.qu.u) < 0.012, "{}: {} {}", o.source, r.q_tel, r.u_tel);
         }
     }
     raw.sort_by(f64::total_cmp);
@@ -177,10 +169,7 @@ fn polarized_standard_through_a_night_comes_back_with_its_catalogued_p_and_chi()
         obs.push(fit::telescope::Observation {
             star: format!("WD{k}"),
             parallactic: pa,
-            q: q + g.sample(&mut rng),
-            sigma_q: sigma,
-            u: u + g.sample(&mut rng),
-            sigma_u: sigma,
+            qu: mueller::Qu::from_sigmas(q + g.sample(&mut rng), u + g.sample(&mut rng), sigma, sigma, 0.0),
             wavelength_um: 0.55,
             band: "V".into(),
             rotator: 0.0,
@@ -200,15 +189,7 @@ fn polarized_standard_through_a_night_comes_back_with_its_catalogued_p_and_chi()
         let a = (-150.0 + 27.0 * k as f64).to_radians();
         let b = a + 5f64.to_radians();
         let (q, u) = measure(sky, a, b);
-        let m = Measurement {
-            x: 0.0,
-            y: 0.0,
-            q: q + g.sample(&mut rng),
-            u: u + g.sample(&mut rng),
-            sigma_q: sigma,
-            sigma_u: sigma,
-            cov_qu: 0.0,
-        };
+        let m = Measurement::new(0.0, 0.0, q + g.sample(&mut rng), u + g.sample(&mut rng), sigma, sigma, 0.0);
         let c = correct_chain::<dyn FieldModel>(None, &tel, "V", &m, Track { start: a, end: b, rotator: 0.0 }, 0.0)
             .unwrap()
             .corrected;
@@ -285,12 +266,11 @@ fn the_chain_inverts_the_field_after_the_telescope_as_jones_matrices_say() {
     for &(pq, chi, pa) in &[(0.0, 0.0, 0.4), (0.05, 1.0, -2.0), (0.1, 2.5, 2.9)] {
         let sky = [1.0, pq * (2.0f64 * chi).cos(), pq * (2.0f64 * chi).sin(), 0.0];
         let o = partial_after(field.p, field.phi, &transform(&chain(n * 0.9, 0.5, pa), &coherency(sky)));
-        let m =
-            Measurement { x: 0.1, y: 0.2, q: o[1] / o[0], u: o[2] / o[0], sigma_q: 1e-4, sigma_u: 1e-4, cov_qu: 0.0 };
+        let m = Measurement::new(0.1, 0.2, o[1] / o[0], o[2] / o[0], 1e-4, 1e-4, 0.0);
         let c = correct_chain(Some(&cor), &tel, "V", &m, Track::at(pa), 0.0).unwrap().corrected;
         assert!((c.q0 - sky[1]).abs() < 1e-9 && (c.u0 - sky[2]).abs() < 1e-9, "{} {} vs {:?}", c.q0, c.u0, sky);
         // The inverse order differs by terms of size p_field x P_M3.
-        let [qa, ua, ..] = tel.correct_cov("V", m.q, m.u, [0.0; 3], Track::at(pa), false).unwrap();
+        let [qa, ua, ..] = tel.correct_cov("V", m.qu.q, m.qu.u, [0.0; 3], Track::at(pa), false).unwrap();
         let (qb, ub) = fit::correct::invert_exact(field.eval(0.0, 0.0).q, field.eval(0.0, 0.0).u, qa, ua).unwrap();
         assert!((qb - sky[1]).hypot(ub - sky[2]) > 1e-5, "order should matter");
         // Errors: the measurement's 1e-4 passes through nearly unchanged (|M| ~ 1).
@@ -302,20 +282,20 @@ fn the_chain_inverts_the_field_after_the_telescope_as_jones_matrices_say() {
         // corrects with models turned by z against the data, off by about 2 z P.
         let z = 7f64.to_radians();
         let (s2, c2) = (2.0 * z).sin_cos();
-        let (qp, up) = (c2 * m.q + s2 * m.u, -s2 * m.q + c2 * m.u);
+        let (qp, up) = (c2 * m.qu.q + s2 * m.qu.u, -s2 * m.qu.q + c2 * m.qu.u);
         // Unequal errors with a covariance, to see them turned back too.
         let (vq, vu, cv) = (c2 * c2 * 1e-8 + s2 * s2 * 4e-8, s2 * s2 * 1e-8 + c2 * c2 * 4e-8, s2 * c2 * 3e-8);
-        let plate = Measurement { q: qp, u: up, sigma_q: vq.sqrt(), sigma_u: vu.sqrt(), cov_qu: cv, ..m };
+        let plate = Measurement::new(m.x, m.y, qp, up, vq.sqrt(), vu.sqrt(), cv);
         let c = correct_chain(Some(&cor), &tel, "V", &plate, Track::at(pa), z).unwrap().corrected;
         assert!((c.q0 - sky[1]).abs() < 1e-9 && (c.u0 - sky[2]).abs() < 1e-9, "{} {} vs {:?}", c.q0, c.u0, sky);
         let unturned = correct_chain(Some(&cor), &tel, "V", &plate, Track::at(pa), 0.0).unwrap().corrected;
         let off = (unturned.q0 - sky[1]).hypot(unturned.u0 - sky[2]);
-        let p_meas = m.q.hypot(m.u);
+        let p_meas = m.qu.q.hypot(m.qu.u);
         assert!(off > 0.5 * 2.0 * z.sin() * p_meas, "zero angle ignored: off by {off:e} only");
         // Errors turned back into the sky frame: the same as those of the measurement made
         // there with errors (1e-4, 2e-4) along q, u and no covariance.
         let c0 = correct_chain::<dyn FieldModel>(None, &tel, "V", &plate, Track::at(pa), z).unwrap().corrected;
-        let there = Measurement { sigma_q: 1e-4, sigma_u: 2e-4, cov_qu: 0.0, ..m };
+        let there = Measurement::new(m.x, m.y, m.qu.q, m.qu.u, 1e-4, 2e-4, 0.0);
         let c1 = correct_chain::<dyn FieldModel>(None, &tel, "V", &there, Track::at(pa), 0.0).unwrap().corrected;
         for (a, b) in [(c0.var_q0, c1.var_q0), (c0.var_u0, c1.var_u0), (c0.cov_qu0, c1.cov_qu0)] {
             assert!((a - b).abs() < 1e-9 * c1.var_u0, "{a:e} vs {b:e}");
@@ -337,10 +317,13 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
             fit::telescope::Observation {
                 star: format!("S{k}"),
                 parallactic: pa,
-                q: 0.035 * a.cos() + 1e-4 * ((k * 7 % 5) as f64 - 2.0),
-                sigma_q: 2e-4,
-                u: -0.035 * a.sin() + 1e-4 * ((k * 3 % 5) as f64 - 2.0),
-                sigma_u: 2e-4,
+                qu: mueller::Qu::from_sigmas(
+                    0.035 * a.cos() + 1e-4 * ((k * 7 % 5) as f64 - 2.0),
+                    -0.035 * a.sin() + 1e-4 * ((k * 3 % 5) as f64 - 2.0),
+                    2e-4,
+                    2e-4,
+                    0.0,
+                ),
                 wavelength_um: 0.55,
                 band: "V".into(),
                 rotator: 0.0,

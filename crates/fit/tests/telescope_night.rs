@@ -108,10 +108,7 @@ fn a_night_with_a_known_mirror_and_field_gives_both_back() {
             obs.push(Observation {
                 star: format!("std{k}"),
                 parallactic: pa,
-                q: q + g.sample(&mut rng),
-                sigma_q: sigma,
-                u: u + g.sample(&mut rng),
-                sigma_u: sigma,
+                qu: mueller::Qu::from_sigmas(q + g.sample(&mut rng), u + g.sample(&mut rng), sigma, sigma, 0.0),
                 wavelength_um: 0.55,
                 band: "V".into(),
                 rotator: 0.0,

@@ -99,8 +99,8 @@ fn structured_tables_read_as_the_csv() {
         assert_eq!(got.len(), want.len(), "{ext}");
         for (g, w) in got.iter().zip(&want) {
             assert_eq!(
-                (&g.star, g.parallactic, g.q, g.sigma_q, g.u, g.sigma_u, &g.band, g.sky),
-                (&w.star, w.parallactic, w.q, w.sigma_q, w.u, w.sigma_u, &w.band, w.sky),
+                (&g.star, g.parallactic, g.qu.q, g.qu.sigma_q(), g.qu.u, g.qu.sigma_u(), &g.band, g.sky),
+                (&w.star, w.parallactic, w.qu.q, w.qu.sigma_q(), w.qu.u, w.qu.sigma_u(), &w.band, w.sky),
                 "{ext}"
             );
         }

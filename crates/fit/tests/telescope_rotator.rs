@@ -138,10 +138,13 @@ fn standards(offset: f64, factor: f64, rhos: &[f64], sigma: f64) -> Vec<Observat
             Observation {
                 star: format!("S{i}"),
                 parallactic: pa,
-                q: p * t.cos() + sigma * gauss(),
-                sigma_q: sigma,
-                u: -p * t.sin() + sigma * gauss(),
-                sigma_u: sigma,
+                qu: mueller::Qu::from_sigmas(
+                    p * t.cos() + sigma * gauss(),
+                    -p * t.sin() + sigma * gauss(),
+                    sigma,
+                    sigma,
+                    0.0,
+                ),
                 wavelength_um: 0.55,
                 band: "V".into(),
                 rotator: rho,
@@ -198,8 +201,8 @@ fn the_oxide_model_reports_every_thickness_minimum_within_delta_chi2_4() {
     for o in &mut obs {
         // Rescale the bare mirror's curve to the layer's polarization (closed form above).
         let scale = p / pol(0.0);
-        o.q *= scale;
-        o.u *= scale;
+        o.qu.q *= scale;
+        o.qu.u *= scale;
     }
     let f = fit_band(ModelKind::Oxide, &obs, &t, &FitOptions::default()).unwrap();
     eprintln!("minima: {:?}", f.minima);

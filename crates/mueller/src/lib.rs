@@ -32,12 +32,14 @@ pub mod causes;
 pub mod fresnel;
 pub mod linear;
 pub mod mirror;
+pub mod qu;
 pub mod raytrace;
 pub mod telescope;
 pub mod thinfilm;
 
 pub use analysis::{inverse, is_physical, jones_to_mueller};
 pub use fresnel::C64;
+pub use qu::{sandwich, PolErrors, Qu};
 
 /// A Stokes vector `(I, Q, U, V)`.
 pub type Stokes = Vector4<f64>;

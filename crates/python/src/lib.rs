@@ -1000,15 +1000,7 @@ where
     let [c_q0, c_u0, c_sq0, c_su0, c_cov0, c_p0, c_sp0, c_chi0, c_sc0, c_qi, c_ui] = cols;
     let mut n_extra = 0;
     for k in 0..n {
-        let m = Measurement {
-            x: x[k],
-            y: y[k],
-            q: q[k],
-            u: u[k],
-            sigma_q: sq[k],
-            sigma_u: su[k],
-            cov_qu: cov.map_or(0.0, |c| c[k]),
-        };
+        let m = Measurement::new(x[k], y[k], q[k], u[k], sq[k], su[k], cov.map_or(0.0, |c| c[k]));
         let r = cor(&m).map_err(|e| (r0 + k, e))?;
         // Written column by column here, not through put_row: this loop is the 1e7/s path
         // (bench/python_correct.sh) and the array-of-slices loop measured ~20 % slower. The
@@ -1131,15 +1123,7 @@ fn fill_chain(
     let rows: Vec<fit::correct::Corrected> = (0..n)
         .into_par_iter()
         .map(|k| {
-            let m = Measurement {
-                x: i.x[k],
-                y: i.y[k],
-                q: i.q[k],
-                u: i.u[k],
-                sigma_q: i.sq[k],
-                sigma_u: i.su[k],
-                cov_qu: i.cov.map_or(0.0, |c| c[k]),
-            };
+            let m = Measurement::new(i.x[k], i.y[k], i.q[k], i.u[k], i.sq[k], i.su[k], i.cov.map_or(0.0, |c| c[k]));
             let seen = match tracks {
                 Tracks::Recorded(p) => Seen::Prepared(p),
                 Tracks::Rows(pa, pa_end) => {

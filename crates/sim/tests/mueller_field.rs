@@ -166,7 +166,7 @@ fn polarized_stars_are_corrected_within_errors_where_p_phi_is_not() {
                 da.total_cmp(&dc)
             })
             .unwrap();
-        let (pi, phi) = skyfield::solve::solve_exact(o.q, o.u, b.sky_q, b.sky_u).unwrap();
+        let (pi, phi) = skyfield::solve::solve_exact(o.qu.q, o.qu.u, b.sky_q, b.sky_u).unwrap();
         let (qp, up) = fit::correct::invert_exact_matrix(pi, phi, qm, um).unwrap();
         resid_pp.push(qp - q0);
         resid_pp.push(up - u0);

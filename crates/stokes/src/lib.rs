@@ -19,10 +19,12 @@ pub mod repeats;
 pub mod solver;
 pub mod stats;
 
+/// The one value of normalized `(q, u)` with its covariance (defined in `mueller`).
+pub use mueller::Qu;
 pub use reduce::{looks_like_radians, reduce, Estimator, KappaCorrection, Measurement, Reduction, Warning};
 pub use solver::{
     fast_variance_in_range, normalized_difference, polarization, sigma_normalized_difference,
-    variance_normalized_difference, variance_normalized_difference_fast, QuEstimate, StokesSolver,
+    variance_normalized_difference, variance_normalized_difference_fast, StokesSolver,
 };
 
 /// Errors of the reduction: each names the offending input.

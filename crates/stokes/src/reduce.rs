@@ -34,8 +34,9 @@
 
 use crate::fourier::{fourier_coefficients, Harmonic};
 use crate::kappa::{correct_fluxes, kappa_estimates, KappaEstimate};
-use crate::solver::{normalized_difference, polarization, sigma_normalized_difference, QuEstimate, StokesSolver};
+use crate::solver::{normalized_difference, polarization, sigma_normalized_difference, StokesSolver};
 use crate::Error;
+use mueller::Qu;
 use std::fmt;
 
 /// The fluxes of one source in the two beams at `N` HWP angles, validated.
@@ -135,7 +136,7 @@ pub struct Reduction {
     pub sigma_f: Vec<f64>,
     pub estimator: Estimator,
     /// `Q/I`, `U/I` with covariance.
-    pub qu: QuEstimate,
+    pub qu: Qu,
     /// `P` (`eq:poldeg`), fraction.
     pub p: f64,
     /// `chi` (`eq:polang`), rad in `[0, pi)`.

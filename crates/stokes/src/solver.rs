@@ -1,6 +1,7 @@
 //! The one normalized flux difference and the one Stokes solver of the workspace.
 
 use crate::Error;
+use mueller::Qu;
 use std::f64::consts::PI;
 
 /// Normalized flux difference `F = (f_O - f_E) / (f_O + f_E)` (`eq:F`).
@@ -68,58 +69,11 @@ pub fn fast_variance_in_range(v: f64) -> bool {
 }
 
 /// Polarization degree and angle from normalized Stokes parameters (`eq:poldeg`,
-/// `eq:polang`): `P = hypot(q, u)`, `chi = atan2(u, q) / 2` folded into [0, pi).
+/// `eq:polang`): `P = hypot(q, u)`, `chi = atan2(u, q) / 2` folded into [0, pi)
+/// ([`Qu::p_chi`] of an exact value).
 #[inline]
 pub fn polarization(q: f64, u: f64) -> (f64, f64) {
-    (mueller::hypot(q, u), mueller::fold_pi(0.5 * u.atan2(q)))
-}
-
-/// `Q/I`, `U/I` with their covariance.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct QuEstimate {
-    pub q: f64,
-    pub u: f64,
-    pub var_q: f64,
-    pub var_u: f64,
-    pub cov_qu: f64,
-}
-
-impl QuEstimate {
-    /// The same polarization with its angle turned by `dchi` (rad): `(q, u)` rotated by
-    /// `2 dchi` (`eq:polang`), the covariance by `R C R^T`. How a measured `chi` becomes the
-    /// sky's when the instrument's HWP zero angle `dchi` is added.
-    pub fn rotated(&self, dchi: f64) -> Self {
-        let (s, c) = (2.0 * dchi).sin_cos();
-        Self {
-            q: c * self.q - s * self.u,
-            u: s * self.q + c * self.u,
-            var_q: c * c * self.var_q + s * s * self.var_u - 2.0 * c * s * self.cov_qu,
-            var_u: s * s * self.var_q + c * c * self.var_u + 2.0 * c * s * self.cov_qu,
-            cov_qu: c * s * (self.var_q - self.var_u) + (c * c - s * s) * self.cov_qu,
-        }
-    }
-}
-
-#[cfg(test)]
-mod rotated_tests {
-    use super::*;
-
-    /// Against a covariance propagated by hand through the 2 x 2 rotation written out with
-    /// nalgebra-free arithmetic: trace and determinant are invariant, a 90 deg turn of chi
-    /// negates (q, u), and P and chi move as they should.
-    #[test]
-    fn rotation_keeps_p_and_turns_chi() {
-        let e = QuEstimate { q: 0.03, u: -0.01, var_q: 4e-6, var_u: 9e-6, cov_qu: 1e-6 };
-        let r = e.rotated(0.3);
-        let (p0, c0) = polarization(e.q, e.u);
-        let (p1, c1) = polarization(r.q, r.u);
-        assert!((p1 - p0).abs() < 1e-15 && ((c1 - c0 - 0.3).rem_euclid(std::f64::consts::PI)).abs() < 1e-12);
-        assert!((r.var_q + r.var_u - e.var_q - e.var_u).abs() < 1e-20);
-        let det = |x: &QuEstimate| x.var_q * x.var_u - x.cov_qu * x.cov_qu;
-        assert!((det(&r) - det(&e)).abs() < 1e-24);
-        let h = e.rotated(std::f64::consts::FRAC_PI_2);
-        assert!((h.q + e.q).abs() < 1e-15 && (h.u + e.u).abs() < 1e-15 && (h.cov_qu - e.cov_qu).abs() < 1e-20);
-    }
+    Qu::new(q, u, 0.0, 0.0, 0.0).p_chi()
 }
 
 /// Linear solver of `eq:system`, `F_i = Q cos 4theta_i + U sin 4theta_i`, for a fixed set of
@@ -241,7 +195,7 @@ impl StokesSolver {
     /// Solve with the covariance propagated from per-angle errors `sigma_f` of the `F_i`
     /// (equal-weight estimator, exact propagation). With all `sigma_f` equal to
     /// `1/SNR` on the optimal set this gives `var(Q) = var(U) = 2 / (N SNR^2)`, i.e. `eq:sigp`.
-    pub fn solve_with_errors(&self, f: &[f64], sigma_f: &[f64]) -> Result<QuEstimate, Error> {
+    pub fn solve_with_errors(&self, f: &[f64], sigma_f: &[f64]) -> Result<Qu, Error> {
         self.check_len("F", f.len())?;
         self.check_len("sigma_F", sigma_f.len())?;
         let (q, u) = self.solve(f);
@@ -252,12 +206,12 @@ impl StokesSolver {
             vu += self.cu[i] * self.cu[i] * v;
             cqu += self.cq[i] * self.cu[i] * v;
         }
-        Ok(QuEstimate { q, u, var_q: vq, var_u: vu, cov_qu: cqu })
+        Ok(Qu { q, u, var_q: vq, var_u: vu, cov_qu: cqu })
     }
 
     /// Weighted least squares with weights `1 / sigma_f^2`: the minimum-variance solution when
     /// the `F_i` have unequal errors (e.g. uneven exposures).
-    pub fn solve_weighted(&self, f: &[f64], sigma_f: &[f64]) -> Result<QuEstimate, Error> {
+    pub fn solve_weighted(&self, f: &[f64], sigma_f: &[f64]) -> Result<Qu, Error> {
         self.check_len("F", f.len())?;
         self.check_len("sigma_F", sigma_f.len())?;
         // Modified Gram-Schmidt on the weighted design sqrt(w) [cos 4theta, sin 4theta | F]:
@@ -298,13 +252,7 @@ impl StokesSolver {
         }
         let u = y2 / r22;
         let v = s_min * s_min;
-        Ok(QuEstimate {
-            q: nu - mu * u,
-            u,
-            var_q: (1.0 / a + mu * mu / r22) * v,
-            var_u: v / r22,
-            cov_qu: -mu / r22 * v,
-        })
+        Ok(Qu { q: nu - mu * u, u, var_q: (1.0 / a + mu * mu / r22) * v, var_u: v / r22, cov_qu: -mu / r22 * v })
     }
 
     /// `(A^T A)^-1`: the covariance of `(Q, U)` in units of a common variance of the `F_i`.

@@ -161,26 +161,10 @@ fn star_fields(path: &std::path::Path, zero_angle_deg: f64) -> Result<Vec<CalFie
             );
         }
         let m = fit::correct::to_sky_frame(
-            &fit::correct::Measurement {
-                x: x[i],
-                y: y[i],
-                q: q[i],
-                u: u[i],
-                sigma_q: sq[i],
-                sigma_u: su[i],
-                cov_qu: 0.0,
-            },
+            &fit::correct::Measurement::new(x[i], y[i], q[i], u[i], sq[i], su[i], 0.0),
             turn,
         );
-        let obs = Observation {
-            x_arcmin: x[i],
-            y_arcmin: y[i],
-            q: m.q,
-            u: m.u,
-            var_q: m.sigma_q * m.sigma_q,
-            var_u: m.sigma_u * m.sigma_u,
-            cov_qu: m.cov_qu,
-        };
+        let obs = Observation::new(x[i], y[i], m.qu.q, m.qu.u, m.qu.var_q, m.qu.var_u, m.qu.cov_qu);
         out.push(CalField::from_p_chi(&what, pt[i], ct[i].to_radians(), st[i], vec![obs]));
     }
     Ok(out)

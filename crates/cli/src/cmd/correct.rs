@@ -435,15 +435,7 @@ fn measurements(
     (0..x.len())
         .map(|i| {
             let (xa, ya) = to_arcmin(x[i], y[i]).with_context(|| format!("{} {}", path.display(), t.row_label(i)))?;
-            Ok(Measurement {
-                x: xa,
-                y: ya,
-                q: q[i],
-                u: u[i],
-                sigma_q: sq[i],
-                sigma_u: su[i],
-                cov_qu: cov.as_ref().map(|c| c[i]).unwrap_or(0.0),
-            })
+            Ok(Measurement::new(xa, ya, q[i], u[i], sq[i], su[i], cov.as_ref().map(|c| c[i]).unwrap_or(0.0)))
         })
         .collect()
 }

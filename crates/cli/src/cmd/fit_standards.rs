@@ -213,8 +213,8 @@ fn out(f: &TelescopeFit, joint: bool, mirror: &Mirror) -> FitOut {
                 band: p.obs.band.clone(),
                 source: p.obs.source.clone(),
                 parallactic_deg: p.obs.parallactic.to_degrees(),
-                q: p.obs.q,
-                u: p.obs.u,
+                q: p.obs.qu.q,
+                u: p.obs.qu.u,
                 q_model: p.q_model,
                 u_model: p.u_model,
                 pull: p.pull,
@@ -565,18 +565,18 @@ fn band_plot(f: &TelescopeFit, bi: usize) -> Result<BandPlot> {
         let shifted = o.sky != (0.0, 0.0) || o.rotator != 0.0;
         let (q, u) = if shifted {
             let (cq, cu) = unpol(o.parallactic)?;
-            (o.q - p.q_model + cq, o.u - p.u_model + cu)
+            (o.qu.q - p.q_model + cq, o.qu.u - p.u_model + cu)
         } else {
-            (o.q, o.u)
+            (o.qu.q, o.qu.u)
         };
         points.push(PlotPoint {
             pa_deg: o.parallactic.to_degrees(),
             q,
             u,
-            sigma_q: o.sigma_q,
-            sigma_u: o.sigma_u,
-            resid_q: o.q - p.q_model,
-            resid_u: o.u - p.u_model,
+            sigma_q: o.qu.sigma_q(),
+            sigma_u: o.qu.sigma_u(),
+            resid_q: o.qu.q - p.q_model,
+            resid_u: o.qu.u - p.u_model,
             flagged: p.flagged,
             shifted,
         });
@@ -734,9 +734,9 @@ mod tests {
             assert_eq!(p.shifted, polarized);
             if polarized {
                 // The raw measurement is far off the unpolarized curve: what the old plot drew.
-                assert!((fp.obs.q - cq).hypot(fp.obs.u - cu) > 0.02, "{:?}", fp.obs);
+                assert!((fp.obs.qu.q - cq).hypot(fp.obs.qu.u - cu) > 0.02, "{:?}", fp.obs);
             } else {
-                assert_eq!((p.q, p.u), (fp.obs.q, fp.obs.u), "unpolarized stars drawn as measured");
+                assert_eq!((p.q, p.u), (fp.obs.qu.q, fp.obs.qu.u), "unpolarized stars drawn as measured");
             }
         }
         let dir = tempfile::tempdir().unwrap();

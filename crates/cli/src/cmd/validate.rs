@@ -162,15 +162,7 @@ pub fn demo_corner_star(
     let out = sim::simulate(&sc, dir, &|| {}).context("simulating the standard star")?;
     let inst = Instrument::load("fors1")?;
     let (x_px, y_px) = inst.arcmin_to_pixel(x, y);
-    validate_star(
-        cal,
-        &inst,
-        &out.frames,
-        x_px,
-        y_px,
-        ("unpolarized", Expected::unpolarized()),
-        &ValidateOptions::default(),
-    )
+    validate_star(cal, &inst, &out.frames, x_px, y_px, ("unpolarized", Expected::ZERO), &ValidateOptions::default())
 }
 
 fn parse_annulus(s: &str) -> Result<Option<(f64, f64)>> {
@@ -267,7 +259,7 @@ fn expected_star(a: &Args, band: &str) -> Result<(String, Expected)> {
         None => None,
     };
     Ok(match &a.star {
-        None => ("unpolarized".to_string(), Expected::unpolarized()),
+        None => ("unpolarized".to_string(), Expected::ZERO),
         Some(n) => {
             let list = match list {
                 Some(l) => l,

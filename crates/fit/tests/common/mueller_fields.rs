@@ -72,15 +72,7 @@ pub fn cal_field(
         .iter()
         .map(|&(x, y)| {
             let (q, u) = meas(x, y, q0, u0);
-            Observation {
-                x_arcmin: x,
-                y_arcmin: y,
-                q: q + n.sample(rng),
-                u: u + n.sample(rng),
-                var_q: sigma * sigma,
-                var_u: sigma * sigma,
-                cov_qu: 0.0,
-            }
+            Observation::new(x, y, q + n.sample(rng), u + n.sample(rng), sigma * sigma, sigma * sigma, 0.0)
         })
         .collect();
     CalField::from_p_chi(name, p, chi, 0.0, obs)

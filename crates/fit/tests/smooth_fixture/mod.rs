@@ -31,15 +31,7 @@ pub fn fields(truth: &dyn Fn(f64, f64) -> LinearBlock, n: usize, half: f64, s: f
                 .into_iter()
                 .map(|(x, y)| {
                     let (q, u) = truth(x, y).forward(p * c.cos(), p * c.sin()).unwrap();
-                    Observation {
-                        x_arcmin: x,
-                        y_arcmin: y,
-                        q: q + s * g.sample(&mut rng),
-                        u: u + s * g.sample(&mut rng),
-                        var_q: s * s,
-                        var_u: s * s,
-                        cov_qu: 0.0,
-                    }
+                    Observation::new(x, y, q + s * g.sample(&mut rng), u + s * g.sample(&mut rng), s * s, s * s, 0.0)
                 })
                 .collect();
             CalField::from_p_chi(&format!("sky{k}.fits"), p, chi.to_radians(), 0.0, obs)
