@@ -99,7 +99,7 @@ pub enum Error {
 
 /// Measure a star at 0-based ordinary-image pixel `(x_px, y_px)` in `frames` (all HWP angles
 /// of one filter, read as instrument `inst`) and validate `cal` on it; `star` names the star
-/// and its expected intrinsic polarization ([`Expected::unpolarized`] for a null standard).
+/// and its expected intrinsic polarization ([`Expected::ZERO`] for a null standard).
 pub fn validate_frames(
     cal: &Calibration,
     inst: &Instrument,
