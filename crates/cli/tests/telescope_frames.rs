@@ -181,7 +181,7 @@ fn frames_of_a_night_give_the_mirror_and_the_field_back() {
     );
     let frames = simulate(&scene, d, "sky");
     // The sky as it reaches the instrument over the set's track, through the FITTED model.
-    let fitted = fit::telescope_cal::load(&tel).unwrap().telescope.unwrap();
+    let fitted = fit::calibration::load(&tel).unwrap().telescope.unwrap();
     let it = instrument::Instrument::load(small.to_str().unwrap()).unwrap().telescope.unwrap();
     let track = fit::telescope_cal::frames_track(&frames, &it).unwrap();
     assert!((track.start.to_degrees() - key(&frames[0], "HIERARCH ESO TEL PARANG START")).abs() < 1e-9);

@@ -36,6 +36,8 @@ pub enum Error {
     Exposures(crate::Error),
     #[error("no field model to correct with")]
     NoModel,
+    #[error("{0}")]
+    Calibration(crate::Error),
     #[error(
         "the calibration holds a telescope model, which needs the frames' parallactic angles, but instrument {0} names no header keyword for them ([telescope] parang_start_keyword): correct a written catalog with the set's parallactic track instead (instpol correct --parang)"
     )]
@@ -63,7 +65,7 @@ pub struct TelescopeUsed {
 }
 
 /// Correct a catalog made by `skyfield::catalog::catalog_files` from `frames` (as given) with
-/// a calibration file's models (`telescope_cal::load`): the field model alone
+/// a calibration file's models ([`crate::calibration::load`]): the field model alone
 /// ([`correct_catalog`]), or the chain with its telescope model ([`correct_catalog_chain`])
 /// over each exposure's own track from the frames' headers (the instrument's `[telescope]`
 /// keywords; the rotator angle only for a model fitted with it), in the band the field model's
@@ -73,14 +75,14 @@ pub fn correct_catalog_loaded(
     cat: &Catalog,
     inst: &instrument::Instrument,
     frames: &[std::path::PathBuf],
-    loaded: &crate::telescope_cal::Loaded,
+    loaded: &crate::calibration::CalibrationFile,
     opts: CorrectOptions,
 ) -> Result<(CorrectedCatalog, Option<TelescopeUsed>), Error> {
-    let Some(tel) = &loaded.telescope else {
-        let cal = loaded.field.as_ref().ok_or(Error::NoModel)?;
+    let (field, tel) = loaded.p_phi_models().map_err(Error::Calibration)?;
+    let Some(tel) = tel else {
+        let cal = field.ok_or(Error::NoModel)?;
         return Ok((correct_catalog(cat, &inst.name, cal, opts)?, None));
     };
-    let field = loaded.field.as_ref();
     let t = inst
         .telescope
         .as_ref()

@@ -56,7 +56,7 @@ fn read_cube(path: &Path, what: &str) -> Result<Cube> {
             ),
         });
     }
-    crate::calfile::check_claimed_size(path, &format!("the {what} map"), &shape)?;
+    crate::keys::check_claimed_size(path, &format!("the {what} map"), &shape)?;
     let data: Vec<f64> = hdu.read_image(&mut f).map_err(|x| e("reading the image", x.to_string()))?;
     let (ny, nx) = (shape[1], shape[2]);
     let n = nx * ny;

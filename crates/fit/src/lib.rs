@@ -17,13 +17,17 @@
 
 pub mod bins;
 pub mod calfile;
+pub mod calibration;
 pub mod catalog_correct;
 pub mod correlation;
 pub mod import;
+pub mod keys;
 pub mod model;
+pub mod mueller_block;
 pub mod mueller_cal;
 pub mod mueller_explain;
 pub mod mueller_field;
+pub mod mueller_forms;
 pub mod mueller_plan;
 pub mod mueller_smooth;
 pub mod paper;

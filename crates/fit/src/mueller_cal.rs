@@ -30,10 +30,9 @@
 //! same rule as the `p, phi` path: the correction itself is trusted to a fraction `f`
 //! ([`CorrectOptions::extrapolation_rel_error`]), `(f |v0 - m|)^2` added to each variance.
 
-use crate::calfile::{
-    fits_err, open_versioned, save_fits_atomically, KeyReader, KeyWriter, PixelGrid, Provenance, FORMAT_VERSION,
-};
+use crate::calfile::{PixelGrid, Provenance};
 use crate::correct::{self, p_chi_with_errors, CorrectOptions, Corrected, Measurement};
+use crate::keys::{fits_err, open_versioned, save_fits_atomically, KeyReader, KeyWriter, FORMAT_VERSION};
 use crate::mueller_field::{monomial_powers, BinFit, Kind, MuellerField, Smooth};
 use crate::mueller_smooth;
 use crate::{Error, Result};
@@ -43,8 +42,8 @@ use fitsio::tables::{ColumnDataType, ColumnDescription};
 use fitsio::FitsFile;
 use std::path::Path;
 
-/// `HIERARCH IP MODEL` of a Mueller-field calibration.
-pub const MODEL_KIND: &str = "MUELLER";
+/// The `HIERARCH IP MODEL` of this kind of file.
+pub use crate::keys::MUELLER_MODEL as MODEL_KIND;
 /// The coefficient table.
 pub const HDU: &str = "MUELLER";
 /// The coefficients' covariance (image).

@@ -18,11 +18,12 @@
 //! from one sky field) instead of returning numbers. Every fitted matrix is checked for
 //! physical realizability.
 
-pub use crate::mueller_smooth::Smooth;
+pub use crate::mueller_block::Kind;
+pub use crate::mueller_forms::Smooth;
 use crate::{Error, Result};
 use field::{FieldModel, InstPol};
 use mueller::linear::{self, LinearBlock};
-use nalgebra::{DMatrix, DVector, Matrix3};
+use nalgebra::{DMatrix, DVector};
 
 /// One measured position of one calibration field: normalized `(q, u)` and their covariance.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -56,151 +57,6 @@ impl CalField {
     pub fn from_p_chi(name: &str, p: f64, chi: f64, sigma_sky: f64, obs: Vec<Observation>) -> Self {
         let (s, c) = (2.0 * chi).sin_cos();
         Self { name: name.into(), sky_q: p * c, sky_u: p * s, sigma_sky, obs }
-    }
-}
-
-/// Which linear block is fitted.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-pub enum Kind {
-    /// `B · M_I(p, phi)` (see [`mueller::linear`]): the diattenuation always, the others
-    /// when asked for.
-    Physical { retardance: bool, rotation: bool, depolarization: bool },
-    /// The general 3 x 3 block with `m00 = 1`.
-    General,
-}
-
-/// Names of the full parameter vectors of each kind.
-const PHYSICAL_NAMES: [&str; 6] = ["q_diat", "u_diat", "g1_ret", "g2_ret", "rotation", "depolarization"];
-const GENERAL_NAMES: [&str; 8] = ["m01", "m02", "m10", "m11", "m12", "m20", "m21", "m22"];
-
-impl Kind {
-    /// Diattenuation and retardance: the stressed-lens hypothesis of issue 16.
-    pub fn diattenuation_retardance() -> Self {
-        Kind::Physical { retardance: true, rotation: false, depolarization: false }
-    }
-
-    /// The physical form with the effects named in `s` (comma-separated: retardance,
-    /// rotation, depolarization, or none) free besides the diattenuation.
-    pub fn parse_free(s: &str) -> std::result::Result<Self, String> {
-        let (mut retardance, mut rotation, mut depolarization) = (false, false, false);
-        for w in s.split(',').map(str::trim).filter(|w| !w.is_empty()) {
-            match w {
-                "retardance" => retardance = true,
-                "rotation" => rotation = true,
-                "depolarization" => depolarization = true,
-                "none" => {}
-                _ => return Err(format!("unknown effect '{w}' (retardance, rotation, depolarization or none)")),
-            }
-        }
-        Ok(Kind::Physical { retardance, rotation, depolarization })
-    }
-
-    /// The model as a vocabulary word: `physical` or `general` (JSON `model`, the
-    /// calibration file's `MU MODEL`).
-    pub fn model_name(&self) -> &'static str {
-        match self {
-            Kind::Physical { .. } => "physical",
-            Kind::General => "general",
-        }
-    }
-
-    /// The effects fitted, as vocabulary words (JSON `free`, the calibration file's `MU FREE`):
-    /// `diattenuation` always for the physical form, then `retardance`, `rotation`,
-    /// `depolarization` when free; the general block names all eight elements' effect as
-    /// `general` (it has no physical split).
-    pub fn free_words(&self) -> Vec<&'static str> {
-        match *self {
-            Kind::Physical { retardance, rotation, depolarization } => {
-                let mut v = vec!["diattenuation"];
-                for (on, w) in [(retardance, "retardance"), (rotation, "rotation"), (depolarization, "depolarization")]
-                {
-                    if on {
-                        v.push(w);
-                    }
-                }
-                v
-            }
-            Kind::General => vec!["general"],
-        }
-    }
-
-    /// The kind of a model word and its effect words ([`model_name`](Self::model_name),
-    /// [`free_words`](Self::free_words)); an error naming the unknown word.
-    pub fn from_words(model: &str, free: &[&str]) -> std::result::Result<Self, String> {
-        match model {
-            "general" => Ok(Kind::General),
-            "physical" => {
-                let rest: Vec<&str> = free.iter().copied().filter(|w| *w != "diattenuation").collect();
-                if rest.is_empty() {
-                    Self::parse_free("none")
-                } else {
-                    Self::parse_free(&rest.join(","))
-                }
-            }
-            other => Err(format!("unknown Mueller model '{other}' (physical or general)")),
-        }
-    }
-
-    /// Indices of the free parameters in the full vector of this kind.
-    pub fn free(&self) -> Vec<usize> {
-        match *self {
-            Kind::Physical { retardance, rotation, depolarization } => {
-                let mut v = vec![0, 1];
-                if retardance {
-                    v.extend([2, 3]);
-                }
-                if rotation {
-                    v.push(4);
-                }
-                if depolarization {
-                    v.push(5);
-                }
-                v
-            }
-            Kind::General => (0..8).collect(),
-        }
-    }
-
-    /// The full parameter vector of no instrumental effect.
-    pub fn identity(&self) -> Vec<f64> {
-        match self {
-            Kind::Physical { .. } => vec![0.0; 6],
-            Kind::General => vec![0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-        }
-    }
-
-    /// Name of full parameter `i`.
-    pub fn name(&self, i: usize) -> &'static str {
-        match self {
-            Kind::Physical { .. } => PHYSICAL_NAMES[i],
-            Kind::General => GENERAL_NAMES[i],
-        }
-    }
-
-    /// The physical quantity full parameter `i` belongs to (for messages).
-    fn group(&self, i: usize) -> &'static str {
-        match self {
-            Kind::Physical { .. } => {
-                ["diattenuation", "diattenuation", "retardance", "retardance", "rotation", "depolarization"][i]
-            }
-            Kind::General => GENERAL_NAMES[i],
-        }
-    }
-
-    /// The linear block of a full parameter vector.
-    pub fn block(&self, full: &[f64]) -> LinearBlock {
-        match self {
-            Kind::Physical { .. } => linear::physical_block(full[0], full[1], [full[2], full[3]], full[4], full[5]),
-            Kind::General => {
-                #[rustfmt::skip]
-                let m = Matrix3::new(
-                    1.0,     full[0], full[1],
-                    full[2], full[3], full[4],
-                    full[5], full[6], full[7],
-                );
-                LinearBlock(m)
-            }
-        }
     }
 }
 
@@ -1003,7 +859,7 @@ impl MuellerField {
         let m = f.field;
         let n = match &m.smooth {
             Smooth::Poly => m.free.len() * n_monomials(m.deg),
-            Smooth::Radial(_) => crate::mueller_smooth::radial_rows(m.kind, m.deg)
+            Smooth::Radial(_) => crate::mueller_forms::radial_rows(m.kind, m.deg)
                 .map_err(|e| Error::Input(format!("{what}: {e}")))?
                 .len(),
             Smooth::Interp(_) => 0,

@@ -154,7 +154,7 @@ pub fn refit(cal: &Calibration, opts: &CalibrateOptions) -> Result<CalibrationRu
     let bins: Vec<Bin> = cal.bins.iter().map(|b| Bin { used: true, ..*b }).collect();
     let mut provenance = cal.provenance.clone();
     provenance.tool_version = format!("instpol {}", env!("CARGO_PKG_VERSION"));
-    provenance.date = crate::calfile::utc_now_iso();
+    provenance.date = crate::keys::utc_now_iso();
     if !provenance.source.contains("refit") {
         provenance.source = format!("{} (refit)", provenance.source);
     }

@@ -15,7 +15,7 @@
 //!
 //! The HDU sits beside a field model (after the field calibration's HDUs, written by
 //! [`save_with_field`] through [`Calibration::save_with`]) or alone (a file whose primary HDU
-//! says `HIERARCH IP MODEL = 'TELESCOPE'`, [`save_alone`]). [`load`] reads either;
+//! says `HIERARCH IP MODEL = 'TELESCOPE'`, [`save_alone`]). [`crate::calibration::load`] reads either;
 //! [`Calibration::load`] refuses a telescope-only file by name.
 //!
 //! # The chain and its inversion
@@ -46,8 +46,8 @@
 //! the front ends only warned; now such a star comes back to 1e-16
 //! (`crates/cli/tests/telescope_frames.rs`, `the_chain_undoes_the_telescope_through_a_hwp_zero_angle`).
 
-use crate::calfile::{fits_err, temp_error, KeyReader, KeyWriter};
 use crate::correct::{p_chi_with_errors, Corrected, Corrector, Measurement};
+use crate::keys::{fits_err, temp_error, KeyReader, KeyWriter};
 use crate::model::{FieldModel, InstPol};
 use crate::radial::ErrorScaling;
 use crate::telescope::{BandModel, ModelKind, Param, Seen, TelescopeFit, Track};
@@ -57,8 +57,8 @@ use fitsio::FitsFile;
 use mueller::C64;
 use std::path::Path;
 
-/// `HIERARCH IP MODEL` of a calibration file that holds only a telescope model.
-pub const MODEL_KIND: &str = "TELESCOPE";
+/// The `HIERARCH IP MODEL` of this kind of file.
+pub use crate::keys::TELESCOPE_MODEL as MODEL_KIND;
 /// The HDU name.
 pub const HDU: &str = "TELESCOPE";
 
@@ -132,12 +132,12 @@ pub fn save_alone(path: &Path, instrument: &str, fit: &TelescopeFit, metal: &str
         let mut f = FitsFile::create(&tmp).overwrite().open().map_err(e("creating the file"))?;
         let hdu = f.primary_hdu().map_err(e("opening the primary HDU"))?;
         let mut w = KeyWriter { f: &mut f, hdu: &hdu, path };
-        w.int("FORMAT VERSION", crate::calfile::FORMAT_VERSION)?;
+        w.int("FORMAT VERSION", crate::keys::FORMAT_VERSION)?;
         w.str("INSTRUMENT", instrument)?;
         w.str("MODEL", MODEL_KIND)?;
         w.str("SOURCE", "instpol fit-standards")?;
         w.str("TOOL", &format!("instpol {}", env!("CARGO_PKG_VERSION")))?;
-        w.str("DATE", &crate::calfile::utc_now_iso())?;
+        w.str("DATE", &crate::keys::utc_now_iso())?;
         w.int("NINPUT", inputs.len() as i64)?;
         for (k, name) in inputs.iter().enumerate() {
             w.str(&format!("INPUT{}", k + 1), name)?;
@@ -155,47 +155,6 @@ pub fn save_alone(path: &Path, instrument: &str, fit: &TelescopeFit, metal: &str
 /// Write the field calibration `cal` with the telescope model beside it.
 pub fn save_with_field(path: &Path, cal: &Calibration, fit: &TelescopeFit, metal: &str) -> Result<()> {
     cal.save_with(path, |f, p| write_hdu(f, p, fit, metal))
-}
-
-/// What a calibration file holds: a field model, a telescope model, or both.
-#[derive(Debug, Clone)]
-pub struct Loaded {
-    pub instrument: String,
-    pub field: Option<Calibration>,
-    pub telescope: Option<TelescopeFit>,
-}
-
-/// Read a calibration file with or without a field model and with or without a telescope
-/// model; an error when it has neither or when the telescope HDU is malformed (naming the
-/// keyword or row).
-pub fn load(path: &Path) -> Result<Loaded> {
-    let e = |doing: &str| fits_err(path, doing);
-    if !path.is_file() {
-        return Err(Error::Io {
-            path: path.into(),
-            err: std::io::Error::new(std::io::ErrorKind::NotFound, "no such calibration file"),
-        });
-    }
-    let (kind, instrument) = {
-        let mut f = FitsFile::open(path).map_err(e("opening"))?;
-        let hdu = f.primary_hdu().map_err(e("reading the primary HDU"))?;
-        let mut r = KeyReader { f: &mut f, hdu: &hdu, path };
-        let version = r.int("FORMAT VERSION")?;
-        if version > crate::calfile::FORMAT_VERSION {
-            return Err(Error::NewerFormat {
-                path: path.into(),
-                found: version,
-                supported: crate::calfile::FORMAT_VERSION,
-            });
-        }
-        (r.str("MODEL")?, r.str("INSTRUMENT")?)
-    };
-    let field = if kind == MODEL_KIND { None } else { Some(Calibration::load(path)?) };
-    let telescope = read_hdu(path)?;
-    if field.is_none() && telescope.is_none() {
-        return Err(Error::BadFile { path: path.into(), what: format!("MODEL = '{MODEL_KIND}' but no {HDU} HDU") });
-    }
-    Ok(Loaded { instrument, field, telescope })
 }
 
 /// Read the `TELESCOPE` HDU of a file, `None` when it has none.

@@ -8,10 +8,11 @@
 
 mod common;
 use common::jones::{mul, rot, C, J};
+use fit::calibration::load;
 use fit::correct::{CorrectOptions, Corrector, Measurement};
 use fit::model::{FieldModel, InstPol};
 use fit::telescope::{fit_band, read_observations, FitOptions, ModelKind, TelescopeFit, Track};
-use fit::telescope_cal::{correct_chain, load, save_alone, save_with_field};
+use fit::telescope_cal::{correct_chain, save_alone, save_with_field};
 use mueller::mirror::MetalTable;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
@@ -94,6 +95,7 @@ fn real_efosc2_standards_leave_one_out_through_the_calibration_file_are_unpolari
             save_alone(&path, "EFOSC2", &f, "Rakic 1995", &[]).unwrap();
             let l = load(&path).unwrap();
             assert!(l.field.is_none());
+            assert_eq!(l.kind(), fit::calibration::Kind::Telescope);
             let tel = l.telescope.unwrap();
             let o = &obs[k];
             // The measurement errors scaled as the fit scaled its own (the standards scatter
@@ -363,6 +365,8 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
     let path = t.path().join("both.fits");
     save_with_field(&path, &cal, &f, "aluminium").unwrap();
     let l = load(&path).unwrap();
+    assert_eq!(l.kind(), fit::calibration::Kind::FieldAndTelescope);
+    assert_eq!(l.instrument, cal.instrument);
     let field = l.field.expect("the field model is still there");
     assert_eq!(field.model.kind(), cal.model.kind());
     let tel = l.telescope.unwrap();

@@ -415,13 +415,13 @@ impl _Calibration {
 impl _Calibration {
     #[staticmethod]
     fn load(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
-        if fit::mueller_cal::is_mueller(&path) {
-            let m = py.detach(|| fit::mueller_cal::MuellerCal::load(&path)).map_err(|e| load_err(&path, e))?;
+        // The reader `instpol correct` uses: a Mueller field, or a field model and a telescope
+        // model when the file holds one (ignoring it would return the telescope's polarization
+        // as the sky's).
+        let loaded = py.detach(|| fit::calibration::load(&path)).map_err(|e| load_err(&path, e))?;
+        if let Some(m) = loaded.mueller {
             return Ok(Self { field: Field::Mueller(m), telescope: None, path });
         }
-        // The reader `instpol correct` uses: a field model, and a telescope model when the
-        // file holds one (ignoring it would return the telescope's polarization as the sky's).
-        let loaded = py.detach(|| fit::telescope_cal::load(&path)).map_err(|e| load_err(&path, e))?;
         let field = match (loaded.field, &loaded.telescope) {
             (Some(cal), _) => Field::PPhi(cal),
             // A telescope-only file (instpol fit-standards --output): correct() applies the
@@ -749,7 +749,7 @@ impl _Calibration {
 
     /// `instpol correct` on a Stokes map file (from `instpol reduce` or `reduce(output=)`): the
     /// calibration's field, Mueller field or telescope chain over every valid bin
-    /// (`fit::correct::correct_stokes_map`), the map's instrument and filter checked, the
+    /// (`fit::calibration::correct_stokes_map`), the map's instrument and filter checked, the
     /// telescope's band and track by the CLI's rules; `output`: the corrected map, written with
     /// the correction's record (`INSTCORR`, ...). Returns the corrected map as `_reduce` does,
     /// with the correction's summary.
@@ -768,7 +768,7 @@ impl _Calibration {
         band: Option<String>,
         allow_mismatch: bool,
     ) -> PyResult<Bound<'py, PyDict>> {
-        use fit::correct::MapCorrection;
+        use fit::calibration::MapCorrection;
         use fit::telescope::{Track, TrackChoiceError};
         let method = parse_method(method, extrapolation_error)?;
         let angle = |name: &str, x: f64| -> PyResult<f64> {
@@ -899,7 +899,8 @@ impl _Calibration {
         let name = self.path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
         let (c, stamp) = py
             .detach(|| {
-                let r = fit::correct::correct_stokes_map(&map, with, allow_extrapolation, extrapolation_error, &name);
+                let r =
+                    fit::calibration::correct_stokes_map(&map, with, allow_extrapolation, extrapolation_error, &name);
                 let (c, stamp) = r.map_err(|e| format!("{} {e}", input.display()))?;
                 if let Some(out) = &output {
                     c.map.write_corrected_fits(out, &stamp).map_err(|e| e.to_string())?;
@@ -1337,7 +1338,7 @@ fn _catalog<'py>(
     cfg.check().map_err(sky_err)?;
     let read = read_options(bias, flat, hwp_angles, assembled)?;
     let loaded = match &cal {
-        Some(p) => Some(py.detach(|| fit::telescope_cal::load(p)).map_err(|e| load_err(p, e))?),
+        Some(p) => Some(py.detach(|| fit::calibration::load(p)).map_err(|e| load_err(p, e))?),
         None => None,
     };
     let (cat, warnings) = py

@@ -181,8 +181,8 @@ pub fn run(a: Args) -> Result<()> {
     let corrected = match &a.cal {
         None => None,
         Some(path) => {
-            let loaded = fit::telescope_cal::load(path)
-                .with_context(|| format!("cannot load calibration {}", path.display()))?;
+            let loaded =
+                fit::calibration::load(path).with_context(|| format!("cannot load calibration {}", path.display()))?;
             let opts =
                 fit::correct::CorrectOptions { allow_extrapolation: a.allow_extrapolation, ..Default::default() };
             let (c, used) = fit::catalog_correct::correct_catalog_loaded(&cat, &inst, &a.frames, &loaded, opts)

@@ -196,17 +196,13 @@ pub fn run(a: Args) -> Result<()> {
     if !(a.extrapolation_error.is_finite() && a.extrapolation_error >= 0.0) {
         bail!("--extrapolation-error {} must be a non-negative number", a.extrapolation_error);
     }
-    if fit::mueller_cal::is_mueller(&a.cal) {
-        let cal = fit::mueller_cal::MuellerCal::load(&a.cal)
-            .with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
-        return run_mueller(&a, &cal, est);
-    }
     let loaded =
-        fit::telescope_cal::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
-    let cal = match (loaded.telescope, loaded.field) {
-        (Some(tel), field) => return run_telescope(&a, &tel, field.as_ref(), est),
-        (None, Some(cal)) => cal,
-        (None, None) => bail!("{}: holds no model", a.cal.display()),
+        fit::calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
+    let cal = match (loaded.mueller, loaded.telescope, loaded.field) {
+        (Some(mueller), _, _) => return run_mueller(&a, &mueller, est),
+        (None, Some(tel), field) => return run_telescope(&a, &tel, field.as_ref(), est),
+        (None, None, Some(cal)) => cal,
+        (None, None, None) => bail!("{}: holds no model", a.cal.display()),
     };
     refuse_telescope_options(&a, "has none")?;
     let opts = options(&cal, &a);
@@ -593,7 +589,7 @@ fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Ca
             z
         }
     };
-    let with = fit::correct::MapCorrection::Chain {
+    let with = fit::calibration::MapCorrection::Chain {
         field: field.map(|c| (c, options(c, a).method)),
         telescope: tel,
         band: &band,
@@ -630,7 +626,7 @@ fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summ
     let map = skyfield::StokesMap::read_uncorrected(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
     check_same_setup(&map.instrument, &map.filter, (&cal.instrument, &cal.filter), &a.input, &a.cal, a.allow_mismatch)?;
-    let with = fit::correct::MapCorrection::Field { cal, method: opts.method };
+    let with = fit::calibration::MapCorrection::Field { cal, method: opts.method };
     let c = correct_and_write(a, &map, with)?;
     Ok(map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg))
 }
@@ -670,15 +666,15 @@ fn cal_name(a: &Args) -> String {
     a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default()
 }
 
-/// Correct a Stokes map (`fit::correct::correct_stokes_map`) and write it with the
+/// Correct a Stokes map (`fit::calibration::correct_stokes_map`) and write it with the
 /// correction's record.
 fn correct_and_write(
     a: &Args,
     map: &skyfield::StokesMap,
-    with: fit::correct::MapCorrection<'_>,
+    with: fit::calibration::MapCorrection<'_>,
 ) -> Result<fit::correct::CorrectedMap> {
     let (c, stamp) =
-        fit::correct::correct_stokes_map(map, with, a.allow_extrapolation, a.extrapolation_error, &cal_name(a))
+        fit::calibration::correct_stokes_map(map, with, a.allow_extrapolation, a.extrapolation_error, &cal_name(a))
             .map_err(|e| map_error(e, &a.input))?;
     crate::util::check_output(&a.out)?;
     c.map.write_corrected_fits(&a.out, &stamp).with_context(|| format!("cannot write {}", a.out.display()))?;
@@ -715,7 +711,7 @@ fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> 
             &a.cal,
             a.allow_mismatch,
         )?;
-        let with = fit::correct::MapCorrection::Mueller(cal);
+        let with = fit::calibration::MapCorrection::Mueller(cal);
         let c = correct_and_write(a, &map, with)?;
         map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg)
     } else {

@@ -202,14 +202,18 @@ pub fn run(a: Args) -> Result<()> {
     if !(a.threshold.is_finite() && a.threshold > 0.0) {
         bail!("--threshold {} must be a positive number of sigma", a.threshold);
     }
+    let loaded =
+        fit::calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     // A telescope model (alone or beside a field model) goes through the whole chain.
-    if fit::telescope_cal::read_hdu(&a.cal)?.is_some() {
-        return run_telescope(&a);
+    if loaded.telescope.is_some() {
+        return run_telescope(&a, &loaded);
     }
     if a.parang.is_some() || a.band.is_some() {
         bail!("--parang / --band: {} holds no telescope model (instpol fit-standards writes one)", a.cal.display());
     }
-    let cal = Calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
+    let (Some(cal), _) = loaded.p_phi_models()? else {
+        bail!("{}: holds no field model", a.cal.display());
+    };
     let inst = Instrument::load(&a.instrument)?;
     let (x_px, y_px) = match a.coords {
         crate::cmd::correct::Coords::Pixel => (a.x, a.y),
@@ -217,7 +221,7 @@ pub fn run(a: Args) -> Result<()> {
     };
     let (name, expected) = expected_star(&a, &cal.filter)?;
     let opts = validate_options(&a)?;
-    let r = validate_star(&cal, &inst, &a.frames, x_px, y_px, (&name, expected), &opts)?;
+    let r = validate_star(cal, &inst, &a.frames, x_px, y_px, (&name, expected), &opts)?;
     if r.validation.extrapolated {
         eprintln!(
             "warning: the star lies outside the calibrated field; the prediction is extrapolated (errors inflated)"
@@ -273,11 +277,9 @@ fn expected_star(a: &Args, band: &str) -> Result<(String, Expected)> {
 
 /// `validate` with a telescope calibration: the track from the headers (or --parang), the
 /// star measured, corrected through the chain and judged (fit::telescope_cal::validate_chain).
-fn run_telescope(a: &Args) -> Result<()> {
-    let loaded =
-        fit::telescope_cal::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
-    let tel = loaded.telescope.as_ref().expect("a TELESCOPE HDU");
-    let field = loaded.field.as_ref();
+fn run_telescope(a: &Args, loaded: &fit::calibration::CalibrationFile) -> Result<()> {
+    let (field, tel) = loaded.p_phi_models()?;
+    let tel = tel.expect("a TELESCOPE HDU");
     let inst = Instrument::load(&a.instrument)?;
     if loaded.instrument != "unknown" && !loaded.instrument.eq_ignore_ascii_case(&inst.name) {
         bail!(
