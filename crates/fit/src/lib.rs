@@ -36,6 +36,7 @@ pub mod polar;
 pub mod radial;
 pub mod region;
 pub mod residual;
+pub mod rows;
 pub mod setup;
 pub mod synth;
 pub mod telescope;

@@ -2,7 +2,8 @@
 //! work; this module reads and writes tables).
 
 use anyhow::{anyhow, bail, Context, Result};
-use fit::correct::{CorrectOptions, Corrected, Corrector, Measurement, Method};
+use fit::correct::{Corrected, Measurement, Method};
+use fit::rows::RowsRequest;
 use fit::Calibration;
 use fitsio::tables::{ColumnDataType, ColumnDescription};
 use fitsio::FitsFile;
@@ -198,61 +199,239 @@ pub fn run(a: Args) -> Result<()> {
     }
     let loaded =
         fit::calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
-    let cal = match (loaded.mueller, loaded.telescope, loaded.field) {
-        (Some(mueller), _, _) => return run_mueller(&a, &mueller, est),
-        (None, Some(tel), field) => return run_telescope(&a, &tel, field.as_ref(), est),
-        (None, None, Some(cal)) => cal,
-        (None, None, None) => bail!("{}: holds no model", a.cal.display()),
+    let parang = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
+    let rotator = a.rotator.map(crate::util::parse_rotator).transpose()?;
+    let request = RowsRequest {
+        method: method(&a),
+        allow_extrapolation: a.allow_extrapolation,
+        extrapolation_rel_error: a.extrapolation_error,
+        band: a.band.as_deref(),
+        carried_zero_angle_deg: None,
+        per_row: None,
+        parang,
+        rotator,
+        recorded: None,
+        angles_are_arguments: false,
     };
-    refuse_telescope_options(&a, "has none")?;
-    let opts = options(&cal, &a);
+    fit::rows::check_options(&loaded, &request).map_err(|e| rows_error(&a, None, e))?;
     let kind = detect(&a.input)?;
-    // The output's format is known before any work: an unknown extension fails now.
-    let out_format = if kind == Kind::Map { None } else { Some(Format::from_path(&a.out)?) };
-    let summary = match kind {
-        Kind::Map => correct_map(&cal, opts, &a)?,
-        Kind::Text | Kind::FitsTable => {
-            let mut table = read_catalog(&a, kind)?;
-            if table.column(PARANG[0]).is_some() {
-                eprintln!(
-                    "warning: {} has a {} column but {} holds no telescope model: the telescope's polarization is NOT removed (fit one with instpol fit-standards --output)",
-                    a.input.display(),
-                    PARANG[0],
-                    a.cal.display()
-                );
+    if kind == Kind::Map {
+        return match (&loaded.mueller, &loaded.telescope, &loaded.field) {
+            (Some(m), _, _) => run_mueller_map(&a, m),
+            (None, Some(tel), field) => telescope_map(&a, tel, field.as_ref()),
+            (None, None, Some(cal)) => {
+                let summary = correct_map(cal, &a)?;
+                warn_extrapolated(&summary, "calibrated field");
+                report(&a, &summary, &field_line(&a, &summary, cal), "")
             }
-            let opts = zero_angle_of_the_table(&table, cal.hwp_chi_offset_deg, opts, &a.input)?;
-            let meas = measurements(&table, cal.pixel, a.coords, &a.input)?;
-            let cor = Corrector::new(&cal, opts);
-            let mut out = vec![Corrected::default(); meas.len()];
-            let n_extra = correct_rows(&cor, &meas, &mut out, &a.input)?;
-            write_catalog(
-                &a,
-                kind,
-                out_format,
-                &mut table,
-                &out,
-                est,
-                n_extra,
-                cal.filter.clone(),
-                cal.hwp_chi_offset_deg,
-            )?
-        }
-    };
-    warn_extrapolated(&summary, "calibrated field");
-    report(
-        &a,
-        &summary,
-        format_args!(
-            "corrected {} {} with {} ({} {}, HWP zero angle {:+.2} deg)",
-            summary.rows,
-            if kind == Kind::Map { "bins" } else { "rows" },
-            a.cal.display(),
-            cal.instrument,
-            cal.filter,
-            cal.hwp_chi_offset_deg
+            (None, None, None) => bail!("{}: holds no model", a.cal.display()),
+        };
+    }
+    run_table(&a, &loaded, &request, kind, est)
+}
+
+/// The flags' inversion method.
+fn method(a: &Args) -> Method {
+    match a.method {
+        MethodArg::Exact => Method::Exact,
+        MethodArg::FirstOrder => Method::FirstOrder,
+    }
+}
+
+/// The first line of the summary of a correction by a field calibration.
+fn field_line(a: &Args, s: &Summary, cal: &Calibration) -> String {
+    format!(
+        "corrected {} {} with {} ({} {}, HWP zero angle {:+.2} deg)",
+        s.rows,
+        if s.kind == "Stokes map" { "bins" } else { "rows" },
+        a.cal.display(),
+        cal.instrument,
+        cal.filter,
+        cal.hwp_chi_offset_deg
+    )
+}
+
+/// A refusal of `fit::rows` in this command's words (`table`: the catalog, for the names of its
+/// columns).
+fn rows_error(a: &Args, table: Option<&Table>, e: fit::rows::RowsError) -> anyhow::Error {
+    use fit::rows::RowsError as E;
+    let (cal, input) = (a.cal.display(), a.input.display());
+    match e {
+        E::TelescopeOptions { mueller } => anyhow!(
+            "--band, --parang, --rotator are for calibrations with a telescope model; {cal} {}",
+            if mueller { "holds a Mueller field" } else { "has none" }
         ),
-        "",
+        E::MuellerFirstOrder => anyhow!(
+            "--method first-order: {cal} holds a Mueller field, which is inverted exactly (eq:approx is the p, phi model's first order)"
+        ),
+        E::NoParallactic => anyhow!(
+            "{input}: no column '{}' (columns: {}) and no recorded parallactic angles: the telescope model of {cal} needs each row's parallactic angle (deg), or --parang START[,END] when every row comes from the same frames (instpol catalog records them in ECSV, FITS and VOTable outputs when the instrument's [telescope] section names the header keywords)",
+            PARANG[0],
+            table.map_or(String::new(), |t| t.names().join(", "))
+        ),
+        E::TwoTracks => anyhow!(
+            "{input} has a {} column and --parang is given: use one (the column gives each row's angle)",
+            PARANG[0]
+        ),
+        E::NoRotator { per_row: true } => anyhow!(
+            "{input}: no column 'rotator_deg': the telescope model of {cal} was fitted with rotator angles and needs each row's (or --rotator DEG for all)"
+        ),
+        E::NoRotator { per_row: false } => {
+            anyhow!("the telescope model of {cal} was fitted with rotator angles: give the exposures' with --rotator DEG")
+        }
+        E::Band(b) => crate::util::band_choice_error(b, &a.cal, None),
+        E::Exposures(m) => anyhow!("{input}: its exposures: {m}"),
+        e => anyhow!("{input}: {e}"),
+    }
+}
+
+/// Say what `fit::rows` noted about a correction that goes ahead.
+fn print_notes(a: &Args, notes: &[fit::rows::Note]) {
+    use fit::rows::Note;
+    let (cal, input) = (a.cal.display(), a.input.display());
+    for n in notes {
+        match n {
+            Note::CarriedZeroAngle { carried, calibration, applied } => eprintln!(
+                "note: {input}: q, u already carry the HWP zero angle {carried} deg (column '{ZERO_ANGLE}'); the calibration's is {calibration} deg: the difference {applied} deg is applied"
+            ),
+            Note::AnglesWithoutTelescope => eprintln!(
+                "warning: {input} has a {} column but {cal} holds no telescope model: the telescope's polarization is NOT removed (fit one with instpol fit-standards --output)",
+                PARANG[0]
+            ),
+            Note::TrackReplaced { recorded: (s, e) } => eprintln!(
+                "warning: --parang {} replaces the parallactic angle {input} recorded ({:.3} to {:.3} deg)",
+                a.parang.as_deref().unwrap_or(""),
+                s.to_degrees(),
+                e.to_degrees()
+            ),
+            Note::RotatorIgnored => eprintln!(
+                "warning: --rotator is ignored: the telescope model of {cal} was fitted without rotator angles (its offset holds the rotator's)"
+            ),
+        }
+    }
+}
+
+/// Correct a catalog's rows with any calibration (`fit::rows`): read the table and its angles,
+/// correct every row in parallel, write the table with the corrected columns and report.
+fn run_table(
+    a: &Args,
+    loaded: &fit::calibration::CalibrationFile,
+    base: &RowsRequest<'_>,
+    kind: Kind,
+    est: Estimator,
+) -> Result<()> {
+    use rayon::prelude::*;
+    let out_format = Some(Format::from_path(&a.out)?);
+    let mut table = read_catalog(a, kind)?;
+    let carried = table.carried_zero_angle(&a.input)?;
+    let column = |name: &str| -> Result<Option<Vec<f64>>> {
+        Ok(if table.column(name).is_some() { Some(table.numbers(name, &a.input)?) } else { None })
+    };
+    let (start, end) = (column(PARANG[0])?, column(PARANG[1])?);
+    // The rotator column is read only where it is used: per-row angles of a model fitted
+    // with rotator angles.
+    let with_rotator = loaded.telescope.as_ref().is_some_and(|t| t.with_rotator);
+    let rot = if start.is_some() && with_rotator { column("rotator_deg")? } else { None };
+    // Every row from the same frames: the angles the catalog recorded (instpol catalog writes
+    // its exposures' angles into ECSV, FITS and VOTable tables).
+    let recorded = if start.is_none() && loaded.telescope.is_some() {
+        Some(skyfield::RecordedAngles::from_meta(&table.meta, &a.input)?)
+    } else {
+        None
+    };
+    let request = RowsRequest {
+        carried_zero_angle_deg: carried,
+        recorded: recorded.as_ref(),
+        per_row: start.as_deref().map(|s| fit::rows::PerRowAngles {
+            start_deg: s,
+            end_deg: end.as_deref(),
+            rotator_deg: rot.as_deref(),
+        }),
+        ..*base
+    };
+    let n = table.n_rows();
+    let plan = fit::rows::plan(loaded, &request, n).map_err(|e| rows_error(a, Some(&table), e))?;
+    print_notes(a, &plan.notes);
+    let pixel = match (&loaded.field, &loaded.mueller) {
+        (Some(c), _) => c.pixel,
+        (None, Some(m)) => m.pixel(),
+        _ => None,
+    };
+    let meas = measurements(&table, pixel, a.coords, &a.input)?;
+    let results: Vec<_> = meas.par_iter().enumerate().map(|(i, m)| plan.correct(i, m)).collect();
+    let mut out = Vec::with_capacity(results.len());
+    for (i, r) in results.into_iter().enumerate() {
+        out.push(r.map_err(|e| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)))?);
+    }
+    let n_extra = out.iter().filter(|c| c.extrapolated).count();
+    // The zero angle reported: a field calibration's own (the rows were turned by it less what
+    // they carry), else the one applied.
+    let (filter, zero_angle) = match (&loaded.field, &loaded.mueller, &plan.telescope) {
+        (Some(c), _, None) => (c.filter.clone(), c.hwp_chi_offset_deg),
+        (None, Some(m), _) => (m.filter.clone(), plan.to_sky_deg.to_radians().to_degrees()),
+        (field, _, t) => (
+            field
+                .as_ref()
+                .map(|c| c.filter.clone())
+                .unwrap_or_else(|| t.as_ref().map_or(String::new(), |t| t.band.clone())),
+            plan.to_sky_deg,
+        ),
+    };
+    let mut summary = write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, filter, zero_angle)?;
+    if let Some(t) = &plan.telescope {
+        summary.telescope_model = Some(t.fit.model.name());
+        summary.telescope_band = Some(t.band.clone());
+        summary.telescope_exposures = (t.exposures > 0).then_some(t.exposures);
+    }
+    if let Some(m) = &loaded.mueller {
+        summary.mueller_model = Some(m.field.kind.model_name());
+        summary.mueller_free = Some(m.field.kind.free_words());
+    }
+    match (&loaded.mueller, &plan.telescope, &loaded.field) {
+        (Some(m), _, _) => {
+            warn_extrapolated(&summary, "fitted Mueller field");
+            report(a, &summary, &mueller_line(a, &summary, m), " (unpolarized light)")
+        }
+        (None, Some(t), field) => {
+            warn_extrapolated(&summary, "calibrated field");
+            report(
+                a,
+                &summary,
+                &format!(
+                    "corrected {} rows with {} ({} model, band {}{}), {}",
+                    summary.rows,
+                    a.cal.display(),
+                    t.fit.model.name(),
+                    t.band,
+                    if field.is_some() { ", field model first" } else { ", no field model" },
+                    if t.exposures == 0 {
+                        "the parallactic angle per row".to_string()
+                    } else {
+                        format!("exposure by exposure ({}, as the catalog recorded them)", t.exposures)
+                    }
+                ),
+                "",
+            )
+        }
+        (None, None, Some(cal)) => {
+            warn_extrapolated(&summary, "calibrated field");
+            report(a, &summary, &field_line(a, &summary, cal), "")
+        }
+        (None, None, None) => unreachable!("the loader refuses a file without a model"),
+    }
+}
+
+/// The first line of the summary of a correction by a Mueller field.
+fn mueller_line(a: &Args, s: &Summary, cal: &fit::mueller_cal::MuellerCal) -> String {
+    format!(
+        "corrected {} {} with the Mueller field of {} ({} {}, {} model: {}), exact inverse",
+        s.rows,
+        if s.kind == "Stokes map" { "bins" } else { "rows" },
+        a.cal.display(),
+        cal.instrument,
+        cal.filter,
+        cal.field.kind.model_name(),
+        cal.field.kind.free_words().join(", ")
     )
 }
 
@@ -274,47 +453,10 @@ fn read_catalog(a: &Args, kind: Kind) -> Result<Table> {
 // applied (`instpol catalog` writes it): they are then in the sky's frame.
 use skyfield::table::ZERO_ANGLE_COLUMN as ZERO_ANGLE;
 
-/// The zero angle to apply to a table's q, u: the calibration's, less the one the table says
-/// its q, u already carry (column [`ZERO_ANGLE`], the same in every row), so that a catalog
-/// from `instpol catalog` is not turned by the zero angle twice. A table without the column
-/// holds q, u as measured (the calibration's zero angle is applied whole).
-fn zero_angle_of_the_table(
-    t: &Table,
-    cal_offset_deg: f64,
-    mut opts: CorrectOptions,
-    path: &Path,
-) -> Result<CorrectOptions> {
-    let carried = t.carried_zero_angle(path)?;
-    let (d, _) = fit::correct::row_zero_angles(Some(cal_offset_deg), carried);
-    note_carried(path, carried, cal_offset_deg, d);
-    opts.chi_offset = d.to_radians();
-    Ok(opts)
-}
-
-/// Say when a table's q, u carry a zero angle (`carried`) and only the calibration's
-/// difference `d` is applied to them.
-fn note_carried(path: &Path, carried: Option<f64>, cal_offset_deg: f64, d: f64) {
-    if let Some(z0) = carried.filter(|_| d != 0.0) {
-        eprintln!(
-            "note: {}: q, u already carry the HWP zero angle {z0} deg (column '{ZERO_ANGLE}'); the calibration's is {cal_offset_deg} deg: the difference {d} deg is applied",
-            path.display()
-        );
-    }
-}
-
-/// --band, --parang and --rotator given for a calibration without a telescope model (`what`
-/// it holds instead): refused, as they would change nothing.
-fn refuse_telescope_options(a: &Args, what: &str) -> Result<()> {
-    if a.band.is_some() || a.parang.is_some() || a.rotator.is_some() {
-        bail!("--band, --parang, --rotator are for calibrations with a telescope model; {} {what}", a.cal.display());
-    }
-    Ok(())
-}
-
 /// The summary on stdout: the JSON object (--json), or `line`, the medians of the
 /// instrumental p removed (`of`: what it is the p of, "" or " (unpolarized light)") and of
 /// the corrected P0, and the output written.
-fn report(a: &Args, s: &Summary, line: std::fmt::Arguments, of: &str) -> Result<()> {
+fn report(a: &Args, s: &Summary, line: &str, of: &str) -> Result<()> {
     if a.json {
         return crate::util::print_json(s);
     }
@@ -333,19 +475,6 @@ fn warn_extrapolated(s: &Summary, field: &str) {
             "warning: {} of {} positions lie outside the {field}; corrected by extrapolation with inflated errors (flagged)",
             s.extrapolated, s.rows
         );
-    }
-}
-
-/// The correction options for a calibration and the command's flags.
-pub fn options(cal: &Calibration, a: &Args) -> CorrectOptions {
-    CorrectOptions {
-        method: match a.method {
-            MethodArg::Exact => Method::Exact,
-            MethodArg::FirstOrder => Method::FirstOrder,
-        },
-        allow_extrapolation: a.allow_extrapolation,
-        extrapolation_rel_error: a.extrapolation_error,
-        chi_offset: cal.hwp_chi_offset_deg.to_radians(),
     }
 }
 
@@ -434,19 +563,6 @@ fn measurements(
             Ok(Measurement::new(xa, ya, q[i], u[i], sq[i], su[i], cov.as_ref().map(|c| c[i]).unwrap_or(0.0)))
         })
         .collect()
-}
-
-/// Correct all rows (in parallel), naming the file and row of the first failure.
-fn correct_rows(
-    cor: &Corrector<'_, Calibration>,
-    m: &[Measurement],
-    out: &mut [Corrected],
-    path: &Path,
-) -> Result<usize> {
-    cor.par_correct_batch(m, out).map_err(|e| match e {
-        fit::correct::Error::Row { row, source } => anyhow!("{} data row {}: {source}", path.display(), row + 1),
-        e => anyhow!("{}: {e}", path.display()),
-    })
 }
 
 /// The bias-corrected P0 of each row with the chosen estimator (NaN when the errors are not
@@ -590,7 +706,7 @@ fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Ca
         }
     };
     let with = fit::calibration::MapCorrection::Chain {
-        field: field.map(|c| (c, options(c, a).method)),
+        field: field.map(|c| (c, method(a))),
         telescope: tel,
         band: &band,
         track,
@@ -607,7 +723,7 @@ fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Ca
     report(
         a,
         &summary,
-        format_args!(
+        &format!(
             "corrected {} bins of {} with {} ({} model, band {band}{}), parallactic angle {:.2} to {:.2} deg",
             summary.rows,
             a.input.display(),
@@ -622,11 +738,11 @@ fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Ca
 }
 
 /// Correct a Stokes map bin by bin at the bin centres.
-fn correct_map(cal: &Calibration, opts: CorrectOptions, a: &Args) -> Result<Summary> {
+fn correct_map(cal: &Calibration, a: &Args) -> Result<Summary> {
     let map = skyfield::StokesMap::read_uncorrected(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
     check_same_setup(&map.instrument, &map.filter, (&cal.instrument, &cal.filter), &a.input, &a.cal, a.allow_mismatch)?;
-    let with = fit::calibration::MapCorrection::Field { cal, method: opts.method };
+    let with = fit::calibration::MapCorrection::Field { cal, method: method(a) };
     let c = correct_and_write(a, &map, with)?;
     Ok(map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg))
 }
@@ -681,73 +797,19 @@ fn correct_and_write(
     Ok(c)
 }
 
-/// `correct` with a Mueller-field calibration: every row or bin inverted exactly
+/// A Stokes map corrected with a Mueller-field calibration: every bin inverted exactly
 /// (`fit::mueller_cal::MuellerCal::correct`), after the calibration's HWP zero angle (the one
-/// its maps were turned by; 0 for maps that recorded none), less what a table carries.
-fn run_mueller(a: &Args, cal: &fit::mueller_cal::MuellerCal, est: Estimator) -> Result<()> {
-    use rayon::prelude::*;
-    refuse_telescope_options(a, "holds a Mueller field")?;
-    if a.method != MethodArg::Exact {
-        bail!(
-            "--method first-order: {} holds a Mueller field, which is inverted exactly (eq:approx is the p, phi model's first order)",
-            a.cal.display()
-        );
-    }
-    let opts = CorrectOptions {
-        method: Method::Exact,
-        allow_extrapolation: a.allow_extrapolation,
-        extrapolation_rel_error: a.extrapolation_error,
-        chi_offset: cal.hwp_chi_offset_deg.to_radians(),
-    };
-    let kind = detect(&a.input)?;
-    let mut summary = if kind == Kind::Map {
-        let map = skyfield::StokesMap::read_uncorrected(&a.input)
-            .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
-        check_same_setup(
-            &map.instrument,
-            &map.filter,
-            (&cal.instrument, &cal.filter),
-            &a.input,
-            &a.cal,
-            a.allow_mismatch,
-        )?;
-        let with = fit::calibration::MapCorrection::Mueller(cal);
-        let c = correct_and_write(a, &map, with)?;
-        map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg)
-    } else {
-        let out_format = Some(Format::from_path(&a.out)?);
-        let mut table = read_catalog(a, kind)?;
-        let opts = zero_angle_of_the_table(&table, cal.hwp_chi_offset_deg, opts, &a.input)?;
-        let meas = measurements(&table, cal.pixel(), a.coords, &a.input)?;
-        let out: Vec<Corrected> = meas
-            .par_iter()
-            .enumerate()
-            .map(|(i, m)| {
-                cal.correct(m, &opts).map_err(|e| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)))
-            })
-            .collect::<Result<_>>()?;
-        let n_extra = out.iter().filter(|c| c.extrapolated).count();
-        let applied = opts.chi_offset.to_degrees();
-        write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, cal.filter.clone(), applied)?
-    };
+/// its maps were turned by; 0 for maps that recorded none).
+fn run_mueller_map(a: &Args, cal: &fit::mueller_cal::MuellerCal) -> Result<()> {
+    let map = skyfield::StokesMap::read_uncorrected(&a.input)
+        .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
+    check_same_setup(&map.instrument, &map.filter, (&cal.instrument, &cal.filter), &a.input, &a.cal, a.allow_mismatch)?;
+    let c = correct_and_write(a, &map, fit::calibration::MapCorrection::Mueller(cal))?;
+    let mut summary = map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg);
     summary.mueller_model = Some(cal.field.kind.model_name());
     summary.mueller_free = Some(cal.field.kind.free_words());
     warn_extrapolated(&summary, "fitted Mueller field");
-    report(
-        a,
-        &summary,
-        format_args!(
-            "corrected {} {} with the Mueller field of {} ({} {}, {} model: {}), exact inverse",
-            summary.rows,
-            if kind == Kind::Map { "bins" } else { "rows" },
-            a.cal.display(),
-            cal.instrument,
-            cal.filter,
-            cal.field.kind.model_name(),
-            cal.field.kind.free_words().join(", ")
-        ),
-        " (unpolarized light)",
-    )
+    report(a, &summary, &mueller_line(a, &summary, cal), " (unpolarized light)")
 }
 
 /// The band of the telescope model to use (`fit::telescope::TelescopeFit::choose_band`: --band,
@@ -801,133 +863,6 @@ fn shared_track(
         );
     }
     Ok(c.track)
-}
-
-/// `correct` with a telescope model (and maybe a field model): the field first, then the
-/// telescope over each row's track (a catalog) or the exposures' one track (a Stokes map).
-fn run_telescope(
-    a: &Args,
-    tel: &fit::telescope::TelescopeFit,
-    field: Option<&Calibration>,
-    est: Estimator,
-) -> Result<()> {
-    use fit::telescope::Track;
-    let kind = detect(&a.input)?;
-    // The telescope's offset is the instrument's angle zero (module docs of fit::telescope_cal).
-    let opts = field.map(|c| CorrectOptions { chi_offset: 0.0, ..options(c, a) });
-    let cor = match (field, opts) {
-        (Some(c), Some(o)) => Some(Corrector::new(c, o)),
-        _ => None,
-    };
-    if kind == Kind::Map {
-        return telescope_map(a, tel, field);
-    }
-    let band = telescope_band(a, tel, field, None)?;
-    let out_format = Some(Format::from_path(&a.out)?);
-    let mut table = read_catalog(a, kind)?;
-    // Both models live in the sky frame (fit::telescope_cal module docs): the rows are brought
-    // there by the field calibration's zero angle less the one they carry (as without a
-    // telescope). Without a field, rows are taken in the frame they are in: instpol catalogs
-    // carry their zero angle, as the standards the telescope model was fitted to did.
-    // The plate's zero angle (for the exposures' demodulations) is the one the table carries,
-    // else the field calibration's.
-    let carried = table.carried_zero_angle(&a.input)?;
-    let (to_sky_deg, plate_zero_deg) = fit::correct::row_zero_angles(field.map(|c| c.hwp_chi_offset_deg), carried);
-    if let Some(c) = field {
-        note_carried(&a.input, carried, c.hwp_chi_offset_deg, to_sky_deg);
-    }
-    let meas = measurements(&table, field.and_then(|c| c.pixel), a.coords, &a.input)?;
-    let mut by_exposure: Vec<skyfield::ExposureTrack> = vec![];
-    let tracks: Vec<Track> = if table.column(PARANG[0]).is_some() {
-        if a.parang.is_some() {
-            bail!(
-                "{} has a {} column and --parang is given: use one (the column gives each row's angle)",
-                a.input.display(),
-                PARANG[0]
-            );
-        }
-        let pa = table.numbers(PARANG[0], &a.input)?;
-        let pa_end = match table.column(PARANG[1]) {
-            Some(_) => Some(table.numbers(PARANG[1], &a.input)?),
-            None => None,
-        };
-        // The rotator angle per row (deg), when the model was fitted with rotator angles
-        // (fit::telescope::Track::rotator): the column, or --rotator for every row; never an
-        // assumed 0. Otherwise the model's offset already holds it.
-        let rot: Option<Vec<f64>> = match (tel.with_rotator, table.column("rotator_deg").is_some(), a.rotator) {
-            (true, true, _) => Some(table.numbers("rotator_deg", &a.input)?.iter().map(|r| r.to_radians()).collect()),
-            (true, false, Some(r)) => Some(vec![crate::util::parse_rotator(r)?; meas.len()]),
-            (true, false, None) => bail!(
-                "{}: no column 'rotator_deg': the telescope model of {} was fitted with rotator angles and needs each row's (or --rotator DEG for all)",
-                a.input.display(),
-                a.cal.display()
-            ),
-            (false, _, _) => None,
-        };
-        (0..meas.len())
-            .map(|i| {
-                let end = pa_end.as_ref().map(|e| e[i].to_radians());
-                Track::new(pa[i].to_radians(), end).with_rotator(rot.as_ref().map_or(0.0, |r| r[i]))
-            })
-            .collect()
-    } else {
-        // Every row from the same frames: the track the catalog recorded (instpol catalog
-        // writes its exposures' angles into ECSV, FITS and VOTable tables), or --parang.
-        let rec = skyfield::RecordedAngles::from_meta(&table.meta, &a.input)?;
-        if a.parang.is_none() && rec.parallactic_rad.is_none() {
-            bail!(
-                "{}: no column '{}' (columns: {}) and no recorded parallactic angles: the telescope model of {} needs each row's parallactic angle (deg), or --parang START[,END] when every row comes from the same frames (instpol catalog records them in ECSV, FITS and VOTable outputs when the instrument's [telescope] section names the header keywords)",
-                a.input.display(),
-                PARANG[0],
-                table.names().join(", "),
-                a.cal.display()
-            );
-        }
-        let track = shared_track(a, tel, "the catalog", (rec.parallactic_rad, rec.rotator_rad))?;
-        if a.parang.is_none() {
-            by_exposure = rec.exposure_tracks;
-        }
-        vec![track; meas.len()]
-    };
-    // Recorded exposures: the telescope undone as each saw it, their demodulations built once.
-    let prepared = match tracks.first() {
-        Some(&track) => {
-            fit::telescope_cal::prepare_recorded(tel, &band, track, &by_exposure, plate_zero_deg.to_radians())
-                .with_context(|| format!("{}: its exposures", a.input.display()))?
-        }
-        None => None,
-    };
-    let mut out = Vec::with_capacity(meas.len());
-    for (i, (m, track)) in meas.iter().zip(tracks).enumerate() {
-        let seen = prepared.as_ref().map_or(fit::telescope::Seen::Track(track), fit::telescope::Seen::Prepared);
-        let r = fit::telescope_cal::correct_chain_seen(cor.as_ref(), tel, &band, m, seen, to_sky_deg.to_radians())
-            .with_context(|| format!("{} {}", a.input.display(), table.row_label(i)))?;
-        out.push(r.with_telescope_in_inst());
-    }
-    let n_extra = out.iter().filter(|c| c.extrapolated).count();
-    let filter = field.map(|c| c.filter.clone()).unwrap_or_else(|| band.clone());
-    let mut summary = write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, filter, to_sky_deg)?;
-    summary.telescope_model = Some(tel.model.name());
-    summary.telescope_band = Some(band.clone());
-    summary.telescope_exposures = (!by_exposure.is_empty()).then_some(by_exposure.len());
-    warn_extrapolated(&summary, "calibrated field");
-    report(
-        a,
-        &summary,
-        format_args!(
-            "corrected {} rows with {} ({} model, band {band}{}), {}",
-            summary.rows,
-            a.cal.display(),
-            tel.model.name(),
-            if field.is_some() { ", field model first" } else { ", no field model" },
-            if by_exposure.is_empty() {
-                "the parallactic angle per row".to_string()
-            } else {
-                format!("exposure by exposure ({}, as the catalog recorded them)", by_exposure.len())
-            }
-        ),
-        "",
-    )
 }
 
 /// Write a corrected catalog in the output's format and make its summary.

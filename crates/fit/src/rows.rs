@@ -1,0 +1,352 @@
+//! Correcting rows (the stars of a catalog table, or arrays a caller gives) with any calibration
+//! file: which models apply, in which frame and over which telescope track. The one rule set of
+//! `instpol correct`'s tables and the Python `Calibration.correct`; each face parses its own
+//! inputs into a [`RowsRequest`], calls [`plan`] once, corrects every row with
+//! [`RowsPlan::correct`] and words the [`RowsError`]s and [`Note`]s its own way.
+//!
+//! The rules, by what the file holds ([`crate::calibration::Kind`]):
+//!
+//! - **A field model** (`eq:instpol` inverted, or `eq:approx`): the rows are turned into the
+//!   sky frame by the calibration's HWP zero angle less the one they already carry
+//!   ([`crate::correct::row_zero_angles`]), then corrected by the [`Corrector`]. Telescope
+//!   options given as arguments are refused (they would change nothing); per-row angles that
+//!   are data (a catalog's column) are noted as unused.
+//! - **A Mueller field**: the same zero angle, then the exact inverse of the fitted block; the
+//!   first-order method and telescope options are refused.
+//! - **A telescope model** (beside a field model or alone): the rows are turned by the field's
+//!   zero angle less the carried one (by nothing without a field: the rows are taken in their
+//!   own frame, as the telescope's standards were), then the field and the telescope are undone
+//!   in the sky frame ([`crate::telescope_cal`] module docs). The track each row saw is its own
+//!   (per-row parallactic angles, with a rotator angle per row or one for all when the model
+//!   was fitted with rotator angles), or else one track for every row: given, or recorded by
+//!   the catalog, whose recorded exposures are then undone one by one unless a given track
+//!   replaced them.
+
+use crate::calfile::Calibration;
+use crate::calibration::{CalibrationFile, Kind};
+use crate::correct::{row_zero_angles, CorrectOptions, Corrected, Corrector, Measurement, Method};
+use crate::mueller_cal::MuellerCal;
+use crate::telescope::{BandChoiceError, PreparedExposures, Seen, TelescopeFit, Track, TrackChoiceError};
+
+/// Each row's parallactic angle (deg), as a catalog's columns or a caller's arrays give them.
+#[derive(Debug, Clone, Copy)]
+pub struct PerRowAngles<'a> {
+    /// The parallactic angle at each row's exposure start (deg).
+    pub start_deg: &'a [f64],
+    /// At its end (deg), when known: the model is averaged over the track.
+    pub end_deg: Option<&'a [f64]>,
+    /// The rotator angle of each row (deg), when known.
+    pub rotator_deg: Option<&'a [f64]>,
+}
+
+/// What the caller asks of a correction of rows.
+#[derive(Debug, Clone, Copy)]
+pub struct RowsRequest<'a> {
+    pub method: Method,
+    pub allow_extrapolation: bool,
+    /// `F` of the inflation rule outside the field ([`CorrectOptions::extrapolation_rel_error`]).
+    pub extrapolation_rel_error: f64,
+    /// The telescope model's band (default: the field calibration's filter, else the model's
+    /// only band; [`TelescopeFit::choose_band`]).
+    pub band: Option<&'a str>,
+    /// The HWP zero angle (deg) the rows' `q, u` already carry (`None`: at the plate, as
+    /// measured).
+    pub carried_zero_angle_deg: Option<f64>,
+    pub per_row: Option<PerRowAngles<'a>>,
+    /// One parallactic track for every row, given by the caller (rad); replaces a recorded one.
+    pub parang: Option<Track>,
+    /// One rotator angle for every row (rad), given by the caller.
+    pub rotator: Option<f64>,
+    /// The exposures' angles the catalog recorded (`instpol catalog` writes them).
+    pub recorded: Option<&'a skyfield::RecordedAngles>,
+    /// Whether `per_row` and `recorded` were given as arguments (a caller's arrays) rather
+    /// than found in the data (a table's columns and metadata). Without a telescope model
+    /// angles given as arguments are refused (they would change nothing) and angles in the data
+    /// are noted; arguments may not give both per-row and recorded angles.
+    pub angles_are_arguments: bool,
+}
+
+/// Why rows cannot be corrected as asked. Each face says it in its own words (its option
+/// names), from these values.
+#[derive(Debug, Clone, PartialEq)]
+pub enum RowsError {
+    /// Telescope options (band, one track, a rotator, explicit per-row angles) for a file
+    /// without a telescope model; `mueller`: the file holds a Mueller field.
+    TelescopeOptions { mueller: bool },
+    /// The first-order method asked of a Mueller field (inverted exactly only).
+    MuellerFirstOrder,
+    /// A telescope model and neither per-row nor shared nor recorded parallactic angles.
+    NoParallactic,
+    /// Per-row angles and one track for every row (given or recorded) both given.
+    TwoTracks,
+    /// A telescope model fitted with rotator angles and the rows' rotator angle unknown.
+    NoRotator { per_row: bool },
+    /// A per-row array whose length is not the rows'.
+    Length { what: &'static str, len: usize, rows: usize },
+    /// The telescope model's band cannot be chosen.
+    Band(BandChoiceError),
+    /// The recorded exposures cannot be prepared (their telescope chain).
+    Exposures(String),
+}
+
+impl std::fmt::Display for RowsError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RowsError::TelescopeOptions { mueller: true } => {
+                write!(
+                    f,
+                    "the telescope options are for calibrations with a telescope model; this one holds a Mueller field"
+                )
+            }
+            RowsError::TelescopeOptions { mueller: false } => {
+                write!(f, "the telescope options are for calibrations with a telescope model; this one has none")
+            }
+            RowsError::MuellerFirstOrder => {
+                write!(f, "a Mueller field is inverted exactly (eq:approx is the p, phi model's first order)")
+            }
+            RowsError::NoParallactic => write!(f, "the telescope model needs the rows' parallactic angles"),
+            RowsError::TwoTracks => write!(f, "per-row parallactic angles and one track for all rows: give one"),
+            RowsError::NoRotator { .. } => {
+                write!(f, "the telescope model was fitted with rotator angles and the rows' is not known")
+            }
+            RowsError::Length { what, len, rows } => write!(f, "{what} has {len} values for {rows} rows"),
+            RowsError::Band(e) => write!(f, "the telescope model's band: {e:?}"),
+            RowsError::Exposures(e) => write!(f, "the recorded exposures: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for RowsError {}
+
+/// Something the caller should be told about a correction that goes ahead.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Note {
+    /// The rows carry the zero angle `carried` (deg); the calibration's is `calibration`: only
+    /// the difference `applied` is turned.
+    CarriedZeroAngle { carried: f64, calibration: f64, applied: f64 },
+    /// The data have per-row parallactic angles but the file holds no telescope model: the
+    /// telescope's polarization is not removed.
+    AnglesWithoutTelescope,
+    /// The given track replaced the recorded one (rad, start and end), which differs.
+    TrackReplaced { recorded: (f64, f64) },
+    /// A rotator angle was given but the model was fitted without rotator angles.
+    RotatorIgnored,
+}
+
+/// How the rows saw the telescope.
+#[derive(Debug)]
+enum Tracks {
+    PerRow(Vec<Track>),
+    Shared(Track),
+    Exposures(Box<PreparedExposures>),
+}
+
+/// The telescope part of a plan.
+#[derive(Debug)]
+pub struct TelescopePlan<'a> {
+    pub fit: &'a TelescopeFit,
+    pub band: String,
+    /// How many recorded exposures are undone one by one (0: over a track).
+    pub exposures: usize,
+    tracks: Tracks,
+}
+
+/// The correction of rows resolved from a file and a request: [`RowsPlan::correct`] undoes
+/// one row, in any order and in parallel.
+pub struct RowsPlan<'a> {
+    pub kind: Kind,
+    /// The zero angle (deg) the rows are turned by into the sky frame.
+    pub to_sky_deg: f64,
+    /// The zero angle (deg) of the plate the exposures were taken through.
+    pub plate_deg: f64,
+    pub telescope: Option<TelescopePlan<'a>>,
+    pub notes: Vec<Note>,
+    field: Option<Corrector<'a, Calibration>>,
+    mueller: Option<(&'a MuellerCal, CorrectOptions)>,
+}
+
+/// Why one row could not be corrected.
+#[derive(Debug, thiserror::Error)]
+pub enum RowError {
+    #[error("{0}")]
+    Field(#[from] crate::correct::Error),
+    #[error("{0}")]
+    Chain(#[from] crate::Error),
+}
+
+/// The refusals that do not depend on the rows, which a Stokes map's correction makes too:
+/// telescope options (a band, one track, a rotator angle, angles given as arguments) for a file
+/// without a telescope model, and the first-order method for a Mueller field.
+pub fn check_options(file: &CalibrationFile, req: &RowsRequest<'_>) -> Result<(), RowsError> {
+    if file.telescope.is_none() {
+        let explicit = req.angles_are_arguments && (req.per_row.is_some() || req.recorded.is_some());
+        if req.band.is_some() || req.parang.is_some() || req.rotator.is_some() || explicit {
+            return Err(RowsError::TelescopeOptions { mueller: file.mueller.is_some() });
+        }
+    }
+    if file.mueller.is_some() && req.method == Method::FirstOrder {
+        return Err(RowsError::MuellerFirstOrder);
+    }
+    Ok(())
+}
+
+/// Resolve how `n` rows are corrected with `file` as `req` asks.
+pub fn plan<'a>(file: &'a CalibrationFile, req: &RowsRequest<'_>, n: usize) -> Result<RowsPlan<'a>, RowsError> {
+    if let Some(p) = &req.per_row {
+        for (what, len) in [
+            ("the parallactic angles", Some(p.start_deg.len())),
+            ("the parallactic angles' ends", p.end_deg.map(<[f64]>::len)),
+            ("the rotator angles", p.rotator_deg.map(<[f64]>::len)),
+        ] {
+            if let Some(len) = len.filter(|&l| l != n) {
+                return Err(RowsError::Length { what, len, rows: n });
+            }
+        }
+    }
+    let opts = |chi_offset_deg: f64| CorrectOptions {
+        method: req.method,
+        allow_extrapolation: req.allow_extrapolation,
+        extrapolation_rel_error: req.extrapolation_rel_error,
+        chi_offset: chi_offset_deg.to_radians(),
+    };
+    let carried = req.carried_zero_angle_deg;
+    let mut notes = vec![];
+    let note_carried = |notes: &mut Vec<Note>, calibration: f64, applied: f64| {
+        if let Some(c) = carried.filter(|_| applied != 0.0) {
+            notes.push(Note::CarriedZeroAngle { carried: c, calibration, applied });
+        }
+    };
+    check_options(file, req)?;
+    if req.angles_are_arguments && req.per_row.is_some() && req.recorded.is_some() {
+        return Err(RowsError::TwoTracks);
+    }
+    let Some(tel) = &file.telescope else {
+        if let Some(mc) = &file.mueller {
+            let (to_sky, plate) = row_zero_angles(Some(mc.hwp_chi_offset_deg), carried);
+            note_carried(&mut notes, mc.hwp_chi_offset_deg, to_sky);
+            return Ok(RowsPlan {
+                kind: Kind::Mueller,
+                to_sky_deg: to_sky,
+                plate_deg: plate,
+                telescope: None,
+                notes,
+                field: None,
+                mueller: Some((mc, opts(to_sky))),
+            });
+        }
+        let cal = file.field.as_ref().expect("the loader refuses a file without a model");
+        if req.per_row.is_some() {
+            notes.push(Note::AnglesWithoutTelescope);
+        }
+        let (to_sky, plate) = row_zero_angles(Some(cal.hwp_chi_offset_deg), carried);
+        note_carried(&mut notes, cal.hwp_chi_offset_deg, to_sky);
+        return Ok(RowsPlan {
+            kind: Kind::Field,
+            to_sky_deg: to_sky,
+            plate_deg: plate,
+            telescope: None,
+            notes,
+            field: Some(Corrector::new(cal, opts(to_sky))),
+            mueller: None,
+        });
+    };
+    let field = file.field.as_ref();
+    let band = tel.choose_band(req.band, field.map(|c| c.filter.as_str()), None).map_err(RowsError::Band)?;
+    let (to_sky, plate) = row_zero_angles(field.map(|c| c.hwp_chi_offset_deg), carried);
+    if let Some(c) = field {
+        note_carried(&mut notes, c.hwp_chi_offset_deg, to_sky);
+    }
+    let (tracks, exposures) = match &req.per_row {
+        Some(p) => {
+            if req.parang.is_some() {
+                return Err(RowsError::TwoTracks);
+            }
+            // The rotator angle per row, when the model was fitted with rotator angles: the
+            // rows' own, or the one given for all; never an assumed 0. Otherwise the model's
+            // offset already holds it.
+            let rotator = |i: usize| -> Result<f64, RowsError> {
+                if !tel.with_rotator {
+                    return Ok(0.0);
+                }
+                match (p.rotator_deg, req.rotator) {
+                    (Some(r), _) => Ok(r[i].to_radians()),
+                    (None, Some(r)) => Ok(r),
+                    (None, None) => Err(RowsError::NoRotator { per_row: true }),
+                }
+            };
+            let tracks = (0..n)
+                .map(|i| {
+                    let end = p.end_deg.map(|e| e[i].to_radians());
+                    Ok(Track::new(p.start_deg[i].to_radians(), end).with_rotator(rotator(i)?))
+                })
+                .collect::<Result<Vec<_>, RowsError>>()?;
+            (Tracks::PerRow(tracks), 0)
+        }
+        None => {
+            let recorded = req.recorded.and_then(|r| r.parallactic_rad);
+            let recorded_rotator = req.recorded.and_then(|r| r.rotator_rad);
+            if req.parang.is_none() && recorded.is_none() {
+                return Err(RowsError::NoParallactic);
+            }
+            let c = tel.choose_track(req.parang, recorded, req.rotator, recorded_rotator).map_err(|e| match e {
+                TrackChoiceError::NoParallactic => RowsError::NoParallactic,
+                TrackChoiceError::NoRotator => RowsError::NoRotator { per_row: false },
+            })?;
+            if let (Some(r), Some(_)) = (c.replaced, req.parang) {
+                notes.push(Note::TrackReplaced { recorded: r });
+            }
+            if c.rotator_ignored {
+                notes.push(Note::RotatorIgnored);
+            }
+            // The recorded exposures, undone as each saw the telescope (their demodulations
+            // built once), unless a given track replaced them.
+            let exposures: &[skyfield::ExposureTrack] = match (req.parang, req.recorded) {
+                (None, Some(r)) => &r.exposure_tracks,
+                _ => &[],
+            };
+            let prepared = crate::telescope_cal::prepare_recorded(tel, &band, c.track, exposures, plate.to_radians())
+                .map_err(|e| RowsError::Exposures(e.to_string()))?;
+            match prepared {
+                Some(p) => (Tracks::Exposures(Box::new(p)), exposures.len()),
+                None => (Tracks::Shared(c.track), 0),
+            }
+        }
+    };
+    Ok(RowsPlan {
+        kind: if field.is_some() { Kind::FieldAndTelescope } else { Kind::Telescope },
+        to_sky_deg: to_sky,
+        plate_deg: plate,
+        telescope: Some(TelescopePlan { fit: tel, band, exposures, tracks }),
+        notes,
+        // The telescope's offset is the instrument's angle zero: the chain turns the rows
+        // itself, once, before both models.
+        field: field.map(|c| Corrector::new(c, opts(0.0))),
+        mueller: None,
+    })
+}
+
+impl RowsPlan<'_> {
+    /// Correct row `i` (its track, when the rows each have their own).
+    pub fn correct(&self, i: usize, m: &Measurement) -> Result<Corrected, RowError> {
+        if let Some((mc, o)) = &self.mueller {
+            return Ok(mc.correct(m, o)?);
+        }
+        let Some(t) = &self.telescope else {
+            return Ok(self.field.as_ref().expect("a field or a Mueller plan").correct(m)?);
+        };
+        let seen = match &t.tracks {
+            Tracks::PerRow(v) => Seen::Track(v[i]),
+            Tracks::Shared(track) => Seen::Track(*track),
+            Tracks::Exposures(p) => Seen::Prepared(p),
+        };
+        let r = crate::telescope_cal::correct_chain_seen(
+            self.field.as_ref(),
+            t.fit,
+            &t.band,
+            m,
+            seen,
+            self.to_sky_deg.to_radians(),
+        )?;
+        Ok(r.with_telescope_in_inst())
+    }
+}
