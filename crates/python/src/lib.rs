@@ -20,7 +20,7 @@
 //! `instpol.FileError` (an `OSError`) for files that cannot be opened, read or written; the
 //! messages are the libraries', as the CLI prints them.
 
-use fit::correct::{CorrectOptions, Corrector, Measurement, Method};
+use fit::correct::{Measurement, Method};
 use numpy::prelude::*;
 use numpy::{PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::create_exception;
@@ -324,27 +324,37 @@ fn _bias<'py>(
 /// `import-map`, `fit`) or a Mueller field (`instpol calibrate-mueller --out CAL.fits`); or
 /// none, in a telescope-only file (`instpol fit-standards --output`), named by its instrument
 /// and its telescope model's only band ("" with several).
-#[allow(clippy::large_enum_variant)] // one per loaded calibration: the size does not matter
-enum Field {
-    PPhi(fit::Calibration),
-    Mueller(fit::mueller_cal::MuellerCal),
-    TelescopeOnly { instrument: String, filter: String },
+enum Field<'a> {
+    PPhi(&'a fit::Calibration),
+    Mueller(&'a fit::mueller_cal::MuellerCal),
+    TelescopeOnly { instrument: &'a str, filter: &'a str },
 }
 
-/// A calibration file: the instrumental polarization field of one instrument and filter, as a
-/// partial polarizer (`fit::Calibration`) or a Mueller field (`fit::mueller_cal::MuellerCal`).
+/// A calibration file as `fit::calibration::load` reads it (`instpol correct`'s reader): a
+/// partial polarizer (`fit::Calibration`) or a Mueller field (`fit::mueller_cal::MuellerCal`),
+/// with the telescope model stored beside the field one or alone (`instpol fit-standards
+/// --output`), applied after the field with each row's parallactic angle.
 #[pyclass(module = "instpol._instpol", frozen)]
 struct _Calibration {
-    field: Field,
-    /// The telescope model stored beside the field one (`instpol fit-standards --output
-    /// --field-cal`), applied after the field with each row's parallactic angle.
-    telescope: Option<fit::telescope::TelescopeFit>,
+    file: fit::calibration::CalibrationFile,
     path: PathBuf,
 }
 
 impl _Calibration {
+    /// The file's field model, or what names a telescope-only file.
+    fn field(&self) -> Field<'_> {
+        match (&self.file.field, &self.file.mueller, &self.file.telescope) {
+            (Some(c), _, _) => Field::PPhi(c),
+            (None, Some(m), _) => Field::Mueller(m),
+            (None, None, t) => Field::TelescopeOnly {
+                instrument: &self.file.instrument,
+                filter: t.as_ref().filter(|t| t.bands.len() == 1).map_or("", |t| t.bands[0].0.as_str()),
+            },
+        }
+    }
+
     fn instrument_filter(&self) -> (&str, &str) {
-        match &self.field {
+        match self.field() {
             Field::PPhi(c) => (&c.instrument, &c.filter),
             Field::Mueller(m) => (&m.instrument, &m.filter),
             Field::TelescopeOnly { instrument, filter } => (instrument, filter),
@@ -352,46 +362,113 @@ impl _Calibration {
     }
 
     fn pixel(&self) -> Option<fit::calfile::PixelGrid> {
-        match &self.field {
+        match self.field() {
             Field::PPhi(c) => c.pixel,
             Field::Mueller(m) => m.pixel(),
             Field::TelescopeOnly { .. } => None,
         }
     }
 
-    /// The telescope model's band: `band`, else the field calibration's filter (the rule of
-    /// `instpol correct --band`); an error naming the bands the model has.
-    fn telescope_band(
-        &self,
-        t: &fit::telescope::TelescopeFit,
-        band: Option<String>,
-        data_filter: Option<&str>,
-    ) -> PyResult<String> {
+    /// A telescope model's band that cannot be chosen, in this package's words.
+    fn band_error(&self, e: fit::telescope::BandChoiceError) -> PyErr {
         use fit::telescope::{BandChoiceError, BandSource};
-        // The CLI's rule (`TelescopeFit::choose_band`): the field calibration's filter comes
-        // before the data's (`data_filter`: a map's); without one, a telescope-only file's
-        // filter counts as the data's.
-        let (field, data) = match &self.field {
-            Field::TelescopeOnly { filter, .. } => {
-                (None, data_filter.or(Some(filter.as_str())).filter(|f| !f.is_empty()))
+        let path = self.path.display();
+        input_err(match e {
+            BandChoiceError::Missing { band, source: BandSource::Asked, bands } => {
+                format!("band '{band}': the telescope model of {path} has bands {}: choose one with band=", bands.join(", "))
             }
-            _ => (Some(self.instrument_filter().1), data_filter),
-        };
-        t.choose_band(band.as_deref(), field, data).map_err(|e| {
-            let path = self.path.display();
-            input_err(match e {
-                BandChoiceError::Missing { band, source: BandSource::Asked, bands } => {
-                    format!("band '{band}': the telescope model of {path} has bands {}: choose one with band=", bands.join(", "))
-                }
-                BandChoiceError::Missing { band, source: BandSource::FieldCalibration, bands } => format!(
-                    "{path}: the field calibration is for filter {band}, a band the telescope model does not have (it has {}): choose one with band=",
-                    bands.join(", ")
-                ),
-                BandChoiceError::Ambiguous { bands } => {
-                    format!("the telescope model of {path} has bands {}: choose one with band=", bands.join(", "))
-                }
-            })
+            BandChoiceError::Missing { band, source: BandSource::FieldCalibration, bands } => format!(
+                "{path}: the field calibration is for filter {band}, a band the telescope model does not have (it has {}): choose one with band=",
+                bands.join(", ")
+            ),
+            BandChoiceError::Ambiguous { bands } => {
+                format!("the telescope model of {path} has bands {}: choose one with band=", bands.join(", "))
+            }
         })
+    }
+
+    /// A refusal of `fit::request::plan_map` in this package's words.
+    fn map_error(&self, e: fit::request::Refusal, input: &std::path::Path) -> PyErr {
+        use fit::request::Refusal as E;
+        let (cal_path, input) = (self.path.display(), input.display());
+        input_err(match e {
+            E::TelescopeOptions { mueller } => format!(
+                "parang_deg, rotator_deg and band are for calibrations with a telescope model; {cal_path} holds {}",
+                if mueller { "a Mueller field" } else { "none" }
+            ),
+            E::Mismatch { map, calibration } => format!(
+                "{input} is a {} {} map but {cal_path} calibrates {} {}: use the calibration of the map's instrument and filter (or allow_mismatch=True)",
+                map.0, map.1, calibration.0, calibration.1
+            ),
+            E::BandMismatch { map_filter, band } => format!(
+                "{input} is a {map_filter} map but the telescope model's band is {band}: use the band of the map's filter (band=), or allow_mismatch=True"
+            ),
+            E::NoParallactic => format!(
+                "{input}: the map needs the parallactic angle of its exposures for the telescope model of {cal_path}: give parang_deg=(START, END) (deg: the first frame's start, the last frame's end; instpol reduce records it when the instrument's [telescope] section names the header keywords)"
+            ),
+            E::NoRotator { .. } => format!(
+                "the telescope model of {cal_path} was fitted with rotator angles: give the exposures' with rotator_deg="
+            ),
+            E::Band(b) => return self.band_error(b),
+            e => return self.rows_error(e, false),
+        })
+    }
+
+    /// A note of `fit::request` on a map's correction, in this package's words.
+    fn note_text(&self, n: &fit::request::Note, input: &std::path::Path) -> String {
+        use fit::request::Note;
+        let (cal_path, input) = (self.path.display(), input.display());
+        match n {
+            Note::TrackReplaced { recorded: (s, e) } => format!(
+                "parang_deg replaces the parallactic angle {input} recorded ({:.3} to {:.3} deg)",
+                s.to_degrees(),
+                e.to_degrees()
+            ),
+            Note::RotatorIgnored => format!(
+                "rotator_deg is ignored: the telescope model of {cal_path} was fitted without rotator angles (its offset holds the rotator's)"
+            ),
+            Note::ZeroAngleUnknown(w) => w.clone(),
+            Note::CarriedZeroAngle { carried, calibration, applied } => format!(
+                "q, u already carry the HWP zero angle {carried} deg; the calibration's is {calibration} deg: the difference {applied} deg is applied"
+            ),
+            Note::AnglesWithoutTelescope => format!(
+                "{cal_path} holds no telescope model: the telescope's polarization is NOT removed"
+            ),
+        }
+    }
+
+    /// A refusal of `fit::request` in this package's words (`per_row`: parang_deg was given).
+    fn rows_error(&self, e: fit::request::Refusal, per_row: bool) -> PyErr {
+        use fit::request::Refusal as E;
+        let path = self.path.display();
+        match e {
+            E::TelescopeOptions { mueller: true } => input_err(format!(
+                "parang_deg, parang_end_deg and band are for calibrations with a telescope model; {path} holds a Mueller field"
+            )),
+            E::TelescopeOptions { mueller: false } if per_row => input_err(format!(
+                "parang_deg given but {path} holds no telescope model: the telescope's polarization would NOT be removed (fit one with instpol fit-standards --output --field-cal)"
+            )),
+            E::TelescopeOptions { mueller: false } => input_err(format!(
+                "band or recorded given but {path} holds no telescope model: the telescope's polarization would NOT be removed"
+            )),
+            E::MuellerFirstOrder => input_err(format!(
+                "method \"first-order\": {path} holds a Mueller field, which is inverted exactly (eq:approx is the p, phi model's first order)"
+            )),
+            E::NoParallactic => input_err(format!(
+                "{path} holds a telescope model ({}): give each row's parallactic angle, parang_deg= (deg, as the standards were fitted with), as `instpol correct` reads it from the column parang_deg",
+                self.file.telescope.as_ref().map_or("", |t| t.model.name())
+            )),
+            E::TwoTracks => input_err("give parang_deg (each row's track) or recorded (the catalog's exposures), not both"),
+            E::NoRotator { per_row: false } => {
+                input_err("recorded: the telescope model was fitted with rotator angles and the catalog recorded none")
+            }
+            E::NoRotator { per_row: true } => input_err(format!(
+                "the telescope model of {path} was fitted with rotator angles, which correct() does not take: correct the catalog with instpol correct (column rotator_deg, or --rotator)"
+            )),
+            E::Band(b) => self.band_error(b),
+            E::Exposures(m) => input_err(format!("recorded: {m}")),
+            e => input_err(e.to_string()),
+        }
     }
 
     /// Positions in arcmin from the detector centre, from `units` "px" (0-based pixels of the
@@ -418,23 +495,10 @@ impl _Calibration {
         // The reader `instpol correct` uses: a Mueller field, or a field model and a telescope
         // model when the file holds one (ignoring it would return the telescope's polarization
         // as the sky's).
-        let loaded = py.detach(|| fit::calibration::load(&path)).map_err(|e| load_err(&path, e))?;
-        if let Some(m) = loaded.mueller {
-            return Ok(Self { field: Field::Mueller(m), telescope: None, path });
-        }
-        let field = match (loaded.field, &loaded.telescope) {
-            (Some(cal), _) => Field::PPhi(cal),
-            // A telescope-only file (instpol fit-standards --output): correct() applies the
-            // telescope alone, as `instpol correct` does.
-            (None, Some(t)) => Field::TelescopeOnly {
-                instrument: loaded.instrument.clone(),
-                filter: if t.bands.len() == 1 { t.bands[0].0.clone() } else { String::new() },
-            },
-            (None, None) => {
-                return Err(input_err(format!("cannot load calibration {}: it holds no model", path.display())))
-            }
-        };
-        Ok(Self { field, telescope: loaded.telescope, path })
+        // A telescope-only file (instpol fit-standards --output): correct() applies the
+        // telescope alone, as `instpol correct` does.
+        let file = py.detach(|| fit::calibration::load(&path)).map_err(|e| load_err(&path, e))?;
+        Ok(Self { file, path })
     }
 
     #[getter]
@@ -451,14 +515,14 @@ impl _Calibration {
     }
     #[getter]
     fn lambda_nm(&self) -> f64 {
-        match &self.field {
+        match self.field() {
             Field::PPhi(c) => c.lambda_nm,
             Field::Mueller(_) | Field::TelescopeOnly { .. } => f64::NAN,
         }
     }
     #[getter]
     fn hwp_chi_offset_deg(&self) -> f64 {
-        match &self.field {
+        match self.field() {
             Field::PPhi(c) => c.hwp_chi_offset_deg,
             // A Mueller field: the zero angle its maps were turned by (fit::mueller_cal); a
             // telescope model alone records none (its frame: fit::telescope_cal).
@@ -468,7 +532,7 @@ impl _Calibration {
     }
     #[getter]
     fn model(&self) -> &'static str {
-        match &self.field {
+        match self.field() {
             Field::PPhi(c) => c.model.kind(),
             Field::Mueller(_) => "MUELLER",
             Field::TelescopeOnly { .. } => "TELESCOPE",
@@ -478,7 +542,7 @@ impl _Calibration {
     /// says it; None for a p, phi calibration.
     #[getter]
     fn mueller_model(&self) -> Option<&'static str> {
-        match &self.field {
+        match self.field() {
             Field::Mueller(m) => Some(m.field.kind.model_name()),
             Field::PPhi(_) | Field::TelescopeOnly { .. } => None,
         }
@@ -486,21 +550,21 @@ impl _Calibration {
     /// A Mueller field's free effects (`diattenuation`, `retardance`, ...); empty otherwise.
     #[getter]
     fn mueller_free(&self) -> Vec<&'static str> {
-        match &self.field {
+        match self.field() {
             Field::Mueller(m) => m.field.kind.free_words(),
             Field::PPhi(_) | Field::TelescopeOnly { .. } => vec![],
         }
     }
     #[getter]
     fn rms_residual(&self) -> f64 {
-        match &self.field {
+        match self.field() {
             Field::PPhi(c) => c.rms_residual,
             Field::Mueller(_) | Field::TelescopeOnly { .. } => f64::NAN,
         }
     }
     #[getter]
     fn centre_arcmin(&self) -> (f64, f64) {
-        match &self.field {
+        match self.field() {
             Field::PPhi(c) => {
                 let c = c.centre_arcmin();
                 (c[0], c[1])
@@ -515,7 +579,7 @@ impl _Calibration {
     /// The bands of the telescope model stored in the file (empty without one).
     #[getter]
     fn telescope_bands(&self) -> Vec<String> {
-        self.telescope.as_ref().map_or(vec![], |t| t.bands.iter().map(|b| b.0.clone()).collect())
+        self.file.telescope.as_ref().map_or(vec![], |t| t.bands.iter().map(|b| b.0.clone()).collect())
     }
 
     /// Instrumental `(q, u)` with the calibration's covariance at flat arrays `x`, `y`, and
@@ -532,7 +596,7 @@ impl _Calibration {
         if x.len() != y.len() {
             return Err(input_err("x and y must have one shape (after broadcasting)"));
         }
-        if let Field::TelescopeOnly { .. } = &self.field {
+        if let Field::TelescopeOnly { .. } = self.field() {
             return Err(input_err(format!(
                 "{} holds only a telescope model: it has no field to evaluate (correct() applies it with parang_deg=)",
                 self.path.display()
@@ -543,7 +607,7 @@ impl _Calibration {
         fn at<M: FieldModel + Sync>(m: &M, x: &[f64], y: &[f64]) -> Vec<(fit::model::InstPol, bool)> {
             x.par_iter().zip(y).map(|(&x, &y)| (m.eval(x, y), m.contains(x, y))).collect()
         }
-        let v = py.detach(|| match &self.field {
+        let v = py.detach(|| match self.field() {
             Field::PPhi(c) => at(c, x, y),
             Field::Mueller(m) => at(&m.field, x, y),
             Field::TelescopeOnly { .. } => vec![],
@@ -591,13 +655,6 @@ impl _Calibration {
             return Err(input_err("hwp_chi_offset_deg must be finite degrees"));
         }
         let carried = carried_deg.or_else(|| recorded.as_ref().and_then(|r| r.zero_angle_deg));
-        // (to_sky, plate) of fit::correct::row_zero_angles: the field's (or a Mueller field's)
-        // zero angle less the carried one; without a field, none.
-        let field_zero = match &self.field {
-            Field::TelescopeOnly { .. } => None,
-            _ => Some(self.hwp_chi_offset_deg()),
-        };
-        let (to_sky_deg, plate_deg) = fit::correct::row_zero_angles(field_zero, carried);
         let est: Option<Estimator> =
             estimator.map(|e| e.parse().map_err(|e| input_err(format!("estimator: {e}")))).transpose()?;
         let (x, y, q, u) = (slice(&x, "x")?, slice(&y, "y")?, slice(&q, "q")?, slice(&u, "u")?);
@@ -612,86 +669,32 @@ impl _Calibration {
         if [pa.map_or(n, |c| c.len()), pa_end.map_or(n, |c| c.len())].iter().any(|&l| l != n) {
             return Err(input_err("parang_deg and parang_end_deg must have the shape of x (after broadcasting)"));
         }
-        if let Field::Mueller(_) = &self.field {
-            if method == Method::FirstOrder {
-                return Err(input_err(format!(
-                    "method \"first-order\": {} holds a Mueller field, which is inverted exactly (eq:approx is the p, \
-                     phi model's first order)",
-                    self.path.display()
-                )));
-            }
-            if pa.is_some() || pa_end.is_some() || band.is_some() {
-                return Err(input_err(format!(
-                    "parang_deg, parang_end_deg and band are for calibrations with a telescope model; {} holds a \
-                     Mueller field",
-                    self.path.display()
-                )));
-            }
+        if pa_end.is_some() && pa.is_none() {
+            return Err(input_err("parang_end_deg needs parang_deg (each row's start)"));
         }
-        if recorded.is_some() && (pa.is_some() || pa_end.is_some()) {
-            return Err(input_err(
-                "give parang_deg (each row's track) or recorded (the catalog's exposures), not both",
-            ));
-        }
-        // The catalog's recorded exposures (catalog()["recorded_angles"]): every row undone as
-        // those exposures saw the telescope, their demodulations built once.
-        let prepared = match (&self.telescope, &recorded) {
-            (Some(t), Some(r)) => {
-                let b = self.telescope_band(t, band.clone(), None)?;
-                let track = t
-                    .choose_track(None, Some(r.track), None, r.rotator)
-                    .map_err(|_| input_err("recorded: the telescope model was fitted with rotator angles and the catalog recorded none"))?
-                    .track;
-                // The zero angle of the plate the exposures were taken through.
-                let z = plate_deg.to_radians();
-                let p = fit::telescope_cal::prepare_recorded(t, &b, track, &r.exposures, z)
-                    .map_err(|e| input_err(format!("recorded: {e}")))?
-                    .ok_or_else(|| input_err("recorded: no exposures"))?;
-                Some((p, b))
-            }
-            (None, Some(_)) => {
-                return Err(input_err(format!(
-                    "recorded given but {} holds no telescope model: the telescope's polarization would NOT be removed",
-                    self.path.display()
-                )))
-            }
-            _ => None,
-        };
-        let telescope = match (&self.telescope, &prepared, pa) {
-            (Some(t), Some((p, b)), _) => Some((t, Tracks::Recorded(p), b.clone())),
-            (Some(t), None, Some(pa)) => Some((t, Tracks::Rows(pa, pa_end), self.telescope_band(t, band, None)?)),
-            (Some(t), None, None) => {
-                return Err(input_err(format!(
-                    "{} holds a telescope model ({}): give each row's parallactic angle, parang_deg= (deg, as the \
-                     standards were fitted with), as `instpol correct` reads it from the column parang_deg",
-                    self.path.display(),
-                    t.model.name()
-                )))
-            }
-            (None, _, Some(_)) => {
-                return Err(input_err(format!(
-                    "parang_deg given but {} holds no telescope model: the telescope's polarization would NOT be \
-                     removed (fit one with instpol fit-standards --output --field-cal)",
-                    self.path.display()
-                )))
-            }
-            (None, _, None) if pa_end.is_some() || band.is_some() => {
-                return Err(input_err("parang_end_deg and band are for calibrations with a telescope model"))
-            }
-            (None, _, None) => None,
-        };
-        let conv = self.arcmin(x, y, units)?;
-        let (x, y) = conv.as_ref().map_or((x, y), |(a, b)| (a.as_slice(), b.as_slice()));
-        // The options `instpol correct` builds (cli::cmd::correct::options).
-        let opts = CorrectOptions {
+        let angles = recorded.as_ref().map(|r| skyfield::RecordedAngles {
+            parallactic_rad: Some(r.track),
+            rotator_rad: r.rotator,
+            exposure_tracks: r.exposures.clone(),
+        });
+        // The one rule set of `instpol correct`'s tables (fit::request): the arrays are the
+        // caller's arguments, so telescope angles for a file without a telescope model are refused.
+        let request = fit::request::Request {
             method,
             allow_extrapolation,
             extrapolation_rel_error: extrapolation_error,
-            // With a telescope model the chain applies the zero angle itself, once, before
-            // both models (module docs of fit::telescope_cal), as `instpol correct` does.
-            // A Mueller field likewise: its maps' zero angle less what the rows carry.
-            chi_offset: if telescope.is_some() { 0.0 } else { to_sky_deg.to_radians() },
+            band: band.as_deref(),
+            carried_zero_angle_deg: carried,
+            per_row: pa.map(|start_deg| fit::request::PerRowAngles { start_deg, end_deg: pa_end, rotator_deg: None }),
+            parang: None,
+            rotator: None,
+            recorded: angles.as_ref(),
+            angles_are_arguments: true,
+            allow_mismatch: false,
         };
+        let plan = fit::request::plan_rows(&self.file, &request, n).map_err(|e| self.rows_error(e, pa.is_some()))?;
+        let conv = self.arcmin(x, y, units)?;
+        let (x, y) = conv.as_ref().map_or((x, y), |(a, b)| (a.as_slice(), b.as_slice()));
         let input = Inputs { x, y, q, u, sq, su, cov };
         let mut cols: Vec<Vec<f64>> = (0..N_OUT).map(|_| reserved_column(n)).collect();
         let mut p0e: Option<Vec<f64>> = est.map(|_| reserved_column(n));
@@ -704,28 +707,13 @@ impl _Calibration {
                 extra: &mut extra,
                 start: 0,
             };
-            match (&self.field, &telescope) {
-                (Field::PPhi(c), Some((t, tracks, b))) => {
-                    fill_chain(Some(&Corrector::new(c, opts)), t, b, &input, *tracks, to_sky_deg.to_radians(), sink)
-                }
-                (Field::TelescopeOnly { .. }, Some((t, tracks, b))) => {
-                    fill_chain(None, t, b, &input, *tracks, to_sky_deg.to_radians(), sink)
-                }
-                (Field::TelescopeOnly { .. }, None) => Err((0, "a telescope-only calibration needs parang_deg".into())),
-                (Field::PPhi(c), None) => {
-                    let cor = Corrector::new(c, opts);
-                    fill(&|m: &Measurement| cor.correct(m), &input, sink).map_err(|(k, e)| (k, e.to_string()))
-                }
-                (Field::Mueller(mc), _) => {
-                    fill(&|m: &Measurement| mc.correct(m, &opts), &input, sink).map_err(|(k, e)| (k, e.to_string()))
-                }
-            }
+            fill(&|k, m: &Measurement| plan.correct(k, m), &input, sink)
         });
         let n_extra = res.map_err(|(row, e)| input_err(format!("index {row}: {e}")))?;
         for c in cols.iter_mut().chain(p0e.as_mut()) {
-            // SAFETY: `fill` and `fill_chain` return Ok only after writing every row 0..n of
-            // every output column (and of `p0e` when it is Some); on Err the columns are dropped
-            // with length 0 above.
+            // SAFETY: `fill` returns Ok only after writing every row 0..n of every output
+            // column (and of `p0e` when it is Some); on Err the columns are dropped with
+            // length 0 above.
             unsafe { c.set_len(n) };
         }
         let d = PyDict::new(py);
@@ -739,9 +727,9 @@ impl _Calibration {
         }
         d.set_item("extrapolated", bools(py, extra))?;
         d.set_item("n_extrapolated", n_extra)?;
-        if let Some((t, _, b)) = &telescope {
-            d.set_item("telescope_model", t.model.name())?;
-            d.set_item("telescope_band", b.as_str())?;
+        if let Some(t) = &plan.telescope {
+            d.set_item("telescope_model", t.fit.model.name())?;
+            d.set_item("telescope_band", t.band.as_str())?;
             d.set_item("telescope_exposures", recorded.as_ref().map(|r| r.exposures.len()))?;
         }
         Ok(d)
@@ -768,8 +756,7 @@ impl _Calibration {
         band: Option<String>,
         allow_mismatch: bool,
     ) -> PyResult<Bound<'py, PyDict>> {
-        use fit::calibration::MapCorrection;
-        use fit::telescope::{Track, TrackChoiceError};
+        use fit::telescope::Track;
         let method = parse_method(method, extrapolation_error)?;
         let angle = |name: &str, x: f64| -> PyResult<f64> {
             if x.is_finite() && x.abs() <= 360.0 {
@@ -789,113 +776,23 @@ impl _Calibration {
         let map = py
             .detach(|| skyfield::StokesMap::read_uncorrected(&input))
             .map_err(|e| input_err(format!("Stokes map {}: {e}", input.display())))?;
-        let (ci, cf) = self.instrument_filter();
-        let cal_path = self.path.display();
-        if !matches!(self.field, Field::TelescopeOnly { .. })
-            && !allow_mismatch
-            && !fit::setup::matches_setup(&map.instrument, &map.filter, ci, cf)
-        {
-            return Err(input_err(format!(
-                "{} is a {} {} map but {cal_path} calibrates {ci} {cf}: use the calibration of the map's instrument and filter (or allow_mismatch=True)",
-                input.display(),
-                map.instrument,
-                map.filter
-            )));
-        }
-        let mut notes: Vec<String> = vec![];
-        let chosen = match (&self.field, &self.telescope) {
-            (Field::Mueller(_), _) => {
-                if method == Method::FirstOrder {
-                    return Err(input_err(format!(
-                        "method \"first-order\": {cal_path} holds a Mueller field, which is inverted exactly (eq:approx is the p, phi model's first order)"
-                    )));
-                }
-                if given.is_some() || rotator.is_some() || band.is_some() {
-                    return Err(input_err(format!(
-                        "parang_deg, rotator_deg and band are for calibrations with a telescope model; {cal_path} holds a Mueller field"
-                    )));
-                }
-                None
-            }
-            (_, Some(t)) => {
-                let b = self.telescope_band(t, band, Some(&map.filter))?;
-                if matches!(self.field, Field::TelescopeOnly { .. })
-                    && !allow_mismatch
-                    && !fit::setup::band_fits_data(&map.instrument, &map.filter, &b)
-                {
-                    return Err(input_err(format!(
-                        "{} is a {} map but the telescope model's band is {b}: use the band of the map's filter (band=), or allow_mismatch=True",
-                        input.display(),
-                        map.filter
-                    )));
-                }
-                let c = t.choose_track(given, map.parallactic_rad, rotator, map.rotator_rad).map_err(|e| {
-                    input_err(match e {
-                        TrackChoiceError::NoParallactic => format!(
-                            "{}: the map needs the parallactic angle of its exposures for the telescope model of {cal_path}: give parang_deg=(START, END) (deg: the first frame's start, the last frame's end; instpol reduce records it when the instrument's [telescope] section names the header keywords)",
-                            input.display()
-                        ),
-                        TrackChoiceError::NoRotator => format!(
-                            "the telescope model of {cal_path} was fitted with rotator angles: give the exposures' with rotator_deg="
-                        ),
-                    })
-                })?;
-                if let Some((s, e)) = c.replaced {
-                    notes.push(format!(
-                        "parang_deg replaces the parallactic angle {} recorded ({:.3} to {:.3} deg)",
-                        input.display(),
-                        s.to_degrees(),
-                        e.to_degrees()
-                    ));
-                }
-                if c.rotator_ignored {
-                    notes.push(format!(
-                        "rotator_deg is ignored: the telescope model of {cal_path} was fitted without rotator angles (its offset holds the rotator's)"
-                    ));
-                }
-                Some((t, b, c.track, given.is_none()))
-            }
-            (_, None) => {
-                if given.is_some() || rotator.is_some() || band.is_some() {
-                    return Err(input_err(format!(
-                        "parang_deg, rotator_deg and band are for calibrations with a telescope model; {cal_path} holds none"
-                    )));
-                }
-                None
-            }
+        // The one rule set of `instpol correct` on a map (fit::request::plan_map).
+        let request = fit::request::Request {
+            method,
+            allow_extrapolation,
+            extrapolation_rel_error: extrapolation_error,
+            band: band.as_deref(),
+            carried_zero_angle_deg: None,
+            per_row: None,
+            parang: given,
+            rotator,
+            recorded: None,
+            angles_are_arguments: true,
+            allow_mismatch,
         };
-        let with = match (&self.field, &chosen) {
-            (Field::Mueller(mc), _) => MapCorrection::Mueller(mc),
-            (Field::PPhi(cal), None) => MapCorrection::Field { cal, method },
-            (Field::PPhi(cal), Some((t, b, track, by_exposure))) => MapCorrection::Chain {
-                field: Some((cal, method)),
-                telescope: t,
-                band: b,
-                track: *track,
-                by_exposure: *by_exposure,
-                zero_angle_deg: cal.hwp_chi_offset_deg,
-            },
-            (Field::TelescopeOnly { .. }, Some((t, b, track, by_exposure))) => {
-                // The map is at the plate: the zero angle it records (HWPZERO), else its
-                // instrument's (a built-in one known by the name the map records), as
-                // `instpol correct` takes it.
-                let (zero_angle_deg, unknown) = fit::setup::map_zero_angle(&map);
-                notes.extend(unknown);
-                MapCorrection::Chain {
-                    field: None,
-                    telescope: t,
-                    band: b,
-                    track: *track,
-                    by_exposure: *by_exposure,
-                    zero_angle_deg,
-                }
-            }
-            (Field::TelescopeOnly { .. }, None) => {
-                return Err(input_err(format!(
-                    "{cal_path} holds only a telescope model, and no telescope model was loaded"
-                )))
-            }
-        };
+        let plan = fit::request::plan_map(&self.file, &request, &map).map_err(|e| self.map_error(e, &input))?;
+        let notes: Vec<String> = plan.notes.iter().map(|n| self.note_text(n, &input)).collect();
+        let with = plan.correction();
         let name = self.path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
         let (c, stamp) = py
             .detach(|| {
@@ -979,9 +876,10 @@ impl<'a> Sink<'a> {
 /// in between, so the time is the library's and not the copying. Halves run on rayon's pool; the
 /// error returned is the one of the lowest row, as `par_correct_batch` does. Returns the number
 /// of extrapolated rows.
-fn fill<F>(cor: &F, i: &Inputs<'_>, s: Sink<'_>) -> Result<usize, (usize, fit::correct::Error)>
+fn fill<F, E>(cor: &F, i: &Inputs<'_>, s: Sink<'_>) -> Result<usize, (usize, E)>
 where
-    F: Fn(&Measurement) -> Result<fit::correct::Corrected, fit::correct::Error> + Sync,
+    F: Fn(usize, &Measurement) -> Result<fit::correct::Corrected, E> + Sync,
+    E: Send,
 {
     const CHUNK: usize = 4096;
     let n = s.extra.len();
@@ -1002,8 +900,8 @@ where
     let mut n_extra = 0;
     for k in 0..n {
         let m = Measurement::new(x[k], y[k], q[k], u[k], sq[k], su[k], cov.map_or(0.0, |c| c[k]));
-        let r = cor(&m).map_err(|e| (r0 + k, e))?;
-        // Written column by column here, not through put_row: this loop is the 1e7/s path
+        let r = cor(r0 + k, &m).map_err(|e| (r0 + k, e))?;
+        // Written column by column here, not through an array of columns: this loop is the 1e7/s path
         // (bench/python_correct.sh) and the array-of-slices loop measured ~20 % slower. The
         // values are those of Corrected::output_values (pytest compares with the CLI's).
         c_q0[k].write(r.q0);
@@ -1024,24 +922,6 @@ where
         n_extra += r.extrapolated as usize;
     }
     Ok(n_extra)
-}
-
-/// Row `k` of the output columns: `Corrected::output_values`, the values `instpol correct`
-/// writes, in [`OUT_NAMES`] order.
-#[inline]
-fn put_row(
-    cols: &mut [&mut [MaybeUninit<f64>]; N_OUT],
-    p0e: &mut Option<(&mut [MaybeUninit<f64>], Estimator)>,
-    k: usize,
-    r: &fit::correct::Corrected,
-) {
-    let v = r.output_values();
-    for (c, v) in cols.iter_mut().zip(v) {
-        c[k].write(v);
-    }
-    if let Some((c, e)) = p0e.as_mut() {
-        c[k].write(r.p0_estimate(*e));
-    }
 }
 
 /// The telescope chain (`instpol correct` with a calibration holding a telescope model): each
@@ -1096,52 +976,6 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Recorded {
             zero_angle_deg,
         })
     }
-}
-
-/// How the rows of a correction saw the telescope.
-#[derive(Clone, Copy)]
-enum Tracks<'a> {
-    /// Each row over its own track: `parang_deg` and optionally `parang_end_deg` (deg).
-    Rows(&'a [f64], Option<&'a [f64]>),
-    /// Every row as the recorded exposures saw it (their demodulations built once).
-    Recorded(&'a fit::telescope::PreparedExposures),
-}
-
-/// Each row through the chain, as `tracks` says it saw the telescope, after the zero angle
-/// `to_sky` (rad) that brings it into the models' sky frame.
-#[allow(clippy::too_many_arguments)]
-fn fill_chain(
-    cor: Option<&Corrector<'_, fit::Calibration>>,
-    tel: &fit::telescope::TelescopeFit,
-    band: &str,
-    i: &Inputs<'_>,
-    tracks: Tracks<'_>,
-    to_sky: f64,
-    s: Sink<'_>,
-) -> Result<usize, (usize, String)> {
-    use fit::telescope::{Seen, Track};
-    let n = s.extra.len();
-    let rows: Vec<fit::correct::Corrected> = (0..n)
-        .into_par_iter()
-        .map(|k| {
-            let m = Measurement::new(i.x[k], i.y[k], i.q[k], i.u[k], i.sq[k], i.su[k], i.cov.map_or(0.0, |c| c[k]));
-            let seen = match tracks {
-                Tracks::Recorded(p) => Seen::Prepared(p),
-                Tracks::Rows(pa, pa_end) => {
-                    Seen::Track(Track::new(pa[k].to_radians(), pa_end.map(|e| e[k].to_radians())))
-                }
-            };
-            let r = fit::telescope_cal::correct_chain_seen(cor, tel, band, &m, seen, to_sky)
-                .map_err(|e| (k, e.to_string()))?;
-            Ok(r.with_telescope_in_inst())
-        })
-        .collect::<Result<_, _>>()?;
-    let Sink { mut cols, mut p0e, extra, .. } = s;
-    for (k, r) in rows.iter().enumerate() {
-        put_row(&mut cols, &mut p0e, k, r);
-        extra[k] = r.extrapolated;
-    }
-    Ok(rows.iter().filter(|r| r.extrapolated).count())
 }
 
 fn read_options(

@@ -3,7 +3,7 @@
 
 use anyhow::{anyhow, bail, Context, Result};
 use fit::correct::{Corrected, Measurement, Method};
-use fit::rows::RowsRequest;
+use fit::request::Request;
 use fit::Calibration;
 use fitsio::tables::{ColumnDataType, ColumnDescription};
 use fitsio::FitsFile;
@@ -201,7 +201,7 @@ pub fn run(a: Args) -> Result<()> {
         fit::calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     let parang = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
     let rotator = a.rotator.map(crate::util::parse_rotator).transpose()?;
-    let request = RowsRequest {
+    let request = Request {
         method: method(&a),
         allow_extrapolation: a.allow_extrapolation,
         extrapolation_rel_error: a.extrapolation_error,
@@ -212,20 +212,12 @@ pub fn run(a: Args) -> Result<()> {
         rotator,
         recorded: None,
         angles_are_arguments: false,
+        allow_mismatch: a.allow_mismatch,
     };
-    fit::rows::check_options(&loaded, &request).map_err(|e| rows_error(&a, None, e))?;
+    fit::request::check_options(&loaded, &request).map_err(|e| rows_error(&a, None, e))?;
     let kind = detect(&a.input)?;
     if kind == Kind::Map {
-        return match (&loaded.mueller, &loaded.telescope, &loaded.field) {
-            (Some(m), _, _) => run_mueller_map(&a, m),
-            (None, Some(tel), field) => telescope_map(&a, tel, field.as_ref()),
-            (None, None, Some(cal)) => {
-                let summary = correct_map(cal, &a)?;
-                warn_extrapolated(&summary, "calibrated field");
-                report(&a, &summary, &field_line(&a, &summary, cal), "")
-            }
-            (None, None, None) => bail!("{}: holds no model", a.cal.display()),
-        };
+        return run_map(&a, &loaded, &request);
     }
     run_table(&a, &loaded, &request, kind, est)
 }
@@ -251,10 +243,10 @@ fn field_line(a: &Args, s: &Summary, cal: &Calibration) -> String {
     )
 }
 
-/// A refusal of `fit::rows` in this command's words (`table`: the catalog, for the names of its
+/// A refusal of `fit::request` in this command's words (`table`: the catalog, for the names of its
 /// columns).
-fn rows_error(a: &Args, table: Option<&Table>, e: fit::rows::RowsError) -> anyhow::Error {
-    use fit::rows::RowsError as E;
+fn rows_error(a: &Args, table: Option<&Table>, e: fit::request::Refusal) -> anyhow::Error {
+    use fit::request::Refusal as E;
     let (cal, input) = (a.cal.display(), a.input.display());
     match e {
         E::TelescopeOptions { mueller } => anyhow!(
@@ -263,6 +255,9 @@ fn rows_error(a: &Args, table: Option<&Table>, e: fit::rows::RowsError) -> anyho
         ),
         E::MuellerFirstOrder => anyhow!(
             "--method first-order: {cal} holds a Mueller field, which is inverted exactly (eq:approx is the p, phi model's first order)"
+        ),
+        E::NoParallactic if table.is_none() => anyhow!(
+            "{input}: a Stokes map needs the parallactic angle of its exposures for the telescope model of {cal}: give --parang START[,END] (deg: the first frame's start, the last frame's end, as their headers say; instpol reduce records it in the map when the instrument's [telescope] section names the header keywords)"
         ),
         E::NoParallactic => anyhow!(
             "{input}: no column '{}' (columns: {}) and no recorded parallactic angles: the telescope model of {cal} needs each row's parallactic angle (deg), or --parang START[,END] when every row comes from the same frames (instpol catalog records them in ECSV, FITS and VOTable outputs when the instrument's [telescope] section names the header keywords)",
@@ -281,13 +276,23 @@ fn rows_error(a: &Args, table: Option<&Table>, e: fit::rows::RowsError) -> anyho
         }
         E::Band(b) => crate::util::band_choice_error(b, &a.cal, None),
         E::Exposures(m) => anyhow!("{input}: its exposures: {m}"),
+        E::Mismatch { map, calibration } => anyhow!(
+            "{input} is a {} {} map but {cal} calibrates {} {}: use the calibration of the map's instrument and filter (or --allow-mismatch)",
+            map.0,
+            map.1,
+            calibration.0,
+            calibration.1
+        ),
+        E::BandMismatch { map_filter, band } => anyhow!(
+            "{input} is a {map_filter} map but the telescope model's band is {band}: use the band of the map's filter (--band), or --allow-mismatch"
+        ),
         e => anyhow!("{input}: {e}"),
     }
 }
 
-/// Say what `fit::rows` noted about a correction that goes ahead.
-fn print_notes(a: &Args, notes: &[fit::rows::Note]) {
-    use fit::rows::Note;
+/// Say what `fit::request` noted about a correction that goes ahead.
+fn print_notes(a: &Args, notes: &[fit::request::Note]) {
+    use fit::request::Note;
     let (cal, input) = (a.cal.display(), a.input.display());
     for n in notes {
         match n {
@@ -304,6 +309,7 @@ fn print_notes(a: &Args, notes: &[fit::rows::Note]) {
                 s.to_degrees(),
                 e.to_degrees()
             ),
+            Note::ZeroAngleUnknown(w) => eprintln!("warning: {input}: {w}"),
             Note::RotatorIgnored => eprintln!(
                 "warning: --rotator is ignored: the telescope model of {cal} was fitted without rotator angles (its offset holds the rotator's)"
             ),
@@ -311,12 +317,12 @@ fn print_notes(a: &Args, notes: &[fit::rows::Note]) {
     }
 }
 
-/// Correct a catalog's rows with any calibration (`fit::rows`): read the table and its angles,
+/// Correct a catalog's rows with any calibration (`fit::request`): read the table and its angles,
 /// correct every row in parallel, write the table with the corrected columns and report.
 fn run_table(
     a: &Args,
     loaded: &fit::calibration::CalibrationFile,
-    base: &RowsRequest<'_>,
+    base: &Request<'_>,
     kind: Kind,
     est: Estimator,
 ) -> Result<()> {
@@ -339,10 +345,10 @@ fn run_table(
     } else {
         None
     };
-    let request = RowsRequest {
+    let request = Request {
         carried_zero_angle_deg: carried,
         recorded: recorded.as_ref(),
-        per_row: start.as_deref().map(|s| fit::rows::PerRowAngles {
+        per_row: start.as_deref().map(|s| fit::request::PerRowAngles {
             start_deg: s,
             end_deg: end.as_deref(),
             rotator_deg: rot.as_deref(),
@@ -350,7 +356,7 @@ fn run_table(
         ..*base
     };
     let n = table.n_rows();
-    let plan = fit::rows::plan(loaded, &request, n).map_err(|e| rows_error(a, Some(&table), e))?;
+    let plan = fit::request::plan_rows(loaded, &request, n).map_err(|e| rows_error(a, Some(&table), e))?;
     print_notes(a, &plan.notes);
     let pixel = match (&loaded.field, &loaded.mueller) {
         (Some(c), _) => c.pixel,
@@ -658,93 +664,62 @@ fn write_fits_table(
     })
 }
 
-/// A calibration applies to one instrument and filter: refuse a map of another (names
-/// compared case-insensitively, filters through the instrument's aliases when it is known;
-/// "unknown" or empty names are not checked).
-fn check_same_setup(inst: &str, filter: &str, cal: (&str, &str), input: &Path, calp: &Path, allow: bool) -> Result<()> {
-    if !fit::setup::matches_setup(inst, filter, cal.0, cal.1) && !allow {
-        bail!(
-            "{} is a {} {} map but {} calibrates {} {}: use the calibration of the map's instrument and filter (or --allow-mismatch)",
-            input.display(),
-            inst,
-            filter,
-            calp.display(),
-            cal.0,
-            cal.1
-        );
-    }
-    Ok(())
-}
-
-/// A Stokes map through the chain: the field (when the calibration has one) at each bin's
-/// centre, then the telescope over the exposures' one track (--parang, --rotator).
-fn telescope_map(a: &Args, tel: &fit::telescope::TelescopeFit, field: Option<&Calibration>) -> Result<()> {
+/// Correct a Stokes map with any calibration (`fit::request::plan_map`): every valid bin at
+/// its centre, written with the correction's record, and report.
+fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Request<'_>) -> Result<()> {
     let map = skyfield::StokesMap::read_uncorrected(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
-    if let Some(c) = field {
-        check_same_setup(&map.instrument, &map.filter, (&c.instrument, &c.filter), &a.input, &a.cal, a.allow_mismatch)?;
-    }
-    let band = telescope_band(a, tel, field, Some(&map.filter))?;
-    if field.is_none() && !fit::setup::band_fits_data(&map.instrument, &map.filter, &band) && !a.allow_mismatch {
-        bail!(
-            "{} is a {} map but the telescope model's band is {band}: use the band of the map's filter (--band), or --allow-mismatch",
-            a.input.display(),
-            map.filter
-        );
-    }
-    let track = shared_track(a, tel, "a Stokes map", (map.parallactic_rad, map.rotator_rad))?;
-    // The map is at the plate: without a field calibration its zero angle is the one it
-    // records (HWPZERO), else its instrument's (a built-in one known by the name it records).
-    let zero_angle_deg = match field {
-        Some(c) => c.hwp_chi_offset_deg,
-        None => {
-            let (z, unknown) = fit::setup::map_zero_angle(&map);
-            if let Some(w) = unknown {
-                eprintln!("warning: {}: {w}", a.input.display());
-            }
-            z
-        }
-    };
-    let with = fit::calibration::MapCorrection::Chain {
-        field: field.map(|c| (c, method(a))),
-        telescope: tel,
-        band: &band,
-        track,
-        by_exposure: a.parang.is_none(),
-        zero_angle_deg,
-    };
-    let c = correct_and_write(a, &map, with)?;
-    let mut summary = map_summary(a, c, &map.filter, zero_angle_deg);
-    summary.telescope_model = Some(tel.model.name());
-    summary.telescope_band = Some(band.clone());
-    summary.telescope_exposures =
-        (a.parang.is_none() && !map.exposure_tracks.is_empty()).then_some(map.exposure_tracks.len());
-    warn_extrapolated(&summary, "calibrated field");
-    report(
-        a,
-        &summary,
-        &format!(
-            "corrected {} bins of {} with {} ({} model, band {band}{}), parallactic angle {:.2} to {:.2} deg",
-            summary.rows,
-            a.input.display(),
-            a.cal.display(),
-            tel.model.name(),
-            if field.is_some() { ", field model first" } else { ", no field model" },
-            track.start.to_degrees(),
-            track.end.to_degrees()
-        ),
-        "",
+    let plan = fit::request::plan_map(loaded, request, &map).map_err(|e| rows_error(a, None, e))?;
+    print_notes(a, &plan.notes);
+    let (c, stamp) = fit::calibration::correct_stokes_map(
+        &map,
+        plan.correction(),
+        a.allow_extrapolation,
+        a.extrapolation_error,
+        &cal_name(a),
     )
-}
-
-/// Correct a Stokes map bin by bin at the bin centres.
-fn correct_map(cal: &Calibration, a: &Args) -> Result<Summary> {
-    let map = skyfield::StokesMap::read_uncorrected(&a.input)
-        .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
-    check_same_setup(&map.instrument, &map.filter, (&cal.instrument, &cal.filter), &a.input, &a.cal, a.allow_mismatch)?;
-    let with = fit::calibration::MapCorrection::Field { cal, method: method(a) };
-    let c = correct_and_write(a, &map, with)?;
-    Ok(map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg))
+    .map_err(|e| map_error(e, &a.input))?;
+    crate::util::check_output(&a.out)?;
+    c.map.write_corrected_fits(&a.out, &stamp).with_context(|| format!("cannot write {}", a.out.display()))?;
+    let mut summary = map_summary(a, c, &map.filter, stamp.hwp_chi_offset_deg);
+    match (&loaded.mueller, &plan.telescope, &loaded.field) {
+        (Some(m), _, _) => {
+            summary.filter = m.filter.clone();
+            summary.mueller_model = Some(m.field.kind.model_name());
+            summary.mueller_free = Some(m.field.kind.free_words());
+            warn_extrapolated(&summary, "fitted Mueller field");
+            report(a, &summary, &mueller_line(a, &summary, m), " (unpolarized light)")
+        }
+        (None, Some(t), field) => {
+            summary.telescope_model = Some(t.fit.model.name());
+            summary.telescope_band = Some(t.band.clone());
+            summary.telescope_exposures =
+                (t.by_exposure && !map.exposure_tracks.is_empty()).then_some(map.exposure_tracks.len());
+            warn_extrapolated(&summary, "calibrated field");
+            report(
+                a,
+                &summary,
+                &format!(
+                    "corrected {} bins of {} with {} ({} model, band {}{}), parallactic angle {:.2} to {:.2} deg",
+                    summary.rows,
+                    a.input.display(),
+                    a.cal.display(),
+                    t.fit.model.name(),
+                    t.band,
+                    if field.is_some() { ", field model first" } else { ", no field model" },
+                    t.track.start.to_degrees(),
+                    t.track.end.to_degrees()
+                ),
+                "",
+            )
+        }
+        (None, None, Some(cal)) => {
+            summary.filter = cal.filter.clone();
+            warn_extrapolated(&summary, "calibrated field");
+            report(a, &summary, &field_line(a, &summary, cal), "")
+        }
+        (None, None, None) => unreachable!("the loader refuses a file without a model"),
+    }
 }
 
 /// The summary of a corrected Stokes map.
@@ -780,89 +755,6 @@ fn map_error(e: fit::correct::MapError, input: &Path) -> anyhow::Error {
 /// The calibration file's name, as a corrected map records it (`INSTCORR`).
 fn cal_name(a: &Args) -> String {
     a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default()
-}
-
-/// Correct a Stokes map (`fit::calibration::correct_stokes_map`) and write it with the
-/// correction's record.
-fn correct_and_write(
-    a: &Args,
-    map: &skyfield::StokesMap,
-    with: fit::calibration::MapCorrection<'_>,
-) -> Result<fit::correct::CorrectedMap> {
-    let (c, stamp) =
-        fit::calibration::correct_stokes_map(map, with, a.allow_extrapolation, a.extrapolation_error, &cal_name(a))
-            .map_err(|e| map_error(e, &a.input))?;
-    crate::util::check_output(&a.out)?;
-    c.map.write_corrected_fits(&a.out, &stamp).with_context(|| format!("cannot write {}", a.out.display()))?;
-    Ok(c)
-}
-
-/// A Stokes map corrected with a Mueller-field calibration: every bin inverted exactly
-/// (`fit::mueller_cal::MuellerCal::correct`), after the calibration's HWP zero angle (the one
-/// its maps were turned by; 0 for maps that recorded none).
-fn run_mueller_map(a: &Args, cal: &fit::mueller_cal::MuellerCal) -> Result<()> {
-    let map = skyfield::StokesMap::read_uncorrected(&a.input)
-        .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
-    check_same_setup(&map.instrument, &map.filter, (&cal.instrument, &cal.filter), &a.input, &a.cal, a.allow_mismatch)?;
-    let c = correct_and_write(a, &map, fit::calibration::MapCorrection::Mueller(cal))?;
-    let mut summary = map_summary(a, c, &cal.filter, cal.hwp_chi_offset_deg);
-    summary.mueller_model = Some(cal.field.kind.model_name());
-    summary.mueller_free = Some(cal.field.kind.free_words());
-    warn_extrapolated(&summary, "fitted Mueller field");
-    report(a, &summary, &mueller_line(a, &summary, cal), " (unpolarized light)")
-}
-
-/// The band of the telescope model to use (`fit::telescope::TelescopeFit::choose_band`: --band,
-/// the field calibration's filter, the map's filter when the model has it, the only band).
-fn telescope_band(
-    a: &Args,
-    tel: &fit::telescope::TelescopeFit,
-    field: Option<&Calibration>,
-    map_filter: Option<&str>,
-) -> Result<String> {
-    tel.choose_band(a.band.as_deref(), field.map(|c| c.filter.as_str()), map_filter)
-        .map_err(|e| crate::util::band_choice_error(e, &a.cal, None))
-}
-
-/// The one track of a Stokes map, or of a catalog without a parallactic-angle column: from
-/// --parang and --rotator, or else what the map recorded (`recorded`: its PARANG1, PARANG2 and
-/// ROTANG, rad). The rotator is needed when, and only used when, the model was fitted with
-/// rotator angles; otherwise its offset already holds it.
-fn shared_track(
-    a: &Args,
-    tel: &fit::telescope::TelescopeFit,
-    what: &str,
-    recorded: (Option<(f64, f64)>, Option<f64>),
-) -> Result<fit::telescope::Track> {
-    use fit::telescope::TrackChoiceError;
-    let given = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
-    let rotator = a.rotator.map(crate::util::parse_rotator).transpose()?;
-    let c = tel.choose_track(given, recorded.0, rotator, recorded.1).map_err(|e| match e {
-        TrackChoiceError::NoParallactic => anyhow!(
-            "{}: {what} needs the parallactic angle of its exposures for the telescope model of {}: give --parang START[,END] (deg: the first frame's start, the last frame's end, as their headers say; instpol reduce records it in the map when the instrument's [telescope] section names the header keywords)",
-            a.input.display(),
-            a.cal.display()
-        ),
-        TrackChoiceError::NoRotator => anyhow!(
-            "the telescope model of {} was fitted with rotator angles: give the exposures' with --rotator DEG",
-            a.cal.display()
-        ),
-    })?;
-    if let (Some((s, e)), Some(p)) = (c.replaced, &a.parang) {
-        eprintln!(
-            "warning: --parang {p} replaces the parallactic angle {} recorded ({:.3} to {:.3} deg)",
-            a.input.display(),
-            s.to_degrees(),
-            e.to_degrees()
-        );
-    }
-    if c.rotator_ignored {
-        eprintln!(
-            "warning: --rotator is ignored: the telescope model of {} was fitted without rotator angles (its offset holds the rotator's)",
-            a.cal.display()
-        );
-    }
-    Ok(c.track)
 }
 
 /// Write a corrected catalog in the output's format and make its summary.

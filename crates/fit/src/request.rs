@@ -1,8 +1,10 @@
-//! Correcting rows (the stars of a catalog table, or arrays a caller gives) with any calibration
-//! file: which models apply, in which frame and over which telescope track. The one rule set of
-//! `instpol correct`'s tables and the Python `Calibration.correct`; each face parses its own
-//! inputs into a [`RowsRequest`], calls [`plan`] once, corrects every row with
-//! [`RowsPlan::correct`] and words the [`RowsError`]s and [`Note`]s its own way.
+//! What a caller asks of a calibration file, and the correction that answers it: which models
+//! apply, in which frame and over which telescope track, for rows (the stars of a catalog
+//! table, or arrays a caller gives: [`plan_rows`]) or a whole Stokes map ([`plan_map`]). The
+//! one rule set of `instpol correct` and the Python `Calibration.correct` and `.correct_map`:
+//! each face parses its own inputs into a [`Request`], makes the plan once, corrects with it
+//! ([`RowsPlan::correct`] for each row, [`MapPlan::correction`] for a map) and words the
+//! [`Refusal`]s and [`Note`]s its own way.
 //!
 //! The rules, by what the file holds ([`crate::calibration::Kind`]):
 //!
@@ -21,6 +23,12 @@
 //!   was fitted with rotator angles), or else one track for every row: given, or recorded by
 //!   the catalog, whose recorded exposures are then undone one by one unless a given track
 //!   replaced them.
+//!
+//! A Stokes map is at the plate and its bins share their exposures: it is turned by the field
+//! calibration's zero angle (without one, by the zero angle the map records,
+//! [`crate::setup::map_zero_angle`]), over the map's one track (given, else recorded) and its
+//! recorded exposures. A map of another instrument or filter than the calibration's is refused
+//! unless the request allows the mismatch.
 
 use crate::calfile::Calibration;
 use crate::calibration::{CalibrationFile, Kind};
@@ -41,7 +49,7 @@ pub struct PerRowAngles<'a> {
 
 /// What the caller asks of a correction of rows.
 #[derive(Debug, Clone, Copy)]
-pub struct RowsRequest<'a> {
+pub struct Request<'a> {
     pub method: Method,
     pub allow_extrapolation: bool,
     /// `F` of the inflation rule outside the field ([`CorrectOptions::extrapolation_rel_error`]).
@@ -64,12 +72,15 @@ pub struct RowsRequest<'a> {
     /// angles given as arguments are refused (they would change nothing) and angles in the data
     /// are noted; arguments may not give both per-row and recorded angles.
     pub angles_are_arguments: bool,
+    /// A Stokes map of another instrument or filter (or a band that is not the map's filter)
+    /// is corrected all the same.
+    pub allow_mismatch: bool,
 }
 
 /// Why rows cannot be corrected as asked. Each face says it in its own words (its option
 /// names), from these values.
 #[derive(Debug, Clone, PartialEq)]
-pub enum RowsError {
+pub enum Refusal {
     /// Telescope options (band, one track, a rotator, explicit per-row angles) for a file
     /// without a telescope model; `mueller`: the file holds a Mueller field.
     TelescopeOptions { mueller: bool },
@@ -87,36 +98,46 @@ pub enum RowsError {
     Band(BandChoiceError),
     /// The recorded exposures cannot be prepared (their telescope chain).
     Exposures(String),
+    /// A Stokes map of another instrument or filter than the calibration's.
+    Mismatch { map: (String, String), calibration: (String, String) },
+    /// A Stokes map corrected by a telescope model alone, in a band that is not its filter.
+    BandMismatch { map_filter: String, band: String },
 }
 
-impl std::fmt::Display for RowsError {
+impl std::fmt::Display for Refusal {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            RowsError::TelescopeOptions { mueller: true } => {
+            Refusal::TelescopeOptions { mueller: true } => {
                 write!(
                     f,
                     "the telescope options are for calibrations with a telescope model; this one holds a Mueller field"
                 )
             }
-            RowsError::TelescopeOptions { mueller: false } => {
+            Refusal::TelescopeOptions { mueller: false } => {
                 write!(f, "the telescope options are for calibrations with a telescope model; this one has none")
             }
-            RowsError::MuellerFirstOrder => {
+            Refusal::MuellerFirstOrder => {
                 write!(f, "a Mueller field is inverted exactly (eq:approx is the p, phi model's first order)")
             }
-            RowsError::NoParallactic => write!(f, "the telescope model needs the rows' parallactic angles"),
-            RowsError::TwoTracks => write!(f, "per-row parallactic angles and one track for all rows: give one"),
-            RowsError::NoRotator { .. } => {
+            Refusal::NoParallactic => write!(f, "the telescope model needs the rows' parallactic angles"),
+            Refusal::TwoTracks => write!(f, "per-row parallactic angles and one track for all rows: give one"),
+            Refusal::NoRotator { .. } => {
                 write!(f, "the telescope model was fitted with rotator angles and the rows' is not known")
             }
-            RowsError::Length { what, len, rows } => write!(f, "{what} has {len} values for {rows} rows"),
-            RowsError::Band(e) => write!(f, "the telescope model's band: {e:?}"),
-            RowsError::Exposures(e) => write!(f, "the recorded exposures: {e}"),
+            Refusal::Length { what, len, rows } => write!(f, "{what} has {len} values for {rows} rows"),
+            Refusal::Band(e) => write!(f, "the telescope model's band: {e:?}"),
+            Refusal::Exposures(e) => write!(f, "the recorded exposures: {e}"),
+            Refusal::Mismatch { map, calibration } => {
+                write!(f, "a {} {} map and a calibration of {} {}", map.0, map.1, calibration.0, calibration.1)
+            }
+            Refusal::BandMismatch { map_filter, band } => {
+                write!(f, "a {map_filter} map and the telescope model's band {band}")
+            }
         }
     }
 }
 
-impl std::error::Error for RowsError {}
+impl std::error::Error for Refusal {}
 
 /// Something the caller should be told about a correction that goes ahead.
 #[derive(Debug, Clone, PartialEq)]
@@ -131,6 +152,9 @@ pub enum Note {
     TrackReplaced { recorded: (f64, f64) },
     /// A rotator angle was given but the model was fitted without rotator angles.
     RotatorIgnored,
+    /// A map corrected by a telescope model alone records no HWP zero angle and its
+    /// instrument gives none: what was taken, in words ([`crate::setup::map_zero_angle`]).
+    ZeroAngleUnknown(String),
 }
 
 /// How the rows saw the telescope.
@@ -177,21 +201,21 @@ pub enum RowError {
 /// The refusals that do not depend on the rows, which a Stokes map's correction makes too:
 /// telescope options (a band, one track, a rotator angle, angles given as arguments) for a file
 /// without a telescope model, and the first-order method for a Mueller field.
-pub fn check_options(file: &CalibrationFile, req: &RowsRequest<'_>) -> Result<(), RowsError> {
+pub fn check_options(file: &CalibrationFile, req: &Request<'_>) -> Result<(), Refusal> {
     if file.telescope.is_none() {
         let explicit = req.angles_are_arguments && (req.per_row.is_some() || req.recorded.is_some());
         if req.band.is_some() || req.parang.is_some() || req.rotator.is_some() || explicit {
-            return Err(RowsError::TelescopeOptions { mueller: file.mueller.is_some() });
+            return Err(Refusal::TelescopeOptions { mueller: file.mueller.is_some() });
         }
     }
     if file.mueller.is_some() && req.method == Method::FirstOrder {
-        return Err(RowsError::MuellerFirstOrder);
+        return Err(Refusal::MuellerFirstOrder);
     }
     Ok(())
 }
 
 /// Resolve how `n` rows are corrected with `file` as `req` asks.
-pub fn plan<'a>(file: &'a CalibrationFile, req: &RowsRequest<'_>, n: usize) -> Result<RowsPlan<'a>, RowsError> {
+pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> Result<RowsPlan<'a>, Refusal> {
     if let Some(p) = &req.per_row {
         for (what, len) in [
             ("the parallactic angles", Some(p.start_deg.len())),
@@ -199,7 +223,7 @@ pub fn plan<'a>(file: &'a CalibrationFile, req: &RowsRequest<'_>, n: usize) -> R
             ("the rotator angles", p.rotator_deg.map(<[f64]>::len)),
         ] {
             if let Some(len) = len.filter(|&l| l != n) {
-                return Err(RowsError::Length { what, len, rows: n });
+                return Err(Refusal::Length { what, len, rows: n });
             }
         }
     }
@@ -218,7 +242,7 @@ pub fn plan<'a>(file: &'a CalibrationFile, req: &RowsRequest<'_>, n: usize) -> R
     };
     check_options(file, req)?;
     if req.angles_are_arguments && req.per_row.is_some() && req.recorded.is_some() {
-        return Err(RowsError::TwoTracks);
+        return Err(Refusal::TwoTracks);
     }
     let Some(tel) = &file.telescope else {
         if let Some(mc) = &file.mueller {
@@ -251,7 +275,7 @@ pub fn plan<'a>(file: &'a CalibrationFile, req: &RowsRequest<'_>, n: usize) -> R
         });
     };
     let field = file.field.as_ref();
-    let band = tel.choose_band(req.band, field.map(|c| c.filter.as_str()), None).map_err(RowsError::Band)?;
+    let band = tel.choose_band(req.band, field.map(|c| c.filter.as_str()), None).map_err(Refusal::Band)?;
     let (to_sky, plate) = row_zero_angles(field.map(|c| c.hwp_chi_offset_deg), carried);
     if let Some(c) = field {
         note_carried(&mut notes, c.hwp_chi_offset_deg, to_sky);
@@ -259,19 +283,19 @@ pub fn plan<'a>(file: &'a CalibrationFile, req: &RowsRequest<'_>, n: usize) -> R
     let (tracks, exposures) = match &req.per_row {
         Some(p) => {
             if req.parang.is_some() {
-                return Err(RowsError::TwoTracks);
+                return Err(Refusal::TwoTracks);
             }
             // The rotator angle per row, when the model was fitted with rotator angles: the
             // rows' own, or the one given for all; never an assumed 0. Otherwise the model's
             // offset already holds it.
-            let rotator = |i: usize| -> Result<f64, RowsError> {
+            let rotator = |i: usize| -> Result<f64, Refusal> {
                 if !tel.with_rotator {
                     return Ok(0.0);
                 }
                 match (p.rotator_deg, req.rotator) {
                     (Some(r), _) => Ok(r[i].to_radians()),
                     (None, Some(r)) => Ok(r),
-                    (None, None) => Err(RowsError::NoRotator { per_row: true }),
+                    (None, None) => Err(Refusal::NoRotator { per_row: true }),
                 }
             };
             let tracks = (0..n)
@@ -279,18 +303,18 @@ pub fn plan<'a>(file: &'a CalibrationFile, req: &RowsRequest<'_>, n: usize) -> R
                     let end = p.end_deg.map(|e| e[i].to_radians());
                     Ok(Track::new(p.start_deg[i].to_radians(), end).with_rotator(rotator(i)?))
                 })
-                .collect::<Result<Vec<_>, RowsError>>()?;
+                .collect::<Result<Vec<_>, Refusal>>()?;
             (Tracks::PerRow(tracks), 0)
         }
         None => {
             let recorded = req.recorded.and_then(|r| r.parallactic_rad);
             let recorded_rotator = req.recorded.and_then(|r| r.rotator_rad);
             if req.parang.is_none() && recorded.is_none() {
-                return Err(RowsError::NoParallactic);
+                return Err(Refusal::NoParallactic);
             }
             let c = tel.choose_track(req.parang, recorded, req.rotator, recorded_rotator).map_err(|e| match e {
-                TrackChoiceError::NoParallactic => RowsError::NoParallactic,
-                TrackChoiceError::NoRotator => RowsError::NoRotator { per_row: false },
+                TrackChoiceError::NoParallactic => Refusal::NoParallactic,
+                TrackChoiceError::NoRotator => Refusal::NoRotator { per_row: false },
             })?;
             if let (Some(r), Some(_)) = (c.replaced, req.parang) {
                 notes.push(Note::TrackReplaced { recorded: r });
@@ -305,7 +329,7 @@ pub fn plan<'a>(file: &'a CalibrationFile, req: &RowsRequest<'_>, n: usize) -> R
                 _ => &[],
             };
             let prepared = crate::telescope_cal::prepare_recorded(tel, &band, c.track, exposures, plate.to_radians())
-                .map_err(|e| RowsError::Exposures(e.to_string()))?;
+                .map_err(|e| Refusal::Exposures(e.to_string()))?;
             match prepared {
                 Some(p) => (Tracks::Exposures(Box::new(p)), exposures.len()),
                 None => (Tracks::Shared(c.track), 0),
@@ -349,4 +373,105 @@ impl RowsPlan<'_> {
         )?;
         Ok(r.with_telescope_in_inst())
     }
+}
+
+/// The telescope part of a map's plan: the band, the one track of the map's exposures, and
+/// whether its recorded exposures are undone one by one (not when a given track replaced the
+/// recorded one).
+#[derive(Debug, Clone)]
+pub struct MapTelescope<'a> {
+    pub fit: &'a TelescopeFit,
+    pub band: String,
+    pub track: Track,
+    pub by_exposure: bool,
+}
+
+/// The correction of a Stokes map resolved from a file and a request ([`plan_map`]).
+#[derive(Debug)]
+pub struct MapPlan<'a> {
+    pub kind: Kind,
+    pub method: Method,
+    pub telescope: Option<MapTelescope<'a>>,
+    /// The HWP zero angle (deg) the map is turned by into the sky frame before a telescope
+    /// chain: the field calibration's, else the one the map records.
+    pub zero_angle_deg: f64,
+    pub notes: Vec<Note>,
+    file: &'a CalibrationFile,
+}
+
+impl MapPlan<'_> {
+    /// What [`crate::calibration::correct_stokes_map`] takes.
+    pub fn correction(&self) -> crate::calibration::MapCorrection<'_> {
+        use crate::calibration::MapCorrection;
+        match (&self.file.mueller, &self.telescope, &self.file.field) {
+            (Some(m), _, _) => MapCorrection::Mueller(m),
+            (None, Some(t), field) => MapCorrection::Chain {
+                field: field.as_ref().map(|c| (c, self.method)),
+                telescope: t.fit,
+                band: &t.band,
+                track: t.track,
+                by_exposure: t.by_exposure,
+                zero_angle_deg: self.zero_angle_deg,
+            },
+            (None, None, Some(cal)) => MapCorrection::Field { cal, method: self.method },
+            (None, None, None) => unreachable!("the loader refuses a file without a model"),
+        }
+    }
+}
+
+/// Resolve how the Stokes map `map` is corrected with `file` as `req` asks (module docs; the
+/// request's per-row angles, recorded angles and carried zero angle are a table's and not
+/// used).
+pub fn plan_map<'a>(
+    file: &'a CalibrationFile,
+    req: &Request<'_>,
+    map: &skyfield::StokesMap,
+) -> Result<MapPlan<'a>, Refusal> {
+    check_options(file, req)?;
+    let setup = match (&file.field, &file.mueller) {
+        (Some(c), _) => Some((c.instrument.as_str(), c.filter.as_str())),
+        (None, Some(m)) => Some((m.instrument.as_str(), m.filter.as_str())),
+        (None, None) => None,
+    };
+    if let Some((ci, cf)) = setup {
+        if !req.allow_mismatch && !crate::setup::matches_setup(&map.instrument, &map.filter, ci, cf) {
+            return Err(Refusal::Mismatch {
+                map: (map.instrument.clone(), map.filter.clone()),
+                calibration: (ci.to_string(), cf.to_string()),
+            });
+        }
+    }
+    let kind = file.kind();
+    let mut notes = vec![];
+    let Some(tel) = &file.telescope else {
+        let zero_angle_deg = file.field.as_ref().map_or(0.0, |c| c.hwp_chi_offset_deg);
+        return Ok(MapPlan { kind, method: req.method, telescope: None, zero_angle_deg, notes, file });
+    };
+    let field = file.field.as_ref();
+    let band = tel.choose_band(req.band, field.map(|c| c.filter.as_str()), Some(&map.filter)).map_err(Refusal::Band)?;
+    if field.is_none() && !req.allow_mismatch && !crate::setup::band_fits_data(&map.instrument, &map.filter, &band) {
+        return Err(Refusal::BandMismatch { map_filter: map.filter.clone(), band });
+    }
+    let c = tel.choose_track(req.parang, map.parallactic_rad, req.rotator, map.rotator_rad).map_err(|e| match e {
+        TrackChoiceError::NoParallactic => Refusal::NoParallactic,
+        TrackChoiceError::NoRotator => Refusal::NoRotator { per_row: false },
+    })?;
+    if let (Some(r), Some(_)) = (c.replaced, req.parang) {
+        notes.push(Note::TrackReplaced { recorded: r });
+    }
+    if c.rotator_ignored {
+        notes.push(Note::RotatorIgnored);
+    }
+    // The map is at the plate: without a field calibration its zero angle is the one it
+    // records (HWPZERO), else its instrument's (a built-in one known by the name it records).
+    let zero_angle_deg = match field {
+        Some(c) => c.hwp_chi_offset_deg,
+        None => {
+            let (z, unknown) = crate::setup::map_zero_angle(map);
+            notes.extend(unknown.map(Note::ZeroAngleUnknown));
+            z
+        }
+    };
+    let telescope = MapTelescope { fit: tel, band, track: c.track, by_exposure: req.parang.is_none() };
+    Ok(MapPlan { kind, method: req.method, telescope: Some(telescope), zero_angle_deg, notes, file })
 }
