@@ -17,11 +17,13 @@
 //! (argmin, spade, the calibration file). It fits nothing, reads no files and knows no
 //! instrument: instruments give it their pixel scale and size.
 
+pub mod chain;
 pub mod coords;
 pub mod grid;
 pub mod model;
 pub mod radial;
 
+pub use chain::FieldChain;
 pub use coords::FieldCoords;
 pub use grid::{GridMap, NearestCell};
 pub use model::{FieldModel, InstPol};

@@ -56,6 +56,20 @@ pub trait FieldModel: Send + Sync {
         None
     }
 
+    /// The instrument's linear Mueller block (the `(I, Q, U)` part) at `(x, y)` arcmin: what
+    /// the element does to the light there. The default is the partial polarizer
+    /// `M_I(p, phi)` of `eq:instpol` from [`p_phi`](Self::p_phi), and the identity where the
+    /// model gives no polarization or no finite value; an element that is not a partial
+    /// polarizer (a stressed lens, a tilted plate, a Mueller field) returns its own block.
+    fn block_at(&self, x_arcmin: f64, y_arcmin: f64) -> mueller::linear::LinearBlock {
+        let (p, phi) = self.p_phi(x_arcmin, y_arcmin);
+        if p != 0.0 && p.is_finite() && phi.is_finite() {
+            mueller::linear::LinearBlock::of_mueller(&mueller::partial_polarizer(p, phi))
+        } else {
+            mueller::linear::LinearBlock::identity()
+        }
+    }
+
     /// One line saying what the model is (for `--explain` and provenance).
     fn describe(&self) -> String {
         "a field model".into()

@@ -4,7 +4,7 @@ use crate::scene::{Coords, Extended, InstPolSpec, Profile, Psf, Scene, Star};
 use crate::Error;
 use field::{FieldModel, GridMap, InstPol, NearestCell, RadialPattern};
 use instrument::Instrument;
-use mueller::{DualBeam, Element, Harmonic, Hwp, Stokes, Wollaston};
+use mueller::{DualBeam, Harmonic, Hwp, Stokes, Wollaston};
 use rand::{RngExt, SeedableRng};
 use rand_distr::{Distribution, Normal, Poisson};
 use rand_xoshiro::Xoshiro256PlusPlus;
@@ -30,6 +30,11 @@ fn block(m: &mueller::Mueller) -> Block {
         }
     }
     b
+}
+
+/// A linear block as the plan keeps it (row-major: `b[i][j]` is row `i`, column `j`).
+fn block3(l: &mueller::linear::LinearBlock) -> Block {
+    std::array::from_fn(|i| std::array::from_fn(|j| l.0[(i, j)]))
 }
 
 #[inline]
@@ -368,16 +373,19 @@ impl Plan {
         };
         // Half-wave-plate causes (tilted, wedged plate): equivalent blocks at the scene's angles.
         let hwp_causes = crate::hwp_causes::HwpCauses::of_scene(scene)?;
-        // The telescope acts per exposure before the instrument's optics; the stressed lens and
-        // the plate causes are composed before it here, in the wrong order: refused together
-        // rather than simulated wrongly.
-        if tel.is_some() && (fx.stressed_lens.is_some() || hwp_causes.is_some()) {
-            return Err(Error::Scene {
-                path: PathBuf::from("<scene>"),
-                message: "[telescope] together with [effects.stressed_lens], [effects.tilted_hwp] or \
-                          [effects.wedged_hwp] is not simulated yet (the telescope must act before them): give one"
-                    .into(),
-            });
+        // The field-dependent elements in the order light meets them: the instrumental field,
+        // the stressed lens, the plate. The telescope acts before all of them, per exposure.
+        let mut chain = field::FieldChain::new();
+        if let Some((f, what)) = &field {
+            chain = chain
+                .then(f.clone(), format!("instrumental field Element::PartialPolarizer{{p(x,y), phi(x,y)}}: {what}"));
+        }
+        if let Some(sl) = &fx.stressed_lens {
+            chain = chain.then(Arc::new(sl.clone()), format!("stressed lens (mueller::linear block): {sl:?}"));
+        }
+        if let Some(hc) = hwp_causes {
+            let what = format!("half-wave-plate causes (equivalent block): {}", hc.describe());
+            chain = chain.then(Arc::new(hc), what);
         }
         // Stars go frame by frame when the two beams overlap (maskless) or the frames move;
         // otherwise they are folded into the sky image once.
@@ -392,31 +400,18 @@ impl Plan {
             for st in &scene.stars {
                 explain.push(format!("  + star {} (drawn frame by frame in both beams)", describe_star(st)));
                 let (x, y) = source_pixel(&inst, st.x, st.y, st.coords);
-                let mut v = mueller::stokes_p_chi(st.flux_e, st.p, st.chi_deg.to_radians());
+                let v = mueller::stokes_p_chi(st.flux_e, st.p, st.chi_deg.to_radians());
+                let mut iqu = [v[0], v[1], v[2]];
                 let mut at_star = None;
-                if let Some((f, _)) = &field {
+                if !chain.is_empty() {
                     let (xa, ya) = inst.pixel_to_arcmin(x, y);
-                    let (p, phi) = f.p_phi(xa, ya);
-                    if p != 0.0 && p.is_finite() && phi.is_finite() {
-                        let m = Element::PartialPolarizer { p, phi }.matrix();
-                        if tel.is_some() {
-                            at_star = Some(block(&m));
-                        } else {
-                            v = m * v;
-                        }
+                    match tel {
+                        // After each frame's telescope matrix: kept as the chain's block.
+                        Some(_) => at_star = Some(block3(&chain.block_at(xa, ya))),
+                        None => iqu = chain.apply_at(xa, ya, iqu),
                     }
                 }
-                if let Some(sl) = &fx.stressed_lens {
-                    let (xa, ya) = inst.pixel_to_arcmin(x, y);
-                    let o = sl.block_at(xa, ya).apply([v[0], v[1], v[2]]);
-                    v = Stokes::new(o[0], o[1], o[2], 0.0);
-                }
-                if let Some(hc) = &hwp_causes {
-                    let (xa, ya) = inst.pixel_to_arcmin(x, y);
-                    let o = hc.block_at(xa, ya).apply([v[0], v[1], v[2]]);
-                    v = Stokes::new(o[0], o[1], o[2], 0.0);
-                }
-                moving.push(StarDraw { x, y, st: [v[0], v[1], v[2]], psf: PsfShape::of(st, &inst), field: at_star });
+                moving.push(StarDraw { x, y, st: iqu, psf: PsfShape::of(st, &inst), field: at_star });
             }
             if !scene.frame_shifts_px.is_empty() {
                 explain.push(format!("  frames moved by {:?} px", scene.frame_shifts_px));
@@ -425,8 +420,7 @@ impl Plan {
         let needs_image = scene.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some())
             || (!scene.stars.is_empty() && !per_frame)
             || !scene.extended.is_empty()
-            || ((field.is_some() || fx.stressed_lens.is_some() || hwp_causes.is_some())
-                && geom.layout == instrument::Layout::Strips);
+            || (!chain.is_empty() && geom.layout == instrument::Layout::Strips);
         let sky = if !needs_image {
             let c = base.unwrap_or([0.0; 3]);
             match &scene.sky {
@@ -482,49 +476,37 @@ impl Plan {
                     add_extended(&mut img, &sky_pixels, &inst, ex)?;
                 }
             }
-            if let Some((field, what)) = field.as_ref().filter(|_| geom.layout == instrument::Layout::Strips) {
-                explain.push(format!(
-                    "  x instrumental field Element::PartialPolarizer{{p(x,y), phi(x,y)}} per pixel: {what}"
-                ));
+            if !chain.is_empty() && geom.layout == instrument::Layout::Strips {
                 let coords = inst.field_coords();
-                let at = |o: u32| -> Option<Block> {
+                let arcmin = |o: u32| {
                     let (x, y) = pos(o);
-                    let (xa, ya) = coords.pixel_to_arcmin(x as f64, y as f64);
-                    let (p, phi) = field.p_phi(xa, ya);
-                    (p != 0.0 && p.is_finite() && phi.is_finite())
-                        .then(|| block(&Element::PartialPolarizer { p, phi }.matrix()))
+                    coords.pixel_to_arcmin(x as f64, y as f64)
                 };
+                for what in chain.describe() {
+                    explain.push(format!("  x {what}, per pixel"));
+                }
                 match tel.as_mut() {
-                    // After the telescope, which changes frame by frame: kept per pixel.
+                    // After the telescope, which changes frame by frame: the chain's block kept
+                    // per pixel.
                     Some(t) => {
-                        const ONE: Block = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-                        explain.push("    (kept per pixel: it acts after each frame's telescope matrix)".into());
-                        t.field = Some(sky_pixels.par_iter().map(|&(o, _)| at(o).unwrap_or(ONE)).collect());
+                        explain.push(
+                            "    (kept per pixel as one block: it acts after each frame's telescope matrix)".into(),
+                        );
+                        t.field = Some(
+                            sky_pixels
+                                .par_iter()
+                                .map(|&(o, _)| {
+                                    let (xa, ya) = arcmin(o);
+                                    block3(&chain.block_at(xa, ya))
+                                })
+                                .collect(),
+                        );
                     }
                     None => img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(s, &(o, _))| {
-                        if let Some(b) = at(o) {
-                            *s = apply(&b, s);
-                        }
+                        let (xa, ya) = arcmin(o);
+                        *s = chain.apply_at(xa, ya, *s);
                     }),
                 }
-            }
-            if let Some(sl) = fx.stressed_lens.as_ref().filter(|_| geom.layout == instrument::Layout::Strips) {
-                explain.push(format!("  x stressed lens (mueller::linear block per pixel, after the field): {sl:?}"));
-                let coords = inst.field_coords();
-                img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(s, &(o, _))| {
-                    let (x, y) = pos(o);
-                    let (xa, ya) = coords.pixel_to_arcmin(x as f64, y as f64);
-                    *s = sl.block_at(xa, ya).apply(*s);
-                });
-            }
-            if let Some(hc) = hwp_causes.as_ref().filter(|_| geom.layout == instrument::Layout::Strips) {
-                explain.push(format!("  x half-wave-plate causes (equivalent block per pixel): {}", hc.describe()));
-                let coords = inst.field_coords();
-                img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(s, &(o, _))| {
-                    let (x, y) = pos(o);
-                    let (xa, ya) = coords.pixel_to_arcmin(x as f64, y as f64);
-                    *s = hc.block_at(xa, ya).apply(*s);
-                });
             }
             SkyAtPlate::Image(img)
         };

@@ -844,13 +844,6 @@ impl Scene {
                 }
             }
         }
-        if self.effects.stressed_lens.is_some() {
-            return bad(
-                "metal",
-                t.metal.clone(),
-                "a telescope and effects.stressed_lens together are not simulated (give one)",
-            );
-        }
         Ok(())
     }
 }

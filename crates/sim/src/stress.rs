@@ -66,6 +66,24 @@ impl StressedLensSpec {
     }
 }
 
+/// a stressed lens as an element of the field-dependent chain ([`field::FieldChain`]): its own block;
+/// its `eval` is the polarization it gives unpolarized light.
+impl field::FieldModel for StressedLensSpec {
+    fn eval(&self, x: f64, y: f64) -> field::InstPol {
+        let o = field::FieldModel::block_at(self, x, y).apply([1.0, 0.0, 0.0]);
+        field::InstPol { q: o[1] / o[0], u: o[2] / o[0], ..Default::default() }
+    }
+    fn contains(&self, _x: f64, _y: f64) -> bool {
+        true
+    }
+    fn block_at(&self, x: f64, y: f64) -> LinearBlock {
+        StressedLensSpec::block_at(self, x, y)
+    }
+    fn describe(&self) -> String {
+        "a stressed lens".into()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
