@@ -1,4 +1,4 @@
-//! Stability of the instrument loader at the edges of its numbers (issue 8): pixel <-> arcmin
+//! Stability of the instrument loader at the edges of its numbers: pixel <-> arcmin
 //! round trips across the detector, and absurd but syntactically valid values in the TOML that
 //! must be refused with an error naming the key, never a panic or an arithmetic overflow.
 //! (No proptest here: deterministic sweeps cover the ranges.)
