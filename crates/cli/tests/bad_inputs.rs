@@ -792,7 +792,7 @@ fn import_map_mismatched_and_bad_images() {
     refuses(&out, &a, &["missing.fits"]);
 }
 
-/// Issue 17: physically impossible maps were accepted: a negative error plane, and values in
+/// Physically impossible maps were once accepted: a negative error plane, and values in
 /// percent (P = 1.4 > 1). Both refused naming the file and the map pixel; the control passes.
 #[test]
 fn import_map_negative_errors_and_p_above_one() {
@@ -1584,7 +1584,7 @@ fn killed_mc_accuracy_report_leaves_no_partial_plot() {
 }
 
 // ---------------------------------------------------------------------------------------
-// Raw frame formats (issue 12): tables, chip files, overscan keywords, filters, BLANK.
+// Raw frame formats: tables, chip files, overscan keywords, filters, BLANK.
 // ---------------------------------------------------------------------------------------
 
 /// The shrunk FORS2 (`common::raw`) and its raw science set, written into the fixture.
@@ -1724,7 +1724,7 @@ fn reduce_blank_pixels_are_masked_with_a_warning() {
     assert!(err.contains("blank.fits: 3 NaN/infinite pixels masked"), "{err}");
 }
 
-/// HWP angles from `--hwp-angles` (issue 12): for an instrument that names no HWP keyword they
+/// HWP angles from `--hwp-angles`: for an instrument that names no HWP keyword they
 /// are required (and then used, in the frames' order); a count that does not match the
 /// exposures, or an angle that contradicts the header, is refused naming the file.
 #[test]

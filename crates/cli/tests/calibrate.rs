@@ -25,7 +25,7 @@ fn calibrate_map_recovers_the_v_pattern_and_writes_a_calibration() {
     ]);
     assert_eq!(code, 0, "{err}");
     let j: serde_json::Value = serde_json::from_str(&out).unwrap();
-    // The JSON contract of issue 5.
+    // The keys of calibrate's JSON that scripts rely on (`schemas/calibrate.schema.json`).
     for key in [
         "filter",
         "centre_arcmin",

@@ -212,7 +212,7 @@ fn pulls(path: &Path) -> (f64, f64, f64) {
     ((s2 / n).sqrt(), s1 / n, (r2 / n).sqrt())
 }
 
-/// Issue 16's must-show, end to end through the CLI: three simulated FORS1 B sky fields with a
+/// The Mueller field end to end through the CLI: three simulated FORS1 B sky fields with a
 /// diattenuation field and a stressed-lens retardance field -> `calibrate-mueller --out
 /// CAL.fits` -> `instpol correct` on a catalog of polarized stars across the field (P up to
 /// 8 %, every angle, noise 3e-4): the corrected q, u come back within their errors (pull RMS

@@ -1,5 +1,5 @@
 //! `instpol catalog` measures each frame's shift and rotation against the first from the
-//! stars' centroids (issue 13, item 2; `skyfield::align`, a least-squares similarity transform).
+//! stars' centroids (`skyfield::align`, a least-squares similarity transform).
 //! The shipped maskless scene's known frame shifts come back; and frames whose stars are turned
 //! by 0.2 deg per frame about a point (each frame simulated from a scene with the star
 //! positions rotated about (350, 350) px, independently computed here) give rotations of

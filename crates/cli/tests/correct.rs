@@ -329,7 +329,7 @@ fn fors2_map_calibration_corrects_its_own_instrumental_values() {
     let args = common::import_fors2_v_args(&d, &calp);
     let o = run(&args.iter().map(String::as_str).collect::<Vec<_>>());
     if !o.status.success() {
-        // import-map belongs to the calibration issue; say so rather than pass silently.
+        // import-map is tested on its own (tests/import_map.rs); say so rather than pass silently.
         panic!("instpol import-map failed (needed for this test): {}", String::from_utf8_lossy(&o.stderr));
     }
     let cal = Calibration::load(&calp).unwrap();

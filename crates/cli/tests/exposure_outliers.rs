@@ -1,4 +1,4 @@
-//! `instpol photometry` on frames with repeated HWP positions (issue 13, item 6): the frames of
+//! `instpol photometry` on frames with repeated HWP positions: the frames of
 //! a position are summed for the Stokes reduction, and every exposure is also measured on its
 //! own and checked against the others. The shipped maskless scene is simulated as two cycles of
 //! four HWP angles (two runs), and the second cycle once more with every star's and the sky's
@@ -107,7 +107,7 @@ fn a_frame_with_a_20_percent_transparency_drop_is_flagged() {
     assert!(((f("u") - p * (2.0 * chi).sin()) / f("sigma_u")).abs() < 4.0, "{j}");
 }
 
-/// `instpol catalog` on the same frames (issue 13: per-exposure checks in the catalog): every
+/// `instpol catalog` on the same frames (its per-exposure checks): every
 /// star is measured in each exposure alone; with the clear set no exposure is flagged, with
 /// exposure 6 through the cloud every star flags it (and only it: the row's flag bit and
 /// `outlier_exposures` = [5]), and the catalog names it with its stars' median light 0.8.

@@ -1,4 +1,4 @@
-//! A full disk at every writer (issue 17): a write error that shows only at flush, close or
+//! A full disk at every writer: a write error that shows only at flush, close or
 //! fsync must fail the command (exit 2, an error naming the output) and leave neither a partial
 //! file under the final name nor a temporary.
 //!

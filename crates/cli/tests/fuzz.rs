@@ -1,5 +1,6 @@
-//! Byte-mutation fuzzing of the input readers (issue 8). Not part of the default test run:
-//! every target is `#[ignore]`; `fuzz/run.sh` runs them with a time budget
+//! Byte-mutation fuzzing of the input readers (bad input must be refused, never panic). Not
+//! part of the default test run: every target is `#[ignore]`; `fuzz/run.sh` runs them with a
+//! time budget
 //! (`FUZZ_SECS`, default 20 s per target) and a seed (`FUZZ_SEED`).
 //!
 //! Nightly cargo-fuzz is not used: a seeded mutator (bit flips, byte replacement with

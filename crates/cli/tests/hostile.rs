@@ -1,4 +1,4 @@
-//! A generator of hostile inputs (issue 17): cases are produced by code, not listed by hand, so
+//! A generator of hostile inputs: cases are produced by code, not listed by hand, so
 //! that the next few hundred inputs someone tries have already been tried.
 //!
 //! - every command x every numeric flag x edge values (0, -0, negative, NaN, inf, 1e308,

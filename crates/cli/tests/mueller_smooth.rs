@@ -1,4 +1,4 @@
-//! The Mueller field's smooth forms through the CLI (issue 16 items 1 and 2):
+//! The Mueller field's smooth forms through the CLI:
 //! `calibrate-mueller --smooth radial|interp` on maps of a centred stressed lens (radial: its
 //! reduced chi^2 near 1) and of an off-centre one (radial: flagged), `correct` with each form
 //! giving a fourth sky back within its errors, `plan --expected` refusing bins outside the

@@ -36,7 +36,7 @@ fn star_polarization_after_vectorial_background_subtraction() {
     assert!((j["p"].as_f64().unwrap() - 0.03).abs() < 1e-6, "{j}");
     assert!((j["chi_deg"].as_f64().unwrap() - 20.0).abs() < 1e-3, "{j}");
     // The filter's HWP zero angle (the angle to add to a measured chi, instrument file) is
-    // applied to chi, Q and U as for calibrations (issue 12: photometry ignored it): the same
+    // applied to chi, Q and U as for calibrations (photometry once ignored it): the same
     // frames read with a V offset of 7.5 deg give chi = 27.5 deg, Q = P cos 55 deg,
     // U = P sin 55 deg, P unchanged.
     let text = std::fs::read_to_string(&inst).unwrap();

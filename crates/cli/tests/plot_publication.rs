@@ -1,4 +1,4 @@
-//! Plots for publication (issue 15 item 5), checked on the files the commands write:
+//! Plots for publication, checked on the files the commands write:
 //! - every text of every SVG is at least 9 pt when the figure is printed one journal column
 //!   wide (8.8 cm = 249.45 pt; px per pt = the SVG's own width / 249.45), read from the SVG;
 //! - every decade inside a log axis carries a label (mc --sweep: the eta and SNR_P axes, whose

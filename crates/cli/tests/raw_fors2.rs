@@ -1,4 +1,4 @@
-//! FORS2-format raw frames (issue 12, "must show"): two chip files per exposure, prescan and
+//! FORS2-format raw frames: two chip files per exposure, prescan and
 //! overscan, a bias level with a pattern, a flat-field pattern and 2x2 binning keywords, made
 //! from known pixel values (`common::raw`). Reduced with a master bias and a master flat made by
 //! `instpol master-bias` / `master-flat`, the Stokes map is the known sky's (Q0, U0) within the

@@ -1,4 +1,4 @@
-//! Issue 17: exit codes and flags a script can trust, outputs that never replace inputs,
+//! Exit codes and flags a script can trust, outputs that never replace inputs,
 //! resource bounds and unit traps, each checked on the built binary.
 
 mod common;

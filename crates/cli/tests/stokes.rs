@@ -183,7 +183,7 @@ fn column_order_p_zero_and_n2() {
     assert!(v["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains("N = 2")));
 }
 
-/// Repeated exposures (issue 13 item 6): two cycles of 8 positions, the second at theta + 360
+/// Repeated exposures: two cycles of 8 positions, the second at theta + 360
 /// deg (the same plate positions), are combined, not refused: the result is the reduction of
 /// the summed fluxes (summed here, in the test), and every exposure's pull about its
 /// position's mean is reported. One exposure with 3 % more flux in the o beam is flagged, with

@@ -1,4 +1,4 @@
-//! A night on a Nasmyth instrument at the level of pixel frames (issue 14 item 5): scenes with
+//! A night on a Nasmyth instrument at the level of pixel frames: scenes with
 //! a `[telescope]` (an aluminium M3 of known factor and offset, La Silla, each exposure's
 //! hour angles) simulated by `instpol simulate`; the frames' headers carry the parallactic
 //! angles under the instrument's keywords. Standards measured from the frames (`instpol

@@ -1,4 +1,4 @@
-//! `instpol zero-angle --measured FILE` (issue 13): standards measured in separate runs are
+//! `instpol zero-angle --measured FILE`: standards measured in separate runs are
 //! combined in one, and a grossly wrong standard is named and left out (leave-one-out: each
 //! star against the weighted circular mean of the others).
 //!

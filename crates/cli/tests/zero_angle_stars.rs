@@ -1,4 +1,4 @@
-//! `instpol zero-angle` with several standards in one run (issue 13): the shipped maskless
+//! `instpol zero-angle` with several standards in one run: the shipped maskless
 //! scene plus a third polarized star, simulated through a plate whose zero angle is 41.3 deg.
 //! The three standards (chi 136, 12 and 70 deg) give one zero angle within its error, agree
 //! with each other (chi2/dof small, no outlier), and tell the sense of the angle (the

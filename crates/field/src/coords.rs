@@ -5,9 +5,9 @@ use serde::{Deserialize, Serialize};
 /// Detector pixels <-> field arcminutes about an origin, with binning.
 ///
 /// A field position `(x, y)` is in arcmin from the origin, `x` along increasing detector
-/// columns and `y` along increasing rows (DESIGN.md: arcmin from the detector centre unless an
-/// optical-axis centre is fitted). Pixel coordinates are 0-based, pixel `i` spanning
-/// `[i - 0.5, i + 0.5)` (FITS 1-based only in headers).
+/// columns and `y` along increasing rows (arcmin from the detector centre unless an optical-axis
+/// centre is fitted: `docs/architecture.md`, Conventions). Pixel coordinates are 0-based,
+/// pixel `i` spanning `[i - 0.5, i + 0.5)` (FITS 1-based only in headers).
 ///
 /// Binning: with `binning = b`, pixel coordinates count `b x b` blocks of unbinned detector
 /// pixels; binned pixel `i` covers unbinned pixels `[b i, b i + b)` and is centred on

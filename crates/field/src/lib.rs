@@ -3,7 +3,7 @@
 //!
 //! - [`FieldCoords`]: the one conversion between 0-based detector pixels (binned or not) and
 //!   field positions in arcminutes about an origin (the detector centre by default, or a
-//!   fitted optical-axis centre; DESIGN.md conventions).
+//!   fitted optical-axis centre; `docs/architecture.md`, Conventions).
 //! - [`radial`]: the one evaluation of the paper's radial polynomial `p(r) = sum c_k r^k`
 //!   (section `sec:fors1`) and the radial pattern `phi = alpha` it describes.
 //! - [`FieldModel`]: the interface every model of the instrumental field offers (evaluate at a

@@ -8,8 +8,8 @@ pub type InstPol = mueller::Qu;
 
 /// A model of the instrumental polarization over the field: a value that says what `M_I`
 /// is at a position. Positions are in arcminutes about the field origin of
-/// [`FieldCoords`](crate::FieldCoords) (the detector centre unless stated; DESIGN.md
-/// conventions).
+/// [`FieldCoords`](crate::FieldCoords) (the detector centre unless stated; `docs/architecture.md`,
+/// Conventions).
 ///
 /// The simulator puts any model into frames (`sim::Plan::build_with_field`), the fitter fits
 /// and stores models (`fit`), the correction inverts them (`fit::correct`): none of them asks

@@ -1,4 +1,4 @@
-//! Speed of the joint Mueller-field fit (issue 16: three fields of 2700 bins in under a
+//! Speed of the joint Mueller-field fit (the target: three fields of 2700 bins in under a
 //! second). Run: `cargo bench -p instpol-fit --bench mueller_field`. Side by side:
 //! - `forward_pass`: one evaluation of the forward model (`LinearBlock::forward`) at every
 //!   observation of the three fields, the bound: a Gauss-Newton iteration needs at least

@@ -1,5 +1,5 @@
 //! The calibration file: one multi-extension FITS per instrument and filter, readable by
-//! astropy with no help (DESIGN.md, Files).
+//! astropy with no help (specified in `docs/calibration-file.md`).
 //!
 //! Layout (format version [`FORMAT_VERSION`]):
 //! - primary HDU, no data; `HIERARCH IP ...` keywords: format version, instrument, filter,

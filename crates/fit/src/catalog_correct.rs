@@ -1,5 +1,5 @@
 //! A catalog of stars (`skyfield::catalog`) corrected with a calibration in the same run
-//! (issue 13, `instpol catalog --cal`): each measured star's `(q, u)` goes through the one
+//! (`instpol catalog --cal`): each measured star's `(q, u)` goes through the one
 //! [`Corrector`], at its field position.
 //!
 //! The zero angle: the catalog's `q, u` are already in the sky's frame (the filter's HWP zero

@@ -22,7 +22,8 @@ const PHYSICAL_NAMES: [&str; 6] = ["q_diat", "u_diat", "g1_ret", "g2_ret", "rota
 const GENERAL_NAMES: [&str; 8] = ["m01", "m02", "m10", "m11", "m12", "m20", "m21", "m22"];
 
 impl Kind {
-    /// Diattenuation and retardance: the stressed-lens hypothesis of issue 16.
+    /// Diattenuation and retardance: the stressed-lens hypothesis (a lens under stress adds a
+    /// retardance field to the partial polarizer, `mueller::causes`).
     pub fn diattenuation_retardance() -> Self {
         Kind::Physical { retardance: true, rotation: false, depolarization: false }
     }

@@ -1,4 +1,4 @@
-//! The Mueller field in a calibration file (issue 16 item 3), and the exact correction of
+//! The Mueller field in a calibration file, and the exact correction of
 //! polarized targets with it.
 //!
 //! # File layout
@@ -24,10 +24,11 @@
 //! angle it records (`HWPZERO`, [`skyfield::StokesMap::hwp_zero_angle_deg`]) before the fit,
 //! and the file's `HWP CHI OFFSET DEG` ([`MuellerCal::hwp_chi_offset_deg`]) says by how much,
 //! so that `correct` turns a measurement at the plate by it first. Maps that record none (and
-//! files written before session 15) are fitted as they are, in the maps' frame, and hold 0: a
-//! zero angle is then a rotation of the polarization plane, fitted only when `rotation` is
-//! free (and `explain` would read it as a physical rotation). Positions outside the fitted box are refused unless extrapolation is allowed, then the
-//! same rule as the `p, phi` path: the correction itself is trusted to a fraction `f`
+//! files written before the format had this keyword) are fitted as they are, in the maps'
+//! frame, and hold 0: a zero angle is then a rotation of the polarization plane, fitted only
+//! when `rotation` is free (and `explain` would read it as a physical rotation). Positions
+//! outside the fitted box are refused unless extrapolation is allowed, then the same rule as
+//! the `p, phi` path: the correction itself is trusted to a fraction `f`
 //! ([`CorrectOptions::extrapolation_rel_error`]), `(f |v0 - m|)^2` added to each variance.
 
 use crate::calfile::{PixelGrid, Provenance};

@@ -1,4 +1,4 @@
-//! Which physics explains a fitted Mueller field (issue 16 item 4): candidate causes, each a
+//! Which physics explains a fitted Mueller field: candidate causes, each a
 //! field of linear blocks with a few parameters, fitted by least squares to a fitted Mueller
 //! field ([`crate::mueller_field`]) with its covariance, and ranked.
 //!

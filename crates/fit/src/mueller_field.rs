@@ -1,5 +1,5 @@
 //! The instrument's Mueller field, fitted jointly to several calibration fields of known sky
-//! polarization (issue 16), and its exact inversion for polarized targets.
+//! polarization, and its exact inversion for polarized targets.
 //!
 //! One sky field of known `(q_sky, u_sky)` gives two numbers per position: enough for the
 //! paper's partial polarizer `M_I(p, phi)` (`eq:instpol`), not for a retardance, a rotation of

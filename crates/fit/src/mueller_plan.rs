@@ -1,4 +1,4 @@
-//! What a Mueller-field calibration costs (issue 16, item 5): how many sky fields, which ones
+//! What a Mueller-field calibration costs: how many sky fields, which ones
 //! and how long per HWP angle reach a target accuracy of the corrected `(q, u)` over the field,
 //! from the error propagation of the one fit ([`crate::mueller_field`]): the covariance of a
 //! fit to noiseless maps with the predicted per-bin errors is the inverse Fisher matrix of the

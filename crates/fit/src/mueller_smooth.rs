@@ -1,4 +1,4 @@
-//! Smooth forms of the Mueller field other than the 2-D polynomial (issue 16 item 1): the
+//! Smooth forms of the Mueller field other than the 2-D polynomial: the
 //! paper's radial family and the natural-neighbour interpolant, each built from the per-bin
 //! fits ([`crate::mueller_field::fit_per_bin`]) through the models the `p, phi` calibrations
 //! already use ([`RadialModel`](crate::radial::RadialModel) fitted by [`fit_radial`], [`ResidualMap`](crate::residual::ResidualMap)): no second radial

@@ -230,7 +230,7 @@ impl Star {
 pub type MeasuredStar = Qu;
 
 /// The outcome of validating a calibration on a standard star. The first eight fields are the
-/// JSON contract of `instpol validate` (issue 6).
+/// JSON contract of `instpol validate` (`schemas/validate.schema.json`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Validation {
     /// The measured polarization (fraction) and angle (deg, [0, 180)), after the HWP zero-angle

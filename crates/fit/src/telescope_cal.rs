@@ -1,5 +1,5 @@
 //! The telescope model in a calibration file, and the correction through the whole chain
-//! (issue 14 item 4).
+//! (telescope, then field: `docs/architecture.md`, "The optical chain").
 //!
 //! # File layout
 //!
@@ -40,10 +40,10 @@
 //! the whole zero angle; a catalog of `instpol catalog` already carries it), with the
 //! covariance turned alike, and the field corrector it is given applies none of its own.
 //! The exposures' demodulations take each plate angle in that frame too
-//! ([`telescope_exposures`]). Before this (session 15), a plate-frame measurement was corrected
+//! ([`telescope_exposures`]). Without this turn a plate-frame measurement would be corrected
 //! by models turned by the zero angle against it, off by about `2 sin(z) P` (9e-3 for the
-//! 3.6 % an unpolarized star shows through the test's M3 with `z` = 7 deg, an estimate), and
-//! the front ends only warned; now such a star comes back to 1e-16
+//! 3.6 % an unpolarized star shows through the test's M3 with `z` = 7 deg, an estimate); with
+//! it such a star comes back to 1e-16
 //! (`crates/cli/tests/telescope_frames.rs`, `the_chain_undoes_the_telescope_through_a_hwp_zero_angle`).
 
 use crate::correct::{p_chi_with_errors, Corrected, Corrector, Measurement};

@@ -87,7 +87,7 @@ fn angle_diff(a: f64, b: f64) -> f64 {
     d.min(PI - d)
 }
 
-/// Round trip (issue 6): a star of P0 = 1% at every position of the field, through the FORS1 V
+/// Round trip: a star of P0 = 1% at every position of the field, through the FORS1 V
 /// field (p up to 1.36% at the corners, so p ~ P0 and beyond), comes back exactly (noise-free)
 /// with the exact inversion, for several angles of the star.
 #[test]
@@ -274,7 +274,7 @@ fn jacobian_matches_finite_differences() {
     assert!(jm[0][1].abs() < 1e-4 && ja[1][0].abs() < 1e-4);
 }
 
-/// Error propagation checked by simulation (issue 6): the reported errors of q0, u0, P0 and
+/// Error propagation checked by simulation: the reported errors of q0, u0, P0 and
 /// chi0 match the scatter of 20000 noisy realizations (measurement noise and calibration noise,
 /// both correlated) within 10%, for p and P0 of several percent where the exact map is not
 /// the identity.

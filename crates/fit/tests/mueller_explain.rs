@@ -1,6 +1,6 @@
-//! Issue 16 item 4, must show: fields simulated from a cause with known parameters and noise,
-//! fitted by calibrate-mueller's library call (`fit_mueller_field`), are explained by that
-//! cause with its parameters recovered within errors; a diattenuation-only field is not
+//! Which cause explains a Mueller field: fields simulated from a cause with known parameters
+//! and noise, fitted by calibrate-mueller's library call (`fit_mueller_field`), are explained
+//! by that cause with its parameters recovered within errors; a diattenuation-only field is not
 //! claimed by a retardance cause; a polarizing half-wave plate's effect after the demodulation
 //! follows the closed form derived in `stokes::equivalent`, checked against a frame-level
 //! calculation with the simulator's own plate matrix at each angle.

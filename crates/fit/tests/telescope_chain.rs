@@ -1,5 +1,5 @@
 //! The telescope model in a calibration file and the correction through the whole chain
-//! (issue 14 item 4): the fitted EFOSC2 model written, read back and applied to the real
+//! (telescope, then field): the fitted EFOSC2 model written, read back and applied to the real
 //! unpolarized standards (leave-one-out: each star corrected with the model fitted to the
 //! others of its band, through the file), a polarized standard simulated through a
 //! Jones-matrix chain written here (M3 by the textbook Fresnel equations, a field partial

@@ -1,4 +1,4 @@
-//! A simulated night at La Silla on a Nasmyth instrument (issue 14 item 5, at the level of
+//! A simulated night at La Silla on a Nasmyth instrument (at the level of
 //! measured Stokes parameters: binned sky-field maps and standard-star photometry, not pixel
 //! frames): a known M3 (aluminium, Wiersema factor and offset) turned by each exposure's
 //! parallactic-angle track, then the paper's V-band field pattern. Standards observed through

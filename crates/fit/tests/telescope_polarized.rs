@@ -1,4 +1,4 @@
-//! Polarized standards in the telescope fit (issue 14 item 3): measurements of stars of known
+//! Polarized standards in the telescope fit: measurements of stars of known
 //! P, chi (columns `p_true`, `chi_true_deg`) enter `fit-standards` beside unpolarized ones, the
 //! star's own polarization passed through the telescope model. The data are made here from the
 //! track-averaged chain (`BandModel::sky_through`, another function than the fit's residuals),

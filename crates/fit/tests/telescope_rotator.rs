@@ -1,5 +1,5 @@
-//! The rotator / adapter angle in the telescope model (issue 14 item 3) and the oxide model's
-//! several thickness minima (item 5).
+//! The rotator / adapter angle in the telescope model and the oxide model's several thickness
+//! minima.
 //!
 //! Conventions are checked against constructions written here: the rotation of the
 //! instrument's axes by the rotator angle as a rotation of the coherency matrix of the light's
@@ -187,7 +187,7 @@ fn standards_at_several_rotator_angles_give_the_offset_at_rotator_zero() {
 
 #[test]
 fn the_oxide_model_reports_every_thickness_minimum_within_delta_chi2_4() {
-    // Below ~30 nm two thicknesses give each polarization (item 5): data from 8 nm.
+    // Below ~30 nm two thicknesses give each polarization: data from 8 nm.
     let t = MetalTable::builtin("aluminium").unwrap();
     let truth = 8.0;
     let n = t.index(0.55).unwrap();

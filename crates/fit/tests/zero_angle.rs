@@ -1,8 +1,9 @@
 //! The HWP chromatic zero angle between the sky-field calibration and the correction
-//! (issues 5 and 6): a Stokes map made through a plate whose zero is off by `chi_offset` is in
-//! the plate frame (`chi_meas = chi_sky - chi_offset`, `mueller::Hwp`); the calibration pipeline
-//! must turn it into the sky frame before the sky-field solution (`eq:instpol`), because the
-//! correction (`fit::correct`) assumes a sky-frame instrumental field.
+//! (`docs/architecture.md`, "The two frames"): a Stokes map made through a plate whose zero is
+//! off by `chi_offset` is in the plate frame (`chi_meas = chi_sky - chi_offset`,
+//! `mueller::Hwp`); the calibration pipeline must turn it into the sky frame before the
+//! sky-field solution (`eq:instpol`), because the correction (`fit::correct`) assumes a
+//! sky-frame instrumental field.
 //!
 //! The data come from the one forward model (`mueller::DualBeam`: the instrumental field as
 //! `Element::PartialPolarizer`, a plate with `Hwp { chi_offset }`), reduced by the one `F_i`

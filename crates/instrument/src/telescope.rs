@@ -1,5 +1,5 @@
 //! The `[telescope]` section: the telescope in front of the instrument, as far as polarization
-//! goes (issue 14 item 2).
+//! goes (the chain's first element, `docs/architecture.md`).
 //!
 //! - `focus`: `"cassegrain"` (M1, M2 near normal incidence: no first-order instrumental
 //!   polarization from the telescope, and the instrument turns with the sky) or `"nasmyth"`

@@ -1,4 +1,4 @@
-//! Stability of the instrument loader at the edges of its numbers (issue 8): pixel <-> arcmin
+//! Stability of the instrument loader at the edges of its numbers: pixel <-> arcmin
 //! round trips across the detector, and absurd but syntactically valid values in the TOML that
 //! must be refused with an error naming the key, never a panic or an arithmetic overflow.
 //! (No proptest here: deterministic sweeps cover the ranges.)
@@ -23,7 +23,8 @@ fn load_patched(from: &str, to: &str) -> Result<Result<Instrument, String>, Stri
 }
 
 /// pixel -> arcmin -> pixel is the identity to rounding over the whole detector and beyond,
-/// and the detector centre is (0, 0) arcmin (DESIGN.md: field coordinates from the centre).
+/// and the detector centre is (0, 0) arcmin (the field coordinates of `docs/architecture.md`,
+/// Conventions).
 #[test]
 fn pixel_arcmin_round_trip() {
     let inst = Instrument::load("fors1").unwrap();

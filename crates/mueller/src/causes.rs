@@ -1,4 +1,4 @@
-//! Physical causes of a Mueller field (issue 16 item 4): the optics each candidate explanation
+//! Physical causes of a Mueller field: the optics each candidate explanation
 //! of a fitted field puts in the beam, as functions of the field position and a few
 //! parameters. `fit::mueller_explain` fits them to a fitted field; the simulator applies them
 //! (`sim::stress`, `sim::hwp_causes`).

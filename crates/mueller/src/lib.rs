@@ -15,7 +15,7 @@
 //! [`telescope`] (the telescope term: M3 with the parallactic and rotator angles, averaged over
 //! an exposure's track; fitted by `fit::telescope`, simulated by `sim`).
 //!
-//! Conventions (see DESIGN.md):
+//! Conventions (those of the whole workspace, `docs/architecture.md`):
 //! - angles in radians; polarization angle `chi` measured as `eq:polang`, `Q/I = P cos 2chi`;
 //! - a Stokes vector is `(I, Q, U, V)`; circular polarization follows the IAU convention
 //!   (V > 0 for counter-clockwise rotation of the electric vector as seen by the observer);
@@ -83,7 +83,7 @@ pub fn hypot(a: f64, b: f64) -> f64 {
     }
 }
 
-/// Angle `a` (rad) modulo pi, in [0, pi): the range of polarization angles (DESIGN.md).
+/// Angle `a` (rad) modulo pi, in [0, pi): the range of polarization angles (`eq:polang`).
 /// `rem_euclid` alone returns pi itself for tiny negative inputs (-1e-17 + pi rounds to pi).
 #[inline]
 pub fn fold_pi(a: f64) -> f64 {
@@ -96,7 +96,7 @@ pub fn fold_pi(a: f64) -> f64 {
 }
 
 /// Angle `a` (rad) wrapped into (-pi/2, pi/2]: a difference of polarization angles, which are
-/// defined modulo pi (DESIGN.md).
+/// defined modulo pi.
 #[inline]
 pub fn wrap_half_pi(a: f64) -> f64 {
     let pi = std::f64::consts::PI;

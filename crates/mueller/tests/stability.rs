@@ -1,5 +1,5 @@
 //! Numerical stability of the Mueller algebra and the dual-beam forward model over wide
-//! random ranges (issue 8): every quantity finite, `M^-1 M = 1` wherever `M` is invertible
+//! random ranges: every quantity finite, `M^-1 M = 1` wherever `M` is invertible
 //! (with an error bound set by the condition number), rotation covariance of the whole train,
 //! and closed forms at the edges (P -> 0 and 1, kappa -> +-1, angles at the 0/180 deg wrap).
 

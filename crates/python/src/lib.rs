@@ -1,7 +1,7 @@
 //! `instpol._instpol`: the compiled half of the Python package `instpol`.
 //!
-//! Thin by design (DESIGN.md, "Two faces over one library"): numpy arrays in, the same library
-//! functions the `instpol` CLI calls, numpy arrays out. The Python half
+//! Thin by design (`docs/architecture.md`, "Two faces over one library"): numpy arrays in, the
+//! same library functions the `instpol` CLI calls, numpy arrays out. The Python half
 //! (`python/instpol/__init__.py`) turns user input into contiguous float64 arrays, broadcasts and
 //! reshapes; this half runs the science with the GIL released (`Python::detach`) and never
 //! touches a Python object per element.

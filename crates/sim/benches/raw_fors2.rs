@@ -1,4 +1,4 @@
-//! Raw FORS2 frames against the time merely to read them (issue 12 benchmark): 16 exposures of
+//! Raw FORS2 frames against the time merely to read them: 16 exposures of
 //! two chip files each (2048 x 1034 u16 with prescan and overscan rows, ESO keywords; written
 //! by `sim::raw` from a uniformly polarized sky), reduced with a master bias, a master flat and
 //! the overscan correction (`reduce_files_with`), against CFITSIO reading the same 32 files as

@@ -1,5 +1,5 @@
-//! Half-wave-plate causes of a Mueller field as effects a scene can call for (issue 16 item
-//! 4): `[effects.tilted_hwp]` (a plate tilted in the collimated beam, `mueller::causes::
+//! Half-wave-plate causes of a Mueller field as effects a scene can call for:
+//! `[effects.tilted_hwp]` (a plate tilted in the collimated beam, `mueller::causes::
 //! tilted_hwp`) and `[effects.wedged_hwp]` (a retardance error varying across the field,
 //! `mueller::causes::wedged_hwp`). A polarizing plate is `[effects.pleochroism]` already.
 //!

@@ -1,5 +1,5 @@
-//! A stressed collimator lens as an effect a scene can call for (`[effects.stressed_lens]`,
-//! issue 16): stress birefringence whose retardance grows as the square of the distance from
+//! A stressed collimator lens as an effect a scene can call for (`[effects.stressed_lens]`):
+//! stress birefringence whose retardance grows as the square of the distance from
 //! a stress centre, `delta(r) = delta_edge (r / R)^2`, with the fast axis radial about that
 //! centre (a lens squeezed by its mount) or tangential (a lens under hoop tension), turned by
 //! `axis_offset_deg`. A centre away from the optical axis makes the field asymmetric.

@@ -1,4 +1,4 @@
-//! The aperture radius chosen on the curve of growth (issue 13, `--aperture best`), checked
+//! The aperture radius chosen on the curve of growth (`--aperture best`), checked
 //! against the continuous closed form: for a Gaussian star of total flux `F` (per beam) on a
 //! sky of `B` e-/px, the flux inside radius `r` is `F (1 - exp(-r^2 / 2 s^2))` and the
 //! photon variance of the sum `F (1 - ...) + pi r^2 B`; the S/N is maximal where that ratio is.

@@ -1,4 +1,4 @@
-//! The catalog of every star (issue 13) on simulated frames of both beam layouts: 50+ stars of
+//! The catalog of every star on simulated frames of both beam layouts: 50+ stars of
 //! known P and chi over three magnitudes, frames moving by up to 3 px between HWP positions, a
 //! few saturated stars and one star across a mask edge. The truth is the scene; the checks are
 //! the pulls of q and u against the catalog's own errors, and the flags.

@@ -1,9 +1,10 @@
-//! Issue 16, must show: simulated FORS1 calibration fields with a known diattenuation field
-//! (the paper's radial pattern) and a known retardance field (a stressed lens giving about
-//! 0.3 % on the paper's 6.45 % B-band sky). Three sky fields of different P_sky, chi_sky:
-//! the joint fit recovers both fields within errors; one sky field: retardance is refused as
-//! unconstrained; polarized stars across the field are corrected within their errors, where
-//! the paper's p, phi calibration from the B field leaves a residual measured here.
+//! The Mueller field from simulated frames: simulated FORS1 calibration fields with a known
+//! diattenuation field (the paper's radial pattern) and a known retardance field (a stressed
+//! lens giving about 0.3 % on the paper's 6.45 % B-band sky). Three sky fields of different
+//! P_sky, chi_sky: the joint fit recovers both fields within errors; one sky field: retardance
+//! is refused as unconstrained; polarized stars across the field are corrected within their
+//! errors, where the paper's p, phi calibration from the B field leaves a residual measured
+//! here.
 //!
 //! The maps are made at the bin level from the truth through the one forward model
 //! (`LinearBlock::forward`) plus Gaussian noise; that the simulator's frames carry the same

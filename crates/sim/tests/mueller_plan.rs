@@ -1,4 +1,4 @@
-//! Issue 16 must show: the plan for a 0.02 % calibration of the Mueller field (diattenuation +
+//! The plan for a 0.02 % calibration of the Mueller field (diattenuation +
 //! stressed-lens retardance, FORS1 B band), checked by simulating what it prescribes.
 
 use fit::mueller_field::{Kind, MuellerFitOptions};

@@ -1,6 +1,6 @@
 //! Raw FORS2-format frames calibrated and reduced by the library give the same bits as a
-//! straightforward calibration written here, independently of `skyfield::calib` (issue 12,
-//! speed item: the calibration folded into the reduction's row pass must not change a number).
+//! straightforward calibration written here, independently of `skyfield::calib` (the
+//! calibration folded into the reduction's row pass for speed must not change a number).
 //!
 //! The reference reads every chip file whole with CFITSIO (`fitsio`, u16 as stored), takes each
 //! chip's bias level as the robust mean of its prescan and overscan pixels (a full sort for the

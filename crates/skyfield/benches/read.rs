@@ -1,4 +1,4 @@
-//! Frame reading against frame reduction (issue 8 benchmark): how long CFITSIO needs merely to
+//! Frame reading against frame reduction: how long CFITSIO needs merely to
 //! read a set of frames, and how long the whole reduction (`reduce_files`: read, check, F_i,
 //! Q/U per pixel, 30 px sigma-clipped bins) takes on the same files. The target is a
 //! reduction within 2x of the read time.

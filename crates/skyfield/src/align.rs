@@ -1,4 +1,4 @@
-//! Frame-to-frame alignment from matched stars (issue 13, item 2): each frame's shift and small
+//! Frame-to-frame alignment from matched stars: each frame's shift and small
 //! rotation (and scale) against the first, as the least-squares similarity transform
 //! `q = s R(theta) p + t` between the stars' positions `p` in the first frame and `q` in this
 //! one. The closed form (centre both sets; `a = sum p'.q'`, `b = sum p' x q'`;

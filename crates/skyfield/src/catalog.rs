@@ -186,7 +186,7 @@ pub struct Catalog {
     pub frames: Vec<(PathBuf, f64)>,
 }
 
-/// One exposure across the catalog's stars (issue 13: per-exposure checks).
+/// One exposure across the catalog's stars (the per-exposure checks of [`check_exposures`]).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct ExposureSummary {
     /// 0-based, in the order the frames were given.
@@ -681,8 +681,8 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
     })
 }
 
-/// Check every measured star of `cat` exposure by exposure (issue 13, item 6, as `photometry`
-/// does for one star): `frames` are the exposures `set` was summed from, in the order given.
+/// Check every measured star of `cat` exposure by exposure (as `photometry` does for one
+/// star): `frames` are the exposures `set` was summed from, in the order given.
 /// Each star is measured in each exposure alone with its own aperture, its repeats compared
 /// through `stokes::repeats` (`crate::photometry::exposure_checks`); a star with a flagged
 /// exposure gets [`flags::OUTLIER_EXPOSURE`] and the exposures' indices, and the catalog a

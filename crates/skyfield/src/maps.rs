@@ -121,8 +121,9 @@ impl BinGeometry {
         (0.5 * (x0 + x1) - 0.5, 0.5 * (y0 + y1) - 0.5)
     }
 
-    /// Centre of bin `(i, j)` in arcmin from the detector centre (DESIGN.md convention; the
-    /// same formula as `instrument::Instrument::pixel_to_arcmin`).
+    /// Centre of bin `(i, j)` in arcmin from the detector centre (the field coordinates of
+    /// `docs/architecture.md`, Conventions; the same formula as
+    /// `instrument::Instrument::pixel_to_arcmin`).
     pub fn centre_arcmin(&self, i: usize, j: usize) -> (f64, f64) {
         let (x, y) = self.centre_px(i, j);
         self.px_to_arcmin(x, y)
@@ -137,8 +138,8 @@ impl BinGeometry {
     /// comment)`: the primary WCS (`WCSNAME = 'DETECTOR'`) gives the detector pixel (1-based, as
     /// FITS counts) at each bin's nominal centre, `CRVAL + CDELT (p - CRPIX)` with `CDELT` the
     /// bin side; the alternate WCS `A` (`WCSNAMEA = 'FIELD'`) gives arcmin from the detector
-    /// centre (DESIGN.md convention). A bin cut by the detector edge keeps its nominal centre
-    /// here; [`Self::centre_px`] gives the centre of its part inside the detector.
+    /// centre (`docs/architecture.md`, Conventions). A bin cut by the detector edge keeps its
+    /// nominal centre here; [`Self::centre_px`] gives the centre of its part inside the detector.
     pub fn wcs_cards(&self) -> Vec<(String, WcsValue, &'static str)> {
         self.wcs_cards_keyed("")
     }

@@ -456,7 +456,7 @@ pub(crate) fn measure_frame(
 }
 
 /// One exposure's own measurement of a star and its agreement with the other exposures
-/// (issue 13, item 6: frames summed at a repeated HWP position are also measured one by one).
+/// (frames summed at a repeated HWP position are also measured one by one).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct ExposureCheck {
     /// The frame's file.
@@ -565,7 +565,7 @@ pub fn exposure_checks(
         .collect())
 }
 
-/// How an aperture's radius is chosen (issue 13): given in pixels, a multiple of the star's
+/// How an aperture's radius is chosen: given in pixels, a multiple of the star's
 /// FWHM, or the radius of best signal-to-noise on the star's curve of growth.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum ApertureRadius {

@@ -67,7 +67,7 @@ fn truncated_file_is_named() {
     assert!(e.contains("f2.fits"), "{e}");
 }
 
-/// Every FITS image type is a frame (issue 12): an 8-bit image reads to its values (it was
+/// Every FITS image type is a frame: an 8-bit image reads to its values (it was
 /// refused as "BITPIX 8" before).
 #[test]
 fn byte_frames_are_read() {

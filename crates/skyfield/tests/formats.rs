@@ -1,4 +1,4 @@
-//! Frame formats (issue 12, item 2) against astropy: tiny files written by astropy
+//! Frame formats against astropy: tiny files written by astropy
 //! (`tests/data/formats/make_formats.py`) with what astropy reads from them
 //! (`expected.json`: BSCALE/BZERO applied, BLANK pixels NaN). The reader must give the same
 //! pixels for every BITPIX (8, 16, 32, 64, -32, -64) with the signed/unsigned conventions, a

@@ -1,5 +1,5 @@
 //! Stability of the sky-field solution (`skyfield::solve`, section `sec:instr`) over wide
-//! ranges (issue 8): instrumental p in [0, 0.3], sky P_sky from 0 (and 1e-12) to 0.3, both
+//! ranges: instrumental p in [0, 0.3], sky P_sky from 0 (and 1e-12) to 0.3, both
 //! angles across the 0/180 deg wrap. The measured (q1, u1) are made with the Mueller matrix
 //! `M_I(p, phi)` (`eq:instpol`, the mueller crate), independent of the closed form under test.
 //! Deterministic pseudo-random sweeps (no proptest dependency in this crate).

@@ -1,4 +1,4 @@
-//! Repeated exposures at one HWP position (issue 13, item 6): several exposures at the same
+//! Repeated exposures at one HWP position: several exposures at the same
 //! plate position (`theta`, or `theta + 360 deg`, the same position of a half-wave plate) are
 //! combined, not refused, and an exposure that disagrees with its repeats is flagged by its
 //! residual.

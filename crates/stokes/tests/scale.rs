@@ -1,4 +1,4 @@
-//! Scale invariance at extreme but finite scales (issue 17). F_i = (f_O - f_E)/(f_O + f_E) and
+//! Scale invariance at extreme but finite scales. F_i = (f_O - f_E)/(f_O + f_E) and
 //! its error are ratios: multiplying every flux and every error by the same s must leave Q, U,
 //! their errors, P, chi and the harmonics unchanged. The reference is the same reduction at
 //! s = 1 (an identity, independent of how the library computes its errors): before the scaled

@@ -1,4 +1,4 @@
-//! Numerical stability of the reduction and the statistics over wide random ranges (issue 8):
+//! Numerical stability of the reduction and the statistics over wide random ranges:
 //! P in [0, 1], SNR 1..1e7, kappa in [-0.999, 0.999], angles across the 0/180 deg wrap, P near 0.
 //!
 //! Every quantity is finite; forward-then-reduce recovers the input for every angle set the

@@ -98,7 +98,7 @@ fn rice_high_snr_asymptotes_without_cancellation() {
     }
 }
 
-/// No overflow, NaN or panic on a grid of P / sigma from 0 to 1e4 (Must show).
+/// No overflow, NaN or panic on a grid of P / sigma from 0 to 1e4.
 #[test]
 fn no_nan_on_grid() {
     let mut xs = vec![0.0, 1e-12, 1.0, SQRT_2, 2.0];

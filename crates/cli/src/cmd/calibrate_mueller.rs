@@ -1,5 +1,5 @@
 //! `instpol calibrate-mueller`: the instrument's Mueller field from several sky fields of known
-//! polarization (issue 16), fitted jointly by `fit::mueller_field`.
+//! polarization, fitted jointly by `fit::mueller_field`.
 
 use anyhow::{anyhow, bail, Context, Result};
 use fit::mueller_cal::{MuellerCal, SkyField};

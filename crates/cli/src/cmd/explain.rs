@@ -1,4 +1,4 @@
-//! `instpol explain`: which physics explains a fitted Mueller field (issue 16 item 4). All
+//! `instpol explain`: which physics explains a fitted Mueller field. All
 //! numbers come from `fit::mueller_explain`; this file parses, prints and plots.
 
 use anyhow::{anyhow, bail, Result};

@@ -714,8 +714,8 @@ mod tests {
         fit_band(ModelKind::Wiersema, &obs, &table, &FitOptions { clip: None, ..Default::default() }).unwrap()
     }
 
-    /// Issue: the upper panel drew the curve of an unpolarized star only, so polarized
-    /// standards sat off it by their own 4-5 %. Now every point lies on the curve up to its
+    /// The upper panel once drew the curve of an unpolarized star only, so polarized
+    /// standards sat off it by their own 4-5 %. Every point lies on the curve up to its
     /// residual (the lower panel's value, data minus model): the polarized standards with the
     /// residuals the fit leaves (~2e-4), far closer than their raw values (several %).
     #[test]

@@ -120,7 +120,7 @@ pub fn run(a: Args) -> Result<()> {
     bar.finish_and_clear();
     let frames = frames?;
     // Repeated plate positions are summed into one frame each; keep the exposures to measure
-    // them one by one as well (issue 13: outlier exposures flagged by their residual).
+    // them one by one as well (outlier exposures are flagged by their residual).
     let theta: Vec<f64> = frames.iter().map(|f| f.hwp_deg.to_radians()).collect();
     let singles = stokes::repeats::has_repeats(&theta).then(|| frames.clone());
     let set = FrameSet::from_frames(frames, &inst, true)?;

@@ -1,4 +1,4 @@
-//! `instpol plan`: what a Mueller-field calibration costs (issue 16): how many sky fields,
+//! `instpol plan`: what a Mueller-field calibration costs: how many sky fields,
 //! which, and how long per HWP angle reach a target accuracy, from `fit::mueller_plan`.
 
 use anyhow::{anyhow, bail, Result};

@@ -195,7 +195,8 @@ struct JsonHarmonic {
     power: f64,
 }
 
-/// The JSON output. The first fields are the contract of issue 2; the rest is detail.
+/// The JSON output. The first fields are the contract scripts rely on (the reduction's q, u, P,
+/// chi and errors); the rest is detail. `schemas/stokes.schema.json` lists every key.
 #[derive(Serialize)]
 struct JsonOut {
     n_hwp: usize,

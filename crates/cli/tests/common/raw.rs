@@ -1,4 +1,4 @@
-//! FORS2-format raw frames from known pixel values (issue 12): a FORS2 shrunk to a 64 x 68 px
+//! FORS2-format raw frames from known pixel values: a FORS2 shrunk to a 64 x 68 px
 //! mosaic (two 64 x 32 chips in separate files, a 4-row gap, 2x2 binning keywords, 5-row
 //! prescan and overscan, gain and read noise in ESO keywords), a uniformly polarized sky with
 //! `F_i = Q cos 4theta + U sin 4theta` (eq:F) behind the strip mask, a flat-field pattern, a

@@ -1,4 +1,4 @@
-//! Simulated Mueller-field calibration fields (issue 16): sky fields of known `(p, chi)` seen
+//! Simulated Mueller-field calibration fields: sky fields of known `(p, chi)` seen
 //! through a known block at bin centres, with Gaussian noise per bin. One copy for fit's tests
 //! (`common::mueller_fields`: not `mueller`, which would shadow the crate under
 //! `use common::*`) and sim's (`#[path = "../../fit/tests/common/mueller_fields.rs"]`), so it

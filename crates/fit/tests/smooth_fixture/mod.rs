@@ -1,7 +1,7 @@
 //! Sky fields seen through a given Mueller field, for the smooth-form tests: three skies of
 //! different P and chi (the B sky of the paper's Table tab:empty and two others), measured on
 //! an `n x n` grid of bins with Gaussian noise. Separate from `mueller_cal.rs`'s own fixture
-//! (another session de-duplicates those); the truth is a closure here.
+//! (the two are not yet one); the truth is a closure here.
 
 use fit::mueller_field::{CalField, Observation};
 use mueller::linear::LinearBlock;
