@@ -24,13 +24,6 @@ pub trait FieldModel: Send + Sync {
     /// Whether `(x, y)` lies inside the field where the model was calibrated.
     fn contains(&self, x_arcmin: f64, y_arcmin: f64) -> bool;
 
-    /// The instrumental polarization at `(x, y)` arcmin at parallactic angle
-    /// `parallactic_rad`. The models of today are fixed to the instrument and ignore the angle;
-    /// a telescope-mirror term that turns with the sky overrides this.
-    fn eval_at_angle(&self, x_arcmin: f64, y_arcmin: f64, _parallactic_rad: f64) -> InstPol {
-        self.eval(x_arcmin, y_arcmin)
-    }
-
     /// `(p, phi)` of `M_I(p, phi)` at `(x, y)` arcmin (`eq:instpol`), phi in radians. The
     /// default takes them from [`eval`](Self::eval); a model whose natural parameters are `p`
     /// and `phi` (a radial pattern) returns them directly, without the round trip through

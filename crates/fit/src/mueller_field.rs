@@ -309,6 +309,11 @@ impl FieldModel for MuellerField {
         Some(self.cov.clone())
     }
 
+    /// The fitted block itself (the field is not a partial polarizer alone).
+    fn block_at(&self, x: f64, y: f64) -> LinearBlock {
+        MuellerField::block_at(self, x, y)
+    }
+
     fn describe(&self) -> String {
         let names: Vec<&str> = self.free.iter().map(|&i| self.kind.name(i)).collect();
         let form = match &self.smooth {
