@@ -10,8 +10,9 @@
 //! instpol --test numbers_of_record` and say in the commit which numbers moved and why.
 //!
 //! What is compared: every number and string of each JSON document, except the `provenance`
-//! record (dates, command lines, hashes of files that hold dates), the Monte Carlo's wall time
-//! and the temporary directory's path, which is written as `{OUT}`.
+//! record (dates, command lines, hashes of files that hold dates), the Monte Carlo's wall time,
+//! and the paths of the temporary directory and of the repository, written as `{OUT}` and
+//! `{REPO}` (the record must hold in any clone).
 
 mod common;
 
@@ -40,20 +41,22 @@ fn json_of(args: &[String], out: &Path) -> Value {
     let (code, stdout, stderr) = common::run(args);
     assert_eq!(code, 0, "instpol {args:?} failed: {stderr}");
     let mut v: Value = serde_json::from_str(&stdout).unwrap_or_else(|e| panic!("instpol {args:?}: not JSON ({e})"));
-    normalize(&mut v, &out.display().to_string());
+    normalize(&mut v, &out.display().to_string(), "{OUT}");
+    normalize(&mut v, &repo().display().to_string(), "{REPO}");
     v
 }
 
-fn normalize(v: &mut Value, out: &str) {
+/// `v` without its volatile keys, with every occurrence of the path `path` written `name`.
+fn normalize(v: &mut Value, path: &str, name: &str) {
     match v {
         Value::Object(m) => {
             for k in VOLATILE {
                 m.remove(*k);
             }
-            m.values_mut().for_each(|x| normalize(x, out));
+            m.values_mut().for_each(|x| normalize(x, path, name));
         }
-        Value::Array(a) => a.iter_mut().for_each(|x| normalize(x, out)),
-        Value::String(s) if s.contains(out) => *s = s.replace(out, "{OUT}"),
+        Value::Array(a) => a.iter_mut().for_each(|x| normalize(x, path, name)),
+        Value::String(s) if s.contains(path) => *s = s.replace(path, name),
         _ => {}
     }
 }
