@@ -7,7 +7,10 @@ use serde::Serialize;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 use stokes::mc::budget::{noise_comparison, observer_table, precision_table};
-use stokes::mc::sweep::{bias_sweep, deltap_sweep, fit_law_exact, fit_law_mc, PAPER_C, PAPER_K};
+use stokes::mc::sweep::{
+    bias_snr_ps, bias_sweep, deltap_etas, deltap_sweep, fit_law_exact, fit_law_mc, law_a_values, LAW_FIT_FROM, PAPER_C,
+    PAPER_K,
+};
 use stokes::mc::{Engine, McConfig, Noise};
 
 /// Monte Carlo of dual-beam linear polarimetry: draw the ordinary and extraordinary fluxes
@@ -326,12 +329,7 @@ fn sweep(a: &Args, noise: Noise) -> Result<()> {
     let trials = a.trials.unwrap_or(400_000);
     let n = a.n_hwp;
     let k = (n as f64 / 2.0).sqrt();
-    // fig:deltap: eta = P0 SNR from 0.1 to 30 (log), plus the fit points sqrt(N/2) eta = 4..16.
-    let mut etas: Vec<f64> = (0..=24).map(|i| 10f64.powf(-1.0 + i as f64 * 2.5 / 24.0)).collect();
-    etas.extend((0..=12).map(|i| (4.0 + i as f64) / k));
-    etas.sort_by(|x, y| x.total_cmp(y));
-    etas.retain(|&e| e / a.snr <= 1.0);
-    let snr_ps: Vec<f64> = (0..=20).map(|i| 10f64.powf(-1.0 + i as f64 * 2.0 / 20.0)).collect();
+    let (etas, snr_ps) = (deltap_etas(n, a.snr), bias_snr_ps());
     if trials == 0 {
         bail!("--trials must be >= 1");
     }
@@ -349,9 +347,8 @@ fn sweep(a: &Args, noise: Noise) -> Result<()> {
         Ok((dp, bs))
     })?;
     prog.finish();
-    let fit_mc = fit_law_mc(&dp, 4.0);
-    let avals: Vec<f64> = (0..=120).map(|i| 4.0 + i as f64 * 0.1).collect();
-    let fit_exact = fit_law_exact(&avals, 4.0);
+    let fit_mc = fit_law_mc(&dp, LAW_FIT_FROM);
+    let fit_exact = fit_law_exact(&law_a_values(), LAW_FIT_FROM);
     let out = SweepOut {
         n_hwp: n,
         snr: a.snr,

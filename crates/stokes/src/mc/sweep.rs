@@ -12,6 +12,34 @@ use crate::stats::{Error, Estimator};
 pub const PAPER_C: f64 = 0.62;
 pub const PAPER_K: f64 = 1.92;
 
+/// `sqrt(N/2) eta` (= `P0 / sigma_P`, `eq:sigp`) above which sec:bias fits its law; the fits
+/// of this module take it as `x_min`.
+pub const LAW_FIT_FROM: f64 = 4.0;
+
+/// The `eta = P0 SNR` grid of fig:deltap for `n_hwp` angles at `snr`: 25 points from 0.1 to
+/// 10^1.5 ~ 30, evenly spaced in log, joined by the 13 points `sqrt(N/2) eta = 4, 5, ..., 16`
+/// where sec:bias fits its law, sorted; points with `P0 = eta / SNR > 1` are left out.
+pub fn deltap_etas(n_hwp: usize, snr: f64) -> Vec<f64> {
+    let k = (n_hwp as f64 / 2.0).sqrt();
+    let mut etas: Vec<f64> = (0..=24).map(|i| 10f64.powf(-1.0 + i as f64 * 2.5 / 24.0)).collect();
+    etas.extend((0..=12).map(|i| (4.0 + i as f64) / k));
+    etas.sort_by(|x, y| x.total_cmp(y));
+    etas.retain(|&e| e / snr <= 1.0);
+    etas
+}
+
+/// The `SNR_P = P0 / sigma_P` grid of fig:bias: 21 points from 0.1 to 10, evenly spaced in log
+/// (the figure's abscissa).
+pub fn bias_snr_ps() -> Vec<f64> {
+    (0..=20).map(|i| 10f64.powf(-1.0 + i as f64 * 2.0 / 20.0)).collect()
+}
+
+/// The `a = P0 / sigma_P` values at which [`fit_law_exact`] samples the exact Rice mode to
+/// refit the sec:bias law: 4 to 16 in steps of 0.1, the range of the paper's fit.
+pub fn law_a_values() -> Vec<f64> {
+    (0..=120).map(|i| 4.0 + i as f64 * 0.1).collect()
+}
+
 /// One point of fig:deltap (everything as a fraction; `eta = P0 SNR`).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct DeltaPPoint {
@@ -167,4 +195,29 @@ pub fn fit_law_mc(points: &[DeltaPPoint], x_min: f64) -> Option<LawFit> {
     let pairs: Vec<(f64, f64)> =
         points.iter().filter_map(|p| p.mode.map(|m| (m / p.sigma_p_eq, p.p0 / p.sigma_p_eq))).collect();
     fit_law(&pairs, x_min)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// fig:deltap's abscissa runs from eta = 0.1 to 10^1.5 and holds sec:bias's fit points
+    /// sqrt(N/2) eta = 4..16 (integers); no point has P0 = eta / SNR above 1. fig:bias's runs
+    /// from SNR_P = 0.1 to 10, a tenth of a decade apart.
+    #[test]
+    fn grids_span_the_figures() {
+        let e = deltap_etas(8, 100.0);
+        assert_eq!(e.len(), 25 + 13);
+        assert!((e[0] - 0.1).abs() < 1e-15 && (e[e.len() - 1] - 10f64.powf(1.5)).abs() < 1e-12);
+        assert!(e.windows(2).all(|w| w[0] <= w[1]));
+        let fit_points = e.iter().filter(|&&x| (2.0 * x - (2.0 * x).round()).abs() < 1e-12 && 2.0 * x >= 4.0);
+        assert_eq!(fit_points.count(), 13);
+        assert!(deltap_etas(8, 10.0).iter().all(|&x| x / 10.0 <= 1.0));
+        assert_eq!(deltap_etas(8, 10.0).len(), e.iter().filter(|&&x| x <= 10.0).count());
+        let s = bias_snr_ps();
+        assert_eq!(s.len(), 21);
+        assert!((s[0] - 0.1).abs() < 1e-15 && (s[20] - 10.0).abs() < 1e-12 && (s[10] - 1.0).abs() < 1e-15);
+        let a = law_a_values();
+        assert_eq!((a.len(), a[0], a[120]), (121, LAW_FIT_FROM, 16.0));
+    }
 }
