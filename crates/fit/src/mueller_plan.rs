@@ -238,3 +238,131 @@ pub fn simulate_plan(
     }
     Ok((s / n).sqrt())
 }
+
+/// A plan's simulated RMS above this factor times its target says the Fisher prediction does
+/// not hold at this field (near zero retardance the errors are not Gaussian).
+pub const SIMULATION_TOLERANCE: f64 = 1.25;
+
+/// Noise draws of [`PlanSetup::simulated_rms`].
+pub const SIMULATION_DRAWS: u64 = 4;
+
+/// What a plan is asked for: everything of a [`PlanSetup`] but the positions, which
+/// [`PlanSetup::for_instrument`] takes from the instrument's detector.
+#[derive(Clone)]
+pub struct PlanRequest {
+    /// Bin side (px) of the maps the calibration will be fitted to.
+    pub bin_px: usize,
+    /// HWP angles per field (an optimal set).
+    pub n_angles: usize,
+    /// Sky count rate (e-/px/s, both beams).
+    pub sky_rate: f64,
+    /// Candidate sky fields `(P, chi)` (fraction, rad).
+    pub candidates: Vec<(f64, f64)>,
+    /// What the fit frees, and the degree of its polynomials.
+    pub kind: crate::mueller_field::Kind,
+    pub deg: usize,
+    /// Polarization degree (fraction) of the targets the correction is for.
+    pub target_p: f64,
+    /// The field expected to be present, where the Fisher matrix is taken (identity: none).
+    pub expected: Option<std::sync::Arc<MuellerField>>,
+}
+
+/// The centres (arcmin from the detector centre) of the `bin_px` bins covering the detector of
+/// `inst`, row by row: the positions of the maps `instpol reduce --bin` makes
+/// (`skyfield::BinGeometry::covering`).
+pub fn detector_bin_centres(inst: &instrument::Instrument, bin_px: usize) -> Vec<(f64, f64)> {
+    let d = &inst.detector;
+    let g = skyfield::maps::BinGeometry::covering(bin_px, 0, 0, d.nx, d.ny, d.pixel_scale_arcsec);
+    let mut positions = Vec::with_capacity(g.len());
+    for j in 0..g.ny {
+        for i in 0..g.nx {
+            positions.push(g.centre_arcmin(i, j));
+        }
+    }
+    positions
+}
+
+/// The first of `positions` (arcmin) where `field` has no value (an interpolated form outside
+/// the hull of the bins it was built from), where a plan would see a silent NaN field.
+pub fn uncovered_position(field: &MuellerField, positions: &[(f64, f64)]) -> Option<(f64, f64)> {
+    positions.iter().copied().find(|&(x, y)| !field.full_at(x, y).iter().all(|v| v.is_finite()))
+}
+
+impl PlanSetup {
+    /// The plan of `req` over the bins of `inst`'s detector ([`detector_bin_centres`]), with its
+    /// read noise; the fit's polynomials scaled by the field's half-width (the largest |x| or
+    /// |y| of a bin centre, at least 0.1 arcmin).
+    pub fn for_instrument(inst: &instrument::Instrument, req: PlanRequest) -> Result<Self> {
+        let positions = detector_bin_centres(inst, req.bin_px);
+        if let Some(m) = &req.expected {
+            if let Some((x, y)) = uncovered_position(m, &positions) {
+                return Err(Error::Input(format!(
+                    "the expected {} field has no value at the plan's bin centre ({x:.2}, {y:.2}) arcmin",
+                    m.smooth.name()
+                )));
+            }
+        }
+        let radius = positions.iter().map(|&(x, y)| x.abs().max(y.abs())).fold(0.0, f64::max).max(0.1);
+        Ok(PlanSetup {
+            positions,
+            bin_npix: (req.bin_px * req.bin_px) as f64,
+            n_angles: req.n_angles,
+            sky_rate: req.sky_rate,
+            read_noise_e: inst.detector.read_noise_e,
+            candidates: req.candidates,
+            fit: MuellerFitOptions { kind: req.kind, deg: req.deg, scale_arcmin: radius, ..Default::default() },
+            target_p: req.target_p,
+            expected: req.expected.map(|m| {
+                let f: std::sync::Arc<dyn Fn(f64, f64) -> LinearBlock + Send + Sync> =
+                    std::sync::Arc::new(move |x, y| m.block_at(x, y));
+                f
+            }),
+        })
+    }
+
+    /// The plan to take among `rows`: the one of least total observing time.
+    pub fn cheapest(rows: &[PlanRow]) -> Option<PlanRow> {
+        rows.iter().min_by(|x, y| x.total_s.total_cmp(&y.total_s)).cloned()
+    }
+
+    /// The RMS error of the corrected q, u of `row` by simulation ([`simulate_plan`]) against
+    /// the expected field (identity without one), over [`SIMULATION_DRAWS`] noise draws
+    /// (seeds 0, 1, ...): the root of the mean of their squares.
+    pub fn simulated_rms(&self, row: &PlanRow) -> Result<f64> {
+        let truth = |x: f64, y: f64| match &self.expected {
+            Some(m) => m(x, y),
+            None => LinearBlock::identity(),
+        };
+        let mut s = 0.0;
+        for seed in 0..SIMULATION_DRAWS {
+            let r = simulate_plan(self, row, &truth, seed)?;
+            s += r * r;
+        }
+        Ok((s / SIMULATION_DRAWS as f64).sqrt())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The bins cover the detector row by row, centres one bin apart and symmetric about the
+    /// centre for a detector of whole bins; the cheapest plan is the one of least total time.
+    #[test]
+    fn bin_centres_and_cheapest() {
+        let inst = instrument::Instrument::load("fors1").unwrap();
+        let d = &inst.detector;
+        let bin = 256;
+        let c = detector_bin_centres(&inst, bin);
+        assert_eq!(c.len(), d.nx.div_ceil(bin) * d.ny.div_ceil(bin));
+        let step = bin as f64 * d.pixel_scale_arcsec / 60.0;
+        assert!((c[1].0 - c[0].0 - step).abs() < 1e-12 && c[1].1 == c[0].1);
+        if d.nx.is_multiple_of(bin) && d.ny.is_multiple_of(bin) {
+            let (first, last) = (c[0], c[c.len() - 1]);
+            assert!((first.0 + last.0).abs() < 1e-12 && (first.1 + last.1).abs() < 1e-12, "{first:?} {last:?}");
+        }
+        let row = |t: f64| PlanRow { n_fields: 1, fields: vec![0], exposure_s: t, total_s: t, rms_qu: 0.0 };
+        assert_eq!(PlanSetup::cheapest(&[row(3.0), row(1.0), row(2.0)]).unwrap().total_s, 1.0);
+        assert!(PlanSetup::cheapest(&[]).is_none());
+    }
+}

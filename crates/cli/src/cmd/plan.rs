@@ -2,8 +2,8 @@
 //! which, and how long per HWP angle reach a target accuracy, from `fit::mueller_plan`.
 
 use anyhow::{anyhow, bail, Result};
-use fit::mueller_field::{Kind, MuellerField, MuellerFitOptions};
-use fit::mueller_plan::{simulate_plan, PlanRow, PlanSetup};
+use fit::mueller_field::{Kind, MuellerField};
+use fit::mueller_plan::{PlanRequest, PlanRow, PlanSetup, SIMULATION_TOLERANCE};
 use plotters::prelude::*;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -127,23 +127,10 @@ pub fn run(a: Args) -> Result<()> {
         crate::plot::ImageFormat::of(p)?;
         crate::util::check_output(p)?;
     }
-    let g = skyfield::maps::BinGeometry::covering(
-        a.bin,
-        0,
-        0,
-        inst.detector.nx,
-        inst.detector.ny,
-        inst.detector.pixel_scale_arcsec,
-    );
-    let mut positions = Vec::new();
-    for j in 0..g.ny {
-        for i in 0..g.nx {
-            positions.push(g.centre_arcmin(i, j));
-        }
-    }
+    let positions = fit::mueller_plan::detector_bin_centres(&inst, a.bin);
     if let (Some(m), Some(p)) = (&expected, &a.expected) {
         // The interpolant has no value outside the hull of its bins: no silent NaN field.
-        if let Some(&(x, y)) = positions.iter().find(|&&(x, y)| !m.full_at(x, y).iter().all(|v| v.is_finite())) {
+        if let Some((x, y)) = fit::mueller_plan::uncovered_position(m, &positions) {
             bail!(
                 "--expected {}: the {} form has no value at the plan's bin centre ({x:.2}, {y:.2}) arcmin (outside the bins it was built from): give a poly or radial field, or a --bin whose centres lie inside",
                 p.display(),
@@ -151,22 +138,17 @@ pub fn run(a: Args) -> Result<()> {
             );
         }
     }
-    let radius = positions.iter().map(|&(x, y)| x.abs().max(y.abs())).fold(0.0, f64::max).max(0.1);
-    let setup = PlanSetup {
-        positions,
-        bin_npix: (a.bin * a.bin) as f64,
+    let req = PlanRequest {
+        bin_px: a.bin,
         n_angles: a.angles,
         sky_rate: a.sky_rate,
-        read_noise_e: inst.detector.read_noise_e,
         candidates,
-        fit: MuellerFitOptions { kind, deg: a.deg, scale_arcmin: radius, ..Default::default() },
+        kind,
+        deg: a.deg,
         target_p: a.target_p_percent / 100.0,
-        expected: expected.clone().map(|m| {
-            let f: Arc<dyn Fn(f64, f64) -> mueller::linear::LinearBlock + Send + Sync> =
-                Arc::new(move |x, y| m.block_at(x, y));
-            f
-        }),
+        expected,
     };
+    let setup = PlanSetup::for_instrument(&inst, req).map_err(|e| anyhow!("{e}"))?;
     let target = a.target_percent / 100.0;
     let bar = indicatif::ProgressBar::with_draw_target(None, indicatif::ProgressDrawTarget::hidden());
     let start = std::time::Instant::now();
@@ -182,20 +164,9 @@ pub fn run(a: Args) -> Result<()> {
         })
         .map_err(|e| anyhow!("{e}"))?;
     bar.finish_and_clear();
-    let best: Option<PlanRow> = rows.iter().min_by(|x, y| x.total_s.total_cmp(&y.total_s)).cloned();
+    let best: Option<PlanRow> = PlanSetup::cheapest(&rows);
     let simulated = match (&best, a.check) {
-        (Some(b), true) => {
-            let truth = |x: f64, y: f64| match &expected {
-                Some(m) => m.block_at(x, y),
-                None => mueller::linear::LinearBlock::identity(),
-            };
-            let mut s = 0.0;
-            for seed in 0..4 {
-                let r = simulate_plan(&setup, b, &truth, seed).map_err(|e| anyhow!("{e}"))?;
-                s += r * r;
-            }
-            Some((s / 4.0).sqrt())
-        }
+        (Some(b), true) => Some(setup.simulated_rms(b).map_err(|e| anyhow!("{e}"))?),
         _ => None,
     };
     if let (Some(path), Some(b)) = (&a.plot, &best) {
@@ -236,7 +207,7 @@ pub fn run(a: Args) -> Result<()> {
         simulated_rms_qu: simulated,
         output: a.plot.clone(),
     };
-    let missed = rep.simulated_rms_qu.filter(|&s| s > 1.25 * target);
+    let missed = rep.simulated_rms_qu.filter(|&s| s > SIMULATION_TOLERANCE * target);
     if a.json {
         crate::util::print_json(&rep)?;
         return check_result(missed, target);
@@ -266,7 +237,12 @@ pub fn run(a: Args) -> Result<()> {
         eprintln!("WARNING: no choice of the candidates constrains the model: see the refusals");
     }
     if let Some(s) = rep.simulated_rms_qu {
-        outln!("  simulated (4 noise draws): RMS {:.4} % against the target {} %", 100.0 * s, a.target_percent);
+        outln!(
+            "  simulated ({} noise draws): RMS {:.4} % against the target {} %",
+            fit::mueller_plan::SIMULATION_DRAWS,
+            100.0 * s,
+            a.target_percent
+        );
     }
     if let Some(p) = &rep.output {
         outln!("  plot: {}", p.display());
