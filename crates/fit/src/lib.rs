@@ -103,6 +103,12 @@ pub enum Error {
     /// (The I/O error is a field, not a `source`, so that error chains do not print it twice.)
     #[error("{path}: {err}")]
     Io { path: PathBuf, err: std::io::Error },
+    /// A row of an input table, named by its file and row (`at`).
+    #[error("{at}: {what}")]
+    Row { at: String, what: String },
+    /// A table or frame the `skyfield` readers refused (their errors name the file).
+    #[error(transparent)]
+    Frames(#[from] skyfield::Error),
 }
 
 pub type Result<T> = std::result::Result<T, Error>;

@@ -197,6 +197,287 @@ pub fn zero_angle(stds: &[StandardChi]) -> Option<ZeroAngle> {
     })
 }
 
+/// The least `P / sigma_P` of a standard whose angle is measured: below it `chi` is not
+/// determined (`eq:sigchi`: `sigma_chi = sigma_P / (2 P)` rad, 9.5 deg at 3 sigma, and the
+/// distribution of the measured angle departs from a Gaussian below that).
+pub const MIN_P_SNR: f64 = 3.0;
+
+/// Why standards could not give a zero angle; each names the star or the rows at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("standard {label} at ({x}, {y}) has P = {:.3} +- {:.3} %: too little polarization to measure an angle (need P > {MIN_P_SNR} sigma)", 100.0 * .p, 100.0 * .sigma_p)]
+    TooLittlePolarization { label: String, x: f64, y: f64, p: f64, sigma_p: f64 },
+    #[error("the angles have no finite error")]
+    NoFiniteError,
+    #[error("some standards' angles have no finite error: cannot combine them")]
+    SomeNoFiniteError,
+}
+
+/// One standard's measured and catalogued angle (deg), from frames or a file of earlier
+/// measurements ([`read_measured`]): a row of the zero-angle report.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct MeasuredStandard {
+    /// The star's name, or its catalogued angle when given by number.
+    pub label: String,
+    /// Position (px; `None` for a row of a table without one).
+    pub x: Option<f64>,
+    pub y: Option<f64>,
+    pub chi_measured_deg: f64,
+    pub sigma_chi_measured_deg: f64,
+    pub chi_catalogue_deg: f64,
+    pub sigma_chi_catalogue_deg: f64,
+    pub p_measured: Option<f64>,
+    pub sigma_p_measured: Option<f64>,
+    /// Where the measurement came from: "frames" or the file.
+    #[serde(skip)]
+    pub source: String,
+}
+
+impl MeasuredStandard {
+    /// A standard measured in frames at `(x, y)` px with `P`, `chi` (rad) and their errors,
+    /// catalogued at `chi_catalogue_deg +- sigma_catalogue_deg`: refused when
+    /// `P <= MIN_P_SNR sigma_P` (its angle is not measured).
+    #[allow(clippy::too_many_arguments)]
+    pub fn from_frames(
+        label: String,
+        (x, y): (f64, f64),
+        (p, sigma_p): (f64, f64),
+        (chi, sigma_chi): (f64, f64),
+        chi_catalogue_deg: f64,
+        sigma_catalogue_deg: f64,
+    ) -> Result<Self, Error> {
+        if !(p > MIN_P_SNR * sigma_p) {
+            return Err(Error::TooLittlePolarization { label, x, y, p, sigma_p });
+        }
+        Ok(Self {
+            label,
+            x: Some(x),
+            y: Some(y),
+            chi_measured_deg: chi.to_degrees(),
+            sigma_chi_measured_deg: sigma_chi.to_degrees(),
+            chi_catalogue_deg,
+            sigma_chi_catalogue_deg: sigma_catalogue_deg,
+            p_measured: Some(p),
+            sigma_p_measured: Some(sigma_p),
+            source: "frames".into(),
+        })
+    }
+
+    /// Check the angles: finite, errors in (0, 90) deg (measured) and [0, 90) deg (catalogue);
+    /// `at` names the row in the error.
+    fn check(&self, path: &Path, at: &str) -> crate::Result<()> {
+        let bad = |what: String| crate::Error::BadFile { path: path.to_path_buf(), what: format!("{at}: {what}") };
+        let (cm, sm, cc, sc) =
+            (self.chi_measured_deg, self.sigma_chi_measured_deg, self.chi_catalogue_deg, self.sigma_chi_catalogue_deg);
+        if !(cm.is_finite() && cc.is_finite() && sm.is_finite() && sc.is_finite()) {
+            return Err(bad(format!("chi and its errors must be numbers (got chi_measured_deg {cm}, sigma_chi_measured_deg {sm}, chi_catalogue_deg {cc}, sigma_chi_catalogue_deg {sc})")));
+        }
+        if !(sm > 0.0 && sm < 90.0 && (0.0..90.0).contains(&sc)) {
+            return Err(bad(format!(
+                "errors must lie in (0, 90) deg (measured) and [0, 90) deg (catalogue), got {sm} and {sc}"
+            )));
+        }
+        Ok(())
+    }
+
+    /// The angles in rad, as [`zero_angle`] takes them.
+    pub fn chi(&self) -> StandardChi {
+        StandardChi {
+            chi_measured: self.chi_measured_deg.to_radians(),
+            sigma_measured: self.sigma_chi_measured_deg.to_radians(),
+            chi_catalogue: self.chi_catalogue_deg.to_radians(),
+            sigma_catalogue: self.sigma_chi_catalogue_deg.to_radians(),
+        }
+    }
+}
+
+use std::path::Path;
+
+/// The standards of a file of earlier measurements and the filter it names (if any): the
+/// `--json` output of `instpol zero-angle` (`.json`: its `filter` and `standards` array) or a
+/// table in any format `skyfield::table` reads, with columns `label` (or `name`),
+/// `chi_measured_deg`, `sigma_chi_measured_deg`, `chi_catalogue_deg`,
+/// `sigma_chi_catalogue_deg`, and optionally `filter` (one for all rows), `x`, `y`,
+/// `p_measured`, `sigma_p_measured`. Every row is checked (finite angles, errors in (0, 90)
+/// deg, a catalogue error of 0 allowed) and named in errors; a row without a label is called
+/// by the file and its row number.
+pub fn read_measured(path: &Path) -> crate::Result<(Option<String>, Vec<MeasuredStandard>)> {
+    let src = path.display().to_string();
+    let bad = |what: String| crate::Error::BadFile { path: path.to_path_buf(), what };
+    let is_json = path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("json"));
+    let mut rows = Vec::new();
+    let filter;
+    if is_json {
+        let text = std::fs::read_to_string(path).map_err(|err| crate::Error::Io { path: path.to_path_buf(), err })?;
+        let v: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| bad(format!("not JSON ({e}): give a zero-angle --json output or a table")))?;
+        let stars = v.get("standards").and_then(|s| s.as_array()).ok_or_else(|| {
+            bad("no 'standards' array (expected the --json output of instpol zero-angle)".to_string())
+        })?;
+        filter = v.get("filter").and_then(|f| f.as_str()).map(str::to_string);
+        for (i, s) in stars.iter().enumerate() {
+            let at = format!("standards[{i}]");
+            let num = |k: &str| -> crate::Result<f64> {
+                s.get(k).and_then(|x| x.as_f64()).ok_or_else(|| bad(format!("{at}: no number '{k}'")))
+            };
+            let opt = |k: &str| s.get(k).and_then(|x| x.as_f64());
+            let m = MeasuredStandard {
+                label: s.get("label").and_then(|l| l.as_str()).unwrap_or("").to_string(),
+                x: opt("x"),
+                y: opt("y"),
+                chi_measured_deg: num("chi_measured_deg")?,
+                sigma_chi_measured_deg: num("sigma_chi_measured_deg")?,
+                chi_catalogue_deg: num("chi_catalogue_deg")?,
+                sigma_chi_catalogue_deg: num("sigma_chi_catalogue_deg")?,
+                p_measured: opt("p_measured"),
+                sigma_p_measured: opt("sigma_p_measured"),
+                source: src.clone(),
+            };
+            m.check(path, &at)?;
+            rows.push(m);
+        }
+    } else {
+        let t = skyfield::table::Table::read(path, None)?;
+        let num = |k: &str| t.numbers(k, path);
+        let opt = |k: &str| -> crate::Result<Option<Vec<f64>>> {
+            if t.column(k).is_some() {
+                Ok(Some(num(k)?))
+            } else {
+                Ok(None)
+            }
+        };
+        let text = |k: &str| -> Option<Vec<String>> {
+            t.column(k).map(|c| match &c.data {
+                skyfield::table::Data::Str(v) => v.iter().map(|s| s.trim().to_string()).collect(),
+                skyfield::table::Data::F64(v) => v.iter().map(|x| x.to_string()).collect(),
+                skyfield::table::Data::I64(v) => v.iter().map(|x| x.to_string()).collect(),
+            })
+        };
+        let (cm, sm, cc, sc) = (
+            num("chi_measured_deg")?,
+            num("sigma_chi_measured_deg")?,
+            num("chi_catalogue_deg")?,
+            num("sigma_chi_catalogue_deg")?,
+        );
+        let (xs, ys, ps, sps) = (opt("x")?, opt("y")?, opt("p_measured")?, opt("sigma_p_measured")?);
+        let labels = text("label").or_else(|| text("name"));
+        let filters = text("filter");
+        filter = match &filters {
+            Some(f) => {
+                let first = f.first().cloned().unwrap_or_default();
+                if let Some(i) = f.iter().position(|x| !x.eq_ignore_ascii_case(&first)) {
+                    return Err(bad(format!(
+                        "{}: filter '{}' differs from the first row's '{first}': one filter per run",
+                        t.row_label(i),
+                        f[i]
+                    )));
+                }
+                Some(first)
+            }
+            None => None,
+        };
+        let pick = |v: &Option<Vec<f64>>, i: usize| v.as_ref().map(|v| v[i]).filter(|x| x.is_finite());
+        for i in 0..t.n_rows() {
+            let m = MeasuredStandard {
+                label: labels.as_ref().map(|l| l[i].clone()).unwrap_or_default(),
+                x: pick(&xs, i),
+                y: pick(&ys, i),
+                chi_measured_deg: cm[i],
+                sigma_chi_measured_deg: sm[i],
+                chi_catalogue_deg: cc[i],
+                sigma_chi_catalogue_deg: sc[i],
+                p_measured: pick(&ps, i),
+                sigma_p_measured: pick(&sps, i),
+                source: src.clone(),
+            };
+            m.check(path, &t.row_label(i))?;
+            rows.push(m);
+        }
+    }
+    if rows.is_empty() {
+        return Err(bad("no standards in the file".to_string()));
+    }
+    for (i, m) in rows.iter_mut().enumerate() {
+        if m.label.is_empty() {
+            m.label = format!("{src} row {}", i + 1);
+        }
+    }
+    Ok((filter, rows))
+}
+
+/// One standard of a [`ZeroAngleReport`]: its measurement, its own offset (deg, in the sense
+/// found) and its pull about the mean of the other (kept) stars.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct StandardOffset {
+    #[serde(flatten)]
+    pub measured: MeasuredStandard,
+    pub offset_deg: f64,
+    pub pull: f64,
+    /// Left out of the mean (it disagrees with the others).
+    pub excluded: bool,
+    /// Where the measurement came from: "frames" or the file.
+    pub source: String,
+}
+
+/// The zero angle of a filter from its standards ([`zero_angle`]), in degrees, with every
+/// star's offset: the report `instpol zero-angle --json` prints.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ZeroAngleReport {
+    pub filter: String,
+    pub zero_angle_deg: f64,
+    pub sigma_zero_angle_deg: f64,
+    pub sigma_scatter_zero_angle_deg: Option<f64>,
+    pub chi2_dof: Option<f64>,
+    /// Standards in the mean.
+    pub n_standards: usize,
+    pub sense: Sense,
+    pub outlier: Option<String>,
+    /// Labels of the standards left out of the mean, worst first.
+    pub excluded: Vec<String>,
+    pub standards: Vec<StandardOffset>,
+    /// The line to put in the instrument file's filter entry.
+    pub instrument_file_line: String,
+}
+
+impl ZeroAngleReport {
+    /// Combine the standards of `filter` ([`zero_angle`]); every star must have a finite error.
+    pub fn combine(filter: String, rows: Vec<MeasuredStandard>) -> Result<(Self, ZeroAngle), Error> {
+        let chis: Vec<StandardChi> = rows.iter().map(MeasuredStandard::chi).collect();
+        let z = zero_angle(&chis).ok_or(Error::NoFiniteError)?;
+        if z.offsets.len() != rows.len() {
+            return Err(Error::SomeNoFiniteError);
+        }
+        let zd = z.offset.to_degrees();
+        let instrument_file_line = format!("hwp_chi_offset_deg = {zd:.2}   # filter {filter}");
+        let label = |k: usize| rows[k].label.clone();
+        let r = ZeroAngleReport {
+            zero_angle_deg: zd,
+            sigma_zero_angle_deg: z.sigma.to_degrees(),
+            sigma_scatter_zero_angle_deg: z.sigma_scatter.map(f64::to_degrees),
+            chi2_dof: (z.dof > 0).then(|| z.chi2 / z.dof as f64),
+            n_standards: rows.len() - z.excluded.len(),
+            sense: z.sense,
+            outlier: z.outlier.map(label),
+            excluded: z.excluded.iter().map(|&k| label(k)).collect(),
+            filter,
+            instrument_file_line,
+            standards: rows
+                .into_iter()
+                .enumerate()
+                .zip(z.offsets.iter().zip(&z.pulls))
+                .map(|((k, m), (d, p))| StandardOffset {
+                    source: m.source.clone(),
+                    measured: m,
+                    offset_deg: d.to_degrees(),
+                    pull: *p,
+                    excluded: z.excluded.contains(&k),
+                })
+                .collect(),
+        };
+        Ok((r, z))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -312,5 +593,34 @@ mod tests {
         // With two stars nothing is left out: either could be the wrong one.
         let z2 = zero_angle(&s[2..]).unwrap();
         assert!(z2.excluded.is_empty() && z2.outlier.is_none());
+    }
+
+    /// A star is measured only above P = 3 sigma_P; two rows of a table of earlier measurements
+    /// (catalogue errors 0) give the mean of their offsets, 20 and 22 deg, weighted equally:
+    /// 21 deg, the instrument-file line with it; a row with a measured error of 0 is refused
+    /// naming the file and the row.
+    #[test]
+    fn measured_standards_selected_read_and_combined() {
+        let at = |p: f64| MeasuredStandard::from_frames("s".into(), (1.0, 2.0), (p, 0.001), (0.1, 0.01), 30.0, 0.1);
+        assert!(matches!(at(0.003), Err(Error::TooLittlePolarization { .. })));
+        let m = at(0.0031).unwrap();
+        assert_eq!(
+            (m.chi_measured_deg, m.p_measured, m.source.as_str()),
+            (0.1f64.to_degrees(), Some(0.0031), "frames")
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.csv");
+        let head = "label,chi_measured_deg,sigma_chi_measured_deg,chi_catalogue_deg,sigma_chi_catalogue_deg,filter\n";
+        std::fs::write(&path, format!("{head}a,10,0.5,30,0,V\nb,50,0.5,72,0,V\n")).unwrap();
+        let (filter, rows) = read_measured(&path).unwrap();
+        assert_eq!(filter.as_deref(), Some("V"));
+        let (r, _) = ZeroAngleReport::combine("V".into(), rows).unwrap();
+        assert!((r.zero_angle_deg - 21.0).abs() < 1e-9, "{r:?}");
+        assert!((r.sigma_zero_angle_deg - 0.5 / 2f64.sqrt()).abs() < 1e-9, "{r:?}");
+        assert_eq!(r.instrument_file_line, "hwp_chi_offset_deg = 21.00   # filter V");
+        assert_eq!(r.standards[1].measured.label, "b");
+        std::fs::write(&path, format!("{head}a,10,0,30,0,V\n")).unwrap();
+        let e = read_measured(&path).unwrap_err().to_string();
+        assert!(e.contains("m.csv") && e.contains("row 1") && e.contains("(0, 90)"), "{e}");
     }
 }

@@ -1,10 +1,10 @@
 //! `instpol zero-angle`: the HWP zero angle of a filter from a polarized standard in frames.
 
 use anyhow::{bail, Result};
-use fit::zeroangle::{zero_angle, Sense, StandardChi};
+use fit::zeroangle::{read_measured, MeasuredStandard, Sense, ZeroAngleReport};
 use skyfield::photometry::{layout_for, photometry_with, Aperture, PhotOptions};
 use skyfield::reduce::FrameSet;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// Measure polarized standard stars in frames and compare their chi with the catalogued ones:
 /// the difference is the HWP zero angle of the filter (the angle to add to a measured chi,
@@ -79,46 +79,6 @@ pub struct Args {
     pub frame: crate::cmd::frame_opts::FrameOpts,
 }
 
-/// One standard's measurement and offset (JSON).
-#[derive(serde::Serialize)]
-struct StarOut {
-    /// The star's name, or its catalogued angle when given by number.
-    label: String,
-    /// Position (px; null for a row of a --measured table without one).
-    x: Option<f64>,
-    y: Option<f64>,
-    chi_measured_deg: f64,
-    sigma_chi_measured_deg: f64,
-    chi_catalogue_deg: f64,
-    sigma_chi_catalogue_deg: f64,
-    p_measured: Option<f64>,
-    sigma_p_measured: Option<f64>,
-    /// This star's own offset (deg, in the sense found) and its pull about the mean of the
-    /// other (kept) stars.
-    offset_deg: f64,
-    pull: f64,
-    /// Left out of the mean (it disagrees with the others).
-    excluded: bool,
-    /// Where the measurement came from: "frames" or the --measured file.
-    source: String,
-}
-
-#[derive(serde::Serialize)]
-struct Out {
-    filter: String,
-    zero_angle_deg: f64,
-    sigma_zero_angle_deg: f64,
-    sigma_scatter_zero_angle_deg: Option<f64>,
-    chi2_dof: Option<f64>,
-    n_standards: usize,
-    sense: Sense,
-    outlier: Option<String>,
-    /// Labels of the standards left out of the mean, worst first.
-    excluded: Vec<String>,
-    standards: Vec<StarOut>,
-    instrument_file_line: String,
-}
-
 /// A standard to measure: position and catalogued angle (deg) with its error.
 struct Std {
     label: String,
@@ -170,144 +130,8 @@ fn parse_standard(spec: &str, list: &dyn Fn() -> Result<fit::standards::Standard
     Ok(Std { label, x, y, chi, sigma })
 }
 
-/// One standard's measured and catalogued angle (deg), from the frames or a --measured file.
-struct Meas {
-    label: String,
-    x: Option<f64>,
-    y: Option<f64>,
-    chi_m: f64,
-    sigma_m: f64,
-    chi_c: f64,
-    sigma_c: f64,
-    p: Option<f64>,
-    sigma_p: Option<f64>,
-    source: String,
-}
-
-/// Check one row's angles: finite, errors in (0, 90) deg (measured) and [0, 90) (catalogue).
-fn check_row(m: &Meas, at: &str) -> Result<()> {
-    let ok = |v: f64| v.is_finite();
-    if !(ok(m.chi_m) && ok(m.chi_c) && ok(m.sigma_m) && ok(m.sigma_c)) {
-        bail!("{at}: chi and its errors must be numbers (got chi_measured_deg {}, sigma_chi_measured_deg {}, chi_catalogue_deg {}, sigma_chi_catalogue_deg {})", m.chi_m, m.sigma_m, m.chi_c, m.sigma_c);
-    }
-    if !(m.sigma_m > 0.0 && m.sigma_m < 90.0 && m.sigma_c >= 0.0 && m.sigma_c < 90.0) {
-        bail!(
-            "{at}: errors must lie in (0, 90) deg (measured) and [0, 90) deg (catalogue), got {} and {}",
-            m.sigma_m,
-            m.sigma_c
-        );
-    }
-    Ok(())
-}
-
-/// The rows of a --measured file and the filter it names (if any): a zero-angle --json output
-/// (.json) or a table in any format `skyfield::table` reads.
-fn read_measured(path: &Path) -> Result<(Option<String>, Vec<Meas>)> {
-    let src = path.display().to_string();
-    let is_json = path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("json"));
-    let mut rows = Vec::new();
-    let filter;
-    if is_json {
-        let text = std::fs::read_to_string(path).map_err(|e| anyhow::anyhow!("--measured {src}: {e}"))?;
-        let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| {
-            anyhow::anyhow!("--measured {src}: not JSON ({e}): give a zero-angle --json output or a table")
-        })?;
-        let stars = v.get("standards").and_then(|s| s.as_array()).ok_or_else(|| {
-            anyhow::anyhow!("--measured {src}: no 'standards' array (expected the --json output of instpol zero-angle)")
-        })?;
-        filter = v.get("filter").and_then(|f| f.as_str()).map(str::to_string);
-        for (i, s) in stars.iter().enumerate() {
-            let at = format!("--measured {src}: standards[{i}]");
-            let num = |k: &str| -> Result<f64> {
-                s.get(k).and_then(|x| x.as_f64()).ok_or_else(|| anyhow::anyhow!("{at}: no number '{k}'"))
-            };
-            let opt = |k: &str| s.get(k).and_then(|x| x.as_f64());
-            let m = Meas {
-                label: s.get("label").and_then(|l| l.as_str()).unwrap_or("").to_string(),
-                x: opt("x"),
-                y: opt("y"),
-                chi_m: num("chi_measured_deg")?,
-                sigma_m: num("sigma_chi_measured_deg")?,
-                chi_c: num("chi_catalogue_deg")?,
-                sigma_c: num("sigma_chi_catalogue_deg")?,
-                p: opt("p_measured"),
-                sigma_p: opt("sigma_p_measured"),
-                source: src.clone(),
-            };
-            check_row(&m, &at)?;
-            rows.push(m);
-        }
-    } else {
-        let t = skyfield::table::Table::read(path, None).map_err(|e| anyhow::anyhow!("--measured {e}"))?;
-        let num = |k: &str| t.numbers(k, path).map_err(|e| anyhow::anyhow!("--measured {e}"));
-        let opt = |k: &str| -> Result<Option<Vec<f64>>> {
-            if t.column(k).is_some() {
-                Ok(Some(num(k)?))
-            } else {
-                Ok(None)
-            }
-        };
-        let text = |k: &str| -> Option<Vec<String>> {
-            t.column(k).map(|c| match &c.data {
-                skyfield::table::Data::Str(v) => v.iter().map(|s| s.trim().to_string()).collect(),
-                skyfield::table::Data::F64(v) => v.iter().map(|x| x.to_string()).collect(),
-                skyfield::table::Data::I64(v) => v.iter().map(|x| x.to_string()).collect(),
-            })
-        };
-        let (cm, sm, cc, sc) = (
-            num("chi_measured_deg")?,
-            num("sigma_chi_measured_deg")?,
-            num("chi_catalogue_deg")?,
-            num("sigma_chi_catalogue_deg")?,
-        );
-        let (xs, ys, ps, sps) = (opt("x")?, opt("y")?, opt("p_measured")?, opt("sigma_p_measured")?);
-        let labels = text("label").or_else(|| text("name"));
-        let filters = text("filter");
-        filter = match &filters {
-            Some(f) => {
-                let first = f.first().cloned().unwrap_or_default();
-                if let Some(i) = f.iter().position(|x| !x.eq_ignore_ascii_case(&first)) {
-                    bail!(
-                        "--measured {src}: {}: filter '{}' differs from the first row's '{first}': one filter per run",
-                        t.row_label(i),
-                        f[i]
-                    );
-                }
-                Some(first)
-            }
-            None => None,
-        };
-        let pick = |v: &Option<Vec<f64>>, i: usize| v.as_ref().map(|v| v[i]).filter(|x| x.is_finite());
-        for i in 0..t.n_rows() {
-            let m = Meas {
-                label: labels.as_ref().map(|l| l[i].clone()).unwrap_or_default(),
-                x: pick(&xs, i),
-                y: pick(&ys, i),
-                chi_m: cm[i],
-                sigma_m: sm[i],
-                chi_c: cc[i],
-                sigma_c: sc[i],
-                p: pick(&ps, i),
-                sigma_p: pick(&sps, i),
-                source: src.clone(),
-            };
-            check_row(&m, &format!("--measured {src}: {}", t.row_label(i)))?;
-            rows.push(m);
-        }
-    }
-    if rows.is_empty() {
-        bail!("--measured {src}: no standards in the file");
-    }
-    for (i, m) in rows.iter_mut().enumerate() {
-        if m.label.is_empty() {
-            m.label = format!("{src} row {}", i + 1);
-        }
-    }
-    Ok((filter, rows))
-}
-
 /// Measure the standards given on the command line in the frames: their rows and the filter.
-fn measure_frames(a: &Args, inst: &instrument::Instrument) -> Result<(String, Vec<Meas>)> {
+fn measure_frames(a: &Args, inst: &instrument::Instrument) -> Result<(String, Vec<MeasuredStandard>)> {
     let annulus = crate::util::parse_radii(&a.annulus)?;
     let frames = skyfield::reduce::read_frames_with(&a.frames, inst, &a.frame.read_options()?, &|| {})?;
     let set = FrameSet::from_frames(frames, inst, true)?;
@@ -350,28 +174,14 @@ fn measure_frames(a: &Args, inst: &instrument::Instrument) -> Result<(String, Ve
         let ph = photometry_with(&set, &g, s.x, s.y, &ap, &PhotOptions::default())
             .map_err(|e| anyhow::anyhow!("standard {}: {e}", s.label))?;
         let r = ph.reduction;
-        if !(r.p > 3.0 * r.sigma_p) {
-            bail!(
-                "standard {} at ({}, {}) has P = {:.3} +- {:.3} %: too little polarization to measure an angle (need P > 3 sigma)",
-                s.label,
-                s.x,
-                s.y,
-                100.0 * r.p,
-                100.0 * r.sigma_p
-            );
-        }
-        rows.push(Meas {
-            label: s.label,
-            x: Some(s.x),
-            y: Some(s.y),
-            chi_m: r.chi.to_degrees(),
-            sigma_m: r.sigma_chi.to_degrees(),
-            chi_c: s.chi,
-            sigma_c: s.sigma,
-            p: Some(r.p),
-            sigma_p: Some(r.sigma_p),
-            source: "frames".into(),
-        });
+        rows.push(MeasuredStandard::from_frames(
+            s.label,
+            (s.x, s.y),
+            (r.p, r.sigma_p),
+            (r.chi, r.sigma_chi),
+            s.chi,
+            s.sigma,
+        )?);
     }
     Ok((set.filter.clone(), rows))
 }
@@ -387,7 +197,7 @@ pub fn run(a: Args) -> Result<()> {
     )?;
     // Every filter named (frames, files, --filter) must be one: a zero angle is per filter.
     let mut filters: Vec<(String, String)> = a.filter.iter().map(|f| (f.clone(), "--filter".to_string())).collect();
-    let mut rows: Vec<Meas> = Vec::new();
+    let mut rows: Vec<MeasuredStandard> = Vec::new();
     if !a.frames.is_empty() {
         let inst = instrument::Instrument::load(&a.instrument)?;
         if inst.telescope.as_ref().is_some_and(|t| t.focus == instrument::telescope::Focus::Nasmyth) {
@@ -406,7 +216,7 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--x/--y, --star, --standard and --chi-deg name stars in frames: give the frames too (or only --measured files)");
     }
     for p in &a.measured {
-        let (f, r) = read_measured(p)?;
+        let (f, r) = read_measured(p).map_err(|e| anyhow::anyhow!("--measured {e}"))?;
         if let Some(f) = f {
             filters.push((f, format!("--measured {}", p.display())));
         }
@@ -418,57 +228,12 @@ pub fn run(a: Args) -> Result<()> {
     if let Some((f, w)) = filters.iter().find(|(f, _)| !f.eq_ignore_ascii_case(&filter)) {
         bail!("{w} is in filter '{f}', {from} in '{filter}': a zero angle is per filter, combine one filter at a time");
     }
-    let chis: Vec<StandardChi> = rows
-        .iter()
-        .map(|m| StandardChi {
-            chi_measured: m.chi_m.to_radians(),
-            sigma_measured: m.sigma_m.to_radians(),
-            chi_catalogue: m.chi_c.to_radians(),
-            sigma_catalogue: m.sigma_c.to_radians(),
-        })
-        .collect();
-    let z = zero_angle(&chis).ok_or_else(|| anyhow::anyhow!("the angles have no finite error"))?;
-    if z.offsets.len() != rows.len() {
-        bail!("some standards' angles have no finite error: cannot combine them");
-    }
-    let zd = z.offset.to_degrees();
-    let instrument_file_line = format!("hwp_chi_offset_deg = {zd:.2}   # filter {filter}");
-    let o = Out {
-        filter,
-        zero_angle_deg: zd,
-        sigma_zero_angle_deg: z.sigma.to_degrees(),
-        sigma_scatter_zero_angle_deg: z.sigma_scatter.map(f64::to_degrees),
-        chi2_dof: (z.dof > 0).then(|| z.chi2 / z.dof as f64),
-        n_standards: rows.len() - z.excluded.len(),
-        sense: z.sense,
-        outlier: z.outlier.map(|k| rows[k].label.clone()),
-        excluded: z.excluded.iter().map(|&k| rows[k].label.clone()).collect(),
-        standards: rows
-            .iter()
-            .enumerate()
-            .zip(z.offsets.iter().zip(&z.pulls))
-            .map(|((k, m), (d, p))| StarOut {
-                label: m.label.clone(),
-                x: m.x,
-                y: m.y,
-                chi_measured_deg: m.chi_m,
-                sigma_chi_measured_deg: m.sigma_m,
-                chi_catalogue_deg: m.chi_c,
-                sigma_chi_catalogue_deg: m.sigma_c,
-                p_measured: m.p,
-                sigma_p_measured: m.sigma_p,
-                offset_deg: d.to_degrees(),
-                pull: *p,
-                excluded: z.excluded.contains(&k),
-                source: m.source.clone(),
-            })
-            .collect(),
-        instrument_file_line,
-    };
+    let (o, z) = ZeroAngleReport::combine(filter, rows)?;
+    let zd = o.zero_angle_deg;
     for &k in &z.excluded {
         eprintln!(
             "warning: standard {} disagrees with the others (pull {:.1} > {} against their mean): left out of the zero angle; check its identification and catalogue value",
-            rows[k].label,
+            o.standards[k].measured.label,
             z.pulls[k],
             fit::zeroangle::OUTLIER_PULL
         );
@@ -484,7 +249,8 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&o)?;
     } else {
-        for s in &o.standards {
+        for star in &o.standards {
+            let s = &star.measured;
             let p = match (s.p_measured, s.sigma_p_measured) {
                 (Some(p), Some(sp)) => format!(" (P = {:.3} +- {:.3} %)", 100.0 * p, 100.0 * sp),
                 _ => String::new(),
@@ -496,9 +262,9 @@ pub fn run(a: Args) -> Result<()> {
                 s.sigma_chi_measured_deg,
                 s.chi_catalogue_deg,
                 s.sigma_chi_catalogue_deg,
-                s.offset_deg,
-                s.pull,
-                if s.excluded { "  LEFT OUT" } else { "" }
+                star.offset_deg,
+                star.pull,
+                if star.excluded { "  LEFT OUT" } else { "" }
             );
         }
         out!(
