@@ -30,6 +30,7 @@ pub mod mueller_field;
 pub mod mueller_forms;
 pub mod mueller_plan;
 pub mod mueller_smooth;
+pub mod mueller_stars;
 pub mod paper;
 pub mod pipeline;
 pub mod polar;

@@ -4,8 +4,9 @@
 use anyhow::{anyhow, bail, Context, Result};
 use fit::mueller_cal::{MuellerCal, SkyField};
 use fit::mueller_field::{
-    fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions, Observation,
+    fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions,
 };
+use fit::mueller_stars::{read_star_fields, FieldSummary, ParamSummary};
 use std::path::PathBuf;
 
 /// Fit the linear block of the pre-analyzer Mueller matrix over the field jointly to two or
@@ -118,71 +119,11 @@ fn same_setup(a: &(String, String, field::FieldCoords), b: &(String, String, fie
     a.0.eq_ignore_ascii_case(&b.0) && a.1.eq_ignore_ascii_case(&b.1) && a.2 == b.2
 }
 
-/// The polarized standards of a `--stars` table, each a calibration "field" of one position
-/// whose known input polarization is the star's (rows named in errors), in the maps' sky frame:
-/// turned by the maps' zero angle `zero_angle_deg` less the one the table's q, u carry (its
-/// column `hwp_chi_offset_deg`, as `instpol catalog` writes it; q, u at the plate without it).
-fn star_fields(path: &std::path::Path, zero_angle_deg: f64) -> Result<Vec<CalField>> {
-    let t = skyfield::table::Table::read(path, None)?;
-    let (turn, _) = fit::correct::row_zero_angles(Some(zero_angle_deg), t.carried_zero_angle(path)?);
-    let turn = turn.to_radians();
-    let pick = |names: &[&str]| -> Result<Vec<f64>> {
-        for n in names {
-            if t.column(n).is_some() {
-                return Ok(t.numbers(n, path)?);
-            }
-        }
-        bail!(
-            "{}: no column {} (columns: {}); need x, y (or x_arcmin, y_arcmin), q, u, sigma_q, sigma_u, p_true, chi_true_deg",
-            path.display(),
-            names.join(" or "),
-            t.names().join(", ")
-        )
-    };
-    let (x, y) = (pick(&["x_arcmin", "x"])?, pick(&["y_arcmin", "y"])?);
-    let (q, u, sq, su) = (pick(&["q"])?, pick(&["u"])?, pick(&["sigma_q"])?, pick(&["sigma_u"])?);
-    let (pt, ct) = (pick(&["p_true"])?, pick(&["chi_true_deg", "chi_true"])?);
-    let st = if t.column("sigma_true").is_some() { t.numbers("sigma_true", path)? } else { vec![0.0; x.len()] };
-    if x.is_empty() {
-        bail!("{}: the star table has no data rows", path.display());
-    }
-    let mut out = Vec::with_capacity(x.len());
-    for i in 0..x.len() {
-        let what = format!("{} {}", path.display(), t.row_label(i));
-        let vals = [x[i], y[i], q[i], u[i], sq[i], su[i], pt[i], ct[i], st[i]];
-        if !(vals.iter().all(|v| v.is_finite()) && sq[i] > 0.0 && su[i] > 0.0) || st[i] < 0.0 {
-            bail!("{what}: x, y, q, u, sigma_q, sigma_u, p_true, chi_true_deg, sigma_true = {vals:?}: need finite values and errors > 0");
-        }
-        if !(0.0..1.0).contains(&pt[i]) || q[i].hypot(u[i]) >= 1.0 {
-            bail!(
-                "{what}: p_true = {} and the measured P = {} must be fractions in [0, 1) (not percent)",
-                pt[i],
-                q[i].hypot(u[i])
-            );
-        }
-        let m = fit::correct::to_sky_frame(
-            &fit::correct::Measurement::new(x[i], y[i], q[i], u[i], sq[i], su[i], 0.0),
-            turn,
-        );
-        let obs = Observation::new(x[i], y[i], m.qu.q, m.qu.u, m.qu.var_q, m.qu.var_u, m.qu.cov_qu);
-        out.push(CalField::from_p_chi(&what, pt[i], ct[i].to_radians(), st[i], vec![obs]));
-    }
-    Ok(out)
-}
-
 fn kind_of(a: &Args) -> Result<Kind> {
     if a.general {
         return Ok(Kind::General);
     }
     Kind::parse_free(&a.free).map_err(|e| anyhow!("--free '{}': {e}", a.free))
-}
-
-#[derive(serde::Serialize)]
-struct Param {
-    name: &'static str,
-    median_value: f64,
-    rms_value: f64,
-    median_sigma: f64,
 }
 
 #[derive(serde::Serialize)]
@@ -197,7 +138,7 @@ struct Report {
     free: Vec<&'static str>,
     chi2_dof: f64,
     condition: Option<f64>,
-    parameters: Vec<Param>,
+    parameters: Vec<ParamSummary>,
     median_p: Option<f64>,
     max_p: Option<f64>,
     median_retardance_deg: Option<f64>,
@@ -205,15 +146,6 @@ struct Report {
     n_bins_fitted: Option<usize>,
     n_bins_unconstrained: Option<usize>,
     warnings: Vec<String>,
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.retain(|x| x.is_finite());
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -272,7 +204,7 @@ pub fn run(a: Args) -> Result<()> {
     let n_maps = fields.len();
     let zero_angle_deg = zero.and_then(|z| z.0).unwrap_or(0.0);
     if let Some(t) = &a.stars {
-        fields.extend(star_fields(t, zero_angle_deg)?);
+        fields.extend(read_star_fields(t, zero_angle_deg)?);
     }
     let opts = MuellerFitOptions { kind, deg: a.deg, scale_arcmin: a.scale_arcmin, ..Default::default() };
     if a.deg > 8 {
@@ -331,36 +263,8 @@ pub fn run(a: Args) -> Result<()> {
 
     // Summaries over the observed positions.
     let pos: Vec<(f64, f64)> = fields[0].obs.iter().map(|o| (o.x_arcmin, o.y_arcmin)).collect();
-    let nf = mf.free.len();
-    let mut parameters = Vec::new();
-    for (k, &i) in mf.free.iter().enumerate() {
-        let (mut vals, mut sig) = (Vec::new(), Vec::new());
-        for &(x, y) in &pos {
-            let (v, c) = mf.params_at(x, y);
-            vals.push(v[k]);
-            sig.push(c[k * nf + k].max(0.0).sqrt());
-        }
-        let rms = (vals.iter().map(|v| v * v).sum::<f64>() / vals.len() as f64).sqrt();
-        parameters.push(Param {
-            name: kind.name(i),
-            median_value: median(vals),
-            rms_value: rms,
-            median_sigma: median(sig),
-        });
-    }
-    let phys: Vec<_> = pos.iter().filter_map(|&(x, y)| mf.physical_at(x, y)).collect();
-    let has_ret = mf.free.contains(&2);
-    let (median_p, max_p) = if phys.is_empty() {
-        (None, None)
-    } else {
-        (Some(median(phys.iter().map(|p| p.p).collect())), Some(phys.iter().map(|p| p.p).fold(0.0, f64::max)))
-    };
-    let (median_retardance_deg, max_retardance_deg) = if has_ret && !phys.is_empty() {
-        let d: Vec<f64> = phys.iter().map(|p| p.retardance.to_degrees()).collect();
-        (Some(median(d.clone())), Some(d.iter().cloned().fold(0.0, f64::max)))
-    } else {
-        (None, None)
-    };
+    let FieldSummary { parameters, median_p, max_p, median_retardance_deg, max_retardance_deg } =
+        FieldSummary::new(&mf, kind, &pos);
     let rep = Report {
         output: a.out.clone(),
         n_fields: n_maps,
