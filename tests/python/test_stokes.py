@@ -110,8 +110,12 @@ def test_bad_input_raises_input_error_with_the_library_message():
     assert r["p"] == 0.0
     with pytest.raises(instpol.InputError, match="photon counts cannot be negative"):
         instpol.stokes([0, 22.5, 45, 67.5], [1e4, -5, 1e4, 1e4], [1e4] * 4)
-    with pytest.raises(ValueError, match="same plate position"):
-        instpol.stokes([0, 22.5, 22.5, 67.5], [1e4] * 4, [1e4] * 4)
+    # A repeated plate position is combined as instpol stokes does (it was refused before),
+    # and a negative count among repeats is refused naming its column.
+    r = instpol.stokes([0, 22.5, 22.5, 67.5], [1e4] * 4, [1e4] * 4)
+    assert r["n_hwp"] == 3 and same(r["exposures"]["index"], [0, 1, 2, 3])
+    with pytest.raises(instpol.InputError, match="column 2 of f_o, f_e: photon counts cannot be negative"):
+        instpol.stokes([0, 22.5, 22.5, 67.5], [1e4, 1e4, -5, 1e4], [1e4] * 4)
     with pytest.raises(instpol.InputError, match=r"star 1 \(row 1"):
         instpol.stokes([0, 22.5, 45, 67.5], [[1e4] * 4, [1e4, 0, 1e4, 1e4]], [[1e4] * 4, [1e4, 0, 1e4, 1e4]])
     with pytest.raises(instpol.InputError, match="sigma_o is given without sigma_e"):
@@ -120,3 +124,44 @@ def test_bad_input_raises_input_error_with_the_library_message():
         instpol.stokes([0, 22.5, 45], [1e4] * 4, [1e4] * 4)
     with pytest.raises(instpol.InputError, match="kappa"):
         instpol.stokes([0, 22.5, 45, 67.5], [1e4] * 4, [1e4] * 4, kappa=1.0)
+
+
+def exposures_match_cli(ex, j):
+    """instpol.stokes' `exposures` against the CLI's JSON list of every exposure's check."""
+    jx = key(j, "exposures")
+    assert list(ex["index"]) == [e["row"] - 1 for e in jx]
+    assert same(ex["hwp_deg"], [e["hwp_deg"] for e in jx])
+    assert same(ex["f"], [e["f"] for e in jx]) and same(ex["pull"], [e["pull"] for e in jx])
+    assert list(ex["outlier"]) == [e["outlier"] for e in jx]
+
+
+def test_repeated_angles_combined_as_the_cli(run_json, tmp_path):
+    """Two cycles of 8 positions (the second at theta + 360 deg) with one outlier exposure:
+    photon counts, and the same fluxes with errors, give the CLI's numbers to the last bit, the
+    CLI's exposure checks, and (independently) the reduction of the fluxes summed here."""
+    hwp, fo, fe, _ = read_csv(DATA / "repeats_n8x2.csv")
+    j = run_json("stokes", "--input", DATA / "repeats_n8x2.csv")
+    py = instpol.stokes(hwp, fo, fe)
+    compare_with_cli(py, j)
+    exposures_match_cli(py["exposures"], j)
+    assert py["n_hwp"] == 8 and list(py["exposures"]["outlier"]).count(True) == 2
+    summed = instpol.stokes(hwp[:8], fo[:8] + fo[8:], fe[:8] + fe[8:])
+    assert summed["exposures"] is None
+    for k in ["q", "u", "sigma_q", "sigma_u", "p"]:
+        assert py[k] == summed[k], k
+    # With per-beam errors (not Poisson): the errors of a position add in quadrature.
+    so, se = 0.9 * np.sqrt(fo), 1.1 * np.sqrt(fe)
+    p = tmp_path / "errs.csv"
+    with open(p, "w") as f:
+        f.write("hwp_deg,f_o,f_e,sigma_o,sigma_e\n")
+        for row in zip(hwp, fo, fe, so, se):
+            f.write(",".join(repr(float(v)) for v in row) + "\n")
+    j = run_json("stokes", "--input", p)
+    py = instpol.stokes(hwp, fo, fe, so, se)
+    compare_with_cli(py, j)
+    exposures_match_cli(py["exposures"], j)
+    # A batch of two stars: each is that star alone.
+    b = instpol.stokes(hwp, np.stack([fo, fo[::-1]]), np.stack([fe, fe[::-1]]))
+    one = instpol.stokes(hwp, fo, fe)
+    assert b["q"][0] == one["q"] and same(b["exposures"]["pull"][0], one["exposures"]["pull"])
+    assert b["exposures"]["f"].shape == (2, 16)

@@ -172,34 +172,58 @@ fn _stokes<'py>(
         }
         hwp.iter().map(|d| d.to_radians()).collect()
     };
-    let results: Vec<Result<stokes::Reduction, String>> = py.detach(|| {
+    type Star = (stokes::Reduction, Option<stokes::repeats::Combined>);
+    let results: Vec<Result<Star, String>> = py.detach(|| {
         (0..m)
             .into_par_iter()
             .map(|s| {
                 let row = |a: &[f64]| a[s * n..(s + 1) * n].to_vec();
-                let meas = match sig {
-                    Some((so, se)) => {
-                        stokes::Measurement::with_errors(theta.clone(), row(fo), row(fe), row(so), row(se))
-                    }
-                    None => stokes::Measurement::poisson(theta.clone(), row(fo), row(fe)),
+                let (o, e) = (row(fo), row(fe));
+                let errs = sig.map(|(so, se)| (row(so), row(se)));
+                // Exposures at one plate position are combined as instpol stokes does.
+                let combined =
+                    stokes::repeats::combine_exposures(&theta, &o, &e, errs.as_ref().map(|(a, b)| (&a[..], &b[..])))
+                        .map_err(|e| match e {
+                            stokes::Error::NegativeCount { index } => format!("column {index} of f_o, f_e: {e}"),
+                            e => e.to_string(),
+                        })?;
+                let (th, o, e, errs) = match &combined {
+                    Some(c) => (
+                        c.theta.clone(),
+                        c.f_o.clone(),
+                        c.f_e.clone(),
+                        errs.map(|_| (c.sigma_o.clone(), c.sigma_e.clone())),
+                    ),
+                    None => (theta.clone(), o, e, errs),
+                };
+                let meas = match errs {
+                    Some((so, se)) => stokes::Measurement::with_errors(th, o, e, so, se),
+                    None => stokes::Measurement::poisson(th, o, e),
                 }
                 .map_err(|e| e.to_string())?;
                 let meas = match kappa {
                     Some(k) => meas.corrected_for_kappa(k).map_err(|e| format!("kappa: {e}"))?,
                     None => meas,
                 };
-                meas.reduce().map_err(|e| e.to_string())
+                Ok((meas.reduce().map_err(|e| e.to_string())?, combined))
             })
             .collect()
     });
     let mut red = Vec::with_capacity(m);
+    let mut repeats = Vec::with_capacity(m);
     for (s, r) in results.into_iter().enumerate() {
         match r {
-            Ok(r) => red.push(r),
+            Ok((r, c)) => {
+                red.push(r);
+                repeats.push(c);
+            }
             Err(e) if single => return Err(input_err(e)),
             Err(e) => return Err(input_err(format!("star {s} (row {s} of f_o, f_e): {e}"))),
         }
     }
+    // The HWP positions after combining repeats (the same for every star: the angles are).
+    let n_in = n;
+    let n = red.first().map_or(n, |r| r.n);
     let col = |f: &dyn Fn(&stokes::Reduction) -> f64| -> Vec<f64> { red.iter().map(f).collect() };
     let d = PyDict::new(py);
     d.set_item("n_hwp", n)?;
@@ -247,6 +271,26 @@ fn _stokes<'py>(
     d.set_item("estimator", est)?;
     let warn: Vec<Vec<String>> = red.iter().map(|r| r.warnings.iter().map(|w| w.to_string()).collect()).collect();
     d.set_item("warnings", warn)?;
+    // Repeated exposures: each input exposure's own F and its pull about its position's mean
+    // (stokes::repeats), as instpol stokes --json's `exposures`; None when no position repeats.
+    if repeats.iter().all(|c| c.is_some()) && !repeats.is_empty() {
+        let checks = |f: &dyn Fn(&stokes::repeats::ExposureCheck) -> f64| -> Vec<f64> {
+            repeats.iter().flat_map(|c| c.as_ref().map_or(vec![], |c| c.checks.iter().map(f).collect())).collect()
+        };
+        let ex = PyDict::new(py);
+        ex.set_item("index", (0..n_in).collect::<Vec<usize>>())?;
+        ex.set_item("hwp_deg", arr1(py, hwp.to_vec()))?;
+        ex.set_item("f", arr2(py, checks(&|k| k.f), m, n_in)?)?;
+        ex.set_item("pull", arr2(py, checks(&|k| k.pull), m, n_in)?)?;
+        let outl: Vec<bool> = repeats
+            .iter()
+            .flat_map(|c| c.as_ref().map_or(vec![], |c| c.checks.iter().map(|k| k.outlier).collect()))
+            .collect();
+        ex.set_item("outlier", bools(py, outl).reshape([m, n_in])?)?;
+        d.set_item("exposures", ex)?;
+    } else {
+        d.set_item("exposures", py.None())?;
+    }
     Ok(d)
 }
 

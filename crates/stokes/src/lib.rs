@@ -53,4 +53,6 @@ pub enum Error {
          undetermined (and its variance would overflow); check the errors"
     )]
     Undetermined { index: usize, sigma_f: f64 },
+    #[error("photon counts cannot be negative (give sigma_o, sigma_e for background-subtracted fluxes)")]
+    NegativeCount { index: usize },
 }

@@ -109,31 +109,17 @@ struct JsonExposure {
 }
 
 /// Exposures at the same plate position (rows at theta and theta + 360 deg too) combined into
-/// one row each (fluxes summed, variances added: `stokes::repeats`), with every exposure's
-/// check; `None` when no position repeats (the table is returned as read).
+/// one row each (`stokes::repeats::combine_exposures`), with every exposure's check; `None`
+/// when no position repeats (the table is returned as read).
 fn combine_repeats(t: Table, name: &str) -> Result<(Table, Option<Vec<JsonExposure>>)> {
     let theta: Vec<f64> = t.hwp_deg.iter().map(|d| d.to_radians()).collect();
-    if !stokes::repeats::has_repeats(&theta) {
+    let sigma = t.sigma.as_ref().map(|(a, b)| (&a[..], &b[..]));
+    let c = match stokes::repeats::combine_exposures(&theta, &t.f_o, &t.f_e, sigma) {
+        Ok(Some(c)) => c,
         // The library checks the rows and names them (see `explain`).
-        return Ok((t, None));
-    }
-    if t.sigma.is_none() {
-        // Photon counts: a negative count is refused before it can hide in a sum.
-        for (i, (o, e)) in t.f_o.iter().zip(&t.f_e).enumerate() {
-            if *o < 0.0 || *e < 0.0 {
-                bail!(
-                    "{name}: row {} (line {}): photon counts cannot be negative (give sigma_o, sigma_e for background-subtracted fluxes)",
-                    i + 1,
-                    t.lines[i]
-                );
-            }
-        }
-    }
-    let (so, se) = match &t.sigma {
-        Some((a, b)) => (a.clone(), b.clone()),
-        None => (t.f_o.iter().map(|v| v.sqrt()).collect(), t.f_e.iter().map(|v| v.sqrt()).collect()),
+        Ok(None) => return Ok((t, None)),
+        Err(e) => return Err(explain(e, &t, name)),
     };
-    let c = stokes::repeats::combine_repeats(&theta, &t.f_o, &t.f_e, &so, &se, OUTLIER_SIGMA);
     let checks = c
         .checks
         .iter()
@@ -157,10 +143,6 @@ fn combine_repeats(t: Table, name: &str) -> Result<(Table, Option<Vec<JsonExposu
     Ok((combined, Some(checks)))
 }
 
-/// An exposure whose F lies further than this (in sigma of its residual) from its repeats'
-/// mean is flagged: beyond 4 sigma, one in 16 000 honest exposures.
-const OUTLIER_SIGMA: f64 = 4.0;
-
 /// Say which row a library error is about.
 fn explain(e: RedError, t: &Table, name: &str) -> anyhow::Error {
     let row = |i: usize| format!("row {} (line {}, hwp_deg = {})", i + 1, t.lines[i], t.hwp_deg[i]);
@@ -173,6 +155,7 @@ fn explain(e: RedError, t: &Table, name: &str) -> anyhow::Error {
             second + 1,
             t.lines[second]
         ),
+        RedError::NegativeCount { index } => anyhow!("{name}: row {} (line {}): {e}", index + 1, t.lines[index]),
         RedError::NonPositiveFlux { index, total } => {
             anyhow!("{name}: {}: total flux f_o + f_e = {total} is not positive", row(index))
         }

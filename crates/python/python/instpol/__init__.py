@@ -89,6 +89,8 @@ def _first_star(d: Dict[str, Any]) -> Dict[str, Any]:
     for k, v in d.items():
         if k == "fourier":
             out[k] = {h: (w if h == "k" else w[0]) for h, w in v.items()}
+        elif k == "exposures" and v is not None:
+            out[k] = {h: (w if h in ("index", "hwp_deg") else w[0]) for h, w in v.items()}
         elif isinstance(v, np.ndarray):
             out[k] = v[0].item() if v.ndim == 1 else v[0]
         elif isinstance(v, list):
@@ -140,7 +142,15 @@ def stokes(
         sigma_p_analytic, sigma_chi_analytic_deg, mean_kappa`` (NaN when none),
         ``chi_defined``: floats for one star, (M,) arrays for M stars; ``f, sigma_f`` ((N,) or
         (M, N)), ``kappa`` (the kappa_j), ``fourier`` (dict of ``k, a, b, sigma_a, sigma_b,
-        power``), ``estimator`` and ``warnings``.
+        power``), ``estimator`` and ``warnings``; ``exposures`` (see below).
+
+    Exposures repeated at one plate position (angles equal modulo 360 deg) are combined first,
+    as ``instpol stokes`` does: the fluxes of each position summed, their variances added
+    (photon counts stay counts, checked with their Poisson errors; a negative count is
+    refused), so ``n_hwp`` and ``f`` count positions. ``exposures`` is then a dict of every
+    input exposure's ``index``, ``hwp_deg``, its own ``f`` (eq:F), its ``pull`` about its
+    position's mean and ``outlier`` (pull beyond 4 sigma; kept in the sum), ((N_in,) or
+    (M, N_in)); None when no position repeats.
     """
     hwp = _f64(hwp_deg, "hwp_deg").ravel()
     fo, fe = _f64(f_o, "f_o"), _f64(f_e, "f_e")
