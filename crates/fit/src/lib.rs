@@ -5,8 +5,9 @@
 //! row or a whole Stokes map) with error propagation ([`correct`]), the validation of a
 //! calibration on a standard star in frames ([`validate`]), the paper's own fields
 //! ([`paper`]), the telescope term (a Nasmyth M3 model fitted to standard stars against the
-//! parallactic angle, [`telescope`]) and the HWP zero angle from polarized standards
-//! ([`zeroangle`]).
+//! parallactic angle, [`telescope`]), the HWP zero angle from polarized standards
+//! ([`zeroangle`]), and the main job end to end on the paper's fields as one call
+//! ([`demo`]: frames simulated by `sim`, reduced by `skyfield`, calibrated here).
 //!
 //! A model is a value that answers "what is the instrumental polarization here"
 //! ([`model::FieldModel`], defined in the `field` crate with the field coordinates, so the
@@ -20,6 +21,7 @@ pub mod calfile;
 pub mod calibration;
 pub mod catalog_correct;
 pub mod correlation;
+pub mod demo;
 pub mod import;
 pub mod keys;
 pub mod model;

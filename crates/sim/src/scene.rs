@@ -66,7 +66,8 @@ use crate::Error;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
-fn default_angles() -> Vec<f64> {
+/// The HWP angles (deg) of a scene that gives none: the optimal N = 4 set.
+pub fn default_angles() -> Vec<f64> {
     vec![0.0, 22.5, 45.0, 67.5]
 }
 fn one() -> f64 {
@@ -75,8 +76,11 @@ fn one() -> f64 {
 fn default_bitpix() -> i32 {
     16
 }
+/// The Moffat profile's `beta` of a star that gives none (a typical seeing-limited value).
+pub const DEFAULT_MOFFAT_BETA: f64 = 2.5;
+
 fn default_beta() -> f64 {
-    2.5
+    DEFAULT_MOFFAT_BETA
 }
 fn default_bin() -> usize {
     10
@@ -474,6 +478,13 @@ impl Scene {
         s.resolve_paths(base);
         s.validate(path)?;
         Ok(s)
+    }
+
+    /// A scene built as a value, checked as a scene file is ([`Scene::from_toml_str`]) and
+    /// returned; `label` names it in errors. Its file paths are taken as they are.
+    pub fn checked(self, label: &Path) -> Result<Self, Error> {
+        self.validate(label)?;
+        Ok(self)
     }
 
     /// Read and validate a scene file.

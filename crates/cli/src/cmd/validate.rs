@@ -135,36 +135,6 @@ pub fn validate_star(
     Ok(r)
 }
 
-/// The demo's validation step, as the paper did it: simulate (the `sim` crate: photon and
-/// read noise) frames of an unpolarized standard of the paper's precision (3e6 e- per
-/// exposure, sigma_P ~ 0.04%) at `fit::paper::corner_position_arcmin` seen through the true V field
-/// `true_coeffs_percent` (index = power of r, as in a scene file), write them into `dir`, and
-/// validate the calibration `cal` on them.
-pub fn demo_corner_star(
-    cal: &Calibration,
-    true_coeffs_percent: &[f64],
-    dir: &Path,
-    seed: u64,
-) -> Result<ValidationReport> {
-    let (x, y) = fit::paper::corner_position_arcmin();
-    let coeffs: Vec<String> = true_coeffs_percent.iter().map(|c| format!("{c:e}")).collect();
-    let scene = format!(
-        "instrument = \"fors1\"\nfilter = \"V\"\nhwp_angles_deg = [0, 22.5, 45, 67.5]\nseed = {seed}\n\
-         [output]\nbitpix = -32\nprefix = \"standard\"\n\
-         [sky]\nbrightness_e = 200\n\
-         [[stars]]\nx = {x}\ny = {y}\ncoords = \"arcmin\"\nflux_e = 3e6\np = 0.0\nfwhm_arcsec = 1.4\n\
-         [effects]\nphoton_noise = true\nread_noise = true\nsaturation = true\n\
-         instpol = {{ kind = \"radial\", coeffs_percent = [{}] }}\n",
-        coeffs.join(", ")
-    );
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let sc = sim::Scene::from_toml_str(&scene, &dir.join("standard.toml"))?;
-    let out = sim::simulate(&sc, dir, &|| {}).context("simulating the standard star")?;
-    let inst = Instrument::load("fors1")?;
-    let (x_px, y_px) = inst.arcmin_to_pixel(x, y);
-    validate_star(cal, &inst, &out.frames, x_px, y_px, ("unpolarized", Expected::ZERO), &ValidateOptions::default())
-}
-
 fn parse_annulus(s: &str) -> Result<Option<(f64, f64)>> {
     if s.eq_ignore_ascii_case("none") {
         return Ok(None);
@@ -432,50 +402,4 @@ fn print_report(r: &ValidationReport, cal: &Path) {
         v.corrected_residual_sigma
     );
     outln!("{} (threshold {} sigma)", if v.pass { "PASS" } else { "FAIL" }, v.threshold);
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use fit::calfile::{PixelGrid, Provenance, FORMAT_VERSION};
-    use fit::{FieldRegion, RadialModel};
-
-    fn cal(filter: &str, coeffs: [f64; 3]) -> Calibration {
-        let h = 1024.0 * 0.2 / 60.0;
-        Calibration {
-            format_version: FORMAT_VERSION,
-            instrument: "FORS1".into(),
-            filter: filter.into(),
-            lambda_nm: f64::NAN,
-            hwp_chi_offset_deg: 0.0,
-            model: fit::Model::Radial(RadialModel::new(1, coeffs.to_vec(), [0.0, 0.0])),
-            region: FieldRegion { x_min: -h, x_max: h, y_min: -h, y_max: h },
-            rms_residual: 5e-4,
-            n_bins_used: 0,
-            polar_angle: None,
-            exclusions: vec![],
-            robust: "none".into(),
-            pixel: Some(PixelGrid { scale_arcsec: 0.2, origin_px: [1023.5, 1023.5] }),
-            provenance: Provenance::now("test", vec![]),
-            bins: vec![],
-            grid: None,
-        }
-    }
-
-    /// The demo's step (section `sec:fors1`): a simulated unpolarized standard (photon and read
-    /// noise) in the lower-right corner of the paper's V field: the V calibration predicts
-    /// 0.96% at 128.1 deg and passes; the I calibration fails.
-    #[test]
-    fn demo_corner_star_passes_v_fails_i() {
-        let dir = tempfile::tempdir().unwrap();
-        let truth = [0.0, 0.012, 0.046, 0.002];
-        let v = demo_corner_star(&cal("V", [0.012e-2, 0.046e-2, 0.002e-2]), &truth, dir.path(), 7).unwrap();
-        let r = &v.validation;
-        assert!((r.predicted_p - 0.0096).abs() < 1e-9 && (r.predicted_chi_deg - 128.1).abs() < 1e-6, "{r:?}");
-        assert!((r.measured_p - 0.0096).abs() < 4.0 * r.sigma_p, "{r:?}");
-        assert!(r.sigma_p > 2e-4 && r.sigma_p < 8e-4, "{r:?}");
-        assert!(r.pass, "{r:?}");
-        let i = demo_corner_star(&cal("I", [-0.017e-2, 0.105e-2, -0.006e-2]), &truth, dir.path(), 7).unwrap();
-        assert!(!i.validation.pass && i.validation.residual_sigma > 3.0, "{:?}", i.validation);
-    }
 }

@@ -164,3 +164,6 @@ def catalog(
     allow_extrapolation: bool = ...,
 ) -> Dict[str, Any]:
     """Every paired star measured: Q/I, U/I, P, chi with errors and flags."""
+
+def demo(out_dir: PathLike, *, frames: bool = ..., keep_frames: bool = ..., seed: int = ...) -> Dict[str, Any]:
+    """The paper's three empty fields simulated, calibrated and validated: instpol demo's report."""
