@@ -44,6 +44,7 @@ pub mod setup;
 pub mod synth;
 pub mod telescope;
 pub mod telescope_cal;
+pub mod telescope_report;
 pub mod validate;
 pub mod wavelength;
 

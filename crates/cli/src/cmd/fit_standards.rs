@@ -2,11 +2,9 @@
 //! measured at many parallactic angles (library: `fit::telescope`).
 
 use anyhow::{bail, Context, Result};
-use fit::telescope::{fit_band, fit_joint, read_observations, FitOptions, ModelKind, Observation, TelescopeFit};
+use fit::telescope::{read_observations, FitOptions, ModelKind, Observation, TelescopeFit};
+use fit::telescope_report::{choose_mirror, fit_all, FitReport, Mirror, MirrorError};
 use fit::ErrorScaling;
-use mueller::mirror::MetalTable;
-use plotters::prelude::*;
-use serde::Serialize;
 use std::path::{Path, PathBuf};
 
 /// Fit the instrumental polarization of a Nasmyth telescope's 45 deg tertiary mirror to
@@ -97,149 +95,21 @@ pub struct Args {
     pub json: bool,
 }
 
-#[derive(Serialize)]
-struct ParamOut {
-    name: String,
-    value: f64,
-    #[serde(rename = "sigma_value")]
-    sigma: f64,
-    unit: &'static str,
-}
-
-#[derive(Serialize)]
-struct PointOut {
-    star: String,
-    band: String,
-    source: String,
-    parallactic_deg: f64,
-    q: f64,
-    u: f64,
-    q_model: f64,
-    u_model: f64,
-    pull: f64,
-    flagged: bool,
-}
-
-#[derive(Serialize)]
-struct MinimumOut {
-    thickness_nm: f64,
-    chi2: f64,
-    delta_chi2: f64,
-}
-
-#[derive(Serialize)]
-struct FitOut {
-    model: &'static str,
-    /// The mirror's metal table, its fixed over-layer (nm) and where they came from
-    /// (instrument, --metal or default).
-    metal: String,
-    overlayer_nm: f64,
-    mirror_source: &'static str,
-    /// The oxide model's local minima in the thickness within delta chi2 < 4, best first.
-    #[serde(skip_serializing_if = "Vec::is_empty")]
-    minima: Vec<MinimumOut>,
-    bands: Vec<String>,
-    joint: bool,
-    params: Vec<ParamOut>,
-    chi2: f64,
-    #[serde(rename = "n_dof")]
-    dof: usize,
-    #[serde(rename = "chi2_dof")]
-    chi2_reduced: f64,
-    error_scaling: &'static str,
-    error_factor: f64,
-    rms_q: f64,
-    rms_u: f64,
-    n_used: usize,
-    n_total: usize,
-    flagged: Vec<String>,
-    points: Vec<PointOut>,
-    /// The calibration file this fit was written to (--output, --output-dir).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    output: Option<PathBuf>,
-}
-
-fn out(f: &TelescopeFit, joint: bool, mirror: &Mirror) -> FitOut {
-    FitOut {
-        model: f.model.name(),
-        metal: mirror.metal.clone(),
-        overlayer_nm: mirror.overlayer_nm,
-        mirror_source: mirror.source,
-        minima: f
-            .minima
-            .iter()
-            .map(|m| MinimumOut { thickness_nm: m.thickness_nm, chi2: m.chi2, delta_chi2: m.delta_chi2 })
-            .collect(),
-        bands: f.bands.iter().map(|b| b.0.clone()).collect(),
-        joint,
-        params: f
-            .params
-            .iter()
-            .map(|p| {
-                let angle = p.name.starts_with("offset");
-                let unit = if angle {
-                    "deg"
-                } else if p.name == "thickness_nm" {
-                    "nm"
-                } else if p.name.starts_with('q') || p.name.starts_with('u') {
-                    "fraction"
-                } else {
-                    ""
-                };
-                let s = if angle { 180.0 / std::f64::consts::PI } else { 1.0 };
-                ParamOut { name: p.name.clone(), value: p.value * s, sigma: p.sigma * s, unit }
-            })
-            .collect(),
-        chi2: f.chi2,
-        dof: f.dof,
-        chi2_reduced: f.chi2_reduced,
-        error_scaling: f.error_scaling.name(),
-        error_factor: f.error_factor,
-        rms_q: f.rms_q,
-        rms_u: f.rms_u,
-        n_used: f.n_used(),
-        n_total: f.points.len(),
-        flagged: f
-            .points
-            .iter()
-            .filter(|p| p.flagged)
-            .map(|p| format!("{} ({}, pull {:.1})", p.obs.star, p.obs.source, p.pull))
-            .collect(),
-        points: f
-            .points
-            .iter()
-            .map(|p| PointOut {
-                star: p.obs.star.clone(),
-                band: p.obs.band.clone(),
-                source: p.obs.source.clone(),
-                parallactic_deg: p.obs.parallactic.to_degrees(),
-                q: p.obs.qu.q,
-                u: p.obs.qu.u,
-                q_model: p.q_model,
-                u_model: p.u_model,
-                pull: p.pull,
-                flagged: p.flagged,
-            })
-            .collect(),
-        output: None,
-    }
-}
-
-fn print_fit(o: &FitOut) {
+fn print_fit(o: &FitReport) {
     let head = if o.joint { format!("joint ({})", o.bands.join(", ")) } else { o.bands.join(", ") };
     outln!("{head}: model {}", o.model);
     for p in &o.params {
         if p.unit == "fraction" {
-            outln!("  {:<22} {:>10.4} +- {:.4} %", p.name, 100.0 * p.value, 100.0 * p.sigma);
+            outln!("  {:<22} {:>10.4} +- {:.4} %", p.name, 100.0 * p.value, 100.0 * p.sigma_value);
         } else {
-            outln!("  {:<22} {:>10.4} +- {:.4} {}", p.name, p.value, p.sigma, p.unit);
+            outln!("  {:<22} {:>10.4} +- {:.4} {}", p.name, p.value, p.sigma_value, p.unit);
         }
     }
     outln!(
         "  chi2/dof = {:.2} / {} = {:.2}; errors x sqrt({:.2}) ({}); RMS q = {:.3} %, u = {:.3} %; {} of {} points used",
         o.chi2,
-        o.dof,
-        o.chi2_reduced,
+        o.n_dof,
+        o.chi2_dof,
         o.error_factor,
         o.error_scaling,
         100.0 * o.rms_q,
@@ -261,57 +131,27 @@ fn print_fit(o: &FitOut) {
     }
 }
 
-/// The mirror the models start from.
-struct Mirror {
-    table: MetalTable,
-    metal: String,
-    overlayer_nm: f64,
-    source: &'static str,
-}
-
-/// --metal, else --instrument's oblique mirror (metal, alumina over-layer), else aluminium.
+/// --metal, else --instrument's oblique mirror (metal, alumina over-layer), else aluminium
+/// (fit::telescope_report::choose_mirror), with this command's words.
 fn mirror(a: &Args, inst: Option<&instrument::Instrument>) -> Result<Mirror> {
-    let table_of = |m: &str, base: Option<&Path>| -> Result<MetalTable> {
-        if let Ok(t) = MetalTable::builtin(m) {
-            return Ok(t);
+    let base = a.instrument.as_deref().map(Path::new).filter(|p| p.is_file()).and_then(|p| p.parent());
+    let c = choose_mirror(a.metal.as_deref(), inst, base).map_err(|e| match e {
+        MirrorError::Overlayer { instrument, mirror, overlayer } => anyhow::anyhow!(
+            "--instrument {instrument}: mirror {mirror} has over-layer '{overlayer}': fit-standards models alumina over-layers only (give --metal to fit the bare metal)"
+        ),
+        MirrorError::Table { metal, from_instrument: Some((i, m)), source } => {
+            anyhow::Error::new(source).context(format!("--instrument {i}: mirror {m} metal {metal}"))
         }
-        let p = match base {
-            Some(b) if Path::new(m).is_relative() && !Path::new(m).is_file() => b.join(m),
-            _ => PathBuf::from(m),
-        };
-        Ok(MetalTable::read(&p)?)
-    };
-    let m3 = inst.and_then(|i| i.telescope.as_ref()).and_then(|t| t.oblique_mirror());
-    if let (Some(i), Some(m)) = (inst, m3) {
-        let thick = match m.overlayer.as_deref() {
-            None => 0.0,
-            Some(o) if o.eq_ignore_ascii_case("alumina") => m.overlayer_thickness_nm,
-            Some(o) => bail!(
-                "--instrument {}: mirror {} has over-layer '{o}': fit-standards models alumina over-layers only (give --metal to fit the bare metal)",
-                i.name,
-                m.name
-            ),
-        };
-        if let Some(given) = &a.metal {
-            if !given.eq_ignore_ascii_case(&m.metal) || thick > 0.0 {
-                eprintln!(
-                    "warning: --metal {given} OVERRIDES the instrument {}'s {} (metal {}, alumina over-layer {thick} nm): fitting {given}, bare",
-                    i.name, m.name, m.metal
-                );
-            }
-        } else {
-            let base = a.instrument.as_deref().map(Path::new).filter(|p| p.is_file()).and_then(|p| p.parent());
-            let table = table_of(&m.metal, base)
-                .with_context(|| format!("--instrument {}: mirror {} metal {}", i.name, m.name, m.metal))?;
-            return Ok(Mirror { table, metal: m.metal.clone(), overlayer_nm: thick, source: "instrument" });
+        MirrorError::Table { metal, from_instrument: None, source } => {
+            anyhow::Error::new(source).context(format!("--metal {metal}"))
         }
+    })?;
+    if let (Some(given), Some((i, m, metal, thick))) = (&a.metal, &c.overrides) {
+        eprintln!(
+            "warning: --metal {given} OVERRIDES the instrument {i}'s {m} (metal {metal}, alumina over-layer {thick} nm): fitting {given}, bare"
+        );
     }
-    let (metal, source) = match &a.metal {
-        Some(m) => (m.clone(), "--metal"),
-        None => ("aluminium".to_string(), "default"),
-    };
-    let table = table_of(&metal, None).with_context(|| format!("--metal {metal}"))?;
-    Ok(Mirror { table, metal, overlayer_nm: 0.0, source })
+    Ok(c.mirror)
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -340,28 +180,10 @@ pub fn run(a: Args) -> Result<()> {
     for f in &a.files {
         obs.extend(read_observations(f)?);
     }
-    let mut bands: Vec<String> = Vec::new();
-    for o in &obs {
-        if !bands.contains(&o.band) {
-            bands.push(o.band.clone());
-        }
-    }
-    let mut fits: Vec<(TelescopeFit, bool)> = Vec::new();
-    for b in &bands {
-        let sel: Vec<Observation> = obs.iter().filter(|o| &o.band == b).cloned().collect();
-        for &m in &models {
-            let f = fit_band(m, &sel, table, &opts).with_context(|| format!("band {b}, model {}", m.name()))?;
-            fits.push((f, false));
-        }
-    }
-    if a.joint {
-        for &m in &models {
-            let f = fit_joint(m, &obs, table, &opts, true).with_context(|| format!("joint fit, model {}", m.name()))?;
-            fits.push((f, true));
-        }
-    }
+    let fits =
+        fit_all(&obs, &models, table, &opts, a.joint).map_err(|(what, e)| anyhow::Error::new(e).context(what))?;
     let outputs = write_calibrations(&a, &fits, &obs, inst.as_ref(), &mirror.metal)?;
-    let mut outs: Vec<FitOut> = fits.iter().map(|(f, j)| out(f, *j, &mirror)).collect();
+    let mut outs: Vec<FitReport> = fits.iter().map(|(f, j)| FitReport::new(f, *j, &mirror)).collect();
     for (i, p) in &outputs {
         outs[*i].output = Some(p.clone());
     }
@@ -372,7 +194,7 @@ pub fn run(a: Args) -> Result<()> {
                 let name =
                     format!("standards_{}_{}{}.png", f.model.name(), sanitize(b), if *j { "_joint" } else { "" });
                 let path = dir.join(name);
-                plot_band(&path, f, bi)?;
+                super::fit_standards_plot::plot_band(&path, f, bi)?;
                 if !a.json {
                     eprintln!("wrote {}", path.display());
                 }
@@ -436,18 +258,13 @@ fn write_calibrations(
         })
     };
     let mut written = Vec::new();
-    let mut bands: Vec<&str> = Vec::new();
-    for o in obs {
-        if !bands.contains(&o.band.as_str()) {
-            bands.push(&o.band);
-        }
-    }
+    let bands = fit::telescope_report::bands_of(obs);
     if let Some(path) = &a.output {
         crate::util::check_output(path)?;
         let f = if a.joint {
             pick(true, None)
         } else if bands.len() == 1 {
-            pick(false, Some(bands[0]))
+            pick(false, Some(bands[0].as_str()))
         } else {
             bail!(
                 "--output: {} bands ({}): write one calibration per band with --output-dir, or fit them jointly (--joint)",
@@ -478,7 +295,7 @@ fn write_calibrations(
     if let Some(dir) = &a.output_dir {
         std::fs::create_dir_all(dir).with_context(|| format!("--output-dir {}", dir.display()))?;
         for b in &bands {
-            let (i, (f, _)) = pick(false, Some(b))
+            let (i, (f, _)) = pick(false, Some(b.as_str()))
                 .ok_or_else(|| anyhow::anyhow!("--save-model {}: that model was not fitted", save.name()))?;
             let path = dir.join(format!("telescope_{}.fits", sanitize(b)));
             crate::util::check_output(&path)?;
@@ -520,227 +337,4 @@ fn check_field_instrument(
 
 fn sanitize(s: &str) -> String {
     s.chars().map(|c| if c.is_ascii_alphanumeric() || c == '.' { c } else { '_' }).collect()
-}
-
-/// One standard's point in the `--plot-dir` figure (fractions; angle in deg).
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct PlotPoint {
-    pa_deg: f64,
-    /// What the upper panel draws: the measured `(q, u)`, or for a star the model gives its
-    /// own polarization (a polarized standard, a rotator angle) the measurement with that
-    /// removed as the fitted model has it, `q - (q_model - q_curve(pa))`.
-    q: f64,
-    u: f64,
-    sigma_q: f64,
-    sigma_u: f64,
-    /// Data minus model (the lower panel).
-    resid_q: f64,
-    resid_u: f64,
-    flagged: bool,
-    /// The star's own polarization was removed (drawn as a triangle).
-    shifted: bool,
-}
-
-/// The series of one band's figure: the model curve of an unpolarized star at rotator angle
-/// 0, `(pa_deg, q, u)` every degree, and the points. Every point sits on the curve exactly
-/// when its residual is zero: a polarized standard is not drawn at its raw `(q, u)`, which the
-/// model puts on a curve of its own (its `p_true`, `chi_true` through the telescope).
-struct BandPlot {
-    curve: Vec<(f64, f64, f64)>,
-    points: Vec<PlotPoint>,
-}
-
-fn band_plot(f: &TelescopeFit, bi: usize) -> Result<BandPlot> {
-    let (band, m) = &f.bands[bi];
-    let unpol = |pa_rad: f64| m.unpolarized(pa_rad).map_err(|e| anyhow::anyhow!("model: {e}"));
-    let mut curve = Vec::with_capacity(361);
-    for k in 0..=360 {
-        let pa = -180.0 + k as f64;
-        let (q, u) = unpol(f64::to_radians(pa))?;
-        curve.push((pa, q, u));
-    }
-    let mut points = Vec::new();
-    for p in f.points.iter().filter(|p| &p.obs.band == band) {
-        let o = &p.obs;
-        let shifted = o.sky != (0.0, 0.0) || o.rotator != 0.0;
-        let (q, u) = if shifted {
-            let (cq, cu) = unpol(o.parallactic)?;
-            (o.qu.q - p.q_model + cq, o.qu.u - p.u_model + cu)
-        } else {
-            (o.qu.q, o.qu.u)
-        };
-        points.push(PlotPoint {
-            pa_deg: o.parallactic.to_degrees(),
-            q,
-            u,
-            sigma_q: o.qu.sigma_q(),
-            sigma_u: o.qu.sigma_u(),
-            resid_q: o.qu.q - p.q_model,
-            resid_u: o.qu.u - p.u_model,
-            flagged: p.flagged,
-            shifted,
-        });
-    }
-    Ok(BandPlot { curve, points })
-}
-
-/// The legend's key of the polarized standards' triangles.
-const POL_KEY: &str = "polarized, own P removed";
-
-/// q and u against the parallactic angle with the model curve (upper panel), residuals
-/// (lower panel); flagged points hollow; polarized standards (triangles) with their own
-/// polarization removed as the model has it, so that they sit on the same curve ([`band_plot`]).
-fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
-    let band = &f.bands[bi].0;
-    let BandPlot { curve, points: pts } = band_plot(f, bi)?;
-    let curve: Vec<(f64, f64, f64)> = curve.iter().map(|&(pa, q, u)| (pa, 100.0 * q, 100.0 * u)).collect();
-    let ymax = curve
-        .iter()
-        .map(|c| c.1.abs().max(c.2.abs()))
-        .chain(pts.iter().map(|p| 100.0 * (p.q.abs().max(p.u.abs()) + 2.0 * p.sigma_q.max(p.sigma_u))))
-        .fold(0.5, f64::max)
-        * 1.1;
-    let rmax =
-        pts.iter().map(|p| 100.0 * (p.resid_q.abs() + p.sigma_q).max(p.resid_u.abs() + p.sigma_u)).fold(0.05, f64::max)
-            * 1.2;
-    let title = format!("{band}: {} model, chi2/dof = {:.2}", f.model.name(), f.chi2_reduced);
-    crate::plot::save_png(path, (900, 800), |root| {
-        let (top, bottom) = root.split_vertically(520);
-        let ax = crate::plot::Axes::new(title.clone(), "parallactic angle (deg)", "q, u (%)");
-        let mut c = crate::plot::chart(&top, &ax, -180.0..180.0, -ymax..ymax)?;
-        let mut keyed = false;
-        for (col, idx, label) in [(RED, 0usize, "q"), (BLUE, 1, "u")] {
-            c.draw_series(LineSeries::new(
-                curve.iter().map(|p| (p.0, if idx == 0 { p.1 } else { p.2 })),
-                col.stroke_width(2),
-            ))
-            .map_err(crate::plot::pe)?
-            .label(format!("{label} model"))
-            .legend(crate::plot::line_key(col.stroke_width(2)));
-            for p in &pts {
-                let (v, s) = if idx == 0 { (p.q, p.sigma_q) } else { (p.u, p.sigma_u) };
-                let x = p.pa_deg;
-                c.draw_series(std::iter::once(PathElement::new([(x, 100.0 * (v - s)), (x, 100.0 * (v + s))], col)))
-                    .map_err(crate::plot::pe)?;
-                let style = if p.flagged { col.stroke_width(2) } else { col.filled() };
-                if p.shifted {
-                    let a = c
-                        .draw_series(std::iter::once(TriangleMarker::new((x, 100.0 * v), 6, style)))
-                        .map_err(crate::plot::pe)?;
-                    if !keyed && idx == 1 {
-                        keyed = true;
-                        a.label(POL_KEY).legend(|(x, y)| TriangleMarker::new((x + 10, y), 6, BLACK.filled()));
-                    }
-                } else {
-                    c.draw_series(std::iter::once(Circle::new((x, 100.0 * v), 5, style))).map_err(crate::plot::pe)?;
-                }
-            }
-        }
-        let data: Vec<(f64, f64)> = curve
-            .iter()
-            .flat_map(|p| [(p.0, p.1), (p.0, p.2)])
-            .chain(pts.iter().flat_map(|p| {
-                let x = p.pa_deg;
-                [
-                    (x, 100.0 * (p.q + p.sigma_q)),
-                    (x, 100.0 * (p.q - p.sigma_q)),
-                    (x, 100.0 * (p.u + p.sigma_u)),
-                    (x, 100.0 * (p.u - p.sigma_u)),
-                ]
-            }))
-            .collect();
-        let (entries, chars) = if keyed { (3, POL_KEY.len()) } else { (2, 7) };
-        crate::plot::legend_off_data(&mut c, &data, entries, chars, crate::plot::CORNERS)?;
-        let ax = crate::plot::Axes::new(
-            "residuals (data - model; hollow: flagged)",
-            "parallactic angle (deg)",
-            "residual (%)",
-        );
-        let mut r = crate::plot::chart(&bottom, &ax, -180.0..180.0, -rmax..rmax)?;
-        r.draw_series(LineSeries::new([(-180.0, 0.0), (180.0, 0.0)], BLACK)).map_err(crate::plot::pe)?;
-        for p in &pts {
-            let x = p.pa_deg;
-            for (col, d, s, dx) in [(RED, p.resid_q, p.sigma_q, -1.5), (BLUE, p.resid_u, p.sigma_u, 1.5)] {
-                r.draw_series(std::iter::once(PathElement::new(
-                    [(x + dx, 100.0 * (d - s)), (x + dx, 100.0 * (d + s))],
-                    col,
-                )))
-                .map_err(crate::plot::pe)?;
-                let style = if p.flagged { col.stroke_width(2) } else { col.filled() };
-                r.draw_series(std::iter::once(Circle::new((x + dx, 100.0 * d), 4, style))).map_err(crate::plot::pe)?;
-            }
-        }
-        Ok(())
-    })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use fit::telescope::{parse_observations, BandModel, Track};
-
-    /// Two unpolarized and two polarized standards (5 % at 30 deg, 4 % at 120 deg) seen through
-    /// an aluminium M3 (factor 0.86, offset 40 deg) at twelve parallactic angles each, made
-    /// with the track-averaged chain (`BandModel::sky_through`, not the fit's residuals), with
-    /// a fixed +-2e-4 pattern for noise; fitted with the Wiersema model.
-    fn fitted() -> TelescopeFit {
-        let table = MetalTable::builtin("aluminium").unwrap();
-        let truth = BandModel {
-            wavelength_um: 0.55,
-            index: table.index(0.55).unwrap(),
-            factor: 0.86,
-            thickness_nm: 0.0,
-            offset: 40f64.to_radians(),
-            q0: 0.0,
-            u0: 0.0,
-        };
-        let mut text =
-            String::from("star,parallactic_deg,q,sigma_q,u,sigma_u,wavelength_um,filter,p_true,chi_true_deg\n");
-        for (s, (star, p, chi)) in
-            [("WD a", 0.0, 0.0), ("WD b", 0.0, 0.0), ("Pol a", 0.05f64, 30f64), ("Pol b", 0.04, 120.0)]
-                .into_iter()
-                .enumerate()
-        {
-            for k in 0..12 {
-                let pa = -170.0 + 29.0 * k as f64 + 7.0 * s as f64;
-                let (qs, us) = (p * (2.0 * chi.to_radians()).cos(), p * (2.0 * chi.to_radians()).sin());
-                let (q, u) = truth.sky_through(qs, us, Track::at(pa.to_radians())).unwrap();
-                let e = if (k + s) % 2 == 0 { 2e-4 } else { -2e-4 };
-                let (pt, ct) = if p > 0.0 { (p.to_string(), chi.to_string()) } else { (String::new(), String::new()) };
-                text += &format!("{star},{pa},{},3e-4,{},3e-4,0.55,V,{pt},{ct}\n", q + e, u - e);
-            }
-        }
-        let obs = parse_observations(&text, Path::new("night.csv")).unwrap();
-        fit_band(ModelKind::Wiersema, &obs, &table, &FitOptions { clip: None, ..Default::default() }).unwrap()
-    }
-
-    /// The upper panel once drew the curve of an unpolarized star only, so polarized
-    /// standards sat off it by their own 4-5 %. Every point lies on the curve up to its
-    /// residual (the lower panel's value, data minus model): the polarized standards with the
-    /// residuals the fit leaves (~2e-4), far closer than their raw values (several %).
-    #[test]
-    fn polarized_standards_sit_on_the_curve_up_to_their_residual() {
-        let f = fitted();
-        let bp = band_plot(&f, 0).unwrap();
-        assert_eq!(bp.points.len(), 48);
-        assert_eq!(bp.curve.len(), 361);
-        let (_, m) = &f.bands[0];
-        for (p, fp) in bp.points.iter().zip(f.points.iter()) {
-            // The curve at this angle, from the band model at the fitted parameters.
-            let (cq, cu) = m.unpolarized(p.pa_deg.to_radians()).unwrap();
-            assert!((p.q - cq - p.resid_q).abs() < 1e-12 && (p.u - cu - p.resid_u).abs() < 1e-12, "{p:?}");
-            assert!(p.resid_q.abs() < 1e-3 && p.resid_u.abs() < 1e-3, "{p:?}");
-            let polarized = fp.obs.sky != (0.0, 0.0);
-            assert_eq!(p.shifted, polarized);
-            if polarized {
-                // The raw measurement is far off the unpolarized curve: what the old plot drew.
-                assert!((fp.obs.qu.q - cq).hypot(fp.obs.qu.u - cu) > 0.02, "{:?}", fp.obs);
-            } else {
-                assert_eq!((p.q, p.u), (fp.obs.qu.q, fp.obs.qu.u), "unpolarized stars drawn as measured");
-            }
-        }
-        let dir = tempfile::tempdir().unwrap();
-        plot_band(&dir.path().join("v.png"), &f, 0).unwrap();
-        assert!(dir.path().join("v.png").is_file());
-    }
 }

@@ -9,6 +9,7 @@ pub mod demo;
 pub mod explain;
 pub mod fit;
 pub mod fit_standards;
+pub mod fit_standards_plot;
 pub mod frame_opts;
 pub mod fresnel;
 pub mod import_map;

@@ -1,0 +1,231 @@
+//! `instpol fit-standards --plot-dir`: one band's figure of a telescope fit (q and u against
+//! the parallactic angle with the model curve, and the residuals).
+
+use anyhow::Result;
+use fit::telescope::TelescopeFit;
+use plotters::prelude::*;
+use std::path::Path;
+
+/// One standard's point in the `--plot-dir` figure (fractions; angle in deg).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PlotPoint {
+    pa_deg: f64,
+    /// What the upper panel draws: the measured `(q, u)`, or for a star the model gives its
+    /// own polarization (a polarized standard, a rotator angle) the measurement with that
+    /// removed as the fitted model has it, `q - (q_model - q_curve(pa))`.
+    q: f64,
+    u: f64,
+    sigma_q: f64,
+    sigma_u: f64,
+    /// Data minus model (the lower panel).
+    resid_q: f64,
+    resid_u: f64,
+    flagged: bool,
+    /// The star's own polarization was removed (drawn as a triangle).
+    shifted: bool,
+}
+
+/// The series of one band's figure: the model curve of an unpolarized star at rotator angle
+/// 0, `(pa_deg, q, u)` every degree, and the points. Every point sits on the curve exactly
+/// when its residual is zero: a polarized standard is not drawn at its raw `(q, u)`, which the
+/// model puts on a curve of its own (its `p_true`, `chi_true` through the telescope).
+struct BandPlot {
+    curve: Vec<(f64, f64, f64)>,
+    points: Vec<PlotPoint>,
+}
+
+fn band_plot(f: &TelescopeFit, bi: usize) -> Result<BandPlot> {
+    let (band, m) = &f.bands[bi];
+    let unpol = |pa_rad: f64| m.unpolarized(pa_rad).map_err(|e| anyhow::anyhow!("model: {e}"));
+    let mut curve = Vec::with_capacity(361);
+    for k in 0..=360 {
+        let pa = -180.0 + k as f64;
+        let (q, u) = unpol(f64::to_radians(pa))?;
+        curve.push((pa, q, u));
+    }
+    let mut points = Vec::new();
+    for p in f.points.iter().filter(|p| &p.obs.band == band) {
+        let o = &p.obs;
+        let shifted = o.sky != (0.0, 0.0) || o.rotator != 0.0;
+        let (q, u) = if shifted {
+            let (cq, cu) = unpol(o.parallactic)?;
+            (o.qu.q - p.q_model + cq, o.qu.u - p.u_model + cu)
+        } else {
+            (o.qu.q, o.qu.u)
+        };
+        points.push(PlotPoint {
+            pa_deg: o.parallactic.to_degrees(),
+            q,
+            u,
+            sigma_q: o.qu.sigma_q(),
+            sigma_u: o.qu.sigma_u(),
+            resid_q: o.qu.q - p.q_model,
+            resid_u: o.qu.u - p.u_model,
+            flagged: p.flagged,
+            shifted,
+        });
+    }
+    Ok(BandPlot { curve, points })
+}
+
+/// The legend's key of the polarized standards' triangles.
+const POL_KEY: &str = "polarized, own P removed";
+
+/// q and u against the parallactic angle with the model curve (upper panel), residuals
+/// (lower panel); flagged points hollow; polarized standards (triangles) with their own
+/// polarization removed as the model has it, so that they sit on the same curve ([`band_plot`]).
+pub fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
+    let band = &f.bands[bi].0;
+    let BandPlot { curve, points: pts } = band_plot(f, bi)?;
+    let curve: Vec<(f64, f64, f64)> = curve.iter().map(|&(pa, q, u)| (pa, 100.0 * q, 100.0 * u)).collect();
+    let ymax = curve
+        .iter()
+        .map(|c| c.1.abs().max(c.2.abs()))
+        .chain(pts.iter().map(|p| 100.0 * (p.q.abs().max(p.u.abs()) + 2.0 * p.sigma_q.max(p.sigma_u))))
+        .fold(0.5, f64::max)
+        * 1.1;
+    let rmax =
+        pts.iter().map(|p| 100.0 * (p.resid_q.abs() + p.sigma_q).max(p.resid_u.abs() + p.sigma_u)).fold(0.05, f64::max)
+            * 1.2;
+    let title = format!("{band}: {} model, chi2/dof = {:.2}", f.model.name(), f.chi2_reduced);
+    crate::plot::save_png(path, (900, 800), |root| {
+        let (top, bottom) = root.split_vertically(520);
+        let ax = crate::plot::Axes::new(title.clone(), "parallactic angle (deg)", "q, u (%)");
+        let mut c = crate::plot::chart(&top, &ax, -180.0..180.0, -ymax..ymax)?;
+        let mut keyed = false;
+        for (col, idx, label) in [(RED, 0usize, "q"), (BLUE, 1, "u")] {
+            c.draw_series(LineSeries::new(
+                curve.iter().map(|p| (p.0, if idx == 0 { p.1 } else { p.2 })),
+                col.stroke_width(2),
+            ))
+            .map_err(crate::plot::pe)?
+            .label(format!("{label} model"))
+            .legend(crate::plot::line_key(col.stroke_width(2)));
+            for p in &pts {
+                let (v, s) = if idx == 0 { (p.q, p.sigma_q) } else { (p.u, p.sigma_u) };
+                let x = p.pa_deg;
+                c.draw_series(std::iter::once(PathElement::new([(x, 100.0 * (v - s)), (x, 100.0 * (v + s))], col)))
+                    .map_err(crate::plot::pe)?;
+                let style = if p.flagged { col.stroke_width(2) } else { col.filled() };
+                if p.shifted {
+                    let a = c
+                        .draw_series(std::iter::once(TriangleMarker::new((x, 100.0 * v), 6, style)))
+                        .map_err(crate::plot::pe)?;
+                    if !keyed && idx == 1 {
+                        keyed = true;
+                        a.label(POL_KEY).legend(|(x, y)| TriangleMarker::new((x + 10, y), 6, BLACK.filled()));
+                    }
+                } else {
+                    c.draw_series(std::iter::once(Circle::new((x, 100.0 * v), 5, style))).map_err(crate::plot::pe)?;
+                }
+            }
+        }
+        let data: Vec<(f64, f64)> = curve
+            .iter()
+            .flat_map(|p| [(p.0, p.1), (p.0, p.2)])
+            .chain(pts.iter().flat_map(|p| {
+                let x = p.pa_deg;
+                [
+                    (x, 100.0 * (p.q + p.sigma_q)),
+                    (x, 100.0 * (p.q - p.sigma_q)),
+                    (x, 100.0 * (p.u + p.sigma_u)),
+                    (x, 100.0 * (p.u - p.sigma_u)),
+                ]
+            }))
+            .collect();
+        let (entries, chars) = if keyed { (3, POL_KEY.len()) } else { (2, 7) };
+        crate::plot::legend_off_data(&mut c, &data, entries, chars, crate::plot::CORNERS)?;
+        let ax = crate::plot::Axes::new(
+            "residuals (data - model; hollow: flagged)",
+            "parallactic angle (deg)",
+            "residual (%)",
+        );
+        let mut r = crate::plot::chart(&bottom, &ax, -180.0..180.0, -rmax..rmax)?;
+        r.draw_series(LineSeries::new([(-180.0, 0.0), (180.0, 0.0)], BLACK)).map_err(crate::plot::pe)?;
+        for p in &pts {
+            let x = p.pa_deg;
+            for (col, d, s, dx) in [(RED, p.resid_q, p.sigma_q, -1.5), (BLUE, p.resid_u, p.sigma_u, 1.5)] {
+                r.draw_series(std::iter::once(PathElement::new(
+                    [(x + dx, 100.0 * (d - s)), (x + dx, 100.0 * (d + s))],
+                    col,
+                )))
+                .map_err(crate::plot::pe)?;
+                let style = if p.flagged { col.stroke_width(2) } else { col.filled() };
+                r.draw_series(std::iter::once(Circle::new((x + dx, 100.0 * d), 4, style))).map_err(crate::plot::pe)?;
+            }
+        }
+        Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use fit::telescope::{fit_band, parse_observations, BandModel, FitOptions, ModelKind, Track};
+    use mueller::mirror::MetalTable;
+
+    /// Two unpolarized and two polarized standards (5 % at 30 deg, 4 % at 120 deg) seen through
+    /// an aluminium M3 (factor 0.86, offset 40 deg) at twelve parallactic angles each, made
+    /// with the track-averaged chain (`BandModel::sky_through`, not the fit's residuals), with
+    /// a fixed +-2e-4 pattern for noise; fitted with the Wiersema model.
+    fn fitted() -> TelescopeFit {
+        let table = MetalTable::builtin("aluminium").unwrap();
+        let truth = BandModel {
+            wavelength_um: 0.55,
+            index: table.index(0.55).unwrap(),
+            factor: 0.86,
+            thickness_nm: 0.0,
+            offset: 40f64.to_radians(),
+            q0: 0.0,
+            u0: 0.0,
+        };
+        let mut text =
+            String::from("star,parallactic_deg,q,sigma_q,u,sigma_u,wavelength_um,filter,p_true,chi_true_deg\n");
+        for (s, (star, p, chi)) in
+            [("WD a", 0.0, 0.0), ("WD b", 0.0, 0.0), ("Pol a", 0.05f64, 30f64), ("Pol b", 0.04, 120.0)]
+                .into_iter()
+                .enumerate()
+        {
+            for k in 0..12 {
+                let pa = -170.0 + 29.0 * k as f64 + 7.0 * s as f64;
+                let (qs, us) = (p * (2.0 * chi.to_radians()).cos(), p * (2.0 * chi.to_radians()).sin());
+                let (q, u) = truth.sky_through(qs, us, Track::at(pa.to_radians())).unwrap();
+                let e = if (k + s) % 2 == 0 { 2e-4 } else { -2e-4 };
+                let (pt, ct) = if p > 0.0 { (p.to_string(), chi.to_string()) } else { (String::new(), String::new()) };
+                text += &format!("{star},{pa},{},3e-4,{},3e-4,0.55,V,{pt},{ct}\n", q + e, u - e);
+            }
+        }
+        let obs = parse_observations(&text, Path::new("night.csv")).unwrap();
+        fit_band(ModelKind::Wiersema, &obs, &table, &FitOptions { clip: None, ..Default::default() }).unwrap()
+    }
+
+    /// The upper panel once drew the curve of an unpolarized star only, so polarized
+    /// standards sat off it by their own 4-5 %. Every point lies on the curve up to its
+    /// residual (the lower panel's value, data minus model): the polarized standards with the
+    /// residuals the fit leaves (~2e-4), far closer than their raw values (several %).
+    #[test]
+    fn polarized_standards_sit_on_the_curve_up_to_their_residual() {
+        let f = fitted();
+        let bp = band_plot(&f, 0).unwrap();
+        assert_eq!(bp.points.len(), 48);
+        assert_eq!(bp.curve.len(), 361);
+        let (_, m) = &f.bands[0];
+        for (p, fp) in bp.points.iter().zip(f.points.iter()) {
+            // The curve at this angle, from the band model at the fitted parameters.
+            let (cq, cu) = m.unpolarized(p.pa_deg.to_radians()).unwrap();
+            assert!((p.q - cq - p.resid_q).abs() < 1e-12 && (p.u - cu - p.resid_u).abs() < 1e-12, "{p:?}");
+            assert!(p.resid_q.abs() < 1e-3 && p.resid_u.abs() < 1e-3, "{p:?}");
+            let polarized = fp.obs.sky != (0.0, 0.0);
+            assert_eq!(p.shifted, polarized);
+            if polarized {
+                // The raw measurement is far off the unpolarized curve: what the old plot drew.
+                assert!((fp.obs.qu.q - cq).hypot(fp.obs.qu.u - cu) > 0.02, "{:?}", fp.obs);
+            } else {
+                assert_eq!((p.q, p.u), (fp.obs.qu.q, fp.obs.qu.u), "unpolarized stars drawn as measured");
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        plot_band(&dir.path().join("v.png"), &f, 0).unwrap();
+        assert!(dir.path().join("v.png").is_file());
+    }
+}
