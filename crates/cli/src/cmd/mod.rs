@@ -16,6 +16,7 @@ pub mod import_map;
 pub mod master;
 pub mod mc;
 pub mod mc_plot;
+pub mod mc_table;
 pub mod photometry;
 pub mod plan;
 pub mod plot;

@@ -217,3 +217,102 @@ pub fn noise_comparison(
     }
     Ok(rows)
 }
+
+/// `eta = P0 SNR` of the accuracy report's configuration: where the bias and `sigma_P` are
+/// comparable (fig:deltap).
+pub const REPORT_ETA: f64 = 2.0;
+
+/// Independent repetitions of each number of trials in the report's precision table.
+pub const REPORT_REPETITIONS: usize = 5;
+
+/// The numbers of trials of the report's precision table: the decades from 1000 to
+/// `max_trials` (at least 1000).
+pub fn report_trials(max_trials: u64) -> Vec<u64> {
+    let tmax = max_trials.max(1000);
+    let mut out = vec![];
+    let mut t = 1000u64;
+    while t <= tmax {
+        out.push(t);
+        t = t.saturating_mul(10);
+        if t == u64::MAX {
+            break;
+        }
+    }
+    out
+}
+
+/// Trials the report runs for `max_trials`, about: [`REPORT_REPETITIONS`] of each decade up
+/// to it (5.6 times it) and the noise comparison; six times it, for a budget.
+pub fn report_cost(max_trials: u64) -> u64 {
+    max_trials.max(1000).saturating_mul(6)
+}
+
+/// The configuration of the report's precision table (no trials set): `P0 = REPORT_ETA / SNR`
+/// (at most 1).
+pub fn report_config(n_hwp: usize, snr: f64, chi0: f64, noise: Noise, seed: u64) -> McConfig {
+    let mut base = McConfig::new(n_hwp, snr, (REPORT_ETA / snr).min(1.0), chi0, 0, noise);
+    base.seed = seed;
+    base
+}
+
+/// The accuracy-against-time report (`instpol mc --accuracy-report`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct AccuracyReport {
+    pub precision: Vec<PrecisionRow>,
+    pub observer: Vec<ObserverRow>,
+    pub noise_modes: Vec<NoiseRow>,
+    /// The precision table's configuration, in words.
+    pub precision_config: String,
+    /// Its `P0` (fraction): [`REPORT_ETA`] / SNR.
+    #[serde(skip)]
+    pub p0: f64,
+    /// Trials per point of the noise comparison.
+    #[serde(skip)]
+    pub noise_trials: u64,
+}
+
+/// The report for `n_hwp` angles at `snr` (`chi0` rad, `noise`, `seed`) up to `max_trials`:
+/// the Monte Carlo's precision against trials at `eta = 2` ([`precision_table`] over
+/// [`report_trials`], [`REPORT_REPETITIONS`] each), the observer's `sigma_P` and systematic
+/// floor for N = 4, 8, 16 at SNR 10 to 10 000 ([`observer_table`]), and the fast noise modes
+/// against exact Poisson at SNR 3 to 300 and `eta = 2` ([`noise_comparison`], at most
+/// 200 000 trials). Runs on the calling thread pool.
+pub fn accuracy_report(
+    n_hwp: usize,
+    snr: f64,
+    chi0: f64,
+    noise: Noise,
+    seed: u64,
+    max_trials: u64,
+) -> Result<AccuracyReport, Error> {
+    let p0 = REPORT_ETA / snr;
+    let base = report_config(n_hwp, snr, chi0, noise, seed);
+    let tmax = max_trials.max(1000);
+    let noise_trials = tmax.min(200_000);
+    let precision = precision_table(&base, &report_trials(tmax), REPORT_REPETITIONS, None)?;
+    let observer = observer_table(&[4, 8, 16], &[10.0, 30.0, 100.0, 300.0, 1000.0, 3000.0, 10000.0])?;
+    let noise_modes = noise_comparison(n_hwp, REPORT_ETA, &[3.0, 10.0, 30.0, 100.0, 300.0], noise_trials, seed, None)?;
+    Ok(AccuracyReport {
+        precision,
+        observer,
+        noise_modes,
+        precision_config: format!("N = {n_hwp}, SNR = {snr}, P0 = {p0} (eta = 2), noise {noise}"),
+        p0,
+        noise_trials,
+    })
+}
+
+#[cfg(test)]
+mod report_tests {
+    use super::*;
+
+    /// Decades from 1000 up to the largest not above the maximum; a small maximum gives 1000.
+    #[test]
+    fn report_trials_are_decades() {
+        assert_eq!(report_trials(1_000_000), vec![1000, 10_000, 100_000, 1_000_000]);
+        assert_eq!(report_trials(50_000), vec![1000, 10_000]);
+        assert_eq!(report_trials(1), vec![1000]);
+        assert_eq!(report_cost(1), 6000);
+        assert!(!report_trials(u64::MAX).is_empty());
+    }
+}

@@ -531,6 +531,25 @@ impl Engine {
     }
 }
 
+/// Trials of the timed probe of [`estimate_seconds`].
+pub const PROBE_TRIALS: u64 = 100_000;
+
+/// The wall time (s) `total` trials of `cfg` are expected to take on the calling thread pool,
+/// and the rate (trials/s) it is estimated from: a timed run of [`PROBE_TRIALS`] of the same
+/// configuration. `None` when `total` is at most ten probes (not worth estimating).
+pub fn estimate_seconds(cfg: &McConfig, total: u64) -> Result<Option<(f64, f64)>, Error> {
+    if total <= 10 * PROBE_TRIALS {
+        return Ok(None);
+    }
+    let mut c = cfg.clone();
+    c.trials = PROBE_TRIALS;
+    let e = Engine::new(&c)?;
+    let t0 = std::time::Instant::now();
+    std::hint::black_box(e.run(None));
+    let rate = PROBE_TRIALS as f64 / t0.elapsed().as_secs_f64().max(1e-9);
+    Ok(Some((total as f64 / rate, rate)))
+}
+
 /// Run a configuration on `threads` threads (`None`: rayon's default pool).
 pub fn run(cfg: &McConfig, threads: Option<usize>, progress: Option<&(dyn Fn(u64) + Sync)>) -> Result<McResult, Error> {
     let engine = Engine::new(cfg)?;
