@@ -25,6 +25,7 @@ pub mod reduce;
 pub mod simulate;
 pub mod stokes;
 pub mod stokes_plot;
+pub mod stokes_text;
 pub mod validate;
 pub mod wavelength_law;
 pub mod zero_angle;
