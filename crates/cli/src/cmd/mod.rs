@@ -27,5 +27,6 @@ pub mod stokes;
 pub mod stokes_plot;
 pub mod stokes_text;
 pub mod validate;
+pub mod validate_text;
 pub mod wavelength_law;
 pub mod zero_angle;

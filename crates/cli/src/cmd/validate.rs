@@ -6,7 +6,7 @@ use fit::standards::{Expected, Standards};
 use fit::Calibration;
 use instrument::Instrument;
 use skyfield::photometry::Aperture;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// Validate a calibration on a standard star, as the paper checks its V map with an
 /// unpolarized star in the lower-right corner of FORS1 (section sec:fors1: measured
@@ -200,7 +200,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&r)?;
     } else {
-        print_report(&r, &a.cal);
+        super::validate_text::print_report(&r, &a.cal);
     }
     // A check that ran and failed exits 1 (not 0, not 2): a script can trust the code alone.
     let v = &r.validation;
@@ -317,40 +317,7 @@ fn run_telescope(a: &Args, loaded: &fit::calibration::CalibrationFile) -> Result
     if a.json {
         crate::util::print_json(&r)?;
     } else {
-        outln!(
-            "star {name} in {band} at ({x_px:.1}, {y_px:.1}) px, {} frames; parallactic angle {:.2} to {:.2} deg, rotator {:.2} deg",
-            a.frames.len(),
-            r.parallactic_start_deg,
-            r.parallactic_end_deg,
-            r.rotator_deg
-        );
-        outln!(
-            "calibration {} ({} telescope model{}, HWP zero angle {:+.2} deg)",
-            a.cal.display(),
-            r.telescope_model,
-            if r.field_model { " after the field model" } else { "" },
-            r.hwp_chi_offset_deg
-        );
-        outln!(
-            "  measured   q = {:.3} +- {:.3} %   u = {:.3} +- {:.3} %  (telescope alone: q = {:.3} %, u = {:.3} %)",
-            100.0 * r.measured_q,
-            100.0 * r.sigma_q,
-            100.0 * r.measured_u,
-            100.0 * r.sigma_u,
-            100.0 * r.telescope_q,
-            100.0 * r.telescope_u
-        );
-        outln!(
-            "  corrected  P0 = {:.3} +- {:.3} %  chi0 = {:.1} deg  (expected q = {:.3} %, u = {:.3} %): {:.2} sigma (uncorrected {:.2} sigma)",
-            100.0 * r.corrected_p,
-            100.0 * r.sigma_corrected_p,
-            r.corrected_chi_deg,
-            100.0 * r.expected_q,
-            100.0 * r.expected_u,
-            r.corrected_residual_sigma,
-            r.uncorrected_residual_sigma
-        );
-        outln!("{} (threshold {} sigma)", if r.pass { "PASS" } else { "FAIL" }, r.threshold);
+        super::validate_text::print_chain(&r, &name, &band, (x_px, y_px), a.frames.len(), &a.cal);
     }
     if !r.pass {
         return Err(crate::util::CheckFailed(format!(
@@ -360,46 +327,4 @@ fn run_telescope(a: &Args, loaded: &fit::calibration::CalibrationFile) -> Result
         .into());
     }
     Ok(())
-}
-
-fn print_report(r: &ValidationReport, cal: &Path) {
-    let v = &r.validation;
-    outln!(
-        "star {} in {} at ({:.1}, {:.1}) px = ({:.3}, {:.3}) arcmin, {} frames",
-        r.star,
-        r.band,
-        r.x_px,
-        r.y_px,
-        r.x_arcmin,
-        r.y_arcmin,
-        r.n_frames
-    );
-    outln!(
-        "calibration {} (HWP zero angle {:+.2} deg, model error {:.3} %)",
-        cal.display(),
-        r.hwp_chi_offset_deg,
-        100.0 * r.model_error
-    );
-    outln!(
-        "  measured   P = {:.3} +- {:.3} %   chi = {:.1} +- {:.1} deg",
-        100.0 * v.measured_p,
-        100.0 * v.sigma_p,
-        v.measured_chi_deg,
-        v.sigma_chi_deg
-    );
-    outln!(
-        "  predicted  P = {:.3} +- {:.3} %   chi = {:.1} deg",
-        100.0 * v.predicted_p,
-        100.0 * v.sigma_predicted_p,
-        v.predicted_chi_deg
-    );
-    outln!("  difference {:.2} sigma", v.residual_sigma);
-    outln!(
-        "  corrected  P0 = {:.3} +- {:.3} % (expected {:.3} %): {:.2} sigma",
-        100.0 * v.corrected_p,
-        100.0 * v.sigma_corrected_p,
-        100.0 * v.expected_p,
-        v.corrected_residual_sigma
-    );
-    outln!("{} (threshold {} sigma)", if v.pass { "PASS" } else { "FAIL" }, v.threshold);
 }
