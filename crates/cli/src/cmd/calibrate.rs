@@ -113,8 +113,9 @@ impl FitArgs {
     }
 }
 
-/// Solve a Stokes map for the instrumental field and calibrate: shared with `instpol demo`.
-pub fn calibrate_map(
+/// Solve a Stokes map for the instrumental field and calibrate (`fit::pipeline::calibrate_sky_field`,
+/// which `fit::demo` calls too).
+fn calibrate_map(
     map: &skyfield::StokesMap,
     sky: &SkyPolarization,
     inst: &instrument::Instrument,

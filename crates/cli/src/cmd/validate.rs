@@ -119,7 +119,7 @@ pub use fit::validate::{ValidateOptions, ValidationReport};
 
 /// Measure a star at 0-based ordinary-image pixel `(x_px, y_px)` in `frames` and validate
 /// `cal` on it (`fit::validate::validate_frames`), printing its warnings.
-pub fn validate_star(
+fn validate_star(
     cal: &Calibration,
     inst: &Instrument,
     frames: &[PathBuf],
