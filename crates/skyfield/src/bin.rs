@@ -17,25 +17,7 @@ impl Default for ClipConfig {
     }
 }
 
-/// `1 / Phi^-1(3/4)`: turns a median absolute deviation into a Gaussian sigma.
-pub const MAD_TO_SIGMA: f64 = 1.482_602_218_505_602;
-
-/// Median of `v` (reorders `v`); NaN for an empty slice.
-pub fn median_in_place(v: &mut [f64]) -> f64 {
-    let n = v.len();
-    if n == 0 {
-        return f64::NAN;
-    }
-    let cmp = |a: &f64, b: &f64| a.total_cmp(b);
-    let (_, m, _) = v.select_nth_unstable_by(n / 2, cmp);
-    let hi = *m;
-    if n % 2 == 1 {
-        hi
-    } else {
-        let lo = v[..n / 2].iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        0.5 * (lo + hi)
-    }
-}
+use stokes::stats::robust::MAD_TO_SIGMA;
 
 /// `x` as an integer whose order is `f64::total_cmp`'s (the same transform).
 #[inline]
@@ -212,9 +194,9 @@ fn median_of_keys(keys: &mut [i64]) -> f64 {
 }
 
 /// The median of the finite values ([`value`] of `vals`, not empty) in the order of
-/// `f64::total_cmp` (what [`median_in_place`] gives), exactly, helped by a `window`
-/// `[lo, hi]` believed to hold it (the previous clipping iteration's median, or a neighbouring
-/// bin's: both move little). One pass counts the values below the window and gathers those
+/// `f64::total_cmp`, exactly what `stokes::stats::robust::median` with `Middle::Mean` gives,
+/// helped by a `window` `[lo, hi]` believed to hold it (the previous clipping iteration's
+/// median, or a neighbouring bin's: both move little). One pass counts the values below the window and gathers those
 /// inside (`win`, scratch); when the median's ranks fall inside, only those are searched.
 /// Otherwise, or without a window, all values are (`keys`, scratch). Searches run on
 /// [`total_key`]s.
@@ -289,7 +271,8 @@ pub type ClipHint = Option<(f64, f64, f64)>;
 
 /// Iterative sigma clipping of several columns at once: a row is kept only if it lies within
 /// `nsigma` robust sigmas of the median in *every* column (so a star, bright in intensity but
-/// with the sky's polarization, is still rejected). The robust sigma is `1.4826 MAD`; when the
+/// with the sky's polarization, is still rejected). The robust sigma is `MAD_TO_SIGMA` times the
+/// MAD; when the
 /// MAD is zero (more than half the values identical) the standard deviation of the kept values
 /// is used instead, and a column with zero spread rejects only values that differ from it.
 /// Returns the keep mask.
@@ -487,7 +470,7 @@ impl Clip {
                 c.vals.truncate(self.rows.len());
             }
         }
-        // Medians are selected on integer keys of the IEEE total order (what `median_in_place`
+        // Medians are selected on integer keys of the IEEE total order (what `robust::median`
         // compares with `total_cmp`, without the per-comparison transform): same values. Each
         // median and MAD is first looked for near the previous iteration's (the hint's, at
         // first); a median whose ranks stay inside the previous iteration's window (a few rows
@@ -729,14 +712,20 @@ fn kept_stats(sc: &Clip, s: &BinSamples, min_pixels: usize) -> Option<BinStats> 
 mod tests {
     use super::*;
 
-    #[test]
-    fn median_odd_even() {
-        assert_eq!(median_in_place(&mut [3.0, 1.0, 2.0]), 2.0);
-        assert_eq!(median_in_place(&mut [4.0, 1.0, 3.0, 2.0]), 2.5);
-        assert!(median_in_place(&mut []).is_nan());
+    /// The one median (`stokes::stats::robust::median`), of the mean of the two middles: the
+    /// definition every kernel here is checked against.
+    fn one_median(v: &mut [f64]) -> f64 {
+        stokes::stats::robust::median(v, stokes::stats::robust::Middle::Mean)
     }
 
-    /// The integer-key median is `median_in_place` (total order) to the bit: odd and even
+    #[test]
+    fn median_odd_even() {
+        assert_eq!(one_median(&mut [3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(one_median(&mut [4.0, 1.0, 3.0, 2.0]), 2.5);
+        assert!(one_median(&mut []).is_nan());
+    }
+
+    /// The integer-key median is the one median (total order) to the bit: odd and even
     /// counts, negatives, infinities, subnormals.
     #[test]
     fn key_median_is_total_order_median() {
@@ -744,7 +733,7 @@ mod tests {
         for n in 1..pool.len() {
             for rot in 0..pool.len() {
                 let v: Vec<f64> = (0..n).map(|k| pool[(k * 5 + rot) % pool.len()]).collect();
-                let want = median_in_place(&mut v.clone());
+                let want = one_median(&mut v.clone());
                 let got = median_near(&v, None);
                 assert!(got == want || (got.is_nan() && want.is_nan()), "{v:?}: {got} vs {want}");
                 assert!(v.iter().all(|&x| from_total_key(total_key(x)).to_bits() == x.to_bits()));
@@ -762,7 +751,7 @@ mod tests {
         let cases: Vec<&[f64]> =
             vec![&pool[..3], &pool[..4], &pool[..10], &pool[..11], &pool[..100], &pool, &zeros, &zeros[..39]];
         for v in cases {
-            let want = median_in_place(&mut v.to_vec());
+            let want = one_median(&mut v.to_vec());
             for (c, w) in [
                 (want, 0.1),
                 (want, 0.0),
@@ -848,9 +837,9 @@ mod tests {
         use rand_like::quantiles;
         let v = quantiles(20001, 2.0);
         let mut b = v.clone();
-        let m = median_in_place(&mut b);
+        let m = one_median(&mut b);
         let mut d: Vec<f64> = v.iter().map(|x| (x - m).abs()).collect();
-        let s = MAD_TO_SIGMA * median_in_place(&mut d);
+        let s = MAD_TO_SIGMA * one_median(&mut d);
         assert!((s - 2.0).abs() < 0.04, "{s}");
     }
 

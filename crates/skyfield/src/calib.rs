@@ -35,6 +35,7 @@ use instrument::{Chip, Instrument, NumberOrKeyword};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use stokes::stats::robust::{self, Middle, ZeroSpread, MAD_TO_SIGMA};
 
 /// Options of reading: calibration frames and HWP angles given on the command line.
 #[derive(Debug, Clone, Default)]
@@ -282,22 +283,16 @@ fn push_usable(out: &mut Vec<f64>, v: &[f64], sat: f64) {
     out.truncate(start + m);
 }
 
-/// Robust mean: the mean of the values within 3 robust sigmas (1.4826 MAD) of the median.
-fn robust_mean(mut v: Vec<f64>) -> Option<f64> {
+/// Robust mean: the mean of the values within 3 robust sigmas (`MAD_TO_SIGMA` times the MAD) of
+/// the median, only those equal to it when the MAD is zero (`robust::clipped_mean`).
+fn robust_mean(v: Vec<f64>) -> Option<f64> {
     if v.is_empty() {
         return None;
     }
     if let Some(m) = robust_mean_of_counts(&v) {
         return Some(m);
     }
-    let med = crate::bin::median_in_place(&mut v);
-    let mut dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
-    let s = 1.4826 * crate::bin::median_in_place(&mut dev);
-    let kept: Vec<f64> = v.iter().copied().filter(|x| (x - med).abs() <= 3.0 * s).collect();
-    if kept.is_empty() {
-        return Some(med);
-    }
-    Some(kept.iter().sum::<f64>() / kept.len() as f64)
+    robust::clipped_mean(&v, 3.0, ZeroSpread::KeepMedian)
 }
 
 /// [`robust_mean`] of whole numbers spanning less than 2^16 (raw ADU, what a prescan or an
@@ -381,7 +376,7 @@ fn robust_mean_of_counts(v: &[f64]) -> Option<f64> {
     }
     let (a, b) = median_of(&dev, n)?;
     let mad = if a == b { a as f64 / 2.0 } else { 0.5 * (a as f64 / 2.0 + b as f64 / 2.0) };
-    let s = 1.4826 * mad;
+    let s = MAD_TO_SIGMA * mad;
     let (mut sum, mut kept) = (0.0, 0usize);
     for (k, &c) in counts.iter().enumerate() {
         let x = lo + k as f64;
@@ -1538,7 +1533,8 @@ fn apply_angles<'a>(
 }
 
 /// Sigma-clipped mean per pixel over `images` (values that are NaN, saturated or gap markers
-/// left out): median and 1.4826 MAD, values beyond `nsigma` of it rejected, mean of the rest.
+/// left out): median and `MAD_TO_SIGMA` times the MAD, values beyond `nsigma` of it rejected
+/// (none when the MAD is zero), mean of the rest (`robust::clipped_mean`).
 fn combine(images: &[Vec<f32>], npx: usize, nsigma: f64) -> Vec<f64> {
     let mut out = vec![f64::NAN; npx];
     out.par_chunks_mut(4096).enumerate().for_each(|(c, chunk)| {
@@ -1552,20 +1548,9 @@ fn combine(images: &[Vec<f32>], npx: usize, nsigma: f64) -> Vec<f64> {
                     .map(|im| im[p] as f64)
                     .filter(|x| x.is_finite() && *x < SATURATED_LIMIT && *x > GAP_LIMIT),
             );
-            if v.is_empty() {
-                continue;
+            if let Some(m) = robust::clipped_mean(&v, nsigma, ZeroSpread::KeepAll) {
+                *o = m;
             }
-            let mut w = v.clone();
-            let med = crate::bin::median_in_place(&mut w);
-            for x in w.iter_mut() {
-                *x = (*x - med).abs();
-            }
-            let s = 1.4826 * crate::bin::median_in_place(&mut w);
-            let (sum, n) = v
-                .iter()
-                .filter(|x| s == 0.0 || (*x - med).abs() <= nsigma * s)
-                .fold((0.0, 0usize), |(a, n), x| (a + x, n + 1));
-            *o = if n > 0 { sum / n as f64 } else { med };
         }
     });
     out
@@ -1578,10 +1563,12 @@ fn whole_frames_f32(ex: Vec<Exposure>) -> Result<Vec<Vec<f32>>, Error> {
     res.into_iter().collect()
 }
 
-fn median_of(v: &[f64]) -> Option<f64> {
+/// The median of the pixels that are finite, below saturation and not chip-gap markers; `None`
+/// when there are none.
+fn usable_median(v: &[f64]) -> Option<f64> {
     let mut w: Vec<f64> =
         v.iter().copied().filter(|x| x.is_finite() && *x < SATURATED_LIMIT && *x > GAP_LIMIT).collect();
-    (!w.is_empty()).then(|| crate::bin::median_in_place(&mut w))
+    (!w.is_empty()).then(|| robust::median(&mut w, Middle::Mean))
 }
 
 /// A master bias from bias frames: each calibrated as far as its overscan (ADU), then a
@@ -1619,7 +1606,7 @@ pub fn master_flat(paths: &[PathBuf], inst: &Instrument, bias: Option<&Path>, ns
     let mut imgs = Vec::with_capacity(ex.len());
     for (data, path) in whole_frames_f32(ex)?.into_iter().zip(names) {
         let v: Vec<f64> = data.iter().map(|&x| x as f64).collect();
-        let m = median_of(&v).filter(|m| *m > 0.0).ok_or_else(|| {
+        let m = usable_median(&v).filter(|m| *m > 0.0).ok_or_else(|| {
             Error::Invalid(format!(
                 "{}: flat field has no positive signal (median after bias removal <= 0)",
                 path.display()
@@ -1634,8 +1621,9 @@ pub fn master_flat(paths: &[PathBuf], inst: &Instrument, bias: Option<&Path>, ns
         );
     }
     let mut data = combine(&imgs, npx, nsigma);
-    let m =
-        median_of(&data).filter(|m| *m > 0.0).ok_or_else(|| Error::Invalid("master flat: no positive pixel".into()))?;
+    let m = usable_median(&data)
+        .filter(|m| *m > 0.0)
+        .ok_or_else(|| Error::Invalid("master flat: no positive pixel".into()))?;
     for v in data.iter_mut() {
         *v = if *v / m > 0.0 { *v / m } else { f64::NAN };
     }
@@ -1693,12 +1681,12 @@ impl Master {
 mod tests {
     use super::*;
 
-    /// The definition written plainly: medians by a full sort, the kept values summed in order.
+    /// The definition written plainly: the one median, the kept values summed in order.
     fn by_sorting(v: &[f64]) -> f64 {
-        use crate::reference::sorted_median as median;
+        let median = |w: &[f64]| robust::median(&mut w.to_vec(), Middle::Mean);
         let med = median(v);
         let dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
-        let s = 1.4826 * median(&dev);
+        let s = MAD_TO_SIGMA * median(&dev);
         let kept: Vec<f64> = v.iter().copied().filter(|x| (x - med).abs() <= 3.0 * s).collect();
         if kept.is_empty() {
             med

@@ -16,6 +16,7 @@ use crate::beams::{BeamGeometry, PixelKind};
 use crate::bin::{median_near_by, window};
 use instrument::Layout;
 use rayon::prelude::*;
+use stokes::stats::robust::{median, Middle, MAD_TO_SIGMA};
 
 /// Detection settings.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -68,17 +69,7 @@ fn usable(g: &BeamGeometry, x: usize, y: usize) -> bool {
     !matches!(g.kind(x, y), PixelKind::Masked)
 }
 
-/// Median of `v` (reordered in place: a selection, O(n)), `None` when empty.
-fn median(v: &mut [f64]) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    let n = v.len();
-    let (lo, &mut hi, _) = v.select_nth_unstable_by(n / 2, f64::total_cmp);
-    Some(if n % 2 == 1 { hi } else { 0.5 * (lo.iter().copied().fold(f64::NEG_INFINITY, f64::max) + hi) })
-}
-
-/// Median and robust sigma (1.4826 MAD) after three 3-sigma clipping passes.
+/// Median and robust sigma (`MAD_TO_SIGMA` times the MAD) after three 3-sigma clipping passes.
 fn clipped_stats(v: &[f64]) -> Option<(f64, f64)> {
     clipped_stats_hinted(v, &mut None)
 }
@@ -103,7 +94,7 @@ fn clipped_stats_hinted(v: &[f64], hint: &mut StatsHint) -> Option<(f64, f64)> {
     let (mut sig, mut mad_window) = (0.0, hint.map(|(_, d, s)| window(d, 0.15 * s)));
     for _ in 0..3 {
         let mad = median_near_by(&w, Some(med), mad_window, &mut keys, &mut win);
-        sig = 1.4826 * mad;
+        sig = MAD_TO_SIGMA * mad;
         if !(sig > 0.0) {
             break;
         }
@@ -118,7 +109,7 @@ fn clipped_stats_hinted(v: &[f64], hint: &mut StatsHint) -> Option<(f64, f64)> {
         med = median_near_by(&w, None, Some(window(med, 0.125 * sig)), &mut keys, &mut win);
         mad_window = Some(window(mad, 0.15 * sig));
     }
-    *hint = (sig > 0.0).then_some((med, sig / 1.4826, sig));
+    *hint = (sig > 0.0).then_some((med, sig / MAD_TO_SIGMA, sig));
     Some((med, sig))
 }
 
@@ -156,7 +147,8 @@ fn background_level(img: &[f64], g: &BeamGeometry, box_px: usize, mut level: Vec
     });
     // Empty boxes (behind the mask) take the median of the filled ones: the bilinear
     // interpolation then never reaches for a NaN.
-    let fill = median(&mut mesh.iter().copied().filter(|v| v.is_finite()).collect::<Vec<_>>()).unwrap_or(0.0);
+    let mut filled: Vec<f64> = mesh.iter().copied().filter(|v| v.is_finite()).collect();
+    let fill = if filled.is_empty() { 0.0 } else { median(&mut filled, Middle::Mean) };
     for v in mesh.iter_mut().filter(|v| !v.is_finite()) {
         *v = fill;
     }
@@ -416,8 +408,8 @@ pub fn unpaired_shift(
     if res.len() < 3 {
         return None;
     }
-    let dx = median(&mut res.iter().map(|r| r.0).collect::<Vec<_>>())?;
-    let dy = median(&mut res.iter().map(|r| r.1).collect::<Vec<_>>())?;
+    let dx = median(&mut res.iter().map(|r| r.0).collect::<Vec<_>>(), Middle::Mean);
+    let dy = median(&mut res.iter().map(|r| r.1).collect::<Vec<_>>(), Middle::Mean);
     let n = res.iter().filter(|r| (r.0 - dx).hypot(r.1 - dy) <= 1.0).count();
     Some((dx, dy, n))
 }
@@ -427,9 +419,9 @@ mod tests {
     use super::*;
     use rand::{RngExt, SeedableRng};
 
-    /// The clipping as documented, written plainly: every median by a full sort.
+    /// The clipping as documented, written plainly: every median the one median over all values.
     fn reference(v: &[f64]) -> Option<(f64, f64)> {
-        use crate::reference::sorted_median as median;
+        let median = |w: &[f64]| super::median(&mut w.to_vec(), Middle::Mean);
         let mut w: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
         if w.is_empty() {
             return None;
@@ -438,7 +430,7 @@ mod tests {
         let mut sig = 0.0;
         for _ in 0..3 {
             let dev: Vec<f64> = w.iter().map(|x| (x - med).abs()).collect();
-            sig = 1.4826 * median(&dev);
+            sig = MAD_TO_SIGMA * median(&dev);
             if !(sig > 0.0) {
                 break;
             }

@@ -162,21 +162,3 @@ pub fn advise_huge_pages(start: usize, bytes: usize) {
     #[cfg(not(target_os = "linux"))]
     let _ = (start, bytes);
 }
-
-/// Plain references the modules' tests check the library against (written independently of
-/// the code they check).
-#[cfg(test)]
-pub(crate) mod reference {
-    /// The median by a full sort in `f64::total_cmp` order; for an even count, the mean of the
-    /// two middle values.
-    pub(crate) fn sorted_median(v: &[f64]) -> f64 {
-        let mut s = v.to_vec();
-        s.sort_by(f64::total_cmp);
-        let n = s.len();
-        if n % 2 == 1 {
-            s[n / 2]
-        } else {
-            0.5 * (s[n / 2 - 1] + s[n / 2])
-        }
-    }
-}

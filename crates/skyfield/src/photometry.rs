@@ -22,6 +22,7 @@ use crate::reduce::FrameSet;
 use crate::Error;
 use instrument::{Instrument, Layout};
 use std::path::{Path, PathBuf};
+use stokes::stats::robust::{median, Middle, MAD_TO_SIGMA};
 
 /// Aperture and background annulus (px).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -754,11 +755,10 @@ fn oe_offset_of_image(
     if vals.len() < 9 {
         return Err(Error::Invalid("cannot measure the o/e offset: the frame has no finite pixels".into()));
     }
-    vals.sort_by(f64::total_cmp);
-    let med = vals[vals.len() / 2];
+    // Upper middles: the level is one of the pixels.
+    let med = median(&mut vals, Middle::Upper);
     let mut dev: Vec<f64> = vals.iter().map(|v| (v - med).abs()).collect();
-    dev.sort_by(f64::total_cmp);
-    let sigma = (1.4826 * dev[dev.len() / 2]).max(1e-9 * med.abs().max(1.0));
+    let sigma = (MAD_TO_SIGMA * median(&mut dev, Middle::Upper)).max(1e-9 * med.abs().max(1.0));
     let thr = med + 10.0 * sigma;
     let mut peaks: Vec<(f64, usize, usize)> = Vec::new();
     for y in 2..ny.saturating_sub(2) {
@@ -829,7 +829,7 @@ fn oe_offset_of_image(
         )));
     }
     let npairs = dxs.len();
-    Ok((crate::bin::median_in_place(&mut dxs), crate::bin::median_in_place(&mut dys), npairs))
+    Ok((median(&mut dxs, Middle::Mean), median(&mut dys, Middle::Mean), npairs))
 }
 
 /// Sigma-clipped mean, the variance of that mean, and the number kept. The clipping starts its

@@ -7,6 +7,7 @@ use fit::mueller_field::{
     fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions, Observation,
 };
 use std::path::PathBuf;
+use stokes::stats::robust::{finite_median, Middle};
 
 /// Fit the linear block of the pre-analyzer Mueller matrix over the field jointly to two or
 /// more Stokes maps of empty fields whose sky polarization is known: the diattenuation p, phi
@@ -207,13 +208,9 @@ struct Report {
     warnings: Vec<String>,
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.retain(|x| x.is_finite());
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+/// A summary's typical value: the upper middle of the finite values, NaN when there are none.
+fn typical(v: Vec<f64>) -> f64 {
+    finite_median(v, Middle::Upper).unwrap_or(f64::NAN)
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -343,9 +340,9 @@ pub fn run(a: Args) -> Result<()> {
         let rms = (vals.iter().map(|v| v * v).sum::<f64>() / vals.len() as f64).sqrt();
         parameters.push(Param {
             name: kind.name(i),
-            median_value: median(vals),
+            median_value: typical(vals),
             rms_value: rms,
-            median_sigma: median(sig),
+            median_sigma: typical(sig),
         });
     }
     let phys: Vec<_> = pos.iter().filter_map(|&(x, y)| mf.physical_at(x, y)).collect();
@@ -353,11 +350,11 @@ pub fn run(a: Args) -> Result<()> {
     let (median_p, max_p) = if phys.is_empty() {
         (None, None)
     } else {
-        (Some(median(phys.iter().map(|p| p.p).collect())), Some(phys.iter().map(|p| p.p).fold(0.0, f64::max)))
+        (Some(typical(phys.iter().map(|p| p.p).collect())), Some(phys.iter().map(|p| p.p).fold(0.0, f64::max)))
     };
     let (median_retardance_deg, max_retardance_deg) = if has_ret && !phys.is_empty() {
         let d: Vec<f64> = phys.iter().map(|p| p.retardance.to_degrees()).collect();
-        (Some(median(d.clone())), Some(d.iter().cloned().fold(0.0, f64::max)))
+        (Some(typical(d.clone())), Some(d.iter().cloned().fold(0.0, f64::max)))
     } else {
         (None, None)
     };
