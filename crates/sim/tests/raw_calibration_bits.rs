@@ -18,7 +18,7 @@ use instrument::Instrument;
 use sim::raw::{write_raw_exposure, RawChip, RawExposure};
 use skyfield::beams::BeamGeometry;
 use skyfield::calib::{read_exposures, ReadOptions};
-use skyfield::io::{Conversion, Frame, GAP, SATURATED};
+use skyfield::frame::{Conversion, Frame, GAP, SATURATED};
 use skyfield::reduce::{reduce_files_with, reduce_set, FrameSet, ReduceConfig};
 use std::path::{Path, PathBuf};
 

@@ -25,10 +25,12 @@
 //!
 //! Not done here: per-amplifier regions within one chip, flipped chip read-outs, non-linearity.
 
-use crate::io::{
-    check_bitpix, frame_header_with, open_image, parse_number, pixel_source, require_hwp, write_frame, Bitpix,
-    Conversion, Frame, FrameRows, ImageHdu, KeyValue, OpenFrame, Pixels, RawKind, GAP, GAP_LIMIT, SATURATED,
-    SATURATED_LIMIT,
+use crate::fits::{
+    check_bitpix, direct_rows, open_image, parse_number, pixel_source, raw_kind, write_frame, Bitpix, ImageHdu,
+    KeyValue, Pixels, RawKind, RowFile, StoredRows,
+};
+use crate::frame::{
+    frame_header_with, read_frame_raw_with, require_hwp, Conversion, Frame, GAP, GAP_LIMIT, SATURATED, SATURATED_LIMIT,
 };
 use crate::{Error, Warning};
 use instrument::{Chip, Instrument, NumberOrKeyword};
@@ -75,7 +77,7 @@ impl ReadOptions {
 
 /// What an exposure is calibrated to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Stage {
+pub(crate) enum Stage {
     /// Overscan subtracted, ADU (for master biases).
     Bias,
     /// Bias-free electrons, not flat-fielded (for master flats).
@@ -389,16 +391,16 @@ fn robust_mean_of_counts(v: &[f64]) -> Option<f64> {
 }
 
 /// What calibrating one exposure found.
-struct Exposure {
-    path: PathBuf,
-    hwp_deg: Option<f64>,
-    filter: String,
-    exptime_s: Option<f64>,
-    bitpix: i32,
+pub(crate) struct Exposure {
+    pub(crate) path: PathBuf,
+    pub(crate) hwp_deg: Option<f64>,
+    pub(crate) filter: String,
+    pub(crate) exptime_s: Option<f64>,
+    pub(crate) bitpix: i32,
     /// Its calibrated rows, computed as they are read.
-    rows: Calibrated,
+    pub(crate) rows: Calibrated,
     /// Largest read-noise variance (e-^2) of its chips.
-    rn2: f64,
+    pub(crate) rn2: f64,
 }
 
 /// The calibration frames of a run: the bias (ADU) and the inverse of the flat, opened once
@@ -418,7 +420,7 @@ pub(crate) struct Masters {
 struct OpenMaster {
     path: PathBuf,
     /// Positioned reads of the stored rows, when the master is plain BITPIX -32 data.
-    file: Option<crate::io::RowFile>,
+    file: Option<RowFile>,
     nx: usize,
     /// Stored as the inverse (a flat): NaN where the response is not positive.
     inverse: bool,
@@ -571,7 +573,7 @@ pub(crate) use avx2_dispatch;
 struct ChipRows {
     path: PathBuf,
     /// The raw chip image: read by rows from the file, or held whole (compressed files).
-    src: FrameRows,
+    src: StoredRows,
     /// Raw row length (prescan + chip + overscan columns).
     rnx: usize,
     prx: usize,
@@ -595,7 +597,7 @@ impl ChipRows {
     /// Make raw rows `y .. y + n` (raw coordinates) available to [`ChipRows::decode`]: read as
     /// stored into `bytes` from a file (one positioned read), nothing to do when in memory.
     fn fetch(&self, y: usize, n: usize, bytes: &mut Vec<u8>) -> Result<(), Error> {
-        if let FrameRows::File(r) = &self.src {
+        if let StoredRows::File(r) = &self.src {
             let nb = n * self.rnx * r.kind().bytes();
             bytes.resize(nb, 0);
             r.read_at(&self.path, y * self.rnx, &mut bytes[..nb])?;
@@ -608,9 +610,8 @@ impl ChipRows {
     #[inline(always)]
     fn decode(&self, y: usize, k: usize, x: usize, bytes: &[u8], out: &mut [f64]) {
         match &self.src {
-            FrameRows::File(r) => r.kind().decode_at(bytes, k * self.rnx + x, out),
-            FrameRows::Memory(p) => p.view().load((y + k) * self.rnx + x, out),
-            FrameRows::Calibrated(_) => unreachable!("a chip's source is its raw image"),
+            StoredRows::File(r) => r.kind().decode_at(bytes, k * self.rnx + x, out),
+            StoredRows::Memory(p) => p.view().load((y + k) * self.rnx + x, out),
         }
     }
 
@@ -1010,7 +1011,7 @@ impl Calibrated {
                     for (j, (e, buf)) in exps.iter().zip(bytes).enumerate() {
                         let ch = &e.chips[ci];
                         match &ch.src {
-                            FrameRows::File(r) if r.kind() == RawKind::U16 => {
+                            StoredRows::File(r) if r.kind() == RawKind::U16 => {
                                 let at = (k * ch.rnx + ch.prx) * 2;
                                 raws[j] = buf[at..at + 2 * c.cx].as_chunks::<2>().0;
                                 cals[j] = (ch.level, ch.to_e, ch.sat);
@@ -1152,7 +1153,6 @@ fn open_master(path: &Path, inst: &Instrument, kind: &str) -> Result<OpenMaster,
             )));
         }
     }
-    use crate::io::{direct_rows, raw_kind, RawKind};
     let plain = !img.compressed && !img.blank && raw_kind(img.bitpix, img.bscale, img.bzero) == Some(RawKind::F32);
     let file = if plain { direct_rows(path, &mut img, RawKind::F32)? } else { None };
     Ok(OpenMaster {
@@ -1396,7 +1396,7 @@ fn calibrate_exposure(
 }
 
 /// Calibrate every exposure of `paths` at `stage`, in parallel, in the order given.
-fn calibrate_all(
+pub(crate) fn calibrate_all(
     paths: &[PathBuf],
     inst: &Instrument,
     opts: &ReadOptions,
@@ -1448,7 +1448,7 @@ pub fn read_exposures(paths: &[PathBuf], inst: &Instrument, opts: &ReadOptions) 
     if opts.is_plain(inst) {
         let res: Vec<Result<Frame, Error>> = paths
             .par_iter()
-            .map(|p| crate::io::read_frame_raw_with(p, inst, opts.hwp_angles_deg.is_some()).map(|r| r.into_frame()))
+            .map(|p| read_frame_raw_with(p, inst, opts.hwp_angles_deg.is_some()).map(|r| r.into_frame()))
             .collect();
         let mut frames: Vec<Frame> = res.into_iter().collect::<Result<_, _>>()?;
         apply_angles(frames.iter_mut().map(|f| (&f.path, &mut f.hwp_deg)), inst, opts)?;
@@ -1474,38 +1474,8 @@ pub fn read_exposures(paths: &[PathBuf], inst: &Instrument, opts: &ReadOptions) 
     res.into_iter().collect()
 }
 
-/// [`read_exposures`] for the reduction: plain frames stay on disk to be read by rows; raw
-/// ones too, calibrated row by row as the reduction reads them ([`Calibrated`]).
-pub(crate) fn open_exposures(
-    paths: &[PathBuf],
-    inst: &Instrument,
-    opts: &ReadOptions,
-) -> Result<Vec<OpenFrame>, Error> {
-    let inst = &*opts.instrument(inst);
-    if opts.is_plain(inst) {
-        let res: Vec<Result<OpenFrame, Error>> =
-            paths.par_iter().map(|p| crate::io::open_frame_with(p, inst, opts.hwp_angles_deg.is_some())).collect();
-        let mut frames: Vec<OpenFrame> = res.into_iter().collect::<Result<_, _>>()?;
-        apply_angles(frames.iter_mut().map(|f| (&f.path, &mut f.hwp_deg)), inst, opts)?;
-        return Ok(frames);
-    }
-    let ex = calibrate_all(paths, inst, opts, Stage::Science)?;
-    Ok(ex
-        .into_iter()
-        .map(|e| OpenFrame {
-            path: e.path,
-            nx: inst.detector.nx,
-            ny: inst.detector.ny,
-            hwp_deg: e.hwp_deg.unwrap_or(f64::NAN),
-            filter: e.filter,
-            rows: FrameRows::Calibrated(e.rows),
-            conversion: Conversion::electrons(e.rn2),
-        })
-        .collect())
-}
-
 /// `--hwp-angles` onto plain frames (NaN: no header angle), checked against their headers.
-fn apply_angles<'a>(
+pub(crate) fn apply_angles<'a>(
     frames: impl ExactSizeIterator<Item = (&'a PathBuf, &'a mut f64)>,
     inst: &Instrument,
     opts: &ReadOptions,

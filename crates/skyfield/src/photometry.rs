@@ -17,7 +17,7 @@
 use crate::aperture::{centroid, weights, Weighting};
 use crate::beams::{BeamGeometry, PixelKind};
 use crate::bin::{with_clipped, ClipConfig, ClipHint};
-use crate::io::Conversion;
+use crate::frame::Conversion;
 use crate::reduce::FrameSet;
 use crate::Error;
 use instrument::{Instrument, Layout};
@@ -386,7 +386,7 @@ pub(crate) fn measure_frame(
                 return Err(behind_mask(r, (cx, cy), (px, py)));
             }
             let val = data[py * g.nx + px];
-            if val <= crate::io::GAP_LIMIT {
+            if val <= crate::frame::GAP_LIMIT {
                 return Err(Error::mask_edge(format!(
                         "aperture pixel ({px}, {py}) of the {name} beam lies in the gap between the chips; photometry needs clean aperture pixels"
                     )));
@@ -422,7 +422,7 @@ pub(crate) fn measure_frame(
                     let r2 = (px as f64 - cx).powi(2) + (py as f64 - cy).powi(2);
                     if r2 >= ra * ra && r2 < rb * rb && in_beam(px, py) {
                         let val = data[py * g.nx + px];
-                        if val.is_finite() && val < sat * nexp && val > crate::io::GAP_LIMIT {
+                        if val.is_finite() && val < sat * nexp && val > crate::frame::GAP_LIMIT {
                             vals.push(to_e(val));
                         }
                     }
@@ -494,7 +494,7 @@ pub const TRANSPARENCY_TOL: f64 = 0.10;
 
 /// Each exposure of `frames` as a one-frame [`FrameSet`] (the conversion and filter of `set`),
 /// built once for [`exposure_checks`] (a catalog checks every star in the same exposures).
-pub fn single_exposures(frames: &[crate::io::Frame], set: &FrameSet) -> Vec<FrameSet> {
+pub fn single_exposures(frames: &[crate::frame::Frame], set: &FrameSet) -> Vec<FrameSet> {
     frames
         .iter()
         .map(|f| FrameSet {
