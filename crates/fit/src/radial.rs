@@ -14,7 +14,7 @@ use argmin::core::{CostFunction, Executor, Jacobian, Operator, State};
 use argmin::solver::gaussnewton::GaussNewton;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
-use stokes::stats::robust::{median, Middle};
+use stokes::stats::robust::{median, Middle, MAD_TO_SIGMA};
 
 /// The radial polynomial model `p(r) = sum_{k = first_power}^{degree} c_k r^k` (r in arcmin,
 /// `p` a fraction), the angle `phi = alpha` (the polar angle about `centre`).
@@ -723,7 +723,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
             })
             .collect();
         let mut a = t.clone();
-        let scale = (1.4826 * median(&mut a, Middle::Mean)).max(1.0);
+        let scale = (MAD_TO_SIGMA * median(&mut a, Middle::Mean)).max(1.0);
         t.iter().map(|ti| opts.robust.weight(ti / scale)).collect()
     };
 
