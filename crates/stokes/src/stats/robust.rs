@@ -21,12 +21,12 @@ pub const MAD_TO_SIGMA: f64 = 1.482_602_218_505_602;
 /// `n/2 - 1` and `n/2`, 0-based, in `f64::total_cmp` order) are both medians.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Middle {
-    /// Their mean, `0.5 * (lower + upper)`: the usual definition, used for every statistic
-    /// (robust centres and scales, clipping, summaries).
+    /// Their mean, `0.5 * (lower + upper)`: the usual definition, used for nearly every
+    /// statistic (robust centres and scales, clipping, summaries).
     Mean,
-    /// The upper one (rank `n/2`), always a member of the sample: used where a median that is
-    /// one of the values is wanted (the robust scales of the fits' outlier rejection, the
-    /// peak search's detection level, a standards table's typical value).
+    /// The upper one (rank `n/2`), always a member of the sample: what the telescope fit's
+    /// outlier flags, the o/e offset search's sky level and noise, and calibrate-mueller's
+    /// summary of a Mueller field have always taken.
     Upper,
 }
 
