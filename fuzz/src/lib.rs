@@ -80,7 +80,7 @@ pub fn seed_mode(write: impl FnOnce(&Path)) {
 /// 64 x 64 frames of `MINI` at the four optimal HWP angles, in the stored types the reader
 /// distinguishes (unsigned 16-bit, f32, f64).
 pub fn write_frame_seeds(dir: &Path) {
-    use skyfield::io::{write_frame, Bitpix, KeyValue};
+    use skyfield::fits::{write_frame, Bitpix, KeyValue};
     let types = [Bitpix::U16, Bitpix::F32, Bitpix::F64, Bitpix::U16];
     for (i, (a, bp)) in [0.0, 22.5, 45.0, 67.5].iter().zip(types).enumerate() {
         let keys = vec![
@@ -127,7 +127,7 @@ pub fn write_calibration_seeds(dir: &Path) {
 /// The files the scene seeds name, in the scratch folder: the 64 x 64 instrument, a ray-trace
 /// field file, and 8 x 8 Q/U maps (also used as an extended-source image).
 pub fn scene_files() {
-    use skyfield::io::{write_frame, Bitpix};
+    use skyfield::fits::{write_frame, Bitpix};
     let d = scratch();
     std::fs::write(d.join("field.json"), include_str!("../seeds/field_file/fors1_V.json")).expect("field.json");
     let q: Vec<f64> = (0..64).map(|k| 0.001 * (k % 8) as f64).collect();
@@ -141,10 +141,10 @@ pub fn scene_files() {
 pub fn write_map_seeds(dir: &Path) {
     use fitsio::images::{ImageDescription, ImageType};
     let q: Vec<f64> = (0..64).map(|k| if k == 9 { f64::NAN } else { 0.001 * (k % 8) as f64 }).collect();
-    skyfield::io::write_frame(&dir.join("map2d.fits"), 8, 8, &q, skyfield::io::Bitpix::F64, &[])
+    skyfield::fits::write_frame(&dir.join("map2d.fits"), 8, 8, &q, skyfield::fits::Bitpix::F64, &[])
         .expect("writing map2d.fits");
     let img: Vec<f64> = (0..64 * 64).map(|k| 100.0 + (k % 64) as f64).collect();
-    skyfield::io::write_frame(&dir.join("image64.fits"), 64, 64, &img, skyfield::io::Bitpix::F32, &[])
+    skyfield::fits::write_frame(&dir.join("image64.fits"), 64, 64, &img, skyfield::fits::Bitpix::F32, &[])
         .expect("writing image64.fits");
     for (name, ty) in [("cube64.fits", ImageType::Double), ("cube32.fits", ImageType::Float)] {
         let p = dir.join(name);

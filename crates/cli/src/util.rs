@@ -226,7 +226,7 @@ pub fn stdout_status() -> Result<()> {
 pub fn write_via_temp(path: &Path, suffix: &str, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
     check_output(path)?;
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let tmp = skyfield::io::temp_beside(path, suffix)
+    let tmp = skyfield::fits::temp_beside(path, suffix)
         .with_context(|| format!("cannot create a temporary file in {}", dir.display()))?;
     // The closure writes by name (plotters, CFITSIO open their own handle); it must close
     // what it opened and return every error (FITS: through `skyfield::durable::close_fits`).

@@ -11,7 +11,7 @@
 mod common;
 
 use common::{bin, listing, run};
-use skyfield::io::{write_frame, Bitpix, KeyValue};
+use skyfield::fits::{write_frame, Bitpix, KeyValue};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 

@@ -401,7 +401,7 @@ const MINI: common::Mini =
 #[test]
 #[ignore = "fuzzing: run fuzz/run.sh"]
 fn fuzz_frame_fits() {
-    use skyfield::io::{write_frame, Bitpix, KeyValue};
+    use skyfield::fits::{write_frame, Bitpix, KeyValue};
     let work = tempfile::tempdir().unwrap();
     let inst = work.path().join("mini.toml");
     std::fs::write(&inst, MINI.toml()).unwrap();

@@ -217,14 +217,14 @@ fn assembled_frames_reduce_to_the_raw_files_map() {
                 let filt: String = h.read_key(&mut fits, "HIERARCH ESO INS FILT1 NAME").unwrap();
                 let exptime: f64 = h.read_key(&mut fits, "EXPTIME").unwrap();
                 keys = vec![
-                    ("HIERARCH ESO INS RETA2 POSANG".to_string(), skyfield::io::KeyValue::F64(hwp), String::new()),
-                    ("HIERARCH ESO INS FILT1 NAME".to_string(), skyfield::io::KeyValue::Str(filt), String::new()),
-                    ("EXPTIME".to_string(), skyfield::io::KeyValue::F64(exptime), String::new()),
+                    ("HIERARCH ESO INS RETA2 POSANG".to_string(), skyfield::fits::KeyValue::F64(hwp), String::new()),
+                    ("HIERARCH ESO INS FILT1 NAME".to_string(), skyfield::fits::KeyValue::Str(filt), String::new()),
+                    ("EXPTIME".to_string(), skyfield::fits::KeyValue::F64(exptime), String::new()),
                 ];
             }
         }
         let p = adir.join(format!("a{k}.fits"));
-        skyfield::io::write_frame(&p, 64, 68, &det, skyfield::io::Bitpix::F32, &keys).unwrap();
+        skyfield::fits::write_frame(&p, 64, 68, &det, skyfield::fits::Bitpix::F32, &keys).unwrap();
         assembled.push(s(&p));
     }
     let reduce = |frames: &[String], extra: &[&str], map: &str| reduce_to(frames, &inst, &dir.path().join(map), extra);

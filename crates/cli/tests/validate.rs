@@ -10,7 +10,7 @@ use common::fors1_radial_calibration as calibration;
 use fit::{Calibration, FieldModel};
 use instrument::Instrument;
 use mueller::{stokes_p_chi, DualBeam, Element};
-use skyfield::io::{write_frame, Bitpix, KeyValue};
+use skyfield::fits::{write_frame, Bitpix, KeyValue};
 use skyfield::BeamGeometry;
 use std::path::{Path, PathBuf};
 

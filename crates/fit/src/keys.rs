@@ -101,7 +101,7 @@ impl KeyReader<'_> {
     }
     pub(crate) fn str(&mut self, name: &str) -> Result<String> {
         let key = format!("HIERARCH IP {name}");
-        skyfield::io::read_key_str(self.f, self.hdu, &key).map_err(|e| self.missing(&key, e))
+        skyfield::fits::read_key_str(self.f, self.hdu, &key).map_err(|e| self.missing(&key, e))
     }
     pub(crate) fn real(&mut self, name: &str) -> Result<f64> {
         let key = format!("HIERARCH IP {name}");
@@ -173,7 +173,7 @@ pub(crate) fn check_claimed_size(path: &Path, what: &str, shape: &[usize]) -> Re
 /// (a full disk is an error here, never a truncated calibration under the final name).
 pub(crate) fn save_fits_atomically(path: &Path, write: impl FnOnce(&mut FitsFile) -> Result<()>) -> Result<()> {
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let tmp = skyfield::io::temp_beside(path, ".fits")
+    let tmp = skyfield::fits::temp_beside(path, ".fits")
         .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
     let tmp = tmp.into_temp_path();
     {

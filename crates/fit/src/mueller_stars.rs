@@ -65,16 +65,10 @@ pub fn read_star_fields(path: &std::path::Path, zero_angle_deg: f64) -> Result<V
     Ok(out)
 }
 
-/// The middle value of the finite values of `v` (the upper of the two middle ones for an even
-/// count), NaN when none is finite.
-// median: the calibrate-mueller summary's own; to become stokes::stats' one median.
-fn median(mut v: Vec<f64>) -> f64 {
-    v.retain(|x| x.is_finite());
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+/// A summary's typical value: the upper middle of the finite values (always one of the
+/// positions' values), NaN when none is finite.
+fn typical(v: Vec<f64>) -> f64 {
+    stokes::stats::robust::finite_median(v, stokes::stats::robust::Middle::Upper).unwrap_or(f64::NAN)
 }
 
 /// One free parameter of a Mueller field over the observed positions.
@@ -114,9 +108,9 @@ impl FieldSummary {
             let rms = (vals.iter().map(|v| v * v).sum::<f64>() / vals.len() as f64).sqrt();
             parameters.push(ParamSummary {
                 name: kind.name(i),
-                median_value: median(vals),
+                median_value: typical(vals),
                 rms_value: rms,
-                median_sigma: median(sig),
+                median_sigma: typical(sig),
             });
         }
         let phys: Vec<_> = positions.iter().filter_map(|&(x, y)| mf.physical_at(x, y)).collect();
@@ -124,11 +118,11 @@ impl FieldSummary {
         let (median_p, max_p) = if phys.is_empty() {
             (None, None)
         } else {
-            (Some(median(phys.iter().map(|p| p.p).collect())), Some(phys.iter().map(|p| p.p).fold(0.0, f64::max)))
+            (Some(typical(phys.iter().map(|p| p.p).collect())), Some(phys.iter().map(|p| p.p).fold(0.0, f64::max)))
         };
         let (median_retardance_deg, max_retardance_deg) = if has_ret && !phys.is_empty() {
             let d: Vec<f64> = phys.iter().map(|p| p.retardance.to_degrees()).collect();
-            (Some(median(d.clone())), Some(d.iter().cloned().fold(0.0, f64::max)))
+            (Some(typical(d.clone())), Some(d.iter().cloned().fold(0.0, f64::max)))
         } else {
             (None, None)
         };
@@ -168,8 +162,8 @@ mod tests {
     /// The summary's median is the upper middle of the finite values.
     #[test]
     fn median_is_the_upper_middle_of_the_finite() {
-        assert_eq!(median(vec![4.0, f64::NAN, 1.0, 3.0, 2.0]), 3.0);
-        assert_eq!(median(vec![2.0, 1.0, 3.0]), 2.0);
-        assert!(median(vec![f64::NAN]).is_nan());
+        assert_eq!(typical(vec![4.0, f64::NAN, 1.0, 3.0, 2.0]), 3.0);
+        assert_eq!(typical(vec![2.0, 1.0, 3.0]), 2.0);
+        assert!(typical(vec![f64::NAN]).is_nan());
     }
 }

@@ -14,6 +14,7 @@ use argmin::core::{CostFunction, Executor, Jacobian, Operator, State};
 use argmin::solver::gaussnewton::GaussNewton;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
+use stokes::stats::robust::{median, Middle, MAD_TO_SIGMA};
 
 /// The radial polynomial model `p(r) = sum_{k = first_power}^{degree} c_k r^k` (r in arcmin,
 /// `p` a fraction), the angle `phi = alpha` (the polar angle about `centre`).
@@ -597,19 +598,6 @@ fn conditioning(j: &DMatrix<f64>) -> f64 {
     }
 }
 
-fn median(v: &mut [f64]) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(|a, b| a.total_cmp(b));
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
-
 /// Fit the radial model (section `sec:fors1`) to the bins by robust weighted least squares on
 /// `(q, u)` (argmin Gauss-Newton inside iteratively reweighted least squares). The covariance
 /// is `(J^T W J)^-1` from the Jacobian at the solution, scaled as
@@ -735,7 +723,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
             })
             .collect();
         let mut a = t.clone();
-        let scale = (1.4826 * median(&mut a)).max(1.0);
+        let scale = (MAD_TO_SIGMA * median(&mut a, Middle::Mean)).max(1.0);
         t.iter().map(|ti| opts.robust.weight(ti / scale)).collect()
     };
 

@@ -101,7 +101,7 @@ pub fn write_qu_cubes(
     for (path, data) in [(q_path, &q), (u_path, &u)] {
         let err = |m: String| crate::Error::Fits { path: path.into(), doing: "writing a map cube".into(), message: m };
         let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
-        let tmp = skyfield::io::temp_beside(path, ".fits")
+        let tmp = skyfield::fits::temp_beside(path, ".fits")
             .map_err(|source| crate::Error::Io { path: dir.into(), err: source })?
             .into_temp_path();
         {

@@ -28,6 +28,7 @@ use mueller::{Stokes, C64};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+use stokes::stats::robust::{median, Middle, MAD_TO_SIGMA};
 
 /// One measurement of a standard star (angles in rad, polarization as fractions).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -821,8 +822,8 @@ pub fn fit_joint(
         let Some(clip) = opts.clip else { break };
         let mut abs: Vec<f64> =
             (0..obs.len()).filter(|&i| used[i]).flat_map(|i| [r[2 * i].abs(), r[2 * i + 1].abs()]).collect();
-        abs.sort_by(|a, b| a.total_cmp(b));
-        let scale = (1.4826 * abs[abs.len() / 2]).max(1.0);
+        // The upper middle: a pull of the fit's own.
+        let scale = (MAD_TO_SIGMA * median(&mut abs, Middle::Upper)).max(1.0);
         let new: Vec<bool> = pulls.iter().map(|&pl| pl <= clip * scale).collect();
         if new == used || new.iter().filter(|&&u| u).count() * 2 <= np + 2 {
             break;

@@ -124,7 +124,7 @@ pub fn write_hdu(f: &mut FitsFile, path: &Path, fit: &TelescopeFit, metal: &str)
 /// a temporary file beside `path`, renamed when complete).
 pub fn save_alone(path: &Path, instrument: &str, fit: &TelescopeFit, metal: &str, inputs: &[String]) -> Result<()> {
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let tmp = skyfield::io::temp_beside(path, ".fits")
+    let tmp = skyfield::fits::temp_beside(path, ".fits")
         .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
     let tmp = tmp.into_temp_path();
     {
@@ -456,7 +456,7 @@ pub fn header_angles(path: &Path, tel: &instrument::Telescope) -> Result<HeaderA
         let mut value = None;
         for i in 0..2usize {
             let Ok(h) = f.hdu(i) else { break };
-            if let Ok(s) = skyfield::io::read_key_str(&mut f, &h, key) {
+            if let Ok(s) = skyfield::fits::read_key_str(&mut f, &h, key) {
                 value = Some(s);
                 break;
             }

@@ -53,17 +53,9 @@ fn cpu_s() -> f64 {
     }
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n == 0 {
-        return f64::NAN;
-    }
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
+/// The one median (mean of the two middles), of a vector of times.
+fn median_of(mut v: Vec<f64>) -> f64 {
+    stokes::stats::robust::median(&mut v, stokes::stats::robust::Middle::Mean)
 }
 
 fn timed<T>(f: impl FnOnce() -> T) -> (f64, f64, T) {
@@ -226,14 +218,14 @@ fn main() {
             bc.push(c);
         }
     }
-    let ratios = |a: &[f64], r: &[f64]| median(a.iter().zip(r).map(|(x, y)| x / y.max(1e-9)).collect());
+    let ratios = |a: &[f64], r: &[f64]| median_of(a.iter().zip(r).map(|(x, y)| x / y.max(1e-9)).collect());
     let mut json = format!(
         "{{\"files\": {}, \"pixels\": {npix}, \"reps\": {reps}, \"cfitsio_read_wall_s\": {:.4}, \"cfitsio_read_cpu_s\": {:.4}, \"reduce_raw_wall_s\": {:.4}, \"reduce_raw_cpu_s\": {:.4}, \"ratio_wall\": {:.3}, \"ratio_cpu\": {:.3}, \"best_ratio_wall\": {:.3}",
         paths.len(),
-        median(rw.clone()),
-        median(rc.clone()),
-        median(dw.clone()),
-        median(dc.clone()),
+        median_of(rw.clone()),
+        median_of(rc.clone()),
+        median_of(dw.clone()),
+        median_of(dc.clone()),
         ratios(&dw, &rw),
         ratios(&dc, &rc),
         dw.iter().cloned().fold(f64::INFINITY, f64::min) / rw.iter().cloned().fold(f64::INFINITY, f64::min),
@@ -241,12 +233,12 @@ fn main() {
     if !bw.is_empty() {
         json += &format!(
             ", \"binary_wall_s\": {:.4}, \"binary_cpu_s\": {:.4}, \"binary_ratio_wall\": {:.3}, \"binary_ratio_cpu\": {:.3}, \"hash_wall_s\": {:.4}, \"read_hash_wall_s\": {:.4}, \"binary_ratio_read_hash\": {:.3}",
-            median(bw.clone()),
-            median(bc.clone()),
+            median_of(bw.clone()),
+            median_of(bc.clone()),
             ratios(&bw, &rw),
             ratios(&bc, &rc),
-            median(hw.clone()),
-            median(rw.iter().zip(&hw).map(|(r, h)| r + h).collect()),
+            median_of(hw.clone()),
+            median_of(rw.iter().zip(&hw).map(|(r, h)| r + h).collect()),
             ratios(&bw, &rw.iter().zip(&hw).map(|(r, h)| r + h).collect::<Vec<_>>()),
         );
     }

@@ -21,9 +21,10 @@
 //!   and multiplies nothing.
 //!
 //! Frames are placed on the detector by `skyfield::beams` (the same geometry the reduction
-//! uses) and written by `skyfield::io` (the same format the reduction reads), one FITS file
-//! per exposure plus a truth file (JSON), in parallel and atomically. Randomness is seeded per
-//! (scene seed, frame, detector row), so results do not depend on the number of threads.
+//! uses) and written by `skyfield::fits` (the format the reduction reads with `skyfield::io`),
+//! one FITS file per exposure plus a truth file (JSON), in parallel and atomically. Randomness
+//! is seeded per (scene seed, frame, detector row), so results do not depend on the number of
+//! threads.
 
 pub mod hwp_causes;
 pub mod plan;

@@ -10,7 +10,7 @@ use rand_distr::{Distribution, Normal, Poisson};
 use rand_xoshiro::Xoshiro256PlusPlus;
 use rayon::prelude::*;
 use skyfield::beams::{BeamGeometry, PixelKind};
-use skyfield::io::{write_frame, Bitpix, KeyValue};
+use skyfield::fits::{write_frame, Bitpix, KeyValue};
 use std::f64::consts::PI;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -1310,7 +1310,7 @@ impl Plan {
         };
         let tpath = out.join("truth.json");
         let text = serde_json::to_string_pretty(&truth).map_err(|e| file_err(&tpath, e))?;
-        let mut tmp = skyfield::io::temp_beside(&tpath, ".json").map_err(|e| file_err(&tpath, e))?;
+        let mut tmp = skyfield::fits::temp_beside(&tpath, ".json").map_err(|e| file_err(&tpath, e))?;
         std::io::Write::write_all(&mut tmp, text.as_bytes()).map_err(|e| file_err(&tpath, e))?;
         tmp.persist(&tpath).map_err(|e| file_err(&tpath, e))?;
         Ok(Simulated { frames: files.into_iter().flatten().collect(), truth: tpath, bias })

@@ -11,7 +11,7 @@ use instrument::{Chip, Instrument, NumberOrKeyword};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use rand_xoshiro::Xoshiro256PlusPlus;
-use skyfield::io::{write_frame, Bitpix, KeyValue};
+use skyfield::fits::{write_frame, Bitpix, KeyValue};
 use std::path::{Path, PathBuf};
 
 /// The read-out of one chip.

@@ -69,7 +69,7 @@ fn map_with_empty_or_absurd_axes_is_refused_by_name() {
             w.extend_from_slice(&v);
             hdu.write_image(&mut f, &w).unwrap();
         } else {
-            skyfield::io::write_frame(&q, 8, 8, &v, skyfield::io::Bitpix::F64, &[]).unwrap();
+            skyfield::fits::write_frame(&q, 8, 8, &v, skyfield::fits::Bitpix::F64, &[]).unwrap();
         }
     };
     write(false);

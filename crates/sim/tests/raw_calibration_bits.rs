@@ -4,7 +4,7 @@
 //!
 //! The reference reads every chip file whole with CFITSIO (`fitsio`, u16 as stored), takes each
 //! chip's bias level as the robust mean of its prescan and overscan pixels (a full sort for the
-//! median and the MAD, then the mean of the values within 3 x 1.4826 MAD, summed in row-major
+//! median and the MAD, then the mean of the values within 3 x `MAD_TO_SIGMA` MAD, summed in row-major
 //! order), computes `((raw - level - bias) * gain * (1 / flat))` per pixel with the masters read
 //! by CFITSIO, marks saturated raw values and the chip gap, and places the chips in the
 //! detector frame. Those frames go through `FrameSet::from_frames` + `reduce_set` (frames in
@@ -18,7 +18,7 @@ use instrument::Instrument;
 use sim::raw::{write_raw_exposure, RawChip, RawExposure};
 use skyfield::beams::BeamGeometry;
 use skyfield::calib::{read_exposures, ReadOptions};
-use skyfield::io::{Conversion, Frame, GAP, SATURATED};
+use skyfield::frame::{Conversion, Frame, GAP, SATURATED};
 use skyfield::reduce::{reduce_files_with, reduce_set, FrameSet, ReduceConfig};
 use std::path::{Path, PathBuf};
 
@@ -153,7 +153,7 @@ fn read_f32(p: &Path) -> Vec<f32> {
     h.read_image(&mut f).unwrap()
 }
 
-/// Mean of the values within 3 robust sigmas (1.4826 MAD) of the median, medians by sorting.
+/// Mean of the values within 3 robust sigmas (`MAD_TO_SIGMA` MAD) of the median, medians by sorting.
 fn robust_mean(v: &[f64]) -> f64 {
     let median = |w: &[f64]| {
         let mut s = w.to_vec();
@@ -167,7 +167,7 @@ fn robust_mean(v: &[f64]) -> f64 {
     };
     let med = median(v);
     let dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
-    let s = 1.4826 * median(&dev);
+    let s = stokes::stats::robust::MAD_TO_SIGMA * median(&dev);
     let kept: Vec<f64> = v.iter().copied().filter(|x| (x - med).abs() <= 3.0 * s).collect();
     if kept.is_empty() {
         return med;

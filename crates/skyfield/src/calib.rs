@@ -25,16 +25,19 @@
 //!
 //! Not done here: per-amplifier regions within one chip, flipped chip read-outs, non-linearity.
 
-use crate::io::{
-    check_bitpix, frame_header_with, open_image, parse_number, pixel_source, require_hwp, write_frame, Bitpix,
-    Conversion, Frame, FrameRows, ImageHdu, KeyValue, OpenFrame, Pixels, RawKind, GAP, GAP_LIMIT, SATURATED,
-    SATURATED_LIMIT,
+use crate::fits::{
+    check_bitpix, direct_rows, open_image, parse_number, pixel_source, raw_kind, write_frame, Bitpix, ImageHdu,
+    KeyValue, Pixels, RawKind, RowFile, StoredRows,
+};
+use crate::frame::{
+    frame_header_with, read_frame_raw_with, require_hwp, Conversion, Frame, GAP, GAP_LIMIT, SATURATED, SATURATED_LIMIT,
 };
 use crate::{Error, Warning};
 use instrument::{Chip, Instrument, NumberOrKeyword};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use stokes::stats::robust::{self, Middle, ZeroSpread, MAD_TO_SIGMA};
 
 /// Options of reading: calibration frames and HWP angles given on the command line.
 #[derive(Debug, Clone, Default)]
@@ -74,7 +77,7 @@ impl ReadOptions {
 
 /// What an exposure is calibrated to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Stage {
+pub(crate) enum Stage {
     /// Overscan subtracted, ADU (for master biases).
     Bias,
     /// Bias-free electrons, not flat-fielded (for master flats).
@@ -282,22 +285,16 @@ fn push_usable(out: &mut Vec<f64>, v: &[f64], sat: f64) {
     out.truncate(start + m);
 }
 
-/// Robust mean: the mean of the values within 3 robust sigmas (1.4826 MAD) of the median.
-fn robust_mean(mut v: Vec<f64>) -> Option<f64> {
+/// Robust mean: the mean of the values within 3 robust sigmas (`MAD_TO_SIGMA` times the MAD) of
+/// the median, only those equal to it when the MAD is zero (`robust::clipped_mean`).
+fn robust_mean(v: Vec<f64>) -> Option<f64> {
     if v.is_empty() {
         return None;
     }
     if let Some(m) = robust_mean_of_counts(&v) {
         return Some(m);
     }
-    let med = crate::bin::median_in_place(&mut v);
-    let mut dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
-    let s = 1.4826 * crate::bin::median_in_place(&mut dev);
-    let kept: Vec<f64> = v.iter().copied().filter(|x| (x - med).abs() <= 3.0 * s).collect();
-    if kept.is_empty() {
-        return Some(med);
-    }
-    Some(kept.iter().sum::<f64>() / kept.len() as f64)
+    robust::clipped_mean(&v, 3.0, ZeroSpread::KeepMedian)
 }
 
 /// [`robust_mean`] of whole numbers spanning less than 2^16 (raw ADU, what a prescan or an
@@ -381,7 +378,7 @@ fn robust_mean_of_counts(v: &[f64]) -> Option<f64> {
     }
     let (a, b) = median_of(&dev, n)?;
     let mad = if a == b { a as f64 / 2.0 } else { 0.5 * (a as f64 / 2.0 + b as f64 / 2.0) };
-    let s = 1.4826 * mad;
+    let s = MAD_TO_SIGMA * mad;
     let (mut sum, mut kept) = (0.0, 0usize);
     for (k, &c) in counts.iter().enumerate() {
         let x = lo + k as f64;
@@ -394,16 +391,16 @@ fn robust_mean_of_counts(v: &[f64]) -> Option<f64> {
 }
 
 /// What calibrating one exposure found.
-struct Exposure {
-    path: PathBuf,
-    hwp_deg: Option<f64>,
-    filter: String,
-    exptime_s: Option<f64>,
-    bitpix: i32,
+pub(crate) struct Exposure {
+    pub(crate) path: PathBuf,
+    pub(crate) hwp_deg: Option<f64>,
+    pub(crate) filter: String,
+    pub(crate) exptime_s: Option<f64>,
+    pub(crate) bitpix: i32,
     /// Its calibrated rows, computed as they are read.
-    rows: Calibrated,
+    pub(crate) rows: Calibrated,
     /// Largest read-noise variance (e-^2) of its chips.
-    rn2: f64,
+    pub(crate) rn2: f64,
 }
 
 /// The calibration frames of a run: the bias (ADU) and the inverse of the flat, opened once
@@ -423,7 +420,7 @@ pub(crate) struct Masters {
 struct OpenMaster {
     path: PathBuf,
     /// Positioned reads of the stored rows, when the master is plain BITPIX -32 data.
-    file: Option<crate::io::RowFile>,
+    file: Option<RowFile>,
     nx: usize,
     /// Stored as the inverse (a flat): NaN where the response is not positive.
     inverse: bool,
@@ -576,7 +573,7 @@ pub(crate) use avx2_dispatch;
 struct ChipRows {
     path: PathBuf,
     /// The raw chip image: read by rows from the file, or held whole (compressed files).
-    src: FrameRows,
+    src: StoredRows,
     /// Raw row length (prescan + chip + overscan columns).
     rnx: usize,
     prx: usize,
@@ -600,7 +597,7 @@ impl ChipRows {
     /// Make raw rows `y .. y + n` (raw coordinates) available to [`ChipRows::decode`]: read as
     /// stored into `bytes` from a file (one positioned read), nothing to do when in memory.
     fn fetch(&self, y: usize, n: usize, bytes: &mut Vec<u8>) -> Result<(), Error> {
-        if let FrameRows::File(r) = &self.src {
+        if let StoredRows::File(r) = &self.src {
             let nb = n * self.rnx * r.kind().bytes();
             bytes.resize(nb, 0);
             r.read_at(&self.path, y * self.rnx, &mut bytes[..nb])?;
@@ -613,9 +610,8 @@ impl ChipRows {
     #[inline(always)]
     fn decode(&self, y: usize, k: usize, x: usize, bytes: &[u8], out: &mut [f64]) {
         match &self.src {
-            FrameRows::File(r) => r.kind().decode_at(bytes, k * self.rnx + x, out),
-            FrameRows::Memory(p) => p.view().load((y + k) * self.rnx + x, out),
-            FrameRows::Calibrated(_) => unreachable!("a chip's source is its raw image"),
+            StoredRows::File(r) => r.kind().decode_at(bytes, k * self.rnx + x, out),
+            StoredRows::Memory(p) => p.view().load((y + k) * self.rnx + x, out),
         }
     }
 
@@ -1015,7 +1011,7 @@ impl Calibrated {
                     for (j, (e, buf)) in exps.iter().zip(bytes).enumerate() {
                         let ch = &e.chips[ci];
                         match &ch.src {
-                            FrameRows::File(r) if r.kind() == RawKind::U16 => {
+                            StoredRows::File(r) if r.kind() == RawKind::U16 => {
                                 let at = (k * ch.rnx + ch.prx) * 2;
                                 raws[j] = buf[at..at + 2 * c.cx].as_chunks::<2>().0;
                                 cals[j] = (ch.level, ch.to_e, ch.sat);
@@ -1157,7 +1153,6 @@ fn open_master(path: &Path, inst: &Instrument, kind: &str) -> Result<OpenMaster,
             )));
         }
     }
-    use crate::io::{direct_rows, raw_kind, RawKind};
     let plain = !img.compressed && !img.blank && raw_kind(img.bitpix, img.bscale, img.bzero) == Some(RawKind::F32);
     let file = if plain { direct_rows(path, &mut img, RawKind::F32)? } else { None };
     Ok(OpenMaster {
@@ -1401,7 +1396,7 @@ fn calibrate_exposure(
 }
 
 /// Calibrate every exposure of `paths` at `stage`, in parallel, in the order given.
-fn calibrate_all(
+pub(crate) fn calibrate_all(
     paths: &[PathBuf],
     inst: &Instrument,
     opts: &ReadOptions,
@@ -1453,7 +1448,7 @@ pub fn read_exposures(paths: &[PathBuf], inst: &Instrument, opts: &ReadOptions) 
     if opts.is_plain(inst) {
         let res: Vec<Result<Frame, Error>> = paths
             .par_iter()
-            .map(|p| crate::io::read_frame_raw_with(p, inst, opts.hwp_angles_deg.is_some()).map(|r| r.into_frame()))
+            .map(|p| read_frame_raw_with(p, inst, opts.hwp_angles_deg.is_some()).map(|r| r.into_frame()))
             .collect();
         let mut frames: Vec<Frame> = res.into_iter().collect::<Result<_, _>>()?;
         apply_angles(frames.iter_mut().map(|f| (&f.path, &mut f.hwp_deg)), inst, opts)?;
@@ -1479,38 +1474,8 @@ pub fn read_exposures(paths: &[PathBuf], inst: &Instrument, opts: &ReadOptions) 
     res.into_iter().collect()
 }
 
-/// [`read_exposures`] for the reduction: plain frames stay on disk to be read by rows; raw
-/// ones too, calibrated row by row as the reduction reads them ([`Calibrated`]).
-pub(crate) fn open_exposures(
-    paths: &[PathBuf],
-    inst: &Instrument,
-    opts: &ReadOptions,
-) -> Result<Vec<OpenFrame>, Error> {
-    let inst = &*opts.instrument(inst);
-    if opts.is_plain(inst) {
-        let res: Vec<Result<OpenFrame, Error>> =
-            paths.par_iter().map(|p| crate::io::open_frame_with(p, inst, opts.hwp_angles_deg.is_some())).collect();
-        let mut frames: Vec<OpenFrame> = res.into_iter().collect::<Result<_, _>>()?;
-        apply_angles(frames.iter_mut().map(|f| (&f.path, &mut f.hwp_deg)), inst, opts)?;
-        return Ok(frames);
-    }
-    let ex = calibrate_all(paths, inst, opts, Stage::Science)?;
-    Ok(ex
-        .into_iter()
-        .map(|e| OpenFrame {
-            path: e.path,
-            nx: inst.detector.nx,
-            ny: inst.detector.ny,
-            hwp_deg: e.hwp_deg.unwrap_or(f64::NAN),
-            filter: e.filter,
-            rows: FrameRows::Calibrated(e.rows),
-            conversion: Conversion::electrons(e.rn2),
-        })
-        .collect())
-}
-
 /// `--hwp-angles` onto plain frames (NaN: no header angle), checked against their headers.
-fn apply_angles<'a>(
+pub(crate) fn apply_angles<'a>(
     frames: impl ExactSizeIterator<Item = (&'a PathBuf, &'a mut f64)>,
     inst: &Instrument,
     opts: &ReadOptions,
@@ -1538,7 +1503,8 @@ fn apply_angles<'a>(
 }
 
 /// Sigma-clipped mean per pixel over `images` (values that are NaN, saturated or gap markers
-/// left out): median and 1.4826 MAD, values beyond `nsigma` of it rejected, mean of the rest.
+/// left out): median and `MAD_TO_SIGMA` times the MAD, values beyond `nsigma` of it rejected
+/// (none when the MAD is zero), mean of the rest (`robust::clipped_mean`).
 fn combine(images: &[Vec<f32>], npx: usize, nsigma: f64) -> Vec<f64> {
     let mut out = vec![f64::NAN; npx];
     out.par_chunks_mut(4096).enumerate().for_each(|(c, chunk)| {
@@ -1552,20 +1518,9 @@ fn combine(images: &[Vec<f32>], npx: usize, nsigma: f64) -> Vec<f64> {
                     .map(|im| im[p] as f64)
                     .filter(|x| x.is_finite() && *x < SATURATED_LIMIT && *x > GAP_LIMIT),
             );
-            if v.is_empty() {
-                continue;
+            if let Some(m) = robust::clipped_mean(&v, nsigma, ZeroSpread::KeepAll) {
+                *o = m;
             }
-            let mut w = v.clone();
-            let med = crate::bin::median_in_place(&mut w);
-            for x in w.iter_mut() {
-                *x = (*x - med).abs();
-            }
-            let s = 1.4826 * crate::bin::median_in_place(&mut w);
-            let (sum, n) = v
-                .iter()
-                .filter(|x| s == 0.0 || (*x - med).abs() <= nsigma * s)
-                .fold((0.0, 0usize), |(a, n), x| (a + x, n + 1));
-            *o = if n > 0 { sum / n as f64 } else { med };
         }
     });
     out
@@ -1578,10 +1533,12 @@ fn whole_frames_f32(ex: Vec<Exposure>) -> Result<Vec<Vec<f32>>, Error> {
     res.into_iter().collect()
 }
 
-fn median_of(v: &[f64]) -> Option<f64> {
+/// The median of the pixels that are finite, below saturation and not chip-gap markers; `None`
+/// when there are none.
+fn usable_median(v: &[f64]) -> Option<f64> {
     let mut w: Vec<f64> =
         v.iter().copied().filter(|x| x.is_finite() && *x < SATURATED_LIMIT && *x > GAP_LIMIT).collect();
-    (!w.is_empty()).then(|| crate::bin::median_in_place(&mut w))
+    (!w.is_empty()).then(|| robust::median(&mut w, Middle::Mean))
 }
 
 /// A master bias from bias frames: each calibrated as far as its overscan (ADU), then a
@@ -1619,7 +1576,7 @@ pub fn master_flat(paths: &[PathBuf], inst: &Instrument, bias: Option<&Path>, ns
     let mut imgs = Vec::with_capacity(ex.len());
     for (data, path) in whole_frames_f32(ex)?.into_iter().zip(names) {
         let v: Vec<f64> = data.iter().map(|&x| x as f64).collect();
-        let m = median_of(&v).filter(|m| *m > 0.0).ok_or_else(|| {
+        let m = usable_median(&v).filter(|m| *m > 0.0).ok_or_else(|| {
             Error::Invalid(format!(
                 "{}: flat field has no positive signal (median after bias removal <= 0)",
                 path.display()
@@ -1634,8 +1591,9 @@ pub fn master_flat(paths: &[PathBuf], inst: &Instrument, bias: Option<&Path>, ns
         );
     }
     let mut data = combine(&imgs, npx, nsigma);
-    let m =
-        median_of(&data).filter(|m| *m > 0.0).ok_or_else(|| Error::Invalid("master flat: no positive pixel".into()))?;
+    let m = usable_median(&data)
+        .filter(|m| *m > 0.0)
+        .ok_or_else(|| Error::Invalid("master flat: no positive pixel".into()))?;
     for v in data.iter_mut() {
         *v = if *v / m > 0.0 { *v / m } else { f64::NAN };
     }
@@ -1693,12 +1651,12 @@ impl Master {
 mod tests {
     use super::*;
 
-    /// The definition written plainly: medians by a full sort, the kept values summed in order.
+    /// The definition written plainly: the one median, the kept values summed in order.
     fn by_sorting(v: &[f64]) -> f64 {
-        use crate::reference::sorted_median as median;
+        let median = |w: &[f64]| robust::median(&mut w.to_vec(), Middle::Mean);
         let med = median(v);
         let dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
-        let s = 1.4826 * median(&dev);
+        let s = MAD_TO_SIGMA * median(&dev);
         let kept: Vec<f64> = v.iter().copied().filter(|x| (x - med).abs() <= 3.0 * s).collect();
         if kept.is_empty() {
             med

@@ -690,7 +690,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
 /// in the sum (a change common to both beams cancels in `F`): this reports, it does not cut.
 pub fn check_exposures(
     cat: &mut Catalog,
-    frames: &[crate::io::Frame],
+    frames: &[crate::frame::Frame],
     set: &FrameSet,
     inst: &Instrument,
     cfg: &CatalogConfig,

@@ -13,9 +13,10 @@
 
 use crate::aperture::centroid;
 use crate::beams::{BeamGeometry, PixelKind};
-use crate::bin::{median_near_by, window};
+use crate::bin::{clipped_stats, clipped_stats_hinted};
 use instrument::Layout;
 use rayon::prelude::*;
+use stokes::stats::robust::{median, Middle};
 
 /// Detection settings.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -68,60 +69,6 @@ fn usable(g: &BeamGeometry, x: usize, y: usize) -> bool {
     !matches!(g.kind(x, y), PixelKind::Masked)
 }
 
-/// Median of `v` (reordered in place: a selection, O(n)), `None` when empty.
-fn median(v: &mut [f64]) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    let n = v.len();
-    let (lo, &mut hi, _) = v.select_nth_unstable_by(n / 2, f64::total_cmp);
-    Some(if n % 2 == 1 { hi } else { 0.5 * (lo.iter().copied().fold(f64::NEG_INFINITY, f64::max) + hi) })
-}
-
-/// Median and robust sigma (1.4826 MAD) after three 3-sigma clipping passes.
-fn clipped_stats(v: &[f64]) -> Option<(f64, f64)> {
-    clipped_stats_hinted(v, &mut None)
-}
-
-/// Where a clipping ended (median, MAD, sigma): passed to the next box of a mesh row, whose sky
-/// is much the same, as where to look first. It changes nothing but speed.
-type StatsHint = Option<(f64, f64, f64)>;
-
-/// [`clipped_stats`], its first median and MAD looked for near `hint`'s, which it updates.
-fn clipped_stats_hinted(v: &[f64], hint: &mut StatsHint) -> Option<(f64, f64)> {
-    let mut w: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-    if w.is_empty() {
-        return None;
-    }
-    // Each pass's median and MAD are first looked for near the previous pass's (a few values
-    // rejected move them little): exactly the medians a selection over all values gives
-    // (`bin::median_near_by`), found by one counting pass and a selection among the few values
-    // near them. The mesh's selections were a tenth of a catalog's CPU time.
-    let (mut keys, mut win) = (Vec::new(), Vec::new());
-    let first = hint.map(|(m, _, s)| window(m, 0.125 * s));
-    let mut med = median_near_by(&w, None, first, &mut keys, &mut win);
-    let (mut sig, mut mad_window) = (0.0, hint.map(|(_, d, s)| window(d, 0.15 * s)));
-    for _ in 0..3 {
-        let mad = median_near_by(&w, Some(med), mad_window, &mut keys, &mut win);
-        sig = 1.4826 * mad;
-        if !(sig > 0.0) {
-            break;
-        }
-        let before = w.len();
-        w.retain(|x| (x - med).abs() <= 3.0 * sig);
-        if w.len() == before {
-            break;
-        }
-        if w.is_empty() {
-            return None;
-        }
-        med = median_near_by(&w, None, Some(window(med, 0.125 * sig)), &mut keys, &mut win);
-        mad_window = Some(window(mad, 0.15 * sig));
-    }
-    *hint = (sig > 0.0).then_some((med, sig / 1.4826, sig));
-    Some((med, sig))
-}
-
 /// Background mesh and noise of `img` over the pixels the layout illuminates.
 pub fn background(img: &[f64], g: &BeamGeometry, box_px: usize) -> Background {
     let level = background_level(img, g, box_px, Vec::new());
@@ -156,7 +103,8 @@ fn background_level(img: &[f64], g: &BeamGeometry, box_px: usize, mut level: Vec
     });
     // Empty boxes (behind the mask) take the median of the filled ones: the bilinear
     // interpolation then never reaches for a NaN.
-    let fill = median(&mut mesh.iter().copied().filter(|v| v.is_finite()).collect::<Vec<_>>()).unwrap_or(0.0);
+    let mut filled: Vec<f64> = mesh.iter().copied().filter(|v| v.is_finite()).collect();
+    let fill = if filled.is_empty() { 0.0 } else { median(&mut filled, Middle::Mean) };
     for v in mesh.iter_mut().filter(|v| !v.is_finite()) {
         *v = fill;
     }
@@ -416,8 +364,8 @@ pub fn unpaired_shift(
     if res.len() < 3 {
         return None;
     }
-    let dx = median(&mut res.iter().map(|r| r.0).collect::<Vec<_>>())?;
-    let dy = median(&mut res.iter().map(|r| r.1).collect::<Vec<_>>())?;
+    let dx = median(&mut res.iter().map(|r| r.0).collect::<Vec<_>>(), Middle::Mean);
+    let dy = median(&mut res.iter().map(|r| r.1).collect::<Vec<_>>(), Middle::Mean);
     let n = res.iter().filter(|r| (r.0 - dx).hypot(r.1 - dy) <= 1.0).count();
     Some((dx, dy, n))
 }
@@ -426,81 +374,6 @@ pub fn unpaired_shift(
 mod tests {
     use super::*;
     use rand::{RngExt, SeedableRng};
-
-    /// The clipping as documented, written plainly: every median by a full sort.
-    fn reference(v: &[f64]) -> Option<(f64, f64)> {
-        use crate::reference::sorted_median as median;
-        let mut w: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-        if w.is_empty() {
-            return None;
-        }
-        let mut med = median(&w);
-        let mut sig = 0.0;
-        for _ in 0..3 {
-            let dev: Vec<f64> = w.iter().map(|x| (x - med).abs()).collect();
-            sig = 1.4826 * median(&dev);
-            if !(sig > 0.0) {
-                break;
-            }
-            let before = w.len();
-            w.retain(|x| (x - med).abs() <= 3.0 * sig);
-            if w.len() == before {
-                break;
-            }
-            if w.is_empty() {
-                return None;
-            }
-            med = median(&w);
-        }
-        Some((med, sig))
-    }
-
-    /// The mesh's clipping (medians searched near the previous pass's) gives the plain
-    /// clipping's median and sigma to the bit: sky boxes with stars in them, integer ADU (ties
-    /// everywhere), a constant box (MAD zero), NaNs, tiny boxes, a box that is mostly star.
-    #[test]
-    fn clipped_stats_is_the_plain_clipping() {
-        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(11);
-        let mut cases: Vec<Vec<f64>> = vec![vec![], vec![f64::NAN; 5], vec![7.0; 100], vec![1.0, 2.0], vec![3.0]];
-        for k in 0..300 {
-            let n = rng.random_range(1..5000);
-            let sky = rng.random_range(-50.0..5000.0);
-            let noise = rng.random_range(0.5..80.0);
-            let mut v: Vec<f64> = (0..n)
-                .map(|_| {
-                    // Box-Muller: a Gaussian sky.
-                    let (a, b): (f64, f64) = (rng.random_range(1e-12..1.0), rng.random_range(0.0..1.0));
-                    sky + noise * (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
-                })
-                .collect();
-            // Stars: a tail of bright values, sometimes most of the box.
-            let stars = rng.random_range(0..n / (1 + k % 7) + 1);
-            for x in v.iter_mut().take(stars) {
-                *x += rng.random_range(0.0..50.0 * noise);
-            }
-            if k % 3 == 0 {
-                v.iter_mut().for_each(|x| *x = x.round());
-            }
-            if k % 11 == 0 {
-                v[0] = f64::NAN;
-            }
-            cases.push(v);
-        }
-        // Hints as a mesh row passes them (the previous box's), and absurd ones.
-        let mut chained = None;
-        for (k, v) in cases.iter().enumerate() {
-            let want = reference(v);
-            let bits = |r: Option<(f64, f64)>| r.map(|(m, s)| (m.to_bits(), s.to_bits()));
-            let absurd = [None, Some((1e30, 1e-30, 1e-30)), Some((-5.0, 0.0, 0.0)), Some((f64::NAN, 1.0, 1.0))];
-            for (h, mut hint) in absurd.into_iter().chain([chained]).enumerate() {
-                let got = clipped_stats_hinted(v, &mut hint);
-                assert_eq!(bits(got), bits(want), "case {k}, hint {h}: {got:?} vs {want:?}");
-                if h == 4 {
-                    chained = hint;
-                }
-            }
-        }
-    }
 
     /// Work images taken from a previous detection (holding its values, or junk, and sized for
     /// another frame) change nothing: the same sources, to the bit, as a fresh detection.

@@ -8,6 +8,11 @@
 //! ([`maps`], with its FITS format), and measures point sources by aperture photometry with
 //! the background removed vectorially ([`photometry`]). It does not fit field models (that is
 //! the `fit` crate) and does not simulate (that is `sim`).
+//!
+//! The frame I/O is in layers, each file using only those below it: the FITS primitives
+//! ([`fits`]), the frame and the reading of a plain one ([`frame`]), the calibration of raw
+//! chip files ([`calib`]), and the entry point that chooses between them ([`io`]); the
+//! celestial WCS a map carries is [`wcs`], the tables of stars and catalogs [`table`].
 
 pub mod align;
 pub mod aperture;
@@ -17,6 +22,8 @@ pub mod calib;
 pub mod catalog;
 pub mod detect;
 pub mod durable;
+pub mod fits;
+pub mod frame;
 pub mod io;
 pub mod maps;
 pub mod photometry;
@@ -24,6 +31,7 @@ pub mod provenance;
 pub mod reduce;
 pub mod solve;
 pub mod table;
+pub mod wcs;
 
 pub use beams::BeamGeometry;
 pub use maps::{BinGeometry, CorrectionStamp, ExposureTrack, RecordedAngles, StokesMap, TelescopeStamp};
@@ -161,22 +169,4 @@ pub fn advise_huge_pages(start: usize, bytes: usize) {
     }
     #[cfg(not(target_os = "linux"))]
     let _ = (start, bytes);
-}
-
-/// Plain references the modules' tests check the library against (written independently of
-/// the code they check).
-#[cfg(test)]
-pub(crate) mod reference {
-    /// The median by a full sort in `f64::total_cmp` order; for an even count, the mean of the
-    /// two middle values.
-    pub(crate) fn sorted_median(v: &[f64]) -> f64 {
-        let mut s = v.to_vec();
-        s.sort_by(f64::total_cmp);
-        let n = s.len();
-        if n % 2 == 1 {
-            s[n / 2]
-        } else {
-            0.5 * (s[n / 2 - 1] + s[n / 2])
-        }
-    }
 }

@@ -35,6 +35,7 @@
 //! `INSTRUME` may be a custom instrument file's, whose zero angle no lookup by name can find).
 //! A corrected map also carries the correction's record ([`CorrectionStamp`]).
 
+use crate::wcs::{CelestialWcs, WcsValue};
 use crate::{fits_err, Error};
 use fitsio::images::{ImageDescription, ImageType};
 use fitsio::FitsFile;
@@ -42,14 +43,6 @@ use std::path::Path;
 
 /// Current version of the Stokes-map FITS format.
 pub const MAP_FORMAT_VERSION: i32 = 1;
-
-/// A WCS card's value (see [`BinGeometry::wcs_cards`]).
-#[derive(Debug, Clone, PartialEq)]
-pub enum WcsValue {
-    Int(i64),
-    Real(f64),
-    Text(String),
-}
 
 /// Where the bins of a map lie on the detector.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -304,8 +297,8 @@ pub struct RecordedAngles {
 
 impl RecordedAngles {
     /// The keywords, with their comments (`NEXPTRK` a count, the others degrees).
-    pub fn keywords(&self) -> Vec<(String, crate::io::KeyValue, &'static str)> {
-        use crate::io::KeyValue::{F64, I64};
+    pub fn keywords(&self) -> Vec<(String, crate::fits::KeyValue, &'static str)> {
+        use crate::fits::KeyValue::{F64, I64};
         let mut k = Vec::new();
         if let Some((a, b)) = self.parallactic_rad {
             k.push(("PARANG1".to_string(), F64(a.to_degrees()), "parallactic angle, first start [deg]"));
@@ -392,9 +385,9 @@ impl RecordedAngles {
         self.keywords()
             .into_iter()
             .filter_map(|(k, v, _)| match v {
-                crate::io::KeyValue::F64(x) => Some((k, x)),
-                crate::io::KeyValue::I64(n) => Some((k, n as f64)),
-                crate::io::KeyValue::Str(_) => None,
+                crate::fits::KeyValue::F64(x) => Some((k, x)),
+                crate::fits::KeyValue::I64(n) => Some((k, n as f64)),
+                crate::fits::KeyValue::Str(_) => None,
             })
             .collect()
     }
@@ -403,111 +396,6 @@ impl RecordedAngles {
     /// table in errors).
     pub fn from_meta(meta: &[(String, f64)], path: &Path) -> Result<Self, Error> {
         Self::from_keywords(|k| meta.iter().find(|(n, _)| n == k).map(|(_, v)| format!("{v:?}")), path)
-    }
-}
-
-/// A celestial FITS WCS without distortion terms: `CTYPEi` (e.g. `RA---TAN`, `DEC--TAN`),
-/// `CRPIXi`, `CRVALi` (deg) and the `CD` matrix (deg/px), with `RADESYS`/`EQUINOX` when given.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct CelestialWcs {
-    pub ctype: [String; 2],
-    pub crpix: [f64; 2],
-    pub crval: [f64; 2],
-    pub cd: [[f64; 2]; 2],
-    pub radesys: Option<String>,
-    pub equinox: Option<f64>,
-}
-
-/// Projections carried through the binning (linear in pixel coordinates before projection, so
-/// binning only rescales CD and shifts CRPIX); anything else (SIP, TPV, ...) is not carried.
-const PROJECTIONS: [&str; 10] = ["TAN", "SIN", "ARC", "ZEA", "STG", "CAR", "AIT", "MER", "CEA", "ZPN"];
-
-impl CelestialWcs {
-    /// The celestial WCS of header `hdu`: `Ok(None)` when it has none (no `CTYPE1` of the
-    /// form `xxxx-PPP`), `Err(why)` when it has one this reader does not carry (distortion
-    /// terms, an unknown projection, a missing value). The matrix is `CDi_j`, else
-    /// `PCi_j * CDELTi`, else `CDELTi` with `CROTA2`.
-    pub fn read(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<Option<Self>, String> {
-        let s = |f: &mut FitsFile, k: &str| crate::io::read_key_str(f, hdu, k).ok().map(|v| v.trim().to_string());
-        let (Some(c1), Some(c2)) = (s(f, "CTYPE1"), s(f, "CTYPE2")) else { return Ok(None) };
-        let celestial = |c: &str| c.len() >= 8 && c.as_bytes()[4] == b'-';
-        if !celestial(&c1) || !celestial(&c2) {
-            return Ok(None);
-        }
-        for c in [&c1, &c2] {
-            if c.len() != 8 || !PROJECTIONS.contains(&&c[5..8]) {
-                return Err(format!("CTYPE '{c}' (distortion or projection not carried through binning)"));
-            }
-        }
-        if s(f, "A_ORDER").is_some() || s(f, "PV1_1").is_some() || s(f, "PV2_1").is_some() {
-            return Err("distortion terms (SIP or PV) are not carried through binning".into());
-        }
-        let r = |f: &mut FitsFile, k: &str| hdu.read_key::<f64>(f, k).ok();
-        let need = |f: &mut FitsFile, k: &str| r(f, k).ok_or_else(|| format!("{k} missing"));
-        let crpix = [need(f, "CRPIX1")?, need(f, "CRPIX2")?];
-        let crval = [need(f, "CRVAL1")?, need(f, "CRVAL2")?];
-        let cd = if let Some(c11) = r(f, "CD1_1") {
-            [[c11, r(f, "CD1_2").unwrap_or(0.0)], [r(f, "CD2_1").unwrap_or(0.0), r(f, "CD2_2").unwrap_or(0.0)]]
-        } else {
-            let (d1, d2) = (need(f, "CDELT1")?, need(f, "CDELT2")?);
-            if r(f, "PC1_1").is_some() || r(f, "PC2_2").is_some() {
-                let pc = |f: &mut FitsFile, k: &str, d: f64| r(f, k).unwrap_or(d);
-                [
-                    [d1 * pc(f, "PC1_1", 1.0), d1 * pc(f, "PC1_2", 0.0)],
-                    [d2 * pc(f, "PC2_1", 0.0), d2 * pc(f, "PC2_2", 1.0)],
-                ]
-            } else {
-                let rho = r(f, "CROTA2").unwrap_or(0.0).to_radians();
-                [[d1 * rho.cos(), -d2 * rho.sin()], [d1 * rho.sin(), d2 * rho.cos()]]
-            }
-        };
-        if !(crpix.iter().chain(&crval).chain(cd.iter().flatten()).all(|v| v.is_finite())) {
-            return Err("a WCS value is not finite".into());
-        }
-        Ok(Some(Self { ctype: [c1, c2], crpix, crval, cd, radesys: s(f, "RADESYS"), equinox: r(f, "EQUINOX") }))
-    }
-
-    /// The WCS of the detector frame carried to the map of `g`: map pixel `p` (1-based) is
-    /// detector pixel `X = x0 + 1 + b (p - 1)` (`x0` the 0-based centre of bin 0, `b` the bin
-    /// side), so `X - CRPIX = b (p - CRPIX')` with `CRPIX' = 1 + (CRPIX - x0 - 1) / b`, and
-    /// `CD' = b CD`: every bin centre gets the sky position of its detector pixel.
-    pub fn binned(&self, g: &BinGeometry) -> Self {
-        let b = g.bin_px as f64;
-        let x0 = [g.origin_x as f64 + 0.5 * b - 0.5, g.origin_y as f64 + 0.5 * b - 0.5];
-        let mut w = self.clone();
-        for ((p, x), row) in w.crpix.iter_mut().zip(x0).zip(w.cd.iter_mut()) {
-            *p = 1.0 + (*p - x - 1.0) / b;
-            for c in row {
-                *c *= b;
-            }
-        }
-        w
-    }
-
-    fn cards(&self) -> Vec<(String, WcsValue, &'static str)> {
-        use WcsValue::{Real, Text};
-        let mut v = vec![
-            ("WCSNAME".to_string(), Text("SKY".into()), "the frames' celestial WCS, binned"),
-            ("CTYPE1".into(), Text(self.ctype[0].clone()), ""),
-            ("CTYPE2".into(), Text(self.ctype[1].clone()), ""),
-            ("CUNIT1".into(), Text("deg".into()), ""),
-            ("CUNIT2".into(), Text("deg".into()), ""),
-            ("CRPIX1".into(), Real(self.crpix[0]), "map pixel of CRVAL"),
-            ("CRPIX2".into(), Real(self.crpix[1]), "map pixel of CRVAL"),
-            ("CRVAL1".into(), Real(self.crval[0]), "[deg]"),
-            ("CRVAL2".into(), Real(self.crval[1]), "[deg]"),
-            ("CD1_1".into(), Real(self.cd[0][0]), "[deg per map pixel]"),
-            ("CD1_2".into(), Real(self.cd[0][1]), "[deg per map pixel]"),
-            ("CD2_1".into(), Real(self.cd[1][0]), "[deg per map pixel]"),
-            ("CD2_2".into(), Real(self.cd[1][1]), "[deg per map pixel]"),
-        ];
-        if let Some(r) = &self.radesys {
-            v.push(("RADESYS".into(), Text(r.clone()), ""));
-        }
-        if let Some(e) = self.equinox {
-            v.push(("EQUINOX".into(), Real(e), ""));
-        }
-        v
     }
 }
 
@@ -591,7 +479,7 @@ impl StokesMap {
     /// a temporary file in the same folder renamed over `path` only when complete.
     pub fn write_fits(&self, path: &Path) -> Result<(), Error> {
         self.check_lengths()?;
-        crate::io::write_fits_atomic(path, |f| self.write_into(f, path))
+        crate::fits::write_fits_atomic(path, |f| self.write_into(f, path))
     }
 
     fn write_into(&self, f: &mut FitsFile, path: &Path) -> Result<(), Error> {
@@ -618,7 +506,7 @@ impl StokesMap {
             v.write(f, &ph, &k, comment).map_err(e)?;
         }
         if let Some(z) = self.hwp_zero_angle_deg {
-            crate::io::KeyValue::F64(z)
+            crate::fits::KeyValue::F64(z)
                 .write(f, &ph, "HWPZERO", "HWP zero angle of the filter, not in Q, U [deg]")
                 .map_err(e)?;
         }
@@ -688,7 +576,7 @@ impl StokesMap {
     /// [`StokesMap::read_uncorrected`] refuses, so that a map is never corrected twice.
     pub fn write_corrected_fits(&self, path: &Path, stamp: &CorrectionStamp) -> Result<(), Error> {
         self.check_lengths()?;
-        crate::io::write_fits_atomic(path, |f| {
+        crate::fits::write_fits_atomic(path, |f| {
             self.write_into(f, path)?;
             stamp.write_into(f).map_err(|x| Error::Write { path: path.into(), message: x.to_string() })
         })
@@ -713,7 +601,7 @@ impl StokesMap {
         let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
         let ph = f.primary_hdu().map_err(|e| fits_err(path, e))?;
         if uncorrected_only {
-            if let Ok(cal) = crate::io::read_key_str(&mut f, &ph, "INSTCORR") {
+            if let Ok(cal) = crate::fits::read_key_str(&mut f, &ph, "INSTCORR") {
                 return Err(Error::Invalid(format!(
                     "already corrected for the instrumental polarization (INSTCORR = '{cal}', by instpol correct); correcting it again or calibrating on it would remove that polarization twice: use the map from instpol reduce"
                 )));
@@ -732,7 +620,7 @@ impl StokesMap {
             });
         }
         let key_s = |f: &mut FitsFile, k: &str| -> Result<String, Error> {
-            crate::io::read_key_str(f, &ph, k)
+            crate::fits::read_key_str(f, &ph, k)
                 .map_err(|_| Error::MissingKeyword { path: path.into(), keyword: k.into() })
         };
         let instrument = key_s(&mut f, "INSTRUME")?;
@@ -796,8 +684,8 @@ impl StokesMap {
             Err(_) => None,
         };
         let RecordedAngles { parallactic_rad, rotator_rad, exposure_tracks } =
-            RecordedAngles::from_keywords(|k| crate::io::read_key_str(&mut f, &ph, k).ok(), path)?;
-        let hwp_zero_angle_deg = match crate::io::read_key_str(&mut f, &ph, "HWPZERO").ok() {
+            RecordedAngles::from_keywords(|k| crate::fits::read_key_str(&mut f, &ph, k).ok(), path)?;
+        let hwp_zero_angle_deg = match crate::fits::read_key_str(&mut f, &ph, "HWPZERO").ok() {
             None => None,
             Some(v) => match v.trim().parse::<f64>() {
                 Ok(z) if z.is_finite() => Some(z),
@@ -928,7 +816,7 @@ mod tests {
         let m = sample();
         m.write_fits(&path).unwrap();
         let mut f = FitsFile::open(&path).unwrap();
-        let key_s = |f: &mut FitsFile, h: &fitsio::hdu::FitsHdu, k: &str| crate::io::read_key_str(f, h, k).unwrap();
+        let key_s = |f: &mut FitsFile, h: &fitsio::hdu::FitsHdu, k: &str| crate::fits::read_key_str(f, h, k).unwrap();
         let (b, ox, oy) = (30.0, 0.0, 34.0);
         for (name, unit) in [
             ("Q", ""),

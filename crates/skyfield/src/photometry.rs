@@ -17,11 +17,12 @@
 use crate::aperture::{centroid, weights, Weighting};
 use crate::beams::{BeamGeometry, PixelKind};
 use crate::bin::{with_clipped, ClipConfig, ClipHint};
-use crate::io::Conversion;
+use crate::frame::Conversion;
 use crate::reduce::FrameSet;
 use crate::Error;
 use instrument::{Instrument, Layout};
 use std::path::{Path, PathBuf};
+use stokes::stats::robust::{median, Middle, MAD_TO_SIGMA};
 
 /// Aperture and background annulus (px).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -385,7 +386,7 @@ pub(crate) fn measure_frame(
                 return Err(behind_mask(r, (cx, cy), (px, py)));
             }
             let val = data[py * g.nx + px];
-            if val <= crate::io::GAP_LIMIT {
+            if val <= crate::frame::GAP_LIMIT {
                 return Err(Error::mask_edge(format!(
                         "aperture pixel ({px}, {py}) of the {name} beam lies in the gap between the chips; photometry needs clean aperture pixels"
                     )));
@@ -421,7 +422,7 @@ pub(crate) fn measure_frame(
                     let r2 = (px as f64 - cx).powi(2) + (py as f64 - cy).powi(2);
                     if r2 >= ra * ra && r2 < rb * rb && in_beam(px, py) {
                         let val = data[py * g.nx + px];
-                        if val.is_finite() && val < sat * nexp && val > crate::io::GAP_LIMIT {
+                        if val.is_finite() && val < sat * nexp && val > crate::frame::GAP_LIMIT {
                             vals.push(to_e(val));
                         }
                     }
@@ -493,7 +494,7 @@ pub const TRANSPARENCY_TOL: f64 = 0.10;
 
 /// Each exposure of `frames` as a one-frame [`FrameSet`] (the conversion and filter of `set`),
 /// built once for [`exposure_checks`] (a catalog checks every star in the same exposures).
-pub fn single_exposures(frames: &[crate::io::Frame], set: &FrameSet) -> Vec<FrameSet> {
+pub fn single_exposures(frames: &[crate::frame::Frame], set: &FrameSet) -> Vec<FrameSet> {
     frames
         .iter()
         .map(|f| FrameSet {
@@ -754,11 +755,10 @@ fn oe_offset_of_image(
     if vals.len() < 9 {
         return Err(Error::Invalid("cannot measure the o/e offset: the frame has no finite pixels".into()));
     }
-    vals.sort_by(f64::total_cmp);
-    let med = vals[vals.len() / 2];
+    // Upper middles: the level is one of the pixels.
+    let med = median(&mut vals, Middle::Upper);
     let mut dev: Vec<f64> = vals.iter().map(|v| (v - med).abs()).collect();
-    dev.sort_by(f64::total_cmp);
-    let sigma = (1.4826 * dev[dev.len() / 2]).max(1e-9 * med.abs().max(1.0));
+    let sigma = (MAD_TO_SIGMA * median(&mut dev, Middle::Upper)).max(1e-9 * med.abs().max(1.0));
     let thr = med + 10.0 * sigma;
     let mut peaks: Vec<(f64, usize, usize)> = Vec::new();
     for y in 2..ny.saturating_sub(2) {
@@ -829,7 +829,7 @@ fn oe_offset_of_image(
         )));
     }
     let npairs = dxs.len();
-    Ok((crate::bin::median_in_place(&mut dxs), crate::bin::median_in_place(&mut dys), npairs))
+    Ok((median(&mut dxs, Middle::Mean), median(&mut dys, Middle::Mean), npairs))
 }
 
 /// Sigma-clipped mean, the variance of that mean, and the number kept. The clipping starts its

@@ -26,7 +26,9 @@
 use crate::beams::BeamGeometry;
 use crate::bin::{clipped_bin_taking, BinSamples, ClipConfig, PixelSample};
 use crate::calib::{avx2_dispatch, Calibrated, MasterRows, ReadOptions, SumScratch};
-use crate::io::{Conversion, Frame, FrameRows, OpenFrame, PixelView, RawKind};
+use crate::fits::{PixelView, RawKind};
+use crate::frame::{Conversion, Frame};
+use crate::io::{FrameRows, OpenFrame};
 use crate::maps::{BinGeometry, StokesMap};
 use crate::{Error, Warning};
 use instrument::Instrument;
@@ -379,7 +381,7 @@ impl DiskFrames {
         if paths.is_empty() {
             return Err(Error::NoFrames);
         }
-        let frames: Vec<OpenFrame> = crate::calib::open_exposures(paths, inst, opts)?;
+        let frames: Vec<OpenFrame> = crate::io::open_exposures(paths, inst, opts)?;
         let conversion = common_conversion(frames.iter().map(|f| &f.conversion), inst)?;
         let meta: Vec<_> = frames.iter().map(open_meta).collect();
         let g = group_frames(&meta, inst, require_complete)?;
@@ -1527,8 +1529,11 @@ pub fn reduce_files_with(
     };
     // The first frame's celestial WCS, carried through the binning, when its pixels are the
     // map's detector pixels (a plain frame, same size; not chips trimmed and assembled).
-    match crate::io::celestial_wcs_of(&frames[0].path, frames[0].nx, frames[0].ny) {
-        Ok(Some(w)) => map.celestial_wcs = Some(w.binned(&map.geometry)),
+    match crate::wcs::celestial_wcs_of(&frames[0].path, frames[0].nx, frames[0].ny) {
+        Ok(Some(w)) => {
+            let g = &map.geometry;
+            map.celestial_wcs = Some(w.binned(g.bin_px, [g.origin_x, g.origin_y]))
+        }
         Ok(None) => {}
         Err(why) => warnings.push(crate::Warning {
             file: Some(frames[0].path.clone()),

@@ -2,7 +2,7 @@
 //! warning; never a panic.
 
 use instrument::Instrument;
-use skyfield::io::{write_frame, Bitpix, KeyValue};
+use skyfield::fits::{write_frame, Bitpix, KeyValue};
 use skyfield::reduce::{reduce_files, ReduceConfig};
 use skyfield::Error;
 use std::path::{Path, PathBuf};

@@ -13,22 +13,18 @@ use skyfield::bin::{
     clipped_bin, clipped_bin_hinted, sigma_clip_columns, sigma_clip_columns_hinted, BinSamples, ClipConfig, ClipHint,
     PixelSample,
 };
+use stokes::stats::robust::{median, Middle, MAD_TO_SIGMA};
 
-/// Median by a full sort (total order); the mean of the two middle values for an even count.
+/// The one median (`stokes::stats::robust::median`, itself checked against a full sort), of
+/// the mean of the two middle values for an even count: the definition the fast kernels'
+/// windowed searches must give.
 fn sorted_median(v: &[f64]) -> f64 {
-    let mut s = v.to_vec();
-    s.sort_by(f64::total_cmp);
-    let n = s.len();
-    if n % 2 == 1 {
-        s[n / 2]
-    } else {
-        0.5 * (s[n / 2 - 1] + s[n / 2])
-    }
+    median(&mut v.to_vec(), Middle::Mean)
 }
 
 /// The clipping as documented, in the plainest form: keep the rows finite in every column;
 /// then, while at least 3 rows remain and at most `max_iter` times, take each column's median
-/// and MAD of the kept rows (sigma = 1.4826 MAD, or the population standard deviation of the
+/// and MAD of the kept rows (sigma = `MAD_TO_SIGMA` MAD, or the population standard deviation of the
 /// kept values when the MAD is zero) and keep the rows within `nsigma` sigma of the median in
 /// every column; stop when an iteration keeps every row.
 fn reference_keep(cols: &[&[f64]], cfg: ClipConfig) -> Vec<bool> {
@@ -45,7 +41,7 @@ fn reference_keep(cols: &[&[f64]], cfg: ClipConfig) -> Vec<bool> {
             let v: Vec<f64> = rows.iter().map(|&r| c[r]).collect();
             let med = sorted_median(&v);
             let dev: Vec<f64> = v.iter().map(|x| (x - med).abs()).collect();
-            let mut sigma = 1.482_602_218_505_602 * sorted_median(&dev);
+            let mut sigma = MAD_TO_SIGMA * sorted_median(&dev);
             if sigma == 0.0 {
                 let mean = v.iter().sum::<f64>() / m as f64;
                 sigma = (v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / m as f64).sqrt();

@@ -1,6 +1,6 @@
 //! Regression tests for defects found by the cargo-fuzz targets (fuzz/FINDINGS.md).
 
-use skyfield::io::{read_key_str, write_frame, Bitpix, KeyValue};
+use skyfield::fits::{read_key_str, write_frame, Bitpix, KeyValue};
 
 /// fuzz/FINDINGS.md, frame_fits 1: a header card whose value starts right after the `=` and
 /// fills the card (71 characters, `EXPTIME =<71 bytes>`) made fitsio 0.21's

@@ -7,7 +7,7 @@
 
 use instrument::Instrument;
 use skyfield::calib::ReadOptions;
-use skyfield::io::{write_frame, Bitpix, KeyValue};
+use skyfield::fits::{write_frame, Bitpix, KeyValue};
 use skyfield::reduce::{read_frames, reduce_files, reduce_set, DiskFrames, FrameSet, FrameSource, ReduceConfig};
 use std::path::{Path, PathBuf};
 

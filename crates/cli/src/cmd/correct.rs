@@ -10,6 +10,7 @@ use fitsio::FitsFile;
 use serde::Serialize;
 use skyfield::table::{Column, Format, Table};
 use std::path::{Path, PathBuf};
+use stokes::stats::robust::{finite_median, Middle};
 use stokes::stats::{Estimator, PolMeasurement};
 
 /// Remove the instrumental polarization from measured Stokes parameters with a calibration
@@ -484,16 +485,6 @@ fn warn_extrapolated(s: &Summary, field: &str) {
     }
 }
 
-fn median(v: impl Iterator<Item = f64>) -> Option<f64> {
-    let mut v: Vec<f64> = v.filter(|x| x.is_finite()).collect();
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
-}
-
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 enum Kind {
     /// CSV, ECSV or VOTable (by extension, `skyfield::table`).
@@ -735,8 +726,8 @@ fn map_summary(a: &Args, c: fit::correct::CorrectedMap, filter: &str, hwp_chi_of
         coords: None,
         filter: filter.to_string(),
         hwp_chi_offset_deg,
-        median_p0: median(c.p0.into_iter()),
-        median_p_inst: median(c.p_inst.into_iter()),
+        median_p0: finite_median(c.p0, Middle::Mean),
+        median_p_inst: finite_median(c.p_inst, Middle::Mean),
         telescope_model: None,
         telescope_band: None,
         telescope_exposures: None,
@@ -789,8 +780,8 @@ fn write_catalog(
         coords: Some(a.coords),
         filter,
         hwp_chi_offset_deg,
-        median_p0: median(out.iter().map(|r| r.p0)),
-        median_p_inst: median(out.iter().map(|r| r.inst.q.hypot(r.inst.u))),
+        median_p0: finite_median(out.iter().map(|r| r.p0), Middle::Mean),
+        median_p_inst: finite_median(out.iter().map(|r| r.inst.q.hypot(r.inst.u)), Middle::Mean),
         telescope_model: None,
         telescope_band: None,
         telescope_exposures: None,

@@ -3,6 +3,7 @@
 use anyhow::Result;
 use skyfield::reduce::ReduceConfig;
 use std::path::PathBuf;
+use stokes::stats::robust::{median, Middle};
 
 /// Reduce a set of dual-beam frames (one filter, N HWP angles) to a binned Stokes map: per
 /// pixel F_i and Q/I, U/I from the ordinary and extraordinary images of every mask strip,
@@ -59,10 +60,6 @@ struct Summary {
     warnings: Vec<String>,
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    skyfield::bin::median_in_place(&mut v)
-}
-
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
     crate::util::check_output(&a.out)?;
@@ -95,7 +92,7 @@ pub fn run(a: Args) -> Result<()> {
     fit::telescope_cal::record_telescope_angles(&mut r.map, &r.exposures, &a.frames, &inst);
     r.map.write_fits(&a.out)?;
     let m = &r.map;
-    let pick = |v: &[f64]| median(m.valid_bins().map(|(k, _, _)| v[k]).collect());
+    let pick = |v: &[f64]| median(&mut m.valid_bins().map(|(k, _, _)| v[k]).collect::<Vec<_>>(), Middle::Mean);
     let s = Summary {
         out: a.out.clone(),
         filter: m.filter.clone(),

@@ -1,7 +1,7 @@
 //! Fixtures shared by the skyfield integration tests.
 
 use instrument::Instrument;
-use skyfield::io::KeyValue;
+use skyfield::fits::KeyValue;
 use std::path::Path;
 
 /// FORS1 shrunk to a 64 x 64 detector with three 10-px strip pairs, and the given bias (ADU).

@@ -13,13 +13,15 @@
 //! - [`angle`]: the pdf of the measured angle (Naghizadeh-Khouei & Clarke 1993) and its
 //!   68.27 % half-width;
 //! - [`estimators`]: naive, AS, WK, ML, MP2, MAS, MB and the paper's PR06 law, by name;
-//! - [`intervals`]: Neyman central intervals and Bayesian HPD intervals on `P0`.
+//! - [`intervals`]: Neyman central intervals and Bayesian HPD intervals on `P0`;
+//! - [`robust`]: the workspace's one median, the MAD-to-sigma factor and the clipped mean.
 
 pub mod angle;
 pub mod debias;
 pub mod estimators;
 pub mod intervals;
 pub mod rice;
+pub mod robust;
 pub mod special;
 
 pub use angle::AngleDist;

@@ -1,0 +1,217 @@
+//! FITS binary tables: the first table HDU or a named one, units in `TUNITn`, descriptions in
+//! `TCOMMn`, table-level numbers as keywords written to 17 significant digits.
+
+use super::model::{terr, Column, Data, Table};
+use crate::Error;
+use std::path::Path;
+
+impl Table {
+    pub(super) fn write_fits_into(&self, f: &mut fitsio::FitsFile, path: &Path) -> Result<(), Error> {
+        use fitsio::tables::{ColumnDataType, ColumnDescription};
+        let e = |m: String| Error::Write { path: path.into(), message: m };
+        let mut descs = Vec::new();
+        for c in &self.columns {
+            let mut d = ColumnDescription::new(&c.name);
+            let d = match &c.data {
+                Data::F64(_) => d.with_type(ColumnDataType::Double),
+                Data::I64(_) => d.with_type(ColumnDataType::LongLong),
+                Data::Str(v) => d
+                    .with_type(ColumnDataType::String)
+                    .that_repeats(v.iter().map(|s| s.len()).max().unwrap_or(1).max(1)),
+            };
+            descs.push(d.create().map_err(|x| e(format!("column {}: {x}", c.name)))?);
+        }
+        let h = f.create_table("CATALOG", &descs).map_err(|x| e(x.to_string()))?;
+        for (k, c) in self.columns.iter().enumerate() {
+            if let Some(u) = &c.unit {
+                h.write_key(f, &format!("TUNIT{}", k + 1), u.as_str()).map_err(|x| e(x.to_string()))?;
+            }
+            if let Some(d) = &c.description {
+                let d: String = d.chars().filter(|c| (' '..='~').contains(c)).take(68).collect();
+                h.write_key(f, &format!("TCOMM{}", k + 1), d.as_str()).map_err(|x| e(x.to_string()))?;
+            }
+            if self.n_rows() == 0 {
+                continue;
+            }
+            match &c.data {
+                Data::F64(v) => h.write_col(f, &c.name, v),
+                Data::I64(v) => h.write_col(f, &c.name, v),
+                Data::Str(v) => h.write_col(f, &c.name, v),
+            }
+            .map_err(|x| e(format!("column {}: {x}", c.name)))?;
+        }
+        for (k, v) in &self.meta {
+            write_key_exact(f, k, *v).map_err(|x| e(format!("keyword {k}: {x}")))?;
+        }
+        Ok(())
+    }
+}
+
+/// The table HDU `name`, or the first table HDU, with its column descriptions and row count.
+pub fn fits_table_hdu(
+    f: &mut fitsio::FitsFile,
+    name: Option<&str>,
+    path: &Path,
+) -> Result<(fitsio::hdu::FitsHdu, Vec<fitsio::tables::ConcreteColumnDescription>, usize), Error> {
+    use fitsio::hdu::HduInfo;
+    let hdu = match name {
+        Some(n) => f.hdu(n).map_err(|_| terr(path, format!("no HDU named '{n}'")))?,
+        None => {
+            let n_hdu = f.iter().count();
+            let mut found = None;
+            for i in 0..n_hdu {
+                let h = f.hdu(i).map_err(|e| terr(path, format!("HDU {i}: {e}")))?;
+                if matches!(h.info, HduInfo::TableInfo { .. }) {
+                    found = Some(h);
+                    break;
+                }
+            }
+            found.ok_or_else(|| terr(path, "no table HDU (a FITS catalog needs a binary table)"))?
+        }
+    };
+    match &hdu.info {
+        HduInfo::TableInfo { column_descriptions, num_rows } => {
+            let (c, n) = (column_descriptions.clone(), *num_rows);
+            Ok((hdu, c, n))
+        }
+        _ => Err(terr(path, format!("HDU '{}' is not a table", name.unwrap_or("?")))),
+    }
+}
+
+/// A string column through CFITSIO with a buffer one byte longer than the field (fitsio 0.21's
+/// own string reader writes its terminating NUL one byte past its buffer).
+fn read_fits_strings(f: &mut fitsio::FitsFile, col: usize, width: usize, n: usize) -> Result<Vec<String>, String> {
+    let mut bufs: Vec<Vec<std::os::raw::c_char>> = (0..n).map(|_| vec![0; width + 1]).collect();
+    let mut ptrs: Vec<*mut std::os::raw::c_char> = bufs.iter_mut().map(|b| b.as_mut_ptr()).collect();
+    let mut status = 0;
+    let nul = std::ffi::CString::new("").expect("no NUL");
+    if n > 0 {
+        // SAFETY: the current HDU is the table; `ptrs` holds n buffers of width+1 bytes, the
+        // most CFITSIO writes for a width-character field and its NUL.
+        unsafe {
+            fitsio::sys::ffgcvs(
+                f.as_raw(),
+                col as i32 + 1,
+                1,
+                1,
+                n as i64,
+                nul.as_ptr() as *mut _,
+                ptrs.as_mut_ptr(),
+                std::ptr::null_mut(),
+                &mut status,
+            );
+        }
+    }
+    if status != 0 {
+        return Err(format!("CFITSIO status {status}"));
+    }
+    Ok(bufs
+        .iter()
+        .map(|b| {
+            let bytes: Vec<u8> = b.iter().take_while(|&&c| c != 0).map(|&c| c as u8).collect();
+            String::from_utf8_lossy(&bytes).trim_end().to_string()
+        })
+        .collect())
+}
+
+pub(super) fn read_fits(path: &Path, name: Option<&str>) -> Result<Table, Error> {
+    use fitsio::tables::ColumnDataType as T;
+    let mut f = fitsio::FitsFile::open(path).map_err(|e| terr(path, format!("cannot open as FITS: {e}")))?;
+    let (hdu, descs, n) = fits_table_hdu(&mut f, name, path)?;
+    let mut columns = Vec::new();
+    for (k, d) in descs.iter().enumerate() {
+        let cerr = |e: &dyn std::fmt::Display| terr(path, format!("column '{}': {e}", d.name));
+        let unit = crate::fits::read_key_str(&mut f, &hdu, &format!("TUNIT{}", k + 1)).ok().filter(|u| !u.is_empty());
+        let description =
+            crate::fits::read_key_str(&mut f, &hdu, &format!("TCOMM{}", k + 1)).ok().filter(|u| !u.is_empty());
+        let rep = d.data_type.repeat;
+        let data = match d.data_type.typ {
+            T::String => {
+                // Make the table the current HDU for the raw call.
+                let mut st = 0;
+                let mut ty = 0;
+                // SAFETY: an open file; a valid HDU number.
+                unsafe { fitsio::sys::ffmahd(f.as_raw(), hdu.number as i32 + 1, &mut ty, &mut st) };
+                Data::Str(read_fits_strings(&mut f, k, rep.max(1), n).map_err(|e| cerr(&e))?)
+            }
+            _ if rep != 1 => {
+                return Err(terr(
+                    path,
+                    format!("column '{}' is a vector ({rep} values per row): not supported", d.name),
+                ))
+            }
+            T::Float | T::Double => Data::F64(hdu.read_col::<f64>(&mut f, &d.name).map_err(|e| cerr(&e))?),
+            T::Bit | T::Logical => {
+                return Err(terr(path, format!("column '{}' is a bit or logical column: not supported", d.name)))
+            }
+            _ => Data::I64(hdu.read_col::<i64>(&mut f, &d.name).map_err(|e| cerr(&e))?),
+        };
+        columns.push(Column { name: d.name.clone(), unit, description, data });
+    }
+    let meta =
+        fits_table_numbers(&mut f, &hdu).map_err(|e| terr(path, format!("reading the table's keywords: {e}")))?;
+    Ok(Table { meta, ..Table::new(columns) })
+}
+
+/// A number as a keyword of the current HDU with 17 significant digits, so that it reads back
+/// to the bit (fitsio's `write_key` keeps 15).
+fn write_key_exact(f: &mut fitsio::FitsFile, name: &str, v: f64) -> Result<(), String> {
+    let key = std::ffi::CString::new(name).map_err(|x| x.to_string())?;
+    let mut st = 0;
+    // SAFETY: an open file positioned on the table HDU just created; a NUL-terminated name; a
+    // null comment is allowed.
+    unsafe { fitsio::sys::ffpkyd(f.as_raw(), key.as_ptr(), v, -17, std::ptr::null_mut(), &mut st) };
+    if st == 0 {
+        Ok(())
+    } else {
+        Err(format!("CFITSIO status {st}"))
+    }
+}
+
+/// The numeric keywords of a table HDU other than the ones that describe its columns and
+/// layout ([`Table::meta`]).
+fn fits_table_numbers(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<Vec<(String, f64)>, String> {
+    use std::ffi::CStr;
+    let mut st = 0;
+    let mut ty = 0;
+    // SAFETY: an open file; a valid HDU number.
+    unsafe { fitsio::sys::ffmahd(f.as_raw(), hdu.number as i32 + 1, &mut ty, &mut st) };
+    let (mut nkeys, mut more) = (0, 0);
+    // SAFETY: an open file positioned on the HDU; out-parameters of the right types.
+    unsafe { fitsio::sys::ffghsp(f.as_raw(), &mut nkeys, &mut more, &mut st) };
+    if st != 0 {
+        return Err(format!("CFITSIO status {st}"));
+    }
+    let structural = |k: &str| {
+        matches!(k, "XTENSION" | "BITPIX" | "PCOUNT" | "GCOUNT" | "TFIELDS" | "THEAP" | "EXTVER" | "EXTLEVEL")
+            || k.starts_with("NAXIS")
+            || ["TTYPE", "TFORM", "TUNIT", "TCOMM", "TNULL", "TDISP", "TSCAL", "TZERO", "TDIM"]
+                .iter()
+                .any(|p| k.strip_prefix(p).is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit())))
+    };
+    let mut out = Vec::new();
+    for i in 1..=nkeys {
+        let mut name = [0 as std::os::raw::c_char; 80];
+        let mut value = [0 as std::os::raw::c_char; 80];
+        let mut comment = [0 as std::os::raw::c_char; 80];
+        // SAFETY: buffers of FLEN_KEYWORD/FLEN_VALUE/FLEN_COMMENT (<= 80) characters.
+        unsafe {
+            fitsio::sys::ffgkyn(f.as_raw(), i, name.as_mut_ptr(), value.as_mut_ptr(), comment.as_mut_ptr(), &mut st)
+        };
+        if st != 0 {
+            return Err(format!("CFITSIO status {st} at keyword {i}"));
+        }
+        // SAFETY: CFITSIO wrote NUL-terminated strings.
+        let (k, v) = unsafe { (CStr::from_ptr(name.as_ptr()), CStr::from_ptr(value.as_ptr())) };
+        let (k, v) = (k.to_string_lossy().into_owned(), v.to_string_lossy().replace(['D', 'd'], "E"));
+        if k.is_empty() || structural(&k) {
+            continue;
+        }
+        if let Ok(x) = v.trim().parse::<f64>() {
+            if x.is_finite() {
+                out.push((k, x));
+            }
+        }
+    }
+    Ok(out)
+}

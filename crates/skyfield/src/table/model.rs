@@ -1,0 +1,275 @@
+//! The table value: typed columns ([`Column`], [`Data`]), the [`Table`] with its rows' source
+//! lines and table-level numbers, the formats ([`Format`]), and what every format's reader
+//! shares (the text of a file, a column's cells as its declared type).
+
+use crate::Error;
+use std::path::Path;
+
+/// A table format (module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Format {
+    Csv,
+    Fits,
+    Ecsv,
+    Votable,
+}
+
+/// The extensions each format is chosen by, for messages.
+pub const EXTENSIONS: &str = ".csv, .fits (.fit, .fts), .ecsv, .vot (.xml, .votable)";
+
+impl Format {
+    /// The format a file's extension names (case-insensitive), or an error naming the file.
+    pub fn from_path(path: &Path) -> Result<Self, Error> {
+        let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+        Ok(match ext.as_str() {
+            "csv" => Format::Csv,
+            "fits" | "fit" | "fts" => Format::Fits,
+            "ecsv" => Format::Ecsv,
+            "vot" | "xml" | "votable" => Format::Votable,
+            _ => {
+                return Err(terr(
+                    path,
+                    format!(
+                        "unknown table format '{}' (from the extension): use one of {EXTENSIONS}",
+                        if ext.is_empty() { "(no extension)".to_string() } else { format!(".{ext}") }
+                    ),
+                ))
+            }
+        })
+    }
+}
+
+/// The values of one column.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Data {
+    F64(Vec<f64>),
+    I64(Vec<i64>),
+    Str(Vec<String>),
+}
+
+impl Data {
+    pub fn len(&self) -> usize {
+        match self {
+            Data::F64(v) => v.len(),
+            Data::I64(v) => v.len(),
+            Data::Str(v) => v.len(),
+        }
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Row `i` as text, as the CSV and ECSV writers write it (NaN as `nan`, or empty for CSV).
+    pub(super) fn text(&self, i: usize) -> String {
+        match self {
+            Data::F64(v) => fmt_f64(v[i]),
+            Data::I64(v) => v[i].to_string(),
+            Data::Str(v) => v[i].clone(),
+        }
+    }
+}
+
+/// Shortest text that reads back to the same f64; NaN as `nan`, infinities as `inf`/`-inf`
+/// (the spellings numpy and astropy read).
+fn fmt_f64(x: f64) -> String {
+    if x.is_nan() {
+        "nan".into()
+    } else if x.is_infinite() {
+        if x > 0.0 { "inf" } else { "-inf" }.into()
+    } else {
+        format!("{x:?}")
+    }
+}
+
+/// One column: name, unit (a FITS/astropy unit string such as `pix`, `deg`, `arcmin`,
+/// `electron`; None for a dimensionless or unitless column), description, values.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Column {
+    pub name: String,
+    pub unit: Option<String>,
+    pub description: Option<String>,
+    pub data: Data,
+}
+
+impl Column {
+    pub fn f64(name: &str, unit: Option<&str>, description: &str, v: Vec<f64>) -> Self {
+        Self { name: name.into(), unit: unit.map(Into::into), description: nonempty(description), data: Data::F64(v) }
+    }
+    pub fn i64(name: &str, description: &str, v: Vec<i64>) -> Self {
+        Self { name: name.into(), unit: None, description: nonempty(description), data: Data::I64(v) }
+    }
+    pub fn text(name: &str, description: &str, v: Vec<String>) -> Self {
+        Self { name: name.into(), unit: None, description: nonempty(description), data: Data::Str(v) }
+    }
+}
+
+fn nonempty(s: &str) -> Option<String> {
+    (!s.is_empty()).then(|| s.to_string())
+}
+
+/// A table: columns of equal length, and where each row came from (for error messages).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Table {
+    pub columns: Vec<Column>,
+    /// Source line of each data row (CSV and ECSV), for messages; empty otherwise.
+    pub lines: Vec<u64>,
+    /// Table-level numbers (module docs): keyword-like names (at most 8 characters, upper case,
+    /// digits, `_` or `-`, as FITS keywords), finite values.
+    pub meta: Vec<(String, f64)>,
+}
+
+/// The column of a catalog table holding the HWP zero angle (deg) its q, u already carry
+/// ([`Table::carried_zero_angle`]).
+pub const ZERO_ANGLE_COLUMN: &str = "hwp_chi_offset_deg";
+
+pub(super) fn terr(path: &Path, message: impl Into<String>) -> Error {
+    Error::Table { path: path.to_path_buf(), message: message.into() }
+}
+
+impl Table {
+    pub fn new(columns: Vec<Column>) -> Self {
+        Self { columns, lines: Vec::new(), meta: Vec::new() }
+    }
+
+    pub fn n_rows(&self) -> usize {
+        self.columns.first().map_or(0, |c| c.data.len())
+    }
+
+    /// "row 3" (1-based data row), with its line in text formats ("row 3 (line 5)"), for
+    /// messages.
+    pub fn row_label(&self, i: usize) -> String {
+        match self.lines.get(i) {
+            Some(l) => format!("row {} (line {l})", i + 1),
+            None => format!("row {}", i + 1),
+        }
+    }
+
+    /// The column named `name` (case-insensitive, surrounding blanks ignored).
+    pub fn column(&self, name: &str) -> Option<&Column> {
+        self.columns.iter().find(|c| c.name.trim().eq_ignore_ascii_case(name))
+    }
+
+    /// The column names, for messages.
+    pub fn names(&self) -> Vec<String> {
+        self.columns.iter().map(|c| c.name.clone()).collect()
+    }
+
+    /// The HWP zero angle (deg) the table's q, u already carry, from its column
+    /// [`ZERO_ANGLE_COLUMN`] (what `instpol catalog` writes; one value for every row, else an
+    /// error naming the first row that differs); `None` without the column (q, u as measured,
+    /// at the plate).
+    pub fn carried_zero_angle(&self, path: &Path) -> Result<Option<f64>, Error> {
+        if self.column(ZERO_ANGLE_COLUMN).is_none() {
+            return Ok(None);
+        }
+        let z = self.numbers(ZERO_ANGLE_COLUMN, path)?;
+        let z0 = z.first().copied().unwrap_or(0.0);
+        if let Some(i) = z.iter().position(|v| !(v.is_finite() && (v - z0).abs() <= 1e-9)) {
+            return Err(terr(
+                path,
+                format!(
+                    "{}: column '{ZERO_ANGLE_COLUMN}' = {} differs from the first row's {z0}: one catalog has one HWP zero angle",
+                    self.row_label(i),
+                    z[i]
+                ),
+            ));
+        }
+        Ok(Some(z0))
+    }
+
+    /// Column `name` as numbers (an empty text field is NaN); an error names the file, the column and the first row that is
+    /// not a number, or the columns there are when it is missing.
+    pub fn numbers(&self, name: &str, path: &Path) -> Result<Vec<f64>, Error> {
+        let c = self
+            .column(name)
+            .ok_or_else(|| terr(path, format!("no column '{name}' (columns: {})", self.names().join(", "))))?;
+        match &c.data {
+            Data::F64(v) => Ok(v.clone()),
+            Data::I64(v) => Ok(v.iter().map(|&x| x as f64).collect()),
+            Data::Str(v) => v
+                .iter()
+                .enumerate()
+                .map(|(i, s)| {
+                    if s.trim().is_empty() {
+                        return Ok(f64::NAN); // an empty field is a missing value
+                    }
+                    s.trim().parse::<f64>().map_err(|_| {
+                        terr(path, format!("{}: column '{}' = '{s}' is not a number", self.row_label(i), c.name))
+                    })
+                })
+                .collect(),
+        }
+    }
+
+    pub(super) fn check(&self, path: &Path) -> Result<(), Error> {
+        let n = self.n_rows();
+        for c in &self.columns {
+            if c.data.len() != n {
+                return Err(terr(path, format!("column '{}' has {} rows, the table {n}", c.name, c.data.len())));
+            }
+            if c.name.trim().is_empty() {
+                return Err(terr(path, "a column has an empty name"));
+            }
+        }
+        for (i, c) in self.columns.iter().enumerate() {
+            if self.columns[..i].iter().any(|d| d.name.eq_ignore_ascii_case(&c.name)) {
+                return Err(terr(path, format!("column '{}' appears twice", c.name)));
+            }
+        }
+        for (k, v) in &self.meta {
+            let name_ok = !k.is_empty()
+                && k.len() <= 8
+                && k.chars().all(|c| c.is_ascii_uppercase() || c.is_ascii_digit() || c == '_' || c == '-');
+            if !name_ok || !v.is_finite() {
+                return Err(terr(
+                    path,
+                    format!("table value {k} = {v}: a name of up to 8 of A-Z 0-9 _ - and a finite number"),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+pub(super) fn read_text(path: &Path) -> Result<String, Error> {
+    std::fs::read_to_string(path).map_err(|e| terr(path, format!("cannot read: {e}")))
+}
+
+/// What a column's declared type makes of its text cells.
+#[derive(Clone, Copy)]
+pub(super) enum Kind {
+    Float,
+    Int,
+    Bool,
+    Text,
+}
+
+/// The text cells of one column as `kind`: `num` parses a float cell in the format's spellings
+/// (empty = missing = NaN), `bad(row, cell)` is the error for a cell that is not of the type.
+/// Integers with a missing cell become floats with NaN there.
+pub(super) fn cells_to_data(
+    v: Vec<String>,
+    kind: Kind,
+    num: impl Fn(usize, &str) -> Result<f64, Error>,
+    bad: impl Fn(usize, &str) -> Error,
+) -> Result<Data, Error> {
+    let floats = |v: &[String]| v.iter().enumerate().map(|(i, s)| num(i, s)).collect::<Result<Vec<f64>, Error>>();
+    Ok(match kind {
+        Kind::Float => Data::F64(floats(&v)?),
+        Kind::Int if v.iter().any(|s| s.is_empty()) => Data::F64(floats(&v)?),
+        Kind::Int => {
+            Data::I64(v.iter().enumerate().map(|(i, s)| s.parse().map_err(|_| bad(i, s))).collect::<Result<_, _>>()?)
+        }
+        Kind::Bool => Data::I64(
+            v.iter()
+                .enumerate()
+                .map(|(i, s)| match s.to_ascii_lowercase().as_str() {
+                    "t" | "true" | "1" => Ok(1),
+                    "f" | "false" | "0" => Ok(0),
+                    _ => Err(bad(i, s)),
+                })
+                .collect::<Result<_, _>>()?,
+        ),
+        Kind::Text => Data::Str(v),
+    })
+}

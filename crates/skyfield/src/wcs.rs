@@ -1,0 +1,146 @@
+//! The celestial WCS a reduction carries from its frames to its map: read from a frame's
+//! header ([`CelestialWcs::read`], [`celestial_wcs_of`]), carried through the binning
+//! ([`CelestialWcs::binned`]) and written as the map's `SKY` WCS; and the value type of a WCS
+//! card ([`WcsValue`]) the maps' writer uses for it and for the bins' detector WCS.
+
+use crate::fits::read_key_str;
+use fitsio::FitsFile;
+use std::path::Path;
+
+/// The celestial WCS of a frame file's first image HDU (see [`CelestialWcs::read`]),
+/// when that image is `nx x ny` px (the map's detector pixels); `Err(why)` when there is one
+/// that cannot be carried.
+pub fn celestial_wcs_of(path: &Path, nx: usize, ny: usize) -> Result<Option<CelestialWcs>, String> {
+    let mut f = FitsFile::open(path).map_err(|e| e.to_string())?;
+    let n_hdu = f.iter().count();
+    for i in 0..n_hdu {
+        let h = f.hdu(i).map_err(|e| e.to_string())?;
+        if let fitsio::hdu::HduInfo::ImageInfo { shape, .. } = &h.info {
+            if shape.len() == 2 {
+                let w = CelestialWcs::read(&mut f, &h)?;
+                return match w {
+                    Some(_) if shape[..] != [ny, nx] => {
+                        Err(format!("the image is {} x {} px, the reduced frame {nx} x {ny} px", shape[1], shape[0]))
+                    }
+                    w => Ok(w),
+                };
+            }
+        }
+    }
+    Ok(None)
+}
+
+/// A WCS card's value (see `crate::maps::BinGeometry::wcs_cards`).
+#[derive(Debug, Clone, PartialEq)]
+pub enum WcsValue {
+    Int(i64),
+    Real(f64),
+    Text(String),
+}
+
+/// A celestial FITS WCS without distortion terms: `CTYPEi` (e.g. `RA---TAN`, `DEC--TAN`),
+/// `CRPIXi`, `CRVALi` (deg) and the `CD` matrix (deg/px), with `RADESYS`/`EQUINOX` when given.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CelestialWcs {
+    pub ctype: [String; 2],
+    pub crpix: [f64; 2],
+    pub crval: [f64; 2],
+    pub cd: [[f64; 2]; 2],
+    pub radesys: Option<String>,
+    pub equinox: Option<f64>,
+}
+
+/// Projections carried through the binning (linear in pixel coordinates before projection, so
+/// binning only rescales CD and shifts CRPIX); anything else (SIP, TPV, ...) is not carried.
+const PROJECTIONS: [&str; 10] = ["TAN", "SIN", "ARC", "ZEA", "STG", "CAR", "AIT", "MER", "CEA", "ZPN"];
+
+impl CelestialWcs {
+    /// The celestial WCS of header `hdu`: `Ok(None)` when it has none (no `CTYPE1` of the
+    /// form `xxxx-PPP`), `Err(why)` when it has one this reader does not carry (distortion
+    /// terms, an unknown projection, a missing value). The matrix is `CDi_j`, else
+    /// `PCi_j * CDELTi`, else `CDELTi` with `CROTA2`.
+    pub fn read(f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<Option<Self>, String> {
+        let s = |f: &mut FitsFile, k: &str| read_key_str(f, hdu, k).ok().map(|v| v.trim().to_string());
+        let (Some(c1), Some(c2)) = (s(f, "CTYPE1"), s(f, "CTYPE2")) else { return Ok(None) };
+        let celestial = |c: &str| c.len() >= 8 && c.as_bytes()[4] == b'-';
+        if !celestial(&c1) || !celestial(&c2) {
+            return Ok(None);
+        }
+        for c in [&c1, &c2] {
+            if c.len() != 8 || !PROJECTIONS.contains(&&c[5..8]) {
+                return Err(format!("CTYPE '{c}' (distortion or projection not carried through binning)"));
+            }
+        }
+        if s(f, "A_ORDER").is_some() || s(f, "PV1_1").is_some() || s(f, "PV2_1").is_some() {
+            return Err("distortion terms (SIP or PV) are not carried through binning".into());
+        }
+        let r = |f: &mut FitsFile, k: &str| hdu.read_key::<f64>(f, k).ok();
+        let need = |f: &mut FitsFile, k: &str| r(f, k).ok_or_else(|| format!("{k} missing"));
+        let crpix = [need(f, "CRPIX1")?, need(f, "CRPIX2")?];
+        let crval = [need(f, "CRVAL1")?, need(f, "CRVAL2")?];
+        let cd = if let Some(c11) = r(f, "CD1_1") {
+            [[c11, r(f, "CD1_2").unwrap_or(0.0)], [r(f, "CD2_1").unwrap_or(0.0), r(f, "CD2_2").unwrap_or(0.0)]]
+        } else {
+            let (d1, d2) = (need(f, "CDELT1")?, need(f, "CDELT2")?);
+            if r(f, "PC1_1").is_some() || r(f, "PC2_2").is_some() {
+                let pc = |f: &mut FitsFile, k: &str, d: f64| r(f, k).unwrap_or(d);
+                [
+                    [d1 * pc(f, "PC1_1", 1.0), d1 * pc(f, "PC1_2", 0.0)],
+                    [d2 * pc(f, "PC2_1", 0.0), d2 * pc(f, "PC2_2", 1.0)],
+                ]
+            } else {
+                let rho = r(f, "CROTA2").unwrap_or(0.0).to_radians();
+                [[d1 * rho.cos(), -d2 * rho.sin()], [d1 * rho.sin(), d2 * rho.cos()]]
+            }
+        };
+        if !(crpix.iter().chain(&crval).chain(cd.iter().flatten()).all(|v| v.is_finite())) {
+            return Err("a WCS value is not finite".into());
+        }
+        Ok(Some(Self { ctype: [c1, c2], crpix, crval, cd, radesys: s(f, "RADESYS"), equinox: r(f, "EQUINOX") }))
+    }
+
+    /// The WCS of the detector frame carried to a map of bins of `bin_px` px whose first bin's
+    /// corner is detector pixel `origin` (0-based x, y; `crate::maps::BinGeometry`'s
+    /// `bin_px`, `origin_x`, `origin_y`): map pixel `p` (1-based) is detector pixel
+    /// `X = x0 + 1 + b (p - 1)` (`x0` the 0-based centre of bin 0, `b` the bin side), so
+    /// `X - CRPIX = b (p - CRPIX')` with `CRPIX' = 1 + (CRPIX - x0 - 1) / b`, and `CD' = b CD`:
+    /// every bin centre gets the sky position of its detector pixel.
+    pub fn binned(&self, bin_px: usize, origin: [usize; 2]) -> Self {
+        let b = bin_px as f64;
+        let x0 = [origin[0] as f64 + 0.5 * b - 0.5, origin[1] as f64 + 0.5 * b - 0.5];
+        let mut w = self.clone();
+        for ((p, x), row) in w.crpix.iter_mut().zip(x0).zip(w.cd.iter_mut()) {
+            *p = 1.0 + (*p - x - 1.0) / b;
+            for c in row {
+                *c *= b;
+            }
+        }
+        w
+    }
+
+    pub(crate) fn cards(&self) -> Vec<(String, WcsValue, &'static str)> {
+        use WcsValue::{Real, Text};
+        let mut v = vec![
+            ("WCSNAME".to_string(), Text("SKY".into()), "the frames' celestial WCS, binned"),
+            ("CTYPE1".into(), Text(self.ctype[0].clone()), ""),
+            ("CTYPE2".into(), Text(self.ctype[1].clone()), ""),
+            ("CUNIT1".into(), Text("deg".into()), ""),
+            ("CUNIT2".into(), Text("deg".into()), ""),
+            ("CRPIX1".into(), Real(self.crpix[0]), "map pixel of CRVAL"),
+            ("CRPIX2".into(), Real(self.crpix[1]), "map pixel of CRVAL"),
+            ("CRVAL1".into(), Real(self.crval[0]), "[deg]"),
+            ("CRVAL2".into(), Real(self.crval[1]), "[deg]"),
+            ("CD1_1".into(), Real(self.cd[0][0]), "[deg per map pixel]"),
+            ("CD1_2".into(), Real(self.cd[0][1]), "[deg per map pixel]"),
+            ("CD2_1".into(), Real(self.cd[1][0]), "[deg per map pixel]"),
+            ("CD2_2".into(), Real(self.cd[1][1]), "[deg per map pixel]"),
+        ];
+        if let Some(r) = &self.radesys {
+            v.push(("RADESYS".into(), Text(r.clone()), ""));
+        }
+        if let Some(e) = self.equinox {
+            v.push(("EQUINOX".into(), Real(e), ""));
+        }
+        v
+    }
+}
