@@ -214,6 +214,29 @@ pub fn check_options(file: &CalibrationFile, req: &Request<'_>) -> Result<(), Re
     Ok(())
 }
 
+/// The one track of rows or of a map that share their exposures: the request's, else the one
+/// the data recorded (rad), with the rotator angle where the model was fitted with rotator
+/// angles ([`TelescopeFit::choose_track`]); what replaced or went unused is noted.
+fn shared_track(
+    tel: &TelescopeFit,
+    req: &Request<'_>,
+    recorded: Option<(f64, f64)>,
+    recorded_rotator: Option<f64>,
+    notes: &mut Vec<Note>,
+) -> Result<Track, Refusal> {
+    let c = tel.choose_track(req.parang, recorded, req.rotator, recorded_rotator).map_err(|e| match e {
+        TrackChoiceError::NoParallactic => Refusal::NoParallactic,
+        TrackChoiceError::NoRotator => Refusal::NoRotator { per_row: false },
+    })?;
+    if let (Some(r), Some(_)) = (c.replaced, req.parang) {
+        notes.push(Note::TrackReplaced { recorded: r });
+    }
+    if c.rotator_ignored {
+        notes.push(Note::RotatorIgnored);
+    }
+    Ok(c.track)
+}
+
 /// Resolve how `n` rows are corrected with `file` as `req` asks.
 pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> Result<RowsPlan<'a>, Refusal> {
     if let Some(p) = &req.per_row {
@@ -312,27 +335,18 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
             if req.parang.is_none() && recorded.is_none() {
                 return Err(Refusal::NoParallactic);
             }
-            let c = tel.choose_track(req.parang, recorded, req.rotator, recorded_rotator).map_err(|e| match e {
-                TrackChoiceError::NoParallactic => Refusal::NoParallactic,
-                TrackChoiceError::NoRotator => Refusal::NoRotator { per_row: false },
-            })?;
-            if let (Some(r), Some(_)) = (c.replaced, req.parang) {
-                notes.push(Note::TrackReplaced { recorded: r });
-            }
-            if c.rotator_ignored {
-                notes.push(Note::RotatorIgnored);
-            }
+            let track = shared_track(tel, req, recorded, recorded_rotator, &mut notes)?;
             // The recorded exposures, undone as each saw the telescope (their demodulations
             // built once), unless a given track replaced them.
             let exposures: &[skyfield::ExposureTrack] = match (req.parang, req.recorded) {
                 (None, Some(r)) => &r.exposure_tracks,
                 _ => &[],
             };
-            let prepared = crate::telescope_cal::prepare_recorded(tel, &band, c.track, exposures, plate.to_radians())
+            let prepared = crate::telescope_cal::prepare_recorded(tel, &band, track, exposures, plate.to_radians())
                 .map_err(|e| Refusal::Exposures(e.to_string()))?;
             match prepared {
                 Some(p) => (Tracks::Exposures(Box::new(p)), exposures.len()),
-                None => (Tracks::Shared(c.track), 0),
+                None => (Tracks::Shared(track), 0),
             }
         }
     };
@@ -452,16 +466,7 @@ pub fn plan_map<'a>(
     if field.is_none() && !req.allow_mismatch && !crate::setup::band_fits_data(&map.instrument, &map.filter, &band) {
         return Err(Refusal::BandMismatch { map_filter: map.filter.clone(), band });
     }
-    let c = tel.choose_track(req.parang, map.parallactic_rad, req.rotator, map.rotator_rad).map_err(|e| match e {
-        TrackChoiceError::NoParallactic => Refusal::NoParallactic,
-        TrackChoiceError::NoRotator => Refusal::NoRotator { per_row: false },
-    })?;
-    if let (Some(r), Some(_)) = (c.replaced, req.parang) {
-        notes.push(Note::TrackReplaced { recorded: r });
-    }
-    if c.rotator_ignored {
-        notes.push(Note::RotatorIgnored);
-    }
+    let track = shared_track(tel, req, map.parallactic_rad, map.rotator_rad, &mut notes)?;
     // The map is at the plate: without a field calibration its zero angle is the one it
     // records (HWPZERO), else its instrument's (a built-in one known by the name it records).
     let zero_angle_deg = match field {
@@ -472,6 +477,6 @@ pub fn plan_map<'a>(
             z
         }
     };
-    let telescope = MapTelescope { fit: tel, band, track: c.track, by_exposure: req.parang.is_none() };
+    let telescope = MapTelescope { fit: tel, band, track, by_exposure: req.parang.is_none() };
     Ok(MapPlan { kind, method: req.method, telescope: Some(telescope), zero_angle_deg, notes, file })
 }
