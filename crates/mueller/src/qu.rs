@@ -69,16 +69,17 @@ impl Qu {
         Self { q, u, var_q: sigma_q * sigma_q.abs(), var_u: sigma_u * sigma_u.abs(), cov_qu }
     }
 
-    /// The 1-sigma error of `q` (a negative variance, from rounding, counts as 0).
+    /// The 1-sigma error of `q` (a negative variance, from rounding, counts as 0; an unknown
+    /// one, NaN, stays unknown).
     #[inline]
     pub fn sigma_q(&self) -> f64 {
-        self.var_q.max(0.0).sqrt()
+        sigma_of(self.var_q)
     }
 
-    /// The 1-sigma error of `u` (a negative variance, from rounding, counts as 0).
+    /// The 1-sigma error of `u` (as [`sigma_q`](Self::sigma_q)).
     #[inline]
     pub fn sigma_u(&self) -> f64 {
-        self.var_u.max(0.0).sqrt()
+        sigma_of(self.var_u)
     }
 
     /// Polarization degree and angle (`eq:poldeg`, `eq:polang`): `P = hypot(q, u)`,
@@ -132,6 +133,17 @@ impl Qu {
     #[inline]
     pub fn covariance_through(&self, j: &[[f64; 2]; 2]) -> (f64, f64, f64) {
         sandwich(j, self.var_q, self.var_u, self.cov_qu)
+    }
+}
+
+/// `sqrt(v)`, 0 for a negative `v` (rounding), NaN for NaN (`f64::max` would make it 0: a
+/// wrong error rather than an unknown one).
+#[inline]
+fn sigma_of(v: f64) -> f64 {
+    if v < 0.0 {
+        0.0
+    } else {
+        v.sqrt()
     }
 }
 
@@ -202,6 +214,10 @@ mod tests {
         assert!(near0.chi < 1e-6 && PI - nearpi.chi < 1e-6);
         assert!((near0.sigma_chi - nearpi.sigma_chi).abs() < 1e-15);
         // SNR -> infinity: the errors vanish with the covariance.
+        // An unknown variance stays unknown; a rounding-negative one is no error.
+        assert!(Qu::new(0.0, 0.0, f64::NAN, -1e-30, 0.0).sigma_q().is_nan());
+        assert_eq!(Qu::new(0.0, 0.0, f64::NAN, -1e-30, 0.0).sigma_u(), 0.0);
+        assert_eq!(Qu::from_sigmas(0.0, 0.0, 3e-3, 4e-3, 0.0).sigma_u(), 4e-3);
         let exact = Qu::new(0.01, 0.02, 0.0, 0.0, 0.0).p_chi_with_errors();
         assert_eq!((exact.sigma_p, exact.sigma_chi), (0.0, 0.0));
     }

@@ -627,12 +627,9 @@ pub struct PixelSample {
 /// The clipped mean of a bin.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BinStats {
-    pub q: f64,
-    pub u: f64,
-    /// Standard errors of the means from the scatter of the kept pixels.
-    pub sigma_q: f64,
-    pub sigma_u: f64,
-    pub cov_qu: f64,
+    /// The clipped means of `q`, `u` with the covariance of the means from the scatter of the
+    /// kept pixels.
+    pub qu: mueller::Qu,
     /// Standard errors of the means propagated from the per-pixel noise.
     pub sigma_q_phot: f64,
     pub sigma_u_phot: f64,
@@ -750,11 +747,7 @@ fn kept_stats(sc: &Clip, s: &BinSamples, min_pixels: usize) -> Option<BinStats> 
     // Sample (co)variances with n - 1, then of the mean: / n.
     let d = (nf - 1.0) * nf;
     Some(BinStats {
-        q: mq,
-        u: mu,
-        sigma_q: (vq / d).sqrt(),
-        sigma_u: (vu / d).sqrt(),
-        cov_qu: cqu / d,
+        qu: mueller::Qu::new(mq, mu, vq / d, vu / d, cqu / d),
         sigma_q_phot: pq.sqrt() / nf,
         sigma_u_phot: pu.sqrt() / nf,
         intensity: mi,
@@ -916,7 +909,7 @@ mod tests {
         s[500].q = 0.5;
         let b = clipped_bin(&s, ClipConfig::default(), 10).unwrap();
         assert!(b.n_kept <= 897 && b.n_kept > 880, "{}", b.n_kept);
-        assert!((b.q - 0.01).abs() < 1e-4, "{}", b.q);
+        assert!((b.qu.q - 0.01).abs() < 1e-4, "{}", b.qu.q);
         assert!((b.intensity - 5003.0).abs() < 0.2, "{}", b.intensity);
         // Photon error of the mean: sqrt(n * 1e-6) / n.
         assert!((b.sigma_q_phot - 1e-3 / (b.n_kept as f64).sqrt()).abs() < 1e-12);
@@ -928,8 +921,8 @@ mod tests {
         s[3].q = 0.9;
         let b = clipped_bin(&s, ClipConfig::default(), 2).unwrap();
         assert_eq!(b.n_kept, 49);
-        assert!((b.q - 0.02).abs() < 1e-15);
-        assert!(b.sigma_q < 1e-15);
+        assert!((b.qu.q - 0.02).abs() < 1e-15);
+        assert!(b.qu.sigma_q() < 1e-15);
     }
 
     /// Seeded Gaussian samples.

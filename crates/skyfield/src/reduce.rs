@@ -969,12 +969,12 @@ fn assemble_map(
     map.hwp_zero_angle_deg = inst.filter(filter).ok().map(|f| f.chi_offset_deg());
     for (k, s) in stats.into_iter().enumerate() {
         let Some(s) = s else { continue };
-        let (p, chi) = stokes::polarization(s.q, s.u);
-        map.q[k] = s.q;
-        map.u[k] = s.u;
-        map.sigma_q[k] = s.sigma_q;
-        map.sigma_u[k] = s.sigma_u;
-        map.cov_qu[k] = s.cov_qu;
+        let (p, chi) = s.qu.p_chi();
+        map.q[k] = s.qu.q;
+        map.u[k] = s.qu.u;
+        map.sigma_q[k] = s.qu.sigma_q();
+        map.sigma_u[k] = s.qu.sigma_u();
+        map.cov_qu[k] = s.qu.cov_qu;
         map.sigma_q_phot[k] = s.sigma_q_phot;
         map.sigma_u_phot[k] = s.sigma_u_phot;
         map.p[k] = p;

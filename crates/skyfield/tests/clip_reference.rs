@@ -85,7 +85,8 @@ fn reference_stats(s: &[PixelSample], keep: &[bool], min_pixels: usize) -> Optio
 }
 
 fn bits(b: &skyfield::bin::BinStats) -> [u64; 8] {
-    [b.q, b.u, b.sigma_q, b.sigma_u, b.cov_qu, b.sigma_q_phot, b.sigma_u_phot, b.intensity].map(f64::to_bits)
+    [b.qu.q, b.qu.u, b.qu.sigma_q(), b.qu.sigma_u(), b.qu.cov_qu, b.sigma_q_phot, b.sigma_u_phot, b.intensity]
+        .map(f64::to_bits)
 }
 
 /// Checks one bin every way the library offers (plain, hinted with several hint sets, and the
