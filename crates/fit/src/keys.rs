@@ -168,10 +168,23 @@ pub(crate) fn check_claimed_size(path: &Path, what: &str, shape: &[usize]) -> Re
     Ok(())
 }
 
-/// Write a new FITS file at `path` atomically: `write` fills a temporary file beside it, the
-/// provenance is stamped, the file is closed with its status checked and synced, then renamed
-/// (a full disk is an error here, never a truncated calibration under the final name).
+/// Write a new FITS file at `path` atomically, with the provenance stamped
+/// ([`write_fits_atomically`] with `skyfield::provenance::stamp` after `write`).
 pub(crate) fn save_fits_atomically(path: &Path, write: impl FnOnce(&mut FitsFile) -> Result<()>) -> Result<()> {
+    write_fits_atomically(path, |f| {
+        write(f)?;
+        skyfield::provenance::stamp(f).map_err(|m| Error::Fits {
+            path: path.to_path_buf(),
+            doing: "writing the provenance".into(),
+            message: m,
+        })
+    })
+}
+
+/// Write a new FITS file at `path` atomically: `write` fills a temporary file beside it, the
+/// file is closed with its status checked and synced, then renamed (a full disk is an error
+/// here, never a truncated calibration under the final name).
+pub(crate) fn write_fits_atomically(path: &Path, write: impl FnOnce(&mut FitsFile) -> Result<()>) -> Result<()> {
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let tmp = skyfield::fits::temp_beside(path, ".fits")
         .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
@@ -179,11 +192,6 @@ pub(crate) fn save_fits_atomically(path: &Path, write: impl FnOnce(&mut FitsFile
     {
         let mut f = FitsFile::create(&tmp).overwrite().open().map_err(fits_err(path, "creating the file"))?;
         write(&mut f)?;
-        skyfield::provenance::stamp(&mut f).map_err(|m| Error::Fits {
-            path: path.to_path_buf(),
-            doing: "writing the provenance".into(),
-            message: m,
-        })?;
         skyfield::durable::close_fits(f).map_err(|m| Error::Fits {
             path: path.to_path_buf(),
             doing: "closing the file".into(),

@@ -47,7 +47,7 @@
 //! (`crates/cli/tests/telescope_frames.rs`, `the_chain_undoes_the_telescope_through_a_hwp_zero_angle`).
 
 use crate::correct::{p_chi_with_errors, Corrected, Corrector, Measurement};
-use crate::keys::{fits_err, temp_error, KeyReader, KeyWriter};
+use crate::keys::{fits_err, KeyReader, KeyWriter};
 use crate::model::{FieldModel, InstPol};
 use crate::radial::ErrorScaling;
 use crate::telescope::{BandModel, ModelKind, Param, Seen, TelescopeFit, Track};
@@ -123,15 +123,9 @@ pub fn write_hdu(f: &mut FitsFile, path: &Path, fit: &TelescopeFit, metal: &str)
 /// Write a calibration file holding only the telescope model of `instrument` (atomically:
 /// a temporary file beside `path`, renamed when complete).
 pub fn save_alone(path: &Path, instrument: &str, fit: &TelescopeFit, metal: &str, inputs: &[String]) -> Result<()> {
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let tmp = skyfield::fits::temp_beside(path, ".fits")
-        .map_err(|source| Error::Io { path: dir.to_path_buf(), err: temp_error(path, source) })?;
-    let tmp = tmp.into_temp_path();
-    {
-        let e = |doing: &str| fits_err(path, doing);
-        let mut f = FitsFile::create(&tmp).overwrite().open().map_err(e("creating the file"))?;
-        let hdu = f.primary_hdu().map_err(e("opening the primary HDU"))?;
-        let mut w = KeyWriter { f: &mut f, hdu: &hdu, path };
+    crate::keys::write_fits_atomically(path, |f| {
+        let hdu = f.primary_hdu().map_err(fits_err(path, "opening the primary HDU"))?;
+        let mut w = KeyWriter { f, hdu: &hdu, path };
         w.int("FORMAT VERSION", crate::keys::FORMAT_VERSION)?;
         w.str("INSTRUMENT", instrument)?;
         w.str("MODEL", MODEL_KIND)?;
@@ -142,14 +136,8 @@ pub fn save_alone(path: &Path, instrument: &str, fit: &TelescopeFit, metal: &str
         for (k, name) in inputs.iter().enumerate() {
             w.str(&format!("INPUT{}", k + 1), name)?;
         }
-        write_hdu(&mut f, path, fit, metal)?;
-        skyfield::durable::close_fits(f).map_err(|m| Error::Fits {
-            path: path.to_path_buf(),
-            doing: "closing the file".into(),
-            message: m,
-        })?;
-    }
-    skyfield::durable::finish(tmp, path).map_err(|err| Error::Io { path: path.to_path_buf(), err })
+        write_hdu(f, path, fit, metal)
+    })
 }
 
 /// Write the field calibration `cal` with the telescope model beside it.
