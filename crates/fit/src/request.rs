@@ -125,7 +125,12 @@ impl std::fmt::Display for Refusal {
                 write!(f, "the telescope model was fitted with rotator angles and the rows' is not known")
             }
             Refusal::Length { what, len, rows } => write!(f, "{what} has {len} values for {rows} rows"),
-            Refusal::Band(e) => write!(f, "the telescope model's band: {e:?}"),
+            Refusal::Band(BandChoiceError::Missing { band, bands, .. }) => {
+                write!(f, "band {band} is not one of the telescope model's ({})", bands.join(", "))
+            }
+            Refusal::Band(BandChoiceError::Ambiguous { bands }) => {
+                write!(f, "the telescope model has bands {} and nothing says which", bands.join(", "))
+            }
             Refusal::Exposures(e) => write!(f, "the recorded exposures: {e}"),
             Refusal::Mismatch { map, calibration } => {
                 write!(f, "a {} {} map and a calibration of {} {}", map.0, map.1, calibration.0, calibration.1)
