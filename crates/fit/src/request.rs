@@ -86,6 +86,8 @@ pub enum Refusal {
     TelescopeOptions { mueller: bool },
     /// The first-order method asked of a Mueller field (inverted exactly only).
     MuellerFirstOrder,
+    /// A file with no model at all (one built by hand: the loader refuses such a file).
+    NoModel,
     /// A telescope model and neither per-row nor shared nor recorded parallactic angles.
     NoParallactic,
     /// Per-row angles and one track for every row (given or recorded) both given.
@@ -116,6 +118,7 @@ impl std::fmt::Display for Refusal {
             Refusal::TelescopeOptions { mueller: false } => {
                 write!(f, "the telescope options are for calibrations with a telescope model; this one has none")
             }
+            Refusal::NoModel => write!(f, "the calibration holds no model"),
             Refusal::MuellerFirstOrder => {
                 write!(f, "a Mueller field is inverted exactly (eq:approx is the p, phi model's first order)")
             }
@@ -203,10 +206,13 @@ pub enum RowError {
     Chain(#[from] crate::Error),
 }
 
-/// The refusals that do not depend on the rows, which a Stokes map's correction makes too:
-/// telescope options (a band, one track, a rotator angle, angles given as arguments) for a file
+/// The refusals that do not depend on the rows, which a Stokes map's correction makes too: a
+/// file without any model, telescope options (a band, one track, a rotator angle, angles given as arguments) for a file
 /// without a telescope model, and the first-order method for a Mueller field.
 pub fn check_options(file: &CalibrationFile, req: &Request<'_>) -> Result<(), Refusal> {
+    if file.field.is_none() && file.telescope.is_none() && file.mueller.is_none() {
+        return Err(Refusal::NoModel);
+    }
     if file.telescope.is_none() {
         let explicit = req.angles_are_arguments && (req.per_row.is_some() || req.recorded.is_some());
         if req.band.is_some() || req.parang.is_some() || req.rotator.is_some() || explicit {
@@ -286,7 +292,7 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
                 mueller: Some((mc, opts(to_sky))),
             });
         }
-        let cal = file.field.as_ref().expect("the loader refuses a file without a model");
+        let cal = file.field.as_ref().expect("check_options refuses a file without a model");
         if req.per_row.is_some() {
             notes.push(Note::AnglesWithoutTelescope);
         }
@@ -433,7 +439,7 @@ impl MapPlan<'_> {
                 zero_angle_deg: self.zero_angle_deg,
             },
             (None, None, Some(cal)) => MapCorrection::Field { cal, method: self.method },
-            (None, None, None) => unreachable!("the loader refuses a file without a model"),
+            (None, None, None) => unreachable!("plan_map refuses a file without a model"),
         }
     }
 }

@@ -130,6 +130,8 @@ fn field_only_refusals_and_notes() {
     }
     let plan = plan_rows(&f, &Request { per_row: Some(rows), ..request() }, 2).unwrap();
     assert_eq!(plan.notes, vec![Note::AnglesWithoutTelescope]);
+    // A file built by hand with no model is refused, not a panic.
+    assert_eq!(plan_rows(&file(None, None), &request(), 2).err(), Some(Refusal::NoModel));
 }
 
 /// The telescope's tracks: each row's own with its rotator angle (never an assumed 0 for a
