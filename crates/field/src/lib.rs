@@ -23,7 +23,7 @@ pub mod grid;
 pub mod model;
 pub mod radial;
 
-pub use chain::FieldChain;
+pub use chain::{ChainError, FieldChain, InstrumentChain};
 pub use coords::FieldCoords;
 pub use grid::{GridMap, NearestCell};
 pub use model::{FieldModel, InstPol};

@@ -49,18 +49,29 @@ pub trait FieldModel: Send + Sync {
         None
     }
 
-    /// The instrument's linear Mueller block (the `(I, Q, U)` part) at `(x, y)` arcmin: what
-    /// the element does to the light there. The default is the partial polarizer
-    /// `M_I(p, phi)` of `eq:instpol` from [`p_phi`](Self::p_phi), and the identity where the
-    /// model gives no polarization or no finite value; an element that is not a partial
-    /// polarizer (a stressed lens, a tilted plate, a Mueller field) returns its own block.
-    fn block_at(&self, x_arcmin: f64, y_arcmin: f64) -> mueller::linear::LinearBlock {
+    /// The element's Mueller matrix at `(x, y)` arcmin: what it does to the light there,
+    /// circular polarization included (the telescope's M3 turns linear into circular
+    /// polarization, and a retarder after it turns some back). The default is the partial
+    /// polarizer `M_I(p, phi)` of `eq:instpol` from [`p_phi`](Self::p_phi) (its `V` row
+    /// included, [`mueller::partial_polarizer`]), and the identity where the model gives no
+    /// polarization or no finite value. An element that is not a partial polarizer (a
+    /// stressed lens, a tilted plate, a Mueller field) returns its own matrix, and overrides
+    /// [`block_at`](Self::block_at) with the same linear part when it computes that more
+    /// directly.
+    fn mueller_at(&self, x_arcmin: f64, y_arcmin: f64) -> mueller::Mueller {
         let (p, phi) = self.p_phi(x_arcmin, y_arcmin);
         if p != 0.0 && p.is_finite() && phi.is_finite() {
-            mueller::linear::LinearBlock::of_mueller(&mueller::partial_polarizer(p, phi))
+            mueller::partial_polarizer(p, phi)
         } else {
-            mueller::linear::LinearBlock::identity()
+            mueller::Mueller::identity()
         }
+    }
+
+    /// The element's linear Mueller block (the `(I, Q, U)` part of
+    /// [`mueller_at`](Self::mueller_at)) at `(x, y)` arcmin: all a chain needs where the light
+    /// reaching the element carries no circular polarization.
+    fn block_at(&self, x_arcmin: f64, y_arcmin: f64) -> mueller::linear::LinearBlock {
+        mueller::linear::LinearBlock::of_mueller(&self.mueller_at(x_arcmin, y_arcmin))
     }
 
     /// One line saying what the model is (for `--explain` and provenance).

@@ -314,6 +314,12 @@ impl FieldModel for MuellerField {
         MuellerField::block_at(self, x, y)
     }
 
+    /// The fitted block says nothing of circular polarization: none is passed on
+    /// ([`LinearBlock::to_mueller`]).
+    fn mueller_at(&self, x: f64, y: f64) -> mueller::Mueller {
+        MuellerField::block_at(self, x, y).to_mueller()
+    }
+
     fn describe(&self) -> String {
         let names: Vec<&str> = self.free.iter().map(|&i| self.kind.name(i)).collect();
         let form = match &self.smooth {

@@ -40,6 +40,15 @@ impl LinearBlock {
         Self(m.fixed_view::<3, 3>(0, 0).into_owned())
     }
 
+    /// The 4 x 4 Mueller matrix of an element known only by its linear block: circular
+    /// polarization arriving is not passed on and none is made (the `V` row and column are
+    /// zero), which is what the block alone says about the linear part and no more.
+    pub fn to_mueller(&self) -> Mueller {
+        let mut m = Mueller::zeros();
+        m.fixed_view_mut::<3, 3>(0, 0).copy_from(&self.0);
+        m
+    }
+
     /// The block applied to a linear Stokes vector `(I, Q, U)` (intensities kept).
     #[inline]
     pub fn apply(&self, iqu: [f64; 3]) -> [f64; 3] {

@@ -87,23 +87,30 @@ impl BandModel {
     pub fn correct_track(&self, q: f64, u: f64, track: Track, constant: bool) -> Result<(f64, f64), crate::Error> {
         let m = self.matrix_track(track)?;
         let (c0, c1) = if constant { (self.q0, self.u0) } else { (0.0, 0.0) };
-        let meas = [q - c0, u - c1];
-        let a = nalgebra::Matrix2::new(
-            m[(1, 1)] - meas[0] * m[(0, 1)],
-            m[(1, 2)] - meas[0] * m[(0, 2)],
-            m[(2, 1)] - meas[1] * m[(0, 1)],
-            m[(2, 2)] - meas[1] * m[(0, 2)],
-        );
-        let rhs = nalgebra::Vector2::new(meas[0] * m[(0, 0)] - m[(1, 0)], meas[1] * m[(0, 0)] - m[(2, 0)]);
-        let det = a.determinant();
-        if !(det.is_finite() && det.abs() > 1e-12 * a.abs().max().powi(2).max(f64::MIN_POSITIVE)) {
-            return Err(crate::Error::Singular(
-                "the telescope chain cannot be inverted for a linearly polarized sky (singular 2x2 system)",
-            ));
-        }
-        let x = a.lu().solve(&rhs).ok_or(crate::Error::Singular("LU of the telescope chain failed"))?;
-        Ok((x[0], x[1]))
+        invert_normalized(&m, [q - c0, u - c1])
     }
+}
+
+/// The sky `(q, u)` (without circular polarization) that a Mueller matrix `m` turns into the
+/// normalized `meas = (q, u)`: with `S = (1, q, u, 0)` the measured `m_k = (M S)_k / (M S)_0`
+/// are two linear equations, `(M_k1 - m_k M_01) q + (M_k2 - m_k M_02) u = m_k M_00 - M_k0`,
+/// `k = 1, 2`, solved exactly; a singular system is an error, not a guess.
+pub fn invert_normalized(m: &Matrix4<f64>, meas: [f64; 2]) -> Result<(f64, f64), crate::Error> {
+    let a = nalgebra::Matrix2::new(
+        m[(1, 1)] - meas[0] * m[(0, 1)],
+        m[(1, 2)] - meas[0] * m[(0, 2)],
+        m[(2, 1)] - meas[1] * m[(0, 1)],
+        m[(2, 2)] - meas[1] * m[(0, 2)],
+    );
+    let rhs = nalgebra::Vector2::new(meas[0] * m[(0, 0)] - m[(1, 0)], meas[1] * m[(0, 0)] - m[(2, 0)]);
+    let det = a.determinant();
+    if !(det.is_finite() && det.abs() > 1e-12 * a.abs().max().powi(2).max(f64::MIN_POSITIVE)) {
+        return Err(crate::Error::Singular(
+            "the telescope chain cannot be inverted for a linearly polarized sky (singular 2x2 system)",
+        ));
+    }
+    let x = a.lu().solve(&rhs).ok_or(crate::Error::Singular("LU of the telescope chain failed"))?;
+    Ok((x[0], x[1]))
 }
 
 /// One exposure of a demodulated set ([`BandModel::correct_exposures`]): its HWP angle (rad)
@@ -125,6 +132,28 @@ pub struct Demodulation {
 }
 
 impl Demodulation {
+    /// The demodulation of exposures each given by its HWP angle (rad) and the Mueller matrix
+    /// the light went through before the plate (any chain: the telescope alone, or the
+    /// telescope and the field's elements). Exposures at one angle are grouped as repeats.
+    pub fn of_matrices(exposures: impl IntoIterator<Item = (f64, Matrix4<f64>)>) -> Result<Self, crate::Error> {
+        let mut angles: Vec<((f64, f64), Vec<Matrix4<f64>>)> = vec![];
+        let mut keys: Vec<f64> = vec![];
+        for (hwp, m) in exposures {
+            match keys.iter().position(|&k| k == hwp) {
+                Some(i) => angles[i].1.push(m),
+                None => {
+                    keys.push(hwp);
+                    let (sn, c) = (4.0 * hwp).sin_cos();
+                    angles.push(((c, sn), vec![m]));
+                }
+            }
+        }
+        if angles.len() < 2 {
+            return Err(crate::Error::Singular("a demodulation needs exposures at two HWP angles or more"));
+        }
+        Ok(Demodulation { angles })
+    }
+
     /// `(q, u)` that eq:Q, eq:U give for a sky `(q, u)` without circular polarization: at each
     /// angle `F = sum_i ((M_i S)_1 cos 4 theta + (M_i S)_2 sin 4 theta) / sum_i (M_i S)_0` over
     /// its exposures (eq:F of their summed beams), then `Q = (2/N) sum F cos 4 theta`,
@@ -147,58 +176,25 @@ impl Demodulation {
         }
         (2.0 * qm / n, 2.0 * um / n)
     }
-}
 
-impl BandModel {
-    /// The [`Demodulation`] of `exposures` through this band's chain.
-    pub fn demodulation(&self, exposures: &[Exposure]) -> Result<Demodulation, crate::Error> {
-        let mut angles: Vec<((f64, f64), Vec<Matrix4<f64>>)> = vec![];
-        let mut keys: Vec<f64> = vec![];
-        for e in exposures {
-            let m = self.matrix_track(e.track)?;
-            match keys.iter().position(|&k| k == e.hwp) {
-                Some(i) => angles[i].1.push(m),
-                None => {
-                    keys.push(e.hwp);
-                    let (sn, c) = (4.0 * e.hwp).sin_cos();
-                    angles.push(((c, sn), vec![m]));
-                }
-            }
-        }
-        if angles.len() < 2 {
-            return Err(crate::Error::Singular("a demodulation needs exposures at two HWP angles or more"));
-        }
-        Ok(Demodulation { angles })
-    }
-
-    /// Sky `(q, u)` of a measured `(q, u)` demodulated from `exposures` that each saw the chain
-    /// over their own track: subtract `(q0, u0)` when `constant`, then solve
-    /// [`Demodulation::forward`]`(q, u) = measured` (Newton's method from the solution over the
-    /// set's whole track, [`BandModel::correct_track`], with the forward model's exact
-    /// Jacobian by central differences; the model is linear-fractional in `(q, u)` and
-    /// converges in a few steps). Where all exposures share one track this is
-    /// [`BandModel::correct_track`]'s answer.
-    pub fn correct_exposures(
-        &self,
-        q: f64,
-        u: f64,
-        demod: &Demodulation,
-        whole: Track,
-        constant: bool,
-    ) -> Result<(f64, f64), crate::Error> {
-        let (c0, c1) = if constant { (self.q0, self.u0) } else { (0.0, 0.0) };
-        let meas = (q - c0, u - c1);
-        let (mut x, mut y) = self.correct_track(q, u, whole, constant)?;
+    /// The sky `(q, u)` (without circular polarization) whose demodulation is `meas`:
+    /// [`forward`](Self::forward)`(q, u) = meas` solved by Newton's method from `start`, with
+    /// the forward model's Jacobian by central differences (the model is linear-fractional in
+    /// `(q, u)`: from a start near the answer, such as the solution over the set's whole
+    /// track, it converges in a few steps). The answer is refused unless it reproduces `meas`
+    /// to 1e-12.
+    pub fn solve(&self, meas: (f64, f64), start: (f64, f64)) -> Result<(f64, f64), crate::Error> {
+        let (mut x, mut y) = start;
         let h = 1e-6;
         // Newton steps until one no longer shrinks (rounding) or is below 1e-16 (q, u are
         // fractions): quadratic convergence from the whole track's solution takes 2 to 4.
         let mut last = f64::INFINITY;
         for _ in 0..30 {
-            let (fq, fu) = demod.forward(x, y);
-            let (aq, au) = demod.forward(x + h, y);
-            let (bq, bu) = demod.forward(x - h, y);
-            let (cq, cu) = demod.forward(x, y + h);
-            let (dq, du) = demod.forward(x, y - h);
+            let (fq, fu) = self.forward(x, y);
+            let (aq, au) = self.forward(x + h, y);
+            let (bq, bu) = self.forward(x - h, y);
+            let (cq, cu) = self.forward(x, y + h);
+            let (dq, du) = self.forward(x, y - h);
             let j = nalgebra::Matrix2::new(
                 (aq - bq) / (2.0 * h),
                 (cq - dq) / (2.0 * h),
@@ -217,11 +213,39 @@ impl BandModel {
                 break;
             }
         }
-        let (fq, fu) = demod.forward(x, y);
+        let (fq, fu) = self.forward(x, y);
         if x.is_finite() && y.is_finite() && (fq - meas.0).abs().max((fu - meas.1).abs()) <= 1e-12 {
             return Ok((x, y));
         }
         Err(crate::Error::Singular("the exposures' telescope chain could not be inverted for a linearly polarized sky"))
+    }
+}
+
+impl BandModel {
+    /// The [`Demodulation`] of `exposures` through this band's chain.
+    pub fn demodulation(&self, exposures: &[Exposure]) -> Result<Demodulation, crate::Error> {
+        let matrices = exposures.iter().map(|e| Ok((e.hwp, self.matrix_track(e.track)?))).collect::<Result<Vec<_>, crate::Error>>()?;
+        Demodulation::of_matrices(matrices)
+    }
+
+    /// Sky `(q, u)` of a measured `(q, u)` demodulated from `exposures` that each saw the chain
+    /// over their own track: subtract `(q0, u0)` when `constant`, then solve
+    /// [`Demodulation::forward`]`(q, u) = measured` (Newton's method from the solution over the
+    /// set's whole track, [`BandModel::correct_track`], with the forward model's exact
+    /// Jacobian by central differences; the model is linear-fractional in `(q, u)` and
+    /// converges in a few steps). Where all exposures share one track this is
+    /// [`BandModel::correct_track`]'s answer.
+    pub fn correct_exposures(
+        &self,
+        q: f64,
+        u: f64,
+        demod: &Demodulation,
+        whole: Track,
+        constant: bool,
+    ) -> Result<(f64, f64), crate::Error> {
+        let (c0, c1) = if constant { (self.q0, self.u0) } else { (0.0, 0.0) };
+        let start = self.correct_track(q, u, whole, constant)?;
+        demod.solve((q - c0, u - c1), start)
     }
 }
 

@@ -143,6 +143,11 @@ impl field::FieldModel for HwpCauses {
     fn block_at(&self, x: f64, y: f64) -> LinearBlock {
         HwpCauses::block_at(self, x, y)
     }
+    /// The equivalent block is a statement about the demodulated linear polarization only:
+    /// no circular polarization is passed on ([`LinearBlock::to_mueller`]).
+    fn mueller_at(&self, x: f64, y: f64) -> mueller::Mueller {
+        HwpCauses::block_at(self, x, y).to_mueller()
+    }
     fn describe(&self) -> String {
         "the half-wave plate's tilt or wedge (equivalent block)".into()
     }

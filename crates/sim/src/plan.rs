@@ -18,42 +18,52 @@ use std::sync::Arc;
 /// Normalized Stokes `(I, Q, U)` of one sky pixel at the plate (V = 0 throughout).
 type Iqu = [f64; 3];
 
-/// The `(I, Q, U)` block of a Mueller matrix. (The telescope's M3 turns some U into V; a
-/// dual-beam linear polarimeter with an ideal HWP does not see V, and the plan keeps none.)
-type Block = [[f64; 3]; 3];
+/// A telescope's Mueller matrix as the plan keeps it: rows `I, Q, U, V`, columns `I, Q, U`
+/// (the sky has no circular polarization; M3 makes some, which a retarder after it turns back
+/// into linear polarization, so it is carried to the field's elements).
+type TelBlock = [[f64; 3]; 4];
 
-fn block(m: &mueller::Mueller) -> Block {
-    let mut b = [[0.0; 3]; 3];
-    for (i, row) in b.iter_mut().enumerate() {
-        for (j, v) in row.iter_mut().enumerate() {
-            *v = m[(i, j)];
-        }
-    }
-    b
+/// The field's elements behind a telescope: rows `I, Q, U` (the analyser with an ideal HWP
+/// does not see V), columns `I, Q, U, V`.
+type FieldBlock = [[f64; 4]; 3];
+
+fn tel_block(m: &mueller::Mueller) -> TelBlock {
+    std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)]))
 }
 
-/// A linear block as the plan keeps it (row-major: `b[i][j]` is row `i`, column `j`).
-fn block3(l: &mueller::linear::LinearBlock) -> Block {
-    std::array::from_fn(|i| std::array::from_fn(|j| l.0[(i, j)]))
+fn field_block(m: &mueller::Mueller) -> FieldBlock {
+    std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)]))
 }
 
 #[inline]
-fn apply(b: &Block, s: &Iqu) -> Iqu {
-    [
-        b[0][0] * s[0] + b[0][1] * s[1] + b[0][2] * s[2],
-        b[1][0] * s[0] + b[1][1] * s[1] + b[1][2] * s[2],
-        b[2][0] * s[0] + b[2][1] * s[1] + b[2][2] * s[2],
-    ]
+fn apply_tel(b: &TelBlock, s: &Iqu) -> [f64; 4] {
+    std::array::from_fn(|i| b[i][0] * s[0] + b[i][1] * s[1] + b[i][2] * s[2])
+}
+
+#[inline]
+fn apply_field(b: &FieldBlock, s: &[f64; 4]) -> Iqu {
+    std::array::from_fn(|i| b[i][0] * s[0] + b[i][1] * s[1] + b[i][2] * s[2] + b[i][3] * s[3])
+}
+
+/// The light after a frame's telescope matrix and, when there is one, the field's elements.
+#[inline]
+fn through(t: &TelBlock, f: Option<&FieldBlock>, s: &Iqu) -> Iqu {
+    let v = apply_tel(t, s);
+    match f {
+        Some(f) => apply_field(f, &v),
+        None => [v[0], v[1], v[2]],
+    }
 }
 
 /// The telescope of a scene: per frame, the M3 matrix averaged over the exposure's
 /// parallactic-angle track (normalized to keep an unpolarized source's flux), and, when an
-/// instrumental field acts after it on a sky image, that field's block per sky pixel (the
+/// instrumental field acts after it on a sky image, that field's matrix per sky pixel (the
 /// image then holds the light before the telescope).
 struct TelescopeTerm {
-    per_frame: Vec<Block>,
+    per_frame: Vec<TelBlock>,
     tracks: Vec<mueller::telescope::Track>,
-    field: Option<Vec<Block>>,
+    field: Option<Vec<FieldBlock>>,
+    model: mueller::telescope::BandModel,
 }
 
 /// The sky at the HWP: one vector for a uniform sky with no field-dependent effect, else one
@@ -111,6 +121,9 @@ pub struct Plan {
     shifts: Vec<(f64, f64)>,
     /// The telescope in front (scene `[telescope]`).
     tel: Option<TelescopeTerm>,
+    /// The optical chain the frames are rendered through: the telescope, the field's elements
+    /// and the plate's zero angle.
+    chain: field::InstrumentChain,
 }
 
 /// A star drawn frame by frame: its position (px, o image, before the frame's shift), its
@@ -122,7 +135,7 @@ struct StarDraw {
     psf: PsfShape,
     /// With a telescope: `st` is the light before it, and this the field's block at the star
     /// (applied after the telescope's matrix of each frame).
-    field: Option<Block>,
+    field: Option<FieldBlock>,
 }
 
 /// A circular PSF profile of `r^2` (px^2) and the radius it is drawn to.
@@ -407,7 +420,7 @@ impl Plan {
                     let (xa, ya) = inst.pixel_to_arcmin(x, y);
                     match tel {
                         // After each frame's telescope matrix: kept as the chain's block.
-                        Some(_) => at_star = Some(block3(&chain.block_at(xa, ya))),
+                        Some(_) => at_star = Some(field_block(&chain.mueller_at(xa, ya))),
                         None => iqu = chain.apply_at(xa, ya, iqu),
                     }
                 }
@@ -497,7 +510,7 @@ impl Plan {
                                 .par_iter()
                                 .map(|&(o, _)| {
                                     let (xa, ya) = arcmin(o);
-                                    block3(&chain.block_at(xa, ya))
+                                    field_block(&chain.mueller_at(xa, ya))
                                 })
                                 .collect(),
                         );
@@ -633,8 +646,35 @@ impl Plan {
             explain,
             moving,
             shifts,
+            chain: field::InstrumentChain {
+                telescope: tel.as_ref().map(|t| t.model),
+                elements: chain,
+                zero_angle: hwp.chi_offset,
+            },
             tel,
         })
+    }
+
+    /// The optical chain the frames are rendered through: the scene's telescope (its band
+    /// model), the field-dependent elements in the order light meets them (instrumental field,
+    /// stressed lens, plate defects) and the HWP zero angle. A correction holding the same
+    /// chain undoes what the frames show ([`field::InstrumentChain::invert_exposures`]).
+    pub fn chain(&self) -> &field::InstrumentChain {
+        &self.chain
+    }
+
+    /// The exposures as the chain sees them: each frame's HWP angle as commanded (rad) and its
+    /// parallactic-angle track (a fixed angle 0 without a telescope), in frame order.
+    pub fn exposures(&self) -> Vec<mueller::telescope::Exposure> {
+        self.scene
+            .hwp_angles_deg
+            .iter()
+            .enumerate()
+            .map(|(k, a)| mueller::telescope::Exposure {
+                hwp: a.to_radians(),
+                track: self.tel.as_ref().map_or(mueller::telescope::Track::at(0.0), |t| t.tracks[k]),
+            })
+            .collect()
     }
 
     /// The train and noise steps, one per line, for `--explain`.
@@ -663,7 +703,7 @@ impl Plan {
             let m = &t.per_frame[k];
             match &self.sky {
                 SkyAtPlate::Constant(s) => {
-                    let s = apply(m, s);
+                    let s = through(m, None, s);
                     let (fo, fe) = (dot(&ro, &s), dot(&re, &s));
                     if self.geom.layout == instrument::Layout::Maskless {
                         img.fill(fo + fe);
@@ -676,10 +716,7 @@ impl Plan {
                 }
                 SkyAtPlate::Image(v) => {
                     for (i, (s, &(o, e))) in v.iter().zip(&self.sky_pixels).enumerate() {
-                        let mut s = apply(m, s);
-                        if let Some(f) = &t.field {
-                            s = apply(&f[i], &s);
-                        }
+                        let s = through(m, t.field.as_ref().map(|f| &f[i]), s);
                         img[o as usize] = dot(&ro, &s);
                         img[e as usize] = dot(&re, &s);
                     }
@@ -799,10 +836,7 @@ impl Plan {
         let (x, y) = (s.x + self.shifts[k].0, s.y + self.shifts[k].1);
         let mut st = s.st;
         if let Some(t) = &self.tel {
-            st = apply(&t.per_frame[k], &st);
-            if let Some(f) = &s.field {
-                st = apply(f, &st);
-            }
+            st = through(&t.per_frame[k], s.field.as_ref(), &st);
         }
         let dot = |r: &Iqu| r[0] * st[0] + r[1] * st[1] + r[2] * st[2];
         let Some((dx, dy)) = self.geom.e_offset(x, y) else { return };
@@ -1028,8 +1062,7 @@ fn telescope_term(
     for k in 0..scene.hwp_angles_deg.len() {
         let (a, b) = t.hour_angles(k, scene.exposure_s);
         let track = exposure_track(lat, dec, a.to_radians(), b.to_radians()).with_rotator(t.rotator_deg.to_radians());
-        let m = model.matrix_track(track).map_err(|e| bad(e.to_string()))?;
-        let m = m / m[(0, 0)];
+        let m = field::chain::telescope_matrix(&model, track).map_err(|e| bad(e.to_string()))?;
         explain.push(format!(
             "  frame {k}: hour angle {a:.3} to {b:.3} deg, parallactic angle {:.3} to {:.3} deg: unpolarized light -> q = {:.5}, u = {:.5}",
             track.start.to_degrees(),
@@ -1037,10 +1070,10 @@ fn telescope_term(
             m[(1, 0)],
             m[(2, 0)]
         ));
-        per_frame.push(block(&m));
+        per_frame.push(tel_block(&m));
         tracks.push(track);
     }
-    Ok(TelescopeTerm { per_frame, tracks, field: None })
+    Ok(TelescopeTerm { per_frame, tracks, field: None, model })
 }
 
 fn describe_star(s: &Star) -> String {

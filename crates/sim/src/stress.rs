@@ -79,6 +79,12 @@ impl field::FieldModel for StressedLensSpec {
     fn block_at(&self, x: f64, y: f64) -> LinearBlock {
         StressedLensSpec::block_at(self, x, y)
     }
+    /// The whole retarder, so that circular polarization made before the lens (by the
+    /// telescope's M3) is turned back into linear polarization as it is in the glass.
+    fn mueller_at(&self, x: f64, y: f64) -> mueller::Mueller {
+        let (delta, axis) = self.retardance_at(x, y);
+        mueller::retarder(delta, axis)
+    }
     fn describe(&self) -> String {
         "a stressed lens".into()
     }
