@@ -65,7 +65,7 @@ fn scene(dir: &Path, lens: bool) -> sim::Scene {
     let text = format!(
         "instrument = \"{}\"\nfilter = \"V\"\nseed = 11\nhwp_angles_deg = {ANGLES:?}\nexposure_s = 600\n\
          [output]\nbitpix = -64\n\
-         [sky]\nbrightness_e = 200000.0\np = {SKY_P}\nchi_deg = {SKY_CHI_DEG}\n\
+         [sky]\nbrightness_e = 50000.0\np = {SKY_P}\nchi_deg = {SKY_CHI_DEG}\n\
          [effects]\nphoton_noise = true\nhwp_chi_offset_deg = 7.0\n\
          [effects.instpol]\nkind = \"radial\"\ncoeffs_percent = [0.0, 0.012, 0.046, 0.002]\n\
          {lens}\
@@ -203,7 +203,8 @@ fn forward_model_matches_a_jones_calculation() {
 }
 
 /// `forward` and `invert` are each other's inverse, the covariance included
-/// (`J^-1 (J C J^T) J^-T = C`), for one exposure and for a demodulated set.
+/// (`J^-1 (J C J^T) J^-T = C`), for one exposure (exact Jacobians) and for a demodulated set
+/// (Jacobians by central differences, whose error of order 1e-11 sets the tolerance).
 #[test]
 fn invert_undoes_forward_with_its_covariance() {
     let dir = tempfile::tempdir().unwrap();
@@ -216,13 +217,13 @@ fn invert_undoes_forward_with_its_covariance() {
         let back = chain.invert(x, y, &m, Some(exposures[2].track)).unwrap();
         let m2 = chain.forward_exposures(x, y, &sky, &exposures).unwrap();
         let back2 = chain.invert_exposures(x, y, &m2, &exposures).unwrap();
-        for b in [back, back2] {
+        for (b, var_tol) in [(back, 1e-12), (back2, 1e-9)] {
             for (a, w, tol) in [
                 (b.q, sky.q, 1e-13),
                 (b.u, sky.u, 1e-13),
-                (b.var_q, sky.var_q, 1e-12),
-                (b.var_u, sky.var_u, 1e-12),
-                (b.cov_qu, sky.cov_qu, 1e-12),
+                (b.var_q, sky.var_q, var_tol),
+                (b.var_u, sky.var_u, var_tol),
+                (b.cov_qu, sky.cov_qu, var_tol),
             ] {
                 assert!((a - w).abs() <= tol * w.abs().max(1e-7), "at ({x}, {y}): {a} vs {w}");
             }
@@ -240,7 +241,8 @@ fn simulated_reduced_and_corrected_through_one_chain() {
     let plan = sim::Plan::build(&sc).unwrap();
     let out = plan.write(&dir.path().join("out"), &|| {}).unwrap();
     let inst = instrument::Instrument::load(&sc.instrument).unwrap();
-    let cfg = ReduceConfig { bin_px: 16, ..Default::default() };
+    // Half a strip (14 px) per bin.
+    let cfg = ReduceConfig { bin_px: 7, ..Default::default() };
     let map = reduce_files(&out.frames, &inst, &cfg, &|| {}).unwrap().map;
     let exposures = plan.exposures();
     // The same chain without the lens: what a calibration that missed it would do.
