@@ -408,6 +408,11 @@ impl<'a, M: FieldModel + ?Sized> Corrector<'a, M> {
         &self.opts
     }
 
+    /// The field model it corrects with.
+    pub fn model(&self) -> &'a M {
+        self.model
+    }
+
     /// The instrumental polarization that would be removed at `(x, y)` arcmin, with the
     /// covariance as used (inflated outside the field) and the extrapolation flag.
     #[inline]

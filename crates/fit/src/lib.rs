@@ -20,6 +20,7 @@ pub mod bins;
 pub mod calfile;
 pub mod calibration;
 pub mod catalog_correct;
+pub mod chain;
 pub mod correlation;
 pub mod demo;
 pub mod import;

@@ -30,11 +30,14 @@
 //! recorded exposures. A map of another instrument or filter than the calibration's is refused
 //! unless the request allows the mismatch.
 
-use crate::calfile::Calibration;
 use crate::calibration::{CalibrationFile, Kind};
-use crate::correct::{row_zero_angles, CorrectOptions, Corrected, Corrector, Measurement, Method};
-use crate::mueller_cal::MuellerCal;
-use crate::telescope::{BandChoiceError, PreparedExposures, Seen, TelescopeFit, Track, TrackChoiceError};
+use crate::chain::{Chain, FieldStep, RecordedExposures, TelescopeStep, Tracks};
+use crate::correct::{
+    row_zero_angles, CorrectOptions, Corrected, CorrectedMap, Corrector, MapError, Measurement, Method,
+};
+use crate::telescope::{BandChoiceError, TelescopeFit, Track, TrackChoiceError};
+
+pub use crate::chain::RowError;
 
 /// Each row's parallactic angle (deg), as a catalog's columns or a caller's arrays give them.
 #[derive(Debug, Clone, Copy)]
@@ -165,26 +168,17 @@ pub enum Note {
     ZeroAngleUnknown(String),
 }
 
-/// How the rows saw the telescope.
-#[derive(Debug)]
-enum Tracks {
-    PerRow(Vec<Track>),
-    Shared(Track),
-    Exposures(Box<PreparedExposures>),
-}
-
-/// The telescope part of a plan.
+/// The telescope part of a plan, as a face reports it.
 #[derive(Debug)]
 pub struct TelescopePlan<'a> {
     pub fit: &'a TelescopeFit,
     pub band: String,
     /// How many recorded exposures are undone one by one (0: over a track).
     pub exposures: usize,
-    tracks: Tracks,
 }
 
 /// The correction of rows resolved from a file and a request: [`RowsPlan::correct`] undoes
-/// one row, in any order and in parallel.
+/// one row, in any order and in parallel, through the plan's [`Chain`].
 pub struct RowsPlan<'a> {
     pub kind: Kind,
     /// The zero angle (deg) the rows are turned by into the sky frame.
@@ -193,17 +187,8 @@ pub struct RowsPlan<'a> {
     pub plate_deg: f64,
     pub telescope: Option<TelescopePlan<'a>>,
     pub notes: Vec<Note>,
-    field: Option<Corrector<'a, Calibration>>,
-    mueller: Option<(&'a MuellerCal, CorrectOptions)>,
-}
-
-/// Why one row could not be corrected.
-#[derive(Debug, thiserror::Error)]
-pub enum RowError {
-    #[error("{0}")]
-    Field(#[from] crate::correct::Error),
-    #[error("{0}")]
-    Chain(#[from] crate::Error),
+    /// The chain the rows are corrected through.
+    pub chain: Chain<'a>,
 }
 
 /// The refusals that do not depend on the rows, which a Stokes map's correction makes too: a
@@ -288,8 +273,11 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
                 plate_deg: plate,
                 telescope: None,
                 notes,
-                field: None,
-                mueller: Some((mc, opts(to_sky))),
+                chain: Chain {
+                    to_sky: to_sky.to_radians(),
+                    field: FieldStep::Mueller(mc, opts(to_sky)),
+                    telescope: None,
+                },
             });
         }
         let cal = file.field.as_ref().expect("check_options refuses a file without a model");
@@ -304,8 +292,11 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
             plate_deg: plate,
             telescope: None,
             notes,
-            field: Some(Corrector::new(cal, opts(to_sky))),
-            mueller: None,
+            chain: Chain {
+                to_sky: to_sky.to_radians(),
+                field: FieldStep::PartialPolarizer(Corrector::new(cal, opts(to_sky))),
+                telescope: None,
+            },
         });
     };
     let field = file.field.as_ref();
@@ -353,7 +344,7 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
                 (None, Some(r)) => &r.exposure_tracks,
                 _ => &[],
             };
-            let prepared = crate::telescope_cal::prepare_recorded(tel, &band, track, exposures, plate.to_radians())
+            let prepared = RecordedExposures::new(tel, &band, track, exposures, plate.to_radians())
                 .map_err(|e| Refusal::Exposures(e.to_string()))?;
             match prepared {
                 Some(p) => (Tracks::Exposures(Box::new(p)), exposures.len()),
@@ -365,38 +356,22 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
         kind: if field.is_some() { Kind::FieldAndTelescope } else { Kind::Telescope },
         to_sky_deg: to_sky,
         plate_deg: plate,
-        telescope: Some(TelescopePlan { fit: tel, band, exposures, tracks }),
+        telescope: Some(TelescopePlan { fit: tel, band: band.clone(), exposures }),
         notes,
-        // The telescope's offset is the instrument's angle zero: the chain turns the rows
-        // itself, once, before both models.
-        field: field.map(|c| Corrector::new(c, opts(0.0))),
-        mueller: None,
+        chain: Chain {
+            to_sky: to_sky.to_radians(),
+            // The telescope's offset is the instrument's angle zero: the chain turns the rows
+            // itself, once, before both models.
+            field: field.map_or(FieldStep::None, |c| FieldStep::PartialPolarizer(Corrector::new(c, opts(0.0)))),
+            telescope: Some(TelescopeStep { fit: tel, band, tracks }),
+        },
     })
 }
 
 impl RowsPlan<'_> {
-    /// Correct row `i` (its track, when the rows each have their own).
+    /// Correct row `i` (its track, when the rows each have their own): [`Chain::invert`].
     pub fn correct(&self, i: usize, m: &Measurement) -> Result<Corrected, RowError> {
-        if let Some((mc, o)) = &self.mueller {
-            return Ok(mc.correct(m, o)?);
-        }
-        let Some(t) = &self.telescope else {
-            return Ok(self.field.as_ref().expect("a field or a Mueller plan").correct(m)?);
-        };
-        let seen = match &t.tracks {
-            Tracks::PerRow(v) => Seen::Track(v[i]),
-            Tracks::Shared(track) => Seen::Track(*track),
-            Tracks::Exposures(p) => Seen::Prepared(p),
-        };
-        let r = crate::telescope_cal::correct_chain_seen(
-            self.field.as_ref(),
-            t.fit,
-            &t.band,
-            m,
-            seen,
-            self.to_sky_deg.to_radians(),
-        )?;
-        Ok(r.with_telescope_in_inst())
+        self.chain.invert(i, m)
     }
 }
 
@@ -411,8 +386,8 @@ pub struct MapTelescope<'a> {
     pub by_exposure: bool,
 }
 
-/// The correction of a Stokes map resolved from a file and a request ([`plan_map`]).
-#[derive(Debug)]
+/// The correction of a Stokes map resolved from a file and a request ([`plan_map`]):
+/// [`MapPlan::correct`] undoes every bin through the plan's [`Chain`].
 pub struct MapPlan<'a> {
     pub kind: Kind,
     pub method: Method,
@@ -421,26 +396,78 @@ pub struct MapPlan<'a> {
     /// chain: the field calibration's, else the one the map records.
     pub zero_angle_deg: f64,
     pub notes: Vec<Note>,
-    file: &'a CalibrationFile,
+    /// The chain every bin is corrected through.
+    pub chain: Chain<'a>,
+    /// How many recorded exposures the chain undoes one by one (0: over one track).
+    pub exposures: usize,
+}
+
+/// The words of a method in a corrected map's record.
+fn method_words(m: Method) -> &'static str {
+    match m {
+        Method::Exact => "exact M_I inverse (eq:instpol)",
+        Method::FirstOrder => "first order (eq:approx)",
+    }
 }
 
 impl MapPlan<'_> {
-    /// What [`crate::calibration::correct_stokes_map`] takes.
-    pub fn correction(&self) -> crate::calibration::MapCorrection<'_> {
-        use crate::calibration::MapCorrection;
-        match (&self.file.mueller, &self.telescope, &self.file.field) {
-            (Some(m), _, _) => MapCorrection::Mueller(m),
-            (None, Some(t), field) => MapCorrection::Chain {
-                field: field.as_ref().map(|c| (c, self.method)),
-                telescope: t.fit,
-                band: &t.band,
-                track: t.track,
-                by_exposure: t.by_exposure,
-                zero_angle_deg: self.zero_angle_deg,
-            },
-            (None, None, Some(cal)) => MapCorrection::Field { cal, method: self.method },
-            (None, None, None) => unreachable!("plan_map refuses a file without a model"),
-        }
+    /// Correct every valid bin of `map` ([`Chain::invert_map`]), and the record the corrected
+    /// map carries ([`skyfield::StokesMap::write_corrected_fits`]; `calibration`: the file's
+    /// name). The one map correction of `instpol correct` and the Python package.
+    /// - A field: the calibration's HWP zero angle is added to chi (`CORRHWP`).
+    /// - A Mueller field: inverted exactly after the zero angle its maps were turned by
+    ///   (`CORRHWP`; 0 for maps that recorded none).
+    /// - A telescope model: the map is brought into the sky frame by the field calibration's HWP
+    ///   zero angle, or without a field by its instrument's (`CORRHWP`), then corrected by both
+    ///   models there ([`crate::telescope_cal`] module docs); the corrected map records the
+    ///   track used (its parallactic and rotator angles).
+    pub fn correct(
+        &self,
+        map: &skyfield::StokesMap,
+        calibration: &str,
+    ) -> Result<(CorrectedMap, skyfield::CorrectionStamp), MapError> {
+        let mut c = self.chain.invert_map(map)?;
+        let stamp = |method: String, hwp: f64, telescope| skyfield::CorrectionStamp {
+            calibration: calibration.to_string(),
+            method,
+            hwp_chi_offset_deg: hwp,
+            telescope,
+        };
+        let s = match (&self.chain.field, &self.telescope) {
+            (FieldStep::Mueller(mc, _), _) => {
+                stamp("exact inverse of the Mueller field (calibrate-mueller)".into(), mc.hwp_chi_offset_deg, None)
+            }
+            (FieldStep::PartialPolarizer(_), None) => {
+                stamp(method_words(self.method).into(), self.zero_angle_deg, None)
+            }
+            (field, Some(t)) => {
+                if !t.by_exposure {
+                    c.map.exposure_tracks.clear();
+                }
+                c.map.parallactic_rad = Some((t.track.start, t.track.end));
+                if t.fit.with_rotator {
+                    c.map.rotator_rad = Some(t.track.rotator);
+                }
+                let mut method = match field {
+                    FieldStep::PartialPolarizer(_) => format!("{}, then the telescope", method_words(self.method)),
+                    _ => "telescope model only".to_string(),
+                };
+                if self.exposures > 0 {
+                    method += &format!(" (exposure by exposure, {})", self.exposures);
+                }
+                let ts = skyfield::TelescopeStamp {
+                    model: t.fit.model.name().to_string(),
+                    band: t.band.clone(),
+                    rotator_deg: t.track.rotator.to_degrees(),
+                };
+                stamp(method, self.zero_angle_deg, Some(ts))
+            }
+            (FieldStep::None, None) => unreachable!("plan_map refuses a file without a model"),
+        };
+        // The corrected map is in the sky frame, its zero angle applied (CORRHWP): it no longer
+        // lacks one (HWPZERO).
+        c.map.hwp_zero_angle_deg = None;
+        Ok((c, s))
     }
 }
 
@@ -468,9 +495,23 @@ pub fn plan_map<'a>(
     }
     let kind = file.kind();
     let mut notes = vec![];
+    let opts = |method, chi_offset_deg: f64| CorrectOptions {
+        method,
+        allow_extrapolation: req.allow_extrapolation,
+        extrapolation_rel_error: req.extrapolation_rel_error,
+        chi_offset: chi_offset_deg.to_radians(),
+    };
     let Some(tel) = &file.telescope else {
-        let zero_angle_deg = file.field.as_ref().map_or(0.0, |c| c.hwp_chi_offset_deg);
-        return Ok(MapPlan { kind, method: req.method, telescope: None, zero_angle_deg, notes, file });
+        let (zero_angle_deg, field) = match (&file.mueller, &file.field) {
+            (Some(mc), _) => (0.0, FieldStep::Mueller(mc, opts(Method::Exact, mc.hwp_chi_offset_deg))),
+            (None, Some(c)) => (
+                c.hwp_chi_offset_deg,
+                FieldStep::PartialPolarizer(Corrector::new(c, opts(req.method, c.hwp_chi_offset_deg))),
+            ),
+            (None, None) => unreachable!("check_options refuses a file without a model"),
+        };
+        let chain = Chain { to_sky: zero_angle_deg.to_radians(), field, telescope: None };
+        return Ok(MapPlan { kind, method: req.method, telescope: None, zero_angle_deg, notes, chain, exposures: 0 });
     };
     let field = file.field.as_ref();
     let band = tel.choose_band(req.band, field.map(|c| c.filter.as_str()), Some(&map.filter)).map_err(Refusal::Band)?;
@@ -488,6 +529,21 @@ pub fn plan_map<'a>(
             z
         }
     };
-    let telescope = MapTelescope { fit: tel, band, track, by_exposure: req.parang.is_none() };
-    Ok(MapPlan { kind, method: req.method, telescope: Some(telescope), zero_angle_deg, notes, file })
+    let by_exposure = req.parang.is_none();
+    // The map's exposures, undone as each saw the telescope (their demodulations built once
+    // for every bin), unless a given track replaced them.
+    let recorded = if by_exposure { &map.exposure_tracks[..] } else { &[] };
+    let prepared = RecordedExposures::new(tel, &band, track, recorded, zero_angle_deg.to_radians())
+        .map_err(|e| Refusal::Exposures(e.to_string()))?;
+    let (tracks, exposures) = match prepared {
+        Some(p) => (Tracks::Exposures(Box::new(p)), recorded.len()),
+        None => (Tracks::Shared(track), 0),
+    };
+    let chain = Chain {
+        to_sky: zero_angle_deg.to_radians(),
+        field: field.map_or(FieldStep::None, |c| FieldStep::PartialPolarizer(Corrector::new(c, opts(req.method, 0.0)))),
+        telescope: Some(TelescopeStep { fit: tel, band: band.clone(), tracks }),
+    };
+    let telescope = MapTelescope { fit: tel, band, track, by_exposure };
+    Ok(MapPlan { kind, method: req.method, telescope: Some(telescope), zero_angle_deg, notes, chain, exposures })
 }

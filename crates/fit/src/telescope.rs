@@ -598,6 +598,11 @@ impl PreparedExposures {
     pub fn base(&self) -> &mueller::telescope::Demodulation {
         &self.base
     }
+
+    /// The set's whole track (its first exposure's start to its last one's end).
+    pub fn whole(&self) -> Track {
+        self.whole
+    }
 }
 
 /// Which parameters are free and how they map to the band models.

@@ -292,35 +292,6 @@ impl ChainCorrected {
     }
 }
 
-/// Correct every valid bin of a Stokes map through the chain ([`correct_chain`] at the bin's
-/// centre; `to_sky` (rad): the zero angle the map does not carry, the whole zero angle for a
-/// map fresh from the reduction): the bins of a map share their exposures, hence one
-/// parallactic-angle `track` for all of them. With `exposures` (the map's [`skyfield::StokesMap::exposure_tracks`], their
-/// rotator `track`'s), the telescope is undone as the exposures saw it, each at its own
-/// angles, demodulated together ([`Seen::Exposures`]); without, over `track`. The scatter and
-/// the photon-noise errors are each propagated ([`crate::correct::correct_map_with`]); each
-/// bin's `inst` is the field's and the telescope's polarization together
-/// ([`ChainCorrected::with_telescope_in_inst`]).
-pub fn correct_map_chain<M: FieldModel + ?Sized>(
-    field: Option<&Corrector<M>>,
-    tel: &TelescopeFit,
-    band: &str,
-    map: &skyfield::StokesMap,
-    track: Track,
-    exposures: &[skyfield::ExposureTrack],
-    to_sky: f64,
-) -> std::result::Result<crate::correct::CorrectedMap, crate::correct::MapError> {
-    // The exposures' demodulations are the same for every bin: built once.
-    let prepared = prepare_recorded(tel, band, track, exposures, to_sky)
-        .map_err(|e| crate::correct::MapError::Exposures(crate::correct::Error::Telescope(e.to_string())))?;
-    let seen = prepared.as_ref().map_or(Seen::Track(track), Seen::Prepared);
-    crate::correct::correct_map_with(map, |m| {
-        correct_chain_seen(field, tel, band, m, seen, to_sky)
-            .map(|r| r.with_telescope_in_inst())
-            .map_err(|e| crate::correct::Error::Telescope(e.to_string()))
-    })
-}
-
 /// Correct `m` for the field (when `field` is given, its corrector without a zero angle of its
 /// own) and then the telescope of `band` over `track`, after bringing `m` into the sky frame
 /// by `to_sky` (rad: the HWP zero angle `m` does not carry yet; see the module docs for the

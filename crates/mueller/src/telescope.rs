@@ -224,7 +224,10 @@ impl Demodulation {
 impl BandModel {
     /// The [`Demodulation`] of `exposures` through this band's chain.
     pub fn demodulation(&self, exposures: &[Exposure]) -> Result<Demodulation, crate::Error> {
-        let matrices = exposures.iter().map(|e| Ok((e.hwp, self.matrix_track(e.track)?))).collect::<Result<Vec<_>, crate::Error>>()?;
+        let matrices = exposures
+            .iter()
+            .map(|e| Ok((e.hwp, self.matrix_track(e.track)?)))
+            .collect::<Result<Vec<_>, crate::Error>>()?;
         Demodulation::of_matrices(matrices)
     }
 

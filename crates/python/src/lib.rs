@@ -781,7 +781,7 @@ impl _Calibration {
 
     /// `instpol correct` on a Stokes map file (from `instpol reduce` or `reduce(output=)`): the
     /// calibration's field, Mueller field or telescope chain over every valid bin
-    /// (`fit::calibration::correct_stokes_map`), the map's instrument and filter checked, the
+    /// (`fit::request::MapPlan::correct`), the map's instrument and filter checked, the
     /// telescope's band and track by the CLI's rules; `output`: the corrected map, written with
     /// the correction's record (`INSTCORR`, ...). Returns the corrected map as `_reduce` does,
     /// with the correction's summary.
@@ -836,12 +836,10 @@ impl _Calibration {
         };
         let plan = fit::request::plan_map(&self.file, &request, &map).map_err(|e| self.map_error(e, &input))?;
         let notes: Vec<String> = plan.notes.iter().map(|n| self.note_text(n, &input)).collect();
-        let with = plan.correction();
         let name = self.path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
         let (c, stamp) = py
             .detach(|| {
-                let r =
-                    fit::calibration::correct_stokes_map(&map, with, allow_extrapolation, extrapolation_error, &name);
+                let r = plan.correct(&map, &name);
                 let (c, stamp) = r.map_err(|e| format!("{} {e}", input.display()))?;
                 if let Some(out) = &output {
                     c.map.write_corrected_fits(out, &stamp).map_err(|e| e.to_string())?;

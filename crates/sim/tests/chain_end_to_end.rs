@@ -147,7 +147,13 @@ fn m3_track(rp: C64, rs: C64, t: Track, offset: f64) -> Matrix4<f64> {
     let n = 2000;
     let mut sum = Matrix4::zeros();
     for k in 0..=n {
-        let w = if k == 0 || k == n { 1.0 } else if k % 2 == 1 { 4.0 } else { 2.0 };
+        let w = if k == 0 || k == n {
+            1.0
+        } else if k % 2 == 1 {
+            4.0
+        } else {
+            2.0
+        };
         let q = t.start + (t.end - t.start) * k as f64 / n as f64;
         sum += m3(rp, rs, q, offset + t.rotator) * w;
     }
@@ -274,7 +280,9 @@ fn simulated_reduced_and_corrected_through_one_chain() {
     let rms = (sum2 / (2 * n) as f64).sqrt();
     let rms_raw = (raw2 / (2 * n) as f64).sqrt();
     let rms_no_lens = (no_lens2 / (2 * n) as f64).sqrt();
-    eprintln!("{n} bins: RMS pull {rms:.2} (worst {worst:.2}); uncorrected {rms_raw:.1}; without the lens {rms_no_lens:.1}");
+    eprintln!(
+        "{n} bins: RMS pull {rms:.2} (worst {worst:.2}); uncorrected {rms_raw:.1}; without the lens {rms_no_lens:.1}"
+    );
     assert!(rms > 0.6 && rms < 1.5, "the corrected bins scatter by {rms} of their errors");
     assert!(worst < 5.0, "a bin {worst} sigma off");
     assert!(rms_raw > 20.0, "the uncorrected bins are already right ({rms_raw}): the test shows nothing");

@@ -662,14 +662,7 @@ fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Reque
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
     let plan = fit::request::plan_map(loaded, request, &map).map_err(|e| rows_error(a, None, e))?;
     print_notes(a, &plan.notes);
-    let (c, stamp) = fit::calibration::correct_stokes_map(
-        &map,
-        plan.correction(),
-        a.allow_extrapolation,
-        a.extrapolation_error,
-        &cal_name(a),
-    )
-    .map_err(|e| map_error(e, &a.input))?;
+    let (c, stamp) = plan.correct(&map, &cal_name(a)).map_err(|e| map_error(e, &a.input))?;
     crate::util::check_output(&a.out)?;
     c.map.write_corrected_fits(&a.out, &stamp).with_context(|| format!("cannot write {}", a.out.display()))?;
     let mut summary = map_summary(a, c, &map.filter, stamp.hwp_chi_offset_deg);
@@ -684,8 +677,7 @@ fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Reque
         (None, Some(t), field) => {
             summary.telescope_model = Some(t.fit.model.name());
             summary.telescope_band = Some(t.band.clone());
-            summary.telescope_exposures =
-                (t.by_exposure && !map.exposure_tracks.is_empty()).then_some(map.exposure_tracks.len());
+            summary.telescope_exposures = (plan.exposures > 0).then_some(plan.exposures);
             warn_extrapolated(&summary, "calibrated field");
             report(
                 a,

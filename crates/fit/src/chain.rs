@@ -1,0 +1,215 @@
+//! A calibration's correction as one value: the chain from the sky to the plate that a
+//! calibration file defines for a set of data (rows of a catalog, or the bins of a Stokes
+//! map), and its inversion with the errors of the measurement and of the models propagated.
+//! [`crate::request`] resolves a file and a request into a [`Chain`]; rows and maps are then
+//! corrected by the same call, [`Chain::invert`].
+//!
+//! The elements, in the order light meets them (`docs/architecture.md`, "The optical chain"):
+//!
+//! - the telescope ([`TelescopeStep`]): a band of a fitted telescope model over each row's
+//!   track, one shared track, or the recorded exposures each over its own track;
+//! - the field ([`FieldStep`]): a partial polarizer `M_I(p, phi)` of `eq:instpol` (a field
+//!   calibration, inverted exactly or to first order, `eq:approx`, with the model's own
+//!   covariance, [`Corrector`]), or a fitted Mueller field ([`MuellerCal::correct`]);
+//! - the half-wave plate's zero angle ([`Chain::to_sky`]): the measurements are at the plate
+//!   and the models in the sky frame.
+//!
+//! [`Chain::instrument`] gives the same chain as a forward model ([`field::InstrumentChain`]),
+//! the one the simulator renders through, so that what a correction undoes can be checked
+//! against what a simulation put in.
+
+use crate::calfile::Calibration;
+use crate::correct::{CorrectOptions, Corrected, CorrectedMap, Corrector, MapError, Measurement};
+use crate::mueller_cal::MuellerCal;
+use crate::telescope::{PreparedExposures, Seen, TelescopeFit, Track};
+use std::sync::Arc;
+
+/// The field-dependent part of a correction.
+pub enum FieldStep<'a> {
+    /// No field model (a telescope model alone).
+    None,
+    /// A field calibration's partial polarizer, with the method, the extrapolation rule and
+    /// (without a telescope) the zero angle in its options.
+    PartialPolarizer(Corrector<'a, Calibration>),
+    /// A Mueller field, inverted exactly; its options carry the zero angle.
+    Mueller(&'a MuellerCal, CorrectOptions),
+}
+
+/// How the data saw the telescope.
+#[derive(Debug)]
+pub enum Tracks {
+    /// Each row over its own track.
+    PerRow(Vec<Track>),
+    /// All rows (or bins) over one track.
+    Shared(Track),
+    /// The recorded exposures, each over its own track, their demodulations built once.
+    Exposures(Box<RecordedExposures>),
+}
+
+/// Exposures a set of data recorded (`skyfield::RecordedAngles`), ready for the correction:
+/// the telescope's demodulations of them built once, and the exposures themselves (HWP angle
+/// as read, track) with the zero angle of the plate they were taken through.
+#[derive(Debug)]
+pub struct RecordedExposures {
+    pub prepared: PreparedExposures,
+    pub list: Vec<mueller::telescope::Exposure>,
+    /// The HWP zero angle (rad) of the plate.
+    pub plate: f64,
+}
+
+impl RecordedExposures {
+    /// The exposures `tracks` of a set over `track` (whose rotator angle they share) through
+    /// the band `band` of `tel`, taken through a plate of zero angle `plate` (rad); `None` when
+    /// none are recorded ([`crate::telescope_cal::prepare_recorded`]).
+    pub fn new(
+        tel: &TelescopeFit,
+        band: &str,
+        track: Track,
+        tracks: &[skyfield::ExposureTrack],
+        plate: f64,
+    ) -> crate::Result<Option<Self>> {
+        let Some(prepared) = crate::telescope_cal::prepare_recorded(tel, band, track, tracks, plate)? else {
+            return Ok(None);
+        };
+        let list = tracks
+            .iter()
+            .map(|x| mueller::telescope::Exposure {
+                hwp: x.hwp_deg.to_radians(),
+                track: Track::new(x.start, Some(x.end)).with_rotator(track.rotator),
+            })
+            .collect();
+        Ok(Some(Self { prepared, list, plate }))
+    }
+}
+
+/// The telescope part of a correction: a band of a fitted model and the tracks.
+#[derive(Debug)]
+pub struct TelescopeStep<'a> {
+    pub fit: &'a TelescopeFit,
+    pub band: String,
+    pub tracks: Tracks,
+}
+
+impl TelescopeStep<'_> {
+    /// How row `i` saw the telescope.
+    fn seen(&self, i: usize) -> Seen<'_> {
+        match &self.tracks {
+            Tracks::PerRow(v) => Seen::Track(v[i]),
+            Tracks::Shared(t) => Seen::Track(*t),
+            Tracks::Exposures(p) => Seen::Prepared(&p.prepared),
+        }
+    }
+}
+
+/// Why one row (or bin) could not be corrected.
+#[derive(Debug, thiserror::Error)]
+pub enum RowError {
+    #[error("{0}")]
+    Field(#[from] crate::correct::Error),
+    #[error("{0}")]
+    Chain(#[from] crate::Error),
+}
+
+/// The chain a calibration defines for a set of data, ready to invert (module docs).
+pub struct Chain<'a> {
+    /// The HWP zero angle (rad) the data are turned by into the sky frame: the calibration's
+    /// less the one the data already carry.
+    pub to_sky: f64,
+    pub field: FieldStep<'a>,
+    pub telescope: Option<TelescopeStep<'a>>,
+}
+
+impl Chain<'_> {
+    /// The sky's polarization of row `i` (its track, when the rows each have their own; any
+    /// `i` otherwise) from its measurement at the plate: the zero angle turned, then the field
+    /// and the telescope undone in the reverse of the order light met them, the errors of the
+    /// measurement and of the models propagated. With a telescope, the returned `inst` holds the
+    /// field's and the telescope's instrumental polarization together (first order), as
+    /// catalogs and maps report it ([`crate::telescope_cal::ChainCorrected::with_telescope_in_inst`]).
+    pub fn invert(&self, i: usize, m: &Measurement) -> Result<Corrected, RowError> {
+        match (&self.telescope, &self.field) {
+            (None, FieldStep::PartialPolarizer(c)) => Ok(c.correct(m)?),
+            (None, FieldStep::Mueller(mc, o)) => Ok(mc.correct(m, o)?),
+            (Some(t), field) => {
+                let cor = match field {
+                    FieldStep::PartialPolarizer(c) => Some(c),
+                    FieldStep::None => None,
+                    FieldStep::Mueller(..) => {
+                        return Err(RowError::Chain(crate::Error::Input(
+                            "a Mueller field and a telescope model are not corrected together".into(),
+                        )))
+                    }
+                };
+                let r = crate::telescope_cal::correct_chain_seen(cor, t.fit, &t.band, m, t.seen(i), self.to_sky)?;
+                let mut c = r.with_telescope_in_inst();
+                if let (Some(_), Tracks::Exposures(e)) = (cor, &t.tracks) {
+                    // Exposures that each saw another telescope matrix behind the same field:
+                    // undoing the field and then the telescope is exact for one matrix only
+                    // (1e-5 off over a set spanning 60 deg of parallactic angle). The value is
+                    // the exact inverse of the whole chain over the set; the covariance, a
+                    // linearization, is the one of the two steps.
+                    let (chain, _) = self.instrument(i);
+                    let chain = field::InstrumentChain { zero_angle: e.plate, ..chain };
+                    // The measurement as the plate gave it: it may carry part of the zero angle.
+                    let at_plate = m.qu.rotated(self.to_sky - e.plate);
+                    let exact = chain
+                        .invert_exposures(m.x, m.y, &at_plate, &e.list)
+                        .map_err(|err| crate::Error::Input(format!("the chain over the exposures: {err}")))?;
+                    let (p0, sigma_p0, chi0, sigma_chi0) =
+                        crate::correct::p_chi_with_errors(exact.q, exact.u, c.var_q0, c.var_u0, c.cov_qu0);
+                    (c.q0, c.u0, c.p0, c.sigma_p0, c.chi0, c.sigma_chi0) =
+                        (exact.q, exact.u, p0, sigma_p0, chi0, sigma_chi0);
+                }
+                Ok(c)
+            }
+            (None, FieldStep::None) => {
+                Err(RowError::Chain(crate::Error::Input("the chain holds neither a field nor a telescope".into())))
+            }
+        }
+    }
+
+    /// Every valid bin of a Stokes map through [`invert`](Self::invert) at the bin's centre
+    /// (the bins share their exposures), the scatter and the photon-noise errors each
+    /// propagated ([`crate::correct::correct_map_with`]).
+    pub fn invert_map(&self, map: &skyfield::StokesMap) -> Result<CorrectedMap, MapError> {
+        crate::correct::correct_map_with(map, |m| {
+            self.invert(0, m).map_err(|e| match e {
+                RowError::Field(e) => e,
+                RowError::Chain(e) => crate::correct::Error::Telescope(e.to_string()),
+            })
+        })
+    }
+
+    /// The same chain as a forward model for row `i`'s exposure (its track, or the shared
+    /// one; a chain undone exposure by exposure gives the whole set's track): the telescope's
+    /// band model, the field model or Mueller field as the one element, and the zero angle.
+    /// The telescope's constant `q0, u0`, which a telescope model alone subtracts, is not an
+    /// element of it.
+    pub fn instrument(&self, i: usize) -> (field::InstrumentChain, Option<Track>) {
+        let mut elements = field::FieldChain::new();
+        match &self.field {
+            FieldStep::PartialPolarizer(c) => {
+                elements = elements.then(Arc::new(c.model().clone()), "the field calibration's M_I(p, phi)")
+            }
+            FieldStep::Mueller(mc, _) => elements = elements.then(Arc::new(mc.field.clone()), "the Mueller field"),
+            FieldStep::None => {}
+        }
+        let (telescope, track) = match &self.telescope {
+            None => (None, None),
+            Some(t) => {
+                let track = match t.seen(i) {
+                    Seen::Track(tr) => tr,
+                    Seen::Prepared(p) => p.whole(),
+                    Seen::Exposures { whole, .. } => whole,
+                };
+                (t.fit.band(&t.band).copied(), Some(track))
+            }
+        };
+        let zero_angle = match (&self.field, &self.telescope) {
+            (FieldStep::PartialPolarizer(c), None) => c.options().chi_offset,
+            (FieldStep::Mueller(_, o), _) => o.chi_offset,
+            _ => self.to_sky,
+        };
+        (field::InstrumentChain { telescope, elements, zero_angle }, track)
+    }
+}
