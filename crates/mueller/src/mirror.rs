@@ -364,62 +364,18 @@ pub fn wiersema_m3(m3: &Reflection, parallactic: f64, offset: f64) -> Mueller {
     rotation(offset) * m3.mueller_at(FRAC_PI_2 - parallactic)
 }
 
+/// The Jones calculus of the tests, written apart from the library.
+#[cfg(test)]
+#[path = "../tests/support/jones.rs"]
+mod jones;
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use approx::assert_relative_eq;
-    use nalgebra::{Matrix2, Matrix4};
     use std::f64::consts::PI;
 
-    // ---- An independent Jones calculus, written here for the tests ----
-
-    fn c(re: f64) -> C64 {
-        C64::new(re, 0.0)
-    }
-
-    /// `M = A (J (x) J*) A^-1` with `A` from I = |Ex|^2+|Ey|^2, Q = |Ex|^2-|Ey|^2,
-    /// U = 2 Re(Ex* Ey), V = 2 Im(Ex* Ey), and the inverse solved numerically.
-    fn mueller_of_jones(j: &Matrix2<C64>) -> Mueller {
-        let i = C64::new(0.0, 1.0);
-        // Rows act on (Ex Ex*, Ex Ey*, Ey Ex*, Ey Ey*).
-        #[rustfmt::skip]
-        let a = Matrix4::new(
-            c(1.0), c(0.0), c(0.0), c(1.0),
-            c(1.0), c(0.0), c(0.0), c(-1.0),
-            c(0.0), c(1.0), c(1.0), c(0.0),
-            c(0.0), i, -i, c(0.0),
-        );
-        let ainv = a.try_inverse().expect("A is invertible");
-        let mut k = Matrix4::<C64>::zeros();
-        for r in 0..4 {
-            for col in 0..4 {
-                k[(r, col)] = j[(r / 2, col / 2)] * j[(r % 2, col % 2)].conj();
-            }
-        }
-        (a * k * ainv).map(|z| z.re)
-    }
-
-    /// Jones matrix that describes a field in axes turned by `t` (x towards y).
-    fn jones_axes(t: f64) -> Matrix2<C64> {
-        Matrix2::new(c(t.cos()), c(t.sin()), c(-t.sin()), c(t.cos()))
-    }
-
-    /// Jones matrix of reflection with the plane of incidence at `a` from x of the incident
-    /// frame: to (p, s) axes (turned by `a`), reflect, and to the axes of the mirror-image
-    /// reflected frame, in which p lies at `-a`, so that these axes are the (p, s) axes turned
-    /// by `a` again.
-    fn jones_mirror(rp: C64, rs: C64, a: f64) -> Matrix2<C64> {
-        jones_axes(a) * Matrix2::new(rp, c(0.0), c(0.0), rs) * jones_axes(a)
-    }
-
-    /// Textbook Fresnel amplitudes of a bare metal (Born & Wolf 14.2, n cos t =
-    /// sqrt(N^2 - sin^2 i)); p with the sign that makes r_p = -r_s at normal incidence.
-    fn textbook_r(n: C64, i: f64) -> (C64, C64) {
-        let nct = (n * n - c(i.sin().powi(2))).sqrt();
-        let rs = (c(i.cos()) - nct) / (c(i.cos()) + nct);
-        let rp = (n * n * i.cos() - nct) / (n * n * i.cos() + nct);
-        (rp, rs)
-    }
+    use super::jones::{c, jones_axes, jones_mirror, mueller_of_jones, textbook_r};
 
     const AL: C64 = crate::fresnel::ALUMINIUM_550;
 

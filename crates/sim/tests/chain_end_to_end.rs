@@ -6,8 +6,9 @@
 //! simulator rendered through (`sim::Plan::chain`, inverted exposure by exposure): every bin's
 //! sky `q, u` comes back within its errors, and a chain that leaves the lens out does not.
 //!
-//! The chain's forward model is checked against a Jones-matrix calculation written here, not
-//! through the chain's code: each element's Jones matrix (the mirror by Fresnel's equations for
+//! The chain's forward model is checked against a Jones-matrix calculation written for the
+//! tests (`crates/mueller/tests/support/jones.rs`), not through the chain's code: each
+//! element's Jones matrix (the mirror by Fresnel's equations for
 //! a bare metal, Born & Wolf 14.2, with the reflection's axes as in `mueller::mirror`; the lens
 //! a linear retarder; the partial polarizer of `eq:instpol` as the incoherent sum of clear glass
 //! and an ideal polarizer, weights `(1 - p) / (1 + p)` and `2 p / (1 + p)`), turned into
@@ -15,13 +16,14 @@
 //! rule, multiplied in the order light meets them, and the zero angle turned last.
 
 use field::FieldModel;
+use jones::C64;
 use mueller::telescope::{Exposure, Track};
-use mueller::{Qu, C64};
-use nalgebra::{Matrix2, Matrix4};
+use mueller::Qu;
+use nalgebra::Matrix4;
 use skyfield::reduce::{reduce_files, ReduceConfig};
 use std::path::{Path, PathBuf};
 
-const NASMYTH: &str = "[telescope]\nfocus = \"nasmyth\"\nsite_latitude_deg = -24.63\n\n[[telescope.mirrors]]\nname = \"M3\"\nmetal = \"aluminium\"\naoi_deg = 45.0\n";
+mod common;
 
 /// FORS1's 6.8' field on 256 x 256 px of 1.6" (so that the radial field reaches its 1.4 %
 /// at the corners in few pixels), its telescope section replaced by a Nasmyth M3.
@@ -33,19 +35,7 @@ fn coarse_nasmyth_fors1(dir: &Path) -> PathBuf {
         .replace("throw_arcsec = 22.0", "throw_arcsec = 22.4")
         .replace("first_strip_y_px = 34", "first_strip_y_px = 4");
     assert!(text.contains("pixel_scale_arcsec = 1.6"), "the instrument file changed: adapt the test");
-    let mut out = String::new();
-    let mut skip = false;
-    for line in text.lines() {
-        let t = line.trim_start();
-        if t.starts_with('[') {
-            skip = t.starts_with("[telescope") || t.starts_with("[[telescope");
-        }
-        if !skip {
-            out += line;
-            out += "\n";
-        }
-    }
-    out += NASMYTH;
+    let out = common::with_nasmyth_m3(&text);
     let p = dir.join("coarse_nasmyth.toml");
     std::fs::write(&p, out).unwrap();
     p
@@ -76,70 +66,22 @@ fn scene(dir: &Path, lens: bool) -> sim::Scene {
     sim::Scene::from_toml_str(&text, &dir.join("scene.toml")).unwrap()
 }
 
-// ---- Jones calculus, written here ----
-
-fn c(re: f64) -> C64 {
-    C64::new(re, 0.0)
-}
-
-/// `M = A (J (x) J*) A^-1`, with I = |Ex|^2 + |Ey|^2, Q = |Ex|^2 - |Ey|^2, U = 2 Re(Ex* Ey),
-/// V = 2 Im(Ex* Ey) (the IAU sense of `mueller::retarder`).
-fn mueller_of_jones(j: &Matrix2<C64>) -> Matrix4<f64> {
-    let i = C64::new(0.0, 1.0);
-    #[rustfmt::skip]
-    let a = Matrix4::new(
-        c(1.0), c(0.0), c(0.0), c(1.0),
-        c(1.0), c(0.0), c(0.0), c(-1.0),
-        c(0.0), c(1.0), c(1.0), c(0.0),
-        c(0.0), i, -i, c(0.0),
-    );
-    let ainv = a.try_inverse().unwrap();
-    let k = Matrix4::from_fn(|r, col| j[(r / 2, col / 2)] * j[(r % 2, col % 2)].conj());
-    (a * k * ainv).map(|z| z.re)
-}
-
-/// The field's components in axes turned by `t` (x towards y).
-fn axes(t: f64) -> Matrix2<C64> {
-    Matrix2::new(c(t.cos()), c(t.sin()), c(-t.sin()), c(t.cos()))
-}
-
-/// Reflection with the plane of incidence at `a` (rad) from x: to the (p, s) axes, reflect,
-/// to the mirror image's axes (`mueller::mirror`'s convention).
-fn mirror(rp: C64, rs: C64, a: f64) -> Matrix2<C64> {
-    axes(a) * Matrix2::new(rp, c(0.0), c(0.0), rs) * axes(a)
-}
-
-/// Fresnel's amplitudes of a bare metal of index `n` at incidence `i` (Born & Wolf 14.2), `p`
-/// with the sign that makes `r_p = -r_s` at normal incidence.
-fn fresnel(n: C64, i: f64) -> (C64, C64) {
-    let nct = (n * n - c(i.sin().powi(2))).sqrt();
-    let rs = (c(i.cos()) - nct) / (c(i.cos()) + nct);
-    let rp = (n * n * i.cos() - nct) / (n * n * i.cos() + nct);
-    (rp, rs)
-}
-
-/// A linear retarder: retardance `delta`, fast axis at `a`.
-fn retarder(delta: f64, a: f64) -> Matrix2<C64> {
-    axes(a).transpose() * Matrix2::new(c(1.0), c(0.0), c(0.0), C64::from_polar(1.0, delta)) * axes(a)
-}
-
-/// An ideal polarizer transmitting along `phi`.
-fn polarizer(phi: f64) -> Matrix2<C64> {
-    let (s, co) = phi.sin_cos();
-    Matrix2::new(c(co * co), c(co * s), c(co * s), c(s * s))
-}
+// The Jones calculus of the tests, written apart from the library.
+#[path = "../../mueller/tests/support/jones.rs"]
+mod jones;
+use jones::{jones_mirror, jones_polarizer, jones_retarder, mueller_of_jones, textbook_r};
 
 /// `M_I(p, phi)` as clear glass and an ideal polarizer mixed incoherently.
 fn partial_polarizer(p: f64, phi: f64) -> Matrix4<f64> {
-    mueller_of_jones(&Matrix2::identity()) * ((1.0 - p) / (1.0 + p))
-        + mueller_of_jones(&polarizer(phi)) * (2.0 * p / (1.0 + p))
+    mueller_of_jones(&nalgebra::Matrix2::identity()) * ((1.0 - p) / (1.0 + p))
+        + mueller_of_jones(&jones_polarizer(phi)) * (2.0 * p / (1.0 + p))
 }
 
 /// The Nasmyth M3 seen from the instrument at parallactic angle `q`: the mirror with its plane
 /// at `pi/2 - q`, then the instrument's angle offset (axes turned by `offset`); Wiersema et al.
 /// 2018 (PASA 35, e012), section 3.
 fn m3(rp: C64, rs: C64, q: f64, offset: f64) -> Matrix4<f64> {
-    mueller_of_jones(&(axes(offset) * mirror(rp, rs, std::f64::consts::FRAC_PI_2 - q)))
+    mueller_of_jones(&(jones::jones_axes(offset) * jones_mirror(rp, rs, std::f64::consts::FRAC_PI_2 - q)))
 }
 
 /// M3 averaged over a track by Simpson's rule (2000 intervals) and divided by its `M_00`.
@@ -178,7 +120,7 @@ fn forward_model_matches_a_jones_calculation() {
     let plan = sim::Plan::build(&sc).unwrap();
     let chain = plan.chain();
     let band = chain.telescope.expect("the scene's telescope is in the chain");
-    let (rp, rs) = fresnel(band.index * band.factor, std::f64::consts::FRAC_PI_4);
+    let (rp, rs) = textbook_r(band.index * band.factor, std::f64::consts::FRAC_PI_4);
     let zero = 7f64.to_radians();
     assert_eq!(chain.zero_angle, zero, "the scene's zero angle");
     let radial = field::RadialPattern::new(vec![0.0, 0.00012, 0.00046, 0.00002], [0.0, 0.0]);
@@ -195,7 +137,7 @@ fn forward_model_matches_a_jones_calculation() {
         let h = FieldModel::block_at(&plate, x, y).to_mueller();
         for e in exposures.iter().step_by(3).copied().chain([Exposure { hwp: 0.0, track: Track::at(0.7) }]) {
             let tel = m3_track(rp, rs, e.track, band.offset);
-            let ms = [tel, partial_polarizer(p, phi), mueller_of_jones(&retarder(delta, axis)), h];
+            let ms = [tel, partial_polarizer(p, phi), mueller_of_jones(&jones_retarder(delta, axis)), h];
             for &(sq, su) in &[(0.0, 0.0), (0.03, -0.02), (-0.1, 0.05)] {
                 let want = through(&ms, (sq, su), zero);
                 let got = chain.forward(x, y, &Qu::new(sq, su, 0.0, 0.0, 0.0), Some(e.track)).unwrap();

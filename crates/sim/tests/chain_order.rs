@@ -12,7 +12,7 @@
 use field::FieldModel;
 use mueller::telescope::{exposure_track, BandModel};
 
-const NASMYTH: &str = "[telescope]\nfocus = \"nasmyth\"\nsite_latitude_deg = -24.63\n\n[[telescope.mirrors]]\nname = \"M3\"\nmetal = \"aluminium\"\naoi_deg = 45.0\n";
+mod common;
 
 /// FORS1 cut to 128 x 128 px with 2 strips, its telescope section replaced by a Nasmyth M3.
 fn tiny_nasmyth_fors1(dir: &std::path::Path) -> std::path::PathBuf {
@@ -22,19 +22,7 @@ fn tiny_nasmyth_fors1(dir: &std::path::Path) -> std::path::PathBuf {
         .replace("throw_arcsec = 22.0", "throw_arcsec = 6.0")
         .replace("strip_count = 9", "strip_count = 2")
         .replace("first_strip_y_px = 34", "first_strip_y_px = 8");
-    let mut out = String::new();
-    let mut skip = false;
-    for line in text.lines() {
-        let t = line.trim_start();
-        if t.starts_with('[') {
-            skip = t.starts_with("[telescope") || t.starts_with("[[telescope");
-        }
-        if !skip {
-            out += line;
-            out += "\n";
-        }
-    }
-    out += NASMYTH;
+    let out = common::with_nasmyth_m3(&text);
     let p = dir.join("tiny_nasmyth.toml");
     std::fs::write(&p, out).unwrap();
     p
