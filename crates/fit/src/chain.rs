@@ -19,6 +19,8 @@
 //! against what a simulation put in.
 
 use crate::calfile::Calibration;
+use crate::model::FieldModel;
+use crate::telescope_cal::ChainCorrected;
 use crate::correct::{CorrectOptions, Corrected, CorrectedMap, Corrector, MapError, Measurement};
 use crate::mueller_cal::MuellerCal;
 use crate::telescope::{PreparedExposures, Seen, TelescopeFit, Track};
@@ -29,8 +31,10 @@ pub enum FieldStep<'a> {
     /// No field model (a telescope model alone).
     None,
     /// A field calibration's partial polarizer, with the method, the extrapolation rule and
-    /// (without a telescope) the zero angle in its options.
-    PartialPolarizer(Corrector<'a, Calibration>),
+    /// (without a telescope) the zero angle in its options; the corrector's model is the
+    /// calibration, or the calibration with an added model error
+    /// ([`crate::correct::WithModelError`]).
+    PartialPolarizer { corrector: Corrector<'a, dyn FieldModel + 'a>, calibration: &'a Calibration },
     /// A Mueller field, inverted exactly; its options carry the zero angle.
     Mueller(&'a MuellerCal, CorrectOptions),
 }
@@ -119,6 +123,13 @@ pub struct Chain<'a> {
     pub telescope: Option<TelescopeStep<'a>>,
 }
 
+impl<'a> FieldStep<'a> {
+    /// The partial polarizer of `calibration` with `opts`.
+    pub fn partial_polarizer(calibration: &'a Calibration, opts: CorrectOptions) -> Self {
+        FieldStep::PartialPolarizer { corrector: Corrector::new(calibration, opts), calibration }
+    }
+}
+
 impl Chain<'_> {
     /// The sky's polarization of row `i` (its track, when the rows each have their own; any
     /// `i` otherwise) from its measurement at the plate: the zero angle turned, then the field
@@ -127,12 +138,20 @@ impl Chain<'_> {
     /// field's and the telescope's instrumental polarization together (first order), as
     /// catalogs and maps report it ([`crate::telescope_cal::ChainCorrected::with_telescope_in_inst`]).
     pub fn invert(&self, i: usize, m: &Measurement) -> Result<Corrected, RowError> {
+        Ok(self.invert_parts(i, m)?.with_telescope_in_inst())
+    }
+
+    /// [`invert`](Self::invert) with the telescope's part kept apart: `corrected.inst` is the
+    /// field's alone, and `q_tel, u_tel` what the telescope makes of an unpolarized star as
+    /// these data saw it (zero without a telescope).
+    pub fn invert_parts(&self, i: usize, m: &Measurement) -> Result<ChainCorrected, RowError> {
+        let alone = |corrected| ChainCorrected { corrected, q_tel: 0.0, u_tel: 0.0 };
         match (&self.telescope, &self.field) {
-            (None, FieldStep::PartialPolarizer(c)) => Ok(c.correct(m)?),
-            (None, FieldStep::Mueller(mc, o)) => Ok(mc.correct(m, o)?),
+            (None, FieldStep::PartialPolarizer { corrector, .. }) => Ok(alone(corrector.correct(m)?)),
+            (None, FieldStep::Mueller(mc, o)) => Ok(alone(mc.correct(m, o)?)),
             (Some(t), field) => {
                 let cor = match field {
-                    FieldStep::PartialPolarizer(c) => Some(c),
+                    FieldStep::PartialPolarizer { corrector, .. } => Some(corrector),
                     FieldStep::None => None,
                     FieldStep::Mueller(..) => {
                         return Err(RowError::Chain(crate::Error::Input(
@@ -140,8 +159,8 @@ impl Chain<'_> {
                         )))
                     }
                 };
-                let r = crate::telescope_cal::correct_chain_seen(cor, t.fit, &t.band, m, t.seen(i), self.to_sky)?;
-                let mut c = r.with_telescope_in_inst();
+                let mut r = crate::telescope_cal::correct_chain_seen(cor, t.fit, &t.band, m, t.seen(i), self.to_sky)?;
+                let c = &mut r.corrected;
                 if let (Some(_), Tracks::Exposures(e)) = (cor, &t.tracks) {
                     // Exposures that each saw another telescope matrix behind the same field:
                     // undoing the field and then the telescope is exact for one matrix only
@@ -160,7 +179,7 @@ impl Chain<'_> {
                     (c.q0, c.u0, c.p0, c.sigma_p0, c.chi0, c.sigma_chi0) =
                         (exact.q, exact.u, p0, sigma_p0, chi0, sigma_chi0);
                 }
-                Ok(c)
+                Ok(r)
             }
             (None, FieldStep::None) => {
                 Err(RowError::Chain(crate::Error::Input("the chain holds neither a field nor a telescope".into())))
@@ -188,8 +207,8 @@ impl Chain<'_> {
     pub fn instrument(&self, i: usize) -> (field::InstrumentChain, Option<Track>) {
         let mut elements = field::FieldChain::new();
         match &self.field {
-            FieldStep::PartialPolarizer(c) => {
-                elements = elements.then(Arc::new(c.model().clone()), "the field calibration's M_I(p, phi)")
+            FieldStep::PartialPolarizer { calibration, .. } => {
+                elements = elements.then(Arc::new((*calibration).clone()), "the field calibration's M_I(p, phi)")
             }
             FieldStep::Mueller(mc, _) => elements = elements.then(Arc::new(mc.field.clone()), "the Mueller field"),
             FieldStep::None => {}
@@ -206,7 +225,7 @@ impl Chain<'_> {
             }
         };
         let zero_angle = match (&self.field, &self.telescope) {
-            (FieldStep::PartialPolarizer(c), None) => c.options().chi_offset,
+            (FieldStep::PartialPolarizer { corrector, .. }, None) => corrector.options().chi_offset,
             (FieldStep::Mueller(_, o), _) => o.chi_offset,
             _ => self.to_sky,
         };

@@ -47,6 +47,7 @@ pub mod telescope;
 pub mod telescope_cal;
 pub mod telescope_report;
 pub mod validate;
+pub mod validate_telescope;
 pub mod wavelength;
 
 /// argmin's executor owns its problem; this lends it one of ours (any least-squares problem

@@ -11,7 +11,7 @@
 
 use crate::mueller_field::{fit_mueller_field, CalField, MuellerField, MuellerFitOptions, Observation};
 use crate::{Error, Result};
-use mueller::linear::LinearBlock;
+use crate::model::{FieldModel, InstPol};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
@@ -36,7 +36,19 @@ pub struct PlanSetup {
     /// instrumental effect). The Fisher matrix is taken there: a retarder is invisible to
     /// light polarized along its axis, so the information on a retardance depends on the
     /// retardance present, and an identity linearization can misjudge it by a factor of 2.
-    pub expected: Option<std::sync::Arc<dyn Fn(f64, f64) -> LinearBlock + Send + Sync>>,
+    pub expected: Option<std::sync::Arc<dyn FieldModel>>,
+}
+
+/// No instrumental effect: the identity at every position (the default `M_I(0)`).
+struct Clear;
+
+impl FieldModel for Clear {
+    fn eval(&self, _: f64, _: f64) -> InstPol {
+        InstPol::ZERO
+    }
+    fn contains(&self, _: f64, _: f64) -> bool {
+        true
+    }
 }
 
 impl std::fmt::Debug for PlanSetup {
@@ -79,7 +91,7 @@ impl PlanSetup {
     fn fields(
         &self,
         chosen: &[usize],
-        truth: &dyn Fn(f64, f64) -> LinearBlock,
+        truth: &dyn FieldModel,
         sigma: f64,
         seed: Option<u64>,
     ) -> Vec<CalField> {
@@ -94,7 +106,7 @@ impl PlanSetup {
                     .positions
                     .iter()
                     .map(|&(x, y)| {
-                        let (q, u) = truth(x, y).forward(q0, u0).unwrap_or((q0, u0));
+                        let (q, u) = truth.block_at(x, y).forward(q0, u0).unwrap_or((q0, u0));
                         let (dq, du) = match rng.as_mut() {
                             Some(r) => (n.sample(r), n.sample(r)),
                             None => (0.0, 0.0),
@@ -128,12 +140,16 @@ impl PlanSetup {
     /// fit to noiseless maps of an identity field returns the inverse Fisher matrix as its
     /// covariance (at the expected field, [`PlanSetup::expected`]). Refused (with the fit's reason) when the fields cannot constrain the model.
     pub fn predict(&self, chosen: &[usize], sigma: f64) -> Result<f64> {
-        let id = |_: f64, _: f64| LinearBlock::identity();
-        let mf = match &self.expected {
-            Some(e) => fit_mueller_field(&self.fields(chosen, &**e, sigma, None), &self.fit)?,
-            None => fit_mueller_field(&self.fields(chosen, &id, sigma, None), &self.fit)?,
-        };
+        let mf = fit_mueller_field(&self.fields(chosen, self.expected_field(), sigma, None), &self.fit)?;
         self.model_rms(&mf)
+    }
+
+    /// The field the calibration expects ([`PlanSetup::expected`]), the identity without one.
+    fn expected_field(&self) -> &dyn FieldModel {
+        match &self.expected {
+            Some(m) => m.as_ref(),
+            None => &Clear,
+        }
     }
 
     /// For every number of fields, the cheapest choice of candidates and its exposure per HWP
@@ -218,7 +234,7 @@ impl PlanSetup {
 pub fn simulate_plan(
     setup: &PlanSetup,
     row: &PlanRow,
-    truth: &dyn Fn(f64, f64) -> LinearBlock,
+    truth: &dyn FieldModel,
     seed: u64,
 ) -> Result<f64> {
     let sigma = setup.sigma_qu(row.exposure_s);
@@ -228,7 +244,8 @@ pub fn simulate_plan(
         for a in 0..4 {
             let chi = a as f64 * std::f64::consts::FRAC_PI_4;
             let (q0, u0) = (setup.target_p * (2.0 * chi).cos(), setup.target_p * (2.0 * chi).sin());
-            let (qm, um) = truth(x, y)
+            let (qm, um) = truth
+                .block_at(x, y)
                 .forward(q0, u0)
                 .ok_or_else(|| Error::Input(format!("the true field at ({x}, {y}) passes no light")))?;
             let ((qc, uc), _) = mf.correct(x, y, qm, um, [0.0; 3])?;
@@ -312,11 +329,7 @@ impl PlanSetup {
             candidates: req.candidates,
             fit: MuellerFitOptions { kind: req.kind, deg: req.deg, scale_arcmin: radius, ..Default::default() },
             target_p: req.target_p,
-            expected: req.expected.map(|m| {
-                let f: std::sync::Arc<dyn Fn(f64, f64) -> LinearBlock + Send + Sync> =
-                    std::sync::Arc::new(move |x, y| m.block_at(x, y));
-                f
-            }),
+            expected: req.expected.map(|m| -> std::sync::Arc<dyn FieldModel> { m }),
         })
     }
 
@@ -329,13 +342,9 @@ impl PlanSetup {
     /// the expected field (identity without one), over [`SIMULATION_DRAWS`] noise draws
     /// (seeds 0, 1, ...): the root of the mean of their squares.
     pub fn simulated_rms(&self, row: &PlanRow) -> Result<f64> {
-        let truth = |x: f64, y: f64| match &self.expected {
-            Some(m) => m(x, y),
-            None => LinearBlock::identity(),
-        };
         let mut s = 0.0;
         for seed in 0..SIMULATION_DRAWS {
-            let r = simulate_plan(self, row, &truth, seed)?;
+            let r = simulate_plan(self, row, self.expected_field(), seed)?;
             s += r * r;
         }
         Ok((s / SIMULATION_DRAWS as f64).sqrt())

@@ -33,7 +33,7 @@
 use crate::calibration::{CalibrationFile, Kind};
 use crate::chain::{Chain, FieldStep, RecordedExposures, TelescopeStep, Tracks};
 use crate::correct::{
-    row_zero_angles, CorrectOptions, Corrected, CorrectedMap, Corrector, MapError, Measurement, Method,
+    row_zero_angles, CorrectOptions, Corrected, CorrectedMap, MapError, Measurement, Method,
 };
 use crate::telescope::{BandChoiceError, TelescopeFit, Track, TrackChoiceError};
 
@@ -294,7 +294,7 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
             notes,
             chain: Chain {
                 to_sky: to_sky.to_radians(),
-                field: FieldStep::PartialPolarizer(Corrector::new(cal, opts(to_sky))),
+                field: FieldStep::partial_polarizer(cal, opts(to_sky)),
                 telescope: None,
             },
         });
@@ -362,7 +362,7 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
             to_sky: to_sky.to_radians(),
             // The telescope's offset is the instrument's angle zero: the chain turns the rows
             // itself, once, before both models.
-            field: field.map_or(FieldStep::None, |c| FieldStep::PartialPolarizer(Corrector::new(c, opts(0.0)))),
+            field: field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(0.0))),
             telescope: Some(TelescopeStep { fit: tel, band, tracks }),
         },
     })
@@ -437,7 +437,7 @@ impl MapPlan<'_> {
             (FieldStep::Mueller(mc, _), _) => {
                 stamp("exact inverse of the Mueller field (calibrate-mueller)".into(), mc.hwp_chi_offset_deg, None)
             }
-            (FieldStep::PartialPolarizer(_), None) => {
+            (FieldStep::PartialPolarizer { .. }, None) => {
                 stamp(method_words(self.method).into(), self.zero_angle_deg, None)
             }
             (field, Some(t)) => {
@@ -449,7 +449,7 @@ impl MapPlan<'_> {
                     c.map.rotator_rad = Some(t.track.rotator);
                 }
                 let mut method = match field {
-                    FieldStep::PartialPolarizer(_) => format!("{}, then the telescope", method_words(self.method)),
+                    FieldStep::PartialPolarizer { .. } => format!("{}, then the telescope", method_words(self.method)),
                     _ => "telescope model only".to_string(),
                 };
                 if self.exposures > 0 {
@@ -506,7 +506,7 @@ pub fn plan_map<'a>(
             (Some(mc), _) => (0.0, FieldStep::Mueller(mc, opts(Method::Exact, mc.hwp_chi_offset_deg))),
             (None, Some(c)) => (
                 c.hwp_chi_offset_deg,
-                FieldStep::PartialPolarizer(Corrector::new(c, opts(req.method, c.hwp_chi_offset_deg))),
+                FieldStep::partial_polarizer(c, opts(req.method, c.hwp_chi_offset_deg)),
             ),
             (None, None) => unreachable!("check_options refuses a file without a model"),
         };
@@ -541,7 +541,7 @@ pub fn plan_map<'a>(
     };
     let chain = Chain {
         to_sky: zero_angle_deg.to_radians(),
-        field: field.map_or(FieldStep::None, |c| FieldStep::PartialPolarizer(Corrector::new(c, opts(req.method, 0.0)))),
+        field: field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(req.method, 0.0))),
         telescope: Some(TelescopeStep { fit: tel, band: band.clone(), tracks }),
     };
     let telescope = MapTelescope { fit: tel, band, track, by_exposure };

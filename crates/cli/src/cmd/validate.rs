@@ -36,7 +36,7 @@ use std::path::PathBuf;
 /// Example: instpol validate --cal V.fits frames/*.fits --x 1782 --y 56 --threshold 3
 ///
 /// A calibration holding a telescope model (instpol fit-standards: a Nasmyth M3, alone or
-/// beside a field model) is applied through the whole chain (fit::telescope_cal::validate_chain:
+/// beside a field model) is applied through the whole chain (fit::validate_telescope::validate_chain:
 /// the field first, then the telescope as each exposure saw it). The angles come from the
 /// frames' headers, under the keywords of the instrument's [telescope] section (parallactic
 /// angle at start and end, rotator angle): each exposure is undone over its own track, the
@@ -246,71 +246,49 @@ fn expected_star(a: &Args, band: &str) -> Result<(String, Expected)> {
 }
 
 /// `validate` with a telescope calibration: the track from the headers (or --parang), the
-/// star measured, corrected through the chain and judged (fit::telescope_cal::validate_chain).
+/// star measured, corrected through the chain and judged
+/// (fit::validate_telescope::validate_telescope).
 fn run_telescope(a: &Args, loaded: &fit::calibration::CalibrationFile) -> Result<()> {
-    let (field, tel) = loaded.p_phi_models()?;
-    let tel = tel.expect("a TELESCOPE HDU");
+    use fit::validate_telescope::ValidateError;
     let inst = Instrument::load(&a.instrument)?;
-    if loaded.instrument != "unknown" && !loaded.instrument.eq_ignore_ascii_case(&inst.name) {
-        bail!(
-            "{} is for instrument {} but the frames are read as instrument {} (--instrument)",
-            a.cal.display(),
-            loaded.instrument,
-            inst.name
-        );
-    }
-    // Where the parallactic angles come from: --parang (one track for all), else the frames'
-    // headers under the instrument's [telescope] keywords (each exposure's own track).
-    enum Angles<'a> {
-        Given(fit::telescope::Track),
-        Headers(&'a instrument::Telescope),
-    }
     let given = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
-    let angles = match (given, inst.telescope.as_ref()) {
-        (Some(t), _) => Angles::Given(t),
-        (None, Some(t)) => Angles::Headers(t),
-        (None, None) => bail!(
-            "instrument {} has no [telescope] section naming the header keywords of the parallactic angle: give --parang START[,END] (deg)",
-            inst.name
-        ),
-    };
-    let (x_px, y_px) = match a.coords {
+    let px = match a.coords {
         crate::cmd::correct::Coords::Pixel => (a.x, a.y),
         crate::cmd::correct::Coords::Arcmin => inst.arcmin_to_pixel(a.x, a.y),
     };
     let opts = validate_options(a)?;
-    let fit::validate::MeasuredFrames { star: measured, filter, exposures } =
-        fit::validate::measure_frames(&inst, &a.frames, x_px, y_px, &opts)?;
-    let (track, each) = match angles {
-        Angles::Given(t) => (t, vec![]),
-        Angles::Headers(t) => fit::telescope_cal::exposure_tracks(&exposures, &a.frames, t).with_context(|| {
-            "the parallactic angle of the frames (the telescope model needs it): fix the headers or give --parang START[,END] (deg)"
-        })?,
-    };
-    let band = tel
-        .choose_band(a.band.as_deref(), field.map(|c| c.filter.as_str()), Some(&filter))
-        .map_err(|e| crate::util::band_choice_error(e, &a.cal, Some(&filter)))?;
-    if !fit::setup::same_filter(Some(&inst), &filter, &band) {
+    let expected = |band: &str| expected_star(a, band).map_err(|e| fit::Error::Input(format!("{e:#}")));
+    let v = fit::validate_telescope::validate_telescope(
+        loaded,
+        &inst,
+        &a.frames,
+        px,
+        given,
+        a.band.as_deref(),
+        expected,
+        &opts,
+    )
+    .map_err(|e| match e {
+        ValidateError::Instrument { calibration, frames } => anyhow::anyhow!(
+            "{} is for instrument {calibration} but the frames are read as instrument {frames} (--instrument)",
+            a.cal.display()
+        ),
+        ValidateError::NoAngleKeywords(name) => anyhow::anyhow!(
+            "instrument {name} has no [telescope] section naming the header keywords of the parallactic angle: give --parang START[,END] (deg)"
+        ),
+        ValidateError::Headers(e) => anyhow::Error::new(e).context(
+            "the parallactic angle of the frames (the telescope model needs it): fix the headers or give --parang START[,END] (deg)",
+        ),
+        ValidateError::Band(e, filter) => crate::util::band_choice_error(e, &a.cal, Some(&filter)),
+        ValidateError::Other(fit::Error::Input(m)) => anyhow::anyhow!(m),
+        e => anyhow::Error::new(e),
+    })?;
+    let (r, filter) = (&v.result, &v.filter);
+    let (name, band) = (&r.star, &r.band);
+    if !v.band_is_filter {
         eprintln!("warning: the frames are in filter {filter} but the telescope model's band is {band}");
     }
-    let (name, expected) = expected_star(a, &band)?;
-    let pos = inst.pixel_to_arcmin(x_px, y_px);
-    let r = fit::telescope_cal::validate_chain(
-        field,
-        tel,
-        &band,
-        &measured,
-        pos,
-        track,
-        &each,
-        (&name, expected),
-        &opts,
-        {
-            // The frames are at the plate: their filter's zero angle brings them into the sky
-            // frame of the models (fit::telescope_cal module docs).
-            inst.filter(&filter).map_or(0.0, |f| f.chi_offset_deg())
-        },
-    )?;
+    let (x_px, y_px) = px;
     for w in &r.warnings {
         eprintln!("warning: {w}");
     }

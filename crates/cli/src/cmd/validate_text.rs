@@ -1,7 +1,7 @@
 //! `instpol validate`'s text reports, as printed without --json: a field calibration's check
 //! on a star, and a telescope chain's.
 
-use fit::telescope_cal::ChainValidation;
+use fit::validate_telescope::ChainValidation;
 use fit::validate::ValidationReport;
 use std::path::Path;
 
