@@ -26,5 +26,5 @@ pub mod radial;
 pub use chain::{ChainError, FieldChain, InstrumentChain};
 pub use coords::FieldCoords;
 pub use grid::{GridMap, NearestCell};
-pub use model::{FieldModel, InstPol};
+pub use model::{FieldModel, InstPol, LinearElement};
 pub use radial::RadialPattern;

@@ -79,3 +79,28 @@ pub trait FieldModel: Send + Sync {
         "a field model".into()
     }
 }
+
+/// An element known by its linear Mueller block alone, as a function of the field position
+/// (arcmin): a fitted or simulated block, a plate's equivalent block. It is defined
+/// everywhere; its [`eval`](FieldModel::eval) is the polarization it gives unpolarized light,
+/// and it passes no circular polarization ([`mueller::linear::LinearBlock::to_mueller`]).
+pub struct LinearElement<F>(pub F);
+
+impl<F: Fn(f64, f64) -> mueller::linear::LinearBlock + Send + Sync> FieldModel for LinearElement<F> {
+    fn eval(&self, x_arcmin: f64, y_arcmin: f64) -> InstPol {
+        let o = (self.0)(x_arcmin, y_arcmin).apply([1.0, 0.0, 0.0]);
+        InstPol { q: o[1] / o[0], u: o[2] / o[0], ..InstPol::ZERO }
+    }
+    fn contains(&self, _: f64, _: f64) -> bool {
+        true
+    }
+    fn block_at(&self, x_arcmin: f64, y_arcmin: f64) -> mueller::linear::LinearBlock {
+        (self.0)(x_arcmin, y_arcmin)
+    }
+    fn mueller_at(&self, x_arcmin: f64, y_arcmin: f64) -> mueller::Mueller {
+        (self.0)(x_arcmin, y_arcmin).to_mueller()
+    }
+    fn describe(&self) -> String {
+        "a linear Mueller block".into()
+    }
+}

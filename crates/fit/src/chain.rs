@@ -19,11 +19,11 @@
 //! against what a simulation put in.
 
 use crate::calfile::Calibration;
-use crate::model::FieldModel;
-use crate::telescope_cal::ChainCorrected;
 use crate::correct::{CorrectOptions, Corrected, CorrectedMap, Corrector, MapError, Measurement};
+use crate::model::FieldModel;
 use crate::mueller_cal::MuellerCal;
 use crate::telescope::{PreparedExposures, Seen, TelescopeFit, Track};
+use crate::telescope_cal::ChainCorrected;
 use std::sync::Arc;
 
 /// The field-dependent part of a correction.

@@ -9,9 +9,9 @@
 //! with `SNR = S / sqrt(S + 2 n_px RN^2)` of one exposure's `f_O + f_E` in the bin
 //! (`S = rate t n_px` electrons, photon and read noise of both beams).
 
+use crate::model::{FieldModel, InstPol};
 use crate::mueller_field::{fit_mueller_field, CalField, MuellerField, MuellerFitOptions, Observation};
 use crate::{Error, Result};
-use crate::model::{FieldModel, InstPol};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
@@ -88,13 +88,7 @@ impl PlanSetup {
         s / (self.sky_rate * self.bin_npix)
     }
 
-    fn fields(
-        &self,
-        chosen: &[usize],
-        truth: &dyn FieldModel,
-        sigma: f64,
-        seed: Option<u64>,
-    ) -> Vec<CalField> {
+    fn fields(&self, chosen: &[usize], truth: &dyn FieldModel, sigma: f64, seed: Option<u64>) -> Vec<CalField> {
         chosen
             .iter()
             .map(|&k| {
@@ -231,12 +225,7 @@ impl PlanSetup {
 /// errors, fitted, and the corrected q, u of targets (degree `target_p`, 4 angles) at every
 /// position compared with their truth. Returns the RMS error of the corrected q, u (model
 /// error only: the targets are noiseless).
-pub fn simulate_plan(
-    setup: &PlanSetup,
-    row: &PlanRow,
-    truth: &dyn FieldModel,
-    seed: u64,
-) -> Result<f64> {
+pub fn simulate_plan(setup: &PlanSetup, row: &PlanRow, truth: &dyn FieldModel, seed: u64) -> Result<f64> {
     let sigma = setup.sigma_qu(row.exposure_s);
     let mf = fit_mueller_field(&setup.fields(&row.fields, truth, sigma, Some(seed)), &setup.fit)?;
     let (mut s, mut n) = (0.0, 0.0);

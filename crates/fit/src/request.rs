@@ -32,9 +32,7 @@
 
 use crate::calibration::{CalibrationFile, Kind};
 use crate::chain::{Chain, FieldStep, RecordedExposures, TelescopeStep, Tracks};
-use crate::correct::{
-    row_zero_angles, CorrectOptions, Corrected, CorrectedMap, MapError, Measurement, Method,
-};
+use crate::correct::{row_zero_angles, CorrectOptions, Corrected, CorrectedMap, MapError, Measurement, Method};
 use crate::telescope::{BandChoiceError, TelescopeFit, Track, TrackChoiceError};
 
 pub use crate::chain::RowError;
@@ -504,10 +502,9 @@ pub fn plan_map<'a>(
     let Some(tel) = &file.telescope else {
         let (zero_angle_deg, field) = match (&file.mueller, &file.field) {
             (Some(mc), _) => (0.0, FieldStep::Mueller(mc, opts(Method::Exact, mc.hwp_chi_offset_deg))),
-            (None, Some(c)) => (
-                c.hwp_chi_offset_deg,
-                FieldStep::partial_polarizer(c, opts(req.method, c.hwp_chi_offset_deg)),
-            ),
+            (None, Some(c)) => {
+                (c.hwp_chi_offset_deg, FieldStep::partial_polarizer(c, opts(req.method, c.hwp_chi_offset_deg)))
+            }
             (None, None) => unreachable!("check_options refuses a file without a model"),
         };
         let chain = Chain { to_sky: zero_angle_deg.to_radians(), field, telescope: None };

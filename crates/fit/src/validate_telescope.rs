@@ -113,7 +113,11 @@ pub fn validate_chain(
         (Some(m), Some(c)) => FieldStep::PartialPolarizer {
             corrector: Corrector::new(
                 m as &dyn FieldModel,
-                CorrectOptions { chi_offset: 0.0, allow_extrapolation: opts.allow_extrapolation, ..CorrectOptions::for_calibration(c) },
+                CorrectOptions {
+                    chi_offset: 0.0,
+                    allow_extrapolation: opts.allow_extrapolation,
+                    ..CorrectOptions::for_calibration(c)
+                },
             ),
             calibration: c,
         },
@@ -243,7 +247,9 @@ pub fn validate_telescope(
         crate::validate::measure_frames(inst, frames, x_px, y_px, opts)?;
     let (track, each) = match (parang, headers) {
         (Some(t), _) => (t, vec![]),
-        (None, Some(t)) => crate::telescope_cal::exposure_tracks(&exposures, frames, t).map_err(ValidateError::Headers)?,
+        (None, Some(t)) => {
+            crate::telescope_cal::exposure_tracks(&exposures, frames, t).map_err(ValidateError::Headers)?
+        }
         (None, None) => unreachable!("refused above"),
     };
     let band = tel
@@ -255,7 +261,6 @@ pub fn validate_telescope(
     // The frames are at the plate: their filter's zero angle brings them into the sky frame
     // of the models (crate::telescope_cal module docs).
     let zero_angle_deg = inst.filter(&filter).map_or(0.0, |f| f.chi_offset_deg());
-    let result =
-        validate_chain(field, tel, &band, &measured, pos, track, &each, (&name, exp), opts, zero_angle_deg)?;
+    let result = validate_chain(field, tel, &band, &measured, pos, track, &each, (&name, exp), opts, zero_angle_deg)?;
     Ok(TelescopeValidation { result, filter, band_is_filter })
 }

@@ -130,29 +130,6 @@ impl HwpCauses {
     }
 }
 
-/// the half-wave plate's tilt or wedge (equivalent block) as an element of the field-dependent chain ([`field::FieldChain`]): its own block;
-/// its `eval` is the polarization it gives unpolarized light.
-impl field::FieldModel for HwpCauses {
-    fn eval(&self, x: f64, y: f64) -> field::InstPol {
-        let o = field::FieldModel::block_at(self, x, y).apply([1.0, 0.0, 0.0]);
-        field::InstPol { q: o[1] / o[0], u: o[2] / o[0], ..Default::default() }
-    }
-    fn contains(&self, _x: f64, _y: f64) -> bool {
-        true
-    }
-    fn block_at(&self, x: f64, y: f64) -> LinearBlock {
-        HwpCauses::block_at(self, x, y)
-    }
-    /// The equivalent block is a statement about the demodulated linear polarization only:
-    /// no circular polarization is passed on ([`LinearBlock::to_mueller`]).
-    fn mueller_at(&self, x: f64, y: f64) -> mueller::Mueller {
-        HwpCauses::block_at(self, x, y).to_mueller()
-    }
-    fn describe(&self) -> String {
-        "the half-wave plate's tilt or wedge (equivalent block)".into()
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -398,7 +398,7 @@ impl Plan {
         }
         if let Some(hc) = hwp_causes {
             let what = format!("half-wave-plate causes (equivalent block): {}", hc.describe());
-            chain = chain.then(Arc::new(hc), what);
+            chain = chain.then(Arc::new(field::LinearElement(move |x, y| hc.block_at(x, y))), what);
         }
         // Stars go frame by frame when the two beams overlap (maskless) or the frames move;
         // otherwise they are folded into the sky image once.

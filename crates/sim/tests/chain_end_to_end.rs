@@ -134,7 +134,7 @@ fn forward_model_matches_a_jones_calculation() {
         let (delta, axis) = lens.retardance_at(x, y);
         // The tilted plate's equivalent block (its own code, tested in `sim::hwp_causes`),
         // last before the analyser: it passes no circular polarization.
-        let h = FieldModel::block_at(&plate, x, y).to_mueller();
+        let h = plate.block_at(x, y).to_mueller();
         for e in exposures.iter().step_by(3).copied().chain([Exposure { hwp: 0.0, track: Track::at(0.7) }]) {
             let tel = m3_track(rp, rs, e.track, band.offset);
             let ms = [tel, partial_polarizer(p, phi), mueller_of_jones(&jones_retarder(delta, axis)), h];

@@ -104,7 +104,7 @@ fn telescope_then_field_lens_and_plate() {
         let (delta, axis) = lens.retardance_at(xa, ya);
         let l = of(&mueller::retarder(delta, axis));
         // The plate's equivalent block says nothing of V (it is last before the analyser).
-        let h = of(&FieldModel::block_at(&plate, xa, ya).to_mueller());
+        let h = of(&plate.block_at(xa, ya).to_mueller());
         for (k, fr) in frames.iter().enumerate() {
             let s = app(&h, app(&l, app(&f, app(&tel[k], sky))));
             let th = angles[k].to_radians();

@@ -41,7 +41,7 @@ fn setup() -> PlanSetup {
         fit: MuellerFitOptions { kind: Kind::diattenuation_retardance(), deg: 6, ..Default::default() },
         target_p: 0.05,
         // Linearized at the field the previous calibration found (here: the truth).
-        expected: Some(std::sync::Arc::new(truth)),
+        expected: Some(std::sync::Arc::new(field::LinearElement(truth))),
     }
 }
 
@@ -62,12 +62,13 @@ fn plan_for_0_02_percent_is_met_by_simulating_it() {
     let sig = s.sigma_qu(best.exposure_s);
     assert!((s.exposure_for_sigma(sig) / best.exposure_s - 1.0).abs() < 1e-9);
     // Simulate the plan (several noise draws): the RMS of the corrected q, u is the target.
-    let got: Vec<f64> = (0..4).map(|seed| simulate_plan(&s, best, &truth, seed).unwrap()).collect();
+    let got: Vec<f64> =
+        (0..4).map(|seed| simulate_plan(&s, best, &field::LinearElement(truth), seed).unwrap()).collect();
     let rms = (got.iter().map(|g| g * g).sum::<f64>() / got.len() as f64).sqrt();
     eprintln!("simulated RMS {got:?} -> {rms:.3e} against the target {target:.1e}");
     assert!((rms / target - 1.0).abs() < 0.25, "simulated {rms:.3e} vs target {target:.1e}");
     // Half the exposure misses it, as the plan's scaling says (error ~ 1/sqrt(t) when sky-limited).
     let half = fit::mueller_plan::PlanRow { exposure_s: 0.25 * best.exposure_s, ..best.clone() };
-    let worse = simulate_plan(&s, &half, &truth, 9).unwrap();
+    let worse = simulate_plan(&s, &half, &field::LinearElement(truth), 9).unwrap();
     assert!(worse > 1.5 * target, "a quarter of the exposure gives {worse:.3e}");
 }
