@@ -288,14 +288,13 @@ fn run_telescope(a: &Args, loaded: &fit::calibration::CalibrationFile) -> Result
     if !v.band_is_filter {
         eprintln!("warning: the frames are in filter {filter} but the telescope model's band is {band}");
     }
-    let (x_px, y_px) = px;
     for w in &r.warnings {
         eprintln!("warning: {w}");
     }
     if a.json {
-        crate::util::print_json(&r)?;
+        crate::util::print_json(r)?;
     } else {
-        super::validate_text::print_chain(&r, &name, &band, (x_px, y_px), a.frames.len(), &a.cal);
+        super::validate_text::print_chain(r, name, band, px, a.frames.len(), &a.cal);
     }
     if !r.pass {
         return Err(crate::util::CheckFailed(format!(
