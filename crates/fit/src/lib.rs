@@ -5,9 +5,9 @@
 //! row or a whole Stokes map) with error propagation ([`correct`]), the validation of a
 //! calibration on a standard star in frames ([`validate`]), the paper's own fields
 //! ([`paper`]), the telescope term (a Nasmyth M3 model fitted to standard stars against the
-//! parallactic angle, [`telescope`]), the HWP zero angle from polarized standards
-//! ([`zeroangle`]), and the main job end to end on the paper's fields as one call
-//! ([`demo`]: frames simulated by `sim`, reduced by `skyfield`, calibrated here).
+//! parallactic angle, [`telescope`]) and the HWP zero angle from polarized standards
+//! ([`zeroangle`]). The main job end to end, which also simulates, is one crate up
+//! (`workflow::demo`).
 //!
 //! A model is a value that answers "what is the instrumental polarization here"
 //! ([`model::FieldModel`], defined in the `field` crate with the field coordinates, so the
@@ -22,7 +22,6 @@ pub mod calibration;
 pub mod catalog_correct;
 pub mod chain;
 pub mod correlation;
-pub mod demo;
 pub mod import;
 pub mod keys;
 pub mod model;

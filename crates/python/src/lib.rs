@@ -1323,18 +1323,19 @@ fn _catalog<'py>(
     Ok(d)
 }
 
-/// The main job end to end on the paper's fields (`fit::demo::run`, what `instpol demo` runs)
+/// The main job end to end on the paper's fields (`workflow::demo::run`, what `instpol demo` runs)
 /// into the folder `out`: its report as JSON text (the `instpol demo --json` keys; no plots,
 /// so `plot_outputs` lists none). FileError when a file cannot be written, InputError else.
 #[pyfunction]
 #[pyo3(signature = (out, through_frames, keep_frames, seed))]
 fn _demo(py: Python<'_>, out: PathBuf, through_frames: bool, keep_frames: bool, seed: u64) -> PyResult<String> {
-    let opts = fit::demo::DemoOptions { through_frames, keep_frames, seed };
-    let demo = py.detach(|| fit::demo::run(&out, &opts, &|_| {})).map_err(|e| match e {
-        fit::demo::Error::Create { .. } | fit::demo::Error::Fit(fit::Error::Io { .. } | fit::Error::Fits { .. }) => {
+    let opts = workflow::demo::DemoOptions { through_frames, keep_frames, seed };
+    let demo = py.detach(|| workflow::demo::run(&out, &opts, &|_| {})).map_err(|e| match e {
+        workflow::demo::Error::Create { .. }
+        | workflow::demo::Error::Fit(fit::Error::Io { .. } | fit::Error::Fits { .. }) => {
             FileError::new_err(e.to_string())
         }
-        fit::demo::Error::Frames(e) => sky_err(e),
+        workflow::demo::Error::Frames(e) => sky_err(e),
         e => input_err(e),
     })?;
     serde_json::to_string(&demo.report).map_err(|e| input_err(format!("the demo's report: {e}")))

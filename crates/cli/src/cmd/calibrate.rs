@@ -114,7 +114,7 @@ impl FitArgs {
 }
 
 /// Solve a Stokes map for the instrumental field and calibrate (`fit::pipeline::calibrate_sky_field`,
-/// which `fit::demo` calls too).
+/// which `workflow::demo` calls too).
 fn calibrate_map(
     map: &skyfield::StokesMap,
     sky: &SkyPolarization,

@@ -1,8 +1,8 @@
 //! `instpol demo`: the main job end to end on the paper's three empty fields.
 
 use anyhow::Result;
-use fit::demo::{Demo, DemoOptions, Progress};
 use std::path::PathBuf;
+use workflow::demo::{Demo, DemoOptions, Progress};
 
 /// Simulate the paper's three empty fields (B, V, I with the sky polarization of Table
 /// tab:empty), calibrate each filter, fit the wavelength law, and write the calibration files
@@ -38,12 +38,12 @@ pub struct Args {
 
 pub fn run(a: Args) -> Result<()> {
     let opts = DemoOptions { through_frames: !a.no_frames, keep_frames: a.keep_frames, seed: a.seed };
-    let bar = crate::plot::progress(fit::demo::steps(&opts), "starting", a.json);
+    let bar = crate::plot::progress(workflow::demo::steps(&opts), "starting", a.json);
     let progress = |p: Progress<'_>| match p {
         Progress::Message(m) => bar.set_message(m.to_string()),
         Progress::Step => bar.inc(1),
     };
-    let Demo { report: mut out, runs } = fit::demo::run(&a.out, &opts, &progress)?;
+    let Demo { report: mut out, runs } = workflow::demo::run(&a.out, &opts, &progress)?;
     for (f, run) in out.filters.iter_mut().zip(&runs) {
         bar.set_message(format!("{}: plots", f.filter));
         let plots = crate::cmd::plot::plot_run(&a.out, &f.filter, run)?;

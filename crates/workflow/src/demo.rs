@@ -2,23 +2,23 @@
 //! `instpol demo` and the Python `instpol.demo` run and report.
 //!
 //! The paper's FORS1 patterns (section `sec:fors1`: V and I as fitted there, B the V pattern
-//! scaled by the ray-traced wavelength law with an asymmetric component, [`crate::paper`]) are
+//! scaled by the ray-traced wavelength law with an asymmetric component, [`fit::paper`]) are
 //! seen on the empty fields of Table `tab:empty`, either through simulated frames (the `sim`
 //! crate: photon and read noise, written as FITS and reduced by `skyfield` in 30 x 30 px
-//! bins) or as binned maps measured directly through the same `M_I` ([`crate::synth`]); each
-//! filter is calibrated by the sky-field method ([`crate::pipeline::calibrate_sky_field`]),
-//! the wavelength law is fitted to the three models ([`crate::wavelength`]), and the V
+//! bins) or as binned maps measured directly through the same `M_I` ([`fit::synth`]); each
+//! filter is calibrated by the sky-field method ([`fit::pipeline::calibrate_sky_field`]),
+//! the wavelength law is fitted to the three models ([`fit::wavelength`]), and the V
 //! calibration is validated on a simulated unpolarized standard in the lower-right corner
 //! ([`corner_star`]), as the paper checks its V map. Scenes are built as `sim::Scene` values.
 //! Plots are the faces' (the report lists the files a face drew, none here).
 
-use crate::calfile::Calibration;
-use crate::paper::DemoField;
-use crate::pipeline::{ApproxVsExact, CalibrateOptions, CalibrationRun, FitSummary};
-use crate::standards::Expected;
-use crate::validate::{ValidateOptions, ValidationReport};
-use crate::RadialModel;
 use field::{FieldModel, GridMap, NearestCell, RadialPattern};
+use fit::calfile::Calibration;
+use fit::paper::DemoField;
+use fit::pipeline::{ApproxVsExact, CalibrateOptions, CalibrationRun, FitSummary};
+use fit::standards::Expected;
+use fit::validate::{ValidateOptions, ValidationReport};
+use fit::RadialModel;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -37,9 +37,9 @@ pub enum Error {
     #[error(transparent)]
     Frames(#[from] skyfield::Error),
     #[error(transparent)]
-    Fit(#[from] crate::Error),
+    Fit(#[from] fit::Error),
     #[error(transparent)]
-    Validate(#[from] crate::validate::Error),
+    Validate(#[from] fit::validate::Error),
     #[error("the demo has no V field")]
     NoV,
 }
@@ -202,7 +202,7 @@ fn map_direct(c: &DemoField, inst: &instrument::Instrument, seed: u64) -> Result
     let (q0, u0) = sky.qu();
     // SNR 280 per pixel, 4 HWP angles, 900 px: sigma of a bin mean ~ 1 / (280 sqrt(900)).
     let sigma = 1.0 / (280.0 * 30.0);
-    let meas = crate::synth::sky_field(&centres, &c.truth(), q0, u0, sigma, seed);
+    let meas = fit::synth::sky_field(&centres, &c.truth(), q0, u0, sigma, seed);
     for (k, m) in meas.iter().enumerate() {
         map.q[k] = m.q1;
         map.u[k] = m.u1;
@@ -241,7 +241,7 @@ fn rms_vs_input(cal: &Calibration, c: &DemoField) -> f64 {
 pub fn run(out: &Path, opts: &DemoOptions, progress: &(dyn Fn(Progress<'_>) + Sync)) -> Result<Demo, Error> {
     std::fs::create_dir_all(out).map_err(|err| Error::Create { path: out.to_path_buf(), err })?;
     let inst = instrument::Instrument::load("fors1")?;
-    let cases = crate::paper::demo_fields(&inst)?;
+    let cases = fit::paper::demo_fields(&inst)?;
     let mut filters = vec![];
     let mut runs: Vec<CalibrationRun> = vec![];
     for (k, c) in cases.iter().enumerate() {
@@ -257,7 +257,7 @@ pub fn run(out: &Path, opts: &DemoOptions, progress: &(dyn Fn(Progress<'_>) + Sy
         progress(Progress::Message(&format!("{}: sky-field solution and fit", c.name)));
         let sky = skyfield::solve::SkyPolarization::from_percent_deg(c.sky_p_pct, c.sky_chi_deg)?;
         let copts = CalibrateOptions { residual_map: c.asymmetric, ..Default::default() };
-        let run = crate::pipeline::calibrate_sky_field(&map, &sky, &inst, inputs, &copts)?;
+        let run = fit::pipeline::calibrate_sky_field(&map, &sky, &inst, inputs, &copts)?;
         progress(Progress::Step);
         let path = out.join(format!("cal_{}.fits", c.name));
         run.calibration.save(&path)?;
@@ -294,7 +294,7 @@ pub fn run(out: &Path, opts: &DemoOptions, progress: &(dyn Fn(Progress<'_>) + Sy
     }
     progress(Progress::Step);
     let models: Vec<(f64, &RadialModel)> = runs.iter().map(|r| (r.calibration.lambda_nm, &r.fit.model)).collect();
-    let law = crate::wavelength::fit_wavelength_law(&models, [1.0, 3.3])?;
+    let law = fit::wavelength::fit_wavelength_law(&models, [1.0, 3.3])?;
     let report = DemoReport {
         filters,
         wavelength_law: LawReport {
@@ -302,8 +302,8 @@ pub fn run(out: &Path, opts: &DemoOptions, progress: &(dyn Fn(Progress<'_>) + Sy
             b: law.b,
             sigma_a: law.a_err,
             sigma_b: law.b_err,
-            paper_a: crate::paper::RAYTRACED_LAW.0,
-            paper_b: crate::paper::RAYTRACED_LAW.1,
+            paper_a: fit::paper::RAYTRACED_LAW.0,
+            paper_b: fit::paper::RAYTRACED_LAW.1,
         },
         validation,
         through_frames: opts.through_frames,
@@ -314,10 +314,10 @@ pub fn run(out: &Path, opts: &DemoOptions, progress: &(dyn Fn(Progress<'_>) + Sy
 
 /// The demo's validation step, as the paper did it (section `sec:fors1`): simulate (photon and
 /// read noise, saturation) frames of an unpolarized standard of the paper's precision (3e6 e-
-/// per exposure, sigma_P ~ 0.04%) at [`crate::paper::corner_position_arcmin`] seen through
+/// per exposure, sigma_P ~ 0.04%) at [`fit::paper::corner_position_arcmin`] seen through
 /// the true V field `true_coeffs_percent` (index = power of r, as in a scene file), write them
 /// into `dir`, and validate the calibration `cal` on them
-/// ([`crate::validate::validate_frames`], default options; its warnings are in the report).
+/// ([`fit::validate::validate_frames`], default options; its warnings are in the report).
 pub fn corner_star(
     cal: &Calibration,
     true_coeffs_percent: &[f64],
@@ -325,7 +325,7 @@ pub fn corner_star(
     seed: u64,
 ) -> Result<ValidationReport, Error> {
     use sim::scene::{Coords, Effects, InstPolSpec, Output, Psf, Sky, Star};
-    let (x, y) = crate::paper::corner_position_arcmin();
+    let (x, y) = fit::paper::corner_position_arcmin();
     let scene = sim::Scene {
         instrument: "fors1".into(),
         filter: "V".into(),
@@ -365,7 +365,7 @@ pub fn corner_star(
     let out = sim::simulate(&sc, dir, &|| {}).map_err(Error::Standard)?;
     let inst = instrument::Instrument::load("fors1")?;
     let (x_px, y_px) = inst.arcmin_to_pixel(x, y);
-    Ok(crate::validate::validate_frames(
+    Ok(fit::validate::validate_frames(
         cal,
         &inst,
         &out.frames,
@@ -379,8 +379,8 @@ pub fn corner_star(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::calfile::{PixelGrid, Provenance, FORMAT_VERSION};
-    use crate::FieldRegion;
+    use fit::calfile::{PixelGrid, Provenance, FORMAT_VERSION};
+    use fit::FieldRegion;
 
     fn cal(filter: &str, coeffs: [f64; 3]) -> Calibration {
         let h = 1024.0 * 0.2 / 60.0;
@@ -390,7 +390,7 @@ mod tests {
             filter: filter.into(),
             lambda_nm: f64::NAN,
             hwp_chi_offset_deg: 0.0,
-            model: crate::Model::Radial(RadialModel::new(1, coeffs.to_vec(), [0.0, 0.0])),
+            model: fit::Model::Radial(RadialModel::new(1, coeffs.to_vec(), [0.0, 0.0])),
             region: FieldRegion { x_min: -h, x_max: h, y_min: -h, y_max: h },
             rms_residual: 5e-4,
             n_bins_used: 0,

@@ -1,0 +1,6 @@
+//! Workflows that span the simulator and the fits, above both (`sim` simulates, `fit`
+//! calibrates, corrects and validates, and neither depends on the other): the main job end to
+//! end on the paper's fields ([`demo`]), which the CLI's `instpol demo` and the Python
+//! package's `instpol.demo` call.
+
+pub mod demo;
