@@ -1125,14 +1125,9 @@ fn open_master(path: &Path, inst: &Instrument, kind: &str) -> Result<OpenMaster,
     let mut img = open_image(path, "")?;
     check_bitpix(path, img.bitpix)?;
     let d = &inst.detector;
-    if img.nx != d.nx || img.ny != d.ny {
-        return Err(Error::SizeMismatch {
-            path: path.into(),
-            got_nx: img.nx,
-            got_ny: img.ny,
-            expected: format!("a master {} of instrument {} is {} x {}", kind.to_lowercase(), inst.name, d.nx, d.ny),
-        });
-    }
+    crate::frame::check_size(path, &img, inst, || {
+        format!("a master {} of instrument {} is {} x {}", kind.to_lowercase(), inst.name, d.nx, d.ny)
+    })?;
     if let Some(k) = img.key("HIERARCH INSTPOL MASTER") {
         if !k.eq_ignore_ascii_case(kind) {
             return Err(Error::Invalid(format!(

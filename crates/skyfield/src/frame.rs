@@ -183,6 +183,21 @@ pub(crate) fn require_hwp(h: Option<f64>, path: &Path, inst: &Instrument) -> Res
     })
 }
 
+/// A frame or master `img` read from `path` must be the size of `inst`'s detector; `expected`
+/// says what it should have been, in the caller's words.
+pub(crate) fn check_size(
+    path: &Path,
+    img: &ImageHdu,
+    inst: &Instrument,
+    expected: impl FnOnce() -> String,
+) -> Result<(), Error> {
+    let d = &inst.detector;
+    if img.nx != d.nx || img.ny != d.ny {
+        return Err(Error::SizeMismatch { path: path.into(), got_nx: img.nx, got_ny: img.ny, expected: expected() });
+    }
+    Ok(())
+}
+
 /// Open a plain frame (one image, already trimmed, in the instrument's ADU) and check it: a
 /// 2-D image of a detector type, the size of `inst`'s detector, its keywords.
 pub(crate) fn open_checked(
@@ -192,15 +207,10 @@ pub(crate) fn open_checked(
 ) -> Result<(ImageHdu, FrameHeader), Error> {
     let mut img = open_image(path, &inst.format.hdu)?;
     check_bitpix(path, img.bitpix)?;
-    let d = &inst.detector;
-    if img.nx != d.nx || img.ny != d.ny {
-        return Err(Error::SizeMismatch {
-            path: path.into(),
-            got_nx: img.nx,
-            got_ny: img.ny,
-            expected: format!("instrument {} has a {} x {} detector", inst.name, d.nx, d.ny),
-        });
-    }
+    check_size(path, &img, inst, || {
+        let d = &inst.detector;
+        format!("instrument {} has a {} x {} detector", inst.name, d.nx, d.ny)
+    })?;
     let mut h = frame_header(&mut img, path, inst)?;
     if !hwp_optional {
         h.hwp_deg = Some(require_hwp(h.hwp_deg, path, inst)?);
