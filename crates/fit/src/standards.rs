@@ -118,8 +118,29 @@ impl Standards {
 
     /// Parse and validate; `path` only labels errors.
     pub fn from_toml_str(text: &str, path: &Path) -> Result<Self, Error> {
+        if let Some((key, value)) = instrument::toml_numbers::first_non_finite(text) {
+            return Err(Error::Parse { path: path.into(), message: format!("{key} = {value}: not a finite number") });
+        }
         let s: Standards =
             toml::from_str(text).map_err(|e| Error::Parse { path: path.into(), message: e.to_string() })?;
+        // A name (or alias) of two stars would make which star a frame shows depend on the order
+        // of the file ([`Standards::star`] compares names as `norm` does).
+        let mut names: Vec<(String, usize)> = vec![];
+        for (i, star) in s.stars.iter().enumerate() {
+            for n in std::iter::once(&star.name).chain(&star.aliases) {
+                let key = norm(n);
+                if let Some(&(_, j)) = names.iter().find(|(m, j)| *m == key && *j != i) {
+                    let other = &s.stars[j].name;
+                    return Err(Error::Invalid {
+                        path: path.into(),
+                        star: star.name.clone(),
+                        band: "-".into(),
+                        why: format!("the name '{n}' is also star {other}'s (names and aliases must be unique)"),
+                    });
+                }
+                names.push((key, i));
+            }
+        }
         for star in &s.stars {
             if star.bands.is_empty() {
                 return Err(Error::Invalid {

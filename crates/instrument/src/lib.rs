@@ -12,6 +12,7 @@ use std::path::{Path, PathBuf};
 
 mod format;
 pub mod telescope;
+pub mod toml_numbers;
 pub use format::{Chip, FrameFormat, NumberOrKeyword};
 pub use telescope::{Focus, Telescope};
 
@@ -283,6 +284,14 @@ impl Instrument {
 
     /// Parse and validate instrument TOML; `path` only labels errors.
     pub fn from_toml_str(text: &str, path: &Path) -> Result<Self, Error> {
+        if let Some((key, value)) = toml_numbers::first_non_finite(text) {
+            return Err(Error::Invalid {
+                path: path.into(),
+                key,
+                value: value.to_string(),
+                why: "not a finite number".into(),
+            });
+        }
         let inst: Instrument =
             toml::from_str(text).map_err(|e| Error::Parse { path: path.into(), message: e.to_string() })?;
         inst.validate(path)?;
@@ -340,6 +349,23 @@ impl Instrument {
         }
         if self.filters.is_empty() {
             return bad("filters", "[]".into(), "need at least one filter");
+        }
+        // A name (or alias) given to two filters would make the filter a frame is in depend on
+        // the order of the file.
+        let mut names: Vec<(String, usize)> = vec![];
+        for (i, f) in self.filters.iter().enumerate() {
+            for n in std::iter::once(&f.name).chain(&f.aliases) {
+                let lower = n.to_ascii_lowercase();
+                if let Some(&(_, j)) = names.iter().find(|(m, j)| *m == lower && *j != i) {
+                    let other = &self.filters[j].name;
+                    return bad(
+                        &format!("filters.{}", f.name),
+                        n.clone(),
+                        &format!("the name is also filter {other}'s (names and aliases must be unique, case aside)"),
+                    );
+                }
+                names.push((lower, i));
+            }
         }
         for f in &self.filters {
             if !(f.lambda_eff_nm.is_finite() && f.lambda_eff_nm > 100.0 && f.lambda_eff_nm < 30000.0) {

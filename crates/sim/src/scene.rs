@@ -472,6 +472,9 @@ pub struct Effects {
 impl Scene {
     /// Parse and validate scene TOML; `path` labels errors and anchors relative file paths.
     pub fn from_toml_str(text: &str, path: &Path) -> Result<Self, Error> {
+        if let Some((key, value)) = instrument::toml_numbers::first_non_finite(text) {
+            return Err(Error::Scene { path: path.into(), message: format!("{key} = {value}: not a finite number") });
+        }
         let mut s: Scene =
             toml::from_str(text).map_err(|e| Error::Scene { path: path.into(), message: e.to_string() })?;
         let base = path.parent().unwrap_or(Path::new(""));
