@@ -55,4 +55,10 @@ pub enum Error {
     Undetermined { index: usize, sigma_f: f64 },
     #[error("photon counts cannot be negative (give sigma_o, sigma_e for background-subtracted fluxes)")]
     NegativeCount { index: usize },
+    #[error(
+        "P = {:.2} % (+- {:.2} %) exceeds 100 % by more than 3 sigma: no light is more than fully polarized{}",
+        100.0 * p, 100.0 * sigma_p,
+        dark_beam.map_or(String::new(), |i| format!(" (a beam has no flux at HWP angle index {i}: a dark, masked or off-chip beam?)"))
+    )]
+    MoreThanFullyPolarized { p: f64, sigma_p: f64, dark_beam: Option<usize> },
 }

@@ -468,3 +468,16 @@ fn kappa_from_the_data_is_applied_in_the_same_run() {
         other => panic!("two angles gave {other:?}"),
     }
 }
+
+/// Beams dark at some HWP angles (zero counts, so zero Poisson error): F = +-1 there, and the
+/// four angles give q = u = 1, P = 141 % with no error. Light cannot be more than
+/// fully polarized (eq:poldeg): refused, naming the dark beam; a dark beam at every angle
+/// (the kappa edge above) still reduces.
+#[test]
+fn more_than_fully_polarized_is_refused() {
+    let theta = optimal_angles(4);
+    let m = Measurement::poisson(theta, vec![1e4, 1e4, 0.0, 0.0], vec![0.0, 0.0, 1e4, 1e4]).unwrap();
+    let e = reduce(&m).unwrap_err();
+    assert!(matches!(e, Error::MoreThanFullyPolarized { dark_beam: Some(0), .. }), "{e}");
+    assert!(e.to_string().contains("index 0"), "{e}");
+}
