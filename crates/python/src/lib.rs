@@ -159,15 +159,9 @@ fn _stokes<'py>(
     let theta: Vec<f64> = if angles_in_radians {
         hwp.to_vec()
     } else {
-        if stokes::looks_like_radians(hwp) {
-            let lo = hwp.iter().cloned().fold(f64::MAX, f64::min);
-            let hi = hwp.iter().cloned().fold(f64::MIN, f64::max);
+        if let Err(e) = stokes::check_degrees(hwp) {
             return Err(input_err(format!(
-                "hwp_deg holds {:?}{}, all within 0..2pi: these look like radians (in degrees the angles would span \
-                 only {:.2} deg). Give the angles in degrees, or pass angles_in_radians=True",
-                &hwp[..n.min(8)],
-                if n > 8 { " ..." } else { "" },
-                hi - lo
+                "hwp_deg holds {e}. Give the angles in degrees, or pass angles_in_radians=True"
             )));
         }
         hwp.iter().map(|d| d.to_radians()).collect()

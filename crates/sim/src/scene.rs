@@ -533,6 +533,9 @@ impl Scene {
         };
         let inst = instrument::Instrument::load(&self.instrument)?;
         inst.filter(&self.filter)?;
+        if let Err(e) = stokes::check_degrees(&self.hwp_angles_deg) {
+            return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &format!("{e}: give degrees"));
+        }
         let th: Vec<f64> = self.hwp_angles_deg.iter().map(|a| a.to_radians()).collect();
         if let Err(e) = stokes::StokesSolver::new(&th) {
             return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &e.to_string());
@@ -903,6 +906,11 @@ mod tests {
     fn bad_angles_filter_and_instrument() {
         let e = Scene::from_toml_str(&format!("hwp_angles_deg = [0, 45]\n{MIN}"), Path::new("s.toml")).unwrap_err();
         assert!(e.to_string().contains("hwp_angles_deg"), "{e}");
+        // The optimal set in radians by mistake.
+        let e =
+            Scene::from_toml_str(&format!("hwp_angles_deg = [0, 0.3927, 0.7854, 1.1781]\n{MIN}"), Path::new("s.toml"))
+                .unwrap_err();
+        assert!(e.to_string().contains("look like radians"), "{e}");
         let e = Scene::from_toml_str(&MIN.replace("\"V\"", "\"Z\""), Path::new("s.toml")).unwrap_err();
         assert!(e.to_string().contains("'Z'"), "{e}");
         let e = Scene::from_toml_str(&MIN.replace("fors1", "nosuch"), Path::new("s.toml")).unwrap_err();

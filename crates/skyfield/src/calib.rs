@@ -1408,12 +1408,7 @@ pub(crate) fn calibrate_all(
         groups.into_par_iter().map(|g| calibrate_exposure(g, inst, &chips, stage, &masters)).collect();
     let mut out: Vec<Exposure> = res.into_iter().collect::<Result<_, _>>()?;
     if let Some(a) = &opts.hwp_angles_deg {
-        if a.len() != n {
-            return Err(Error::Invalid(format!(
-                "--hwp-angles gives {} angles for {n} exposures (one angle per exposure, in the order of the frames)",
-                a.len()
-            )));
-        }
+        check_given_angles(a, n)?;
         for (e, &ang) in out.iter_mut().zip(a) {
             if let Some(h) = e.hwp_deg {
                 if (h - ang).abs() > 0.05 {
@@ -1469,6 +1464,18 @@ pub fn read_exposures(paths: &[PathBuf], inst: &Instrument, opts: &ReadOptions) 
     res.into_iter().collect()
 }
 
+/// The HWP angles a caller gives for `n` exposures (`--hwp-angles`, the Python `hwp_angles`):
+/// one per exposure, in degrees.
+fn check_given_angles(a: &[f64], n: usize) -> Result<(), Error> {
+    if a.len() != n {
+        return Err(Error::Invalid(format!(
+            "--hwp-angles gives {} angles for {n} exposures (one angle per exposure, in the order of the frames)",
+            a.len()
+        )));
+    }
+    stokes::check_degrees(a).map_err(|e| Error::Invalid(format!("--hwp-angles holds {e}: give them in degrees")))
+}
+
 /// `--hwp-angles` onto plain frames (NaN: no header angle), checked against their headers.
 pub(crate) fn apply_angles<'a>(
     frames: impl ExactSizeIterator<Item = (&'a PathBuf, &'a mut f64)>,
@@ -1476,13 +1483,7 @@ pub(crate) fn apply_angles<'a>(
     opts: &ReadOptions,
 ) -> Result<(), Error> {
     let Some(a) = &opts.hwp_angles_deg else { return Ok(()) };
-    if a.len() != frames.len() {
-        return Err(Error::Invalid(format!(
-            "--hwp-angles gives {} angles for {} exposures (one angle per exposure, in the order of the frames)",
-            a.len(),
-            frames.len()
-        )));
-    }
+    check_given_angles(a, frames.len())?;
     for ((p, h), &ang) in frames.zip(a) {
         if h.is_finite() && (*h - ang).abs() > 0.05 {
             return Err(Error::Invalid(format!(

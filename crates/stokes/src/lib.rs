@@ -21,7 +21,10 @@ pub mod stats;
 
 /// The one value of normalized `(q, u)` with its covariance (defined in `mueller`).
 pub use mueller::Qu;
-pub use reduce::{looks_like_radians, reduce, Estimator, KappaCorrection, Measurement, Reduction, Warning};
+pub use reduce::{
+    check_degrees, looks_like_radians, reduce, Estimator, KappaCorrection, LooksLikeRadians, Measurement, Reduction,
+    Warning,
+};
 pub use solver::{
     fast_variance_in_range, normalized_difference, polarization, sigma_normalized_difference,
     variance_normalized_difference, variance_normalized_difference_fast, StokesSolver,

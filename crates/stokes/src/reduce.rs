@@ -368,6 +368,27 @@ pub fn looks_like_radians(deg: &[f64]) -> bool {
     deg.len() >= 2 && deg.iter().all(|d| d.abs() <= std::f64::consts::TAU + 1e-9)
 }
 
+/// HWP angles given in degrees that look like radians ([`looks_like_radians`]); its text says
+/// what they were, and the caller adds how to give them (its option or argument).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{shown}, all within 0..2pi: these look like radians (in degrees the angles would span only {span:.2} deg)")]
+pub struct LooksLikeRadians {
+    shown: String,
+    span: f64,
+}
+
+/// The one check of HWP angles a user gives in degrees (a table's column, an option, a scene,
+/// a Python argument): refused when they look like radians.
+pub fn check_degrees(deg: &[f64]) -> Result<(), LooksLikeRadians> {
+    if !looks_like_radians(deg) {
+        return Ok(());
+    }
+    let lo = deg.iter().cloned().fold(f64::MAX, f64::min);
+    let hi = deg.iter().cloned().fold(f64::MIN, f64::max);
+    let shown = format!("{:?}{}", &deg[..deg.len().min(8)], if deg.len() > 8 { " ..." } else { "" });
+    Err(LooksLikeRadians { shown, span: hi - lo })
+}
+
 fn check_total(f_o: &[f64], f_e: &[f64]) -> Result<(), Error> {
     for (i, (o, e)) in f_o.iter().zip(f_e).enumerate() {
         let total = o + e;

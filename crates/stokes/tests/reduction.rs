@@ -481,3 +481,12 @@ fn more_than_fully_polarized_is_refused() {
     assert!(matches!(e, Error::MoreThanFullyPolarized { dark_beam: Some(0), .. }), "{e}");
     assert!(e.to_string().contains("index 0"), "{e}");
 }
+
+/// Degrees that look like radians are refused by the one check every entry point calls,
+/// saying what they were and what they would span; a degree set is accepted.
+#[test]
+fn degrees_that_look_like_radians() {
+    let e = stokes::check_degrees(&[0.0, 0.3927, 0.7854, 1.1781]).unwrap_err().to_string();
+    assert!(e.contains("[0.0, 0.3927, 0.7854, 1.1781]") && e.contains("span only 1.18 deg"), "{e}");
+    assert!(stokes::check_degrees(&[0.0, 22.5, 45.0, 67.5]).is_ok());
+}

@@ -126,6 +126,7 @@ pub fn run(a: Args) -> Result<()> {
     if angles_deg.len() > 1024 {
         bail!("--hwp-angles: {} angles, at most 1024", angles_deg.len());
     }
+    stokes::check_degrees(&angles_deg).map_err(|e| anyhow!("--hwp-angles holds {e}: give them in degrees"))?;
     let what = a.mueller_cal.display().to_string();
     let (mf, per_bin) = fit::mueller_cal::load_field(&a.mueller_cal).map_err(|e| anyhow!("{e}"))?;
     let mut notes = Vec::new();

@@ -226,14 +226,8 @@ pub fn run(a: Args) -> Result<()> {
     let mut t = read_table(&a.input)?;
     if a.angles_in_radians {
         t.hwp_deg.iter_mut().for_each(|r| *r = r.to_degrees());
-    } else if stokes::looks_like_radians(&t.hwp_deg) {
-        bail!(
-            "{name}: column 'hwp_deg' holds {:?}{}, all within 0..2pi: these look like radians (in degrees the \
-             angles would span only {:.2} deg). Give the angles in degrees, or pass --angles-in-radians",
-            &t.hwp_deg[..t.hwp_deg.len().min(8)],
-            if t.hwp_deg.len() > 8 { " ..." } else { "" },
-            t.hwp_deg.iter().cloned().fold(f64::MIN, f64::max) - t.hwp_deg.iter().cloned().fold(f64::MAX, f64::min)
-        );
+    } else if let Err(e) = stokes::check_degrees(&t.hwp_deg) {
+        bail!("{name}: column 'hwp_deg' holds {e}. Give the angles in degrees, or pass --angles-in-radians");
     }
     let (t, exposures) = combine_repeats(t, &name)?;
     if let Some(ex) = &exposures {
