@@ -428,6 +428,21 @@ fn polarized_standards_constrain_the_retardance_one_sky_field_cannot() {
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("bad.csv row 1") && err.contains("p_true"), "{err}");
     assert!(!out.exists());
+
+    // A standard 50' off a 6.8' field (pixels taken for arcmin, or a wrong table) would pull the
+    // polynomials far outside their data: refused naming the row.
+    let far = d.join("far.csv");
+    let mut text = text.clone();
+    text.push_str(&format!("50.0,0.0,0.01,0.0,{s},{s},0.01,0.0\n"));
+    std::fs::write(&far, &text).unwrap();
+    let out = d.join("far.json");
+    let mut args = base(&out);
+    args.extend(["--stars".to_string(), far.display().to_string()]);
+    let o = run(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("far.csv row 151") && err.contains("outside the maps' detector"), "{err}");
+    assert!(!out.exists());
 }
 
 /// The three sky fields as a plate of HWP zero angle 2.89 deg (FORS2 I_BESS's) reads them: each

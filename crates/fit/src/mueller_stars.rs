@@ -16,8 +16,14 @@ use crate::{Error, Result};
 /// `zero_angle_deg` less the one the table carries (its column `hwp_chi_offset_deg`, as
 /// `instpol catalog` writes it; at the plate without it: [`correct::row_zero_angles`]), with
 /// their covariance ([`correct::to_sky_frame`]). Rows with a non-finite value, an error <= 0,
-/// or a `p_true` or measured P outside [0, 1) (percent given for a fraction) are refused.
-pub fn read_star_fields(path: &std::path::Path, zero_angle_deg: f64) -> Result<Vec<crate::mueller_field::CalField>> {
+/// or a `p_true` or measured P outside [0, 1) (percent given for a fraction) are refused, and so
+/// is a star outside the detector the maps cover (`half_field`: its half width and half height
+/// in arcmin, when known): a polynomial field fitted to it would be an extrapolation.
+pub fn read_star_fields(
+    path: &std::path::Path,
+    zero_angle_deg: f64,
+    half_field: Option<(f64, f64)>,
+) -> Result<Vec<crate::mueller_field::CalField>> {
     use crate::mueller_field::{CalField, Observation};
     let t = skyfield::table::Table::read(path, None)?;
     let (turn, _) = correct::row_zero_angles(Some(zero_angle_deg), t.carried_zero_angle(path)?);
@@ -55,6 +61,13 @@ pub fn read_star_fields(path: &std::path::Path, zero_angle_deg: f64) -> Result<V
                 "p_true = {} and the measured P = {} must be fractions in [0, 1) (not percent)",
                 pt[i],
                 q[i].hypot(u[i])
+            );
+            return Err(Error::Row { at, what });
+        }
+        if let Some((hx, hy)) = half_field.filter(|&(hx, hy)| x[i].abs() > 1.001 * hx || y[i].abs() > 1.001 * hy) {
+            let what = format!(
+                "x, y = ({}, {}) arcmin lies outside the maps' detector (+-{hx:.3} x +-{hy:.3} arcmin about its centre): a star the fields do not cover cannot calibrate them (positions are arcmin from the detector centre, not pixels)",
+                x[i], y[i]
             );
             return Err(Error::Row { at, what });
         }
@@ -144,7 +157,7 @@ mod tests {
         let path = dir.path().join("stars.csv");
         let head = "x,y,q,u,sigma_q,sigma_u,p_true,chi_true_deg";
         std::fs::write(&path, format!("{head}\n1,2,0.01,0,1e-4,1e-4,0.02,30\n")).unwrap();
-        let f = read_star_fields(&path, 10.0).unwrap();
+        let f = read_star_fields(&path, 10.0, None).unwrap();
         let o = &f[0].obs[0];
         let t = 20f64.to_radians();
         assert!((o.qu.q - 0.01 * t.cos()).abs() < 1e-15 && (o.qu.u - 0.01 * t.sin()).abs() < 1e-15, "{o:?}");
@@ -153,9 +166,9 @@ mod tests {
         assert!((f[0].sky_q - 0.02 * c.cos()).abs() < 1e-15 && (f[0].sky_u - 0.02 * c.sin()).abs() < 1e-15);
         assert!(f[0].name.ends_with("stars.csv row 1 (line 2)"), "{}", f[0].name);
         std::fs::write(&path, format!("{head},hwp_chi_offset_deg\n1,2,0.01,0,1e-4,1e-4,0.02,30,10\n")).unwrap();
-        assert_eq!(read_star_fields(&path, 10.0).unwrap()[0].obs[0].qu.q, 0.01);
+        assert_eq!(read_star_fields(&path, 10.0, None).unwrap()[0].obs[0].qu.q, 0.01);
         std::fs::write(&path, format!("{head}\n1,2,0.01,0,1e-4,1e-4,2,30\n")).unwrap();
-        let e = read_star_fields(&path, 0.0).unwrap_err().to_string();
+        let e = read_star_fields(&path, 0.0, None).unwrap_err().to_string();
         assert!(e.contains("stars.csv row 1") && e.contains("p_true"), "{e}");
     }
 

@@ -3,14 +3,14 @@
 //! table, or arrays a caller gives: [`plan_rows`]) or a whole Stokes map ([`plan_map`]). The
 //! one rule set of `instpol correct` and the Python `Calibration.correct` and `.correct_map`:
 //! each face parses its own inputs into a [`Request`], makes the plan once, corrects with it
-//! ([`RowsPlan::correct`] for each row, [`MapPlan::correction`] for a map) and words the
+//! ([`RowsPlan::correct`] for each row, [`MapPlan::correct`] for a map, both through the plan's [`Chain`]) and words the
 //! [`Refusal`]s and [`Note`]s its own way.
 //!
 //! The rules, by what the file holds ([`crate::calibration::Kind`]):
 //!
 //! - **A field model** (`eq:instpol` inverted, or `eq:approx`): the rows are turned into the
 //!   sky frame by the calibration's HWP zero angle less the one they already carry
-//!   ([`crate::correct::row_zero_angles`]), then corrected by the [`Corrector`]. Telescope
+//!   ([`crate::correct::row_zero_angles`]), then corrected by the [`crate::correct::Corrector`]. Telescope
 //!   options given as arguments are refused (they would change nothing); per-row angles that
 //!   are data (a catalog's column) are noted as unused.
 //! - **A Mueller field**: the same zero angle, then the exact inverse of the fitted block; the

@@ -161,6 +161,8 @@ pub fn run(a: Args) -> Result<()> {
     let mut fields = Vec::new();
     // The first map's instrument, filter and field coordinates: every field must share them.
     let mut setup: Option<(String, String, field::FieldCoords)> = None;
+    // The detector the maps cover (half width, half height, arcmin): the star table's stars must lie on it.
+    let mut half_field: Option<(f64, f64)> = None;
     // The HWP zero angle the maps record (HWPZERO): each is turned by it into the sky frame of
     // its known polarization (fit::mueller_cal module docs); one value for all of them.
     let mut zero: Option<(Option<f64>, &PathBuf)> = None;
@@ -186,6 +188,9 @@ pub fn run(a: Args) -> Result<()> {
             bail!("{}: the Stokes map has no valid bin", path.display());
         }
         let this = (map.instrument.clone(), map.filter.clone(), map.geometry.field_coords());
+        let g = &map.geometry;
+        let arcmin = g.pixel_scale_arcsec / 60.0;
+        half_field.get_or_insert((0.5 * g.detector_nx as f64 * arcmin, 0.5 * g.detector_ny as f64 * arcmin));
         match &setup {
             None => setup = Some(this),
             Some(s) if !same_setup(s, &this) => bail!(
@@ -204,7 +209,7 @@ pub fn run(a: Args) -> Result<()> {
     let n_maps = fields.len();
     let zero_angle_deg = zero.and_then(|z| z.0).unwrap_or(0.0);
     if let Some(t) = &a.stars {
-        fields.extend(read_star_fields(t, zero_angle_deg)?);
+        fields.extend(read_star_fields(t, zero_angle_deg, half_field)?);
     }
     let opts = MuellerFitOptions { kind, deg: a.deg, scale_arcmin: a.scale_arcmin, ..Default::default() };
     if a.deg > 8 {
