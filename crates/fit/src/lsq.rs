@@ -1,0 +1,423 @@
+//! The one nonlinear least-squares path of the crate: one loop ([`run`]) that minimizes a
+//! chi^2 over parameters from a problem's evaluations and linearizations ([`Problem`]), under
+//! a small named [`Policy`] that states the step and its damping, the stopping rule and the
+//! iteration limit; a [`Ladder`] of runs for the Gauss-Newton policies; one failure contract
+//! ([`LsqError`], and the [`Ending`] of every run).
+//!
+//! # The four fits and how their loops differed
+//!
+//! The radial model ([`crate::radial`]), the telescope model ([`crate::telescope`]), the
+//! Mueller field ([`crate::mueller_field`]) and the candidate causes
+//! ([`crate::mueller_explain`]) each had their own loop. What they share: a step from the
+//! normal equations `A delta = v` (`A = J^T W J`, `v = -J^T W r`), a chi^2 that decides whether
+//! a point is kept, a stopping rule on the change of that chi^2, an iteration limit; and the
+//! caller computes the covariance from the linearization at the end. How they differed, which
+//! the policies below keep exactly (every fit gives the same bits as before,
+//! `tests/lsq_bits.rs` and the numbers of record):
+//!
+//! | | radial ([`RADIAL`]) | telescope ([`TELESCOPE`]) | Mueller field ([`MUELLER_FIELD`]) | causes ([`CAUSES`]) |
+//! |---|---|---|---|---|
+//! | problem | residuals, analytic `J` | residuals, central-difference `J` | normal equations, chi^2 | residuals, central-difference `J` |
+//! | step | `x - g (J^T J)^-1 J^T r`, the inverse formed | same | Cholesky of damped `A` | LU of damped `A` |
+//! | damping | whole runs with `g = 1, 1/2, 1/4` | runs with `g = 1, 1/2, 1/5` | `A_ii (1 + lambda)`, lambda from 1e-6, x10 / x0.1 | `A_ii + lambda max(A_ii, 1e-12)`, lambda from 1e-3, x10 / x0.2 |
+//! | acceptance | every step; a run's best point kept if chi^2 <= start (1 + 1e-12) | every step; a run's best point kept if chi^2 < best so far | chi^2 not above, 10 tries | chi^2 below, 12 tries |
+//! | stopping | `abs(|r_old| - |r_new|) < 2^-26` | same | decrease < 1e-10 max(chi^2, 1) | decrease < 1e-9 max(chi^2, 1e-30) + 1e-12 |
+//! | iterations | 50, 200, 200 per run | 100 per run | the options' `max_iter` (30) | 60 |
+//! | runs | the first kept ends the ladder | all three, each from the best so far | one | one per start |
+//! | failure | no run kept: an error naming the last reason | no run kept: the start | none (the last point) | none (the last point) |
+//!
+//! The two Gauss-Newton ladders were argmin's `GaussNewton` solver (its `gamma` is the step
+//! fraction; its stopping rule compares the residual norms `|r| = sqrt(chi^2)` with
+//! `sqrt(f64::EPSILON)`, and a run's result is the best point by that norm); [`run`] reproduces
+//! it step for step (the test `gauss_newton_runs_are_argmins` checks the bits against argmin).
+//! The Levenberg-Marquardt loops scale the damping differently (Marquardt's multiplicative
+//! form against an additive one with a floor, for the causes' parameters of very different
+//! sizes) and were tuned separately; one ladder for all would move every fit by its stopping
+//! tolerance, far above the 1e-12 of the numbers of record, so the policies stay four.
+//!
+//! # The loop
+//!
+//! At the top of each iteration the problem is linearized at the current point (a failure ends
+//! the run: [`Ending::Failed`]). A Gauss-Newton step is always taken (a singular normal matrix
+//! or a point that cannot be evaluated ends the run as failed) and the run's result is the best
+//! point visited. A Levenberg-Marquardt iteration tries damped steps up the lambda ladder until
+//! one is accepted (a damped matrix that cannot be factorized or a trial point that cannot be
+//! evaluated counts as a rejected step); none accepted ends the run ([`Ending::NoDecrease`]).
+//! After an accepted step the stopping rule may end the run ([`Ending::Converged`]); otherwise
+//! the iteration limit does ([`Ending::IterationLimit`]).
+
+use nalgebra::{DMatrix, DVector};
+
+/// Why a least-squares run or ladder failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LsqError {
+    /// The normal matrix of an undamped step could not be inverted.
+    #[error("the normal matrix is singular")]
+    Singular,
+    /// No run of a ladder reached a chi^2 its rule keeps (`to`: the last run's, `from`: the
+    /// one it had to beat).
+    #[error("chi^2 rose from {from} to {to}")]
+    NoDecrease { from: f64, to: f64 },
+    /// The problem could not be evaluated or linearized at a point (its own words).
+    #[error("{0}")]
+    Evaluation(String),
+}
+
+/// What the loop needs of a problem: the model at a point and its linearization there.
+pub trait Problem {
+    /// One evaluation at a point (the residuals, or only the chi^2).
+    type Eval: Clone;
+    /// What the linearization leaves for the caller (the Jacobian, for a covariance).
+    type Lin;
+    /// The model at `x`; an error when `x` is outside the problem's domain.
+    fn evaluate(&self, x: &[f64]) -> Result<Self::Eval, LsqError>;
+    /// The chi^2 of an evaluation: what the acceptance and stopping rules compare.
+    fn chi2(&self, e: &Self::Eval) -> f64;
+    /// The normal equations at `x` (evaluated as `e`).
+    fn linearize(&self, x: &[f64], e: &Self::Eval) -> Result<Linear<Self::Lin>, LsqError>;
+}
+
+/// The normal equations at a point: the Gauss-Newton step `delta` solves `normal delta = rhs`.
+#[derive(Debug, Clone)]
+pub struct Linear<L> {
+    /// `J^T W J`.
+    pub normal: DMatrix<f64>,
+    /// `-J^T W r` (minus half the gradient of chi^2).
+    pub rhs: DVector<f64>,
+    /// What the caller gets back with the solution.
+    pub kept: L,
+}
+
+impl Linear<DMatrix<f64>> {
+    /// The normal equations of standardized residuals `r` with Jacobian `j` (chi^2 = `|r|^2`),
+    /// keeping `j`.
+    pub fn of_jacobian(j: DMatrix<f64>, r: &DVector<f64>) -> Self {
+        let normal = j.transpose() * &j;
+        let rhs = -(j.transpose() * r);
+        Linear { normal, rhs, kept: j }
+    }
+}
+
+/// How a step is made.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Step {
+    /// Gauss-Newton: `x + fraction (J^T J)^-1 (-J^T r)` with the inverse formed, every step
+    /// taken; the run's result is the best point visited, by the residual norm
+    /// `sqrt(chi^2)` (argmin's `GaussNewton` with `gamma = fraction`).
+    GaussNewton { fraction: f64 },
+    /// Levenberg-Marquardt: the damped normal equations solved, the trial accepted by a rule.
+    Marquardt(Marquardt),
+}
+
+/// A Levenberg-Marquardt ladder.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Marquardt {
+    /// The damping at the start of a run.
+    pub lambda: f64,
+    /// Factor on lambda after a rejected trial (or a damped matrix that could not be solved).
+    pub up: f64,
+    /// Factor on lambda after an accepted trial, and its floor.
+    pub down: f64,
+    pub floor: f64,
+    /// Trials per iteration before the run ends with no decrease.
+    pub tries: usize,
+    pub diagonal: Diagonal,
+    pub solve: Solve,
+    pub accept: Accept,
+}
+
+/// How lambda damps the normal matrix's diagonal.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Diagonal {
+    /// `A_ii (1 + lambda)` (Marquardt 1963).
+    Scale,
+    /// `A_ii + lambda max(A_ii, min)`: a parameter with no information still gets a damping.
+    Add { min: f64 },
+}
+
+/// How the damped normal equations are solved (a failure is a rejected trial).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Solve {
+    Cholesky,
+    Lu,
+}
+
+/// When a new chi^2 is kept against an old one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Accept {
+    /// `new <= old (1 + rel)`.
+    NotWorse { rel: f64 },
+    /// `new < old`.
+    Lower,
+}
+
+impl Accept {
+    fn accepts(self, new: f64, old: f64) -> bool {
+        match self {
+            Accept::NotWorse { rel } => new <= old * (1.0 + rel),
+            Accept::Lower => new < old,
+        }
+    }
+}
+
+/// When a step ends the run as converged.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Stop {
+    /// `abs(sqrt(chi2_old) - sqrt(chi2_new)) < tol`: the change of the residual norm
+    /// (argmin's Gauss-Newton rule).
+    NormChange { tol: f64 },
+    /// `chi2_old - chi2_new < rel max(chi2_old, floor) + abs`.
+    Decrease { rel: f64, floor: f64, abs: f64 },
+}
+
+impl Stop {
+    fn reached(self, old: f64, new: f64) -> bool {
+        match self {
+            Stop::NormChange { tol } => (old.sqrt() - new.sqrt()).abs() < tol,
+            Stop::Decrease { rel, floor, abs } => old - new < rel * old.max(floor) + abs,
+        }
+    }
+}
+
+/// One run's rules.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Policy {
+    pub step: Step,
+    pub stop: Stop,
+    pub max_iter: usize,
+}
+
+/// Runs in turn, each from the best point kept so far (the start until one is kept); a run
+/// that failed is dropped, one that did not end at a finite chi^2 that `keep` accepts against
+/// the point it started from is not kept.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Ladder {
+    pub rungs: &'static [Policy],
+    pub keep: Accept,
+    /// End at the first run kept (else run every rung).
+    pub until_kept: bool,
+}
+
+/// argmin's Gauss-Newton tolerance `sqrt(f64::EPSILON)`, which is `2^-26` exactly.
+pub const ARGMIN_TOL: f64 = 1.0 / (1u64 << 26) as f64;
+
+const fn gauss_newton(fraction: f64, max_iter: usize) -> Policy {
+    Policy { step: Step::GaussNewton { fraction }, stop: Stop::NormChange { tol: ARGMIN_TOL }, max_iter }
+}
+
+/// The radial fit's: full steps, then half and quarter steps (a free centre far from the
+/// start overshoots), each run from the start; the first run not worse than the start wins.
+pub const RADIAL: Ladder = Ladder {
+    rungs: &[gauss_newton(1.0, 50), gauss_newton(0.5, 200), gauss_newton(0.25, 200)],
+    keep: Accept::NotWorse { rel: 1e-12 },
+    until_kept: true,
+};
+
+/// The telescope fit's: full, half and fifth steps, each run from the best point so far, all
+/// three run (a shorter step may still improve on a converged full-step run).
+pub const TELESCOPE: Ladder = Ladder {
+    rungs: &[gauss_newton(1.0, 100), gauss_newton(0.5, 100), gauss_newton(0.2, 100)],
+    keep: Accept::Lower,
+    until_kept: false,
+};
+
+/// The Mueller field's (`max_iter` is the fit options' own).
+pub const MUELLER_FIELD: Policy = Policy {
+    step: Step::Marquardt(Marquardt {
+        lambda: 1e-6,
+        up: 10.0,
+        down: 0.1,
+        floor: 1e-12,
+        tries: 10,
+        diagonal: Diagonal::Scale,
+        solve: Solve::Cholesky,
+        accept: Accept::NotWorse { rel: 0.0 },
+    }),
+    stop: Stop::Decrease { rel: 1e-10, floor: 1.0, abs: 0.0 },
+    max_iter: 30,
+};
+
+/// The candidate causes'.
+pub const CAUSES: Policy = Policy {
+    step: Step::Marquardt(Marquardt {
+        lambda: 1e-3,
+        up: 10.0,
+        down: 0.2,
+        floor: 1e-12,
+        tries: 12,
+        diagonal: Diagonal::Add { min: 1e-12 },
+        solve: Solve::Lu,
+        accept: Accept::Lower,
+    }),
+    stop: Stop::Decrease { rel: 1e-9, floor: 1e-30, abs: 1e-12 },
+    max_iter: 60,
+};
+
+/// Why a run ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Ending {
+    /// The stopping rule held after a step.
+    Converged,
+    /// No damped trial of an iteration was accepted.
+    NoDecrease,
+    /// `max_iter` iterations were made.
+    IterationLimit,
+    /// The run could not go on (singular normal matrix, a point not evaluated).
+    Failed(LsqError),
+}
+
+/// Where a run ended.
+#[derive(Debug, Clone)]
+pub struct Solution<E, L> {
+    /// The point: the last accepted one, or for Gauss-Newton the best visited.
+    pub x: Vec<f64>,
+    pub eval: E,
+    pub chi2: f64,
+    /// The last linearization made (at `x`, or at the point before the last accepted step);
+    /// `None` when the run made none.
+    pub lin: Option<L>,
+    pub ending: Ending,
+}
+
+/// One run from `x0` (evaluated as `e0`) under `policy`.
+pub fn run<P: Problem>(problem: &P, x0: Vec<f64>, e0: P::Eval, policy: &Policy) -> Solution<P::Eval, P::Lin> {
+    let (mut x, mut e) = (x0, e0);
+    let mut chi2 = problem.chi2(&e);
+    // Gauss-Newton's best point by the residual norm, kept as argmin's state does: strictly
+    // lower replaces, and an infinite norm replaces an infinite best.
+    let mut best: Option<(Vec<f64>, P::Eval, f64)> = None;
+    let mut best_norm = f64::INFINITY;
+    let mut consider = |x: &[f64], e: &P::Eval, chi2: f64, best: &mut Option<(Vec<f64>, P::Eval, f64)>| {
+        let norm = chi2.sqrt();
+        if norm < best_norm
+            || (norm.is_infinite()
+                && best_norm.is_infinite()
+                && norm.is_sign_positive() == best_norm.is_sign_positive())
+        {
+            *best = Some((x.to_vec(), e.clone(), chi2));
+            best_norm = norm;
+        }
+    };
+    let gauss_newton = matches!(policy.step, Step::GaussNewton { .. });
+    if gauss_newton {
+        consider(&x, &e, chi2, &mut best);
+    }
+    let mut lambda = match policy.step {
+        Step::Marquardt(m) => m.lambda,
+        Step::GaussNewton { .. } => 0.0,
+    };
+    let mut lin = None;
+    let mut ending = Ending::IterationLimit;
+    for _ in 0..policy.max_iter {
+        let l = match problem.linearize(&x, &e) {
+            Ok(l) => l,
+            Err(why) => {
+                ending = Ending::Failed(why);
+                break;
+            }
+        };
+        let (normal, rhs) = (l.normal, l.rhs);
+        lin = Some(l.kept);
+        match policy.step {
+            Step::GaussNewton { fraction } => {
+                let Some(inv) = normal.try_inverse() else {
+                    ending = Ending::Failed(LsqError::Singular);
+                    break;
+                };
+                // argmin's order: p = (J^T J)^-1 (J^T r), x - p fraction.
+                let p = &inv * &(-&rhs);
+                let trial: Vec<f64> = x.iter().zip(p.iter()).map(|(a, s)| a - s * fraction).collect();
+                let et = match problem.evaluate(&trial) {
+                    Ok(et) => et,
+                    Err(why) => {
+                        ending = Ending::Failed(why);
+                        break;
+                    }
+                };
+                let ct = problem.chi2(&et);
+                let stop = policy.stop.reached(chi2, ct);
+                (x, e, chi2) = (trial, et, ct);
+                consider(&x, &e, chi2, &mut best);
+                if stop {
+                    ending = Ending::Converged;
+                    break;
+                }
+            }
+            Step::Marquardt(m) => {
+                let mut accepted = None;
+                for _ in 0..m.tries {
+                    let mut damped = normal.clone();
+                    for i in 0..damped.nrows() {
+                        match m.diagonal {
+                            Diagonal::Scale => damped[(i, i)] *= 1.0 + lambda,
+                            Diagonal::Add { min } => damped[(i, i)] += lambda * normal[(i, i)].max(min),
+                        }
+                    }
+                    let step = match m.solve {
+                        Solve::Cholesky => damped.cholesky().map(|c| c.solve(&rhs)),
+                        Solve::Lu => damped.lu().solve(&rhs),
+                    };
+                    let Some(step) = step else {
+                        lambda *= m.up;
+                        continue;
+                    };
+                    let trial: Vec<f64> = x.iter().zip(step.iter()).map(|(a, s)| a + s).collect();
+                    if let Ok(et) = problem.evaluate(&trial) {
+                        let ct = problem.chi2(&et);
+                        if m.accept.accepts(ct, chi2) {
+                            accepted = Some(policy.stop.reached(chi2, ct));
+                            (x, e, chi2) = (trial, et, ct);
+                            lambda = (lambda * m.down).max(m.floor);
+                            break;
+                        }
+                    }
+                    lambda *= m.up;
+                }
+                match accepted {
+                    None => {
+                        ending = Ending::NoDecrease;
+                        break;
+                    }
+                    Some(true) => {
+                        ending = Ending::Converged;
+                        break;
+                    }
+                    Some(false) => {}
+                }
+            }
+        }
+    }
+    if let Some((bx, be, bc)) = best {
+        (x, e, chi2) = (bx, be, bc);
+    }
+    Solution { x, eval: e, chi2, lin, ending }
+}
+
+/// The runs of `ladder` from `x0`: the last run kept, or why none was (the last run's failure,
+/// or [`LsqError::NoDecrease`]); an error too when `x0` cannot be evaluated.
+pub fn ladder<P: Problem>(problem: &P, x0: Vec<f64>, ladder: &Ladder) -> Result<Solution<P::Eval, P::Lin>, LsqError> {
+    let e0 = problem.evaluate(&x0)?;
+    let c0 = problem.chi2(&e0);
+    let mut kept: Option<Solution<P::Eval, P::Lin>> = None;
+    let mut why = LsqError::NoDecrease { from: c0, to: c0 };
+    for rung in ladder.rungs {
+        let (x, e, from) = match &kept {
+            Some(s) => (s.x.clone(), s.eval.clone(), s.chi2),
+            None => (x0.clone(), e0.clone(), c0),
+        };
+        let s = run(problem, x, e, rung);
+        if let Ending::Failed(w) = s.ending {
+            why = w;
+            continue;
+        }
+        if s.chi2.is_finite() && ladder.keep.accepts(s.chi2, from) {
+            kept = Some(s);
+            if ladder.until_kept {
+                break;
+            }
+        } else {
+            why = LsqError::NoDecrease { from, to: s.chi2 };
+        }
+    }
+    kept.ok_or(why)
+}
