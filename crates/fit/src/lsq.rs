@@ -421,3 +421,248 @@ pub fn ladder<P: Problem>(problem: &P, x0: Vec<f64>, ladder: &Ladder) -> Result<
     }
     kept.ok_or(why)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Residuals `r(x)` and their Jacobian, written out; `domain` refuses points beyond it.
+    #[derive(Clone, Copy)]
+    struct Written {
+        r: fn(&[f64]) -> Vec<f64>,
+        j: fn(&[f64]) -> Vec<Vec<f64>>,
+        domain: fn(&[f64]) -> bool,
+    }
+
+    impl Written {
+        fn residuals(&self, x: &[f64]) -> DVector<f64> {
+            DVector::from_vec((self.r)(x))
+        }
+        fn jacobian(&self, x: &[f64]) -> DMatrix<f64> {
+            let rows = (self.j)(x);
+            DMatrix::from_fn(rows.len(), x.len(), |i, k| rows[i][k])
+        }
+    }
+
+    impl Problem for Written {
+        type Eval = DVector<f64>;
+        type Lin = DMatrix<f64>;
+        fn evaluate(&self, x: &[f64]) -> Result<DVector<f64>, LsqError> {
+            if (self.domain)(x) {
+                Ok(self.residuals(x))
+            } else {
+                Err(LsqError::Evaluation(format!("{x:?} is outside the domain")))
+            }
+        }
+        fn chi2(&self, r: &DVector<f64>) -> f64 {
+            r.norm_squared()
+        }
+        fn linearize(&self, x: &[f64], r: &DVector<f64>) -> Result<Linear<DMatrix<f64>>, LsqError> {
+            Ok(Linear::of_jacobian(self.jacobian(x), r))
+        }
+    }
+
+    impl argmin::core::Operator for Written {
+        type Param = DVector<f64>;
+        type Output = DVector<f64>;
+        fn apply(&self, p: &DVector<f64>) -> Result<DVector<f64>, argmin::core::Error> {
+            Ok(self.residuals(p.as_slice()))
+        }
+    }
+
+    impl argmin::core::Jacobian for Written {
+        type Param = DVector<f64>;
+        type Jacobian = DMatrix<f64>;
+        fn jacobian(&self, p: &DVector<f64>) -> Result<DMatrix<f64>, argmin::core::Error> {
+            Ok(Written::jacobian(self, p.as_slice()))
+        }
+    }
+
+    fn anywhere(_: &[f64]) -> bool {
+        true
+    }
+
+    /// Rosenbrock's function as residuals `(10 (y - x^2), 1 - x)`: minimum 0 at (1, 1).
+    fn rosenbrock() -> Written {
+        Written {
+            r: |x| vec![10.0 * (x[1] - x[0] * x[0]), 1.0 - x[0]],
+            j: |x| vec![vec![-20.0 * x[0], 10.0], vec![-1.0, 0.0]],
+            domain: anywhere,
+        }
+    }
+
+    /// `y = a exp(-b t)` against 13 points that it does not fit exactly (a residual minimum).
+    fn decay() -> Written {
+        fn t(i: usize) -> f64 {
+            0.5 * i as f64
+        }
+        fn y(i: usize) -> f64 {
+            2.5 * (-0.7 * t(i)).exp() + 0.01 * (3.0 * i as f64).sin()
+        }
+        Written {
+            r: |x| (0..13).map(|i| x[0] * (-x[1] * t(i)).exp() - y(i)).collect(),
+            j: |x| (0..13).map(|i| vec![(-x[1] * t(i)).exp(), -t(i) * x[0] * (-x[1] * t(i)).exp()]).collect(),
+            domain: anywhere,
+        }
+    }
+
+    /// A linear problem `A x - b` (5 x 3, full rank, inconsistent).
+    const A: [[f64; 3]; 5] = [[1.0, 0.5, -0.2], [0.3, -1.1, 0.4], [2.0, 0.1, 0.9], [-0.6, 0.8, 1.5], [0.2, 0.2, -0.7]];
+    const B: [f64; 5] = [1.0, -0.5, 2.2, 0.3, -0.9];
+
+    fn linear() -> Written {
+        Written {
+            r: |x| (0..5).map(|i| (0..3).map(|k| A[i][k] * x[k]).sum::<f64>() - B[i]).collect(),
+            j: |_| A.iter().map(|row| row.to_vec()).collect(),
+            domain: anywhere,
+        }
+    }
+
+    fn start(p: &Written, x: &[f64]) -> DVector<f64> {
+        p.evaluate(x).unwrap()
+    }
+
+    const LADDERS: [(&str, Ladder); 2] = [("radial", RADIAL), ("telescope", TELESCOPE)];
+    const RUNS: [(&str, Policy); 2] = [("mueller field", MUELLER_FIELD), ("causes", CAUSES)];
+
+    /// Every policy's minimum of the linear problem: the ladders', the runs'.
+    fn minima(p: &Written, x0: &[f64]) -> Vec<(&'static str, Solution<DVector<f64>, DMatrix<f64>>)> {
+        let mut v: Vec<_> = LADDERS.iter().map(|(n, l)| (*n, ladder(p, x0.to_vec(), l).unwrap())).collect();
+        v.extend(RUNS.iter().map(|(n, pol)| (*n, run(p, x0.to_vec(), start(p, x0), pol))));
+        v
+    }
+
+    #[test]
+    fn argmin_tolerance_is_the_square_root_of_epsilon() {
+        assert_eq!(ARGMIN_TOL, f64::EPSILON.sqrt());
+    }
+
+    /// A Gauss-Newton run is argmin's `GaussNewton` with `gamma` the fraction: the same point,
+    /// bit for bit, on a zero-residual, a residual and a linear problem, from near and far
+    /// starts, to convergence and cut by the iteration limit.
+    #[test]
+    fn gauss_newton_runs_are_argmins() {
+        use argmin::core::{Executor, State};
+        use argmin::solver::gaussnewton::GaussNewton;
+        let cases = [
+            (rosenbrock(), vec![-1.2, 1.0]),
+            (decay(), vec![1.0, 0.2]),
+            (decay(), vec![6.0, 3.0]),
+            (linear(), vec![0.0; 3]),
+        ];
+        for (p, x0) in cases {
+            for (fraction, max_iter) in [(1.0, 50), (0.5, 200), (0.25, 200), (0.2, 100), (0.5, 3)] {
+                let ours = run(&p, x0.clone(), start(&p, &x0), &gauss_newton(fraction, max_iter));
+                let solver = GaussNewton::<f64>::new().with_gamma(fraction).unwrap();
+                let res = Executor::new(p, solver)
+                    .configure(|s| s.param(DVector::from_row_slice(&x0)).max_iters(max_iter as u64))
+                    .run()
+                    .unwrap();
+                let theirs = res.state().get_best_param().unwrap();
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(
+                    bits(&ours.x),
+                    bits(theirs.as_slice()),
+                    "{x0:?}: fraction {fraction}, {max_iter} iterations"
+                );
+                assert_eq!(ours.chi2.sqrt(), res.state().get_best_cost());
+            }
+        }
+    }
+
+    /// The linear problem's minimum is the least-squares solution (nalgebra's SVD) under every
+    /// policy, to the rounding of the normal equations (the damped runs stop when chi^2 falls by
+    /// less than 1e-9 of itself, far below a 1e-6 change in x here).
+    #[test]
+    fn linear_least_squares_is_the_svd_solution_under_every_policy() {
+        let p = linear();
+        let a = DMatrix::from_fn(5, 3, |i, k| A[i][k]);
+        let want = a.svd(true, true).solve(&DVector::from_row_slice(&B), 1e-14).unwrap();
+        for (name, s) in minima(&p, &[0.0; 3]) {
+            for k in 0..3 {
+                assert!((s.x[k] - want[k]).abs() < 1e-6, "{name}: {:?} vs {want}", s.x);
+            }
+            assert!(s.chi2.is_finite() && !matches!(s.ending, Ending::Failed(_)), "{name}: {:?}", s.ending);
+        }
+    }
+
+    /// Rosenbrock's valley from the classic start (-1.2, 1) ends at its minimum (1, 1) under
+    /// every policy.
+    #[test]
+    fn rosenbrock_minimum_is_found_under_every_policy() {
+        let p = rosenbrock();
+        for (name, s) in minima(&p, &[-1.2, 1.0]) {
+            assert!((s.x[0] - 1.0).abs() < 1e-5 && (s.x[1] - 1.0).abs() < 1e-5, "{name}: {:?} ({:?})", s.x, s.ending);
+        }
+    }
+
+    /// Two parameters that enter only as their sum: the undamped ladders say the normal matrix
+    /// is singular (no panic, no NaN); the damped runs reach the minimum chi^2 on the line
+    /// `x + y = 7/5` (closed form: 0.4^2 + 0.2^2 = 0.2) at a finite point.
+    #[test]
+    fn a_singular_problem_gives_the_singular_error() {
+        let p = Written {
+            r: |x| vec![x[0] + x[1] - 1.0, 2.0 * (x[0] + x[1]) - 3.0],
+            j: |_| vec![vec![1.0, 1.0], vec![2.0, 2.0]],
+            domain: anywhere,
+        };
+        for (name, l) in LADDERS {
+            assert_eq!(ladder(&p, vec![0.0, 0.0], &l).unwrap_err(), LsqError::Singular, "{name}");
+        }
+        for (name, pol) in RUNS {
+            let s = run(&p, vec![0.0, 0.0], start(&p, &[0.0, 0.0]), &pol);
+            assert!((s.chi2 - 0.2).abs() < 1e-9 && s.x.iter().all(|v| v.is_finite()), "{name}: {s:?}");
+            assert!((s.x[0] + s.x[1] - 1.4).abs() < 1e-6, "{name}: {:?}", s.x);
+        }
+        // A parameter the residuals do not depend on: a zero row and column. Marquardt's
+        // scaling leaves it zero, so no damped matrix factorizes: the run ends, where it began.
+        let q = Written {
+            r: |x| vec![x[0] - 1.0, x[0] + 1.0],
+            j: |_| vec![vec![1.0, 0.0], vec![1.0, 0.0]],
+            domain: anywhere,
+        };
+        let s = run(&q, vec![0.5, 0.0], start(&q, &[0.5, 0.0]), &MUELLER_FIELD);
+        assert_eq!((s.x, s.ending), (vec![0.5, 0.0], Ending::NoDecrease));
+        // The additive damping's floor still moves the other parameter to its minimum, x = 0.
+        let s = run(&q, vec![0.5, 0.0], start(&q, &[0.5, 0.0]), &CAUSES);
+        assert!(s.x[0].abs() < 1e-6 && s.x[1] == 0.0, "{:?}", s.x);
+    }
+
+    /// A minimum outside the problem's domain: every Gauss-Newton run steps out of it, and the
+    /// ladder says so in the problem's words; a damped run treats the step out as rejected and
+    /// stops inside, near the edge.
+    #[test]
+    fn a_point_outside_the_domain_fails_the_undamped_runs_only() {
+        let p = Written { r: |x| vec![x[0] - 3.0], j: |_| vec![vec![1.0]], domain: |x| x[0] <= 2.0 };
+        for (name, l) in LADDERS {
+            match ladder(&p, vec![0.0], &l) {
+                Err(LsqError::Evaluation(w)) => assert!(w.contains("outside the domain"), "{name}: {w}"),
+                other => panic!("{name}: {other:?}"),
+            }
+        }
+        for (name, pol) in RUNS {
+            let s = run(&p, vec![0.0], start(&p, &[0.0]), &pol);
+            assert!(s.x[0] <= 2.0 && s.x[0] > 1.9, "{name}: {:?} ({:?})", s.x, s.ending);
+        }
+        assert!(matches!(ladder(&p, vec![2.5], &RADIAL), Err(LsqError::Evaluation(_))));
+    }
+
+    /// The radial ladder keeps a run only when it does not end above the start; the telescope's
+    /// only when it ends below the best so far: at a minimum already, the first is kept (equal)
+    /// and the second is refused with the chi^2 it had to beat.
+    #[test]
+    fn ladders_keep_by_their_rules() {
+        let p = linear();
+        let a = DMatrix::from_fn(5, 3, |i, k| A[i][k]);
+        let best = a.svd(true, true).solve(&DVector::from_row_slice(&B), 1e-14).unwrap();
+        let at = ladder(&p, best.as_slice().to_vec(), &RADIAL).unwrap();
+        assert!(at.chi2 <= p.chi2(&start(&p, best.as_slice())) * (1.0 + 1e-12));
+        let polished = at.x.clone();
+        let c = p.chi2(&start(&p, &polished));
+        match ladder(&p, polished, &TELESCOPE) {
+            Ok(s) => assert!(s.chi2 < c),
+            Err(LsqError::NoDecrease { from, to }) => assert!(from == c && to >= c, "{from} {to}"),
+            Err(e) => panic!("{e}"),
+        }
+    }
+}
