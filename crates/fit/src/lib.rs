@@ -12,7 +12,8 @@
 //! A model is a value that answers "what is the instrumental polarization here"
 //! ([`model::FieldModel`], defined in the `field` crate with the field coordinates, so the
 //! simulator evaluates the same values); fitters, the calibration file and the correction do not
-//! care which model it is. This crate does not make Stokes maps from frames (that is
+//! care which model it is. Every nonlinear fit runs the one least-squares loop ([`lsq`]) under
+//! its own named policy. This crate does not make Stokes maps from frames (that is
 //! `skyfield`, which [`validate`] calls for the star's photometry), and it draws no plots and
 //! parses no arguments (that is the CLI).
 

@@ -15,16 +15,28 @@
 //! the policies below keep exactly (every fit gives the same bits as before,
 //! `tests/lsq_bits.rs` and the numbers of record):
 //!
-//! | | radial ([`RADIAL`]) | telescope ([`TELESCOPE`]) | Mueller field ([`MUELLER_FIELD`]) | causes ([`CAUSES`]) |
-//! |---|---|---|---|---|
-//! | problem | residuals, analytic `J` | residuals, central-difference `J` | normal equations, chi^2 | residuals, central-difference `J` |
-//! | step | `x - g (J^T J)^-1 J^T r`, the inverse formed | same | Cholesky of damped `A` | LU of damped `A` |
-//! | damping | whole runs with `g = 1, 1/2, 1/4` | runs with `g = 1, 1/2, 1/5` | `A_ii (1 + lambda)`, lambda from 1e-6, x10 / x0.1 | `A_ii + lambda max(A_ii, 1e-12)`, lambda from 1e-3, x10 / x0.2 |
-//! | acceptance | every step; a run's best point kept if chi^2 <= start (1 + 1e-12) | every step; a run's best point kept if chi^2 < best so far | chi^2 not above, 10 tries | chi^2 below, 12 tries |
-//! | stopping | `abs(|r_old| - |r_new|) < 2^-26` | same | decrease < 1e-10 max(chi^2, 1) | decrease < 1e-9 max(chi^2, 1e-30) + 1e-12 |
-//! | iterations | 50, 200, 200 per run | 100 per run | the options' `max_iter` (30) | 60 |
-//! | runs | the first kept ends the ladder | all three, each from the best so far | one | one per start |
-//! | failure | no run kept: an error naming the last reason | no run kept: the start | none (the last point) | none (the last point) |
+//! - problem: the radial fit's residuals with their analytic Jacobian; the telescope's and
+//!   the causes' with central-difference Jacobians; the Mueller field's normal equations and
+//!   chi^2 directly.
+//! - step: radial and telescope `x - g (J^T J)^-1 J^T r` with the inverse formed; the Mueller
+//!   field the Cholesky solution of the damped normal equations; the causes their LU
+//!   solution.
+//! - damping: radial whole runs with `g = 1, 1/2, 1/4`; telescope `g = 1, 1/2, 1/5`; the
+//!   Mueller field `A_ii (1 + lambda)`, lambda from 1e-6, up x10, down x0.1 to 1e-12; the
+//!   causes `A_ii + lambda max(A_ii, 1e-12)`, lambda from 1e-3, up x10, down x0.2 to 1e-12.
+//! - acceptance: radial and telescope take every step and keep a run's best point, radial if
+//!   its chi^2 is finite and at most the start's times `1 + 1e-12`, telescope if finite and
+//!   below the best so far; the Mueller field a trial whose chi^2 is not above (10 tries),
+//!   the causes one whose chi^2 is below (12 tries).
+//! - stopping: radial and telescope `abs(|r_old| - |r_new|) < 2^-26`; the Mueller field a
+//!   decrease below `1e-10 max(chi^2, 1)`; the causes below `1e-9 max(chi^2, 1e-30) + 1e-12`.
+//! - iterations: radial 50, 200, 200 per run; telescope 100 per run; the Mueller field the
+//!   options' `max_iter` (30); the causes 60.
+//! - runs: radial until the first run kept, each from the start; telescope all three, each
+//!   from the best so far; the Mueller field one; the causes one per start.
+//! - failure: radial, no run kept, an error naming the last run's reason; telescope, no run
+//!   kept, the start; the Mueller field and the causes none (the last point; the causes refuse
+//!   a start whose chi^2 is not finite themselves).
 //!
 //! The two Gauss-Newton ladders were argmin's `GaussNewton` solver (its `gamma` is the step
 //! fraction; its stopping rule compares the residual norms `|r| = sqrt(chi^2)` with

@@ -582,8 +582,8 @@ fn conditioning(j: &DMatrix<f64>) -> f64 {
 }
 
 /// Fit the radial model (section `sec:fors1`) to the bins by robust weighted least squares on
-/// `(q, u)` (Gauss-Newton, [`lsq::RADIAL`], inside iteratively reweighted least squares). The covariance
-/// is `(J^T W J)^-1` from the Jacobian at the solution, scaled as
+/// `(q, u)` (Gauss-Newton, [`lsq::RADIAL`], inside iteratively reweighted least squares). The
+/// covariance is `(J^T W J)^-1` from the Jacobian at the solution, scaled as
 /// [`RadialFitOptions::error_scaling`] says (default `max(1, chi2_red)`) and, when asked,
 /// inflated for correlated bin errors ([`crate::correlation`]).
 ///
