@@ -285,8 +285,10 @@ pub struct Solution<E, L> {
     pub x: Vec<f64>,
     pub eval: E,
     pub chi2: f64,
-    /// The last linearization made (at `x`, or at the point before the last accepted step);
-    /// `None` when the run made none.
+    /// The last linearization made: of a Levenberg-Marquardt run at `x`, or at the point
+    /// before its last step when the stopping rule or the iteration limit ended it; of a
+    /// Gauss-Newton run at the point before its last step, which need not be `x`. `None` when
+    /// the run made none.
     pub lin: Option<L>,
     pub ending: Ending,
 }
