@@ -3,7 +3,9 @@
 //! one factor from a median absolute deviation to a Gaussian sigma
 //! (`stokes::stats::robust::MAD_TO_SIGMA`, `1 / Phi^-1(3/4)`). A second definition drifts from
 //! the first (the workspace once had seven medians of two definitions and the factor written
-//! out eighteen times, rounded to five digits in some places and not in others).
+//! out eighteen times, rounded to five digits in some places and not in others). One nonlinear
+//! least-squares loop (`fit::lsq`, its policies named there): the fits once had four loops with
+//! four damping ladders and failure behaviours.
 
 mod common;
 
@@ -104,6 +106,37 @@ fn one_mad_to_sigma() {
         found.is_empty(),
         "the MAD-to-sigma factor is written out (use stokes::stats::robust::MAD_TO_SIGMA, or in a test a \
          closed form computed there, e.g. 1 / the inverse normal of 0.75):\n  {}",
+        found.join("\n  ")
+    );
+}
+
+/// The one least-squares loop's file.
+const LSQ: &str = "crates/fit/src/lsq.rs";
+
+#[test]
+fn one_least_squares_loop() {
+    let root = workspace();
+    let mut found = Vec::new();
+    for p in files_under(&root.join("crates"), Some(".rs")) {
+        let rel = p.strip_prefix(&root).expect("under the workspace").to_string_lossy().replace('\\', "/");
+        let parts: Vec<&str> = rel.split('/').collect();
+        if parts.len() < 4 || parts[2] != "src" || rel == LSQ {
+            continue;
+        }
+        let text = std::fs::read_to_string(&p).unwrap_or_else(|e| panic!("{rel}: {e}"));
+        let toks = tokens(&code_only(&text));
+        for (k, t) in toks.iter().enumerate() {
+            let next: Vec<&str> = toks[k + 1..(k + 3).min(toks.len())].iter().map(|t| t.text.as_str()).collect();
+            // A second solver (argmin's executor), or a damping ladder written out.
+            if t.text == "argmin" || (t.text == "lambda" && next == ["*", "="]) {
+                found.push(format!("{rel}:{}: {}", t.line, t.text));
+            }
+        }
+    }
+    assert!(root.join(LSQ).is_file(), "{LSQ} is gone: update this test");
+    assert!(
+        found.is_empty(),
+        "a nonlinear least-squares loop outside {LSQ} (run fit::lsq with a policy of its own):\n  {}",
         found.join("\n  ")
     );
 }

@@ -1,5 +1,5 @@
 //! Fitted models of the instrumental polarization field and their use: radial polynomials with
-//! an optional free optical-axis centre (argmin), the polar-angle test, the wavelength law, the
+//! an optional free optical-axis centre, the polar-angle test, the wavelength law, the
 //! Delaunay-interpolated residual map (spade), the per-filter calibration file with its
 //! metadata and refit policy ([`pipeline`]), the correction of measured Stokes parameters (one
 //! row or a whole Stokes map) with error propagation ([`correct`]), the validation of a
@@ -12,7 +12,8 @@
 //! A model is a value that answers "what is the instrumental polarization here"
 //! ([`model::FieldModel`], defined in the `field` crate with the field coordinates, so the
 //! simulator evaluates the same values); fitters, the calibration file and the correction do not
-//! care which model it is. This crate does not make Stokes maps from frames (that is
+//! care which model it is. Every nonlinear fit runs the one least-squares loop ([`lsq`]) under
+//! its own named policy. This crate does not make Stokes maps from frames (that is
 //! `skyfield`, which [`validate`] calls for the star's photometry), and it draws no plots and
 //! parses no arguments (that is the CLI).
 
@@ -24,6 +25,7 @@ pub mod chain;
 pub mod correlation;
 pub mod import;
 pub mod keys;
+pub mod lsq;
 pub mod model;
 pub mod mueller_block;
 pub mod mueller_cal;
@@ -48,32 +50,6 @@ pub mod telescope_report;
 pub mod validate;
 pub mod validate_telescope;
 pub mod wavelength;
-
-/// argmin's executor owns its problem; this lends it one of ours (any least-squares problem
-/// of this crate: the radial fit, the telescope fit), so the same problem can be run again.
-pub(crate) struct Lend<'a, P>(pub(crate) &'a P);
-
-impl<P> argmin::core::Operator for Lend<'_, P>
-where
-    P: argmin::core::Operator<Param = nalgebra::DVector<f64>, Output = nalgebra::DVector<f64>>,
-{
-    type Param = nalgebra::DVector<f64>;
-    type Output = nalgebra::DVector<f64>;
-    fn apply(&self, p: &Self::Param) -> std::result::Result<Self::Output, argmin::core::Error> {
-        self.0.apply(p)
-    }
-}
-
-impl<P> argmin::core::Jacobian for Lend<'_, P>
-where
-    P: argmin::core::Jacobian<Param = nalgebra::DVector<f64>, Jacobian = nalgebra::DMatrix<f64>>,
-{
-    type Param = nalgebra::DVector<f64>;
-    type Jacobian = nalgebra::DMatrix<f64>;
-    fn jacobian(&self, p: &Self::Param) -> std::result::Result<Self::Jacobian, argmin::core::Error> {
-        self.0.jacobian(p)
-    }
-}
 
 /// The gridded map lives in the `field` crate (the simulator evaluates it too).
 pub use field::grid as gridmap;

@@ -25,6 +25,7 @@
 //! `BIC = chi^2 + k ln n` (Schwarz 1978); candidates within `DELTA_BIC` of the best are
 //! reported as not told apart by the data, never silently dropped.
 
+use crate::lsq::{self, Linear, LsqError};
 use crate::mueller_field::{BinFit, Kind, MuellerField};
 use crate::{Error, Result};
 use mueller::causes::{self, UniaxialPlate};
@@ -493,27 +494,29 @@ fn chi2_of(r: &DVector<f64>) -> f64 {
     }
 }
 
-/// Levenberg-Marquardt on the whitened residuals from one start; returns the parameters,
-/// chi^2 and the Jacobian at the solution.
-fn lm(
+/// One candidate's least-squares problem: the whitened residuals of its parameters.
+struct CauseProblem<'a> {
     cause: Cause,
-    start: &[f64],
-    target: &Target,
-    ctx: &Context,
-    rt: &[Option<[f64; 8]>],
-) -> Option<(Vec<f64>, f64, DMatrix<f64>)> {
-    let k = start.len();
-    let scales = cause.scales();
-    let res = |t: &[f64]| model(cause, t, target, ctx, rt).map(|v| target.residuals(&v));
-    // Central differences; one-sided at the edge of the physical domain, zero outside it.
-    let jac = |t: &[f64], r0: &DVector<f64>| -> Option<DMatrix<f64>> {
+    target: &'a Target,
+    ctx: &'a Context,
+    rt: &'a [Option<[f64; 8]>],
+}
+
+impl CauseProblem<'_> {
+    fn residuals(&self, t: &[f64]) -> Option<DVector<f64>> {
+        model(self.cause, t, self.target, self.ctx, self.rt).map(|v| self.target.residuals(&v))
+    }
+    /// Central differences; one-sided at the edge of the physical domain, zero outside it.
+    fn jacobian(&self, t: &[f64], r0: &DVector<f64>) -> DMatrix<f64> {
+        let k = t.len();
+        let scales = self.cause.scales();
         let mut j = DMatrix::zeros(r0.len(), k);
         for c in 0..k {
             let h = 1e-5 * scales[c].max(t[c].abs());
             let (mut a, mut b) = (t.to_vec(), t.to_vec());
             a[c] += h;
             b[c] -= h;
-            let col = match (res(&a), res(&b)) {
+            let col = match (self.residuals(&a), self.residuals(&b)) {
                 (Some(ra), Some(rb)) => (ra - rb) / (2.0 * h),
                 (Some(ra), None) => (ra - r0) / h,
                 (None, Some(rb)) => (r0 - rb) / h,
@@ -521,56 +524,53 @@ fn lm(
             };
             j.set_column(c, &col);
         }
-        Some(j)
-    };
-    let mut t = start.to_vec();
-    let mut r = res(&t)?;
-    let mut chi2 = chi2_of(&r);
+        j
+    }
+}
+
+impl lsq::Problem for CauseProblem<'_> {
+    type Eval = DVector<f64>;
+    type Lin = DMatrix<f64>;
+    fn evaluate(&self, t: &[f64]) -> std::result::Result<DVector<f64>, LsqError> {
+        self.residuals(t)
+            .ok_or_else(|| LsqError::Evaluation(format!("{} is outside its physical domain", self.cause.name())))
+    }
+    fn chi2(&self, r: &DVector<f64>) -> f64 {
+        chi2_of(r)
+    }
+    fn linearize(&self, t: &[f64], r: &DVector<f64>) -> std::result::Result<Linear<DMatrix<f64>>, LsqError> {
+        Ok(Linear::of_jacobian(self.jacobian(t, r), r))
+    }
+}
+
+/// Levenberg-Marquardt ([`lsq::CAUSES`]) on the whitened residuals from one start; returns the
+/// parameters, chi^2 and the Jacobian of the last iteration (at the solution, or at the point
+/// before the last step when the decrease stopped the run).
+fn lm(
+    cause: Cause,
+    start: &[f64],
+    target: &Target,
+    ctx: &Context,
+    rt: &[Option<[f64; 8]>],
+) -> Option<(Vec<f64>, f64, DMatrix<f64>)> {
+    let problem = CauseProblem { cause, target, ctx, rt };
+    let r = problem.residuals(start)?;
+    let chi2 = chi2_of(&r);
     if !chi2.is_finite() {
         return None;
     }
-    if k == 0 {
-        return Some((t, chi2, DMatrix::zeros(r.len(), 0)));
+    if start.is_empty() {
+        return Some((start.to_vec(), chi2, DMatrix::zeros(r.len(), 0)));
     }
-    let mut j = jac(&t, &r)?;
-    let mut lambda = 1e-3;
-    for _ in 0..60 {
-        let a = j.transpose() * &j;
-        let g = j.transpose() * &r;
-        let mut improved = false;
-        for _ in 0..12 {
-            let mut ad = a.clone();
-            for i in 0..k {
-                ad[(i, i)] += lambda * a[(i, i)].max(1e-12);
-            }
-            let Some(step) = ad.lu().solve(&(-&g)) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let trial: Vec<f64> = t.iter().zip(step.iter()).map(|(a, s)| a + s).collect();
-            if let Some(rt2) = res(&trial) {
-                let c2 = chi2_of(&rt2);
-                if c2 < chi2 {
-                    let done = chi2 - c2 < 1e-9 * chi2.max(1e-30) + 1e-12;
-                    t = trial;
-                    r = rt2;
-                    chi2 = c2;
-                    lambda = (lambda * 0.2).max(1e-12);
-                    improved = !done;
-                    break;
-                }
-            }
-            lambda *= 10.0;
-        }
-        if !improved {
-            break;
-        }
-        match jac(&t, &r) {
-            Some(jj) => j = jj,
-            None => break,
-        }
-    }
-    Some((t, chi2, j))
+    let s = lsq::run(&problem, start.to_vec(), r, &lsq::CAUSES);
+    let j = match (s.ending, s.lin) {
+        // The loop takes each Jacobian before its step; the one at the point where the
+        // iteration limit stopped it is taken here.
+        (lsq::Ending::IterationLimit, _) => problem.jacobian(&s.x, &s.eval),
+        (_, Some(j)) => j,
+        (_, None) => return None,
+    };
+    Some((s.x, s.chi2, j))
 }
 
 /// Fit one candidate (best of its starts).

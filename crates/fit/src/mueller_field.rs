@@ -18,6 +18,7 @@
 //! from one sky field) instead of returning numbers. Every fitted matrix is checked for
 //! physical realizability.
 
+use crate::lsq::{self, Linear, LsqError};
 pub use crate::mueller_block::Kind;
 pub use crate::mueller_forms::Smooth;
 use crate::{Error, Result};
@@ -486,40 +487,13 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
 
     // Identifiability, from the Fisher matrix at the start (and, for the retardance, a probe
     // with a small retardance along each axis, because |g| has no derivative at g = 0).
-    let (fisher, _, _) = normal_equations(&data, kind, &free, &coef);
+    let (fisher, _, chi2) = normal_equations(&data, kind, &free, &coef);
     check_constrained(&fisher, kind, &free, nm, fields, opts.min_eigen_ratio)?;
 
-    // Gauss-Newton with Levenberg-Marquardt damping.
-    let mut chi2 = normal_equations(&data, kind, &free, &coef).2;
-    let mut lambda = 1e-6;
-    for _ in 0..opts.max_iter {
-        let (a, b, _) = normal_equations(&data, kind, &free, &coef);
-        let mut improved = false;
-        for _ in 0..10 {
-            let mut ad = a.clone();
-            for i in 0..n {
-                ad[(i, i)] *= 1.0 + lambda;
-            }
-            let Some(step) = ad.cholesky().map(|c| c.solve(&b)) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let trial: Vec<f64> = coef.iter().zip(step.iter()).map(|(c, s)| c + s).collect();
-            let c2 = chi2_of(&data, kind, &free, &trial);
-            if c2 <= chi2 {
-                let done = chi2 - c2 < 1e-10 * chi2.max(1.0);
-                coef = trial;
-                chi2 = c2;
-                lambda = (lambda * 0.1).max(1e-12);
-                improved = !done;
-                break;
-            }
-            lambda *= 10.0;
-        }
-        if !improved {
-            break;
-        }
-    }
+    // Levenberg-Marquardt from the start, whose chi^2 is the normal equations' (which leave
+    // out a row whose forward model fails, where `chi2_of` counts it infinite).
+    let policy = lsq::Policy { max_iter: opts.max_iter, ..lsq::MUELLER_FIELD };
+    let coef = lsq::run(&Fit { data: &data, kind, free: &free }, coef, chi2, &policy).x;
     let (fisher, _, chi2) = normal_equations(&data, kind, &free, &coef);
     let dof = (2 * n_rows - n) as f64;
     let chi2_dof = chi2 / dof;
@@ -564,6 +538,29 @@ pub fn fit_mueller_field(fields: &[CalField], opts: &MuellerFitOptions) -> Resul
         ));
     }
     Ok(mf)
+}
+
+/// The joint fit as a least-squares problem: its chi^2 at a point, its normal equations.
+struct Fit<'a> {
+    data: &'a Data,
+    kind: Kind,
+    free: &'a [usize],
+}
+
+impl lsq::Problem for Fit<'_> {
+    type Eval = f64;
+    type Lin = ();
+    fn evaluate(&self, coef: &[f64]) -> std::result::Result<f64, LsqError> {
+        Ok(chi2_of(self.data, self.kind, self.free, coef))
+    }
+    fn chi2(&self, chi2: &f64) -> f64 {
+        *chi2
+    }
+    fn linearize(&self, coef: &[f64], _: &f64) -> std::result::Result<Linear<()>, LsqError> {
+        // Its vector is `J^T W (measured - model)`: the right-hand side of the step.
+        let (normal, rhs, _) = normal_equations(self.data, self.kind, self.free, coef);
+        Ok(Linear { normal, rhs, kept: () })
+    }
 }
 
 /// `(J^T W J, J^T W r, chi2)` over all rows at coefficients `coef`. The Jacobian of the

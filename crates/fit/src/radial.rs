@@ -7,11 +7,10 @@
 //! sign (a tangential pattern is a negative `p`), and constrains the centre through the angles.
 
 use crate::bins::Bin;
+use crate::lsq::{self, Linear, LsqError};
 use crate::model::{FieldModel, InstPol};
 use crate::region::Exclusion;
 use crate::{Error, Result};
-use argmin::core::{CostFunction, Executor, Jacobian, Operator, State};
-use argmin::solver::gaussnewton::GaussNewton;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use stokes::stats::robust::{median, Middle, MAD_TO_SIGMA};
@@ -484,7 +483,7 @@ pub struct RadialFit {
     pub weights: Vec<f64>,
 }
 
-/// The least-squares problem argmin sees: standardized, weighted residuals of the used bins.
+/// The least-squares problem of the fit: standardized, weighted residuals of the used bins.
 struct Problem<'a> {
     bins: Vec<&'a Bin>,
     /// sqrt(robust weight) / sigma for q and u.
@@ -497,20 +496,15 @@ struct Problem<'a> {
 }
 
 impl Problem<'_> {
-    fn split(&self, p: &DVector<f64>) -> (Vec<f64>, [f64; 2]) {
-        let c = p.as_slice()[..self.nc].to_vec();
+    fn split(&self, p: &[f64]) -> (Vec<f64>, [f64; 2]) {
+        let c = p[..self.nc].to_vec();
         let centre = if self.free_centre { [p[self.nc], p[self.nc + 1]] } else { self.fixed_centre };
         (c, centre)
     }
     fn n_free(&self) -> usize {
         self.nc + if self.free_centre { 2 } else { 0 }
     }
-}
-
-impl Operator for Problem<'_> {
-    type Param = DVector<f64>;
-    type Output = DVector<f64>;
-    fn apply(&self, p: &DVector<f64>) -> std::result::Result<DVector<f64>, argmin::core::Error> {
+    fn residuals(&self, p: &[f64]) -> DVector<f64> {
         let (c, centre) = self.split(p);
         let n = self.bins.len();
         let mut r = DVector::zeros(2 * n);
@@ -520,22 +514,9 @@ impl Operator for Problem<'_> {
             r[2 * i] = (q - b.q) * self.wq[i];
             r[2 * i + 1] = (u - b.u) * self.wu[i];
         }
-        Ok(r)
+        r
     }
-}
-
-impl CostFunction for Problem<'_> {
-    type Param = DVector<f64>;
-    type Output = f64;
-    fn cost(&self, p: &DVector<f64>) -> std::result::Result<f64, argmin::core::Error> {
-        Ok(self.apply(p)?.norm_squared())
-    }
-}
-
-impl Jacobian for Problem<'_> {
-    type Param = DVector<f64>;
-    type Jacobian = DMatrix<f64>;
-    fn jacobian(&self, p: &DVector<f64>) -> std::result::Result<DMatrix<f64>, argmin::core::Error> {
+    fn jacobian(&self, p: &[f64]) -> DMatrix<f64> {
         let (c, centre) = self.split(p);
         let n = self.bins.len();
         let m = self.n_free();
@@ -548,35 +529,37 @@ impl Jacobian for Problem<'_> {
                 j[(2 * i + 1, k)] = gu[k] * self.wu[i];
             }
         }
-        Ok(j)
+        j
     }
 }
 
-/// Run argmin's Gauss-Newton from `start`; if a full step does not lower the cost (a free
-/// centre far from the start), retry with damped steps.
-fn gauss_newton(problem: &Problem, start: DVector<f64>) -> Result<DVector<f64>> {
-    let start_cost = problem.cost(&start).map_err(|e| Error::FitFailed(e.to_string()))?;
-    let mut last_err = String::new();
-    for gamma in [1.0, 0.5, 0.25] {
-        let solver = GaussNewton::new().with_gamma(gamma).map_err(|e| Error::FitFailed(e.to_string()))?;
-        let run = Executor::new(crate::Lend(problem), solver)
-            .configure(|s| s.param(start.clone()).max_iters(if gamma == 1.0 { 50 } else { 200 }))
-            .run();
-        match run {
-            Ok(res) => {
-                let best = res.state().get_best_param().or(res.state().get_param()).cloned();
-                if let Some(p) = best {
-                    let c = problem.cost(&p).map_err(|e| Error::FitFailed(e.to_string()))?;
-                    if c.is_finite() && c <= start_cost * (1.0 + 1e-12) {
-                        return Ok(p);
-                    }
-                    last_err = format!("cost rose from {start_cost} to {c}");
-                }
-            }
-            Err(e) => last_err = e.to_string(),
-        }
+impl lsq::Problem for Problem<'_> {
+    type Eval = DVector<f64>;
+    type Lin = DMatrix<f64>;
+    fn evaluate(&self, x: &[f64]) -> std::result::Result<DVector<f64>, LsqError> {
+        Ok(self.residuals(x))
     }
-    Err(Error::FitFailed(format!("Gauss-Newton did not converge: {last_err}")))
+    fn chi2(&self, r: &DVector<f64>) -> f64 {
+        r.norm_squared()
+    }
+    fn linearize(&self, x: &[f64], r: &DVector<f64>) -> std::result::Result<Linear<DMatrix<f64>>, LsqError> {
+        Ok(Linear::of_jacobian(self.jacobian(x), r))
+    }
+}
+
+/// Gauss-Newton from `start` under [`lsq::RADIAL`] (full steps; if they do not lower the cost,
+/// a free centre far from the start, damped ones).
+fn gauss_newton(problem: &Problem, start: Vec<f64>) -> Result<Vec<f64>> {
+    lsq::ladder(problem, start, &lsq::RADIAL).map(|s| s.x).map_err(|e| {
+        // The fit's words for its failures, as when argmin's solver ran it (its own for a
+        // singular normal matrix).
+        let why = match e {
+            LsqError::Singular => "Non-invertible matrix".to_string(),
+            LsqError::NoDecrease { from, to } => format!("cost rose from {from} to {to}"),
+            LsqError::Evaluation(w) => w,
+        };
+        Error::FitFailed(format!("Gauss-Newton did not converge: {why}"))
+    })
 }
 
 /// Ratio of the smallest to the largest singular value of `j` with unit-norm columns: near 0
@@ -599,8 +582,8 @@ fn conditioning(j: &DMatrix<f64>) -> f64 {
 }
 
 /// Fit the radial model (section `sec:fors1`) to the bins by robust weighted least squares on
-/// `(q, u)` (argmin Gauss-Newton inside iteratively reweighted least squares). The covariance
-/// is `(J^T W J)^-1` from the Jacobian at the solution, scaled as
+/// `(q, u)` (Gauss-Newton, [`lsq::RADIAL`], inside iteratively reweighted least squares). The
+/// covariance is `(J^T W J)^-1` from the Jacobian at the solution, scaled as
 /// [`RadialFitOptions::error_scaling`] says (default `max(1, chi2_red)`) and, when asked,
 /// inflated for correlated bin errors ([`crate::correlation`]).
 ///
@@ -698,7 +681,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
     };
     // The coefficients must be constrained by the radii present (all bins at one radius make
     // every r^k column the same shape).
-    let j0 = problem.jacobian(&DVector::zeros(nc)).map_err(|e| Error::FitFailed(e.to_string()))?;
+    let j0 = problem.jacobian(&vec![0.0; nc]);
     let radii: Vec<f64> = problem.bins.iter().map(|b| (b.x - start_centre[0]).hypot(b.y - start_centre[1])).collect();
     if conditioning(&j0) < 1e-9 {
         let (lo, hi) = radii.iter().fold((f64::INFINITY, 0.0f64), |(l, h), r| (l.min(*r), h.max(*r)));
@@ -710,7 +693,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
     }
 
     // Robust weights from the standardized residuals of each bin (without the weights).
-    let robust_weights = |problem: &Problem, params: &DVector<f64>| -> Vec<f64> {
+    let robust_weights = |problem: &Problem, params: &[f64]| -> Vec<f64> {
         let (c, centre) = problem.split(params);
         let (mut gq, mut gu) = (vec![0.0; nc + 2], vec![0.0; nc + 2]);
         let t: Vec<f64> = problem
@@ -727,7 +710,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
         t.iter().map(|ti| opts.robust.weight(ti / scale)).collect()
     };
 
-    let mut params = gauss_newton(&problem, DVector::zeros(nc))?;
+    let mut params = gauss_newton(&problem, vec![0.0; nc])?;
     let mut weights = vec![1.0; problem.bins.len()];
     let sigmas: Vec<(f64, f64)> = problem.bins.iter().map(|b| (b.sigma_q, b.sigma_u)).collect();
     let set_weights = |problem: &mut Problem, w: &[f64]| {
@@ -742,9 +725,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
                 break;
             }
             problem.free_centre = true;
-            let mut p = params.as_slice().to_vec();
-            p.extend_from_slice(&start_centre);
-            params = DVector::from_vec(p);
+            params.extend_from_slice(&start_centre);
         }
         for _ in 0..30 {
             if opts.robust == Robust::None {
@@ -763,14 +744,14 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
     }
 
     // Covariance from the Jacobian at the solution, scaled as the options say.
-    let j = problem.jacobian(&params).map_err(|e| Error::FitFailed(e.to_string()))?;
+    let j = problem.jacobian(&params);
     if conditioning(&j) < 1e-10 {
         return Err(Error::Degenerate(
             "the parameters are not all constrained at the solution (free centre with no polarization gradient?)"
                 .into(),
         ));
     }
-    let r = problem.apply(&params).map_err(|e| Error::FitFailed(e.to_string()))?;
+    let r = problem.residuals(&params);
     let dof = (2 * problem.bins.len()).saturating_sub(n_free).max(1);
     let chi2_reduced = r.norm_squared() / dof as f64;
     let jtj = j.transpose() * &j;

@@ -13,16 +13,15 @@
 //!
 //! Each is fitted per band ([`fit_band`]) or jointly across bands ([`fit_joint`]) with the
 //! mirror parameter (`f` or `d`) shared and the angle offset and `(q0, u0)` per band (the
-//! half-wave plate's zero angle is chromatic). The least squares are argmin's Gauss-Newton
-//! started from the best point of a coarse grid; outliers are flagged by their pull and the
+//! half-wave plate's zero angle is chromatic). The least squares are Gauss-Newton
+//! ([`crate::lsq::TELESCOPE`]) started from the best point of a coarse grid; outliers are flagged by their pull and the
 //! fit repeated without them ([`FitOptions::clip`]). Parameter errors are
 //! `sqrt(diag((J^T W J)^-1) * s)` with `s` from [`ErrorScaling`] (by default `max(1, chi2_red)`,
 //! i.e. scaled by `sqrt(chi2_red)` when that exceeds 1).
 
+use crate::lsq::{self, Linear, LsqError};
 use crate::radial::ErrorScaling;
 use crate::{Error, Result};
-use argmin::core::{CostFunction, Executor, Jacobian, Operator, State};
-use argmin::solver::gaussnewton::GaussNewton;
 use mueller::mirror::{wiersema_m3, MetalTable, Reflection};
 use mueller::{Stokes, C64};
 use nalgebra::{DMatrix, DVector};
@@ -705,29 +704,18 @@ impl Problem<'_> {
     }
 }
 
-fn ae(e: mueller::Error) -> argmin::core::Error {
-    argmin::core::Error::msg(e.to_string())
-}
-
-impl Operator for Problem<'_> {
-    type Param = DVector<f64>;
-    type Output = DVector<f64>;
-    fn apply(&self, p: &DVector<f64>) -> std::result::Result<DVector<f64>, argmin::core::Error> {
-        self.residuals(p.as_slice()).map_err(ae)
+impl lsq::Problem for Problem<'_> {
+    type Eval = DVector<f64>;
+    type Lin = DMatrix<f64>;
+    fn evaluate(&self, x: &[f64]) -> std::result::Result<DVector<f64>, LsqError> {
+        self.residuals(x).map_err(|e| LsqError::Evaluation(e.to_string()))
     }
-}
-impl CostFunction for Problem<'_> {
-    type Param = DVector<f64>;
-    type Output = f64;
-    fn cost(&self, p: &DVector<f64>) -> std::result::Result<f64, argmin::core::Error> {
-        Ok(self.residuals(p.as_slice()).map_err(ae)?.norm_squared())
+    fn chi2(&self, r: &DVector<f64>) -> f64 {
+        r.norm_squared()
     }
-}
-impl Jacobian for Problem<'_> {
-    type Param = DVector<f64>;
-    type Jacobian = DMatrix<f64>;
-    fn jacobian(&self, p: &DVector<f64>) -> std::result::Result<DMatrix<f64>, argmin::core::Error> {
-        self.jac(p.as_slice()).map_err(ae)
+    fn linearize(&self, x: &[f64], r: &DVector<f64>) -> std::result::Result<Linear<DMatrix<f64>>, LsqError> {
+        let j = self.jac(x).map_err(|e| LsqError::Evaluation(e.to_string()))?;
+        Ok(Linear::of_jacobian(j, r))
     }
 }
 
@@ -735,25 +723,13 @@ fn chi2_of(problem: &Problem, p: &[f64]) -> f64 {
     problem.residuals(p).map(|r| r.norm_squared()).unwrap_or(f64::INFINITY)
 }
 
-/// argmin's Gauss-Newton from `start`, damped if a full step does not lower the cost; the
-/// best of the runs (never worse than the start).
+/// Gauss-Newton from `start` under [`lsq::TELESCOPE`] (full, half and fifth steps, each from
+/// the best point so far); the start when no run lowers the cost.
 fn gauss_newton(problem: &Problem, start: Vec<f64>) -> Vec<f64> {
-    let mut best = (chi2_of(problem, &start), start.clone());
-    for gamma in [1.0, 0.5, 0.2] {
-        let Ok(solver) = GaussNewton::<f64>::new().with_gamma(gamma) else { continue };
-        let run = Executor::new(crate::Lend(problem), solver)
-            .configure(|s| s.param(DVector::from_vec(best.1.clone())).max_iters(100))
-            .run();
-        if let Ok(res) = run {
-            if let Some(p) = res.state().get_best_param().or(res.state().get_param()) {
-                let c = chi2_of(problem, p.as_slice());
-                if c.is_finite() && c < best.0 {
-                    best = (c, p.as_slice().to_vec());
-                }
-            }
-        }
+    match lsq::ladder(problem, start.clone(), &lsq::TELESCOPE) {
+        Ok(s) => s.x,
+        Err(_) => start,
     }
-    best.1
 }
 
 /// Fold an angle offset into (-pi/2, pi/2] (the model has period pi in it).
