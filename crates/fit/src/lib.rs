@@ -21,6 +21,7 @@ pub mod calfile;
 pub mod calibration;
 pub mod catalog_correct;
 pub mod chain;
+pub mod columns;
 pub mod correlation;
 pub mod import;
 pub mod keys;

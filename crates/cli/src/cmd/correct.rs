@@ -2,16 +2,16 @@
 //! work; this module reads and writes tables).
 
 use anyhow::{anyhow, bail, Context, Result};
-use fit::correct::{Corrected, Measurement, Method};
+use fit::columns::{Inputs, Outputs, TableColumns, Units};
+use fit::correct::Method;
 use fit::request::Request;
 use fit::Calibration;
-use fitsio::tables::{ColumnDataType, ColumnDescription};
 use fitsio::FitsFile;
 use serde::Serialize;
-use skyfield::table::{Column, Format, Table};
+use skyfield::table::{Format, Table};
 use std::path::{Path, PathBuf};
 use stokes::stats::robust::{finite_median, Middle};
-use stokes::stats::{Estimator, PolMeasurement};
+use stokes::stats::Estimator;
 
 /// Remove the instrumental polarization from measured Stokes parameters with a calibration
 /// file: exact inversion of the instrument's Mueller matrix M_I (eq:instpol) or the
@@ -185,12 +185,6 @@ struct Summary {
     mueller_free: Option<Vec<&'static str>>,
 }
 
-/// Names of the columns `instpol correct` adds, in order (the estimator column is
-/// `p0_<name>`, inserted after `sigma_chi0_deg`).
-/// The appended columns before the estimator's `p0_<name>`: the first nine of
-/// `fit::correct::OUTPUT_NAMES` (`q_inst`, `u_inst` follow it).
-const ADDED: &[&str] = fit::correct::OUTPUT_NAMES.split_at(9).0;
-
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs([a.cal.as_path(), a.input.as_path()])?;
     crate::util::check_output(&a.out)?;
@@ -327,9 +321,8 @@ fn run_table(
     kind: Kind,
     est: Estimator,
 ) -> Result<()> {
-    use rayon::prelude::*;
     let out_format = Some(Format::from_path(&a.out)?);
-    let mut table = read_catalog(a, kind)?;
+    let table = read_catalog(a, kind)?;
     let carried = table.carried_zero_angle(&a.input)?;
     let column = |name: &str| -> Result<Option<Vec<f64>>> {
         Ok(if table.column(name).is_some() { Some(table.numbers(name, &a.input)?) } else { None })
@@ -359,18 +352,31 @@ fn run_table(
     let n = table.n_rows();
     let plan = fit::request::plan_rows(loaded, &request, n).map_err(|e| rows_error(a, Some(&table), e))?;
     print_notes(a, &plan.notes);
-    let pixel = match (&loaded.field, &loaded.mueller) {
-        (Some(c), _) => c.pixel,
-        (None, Some(m)) => m.pixel(),
-        _ => None,
+    let cols = TableColumns::read(&table, &a.input)?;
+    let units = if a.coords == Coords::Pixel { Units::Pixel } else { Units::Arcmin };
+    let (x, y) =
+        fit::columns::arcmin_positions(&cols.x, &cols.y, units, fit::columns::pixel_grid(loaded)).map_err(|_| {
+            let row = table.row_label(0);
+            anyhow!(
+                "{} {row}: the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)",
+                a.input.display()
+            )
+        })?;
+    let input = Inputs {
+        x: &x,
+        y: &y,
+        q: &cols.q,
+        u: &cols.u,
+        sigma_q: &cols.sigma_q,
+        sigma_u: &cols.sigma_u,
+        cov_qu: cols.cov_qu.as_deref(),
     };
-    let meas = measurements(&table, pixel, a.coords, &a.input)?;
-    let results: Vec<_> = meas.par_iter().enumerate().map(|(i, m)| plan.correct(i, m)).collect();
-    let mut out = Vec::with_capacity(results.len());
-    for (i, r) in results.into_iter().enumerate() {
-        out.push(r.map_err(|e| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)))?);
-    }
-    let n_extra = out.iter().filter(|c| c.extrapolated).count();
+    // The root-finding estimators take ~1 us a row: show progress on big catalogs.
+    let pb = if n >= 500_000 { indicatif::ProgressBar::new(n as u64) } else { indicatif::ProgressBar::hidden() };
+    let out = fit::columns::correct_columns(&input, Some(est), &|k| pb.inc(k as u64), |i, m| plan.correct(i, m))
+        .map_err(|(i, e)| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)));
+    pb.finish_and_clear();
+    let out = out?;
     // The zero angle reported: a field calibration's own (the rows were turned by it less what
     // they carry), else the one applied.
     let (filter, zero_angle) = match (&loaded.field, &loaded.mueller, &plan.telescope) {
@@ -384,7 +390,7 @@ fn run_table(
             plan.to_sky_deg,
         ),
     };
-    let mut summary = write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, filter, zero_angle)?;
+    let mut summary = write_catalog(a, kind, out_format, table, out, est, filter, zero_angle)?;
     if let Some(t) = &plan.telescope {
         summary.telescope_model = Some(t.fit.model.name());
         summary.telescope_band = Some(t.band.clone());
@@ -449,7 +455,9 @@ fn read_catalog(a: &Args, kind: Kind) -> Result<Table> {
         Kind::Text => Table::read(&a.input, a.hdu.as_deref())?,
         _ => Table::read_format(&a.input, Format::Fits, a.hdu.as_deref())?,
     };
-    check_no_clash(&table.names(), &a.input)?;
+    if let Some(h) = table.names().into_iter().find(|h| fit::correct::is_output_column(h)) {
+        bail!("{}: column '{h}' would be overwritten by the corrected columns; rename it", a.input.display());
+    }
     if table.n_rows() == 0 {
         bail!("{}: the catalog has no data rows", a.input.display());
     }
@@ -459,6 +467,9 @@ fn read_catalog(a: &Args, kind: Kind) -> Result<Table> {
 // The column a catalog carries when its q, u already have the instrument's HWP zero angle
 // applied (`instpol catalog` writes it): they are then in the sky's frame.
 use skyfield::table::ZERO_ANGLE_COLUMN as ZERO_ANGLE;
+
+/// The optional parallactic-angle columns of a telescope correction.
+const PARANG: [&str; 2] = ["parang_deg", "parang_end_deg"];
 
 /// The summary on stdout: the JSON object (--json), or `line`, the medians of the
 /// instrumental p removed (`of`: what it is the p of, "" or " (unpolarized light)") and of
@@ -508,151 +519,6 @@ fn detect(path: &Path) -> Result<Kind> {
         return Ok(Kind::FitsTable);
     }
     Ok(Kind::Text)
-}
-
-fn check_no_clash(headers: &[String], path: &Path) -> Result<()> {
-    for h in headers {
-        let l = h.trim().to_ascii_lowercase();
-        if ADDED.contains(&l.as_str()) || l.starts_with("p0_") || l == "q_inst" || l == "u_inst" || l == "extrapolated"
-        {
-            bail!("{}: column '{h}' would be overwritten by the corrected columns; rename it", path.display());
-        }
-    }
-    Ok(())
-}
-
-/// Catalog positions in arcmin from the detector centre.
-/// The optional parallactic-angle columns of a telescope correction.
-const PARANG: [&str; 2] = ["parang_deg", "parang_end_deg"];
-
-fn measurements(
-    t: &Table,
-    pixel: Option<fit::calfile::PixelGrid>,
-    coords: Coords,
-    path: &Path,
-) -> Result<Vec<Measurement>> {
-    let to_arcmin = |x: f64, y: f64| -> Result<(f64, f64)> {
-        match coords {
-            Coords::Arcmin => Ok((x, y)),
-            Coords::Pixel => {
-                let g = pixel.ok_or_else(|| {
-                    anyhow!("the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)")
-                })?;
-                Ok(g.to_arcmin(x, y))
-            }
-        }
-    };
-    let col = |c: &str| -> Result<Vec<f64>> {
-        if t.column(c).is_none() {
-            bail!(
-                "{}: no column '{c}' (columns: {}); need x, y, q, u, sigma_q, sigma_u",
-                path.display(),
-                t.names().join(", ")
-            );
-        }
-        Ok(t.numbers(c, path)?)
-    };
-    let (x, y, q, u, sq, su) = (col("x")?, col("y")?, col("q")?, col("u")?, col("sigma_q")?, col("sigma_u")?);
-    let cov = if t.column("cov_qu").is_some() { Some(col("cov_qu")?) } else { None };
-    (0..x.len())
-        .map(|i| {
-            let (xa, ya) = to_arcmin(x[i], y[i]).with_context(|| format!("{} {}", path.display(), t.row_label(i)))?;
-            Ok(Measurement::new(xa, ya, q[i], u[i], sq[i], su[i], cov.as_ref().map(|c| c[i]).unwrap_or(0.0)))
-        })
-        .collect()
-}
-
-/// The bias-corrected P0 of each row with the chosen estimator (NaN when the errors are not
-/// usable, e.g. zero).
-fn estimates(out: &[Corrected], est: Estimator) -> Vec<f64> {
-    use indicatif::{ParallelProgressIterator, ProgressBar};
-    use rayon::prelude::*;
-    // The root-finding estimators take ~1 us a row: show progress on big catalogs.
-    let pb = if out.len() >= 500_000 { ProgressBar::new(out.len() as u64) } else { ProgressBar::hidden() };
-    let v = out
-        .par_iter()
-        .progress_with(pb.clone())
-        .map(|r| match PolMeasurement::new(r.q0, r.u0, r.var_q0.sqrt(), r.var_u0.sqrt()) {
-            Ok(m) => est.estimate(&m).value,
-            Err(_) => f64::NAN,
-        })
-        .collect();
-    pb.finish_and_clear();
-    v
-}
-
-/// The appended values of one row: `fit::correct::OUTPUT_NAMES` with the estimator's `p0_<name>`
-/// before `q_inst` (the column order of `added_names`).
-fn added_values(r: &Corrected, p0e: f64) -> [f64; 12] {
-    let v = r.output_values();
-    std::array::from_fn(|k| match k {
-        0..=8 => v[k],
-        9 => p0e,
-        _ => v[k - 1],
-    })
-}
-
-fn added_names(est: Estimator) -> Vec<String> {
-    let mut v: Vec<String> = ADDED.iter().map(|s| s.to_string()).collect();
-    v.push(format!("p0_{}", est.name()));
-    v.push("q_inst".into());
-    v.push("u_inst".into());
-    v
-}
-
-/// The corrected columns appended to the input table (units: `deg` for the angles; the rest
-/// are dimensionless fractions or a 0/1 flag).
-fn append_columns(t: &mut Table, out: &[Corrected], p0e: &[f64], est: Estimator) {
-    for (k, n) in added_names(est).iter().enumerate() {
-        let v: Vec<f64> = out.iter().zip(p0e).map(|(r, e)| added_values(r, *e)[k]).collect();
-        let unit = n.ends_with("_deg").then_some("deg");
-        t.columns.push(Column::f64(n, unit, "", v));
-    }
-    t.columns.push(Column::i64(
-        "extrapolated",
-        "1 = outside the calibrated field",
-        out.iter().map(|r| r.extrapolated as i64).collect(),
-    ));
-}
-
-/// Copy the input FITS file byte for byte to a temporary file beside the output, append the
-/// corrected columns to its catalog table, and rename it over the output: every HDU, header
-/// keyword and column of the input is kept.
-fn write_fits_table(
-    input: &Path,
-    name: Option<&str>,
-    out: &[Corrected],
-    p0e: &[f64],
-    est: Estimator,
-    path: &Path,
-) -> Result<()> {
-    let names = added_names(est);
-    let werr = |m: String| anyhow!("cannot write {}: {m}", path.display());
-    crate::util::write_via_temp(path, ".fits.tmp", |tmp| {
-        let dir = tmp.parent().unwrap_or(Path::new("."));
-        std::fs::copy(input, tmp).with_context(|| format!("cannot copy {} to {}", input.display(), dir.display()))?;
-        let mut f = FitsFile::edit(tmp).map_err(|e| werr(e.to_string()))?;
-        let (mut t, _, _) = skyfield::table::fits_table_hdu(&mut f, name, input)?;
-        for (k, n) in names.iter().enumerate() {
-            let col: Vec<f64> = out.iter().zip(p0e).map(|(r, e)| added_values(r, *e)[k]).collect();
-            let d = ColumnDescription::new(n)
-                .with_type(ColumnDataType::Double)
-                .create()
-                .map_err(|e| werr(e.to_string()))?;
-            t = t.append_column(&mut f, &d).map_err(|e| werr(format!("adding column {n}: {e}")))?;
-            t.write_col(&mut f, n, &col).map_err(|e| werr(format!("writing column {n}: {e}")))?;
-        }
-        let flags: Vec<i32> = out.iter().map(|r| r.extrapolated as i32).collect();
-        let d = ColumnDescription::new("extrapolated")
-            .with_type(ColumnDataType::Int)
-            .create()
-            .map_err(|e| werr(e.to_string()))?;
-        t = t.append_column(&mut f, &d).map_err(|e| werr(format!("adding column extrapolated: {e}")))?;
-        t.write_col(&mut f, "extrapolated", &flags).map_err(|e| werr(format!("writing column extrapolated: {e}")))?;
-        skyfield::provenance::stamp(&mut f).map_err(werr)?;
-        // Closed explicitly: CFITSIO flushes its buffers here and a full disk must fail the run.
-        skyfield::durable::close_fits(f).map_err(werr)
-    })
 }
 
 /// Correct a Stokes map with any calibration (`fit::request::plan_map`): every valid bin at
@@ -740,40 +606,44 @@ fn cal_name(a: &Args) -> String {
     a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default()
 }
 
-/// Write a corrected catalog in the output's format and make its summary.
+/// Write a corrected catalog in the output's format (a FITS table into FITS: a copy of the input
+/// with the columns appended) and make its summary.
 #[allow(clippy::too_many_arguments)]
 fn write_catalog(
     a: &Args,
     kind: Kind,
     out_format: Option<Format>,
-    table: &mut Table,
-    out: &[Corrected],
+    mut table: Table,
+    out: Outputs,
     est: Estimator,
-    n_extra: usize,
     filter: String,
     hwp_chi_offset_deg: f64,
 ) -> Result<Summary> {
-    let p0est = estimates(out, est);
+    let col = |name: &str| out.column(name).expect("an output column");
+    let median_p0 = finite_median(col("p0").iter().copied(), Middle::Mean);
+    let p_inst = col("q_inst").iter().zip(col("u_inst")).map(|(q, u)| q.hypot(*u));
+    let median_p_inst = finite_median(p_inst, Middle::Mean);
+    let (rows, extrapolated) = (out.extrapolated.len(), out.n_extrapolated);
+    crate::util::check_output(&a.out)?;
     if kind == Kind::FitsTable && out_format == Some(Format::Fits) {
-        write_fits_table(&a.input, a.hdu.as_deref(), out, &p0est, est, &a.out)?;
+        skyfield::table::append_fits_columns(&a.input, a.hdu.as_deref(), &out.into_table_columns(), &a.out)?;
     } else {
-        append_columns(table, out, &p0est, est);
-        crate::util::check_output(&a.out)?;
+        table.columns.extend(out.into_table_columns());
         table.write(&a.out)?;
     }
     Ok(Summary {
         input: a.input.clone(),
         output: a.out.clone(),
         kind: if kind == Kind::Text { "catalog (text table)" } else { "catalog (FITS table)" },
-        rows: out.len(),
-        extrapolated: n_extra,
+        rows,
+        extrapolated,
         method: a.method,
         estimator: est.name().into(),
         coords: Some(a.coords),
         filter,
         hwp_chi_offset_deg,
-        median_p0: finite_median(out.iter().map(|r| r.p0), Middle::Mean),
-        median_p_inst: finite_median(out.iter().map(|r| r.inst.q.hypot(r.inst.u)), Middle::Mean),
+        median_p0,
+        median_p_inst,
         telescope_model: None,
         telescope_band: None,
         telescope_exposures: None,
