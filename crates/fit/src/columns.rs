@@ -90,6 +90,91 @@ impl TableColumns {
     }
 }
 
+/// The column of each row's parallactic angle at the exposure's start (deg), and the optional
+/// one at its end (the telescope model is then averaged over the track).
+pub const PARANG_COLUMNS: [&str; 2] = ["parang_deg", "parang_end_deg"];
+
+/// The column of each row's rotator / adapter angle (deg), read for a telescope model fitted
+/// with rotator angles.
+pub const ROTATOR_COLUMN: &str = "rotator_deg";
+
+/// A catalog to correct, read from `path` (a FITS table, the HDU `hdu` or the first, when
+/// `fits`; else the format of its extension): refused when a column would be overwritten by the
+/// corrected ones ([`crate::correct::is_output_column`]) or when it has no row.
+pub fn read_catalog(path: &Path, fits: bool, hdu: Option<&str>) -> Result<Table, skyfield::Error> {
+    let table =
+        if fits { Table::read_format(path, skyfield::table::Format::Fits, hdu)? } else { Table::read(path, hdu)? };
+    let refuse = |message: String| Err(skyfield::Error::Table { path: path.to_path_buf(), message });
+    if let Some(h) = table.names().into_iter().find(|h| crate::correct::is_output_column(h)) {
+        return refuse(format!("column '{h}' would be overwritten by the corrected columns; rename it"));
+    }
+    if table.n_rows() == 0 {
+        return refuse("the catalog has no data rows".into());
+    }
+    Ok(table)
+}
+
+/// What a catalog says of its frames, for [`crate::request::Request`]: the HWP zero angle its
+/// `q, u` carry (`skyfield::table::Table::carried_zero_angle`), each row's telescope angles
+/// ([`PARANG_COLUMNS`], and [`ROTATOR_COLUMN`] only where it is used: per-row angles and a model
+/// fitted with rotator angles), or else, for a telescope model, the angles of the exposures
+/// the catalog recorded (`instpol catalog` writes them into ECSV, FITS and VOTable tables).
+pub struct TableAngles {
+    pub carried_zero_angle_deg: Option<f64>,
+    pub parang_deg: Option<Vec<f64>>,
+    pub parang_end_deg: Option<Vec<f64>>,
+    pub rotator_deg: Option<Vec<f64>>,
+    pub recorded: Option<skyfield::RecordedAngles>,
+}
+
+impl TableAngles {
+    /// The angles of table `t` read from `path`, for a correction with `loaded`.
+    pub fn read(t: &Table, path: &Path, loaded: &CalibrationFile) -> Result<Self, skyfield::Error> {
+        let carried_zero_angle_deg = t.carried_zero_angle(path)?;
+        let column = |name: &str| t.column(name).map(|_| t.numbers(name, path)).transpose();
+        let (parang_deg, parang_end_deg) = (column(PARANG_COLUMNS[0])?, column(PARANG_COLUMNS[1])?);
+        let with_rotator = loaded.telescope.as_ref().is_some_and(|t| t.with_rotator);
+        let rotator_deg = if parang_deg.is_some() && with_rotator { column(ROTATOR_COLUMN)? } else { None };
+        let recorded = if parang_deg.is_none() && loaded.telescope.is_some() {
+            Some(skyfield::RecordedAngles::from_meta(&t.meta, path)?)
+        } else {
+            None
+        };
+        Ok(Self { carried_zero_angle_deg, parang_deg, parang_end_deg, rotator_deg, recorded })
+    }
+
+    /// `base` with these angles: the rows' data, not a caller's arguments.
+    pub fn request<'a>(&'a self, base: crate::request::Request<'a>) -> crate::request::Request<'a> {
+        crate::request::Request {
+            carried_zero_angle_deg: self.carried_zero_angle_deg,
+            recorded: self.recorded.as_ref(),
+            per_row: self.parang_deg.as_deref().map(|s| crate::request::PerRowAngles {
+                start_deg: s,
+                end_deg: self.parang_end_deg.as_deref(),
+                rotator_deg: self.rotator_deg.as_deref(),
+            }),
+            ..base
+        }
+    }
+}
+
+/// The filter and the HWP zero angle (deg) a correction of rows reports: a field calibration's
+/// own (the rows were turned by it less what they carry), else the one applied, with the
+/// field calibration's filter, the Mueller field's, or the telescope model's band.
+pub fn reported_zero_angle(loaded: &CalibrationFile, plan: &crate::request::RowsPlan<'_>) -> (String, f64) {
+    match (&loaded.field, &loaded.mueller, &plan.telescope) {
+        (Some(c), _, None) => (c.filter.clone(), c.hwp_chi_offset_deg),
+        (None, Some(m), _) => (m.filter.clone(), plan.to_sky_deg.to_radians().to_degrees()),
+        (field, _, t) => (
+            field
+                .as_ref()
+                .map(|c| c.filter.clone())
+                .unwrap_or_else(|| t.as_ref().map_or(String::new(), |t| t.band.clone())),
+            plan.to_sky_deg,
+        ),
+    }
+}
+
 /// The input columns of a correction: positions in arcmin from the detector centre, the
 /// measured `q, u` (fractions), their 1-sigma errors and optional covariance (0 when absent),
 /// all of one length.

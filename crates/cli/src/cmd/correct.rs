@@ -13,77 +13,10 @@ use std::path::{Path, PathBuf};
 use stokes::stats::robust::{finite_median, Middle};
 use stokes::stats::Estimator;
 
-/// Remove the instrumental polarization from measured Stokes parameters with a calibration
-/// file: exact inversion of the instrument's Mueller matrix M_I (eq:instpol) or the
-/// first-order form eq:approx, the HWP chromatic zero angle of the calibration's filter
-/// applied first, and the errors of the measurement and of the calibration propagated.
-///
-/// Input (--in), detected by content:
-///
-///   catalog: a FITS binary table (the first table HDU, or --hdu NAME), or by extension
-///   CSV (.csv; header row; lines starting with # are comments), ECSV (.ecsv) or VOTable
-///   (.vot, .xml; TABLEDATA), with columns (names case-insensitive):
-///     x, y               position (--coords: arcmin from the detector centre, or 0-based
-///                        pixels on the calibration's detector grid)
-///     q, u               measured Q/I, U/I (fractions, not percent)
-///     sigma_q, sigma_u   their 1-sigma errors
-///     cov_qu             (optional) their covariance
-///   Every input column is kept; added are q0, u0, sigma_q0, sigma_u0, cov_qu0 (corrected
-///   Q0/I0, U0/I0 and covariance), p0, sigma_p0 (fraction, not bias-corrected), chi0_deg,
-///   sigma_chi0_deg ([0, 180) deg), p0_<estimator> (bias-corrected P0, see --estimator),
-///   q_inst, u_inst (the instrumental polarization removed) and extrapolated (0/1).
-///   The output's format is its extension's (.csv, .fits, .ecsv, .vot); a FITS table
-///   corrected into a .fits keeps every HDU and keyword of the input.
-///
-///   Stokes map, a FITS file written by `instpol reduce` (primary keyword MAPVERS): every
-///   valid bin is corrected at its centre and a Stokes map of the same layout is written,
-///   with Q, U, P, CHI corrected and SIGMA_Q/U, COV_QU, SIGQ_PHOT/SIGU_PHOT propagated.
-///
-/// The telescope (a calibration holding a TELESCOPE model, from `instpol fit-standards
-/// --output`, alone or beside a field model): catalogs then need the parallactic angle per
-/// row, column parang_deg (deg, as the standards were fitted with) and optionally
-/// parang_end_deg (the exposure's end: the model is averaged over the track), and rotator_deg
-/// when the model was fitted with rotator angles. The field is
-/// undone first, then the telescope (fit::telescope_cal); q_inst, u_inst are then the field's
-/// and the telescope's instrumental polarization together, to first order. --band picks the
-/// telescope model's band (default: the field calibration's filter, the map's filter, or the
-/// model's only band).
-/// Example: instpol correct --cal tel_V.fits --in stars.csv --out stars_corr.csv
-///
-/// A Stokes map's bins share their exposures, hence one parallactic-angle track: the one
-/// `instpol reduce` recorded in the map (PARANG1, PARANG2, ROTANG: when the instrument's
-/// [telescope] section names the header keywords), or --parang START[,END] (deg: the first
-/// frame's start, the last frame's end, as their headers say), and --rotator DEG when the
-/// model was fitted with rotator angles. A catalog without a parang_deg column (every star from
-/// the same frames, as `instpol catalog` writes them) takes the same options for all its rows;
-/// an ECSV, FITS or VOTable catalog from `instpol catalog` records its exposures' angles (the
-/// maps' keywords, as the table's numbers) and is then undone exposure by exposure without
-/// --parang (--parang replaces them with one track).
-/// The output map records the model, band and track (TELMODEL, TELBAND, TELROT, PARANG1,
-/// PARANG2).
-/// Example: instpol correct --cal tel_V.fits --in map_V.fits --out map_V_corr.fits
-/// Example: instpol correct --cal tel_V.fits --in map_V.fits --out map_V_corr.fits --parang -41.2,-37.9
-///
-/// A Mueller-field calibration (`instpol calibrate-mueller --out CAL.fits`, MODEL = 'MUELLER'):
-/// the fitted linear block of the pre-analyzer Mueller matrix (diattenuation and, as fitted,
-/// retardance, rotation, depolarization, or the general 3 x 3 block) is inverted exactly at
-/// each position, so polarized targets come out right where a p, phi calibration leaves a
-/// residual; the errors of the measurement and of the field's coefficients are propagated
-/// through the inversion. Its frame is the one its maps were turned into by the HWP zero angle
-/// they record (the calibration's, applied first as for a p, phi calibration; 0 for maps that
-/// record none: the maps' frame); --method exact only.
-/// Example: instpol correct --cal mueller_B.fits --in stars.csv --out stars_corr.csv
-///
-/// Positions outside the calibrated field are an error naming the row or bin, unless
-/// --allow-extrapolation: then they are corrected, flagged, and the calibration's variance
-/// is inflated by (F p)^2 per component (F = --extrapolation-error, default 0.5; for a
-/// Mueller field, (F |correction|)^2).
-///
-/// Output files are written atomically (a temporary file renamed when complete). The summary
-/// goes to stdout (--json for scripts: input, output, kind, rows, extrapolated, method,
-/// estimator, coords, filter, hwp_chi_offset_deg, median_p0, median_p_inst).
+// `instpol correct`'s options; the long help (what is read, written and reported, with the
+// telescope's and the Mueller field's cases) is the text file beside this one (users read it).
 #[derive(clap::Args)]
-#[command(verbatim_doc_comment)]
+#[command(long_about = include_str!("correct_help.txt").trim_end())]
 pub struct Args {
     /// Calibration file (instpol calibration FITS: `instpol calibrate`, `instpol import-map`,
     /// `instpol fit-standards --output` or `instpol calibrate-mueller --out CAL.fits`).
@@ -322,33 +255,9 @@ fn run_table(
     est: Estimator,
 ) -> Result<()> {
     let out_format = Some(Format::from_path(&a.out)?);
-    let table = read_catalog(a, kind)?;
-    let carried = table.carried_zero_angle(&a.input)?;
-    let column = |name: &str| -> Result<Option<Vec<f64>>> {
-        Ok(if table.column(name).is_some() { Some(table.numbers(name, &a.input)?) } else { None })
-    };
-    let (start, end) = (column(PARANG[0])?, column(PARANG[1])?);
-    // The rotator column is read only where it is used: per-row angles of a model fitted
-    // with rotator angles.
-    let with_rotator = loaded.telescope.as_ref().is_some_and(|t| t.with_rotator);
-    let rot = if start.is_some() && with_rotator { column("rotator_deg")? } else { None };
-    // Every row from the same frames: the angles the catalog recorded (instpol catalog writes
-    // its exposures' angles into ECSV, FITS and VOTable tables).
-    let recorded = if start.is_none() && loaded.telescope.is_some() {
-        Some(skyfield::RecordedAngles::from_meta(&table.meta, &a.input)?)
-    } else {
-        None
-    };
-    let request = Request {
-        carried_zero_angle_deg: carried,
-        recorded: recorded.as_ref(),
-        per_row: start.as_deref().map(|s| fit::request::PerRowAngles {
-            start_deg: s,
-            end_deg: end.as_deref(),
-            rotator_deg: rot.as_deref(),
-        }),
-        ..*base
-    };
+    let table = fit::columns::read_catalog(&a.input, kind == Kind::FitsTable, a.hdu.as_deref())?;
+    let angles = fit::columns::TableAngles::read(&table, &a.input, loaded)?;
+    let request = angles.request(*base);
     let n = table.n_rows();
     let plan = fit::request::plan_rows(loaded, &request, n).map_err(|e| rows_error(a, Some(&table), e))?;
     print_notes(a, &plan.notes);
@@ -377,19 +286,7 @@ fn run_table(
         .map_err(|(i, e)| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)));
     pb.finish_and_clear();
     let out = out?;
-    // The zero angle reported: a field calibration's own (the rows were turned by it less what
-    // they carry), else the one applied.
-    let (filter, zero_angle) = match (&loaded.field, &loaded.mueller, &plan.telescope) {
-        (Some(c), _, None) => (c.filter.clone(), c.hwp_chi_offset_deg),
-        (None, Some(m), _) => (m.filter.clone(), plan.to_sky_deg.to_radians().to_degrees()),
-        (field, _, t) => (
-            field
-                .as_ref()
-                .map(|c| c.filter.clone())
-                .unwrap_or_else(|| t.as_ref().map_or(String::new(), |t| t.band.clone())),
-            plan.to_sky_deg,
-        ),
-    };
+    let (filter, zero_angle) = fit::columns::reported_zero_angle(loaded, &plan);
     let mut summary = write_catalog(a, kind, out_format, table, out, est, filter, zero_angle)?;
     if let Some(t) = &plan.telescope {
         summary.telescope_model = Some(t.fit.model.name());
@@ -448,28 +345,10 @@ fn mueller_line(a: &Args, s: &Summary, cal: &fit::mueller_cal::MuellerCal) -> St
     )
 }
 
-/// The catalog to correct (text formats by extension, or a FITS table), with no column the
-/// correction would overwrite and at least one row.
-fn read_catalog(a: &Args, kind: Kind) -> Result<Table> {
-    let table = match kind {
-        Kind::Text => Table::read(&a.input, a.hdu.as_deref())?,
-        _ => Table::read_format(&a.input, Format::Fits, a.hdu.as_deref())?,
-    };
-    if let Some(h) = table.names().into_iter().find(|h| fit::correct::is_output_column(h)) {
-        bail!("{}: column '{h}' would be overwritten by the corrected columns; rename it", a.input.display());
-    }
-    if table.n_rows() == 0 {
-        bail!("{}: the catalog has no data rows", a.input.display());
-    }
-    Ok(table)
-}
-
 // The column a catalog carries when its q, u already have the instrument's HWP zero angle
 // applied (`instpol catalog` writes it): they are then in the sky's frame.
+use fit::columns::PARANG_COLUMNS as PARANG;
 use skyfield::table::ZERO_ANGLE_COLUMN as ZERO_ANGLE;
-
-/// The optional parallactic-angle columns of a telescope correction.
-const PARANG: [&str; 2] = ["parang_deg", "parang_end_deg"];
 
 /// The summary on stdout: the JSON object (--json), or `line`, the medians of the
 /// instrumental p removed (`of`: what it is the p of, "" or " (unpolarized light)") and of
