@@ -88,6 +88,27 @@ impl TableColumns {
         let cov_qu = if t.column("cov_qu").is_some() { Some(col("cov_qu")?) } else { None };
         Ok(Self { x, y, q, u, sigma_q, sigma_u, cov_qu })
     }
+
+    /// Turn `x, y` into arcmin from the detector centre ([`arcmin_positions`]).
+    pub fn to_arcmin(&mut self, units: Units, grid: Option<PixelGrid>) -> Result<(), NoPixelGrid> {
+        if let (Cow::Owned(x), Cow::Owned(y)) = arcmin_positions(&self.x, &self.y, units, grid)? {
+            (self.x, self.y) = (x, y);
+        }
+        Ok(())
+    }
+
+    /// The columns as the input of [`correct_columns`] (positions in arcmin: [`Self::to_arcmin`]).
+    pub fn inputs(&self) -> Inputs<'_> {
+        Inputs {
+            x: &self.x,
+            y: &self.y,
+            q: &self.q,
+            u: &self.u,
+            sigma_q: &self.sigma_q,
+            sigma_u: &self.sigma_u,
+            cov_qu: self.cov_qu.as_deref(),
+        }
+    }
 }
 
 /// The column of each row's parallactic angle at the exposure's start (deg), and the optional

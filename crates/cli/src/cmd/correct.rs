@@ -2,7 +2,7 @@
 //! work; this module reads and writes tables).
 
 use anyhow::{anyhow, bail, Context, Result};
-use fit::columns::{Inputs, Outputs, TableColumns, Units};
+use fit::columns::{TableColumns, Units};
 use fit::correct::Method;
 use fit::request::Request;
 use fit::Calibration;
@@ -255,77 +255,95 @@ fn run_table(
     est: Estimator,
 ) -> Result<()> {
     let out_format = Some(Format::from_path(&a.out)?);
-    let table = fit::columns::read_catalog(&a.input, kind == Kind::FitsTable, a.hdu.as_deref())?;
+    let mut table = fit::columns::read_catalog(&a.input, kind == Kind::FitsTable, a.hdu.as_deref())?;
     let angles = fit::columns::TableAngles::read(&table, &a.input, loaded)?;
-    let request = angles.request(*base);
     let n = table.n_rows();
-    let plan = fit::request::plan_rows(loaded, &request, n).map_err(|e| rows_error(a, Some(&table), e))?;
+    let plan =
+        fit::request::plan_rows(loaded, &angles.request(*base), n).map_err(|e| rows_error(a, Some(&table), e))?;
     print_notes(a, &plan.notes);
-    let cols = TableColumns::read(&table, &a.input)?;
+    let mut cols = TableColumns::read(&table, &a.input)?;
     let units = if a.coords == Coords::Pixel { Units::Pixel } else { Units::Arcmin };
-    let (x, y) =
-        fit::columns::arcmin_positions(&cols.x, &cols.y, units, fit::columns::pixel_grid(loaded)).map_err(|_| {
-            let row = table.row_label(0);
-            anyhow!(
-                "{} {row}: the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)",
-                a.input.display()
-            )
-        })?;
-    let input = Inputs {
-        x: &x,
-        y: &y,
-        q: &cols.q,
-        u: &cols.u,
-        sigma_q: &cols.sigma_q,
-        sigma_u: &cols.sigma_u,
-        cov_qu: cols.cov_qu.as_deref(),
-    };
+    cols.to_arcmin(units, fit::columns::pixel_grid(loaded)).map_err(|_| {
+        let (input, row) = (a.input.display(), table.row_label(0));
+        anyhow!(
+            "{input} {row}: the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)"
+        )
+    })?;
     // The root-finding estimators take ~1 us a row: show progress on big catalogs.
     let pb = if n >= 500_000 { indicatif::ProgressBar::new(n as u64) } else { indicatif::ProgressBar::hidden() };
-    let out = fit::columns::correct_columns(&input, Some(est), &|k| pb.inc(k as u64), |i, m| plan.correct(i, m))
-        .map_err(|(i, e)| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)));
+    let out =
+        fit::columns::correct_columns(&cols.inputs(), Some(est), &|k| pb.inc(k as u64), |i, m| plan.correct(i, m))
+            .map_err(|(i, e)| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)));
     pb.finish_and_clear();
     let out = out?;
     let (filter, zero_angle) = fit::columns::reported_zero_angle(loaded, &plan);
-    let mut summary = write_catalog(a, kind, out_format, table, out, est, filter, zero_angle)?;
-    if let Some(t) = &plan.telescope {
-        summary.telescope_model = Some(t.fit.model.name());
-        summary.telescope_band = Some(t.band.clone());
-        summary.telescope_exposures = (t.exposures > 0).then_some(t.exposures);
+    let col = |name: &str| out.column(name).expect("an output column");
+    let p_inst: Vec<f64> = col("q_inst").iter().zip(col("u_inst")).map(|(q, u)| q.hypot(*u)).collect();
+    let text = if kind == Kind::Text { "catalog (text table)" } else { "catalog (FITS table)" };
+    let (rows, extra) = (out.extrapolated.len(), out.n_extrapolated);
+    let mut s = summary(a, text, (rows, extra), est.name().into(), filter, zero_angle, col("p0").to_vec(), p_inst);
+    s.coords = Some(a.coords);
+    crate::util::check_output(&a.out)?;
+    if kind == Kind::FitsTable && out_format == Some(Format::Fits) {
+        skyfield::table::append_fits_columns(&a.input, a.hdu.as_deref(), &out.into_table_columns(), &a.out)?;
+    } else {
+        table.columns.extend(out.into_table_columns());
+        table.write(&a.out)?;
     }
-    if let Some(m) = &loaded.mueller {
-        summary.mueller_model = Some(m.field.kind.model_name());
-        summary.mueller_free = Some(m.field.kind.free_words());
+    let telescope = plan.telescope.as_ref().map(|t| {
+        (s.telescope_exposures, s.telescope_band) = ((t.exposures > 0).then_some(t.exposures), Some(t.band.clone()));
+        s.telescope_model = Some(t.fit.model.name());
+        let how = match t.exposures {
+            0 => "the parallactic angle per row".to_string(),
+            k => format!("exposure by exposure ({k}, as the catalog recorded them)"),
+        };
+        (
+            t.fit.model.name(),
+            format!(
+                "corrected {rows} rows with {} ({} model, band {}{}), {how}",
+                a.cal.display(),
+                t.fit.model.name(),
+                t.band,
+                first(loaded)
+            ),
+        )
+    });
+    finish(a, s, loaded, telescope)
+}
+
+/// How a telescope correction's line says whether the field was undone first.
+fn first(loaded: &fit::calibration::CalibrationFile) -> &'static str {
+    if loaded.field.is_some() {
+        ", field model first"
+    } else {
+        ", no field model"
     }
-    match (&loaded.mueller, &plan.telescope, &loaded.field) {
+}
+
+/// Print the summary (`telescope`: the model's name and the line that says what was done, when a
+/// telescope model was applied), after the warning for extrapolated positions.
+fn finish(
+    a: &Args,
+    mut s: Summary,
+    loaded: &fit::calibration::CalibrationFile,
+    telescope: Option<(&'static str, String)>,
+) -> Result<()> {
+    match (&loaded.mueller, telescope, &loaded.field) {
         (Some(m), _, _) => {
-            warn_extrapolated(&summary, "fitted Mueller field");
-            report(a, &summary, &mueller_line(a, &summary, m), " (unpolarized light)")
+            (s.filter, s.mueller_model) = (m.filter.clone(), Some(m.field.kind.model_name()));
+            s.mueller_free = Some(m.field.kind.free_words());
+            warn_extrapolated(&s, "fitted Mueller field");
+            report(a, &s, &mueller_line(a, &s, m), " (unpolarized light)")
         }
-        (None, Some(t), field) => {
-            warn_extrapolated(&summary, "calibrated field");
-            report(
-                a,
-                &summary,
-                &format!(
-                    "corrected {} rows with {} ({} model, band {}{}), {}",
-                    summary.rows,
-                    a.cal.display(),
-                    t.fit.model.name(),
-                    t.band,
-                    if field.is_some() { ", field model first" } else { ", no field model" },
-                    if t.exposures == 0 {
-                        "the parallactic angle per row".to_string()
-                    } else {
-                        format!("exposure by exposure ({}, as the catalog recorded them)", t.exposures)
-                    }
-                ),
-                "",
-            )
+        (None, Some((model, line)), _) => {
+            s.telescope_model = Some(model);
+            warn_extrapolated(&s, "calibrated field");
+            report(a, &s, &line, "")
         }
         (None, None, Some(cal)) => {
-            warn_extrapolated(&summary, "calibrated field");
-            report(a, &summary, &field_line(a, &summary, cal), "")
+            s.filter = cal.filter.clone();
+            warn_extrapolated(&s, "calibrated field");
+            report(a, &s, &field_line(a, &s, cal), "")
         }
         (None, None, None) => unreachable!("the loader refuses a file without a model"),
     }
@@ -407,64 +425,57 @@ fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Reque
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
     let plan = fit::request::plan_map(loaded, request, &map).map_err(|e| rows_error(a, None, e))?;
     print_notes(a, &plan.notes);
-    let (c, stamp) = plan.correct(&map, &cal_name(a)).map_err(|e| map_error(e, &a.input))?;
+    let name = a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+    let (c, stamp) = plan.correct(&map, &name).map_err(|e| map_error(e, &a.input))?;
     crate::util::check_output(&a.out)?;
     c.map.write_corrected_fits(&a.out, &stamp).with_context(|| format!("cannot write {}", a.out.display()))?;
-    let mut summary = map_summary(a, c, &map.filter, stamp.hwp_chi_offset_deg);
-    match (&loaded.mueller, &plan.telescope, &loaded.field) {
-        (Some(m), _, _) => {
-            summary.filter = m.filter.clone();
-            summary.mueller_model = Some(m.field.kind.model_name());
-            summary.mueller_free = Some(m.field.kind.free_words());
-            warn_extrapolated(&summary, "fitted Mueller field");
-            report(a, &summary, &mueller_line(a, &summary, m), " (unpolarized light)")
-        }
-        (None, Some(t), field) => {
-            summary.telescope_model = Some(t.fit.model.name());
-            summary.telescope_band = Some(t.band.clone());
-            summary.telescope_exposures = (plan.exposures > 0).then_some(plan.exposures);
-            warn_extrapolated(&summary, "calibrated field");
-            report(
-                a,
-                &summary,
-                &format!(
-                    "corrected {} bins of {} with {} ({} model, band {}{}), parallactic angle {:.2} to {:.2} deg",
-                    summary.rows,
-                    a.input.display(),
-                    a.cal.display(),
-                    t.fit.model.name(),
-                    t.band,
-                    if field.is_some() { ", field model first" } else { ", no field model" },
-                    t.track.start.to_degrees(),
-                    t.track.end.to_degrees()
-                ),
-                "",
-            )
-        }
-        (None, None, Some(cal)) => {
-            summary.filter = cal.filter.clone();
-            warn_extrapolated(&summary, "calibrated field");
-            report(a, &summary, &field_line(a, &summary, cal), "")
-        }
-        (None, None, None) => unreachable!("the loader refuses a file without a model"),
-    }
+    let (n, filter) = ((c.n_bins, c.n_extrapolated), map.filter.clone());
+    let mut s = summary(a, "Stokes map", n, a.estimator.clone(), filter, stamp.hwp_chi_offset_deg, c.p0, c.p_inst);
+    // A Mueller field's summary names no telescope model.
+    let telescope = plan.telescope.as_ref().filter(|_| loaded.mueller.is_none()).map(|t| {
+        let k = plan.exposures;
+        (s.telescope_exposures, s.telescope_band) = ((k > 0).then_some(k), Some(t.band.clone()));
+        let (input, cal, track) = (a.input.display(), a.cal.display(), t.track);
+        let line = format!(
+            "corrected {} bins of {input} with {cal} ({} model, band {}{}), parallactic angle {:.2} to {:.2} deg",
+            n.0,
+            t.fit.model.name(),
+            t.band,
+            first(loaded),
+            track.start.to_degrees(),
+            track.end.to_degrees()
+        );
+        (t.fit.model.name(), line)
+    });
+    finish(a, s, loaded, telescope)
 }
 
-/// The summary of a corrected Stokes map.
-fn map_summary(a: &Args, c: fit::correct::CorrectedMap, filter: &str, hwp_chi_offset_deg: f64) -> Summary {
+/// The summary of a correction of `n` = (rows or bins, extrapolated ones), with the medians of
+/// the corrected P0 and of the instrumental p removed.
+#[allow(clippy::too_many_arguments)]
+fn summary(
+    a: &Args,
+    kind: &'static str,
+    n: (usize, usize),
+    estimator: String,
+    filter: String,
+    hwp_chi_offset_deg: f64,
+    p0: Vec<f64>,
+    p_inst: Vec<f64>,
+) -> Summary {
     Summary {
         input: a.input.clone(),
         output: a.out.clone(),
-        kind: "Stokes map",
-        rows: c.n_bins,
-        extrapolated: c.n_extrapolated,
+        kind,
+        rows: n.0,
+        extrapolated: n.1,
         method: a.method,
-        estimator: a.estimator.clone(),
+        estimator,
         coords: None,
-        filter: filter.to_string(),
+        filter,
         hwp_chi_offset_deg,
-        median_p0: finite_median(c.p0, Middle::Mean),
-        median_p_inst: finite_median(c.p_inst, Middle::Mean),
+        median_p0: finite_median(p0, Middle::Mean),
+        median_p_inst: finite_median(p_inst, Middle::Mean),
         telescope_model: None,
         telescope_band: None,
         telescope_exposures: None,
@@ -478,55 +489,4 @@ fn map_error(e: fit::correct::MapError, input: &Path) -> anyhow::Error {
         fit::correct::MapError::NoValidBins => anyhow!("{}: {e}", input.display()),
         e => anyhow!("{} {e}", input.display()),
     }
-}
-
-/// The calibration file's name, as a corrected map records it (`INSTCORR`).
-fn cal_name(a: &Args) -> String {
-    a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default()
-}
-
-/// Write a corrected catalog in the output's format (a FITS table into FITS: a copy of the input
-/// with the columns appended) and make its summary.
-#[allow(clippy::too_many_arguments)]
-fn write_catalog(
-    a: &Args,
-    kind: Kind,
-    out_format: Option<Format>,
-    mut table: Table,
-    out: Outputs,
-    est: Estimator,
-    filter: String,
-    hwp_chi_offset_deg: f64,
-) -> Result<Summary> {
-    let col = |name: &str| out.column(name).expect("an output column");
-    let median_p0 = finite_median(col("p0").iter().copied(), Middle::Mean);
-    let p_inst = col("q_inst").iter().zip(col("u_inst")).map(|(q, u)| q.hypot(*u));
-    let median_p_inst = finite_median(p_inst, Middle::Mean);
-    let (rows, extrapolated) = (out.extrapolated.len(), out.n_extrapolated);
-    crate::util::check_output(&a.out)?;
-    if kind == Kind::FitsTable && out_format == Some(Format::Fits) {
-        skyfield::table::append_fits_columns(&a.input, a.hdu.as_deref(), &out.into_table_columns(), &a.out)?;
-    } else {
-        table.columns.extend(out.into_table_columns());
-        table.write(&a.out)?;
-    }
-    Ok(Summary {
-        input: a.input.clone(),
-        output: a.out.clone(),
-        kind: if kind == Kind::Text { "catalog (text table)" } else { "catalog (FITS table)" },
-        rows,
-        extrapolated,
-        method: a.method,
-        estimator: est.name().into(),
-        coords: Some(a.coords),
-        filter,
-        hwp_chi_offset_deg,
-        median_p0,
-        median_p_inst,
-        telescope_model: None,
-        telescope_band: None,
-        telescope_exposures: None,
-        mueller_model: None,
-        mueller_free: None,
-    })
 }
