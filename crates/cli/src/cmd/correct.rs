@@ -6,8 +6,8 @@ use fit::columns::{TableColumns, Units};
 use fit::correct::Method;
 use fit::request::Request;
 use fit::Calibration;
-use fitsio::FitsFile;
 use serde::Serialize;
+use skyfield::maps::FileKind as Kind;
 use skyfield::table::{Format, Table};
 use std::path::{Path, PathBuf};
 use stokes::stats::robust::{finite_median, Middle};
@@ -143,8 +143,8 @@ pub fn run(a: Args) -> Result<()> {
         allow_mismatch: a.allow_mismatch,
     };
     fit::request::check_options(&loaded, &request).map_err(|e| rows_error(&a, None, e))?;
-    let kind = detect(&a.input)?;
-    if kind == Kind::Map {
+    let kind = skyfield::maps::file_kind(&a.input)?;
+    if kind == Kind::StokesMap {
         return run_map(&a, &loaded, &request);
     }
     run_table(&a, &loaded, &request, kind, est)
@@ -279,7 +279,7 @@ fn run_table(
     let (filter, zero_angle) = fit::columns::reported_zero_angle(loaded, &plan);
     let col = |name: &str| out.column(name).expect("an output column");
     let p_inst: Vec<f64> = col("q_inst").iter().zip(col("u_inst")).map(|(q, u)| q.hypot(*u)).collect();
-    let text = if kind == Kind::Text { "catalog (text table)" } else { "catalog (FITS table)" };
+    let text = if kind == Kind::TextTable { "catalog (text table)" } else { "catalog (FITS table)" };
     let (rows, extra) = (out.extrapolated.len(), out.n_extrapolated);
     let mut s = summary(a, text, (rows, extra), est.name().into(), filter, zero_angle, col("p0").to_vec(), p_inst);
     s.coords = Some(a.coords);
@@ -391,31 +391,6 @@ fn warn_extrapolated(s: &Summary, field: &str) {
             s.extrapolated, s.rows
         );
     }
-}
-
-#[derive(Clone, Copy, PartialEq, Eq, Debug)]
-enum Kind {
-    /// CSV, ECSV or VOTable (by extension, `skyfield::table`).
-    Text,
-    FitsTable,
-    Map,
-}
-
-/// FITS by its first bytes ("SIMPLE  ="), Stokes map by the MAPVERS keyword; else a text table.
-fn detect(path: &Path) -> Result<Kind> {
-    use std::io::Read;
-    let mut head = [0u8; 9];
-    let mut f = std::fs::File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
-    let n = f.read(&mut head).with_context(|| format!("cannot read {}", path.display()))?;
-    if n == 9 && &head == b"SIMPLE  =" {
-        let mut ff = FitsFile::open(path).map_err(|e| anyhow!("{}: cannot open as FITS: {e}", path.display()))?;
-        let ph = ff.primary_hdu().map_err(|e| anyhow!("{}: {e}", path.display()))?;
-        if ph.read_key::<i64>(&mut ff, "MAPVERS").is_ok() {
-            return Ok(Kind::Map);
-        }
-        return Ok(Kind::FitsTable);
-    }
-    Ok(Kind::Text)
 }
 
 /// Correct a Stokes map with any calibration (`fit::request::plan_map`): every valid bin at
