@@ -494,6 +494,18 @@ mod tests {
         assert_eq!(cols[11].data, skyfield::table::Data::I64(vec![1]));
     }
 
+    /// The input columns a correction would overwrite: the output names in any case and any
+    /// estimator's `p0_<name>`, not others that only look alike.
+    #[test]
+    fn overwritten_columns() {
+        for n in ["q0", " P0_MAS", "p0_anything", "Q_INST", "extrapolated", "sigma_chi0_deg"] {
+            assert!(crate::correct::is_output_column(n), "{n}");
+        }
+        for n in ["p0x", "mag", "q", "sigma_q", "chi0", "inst_q"] {
+            assert!(!crate::correct::is_output_column(n), "{n}");
+        }
+    }
+
     /// Pixels through the grid, arcmin as given, and pixels without a grid refused.
     #[test]
     fn positions_in_arcmin() {

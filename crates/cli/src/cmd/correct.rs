@@ -1,7 +1,7 @@
 //! `instpol correct`: apply a calibration to a catalog or a Stokes map. `fit::request` plans the
-//! correction, `fit::columns` reads a catalog's rows and corrects them, `fit::calibration` a
-//! map's bins, `skyfield` reads and writes the files; this module parses the options and prints
-//! the summary, the notes and the refusals in the command's words.
+//! correction (and corrects a map's bins), `fit::columns` reads a catalog's rows and corrects
+//! them, `skyfield` reads and writes the files; this module parses the options and prints the
+//! summary, the notes and the refusals in the command's words.
 
 use anyhow::{anyhow, bail, Context, Result};
 use fit::columns::{TableColumns, Units};
