@@ -88,6 +88,23 @@ def test_correct_is_the_cli_bit_for_bit(run, request, tmp_path, which):
     assert c.hwp_chi_offset_deg == key(s, "hwp_chi_offset_deg") and c.filter == key(s, "filter")
 
 
+def test_cli_appends_the_python_keys_in_order(run, cal_v, tmp_path):
+    """The columns `instpol correct` appends to a table, in their order, are the keys of the
+    arrays `Calibration.correct` returns, in theirs (one list in the library): read from the
+    CLI's CSV header here, for an estimator other than the default."""
+    cols = catalog(20, 9, lo=-1.0, hi=1.0)
+    inp, out = tmp_path / "in.csv", tmp_path / "out.csv"
+    write_csv(inp, cols)
+    run("correct", "--cal", cal_v, "--in", inp, "--out", out, "--estimator", "wk")
+    with open(out) as f:
+        header = next(csv.reader(f))
+    assert header[: len(cols)] == list(cols)
+    py = instpol.Calibration.load(cal_v).correct(**cols, estimator="wk")
+    arrays = [k for k, v in py.items() if isinstance(v, np.ndarray)]
+    assert header[len(cols):] == arrays
+    assert arrays[9] == "p0_wk" and arrays[-1] == "extrapolated"
+
+
 def test_first_order_pixels_and_extrapolation_match_cli(run, cal_v_offset, tmp_path):
     cols = catalog(2000, 6, lo=-100.0, hi=2148.0, cov=False)  # pixels, some beyond the detector
     c = instpol.Calibration.load(cal_v_offset)

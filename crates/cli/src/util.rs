@@ -277,15 +277,13 @@ pub fn parse_aperture(s: &str) -> Result<skyfield::photometry::ApertureRadius> {
     }
 }
 
-/// `--parang START[,END]` (deg) as a track (rad).
+/// `--parang START[,END]` (deg) as a track (rad), each angle by `fit::telescope::angle_from_deg`.
 pub fn parse_parang(s: &str) -> Result<fit::telescope::Track> {
     let v: Vec<&str> = s.split(',').collect();
     let num = |t: &str| -> Result<f64> {
         let x: f64 = t.trim().parse().map_err(|_| anyhow::anyhow!("--parang '{s}': '{t}' is not a number (deg)"))?;
-        if !x.is_finite() || x.abs() > 360.0 {
-            bail!("--parang '{s}': {x} is not an angle in degrees (-360 to 360)");
-        }
-        Ok(x.to_radians())
+        fit::telescope::angle_from_deg(x)
+            .ok_or_else(|| anyhow::anyhow!("--parang '{s}': {x} is not an angle in degrees (-360 to 360)"))
     };
     match v.as_slice() {
         [a] => Ok(fit::telescope::Track::at(num(a)?)),
@@ -294,10 +292,8 @@ pub fn parse_parang(s: &str) -> Result<fit::telescope::Track> {
     }
 }
 
-/// `--rotator DEG` (the rotator / adapter angle, deg) in radians.
+/// `--rotator DEG` (the rotator / adapter angle, deg) in radians (`fit::telescope::angle_from_deg`).
 pub fn parse_rotator(x: f64) -> Result<f64> {
-    if !x.is_finite() || x.abs() > 360.0 {
-        bail!("--rotator {x}: not an angle in degrees (-360 to 360)");
-    }
-    Ok(x.to_radians())
+    fit::telescope::angle_from_deg(x)
+        .ok_or_else(|| anyhow::anyhow!("--rotator {x}: not an angle in degrees (-360 to 360)"))
 }

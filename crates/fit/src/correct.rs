@@ -195,11 +195,38 @@ pub struct Corrected {
     pub extrapolated: bool,
 }
 
-/// The names of [`Corrected::output_values`], in order: the columns `instpol correct` appends
-/// (it puts the estimator's `p0_<name>` before `q_inst`) and the keys of the Python
-/// `Calibration.correct`. Angles in degrees, the rest fractions.
+/// The names of [`Corrected::output_values`], in order. Angles in degrees, the rest fractions.
+/// The columns a correction writes are [`output_columns`]: these with the estimator's.
 pub const OUTPUT_NAMES: [&str; 11] =
     ["q0", "u0", "sigma_q0", "sigma_u0", "cov_qu0", "p0", "sigma_p0", "chi0_deg", "sigma_chi0_deg", "q_inst", "u_inst"];
+
+/// Where the estimator's `p0_<name>` goes among [`OUTPUT_NAMES`]: after `sigma_chi0_deg`,
+/// beside the other values of `P0`, before the instrumental `q_inst, u_inst`.
+pub(crate) const ESTIMATE_AT: usize = 9;
+
+/// The flag column that follows the [`output_columns`]: 1 where the position lay outside the
+/// calibrated field.
+pub const EXTRAPOLATED_COLUMN: &str = "extrapolated";
+
+/// The one list of the numeric columns a correction of rows writes, in order: the columns
+/// `instpol correct` appends to a table (then [`EXTRAPOLATED_COLUMN`]) and the keys of the
+/// Python `Calibration.correct`. [`OUTPUT_NAMES`] with, when `est` is given, the
+/// bias-corrected `p0_<name>` ([`Corrected::p0_estimate`]) after `sigma_chi0_deg`; the
+/// values of a row are [`Corrected::output_row`].
+pub fn output_columns(est: Option<stokes::stats::Estimator>) -> Vec<String> {
+    let mut v: Vec<String> = OUTPUT_NAMES.iter().map(|s| s.to_string()).collect();
+    if let Some(e) = est {
+        v.insert(ESTIMATE_AT, format!("p0_{}", e.name()));
+    }
+    v
+}
+
+/// Whether a table's column `name` (any case) would be overwritten by the columns a
+/// correction appends (with any estimator's).
+pub fn is_output_column(name: &str) -> bool {
+    let l = name.trim().to_ascii_lowercase();
+    OUTPUT_NAMES.contains(&l.as_str()) || l.starts_with("p0_") || l == EXTRAPOLATED_COLUMN
+}
 
 impl Corrected {
     /// The values written for a corrected row, named by [`OUTPUT_NAMES`]: errors as standard
@@ -219,6 +246,15 @@ impl Corrected {
             self.inst.q,
             self.inst.u,
         ]
+    }
+
+    /// The values of one row under the names of [`output_columns`] with the same `est`.
+    pub fn output_row(&self, est: Option<stokes::stats::Estimator>) -> Vec<f64> {
+        let mut v = self.output_values().to_vec();
+        if let Some(e) = est {
+            v.insert(ESTIMATE_AT, self.p0_estimate(e));
+        }
+        v
     }
 
     /// The bias-corrected `P0` with `est` (section `sec:bias`) from the corrected `(q0, u0)`

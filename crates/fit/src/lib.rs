@@ -2,7 +2,8 @@
 //! an optional free optical-axis centre, the polar-angle test, the wavelength law, the
 //! Delaunay-interpolated residual map (spade), the per-filter calibration file with its
 //! metadata and refit policy ([`pipeline`]), the correction of measured Stokes parameters (one
-//! row or a whole Stokes map) with error propagation ([`correct`]), the validation of a
+//! row or a whole Stokes map) with error propagation ([`correct`]; a table's rows column by
+//! column, [`columns`]), the validation of a
 //! calibration on a standard star in frames ([`validate`]), the paper's own fields
 //! ([`paper`]), the telescope term (a Nasmyth M3 model fitted to standard stars against the
 //! parallactic angle, [`telescope`]) and the HWP zero angle from polarized standards
@@ -22,6 +23,7 @@ pub mod calfile;
 pub mod calibration;
 pub mod catalog_correct;
 pub mod chain;
+pub mod columns;
 pub mod correlation;
 pub mod import;
 pub mod keys;

@@ -279,6 +279,32 @@ pub enum BandChoiceError {
     Ambiguous { bands: Vec<String> },
 }
 
+/// A telescope angle a user or a header gives in degrees (a parallactic or a rotator angle), in
+/// radians: finite and within one turn either way (-360 to 360 deg), else `None`.
+pub fn angle_from_deg(x: f64) -> Option<f64> {
+    (x.is_finite() && x.abs() <= 360.0).then(|| x.to_radians())
+}
+
+/// Why angles in degrees are not a track ([`track_from_deg`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum TrackDegError {
+    /// Not one value (START) or two (START, END).
+    Count(usize),
+    /// The first value that is not an angle ([`angle_from_deg`]).
+    NotAnAngle(f64),
+}
+
+/// The parallactic track of `[START]` or `[START, END]` (deg: the first frame's start, the last
+/// frame's end) in radians.
+pub fn track_from_deg(v: &[f64]) -> std::result::Result<Track, TrackDegError> {
+    let rad = |x: f64| angle_from_deg(x).ok_or(TrackDegError::NotAnAngle(x));
+    match *v {
+        [a] => Ok(Track::at(rad(a)?)),
+        [a, b] => Ok(Track::new(rad(a)?, Some(rad(b)?))),
+        _ => Err(TrackDegError::Count(v.len())),
+    }
+}
+
 /// How data saw the telescope ([`TelescopeFit::correct_cov_seen`]): over one track (a star's
 /// exposure, a set taken as one), or as exposures demodulated together (eq:Q, eq:U), each over
 /// its own track (a Stokes map that recorded them); `whole` is the set's span, where the

@@ -20,7 +20,8 @@
 //! `instpol.FileError` (an `OSError`) for files that cannot be opened, read or written; the
 //! messages are the libraries', as the CLI prints them.
 
-use fit::correct::{Measurement, Method};
+use fit::columns::{Inputs, Units};
+use fit::correct::Method;
 use numpy::prelude::*;
 use numpy::{PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::create_exception;
@@ -28,7 +29,7 @@ use pyo3::exceptions::{PyOSError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use rayon::prelude::*;
-use std::mem::MaybeUninit;
+use std::borrow::Cow;
 use std::path::PathBuf;
 use stokes::stats::{Estimator, IntervalKind};
 
@@ -85,23 +86,6 @@ fn arr1<'py>(py: Python<'py>, v: Vec<f64>) -> Bound<'py, PyArray1<f64>> {
 
 fn arr2<'py>(py: Python<'py>, v: Vec<f64>, rows: usize, cols: usize) -> PyResult<Bound<'py, PyArray2<f64>>> {
     PyArray1::from_vec(py, v).reshape([rows, cols])
-}
-
-/// An output column of `n` values that `fill` writes whole before it is read: reserved, not
-/// zeroed. Zeroing it first cost a memset of every column (6 % of `correct`, perf: glibc's
-/// calloc clears heap memory that malloc would hand back as it is) that the fill overwrites.
-fn reserved_column(n: usize) -> Vec<f64> {
-    let v = Vec::with_capacity(n);
-    // Correcting 1e6 positions writes 11 columns (88 MB) into fresh pages: in 4 kB pages the
-    // page faults took a sixth of the time (bench/python_correct.sh, one core: 8.2e6
-    // positions/s without the hint, 9.8e6 with it).
-    skyfield::advise_huge_pages(v.as_ptr() as usize, n * std::mem::size_of::<f64>());
-    v
-}
-
-/// The first `n` slots of a [`reserved_column`], to be written.
-fn slots(v: &mut Vec<f64>, n: usize) -> &mut [MaybeUninit<f64>] {
-    &mut v.spare_capacity_mut()[..n]
 }
 
 fn bools<'py>(py: Python<'py>, v: Vec<bool>) -> Bound<'py, PyArray1<bool>> {
@@ -400,11 +384,7 @@ impl _Calibration {
     }
 
     fn pixel(&self) -> Option<fit::calfile::PixelGrid> {
-        match self.field() {
-            Field::PPhi(c) => c.pixel,
-            Field::Mueller(m) => m.pixel(),
-            Field::TelescopeOnly { .. } => None,
-        }
+        fit::columns::pixel_grid(&self.file)
     }
 
     /// A telescope model's band that cannot be chosen, in this package's words.
@@ -510,19 +490,16 @@ impl _Calibration {
     }
 
     /// Positions in arcmin from the detector centre, from `units` "px" (0-based pixels of the
-    /// calibration's grid, converted as `instpol correct --coords pixel` does) or "arcmin".
-    fn arcmin(&self, x: &[f64], y: &[f64], units: &str) -> PyResult<Option<(Vec<f64>, Vec<f64>)>> {
-        match units {
-            "arcmin" => Ok(None),
-            "px" | "pixel" => {
-                let g = self.pixel().ok_or_else(|| {
-                    input_err("the calibration has no pixel grid: give the positions in arcmin (units=\"arcmin\")")
-                })?;
-                let (ax, ay): (Vec<f64>, Vec<f64>) = x.iter().zip(y).map(|(&x, &y)| g.to_arcmin(x, y)).unzip();
-                Ok(Some((ax, ay)))
-            }
-            u => Err(input_err(format!("units '{u}': expected \"px\" or \"arcmin\""))),
-        }
+    /// calibration's grid) or "arcmin" (`fit::columns::arcmin_positions`).
+    fn arcmin<'a>(&self, x: &'a [f64], y: &'a [f64], units: &str) -> PyResult<(Cow<'a, [f64]>, Cow<'a, [f64]>)> {
+        let units = match units {
+            "arcmin" => Units::Arcmin,
+            "px" | "pixel" => Units::Pixel,
+            u => return Err(input_err(format!("units '{u}': expected \"px\" or \"arcmin\""))),
+        };
+        fit::columns::arcmin_positions(x, y, units, self.pixel()).map_err(|_| {
+            input_err("the calibration has no pixel grid: give the positions in arcmin (units=\"arcmin\")")
+        })
     }
 }
 
@@ -640,8 +617,8 @@ impl _Calibration {
                 self.path.display()
             )));
         }
-        let conv = self.arcmin(x, y, units)?;
-        let (x, y) = conv.as_ref().map_or((x, y), |(a, b)| (a.as_slice(), b.as_slice()));
+        let (x, y) = self.arcmin(x, y, units)?;
+        let (x, y) = (x.as_ref(), y.as_ref());
         fn at<M: FieldModel + Sync>(m: &M, x: &[f64], y: &[f64]) -> Vec<(fit::model::InstPol, bool)> {
             x.par_iter().zip(y).map(|(&x, &y)| (m.eval(x, y), m.contains(x, y))).collect()
         }
@@ -685,7 +662,7 @@ impl _Calibration {
         recorded: Option<Recorded>,
         carried_deg: Option<f64>,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let method = parse_method(method, extrapolation_error)?;
+        let base = request(method, allow_extrapolation, extrapolation_error, band.as_deref(), false)?;
         // The zero angle q, u already carry (catalog()'s do): given, else what `recorded`
         // says, else none (q, u at the plate); the calibration's less it is applied, as
         // `instpol correct` takes a table's hwp_chi_offset_deg column.
@@ -710,65 +687,28 @@ impl _Calibration {
         if pa_end.is_some() && pa.is_none() {
             return Err(input_err("parang_end_deg needs parang_deg (each row's start)"));
         }
-        let angles = recorded.as_ref().map(|r| skyfield::RecordedAngles {
-            parallactic_rad: Some(r.track),
-            rotator_rad: r.rotator,
-            exposure_tracks: r.exposures.clone(),
-        });
-        // The one rule set of `instpol correct`'s tables (fit::request): the arrays are the
-        // caller's arguments, so telescope angles for a file without a telescope model are refused.
+        // The one rule set of `instpol correct`'s tables (fit::request).
         let request = fit::request::Request {
-            method,
-            allow_extrapolation,
-            extrapolation_rel_error: extrapolation_error,
-            band: band.as_deref(),
             carried_zero_angle_deg: carried,
             per_row: pa.map(|start_deg| fit::request::PerRowAngles { start_deg, end_deg: pa_end, rotator_deg: None }),
-            parang: None,
-            rotator: None,
-            recorded: angles.as_ref(),
-            angles_are_arguments: true,
-            allow_mismatch: false,
+            recorded: recorded.as_ref().map(|r| &r.angles),
+            ..base
         };
         let plan = fit::request::plan_rows(&self.file, &request, n).map_err(|e| self.rows_error(e, pa.is_some()))?;
-        let conv = self.arcmin(x, y, units)?;
-        let (x, y) = conv.as_ref().map_or((x, y), |(a, b)| (a.as_slice(), b.as_slice()));
-        let input = Inputs { x, y, q, u, sq, su, cov };
-        let mut cols: Vec<Vec<f64>> = (0..N_OUT).map(|_| reserved_column(n)).collect();
-        let mut p0e: Option<Vec<f64>> = est.map(|_| reserved_column(n));
-        let mut extra = vec![false; n];
-        let res = py.detach(|| {
-            let mut it = cols.iter_mut();
-            let sink = Sink {
-                cols: std::array::from_fn(|_| slots(it.next().expect("N_OUT columns"), n)),
-                p0e: p0e.as_mut().zip(est).map(|(c, e)| (slots(c, n), e)),
-                extra: &mut extra,
-                start: 0,
-            };
-            fill(&|k, m: &Measurement| plan.correct(k, m), &input, sink)
-        });
-        let n_extra = res.map_err(|(row, e)| input_err(format!("index {row}: {e}")))?;
-        for c in cols.iter_mut().chain(p0e.as_mut()) {
-            // SAFETY: `fill` returns Ok only after writing every row 0..n of every output
-            // column (and of `p0e` when it is Some); on Err the columns are dropped with
-            // length 0 above.
-            unsafe { c.set_len(n) };
-        }
+        let (x, y) = self.arcmin(x, y, units)?;
+        let input = Inputs { x: &x, y: &y, q, u, sigma_q: sq, sigma_u: su, cov_qu: cov };
+        let out = py.detach(|| fit::columns::correct_columns(&input, est, &|_| {}, |k, m| plan.correct(k, m)));
+        let out = out.map_err(|(row, e)| input_err(format!("index {row}: {e}")))?;
         let d = PyDict::new(py);
-        for (name, c) in OUT_NAMES.iter().zip(cols) {
-            d.set_item(*name, arr1(py, c))?;
-            if *name == "sigma_chi0_deg" {
-                if let (Some(e), Some(v)) = (est, p0e.take()) {
-                    d.set_item(format!("p0_{}", e.name()), arr1(py, v))?;
-                }
-            }
+        for (name, c) in out.names.iter().zip(out.values) {
+            d.set_item(name, arr1(py, c))?;
         }
-        d.set_item("extrapolated", bools(py, extra))?;
-        d.set_item("n_extrapolated", n_extra)?;
+        d.set_item(fit::correct::EXTRAPOLATED_COLUMN, bools(py, out.extrapolated))?;
+        d.set_item("n_extrapolated", out.n_extrapolated)?;
         if let Some(t) = &plan.telescope {
             d.set_item("telescope_model", t.fit.model.name())?;
             d.set_item("telescope_band", t.band.as_str())?;
-            d.set_item("telescope_exposures", recorded.as_ref().map(|r| r.exposures.len()))?;
+            d.set_item("telescope_exposures", recorded.as_ref().map(|r| r.angles.exposure_tracks.len()))?;
         }
         Ok(d)
     }
@@ -794,40 +734,20 @@ impl _Calibration {
         band: Option<String>,
         allow_mismatch: bool,
     ) -> PyResult<Bound<'py, PyDict>> {
-        use fit::telescope::Track;
-        let method = parse_method(method, extrapolation_error)?;
-        let angle = |name: &str, x: f64| -> PyResult<f64> {
-            if x.is_finite() && x.abs() <= 360.0 {
-                Ok(x.to_radians())
-            } else {
-                Err(input_err(format!("{name} {x}: not an angle in degrees (-360 to 360)")))
-            }
-        };
-        let given = match parang_deg.as_deref() {
-            None => None,
-            Some([a]) => Some(Track::at(angle("parang_deg", *a)?)),
-            Some([a, b]) => Some(Track::new(angle("parang_deg", *a)?, Some(angle("parang_deg", *b)?))),
-            Some(_) => return Err(input_err("parang_deg: expected START or (START, END) in degrees")),
-        };
-        let rotator = rotator_deg.map(|r| angle("rotator_deg", r)).transpose()?;
+        use fit::telescope::{angle_from_deg, track_from_deg, TrackDegError};
+        let base = request(method, allow_extrapolation, extrapolation_error, band.as_deref(), allow_mismatch)?;
+        let bad = |name: &str, x: f64| input_err(format!("{name} {x}: not an angle in degrees (-360 to 360)"));
+        let given = parang_deg.as_deref().map(track_from_deg).transpose().map_err(|e| match e {
+            TrackDegError::NotAnAngle(x) => bad("parang_deg", x),
+            TrackDegError::Count(_) => input_err("parang_deg: expected START or (START, END) in degrees"),
+        })?;
+        let rotator = rotator_deg.map(|r| angle_from_deg(r).ok_or_else(|| bad("rotator_deg", r))).transpose()?;
         refuse_overwrite(output.as_deref(), [&input, &self.path])?;
         let map = py
             .detach(|| skyfield::StokesMap::read_uncorrected(&input))
             .map_err(|e| input_err(format!("Stokes map {}: {e}", input.display())))?;
         // The one rule set of `instpol correct` on a map (fit::request::plan_map).
-        let request = fit::request::Request {
-            method,
-            allow_extrapolation,
-            extrapolation_rel_error: extrapolation_error,
-            band: band.as_deref(),
-            carried_zero_angle_deg: None,
-            per_row: None,
-            parang: given,
-            rotator,
-            recorded: None,
-            angles_are_arguments: true,
-            allow_mismatch,
-        };
+        let request = fit::request::Request { parang: given, rotator, ..base };
         let plan = fit::request::plan_map(&self.file, &request, &map).map_err(|e| self.map_error(e, &input))?;
         let notes: Vec<String> = plan.notes.iter().map(|n| self.note_text(n, &input)).collect();
         let name = self.path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
@@ -861,117 +781,12 @@ impl _Calibration {
     }
 }
 
-/// The input columns of [`_Calibration::_correct`] (arcmin).
-struct Inputs<'a> {
-    x: &'a [f64],
-    y: &'a [f64],
-    q: &'a [f64],
-    u: &'a [f64],
-    sq: &'a [f64],
-    su: &'a [f64],
-    cov: Option<&'a [f64]>,
-}
-
-/// The output columns of a correction, in the order and with the names of the columns
-/// `instpol correct` adds (the estimator's `p0_<name>` apart).
-const OUT_NAMES: [&str; 11] = fit::correct::OUTPUT_NAMES;
-const N_OUT: usize = OUT_NAMES.len();
-
-/// Mutable windows of the output columns for rows `start ..`.
-struct Sink<'a> {
-    cols: [&'a mut [MaybeUninit<f64>]; N_OUT],
-    p0e: Option<(&'a mut [MaybeUninit<f64>], Estimator)>,
-    extra: &'a mut [bool],
-    start: usize,
-}
-
-impl<'a> Sink<'a> {
-    fn split(self, mid: usize) -> (Sink<'a>, Sink<'a>) {
-        let mut left: [&'a mut [MaybeUninit<f64>]; N_OUT] = Default::default();
-        let mut right: [&'a mut [MaybeUninit<f64>]; N_OUT] = Default::default();
-        for (k, c) in self.cols.into_iter().enumerate() {
-            (left[k], right[k]) = c.split_at_mut(mid);
-        }
-        let (pa, pb) = match self.p0e {
-            Some((c, e)) => {
-                let (l, r) = c.split_at_mut(mid);
-                (Some((l, e)), Some((r, e)))
-            }
-            None => (None, None),
-        };
-        let (ea, eb) = self.extra.split_at_mut(mid);
-        (
-            Sink { cols: left, p0e: pa, extra: ea, start: self.start },
-            Sink { cols: right, p0e: pb, extra: eb, start: self.start + mid },
-        )
-    }
-}
-
-/// Correct every row with `cor` (`Corrector::correct` or `MuellerCal::correct`, the functions
-/// `instpol correct` applies to each row), writing the output columns directly: no row structs
-/// in between, so the time is the library's and not the copying. Halves run on rayon's pool; the
-/// error returned is the one of the lowest row, as `par_correct_batch` does. Returns the number
-/// of extrapolated rows.
-fn fill<F, E>(cor: &F, i: &Inputs<'_>, s: Sink<'_>) -> Result<usize, (usize, E)>
-where
-    F: Fn(usize, &Measurement) -> Result<fit::correct::Corrected, E> + Sync,
-    E: Send,
-{
-    const CHUNK: usize = 4096;
-    let n = s.extra.len();
-    if n > CHUNK {
-        let (a, b) = s.split(n / 2);
-        let (ra, rb) = rayon::join(|| fill(cor, i, a), || fill(cor, i, b));
-        return match (ra, rb) {
-            (Ok(x), Ok(y)) => Ok(x + y),
-            (Err(e), _) | (Ok(_), Err(e)) => Err(e),
-        };
-    }
-    let r0 = s.start;
-    let (x, y, q, u) = (&i.x[r0..r0 + n], &i.y[r0..r0 + n], &i.q[r0..r0 + n], &i.u[r0..r0 + n]);
-    let (sq, su) = (&i.sq[r0..r0 + n], &i.su[r0..r0 + n]);
-    let cov = i.cov.map(|c| &c[r0..r0 + n]);
-    let Sink { cols, mut p0e, extra, .. } = s;
-    let [c_q0, c_u0, c_sq0, c_su0, c_cov0, c_p0, c_sp0, c_chi0, c_sc0, c_qi, c_ui] = cols;
-    let mut n_extra = 0;
-    for k in 0..n {
-        let m = Measurement::new(x[k], y[k], q[k], u[k], sq[k], su[k], cov.map_or(0.0, |c| c[k]));
-        let r = cor(r0 + k, &m).map_err(|e| (r0 + k, e))?;
-        // Written column by column here, not through an array of columns: this loop is the 1e7/s path
-        // (bench/python_correct.sh) and the array-of-slices loop measured ~20 % slower. The
-        // values are those of Corrected::output_values (pytest compares with the CLI's).
-        c_q0[k].write(r.q0);
-        c_u0[k].write(r.u0);
-        c_sq0[k].write(r.var_q0.sqrt());
-        c_su0[k].write(r.var_u0.sqrt());
-        c_cov0[k].write(r.cov_qu0);
-        c_p0[k].write(r.p0);
-        c_sp0[k].write(r.sigma_p0);
-        c_chi0[k].write(r.chi0.to_degrees());
-        c_sc0[k].write(r.sigma_chi0.to_degrees());
-        c_qi[k].write(r.inst.q);
-        c_ui[k].write(r.inst.u);
-        if let Some((c, e)) = p0e.as_mut() {
-            c[k].write(r.p0_estimate(*e));
-        }
-        extra[k] = r.extrapolated;
-        n_extra += r.extrapolated as usize;
-    }
-    Ok(n_extra)
-}
-
-/// The telescope chain (`instpol correct` with a calibration holding a telescope model): each
-/// row corrected for the field and then the telescope over its parallactic-angle track with
-/// `fit::telescope_cal::correct_chain`; `q_inst, u_inst` are the field's and the telescope's
-/// together, as the CLI writes them. Rows in parallel; the error is the lowest row's.
 /// A catalog's recorded telescope angles as the package passes them (`catalog()`'s
 /// `recorded_angles`: the set's track and rotator in deg, each exposure's HWP angle and track
 /// in deg), in radians, and the HWP zero angle (deg) the catalog's q, u carry
 /// (`hwp_chi_offset_deg`, as the CLI's tables carry it in a column; `None` when not given).
 struct Recorded {
-    track: (f64, f64),
-    rotator: Option<f64>,
-    exposures: Vec<skyfield::ExposureTrack>,
+    angles: skyfield::RecordedAngles,
     zero_angle_deg: Option<f64>,
 }
 
@@ -1002,15 +817,15 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Recorded {
         {
             return Err(input_err("recorded: angles must be finite degrees and list at least one exposure"));
         }
-        Ok(Self {
-            track: (s.to_radians(), e.to_radians()),
-            rotator: rot.map(f64::to_radians),
-            exposures: ex
+        let angles = skyfield::RecordedAngles {
+            parallactic_rad: Some((s.to_radians(), e.to_radians())),
+            rotator_rad: rot.map(f64::to_radians),
+            exposure_tracks: ex
                 .into_iter()
                 .map(|(h, a, b)| skyfield::ExposureTrack { hwp_deg: h, start: a.to_radians(), end: b.to_radians() })
                 .collect(),
-            zero_angle_deg,
-        })
+        };
+        Ok(Self { angles, zero_angle_deg })
     }
 }
 
@@ -1051,9 +866,18 @@ fn refuse_overwrite<'a>(
     }
 }
 
-/// `method=` of the corrections ("exact" or "first-order"), with `extrapolation_error=` checked.
-fn parse_method(method: &str, extrapolation_error: f64) -> PyResult<Method> {
-    let m = match method {
+/// What the package's corrections ask of `fit::request`, before each adds its angles: `method=`
+/// ("exact" or "first-order") and `extrapolation_error=` checked, no angles yet, and any angles
+/// given later are the caller's arguments (refused without a telescope model, where a table's
+/// columns would only be noted).
+fn request<'a>(
+    method: &str,
+    allow_extrapolation: bool,
+    extrapolation_error: f64,
+    band: Option<&'a str>,
+    allow_mismatch: bool,
+) -> PyResult<fit::request::Request<'a>> {
+    let method = match method {
         "exact" => Method::Exact,
         "first-order" | "first_order" => Method::FirstOrder,
         m => return Err(input_err(format!("method '{m}': expected \"exact\" or \"first-order\""))),
@@ -1061,7 +885,19 @@ fn parse_method(method: &str, extrapolation_error: f64) -> PyResult<Method> {
     if !(extrapolation_error.is_finite() && extrapolation_error >= 0.0) {
         return Err(input_err(format!("extrapolation_error {extrapolation_error} must be a non-negative number")));
     }
-    Ok(m)
+    Ok(fit::request::Request {
+        method,
+        allow_extrapolation,
+        extrapolation_rel_error: extrapolation_error,
+        band,
+        carried_zero_angle_deg: None,
+        per_row: None,
+        parang: None,
+        rotator: None,
+        recorded: None,
+        angles_are_arguments: true,
+        allow_mismatch,
+    })
 }
 
 /// Frames to a binned Stokes map (`instpol reduce`): returns the map's arrays flat, in bin order

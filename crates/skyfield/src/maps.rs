@@ -399,6 +399,44 @@ impl RecordedAngles {
     }
 }
 
+/// What a file given to a correction holds, by its content ([`file_kind`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FileKind {
+    /// CSV, ECSV or VOTable: the format by extension ([`crate::table`]).
+    TextTable,
+    FitsTable,
+    StokesMap,
+}
+
+/// Why [`file_kind`] could not tell.
+#[derive(Debug, thiserror::Error)]
+pub enum FileKindError {
+    #[error("cannot open {}", .0.display())]
+    Open(std::path::PathBuf, #[source] std::io::Error),
+    #[error("cannot read {}", .0.display())]
+    Read(std::path::PathBuf, #[source] std::io::Error),
+    #[error(transparent)]
+    Fits(#[from] Error),
+}
+
+/// A FITS file (its first bytes `SIMPLE  =`) whose primary header has `MAPVERS` is a Stokes map
+/// (this module's format), another FITS file a FITS table; anything else a text table.
+pub fn file_kind(path: &Path) -> Result<FileKind, FileKindError> {
+    use std::io::Read;
+    let mut head = [0u8; 9];
+    let mut f = std::fs::File::open(path).map_err(|e| FileKindError::Open(path.into(), e))?;
+    let n = f.read(&mut head).map_err(|e| FileKindError::Read(path.into(), e))?;
+    if n == 9 && &head == b"SIMPLE  =" {
+        let mut ff = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
+        let ph = ff.primary_hdu().map_err(|e| fits_err(path, e))?;
+        if ph.read_key::<i64>(&mut ff, "MAPVERS").is_ok() {
+            return Ok(FileKind::StokesMap);
+        }
+        return Ok(FileKind::FitsTable);
+    }
+    Ok(FileKind::TextTable)
+}
+
 impl StokesMap {
     /// The telescope angles the map records ([`RecordedAngles`]).
     pub fn recorded_angles(&self) -> RecordedAngles {

@@ -1,89 +1,24 @@
-//! `instpol correct`: apply a calibration to a catalog or a Stokes map (`fit::correct` does the
-//! work; this module reads and writes tables).
+//! `instpol correct`: apply a calibration to a catalog or a Stokes map. `fit::request` plans the
+//! correction (and corrects a map's bins), `fit::columns` reads a catalog's rows and corrects
+//! them, `skyfield` reads and writes the files; this module parses the options and prints the
+//! summary, the notes and the refusals in the command's words.
 
 use anyhow::{anyhow, bail, Context, Result};
-use fit::correct::{Corrected, Measurement, Method};
+use fit::columns::{TableColumns, Units};
+use fit::correct::Method;
 use fit::request::Request;
 use fit::Calibration;
-use fitsio::tables::{ColumnDataType, ColumnDescription};
-use fitsio::FitsFile;
 use serde::Serialize;
-use skyfield::table::{Column, Format, Table};
+use skyfield::maps::FileKind as Kind;
+use skyfield::table::{Format, Table};
 use std::path::{Path, PathBuf};
 use stokes::stats::robust::{finite_median, Middle};
-use stokes::stats::{Estimator, PolMeasurement};
+use stokes::stats::Estimator;
 
-/// Remove the instrumental polarization from measured Stokes parameters with a calibration
-/// file: exact inversion of the instrument's Mueller matrix M_I (eq:instpol) or the
-/// first-order form eq:approx, the HWP chromatic zero angle of the calibration's filter
-/// applied first, and the errors of the measurement and of the calibration propagated.
-///
-/// Input (--in), detected by content:
-///
-///   catalog: a FITS binary table (the first table HDU, or --hdu NAME), or by extension
-///   CSV (.csv; header row; lines starting with # are comments), ECSV (.ecsv) or VOTable
-///   (.vot, .xml; TABLEDATA), with columns (names case-insensitive):
-///     x, y               position (--coords: arcmin from the detector centre, or 0-based
-///                        pixels on the calibration's detector grid)
-///     q, u               measured Q/I, U/I (fractions, not percent)
-///     sigma_q, sigma_u   their 1-sigma errors
-///     cov_qu             (optional) their covariance
-///   Every input column is kept; added are q0, u0, sigma_q0, sigma_u0, cov_qu0 (corrected
-///   Q0/I0, U0/I0 and covariance), p0, sigma_p0 (fraction, not bias-corrected), chi0_deg,
-///   sigma_chi0_deg ([0, 180) deg), p0_<estimator> (bias-corrected P0, see --estimator),
-///   q_inst, u_inst (the instrumental polarization removed) and extrapolated (0/1).
-///   The output's format is its extension's (.csv, .fits, .ecsv, .vot); a FITS table
-///   corrected into a .fits keeps every HDU and keyword of the input.
-///
-///   Stokes map, a FITS file written by `instpol reduce` (primary keyword MAPVERS): every
-///   valid bin is corrected at its centre and a Stokes map of the same layout is written,
-///   with Q, U, P, CHI corrected and SIGMA_Q/U, COV_QU, SIGQ_PHOT/SIGU_PHOT propagated.
-///
-/// The telescope (a calibration holding a TELESCOPE model, from `instpol fit-standards
-/// --output`, alone or beside a field model): catalogs then need the parallactic angle per
-/// row, column parang_deg (deg, as the standards were fitted with) and optionally
-/// parang_end_deg (the exposure's end: the model is averaged over the track), and rotator_deg
-/// when the model was fitted with rotator angles. The field is
-/// undone first, then the telescope (fit::telescope_cal); q_inst, u_inst are then the field's
-/// and the telescope's instrumental polarization together, to first order. --band picks the
-/// telescope model's band (default: the field calibration's filter, the map's filter, or the
-/// model's only band).
-/// Example: instpol correct --cal tel_V.fits --in stars.csv --out stars_corr.csv
-///
-/// A Stokes map's bins share their exposures, hence one parallactic-angle track: the one
-/// `instpol reduce` recorded in the map (PARANG1, PARANG2, ROTANG: when the instrument's
-/// [telescope] section names the header keywords), or --parang START[,END] (deg: the first
-/// frame's start, the last frame's end, as their headers say), and --rotator DEG when the
-/// model was fitted with rotator angles. A catalog without a parang_deg column (every star from
-/// the same frames, as `instpol catalog` writes them) takes the same options for all its rows;
-/// an ECSV, FITS or VOTable catalog from `instpol catalog` records its exposures' angles (the
-/// maps' keywords, as the table's numbers) and is then undone exposure by exposure without
-/// --parang (--parang replaces them with one track).
-/// The output map records the model, band and track (TELMODEL, TELBAND, TELROT, PARANG1,
-/// PARANG2).
-/// Example: instpol correct --cal tel_V.fits --in map_V.fits --out map_V_corr.fits
-/// Example: instpol correct --cal tel_V.fits --in map_V.fits --out map_V_corr.fits --parang -41.2,-37.9
-///
-/// A Mueller-field calibration (`instpol calibrate-mueller --out CAL.fits`, MODEL = 'MUELLER'):
-/// the fitted linear block of the pre-analyzer Mueller matrix (diattenuation and, as fitted,
-/// retardance, rotation, depolarization, or the general 3 x 3 block) is inverted exactly at
-/// each position, so polarized targets come out right where a p, phi calibration leaves a
-/// residual; the errors of the measurement and of the field's coefficients are propagated
-/// through the inversion. Its frame is the one its maps were turned into by the HWP zero angle
-/// they record (the calibration's, applied first as for a p, phi calibration; 0 for maps that
-/// record none: the maps' frame); --method exact only.
-/// Example: instpol correct --cal mueller_B.fits --in stars.csv --out stars_corr.csv
-///
-/// Positions outside the calibrated field are an error naming the row or bin, unless
-/// --allow-extrapolation: then they are corrected, flagged, and the calibration's variance
-/// is inflated by (F p)^2 per component (F = --extrapolation-error, default 0.5; for a
-/// Mueller field, (F |correction|)^2).
-///
-/// Output files are written atomically (a temporary file renamed when complete). The summary
-/// goes to stdout (--json for scripts: input, output, kind, rows, extrapolated, method,
-/// estimator, coords, filter, hwp_chi_offset_deg, median_p0, median_p_inst).
+// `instpol correct`'s options; the long help (what is read, written and reported, with the
+// telescope's and the Mueller field's cases) is the text file beside this one (users read it).
 #[derive(clap::Args)]
-#[command(verbatim_doc_comment)]
+#[command(long_about = include_str!("correct_help.txt").trim_end())]
 pub struct Args {
     /// Calibration file (instpol calibration FITS: `instpol calibrate`, `instpol import-map`,
     /// `instpol fit-standards --output` or `instpol calibrate-mueller --out CAL.fits`).
@@ -185,12 +120,6 @@ struct Summary {
     mueller_free: Option<Vec<&'static str>>,
 }
 
-/// Names of the columns `instpol correct` adds, in order (the estimator column is
-/// `p0_<name>`, inserted after `sigma_chi0_deg`).
-/// The appended columns before the estimator's `p0_<name>`: the first nine of
-/// `fit::correct::OUTPUT_NAMES` (`q_inst`, `u_inst` follow it).
-const ADDED: &[&str] = fit::correct::OUTPUT_NAMES.split_at(9).0;
-
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs([a.cal.as_path(), a.input.as_path()])?;
     crate::util::check_output(&a.out)?;
@@ -216,8 +145,8 @@ pub fn run(a: Args) -> Result<()> {
         allow_mismatch: a.allow_mismatch,
     };
     fit::request::check_options(&loaded, &request).map_err(|e| rows_error(&a, None, e))?;
-    let kind = detect(&a.input)?;
-    if kind == Kind::Map {
+    let kind = skyfield::maps::file_kind(&a.input)?;
+    if kind == Kind::StokesMap {
         return run_map(&a, &loaded, &request);
     }
     run_table(&a, &loaded, &request, kind, est)
@@ -327,102 +256,96 @@ fn run_table(
     kind: Kind,
     est: Estimator,
 ) -> Result<()> {
-    use rayon::prelude::*;
     let out_format = Some(Format::from_path(&a.out)?);
-    let mut table = read_catalog(a, kind)?;
-    let carried = table.carried_zero_angle(&a.input)?;
-    let column = |name: &str| -> Result<Option<Vec<f64>>> {
-        Ok(if table.column(name).is_some() { Some(table.numbers(name, &a.input)?) } else { None })
-    };
-    let (start, end) = (column(PARANG[0])?, column(PARANG[1])?);
-    // The rotator column is read only where it is used: per-row angles of a model fitted
-    // with rotator angles.
-    let with_rotator = loaded.telescope.as_ref().is_some_and(|t| t.with_rotator);
-    let rot = if start.is_some() && with_rotator { column("rotator_deg")? } else { None };
-    // Every row from the same frames: the angles the catalog recorded (instpol catalog writes
-    // its exposures' angles into ECSV, FITS and VOTable tables).
-    let recorded = if start.is_none() && loaded.telescope.is_some() {
-        Some(skyfield::RecordedAngles::from_meta(&table.meta, &a.input)?)
-    } else {
-        None
-    };
-    let request = Request {
-        carried_zero_angle_deg: carried,
-        recorded: recorded.as_ref(),
-        per_row: start.as_deref().map(|s| fit::request::PerRowAngles {
-            start_deg: s,
-            end_deg: end.as_deref(),
-            rotator_deg: rot.as_deref(),
-        }),
-        ..*base
-    };
+    let mut table = fit::columns::read_catalog(&a.input, kind == Kind::FitsTable, a.hdu.as_deref())?;
+    let angles = fit::columns::TableAngles::read(&table, &a.input, loaded)?;
     let n = table.n_rows();
-    let plan = fit::request::plan_rows(loaded, &request, n).map_err(|e| rows_error(a, Some(&table), e))?;
+    let plan =
+        fit::request::plan_rows(loaded, &angles.request(*base), n).map_err(|e| rows_error(a, Some(&table), e))?;
     print_notes(a, &plan.notes);
-    let pixel = match (&loaded.field, &loaded.mueller) {
-        (Some(c), _) => c.pixel,
-        (None, Some(m)) => m.pixel(),
-        _ => None,
-    };
-    let meas = measurements(&table, pixel, a.coords, &a.input)?;
-    let results: Vec<_> = meas.par_iter().enumerate().map(|(i, m)| plan.correct(i, m)).collect();
-    let mut out = Vec::with_capacity(results.len());
-    for (i, r) in results.into_iter().enumerate() {
-        out.push(r.map_err(|e| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)))?);
+    let mut cols = TableColumns::read(&table, &a.input)?;
+    let units = if a.coords == Coords::Pixel { Units::Pixel } else { Units::Arcmin };
+    cols.to_arcmin(units, fit::columns::pixel_grid(loaded)).map_err(|_| {
+        let (input, row) = (a.input.display(), table.row_label(0));
+        anyhow!(
+            "{input} {row}: the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)"
+        )
+    })?;
+    // The root-finding estimators take ~1 us a row: show progress on big catalogs.
+    let pb = if n >= 500_000 { indicatif::ProgressBar::new(n as u64) } else { indicatif::ProgressBar::hidden() };
+    let out =
+        fit::columns::correct_columns(&cols.inputs(), Some(est), &|k| pb.inc(k as u64), |i, m| plan.correct(i, m))
+            .map_err(|(i, e)| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)));
+    pb.finish_and_clear();
+    let out = out?;
+    let (filter, zero_angle) = fit::columns::reported_zero_angle(loaded, &plan);
+    let col = |name: &str| out.column(name).expect("an output column");
+    let p_inst: Vec<f64> = col("q_inst").iter().zip(col("u_inst")).map(|(q, u)| q.hypot(*u)).collect();
+    let text = if kind == Kind::TextTable { "catalog (text table)" } else { "catalog (FITS table)" };
+    let (rows, extra) = (out.extrapolated.len(), out.n_extrapolated);
+    let mut s = summary(a, text, (rows, extra), est.name().into(), filter, zero_angle, col("p0").to_vec(), p_inst);
+    s.coords = Some(a.coords);
+    crate::util::check_output(&a.out)?;
+    if kind == Kind::FitsTable && out_format == Some(Format::Fits) {
+        skyfield::table::append_fits_columns(&a.input, a.hdu.as_deref(), &out.into_table_columns(), &a.out)?;
+    } else {
+        table.columns.extend(out.into_table_columns());
+        table.write(&a.out)?;
     }
-    let n_extra = out.iter().filter(|c| c.extrapolated).count();
-    // The zero angle reported: a field calibration's own (the rows were turned by it less what
-    // they carry), else the one applied.
-    let (filter, zero_angle) = match (&loaded.field, &loaded.mueller, &plan.telescope) {
-        (Some(c), _, None) => (c.filter.clone(), c.hwp_chi_offset_deg),
-        (None, Some(m), _) => (m.filter.clone(), plan.to_sky_deg.to_radians().to_degrees()),
-        (field, _, t) => (
-            field
-                .as_ref()
-                .map(|c| c.filter.clone())
-                .unwrap_or_else(|| t.as_ref().map_or(String::new(), |t| t.band.clone())),
-            plan.to_sky_deg,
-        ),
-    };
-    let mut summary = write_catalog(a, kind, out_format, &mut table, &out, est, n_extra, filter, zero_angle)?;
-    if let Some(t) = &plan.telescope {
-        summary.telescope_model = Some(t.fit.model.name());
-        summary.telescope_band = Some(t.band.clone());
-        summary.telescope_exposures = (t.exposures > 0).then_some(t.exposures);
+    let telescope = plan.telescope.as_ref().map(|t| {
+        (s.telescope_exposures, s.telescope_band) = ((t.exposures > 0).then_some(t.exposures), Some(t.band.clone()));
+        s.telescope_model = Some(t.fit.model.name());
+        let how = match t.exposures {
+            0 => "the parallactic angle per row".to_string(),
+            k => format!("exposure by exposure ({k}, as the catalog recorded them)"),
+        };
+        (
+            t.fit.model.name(),
+            format!(
+                "corrected {rows} rows with {} ({} model, band {}{}), {how}",
+                a.cal.display(),
+                t.fit.model.name(),
+                t.band,
+                first(loaded)
+            ),
+        )
+    });
+    finish(a, s, loaded, telescope)
+}
+
+/// How a telescope correction's line says whether the field was undone first.
+fn first(loaded: &fit::calibration::CalibrationFile) -> &'static str {
+    if loaded.field.is_some() {
+        ", field model first"
+    } else {
+        ", no field model"
     }
-    if let Some(m) = &loaded.mueller {
-        summary.mueller_model = Some(m.field.kind.model_name());
-        summary.mueller_free = Some(m.field.kind.free_words());
-    }
-    match (&loaded.mueller, &plan.telescope, &loaded.field) {
+}
+
+/// Print the summary (`telescope`: the model's name and the line that says what was done, when a
+/// telescope model was applied), after the warning for extrapolated positions.
+fn finish(
+    a: &Args,
+    mut s: Summary,
+    loaded: &fit::calibration::CalibrationFile,
+    telescope: Option<(&'static str, String)>,
+) -> Result<()> {
+    match (&loaded.mueller, telescope, &loaded.field) {
         (Some(m), _, _) => {
-            warn_extrapolated(&summary, "fitted Mueller field");
-            report(a, &summary, &mueller_line(a, &summary, m), " (unpolarized light)")
+            (s.filter, s.mueller_model) = (m.filter.clone(), Some(m.field.kind.model_name()));
+            s.mueller_free = Some(m.field.kind.free_words());
+            warn_extrapolated(&s, "fitted Mueller field");
+            report(a, &s, &mueller_line(a, &s, m), " (unpolarized light)")
         }
-        (None, Some(t), field) => {
-            warn_extrapolated(&summary, "calibrated field");
-            report(
-                a,
-                &summary,
-                &format!(
-                    "corrected {} rows with {} ({} model, band {}{}), {}",
-                    summary.rows,
-                    a.cal.display(),
-                    t.fit.model.name(),
-                    t.band,
-                    if field.is_some() { ", field model first" } else { ", no field model" },
-                    if t.exposures == 0 {
-                        "the parallactic angle per row".to_string()
-                    } else {
-                        format!("exposure by exposure ({}, as the catalog recorded them)", t.exposures)
-                    }
-                ),
-                "",
-            )
+        (None, Some((model, line)), _) => {
+            s.telescope_model = Some(model);
+            warn_extrapolated(&s, "calibrated field");
+            report(a, &s, &line, "")
         }
         (None, None, Some(cal)) => {
-            warn_extrapolated(&summary, "calibrated field");
-            report(a, &summary, &field_line(a, &summary, cal), "")
+            s.filter = cal.filter.clone();
+            warn_extrapolated(&s, "calibrated field");
+            report(a, &s, &field_line(a, &s, cal), "")
         }
         (None, None, None) => unreachable!("the loader refuses a file without a model"),
     }
@@ -442,22 +365,9 @@ fn mueller_line(a: &Args, s: &Summary, cal: &fit::mueller_cal::MuellerCal) -> St
     )
 }
 
-/// The catalog to correct (text formats by extension, or a FITS table), with no column the
-/// correction would overwrite and at least one row.
-fn read_catalog(a: &Args, kind: Kind) -> Result<Table> {
-    let table = match kind {
-        Kind::Text => Table::read(&a.input, a.hdu.as_deref())?,
-        _ => Table::read_format(&a.input, Format::Fits, a.hdu.as_deref())?,
-    };
-    check_no_clash(&table.names(), &a.input)?;
-    if table.n_rows() == 0 {
-        bail!("{}: the catalog has no data rows", a.input.display());
-    }
-    Ok(table)
-}
-
 // The column a catalog carries when its q, u already have the instrument's HWP zero angle
 // applied (`instpol catalog` writes it): they are then in the sky's frame.
+use fit::columns::PARANG_COLUMNS as PARANG;
 use skyfield::table::ZERO_ANGLE_COLUMN as ZERO_ANGLE;
 
 /// The summary on stdout: the JSON object (--json), or `line`, the medians of the
@@ -485,176 +395,6 @@ fn warn_extrapolated(s: &Summary, field: &str) {
     }
 }
 
-#[derive(Clone, Copy, PartialEq, Eq, Debug)]
-enum Kind {
-    /// CSV, ECSV or VOTable (by extension, `skyfield::table`).
-    Text,
-    FitsTable,
-    Map,
-}
-
-/// FITS by its first bytes ("SIMPLE  ="), Stokes map by the MAPVERS keyword; else a text table.
-fn detect(path: &Path) -> Result<Kind> {
-    use std::io::Read;
-    let mut head = [0u8; 9];
-    let mut f = std::fs::File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
-    let n = f.read(&mut head).with_context(|| format!("cannot read {}", path.display()))?;
-    if n == 9 && &head == b"SIMPLE  =" {
-        let mut ff = FitsFile::open(path).map_err(|e| anyhow!("{}: cannot open as FITS: {e}", path.display()))?;
-        let ph = ff.primary_hdu().map_err(|e| anyhow!("{}: {e}", path.display()))?;
-        if ph.read_key::<i64>(&mut ff, "MAPVERS").is_ok() {
-            return Ok(Kind::Map);
-        }
-        return Ok(Kind::FitsTable);
-    }
-    Ok(Kind::Text)
-}
-
-fn check_no_clash(headers: &[String], path: &Path) -> Result<()> {
-    for h in headers {
-        let l = h.trim().to_ascii_lowercase();
-        if ADDED.contains(&l.as_str()) || l.starts_with("p0_") || l == "q_inst" || l == "u_inst" || l == "extrapolated"
-        {
-            bail!("{}: column '{h}' would be overwritten by the corrected columns; rename it", path.display());
-        }
-    }
-    Ok(())
-}
-
-/// Catalog positions in arcmin from the detector centre.
-/// The optional parallactic-angle columns of a telescope correction.
-const PARANG: [&str; 2] = ["parang_deg", "parang_end_deg"];
-
-fn measurements(
-    t: &Table,
-    pixel: Option<fit::calfile::PixelGrid>,
-    coords: Coords,
-    path: &Path,
-) -> Result<Vec<Measurement>> {
-    let to_arcmin = |x: f64, y: f64| -> Result<(f64, f64)> {
-        match coords {
-            Coords::Arcmin => Ok((x, y)),
-            Coords::Pixel => {
-                let g = pixel.ok_or_else(|| {
-                    anyhow!("the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)")
-                })?;
-                Ok(g.to_arcmin(x, y))
-            }
-        }
-    };
-    let col = |c: &str| -> Result<Vec<f64>> {
-        if t.column(c).is_none() {
-            bail!(
-                "{}: no column '{c}' (columns: {}); need x, y, q, u, sigma_q, sigma_u",
-                path.display(),
-                t.names().join(", ")
-            );
-        }
-        Ok(t.numbers(c, path)?)
-    };
-    let (x, y, q, u, sq, su) = (col("x")?, col("y")?, col("q")?, col("u")?, col("sigma_q")?, col("sigma_u")?);
-    let cov = if t.column("cov_qu").is_some() { Some(col("cov_qu")?) } else { None };
-    (0..x.len())
-        .map(|i| {
-            let (xa, ya) = to_arcmin(x[i], y[i]).with_context(|| format!("{} {}", path.display(), t.row_label(i)))?;
-            Ok(Measurement::new(xa, ya, q[i], u[i], sq[i], su[i], cov.as_ref().map(|c| c[i]).unwrap_or(0.0)))
-        })
-        .collect()
-}
-
-/// The bias-corrected P0 of each row with the chosen estimator (NaN when the errors are not
-/// usable, e.g. zero).
-fn estimates(out: &[Corrected], est: Estimator) -> Vec<f64> {
-    use indicatif::{ParallelProgressIterator, ProgressBar};
-    use rayon::prelude::*;
-    // The root-finding estimators take ~1 us a row: show progress on big catalogs.
-    let pb = if out.len() >= 500_000 { ProgressBar::new(out.len() as u64) } else { ProgressBar::hidden() };
-    let v = out
-        .par_iter()
-        .progress_with(pb.clone())
-        .map(|r| match PolMeasurement::new(r.q0, r.u0, r.var_q0.sqrt(), r.var_u0.sqrt()) {
-            Ok(m) => est.estimate(&m).value,
-            Err(_) => f64::NAN,
-        })
-        .collect();
-    pb.finish_and_clear();
-    v
-}
-
-/// The appended values of one row: `fit::correct::OUTPUT_NAMES` with the estimator's `p0_<name>`
-/// before `q_inst` (the column order of `added_names`).
-fn added_values(r: &Corrected, p0e: f64) -> [f64; 12] {
-    let v = r.output_values();
-    std::array::from_fn(|k| match k {
-        0..=8 => v[k],
-        9 => p0e,
-        _ => v[k - 1],
-    })
-}
-
-fn added_names(est: Estimator) -> Vec<String> {
-    let mut v: Vec<String> = ADDED.iter().map(|s| s.to_string()).collect();
-    v.push(format!("p0_{}", est.name()));
-    v.push("q_inst".into());
-    v.push("u_inst".into());
-    v
-}
-
-/// The corrected columns appended to the input table (units: `deg` for the angles; the rest
-/// are dimensionless fractions or a 0/1 flag).
-fn append_columns(t: &mut Table, out: &[Corrected], p0e: &[f64], est: Estimator) {
-    for (k, n) in added_names(est).iter().enumerate() {
-        let v: Vec<f64> = out.iter().zip(p0e).map(|(r, e)| added_values(r, *e)[k]).collect();
-        let unit = n.ends_with("_deg").then_some("deg");
-        t.columns.push(Column::f64(n, unit, "", v));
-    }
-    t.columns.push(Column::i64(
-        "extrapolated",
-        "1 = outside the calibrated field",
-        out.iter().map(|r| r.extrapolated as i64).collect(),
-    ));
-}
-
-/// Copy the input FITS file byte for byte to a temporary file beside the output, append the
-/// corrected columns to its catalog table, and rename it over the output: every HDU, header
-/// keyword and column of the input is kept.
-fn write_fits_table(
-    input: &Path,
-    name: Option<&str>,
-    out: &[Corrected],
-    p0e: &[f64],
-    est: Estimator,
-    path: &Path,
-) -> Result<()> {
-    let names = added_names(est);
-    let werr = |m: String| anyhow!("cannot write {}: {m}", path.display());
-    crate::util::write_via_temp(path, ".fits.tmp", |tmp| {
-        let dir = tmp.parent().unwrap_or(Path::new("."));
-        std::fs::copy(input, tmp).with_context(|| format!("cannot copy {} to {}", input.display(), dir.display()))?;
-        let mut f = FitsFile::edit(tmp).map_err(|e| werr(e.to_string()))?;
-        let (mut t, _, _) = skyfield::table::fits_table_hdu(&mut f, name, input)?;
-        for (k, n) in names.iter().enumerate() {
-            let col: Vec<f64> = out.iter().zip(p0e).map(|(r, e)| added_values(r, *e)[k]).collect();
-            let d = ColumnDescription::new(n)
-                .with_type(ColumnDataType::Double)
-                .create()
-                .map_err(|e| werr(e.to_string()))?;
-            t = t.append_column(&mut f, &d).map_err(|e| werr(format!("adding column {n}: {e}")))?;
-            t.write_col(&mut f, n, &col).map_err(|e| werr(format!("writing column {n}: {e}")))?;
-        }
-        let flags: Vec<i32> = out.iter().map(|r| r.extrapolated as i32).collect();
-        let d = ColumnDescription::new("extrapolated")
-            .with_type(ColumnDataType::Int)
-            .create()
-            .map_err(|e| werr(e.to_string()))?;
-        t = t.append_column(&mut f, &d).map_err(|e| werr(format!("adding column extrapolated: {e}")))?;
-        t.write_col(&mut f, "extrapolated", &flags).map_err(|e| werr(format!("writing column extrapolated: {e}")))?;
-        skyfield::provenance::stamp(&mut f).map_err(werr)?;
-        // Closed explicitly: CFITSIO flushes its buffers here and a full disk must fail the run.
-        skyfield::durable::close_fits(f).map_err(werr)
-    })
-}
-
 /// Correct a Stokes map with any calibration (`fit::request::plan_map`): every valid bin at
 /// its centre, written with the correction's record, and report.
 fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Request<'_>) -> Result<()> {
@@ -662,64 +402,57 @@ fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Reque
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
     let plan = fit::request::plan_map(loaded, request, &map).map_err(|e| rows_error(a, None, e))?;
     print_notes(a, &plan.notes);
-    let (c, stamp) = plan.correct(&map, &cal_name(a)).map_err(|e| map_error(e, &a.input))?;
+    let name = a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+    let (c, stamp) = plan.correct(&map, &name).map_err(|e| map_error(e, &a.input))?;
     crate::util::check_output(&a.out)?;
     c.map.write_corrected_fits(&a.out, &stamp).with_context(|| format!("cannot write {}", a.out.display()))?;
-    let mut summary = map_summary(a, c, &map.filter, stamp.hwp_chi_offset_deg);
-    match (&loaded.mueller, &plan.telescope, &loaded.field) {
-        (Some(m), _, _) => {
-            summary.filter = m.filter.clone();
-            summary.mueller_model = Some(m.field.kind.model_name());
-            summary.mueller_free = Some(m.field.kind.free_words());
-            warn_extrapolated(&summary, "fitted Mueller field");
-            report(a, &summary, &mueller_line(a, &summary, m), " (unpolarized light)")
-        }
-        (None, Some(t), field) => {
-            summary.telescope_model = Some(t.fit.model.name());
-            summary.telescope_band = Some(t.band.clone());
-            summary.telescope_exposures = (plan.exposures > 0).then_some(plan.exposures);
-            warn_extrapolated(&summary, "calibrated field");
-            report(
-                a,
-                &summary,
-                &format!(
-                    "corrected {} bins of {} with {} ({} model, band {}{}), parallactic angle {:.2} to {:.2} deg",
-                    summary.rows,
-                    a.input.display(),
-                    a.cal.display(),
-                    t.fit.model.name(),
-                    t.band,
-                    if field.is_some() { ", field model first" } else { ", no field model" },
-                    t.track.start.to_degrees(),
-                    t.track.end.to_degrees()
-                ),
-                "",
-            )
-        }
-        (None, None, Some(cal)) => {
-            summary.filter = cal.filter.clone();
-            warn_extrapolated(&summary, "calibrated field");
-            report(a, &summary, &field_line(a, &summary, cal), "")
-        }
-        (None, None, None) => unreachable!("the loader refuses a file without a model"),
-    }
+    let (n, filter) = ((c.n_bins, c.n_extrapolated), map.filter.clone());
+    let mut s = summary(a, "Stokes map", n, a.estimator.clone(), filter, stamp.hwp_chi_offset_deg, c.p0, c.p_inst);
+    // A Mueller field's summary names no telescope model.
+    let telescope = plan.telescope.as_ref().filter(|_| loaded.mueller.is_none()).map(|t| {
+        let k = plan.exposures;
+        (s.telescope_exposures, s.telescope_band) = ((k > 0).then_some(k), Some(t.band.clone()));
+        let (input, cal, track) = (a.input.display(), a.cal.display(), t.track);
+        let line = format!(
+            "corrected {} bins of {input} with {cal} ({} model, band {}{}), parallactic angle {:.2} to {:.2} deg",
+            n.0,
+            t.fit.model.name(),
+            t.band,
+            first(loaded),
+            track.start.to_degrees(),
+            track.end.to_degrees()
+        );
+        (t.fit.model.name(), line)
+    });
+    finish(a, s, loaded, telescope)
 }
 
-/// The summary of a corrected Stokes map.
-fn map_summary(a: &Args, c: fit::correct::CorrectedMap, filter: &str, hwp_chi_offset_deg: f64) -> Summary {
+/// The summary of a correction of `n` = (rows or bins, extrapolated ones), with the medians of
+/// the corrected P0 and of the instrumental p removed.
+#[allow(clippy::too_many_arguments)]
+fn summary(
+    a: &Args,
+    kind: &'static str,
+    n: (usize, usize),
+    estimator: String,
+    filter: String,
+    hwp_chi_offset_deg: f64,
+    p0: Vec<f64>,
+    p_inst: Vec<f64>,
+) -> Summary {
     Summary {
         input: a.input.clone(),
         output: a.out.clone(),
-        kind: "Stokes map",
-        rows: c.n_bins,
-        extrapolated: c.n_extrapolated,
+        kind,
+        rows: n.0,
+        extrapolated: n.1,
         method: a.method,
-        estimator: a.estimator.clone(),
+        estimator,
         coords: None,
-        filter: filter.to_string(),
+        filter,
         hwp_chi_offset_deg,
-        median_p0: finite_median(c.p0, Middle::Mean),
-        median_p_inst: finite_median(c.p_inst, Middle::Mean),
+        median_p0: finite_median(p0, Middle::Mean),
+        median_p_inst: finite_median(p_inst, Middle::Mean),
         telescope_model: None,
         telescope_band: None,
         telescope_exposures: None,
@@ -733,51 +466,4 @@ fn map_error(e: fit::correct::MapError, input: &Path) -> anyhow::Error {
         fit::correct::MapError::NoValidBins => anyhow!("{}: {e}", input.display()),
         e => anyhow!("{} {e}", input.display()),
     }
-}
-
-/// The calibration file's name, as a corrected map records it (`INSTCORR`).
-fn cal_name(a: &Args) -> String {
-    a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default()
-}
-
-/// Write a corrected catalog in the output's format and make its summary.
-#[allow(clippy::too_many_arguments)]
-fn write_catalog(
-    a: &Args,
-    kind: Kind,
-    out_format: Option<Format>,
-    table: &mut Table,
-    out: &[Corrected],
-    est: Estimator,
-    n_extra: usize,
-    filter: String,
-    hwp_chi_offset_deg: f64,
-) -> Result<Summary> {
-    let p0est = estimates(out, est);
-    if kind == Kind::FitsTable && out_format == Some(Format::Fits) {
-        write_fits_table(&a.input, a.hdu.as_deref(), out, &p0est, est, &a.out)?;
-    } else {
-        append_columns(table, out, &p0est, est);
-        crate::util::check_output(&a.out)?;
-        table.write(&a.out)?;
-    }
-    Ok(Summary {
-        input: a.input.clone(),
-        output: a.out.clone(),
-        kind: if kind == Kind::Text { "catalog (text table)" } else { "catalog (FITS table)" },
-        rows: out.len(),
-        extrapolated: n_extra,
-        method: a.method,
-        estimator: est.name().into(),
-        coords: Some(a.coords),
-        filter,
-        hwp_chi_offset_deg,
-        median_p0: finite_median(out.iter().map(|r| r.p0), Middle::Mean),
-        median_p_inst: finite_median(out.iter().map(|r| r.inst.q.hypot(r.inst.u)), Middle::Mean),
-        telescope_model: None,
-        telescope_band: None,
-        telescope_exposures: None,
-        mueller_model: None,
-        mueller_free: None,
-    })
 }

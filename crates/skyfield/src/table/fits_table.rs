@@ -78,6 +78,58 @@ pub fn fits_table_hdu(
     }
 }
 
+/// Write `path` as a copy of the FITS file `input` with `columns` appended to its table HDU
+/// `hdu` (or its first table HDU): every HDU, header keyword and column of the input is kept
+/// byte for byte, the run's provenance is stamped in the primary header. Atomic as
+/// [`Table::write`]: the copy is edited in a temporary file beside `path` and renamed onto it
+/// once closed, so a failed write leaves no file.
+///
+/// Each column must have one value per row of the table. The new columns get a name and a type
+/// (`TTYPEn`, `TFORMn`), not `TUNITn`/`TCOMMn`: floats are written as 64-bit (`D`), integers as
+/// 32-bit (`J`) when every value fits and 64-bit (`K`) otherwise, text as fixed-width strings.
+pub fn append_fits_columns(input: &Path, hdu: Option<&str>, columns: &[Column], path: &Path) -> Result<(), Error> {
+    use fitsio::tables::{ColumnDataType as T, ColumnDescription};
+    let werr = |m: String| Error::Write { path: path.into(), message: m };
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let tmp = crate::fits::temp_beside(path, ".fits.tmp")
+        .map_err(|e| werr(format!("cannot create a temporary file in {}: {e}", dir.display())))?
+        .into_temp_path();
+    std::fs::copy(input, &tmp).map_err(|e| werr(format!("cannot copy {}: {e}", input.display())))?;
+    let mut f = fitsio::FitsFile::edit(&tmp).map_err(|e| werr(e.to_string()))?;
+    let (mut t, _, n_rows) = fits_table_hdu(&mut f, hdu, input)?;
+    for c in columns {
+        if c.data.len() != n_rows {
+            return Err(terr(input, format!("column '{}' has {} values for {n_rows} rows", c.name, c.data.len())));
+        }
+        let narrow: Option<Vec<i32>> = match &c.data {
+            Data::I64(v) => v.iter().map(|&x| i32::try_from(x).ok()).collect(),
+            _ => None,
+        };
+        let mut d = ColumnDescription::new(&c.name);
+        let d = match (&c.data, &narrow) {
+            (Data::F64(_), _) => d.with_type(T::Double),
+            (Data::I64(_), Some(_)) => d.with_type(T::Int),
+            (Data::I64(_), None) => d.with_type(T::LongLong),
+            (Data::Str(v), _) => {
+                d.with_type(T::String).that_repeats(v.iter().map(|s| s.len()).max().unwrap_or(1).max(1))
+            }
+        };
+        let d = d.create().map_err(|e| werr(e.to_string()))?;
+        t = t.append_column(&mut f, &d).map_err(|e| werr(format!("adding column {}: {e}", c.name)))?;
+        match (&c.data, &narrow) {
+            (Data::F64(v), _) => t.write_col(&mut f, &c.name, v),
+            (Data::I64(_), Some(v)) => t.write_col(&mut f, &c.name, v),
+            (Data::I64(v), None) => t.write_col(&mut f, &c.name, v),
+            (Data::Str(v), _) => t.write_col(&mut f, &c.name, v),
+        }
+        .map_err(|e| werr(format!("writing column {}: {e}", c.name)))?;
+    }
+    crate::provenance::stamp(&mut f).map_err(werr)?;
+    // Closed explicitly: CFITSIO flushes its buffers here and a full disk must fail the write.
+    crate::durable::close_fits(f).map_err(werr)?;
+    crate::durable::finish(tmp, path).map_err(|e| werr(e.to_string()))
+}
+
 /// A string column through CFITSIO with a buffer one byte longer than the field (fitsio 0.21's
 /// own string reader writes its terminating NUL one byte past its buffer).
 fn read_fits_strings(f: &mut fitsio::FitsFile, col: usize, width: usize, n: usize) -> Result<Vec<String>, String> {

@@ -23,7 +23,8 @@
 //!
 //! The module's files: the table value (`model`), one file per format (`csv_table`, `ecsv`
 //! with its YAML flow-mapping reader, `votable`, `fits_table`), and here the choice of format
-//! by extension. Only the value, the format names and the FITS table lookup are public.
+//! by extension. Only the value, the format names, the FITS table lookup and the appending of columns to a
+//! copy of a FITS table are public.
 
 mod csv_table;
 mod ecsv;
@@ -31,7 +32,7 @@ mod fits_table;
 mod model;
 mod votable;
 
-pub use fits_table::fits_table_hdu;
+pub use fits_table::{append_fits_columns, fits_table_hdu};
 pub use model::{Column, Data, Format, Table, EXTENSIONS, ZERO_ANGLE_COLUMN};
 
 use crate::Error;
