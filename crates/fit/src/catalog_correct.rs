@@ -117,17 +117,10 @@ pub fn correct_catalog_loaded(
         }
     };
     let request = crate::request::Request {
-        method: opts.method,
-        allow_extrapolation: opts.allow_extrapolation,
-        extrapolation_rel_error: opts.extrapolation_rel_error,
         band: band.as_deref(),
         carried_zero_angle_deg: Some(cat.chi_offset_deg),
-        per_row: None,
-        parang: None,
-        rotator: None,
         recorded: recorded.as_ref(),
-        angles_are_arguments: false,
-        allow_mismatch: false,
+        ..crate::request::Request::new(opts.method, opts.allow_extrapolation, opts.extrapolation_rel_error)
     };
     let plan = crate::request::plan_rows(loaded, &request, cat.rows.len()).map_err(|e| match e {
         crate::request::Refusal::NoRotator { .. } => Error::NoRotator(inst.name.clone()),

@@ -196,6 +196,80 @@ pub fn reported_zero_angle(loaded: &CalibrationFile, plan: &crate::request::Rows
     }
 }
 
+/// What a correction did, as `instpol correct --json` reports it beside the paths and
+/// options: the rows (or bins) corrected and extrapolated, the estimator, the filter and HWP
+/// zero angle reported, the medians of the corrected `P0` and of the instrumental `p` removed,
+/// and the telescope model or Mueller field applied.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Report {
+    pub kind: &'static str,
+    #[serde(rename = "n_rows")]
+    pub rows: usize,
+    #[serde(rename = "n_extrapolated")]
+    pub extrapolated: usize,
+    pub estimator: String,
+    pub filter: String,
+    pub hwp_chi_offset_deg: f64,
+    pub median_p0: Option<f64>,
+    pub median_p_inst: Option<f64>,
+    /// The telescope model applied (wiersema / oxide) and its band, when the calibration has one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub telescope_model: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub telescope_band: Option<String>,
+    /// The exposures undone one by one (a map's or catalog's recorded ones); absent: one track.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub telescope_exposures: Option<usize>,
+    /// A Mueller-field calibration's model (physical / general) and free effects.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mueller_model: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mueller_free: Option<Vec<&'static str>>,
+}
+
+impl Report {
+    /// The report of a correction with `loaded` of `kind` ("Stokes map", "catalog (text
+    /// table)", ...): `n` = (rows or bins, extrapolated ones), the estimator's name, the filter
+    /// and zero angle the correction reports (the file's own filter replaces `filter` for a
+    /// Mueller field or a field model without a telescope), the corrected `P0` and the
+    /// instrumental `p` removed (their medians, the mean of the two middles), and the telescope
+    /// applied (model, band, exposures undone one by one).
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        loaded: &CalibrationFile,
+        kind: &'static str,
+        n: (usize, usize),
+        estimator: String,
+        (filter, hwp_chi_offset_deg): (String, f64),
+        p0: Vec<f64>,
+        p_inst: Vec<f64>,
+        telescope: Option<(&'static str, String, usize)>,
+    ) -> Self {
+        use stokes::stats::robust::{finite_median, Middle};
+        let telescope = telescope.filter(|_| loaded.mueller.is_none());
+        let filter = match (&loaded.mueller, &telescope, &loaded.field) {
+            (Some(m), _, _) => m.filter.clone(),
+            (None, None, Some(c)) => c.filter.clone(),
+            _ => filter,
+        };
+        Report {
+            kind,
+            rows: n.0,
+            extrapolated: n.1,
+            estimator,
+            filter,
+            hwp_chi_offset_deg,
+            median_p0: finite_median(p0, Middle::Mean),
+            median_p_inst: finite_median(p_inst, Middle::Mean),
+            telescope_model: telescope.as_ref().map(|t| t.0),
+            telescope_band: telescope.as_ref().map(|t| t.1.clone()),
+            telescope_exposures: telescope.as_ref().and_then(|t| (t.2 > 0).then_some(t.2)),
+            mueller_model: loaded.mueller.as_ref().map(|m| m.field.kind.model_name()),
+            mueller_free: loaded.mueller.as_ref().map(|m| m.field.kind.free_words()),
+        }
+    }
+}
+
 /// The input columns of a correction: positions in arcmin from the detector centre, the
 /// measured `q, u` (fractions), their 1-sigma errors and optional covariance (0 when absent),
 /// all of one length.

@@ -78,6 +78,26 @@ pub struct Request<'a> {
     pub allow_mismatch: bool,
 }
 
+impl Request<'_> {
+    /// A request with `method` and the extrapolation rule, and nothing else asked: no band,
+    /// track, rotator or per-row angles, no zero angle carried, no mismatch allowed.
+    pub fn new(method: Method, allow_extrapolation: bool, extrapolation_rel_error: f64) -> Self {
+        Request {
+            method,
+            allow_extrapolation,
+            extrapolation_rel_error,
+            band: None,
+            carried_zero_angle_deg: None,
+            per_row: None,
+            parang: None,
+            rotator: None,
+            recorded: None,
+            angles_are_arguments: false,
+            allow_mismatch: false,
+        }
+    }
+}
+
 /// Why rows cannot be corrected as asked. Each face says it in its own words (its option
 /// names), from these values.
 #[derive(Debug, Clone, PartialEq)]

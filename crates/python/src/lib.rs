@@ -885,19 +885,8 @@ fn request<'a>(
     if !(extrapolation_error.is_finite() && extrapolation_error >= 0.0) {
         return Err(input_err(format!("extrapolation_error {extrapolation_error} must be a non-negative number")));
     }
-    Ok(fit::request::Request {
-        method,
-        allow_extrapolation,
-        extrapolation_rel_error: extrapolation_error,
-        band,
-        carried_zero_angle_deg: None,
-        per_row: None,
-        parang: None,
-        rotator: None,
-        recorded: None,
-        angles_are_arguments: true,
-        allow_mismatch,
-    })
+    let base = fit::request::Request::new(method, allow_extrapolation, extrapolation_error);
+    Ok(fit::request::Request { band, angles_are_arguments: true, allow_mismatch, ..base })
 }
 
 /// Frames to a binned Stokes map (`instpol reduce`): returns the map's arrays flat, in bin order

@@ -12,7 +12,6 @@ use serde::Serialize;
 use skyfield::maps::FileKind as Kind;
 use skyfield::table::{Format, Table};
 use std::path::{Path, PathBuf};
-use stokes::stats::robust::{finite_median, Middle};
 use stokes::stats::Estimator;
 
 // `instpol correct`'s options; the long help (what is read, written and reported, with the
@@ -89,35 +88,15 @@ pub enum MethodArg {
     FirstOrder,
 }
 
+/// The JSON summary: the paths and options, and what the correction did (`fit::columns::Report`).
 #[derive(Serialize)]
 struct Summary {
     input: PathBuf,
     output: PathBuf,
-    kind: &'static str,
-    #[serde(rename = "n_rows")]
-    rows: usize,
-    #[serde(rename = "n_extrapolated")]
-    extrapolated: usize,
     method: MethodArg,
-    estimator: String,
     coords: Option<Coords>,
-    filter: String,
-    hwp_chi_offset_deg: f64,
-    median_p0: Option<f64>,
-    median_p_inst: Option<f64>,
-    /// The telescope model applied (wiersema / oxide) and its band, when the calibration has one.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    telescope_model: Option<&'static str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    telescope_band: Option<String>,
-    /// The exposures undone one by one (a map's or catalog's recorded ones); absent: one track.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    telescope_exposures: Option<usize>,
-    /// A Mueller-field calibration's model (physical / general) and free effects.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    mueller_model: Option<&'static str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    mueller_free: Option<Vec<&'static str>>,
+    #[serde(flatten)]
+    report: fit::columns::Report,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -131,19 +110,9 @@ pub fn run(a: Args) -> Result<()> {
         fit::calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     let parang = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
     let rotator = a.rotator.map(crate::util::parse_rotator).transpose()?;
-    let request = Request {
-        method: method(&a),
-        allow_extrapolation: a.allow_extrapolation,
-        extrapolation_rel_error: a.extrapolation_error,
-        band: a.band.as_deref(),
-        carried_zero_angle_deg: None,
-        per_row: None,
-        parang,
-        rotator,
-        recorded: None,
-        angles_are_arguments: false,
-        allow_mismatch: a.allow_mismatch,
-    };
+    let method = if a.method == MethodArg::Exact { Method::Exact } else { Method::FirstOrder };
+    let base = Request::new(method, a.allow_extrapolation, a.extrapolation_error);
+    let request = Request { band: a.band.as_deref(), parang, rotator, allow_mismatch: a.allow_mismatch, ..base };
     fit::request::check_options(&loaded, &request).map_err(|e| rows_error(&a, None, e))?;
     let kind = skyfield::maps::file_kind(&a.input)?;
     if kind == Kind::StokesMap {
@@ -152,16 +121,8 @@ pub fn run(a: Args) -> Result<()> {
     run_table(&a, &loaded, &request, kind, est)
 }
 
-/// The flags' inversion method.
-fn method(a: &Args) -> Method {
-    match a.method {
-        MethodArg::Exact => Method::Exact,
-        MethodArg::FirstOrder => Method::FirstOrder,
-    }
-}
-
 /// The first line of the summary of a correction by a field calibration.
-fn field_line(a: &Args, s: &Summary, cal: &Calibration) -> String {
+fn field_line(a: &Args, s: &fit::columns::Report, cal: &Calibration) -> String {
     format!(
         "corrected {} {} with {} ({} {}, HWP zero angle {:+.2} deg)",
         s.rows,
@@ -283,8 +244,18 @@ fn run_table(
     let p_inst: Vec<f64> = col("q_inst").iter().zip(col("u_inst")).map(|(q, u)| q.hypot(*u)).collect();
     let text = if kind == Kind::TextTable { "catalog (text table)" } else { "catalog (FITS table)" };
     let (rows, extra) = (out.extrapolated.len(), out.n_extrapolated);
-    let mut s = summary(a, text, (rows, extra), est.name().into(), filter, zero_angle, col("p0").to_vec(), p_inst);
-    s.coords = Some(a.coords);
+    let used = plan.telescope.as_ref().map(|t| (t.fit.model.name(), t.band.clone(), t.exposures));
+    let p0 = col("p0").to_vec();
+    let report = fit::columns::Report::new(
+        loaded,
+        text,
+        (rows, extra),
+        est.name().into(),
+        (filter, zero_angle),
+        p0,
+        p_inst,
+        used,
+    );
     crate::util::check_output(&a.out)?;
     if kind == Kind::FitsTable && out_format == Some(Format::Fits) {
         skyfield::table::append_fits_columns(&a.input, a.hdu.as_deref(), &out.into_table_columns(), &a.out)?;
@@ -293,66 +264,54 @@ fn run_table(
         table.write(&a.out)?;
     }
     let telescope = plan.telescope.as_ref().map(|t| {
-        (s.telescope_exposures, s.telescope_band) = ((t.exposures > 0).then_some(t.exposures), Some(t.band.clone()));
-        s.telescope_model = Some(t.fit.model.name());
         let how = match t.exposures {
             0 => "the parallactic angle per row".to_string(),
             k => format!("exposure by exposure ({k}, as the catalog recorded them)"),
         };
-        (
+        format!(
+            "corrected {rows} rows with {} ({} model, band {}{}), {how}",
+            a.cal.display(),
             t.fit.model.name(),
-            format!(
-                "corrected {rows} rows with {} ({} model, band {}{}), {how}",
-                a.cal.display(),
-                t.fit.model.name(),
-                t.band,
-                first(loaded)
-            ),
+            t.band,
+            first(loaded)
         )
     });
-    finish(a, s, loaded, telescope)
+    finish(
+        a,
+        Summary { input: a.input.clone(), output: a.out.clone(), method: a.method, coords: Some(a.coords), report },
+        loaded,
+        telescope,
+    )
 }
 
 /// How a telescope correction's line says whether the field was undone first.
 fn first(loaded: &fit::calibration::CalibrationFile) -> &'static str {
-    if loaded.field.is_some() {
-        ", field model first"
-    } else {
-        ", no field model"
-    }
+    [", no field model", ", field model first"][loaded.field.is_some() as usize]
 }
 
 /// Print the summary (`telescope`: the model's name and the line that says what was done, when a
 /// telescope model was applied), after the warning for extrapolated positions.
-fn finish(
-    a: &Args,
-    mut s: Summary,
-    loaded: &fit::calibration::CalibrationFile,
-    telescope: Option<(&'static str, String)>,
-) -> Result<()> {
+fn finish(a: &Args, s: Summary, loaded: &fit::calibration::CalibrationFile, telescope: Option<String>) -> Result<()> {
+    let r = &s.report;
     match (&loaded.mueller, telescope, &loaded.field) {
         (Some(m), _, _) => {
-            (s.filter, s.mueller_model) = (m.filter.clone(), Some(m.field.kind.model_name()));
-            s.mueller_free = Some(m.field.kind.free_words());
-            warn_extrapolated(&s, "fitted Mueller field");
-            report(a, &s, &mueller_line(a, &s, m), " (unpolarized light)")
+            warn_extrapolated(r, "fitted Mueller field");
+            report(a, &s, &mueller_line(a, r, m), " (unpolarized light)")
         }
-        (None, Some((model, line)), _) => {
-            s.telescope_model = Some(model);
-            warn_extrapolated(&s, "calibrated field");
+        (None, Some(line), _) => {
+            warn_extrapolated(r, "calibrated field");
             report(a, &s, &line, "")
         }
         (None, None, Some(cal)) => {
-            s.filter = cal.filter.clone();
-            warn_extrapolated(&s, "calibrated field");
-            report(a, &s, &field_line(a, &s, cal), "")
+            warn_extrapolated(r, "calibrated field");
+            report(a, &s, &field_line(a, r, cal), "")
         }
         (None, None, None) => unreachable!("the loader refuses a file without a model"),
     }
 }
 
 /// The first line of the summary of a correction by a Mueller field.
-fn mueller_line(a: &Args, s: &Summary, cal: &fit::mueller_cal::MuellerCal) -> String {
+fn mueller_line(a: &Args, s: &fit::columns::Report, cal: &fit::mueller_cal::MuellerCal) -> String {
     format!(
         "corrected {} {} with the Mueller field of {} ({} {}, {} model: {}), exact inverse",
         s.rows,
@@ -378,7 +337,7 @@ fn report(a: &Args, s: &Summary, line: &str, of: &str) -> Result<()> {
         return crate::util::print_json(s);
     }
     outln!("{line}");
-    if let (Some(p0), Some(pi)) = (s.median_p0, s.median_p_inst) {
+    if let (Some(p0), Some(pi)) = (s.report.median_p0, s.report.median_p_inst) {
         outln!("median instrumental p{of} removed: {:.3} %, median corrected P0: {:.3} %", 100.0 * pi, 100.0 * p0);
     }
     outln!("wrote {}", a.out.display());
@@ -386,7 +345,7 @@ fn report(a: &Args, s: &Summary, line: &str, of: &str) -> Result<()> {
 }
 
 /// The warning for corrected positions outside the model's field (`field`: which).
-fn warn_extrapolated(s: &Summary, field: &str) {
+fn warn_extrapolated(s: &fit::columns::Report, field: &str) {
     if s.extrapolated > 0 {
         eprintln!(
             "warning: {} of {} positions lie outside the {field}; corrected by extrapolation with inflated errors (flagged)",
@@ -407,11 +366,11 @@ fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Reque
     crate::util::check_output(&a.out)?;
     c.map.write_corrected_fits(&a.out, &stamp).with_context(|| format!("cannot write {}", a.out.display()))?;
     let (n, filter) = ((c.n_bins, c.n_extrapolated), map.filter.clone());
-    let mut s = summary(a, "Stokes map", n, a.estimator.clone(), filter, stamp.hwp_chi_offset_deg, c.p0, c.p_inst);
+    let used = plan.telescope.as_ref().map(|t| (t.fit.model.name(), t.band.clone(), plan.exposures));
+    let zero = (filter, stamp.hwp_chi_offset_deg);
+    let report = fit::columns::Report::new(loaded, "Stokes map", n, a.estimator.clone(), zero, c.p0, c.p_inst, used);
     // A Mueller field's summary names no telescope model.
     let telescope = plan.telescope.as_ref().filter(|_| loaded.mueller.is_none()).map(|t| {
-        let k = plan.exposures;
-        (s.telescope_exposures, s.telescope_band) = ((k > 0).then_some(k), Some(t.band.clone()));
         let (input, cal, track) = (a.input.display(), a.cal.display(), t.track);
         let line = format!(
             "corrected {} bins of {input} with {cal} ({} model, band {}{}), parallactic angle {:.2} to {:.2} deg",
@@ -422,43 +381,10 @@ fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Reque
             track.start.to_degrees(),
             track.end.to_degrees()
         );
-        (t.fit.model.name(), line)
+        line
     });
+    let s = Summary { input: a.input.clone(), output: a.out.clone(), method: a.method, coords: None, report };
     finish(a, s, loaded, telescope)
-}
-
-/// The summary of a correction of `n` = (rows or bins, extrapolated ones), with the medians of
-/// the corrected P0 and of the instrumental p removed.
-#[allow(clippy::too_many_arguments)]
-fn summary(
-    a: &Args,
-    kind: &'static str,
-    n: (usize, usize),
-    estimator: String,
-    filter: String,
-    hwp_chi_offset_deg: f64,
-    p0: Vec<f64>,
-    p_inst: Vec<f64>,
-) -> Summary {
-    Summary {
-        input: a.input.clone(),
-        output: a.out.clone(),
-        kind,
-        rows: n.0,
-        extrapolated: n.1,
-        method: a.method,
-        estimator,
-        coords: None,
-        filter,
-        hwp_chi_offset_deg,
-        median_p0: finite_median(p0, Middle::Mean),
-        median_p_inst: finite_median(p_inst, Middle::Mean),
-        telescope_model: None,
-        telescope_band: None,
-        telescope_exposures: None,
-        mueller_model: None,
-        mueller_free: None,
-    }
 }
 
 fn map_error(e: fit::correct::MapError, input: &Path) -> anyhow::Error {
