@@ -70,19 +70,7 @@ fn file(field: Option<fit::Calibration>, telescope: Option<TelescopeFit>) -> Cal
 }
 
 fn request<'a>() -> Request<'a> {
-    Request {
-        method: Method::Exact,
-        allow_extrapolation: false,
-        extrapolation_rel_error: 0.5,
-        band: None,
-        carried_zero_angle_deg: None,
-        per_row: None,
-        parang: None,
-        rotator: None,
-        recorded: None,
-        angles_are_arguments: false,
-        allow_mismatch: false,
-    }
+    Request::new(Method::Exact, false, 0.5)
 }
 
 /// Rows carrying part of the zero angle: only the rest is turned, then `M_I` is inverted. The
