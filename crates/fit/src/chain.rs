@@ -53,12 +53,24 @@ pub enum Tracks {
 /// Exposures a set of data recorded (`skyfield::RecordedAngles`), ready for the correction:
 /// the telescope's demodulations of them built once, and the exposures themselves (HWP angle
 /// as read, track) with the zero angle of the plate they were taken through.
-#[derive(Debug)]
 pub struct RecordedExposures {
     pub prepared: PreparedExposures,
     pub list: Vec<mueller::telescope::Exposure>,
     /// The HWP zero angle (rad) of the plate.
     pub plate: f64,
+    /// The whole chain over these exposures behind a field model, built once for every row
+    /// or bin ([`Chain::invert_parts`]): its field element is a copy of the calibration.
+    whole: std::sync::OnceLock<field::InstrumentChain>,
+}
+
+impl std::fmt::Debug for RecordedExposures {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RecordedExposures")
+            .field("prepared", &self.prepared)
+            .field("list", &self.list)
+            .field("plate", &self.plate)
+            .finish_non_exhaustive()
+    }
 }
 
 impl RecordedExposures {
@@ -82,7 +94,7 @@ impl RecordedExposures {
                 track: Track::new(x.start, Some(x.end)).with_rotator(track.rotator),
             })
             .collect();
-        Ok(Some(Self { prepared, list, plate }))
+        Ok(Some(Self { prepared, list, plate, whole: std::sync::OnceLock::new() }))
     }
 }
 
@@ -167,8 +179,8 @@ impl Chain<'_> {
                     // (1e-5 off over a set spanning 60 deg of parallactic angle). The value is
                     // the exact inverse of the whole chain over the set; the covariance, a
                     // linearization, is the one of the two steps.
-                    let (chain, _) = self.instrument(i);
-                    let chain = field::InstrumentChain { zero_angle: e.plate, ..chain };
+                    let chain =
+                        e.whole.get_or_init(|| field::InstrumentChain { zero_angle: e.plate, ..self.instrument(i).0 });
                     // The measurement as the plate gave it: it may carry part of the zero angle.
                     let at_plate = m.qu.rotated(self.to_sky - e.plate);
                     let exact = chain
