@@ -123,6 +123,11 @@ fn main() {
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| clap_error(e, json_arg));
     let json =
         matches.subcommand().and_then(|(_, m)| m.try_get_one::<bool>("json").ok().flatten().copied()).unwrap_or(false);
+    if let Some((name, m)) = matches.subcommand() {
+        if let Some(def) = Cli::command().find_subcommand(name) {
+            util::guard_arguments(def, m);
+        }
+    }
     util::start_provenance();
     let result = match cli.command {
         Command::Demo(a) => cmd::demo::run(a),
@@ -229,4 +234,45 @@ fn clap_error(e: clap::Error, json: bool) -> ! {
     let first = text.trim_start_matches("error: ").split("\n\n").next().unwrap_or("").trim().to_string();
     eprintln!("{}", error_json(ErrorKind::Input, 2, &first));
     std::process::exit(2)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every path argument of every command is either a listed output
+    /// ([`util::OUTPUT_ARGUMENTS`]) or guarded as an input ([`util::guard_arguments`]). The
+    /// outputs are named by convention (`out`, `output`, `plot`, `..._out`, `..._dir`): a path
+    /// argument named so but not listed would be guarded as an input, and a listed name that
+    /// no command has is a stale entry. (An output named otherwise and not listed is refused on
+    /// its first use, as the input it is taken for, so that mistake cannot pass its own test.)
+    #[test]
+    fn path_arguments_are_inputs_or_listed_outputs() {
+        let (mut inputs, mut seen, mut wrong) = (0, std::collections::BTreeSet::new(), vec![]);
+        let cli = Cli::command();
+        for sub in cli.get_subcommands() {
+            for arg in sub.get_arguments() {
+                if arg.get_value_parser().type_id() != std::any::TypeId::of::<std::path::PathBuf>() {
+                    continue;
+                }
+                let id = arg.get_id().as_str();
+                let named_output =
+                    id.starts_with("out") || id.starts_with("plot") || id.ends_with("_out") || id.ends_with("_dir");
+                if util::OUTPUT_ARGUMENTS.contains(&id) {
+                    seen.insert(id);
+                } else if named_output {
+                    wrong.push(format!("{} --{id} is named as an output but not listed", sub.get_name()));
+                } else {
+                    inputs += 1;
+                }
+            }
+        }
+        for id in util::OUTPUT_ARGUMENTS {
+            if !seen.contains(id) {
+                wrong.push(format!("--{id} is listed as an output but no command has it"));
+            }
+        }
+        assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+        assert!(inputs > 25, "only {inputs} input path arguments found");
+    }
 }

@@ -40,6 +40,37 @@ fn same_file_as(a: &Path, id_a: Option<(u64, u64)>, b: &Path) -> bool {
     }
 }
 
+/// The arguments of any command that name files it WRITES (a file or a folder of outputs).
+/// Every other path argument, and `--instrument` when it names a file, is an input
+/// ([`guard_arguments`]). A new output argument must be listed here: the test
+/// `path_arguments_are_inputs_or_listed_outputs` reads every command's definition.
+pub const OUTPUT_ARGUMENTS: [&str; 7] = ["out", "output", "output_dir", "plot", "plots", "plot_dir", "field_out"];
+
+/// Guard every file a command line names as an input against being written over, whatever
+/// the command (the one registry of inputs: a command's own [`inputs`] call still hashes them
+/// for the provenance and refuses one given twice, but a file it forgot there, such as a
+/// master bias passed with `--bias`, is guarded here). `def` is the subcommand's definition
+/// and `m` its matches.
+pub fn guard_arguments(def: &clap::Command, m: &clap::ArgMatches) {
+    let mut guarded = vec![];
+    for arg in def.get_arguments() {
+        let id = arg.get_id().as_str();
+        if OUTPUT_ARGUMENTS.contains(&id) {
+            continue;
+        }
+        if arg.get_value_parser().type_id() == std::any::TypeId::of::<PathBuf>() {
+            if let Ok(Some(v)) = m.try_get_many::<PathBuf>(id) {
+                guarded.extend(v.cloned());
+            }
+        } else if id == "instrument" {
+            if let Ok(Some(v)) = m.try_get_one::<String>(id) {
+                guarded.extend(file_arg(v).map(Path::to_path_buf));
+            }
+        }
+    }
+    INPUTS.lock().unwrap_or_else(|e| e.into_inner()).extend(guarded);
+}
+
 /// Register the files this command reads, after refusing one passed twice (it would be summed
 /// with itself, doubling its weight without a word). Files that do not exist are registered
 /// too (their reader reports them).

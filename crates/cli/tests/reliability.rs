@@ -233,6 +233,57 @@ fn outputs_never_replace_inputs() {
     assert!(e.contains("warning: --sky-p 0.02 is in PERCENT") && e.contains("--sky-p 2.00"), "{e}");
 }
 
+/// The inputs a command reads through options are guarded as its positional ones are: a
+/// master bias or flat named as `reduce --out` or `calibrate --out`, the calibration named as
+/// `catalog --out`, a standards file named as `validate --plot`. Each is refused, naming both,
+/// and the file is unchanged. (The guard is built once from every command's definition, see
+/// `util::guard_arguments`, so these cases stand for every option of every command.)
+#[test]
+fn outputs_never_replace_masters_or_calibrations() {
+    let d = tempfile::tempdir().unwrap();
+    let (ins, fr, map) = frames(d.path());
+    let master = d.path().join("master.fits");
+    std::fs::copy(&fr[0], &master).unwrap();
+    let before = std::fs::read(&master).unwrap();
+    for opt in ["--bias", "--flat"] {
+        for cmd in ["reduce", "calibrate"] {
+            let mut a = vec![cmd.to_string(), "--instrument".into(), s(&ins), opt.into(), s(&master)];
+            if cmd == "calibrate" {
+                a.extend(["--sky-p".into(), "2".into(), "--sky-chi".into(), "30".into()]);
+            }
+            a.extend(fr.iter().cloned());
+            a.extend(["--out".into(), s(&master)]);
+            let (c, _, e) = run(&a);
+            assert_eq!(c, 2, "{cmd} {opt}: {e}");
+            assert!(e.contains("is the input") && e.contains("master.fits"), "{cmd} {opt}: {e}");
+            assert_eq!(std::fs::read(&master).unwrap(), before, "{cmd} {opt} changed the master");
+        }
+    }
+    let cal = d.path().join("cal.fits");
+    let (c, _, e) = run(&[
+        "calibrate",
+        "--map",
+        &s(&map),
+        "--instrument",
+        &s(&ins),
+        "--sky-p",
+        "2",
+        "--sky-chi",
+        "30",
+        "--out",
+        &s(&cal),
+    ]);
+    assert_eq!(c, 0, "{e}");
+    let cb = std::fs::read(&cal).unwrap();
+    let mut a = vec!["catalog".to_string(), "--instrument".into(), s(&ins), "--cal".into(), s(&cal)];
+    a.extend(["--out".into(), s(&cal)]);
+    a.extend(fr.iter().cloned());
+    let (c, _, e) = run(&a);
+    assert_eq!(c, 2, "{e}");
+    assert!(e.contains("is the input") && e.contains("cal.fits"), "{e}");
+    assert_eq!(std::fs::read(&cal).unwrap(), cb);
+}
+
 /// Resource bounds of `mc`: threads capped at the cores (with a note; the result does not
 /// depend on the thread count), a huge --trials refused with its estimated run time before
 /// running, degenerate runs refused with a reason.
