@@ -70,3 +70,55 @@ fn a_plain_image_is_not_a_map_cube() {
     assert!(err.contains("flat.fits") && err.contains("(2, NY, NX)"), "{err}");
     assert!(!out.exists());
 }
+
+/// The frame of a correction's output: a FORS2 catalog carries v_HIGH's HWP zero angle
+/// (-1.80 deg, `instruments/fors2.toml`, the column `hwp_chi_offset_deg` that `instpol catalog`
+/// writes), so its q, u are in the sky frame already. Maps of no instrumental polarization
+/// imported for FORS2 v_HIGH record that same zero angle, and correcting the catalog with
+/// them leaves every row as it is (q0 = q, u0 = u). Before, import-map recorded 0 and each
+/// chi0 came out 1.8 deg larger. Stating another frame (`--zero-angle 0`) turns the rows by
+/// the difference, checked against the rotation by hand, with a warning naming both angles.
+#[test]
+fn identity_maps_keep_a_catalog_in_its_sky_frame() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
+    let zero = fit::RadialModel::new(1, vec![0.0, 0.0, 0.0], [0.0, 0.0]);
+    fit::synth::write_qu_cubes(&d.path().join("q.fits"), &d.path().join("u.fits"), &zero, 400, 400, 0.25, 20, 1e-5)
+        .unwrap();
+    let (q, u) = (0.031, -0.012);
+    std::fs::write(
+        p("cat.csv"),
+        format!("x,y,q,u,sigma_q,sigma_u,hwp_chi_offset_deg\n0.1,-0.2,{q},{u},0.001,0.001,-1.8\n"),
+    )
+    .unwrap();
+    let (qf, uf) = (p("q.fits"), p("u.fits"));
+    let import = |out: &str, extra: &[&str]| {
+        let mut a = vec!["import-map", "--q", &qf, "--u", &uf, "--pixel-scale", "0.25"];
+        a.extend(["--bin", "20", "--filter", "v_HIGH", "--instrument", "fors2", "--json", "--out", out]);
+        a.extend(extra);
+        let (c, o, e) = instpol(&a);
+        assert_eq!(c, 0, "{e}");
+        serde_json::from_str::<serde_json::Value>(&o).unwrap()["hwp_chi_offset_deg"].as_f64().unwrap()
+    };
+    assert_eq!(import(&p("id.fits"), &[]), -1.8);
+    let corrected = |cal: &str, out: &str| {
+        let (c, _, e) = instpol(&["correct", "--cal", cal, "--in", &p("cat.csv"), "--out", out]);
+        assert_eq!(c, 0, "{e}");
+        let text = std::fs::read_to_string(out).unwrap();
+        let (head, row) = text.split_once('\n').unwrap();
+        let col = |name: &str| -> f64 {
+            let i = head.split(',').position(|h| h == name).unwrap();
+            row.trim().split(',').nth(i).unwrap().parse().unwrap()
+        };
+        (col("q0"), col("u0"), e)
+    };
+    let (q0, u0, e) = corrected(&p("id.fits"), &p("out.csv"));
+    assert!((q0 - q).abs() < 1e-15 && (u0 - u).abs() < 1e-15, "({q0}, {u0}) for ({q}, {u})");
+    assert!(!e.contains("warning"), "{e}");
+    assert_eq!(import(&p("plate.fits"), &["--zero-angle", "0"]), 0.0);
+    let (q0, u0, e) = corrected(&p("plate.fits"), &p("out2.csv"));
+    let t = 2.0 * 1.8f64.to_radians();
+    let (qr, ur) = (t.cos() * q - t.sin() * u, t.sin() * q + t.cos() * u);
+    assert!((q0 - qr).abs() < 1e-12 && (u0 - ur).abs() < 1e-12, "({q0}, {u0}) for ({qr}, {ur})");
+    assert!(e.contains("warning") && e.contains("-1.8") && e.contains("1.8 deg"), "{e}");
+}

@@ -24,6 +24,40 @@ pub struct ImportOptions {
     /// 0-based detector pixel taken as the field origin (0, 0) arcmin; default the centre of
     /// the area the map covers.
     pub origin_px: Option<[f64; 2]>,
+    /// The HWP zero angle (deg, added to a measured chi) of the frame the maps' `Q/I`, `U/I`
+    /// are in, recorded as the calibration's own: a correction turns rows by it less the one
+    /// they carry (`crate::correct::row_zero_angles`). [`ImportOptions::for_instrument`] takes
+    /// the instrument file's for the filter, the frame its catalogs are written in.
+    pub hwp_chi_offset_deg: f64,
+}
+
+impl ImportOptions {
+    /// The options for maps of `filter` on `inst` (a loaded instrument file, or `None` with
+    /// `instrument` naming an instrument this tool has no file for), of `bin` detector pixels
+    /// of `pixel_scale_arcsec` per map pixel, the origin at the map's centre: the wavelength and the HWP
+    /// zero angle are the given ones, else the instrument file's for the filter, else NaN (no
+    /// wavelength law) and 0 (the plate's frame). Taking the file's zero angle puts the maps in
+    /// the frame `instpol catalog` writes the same instrument's catalogs in; recording 0 there
+    /// turned every corrected chi by the whole zero angle.
+    pub fn for_instrument(
+        inst: Option<&instrument::Instrument>,
+        instrument: &str,
+        filter: &str,
+        (pixel_scale_arcsec, bin): (f64, usize),
+        lambda_nm: Option<f64>,
+        zero_angle_deg: Option<f64>,
+    ) -> Self {
+        let f = inst.and_then(|i| i.filter(filter).ok());
+        Self {
+            pixel_scale_arcsec,
+            bin,
+            instrument: inst.map_or_else(|| instrument.to_string(), |i| i.name.clone()),
+            filter: filter.to_string(),
+            lambda_nm: lambda_nm.or(f.map(|f| f.lambda_eff_nm)).unwrap_or(f64::NAN),
+            origin_px: None,
+            hwp_chi_offset_deg: zero_angle_deg.or(f.and_then(|f| f.hwp_chi_offset_deg)).unwrap_or(0.0),
+        }
+    }
 }
 
 /// A `(2, ny, nx)` cube: value plane and error plane, row-major.
@@ -156,7 +190,7 @@ pub fn import_map(q_path: &Path, u_path: &Path, opts: &ImportOptions) -> Result<
         instrument: opts.instrument.clone(),
         filter: opts.filter.clone(),
         lambda_nm: opts.lambda_nm,
-        hwp_chi_offset_deg: 0.0,
+        hwp_chi_offset_deg: opts.hwp_chi_offset_deg,
         model: Model::Map(grid.clone()),
         region,
         rms_residual: f64::NAN,

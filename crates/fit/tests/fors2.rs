@@ -28,6 +28,7 @@ fn fors2_maps_import_and_fit_radially_about_a_decentred_axis() {
             filter: name.into(),
             lambda_nm: lambda,
             origin_px: None,
+            hwp_chi_offset_deg: 0.0,
         };
         let cal = import_map(
             &dir.join(format!("{name}_inlaQ_bin10.fits")),
@@ -124,6 +125,7 @@ fn fors2_centre_errors_are_not_shrunk_by_a_small_chi2_and_inflate_for_correlated
             filter: name.into(),
             lambda_nm: f64::NAN,
             origin_px: None,
+            hwp_chi_offset_deg: 0.0,
         };
         let cal = import_map(
             &dir.join(format!("{name}_inlaQ_bin10.fits")),

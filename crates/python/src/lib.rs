@@ -447,7 +447,7 @@ impl _Calibration {
             ),
             Note::ZeroAngleUnknown(w) => w.clone(),
             Note::CarriedZeroAngle { carried, calibration, applied } => format!(
-                "q, u already carry the HWP zero angle {carried} deg; the calibration's is {calibration} deg: the difference {applied} deg is applied"
+                "q, u carry the HWP zero angle {carried} deg but {cal_path} records {calibration} deg: the rows are turned by the difference, {applied} deg, into the calibration's frame (every chi0 moves by it)"
             ),
             Note::AnglesWithoutTelescope => format!(
                 "{cal_path} holds no telescope model: the telescope's polarization is NOT removed"

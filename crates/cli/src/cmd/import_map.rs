@@ -40,6 +40,11 @@ pub struct Args {
     /// Effective wavelength of the filter in nm (for the wavelength law).
     #[arg(long)]
     pub lambda_nm: Option<f64>,
+    /// The HWP zero angle (deg, the angle added to a measured chi) of the frame the maps are
+    /// in, recorded in the calibration; default the instrument file's for the filter (the
+    /// frame `instpol catalog` writes that instrument's catalogs in), else 0 (the plate's).
+    #[arg(long, value_name = "DEG")]
+    pub zero_angle: Option<f64>,
     /// Detector pixel (0-based) taken as the field origin, "X,Y"; default the centre of the
     /// area the map covers.
     #[arg(long, value_delimiter = ',', num_args = 2)]
@@ -56,6 +61,7 @@ pub struct Args {
 struct Summary {
     filter: String,
     instrument: String,
+    hwp_chi_offset_deg: f64,
     n_pixels: usize,
     region_arcmin: [f64; 4],
     origin_px: [f64; 2],
@@ -71,22 +77,21 @@ pub fn run(a: Args) -> Result<()> {
     crate::util::inputs([a.q.as_path(), a.u.as_path()].into_iter().chain(crate::util::file_arg(&a.instrument)))?;
     crate::util::check_output(&a.out)?;
     let inst = instrument::Instrument::load(&a.instrument).ok();
-    let lambda = a
-        .lambda_nm
-        .or_else(|| inst.as_ref().and_then(|i| i.filter(&a.filter).ok()).map(|f| f.lambda_eff_nm))
-        .unwrap_or(f64::NAN);
     let origin = match &a.origin_px {
         Some(v) if v.len() == 2 => Some([v[0], v[1]]),
         Some(_) => bail!("--origin-px takes two numbers: X,Y"),
         None => None,
     };
     let opts = ImportOptions {
-        pixel_scale_arcsec: a.pixel_scale,
-        bin: a.bin,
-        instrument: inst.as_ref().map(|i| i.name.clone()).unwrap_or_else(|| a.instrument.clone()),
-        filter: a.filter.clone(),
-        lambda_nm: lambda,
         origin_px: origin,
+        ..ImportOptions::for_instrument(
+            inst.as_ref(),
+            &a.instrument,
+            &a.filter,
+            (a.pixel_scale, a.bin),
+            a.lambda_nm,
+            a.zero_angle,
+        )
     };
     let cal = import_map(&a.q, &a.u, &opts)?;
     cal.save(&a.out)?;
@@ -96,6 +101,7 @@ pub fn run(a: Args) -> Result<()> {
     let s = Summary {
         filter: cal.filter.clone(),
         instrument: cal.instrument.clone(),
+        hwp_chi_offset_deg: cal.hwp_chi_offset_deg,
         n_pixels: cal.bins.len(),
         region_arcmin: [r.x_min, r.x_max, r.y_min, r.y_max],
         origin_px: cal.pixel.map(|g| g.origin_px).unwrap_or([0.0, 0.0]),
@@ -119,6 +125,10 @@ pub fn run(a: Args) -> Result<()> {
             s.origin_px[1]
         );
         outln!("p: median {:.3}%, max {:.3}%", 100.0 * s.p_median, 100.0 * s.p_max);
+        outln!(
+            "HWP zero angle recorded: {:+.2} deg (the frame of the maps' Q/I, U/I; --zero-angle to state another)",
+            s.hwp_chi_offset_deg
+        );
         outln!(
             "wrote {} (model MAP; refit with: instpol fit {} --free-centre)",
             s.calibration_file,
