@@ -207,6 +207,9 @@ pub struct Report {
     pub rows: usize,
     #[serde(rename = "n_extrapolated")]
     pub extrapolated: usize,
+    /// Rows not measured (q, u NaN: flagged stars), passed through with NaN ([`Outputs::n_unmeasured`]).
+    #[serde(rename = "n_unmeasured")]
+    pub unmeasured: usize,
     pub estimator: String,
     pub filter: String,
     pub hwp_chi_offset_deg: f64,
@@ -229,7 +232,7 @@ pub struct Report {
 
 impl Report {
     /// The report of a correction with `loaded` of `kind` ("Stokes map", "catalog (text
-    /// table)", ...): `n` = (rows or bins, extrapolated ones), the estimator's name, the filter
+    /// table)", ...): `n` = (rows or bins, extrapolated ones, unmeasured ones), the estimator's name, the filter
     /// and zero angle the correction reports (the file's own filter replaces `filter` for a
     /// Mueller field or a field model without a telescope), the corrected `P0` and the
     /// instrumental `p` removed (their medians, the mean of the two middles), and the telescope
@@ -238,7 +241,7 @@ impl Report {
     pub fn new(
         loaded: &CalibrationFile,
         kind: &'static str,
-        n: (usize, usize),
+        n: (usize, usize, usize),
         estimator: String,
         (filter, hwp_chi_offset_deg): (String, f64),
         p0: Vec<f64>,
@@ -256,6 +259,7 @@ impl Report {
             kind,
             rows: n.0,
             extrapolated: n.1,
+            unmeasured: n.2,
             estimator,
             filter,
             hwp_chi_offset_deg,
@@ -291,6 +295,10 @@ pub struct Outputs {
     pub values: Vec<Vec<f64>>,
     pub extrapolated: Vec<bool>,
     pub n_extrapolated: usize,
+    /// Rows not measured (`q` and `u` both NaN, as `instpol catalog` writes a flagged star):
+    /// passed through with every output NaN, not refused, so that a catalog with a flagged
+    /// star can be corrected.
+    pub n_unmeasured: usize,
 }
 
 impl Outputs {
@@ -341,7 +349,7 @@ where
         extra: &mut extrapolated,
         start: 0,
     };
-    let n_extrapolated = fill(&correct, input, sink, progress)?;
+    let (n_extrapolated, n_unmeasured) = fill(&correct, input, sink, progress)?;
     for c in cols.iter_mut().chain(p0e.as_mut()) {
         // SAFETY: `fill` returns Ok only after writing every row 0..n of every output column
         // (and of `p0e` when it is Some); on Err the columns are dropped with length 0 above.
@@ -351,7 +359,7 @@ where
     if let Some(v) = p0e {
         values.insert(ESTIMATE_AT, v);
     }
-    Ok(Outputs { names: output_columns(est), values, extrapolated, n_extrapolated })
+    Ok(Outputs { names: output_columns(est), values, extrapolated, n_extrapolated, n_unmeasured })
 }
 
 /// The number of [`crate::correct::OUTPUT_NAMES`].
@@ -405,9 +413,14 @@ impl<'a> Sink<'a> {
     }
 }
 
-/// [`correct_columns`] on the rows of `s`, halved down to chunks; returns the number of
-/// extrapolated rows.
-fn fill<F, E>(cor: &F, i: &Inputs<'_>, s: Sink<'_>, progress: &(dyn Fn(usize) + Sync)) -> Result<usize, (usize, E)>
+/// [`correct_columns`] on the rows of `s`, halved down to chunks; returns the numbers of
+/// extrapolated and of unmeasured rows.
+fn fill<F, E>(
+    cor: &F,
+    i: &Inputs<'_>,
+    s: Sink<'_>,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<(usize, usize), (usize, E)>
 where
     F: Fn(usize, &Measurement) -> Result<Corrected, E> + Sync,
     E: Send,
@@ -418,7 +431,7 @@ where
         let (a, b) = s.split(n / 2);
         let (ra, rb) = rayon::join(|| fill(cor, i, a, progress), || fill(cor, i, b, progress));
         return match (ra, rb) {
-            (Ok(x), Ok(y)) => Ok(x + y),
+            (Ok(x), Ok(y)) => Ok((x.0 + y.0, x.1 + y.1)),
             (Err(e), _) | (Ok(_), Err(e)) => Err(e),
         };
     }
@@ -428,8 +441,23 @@ where
     let cov = i.cov_qu.map(|c| &c[r0..r0 + n]);
     let Sink { cols, mut p0e, extra, .. } = s;
     let [c_q0, c_u0, c_sq0, c_su0, c_cov0, c_p0, c_sp0, c_chi0, c_sc0, c_qi, c_ui] = cols;
-    let mut n_extra = 0;
+    let (mut n_extra, mut n_unmeasured) = (0, 0);
     for k in 0..n {
+        if q[k].is_nan() && u[k].is_nan() {
+            // Not measured (a flagged star): nothing to correct, every output NaN.
+            for c in [&mut *c_q0, &mut *c_u0, &mut *c_sq0, &mut *c_su0, &mut *c_cov0, &mut *c_p0, &mut *c_sp0] {
+                c[k].write(f64::NAN);
+            }
+            for c in [&mut *c_chi0, &mut *c_sc0, &mut *c_qi, &mut *c_ui] {
+                c[k].write(f64::NAN);
+            }
+            if let Some((c, _)) = p0e.as_mut() {
+                c[k].write(f64::NAN);
+            }
+            extra[k] = false;
+            n_unmeasured += 1;
+            continue;
+        }
         let m = Measurement::new(x[k], y[k], q[k], u[k], sq[k], su[k], cov.map_or(0.0, |c| c[k]));
         let r = cor(r0 + k, &m).map_err(|e| (r0 + k, e))?;
         // Written column by column here, not through an array of columns: this loop is the 1e7/s
@@ -453,7 +481,7 @@ where
         n_extra += r.extrapolated as usize;
     }
     progress(n);
-    Ok(n_extra)
+    Ok((n_extra, n_unmeasured))
 }
 
 #[cfg(test)]
@@ -557,6 +585,7 @@ mod tests {
             values: vec![vec![1.0]; 11],
             extrapolated: vec![true],
             n_extrapolated: 1,
+            n_unmeasured: 0,
         };
         let cols = out.into_table_columns();
         assert_eq!(cols.len(), 12);

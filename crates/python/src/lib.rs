@@ -705,6 +705,7 @@ impl _Calibration {
         }
         d.set_item(fit::correct::EXTRAPOLATED_COLUMN, bools(py, out.extrapolated))?;
         d.set_item("n_extrapolated", out.n_extrapolated)?;
+        d.set_item("n_unmeasured", out.n_unmeasured)?;
         if let Some(t) = &plan.telescope {
             d.set_item("telescope_model", t.fit.model.name())?;
             d.set_item("telescope_band", t.band.as_str())?;

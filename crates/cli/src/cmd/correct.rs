@@ -244,12 +244,13 @@ fn run_table(
     let p_inst: Vec<f64> = col("q_inst").iter().zip(col("u_inst")).map(|(q, u)| q.hypot(*u)).collect();
     let text = if kind == Kind::TextTable { "catalog (text table)" } else { "catalog (FITS table)" };
     let (rows, extra) = (out.extrapolated.len(), out.n_extrapolated);
+    let unmeasured = out.n_unmeasured;
     let used = plan.telescope.as_ref().map(|t| (t.fit.model.name(), t.band.clone(), t.exposures));
     let p0 = col("p0").to_vec();
     let report = fit::columns::Report::new(
         loaded,
         text,
-        (rows, extra),
+        (rows, extra, unmeasured),
         est.name().into(),
         (filter, zero_angle),
         p0,
@@ -352,6 +353,12 @@ fn warn_extrapolated(s: &fit::columns::Report, field: &str) {
             s.extrapolated, s.rows
         );
     }
+    if s.unmeasured > 0 {
+        eprintln!(
+            "note: {} of {} rows were not measured (q, u empty: flagged stars); they are passed through with empty corrected columns",
+            s.unmeasured, s.rows
+        );
+    }
 }
 
 /// Correct a Stokes map with any calibration (`fit::request::plan_map`): every valid bin at
@@ -365,7 +372,7 @@ fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Reque
     let (c, stamp) = plan.correct(&map, &name).map_err(|e| map_error(e, &a.input))?;
     crate::util::check_output(&a.out)?;
     c.map.write_corrected_fits(&a.out, &stamp).with_context(|| format!("cannot write {}", a.out.display()))?;
-    let (n, filter) = ((c.n_bins, c.n_extrapolated), map.filter.clone());
+    let (n, filter) = ((c.n_bins, c.n_extrapolated, 0), map.filter.clone());
     let used = plan.telescope.as_ref().map(|t| (t.fit.model.name(), t.band.clone(), plan.exposures));
     let zero = (filter, stamp.hwp_chi_offset_deg);
     let report = fit::columns::Report::new(loaded, "Stokes map", n, a.estimator.clone(), zero, c.p0, c.p_inst, used);
