@@ -122,3 +122,46 @@ fn identity_maps_keep_a_catalog_in_its_sky_frame() {
     assert!((q0 - qr).abs() < 1e-12 && (u0 - ur).abs() < 1e-12, "({q0}, {u0}) for ({qr}, {ur})");
     assert!(e.contains("warning") && e.contains("-1.8") && e.contains("1.8 deg"), "{e}");
 }
+
+/// A field free of instrumental polarization (an imported map of q = u = 0, the case a
+/// polarization-free instrument gives) is a calibration, not "0 of 400 bins usable": the
+/// radial fit of zero data is zero (the least-squares solution of a zero right-hand side), its
+/// errors finite, the polar-angle line undefined (null in JSON, no angle to fit) while the test
+/// against noise holds (chi^2 = 0: p = 1), and the plots draw.
+#[test]
+fn a_map_of_no_polarization_fits_to_zero() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
+    let zero = fit::RadialModel::new(1, vec![0.0, 0.0, 0.0], [0.0, 0.0]);
+    fit::synth::write_qu_cubes(&d.path().join("q.fits"), &d.path().join("u.fits"), &zero, 400, 400, 0.25, 20, 1e-5)
+        .unwrap();
+    let (c, _, e) = instpol(&[
+        "import-map",
+        "--q",
+        &p("q.fits"),
+        "--u",
+        &p("u.fits"),
+        "--pixel-scale",
+        "0.25",
+        "--bin",
+        "20",
+        "--filter",
+        "V",
+        "--out",
+        &p("zero.fits"),
+    ]);
+    assert_eq!(c, 0, "{e}");
+    let (c, out, e) = instpol(&["fit", &p("zero.fits"), "--json", "--out", &p("fitted.fits")]);
+    assert_eq!(c, 0, "{e}");
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(j["n_bins_used"].as_u64(), Some(400), "{j}");
+    for (c, s) in j["coefficients"].as_array().unwrap().iter().zip(j["sigma_coefficients"].as_array().unwrap()) {
+        assert_eq!(c.as_f64(), Some(0.0), "{j}");
+        assert!(s.as_f64().is_some_and(|s| s > 0.0 && s.is_finite()), "{j}");
+    }
+    assert!(j["polar_angle_slope"].is_null() && j["polar_angle_intercept_deg"].is_null(), "{j}");
+    assert_eq!(j["polar_angle_noise_pvalue"].as_f64(), Some(1.0));
+    assert_eq!(j["polar_angle_pattern"].as_bool(), Some(false));
+    let (c, _, e) = instpol(&["plot", &p("fitted.fits"), "--out", &p("plots")]);
+    assert_eq!(c, 0, "{e}");
+}

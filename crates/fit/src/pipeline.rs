@@ -138,7 +138,7 @@ pub fn calibrate_bins(mut bins: Vec<Bin>, meta: CalibrationMeta, opts: &Calibrat
         region,
         rms_residual: fit.rms_residual,
         n_bins_used: fit.n_used,
-        polar_angle: Some(PolarAngleSummary::from(&polar)),
+        polar_angle: polar.angles_defined().then(|| PolarAngleSummary::from(&polar)),
         exclusions: opts.fit.exclusions.clone(),
         robust: opts.fit.robust.name(),
         pixel: meta.pixel,

@@ -45,9 +45,20 @@ impl PolarAngleTest {
         self.noise_p_value < NOISE_P_THRESHOLD
     }
 
+    /// False when fewer than three bins have a polarization angle (`P = 0` to rounding): the
+    /// line is then undefined (NaN), the test against noise still made.
+    pub fn angles_defined(&self) -> bool {
+        self.slope.is_finite()
+    }
+
     /// One line for tables: the fit, or "no radial pattern" with the noise probability.
     pub fn verdict(&self) -> String {
-        if self.pattern_detected() {
+        if !self.angles_defined() {
+            format!(
+                "no polarization angle: P = 0 in (almost) every bin, the line is undefined (against noise: p = {:.3})",
+                self.noise_p_value
+            )
+        } else if self.pattern_detected() {
             format!(
                 "pattern detected (noise p = {:.2e}; radial component {:+.1} sigma)",
                 self.noise_p_value, self.radial_z
@@ -141,6 +152,25 @@ pub fn polar_angle_test_with(
         // Floor at 1e-3 deg: maps given without noise must not get infinite weights.
         sig.push(s.to_degrees().clamp(1e-3, 90.0));
     }
+    let noise_p_value = if n_noise == 0 { 0.0 } else { chi2_even_sf(chi2_zero / inflation.max(1.0), n_noise) };
+    let radial_z = if zr_w > 0.0 { zr_num / zr_w.sqrt() } else { 0.0 };
+    if alpha.len() < 3 && n_noise >= 3 {
+        // Bins enough, but (almost) none with a polarization angle: P = 0 to rounding, a field
+        // free of instrumental polarization (an imported all-zero map). The line is undefined,
+        // the test against noise is not: the field is measured, not unusable.
+        let nan = f64::NAN;
+        return Ok(PolarAngleTest {
+            slope: nan,
+            slope_err: nan,
+            intercept_deg: nan,
+            intercept_err_deg: nan,
+            alpha_deg: alpha,
+            phi_deg: phi,
+            sigma_phi_deg: sig,
+            noise_p_value,
+            radial_z,
+        });
+    }
     if alpha.len() < 3 {
         return Err(Error::TooFewBins { used: alpha.len(), total: bins.len(), needed: 3 });
     }
@@ -196,8 +226,8 @@ pub fn polar_angle_test_with(
         sigma_phi_deg: sig,
         // Bins without errors (noise-free maps) cannot be tested against noise: count as
         // detected, as before the test existed.
-        noise_p_value: if n_noise == 0 { 0.0 } else { chi2_even_sf(chi2_zero / inflation.max(1.0), n_noise) },
-        radial_z: if zr_w > 0.0 { zr_num / zr_w.sqrt() } else { 0.0 },
+        noise_p_value,
+        radial_z,
     })
 }
 

@@ -174,7 +174,12 @@ pub fn print_table(s: &FitSummary) {
         s.error_scaling,
         if s.correlation.is_some() { ", with the correlated-errors inflation" } else { "" }
     );
-    if s.polar_angle_pattern {
+    if !s.polar_angle_slope.is_finite() {
+        outln!(
+            "polar-angle test: undefined: no bin has a polarization angle (P = 0 everywhere; against noise p = {:.3})",
+            s.polar_angle_noise_p
+        );
+    } else if s.polar_angle_pattern {
         outln!(
             "polar-angle test: slope {:.4} +- {:.4}, intercept {:.2} +- {:.2} deg (pattern against noise: p = {:.2e}, radial component {:+.1} sigma)",
             s.polar_angle_slope,
@@ -252,7 +257,7 @@ pub fn finish(run: &CalibrationRun, out: Option<&Path>, plots: Option<&Path>, js
             s.chi2_reduced, s.error_scaling
         );
     }
-    if !s.polar_angle_pattern {
+    if !s.polar_angle_pattern && s.polar_angle_slope.is_finite() {
         eprintln!(
             "warning: polar-angle test: no radial pattern (the bins are consistent with noise, p = {:.3})",
             s.polar_angle_noise_p

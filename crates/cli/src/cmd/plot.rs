@@ -69,7 +69,7 @@ fn plot_with(dir: &Path, stem: &str, run: &CalibrationRun, raytrace: Option<Vec<
     let d = crate::plot::CalPlotData {
         cal,
         radial: Some(&run.fit.model),
-        polar: Some(&run.polar),
+        polar: Some(&run.polar).filter(|p| p.angles_defined()),
         raytrace,
         title: format!("{} {}", cal.instrument, cal.filter),
     };
