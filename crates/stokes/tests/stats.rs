@@ -302,3 +302,22 @@ fn angle_pdf_normalized_and_limits() {
     let f = hit as f64 / n as f64;
     assert!((f - ONE_SIGMA).abs() < 4.0 * (ONE_SIGMA * (1.0 - ONE_SIGMA) / n as f64).sqrt(), "{f}");
 }
+
+/// SNR -> infinity: every estimator tends to `P` (each is `P (1 - O(sigma^2 / P^2))`), and it
+/// must reach it, not overflow: at `P / sigma` = 1e7 the closed form `sqrt(x^2 - 1)` of AS is
+/// within 1e-14 relative of each estimator; beyond (1e9, 1e200, 1e298: `--sigma 1e-300` gave
+/// NaN for six estimators and 0 for ML) every one returns `P` itself, in its validity range.
+#[test]
+fn every_estimator_reaches_p_at_infinite_snr() {
+    let p = 0.01;
+    for e in Estimator::ALL {
+        let x = 1e7;
+        let v = e.estimate_p(p, p / x).unwrap().value;
+        let want = p * ((x - 1.0) * (x + 1.0)).sqrt() / x;
+        assert!(((v - want) / want).abs() < 1e-14, "{e} at x = {x}: {v} vs {want}");
+        for x in [1e9, 1e200, 1e298] {
+            let r = e.estimate_p(p, p / x).unwrap();
+            assert!(r.value == p && r.in_validity_range, "{e} at x = {x}: {r:?}");
+        }
+    }
+}

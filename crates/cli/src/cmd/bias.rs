@@ -111,7 +111,10 @@ pub fn run(a: Args) -> Result<()> {
         return crate::util::print_json(&out);
     }
     let fmt = |v: Option<f64>| v.map_or("none".to_string(), |x| format!("{x:.6}"));
-    outln!("measured P = {} +- {} (P/sigma = {:.3})", a.p, a.sigma, out.snr_p);
+    // Fixed notation for the usual range, exponent beyond it (1e-300 printed 300 digits).
+    let g = |v: f64| if v != 0.0 && !(1e-4..1e6).contains(&v.abs()) { format!("{v:.4e}") } else { format!("{v}") };
+    let snr = if out.snr_p < 1e6 { format!("{:.3}", out.snr_p) } else { format!("{:.3e}", out.snr_p) };
+    outln!("measured P = {} +- {} (P/sigma = {snr})", g(a.p), g(a.sigma));
     outln!(
         "estimate ({}): P0 = {:.6}{}",
         out.estimator,

@@ -118,6 +118,12 @@ impl Estimator {
         let p = m.p();
         let s = m.sigma();
         let x = p / s;
+        if x > SNR_UNBIASED {
+            // Every estimator is `P (1 - O(sigma^2 / P^2))`: beyond 1e8 the correction is
+            // below the rounding of `P` itself. The formulas would overflow there (`x^2` at
+            // `x > 1e154`, the Bessel ratios far sooner) and gave NaN, or 0 for ML.
+            return Estimate { value: p, in_validity_range: true };
+        }
         let (value, valid) = match self {
             Estimator::Naive => (p, x >= 5.0),
             Estimator::As => (s * as_n(x), x >= 3.0),
@@ -168,6 +174,10 @@ impl FromStr for Estimator {
         Estimator::ALL.into_iter().find(|e| e.name() == l).ok_or_else(|| Error::UnknownEstimator(s.to_string()))
     }
 }
+
+/// The signal-to-noise `P / sigma` beyond which every estimator returns `P`: the bias
+/// corrections, of relative size `(sigma / P)^2 / 2`, are then below 1e-16.
+pub const SNR_UNBIASED: f64 = 1e8;
 
 /// Asymptotic estimator `sqrt(x^2 - 1)` for `x > 1`, else 0 (written `(x-1)(x+1)`: no
 /// cancellation near the threshold).
