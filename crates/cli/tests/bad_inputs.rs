@@ -578,6 +578,34 @@ fn correct_catalog_bad_values() {
     refuses(&out, &["correct", "--cal", &cal, "--in", &cat, "--out", o.to_str().unwrap()], &["nan.csv"]);
     let cat = f.csv("negsig.csv", &GOOD_CAT.replace("0.002,0.0005,0.0005", "0.002,-0.0005,0.0005"));
     refuses(&out, &["correct", "--cal", &cal, "--in", &cat, "--out", o.to_str().unwrap()], &["negsig.csv", "sigma_q"]);
+    // One validation of a (q, u, sigma, cov) measurement (mueller::Qu::unphysical): a
+    // covariance beyond sigma_q sigma_u (a correlation coefficient of 1 given as cov_qu: it
+    // made sigma_p0 = 0), P = 1.5 (percent for a fraction), and an error whose square
+    // overflows (1e300: it wrote sigma_p0 = 0) are refused, naming the row and the rule.
+    let with_cov = |v: &str| format!("id,x,y,q,u,sigma_q,sigma_u,cov_qu\n1,0.5,0.5,0.01,0.002,0.0005,0.0005,{v}\n");
+    let cat = f.csv("cov.csv", &with_cov("1"));
+    refuses(
+        &out,
+        &["correct", "--cal", &cal, "--in", &cat, "--out", o.to_str().unwrap()],
+        &["cov.csv", "row 1", "not a covariance"],
+    );
+    // The edge itself, cov_qu = sigma_q sigma_u (a degenerate but valid ellipse), is corrected.
+    let cat = f.csv("cov_edge.csv", &with_cov("2.5e-7"));
+    let (c, _, e) = common::run(&["correct", "--cal", &cal, "--in", &cat, "--out", o.to_str().unwrap()]);
+    assert_eq!(c, 0, "{e}");
+    std::fs::remove_file(&o).unwrap();
+    let cat = f.csv("percent.csv", "id,x,y,q,u,sigma_q,sigma_u\n1,0.5,0.5,1.5,0.2,0.05,0.05\n");
+    refuses(
+        &out,
+        &["correct", "--cal", &cal, "--in", &cat, "--out", o.to_str().unwrap()],
+        &["percent.csv", "more than fully polarized", "percent"],
+    );
+    let cat = f.csv("huge.csv", &GOOD_CAT.replace("0.002,0.0005,0.0005", "0.002,1e300,0.0005"));
+    refuses(
+        &out,
+        &["correct", "--cal", &cal, "--in", &cat, "--out", o.to_str().unwrap()],
+        &["huge.csv", "sigma_q is too large"],
+    );
 }
 
 #[test]

@@ -65,8 +65,14 @@ pub enum Error {
     OutsideField { x: f64, y: f64 },
     #[error("{what} = {value} is not a finite number")]
     NonFinite { what: &'static str, value: f64 },
+    #[error("{what} is too large: its square overflows (errors of q, u are fractions, below 1)")]
+    TooLarge { what: &'static str },
     #[error("{what} = {value} is negative")]
     Negative { what: &'static str, value: f64 },
+    #[error("cov_qu = {cov_qu} is larger than sigma_q sigma_u = {sigma_q} x {sigma_u}: not a covariance (|cov_qu| <= sigma_q sigma_u; cov_qu is a covariance, not a correlation coefficient)")]
+    NotACovariance { cov_qu: f64, sigma_q: f64, sigma_u: f64 },
+    #[error("P = hypot(q, u) = {p} +- {sigma_p} is more than fully polarized (P <= 1, eq:poldeg): are q, u in percent? they are fractions")]
+    AboveOne { p: f64, sigma_p: f64 },
     #[error(
         "the calibration gives an unphysical instrumental polarization p = {p} (must be < 1) at ({x}, {y}) arcmin"
     )]
@@ -390,13 +396,22 @@ pub(crate) fn check_measurement(m: &Measurement) -> Result<(), Error> {
     // error's own value where it is known.
     for (what, v) in [("sigma_q", m.qu.var_q), ("sigma_u", m.qu.var_u)] {
         if !v.is_finite() {
-            return Err(Error::NonFinite { what, value: if v.is_nan() { v } else { v.abs().sqrt() } });
+            if v.is_nan() {
+                return Err(Error::NonFinite { what, value: v });
+            }
+            return Err(Error::TooLarge { what });
         }
         if v < 0.0 {
             return Err(Error::Negative { what, value: -(-v).sqrt() });
         }
     }
-    Ok(())
+    match m.qu.unphysical() {
+        None => Ok(()),
+        Some(mueller::qu::Unphysical::Covariance) => {
+            Err(Error::NotACovariance { cov_qu: m.qu.cov_qu, sigma_q: m.qu.sigma_q(), sigma_u: m.qu.sigma_u() })
+        }
+        Some(mueller::qu::Unphysical::AboveOne { p, sigma_p }) => Err(Error::AboveOne { p, sigma_p }),
+    }
 }
 
 /// Applies one calibration to many measurements: build it once, then call

@@ -34,6 +34,19 @@ pub const SIGMA_CHI_UNCONSTRAINED: f64 = 0.906_899_682_117_108_9;
 /// assert!((r.p_chi().1 - 32f64.to_radians()).abs() < 1e-12);
 /// assert!((r.var_q + r.var_u - 2e-6).abs() < 1e-20);
 /// ```
+/// How far above `P = 1` a measured `P` may lie, in units of its error, and still be taken as
+/// light measured with noise ([`Qu::unphysical`]; the dual-beam reduction uses the same rule).
+pub const P_ABOVE_ONE_SIGMAS: f64 = 3.0;
+
+/// Why a `(q, u)` with its covariance cannot be a measurement of light ([`Qu::unphysical`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Unphysical {
+    /// `cov_qu^2 > var_q var_u`: not a covariance.
+    Covariance,
+    /// `P > 1 + 3 sigma_P`.
+    AboveOne { p: f64, sigma_p: f64 },
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct Qu {
     pub q: f64,
@@ -104,6 +117,18 @@ impl Qu {
         } else {
             PolErrors { p, sigma_p: (0.5 * (vq + vu)).max(0.0).sqrt(), chi, sigma_chi: SIGMA_CHI_UNCONSTRAINED }
         }
+    }
+
+    /// What makes this value not a measurement of light, given finite values and variances
+    /// `>= 0`: a covariance that is not positive semidefinite (`cov_qu^2 > var_q var_u`,
+    /// beyond rounding: no error ellipse has it), or more than full polarization (`P > 1`,
+    /// `eq:poldeg`) by more than [`P_ABOVE_ONE_SIGMAS`] of its error. `None` when neither.
+    pub fn unphysical(&self) -> Option<Unphysical> {
+        if self.cov_qu * self.cov_qu > self.var_q * self.var_u * (1.0 + 1e-9) {
+            return Some(Unphysical::Covariance);
+        }
+        let e = self.p_chi_with_errors();
+        (e.p > 1.0 + P_ABOVE_ONE_SIGMAS * e.sigma_p).then_some(Unphysical::AboveOne { p: e.p, sigma_p: e.sigma_p })
     }
 
     /// The same polarization with its angle turned by `dchi` (rad): `(q, u)` rotated by

@@ -475,7 +475,7 @@ pub fn reduce(m: &Measurement) -> Result<Reduction, Error> {
     // P <= 1 for any light (eq:poldeg); beyond it by more than the errors, the data are not a
     // measurement of light (typically one beam that received nothing: F_i = +-1 exactly, with
     // a zero Poisson error).
-    if !(p <= 1.0 + 3.0 * sigma_p) {
+    if !(p <= 1.0 + mueller::qu::P_ABOVE_ONE_SIGMAS * sigma_p) {
         let dark_beam = (0..n).find(|&i| m.f_o[i] == 0.0 || m.f_e[i] == 0.0);
         return Err(Error::MoreThanFullyPolarized { p, sigma_p, dark_beam });
     }
