@@ -1788,3 +1788,33 @@ fn reduce_hwp_angles_from_the_command_line() {
     assert_eq!(code, 0, "{err}");
     assert!(out.exists());
 }
+
+/// Messages that say what is wrong: saturated flats are called saturated (not "no positive
+/// signal"); a NaN zero angle in a catalog is "not a number" (not "NaN differs from the first
+/// row's NaN"); a Poisson mean too large to draw is called too large (not "must be finite and
+/// >= 0" for 5.02e19).
+#[test]
+fn messages_name_the_actual_problem() {
+    let f = Fixture::new();
+    let out = f.out_dir();
+    let flats: Vec<String> = (0..3)
+        .map(|i| f.frame(&format!("flat{i}.fits"), 0.0, "V", |d| d.iter_mut().for_each(|v| *v = 65000.0)))
+        .collect();
+    let mut a = vec!["master-flat".to_string(), "--instrument".into(), f.s("mini.toml")];
+    a.extend(["--out".into(), out.join("mf.fits").to_str().unwrap().to_string()]);
+    a.extend(flats);
+    let a: Vec<&str> = a.iter().map(String::as_str).collect();
+    refuses(&out, &a, &["flat0.fits", "saturated", "9216 of 9216"]);
+    let cal = f.cal();
+    let cat =
+        f.csv("zero_nan.csv", "x,y,q,u,sigma_q,sigma_u,hwp_chi_offset_deg\n0.5,0.5,0.01,0.002,0.0005,0.0005,nan\n");
+    let o = out.join("c.csv");
+    refuses(
+        &out,
+        &["correct", "--cal", &cal, "--in", &cat, "--out", o.to_str().unwrap()],
+        &["zero_nan.csv", "row 1", "is not a number"],
+    );
+    let (c, _, e) = common::run(&["mc", "--noise", "poisson", "--sky", "1e20", "--trials", "10"]);
+    assert_eq!(c, 2, "{e}");
+    assert!(e.contains("too large to draw") && !e.contains("must be finite"), "{e}");
+}

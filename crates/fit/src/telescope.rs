@@ -140,7 +140,11 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
         let get = |k: usize| -> Result<&str> {
             let c = cols[k].unwrap_or(0);
             fields.get(c).copied().filter(|s| !s.is_empty()).ok_or_else(|| {
-                bad(ln, c + 1, format!("missing (found {} columns, need at least {})", fields.len(), c + 1))
+                if c < fields.len() {
+                    bad(ln, c + 1, "empty: a value is needed here".into())
+                } else {
+                    bad(ln, c + 1, format!("missing (found {} columns, need at least {})", fields.len(), c + 1))
+                }
             })
         };
         let num = |k: usize, name: &str| -> Result<f64> {

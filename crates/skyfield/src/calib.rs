@@ -1573,10 +1573,19 @@ pub fn master_flat(paths: &[PathBuf], inst: &Instrument, bias: Option<&Path>, ns
     for (data, path) in whole_frames_f32(ex)?.into_iter().zip(names) {
         let v: Vec<f64> = data.iter().map(|&x| x as f64).collect();
         let m = usable_median(&v).filter(|m| *m > 0.0).ok_or_else(|| {
-            Error::Invalid(format!(
-                "{}: flat field has no positive signal (median after bias removal <= 0)",
-                path.display()
-            ))
+            let saturated = v.iter().filter(|x| **x >= SATURATED_LIMIT).count();
+            if 2 * saturated > v.len() {
+                Error::Invalid(format!(
+                    "{}: flat field is saturated ({saturated} of {} pixels at or above the instrument's saturation_adu): take a shorter flat",
+                    path.display(),
+                    v.len()
+                ))
+            } else {
+                Error::Invalid(format!(
+                    "{}: flat field has no positive signal (median after bias removal <= 0)",
+                    path.display()
+                ))
+            }
         })?;
         imgs.push(
             data.iter()

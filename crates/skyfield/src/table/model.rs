@@ -164,7 +164,17 @@ impl Table {
         }
         let z = self.numbers(ZERO_ANGLE_COLUMN, path)?;
         let z0 = z.first().copied().unwrap_or(0.0);
-        if let Some(i) = z.iter().position(|v| !(v.is_finite() && (v - z0).abs() <= 1e-9)) {
+        if let Some(i) = z.iter().position(|v| !v.is_finite()) {
+            return Err(terr(
+                path,
+                format!(
+                    "{}: column '{ZERO_ANGLE_COLUMN}' = {} is not a number: the HWP zero angle the row's q, u carry must be given (0 for none)",
+                    self.row_label(i),
+                    z[i]
+                ),
+            ));
+        }
+        if let Some(i) = z.iter().position(|v| (v - z0).abs() > 1e-9) {
             return Err(terr(
                 path,
                 format!(

@@ -254,7 +254,11 @@ impl Engine {
                     PoissonSampler::new(l).ok_or(Error::Invalid {
                         name: "Poisson mean",
                         value: l,
-                        why: "must be finite and >= 0",
+                        why: if l.is_finite() && l >= 0.0 {
+                            "too large to draw as a count (Poisson means are drawn below 1.8e19): lower the counts"
+                        } else {
+                            "must be finite and >= 0"
+                        },
                     })
                 };
                 samplers.push((mk(total_counts * b.f_o + cfg.sky)?, mk(total_counts * b.f_e + cfg.sky)?));
