@@ -93,3 +93,38 @@ fn bad_inputs_exit_2_naming_the_input() {
         assert!(!err.contains("panicked"), "{err}");
     }
 }
+
+/// A Mueller-field calibration records its instrument and filter: explaining a FORS1 B field as
+/// EFOSC2 (another instrument's optics) or in V (another wavelength) is refused naming both;
+/// its own instrument and band are accepted.
+#[test]
+fn a_field_is_explained_with_its_own_instrument_and_band() {
+    let dir = tempfile::tempdir().unwrap();
+    let mf = fit_mueller_field(
+        &fields(18.0),
+        &MuellerFitOptions { kind: Kind::diattenuation_retardance(), deg: 4, scale_arcmin: 3.4, ..Default::default() },
+    )
+    .unwrap();
+    let cal = fit::mueller_cal::MuellerCal {
+        instrument: "FORS1".into(),
+        filter: "B".into(),
+        field: mf,
+        coords: None,
+        skies: vec![],
+        per_bin: vec![],
+        provenance: fit::calfile::Provenance::now("test", vec![]),
+        hwp_chi_offset_deg: 0.0,
+    };
+    let path = dir.path().join("fors1_B.fits");
+    cal.save(&path).unwrap();
+    let p = path.to_str().unwrap();
+    for (inst, band, needle) in [("efosc2", "V", "instrument FORS1"), ("fors1", "V", "filter B")] {
+        let (code, _, err) =
+            common::run(&["explain", p, "--instrument", inst, "--band", band, "--causes", "stressed_lens"]);
+        assert_eq!(code, 2, "{inst} {band}: {err}");
+        assert!(err.contains("fors1_B.fits") && err.contains(needle), "{inst} {band}: {err}");
+    }
+    let (code, _, err) =
+        common::run(&["explain", p, "--instrument", "fors1", "--band", "B", "--causes", "stressed_lens"]);
+    assert_eq!(code, 0, "{err}");
+}

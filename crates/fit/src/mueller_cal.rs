@@ -94,7 +94,7 @@ pub fn is_mueller(path: &Path) -> bool {
 /// content (a FITS file begins with `SIMPLE  =`), with the per-bin fits when the file has them.
 /// A FITS file that is not a Mueller-field calibration (a `p, phi` calibration, a Stokes map)
 /// is refused naming its `HIERARCH IP MODEL`.
-pub fn load_field(path: &Path) -> Result<(MuellerField, Vec<BinFit>)> {
+pub fn load_field(path: &Path) -> Result<LoadedField> {
     use std::io::Read;
     let what = path.display().to_string();
     let mut head = [0u8; 9];
@@ -120,10 +120,41 @@ pub fn load_field(path: &Path) -> Result<(MuellerField, Vec<BinFit>)> {
             });
         }
         let cal = MuellerCal::load(path)?;
-        return Ok((cal.field, cal.per_bin));
+        return Ok(LoadedField { field: cal.field, per_bin: cal.per_bin, of: Some((cal.instrument, cal.filter)) });
     }
     let text = std::fs::read_to_string(path).map_err(|e| Error::Input(format!("{what}: cannot read as text: {e}")))?;
-    Ok((MuellerField::from_json(&text, &what)?, vec![]))
+    Ok(LoadedField { field: MuellerField::from_json(&text, &what)?, per_bin: vec![], of: None })
+}
+
+/// A Mueller field as [`load_field`] read it.
+pub struct LoadedField {
+    pub field: MuellerField,
+    /// The per-bin fits, when the file keeps them.
+    pub per_bin: Vec<BinFit>,
+    /// The instrument and filter the calibration records (the FITS form records them; the
+    /// JSON form does not).
+    pub of: Option<(String, String)>,
+}
+
+impl LoadedField {
+    /// Refuse to use the field as one of instrument `inst` in filter `band` when the file
+    /// records another instrument or filter (the filter compared through `inst`'s names and
+    /// aliases, [`crate::setup::same_filter`]); `what` names the file in the message.
+    pub fn check_for(&self, inst: &instrument::Instrument, band: &str, what: &str) -> Result<()> {
+        let Some((i, f)) = &self.of else { return Ok(()) };
+        if !i.trim().eq_ignore_ascii_case(inst.name.trim()) {
+            return Err(Error::Input(format!(
+                "{what} is a Mueller field of instrument {i}, not of {} (--instrument): explain it with its own instrument",
+                inst.name
+            )));
+        }
+        if !crate::setup::same_filter(Some(inst), f, band) {
+            return Err(Error::Input(format!(
+                "{what} is a Mueller field of filter {f}, not of {band} (--band): explain it in its own filter"
+            )));
+        }
+        Ok(())
+    }
 }
 
 impl MuellerCal {

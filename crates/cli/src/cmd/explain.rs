@@ -128,7 +128,10 @@ pub fn run(a: Args) -> Result<()> {
     }
     stokes::check_degrees(&angles_deg).map_err(|e| anyhow!("--hwp-angles holds {e}: give them in degrees"))?;
     let what = a.mueller_cal.display().to_string();
-    let (mf, per_bin) = fit::mueller_cal::load_field(&a.mueller_cal).map_err(|e| anyhow!("{e}"))?;
+    let loaded = fit::mueller_cal::load_field(&a.mueller_cal).map_err(|e| anyhow!("{e}"))?;
+    let inst = instrument::Instrument::load(&a.instrument)?;
+    loaded.check_for(&inst, &a.band, &what).map_err(|e| anyhow!("{e}"))?;
+    let (mf, per_bin) = (loaded.field, loaded.per_bin);
     let mut notes = Vec::new();
     let target = match &mf.smooth {
         Smooth::Poly => Target::smooth(&mf, a.grid, &what),
@@ -149,7 +152,6 @@ pub fn run(a: Args) -> Result<()> {
     let rad: Vec<f64> = angles_deg.iter().map(|d| d.to_radians()).collect();
     let mut ctx = Context::new(&rad, a.magnification, a.radius_arcmin)
         .map_err(|e| anyhow!("--hwp-angles / --magnification / --radius-arcmin: {e}"))?;
-    let inst = instrument::Instrument::load(&a.instrument)?;
     let lam = inst.filter(&a.band)?.lambda_eff_nm;
     if which.contains(&Cause::Raytrace) {
         match inst.optics.as_ref() {

@@ -119,7 +119,7 @@ pub fn run(a: Args) -> Result<()> {
     let expected: Option<Arc<MuellerField>> = match &a.expected {
         Some(p) => {
             crate::util::inputs([p.as_path()])?;
-            Some(Arc::new(fit::mueller_cal::load_field(p).map_err(|e| anyhow!("{e}"))?.0))
+            Some(Arc::new(fit::mueller_cal::load_field(p).map_err(|e| anyhow!("{e}"))?.field))
         }
         None => None,
     };
