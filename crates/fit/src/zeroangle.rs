@@ -293,6 +293,48 @@ impl MeasuredStandard {
 
 use std::path::Path;
 
+/// Measurements of one standard merged into one row, each star once: rows with the same name
+/// (a name, not a catalogued angle given by number) and the same catalogued angle. Their
+/// measured angles share the catalogue's error, so counting them as independent stars made the
+/// zero angle's error too small by up to sqrt(n). The merged angle is the mean of the measured
+/// ones weighted by `1 / sigma^2` (taken about the first, modulo 180 deg), its error
+/// `1 / sqrt(sum w)`; the catalogue error then enters once, which is the generalized
+/// least-squares combination of measurements that share one error term. The merged row's
+/// source lists the sources; its position and P are the first measurement's.
+pub fn merge_repeats(rows: Vec<MeasuredStandard>) -> Vec<MeasuredStandard> {
+    let key = |m: &MeasuredStandard| m.label.trim().to_ascii_lowercase();
+    // Each star: its first row, sum of weights, sum of weighted differences from the first.
+    let mut out: Vec<(MeasuredStandard, f64, f64)> = Vec::with_capacity(rows.len());
+    for m in rows {
+        let w = m.sigma_chi_measured_deg.powi(-2);
+        let same = out.iter().position(|(o, _, _)| {
+            key(o) == key(&m) && m.label.trim().parse::<f64>().is_err() && o.chi_catalogue_deg == m.chi_catalogue_deg
+        });
+        match same {
+            Some(k) => {
+                let (o, sw, swd) = &mut out[k];
+                let d = wrap_half_pi((m.chi_measured_deg - o.chi_measured_deg).to_radians()).to_degrees();
+                *sw += w;
+                *swd += w * d;
+                if !o.source.split(" + ").any(|s| s == m.source) {
+                    o.source = format!("{} + {}", o.source, m.source);
+                }
+            }
+            None => out.push((m, w, 0.0)),
+        }
+    }
+    out.into_iter()
+        .map(|(mut o, sw, swd)| {
+            // A star measured once keeps its row bit for bit.
+            if o.source.contains(" + ") || sw != o.sigma_chi_measured_deg.powi(-2) {
+                o.chi_measured_deg += swd / sw;
+                o.sigma_chi_measured_deg = sw.sqrt().recip();
+            }
+            o
+        })
+        .collect()
+}
+
 /// The standards of a file of earlier measurements and the filter it names (if any): the
 /// `--json` output of `instpol zero-angle` (`.json`: its `filter` and `standards` array) or a
 /// table in any format `skyfield::table` reads, with columns `label` (or `name`),
@@ -441,7 +483,10 @@ pub struct ZeroAngleReport {
 
 impl ZeroAngleReport {
     /// Combine the standards of `filter` ([`zero_angle`]); every star must have a finite error.
+    /// Measurements of one standard (the same name and catalogued angle) are first merged into
+    /// one ([`merge_repeats`]): they share its catalogue error, so they are not independent.
     pub fn combine(filter: String, rows: Vec<MeasuredStandard>) -> Result<(Self, ZeroAngle), Error> {
+        let rows = merge_repeats(rows);
         let chis: Vec<StandardChi> = rows.iter().map(MeasuredStandard::chi).collect();
         let z = zero_angle(&chis).ok_or(Error::NoFiniteError)?;
         if z.offsets.len() != rows.len() {
@@ -622,5 +667,48 @@ mod tests {
         std::fs::write(&path, format!("{head}a,10,0,30,0,V\n")).unwrap();
         let e = read_measured(&path).unwrap_err().to_string();
         assert!(e.contains("m.csv") && e.contains("row 1") && e.contains("(0, 90)"), "{e}");
+    }
+
+    /// Two measurements of one standard share its catalogue error: the zero angle is the
+    /// generalized least-squares one, written out here by hand (the star's measurements
+    /// averaged with weights 1/sigma^2, its catalogue variance added once, then the stars
+    /// averaged), not the mean of three independent rows (which gave an error sqrt(3/2)
+    /// too small for this set).
+    #[test]
+    fn repeated_measurements_of_a_standard_are_one_star() {
+        let row = |label: &str, chi: f64, cat: f64, source: &str| MeasuredStandard {
+            label: label.into(),
+            x: None,
+            y: None,
+            chi_measured_deg: chi,
+            sigma_chi_measured_deg: 1.0,
+            chi_catalogue_deg: cat,
+            sigma_chi_catalogue_deg: 0.5,
+            p_measured: None,
+            sigma_p_measured: None,
+            source: source.into(),
+        };
+        let rows = vec![
+            row("Vela1 95", 10.0, 40.0, "frames"),
+            row("HD 154445", 70.0, 100.5, "frames"),
+            row("vela1 95 ", 12.0, 40.0, "earlier.json"),
+        ];
+        let (r, _) = ZeroAngleReport::combine("V".into(), rows).unwrap();
+        // Star A: measured 11 +- 1/sqrt(2), offset 29 with variance 1/2 + 1/4; star B: offset
+        // 30.5 with variance 1 + 1/4.
+        let (va, vb): (f64, f64) = (0.75, 1.25);
+        // The mean of angles modulo 180 deg: the weighted mean of the doubled angles' vectors.
+        let (sn, cs) = [(29.0f64, va), (30.5, vb)].iter().fold((0.0, 0.0), |(s, c), (o, v)| {
+            (s + (2.0 * o.to_radians()).sin() / v, c + (2.0 * o.to_radians()).cos() / v)
+        });
+        let want = (0.5 * sn.atan2(cs)).to_degrees();
+        let sigma = (1.0 / va + 1.0 / vb).powf(-0.5);
+        assert!((r.zero_angle_deg - want).abs() < 1e-9, "{} vs {want}", r.zero_angle_deg);
+        assert!((r.sigma_zero_angle_deg - sigma).abs() < 1e-9, "{} vs {sigma}", r.sigma_zero_angle_deg);
+        assert_eq!(r.standards.len(), 2);
+        assert_eq!(r.standards[0].source, "frames + earlier.json");
+        // Different stars that share a catalogued angle given by number stay apart.
+        let rows = vec![row("40", 10.0, 40.0, "a"), row("40", 12.0, 40.0, "b")];
+        assert_eq!(merge_repeats(rows).len(), 2);
     }
 }
