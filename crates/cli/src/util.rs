@@ -281,6 +281,19 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     })
 }
 
+/// A duration for a person: seconds, minutes, hours or days.
+pub fn human_seconds(s: f64) -> String {
+    if s < 120.0 {
+        format!("{s:.0} s")
+    } else if s < 7200.0 {
+        format!("{:.0} min", s / 60.0)
+    } else if s < 2.0 * 86400.0 {
+        format!("{:.1} h", s / 3600.0)
+    } else {
+        format!("{:.1} days", s / 86400.0)
+    }
+}
+
 /// `--annulus R_IN,R_OUT` (px): the one parser of photometry, catalog and zero-angle.
 pub fn parse_radii(s: &str) -> Result<(f64, f64)> {
     let parsed: Option<Vec<f64>> = s.split(',').map(|t| t.trim().parse().ok()).collect();

@@ -284,6 +284,32 @@ fn outputs_never_replace_masters_or_calibrations() {
     assert_eq!(std::fs::read(&cal).unwrap(), cb);
 }
 
+/// Resource bounds of `plan`: `--bin 1` on FORS1 (2048 x 2048 bins, three candidate fields)
+/// would grow past 4 GB; it is refused before any fitting, with the estimate (4,194,304
+/// bins x 3 fields x 500 B = 6.3 GB, the bins counted here from the detector's size) and the
+/// ways out named. A plan within the limits runs.
+#[test]
+fn plan_resource_bounds() {
+    let t0 = std::time::Instant::now();
+    let base = ["plan", "--instrument", "fors1", "--target-percent", "0.02", "--sky-rate", "2"];
+    let cands = ["--candidate", "6.45:68.4", "--candidate", "4:10", "--candidate", "8:130"];
+    let mut a: Vec<&str> = base.to_vec();
+    a.extend(cands);
+    a.extend(["--bin", "1"]);
+    let (c, _, e) = run(&a);
+    assert_eq!(c, 2, "{e}");
+    let gb = 2048.0 * 2048.0 * 3.0 * 500.0 / 1e9;
+    assert!(e.contains("--bin 1") && e.contains("4194304 bins") && e.contains(&format!("{gb:.1} GB")), "{e}");
+    assert!(e.contains("--force"), "{e}");
+    assert!(t0.elapsed().as_secs() < 60, "refused only after {:?}", t0.elapsed());
+    let mut a: Vec<&str> = base.to_vec();
+    a.extend(cands);
+    a.extend(["--bin", "256", "--json"]);
+    let (c, out, e) = run(&a);
+    assert_eq!(c, 0, "{e}");
+    assert_eq!(json(&out)["n_bins"].as_u64(), Some(64), "{out}");
+}
+
 /// Resource bounds of `mc`: threads capped at the cores (with a note; the result does not
 /// depend on the thread count), a huge --trials refused with its estimated run time before
 /// running, degenerate runs refused with a reason.

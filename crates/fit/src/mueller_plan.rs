@@ -221,6 +221,45 @@ impl PlanSetup {
     }
 }
 
+/// Bins of the timing probe of [`PlanSetup::estimate`].
+pub const PROBE_BINS: usize = 1024;
+
+/// Memory of a plan's fit per bin and field (bytes): measured as the growth of the peak
+/// resident size of `instpol plan` (FORS1, three candidates, the default model) from `--bin
+/// 32` to `--bin 16`, 14.6 MB for 36,864 more bin-fields (about 400 B), rounded up.
+pub const BYTES_PER_BIN_FIELD: f64 = 500.0;
+
+/// The longest plan (estimated, seconds) and the largest (estimated memory, bytes) run
+/// without being asked to: `plan --bin 1` on FORS1 grew past 4 GB and ran for most of an hour.
+pub const MAX_SECONDS: f64 = 600.0;
+pub const MAX_BYTES: f64 = 2.0 * 1024.0 * 1024.0 * 1024.0;
+
+/// The estimated cost of a plan ([`PlanSetup::estimate`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Work {
+    pub bins: usize,
+    pub seconds: f64,
+    pub bytes: f64,
+}
+
+impl Work {
+    /// Why the plan should not run unless forced: beyond [`MAX_SECONDS`] or [`MAX_BYTES`].
+    pub fn over_limit(&self) -> Option<String> {
+        if self.bytes > MAX_BYTES {
+            Some(format!(
+                "{} bins: the fits need about {:.1} GB of memory (limit {:.0} GB)",
+                self.bins,
+                self.bytes / 1e9,
+                MAX_BYTES / 1e9
+            ))
+        } else if self.seconds > MAX_SECONDS {
+            Some(format!("{} bins: about {:.0} s of fitting (limit {:.0} s)", self.bins, self.seconds, MAX_SECONDS))
+        } else {
+            None
+        }
+    }
+}
+
 /// Check a plan by simulation: noisy maps of the true field `truth` with the plan's per-bin
 /// errors, fitted, and the corrected q, u of targets (degree `target_p`, 4 angles) at every
 /// position compared with their truth. Returns the RMS error of the corrected q, u (model
@@ -319,6 +358,34 @@ impl PlanSetup {
             fit: MuellerFitOptions { kind: req.kind, deg: req.deg, scale_arcmin: radius, ..Default::default() },
             target_p: req.target_p,
             expected: req.expected.map(|m| -> std::sync::Arc<dyn FieldModel> { m }),
+        })
+    }
+
+    /// What [`plan`](Self::plan) will cost, before it runs: its fits scale with the bins
+    /// times the fields of every choice of candidates (`k 2^(k-1)` for `k` candidates), so one
+    /// fit of all the candidates over at most [`PROBE_BINS`] of the bins is timed and scaled;
+    /// the memory is that of the largest fit, [`BYTES_PER_BIN_FIELD`] per bin and field.
+    pub fn estimate(&self) -> Result<Work> {
+        let k = self.candidates.len();
+        let n = self.positions.len();
+        // Bins spread over the field (a multiplicative hash of the index), not every m-th in
+        // reading order: that picked one column of the detector, a fit that fails at once.
+        let positions: Vec<(f64, f64)> = if n <= PROBE_BINS {
+            self.positions.clone()
+        } else {
+            (0..PROBE_BINS).map(|j| self.positions[(j as u64 * 2_654_435_761 % n as u64) as usize]).collect()
+        };
+        let probe = PlanSetup { positions, ..self.clone() };
+        let all: Vec<usize> = (0..k).collect();
+        let t0 = std::time::Instant::now();
+        // A probe the model cannot fit still took its time; plan reports the reason.
+        let _ = probe.predict(&all, 1e-3);
+        let per_bin_field = t0.elapsed().as_secs_f64() / (probe.positions.len() * k.max(1)) as f64;
+        let fields_in_all_choices = (k * (1usize << k.saturating_sub(1))) as f64;
+        Ok(Work {
+            bins: n,
+            seconds: per_bin_field * n as f64 * fields_in_all_choices,
+            bytes: BYTES_PER_BIN_FIELD * (n * k) as f64,
         })
     }
 

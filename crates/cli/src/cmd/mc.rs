@@ -119,18 +119,6 @@ impl Progress {
 /// The longest run (estimated, seconds) started without --force.
 const MAX_SECONDS: f64 = 600.0;
 
-fn human(s: f64) -> String {
-    if s < 120.0 {
-        format!("{s:.0} s")
-    } else if s < 7200.0 {
-        format!("{:.0} min", s / 60.0)
-    } else if s < 2.0 * 86400.0 {
-        format!("{:.1} h", s / 3600.0)
-    } else {
-        format!("{:.1} days", s / 86400.0)
-    }
-}
-
 /// Before a long run: time a short probe of the same configuration on the same pool, print the
 /// estimated run time when it is over 10 s, and refuse beyond [`MAX_SECONDS`] unless `force`
 /// (a `--trials 1e12` typo would otherwise run for hours without a word).
@@ -139,15 +127,15 @@ fn check_budget(cfg: &McConfig, total: u64, pool: &rayon::ThreadPool, force: boo
     if est > 10.0 {
         eprintln!(
             "note: {total} trials: estimated run time {} ({rate:.3e} trials/s on {} threads)",
-            human(est),
+            crate::util::human_seconds(est),
             pool.current_num_threads()
         );
     }
     if est > MAX_SECONDS && !force {
         bail!(
             "--trials {total}: estimated run time {} exceeds the {} limit; lower --trials, or pass --force to run it",
-            human(est),
-            human(MAX_SECONDS)
+            crate::util::human_seconds(est),
+            crate::util::human_seconds(MAX_SECONDS)
         );
     }
     Ok(())

@@ -62,6 +62,10 @@ pub struct Args {
     /// Plot accuracy against total observing time (.png or .svg, by the extension).
     #[arg(long)]
     pub plot: Option<PathBuf>,
+    /// Run even when the estimated run time exceeds 10 minutes or the memory 2 GB (the
+    /// estimate, from a timed fit of a sample of the bins, is printed first).
+    #[arg(long)]
+    pub force: bool,
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -149,6 +153,18 @@ pub fn run(a: Args) -> Result<()> {
         expected,
     };
     let setup = PlanSetup::for_instrument(&inst, req).map_err(|e| anyhow!("{e}"))?;
+    let work = setup.estimate().map_err(|e| anyhow!("{e}"))?;
+    if work.seconds > 10.0 && !a.json {
+        eprintln!(
+            "note: {} bins: estimated {} of fitting, {:.2} GB of memory",
+            work.bins,
+            crate::util::human_seconds(work.seconds),
+            work.bytes / 1e9
+        );
+    }
+    if let (Some(why), false) = (work.over_limit(), a.force) {
+        bail!("--bin {}: {why}; use a larger --bin (the calibration maps' own), or pass --force to run it", a.bin);
+    }
     let target = a.target_percent / 100.0;
     let bar = indicatif::ProgressBar::with_draw_target(None, indicatif::ProgressDrawTarget::hidden());
     let start = std::time::Instant::now();
