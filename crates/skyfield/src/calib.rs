@@ -1308,7 +1308,17 @@ fn calibrate_exposure(
                 push_usable(&mut scan, &row[prx + cx..], sat);
             }
         }
+        let declared = (prx + ovx) * cy + (pry + ovy) * rnx;
         let scan_level = robust_mean(scan);
+        // Declared pre/overscan regions with no usable pixel (all NaN, BLANK or saturated):
+        // the bias level cannot be measured, and the frame would be reduced with it in.
+        if c.subtract_overscan && declared > 0 && scan_level.is_none() {
+            return Err(Error::Invalid(format!(
+                "{}: chip {}: none of its {declared} prescan/overscan pixels is usable (NaN, BLANK or saturated): its bias level cannot be measured; the file is damaged or its scan keywords are wrong",
+                path.display(),
+                c.name
+            )));
+        }
         let subtract_scan = c.subtract_overscan && scan_level.is_some();
         let level = if subtract_scan { scan_level.unwrap_or(0.0) } else { 0.0 };
         let bias_map = if stage == Stage::Bias { None } else { masters.bias.as_ref() };
