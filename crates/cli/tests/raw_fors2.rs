@@ -275,3 +275,67 @@ fn chip_files_with_no_usable_overscan_are_refused() {
     assert!(err.contains(name) && err.contains("640 prescan/overscan pixels"), "{err}");
     assert!(!d.join("bad.fits").exists());
 }
+
+/// A master flat records its filter and is used only for frames of that filter: flats of two
+/// filters are not combined (naming both files and filters), the flat records FILTER =
+/// 'R_SPECIAL' in its header, and `reduce` refuses that R flat for the v_HIGH frames, where it
+/// took it without a word.
+#[test]
+fn master_flats_carry_their_filter_and_are_matched_to_the_frames() {
+    use sim::raw::{write_raw_exposure, RawExposure};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let inst_path = d.join("fors2_tiny.toml");
+    std::fs::write(&inst_path, fors2_tiny_text()).unwrap();
+    let inst = common::raw::fors2_tiny();
+    let set = write_raw_set(d, &inst);
+    let ip = s(&inst_path);
+    let lamp = vec![30000.0; inst.detector.nx * inst.detector.ny];
+    let mut r_flats = Vec::new();
+    for k in 0..3 {
+        let x = RawExposure {
+            electrons: &lamp,
+            hwp_deg: Some(0.0),
+            filter: "R_SPECIAL".into(),
+            exptime_s: 1.0,
+            exposure_no: 40 + k,
+            binning: None,
+        };
+        r_flats.extend(
+            write_raw_exposure(
+                &inst,
+                &x,
+                None,
+                None,
+                &common::raw::CHIPS,
+                true,
+                400 + k as u64,
+                d,
+                &format!("rflat{k}"),
+            )
+            .unwrap(),
+        );
+    }
+    let master_flat = |flats: &[std::path::PathBuf], out: &str| {
+        let mut a = vec!["master-flat".to_string()];
+        a.extend(flats.iter().map(|p| s(p)));
+        a.extend(["--instrument".into(), ip.clone(), "--out".into(), s(&d.join(out))]);
+        run(&a)
+    };
+    let mixed: Vec<_> = set.flats.iter().chain(&r_flats).cloned().collect();
+    let (code, _, err) = master_flat(&mixed, "MIXED.fits");
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("v_HIGH") && err.contains("R_SPECIAL") && err.contains("rflat0"), "{err}");
+    assert!(!d.join("MIXED.fits").exists());
+    let (code, _, err) = master_flat(&r_flats, "RFLAT.fits");
+    assert_eq!(code, 0, "{err}");
+    let mut f = fitsio::FitsFile::open(d.join("RFLAT.fits")).unwrap();
+    let h = f.primary_hdu().unwrap();
+    assert_eq!(h.read_key::<String>(&mut f, "HIERARCH INSTPOL FILTER").unwrap(), "R_SPECIAL");
+    let mut a = vec!["reduce".to_string(), "--instrument".into(), ip.clone(), "--bin".into(), "8".into()];
+    a.extend(["--flat".into(), s(&d.join("RFLAT.fits")), "--out".into(), s(&d.join("m.fits"))]);
+    a.extend(set.science.iter().map(|p| s(p)));
+    let (code, _, err) = run(&a);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("RFLAT.fits") && err.contains("R_SPECIAL") && err.contains("v_HIGH"), "{err}");
+}

@@ -14,8 +14,8 @@ pub fn same_filter(inst: Option<&Instrument>, a: &str, b: &str) -> bool {
         return true;
     }
     match inst {
+        Some(i) if i.same_filter(a, b) => true,
         Some(i) => match (i.filter(a), i.filter(b)) {
-            (Ok(x), Ok(y)) => x.name == y.name,
             (Ok(x), Err(_)) => band_is_filter(i, &x.name, b),
             (Err(_), Ok(y)) => band_is_filter(i, &y.name, a),
             _ => false,

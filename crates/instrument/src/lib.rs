@@ -678,6 +678,13 @@ impl Instrument {
             .collect()
     }
 
+    /// Whether two filter names mean one filter of this instrument: equal ignoring case and
+    /// surrounding blanks, or names (or aliases) of the same filter.
+    pub fn same_filter(&self, a: &str, b: &str) -> bool {
+        let (a, b) = (a.trim(), b.trim());
+        a.eq_ignore_ascii_case(b) || matches!((self.filter(a), self.filter(b)), (Ok(x), Ok(y)) if x.name == y.name)
+    }
+
     /// Find a filter by name or alias (case-insensitive).
     pub fn filter(&self, name: &str) -> Result<&Filter, Error> {
         self.filters

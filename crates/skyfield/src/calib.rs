@@ -100,6 +100,9 @@ pub struct Master {
     pub nsigma: f64,
     /// Overscan subtracted from the inputs.
     pub overscan: bool,
+    /// The filter of a flat's frames (all one), written as `HIERARCH INSTPOL FILTER` and
+    /// checked against the frames it flattens; `None` for a bias.
+    pub filter: Option<String>,
     pub warnings: Vec<Warning>,
 }
 
@@ -424,6 +427,8 @@ struct OpenMaster {
     nx: usize,
     /// Stored as the inverse (a flat): NaN where the response is not positive.
     inverse: bool,
+    /// The filter a master flat records (`HIERARCH INSTPOL FILTER`), when it records one.
+    filter: Option<String>,
     whole: std::sync::OnceLock<Vec<f32>>,
     loading: std::sync::Mutex<()>,
 }
@@ -1155,6 +1160,7 @@ fn open_master(path: &Path, inst: &Instrument, kind: &str) -> Result<OpenMaster,
         file,
         nx: d.nx,
         inverse: kind == "FLAT",
+        filter: img.key("HIERARCH INSTPOL FILTER").map(|f| f.trim().to_string()).filter(|f| !f.is_empty()),
         whole: Default::default(),
         loading: Default::default(),
     })
@@ -1417,6 +1423,21 @@ pub(crate) fn calibrate_all(
     let res: Vec<Result<Exposure, Error>> =
         groups.into_par_iter().map(|g| calibrate_exposure(g, inst, &chips, stage, &masters)).collect();
     let mut out: Vec<Exposure> = res.into_iter().collect::<Result<_, _>>()?;
+    // A flat of another filter than the frames' (an R flat for V frames) is refused, as it
+    // would flatten them with another filter's response without a word.
+    if let Some(f) = masters.flat.as_ref().and_then(|m| m.filter.as_ref().map(|f| (m, f))) {
+        for e in &out {
+            if !e.filter.trim().is_empty() && !inst.same_filter(f.1, &e.filter) {
+                return Err(Error::Invalid(format!(
+                    "{}: master flat of filter {} (HIERARCH INSTPOL FILTER), but {} is filter {}: give the flat of the frames' filter",
+                    f.0.path.display(),
+                    f.1,
+                    e.path.display(),
+                    e.filter
+                )));
+            }
+        }
+    }
     if let Some(a) = &opts.hwp_angles_deg {
         check_given_angles(a, n)?;
         for (e, &ang) in out.iter_mut().zip(a) {
@@ -1562,6 +1583,7 @@ pub fn master_bias(paths: &[PathBuf], inst: &Instrument, nsigma: f64) -> Result<
         data,
         inputs: paths.to_vec(),
         nsigma,
+        filter: None,
         overscan: chips_of(inst).iter().any(|c| {
             c.subtract_overscan
                 && (c.overscan_x.is_some() || c.overscan_y.is_some() || c.prescan_x.is_some() || c.prescan_y.is_some())
@@ -1577,6 +1599,17 @@ pub fn master_flat(paths: &[PathBuf], inst: &Instrument, bias: Option<&Path>, ns
     check_nsigma(nsigma)?;
     let opts = ReadOptions { bias: bias.map(|p| p.to_path_buf()), ..Default::default() };
     let ex = calibrate_all(paths, inst, &opts, Stage::Flat)?;
+    // One filter per master flat: a flat of mixed filters is no filter's response.
+    if let Some(e) = ex.iter().find(|e| !inst.same_filter(&e.filter, &ex[0].filter)) {
+        return Err(Error::Invalid(format!(
+            "{} is filter '{}' but {} is filter '{}': a master flat combines flats of one filter",
+            ex[0].path.display(),
+            ex[0].filter,
+            e.path.display(),
+            e.filter
+        )));
+    }
+    let filter = ex.first().map(|e| e.filter.trim().to_string()).filter(|f| !f.is_empty());
     let npx = inst.detector.nx * inst.detector.ny;
     let names: Vec<PathBuf> = ex.iter().map(|e| e.path.clone()).collect();
     let mut imgs = Vec::with_capacity(ex.len());
@@ -1620,6 +1653,7 @@ pub fn master_flat(paths: &[PathBuf], inst: &Instrument, bias: Option<&Path>, ns
         inputs: paths.to_vec(),
         nsigma,
         overscan: true,
+        filter,
         warnings: vec![],
     })
 }
@@ -1653,6 +1687,9 @@ impl Master {
             ("HIERARCH INSTPOL OVERSCAN".into(), KeyValue::I64(self.overscan as i64), "overscan subtracted".into()),
             ("HIERARCH INSTPOL VERSION".into(), KeyValue::Str(env!("CARGO_PKG_VERSION").into()), String::new()),
         ];
+        if let Some(f) = &self.filter {
+            keys.push(("HIERARCH INSTPOL FILTER".into(), KeyValue::Str(f.clone()), "filter of the flats".into()));
+        }
         for (k, p) in self.inputs.iter().enumerate().take(999) {
             let name = p.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
             let name: String = name.chars().filter(|c| c.is_ascii_graphic() || *c == ' ').take(40).collect();
