@@ -1818,3 +1818,70 @@ fn messages_name_the_actual_problem() {
     assert_eq!(c, 2, "{e}");
     assert!(e.contains("too large to draw") && !e.contains("must be finite"), "{e}");
 }
+
+/// Declared units are honoured (the class "percent read as a fraction, arcsec read as
+/// pixels"): an ECSV table with q, u and their errors in %, cov_qu in %2 and x, y in arcsec
+/// is corrected to the numbers of the plain CSV in fractions and arcmin (to rounding: 1 % is
+/// 0.01); units that cannot be read, or that leave a column ambiguous, are refused with the
+/// fix; --coords that contradicts the declared units is refused.
+#[test]
+fn correct_honours_declared_units() {
+    let f = Fixture::new();
+    let cal = f.cal();
+    let out = f.out_dir();
+    let ecsv = |units: [&str; 7], row: &str| {
+        let mut s = "# %ECSV 1.0\n# ---\n# datatype:\n".to_string();
+        for (n, u) in ["x", "y", "q", "u", "sigma_q", "sigma_u", "cov_qu"].iter().zip(units) {
+            if u.is_empty() {
+                s += &format!("# - {{name: {n}, datatype: float64}}\n");
+            } else {
+                s += &format!("# - {{name: {n}, unit: '{u}', datatype: float64}}\n");
+            }
+        }
+        s + "# schema: astropy-2.0\nx y q u sigma_q sigma_u cov_qu\n" + row + "\n"
+    };
+    let plain = f.csv("plain.csv", "x,y,q,u,sigma_q,sigma_u,cov_qu\n0.5,-0.25,0.012,-0.004,0.0005,0.0006,1e-8\n");
+    let declared = f.csv(
+        "declared.ecsv",
+        &ecsv(["arcsec", "arcsec", "%", "%", "%", "%", "%2"], "30.0 -15.0 1.2 -0.4 0.05 0.06 1e-4"),
+    );
+    let read = |p: &Path| -> Vec<f64> {
+        let text = std::fs::read_to_string(p).unwrap();
+        let mut lines = text.lines().filter(|l| !l.starts_with('#'));
+        let head: Vec<String> = lines.next().unwrap().split([',', ' ']).map(String::from).collect();
+        let row: Vec<String> = lines.next().unwrap().split([',', ' ']).map(String::from).collect();
+        ["q0", "u0", "sigma_q0", "sigma_u0", "cov_qu0"]
+            .iter()
+            .map(|c| row[head.iter().position(|h| h == c).unwrap()].parse().unwrap())
+            .collect()
+    };
+    let o1 = out.join("plain_c.csv");
+    let (c, _, e) = common::run(&["correct", "--cal", &cal, "--in", &plain, "--out", o1.to_str().unwrap()]);
+    assert_eq!(c, 0, "{e}");
+    let o2 = out.join("declared_c.ecsv");
+    let (c, _, e) = common::run(&["correct", "--cal", &cal, "--in", &declared, "--out", o2.to_str().unwrap()]);
+    assert_eq!(c, 0, "{e}");
+    for (a, b) in read(&o1).iter().zip(read(&o2)) {
+        assert!((a - b).abs() <= 1e-12 * a.abs().max(1e-12), "{a} vs {b}");
+    }
+    let o = out.join("c.ecsv");
+    let cases: [([&str; 7], &[&str]); 4] = [
+        (["arcsec", "arcsec", "%", "%", "", "%", "%2"], &["sigma_q", "declares no unit", "%"]),
+        (["mm", "mm", "", "", "", "", ""], &["'mm'", "pix, arcmin, arcsec or deg"]),
+        (["arcmin", "arcmin", "%", "%", "%", "%", ""], &["cov_qu", "'%2'"]),
+        (["arcmin", "arcmin", "deg", "", "", "", ""], &["column 'q'", "'deg'"]),
+    ];
+    for (k, (units, needles)) in cases.iter().enumerate() {
+        let p = f.csv(&format!("bad{k}.ecsv"), &ecsv(*units, "0.5 -0.25 1.2 -0.4 0.05 0.06 1e-4"));
+        let mut n = vec![format!("bad{k}.ecsv")];
+        n.extend(needles.iter().map(|s| s.to_string()));
+        let n: Vec<&str> = n.iter().map(String::as_str).collect();
+        refuses(&out, &["correct", "--cal", &cal, "--in", &p, "--out", o.to_str().unwrap()], &n);
+    }
+    let p = f.csv("pix.ecsv", &ecsv(["pix", "pix", "", "", "", "", ""], "10 12 0.012 -0.004 0.0005 0.0006 0"));
+    refuses(
+        &out,
+        &["correct", "--cal", &cal, "--in", &p, "--coords", "arcmin", "--out", o.to_str().unwrap()],
+        &["pix.ecsv", "declare pixels", "arcmin"],
+    );
+}

@@ -22,6 +22,16 @@ pub enum Units {
     Pixel,
 }
 
+impl Units {
+    /// The name a person reads ("arcmin", "pixels").
+    pub fn name(self) -> &'static str {
+        match self {
+            Units::Arcmin => "arcmin",
+            Units::Pixel => "pixels",
+        }
+    }
+}
+
 /// Positions in pixels and a calibration without a pixel grid (a telescope-only file, or a
 /// field calibration imported without one).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
@@ -56,6 +66,15 @@ pub fn arcmin_positions<'a>(
     }
 }
 
+/// Why a table's positions cannot be placed ([`TableColumns::place`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum PlaceError {
+    /// The declared units contradict the asked ones.
+    Conflict(String),
+    /// Pixels, and a calibration without a pixel grid.
+    NoPixelGrid,
+}
+
 /// The measured columns of a table to correct, as read ([`TableColumns::read`]).
 pub struct TableColumns {
     pub x: Vec<f64>,
@@ -65,11 +84,17 @@ pub struct TableColumns {
     pub sigma_q: Vec<f64>,
     pub sigma_u: Vec<f64>,
     pub cov_qu: Option<Vec<f64>>,
+    /// The units `x, y` declare (arcsec and deg already turned into arcmin), `None` when they
+    /// declare none ([`TableColumns::units`] decides then).
+    pub declared: Option<Units>,
 }
 
 impl TableColumns {
     /// The columns `x, y, q, u, sigma_q, sigma_u` (names in any case) and the optional `cov_qu`
     /// of table `t` read from `path`; a missing column is an error naming the table's columns.
+    /// Declared units are honoured (`skyfield::table::Table::fractions`): `q, u` and their
+    /// errors in % become fractions, `cov_qu` in `%2` too (undeclared beside `q, u` in % it is
+    /// refused); `x, y` in `pix` are pixels, in `arcmin`, `arcsec` or `deg` arcmin.
     pub fn read(t: &Table, path: &Path) -> Result<Self, skyfield::Error> {
         let col = |c: &str| -> Result<Vec<f64>, skyfield::Error> {
             if t.column(c).is_none() {
@@ -83,10 +108,86 @@ impl TableColumns {
             }
             t.numbers(c, path)
         };
-        let (x, y, q, u) = (col("x")?, col("y")?, col("q")?, col("u")?);
-        let (sigma_q, sigma_u) = (col("sigma_q")?, col("sigma_u")?);
-        let cov_qu = if t.column("cov_qu").is_some() { Some(col("cov_qu")?) } else { None };
-        Ok(Self { x, y, q, u, sigma_q, sigma_u, cov_qu })
+        let (mut x, mut y) = (col("x")?, col("y")?);
+        for c in ["q", "u", "sigma_q", "sigma_u"] {
+            col(c)?;
+        }
+        let (mut v, scale) = t.fractions(&["q", "u", "sigma_q", "sigma_u"], path)?;
+        let (sigma_u, sigma_q, u, q) = (v.pop().unwrap(), v.pop().unwrap(), v.pop().unwrap(), v.pop().unwrap());
+        let bad = |message: String| skyfield::Error::Table { path: path.to_path_buf(), message };
+        let cov_qu = if t.column("cov_qu").is_some() {
+            let k = match t.unit_of("cov_qu") {
+                None if scale == 1.0 => 1.0,
+                None => {
+                    return Err(bad(
+                        "q, u are in % but column 'cov_qu' declares no unit: declare it ('%2', or '' for a fraction squared)"
+                            .into(),
+                    ))
+                }
+                Some(u) if u.is_empty() || u.eq_ignore_ascii_case("dimensionless") => 1.0,
+                Some(u) if ["%2", "%^2", "percent2"].contains(&u) => 1e-4,
+                Some(u) => return Err(bad(format!("column 'cov_qu' has unit '{u}': expected none, '' or '%2'"))),
+            };
+            Some(col("cov_qu")?.into_iter().map(|c| c * k).collect())
+        } else {
+            None
+        };
+        let declared = match (t.unit_of("x"), t.unit_of("y")) {
+            (None, None) => None,
+            (Some(a), Some(b)) if a == b => {
+                let (units, k) = match a {
+                    "pix" | "pixel" | "px" => (Units::Pixel, 1.0),
+                    "arcmin" => (Units::Arcmin, 1.0),
+                    "arcsec" => (Units::Arcmin, 1.0 / 60.0),
+                    "deg" => (Units::Arcmin, 60.0),
+                    u => {
+                        return Err(bad(format!(
+                            "columns 'x', 'y' have unit '{u}': expected pix, arcmin, arcsec or deg"
+                        )))
+                    }
+                };
+                if k != 1.0 {
+                    x.iter_mut().chain(y.iter_mut()).for_each(|v| *v *= k);
+                }
+                Some(units)
+            }
+            (a, b) => {
+                return Err(bad(format!(
+                    "columns 'x' and 'y' declare different units ({} and {}): give both one unit",
+                    a.unwrap_or("none"),
+                    b.unwrap_or("none")
+                )))
+            }
+        };
+        Ok(Self { x, y, q, u, sigma_q, sigma_u, cov_qu, declared })
+    }
+
+    /// Put `x, y` in arcmin for a correction with `loaded` ([`Self::units`], then
+    /// [`Self::to_arcmin`] on the calibration's pixel grid), and return the units they were
+    /// read in. A telescope model alone does not look at positions: they are left as they are.
+    pub fn place(&mut self, given: Option<Units>, loaded: &CalibrationFile) -> Result<Units, PlaceError> {
+        if loaded.field.is_none() && loaded.mueller.is_none() {
+            return Ok(self.declared.or(given).unwrap_or(Units::Arcmin));
+        }
+        let units = self.units(given).map_err(PlaceError::Conflict)?;
+        self.to_arcmin(units, pixel_grid(loaded)).map_err(|_| PlaceError::NoPixelGrid)?;
+        Ok(units)
+    }
+
+    /// The units of `x, y` for the correction: the declared ones, else `given` (a caller's
+    /// `--coords`), else arcmin. Declared units that contradict the given ones are refused:
+    /// the table knows what its columns are.
+    pub fn units(&self, given: Option<Units>) -> Result<Units, String> {
+        match (self.declared, given) {
+            (Some(d), Some(g)) if d != g => Err(format!(
+                "its columns x, y declare {} but {} were asked for: the declared unit is used; drop the option or fix the table",
+                d.name(),
+                g.name()
+            )),
+            (Some(d), _) => Ok(d),
+            (None, Some(g)) => Ok(g),
+            (None, None) => Ok(Units::Arcmin),
+        }
     }
 
     /// Turn `x, y` into arcmin from the detector centre ([`arcmin_positions`]).

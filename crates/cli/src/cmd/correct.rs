@@ -31,9 +31,10 @@ pub struct Args {
     #[arg(long, value_name = "OUT")]
     pub out: PathBuf,
     /// Units of the catalog's x, y: arcmin from the detector centre, or 0-based detector
-    /// pixels of the calibration's pixel grid.
-    #[arg(long, value_enum, default_value = "arcmin")]
-    pub coords: Coords,
+    /// pixels of the calibration's pixel grid. Default: the units the table declares (ECSV,
+    /// FITS, VOTable: pix, arcmin, arcsec, deg), else arcmin.
+    #[arg(long, value_enum)]
+    pub coords: Option<Coords>,
     /// Inversion: exact (M_I inverted, eq:instpol) or first-order (eq:approx).
     #[arg(long, value_enum, default_value = "exact")]
     pub method: MethodArg,
@@ -225,12 +226,15 @@ fn run_table(
         fit::request::plan_rows(loaded, &angles.request(*base), n).map_err(|e| rows_error(a, Some(&table), e))?;
     print_notes(a, &plan.notes);
     let mut cols = TableColumns::read(&table, &a.input)?;
-    let units = if a.coords == Coords::Pixel { Units::Pixel } else { Units::Arcmin };
-    cols.to_arcmin(units, fit::columns::pixel_grid(loaded)).map_err(|_| {
-        let (input, row) = (a.input.display(), table.row_label(0));
-        anyhow!(
-            "{input} {row}: the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)"
-        )
+    let given = a.coords.map(|c| if c == Coords::Pixel { Units::Pixel } else { Units::Arcmin });
+    let units = cols.place(given, loaded).map_err(|e| match e {
+        fit::columns::PlaceError::Conflict(m) => anyhow!("{}: {m}", a.input.display()),
+        fit::columns::PlaceError::NoPixelGrid => {
+            let (input, row) = (a.input.display(), table.row_label(0));
+            anyhow!(
+                "{input} {row}: the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)"
+            )
+        }
     })?;
     // The root-finding estimators take ~1 us a row: show progress on big catalogs.
     let pb = if n >= 500_000 { indicatif::ProgressBar::new(n as u64) } else { indicatif::ProgressBar::hidden() };
@@ -279,7 +283,13 @@ fn run_table(
     });
     finish(
         a,
-        Summary { input: a.input.clone(), output: a.out.clone(), method: a.method, coords: Some(a.coords), report },
+        Summary {
+            input: a.input.clone(),
+            output: a.out.clone(),
+            method: a.method,
+            coords: Some(if units == Units::Pixel { Coords::Pixel } else { Coords::Arcmin }),
+            report,
+        },
         loaded,
         telescope,
     )

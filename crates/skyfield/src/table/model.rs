@@ -187,6 +187,51 @@ impl Table {
         Ok(Some(z0))
     }
 
+    /// The unit column `name` declares (astropy's unit string, trimmed), `None` when it
+    /// declares none (a CSV table, or an empty unit).
+    pub fn unit_of(&self, name: &str) -> Option<&str> {
+        self.column(name).and_then(|c| c.unit.as_deref()).map(str::trim).filter(|u| !u.is_empty())
+    }
+
+    /// Columns `names` (a quantity and its errors, such as `q, u, sigma_q, sigma_u`) as
+    /// fractions, by their declared units: none or `''`/`dimensionless` as they are, `%` or
+    /// `percent` divided by 100. Another unit is refused, and so are columns that disagree
+    /// (`q` in % with `sigma_q` undeclared), with the fix in the message: percent read as a
+    /// fraction made every correction 100 times too large. Returns the values and the scale.
+    pub fn fractions(&self, names: &[&str], path: &Path) -> Result<(Vec<Vec<f64>>, f64), Error> {
+        let scale = |n: &str| match self.unit_of(n) {
+            None => Ok(None),
+            Some(u) if u.eq_ignore_ascii_case("dimensionless") || u == "1" => Ok(Some(1.0)),
+            Some(u) if u == "%" || u.eq_ignore_ascii_case("percent") => Ok(Some(0.01)),
+            Some(u) => Err(terr(path, format!("column '{n}' has unit '{u}': a fraction needs none (or '') or '%'"))),
+        };
+        let scales: Vec<(&str, Option<f64>)> =
+            names.iter().map(|n| Ok((*n, scale(n)?))).collect::<Result<_, Error>>()?;
+        let declared = scales.iter().find_map(|(n, s)| s.map(|s| (*n, s)));
+        let mut out = Vec::with_capacity(names.len());
+        for (n, s) in &scales {
+            let k = match (s, declared) {
+                (Some(s), Some((first, d))) if *s != d => {
+                    return Err(terr(
+                        path,
+                        format!("column '{n}' and column '{first}' declare different units: give them one unit (% or none)"),
+                    ))
+                }
+                (None, Some((first, d))) if d != 1.0 => {
+                    return Err(terr(
+                        path,
+                        format!("column '{first}' is in %, but column '{n}' declares no unit: declare it (%) so that it is not read as a fraction"),
+                    ))
+                }
+                (Some(s), _) => *s,
+                (None, _) => 1.0,
+            };
+            let v = self.numbers(n, path)?;
+            out.push(if k == 1.0 { v } else { v.into_iter().map(|x| x * k).collect() });
+        }
+        Ok((out, declared.map_or(1.0, |d| d.1)))
+    }
+
     /// Column `name` as numbers (an empty text field is NaN); an error names the file, the column and the first row that is
     /// not a number, or the columns there are when it is missing.
     pub fn numbers(&self, name: &str, path: &Path) -> Result<Vec<f64>, Error> {
