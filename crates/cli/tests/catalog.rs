@@ -600,3 +600,49 @@ fn a_catalog_with_flagged_stars_is_corrected_in_every_format() {
         }
     }
 }
+
+/// Maskless layout: a star whose e image falls on a neighbour's o image (the neighbour 70.2 px
+/// to its right, the o/e offset of the example calcite instrument). The shared image held both
+/// stars' light, and the star was measured from it as P = 3.3 % for a true 5 %, unflagged: now
+/// it is flagged `overlap` and not measured, and a star clear of both is measured as before.
+#[test]
+fn overlapping_images_of_two_stars_are_flagged_not_measured() {
+    let dir = tempfile::tempdir().unwrap();
+    let star = |x: f64, y: f64, p: f64| {
+        format!(
+            "[[stars]]\nx = {x}\ny = {y}\ncoords = \"pixel\"\nflux_e = 4e5\np = {p}\nchi_deg = 30\nfwhm_arcsec = 1.0\n"
+        )
+    };
+    let (inst, _) = calcite_scene(dir.path(), "");
+    let base = include_str!("../../../instruments/scenes/calcite_stars.toml")
+        .replace("instrument = \"calcite\"", &format!("instrument = \"{}\"", inst.display()));
+    let head = &base[..base.find("[[stars]]").unwrap()];
+    let scene = format!("{head}{}{}{}", star(150.0, 200.0, 0.05), star(220.2, 200.0, 0.0), star(420.0, 450.0, 0.0));
+    let sp = dir.path().join("overlap.toml");
+    std::fs::write(&sp, scene).unwrap();
+    let out = dir.path().join("ov");
+    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert_eq!(code, 0, "{err}");
+    let mut args: Vec<OsString> = vec!["catalog".into()];
+    args.extend(fits_in(&out).into_iter().map(PathBuf::into_os_string));
+    for a in
+        ["--instrument", inst.to_str().unwrap(), "--fwhm", "4.7", "--aperture", "9", "--annulus", "14,24", "--json"]
+    {
+        args.push(a.into());
+    }
+    let (code, stdout, err) = run(&args);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let rows = j["rows"].as_array().unwrap();
+    let at = |x: f64, y: f64| {
+        rows.iter()
+            .find(|r| (r["x"].as_f64().unwrap() - x).hypot(r["y"].as_f64().unwrap() - y) < 2.0)
+            .unwrap_or_else(|| panic!("no row at ({x}, {y}): {j}"))
+    };
+    let a = at(150.0, 200.0);
+    let overlap = |r: &serde_json::Value| r["flags"].as_u64().unwrap() & skyfield::catalog::flags::OVERLAP as u64 != 0;
+    assert!(overlap(a), "{a}");
+    assert!(a["q"].is_null(), "measured from a shared image: {a}");
+    let c = at(420.0, 450.0);
+    assert!(c["q"].is_number() && !overlap(c), "{c}");
+}

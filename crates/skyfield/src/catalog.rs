@@ -93,6 +93,12 @@ pub mod flags {
     /// repeats or lost light (`crate::photometry::ExposureCheck`); the star is measured, the
     /// exposures are in the row's `outlier_exposures`.
     pub const OUTLIER_EXPOSURE: u32 = 16;
+    /// Its o or e image is also an image of another star (maskless layouts: a star whose o
+    /// image falls on a neighbour's e image): the two overlap on the detector and no aperture
+    /// separates them, so the star is not measured (its q, u would mix the two stars').
+    pub const OVERLAP: u32 = 32;
+    /// The flags under which a star is not measured.
+    pub const NOT_MEASURED: u32 = SATURATED | OVERLAP;
     /// Names of the bits, for tables.
     pub fn names(f: u32) -> String {
         let mut v = Vec::new();
@@ -102,6 +108,7 @@ pub mod flags {
             (BLENDED, "blended"),
             (FAILED, "failed"),
             (OUTLIER_EXPOSURE, "outlier_exposure"),
+            (OVERLAP, "overlap"),
         ] {
             if f & b != 0 {
                 v.push(n);
@@ -453,6 +460,19 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
             if near(so, [pr.o, pr.e]) || near(se, [pr.o, pr.e]) {
                 flags |= flags::BLENDED;
             }
+            // An image shared with another star: an unpaired source sits where the layout puts
+            // the e image of this star's e image, or the o image of this star's o image.
+            let at = |p: Option<(f64, f64)>, k: usize| {
+                p.is_some_and(|(x, y)| (sources[k].x - x).hypot(sources[k].y - y) <= dcfg.pair_tol_px)
+            };
+            let shared = unpaired.iter().any(|&k| {
+                at(g.e_position(se.x, se.y), k)
+                    || g.e_position(sources[k].x, sources[k].y)
+                        .is_some_and(|(x, y)| (so.x - x).hypot(so.y - y) <= dcfg.pair_tol_px)
+            });
+            if shared {
+                flags |= flags::OVERLAP;
+            }
             let nan = f64::NAN;
             let mut row = Row {
                 id: id + 1,
@@ -488,6 +508,10 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
             };
             if flags & flags::SATURATED != 0 {
                 row.note = "saturated: not measured".into();
+                return (row, Ok(vec![]));
+            }
+            if flags & flags::OVERLAP != 0 {
+                row.note = "its image overlaps another star's other image: not measured".into();
                 return (row, Ok(vec![]));
             }
             // The detection's FWHM of the o image, or the expected one if it could not be measured.
@@ -550,7 +574,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                     .par_iter()
                     .filter_map(|&s| {
                         let (row, tries) = &planned[s];
-                        let (Ok(t), true) = (tries, row.flags & flags::SATURATED == 0) else { return None };
+                        let (Ok(t), true) = (tries, row.flags & flags::NOT_MEASURED == 0) else { return None };
                         let m = t
                             .iter()
                             .map(|(r, placed)| {
@@ -582,7 +606,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         .into_par_iter()
         .zip(by_star)
         .map(|((mut row, tries), frames)| {
-            if row.flags & flags::SATURATED != 0 {
+            if row.flags & flags::NOT_MEASURED != 0 {
                 return (row, None);
             }
             let (x, y) = (row.x, row.y);
@@ -628,7 +652,8 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                     row.p = r.p;
                     row.sigma_p = r.sigma_p;
                     row.chi_deg = (r.chi.to_degrees() + chi_off).rem_euclid(180.0);
-                    row.sigma_chi_deg = r.sigma_chi.to_degrees();
+                    // Undetermined (NaN, as every command reports it) where P is at the noise.
+                    row.sigma_chi_deg = r.sigma_chi_deg_reported().unwrap_or(f64::NAN);
                     row.a0 = r.a0;
                     row.kappa = r.kappa_mean;
                     row.kappa_applied = ph.kappa_applied;
