@@ -129,7 +129,19 @@ fn main() {
         }
     }
     util::start_provenance();
-    let result = match cli.command {
+    // Commands that write several files and read none of them back write all or none
+    // (`skyfield::durable::stage`): a failure after the first file left the others' files.
+    // (Commands that write one file need no staging: their one write is atomic already.)
+    let staged = matches!(
+        cli.command,
+        Command::FitStandards(_)
+            | Command::Calibrate(_)
+            | Command::Fit(_)
+            | Command::Plot(_)
+            | Command::CalibrateMueller(_)
+            | Command::Raytrace(_)
+    );
+    let run = move || match cli.command {
         Command::Demo(a) => cmd::demo::run(a),
         Command::Simulate(a) => cmd::simulate::run(a),
         Command::Reduce(a) => cmd::reduce::run(a),
@@ -155,6 +167,7 @@ fn main() {
         Command::Raytrace(a) => cmd::raytrace::run(a),
         Command::FitStandards(a) => cmd::fit_standards::run(a),
     };
+    let result = if staged { skyfield::durable::stage(run) } else { run() };
     // Output the reader could not take for another reason than closing the pipe (a full
     // disk behind `> file`): the command's files are written, but the printed result is lost.
     let result = result.and_then(|()| util::stdout_status());

@@ -317,3 +317,38 @@ fn a_wavelength_band_corrects_the_filter_at_that_wavelength() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(e.contains("B map") && e.contains("0.550um"), "{e}");
 }
+
+/// A run that writes several files succeeds whole or leaves none of them
+/// (`skyfield::durable::stage`): with one band's model file named like the input (a hard link
+/// to it, refused as an output), neither the other band's model nor any plot is left, whichever
+/// band comes first; the input is unchanged. Before, the files written before the refusal
+/// stayed.
+#[test]
+fn a_failed_run_leaves_none_of_its_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("std.csv");
+    let csv = mirror_csv(&[("V", 0.55), ("R", 0.64)]);
+    std::fs::write(&data, &csv).unwrap();
+    for linked in ["V", "R"] {
+        let per = dir.path().join(format!("per_{linked}"));
+        let plots = dir.path().join(format!("plots_{linked}"));
+        std::fs::create_dir_all(&per).unwrap();
+        std::fs::hard_link(&data, per.join(format!("telescope_{linked}.fits"))).unwrap();
+        let r = run(&[
+            data.to_str().unwrap(),
+            "--output-dir",
+            per.to_str().unwrap(),
+            "--plot-dir",
+            plots.to_str().unwrap(),
+        ]);
+        assert_eq!(r.status.code(), Some(2), "{}", String::from_utf8_lossy(&r.stderr));
+        assert!(String::from_utf8_lossy(&r.stderr).contains("is the input"));
+        assert_eq!(common::listing(&per), vec![format!("telescope_{linked}.fits")], "linked {linked}");
+        assert!(
+            !plots.exists() || common::listing(&plots).is_empty(),
+            "linked {linked}: {:?}",
+            common::listing(&plots)
+        );
+        assert_eq!(std::fs::read_to_string(&data).unwrap(), csv);
+    }
+}

@@ -66,10 +66,50 @@ fn sync_parent(path: &Path) {
     }
 }
 
+/// Outputs held back while a run that writes several files is staged ([`stage`]): each
+/// complete, fsynced temporary with its final name.
+type Staged = Vec<(tempfile::TempPath, std::path::PathBuf)>;
+static STAGE: std::sync::Mutex<Option<Staged>> = std::sync::Mutex::new(None);
+
+fn staged() -> std::sync::MutexGuard<'static, Option<Staged>> {
+    STAGE.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Run `work`, holding back every file it writes through [`finish`] (each complete and
+/// fsynced beside its final name) until it has succeeded, then rename them all onto their
+/// names; when it fails, delete them all. A run that writes several files (a calibration and
+/// its plots, one model per band) so succeeds whole or leaves none of them, where it left the
+/// files written before the failure. Only renames remain after the last write, and those do
+/// not fail for want of space. `work` must not read back what it writes (nothing is at its
+/// final name before the end).
+pub fn stage<T, E: From<io::Error>>(work: impl FnOnce() -> Result<T, E>) -> Result<T, E> {
+    *staged() = Some(Vec::new());
+    let result = work();
+    let held = staged().take().unwrap_or_default();
+    match result {
+        Ok(v) => {
+            for (tmp, path) in held {
+                tmp.persist(&path).map_err(|e| {
+                    io::Error::new(e.error.kind(), format!("cannot write {}: {}", path.display(), e.error))
+                })?;
+                sync_parent(&path);
+            }
+            Ok(v)
+        }
+        // Dropping the temporaries deletes them.
+        Err(e) => Err(e),
+    }
+}
+
 /// The final step of every writer: fsync the complete temporary `tmp`, then rename it onto
-/// `path`. On error the temporary is deleted (dropped) and `path` is untouched.
+/// `path` (or hold it until a staged run ends, [`stage`]). On error the temporary is deleted
+/// (dropped) and `path` is untouched.
 pub fn finish(tmp: tempfile::TempPath, path: &Path) -> io::Result<()> {
     sync_file(&tmp)?;
+    if let Some(held) = staged().as_mut() {
+        held.push((tmp, path.to_path_buf()));
+        return Ok(());
+    }
     // Keep only the io::Error: the PersistError also holds the temporary, dropped (deleted) here.
     tmp.persist(path).map_err(|e| e.error)?;
     sync_parent(path);
