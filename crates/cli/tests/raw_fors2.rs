@@ -339,3 +339,36 @@ fn master_flats_carry_their_filter_and_are_matched_to_the_frames() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("RFLAT.fits") && err.contains("R_SPECIAL") && err.contains("v_HIGH"), "{err}");
 }
+
+/// Pre/overscan sizes that are wrong but add up (7 + 3 rows for the chip's 5 + 5): two
+/// image rows fall in the "prescan" and the bias was taken from them, with the light in it
+/// (on sky frames q came out 16 % low, exit 0). The scan rows that hold light are seen and the
+/// files refused, naming the row; with the right keywords the same files combine. (Flats:
+/// light on every image row, so the two rows moved into the prescan hold light whatever the
+/// mask.)
+#[test]
+fn scan_regions_that_hold_light_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let ip = d.join("fors2_tiny.toml");
+    std::fs::write(&ip, fors2_tiny_text()).unwrap();
+    let inst = common::raw::fors2_tiny();
+    let set = write_raw_set(d, &inst);
+    let flat = |out: &str| {
+        let mut a = vec!["master-flat".to_string(), "--instrument".into(), s(&ip)];
+        a.extend(["--out".into(), s(&d.join(out))]);
+        a.extend(set.flats.iter().map(|p| s(p)));
+        run(&a)
+    };
+    let (code, _, err) = flat("good.fits");
+    assert_eq!(code, 0, "{err}");
+    // The instrument file's scan sizes given as numbers that add up but are wrong.
+    let wrong = fors2_tiny_text()
+        .replace("prescan_y = \"HIERARCH ESO DET OUT1 PRSCY\"", "prescan_y = 7")
+        .replace("overscan_y = \"HIERARCH ESO DET OUT1 OVSCY\"", "overscan_y = 3");
+    assert_ne!(wrong, fors2_tiny_text());
+    std::fs::write(&ip, wrong).unwrap();
+    let (code, _, err) = flat("bad.fits");
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("flat0_") && err.contains("holds light") && err.contains("7 + 3 rows"), "{err}");
+}

@@ -1301,6 +1301,8 @@ fn calibrate_exposure(
         // sums them in that order). Only those rows are read when the chip has no prescan or
         // overscan columns.
         let mut scan = Vec::new();
+        // Each scan row's median, to see light where only the bias should be.
+        let mut row_levels: Vec<(usize, f64)> = Vec::new();
         for y in 0..cf.img.ny {
             let in_rows = y < pry || y >= pry + cy;
             if !in_rows && prx + ovx == 0 {
@@ -1308,7 +1310,12 @@ fn calibrate_exposure(
             }
             chip.raw_row(y, &mut row, &mut bytes)?;
             if in_rows {
+                let before = scan.len();
                 push_usable(&mut scan, &row, sat);
+                if scan.len() > before {
+                    let mut r = scan[before..].to_vec();
+                    row_levels.push((y, robust::median(&mut r, Middle::Mean)));
+                }
             } else {
                 push_usable(&mut scan, &row[..prx], sat);
                 push_usable(&mut scan, &row[prx + cx..], sat);
@@ -1316,6 +1323,21 @@ fn calibrate_exposure(
         }
         let declared = (prx + ovx) * cy + (pry + ovy) * rnx;
         let scan_level = robust_mean(scan);
+        // A scan row far above the scan's level holds light: the pre/overscan keywords do
+        // not fit the chip (7 + 3 rows given for 5 + 5 put two image rows in the "prescan",
+        // and the bias taken from it 16 % of the sky too high). 20 read noises (at least 20
+        // ADU) is far beyond a bias row's own structure.
+        if let Some(level) = scan_level {
+            let limit = (20.0 * rn / gain).max(20.0);
+            if let Some((y, l)) = row_levels.iter().find(|(_, l)| l - level > limit) {
+                return Err(Error::Invalid(format!(
+                    "{}: chip {}: its prescan/overscan row {y} sits {:.0} ADU above the scan's level of {level:.1} ADU: it holds light, so the scan regions ({pry} + {ovy} rows, {prx} + {ovx} columns) do not fit the chip; check the pre/overscan keywords",
+                    path.display(),
+                    c.name,
+                    l - level
+                )));
+            }
+        }
         // Declared pre/overscan regions with no usable pixel (all NaN, BLANK or saturated):
         // the bias level cannot be measured, and the frame would be reduced with it in.
         if c.subtract_overscan && declared > 0 && scan_level.is_none() {
