@@ -24,7 +24,7 @@ mod util;
 /// (half-wave plate + Wollaston prism, e.g. VLT FORS1/FORS2), following Patat & Romaniello
 /// 2006, PASP 118, 146.
 ///
-/// Every command takes --json for scripts (keys: README "JSON vocabulary", schemas/).
+/// Every command takes --json for scripts (keys: docs/guide/formats.md, schemas/).
 /// Polarization degrees are fractions in JSON and percent (labelled) in tables; angles are
 /// degrees at the edges. Errors in the input exit with code 2 and a message that names the
 /// input; with --json the error is one JSON object on stderr:

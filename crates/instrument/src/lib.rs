@@ -782,3 +782,8 @@ mod tests {
         assert!((ax + 3.1).abs() < 1e-12 && (ay - 2.2).abs() < 1e-12);
     }
 }
+
+/// The crate README's example, compiled and run with the documentation tests.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeDoctests;

@@ -485,3 +485,8 @@ mod tests {
         assert_relative_eq!(rotate(&m, PI), m, epsilon = 1e-12);
     }
 }
+
+/// The crate README's example, compiled and run with the documentation tests.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeDoctests;
