@@ -29,6 +29,8 @@ use stokes::{Error as RedError, Measurement, Reduction};
 /// (fractions), chi_deg in [0, 180), sigma_p, sigma_chi_deg (null when P = 0), a0, kappa
 /// (array), kappa_mean (null when none), fourier (array of {k, a, b, sigma_a, sigma_b}),
 /// warnings, plus extra detail fields.
+///
+/// Example: instpol stokes --input tests/data/fors1_v_star_n16.csv --plot fourier.png
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
