@@ -40,7 +40,7 @@ pub struct Args {
     pub input: PathBuf,
     #[command(flatten)]
     pub kappa: super::frame_opts::KappaOpts,
-    /// Also draw the paper's fig:fourier as a PNG (1000 x 900 px): F_i with their 1-sigma
+    /// Also draw the paper's fig:fourier as a PNG (1000 x 1300 px): F_i with their 1-sigma
     /// errors (from sigma_o/sigma_e, else Poisson) against the HWP angle, with the curve
     /// Q cos 4theta + U sin 4theta of the fitted Q, U (eq:system), raised by a_0 = mean F_i
     /// (eq:a0) on the optimal angle sets; below, the harmonic amplitudes with their 1-sigma
