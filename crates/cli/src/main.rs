@@ -24,7 +24,7 @@ mod util;
 /// (half-wave plate + Wollaston prism, e.g. VLT FORS1/FORS2), following Patat & Romaniello
 /// 2006, PASP 118, 146.
 ///
-/// Every command takes --json for scripts (keys: README "JSON vocabulary", schemas/).
+/// Every command takes --json for scripts (keys: docs/guide/formats.md, schemas/).
 /// Polarization degrees are fractions in JSON and percent (labelled) in tables; angles are
 /// degrees at the edges. Errors in the input exit with code 2 and a message that names the
 /// input; with --json the error is one JSON object on stderr:
@@ -287,5 +287,65 @@ mod tests {
         }
         assert!(wrong.is_empty(), "{}", wrong.join("\n"));
         assert!(inputs > 25, "only {inputs} input path arguments found");
+    }
+}
+
+/// `--help` teaches: every command's help shows an example command line, and every option that
+/// takes a number says its unit (or that it is a count, a ratio, a seed), so that nobody has to
+/// guess whether `--sky-p` is percent or a fraction.
+#[cfg(test)]
+mod help_tests {
+    use super::Cli;
+    use clap::CommandFactory;
+
+    /// Words that state a number's unit or kind in a help text (matched in lower case).
+    #[rustfmt::skip]
+    const UNIT_WORDS: [&str; 31] = [
+        "px", "pixel", "arcmin", "arcsec", "deg", "rad", "nm", "micron", "percent", "%", "fraction", "sigma", "e-",
+        "electron", "adu", "second", " s ", " s)", " s,", " s.", "count", "number of", "seed", "ratio", "dimensionless",
+        "index", "threads", "trials", "times", "ppm", "chi^2",
+    ];
+
+    /// The numeric value types, as `main` recognizes them for negative values.
+    fn is_numeric(a: &clap::Arg) -> bool {
+        use std::any::TypeId;
+        let t = a.get_value_parser().type_id();
+        [TypeId::of::<f64>(), TypeId::of::<usize>(), TypeId::of::<u64>(), TypeId::of::<u32>(), TypeId::of::<i64>()]
+            .iter()
+            .any(|id| t == *id)
+    }
+
+    #[test]
+    fn every_command_help_has_an_example_and_units_for_its_numbers() {
+        // Unwrapped, so that an example command line is one line of text.
+        let mut cli = Cli::command().term_width(0);
+        cli.build();
+        let mut missing = vec![];
+        let mut n_commands = 0;
+        for sub in cli.get_subcommands_mut() {
+            let name = sub.get_name().to_string();
+            if name == "help" {
+                continue; // clap's own
+            }
+            n_commands += 1;
+            let help = sub.render_long_help().to_string();
+            let example = format!("instpol {name} ");
+            if !(help.to_lowercase().contains("example") && help.contains(&example)) {
+                missing.push(format!("{name}: no example ('Example: {example}...') in --help"));
+            }
+            for a in sub.get_arguments().filter(|a| is_numeric(a)) {
+                let text = format!(
+                    "{} {}",
+                    a.get_help().map(|h| h.to_string()).unwrap_or_default(),
+                    a.get_long_help().map(|h| h.to_string()).unwrap_or_default()
+                )
+                .to_lowercase();
+                if !UNIT_WORDS.iter().any(|w| text.contains(w)) {
+                    missing.push(format!("{name} --{}: takes a number but its help names no unit", a.get_id()));
+                }
+            }
+        }
+        assert!(n_commands >= 24, "{n_commands} commands");
+        assert!(missing.is_empty(), "{} help text(s) to complete:\n{}", missing.len(), missing.join("\n"));
     }
 }

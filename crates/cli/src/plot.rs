@@ -1,6 +1,6 @@
 //! Shared plotting helpers (plotters, PNG and SVG side by side) and the calibration plots of
-//! the paper: the instrumental polarization map as vectors over contours of 0.3, 0.6, 0.9%
-//! (fig:insmapB), the radial profile with the fit (fig:radprofB, upper), `phi` against the polar
+//! the paper: the instrumental polarization map as a colour image of p with vectors and
+//! contours of 0.3, 0.6, 0.9% (fig:insmapB), the radial profile with the fit (fig:radprofB, upper), `phi` against the polar
 //! angle (fig:radprofB, lower) and the residual field (fig:residB). Drawing only: every number
 //! comes from the `fit` crate.
 
@@ -11,7 +11,7 @@ use fit::RadialModel;
 use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
 use plotters::coord::types::RangedCoordf64;
 use plotters::coord::{CoordTranslate, Shift};
-use plotters::element::{DashedPathElement, IntoDynElement};
+use plotters::element::DashedPathElement;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::path::{Path, PathBuf};
@@ -303,6 +303,38 @@ where
     Ok(c)
 }
 
+/// Height in pixels of a legend box of `entries` lines at [`LEGEND_PT`] (plotters' size `f`:
+/// a line is about 1.1 f, the box's padding about f), as [`quiet_corner`] estimates it.
+fn legend_height_px(entries: usize) -> f64 {
+    let f = pt(LEGEND_PT) as f64;
+    f * (1.1 * entries as f64 + 1.0)
+}
+
+/// A [`chart`] whose y range starts at `y.start` and leaves, above `y.end` (the data's top),
+/// room for a legend of `entries` lines in an upper corner: the plotting area is measured on
+/// a first drawing, the area cleared, and the chart drawn again with the top raised so that the
+/// data stay below the legend box.
+pub fn chart_with_legend_room<'a, DB, X>(
+    area: &'a DrawingArea<DB, Shift>,
+    ax: &Axes,
+    x: X,
+    y: std::ops::Range<f64>,
+    entries: usize,
+) -> Result<Chart<'a, DB, X::CoordDescType, RangedCoordf64>>
+where
+    DB: DrawingBackend + 'a,
+    X: AsRangedCoord<Value = f64> + Clone,
+    X::CoordDescType: ValueFormatter<f64>,
+{
+    let (_, h) = chart(area, ax, x.clone(), y.clone())?.plotting_area().dim_in_pixel();
+    area.fill(&WHITE).map_err(pe)?;
+    let h = h as f64;
+    // The box, a gap of half a line below it, and at least a third of the height for the data.
+    let free = (h - legend_height_px(entries) - 0.5 * pt(LEGEND_PT) as f64).max(h / 3.0);
+    let top = y.start + (y.end - y.start) * h / free;
+    chart(area, ax, x, y.start..top)
+}
+
 /// The decades 10^k inside `[a, b]` (a > 0): the key points of a log axis, so that every decade
 /// carries a label (plotters' own choice may skip some or label 2x, 5x between them). A range
 /// that holds no decade gets its two ends.
@@ -340,29 +372,6 @@ pub fn dashed_key<S: Into<ShapeStyle>>(
 ) -> impl Fn(BackendCoord) -> DashedPathElement<std::vec::IntoIter<BackendCoord>, i32> {
     let style = style.into();
     move |(x, y)| DashedPathElement::new(vec![(x, y), (x + 22, y)], 6, 2, style)
-}
-
-/// A legend in a panel of its own, for a plot where a box inside would hide the data (the
-/// map): a blank chart on `area` (its top level with the plots beside it), entries added with
-/// [`key`], drawn with [`legend`].
-pub fn key_panel<'a, DB: DrawingBackend + 'a>(
-    area: &'a DrawingArea<DB, Shift>,
-) -> Result<Chart<'a, DB, RangedCoordf64, RangedCoordf64>> {
-    ChartBuilder::on(area).margin_top(45).build_cartesian_2d(0.0..1.0, 0.0..1.0).map_err(pe)
-}
-
-/// One entry of a [`key_panel`] legend: `label` with the key `draw` makes.
-pub fn key<'a, DB, E>(
-    k: &mut Chart<'a, DB, RangedCoordf64, RangedCoordf64>,
-    label: impl Into<String>,
-    draw: impl Fn(BackendCoord) -> E + 'a,
-) -> Result<()>
-where
-    DB: DrawingBackend + 'a,
-    E: IntoDynElement<'a, DB, BackendCoord>,
-{
-    k.draw_series(std::iter::empty::<Circle<(f64, f64), i32>>()).map_err(pe)?.label(label).legend(draw);
-    Ok(())
 }
 
 /// The legend of the labelled series, boxed, at `pos` (a corner the data leave free).
@@ -534,56 +543,110 @@ fn split_right<DB: DrawingBackend>(
     area.split_horizontally(area.dim_in_pixel().0.saturating_sub(px))
 }
 
-/// Width kept right of the map for its legend: a third of the figure, what labels of eight
-/// characters at 9 pt need in a column (8 x 0.6 em + the key, about 80 of 249 pt).
-const MAP_LEGEND_ROOM: u32 = 450;
+/// Width kept right of the map for its colour bar and, above it, the scale vector.
+const MAP_SIDE_ROOM: u32 = COLOUR_BAR_ROOM;
 
-/// fig:insmapB: vectors of the instrumental polarization over contours of 0.3, 0.6, 0.9%.
+/// `(x, y)` ranges about the field's that make one arcmin as long on x as on y in the plotting
+/// area `(w, h)` px: the shorter side's range grows, the field stays centred.
+fn equal_aspect(
+    xr: std::ops::Range<f64>,
+    yr: std::ops::Range<f64>,
+    (w, h): (u32, u32),
+) -> (std::ops::Range<f64>, std::ops::Range<f64>) {
+    let (sx, sy) = ((xr.end - xr.start) / w.max(1) as f64, (yr.end - yr.start) / h.max(1) as f64);
+    let grow = |r: std::ops::Range<f64>, f: f64| {
+        let (c, half) = (0.5 * (r.start + r.end), 0.5 * (r.end - r.start) * f);
+        c - half..c + half
+    };
+    if sx < sy {
+        (grow(xr, sy / sx), yr)
+    } else {
+        (xr, grow(yr, sx / sy))
+    }
+}
+
+/// A field map's chart on `area` with equal arcmin per pixel on both axes: the frame is
+/// measured on a first drawing, the area cleared, and the chart drawn again with
+/// [`equal_aspect`] ranges.
+fn map_chart<'a, DB: DrawingBackend + 'a>(
+    area: &'a DrawingArea<DB, Shift>,
+    caption: String,
+    xr: std::ops::Range<f64>,
+    yr: std::ops::Range<f64>,
+) -> Result<(Chart<'a, DB, RangedCoordf64, RangedCoordf64>, std::ops::Range<f64>, std::ops::Range<f64>)> {
+    let dims = chart(area, &map_axes(caption.clone()), xr.clone(), yr.clone())?.plotting_area().dim_in_pixel();
+    area.fill(&WHITE).map_err(pe)?;
+    let (xr, yr) = equal_aspect(xr, yr, dims);
+    Ok((chart(area, &map_axes(caption), xr.clone(), yr.clone())?, xr, yr))
+}
+
+/// The contours of the map (fig:insmapB): 0.3, 0.6 and 0.9 %.
+const CONTOUR_LEVELS: [f64; 3] = [0.003, 0.006, 0.009];
+
+/// fig:insmapB: a colour image of the model's p with its colour bar, white contours of 0.3, 0.6
+/// and 0.9 % (marked on the colour bar), vectors at about 18 bins across (black on a white halo, readable
+/// on any colour), the scale vector of 1 % above the colour bar, and the centre as a cross; equal
+/// aspect, nothing in a box over the data.
 pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotData) -> Result<()> {
     let radial_centre = d.radial.map(|r| r.centre);
     let cal = d.cal;
     let (xr, yr) = field_ranges(cal);
-    let (main, side) = split_right(area, MAP_LEGEND_ROOM);
+    let (main, side) = split_right(area, MAP_SIDE_ROOM);
     let caption = format!("{}: instrumental p", d.title);
-    let mut c = chart(&main, &map_axes(caption), xr.clone(), yr.clone())?;
-    // The legend goes beside the map: inside, its box would hide contours and vectors.
-    let mut k = key_panel(&side)?;
-    // Contours of p on the gridded model.
+    let (mut c, xr, _yr) = map_chart(&main, caption, xr, yr)?;
+    // The gridded model: its p as a colour image, 0 to the largest value.
     let g = match (&cal.model, &cal.grid) {
         (Model::Map(g), _) => g.clone(),
         _ => cal.gridded(((xr.end - xr.start) / 120.0).max(0.02)),
     };
     let p: Vec<f64> = g.q.iter().zip(&g.u).map(|(q, u)| q.hypot(*u)).collect();
-    for (level, colour) in [(0.003, BLUE), (0.006, RGBColor(0, 150, 0)), (0.009, RED)] {
-        let segs = contour_segments(&p, g.nx, g.ny, g.x0, g.y0, g.dx, g.dy, level);
-        c.draw_series(segs.into_iter().map(|s| PathElement::new(s.to_vec(), colour.stroke_width(2)))).map_err(pe)?;
-        key(&mut k, format!("p = {:.1}%", level * 100.0), line_key(colour.stroke_width(2)))?;
-    }
-    // Vectors at the bins, about 30 across.
-    let bins = thin(&cal.bins, &cal.region, 30.0);
-    let spacing = (xr.end - xr.start) / 30.0;
-    let pmax = bins.iter().map(|b| b.p_phi().0).fold(0.0, f64::max).max(1e-6);
-    let scale = 0.9 * spacing / pmax;
-    c.draw_series(bins.iter().map(|b| {
-        let (pp, phi) = b.p_phi();
-        let (hx, hy) = (0.5 * pp * scale * phi.cos(), 0.5 * pp * scale * phi.sin());
-        PathElement::new(vec![(b.x - hx, b.y - hy), (b.x + hx, b.y + hy)], BLACK.stroke_width(1))
+    let top = p.iter().copied().filter(|v| v.is_finite()).fold(0.0, f64::max).max(1e-6);
+    let (hx, hy) = (0.5 * g.dx, 0.5 * g.dy);
+    c.draw_series((0..g.ny).flat_map(|j| (0..g.nx).map(move |i| (i, j))).filter_map(|(i, j)| {
+        let v = p[j * g.nx + i];
+        let (x, y) = (g.x0 + i as f64 * g.dx, g.y0 + j as f64 * g.dy);
+        v.is_finite()
+            .then(|| Rectangle::new([(x - hx, y - hy), (x + hx, y + hy)], ViridisRGB::get_color(v / top).filled()))
     }))
     .map_err(pe)?;
-    // Scale bar: 1%.
-    let (bx, by) = (xr.start + 0.05 * (xr.end - xr.start), yr.start + 0.04 * (yr.end - yr.start));
-    c.draw_series(std::iter::once(PathElement::new(vec![(bx, by), (bx + 0.01 * scale, by)], BLACK.stroke_width(3))))
-        .map_err(pe)?;
-    // The label right of the bar, in the empty margin below the lowest row of vectors.
-    let label = TextStyle::from((FONT, pt(LEGEND_PT)).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
-    c.draw_series(std::iter::once(Text::new("1%", (bx + 0.01 * scale + 0.01 * (xr.end - xr.start), by), label)))
-        .map_err(pe)?;
+    // Contours of p in white; the colour bar carries the same levels as white lines.
+    for level in CONTOUR_LEVELS {
+        let segs = contour_segments(&p, g.nx, g.ny, g.x0, g.y0, g.dx, g.dy, level);
+        c.draw_series(segs.into_iter().map(|s| PathElement::new(s.to_vec(), WHITE.stroke_width(2)))).map_err(pe)?;
+    }
+    // Vectors at the bins, about 18 across, the longest 0.9 of their spacing.
+    let bins = thin(&cal.bins, &cal.region, 18.0);
+    let spacing = (xr.end - xr.start) / 18.0;
+    let pmax = bins.iter().map(|b| b.p_phi().0).fold(0.0, f64::max).max(1e-6);
+    let scale = 0.9 * spacing / pmax;
+    let stick = |b: &&fit::Bin| {
+        let (pp, phi) = b.p_phi();
+        let (hx, hy) = (0.5 * pp * scale * phi.cos(), 0.5 * pp * scale * phi.sin());
+        vec![(b.x - hx, b.y - hy), (b.x + hx, b.y + hy)]
+    };
+    c.draw_series(bins.iter().map(|b| PathElement::new(stick(b), WHITE.stroke_width(5)))).map_err(pe)?;
+    c.draw_series(bins.iter().map(|b| PathElement::new(stick(b), BLACK.stroke_width(2)))).map_err(pe)?;
     // The radial fit's centre (for an imported map: the free-centre refit the profile panel
     // uses), else the calibration's own.
     let cen = radial_centre.unwrap_or_else(|| cal.centre_arcmin());
-    c.draw_series(std::iter::once(Cross::new((cen[0], cen[1]), 7, MAGENTA.stroke_width(2)))).map_err(pe)?;
-    key(&mut k, "centre", |(x, y)| Cross::new((x + 10, y), 5, MAGENTA.stroke_width(2)))?;
-    legend(&mut k, SeriesLabelPosition::UpperLeft)
+    c.draw_series(std::iter::once(Cross::new((cen[0], cen[1]), 9, MAGENTA.stroke_width(3)))).map_err(pe)?;
+    // The scale vector, in pixels of this map, above the colour bar.
+    let px_per_arcmin = c.backend_coord(&(xr.start + 1.0, 0.0)).0 - c.backend_coord(&(xr.start, 0.0)).0;
+    let one_pct_px = (0.01 * scale * px_per_arcmin as f64).round() as i32;
+    let (_, rows) = c.plotting_area().get_pixel_range();
+    colour_bar(&side, "p (%)", 100.0 * top, (rows.start, rows.end))?;
+    // The contours' levels as white lines across the bar.
+    let (bx0, bx1) = (pt(4.0) as i32, pt(10.0) as i32);
+    for level in CONTOUR_LEVELS.into_iter().filter(|l| *l < top) {
+        let y = rows.end - ((rows.end - rows.start) as f64 * level / top).round() as i32;
+        side.draw(&PathElement::new(vec![(bx0, y), (bx1, y)], WHITE.stroke_width(2))).map_err(pe)?;
+    }
+    // Below the bar, level with the x axis's tick labels: the vector of 1 %, labelled beside it.
+    let (x0, y0) = (pt(4.0) as i32, rows.end + pt(7.0) as i32);
+    side.draw(&PathElement::new(vec![(x0, y0), (x0 + one_pct_px, y0)], BLACK.stroke_width(3))).map_err(pe)?;
+    let beside = TextStyle::from((FONT, pt(LEGEND_PT)).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
+    side.draw(&Text::new("= 1%", (x0 + one_pct_px + pt(1.5) as i32, y0), beside)).map_err(pe)?;
+    Ok(())
 }
 
 /// fig:radprofB: upper, the signed radial component of each bin's polarization against r with
@@ -713,8 +776,9 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
     let top = mags.get(mags.len() * 98 / 100).copied().unwrap_or(1e-4).max(1e-6);
     let (main, side) = split_right(area, COLOUR_BAR_ROOM);
     let caption = format!("{}: residual, 0 to {:.3}%", d.title, top * 100.0);
-    let mut c = chart(&main, &map_axes(caption), xr.clone(), yr.clone())?;
-    colour_bar(&side, "|residual| (%)", 100.0 * top)?;
+    let (mut c, xr, _yr) = map_chart(&main, caption, xr, yr)?;
+    let (_, rows) = c.plotting_area().get_pixel_range();
+    colour_bar(&side, "|residual| (%)", 100.0 * top, (rows.start, rows.end))?;
     // Squares at the bins, coloured with viridis; size from the typical bin spacing.
     let spacing = nearest_spacing(&res);
     let h = 0.5 * spacing;
@@ -738,21 +802,50 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
     Ok(())
 }
 
-/// Width kept right of a map for its colour bar.
-const COLOUR_BAR_ROOM: u32 = 150;
+/// Width kept right of a map for its colour bar: the bar, tick labels of up to five
+/// characters and the rotated title (at 9 pt on a column-wide figure of about 1000 px).
+const COLOUR_BAR_ROOM: u32 = 260;
 
-/// A viridis colour bar from 0 to `top` on `area`, level with a [`chart`] beside it (same
-/// caption size and label areas).
-fn colour_bar<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, label: &str, top: f64) -> Result<()> {
-    let none = |_: &f64| String::new();
-    let ax = Axes::new(" ", "", label).no_grid().x_ticks(2, &none);
-    let mut c = chart(area, &ax, 0.0..1.0, 0.0..top)?;
+/// A tick step of 1, 2 or 5 times a power of ten giving about four steps up to `top`.
+fn nice_step(top: f64) -> f64 {
+    let raw = top / 4.0;
+    let mag = 10f64.powf(raw.log10().floor());
+    [1.0, 2.0, 5.0, 10.0].into_iter().map(|m| m * mag).find(|s| *s >= raw).unwrap_or(10.0 * mag)
+}
+
+/// A viridis colour bar from 0 to `top` on `area` (the strip right of a map), spanning the
+/// map's plotting area from pixel row `rows.0` to `rows.1` (the map's own frame, so the two are
+/// level), tick labels right of the bar and `label` rotated beside them. Drawn in pixels: the
+/// strip is too narrow for a chart's label areas.
+fn colour_bar<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    label: &str,
+    top: f64,
+    rows: (i32, i32),
+) -> Result<()> {
+    let (y0, y1) = rows;
+    let (x0, x1) = (pt(4.0) as i32, pt(10.0) as i32);
     let n = 200;
-    c.draw_series((0..n).map(|i| {
-        let (a, b) = (top * i as f64 / n as f64, top * (i + 1) as f64 / n as f64);
-        Rectangle::new([(0.0, a), (1.0, b)], ViridisRGB::get_color((i as f64 + 0.5) / n as f64).filled())
-    }))
-    .map_err(pe)?;
+    for i in 0..n {
+        let (a, b) = (y1 - (y1 - y0) * i / n, y1 - (y1 - y0) * (i + 1) / n);
+        let colour = ViridisRGB::get_color((i as f64 + 0.5) / n as f64);
+        area.draw(&Rectangle::new([(x0, b), (x1, a)], colour.filled())).map_err(pe)?;
+    }
+    area.draw(&Rectangle::new([(x0, y0), (x1, y1)], BLACK.stroke_width(1))).map_err(pe)?;
+    let tick_style = TextStyle::from((FONT, pt(TICK_PT)).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
+    let step = nice_step(top);
+    let mut v = 0.0;
+    while v <= top * (1.0 + 1e-9) {
+        let y = y1 - ((y1 - y0) as f64 * v / top).round() as i32;
+        area.draw(&PathElement::new(vec![(x1, y), (x1 + pt(1.5) as i32, y)], BLACK.stroke_width(1))).map_err(pe)?;
+        area.draw(&Text::new(tick(&v), (x1 + pt(2.5) as i32, y), tick_style.clone())).map_err(pe)?;
+        v += step;
+    }
+    let (w, _) = area.dim_in_pixel();
+    let title = TextStyle::from((FONT, pt(AXIS_PT)).into_font())
+        .transform(FontTransform::Rotate270)
+        .pos(Pos::new(HPos::Center, VPos::Bottom));
+    area.draw(&Text::new(label.to_string(), (w as i32 - pt(1.0) as i32, (y0 + y1) / 2), title)).map_err(pe)?;
     Ok(())
 }
 
@@ -770,7 +863,7 @@ fn nearest_spacing(res: &[(f64, f64, f64, f64)]) -> f64 {
 /// `{stem}_residual` (PNG and SVG); returns the files written.
 pub fn calibration_plots(dir: &Path, stem: &str, d: &CalPlotData) -> Result<Vec<PathBuf>> {
     let mut out = vec![];
-    let map_size = (900 + MAP_LEGEND_ROOM, 900);
+    let map_size = (900 + MAP_SIDE_ROOM, 900);
     out.extend(save_png_svg(&dir.join(format!("{stem}_map")), map_size, |a| draw_map(a, d), |a| draw_map(a, d))?);
     out.extend(save_png_svg(
         &dir.join(format!("{stem}_profile")),
@@ -832,6 +925,32 @@ mod tests {
 #[cfg(test)]
 mod publication_tests {
     use super::*;
+
+    /// The data's top lies below a legend box of three lines in the upper corners, with half a
+    /// line to spare, on a panel as short as the stokes plot's lower one (585 px).
+    #[test]
+    fn legend_room_keeps_the_data_below_the_legend_box() {
+        font();
+        set_figure_width(1000);
+        let mut buf = vec![0u8; 1000 * 585 * 3];
+        let root = BitMapBackend::with_buffer(&mut buf, (1000, 585)).into_drawing_area();
+        let ax = Axes::new("caption", "x", "y");
+        let c = chart_with_legend_room(&root, &ax, 0.0..360.0, -0.1..0.9, 3).unwrap();
+        let (_, rows) = c.plotting_area().get_pixel_range();
+        let data_top = c.backend_coord(&(0.0, 0.9)).1;
+        let box_bottom = rows.start as f64 + legend_height_px(3);
+        assert!(data_top as f64 >= box_bottom + 0.5 * pt(LEGEND_PT) as f64 - 1.0, "{data_top} vs {box_bottom}");
+    }
+
+    /// Equal aspect: the same arcmin per pixel on both axes, the shorter range grown about its
+    /// centre.
+    #[test]
+    fn map_ranges_have_equal_scales() {
+        let (x, y) = equal_aspect(-3.0..3.0, -3.0..3.0, (600, 400));
+        assert!((x.end - x.start) / 600.0 - (y.end - y.start) / 400.0 < 1e-15);
+        assert_eq!((y.start, y.end), (-3.0, 3.0));
+        assert!((x.start + 4.5).abs() < 1e-12 && (x.end - 4.5).abs() < 1e-12);
+    }
 
     #[test]
     fn decades_inside_the_range() {

@@ -1,4 +1,4 @@
-//! The bad-input catalogue (the README section "Bad input"): every bad input tried on the `instpol`
+//! The bad-input catalogue (docs/guide/bad-input.md): every bad input tried on the `instpol`
 //! binary and what it must do. Each row of the table is one test here. A bad input must give
 //! exit code 2, an `error: ...` message that names the input (file, key, row, HWP angle), no
 //! panic, and no output file (nor a leftover temporary) in the output folder. Inputs that are

@@ -1,8 +1,8 @@
 //! The JSON contract of every command: each command's `--json` output is
 //! validated against its schema `schemas/<command>.schema.json` (JSON Schema draft 2020-12,
 //! every key listed, `additionalProperties: false`), so a key that is added, dropped or renamed
-//! fails here until the schema (and the README's "JSON vocabulary") says so. `--json` errors
-//! are checked against `schemas/error.schema.json`.
+//! fails here until the schema (and the JSON vocabulary of docs/guide/formats.md) says so.
+//! `--json` errors are checked against `schemas/error.schema.json`.
 //!
 //! The validator is a strict, small one for the subset of draft 2020-12 the schemas use (type,
 //! properties, required, additionalProperties, items, prefixItems, minItems, maxItems, enum,

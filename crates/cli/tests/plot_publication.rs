@@ -191,3 +191,100 @@ fn mc_accuracy_png_magic() {
     assert_eq!(code, 0, "{err}");
     assert_eq!(magic(&png), PNG);
 }
+
+/// Every text of an SVG written by plotters: (x, y, anchor, its `dy`, plotters' font size in
+/// px, rotated, text). plotters writes `font-size` as its size / 1.24 (the em).
+fn placed_texts(svg: &str) -> Vec<(f64, f64, String, String, f64, bool, String)> {
+    let attr = |part: &str, name: &str| -> Option<String> {
+        part.split(&format!(" {name}=\"")).nth(1).and_then(|r| r.split('"').next()).map(str::to_string)
+    };
+    let mut out = vec![];
+    for part in svg.split("<text").skip(1) {
+        let head = part.split('>').next().unwrap_or("");
+        let body = part.split_once('>').map(|(_, b)| b.split("</text>").next().unwrap_or("")).unwrap_or("");
+        let text = body.trim().replace("&lt;", "<").replace("&gt;", ">").replace("&quot;", "\"").replace("&amp;", "&");
+        let num = |n: &str| attr(head, n).and_then(|v| v.parse::<f64>().ok()).unwrap_or(f64::NAN);
+        let anchor = attr(head, "text-anchor").unwrap_or_else(|| "start".into());
+        let dy = attr(head, "dy").unwrap_or_default();
+        out.push((num("x"), num("y"), anchor, dy, 1.24 * num("font-size"), head.contains("rotate("), text));
+    }
+    out
+}
+
+/// The width (px) the embedded DejaVu Sans gives `text` at plotters' size `size`: plotters'
+/// own measure, the one it lays the text out with.
+fn text_width(text: &str, size: f64) -> f64 {
+    use plotters::prelude::*;
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
+    });
+    ("sans-serif", size).into_font().box_size(text).map(|(w, _)| w as f64).unwrap_or(0.0)
+}
+
+/// The texts of `svg` whose box reaches outside the image (a pixel of slack), as messages.
+fn texts_outside(path: &Path) -> Vec<String> {
+    let svg = std::fs::read_to_string(path).unwrap();
+    let w = svg_width(&svg);
+    let h: f64 = svg.split("height=\"").nth(1).and_then(|r| r.split('"').next()).unwrap().parse().unwrap();
+    let mut bad = vec![];
+    for (x, y, anchor, dy, size, rotated, text) in placed_texts(&svg) {
+        if text.is_empty() {
+            continue;
+        }
+        let len = text_width(&text, size);
+        // Along the text, from the anchor.
+        let (lo, hi) = match anchor.as_str() {
+            "middle" => (-0.5 * len, 0.5 * len),
+            "end" => (-len, 0.0),
+            _ => (0.0, len),
+        };
+        // Across it, from the anchor (plotters' dy: top, bottom or centre at the anchor).
+        let em = size / 1.24;
+        let (a, b) = match dy.as_str() {
+            "0.76em" => (0.0, em),
+            "-0.5ex" => (-em, 0.0),
+            _ => (-0.5 * em, 0.5 * em),
+        };
+        // Rotated texts (the y-axis titles, by 270 deg) run upwards from their anchor, and
+        // what lies below the text before the turn lies right of it after.
+        let (x0, x1, y0, y1) = if rotated { (x + a, x + b, y - hi, y - lo) } else { (x + lo, x + hi, y + a, y + b) };
+        if x0 < -1.0 || x1 > w + 1.0 || y0 < -1.0 || y1 > h + 1.0 {
+            bad.push(format!("{}: '{text}' spans x {x0:.0}..{x1:.0}, y {y0:.0}..{y1:.0} in {w} x {h}", path.display()));
+        }
+    }
+    bad
+}
+
+/// No text falls outside the figure, in the stokes plot (its title was cut at the left edge
+/// at 1000 px) and in the calibration plots: measured with plotters' own text width.
+#[test]
+fn no_text_falls_outside_the_figures() {
+    let d = tempfile::tempdir().unwrap();
+    let svg = d.path().join("fourier.svg");
+    let csv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/fors1_v_star_n16.csv");
+    let (code, _, err) = run(&["stokes", "--input", csv.to_str().unwrap(), "--plot", svg.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let mut bad = texts_outside(&svg);
+    let cal = d.path().join("cal.fits");
+    let map = d.path().join("map.fits");
+    common::write_v_sky_map(&map, |_| true);
+    let (code, _, err) = run(&common::calibrate_v_args(&map, &cal));
+    assert_eq!(code, 0, "{err}");
+    let plots = d.path().join("plots");
+    let (code, _, err) = run(&["plot", cal.to_str().unwrap(), "--out", plots.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let mut n = 1;
+    for e in std::fs::read_dir(&plots).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_some_and(|x| x == "svg") {
+            bad.extend(texts_outside(&p));
+            n += 1;
+        }
+    }
+    assert!(n >= 4, "{n} figures");
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+    // The measure itself: a longer text is wider, and the old stokes title at 10 pt on 1000 px
+    // (plotters' size 50) was wider than the figure.
+    assert!(text_width("N = 16: P = 0.421 ± 0.022 %, χ = 21.11 deg", 50.0) > 900.0);
+}

@@ -12,7 +12,7 @@ use std::process::{Command, Output};
 use stokes::Measurement;
 
 /// The PNG size `--help` documents.
-const SIZE: (u32, u32) = (1000, 900);
+const SIZE: (u32, u32) = (1000, 1300);
 
 fn example(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../tests/data").join(name)

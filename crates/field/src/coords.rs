@@ -50,6 +50,14 @@ impl FieldCoords {
 
     /// The same field with pixel coordinates counting `b x b` blocks of unbinned pixels.
     /// Binning composes: `c.binned(2).binned(3)` is `c.binned(6)`. `b = 0` is taken as 1.
+    ///
+    /// ```
+    /// use field::FieldCoords;
+    /// // Binning composes: 2 x 2 of 3 x 3 is 6 x 6; binned pixel 0 is centred on unbinned 2.5.
+    /// let c = FieldCoords::centred(2048, 2048, 0.2);
+    /// assert_eq!(c.binned(2).binned(3), c.binned(6));
+    /// assert_eq!(c.binned(6).pixel_to_arcmin(0.0, 0.0), c.pixel_to_arcmin(2.5, 2.5));
+    /// ```
     pub fn binned(self, b: usize) -> Self {
         Self { binning: self.binning * b.max(1), ..self }
     }
@@ -85,6 +93,16 @@ impl FieldCoords {
 
     /// 0-based pixel (binned when [`binning`](Self::binning) > 1) of field position `(x, y)`
     /// arcmin from the origin.
+    ///
+    /// ```
+    /// use field::FieldCoords;
+    /// // FORS1 (2048 x 2048 px of 0.2"): the field's centre is between pixels 1023 and 1024, and
+    /// // 1' is 300 px.
+    /// let c = FieldCoords::centred(2048, 2048, 0.2);
+    /// assert_eq!(c.arcmin_to_pixel(0.0, 0.0), (1023.5, 1023.5));
+    /// let (x, y) = c.arcmin_to_pixel(1.0, -1.0);
+    /// assert!((x - 1323.5).abs() < 1e-12 && (y - 723.5).abs() < 1e-12);
+    /// ```
     #[inline]
     pub fn arcmin_to_pixel(&self, x: f64, y: f64) -> (f64, f64) {
         let s = 60.0 / self.scale_arcsec;

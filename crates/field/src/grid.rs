@@ -107,6 +107,16 @@ impl GridMap {
     /// Bilinear interpolation over the measured corners of the cell around `(x, y)`: corners
     /// without a measurement are left out and the weights renormalized, so the map is usable
     /// up to its NaN edges. `None` when no corner is measured or the point is off the grid.
+    ///
+    /// ```
+    /// use field::{FieldCoords, GridMap};
+    /// // A 2 x 2 map of q = 0, 0.01 (left, right) and u = 0: halfway between the pixel centres the
+    /// // bilinear value is the mean, 0.005; beyond half a pixel outside the grid there is none.
+    /// let c = FieldCoords::with_origin([0.0, 0.0], 60.0); // 1 px = 1'
+    /// let m = GridMap::on_pixels(&c, 2, 2, vec![0.0, 0.01, 0.0, 0.01], vec![0.0; 4], vec![1e-4; 4], vec![1e-4; 4]);
+    /// assert!((m.interpolate(0.5, 0.5).unwrap().q - 0.005).abs() < 1e-16);
+    /// assert!(m.interpolate(3.0, 0.0).is_none());
+    /// ```
     pub fn interpolate(&self, x: f64, y: f64) -> Option<InstPol> {
         let (fi, fj) = self.frac(x, y);
         if !(fi > -0.5 && fj > -0.5 && fi < self.nx as f64 - 0.5 && fj < self.ny as f64 - 0.5) {

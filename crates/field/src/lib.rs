@@ -28,3 +28,8 @@ pub use coords::FieldCoords;
 pub use grid::{GridMap, NearestCell};
 pub use model::{FieldModel, InstPol, LinearElement};
 pub use radial::RadialPattern;
+
+/// The crate README's example, compiled and run with the documentation tests.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeDoctests;

@@ -63,6 +63,19 @@ pub struct RadialPattern {
 
 impl RadialPattern {
     /// The pattern of coefficients `c_0, c_1, ...` (fractions) about `centre`, radial.
+    ///
+    /// ```
+    /// use field::{FieldModel, RadialPattern};
+    /// // The paper's V pattern p(r) = 0.012 r + 0.046 r^2 + 0.002 r^3 % (sec:fors1) at the corner
+    /// // star's position (2.53', -3.23'): r = 4.10', p = 0.960 %, radial (phi = the polar angle).
+    /// let v = RadialPattern::new(vec![0.0, 0.012e-2, 0.046e-2, 0.002e-2], [0.0, 0.0]);
+    /// let (x, y) = (2.53, -3.23);
+    /// let r = f64::hypot(x, y);
+    /// let inst = v.eval(x, y);
+    /// let p = 1e-2 * (0.012 * r + 0.046 * r * r + 0.002 * r * r * r);
+    /// assert!((f64::hypot(inst.q, inst.u) - p).abs() < 1e-15 && (p - 0.0096).abs() < 5e-5);
+    /// assert!((0.5 * inst.u.atan2(inst.q) - y.atan2(x)).abs() < 1e-12);
+    /// ```
     pub fn new(coeffs: Vec<f64>, centre: [f64; 2]) -> Self {
         Self { coeffs, centre, phi_offset: 0.0 }
     }

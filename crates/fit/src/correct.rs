@@ -317,6 +317,14 @@ fn p_and_denominator(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<(f64, f64, f6
 
 /// Exact inversion of `eq:instpol` in closed form: intrinsic `(q0, u0)` from measured
 /// `(q1, u1)` and the instrumental `(qi, ui) = p (cos 2phi, sin 2phi)`.
+///
+/// ```
+/// use fit::correct::invert_exact;
+/// // Along the instrument's axis eq:instpol gives m = (P0 + p)/(1 + p P0); inverted:
+/// // P0 = (m - p)/(1 - p m). p = 1 %, measured 3 %: P0 = 0.02 / 0.9997.
+/// let (q0, u0) = invert_exact(0.01, 0.0, 0.03, 0.0).unwrap();
+/// assert!((q0 - 0.02 / 0.9997).abs() < 1e-15 && u0.abs() < 1e-18);
+/// ```
 #[inline]
 pub fn invert_exact(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<(f64, f64), Error> {
     let (p, am, d) = p_and_denominator(qi, ui, q1, u1)?;
@@ -327,6 +335,12 @@ pub fn invert_exact(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<(f64, f64), Er
 }
 
 /// The first-order correction `eq:approx`: `q0 = q1 - p cos 2phi`, `u0 = u1 - p sin 2phi`.
+///
+/// ```
+/// // eq:approx: the instrumental (q, u) subtracted.
+/// let (q0, u0) = fit::correct::invert_first_order(0.01, 0.002, 0.03, -0.004);
+/// assert!((q0 - 0.02).abs() < 1e-17 && (u0 + 0.006).abs() < 1e-17);
+/// ```
 #[inline]
 pub fn invert_first_order(qi: f64, ui: f64, q1: f64, u1: f64) -> (f64, f64) {
     (q1 - qi, u1 - ui)

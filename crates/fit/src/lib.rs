@@ -98,3 +98,8 @@ pub type Result<T> = std::result::Result<T, Error>;
 pub mod correct;
 pub mod standards;
 pub mod zeroangle;
+
+/// The crate README's example, compiled and run with the documentation tests.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeDoctests;

@@ -23,6 +23,11 @@ pub const I_COEFFS_PCT: [f64; 3] = [-0.017, 0.105, -0.006];
 pub const RAYTRACED_LAW: (f64, f64) = (0.02, 1.73e-3);
 
 /// [`RAYTRACED_LAW`] at `lambda_nm` (section `sec:cause`).
+///
+/// ```
+/// // sec:cause: p(lambda)/p(550 nm) = 0.02 + 1.73e-3 lambda; 0.9715 at 550 nm, 1.404 at 800 nm.
+/// assert!((fit::paper::raytraced_law(800.0) - 1.404).abs() < 1e-12);
+/// ```
 pub fn raytraced_law(lambda_nm: f64) -> f64 {
     RAYTRACED_LAW.0 + RAYTRACED_LAW.1 * lambda_nm
 }
@@ -67,6 +72,15 @@ pub struct CornerStar {
 /// ([`V_COEFFS_PCT`]) gives the predicted 0.96% on the radial pattern at `phi = -51.9 deg`,
 /// i.e. r = 4.10' at polar angle -51.9 deg: (2.53', -3.23') arcmin, in the lower-right corner
 /// of the 6.8' field (the corner itself, r = 4.83', would give 1.36%).
+///
+/// ```
+/// // The V polynomial reaches the paper's predicted 0.96 % at r = 4.10'.
+/// let (x, y) = fit::paper::corner_position_arcmin();
+/// let r = x.hypot(y);
+/// assert!((r - 4.10).abs() < 5e-3 && (x - 2.53).abs() < 5e-3 && (y + 3.23).abs() < 5e-3);
+/// let p: f64 = fit::paper::V_COEFFS_PCT.iter().enumerate().map(|(k, c)| c * r.powi(k as i32 + 1)).sum();
+/// assert!((p - 0.96).abs() < 1e-12);
+/// ```
 pub fn corner_position_arcmin() -> (f64, f64) {
     let mut r = 4.0f64;
     for _ in 0..30 {

@@ -174,7 +174,8 @@ fn polarizing_plate_after_demodulation_matches_frames_and_closed_form() {
 /// diattenuation-only fit absorbs the lens completely (chi^2/dof ~ 1): the three fields alone
 /// cannot tell a retardance from a diattenuation. What they can test: an achromatic retardance
 /// makes an apparent (asymmetric) field proportional to P_sky, so B : V : I follow
-/// 6.45 : 1.74 : 1.34 up to the sky angle; the numbers printed here are the README's.
+/// 6.45 : 1.74 : 1.34 up to the sky angle; the numbers printed here are those of
+/// docs/guide/mueller-and-planning.md.
 #[test]
 fn paper_three_fields_one_sky_per_band() {
     let paper = [("B", 0.0645, 68.4f64), ("V", 0.0174, -53.8), ("I", 0.0134, 68.7)];

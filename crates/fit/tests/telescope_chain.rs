@@ -130,9 +130,10 @@ fn real_efosc2_standards_leave_one_out_through_the_calibration_file_are_unpolari
 #[test]
 fn polarized_standard_through_a_night_comes_back_with_its_catalogued_p_and_chi() {
     // The truth: the V-band model fitted to the real EFOSC2 standards when present (else a
-    // factor 0.85, offset 40 deg, the README's V values), applied by the Jones chain above to
-    // Hiltner 652 (V: P = 6.25 +- 0.01 %, chi = 179.18 +- 0.20 deg, Fossati et al. 2007, in
-    // instruments/standards.toml), each exposure a 20-min track summed finely.
+    // factor 0.85, offset 40 deg, the V values of docs/guide/standards-and-telescope.md),
+    // applied by the Jones chain above to Hiltner 652 (V: P = 6.25 +- 0.01 %, chi = 179.18 +- 0.20
+    // deg, Fossati et al. 2007, in instruments/standards.toml), each exposure a 20-min track
+    // summed finely.
     let table = MetalTable::builtin("aluminium").unwrap();
     let (factor, offset) = match data_dir() {
         Some(dir) => {

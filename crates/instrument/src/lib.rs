@@ -82,6 +82,14 @@ pub struct OffsetTerm {
 impl OffsetTerm {
     /// The sum of `terms` at o pixel `(x, y)` of an `nx` x `ny` detector (px): the one
     /// evaluation of a varying o/e offset, for the instrument's checks and the beam layout.
+    ///
+    /// ```
+    /// use instrument::OffsetTerm;
+    /// // 2 + 3 v^2 at the top row of a 101-row detector (v = 1) and at its middle (v = 0).
+    /// let t = [OffsetTerm { i: 0, j: 0, c: 2.0 }, OffsetTerm { i: 0, j: 2, c: 3.0 }];
+    /// assert_eq!(OffsetTerm::sum(&t, 101, 101, 50.0, 100.0), 5.0);
+    /// assert_eq!(OffsetTerm::sum(&t, 101, 101, 50.0, 50.0), 2.0);
+    /// ```
     pub fn sum(terms: &[OffsetTerm], nx: usize, ny: usize, x: f64, y: f64) -> f64 {
         if terms.is_empty() {
             return 0.0;
@@ -261,6 +269,13 @@ pub fn builtin_source(name: &str) -> Option<&'static str> {
 
 impl Instrument {
     /// Load a built-in instrument by name (case-insensitive) or an instrument file by path.
+    ///
+    /// ```
+    /// // Built-in instruments by name (any case); anything else is a path.
+    /// let efosc2 = instrument::Instrument::load("EFOSC2").unwrap();
+    /// assert_eq!(efosc2.detector.pixel_scale_arcsec, 0.24);
+    /// assert!(instrument::Instrument::load("no_such_instrument.toml").is_err());
+    /// ```
     pub fn load(name_or_path: &str) -> Result<Self, Error> {
         let p = Path::new(name_or_path);
         if p.is_file() {
@@ -660,6 +675,15 @@ impl Instrument {
     /// The mask strips with the whole pixel rows (along the strip axis) of their o and e
     /// images: the rows lying entirely inside a strip's o image less its margins, and the rows
     /// a whole-pixel throw away. Empty for a maskless layout.
+    ///
+    /// ```
+    /// // FORS1: nine strips, the first o image from row 34, the e image one throw (22" = 110 px)
+    /// // above it (PR06, sec:fors1).
+    /// let fors1 = instrument::Instrument::load("fors1").unwrap();
+    /// let s = fors1.strips();
+    /// assert_eq!(s.len(), 9);
+    /// assert_eq!((s[0].o_start, s[0].e_start, s[0].height), (34, 144, 110));
+    /// ```
     pub fn strips(&self) -> Vec<Strip> {
         let p = &self.polarimetry;
         let h = self.throw_px_exact();
@@ -686,6 +710,14 @@ impl Instrument {
     }
 
     /// Find a filter by name or alias (case-insensitive).
+    ///
+    /// ```
+    /// // FORS2's I_BESS zero angle (FORS2 User Manual): 2.89 deg to add to a measured chi; names
+    /// // and aliases match, an unknown filter is an error naming the known ones.
+    /// let fors2 = instrument::Instrument::load("fors2").unwrap();
+    /// assert_eq!(fors2.filter("I").unwrap().chi_offset_deg(), 2.89);
+    /// assert!(fors2.filter("Q").unwrap_err().to_string().contains("b_HIGH"));
+    /// ```
     pub fn filter(&self, name: &str) -> Result<&Filter, Error> {
         self.filters
             .iter()
@@ -708,6 +740,13 @@ impl Instrument {
     }
 
     /// The detector's field coordinates: arcmin from its centre, unbinned pixels.
+    ///
+    /// ```
+    /// // FORS1's corner pixel (0, 0) is 1023.5 px x 0.2" = 3.4117' from the centre on both axes.
+    /// let c = instrument::Instrument::load("fors1").unwrap().field_coords();
+    /// let (x, y) = c.pixel_to_arcmin(0.0, 0.0);
+    /// assert!((x + 3.41166666666).abs() < 1e-9 && (y - x).abs() < 1e-15);
+    /// ```
     pub fn field_coords(&self) -> field::FieldCoords {
         field::FieldCoords::centred(self.detector.nx, self.detector.ny, self.detector.pixel_scale_arcsec)
     }
@@ -782,3 +821,8 @@ mod tests {
         assert!((ax + 3.1).abs() < 1e-12 && (ay - 2.2).abs() < 1e-12);
     }
 }
+
+/// The crate README's example, compiled and run with the documentation tests.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeDoctests;

@@ -180,6 +180,16 @@ pub(crate) fn interface_unchecked(n0: f64, n: C64, cos_i: f64, n0_sin: f64) -> C
 /// Mueller matrix of a metal (or any) mirror in air: reflection at angle of incidence `aoi`
 /// with the plane of incidence at `plane_angle` from the x axis, in the reflected beam's
 /// right-handed frame. At normal incidence it is `R diag(1, 1, -1, -1)`.
+///
+/// ```
+/// use mueller::fresnel::{mirror, C64};
+/// // A mirror at normal incidence does not polarize: unpolarized light stays unpolarized, and
+/// // linear light keeps Q and turns U (the reflected beam's frame is mirrored).
+/// let m = mirror(C64::new(1.2, 7.3), 0.0, 0.0).unwrap();
+/// let s = m * mueller::stokes_p_chi(1.0, 1.0, 22.5f64.to_radians());
+/// assert!((s[1] / s[0] - 0.5f64.sqrt()).abs() < 1e-12 && (s[2] / s[0] + 0.5f64.sqrt()).abs() < 1e-12);
+/// assert!(m[(0, 1)].abs() < 1e-15 && m[(0, 2)].abs() < 1e-15);
+/// ```
 pub fn mirror(n: C64, aoi: f64, plane_angle: f64) -> Result<Mueller, Error> {
     Ok(interface(1.0, n, aoi)?.mueller_r(plane_angle))
 }

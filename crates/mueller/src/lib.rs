@@ -64,6 +64,13 @@ pub fn stokes_qu(i: f64, q: f64, u: f64) -> Stokes {
 }
 
 /// Stokes vector from intensity, polarization degree `p` (fraction) and angle `chi` (rad); `eq:QU`.
+///
+/// ```
+/// // eq:QU: 2 % at chi = 30 deg is Q/I = 0.02 cos 60 deg = 0.01, U/I = 0.02 sin 60 deg.
+/// let s = mueller::stokes_p_chi(1000.0, 0.02, 30f64.to_radians());
+/// assert!((s[1] - 10.0).abs() < 1e-12 && (s[2] - 1000.0 * 0.02 * 3f64.sqrt() / 2.0).abs() < 1e-12);
+/// assert_eq!(s[3], 0.0);
+/// ```
 pub fn stokes_p_chi(i: f64, p: f64, chi: f64) -> Stokes {
     let (s, c) = (2.0 * chi).sin_cos();
     Stokes::new(i, i * p * c, i * p * s, 0.0)
@@ -85,6 +92,13 @@ pub fn hypot(a: f64, b: f64) -> f64 {
 
 /// Angle `a` (rad) modulo pi, in [0, pi): the range of polarization angles (`eq:polang`).
 /// `rem_euclid` alone returns pi itself for tiny negative inputs (-1e-17 + pi rounds to pi).
+///
+/// ```
+/// use mueller::fold_pi;
+/// // The paper's V sky angle, -53.8 deg, is the polarization angle 126.2 deg in [0, 180).
+/// assert!((fold_pi((-53.8f64).to_radians()).to_degrees() - 126.2).abs() < 1e-12);
+/// assert_eq!(fold_pi(-1e-17), 0.0); // not pi
+/// ```
 #[inline]
 pub fn fold_pi(a: f64) -> f64 {
     let r = a.rem_euclid(std::f64::consts::PI);
@@ -97,6 +111,13 @@ pub fn fold_pi(a: f64) -> f64 {
 
 /// Angle `a` (rad) wrapped into (-pi/2, pi/2]: a difference of polarization angles, which are
 /// defined modulo pi.
+///
+/// ```
+/// use mueller::wrap_half_pi;
+/// // 179 deg and 1 deg differ by 2 deg as polarization angles, not by 178.
+/// let d = wrap_half_pi(179f64.to_radians() - 1f64.to_radians());
+/// assert!((d.to_degrees() + 2.0).abs() < 1e-12);
+/// ```
 #[inline]
 pub fn wrap_half_pi(a: f64) -> f64 {
     let pi = std::f64::consts::PI;
@@ -109,6 +130,12 @@ pub fn wrap_half_pi(a: f64) -> f64 {
 }
 
 /// The Stokes rotation matrix `R(theta)`: the same light described in axes rotated by `theta`.
+///
+/// ```
+/// // Light at chi = 30 deg, described in axes turned by 30 deg, is at chi = 0: Q/I = 1, U/I = 0.
+/// let s = mueller::rotation(30f64.to_radians()) * mueller::stokes_p_chi(1.0, 1.0, 30f64.to_radians());
+/// assert!((s[1] - 1.0).abs() < 1e-15 && s[2].abs() < 1e-15);
+/// ```
 pub fn rotation(theta: f64) -> Mueller {
     let (s, c) = (2.0 * theta).sin_cos();
     #[rustfmt::skip]
@@ -131,6 +158,18 @@ pub fn rotate(m0: &Mueller, theta: f64) -> Mueller {
 /// largest transmission is 1. `M_I(0) = 1`, `M_I(1)` is an ideal polarizer. The `V` row, which
 /// the paper drops, follows from the same mixture: `V' = (1 - p) / (1 + p) V`.
 /// Its action on `(I, Q, U)` is `eq:instpol`.
+///
+/// ```
+/// use mueller::{partial_polarizer, stokes_p_chi};
+/// // Largest transmission 1 (light along phi), smallest (1 - p)/(1 + p) (perpendicular):
+/// // the diattenuation (Tmax - Tmin)/(Tmax + Tmin) is p.
+/// let (p, phi) = (0.012, 20f64.to_radians());
+/// let m = partial_polarizer(p, phi);
+/// let t_max = (m * stokes_p_chi(1.0, 1.0, phi))[0];
+/// let t_min = (m * stokes_p_chi(1.0, 1.0, phi + std::f64::consts::FRAC_PI_2))[0];
+/// assert!((t_max - 1.0).abs() < 1e-15 && (t_min - (1.0 - p) / (1.0 + p)).abs() < 1e-15);
+/// assert!(((t_max - t_min) / (t_max + t_min) - p).abs() < 1e-15);
+/// ```
 pub fn partial_polarizer(p: f64, phi: f64) -> Mueller {
     let (s, c) = (2.0 * phi).sin_cos();
     let k = 1.0 / (1.0 + p);
@@ -146,6 +185,13 @@ pub fn partial_polarizer(p: f64, phi: f64) -> Mueller {
 
 /// The physical linear diattenuator with principal intensity transmittances `k1` (along the
 /// axis at `angle`) and `k2` (perpendicular to it).
+///
+/// ```
+/// // Transmittances 0.9 along 0 deg and 0.5 across: unpolarized light leaves with
+/// // I = (0.9 + 0.5)/2 = 0.7 and P = (0.9 - 0.5)/(0.9 + 0.5) = 2/7 along 0 deg.
+/// let s = mueller::diattenuator(0.9, 0.5, 0.0) * mueller::stokes_qu(1.0, 0.0, 0.0);
+/// assert!((s[0] - 0.7).abs() < 1e-15 && (s[1] / s[0] - 2.0 / 7.0).abs() < 1e-15);
+/// ```
 pub fn diattenuator(k1: f64, k2: f64, angle: f64) -> Mueller {
     let a = 0.5 * (k1 + k2);
     let b = 0.5 * (k1 - k2);
@@ -161,6 +207,16 @@ pub fn diattenuator(k1: f64, k2: f64, angle: f64) -> Mueller {
 }
 
 /// Ideal linear polarizer transmitting along `angle` (a diattenuator with k1 = 1, k2 = 0).
+///
+/// ```
+/// use mueller::{polarizer, stokes_p_chi};
+/// // Malus's law: light polarized at 0 through a polarizer at 30 deg keeps cos^2 30 deg = 3/4.
+/// let s = polarizer(30f64.to_radians()) * stokes_p_chi(1.0, 1.0, 0.0);
+/// assert!((s[0] - 0.75).abs() < 1e-15);
+/// // Crossed polarizers pass nothing.
+/// let crossed = polarizer(std::f64::consts::FRAC_PI_2) * polarizer(0.0) * mueller::stokes_qu(1.0, 0.0, 0.0);
+/// assert!(crossed[0].abs() < 1e-16);
+/// ```
 pub fn polarizer(angle: f64) -> Mueller {
     diattenuator(1.0, 0.0, angle)
 }
@@ -172,6 +228,17 @@ pub fn polarizer(angle: f64) -> Mueller {
 /// polarized at +45 deg leaves with the electric vector turning from +x towards +y, which is
 /// counter-clockwise as seen by the observer in the IAU frame (x north, y east, z towards the
 /// observer), i.e. `V > 0` (tested in `tests::iau_circular_sign`).
+///
+/// ```
+/// use mueller::{retarder, stokes_p_chi};
+/// use std::f64::consts::{FRAC_PI_2, FRAC_PI_4, PI};
+/// // A half-wave plate at 22.5 deg turns chi = 0 into chi = 45 deg (chi -> 2 theta - chi).
+/// let s = retarder(PI, 22.5f64.to_radians()) * stokes_p_chi(1.0, 1.0, 0.0);
+/// assert!(s[1].abs() < 1e-15 && (s[2] - 1.0).abs() < 1e-15);
+/// // A quarter-wave plate at 0 makes +45 deg light circular with V > 0 (IAU).
+/// let s = retarder(FRAC_PI_2, 0.0) * stokes_p_chi(1.0, 1.0, FRAC_PI_4);
+/// assert!((s[3] - 1.0).abs() < 1e-15 && s[2].abs() < 1e-15);
+/// ```
 pub fn retarder(delta: f64, angle: f64) -> Mueller {
     let (s, c) = delta.sin_cos();
     #[rustfmt::skip]
@@ -272,6 +339,16 @@ impl Wollaston {
         (polarizer(0.0) * (2.0 * self.t), polarizer(std::f64::consts::FRAC_PI_2 + self.delta_alpha) * (2.0 * self.s))
     }
     /// `kappa = (t - s) / (t + s)` (section `sec:wollaston`).
+    ///
+    /// ```
+    /// // t = 0.55, s = 0.45: kappa = (t - s)/(t + s) = 0.1, and unpolarized light gives
+    /// // F = (f_O - f_E)/(f_O + f_E) = 2t - 1 = 0.1 at every plate angle.
+    /// let w = mueller::Wollaston::with_t(0.55);
+    /// assert!((w.kappa() - 0.1).abs() < 1e-15);
+    /// let f = mueller::DualBeam { wollaston: w, ..Default::default() }
+    ///     .fluxes(&mueller::stokes_qu(1.0, 0.0, 0.0), &mueller::optimal_angles(4));
+    /// assert!(f.iter().all(|b| ((b.f_o - b.f_e) / (b.f_o + b.f_e) - 0.1).abs() < 1e-15));
+    /// ```
     pub fn kappa(&self) -> f64 {
         (self.t - self.s) / (self.t + self.s)
     }
@@ -383,6 +460,17 @@ impl DualBeam {
     /// The dual-beam forward model: the fluxes `f_O,i`, `f_E,i` for input Stokes vector `s`
     /// at HWP angles `theta` (rad). For the ideal train this is `eq:ord`; with a prism of
     /// `s = 1 - t` it is `eq:WP`.
+    ///
+    /// ```
+    /// use mueller::{optimal_angles, stokes_p_chi, DualBeam};
+    /// // eq:F for the ideal instrument: F_i = P cos(4 theta_i - 2 chi) = q cos 4theta_i + u sin 4theta_i.
+    /// let (p, chi) = (0.02, 30f64.to_radians());
+    /// let theta = optimal_angles(16);
+    /// for (b, t) in DualBeam::ideal().fluxes(&stokes_p_chi(1.0, p, chi), &theta).iter().zip(&theta) {
+    ///     let f = (b.f_o - b.f_e) / (b.f_o + b.f_e);
+    ///     assert!((f - p * (4.0 * t - 2.0 * chi).cos()).abs() < 1e-15);
+    /// }
+    /// ```
     pub fn fluxes(&self, s: &Stokes, theta: &[f64]) -> Vec<BeamFluxes> {
         self.compile().fluxes(s, theta)
     }
@@ -411,6 +499,11 @@ impl CompiledDualBeam {
 }
 
 /// The optimal HWP angle set of `N` positions, `theta_i = i pi / 8` (section `sec:basics`).
+///
+/// ```
+/// let deg: Vec<f64> = mueller::optimal_angles(4).iter().map(|t| t.to_degrees()).collect();
+/// assert_eq!(deg, [0.0, 22.5, 45.0, 67.5]);
+/// ```
 pub fn optimal_angles(n: usize) -> Vec<f64> {
     (0..n).map(|i| i as f64 * std::f64::consts::PI / 8.0).collect()
 }
@@ -485,3 +578,8 @@ mod tests {
         assert_relative_eq!(rotate(&m, PI), m, epsilon = 1e-12);
     }
 }
+
+/// The crate README's example, compiled and run with the documentation tests.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeDoctests;

@@ -256,6 +256,19 @@ impl BandModel {
 /// west of the meridian) seen from latitude `lat`: the position angle of the zenith at the
 /// star, north through east, `q = atan2(sin H cos phi, sin phi cos dec - cos phi sin dec cos H)`
 /// (spherical triangle pole-zenith-star; positive west of the meridian). For simulated nights.
+///
+/// ```
+/// use mueller::telescope::parallactic_angle;
+/// let (lat, rad) = ((-29.26f64).to_radians(), |d: f64| d.to_radians());
+/// // On the meridian a star south of the zenith has the zenith due north (0); north of it, due
+/// // south (180 deg).
+/// assert!(parallactic_angle(lat, rad(-60.0), 0.0).abs() < 1e-12);
+/// assert!((parallactic_angle(lat, rad(0.0), 0.0).abs() - std::f64::consts::PI).abs() < 1e-12);
+/// // Elsewhere the classic form tan q = sin H / (tan phi cos dec - sin dec cos H).
+/// let (dec, ha) = (rad(-10.0), rad(30.0));
+/// let q = ha.sin().atan2(lat.tan() * dec.cos() - dec.sin() * ha.cos());
+/// assert!((parallactic_angle(lat, dec, ha) - q).abs() < 1e-12);
+/// ```
 pub fn parallactic_angle(lat: f64, dec: f64, ha: f64) -> f64 {
     (ha.sin() * lat.cos()).atan2(lat.sin() * dec.cos() - lat.cos() * dec.sin() * ha.cos())
 }

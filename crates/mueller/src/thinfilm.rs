@@ -43,6 +43,16 @@ pub const MGF2: f64 = 1.38;
 /// Amplitude and power coefficients of a stack at `wavelength_nm` and angle of incidence
 /// `aoi` (rad), for s and p. `t_s`, `t_p` are the electric-field ratios, `t_*_flux` the
 /// flux-normalized amplitudes, `retardance_t()` the transmitted phase difference p - s.
+///
+/// ```
+/// use mueller::fresnel::C64;
+/// use mueller::thinfilm::{stack, Layer, MGF2};
+/// // A quarter-wave MgF2 layer on n = 1.5 at its design wavelength, normal incidence:
+/// // R = ((n0 n_s - n1^2)/(n0 n_s + n1^2))^2 (the textbook single-layer AR coating), 1.26 %.
+/// let c = stack(1.0, &[Layer::quarter_wave(MGF2, 550.0)], C64::new(1.5, 0.0), 550.0, 0.0).unwrap();
+/// let r = ((1.5 - MGF2 * MGF2) / (1.5 + MGF2 * MGF2)).powi(2);
+/// assert!((c.reflectance_s - r).abs() < 1e-12 && (c.reflectance_p - r).abs() < 1e-12);
+/// ```
 pub fn stack(n0: f64, layers: &[Layer], n_sub: C64, wavelength_nm: f64, aoi: f64) -> Result<Coefficients, Error> {
     check_inputs(n0, n_sub, aoi)?;
     if !(wavelength_nm.is_finite() && wavelength_nm > 0.0) {

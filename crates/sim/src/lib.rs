@@ -53,3 +53,8 @@ pub enum Error {
     #[error(transparent)]
     Stokes(#[from] stokes::Error),
 }
+
+/// The crate README's example, compiled and run with the documentation tests.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeDoctests;

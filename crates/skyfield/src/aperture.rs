@@ -18,6 +18,15 @@ fn seg(u: f64, r: f64) -> f64 {
 /// `[x0, x1] x [y0, y1]`: the integral over `u` of the length of `[y0, y1]` inside the circle's
 /// chord at `u`, split where the chord's ends cross `y0` or `y1` so that each piece is a line
 /// or an arc (closed forms).
+///
+/// ```
+/// use skyfield::aperture::circle_rect_area;
+/// use std::f64::consts::PI;
+/// // The whole circle, a quarter of it, and a half: pi r^2, pi r^2 / 4, pi r^2 / 2.
+/// assert!((circle_rect_area(3.0, -5.0, 5.0, -5.0, 5.0) - 9.0 * PI).abs() < 1e-12);
+/// assert!((circle_rect_area(3.0, 0.0, 5.0, 0.0, 5.0) - 9.0 * PI / 4.0).abs() < 1e-12);
+/// assert!((circle_rect_area(3.0, -5.0, 5.0, 0.0, 5.0) - 9.0 * PI / 2.0).abs() < 1e-12);
+/// ```
 pub fn circle_rect_area(r: f64, x0: f64, x1: f64, y0: f64, y1: f64) -> f64 {
     if !(r > 0.0) || x1 <= x0 || y1 <= y0 {
         return 0.0;

@@ -55,6 +55,16 @@ pub fn g(f_a: f64, f_b: f64) -> f64 {
 
 /// `kappa` from a pair of `F` at plate positions `pi/4` apart (`eq:kappa2`), in the
 /// cancellation-free form `S / (R + sqrt((1 - F_a^2)(1 - F_b^2)))`. Returns `(kappa, clamped)`.
+///
+/// ```
+/// use stokes::kappa::kappa_from_pair;
+/// // eq:kappa: F = (m + kappa)/(1 + kappa m); two plate positions pi/4 apart see m and -m.
+/// let (kappa, m) = (0.08, 0.03);
+/// let fa = (m + kappa) / (1.0 + kappa * m);
+/// let fb = (-m + kappa) / (1.0 - kappa * m);
+/// let (k, clamped) = kappa_from_pair(fa, fb);
+/// assert!((k - kappa).abs() < 1e-15 && !clamped);
+/// ```
 pub fn kappa_from_pair(f_a: f64, f_b: f64) -> (f64, bool) {
     let s = f_a + f_b;
     let r = 1.0 + f_a * f_b;
@@ -102,12 +112,26 @@ pub fn kappa_estimates(theta: &[f64], f: &[f64]) -> Vec<KappaEstimate> {
 /// `kappa_i = (F_i - m_i)/(1 - F_i m_i)` with `m_i = Q cos 4theta_i + U sin 4theta_i`, the
 /// inversion of `eq:kappa`. (The paper prints the denominator as `F_i m_i`; inverting
 /// `eq:kappa` gives `1 - F_i m_i`, and only this form returns `kappa` for noiseless data.)
+///
+/// ```
+/// // eq:kappa inverted at one angle: a source of known m = 0.02 measured at
+/// // F = (m + kappa)/(1 + kappa m) with kappa = 0.05.
+/// let f = (0.02 + 0.05) / (1.0 + 0.05 * 0.02);
+/// assert!((stokes::kappa::kappa_from_known(f, 0.02) - 0.05).abs() < 1e-15);
+/// ```
 pub fn kappa_from_known(f: f64, m: f64) -> f64 {
     (f - m) / (1.0 - f * m)
 }
 
 /// `a_0 = (1/N) sum F_i` (`eq:a0`): for `N` a multiple of 4 on the optimal set and `P << 1`
 /// it approximates `kappa` (or the post-analyzer term `B cos 2phi`, section `sec:postwp`).
+///
+/// ```
+/// // eq:a0: the mean of the F_i; the polarization's cos 4theta term cancels over the optimal
+/// // set and leaves a Wollaston imbalance F = 2t - 1 = 0.004 (t = 0.502) alone.
+/// let f: Vec<f64> = mueller::optimal_angles(8).iter().map(|t| 0.004 + 0.01 * (4.0 * t).cos()).collect();
+/// assert!((stokes::kappa::a0(&f) - 0.004).abs() < 1e-16);
+/// ```
 pub fn a0(f: &[f64]) -> f64 {
     f.iter().sum::<f64>() / f.len() as f64
 }
@@ -115,6 +139,13 @@ pub fn a0(f: &[f64]) -> f64 {
 /// The fluxes corrected for a known `kappa` (section `sec:wollaston`): `f_O / (1 + kappa)` and
 /// `f_E / (1 - kappa)` (the paper's `2t` and `2(1 - t)`; with `s != 1 - t` this divides by
 /// `2t/(t+s)` and `2s/(t+s)`, which is what makes `F_i = m_i` again).
+///
+/// ```
+/// // A prism of t = 0.55 (kappa = 0.1) puts 2t = 1.1 and 2(1 - t) = 0.9 of an unpolarized
+/// // source's 1000 e- per beam in the two beams; corrected, they are equal again.
+/// let (o, e) = stokes::kappa::correct_fluxes(1100.0, 900.0, 0.1);
+/// assert!((o - 1000.0).abs() < 1e-12 && (e - 1000.0).abs() < 1e-12);
+/// ```
 pub fn correct_fluxes(f_o: f64, f_e: f64, kappa: f64) -> (f64, f64) {
     (f_o / (1.0 + kappa), f_e / (1.0 - kappa))
 }

@@ -65,3 +65,8 @@ pub enum Error {
     )]
     MoreThanFullyPolarized { p: f64, sigma_p: f64, dark_beam: Option<usize> },
 }
+
+/// The crate README's example, compiled and run with the documentation tests.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeDoctests;

@@ -194,6 +194,24 @@ impl Reduction {
 
 impl Measurement {
     /// Photon counts (electrons) in the two beams: Poisson errors `sqrt(f)`. Angles in rad.
+    ///
+    /// ```
+    /// use stokes::Measurement;
+    /// // An ideal dual beam: f_O,E = I/2 (1 +- P cos(4 theta - 2 chi)), P = 2 %, chi = 30 deg,
+    /// // I = 2e6 e-. The reduction gives P and chi back, and sigma_P of eq:sigp:
+    /// // 1 / (sqrt(N/2) SNR) with SNR = sqrt(I) for N = 4.
+    /// let theta = mueller::optimal_angles(4);
+    /// let f = |t: &f64, s: f64| 1e6 * (1.0 + s * 0.02 * (4.0 * t - 60f64.to_radians()).cos());
+    /// let m = Measurement::poisson(
+    ///     theta.clone(),
+    ///     theta.iter().map(|t| f(t, 1.0)).collect(),
+    ///     theta.iter().map(|t| f(t, -1.0)).collect(),
+    /// )
+    /// .unwrap();
+    /// let r = m.reduce().unwrap();
+    /// assert!((r.p - 0.02).abs() < 1e-14 && (r.chi_deg() - 30.0).abs() < 1e-9);
+    /// assert!((r.sigma_p_analytic - 1.0 / (2f64.sqrt() * 2e6f64.sqrt())).abs() < 1e-8);
+    /// ```
     pub fn poisson(theta: Vec<f64>, f_o: Vec<f64>, f_e: Vec<f64>) -> Result<Self, Error> {
         let n = theta.len();
         check_len("f_O", f_o.len(), n)?;

@@ -5,6 +5,11 @@ use mueller::Qu;
 use std::f64::consts::PI;
 
 /// Normalized flux difference `F = (f_O - f_E) / (f_O + f_E)` (`eq:F`).
+///
+/// ```
+/// // eq:F: 300 e- in the ordinary beam, 100 e- in the extraordinary: F = 200 / 400.
+/// assert_eq!(stokes::normalized_difference(300.0, 100.0), 0.5);
+/// ```
 #[inline]
 pub fn normalized_difference(f_o: f64, f_e: f64) -> f64 {
     let t = f_o + f_e;
@@ -19,6 +24,12 @@ pub fn normalized_difference(f_o: f64, f_e: f64) -> f64 {
 /// Error of `F` (`eq:F`) propagated exactly from independent per-beam errors:
 /// `sigma_F = 2 sqrt(f_E^2 sigma_O^2 + f_O^2 sigma_E^2) / (f_O + f_E)^2`.
 /// For Poisson counts (`sigma^2 = f`) this is `sqrt((1 - F^2) / (f_O + f_E))`.
+///
+/// ```
+/// // Poisson counts of N = 5000 e- in each beam: sigma_F = 1 / sqrt(2N) = 0.01.
+/// let s = stokes::sigma_normalized_difference(5000.0, 5000.0, 5000f64.sqrt(), 5000f64.sqrt());
+/// assert!((s - 0.01).abs() < 1e-15);
+/// ```
 #[inline]
 pub fn sigma_normalized_difference(f_o: f64, f_e: f64, sigma_o: f64, sigma_e: f64) -> f64 {
     let mut tot = f_o + f_e;
@@ -71,6 +82,15 @@ pub fn fast_variance_in_range(v: f64) -> bool {
 /// Polarization degree and angle from normalized Stokes parameters (`eq:poldeg`,
 /// `eq:polang`): `P = hypot(q, u)`, `chi = atan2(u, q) / 2` folded into [0, pi)
 /// ([`Qu::p_chi`] of an exact value).
+///
+/// ```
+/// // A 3-4-5 triangle: q = 0.03, u = 0.04 is P = 5 % at chi = atan(4/3)/2 = 26.565 deg; u < 0
+/// // folds chi into [0, 180): -26.565 deg is 153.435 deg.
+/// let (p, chi) = stokes::polarization(0.03, 0.04);
+/// assert!((p - 0.05).abs() < 1e-16 && (chi.to_degrees() - 26.565051177077990).abs() < 1e-12);
+/// let (_, chi) = stokes::polarization(0.03, -0.04);
+/// assert!((chi.to_degrees() - 153.43494882292201).abs() < 1e-12);
+/// ```
 #[inline]
 pub fn polarization(q: f64, u: f64) -> (f64, f64) {
     Qu::new(q, u, 0.0, 0.0, 0.0).p_chi()
@@ -101,6 +121,17 @@ impl StokesSolver {
     /// the same plate position twice (angles equal modulo 2 pi), angles that cannot
     /// separate Q from U. Redundant positions (theta and theta + pi/4, + pi/2, ...) are
     /// welcome: they are what cancels the Wollaston and flat-field terms.
+    ///
+    /// ```
+    /// use stokes::StokesSolver;
+    /// // eq:Q, eq:U on the optimal four angles give back q, u from F_i = q cos 4t + u sin 4t.
+    /// let theta = mueller::optimal_angles(4);
+    /// let f: Vec<f64> = theta.iter().map(|t| 0.012 * (4.0 * t).cos() - 0.005 * (4.0 * t).sin()).collect();
+    /// let (q, u) = StokesSolver::new(&theta).unwrap().solve(&f);
+    /// assert!((q - 0.012).abs() < 1e-16 && (u + 0.005).abs() < 1e-16);
+    /// // The same plate position twice cannot be solved.
+    /// assert!(StokesSolver::new(&[0.0, 2.0 * std::f64::consts::PI]).is_err());
+    /// ```
     pub fn new(theta: &[f64]) -> Result<Self, Error> {
         let n = theta.len();
         if n < 2 {
@@ -195,6 +226,16 @@ impl StokesSolver {
     /// Solve with the covariance propagated from per-angle errors `sigma_f` of the `F_i`
     /// (equal-weight estimator, exact propagation). With all `sigma_f` equal to
     /// `1/SNR` on the optimal set this gives `var(Q) = var(U) = 2 / (N SNR^2)`, i.e. `eq:sigp`.
+    ///
+    /// ```
+    /// use stokes::StokesSolver;
+    /// // eq:sigp: with sigma_F = 1/SNR at each of N = 16 optimal angles, sigma_Q = sigma_U =
+    /// // sqrt(2/N) / SNR; at SNR = 1000 that is 3.536e-4.
+    /// let theta = mueller::optimal_angles(16);
+    /// let qu = StokesSolver::new(&theta).unwrap().solve_with_errors(&[0.0; 16], &[1e-3; 16]).unwrap();
+    /// assert!((qu.sigma_q() - (2.0f64 / 16.0).sqrt() * 1e-3).abs() < 1e-15);
+    /// assert!((qu.sigma_u() - qu.sigma_q()).abs() < 1e-18 && qu.cov_qu.abs() < 1e-20);
+    /// ```
     pub fn solve_with_errors(&self, f: &[f64], sigma_f: &[f64]) -> Result<Qu, Error> {
         self.check_len("F", f.len())?;
         self.check_len("sigma_F", sigma_f.len())?;

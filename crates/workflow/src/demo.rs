@@ -153,7 +153,7 @@ fn map_through_frames(
     let fdir = dir.join(format!("frames_{}", c.name));
     std::fs::create_dir_all(&fdir).map_err(|err| Error::Create { path: fdir.clone(), err })?;
     let field: Arc<dyn FieldModel> = if c.asymmetric {
-        // The non-radial B field sampled on 16 x 16 px cells, each cell one M_I (the README's
+        // The non-radial B field sampled on 16 x 16 px cells, each cell one M_I (the demo's
         // demo numbers were made so).
         let (nx, ny) = (inst.detector.nx.div_ceil(16), inst.detector.ny.div_ceil(16));
         Arc::new(NearestCell(GridMap::sample(&c.truth(), &inst.field_coords().binned(16), nx, ny)))

@@ -4,3 +4,8 @@
 //! package's `instpol.demo` call.
 
 pub mod demo;
+
+/// The crate README's example, compiled and run with the documentation tests.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeDoctests;

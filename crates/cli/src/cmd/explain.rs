@@ -53,8 +53,8 @@ pub struct Args {
     /// wedged_hwp, polarizing_hwp) or all.
     #[arg(long, default_value = "all")]
     pub causes: String,
-    /// Grid (n x n) inside the field's bounds on which candidates are projected onto the
-    /// field's polynomial basis.
+    /// Number of grid points per side (n x n) inside the field's bounds on which candidates
+    /// are projected onto the field's polynomial basis.
     #[arg(long, default_value_t = 16)]
     pub grid: usize,
     /// Print JSON instead of a table.

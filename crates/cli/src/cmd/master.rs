@@ -8,6 +8,8 @@ use std::path::PathBuf;
 /// every pixel is the sigma-clipped mean over the frames (median/MAD, --nsigma). Written as a
 /// 32-bit float FITS image in ADU with provenance keywords (HIERARCH INSTPOL MASTER = 'BIAS',
 /// NCOMBINE, the input files); pixels of the chip gap are NaN.
+///
+/// Example: instpol master-bias bias/*.fits --instrument efosc2 --out bias.fits
 #[derive(clap::Args)]
 pub struct BiasArgs {
     /// Bias frames (FITS; for a mosaic, the chip files of each exposure next to each other).
@@ -33,6 +35,8 @@ pub struct BiasArgs {
 /// is the sigma-clipped mean over the frames, and the result is normalized to a median of 1
 /// over the detector (chip gap excluded, NaN there). Written as a 32-bit float FITS image with
 /// provenance keywords (HIERARCH INSTPOL MASTER = 'FLAT').
+///
+/// Example: instpol master-flat flats/*.fits --instrument fors2 --bias bias.fits --out flat.fits
 #[derive(clap::Args)]
 pub struct FlatArgs {
     /// Flat-field frames (FITS; for a mosaic, the chip files of each exposure together).

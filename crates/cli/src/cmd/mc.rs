@@ -22,7 +22,7 @@ use stokes::mc::{estimate_seconds, Engine, McConfig, Noise};
 /// Q and U, sigma = 1/(sqrt(N/2) SNR), eq:sigp). SNR is that of the intensity f_O + f_E at each
 /// angle. The same --seed gives the same result on any number of --threads.
 ///
-/// Three modes:
+/// Examples, one per mode:
 ///
 ///   instpol mc --n-hwp 4 --snr 100 --p0 0.01 --trials 10000000 --noise poisson --json
 ///

@@ -8,6 +8,9 @@ use std::path::PathBuf;
 /// background (annulus, sigma-clipped mean) subtracted beam by beam before F_i, so that a
 /// polarized background is removed vectorially (paper, section background). Prints Q/I, U/I,
 /// P (%), chi (deg) and their errors.
+///
+/// Example: instpol photometry star/*.fits --instrument fors1 --x 1900 --y 90 --aperture 8
+/// --annulus 12,20
 #[derive(clap::Args)]
 pub struct Args {
     /// Frame files (FITS).
@@ -16,7 +19,7 @@ pub struct Args {
     /// Source x: 0-based pixel of the ordinary image, or arcmin from the detector centre.
     #[arg(long, allow_hyphen_values = true)]
     pub x: f64,
-    /// Source y (as --x).
+    /// Source y: 0-based pixel or arcmin, as --x.
     #[arg(long, allow_hyphen_values = true)]
     pub y: f64,
     /// Units of --x/--y.

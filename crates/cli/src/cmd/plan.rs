@@ -39,7 +39,7 @@ pub struct Args {
     /// Bin side in detector pixels of the calibration maps.
     #[arg(long, default_value_t = 64)]
     pub bin: usize,
-    /// HWP angles per field (optimal set: 4, 8 or 16).
+    /// Number of HWP angles per field (optimal set: 4, 8 or 16).
     #[arg(long, default_value_t = 4)]
     pub angles: usize,
     /// Effects besides the diattenuation, as for calibrate-mueller.

@@ -15,6 +15,8 @@ use stokes::stats::robust::{median, Middle};
 /// [telescope] section names the parallactic-angle keywords and the frames carry them, the map
 /// records the exposures' track (PARANG1, PARANG2, ROTANG), which `correct` uses to remove a
 /// telescope model.
+///
+/// Example: instpol reduce frames/*.fits --instrument fors1 --bin 30 --out map_V.fits
 #[derive(clap::Args)]
 pub struct Args {
     /// Frame files (FITS), real or simulated.

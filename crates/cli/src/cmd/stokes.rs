@@ -29,6 +29,8 @@ use stokes::{Error as RedError, Measurement, Reduction};
 /// (fractions), chi_deg in [0, 180), sigma_p, sigma_chi_deg (null when P = 0), a0, kappa
 /// (array), kappa_mean (null when none), fourier (array of {k, a, b, sigma_a, sigma_b}),
 /// warnings, plus extra detail fields.
+///
+/// Example: instpol stokes --input tests/data/fors1_v_star_n16.csv --plot fourier.png
 #[derive(clap::Args)]
 #[command(verbatim_doc_comment)]
 pub struct Args {
@@ -38,7 +40,7 @@ pub struct Args {
     pub input: PathBuf,
     #[command(flatten)]
     pub kappa: super::frame_opts::KappaOpts,
-    /// Also draw the paper's fig:fourier as a PNG (1000 x 900 px): F_i with their 1-sigma
+    /// Also draw the paper's fig:fourier as a PNG (1000 x 1300 px): F_i with their 1-sigma
     /// errors (from sigma_o/sigma_e, else Poisson) against the HWP angle, with the curve
     /// Q cos 4theta + U sin 4theta of the fitted Q, U (eq:system), raised by a_0 = mean F_i
     /// (eq:a0) on the optimal angle sets; below, the harmonic amplitudes with their 1-sigma

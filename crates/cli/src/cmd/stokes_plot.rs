@@ -14,10 +14,10 @@ use plotters::series::DashedLineSeries;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::path::Path;
 
-use crate::plot::{chart, dashed_key, legend_off_data, line_key, pe, save_image, tick, Axes, CORNERS, FONT};
+use crate::plot::{chart_with_legend_room, dashed_key, legend_off_data, line_key, pe, save_image, tick, Axes, FONT};
 
 /// Width and height of the PNG in pixels.
-pub const SIZE: (u32, u32) = (1000, 900);
+pub const SIZE: (u32, u32) = (1000, 1300);
 
 /// Draw `d` at `path` (through a temporary file beside it): PNG or SVG by the extension,
 /// any other extension refused.
@@ -47,16 +47,17 @@ fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) 
     }
     let lo = ys.iter().copied().fold(f64::INFINITY, f64::min);
     let hi = ys.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let chi = d.chi_deg.map_or("undefined".to_string(), |c| format!("{c:.2} deg"));
+    let chi = d.chi_deg.map_or("undefined".to_string(), |c| format!("{c:.2}°"));
     let ax = Axes::new(
-        format!("N = {}: P = {:.3} ± {:.3} %, χ = {chi}", d.n, pct(d.p), pct(d.sigma_p)),
+        format!("P = {:.3} ± {:.3} %, χ = {chi}, N = {}", pct(d.p), pct(d.sigma_p), d.n),
         "HWP angle θ (deg)",
         "F_i (%)",
     );
     // A little room either side, so that the points at 0 deg are not cut by the axis.
     let pad = d.theta_max_deg / 60.0;
-    // Headroom for the legend's three lines at 9 pt above the curve.
-    let mut c = chart(area, &ax, -pad..d.theta_max_deg + pad, padded(lo, hi, 1.0))?;
+    // Room above the data for the legend's lines at 9 pt: the legend never covers a point.
+    let entries = 2 + d.a0.is_some() as usize;
+    let mut c = chart_with_legend_room(area, &ax, -pad..d.theta_max_deg + pad, padded(lo, hi, 0.0), entries)?;
     c.draw_series(LineSeries::new(d.curve.iter().map(|(t, f)| (*t, pct(*f))), BLUE.stroke_width(2)))
         .map_err(pe)?
         .label(format!("Q = {:.3} %, U = {:.3} %", pct(d.q), pct(d.u)))
@@ -92,8 +93,16 @@ fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) 
     if let Some(a0) = d.a0 {
         data.extend(d.curve.iter().map(|(t, _)| (*t, pct(a0))));
     }
-    legend_off_data(&mut c, &data, 2 + d.a0.is_some() as usize, 22, CORNERS)
+    legend_off_data(&mut c, &data, entries, 22, UPPER)
 }
+
+/// The upper corners, right first: [`chart_with_legend_room`] keeps the data below them.
+const UPPER: [SeriesLabelPosition; 4] = [
+    SeriesLabelPosition::UpperRight,
+    SeriesLabelPosition::UpperLeft,
+    SeriesLabelPosition::UpperRight,
+    SeriesLabelPosition::UpperLeft,
+];
 
 /// Tick labels at the whole harmonic numbers only.
 fn whole(v: &f64) -> String {
@@ -118,7 +127,7 @@ fn draw_harmonics<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &Fourier
     let k_pol = d.k_pol.map_or("N/4".to_string(), |k| k.to_string());
     let ax = Axes::new(format!("√(a_k² + b_k²) (eq:fourcoeff); P at k = {k_pol}"), "harmonic k", "amplitude (%)")
         .x_ticks(d.bars.len() + 1, &whole);
-    let mut c = chart(area, &ax, -0.6..kmax + 0.6, 0.0..padded(0.0, top, 1.2).end)?;
+    let mut c = chart_with_legend_room(area, &ax, -0.6..kmax + 0.6, 0.0..padded(0.0, top, 0.0).end, 3)?;
     let pol = d.k_pol;
     c.draw_series(d.bars.iter().filter(|b| Some(b.k) != pol).map(|b| {
         let k = b.k as f64;
@@ -159,5 +168,5 @@ fn draw_harmonics<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &Fourier
             ]
         })
         .collect();
-    legend_off_data(&mut c, &data, 3, 25, CORNERS)
+    legend_off_data(&mut c, &data, 3, 25, UPPER)
 }

@@ -65,17 +65,17 @@ pub struct Args {
     /// Frames of the star (FITS, one per exposure, all HWP angles of one filter).
     #[arg(required = true, value_name = "FRAMES")]
     pub frames: Vec<PathBuf>,
-    /// Star position, x (see --coords).
+    /// Star position, x: 0-based px, or arcmin with --coords arcmin.
     #[arg(long, allow_negative_numbers = true)]
     pub x: f64,
-    /// Star position, y (see --coords).
+    /// Star position, y: 0-based px, or arcmin with --coords arcmin.
     #[arg(long, allow_negative_numbers = true)]
     pub y: f64,
     /// Units of --x/--y: 0-based pixels of the ordinary image on the detector, or arcmin from
     /// the detector centre.
     #[arg(long, value_enum, default_value = "pixel")]
     pub coords: crate::cmd::correct::Coords,
-    /// Pass threshold, in units of the combined error.
+    /// Pass threshold, in units of the combined error (sigma).
     #[arg(long, default_value_t = 3.0)]
     pub threshold: f64,
     /// Standard star name (see instruments/standards.toml); default: an unpolarized star.

@@ -47,6 +47,7 @@ pub struct Args {
     /// Standard's x, y: 0-based pixel of its ordinary image (one standard).
     #[arg(long, allow_hyphen_values = true, requires = "y")]
     pub x: Option<f64>,
+    /// Standard's y (0-based px, as --x).
     #[arg(long, allow_hyphen_values = true, requires = "x")]
     pub y: Option<f64>,
     /// The standard, by name, from the built-in list (or --standards FILE).
@@ -61,6 +62,7 @@ pub struct Args {
     /// Or the catalogued angle (deg) and its error, when the star is not in the list.
     #[arg(long, allow_hyphen_values = true)]
     pub chi_deg: Option<f64>,
+    /// The error of --chi-deg (deg).
     #[arg(long, default_value_t = 0.1)]
     pub sigma_chi_deg: f64,
     /// Aperture radius (px).

@@ -16,12 +16,14 @@ This module only converts arguments; the numbers come from the compiled library
 (``instpol._instpol``), which works with the GIL released. Errors raise :class:`InputError`
 (a ``ValueError``) or :class:`FileError` (an ``OSError``) with the CLI's messages.
 
-Example::
+Example (``instpol demo --out demo-out`` writes the calibration)::
 
     import numpy as np, instpol
-    cal = instpol.Calibration.load("demo/calibration_V.fits")
+    cal = instpol.Calibration.load("demo-out/cal_V.fits")
     c = cal.correct(x, y, q, u, sigma_q, sigma_u, units="arcmin")
     print(np.median(c["p0"]))
+
+The guide, docs/guide/correcting.md, has a pipeline from frames to corrected stars.
 """
 
 from __future__ import annotations
@@ -153,6 +155,26 @@ def stokes(
     input exposure's ``index``, ``hwp_deg``, its own ``f`` (eq:F), its ``pull`` about its
     position's mean and ``outlier`` (pull beyond 4 sigma; kept in the sum), ((N_in,) or
     (M, N_in)); None when no position repeats.
+
+    Raises
+    ------
+    InputError
+        Arrays of different shapes, fewer than 2 angles, angles that repeat a plate position
+        or cannot separate Q from U, angles that look like radians, a flux or error that is not
+        a finite number.
+
+    Examples
+    --------
+    An ideal dual beam at the optimal four angles, P = 1 % at chi = 30 deg, 1e6 e- per beam:
+    eq:F is F_i = P cos(4 theta_i - 2 chi), and eq:sigp gives sigma_P = 1/(sqrt(N/2) SNR) with
+    SNR = sqrt(2e6).
+
+    >>> import numpy as np, instpol
+    >>> theta = np.arange(4) * 22.5
+    >>> f = 0.01 * np.cos(np.radians(4 * theta - 60))
+    >>> r = instpol.stokes(theta, 1e6 * (1 + f), 1e6 * (1 - f))
+    >>> print(f"P = {100 * r['p']:.3f} %, chi = {r['chi_deg']:.2f} deg, sigma_P = {100 * r['sigma_p']:.3f} %")
+    P = 1.000 %, chi = 30.00 deg, sigma_P = 0.050 %
     """
     hwp = _f64(hwp_deg, "hwp_deg").ravel()
     fo, fe = _f64(f_o, "f_o"), _f64(f_e, "f_e")
@@ -199,6 +221,20 @@ def bias(
         ``estimate``, ``lo``, ``hi`` (NaN where a limit does not exist), ``upper_limit_only``,
         ``empty``, ``in_validity_range`` in the broadcast shape (scalars for scalar input),
         ``all_estimators`` (name -> values), ``estimator``, ``interval_kind``, ``cl``.
+
+    Raises
+    ------
+    InputError
+        A negative or non-finite P or sigma, an unknown estimator or interval, ``cl`` outside
+        (0, 1), arrays that do not broadcast.
+
+    Examples
+    --------
+    P = 1 % measured with sigma = 0.2 %: the asymptotic estimator is sqrt(P^2 - sigma^2).
+
+    >>> import instpol
+    >>> print(f"{instpol.bias(0.01, 0.002, 'as')['estimate']:.5f}")
+    0.00980
     """
     names = ["p", "sigma", "chi_deg"]
     arrs = [p, sigma, chi_deg]
@@ -230,6 +266,23 @@ class Calibration:
 
     Load it with :meth:`load`; :meth:`evaluate` gives the instrumental (q, u) at positions,
     :meth:`correct` removes it from measurements (eq:instpol inverted exactly, or eq:approx).
+
+    Examples
+    --------
+    The demo's V calibration at the paper's corner star, (2.53', -3.23'), where the paper's V
+    polynomial predicts 0.96 % (section sec:fors1); an unpolarized star seen there through the
+    instrument corrects to P0 = 0.
+
+    >>> import tempfile, numpy as np, instpol
+    >>> out = tempfile.mkdtemp()
+    >>> _ = instpol.demo(out, frames=False)
+    >>> cal = instpol.Calibration.load(f"{out}/cal_V.fits")
+    >>> e = cal.evaluate(2.53, -3.23)
+    >>> print(f"{100 * np.hypot(e['q'], e['u']):.2f} %", e["inside"])
+    0.96 % True
+    >>> c = cal.correct(2.53, -3.23, e["q"], e["u"], 4e-4, 4e-4)
+    >>> abs(c["p0"]) < 1e-12
+    True
     """
 
     def __init__(self, inner: Any) -> None:
@@ -237,8 +290,16 @@ class Calibration:
 
     @classmethod
     def load(cls, path: PathLike) -> "Calibration":
-        """Read a calibration FITS file. Raises FileError (unreadable) or InputError (not a
-        valid calibration), with the message of ``instpol correct --cal``."""
+        """Read a calibration FITS file (``path``: any calibration ``instpol`` writes, see
+        docs/calibration-file.md).
+
+        Raises
+        ------
+        FileError
+            The file cannot be opened or read.
+        InputError
+            It is not a valid calibration; the message is that of ``instpol correct --cal``.
+        """
         return cls(_instpol._Calibration.load(os.fspath(path)))
 
     path = property(lambda self: self._c.path, doc="The file it was loaded from.")
@@ -282,7 +343,9 @@ class Calibration:
 
         ``units``: ``"arcmin"`` (from the detector centre; the default, as ``instpol correct
         --coords``) or ``"px"`` (0-based detector pixels of the calibration's grid). Arrays
-        broadcast; scalars give scalars.
+        broadcast; scalars give scalars. Raises InputError for unknown ``units``, pixels on a
+        calibration without a pixel grid, or a Mueller-field or telescope-only calibration.
+        An example is in the class's documentation.
         """
         shape, (xf, yf) = _broadcast(["x", "y"], [x, y])
         return _reshape(self._c._evaluate(xf, yf, str(units)), shape, xf.shape[0])
@@ -352,6 +415,15 @@ class Calibration:
             estimator is named (see :func:`bias`), ``n_extrapolated``, and with a telescope
             model ``telescope_model`` and ``telescope_band`` (``q_inst, u_inst`` are then the
             field's and the telescope's together).
+
+        Raises
+        ------
+        InputError
+            A position outside the calibrated field (without ``allow_extrapolation``), arrays
+            that do not broadcast, an unknown ``method``, ``units`` or estimator, a telescope
+            model without parallactic angles, angles given without one.
+
+        An example is in the class's documentation.
         """
         names = ["x", "y", "q", "u", "sigma_q", "sigma_u"]
         arrs = [x, y, q, u, sigma_q, sigma_u]
@@ -491,6 +563,19 @@ def reduce(
     ``assembled=True``: frames already trimmed and assembled by another pipeline (bias-
     subtracted, one detector-sized image each), for an instrument whose raw frames are chip
     files (FORS2, EFOSC2); ``output``: also write the FITS map there (atomically).
+
+    Raises
+    ------
+    FileError
+        A frame, master or the output cannot be read or written.
+    InputError
+        An incomplete angle set, mixed filters or sizes, a missing header keyword, a maskless
+        instrument (its beams' skies overlap), a bin side out of range.
+
+    Examples
+    --------
+    ``m = instpol.reduce(sorted(glob.glob("frames/*.fits")), instrument="fors1", bin=30)``,
+    then ``m.p[m.valid]`` are the valid bins' P; docs/guide/correcting.md runs such a pipeline.
     """
     if isinstance(bin, bool) or not isinstance(bin, (int, np.integer)) or bin < 0:
         raise InputError(f"bin {bin!r}: expected a bin side in pixels (a positive integer)")
@@ -549,6 +634,17 @@ def catalog(
     it is undone after the field exposure by exposure, each over its own parallactic track from
     the frames' headers. ``allow_extrapolation``: correct stars outside the calibrated field
     too (flagged, errors inflated).
+
+    Raises
+    ------
+    FileError, InputError
+        As :func:`reduce`; also an ``annulus`` that is not two radii in px, an unknown
+        ``aperture``.
+
+    Examples
+    --------
+    ``cat = instpol.catalog(frames, instrument="calcite", hwp_angles=[0, 22.5, 45, 67.5])``
+    then ``cat["p"][cat["flags"] == 0]``; docs/guide/correcting.md runs such a pipeline.
     """
     try:
         r_in, r_out = (float(a) for a in annulus)
@@ -580,5 +676,12 @@ def demo(out_dir: PathLike, *, frames: bool = True, keep_frames: bool = False, s
         The report of ``instpol demo --json`` (``filters``, ``wavelength_law``, ``validation``,
         ``through_frames``, ``output``) with the same numbers, less the CLI's ``provenance``;
         no plots are drawn, so each filter's ``plot_outputs`` is empty.
+
+    Raises
+    ------
+    FileError
+        ``out_dir`` cannot be created or written.
+
+    An example is in :class:`Calibration`'s documentation.
     """
     return json.loads(_instpol._demo(os.fspath(out_dir), bool(frames), bool(keep_frames), int(seed)))

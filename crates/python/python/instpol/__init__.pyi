@@ -26,7 +26,13 @@ def stokes(
     *,
     angles_in_radians: bool = ...,
 ) -> Dict[str, Any]:
-    """Q/I, U/I, P, chi with errors from dual-beam fluxes (eq:F, eq:Q, eq:U, eq:sigp, eq:sigchi)."""
+    """Q/I, U/I, P, chi with errors from dual-beam fluxes (eq:F, eq:Q, eq:U, eq:sigp, eq:sigchi).
+
+    hwp_deg: HWP angles (deg); f_o, f_e: fluxes of the two beams, (N,) or (M, N) for M stars
+    (electrons with Poisson errors unless sigma_o, sigma_e are given); kappa: a known Wollaston
+    imbalance. Returns fractions (q, u, p, sigma_*), degrees (chi_deg in [0, 180)), harmonics
+    and kappa. Raises InputError on bad shapes or angles.
+    """
 
 def bias(
     p: ArrayLike,
@@ -39,40 +45,60 @@ def bias(
     sigma_u: Optional[ArrayLike] = ...,
     chi_deg: ArrayLike = ...,
 ) -> Dict[str, Any]:
-    """Bias-corrected P0 and an interval on it (section sec:bias), vectorized."""
+    """Bias-corrected P0 and an interval on it (section sec:bias), vectorized.
+
+    p, sigma: measured P and the error of each of Q and U, in the same units (fraction or
+    percent); estimator: naive, as, wk, ml, mp2, mas, mb, pr06; interval: neyman or hpd at
+    confidence cl. Returns estimate, lo, hi (NaN where a limit does not exist) in the
+    broadcast shape. Raises InputError on negative or non-finite input.
+    """
 
 class Calibration:
     """A calibration file: the instrumental polarization field of one instrument and filter
     (a partial polarizer p, phi, or a Mueller field from calibrate-mueller)."""
 
     @classmethod
-    def load(cls, path: PathLike) -> Calibration: ...
+    def load(cls, path: PathLike) -> Calibration:
+        """Read a calibration FITS file; FileError if unreadable, InputError if not valid."""
     @property
-    def path(self) -> os.PathLike[str]: ...
+    def path(self) -> os.PathLike[str]:
+        """The file it was loaded from."""
     @property
-    def instrument(self) -> str: ...
+    def instrument(self) -> str:
+        """Instrument name."""
     @property
-    def filter(self) -> str: ...
+    def filter(self) -> str:
+        """Filter name."""
     @property
-    def lambda_nm(self) -> float: ...
+    def lambda_nm(self) -> float:
+        """Effective wavelength (nm), NaN if unknown."""
     @property
-    def hwp_chi_offset_deg(self) -> float: ...
+    def hwp_chi_offset_deg(self) -> float:
+        """HWP chromatic zero angle added to a measured chi (deg)."""
     @property
-    def model(self) -> str: ...
+    def model(self) -> str:
+        """RADIAL, RADIAL+RESIDUAL, MAP, MUELLER or TELESCOPE."""
     @property
-    def mueller_model(self) -> Optional[str]: ...
+    def mueller_model(self) -> Optional[str]:
+        """A Mueller field's model (physical, general); None for a p, phi calibration."""
     @property
-    def mueller_free(self) -> List[str]: ...
+    def mueller_free(self) -> List[str]:
+        """A Mueller field's free effects; empty for a p, phi calibration."""
     @property
-    def rms_residual(self) -> float: ...
+    def rms_residual(self) -> float:
+        """RMS fit residual per component (fraction); NaN for a Mueller field."""
     @property
-    def centre_arcmin(self) -> Tuple[float, float]: ...
+    def centre_arcmin(self) -> Tuple[float, float]:
+        """Optical-axis centre (arcmin from the detector centre); NaN for a Mueller field."""
     @property
-    def has_pixel_grid(self) -> bool: ...
+    def has_pixel_grid(self) -> bool:
+        """True when positions may be given in px."""
     @property
-    def telescope_bands(self) -> List[str]: ...
+    def telescope_bands(self) -> List[str]:
+        """Bands of the telescope model in the file (empty without one)."""
     def evaluate(self, x: ArrayLike, y: ArrayLike, units: str = ...) -> Dict[str, Any]:
-        """Instrumental (q, u) = p (cos 2phi, sin 2phi) (eq:instpol) with errors at (x, y)."""
+        """Instrumental (q, u) = p (cos 2phi, sin 2phi) (eq:instpol) with errors at (x, y)
+        (arcmin from the detector centre, or px with units="px"); fractions."""
     def correct(
         self,
         x: ArrayLike,
@@ -94,7 +120,13 @@ class Calibration:
         recorded: Optional[Dict[str, Any]] = ...,
         hwp_chi_offset_deg: Optional[float] = ...,
     ) -> Dict[str, Any]:
-        """Exact inversion of eq:instpol (or eq:approx), as `instpol correct`, bit for bit."""
+        """Exact inversion of eq:instpol (or eq:approx), as `instpol correct`, bit for bit.
+
+        x, y: arcmin (or px with units="px"); q, u and their errors: fractions; parang_deg:
+        each row's parallactic angle (deg) for a telescope model. Returns q0, u0, p0 (fractions),
+        chi0_deg and their errors. Raises InputError outside the field (unless
+        allow_extrapolation) and on bad input.
+        """
     def correct_map(
         self,
         input: PathLike,
@@ -111,6 +143,9 @@ class Calibration:
         """A whole Stokes map file corrected, as `instpol correct --in MAP.fits`, bit for bit."""
 
 class StokesMap:
+    """A binned Stokes map: (ny, nx) arrays of fractions (q, u, p and errors), chi_deg in
+    [0, 180), bin centres in arcmin, and the header's values."""
+
     header: Dict[str, Any]
     warnings: List[str]
     correction: Optional[Dict[str, Any]]
@@ -143,7 +178,11 @@ def reduce(
     assembled: bool = ...,
     output: Optional[PathLike] = ...,
 ) -> StokesMap:
-    """Frames to a binned Stokes map (eq:F, eq:Q, eq:U per pixel, clipped bin means)."""
+    """Frames to a binned Stokes map (eq:F, eq:Q, eq:U per pixel, clipped bin means).
+
+    bin: bin side (px); nsigma: clipping threshold (robust sigmas); hwp_angles: deg per frame
+    when the headers carry none. Raises FileError or InputError with the CLI's messages.
+    """
 
 def catalog(
     frames: Union[PathLike, Sequence[PathLike]],
@@ -163,7 +202,12 @@ def catalog(
     cal: Optional[PathLike] = ...,
     allow_extrapolation: bool = ...,
 ) -> Dict[str, Any]:
-    """Every paired star measured: Q/I, U/I, P, chi with errors and flags."""
+    """Every paired star measured: Q/I, U/I, P, chi with errors and flags.
+
+    fwhm (px), threshold (detection sigmas), aperture (px, "2.5fwhm" or "best"), annulus
+    (inner, outer px), pair_tol (px); cal: correct in the same run. Returns a dict of columns
+    (fractions, deg, px, arcmin as their names say). Raises FileError or InputError.
+    """
 
 def demo(out_dir: PathLike, *, frames: bool = ..., keep_frames: bool = ..., seed: int = ...) -> Dict[str, Any]:
     """The paper's three empty fields simulated, calibrated and validated: instpol demo's report."""

@@ -181,6 +181,13 @@ pub const SNR_UNBIASED: f64 = 1e8;
 
 /// Asymptotic estimator `sqrt(x^2 - 1)` for `x > 1`, else 0 (written `(x-1)(x+1)`: no
 /// cancellation near the threshold).
+///
+/// ```
+/// use stokes::stats::estimators::as_n;
+/// // sec:bias: P measured at 1.25 sigma is P0 = sqrt(1.25^2 - 1) = 0.75 sigma; below 1 sigma, 0.
+/// assert!((as_n(1.25) - 0.75).abs() < 1e-15);
+/// assert_eq!(as_n(0.9), 0.0);
+/// ```
 pub fn as_n(x: f64) -> f64 {
     if x <= 1.0 {
         0.0

@@ -66,6 +66,17 @@ fn check_cl(cl: f64) -> Result<f64, Error> {
 }
 
 /// Neyman central interval on `P0` at confidence `cl` for measured `p` with error `sigma`.
+///
+/// ```
+/// use stokes::stats::neyman_interval;
+/// // At high S/N the 68.27 % interval on P0 is P +- sigma, shifted down by the bias of P
+/// // (about sigma^2 / (2 P)): P = 1 %, sigma = 0.05 %.
+/// let i = neyman_interval(0.01, 0.0005, 0.6827).unwrap();
+/// let (lo, hi) = (i.lo.unwrap(), i.hi.unwrap());
+/// assert!((lo - (0.0095 - 0.0005 * 0.0005 / 0.02)).abs() < 2e-6);
+/// assert!((hi - (0.0105 - 0.0005 * 0.0005 / 0.02)).abs() < 2e-6);
+/// assert!(!i.upper_limit_only);
+/// ```
 pub fn neyman_interval(p: f64, sigma: f64, cl: f64) -> Result<Interval, Error> {
     let p = check("P", p, false)?;
     let sigma = check("sigma", sigma, true)?;

@@ -13,6 +13,12 @@ use spec_math::cephes64::{i0e, i1e};
 use std::f64::consts::{FRAC_PI_2, PI};
 
 /// Normalized Rice density `f(x | a)` (`sigma = 1`).
+///
+/// ```
+/// use stokes::stats::rice::pdf_n;
+/// // With no true polarization (a = 0) the Rice density is Rayleigh's, x exp(-x^2/2).
+/// assert!((pdf_n(1.5, 0.0) - 1.5 * (-1.125f64).exp()).abs() < 1e-15);
+/// ```
 #[inline]
 pub fn pdf_n(x: f64, a: f64) -> f64 {
     if x <= 0.0 {
@@ -74,6 +80,13 @@ pub fn sf_n(x: f64, a: f64) -> f64 {
 /// `sqrt(pi/2) L_{1/2}(-a^2/2) = sqrt(pi/2) [(1 + a^2/2) i0e(a^2/4) + (a^2/2) i1e(a^2/4)]`
 /// (the Laguerre function written with scaled Bessel functions: the `exp(-a^2/4)` of
 /// `L_{1/2}` cancels the growth of `I0`, `I1`).
+///
+/// ```
+/// use stokes::stats::rice::mean_n;
+/// // a = 0: the Rayleigh mean sqrt(pi/2); large a: a + 1/(2a) (the bias of P at high S/N).
+/// assert!((mean_n(0.0) - std::f64::consts::FRAC_PI_2.sqrt()).abs() < 1e-15);
+/// assert!((mean_n(50.0) - (50.0 + 1.0 / 100.0)).abs() < 1e-5);
+/// ```
 pub fn mean_n(a: f64) -> f64 {
     let h = 0.5 * a * a;
     let z = 0.5 * h;
