@@ -4,3 +4,4 @@
 //! package's `instpol.demo` call.
 
 pub mod demo;
+pub mod night;
