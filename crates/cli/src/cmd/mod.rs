@@ -17,6 +17,7 @@ pub mod master;
 pub mod mc;
 pub mod mc_plot;
 pub mod mc_table;
+pub mod night;
 pub mod photometry;
 pub mod plan;
 pub mod plot;

@@ -187,7 +187,7 @@ impl Plan {
                         return bad(&u.id, format!("output {} is also its input: refusing to write over an input", i.display()))
                     }
                     Some(m) if !self.depends_on(u, m) => {
-                        return bad(&u.id, format!("input {} is written by unit {m}, which it does not follow (after): {m} would write over an input of a unit that may be running", i.display()))
+                        return bad(&u.id, format!("input {} is written by unit {m}, which it does not follow (after): refusing to write over an input of a unit that may run first", i.display()))
                     }
                     Some(_) => {}
                     None if !i.is_file() => {

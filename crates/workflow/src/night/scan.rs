@@ -27,7 +27,7 @@
 //!    (`fit::standards::Standards`) by name, or by position within `pointing_tol_arcsec` of
 //!    the pointing, is that standard whatever its role string says; a set the headers call a
 //!    standard but the list does not know is measured as a target, with a note.
-//! 7. **Units**: every set is reduced to a map and catalogued, each with the masters of its
+//! 7. **Units**: every set is reduced to a map and (but a sky field) catalogued, each with the masters of its
 //!    night, binning and filter (the nearest night's when its own has none); a set whose target
 //!    is a sky field given with a known polarization is calibrated from its map
 //!    (`instpol calibrate --map`); each polarized standard's set measures the HWP zero angle
@@ -73,6 +73,8 @@ pub struct ScanOptions {
     pub bin_px: usize,
     /// Expected FWHM (px) of the stars (`catalog --fwhm`).
     pub fwhm_px: f64,
+    /// Aperture radius (px) of the catalogs and the standards (`--aperture`).
+    pub aperture_px: f64,
 }
 
 impl ScanOptions {
@@ -86,6 +88,7 @@ impl ScanOptions {
             max_gap_min: 60.0,
             bin_px: 30,
             fwhm_px: 4.0,
+            aperture_px: 8.0,
         }
     }
 }
@@ -267,19 +270,10 @@ fn night_of(mjd: f64) -> i64 {
     (mjd - 0.5).floor() as i64
 }
 
-/// Calendar date (YYYYMMDD) of the noon that starts night `n` (an MJD day number).
+/// Calendar date (YYYYMMDD) of the noon that starts night `n` (an MJD day number; MJD 40587
+/// is 1970-01-01).
 fn night_label(n: i64) -> String {
-    // MJD 40587 is 1970-01-01; days to a civil date by H. Hinnant's `civil_from_days`.
-    let z = n - 40_587 + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let y = yoe + era * 400;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = doy - (153 * mp + 2) / 5 + 1;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    format!("{:04}{:02}{:02}", if m <= 2 { y + 1 } else { y }, m, d)
+    skyfield::provenance::iso_utc((n - 40_587) * 86_400)[..10].replace('-', "")
 }
 
 fn slug(s: &str) -> String {
@@ -393,6 +387,11 @@ pub fn scan(dirs: &[PathBuf], opts: &ScanOptions) -> Result<Plan, Error> {
         return Err(Error::Option(format!("largest gap {} min: must be positive", opts.max_gap_min)));
     }
     skyfield::reduce::check_bin(opts.bin_px, &inst).map_err(|e| Error::Option(e.to_string()))?;
+    for (what, v) in [("FWHM", opts.fwhm_px), ("aperture radius", opts.aperture_px)] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(Error::Option(format!("{what} {v} px: must be a positive number of pixels")));
+        }
+    }
     let standards = match &opts.standards {
         Some(p) => fit::standards::Standards::load(p),
         None => fit::standards::Standards::builtin(),
@@ -625,15 +624,27 @@ pub fn plan_sorted(
             after.clone(),
         ));
 
+        let sky = opts.sky_fields.iter().find(|f| norm_name(&f.target) == norm_name(&info.target));
+        // A sky field is empty: its stars, if any, are not what it was taken for.
         let cat = p.join("catalogs").join(format!("{set_id}.ecsv"));
         let mut args = vec!["catalog".to_string()];
         args.extend(frame_args.iter().cloned());
         args.extend(["--instrument".into(), inst_arg.clone(), "--fwhm".into(), opts.fwhm_px.to_string()]);
+        args.extend(["--aperture".into(), opts.aperture_px.to_string()]);
         args.extend(masters_args.iter().cloned());
         args.extend(["--out".into(), s(&cat)]);
-        units.push(Unit::new(&format!("catalog-{set_id}"), "catalog", inputs.clone(), vec![cat], args, after.clone()));
+        if sky.is_none() {
+            units.push(Unit::new(
+                &format!("catalog-{set_id}"),
+                "catalog",
+                inputs.clone(),
+                vec![cat],
+                args,
+                after.clone(),
+            ));
+        }
 
-        if let Some(sky) = opts.sky_fields.iter().find(|f| norm_name(&f.target) == norm_name(&info.target)) {
+        if let Some(sky) = sky {
             let cal = p.join("calibrations").join(format!("{set_id}.fits"));
             let args = vec![
                 "calibrate".to_string(),
@@ -681,6 +692,8 @@ pub fn plan_sorted(
                         format!("{y:.2}"),
                         "--star".into(),
                         st.name.clone(),
+                        "--aperture".into(),
+                        opts.aperture_px.to_string(),
                     ]);
                     if let Some(sp) = &opts.standards {
                         args.extend(["--standards".into(), s(sp)]);
