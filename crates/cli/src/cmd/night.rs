@@ -114,16 +114,15 @@ pub fn run_scan(a: ScanArgs) -> Result<()> {
             .filter(|d| !d.as_os_str().is_empty())
             .map_or_else(|| PathBuf::from("products"), |d| d.join("products")),
     };
-    let mut opts = night::ScanOptions::new(&a.instrument, &std::path::absolute(&products)?);
+    let mut opts = night::ScanOptions::new(&a.instrument, &products);
     opts.sky_fields = a.sky.iter().map(|s| parse_sky(s)).collect::<Result<_>>()?;
-    opts.standards = a.standards.as_ref().map(std::path::absolute).transpose()?;
+    opts.standards = a.standards.clone();
     opts.pointing_tol_arcsec = a.pointing_tol;
     opts.max_gap_min = a.max_gap;
     opts.bin_px = a.bin;
     opts.fwhm_px = a.fwhm;
     opts.aperture_px = a.aperture;
-    let dirs: Vec<PathBuf> = a.dirs.iter().map(std::path::absolute).collect::<std::io::Result<_>>()?;
-    let plan = night::scan(&dirs, &opts)?;
+    let plan = night::scan(&a.dirs, &opts)?;
     if plan.files.iter().any(|f| f.path == std::path::absolute(&a.out).unwrap_or_default()) {
         bail!("output {} is one of the scanned files: refusing to write over an input", a.out.display());
     }
@@ -154,7 +153,8 @@ pub fn run_scan(a: ScanArgs) -> Result<()> {
     }
     outln!("{:<44} {:>6}", "set (reduce unit)", "frames");
     for u in plan.units.iter().filter(|u| u.kind == "reduce") {
-        let frames = u.inputs.iter().filter(|p| !p.starts_with(&opts.products)).count();
+        let frames =
+            u.inputs.iter().filter(|p| !p.starts_with(&plan.records.parent().unwrap_or(&plan.records))).count();
         outln!("{:<44} {:>6}", u.id.trim_start_matches("reduce-"), frames);
     }
     if !plan.left_out.is_empty() {

@@ -372,7 +372,20 @@ fn s(p: &Path) -> String {
 
 /// Scan `dirs` and plan the night(s): the one library call of `instpol scan` and
 /// `instpol.scan`.
+///
+/// The plan holds absolute paths (the folders, the products, a standards file and an
+/// instrument given as a file are made absolute here), so that it runs from any folder and on
+/// any worker that sees the same file system.
 pub fn scan(dirs: &[PathBuf], opts: &ScanOptions) -> Result<Plan, Error> {
+    let abs = |p: &Path| std::path::absolute(p).map_err(|e| Error::Input { path: p.into(), why: e.to_string() });
+    let dirs: Vec<PathBuf> = dirs.iter().map(|d| abs(d)).collect::<Result<_, _>>()?;
+    let mut opts = opts.clone();
+    opts.products = abs(&opts.products)?;
+    opts.standards = opts.standards.as_deref().map(abs).transpose()?;
+    if Path::new(&opts.instrument).is_file() {
+        opts.instrument = abs(Path::new(&opts.instrument))?.display().to_string();
+    }
+    let opts = &opts;
     let inst = Instrument::load(&opts.instrument).map_err(|e| Error::Instrument(e.to_string()))?;
     if inst.headers.is_none() {
         return Err(Error::Instrument(format!(
@@ -397,7 +410,7 @@ pub fn scan(dirs: &[PathBuf], opts: &ScanOptions) -> Result<Plan, Error> {
         None => fit::standards::Standards::builtin(),
     }
     .map_err(|e| Error::Option(e.to_string()))?;
-    let paths = list_files(dirs)?;
+    let paths = list_files(&dirs)?;
     let sorted = sort_files(&paths, &inst);
     plan_sorted(sorted, &inst, &standards, opts)
 }
