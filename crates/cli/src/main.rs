@@ -48,6 +48,10 @@ enum Command {
         about = "Run a plan from `instpol scan`: dependency order, finished units skipped, one unit for a job array"
     )]
     Run(cmd::night::RunArgs),
+    #[command(
+        about = "The standards' zero angle and instrumental polarization of many nights against date, steps flagged"
+    )]
+    Trend(cmd::trend::Args),
     #[command(about = "Simulate raw-like dual-beam FITS frames of a scene (only the effects it lists)")]
     Simulate(cmd::simulate::Args),
     #[command(about = "Reduce frames to a binned, sigma-clipped Stokes map")]
@@ -141,6 +145,7 @@ fn main() {
         Command::Demo(a) => cmd::demo::run(a),
         Command::Scan(a) => cmd::night::run_scan(a),
         Command::Run(a) => cmd::night::run_run(a),
+        Command::Trend(a) => cmd::trend::run(a),
         Command::Simulate(a) => cmd::simulate::run(a),
         Command::Reduce(a) => cmd::reduce::run(a),
         Command::MasterBias(a) => cmd::master::run_bias(a),

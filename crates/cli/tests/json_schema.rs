@@ -579,6 +579,10 @@ const CASES: &[(&str, Args)] = &[
         v(&["scan", &raw, "--instrument", &s(&inst), "--out", &out(f, "plan.json")])
     }),
     ("run", |f| v(&["run", &night(f).1, "--dry-run"])),
+    ("trend", |f| {
+        // A plan of bias frames measures no standard: the shape of an empty trend.
+        v(&["trend", &night(f).1, "--out", &out(f, "trend.ecsv")])
+    }),
 ];
 
 /// Run one case and validate its stdout against its schema.
@@ -609,7 +613,7 @@ cases! {
     bias_json => "bias", mc_json => "mc", mc_sweep_json => "mc-sweep", mc_accuracy_json => "mc-accuracy",
     fresnel_json => "fresnel", raytrace_json => "raytrace", demo_json => "demo", plan_json => "plan",
     calibrate_mueller_json => "calibrate-mueller", explain_json => "explain", scan_json => "scan",
-    run_json => "run",
+    run_json => "run", trend_json => "trend",
 }
 
 /// The keys only some options print (residual map, RNG baseline) are in the schemas too:

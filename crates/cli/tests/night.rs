@@ -80,6 +80,8 @@ const NIGHT: f64 = 58546.0; // 2019-03-04
 const Q4: [f64; 4] = [0.0, 22.5, 45.0, 67.5];
 /// HD 110984 and HD 161056 (instruments/standards.toml), degrees.
 const HD110984: (f64, f64) = ((12.0 + 46.0 / 60.0 + 44.9 / 3600.0) * 15.0, -(61.0 + 11.0 / 60.0 + 11.0 / 3600.0));
+const HD14069: (f64, f64) = ((2.0 + 16.0 / 60.0 + 45.16 / 3600.0) * 15.0, 7.0 + 41.0 / 60.0 + 11.1 / 3600.0);
+const HD64299: (f64, f64) = ((7.0 + 52.0 / 60.0 + 25.55 / 3600.0) * 15.0, -(23.0 + 17.0 / 60.0 + 45.9 / 3600.0));
 const HD161056: (f64, f64) = ((17.0 + 43.0 / 60.0 + 47.0 / 3600.0) * 15.0, -(7.0 + 4.0 / 60.0 + 47.0 / 3600.0));
 
 /// The night: 5 bias, 5 flats in each of 2 filters, 2 empty fields per filter, 2 polarized and
@@ -173,7 +175,7 @@ fn make_night(root: &Path) -> PathBuf {
             first_exp: 91,
             dpr: ["CALIB", "STD", "POLARIMETRY"],
             target: "HD 14069",
-            ra_dec: (34.19, 7.69),
+            ra_dec: std_pointing(HD14069),
             sky: Some((300.0, 0.0, 0.0)),
             stars: star(0.0, 0.0),
             instrume: None,
@@ -187,7 +189,7 @@ fn make_night(root: &Path) -> PathBuf {
             first_exp: 101,
             dpr: ["CALIB", "STD", "POLARIMETRY"],
             target: "HD64299",
-            ra_dec: (118.11, -23.30),
+            ra_dec: std_pointing(HD64299),
             sky: Some((300.0, 0.0, 0.0)),
             stars: star(0.0, 0.0),
             instrume: None,
@@ -683,4 +685,169 @@ fn bad_folders_and_nonsense_plans_are_refused_by_name() {
     std::fs::write(&p, "version = 1\nunits = 3\n").unwrap();
     let o = instpol(&["run", p.to_str().unwrap()]);
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("bad.toml"));
+}
+
+/// Twelve monthly nights (bias, flats, the polarized standard HD 110984 at 4 angles, the
+/// unpolarized HD 14069 at 16 angles twice), scanned and run; with `steps`, from the seventh
+/// month on the zero angle moves by 1.5 deg (the star's angle turned) and the unpolarized
+/// standard shows 0.1 % along q (an instrumental polarization). The plans, in month order.
+fn twelve_months(root: &Path, steps: bool, seed: u64) -> Vec<PathBuf> {
+    let mut plans = Vec::new();
+    for m in 0..12u64 {
+        let dir = root.join(format!("m{m:02}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        let night = NIGHT + 30.0 * m as f64;
+        let after = steps && m >= 6;
+        let s = seed + 100 * m;
+        let std = |(ra, dec): (f64, f64)| (ra, dec + 50.0 / 3600.0);
+        let a16: Vec<f64> = (0..16).map(|i| i as f64 * 22.5).collect();
+        let unpol = vec![(79.5, 57.5, 6e5, if after { 0.001 } else { 0.0 }, 0.0)];
+        let specs = vec![
+            Spec {
+                dir: "bias",
+                filter: "v_HIGH",
+                angles: vec![0.0, 22.5, 45.0, 67.5, 90.0],
+                start_mjd: night + 0.80,
+                first_exp: 1,
+                dpr: ["CALIB", "BIAS", "IMAGE"],
+                target: "BIAS",
+                ra_dec: (0.0, 0.0),
+                sky: None,
+                stars: vec![],
+                instrume: None,
+                seed: s + 1,
+            },
+            Spec {
+                dir: "flat",
+                filter: "v_HIGH",
+                angles: Q4.to_vec(),
+                start_mjd: night + 0.81,
+                first_exp: 11,
+                dpr: ["CALIB", "FLAT,SKY", "IMAGE"],
+                target: "FLAT",
+                ra_dec: (0.0, 0.0),
+                sky: Some((20000.0, 0.0, 0.0)),
+                stars: vec![],
+                instrume: None,
+                seed: s + 2,
+            },
+            Spec {
+                dir: "pol",
+                filter: "v_HIGH",
+                angles: Q4.to_vec(),
+                start_mjd: night + 0.85,
+                first_exp: 21,
+                dpr: ["CALIB", "STD", "POLARIMETRY"],
+                target: "HD110984",
+                ra_dec: std(HD110984),
+                sky: Some((100.0, 0.0, 0.0)),
+                stars: vec![(79.5, 57.5, 6e5, 0.057, 91.65 + if after { 1.5 } else { 0.0 })],
+                instrume: None,
+                seed: s + 3,
+            },
+            Spec {
+                dir: "unpol1",
+                filter: "v_HIGH",
+                angles: a16.clone(),
+                start_mjd: night + 0.87,
+                first_exp: 31,
+                dpr: ["CALIB", "STD", "POLARIMETRY"],
+                target: "HD 14069",
+                ra_dec: std(HD14069),
+                sky: Some((100.0, 0.0, 0.0)),
+                stars: unpol.clone(),
+                instrume: None,
+                seed: s + 4,
+            },
+            Spec {
+                dir: "unpol2",
+                filter: "v_HIGH",
+                angles: a16,
+                start_mjd: night + 0.882,
+                first_exp: 51,
+                dpr: ["CALIB", "STD", "POLARIMETRY"],
+                target: "HD 14069",
+                ra_dec: std(HD14069),
+                sky: Some((100.0, 0.0, 0.0)),
+                stars: unpol,
+                instrume: None,
+                seed: s + 5,
+            },
+        ];
+        for sp in &specs {
+            simulate(&dir, sp);
+        }
+        let plan = dir.join("night.toml");
+        let inst = inst();
+        let o = instpol(&[
+            "scan",
+            dir.join("raw").to_str().unwrap(),
+            "--instrument",
+            inst.to_str().unwrap(),
+            "--out",
+            plan.to_str().unwrap(),
+            "--aperture",
+            "4",
+            "--fwhm",
+            "3",
+            "--bin",
+            "8",
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let (ok, report) = run_json(&plan, &["--jobs", "2"]);
+        assert!(ok, "month {m}: {report}");
+        plans.push(plan);
+    }
+    plans
+}
+
+fn trend_json(root: &Path, plans: &[PathBuf]) -> Value {
+    let out = root.join("trend.ecsv");
+    let png = root.join("trend.png");
+    let mut args = vec!["trend".to_string()];
+    args.extend(plans.iter().map(|p| p.display().to_string()));
+    args.extend(["--out", out.to_str().unwrap(), "--plot", png.to_str().unwrap(), "--json"].map(String::from));
+    let o = Command::new(bin()).args(&args).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.is_file() && png.is_file());
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+#[test]
+fn trend_over_twelve_months_finds_the_steps_and_only_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let with = dir.path().join("with");
+    let plans = twelve_months(&with, true, 7);
+    let t = trend_json(&with, &plans);
+    let step = |q: &str| {
+        t["steps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["quantity"] == q)
+            .unwrap_or_else(|| panic!("no {q} series: {t}"))
+            .clone()
+    };
+    let month7 = NIGHT + 180.0;
+    for (q, size) in [("zero_angle_deg", 1.5), ("q_unpolarized", 0.001)] {
+        let s = step(q);
+        assert_eq!(s["flagged"], true, "{q}: {s}");
+        assert!(
+            s["first_after_mjd"].as_f64().unwrap() > month7 && s["first_after_mjd"].as_f64().unwrap() < month7 + 1.0,
+            "{q}: {s}"
+        );
+        assert_eq!((s["n_before"].as_u64(), s["n_after"].as_u64()), (Some(6), Some(6)), "{q}: {s}");
+        let (d, sd) = (s["delta"].as_f64().unwrap(), s["sigma_delta"].as_f64().unwrap());
+        assert!((d.abs() - size).abs() < 3.0 * sd + 0.1 * size, "{q}: delta {d} +- {sd}, expected {size} in size");
+    }
+    // u saw nothing.
+    assert_eq!(step("u_unpolarized")["flagged"], false, "{t}");
+    assert_eq!(t["points"].as_array().unwrap().len(), 12 * 4);
+
+    let without = dir.path().join("without");
+    let plans = twelve_months(&without, false, 11);
+    let t = trend_json(&without, &plans);
+    for s in t["steps"].as_array().unwrap() {
+        assert_eq!(s["flagged"], false, "a step where none was simulated: {s}");
+    }
 }

@@ -27,6 +27,7 @@ pub mod simulate;
 pub mod stokes;
 pub mod stokes_plot;
 pub mod stokes_text;
+pub mod trend;
 pub mod validate;
 pub mod validate_text;
 pub mod wavelength_law;

@@ -12,8 +12,17 @@ use std::path::{Path, PathBuf};
 pub const PLAN_VERSION: u32 = 1;
 
 /// The commands a unit may run (`kind`, the command's name).
-pub const KINDS: &[&str] =
-    &["master-bias", "master-flat", "reduce", "catalog", "calibrate", "zero-angle", "fit-standards", "validate"];
+pub const KINDS: &[&str] = &[
+    "master-bias",
+    "master-flat",
+    "reduce",
+    "catalog",
+    "calibrate",
+    "zero-angle",
+    "photometry",
+    "fit-standards",
+    "validate",
+];
 
 /// One unit of work.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -37,6 +46,15 @@ pub struct Unit {
     /// is the one output, written atomically by the runner.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub stdout: bool,
+    /// What the unit measures, for reading its output back over many nights
+    /// (`workflow::night::trend`): the start of its set (MJD), its filter, and the standard
+    /// star it measures.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mjd: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub filter: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub standard: Option<String>,
 }
 
 impl Unit {
@@ -48,7 +66,18 @@ impl Unit {
         command: Vec<String>,
         after: Vec<String>,
     ) -> Self {
-        Unit { id: id.into(), kind: kind.into(), inputs, outputs, command, after, stdout: false }
+        Unit {
+            id: id.into(),
+            kind: kind.into(),
+            inputs,
+            outputs,
+            command,
+            after,
+            stdout: false,
+            mjd: None,
+            filter: None,
+            standard: None,
+        }
     }
 }
 
@@ -175,6 +204,7 @@ impl Plan {
                 }
             }
         }
+        let by_id: BTreeMap<&str, &Unit> = self.units.iter().map(|x| (x.id.as_str(), x)).collect();
         for u in &self.units {
             for d in &u.after {
                 if !ids.contains(d.as_str()) {
@@ -186,7 +216,7 @@ impl Plan {
                     Some(m) if *m == u.id => {
                         return bad(&u.id, format!("output {} is also its input: refusing to write over an input", i.display()))
                     }
-                    Some(m) if !self.depends_on(u, m) => {
+                    Some(m) if !Self::follows(&by_id, u, m) => {
                         return bad(&u.id, format!("input {} is written by unit {m}, which it does not follow (after): refusing to write over an input of a unit that may run first", i.display()))
                     }
                     Some(_) => {}
@@ -198,9 +228,10 @@ impl Plan {
             }
         }
         // An output over a raw file of the night.
+        let raw: BTreeSet<&Path> = self.files.iter().map(|f| f.path.as_path()).collect();
         for u in &self.units {
             for o in &u.outputs {
-                if self.files.iter().any(|f| &f.path == o) {
+                if raw.contains(o.as_path()) {
                     return bad(
                         &u.id,
                         format!("output {} is a raw file of the night: refusing to write over an input", o.display()),
@@ -212,7 +243,7 @@ impl Plan {
     }
 
     /// True when `u` follows unit `id`, directly or through others.
-    fn depends_on(&self, u: &Unit, id: &str) -> bool {
+    fn follows(by_id: &BTreeMap<&str, &Unit>, u: &Unit, id: &str) -> bool {
         let mut stack: Vec<&str> = u.after.iter().map(|s| s.as_str()).collect();
         let mut seen = BTreeSet::new();
         while let Some(d) = stack.pop() {
@@ -220,7 +251,7 @@ impl Plan {
                 return true;
             }
             if seen.insert(d) {
-                if let Some(x) = self.units.iter().find(|x| x.id == d) {
+                if let Some(x) = by_id.get(d) {
                     stack.extend(x.after.iter().map(|s| s.as_str()));
                 }
             }
@@ -258,6 +289,10 @@ impl Plan {
     pub fn with_dependencies(&self, id: &str) -> Result<Vec<usize>, Error> {
         let u = self.unit(id)?;
         let order = self.order()?;
-        Ok(order.into_iter().filter(|&i| self.units[i].id == u.id || self.depends_on(u, &self.units[i].id)).collect())
+        let by_id: BTreeMap<&str, &Unit> = self.units.iter().map(|x| (x.id.as_str(), x)).collect();
+        Ok(order
+            .into_iter()
+            .filter(|&i| self.units[i].id == u.id || Self::follows(&by_id, u, &self.units[i].id))
+            .collect())
     }
 }

@@ -31,8 +31,11 @@
 //!    night, binning and filter (the nearest night's when its own has none); a set whose target
 //!    is a sky field given with a known polarization is calibrated from its map
 //!    (`instpol calibrate --map`); each polarized standard's set measures the HWP zero angle
-//!    (`instpol zero-angle --json`, the star's pixel from its catalogued position against the
-//!    pointing: north up, east left and the pointing on the detector centre, assumed).
+//!    (`instpol zero-angle --json`) and each unpolarized standard's set the instrument's own
+//!    polarization at the star (`instpol photometry --json`), the star's pixel from its
+//!    catalogued position against the pointing (north up, east left and the pointing on the
+//!    detector centre, assumed). Each unit of a set records the set's start, filter and
+//!    standard, for `trend`.
 
 use super::header::{read_cards, Cards};
 use super::plan::{LeftOut, Plan, Unit, PLAN_VERSION};
@@ -301,6 +304,17 @@ fn fmt_deg(a: &[f64]) -> String {
     a.iter().map(|x| format!("{x}")).collect::<Vec<_>>().join(", ")
 }
 
+/// Where a standard star sits on the detector (0-based px): its catalogued position against
+/// the pointing, north up and east left with the pointing on the detector centre (assumed;
+/// module docs). `None` without a catalogued position or a pointing.
+fn star_pixel(inst: &Instrument, st: &fit::standards::Star, ra: Option<f64>, dec: Option<f64>) -> Option<(f64, f64)> {
+    let ((sra, sdec), ra, dec) = (st.position_deg()?, ra?, dec?);
+    let scale = inst.detector.pixel_scale_arcsec;
+    let dx = -((sra - ra + 540.0).rem_euclid(360.0) - 180.0) * dec.to_radians().cos() * 3600.0 / scale;
+    let dy = (sdec - dec) * 3600.0 / scale;
+    Some((0.5 * (inst.detector.nx as f64 - 1.0) + dx, 0.5 * (inst.detector.ny as f64 - 1.0) + dy))
+}
+
 /// Rule 2: chip files into exposures.
 fn exposures(files: Vec<FileInfo>, inst: &Instrument, left: &mut Vec<LeftOut>) -> Vec<Exposure> {
     let chips: Vec<String> = inst.format.chips.iter().map(|c| c.name.clone()).collect();
@@ -525,7 +539,6 @@ pub fn plan_sorted(
         }
     }
     let mut set_names: BTreeMap<String, usize> = BTreeMap::new();
-    let mut zero_angle_units: Vec<String> = Vec::new();
     for q in seqs {
         let info = &q[0].info;
         let all_files: Vec<PathBuf> = q.iter().flat_map(|e| e.files.clone()).collect();
@@ -601,6 +614,7 @@ pub fn plan_sorted(
             });
         }
 
+        let first_unit = units.len();
         let base = format!("{}-{}-{}", night_label(night), slug(&info.target), slug(&filter));
         let k = set_names.entry(base.clone()).or_insert(0);
         *k += 1;
@@ -684,17 +698,15 @@ pub fn plan_sorted(
             ));
         }
 
-        if let Some(st) = star.filter(|st| st.kind == fit::standards::Kind::Polarized) {
-            match (st.position_deg(), info.ra_deg, info.dec_deg) {
-                (Some((sra, sdec)), Some(ra), Some(dec)) => {
-                    // North up, east left, the pointing on the detector centre (module docs).
-                    let scale = inst.detector.pixel_scale_arcsec;
-                    let dx = -((sra - ra + 540.0).rem_euclid(360.0) - 180.0) * dec.to_radians().cos() * 3600.0 / scale;
-                    let dy = (sdec - dec) * 3600.0 / scale;
-                    let x = 0.5 * (inst.detector.nx as f64 - 1.0) + dx;
-                    let y = 0.5 * (inst.detector.ny as f64 - 1.0) + dy;
-                    let out = p.join("zero-angle").join(format!("{set_id}.json"));
-                    let mut args = vec!["zero-angle".to_string()];
+        if let Some(st) = star {
+            let polarized = st.kind == fit::standards::Kind::Polarized;
+            match star_pixel(inst, st, info.ra_deg, info.dec_deg) {
+                Some((x, y)) => {
+                    // A polarized standard gives the zero angle; an unpolarized one the
+                    // instrument's own polarization where it sits (photometry).
+                    let (kind, dir) = if polarized { ("zero-angle", "zero-angle") } else { ("photometry", "standards") };
+                    let out = p.join(dir).join(format!("{set_id}.json"));
+                    let mut args = vec![kind.to_string()];
                     args.extend(frame_args.iter().cloned());
                     args.extend([
                         "--instrument".into(),
@@ -703,30 +715,36 @@ pub fn plan_sorted(
                         format!("{x:.2}"),
                         "--y".into(),
                         format!("{y:.2}"),
-                        "--star".into(),
-                        st.name.clone(),
                         "--aperture".into(),
                         opts.aperture_px.to_string(),
                     ]);
-                    if let Some(sp) = &opts.standards {
-                        args.extend(["--standards".into(), s(sp)]);
+                    if polarized {
+                        args.extend(["--star".into(), st.name.clone()]);
+                        if let Some(sp) = &opts.standards {
+                            args.extend(["--standards".into(), s(sp)]);
+                        }
                     }
                     args.extend(masters_args.iter().cloned());
                     args.push("--json".into());
-                    let id = format!("zero-angle-{set_id}");
-                    let mut u = Unit::new(&id, "zero-angle", inputs.clone(), vec![out], args, after.clone());
+                    let id = format!("{kind}-{set_id}");
+                    let mut u = Unit::new(&id, kind, inputs.clone(), vec![out], args, after.clone());
                     u.stdout = true;
+                    u.standard = Some(st.name.clone());
                     units.push(u);
-                    zero_angle_units.push(id);
                 }
-                _ => left.push(LeftOut {
+                None => left.push(LeftOut {
                     files: vec![],
                     why: format!(
-                        "set {label}: standard {} without a catalogued position or a pointing: no zero angle measured",
+                        "set {label}: standard {} without a catalogued position or a pointing: not measured at its position",
                         st.name
                     ),
                 }),
             }
+        }
+        // What each unit of the set measures (module docs of `trend`).
+        for u in &mut units[first_unit..] {
+            u.mjd = Some(info.mjd);
+            u.filter = info.filter.clone();
         }
     }
     let plan = Plan {
