@@ -153,8 +153,7 @@ pub fn run_scan(a: ScanArgs) -> Result<()> {
     }
     outln!("{:<44} {:>6}", "set (reduce unit)", "frames");
     for u in plan.units.iter().filter(|u| u.kind == "reduce") {
-        let frames =
-            u.inputs.iter().filter(|p| !p.starts_with(&plan.records.parent().unwrap_or(&plan.records))).count();
+        let frames = u.inputs.iter().filter(|p| !p.starts_with(plan.records.parent().unwrap_or(&plan.records))).count();
         outln!("{:<44} {:>6}", u.id.trim_start_matches("reduce-"), frames);
     }
     if !plan.left_out.is_empty() {

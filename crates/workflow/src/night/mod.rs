@@ -1,5 +1,5 @@
 //! From a folder of raw frames to products: sort a night's files by their headers
-//! ([`scan`]), plan the units of work that make masters, maps, catalogs, calibrations and zero
+//! ([`mod@scan`]), plan the units of work that make masters, maps, catalogs, calibrations and zero
 //! angles from them ([`plan`]), and run the plan in dependency order, idempotently, any number
 //! of units at once or one unit at a time for a cluster's job array ([`run`]); and over many
 //! nights, the standards' zero angle and instrumental polarization against date, with the
