@@ -210,11 +210,9 @@ pub fn run_run(a: RunArgs) -> Result<()> {
     let opts = night::RunOptions { jobs: a.jobs, only, dry_run: a.dry_run };
     let exe = std::env::current_exe().context("cannot find the instpol binary to run the units")?;
     let exec = night::process_executor(exe);
-    let bar = if a.json || a.dry_run {
-        indicatif::ProgressBar::hidden()
-    } else {
-        indicatif::ProgressBar::new(plan.units.len() as u64)
-    };
+    let n = night::run::selection(&plan, &opts.only)?.len();
+    let bar =
+        if a.json || a.dry_run { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(n as u64) };
     bar.set_style(
         indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} units ({elapsed})")
             .expect("template")

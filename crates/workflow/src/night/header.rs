@@ -36,6 +36,11 @@ pub struct Cards(pub Vec<(String, Value)>);
 pub fn normalize(key: &str) -> String {
     let k = key.trim();
     let k = k.strip_prefix("HIERARCH ").or_else(|| k.strip_prefix("hierarch ")).unwrap_or(k);
+    // Most keys are written normalized already: one copy instead of three (a scan normalizes
+    // every card of every file).
+    if !k.contains("  ") && !k.bytes().any(|b| b.is_ascii_lowercase() || (b.is_ascii_whitespace() && b != b' ')) {
+        return k.to_string();
+    }
     k.split_whitespace().collect::<Vec<_>>().join(" ").to_ascii_uppercase()
 }
 

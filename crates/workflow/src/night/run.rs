@@ -216,8 +216,9 @@ fn run_unit(plan: &Plan, u: &Unit, exec: &Executor) -> Status {
     }
 }
 
-/// The units selected by `only` (with everything they follow), in dependency order.
-fn selected(plan: &Plan, only: &Option<Vec<String>>) -> Result<Vec<usize>, Error> {
+/// The units (indices in the plan) selected by `only` (with everything they follow; `None`:
+/// every unit), in dependency order: what [`run`] runs.
+pub fn selection(plan: &Plan, only: &Option<Vec<String>>) -> Result<Vec<usize>, Error> {
     let order = plan.order()?;
     let Some(ids) = only else { return Ok(order) };
     let mut keep = vec![false; plan.units.len()];
@@ -246,7 +247,7 @@ pub fn run(
     on_outcome: &(dyn Fn(&Outcome) + Sync),
 ) -> Result<Report, Error> {
     plan.check()?;
-    let sel = selected(plan, &opts.only)?;
+    let sel = selection(plan, &opts.only)?;
     if opts.dry_run {
         let mut report = Report::default();
         for &i in &sel {

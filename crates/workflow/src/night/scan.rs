@@ -144,7 +144,9 @@ pub fn list_files(dirs: &[PathBuf]) -> Result<Vec<PathBuf>, Error> {
                 if name.starts_with('.') {
                     continue;
                 }
-                if p.is_dir() {
+                // The entry's own type needs no second look at the disk; a link is followed.
+                let is_dir = e.file_type().is_ok_and(|t| t.is_dir() || (t.is_symlink() && p.is_dir()));
+                if is_dir {
                     stack.push(p);
                 } else if [".fits", ".fit", ".fts"].iter().any(|x| name.ends_with(x)) {
                     out.push(p);
