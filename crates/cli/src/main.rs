@@ -40,6 +40,18 @@ struct Cli {
 enum Command {
     #[command(about = "Run the whole chain on the paper's FORS1 empty fields (the main job; start here)")]
     Demo(cmd::demo::Args),
+    #[command(
+        about = "Sort a folder of raw files by their headers into a plan of units of work (masters, maps, catalogs, calibrations)"
+    )]
+    Scan(cmd::night::ScanArgs),
+    #[command(
+        about = "Run a plan from `instpol scan`: dependency order, finished units skipped, one unit for a job array"
+    )]
+    Run(cmd::night::RunArgs),
+    #[command(
+        about = "The standards' zero angle and instrumental polarization of many nights against date, steps flagged"
+    )]
+    Trend(cmd::trend::Args),
     #[command(about = "Simulate raw-like dual-beam FITS frames of a scene (only the effects it lists)")]
     Simulate(cmd::simulate::Args),
     #[command(about = "Reduce frames to a binned, sigma-clipped Stokes map")]
@@ -143,6 +155,9 @@ fn main() {
     );
     let run = move || match cli.command {
         Command::Demo(a) => cmd::demo::run(a),
+        Command::Scan(a) => cmd::night::run_scan(a),
+        Command::Run(a) => cmd::night::run_run(a),
+        Command::Trend(a) => cmd::trend::run(a),
         Command::Simulate(a) => cmd::simulate::run(a),
         Command::Reduce(a) => cmd::reduce::run(a),
         Command::MasterBias(a) => cmd::master::run_bias(a),

@@ -1885,3 +1885,60 @@ fn correct_honours_declared_units() {
         &["pix.ecsv", "declare pixels", "arcmin"],
     );
 }
+
+#[test]
+fn scan_and_run_bad_inputs() {
+    let f = Fixture::new();
+    let out = f.out_dir();
+    let plan = out.join("plan.toml");
+    let fors2 = || "fors2".to_string();
+    let empty = f.p("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let scan = |dir: &Path, extra: &[&str]| {
+        let mut a =
+            vec!["scan".to_string(), dir.to_str().unwrap().into(), "--instrument".into(), fors2(), "--out".into()];
+        a.push(plan.to_str().unwrap().into());
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a
+    };
+    refuses(&out, &scan(&empty, &[]), &["empty", "no FITS file"]);
+    refuses(&out, &scan(&f.p("missing"), &[]), &["missing"]);
+    refuses(&out, &scan(&empty, &["--sky", "EMPTY:x:3"]), &["--sky 'EMPTY:x:3'"]);
+    refuses(&out, &scan(&empty, &["--sky", "EMPTY"]), &["--sky 'EMPTY'", "TARGET:P_PERCENT:CHI_DEG"]);
+    std::fs::write(empty.join("a.fits"), "x").unwrap();
+    refuses(&out, &scan(&empty, &["--bin", "0"]), &["bin"]);
+    refuses(&out, &scan(&empty, &["--pointing-tol", "-1"]), &["pointing tolerance -1"]);
+    refuses(&out, &scan(&empty, &["--fwhm", "0"]), &["FWHM 0"]);
+    let mut a = scan(&empty, &[]);
+    a[3] = "fors1".into();
+    refuses(&out, &a, &["fors1", "[headers]"]);
+
+    // Plans: a unit that is not there, nonsense numbers, a plan that is not a plan.
+    let good = f.p("good.toml");
+    std::fs::write(
+        &good,
+        format!(
+            "version = 1\ninstrument = \"fors2\"\nrecords = {:?}\n[[units]]\nid = \"A\"\nkind = \"master-bias\"\ninputs = [{:?}]\noutputs = [{:?}]\ncommand = [\"master-bias\"]\n",
+            out.join("rec").display().to_string(),
+            good.display().to_string(),
+            out.join("a.fits").display().to_string()
+        ),
+    )
+    .unwrap();
+    let run = |extra: &[&str]| {
+        let mut a = vec!["run".to_string(), good.to_str().unwrap().into()];
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a
+    };
+    refuses(&out, &run(&["--unit", "B"]), &["unit B", "no such unit"]);
+    refuses(&out, &run(&["--unit", "7"]), &["unit number 7", "units 0 to 0"]);
+    refuses(&out, &run(&["--units", "1..0"]), &["--units '1..0'"]);
+    refuses(&out, &run(&["--units", "0..3"]), &["--units '0..3'", "units 0 to 0"]);
+    refuses(&out, &run(&["--jobs", "0"]), &["--jobs 0"]);
+    std::fs::write(f.p("v2.toml"), std::fs::read_to_string(&good).unwrap().replace("version = 1", "version = 2"))
+        .unwrap();
+    refuses(&out, &["run", &f.s("v2.toml")], &["v2.toml", "version 2"]);
+    std::fs::write(f.p("junk.json"), "{\"units\": 3}").unwrap();
+    refuses(&out, &["run", &f.s("junk.json")], &["junk.json"]);
+    refuses(&out, &["run", &f.s("nothing.toml")], &["nothing.toml"]);
+}

@@ -437,6 +437,36 @@ fn star_args(f: &Fix, sub: &str) -> Vec<String> {
     a
 }
 
+/// A night of five bias exposures (two chip files each) of the tiny FORS2 of tests/data/night,
+/// with ESO DPR keywords, simulated once; and the plan `instpol scan` makes of it.
+fn night(f: &Fix) -> (String, String) {
+    static NIGHT: OnceLock<(String, String)> = OnceLock::new();
+    NIGHT
+        .get_or_init(|| {
+            let inst = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/night/tiny_fors2.toml");
+            let scene = f.d.join("night_bias.toml");
+            std::fs::write(
+                &scene,
+                format!(
+                    "instrument = {:?}\nfilter = \"v_HIGH\"\nhwp_angles_deg = [0, 22.5, 45, 67.5, 90]\nexposure_s = 1\nseed = 5\n\
+                     [output]\narchive = {{ start_mjd = 58546.9, cadence_s = 20 }}\n\
+                     keywords = {{ \"HIERARCH ESO DPR CATG\" = \"CALIB\", \"HIERARCH ESO DPR TYPE\" = \"BIAS\", \"HIERARCH ESO DPR TECH\" = \"IMAGE\" }}\n\
+                     [effects]\nread_noise = true\n",
+                    inst.display().to_string()
+                ),
+            )
+            .unwrap();
+            let raw = f.d.join("night_raw");
+            let (code, _, err) = common::run(&v(&["simulate", &s(&scene), "--out", &s(&raw)]));
+            assert_eq!(code, 0, "{err}");
+            let plan = f.d.join("night_plan.toml");
+            let (code, _, err) = common::run(&v(&["scan", &s(&raw), "--instrument", &s(&inst), "--out", &s(&plan)]));
+            assert_eq!(code, 0, "{err}");
+            (s(&raw), s(&plan))
+        })
+        .clone()
+}
+
 fn out(f: &Fix, name: &str) -> String {
     s(&f.d.join(format!("{}_{name}", std::process::id())))
 }
@@ -543,6 +573,16 @@ const CASES: &[(&str, Args)] = &[
         v(&["raytrace", "--instrument", "fors1", "--filter", "V", "--field-points", "5", "--pupil-rays", "16"])
     }),
     ("demo", |f| v(&["demo", "--no-frames", "--out", &out(f, "demo")])),
+    ("scan", |f| {
+        let (raw, _) = night(f);
+        let inst = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/night/tiny_fors2.toml");
+        v(&["scan", &raw, "--instrument", &s(&inst), "--out", &out(f, "plan.json")])
+    }),
+    ("run", |f| v(&["run", &night(f).1, "--dry-run"])),
+    ("trend", |f| {
+        // A plan of bias frames measures no standard: the shape of an empty trend.
+        v(&["trend", &night(f).1, "--out", &out(f, "trend.ecsv")])
+    }),
 ];
 
 /// Run one case and validate its stdout against its schema.
@@ -572,7 +612,8 @@ cases! {
     wavelength_law_json => "wavelength-law", correct_json => "correct", stokes_json => "stokes",
     bias_json => "bias", mc_json => "mc", mc_sweep_json => "mc-sweep", mc_accuracy_json => "mc-accuracy",
     fresnel_json => "fresnel", raytrace_json => "raytrace", demo_json => "demo", plan_json => "plan",
-    calibrate_mueller_json => "calibrate-mueller", explain_json => "explain",
+    calibrate_mueller_json => "calibrate-mueller", explain_json => "explain", scan_json => "scan",
+    run_json => "run", trend_json => "trend",
 }
 
 /// The keys only some options print (residual map, RNG baseline) are in the schemas too:

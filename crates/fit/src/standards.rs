@@ -197,6 +197,29 @@ impl Standards {
 }
 
 impl Star {
+    /// The catalogued J2000 position (deg), when the list gives one: `ra` in hours, minutes,
+    /// seconds and `dec` in degrees, minutes, seconds, separated by `:` or spaces.
+    pub fn position_deg(&self) -> Option<(f64, f64)> {
+        let sexa = |t: &str| -> Option<f64> {
+            let t = t.trim();
+            let neg = t.starts_with('-');
+            let parts: Vec<f64> = t
+                .trim_start_matches(['+', '-'])
+                .split([':', ' '])
+                .filter(|x| !x.is_empty())
+                .map(|x| x.parse::<f64>().ok())
+                .collect::<Option<Vec<_>>>()?;
+            if parts.is_empty() || parts.len() > 3 {
+                return None;
+            }
+            let v = parts.iter().zip([1.0, 60.0, 3600.0]).map(|(x, d)| x / d).sum::<f64>();
+            Some(if neg { -v } else { v })
+        };
+        let ra = sexa(self.ra.as_deref()?)? * 15.0;
+        let dec = sexa(self.dec.as_deref()?)?;
+        ((0.0..360.0).contains(&ra) && (-90.0..=90.0).contains(&dec)).then_some((ra, dec))
+    }
+
     /// The published value in `band` (case-insensitive; a Bessel alias such as "V_BESS" or
     /// "v_HIGH" matches its first letter when no exact band matches).
     pub fn band(&self, band: &str) -> Result<&BandValue, Error> {
@@ -382,6 +405,23 @@ mod tests {
         assert_eq!(h.band("v").unwrap().p_percent, 6.25);
         assert_eq!(h.band("V_BESS").unwrap().p_percent, 6.25);
         assert!(h.band("B").is_err());
+    }
+
+    #[test]
+    fn positions_in_degrees() {
+        let s = Standards::builtin().unwrap();
+        // HD 14069: 02:16:45.16 +07:41:11.1 (the list's strings, converted by hand).
+        let (ra, dec) = s.star("HD 14069").unwrap().position_deg().unwrap();
+        assert!((ra - (2.0 + 16.0 / 60.0 + 45.16 / 3600.0) * 15.0).abs() < 1e-12);
+        assert!((dec - (7.0 + 41.0 / 60.0 + 11.1 / 3600.0)).abs() < 1e-12);
+        // HD 64299's declination is negative in every part.
+        let (_, dec) = s.star("HD 64299").unwrap().position_deg().unwrap();
+        assert!((dec + (23.0 + 17.0 / 60.0 + 45.9 / 3600.0)).abs() < 1e-12);
+        let mut star = s.star("HD 14069").unwrap().clone();
+        star.ra = Some("25:00:00".into());
+        assert_eq!(star.position_deg(), None);
+        star.ra = None;
+        assert_eq!(star.position_deg(), None);
     }
 
     #[test]

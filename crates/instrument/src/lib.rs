@@ -11,9 +11,11 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 mod format;
+pub mod headers;
 pub mod telescope;
 pub mod toml_numbers;
 pub use format::{Chip, FrameFormat, NumberOrKeyword};
+pub use headers::{Headers, Role};
 pub use telescope::{Focus, Telescope};
 
 /// Errors while loading an instrument definition.
@@ -242,6 +244,10 @@ pub struct Instrument {
     /// keywords); see [`telescope`].
     #[serde(default)]
     pub telescope: Option<Telescope>,
+    /// How the headers say what a file is (bias, flat, polarimetric exposure, standard), for
+    /// sorting a folder of raw files; see [`headers`].
+    #[serde(default)]
+    pub headers: Option<Headers>,
 }
 
 /// One mask strip on the detector: rows `[o_start, o_start + height)` hold its ordinary image
@@ -360,6 +366,9 @@ impl Instrument {
             Layout::Maskless => self.validate_maskless(path)?,
         }
         if let Err((key, value, why)) = self.format.check(d.nx, d.ny) {
+            return bad(&key, value, &why);
+        }
+        if let Some(Err((key, value, why))) = self.headers.as_ref().map(Headers::check) {
             return bad(&key, value, &why);
         }
         if self.filters.is_empty() {

@@ -889,8 +889,34 @@ impl Plan {
         let mut keys =
             self.header_keys("instpol simulation", Some(self.scene.hwp_angles_deg[k]), self.scene.exposure_s);
         keys.extend(tel_keys);
+        if let Some(m) = self.frame_start_mjd(k) {
+            keys.push(("MJD-OBS".into(), KeyValue::F64(m), "start of the exposure [MJD]".into()));
+        }
         // An instrument whose headers carry no HWP angle gets none (as its real frames).
         keys.retain(|(k, _, _)| !k.is_empty());
+        self.with_scene_keywords(keys)
+    }
+
+    /// `keys` with the scene's own keywords ([`crate::scene::Output::keywords`]) in place of
+    /// any of the same name.
+    fn with_scene_keywords(&self, mut keys: Vec<(String, KeyValue, String)>) -> Vec<(String, KeyValue, String)> {
+        let extra = &self.scene.output.keywords;
+        if extra.is_empty() {
+            return keys;
+        }
+        let norm = |k: &str| k.trim().trim_start_matches("HIERARCH ").to_ascii_uppercase();
+        let names: Vec<String> = extra.keys().map(|k| norm(k)).collect();
+        keys.retain(|(k, _, _)| !names.contains(&norm(k)));
+        for (k, v) in extra {
+            keys.push((
+                k.clone(),
+                match v {
+                    crate::scene::Keyword::Number(x) => KeyValue::F64(*x),
+                    crate::scene::Keyword::Text(t) => KeyValue::Str(t.clone()),
+                },
+                String::new(),
+            ));
+        }
         keys
     }
 
@@ -922,7 +948,19 @@ impl Plan {
 
     /// Frame `k`'s file name without `.fits` (a chip instrument's chip files add `_<chip>`).
     fn frame_stem(&self, k: usize) -> String {
-        format!("{}_{:02}_hwp{:05.1}", self.scene.output.prefix, k, self.scene.hwp_angles_deg[k])
+        match &self.scene.output.archive {
+            Some(_) => {
+                let ms = self.frame_start_mjd(k).map_or(0, |m| ((m - 40_587.0) * 86_400_000.0).round() as i64);
+                let iso = skyfield::provenance::iso_utc(ms.div_euclid(1000));
+                format!("{}.{iso}.{:03}", self.inst.name, ms.rem_euclid(1000))
+            }
+            None => format!("{}_{:02}_hwp{:05.1}", self.scene.output.prefix, k, self.scene.hwp_angles_deg[k]),
+        }
+    }
+
+    /// Frame `k`'s start (MJD) when the scene writes archive-like files.
+    fn frame_start_mjd(&self, k: usize) -> Option<f64> {
+        self.scene.output.archive.as_ref().map(|a| a.start_mjd + k as f64 * a.cadence_s / 86_400.0)
     }
 
     /// True when frames are written as raw chip files (the instrument's `[format]` has chips).
@@ -1003,7 +1041,11 @@ impl Plan {
         let chips = self.readouts();
         let readout = crate::raw::Readout {
             chips: &chips,
-            exposure_no: if bias { 1001 + k as i64 } else { 1 + k as i64 },
+            exposure_no: if bias {
+                1001 + k as i64
+            } else {
+                self.scene.output.first_exposure_no.unwrap_or(1) + k as i64
+            },
             binning: None,
             bitpix: self.bitpix,
         };

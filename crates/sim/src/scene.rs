@@ -208,6 +208,39 @@ pub struct Output {
     /// write for a master bias (default [`DEFAULT_BIAS_FRAMES`]; at least 3 for its clipping).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub bias_frames: Option<usize>,
+    /// Archive-like files (a night as an archive delivers it): frame `k` is named
+    /// `<INSTRUMENT>.<UTC start to the millisecond>` as ESO's archive names raw files
+    /// (`FORS2.2019-03-04T01:02:03.456`, a chip instrument's chip files adding `_<chip>`), and
+    /// carries its start as `MJD-OBS`. Absent: files are named by `prefix`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub archive: Option<Archive>,
+    /// More keywords written on every file, over the simulator's own of the same name (an
+    /// archive's frame type, target name and pointing: `"HIERARCH ESO DPR TYPE" = "BIAS"`,
+    /// `RA = 150.0`).
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub keywords: std::collections::BTreeMap<String, Keyword>,
+    /// The exposure number of frame 0 (frames count up from it; chip instruments write it to
+    /// the format's `exposure_keywords`). Default 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub first_exposure_no: Option<i64>,
+}
+
+/// When an archive-like night's frames start ([`Output::archive`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Archive {
+    /// Frame 0's start (MJD, UTC).
+    pub start_mjd: f64,
+    /// Seconds from one frame's start to the next's.
+    pub cadence_s: f64,
+}
+
+/// A header keyword's value in [`Output::keywords`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Keyword {
+    Number(f64),
+    Text(String),
 }
 
 /// Raw files' bias level when neither the scene nor the format gives one: a pedestal that
@@ -225,7 +258,16 @@ fn default_prefix() -> String {
 
 impl Default for Output {
     fn default() -> Self {
-        Self { bitpix: 16, prefix: default_prefix(), raw_bias_adu: None, raw_scan_px: None, bias_frames: None }
+        Self {
+            bitpix: 16,
+            prefix: default_prefix(),
+            raw_bias_adu: None,
+            raw_scan_px: None,
+            bias_frames: None,
+            archive: None,
+            keywords: Default::default(),
+            first_exposure_no: None,
+        }
     }
 }
 

@@ -567,6 +567,34 @@ fn common_conversion<'a>(convs: impl Iterator<Item = &'a Conversion>, inst: &Ins
 /// For angles on the optimal grid (`i * 22.5 deg`), the smallest optimal set containing them
 /// must be complete; `{0, 22.5}` is the complete `N = 2` set.
 fn check_complete(filter: &str, angles: &[f64]) -> Result<(), Error> {
+    match optimal_set_gap(angles) {
+        None => Ok(()),
+        Some(g) => Err(Error::MissingAngle {
+            filter: filter.into(),
+            have: fmt_angles(angles),
+            missing: fmt_angles(&g.missing_deg),
+            n: g.n,
+            expected: fmt_angles(&g.expected_deg),
+        }),
+    }
+}
+
+/// What an incomplete set of HWP angles lacks ([`optimal_set_gap`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct AngleGap {
+    /// The size of the smallest optimal set that holds the angles.
+    pub n: usize,
+    /// That set's angles (deg) and those of them not among the angles.
+    pub expected_deg: Vec<f64>,
+    pub missing_deg: Vec<f64>,
+}
+
+/// The one completeness rule of a set of HWP angles (deg), which the reduction enforces and a
+/// scan of raw files uses to name an aborted sequence's missing angles: for angles on the
+/// optimal grid (`i * 22.5 deg`), the smallest optimal set containing them must be complete
+/// (`{0, 22.5}` is the complete `N = 2` set). `None` when it is, or when the angles are off the
+/// grid (least squares on what is there).
+pub fn optimal_set_gap(angles: &[f64]) -> Option<AngleGap> {
     let idx: Option<Vec<usize>> = angles
         .iter()
         .map(|a| {
@@ -574,7 +602,7 @@ fn check_complete(filter: &str, angles: &[f64]) -> Result<(), Error> {
             ((r - r.round()).abs() * 22.5 < ANGLE_TOL_DEG && r.round() >= 0.0).then_some(r.round() as usize)
         })
         .collect();
-    let Some(idx) = idx else { return Ok(()) };
+    let idx = idx?;
     // A half-wave plate at theta + 360 deg is the same plate position, and the modulation
     // (eq:F) repeats every 90 deg: a set such as 90 ... 157.5 or 360 ... 427.5 is the optimal
     // set shifted, not an incomplete one. Indices are taken modulo 16 (360 deg) and shifted by
@@ -584,21 +612,12 @@ fn check_complete(filter: &str, angles: &[f64]) -> Result<(), Error> {
     let idx: Vec<usize> = idx.iter().map(|i| i - base).collect();
     let m = idx.iter().max().map_or(0, |&i| i + 1);
     if m <= 2 && idx.len() == 2 {
-        return Ok(());
+        return None;
     }
     let n = m.div_ceil(4).max(1) * 4;
     let expected: Vec<f64> = (0..n).map(|i| (i + base) as f64 * 22.5).collect();
     let missing: Vec<f64> = (0..n).filter(|i| !idx.contains(i)).map(|i| (i + base) as f64 * 22.5).collect();
-    if missing.is_empty() {
-        return Ok(());
-    }
-    Err(Error::MissingAngle {
-        filter: filter.into(),
-        have: fmt_angles(angles),
-        missing: fmt_angles(&missing),
-        n,
-        expected: fmt_angles(&expected),
-    })
+    (!missing.is_empty()).then_some(AngleGap { n, expected_deg: expected, missing_deg: missing })
 }
 
 /// The reduced map with the notes gathered on the way.

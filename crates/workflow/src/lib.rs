@@ -4,6 +4,7 @@
 //! package's `instpol.demo` call.
 
 pub mod demo;
+pub mod night;
 
 /// The crate README's example, compiled and run with the documentation tests.
 #[cfg(doctest)]

@@ -39,6 +39,8 @@ from . import _instpol
 from ._instpol import FileError, InputError, __version__
 
 __all__ = [
+    "scan",
+    "run",
     "stokes",
     "bias",
     "Calibration",
@@ -685,3 +687,89 @@ def demo(out_dir: PathLike, *, frames: bool = True, keep_frames: bool = False, s
     An example is in :class:`Calibration`'s documentation.
     """
     return json.loads(_instpol._demo(os.fspath(out_dir), bool(frames), bool(keep_frames), int(seed)))
+
+
+def scan(
+    dirs: Union[PathLike, Sequence[PathLike]],
+    instrument: str,
+    products: PathLike,
+    *,
+    sky: Optional[Dict[str, Tuple[float, float]]] = None,
+    standards: Optional[PathLike] = None,
+    pointing_tol_arcsec: float = 60.0,
+    max_gap_min: float = 60.0,
+    bin: int = 30,
+    fwhm: float = 4.0,
+    aperture: float = 8.0,
+    out: Optional[PathLike] = None,
+) -> Dict[str, Any]:
+    """Sort folders of raw files by their headers into a plan of work, as ``instpol scan``.
+
+    Every file is classified from its headers alone (the instrument file's ``[headers]``
+    table): bias, flat, polarimetric exposure or standard, or left out with the reason. Chip
+    files of one exposure are grouped, exposures into complete HWP sets (repeated cycles kept),
+    masters matched by night, binning and filter, standards matched to the standards list by
+    name or position. ``sky`` maps a sky field's target name to its known polarization
+    ``(p_percent, chi_deg)``: its map is calibrated. The products go under ``products``.
+
+    Returns
+    -------
+    dict
+        The plan (``version``, ``instrument``, ``records``, ``units``, ``files``,
+        ``left_out``): the keys of ``instpol scan --json`` less ``provenance``. Filter or edit
+        it (drop units, change a command's options) and hand it to :func:`run`. ``out``:
+        also written there (TOML, or JSON for a ``.json`` name), as the CLI writes it.
+    """
+    sky_list = []
+    for target, value in (sky or {}).items():
+        try:
+            p, chi = value
+            sky_list.append((str(target), float(p), float(chi)))
+        except (TypeError, ValueError):
+            raise InputError(f"sky[{target!r}] = {value!r}: expected (p_percent, chi_deg)") from None
+    return json.loads(
+        _instpol._scan(
+            _paths(dirs), str(instrument), os.fspath(products), sky_list, _opt_path(standards),
+            float(pointing_tol_arcsec), float(max_gap_min), int(bin), float(fwhm), float(aperture), _opt_path(out),
+        )
+    )
+
+
+def _instpol_binary(instpol_bin: Optional[PathLike]) -> str:
+    import shutil
+
+    b = instpol_bin if instpol_bin is not None else os.environ.get("INSTPOL_BIN") or shutil.which("instpol")
+    if b is None or not os.path.isfile(os.fspath(b)):
+        raise InputError(
+            "run needs the instpol binary to run the units: give instpol_bin=, set INSTPOL_BIN or put instpol on PATH"
+        )
+    return os.fspath(b)
+
+
+def run(
+    plan: Union[Dict[str, Any], PathLike],
+    *,
+    jobs: int = 1,
+    units: Optional[Sequence[str]] = None,
+    dry_run: bool = False,
+    instpol_bin: Optional[PathLike] = None,
+) -> Dict[str, Any]:
+    """Run a plan from :func:`scan` (a dict, edited or not, or a plan file), as ``instpol run``.
+
+    Units run in dependency order, ``jobs`` at once; a unit whose record says its inputs and
+    outputs are unchanged is skipped; a failing unit is reported and the units that follow it
+    are blocked, the others run. ``units``: only these ids and what they follow. Each unit is
+    the command of the ``instpol`` binary (``instpol_bin``, else ``$INSTPOL_BIN``, else the one
+    on ``PATH``), so the products are those of the CLI.
+
+    Returns
+    -------
+    dict
+        The report (``outcomes``: ``id``, ``kind``, ``status`` of ``done``, ``up_to_date``,
+        ``would_run``, ``failed`` or ``blocked``, ``reason``, ``seconds``): the keys of
+        ``instpol run --json`` less ``provenance``.
+    """
+    text, path = (json.dumps(plan), None) if isinstance(plan, dict) else (None, os.fspath(plan))
+    only = None if units is None else [str(u) for u in units]
+    return json.loads(_instpol._run(text, path, int(jobs), only, bool(dry_run), _instpol_binary(instpol_bin)))
+

@@ -211,3 +211,29 @@ def catalog(
 
 def demo(out_dir: PathLike, *, frames: bool = ..., keep_frames: bool = ..., seed: int = ...) -> Dict[str, Any]:
     """The paper's three empty fields simulated, calibrated and validated: instpol demo's report."""
+
+def scan(
+    dirs: Union[PathLike, Sequence[PathLike]],
+    instrument: str,
+    products: PathLike,
+    *,
+    sky: Optional[Dict[str, Tuple[float, float]]] = ...,
+    standards: Optional[PathLike] = ...,
+    pointing_tol_arcsec: float = ...,
+    max_gap_min: float = ...,
+    bin: int = ...,
+    fwhm: float = ...,
+    aperture: float = ...,
+    out: Optional[PathLike] = ...,
+) -> Dict[str, Any]:
+    """A folder of raw files sorted by their headers into a plan: instpol scan's plan."""
+
+def run(
+    plan: Union[Dict[str, Any], PathLike],
+    *,
+    jobs: int = ...,
+    units: Optional[Sequence[str]] = ...,
+    dry_run: bool = ...,
+    instpol_bin: Optional[PathLike] = ...,
+) -> Dict[str, Any]:
+    """A plan run by the instpol binary, finished units skipped: instpol run's report."""

@@ -1,0 +1,329 @@
+//! Running a plan: units in dependency order, each skipped when it is up to date, a failing
+//! unit reported without stopping the others, any number at once.
+//!
+//! Design. A unit is the command line of an existing `instpol` command, and the runner hands
+//! it to an *executor* given as a parameter; the CLI's and Python's executor runs the
+//! `instpol` binary itself ([`process_executor`]), so a unit's outputs are those of the
+//! command run by hand, byte for byte apart from the provenance's date, by construction (no
+//! second way of making a map or a catalog to keep in step). What is this module's own is the
+//! scheduling:
+//!
+//! - **Up to date**: after a unit succeeds, a record (`<records>/<id>.json`) keeps its command
+//!   and the BLAKE3 hashes (`skyfield::provenance::hash_file`, the provenance's hash) of its
+//!   inputs, read before it ran, and of its outputs. A unit is up to date, and skipped, when its
+//!   record exists, names the same command and inputs with the same hashes, and every output
+//!   exists with its recorded hash. An edited option, a changed frame or a damaged product
+//!   runs it again.
+//! - **Atomic**: every command writes its outputs through a temporary file and a rename; the
+//!   runner writes a printed output and the record the same way, the record last. A run killed
+//!   at any point leaves each unit either recorded (finished: skipped next time) or not (run
+//!   again, its outputs replaced whole).
+//! - **Locks**: a unit runs holding an exclusive lock on `<records>/<id>.lock`, so workers of a
+//!   Slurm array or GNU parallel that reach the same dependency run it once: the second waits,
+//!   then finds it up to date.
+//! - **Failures**: a failing unit is reported with its command's last lines of error; the
+//!   units that follow it are reported blocked; the others run.
+
+use super::plan::{Plan, Unit};
+use super::Error;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::{Condvar, Mutex};
+
+/// What a finished unit read and wrote (module docs).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Record {
+    pub command: Vec<String>,
+    /// `(path, blake3:<hex>)` of each input, read before the unit ran.
+    pub inputs: Vec<(PathBuf, String)>,
+    /// `(path, blake3:<hex>)` of each output.
+    pub outputs: Vec<(PathBuf, String)>,
+}
+
+/// What happened to a unit.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "status", content = "reason")]
+pub enum Status {
+    /// Ran and succeeded.
+    Done,
+    /// Skipped: its record matches its inputs and outputs.
+    UpToDate,
+    /// Dry run: would run.
+    WouldRun,
+    /// Ran and failed, with the reason.
+    Failed(String),
+    /// Not run: a unit it follows failed or was blocked.
+    Blocked(String),
+}
+
+/// One unit's outcome.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Outcome {
+    pub id: String,
+    pub kind: String,
+    #[serde(flatten)]
+    pub status: Status,
+    pub seconds: f64,
+}
+
+/// What a run did, unit by unit in the order they finished.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Report {
+    pub outcomes: Vec<Outcome>,
+}
+
+impl Report {
+    /// True when no unit failed or was blocked.
+    pub fn ok(&self) -> bool {
+        self.outcomes.iter().all(|o| !matches!(o.status, Status::Failed(_) | Status::Blocked(_)))
+    }
+    /// How many units ended with each status: done, up to date, would run, failed, blocked.
+    pub fn counts(&self) -> [usize; 5] {
+        let mut c = [0; 5];
+        for o in &self.outcomes {
+            c[match o.status {
+                Status::Done => 0,
+                Status::UpToDate => 1,
+                Status::WouldRun => 2,
+                Status::Failed(_) => 3,
+                Status::Blocked(_) => 4,
+            }] += 1;
+        }
+        c
+    }
+}
+
+/// Which units to run.
+#[derive(Debug, Clone, Default)]
+pub struct RunOptions {
+    /// Units run at once (at least 1).
+    pub jobs: usize,
+    /// Only these units (by id) and the units they follow; `None`: every unit.
+    pub only: Option<Vec<String>>,
+    /// Say what would run, run nothing, write nothing.
+    pub dry_run: bool,
+}
+
+/// Runs one unit's command: its printed output (stdout) or the reason it failed.
+pub type Executor<'a> = dyn Fn(&Unit) -> Result<Vec<u8>, String> + Sync + 'a;
+
+/// The executor that runs `program` (the `instpol` binary) with the unit's command, its
+/// standard input closed; a failure's reason is the last lines of what it printed on standard
+/// error (and its exit status).
+pub fn process_executor(program: PathBuf) -> impl Fn(&Unit) -> Result<Vec<u8>, String> + Sync {
+    move |u: &Unit| {
+        let out = std::process::Command::new(&program)
+            .args(&u.command)
+            .stdin(std::process::Stdio::null())
+            .output()
+            .map_err(|e| format!("cannot start {}: {e}", program.display()))?;
+        if out.status.success() {
+            return Ok(out.stdout);
+        }
+        let err = String::from_utf8_lossy(&out.stderr);
+        let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
+        let tail = lines[lines.len().saturating_sub(3)..].join(" | ");
+        Err(format!("{} ({})", if tail.is_empty() { "no message" } else { &tail }, out.status))
+    }
+}
+
+/// Write `bytes` to `path` through a temporary file in the same folder and a rename, so that
+/// `path` holds either its old content or all of the new.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+    use std::io::Write;
+    let err = |e: std::io::Error| Error::Output { path: path.into(), why: e.to_string() };
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).map_err(err)?;
+    let name = path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+    let mut f = std::fs::File::create(&tmp).map_err(err)?;
+    f.write_all(bytes).and_then(|_| f.sync_all()).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        err(e)
+    })?;
+    std::fs::rename(&tmp, path).map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        err(e)
+    })
+}
+
+fn hashes(paths: &[PathBuf]) -> Option<Vec<(PathBuf, String)>> {
+    paths.iter().map(|p| skyfield::provenance::hash_file(p).ok().map(|h| (p.clone(), h))).collect()
+}
+
+fn record_path(plan: &Plan, u: &Unit) -> PathBuf {
+    plan.records.join(format!("{}.json", u.id))
+}
+
+/// True when unit `u`'s record matches its command, its inputs' hashes now and its outputs
+/// (module docs).
+pub fn up_to_date(plan: &Plan, u: &Unit) -> bool {
+    let Ok(text) = std::fs::read_to_string(record_path(plan, u)) else { return false };
+    let Ok(r) = serde_json::from_str::<Record>(&text) else { return false };
+    r.command == u.command
+        && r.outputs.iter().map(|(p, _)| p).eq(u.outputs.iter())
+        && hashes(&u.inputs).is_some_and(|h| h == r.inputs)
+        && hashes(&u.outputs).is_some_and(|h| h == r.outputs)
+}
+
+/// Run one unit under its lock: skip it when up to date, else execute it and record it.
+fn run_unit(plan: &Plan, u: &Unit, exec: &Executor) -> Status {
+    if let Err(e) = std::fs::create_dir_all(&plan.records) {
+        return Status::Failed(format!("cannot make the records folder {}: {e}", plan.records.display()));
+    }
+    let lock_path = plan.records.join(format!("{}.lock", u.id));
+    let lock = match std::fs::OpenOptions::new().create(true).truncate(false).write(true).open(&lock_path) {
+        Ok(f) => f,
+        Err(e) => return Status::Failed(format!("cannot open the lock {}: {e}", lock_path.display())),
+    };
+    if let Err(e) = lock.lock() {
+        return Status::Failed(format!("cannot lock {}: {e}", lock_path.display()));
+    }
+    if up_to_date(plan, u) {
+        return Status::UpToDate;
+    }
+    let Some(inputs) = hashes(&u.inputs) else {
+        let missing =
+            u.inputs.iter().find(|p| !p.is_file()).map_or_else(|| "an input".into(), |p| p.display().to_string());
+        return Status::Failed(format!("input {missing} is missing or unreadable"));
+    };
+    for o in &u.outputs {
+        if let Some(d) = o.parent().filter(|d| !d.as_os_str().is_empty()) {
+            if let Err(e) = std::fs::create_dir_all(d) {
+                return Status::Failed(format!("cannot make folder {}: {e}", d.display()));
+            }
+        }
+    }
+    let printed = match exec(u) {
+        Ok(b) => b,
+        Err(why) => return Status::Failed(why),
+    };
+    if u.stdout {
+        if let Err(e) = write_atomic(&u.outputs[0], &printed) {
+            return Status::Failed(e.to_string());
+        }
+    }
+    let Some(outputs) = hashes(&u.outputs) else {
+        let missing =
+            u.outputs.iter().find(|p| !p.is_file()).map_or_else(|| "an output".into(), |p| p.display().to_string());
+        return Status::Failed(format!("the command succeeded but did not write {missing}"));
+    };
+    let rec = Record { command: u.command.clone(), inputs, outputs };
+    let text = serde_json::to_string_pretty(&rec).unwrap_or_default();
+    match write_atomic(&record_path(plan, u), text.as_bytes()) {
+        Ok(()) => Status::Done,
+        Err(e) => Status::Failed(e.to_string()),
+    }
+}
+
+/// The units (indices in the plan) selected by `only` (with everything they follow; `None`:
+/// every unit), in dependency order: what [`run`] runs.
+pub fn selection(plan: &Plan, only: &Option<Vec<String>>) -> Result<Vec<usize>, Error> {
+    let order = plan.order()?;
+    let Some(ids) = only else { return Ok(order) };
+    let mut keep = vec![false; plan.units.len()];
+    for id in ids {
+        for i in plan.with_dependencies(id)? {
+            keep[i] = true;
+        }
+    }
+    Ok(order.into_iter().filter(|&i| keep[i]).collect())
+}
+
+struct State {
+    /// Per unit of the selection: `None` pending, `Some(true)` running or finished well,
+    /// `Some(false)` failed or blocked.
+    started: Vec<bool>,
+    finished: Vec<Option<bool>>,
+    report: Report,
+}
+
+/// Run `plan` (module docs): the one library call of `instpol run` and `instpol.run`.
+/// `on_outcome` is told of every unit as it ends (a progress bar).
+pub fn run(
+    plan: &Plan,
+    opts: &RunOptions,
+    exec: &Executor,
+    on_outcome: &(dyn Fn(&Outcome) + Sync),
+) -> Result<Report, Error> {
+    plan.check()?;
+    let sel = selection(plan, &opts.only)?;
+    if opts.dry_run {
+        let mut report = Report::default();
+        for &i in &sel {
+            let u = &plan.units[i];
+            let status = if up_to_date(plan, u) { Status::UpToDate } else { Status::WouldRun };
+            let o = Outcome { id: u.id.clone(), kind: u.kind.clone(), status, seconds: 0.0 };
+            on_outcome(&o);
+            report.outcomes.push(o);
+        }
+        return Ok(report);
+    }
+    let n = sel.len();
+    let pos_of = |id: &str| sel.iter().position(|&i| plan.units[i].id == id);
+    let deps: Vec<Vec<usize>> =
+        sel.iter().map(|&i| plan.units[i].after.iter().filter_map(|d| pos_of(d)).collect()).collect();
+    let state = Mutex::new(State { started: vec![false; n], finished: vec![None; n], report: Report::default() });
+    let cv = Condvar::new();
+    let jobs = opts.jobs.max(1).min(n.max(1));
+    std::thread::scope(|scope| {
+        for _ in 0..jobs {
+            scope.spawn(|| loop {
+                let mut st = state.lock().unwrap_or_else(|e| e.into_inner());
+                let k = loop {
+                    // Units whose dependency failed are blocked without running.
+                    let mut changed = false;
+                    for k in 0..n {
+                        if st.started[k] {
+                            continue;
+                        }
+                        if let Some(&d) = deps[k].iter().find(|&&d| st.finished[d] == Some(false)) {
+                            st.started[k] = true;
+                            st.finished[k] = Some(false);
+                            let u = &plan.units[sel[k]];
+                            let o = Outcome {
+                                id: u.id.clone(),
+                                kind: u.kind.clone(),
+                                status: Status::Blocked(format!("unit {} did not succeed", plan.units[sel[d]].id)),
+                                seconds: 0.0,
+                            };
+                            on_outcome(&o);
+                            st.report.outcomes.push(o);
+                            changed = true;
+                        }
+                    }
+                    if changed {
+                        cv.notify_all();
+                    }
+                    if let Some(k) =
+                        (0..n).find(|&k| !st.started[k] && deps[k].iter().all(|&d| st.finished[d] == Some(true)))
+                    {
+                        st.started[k] = true;
+                        break Some(k);
+                    }
+                    if st.started.iter().all(|&s| s) {
+                        break None;
+                    }
+                    st = cv.wait(st).unwrap_or_else(|e| e.into_inner());
+                };
+                drop(st);
+                let Some(k) = k else {
+                    cv.notify_all();
+                    return;
+                };
+                let u = &plan.units[sel[k]];
+                let t0 = std::time::Instant::now();
+                let status = run_unit(plan, u, exec);
+                let ok = matches!(status, Status::Done | Status::UpToDate);
+                let o = Outcome { id: u.id.clone(), kind: u.kind.clone(), status, seconds: t0.elapsed().as_secs_f64() };
+                on_outcome(&o);
+                let mut st = state.lock().unwrap_or_else(|e| e.into_inner());
+                st.finished[k] = Some(ok);
+                st.report.outcomes.push(o);
+                drop(st);
+                cv.notify_all();
+            });
+        }
+    });
+    Ok(state.into_inner().unwrap_or_else(|e| e.into_inner()).report)
+}

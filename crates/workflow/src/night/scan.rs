@@ -1,0 +1,783 @@
+//! What each file of a night is, from its headers alone, and the plan of work that makes the
+//! night's products from them.
+//!
+//! Rules, in the order they are applied:
+//!
+//! 1. **A file**: its cards ([`super::header`]) name the instrument (`[headers]
+//!    instrument_keyword`), its role (the role string, [`instrument::Headers::role_of`]), its
+//!    chip (the `[format]` chips' match keyword), filter, HWP angle, exposure time, binning,
+//!    exposure number, target, pointing and start (MJD). A file that is not FITS, truncated,
+//!    of another instrument, of a role the instrument file does not know, or without a keyword
+//!    its role needs is left out with that reason.
+//! 2. **An exposure**: the chip files sharing the `[format] exposure_keywords` values (one
+//!    file per exposure when the format has no chips); an exposure lacking a chip is left out
+//!    naming it.
+//! 3. **A night**: exposures are sorted by start; a night runs from noon to noon UT
+//!    (`floor(MJD - 0.5)`, assumed: ESO's Chilean nights fall within it).
+//! 4. **Masters**: one master bias per night and binning, one master flat per night, binning
+//!    and filter (bias-subtracted with the bias of its night and binning).
+//! 5. **Sets**: polarimetric exposures following each other in time with the same role,
+//!    target, filter and binning, pointing within `pointing_tol_arcsec` of the set's first and
+//!    started within `max_gap_min` of the previous exposure. A set must hold the optimal set
+//!    of HWP angles that its angles belong to (`skyfield::reduce::optimal_set_gap`, the
+//!    reduction's rule) the same number of times (complete repeated cycles); exposures beyond
+//!    the last complete cycle are left out, and a set that lacks an angle is left out naming
+//!    the missing angles.
+//! 6. **Standards**: a set whose target matches a star of the standards list
+//!    (`fit::standards::Standards`) by name, or by position within `pointing_tol_arcsec` of
+//!    the pointing, is that standard whatever its role string says; a set the headers call a
+//!    standard but the list does not know is measured as a target, with a note.
+//! 7. **Units**: every set is reduced to a map and (but a sky field) catalogued, each with the masters of its
+//!    night, binning and filter (the nearest night's when its own has none); a set whose target
+//!    is a sky field given with a known polarization is calibrated from its map
+//!    (`instpol calibrate --map`); each polarized standard's set measures the HWP zero angle
+//!    (`instpol zero-angle --json`) and each unpolarized standard's set the instrument's own
+//!    polarization at the star (`instpol photometry --json`), the star's pixel from its
+//!    catalogued position against the pointing (north up, east left and the pointing on the
+//!    detector centre, assumed). Each unit of a set records the set's start, filter and
+//!    standard, for `trend`.
+
+use super::header::{read_cards, Cards};
+use super::plan::{LeftOut, Plan, Unit, PLAN_VERSION};
+use super::Error;
+use instrument::{Instrument, Role};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// A sky field whose polarization is known (an empty field for `instpol calibrate`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SkyField {
+    /// The target name as the headers write it (case and spaces aside).
+    pub target: String,
+    /// Sky polarization degree (percent, as `calibrate --sky-p`) and angle (deg).
+    pub p_percent: f64,
+    pub chi_deg: f64,
+}
+
+/// How to sort and plan.
+#[derive(Debug, Clone)]
+pub struct ScanOptions {
+    /// The instrument as named on the command line (built-in name or file).
+    pub instrument: String,
+    /// Where the products go (masters/, maps/, catalogs/, calibrations/, zero-angle/, and
+    /// the run's records in .instpol-run/).
+    pub products: PathBuf,
+    /// Sky fields with a known polarization, calibrated from their maps.
+    pub sky_fields: Vec<SkyField>,
+    /// A standard-star file; `None`: the built-in list.
+    pub standards: Option<PathBuf>,
+    /// Largest distance (arcsec) of a set's pointings, and of a standard from the pointing.
+    pub pointing_tol_arcsec: f64,
+    /// Largest gap (minutes) between the starts of two exposures of one set.
+    pub max_gap_min: f64,
+    /// Bin side (px) of the maps (`reduce --bin`, `calibrate --bin`).
+    pub bin_px: usize,
+    /// Expected FWHM (px) of the stars (`catalog --fwhm`).
+    pub fwhm_px: f64,
+    /// Aperture radius (px) of the catalogs and the standards (`--aperture`).
+    pub aperture_px: f64,
+}
+
+impl ScanOptions {
+    pub fn new(instrument: &str, products: &Path) -> Self {
+        ScanOptions {
+            instrument: instrument.into(),
+            products: products.into(),
+            sky_fields: vec![],
+            standards: None,
+            pointing_tol_arcsec: 60.0,
+            max_gap_min: 60.0,
+            bin_px: 30,
+            fwhm_px: 4.0,
+            aperture_px: 8.0,
+        }
+    }
+}
+
+/// One usable file, as its headers describe it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FileInfo {
+    pub path: PathBuf,
+    pub role: Role,
+    /// The chip (`[format]` chip name) this file holds, for a chip instrument.
+    pub chip: Option<String>,
+    /// The instrument's name of the filter.
+    pub filter: Option<String>,
+    pub hwp_deg: Option<f64>,
+    pub exptime_s: Option<f64>,
+    pub binning: [u32; 2],
+    /// The `exposure_keywords` values, joined by `/` (empty: the file is its own exposure).
+    pub exposure: String,
+    pub target: String,
+    pub ra_deg: Option<f64>,
+    pub dec_deg: Option<f64>,
+    pub mjd: f64,
+}
+
+/// The sorting of a folder: every usable file, and the left-out ones with the reason.
+#[derive(Debug, Clone, Default)]
+pub struct Sorted {
+    pub files: Vec<FileInfo>,
+    pub left_out: Vec<LeftOut>,
+}
+
+/// Every `.fits`/`.fit`/`.fts` file (any case, `.gz` not) under `dirs` (recursively), and any
+/// file given directly, sorted by path. A folder that holds none is an error naming it.
+pub fn list_files(dirs: &[PathBuf]) -> Result<Vec<PathBuf>, Error> {
+    let mut out = Vec::new();
+    for d in dirs {
+        if d.is_file() {
+            out.push(d.clone());
+            continue;
+        }
+        let before = out.len();
+        let mut stack = vec![d.clone()];
+        let mut others = 0usize;
+        while let Some(dir) = stack.pop() {
+            let rd = std::fs::read_dir(&dir).map_err(|e| Error::Input { path: dir.clone(), why: e.to_string() })?;
+            for e in rd {
+                let e = e.map_err(|e| Error::Input { path: dir.clone(), why: e.to_string() })?;
+                let p = e.path();
+                let name = e.file_name().to_string_lossy().to_ascii_lowercase();
+                if name.starts_with('.') {
+                    continue;
+                }
+                // The entry's own type needs no second look at the disk; a link is followed.
+                let is_dir = e.file_type().is_ok_and(|t| t.is_dir() || (t.is_symlink() && p.is_dir()));
+                if is_dir {
+                    stack.push(p);
+                } else if [".fits", ".fit", ".fts"].iter().any(|x| name.ends_with(x)) {
+                    out.push(p);
+                } else {
+                    others += 1;
+                }
+            }
+        }
+        if out.len() == before {
+            return Err(Error::Input {
+                path: d.clone(),
+                why: if others > 0 {
+                    format!("no FITS file (.fits, .fit, .fts) among its {others} files")
+                } else {
+                    "an empty folder: no FITS file".into()
+                },
+            });
+        }
+    }
+    out.sort();
+    out.dedup();
+    Ok(out)
+}
+
+/// What one file is (rule 1 of the module docs).
+pub fn classify(path: &Path, inst: &Instrument) -> Result<FileInfo, String> {
+    let h = inst
+        .headers
+        .as_ref()
+        .ok_or_else(|| format!("instrument {} has no [headers] table to sort files by", inst.name))?;
+    let c: Cards = read_cards(path).map_err(|p| p.to_string())?;
+    let got = c.text(&h.instrument_keyword).unwrap_or_default();
+    if !h.is_instrument(&got) {
+        return Err(if got.is_empty() {
+            format!("another instrument: no {} keyword", h.instrument_keyword)
+        } else {
+            format!("another instrument: {} = '{got}'", h.instrument_keyword)
+        });
+    }
+    let role_string = h.role_keywords.iter().map(|k| c.text(k).unwrap_or_default()).collect::<Vec<_>>().join("/");
+    let role = h.role_of(&role_string).ok_or_else(|| {
+        format!("a mode the instrument file does not know: {} = '{role_string}'", h.role_keywords.join("/"))
+    })?;
+    let need_num = |k: &str| c.number(k).ok_or_else(|| format!("no number in keyword {k}"));
+    let mjd = need_num(&h.mjd_keyword)?;
+    let fmt = &inst.format;
+    let chip = if fmt.chips.is_empty() {
+        None
+    } else {
+        let found = fmt.chips.iter().find(|ch| match (&ch.match_keyword, &ch.match_value) {
+            (Some(k), Some(v)) => c.text(k).is_some_and(|x| x.trim().eq_ignore_ascii_case(v.trim())),
+            _ => fmt.chips.len() == 1,
+        });
+        Some(found.map(|ch| ch.name.clone()).ok_or("no chip of the instrument's [format] matches its headers")?)
+    };
+    let binning = if fmt.binning_keywords.len() == 2 {
+        let bx = need_num(&fmt.binning_keywords[0])?;
+        let by = need_num(&fmt.binning_keywords[1])?;
+        [bx as u32, by as u32]
+    } else {
+        [fmt.binning.first().copied().unwrap_or(1), fmt.binning.get(1).copied().unwrap_or(1)]
+    };
+    let exposure = fmt.exposure_keywords.iter().map(|k| c.text(k).unwrap_or_default()).collect::<Vec<_>>().join("/");
+    let pol = &inst.polarimetry;
+    let filter = match c.text(&pol.filter_keyword) {
+        Some(f) => Some(
+            inst.filter(&f)
+                .map_err(|_| {
+                    format!(
+                        "filter {} = '{f}' is not one of the instrument's ({})",
+                        pol.filter_keyword,
+                        inst.filters.iter().map(|x| x.name.as_str()).collect::<Vec<_>>().join(", ")
+                    )
+                })?
+                .name
+                .clone(),
+        ),
+        None if matches!(role, Role::Bias) => None,
+        None => return Err(format!("no filter keyword {}", pol.filter_keyword)),
+    };
+    let hwp_deg = std::iter::once(&pol.hwp_angle_keyword)
+        .chain(&pol.hwp_angle_fallback_keywords)
+        .filter(|k| !k.is_empty())
+        .find_map(|k| c.number(k));
+    if matches!(role, Role::Polarimetry | Role::Standard) && hwp_deg.is_none() && !pol.hwp_angle_keyword.is_empty() {
+        return Err(format!("a polarimetric exposure without its HWP angle ({})", pol.hwp_angle_keyword));
+    }
+    Ok(FileInfo {
+        path: path.into(),
+        role,
+        chip,
+        filter,
+        hwp_deg,
+        exptime_s: c.number(&pol.exptime_keyword),
+        binning,
+        exposure,
+        target: c.text(&h.target_keyword).unwrap_or_default().trim().to_string(),
+        ra_deg: c.number(&h.ra_keyword),
+        dec_deg: c.number(&h.dec_keyword),
+        mjd,
+    })
+}
+
+/// Classify every file (in parallel; headers only).
+pub fn sort_files(paths: &[PathBuf], inst: &Instrument) -> Sorted {
+    let results: Vec<Result<FileInfo, LeftOut>> =
+        paths.par_iter().map(|p| classify(p, inst).map_err(|why| LeftOut { files: vec![p.clone()], why })).collect();
+    let mut s = Sorted::default();
+    for r in results {
+        match r {
+            Ok(f) => s.files.push(f),
+            Err(l) => s.left_out.push(l),
+        }
+    }
+    s
+}
+
+/// One exposure: its files in chip order and what they share.
+#[derive(Debug, Clone)]
+struct Exposure {
+    files: Vec<PathBuf>,
+    info: FileInfo,
+}
+
+fn night_of(mjd: f64) -> i64 {
+    (mjd - 0.5).floor() as i64
+}
+
+/// Calendar date (YYYYMMDD) of the noon that starts night `n` (an MJD day number; MJD 40587
+/// is 1970-01-01).
+fn night_label(n: i64) -> String {
+    skyfield::provenance::iso_utc((n - 40_587) * 86_400)[..10].replace('-', "")
+}
+
+fn slug(s: &str) -> String {
+    let t: String = s.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' { c } else { '_' }).collect();
+    let t = t.trim_matches('_').to_string();
+    if t.is_empty() {
+        "unnamed".into()
+    } else {
+        t
+    }
+}
+
+fn norm_name(s: &str) -> String {
+    s.chars().filter(|c| !c.is_whitespace() && *c != '_').flat_map(|c| c.to_lowercase()).collect()
+}
+
+/// Angular distance (arcsec) of two positions (deg).
+fn sep_arcsec(ra1: f64, dec1: f64, ra2: f64, dec2: f64) -> f64 {
+    let (a1, d1, a2, d2) = (ra1.to_radians(), dec1.to_radians(), ra2.to_radians(), dec2.to_radians());
+    let h = ((d2 - d1) / 2.0).sin().powi(2) + d1.cos() * d2.cos() * ((a2 - a1) / 2.0).sin().powi(2);
+    2.0 * h.sqrt().min(1.0).asin().to_degrees() * 3600.0
+}
+
+fn fmt_deg(a: &[f64]) -> String {
+    a.iter().map(|x| format!("{x}")).collect::<Vec<_>>().join(", ")
+}
+
+/// Where a standard star sits on the detector (0-based px): its catalogued position against
+/// the pointing, north up and east left with the pointing on the detector centre (assumed;
+/// module docs). `None` without a catalogued position or a pointing.
+fn star_pixel(inst: &Instrument, st: &fit::standards::Star, ra: Option<f64>, dec: Option<f64>) -> Option<(f64, f64)> {
+    let ((sra, sdec), ra, dec) = (st.position_deg()?, ra?, dec?);
+    let scale = inst.detector.pixel_scale_arcsec;
+    let dx = -((sra - ra + 540.0).rem_euclid(360.0) - 180.0) * dec.to_radians().cos() * 3600.0 / scale;
+    let dy = (sdec - dec) * 3600.0 / scale;
+    Some((0.5 * (inst.detector.nx as f64 - 1.0) + dx, 0.5 * (inst.detector.ny as f64 - 1.0) + dy))
+}
+
+/// Rule 2: chip files into exposures.
+fn exposures(files: Vec<FileInfo>, inst: &Instrument, left: &mut Vec<LeftOut>) -> Vec<Exposure> {
+    let chips: Vec<String> = inst.format.chips.iter().map(|c| c.name.clone()).collect();
+    let mut groups: BTreeMap<(String, String), Vec<FileInfo>> = BTreeMap::new();
+    let mut out = Vec::new();
+    for f in files {
+        if chips.is_empty() || f.exposure.is_empty() {
+            out.push(Exposure { files: vec![f.path.clone()], info: f });
+        } else {
+            groups.entry((f.exposure.clone(), format!("{:?}", f.role))).or_default().push(f);
+        }
+    }
+    for ((exp, _), mut fs) in groups {
+        fs.sort_by_key(|f| chips.iter().position(|c| Some(c) == f.chip.as_ref()));
+        let have: Vec<&str> = fs.iter().filter_map(|f| f.chip.as_deref()).collect();
+        let missing: Vec<&str> = chips.iter().map(|c| c.as_str()).filter(|c| !have.contains(c)).collect();
+        let files: Vec<PathBuf> = fs.iter().map(|f| f.path.clone()).collect();
+        if !missing.is_empty() || have.len() != chips.len() {
+            left.push(LeftOut {
+                files,
+                why: if missing.is_empty() {
+                    format!("exposure {exp}: {} files for {} chips ({})", have.len(), chips.len(), have.join(", "))
+                } else {
+                    format!("exposure {exp}: chip file(s) {} missing", missing.join(", "))
+                },
+            });
+            continue;
+        }
+        let first = &fs[0];
+        if fs.iter().any(|f| f.filter != first.filter || f.hwp_deg != first.hwp_deg || f.target != first.target) {
+            left.push(LeftOut {
+                files,
+                why: format!("exposure {exp}: its chip files disagree on filter, HWP angle or target"),
+            });
+            continue;
+        }
+        out.push(Exposure { files, info: first.clone() });
+    }
+    out.sort_by(|a, b| a.info.mjd.total_cmp(&b.info.mjd).then_with(|| a.files.cmp(&b.files)));
+    out
+}
+
+/// A master's unit id and output.
+#[derive(Debug, Clone)]
+struct Master {
+    id: String,
+    out: PathBuf,
+    night: i64,
+    binning: [u32; 2],
+    filter: Option<String>,
+}
+
+/// The master of `masters` for a set of `night`, `binning` and `filter`: the same night's, else
+/// the nearest night's.
+fn nearest<'a>(masters: &'a [Master], night: i64, binning: [u32; 2], filter: Option<&String>) -> Option<&'a Master> {
+    masters
+        .iter()
+        .filter(|m| m.binning == binning && (filter.is_none() || m.filter.as_ref() == filter))
+        .min_by_key(|m| ((m.night - night).abs(), m.night))
+}
+
+fn bin_label(b: [u32; 2]) -> String {
+    format!("{}x{}", b[0], b[1])
+}
+
+fn s(p: &Path) -> String {
+    p.display().to_string()
+}
+
+/// Scan `dirs` and plan the night(s): the one library call of `instpol scan` and
+/// `instpol.scan`.
+///
+/// The plan holds absolute paths (the folders, the products, a standards file and an
+/// instrument given as a file are made absolute here), so that it runs from any folder and on
+/// any worker that sees the same file system.
+pub fn scan(dirs: &[PathBuf], opts: &ScanOptions) -> Result<Plan, Error> {
+    let abs = |p: &Path| std::path::absolute(p).map_err(|e| Error::Input { path: p.into(), why: e.to_string() });
+    let dirs: Vec<PathBuf> = dirs.iter().map(|d| abs(d)).collect::<Result<_, _>>()?;
+    let mut opts = opts.clone();
+    opts.products = abs(&opts.products)?;
+    opts.standards = opts.standards.as_deref().map(abs).transpose()?;
+    if Path::new(&opts.instrument).is_file() {
+        opts.instrument = abs(Path::new(&opts.instrument))?.display().to_string();
+    }
+    let opts = &opts;
+    let inst = Instrument::load(&opts.instrument).map_err(|e| Error::Instrument(e.to_string()))?;
+    if inst.headers.is_none() {
+        return Err(Error::Instrument(format!(
+            "instrument {} has no [headers] table: it does not say how its headers name bias, flat and polarimetric files",
+            opts.instrument
+        )));
+    }
+    if !(opts.pointing_tol_arcsec.is_finite() && opts.pointing_tol_arcsec > 0.0) {
+        return Err(Error::Option(format!("pointing tolerance {} arcsec: must be positive", opts.pointing_tol_arcsec)));
+    }
+    if !(opts.max_gap_min.is_finite() && opts.max_gap_min > 0.0) {
+        return Err(Error::Option(format!("largest gap {} min: must be positive", opts.max_gap_min)));
+    }
+    skyfield::reduce::check_bin(opts.bin_px, &inst).map_err(|e| Error::Option(e.to_string()))?;
+    for (what, v) in [("FWHM", opts.fwhm_px), ("aperture radius", opts.aperture_px)] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(Error::Option(format!("{what} {v} px: must be a positive number of pixels")));
+        }
+    }
+    let standards = match &opts.standards {
+        Some(p) => fit::standards::Standards::load(p),
+        None => fit::standards::Standards::builtin(),
+    }
+    .map_err(|e| Error::Option(e.to_string()))?;
+    let paths = list_files(&dirs)?;
+    let sorted = sort_files(&paths, &inst);
+    plan_sorted(sorted, &inst, &standards, opts)
+}
+
+/// Rules 2 to 7 over classified files.
+pub fn plan_sorted(
+    sorted: Sorted,
+    inst: &Instrument,
+    standards: &fit::standards::Standards,
+    opts: &ScanOptions,
+) -> Result<Plan, Error> {
+    let mut left = sorted.left_out;
+    let files_seen: Vec<(PathBuf, String)> =
+        sorted.files.iter().map(|f| (f.path.clone(), f.role.name().to_string())).collect();
+    let exps = exposures(sorted.files, inst, &mut left);
+    let p = &opts.products;
+    let inst_arg = opts.instrument.clone();
+    let mut units: Vec<Unit> = Vec::new();
+
+    // Rule 4: masters.
+    let mut bias_groups: BTreeMap<(i64, [u32; 2]), Vec<&Exposure>> = BTreeMap::new();
+    let mut flat_groups: BTreeMap<(i64, [u32; 2], String), Vec<&Exposure>> = BTreeMap::new();
+    for e in &exps {
+        let n = night_of(e.info.mjd);
+        match e.info.role {
+            Role::Bias => bias_groups.entry((n, e.info.binning)).or_default().push(e),
+            Role::Flat => match &e.info.filter {
+                Some(f) => flat_groups.entry((n, e.info.binning, f.clone())).or_default().push(e),
+                None => left.push(LeftOut { files: e.files.clone(), why: "a flat without a filter".into() }),
+            },
+            _ => {}
+        }
+    }
+    let mut biases = Vec::new();
+    for ((n, b), es) in &bias_groups {
+        if es.len() < 3 {
+            left.push(LeftOut {
+                files: es.iter().flat_map(|e| e.files.clone()).collect(),
+                why: format!(
+                    "{} bias exposure(s) of night {} binning {}: a master needs at least 3",
+                    es.len(),
+                    night_label(*n),
+                    bin_label(*b)
+                ),
+            });
+            continue;
+        }
+        let id = format!("bias-{}-{}", night_label(*n), bin_label(*b));
+        let out = p.join("masters").join(format!("{id}.fits"));
+        let inputs: Vec<PathBuf> = es.iter().flat_map(|e| e.files.clone()).collect();
+        let mut args = vec!["master-bias".to_string()];
+        args.extend(inputs.iter().map(|x| s(x)));
+        args.extend(["--instrument".into(), inst_arg.clone(), "--out".into(), s(&out)]);
+        units.push(Unit::new(&id, "master-bias", inputs, vec![out.clone()], args, vec![]));
+        biases.push(Master { id, out, night: *n, binning: *b, filter: None });
+    }
+    let mut flats = Vec::new();
+    for ((n, b, f), es) in &flat_groups {
+        if es.len() < 3 {
+            left.push(LeftOut {
+                files: es.iter().flat_map(|e| e.files.clone()).collect(),
+                why: format!(
+                    "{} flat exposure(s) in {f} of night {}: a master needs at least 3",
+                    es.len(),
+                    night_label(*n)
+                ),
+            });
+            continue;
+        }
+        let id = format!("flat-{}-{}-{}", night_label(*n), slug(f), bin_label(*b));
+        let out = p.join("masters").join(format!("{id}.fits"));
+        let mut inputs: Vec<PathBuf> = es.iter().flat_map(|e| e.files.clone()).collect();
+        let mut args = vec!["master-flat".to_string()];
+        args.extend(inputs.iter().map(|x| s(x)));
+        args.extend(["--instrument".into(), inst_arg.clone()]);
+        let mut after = vec![];
+        if let Some(m) = nearest(&biases, *n, *b, None) {
+            args.extend(["--bias".into(), s(&m.out)]);
+            inputs.push(m.out.clone());
+            after.push(m.id.clone());
+        }
+        args.extend(["--out".into(), s(&out)]);
+        units.push(Unit::new(&id, "master-flat", inputs, vec![out.clone()], args, after));
+        flats.push(Master { id, out, night: *n, binning: *b, filter: Some(f.clone()) });
+    }
+
+    // Rule 5: sets.
+    let tol = opts.pointing_tol_arcsec;
+    let mut seqs: Vec<Vec<&Exposure>> = Vec::new();
+    for e in exps.iter().filter(|e| matches!(e.info.role, Role::Polarimetry | Role::Standard)) {
+        let joins = seqs.last().is_some_and(|q: &Vec<&Exposure>| {
+            let (first, last) = (&q[0].info, &q[q.len() - 1].info);
+            let i = &e.info;
+            let near = match (first.ra_deg, first.dec_deg, i.ra_deg, i.dec_deg) {
+                (Some(a), Some(b), Some(c), Some(d)) => sep_arcsec(a, b, c, d) <= tol,
+                (None, None, None, None) => true,
+                _ => false,
+            };
+            first.role == i.role
+                && norm_name(&first.target) == norm_name(&i.target)
+                && first.filter == i.filter
+                && first.binning == i.binning
+                && near
+                && (i.mjd - last.mjd) * 1440.0 <= opts.max_gap_min
+        });
+        if joins {
+            if let Some(q) = seqs.last_mut() {
+                q.push(e);
+            }
+        } else {
+            seqs.push(vec![e]);
+        }
+    }
+    let mut set_names: BTreeMap<String, usize> = BTreeMap::new();
+    for q in seqs {
+        let info = &q[0].info;
+        let all_files: Vec<PathBuf> = q.iter().flat_map(|e| e.files.clone()).collect();
+        let label = format!(
+            "{} {} ({} exposure(s) from MJD {:.5})",
+            if info.target.is_empty() { "(no target name)" } else { &info.target },
+            info.filter.as_deref().unwrap_or("?"),
+            q.len(),
+            info.mjd
+        );
+        // Angles and their counts.
+        let mut angles: Vec<(f64, Vec<&Exposure>)> = Vec::new();
+        for e in &q {
+            let a = e.info.hwp_deg.unwrap_or(f64::NAN);
+            match angles.iter_mut().find(|(b, _)| (a - *b).abs() < 0.05) {
+                Some((_, v)) => v.push(e),
+                None => angles.push((a, vec![e])),
+            }
+        }
+        let distinct: Vec<f64> = angles.iter().map(|(a, _)| *a).collect();
+        if distinct.iter().any(|a| !a.is_finite()) {
+            left.push(LeftOut { files: all_files, why: format!("set {label}: an exposure without an HWP angle") });
+            continue;
+        }
+        if let Some(g) = skyfield::reduce::optimal_set_gap(&distinct) {
+            left.push(LeftOut {
+                files: all_files,
+                why: format!(
+                    "set {label}: incomplete, HWP angle(s) {} missing from the N = {} set ({}); has {}",
+                    fmt_deg(&g.missing_deg),
+                    g.n,
+                    fmt_deg(&g.expected_deg),
+                    fmt_deg(&distinct)
+                ),
+            });
+            continue;
+        }
+        let cycles = angles.iter().map(|(_, v)| v.len()).min().unwrap_or(0);
+        let mut keep: Vec<&Exposure> = Vec::new();
+        let mut extra: Vec<PathBuf> = Vec::new();
+        for (_, v) in &angles {
+            keep.extend(v.iter().take(cycles));
+            extra.extend(v.iter().skip(cycles).flat_map(|e| e.files.clone()));
+        }
+        if !extra.is_empty() {
+            left.push(LeftOut {
+                files: extra,
+                why: format!(
+                    "set {label}: exposures beyond its {cycles} complete cycle(s) of {} angles",
+                    distinct.len()
+                ),
+            });
+        }
+        keep.sort_by(|a, b| a.info.mjd.total_cmp(&b.info.mjd));
+        let frames: Vec<PathBuf> = keep.iter().flat_map(|e| e.files.clone()).collect();
+        let night = night_of(info.mjd);
+        let filter = info.filter.clone().unwrap_or_default();
+
+        // Rule 6: standards.
+        let by_name = standards.star(&info.target).ok();
+        let by_pos = match (info.ra_deg, info.dec_deg) {
+            (Some(ra), Some(dec)) => standards
+                .stars
+                .iter()
+                .find(|st| st.position_deg().is_some_and(|(sra, sdec)| sep_arcsec(ra, dec, sra, sdec) <= tol)),
+            _ => None,
+        };
+        let star = by_name.or(by_pos);
+        if star.is_none() && info.role == Role::Standard {
+            left.push(LeftOut {
+                files: vec![],
+                why: format!("set {label}: the headers call it a standard, but the standards list knows no '{}' there: measured as a target", info.target),
+            });
+        }
+
+        let first_unit = units.len();
+        let base = format!("{}-{}-{}", night_label(night), slug(&info.target), slug(&filter));
+        let k = set_names.entry(base.clone()).or_insert(0);
+        *k += 1;
+        let set_id = if *k == 1 { base } else { format!("{base}-{k}") };
+
+        let mut masters_args: Vec<String> = vec![];
+        let mut masters_in: Vec<PathBuf> = vec![];
+        let mut after: Vec<String> = vec![];
+        if let Some(m) = nearest(&biases, night, info.binning, None) {
+            masters_args.extend(["--bias".into(), s(&m.out)]);
+            masters_in.push(m.out.clone());
+            after.push(m.id.clone());
+        }
+        if let Some(m) = nearest(&flats, night, info.binning, info.filter.as_ref()) {
+            masters_args.extend(["--flat".into(), s(&m.out)]);
+            masters_in.push(m.out.clone());
+            after.push(m.id.clone());
+        }
+        let inputs: Vec<PathBuf> = frames.iter().cloned().chain(masters_in.iter().cloned()).collect();
+        let frame_args: Vec<String> = frames.iter().map(|x| s(x)).collect();
+
+        let map = p.join("maps").join(format!("{set_id}.fits"));
+        let mut args = vec!["reduce".to_string()];
+        args.extend(frame_args.iter().cloned());
+        args.extend(["--instrument".into(), inst_arg.clone(), "--bin".into(), opts.bin_px.to_string()]);
+        args.extend(masters_args.iter().cloned());
+        args.extend(["--out".into(), s(&map)]);
+        units.push(Unit::new(
+            &format!("reduce-{set_id}"),
+            "reduce",
+            inputs.clone(),
+            vec![map.clone()],
+            args,
+            after.clone(),
+        ));
+
+        let sky = opts.sky_fields.iter().find(|f| norm_name(&f.target) == norm_name(&info.target));
+        // A sky field is empty: its stars, if any, are not what it was taken for.
+        let cat = p.join("catalogs").join(format!("{set_id}.ecsv"));
+        let mut args = vec!["catalog".to_string()];
+        args.extend(frame_args.iter().cloned());
+        args.extend(["--instrument".into(), inst_arg.clone(), "--fwhm".into(), opts.fwhm_px.to_string()]);
+        args.extend(["--aperture".into(), opts.aperture_px.to_string()]);
+        args.extend(masters_args.iter().cloned());
+        args.extend(["--out".into(), s(&cat)]);
+        if sky.is_none() {
+            units.push(Unit::new(
+                &format!("catalog-{set_id}"),
+                "catalog",
+                inputs.clone(),
+                vec![cat],
+                args,
+                after.clone(),
+            ));
+        }
+
+        if let Some(sky) = sky {
+            let cal = p.join("calibrations").join(format!("{set_id}.fits"));
+            let args = vec![
+                "calibrate".to_string(),
+                "--map".into(),
+                s(&map),
+                "--instrument".into(),
+                inst_arg.clone(),
+                "--sky-p".into(),
+                sky.p_percent.to_string(),
+                "--sky-chi".into(),
+                sky.chi_deg.to_string(),
+                "--bin".into(),
+                opts.bin_px.to_string(),
+                "--out".into(),
+                s(&cal),
+            ];
+            units.push(Unit::new(
+                &format!("calibrate-{set_id}"),
+                "calibrate",
+                vec![map.clone()],
+                vec![cal],
+                args,
+                vec![format!("reduce-{set_id}")],
+            ));
+        }
+
+        if let Some(st) = star {
+            let polarized = st.kind == fit::standards::Kind::Polarized;
+            match star_pixel(inst, st, info.ra_deg, info.dec_deg) {
+                Some((x, y)) => {
+                    // A polarized standard gives the zero angle; an unpolarized one the
+                    // instrument's own polarization where it sits (photometry).
+                    let (kind, dir) = if polarized { ("zero-angle", "zero-angle") } else { ("photometry", "standards") };
+                    let out = p.join(dir).join(format!("{set_id}.json"));
+                    let mut args = vec![kind.to_string()];
+                    args.extend(frame_args.iter().cloned());
+                    args.extend([
+                        "--instrument".into(),
+                        inst_arg.clone(),
+                        "--x".into(),
+                        format!("{x:.2}"),
+                        "--y".into(),
+                        format!("{y:.2}"),
+                        "--aperture".into(),
+                        opts.aperture_px.to_string(),
+                    ]);
+                    if polarized {
+                        args.extend(["--star".into(), st.name.clone()]);
+                        if let Some(sp) = &opts.standards {
+                            args.extend(["--standards".into(), s(sp)]);
+                        }
+                    }
+                    args.extend(masters_args.iter().cloned());
+                    args.push("--json".into());
+                    let id = format!("{kind}-{set_id}");
+                    let mut u = Unit::new(&id, kind, inputs.clone(), vec![out], args, after.clone());
+                    u.stdout = true;
+                    u.standard = Some(st.name.clone());
+                    units.push(u);
+                }
+                None => left.push(LeftOut {
+                    files: vec![],
+                    why: format!(
+                        "set {label}: standard {} without a catalogued position or a pointing: not measured at its position",
+                        st.name
+                    ),
+                }),
+            }
+        }
+        // What each unit of the set measures (module docs of `trend`).
+        for u in &mut units[first_unit..] {
+            u.mjd = Some(info.mjd);
+            u.filter = info.filter.clone();
+        }
+    }
+    let plan = Plan {
+        version: PLAN_VERSION,
+        instrument: opts.instrument.clone(),
+        records: p.join(".instpol-run"),
+        units,
+        files: files_seen.into_iter().map(|(path, role)| super::plan::FileRole { path, role }).collect(),
+        left_out: left,
+    };
+    plan.check()?;
+    Ok(plan)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn night_labels_are_civil_dates() {
+        // MJD 58546 is 2019-03-04 (0h UT); the night starting that noon is labelled by it.
+        assert_eq!(night_label(58546), "20190304");
+        assert_eq!(night_label(40587), "19700101");
+        assert_eq!(night_label(51544), "20000101");
+        assert_eq!(night_of(58546.9), 58546);
+        assert_eq!(night_of(58547.3), 58546);
+    }
+
+    #[test]
+    fn separations() {
+        assert!((sep_arcsec(10.0, 0.0, 10.0, 1.0 / 3600.0) - 1.0).abs() < 1e-6);
+        assert!((sep_arcsec(0.0, 60.0, 1.0 / 3600.0 / 0.5, 60.0) - 1.0).abs() < 1e-3);
+    }
+}

@@ -1,0 +1,267 @@
+//! Instrument monitoring over many nights: the quantities the nights' plans measured, against
+//! date, and a step in each where one stands out of the errors.
+//!
+//! From each plan ([`super::plan::Plan`], as `instpol scan` wrote and `instpol run` ran it) are
+//! read, for every unit that finished (its output exists):
+//!
+//! - `zero_angle_deg`: a `zero-angle` unit's HWP zero angle (deg) and its error, per filter, one
+//!   point per polarized standard (`instpol zero-angle --json`);
+//! - `q_unpolarized`, `u_unpolarized`, `p_unpolarized`: a `photometry` unit's `q`, `u`, `P`
+//!   (fractions, in the plate's frame) and their errors, per filter, one point per unpolarized
+//!   standard (`instpol photometry --json`): the instrument's own polarization where the star
+//!   sits (`q`, `u` carry no bias; `P` does, near zero).
+//!
+//! Each point is dated by its set's first exposure (`mjd` of the unit). A series (a quantity in
+//! one filter) is searched for one step ([`find_step`]): every split into an earlier and a later
+//! part of at least two points each, the two weighted means compared; the split of largest
+//! significance is reported, and flagged when it exceeds the threshold (5 sigma by default:
+//! the search over splits is a look-elsewhere of about `n` trials).
+
+use super::plan::Plan;
+use super::Error;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// One measured value.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Point {
+    /// `zero_angle_deg`, `q_unpolarized`, `u_unpolarized` or `p_unpolarized` (module docs).
+    pub quantity: String,
+    pub filter: String,
+    /// The standard measured.
+    pub star: String,
+    /// Start of its set (MJD).
+    pub mjd: f64,
+    pub value: f64,
+    pub sigma: f64,
+    /// The file the value was read from.
+    pub source: PathBuf,
+}
+
+/// The most significant step of one series ([`find_step`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Step {
+    pub quantity: String,
+    pub filter: String,
+    /// The last point before the step and the first after it (MJD).
+    pub last_before_mjd: f64,
+    pub first_after_mjd: f64,
+    /// Weighted means before and after, their difference and its error (the errors scaled by
+    /// each part's sqrt(chi^2/dof) where that exceeds 1).
+    pub before: f64,
+    pub after: f64,
+    pub delta: f64,
+    pub sigma_delta: f64,
+    /// `|delta| / sigma_delta`.
+    pub significance: f64,
+    /// Significance above the threshold.
+    pub flagged: bool,
+    pub n_before: usize,
+    pub n_after: usize,
+}
+
+/// Every point of the nights and each series' step.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Trend {
+    pub points: Vec<Point>,
+    pub steps: Vec<Step>,
+    pub threshold_sigma: f64,
+}
+
+/// Weighted mean, its error scaled by sqrt(chi^2/dof) when above 1, of `(value, sigma)`.
+fn weighted(v: &[(f64, f64)]) -> (f64, f64) {
+    let w: f64 = v.iter().map(|(_, s)| 1.0 / (s * s)).sum();
+    let m = v.iter().map(|(x, s)| x / (s * s)).sum::<f64>() / w;
+    let chi2: f64 = v.iter().map(|(x, s)| ((x - m) / s).powi(2)).sum();
+    let scale = if v.len() > 1 { (chi2 / (v.len() - 1) as f64).max(1.0).sqrt() } else { 1.0 };
+    (m, scale / w.sqrt())
+}
+
+/// The most significant single step of a series `(mjd, value, sigma)` (module docs); `None`
+/// with fewer than four points. The points need not be sorted.
+pub fn find_step(points: &[(f64, f64, f64)], threshold_sigma: f64) -> Option<Step> {
+    let mut p: Vec<(f64, f64, f64)> = points
+        .iter()
+        .copied()
+        .filter(|(t, v, s)| t.is_finite() && v.is_finite() && s.is_finite() && *s > 0.0)
+        .collect();
+    p.sort_by(|a, b| a.0.total_cmp(&b.0));
+    if p.len() < 4 {
+        return None;
+    }
+    let mut best: Option<Step> = None;
+    for k in 2..=p.len() - 2 {
+        // A split between two points of the same date is no split.
+        if p[k].0 == p[k - 1].0 {
+            continue;
+        }
+        let a: Vec<(f64, f64)> = p[..k].iter().map(|x| (x.1, x.2)).collect();
+        let b: Vec<(f64, f64)> = p[k..].iter().map(|x| (x.1, x.2)).collect();
+        let ((m1, e1), (m2, e2)) = (weighted(&a), weighted(&b));
+        let sd = e1.hypot(e2);
+        let z = (m2 - m1).abs() / sd;
+        if best.as_ref().is_none_or(|s| z > s.significance) {
+            best = Some(Step {
+                quantity: String::new(),
+                filter: String::new(),
+                last_before_mjd: p[k - 1].0,
+                first_after_mjd: p[k].0,
+                before: m1,
+                after: m2,
+                delta: m2 - m1,
+                sigma_delta: sd,
+                significance: z,
+                flagged: z > threshold_sigma,
+                n_before: k,
+                n_after: p.len() - k,
+            });
+        }
+    }
+    best
+}
+
+fn read_json(path: &Path) -> Result<serde_json::Value, Error> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::Input { path: path.into(), why: e.to_string() })?;
+    serde_json::from_str(&text).map_err(|e| Error::Input { path: path.into(), why: format!("not JSON: {e}") })
+}
+
+fn number(v: &serde_json::Value, key: &str, path: &Path) -> Result<f64, Error> {
+    v.get(key)
+        .and_then(|x| x.as_f64())
+        .filter(|x| x.is_finite())
+        .ok_or_else(|| Error::Input { path: path.into(), why: format!("no number '{key}'") })
+}
+
+/// Gather the points of `plans` (plan files) and find each series' step (module docs). A plan
+/// whose units have not run (no output) contributes nothing from those units; a plan that
+/// cannot be read, or an output that does not hold what its kind writes, is an error naming
+/// the file.
+pub fn gather(plans: &[PathBuf], threshold_sigma: f64) -> Result<Trend, Error> {
+    if !(threshold_sigma.is_finite() && threshold_sigma > 0.0) {
+        return Err(Error::Option(format!("step threshold {threshold_sigma} sigma: must be positive")));
+    }
+    if plans.is_empty() {
+        return Err(Error::Option("no plan given".into()));
+    }
+    let mut points = Vec::new();
+    for path in plans {
+        let plan = Plan::load(path)?;
+        for u in &plan.units {
+            let (Some(out), Some(mjd)) = (u.outputs.first(), u.mjd) else { continue };
+            if !out.is_file() || !matches!(u.kind.as_str(), "zero-angle" | "photometry") {
+                continue;
+            }
+            let v = read_json(out)?;
+            let read: Vec<(&str, &str, &str)> = if u.kind == "zero-angle" {
+                vec![("zero_angle_deg", "zero_angle_deg", "sigma_zero_angle_deg")]
+            } else {
+                vec![
+                    ("q_unpolarized", "q", "sigma_q"),
+                    ("u_unpolarized", "u", "sigma_u"),
+                    ("p_unpolarized", "p", "sigma_p"),
+                ]
+            };
+            for (quantity, key, sigma) in read {
+                points.push(Point {
+                    quantity: quantity.into(),
+                    filter: u.filter.clone().unwrap_or_default(),
+                    star: u.standard.clone().unwrap_or_default(),
+                    mjd,
+                    value: number(&v, key, out)?,
+                    sigma: number(&v, sigma, out)?,
+                    source: out.clone(),
+                });
+            }
+        }
+    }
+    points.sort_by(|a, b| {
+        (a.quantity.as_str(), a.filter.as_str())
+            .cmp(&(b.quantity.as_str(), b.filter.as_str()))
+            .then(a.mjd.total_cmp(&b.mjd))
+    });
+    let mut series: Vec<(String, String)> = points.iter().map(|p| (p.quantity.clone(), p.filter.clone())).collect();
+    series.dedup();
+    let steps = series
+        .into_iter()
+        .filter_map(|(q, f)| {
+            let s: Vec<(f64, f64, f64)> =
+                points.iter().filter(|p| p.quantity == q && p.filter == f).map(|p| (p.mjd, p.value, p.sigma)).collect();
+            find_step(&s, threshold_sigma).map(|st| Step { quantity: q, filter: f, ..st })
+        })
+        .collect();
+    Ok(Trend { points, steps, threshold_sigma })
+}
+
+impl Trend {
+    /// The points as a table (by extension: .ecsv, .csv, .fits, .vot): quantity, filter, star,
+    /// mjd, value, sigma, and per point the step of its series it falls after (`after_step`,
+    /// 1 when the series' step is flagged and the point lies after it).
+    pub fn table(&self) -> skyfield::table::Table {
+        use skyfield::table::{Column, Table};
+        let after: Vec<i64> = self
+            .points
+            .iter()
+            .map(|p| {
+                self.steps.iter().any(|s| {
+                    s.flagged && s.quantity == p.quantity && s.filter == p.filter && p.mjd >= s.first_after_mjd
+                }) as i64
+            })
+            .collect();
+        let col = |f: fn(&Point) -> f64| self.points.iter().map(f).collect::<Vec<f64>>();
+        Table::new(vec![
+            Column::text(
+                "quantity",
+                "zero_angle_deg (deg), q_unpolarized, u_unpolarized or p_unpolarized (fractions)",
+                self.points.iter().map(|p| p.quantity.clone()).collect(),
+            ),
+            Column::text("filter", "filter", self.points.iter().map(|p| p.filter.clone()).collect()),
+            Column::text("star", "standard star", self.points.iter().map(|p| p.star.clone()).collect()),
+            Column::f64("mjd", Some("d"), "start of the set (MJD)", col(|p| p.mjd)),
+            Column::f64("value", None, "the quantity (deg or fraction, by quantity)", col(|p| p.value)),
+            Column::f64("sigma", None, "its 1-sigma error", col(|p| p.sigma)),
+            Column::i64("after_step", "1: after its series' flagged step", after),
+            Column::text("source", "file read", self.points.iter().map(|p| p.source.display().to_string()).collect()),
+        ])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_step_without_noise_is_found_where_it_is() {
+        // Six points at 0 and six at 1.5, each +-0.1: the means differ by 1.5 with an error of
+        // 0.1 sqrt(1/6 + 1/6) (chi^2 = 0: no scaling), between the sixth and seventh dates.
+        let p: Vec<(f64, f64, f64)> =
+            (0..12).map(|k| (58000.0 + 30.0 * k as f64, if k < 6 { 0.0 } else { 1.5 }, 0.1)).collect();
+        let s = find_step(&p, 5.0).unwrap();
+        assert_eq!((s.n_before, s.n_after), (6, 6));
+        assert_eq!((s.last_before_mjd, s.first_after_mjd), (58150.0, 58180.0));
+        assert!((s.delta - 1.5).abs() < 1e-12);
+        assert!((s.sigma_delta - 0.1 * (2.0f64 / 6.0).sqrt()).abs() < 1e-12);
+        assert!(s.flagged);
+    }
+
+    #[test]
+    fn scatter_within_errors_flags_nothing_and_scatter_beyond_them_widens_the_error() {
+        // +-1 sigma alternating: every split's means differ by at most 2/k sigma-ish.
+        let p: Vec<(f64, f64, f64)> = (0..12).map(|k| (k as f64, if k % 2 == 0 { 0.1 } else { -0.1 }, 0.1)).collect();
+        let s = find_step(&p, 5.0).unwrap();
+        assert!(!s.flagged && s.significance < 2.0, "{s:?}");
+        // The same values with errors ten times too small: chi^2/dof ~ 100 scales the errors
+        // back by ~10, so the significance stays what it was.
+        let small: Vec<(f64, f64, f64)> = p.iter().map(|&(t, v, _)| (t, v, 0.01)).collect();
+        let t = find_step(&small, 5.0).unwrap();
+        assert!(!t.flagged, "{t:?}");
+        assert!(find_step(&p[..3], 5.0).is_none());
+    }
+
+    #[test]
+    fn weighted_means() {
+        let (m, e) = weighted(&[(1.0, 1.0), (3.0, 1.0)]);
+        // chi^2 = 2 over 1 dof: the error 1/sqrt(2) scaled by sqrt(2).
+        assert_eq!(m, 2.0);
+        assert!((e - 1.0).abs() < 1e-15);
+    }
+}

@@ -1,0 +1,102 @@
+"""instpol.scan and instpol.run against `instpol scan --json` and `instpol run`: the same
+library calls, so the same plan (less the CLI's provenance) and the same products; a plan
+edited in Python runs what is left of it; bad plans are InputError."""
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+import instpol
+
+ROOT = Path(__file__).resolve().parents[2]
+INST = ROOT / "crates" / "cli" / "tests" / "data" / "night" / "tiny_fors2.toml"
+
+
+def simulate(run, tmp, name, angles, start_mjd, first_exp, dpr, target, sky=None, stars=()):
+    t = f'instrument = "{INST}"\nfilter = "v_HIGH"\nhwp_angles_deg = {list(angles)}\nexposure_s = 10\nseed = {first_exp}\n'
+    if sky:
+        t += f"[sky]\nbrightness_e = {sky}\n"
+    for x, y, f in stars:
+        t += f'[[stars]]\nx = {x}\ny = {y}\ncoords = "pixel"\nflux_e = {f}\np = 0.02\nchi_deg = 30\nfwhm_arcsec = 2.5\n'
+    t += f"[output]\narchive = {{ start_mjd = {start_mjd}, cadence_s = 60 }}\nfirst_exposure_no = {first_exp}\n"
+    t += "[output.keywords]\n"
+    for k, v in zip(["CATG", "TYPE", "TECH"], dpr):
+        t += f'"HIERARCH ESO DPR {k}" = "{v}"\n'
+    t += f'"HIERARCH ESO OBS TARG NAME" = "{target}"\nRA = 10.0\nDEC = -20.0\n'
+    t += "[effects]\nphoton_noise = true\nread_noise = true\n"
+    scene = tmp / f"{name}.toml"
+    scene.write_text(t)
+    run("simulate", scene, "--out", tmp / "raw" / name)
+
+
+@pytest.fixture(scope="module")
+def night(run, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("night")
+    simulate(run, tmp, "bias", [0, 22.5, 45, 67.5, 90], 58546.80, 1, ["CALIB", "BIAS", "IMAGE"], "BIAS")
+    simulate(run, tmp, "flat", [0, 22.5, 45, 67.5], 58546.81, 11, ["CALIB", "FLAT,SKY", "IMAGE"], "FLAT", sky=20000)
+    simulate(
+        run, tmp, "target", [0, 22.5, 45, 67.5], 58546.90, 21, ["SCIENCE", "OBJECT", "POLARIMETRY"], "NGC 1",
+        sky=400, stars=[(40, 33.5, 2e5), (110, 130.5, 3e5)],
+    )
+    return tmp
+
+
+def test_scan_is_the_cli_plan(night, run):
+    cli_plan = night / "cli.json"
+    _, out, _ = run("scan", night / "raw", "--instrument", INST, "--out", cli_plan, "--products", night / "products",
+                    "--fwhm", "3", "--aperture", "4", "--bin", "8", "--json")
+    cli = json.loads(out)
+    del cli["provenance"]
+    py = instpol.scan(night / "raw", str(INST), night / "products", fwhm=3, aperture=4, bin=8, out=night / "py.json")
+    assert py == cli
+    assert json.loads((night / "py.json").read_text()) == json.loads(cli_plan.read_text())
+    kinds = sorted(u["kind"] for u in py["units"])
+    assert kinds == ["catalog", "master-bias", "master-flat", "reduce"]
+    assert {f["role"] for f in py["files"]} == {"bias", "flat", "polarimetry"}
+
+
+def test_run_makes_the_cli_products_and_skips_them_after(night, run, instpol_bin):
+    products = night / "products"
+    plan = instpol.scan(night / "raw", str(INST), products, fwhm=3, aperture=4, bin=8)
+    # An edited plan: the catalog left out; it is not run.
+    edited = dict(plan, units=[u for u in plan["units"] if u["kind"] != "catalog"])
+    report = instpol.run(edited, jobs=2, instpol_bin=instpol_bin)
+    assert sorted(o["status"] for o in report["outcomes"]) == ["done"] * 3
+    assert not any(p.parent.name == "catalogs" for p in products.rglob("*"))
+    # The same plan from the CLI's file, whole: the three are up to date, the catalog runs.
+    plan_file = night / "plan.toml"
+    run("scan", night / "raw", "--instrument", INST, "--out", plan_file, "--products", products,
+        "--fwhm", "3", "--aperture", "4", "--bin", "8")
+    report = instpol.run(plan_file, instpol_bin=instpol_bin)
+    status = {o["id"]: o["status"] for o in report["outcomes"]}
+    assert sorted(status.values()) == ["done", "up_to_date", "up_to_date", "up_to_date"], status
+    assert [k for k, s in status.items() if s == "done"][0].startswith("catalog-")
+    # The CLI finds everything done.
+    _, out, _ = run("run", plan_file, "--json")
+    assert {o["status"] for o in json.loads(out)["outcomes"]} == {"up_to_date"}
+    dry = instpol.run(plan, dry_run=True, units=[plan["units"][0]["id"]], instpol_bin=instpol_bin)
+    assert [o["status"] for o in dry["outcomes"]] == ["up_to_date"]
+
+
+def test_bad_plans_are_input_errors(night, instpol_bin, tmp_path):
+    plan = instpol.scan(night / "raw", str(INST), tmp_path / "p", fwhm=3, aperture=4, bin=8)
+    cyc = json.loads(json.dumps(plan))
+    cyc["units"][0]["after"] = [cyc["units"][-1]["id"]]
+    with pytest.raises(instpol.InputError, match="cycle"):
+        instpol.run(cyc, instpol_bin=instpol_bin)
+    bad = json.loads(json.dumps(plan))
+    bad["units"][0]["kind"] = "transmogrify"
+    with pytest.raises(instpol.InputError, match="unknown kind 'transmogrify'"):
+        instpol.run(bad, instpol_bin=instpol_bin)
+    with pytest.raises(instpol.InputError, match="no such unit"):
+        instpol.run(plan, units=["nothing"], instpol_bin=instpol_bin)
+    with pytest.raises(instpol.InputError, match="sky"):
+        instpol.scan(night / "raw", str(INST), tmp_path / "p", sky={"X": 3})
+    with pytest.raises(instpol.InputError, match="no FITS file"):
+        os.makedirs(tmp_path / "empty")
+        instpol.scan(tmp_path / "empty", str(INST), tmp_path / "p")
+    with pytest.raises(instpol.FileError):
+        instpol.run(tmp_path / "none.toml", instpol_bin=instpol_bin)
+    assert not (tmp_path / "p").exists()
