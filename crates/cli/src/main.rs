@@ -315,10 +315,10 @@ mod help_tests {
 
     /// Words that state a number's unit or kind in a help text (matched in lower case).
     #[rustfmt::skip]
-    const UNIT_WORDS: [&str; 31] = [
+    const UNIT_WORDS: [&str; 32] = [
         "px", "pixel", "arcmin", "arcsec", "deg", "rad", "nm", "micron", "percent", "%", "fraction", "sigma", "e-",
         "electron", "adu", "second", " s ", " s)", " s,", " s.", "count", "number of", "seed", "ratio", "dimensionless",
-        "index", "threads", "trials", "times", "ppm", "chi^2",
+        "index", "threads", "trials", "times", "ppm", "chi^2", "minute",
     ];
 
     /// The numeric value types, as `main` recognizes them for negative values.

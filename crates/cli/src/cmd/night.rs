@@ -71,7 +71,7 @@ pub struct ScanArgs {
 pub struct RunArgs {
     /// The plan (from `instpol scan`).
     pub plan: PathBuf,
-    /// Units run at once.
+    /// Number of units run at once (processes).
     #[arg(long, default_value_t = 1)]
     pub jobs: usize,
     /// Run this unit (by id or 0-based number in the plan) and what it follows; repeatable.
