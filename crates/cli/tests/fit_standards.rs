@@ -352,3 +352,27 @@ fn a_failed_run_leaves_none_of_its_files() {
         assert_eq!(std::fs::read_to_string(&data).unwrap(), csv);
     }
 }
+
+/// A standard with chi_true_deg but no p_true is a row half filled in: refused naming the line
+/// and the column, where it was taken as an unpolarized star (its angle silently dropped). An
+/// empty p_true and chi_true_deg together is an unpolarized star, as before.
+#[test]
+fn an_angle_without_a_degree_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut csv = String::from("filter,star,pa_deg,q,sigma_q,u,sigma_u,wavelength_um,p_true,chi_true_deg\n");
+    for i in 0..8 {
+        let pa = -160.0 + 40.0 * i as f64;
+        let a = (2.0 * (30.0 - pa)).to_radians();
+        csv += &format!("V,S{i},{pa},{},0.001,{},0.001,0.55,,\n", 0.035 * a.cos(), -0.035 * a.sin());
+    }
+    let good = dir.path().join("good.csv");
+    std::fs::write(&good, &csv).unwrap();
+    let r = run(&[good.to_str().unwrap()]);
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let half = dir.path().join("half.csv");
+    std::fs::write(&half, csv.replacen("0.55,,\n", "0.55,,42.0\n", 1)).unwrap();
+    let r = run(&[half.to_str().unwrap()]);
+    assert_eq!(r.status.code(), Some(2));
+    let e = String::from_utf8_lossy(&r.stderr);
+    assert!(e.contains("half.csv") && e.contains("line 2") && e.contains("p_true is empty"), "{e}");
+}

@@ -186,7 +186,18 @@ pub fn parse_observations(text: &str, path: &Path) -> Result<Vec<Observation>> {
                 let chi = num(10, "chi_true_deg")?.to_radians();
                 (p * (2.0 * chi).cos(), p * (2.0 * chi).sin())
             }
-            _ => (0.0, 0.0),
+            _ => {
+                // An angle without a degree is a row half filled in, not an unpolarized star.
+                if let Some(c) = cols[10].filter(|&c| fields.get(c).is_some_and(|f| !f.trim().is_empty())) {
+                    return Err(bad(
+                        ln,
+                        c + 1,
+                        "chi_true_deg is given but p_true is empty: give both (a polarized standard) or neither (an unpolarized one)"
+                            .into(),
+                    ));
+                }
+                (0.0, 0.0)
+            }
         };
         out.push(Observation {
             star,
