@@ -15,13 +15,18 @@ fn s(p: &std::path::Path) -> String {
     p.display().to_string()
 }
 
+/// The shrunk FORS2 instrument written to `d` (its path) and loaded.
+fn tiny_instrument(d: &std::path::Path) -> (std::path::PathBuf, instrument::Instrument) {
+    let p = d.join("fors2_tiny.toml");
+    std::fs::write(&p, fors2_tiny_text()).unwrap();
+    (p, common::raw::fors2_tiny())
+}
+
 #[test]
 fn fors2_raw_frames_with_master_bias_and_flat_give_the_known_sky() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let inst_path = d.join("fors2_tiny.toml");
-    std::fs::write(&inst_path, fors2_tiny_text()).unwrap();
-    let inst = common::raw::fors2_tiny();
+    let (inst_path, inst) = tiny_instrument(d);
     let set = write_raw_set(d, &inst);
     let ip = s(&inst_path);
     let mut a = vec!["master-bias".to_string()];
@@ -227,9 +232,7 @@ fn chip_files_with_no_usable_overscan_are_refused() {
     use skyfield::fits::{Bitpix, KeyValue};
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let ip = d.join("fors2_tiny.toml");
-    std::fs::write(&ip, fors2_tiny_text()).unwrap();
-    let inst = common::raw::fors2_tiny();
+    let (ip, inst) = tiny_instrument(d);
     let mut files = Vec::new();
     for (k, &a) in common::raw::ANGLES.iter().enumerate() {
         let e = common::raw::sky_electrons(&inst, a);
@@ -285,9 +288,7 @@ fn master_flats_carry_their_filter_and_are_matched_to_the_frames() {
     use sim::raw::{write_raw_exposure, RawExposure};
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let inst_path = d.join("fors2_tiny.toml");
-    std::fs::write(&inst_path, fors2_tiny_text()).unwrap();
-    let inst = common::raw::fors2_tiny();
+    let (inst_path, inst) = tiny_instrument(d);
     let set = write_raw_set(d, &inst);
     let ip = s(&inst_path);
     let lamp = vec![30000.0; inst.detector.nx * inst.detector.ny];
@@ -350,9 +351,7 @@ fn master_flats_carry_their_filter_and_are_matched_to_the_frames() {
 fn scan_regions_that_hold_light_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let ip = d.join("fors2_tiny.toml");
-    std::fs::write(&ip, fors2_tiny_text()).unwrap();
-    let inst = common::raw::fors2_tiny();
+    let (ip, inst) = tiny_instrument(d);
     let set = write_raw_set(d, &inst);
     let flat = |out: &str| {
         let mut a = vec!["master-flat".to_string(), "--instrument".into(), s(&ip)];

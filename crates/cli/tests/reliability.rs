@@ -36,6 +36,24 @@ fn frames(dir: &Path) -> (PathBuf, Vec<String>, PathBuf) {
     (ins, fr, map)
 }
 
+/// A calibration of the tiny instrument's map (`instpol calibrate --map`, a 2 % sky at 30 deg).
+fn calibrate_map(ins: &Path, map: &Path, cal: &Path) {
+    let (c, _, e) = run(&[
+        "calibrate",
+        "--map",
+        &s(map),
+        "--instrument",
+        &s(ins),
+        "--sky-p",
+        "2",
+        "--sky-chi",
+        "30",
+        "--out",
+        &s(cal),
+    ]);
+    assert_eq!(c, 0, "{e}");
+}
+
 /// Negative numbers are values in every command (`--chi -30`, `--kappa -1e-3`, `--x -30`),
 /// not flags: the same result as the `--chi=-30` form, which always worked.
 #[test]
@@ -192,20 +210,7 @@ fn outputs_never_replace_inputs() {
     assert!(e.contains("given twice") && e.contains(Path::new(&fr[1]).file_name().unwrap().to_str().unwrap()), "{e}");
     // correct: the map given as its own output.
     let cal = d.path().join("cal.fits");
-    let (c, _, e) = run(&[
-        "calibrate",
-        "--map",
-        &s(&map),
-        "--instrument",
-        &s(&ins),
-        "--sky-p",
-        "2",
-        "--sky-chi",
-        "30",
-        "--out",
-        &s(&cal),
-    ]);
-    assert_eq!(c, 0, "{e}");
+    calibrate_map(&ins, &map, &cal);
     let mb = std::fs::read(&map).unwrap();
     let (c, _, e) = run(&["correct", "--cal", &s(&cal), "--in", &s(&map), "--out", &s(&map)]);
     assert_eq!(c, 2, "{e}");
@@ -260,20 +265,7 @@ fn outputs_never_replace_masters_or_calibrations() {
         }
     }
     let cal = d.path().join("cal.fits");
-    let (c, _, e) = run(&[
-        "calibrate",
-        "--map",
-        &s(&map),
-        "--instrument",
-        &s(&ins),
-        "--sky-p",
-        "2",
-        "--sky-chi",
-        "30",
-        "--out",
-        &s(&cal),
-    ]);
-    assert_eq!(c, 0, "{e}");
+    calibrate_map(&ins, &map, &cal);
     let cb = std::fs::read(&cal).unwrap();
     let mut a = vec!["catalog".to_string(), "--instrument".into(), s(&ins), "--cal".into(), s(&cal)];
     a.extend(["--out".into(), s(&cal)]);

@@ -96,7 +96,7 @@ impl TableColumns {
     /// errors in % become fractions, `cov_qu` in `%2` too (undeclared beside `q, u` in % it is
     /// refused); `x, y` in `pix` are pixels, in `arcmin`, `arcsec` or `deg` arcmin.
     pub fn read(t: &Table, path: &Path) -> Result<Self, skyfield::Error> {
-        let col = |c: &str| -> Result<Vec<f64>, skyfield::Error> {
+        let need = |c: &str| -> Result<(), skyfield::Error> {
             if t.column(c).is_none() {
                 return Err(skyfield::Error::Table {
                     path: path.to_path_buf(),
@@ -106,11 +106,12 @@ impl TableColumns {
                     ),
                 });
             }
-            t.numbers(c, path)
+            Ok(())
         };
+        let col = |c: &str| need(c).and_then(|()| t.numbers(c, path));
         let (mut x, mut y) = (col("x")?, col("y")?);
         for c in ["q", "u", "sigma_q", "sigma_u"] {
-            col(c)?;
+            need(c)?;
         }
         let (mut v, scale) = t.fractions(&["q", "u", "sigma_q", "sigma_u"], path)?;
         let (sigma_u, sigma_q, u, q) = (v.pop().unwrap(), v.pop().unwrap(), v.pop().unwrap(), v.pop().unwrap());

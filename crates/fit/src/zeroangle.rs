@@ -303,30 +303,32 @@ use std::path::Path;
 /// source lists the sources; its position and P are the first measurement's.
 pub fn merge_repeats(rows: Vec<MeasuredStandard>) -> Vec<MeasuredStandard> {
     let key = |m: &MeasuredStandard| m.label.trim().to_ascii_lowercase();
-    // Each star: its first row, sum of weights, sum of weighted differences from the first.
-    let mut out: Vec<(MeasuredStandard, f64, f64)> = Vec::with_capacity(rows.len());
+    // Each star: its first row, its rows' count, sum of weights and of weighted differences
+    // from the first.
+    let mut out: Vec<(MeasuredStandard, usize, f64, f64)> = Vec::with_capacity(rows.len());
     for m in rows {
         let w = m.sigma_chi_measured_deg.powi(-2);
-        let same = out.iter().position(|(o, _, _)| {
+        let same = out.iter().position(|(o, ..)| {
             key(o) == key(&m) && m.label.trim().parse::<f64>().is_err() && o.chi_catalogue_deg == m.chi_catalogue_deg
         });
         match same {
             Some(k) => {
-                let (o, sw, swd) = &mut out[k];
+                let (o, n, sw, swd) = &mut out[k];
                 let d = wrap_half_pi((m.chi_measured_deg - o.chi_measured_deg).to_radians()).to_degrees();
+                *n += 1;
                 *sw += w;
                 *swd += w * d;
                 if !o.source.split(" + ").any(|s| s == m.source) {
                     o.source = format!("{} + {}", o.source, m.source);
                 }
             }
-            None => out.push((m, w, 0.0)),
+            None => out.push((m, 1, w, 0.0)),
         }
     }
     out.into_iter()
-        .map(|(mut o, sw, swd)| {
+        .map(|(mut o, n, sw, swd)| {
             // A star measured once keeps its row bit for bit.
-            if o.source.contains(" + ") || sw != o.sigma_chi_measured_deg.powi(-2) {
+            if n > 1 {
                 o.chi_measured_deg += swd / sw;
                 o.sigma_chi_measured_deg = sw.sqrt().recip();
             }

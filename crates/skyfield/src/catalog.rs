@@ -426,6 +426,9 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
     // The detection's work images take the measuring pass's frames.
     src.recycle(spare);
     let (pairs, unpaired) = pair(&sources, &g, dcfg.pair_tol_px);
+    // The unpaired sources and where the layout puts their e images, for the overlap test.
+    let unpaired_e: Vec<(&Source, Option<(f64, f64)>)> =
+        unpaired.iter().map(|&k| (&sources[k], g.e_position(sources[k].x, sources[k].y))).collect();
     let chi_off = inst.filter(src.filter()).map(|f| f.chi_offset_deg()).unwrap_or(0.0);
     let opts = PhotOptions { weighting: cfg.weighting, recentre: true, kappa: cfg.kappa };
     // Each star's row as far as the detection tells (its flags), and the aperture radii to
@@ -462,14 +465,11 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
             }
             // An image shared with another star: an unpaired source sits where the layout puts
             // the e image of this star's e image, or the o image of this star's o image.
-            let at = |p: Option<(f64, f64)>, k: usize| {
-                p.is_some_and(|(x, y)| (sources[k].x - x).hypot(sources[k].y - y) <= dcfg.pair_tol_px)
+            let near = |p: Option<(f64, f64)>, x: f64, y: f64| {
+                p.is_some_and(|(px, py)| (x - px).hypot(y - py) <= dcfg.pair_tol_px)
             };
-            let shared = unpaired.iter().any(|&k| {
-                at(g.e_position(se.x, se.y), k)
-                    || g.e_position(sources[k].x, sources[k].y)
-                        .is_some_and(|(x, y)| (so.x - x).hypot(so.y - y) <= dcfg.pair_tol_px)
-            });
+            let e_of_e = g.e_position(se.x, se.y);
+            let shared = unpaired_e.iter().any(|(u, u_e)| near(e_of_e, u.x, u.y) || near(*u_e, so.x, so.y));
             if shared {
                 flags |= flags::OVERLAP;
             }
