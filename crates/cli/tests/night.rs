@@ -434,9 +434,10 @@ fn a_simulated_night_scanned_and_run() {
             count("reduce"),
             count("catalog"),
             count("calibrate"),
-            count("zero-angle")
+            count("zero-angle"),
+            count("validate")
         ),
-        (1, 2, 9, 5, 4, 2),
+        (1, 2, 9, 5, 4, 3, 4),
         "{ids:?}"
     );
     let unit = |id: &str| units.iter().find(|u| u["id"] == id).unwrap_or_else(|| panic!("no unit {id} in {ids:?}"));
@@ -466,6 +467,29 @@ fn a_simulated_night_scanned_and_run() {
     assert!(ids.contains(&"zero-angle-20190304-HD110984-v_HIGH"));
     assert!(ids.contains(&"catalog-20190304-HD_14069-v_HIGH") && ids.contains(&"catalog-20190304-HD64299-I_BESS"));
     assert!(!ids.iter().any(|i| i.contains("zero-angle") && i.contains("HD") && i.contains("14069")));
+    // The night's checks: each standard against its filter's calibration nearest in time
+    // (the second empty field of each filter was taken closer to the standards), and the
+    // zero angle of the night in v_HIGH from its two polarized standards.
+    let words = |id: &str| -> Vec<String> {
+        unit(id)["command"].as_array().unwrap().iter().map(|c| c.as_str().unwrap().to_string()).collect()
+    };
+    for (set, cal) in [
+        ("HD110984-v_HIGH", "EMPTY-V2-v_HIGH"),
+        ("STD-2-v_HIGH", "EMPTY-V2-v_HIGH"),
+        ("HD_14069-v_HIGH", "EMPTY-V2-v_HIGH"),
+        ("HD64299-I_BESS", "EMPTY-I2-I_BESS"),
+    ] {
+        let id = format!("validate-20190304-{set}");
+        let v = words(&id);
+        let v: Vec<&str> = v.iter().map(|x| x.as_str()).collect();
+        assert!(flag(&v, "--cal").unwrap().ends_with(&format!("calibrations/20190304-{cal}.fits")), "{id}: {v:?}");
+        assert_eq!(unit(&id)["check"], true);
+        assert!(unit(&id)["after"].as_array().unwrap().iter().any(|a| a == &format!("calibrate-20190304-{cal}")));
+    }
+    let night_za = words("zero-angle-20190304-v_HIGH-night");
+    let measured: Vec<&String> = night_za.windows(2).filter(|w| w[0] == "--measured").map(|w| &w[1]).collect();
+    assert_eq!(measured.len(), 2, "{night_za:?}");
+    assert!(measured.iter().all(|m| m.contains("/zero-angle/20190304-")), "{night_za:?}");
 
     // The commands by hand, in the plan's order, into products; kept as the reference.
     let hand = root.join("hand");
@@ -475,7 +499,9 @@ fn a_simulated_night_scanned_and_run() {
             std::fs::create_dir_all(Path::new(o.as_str().unwrap()).parent().unwrap()).unwrap();
         }
         let o = instpol(&c);
-        assert!(o.status.success(), "{}: {}", u["id"], String::from_utf8_lossy(&o.stderr));
+        // A check unit's exit status 1 is its check not passing: a result (run reports it).
+        let check_ran = u["check"] == true && o.status.code() == Some(1);
+        assert!(o.status.success() || check_ran, "{}: {}", u["id"], String::from_utf8_lossy(&o.stderr));
         if u["stdout"] == true {
             std::fs::write(u["outputs"][0].as_str().unwrap(), &o.stdout).unwrap();
         }
@@ -568,6 +594,38 @@ fn a_simulated_night_scanned_and_run() {
     std::fs::write(&json_plan, serde_json::to_string(&as_value).unwrap()).unwrap();
     let (ok, report) = run_json(&json_plan, &["--dry-run"]);
     assert!(ok && statuses(&report).iter().all(|(_, s)| s == "up_to_date"), "{report}");
+
+    // The standards passed their checks; a check made impossible (a threshold of 0.01 sigma)
+    // does not pass: its output is kept, the run says so with exit status 1, and a second run
+    // skips it and says so again.
+    for u in units.iter().filter(|u| u["kind"] == "validate") {
+        let v: Value = serde_json::from_slice(&std::fs::read(u["outputs"][0].as_str().unwrap()).unwrap()).unwrap();
+        assert_eq!(v["pass"], true, "{}: {v}", u["id"]);
+    }
+    let mut strict = serde_json::to_value(&as_value).unwrap();
+    let id = "validate-20190304-HD110984-v_HIGH";
+    let vu = strict["units"].as_array_mut().unwrap().iter_mut().find(|u| u["id"] == id).unwrap();
+    vu["command"].as_array_mut().unwrap().extend(["--threshold".into(), "0.01".into()]);
+    let strict_plan = root.join("strict.json");
+    std::fs::write(&strict_plan, serde_json::to_string(&strict).unwrap()).unwrap();
+    for pass in ["ran", "recorded"] {
+        let (ok, report) = run_json(&strict_plan, &["--unit", id]);
+        assert!(!ok, "{pass}: a check that did not pass exits with 1: {report}");
+        let last = report["outcomes"].as_array().unwrap().last().unwrap().clone();
+        assert_eq!(
+            (last["id"].as_str(), last["status"].as_str()),
+            (Some(id), Some("check_failed")),
+            "{pass}: {report}"
+        );
+        let out = vu_output(&strict, id);
+        let v: Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
+        assert_eq!(v["pass"], false, "{pass}: {v}");
+    }
+}
+
+fn vu_output(plan: &Value, id: &str) -> PathBuf {
+    let u = plan["units"].as_array().unwrap().iter().find(|u| u["id"] == id).unwrap();
+    PathBuf::from(u["outputs"][0].as_str().unwrap())
 }
 
 #[test]

@@ -192,6 +192,33 @@ impl Calibration {
         self.pixel.map(|g| g.to_px(c[0], c[1]))
     }
 
+    /// The instrumental `P` (`eq:poldeg`) at the edge of the field, the number an instrument's
+    /// monitoring follows over nights (`workflow::night::trend`): the mean of the model's `P`
+    /// at the midpoints of the four sides of its region, with the mean of their errors (the
+    /// four share the model's parameters, so their errors are taken as fully correlated: the
+    /// error of the mean is then their mean). `None` when the model is undefined at one of
+    /// them (an interpolant with a hole there).
+    ///
+    /// A radial pattern `P(r) = c r^2` about the centre of a region of half-sides `a`, `b`
+    /// gives `c (a^2 + b^2) / 2` (`crates/fit/tests/request.rs` checks an off-centre case).
+    pub fn p_at_edge(&self) -> Option<(f64, f64)> {
+        let r = &self.region;
+        let (xc, yc) = (0.5 * (r.x_min + r.x_max), 0.5 * (r.y_min + r.y_max));
+        let sides = [(r.x_min, yc), (r.x_max, yc), (xc, r.y_min), (xc, r.y_max)];
+        let mut sum = (0.0, 0.0);
+        for (x, y) in sides {
+            if !self.contains(x, y) {
+                return None;
+            }
+            let e = self.eval(x, y).p_chi_with_errors();
+            if !(e.p.is_finite() && e.sigma_p.is_finite()) {
+                return None;
+            }
+            sum = (sum.0 + e.p, sum.1 + e.sigma_p);
+        }
+        Some((sum.0 / 4.0, sum.1 / 4.0))
+    }
+
     /// Evaluate the model on a regular grid of `step` arcmin over the region, for the images.
     pub fn gridded(&self, step: f64) -> GridMap {
         let r = &self.region;

@@ -259,3 +259,19 @@ fn the_correction_inverts_the_chain_it_holds() {
     // whole.
     assert!(worst_exposures < 1e-12, "exposure by exposure: {worst_exposures:e}");
 }
+
+#[test]
+fn p_at_the_field_edge_is_the_mean_over_the_four_sides() {
+    // P(r) = 2e-4 + 1e-3 r + 3e-4 r^2 over x in [-1, 3], y in [-2, 2] (arcmin): the sides'
+    // midpoints lie at r = 1, 3 and sqrt(5) twice.
+    let mut cal = field(0.0);
+    cal.region = fit::FieldRegion { x_min: -1.0, x_max: 3.0, y_min: -2.0, y_max: 2.0 };
+    if let fit::Model::Radial(r) = &mut cal.model {
+        r.cov[0] = 1e-8; // sigma(c0) = 1e-4: every P moves with c0, so each side's error is 1e-4
+    }
+    let p = |r: f64| 2e-4 + 1e-3 * r + 3e-4 * r * r;
+    let expected = (p(1.0) + p(3.0) + 2.0 * p(5f64.sqrt())) / 4.0;
+    let (v, s) = cal.p_at_edge().unwrap();
+    assert!((v - expected).abs() < 1e-15, "{v} vs {expected}");
+    assert!((s - 1e-4).abs() < 1e-15, "{s}");
+}

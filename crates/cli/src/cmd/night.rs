@@ -237,15 +237,24 @@ pub fn run_run(a: RunArgs) -> Result<()> {
                 night::Status::WouldRun => ("would run", ""),
                 night::Status::Failed(w) => ("FAILED", w.as_str()),
                 night::Status::Blocked(w) => ("blocked", w.as_str()),
+                night::Status::CheckFailed(w) => ("check failed", w.as_str()),
             };
             outln!("{:<48} {:<12} {:>8.1}  {why}", o.id, status, o.seconds);
         }
-        let [done, up, would, failed, blocked] = report.counts();
-        outln!("{done} done, {up} up to date, {would} would run, {failed} failed, {blocked} blocked");
+        let [done, up, would, failed, blocked, checks] = report.counts();
+        outln!(
+            "{done} done, {up} up to date, {would} would run, {failed} failed, {blocked} blocked, {checks} check(s) did not pass"
+        );
     }
+    let [_, _, _, failed, blocked, checks] = report.counts();
     if !report.ok() {
-        let [_, _, _, failed, blocked] = report.counts();
         return Err(crate::util::CheckFailed(format!("{failed} unit(s) failed and {blocked} blocked")).into());
+    }
+    if checks > 0 {
+        return Err(crate::util::CheckFailed(format!(
+            "{checks} check unit(s) ran and did not pass (validate: a standard off its prediction)"
+        ))
+        .into());
     }
     Ok(())
 }

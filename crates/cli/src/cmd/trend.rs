@@ -6,8 +6,10 @@ use std::path::{Path, PathBuf};
 use workflow::night::trend::{self, Trend};
 
 /// Gather the results of many nights (the plans `instpol scan` wrote and `instpol run` ran):
-/// each polarized standard's HWP zero angle per filter and the unpolarized standards'
-/// instrumental polarization (q, u, P) against date, and in each series the most significant
+/// each polarized standard's HWP zero angle per filter, the unpolarized standards'
+/// instrumental polarization (q, u, P) and the sky-field calibrations' instrumental P at the
+/// field's edge (the mean over the midpoints of its four sides) against date, and in each
+/// series the most significant
 /// step (the split into earlier and later nights whose weighted means differ most in units of
 /// their error, the errors widened by each part's scatter); a step beyond --threshold sigma
 /// is flagged (a mirror recoating, a moved zero angle). Writes one row per measurement

@@ -766,7 +766,7 @@ def run(
     -------
     dict
         The report (``outcomes``: ``id``, ``kind``, ``status`` of ``done``, ``up_to_date``,
-        ``would_run``, ``failed`` or ``blocked``, ``reason``, ``seconds``): the keys of
+        ``would_run``, ``failed``, ``blocked`` or ``check_failed``, ``reason``, ``seconds``): the keys of
         ``instpol run --json`` less ``provenance``.
     """
     text, path = (json.dumps(plan), None) if isinstance(plan, dict) else (None, os.fspath(plan))

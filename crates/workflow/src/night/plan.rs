@@ -46,6 +46,10 @@ pub struct Unit {
     /// is the one output, written atomically by the runner.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub stdout: bool,
+    /// The command checks something (a `validate`): its exit status 1 means that the check ran
+    /// and did not pass, and its output is kept (`workflow::night::run`, "Checks").
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub check: bool,
     /// What the unit measures, for reading its output back over many nights
     /// (`workflow::night::trend`): the start of its set (MJD), its filter, and the standard
     /// star it measures.
@@ -74,6 +78,7 @@ impl Unit {
             command,
             after,
             stdout: false,
+            check: false,
             mjd: None,
             filter: None,
             standard: None,

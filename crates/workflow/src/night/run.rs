@@ -23,6 +23,10 @@
 //!   then finds it up to date.
 //! - **Failures**: a failing unit is reported with its command's last lines of error; the
 //!   units that follow it are reported blocked; the others run.
+//! - **Checks**: a unit marked `check` (a `validate`) runs a command whose exit status 1 means
+//!   that its check ran and did not pass (the CLI's convention). Its output is kept and
+//!   recorded like any other, the units that follow it run, and it is reported as
+//!   [`Status::CheckFailed`], again on every later run that skips it.
 
 use super::plan::{Plan, Unit};
 use super::Error;
@@ -38,6 +42,9 @@ pub struct Record {
     pub inputs: Vec<(PathBuf, String)>,
     /// `(path, blake3:<hex>)` of each output.
     pub outputs: Vec<(PathBuf, String)>,
+    /// A check unit whose check did not pass: why (module docs, "Checks").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub check_failed: Option<String>,
 }
 
 /// What happened to a unit.
@@ -52,6 +59,9 @@ pub enum Status {
     WouldRun,
     /// Ran and failed, with the reason.
     Failed(String),
+    /// A check unit that ran (or was recorded) and whose check did not pass: its output is
+    /// written; the reason is the command's message.
+    CheckFailed(String),
     /// Not run: a unit it follows failed or was blocked.
     Blocked(String),
 }
@@ -73,13 +83,15 @@ pub struct Report {
 }
 
 impl Report {
-    /// True when no unit failed or was blocked.
+    /// True when no unit failed or was blocked (a check that did not pass is a result, not a
+    /// failure: [`Report::counts`] counts them).
     pub fn ok(&self) -> bool {
         self.outcomes.iter().all(|o| !matches!(o.status, Status::Failed(_) | Status::Blocked(_)))
     }
-    /// How many units ended with each status: done, up to date, would run, failed, blocked.
-    pub fn counts(&self) -> [usize; 5] {
-        let mut c = [0; 5];
+    /// How many units ended with each status: done, up to date, would run, failed, blocked,
+    /// check failed.
+    pub fn counts(&self) -> [usize; 6] {
+        let mut c = [0; 6];
         for o in &self.outcomes {
             c[match o.status {
                 Status::Done => 0,
@@ -87,6 +99,7 @@ impl Report {
                 Status::WouldRun => 2,
                 Status::Failed(_) => 3,
                 Status::Blocked(_) => 4,
+                Status::CheckFailed(_) => 5,
             }] += 1;
         }
         c
@@ -104,26 +117,49 @@ pub struct RunOptions {
     pub dry_run: bool,
 }
 
-/// Runs one unit's command: its printed output (stdout) or the reason it failed.
-pub type Executor<'a> = dyn Fn(&Unit) -> Result<Vec<u8>, String> + Sync + 'a;
+/// What a unit's command did when it ran to its end.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Executed {
+    /// What it printed on standard output.
+    pub stdout: Vec<u8>,
+    /// A check unit whose check did not pass: the command's message (module docs, "Checks").
+    pub check_failed: Option<String>,
+}
+
+/// Runs one unit's command: what it did, or the reason it failed.
+pub type Executor<'a> = dyn Fn(&Unit) -> Result<Executed, String> + Sync + 'a;
 
 /// The executor that runs `program` (the `instpol` binary) with the unit's command, its
 /// standard input closed; a failure's reason is the last lines of what it printed on standard
-/// error (and its exit status).
-pub fn process_executor(program: PathBuf) -> impl Fn(&Unit) -> Result<Vec<u8>, String> + Sync {
+/// error (and its exit status). Exit status 1 of a check unit is its check not passing.
+pub fn process_executor(program: PathBuf) -> impl Fn(&Unit) -> Result<Executed, String> + Sync {
     move |u: &Unit| {
         let out = std::process::Command::new(&program)
             .args(&u.command)
             .stdin(std::process::Stdio::null())
             .output()
             .map_err(|e| format!("cannot start {}: {e}", program.display()))?;
-        if out.status.success() {
-            return Ok(out.stdout);
-        }
         let err = String::from_utf8_lossy(&out.stderr);
         let lines: Vec<&str> = err.lines().filter(|l| !l.trim().is_empty()).collect();
         let tail = lines[lines.len().saturating_sub(3)..].join(" | ");
-        Err(format!("{} ({})", if tail.is_empty() { "no message" } else { &tail }, out.status))
+        let tail = if tail.is_empty() { "no message".to_string() } else { tail };
+        if out.status.success() {
+            return Ok(Executed { stdout: out.stdout, check_failed: None });
+        }
+        if u.check && out.status.code() == Some(1) {
+            return Ok(Executed { stdout: out.stdout, check_failed: Some(tail) });
+        }
+        Err(format!("{tail} ({})", out.status))
+    }
+}
+
+impl Status {
+    /// The status of a unit that has just run: done, unless its check did not pass.
+    fn done(self) -> Status {
+        match self {
+            Status::UpToDate => Status::Done,
+            s => s,
+        }
     }
 }
 
@@ -155,15 +191,24 @@ fn record_path(plan: &Plan, u: &Unit) -> PathBuf {
     plan.records.join(format!("{}.json", u.id))
 }
 
-/// True when unit `u`'s record matches its command, its inputs' hashes now and its outputs
-/// (module docs).
-pub fn up_to_date(plan: &Plan, u: &Unit) -> bool {
-    let Ok(text) = std::fs::read_to_string(record_path(plan, u)) else { return false };
-    let Ok(r) = serde_json::from_str::<Record>(&text) else { return false };
-    r.command == u.command
+/// Unit `u`'s record when it matches its command, its inputs' hashes now and its outputs
+/// (module docs): the unit is up to date.
+pub fn up_to_date(plan: &Plan, u: &Unit) -> Option<Record> {
+    let text = std::fs::read_to_string(record_path(plan, u)).ok()?;
+    let r = serde_json::from_str::<Record>(&text).ok()?;
+    let same = r.command == u.command
         && r.outputs.iter().map(|(p, _)| p).eq(u.outputs.iter())
         && hashes(&u.inputs).is_some_and(|h| h == r.inputs)
-        && hashes(&u.outputs).is_some_and(|h| h == r.outputs)
+        && hashes(&u.outputs).is_some_and(|h| h == r.outputs);
+    same.then_some(r)
+}
+
+/// The status of a unit found up to date: its recorded check's, else up to date.
+fn recorded_status(r: Record) -> Status {
+    match r.check_failed {
+        Some(why) => Status::CheckFailed(why),
+        None => Status::UpToDate,
+    }
 }
 
 /// Run one unit under its lock: skip it when up to date, else execute it and record it.
@@ -179,8 +224,8 @@ fn run_unit(plan: &Plan, u: &Unit, exec: &Executor) -> Status {
     if let Err(e) = lock.lock() {
         return Status::Failed(format!("cannot lock {}: {e}", lock_path.display()));
     }
-    if up_to_date(plan, u) {
-        return Status::UpToDate;
+    if let Some(r) = up_to_date(plan, u) {
+        return recorded_status(r);
     }
     let Some(inputs) = hashes(&u.inputs) else {
         let missing =
@@ -194,12 +239,12 @@ fn run_unit(plan: &Plan, u: &Unit, exec: &Executor) -> Status {
             }
         }
     }
-    let printed = match exec(u) {
-        Ok(b) => b,
+    let ran = match exec(u) {
+        Ok(r) => r,
         Err(why) => return Status::Failed(why),
     };
     if u.stdout {
-        if let Err(e) = write_atomic(&u.outputs[0], &printed) {
+        if let Err(e) = write_atomic(&u.outputs[0], &ran.stdout) {
             return Status::Failed(e.to_string());
         }
     }
@@ -208,10 +253,10 @@ fn run_unit(plan: &Plan, u: &Unit, exec: &Executor) -> Status {
             u.outputs.iter().find(|p| !p.is_file()).map_or_else(|| "an output".into(), |p| p.display().to_string());
         return Status::Failed(format!("the command succeeded but did not write {missing}"));
     };
-    let rec = Record { command: u.command.clone(), inputs, outputs };
+    let rec = Record { command: u.command.clone(), inputs, outputs, check_failed: ran.check_failed };
     let text = serde_json::to_string_pretty(&rec).unwrap_or_default();
     match write_atomic(&record_path(plan, u), text.as_bytes()) {
-        Ok(()) => Status::Done,
+        Ok(()) => recorded_status(rec).done(),
         Err(e) => Status::Failed(e.to_string()),
     }
 }
@@ -252,7 +297,7 @@ pub fn run(
         let mut report = Report::default();
         for &i in &sel {
             let u = &plan.units[i];
-            let status = if up_to_date(plan, u) { Status::UpToDate } else { Status::WouldRun };
+            let status = up_to_date(plan, u).map_or(Status::WouldRun, recorded_status);
             let o = Outcome { id: u.id.clone(), kind: u.kind.clone(), status, seconds: 0.0 };
             on_outcome(&o);
             report.outcomes.push(o);
@@ -314,7 +359,7 @@ pub fn run(
                 let u = &plan.units[sel[k]];
                 let t0 = std::time::Instant::now();
                 let status = run_unit(plan, u, exec);
-                let ok = matches!(status, Status::Done | Status::UpToDate);
+                let ok = matches!(status, Status::Done | Status::UpToDate | Status::CheckFailed(_));
                 let o = Outcome { id: u.id.clone(), kind: u.kind.clone(), status, seconds: t0.elapsed().as_secs_f64() };
                 on_outcome(&o);
                 let mut st = state.lock().unwrap_or_else(|e| e.into_inner());

@@ -36,6 +36,12 @@
 //!    catalogued position against the pointing (north up, east left and the pointing on the
 //!    detector centre, assumed). Each unit of a set records the set's start, filter and
 //!    standard, for `trend`.
+//! 8. **A night's checks**: every standard's set with a calibration of its filter in the plan
+//!    (the sky field's set nearest in time) is validated against it (`instpol validate
+//!    --json`, a polarized standard by name, an unpolarized one as expected at zero; a check unit: a star off its prediction is a result, kept and reported, not a
+//!    failure); the zero-angle measurements of a night and filter, two or more, are combined
+//!    into one (`instpol zero-angle --measured ... --json`, the weighted mean on the circle),
+//!    the value to put in the instrument file.
 
 use super::header::{read_cards, Cards};
 use super::plan::{LeftOut, Plan, Unit, PLAN_VERSION};
@@ -361,6 +367,32 @@ fn exposures(files: Vec<FileInfo>, inst: &Instrument, left: &mut Vec<LeftOut>) -
 
 /// A master's unit id and output.
 #[derive(Debug, Clone)]
+/// A standard's set, as the night's checks (rule 8) use it.
+struct StandardSet {
+    set_id: String,
+    night: i64,
+    filter: String,
+    mjd: f64,
+    star: String,
+    /// The star's pixel, formatted as the set's units give it.
+    xy: [String; 2],
+    /// The units' frame arguments, master flags, inputs and dependencies.
+    frame_args: Vec<String>,
+    masters_args: Vec<String>,
+    inputs: Vec<PathBuf>,
+    after: Vec<String>,
+    /// A polarized standard's zero-angle unit: its id and output.
+    zero_angle: Option<(String, PathBuf)>,
+}
+
+/// A calibration made from a sky field's set.
+struct SkyCalibration {
+    unit: String,
+    out: PathBuf,
+    filter: String,
+    mjd: f64,
+}
+
 struct Master {
     id: String,
     out: PathBuf,
@@ -541,6 +573,8 @@ pub fn plan_sorted(
         }
     }
     let mut set_names: BTreeMap<String, usize> = BTreeMap::new();
+    let mut standard_sets: Vec<StandardSet> = Vec::new();
+    let mut calibrations: Vec<SkyCalibration> = Vec::new();
     for q in seqs {
         let info = &q[0].info;
         let all_files: Vec<PathBuf> = q.iter().flat_map(|e| e.files.clone()).collect();
@@ -690,8 +724,15 @@ pub fn plan_sorted(
                 "--out".into(),
                 s(&cal),
             ];
+            let unit = format!("calibrate-{set_id}");
+            calibrations.push(SkyCalibration {
+                unit: unit.clone(),
+                out: cal.clone(),
+                filter: filter.clone(),
+                mjd: info.mjd,
+            });
             units.push(Unit::new(
-                &format!("calibrate-{set_id}"),
+                &unit,
                 "calibrate",
                 vec![map.clone()],
                 vec![cal],
@@ -708,15 +749,16 @@ pub fn plan_sorted(
                     // instrument's own polarization where it sits (photometry).
                     let (kind, dir) = if polarized { ("zero-angle", "zero-angle") } else { ("photometry", "standards") };
                     let out = p.join(dir).join(format!("{set_id}.json"));
+                    let xy = [format!("{x:.2}"), format!("{y:.2}")];
                     let mut args = vec![kind.to_string()];
                     args.extend(frame_args.iter().cloned());
                     args.extend([
                         "--instrument".into(),
                         inst_arg.clone(),
                         "--x".into(),
-                        format!("{x:.2}"),
+                        xy[0].clone(),
                         "--y".into(),
-                        format!("{y:.2}"),
+                        xy[1].clone(),
                         "--aperture".into(),
                         opts.aperture_px.to_string(),
                     ]);
@@ -729,6 +771,19 @@ pub fn plan_sorted(
                     args.extend(masters_args.iter().cloned());
                     args.push("--json".into());
                     let id = format!("{kind}-{set_id}");
+                    standard_sets.push(StandardSet {
+                        set_id: set_id.clone(),
+                        night,
+                        filter: filter.clone(),
+                        mjd: info.mjd,
+                        star: st.name.clone(),
+                        xy,
+                        frame_args: frame_args.clone(),
+                        masters_args: masters_args.clone(),
+                        inputs: inputs.clone(),
+                        after: after.clone(),
+                        zero_angle: polarized.then(|| (id.clone(), out.clone())),
+                    });
                     let mut u = Unit::new(&id, kind, inputs.clone(), vec![out], args, after.clone());
                     u.stdout = true;
                     u.standard = Some(st.name.clone());
@@ -749,6 +804,7 @@ pub fn plan_sorted(
             u.filter = info.filter.clone();
         }
     }
+    units.extend(night_checks(&standard_sets, &calibrations, opts));
     let plan = Plan {
         version: PLAN_VERSION,
         instrument: opts.instrument.clone(),
@@ -759,6 +815,71 @@ pub fn plan_sorted(
     };
     plan.check()?;
     Ok(plan)
+}
+
+/// Rule 8 (module docs): each standard's set validated against its filter's calibration
+/// nearest in time, and the zero angle of each night and filter combined from its standards.
+fn night_checks(sets: &[StandardSet], calibrations: &[SkyCalibration], opts: &ScanOptions) -> Vec<Unit> {
+    let p = &opts.products;
+    let mut units = Vec::new();
+    for set in sets {
+        let Some(cal) = calibrations
+            .iter()
+            .filter(|c| c.filter == set.filter)
+            .min_by(|a, b| (a.mjd - set.mjd).abs().total_cmp(&(b.mjd - set.mjd).abs()))
+        else {
+            continue;
+        };
+        let mut args = vec!["validate".to_string()];
+        args.extend(set.frame_args.iter().cloned());
+        args.extend(["--cal".into(), s(&cal.out), "--instrument".into(), opts.instrument.clone()]);
+        args.extend(["--x".into(), set.xy[0].clone(), "--y".into(), set.xy[1].clone()]);
+        args.extend(["--aperture".into(), opts.aperture_px.to_string()]);
+        // An unpolarized standard is expected at zero, which validate takes without a star; a
+        // polarized one at its published value in the filter's band.
+        if set.zero_angle.is_some() {
+            args.extend(["--star".into(), set.star.clone()]);
+            if let Some(sp) = &opts.standards {
+                args.extend(["--standards".into(), s(sp)]);
+            }
+        }
+        args.extend(set.masters_args.iter().cloned());
+        args.push("--json".into());
+        let mut inputs = set.inputs.clone();
+        inputs.push(cal.out.clone());
+        let mut after = set.after.clone();
+        after.push(cal.unit.clone());
+        let out = p.join("validate").join(format!("{}.json", set.set_id));
+        let mut u = Unit::new(&format!("validate-{}", set.set_id), "validate", inputs, vec![out], args, after);
+        u.stdout = true;
+        u.check = true;
+        u.mjd = Some(set.mjd);
+        u.filter = Some(set.filter.clone());
+        u.standard = Some(set.star.clone());
+        units.push(u);
+    }
+    let mut by_night: BTreeMap<(i64, &str), Vec<&StandardSet>> = BTreeMap::new();
+    for set in sets.iter().filter(|s| s.zero_angle.is_some()) {
+        by_night.entry((set.night, set.filter.as_str())).or_default().push(set);
+    }
+    for ((night, filter), group) in by_night.into_iter().filter(|(_, g)| g.len() >= 2) {
+        let name = format!("{}-{}-night", night_label(night), slug(filter));
+        let mut args = vec!["zero-angle".to_string()];
+        let (mut inputs, mut after) = (Vec::new(), Vec::new());
+        for (id, out) in group.iter().filter_map(|s| s.zero_angle.as_ref()) {
+            args.extend(["--measured".into(), s(out)]);
+            inputs.push(out.clone());
+            after.push(id.clone());
+        }
+        args.push("--json".into());
+        let out = p.join("zero-angle").join(format!("{name}.json"));
+        let mut u = Unit::new(&format!("zero-angle-{name}"), "zero-angle", inputs, vec![out], args, after);
+        u.stdout = true;
+        u.mjd = group.iter().map(|s| s.mjd).reduce(f64::min);
+        u.filter = Some(filter.to_string());
+        units.push(u);
+    }
+    units
 }
 
 #[cfg(test)]

@@ -9,7 +9,12 @@
 //! - `q_unpolarized`, `u_unpolarized`, `p_unpolarized`: a `photometry` unit's `q`, `u`, `P`
 //!   (fractions, in the plate's frame) and their errors, per filter, one point per unpolarized
 //!   standard (`instpol photometry --json`): the instrument's own polarization where the star
-//!   sits (`q`, `u` carry no bias; `P` does, near zero).
+//!   sits (`q`, `u` carry no bias; `P` does, near zero);
+//! - `p_field_edge`: a `calibrate` unit's instrumental `P` at the edge of the field (fraction),
+//!   per filter, one point per sky-field calibration (`fit::Calibration::p_at_edge`).
+//!
+//! A night's combined zero angle (a `zero-angle` unit without a standard) repeats its
+//! standards' points and is not read.
 //!
 //! Each point is dated by its set's first exposure (`mjd` of the unit). A series (a quantity in
 //! one filter) is searched for one step ([`find_step`]): every split into an earlier and a later
@@ -25,10 +30,11 @@ use std::path::{Path, PathBuf};
 /// One measured value.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Point {
-    /// `zero_angle_deg`, `q_unpolarized`, `u_unpolarized` or `p_unpolarized` (module docs).
+    /// `zero_angle_deg`, `q_unpolarized`, `u_unpolarized`, `p_unpolarized` or `p_field_edge`
+    /// (module docs).
     pub quantity: String,
     pub filter: String,
-    /// The standard measured.
+    /// The standard measured (empty for `p_field_edge`).
     pub star: String,
     /// Start of its set (MJD).
     pub mjd: f64,
@@ -132,6 +138,21 @@ fn number(v: &serde_json::Value, key: &str, path: &Path) -> Result<f64, Error> {
         .ok_or_else(|| Error::Input { path: path.into(), why: format!("no number '{key}'") })
 }
 
+/// The `p_field_edge` point of a `calibrate` unit's output (module docs); none when the model
+/// is undefined at the edge.
+fn edge_point(u: &super::plan::Unit, out: &Path, mjd: f64) -> Result<Option<Point>, Error> {
+    let cal = fit::Calibration::load(out).map_err(|e| Error::Input { path: out.into(), why: e.to_string() })?;
+    Ok(cal.p_at_edge().map(|(value, sigma)| Point {
+        quantity: "p_field_edge".into(),
+        filter: u.filter.clone().unwrap_or_default(),
+        star: String::new(),
+        mjd,
+        value,
+        sigma,
+        source: out.into(),
+    }))
+}
+
 /// Gather the points of `plans` (plan files) and find each series' step (module docs). A plan
 /// whose units have not run (no output) contributes nothing from those units; a plan that
 /// cannot be read, or an output that does not hold what its kind writes, is an error naming
@@ -148,7 +169,14 @@ pub fn gather(plans: &[PathBuf], threshold_sigma: f64) -> Result<Trend, Error> {
         let plan = Plan::load(path)?;
         for u in &plan.units {
             let (Some(out), Some(mjd)) = (u.outputs.first(), u.mjd) else { continue };
-            if !out.is_file() || !matches!(u.kind.as_str(), "zero-angle" | "photometry") {
+            if !out.is_file() {
+                continue;
+            }
+            if u.kind == "calibrate" {
+                points.extend(edge_point(u, out, mjd)?);
+                continue;
+            }
+            if !matches!(u.kind.as_str(), "zero-angle" | "photometry") || u.standard.is_none() {
                 continue;
             }
             let v = read_json(out)?;
@@ -211,11 +239,15 @@ impl Trend {
         Table::new(vec![
             Column::text(
                 "quantity",
-                "zero_angle_deg (deg), q_unpolarized, u_unpolarized or p_unpolarized (fractions)",
+                "zero_angle_deg (deg), q_unpolarized, u_unpolarized, p_unpolarized or p_field_edge (fractions)",
                 self.points.iter().map(|p| p.quantity.clone()).collect(),
             ),
             Column::text("filter", "filter", self.points.iter().map(|p| p.filter.clone()).collect()),
-            Column::text("star", "standard star", self.points.iter().map(|p| p.star.clone()).collect()),
+            Column::text(
+                "star",
+                "standard star (empty for p_field_edge)",
+                self.points.iter().map(|p| p.star.clone()).collect(),
+            ),
             Column::f64("mjd", Some("d"), "start of the set (MJD)", col(|p| p.mjd)),
             Column::f64("value", None, "the quantity (deg or fraction, by quantity)", col(|p| p.value)),
             Column::f64("sigma", None, "its 1-sigma error", col(|p| p.sigma)),
