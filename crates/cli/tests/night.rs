@@ -41,7 +41,14 @@ struct Spec<'a> {
     seed: u64,
 }
 
+/// The instrument's radial pattern (percent, powers 0 to 3 of r in arcmin) in every frame.
+const PATTERN: [f64; 4] = [0.0, 0.1, 0.3, 0.05];
+
 fn simulate(root: &Path, s: &Spec) {
+    simulate_with(root, s, PATTERN)
+}
+
+fn simulate_with(root: &Path, s: &Spec, pattern: [f64; 4]) {
     let mut t = format!(
         "instrument = {:?}\nfilter = {:?}\nhwp_angles_deg = {:?}\nexposure_s = 30\nseed = {}\n",
         inst().display().to_string(),
@@ -68,7 +75,9 @@ fn simulate(root: &Path, s: &Spec) {
     if let Some(i) = s.instrume {
         t += &format!("INSTRUME = {i:?}\n");
     }
-    t += "[effects]\nphoton_noise = true\nread_noise = true\ninstpol = { kind = \"radial\", coeffs_percent = [0.0, 0.1, 0.3, 0.05] }\n";
+    t += &format!(
+        "[effects]\nphoton_noise = true\nread_noise = true\ninstpol = {{ kind = \"radial\", coeffs_percent = {pattern:?} }}\n"
+    );
     let scene = root.join(format!("{}.toml", s.dir));
     std::fs::write(&scene, t).unwrap();
     let out = root.join("raw").join(s.dir);
@@ -746,9 +755,11 @@ fn bad_folders_and_nonsense_plans_are_refused_by_name() {
 }
 
 /// Twelve monthly nights (bias, flats, the polarized standard HD 110984 at 4 angles, the
-/// unpolarized HD 14069 at 16 angles twice), scanned and run; with `steps`, from the seventh
-/// month on the zero angle moves by 1.5 deg (the star's angle turned) and the unpolarized
-/// standard shows 0.1 % along q (an instrumental polarization). The plans, in month order.
+/// unpolarized HD 14069 at 16 angles twice, an empty field of known sky polarization),
+/// scanned and run; with `steps`, from the seventh month on the zero angle moves by 1.5 deg
+/// (the star's angle turned), the unpolarized standard shows 0.1 % along q (an instrumental
+/// polarization) and the empty field's instrumental pattern is 20 % stronger (only its frames
+/// carry the change, so that each series has one step of its own). The plans, in month order.
 fn twelve_months(root: &Path, steps: bool, seed: u64) -> Vec<PathBuf> {
     let mut plans = Vec::new();
     for m in 0..12u64 {
@@ -835,6 +846,21 @@ fn twelve_months(root: &Path, steps: bool, seed: u64) -> Vec<PathBuf> {
         for sp in &specs {
             simulate(&dir, sp);
         }
+        let empty = Spec {
+            dir: "empty",
+            filter: "v_HIGH",
+            angles: Q4.to_vec(),
+            start_mjd: night + 0.83,
+            first_exp: 71,
+            dpr: ["SCIENCE", "OBJECT", "POLARIMETRY"],
+            target: "EMPTY-V",
+            ra_dec: (150.0, -30.0),
+            sky: Some((3000.0, 0.0174, -53.8)),
+            stars: vec![],
+            instrume: None,
+            seed: s + 6,
+        };
+        simulate_with(&dir, &empty, if after { PATTERN.map(|c| 1.2 * c) } else { PATTERN });
         let plan = dir.join("night.toml");
         let inst = inst();
         let o = instpol(&[
@@ -850,6 +876,8 @@ fn twelve_months(root: &Path, steps: bool, seed: u64) -> Vec<PathBuf> {
             "3",
             "--bin",
             "8",
+            "--sky",
+            "EMPTY-V:1.74:-53.8",
         ]);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let (ok, report) = run_json(&plan, &["--jobs", "2"]);
@@ -887,7 +915,11 @@ fn trend_over_twelve_months_finds_the_steps_and_only_them() {
             .clone()
     };
     let month7 = NIGHT + 180.0;
-    for (q, size) in [("zero_angle_deg", 1.5), ("q_unpolarized", 0.001)] {
+    // The pattern's P at the edge: the mean over the sides' midpoints of the tiny FORS2
+    // (2.6667' x 3.6': r = 1.3333' and 1.8') of 0.1 r + 0.3 r^2 + 0.05 r^3 percent, times 0.2.
+    let pat = |r: f64| (PATTERN[1] * r + PATTERN[2] * r * r + PATTERN[3] * r * r * r) / 100.0;
+    let edge_step = 0.2 * (pat(2.6667 / 2.0) + pat(1.8)) / 2.0;
+    for (q, size) in [("zero_angle_deg", 1.5), ("q_unpolarized", 0.001), ("p_field_edge", edge_step)] {
         let s = step(q);
         assert_eq!(s["flagged"], true, "{q}: {s}");
         assert!(
@@ -900,7 +932,7 @@ fn trend_over_twelve_months_finds_the_steps_and_only_them() {
     }
     // u saw nothing.
     assert_eq!(step("u_unpolarized")["flagged"], false, "{t}");
-    assert_eq!(t["points"].as_array().unwrap().len(), 12 * 4);
+    assert_eq!(t["points"].as_array().unwrap().len(), 12 * 5);
 
     let without = dir.path().join("without");
     let plans = twelve_months(&without, false, 11);

@@ -11,7 +11,9 @@ use workflow::night;
 /// and a catalog of every complete HWP set (chip files of one exposure together, repeated
 /// cycles kept, masters of the nearest night with the same binning and filter), a
 /// calibration of every sky field given with --sky, a zero angle from every polarized
-/// standard. Unusable files and incomplete sets are listed with the reason (an aborted set
+/// standard (and their weighted mean per night and filter), the instrumental polarization at
+/// every unpolarized standard, and a validation of every standard against its filter's
+/// calibration nearest in time. Unusable files and incomplete sets are listed with the reason (an aborted set
 /// names its missing angles). The plan is TOML, or JSON for a .json name; edit it freely and
 /// run it with `instpol run`.
 ///
@@ -59,7 +61,8 @@ pub struct ScanArgs {
 
 /// Run a plan written by `instpol scan`: units in dependency order (masters before what
 /// uses them), each skipped when its record says its inputs and outputs are unchanged, a
-/// failing unit reported without stopping the others (exit status 1 when any failed). A run
+/// failing unit reported without stopping the others (exit status 1 when any failed, or when
+/// a validate unit's standard is off its prediction: a check that did not pass). A run
 /// killed at any point and started again redoes no finished unit. `--unit K` runs one unit
 /// (after what it follows) for a Slurm job array or GNU parallel; `instpol run PLAN --list`
 /// prints the unit ids, one a line.
