@@ -7,6 +7,8 @@
 #     the binary, which also hashes its inputs for provenance: <= 2x (read + hash)
 #   correction throughput of the library (fit bench)        target >= 1e7 positions/s/core
 #   ray trace: field points x pupil rays per second (mueller bench)
+#   scan of 10,000 raw files vs an astropy getheader loop (bench/scan.sh)   target >= 10x
+#   run over a night's plan vs its commands one after another (bench/run_plan.sh) <= 1.05
 # usage: bench/run.sh [--write]      (--write: also write the table to bench/RESULTS.md)
 # env:   MC_TRIALS (default 2000000), REPS (default 3), FRAMES_DIR (default: a temp folder;
 #        16 FORS1 frames of 2048 x 2048 float32 = 256 MB are made there once and kept if set)
@@ -129,6 +131,11 @@ PY
 # getheader loop over the same 10,000 files), its row appended to the table.
 echo "== instpol scan of 10,000 raw files vs astropy getheader (bench/scan.sh)" >&2
 REPS="$REPS" bash bench/scan.sh 10000 | awk -F'|' '{ok = ($5 + 0 >= 10) ? "yes" : "NO"; printf "|%s|%s|%s|%s|%s| %s |\n", $2, $3, $4, $5, $6, ok}' >> "$LOG/table.md"
+
+# 6. A night's plan run by `instpol run` against its commands run one after another
+# (bench/run_plan.sh), its row appended to the table.
+echo "== instpol run over a night's plan vs its commands by hand (bench/run_plan.sh)" >&2
+REPS="$REPS" bash bench/run_plan.sh | awk -F'|' '{ok = ($5 + 0 <= 1.05) ? "yes" : "NO"; printf "|%s|%s|%s|%s|%s| %s |\n", $2, $3, $4, $5, $6, ok}' >> "$LOG/table.md"
 
 echo "load after: $(uptime)" >&2
 cat "$LOG/table.md"

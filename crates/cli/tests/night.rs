@@ -941,3 +941,13 @@ fn trend_over_twelve_months_finds_the_steps_and_only_them() {
         assert_eq!(s["flagged"], false, "a step where none was simulated: {s}");
     }
 }
+
+/// The night of [`a_simulated_night_scanned_and_run`] written into `$INSTPOL_NIGHT_DIR/raw`
+/// for `bench/run_plan.sh` (run only on demand: `--ignored`).
+#[test]
+#[ignore]
+fn write_night_for_bench() {
+    let dir = PathBuf::from(std::env::var("INSTPOL_NIGHT_DIR").expect("set INSTPOL_NIGHT_DIR"));
+    std::fs::create_dir_all(&dir).unwrap();
+    make_night(&dir);
+}

@@ -1,0 +1,53 @@
+#!/usr/bin/env bash
+# `instpol run` over a night's plan against the same units' commands run one after another by
+# a shell script (issue 31: within 5 %), both on one core (`--jobs 1`). The night is the
+# simulated one of crates/cli/tests/night.rs (~100 exposures of a tiny FORS2, 31 units), so
+# what is measured is what `run` adds to the commands: reading the plan, hashing every input
+# before and every output after, the records and locks. Each timed REPS times, alternating,
+# from an empty products folder; medians.
+# usage: bench/run_plan.sh     env: REPS (default 5), NIGHT_DIR (kept when set)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+REPS=${REPS:-5}
+T=${CARGO_TARGET_DIR:-target}
+LOG=$(mktemp -d)
+trap 'rm -rf "$LOG"' EXIT
+cargo build --release -q -p instpol >&2
+BIN="$(cd "$T/release" && pwd)/instpol"
+DIR=${NIGHT_DIR:-$LOG/night}
+if [ ! -f "$DIR/.made" ]; then
+  rm -rf "$DIR"
+  INSTPOL_NIGHT_DIR="$DIR" cargo test --release -q -p instpol --test night -- --ignored --exact write_night_for_bench >&2
+  touch "$DIR/.made"
+fi
+PLAN="$LOG/night.json"
+"$BIN" scan "$DIR/raw" --instrument crates/cli/tests/data/night/tiny_fors2.toml --out "$PLAN" \
+  --products "$LOG/products" --bin 8 --fwhm 3 --aperture 4 \
+  --sky EMPTY-V1:1.74:-53.8 --sky EMPTY-V2:1.74:-53.8 --sky EMPTY-I1:1.74:-53.8 --sky EMPTY-I2:1.74:-53.8 > /dev/null
+# The units' commands in the plan's order, as a person would run them by hand.
+python3 - "$PLAN" "$BIN" > "$LOG/by_hand.sh" <<'PY'
+import json, shlex, sys, os
+plan = json.load(open(sys.argv[1])); b = shlex.quote(sys.argv[2])
+print("set -e")
+for u in plan["units"]:
+    for o in u["outputs"]:
+        print("mkdir -p " + shlex.quote(os.path.dirname(o)))
+    cmd = b + " " + " ".join(shlex.quote(c) for c in u["command"])
+    if u.get("stdout"):
+        # A check that does not pass (exit 1) still writes its output, as run keeps it.
+        cmd += " > " + shlex.quote(u["outputs"][0]) + (" || [ $? -eq 1 ]" if u.get("check") else "")
+    print(cmd + " > /dev/null" if not u.get("stdout") else cmd)
+PY
+ours=(); hand=()
+for r in $(seq "$REPS"); do
+  rm -rf "$LOG/products"
+  s=$(date +%s.%N); "$BIN" run "$PLAN" --jobs 1 > /dev/null; e=$(date +%s.%N)
+  ours+=("$(echo "$s $e" | awk '{print $2-$1}')")
+  rm -rf "$LOG/products"
+  s=$(date +%s.%N); bash "$LOG/by_hand.sh"; e=$(date +%s.%N)
+  hand+=("$(echo "$s $e" | awk '{print $2-$1}')")
+done
+med() { printf '%s\n' "$@" | sort -g | awk '{a[NR]=$1} END {print a[int((NR+1)/2)]}'; }
+o=$(med "${ours[@]}"); h=$(med "${hand[@]}")
+n=$(python3 -c "import json,sys; print(len(json.load(open(sys.argv[1]))['units']))" "$PLAN")
+echo "| run over a night's plan ($n units, --jobs 1) | $o s | its commands one after another $h s | $(echo "$o $h" | awk '{printf "%.3f", $1/$2}') | <= 1.05 |"
