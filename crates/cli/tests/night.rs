@@ -49,9 +49,15 @@ fn simulate(root: &Path, s: &Spec) {
 }
 
 fn simulate_with(root: &Path, s: &Spec, pattern: [f64; 4]) {
+    simulate_scene(root, s, &inst(), pattern, "")
+}
+
+/// `s` through the instrument file `instrument`, its field's radial pattern (percent), and
+/// `extra` scene text (a `[telescope]` section) at the end.
+fn simulate_scene(root: &Path, s: &Spec, instrument: &Path, pattern: [f64; 4], extra: &str) {
     let mut t = format!(
         "instrument = {:?}\nfilter = {:?}\nhwp_angles_deg = {:?}\nexposure_s = 30\nseed = {}\n",
-        inst().display().to_string(),
+        instrument.display().to_string(),
         s.filter,
         s.angles,
         s.seed
@@ -78,6 +84,7 @@ fn simulate_with(root: &Path, s: &Spec, pattern: [f64; 4]) {
     t += &format!(
         "[effects]\nphoton_noise = true\nread_noise = true\ninstpol = {{ kind = \"radial\", coeffs_percent = {pattern:?} }}\n"
     );
+    t += extra;
     let scene = root.join(format!("{}.toml", s.dir));
     std::fs::write(&scene, t).unwrap();
     let out = root.join("raw").join(s.dir);
@@ -630,6 +637,13 @@ fn a_simulated_night_scanned_and_run() {
         let v: Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
         assert_eq!(v["pass"], false, "{pass}: {v}");
     }
+    // A Cassegrain instrument's standard gives no parallactic angle: not a point of the
+    // telescope fit, refused naming the file.
+    let phot = vu_output(&strict, "photometry-20190304-HD_14069-v_HIGH");
+    let o = instpol(&["fit-standards", phot.to_str().unwrap(), phot.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("HD_14069-v_HIGH.json") && err.contains("no parallactic angle"), "{err}");
 }
 
 fn vu_output(plan: &Value, id: &str) -> PathBuf {
@@ -950,4 +964,100 @@ fn write_night_for_bench() {
     let dir = PathBuf::from(std::env::var("INSTPOL_NIGHT_DIR").expect("set INSTPOL_NIGHT_DIR"));
     std::fs::create_dir_all(&dir).unwrap();
     make_night(&dir);
+}
+
+/// Behind a Nasmyth telescope (the tiny FORS2 given EFOSC2's `[telescope]`: an aluminium M3
+/// at 45 deg, parallactic angles in the headers), the plan measures every standard, polarized
+/// ones too, by photometry with its name and fits the telescope model to them per night and
+/// filter; the fit finds the simulated mirror (Wiersema et al. 2018's model: factor 0.86 on
+/// aluminium's n, k, offset 40 deg) within its errors, and `trend` reads its parameters.
+#[test]
+fn a_nasmyth_night_fits_its_telescope_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let efosc2 = include_str!("../../../instruments/efosc2.toml");
+    let tel = &efosc2[efosc2.find("[telescope]").unwrap()..efosc2.find("# How the headers say").unwrap()];
+    let nasmyth = root.join("tiny_nasmyth.toml");
+    std::fs::write(&nasmyth, std::fs::read_to_string(inst()).unwrap() + "\n" + tel).unwrap();
+    let std_at = |(ra, dec): (f64, f64)| (ra, dec + 50.0 / 3600.0);
+    // Two unpolarized standards at two hour angles each, and a polarized one (its V values):
+    // sets 72 min apart, each its own.
+    let stars: [(&str, (f64, f64), f64, f64, f64); 5] = [
+        ("HD 14069", HD14069, 0.0, 0.0, -50.0),
+        ("HD 14069", HD14069, 0.0, 0.0, 40.0),
+        ("HD64299", HD64299, 0.0, 0.0, -30.0),
+        ("HD64299", HD64299, 0.0, 0.0, 25.0),
+        ("HD110984", HD110984, 0.057, 91.65, 10.0),
+    ];
+    for (k, (name, pos, p, chi, ha)) in stars.iter().enumerate() {
+        let spec = Spec {
+            dir: ["s0", "s1", "s2", "s3", "s4"][k],
+            filter: "v_HIGH",
+            angles: Q4.to_vec(),
+            start_mjd: NIGHT + 0.80 + 0.05 * k as f64,
+            first_exp: 1 + 10 * k as i64,
+            dpr: ["CALIB", "STD", "POLARIMETRY"],
+            target: name,
+            ra_dec: std_at(*pos),
+            sky: Some((100.0, 0.0, 0.0)),
+            stars: vec![(79.5, 57.5, 6e5, *p, *chi)],
+            instrume: None,
+            seed: 60 + k as u64,
+        };
+        // The plate's zero angle of v_HIGH (an [effects] key: the text follows that table),
+        // which photometry adds back to reach the sky frame of the telescope model.
+        let telescope = format!(
+            "hwp_chi_offset_from_filter = true\n[telescope]\nmetal = \"aluminium\"\nfactor = 0.86\noffset_deg = 40\ndec_deg = {}\nha_start_deg = {ha}\n",
+            pos.1
+        );
+        simulate_scene(root, &spec, &nasmyth, [0.0; 4], &telescope);
+    }
+    let plan_path = root.join("night.json");
+    let o = instpol(&[
+        "scan",
+        root.join("raw").to_str().unwrap(),
+        "--instrument",
+        nasmyth.to_str().unwrap(),
+        "--out",
+        plan_path.to_str().unwrap(),
+        "--aperture",
+        "4",
+        "--fwhm",
+        "3",
+        "--bin",
+        "8",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let plan: Value = serde_json::from_slice(&std::fs::read(&plan_path).unwrap()).unwrap();
+    let units = plan["units"].as_array().unwrap();
+    let of = |k: &str| units.iter().filter(|u| u["kind"] == k).collect::<Vec<_>>();
+    assert_eq!((of("photometry").len(), of("zero-angle").len(), of("fit-standards").len()), (5, 1, 1), "{plan}");
+    let fs = of("fit-standards")[0];
+    assert_eq!(fs["id"], "fit-standards-20190304-v_HIGH-night");
+    assert_eq!(fs["inputs"].as_array().unwrap().len(), 5);
+    let (ok, report) = run_json(&plan_path, &["--jobs", "2"]);
+    assert!(ok, "{report}");
+
+    // Each photometry output records its star and the middle of its parallactic track.
+    for u in of("photometry") {
+        let v: Value = serde_json::from_slice(&std::fs::read(u["outputs"][0].as_str().unwrap()).unwrap()).unwrap();
+        assert_eq!(v["star"], u["standard"], "{v}");
+        assert!(v["parallactic_deg"].as_f64().is_some_and(f64::is_finite), "{v}");
+    }
+    let fits: Value = serde_json::from_slice(&std::fs::read(fs["outputs"][0].as_str().unwrap()).unwrap()).unwrap();
+    let par = |name: &str| {
+        let p = fits[0]["params"].as_array().unwrap().iter().find(|p| p["name"] == name).unwrap().clone();
+        (p["value"].as_f64().unwrap(), p["sigma_value"].as_f64().unwrap())
+    };
+    for (name, truth) in [("factor", 0.86), ("offset", 40.0)] {
+        let (v, e) = par(name);
+        assert!((v - truth).abs() < 3.0 * e + 1e-6, "{name}: {v} +- {e}, simulated {truth}: {fits}");
+    }
+    let t = trend_json(root, &[plan_path]);
+    let points = t["points"].as_array().unwrap();
+    for q in ["telescope_factor", "telescope_offset_deg"] {
+        assert_eq!(points.iter().filter(|p| p["quantity"] == q).count(), 1, "{q}: {t}");
+    }
+    // The polarized standard's photometry is no point of the instrument's own polarization.
+    assert_eq!(points.iter().filter(|p| p["quantity"] == "q_unpolarized").count(), 4, "{t}");
 }

@@ -371,3 +371,34 @@ fn scan_regions_that_hold_light_are_refused() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("flat0_") && err.contains("holds light") && err.contains("7 + 3 rows"), "{err}");
 }
+
+/// The same along x: frames written with 4 + 4 prescan/overscan columns, read by an instrument
+/// file that says 6 + 2. Two image columns fall in the "prescan" and are seen holding light;
+/// with the sizes they were written with the same files combine.
+#[test]
+fn scan_columns_that_hold_light_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let with_columns = |pre: u32, over: u32| {
+        fors2_tiny_text()
+            .replace("prescan_x = \"HIERARCH ESO DET OUT1 PRSCX\"", &format!("prescan_x = {pre}"))
+            .replace("overscan_x = \"HIERARCH ESO DET OUT1 OVSCX\"", &format!("overscan_x = {over}"))
+    };
+    let written = with_columns(4, 4);
+    assert_ne!(written, fors2_tiny_text());
+    let inst = instrument::Instrument::from_toml_str(&written, std::path::Path::new("x.toml")).unwrap();
+    let set = write_raw_set(d, &inst);
+    let ip = d.join("inst.toml");
+    let flat = |text: String, out: &str| {
+        std::fs::write(&ip, text).unwrap();
+        let mut a = vec!["master-flat".to_string(), "--instrument".into(), s(&ip)];
+        a.extend(["--out".into(), s(&d.join(out))]);
+        a.extend(set.flats.iter().map(|p| s(p)));
+        run(&a)
+    };
+    let (code, _, err) = flat(written.clone(), "good.fits");
+    assert_eq!(code, 0, "{err}");
+    let (code, _, err) = flat(with_columns(6, 2), "bad.fits");
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("flat0_") && err.contains("column 4") && err.contains("holds light"), "{err}");
+}

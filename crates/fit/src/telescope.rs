@@ -55,6 +55,83 @@ pub struct Observation {
     pub source: String,
 }
 
+/// What a measurement of a standard star in frames needs beside its `(q, u)` to be a point of
+/// the telescope fit ([`Observation`]): the frames' filter and its wavelength, the star and its
+/// catalogued polarization, and the parallactic and rotator angles of the set. `instpol
+/// photometry --star` writes it beside its numbers ([`crate::telescope_cal::standard_record`])
+/// and [`read_observations`] reads such a file back as one observation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StandardRecord {
+    /// The frames' filter (the instrument's name): the band of the fit.
+    pub filter: String,
+    /// The filter's effective wavelength (micron); `None` when the instrument gives none.
+    pub wavelength_um: Option<f64>,
+    /// The standard, when named.
+    pub star: Option<String>,
+    /// A polarized standard's catalogued `P` (fraction) and `chi` (deg) in the filter's band;
+    /// `None` for an unpolarized one.
+    pub p_true: Option<f64>,
+    pub chi_true_deg: Option<f64>,
+    /// The middle of the set's parallactic-angle track and its rotator angle (deg, the
+    /// instrument's senses applied: the angles the model takes); `None` when the instrument's
+    /// `[telescope]` names no parallactic-angle keyword.
+    pub parallactic_deg: Option<f64>,
+    pub rotator_deg: Option<f64>,
+}
+
+/// One observation from the `--json` output of `instpol photometry --star` (a
+/// [`StandardRecord`] beside `q`, `sigma_q`, `u`, `sigma_u`, in the sky frame). Errors name
+/// the file and the key.
+fn observation_from_json(path: &Path) -> Result<Observation> {
+    let bad = |what: String| Error::BadFile { path: path.to_path_buf(), what };
+    let text = std::fs::read_to_string(path).map_err(|err| Error::Io { path: path.to_path_buf(), err })?;
+    let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| bad(format!("not JSON: {e}")))?;
+    let rec: StandardRecord = serde_json::from_value(v.clone()).map_err(|e| {
+        bad(format!("not the --json output of `instpol photometry --star` (filter, wavelength_um, star, p_true, chi_true_deg, parallactic_deg, rotator_deg): {e}"))
+    })?;
+    let num = |k: &str| {
+        v.get(k)
+            .and_then(|x| x.as_f64())
+            .filter(|x| x.is_finite())
+            .ok_or_else(|| bad(format!("no finite number '{k}'")))
+    };
+    let star = rec.star.ok_or_else(|| bad("no star: measure it with `instpol photometry --star NAME`".into()))?;
+    let pa = rec.parallactic_deg.ok_or_else(|| {
+        bad("no parallactic angle: the instrument's [telescope] names no parang_start_keyword, so the frames' angle is unknown".into())
+    })?;
+    let w = rec
+        .wavelength_um
+        .ok_or_else(|| bad(format!("no wavelength: the instrument gives filter {} none", rec.filter)))?;
+    let (q, sq, u, su) = (num("q")?, num("sigma_q")?, num("u")?, num("sigma_u")?);
+    if !(sq > 0.0 && su > 0.0 && w > 0.0 && pa.is_finite()) {
+        return Err(bad(format!(
+            "sigma_q {sq}, sigma_u {su}, wavelength_um {w} must be > 0 and parallactic_deg finite"
+        )));
+    }
+    let sky = match (rec.p_true, rec.chi_true_deg) {
+        (Some(p), Some(chi)) if (0.0..1.0).contains(&p) && chi.is_finite() => {
+            let c = 2.0 * chi.to_radians();
+            (p * c.cos(), p * c.sin())
+        }
+        (None, None) => (0.0, 0.0),
+        (p, c) => {
+            return Err(bad(format!(
+                "p_true {p:?} and chi_true_deg {c:?}: give both (P a fraction below 1) or neither"
+            )))
+        }
+    };
+    Ok(Observation {
+        star,
+        parallactic: pa.to_radians(),
+        qu: mueller::Qu::from_sigmas(q, u, sq, su, 0.0),
+        wavelength_um: w,
+        band: rec.filter,
+        rotator: rec.rotator_deg.unwrap_or(0.0).to_radians(),
+        sky,
+        source: path.display().to_string(),
+    })
+}
+
 /// Read standard-star measurements: either the EFOSC2 format of Wiersema et al. (no header;
 /// `star, parallactic_deg, q, sigma_q, u, sigma_u, wavelength_um`, comma-separated, trailing
 /// blanks allowed) or a CSV whose header names the columns `star`, `parallactic_deg` (or
@@ -65,8 +142,13 @@ pub struct Observation {
 /// name the file, line and column.
 /// FITS binary tables, ECSV and VOTable (by the extension, `skyfield::table`) are read as
 /// the same columns. Row numbers in errors are then the CSV form's lines (header = line 1).
+/// A `.json` file is one measurement: the `--json` output of `instpol photometry --star`
+/// ([`StandardRecord`]).
 pub fn read_observations(path: &Path) -> Result<Vec<Observation>> {
     use skyfield::table::{Format, Table};
+    if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
+        return Ok(vec![observation_from_json(path)?]);
+    }
     let text = match Format::from_path(path) {
         // The one table reader for the structured formats, then the column rules below.
         Ok(f) if f != Format::Csv => {

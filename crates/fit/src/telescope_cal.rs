@@ -441,6 +441,38 @@ pub fn header_angles(path: &Path, tel: &instrument::Telescope) -> Result<HeaderA
     Ok(HeaderAngles { parang_start_deg: start, parang_end_deg: end, rotator_deg: rotator })
 }
 
+/// The [`crate::telescope::StandardRecord`] of a standard measured in `frames` through
+/// `filter` (the instrument's filter name): the filter's wavelength, the star's catalogued
+/// polarization in that band when it is a polarized standard, and the middle of the frames'
+/// parallactic-angle track ([`frames_track`]: the demodulated set's `(q, u)` averages the
+/// telescope's turn over the track, which its middle represents to second order in the
+/// turn) with their rotator angle, when the instrument's `[telescope]` names the keywords.
+pub fn standard_record(
+    frames: &[std::path::PathBuf],
+    inst: &instrument::Instrument,
+    filter: &str,
+    star: Option<&crate::standards::Star>,
+) -> Result<crate::telescope::StandardRecord> {
+    let tel = inst.telescope.as_ref().filter(|t| !t.parang_start_keyword.is_empty());
+    let track = tel.map(|t| frames_track(frames, t)).transpose()?;
+    let (p_true, chi_true_deg) = match star.filter(|s| s.kind == crate::standards::Kind::Polarized) {
+        Some(s) => {
+            let b = s.band(filter).map_err(|e| Error::Input(e.to_string()))?;
+            (Some(b.p_percent / 100.0), b.chi_deg)
+        }
+        None => (None, None),
+    };
+    Ok(crate::telescope::StandardRecord {
+        filter: filter.to_string(),
+        wavelength_um: inst.filter(filter).ok().map(|f| f.lambda_eff_nm / 1000.0).filter(|w| w.is_finite() && *w > 0.0),
+        star: star.map(|s| s.name.clone()),
+        p_true,
+        chi_true_deg,
+        parallactic_deg: track.map(|t| (0.5 * (t.start + t.end)).to_degrees()),
+        rotator_deg: track.map(|t| t.rotator.to_degrees()),
+    })
+}
+
 /// The parallactic-angle track of a set of frames (the exposures of one measurement, e.g. the
 /// HWP angles of a polarimetric set) from their headers ([`header_angles`]), the instrument's
 /// senses applied: the span of every frame's start and end angle (each unwrapped to within

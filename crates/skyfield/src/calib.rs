@@ -1301,8 +1301,11 @@ fn calibrate_exposure(
         // sums them in that order). Only those rows are read when the chip has no prescan or
         // overscan columns.
         let mut scan = Vec::new();
-        // Each scan row's median, to see light where only the bias should be.
+        // Each scan row's median, and each scan column's values beside the image rows, to see
+        // light where only the bias should be.
         let mut row_levels: Vec<(usize, f64)> = Vec::new();
+        let scan_cols: Vec<usize> = (0..prx).chain(prx + cx..rnx).collect();
+        let mut col_values: Vec<Vec<f64>> = vec![Vec::new(); scan_cols.len()];
         for y in 0..cf.img.ny {
             let in_rows = y < pry || y >= pry + cy;
             if !in_rows && prx + ovx == 0 {
@@ -1319,8 +1322,17 @@ fn calibrate_exposure(
             } else {
                 push_usable(&mut scan, &row[..prx], sat);
                 push_usable(&mut scan, &row[prx + cx..], sat);
+                for (vals, &x) in col_values.iter_mut().zip(&scan_cols) {
+                    push_usable(vals, &row[x..x + 1], sat);
+                }
             }
         }
+        let col_levels: Vec<(usize, f64)> = scan_cols
+            .iter()
+            .zip(col_values.iter_mut())
+            .filter(|(_, v)| !v.is_empty())
+            .map(|(&x, v)| (x, robust::median(v, Middle::Mean)))
+            .collect();
         let declared = (prx + ovx) * cy + (pry + ovy) * rnx;
         let scan_level = robust_mean(scan);
         // A scan row far above the scan's level holds light: the pre/overscan keywords do
@@ -1329,9 +1341,11 @@ fn calibrate_exposure(
         // ADU) is far beyond a bias row's own structure.
         if let Some(level) = scan_level {
             let limit = (20.0 * rn / gain).max(20.0);
-            if let Some((y, l)) = row_levels.iter().find(|(_, l)| l - level > limit) {
+            let rows = row_levels.iter().map(|&(y, l)| ("row", y, l));
+            let cols = col_levels.iter().map(|&(x, l)| ("column", x, l));
+            if let Some((what, k, l)) = rows.chain(cols).find(|(_, _, l)| l - level > limit) {
                 return Err(Error::Invalid(format!(
-                    "{}: chip {}: its prescan/overscan row {y} sits {:.0} ADU above the scan's level of {level:.1} ADU: it holds light, so the scan regions ({pry} + {ovy} rows, {prx} + {ovx} columns) do not fit the chip; check the pre/overscan keywords",
+                    "{}: chip {}: its prescan/overscan {what} {k} sits {:.0} ADU above the scan's level of {level:.1} ADU: it holds light, so the scan regions ({pry} + {ovy} rows, {prx} + {ovx} columns) do not fit the chip; check the pre/overscan keywords",
                     path.display(),
                     c.name,
                     l - level

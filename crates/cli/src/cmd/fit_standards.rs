@@ -22,7 +22,10 @@ use std::path::{Path, PathBuf};
 /// wavelength_um" (no header; the EFOSC2 files of Wiersema et al.), or a CSV with a header
 /// naming those columns (any order) and optionally "filter", "rotator_deg", and for polarized
 /// standards "p_true" (a fraction) with "chi_true_deg" (their catalogued polarization, passed
-/// through the model; empty for unpolarized stars). q, u are taken in the sky frame, with the
+/// through the model; empty for unpolarized stars), or a .json file holding one measurement:
+/// the output of `instpol photometry --star NAME --json` on the star's frames (its star,
+/// filter, wavelength, catalogued polarization and the middle of the frames' parallactic
+/// track, read from the headers). q, u are taken in the sky frame, with the
 /// HWP zero angle already added to chi (as published standards, photometry and catalog give
 /// them): the frame in which correct and validate use the model. The band is the filter, or else the
 /// wavelength. Points whose pull exceeds --clip times max(1, robust scatter) are flagged

@@ -9,8 +9,19 @@ use std::path::PathBuf;
 /// polarized background is removed vectorially (paper, section background). Prints Q/I, U/I,
 /// P (%), chi (deg) and their errors.
 ///
+/// With --star NAME (a standard of instruments/standards.toml or --standards) the JSON also
+/// records the star, its catalogued P (p_true, a fraction) and chi (chi_true_deg) in the
+/// frames' band when it is a polarized standard, the filter and its wavelength, and the middle
+/// of the frames' parallactic-angle track with their rotator angle (deg, from the keywords of
+/// the instrument's [telescope] section; null without them): `instpol fit-standards` reads
+/// such a file as one measurement of the telescope.
+///
 /// Example: instpol photometry star/*.fits --instrument fors1 --x 1900 --y 90 --aperture 8
 /// --annulus 12,20
+///
+/// Example (an EFOSC2 standard, a point of the telescope fit):
+///   instpol photometry std/*.fits --instrument efosc2 --x 512 --y 300 --star "HD 64299" --json
+///   > hd64299.json && instpol fit-standards hd64299.json other.json --instrument efosc2
 #[derive(clap::Args)]
 pub struct Args {
     /// Frame files (FITS).
@@ -54,6 +65,13 @@ pub struct Args {
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+    /// The standard star measured (see instruments/standards.toml): recorded in the JSON with
+    /// its catalogued polarization, for `instpol fit-standards`.
+    #[arg(long)]
+    pub star: Option<String>,
+    /// A standards file (TOML, the format of instruments/standards.toml) for --star.
+    #[arg(long, value_name = "FILE", requires = "star")]
+    pub standards: Option<PathBuf>,
     #[command(flatten)]
     pub frame: crate::cmd::frame_opts::FrameOpts,
     #[command(flatten)]
@@ -105,11 +123,25 @@ struct Out {
     /// its own and checked against the others (null when no position repeats).
     exposures: Option<Vec<skyfield::photometry::ExposureCheck>>,
     n_outlier_exposures: usize,
+    /// The standard and the frames' filter, wavelength and telescope angles (--star).
+    #[serde(flatten)]
+    record: fit::telescope::StandardRecord,
 }
 
 pub fn run(a: Args) -> Result<()> {
-    crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
+    crate::util::inputs(
+        a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)).chain(a.standards.as_deref()),
+    )?;
     let inst = instrument::Instrument::load(&a.instrument)?;
+    let list = match (&a.star, &a.standards) {
+        (None, _) => None,
+        (Some(_), Some(p)) => Some(fit::standards::Standards::load(p)?),
+        (Some(_), None) => Some(fit::standards::Standards::builtin()?),
+    };
+    let star = match (&a.star, &list) {
+        (Some(n), Some(l)) => Some(l.star(n)?),
+        _ => None,
+    };
     let (x, y) = match a.coords {
         CoordsArg::Pixel => (a.x, a.y),
         CoordsArg::Arcmin => inst.arcmin_to_pixel(a.x, a.y),
@@ -177,6 +209,7 @@ pub fn run(a: Args) -> Result<()> {
         eprintln!("warning: {w}");
     }
     let sky = r.qu.rotated(offset.to_radians());
+    let record = fit::telescope_cal::standard_record(&a.frames, &inst, &set.filter, star)?;
     let (q, u, var_q, var_u) = (sky.q, sky.u, sky.var_q, sky.var_u);
     let o = Out {
         x_px: x,
@@ -202,6 +235,7 @@ pub fn run(a: Args) -> Result<()> {
         aperture_px: radius_px,
         exposures,
         n_outlier_exposures,
+        record,
     };
     if a.json {
         crate::util::print_json(&o)?;

@@ -41,7 +41,10 @@
 //!    --json`, a polarized standard by name, an unpolarized one as expected at zero; a check unit: a star off its prediction is a result, kept and reported, not a
 //!    failure); the zero-angle measurements of a night and filter, two or more, are combined
 //!    into one (`instpol zero-angle --measured ... --json`, the weighted mean on the circle),
-//!    the value to put in the instrument file.
+//!    the value to put in the instrument file; behind a Nasmyth telescope whose headers give
+//!    the parallactic angle, every standard (polarized ones too) is measured by photometry
+//!    with its name, and the telescope model is fitted per night and filter to two or more of
+//!    them (`instpol fit-standards --model wiersema --json`).
 
 use super::header::{read_cards, Cards};
 use super::plan::{LeftOut, Plan, Unit, PLAN_VERSION};
@@ -374,6 +377,7 @@ struct StandardSet {
     filter: String,
     mjd: f64,
     star: String,
+    polarized: bool,
     /// The star's pixel, formatted as the set's units give it.
     xy: [String; 2],
     /// The units' frame arguments, master flags, inputs and dependencies.
@@ -381,8 +385,47 @@ struct StandardSet {
     masters_args: Vec<String>,
     inputs: Vec<PathBuf>,
     after: Vec<String>,
-    /// A polarized standard's zero-angle unit: its id and output.
-    zero_angle: Option<(String, PathBuf)>,
+}
+
+impl StandardSet {
+    /// The id and output of its unit of `kind` (`zero-angle` or `photometry`).
+    fn unit(&self, kind: &str, products: &Path) -> (String, PathBuf) {
+        let dir = if kind == "zero-angle" { "zero-angle" } else { "standards" };
+        (format!("{kind}-{}", self.set_id), products.join(dir).join(format!("{}.json", self.set_id)))
+    }
+    /// Whether it has a unit of `kind` (rule 6).
+    fn has(&self, kind: &str, nasmyth: bool) -> bool {
+        match kind {
+            "zero-angle" => self.polarized,
+            _ => !self.polarized || nasmyth,
+        }
+    }
+}
+
+/// Rule 6's units of a standard's set: a polarized standard's zero angle; the photometry of an
+/// unpolarized one (the instrument's own polarization where it sits), and of a polarized one
+/// too behind a Nasmyth telescope (a point of the telescope fit), the star named so that its
+/// output records it ([`fit::telescope::StandardRecord`]).
+fn standard_units(set: &StandardSet, nasmyth: bool, opts: &ScanOptions) -> Vec<Unit> {
+    let mut units = Vec::new();
+    for kind in ["zero-angle", "photometry"].into_iter().filter(|k| set.has(k, nasmyth)) {
+        let (id, out) = set.unit(kind, &opts.products);
+        let mut args = vec![kind.to_string()];
+        args.extend(set.frame_args.iter().cloned());
+        args.extend(["--instrument".into(), opts.instrument.clone()]);
+        args.extend(["--x".into(), set.xy[0].clone(), "--y".into(), set.xy[1].clone()]);
+        args.extend(["--aperture".into(), opts.aperture_px.to_string(), "--star".into(), set.star.clone()]);
+        if let Some(sp) = &opts.standards {
+            args.extend(["--standards".into(), s(sp)]);
+        }
+        args.extend(set.masters_args.iter().cloned());
+        args.push("--json".into());
+        let mut u = Unit::new(&id, kind, set.inputs.clone(), vec![out], args, set.after.clone());
+        u.stdout = true;
+        u.standard = Some(set.star.clone());
+        units.push(u);
+    }
+    units
 }
 
 /// A calibration made from a sky field's set.
@@ -574,6 +617,12 @@ pub fn plan_sorted(
     }
     let mut set_names: BTreeMap<String, usize> = BTreeMap::new();
     let mut standard_sets: Vec<StandardSet> = Vec::new();
+    // A telescope whose mirrors polarize (a Nasmyth fold) and whose headers give the
+    // parallactic angle: its standards are fitted for a telescope model.
+    let nasmyth = inst
+        .telescope
+        .as_ref()
+        .is_some_and(|t| t.focus == instrument::telescope::Focus::Nasmyth && !t.parang_start_keyword.is_empty());
     let mut calibrations: Vec<SkyCalibration> = Vec::new();
     for q in seqs {
         let info = &q[0].info;
@@ -742,52 +791,23 @@ pub fn plan_sorted(
         }
 
         if let Some(st) = star {
-            let polarized = st.kind == fit::standards::Kind::Polarized;
             match star_pixel(inst, st, info.ra_deg, info.dec_deg) {
                 Some((x, y)) => {
-                    // A polarized standard gives the zero angle; an unpolarized one the
-                    // instrument's own polarization where it sits (photometry).
-                    let (kind, dir) = if polarized { ("zero-angle", "zero-angle") } else { ("photometry", "standards") };
-                    let out = p.join(dir).join(format!("{set_id}.json"));
-                    let xy = [format!("{x:.2}"), format!("{y:.2}")];
-                    let mut args = vec![kind.to_string()];
-                    args.extend(frame_args.iter().cloned());
-                    args.extend([
-                        "--instrument".into(),
-                        inst_arg.clone(),
-                        "--x".into(),
-                        xy[0].clone(),
-                        "--y".into(),
-                        xy[1].clone(),
-                        "--aperture".into(),
-                        opts.aperture_px.to_string(),
-                    ]);
-                    if polarized {
-                        args.extend(["--star".into(), st.name.clone()]);
-                        if let Some(sp) = &opts.standards {
-                            args.extend(["--standards".into(), s(sp)]);
-                        }
-                    }
-                    args.extend(masters_args.iter().cloned());
-                    args.push("--json".into());
-                    let id = format!("{kind}-{set_id}");
-                    standard_sets.push(StandardSet {
+                    let set = StandardSet {
                         set_id: set_id.clone(),
                         night,
                         filter: filter.clone(),
                         mjd: info.mjd,
                         star: st.name.clone(),
-                        xy,
+                        polarized: st.kind == fit::standards::Kind::Polarized,
+                        xy: [format!("{x:.2}"), format!("{y:.2}")],
                         frame_args: frame_args.clone(),
                         masters_args: masters_args.clone(),
                         inputs: inputs.clone(),
                         after: after.clone(),
-                        zero_angle: polarized.then(|| (id.clone(), out.clone())),
-                    });
-                    let mut u = Unit::new(&id, kind, inputs.clone(), vec![out], args, after.clone());
-                    u.stdout = true;
-                    u.standard = Some(st.name.clone());
-                    units.push(u);
+                    };
+                    units.extend(standard_units(&set, nasmyth, opts));
+                    standard_sets.push(set);
                 }
                 None => left.push(LeftOut {
                     files: vec![],
@@ -804,7 +824,7 @@ pub fn plan_sorted(
             u.filter = info.filter.clone();
         }
     }
-    units.extend(night_checks(&standard_sets, &calibrations, opts));
+    units.extend(night_checks(&standard_sets, &calibrations, nasmyth, opts));
     let plan = Plan {
         version: PLAN_VERSION,
         instrument: opts.instrument.clone(),
@@ -819,7 +839,7 @@ pub fn plan_sorted(
 
 /// Rule 8 (module docs): each standard's set validated against its filter's calibration
 /// nearest in time, and the zero angle of each night and filter combined from its standards.
-fn night_checks(sets: &[StandardSet], calibrations: &[SkyCalibration], opts: &ScanOptions) -> Vec<Unit> {
+fn night_checks(sets: &[StandardSet], calibrations: &[SkyCalibration], nasmyth: bool, opts: &ScanOptions) -> Vec<Unit> {
     let p = &opts.products;
     let mut units = Vec::new();
     for set in sets {
@@ -837,7 +857,7 @@ fn night_checks(sets: &[StandardSet], calibrations: &[SkyCalibration], opts: &Sc
         args.extend(["--aperture".into(), opts.aperture_px.to_string()]);
         // An unpolarized standard is expected at zero, which validate takes without a star; a
         // polarized one at its published value in the filter's band.
-        if set.zero_angle.is_some() {
+        if set.polarized {
             args.extend(["--star".into(), set.star.clone()]);
             if let Some(sp) = &opts.standards {
                 args.extend(["--standards".into(), s(sp)]);
@@ -858,26 +878,44 @@ fn night_checks(sets: &[StandardSet], calibrations: &[SkyCalibration], opts: &Sc
         u.standard = Some(set.star.clone());
         units.push(u);
     }
+    // Per night and filter: the zero angles combined, and behind a Nasmyth telescope its
+    // model fitted to every standard's photometry (two stars at least: the model has two
+    // parameters, and each star gives two numbers).
     let mut by_night: BTreeMap<(i64, &str), Vec<&StandardSet>> = BTreeMap::new();
-    for set in sets.iter().filter(|s| s.zero_angle.is_some()) {
+    for set in sets {
         by_night.entry((set.night, set.filter.as_str())).or_default().push(set);
     }
-    for ((night, filter), group) in by_night.into_iter().filter(|(_, g)| g.len() >= 2) {
-        let name = format!("{}-{}-night", night_label(night), slug(filter));
-        let mut args = vec!["zero-angle".to_string()];
-        let (mut inputs, mut after) = (Vec::new(), Vec::new());
-        for (id, out) in group.iter().filter_map(|s| s.zero_angle.as_ref()) {
-            args.extend(["--measured".into(), s(out)]);
-            inputs.push(out.clone());
-            after.push(id.clone());
+    for ((night, filter), group) in by_night {
+        for (kind, from, dir) in
+            [("zero-angle", "zero-angle", "zero-angle"), ("fit-standards", "photometry", "telescope")]
+        {
+            let of: Vec<&&StandardSet> = group.iter().filter(|s| s.has(from, nasmyth)).collect();
+            if of.len() < 2 || (kind == "fit-standards" && !nasmyth) {
+                continue;
+            }
+            let name = format!("{}-{}-night", night_label(night), slug(filter));
+            let mut args = vec![kind.to_string()];
+            let (mut inputs, mut after) = (Vec::new(), Vec::new());
+            for set in &of {
+                let (id, out) = set.unit(from, p);
+                if kind == "zero-angle" {
+                    args.push("--measured".into());
+                }
+                args.push(s(&out));
+                inputs.push(out);
+                after.push(id);
+            }
+            if kind == "fit-standards" {
+                args.extend(["--instrument".into(), opts.instrument.clone(), "--model".into(), "wiersema".into()]);
+            }
+            args.push("--json".into());
+            let out = p.join(dir).join(format!("{name}.json"));
+            let mut u = Unit::new(&format!("{kind}-{name}"), kind, inputs, vec![out], args, after);
+            u.stdout = true;
+            u.mjd = of.iter().map(|s| s.mjd).reduce(f64::min);
+            u.filter = Some(filter.to_string());
+            units.push(u);
         }
-        args.push("--json".into());
-        let out = p.join("zero-angle").join(format!("{name}.json"));
-        let mut u = Unit::new(&format!("zero-angle-{name}"), "zero-angle", inputs, vec![out], args, after);
-        u.stdout = true;
-        u.mjd = group.iter().map(|s| s.mjd).reduce(f64::min);
-        u.filter = Some(filter.to_string());
-        units.push(u);
     }
     units
 }

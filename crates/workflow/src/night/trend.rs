@@ -11,7 +11,13 @@
 //!   standard (`instpol photometry --json`): the instrument's own polarization where the star
 //!   sits (`q`, `u` carry no bias; `P` does, near zero);
 //! - `p_field_edge`: a `calibrate` unit's instrumental `P` at the edge of the field (fraction),
-//!   per filter, one point per sky-field calibration (`fit::Calibration::p_at_edge`).
+//!   per filter, one point per sky-field calibration (`fit::Calibration::p_at_edge`);
+//! - `telescope_<parameter>[_<unit>]` (`telescope_factor`, `telescope_offset_deg`): a
+//!   `fit-standards` unit's fitted parameters with their errors, per filter, one point per
+//!   night (`instpol fit-standards --json`).
+//!
+//! A photometry unit of a polarized standard (a point of the telescope fit: its output gives
+//! `p_true`) is not the instrument's own polarization and is not read as such.
 //!
 //! A night's combined zero angle (a `zero-angle` unit without a standard) repeats its
 //! standards' points and is not read.
@@ -30,11 +36,11 @@ use std::path::{Path, PathBuf};
 /// One measured value.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Point {
-    /// `zero_angle_deg`, `q_unpolarized`, `u_unpolarized`, `p_unpolarized` or `p_field_edge`
-    /// (module docs).
+    /// `zero_angle_deg`, `q_unpolarized`, `u_unpolarized`, `p_unpolarized`, `p_field_edge` or
+    /// `telescope_<parameter>[_<unit>]` (module docs).
     pub quantity: String,
     pub filter: String,
-    /// The standard measured (empty for `p_field_edge`).
+    /// The standard measured (empty for `p_field_edge` and the telescope's parameters).
     pub star: String,
     /// Start of its set (MJD).
     pub mjd: f64,
@@ -153,6 +159,36 @@ fn edge_point(u: &super::plan::Unit, out: &Path, mjd: f64) -> Result<Option<Poin
     }))
 }
 
+/// The `telescope_*` points of a `fit-standards` unit's output (module docs): every parameter
+/// of every band's fit.
+fn telescope_points(u: &super::plan::Unit, out: &Path, mjd: f64) -> Result<Vec<Point>, Error> {
+    let v = read_json(out)?;
+    let bad = |why: &str| Error::Input { path: out.into(), why: why.into() };
+    let fits = v.as_array().ok_or_else(|| bad("not the --json output of instpol fit-standards (an array of fits)"))?;
+    let mut points = Vec::new();
+    for fit in fits {
+        let params = fit["params"].as_array().ok_or_else(|| bad("a fit without 'params'"))?;
+        for par in params {
+            let name = par["name"].as_str().ok_or_else(|| bad("a parameter without a name"))?;
+            let unit = par["unit"].as_str().unwrap_or("");
+            points.push(Point {
+                quantity: if unit.is_empty() {
+                    format!("telescope_{name}")
+                } else {
+                    format!("telescope_{name}_{unit}")
+                },
+                filter: u.filter.clone().unwrap_or_default(),
+                star: String::new(),
+                mjd,
+                value: number(par, "value", out)?,
+                sigma: number(par, "sigma_value", out)?,
+                source: out.into(),
+            });
+        }
+    }
+    Ok(points)
+}
+
 /// Gather the points of `plans` (plan files) and find each series' step (module docs). A plan
 /// whose units have not run (no output) contributes nothing from those units; a plan that
 /// cannot be read, or an output that does not hold what its kind writes, is an error naming
@@ -176,10 +212,17 @@ pub fn gather(plans: &[PathBuf], threshold_sigma: f64) -> Result<Trend, Error> {
                 points.extend(edge_point(u, out, mjd)?);
                 continue;
             }
+            if u.kind == "fit-standards" {
+                points.extend(telescope_points(u, out, mjd)?);
+                continue;
+            }
             if !matches!(u.kind.as_str(), "zero-angle" | "photometry") || u.standard.is_none() {
                 continue;
             }
             let v = read_json(out)?;
+            if v.get("p_true").is_some_and(|p| !p.is_null()) {
+                continue;
+            }
             let read: Vec<(&str, &str, &str)> = if u.kind == "zero-angle" {
                 vec![("zero_angle_deg", "zero_angle_deg", "sigma_zero_angle_deg")]
             } else {
@@ -239,7 +282,7 @@ impl Trend {
         Table::new(vec![
             Column::text(
                 "quantity",
-                "zero_angle_deg (deg), q_unpolarized, u_unpolarized, p_unpolarized or p_field_edge (fractions)",
+                "zero_angle_deg (deg), q_unpolarized, u_unpolarized, p_unpolarized, p_field_edge (fractions) or telescope_<parameter>[_<unit>]",
                 self.points.iter().map(|p| p.quantity.clone()).collect(),
             ),
             Column::text("filter", "filter", self.points.iter().map(|p| p.filter.clone()).collect()),
