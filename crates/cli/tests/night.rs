@@ -944,9 +944,18 @@ fn trend_over_twelve_months_finds_the_steps_and_only_them() {
         let (d, sd) = (s["delta"].as_f64().unwrap(), s["sigma_delta"].as_f64().unwrap());
         assert!((d.abs() - size).abs() < 3.0 * sd + 0.1 * size, "{q}: delta {d} +- {sd}, expected {size} in size");
     }
-    // u saw nothing.
+    // u saw nothing, nor the polarized standard's P against its catalogued value (only its
+    // angle moved).
     assert_eq!(step("u_unpolarized")["flagged"], false, "{t}");
-    assert_eq!(t["points"].as_array().unwrap().len(), 12 * 5);
+    assert_eq!(step("p_minus_catalogue")["flagged"], false, "{t}");
+    // The star was simulated at its catalogued V value, 5.70 %: what the measurement adds is the
+    // instrument's pattern where it sits, 50" below the centre (0.1 r + 0.3 r^2 + 0.05 r^3 % at
+    // r = 0.833': 0.32 %) and the noise, so every point lies within 0.32 % and 4 sigma of it.
+    for p in t["points"].as_array().unwrap().iter().filter(|p| p["quantity"] == "p_minus_catalogue") {
+        let (v, e) = (p["value"].as_f64().unwrap(), p["sigma"].as_f64().unwrap());
+        assert!(v.abs() < 0.0032 + 4.0 * e, "{p}");
+    }
+    assert_eq!(t["points"].as_array().unwrap().len(), 12 * 6);
 
     let without = dir.path().join("without");
     let plans = twelve_months(&without, false, 11);

@@ -6,7 +6,8 @@ use std::path::{Path, PathBuf};
 use workflow::night::trend::{self, Trend};
 
 /// Gather the results of many nights (the plans `instpol scan` wrote and `instpol run` ran):
-/// each polarized standard's HWP zero angle per filter, the unpolarized standards'
+/// each polarized standard's HWP zero angle per filter and its P less the catalogued P, the
+/// telescope model's parameters where a night's standards were fitted, the unpolarized standards'
 /// instrumental polarization (q, u, P) and the sky-field calibrations' instrumental P at the
 /// field's edge (the mean over the midpoints of its four sides) against date, and in each
 /// series the most significant

@@ -5,7 +5,11 @@
 //! read, for every unit that finished (its output exists):
 //!
 //! - `zero_angle_deg`: a `zero-angle` unit's HWP zero angle (deg) and its error, per filter, one
-//!   point per polarized standard (`instpol zero-angle --json`);
+//!   point per polarized standard (`instpol zero-angle --json`): its measured chi against the
+//!   catalogued one;
+//! - `p_minus_catalogue`: the same unit's measured `P` less the catalogued `P` of the star in
+//!   the filter's band (fractions; the standards list its command names, else the built-in
+//!   one), the errors of both combined;
 //! - `q_unpolarized`, `u_unpolarized`, `p_unpolarized`: a `photometry` unit's `q`, `u`, `P`
 //!   (fractions, in the plate's frame) and their errors, per filter, one point per unpolarized
 //!   standard (`instpol photometry --json`): the instrument's own polarization where the star
@@ -36,7 +40,8 @@ use std::path::{Path, PathBuf};
 /// One measured value.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Point {
-    /// `zero_angle_deg`, `q_unpolarized`, `u_unpolarized`, `p_unpolarized`, `p_field_edge` or
+    /// `zero_angle_deg`, `p_minus_catalogue`, `q_unpolarized`, `u_unpolarized`, `p_unpolarized`,
+    /// `p_field_edge` or
     /// `telescope_<parameter>[_<unit>]` (module docs).
     pub quantity: String,
     pub filter: String,
@@ -159,6 +164,38 @@ fn edge_point(u: &super::plan::Unit, out: &Path, mjd: f64) -> Result<Option<Poin
     }))
 }
 
+/// The `p_minus_catalogue` point of a polarized standard's `zero-angle` unit (module docs);
+/// none when the output has no measured `P` or the list no `P` in the band.
+fn p_against_catalogue(
+    u: &super::plan::Unit,
+    v: &serde_json::Value,
+    out: &Path,
+    mjd: f64,
+) -> Result<Option<Point>, Error> {
+    let (Some(star), Some(filter)) = (&u.standard, &u.filter) else { return Ok(None) };
+    let row = &v["standards"][0];
+    let (Some(p), Some(sp)) = (row["p_measured"].as_f64(), row["sigma_p_measured"].as_f64()) else {
+        return Ok(None);
+    };
+    let file = u.command.windows(2).find(|w| w[0] == "--standards").map(|w| PathBuf::from(&w[1]));
+    let list = match &file {
+        Some(f) => fit::standards::Standards::load(f),
+        None => fit::standards::Standards::builtin(),
+    }
+    .map_err(|e| Error::Input { path: file.clone().unwrap_or_else(|| out.into()), why: e.to_string() })?;
+    let Ok(band) = list.star(star).and_then(|s| s.band(filter).cloned()) else { return Ok(None) };
+    let (pc, spc) = (band.p_percent / 100.0, band.sigma_p_percent / 100.0);
+    Ok(Some(Point {
+        quantity: "p_minus_catalogue".into(),
+        filter: filter.clone(),
+        star: star.clone(),
+        mjd,
+        value: p - pc,
+        sigma: sp.hypot(spc),
+        source: out.into(),
+    }))
+}
+
 /// The `telescope_*` points of a `fit-standards` unit's output (module docs): every parameter
 /// of every band's fit.
 fn telescope_points(u: &super::plan::Unit, out: &Path, mjd: f64) -> Result<Vec<Point>, Error> {
@@ -223,6 +260,9 @@ pub fn gather(plans: &[PathBuf], threshold_sigma: f64) -> Result<Trend, Error> {
             if v.get("p_true").is_some_and(|p| !p.is_null()) {
                 continue;
             }
+            if u.kind == "zero-angle" {
+                points.extend(p_against_catalogue(u, &v, out, mjd)?);
+            }
             let read: Vec<(&str, &str, &str)> = if u.kind == "zero-angle" {
                 vec![("zero_angle_deg", "zero_angle_deg", "sigma_zero_angle_deg")]
             } else {
@@ -282,7 +322,7 @@ impl Trend {
         Table::new(vec![
             Column::text(
                 "quantity",
-                "zero_angle_deg (deg), q_unpolarized, u_unpolarized, p_unpolarized, p_field_edge (fractions) or telescope_<parameter>[_<unit>]",
+                "zero_angle_deg (deg), p_minus_catalogue, q_unpolarized, u_unpolarized, p_unpolarized, p_field_edge (fractions) or telescope_<parameter>[_<unit>]",
                 self.points.iter().map(|p| p.quantity.clone()).collect(),
             ),
             Column::text("filter", "filter", self.points.iter().map(|p| p.filter.clone()).collect()),
