@@ -94,9 +94,23 @@ def test_bad_plans_are_input_errors(night, instpol_bin, tmp_path):
         instpol.run(plan, units=["nothing"], instpol_bin=instpol_bin)
     with pytest.raises(instpol.InputError, match="sky"):
         instpol.scan(night / "raw", str(INST), tmp_path / "p", sky={"X": 3})
+    # The library checks a sky field whichever face gives it: a negative P is refused.
+    with pytest.raises(instpol.InputError, match=r"sky field X: P -1.0 %"):
+        instpol.scan(night / "raw", str(INST), tmp_path / "p", sky={"X": (-1.0, 30.0)})
     with pytest.raises(instpol.InputError, match="no FITS file"):
         os.makedirs(tmp_path / "empty")
         instpol.scan(tmp_path / "empty", str(INST), tmp_path / "p")
     with pytest.raises(instpol.FileError):
         instpol.run(tmp_path / "none.toml", instpol_bin=instpol_bin)
     assert not (tmp_path / "p").exists()
+
+
+def test_sky_fields_from_a_table_are_the_dict(night, tmp_path):
+    table = tmp_path / "skies.csv"
+    table.write_text("target,p_percent,chi_deg\nNGC 1,1.74,-53.8\n")
+    args = (night / "raw", str(INST), tmp_path / "p")
+    kw = dict(fwhm=3, aperture=4, bin=8)
+    by_dict = instpol.scan(*args, sky={"NGC 1": (1.74, -53.8)}, **kw)
+    by_table = instpol.scan(*args, sky=table, **kw)
+    assert by_table["units"] == by_dict["units"]
+    assert any(u["kind"] == "calibrate" for u in by_table["units"])

@@ -400,6 +400,23 @@ fn a_simulated_night_scanned_and_run() {
     let o = Command::new(bin()).args(&args).output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let plan: Value = serde_json::from_slice(&o.stdout).unwrap();
+    // The sky fields from a table instead: the same plan.
+    let table = root.join("skies.csv");
+    std::fs::write(
+        &table,
+        "target,p_percent,chi_deg\nEMPTY-V1,1.74,-53.8\nEMPTY-V2,1.74,-53.8\nEMPTY-I1,1.74,-53.8\nEMPTY-I2,1.74,-53.8\n",
+    )
+    .unwrap();
+    let mut targs: Vec<String> = args.iter().take_while(|a| *a != "--sky").cloned().collect();
+    targs.extend(["--sky-table".into(), table.display().to_string()]);
+    let alt = root.join("alt.toml");
+    let at = targs.iter().position(|a| a == "--out").unwrap() + 1;
+    targs[at] = alt.display().to_string();
+    let o = Command::new(bin()).args(&targs).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let from_table: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(from_table["units"], plan["units"]);
+    std::fs::remove_file(&alt).unwrap();
 
     // Every role.
     let mut roles = std::collections::BTreeMap::<String, usize>::new();
@@ -680,6 +697,34 @@ fn bad_folders_and_nonsense_plans_are_refused_by_name() {
     let o = scan(&texts, &plan);
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && e.contains("texts") && e.contains("no FITS file") && e.contains("2 files"), "{e}");
+    assert!(!plan.exists());
+    // A sky field with a negative degree of polarization, given or in a table.
+    let o = instpol(&[
+        "scan",
+        texts.to_str().unwrap(),
+        "--instrument",
+        inst.to_str().unwrap(),
+        "--out",
+        plan.to_str().unwrap(),
+        "--sky",
+        "EMPTY:-1.74:30",
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.code() == Some(2) && e.contains("sky field EMPTY") && e.contains("[0, 100)"), "{e}");
+    let skies = d.join("skies.csv");
+    std::fs::write(&skies, "target,p_percent,chi_deg\nA,1.0,10\nB,150,10\n").unwrap();
+    let o = instpol(&[
+        "scan",
+        texts.to_str().unwrap(),
+        "--instrument",
+        inst.to_str().unwrap(),
+        "--out",
+        plan.to_str().unwrap(),
+        "--sky-table",
+        skies.to_str().unwrap(),
+    ]);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.code() == Some(2) && e.contains("skies.csv") && e.contains("sky field B"), "{e}");
     assert!(!plan.exists());
     // An unreadable file (a link to nothing: root reads any file) is left out with its reason.
     let odd = d.join("odd");

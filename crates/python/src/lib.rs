@@ -1172,7 +1172,7 @@ fn night_err(e: workflow::night::Error) -> PyErr {
 /// what `instpol scan` runs): the plan as JSON text (`instpol scan --json`'s keys but
 /// `provenance`); written to `out` too when given (TOML, or JSON for a .json name).
 #[pyfunction]
-#[pyo3(signature = (dirs, instrument, products, sky, standards, pointing_tol_arcsec, max_gap_min, bin, fwhm, aperture, out))]
+#[pyo3(signature = (dirs, instrument, products, sky, sky_table, standards, pointing_tol_arcsec, max_gap_min, bin, fwhm, aperture, out))]
 #[allow(clippy::too_many_arguments)]
 fn _scan(
     py: Python<'_>,
@@ -1180,6 +1180,7 @@ fn _scan(
     instrument: String,
     products: PathBuf,
     sky: Vec<(String, f64, f64)>,
+    sky_table: Option<PathBuf>,
     standards: Option<PathBuf>,
     pointing_tol_arcsec: f64,
     max_gap_min: f64,
@@ -1193,6 +1194,9 @@ fn _scan(
         .into_iter()
         .map(|(target, p_percent, chi_deg)| workflow::night::SkyField { target, p_percent, chi_deg })
         .collect();
+    if let Some(t) = &sky_table {
+        opts.sky_fields.extend(workflow::night::SkyField::read_table(t).map_err(night_err)?);
+    }
     opts.standards = standards;
     opts.pointing_tol_arcsec = pointing_tol_arcsec;
     opts.max_gap_min = max_gap_min;

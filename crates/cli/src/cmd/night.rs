@@ -36,6 +36,10 @@ pub struct ScanArgs {
     /// A sky field of known polarization to calibrate on: TARGET:P_PERCENT:CHI_DEG, repeated.
     #[arg(long, value_name = "TARGET:P%:CHI", allow_hyphen_values = true)]
     pub sky: Vec<String>,
+    /// Sky fields from a table (CSV, ECSV, FITS, VOTable) with columns target, p_percent
+    /// (percent) and chi_deg (deg), beside any --sky.
+    #[arg(long, value_name = "TABLE")]
+    pub sky_table: Option<PathBuf>,
     /// A standards file (TOML, the format of instruments/standards.toml).
     #[arg(long)]
     pub standards: Option<PathBuf>,
@@ -94,20 +98,6 @@ pub struct RunArgs {
     pub json: bool,
 }
 
-fn parse_sky(s: &str) -> Result<night::SkyField> {
-    let parts: Vec<&str> = s.rsplitn(3, ':').collect();
-    let num = |t: &str| t.trim().parse::<f64>().ok().filter(|x| x.is_finite());
-    match parts.as_slice() {
-        [chi, p, target] if !target.trim().is_empty() => match (num(p), num(chi)) {
-            (Some(p), Some(chi)) if p >= 0.0 => {
-                Ok(night::SkyField { target: target.trim().into(), p_percent: p, chi_deg: chi })
-            }
-            _ => bail!("--sky '{s}': P (percent, >= 0) and CHI (deg) must be numbers, e.g. EMPTY-V:1.74:-53.8"),
-        },
-        _ => bail!("--sky '{s}': expected TARGET:P_PERCENT:CHI_DEG, e.g. EMPTY-V:1.74:-53.8"),
-    }
-}
-
 pub fn run_scan(a: ScanArgs) -> Result<()> {
     let products = match &a.products {
         Some(p) => p.clone(),
@@ -118,7 +108,10 @@ pub fn run_scan(a: ScanArgs) -> Result<()> {
             .map_or_else(|| PathBuf::from("products"), |d| d.join("products")),
     };
     let mut opts = night::ScanOptions::new(&a.instrument, &products);
-    opts.sky_fields = a.sky.iter().map(|s| parse_sky(s)).collect::<Result<_>>()?;
+    opts.sky_fields = a.sky.iter().map(|s| night::SkyField::parse(s)).collect::<Result<_, _>>()?;
+    if let Some(t) = &a.sky_table {
+        opts.sky_fields.extend(night::SkyField::read_table(t)?);
+    }
     opts.standards = a.standards.clone();
     opts.pointing_tol_arcsec = a.pointing_tol;
     opts.max_gap_min = a.max_gap;

@@ -694,7 +694,7 @@ def scan(
     instrument: str,
     products: PathLike,
     *,
-    sky: Optional[Dict[str, Tuple[float, float]]] = None,
+    sky: Optional[Union[Dict[str, Tuple[float, float]], PathLike]] = None,
     standards: Optional[PathLike] = None,
     pointing_tol_arcsec: float = 60.0,
     max_gap_min: float = 60.0,
@@ -710,7 +710,9 @@ def scan(
     files of one exposure are grouped, exposures into complete HWP sets (repeated cycles kept),
     masters matched by night, binning and filter, standards matched to the standards list by
     name or position. ``sky`` maps a sky field's target name to its known polarization
-    ``(p_percent, chi_deg)``: its map is calibrated. The products go under ``products``.
+    ``(p_percent, chi_deg)``: its map is calibrated; or it names a table (CSV, ECSV, FITS,
+    VOTable) with the columns ``target``, ``p_percent``, ``chi_deg``, as ``instpol scan
+    --sky-table``. The products go under ``products``.
 
     Returns
     -------
@@ -720,7 +722,9 @@ def scan(
         it (drop units, change a command's options) and hand it to :func:`run`. ``out``:
         also written there (TOML, or JSON for a ``.json`` name), as the CLI writes it.
     """
-    sky_list = []
+    sky_list, sky_table = [], None
+    if isinstance(sky, (str, os.PathLike)):
+        sky_table, sky = os.fspath(sky), None
     for target, value in (sky or {}).items():
         try:
             p, chi = value
@@ -729,7 +733,7 @@ def scan(
             raise InputError(f"sky[{target!r}] = {value!r}: expected (p_percent, chi_deg)") from None
     return json.loads(
         _instpol._scan(
-            _paths(dirs), str(instrument), os.fspath(products), sky_list, _opt_path(standards),
+            _paths(dirs), str(instrument), os.fspath(products), sky_list, sky_table, _opt_path(standards),
             float(pointing_tol_arcsec), float(max_gap_min), int(bin), float(fwhm), float(aperture), _opt_path(out),
         )
     )

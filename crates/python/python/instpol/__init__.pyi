@@ -217,7 +217,7 @@ def scan(
     instrument: str,
     products: PathLike,
     *,
-    sky: Optional[Dict[str, Tuple[float, float]]] = ...,
+    sky: Optional[Union[Dict[str, Tuple[float, float]], PathLike]] = ...,
     standards: Optional[PathLike] = ...,
     pointing_tol_arcsec: float = ...,
     max_gap_min: float = ...,

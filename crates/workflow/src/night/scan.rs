@@ -65,6 +65,68 @@ pub struct SkyField {
     pub chi_deg: f64,
 }
 
+impl SkyField {
+    /// A sky field from `TARGET:P_PERCENT:CHI_DEG` (the target may hold colons), checked.
+    pub fn parse(spec: &str) -> Result<SkyField, Error> {
+        let bad =
+            || Error::Option(format!("sky field '{spec}': expected TARGET:P_PERCENT:CHI_DEG, e.g. EMPTY-V:1.74:-53.8"));
+        let parts: Vec<&str> = spec.rsplitn(3, ':').collect();
+        let [chi, p, target] = parts.as_slice() else { return Err(bad()) };
+        let (Ok(p), Ok(chi)) = (p.trim().parse::<f64>(), chi.trim().parse::<f64>()) else { return Err(bad()) };
+        let f = SkyField { target: target.trim().into(), p_percent: p, chi_deg: chi };
+        f.check()?;
+        Ok(f)
+    }
+
+    /// Sky fields from a table (CSV, ECSV, FITS or VOTable by the extension) with the columns
+    /// `target`, `p_percent` and `chi_deg`, each row checked; errors name the file and row.
+    pub fn read_table(path: &Path) -> Result<Vec<SkyField>, Error> {
+        use skyfield::table::{Data, Table};
+        let bad = |why: String| Error::Input { path: path.into(), why };
+        let t = Table::read(path, None).map_err(|e| bad(e.to_string()))?;
+        let col = |name: &str| {
+            t.column(name)
+                .ok_or_else(|| bad(format!("no column '{name}' (a sky-field table has target, p_percent, chi_deg)")))
+        };
+        // A column of whole numbers reads as integers.
+        let numbers = |name: &str| -> Result<Vec<f64>, Error> {
+            match &col(name)?.data {
+                Data::F64(v) => Ok(v.clone()),
+                Data::I64(v) => Ok(v.iter().map(|&x| x as f64).collect()),
+                Data::Str(_) => Err(bad(format!("column {name} must hold numbers"))),
+            }
+        };
+        let (ps, chis) = (numbers("p_percent")?, numbers("chi_deg")?);
+        let Data::Str(targets) = &col("target")?.data else {
+            return Err(bad("column target must hold names".into()));
+        };
+        let mut out = Vec::new();
+        for (i, ((target, &p_percent), &chi_deg)) in targets.iter().zip(&ps).zip(&chis).enumerate() {
+            let f = SkyField { target: target.trim().into(), p_percent, chi_deg };
+            f.check().map_err(|e| bad(format!("{}: {e}", t.row_label(i))))?;
+            out.push(f);
+        }
+        if out.is_empty() {
+            return Err(bad("no sky field in the table".into()));
+        }
+        Ok(out)
+    }
+
+    /// A named target, a degree of polarization in [0, 100) percent and a finite angle.
+    pub fn check(&self) -> Result<(), Error> {
+        if self.target.trim().is_empty() {
+            return Err(Error::Option("a sky field without a target name".into()));
+        }
+        if !(self.p_percent.is_finite() && (0.0..100.0).contains(&self.p_percent) && self.chi_deg.is_finite()) {
+            return Err(Error::Option(format!(
+                "sky field {}: P {} % and chi {} deg: P must be a percentage in [0, 100), chi a finite angle",
+                self.target, self.p_percent, self.chi_deg
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// How to sort and plan.
 #[derive(Debug, Clone)]
 pub struct ScanOptions {
@@ -495,6 +557,9 @@ pub fn scan(dirs: &[PathBuf], opts: &ScanOptions) -> Result<Plan, Error> {
         if !(v.is_finite() && v > 0.0) {
             return Err(Error::Option(format!("{what} {v} px: must be a positive number of pixels")));
         }
+    }
+    for f in &opts.sky_fields {
+        f.check()?;
     }
     let standards = match &opts.standards {
         Some(p) => fit::standards::Standards::load(p),
