@@ -186,6 +186,10 @@ fn main() {
     // Output the reader could not take for another reason than closing the pipe (a full
     // disk behind `> file`): the command's files are written, but the printed result is lost.
     let result = result.and_then(|()| util::stdout_status());
+    let check_ran = result.as_ref().err().is_some_and(|e| e.downcast_ref::<util::CheckFailed>().is_some());
+    if result.is_ok() || check_ran {
+        util::report_input_hashes();
+    }
     if let Err(e) = result {
         // Exit codes: 0 success, 1 a check that ran and failed, 2 bad input.
         let (kind, code, message) = match e.downcast_ref::<util::CheckFailed>() {

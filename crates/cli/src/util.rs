@@ -132,6 +132,18 @@ pub fn start_provenance() {
     skyfield::provenance::set_session(p);
 }
 
+/// For `instpol run` (`workflow::night::run`, "Hashes read once"): when the environment names
+/// a file in `INPUT_HASHES_ENV`, the run's provenance inputs with the hashes computed while
+/// reading them are written there, so that the runner need not read the inputs again. A file
+/// that cannot be written is no error of the command: the runner then hashes the inputs itself.
+pub fn report_input_hashes() {
+    if let Some(path) = std::env::var_os(workflow::night::run::INPUT_HASHES_ENV) {
+        if let Ok(text) = serde_json::to_string(&skyfield::provenance::current().inputs) {
+            let _ = std::fs::write(path, text);
+        }
+    }
+}
+
 /// `--bin` must be a number of pixels that fits the detector (1 ..= its longer side): a bin of
 /// 1e11 px overflowed the bin-count arithmetic (a panic) before it was checked.
 pub fn check_bin(bin: usize, inst: &instrument::Instrument) -> Result<()> {

@@ -550,6 +550,47 @@ fn a_simulated_night_scanned_and_run() {
     same_as_hand(&plan, &products, &hand, "run --jobs 2");
     let (ok, report) = run_json(&plan_path, &[]);
     assert!(ok && statuses(&report).iter().all(|(_, s)| s == "up_to_date"), "{report}");
+    // Every record's hashes are the files' BLAKE3 hashes, whether the command reported them
+    // (the inputs it read) or the runner computed them.
+    let mut n_checked = 0;
+    for rec in std::fs::read_dir(products.join(".instpol-run")).unwrap() {
+        let rec = rec.unwrap().path();
+        if rec.extension().is_none_or(|e| e != "json") {
+            continue;
+        }
+        let r: Value = serde_json::from_slice(&std::fs::read(&rec).unwrap()).unwrap();
+        for pair in r["inputs"].as_array().unwrap().iter().chain(r["outputs"].as_array().unwrap()) {
+            let (path, hash) = (pair[0].as_str().unwrap(), pair[1].as_str().unwrap());
+            let bytes = std::fs::read(path).unwrap();
+            assert_eq!(hash, format!("blake3:{}", blake3::hash(&bytes).to_hex()), "{}: {path}", rec.display());
+            n_checked += 1;
+        }
+    }
+    assert!(n_checked > 200, "{n_checked}");
+    // A frame touched (its time changed, its bytes not) is hashed again and still up to date;
+    // a frame changed in place runs what reads it.
+    let frame = PathBuf::from(target["inputs"][0].as_str().unwrap());
+    let t = std::fs::metadata(&frame).unwrap().modified().unwrap();
+    std::fs::File::options()
+        .write(true)
+        .open(&frame)
+        .unwrap()
+        .set_modified(t + std::time::Duration::from_secs(5))
+        .unwrap();
+    let (ok, report) = run_json(&plan_path, &["--dry-run"]);
+    assert!(ok && statuses(&report).iter().all(|(_, s)| s == "up_to_date"), "{report}");
+    let original = std::fs::read(&frame).unwrap();
+    let mut changed = original.clone();
+    let last = changed.len() - 1;
+    changed[last] ^= 1;
+    std::fs::write(&frame, &changed).unwrap();
+    let (_, report) = run_json(&plan_path, &["--dry-run"]);
+    for u in units {
+        let reads = u["inputs"].as_array().unwrap().iter().any(|i| i.as_str() == frame.to_str());
+        let st = statuses(&report).into_iter().find(|(i, _)| u["id"] == i.as_str()).unwrap().1;
+        assert_eq!(st, if reads { "would_run" } else { "up_to_date" }, "{}", u["id"]);
+    }
+    std::fs::write(&frame, &original).unwrap();
 
     // Killed (SIGKILL) at three points, after 1, a third and two thirds of the units had
     // finished, then started again: no finished unit is redone.

@@ -1243,7 +1243,7 @@ fn _run(
         }
     }
     let opts = workflow::night::RunOptions { jobs, only, dry_run };
-    let exec = workflow::night::process_executor(program);
+    let exec = workflow::night::process_executor(program, plan.records.clone());
     let report = py.detach(|| workflow::night::run::run(&plan, &opts, &exec, &|_| {})).map_err(night_err)?;
     serde_json::to_string(&report).map_err(|e| input_err(format!("the report: {e}")))
 }

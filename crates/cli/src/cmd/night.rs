@@ -205,7 +205,7 @@ pub fn run_run(a: RunArgs) -> Result<()> {
     }
     let opts = night::RunOptions { jobs: a.jobs, only, dry_run: a.dry_run };
     let exe = std::env::current_exe().context("cannot find the instpol binary to run the units")?;
-    let exec = night::process_executor(exe);
+    let exec = night::process_executor(exe, plan.records.clone());
     let n = night::run::selection(&plan, &opts.only)?.len();
     let bar =
         if a.json || a.dry_run { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(n as u64) };
