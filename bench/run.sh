@@ -135,7 +135,7 @@ REPS="$REPS" bash bench/scan.sh 10000 | awk -F'|' '{ok = ($5 + 0 >= 10) ? "yes" 
 # 6. A night's plan run by `instpol run` against its commands run one after another
 # (bench/run_plan.sh), its row appended to the table.
 echo "== instpol run over a night's plan vs its commands by hand (bench/run_plan.sh)" >&2
-REPS="$REPS" bash bench/run_plan.sh | awk -F'|' '{ok = ($5 + 0 <= 1.05) ? "yes" : "NO"; printf "|%s|%s|%s|%s|%s| %s |\n", $2, $3, $4, $5, $6, ok}' >> "$LOG/table.md"
+FRAMES_DIR="$FR" REPS="$REPS" bash bench/run_plan.sh | awk -F'|' '{ok = ($5 + 0 <= 1.05) ? "yes" : "NO"; printf "|%s|%s|%s|%s|%s| %s |\n", $2, $3, $4, $5, $6, ok}' >> "$LOG/table.md"
 
 echo "load after: $(uptime)" >&2
 cat "$LOG/table.md"

@@ -5,7 +5,10 @@
 # what is measured is what `run` adds to the commands: reading the plan, hashing every input
 # before and every output after, the records and locks. Each timed REPS times, alternating,
 # from an empty products folder; medians.
-# usage: bench/run_plan.sh     env: REPS (default 5), NIGHT_DIR (kept when set)
+# A second row: a plan of one unit, the reduction of 16 FORS1 frames of 2048 x 2048 (256 MB,
+# made by bench/peers/reduce_peer.py as for bench/run.sh), against the same reduce command
+# alone: what `run` adds when the inputs are large (their hashes, which the command reports).
+# usage: bench/run_plan.sh     env: REPS (default 5), NIGHT_DIR, FRAMES_DIR (kept when set)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 REPS=${REPS:-5}
@@ -51,3 +54,30 @@ med() { printf '%s\n' "$@" | sort -g | awk '{a[NR]=$1} END {print a[int((NR+1)/2
 o=$(med "${ours[@]}"); h=$(med "${hand[@]}")
 n=$(python3 -c "import json,sys; print(len(json.load(open(sys.argv[1]))['units']))" "$PLAN")
 echo "| run over a night's plan ($n units, --jobs 1) | $o s | its commands one after another $h s | $(echo "$o $h" | awk '{printf "%.3f", $1/$2}') | <= 1.05 |"
+
+FR=${FRAMES_DIR:-$LOG/frames}
+if [ ! -f "$FR/frame_15.fits" ]; then
+  python3 bench/peers/reduce_peer.py make "$FR" >&2
+fi
+BIG="$LOG/big.json"
+python3 - "$BIG" "$FR" "$LOG/bigout" <<'PY'
+import json, sys, glob
+plan_path, fr, out = sys.argv[1:4]
+frames = sorted(glob.glob(fr + "/frame_*.fits"))
+m = out + "/map.fits"
+unit = {"id": "reduce-16", "kind": "reduce", "inputs": frames, "outputs": [m],
+        "command": ["reduce", *frames, "--out", m], "after": []}
+json.dump({"version": 1, "instrument": "fors1", "records": out + "/.instpol-run", "units": [unit],
+           "files": [], "left_out": []}, open(plan_path, "w"))
+PY
+ours=(); alone=()
+for r in $(seq "$REPS"); do
+  rm -rf "$LOG/bigout"; mkdir -p "$LOG/bigout"
+  s=$(date +%s.%N); "$BIN" run "$BIG" > /dev/null; e=$(date +%s.%N)
+  ours+=("$(echo "$s $e" | awk '{print $2-$1}')")
+  rm -rf "$LOG/bigout"; mkdir -p "$LOG/bigout"
+  s=$(date +%s.%N); "$BIN" reduce "$FR"/frame_*.fits --out "$LOG/bigout/map.fits" > /dev/null 2>&1; e=$(date +%s.%N)
+  alone+=("$(echo "$s $e" | awk '{print $2-$1}')")
+done
+o=$(med "${ours[@]}"); a=$(med "${alone[@]}")
+echo "| run of one reduce unit, 16 x 2048^2 frames | $o s | the reduce command alone $a s | $(echo "$o $a" | awk '{printf "%.3f", $1/$2}') | <= 1.05 |"
