@@ -227,8 +227,9 @@ pub struct Axes<'s> {
     pub x_fmt: Option<&'s dyn Fn(&f64) -> String>,
 }
 
-/// Room right of the plotting area for half of the last x tick label (points).
-const RIGHT_PAD_PT: f64 = 8.0;
+/// Room right of the plotting area for half of the last x tick label (points): half of a
+/// five-character label ("10000", 0.6 em a character) at the tick font, and a margin.
+const RIGHT_PAD_PT: f64 = 0.5 * 5.0 * 0.6 * TICK_PT + 3.0;
 
 impl<'s> Axes<'s> {
     pub fn new(caption: impl Into<String>, x_desc: &'s str, y_desc: &'s str) -> Self {

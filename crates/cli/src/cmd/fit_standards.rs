@@ -194,12 +194,11 @@ pub fn run(a: Args) -> Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("--plot-dir {}", dir.display()))?;
         for (f, j) in &fits {
             for (bi, (b, _)) in f.bands.iter().enumerate() {
-                let name =
-                    format!("standards_{}_{}{}.png", f.model.name(), sanitize(b), if *j { "_joint" } else { "" });
-                let path = dir.join(name);
-                super::fit_standards_plot::plot_band(&path, f, bi)?;
-                if !a.json {
-                    eprintln!("wrote {}", path.display());
+                let name = format!("standards_{}_{}{}", f.model.name(), sanitize(b), if *j { "_joint" } else { "" });
+                for path in super::fit_standards_plot::plot_band(&dir.join(name), f, bi)? {
+                    if !a.json {
+                        eprintln!("wrote {}", path.display());
+                    }
                 }
             }
         }

@@ -71,10 +71,28 @@ fn band_plot(f: &TelescopeFit, bi: usize) -> Result<BandPlot> {
 /// The legend's key of the polarized standards' triangles.
 const POL_KEY: &str = "polarized, own P removed";
 
+/// The figure's size (px): 900 x 1000, drawn for one journal column (`crate::plot`).
+const SIZE: (u32, u32) = (900, 1000);
+
 /// q and u against the parallactic angle with the model curve (upper panel), residuals
 /// (lower panel); flagged points hollow; polarized standards (triangles) with their own
 /// polarization removed as the model has it, so that they sit on the same curve ([`band_plot`]).
-pub fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
+/// Written as `STEM.png` and `STEM.svg`; returns both paths.
+pub fn plot_band(stem: &Path, f: &TelescopeFit, bi: usize) -> Result<Vec<std::path::PathBuf>> {
+    let d = figure(f, bi)?;
+    crate::plot::save_png_svg(stem, SIZE, |root| draw(root, &d), |root| draw(root, &d))
+}
+
+/// What one band's figure draws, in percent.
+struct Figure {
+    title: String,
+    curve: Vec<(f64, f64, f64)>,
+    pts: Vec<PlotPoint>,
+    ymax: f64,
+    rmax: f64,
+}
+
+fn figure(f: &TelescopeFit, bi: usize) -> Result<Figure> {
     let band = &f.bands[bi].0;
     let BandPlot { curve, points: pts } = band_plot(f, bi)?;
     let curve: Vec<(f64, f64, f64)> = curve.iter().map(|&(pa, q, u)| (pa, 100.0 * q, 100.0 * u)).collect();
@@ -88,10 +106,18 @@ pub fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
         pts.iter().map(|p| 100.0 * (p.resid_q.abs() + p.sigma_q).max(p.resid_u.abs() + p.sigma_u)).fold(0.05, f64::max)
             * 1.2;
     let title = format!("{band}: {} model, chi2/dof = {:.2}", f.model.name(), f.chi2_reduced);
-    crate::plot::save_png(path, (900, 800), |root| {
+    Ok(Figure { title, curve, pts, ymax, rmax })
+}
+
+fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, d: &Figure) -> Result<()> {
+    let Figure { title, curve, pts, ymax, rmax } = d;
+    let (ymax, rmax) = (*ymax, *rmax);
+    {
         let (top, bottom) = root.split_vertically(520);
         let ax = crate::plot::Axes::new(title.clone(), "parallactic angle (deg)", "q, u (%)");
-        let mut c = crate::plot::chart(&top, &ax, -180.0..180.0, -ymax..ymax)?;
+        // Room above the curves for the legend: the model spans every angle.
+        let entries = if pts.iter().any(|p| p.shifted) { 3 } else { 2 };
+        let mut c = crate::plot::chart_with_legend_room(&top, &ax, -180.0..180.0, -ymax..ymax, entries)?;
         let mut keyed = false;
         for (col, idx, label) in [(RED, 0usize, "q"), (BLUE, 1, "u")] {
             c.draw_series(LineSeries::new(
@@ -101,7 +127,7 @@ pub fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
             .map_err(crate::plot::pe)?
             .label(format!("{label} model"))
             .legend(crate::plot::line_key(col.stroke_width(2)));
-            for p in &pts {
+            for p in pts.iter() {
                 let (v, s) = if idx == 0 { (p.q, p.sigma_q) } else { (p.u, p.sigma_u) };
                 let x = p.pa_deg;
                 c.draw_series(std::iter::once(PathElement::new([(x, 100.0 * (v - s)), (x, 100.0 * (v + s))], col)))
@@ -142,7 +168,7 @@ pub fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
         );
         let mut r = crate::plot::chart(&bottom, &ax, -180.0..180.0, -rmax..rmax)?;
         r.draw_series(LineSeries::new([(-180.0, 0.0), (180.0, 0.0)], BLACK)).map_err(crate::plot::pe)?;
-        for p in &pts {
+        for p in pts.iter() {
             let x = p.pa_deg;
             for (col, d, s, dx) in [(RED, p.resid_q, p.sigma_q, -1.5), (BLUE, p.resid_u, p.sigma_u, 1.5)] {
                 r.draw_series(std::iter::once(PathElement::new(
@@ -155,7 +181,7 @@ pub fn plot_band(path: &Path, f: &TelescopeFit, bi: usize) -> Result<()> {
             }
         }
         Ok(())
-    })
+    }
 }
 
 #[cfg(test)]
@@ -225,7 +251,8 @@ mod tests {
             }
         }
         let dir = tempfile::tempdir().unwrap();
-        plot_band(&dir.path().join("v.png"), &f, 0).unwrap();
-        assert!(dir.path().join("v.png").is_file());
+        let written = plot_band(&dir.path().join("v"), &f, 0).unwrap();
+        assert_eq!(written, [dir.path().join("v.png"), dir.path().join("v.svg")]);
+        assert!(written.iter().all(|p| p.is_file()));
     }
 }

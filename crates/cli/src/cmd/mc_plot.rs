@@ -106,12 +106,25 @@ fn draw_sweep<DB: DrawingBackend>(
         let smin = bias.iter().map(|b| b.snr_p).fold(f64::INFINITY, f64::min).max(1e-3);
         let smax = bias.iter().map(|b| b.snr_p).fold(0.0, f64::max).max(smin * 10.0);
         let ax = Axes::new("fig:bias  Delta P / sigma_P", "SNR_P = P0 / sigma_P", "Delta P / sigma_P");
-        let mut c = chart(&areas[2], &ax, log_axis(smin, smax), -1.5f64..1.6)?;
+        // Every estimator's curve crosses the whole panel: no corner is free for a legend of
+        // this many lines, so it stands beside the chart, in a column of its own.
+        let (w, _) = areas[2].dim_in_pixel();
+        let (plot_area, key_area) = areas[2].split_horizontally(w * 64 / 100);
+        let mut c = chart(&plot_area, &ax, log_axis(smin, smax), -1.5f64..1.6)?;
+        // The legend's chart: no axes, the plotting area the whole column below the caption's
+        // height, so that the box starts level with the chart's top.
+        let mut keys = ChartBuilder::on(&key_area)
+            .margin(crate::plot::pt(3.0))
+            .margin_top(crate::plot::pt(3.0 + 1.3 * crate::plot::CAPTION_PT))
+            .build_cartesian_2d(0f64..1.0, 0f64..1.0)
+            .map_err(pe)?;
         let names: Vec<String> =
             bias.first().map(|b| b.estimators.iter().map(|e| e.0.clone()).collect()).unwrap_or_default();
         for (j, nm) in names.iter().enumerate() {
             let col = Palette99::pick(j + 2).to_rgba();
             c.draw_series(LineSeries::new(bias.iter().map(|b| (b.snr_p, b.estimators[j].1)), col.stroke_width(2)))
+                .map_err(pe)?;
+            keys.draw_series(LineSeries::new(std::iter::empty(), col.stroke_width(2)))
                 .map_err(pe)?
                 .label(format!("E[{nm}] - P0"))
                 .legend(line_key(col.stroke_width(2)));
@@ -119,30 +132,25 @@ fn draw_sweep<DB: DrawingBackend>(
         c.draw_series(
             bias.iter().filter_map(|b| b.mc_mode.map(|m| Circle::new((b.snr_p, m), 4, BLACK.stroke_width(1)))),
         )
-        .map_err(pe)?
-        .label("MC mode")
-        .legend(|(x, y)| Circle::new((x + 10, y), 4, BLACK));
-        c.draw_series(bias.iter().map(|b| Cross::new((b.snr_p, b.mc_mean), 5, BLUE.stroke_width(2))))
-            .map_err(pe)?
-            .label("MC mean")
-            .legend(|(x, y)| Cross::new((x + 10, y), 5, BLUE));
+        .map_err(pe)?;
+        c.draw_series(bias.iter().map(|b| Cross::new((b.snr_p, b.mc_mean), 5, BLUE.stroke_width(2)))).map_err(pe)?;
         c.draw_series(
             bias.iter().filter_map(|b| b.mc_median.map(|m| TriangleMarker::new((b.snr_p, m), 5, RED.stroke_width(1)))),
         )
-        .map_err(pe)?
-        .label("MC median")
-        .legend(|(x, y)| TriangleMarker::new((x + 10, y), 5, RED));
-        let data: Vec<(f64, f64)> = bias
-            .iter()
-            .flat_map(|b| {
-                b.estimators.iter().map(|e| (b.snr_p, e.1)).chain([
-                    (b.snr_p, b.mc_mode.unwrap_or(f64::NAN)),
-                    (b.snr_p, b.mc_mean),
-                    (b.snr_p, b.mc_median.unwrap_or(f64::NAN)),
-                ])
-            })
-            .collect();
-        legend_off_data(&mut c, &data, names.len() + 3, 13, CORNERS)?;
+        .map_err(pe)?;
+        keys.draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())
+            .map_err(pe)?
+            .label("MC mode")
+            .legend(|(x, y)| Circle::new((x + 10, y), 4, BLACK));
+        keys.draw_series(std::iter::empty::<Cross<(f64, f64), i32>>())
+            .map_err(pe)?
+            .label("MC mean")
+            .legend(|(x, y)| Cross::new((x + 10, y), 5, BLUE));
+        keys.draw_series(std::iter::empty::<TriangleMarker<(f64, f64), i32>>())
+            .map_err(pe)?
+            .label("MC median")
+            .legend(|(x, y)| TriangleMarker::new((x + 10, y), 5, RED));
+        crate::plot::legend(&mut keys, plotters::chart::SeriesLabelPosition::UpperLeft)?;
         Ok(())
     }
 }

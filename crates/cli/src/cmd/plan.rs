@@ -288,7 +288,7 @@ fn draw_plan<DB: DrawingBackend>(
     (y0, y1): (f64, f64),
 ) -> Result<()> {
     let ax = crate::plot::Axes::new(
-        format!("Mueller-field calibration: accuracy against time (target {} %)", target_percent),
+        format!("Accuracy vs time (target {} %)", target_percent),
         "total observing time (s)",
         "RMS corrected q, u (%)",
     );

@@ -27,7 +27,7 @@ pub struct Args {
     /// The table to write (.ecsv, .csv, .fits or .vot).
     #[arg(long)]
     pub out: PathBuf,
-    /// Also draw the series (PNG).
+    /// Also draw the series (PNG, or SVG for a .svg name).
     #[arg(long, value_name = "TREND.png")]
     pub plot: Option<PathBuf>,
     /// Significance (sigma) above which a step is flagged.
@@ -91,8 +91,17 @@ fn plot(path: &Path, t: &Trend) -> Result<()> {
     if series.is_empty() {
         bail!("--plot {}: the plans hold no measured standard to draw", path.display());
     }
-    let h = 260 * series.len() as u32;
-    crate::plot::save_png(path, (900, h.max(300)), |root| {
+    // 900 px wide (one journal column, `crate::plot`), 260 px per series.
+    let size = (900, (260 * series.len() as u32).max(300));
+    crate::plot::save_image(path, size, |root| draw(root, t, &series), |root| draw(root, t, &series))
+}
+
+fn draw<DB: DrawingBackend>(
+    root: &DrawingArea<DB, plotters::coord::Shift>,
+    t: &Trend,
+    series: &[(String, String)],
+) -> Result<()> {
+    {
         let panels = root.split_evenly((series.len(), 1));
         for ((q, f), area) in series.iter().zip(panels.iter()) {
             let pts: Vec<_> = t.points.iter().filter(|p| &p.quantity == q && &p.filter == f).collect();
@@ -123,5 +132,5 @@ fn plot(path: &Path, t: &Trend) -> Result<()> {
             }
         }
         Ok(())
-    })
+    }
 }
