@@ -195,3 +195,35 @@ fn tempfile_dir() -> PathBuf {
     std::fs::create_dir_all(&d).unwrap();
     d
 }
+
+/// Every page of the guide a message names (`docs/guide/NAME.md` in a crate's source, e.g.
+/// `instrument::ZERO_ANGLE_GUIDE`) exists, so that an error's pointer leads somewhere.
+#[test]
+fn every_guide_page_a_message_names_exists() {
+    let root = repository_root();
+    let mut named = 0;
+    let mut missing = vec![];
+    let mut stack = vec![root.join("crates")];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p.extension().is_some_and(|x| x == "rs") {
+                let text = std::fs::read_to_string(&p).unwrap();
+                for (i, _) in text.match_indices("\"docs/guide/") {
+                    let name: String = text[i + 1..].chars().take_while(|c| *c != '"' && *c != '#').collect();
+                    if !name.ends_with(".md") {
+                        continue;
+                    }
+                    named += 1;
+                    if !root.join(&name).is_file() {
+                        missing.push(format!("{}: {name}", p.display()));
+                    }
+                }
+            }
+        }
+    }
+    assert!(named >= 1, "no message names a guide page");
+    assert!(missing.is_empty(), "guide pages named in messages that do not exist:\n{}", missing.join("\n"));
+}

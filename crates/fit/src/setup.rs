@@ -45,8 +45,10 @@ pub fn map_zero_angle(map: &skyfield::StokesMap) -> (f64, Option<String>) {
         None => (
             0.0,
             Some(format!(
-                "the map records no HWP zero angle (HWPZERO) and instrument {} is not a built-in one, so its zero angle in filter {} is not known here and is taken as 0: chi would be off by it",
-                map.instrument, map.filter
+                "the map records no HWP zero angle (HWPZERO) and instrument {} is not a built-in one, so its zero angle in filter {} is not known here and is taken as 0: chi would be off by it (see {})",
+                map.instrument,
+                map.filter,
+                instrument::ZERO_ANGLE_GUIDE
             )),
         ),
     }
@@ -60,8 +62,10 @@ pub fn zero_angle_disagreement(map: &skyfield::StokesMap, inst: &Instrument) -> 
     let now = inst.filter(&map.filter).ok()?.chi_offset_deg();
     (recorded != now).then(|| {
         format!(
-            "the map records an HWP zero angle of {recorded} deg for filter {} (HWPZERO: the instrument file it was reduced with), instrument {} gives {now} deg now: {now} deg is used",
-            map.filter, inst.name
+            "the map records an HWP zero angle of {recorded} deg for filter {} (HWPZERO: the instrument file it was reduced with), instrument {} gives {now} deg now: {now} deg is used (see {})",
+            map.filter,
+            inst.name,
+            instrument::ZERO_ANGLE_GUIDE
         )
     })
 }

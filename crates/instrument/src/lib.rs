@@ -204,12 +204,16 @@ impl Filter {
             format!(
                 "instrument {inst} gives no HWP zero angle for filter {} (hwp_chi_offset_deg): chi is the plate's angle, \
                  off the sky's by the plate's chromatic zero angle (typically a few degrees); measure it on a polarized \
-                 standard with `instpol zero-angle` and put it in the instrument file",
+                 standard with `instpol zero-angle` and put it in the instrument file ({ZERO_ANGLE_GUIDE})",
                 self.name
             )
         })
     }
 }
+
+/// The guide's page on the HWP zero angle and the plate and sky frames, named by the messages
+/// that need the concept.
+pub const ZERO_ANGLE_GUIDE: &str = "docs/guide/zero-angle.md";
 
 /// Why a throw term is refused ([`bad_term`]).
 const BAD_TERM: &str = "each term needs a finite c and powers i, j of at most 8";

@@ -189,7 +189,8 @@ fn print_notes(a: &Args, notes: &[fit::request::Note]) {
     for n in notes {
         match n {
             Note::CarriedZeroAngle { carried, calibration, applied } => eprintln!(
-                "warning: {input}: q, u carry the HWP zero angle {carried} deg (column '{ZERO_ANGLE}') but {cal} records {calibration} deg: the rows are turned by the difference, {applied} deg, into the calibration's frame (every chi0 moves by it); if the catalog's zero angle is the right one, remake the calibration with it (import-map --zero-angle, or the instrument file's hwp_chi_offset_deg)"
+                "warning: {input}: q, u carry the HWP zero angle {carried} deg (column '{ZERO_ANGLE}') but {cal} records {calibration} deg: the rows are turned by the difference, {applied} deg, into the calibration's frame (every chi0 moves by it); if the catalog's zero angle is the right one, remake the calibration with it (import-map --zero-angle, or the instrument file's hwp_chi_offset_deg; see {})",
+                instrument::ZERO_ANGLE_GUIDE
             ),
             Note::AnglesWithoutTelescope => eprintln!(
                 "warning: {input} has a {} column but {cal} holds no telescope model: the telescope's polarization is NOT removed (fit one with instpol fit-standards --output)",
