@@ -28,10 +28,12 @@ The guide, docs/guide/correcting.md, has a pipeline from frames to corrected sta
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import tempfile
 import warnings
-from typing import Any, Dict, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Iterator, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -55,6 +57,8 @@ __all__ = [
 
 ArrayLike = Any
 PathLike = Union[str, "os.PathLike[str]"]
+#: A frame: a FITS file's path, an astropy ``HDUList``, a ``CCDData``, or ``(array, header)``.
+Frame = Any
 
 
 def _f64(a: ArrayLike, name: str) -> np.ndarray:
@@ -540,6 +544,79 @@ def _paths(frames: Union[PathLike, Sequence[PathLike]]) -> list:
     return [os.fspath(f) for f in frames]
 
 
+def _is_frame_object(f: Any) -> bool:
+    return not isinstance(f, (str, os.PathLike))
+
+
+@contextlib.contextmanager
+def _frame_files(frames: Any) -> Iterator[list]:
+    """The frames as FITS paths: a path as given; an ``HDUList``, a ``CCDData`` or an
+    ``(array, header)`` pair written to a temporary file for the call (the library reads FITS
+    files: headers carry the HWP angle, filter and exposure). Errors that name a temporary file
+    name the frame's place in the list instead."""
+    if isinstance(frames, (str, os.PathLike)) or (isinstance(frames, tuple) and len(frames) == 2 and hasattr(frames[0], "shape")):
+        frames = [frames]
+    frames = list(frames)
+    if not any(_is_frame_object(f) for f in frames):
+        yield [os.fspath(f) for f in frames]
+        return
+    try:
+        from astropy.io import fits
+    except ImportError:  # pragma: no cover - astropy is what makes such objects
+        raise InputError("frames given as objects need astropy installed") from None
+    with tempfile.TemporaryDirectory(prefix="instpol-frames-") as tmp:
+        paths, names = [], {}
+        for i, f in enumerate(frames):
+            if not _is_frame_object(f):
+                paths.append(os.fspath(f))
+                continue
+            path = os.path.join(tmp, f"frame_{i:04d}.fits")
+            if isinstance(f, fits.HDUList):
+                hdul = f
+            elif hasattr(f, "to_hdu"):  # CCDData: its data and header, no mask or uncertainty
+                hdul = f.to_hdu(hdu_mask=None, hdu_uncertainty=None, hdu_flags=None)
+            elif isinstance(f, tuple) and len(f) == 2:
+                hdul = fits.HDUList([fits.PrimaryHDU(data=np.asarray(f[0]), header=f[1])])
+            else:
+                raise InputError(
+                    f"frames[{i}]: a {type(f).__name__}; expected a path, an HDUList, a CCDData or (array, header)"
+                )
+            hdul.writeto(path)
+            paths.append(path)
+            names[path] = f"frames[{i}] ({type(f).__name__})"
+        try:
+            yield paths
+        except (InputError, FileError) as e:
+            msg = str(e)
+            for path, name in names.items():
+                msg = msg.replace(path, name)
+            raise type(e)(msg) from None
+
+
+#: Units of catalog columns by name (astropy unit strings); a name ending in ``_deg`` is in deg,
+#: one ending in ``_arcmin`` in arcmin; the rest are dimensionless fractions or counts.
+_COLUMN_UNITS = {"x": "pix", "y": "pix", "x_e": "pix", "y_e": "pix", "fwhm_px": "pix", "aperture_px": "pix",
+                 "flux_e": "electron", "a0": "electron"}
+
+
+def _table(d: Dict[str, Any], n: int) -> Any:
+    """A dict of per-star columns (length ``n``) and metadata as an astropy ``QTable``: the
+    columns with their units (:data:`_COLUMN_UNITS`, ``*_deg``, ``*_arcmin``), the rest in
+    ``meta``."""
+    from astropy import units as u
+    from astropy.table import QTable
+
+    t = QTable()
+    for k, v in d.items():
+        if isinstance(v, (list, np.ndarray)) and len(v) == n and k not in ("hwp_deg", "warnings"):
+            unit = _COLUMN_UNITS.get(k) or ("deg" if k.endswith("_deg") else "arcmin" if k.endswith("_arcmin") else None)
+            arr = np.asarray(v) if not (isinstance(v, list) and v and isinstance(v[0], list)) else np.array(v, dtype=object)
+            t[k] = arr * u.Unit(unit) if unit and arr.dtype.kind in "fi" else arr
+        else:
+            t.meta[k] = v
+    return t
+
+
 def _opt_path(p: Optional[PathLike]) -> Optional[str]:
     return None if p is None else os.fspath(p)
 
@@ -560,7 +637,10 @@ def reduce(
     """Reduce dual-beam frames (one filter, N HWP angles) to a binned Stokes map, as
     ``instpol reduce``: per pixel F_i (eq:F) and Q/I, U/I (eq:Q, eq:U) from the ordinary and
     extraordinary images of every mask strip, then a sigma-clipped mean per ``bin`` x ``bin``
-    px bin. ``instrument``: a built-in name or an instrument TOML file; ``bias``, ``flat``:
+    px bin. ``frames``: paths of FITS files, or astropy ``HDUList``, ``CCDData`` or
+    ``(array, header)`` objects (written to temporary FITS files for the call: the headers must
+    carry what a file's would, the HWP angle, filter and exposure time, or give ``hwp_angles``).
+    ``instrument``: a built-in name or an instrument TOML file; ``bias``, ``flat``:
     master frames; ``hwp_angles``: degrees per frame for headers without the keyword;
     ``assembled=True``: frames already trimmed and assembled by another pipeline (bias-
     subtracted, one detector-sized image each), for an instrument whose raw frames are chip
@@ -581,11 +661,12 @@ def reduce(
     """
     if isinstance(bin, bool) or not isinstance(bin, (int, np.integer)) or bin < 0:
         raise InputError(f"bin {bin!r}: expected a bin side in pixels (a positive integer)")
-    d = _instpol._reduce(
-        _paths(frames), str(instrument), int(bin), float(nsigma), bool(allow_incomplete), _opt_path(bias),
-        _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles], bool(assembled),
-        _opt_path(output),
-    )
+    with _frame_files(frames) as paths:
+        d = _instpol._reduce(
+            paths, str(instrument), int(bin), float(nsigma), bool(allow_incomplete), _opt_path(bias),
+            _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles], bool(assembled),
+            _opt_path(output),
+        )
     return StokesMap(d)
 
 
@@ -606,7 +687,8 @@ def catalog(
     pair_tol: float = 1.5,
     cal: Optional[PathLike] = None,
     allow_extrapolation: bool = False,
-) -> Dict[str, Any]:
+    as_table: bool = False,
+) -> Any:
     """Every paired star of a frame set measured, as ``instpol catalog``: detection on the
     first frame, ordinary/extraordinary pairing through the instrument's beam layout, aperture
     photometry per frame with the background removed in each beam, then Q/I, U/I, P, chi
@@ -628,6 +710,11 @@ def catalog(
     ``pair_tol``: how far (px) a detected e image may sit from where the instrument's o/e offset
     puts it (a warning gives the shift when many sit further off, e.g. another filter's throw).
     ``assembled=True``: frames already trimmed and assembled (as for :func:`reduce`).
+
+    ``frames``: paths of FITS files, or astropy ``HDUList``, ``CCDData`` or ``(array, header)``
+    objects (as for :func:`reduce`). ``as_table=True``: an astropy ``QTable`` instead of the dict,
+    one row per star, columns with their units (px, arcmin, deg, electrons; q, u, P fractions),
+    the metadata in ``meta``.
 
     ``cal``: a calibration file to remove the instrumental polarization with in the same run, as
     ``instpol catalog --cal``: adds the columns ``q0, u0, sigma_q0, sigma_u0, cov_qu0, p0,
@@ -652,12 +739,14 @@ def catalog(
         r_in, r_out = (float(a) for a in annulus)
     except (TypeError, ValueError):
         raise InputError(f"annulus {annulus!r}: expected two radii in px, e.g. (12, 20)") from None
-    return _instpol._catalog(
-        _paths(frames), str(instrument), float(fwhm), float(threshold), str(aperture), (r_in, r_out),
-        _opt_path(bias), _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles],
-        bool(assembled), None if kappa is None else float(kappa), bool(kappa_from_data), float(pair_tol),
-        _opt_path(cal), bool(allow_extrapolation),
-    )
+    with _frame_files(frames) as paths:
+        d = _instpol._catalog(
+            paths, str(instrument), float(fwhm), float(threshold), str(aperture), (r_in, r_out),
+            _opt_path(bias), _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles],
+            bool(assembled), None if kappa is None else float(kappa), bool(kappa_from_data), float(pair_tol),
+            _opt_path(cal), bool(allow_extrapolation),
+        )
+    return _table(d, len(d["id"])) if as_table else d
 
 
 def demo(out_dir: PathLike, *, frames: bool = True, keep_frames: bool = False, seed: int = 2006) -> Dict[str, Any]:

@@ -166,7 +166,7 @@ class StokesMap:
     y_arcmin: npt.NDArray[np.float64]
 
 def reduce(
-    frames: Union[PathLike, Sequence[PathLike]],
+    frames: Union[PathLike, Sequence[Any]],
     instrument: str = ...,
     *,
     bin: int = ...,
@@ -185,7 +185,7 @@ def reduce(
     """
 
 def catalog(
-    frames: Union[PathLike, Sequence[PathLike]],
+    frames: Union[PathLike, Sequence[Any]],
     instrument: str = ...,
     *,
     fwhm: float = ...,
@@ -201,12 +201,15 @@ def catalog(
     pair_tol: float = ...,
     cal: Optional[PathLike] = ...,
     allow_extrapolation: bool = ...,
-) -> Dict[str, Any]:
+    as_table: bool = ...,
+) -> Any:
     """Every paired star measured: Q/I, U/I, P, chi with errors and flags.
 
     fwhm (px), threshold (detection sigmas), aperture (px, "2.5fwhm" or "best"), annulus
-    (inner, outer px), pair_tol (px); cal: correct in the same run. Returns a dict of columns
-    (fractions, deg, px, arcmin as their names say). Raises FileError or InputError.
+    (inner, outer px), pair_tol (px); cal: correct in the same run. frames: paths, HDUList,
+    CCDData or (array, header). Returns a dict of columns (fractions, deg, px, arcmin as their
+    names say), or with as_table=True an astropy QTable with units and the metadata in meta.
+    Raises FileError or InputError.
     """
 
 def demo(out_dir: PathLike, *, frames: bool = ..., keep_frames: bool = ..., seed: int = ...) -> Dict[str, Any]:
