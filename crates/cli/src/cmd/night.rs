@@ -108,7 +108,11 @@ pub fn run_scan(a: ScanArgs) -> Result<()> {
             .map_or_else(|| PathBuf::from("products"), |d| d.join("products")),
     };
     let mut opts = night::ScanOptions::new(&a.instrument, &products);
-    opts.sky_fields = a.sky.iter().map(|s| night::SkyField::parse(s)).collect::<Result<_, _>>()?;
+    opts.sky_fields = a
+        .sky
+        .iter()
+        .map(|s| night::SkyField::parse(s).with_context(|| format!("--sky '{s}'")))
+        .collect::<Result<_>>()?;
     if let Some(t) = &a.sky_table {
         opts.sky_fields.extend(night::SkyField::read_table(t)?);
     }
