@@ -583,3 +583,109 @@ pub fn stars_meta(
 
 /// `IP SOURCE` of a calibration from field stars.
 pub const SOURCE: &str = "field stars";
+
+/// One rejected star in [`StarsSummary`].
+#[derive(Debug, Clone, Serialize)]
+pub struct RejectedStar {
+    pub id: usize,
+    /// Sky position in the first pointing's field coordinates (arcmin).
+    pub x_arcmin: f64,
+    pub y_arcmin: f64,
+    pub n_measurements: usize,
+    pub chi2: f64,
+    pub dof: usize,
+    /// Upper-tail probability of its chi^2 (below the threshold).
+    pub p_value: f64,
+    /// Its own polarization beyond the interstellar term (fraction), angle (deg) and `P / sigma_P`.
+    pub residual_p: f64,
+    pub residual_chi_deg: f64,
+    pub residual_p_sigma: f64,
+    /// Catalog (1-based, in the order given) and 0-based row of each of its measurements.
+    pub measurements: Vec<[usize; 2]>,
+}
+
+/// The interstellar polarization in [`StarsSummary`] (fractions, deg).
+#[derive(Debug, Clone, Serialize)]
+pub struct InterstellarSummary {
+    /// "free", "zero" or "given".
+    pub mode: String,
+    pub q: f64,
+    pub u: f64,
+    pub sigma_q: f64,
+    pub sigma_u: f64,
+    pub p: f64,
+    pub chi_deg: f64,
+}
+
+/// The JSON of `instpol calibrate-stars` (field names are a contract): the radial fit's summary
+/// as `instpol calibrate` prints it, and what the stars add.
+#[derive(Debug, Clone, Serialize)]
+pub struct StarsSummary {
+    #[serde(flatten)]
+    pub fit: crate::pipeline::FitSummary,
+    pub interstellar: InterstellarSummary,
+    pub n_catalogs: usize,
+    pub n_measurements: usize,
+    pub n_stars: usize,
+    /// Stars seen in more than one pointing.
+    pub n_stars_repeated: usize,
+    /// Pointing offsets (arcmin) and whether they were measured from the stars.
+    pub offsets_arcmin: Vec<[f64; 2]>,
+    pub offsets_measured: bool,
+    pub reject_alpha: f64,
+    /// `reject_alpha` times the stars kept: the false rejections expected among them.
+    pub expected_false_rejections: f64,
+    pub rejection_rounds: usize,
+    pub rejected: Vec<RejectedStar>,
+}
+
+impl StarsSummary {
+    pub fn new(run: &StarsRun, rows: &[StarRow], reject_alpha: f64) -> Self {
+        let isp = &run.interstellar;
+        let rejected: Vec<RejectedStar> = run
+            .rejected()
+            .into_iter()
+            .map(|s| RejectedStar {
+                id: s.id,
+                x_arcmin: s.x_sky,
+                y_arcmin: s.y_sky,
+                n_measurements: s.rows.len(),
+                chi2: s.chi2,
+                dof: s.dof,
+                p_value: s.p_value,
+                residual_p: s.residual_p,
+                residual_chi_deg: mueller::fold_pi(0.5 * s.residual_u.atan2(s.residual_q)).to_degrees(),
+                residual_p_sigma: s.residual_p_sigma,
+                measurements: s.rows.iter().map(|&i| [rows[i].pointing + 1, rows[i].row]).collect(),
+            })
+            .collect();
+        let kept = run.stars.len() - rejected.len();
+        StarsSummary {
+            fit: crate::pipeline::FitSummary::new(&run.run),
+            interstellar: InterstellarSummary {
+                mode: match run.interstellar_mode {
+                    Interstellar::Free => "free",
+                    Interstellar::Zero => "zero",
+                    Interstellar::Given { .. } => "given",
+                }
+                .into(),
+                q: isp.q,
+                u: isp.u,
+                sigma_q: isp.var_q.max(0.0).sqrt(),
+                sigma_u: isp.var_u.max(0.0).sqrt(),
+                p: isp.q.hypot(isp.u),
+                chi_deg: mueller::fold_pi(0.5 * isp.u.atan2(isp.q)).to_degrees(),
+            },
+            n_catalogs: run.offsets.len(),
+            n_measurements: run.n_rows,
+            n_stars: run.stars.len(),
+            n_stars_repeated: run.stars.iter().filter(|s| s.rows.len() > 1).count(),
+            offsets_arcmin: run.offsets.clone(),
+            offsets_measured: run.offsets_measured,
+            reject_alpha,
+            expected_false_rejections: reject_alpha * kept as f64,
+            rejection_rounds: run.rounds,
+            rejected,
+        }
+    }
+}
