@@ -90,13 +90,25 @@ fn refusals_name_their_input() {
     let stripped: String = text.lines().map(|l| l.rsplit_once(',').unwrap().0.to_string() + "\n").collect();
     std::fs::write(&bare, stripped).unwrap();
     refused(&args(&[bare.clone()], &["--out", o]), "no column 'hwp_chi_offset_deg'");
-    // Pointings not matching: the third offset 1 arcmin off.
-    let mut a = args(&files, &["--out", o]);
-    for (k, off) in OFFSETS.iter().enumerate() {
-        let dx = if k == 2 { off[0] + 1.0 } else { off[0] };
-        a.extend(["--offset".to_string(), format!("{dx},{}", off[1])]);
-    }
-    refused(&a, "pointing 3 shares");
+    // Pointings not matching: the third catalog of another field (another draw of stars),
+    // the offsets to measure.
+    let other_dir = dir.path().join("other");
+    std::fs::create_dir_all(&other_dir).unwrap();
+    let (others, _) = star_catalogs(&other_dir, 23, 120, 0, (0.0, 0.0), 5e-4, &OFFSETS);
+    let other = others[2].clone();
+    let three = [files[0].clone(), files[1].clone(), other, files[3].clone()];
+    refused(&args(&three, &["--out", o]), "pointing 3: only");
+    // With the offsets given, the same catalogs run and the JSON says the third shares (next to)
+    // no star.
+    let mut a = args(&three, &["--out", o, "--json"]);
+    a.extend(offsets_args());
+    let (code, stdout, err) = run(&a);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let w = j["warnings"][0].as_str().unwrap();
+    assert!(w.starts_with("pointing 3 shares ") && w.contains("stars of their own"), "{j}");
+    assert!(err.contains("warning: pointing 3 shares "), "{err}");
+    std::fs::remove_file(o).unwrap();
     // Offsets of the wrong number.
     refused(&args(&files, &["--out", o, "--offset", "0,0"]), "1 --offset for 4 catalogs");
     // Too few stars for the model.

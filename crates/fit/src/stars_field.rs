@@ -141,6 +141,8 @@ pub struct StarsRun {
     /// Rejection rounds run (fits with a new rejected set).
     pub rounds: usize,
     pub n_rows: usize,
+    /// What the fit ran despite (a pointing that shares no star with the others).
+    pub warnings: Vec<String>,
 }
 
 impl StarsRun {
@@ -195,8 +197,9 @@ pub fn catalog_rows(table: &Table, path: &Path, pointing: usize) -> Result<(Vec<
 /// The offset of each pointing from the first (arcmin, see [`StarsOptions::offsets`]),
 /// measured from the stars: the shift that brings the most of pointing `k`'s stars within
 /// `radius` of one of pointing 0's (a vote over every pair's difference on a grid of `radius`
-/// cells, then the mean of the pairs that agree with the best cell). A pointing with fewer than
-/// three stars in common with the first is refused, naming it.
+/// cells, then the median of the pairs that agree with the best cell). A pointing that shares
+/// fewer than three stars, or than a tenth of the smaller catalog, with the first is refused,
+/// naming it.
 pub fn measure_offsets(rows: &[StarRow], n_pointings: usize, radius: f64) -> Result<Vec<[f64; 2]>> {
     let of = |k: usize| rows.iter().filter(|r| r.pointing == k).map(|r| (r.x, r.y)).collect::<Vec<_>>();
     let first = of(0);
@@ -252,6 +255,18 @@ pub fn measure_offsets(rows: &[StarRow], n_pointings: usize, radius: f64) -> Res
         if !near.is_empty() {
             at = [median(near.iter().map(|p| p.0).collect()), median(near.iter().map(|p| p.1).collect())];
         }
+        // Chance pairs of two different stars crowd some cell too (a few among 10^5 pairs):
+        // an offset is the pointings' only when a tenth of the smaller catalog, and at least
+        // three stars, agree on it.
+        let agree = pairs.iter().filter(|p| (p.0 - at[0]).hypot(p.1 - at[1]) <= radius).count();
+        let need = 3.max(first.len().min(other.len()).div_ceil(10));
+        if agree < need {
+            return Err(Error::Input(format!(
+                "pointing {}: only {agree} of its stars match the first pointing's at any one offset (need {need}): the \
+                 pointings do not overlap, or give their offsets",
+                k + 1
+            )));
+        }
         out.push(at);
     }
     Ok(out)
@@ -304,7 +319,8 @@ fn match_stars(rows: &[StarRow], offsets: &[[f64; 2]], radius: f64) -> Vec<Vec<u
 /// Fit the instrumental field of `meta`'s instrument and filter from star measurements (module
 /// docs). `rows` come from [`catalog_rows`], one pointing per catalog, `n_pointings` of them.
 /// Refused: no rows, fewer stars than the model needs, every star rejected, offsets of the
-/// wrong number, a pointing that shares no star with the others.
+/// wrong number, offsets to measure for a pointing that shares fewer than 3 stars with the
+/// first.
 pub fn stars_field(
     rows: &[StarRow],
     n_pointings: usize,
@@ -331,20 +347,23 @@ pub fn stars_field(
         None => (measure_offsets(rows, n_pointings, opts.match_radius_arcmin)?, true),
     };
     let groups = match_stars(rows, &offsets, opts.match_radius_arcmin);
-    // With several pointings, one that shares no star with the others has wrong offsets (or is
-    // another field): its stars would each count as a new star and pass any test.
+    // A pointing that shares no star with the others has wrong offsets, is another field, or
+    // fills the others' gaps (a strip mask's dither by one strip): its stars each count as a
+    // star of their own. Said, not refused (the measured offsets refuse it in
+    // `measure_offsets`).
+    let mut warnings = vec![];
     if n_pointings > 1 {
         for k in 0..n_pointings {
             let shared = groups.iter().filter(|g| g.len() > 1 && g.iter().any(|&i| rows[i].pointing == k)).count();
             let own = rows.iter().filter(|r| r.pointing == k).count();
             if own > 0 && shared < 3 {
-                return Err(Error::Input(format!(
-                    "pointing {} shares {shared} stars with the other pointings (need 3): its offset ({:.4}, {:.4}) arcmin \
-                     does not match them, or it is another field",
+                warnings.push(format!(
+                    "pointing {} shares {shared} stars with the other pointings: at its offset ({:.4}, {:.4}) arcmin its \
+                     {own} measurements are stars of their own (check the offset, or give none to measure it)",
                     k + 1,
                     offsets[k][0],
                     offsets[k][1]
-                )));
+                ));
             }
         }
     }
@@ -413,6 +432,7 @@ pub fn stars_field(
         stars,
         rounds,
         n_rows: rows.len(),
+        warnings,
     })
 }
 
@@ -637,6 +657,8 @@ pub struct StarsSummary {
     pub expected_false_rejections: f64,
     pub rejection_rounds: usize,
     pub rejected: Vec<RejectedStar>,
+    /// What the fit ran despite (a pointing that shares no star with the others).
+    pub warnings: Vec<String>,
 }
 
 impl StarsSummary {
@@ -686,6 +708,7 @@ impl StarsSummary {
             expected_false_rejections: reject_alpha * kept as f64,
             rejection_rounds: run.rounds,
             rejected,
+            warnings: run.warnings.clone(),
         }
     }
 }

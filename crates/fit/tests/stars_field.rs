@@ -241,9 +241,25 @@ fn refusals_name_the_problem() {
     let e =
         err(&sim.rows, 4, &StarsOptions { offsets: Some(vec![[0.0, 0.0]; 3]), ..options(Interstellar::Zero, false) });
     assert!(e.contains("3 pointing offsets for 4 catalogs"), "{e}");
-    // The third pointing's offset given 1 arcmin off: it shares no star with the others.
+    // The third pointing's offset given 1 arcmin off: it shares no star with the others, said
+    // in a warning (its stars count as stars of their own: 300 + its ~280).
     let mut wrong = OFFSETS.to_vec();
     wrong[2][0] += 1.0;
-    let e = err(&sim.rows, 4, &StarsOptions { offsets: Some(wrong), ..options(Interstellar::Zero, false) });
-    assert!(e.contains("pointing 3 shares"), "{e}");
+    let run =
+        stars_field(&sim.rows, 4, meta(), &StarsOptions { offsets: Some(wrong), ..options(Interstellar::Zero, false) })
+            .unwrap();
+    assert!(run.warnings.len() == 1 && run.warnings[0].starts_with("pointing 3 shares 0 stars"), "{:?}", run.warnings);
+    assert!(run.stars.len() > 500, "{}", run.stars.len());
+    // The third pointing of another field (another draw of stars), offsets to measure:
+    // refused, naming it.
+    let other = simulate(15, 300, 0.10, 0.0, 0.0);
+    let far: Vec<StarRow> = sim
+        .rows
+        .iter()
+        .filter(|r| r.pointing != 2)
+        .chain(other.rows.iter().filter(|r| r.pointing == 2))
+        .copied()
+        .collect();
+    let e = err(&far, 4, &options(Interstellar::Zero, false));
+    assert!(e.contains("pointing 3: only"), "{e}");
 }

@@ -131,6 +131,9 @@ pub fn run(a: Args) -> Result<()> {
         reject_alpha: a.reject_alpha,
     };
     let run = stars_field(&rows, a.catalogs.len(), meta, &opts)?;
+    for w in &run.warnings {
+        eprintln!("warning: {w}");
+    }
     let mut s = StarsSummary::new(&run, &rows, a.reject_alpha);
     let (file, plots) = crate::cmd::calibrate::save_and_plot(&run.run, Some(&a.out), a.plots.as_deref())?;
     s.fit.calibration_file = file;
