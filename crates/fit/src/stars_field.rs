@@ -27,7 +27,9 @@
 //! errors.
 //!
 //! Stars polarized in themselves are rejected by their residual chi^2 across their
-//! measurements (`2 n` degrees of freedom for `n` measurements): a star whose chi^2 has an upper
+//! measurements (`2 n` degrees of freedom for `n` measurements; the errors scaled as the fit
+//! scales its covariance, by `max(1, chi2_red)` by default, with the fitted model's and the
+//! interstellar term's uncertainty added): a star whose chi^2 has an upper
 //! tail probability below `reject_alpha` is left out and the field refitted, until the set of
 //! rejected stars no longer changes (a star can come back). For an unpolarized star with right
 //! errors the tail probability is uniform, so the expected false-rejection rate is
@@ -116,8 +118,9 @@ pub struct StarFit {
     pub chi2: f64,
     pub dof: usize,
     pub p_value: f64,
-    /// Weighted mean residual `(q, u)` (its own polarization beyond the interstellar term),
-    /// its `P` (fraction) and `P / sigma_P`.
+    /// Mean residual `(q, u)` (its own polarization beyond the interstellar term), its `P`
+    /// (fraction) and its distance from zero in sigma (the model's and the interstellar
+    /// term's errors counted).
     pub residual_q: f64,
     pub residual_u: f64,
     pub residual_p: f64,
@@ -393,7 +396,7 @@ pub fn stars_field(
             e => e,
         })?;
         let next: Vec<bool> =
-            groups.iter().map(|g| star_chi2(rows, g, &state.0.calibration, &state.1).2 < opts.reject_alpha).collect();
+            groups.iter().map(|g| star_chi2(rows, g, &state.0, &state.1).2 < opts.reject_alpha).collect();
         if next == rejected || rounds >= 20 {
             break;
         }
@@ -404,7 +407,7 @@ pub fn stars_field(
         .iter()
         .enumerate()
         .map(|(id, g)| {
-            let (chi2, dof, p_value, rq, ru, rsig) = star_chi2(rows, g, &run.calibration, &isp);
+            let (chi2, dof, p_value, rq, ru, significance) = star_chi2(rows, g, &run, &isp);
             let n = g.len() as f64;
             let rp = rq.hypot(ru);
             StarFit {
@@ -418,7 +421,7 @@ pub fn stars_field(
                 residual_q: rq,
                 residual_u: ru,
                 residual_p: rp,
-                residual_p_sigma: rp / rsig,
+                residual_p_sigma: significance,
                 rejected: rejected[id],
             }
         })
@@ -437,28 +440,75 @@ pub fn stars_field(
 }
 
 /// A star's residual chi^2 against the field and the interstellar term, its degrees of
-/// freedom and tail probability, and its weighted mean residual `(q, u)` with the error of one
-/// component (the mean of the two).
+/// freedom and tail probability, its mean residual `(q, u)` and that mean's distance from zero
+/// in sigma. The residuals' covariance is the measurements' errors plus what the fitted model
+/// does not know: the radial model's covariance carried to each measurement's position
+/// (`G C G^T`, correlated between the measurements of one star, which sit at nearby
+/// positions) and the interstellar term's (common to all of them), the errors scaled as the
+/// fit's covariance is ([`crate::ErrorScaling`]). Without the model's part a star at the
+/// field's edge, where the fitted `p(r)` is least certain, is rejected for the model's error.
+/// The mean is the generalized least-squares one, `(H^T S^-1 H)^-1 H^T S^-1 r`.
 fn star_chi2(
     rows: &[StarRow],
     g: &[usize],
-    model: &crate::Calibration,
+    run: &CalibrationRun,
     isp: &mueller::Qu,
 ) -> (f64, usize, f64, f64, f64, f64) {
-    let (mut chi2, mut sq, mut su, mut wq, mut wu) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for &i in g {
-        let r = &rows[i];
-        let f = model.eval(r.x, r.y);
-        let (dq, du) = (r.q - f.q - isp.q, r.u - f.u - isp.u);
-        chi2 += (dq / r.sigma_q).powi(2) + (du / r.sigma_u).powi(2);
-        sq += dq / r.sigma_q.powi(2);
-        su += du / r.sigma_u.powi(2);
-        wq += 1.0 / r.sigma_q.powi(2);
-        wu += 1.0 / r.sigma_u.powi(2);
+    let radial = &run.fit.model;
+    // The measurements' errors as the fit judged them: scaled as its covariance is (by
+    // max(1, chi2_red) by default), so that errors the catalogs understate for every star do
+    // not reject stars for the scatter they all share.
+    let scale = radial.scaling.map_or(1.0, |s| s.chi2_factor);
+    let np = radial.n_params();
+    let n = 2 * g.len();
+    let mut r = nalgebra::DVector::<f64>::zeros(n);
+    let mut jac = DMatrix::<f64>::zeros(n, np);
+    let mut s = DMatrix::<f64>::zeros(n, n);
+    for (k, &i) in g.iter().enumerate() {
+        let m = &rows[i];
+        let f = run.calibration.eval(m.x, m.y);
+        r[2 * k] = m.q - f.q - isp.q;
+        r[2 * k + 1] = m.u - f.u - isp.u;
+        s[(2 * k, 2 * k)] = scale * m.sigma_q.powi(2);
+        s[(2 * k + 1, 2 * k + 1)] = scale * m.sigma_u.powi(2);
+        if let Some((gq, gu)) = radial.jacobian(m.x, m.y) {
+            for p in 0..np {
+                jac[(2 * k, p)] = gq[p];
+                jac[(2 * k + 1, p)] = gu[p];
+            }
+        }
     }
-    let dof = 2 * g.len();
-    let sigma = 0.5 * (wq.powf(-0.5) + wu.powf(-0.5));
-    (chi2, dof, chi2_even_sf(chi2, g.len()), sq / wq, su / wu, sigma)
+    let c = DMatrix::from_row_slice(np, np, &radial.cov);
+    s += &jac * c * jac.transpose();
+    for a in 0..g.len() {
+        for b in 0..g.len() {
+            s[(2 * a, 2 * b)] += isp.var_q;
+            s[(2 * a + 1, 2 * b + 1)] += isp.var_u;
+            s[(2 * a, 2 * b + 1)] += isp.cov_qu;
+            s[(2 * a + 1, 2 * b)] += isp.cov_qu;
+        }
+    }
+    let dof = n;
+    let Some(chol) = s.cholesky() else {
+        return (f64::INFINITY, dof, 0.0, f64::NAN, f64::NAN, f64::INFINITY);
+    };
+    let sr = chol.solve(&r);
+    let chi2 = r.dot(&sr);
+    let mut h = DMatrix::<f64>::zeros(n, 2);
+    for k in 0..g.len() {
+        h[(2 * k, 0)] = 1.0;
+        h[(2 * k + 1, 1)] = 1.0;
+    }
+    let info = h.transpose() * chol.solve(&h);
+    let rhs = h.transpose() * &sr;
+    let (mean, sig) = match info.clone().try_inverse() {
+        Some(cov) => {
+            let m = &cov * &rhs;
+            (m.clone(), m.dot(&(&info * &m)).max(0.0).sqrt())
+        }
+        None => (nalgebra::DVector::from_element(2, f64::NAN), f64::NAN),
+    };
+    (chi2, dof, chi2_even_sf(chi2, g.len()), mean[0], mean[1], sig)
 }
 
 /// The field and interstellar term from the kept rows (module docs: backfitting, then the
