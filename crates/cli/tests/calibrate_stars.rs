@@ -31,7 +31,8 @@ fn field_interstellar_and_polarized_stars_from_catalogs() {
     let (iq, iu) = (0.0025, 0.005 * 3f64.sqrt() / 2.0);
     let (files, pol) = star_catalogs(dir.path(), 21, 200, 20, (iq, iu), 5e-4, &OFFSETS);
     let out = dir.path().join("cal_V.fits");
-    let mut a = args(&files, &["--out", out.to_str().unwrap(), "--json"]);
+    let plots = dir.path().join("plots");
+    let mut a = args(&files, &["--out", out.to_str().unwrap(), "--plots", plots.to_str().unwrap(), "--json"]);
     a.extend(offsets_args());
     let (code, stdout, err) = run(&a);
     assert_eq!(code, 0, "{err}");
@@ -58,6 +59,11 @@ fn field_interstellar_and_polarized_stars_from_catalogs() {
     }
     assert!(rejected.len() <= pol.len() + 2, "{} rejected", rejected.len());
     assert!(f(&j["expected_false_rejections"]) < 0.2);
+    // The sky-field calibration's plots, drawn from this calibration.
+    let drawn: Vec<&str> = j["plot_outputs"].as_array().unwrap().iter().map(|p| p.as_str().unwrap()).collect();
+    for name in ["V_map.png", "V_profile.png", "V_residual.svg"] {
+        assert!(drawn.iter().any(|p| p.ends_with(name)) && plots.join(name).is_file(), "{name}: {drawn:?}");
+    }
     // The calibration file is the sky-field calibration's, read by the one loader.
     let loaded = fit::calibration::load(&out).unwrap();
     let cal = loaded.field.expect("a field calibration");
