@@ -117,6 +117,16 @@ fn refusals_name_their_input() {
     std::fs::remove_file(o).unwrap();
     // Offsets of the wrong number.
     refused(&args(&files, &["--out", o, "--offset", "0,0"]), "1 --offset for 4 catalogs");
+    // Catalogs whose q, u carry different HWP zero angles (a calibration has one).
+    let turned = dir.path().join("turned.csv");
+    let t2: String = std::fs::read_to_string(&files[1])
+        .unwrap()
+        .lines()
+        .enumerate()
+        .map(|(i, l)| if i == 0 { format!("{l}\n") } else { format!("{},1.5\n", l.rsplit_once(',').unwrap().0) })
+        .collect();
+    std::fs::write(&turned, t2).unwrap();
+    refused(&args(&[files[0].clone(), turned], &["--out", o]), "carry the HWP zero angle 1.5 deg");
     // Too few stars for the model.
     let few = dir.path().join("few.csv");
     let head: String = text.lines().take(3).map(|l| format!("{l}\n")).collect();

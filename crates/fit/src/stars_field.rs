@@ -197,6 +197,45 @@ pub fn catalog_rows(table: &Table, path: &Path, pointing: usize) -> Result<(Vec<
     Ok((rows, z))
 }
 
+/// The rows of the catalogs `paths`, one pointing each in their order ([`catalog_rows`]), and
+/// the HWP zero angle their `q, u` carry: one for all (a calibration has one), else refused
+/// naming the two catalogs that differ.
+pub fn read_catalogs(paths: &[std::path::PathBuf]) -> Result<(Vec<StarRow>, f64)> {
+    let mut rows = vec![];
+    let mut zero: Option<(f64, &std::path::PathBuf)> = None;
+    for (k, path) in paths.iter().enumerate() {
+        let table = Table::read(path, None)?;
+        let (r, z) = catalog_rows(&table, path, k)?;
+        match zero {
+            Some((z0, p0)) if (z - z0).abs() > 1e-9 => {
+                return Err(Error::Input(format!(
+                "{}: its q, u carry the HWP zero angle {z} deg, {} carries {z0} deg: the catalogs of one calibration \
+                     share one",
+                path.display(),
+                p0.display()
+            )))
+            }
+            None => zero = Some((z, path)),
+            _ => {}
+        }
+        rows.extend(r);
+    }
+    Ok((rows, zero.map_or(0.0, |z| z.0)))
+}
+
+impl Interstellar {
+    /// A given interstellar polarization from `P` in percent and `chi` in degrees (sky frame).
+    pub fn from_percent_deg(p_percent: f64, chi_deg: f64) -> Result<Self> {
+        if !(p_percent.is_finite() && (0.0..100.0).contains(&p_percent) && chi_deg.is_finite()) {
+            return Err(Error::Input(format!(
+                "interstellar polarization {p_percent} % at {chi_deg} deg: P must be in [0, 100) % and chi finite"
+            )));
+        }
+        let (s2, c2) = (2.0 * chi_deg.to_radians()).sin_cos();
+        Ok(Interstellar::Given { q: p_percent / 100.0 * c2, u: p_percent / 100.0 * s2 })
+    }
+}
+
 /// The offset of each pointing from the first (arcmin, see [`StarsOptions::offsets`]),
 /// measured from the stars: the shift that brings the most of pointing `k`'s stars within
 /// `radius` of one of pointing 0's (a vote over every pair's difference on a grid of `radius`

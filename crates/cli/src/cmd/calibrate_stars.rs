@@ -2,7 +2,7 @@
 //! calibration file, through `fit::stars_field`.
 
 use anyhow::{bail, Context, Result};
-use fit::stars_field::{catalog_rows, stars_field, stars_meta, Interstellar, StarsOptions, StarsSummary};
+use fit::stars_field::{read_catalogs, stars_field, stars_meta, Interstellar, StarsOptions, StarsSummary};
 use std::path::PathBuf;
 
 /// Measure the instrumental polarization over the field from many field stars, where no empty
@@ -81,11 +81,7 @@ fn interstellar(s: &str) -> Result<Interstellar> {
         "zero" | "none" => Interstellar::Zero,
         _ => {
             let [p, chi] = pair(s, "--interstellar").context("use free, zero or P,CHI (percent, degrees)")?;
-            if !(0.0..100.0).contains(&p) {
-                bail!("--interstellar '{s}': P = {p} % must be in [0, 100)");
-            }
-            let (s2, c2) = (2.0 * chi.to_radians()).sin_cos();
-            Interstellar::Given { q: p / 100.0 * c2, u: p / 100.0 * s2 }
+            Interstellar::from_percent_deg(p, chi).with_context(|| format!("--interstellar '{s}'"))?
         }
     })
 }
@@ -105,23 +101,7 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--match-radius {} arcsec must be positive", a.match_radius);
     }
     let inst = instrument::Instrument::load(&a.instrument)?;
-    let mut rows = vec![];
-    let mut zero: Option<(f64, &PathBuf)> = None;
-    for (k, path) in a.catalogs.iter().enumerate() {
-        let table = skyfield::table::Table::read(path, None)?;
-        let (r, z) = catalog_rows(&table, path, k)?;
-        match zero {
-            Some((z0, p0)) if (z - z0).abs() > 1e-9 => bail!(
-                "{}: its q, u carry the HWP zero angle {z} deg, {} carries {z0} deg: catalogs of one calibration share one",
-                path.display(),
-                p0.display()
-            ),
-            None => zero = Some((z, path)),
-            _ => {}
-        }
-        rows.extend(r);
-    }
-    let z = zero.map_or(0.0, |z| z.0);
+    let (rows, z) = read_catalogs(&a.catalogs)?;
     let meta = stars_meta(&inst, &a.filter, z, a.catalogs.iter().map(|p| p.display().to_string()).collect());
     let opts = StarsOptions {
         calibrate: a.fit.options()?,
