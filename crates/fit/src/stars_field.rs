@@ -409,13 +409,19 @@ pub fn stars_field(
             }
         }
     }
+    // The rejection judges stars against the radial model alone: a residual interpolant passes
+    // through every kept measurement, a polarized star's too. The interpolant, when asked for,
+    // is made once the rejected set has settled.
+    let radial_opts =
+        StarsOptions { calibrate: CalibrateOptions { residual_map: false, ..opts.calibrate.clone() }, ..opts.clone() };
     let mut rejected = vec![false; groups.len()];
     let mut rounds = 0;
     let mut state;
+    let mut keep;
     loop {
         rounds += 1;
-        let keep: Vec<usize> =
-            groups.iter().zip(&rejected).filter(|(_, r)| !**r).flat_map(|(g, _)| g.iter().copied()).collect();
+        keep =
+            groups.iter().zip(&rejected).filter(|(_, r)| !**r).flat_map(|(g, _)| g.iter().copied()).collect::<Vec<_>>();
         if keep.is_empty() {
             return Err(Error::Input(format!(
                 "every one of the {} stars was rejected as polarized (residual chi^2 beyond the {} tail): the field model \
@@ -424,7 +430,7 @@ pub fn stars_field(
                 opts.reject_alpha
             )));
         }
-        state = fit_kept(rows, &keep, &meta, opts).map_err(|e| match e {
+        state = fit_kept(rows, &keep, &meta, &radial_opts).map_err(|e| match e {
             Error::TooFewBins { used, needed, .. } => Error::Input(format!(
                 "too few star measurements for the field model: {used} kept ({} stars of {}, {} rejected), need at least \
                  {needed}",
@@ -440,6 +446,9 @@ pub fn stars_field(
             break;
         }
         rejected = next;
+    }
+    if opts.calibrate.residual_map {
+        state = fit_kept(rows, &keep, &meta, opts)?;
     }
     let (run, isp) = state;
     let stars = groups
@@ -478,7 +487,7 @@ pub fn stars_field(
     })
 }
 
-/// A star's residual chi^2 against the field and the interstellar term, its degrees of
+/// A star's residual chi^2 against the field's radial model and the interstellar term, its degrees of
 /// freedom and tail probability, its mean residual `(q, u)` and that mean's distance from zero
 /// in sigma. The residuals' covariance is the measurements' errors plus what the fitted model
 /// does not know: the radial model's covariance carried to each measurement's position
@@ -505,9 +514,9 @@ fn star_chi2(
     let mut s = DMatrix::<f64>::zeros(n, n);
     for (k, &i) in g.iter().enumerate() {
         let m = &rows[i];
-        let f = run.calibration.eval(m.x, m.y);
-        r[2 * k] = m.q - f.q - isp.q;
-        r[2 * k + 1] = m.u - f.u - isp.u;
+        let (fq, fu) = radial.qu(m.x, m.y);
+        r[2 * k] = m.q - fq - isp.q;
+        r[2 * k + 1] = m.u - fu - isp.u;
         s[(2 * k, 2 * k)] = scale * m.sigma_q.powi(2);
         s[(2 * k + 1, 2 * k + 1)] = scale * m.sigma_u.powi(2);
         if let Some((gq, gu)) = radial.jacobian(m.x, m.y) {

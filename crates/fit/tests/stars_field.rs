@@ -265,3 +265,25 @@ fn refusals_name_the_problem() {
     let e = err(&far, 4, &options(Interstellar::Zero, false));
     assert!(e.contains("pointing 3: only"), "{e}");
 }
+
+/// With the residual interpolant asked for, the polarized stars are still found (the
+/// rejection judges them against the radial model: the interpolant passes through every kept
+/// measurement) and the interpolant is built from the unpolarized stars only.
+#[test]
+fn residual_map_keeps_the_rejection() {
+    let sim = simulate(16, 300, 0.10, 0.0, 0.0);
+    let opts = StarsOptions {
+        calibrate: CalibrateOptions { residual_map: true, ..Default::default() },
+        ..options(Interstellar::Zero, true)
+    };
+    let run = stars_field(&sim.rows, 4, meta(), &opts).unwrap();
+    assert_eq!(run.run.calibration.model.kind(), "RADIAL+RESIDUAL");
+    let (hit, false_rej) = found_polarized(&sim, &run);
+    assert_eq!(hit, 30);
+    assert!(false_rej <= 3, "{false_rej}");
+    let kept = run.stars.iter().filter(|s| !s.rejected).map(|s| s.rows.len()).sum::<usize>();
+    assert_eq!(run.run.calibration.bins.len(), kept);
+    for (k, z) in pulls(&run).iter().enumerate() {
+        assert!(z.abs() < 3.0, "coefficient {k}: pull {z}");
+    }
+}
