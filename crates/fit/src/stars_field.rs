@@ -21,7 +21,7 @@
 //! The fit alternates (backfitting, exact at convergence for the linear parameters): the field
 //! fitted to the measurements minus the interstellar term, then the interstellar term as the
 //! weighted mean of the measurements minus the field, until the interstellar term moves by less
-//! than a thousandth of its error. The covariance of the field's coefficients is then the joint
+//! than a ten-thousandth of its error. The covariance of the field's coefficients is then the joint
 //! one, `(J^T W J)^-1` over the field's parameters and the interstellar pair together, scaled as
 //! the radial fit scales its own: the interstellar term's uncertainty is in the coefficients'
 //! errors.
