@@ -66,6 +66,10 @@ enum Command {
     Catalog(cmd::catalog::Args),
     #[command(about = "Measure the instrumental polarization on an empty field of known sky polarization")]
     Calibrate(cmd::calibrate::Args),
+    #[command(
+        about = "Measure the instrumental polarization from field stars of dithered pointings (polarized ones rejected)"
+    )]
+    CalibrateStars(cmd::calibrate_stars::Args),
     #[command(about = "Fit the Mueller field (diattenuation, retardance, ...) jointly to several sky fields")]
     CalibrateMueller(cmd::calibrate_mueller::Args),
     #[command(about = "Which physics explains a fitted Mueller field: ray trace, stressed lens, HWP defects")]
@@ -148,6 +152,7 @@ fn main() {
         cli.command,
         Command::FitStandards(_)
             | Command::Calibrate(_)
+            | Command::CalibrateStars(_)
             | Command::Fit(_)
             | Command::Plot(_)
             | Command::CalibrateMueller(_)
@@ -165,6 +170,7 @@ fn main() {
         Command::Photometry(a) => cmd::photometry::run(a),
         Command::Catalog(a) => cmd::catalog::run(a),
         Command::Calibrate(a) => cmd::calibrate::run(a),
+        Command::CalibrateStars(a) => cmd::calibrate_stars::run(a),
         Command::CalibrateMueller(a) => cmd::calibrate_mueller::run(a),
         Command::Explain(a) => cmd::explain::run(a),
         Command::Plan(a) => cmd::plan::run(a),

@@ -545,6 +545,17 @@ const CASES: &[(&str, Args)] = &[
         ]));
         a
     }),
+    ("calibrate-stars", |f| {
+        // Catalogs of 60 stars over two pointings drawn through the V pattern: the shape of
+        // the output, with stars rejected (6 polarized) so the rejected list has rows.
+        let dir = f.d.join(format!("{}_stars", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (files, _) = common::star_catalogs(&dir, 3, 60, 6, (0.0, 0.0), 5e-4, &[[0.0, 0.0], [0.5, -0.3]]);
+        let mut a = vec!["calibrate-stars".to_string()];
+        a.extend(files.iter().map(|p| s(p)));
+        a.extend(v(&["--filter", "V", "--out", &out(f, "cal_stars.fits")]));
+        a
+    }),
     ("calibrate", |f| {
         v(&["calibrate", "--map", &s(&f.vmap), "--sky-p", "1.74", "--sky-chi", "-53.8", "--out", &out(f, "cal.fits")])
     }),
@@ -608,7 +619,7 @@ macro_rules! cases {
 cases! {
     simulate_json => "simulate", reduce_json => "reduce", master_bias_json => "master-bias",
     master_flat_json => "master-flat", photometry_json => "photometry", catalog_json => "catalog",
-    zero_angle_json => "zero-angle", calibrate_json => "calibrate", fit_json => "fit", plot_json => "plot",
+    zero_angle_json => "zero-angle", calibrate_json => "calibrate", calibrate_stars_json => "calibrate-stars", fit_json => "fit", plot_json => "plot",
     wavelength_law_json => "wavelength-law", correct_json => "correct", stokes_json => "stokes",
     bias_json => "bias", mc_json => "mc", mc_sweep_json => "mc-sweep", mc_accuracy_json => "mc-accuracy",
     fresnel_json => "fresnel", raytrace_json => "raytrace", demo_json => "demo", plan_json => "plan",

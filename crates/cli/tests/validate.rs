@@ -173,3 +173,26 @@ fn unpolarized_standard_in_the_corner_passes_with_v_fails_with_i() {
     let (o, _) = validate(&vp, &frames, x, y, &["--star", "Vega"]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("no standard star 'Vega'"));
 }
+
+/// A polarized standard of the list by name whose value comes from SOLVEPOL's V column:
+/// HD 147084, 4.17 +- 0.008 % at 32.9 deg (Turnshek et al. 1990). A star of exactly that
+/// polarization in the V field's corner is expected at the catalogued 4.17 % and passes; the
+/// same frames claimed as HD 23512 (2.26 +- 0.01 % at 29.9 deg, Hsu & Breger 1982) fail.
+#[test]
+fn polarized_standard_from_solvepol_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst = Instrument::load("fors1").unwrap();
+    let (x, y) = paper_star_px(&inst);
+    let frames = write_star_frames(dir.path(), &inst, x, y, 0.0417, 32.9f64.to_radians());
+    let vp = dir.path().join("V.fits");
+    v_cal().save(&vp).unwrap();
+    let (o, v) = validate(&vp, &frames, x, y, &["--star", "HD 147084"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(v["star"], "HD 147084");
+    assert!((v["expected_p"].as_f64().unwrap() - 0.0417).abs() < 1e-12, "{v}");
+    assert_eq!(v["pass"], true, "{v}");
+    let (o, w) = validate(&vp, &frames, x, y, &["--star", "HD23512"]);
+    assert_eq!(o.status.code(), Some(1), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!((w["expected_p"].as_f64().unwrap() - 0.0226).abs() < 1e-12, "{w}");
+    assert_eq!(w["pass"], false, "{w}");
+}

@@ -15,6 +15,11 @@ use std::path::{Path, PathBuf};
 const OFFSET: f64 = 41.3;
 
 fn scene(dir: &Path) -> (PathBuf, Vec<PathBuf>) {
+    scene_with(dir, "")
+}
+
+/// The scene with `more` (TOML `[[stars]]` tables) added to its stars.
+fn scene_with(dir: &Path, more: &str) -> (PathBuf, Vec<PathBuf>) {
     let text = include_str!("../../../instruments/calcite.toml")
         .replace("hwp_angle_keyword = \"\"", "hwp_angle_keyword = \"HWPANG\"");
     let inst = dir.join("calcite.toml");
@@ -25,7 +30,7 @@ fn scene(dir: &Path) -> (PathBuf, Vec<PathBuf>) {
         .replace("[effects]", &format!("[effects]\nhwp_chi_offset_deg = {OFFSET}"));
     // The stars go before [effects] (TOML tables after it would belong to it).
     let at = scene.find("[effects]").unwrap();
-    scene.insert_str(at, extra.trim_start());
+    scene.insert_str(at, &format!("{}{more}", extra.trim_start()));
     let sp = dir.join("scene.toml");
     std::fs::write(&sp, scene).unwrap();
     let out = dir.join("f");
@@ -116,4 +121,30 @@ fn zero_angle_from_three_standards_of_different_chi() {
     let (code, _, err) = zero_angle(&inst, &frames, &["150,200:136"]);
     assert_eq!(code, 2);
     assert!(err.contains("+-"), "{err}");
+}
+
+/// A standard of the list by name whose values come from SOLVEPOL's V column (HD 147084: 4.17 %
+/// at 32.9 deg, Turnshek et al. 1990; its chi error 0.05 deg derived by eq:sigchi from
+/// sigma_P = 0.008 %, as instruments/standards.toml says): a star of that polarization in the
+/// frames, named, is looked up with those catalogued values, agrees with the other three (no
+/// outlier) and the zero angle stays within its error of the plate's.
+#[test]
+fn zero_angle_with_a_solvepol_standard_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let star = "\n[[stars]]\nx = 200\ny = 420\ncoords = \"pixel\"\nflux_e = 4e5\np = 0.0417\nchi_deg = 32.9\nfwhm_arcsec = 1.0\n";
+    let (inst, frames) = scene_with(dir.path(), star);
+    let four = ["150,200:136+-0.05", "300,600:12+-0.05", "500,300:70+-0.05", "200,420:HD 147084"];
+    let (code, j, err) = zero_angle(&inst, &frames, &four);
+    assert_eq!(code, 0, "{err}");
+    let named = &j["standards"][3];
+    assert_eq!(named["chi_catalogue_deg"].as_f64().unwrap(), 32.9, "{j}");
+    assert_eq!(named["sigma_chi_catalogue_deg"].as_f64().unwrap(), 0.05, "{j}");
+    assert!(j["outlier"].is_null(), "{j}");
+    assert_eq!(j["n_standards"], 4);
+    let (z, sz) = (j["zero_angle_deg"].as_f64().unwrap(), j["sigma_zero_angle_deg"].as_f64().unwrap());
+    assert!((z - OFFSET).abs() < 4.0 * sz, "zero angle {z} +- {sz}");
+    // Its own offset agrees with the plate's within its errors.
+    let g = |k: &str| named[k].as_f64().unwrap();
+    let s = (g("sigma_chi_measured_deg").powi(2) + 0.05f64.powi(2)).sqrt();
+    assert!((g("offset_deg") - OFFSET).abs() < 4.0 * s, "{named}");
 }

@@ -45,6 +45,7 @@ pub mod region;
 pub mod request;
 pub mod residual;
 pub mod setup;
+pub mod stars_field;
 pub mod synth;
 pub mod telescope;
 pub mod telescope_cal;

@@ -244,6 +244,30 @@ pub fn run(a: Args) -> Result<()> {
     finish(&run, Some(&a.out), a.plots.as_deref(), a.json)
 }
 
+/// Save the calibration (when `out` is given) and draw the plots into `plots`: the file's name
+/// and the plots drawn. The plots folder is made first: a run that cannot write its plots fails
+/// before it saves anything.
+pub fn save_and_plot(
+    run: &CalibrationRun,
+    out: Option<&Path>,
+    plots: Option<&Path>,
+) -> Result<(Option<String>, Vec<String>)> {
+    if let Some(dir) = plots {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create the plots folder {}", dir.display()))?;
+    }
+    let mut file = None;
+    if let Some(out) = out {
+        run.calibration.save(out)?;
+        file = Some(out.display().to_string());
+    }
+    let mut drawn = vec![];
+    if let Some(dir) = plots {
+        let files = crate::cmd::plot::plot_run(dir, &run.calibration.filter, run)?;
+        drawn = files.iter().map(|p| p.display().to_string()).collect();
+    }
+    Ok((file, drawn))
+}
+
 /// The end of `calibrate` and `fit`: save the calibration (when `out` is given), draw the plots
 /// into `plots`, and print the fit summary as JSON or as a table.
 pub fn finish(run: &CalibrationRun, out: Option<&Path>, plots: Option<&Path>, json: bool) -> Result<()> {
@@ -263,18 +287,7 @@ pub fn finish(run: &CalibrationRun, out: Option<&Path>, plots: Option<&Path>, js
             s.polar_angle_noise_p
         );
     }
-    // The plots folder first: a run that cannot write its plots fails before it saves anything.
-    if let Some(dir) = plots {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create the plots folder {}", dir.display()))?;
-    }
-    if let Some(out) = out {
-        run.calibration.save(out)?;
-        s.calibration_file = Some(out.display().to_string());
-    }
-    if let Some(dir) = plots {
-        let files = crate::cmd::plot::plot_run(dir, &run.calibration.filter, run)?;
-        s.plot_outputs = files.iter().map(|p| p.display().to_string()).collect();
-    }
+    (s.calibration_file, s.plot_outputs) = save_and_plot(run, out, plots)?;
     if json {
         crate::util::print_json(&s)
     } else {

@@ -3,6 +3,7 @@
 pub mod bias;
 pub mod calibrate;
 pub mod calibrate_mueller;
+pub mod calibrate_stars;
 pub mod catalog;
 pub mod correct;
 pub mod demo;

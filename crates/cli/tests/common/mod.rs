@@ -307,3 +307,73 @@ pub fn assert_inputs_hashed_as_b3sum<P: AsRef<std::ffi::OsStr>>(inputs: &[serde_
         assert_eq!(inp["hash"], want.as_str(), "{path}");
     }
 }
+
+/// Star catalogs of a dense field seen through the paper's V pattern (section `sec:fors1`,
+/// `fit::paper::V_COEFFS_PCT`, angle radial about the detector centre), one CSV per pointing in
+/// the columns `instpol catalog` writes (`x_arcmin, y_arcmin, q, u, sigma_q, sigma_u,
+/// hwp_chi_offset_deg`): `n` stars at least 3" apart, uniform over the dithered field; the
+/// first `n_pol` polarized in themselves at 1-5 %; every star shares the interstellar
+/// `(iq, iu)`; each measurement drawn (seeded, Box-Muller) with Gaussian errors of `sigma`.
+/// Returns the files and the sky positions of the polarized stars.
+pub fn star_catalogs(
+    dir: &Path,
+    seed: u64,
+    n: usize,
+    n_pol: usize,
+    (iq, iu): (f64, f64),
+    sigma: f64,
+    offsets: &[[f64; 2]],
+) -> (Vec<PathBuf>, Vec<(f64, f64)>) {
+    use rand::{RngExt, SeedableRng};
+    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed);
+    let gauss = move |rng: &mut rand_xoshiro::Xoshiro256PlusPlus| {
+        let (a, b): (f64, f64) = (rng.random_range(1e-300..1.0), rng.random_range(0.0..1.0));
+        (-2.0 * a.ln()).sqrt() * (2.0 * std::f64::consts::PI * b).cos()
+    };
+    let c = fit::paper::V_COEFFS_PCT;
+    let field = |x: f64, y: f64| {
+        let r = x.hypot(y);
+        let p = (c[0] * r + c[1] * r * r + c[2] * r * r * r) / 100.0;
+        let a = 2.0 * y.atan2(x);
+        (p * a.cos(), p * a.sin())
+    };
+    let mut text: Vec<String> =
+        offsets.iter().map(|_| "id,x_arcmin,y_arcmin,q,u,sigma_q,sigma_u,hwp_chi_offset_deg\n".to_string()).collect();
+    let (mut sky, mut pol) = (Vec::<(f64, f64)>::new(), vec![]);
+    for s in 0..n {
+        let (sx, sy) = loop {
+            let s: (f64, f64) = (rng.random_range(-3.3..3.6), rng.random_range(-3.3..3.6));
+            if sky.iter().all(|&(x, y)| (x - s.0).hypot(y - s.1) > 0.05) {
+                break s;
+            }
+        };
+        sky.push((sx, sy));
+        let (pq, pu) = if s < n_pol {
+            let p: f64 = rng.random_range(0.01..0.05);
+            let chi: f64 = rng.random_range(0.0..std::f64::consts::PI);
+            pol.push((sx, sy));
+            (p * (2.0 * chi).cos(), p * (2.0 * chi).sin())
+        } else {
+            (0.0, 0.0)
+        };
+        for (k, o) in offsets.iter().enumerate() {
+            let (x, y) = (sx - o[0], sy - o[1]);
+            if x.abs() > 3.41 || y.abs() > 3.41 {
+                continue;
+            }
+            let (fq, fu) = field(x, y);
+            let (q, u) = (fq + iq + pq + sigma * gauss(&mut rng), fu + iu + pu + sigma * gauss(&mut rng));
+            text[k].push_str(&format!("{s},{x},{y},{q},{u},{sigma},{sigma},0\n"));
+        }
+    }
+    let files = text
+        .iter()
+        .enumerate()
+        .map(|(k, t)| {
+            let p = dir.join(format!("pointing{}.csv", k + 1));
+            std::fs::write(&p, t).unwrap();
+            p
+        })
+        .collect();
+    (files, pol)
+}
