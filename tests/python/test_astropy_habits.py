@@ -1,7 +1,8 @@
 """The package as an astropy user writes it: frames given as HDUList, CCDData or (array,
-header) give the numbers the same frames give as files, bit for bit; a catalog asked for as a
-table is an astropy QTable whose columns carry their units and equal the dict's; errors name
-the frame's place in the list, not a temporary file."""
+header) give the numbers the same frames give as files, bit for bit; a catalog is an astropy
+Table whose columns carry their units and equal the dict's (as_table=False), and code written
+for the dict reads it unchanged; errors name the frame's place in the list, not a temporary
+file."""
 
 import numpy as np
 import pytest
@@ -42,19 +43,31 @@ def test_frames_in_memory_are_the_files(star_frames, sky_frames, kind):
     assert same(m1.q, m2.q) and same(m1.u, m2.u)
 
 
-def test_a_catalog_as_a_table_has_units_and_the_dicts_numbers(star_frames):
-    from astropy.table import QTable
+def test_a_catalog_is_a_table_with_units_and_the_dicts_numbers(star_frames):
+    from astropy.table import QTable, Table
 
     frames, inst = star_frames
-    d = instpol.catalog(frames, str(inst))
-    t = instpol.catalog(frames, str(inst), as_table=True)
-    assert isinstance(t, QTable) and len(t) == len(d["id"])
+    d = instpol.catalog(frames, str(inst), as_table=False)
+    t = instpol.catalog(frames, str(inst))
+    assert isinstance(d, dict) and isinstance(t, Table) and isinstance(t, instpol.CatalogTable)
+    assert len(t) == len(d["id"])
     assert t["x"].unit == u.pix and t["chi_deg"].unit == u.deg and t["x_arcmin"].unit == u.arcmin
-    assert t["flux_e"].unit == u.electron
-    # q, u, P are fractions: no unit; the values are the dict's, bit for bit.
-    assert not hasattr(t["q"], "unit") or t["q"].unit in (None, u.dimensionless_unscaled)
-    assert same(t["chi_deg"].to_value(u.deg), d["chi_deg"]) and same(np.asarray(t["q"]), d["q"])
-    assert t.meta["filter"] == d["filter"] and list(t.meta["hwp_deg"]) == list(d["hwp_deg"])
+    assert t["flux_e"].unit == u.electron and t["q"].unit is None
+    # The values are the dict's, bit for bit; every column of the dict is a column or meta.
+    for k, v in d.items():
+        if k in t.colnames:
+            if np.asarray(v).dtype.kind == "f":
+                assert same(t[k], v), k
+        else:
+            assert t.meta[k] == v and t[k] == v, k
+    # As quantities, and code written for the dict: arithmetic on plain arrays, meta by key.
+    q = QTable(t)
+    assert same(q["chi_deg"].to_value(u.deg), d["chi_deg"]) and q["x"].unit == u.pix
+    i = int(np.argmin(np.hypot(t["x"] - 150, t["y"] - 200)))
+    assert i == int(np.argmin(np.hypot(d["x"] - 150, d["y"] - 200)))
+    assert t["filter"] == d["filter"] and list(t["hwp_deg"]) == list(d["hwp_deg"])
+    ok = t["flags"] == 0
+    assert same(t["q"][ok], d["q"][d["flags"] == 0])
 
 
 def test_a_bad_frame_object_is_named_by_its_place(star_frames):

@@ -50,6 +50,7 @@ __all__ = [
     "catalog",
     "demo",
     "StokesMap",
+    "CatalogTable",
     "InputError",
     "FileError",
     "__version__",
@@ -544,6 +545,10 @@ def _paths(frames: Union[PathLike, Sequence[PathLike]]) -> list:
     return [os.fspath(f) for f in frames]
 
 
+def _opt_path(p: Optional[PathLike]) -> Optional[str]:
+    return None if p is None else os.fspath(p)
+
+
 def _is_frame_object(f: Any) -> bool:
     return not isinstance(f, (str, os.PathLike))
 
@@ -598,27 +603,52 @@ def _frame_files(frames: Any) -> Iterator[list]:
 _COLUMN_UNITS = {"x": "pix", "y": "pix", "x_e": "pix", "y_e": "pix", "fwhm_px": "pix", "aperture_px": "pix",
                  "flux_e": "electron", "a0": "electron"}
 
+#: What a catalog holds once for all its stars (the rest is one value per star).
+_CATALOG_META = ("hwp_deg", "filter", "chi_offset_deg", "oe_offset_px", "unpaired", "unpaired_shift_px",
+                 "n_sources", "warnings", "recorded_angles", "chi_offset_applied_deg", "n_extrapolated",
+                 "telescope_model", "telescope_band", "telescope_exposures", "camera_transform")
 
-def _table(d: Dict[str, Any], n: int) -> Any:
-    """A dict of per-star columns (length ``n``) and metadata as an astropy ``QTable``: the
-    columns with their units (:data:`_COLUMN_UNITS`, ``*_deg``, ``*_arcmin``), the rest in
-    ``meta``."""
-    from astropy import units as u
-    from astropy.table import QTable
 
-    t = QTable()
+def _unit_of(name: str) -> Optional[str]:
+    return _COLUMN_UNITS.get(name) or ("deg" if name.endswith("_deg") else "arcmin" if name.endswith("_arcmin") else None)
+
+
+def _table(d: Dict[str, Any]) -> Any:
+    """A catalog dict as an astropy table (:class:`CatalogTable`): one row per star, each
+    column with its unit (:data:`_COLUMN_UNITS`, ``*_deg`` in deg, ``*_arcmin`` in arcmin),
+    the catalog-wide values (:data:`_CATALOG_META`) in ``meta``."""
+    t = CatalogTable()
     for k, v in d.items():
-        if isinstance(v, (list, np.ndarray)) and len(v) == n and k not in ("hwp_deg", "warnings"):
-            unit = _COLUMN_UNITS.get(k) or ("deg" if k.endswith("_deg") else "arcmin" if k.endswith("_arcmin") else None)
-            arr = np.asarray(v) if not (isinstance(v, list) and v and isinstance(v[0], list)) else np.array(v, dtype=object)
-            t[k] = arr * u.Unit(unit) if unit and arr.dtype.kind in "fi" else arr
-        else:
+        if k in _CATALOG_META:
             t.meta[k] = v
+            continue
+        arr = np.array(v, dtype=object) if isinstance(v, list) and v and isinstance(v[0], list) else np.asarray(v)
+        t[k] = arr
+        unit = _unit_of(k)
+        if unit and arr.dtype.kind in "fi":
+            t[k].unit = unit
     return t
 
 
-def _opt_path(p: Optional[PathLike]) -> Optional[str]:
-    return None if p is None else os.fspath(p)
+try:
+    from astropy.table import Table as _AstropyTable
+
+    class CatalogTable(_AstropyTable):
+        """The stars of :func:`catalog` as an astropy ``Table``: one row per star, columns with
+        their units (``t["x"].unit`` is px, ``t["chi_deg"].unit`` deg; plain arrays in
+        arithmetic, as the dict's were), the catalog-wide values in ``meta``. ``t["filter"]``
+        and the other catalog-wide keys are looked up in ``meta`` too, so that code written for
+        the dict reads a table unchanged; ``QTable(t)`` gives quantities."""
+
+        def __getitem__(self, item: Any) -> Any:
+            if isinstance(item, str) and item not in self.colnames and item in self.meta:
+                return self.meta[item]
+            return super().__getitem__(item)
+
+    _HAVE_ASTROPY = True
+except ImportError:  # pragma: no cover - the dict is then what catalog() returns
+    CatalogTable = None  # type: ignore[assignment,misc]
+    _HAVE_ASTROPY = False
 
 
 def reduce(
@@ -687,14 +717,14 @@ def catalog(
     pair_tol: float = 1.5,
     cal: Optional[PathLike] = None,
     allow_extrapolation: bool = False,
-    as_table: bool = False,
+    as_table: Optional[bool] = None,
 ) -> Any:
     """Every paired star of a frame set measured, as ``instpol catalog``: detection on the
     first frame, ordinary/extraordinary pairing through the instrument's beam layout, aperture
     photometry per frame with the background removed in each beam, then Q/I, U/I, P, chi
     (eq:Q, eq:U, eq:poldeg, eq:polang) with propagated and scatter-based errors and flags.
 
-    Returns a dict of columns (one value per star: ``id, x, y, x_e, y_e, x_arcmin, y_arcmin,
+    The stars' columns (one value per star: ``id, x, y, x_e, y_e, x_arcmin, y_arcmin,
     fwhm_px, aperture_px, flux_e, q, u, sigma_q, sigma_u, cov_qu, p, sigma_p, chi_deg, sigma_chi_deg, a0,
     kappa, kappa_applied, chi2_mod, dof_mod, sigma_q_scatter, sigma_u_scatter, flags, flag_names, note``, and
     ``f`` of shape (stars, N)) and metadata (``hwp_deg, filter, chi_offset_deg, oe_offset_px,
@@ -712,9 +742,10 @@ def catalog(
     ``assembled=True``: frames already trimmed and assembled (as for :func:`reduce`).
 
     ``frames``: paths of FITS files, or astropy ``HDUList``, ``CCDData`` or ``(array, header)``
-    objects (as for :func:`reduce`). ``as_table=True``: an astropy ``QTable`` instead of the dict,
-    one row per star, columns with their units (px, arcmin, deg, electrons; q, u, P fractions),
-    the metadata in ``meta``.
+    objects (as for :func:`reduce`). Returned, where astropy is installed (``as_table=None``, the
+    default, or ``True``), as a :class:`CatalogTable`: an astropy ``Table``, one row per star,
+    columns with their units (px, arcmin, deg, electrons; q, u, P fractions), the catalog-wide
+    values in ``meta`` and also by key (``t["filter"]``); ``as_table=False``: the dict below.
 
     ``cal``: a calibration file to remove the instrumental polarization with in the same run, as
     ``instpol catalog --cal``: adds the columns ``q0, u0, sigma_q0, sigma_u0, cov_qu0, p0,
@@ -746,7 +777,11 @@ def catalog(
             bool(assembled), None if kappa is None else float(kappa), bool(kappa_from_data), float(pair_tol),
             _opt_path(cal), bool(allow_extrapolation),
         )
-    return _table(d, len(d["id"])) if as_table else d
+    if as_table is None:
+        as_table = _HAVE_ASTROPY
+    if as_table and not _HAVE_ASTROPY:
+        raise InputError("as_table=True needs astropy installed")
+    return _table(d) if as_table else d
 
 
 def demo(out_dir: PathLike, *, frames: bool = True, keep_frames: bool = False, seed: int = 2006) -> Dict[str, Any]:

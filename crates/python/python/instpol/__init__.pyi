@@ -184,6 +184,12 @@ def reduce(
     when the headers carry none. Raises FileError or InputError with the CLI's messages.
     """
 
+class CatalogTable:
+    """The stars of catalog() as an astropy Table with units; catalog-wide values in meta and by key."""
+    meta: Dict[str, Any]
+    def __getitem__(self, item: Any) -> Any: ...
+    def __len__(self) -> int: ...
+
 def catalog(
     frames: Union[PathLike, Sequence[Any]],
     instrument: str = ...,
@@ -201,14 +207,15 @@ def catalog(
     pair_tol: float = ...,
     cal: Optional[PathLike] = ...,
     allow_extrapolation: bool = ...,
-    as_table: bool = ...,
+    as_table: Optional[bool] = ...,
 ) -> Any:
     """Every paired star measured: Q/I, U/I, P, chi with errors and flags.
 
     fwhm (px), threshold (detection sigmas), aperture (px, "2.5fwhm" or "best"), annulus
     (inner, outer px), pair_tol (px); cal: correct in the same run. frames: paths, HDUList,
     CCDData or (array, header). Returns a dict of columns (fractions, deg, px, arcmin as their
-    names say), or with as_table=True an astropy QTable with units and the metadata in meta.
+    names say) as an astropy Table with units where astropy is installed (CatalogTable: the
+    catalog-wide values in meta and by key), as_table=False the dict.
     Raises FileError or InputError.
     """
 
