@@ -155,6 +155,135 @@ pub struct Polarimetry {
     pub filter_keyword: String,
     #[serde(default = "default_exptime_keyword")]
     pub exptime_keyword: String,
+    /// A plate that turns during each exposure (`[polarimetry.rotation]`); absent: the plate
+    /// stands still at the angle of `hwp_angle_keyword`.
+    #[serde(default)]
+    pub rotation: Option<HwpRotation>,
+}
+
+/// A half-wave plate that turns continuously: each exposure integrates the modulation over the
+/// range of plate angles it swept (MOPTOP: the rotor turns without stopping, each exposure
+/// covering one of 16 positions per turn). The range is read from the frame's header either as
+/// begin and end angles (`begin_keyword`, `end_keyword`), or as a rotor position
+/// (`position_keyword`) of `positions_per_turn` equal positions per turn, position
+/// `first_position` starting at `zero_deg`. The reduction demodulates with the range's middle
+/// angle and its modulation efficiency `sin(2d)/(2d)` (`mueller::hwp_sweep_efficiency`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HwpRotation {
+    /// Keyword of the plate angle (deg) at the start of the exposure.
+    #[serde(default)]
+    pub begin_keyword: String,
+    /// Keyword of the plate angle (deg) at the end of the exposure.
+    #[serde(default)]
+    pub end_keyword: String,
+    /// Keyword of the rotor position (an integer) of the exposure.
+    #[serde(default)]
+    pub position_keyword: String,
+    /// Equal positions per turn of the rotor (each exposure sweeps 360 / this deg).
+    #[serde(default)]
+    pub positions_per_turn: u32,
+    /// The number the headers give the first position (1 for MOPTOP's 1..16).
+    #[serde(default = "default_first_position")]
+    pub first_position: i64,
+    /// The plate angle (deg) at the start of the first position.
+    #[serde(default)]
+    pub zero_deg: f64,
+}
+
+fn default_first_position() -> i64 {
+    1
+}
+
+impl HwpRotation {
+    /// Whether the exposure's range comes from a rotor position (else begin and end angles).
+    pub fn by_position(&self) -> bool {
+        !self.position_keyword.is_empty()
+    }
+
+    /// The middle angle and the sweep (deg) of an exposure from its begin and end angles
+    /// (deg). The sweep is `end - begin` taken modulo 360 into (-180, 180] (a turn through
+    /// 360 deg during the exposure is not a range the header can express), so a range across
+    /// 0 deg (350 to 12.5) sweeps 22.5 deg about 1.25 deg.
+    ///
+    /// ```
+    /// let (mid, d) = instrument::HwpRotation::range(350.0, 12.5);
+    /// assert!((mid - 361.25).abs() < 1e-12 && (d - 22.5).abs() < 1e-12);
+    /// ```
+    pub fn range(begin_deg: f64, end_deg: f64) -> (f64, f64) {
+        let mut d = (end_deg - begin_deg).rem_euclid(360.0);
+        if d > 180.0 {
+            d -= 360.0;
+        }
+        (begin_deg + 0.5 * d, d)
+    }
+
+    /// The middle angle and sweep (deg) of rotor position `pos`: position `first_position`
+    /// spans `zero_deg .. zero_deg + 360 / positions_per_turn`, the next the following range.
+    /// `Err` with the reason when `pos` is not a position of the turn.
+    ///
+    /// ```
+    /// let r = instrument::HwpRotation { position_keyword: "MOPRPOS".into(), positions_per_turn: 16,
+    ///     first_position: 1, zero_deg: 0.0, begin_keyword: String::new(), end_keyword: String::new() };
+    /// assert_eq!(r.position_range(1).unwrap(), (11.25, 22.5));
+    /// assert_eq!(r.position_range(16).unwrap(), (348.75, 22.5));
+    /// assert!(r.position_range(17).is_err());
+    /// ```
+    pub fn position_range(&self, pos: i64) -> Result<(f64, f64), String> {
+        let n = self.positions_per_turn as i64;
+        let k = pos - self.first_position;
+        if !(0..n).contains(&k) {
+            return Err(format!(
+                "rotor position {pos} is not one of the {n} positions per turn ({} to {})",
+                self.first_position,
+                self.first_position + n - 1
+            ));
+        }
+        let step = 360.0 / n as f64;
+        Ok((self.zero_deg + (k as f64 + 0.5) * step, step))
+    }
+
+    /// The file's checks: one way of giving the range, complete; `Err((key, value, why))`.
+    fn check(&self) -> Result<(), (String, String, String)> {
+        let key = |k: &str| format!("polarimetry.rotation.{k}");
+        let by_angles = !self.begin_keyword.is_empty() || !self.end_keyword.is_empty();
+        if by_angles == self.by_position() {
+            return Err((
+                key("begin_keyword/position_keyword"),
+                format!("'{}', '{}' / '{}'", self.begin_keyword, self.end_keyword, self.position_keyword),
+                "give either begin_keyword and end_keyword (the exposure's plate angles) or position_keyword with \
+                 positions_per_turn (the rotor's position), not both and not neither"
+                    .into(),
+            ));
+        }
+        if by_angles && (self.begin_keyword.is_empty() || self.end_keyword.is_empty()) {
+            return Err((
+                key("begin_keyword/end_keyword"),
+                format!("'{}' / '{}'", self.begin_keyword, self.end_keyword),
+                "both the begin and the end keyword are needed".into(),
+            ));
+        }
+        if self.by_position() && self.positions_per_turn <= 4 {
+            return Err((
+                key("positions_per_turn"),
+                self.positions_per_turn.to_string(),
+                "need more than 4 positions per turn: with 4 or fewer each exposure sweeps 90 deg or more of plate \
+                 angle, a whole modulation period, and nothing is modulated (efficiency sin(2d)/(2d) = 0 at 90 deg)"
+                    .into(),
+            ));
+        }
+        if !self.by_position() && self.positions_per_turn != 0 {
+            return Err((
+                key("positions_per_turn"),
+                self.positions_per_turn.to_string(),
+                "only a rotor position (position_keyword) has positions per turn".into(),
+            ));
+        }
+        if !self.zero_deg.is_finite() {
+            return Err((key("zero_deg"), self.zero_deg.to_string(), "must be a finite angle in degrees".into()));
+        }
+        Ok(())
+    }
 }
 
 fn default_exptime_keyword() -> String {
@@ -368,6 +497,9 @@ impl Instrument {
         match self.polarimetry.layout {
             Layout::Strips => self.validate_strips(path)?,
             Layout::Maskless => self.validate_maskless(path)?,
+        }
+        if let Some(Err((key, value, why))) = self.polarimetry.rotation.as_ref().map(HwpRotation::check) {
+            return bad(&key, value, &why);
         }
         if let Err((key, value, why)) = self.format.check(d.nx, d.ny) {
             return bad(&key, value, &why);
@@ -794,6 +926,39 @@ mod tests {
         let text = include_str!("../../../instruments/fors1.toml").replace("throw_arcsec", "throw_arcsek");
         let e = Instrument::from_toml_str(&text, Path::new("x.toml")).unwrap_err().to_string();
         assert!(e.contains("throw_arcsek") && e.contains("x.toml"), "{e}");
+    }
+
+    /// `[polarimetry.rotation]`: a rotor position of 16 per turn or begin/end keywords load;
+    /// both, neither, half of a pair, 4 positions per turn (90 deg: nothing modulated) and an
+    /// unknown key are refused naming the key.
+    #[test]
+    fn plate_rotation_keys_are_checked() {
+        let base = include_str!("../../../instruments/fors1.toml");
+        let with = |table: &str| {
+            let text =
+                base.replace("exptime_keyword = \"EXPTIME\"\n", &format!("exptime_keyword = \"EXPTIME\"\n{table}"));
+            assert_ne!(text, base);
+            Instrument::from_toml_str(&text, Path::new("x.toml")).map_err(|e| e.to_string())
+        };
+        let i = with("rotation = { position_keyword = \"MOPRPOS\", positions_per_turn = 16 }\n").unwrap();
+        let r = i.polarimetry.rotation.unwrap();
+        assert_eq!(r.position_range(2).unwrap(), (33.75, 22.5));
+        with("rotation = { begin_keyword = \"ROTBEG\", end_keyword = \"ROTEND\" }\n").unwrap();
+        for (table, key) in [
+            (
+                "rotation = { begin_keyword = \"A\", position_keyword = \"P\", positions_per_turn = 16 }",
+                "begin_keyword/position_keyword",
+            ),
+            ("rotation = { }", "begin_keyword/position_keyword"),
+            ("rotation = { begin_keyword = \"A\" }", "begin_keyword/end_keyword"),
+            ("rotation = { position_keyword = \"P\", positions_per_turn = 4 }", "positions_per_turn"),
+            ("rotation = { position_keyword = \"P\", positions_per_turn = 16, step = 2 }", "step"),
+        ] {
+            let e = with(&format!("{table}\n")).unwrap_err();
+            assert!(e.contains(key) && e.contains("x.toml"), "{table}: {e}");
+        }
+        assert_eq!(HwpRotation::range(10.0, 32.5), (21.25, 22.5));
+        assert_eq!(HwpRotation::range(32.5, 10.0), (21.25, -22.5));
     }
 
     #[test]
