@@ -564,6 +564,17 @@ impl Plan {
         }
         explain.push("  per HWP angle: f_O, f_E = two rows . (I, Q, U) at the plate (the model is linear)".into());
         let basis = [Stokes::new(1.0, 0.0, 0.0, 0.0), Stokes::new(0.0, 1.0, 0.0, 0.0), Stokes::new(0.0, 0.0, 1.0, 0.0)];
+        if let Some(m) = &scene.hwp_motion {
+            explain.push(format!(
+                "  the plate turns {} deg during each exposure, centred on its angle ({})",
+                m.sweep_deg,
+                if m.substeps > 0 {
+                    format!("the fixed plate's fluxes averaged over {} sub-steps", m.substeps)
+                } else {
+                    "the plate's matrix averaged over the motion, mueller::Hwp::matrix_swept".into()
+                }
+            ));
+        }
         let rows = scene
             .hwp_angles_deg
             .iter()
@@ -572,7 +583,21 @@ impl Plan {
                 let mut ro = [0.0; 3];
                 let mut re = [0.0; 3];
                 for (k, b) in basis.iter().enumerate() {
-                    let f = train.fluxes_at_plate(b, t);
+                    let f = match &scene.hwp_motion {
+                        None => train.fluxes_at_plate(b, t),
+                        Some(m) if m.substeps == 0 => train.fluxes_at_plate_swept(b, t, m.sweep_deg.to_radians()),
+                        Some(m) => {
+                            // The motion by sub-steps: the mean of the fixed plate's fluxes.
+                            let (d, n) = (m.sweep_deg.to_radians(), m.substeps as f64);
+                            let (mut fo, mut fe) = (0.0, 0.0);
+                            for j in 0..m.substeps {
+                                let f = train.fluxes_at_plate(b, t - 0.5 * d + (j as f64 + 0.5) * d / n);
+                                fo += f.f_o;
+                                fe += f.f_e;
+                            }
+                            mueller::BeamFluxes { f_o: fo / n, f_e: fe / n }
+                        }
+                    };
                     ro[k] = f.f_o;
                     re[k] = f.f_e;
                 }
@@ -889,6 +914,7 @@ impl Plan {
         let mut keys =
             self.header_keys("instpol simulation", Some(self.scene.hwp_angles_deg[k]), self.scene.exposure_s);
         keys.extend(tel_keys);
+        keys.extend(self.rotation_keys(k));
         if let Some(m) = self.frame_start_mjd(k) {
             keys.push(("MJD-OBS".into(), KeyValue::F64(m), "start of the exposure [MJD]".into()));
         }
@@ -939,6 +965,24 @@ impl Plan {
             ("SIMSEED".into(), KeyValue::I64(self.scene.seed as i64), "instpol simulation seed".into()),
         ]);
         keys
+    }
+
+    /// The keywords of frame `k`'s plate range for an instrument whose plate turns
+    /// (`[polarimetry.rotation]`): begin and end angles, or the rotor position. A fixed plate in
+    /// the scene writes a range of zero width (begin = end).
+    fn rotation_keys(&self, k: usize) -> Vec<(String, KeyValue, String)> {
+        let Some(r) = &self.inst.polarimetry.rotation else { return vec![] };
+        let a = self.scene.hwp_angles_deg[k];
+        let d = self.scene.hwp_motion.as_ref().map_or(0.0, |m| m.sweep_deg);
+        if r.by_position() {
+            // Checked when the scene was loaded (Scene::checked).
+            let pos = crate::scene::rotor_position(r, a, d).unwrap_or(r.first_position);
+            return vec![(r.position_keyword.clone(), KeyValue::I64(pos), "rotor position".into())];
+        }
+        vec![
+            (r.begin_keyword.clone(), KeyValue::F64(a - 0.5 * d), "plate angle at the start [deg]".into()),
+            (r.end_keyword.clone(), KeyValue::F64(a + 0.5 * d), "plate angle at the end [deg]".into()),
+        ]
     }
 
     /// File name of frame `k` (for a chip instrument, [`Plan::frame_files`]).

@@ -13,6 +13,8 @@
 //! instrument = "fors1"          # built-in name or path to an instrument TOML
 //! filter = "V"
 //! hwp_angles_deg = [0, 22.5, 45, 67.5]   # default: the optimal N = 4 set
+//! # hwp_motion = { sweep_deg = 22.5 }      # a plate turning during each exposure, centred
+//! #                                        # on its angle (substeps = 64: by sub-steps)
 //! exposure_s = 300              # written to EXPTIME only
 //! seed = 42
 //!
@@ -124,6 +126,23 @@ pub struct Scene {
     /// parallactic-angle track); absent: none.
     #[serde(default)]
     pub telescope: Option<TelescopeSpec>,
+    /// A half-wave plate that turns during each exposure; absent: it stands still.
+    #[serde(default)]
+    pub hwp_motion: Option<HwpMotion>,
+}
+
+/// A half-wave plate turning uniformly during each exposure: exposure `k` sweeps `sweep_deg`
+/// centred on `hwp_angles_deg[k]`. Its fluxes are the plate's matrix averaged over the motion
+/// (`mueller::Hwp::matrix_swept`, the closed form), or with `substeps > 0` the mean of the
+/// fixed plate's fluxes at that many equal sub-steps of the range (midpoints): the same motion
+/// integrated the other way. Frames carry the range under the instrument's
+/// `[polarimetry.rotation]` keywords.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HwpMotion {
+    pub sweep_deg: f64,
+    #[serde(default)]
+    pub substeps: u32,
 }
 
 fn default_metal() -> String {
@@ -578,9 +597,57 @@ impl Scene {
         if let Err(e) = stokes::check_degrees(&self.hwp_angles_deg) {
             return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &format!("{e}: give degrees"));
         }
-        let th: Vec<f64> = self.hwp_angles_deg.iter().map(|a| a.to_radians()).collect();
-        if let Err(e) = stokes::StokesSolver::new(&th) {
+        // A plate turning through several turns repeats its positions: each position once.
+        let mut th: Vec<f64> = self.hwp_angles_deg.iter().map(|a| a.to_radians()).collect();
+        if self.hwp_motion.is_some() {
+            let mut seen: Vec<f64> = vec![];
+            th.retain(|t| {
+                let new = !seen.contains(t);
+                seen.push(*t);
+                new
+            });
+        }
+        let sweeps = match &self.hwp_motion {
+            Some(m) => {
+                if !(m.sweep_deg.is_finite() && m.sweep_deg.abs() < 180.0) {
+                    return bad(
+                        "hwp_motion.sweep_deg",
+                        m.sweep_deg.to_string(),
+                        "must be a plate angle range in degrees, below 180",
+                    );
+                }
+                if m.substeps > 100_000 {
+                    return bad("hwp_motion.substeps", m.substeps.to_string(), "at most 100000");
+                }
+                vec![m.sweep_deg.to_radians(); th.len()]
+            }
+            None => vec![0.0; th.len()],
+        };
+        if let Err(e) = stokes::StokesSolver::with_sweeps(&th, &sweeps) {
             return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &e.to_string());
+        }
+        if let (None, Some(r)) = (&self.hwp_motion, &inst.polarimetry.rotation) {
+            if r.by_position() {
+                return bad(
+                    "hwp_motion",
+                    "(none)".into(),
+                    &format!(
+                        "instrument {} reads its plate's range from a rotor position: give the motion, \
+                         hwp_motion = {{ sweep_deg = {} }}",
+                        inst.name,
+                        360.0 / r.positions_per_turn as f64
+                    ),
+                );
+            }
+        }
+        if let (Some(m), Some(r)) = (&self.hwp_motion, &inst.polarimetry.rotation) {
+            if r.by_position() {
+                for &a in &self.hwp_angles_deg {
+                    if let Err(why) = rotor_position(r, a, m.sweep_deg) {
+                        return bad("hwp_angles_deg", a.to_string(), &why);
+                    }
+                }
+            }
         }
         if let Some(sl) = &self.effects.stressed_lens {
             if let Err(why) = sl.validate() {
@@ -1013,5 +1080,28 @@ mod tests {
         let t = format!("{MIN}[effects]\ncosmic_rays = {{ rate_per_frame = 5, size_px = 100000 }}\n");
         let e = Scene::from_toml_str(&t, Path::new("s.toml")).unwrap_err().to_string();
         assert!(e.contains("size_px"), "{e}");
+    }
+}
+
+/// The rotor position (as the headers number it) of an exposure sweeping `sweep_deg` about
+/// `angle_deg`, for an instrument that reads its plate's range from a rotor position: `Err`
+/// unless the range is exactly one of the rotor's positions (`instrument::HwpRotation`).
+pub(crate) fn rotor_position(r: &instrument::HwpRotation, angle_deg: f64, sweep_deg: f64) -> Result<i64, String> {
+    let n = r.positions_per_turn as f64;
+    let step = 360.0 / n;
+    let k = ((angle_deg - r.zero_deg) / step - 0.5).round();
+    let pos = r.first_position + k.rem_euclid(n) as i64;
+    match r.position_range(pos) {
+        Ok((mid, d))
+            if (d - sweep_deg).abs() < 1e-9
+                && ((angle_deg - mid) / 360.0 - ((angle_deg - mid) / 360.0).round()).abs() < 1e-9 =>
+        {
+            Ok(pos)
+        }
+        _ => Err(format!(
+            "the instrument reads the plate's range from a rotor position of {} per turn ({step} deg each, the first \
+             from {} deg): an exposure at {angle_deg} deg sweeping {sweep_deg} deg is not one of them",
+            r.positions_per_turn, r.zero_deg
+        )),
     }
 }

@@ -626,7 +626,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                     .map(|((r, placed), m)| {
                         let ph = placed.and_then(|()| {
                             let m: Vec<FrameFluxes> = m.into_iter().collect::<Result<_, _>>()?;
-                            finish(Partial::from_frames(src.angles_deg(), &m), files, x, y, &opts)
+                            finish(Partial::from_frames(src.angles_deg(), src.hwp_sweep_deg(), &m), files, x, y, &opts)
                         });
                         (r, ph)
                     })

@@ -164,9 +164,23 @@ pub(crate) fn finish(
         out.sigma_o.clone(),
         out.sigma_e.clone(),
     )?;
+    // A turning plate: every exposure swept the same range, demodulated with its efficiency.
+    let m = if out.hwp_sweep_deg == 0.0 { m } else { m.with_sweeps(vec![out.hwp_sweep_deg.to_radians(); n])? };
     let (reduction, kappa_applied) = m.reduce_with(opts.kappa)?;
-    let Partial { hwp_deg, centres, f_o, f_e, sigma_o, sigma_e, bg_o, bg_e, n_aperture, aperture_area_px, n_annulus } =
-        out;
+    let Partial {
+        hwp_deg,
+        hwp_sweep_deg: _,
+        centres,
+        f_o,
+        f_e,
+        sigma_o,
+        sigma_e,
+        bg_o,
+        bg_e,
+        n_aperture,
+        aperture_area_px,
+        n_annulus,
+    } = out;
     Ok(StarPhotometry {
         x,
         y,
@@ -201,7 +215,7 @@ fn measure_fluxes(
     let m = (0..set.data.len())
         .map(|i| measure_frame(&set.data[i], g, x, y, ap, opts, &FrameFacts::of(set, i)))
         .collect::<Result<Vec<_>, _>>()?;
-    Ok(Partial::from_frames(&set.angles_deg, &m))
+    Ok(Partial::from_frames(&set.angles_deg, set.hwp_sweep_deg, &m))
 }
 
 /// What the measurement of one frame needs besides its pixels: how its values become
@@ -500,6 +514,7 @@ pub fn single_exposures(frames: &[crate::frame::Frame], set: &FrameSet) -> Vec<F
         .map(|f| FrameSet {
             filter: set.filter.clone(),
             angles_deg: vec![f.hwp_deg],
+            hwp_sweep_deg: f.hwp_sweep_deg,
             data: vec![f.data.clone()],
             files: vec![vec![f.path.clone()]],
             nx: f.nx,
@@ -698,6 +713,7 @@ pub(crate) fn pick_radius(
 /// [`StarPhotometry`] while it is being measured.
 pub(crate) struct Partial {
     hwp_deg: Vec<f64>,
+    hwp_sweep_deg: f64,
     centres: Vec<[f64; 4]>,
     f_o: Vec<f64>,
     f_e: Vec<f64>,
@@ -712,11 +728,12 @@ pub(crate) struct Partial {
 
 impl Partial {
     /// The frames' measurements in angle order (the aperture's size as the last frame saw it).
-    pub(crate) fn from_frames(hwp_deg: &[f64], m: &[FrameFluxes]) -> Self {
+    pub(crate) fn from_frames(hwp_deg: &[f64], hwp_sweep_deg: f64, m: &[FrameFluxes]) -> Self {
         let col = |f: fn(&FrameFluxes) -> f64| m.iter().map(f).collect::<Vec<f64>>();
         let last = m.last();
         Self {
             hwp_deg: hwp_deg.to_vec(),
+            hwp_sweep_deg,
             centres: m.iter().map(|f| f.centre).collect(),
             f_o: col(|f| f.f_o),
             f_e: col(|f| f.f_e),
