@@ -57,7 +57,7 @@ pub struct Field {
 
 /// How the two beams of a sky point reach the detector.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[serde(rename_all = "snake_case")]
 pub enum Layout {
     /// A focal-plane strip mask (FORS, EFOSC2, ALFOSC): each open strip of the sky is imaged
     /// twice, side by side along the strip axis; the sky between strips is masked. Sky-field
@@ -68,6 +68,117 @@ pub enum Layout {
     /// extraordinary image offset from the ordinary one by a fixed 2-D vector, and the sky of
     /// the two beams overlaps. Point sources work; sky-field calibration is impossible.
     Maskless,
+    /// Two detectors behind a polarizing beam splitter (MOPTOP): the o beam falls on one
+    /// camera, the e beam on the other. Each exposure is two files, one per camera, placed
+    /// side by side in one detector frame by `[format]`'s chips (found by the camera keyword,
+    /// paired by the exposure keywords); `[polarimetry.cameras]` says which chip is which, how
+    /// the e camera's image is turned, and where a point of the o camera falls on the e
+    /// camera. Point sources work; a per-pixel map is refused (the cameras do not share sky
+    /// pixels).
+    TwoCameras,
+}
+
+/// How an image is turned relative to another: one of the 8 flips and rotations by multiples
+/// of 90 deg that map pixel rows and columns onto rows and columns.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Orientation {
+    #[default]
+    Identity,
+    /// Columns reversed (x -> -x).
+    FlipX,
+    /// Rows reversed (y -> -y).
+    FlipY,
+    /// Turned by 180 deg (x -> -x, y -> -y).
+    Rot180,
+    /// Turned by 90 deg counter-clockwise ((x, y) -> (-y, x)).
+    Rot90,
+    /// Turned by 270 deg counter-clockwise ((x, y) -> (y, -x)).
+    Rot270,
+    /// Rows and columns exchanged ((x, y) -> (y, x)).
+    Transpose,
+    /// The other diagonal ((x, y) -> (-y, -x)).
+    AntiTranspose,
+}
+
+impl Orientation {
+    /// The linear part `[[a, b], [c, d]]`: `(x', y') = (a x + b y, c x + d y)` about the
+    /// image's centre.
+    pub fn matrix(self) -> [[f64; 2]; 2] {
+        match self {
+            Orientation::Identity => [[1.0, 0.0], [0.0, 1.0]],
+            Orientation::FlipX => [[-1.0, 0.0], [0.0, 1.0]],
+            Orientation::FlipY => [[1.0, 0.0], [0.0, -1.0]],
+            Orientation::Rot180 => [[-1.0, 0.0], [0.0, -1.0]],
+            Orientation::Rot90 => [[0.0, -1.0], [1.0, 0.0]],
+            Orientation::Rot270 => [[0.0, 1.0], [-1.0, 0.0]],
+            Orientation::Transpose => [[0.0, 1.0], [1.0, 0.0]],
+            Orientation::AntiTranspose => [[0.0, -1.0], [-1.0, 0.0]],
+        }
+    }
+
+    /// Whether the image's width and height trade places.
+    pub fn swaps_axes(self) -> bool {
+        self.matrix()[0][0] == 0.0
+    }
+
+    /// Pixel `(x, y)` of an `nx` x `ny` image (0-based) as it appears in the image turned by
+    /// this orientation (of size `ny` x `nx` when [`Self::swaps_axes`]).
+    ///
+    /// ```
+    /// use instrument::Orientation;
+    /// // A 10 x 4 image: its pixel (0, 0) is at (9, 0) once flipped in x, (0, 9) once turned
+    /// // by 90 deg (a 4 x 10 image), and the turn's inverse brings it back.
+    /// assert_eq!(Orientation::FlipX.apply(0.0, 0.0, 10, 4), (9.0, 0.0));
+    /// assert_eq!(Orientation::Rot90.apply(0.0, 0.0, 10, 4), (3.0, 0.0));
+    /// let (x, y) = Orientation::Rot90.apply(2.5, 1.0, 10, 4);
+    /// assert_eq!(Orientation::Rot90.inverse().apply(x, y, 4, 10), (2.5, 1.0));
+    /// ```
+    pub fn apply(self, x: f64, y: f64, nx: usize, ny: usize) -> (f64, f64) {
+        let m = self.matrix();
+        let (cx, cy) = (0.5 * (nx as f64 - 1.0), 0.5 * (ny as f64 - 1.0));
+        let (ox, oy) = if self.swaps_axes() { (cy, cx) } else { (cx, cy) };
+        let (u, v) = (x - cx, y - cy);
+        (m[0][0] * u + m[0][1] * v + ox, m[1][0] * u + m[1][1] * v + oy)
+    }
+
+    /// The orientation that undoes this one.
+    pub fn inverse(self) -> Self {
+        match self {
+            Orientation::Rot90 => Orientation::Rot270,
+            Orientation::Rot270 => Orientation::Rot90,
+            o => o,
+        }
+    }
+}
+
+/// The two cameras of a [`Layout::TwoCameras`] instrument (`[polarimetry.cameras]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Cameras {
+    /// The `[format]` chip (by name) that is the camera of the ordinary beam. The sky's pixel
+    /// coordinates are this camera's, as read.
+    pub o_chip: String,
+    /// The `[format]` chip of the extraordinary beam.
+    pub e_chip: String,
+    /// How the e camera's image, as read, is turned relative to the o camera's (a beam
+    /// splitter's reflection flips one of them): the image the e chip holds, turned by this,
+    /// shows the sky as the o camera does.
+    #[serde(default)]
+    pub e_orientation: Orientation,
+    /// Where a point of the o camera falls on the e camera once turned by `e_orientation`:
+    /// `[a, b, c, d, e, f]` with `x' = a x + b y + c`, `y' = d x + e y + f` (each camera's own
+    /// 0-based pixels); absent: measured from the stars of the frames, and refused when fewer
+    /// than 3 star pairs match or their residual exceeds `max_residual_px`.
+    #[serde(default)]
+    pub transform: Option<[f64; 6]>,
+    /// The largest RMS residual (px) of a transform measured from star pairs (default 0.5).
+    #[serde(default = "default_max_residual")]
+    pub max_residual_px: f64,
+}
+
+fn default_max_residual() -> f64 {
+    0.5
 }
 
 /// One term `c * u^i * v^j` of the variation of the o/e offset across the field (px), with
@@ -159,6 +270,9 @@ pub struct Polarimetry {
     /// stands still at the angle of `hwp_angle_keyword`.
     #[serde(default)]
     pub rotation: Option<HwpRotation>,
+    /// Two cameras (`layout = "two_cameras"`): which chip is which and how they map.
+    #[serde(default)]
+    pub cameras: Option<Cameras>,
 }
 
 /// A half-wave plate that turns continuously: each exposure integrates the modulation over the
@@ -497,6 +611,14 @@ impl Instrument {
         match self.polarimetry.layout {
             Layout::Strips => self.validate_strips(path)?,
             Layout::Maskless => self.validate_maskless(path)?,
+            Layout::TwoCameras => self.validate_two_cameras(path)?,
+        }
+        if self.polarimetry.layout != Layout::TwoCameras && self.polarimetry.cameras.is_some() {
+            return bad(
+                "polarimetry.cameras",
+                format!("{:?}", self.polarimetry.layout),
+                "only layout = \"two_cameras\" has cameras",
+            );
         }
         if let Some(Err((key, value, why))) = self.polarimetry.rotation.as_ref().map(HwpRotation::check) {
             return bad(&key, value, &why);
@@ -782,6 +904,98 @@ impl Instrument {
                 value: "\"maskless\"".into(),
                 why: "a maskless layout has no strips: remove strip_count, strip_starts_px and throw_terms (or use layout = \"strips\")".into(),
             });
+        }
+        Ok(())
+    }
+
+    /// Two cameras: `[polarimetry.cameras]` names two different chips of `[format]`, each in
+    /// its own file (found by `match_keyword`); the e chip, turned by `e_orientation`, is the
+    /// o chip's size; the transform, when given, is finite and maps the o camera's centre onto
+    /// the e camera.
+    fn validate_two_cameras(&self, path: &Path) -> Result<(), Error> {
+        let bad = |key: &str, value: String, why: String| {
+            Err(Error::Invalid { path: path.into(), key: key.into(), value, why })
+        };
+        let p = &self.polarimetry;
+        let Some(c) = &p.cameras else {
+            return bad(
+                "polarimetry.cameras",
+                "(none)".into(),
+                "layout = \"two_cameras\" needs [polarimetry.cameras] with o_chip and e_chip (the [format] chips of the two cameras)".into(),
+            );
+        };
+        if p.strip_starts_px.is_some() || !p.throw_terms.is_empty() || p.strip_count != 0 || p.oe_offset_px.is_some() {
+            return bad(
+                "polarimetry.layout",
+                "\"two_cameras\"".into(),
+                "two cameras have no strips and no o/e offset: remove strip_count, strip_starts_px, throw_terms and oe_offset_px".into(),
+            );
+        }
+        let chip = |name: &str, key: &str| {
+            self.format.chips.iter().find(|ch| ch.name == name).ok_or_else(|| Error::Invalid {
+                path: path.into(),
+                key: format!("polarimetry.cameras.{key}"),
+                value: name.into(),
+                why: format!(
+                    "not a chip of [format] (chips: {})",
+                    self.format.chips.iter().map(|ch| ch.name.as_str()).collect::<Vec<_>>().join(", ")
+                ),
+            })
+        };
+        let (o, e) = (chip(&c.o_chip, "o_chip")?, chip(&c.e_chip, "e_chip")?);
+        if c.o_chip == c.e_chip {
+            return bad(
+                "polarimetry.cameras.e_chip",
+                c.e_chip.clone(),
+                "the o and e cameras must be different chips".into(),
+            );
+        }
+        for ch in [o, e] {
+            if ch.match_keyword.is_none() {
+                return bad(
+                    &format!("format.chips.{}", ch.name),
+                    ch.name.clone(),
+                    "each camera writes its own file: give the chip match_keyword (the keyword naming the camera) and match_value".into(),
+                );
+            }
+        }
+        let [ex, ey] = e.size_px;
+        let turned = if c.e_orientation.swaps_axes() { [ey, ex] } else { [ex, ey] };
+        if turned != o.size_px {
+            return bad(
+                "polarimetry.cameras.e_orientation",
+                format!("{:?}", c.e_orientation),
+                format!(
+                    "the e chip turned so is {} x {} px, the o chip {} x {}",
+                    turned[0], turned[1], o.size_px[0], o.size_px[1]
+                ),
+            );
+        }
+        if let Some(t) = c.transform {
+            let [ox, oy] = o.size_px;
+            let (cx, cy) = (0.5 * (ox as f64 - 1.0), 0.5 * (oy as f64 - 1.0));
+            let (x, y) = (t[0] * cx + t[1] * cy + t[2], t[3] * cx + t[4] * cy + t[5]);
+            let det = t[0] * t[4] - t[1] * t[3];
+            if !(t.iter().all(|v| v.is_finite())
+                && det.abs() > 1e-3
+                && x >= -0.5
+                && y >= -0.5
+                && x < ox as f64
+                && y < oy as f64)
+            {
+                return bad(
+                    "polarimetry.cameras.transform",
+                    format!("{t:?}"),
+                    "must be 6 finite numbers of a regular map that puts the o camera's centre on the e camera".into(),
+                );
+            }
+        }
+        if !(c.max_residual_px.is_finite() && c.max_residual_px > 0.0) {
+            return bad(
+                "polarimetry.cameras.max_residual_px",
+                c.max_residual_px.to_string(),
+                "must be a positive number of px".into(),
+            );
         }
         Ok(())
     }

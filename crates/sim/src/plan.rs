@@ -341,6 +341,14 @@ impl Plan {
         let layout = match geom.layout {
             instrument::Layout::Strips => format!("{} strips, throw {} px", geom.strips.len(), inst.throw_px_exact()),
             instrument::Layout::Maskless => format!("maskless, o/e offset {:?} px", geom.oe_offset.unwrap_or_default()),
+            instrument::Layout::TwoCameras => {
+                let c = geom.cameras.as_ref();
+                format!(
+                    "two cameras, e camera turned {:?}, transform {:?}",
+                    c.map(|c| c.e_orientation),
+                    c.and_then(|c| c.transform)
+                )
+            }
         };
         explain.push(format!(
             "instrument {} ({} x {} px, {layout}), filter {}, {} HWP angles {:?} deg",
@@ -402,7 +410,7 @@ impl Plan {
         }
         // Stars go frame by frame when the two beams overlap (maskless) or the frames move;
         // otherwise they are folded into the sky image once.
-        let per_frame = geom.layout == instrument::Layout::Maskless || !scene.frame_shifts_px.is_empty();
+        let per_frame = geom.layout != instrument::Layout::Strips || !scene.frame_shifts_px.is_empty();
         let shifts: Vec<(f64, f64)> = if scene.frame_shifts_px.is_empty() {
             vec![(0.0, 0.0); scene.hwp_angles_deg.len()]
         } else {
@@ -732,6 +740,8 @@ impl Plan {
                     let (fo, fe) = (dot(&ro, &s), dot(&re, &s));
                     if self.geom.layout == instrument::Layout::Maskless {
                         img.fill(fo + fe);
+                    } else if self.geom.layout == instrument::Layout::TwoCameras {
+                        self.fill_cameras(&mut img, fo, fe);
                     } else {
                         for &(o, e) in &self.sky_pixels {
                             img[o as usize] = fo;
@@ -752,6 +762,10 @@ impl Plan {
                 SkyAtPlate::Constant(s) if self.geom.layout == instrument::Layout::Maskless => {
                     // Every pixel takes the o light of one sky point and the e light of another.
                     img.fill(dot(&ro, s) + dot(&re, s));
+                }
+                SkyAtPlate::Constant(s) if self.geom.layout == instrument::Layout::TwoCameras => {
+                    // Each camera sees the whole uniform sky in its beam.
+                    self.fill_cameras(&mut img, dot(&ro, s), dot(&re, s));
                 }
                 SkyAtPlate::Constant(s) => {
                     let (fo, fe) = (dot(&ro, s), dot(&re, s));
@@ -891,6 +905,18 @@ impl Plan {
                         img[py * nx + px] += flux * w(px, py) / norm;
                     }
                 }
+            }
+        }
+    }
+
+    /// A uniform sky on two cameras: `fo` on every o camera pixel, `fe` on every e camera pixel.
+    fn fill_cameras(&self, img: &mut [f64], fo: f64, fe: f64) {
+        let nx = self.geom.nx;
+        for (p, v) in img.iter_mut().enumerate() {
+            match self.geom.kind(p % nx, p / nx) {
+                PixelKind::Ordinary(_) => *v = fo,
+                PixelKind::Extraordinary(_) => *v = fe,
+                _ => {}
             }
         }
     }
@@ -1075,7 +1101,17 @@ impl Plan {
             read_noise_e: rn.unwrap_or(0.0),
             scan: out.raw_scan_px.unwrap_or(crate::scene::DEFAULT_RAW_SCAN_PX),
         };
-        vec![rc; self.inst.format.chips.len()]
+        // A chip whose gain the instrument file gives as a number reads out with it (two
+        // cameras of different gains); a gain from a keyword is the scene's, written there.
+        self.inst
+            .format
+            .chips
+            .iter()
+            .map(|c| match c.gain_e_per_adu {
+                Some(instrument::NumberOrKeyword::Number(g)) => crate::raw::RawChip { gain_e_per_adu: g, ..rc },
+                _ => rc,
+            })
+            .collect()
     }
 
     /// Write frame `k` (or, `bias`, bias frame `k`) as raw chip files: the rendered ADU (a

@@ -683,6 +683,30 @@ impl Scene {
                 );
             }
         }
+        if inst.polarimetry.layout == instrument::Layout::TwoCameras {
+            let why = "a two-camera scene takes a uniform sky and stars (an extended or varying sky would need each camera's \
+                       pixels mapped through the camera transform, which is not modelled)";
+            if self.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some()) {
+                return bad("sky.gradient_e_per_arcmin", "set".into(), why);
+            }
+            if !self.extended.is_empty() {
+                return bad("extended", format!("{} sources", self.extended.len()), why);
+            }
+            if self.effects.instpol.is_some() && self.sky.is_some() {
+                return bad(
+                    "effects.instpol",
+                    "set".into(),
+                    "a two-camera scene applies an instrumental field to its stars only: remove [sky] or the field",
+                );
+            }
+            if inst.polarimetry.cameras.as_ref().is_some_and(|c| c.transform.is_none()) {
+                return bad(
+                    "instrument",
+                    self.instrument.clone(),
+                    "simulating two cameras needs the camera transform in [polarimetry.cameras] (where the e images fall)",
+                );
+            }
+        }
         if inst.polarimetry.layout == instrument::Layout::Maskless {
             let why = "a maskless scene takes a uniform sky and stars (the overlapping o and e images of an extended or varying sky are not modelled)";
             if self.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some()) {
