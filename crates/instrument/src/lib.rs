@@ -512,6 +512,7 @@ const BUILTIN: &[(&str, &str)] = &[
     ("calcite", include_str!("../../../instruments/calcite.toml")),
     ("fors2", include_str!("../../../instruments/fors2.toml")),
     ("efosc2", include_str!("../../../instruments/efosc2.toml")),
+    ("moptop", include_str!("../../../instruments/moptop.toml")),
 ];
 
 /// The TOML text of a built-in instrument (name case-insensitive), e.g. for provenance hashes.
@@ -1098,7 +1099,8 @@ impl Instrument {
         self.field_coords().arcmin_to_pixel(x, y)
     }
 
-    /// The detector's field coordinates: arcmin from its centre, unbinned pixels.
+    /// The detector's field coordinates: arcmin from its centre (two cameras: from the o camera's
+    /// centre, whose pixels are the sky's), unbinned pixels.
     ///
     /// ```
     /// // FORS1's corner pixel (0, 0) is 1023.5 px x 0.2" = 3.4117' from the centre on both axes.
@@ -1107,6 +1109,20 @@ impl Instrument {
     /// assert!((x + 3.41166666666).abs() < 1e-9 && (y - x).abs() < 1e-15);
     /// ```
     pub fn field_coords(&self) -> field::FieldCoords {
+        // Two cameras: the sky's pixels are the o camera's, so its centre is the field's.
+        let o_chip = self
+            .polarimetry
+            .cameras
+            .as_ref()
+            .filter(|_| self.polarimetry.layout == Layout::TwoCameras)
+            .and_then(|c| self.format.chips.iter().find(|ch| ch.name == c.o_chip));
+        if let Some(ch) = o_chip {
+            let centre = |o: usize, n: usize| o as f64 + 0.5 * (n as f64 - 1.0);
+            return field::FieldCoords::with_origin(
+                [centre(ch.origin_px[0], ch.size_px[0]), centre(ch.origin_px[1], ch.size_px[1])],
+                self.detector.pixel_scale_arcsec,
+            );
+        }
         field::FieldCoords::centred(self.detector.nx, self.detector.ny, self.detector.pixel_scale_arcsec)
     }
 }
@@ -1173,6 +1189,32 @@ mod tests {
         }
         assert_eq!(HwpRotation::range(10.0, 32.5), (21.25, 22.5));
         assert_eq!(HwpRotation::range(32.5, 10.0), (21.25, -22.5));
+    }
+
+    /// The built-in MOPTOP: two cameras of 1024 px side by side, the e camera mirrored in x,
+    /// 16 rotor positions per turn of 22.5 deg each ([LT] in moptop.toml), the 7' field about
+    /// camera 1's centre; without its cameras table the layout is refused naming the key.
+    #[test]
+    fn moptop_loads_with_its_cameras_and_rotor() {
+        let m = Instrument::load("moptop").unwrap();
+        assert_eq!(m.polarimetry.layout, Layout::TwoCameras);
+        let c = m.polarimetry.cameras.as_ref().unwrap();
+        assert_eq!((c.o_chip.as_str(), c.e_chip.as_str(), c.e_orientation), ("CAM1", "CAM2", Orientation::FlipX));
+        let r = m.polarimetry.rotation.as_ref().unwrap();
+        assert_eq!(r.position_range(16).unwrap(), (348.75, 22.5));
+        // 1024 px x 0.41" = 7.0': the field of [LT].
+        assert!((1024.0 * m.detector.pixel_scale_arcsec / 60.0 - m.field.width_arcmin).abs() < 0.01);
+        let (x, y) = m.pixel_to_arcmin(511.5, 511.5);
+        assert!(x.abs() < 1e-12 && y.abs() < 1e-12, "camera 1's centre is the field's: {x} {y}");
+        let text = include_str!("../../../instruments/moptop.toml");
+        let cut = &text[..text.find("[polarimetry.cameras]").unwrap()];
+        let rest = &text[text.find("[format]").unwrap()..];
+        let e = Instrument::from_toml_str(&format!("{cut}{rest}"), Path::new("x.toml")).unwrap_err().to_string();
+        assert!(e.contains("polarimetry.cameras"), "{e}");
+        let e = Instrument::from_toml_str(&text.replace("o_chip = \"CAM1\"", "o_chip = \"CAM3\""), Path::new("x.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("o_chip") && e.contains("CAM3"), "{e}");
     }
 
     #[test]
