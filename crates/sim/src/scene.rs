@@ -623,8 +623,13 @@ impl Scene {
             }
             None => vec![0.0; th.len()],
         };
-        if let Err(e) = stokes::StokesSolver::with_sweeps(&th, &sweeps) {
-            return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &e.to_string());
+        match stokes::StokesSolver::with_sweeps(&th, &sweeps) {
+            Err(e @ stokes::Error::NoModulation { .. }) => {
+                let d = self.hwp_motion.as_ref().map_or(0.0, |m| m.sweep_deg);
+                return bad("hwp_motion.sweep_deg", d.to_string(), &e.to_string());
+            }
+            Err(e) => return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &e.to_string()),
+            Ok(_) => {}
         }
         if let (None, Some(r)) = (&self.hwp_motion, &inst.polarimetry.rotation) {
             if r.by_position() {

@@ -156,6 +156,30 @@ fn two_cameras_with_a_turning_plate_give_every_star_within_errors() {
     assert!(rms_pull > 0.6 && rms_pull < 1.4, "RMS pull {rms_pull} ({pulls:?})");
     assert!((mean - sinc).abs() < 3.0 * err, "fixed-plate P ratio {mean} +- {err}, closed form {sinc}");
     assert!(1.0 - mean > 5.0 * err, "the fixed-plate reduction should be measurably low: {mean} +- {err}");
+
+    // The catalog finds and pairs the stars across the cameras by itself, reports the measured
+    // transform, and measures each star within its errors too.
+    let cfg = skyfield::catalog::CatalogConfig {
+        radius: skyfield::photometry::ApertureRadius::Px(4.0),
+        annulus: Some((6.0, 8.5)),
+        ..Default::default()
+    };
+    let (cat, warnings) =
+        skyfield::catalog::catalog_files(&files, &inst, &Default::default(), &cfg, Box::new(|| {})).unwrap();
+    let ct = cat.camera_transform.unwrap();
+    assert!(ct.residual_rms_px.unwrap() < 0.1 && ct.pairs.unwrap() >= 30, "{ct:?}");
+    assert!(warnings.iter().any(|w| w.message.contains("camera transform measured")), "{warnings:?}");
+    let mut found = 0;
+    for (x, y, p, chi, _) in stars() {
+        let Some(r) = cat.rows.iter().find(|r| (r.x - x).hypot(r.y - y) < 1.5 && r.q.is_finite()) else { continue };
+        let (q0, u0) = (p * (2.0 * chi.to_radians()).cos(), p * (2.0 * chi.to_radians()).sin());
+        assert!(
+            (r.q - q0).abs() < 4.0 * r.sigma_q && (r.u - u0).abs() < 4.0 * r.sigma_u,
+            "catalog star ({x}, {y}): {r:?}"
+        );
+        found += 1;
+    }
+    assert!(found >= 36, "the catalog measured {found} of the 40 stars");
 }
 
 /// The camera transform is refused, with what to do, when too few stars match (two stars) and

@@ -1633,6 +1633,25 @@ pub fn reduce_files_with(
 mod tests {
     use super::*;
 
+    /// The exposures of one reduction share the plate's motion: equal sweeps (to 0.05 deg)
+    /// are the set's, two different ones are refused naming both files; the set's solver with a
+    /// sweep of 22.5 deg weighs the F_i by 1/sinc (its weights 1/0.9003 of the fixed plate's).
+    #[test]
+    fn one_sweep_per_set_and_its_solver() {
+        let (a, b) = (Path::new("a.fits"), Path::new("b.fits"));
+        assert_eq!(common_sweep([(a, 22.5), (b, 22.52)].into_iter()).unwrap(), 22.5);
+        assert_eq!(common_sweep(std::iter::empty()).unwrap(), 0.0);
+        let e = common_sweep([(a, 22.5), (b, 0.0)].into_iter()).unwrap_err().to_string();
+        assert!(e.contains("a.fits") && e.contains("b.fits") && e.contains("swept"), "{e}");
+        let angles = [0.0, 22.5, 45.0, 67.5];
+        let (fixed, swept) = (solver_of(&angles, 0.0).unwrap(), solver_of(&angles, 22.5).unwrap());
+        let sinc = (2.0 * 22.5f64.to_radians()).sin() / (2.0 * 22.5f64.to_radians());
+        for (w0, w1) in fixed.weights().0.iter().zip(swept.weights().0) {
+            assert!((w1 * sinc - w0).abs() < 1e-15, "{w0} {w1}");
+        }
+        assert!(solver_of(&angles, 90.0).unwrap_err().to_string().contains("nothing modulated"));
+    }
+
     fn tiny(axis: &str) -> Instrument {
         let text = include_str!("../../../instruments/fors1.toml")
             .replace("nx = 2048", "nx = 96")
