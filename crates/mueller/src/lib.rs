@@ -726,7 +726,7 @@ mod tests {
         let th: Vec<f64> = (0..16).map(|k| (11.25 + 22.5 * k as f64).to_radians()).collect();
         for sweep_deg in [22.5, 45.0, 90.0] {
             let d = f64::to_radians(sweep_deg);
-            let f = DualBeam::ideal().compile().fluxes_swept(&stokes_p_chi(1.0, p, chi), &th, &vec![d; 16]);
+            let f = DualBeam::ideal().compile().fluxes_swept(&stokes_p_chi(1.0, p, chi), &th, &[d; 16]);
             let eff = (2.0 * d).sin() / (2.0 * d);
             for (b, &t) in f.iter().zip(&th) {
                 let fi = (b.f_o - b.f_e) / (b.f_o + b.f_e);

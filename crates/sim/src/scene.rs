@@ -1003,6 +1003,29 @@ impl Scene {
     }
 }
 
+/// The rotor position (as the headers number it) of an exposure sweeping `sweep_deg` about
+/// `angle_deg`, for an instrument that reads its plate's range from a rotor position: `Err`
+/// unless the range is exactly one of the rotor's positions (`instrument::HwpRotation`).
+pub(crate) fn rotor_position(r: &instrument::HwpRotation, angle_deg: f64, sweep_deg: f64) -> Result<i64, String> {
+    let n = r.positions_per_turn as f64;
+    let step = 360.0 / n;
+    let k = ((angle_deg - r.zero_deg) / step - 0.5).round();
+    let pos = r.first_position + k.rem_euclid(n) as i64;
+    match r.position_range(pos) {
+        Ok((mid, d))
+            if (d - sweep_deg).abs() < 1e-9
+                && ((angle_deg - mid) / 360.0 - ((angle_deg - mid) / 360.0).round()).abs() < 1e-9 =>
+        {
+            Ok(pos)
+        }
+        _ => Err(format!(
+            "the instrument reads the plate's range from a rotor position of {} per turn ({step} deg each, the first \
+             from {} deg): an exposure at {angle_deg} deg sweeping {sweep_deg} deg is not one of them",
+            r.positions_per_turn, r.zero_deg
+        )),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1109,28 +1132,5 @@ mod tests {
         let t = format!("{MIN}[effects]\ncosmic_rays = {{ rate_per_frame = 5, size_px = 100000 }}\n");
         let e = Scene::from_toml_str(&t, Path::new("s.toml")).unwrap_err().to_string();
         assert!(e.contains("size_px"), "{e}");
-    }
-}
-
-/// The rotor position (as the headers number it) of an exposure sweeping `sweep_deg` about
-/// `angle_deg`, for an instrument that reads its plate's range from a rotor position: `Err`
-/// unless the range is exactly one of the rotor's positions (`instrument::HwpRotation`).
-pub(crate) fn rotor_position(r: &instrument::HwpRotation, angle_deg: f64, sweep_deg: f64) -> Result<i64, String> {
-    let n = r.positions_per_turn as f64;
-    let step = 360.0 / n;
-    let k = ((angle_deg - r.zero_deg) / step - 0.5).round();
-    let pos = r.first_position + k.rem_euclid(n) as i64;
-    match r.position_range(pos) {
-        Ok((mid, d))
-            if (d - sweep_deg).abs() < 1e-9
-                && ((angle_deg - mid) / 360.0 - ((angle_deg - mid) / 360.0).round()).abs() < 1e-9 =>
-        {
-            Ok(pos)
-        }
-        _ => Err(format!(
-            "the instrument reads the plate's range from a rotor position of {} per turn ({step} deg each, the first \
-             from {} deg): an exposure at {angle_deg} deg sweeping {sweep_deg} deg is not one of them",
-            r.positions_per_turn, r.zero_deg
-        )),
     }
 }

@@ -238,8 +238,8 @@ pub struct FrameSet {
     /// Canonical filter name (the instrument's, when it knows the filter).
     pub filter: String,
     pub angles_deg: Vec<f64>,
-    /// The plate angle every exposure swept (deg; 0: a fixed plate), shared by the set
-    /// ([`common_sweep`]).
+    /// The plate angle every exposure swept (deg; 0: a fixed plate), shared by the set (frames
+    /// that swept different ranges are refused).
     pub hwp_sweep_deg: f64,
     /// Summed pixel values (ADU) per angle, row-major.
     pub data: Vec<Vec<f64>>,
