@@ -103,6 +103,24 @@ fn a_turning_plate_is_demodulated_with_its_averaged_modulation() {
     assert!(rms > 0.4 && rms < 1.6, "RMS pull {rms} ({pulls:?})");
     assert!((mean - sinc).abs() < 3.0 * err, "fixed-plate P ratio {mean} +- {err}, closed form {sinc}");
     assert!(1.0 - mean > 5.0 * err, "the fixed-plate reduction should be measurably low: {mean} +- {err}");
+
+    // The catalog reads the same frames from disk one at a time (no repeated position): the
+    // sweep travels with them, and every star comes back within its errors.
+    let cfg = skyfield::catalog::CatalogConfig {
+        radius: skyfield::photometry::ApertureRadius::Px(8.0),
+        annulus: Some((14.0, 24.0)),
+        ..Default::default()
+    };
+    let (cat, _) =
+        skyfield::catalog::catalog_files(&out.frames, &inst, &Default::default(), &cfg, Box::new(|| {})).unwrap();
+    for (x, y, p, chi, _) in stars() {
+        let r = cat.rows.iter().find(|r| (r.x - x).hypot(r.y - y) < 1.5).expect("the star is in the catalog");
+        let (q0, u0) = (p * (2.0 * chi.to_radians()).cos(), p * (2.0 * chi.to_radians()).sin());
+        assert!(
+            (r.q - q0).abs() < 4.0 * r.sigma_q && (r.u - u0).abs() < 4.0 * r.sigma_u,
+            "catalog star ({x}, {y}): {r:?}"
+        );
+    }
 }
 
 /// The simulator's two integrations of the motion agree: noiseless frames rendered with the
