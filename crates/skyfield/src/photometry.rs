@@ -935,31 +935,9 @@ fn oe_offset_of_image(
     file: &Path,
     inst: &Instrument,
 ) -> Result<(f64, f64, usize), Error> {
-    let mut vals: Vec<f64> = img.iter().copied().filter(|v| v.is_finite()).collect();
-    if vals.len() < 9 {
+    let Some((med, peaks)) = bright_peaks(img, nx, (0, 0, nx, ny)) else {
         return Err(Error::Invalid("cannot measure the o/e offset: the frame has no finite pixels".into()));
-    }
-    // Upper middles: the level is one of the pixels.
-    let med = median(&mut vals, Middle::Upper);
-    let mut dev: Vec<f64> = vals.iter().map(|v| (v - med).abs()).collect();
-    let sigma = (MAD_TO_SIGMA * median(&mut dev, Middle::Upper)).max(1e-9 * med.abs().max(1.0));
-    let thr = med + 10.0 * sigma;
-    let mut peaks: Vec<(f64, usize, usize)> = Vec::new();
-    for y in 2..ny.saturating_sub(2) {
-        for x in 2..nx.saturating_sub(2) {
-            let v = img[y * nx + x];
-            if !(v > thr) {
-                continue;
-            }
-            let is_max =
-                (y - 2..=y + 2).all(|yy| (x - 2..=x + 2).all(|xx| (xx, yy) == (x, y) || !(img[yy * nx + xx] >= v)));
-            if is_max {
-                peaks.push((v, x, y));
-            }
-        }
-    }
-    peaks.sort_by(|a, b| b.0.total_cmp(&a.0));
-    peaks.truncate(300);
+    };
     let mut votes: std::collections::HashMap<(i64, i64), usize> = std::collections::HashMap::new();
     for a in &peaks {
         for b in &peaks {
