@@ -89,3 +89,53 @@ fn layout_mistakes_in_the_instrument_file_are_named() {
         assert!(!out.exists(), "{name}: output folder created");
     }
 }
+
+/// Mistakes in a turning plate's and two cameras' keys: the rotation given both ways, a rotor of
+/// 4 positions per turn (90 deg per exposure modulates nothing), two cameras without their
+/// table or naming a chip the format lacks; and a scene whose plate sweeps 90 deg. Each is
+/// refused before anything is written, naming the file and the key.
+#[test]
+fn plate_motion_and_camera_mistakes_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let fors1 = include_str!("../../../instruments/fors1.toml");
+    let moptop = include_str!("../../../instruments/moptop.toml");
+    let rot = |table: &str| {
+        fors1.replace("exptime_keyword = \"EXPTIME\"\n", &format!("exptime_keyword = \"EXPTIME\"\n{table}\n"))
+    };
+    let no_cameras = {
+        let cut = &moptop[..moptop.find("[polarimetry.cameras]").unwrap()];
+        format!("{cut}{}", &moptop[moptop.find("[format]").unwrap()..])
+    };
+    let cases = [
+        (
+            "both.toml",
+            rot("rotation = { begin_keyword = \"B\", end_keyword = \"E\", position_keyword = \"P\", positions_per_turn = 16 }"),
+            "begin_keyword/position_keyword",
+        ),
+        ("four.toml", rot("rotation = { position_keyword = \"P\", positions_per_turn = 4 }"), "positions_per_turn"),
+        ("nocams.toml", no_cameras, "polarimetry.cameras"),
+        ("chip.toml", moptop.replace("e_chip = \"CAM2\"", "e_chip = \"CAM9\""), "e_chip"),
+    ];
+    for (name, text, key) in cases {
+        let p = dir.path().join(name);
+        std::fs::write(&p, text).unwrap();
+        let scene = dir.path().join(format!("{name}.scene.toml"));
+        std::fs::write(&scene, format!("instrument = \"{}\"\nfilter = \"V\"\n", p.display())).unwrap();
+        let out = dir.path().join(format!("{name}.out"));
+        let (code, _, err) = run(&["simulate".as_ref(), scene.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+        assert_eq!(code, 2, "{name}: {err}");
+        assert!(err.contains(name) && err.contains(key), "{name}: {err}");
+        assert!(!out.exists(), "{name}: output folder created");
+    }
+    let scene = dir.path().join("quarter.scene.toml");
+    std::fs::write(
+        &scene,
+        "instrument = \"fors1\"\nfilter = \"V\"\nhwp_angles_deg = [0, 22.5, 45, 67.5]\nhwp_motion = { sweep_deg = 90 }\n",
+    )
+    .unwrap();
+    let out = dir.path().join("quarter.out");
+    let (code, _, err) = run(&["simulate".as_ref(), scene.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("quarter.scene.toml") && err.contains("nothing modulated"), "{err}");
+    assert!(!out.exists());
+}

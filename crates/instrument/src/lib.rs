@@ -57,7 +57,7 @@ pub struct Field {
 
 /// How the two beams of a sky point reach the detector.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[serde(rename_all = "snake_case")]
 pub enum Layout {
     /// A focal-plane strip mask (FORS, EFOSC2, ALFOSC): each open strip of the sky is imaged
     /// twice, side by side along the strip axis; the sky between strips is masked. Sky-field
@@ -68,6 +68,117 @@ pub enum Layout {
     /// extraordinary image offset from the ordinary one by a fixed 2-D vector, and the sky of
     /// the two beams overlaps. Point sources work; sky-field calibration is impossible.
     Maskless,
+    /// Two detectors behind a polarizing beam splitter (MOPTOP): the o beam falls on one
+    /// camera, the e beam on the other. Each exposure is two files, one per camera, placed
+    /// side by side in one detector frame by `[format]`'s chips (found by the camera keyword,
+    /// paired by the exposure keywords); `[polarimetry.cameras]` says which chip is which, how
+    /// the e camera's image is turned, and where a point of the o camera falls on the e
+    /// camera. Point sources work; a per-pixel map is refused (the cameras do not share sky
+    /// pixels).
+    TwoCameras,
+}
+
+/// How an image is turned relative to another: one of the 8 flips and rotations by multiples
+/// of 90 deg that map pixel rows and columns onto rows and columns.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Orientation {
+    #[default]
+    Identity,
+    /// Columns reversed (x -> -x).
+    FlipX,
+    /// Rows reversed (y -> -y).
+    FlipY,
+    /// Turned by 180 deg (x -> -x, y -> -y).
+    Rot180,
+    /// Turned by 90 deg counter-clockwise ((x, y) -> (-y, x)).
+    Rot90,
+    /// Turned by 270 deg counter-clockwise ((x, y) -> (y, -x)).
+    Rot270,
+    /// Rows and columns exchanged ((x, y) -> (y, x)).
+    Transpose,
+    /// The other diagonal ((x, y) -> (-y, -x)).
+    AntiTranspose,
+}
+
+impl Orientation {
+    /// The linear part `[[a, b], [c, d]]`: `(x', y') = (a x + b y, c x + d y)` about the
+    /// image's centre.
+    pub fn matrix(self) -> [[f64; 2]; 2] {
+        match self {
+            Orientation::Identity => [[1.0, 0.0], [0.0, 1.0]],
+            Orientation::FlipX => [[-1.0, 0.0], [0.0, 1.0]],
+            Orientation::FlipY => [[1.0, 0.0], [0.0, -1.0]],
+            Orientation::Rot180 => [[-1.0, 0.0], [0.0, -1.0]],
+            Orientation::Rot90 => [[0.0, -1.0], [1.0, 0.0]],
+            Orientation::Rot270 => [[0.0, 1.0], [-1.0, 0.0]],
+            Orientation::Transpose => [[0.0, 1.0], [1.0, 0.0]],
+            Orientation::AntiTranspose => [[0.0, -1.0], [-1.0, 0.0]],
+        }
+    }
+
+    /// Whether the image's width and height trade places.
+    pub fn swaps_axes(self) -> bool {
+        self.matrix()[0][0] == 0.0
+    }
+
+    /// Pixel `(x, y)` of an `nx` x `ny` image (0-based) as it appears in the image turned by
+    /// this orientation (of size `ny` x `nx` when [`Self::swaps_axes`]).
+    ///
+    /// ```
+    /// use instrument::Orientation;
+    /// // A 10 x 4 image: its pixel (0, 0) is at (9, 0) once flipped in x, (0, 9) once turned
+    /// // by 90 deg (a 4 x 10 image), and the turn's inverse brings it back.
+    /// assert_eq!(Orientation::FlipX.apply(0.0, 0.0, 10, 4), (9.0, 0.0));
+    /// assert_eq!(Orientation::Rot90.apply(0.0, 0.0, 10, 4), (3.0, 0.0));
+    /// let (x, y) = Orientation::Rot90.apply(2.5, 1.0, 10, 4);
+    /// assert_eq!(Orientation::Rot90.inverse().apply(x, y, 4, 10), (2.5, 1.0));
+    /// ```
+    pub fn apply(self, x: f64, y: f64, nx: usize, ny: usize) -> (f64, f64) {
+        let m = self.matrix();
+        let (cx, cy) = (0.5 * (nx as f64 - 1.0), 0.5 * (ny as f64 - 1.0));
+        let (ox, oy) = if self.swaps_axes() { (cy, cx) } else { (cx, cy) };
+        let (u, v) = (x - cx, y - cy);
+        (m[0][0] * u + m[0][1] * v + ox, m[1][0] * u + m[1][1] * v + oy)
+    }
+
+    /// The orientation that undoes this one.
+    pub fn inverse(self) -> Self {
+        match self {
+            Orientation::Rot90 => Orientation::Rot270,
+            Orientation::Rot270 => Orientation::Rot90,
+            o => o,
+        }
+    }
+}
+
+/// The two cameras of a [`Layout::TwoCameras`] instrument (`[polarimetry.cameras]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Cameras {
+    /// The `[format]` chip (by name) that is the camera of the ordinary beam. The sky's pixel
+    /// coordinates are this camera's, as read.
+    pub o_chip: String,
+    /// The `[format]` chip of the extraordinary beam.
+    pub e_chip: String,
+    /// How the e camera's image, as read, is turned relative to the o camera's (a beam
+    /// splitter's reflection flips one of them): the image the e chip holds, turned by this,
+    /// shows the sky as the o camera does.
+    #[serde(default)]
+    pub e_orientation: Orientation,
+    /// Where a point of the o camera falls on the e camera once turned by `e_orientation`:
+    /// `[a, b, c, d, e, f]` with `x' = a x + b y + c`, `y' = d x + e y + f` (each camera's own
+    /// 0-based pixels); absent: measured from the stars of the frames, and refused when fewer
+    /// than 3 star pairs match or their residual exceeds `max_residual_px`.
+    #[serde(default)]
+    pub transform: Option<[f64; 6]>,
+    /// The largest RMS residual (px) of a transform measured from star pairs (default 0.5).
+    #[serde(default = "default_max_residual")]
+    pub max_residual_px: f64,
+}
+
+fn default_max_residual() -> f64 {
+    0.5
 }
 
 /// One term `c * u^i * v^j` of the variation of the o/e offset across the field (px), with
@@ -155,6 +266,138 @@ pub struct Polarimetry {
     pub filter_keyword: String,
     #[serde(default = "default_exptime_keyword")]
     pub exptime_keyword: String,
+    /// A plate that turns during each exposure (`[polarimetry.rotation]`); absent: the plate
+    /// stands still at the angle of `hwp_angle_keyword`.
+    #[serde(default)]
+    pub rotation: Option<HwpRotation>,
+    /// Two cameras (`layout = "two_cameras"`): which chip is which and how they map.
+    #[serde(default)]
+    pub cameras: Option<Cameras>,
+}
+
+/// A half-wave plate that turns continuously: each exposure integrates the modulation over the
+/// range of plate angles it swept (MOPTOP: the rotor turns without stopping, each exposure
+/// covering one of 16 positions per turn). The range is read from the frame's header either as
+/// begin and end angles (`begin_keyword`, `end_keyword`), or as a rotor position
+/// (`position_keyword`) of `positions_per_turn` equal positions per turn, position
+/// `first_position` starting at `zero_deg`. The reduction demodulates with the range's middle
+/// angle and its modulation efficiency `sin(2d)/(2d)` (`mueller::hwp_sweep_efficiency`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HwpRotation {
+    /// Keyword of the plate angle (deg) at the start of the exposure.
+    #[serde(default)]
+    pub begin_keyword: String,
+    /// Keyword of the plate angle (deg) at the end of the exposure.
+    #[serde(default)]
+    pub end_keyword: String,
+    /// Keyword of the rotor position (an integer) of the exposure.
+    #[serde(default)]
+    pub position_keyword: String,
+    /// Equal positions per turn of the rotor (each exposure sweeps 360 / this deg).
+    #[serde(default)]
+    pub positions_per_turn: u32,
+    /// The number the headers give the first position (1 for MOPTOP's 1..16).
+    #[serde(default = "default_first_position")]
+    pub first_position: i64,
+    /// The plate angle (deg) at the start of the first position.
+    #[serde(default)]
+    pub zero_deg: f64,
+}
+
+fn default_first_position() -> i64 {
+    1
+}
+
+impl HwpRotation {
+    /// Whether the exposure's range comes from a rotor position (else begin and end angles).
+    pub fn by_position(&self) -> bool {
+        !self.position_keyword.is_empty()
+    }
+
+    /// The middle angle and the sweep (deg) of an exposure from its begin and end angles
+    /// (deg). The sweep is `end - begin` taken modulo 360 into (-180, 180] (a turn through
+    /// 360 deg during the exposure is not a range the header can express), so a range across
+    /// 0 deg (350 to 12.5) sweeps 22.5 deg about 1.25 deg.
+    ///
+    /// ```
+    /// let (mid, d) = instrument::HwpRotation::range(350.0, 12.5);
+    /// assert!((mid - 361.25).abs() < 1e-12 && (d - 22.5).abs() < 1e-12);
+    /// ```
+    pub fn range(begin_deg: f64, end_deg: f64) -> (f64, f64) {
+        let mut d = (end_deg - begin_deg).rem_euclid(360.0);
+        if d > 180.0 {
+            d -= 360.0;
+        }
+        (begin_deg + 0.5 * d, d)
+    }
+
+    /// The middle angle and sweep (deg) of rotor position `pos`: position `first_position`
+    /// spans `zero_deg .. zero_deg + 360 / positions_per_turn`, the next the following range.
+    /// `Err` with the reason when `pos` is not a position of the turn.
+    ///
+    /// ```
+    /// let r = instrument::HwpRotation { position_keyword: "MOPRPOS".into(), positions_per_turn: 16,
+    ///     first_position: 1, zero_deg: 0.0, begin_keyword: String::new(), end_keyword: String::new() };
+    /// assert_eq!(r.position_range(1).unwrap(), (11.25, 22.5));
+    /// assert_eq!(r.position_range(16).unwrap(), (348.75, 22.5));
+    /// assert!(r.position_range(17).is_err());
+    /// ```
+    pub fn position_range(&self, pos: i64) -> Result<(f64, f64), String> {
+        let n = self.positions_per_turn as i64;
+        let k = pos - self.first_position;
+        if !(0..n).contains(&k) {
+            return Err(format!(
+                "rotor position {pos} is not one of the {n} positions per turn ({} to {})",
+                self.first_position,
+                self.first_position + n - 1
+            ));
+        }
+        let step = 360.0 / n as f64;
+        Ok((self.zero_deg + (k as f64 + 0.5) * step, step))
+    }
+
+    /// The file's checks: one way of giving the range, complete; `Err((key, value, why))`.
+    fn check(&self) -> Result<(), (String, String, String)> {
+        let key = |k: &str| format!("polarimetry.rotation.{k}");
+        let by_angles = !self.begin_keyword.is_empty() || !self.end_keyword.is_empty();
+        if by_angles == self.by_position() {
+            return Err((
+                key("begin_keyword/position_keyword"),
+                format!("'{}', '{}' / '{}'", self.begin_keyword, self.end_keyword, self.position_keyword),
+                "give either begin_keyword and end_keyword (the exposure's plate angles) or position_keyword with \
+                 positions_per_turn (the rotor's position), not both and not neither"
+                    .into(),
+            ));
+        }
+        if by_angles && (self.begin_keyword.is_empty() || self.end_keyword.is_empty()) {
+            return Err((
+                key("begin_keyword/end_keyword"),
+                format!("'{}' / '{}'", self.begin_keyword, self.end_keyword),
+                "both the begin and the end keyword are needed".into(),
+            ));
+        }
+        if self.by_position() && self.positions_per_turn <= 4 {
+            return Err((
+                key("positions_per_turn"),
+                self.positions_per_turn.to_string(),
+                "need more than 4 positions per turn: with 4 or fewer each exposure sweeps 90 deg or more of plate \
+                 angle, a whole modulation period, and nothing is modulated (efficiency sin(2d)/(2d) = 0 at 90 deg)"
+                    .into(),
+            ));
+        }
+        if !self.by_position() && self.positions_per_turn != 0 {
+            return Err((
+                key("positions_per_turn"),
+                self.positions_per_turn.to_string(),
+                "only a rotor position (position_keyword) has positions per turn".into(),
+            ));
+        }
+        if !self.zero_deg.is_finite() {
+            return Err((key("zero_deg"), self.zero_deg.to_string(), "must be a finite angle in degrees".into()));
+        }
+        Ok(())
+    }
 }
 
 fn default_exptime_keyword() -> String {
@@ -269,6 +512,7 @@ const BUILTIN: &[(&str, &str)] = &[
     ("calcite", include_str!("../../../instruments/calcite.toml")),
     ("fors2", include_str!("../../../instruments/fors2.toml")),
     ("efosc2", include_str!("../../../instruments/efosc2.toml")),
+    ("moptop", include_str!("../../../instruments/moptop.toml")),
 ];
 
 /// The TOML text of a built-in instrument (name case-insensitive), e.g. for provenance hashes.
@@ -368,6 +612,17 @@ impl Instrument {
         match self.polarimetry.layout {
             Layout::Strips => self.validate_strips(path)?,
             Layout::Maskless => self.validate_maskless(path)?,
+            Layout::TwoCameras => self.validate_two_cameras(path)?,
+        }
+        if self.polarimetry.layout != Layout::TwoCameras && self.polarimetry.cameras.is_some() {
+            return bad(
+                "polarimetry.cameras",
+                format!("{:?}", self.polarimetry.layout),
+                "only layout = \"two_cameras\" has cameras",
+            );
+        }
+        if let Some(Err((key, value, why))) = self.polarimetry.rotation.as_ref().map(HwpRotation::check) {
+            return bad(&key, value, &why);
         }
         if let Err((key, value, why)) = self.format.check(d.nx, d.ny) {
             return bad(&key, value, &why);
@@ -654,6 +909,98 @@ impl Instrument {
         Ok(())
     }
 
+    /// Two cameras: `[polarimetry.cameras]` names two different chips of `[format]`, each in
+    /// its own file (found by `match_keyword`); the e chip, turned by `e_orientation`, is the
+    /// o chip's size; the transform, when given, is finite and maps the o camera's centre onto
+    /// the e camera.
+    fn validate_two_cameras(&self, path: &Path) -> Result<(), Error> {
+        let bad = |key: &str, value: String, why: String| {
+            Err(Error::Invalid { path: path.into(), key: key.into(), value, why })
+        };
+        let p = &self.polarimetry;
+        let Some(c) = &p.cameras else {
+            return bad(
+                "polarimetry.cameras",
+                "(none)".into(),
+                "layout = \"two_cameras\" needs [polarimetry.cameras] with o_chip and e_chip (the [format] chips of the two cameras)".into(),
+            );
+        };
+        if p.strip_starts_px.is_some() || !p.throw_terms.is_empty() || p.strip_count != 0 || p.oe_offset_px.is_some() {
+            return bad(
+                "polarimetry.layout",
+                "\"two_cameras\"".into(),
+                "two cameras have no strips and no o/e offset: remove strip_count, strip_starts_px, throw_terms and oe_offset_px".into(),
+            );
+        }
+        let chip = |name: &str, key: &str| {
+            self.format.chips.iter().find(|ch| ch.name == name).ok_or_else(|| Error::Invalid {
+                path: path.into(),
+                key: format!("polarimetry.cameras.{key}"),
+                value: name.into(),
+                why: format!(
+                    "not a chip of [format] (chips: {})",
+                    self.format.chips.iter().map(|ch| ch.name.as_str()).collect::<Vec<_>>().join(", ")
+                ),
+            })
+        };
+        let (o, e) = (chip(&c.o_chip, "o_chip")?, chip(&c.e_chip, "e_chip")?);
+        if c.o_chip == c.e_chip {
+            return bad(
+                "polarimetry.cameras.e_chip",
+                c.e_chip.clone(),
+                "the o and e cameras must be different chips".into(),
+            );
+        }
+        for ch in [o, e] {
+            if ch.match_keyword.is_none() {
+                return bad(
+                    &format!("format.chips.{}", ch.name),
+                    ch.name.clone(),
+                    "each camera writes its own file: give the chip match_keyword (the keyword naming the camera) and match_value".into(),
+                );
+            }
+        }
+        let [ex, ey] = e.size_px;
+        let turned = if c.e_orientation.swaps_axes() { [ey, ex] } else { [ex, ey] };
+        if turned != o.size_px {
+            return bad(
+                "polarimetry.cameras.e_orientation",
+                format!("{:?}", c.e_orientation),
+                format!(
+                    "the e chip turned so is {} x {} px, the o chip {} x {}",
+                    turned[0], turned[1], o.size_px[0], o.size_px[1]
+                ),
+            );
+        }
+        if let Some(t) = c.transform {
+            let [ox, oy] = o.size_px;
+            let (cx, cy) = (0.5 * (ox as f64 - 1.0), 0.5 * (oy as f64 - 1.0));
+            let (x, y) = (t[0] * cx + t[1] * cy + t[2], t[3] * cx + t[4] * cy + t[5]);
+            let det = t[0] * t[4] - t[1] * t[3];
+            if !(t.iter().all(|v| v.is_finite())
+                && det.abs() > 1e-3
+                && x >= -0.5
+                && y >= -0.5
+                && x < ox as f64
+                && y < oy as f64)
+            {
+                return bad(
+                    "polarimetry.cameras.transform",
+                    format!("{t:?}"),
+                    "must be 6 finite numbers of a regular map that puts the o camera's centre on the e camera".into(),
+                );
+            }
+        }
+        if !(c.max_residual_px.is_finite() && c.max_residual_px > 0.0) {
+            return bad(
+                "polarimetry.cameras.max_residual_px",
+                c.max_residual_px.to_string(),
+                "must be a positive number of px".into(),
+            );
+        }
+        Ok(())
+    }
+
     /// The Wollaston throw in pixels (exact): the o/e offset of a strip layout before its
     /// variation across the field (`throw_terms`).
     pub fn throw_px_exact(&self) -> f64 {
@@ -752,7 +1099,8 @@ impl Instrument {
         self.field_coords().arcmin_to_pixel(x, y)
     }
 
-    /// The detector's field coordinates: arcmin from its centre, unbinned pixels.
+    /// The detector's field coordinates: arcmin from its centre (two cameras: from the o camera's
+    /// centre, whose pixels are the sky's), unbinned pixels.
     ///
     /// ```
     /// // FORS1's corner pixel (0, 0) is 1023.5 px x 0.2" = 3.4117' from the centre on both axes.
@@ -761,6 +1109,20 @@ impl Instrument {
     /// assert!((x + 3.41166666666).abs() < 1e-9 && (y - x).abs() < 1e-15);
     /// ```
     pub fn field_coords(&self) -> field::FieldCoords {
+        // Two cameras: the sky's pixels are the o camera's, so its centre is the field's.
+        let o_chip = self
+            .polarimetry
+            .cameras
+            .as_ref()
+            .filter(|_| self.polarimetry.layout == Layout::TwoCameras)
+            .and_then(|c| self.format.chips.iter().find(|ch| ch.name == c.o_chip));
+        if let Some(ch) = o_chip {
+            let centre = |o: usize, n: usize| o as f64 + 0.5 * (n as f64 - 1.0);
+            return field::FieldCoords::with_origin(
+                [centre(ch.origin_px[0], ch.size_px[0]), centre(ch.origin_px[1], ch.size_px[1])],
+                self.detector.pixel_scale_arcsec,
+            );
+        }
         field::FieldCoords::centred(self.detector.nx, self.detector.ny, self.detector.pixel_scale_arcsec)
     }
 }
@@ -794,6 +1156,65 @@ mod tests {
         let text = include_str!("../../../instruments/fors1.toml").replace("throw_arcsec", "throw_arcsek");
         let e = Instrument::from_toml_str(&text, Path::new("x.toml")).unwrap_err().to_string();
         assert!(e.contains("throw_arcsek") && e.contains("x.toml"), "{e}");
+    }
+
+    /// `[polarimetry.rotation]`: a rotor position of 16 per turn or begin/end keywords load;
+    /// both, neither, half of a pair, 4 positions per turn (90 deg: nothing modulated) and an
+    /// unknown key are refused naming the key.
+    #[test]
+    fn plate_rotation_keys_are_checked() {
+        let base = include_str!("../../../instruments/fors1.toml");
+        let with = |table: &str| {
+            let text =
+                base.replace("exptime_keyword = \"EXPTIME\"\n", &format!("exptime_keyword = \"EXPTIME\"\n{table}"));
+            assert_ne!(text, base);
+            Instrument::from_toml_str(&text, Path::new("x.toml")).map_err(|e| e.to_string())
+        };
+        let i = with("rotation = { position_keyword = \"MOPRPOS\", positions_per_turn = 16 }\n").unwrap();
+        let r = i.polarimetry.rotation.unwrap();
+        assert_eq!(r.position_range(2).unwrap(), (33.75, 22.5));
+        with("rotation = { begin_keyword = \"ROTBEG\", end_keyword = \"ROTEND\" }\n").unwrap();
+        for (table, key) in [
+            (
+                "rotation = { begin_keyword = \"A\", position_keyword = \"P\", positions_per_turn = 16 }",
+                "begin_keyword/position_keyword",
+            ),
+            ("rotation = { }", "begin_keyword/position_keyword"),
+            ("rotation = { begin_keyword = \"A\" }", "begin_keyword/end_keyword"),
+            ("rotation = { position_keyword = \"P\", positions_per_turn = 4 }", "positions_per_turn"),
+            ("rotation = { position_keyword = \"P\", positions_per_turn = 16, step = 2 }", "step"),
+        ] {
+            let e = with(&format!("{table}\n")).unwrap_err();
+            assert!(e.contains(key) && e.contains("x.toml"), "{table}: {e}");
+        }
+        assert_eq!(HwpRotation::range(10.0, 32.5), (21.25, 22.5));
+        assert_eq!(HwpRotation::range(32.5, 10.0), (21.25, -22.5));
+    }
+
+    /// The built-in MOPTOP: two cameras of 1024 px side by side, the e camera mirrored in x,
+    /// 16 rotor positions per turn of 22.5 deg each ([LT] in moptop.toml), the 7' field about
+    /// camera 1's centre; without its cameras table the layout is refused naming the key.
+    #[test]
+    fn moptop_loads_with_its_cameras_and_rotor() {
+        let m = Instrument::load("moptop").unwrap();
+        assert_eq!(m.polarimetry.layout, Layout::TwoCameras);
+        let c = m.polarimetry.cameras.as_ref().unwrap();
+        assert_eq!((c.o_chip.as_str(), c.e_chip.as_str(), c.e_orientation), ("CAM1", "CAM2", Orientation::FlipX));
+        let r = m.polarimetry.rotation.as_ref().unwrap();
+        assert_eq!(r.position_range(16).unwrap(), (348.75, 22.5));
+        // 1024 px x 0.41" = 7.0': the field of [LT].
+        assert!((1024.0 * m.detector.pixel_scale_arcsec / 60.0 - m.field.width_arcmin).abs() < 0.01);
+        let (x, y) = m.pixel_to_arcmin(511.5, 511.5);
+        assert!(x.abs() < 1e-12 && y.abs() < 1e-12, "camera 1's centre is the field's: {x} {y}");
+        let text = include_str!("../../../instruments/moptop.toml");
+        let cut = &text[..text.find("[polarimetry.cameras]").unwrap()];
+        let rest = &text[text.find("[format]").unwrap()..];
+        let e = Instrument::from_toml_str(&format!("{cut}{rest}"), Path::new("x.toml")).unwrap_err().to_string();
+        assert!(e.contains("polarimetry.cameras"), "{e}");
+        let e = Instrument::from_toml_str(&text.replace("o_chip = \"CAM1\"", "o_chip = \"CAM3\""), Path::new("x.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("o_chip") && e.contains("CAM3"), "{e}");
     }
 
     #[test]

@@ -297,6 +297,95 @@ impl Hwp {
         }
         m
     }
+
+    /// The plate's Mueller matrix averaged over an exposure during which it turns uniformly
+    /// through `sweep` (rad) centred on the commanded angle `theta_mid` (the middle of the
+    /// exposure's begin and end angles). `sweep = 0` is [`Self::matrix`] itself.
+    ///
+    /// Without defects the plate's matrix is `A_0 + A_2(2 phi) + A_4(4 phi)` (`phi = theta +
+    /// chi_offset/2`: the retarder's elements are products of `cos 2 phi`, `sin 2 phi`), so its
+    /// mean is `A_0 + sinc(d) A_2 + sinc(2d) A_4` at the middle angle ([`sweep_factor`] with
+    /// `k = 2, 4`); the three parts are read off the matrix at `theta_mid + j pi/4`,
+    /// `j = 0..3` (a 4-point discrete Fourier transform, exact for these harmonics). A plate
+    /// with a dust or pleochroism harmonic has products of higher harmonics, and the dust's
+    /// polarizer a kink where it changes sides: its mean is taken by 5-point Gauss-Legendre
+    /// quadrature on panels of at most pi/64 between the kinks (error below 1e-12).
+    pub fn matrix_swept(&self, theta_mid: f64, sweep: f64) -> Mueller {
+        if sweep == 0.0 {
+            return self.matrix(theta_mid);
+        }
+        if self.dust.is_none() && self.pleochroism.is_none() {
+            let q = std::f64::consts::FRAC_PI_4;
+            let g: [Mueller; 4] = std::array::from_fn(|j| self.matrix(theta_mid + j as f64 * q));
+            let h0 = (g[0] + g[1] + g[2] + g[3]) / 4.0;
+            let h4 = (g[0] - g[1] + g[2] - g[3]) / 4.0;
+            let h2 = (g[0] - g[2]) / 2.0;
+            return h0 + h2 * sweep_factor(2.0, sweep) + h4 * sweep_factor(4.0, sweep);
+        }
+        const X: [f64; 5] = [0.0, -0.5384693101056831, 0.5384693101056831, -0.906179845938664, 0.906179845938664];
+        const W: [f64; 5] =
+            [0.5688888888888889, 0.47862867049936647, 0.47862867049936647, 0.23692688505618908, 0.23692688505618908];
+        // The dust harmonic's polarizer changes sides (a kink of the matrix) where
+        // cos(theta - phase) = 0: the quadrature's pieces end there, so each is smooth.
+        let (a, b) = (theta_mid - 0.5 * sweep.abs(), theta_mid + 0.5 * sweep.abs());
+        let mut cuts = vec![a];
+        if let Some(h) = self.dust {
+            let pi = std::f64::consts::PI;
+            let first = h.phase + 0.5 * pi + ((a - h.phase - 0.5 * pi) / pi).ceil() * pi;
+            cuts.extend((0..).map(|n| first + n as f64 * pi).take_while(|&t| t < b).filter(|&t| t > a));
+        }
+        cuts.push(b);
+        let mut sum = Mueller::zeros();
+        for piece in cuts.windows(2) {
+            let len = piece[1] - piece[0];
+            let panels = (len / (std::f64::consts::PI / 64.0)).ceil().max(1.0) as usize;
+            let h = len / panels as f64;
+            for p in 0..panels {
+                let c = piece[0] + (p as f64 + 0.5) * h;
+                for (x, w) in X.iter().zip(W) {
+                    sum += self.matrix(c + 0.5 * h * x) * (0.5 * w * h);
+                }
+            }
+        }
+        sum / (b - a)
+    }
+}
+
+/// The factor by which a half-wave plate turning uniformly through `sweep` (rad) during an
+/// exposure scales a modulation term of harmonic `k` of the plate angle: the mean of
+/// `cos k theta` over `[theta_m - d/2, theta_m + d/2]` is
+///
+/// `(1/d) int cos k theta d theta = (sin(k theta_m + k d/2) - sin(k theta_m - k d/2)) / (k d)
+///  = cos k theta_m * sin(k d/2) / (k d/2)`,
+///
+/// and the same factor multiplies `sin k theta_m`: the averaged term is the fixed plate's at
+/// the middle angle `theta_m`, scaled by `sinc(k d / 2)`. For the modulation of `eq:F`
+/// (`k = 4`, [`hwp_sweep_efficiency`]) that is `sin(2d) / (2d)`. Below `|k d / 2| = 1e-3` the
+/// Taylor series `1 - x^2/6 + x^4/120` is used (its next term is below 3e-18), so that a
+/// fixed plate (`d = 0`) gives exactly 1 and no `0/0` arises.
+///
+/// ```
+/// // A sweep of 22.5 deg: the modulated terms of eq:F keep sin(pi/4)/(pi/4) = 0.9003.
+/// let f = mueller::sweep_factor(4.0, 22.5f64.to_radians());
+/// assert!((f - 0.900316316157106).abs() < 1e-14);
+/// assert_eq!(mueller::sweep_factor(4.0, 0.0), 1.0);
+/// ```
+pub fn sweep_factor(k: f64, sweep: f64) -> f64 {
+    let x = 0.5 * k * sweep;
+    if x.abs() < 1e-3 {
+        let x2 = x * x;
+        1.0 - x2 / 6.0 * (1.0 - x2 / 20.0)
+    } else {
+        x.sin() / x
+    }
+}
+
+/// The modulation efficiency of a half-wave plate that turns uniformly through `sweep` (rad)
+/// during an exposure: `sin(2d) / (2d)` ([`sweep_factor`] of the `4 theta` terms of `eq:F`,
+/// `eq:Q`, `eq:U`). 1 for a fixed plate, 0.9003 for 22.5 deg, 0 for 90 deg (the plate turns
+/// through a whole modulation period: nothing is modulated).
+pub fn hwp_sweep_efficiency(sweep: f64) -> f64 {
+    sweep_factor(4.0, sweep)
 }
 
 /// `M_I(|p|, phi)` for `p >= 0`, `M_I(|p|, phi + pi/2)` for `p < 0`.
@@ -496,6 +585,26 @@ impl CompiledDualBeam {
         let sp = self.at_plate(s);
         theta.iter().map(|&t| self.fluxes_at_plate(&sp, t)).collect()
     }
+
+    /// Fluxes of an exposure during which the plate turns uniformly through `sweep` (rad)
+    /// about the middle angle `theta_mid`, for a Stokes vector already at the plate: the
+    /// plate's matrix averaged over the motion ([`Hwp::matrix_swept`]). The detector integrates
+    /// intensity, which is linear in the plate's matrix, so this is the exposure's mean flux.
+    pub fn fluxes_at_plate_swept(&self, s_plate: &Stokes, theta_mid: f64, sweep: f64) -> BeamFluxes {
+        let s2 = self.hwp.matrix_swept(theta_mid, sweep) * s_plate;
+        BeamFluxes { f_o: (self.row_o * s2)[0], f_e: (self.row_e * s2)[0] }
+    }
+
+    /// Fluxes of exposures at middle angles `theta` (rad), exposure `i` sweeping `sweep[i]`
+    /// (rad; 0 for a fixed plate, and beyond the end of a shorter `sweep`).
+    pub fn fluxes_swept(&self, s: &Stokes, theta: &[f64], sweep: &[f64]) -> Vec<BeamFluxes> {
+        let sp = self.at_plate(s);
+        theta
+            .iter()
+            .enumerate()
+            .map(|(i, &t)| self.fluxes_at_plate_swept(&sp, t, sweep.get(i).copied().unwrap_or(0.0)))
+            .collect()
+    }
 }
 
 /// The optimal HWP angle set of `N` positions, `theta_i = i pi / 8` (section `sec:basics`).
@@ -532,7 +641,7 @@ mod tests {
         assert!(hypot(f64::NAN, 1.0).is_nan());
     }
     use approx::assert_relative_eq;
-    use std::f64::consts::PI;
+    use std::f64::consts::{FRAC_PI_2, PI};
 
     #[test]
     fn ideal_train_is_eq_ord() {
@@ -576,6 +685,60 @@ mod tests {
         let m = retarder(1.1, 0.0);
         assert_relative_eq!(rotate(&rotate(&m, 0.2), 0.3), rotate(&m, 0.5), epsilon = 1e-12);
         assert_relative_eq!(rotate(&m, PI), m, epsilon = 1e-12);
+    }
+
+    /// The plate's matrix averaged over a sweep, against the plain mean of the matrix over
+    /// 20000 equal sub-steps (midpoint rule, written here; its error is of order
+    /// (8 h)^2 / 24 < 1e-9): the ideal plate with a zero angle and a retardance error (closed
+    /// form), and a plate with dust and pleochroism (quadrature); sweeps of 22.5, 60 and 90 deg.
+    #[test]
+    fn swept_plate_is_the_mean_over_its_motion() {
+        let plates = [
+            Hwp { retardance_error: 0.07, chi_offset: 0.05, ..Hwp::ideal() },
+            Hwp {
+                retardance_error: -0.03,
+                chi_offset: 0.02,
+                dust: Some(Harmonic { amplitude: 0.01, phase: 0.4 }),
+                pleochroism: Some(Harmonic { amplitude: 0.02, phase: 1.1 }),
+            },
+        ];
+        for hwp in plates {
+            for (mid_deg, sweep_deg) in [(11.25, 22.5), (47.0, 60.0), (100.0, 90.0), (3.0, -22.5)] {
+                let (mid, d) = (f64::to_radians(mid_deg), f64::to_radians(sweep_deg));
+                let n = 20000;
+                let mut mean = Mueller::zeros();
+                for k in 0..n {
+                    mean += hwp.matrix(mid - 0.5 * d + (k as f64 + 0.5) * d / n as f64);
+                }
+                mean /= n as f64;
+                assert_relative_eq!(hwp.matrix_swept(mid, d), mean, epsilon = 1e-9);
+            }
+            assert_eq!(hwp.matrix_swept(0.3, 0.0), hwp.matrix(0.3));
+        }
+    }
+
+    /// eq:F of the ideal train with a swept plate: `F = sinc(2d) P cos(4 theta_m - 2 chi)`,
+    /// 0.9003 of the fixed plate's for 22.5 deg and nothing for 90 deg; the series below
+    /// `2d = 1e-3` joins `sin(2d)/(2d)` (1e-16) and tends to 1.
+    #[test]
+    fn swept_modulation_is_scaled_by_sinc() {
+        let (p, chi) = (0.03, 0.6);
+        let th: Vec<f64> = (0..16).map(|k| (11.25 + 22.5 * k as f64).to_radians()).collect();
+        for sweep_deg in [22.5, 45.0, 90.0] {
+            let d = f64::to_radians(sweep_deg);
+            let f = DualBeam::ideal().compile().fluxes_swept(&stokes_p_chi(1.0, p, chi), &th, &[d; 16]);
+            let eff = (2.0 * d).sin() / (2.0 * d);
+            for (b, &t) in f.iter().zip(&th) {
+                let fi = (b.f_o - b.f_e) / (b.f_o + b.f_e);
+                assert_relative_eq!(fi, eff * p * (4.0 * t - 2.0 * chi).cos(), epsilon = 1e-15);
+            }
+        }
+        assert_relative_eq!(hwp_sweep_efficiency(22.5f64.to_radians()), 0.9003163161571061, epsilon = 1e-15);
+        assert!(hwp_sweep_efficiency(FRAC_PI_2).abs() < 1e-15);
+        let x = 0.999e-3 / 2.0;
+        assert_relative_eq!(hwp_sweep_efficiency(x), (2.0 * x).sin() / (2.0 * x), epsilon = 1e-16);
+        assert_relative_eq!(hwp_sweep_efficiency(1.001e-3 / 2.0), (1.001e-3f64).sin() / 1.001e-3, epsilon = 1e-16);
+        assert_eq!(hwp_sweep_efficiency(1e-300), 1.0);
     }
 }
 

@@ -341,6 +341,14 @@ impl Plan {
         let layout = match geom.layout {
             instrument::Layout::Strips => format!("{} strips, throw {} px", geom.strips.len(), inst.throw_px_exact()),
             instrument::Layout::Maskless => format!("maskless, o/e offset {:?} px", geom.oe_offset.unwrap_or_default()),
+            instrument::Layout::TwoCameras => {
+                let c = geom.cameras.as_ref();
+                format!(
+                    "two cameras, e camera turned {:?}, transform {:?}",
+                    c.map(|c| c.e_orientation),
+                    c.and_then(|c| c.transform)
+                )
+            }
         };
         explain.push(format!(
             "instrument {} ({} x {} px, {layout}), filter {}, {} HWP angles {:?} deg",
@@ -402,7 +410,7 @@ impl Plan {
         }
         // Stars go frame by frame when the two beams overlap (maskless) or the frames move;
         // otherwise they are folded into the sky image once.
-        let per_frame = geom.layout == instrument::Layout::Maskless || !scene.frame_shifts_px.is_empty();
+        let per_frame = geom.layout != instrument::Layout::Strips || !scene.frame_shifts_px.is_empty();
         let shifts: Vec<(f64, f64)> = if scene.frame_shifts_px.is_empty() {
             vec![(0.0, 0.0); scene.hwp_angles_deg.len()]
         } else {
@@ -564,6 +572,17 @@ impl Plan {
         }
         explain.push("  per HWP angle: f_O, f_E = two rows . (I, Q, U) at the plate (the model is linear)".into());
         let basis = [Stokes::new(1.0, 0.0, 0.0, 0.0), Stokes::new(0.0, 1.0, 0.0, 0.0), Stokes::new(0.0, 0.0, 1.0, 0.0)];
+        if let Some(m) = &scene.hwp_motion {
+            explain.push(format!(
+                "  the plate turns {} deg during each exposure, centred on its angle ({})",
+                m.sweep_deg,
+                if m.substeps > 0 {
+                    format!("the fixed plate's fluxes averaged over {} sub-steps", m.substeps)
+                } else {
+                    "the plate's matrix averaged over the motion, mueller::Hwp::matrix_swept".into()
+                }
+            ));
+        }
         let rows = scene
             .hwp_angles_deg
             .iter()
@@ -572,7 +591,21 @@ impl Plan {
                 let mut ro = [0.0; 3];
                 let mut re = [0.0; 3];
                 for (k, b) in basis.iter().enumerate() {
-                    let f = train.fluxes_at_plate(b, t);
+                    let f = match &scene.hwp_motion {
+                        None => train.fluxes_at_plate(b, t),
+                        Some(m) if m.substeps == 0 => train.fluxes_at_plate_swept(b, t, m.sweep_deg.to_radians()),
+                        Some(m) => {
+                            // The motion by sub-steps: the mean of the fixed plate's fluxes.
+                            let (d, n) = (m.sweep_deg.to_radians(), m.substeps as f64);
+                            let (mut fo, mut fe) = (0.0, 0.0);
+                            for j in 0..m.substeps {
+                                let f = train.fluxes_at_plate(b, t - 0.5 * d + (j as f64 + 0.5) * d / n);
+                                fo += f.f_o;
+                                fe += f.f_e;
+                            }
+                            mueller::BeamFluxes { f_o: fo / n, f_e: fe / n }
+                        }
+                    };
                     ro[k] = f.f_o;
                     re[k] = f.f_e;
                 }
@@ -707,6 +740,8 @@ impl Plan {
                     let (fo, fe) = (dot(&ro, &s), dot(&re, &s));
                     if self.geom.layout == instrument::Layout::Maskless {
                         img.fill(fo + fe);
+                    } else if self.geom.layout == instrument::Layout::TwoCameras {
+                        self.fill_cameras(&mut img, fo, fe);
                     } else {
                         for &(o, e) in &self.sky_pixels {
                             img[o as usize] = fo;
@@ -727,6 +762,10 @@ impl Plan {
                 SkyAtPlate::Constant(s) if self.geom.layout == instrument::Layout::Maskless => {
                     // Every pixel takes the o light of one sky point and the e light of another.
                     img.fill(dot(&ro, s) + dot(&re, s));
+                }
+                SkyAtPlate::Constant(s) if self.geom.layout == instrument::Layout::TwoCameras => {
+                    // Each camera sees the whole uniform sky in its beam.
+                    self.fill_cameras(&mut img, dot(&ro, s), dot(&re, s));
                 }
                 SkyAtPlate::Constant(s) => {
                     let (fo, fe) = (dot(&ro, s), dot(&re, s));
@@ -870,6 +909,18 @@ impl Plan {
         }
     }
 
+    /// A uniform sky on two cameras: `fo` on every o camera pixel, `fe` on every e camera pixel.
+    fn fill_cameras(&self, img: &mut [f64], fo: f64, fe: f64) {
+        let nx = self.geom.nx;
+        for (p, v) in img.iter_mut().enumerate() {
+            match self.geom.kind(p % nx, p / nx) {
+                PixelKind::Ordinary(_) => *v = fo,
+                PixelKind::Extraordinary(_) => *v = fe,
+                _ => {}
+            }
+        }
+    }
+
     /// The header keywords of frame `k`.
     fn keys(&self, k: usize) -> Vec<(String, KeyValue, String)> {
         let mut tel_keys = Vec::new();
@@ -889,6 +940,7 @@ impl Plan {
         let mut keys =
             self.header_keys("instpol simulation", Some(self.scene.hwp_angles_deg[k]), self.scene.exposure_s);
         keys.extend(tel_keys);
+        keys.extend(self.rotation_keys(k));
         if let Some(m) = self.frame_start_mjd(k) {
             keys.push(("MJD-OBS".into(), KeyValue::F64(m), "start of the exposure [MJD]".into()));
         }
@@ -939,6 +991,24 @@ impl Plan {
             ("SIMSEED".into(), KeyValue::I64(self.scene.seed as i64), "instpol simulation seed".into()),
         ]);
         keys
+    }
+
+    /// The keywords of frame `k`'s plate range for an instrument whose plate turns
+    /// (`[polarimetry.rotation]`): begin and end angles, or the rotor position. A fixed plate in
+    /// the scene writes a range of zero width (begin = end).
+    fn rotation_keys(&self, k: usize) -> Vec<(String, KeyValue, String)> {
+        let Some(r) = &self.inst.polarimetry.rotation else { return vec![] };
+        let a = self.scene.hwp_angles_deg[k];
+        let d = self.scene.hwp_motion.as_ref().map_or(0.0, |m| m.sweep_deg);
+        if r.by_position() {
+            // Checked when the scene was loaded (Scene::checked).
+            let pos = crate::scene::rotor_position(r, a, d).unwrap_or(r.first_position);
+            return vec![(r.position_keyword.clone(), KeyValue::I64(pos), "rotor position".into())];
+        }
+        vec![
+            (r.begin_keyword.clone(), KeyValue::F64(a - 0.5 * d), "plate angle at the start [deg]".into()),
+            (r.end_keyword.clone(), KeyValue::F64(a + 0.5 * d), "plate angle at the end [deg]".into()),
+        ]
     }
 
     /// File name of frame `k` (for a chip instrument, [`Plan::frame_files`]).
@@ -1031,7 +1101,17 @@ impl Plan {
             read_noise_e: rn.unwrap_or(0.0),
             scan: out.raw_scan_px.unwrap_or(crate::scene::DEFAULT_RAW_SCAN_PX),
         };
-        vec![rc; self.inst.format.chips.len()]
+        // A chip whose gain the instrument file gives as a number reads out with it (two
+        // cameras of different gains); a gain from a keyword is the scene's, written there.
+        self.inst
+            .format
+            .chips
+            .iter()
+            .map(|c| match c.gain_e_per_adu {
+                Some(instrument::NumberOrKeyword::Number(g)) => crate::raw::RawChip { gain_e_per_adu: g, ..rc },
+                _ => rc,
+            })
+            .collect()
     }
 
     /// Write frame `k` (or, `bias`, bias frame `k`) as raw chip files: the rendered ADU (a

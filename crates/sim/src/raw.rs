@@ -147,8 +147,12 @@ pub fn write_chip_files(
             ck.push((k.clone(), KeyValue::Str(v.clone()), String::new()));
         }
         ck.extend(keys.iter().cloned());
+        // The exposure number under each exposure keyword the exposure's own keys do not hold
+        // already (a rotor's position is both: its value is the exposure's).
         for k in &fmt.exposure_keywords {
-            ck.push((k.clone(), KeyValue::I64(readout.exposure_no), String::new()));
+            if !ck.iter().any(|(n, _, _)| n == k) {
+                ck.push((k.clone(), KeyValue::I64(readout.exposure_no), String::new()));
+            }
         }
         let binning = readout
             .binning

@@ -13,6 +13,8 @@
 //! instrument = "fors1"          # built-in name or path to an instrument TOML
 //! filter = "V"
 //! hwp_angles_deg = [0, 22.5, 45, 67.5]   # default: the optimal N = 4 set
+//! # hwp_motion = { sweep_deg = 22.5 }      # a plate turning during each exposure, centred
+//! #                                        # on its angle (substeps = 64: by sub-steps)
 //! exposure_s = 300              # written to EXPTIME only
 //! seed = 42
 //!
@@ -124,6 +126,23 @@ pub struct Scene {
     /// parallactic-angle track); absent: none.
     #[serde(default)]
     pub telescope: Option<TelescopeSpec>,
+    /// A half-wave plate that turns during each exposure; absent: it stands still.
+    #[serde(default)]
+    pub hwp_motion: Option<HwpMotion>,
+}
+
+/// A half-wave plate turning uniformly during each exposure: exposure `k` sweeps `sweep_deg`
+/// centred on `hwp_angles_deg[k]`. Its fluxes are the plate's matrix averaged over the motion
+/// (`mueller::Hwp::matrix_swept`, the closed form), or with `substeps > 0` the mean of the
+/// fixed plate's fluxes at that many equal sub-steps of the range (midpoints): the same motion
+/// integrated the other way. Frames carry the range under the instrument's
+/// `[polarimetry.rotation]` keywords.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HwpMotion {
+    pub sweep_deg: f64,
+    #[serde(default)]
+    pub substeps: u32,
 }
 
 fn default_metal() -> String {
@@ -578,9 +597,62 @@ impl Scene {
         if let Err(e) = stokes::check_degrees(&self.hwp_angles_deg) {
             return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &format!("{e}: give degrees"));
         }
-        let th: Vec<f64> = self.hwp_angles_deg.iter().map(|a| a.to_radians()).collect();
-        if let Err(e) = stokes::StokesSolver::new(&th) {
-            return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &e.to_string());
+        // A plate turning through several turns repeats its positions: each position once.
+        let mut th: Vec<f64> = self.hwp_angles_deg.iter().map(|a| a.to_radians()).collect();
+        if self.hwp_motion.is_some() {
+            let mut seen: Vec<f64> = vec![];
+            th.retain(|t| {
+                let new = !seen.contains(t);
+                seen.push(*t);
+                new
+            });
+        }
+        let sweeps = match &self.hwp_motion {
+            Some(m) => {
+                if !(m.sweep_deg.is_finite() && m.sweep_deg.abs() < 180.0) {
+                    return bad(
+                        "hwp_motion.sweep_deg",
+                        m.sweep_deg.to_string(),
+                        "must be a plate angle range in degrees, below 180",
+                    );
+                }
+                if m.substeps > 100_000 {
+                    return bad("hwp_motion.substeps", m.substeps.to_string(), "at most 100000");
+                }
+                vec![m.sweep_deg.to_radians(); th.len()]
+            }
+            None => vec![0.0; th.len()],
+        };
+        match stokes::StokesSolver::with_sweeps(&th, &sweeps) {
+            Err(e @ stokes::Error::NoModulation { .. }) => {
+                let d = self.hwp_motion.as_ref().map_or(0.0, |m| m.sweep_deg);
+                return bad("hwp_motion.sweep_deg", d.to_string(), &e.to_string());
+            }
+            Err(e) => return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &e.to_string()),
+            Ok(_) => {}
+        }
+        if let (None, Some(r)) = (&self.hwp_motion, &inst.polarimetry.rotation) {
+            if r.by_position() {
+                return bad(
+                    "hwp_motion",
+                    "(none)".into(),
+                    &format!(
+                        "instrument {} reads its plate's range from a rotor position: give the motion, \
+                         hwp_motion = {{ sweep_deg = {} }}",
+                        inst.name,
+                        360.0 / r.positions_per_turn as f64
+                    ),
+                );
+            }
+        }
+        if let (Some(m), Some(r)) = (&self.hwp_motion, &inst.polarimetry.rotation) {
+            if r.by_position() {
+                for &a in &self.hwp_angles_deg {
+                    if let Err(why) = rotor_position(r, a, m.sweep_deg) {
+                        return bad("hwp_angles_deg", a.to_string(), &why);
+                    }
+                }
+            }
         }
         if let Some(sl) = &self.effects.stressed_lens {
             if let Err(why) = sl.validate() {
@@ -613,6 +685,30 @@ impl Scene {
                     "frame_shifts_px",
                     format!("[{}, {}]", s[0], s[1]),
                     "each shift must be finite and at most 100 px",
+                );
+            }
+        }
+        if inst.polarimetry.layout == instrument::Layout::TwoCameras {
+            let why = "a two-camera scene takes a uniform sky and stars (an extended or varying sky would need each camera's \
+                       pixels mapped through the camera transform, which is not modelled)";
+            if self.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some()) {
+                return bad("sky.gradient_e_per_arcmin", "set".into(), why);
+            }
+            if !self.extended.is_empty() {
+                return bad("extended", format!("{} sources", self.extended.len()), why);
+            }
+            if self.effects.instpol.is_some() && self.sky.is_some() {
+                return bad(
+                    "effects.instpol",
+                    "set".into(),
+                    "a two-camera scene applies an instrumental field to its stars only: remove [sky] or the field",
+                );
+            }
+            if inst.polarimetry.cameras.as_ref().is_some_and(|c| c.transform.is_none()) {
+                return bad(
+                    "instrument",
+                    self.instrument.clone(),
+                    "simulating two cameras needs the camera transform in [polarimetry.cameras] (where the e images fall)",
                 );
             }
         }
@@ -904,6 +1000,29 @@ impl Scene {
             }
         }
         Ok(())
+    }
+}
+
+/// The rotor position (as the headers number it) of an exposure sweeping `sweep_deg` about
+/// `angle_deg`, for an instrument that reads its plate's range from a rotor position: `Err`
+/// unless the range is exactly one of the rotor's positions (`instrument::HwpRotation`).
+pub(crate) fn rotor_position(r: &instrument::HwpRotation, angle_deg: f64, sweep_deg: f64) -> Result<i64, String> {
+    let n = r.positions_per_turn as f64;
+    let step = 360.0 / n;
+    let k = ((angle_deg - r.zero_deg) / step - 0.5).round();
+    let pos = r.first_position + k.rem_euclid(n) as i64;
+    match r.position_range(pos) {
+        Ok((mid, d))
+            if (d - sweep_deg).abs() < 1e-9
+                && ((angle_deg - mid) / 360.0 - ((angle_deg - mid) / 360.0).round()).abs() < 1e-9 =>
+        {
+            Ok(pos)
+        }
+        _ => Err(format!(
+            "the instrument reads the plate's range from a rotor position of {} per turn ({step} deg each, the first \
+             from {} deg): an exposure at {angle_deg} deg sweeping {sweep_deg} deg is not one of them",
+            r.positions_per_turn, r.zero_deg
+        )),
     }
 }
 

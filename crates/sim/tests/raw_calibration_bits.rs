@@ -226,6 +226,7 @@ fn reference_frames(inst: &Instrument, science: &[PathBuf], masters: Option<(&Pa
             ny,
             data: data.into_iter().map(f64::from).collect(),
             hwp_deg: hwp,
+            hwp_sweep_deg: 0.0,
             filter: "v_HIGH".into(),
             exptime_s: Some(10.0),
             bitpix: 16,

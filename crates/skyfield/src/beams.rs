@@ -17,10 +17,87 @@
 //!   o light from one sky point and e light from another. The sky of the two beams overlaps,
 //!   so an extended sky cannot be split into o and e ([`BeamGeometry::require_separable_sky`]
 //!   refuses it with the reason); point sources work ([`BeamGeometry::e_position`]).
+//! - **Two cameras** (a polarizing beam splitter, MOPTOP): the o beam on one camera, the e
+//!   beam on another, the two placed side by side in one detector frame by the instrument's
+//!   `[format]` chips. The sky's coordinates are the o camera's pixels; a point's e image is
+//!   where the camera transform puts it on the e camera, turned back into the e chip's pixels as
+//!   read ([`CameraMap`]). The transform is the instrument file's, or measured from the stars
+//!   of the frames (`skyfield::photometry::layout_for`). A per-pixel map is refused: the e
+//!   camera would have to be resampled onto the o camera's pixels, which is not built.
 //!
 //! Field positions of a sky point are those of its o pixel (arcmin from the detector centre).
 
-use instrument::{Instrument, Layout, OffsetTerm, Strip};
+use instrument::{Instrument, Layout, OffsetTerm, Orientation, Strip};
+
+/// Where the two cameras of a [`Layout::TwoCameras`] instrument sit in the detector frame and
+/// how a point of the o camera maps onto the e camera.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraMap {
+    /// The o chip's first pixel in the detector frame and its size `(x, y)` (px).
+    pub o_origin: (usize, usize),
+    pub o_size: (usize, usize),
+    /// The e chip's first pixel and its size as read.
+    pub e_origin: (usize, usize),
+    pub e_size: (usize, usize),
+    /// How the e chip's image is turned to show the sky as the o camera does.
+    pub e_orientation: Orientation,
+    /// o camera px `(x, y)` -> turned e camera px: `(a x + b y + c, d x + e y + f)`; `None`
+    /// while unknown (to be measured from stars).
+    pub transform: Option<[f64; 6]>,
+    /// When the transform was measured: its RMS residual (px) and the star pairs it rests on.
+    pub measured: Option<(f64, usize)>,
+}
+
+impl CameraMap {
+    /// The cameras of `inst`, `None` for another layout (or a file without `[polarimetry.cameras]`).
+    pub fn of(inst: &Instrument) -> Option<Self> {
+        let c = inst.polarimetry.cameras.as_ref()?;
+        let chip = |n: &str| inst.format.chips.iter().find(|ch| ch.name == n);
+        let (o, e) = (chip(&c.o_chip)?, chip(&c.e_chip)?);
+        Some(Self {
+            o_origin: (o.origin_px[0], o.origin_px[1]),
+            o_size: (o.size_px[0], o.size_px[1]),
+            e_origin: (e.origin_px[0], e.origin_px[1]),
+            e_size: (e.size_px[0], e.size_px[1]),
+            e_orientation: c.e_orientation,
+            transform: c.transform,
+            measured: None,
+        })
+    }
+
+    /// Whether detector pixel `(x, y)` (real) lies on the o chip, and its local coordinates.
+    fn o_local(&self, x: f64, y: f64) -> Option<(f64, f64)> {
+        let (u, v) = (x - self.o_origin.0 as f64, y - self.o_origin.1 as f64);
+        (u >= -0.5 && v >= -0.5 && u < self.o_size.0 as f64 - 0.5 && v < self.o_size.1 as f64 - 0.5).then_some((u, v))
+    }
+
+    /// The detector position of the e image of the o camera's local point `(u, v)`, given the
+    /// transform `t`: through `t` onto the turned e camera, turned back into the e chip's
+    /// pixels as read, placed at the e chip's origin.
+    pub fn e_of_local(&self, t: &[f64; 6], u: f64, v: f64) -> (f64, f64) {
+        let (tu, tv) = (t[0] * u + t[1] * v + t[2], t[3] * u + t[4] * v + t[5]);
+        let (rx, ry) = self.e_orientation.inverse().apply(tu, tv, self.o_size.0, self.o_size.1);
+        (self.e_origin.0 as f64 + rx, self.e_origin.1 as f64 + ry)
+    }
+
+    /// The e chip's detector pixel `(x, y)` (real) in the turned e camera's coordinates (the
+    /// frame the transform maps into), for measuring the transform from stars.
+    pub fn turned_e(&self, x: f64, y: f64) -> (f64, f64) {
+        let (rx, ry) = (x - self.e_origin.0 as f64, y - self.e_origin.1 as f64);
+        self.e_orientation.apply(rx, ry, self.e_size.0, self.e_size.1)
+    }
+
+    fn kind(&self, x: usize, y: usize) -> PixelKind {
+        let inside = |(x0, y0): (usize, usize), (w, h): (usize, usize)| x >= x0 && y >= y0 && x < x0 + w && y < y0 + h;
+        if inside(self.o_origin, self.o_size) {
+            PixelKind::Ordinary(0)
+        } else if inside(self.e_origin, self.e_size) {
+            PixelKind::Extraordinary(0)
+        } else {
+            PixelKind::Masked
+        }
+    }
+}
 
 /// The beam layout of an instrument's detector.
 #[derive(Debug, Clone, PartialEq)]
@@ -38,6 +115,8 @@ pub struct BeamGeometry {
     terms: Vec<OffsetTerm>,
     /// Maskless: the e image's offset from the o image (px), when known.
     pub oe_offset: Option<(f64, f64)>,
+    /// Two cameras: where they are and how they map.
+    pub cameras: Option<CameraMap>,
     name: String,
     /// Strips: the kind of every detector line across the strip axis, indexed by the
     /// coordinate along it (what [`BeamGeometry::kind`] answers). A table, because the
@@ -73,6 +152,7 @@ impl BeamGeometry {
             throw: p.extraordinary_offset_sign as f64 * inst.throw_px_exact(),
             terms: p.throw_terms.clone(),
             oe_offset: p.oe_offset_px.map(|[dx, dy]| (dx, dy)),
+            cameras: if p.layout == Layout::TwoCameras { CameraMap::of(inst) } else { None },
             name: inst.name.clone(),
             kinds: vec![],
         };
@@ -110,11 +190,25 @@ impl BeamGeometry {
         self
     }
 
+    /// The same layout with the camera transform set (measured from the frames' stars, with
+    /// its RMS residual in px and the number of star pairs).
+    pub fn with_camera_transform(mut self, t: [f64; 6], rms_px: f64, pairs: usize) -> Self {
+        if let Some(c) = self.cameras.as_mut() {
+            c.transform = Some(t);
+            c.measured = Some((rms_px, pairs));
+        }
+        self
+    }
+
     /// `Ok` when an extended sky can be split into its o and e images (strip layouts);
     /// otherwise the reason, for an error message.
     pub fn require_separable_sky(&self) -> Result<(), String> {
         match self.layout {
             Layout::Strips => Ok(()),
+            Layout::TwoCameras => Err(format!(
+                "instrument {} has two cameras: a per-pixel map would need the e camera's image resampled onto the o camera's pixels through the camera transform, which is not built; point sources work: use photometry or catalog",
+                self.name
+            )),
             Layout::Maskless => Err(format!(
                 "instrument {} has a maskless layout: the o and e images of the sky overlap on the detector, so an extended sky (a sky-field calibration, a Stokes map) cannot be separated into its two beams; point sources can: use photometry or validate",
                 self.name
@@ -153,6 +247,12 @@ impl BeamGeometry {
     pub fn e_offset(&self, x: f64, y: f64) -> Option<(f64, f64)> {
         match self.layout {
             Layout::Maskless => self.oe_offset,
+            Layout::TwoCameras => {
+                let c = self.cameras.as_ref()?;
+                let (u, v) = c.o_local(x, y)?;
+                let (xe, ye) = c.e_of_local(c.transform.as_ref()?, u, v);
+                Some((xe - x, ye - y))
+            }
             Layout::Strips => {
                 // (`OffsetTerm::sum` is 0 without terms.)
                 let d = self.throw + OffsetTerm::sum(&self.terms, self.nx, self.ny, x, y);
@@ -173,7 +273,11 @@ impl BeamGeometry {
         }
         let (dx, dy) = self.e_offset(x, y)?;
         let (xe, ye) = (x + dx, y + dy);
-        (xe >= -0.5 && ye >= -0.5 && xe < self.nx as f64 - 0.5 && ye < self.ny as f64 - 0.5).then_some((xe, ye))
+        let on = xe >= -0.5 && ye >= -0.5 && xe < self.nx as f64 - 0.5 && ye < self.ny as f64 - 0.5;
+        // Two cameras: the e image must fall on the e camera, not beside it.
+        let on_e = self.layout != Layout::TwoCameras
+            || (on && self.kind(xe.round() as usize, ye.round() as usize) == PixelKind::Extraordinary(0));
+        (on && on_e).then_some((xe, ye))
     }
 
     /// Row-major index of detector pixel `(x, y)`.
@@ -189,6 +293,10 @@ impl BeamGeometry {
         if x >= self.nx || y >= self.ny {
             return None;
         }
+        if self.layout == Layout::TwoCameras {
+            // The o camera's pixels are the sky's, one band (index 0).
+            return (self.kind(x, y) == PixelKind::Ordinary(0)).then_some(0);
+        }
         let a = self.along(x, y);
         self.strips.iter().position(|s| a >= s.o_start && a < s.o_start + s.height)
     }
@@ -197,6 +305,9 @@ impl BeamGeometry {
     /// layout, the e pixel the nearest to the e image, or `None` for masked sky.
     #[inline]
     pub fn beams_of_sky(&self, x: usize, y: usize) -> Option<(usize, usize)> {
+        if self.layout != Layout::Strips {
+            return None;
+        }
         let k = self.strip_of_sky(x, y)?;
         let s = &self.strips[k];
         let shift = if self.terms.is_empty() {
@@ -227,6 +338,9 @@ impl BeamGeometry {
         if self.layout == Layout::Maskless {
             return PixelKind::Both;
         }
+        if let Some(c) = &self.cameras {
+            return c.kind(x, y);
+        }
         self.kinds.get(self.along(x, y)).copied().unwrap_or(PixelKind::Masked)
     }
 
@@ -237,7 +351,7 @@ impl BeamGeometry {
         match self.layout {
             Layout::Maskless => Some(PixelKind::Both),
             Layout::Strips if self.along_y => Some(self.kind(0, y)),
-            Layout::Strips => None,
+            Layout::Strips | Layout::TwoCameras => None,
         }
     }
 

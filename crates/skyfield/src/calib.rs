@@ -397,6 +397,7 @@ fn robust_mean_of_counts(v: &[f64]) -> Option<f64> {
 pub(crate) struct Exposure {
     pub(crate) path: PathBuf,
     pub(crate) hwp_deg: Option<f64>,
+    pub(crate) hwp_sweep_deg: f64,
     pub(crate) filter: String,
     pub(crate) exptime_s: Option<f64>,
     pub(crate) bitpix: i32,
@@ -1415,7 +1416,7 @@ fn calibrate_exposure(
             ))
         };
         let fmt_opt = |v: Option<f64>| v.map_or("(none)".to_string(), |x| x.to_string());
-        if h.hwp_deg != h0.hwp_deg {
+        if h.hwp_deg != h0.hwp_deg || h.hwp_sweep_deg != h0.hwp_sweep_deg {
             return Err(differ(&pol.hwp_angle_keyword, fmt_opt(h0.hwp_deg), fmt_opt(h.hwp_deg)));
         }
         if h.filter != h0.filter {
@@ -1434,6 +1435,7 @@ fn calibrate_exposure(
     Ok(Exposure {
         path: files[0].path.clone(),
         hwp_deg: h0.hwp_deg,
+        hwp_sweep_deg: h0.hwp_sweep_deg,
         filter: h0.filter,
         exptime_s: h0.exptime_s,
         bitpix: files[0].img.bitpix,
@@ -1521,6 +1523,7 @@ pub fn read_exposures(paths: &[PathBuf], inst: &Instrument, opts: &ReadOptions) 
                 nx: inst.detector.nx,
                 ny: inst.detector.ny,
                 hwp_deg: e.hwp_deg.unwrap_or(f64::NAN),
+                hwp_sweep_deg: e.hwp_sweep_deg,
                 filter: e.filter,
                 exptime_s: e.exptime_s,
                 bitpix: e.bitpix,

@@ -166,6 +166,17 @@ pub struct Row {
     pub outlier_exposures: Vec<usize>,
 }
 
+/// The camera transform a two-camera catalog was measured with.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct CameraTransform {
+    /// `[a, b, c, d, e, f]`: `(x', y') = (a x + b y + c, d x + e y + f)`.
+    pub transform: [f64; 6],
+    /// Measured from star pairs: the fit's RMS residual (px); `None` when the instrument file
+    /// gave the transform.
+    pub residual_rms_px: Option<f64>,
+    pub pairs: Option<usize>,
+}
+
 /// The catalog and what was found but not measured.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct Catalog {
@@ -173,6 +184,11 @@ pub struct Catalog {
     pub filter: String,
     pub chi_offset_deg: f64,
     pub oe_offset_px: Option<(f64, f64)>,
+    /// Two cameras: the transform from o camera to (turned) e camera pixels `[a, b, c, d, e,
+    /// f]`, and when it was measured from the frames' stars, its RMS residual (px) and the
+    /// star pairs it rests on (absent for other layouts).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub camera_transform: Option<CameraTransform>,
     pub rows: Vec<Row>,
     /// Sources without a partner image (their positions).
     pub unpaired: Vec<(f64, f64)>,
@@ -365,6 +381,15 @@ pub fn catalog_files(
     cat.frames = exposures;
     warnings.extend(zero_angle_warning(inst, &cat.filter));
     warnings.extend(pairing_warning(&cat, inst, cfg.detect.pair_tol_px));
+    if let Some(CameraTransform { transform: t, residual_rms_px: Some(rms), pairs: Some(n) }) = cat.camera_transform {
+        warnings.push(Warning {
+            file: None,
+            message: format!(
+                "camera transform measured from {n} star pairs: x' = {:.5} x + {:.5} y + {:.3}, y' = {:.5} x + {:.5} y + {:.3} px, residual RMS {rms:.3} px",
+                t[0], t[1], t[2], t[3], t[4], t[5]
+            ),
+        });
+    }
     Ok((cat, warnings))
 }
 
@@ -626,7 +651,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                     .map(|((r, placed), m)| {
                         let ph = placed.and_then(|()| {
                             let m: Vec<FrameFluxes> = m.into_iter().collect::<Result<_, _>>()?;
-                            finish(Partial::from_frames(src.angles_deg(), &m), files, x, y, &opts)
+                            finish(Partial::from_frames(src.angles_deg(), src.hwp_sweep_deg(), &m), files, x, y, &opts)
                         });
                         (r, ph)
                     })
@@ -696,6 +721,13 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         filter: src.filter().to_string(),
         chi_offset_deg: chi_off,
         oe_offset_px: g.oe_offset,
+        camera_transform: g.cameras.as_ref().and_then(|c| {
+            Some(CameraTransform {
+                transform: c.transform?,
+                residual_rms_px: c.measured.map(|m| m.0),
+                pairs: c.measured.map(|m| m.1),
+            })
+        }),
         rows,
         unpaired: unpaired.iter().map(|&k| (sources[k].x, sources[k].y)).collect(),
         unpaired_shift_px: crate::detect::unpaired_shift(&sources, &unpaired, &g, UNPAIRED_REACH_PX),

@@ -19,8 +19,11 @@ pub struct Frame {
     pub ny: usize,
     /// Pixel values (ADU, BZERO/BSCALE applied), row-major `[y * nx + x]`.
     pub data: Vec<f64>,
-    /// HWP angle (deg) from the instrument's keyword.
+    /// HWP angle (deg) from the instrument's keyword; for a plate that turns during the
+    /// exposure (`[polarimetry.rotation]`), the middle of the range it swept.
     pub hwp_deg: f64,
+    /// The plate angle (deg) swept during the exposure: 0 for a fixed plate.
+    pub hwp_sweep_deg: f64,
     /// Filter name as found in the header.
     pub filter: String,
     /// Exposure time (s), if the keyword is present.
@@ -102,6 +105,7 @@ pub(crate) struct RawFrame {
     pub ny: usize,
     pub pixels: Pixels,
     pub hwp_deg: f64,
+    pub hwp_sweep_deg: f64,
     pub filter: String,
     pub exptime_s: Option<f64>,
     pub bitpix: i32,
@@ -110,14 +114,16 @@ pub(crate) struct RawFrame {
 
 impl RawFrame {
     pub(crate) fn into_frame(self) -> Frame {
-        let RawFrame { path, nx, ny, pixels, hwp_deg, filter, exptime_s, bitpix, conversion } = self;
-        Frame { path, nx, ny, data: pixels.into_f64(), hwp_deg, filter, exptime_s, bitpix, conversion }
+        let RawFrame { path, nx, ny, pixels, hwp_deg, hwp_sweep_deg, filter, exptime_s, bitpix, conversion } = self;
+        Frame { path, nx, ny, data: pixels.into_f64(), hwp_deg, hwp_sweep_deg, filter, exptime_s, bitpix, conversion }
     }
 }
 
 /// Header facts of a frame, checked against the instrument.
 pub(crate) struct FrameHeader {
     pub hwp_deg: Option<f64>,
+    /// The plate angle (deg) swept during the exposure (0: fixed).
+    pub hwp_sweep_deg: f64,
     pub filter: String,
     pub exptime_s: Option<f64>,
 }
@@ -143,6 +149,10 @@ pub(crate) fn frame_header_with(
     keys.extend(inst.format.binning_keywords.iter().map(|s| s.as_str()));
     keys.extend(inst.format.chips.iter().filter_map(|c| c.match_keyword.as_deref()));
     keys.extend(inst.format.exposure_keywords.iter().map(|s| s.as_str()));
+    if let Some(r) = &pol.rotation {
+        keys.extend([r.begin_keyword.as_str(), r.end_keyword.as_str(), r.position_keyword.as_str()]);
+        keys.retain(|k| !k.is_empty());
+    }
     img.check_duplicates(path, &keys)?;
     // The instrument's keyword, else its fallbacks in order: the first one present.
     let mut hwp_deg = None;
@@ -160,14 +170,56 @@ pub(crate) fn frame_header_with(
         None => return Err(Error::MissingKeyword { path: path.into(), keyword: pol.filter_keyword.clone() }),
     };
     let exptime_s = img.key(&pol.exptime_keyword).and_then(|s| parse_number(&s));
-    Ok(FrameHeader { hwp_deg, filter, exptime_s })
+    let mut hwp_sweep_deg = 0.0;
+    if let Some((mid, sweep)) = rotation_range(img, path, inst)? {
+        (hwp_deg, hwp_sweep_deg) = (Some(mid), sweep);
+    }
+    Ok(FrameHeader { hwp_deg, hwp_sweep_deg, filter, exptime_s })
+}
+
+/// The middle angle and sweep (deg) of an exposure of a turning plate
+/// (`[polarimetry.rotation]`, `instrument::HwpRotation`): from its begin and end keywords, or
+/// from its rotor position. `None` for a fixed plate, or when the header carries none of the
+/// keywords (a bias; a science frame is then refused by [`require_hwp`]).
+fn rotation_range(img: &mut ImageHdu, path: &Path, inst: &Instrument) -> Result<Option<(f64, f64)>, Error> {
+    let Some(r) = &inst.polarimetry.rotation else { return Ok(None) };
+    if r.by_position() {
+        let Some(pos) = img.number(path, &r.position_keyword, "a rotor position (an integer)")? else {
+            return Ok(None);
+        };
+        let bad = |why: String| Error::BadKeyword {
+            path: path.into(),
+            keyword: r.position_keyword.clone(),
+            value: pos.to_string(),
+            expected: why,
+        };
+        if pos.fract() != 0.0 || pos.abs() > 1e9 {
+            return Err(bad("a rotor position (an integer)".into()));
+        }
+        return r.position_range(pos as i64).map(Some).map_err(bad);
+    }
+    let begin = img.number(path, &r.begin_keyword, "the plate angle at the exposure's start in degrees")?;
+    let end = img.number(path, &r.end_keyword, "the plate angle at the exposure's end in degrees")?;
+    match (begin, end) {
+        (Some(b), Some(e)) => Ok(Some(instrument::HwpRotation::range(b, e))),
+        (None, None) => Ok(None),
+        (Some(_), None) => Err(Error::MissingKeyword { path: path.into(), keyword: r.end_keyword.clone() }),
+        (None, Some(_)) => Err(Error::MissingKeyword { path: path.into(), keyword: r.begin_keyword.clone() }),
+    }
 }
 
 /// The HWP angle of a frame or the error that says where it should have come from.
 pub(crate) fn require_hwp(h: Option<f64>, path: &Path, inst: &Instrument) -> Result<f64, Error> {
     let k = &inst.polarimetry.hwp_angle_keyword;
     h.ok_or_else(|| {
-        if k.is_empty() {
+        if let Some(r) = &inst.polarimetry.rotation {
+            let keyword = if r.by_position() {
+                r.position_keyword.clone()
+            } else {
+                format!("{}' and '{}", r.begin_keyword, r.end_keyword)
+            };
+            Error::MissingKeyword { path: path.into(), keyword }
+        } else if k.is_empty() {
             Error::Invalid(format!(
                 "{}: no HWP angle: instrument {} names no HWP-angle keyword; give the angles with --hwp-angles",
                 path.display(),
@@ -235,6 +287,7 @@ pub(crate) fn read_frame_raw_with(path: &Path, inst: &Instrument, hwp_optional: 
         ny: img.ny,
         pixels,
         hwp_deg: h.hwp_deg.unwrap_or(f64::NAN),
+        hwp_sweep_deg: h.hwp_sweep_deg,
         filter: h.filter,
         exptime_s: h.exptime_s,
         bitpix: img.bitpix,

@@ -52,6 +52,8 @@ pub(crate) struct OpenFrame {
     pub nx: usize,
     pub ny: usize,
     pub hwp_deg: f64,
+    /// The plate angle swept during the exposure (deg; 0: fixed).
+    pub hwp_sweep_deg: f64,
     pub filter: String,
     pub rows: FrameRows,
     /// How the values become electrons.
@@ -69,6 +71,7 @@ pub(crate) fn open_frame_with(path: &Path, inst: &Instrument, hwp_optional: bool
         nx: img.nx,
         ny: img.ny,
         hwp_deg: h.hwp_deg.unwrap_or(f64::NAN),
+        hwp_sweep_deg: h.hwp_sweep_deg,
         filter: h.filter,
         rows,
         conversion: Conversion::of_instrument(inst),
@@ -148,6 +151,7 @@ pub(crate) fn open_exposures(
             nx: inst.detector.nx,
             ny: inst.detector.ny,
             hwp_deg: e.hwp_deg.unwrap_or(f64::NAN),
+            hwp_sweep_deg: e.hwp_sweep_deg,
             filter: e.filter,
             rows: FrameRows::Calibrated(e.rows),
             conversion: Conversion::electrons(e.rn2),

@@ -238,6 +238,9 @@ pub struct FrameSet {
     /// Canonical filter name (the instrument's, when it knows the filter).
     pub filter: String,
     pub angles_deg: Vec<f64>,
+    /// The plate angle every exposure swept (deg; 0: a fixed plate), shared by the set (frames
+    /// that swept different ranges are refused).
+    pub hwp_sweep_deg: f64,
     /// Summed pixel values (ADU) per angle, row-major.
     pub data: Vec<Vec<f64>>,
     /// Files per angle.
@@ -271,6 +274,7 @@ impl FrameSet {
         let meta: Vec<_> =
             frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
         let g = group_frames(&meta, inst, require_complete)?;
+        let hwp_sweep_deg = common_sweep(frames.iter().map(|f| (f.path.as_path(), f.hwp_sweep_deg)))?;
         let mut warnings = bad_pixel_notes(&meta, &bad, g.nx * g.ny, &conversion)?;
         warnings.extend(g.warnings);
         // Move (not copy) each angle's first frame; add the repeats to it.
@@ -288,8 +292,48 @@ impl FrameSet {
             })
             .collect();
         let files = g.members.iter().map(|m| m.iter().map(|&k| frames[k].path.clone()).collect()).collect();
-        Ok(Self { filter: g.filter, angles_deg: g.angles, data, files, nx: g.nx, ny: g.ny, warnings, conversion })
+        Ok(Self {
+            filter: g.filter,
+            angles_deg: g.angles,
+            hwp_sweep_deg,
+            data,
+            files,
+            nx: g.nx,
+            ny: g.ny,
+            warnings,
+            conversion,
+        })
     }
+}
+
+/// The plate angle (deg) every one of `frames` swept: the exposures of one reduction share
+/// the plate's motion (a turning plate's exposures each sweep one rotor position), so the
+/// modulation efficiency `sin(2d)/(2d)` is one number for the set. Sweeps more than 0.05 deg
+/// apart are refused naming two files.
+pub(crate) fn common_sweep<'a>(mut frames: impl Iterator<Item = (&'a Path, f64)>) -> Result<f64, Error> {
+    let Some((p0, d0)) = frames.next() else { return Ok(0.0) };
+    for (p, d) in frames {
+        if (d - d0).abs() > ANGLE_TOL_DEG {
+            return Err(Error::Invalid(format!(
+                "{}: the plate swept {d} deg during this exposure but {d0} deg during {}: the frames of one reduction \
+                 must share the plate's motion (fixed, or the same range per exposure)",
+                p.display(),
+                p0.display()
+            )));
+        }
+    }
+    Ok(d0)
+}
+
+/// The one Stokes solver of a frame set: its HWP angles (deg, the middle of each exposure's
+/// range for a turning plate), each with the set's sweep `sweep_deg` (0: the fixed plate's
+/// `eq:Q`, `eq:U`; else the averaged modulation, `stokes::StokesSolver::with_sweeps`).
+pub fn solver_of(angles_deg: &[f64], sweep_deg: f64) -> Result<StokesSolver, Error> {
+    let theta: Vec<f64> = angles_deg.iter().map(|a| a.to_radians()).collect();
+    if sweep_deg == 0.0 {
+        return Ok(StokesSolver::new(&theta)?);
+    }
+    Ok(StokesSolver::with_sweeps(&theta, &vec![sweep_deg.to_radians(); theta.len()])?)
 }
 
 /// Frames by HWP angle as the catalog measures them, one angle at a time: held in memory
@@ -302,6 +346,8 @@ pub trait FrameSource: Sync {
     fn filter(&self) -> &str;
     /// HWP angles (deg), sorted.
     fn angles_deg(&self) -> &[f64];
+    /// The plate angle every exposure swept (deg; 0: fixed).
+    fn hwp_sweep_deg(&self) -> f64;
     /// The exposures of each angle.
     fn files(&self) -> &[Vec<PathBuf>];
     fn conversion(&self) -> Conversion;
@@ -328,6 +374,9 @@ impl FrameSource for FrameSet {
     }
     fn angles_deg(&self) -> &[f64] {
         &self.angles_deg
+    }
+    fn hwp_sweep_deg(&self) -> f64 {
+        self.hwp_sweep_deg
     }
     fn files(&self) -> &[Vec<PathBuf>] {
         &self.files
@@ -359,6 +408,7 @@ pub struct DiskFrames {
     members: Vec<Vec<usize>>,
     filter: String,
     angles: Vec<f64>,
+    hwp_sweep_deg: f64,
     files: Vec<Vec<PathBuf>>,
     nx: usize,
     ny: usize,
@@ -386,12 +436,14 @@ impl DiskFrames {
         let conversion = common_conversion(frames.iter().map(|f| &f.conversion), inst)?;
         let meta: Vec<_> = frames.iter().map(open_meta).collect();
         let g = group_frames(&meta, inst, require_complete)?;
+        let hwp_sweep_deg = common_sweep(frames.iter().map(|f| (f.path.as_path(), f.hwp_sweep_deg)))?;
         let files = g.members.iter().map(|m| m.iter().map(|&k| frames[k].path.clone()).collect()).collect();
         let n = frames.len();
         Ok(Self {
             members: g.members,
             filter: g.filter,
             angles: g.angles,
+            hwp_sweep_deg,
             files,
             nx: g.nx,
             ny: g.ny,
@@ -482,6 +534,9 @@ impl FrameSource for DiskFrames {
     }
     fn angles_deg(&self) -> &[f64] {
         &self.angles
+    }
+    fn hwp_sweep_deg(&self) -> f64 {
+        self.hwp_sweep_deg
     }
     fn files(&self) -> &[Vec<PathBuf>] {
         &self.files
@@ -663,8 +718,7 @@ pub fn bin_geometry(inst: &Instrument, bin_px: usize) -> BinGeometry {
 /// reduction's own kernel, row by row.
 pub fn pixel_qu(set: &FrameSet, inst: &Instrument) -> Result<(Vec<f64>, Vec<f64>), Error> {
     let inst = &*inst.for_filter(&set.filter);
-    let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();
-    let solver = StokesSolver::new(&theta)?;
+    let solver = solver_of(&set.angles_deg, set.hwp_sweep_deg)?;
     let (cq, cu) = solver.weights();
     let g = BeamGeometry::new(inst);
     g.require_separable_sky().map_err(Error::Invalid)?;
@@ -707,7 +761,7 @@ pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Resu
             det: set.conversion.det(),
         })
         .collect();
-    let pass = reduce_bands(&inputs, 0, set.nx, set.ny, &set.angles_deg, inst, cfg, &|| {})?;
+    let pass = reduce_bands(&inputs, 0, set.nx, set.ny, (&set.angles_deg, set.hwp_sweep_deg), inst, cfg, &|| {})?;
     let map = assemble_map(pass.stats, inst, cfg, &set.filter, &set.angles_deg, &inputs)?;
     Ok(Reduced { map, warnings: set.warnings.clone(), exposures: exposures_of(&set.files, &set.angles_deg) })
 }
@@ -831,7 +885,7 @@ fn reduce_bands(
     nfiles: usize,
     nx: usize,
     ny: usize,
-    angles_deg: &[f64],
+    (angles_deg, sweep_deg): (&[f64], f64),
     inst: &Instrument,
     cfg: &ReduceConfig,
     on_file: &(dyn Fn() + Sync),
@@ -839,8 +893,7 @@ fn reduce_bands(
     if cfg.bin_px == 0 {
         return Err(Error::Invalid("bin size must be at least 1 px".into()));
     }
-    let theta: Vec<f64> = angles_deg.iter().map(|a| a.to_radians()).collect();
-    let solver = StokesSolver::new(&theta)?;
+    let solver = solver_of(angles_deg, sweep_deg)?;
     let g = BeamGeometry::new(inst);
     g.require_separable_sky().map_err(Error::Invalid)?;
     if (nx, ny) != (g.nx, g.ny) {
@@ -1535,7 +1588,8 @@ pub fn reduce_files_with(
             .det(),
         })
         .collect();
-    let pass = reduce_bands(&inputs, frames.len(), set.nx, set.ny, &set.angles, inst, cfg, on_read)?;
+    let pass =
+        reduce_bands(&inputs, frames.len(), set.nx, set.ny, (&set.angles, set.hwp_sweep_deg), inst, cfg, on_read)?;
     let mut warnings = bad_pixel_notes(&meta, &pass.bad, pass.used_px, &conversion)?;
     warnings.extend(set.warnings.iter().cloned());
     let mut map = match assemble_map(pass.stats, inst, cfg, &set.filter, &set.angles, &inputs) {
@@ -1579,6 +1633,25 @@ pub fn reduce_files_with(
 mod tests {
     use super::*;
 
+    /// The exposures of one reduction share the plate's motion: equal sweeps (to 0.05 deg)
+    /// are the set's, two different ones are refused naming both files; the set's solver with a
+    /// sweep of 22.5 deg weighs the F_i by 1/sinc (its weights 1/0.9003 of the fixed plate's).
+    #[test]
+    fn one_sweep_per_set_and_its_solver() {
+        let (a, b) = (Path::new("a.fits"), Path::new("b.fits"));
+        assert_eq!(common_sweep([(a, 22.5), (b, 22.52)].into_iter()).unwrap(), 22.5);
+        assert_eq!(common_sweep(std::iter::empty()).unwrap(), 0.0);
+        let e = common_sweep([(a, 22.5), (b, 0.0)].into_iter()).unwrap_err().to_string();
+        assert!(e.contains("a.fits") && e.contains("b.fits") && e.contains("swept"), "{e}");
+        let angles = [0.0, 22.5, 45.0, 67.5];
+        let (fixed, swept) = (solver_of(&angles, 0.0).unwrap(), solver_of(&angles, 22.5).unwrap());
+        let sinc = (2.0 * 22.5f64.to_radians()).sin() / (2.0 * 22.5f64.to_radians());
+        for (w0, w1) in fixed.weights().0.iter().zip(swept.weights().0) {
+            assert!((w1 * sinc - w0).abs() < 1e-15, "{w0} {w1}");
+        }
+        assert!(solver_of(&angles, 90.0).unwrap_err().to_string().contains("nothing modulated"));
+    }
+
     fn tiny(axis: &str) -> Instrument {
         let text = include_str!("../../../instruments/fors1.toml")
             .replace("nx = 2048", "nx = 96")
@@ -1621,6 +1694,7 @@ mod tests {
             let set = FrameSet {
                 filter: "V".into(),
                 angles_deg: angles,
+                hwp_sweep_deg: 0.0,
                 data,
                 files,
                 nx: g.nx,
@@ -1667,6 +1741,7 @@ mod tests {
             let set = FrameSet {
                 filter: "V".into(),
                 angles_deg: angles.clone(),
+                hwp_sweep_deg: 0.0,
                 data,
                 files,
                 nx: g.nx,

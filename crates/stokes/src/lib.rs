@@ -39,6 +39,12 @@ pub enum Error {
     DuplicateAngle { deg: f64, first: usize, second: usize },
     #[error("the HWP angles do not constrain both Q and U (all angles give the same modulation modulo 45 deg)")]
     Degenerate,
+    #[error(
+        "the plate's motion leaves nothing modulated: exposure {index} swept {sweep_deg} deg of plate angle \
+         (a sweep d keeps sin(2d)/(2d) of the modulation, none at 90 deg), and Q and U cannot be solved; \
+         check the exposures' begin and end angles"
+    )]
+    NoModulation { index: usize, sweep_deg: f64 },
     #[error("{what} has {got} values but there are {expected} HWP angles")]
     LengthMismatch { what: &'static str, got: usize, expected: usize },
     #[error("total flux f_O + f_E = {total} at HWP angle index {index} is not positive")]

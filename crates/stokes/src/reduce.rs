@@ -48,6 +48,8 @@ pub struct Measurement {
     sigma_o: Vec<f64>,
     sigma_e: Vec<f64>,
     poisson: bool,
+    /// Each exposure's plate sweep (rad) when the plate turned during it; empty: fixed.
+    sweep: Vec<f64>,
 }
 
 /// Which estimator gave `Q/I`, `U/I`.
@@ -282,7 +284,31 @@ impl Measurement {
         check_total(&f_o, &f_e)?;
         // Duplicated, degenerate angle sets: the solver's checks are the one place for them.
         StokesSolver::new(&theta)?;
-        Ok(Self { theta, f_o, f_e, sigma_o, sigma_e, poisson })
+        Ok(Self { theta, f_o, f_e, sigma_o, sigma_e, poisson, sweep: Vec::new() })
+    }
+
+    /// The same fluxes taken while the plate turned uniformly: exposure `i` through
+    /// `sweep[i]` rad about its angle in [`Self::theta`] (the middle angle). The reduction then
+    /// solves `eq:system` with the averaged modulation ([`StokesSolver::with_sweeps`]).
+    /// Errors: a sweep per angle is needed, finite, and not one that leaves nothing modulated.
+    pub fn with_sweeps(mut self, sweep: Vec<f64>) -> Result<Self, Error> {
+        StokesSolver::with_sweeps(&self.theta, &sweep)?;
+        self.sweep = if sweep.iter().all(|&d| d == 0.0) { Vec::new() } else { sweep };
+        Ok(self)
+    }
+
+    /// Each exposure's plate sweep (rad); empty for a fixed plate.
+    pub fn sweeps(&self) -> &[f64] {
+        &self.sweep
+    }
+
+    /// The one solver of this measurement's angles and sweeps.
+    fn solver(&self) -> Result<StokesSolver, Error> {
+        if self.sweep.is_empty() {
+            StokesSolver::new(&self.theta)
+        } else {
+            StokesSolver::with_sweeps(&self.theta, &self.sweep)
+        }
     }
 
     /// HWP angles (rad).
@@ -440,7 +466,7 @@ fn check_len(what: &'static str, got: usize, expected: usize) -> Result<(), Erro
 /// ```
 pub fn reduce(m: &Measurement) -> Result<Reduction, Error> {
     let n = m.theta.len();
-    let solver = StokesSolver::new(&m.theta)?;
+    let solver = m.solver()?;
     let (f, sigma_f) = m.normalized_differences();
     // F is in [-1, 1] for counts; an error of 1e150 (errors 1e150 times the fluxes) says that
     // nothing was measured, and its square (the variances below) would overflow to inf.

@@ -133,6 +133,53 @@ impl StokesSolver {
     /// assert!(StokesSolver::new(&[0.0, 2.0 * std::f64::consts::PI]).is_err());
     /// ```
     pub fn new(theta: &[f64]) -> Result<Self, Error> {
+        Self::build(theta, None)
+    }
+
+    /// Prepare the solver for exposures during which the plate turned uniformly: exposure `i`
+    /// from `theta_i - sweep_i / 2` to `theta_i + sweep_i / 2` (rad; `theta` the middle
+    /// angles). Each exposure's `F_i` is then `e_i (Q cos 4theta_i + U sin 4theta_i)` with the
+    /// modulation efficiency `e_i = sin(2 sweep_i) / (2 sweep_i)`
+    /// ([`mueller::hwp_sweep_efficiency`]: the mean of `cos 4theta`, `sin 4theta` over the
+    /// motion), so the design matrix of `eq:system` is `[e cos 4theta, e sin 4theta]` and its
+    /// least-squares solution replaces `eq:Q`, `eq:U`. With equal sweeps on the optimal set
+    /// that is the Fourier sums divided by `e`. All sweeps zero is [`Self::new`], bit for bit.
+    ///
+    /// Errors as [`Self::new`], and [`Error::NoModulation`] when the design is singular because
+    /// the plate turned through a whole modulation period (90 deg: `e = 0`) in the exposures
+    /// that would have constrained `Q` or `U`.
+    ///
+    /// ```
+    /// use stokes::StokesSolver;
+    /// // 16 exposures of 22.5 deg each (two turns of 8): F_i carries 0.9003 of the modulation,
+    /// // and the swept design gives q, u back; the fixed plate's solution is 0.9003 of them.
+    /// let sweep = 22.5f64.to_radians();
+    /// let theta: Vec<f64> = (0..16).map(|k| (11.25 + 22.5 * k as f64).to_radians()).collect();
+    /// let e = (2.0 * sweep).sin() / (2.0 * sweep);
+    /// let f: Vec<f64> = theta.iter().map(|t| e * (0.01 * (4.0 * t).cos() + 0.02 * (4.0 * t).sin())).collect();
+    /// let (q, u) = StokesSolver::with_sweeps(&theta, &[sweep; 16]).unwrap().solve(&f);
+    /// assert!((q - 0.01).abs() < 1e-15 && (u - 0.02).abs() < 1e-15);
+    /// let (q, _) = StokesSolver::new(&theta).unwrap().solve(&f);
+    /// assert!((q / 0.01 - 0.9003163161571061).abs() < 1e-12);
+    /// // A plate that turns 90 deg in every exposure modulates nothing.
+    /// assert!(StokesSolver::with_sweeps(&theta, &[90f64.to_radians(); 16]).is_err());
+    /// ```
+    pub fn with_sweeps(theta: &[f64], sweep: &[f64]) -> Result<Self, Error> {
+        if sweep.len() != theta.len() {
+            return Err(Error::LengthMismatch { what: "HWP sweep", got: sweep.len(), expected: theta.len() });
+        }
+        for (i, &d) in sweep.iter().enumerate() {
+            if !d.is_finite() {
+                return Err(Error::NonFinite { what: "HWP sweep", index: i, value: d });
+            }
+        }
+        if sweep.iter().all(|&d| d == 0.0) {
+            return Self::build(theta, None);
+        }
+        Self::build(theta, Some(sweep))
+    }
+
+    fn build(theta: &[f64], sweep: Option<&[f64]>) -> Result<Self, Error> {
         let n = theta.len();
         if n < 2 {
             return Err(Error::TooFewAngles(n));
@@ -163,8 +210,15 @@ impl StokesSolver {
         if let Some((i, j)) = worst {
             return Err(Error::DuplicateAngle { deg: theta[j].to_degrees(), first: i, second: j });
         }
-        let c4: Vec<f64> = theta.iter().map(|t| (4.0 * t).cos()).collect();
-        let s4: Vec<f64> = theta.iter().map(|t| (4.0 * t).sin()).collect();
+        let mut c4: Vec<f64> = theta.iter().map(|t| (4.0 * t).cos()).collect();
+        let mut s4: Vec<f64> = theta.iter().map(|t| (4.0 * t).sin()).collect();
+        if let Some(sweep) = sweep {
+            for i in 0..n {
+                let e = mueller::hwp_sweep_efficiency(sweep[i]);
+                c4[i] *= e;
+                s4[i] *= e;
+            }
+        }
         let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
         for i in 0..n {
             a += c4[i] * c4[i];
@@ -172,14 +226,41 @@ impl StokesSolver {
             c += s4[i] * s4[i];
         }
         let det = a * c - b * b;
+        if sweep.is_some() {
+            // The fixed plate's design at the same angles: if it is regular, a singular swept
+            // one lost its modulation to the motion.
+            let (mut a0, mut b0, mut c0) = (0.0, 0.0, 0.0);
+            for t in theta {
+                let (s, c) = (4.0 * t).sin_cos();
+                a0 += c * c;
+                b0 += c * s;
+                c0 += s * s;
+            }
+            let fixed_regular = a0 * c0 - b0 * b0 > 1e-12 * (a0 + c0) * (a0 + c0);
+            if fixed_regular && !(det > 1e-12 * (a0 + c0) * (a0 + c0)) {
+                let sweep = sweep.unwrap_or_default();
+                let (i, d) = sweep
+                    .iter()
+                    .enumerate()
+                    .min_by(|x, y| {
+                        mueller::hwp_sweep_efficiency(*x.1).abs().total_cmp(&mueller::hwp_sweep_efficiency(*y.1).abs())
+                    })
+                    .map(|(i, d)| (i, *d))
+                    .unwrap_or((0, 0.0));
+                return Err(Error::NoModulation { index: i, sweep_deg: d.to_degrees() });
+            }
+        }
         if det <= 1e-12 * (a + c) * (a + c) {
             return Err(Error::Degenerate);
         }
         let inv = [[c / det, -b / det], [-b / det, a / det]];
         let cq: Vec<f64> = (0..n).map(|i| inv[0][0] * c4[i] + inv[0][1] * s4[i]).collect();
         let cu: Vec<f64> = (0..n).map(|i| inv[1][0] * c4[i] + inv[1][1] * s4[i]).collect();
-        let optimal =
-            n.is_multiple_of(4) && theta.iter().enumerate().all(|(i, &t)| ((t - i as f64 * PI / 8.0).abs()) < 1e-9);
+        // The Fourier sums are the solution only with equal efficiencies (a common sweep).
+        let common_sweep = sweep.is_none_or(|d| d.iter().all(|&x| x == d[0]));
+        let optimal = common_sweep
+            && n.is_multiple_of(4)
+            && theta.iter().enumerate().all(|(i, &t)| ((t - i as f64 * PI / 8.0).abs()) < 1e-9);
         Ok(Self { theta: theta.to_vec(), c4, s4, cq, cu, inv, optimal })
     }
 
@@ -193,7 +274,8 @@ impl StokesSolver {
         &self.theta
     }
 
-    /// `cos 4theta_i` and `sin 4theta_i`.
+    /// `cos 4theta_i` and `sin 4theta_i`, each times the exposure's modulation efficiency
+    /// when the plate turned during it ([`Self::with_sweeps`]).
     pub fn modulation(&self) -> (&[f64], &[f64]) {
         (&self.c4, &self.s4)
     }
@@ -406,6 +488,53 @@ mod tests {
         assert!(matches!(StokesSolver::new(&[0.0, 2.0 * PI]), Err(Error::DuplicateAngle { .. })));
         assert!(matches!(StokesSolver::new(&[0.0, PI / 2.0]), Err(Error::Degenerate)));
         assert!(matches!(StokesSolver::new(&[0.0, PI / 4.0]), Err(Error::Degenerate)));
+    }
+
+    /// A plate turning through 22.5 deg per exposure, 16 exposures over two turns of 8
+    /// positions: F_i from the fixed plate's fluxes averaged over 4000 sub-steps of each
+    /// exposure's motion (midpoint rule, written here) solve to the star's q, u with the swept
+    /// design (to the sub-steps' error), while the fixed plate's design gives them times
+    /// sin(2d)/(2d) = 0.9003; with a sweep of 90 deg in every exposure nothing is modulated and
+    /// the solver says so, where the fixed design at the same angles is regular.
+    #[test]
+    fn swept_design_recovers_qu_and_the_fixed_one_is_low_by_sinc() {
+        let (q0, u0) = (0.021, -0.013);
+        let d = 22.5f64.to_radians();
+        let theta: Vec<f64> = (0..16).map(|k| (11.25 + 22.5 * k as f64).to_radians()).collect();
+        let train = mueller::DualBeam::ideal();
+        let s = mueller::stokes_qu(1.0, q0, u0);
+        let f: Vec<f64> = theta
+            .iter()
+            .map(|&t| {
+                let n = 4000;
+                let (mut fo, mut fe) = (0.0, 0.0);
+                for k in 0..n {
+                    let a = t - 0.5 * d + (k as f64 + 0.5) * d / n as f64;
+                    let b = train.fluxes(&s, &[a])[0];
+                    fo += b.f_o;
+                    fe += b.f_e;
+                }
+                normalized_difference(fo, fe)
+            })
+            .collect();
+        let (q, u) = StokesSolver::with_sweeps(&theta, &[d; 16]).unwrap().solve(&f);
+        assert_relative_eq!(q, q0, epsilon = 1e-8);
+        assert_relative_eq!(u, u0, epsilon = 1e-8);
+        let (qf, uf) = StokesSolver::new(&theta).unwrap().solve(&f);
+        let e = (2.0 * d).sin() / (2.0 * d);
+        assert_relative_eq!(qf, e * q0, epsilon = 1e-8);
+        assert_relative_eq!(uf, e * u0, epsilon = 1e-8);
+        assert_relative_eq!(e, 0.9003163161571061, epsilon = 1e-15);
+        // No motion is the fixed solver, bit for bit.
+        assert_eq!(StokesSolver::with_sweeps(&theta, &[0.0; 16]).unwrap(), StokesSolver::new(&theta).unwrap());
+        let quarter = 90f64.to_radians();
+        assert!(StokesSolver::new(&theta).is_ok());
+        match StokesSolver::with_sweeps(&theta, &[quarter; 16]) {
+            Err(Error::NoModulation { sweep_deg, .. }) => assert!((sweep_deg - 90.0).abs() < 1e-9),
+            other => panic!("{other:?}"),
+        }
+        assert!(matches!(StokesSolver::with_sweeps(&theta, &[d; 3]), Err(Error::LengthMismatch { .. })));
+        assert!(matches!(StokesSolver::with_sweeps(&theta, &[f64::NAN; 16]), Err(Error::NonFinite { .. })));
     }
 
     #[test]

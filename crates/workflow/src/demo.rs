@@ -181,6 +181,7 @@ fn map_through_frames(
         effects: sim::scene::Effects { photon_noise: true, read_noise: true, ..Default::default() },
         frame_shifts_px: vec![],
         telescope: None,
+        hwp_motion: None,
     }
     .checked(Path::new("<demo scene>"))?;
     progress(Progress::Message(&format!("{}: simulating frames", c.name)));
@@ -359,6 +360,7 @@ pub fn corner_star(
         },
         frame_shifts_px: vec![],
         telescope: None,
+        hwp_motion: None,
     };
     std::fs::create_dir_all(dir).map_err(|err| Error::Create { path: dir.to_path_buf(), err })?;
     let sc = scene.checked(&dir.join("standard.toml"))?;

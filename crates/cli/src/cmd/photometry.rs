@@ -169,6 +169,12 @@ pub fn run(a: Args) -> Result<()> {
             "warning: o/e offset measured from the stars: ({dx:.2}, {dy:.2}) px; which image is the ordinary one cannot be measured (taken with dx > 0): if it is the other, Q and U change sign. Set [polarimetry] oe_offset_px in the instrument file."
         );
     }
+    if let Some((rms, n)) = g.cameras.as_ref().and_then(|c| c.measured) {
+        eprintln!(
+            "warning: camera transform measured from {n} star pairs, residual RMS {rms:.3} px: {:?}",
+            g.cameras.as_ref().and_then(|c| c.transform).unwrap_or_default()
+        );
+    }
     let opts = skyfield::photometry::PhotOptions {
         weighting: match a.aperture_weights {
             WeightsArg::Exact => skyfield::aperture::Weighting::Exact,

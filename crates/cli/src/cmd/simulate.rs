@@ -8,7 +8,11 @@ use std::path::PathBuf;
 /// truth.json with every input. An instrument whose [format] has chips (fors2, efosc2) gets
 /// raw chip files instead, one per chip and frame with pre/overscan on a bias level, and bias
 /// frames in OUT/bias/ when no overscan removes the bias (make a master bias of them with
-/// `instpol master-bias`). Only the effects the scene's [effects] table lists are computed.
+/// `instpol master-bias`). A two-camera instrument (layout = "two_cameras", the built-in
+/// moptop) gets one file per camera and frame. A scene's hwp_motion = { sweep_deg = 22.5 }
+/// turns the plate through that range (deg) during each exposure, and the frames carry the
+/// range under the instrument's [polarimetry.rotation] keywords (begin/end angles or rotor
+/// position). Only the effects the scene's [effects] table lists are computed.
 /// Scene format: see the `sim::scene` docs and instruments/scenes/*.toml; fluxes in e- per
 /// exposure, polarization as fractions, angles in degrees.
 ///
