@@ -104,6 +104,8 @@ enum Command {
     Raytrace(cmd::raytrace::Args),
     #[command(about = "Fit a telescope M3 Mueller model to standard stars against the parallactic angle")]
     FitStandards(cmd::fit_standards::Args),
+    #[command(hide = true, about = "Every command's arguments and their kinds, as JSON (for tests and scripts)")]
+    CliSpec(cmd::cli_spec::Args),
 }
 
 fn main() {
@@ -111,13 +113,7 @@ fn main() {
     // every subcommand, not only where an argument remembered to say so. clap's own test for
     // a negative number knows no exponent (`-1e-3` was read as the flags -1, -e, ...), so the
     // numeric options take any value that starts with '-' and their parser judges it.
-    let numeric = |a: &clap::Arg| {
-        use std::any::TypeId;
-        let t = a.get_value_parser().type_id();
-        [TypeId::of::<f64>(), TypeId::of::<usize>(), TypeId::of::<u64>(), TypeId::of::<u32>(), TypeId::of::<i64>()]
-            .iter()
-            .any(|id| t == *id)
-    };
+    let numeric = util::is_numeric_arg;
     let parsed = Cli::command()
         .mut_subcommands(|s| {
             s.allow_negative_numbers(true).mut_args(|a| {
@@ -160,6 +156,7 @@ fn main() {
     );
     let run = move || match cli.command {
         Command::Demo(a) => cmd::demo::run(a),
+        Command::CliSpec(a) => cmd::cli_spec::run(a),
         Command::Scan(a) => cmd::night::run_scan(a),
         Command::Run(a) => cmd::night::run_run(a),
         Command::Trend(a) => cmd::trend::run(a),
@@ -331,14 +328,7 @@ mod help_tests {
         "index", "threads", "trials", "times", "ppm", "chi^2", "minute",
     ];
 
-    /// The numeric value types, as `main` recognizes them for negative values.
-    fn is_numeric(a: &clap::Arg) -> bool {
-        use std::any::TypeId;
-        let t = a.get_value_parser().type_id();
-        [TypeId::of::<f64>(), TypeId::of::<usize>(), TypeId::of::<u64>(), TypeId::of::<u32>(), TypeId::of::<i64>()]
-            .iter()
-            .any(|id| t == *id)
-    }
+    use crate::util::is_numeric_arg as is_numeric;
 
     #[test]
     fn every_command_help_has_an_example_and_units_for_its_numbers() {

@@ -144,6 +144,17 @@ pub fn report_input_hashes() {
     }
 }
 
+/// Whether an argument takes a number (a float or an integer type): such an option takes a
+/// value that starts with '-' (`main`), its help must name a unit, and the hostile-input
+/// generator gives it the numeric edge values (`instpol cli-spec`).
+pub fn is_numeric_arg(a: &clap::Arg) -> bool {
+    use std::any::TypeId;
+    let t = a.get_value_parser().type_id();
+    [TypeId::of::<f64>(), TypeId::of::<usize>(), TypeId::of::<u64>(), TypeId::of::<u32>(), TypeId::of::<i64>()]
+        .iter()
+        .any(|id| t == *id)
+}
+
 /// `--bin` must be a number of pixels that fits the detector (1 ..= its longer side): a bin of
 /// 1e11 px overflowed the bin-count arithmetic (a panic) before it was checked.
 pub fn check_bin(bin: usize, inst: &instrument::Instrument) -> Result<()> {

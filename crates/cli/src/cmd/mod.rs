@@ -5,6 +5,7 @@ pub mod calibrate;
 pub mod calibrate_mueller;
 pub mod calibrate_stars;
 pub mod catalog;
+pub mod cli_spec;
 pub mod correct;
 pub mod demo;
 pub mod explain;
