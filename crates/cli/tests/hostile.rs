@@ -58,15 +58,11 @@ const NOT_YET: &[(&str, &str)] = &[
     ("scan", "needs a night of raw chip files (crates/cli/tests/night.rs tries its bad inputs)"),
     ("run", "needs a scanned night (night.rs)"),
     ("trend", "needs run nights (night.rs)"),
-    ("master-bias", "needs raw chip files (raw_fors2.rs)"),
-    ("master-flat", "needs raw chip files (raw_fors2.rs)"),
     ("calibrate-stars", "needs catalogs of dithered pointings (calibrate_stars.rs)"),
     ("calibrate-mueller", "needs Mueller maps (calibrate_mueller.rs)"),
     ("explain", "needs a Mueller-field calibration (explain.rs)"),
     ("plan", "needs an instrument with a Mueller model; slow per case (plot_publication.rs)"),
     ("import-map", "needs an imported map file (import_map.rs)"),
-    ("zero-angle", "needs a polarized standard's frames (zero_angle_stars.rs)"),
-    ("fit-standards", "needs a standards table (fit_standards.rs)"),
 ];
 
 /// The numeric flags of every command, from the binary's own definition (`instpol cli-spec`).
@@ -121,6 +117,14 @@ coords = "pixel"
 flux_e = 200000
 p = 0.0
 fwhm_arcsec = 8.0
+[[stars]]
+x = 20
+y = 24
+coords = "pixel"
+flux_e = 200000
+p = 0.05
+chi_deg = 30
+fwhm_arcsec = 8.0
 [effects]
 photon_noise = true
 read_noise_e = 3.0
@@ -163,6 +167,22 @@ fn fixture() -> Fixture {
         &f.s("cal.fits"),
         "--json",
     ]);
+    // Raw chip files of the shrunk FORS2 (bias and flats) for the masters.
+    std::fs::create_dir_all(f.p("raw")).unwrap();
+    std::fs::write(f.p("fors2_tiny.toml"), common::raw::fors2_tiny_text()).unwrap();
+    let raw = common::raw::write_raw_set(&f.p("raw"), &common::raw::fors2_tiny());
+    let list = |v: &[PathBuf]| v.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join("\n");
+    std::fs::write(f.p("raw/bias.list"), list(&raw.bias)).unwrap();
+    std::fs::write(f.p("raw/flats.list"), list(&raw.flats)).unwrap();
+    // Standards through an aluminium M3 (factor 0.86, offset 40 deg: Wiersema et al. 2018's
+    // model), q, u = 3.5 % turned by the parallactic angle, at twelve angles.
+    let mut t = String::from("star,parallactic_deg,q,sigma_q,u,sigma_u,wavelength_um,filter\n");
+    for k in 0..12 {
+        let pa = -160.0 + 29.0 * k as f64;
+        let a = 2.0 * (40f64 - pa).to_radians();
+        t += &format!("S{k},{pa},{},0.0002,{},0.0002,0.55,V\n", 0.035 * a.cos(), -0.035 * a.sin());
+    }
+    std::fs::write(f.p("standards.csv"), t).unwrap();
     // A second filter for the wavelength law: the same calibration relabelled B at 440 nm.
     std::fs::copy(f.p("cal.fits"), f.p("cal2.fits")).unwrap();
     patch_card(&f.p("cal2.fits"), "IP FILTER", "'B'");
@@ -224,7 +244,55 @@ fn templates(f: &Fixture) -> Vec<Template> {
         v
     };
     let star = ["--instrument", &ins, "--x", "48", "--y", "24", "--aperture", "3", "--annulus", "4,6"];
+    let lines = |name: &str| -> Vec<String> {
+        std::fs::read_to_string(f.p(name)).unwrap().lines().map(str::to_string).collect()
+    };
+    let (bias, flats) = (lines("raw/bias.list"), lines("raw/flats.list"));
+    let tiny = f.s("fors2_tiny.toml");
     vec![
+        Template {
+            command: "master-bias",
+            args: [s(&["master-bias", "--instrument", &tiny, "--out", "{OUT}", "--json"]), bias.clone()].concat(),
+            numeric: vec![],
+            files: vec![FileArg::Positional(6), FileArg::Flag("--instrument")],
+            out_name: Some("bias.fits"),
+        },
+        Template {
+            command: "master-flat",
+            args: [s(&["master-flat", "--instrument", &tiny, "--out", "{OUT}", "--json"]), flats].concat(),
+            numeric: vec![],
+            files: vec![FileArg::Positional(6), FileArg::Flag("--instrument")],
+            out_name: Some("flat.fits"),
+        },
+        Template {
+            command: "zero-angle",
+            args: with_frames(s(&[
+                "zero-angle",
+                "--instrument",
+                &ins,
+                "--x",
+                "20",
+                "--y",
+                "24",
+                "--chi-deg",
+                "30",
+                "--aperture",
+                "3",
+                "--annulus",
+                "4,6",
+                "--json",
+            ])),
+            numeric: vec![],
+            files: vec![FileArg::Positional(14), FileArg::Flag("--instrument")],
+            out_name: None,
+        },
+        Template {
+            command: "fit-standards",
+            args: s(&["fit-standards", &f.s("standards.csv"), "--model", "wiersema", "--json"]),
+            numeric: vec![],
+            files: vec![FileArg::Positional(1)],
+            out_name: None,
+        },
         Template {
             command: "stokes",
             args: s(&["stokes", "--input", &f.s("f.csv"), "--json"]),
