@@ -48,6 +48,10 @@ const EDGES: &[&str] = &[
     "",
 ];
 
+/// Values given to every text option (a number or a list the command parses itself:
+/// `--aperture 2.5fwhm`, `--annulus 12,20`, `--parang 10,20`, `--sky EMPTY:1.7:-53`).
+const TEXT_EDGES: &[&str] = &["", "NaN", "inf,inf", "-1", "1e308", "abc", ",", "1,2,3,4,5,6", "0:0:0", "\u{1F600}"];
+
 /// TOML literals given to every numeric key of a scene.
 const TOML_EDGES: &[&str] = &["0", "-0.0", "-1", "nan", "inf", "-inf", "1e308", "1e-308", "1e12", "\"text\""];
 
@@ -65,8 +69,9 @@ const NOT_YET: &[(&str, &str)] = &[
     ("import-map", "needs an imported map file (import_map.rs)"),
 ];
 
-/// The numeric flags of every command, from the binary's own definition (`instpol cli-spec`).
-fn numeric_flags() -> BTreeMap<String, Vec<String>> {
+/// The flags of `kind` (`number`, `text`) of every command, from the binary's own definition
+/// (`instpol cli-spec`).
+fn flags_of_kind(kind: &str) -> BTreeMap<String, Vec<String>> {
     let (code, out, err) = common::run(&["cli-spec"]);
     assert_eq!(code, 0, "cli-spec: {err}");
     let spec: serde_json::Value = serde_json::from_str(&out).unwrap();
@@ -78,12 +83,17 @@ fn numeric_flags() -> BTreeMap<String, Vec<String>> {
                 .as_array()
                 .unwrap()
                 .iter()
-                .filter(|a| a["kind"] == "number")
+                .filter(|a| a["kind"] == kind)
                 .filter_map(|a| a["long"].as_str().map(str::to_string))
                 .collect();
             (c["name"].as_str().unwrap().to_string(), flags)
         })
         .collect()
+}
+
+/// The numeric flags of every command ([`flags_of_kind`]).
+fn numeric_flags() -> BTreeMap<String, Vec<String>> {
+    flags_of_kind("number")
 }
 
 /// The valid inputs every case starts from, made by the binary itself.
@@ -507,6 +517,7 @@ fn files_in(args: &[String]) -> Vec<PathBuf> {
 fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
     let mut out = vec![];
     let spec = numeric_flags();
+    let texts = flags_of_kind("text");
     let n = AtomicUsize::new(0);
     let new_dir = || {
         let d = root.join(format!("c{:04}", n.fetch_add(1, Ordering::Relaxed)));
@@ -531,6 +542,23 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
             let dir = new_dir();
             let (args, outputs) = fill(&t.args, &dir);
             out.push(Case { command: t.command, what: "valid".into(), inputs: files_in(&args), args, outputs, dir });
+        }
+        // Every text option at its edges (the instrument's name is a file argument's business).
+        for flag in texts.get(&t.args[0]).into_iter().flatten().filter(|f| *f != "--instrument") {
+            for v in TEXT_EDGES {
+                let dir = new_dir();
+                let mut a = t.args.clone();
+                set_flag(&mut a, flag, v);
+                let (args, outputs) = fill(&a, &dir);
+                out.push(Case {
+                    command: t.command,
+                    what: format!("{flag} {v:?}"),
+                    inputs: files_in(&args),
+                    args,
+                    outputs,
+                    dir,
+                });
+            }
         }
         for flag in &t.numeric {
             for v in EDGES {
