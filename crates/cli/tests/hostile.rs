@@ -518,6 +518,7 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
     let mut out = vec![];
     let spec = numeric_flags();
     let texts = flags_of_kind("text");
+    let paths = flags_of_kind("path");
     let n = AtomicUsize::new(0);
     let new_dir = || {
         let d = root.join(format!("c{:04}", n.fetch_add(1, Ordering::Relaxed)));
@@ -542,6 +543,36 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
             let dir = new_dir();
             let (args, outputs) = fill(&t.args, &dir);
             out.push(Case { command: t.command, what: "valid".into(), inputs: files_in(&args), args, outputs, dir });
+        }
+        // Every input-file option the command has but its valid invocation does not use
+        // (`--bias`, `--flat`, `--standards`, ...), given each hostile variant; outputs are
+        // named by the convention the CLI's own test checks (out*, plot*, *-out, *-dir).
+        let is_output = |f: &str| {
+            f.starts_with("--out")
+                || f.starts_with("--plot")
+                || f.ends_with("-out")
+                || f.ends_with("-dir")
+                || f == "--products"
+        };
+        for flag in paths.get(&t.args[0]).into_iter().flatten() {
+            if is_output(flag) || t.args.contains(flag) {
+                continue;
+            }
+            for kind in FILE_VARIANTS {
+                let dir = new_dir();
+                let mut a = t.args.clone();
+                let v = variant(kind, &f.p("map.fits"), &dir);
+                set_flag(&mut a, flag, v.to_str().unwrap());
+                let (args, outputs) = fill(&a, &dir);
+                out.push(Case {
+                    command: t.command,
+                    what: format!("{flag} {kind}"),
+                    inputs: files_in(&args),
+                    args,
+                    outputs,
+                    dir,
+                });
+            }
         }
         // Every text option at its edges (the instrument's name is a file argument's business).
         for flag in texts.get(&t.args[0]).into_iter().flatten().filter(|f| *f != "--instrument") {
@@ -885,6 +916,17 @@ fn hostile_inputs() {
     let mut results = results.into_inner().unwrap();
     results.sort_by_key(|r| r.0);
     let mut failures: Vec<String> = results.iter().filter_map(|r| r.2.clone()).collect();
+    // A file that is not what its argument takes (empty, text, garbage, a folder, missing, a
+    // loop, /dev/null) is never accepted with exit 0, even by an option the run did not need.
+    // (A truncated text file can be a valid shorter one: not counted.)
+    for (k, code, _) in &results {
+        let c = &cases[*k];
+        let hostile_file =
+            FILE_VARIANTS.iter().filter(|v| **v != "truncated").any(|v| c.what.ends_with(&format!(" {v}")));
+        if hostile_file && *code == 0 && c.command != "simulate (scene keys)" {
+            failures.push(format!("{}: {} -> exit 0: a file that is not one was accepted", c.command, c.what));
+        }
+    }
     // The valid invocations must succeed (exit 0), or the cases test nothing.
     for (k, code, _) in &results {
         if cases[*k].what == "valid" && *code != 0 {
@@ -921,6 +963,13 @@ fn hostile_inputs() {
     }
     text += &format!("| **all** | {} | {} | {} | {} | {} |\n", tot[0], tot[1], tot[2], tot[3], tot[4]);
     println!("{text}");
+    if std::env::var_os("HOSTILE_ZERO").is_some() {
+        for (k, code, _) in &results {
+            if *code == 0 && cases[*k].what != "valid" {
+                println!("exit0: {} {}", cases[*k].command, cases[*k].what);
+            }
+        }
+    }
     println!("{} cases on {threads} threads in {:.1} s", results.len(), t0.elapsed().as_secs_f64());
     if let Ok(p) = std::env::var("HOSTILE_TABLE") {
         std::fs::write(p, &text).unwrap();

@@ -218,6 +218,10 @@ pub fn run(a: Args) -> Result<()> {
     let inst = instrument::Instrument::load(&a.instrument)?;
     crate::util::check_bin(a.bin, &inst)?;
     let (map, inputs) = if let Some(m) = &a.map {
+        // A map is reduced already: options that read frames would be ignored without a word.
+        if let Some(opt) = a.frame.first_given() {
+            bail!("{opt} applies to frames, not to --map {}: the map is reduced already", m.display());
+        }
         (
             skyfield::StokesMap::read_uncorrected(m)
                 .with_context(|| format!("cannot read Stokes map {}", m.display()))?,

@@ -164,9 +164,14 @@ pub fn run(a: Args) -> Result<()> {
         "both" => vec![ModelKind::Wiersema, ModelKind::Oxide],
         other => bail!("--model '{other}': use wiersema, oxide or both"),
     };
-    if !(a.clip.is_finite() && a.clip >= 0.0) {
-        bail!("--clip {} must be >= 0 (0: no flagging)", a.clip);
+    // A threshold below one sigma flags points within their errors: the fit would be made of
+    // whatever few survive.
+    if !(a.clip.is_finite() && (a.clip == 0.0 || a.clip >= 1.0)) {
+        bail!("--clip {}: give 0 (no flagging) or a threshold of at least 1 sigma", a.clip);
     }
+    // The model to save is checked whether or not a file is asked for: a misspelt name must
+    // not pass because nothing is written this time.
+    save_model(&a.save_model)?;
     let error_scaling: ErrorScaling = a.error_scaling.parse().context("--error-scaling")?;
     let inst = match &a.instrument {
         Some(name) => Some(instrument::Instrument::load(name).with_context(|| format!("--instrument {name}"))?),
@@ -216,6 +221,15 @@ pub fn run(a: Args) -> Result<()> {
     Ok(())
 }
 
+/// The model `--save-model` names.
+fn save_model(name: &str) -> Result<ModelKind> {
+    Ok(match name.trim().to_ascii_lowercase().as_str() {
+        "wiersema" => ModelKind::Wiersema,
+        "oxide" | "physical" => ModelKind::Oxide,
+        other => bail!("--save-model '{other}': use wiersema or oxide"),
+    })
+}
+
 /// The calibration files asked for (--output, --output-dir), written atomically; their paths.
 fn write_calibrations(
     a: &Args,
@@ -231,11 +245,7 @@ fn write_calibrations(
         return Ok(vec![]);
     }
     crate::util::inputs(a.files.iter().map(|p| p.as_path()).chain(a.field_cal.as_deref()))?;
-    let save = match a.save_model.trim().to_ascii_lowercase().as_str() {
-        "wiersema" => ModelKind::Wiersema,
-        "oxide" | "physical" => ModelKind::Oxide,
-        other => bail!("--save-model '{other}': use wiersema or oxide"),
-    };
+    let save = save_model(&a.save_model)?;
     let instrument = match (&a.instrument, inst) {
         (Some(name), Some(inst)) => {
             match inst.telescope.as_ref().map(|t| t.focus) {

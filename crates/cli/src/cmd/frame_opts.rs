@@ -27,6 +27,19 @@ pub struct FrameOpts {
 
 impl FrameOpts {
     /// The library's reading options.
+    /// The first frame-reading option given (`--bias`, `--flat`, `--hwp-angles`,
+    /// `--assembled`), for a command that was given no frames to apply it to.
+    pub fn first_given(&self) -> Option<&'static str> {
+        [
+            (self.bias.is_some(), "--bias"),
+            (self.flat.is_some(), "--flat"),
+            (self.hwp_angles.is_some(), "--hwp-angles"),
+            (self.assembled, "--assembled"),
+        ]
+        .into_iter()
+        .find_map(|(given, name)| given.then_some(name))
+    }
+
     pub fn read_options(&self) -> Result<skyfield::calib::ReadOptions> {
         let hwp_angles_deg = match &self.hwp_angles {
             None => None,

@@ -37,8 +37,8 @@ fn read_raytrace(path: &Path) -> Result<Vec<(f64, f64)>> {
         let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
         let pr: Profile = serde_json::from_str(&text)
             .with_context(|| format!("{}: expected {{\"radius_arcmin\": [...], \"p\": [...]}}", path.display()))?;
-        if pr.radius_arcmin.len() != pr.p.len() {
-            anyhow::bail!("{}: radius_arcmin and p have different lengths", path.display());
+        if pr.radius_arcmin.is_empty() || pr.radius_arcmin.len() != pr.p.len() {
+            anyhow::bail!("{}: radius_arcmin and p must be of one length, not empty", path.display());
         }
         return Ok(pr.radius_arcmin.into_iter().zip(pr.p).collect());
     }
@@ -55,6 +55,9 @@ fn read_raytrace(path: &Path) -> Result<Vec<(f64, f64)>> {
                 .with_context(|| format!("{}: row {}: column {} is not a number", path.display(), i + 2, k + 1))
         };
         v.push((num(0)?, num(1)?));
+    }
+    if v.is_empty() {
+        anyhow::bail!("{}: no profile rows (expected a header line, then r_arcmin,p rows)", path.display());
     }
     Ok(v)
 }

@@ -197,6 +197,11 @@ pub fn run(a: Args) -> Result<()> {
             .chain(crate::util::file_arg(&a.instrument))
             .chain(a.standards.as_deref()),
     )?;
+    // A standards file given is read, and so checked, even when no star is looked up in it:
+    // a damaged or mistaken file must not pass because this run did not need it.
+    if let Some(p) = &a.standards {
+        fit::standards::Standards::load(p)?;
+    }
     // Every filter named (frames, files, --filter) must be one: a zero angle is per filter.
     let mut filters: Vec<(String, String)> = a.filter.iter().map(|f| (f.clone(), "--filter".to_string())).collect();
     let mut rows: Vec<MeasuredStandard> = Vec::new();
