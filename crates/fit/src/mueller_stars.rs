@@ -52,6 +52,15 @@ pub fn read_star_fields(
     for i in 0..x.len() {
         let at = format!("{} {}", path.display(), t.row_label(i));
         let vals = [x[i], y[i], q[i], u[i], sq[i], su[i], pt[i], ct[i], st[i]];
+        // Every row here calibrates through its catalogued polarization: an angle without a
+        // degree (an unpolarized star written as a polarized one) is named as such.
+        if pt[i].is_nan() && ct[i].is_finite() {
+            let what = format!(
+                "chi_true_deg = {} but p_true is empty: every star of the table needs its catalogued P (a fraction) and chi",
+                ct[i]
+            );
+            return Err(Error::Row { at, what });
+        }
         if !(vals.iter().all(|v| v.is_finite()) && sq[i] > 0.0 && su[i] > 0.0) || st[i] < 0.0 {
             let what = format!("x, y, q, u, sigma_q, sigma_u, p_true, chi_true_deg, sigma_true = {vals:?}: need finite values and errors > 0");
             return Err(Error::Row { at, what });
@@ -170,6 +179,10 @@ mod tests {
         std::fs::write(&path, format!("{head}\n1,2,0.01,0,1e-4,1e-4,2,30\n")).unwrap();
         let e = read_star_fields(&path, 0.0, None).unwrap_err().to_string();
         assert!(e.contains("stars.csv row 1") && e.contains("p_true"), "{e}");
+        // An angle without its degree is named as what it is.
+        std::fs::write(&path, format!("{head}\n1,2,0.01,0,1e-4,1e-4,0.02,30\n1,2,0.01,0,1e-4,1e-4,,30\n")).unwrap();
+        let e = read_star_fields(&path, 0.0, None).unwrap_err().to_string();
+        assert!(e.contains("stars.csv row 2") && e.contains("p_true is empty"), "{e}");
     }
 
     /// The summary's median is the upper middle of the finite values.
