@@ -668,7 +668,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                     row.flux_e = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum::<f64>() / n as f64;
                     row.f = r.f.clone();
                     // In the sky's frame: the filter's HWP zero angle turns q, u as it turns chi.
-                    let sky = r.qu.rotated(chi_off.to_radians());
+                    let (sky, chi_deg) = r.in_sky_frame(chi_off);
                     row.q = sky.q;
                     row.u = sky.u;
                     row.sigma_q = sky.var_q.sqrt();
@@ -676,7 +676,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                     row.cov_qu = sky.cov_qu;
                     row.p = r.p;
                     row.sigma_p = r.sigma_p;
-                    row.chi_deg = (r.chi.to_degrees() + chi_off).rem_euclid(180.0);
+                    row.chi_deg = chi_deg;
                     // Undetermined (NaN, as every command reports it) where P is at the noise.
                     row.sigma_chi_deg = r.sigma_chi_deg_reported().unwrap_or(f64::NAN);
                     row.a0 = r.a0;

@@ -192,6 +192,28 @@ impl Reduction {
         (self.chi_defined && self.sigma_chi.is_finite() && self.sigma_chi <= SIGMA_CHI_UNDETERMINED)
             .then(|| self.sigma_chi.to_degrees())
     }
+
+    /// `(q, u)` with its covariance and `chi` (deg, in `[0, 180)`) in the sky's frame: the
+    /// plate's zero angle `zero_angle_deg` (the angle instruments tabulate, added to a measured
+    /// chi) added to chi and turning `q, u` with it (`Qu::rotated`); `P` and its error do not
+    /// change. The one turn of a star's reduction into the frame of published standards, for
+    /// `photometry` and `catalog` alike.
+    ///
+    /// ```
+    /// // A star of P = 1 % at the plate at chi = 27.11 deg through FORS2's I_BESS (zero angle
+    /// // 2.89 deg) is at 30 deg on the sky.
+    /// let theta = mueller::optimal_angles(4);
+    /// let f = |t: &f64, s: f64| 1e6 * (1.0 + s * 0.01 * (4.0 * t - 2.0 * 27.11f64.to_radians()).cos());
+    /// let fo = theta.iter().map(|t| f(t, 1.0)).collect();
+    /// let fe = theta.iter().map(|t| f(t, -1.0)).collect();
+    /// let r = stokes::Measurement::poisson(theta, fo, fe).unwrap().reduce().unwrap();
+    /// let (sky, chi_deg) = r.in_sky_frame(2.89);
+    /// assert!((chi_deg - 30.0).abs() < 1e-9);
+    /// assert!((sky.q - 0.01 * 60f64.to_radians().cos()).abs() < 1e-12);
+    /// ```
+    pub fn in_sky_frame(&self, zero_angle_deg: f64) -> (Qu, f64) {
+        (self.qu.rotated(zero_angle_deg.to_radians()), (self.chi.to_degrees() + zero_angle_deg).rem_euclid(180.0))
+    }
 }
 
 impl Measurement {

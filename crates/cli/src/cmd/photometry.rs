@@ -214,7 +214,7 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(w) = skyfield::catalog::zero_angle_warning(&inst, &set.filter) {
         eprintln!("warning: {w}");
     }
-    let sky = r.qu.rotated(offset.to_radians());
+    let (sky, chi_deg) = r.in_sky_frame(offset);
     let record = fit::telescope_cal::standard_record(&a.frames, &inst, &set.filter, star)?;
     let (q, u, var_q, var_u) = (sky.q, sky.u, sky.var_q, sky.var_u);
     let o = Out {
@@ -229,7 +229,7 @@ pub fn run(a: Args) -> Result<()> {
         sigma_u: var_u.max(0.0).sqrt(),
         p: r.p,
         sigma_p: r.sigma_p,
-        chi_deg: (r.chi.to_degrees() + offset).rem_euclid(180.0),
+        chi_deg,
         hwp_chi_offset_deg: offset,
         sigma_chi_deg: r.sigma_chi_deg_reported(),
         n_aperture: ph.n_aperture,
