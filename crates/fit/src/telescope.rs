@@ -315,6 +315,16 @@ impl ModelKind {
             ModelKind::Oxide => "oxide",
         }
     }
+
+    /// The model a person names: `wiersema`, or `oxide` (also `physical`), in any case and
+    /// with blanks around; `None` for anything else.
+    pub fn from_user_name(name: &str) -> Option<ModelKind> {
+        match name.trim().to_ascii_lowercase().as_str() {
+            "wiersema" => Some(ModelKind::Wiersema),
+            "oxide" | "physical" => Some(ModelKind::Oxide),
+            _ => None,
+        }
+    }
 }
 
 pub use mueller::telescope::{exposure_track, parallactic_angle, track_average, BandModel, Track};

@@ -158,11 +158,10 @@ fn mirror(a: &Args, inst: Option<&instrument::Instrument>) -> Result<Mirror> {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let models: Vec<ModelKind> = match a.model.trim().to_ascii_lowercase().as_str() {
-        "wiersema" => vec![ModelKind::Wiersema],
-        "oxide" | "physical" => vec![ModelKind::Oxide],
-        "both" => vec![ModelKind::Wiersema, ModelKind::Oxide],
-        other => bail!("--model '{other}': use wiersema, oxide or both"),
+    let models: Vec<ModelKind> = match ModelKind::from_user_name(&a.model) {
+        Some(m) => vec![m],
+        None if a.model.trim().eq_ignore_ascii_case("both") => vec![ModelKind::Wiersema, ModelKind::Oxide],
+        None => bail!("--model '{}': use wiersema, oxide or both", a.model.trim().to_ascii_lowercase()),
     };
     // A threshold below one sigma flags points within their errors: the fit would be made of
     // whatever few survive.
@@ -223,11 +222,8 @@ pub fn run(a: Args) -> Result<()> {
 
 /// The model `--save-model` names.
 fn save_model(name: &str) -> Result<ModelKind> {
-    Ok(match name.trim().to_ascii_lowercase().as_str() {
-        "wiersema" => ModelKind::Wiersema,
-        "oxide" | "physical" => ModelKind::Oxide,
-        other => bail!("--save-model '{other}': use wiersema or oxide"),
-    })
+    ModelKind::from_user_name(name)
+        .with_context(|| format!("--save-model '{}': use wiersema or oxide", name.trim().to_ascii_lowercase()))
 }
 
 /// The calibration files asked for (--output, --output-dir), written atomically; their paths.
