@@ -69,12 +69,16 @@ const NOT_YET: &[(&str, &str)] = &[
     ("import-map", "needs an imported map file (import_map.rs)"),
 ];
 
-/// The flags of `kind` (`number`, `text`) of every command, from the binary's own definition
+/// Every command's arguments and their kinds, from the binary's own definition
 /// (`instpol cli-spec`).
-fn flags_of_kind(kind: &str) -> BTreeMap<String, Vec<String>> {
+fn spec() -> serde_json::Value {
     let (code, out, err) = common::run(&["cli-spec"]);
     assert_eq!(code, 0, "cli-spec: {err}");
-    let spec: serde_json::Value = serde_json::from_str(&out).unwrap();
+    serde_json::from_str(&out).unwrap()
+}
+
+/// The long flags of `kind` (`number`, `text`, `path`) of every command of `spec`.
+fn flags_of_kind(spec: &serde_json::Value, kind: &str) -> BTreeMap<String, Vec<String>> {
     spec.as_array()
         .unwrap()
         .iter()
@@ -89,11 +93,6 @@ fn flags_of_kind(kind: &str) -> BTreeMap<String, Vec<String>> {
             (c["name"].as_str().unwrap().to_string(), flags)
         })
         .collect()
-}
-
-/// The numeric flags of every command ([`flags_of_kind`]).
-fn numeric_flags() -> BTreeMap<String, Vec<String>> {
-    flags_of_kind("number")
 }
 
 /// The valid inputs every case starts from, made by the binary itself.
@@ -516,22 +515,16 @@ fn files_in(args: &[String]) -> Vec<PathBuf> {
 
 fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
     let mut out = vec![];
-    let spec = numeric_flags();
-    let texts = flags_of_kind("text");
-    let paths = flags_of_kind("path");
+    let spec = spec();
+    let (numbers, texts, paths) =
+        (flags_of_kind(&spec, "number"), flags_of_kind(&spec, "text"), flags_of_kind(&spec, "path"));
     let n = AtomicUsize::new(0);
     let new_dir = || {
         let d = root.join(format!("c{:04}", n.fetch_add(1, Ordering::Relaxed)));
         std::fs::create_dir_all(&d).unwrap();
         d
     };
-    for mut t in templates(f) {
-        // Every numeric flag of the command, those listed and those its definition has.
-        for flag in spec.get(&t.args[0]).into_iter().flatten() {
-            if !t.numeric.contains(&flag.as_str()) {
-                t.numeric.push(Box::leak(flag.clone().into_boxed_str()));
-            }
-        }
+    for t in templates(f) {
         let fill = |args: &[String], dir: &Path| -> (Vec<String>, Vec<PathBuf>) {
             let o = t.out_name.map(|n| dir.join(n)).unwrap_or_else(|| dir.join("plots"));
             let a =
@@ -544,6 +537,13 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
             let (args, outputs) = fill(&t.args, &dir);
             out.push(Case { command: t.command, what: "valid".into(), inputs: files_in(&args), args, outputs, dir });
         }
+        // The valid invocation with `flag` set to `value`, in the case's folder `dir`.
+        let with_flag = |flag: &str, value: &str, what: String, dir: PathBuf| {
+            let mut a = t.args.clone();
+            set_flag(&mut a, flag, value);
+            let (args, outputs) = fill(&a, &dir);
+            Case { command: t.command, what, inputs: files_in(&args), args, outputs, dir }
+        };
         // Every input-file option the command has but its valid invocation does not use
         // (`--bias`, `--flat`, `--standards`, ...), given each hostile variant; outputs are
         // named by the convention the CLI's own test checks (out*, plot*, *-out, *-dir).
@@ -560,51 +560,19 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
             }
             for kind in FILE_VARIANTS {
                 let dir = new_dir();
-                let mut a = t.args.clone();
                 let v = variant(kind, &f.p("map.fits"), &dir);
-                set_flag(&mut a, flag, v.to_str().unwrap());
-                let (args, outputs) = fill(&a, &dir);
-                out.push(Case {
-                    command: t.command,
-                    what: format!("{flag} {kind}"),
-                    inputs: files_in(&args),
-                    args,
-                    outputs,
-                    dir,
-                });
+                out.push(with_flag(flag, v.to_str().unwrap(), format!("{flag} {kind}"), dir));
             }
         }
         // Every text option at its edges (the instrument's name is a file argument's business).
-        for flag in texts.get(&t.args[0]).into_iter().flatten().filter(|f| *f != "--instrument") {
-            for v in TEXT_EDGES {
-                let dir = new_dir();
-                let mut a = t.args.clone();
-                set_flag(&mut a, flag, v);
-                let (args, outputs) = fill(&a, &dir);
-                out.push(Case {
-                    command: t.command,
-                    what: format!("{flag} {v:?}"),
-                    inputs: files_in(&args),
-                    args,
-                    outputs,
-                    dir,
-                });
-            }
-        }
-        for flag in &t.numeric {
-            for v in EDGES {
-                let dir = new_dir();
-                let mut a = t.args.clone();
-                set_flag(&mut a, flag, v);
-                let (args, outputs) = fill(&a, &dir);
-                out.push(Case {
-                    command: t.command,
-                    what: format!("{flag} {v:?}"),
-                    inputs: files_in(&args),
-                    args,
-                    outputs,
-                    dir,
-                });
+        let texts = texts.get(&t.args[0]).into_iter().flatten().filter(|f| *f != "--instrument");
+        // Every numeric flag of the command, those listed and those its definition has.
+        let defined = numbers.get(&t.args[0]).into_iter().flatten().filter(|f| !t.numeric.contains(&f.as_str()));
+        let numeric = t.numeric.iter().map(|f| f.to_string()).chain(defined.cloned());
+        let edges = texts.map(|f| (f.clone(), TEXT_EDGES)).chain(numeric.map(|f| (f, EDGES)));
+        for (flag, values) in edges {
+            for v in values {
+                out.push(with_flag(&flag, v, format!("{flag} {v:?}"), new_dir()));
             }
         }
         for fa in &t.files {
@@ -874,7 +842,7 @@ fn run_case(c: &Case) -> (i32, Option<String>) {
 fn every_command_is_tried_or_says_why_not() {
     let f = fixture();
     let tried: std::collections::BTreeSet<String> = templates(&f).iter().map(|t| t.args[0].clone()).collect();
-    let spec = numeric_flags();
+    let spec = flags_of_kind(&spec(), "number");
     let mut wrong = vec![];
     for name in spec.keys() {
         let listed = NOT_YET.iter().any(|(n, _)| n == name);
