@@ -350,6 +350,16 @@ fn same_as_hand(plan: &Value, products: &Path, hand: &Path, what: &str) {
     }
 }
 
+/// `instpol scan RAW --instrument INSTRUMENT --out PLAN` with the tiny FORS2's sizes: 8 px
+/// bins, stars of 3 px FWHM measured in 4 px apertures.
+fn scan_args(raw: &Path, instrument: &Path, plan: &Path) -> Vec<String> {
+    let paths = [raw, instrument, plan].map(|p| p.to_str().unwrap().to_string());
+    let [raw, instrument, plan] = paths;
+    ["scan", &raw, "--instrument", &instrument, "--out", &plan, "--bin", "8", "--fwhm", "3", "--aperture", "4"]
+        .map(String::from)
+        .to_vec()
+}
+
 fn run_json(plan: &Path, extra: &[&str]) -> (bool, Value) {
     let mut args = vec!["run", plan.to_str().unwrap(), "--json"];
     args.extend(extra);
@@ -376,24 +386,8 @@ fn a_simulated_night_scanned_and_run() {
     let plan_path = root.join("night.toml");
     let products = root.join("products");
     let inst = inst();
-    let mut args: Vec<String> = [
-        "scan",
-        raw.to_str().unwrap(),
-        "--instrument",
-        inst.to_str().unwrap(),
-        "--out",
-        plan_path.to_str().unwrap(),
-        "--bin",
-        "8",
-        "--fwhm",
-        "3",
-        "--aperture",
-        "4",
-        "--json",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
+    let mut args = scan_args(&raw, &inst, &plan_path);
+    args.push("--json".into());
     for sky in ["EMPTY-V1:1.74:-53.8", "EMPTY-V2:1.74:-53.8", "EMPTY-I1:1.74:-53.8", "EMPTY-I2:1.74:-53.8"] {
         args.extend(["--sky".to_string(), sky.to_string()]);
     }
@@ -962,23 +956,9 @@ fn twelve_months(root: &Path, steps: bool, seed: u64) -> Vec<PathBuf> {
         };
         simulate_with(&dir, &empty, if after { PATTERN.map(|c| 1.2 * c) } else { PATTERN });
         let plan = dir.join("night.toml");
-        let inst = inst();
-        let o = instpol(&[
-            "scan",
-            dir.join("raw").to_str().unwrap(),
-            "--instrument",
-            inst.to_str().unwrap(),
-            "--out",
-            plan.to_str().unwrap(),
-            "--aperture",
-            "4",
-            "--fwhm",
-            "3",
-            "--bin",
-            "8",
-            "--sky",
-            "EMPTY-V:1.74:-53.8",
-        ]);
+        let mut args = scan_args(&dir.join("raw"), &inst(), &plan);
+        args.extend(["--sky".into(), "EMPTY-V:1.74:-53.8".into()]);
+        let o = Command::new(bin()).args(&args).output().unwrap();
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let (ok, report) = run_json(&plan, &["--jobs", "2"]);
         assert!(ok, "month {m}: {report}");
@@ -1108,20 +1088,7 @@ fn a_nasmyth_night_fits_its_telescope_model() {
         simulate_scene(root, &spec, &nasmyth, [0.0; 4], &telescope);
     }
     let plan_path = root.join("night.json");
-    let o = instpol(&[
-        "scan",
-        root.join("raw").to_str().unwrap(),
-        "--instrument",
-        nasmyth.to_str().unwrap(),
-        "--out",
-        plan_path.to_str().unwrap(),
-        "--aperture",
-        "4",
-        "--fwhm",
-        "3",
-        "--bin",
-        "8",
-    ]);
+    let o = Command::new(bin()).args(scan_args(&root.join("raw"), &nasmyth, &plan_path)).output().unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let plan: Value = serde_json::from_slice(&std::fs::read(&plan_path).unwrap()).unwrap();
     let units = plan["units"].as_array().unwrap();
