@@ -226,16 +226,14 @@ fn efosc2_frames_without_a_master_bias_are_refused() {
 /// bias level): refused, naming the file and the regions, where the frames were reduced with
 /// the bias in them (P 1.96 % at 33.0 deg for 2 % at 31.8 deg, exit 0). The same frames with
 /// their scan pixels intact reduce.
-#[test]
-fn chip_files_with_no_usable_overscan_are_refused() {
+/// The four exposures of the known sky as FORS2 chip files (two per exposure, F32, with scan
+/// regions), in exposure order: `sci{k}_CHIP1`, `sci{k}_CHIP2`.
+fn chip_exposures(d: &std::path::Path, inst: &instrument::Instrument) -> Vec<std::path::PathBuf> {
     use sim::raw::{write_chip_files, Readout};
     use skyfield::fits::{Bitpix, KeyValue};
-    let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    let (ip, inst) = tiny_instrument(d);
     let mut files = Vec::new();
     for (k, &a) in common::raw::ANGLES.iter().enumerate() {
-        let e = common::raw::sky_electrons(&inst, a);
+        let e = common::raw::sky_electrons(inst, a);
         let keys = vec![
             (inst.polarimetry.hwp_angle_keyword.clone(), KeyValue::F64(a), String::new()),
             (inst.polarimetry.filter_keyword.clone(), KeyValue::Str("v_HIGH".into()), String::new()),
@@ -244,12 +242,21 @@ fn chip_files_with_no_usable_overscan_are_refused() {
         let readout = Readout { chips: &common::raw::CHIPS, exposure_no: k as i64, binning: None, bitpix: Bitpix::F32 };
         let mut rng = <rand_xoshiro::Xoshiro256PlusPlus as rand::SeedableRng>::seed_from_u64(k as u64);
         files.extend(
-            write_chip_files(&inst, &readout, &keys, true, &mut rng, d, &format!("sci{k}"), &mut |c, p, _| {
+            write_chip_files(inst, &readout, &keys, true, &mut rng, d, &format!("sci{k}"), &mut |c, p, _| {
                 e[p] / common::raw::CHIPS[c].gain_e_per_adu
             })
             .unwrap(),
         );
     }
+    files
+}
+
+#[test]
+fn chip_files_with_no_usable_overscan_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (ip, inst) = tiny_instrument(d);
+    let files = chip_exposures(d, &inst);
     let reduce = |out: &str| {
         let mut a = vec!["reduce".to_string(), "--instrument".into(), s(&ip), "--bin".into(), "8".into()];
         a.extend(["--out".into(), s(&d.join(out))]);
@@ -277,6 +284,34 @@ fn chip_files_with_no_usable_overscan_are_refused() {
     let name = files[0].file_name().unwrap().to_str().unwrap();
     assert!(err.contains(name) && err.contains("640 prescan/overscan pixels"), "{err}");
     assert!(!d.join("bad.fits").exists());
+}
+
+/// A saturated pixel of the second chip is reported with that chip's file: the reduction
+/// counts bad pixels per exposure, so the note names every chip file of the exposure (it
+/// named only the first, CHIP1, for a pixel of CHIP2).
+#[test]
+fn a_saturated_pixel_of_chip_2_is_reported_with_its_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (ip, inst) = tiny_instrument(d);
+    let files = chip_exposures(d, &inst);
+    let chip2 = &files[1];
+    assert!(s(chip2).contains("CHIP2"), "{}", chip2.display());
+    {
+        let mut f = fitsio::FitsFile::edit(chip2).unwrap();
+        let hdu = f.primary_hdu().unwrap();
+        let mut img: Vec<f32> = hdu.read_image(&mut f).unwrap();
+        // A pixel well inside the image area (5 prescan rows and columns).
+        img[20 * 64 + 20] = 1.0e7;
+        hdu.write_image(&mut f, &img).unwrap();
+    }
+    let mut a = vec!["reduce".to_string(), "--instrument".into(), s(&ip), "--bin".into(), "8".into()];
+    a.extend(["--out".into(), s(&d.join("map.fits"))]);
+    a.extend(files.iter().map(|p| s(p)));
+    let (code, _, err) = run(&a);
+    assert_eq!(code, 0, "{err}");
+    let line = err.lines().find(|l| l.contains("saturated")).unwrap_or_else(|| panic!("no saturation note: {err}"));
+    assert!(line.contains(chip2.file_name().unwrap().to_str().unwrap()), "{line}");
 }
 
 /// A master flat records its filter and is used only for frames of that filter: flats of two

@@ -887,6 +887,11 @@ impl Calibrated {
         Ok(())
     }
 
+    /// The chip files of the exposure, in the instrument file's chip order.
+    pub(crate) fn chip_paths(&self) -> Vec<&Path> {
+        self.chips.iter().map(|c| c.path.as_path()).collect()
+    }
+
     /// Whether `other`'s rows can be summed with this exposure's by
     /// [`Calibrated::load_rows_summed`]: the same masters and the same chips in the same places.
     pub(crate) fn summable_with(&self, other: &Calibrated) -> bool {

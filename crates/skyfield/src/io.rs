@@ -60,6 +60,16 @@ pub(crate) struct OpenFrame {
     pub conversion: Conversion,
 }
 
+impl OpenFrame {
+    /// The chip files the exposure was assembled from (empty for a plain frame).
+    pub fn chip_paths(&self) -> Vec<&Path> {
+        match &self.rows {
+            FrameRows::Calibrated(c) => c.chip_paths(),
+            _ => Vec::new(),
+        }
+    }
+}
+
 /// Open a plain frame for reduction: the header is checked now; the pixels are read later, by
 /// rows, except where only CFITSIO can decode them (gzip, tile compression, scaling, BLANK).
 /// `hwp_optional`: a missing HWP angle is NaN (it comes from `--hwp-angles`).

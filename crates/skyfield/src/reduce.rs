@@ -92,26 +92,37 @@ type BadCounts = (usize, usize);
 
 /// Warnings for masked bad pixels of each file, and the error for a frame none of whose
 /// `counted_px` pixels is finite (`bad`: non-finite and saturated counts per file).
+///
+/// `chips[i]`: the chip files of exposure `i` when it was assembled from several (empty for a
+/// plain frame). The reduction counts an exposure's pixels on the assembled detector, not per
+/// chip, so such a note names every chip file of the exposure rather than only the first (a
+/// saturated pixel of CHIP2 must not be reported in the CHIP1 file).
 fn bad_pixel_notes(
     meta: &[(&Path, &str, usize, usize, f64)],
+    chips: &[Vec<&Path>],
     bad: &[BadCounts],
     counted_px: usize,
     conv: &Conversion,
 ) -> Result<Vec<Warning>, Error> {
     let sat = conv.saturation_label();
     let mut warnings = Vec::new();
-    for (fr, &(nbad, nsat)) in meta.iter().zip(bad) {
+    for (i, (fr, &(nbad, nsat))) in meta.iter().zip(bad).enumerate() {
         if counted_px > 0 && nbad == counted_px {
             return Err(Error::AllNonFinite { path: fr.0.into() });
         }
+        // A multi-chip exposure is named by all its files, as one exposure.
+        let (file, of) = match chips.get(i) {
+            Some(c) if c.len() > 1 => {
+                let names: Vec<String> = c.iter().map(|p| p.display().to_string()).collect();
+                (None, format!("{} (one exposure): ", names.join(", ")))
+            }
+            _ => (Some(fr.0.to_path_buf()), String::new()),
+        };
         if nbad > 0 {
-            warnings.push(Warning { file: Some(fr.0.into()), message: format!("{nbad} NaN/infinite pixels masked") });
+            warnings.push(Warning { file: file.clone(), message: format!("{of}{nbad} NaN/infinite pixels masked") });
         }
         if nsat > 0 {
-            warnings.push(Warning {
-                file: Some(fr.0.into()),
-                message: format!("{nsat} saturated pixels (>= {sat}) masked"),
-            });
+            warnings.push(Warning { file, message: format!("{of}{nsat} saturated pixels (>= {sat}) masked") });
         }
     }
     Ok(warnings)
@@ -275,7 +286,7 @@ impl FrameSet {
             frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
         let g = group_frames(&meta, inst, require_complete)?;
         let hwp_sweep_deg = common_sweep(frames.iter().map(|f| (f.path.as_path(), f.hwp_sweep_deg)))?;
-        let mut warnings = bad_pixel_notes(&meta, &bad, g.nx * g.ny, &conversion)?;
+        let mut warnings = bad_pixel_notes(&meta, &[], &bad, g.nx * g.ny, &conversion)?;
         warnings.extend(g.warnings);
         // Move (not copy) each angle's first frame; add the repeats to it.
         let data: Vec<Vec<f64>> = g
@@ -479,8 +490,9 @@ impl DiskFrames {
         let bad = self.bad.lock().unwrap_or_else(|e| e.into_inner());
         let read: Vec<usize> = (0..self.frames.len()).filter(|&k| bad[k].is_some()).collect();
         let meta: Vec<_> = read.iter().map(|&k| open_meta(&self.frames[k])).collect();
+        let chips: Vec<_> = read.iter().map(|&k| self.frames[k].chip_paths()).collect();
         let counts: Vec<BadCounts> = read.iter().map(|&k| bad[k].unwrap_or_default()).collect();
-        let mut w = bad_pixel_notes(&meta, &counts, self.nx * self.ny, &self.conversion)?;
+        let mut w = bad_pixel_notes(&meta, &chips, &counts, self.nx * self.ny, &self.conversion)?;
         w.extend(self.warnings.iter().cloned());
         Ok(w)
     }
@@ -1590,7 +1602,8 @@ pub fn reduce_files_with(
         .collect();
     let pass =
         reduce_bands(&inputs, frames.len(), set.nx, set.ny, (&set.angles, set.hwp_sweep_deg), inst, cfg, on_read)?;
-    let mut warnings = bad_pixel_notes(&meta, &pass.bad, pass.used_px, &conversion)?;
+    let chips: Vec<_> = frames.iter().map(|f| f.chip_paths()).collect();
+    let mut warnings = bad_pixel_notes(&meta, &chips, &pass.bad, pass.used_px, &conversion)?;
     warnings.extend(set.warnings.iter().cloned());
     let mut map = match assemble_map(pass.stats, inst, cfg, &set.filter, &set.angles, &inputs) {
         // Say why when it is that some frames hold no flux above the bias anywhere.
