@@ -376,6 +376,58 @@ fn master_flats_carry_their_filter_and_are_matched_to_the_frames() {
     assert!(err.contains("RFLAT.fits") && err.contains("R_SPECIAL") && err.contains("v_HIGH"), "{err}");
 }
 
+/// A master records the binning and the chips of its frames (the instrument file's
+/// `binning = [2, 2]` and chips CHIP1, CHIP2, as read from the file's text here), and `reduce`
+/// refuses a master whose binning or chips are not those its instrument file reads the frames
+/// with: frames binned 1 x 1 read through a 1 x 1 instrument file of the same size took the
+/// 2 x 2 master without a word.
+#[test]
+fn masters_carry_their_binning_and_chips_and_are_matched_to_the_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (inst_path, inst) = tiny_instrument(d);
+    let text = fors2_tiny_text();
+    assert!(
+        text.contains("binning = [2, 2]") && text.contains("name = \"CHIP1\"") && text.contains("name = \"CHIP2\"")
+    );
+    let set = write_raw_set(d, &inst);
+    let mut a = vec!["master-bias".to_string()];
+    a.extend(set.bias.iter().map(|p| s(p)));
+    a.extend(["--instrument".into(), s(&inst_path), "--out".into(), s(&d.join("BIAS.fits"))]);
+    let (code, _, err) = run(&a);
+    assert_eq!(code, 0, "{err}");
+    let mut f = fitsio::FitsFile::open(d.join("BIAS.fits")).unwrap();
+    let h = f.primary_hdu().unwrap();
+    assert_eq!(h.read_key::<String>(&mut f, "HIERARCH INSTPOL BINNING").unwrap(), "2x2");
+    assert_eq!(h.read_key::<String>(&mut f, "HIERARCH INSTPOL CHIPS").unwrap(), "CHIP1,CHIP2");
+    // The same frames through their own instrument file take the master.
+    let reduce = |ip: &std::path::Path, frames: &[std::path::PathBuf], out: &str| {
+        let mut a = vec!["reduce".to_string(), "--instrument".into(), s(ip), "--bin".into(), "8".into()];
+        a.extend(["--bias".into(), s(&d.join("BIAS.fits")), "--out".into(), s(&d.join(out))]);
+        a.extend(frames.iter().map(|p| s(p)));
+        run(&a)
+    };
+    let (code, _, err) = reduce(&inst_path, &set.science, "ok.fits");
+    assert_eq!(code, 0, "{err}");
+    // Frames binned 1 x 1, read through a 1 x 1 instrument file of the same size.
+    let sub = d.join("bin1");
+    std::fs::create_dir(&sub).unwrap();
+    let ip1 = sub.join("fors2_1x1.toml");
+    std::fs::write(&ip1, text.replace("binning = [2, 2]", "binning = [1, 1]")).unwrap();
+    let inst1 = instrument::Instrument::from_file(&ip1).unwrap();
+    let set1 = write_raw_set(&sub, &inst1);
+    let (code, _, err) = reduce(&ip1, &set1.science, "bin1.fits");
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("BIAS.fits") && err.contains("BINNING 2x2") && err.contains("1x1"), "{err}");
+    assert!(!d.join("bin1.fits").exists());
+    // An instrument file whose chips are others (renamed here) refuses it too.
+    let ipc = sub.join("fors2_chips.toml");
+    std::fs::write(&ipc, text.replace("name = \"CHIP2\"", "name = \"CHIPB\"")).unwrap();
+    let (code, _, err) = reduce(&ipc, &set.science, "chips.fits");
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("BIAS.fits") && err.contains("CHIPS CHIP1,CHIP2") && err.contains("CHIP1,CHIPB"), "{err}");
+}
+
 /// Pre/overscan sizes that are wrong but add up (7 + 3 rows for the chip's 5 + 5): two
 /// image rows fall in the "prescan" and the bias was taken from them, with the light in it
 /// (on sky frames q came out 16 % low, exit 0). The scan rows that hold light are seen and the

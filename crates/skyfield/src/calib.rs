@@ -103,7 +103,23 @@ pub struct Master {
     /// The filter of a flat's frames (all one), written as `HIERARCH INSTPOL FILTER` and
     /// checked against the frames it flattens; `None` for a bias.
     pub filter: Option<String>,
+    /// The binning of the frames combined (the instrument file's `[format] binning`), written
+    /// as `HIERARCH INSTPOL BINNING` ("2x2") and checked against the frames' instrument file.
+    pub binning: Option<[u32; 2]>,
+    /// The chips assembled into the master (the instrument file's chip names, in its order;
+    /// empty for an instrument without chips), written as `HIERARCH INSTPOL CHIPS` and checked
+    /// against the frames' instrument file: a master of other chips puts another chip's bias or
+    /// response under each pixel.
+    pub chips: Vec<String>,
     pub warnings: Vec<Warning>,
+}
+
+/// What a master records of the frames' layout: their binning and their chips (`Master::binning`,
+/// `Master::chips`).
+fn layout_of(inst: &Instrument) -> (Option<[u32; 2]>, Vec<String>) {
+    let b = &inst.format.binning;
+    let binning = (b.len() == 2).then(|| [b[0], b[1]]);
+    (binning, inst.format.chips.iter().map(|c| c.name.clone()).collect())
 }
 
 /// The instrument's chips, or one chip covering the detector when it declares none.
@@ -1130,6 +1146,35 @@ fn calibrate_row(v: &mut [f64], bias: Option<&[f32]>, flat_inv: Option<&[f32]>, 
     }
 }
 
+/// The binning and chips a master records (`HIERARCH INSTPOL BINNING`, `CHIPS`) checked
+/// against the frames' instrument file. A master that records neither (made by another tool)
+/// is taken on its size alone.
+fn check_master_layout(path: &Path, img: &mut ImageHdu, inst: &Instrument, kind: &str) -> Result<(), Error> {
+    let (binning, chips) = layout_of(inst);
+    let refuse = |key: &str, got: &str, want: String| {
+        Error::Invalid(format!(
+            "{}: master {} of {key} {got} (HIERARCH INSTPOL {key}), but instrument {} reads the frames as {key} {want}: make the master from frames of this layout",
+            path.display(),
+            kind.to_lowercase(),
+            inst.name
+        ))
+    };
+    if let (Some(got), Some([bx, by])) = (img.key("HIERARCH INSTPOL BINNING"), binning) {
+        let got = got.trim();
+        if !got.eq_ignore_ascii_case(&format!("{bx}x{by}")) {
+            return Err(refuse("BINNING", got, format!("{bx}x{by}")));
+        }
+    }
+    if let Some(got) = img.key("HIERARCH INSTPOL CHIPS") {
+        let got = got.trim();
+        let theirs: Vec<&str> = got.split(',').map(str::trim).collect();
+        if !chips.is_empty() && theirs != chips.iter().map(String::as_str).collect::<Vec<_>>() {
+            return Err(refuse("CHIPS", got, chips.join(",")));
+        }
+    }
+    Ok(())
+}
+
 /// A master's header checked against the instrument and the role it is given in; its pixels
 /// are read later, by rows or whole ([`OpenMaster`]).
 fn open_master(path: &Path, inst: &Instrument, kind: &str) -> Result<OpenMaster, Error> {
@@ -1159,6 +1204,7 @@ fn open_master(path: &Path, inst: &Instrument, kind: &str) -> Result<OpenMaster,
             )));
         }
     }
+    check_master_layout(path, &mut img, inst, kind)?;
     let plain = !img.compressed && !img.blank && raw_kind(img.bitpix, img.bscale, img.bzero) == Some(RawKind::F32);
     let file = if plain { direct_rows(path, &mut img, RawKind::F32)? } else { None };
     Ok(OpenMaster {
@@ -1620,8 +1666,11 @@ pub fn master_bias(paths: &[PathBuf], inst: &Instrument, nsigma: f64) -> Result<
     let npx = inst.detector.nx * inst.detector.ny;
     let imgs: Vec<Vec<f32>> = whole_frames_f32(ex)?;
     let data = combine(&imgs, npx, nsigma);
+    let (binning, chips) = layout_of(inst);
     Ok(Master {
         kind: "BIAS".into(),
+        binning,
+        chips,
         nx: inst.detector.nx,
         ny: inst.detector.ny,
         data,
@@ -1689,8 +1738,11 @@ pub fn master_flat(paths: &[PathBuf], inst: &Instrument, bias: Option<&Path>, ns
     for v in data.iter_mut() {
         *v = if *v / m > 0.0 { *v / m } else { f64::NAN };
     }
+    let (binning, chips) = layout_of(inst);
     Ok(Master {
         kind: "FLAT".into(),
+        binning,
+        chips,
         nx: inst.detector.nx,
         ny: inst.detector.ny,
         data,
@@ -1733,6 +1785,12 @@ impl Master {
         ];
         if let Some(f) = &self.filter {
             keys.push(("HIERARCH INSTPOL FILTER".into(), KeyValue::Str(f.clone()), "filter of the flats".into()));
+        }
+        if let Some([bx, by]) = self.binning {
+            keys.push(("HIERARCH INSTPOL BINNING".into(), KeyValue::Str(format!("{bx}x{by}")), "of the frames".into()));
+        }
+        if !self.chips.is_empty() {
+            keys.push(("HIERARCH INSTPOL CHIPS".into(), KeyValue::Str(self.chips.join(",")), "assembled".into()));
         }
         for (k, p) in self.inputs.iter().enumerate().take(999) {
             let name = p.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
