@@ -41,7 +41,7 @@ def make(d: Path):
     for i in range(N):
         th = np.deg2rad(22.5 * i)
         m = 0.02 * np.cos(4 * th - 2 * np.deg2rad(30.0))
-        sky = np.full((NY, NX), 2000.0)
+        sky = np.zeros((NY, NX))  # the masked strips dark, as the mask makes them
         sky = np.where(in_o, 2000.0 * (1 + m), sky)
         sky = np.where(in_e, 2000.0 * (1 - m), sky)
         data = (sky + rng.normal(0, 45.0, sky.shape)).astype(np.float32)

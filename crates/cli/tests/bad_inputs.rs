@@ -80,7 +80,8 @@ impl Fixture {
     }
 
     /// A frame of the tiny instrument: sky of 2000 ADU polarized 2% at 30 deg, seen at HWP
-    /// angle `hwp` through an ideal prism, written to `name`. `edit` may change the pixels.
+    /// angle `hwp` through an ideal prism, written to `name`; the masked strips dark, as the
+    /// mask makes them. `edit` may change the pixels.
     fn frame(&self, name: &str, hwp: f64, filter: &str, edit: impl Fn(&mut Vec<f64>)) -> String {
         self.frame_of(&mini(), name, hwp, filter, edit)
     }
@@ -90,7 +91,7 @@ impl Fixture {
         let inst = instrument::Instrument::from_toml_str(toml, Path::new("mini.toml")).unwrap();
         let (nx, ny) = (inst.detector.nx, inst.detector.ny);
         let m = 0.02 * (4.0 * hwp.to_radians() - 2.0 * 30f64.to_radians()).cos();
-        let mut data = vec![2000.0; nx * ny];
+        let mut data = vec![0.0; nx * ny];
         for s in inst.strips() {
             for y in 0..s.height {
                 for x in 0..nx {

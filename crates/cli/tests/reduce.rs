@@ -129,3 +129,49 @@ fn bin_errors_are_right_at_every_bin_size() {
         );
     }
 }
+
+/// Plain strip-mask frames (FORS1 shrunk) that still carry a 200 ADU pedestal: the masked
+/// strips, which receive no light, show it, and the reduction is refused naming the frame
+/// (it reduced silently with every P low by the pedestal's fraction of the strips' level,
+/// 200 / (3000 / gain + 200)). With the pedestal stated as the instrument's `bias_adu`, the
+/// frames give the simulated sky's P exactly.
+#[test]
+fn a_pedestal_left_in_plain_frames_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let inst = tiny_instrument(d);
+    let frames = sim(d, &inst, "[0, 22.5, 45, 67.5]", "a");
+    for f in &frames {
+        let mut ff = fitsio::FitsFile::edit(f).unwrap();
+        let hdu = ff.primary_hdu().unwrap();
+        let img: Vec<f64> = hdu.read_image(&mut ff).unwrap();
+        let img: Vec<f64> = img.iter().map(|v| v + 200.0).collect();
+        hdu.write_image(&mut ff, &img).unwrap();
+    }
+    let reduce = |ins: &Path, out: &str| {
+        instpol()
+            .arg("reduce")
+            .args(&frames)
+            .arg("--instrument")
+            .arg(ins)
+            .args(["--bin", "10", "--json", "--out"])
+            .arg(d.join(out))
+            .output()
+            .unwrap()
+    };
+    let o = reduce(&inst, "map.fits");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    let name = frames[0].file_name().unwrap().to_str().unwrap();
+    assert!(err.contains(name) && err.contains("masked strips") && err.contains("200.0 ADU"), "{err}");
+    assert!(!d.join("map.fits").exists());
+    // The pedestal stated as the instrument's bias: the sky's P, as without it.
+    let text = std::fs::read_to_string(&inst).unwrap();
+    assert!(text.contains("bias_adu = 0.0"), "the tiny FORS1 states no bias");
+    let with_bias = d.join("tiny_bias.toml");
+    std::fs::write(&with_bias, text.replace("bias_adu = 0.0", "bias_adu = 200.0")).unwrap();
+    let o = reduce(&with_bias, "map2.fits");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!((j["median_p"].as_f64().unwrap() - 0.0645).abs() < 1e-9, "{j}");
+}

@@ -302,6 +302,44 @@ fn plan_resource_bounds() {
     assert_eq!(json(&out)["n_bins"].as_u64(), Some(64), "{out}");
 }
 
+/// Resource bounds of `simulate`: a scene of 1000 HWP angles on FORS1 at BITPIX -64 would
+/// write 1000 x 2048 x 2048 x 8 B = 33.6 GB, one frame after another, until the disk filled
+/// (3000 angles wrote 1.7 GB in 15 s and went on). It is refused before any frame is written,
+/// with the estimate (computed here from the detector's size) and the ways out named.
+#[test]
+fn simulate_resource_bounds() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let angles: Vec<String> = (0..1000).map(|k| format!("{}", 0.3 * k as f64)).collect();
+    let scene = d.join("many.toml");
+    std::fs::write(
+        &scene,
+        format!(
+            "instrument = \"fors1\"\nfilter = \"V\"\nhwp_angles_deg = [{}]\n[output]\nbitpix = -64\n[sky]\nbrightness_e = 100\np = 0.01\nchi_deg = 10\n",
+            angles.join(", ")
+        ),
+    )
+    .unwrap();
+    let t0 = std::time::Instant::now();
+    let out = d.join("frames");
+    let (c, _, e) = run(&["simulate", scene.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert_eq!(c, 2, "{e}");
+    let gb = 1000.0 * 2048.0 * 2048.0 * 8.0 / 1e9;
+    assert!(e.contains("many.toml") && e.contains(&format!("{gb:.1} GB")) && e.contains("--force"), "{e}");
+    assert!(t0.elapsed().as_secs() < 60, "refused only after {:?}", t0.elapsed());
+    assert!(!out.exists() || std::fs::read_dir(&out).unwrap().next().is_none(), "frames were written");
+    // A scene value is quoted short: 1000 repeated angles are named, not listed in full.
+    let repeated: Vec<String> = (0..1000).map(|k| format!("{}", 22.5 * (k % 16) as f64)).collect();
+    std::fs::write(
+        &scene,
+        format!("instrument = \"fors1\"\nfilter = \"V\"\nhwp_angles_deg = [{}]\n", repeated.join(", ")),
+    )
+    .unwrap();
+    let (c, _, e) = run(&["simulate", scene.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert_eq!(c, 2, "{e}");
+    assert!(e.contains("hwp_angles_deg") && e.contains("characters)") && e.len() < 600, "{e}");
+}
+
 /// Resource bounds of `mc`: threads capped at the cores (with a note; the result does not
 /// depend on the thread count), a huge --trials refused with its estimated run time before
 /// running, degenerate runs refused with a reason.

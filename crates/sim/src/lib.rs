@@ -42,7 +42,7 @@ use std::path::PathBuf;
 pub enum Error {
     #[error("scene {path}: {message}")]
     Scene { path: PathBuf, message: String },
-    #[error("scene {path}: {key} = {value}: {why}")]
+    #[error("scene {path}: {key} = {v}: {why}", v = shortened(.value))]
     Invalid { path: PathBuf, key: String, value: String, why: String },
     #[error("{path}: {message}")]
     File { path: PathBuf, message: String },
@@ -52,6 +52,16 @@ pub enum Error {
     Frames(#[from] skyfield::Error),
     #[error(transparent)]
     Stokes(#[from] stokes::Error),
+}
+
+/// A value as an error message quotes it: whole up to 100 characters, else its start and how
+/// long it is (a list of 1000 HWP angles filled a screen before the reason).
+fn shortened(v: &str) -> String {
+    const KEEP: usize = 100;
+    match v.char_indices().nth(KEEP) {
+        Some((cut, _)) => format!("{} ... ({} characters)", &v[..cut], v.chars().count()),
+        None => v.to_string(),
+    }
 }
 
 /// The crate README's example, compiled and run with the documentation tests.

@@ -100,6 +100,10 @@ impl DetStep {
 }
 
 /// Everything a scene needs, computed once; frames are rendered from it.
+/// Most bytes of frames a simulation writes unless told it may ([`Plan::check_output_size`]):
+/// 16 GB, a thousand full-size FORS frames, more than any test or tutorial scene needs.
+pub const MAX_OUTPUT_BYTES: u64 = 16_000_000_000;
+
 pub struct Plan {
     pub scene: Scene,
     pub inst: Instrument,
@@ -1077,6 +1081,40 @@ impl Plan {
 
     fn bias_stem(&self, i: usize) -> String {
         format!("{}_bias_{:02}", self.scene.output.prefix, i)
+    }
+
+    /// About how many bytes the frames [`Plan::write`] writes take: every frame and bias frame
+    /// at the detector's size and the output's BITPIX (raw chip files add their scan regions
+    /// and headers, a few per cent).
+    pub fn output_bytes(&self) -> u64 {
+        let per_value = match self.bitpix {
+            Bitpix::U16 => 2,
+            Bitpix::F32 => 4,
+            Bitpix::F64 => 8,
+        };
+        let frames = (self.n_frames() + self.n_bias_frames()) as u64;
+        frames.saturating_mul(self.geom.nx as u64 * self.geom.ny as u64).saturating_mul(per_value)
+    }
+
+    /// Refuse a simulation whose frames would take more than [`MAX_OUTPUT_BYTES`] unless
+    /// `force`: a scene of thousands of HWP angles on a full-size detector fills a disk, one
+    /// frame at a time, with no end in sight. `path`: the scene, for the message.
+    pub fn check_output_size(&self, path: &Path, force: bool) -> Result<(), Error> {
+        let bytes = self.output_bytes();
+        if bytes > MAX_OUTPUT_BYTES && !force {
+            return Err(Error::Scene {
+                path: path.into(),
+                message: format!(
+                    "{} frames of {} x {} px would write about {:.1} GB (limit {} GB without --force): fewer hwp_angles_deg, a smaller detector or BITPIX, or --force to write them",
+                    self.n_frames() + self.n_bias_frames(),
+                    self.geom.nx,
+                    self.geom.ny,
+                    bytes as f64 / 1e9,
+                    MAX_OUTPUT_BYTES / 1_000_000_000
+                ),
+            });
+        }
+        Ok(())
     }
 
     /// Every file [`Plan::write`] writes (relative to the output folder), `truth.json` last.

@@ -61,6 +61,11 @@ pub(crate) struct OpenFrame {
 }
 
 impl OpenFrame {
+    /// Whether the frame is plain (its values as stored), not assembled from raw chip files.
+    pub fn is_plain(&self) -> bool {
+        !matches!(self.rows, FrameRows::Calibrated(_))
+    }
+
     /// The chip files the exposure was assembled from (empty for a plain frame).
     pub fn chip_paths(&self) -> Vec<&Path> {
         match &self.rows {

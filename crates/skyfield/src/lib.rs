@@ -26,6 +26,7 @@ pub mod fits;
 pub mod frame;
 pub mod io;
 pub mod maps;
+pub mod pedestal;
 pub mod photometry;
 pub mod provenance;
 pub mod reduce;

@@ -110,19 +110,25 @@ fn bad_pixel_notes(
         if counted_px > 0 && nbad == counted_px {
             return Err(Error::AllNonFinite { path: fr.0.into() });
         }
-        // A multi-chip exposure is named by all its files, as one exposure.
-        let (file, of) = match chips.get(i) {
+        // A multi-chip exposure is named by its first file (as every exposure is) and by all
+        // its chip files in the message.
+        let of = match chips.get(i) {
             Some(c) if c.len() > 1 => {
-                let names: Vec<String> = c.iter().map(|p| p.display().to_string()).collect();
-                (None, format!("{} (one exposure): ", names.join(", ")))
+                let names: Vec<String> =
+                    c.iter().map(|p| p.file_name().unwrap_or(p.as_os_str()).to_string_lossy().into_owned()).collect();
+                format!(" in the exposure of chips {} (counted per exposure)", names.join(", "))
             }
-            _ => (Some(fr.0.to_path_buf()), String::new()),
+            _ => String::new(),
         };
         if nbad > 0 {
-            warnings.push(Warning { file: file.clone(), message: format!("{of}{nbad} NaN/infinite pixels masked") });
+            warnings
+                .push(Warning { file: Some(fr.0.into()), message: format!("{nbad} NaN/infinite pixels masked{of}") });
         }
         if nsat > 0 {
-            warnings.push(Warning { file, message: format!("{of}{nsat} saturated pixels (>= {sat}) masked") });
+            warnings.push(Warning {
+                file: Some(fr.0.into()),
+                message: format!("{nsat} saturated pixels (>= {sat}) masked{of}"),
+            });
         }
     }
     Ok(warnings)
@@ -773,9 +779,21 @@ pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Resu
             det: set.conversion.det(),
         })
         .collect();
+    // The masked strips of each angle's sum, its bias that of the exposures summed.
+    let g = BeamGeometry::new(inst);
+    let rows = crate::pedestal::sample_rows(&g);
+    let mut warnings = set.warnings.clone();
+    for (d, f) in set.data.iter().zip(&set.files) {
+        let n = f.len() as f64;
+        let r: Vec<(usize, &[f64])> = rows.iter().map(|&y| (y, &d[y * set.nx..(y + 1) * set.nx])).collect();
+        let c = &set.conversion;
+        if let Some(l) = crate::pedestal::levels(&g, &r, n * c.bias, n * c.saturation) {
+            warnings.extend(crate::pedestal::judge(&f[0], &l, "ADU", n * c.bias)?);
+        }
+    }
     let pass = reduce_bands(&inputs, 0, set.nx, set.ny, (&set.angles_deg, set.hwp_sweep_deg), inst, cfg, &|| {})?;
     let map = assemble_map(pass.stats, inst, cfg, &set.filter, &set.angles_deg, &inputs)?;
-    Ok(Reduced { map, warnings: set.warnings.clone(), exposures: exposures_of(&set.files, &set.angles_deg) })
+    Ok(Reduced { map, warnings, exposures: exposures_of(&set.files, &set.angles_deg) })
 }
 
 /// One HWP angle's input: the exposures taken at it (summed) and how many exposures the
@@ -1572,6 +1590,34 @@ pub fn reduce_files(
     reduce_files_with(paths, inst, cfg, &ReadOptions::default(), on_read)
 }
 
+/// The masked strips of every plain frame read for the level they should not have
+/// ([`crate::pedestal`]): an error for a frame that still carries its bias, the warnings of
+/// the doubtful ones. Raw chip exposures have their bias from overscan or a master.
+fn pedestal_notes(frames: &[OpenFrame], inst: &Instrument, conv: &Conversion) -> Result<Vec<Warning>, Error> {
+    let g = BeamGeometry::new(inst);
+    let rows = crate::pedestal::sample_rows(&g);
+    if rows.is_empty() {
+        return Ok(Vec::new());
+    }
+    let judged: Vec<Result<Option<Warning>, Error>> = frames
+        .par_iter()
+        .filter(|f| f.is_plain() && f.nx == g.nx)
+        .map(|f| {
+            let (mut buf, mut bytes) = (vec![0.0; rows.len() * f.nx], Vec::new());
+            for (k, &y) in rows.iter().enumerate() {
+                f.load_rows(y, &mut buf[k * f.nx..(k + 1) * f.nx], &mut bytes)?;
+            }
+            let r: Vec<(usize, &[f64])> =
+                rows.iter().enumerate().map(|(k, &y)| (y, &buf[k * f.nx..(k + 1) * f.nx])).collect();
+            match crate::pedestal::levels(&g, &r, conv.bias, conv.saturation) {
+                Some(l) => crate::pedestal::judge(&f.path, &l, "ADU", conv.bias),
+                None => Ok(None),
+            }
+        })
+        .collect();
+    judged.into_iter().filter_map(|r| r.transpose()).collect()
+}
+
 /// [`reduce_files`] with calibration frames and HWP angles ([`ReadOptions`]). Raw frames
 /// (chips, overscan, bias, flat) are calibrated in the same pass, row by row as the bands read
 /// them (see [`crate::calib`]): no frame is held whole, raw or calibrated.
@@ -1600,10 +1646,12 @@ pub fn reduce_files_with(
             .det(),
         })
         .collect();
+    let pedestals = pedestal_notes(frames, inst, &conversion)?;
     let pass =
         reduce_bands(&inputs, frames.len(), set.nx, set.ny, (&set.angles, set.hwp_sweep_deg), inst, cfg, on_read)?;
     let chips: Vec<_> = frames.iter().map(|f| f.chip_paths()).collect();
     let mut warnings = bad_pixel_notes(&meta, &chips, &pass.bad, pass.used_px, &conversion)?;
+    warnings.extend(pedestals);
     warnings.extend(set.warnings.iter().cloned());
     let mut map = match assemble_map(pass.stats, inst, cfg, &set.filter, &set.angles, &inputs) {
         // Say why when it is that some frames hold no flux above the bias anywhere.

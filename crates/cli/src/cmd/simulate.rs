@@ -35,6 +35,10 @@ pub struct Args {
     /// Print what was written as JSON.
     #[arg(long)]
     pub json: bool,
+    /// Write the frames even when they take more than 16 GB (the scene's frames are estimated
+    /// before any is written).
+    #[arg(long)]
+    pub force: bool,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -60,6 +64,10 @@ pub fn run(a: Args) -> Result<()> {
         None => None,
     };
     let plan = sim::Plan::build_with_field(&scene, field).with_context(|| format!("scene {}", a.scene.display()))?;
+    plan.check_output_size(&a.scene, a.force)?;
+    if plan.output_bytes() > 1_000_000_000 && !a.json {
+        eprintln!("note: writing about {:.1} GB of frames", plan.output_bytes() as f64 / 1e9);
+    }
     // No frame or truth file may land on the scene or its instrument file.
     crate::util::inputs(crate::util::file_arg(&scene.instrument))?;
     let planned: Vec<PathBuf> = plan.output_files().iter().map(|f| a.out.join(f)).collect();
