@@ -59,6 +59,11 @@ pub struct Args {
     /// centroid in each (frames usually move by a pixel or two between HWP positions).
     #[arg(long)]
     pub fixed: bool,
+    /// Measure the star even when one of its images holds another star's other image (a
+    /// maskless layout, stars one o/e offset apart): its P is then wrong, and a warning says so.
+    /// Without it such a star is refused, as the catalog flags it `overlap`.
+    #[arg(long)]
+    pub allow_overlap: bool,
     /// Instrument: built-in name or path to an instrument TOML.
     #[arg(long, default_value = "fors1")]
     pub instrument: String,
@@ -190,6 +195,9 @@ pub fn run(a: Args) -> Result<()> {
         (_, Some(f)) => bail!("--fwhm {f} px: expected a star width between 0 and 200 px"),
         (_, None) => bail!("--aperture {}: give the star's FWHM with --fwhm PX", a.aperture),
     };
+    if let Some(w) = skyfield::photometry::check_overlap(&set, &g, x, y, fwhm, a.allow_overlap)? {
+        eprintln!("warning: {w}");
+    }
     let (ph, radius_px) = skyfield::photometry::photometry_sized(&set, &g, x, y, radius, fwhm, annulus, &opts)?;
     let exposures = match &singles {
         Some(fr) => Some(skyfield::photometry::exposure_checks(
