@@ -2,6 +2,7 @@
 simulated frames (the map's FITS extensions read with astropy, the catalog's JSON rows), and
 against the polarization the frames were simulated with."""
 
+import os
 import numpy as np
 import pytest
 
@@ -115,4 +116,10 @@ def test_reduce_refuses_to_write_over_an_input(sky_frames, tmp_path):
     before = [open(f, "rb").read() for f in copies]
     with pytest.raises(instpol.InputError, match="refusing to write over an input"):
         instpol.reduce(copies, instrument=inst, bin=10, output=copies[2])
+    # A hard link to a frame is the same file under another name: refused as the CLI refuses
+    # it (the package compared resolved paths and took it; both faces now ask the library).
+    link = tmp_path / "link.fits"
+    os.link(copies[1], link)
+    with pytest.raises(instpol.InputError, match="refusing to write over an input"):
+        instpol.reduce(copies, instrument=inst, bin=10, output=link)
     assert [open(f, "rb").read() for f in copies] == before

@@ -10,35 +10,7 @@ use std::sync::Mutex;
 /// writes over one of its own inputs, whatever the name it is given by.
 static INPUTS: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 
-/// The identity of an existing file: device and inode (a hard link or a bind mount has another
-/// name but the same identity).
-fn file_id(p: &Path) -> Option<(u64, u64)> {
-    use std::os::unix::fs::MetadataExt;
-    std::fs::metadata(p).ok().map(|m| (m.dev(), m.ino()))
-}
-
-/// `p` with symlinks and `..` resolved; for a file that does not exist yet, its folder
-/// resolved and the name appended.
-fn resolved(p: &Path) -> Option<PathBuf> {
-    if let Ok(c) = std::fs::canonicalize(p) {
-        return Some(c);
-    }
-    let dir = p.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    Some(std::fs::canonicalize(dir).ok()?.join(p.file_name()?))
-}
-
-/// Whether `a` and `b` name the same file: the same identity when both exist; the same
-/// resolved path when neither does (an existing file and a missing one are never the same).
-/// `id_a` is `file_id(a)`, taken once by a caller comparing `a` with many files: each
-/// comparison then costs one `stat` (resolving every path each time was 6 ms of a 34-file
-/// reduction's start).
-fn same_file_as(a: &Path, id_a: Option<(u64, u64)>, b: &Path) -> bool {
-    match (id_a, file_id(b)) {
-        (Some(x), Some(y)) => x == y,
-        (None, None) => matches!((resolved(a), resolved(b)), (Some(x), Some(y)) if x == y),
-        _ => false,
-    }
-}
+use skyfield::durable::file_id;
 
 /// The arguments of any command that name files it WRITES (a file or a folder of outputs).
 /// Every other path argument, and `--instrument` when it names a file, is an input
@@ -193,17 +165,7 @@ pub fn band_choice_error(e: fit::telescope::BandChoiceError, cal: &Path, frames_
 /// symlinks and `..`, or same device and inode), naming both.
 pub fn check_output(out: &Path) -> Result<()> {
     let ins = INPUTS.lock().unwrap_or_else(|e| e.into_inner()).clone();
-    let id = file_id(out);
-    for i in &ins {
-        if same_file_as(out, id, i) {
-            bail!(
-                "output {} is the input {} (the same file): refusing to write over an input; choose another output name",
-                out.display(),
-                i.display()
-            );
-        }
-    }
-    Ok(())
+    skyfield::durable::refuse_overwrite(out, ins.iter().map(PathBuf::as_path)).map_err(anyhow::Error::msg)
 }
 
 /// A check that ran and failed (a standard star that does not match its prediction): the

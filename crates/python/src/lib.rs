@@ -846,25 +846,14 @@ fn read_options(
     Ok(skyfield::calib::ReadOptions { bias, flat, hwp_angles_deg: hwp_angles, assembled })
 }
 
-/// No function writes over one of its own inputs (the CLI's rule), whatever name `output`
-/// gives it.
+/// No function writes over one of its own inputs, whatever name `output` gives it (the one
+/// rule of both faces, `skyfield::durable::refuse_overwrite`).
 fn refuse_overwrite<'a>(
     output: Option<&std::path::Path>,
     inputs: impl IntoIterator<Item = &'a PathBuf>,
 ) -> PyResult<()> {
     let Some(out) = output else { return Ok(()) };
-    let same = |a: &PathBuf| match (std::fs::canonicalize(a), std::fs::canonicalize(out)) {
-        (Ok(x), Ok(y)) => x == y,
-        _ => false,
-    };
-    match inputs.into_iter().find(|f| same(f)) {
-        Some(f) => Err(input_err(format!(
-            "output {} is the input {} (the same file): refusing to write over an input; choose another output name",
-            out.display(),
-            f.display()
-        ))),
-        None => Ok(()),
-    }
+    skyfield::durable::refuse_overwrite(out, inputs.into_iter().map(PathBuf::as_path)).map_err(input_err)
 }
 
 /// What the package's corrections ask of `fit::request`, before each adds its angles: `method=`

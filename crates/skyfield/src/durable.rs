@@ -9,6 +9,12 @@
 //! ([`finish`]). Any error on the way drops the temporary, which deletes it: a failed run leaves
 //! neither a truncated file under the final name nor a temporary.
 //!
+//! No writer writes over one of its own inputs, whatever name the output is given by: a hard
+//! link, a symlink, `..` in the path. [`same_file`] is the one test of two paths, and
+//! [`refuse_overwrite`] the one refusal and its words, for both faces (the CLI registers a
+//! command's inputs and checks every output against them; the Python functions check their
+//! `output=` against their arguments).
+//!
 //! Tests cannot always fill a disk (mounting a tmpfs needs root), so the fsync step can be made
 //! to fail on purpose: with the environment variable `INSTPOL_TEST_FAIL_SYNC` set to a
 //! non-empty value, [`sync_file`] reports "No space left on device" (ENOSPC) without writing
@@ -114,4 +120,48 @@ pub fn finish(tmp: tempfile::TempPath, path: &Path) -> io::Result<()> {
     tmp.persist(path).map_err(|e| e.error)?;
     sync_parent(path);
     Ok(())
+}
+
+/// The identity of an existing file: device and inode (a hard link or a bind mount has another
+/// name but the same identity).
+pub fn file_id(p: &Path) -> Option<(u64, u64)> {
+    use std::os::unix::fs::MetadataExt;
+    std::fs::metadata(p).ok().map(|m| (m.dev(), m.ino()))
+}
+
+/// `p` with symlinks and `..` resolved; for a file that does not exist yet, its folder
+/// resolved and the name appended.
+fn resolved(p: &Path) -> Option<std::path::PathBuf> {
+    if let Ok(c) = std::fs::canonicalize(p) {
+        return Some(c);
+    }
+    let dir = p.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    Some(std::fs::canonicalize(dir).ok()?.join(p.file_name()?))
+}
+
+/// Whether `a` and `b` name the same file: the same identity when both exist; the same
+/// resolved path when neither does (an existing file and a missing one are never the same).
+/// `id_a` is `file_id(a)`, taken once by a caller comparing `a` with many files: each
+/// comparison then costs one `stat` (resolving every path each time was 6 ms of a 34-file
+/// reduction's start).
+pub fn same_file(a: &Path, id_a: Option<(u64, u64)>, b: &Path) -> bool {
+    match (id_a, file_id(b)) {
+        (Some(x), Some(y)) => x == y,
+        (None, None) => matches!((resolved(a), resolved(b)), (Some(x), Some(y)) if x == y),
+        _ => false,
+    }
+}
+
+/// Refuse to write `output` when it is one of `inputs` ([`same_file`]), with the message both
+/// faces give.
+pub fn refuse_overwrite<'a>(output: &Path, inputs: impl IntoIterator<Item = &'a Path>) -> Result<(), String> {
+    let id = file_id(output);
+    match inputs.into_iter().find(|i| same_file(output, id, i)) {
+        Some(i) => Err(format!(
+            "output {} is the input {} (the same file): refusing to write over an input; choose another output name",
+            output.display(),
+            i.display()
+        )),
+        None => Ok(()),
+    }
 }
