@@ -340,6 +340,39 @@ fn simulate_resource_bounds() {
     assert!(e.contains("hwp_angles_deg") && e.contains("characters)") && e.len() < 600, "{e}");
 }
 
+/// Resource bounds of `catalog`: a threshold of 0.5 sigma on the 80-star FORS1 field pairs
+/// thousands of noise peaks, and with an annulus of 1000 px their photometry would take about
+/// 2 x stars x 4 frames x pi 1000^2 pixel visits (over 100 s before, with no estimate): refused
+/// with that estimate (computed here from the star count it names) and the ways out. The same
+/// frames at the default threshold are measured.
+#[test]
+fn catalog_resource_bounds() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let scene = d.join("field.toml");
+    std::fs::write(&scene, include_str!("../../../instruments/scenes/field_stars_V.toml")).unwrap();
+    let out = d.join("f");
+    let (c, _, e) = run(&["simulate", scene.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert_eq!(c, 0, "{e}");
+    let frames: Vec<String> = common::fits_in(&out).iter().map(|p| p.display().to_string()).collect();
+    let cat = |extra: &[&str]| {
+        let mut a: Vec<&str> = vec!["catalog", "--instrument", "fors1", "--fwhm", "3", "--json"];
+        a.extend(frames.iter().map(String::as_str));
+        a.extend(extra);
+        run(&a)
+    };
+    let (c, _, e) = cat(&["--threshold", "0.5", "--annulus", "20,1000"]);
+    assert_eq!(c, 2, "{e}");
+    // (With --json the error is a JSON object on stderr.)
+    let n: f64 = e.split(" stars paired").next().unwrap().rsplit(['"', ' ']).next().unwrap().parse().unwrap();
+    assert!(n > 1000.0, "{e}");
+    let visits = 2.0 * n * 4.0 * std::f64::consts::PI * 1000.0 * 1000.0;
+    assert!(e.contains(&format!("{visits:.1e}")) && e.contains("--force"), "{e}");
+    let (c, o, e) = cat(&[]);
+    assert_eq!(c, 0, "{e}");
+    assert!(json(&o)["rows"].as_array().unwrap().len() >= 40, "{o}");
+}
+
 /// Resource bounds of `mc`: threads capped at the cores (with a note; the result does not
 /// depend on the thread count), a huge --trials refused with its estimated run time before
 /// running, degenerate runs refused with a reason.

@@ -975,7 +975,7 @@ fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>
 /// Every paired star of a frame set (`instpol catalog`): one entry per column, one value per
 /// star, plus the catalog's metadata.
 #[pyfunction]
-#[pyo3(signature = (frames, instrument, fwhm, threshold, aperture, annulus, bias, flat, hwp_angles, assembled, kappa, kappa_from_data, pair_tol, cal, allow_extrapolation))]
+#[pyo3(signature = (frames, instrument, fwhm, threshold, aperture, annulus, bias, flat, hwp_angles, assembled, kappa, kappa_from_data, pair_tol, cal, allow_extrapolation, force))]
 #[allow(clippy::too_many_arguments)]
 fn _catalog<'py>(
     py: Python<'py>,
@@ -994,6 +994,7 @@ fn _catalog<'py>(
     pair_tol: f64,
     cal: Option<PathBuf>,
     allow_extrapolation: bool,
+    force: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     use skyfield::catalog::{catalog_files, CatalogConfig};
     let radius = skyfield::photometry::ApertureRadius::parse(aperture).ok_or_else(|| {
@@ -1019,6 +1020,7 @@ fn _catalog<'py>(
         annulus: Some(annulus),
         weighting: skyfield::aperture::Weighting::Exact,
         kappa,
+        force,
     };
     cfg.check().map_err(sky_err)?;
     let read = read_options(bias, flat, hwp_angles, assembled)?;

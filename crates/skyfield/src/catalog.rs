@@ -32,6 +32,30 @@ pub struct CatalogConfig {
     /// The Wollaston imbalance, per star: as measured, known, or estimated and applied.
     #[serde(default)]
     pub kappa: stokes::KappaCorrection,
+    /// Measure the stars even when their photometry is estimated beyond
+    /// [`MAX_PIXEL_VISITS`] ([`photometry_work`]).
+    #[serde(default)]
+    pub force: bool,
+}
+
+/// The most pixel visits a catalog's photometry makes unless told it may: about a minute of
+/// one core. A detection threshold far below the noise (thousands of "stars") with an annulus
+/// of a thousand pixels took hours, with no estimate.
+pub const MAX_PIXEL_VISITS: f64 = 2e10;
+
+/// The pixel visits of measuring `n_stars` stars in `n_frames` frames of `nx x ny` px with
+/// `cfg`: each star's o and e image, each within the annulus's outer circle (or the aperture's,
+/// at least 3 FWHM), no more than the detector.
+pub fn photometry_work(cfg: &CatalogConfig, n_stars: usize, n_frames: usize, nx: usize, ny: usize) -> f64 {
+    let fwhm = cfg.detect.fwhm_px;
+    let r_ap = match cfg.radius {
+        ApertureRadius::Px(r) => r,
+        ApertureRadius::FwhmMultiple(k) => k * fwhm,
+        ApertureRadius::BestSnr => 3.0 * fwhm,
+    };
+    let r = cfg.annulus.map_or(r_ap, |(_, b)| b).max(r_ap).max(3.0 * fwhm);
+    let area = (std::f64::consts::PI * r * r).min((nx * ny) as f64);
+    2.0 * n_stars as f64 * n_frames as f64 * area
 }
 
 impl Default for CatalogConfig {
@@ -42,6 +66,7 @@ impl Default for CatalogConfig {
             annulus: Some((12.0, 20.0)),
             weighting: Weighting::Exact,
             kappa: stokes::KappaCorrection::None,
+            force: false,
         }
     }
 }
@@ -469,6 +494,15 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
     // The detection's work images take the measuring pass's frames.
     src.recycle(spare);
     let (pairs, unpaired) = pair(&sources, &g, dcfg.pair_tol_px);
+    let work = photometry_work(cfg, pairs.len(), n, nx, ny);
+    if work > MAX_PIXEL_VISITS && !cfg.force {
+        return Err(Error::Invalid(format!(
+            "{} stars paired at a threshold of {} sigma, each measured in {n} frames within {} px: about {work:.1e} pixel visits (limit {MAX_PIXEL_VISITS:.0e}, about a minute of one core): raise the threshold, shrink the annulus, or force it (--force, force=True)",
+            pairs.len(),
+            cfg.detect.threshold_sigma,
+            cfg.annulus.map_or(String::from("the aperture"), |(_, b)| format!("an annulus of {b}")),
+        )));
+    }
     // The unpaired sources and where the layout puts their e images, for the overlap test.
     let unpaired_e: Vec<(&Source, Option<(f64, f64)>)> =
         unpaired.iter().map(|&k| (&sources[k], g.e_position(sources[k].x, sources[k].y))).collect();

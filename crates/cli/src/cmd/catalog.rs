@@ -68,6 +68,11 @@ pub struct Args {
     /// With --cal: correct stars outside the calibrated field too (flagged, errors inflated).
     #[arg(long)]
     pub allow_extrapolation: bool,
+    /// Measure the stars even when the photometry is estimated at more than 2e10 pixel visits
+    /// (about a minute of one core): stars x frames x the annulus's area. A threshold far
+    /// below the noise or a huge annulus is refused with the estimate unless this is given.
+    #[arg(long)]
+    pub force: bool,
 }
 
 /// A star's correction in the JSON: the columns of `instpol correct`.
@@ -140,6 +145,7 @@ pub fn run(a: Args) -> Result<()> {
         annulus: Some(annulus),
         weighting: skyfield::aperture::Weighting::Exact,
         kappa: a.kappa.correction()?,
+        force: a.force,
     };
     cfg.check().map_err(|e| anyhow::anyhow!("--{e}"))?;
     if let Some(out) = &a.out {

@@ -717,6 +717,7 @@ def catalog(
     pair_tol: float = 1.5,
     cal: Optional[PathLike] = None,
     allow_extrapolation: bool = False,
+    force: bool = False,
     as_table: Optional[bool] = None,
 ) -> Any:
     """Every paired star of a frame set measured, as ``instpol catalog``: detection on the
@@ -747,6 +748,10 @@ def catalog(
     columns with their units (px, arcmin, deg, electrons; q, u, P fractions), the catalog-wide
     values in ``meta`` and also by key (``t["filter"]``); ``as_table=False``: the dict below.
 
+    ``force=True``: measure the stars even when the photometry is estimated beyond 2e10 pixel
+    visits (stars x frames x the annulus's area; a threshold far below the noise or a huge
+    annulus is refused with the estimate otherwise).
+
     ``cal``: a calibration file to remove the instrumental polarization with in the same run, as
     ``instpol catalog --cal``: adds the columns ``q0, u0, sigma_q0, sigma_u0, cov_qu0, p0,
     sigma_p0, chi0_deg, sigma_chi0_deg, q_inst, u_inst, extrapolated`` and ``chi_offset_applied_deg,
@@ -775,7 +780,7 @@ def catalog(
             paths, str(instrument), float(fwhm), float(threshold), str(aperture), (r_in, r_out),
             _opt_path(bias), _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles],
             bool(assembled), None if kappa is None else float(kappa), bool(kappa_from_data), float(pair_tol),
-            _opt_path(cal), bool(allow_extrapolation),
+            _opt_path(cal), bool(allow_extrapolation), bool(force),
         )
     if as_table is None:
         as_table = _HAVE_ASTROPY

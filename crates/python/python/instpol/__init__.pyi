@@ -207,6 +207,7 @@ def catalog(
     pair_tol: float = ...,
     cal: Optional[PathLike] = ...,
     allow_extrapolation: bool = ...,
+    force: bool = ...,
     as_table: Optional[bool] = ...,
 ) -> Any:
     """Every paired star measured: Q/I, U/I, P, chi with errors and flags.
