@@ -53,7 +53,7 @@ fn check(dir: &Path, inst_path: &Path, stars: &[Truth], fwhm_arcsec: f64, ap: Ap
         radius: skyfield::photometry::ApertureRadius::Px(ap.radius_px),
         annulus: ap.annulus,
         weighting: skyfield::aperture::Weighting::Exact,
-        kappa: Default::default(),
+        ..Default::default()
     };
     let cat = catalog(&set, &inst, &cfg).unwrap();
     // What `instpol catalog` runs: the frames read band by band from disk and each star
@@ -187,7 +187,7 @@ fn bright_config() -> CatalogConfig {
         radius: skyfield::photometry::ApertureRadius::Px(9.0),
         annulus: Some((14.0, 24.0)),
         weighting: skyfield::aperture::Weighting::Exact,
-        kappa: Default::default(),
+        ..Default::default()
     }
 }
 
