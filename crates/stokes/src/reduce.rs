@@ -151,7 +151,10 @@ pub struct Reduction {
     pub sigma_chi: f64,
     /// Effective SNR of the intensity image `f_O + f_E` of one exposure (see module docs).
     pub snr: f64,
-    /// `eq:sigp`: `1/(sqrt(N/2) SNR)`.
+    /// `eq:sigp`: `1/(sqrt(N/2) SNR)`; for a plate turning through `d_i` during exposure `i`,
+    /// `1/(sqrt(sum e_i^2 / 2) SNR)` with `e_i = sin(2 d_i)/(2 d_i)` the modulation each keeps
+    /// ([`mueller::hwp_sweep_efficiency`]): the same form with each `F_i` carrying `e_i` of the
+    /// signal (`N` when every `e_i = 1`).
     pub sigma_p_analytic: f64,
     /// `eq:sigchi`: `sigma_P/(2P)` (rad); infinite when `P = 0`.
     pub sigma_chi_analytic: f64,
@@ -557,7 +560,13 @@ pub fn reduce(m: &Measurement) -> Result<Reduction, Error> {
         .sum::<f64>()
         / n as f64;
     let snr = 1.0 / inv_snr2.sqrt();
-    let sigma_p_analytic = 1.0 / ((n as f64 / 2.0).sqrt() * snr);
+    // (Summing 1.0 N times is N exactly: a fixed plate's value is the plain form's, bit for bit.)
+    let kept: f64 = if m.sweep.is_empty() {
+        n as f64
+    } else {
+        m.sweep.iter().map(|&d| mueller::hwp_sweep_efficiency(d).powi(2)).sum()
+    };
+    let sigma_p_analytic = 1.0 / ((kept / 2.0).sqrt() * snr);
     let sigma_chi_analytic = if chi_defined { sigma_p_analytic / (2.0 * p) } else { f64::INFINITY };
 
     let a0 = crate::kappa::a0(&f);

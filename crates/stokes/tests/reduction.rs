@@ -100,6 +100,26 @@ fn eq_sigp_and_eq_sigchi_for_poisson_counts() {
     }
 }
 
+/// eq:sigp for a plate that turns through 22.5 deg during each exposure: every F_i keeps
+/// sin(2d)/(2d) = 0.9003 of the modulation, so the analytic error is the fixed plate's divided
+/// by it (it was the fixed plate's, 10 % too small), and agrees with the error propagated
+/// through the solver with the averaged modulation as for a fixed plate (to O(P^2)).
+#[test]
+fn eq_sigp_with_a_turning_plate() {
+    let i0 = 1600.0f64 * 1600.0;
+    let (p0, chi0) = (0.01, 0.4);
+    let d = 22.5f64.to_radians();
+    let e = (2.0 * d).sin() / (2.0 * d);
+    assert_relative_eq!(e, 0.9003, max_relative = 1e-4);
+    for n in [4usize, 16] {
+        let m = measure(&DualBeam::ideal(), &stokes_p_chi(i0, p0, chi0), &optimal_angles(n));
+        let r = reduce(&m.with_sweeps(vec![d; n]).unwrap()).unwrap();
+        let fixed = 1.0 / ((n as f64 / 2.0).sqrt() * 1600.0);
+        assert_relative_eq!(r.sigma_p_analytic, fixed / e, max_relative = 1e-12);
+        assert_relative_eq!(r.sigma_p, r.sigma_p_analytic, max_relative = 2.0 * p0);
+    }
+}
+
 // ---------------------------------------------------------------- Wollaston (sec:wollaston)
 
 /// sec:wollaston: unpolarized light gives F_i = 2t - 1; N = 2 gives the spurious
