@@ -49,6 +49,9 @@ pub enum Model {
     RadialResidual { radial: RadialModel, residual: ResidualMap },
     /// A gridded map (e.g. imported from another tool), bilinearly interpolated.
     Map(GridMap),
+    /// A polynomial in x, y for `q` and for `u` (a field without an optical axis: a plane, a
+    /// tilt; [`crate::poly`]).
+    Poly(crate::poly::PolyModel),
 }
 
 impl Model {
@@ -58,6 +61,7 @@ impl Model {
             Model::Radial(_) => "RADIAL",
             Model::RadialResidual { .. } => "RADIAL+RESIDUAL",
             Model::Map(_) => "MAP",
+            Model::Poly(_) => "POLY",
         }
     }
 
@@ -65,7 +69,7 @@ impl Model {
     pub fn radial(&self) -> Option<&RadialModel> {
         match self {
             Model::Radial(r) | Model::RadialResidual { radial: r, .. } => Some(r),
-            Model::Map(_) => None,
+            Model::Map(_) | Model::Poly(_) => None,
         }
     }
 }
@@ -321,6 +325,28 @@ impl Calibration {
                 }
             }
         }
+        if let Model::Poly(m) = &self.model {
+            w.int("POLY DEGREE", m.degree as i64)?;
+            let errs = m.coefficient_errors();
+            let nt = m.q.len();
+            for (k, (i, j)) in crate::poly::PolyModel::powers(m.degree).into_iter().enumerate() {
+                w.real(&format!("POLY Q X{i}Y{j}"), m.q[k])?;
+                w.real(&format!("POLY Q X{i}Y{j} ERR"), errs[k])?;
+                w.real(&format!("POLY U X{i}Y{j}"), m.u[k])?;
+                w.real(&format!("POLY U X{i}Y{j} ERR"), errs[nt + k])?;
+            }
+            let np = 2 * nt;
+            for i in 0..np {
+                for j in i..np {
+                    w.real(&format!("COV {i} {j}"), m.cov[i * np + j])?;
+                }
+            }
+            if let Some(sc) = &m.scaling {
+                w.str("ERR SCALING", sc.mode.name())?;
+                w.real("CHI2 RED", sc.chi2_reduced)?;
+                w.real("ERR CHI2 FACTOR", sc.chi2_factor)?;
+            }
+        }
         if let Model::RadialResidual { residual, .. } = &self.model {
             w.real("RESID LOO RMS Q", residual.loo_rms_q)?;
             w.real("RESID LOO RMS U", residual.loo_rms_u)?;
@@ -389,6 +415,7 @@ impl Calibration {
             .map(|b| match &self.model {
                 Model::Radial(r) | Model::RadialResidual { radial: r, .. } => r.qu(b.x, b.y),
                 Model::Map(g) => g.interpolate(b.x, b.y).map(|v| (v.q, v.u)).unwrap_or((f64::NAN, f64::NAN)),
+                Model::Poly(m) => m.qu(b.x, b.y),
             })
             .collect();
         let dcols = [
@@ -531,56 +558,8 @@ impl Calibration {
             }
             let coeffs =
                 (first_power..=degree).map(|k| r.real(&format!("RADIAL C{k}"))).collect::<Result<Vec<f64>>>()?;
-            let np = coeffs.len() + 2;
-            let mut cov = vec![0.0; np * np];
-            for i in 0..np {
-                for j in i..np {
-                    let v = r.opt_real(&format!("COV {i} {j}")).unwrap_or(0.0);
-                    cov[i * np + j] = v;
-                    cov[j * np + i] = v;
-                }
-            }
-            // A covariance with a negative variance or a correlation beyond 1 would give
-            // imaginary or understated errors downstream: refused by name.
-            for i in 0..np {
-                let cii = cov[i * np + i];
-                if !(cii.is_finite() && cii >= 0.0) {
-                    return Err(Error::BadFile {
-                        path: path.into(),
-                        what: format!("keyword HIERARCH IP COV {i} {i} = {cii} is not a variance (finite, >= 0)"),
-                    });
-                }
-                for j in 0..i {
-                    let c = cov[i * np + j];
-                    if !(c.is_finite() && c * c <= cii * cov[j * np + j] * (1.0 + 1e-9)) {
-                        return Err(Error::BadFile {
-                            path: path.into(),
-                            what: format!(
-                                "keyword HIERARCH IP COV {j} {i} = {c} is not a covariance of variances {} and {cii} (|correlation| > 1)",
-                                cov[j * np + j]
-                            ),
-                        });
-                    }
-                }
-            }
-            // Absent from files written before the choice existed (their covariance was
-            // scaled by chi2_red): None, not a guess.
-            let scaling = match r.opt_str("ERR SCALING") {
-                None => None,
-                Some(name) => {
-                    let mode = name.parse::<ErrorScaling>().map_err(|err| Error::BadFile {
-                        path: path.into(),
-                        what: format!("keyword HIERARCH IP ERR SCALING: {err}"),
-                    })?;
-                    let chi2_reduced = r.opt_real("CHI2 RED").unwrap_or(f64::NAN);
-                    Some(CovarianceScaling {
-                        mode,
-                        chi2_reduced,
-                        chi2_factor: r.opt_real("ERR CHI2 FACTOR").unwrap_or_else(|| mode.factor(chi2_reduced)),
-                        correlation_inflation: r.opt_real("ERR CORR INFL"),
-                    })
-                }
-            };
+            let cov = read_covariance(&mut r, coeffs.len() + 2, path)?;
+            let scaling = read_scaling(&mut r, path)?;
             Some(RadialModel {
                 first_power: first_power as usize,
                 coeffs,
@@ -589,11 +568,12 @@ impl Calibration {
                 cov,
                 scaling,
             })
-        } else if kind == "MAP" {
+        } else if kind == "MAP" || kind == "POLY" {
             None
         } else {
             return Err(Error::BadFile { path: path.into(), what: format!("unknown model kind MODEL = '{kind}'") });
         };
+        let mut poly = if kind == "POLY" { Some(read_poly(&mut r, path)?) } else { None };
         let polar_angle = r.opt_real("POLANG SLOPE").map(|slope| PolarAngleSummary {
             slope,
             slope_err: r.opt_real("POLANG SLOPE ERR").unwrap_or(f64::NAN),
@@ -724,6 +704,7 @@ impl Calibration {
         }
 
         let model = match (kind.as_str(), radial) {
+            ("POLY", _) if poly.is_some() => Model::Poly(poly.take().expect("checked")),
             ("RADIAL", Some(r)) => Model::Radial(r),
             ("RADIAL+RESIDUAL", Some(r)) => {
                 let residual = residual_from_bins(&r, &bins)?;
@@ -766,6 +747,84 @@ pub fn residual_from_bins(radial: &RadialModel, bins: &[Bin]) -> Result<Residual
     ResidualMap::new(pts)
 }
 
+/// The covariance `COV i j` (upper triangle) of a model's `np` parameters, checked: a negative
+/// variance or a correlation beyond 1 would give imaginary or understated errors downstream,
+/// and is refused by name.
+fn read_covariance(r: &mut KeyReader, np: usize, path: &Path) -> Result<Vec<f64>> {
+    let mut cov = vec![0.0; np * np];
+    for i in 0..np {
+        for j in i..np {
+            let v = r.opt_real(&format!("COV {i} {j}")).unwrap_or(0.0);
+            cov[i * np + j] = v;
+            cov[j * np + i] = v;
+        }
+    }
+    for i in 0..np {
+        let cii = cov[i * np + i];
+        if !(cii.is_finite() && cii >= 0.0) {
+            return Err(Error::BadFile {
+                path: path.into(),
+                what: format!("keyword HIERARCH IP COV {i} {i} = {cii} is not a variance (finite, >= 0)"),
+            });
+        }
+        for j in 0..i {
+            let c = cov[i * np + j];
+            if !(c.is_finite() && c * c <= cii * cov[j * np + j] * (1.0 + 1e-9)) {
+                return Err(Error::BadFile {
+                    path: path.into(),
+                    what: format!(
+                        "keyword HIERARCH IP COV {j} {i} = {c} is not a covariance of variances {} and {cii} (|correlation| > 1)",
+                        cov[j * np + j]
+                    ),
+                });
+            }
+        }
+    }
+    Ok(cov)
+}
+
+/// How a model's covariance was scaled (`ERR SCALING`, `CHI2 RED`, ...). Absent from files
+/// written before the choice existed (their covariance was scaled by chi2_red): None, not a
+/// guess.
+fn read_scaling(r: &mut KeyReader, path: &Path) -> Result<Option<CovarianceScaling>> {
+    Ok(match r.opt_str("ERR SCALING") {
+        None => None,
+        Some(name) => {
+            let mode = name.parse::<ErrorScaling>().map_err(|err| Error::BadFile {
+                path: path.into(),
+                what: format!("keyword HIERARCH IP ERR SCALING: {err}"),
+            })?;
+            let chi2_reduced = r.opt_real("CHI2 RED").unwrap_or(f64::NAN);
+            Some(CovarianceScaling {
+                mode,
+                chi2_reduced,
+                chi2_factor: r.opt_real("ERR CHI2 FACTOR").unwrap_or_else(|| mode.factor(chi2_reduced)),
+                correlation_inflation: r.opt_real("ERR CORR INFL"),
+            })
+        }
+    })
+}
+
+/// A polynomial field's degree and coefficients (`POLY DEGREE`, `POLY Q X{i}Y{j}`, ...).
+fn read_poly(r: &mut KeyReader, path: &Path) -> Result<crate::poly::PolyModel> {
+    use crate::poly::{PolyModel, MAX_DEGREE};
+    let degree = r.int("POLY DEGREE")?;
+    if !(1..=MAX_DEGREE as i64).contains(&degree) {
+        return Err(Error::BadFile {
+            path: path.into(),
+            what: format!("keyword HIERARCH IP POLY DEGREE = {degree}: expected 1 to {MAX_DEGREE}"),
+        });
+    }
+    let degree = degree as usize;
+    let (mut q, mut u) = (vec![], vec![]);
+    for (i, j) in PolyModel::powers(degree) {
+        q.push(r.real(&format!("POLY Q X{i}Y{j}"))?);
+        u.push(r.real(&format!("POLY U X{i}Y{j}"))?);
+    }
+    let cov = read_covariance(r, 2 * q.len(), path)?;
+    Ok(PolyModel { degree, q, u, cov, scaling: read_scaling(r, path)? })
+}
+
 impl FieldModel for Calibration {
     fn eval(&self, x: f64, y: f64) -> InstPol {
         match &self.model {
@@ -781,13 +840,14 @@ impl FieldModel for Calibration {
                 v
             }
             Model::Map(g) => g.eval(x, y),
+            Model::Poly(m) => m.eval(x, y),
         }
     }
 
     fn contains(&self, x: f64, y: f64) -> bool {
         self.region.contains(x, y)
             && match &self.model {
-                Model::Radial(_) => true,
+                Model::Radial(_) | Model::Poly(_) => true,
                 Model::RadialResidual { residual, .. } => residual.eval(x, y).is_some(),
                 Model::Map(g) => g.contains(x, y),
             }

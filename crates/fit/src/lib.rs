@@ -40,6 +40,7 @@ pub mod mueller_stars;
 pub mod paper;
 pub mod pipeline;
 pub mod polar;
+pub mod poly;
 pub mod radial;
 pub mod region;
 pub mod request;
@@ -60,6 +61,7 @@ pub use field::grid as gridmap;
 pub use bins::Bin;
 pub use calfile::{Calibration, Model};
 pub use model::{FieldModel, InstPol};
+pub use poly::{fit_poly, PolyFit, PolyModel};
 pub use radial::{fit_radial, CovarianceScaling, ErrorScaling, RadialFit, RadialFitOptions, RadialModel};
 pub use region::{Exclusion, FieldRegion};
 

@@ -80,6 +80,11 @@ pub struct CalibrateOptions {
     pub fit: RadialFitOptions,
     /// Keep the natural-neighbour interpolant of the residuals in the model.
     pub residual_map: bool,
+    /// Store a polynomial field of this total degree (1: a plane, to
+    /// [`crate::poly::MAX_DEGREE`]) instead of the radial model, for a field without an
+    /// optical axis ([`crate::poly`]). The radial fit still runs: its centre is the polar-angle
+    /// test's, and its profile says how far from radial the field is.
+    pub poly_degree: Option<usize>,
     /// Bins closer than this (arcmin) to the centre are left out of the polar-angle test
     /// (their angle is noise); default 0.5.
     pub polar_r_min: f64,
@@ -92,9 +97,43 @@ impl Default for CalibrateOptions {
         CalibrateOptions {
             fit: RadialFitOptions::default(),
             residual_map: false,
+            poly_degree: None,
             polar_r_min: 0.5,
             region_margin: 0.05,
         }
+    }
+}
+
+impl CalibrateOptions {
+    /// Read a model name: `radialN` (a polynomial of degree N in r about the optical axis,
+    /// [`RadialFitOptions::set_model_name`]), `polyN` (a polynomial of total degree N in x, y,
+    /// [`crate::poly`]) or `plane` (`poly1`).
+    pub fn set_model_name(&mut self, name: &str) -> Result<()> {
+        let lower = name.to_ascii_lowercase();
+        let degree = match lower.as_str() {
+            "plane" => Some(Ok(1)),
+            n => n.strip_prefix("poly").map(|d| {
+                d.parse::<usize>().ok().filter(|d| (1..=crate::poly::MAX_DEGREE).contains(d)).ok_or_else(|| {
+                    Error::Input(format!(
+                        "unknown model '{name}': polyN takes N = 1 (a plane) to {}",
+                        crate::poly::MAX_DEGREE
+                    ))
+                })
+            }),
+        };
+        match degree {
+            Some(d) => self.poly_degree = Some(d?),
+            None => {
+                self.fit.set_model_name(&lower).map_err(|_| {
+                    Error::Input(format!(
+                        "unknown model '{name}': expected radialN (N = degree 1..8, e.g. radial3), polyN (N = 1..{}) or plane",
+                        crate::poly::MAX_DEGREE
+                    ))
+                })?;
+                self.poly_degree = None;
+            }
+        }
+        Ok(())
     }
 }
 
@@ -102,8 +141,82 @@ impl Default for CalibrateOptions {
 #[derive(Debug, Clone)]
 pub struct CalibrationRun {
     pub calibration: Calibration,
+    /// The radial fit (the stored model unless a polynomial was asked for).
     pub fit: RadialFit,
+    /// The polynomial fit, when it is the stored model ([`CalibrateOptions::poly_degree`]).
+    pub poly: Option<crate::poly::PolyFit>,
     pub polar: PolarAngleTest,
+}
+
+impl CalibrationRun {
+    /// The stored field model's `(q, u)` at `(x, y)` arcmin, without a residual interpolant.
+    pub fn field_qu(&self, x: f64, y: f64) -> (f64, f64) {
+        match &self.poly {
+            Some(p) => p.model.qu(x, y),
+            None => self.fit.model.qu(x, y),
+        }
+    }
+
+    /// The stored model's fit's robust weight of each bin (0 for bins not used).
+    pub fn weights(&self) -> &[f64] {
+        self.poly.as_ref().map_or(&self.fit.weights, |p| &p.weights)
+    }
+
+    /// The stored model's free parameters: how many, and the size of its covariance's layout
+    /// (a radial model lays out its centre after its coefficients, fixed or not).
+    pub fn field_params(&self) -> (usize, usize) {
+        match &self.poly {
+            Some(p) => (2 * p.model.q.len(), 2 * p.model.q.len()),
+            None => {
+                let m = &self.fit.model;
+                (m.coeffs.len() + if m.centre_free { 2 } else { 0 }, m.n_params())
+            }
+        }
+    }
+
+    /// The stored model's `(dq/dparams, du/dparams)` at `(x, y)`, in its layout.
+    pub fn field_jacobian(&self, x: f64, y: f64) -> Option<(Vec<f64>, Vec<f64>)> {
+        use crate::model::FieldModel;
+        match &self.poly {
+            Some(p) => p.model.jacobian(x, y),
+            None => self.fit.model.jacobian(x, y),
+        }
+    }
+
+    /// The factor the stored model's fit applied to `(J^T W J)^-1`.
+    pub fn covariance_scale(&self) -> f64 {
+        match &self.poly {
+            Some(p) => p.model.scaling.map_or(p.chi2_reduced, |s| s.total()),
+            None => self.fit.model.scaling.map_or(self.fit.chi2_reduced, |s| s.total()),
+        }
+    }
+
+    /// The factor of the reduced chi^2 alone in [`Self::covariance_scale`] (1 when unknown).
+    pub fn chi2_factor(&self) -> f64 {
+        let s = match &self.poly {
+            Some(p) => p.model.scaling,
+            None => self.fit.model.scaling,
+        };
+        s.map_or(1.0, |s| s.chi2_factor)
+    }
+
+    /// The stored model's covariance, row-major in its layout ([`Self::field_params`]).
+    pub fn field_covariance(&self) -> &[f64] {
+        self.poly.as_ref().map_or(&self.fit.model.cov, |p| &p.model.cov)
+    }
+
+    /// Put a covariance (the stored model's layout) into the fit and the calibration.
+    pub fn set_field_covariance(&mut self, cov: &[f64]) {
+        match &mut self.poly {
+            Some(p) => p.model.cov = cov.to_vec(),
+            None => self.fit.model.cov = cov.to_vec(),
+        }
+        match &mut self.calibration.model {
+            Model::Radial(r) | Model::RadialResidual { radial: r, .. } => r.cov = cov.to_vec(),
+            Model::Poly(p) => p.cov = cov.to_vec(),
+            Model::Map(_) => {}
+        }
+    }
 }
 
 /// Calibrate from bins of instrumental `(q, u)`: the radial fit (section `sec:fors1`), the
@@ -122,12 +235,28 @@ pub fn calibrate_bins(mut bins: Vec<Bin>, meta: CalibrationMeta, opts: &Calibrat
     let polar = polar_angle_test_with(&bins, fit.model.centre, opts.polar_r_min, opts.fit.error_scaling, inflation)?;
     let region = FieldRegion::bounding(bins.iter().filter(|b| b.is_valid()).map(|b| (b.x, b.y)), opts.region_margin)
         .ok_or_else(|| Error::Input("no valid bin positions".into()))?;
-    let model = if opts.residual_map {
-        let residual = residual_from_bins(&fit.model, &bins)?;
-        Model::RadialResidual { radial: fit.model.clone(), residual }
-    } else {
-        Model::Radial(fit.model.clone())
+    let poly = match opts.poly_degree {
+        Some(_) if opts.residual_map => {
+            return Err(Error::Input(
+                "a residual interpolant is kept beside the radial model, not a polynomial: choose one".into(),
+            ))
+        }
+        Some(d) => Some(crate::poly::fit_poly(&bins, d, &opts.fit)?),
+        None => None,
     };
+    let model = match (&poly, opts.residual_map) {
+        (Some(p), _) => Model::Poly(p.model.clone()),
+        (None, true) => {
+            Model::RadialResidual { radial: fit.model.clone(), residual: residual_from_bins(&fit.model, &bins)? }
+        }
+        (None, false) => Model::Radial(fit.model.clone()),
+    };
+    if let Some(p) = &poly {
+        for (b, u) in bins.iter_mut().zip(&p.used) {
+            b.used = *u;
+        }
+    }
+    let (rms_residual, n_used) = poly.as_ref().map_or((fit.rms_residual, fit.n_used), |p| (p.rms_residual, p.n_used));
     let calibration = Calibration {
         format_version: FORMAT_VERSION,
         instrument: meta.instrument,
@@ -136,8 +265,8 @@ pub fn calibrate_bins(mut bins: Vec<Bin>, meta: CalibrationMeta, opts: &Calibrat
         hwp_chi_offset_deg: meta.hwp_chi_offset_deg,
         model,
         region,
-        rms_residual: fit.rms_residual,
-        n_bins_used: fit.n_used,
+        rms_residual,
+        n_bins_used: n_used,
         polar_angle: polar.angles_defined().then(|| PolarAngleSummary::from(&polar)),
         exclusions: opts.fit.exclusions.clone(),
         robust: opts.fit.robust.name(),
@@ -146,7 +275,7 @@ pub fn calibrate_bins(mut bins: Vec<Bin>, meta: CalibrationMeta, opts: &Calibrat
         bins,
         grid: None,
     };
-    Ok(CalibrationRun { calibration, fit, polar })
+    Ok(CalibrationRun { calibration, fit, poly, polar })
 }
 
 /// Refit a calibration (native or imported) from its binned measurements.
@@ -253,13 +382,30 @@ pub struct FitSummary {
     /// The plots drawn (`--plots`), PNG and SVG; omitted when none.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub plot_outputs: Vec<String>,
+    /// The polynomial field when it is the stored model (`model` "POLY"); the radial fields
+    /// above are then the radial fit of the same bins (the polar-angle test's centre), and
+    /// `rms_residual`, `chi2_dof`, `n_bins_used` the polynomial's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub poly: Option<PolySummary>,
+}
+
+/// A polynomial field in [`FitSummary`]: its terms `x^i y^j` (`powers`, `[i, j]`) and the
+/// coefficients of `q` and `u` (fractions per arcmin^(i+j)) with their errors.
+#[derive(Debug, Clone, Serialize)]
+pub struct PolySummary {
+    pub degree: usize,
+    pub powers: Vec<[usize; 2]>,
+    pub q: Vec<f64>,
+    pub sigma_q: Vec<f64>,
+    pub u: Vec<f64>,
+    pub sigma_u: Vec<f64>,
 }
 
 impl FitSummary {
     pub fn new(run: &CalibrationRun) -> Self {
         let cal = &run.calibration;
         let m = &run.fit.model;
-        FitSummary {
+        let mut s = FitSummary {
             filter: cal.filter.clone(),
             model: cal.model.kind().to_string(),
             centre_arcmin: m.centre,
@@ -290,7 +436,27 @@ impl FitSummary {
             approx_vs_exact: approx_vs_exact(&cal.bins),
             calibration_file: None,
             plot_outputs: Vec::new(),
+            poly: None,
+        };
+        if let Some(p) = &run.poly {
+            let m = &p.model;
+            let e = m.coefficient_errors();
+            let nt = m.q.len();
+            s.rms_residual = p.rms_residual;
+            s.chi2_reduced = p.chi2_reduced;
+            s.n_bins_used = p.n_used;
+            s.error_scaling = m.scaling.map_or("scaled", |s| s.mode.name()).to_string();
+            s.covariance_scale = m.scaling.map_or(p.chi2_reduced, |s| s.total());
+            s.poly = Some(PolySummary {
+                degree: m.degree,
+                powers: crate::poly::PolyModel::powers(m.degree).into_iter().map(|(i, j)| [i, j]).collect(),
+                q: m.q.clone(),
+                sigma_q: e[..nt].to_vec(),
+                u: m.u.clone(),
+                sigma_u: e[nt..].to_vec(),
+            });
         }
+        s
     }
 }
 

@@ -655,6 +655,14 @@ pub fn fit_radial(bins: &[Bin], opts: &RadialFitOptions) -> Result<RadialFit> {
     Ok(fit)
 }
 
+/// The weights of the robust loss for standardized residuals `t`, each first divided by their
+/// spread (the MAD as a sigma) where that exceeds 1: the reweighting of every field fit.
+pub(crate) fn robust_weights(t: &[f64], robust: Robust) -> Vec<f64> {
+    let mut a = t.to_vec();
+    let scale = (MAD_TO_SIGMA * median(&mut a, Middle::Mean)).max(1.0);
+    t.iter().map(|ti| robust.weight(ti / scale)).collect()
+}
+
 /// One fit with a given bin membership, from `start_centre` (the fixed centre, or the start of
 /// a free one).
 fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used: Vec<bool>) -> Result<RadialFit> {
@@ -705,9 +713,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
                 (0.5 * (tq * tq + tu * tu)).sqrt()
             })
             .collect();
-        let mut a = t.clone();
-        let scale = (MAD_TO_SIGMA * median(&mut a, Middle::Mean)).max(1.0);
-        t.iter().map(|ti| opts.robust.weight(ti / scale)).collect()
+        robust_weights(&t, opts.robust)
     };
 
     let mut params = gauss_newton(&problem, vec![0.0; nc])?;

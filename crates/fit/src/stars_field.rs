@@ -11,8 +11,10 @@
 //! ```
 //!
 //! with `F` the instrumental field (the radial model of section `sec:fors1`, fixed or free
-//! centre, optionally with the interpolant of its residuals: the sky-field calibration's own
-//! models and fitter, [`crate::pipeline::calibrate_bins`]), `(q_is, u_is)` one interstellar
+//! centre, optionally with the interpolant of its residuals, or a polynomial in x, y such as a
+//! plane, [`crate::poly`]: the sky-field calibration's own models and fitter,
+//! [`crate::pipeline::calibrate_bins`]; a polynomial's constant term needs the interstellar
+//! term fixed, the two being the same at every position), `(q_is, u_is)` one interstellar
 //! polarization common to every star (free, zero or given) and `e_m` the measurement's error.
 //! A star seen in several pointings is one star (matched by its sky position: field position
 //! plus the pointing's offset), so its intrinsic polarization is common to its measurements
@@ -37,10 +39,9 @@
 //! parameters absorb part of each residual.
 
 use crate::calfile::Provenance;
-use crate::model::FieldModel;
 use crate::pipeline::{calibrate_bins, CalibrateOptions, CalibrationMeta, CalibrationRun};
 use crate::polar::chi2_even_sf;
-use crate::{Bin, Error, Model, Result};
+use crate::{Bin, Error, Result};
 use nalgebra::DMatrix;
 use serde::Serialize;
 use skyfield::table::Table;
@@ -375,6 +376,13 @@ pub fn stars_field(
     if !(opts.reject_alpha > 0.0 && opts.reject_alpha < 1.0) {
         return Err(Error::Input(format!("the rejection probability {} must be in (0, 1)", opts.reject_alpha)));
     }
+    // A polynomial's constant term is the same at every detector position, as a common
+    // interstellar term is at every star: the two cannot be told apart.
+    if opts.calibrate.poly_degree.is_some() && opts.interstellar == Interstellar::Free {
+        return Err(Error::Input(
+            "a polynomial field's constant term and a free interstellar polarization are the same at every position and cannot be told apart: take the stars as unpolarized (interstellar zero) or give the interstellar polarization".into(),
+        ));
+    }
     if !(opts.match_radius_arcmin > 0.0 && opts.match_radius_arcmin.is_finite()) {
         return Err(Error::Input(format!("the match radius {} arcmin must be positive", opts.match_radius_arcmin)));
     }
@@ -502,31 +510,30 @@ fn star_chi2(
     run: &CalibrationRun,
     isp: &mueller::Qu,
 ) -> (f64, usize, f64, f64, f64, f64) {
-    let radial = &run.fit.model;
     // The measurements' errors as the fit judged them: scaled as its covariance is (by
     // max(1, chi2_red) by default), so that errors the catalogs understate for every star do
     // not reject stars for the scatter they all share.
-    let scale = radial.scaling.map_or(1.0, |s| s.chi2_factor);
-    let np = radial.n_params();
+    let scale = run.chi2_factor();
+    let (_, np) = run.field_params();
     let n = 2 * g.len();
     let mut r = nalgebra::DVector::<f64>::zeros(n);
     let mut jac = DMatrix::<f64>::zeros(n, np);
     let mut s = DMatrix::<f64>::zeros(n, n);
     for (k, &i) in g.iter().enumerate() {
         let m = &rows[i];
-        let (fq, fu) = radial.qu(m.x, m.y);
+        let (fq, fu) = run.field_qu(m.x, m.y);
         r[2 * k] = m.q - fq - isp.q;
         r[2 * k + 1] = m.u - fu - isp.u;
         s[(2 * k, 2 * k)] = scale * m.sigma_q.powi(2);
         s[(2 * k + 1, 2 * k + 1)] = scale * m.sigma_u.powi(2);
-        if let Some((gq, gu)) = radial.jacobian(m.x, m.y) {
+        if let Some((gq, gu)) = run.field_jacobian(m.x, m.y) {
             for p in 0..np {
                 jac[(2 * k, p)] = gq[p];
                 jac[(2 * k + 1, p)] = gu[p];
             }
         }
     }
-    let c = DMatrix::from_row_slice(np, np, &radial.cov);
+    let c = DMatrix::from_row_slice(np, np, run.field_covariance());
     s += &jac * c * jac.transpose();
     for a in 0..g.len() {
         for b in 0..g.len() {
@@ -588,9 +595,9 @@ fn fit_kept(
             let run = calibrate_bins(bins_for(iq, iu), meta.clone(), &radial_only)?;
             let (mut sq, mut su, mut wq, mut wu) = (0.0, 0.0, 0.0, 0.0);
             for (k, &i) in keep.iter().enumerate() {
-                let w = run.fit.weights[k];
+                let w = run.weights()[k];
                 let r = &rows[i];
-                let (fq, fu) = run.fit.model.qu(r.x, r.y);
+                let (fq, fu) = run.field_qu(r.x, r.y);
                 sq += w * (r.q - fq) / r.sigma_q.powi(2);
                 su += w * (r.u - fu) / r.sigma_u.powi(2);
                 wq += w / r.sigma_q.powi(2);
@@ -609,7 +616,7 @@ fn fit_kept(
     let mut isp = mueller::Qu::new(iq, iu, 0.0, 0.0, 0.0);
     if free {
         let (cov, var) = joint_covariance(rows, keep, &run, true)?;
-        set_field_covariance(&mut run, &cov);
+        run.set_field_covariance(&cov);
         isp.var_q = var[0];
         isp.var_u = var[1];
         isp.cov_qu = var[2];
@@ -626,21 +633,19 @@ fn joint_covariance(
     run: &CalibrationRun,
     with_isp: bool,
 ) -> Result<(Vec<f64>, [f64; 3])> {
-    let m = &run.fit.model;
-    let np = m.n_params();
-    let nf = m.coeffs.len() + if m.centre_free { 2 } else { 0 };
+    let (nf, np) = run.field_params();
     let n = nf + if with_isp { 2 } else { 0 };
     let mut a = DMatrix::<f64>::zeros(n, n);
     let mut gq = vec![0.0; n];
     let mut gu = vec![0.0; n];
     for (k, &i) in keep.iter().enumerate() {
-        let w = run.fit.weights[k];
+        let w = run.weights()[k];
         if w <= 0.0 {
             continue;
         }
         let r = &rows[i];
         let (jq, ju) =
-            m.jacobian(r.x, r.y).ok_or_else(|| Error::Degenerate("no Jacobian of the field model".into()))?;
+            run.field_jacobian(r.x, r.y).ok_or_else(|| Error::Degenerate("no Jacobian of the field model".into()))?;
         gq[..nf].copy_from_slice(&jq[..nf]);
         gu[..nf].copy_from_slice(&ju[..nf]);
         if with_isp {
@@ -656,7 +661,7 @@ fn joint_covariance(
             }
         }
     }
-    let scale = m.scaling.map_or(run.fit.chi2_reduced, |s| s.total());
+    let scale = run.covariance_scale();
     let inv = a.try_inverse().ok_or_else(|| {
         Error::Degenerate("the field and the interstellar polarization cannot be told apart by these stars".into())
     })? * scale;
@@ -668,15 +673,6 @@ fn joint_covariance(
     }
     let var = if with_isp { [inv[(nf, nf)], inv[(nf + 1, nf + 1)], inv[(nf, nf + 1)]] } else { [0.0; 3] };
     Ok((cov, var))
-}
-
-/// Put the joint covariance into the fit's model and the calibration's.
-fn set_field_covariance(run: &mut CalibrationRun, cov: &[f64]) {
-    run.fit.model.cov = cov.to_vec();
-    match &mut run.calibration.model {
-        Model::Radial(r) | Model::RadialResidual { radial: r, .. } => r.cov = cov.to_vec(),
-        Model::Map(_) => {}
-    }
 }
 
 /// The calibration's description for a fit from stars of `inst` in `filter`, with the HWP

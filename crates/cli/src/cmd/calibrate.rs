@@ -58,7 +58,9 @@ pub struct Args {
 /// Fit options shared by `calibrate` and `fit`.
 #[derive(clap::Args, Clone)]
 pub struct FitArgs {
-    /// Model: radialN, a polynomial of degree N in r (default radial3, as the paper).
+    /// Model: radialN, a polynomial of degree N in r about the optical axis (default radial3,
+    /// as the paper); polyN, a polynomial of total degree N (1 to 3) in x and y for each of q
+    /// and u, for a field without an optical axis; plane, the same as poly1.
     #[arg(long, default_value = "radial3")]
     pub model: String,
     /// Fit a constant term c_0 too (the paper assumes p = 0 on the axis: no c_0).
@@ -100,7 +102,6 @@ impl FitArgs {
     pub fn options(&self) -> Result<CalibrateOptions> {
         let mut fo =
             RadialFitOptions { include_c0: self.include_c0, free_centre: self.free_centre, ..Default::default() };
-        fo.set_model_name(&self.model)?;
         for e in &self.exclude {
             fo.exclusions.push(e.parse()?);
         }
@@ -109,7 +110,9 @@ impl FitArgs {
         })?;
         fo.error_scaling = self.error_scaling.parse().context("--error-scaling")?;
         fo.correlated_errors = self.correlated_errors;
-        Ok(CalibrateOptions { fit: fo, residual_map: self.residual_map, ..Default::default() })
+        let mut opts = CalibrateOptions { fit: fo, residual_map: self.residual_map, ..Default::default() };
+        opts.set_model_name(&self.model)?;
+        Ok(opts)
     }
 }
 
@@ -163,9 +166,26 @@ pub fn print_table(s: &FitSummary) {
         Some(c) => outln!("  = pixel ({:.1}, {:.1}){}", c[0], c[1], if s.centre_free { "" } else { "  (fixed)" }),
         None => outln!(),
     }
+    if s.poly.is_some() {
+        outln!("radial fit of the same bins (the polar-angle test's centre):");
+    }
     outln!("{:>6} {:>14} {:>12}", "power", "c_k (%)", "error (%)");
     for ((k, c), e) in s.powers.iter().zip(&s.coefficients).zip(&s.coefficient_errors) {
         outln!("{:>6} {:>14.5} {:>12.5}", k, 100.0 * c, 100.0 * e);
+    }
+    if let Some(p) = &s.poly {
+        outln!("stored model: a polynomial of degree {} in x, y (arcmin)", p.degree);
+        outln!("{:>8} {:>12} {:>10} {:>12} {:>10}", "term", "q (%)", "error", "u (%)", "error");
+        for (k, [i, j]) in p.powers.iter().enumerate() {
+            outln!(
+                "{:>8} {:>12.5} {:>10.5} {:>12.5} {:>10.5}",
+                format!("x^{i} y^{j}"),
+                100.0 * p.q[k],
+                100.0 * p.sigma_q[k],
+                100.0 * p.u[k],
+                100.0 * p.sigma_u[k]
+            );
+        }
     }
     outln!("RMS residual {:.4}% (per component)   reduced chi2 {:.2}", 100.0 * s.rms_residual, s.chi2_reduced);
     outln!(
@@ -280,9 +300,11 @@ pub fn finish(run: &CalibrationRun, out: Option<&Path>, plots: Option<&Path>, js
     // extreme Wollaston imbalance gave chi2_red = 1e9): the numbers still come, with a warning.
     if !(s.chi2_reduced >= 0.1 && s.chi2_reduced <= 10.0) {
         eprintln!(
-            "warning: reduced chi^2 of the radial fit is {:.3e}, far from 1: the model or the errors do not describe \
-             the bins (errors scaled: {}; check the frames, the sky polarization and the Wollaston balance)",
-            s.chi2_reduced, s.error_scaling
+            "warning: reduced chi^2 of the {} fit is {:.3e}, far from 1: the model or the errors do not describe \
+             the bins (errors scaled: {}; check the model, the frames, the sky polarization and the Wollaston balance)",
+            if s.poly.is_some() { "polynomial" } else { "radial" },
+            s.chi2_reduced,
+            s.error_scaling
         );
     }
     if !s.polar_angle_pattern && s.polar_angle_slope.is_finite() {
