@@ -370,6 +370,24 @@ pub fn unpaired_shift(
     Some((dx, dy, n))
 }
 
+/// Where an image of the star with images at `o` and `e` is shared with another star's other
+/// image, if it is (a maskless layout: stars one o/e offset apart): an unpaired source sits
+/// where the layout puts the e image of this star's e image (the star's e image is that
+/// source's o image), or the e image of an unpaired source falls on this star's o image.
+/// `unpaired_e`: the unpaired sources with their layout e positions. Returns the other star's
+/// image's position (px).
+pub(crate) fn shared_image(
+    g: &BeamGeometry,
+    unpaired_e: &[(&Source, Option<(f64, f64)>)],
+    o: (f64, f64),
+    e: (f64, f64),
+    tol_px: f64,
+) -> Option<(f64, f64)> {
+    let near = |p: Option<(f64, f64)>, x: f64, y: f64| p.is_some_and(|(px, py)| (x - px).hypot(y - py) <= tol_px);
+    let e_of_e = g.e_position(e.0, e.1);
+    unpaired_e.iter().find(|(u, u_e)| near(e_of_e, u.x, u.y) || near(*u_e, o.0, o.1)).map(|(u, _)| (u.x, u.y))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -44,7 +44,7 @@ pub struct Levels {
     pub n_masked: usize,
 }
 
-/// The detector rows whose pixels [`levels`] reads: up to [`SAMPLE_LINES`] rows holding
+/// The detector rows whose pixels [`levels`] reads: up to 16 rows holding
 /// deep-masked pixels and as many holding o or e pixels (the same rows when the strips run
 /// along y: every row holds both). Empty for layouts without a mask.
 pub fn sample_rows(g: &BeamGeometry) -> Vec<usize> {
@@ -70,7 +70,7 @@ pub fn sample_rows(g: &BeamGeometry) -> Vec<usize> {
     rows
 }
 
-/// Whether pixel `(x, y)` is masked and at least [`EDGE_LINES`] lines from any o or e line.
+/// Whether pixel `(x, y)` is masked and at least `EDGE_LINES` lines from any o or e line.
 fn deep_masked(g: &BeamGeometry, x: usize, y: usize) -> bool {
     let e = EDGE_LINES as i64;
     (-e..=e).all(|d| {

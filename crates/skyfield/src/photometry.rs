@@ -809,7 +809,7 @@ pub fn photometry_sized(
 }
 
 /// Whether the star at `(x, y)` px (its o image) shares an image with another star, as the
-/// catalog flags `overlap` ([`crate::catalog::shared_image`], maskless layouts): the sources of
+/// catalog flags `overlap` (`detect::shared_image`, maskless layouts): the sources of
 /// the first angle's frame are detected (matched filter of `fwhm_px`, 5 sigma) and paired, and
 /// an unpaired one sitting on the star's o image's e position chain or the star's e image's is
 /// found. A shared image holds two stars' light: measured, the star's P is wrong (3.3 % for a
@@ -836,7 +836,7 @@ pub fn check_overlap(
     let (_, unpaired) = crate::detect::pair(&sources, g, cfg.pair_tol_px);
     let unpaired_e: Vec<_> =
         unpaired.iter().map(|&k| (&sources[k], g.e_position(sources[k].x, sources[k].y))).collect();
-    let Some((ux, uy)) = crate::catalog::shared_image(g, &unpaired_e, (x, y), (ex, ey), cfg.pair_tol_px) else {
+    let Some((ux, uy)) = crate::detect::shared_image(g, &unpaired_e, (x, y), (ex, ey), cfg.pair_tol_px) else {
         return Ok(None);
     };
     let what = format!(

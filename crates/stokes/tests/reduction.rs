@@ -548,7 +548,12 @@ fn the_chain_forward_model_holds_for_a_turning_plate() {
     let r = reduce(&m).unwrap();
     let demod = Demodulation::of_matrices(theta.iter().copied().zip(mats.iter().copied())).unwrap();
     let (fq, fu) = demod.forward(q0, u0);
-    assert!((r.qu.q - fq).abs() < 1e-8 && (r.qu.u - fu).abs() < 1e-8, "reduced ({}, {}), chain ({fq}, {fu})", r.qu.q, r.qu.u);
+    assert!(
+        (r.qu.q - fq).abs() < 1e-8 && (r.qu.u - fu).abs() < 1e-8,
+        "reduced ({}, {}), chain ({fq}, {fu})",
+        r.qu.q,
+        r.qu.u
+    );
     // Reduced as if the plate stood still, they would be 10 % off the chain's.
     let fixed = reduce(&Measurement::poisson(theta.clone(), m.f_o().to_vec(), m.f_e().to_vec()).unwrap()).unwrap();
     assert!((fixed.qu.q / fq - 0.9003).abs() < 2e-3, "{} / {fq}", fixed.qu.q);
