@@ -8,7 +8,10 @@ use clap::CommandFactory;
 /// Print every command and its arguments as JSON: for each command its name and, per argument,
 /// its id, its long flag (none for a positional one), and the kind of value it takes: `number`
 /// (a float or integer), `path` (a file or folder), `flag` (no value), `choice` (one of its
-/// listed values) or `text` (anything else, parsed by the command: `8` or `2.5fwhm`, `12,20`).
+/// listed values) or `text` (anything else, parsed by the command: `8` or `2.5fwhm`, `12,20`);
+/// its role: `output` for the arguments that name files the command writes
+/// (`util::OUTPUT_ARGUMENTS`), `input` for every other path argument and for `--instrument`
+/// (a file when it names one), none otherwise; and its help text (which states a number's unit).
 /// A tool for tests and scripts; not shown in `instpol --help`.
 ///
 /// Example: instpol cli-spec > commands.json
@@ -20,15 +23,30 @@ struct ArgSpec {
     id: String,
     long: Option<String>,
     kind: &'static str,
+    role: Option<&'static str>,
     multiple: bool,
     required: bool,
     choices: Vec<String>,
+    help: String,
 }
 
 #[derive(serde::Serialize)]
 struct CommandSpec {
     name: String,
     args: Vec<ArgSpec>,
+}
+
+/// Whether the argument names a file the command writes, one it reads, or neither (the same
+/// division as `util::guard_arguments`, which guards the inputs against being written over).
+fn role(a: &clap::Arg, kind: &str) -> Option<&'static str> {
+    let id = a.get_id().as_str();
+    if crate::util::OUTPUT_ARGUMENTS.contains(&id) {
+        Some("output")
+    } else if kind == "path" || id == "instrument" {
+        Some("input")
+    } else {
+        None
+    }
 }
 
 fn kind(a: &clap::Arg) -> &'static str {
@@ -60,10 +78,12 @@ pub fn run(_a: Args) -> Result<()> {
                     id: a.get_id().to_string(),
                     long: a.get_long().map(|l| format!("--{l}")),
                     kind: kind(a),
+                    role: role(a, kind(a)),
                     multiple: a.get_num_args().is_some_and(|n| n.max_values() > 1)
                         || matches!(a.get_action(), clap::ArgAction::Append),
                     required: a.is_required_set(),
                     choices: a.get_possible_values().iter().map(|v| v.get_name().to_string()).collect(),
+                    help: a.get_long_help().or(a.get_help()).map(|h| h.to_string()).unwrap_or_default(),
                 })
                 .collect(),
         })
