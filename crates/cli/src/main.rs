@@ -138,6 +138,9 @@ fn main() {
     if let Some((name, m)) = matches.subcommand() {
         if let Some(def) = Cli::command().find_subcommand(name) {
             util::guard_arguments(def, m);
+            if let Err(message) = util::check_finite_options(def, m) {
+                clap_error(clap::Error::raw(clap::error::ErrorKind::ValueValidation, message), json_arg);
+            }
         }
     }
     util::start_provenance();

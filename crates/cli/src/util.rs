@@ -127,6 +127,26 @@ pub fn is_numeric_arg(a: &clap::Arg) -> bool {
         .any(|id| t == *id)
 }
 
+/// Every floating-point option of a command line is a finite number: a NaN or an infinity
+/// reached the commands as a value (an imported map's zero angle of NaN, a clipping level or a
+/// star's FWHM of inf, accepted with exit 0 when the run did not use it) and no option means
+/// anything by one. The message names the option and its value. `def` is the subcommand's
+/// definition and `m` its matches.
+pub fn check_finite_options(def: &clap::Command, m: &clap::ArgMatches) -> std::result::Result<(), String> {
+    for arg in def.get_arguments() {
+        if arg.get_value_parser().type_id() != std::any::TypeId::of::<f64>() {
+            continue;
+        }
+        let id = arg.get_id().as_str();
+        let Ok(Some(values)) = m.try_get_many::<f64>(id) else { continue };
+        if let Some(v) = values.copied().find(|v| !v.is_finite()) {
+            let name = arg.get_long().map_or_else(|| id.to_string(), |l| format!("--{l}"));
+            return Err(format!("invalid value '{v}' for '{name}': not a finite number (every number given to an option must be finite)\n"));
+        }
+    }
+    Ok(())
+}
+
 /// `--bin` must be a number of pixels that fits the detector (1 ..= its longer side): a bin of
 /// 1e11 px overflowed the bin-count arithmetic (a panic) before it was checked.
 pub fn check_bin(bin: usize, inst: &instrument::Instrument) -> Result<()> {

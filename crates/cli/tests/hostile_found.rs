@@ -1,0 +1,52 @@
+//! Defects the hostile-input generator (hostile.rs) found, each checked here on its own with
+//! the input that showed it, so that the fix is tested where it is explained.
+
+mod common;
+
+use std::path::Path;
+
+/// A NaN or infinite option value was taken as given when the run did not check it: an imported
+/// map with a zero angle of NaN, a star's FWHM of inf. Every floating-point option is now
+/// refused unless finite (exit 2), naming the option and the value, and nothing is written.
+#[test]
+fn a_non_finite_option_is_refused_naming_it() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
+    let field = fit::RadialModel::new(1, vec![1e-4, 4e-4, 0.0], [0.0, 0.0]);
+    fit::synth::write_qu_cubes(&d.path().join("q.fits"), &d.path().join("u.fits"), &field, 96, 96, 4.0, 8, 1e-4)
+        .unwrap();
+    let import = |flag: &str, value: &str| {
+        let a = [
+            "import-map",
+            "--q",
+            &p("q.fits"),
+            "--u",
+            &p("u.fits"),
+            "--pixel-scale",
+            "4",
+            "--bin",
+            "8",
+            "--filter",
+            "V",
+            "--out",
+            &p("imported.fits"),
+            flag,
+            value,
+        ];
+        common::run(&a)
+    };
+    let (code, _, err) = import("--zero-angle", "0");
+    assert_eq!(code, 0, "control: {err}");
+    std::fs::remove_file(p("imported.fits")).unwrap();
+    for (flag, value) in [("--zero-angle", "NaN"), ("--lambda-nm", "inf"), ("--zero-angle", "-inf")] {
+        let (code, _, err) = import(flag, value);
+        assert_eq!(code, 2, "{flag} {value}: {err}");
+        assert!(err.contains(flag) && err.contains("not a finite number"), "{flag} {value}: {err}");
+        assert!(!Path::new(&p("imported.fits")).exists(), "{flag} {value}: a calibration was written");
+    }
+    // Under --json the refusal is the JSON error object.
+    let (code, _, err) = common::run(&["bias", "--p", "0.01", "--sigma", "0.003", "--chi", "NaN", "--json"]);
+    assert_eq!(code, 2, "{err}");
+    let j: serde_json::Value = serde_json::from_str(err.trim()).unwrap();
+    assert!(j["error"]["message"].as_str().unwrap().contains("'--chi'"), "{err}");
+}
