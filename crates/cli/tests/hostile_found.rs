@@ -50,3 +50,34 @@ fn a_non_finite_option_is_refused_naming_it() {
     let j: serde_json::Value = serde_json::from_str(err.trim()).unwrap();
     assert!(j["error"]["message"].as_str().unwrap().contains("'--chi'"), "{err}");
 }
+
+/// `scan --out` named like its `--instrument` file (the same path, a hard link, a symlink)
+/// wrote the plan over the instrument file with exit 0, and `--products` naming an input file
+/// was taken; both are refused now (exit 2) and the file is unchanged.
+#[test]
+fn scan_refuses_to_write_its_plan_over_an_input() {
+    let d = tempfile::tempdir().unwrap();
+    let inst = d.path().join("inst.toml");
+    std::fs::copy(common::night::tiny_fors2(), &inst).unwrap();
+    let before = std::fs::read(&inst).unwrap();
+    let raw = d.path().join("raw");
+    std::fs::create_dir(&raw).unwrap();
+    // A file the scan leaves out (not FITS): the plan is written, with no unit.
+    std::fs::write(raw.join("x.fits"), "not FITS\n").unwrap();
+    let hard = d.path().join("hard.toml");
+    std::fs::hard_link(&inst, &hard).unwrap();
+    let soft = d.path().join("soft.toml");
+    std::os::unix::fs::symlink(&inst, &soft).unwrap();
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    for (flag, out) in [("--out", &inst), ("--out", &hard), ("--out", &soft), ("--products", &inst)] {
+        let mut a = vec!["scan".to_string(), s(&raw), "--instrument".into(), s(&inst)];
+        if flag != "--out" {
+            a.extend(["--out".to_string(), s(&d.path().join("plan.toml"))]);
+        }
+        a.extend([flag.to_string(), s(out)]);
+        let (code, _, err) = common::run(&a);
+        assert_eq!(code, 2, "{flag} {}: {err}", out.display());
+        assert!(err.contains("refusing to write over an input"), "{err}");
+        assert_eq!(std::fs::read(&inst).unwrap(), before, "{flag} {}: the instrument file changed", out.display());
+    }
+}

@@ -126,6 +126,10 @@ pub fn run_scan(a: ScanArgs) -> Result<()> {
     if plan.files.iter().any(|f| f.path == std::path::absolute(&a.out).unwrap_or_default()) {
         bail!("output {} is one of the scanned files: refusing to write over an input", a.out.display());
     }
+    // The plan and the products folder are outputs: neither may be one of the inputs named on
+    // the command line (`--instrument`, `--sky-table`, `--standards`), whatever the name.
+    crate::util::check_output(&a.out)?;
+    crate::util::check_output(&products)?;
     plan.write(&a.out)?;
     if a.json {
         return crate::util::print_json(&plan);
