@@ -81,3 +81,29 @@ fn scan_refuses_to_write_its_plan_over_an_input() {
         assert_eq!(std::fs::read(&inst).unwrap(), before, "{flag} {}: the instrument file changed", out.display());
     }
 }
+
+/// `zero-angle --measured FILE` with no frames took a `--bias`, `--flat`, `--hwp-angles` or
+/// `--assembled` it never used, a broken master included, with exit 0; such an option is now
+/// refused naming itself, as `calibrate --map` does.
+#[test]
+fn zero_angle_without_frames_refuses_frame_options() {
+    let d = tempfile::tempdir().unwrap();
+    let m = d.path().join("measured.csv");
+    std::fs::write(
+        &m,
+        "label,chi_measured_deg,sigma_chi_measured_deg,chi_catalogue_deg,sigma_chi_catalogue_deg\nA,31.2,0.3,30.0,0.2\n",
+    )
+    .unwrap();
+    let broken = d.path().join("broken.fits");
+    std::fs::write(&broken, "not a master\n").unwrap();
+    let m = m.to_str().unwrap();
+    let (code, _, err) = common::run(&["zero-angle", "--measured", m, "--filter", "V"]);
+    assert_eq!(code, 0, "control: {err}");
+    for extra in [&["--bias", broken.to_str().unwrap()][..], &["--flat", broken.to_str().unwrap()], &["--assembled"]] {
+        let mut a = vec!["zero-angle", "--measured", m, "--filter", "V"];
+        a.extend_from_slice(extra);
+        let (code, _, err) = common::run(&a);
+        assert_eq!(code, 2, "{extra:?}: {err}");
+        assert!(err.contains(extra[0]) && err.contains("applies to frames"), "{extra:?}: {err}");
+    }
+}

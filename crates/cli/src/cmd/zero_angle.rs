@@ -202,6 +202,15 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(p) = &a.standards {
         fit::standards::Standards::load(p)?;
     }
+    // Options that read frames would be ignored without a word when only --measured files are
+    // given (a broken --bias passed with exit 0).
+    if a.frames.is_empty() {
+        if let Some(opt) = a.frame.first_given() {
+            bail!(
+                "{opt} applies to frames, and none are given (only --measured files): leave it out or give the frames"
+            );
+        }
+    }
     // Every filter named (frames, files, --filter) must be one: a zero angle is per filter.
     let mut filters: Vec<(String, String)> = a.filter.iter().map(|f| (f.clone(), "--filter".to_string())).collect();
     let mut rows: Vec<MeasuredStandard> = Vec::new();
