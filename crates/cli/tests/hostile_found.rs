@@ -107,3 +107,115 @@ fn zero_angle_without_frames_refuses_frame_options() {
         assert!(err.contains(extra[0]) && err.contains("applies to frames"), "{extra:?}: {err}");
     }
 }
+
+/// An ECSV table in astropy's form whose columns are `names` with declared `units` ("" for
+/// none) and rows `rows` (values as written).
+fn ecsv(names: &[&str], units: &[&str], rows: &[&[&str]]) -> String {
+    let mut t = String::from("# %ECSV 1.0\n# ---\n# datatype:\n");
+    for (n, u) in names.iter().zip(units) {
+        let ty = if *n == "label" || *n == "star" || *n == "filter" { "string" } else { "float64" };
+        let unit = if u.is_empty() { String::new() } else { format!(" unit: '{u}',") };
+        t += &format!("# - {{name: {n},{unit} datatype: {ty}}}\n");
+    }
+    t += "# schema: astropy-2.0\n";
+    t += &names.join(" ");
+    t.push('\n');
+    for r in rows {
+        t += &r.join(" ");
+        t.push('\n');
+    }
+    t
+}
+
+/// Declared units were ignored by the readers that took a table's numbers as written:
+/// `zero-angle --measured` read angles in rad as degrees, `fit-standards` q, u and their errors
+/// in % as fractions, `scan --sky-table` a percentage declared in pix. One rule now (the column's name
+/// says its unit, `skyfield::table::Table::numbers`): a declared unit is converted or refused
+/// naming the column.
+#[test]
+fn declared_units_are_honoured_or_refused_by_every_table_reader() {
+    let d = tempfile::tempdir().unwrap();
+    let put = |name: &str, text: &str| {
+        let p = d.path().join(name);
+        std::fs::write(&p, text).unwrap();
+        p.to_str().unwrap().to_string()
+    };
+    // One standard: measured 31.2 +- 0.3 deg, catalogued 30.0 +- 0.2 deg, in deg and in rad.
+    let names = ["label", "chi_measured_deg", "sigma_chi_measured_deg", "chi_catalogue_deg", "sigma_chi_catalogue_deg"];
+    let deg =
+        put("deg.ecsv", &ecsv(&names, &["", "deg", "deg", "deg", "deg"], &[&["A", "31.2", "0.3", "30.0", "0.2"]]));
+    let r = |x: f64| x.to_radians().to_string();
+    let (a, b, c, e) = (r(31.2), r(0.3), r(30.0), r(0.2));
+    let rad = put("rad.ecsv", &ecsv(&names, &["", "rad", "rad", "rad", "rad"], &[&["A", &a, &b, &c, &e]]));
+    let offset = |table: &str| {
+        let j = common::run_json("zero-angle", &["--measured", table, "--filter", "V"]);
+        (j["zero_angle_deg"].as_f64().unwrap(), j["sigma_zero_angle_deg"].as_f64().unwrap())
+    };
+    let (o_deg, s_deg) = offset(&deg);
+    // The closed form for one standard: catalogued less measured, the errors in quadrature.
+    assert!((o_deg.abs() - 1.2).abs() < 1e-9, "{o_deg}");
+    assert!((s_deg - 0.3f64.hypot(0.2)).abs() < 1e-9, "{s_deg}");
+    let (o_rad, s_rad) = offset(&rad);
+    assert!((o_rad - o_deg).abs() < 1e-9 && (s_rad - s_deg).abs() < 1e-9, "rad: {o_rad} +- {s_rad}");
+    let pct = put("pct.ecsv", &ecsv(&names, &["", "%", "deg", "deg", "deg"], &[&["A", "31.2", "0.3", "30.0", "0.2"]]));
+    let (code, _, err) = common::run(&["zero-angle", "--measured", &pct, "--filter", "V"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("column 'chi_measured_deg'") && err.contains("'%'"), "{err}");
+
+    // Standards behind a mirror: q, u and their errors in % give the fit of the fractions.
+    let cols = ["star", "parallactic_deg", "q", "sigma_q", "u", "sigma_u", "wavelength_um", "filter"];
+    let rows: Vec<Vec<String>> = (0..8)
+        .map(|k| {
+            let pa = -150.0 + 37.0 * k as f64;
+            let t = 2.0 * (40f64 - pa).to_radians();
+            [
+                format!("S{k}"),
+                pa.to_string(),
+                (0.035 * t.cos()).to_string(),
+                "0.0002".into(),
+                (-0.035 * t.sin()).to_string(),
+                "0.0002".into(),
+                "0.55".into(),
+                "V".into(),
+            ]
+            .to_vec()
+        })
+        .collect();
+    let table = |units: &[&str], scale: f64| {
+        let rows: Vec<Vec<String>> = rows
+            .iter()
+            .map(|r| {
+                let mut r = r.clone();
+                for i in [2, 3, 4, 5] {
+                    r[i] = (r[i].parse::<f64>().unwrap() * scale).to_string();
+                }
+                r
+            })
+            .collect();
+        let refs: Vec<Vec<&str>> = rows.iter().map(|r| r.iter().map(|s| s.as_str()).collect()).collect();
+        let refs: Vec<&[&str]> = refs.iter().map(|r| r.as_slice()).collect();
+        ecsv(&cols, units, &refs)
+    };
+    let plain = put("plain.ecsv", &table(&["", "deg", "", "", "", "", "", ""], 1.0));
+    let percent = put("percent.ecsv", &table(&["", "deg", "%", "%", "%", "%", "", ""], 100.0));
+    let fit = |f: &str| common::run_json("fit-standards", &[f, "--model", "wiersema"]);
+    let (jp, jc) = (fit(&plain), fit(&percent));
+    // The fitted parameters and their errors (the errors scale with sigma_q, sigma_u).
+    let params = |j: &serde_json::Value| -> Vec<f64> {
+        j[0]["params"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .flat_map(|p| [p["value"].as_f64().unwrap(), p["sigma_value"].as_f64().unwrap()])
+            .collect()
+    };
+    let (pp, pc) = (params(&jp), params(&jc));
+    assert_eq!(pp.len(), 4, "{jp}");
+    for (a, b) in pp.iter().zip(&pc) {
+        assert!((a - b).abs() <= 1e-6 * a.abs(), "sigma in %: {pc:?} against {pp:?}");
+    }
+    let pix = put("pix.ecsv", &table(&["", "pix", "", "", "", "", "", ""], 1.0));
+    let (code, _, err) = common::run(&["fit-standards", &pix, "--model", "wiersema"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("column 'parallactic_deg'"), "{err}");
+}

@@ -152,7 +152,9 @@ pub fn read_observations(path: &Path) -> Result<Vec<Observation>> {
     let text = match Format::from_path(path) {
         // The one table reader for the structured formats, then the column rules below.
         Ok(f) if f != Format::Csv => {
+            // Declared units honoured (or refused) first: the text below has plain numbers.
             let t = Table::read_format(path, f, None)
+                .and_then(|t| t.in_named_units(path))
                 .map_err(|e| Error::BadFile { path: path.to_path_buf(), what: e.to_string() })?;
             let b = t.csv_bytes().map_err(|what| Error::BadFile { path: path.to_path_buf(), what })?;
             String::from_utf8(b).map_err(|_| Error::BadFile { path: path.to_path_buf(), what: "not UTF-8".into() })?

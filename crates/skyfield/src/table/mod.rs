@@ -30,6 +30,7 @@ mod csv_table;
 mod ecsv;
 mod fits_table;
 mod model;
+mod units;
 mod votable;
 
 pub use fits_table::{append_fits_columns, fits_table_hdu};

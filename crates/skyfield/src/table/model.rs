@@ -226,15 +226,52 @@ impl Table {
                 (Some(s), _) => *s,
                 (None, _) => 1.0,
             };
-            let v = self.numbers(n, path)?;
+            let v = self.values(n, path)?;
             out.push(if k == 1.0 { v } else { v.into_iter().map(|x| x * k).collect() });
         }
         Ok((out, declared.map_or(1.0, |d| d.1)))
     }
 
-    /// Column `name` as numbers (an empty text field is NaN); an error names the file, the column and the first row that is
-    /// not a number, or the columns there are when it is missing.
+    /// Column `name` as numbers (an empty text field is NaN) in the unit its name promises
+    /// (`q`, `sigma_q`, ... fractions; `..._deg`, `..._arcmin` those angles; `..._percent`
+    /// percent): a declared unit is converted, or refused when it cannot be (the rule is in
+    /// `units`). An error names the file, the column and the first row that is not a number, or
+    /// the columns there are when it is missing.
     pub fn numbers(&self, name: &str, path: &Path) -> Result<Vec<f64>, Error> {
+        let v = self.values(name, path)?;
+        let k = self.named_factor(name).map_err(|m| terr(path, m))?;
+        Ok(if k == 1.0 { v } else { v.into_iter().map(|x| x * k).collect() })
+    }
+
+    /// The factor from column `name`'s declared unit to the unit its name promises.
+    fn named_factor(&self, name: &str) -> Result<f64, String> {
+        let unit = self.unit_of(name);
+        let percent_beside = self.columns.iter().find_map(|c| {
+            let other = !c.name.trim().eq_ignore_ascii_case(name.trim());
+            let pct = matches!(self.unit_of(&c.name), Some(u) if u == "%" || u.eq_ignore_ascii_case("percent"));
+            (other && pct && super::units::named(&c.name) == Some(super::units::Named::Fraction))
+                .then_some(c.name.as_str())
+        });
+        super::units::factor(name, unit, percent_beside)
+    }
+
+    /// The table with every column whose name promises a unit converted to it
+    /// ([`Self::numbers`]) and its declared unit dropped, for a reader that goes on from the
+    /// table's text (a CSV of plain numbers).
+    pub fn in_named_units(&self, path: &Path) -> Result<Table, Error> {
+        let mut t = self.clone();
+        for c in t.columns.iter_mut() {
+            if matches!(c.data, Data::Str(_)) || super::units::named(&c.name).is_none() {
+                continue;
+            }
+            c.data = Data::F64(self.numbers(&c.name, path)?);
+            c.unit = None;
+        }
+        Ok(t)
+    }
+
+    /// Column `name` as numbers, as they are written (no unit looked at).
+    fn values(&self, name: &str, path: &Path) -> Result<Vec<f64>, Error> {
         let c = self
             .column(name)
             .ok_or_else(|| terr(path, format!("no column '{name}' (columns: {})", self.names().join(", "))))?;

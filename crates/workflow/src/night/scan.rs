@@ -88,13 +88,13 @@ impl SkyField {
             t.column(name)
                 .ok_or_else(|| bad(format!("no column '{name}' (a sky-field table has target, p_percent, chi_deg)")))
         };
-        // A column of whole numbers reads as integers.
+        // The one reading of a numeric column: declared units honoured (p_percent in %,
+        // chi_deg in deg or rad, ...) or refused naming the column.
         let numbers = |name: &str| -> Result<Vec<f64>, Error> {
-            match &col(name)?.data {
-                Data::F64(v) => Ok(v.clone()),
-                Data::I64(v) => Ok(v.iter().map(|&x| x as f64).collect()),
-                Data::Str(_) => Err(bad(format!("column {name} must hold numbers"))),
+            if let Data::Str(_) = &col(name)?.data {
+                return Err(bad(format!("column {name} must hold numbers")));
             }
+            t.numbers(name, path).map_err(|e| bad(e.to_string()))
         };
         let (ps, chis) = (numbers("p_percent")?, numbers("chi_deg")?);
         let Data::Str(targets) = &col("target")?.data else {
