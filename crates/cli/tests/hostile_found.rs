@@ -219,3 +219,14 @@ fn declared_units_are_honoured_or_refused_by_every_table_reader() {
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("column 'parallactic_deg'"), "{err}");
 }
+
+/// `mc --p0 50` (a percentage for the fraction P0, documented 0..1) was refused as "P0 = 50 is
+/// invalid" without the option's name; every engine input the options set is named now.
+#[test]
+fn mc_names_the_option_it_refuses() {
+    for (flag, value) in [("--p0", "50"), ("--snr", "0.5"), ("--n-hwp", "1"), ("--sky", "-1")] {
+        let (code, _, err) = common::run(&["mc", "--trials", "100", flag, value]);
+        assert_eq!(code, 2, "{flag} {value}: {err}");
+        assert!(err.contains(flag), "{flag} {value}: {err}");
+    }
+}

@@ -188,7 +188,13 @@ pub fn run(a: Args) -> Result<()> {
     cfg.seed = a.seed;
     cfg.sky = a.sky;
     cfg.read_noise = a.read_noise;
-    let engine = Engine::new(&cfg)?;
+    let engine = Engine::new(&cfg).map_err(|e| match &e {
+        stokes::stats::Error::Invalid { name, .. } => match mc_option(name) {
+            Some(flag) => anyhow::anyhow!("{flag}: {e}"),
+            None => e.into(),
+        },
+        _ => e.into(),
+    })?;
     let pool = pool(a.threads)?;
     check_budget(&cfg, trials, &pool, a.force)?;
     let prog = Progress::new(trials, !a.json);
@@ -296,4 +302,18 @@ fn accuracy(a: &Args) -> Result<()> {
     }
     super::mc_table::print_accuracy(&out, a.n_hwp);
     Ok(())
+}
+
+/// The option that sets the Monte Carlo engine's input `name` (the names
+/// `stokes::mc::Engine::new` refuses by), so that a refusal names what to change.
+fn mc_option(name: &str) -> Option<&'static str> {
+    Some(match name {
+        "P0" => "--p0",
+        "SNR" => "--snr",
+        "number of HWP angles" => "--n-hwp",
+        "chi0" => "--chi0",
+        "sky" => "--sky",
+        "read noise" => "--read-noise",
+        _ => return None,
+    })
 }
