@@ -230,3 +230,37 @@ fn mc_names_the_option_it_refuses() {
         assert!(err.contains(flag), "{flag} {value}: {err}");
     }
 }
+
+/// `plan` with a target beyond reach (1e-300 %) or met by no light at all (1e300 %, or a sky
+/// rate of 1e308 e-/px/s) planned exposures of inf or 0 s, and drawing them with `--plot` never
+/// ended (killed after 20 s). Such a plan is refused now, naming the exposure, within a second.
+#[test]
+fn plan_refuses_an_exposure_that_cannot_be_observed() {
+    let d = tempfile::tempdir().unwrap();
+    let plot = d.path().join("plan.svg");
+    for (target, rate) in [("1e-300", "2"), ("1e300", "2"), ("0.05", "1e308"), ("0.05", "1e-308")] {
+        let a = ["plan", "--target-percent", target, "--sky-rate", rate, "--bin", "200"];
+        let mut child = common::instpol()
+            .args(a)
+            .args(["--candidate", "6.45:68.4", "--candidate", "4:10", "--plot", plot.to_str().unwrap()])
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let t0 = std::time::Instant::now();
+        let status = loop {
+            if let Some(s) = child.try_wait().unwrap() {
+                break s;
+            }
+            if t0.elapsed().as_secs() > 20 {
+                child.kill().unwrap();
+                panic!("{target} {rate}: still running after 20 s");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        };
+        let mut err = String::new();
+        std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err).unwrap();
+        assert_eq!(status.code(), Some(2), "{target} {rate}: {err}");
+        assert!(err.contains("needs an exposure of"), "{target} {rate}: {err}");
+        assert!(!plot.exists());
+    }
+}

@@ -185,6 +185,15 @@ impl PlanSetup {
                 match predicted {
                     Ok(rms0) => {
                         let t = self.exposure_for_sigma(sigma0 * target_rms / rms0);
+                        // A target beyond reach (1e-300) or met by no light at all (1e300, or a
+                        // sky rate of 1e308) gives an exposure of inf or 0 s: no plan, and a
+                        // plot of it never ended.
+                        if !(t.is_finite() && t > 0.0) {
+                            return Err(Error::Input(format!(
+                                "plan: the target RMS {target_rms:e} needs an exposure of {t:e} s per HWP angle at a sky rate of {:e} e-/px/s ({n} field(s) {chosen:?}): not a time that can be observed; give a target and a sky rate that need a finite, positive exposure",
+                                self.sky_rate
+                            )));
+                        }
                         let row = PlanRow {
                             n_fields: n,
                             fields: chosen,
