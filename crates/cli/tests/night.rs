@@ -9,6 +9,9 @@
 //! the scene's `[output]`) for a FORS2 shrunk to 160 x 216 px (tests/data/night/), so the
 //! night of ~100 exposures is written and run in seconds.
 
+mod common;
+
+use common::night::{simulate_scene, Spec};
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -25,22 +28,6 @@ fn instpol(args: &[&str]) -> std::process::Output {
     Command::new(bin()).args(args).output().expect("run instpol")
 }
 
-struct Spec<'a> {
-    dir: &'a str,
-    filter: &'a str,
-    angles: Vec<f64>,
-    start_mjd: f64,
-    first_exp: i64,
-    dpr: [&'a str; 3],
-    target: &'a str,
-    ra_dec: (f64, f64),
-    sky: Option<(f64, f64, f64)>,
-    /// x, y (px), flux (e-), p, chi (deg)
-    stars: Vec<(f64, f64, f64, f64, f64)>,
-    instrume: Option<&'a str>,
-    seed: u64,
-}
-
 /// The instrument's radial pattern (percent, powers 0 to 3 of r in arcmin) in every frame.
 const PATTERN: [f64; 4] = [0.0, 0.1, 0.3, 0.05];
 
@@ -50,46 +37,6 @@ fn simulate(root: &Path, s: &Spec) {
 
 fn simulate_with(root: &Path, s: &Spec, pattern: [f64; 4]) {
     simulate_scene(root, s, &inst(), pattern, "")
-}
-
-/// `s` through the instrument file `instrument`, its field's radial pattern (percent), and
-/// `extra` scene text (a `[telescope]` section) at the end.
-fn simulate_scene(root: &Path, s: &Spec, instrument: &Path, pattern: [f64; 4], extra: &str) {
-    let mut t = format!(
-        "instrument = {:?}\nfilter = {:?}\nhwp_angles_deg = {:?}\nexposure_s = 30\nseed = {}\n",
-        instrument.display().to_string(),
-        s.filter,
-        s.angles,
-        s.seed
-    );
-    if let Some((b, p, chi)) = s.sky {
-        t += &format!("[sky]\nbrightness_e = {b}\np = {p}\nchi_deg = {chi}\n");
-    }
-    for (x, y, f, p, chi) in &s.stars {
-        t += &format!(
-            "[[stars]]\nx = {x}\ny = {y}\ncoords = \"pixel\"\nflux_e = {f}\np = {p}\nchi_deg = {chi}\nfwhm_arcsec = 2.5\n"
-        );
-    }
-    t += &format!(
-        "[output]\narchive = {{ start_mjd = {}, cadence_s = 60 }}\nfirst_exposure_no = {}\n",
-        s.start_mjd, s.first_exp
-    );
-    t += &format!(
-        "[output.keywords]\n\"HIERARCH ESO DPR CATG\" = {:?}\n\"HIERARCH ESO DPR TYPE\" = {:?}\n\"HIERARCH ESO DPR TECH\" = {:?}\n\"HIERARCH ESO OBS TARG NAME\" = {:?}\nRA = {}\nDEC = {}\n",
-        s.dpr[0], s.dpr[1], s.dpr[2], s.target, s.ra_dec.0, s.ra_dec.1
-    );
-    if let Some(i) = s.instrume {
-        t += &format!("INSTRUME = {i:?}\n");
-    }
-    t += &format!(
-        "[effects]\nphoton_noise = true\nread_noise = true\ninstpol = {{ kind = \"radial\", coeffs_percent = {pattern:?} }}\n"
-    );
-    t += extra;
-    let scene = root.join(format!("{}.toml", s.dir));
-    std::fs::write(&scene, t).unwrap();
-    let out = root.join("raw").join(s.dir);
-    let o = instpol(&["simulate", scene.to_str().unwrap(), "--out", out.to_str().unwrap()]);
-    assert!(o.status.success(), "simulate {}: {}", s.dir, String::from_utf8_lossy(&o.stderr));
 }
 
 const NIGHT: f64 = 58546.0; // 2019-03-04
