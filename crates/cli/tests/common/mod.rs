@@ -3,6 +3,7 @@
 //! Each test binary uses a part of it, hence the `dead_code` allowance.
 #![allow(dead_code)]
 
+pub mod invocations;
 pub mod night;
 pub mod raw;
 
