@@ -155,12 +155,7 @@ pub fn save_image(
         ImageFormat::Svg => {
             font();
             set_figure_width(size.0);
-            atomic(path, ".svg", |tmp| {
-                let root = SVGBackend::new(tmp, size).into_drawing_area();
-                root.fill(&WHITE).map_err(pe)?;
-                svg(&root)?;
-                root.present().map_err(pe)
-            })
+            atomic(path, ".svg", |tmp| write_svg(tmp, size, svg))
         }
     }
 }
@@ -176,13 +171,27 @@ pub fn save_png_svg(
     let (p, s) = (stem.with_extension("png"), stem.with_extension("svg"));
     save_png(&p, size, png)?;
     set_figure_width(size.0);
-    atomic(&s, ".svg", |tmp| {
-        let root = SVGBackend::new(tmp, size).into_drawing_area();
-        root.fill(&WHITE).map_err(pe)?;
-        svg(&root)?;
-        root.present().map_err(pe)
-    })?;
+    atomic(&s, ".svg", |tmp| write_svg(tmp, size, svg))?;
     Ok(vec![p, s])
+}
+
+/// Draw an SVG of `size` (white background) and write it to `tmp`, every write error kept:
+/// the picture is drawn into memory and written here, because plotters' own file target
+/// writes through a buffer whose error at the final flush is dropped (on a full disk an SVG
+/// under 8 KB became an empty file, with exit 0).
+fn write_svg(
+    tmp: &Path,
+    size: (u32, u32),
+    draw: impl FnOnce(&DrawingArea<SVGBackend, Shift>) -> Result<()>,
+) -> Result<()> {
+    let mut text = String::new();
+    {
+        let root = SVGBackend::with_string(&mut text, size).into_drawing_area();
+        root.fill(&WHITE).map_err(pe)?;
+        draw(&root)?;
+        root.present().map_err(pe)?;
+    }
+    std::fs::write(tmp, text).with_context(|| format!("cannot write {}", tmp.display()))
 }
 
 /// Tick labels without float noise: `0` (never `-0.0`), `0.25`, `150`, `1e5`, `2.5e-4`:

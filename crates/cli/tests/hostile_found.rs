@@ -264,3 +264,47 @@ fn plan_refuses_an_exposure_that_cannot_be_observed() {
         assert!(!plot.exists());
     }
 }
+
+/// An SVG figure under 8 KB on a full disk became an empty file with exit 0 (`plan --plot
+/// X.svg`): plotters' file target dropped the error of its last flush. Needs a real full disk
+/// (a 64 KiB tmpfs, mounted as root); says so and returns elsewhere.
+#[test]
+fn a_small_svg_on_a_full_disk_fails_and_leaves_nothing() {
+    let mnt = tempfile::tempdir().unwrap();
+    let m = mnt.path().to_str().unwrap();
+    let st = std::process::Command::new("mount").args(["-t", "tmpfs", "-o", "size=64k", "tmpfs", m]).output();
+    if !matches!(&st, Ok(o) if o.status.success()) {
+        eprintln!("note: cannot mount a tmpfs here (not root?): the full-disk SVG case is not tried");
+        return;
+    }
+    struct Umount(std::path::PathBuf);
+    impl Drop for Umount {
+        fn drop(&mut self) {
+            let _ = std::process::Command::new("umount").arg(&self.0).status();
+        }
+    }
+    let _guard = Umount(mnt.path().to_path_buf());
+    let mut fill = std::fs::File::create(mnt.path().join("filler")).unwrap();
+    use std::io::Write;
+    while fill.write_all(&[0u8; 4096]).and_then(|_| fill.sync_all()).is_ok() {}
+    drop(fill);
+    let plot = mnt.path().join("plan.svg");
+    let (code, _, err) = common::run(&[
+        "plan",
+        "--target-percent",
+        "0.05",
+        "--sky-rate",
+        "2",
+        "--bin",
+        "200",
+        "--candidate",
+        "6.45:68.4",
+        "--candidate",
+        "4:10",
+        "--plot",
+        plot.to_str().unwrap(),
+    ]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("No space left on device"), "{err}");
+    assert_eq!(common::listing(mnt.path()), ["filler"]);
+}
