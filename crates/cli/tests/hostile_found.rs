@@ -308,3 +308,28 @@ fn a_small_svg_on_a_full_disk_fails_and_leaves_nothing() {
     assert!(err.contains("No space left on device"), "{err}");
     assert_eq!(common::listing(mnt.path()), ["filler"]);
 }
+
+/// `scan` wrote its plan through a writer of its own (workflow's `write_atomic`), which a
+/// failing fsync did not reach: with the fsync failing (`skyfield::durable`'s injection, a
+/// full disk's error at the last moment) it exited 0. It writes through the durable writer
+/// now: exit 2, no plan, no temporary.
+#[test]
+fn scan_writes_its_plan_through_the_durable_writer() {
+    let d = tempfile::tempdir().unwrap();
+    let raw = d.path().join("raw");
+    std::fs::create_dir(&raw).unwrap();
+    std::fs::write(raw.join("x.fits"), "not FITS\n").unwrap();
+    let out = d.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    let plan = out.join("plan.toml");
+    let inst = common::night::tiny_fors2();
+    let o = common::instpol()
+        .args(["scan", raw.to_str().unwrap(), "--instrument", inst.to_str().unwrap(), "--out", plan.to_str().unwrap()])
+        .env(skyfield::durable::FAIL_SYNC_ENV, "1")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("No space left on device"), "{err}");
+    assert!(common::listing(&out).is_empty(), "{:?}", common::listing(&out));
+}

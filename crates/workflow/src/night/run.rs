@@ -194,17 +194,11 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     let err = |e: std::io::Error| Error::Output { path: path.into(), why: e.to_string() };
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir).map_err(err)?;
-    let name = path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
-    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
-    let mut f = std::fs::File::create(&tmp).map_err(err)?;
-    f.write_all(bytes).and_then(|_| f.sync_all()).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        err(e)
-    })?;
-    std::fs::rename(&tmp, path).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        err(e)
-    })
+    // The workspace's one durable writer (skyfield::durable): a temporary beside the file,
+    // fsynced, then renamed; on error the temporary is deleted.
+    let mut tmp = skyfield::fits::temp_beside(path, ".tmp").map_err(err)?;
+    tmp.write_all(bytes).and_then(|_| tmp.flush()).map_err(err)?;
+    skyfield::durable::finish(tmp.into_temp_path(), path).map_err(err)
 }
 
 /// The `(path, hash)` pairs of a command's report ([`INPUT_HASHES_ENV`]); none when it wrote
