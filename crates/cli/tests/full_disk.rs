@@ -1,6 +1,13 @@
-//! A full disk at every writer: a write error that shows only at flush, close or
-//! fsync must fail the command (exit 2, an error naming the output) and leave neither a partial
-//! file under the final name nor a temporary.
+//! A full disk at every writer: a write error that shows only at flush, close or fsync must
+//! fail the command (exit 2, an error naming the output) and leave neither a partial file under
+//! the final name nor a temporary.
+//!
+//! The writers are read from the CLI's own definition (`instpol cli-spec`): every output
+//! argument of every command (`--out`, `--plot`, `--plots`, `--field-out`, `--output`, ...),
+//! each tried alone from the command's valid invocation (`common::invocations`, shared with the
+//! hostile-input generator), all outputs in one fresh folder. An output argument that cannot be
+//! tried must be listed in [`NOT_TRIED`] with the reason, so that a new writer cannot pass
+//! untried.
 //!
 //! Two ways: (1) always, an injected fsync failure (`INSTPOL_TEST_FAIL_SYNC`, see
 //! `skyfield::durable`), which every writer must pass through before its rename; (2) where
@@ -9,156 +16,69 @@
 
 mod common;
 
+use common::invocations::{self, fill, Fixture};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-struct Fx {
-    dir: tempfile::TempDir,
-}
+/// Output arguments not tried here, with the reason (command, flag, why).
+const NOT_TRIED: &[(&str, &str, &str)] = &[
+    ("scan", "--products", "names a folder the plan's units write into later (instpol run), not scan"),
+    (
+        "fit-standards",
+        "--output-dir",
+        "a folder of calibration files per band; tried through --output, the same writer",
+    ),
+];
 
-impl Fx {
-    fn s(&self, n: &str) -> String {
-        self.dir.path().join(n).to_str().unwrap().to_string()
+/// Output arguments that write only with another option (command, flag, what it needs).
+const NEEDS: &[(&str, &str, &[&str])] = &[("mc", "--plot", &["--accuracy-report"])];
+
+/// The file (or folder) name an output argument gets in the case's folder.
+fn output_name(flag: &str) -> &'static str {
+    match flag {
+        "--plot" => "plot.png",
+        "--field-out" => "field.json",
+        "--output" => "telescope.fits",
+        _ => "outputs",
     }
 }
 
-const SCENE: &str = "instrument = \"mini.toml\"\nfilter = \"V\"\n[sky]\nbrightness_e = 20000\np = 0.02\n";
-
-fn ok(args: &[String]) {
-    let (code, _, err) = common::run(args);
-    assert_eq!(code, 0, "fixture {args:?}: {err}");
+/// One writer: its label, the arguments with `{DIR}` for the folder all its outputs go to.
+struct Writer {
+    label: String,
+    args: Vec<String>,
 }
 
-fn fixture() -> Fx {
-    let f = Fx { dir: tempfile::tempdir().unwrap() };
-    std::fs::write(f.s("mini.toml"), common::MINI.toml()).unwrap();
-    std::fs::write(f.s("scene.toml"), SCENE).unwrap();
-    std::fs::write(
-        f.s("f.csv"),
-        "hwp_deg,f_o,f_e\n0,505000,495000\n22.5,508660,491340\n45,495000,505000\n67.5,491340,508660\n",
-    )
-    .unwrap();
-    std::fs::write(f.s("cat.csv"), "x,y,q,u,sigma_q,sigma_u\n0.5,0.5,0.01,0,0.001,0.001\n").unwrap();
-    let v = |a: &[&str]| a.iter().map(|s| s.to_string()).collect::<Vec<_>>();
-    ok(&v(&["simulate", &f.s("scene.toml"), "--out", &f.s("frames")]));
-    let mut r = v(&["reduce", "--instrument", &f.s("mini.toml"), "--bin", "8", "--out", &f.s("map.fits")]);
-    r.extend(common::fits_in(&f.dir.path().join("frames")).iter().map(|p| p.to_str().unwrap().to_string()));
-    ok(&r);
-    ok(&v(&[
-        "calibrate",
-        "--map",
-        &f.s("map.fits"),
-        "--instrument",
-        &f.s("mini.toml"),
-        "--sky-p",
-        "2",
-        "--sky-chi",
-        "30",
-        "--out",
-        &f.s("cal.fits"),
-    ]));
-    let field = fit::RadialModel::new(1, vec![1e-4, 4e-4, 0.0], [0.0, 0.0]);
-    fit::synth::write_qu_cubes(
-        &f.dir.path().join("q.fits"),
-        &f.dir.path().join("u.fits"),
-        &field,
-        96,
-        96,
-        4.0,
-        8,
-        1e-4,
-    )
-    .unwrap();
-    f
-}
-
-/// Every writer: the arguments with `{OUT}` for the output (a file name, or a folder for the
-/// commands that write several), and the files a success would create there.
-fn writers(f: &Fx) -> Vec<(&'static str, Vec<String>, Vec<&'static str>)> {
-    let frames: Vec<String> =
-        common::fits_in(&f.dir.path().join("frames")).iter().map(|p| p.to_str().unwrap().to_string()).collect();
-    let v = |a: &[&str]| a.iter().map(|s| s.to_string()).collect::<Vec<_>>();
-    let mut reduce = v(&["reduce", "--instrument", &f.s("mini.toml"), "--bin", "8", "--out", "{OUT}/map.fits"]);
-    reduce.extend(frames.iter().cloned());
-    let mut calf = v(&[
-        "calibrate",
-        "--instrument",
-        &f.s("mini.toml"),
-        "--bin",
-        "8",
-        "--sky-p",
-        "2",
-        "--sky-chi",
-        "30",
-        "--out",
-        "{OUT}/cal.fits",
-    ]);
-    calf.extend(frames.iter().cloned());
-    vec![
-        (
-            "stokes --plot (PNG)",
-            v(&["stokes", "--input", &f.s("f.csv"), "--plot", "{OUT}/fourier.png"]),
-            vec!["fourier.png"],
-        ),
-        ("reduce (Stokes map)", reduce, vec!["map.fits"]),
-        ("calibrate (frames)", calf, vec!["cal.fits"]),
-        (
-            "calibrate --map --plots",
-            v(&[
-                "calibrate",
-                "--map",
-                &f.s("map.fits"),
-                "--instrument",
-                &f.s("mini.toml"),
-                "--sky-p",
-                "2",
-                "--sky-chi",
-                "30",
-                "--out",
-                "{OUT}/cal.fits",
-                "--plots",
-                "{OUT}",
-            ]),
-            vec!["cal.fits"],
-        ),
-        ("fit --out", v(&["fit", &f.s("cal.fits"), "--out", "{OUT}/refit.fits"]), vec!["refit.fits"]),
-        (
-            "import-map",
-            v(&[
-                "import-map",
-                "--q",
-                &f.s("q.fits"),
-                "--u",
-                &f.s("u.fits"),
-                "--pixel-scale",
-                "4",
-                "--bin",
-                "8",
-                "--filter",
-                "V",
-                "--out",
-                "{OUT}/imp.fits",
-            ]),
-            vec!["imp.fits"],
-        ),
-        (
-            "correct (catalog)",
-            v(&["correct", "--cal", &f.s("cal.fits"), "--in", &f.s("cat.csv"), "--out", "{OUT}/cat.csv"]),
-            vec!["cat.csv"],
-        ),
-        (
-            "correct (map)",
-            v(&["correct", "--cal", &f.s("cal.fits"), "--in", &f.s("map.fits"), "--out", "{OUT}/map.fits"]),
-            vec!["map.fits"],
-        ),
-        ("plot", v(&["plot", &f.s("cal.fits"), "--out", "{OUT}"]), vec![]),
-        ("simulate (frames)", v(&["simulate", &f.s("scene.toml"), "--out", "{OUT}"]), vec![]),
-        (
-            "raytrace --plot --field-out",
-            v(&["raytrace", "--instrument", "fors1", "--plot", "{OUT}/rt.png", "--field-out", "{OUT}/rt.json"]),
-            vec!["rt.png", "rt.json"],
-        ),
-    ]
+/// Every output argument of every command with a valid invocation, each set in that
+/// invocation (the invocation's own output moved into the folder too).
+fn writers(f: &Fixture) -> Vec<Writer> {
+    let defs = invocations::args_by_command(&invocations::spec());
+    let templates = invocations::templates(f);
+    // An output argument some invocation names is tried there (every such invocation); one
+    // that none names is added to the command's first invocation.
+    let named = |cmd: &str, flag: &str| templates.iter().any(|t| t.name() == cmd && t.args.iter().any(|x| x == flag));
+    let mut out = vec![];
+    let mut added = std::collections::BTreeSet::new();
+    for t in &templates {
+        for a in defs[t.name()].iter().filter(|a| a["role"] == "output") {
+            let flag = a["long"].as_str().unwrap();
+            if NOT_TRIED.iter().any(|(c, fl, _)| *c == t.name() && *fl == flag) {
+                continue;
+            }
+            let mut args = fill(&t.args, Path::new("{DIR}"), t.out_name);
+            if !t.args.iter().any(|x| x == flag) {
+                if named(t.name(), flag) || !added.insert((t.name().to_string(), flag.to_string())) {
+                    continue;
+                }
+                args.extend([flag.to_string(), format!("{{DIR}}/{}", output_name(flag))]);
+                if let Some((_, _, more)) = NEEDS.iter().find(|(c, fl, _)| *c == t.name() && *fl == flag) {
+                    args.extend(more.iter().map(|m| m.to_string()));
+                }
+            }
+            out.push(Writer { label: format!("{} {flag}", t.command), args });
+        }
+    }
+    out
 }
 
 /// Files in `dir` (recursively), names relative to it.
@@ -178,10 +98,14 @@ fn files(dir: &Path) -> Vec<String> {
     v
 }
 
+fn in_dir(args: &[String], dir: &Path) -> Vec<String> {
+    args.iter().map(|a| a.replace("{DIR}", dir.to_str().unwrap())).collect()
+}
+
 fn check_fails_cleanly(name: &str, args: &[String], out: &Path, env: Option<(&str, &str)>, expect: &[&str]) {
-    let args: Vec<String> = args.iter().map(|a| a.replace("{OUT}", out.to_str().unwrap())).collect();
+    let args = in_dir(args, out);
     let mut c = Command::new(common::bin());
-    c.args(&args);
+    c.args(&args).current_dir(out);
     if let Some((k, v)) = env {
         c.env(k, v);
     }
@@ -189,7 +113,7 @@ fn check_fails_cleanly(name: &str, args: &[String], out: &Path, env: Option<(&st
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!err.contains("panicked"), "{name}: panic: {err}");
     assert_eq!(o.status.code(), Some(2), "{name}: a full disk must fail the command: {err}");
-    assert!(err.contains("error:"), "{name}: {err}");
+    assert!(err.contains("error"), "{name}: {err}");
     for e in expect {
         assert!(err.contains(e), "{name}: the message should say '{e}': {err}");
     }
@@ -198,23 +122,52 @@ fn check_fails_cleanly(name: &str, args: &[String], out: &Path, env: Option<(&st
     assert!(left.is_empty(), "{name}: left {left:?} in {}", out.display());
 }
 
+/// Every output argument of the CLI is tried here or listed in [`NOT_TRIED`], and each listed
+/// one exists.
+#[test]
+fn every_output_argument_is_tried_or_says_why_not() {
+    let f = invocations::fixture();
+    let tried: Vec<String> = writers(&f).iter().map(|w| w.label.clone()).collect();
+    let spec = invocations::spec();
+    let mut wrong = vec![];
+    for (cmd, args) in invocations::args_by_command(&spec) {
+        for a in args.iter().filter(|a| a["role"] == "output") {
+            let flag = a["long"].as_str().unwrap();
+            let listed = NOT_TRIED.iter().any(|(c, fl, _)| *c == cmd && *fl == flag);
+            let is_tried = tried.iter().any(|l| l.split(' ').next() == Some(cmd.as_str()) && l.ends_with(flag));
+            if !listed && !is_tried {
+                wrong.push(format!("{cmd} {flag}: not tried and not in NOT_TRIED"));
+            }
+        }
+    }
+    for (c, fl, _) in NOT_TRIED {
+        let exists = invocations::args_by_command(&spec)
+            .get(*c)
+            .is_some_and(|args| args.iter().any(|a| a["long"] == *fl && a["role"] == "output"));
+        if !exists {
+            wrong.push(format!("{c} {fl}: listed in NOT_TRIED but not an output argument of the CLI"));
+        }
+    }
+    assert!(tried.len() >= 25, "only {} writers", tried.len());
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+}
+
 #[test]
 fn injected_fsync_failure_fails_every_writer_and_leaves_nothing() {
-    let f = fixture();
-    for (name, args, made) in writers(&f) {
+    let f = invocations::fixture();
+    let all = writers(&f);
+    println!("{} writers: {}", all.len(), all.iter().map(|w| w.label.as_str()).collect::<Vec<_>>().join(", "));
+    for w in all {
         // Control: without the injection the writer succeeds and makes its files.
         let good = tempfile::tempdir().unwrap();
-        let a: Vec<String> = args.iter().map(|a| a.replace("{OUT}", good.path().to_str().unwrap())).collect();
-        let (code, _, err) = common::run(&a);
-        assert_eq!(code, 0, "{name} control: {err}");
-        for m in &made {
-            assert!(good.path().join(m).is_file(), "{name} control made no {m}");
-        }
-        assert!(!files(good.path()).is_empty(), "{name} control wrote nothing");
+        let o =
+            Command::new(common::bin()).args(in_dir(&w.args, good.path())).current_dir(good.path()).output().unwrap();
+        assert_eq!(o.status.code(), Some(0), "{} control: {}", w.label, String::from_utf8_lossy(&o.stderr));
+        assert!(!files(good.path()).is_empty(), "{} control wrote nothing", w.label);
         let bad = tempfile::tempdir().unwrap();
         check_fails_cleanly(
-            name,
-            &args,
+            &w.label,
+            &w.args,
             bad.path(),
             Some((skyfield::durable::FAIL_SYNC_ENV, "1")),
             &["No space left on device"],
@@ -226,7 +179,7 @@ fn injected_fsync_failure_fails_every_writer_and_leaves_nothing() {
 /// is the proof, and this one says so and returns).
 #[test]
 fn real_full_tmpfs_fails_every_writer_and_leaves_nothing() {
-    let f = fixture();
+    let f = invocations::fixture();
     let mnt = tempfile::tempdir().unwrap();
     let m = mnt.path().to_str().unwrap();
     let st = Command::new("mount").args(["-t", "tmpfs", "-o", "size=64k", "tmpfs", m]).output();
@@ -242,7 +195,7 @@ fn real_full_tmpfs_fails_every_writer_and_leaves_nothing() {
     }
     let _guard = Umount(mnt.path().to_path_buf());
     let mut tested = 0;
-    for (name, args, _) in writers(&f) {
+    for w in writers(&f) {
         let out = mnt.path().join(format!("w{tested}"));
         std::fs::create_dir(&out).unwrap();
         // Fill the tmpfs completely (a one-row CSV fits in any space left over).
@@ -252,7 +205,7 @@ fn real_full_tmpfs_fails_every_writer_and_leaves_nothing() {
         use std::io::Write;
         while fill.write_all(&chunk).and_then(|_| fill.sync_all()).is_ok() {}
         drop(fill);
-        check_fails_cleanly(name, &args, &out, None, &[]);
+        check_fails_cleanly(&w.label, &w.args, &out, None, &[]);
         std::fs::remove_dir_all(&out).unwrap();
         tested += 1;
     }
