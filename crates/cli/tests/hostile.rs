@@ -31,17 +31,21 @@
 //! output name and no temporary. Cases run on all cores; the inputs are tiny. The results table
 //! (cases per command and class, and failures) is printed; `HOSTILE_TABLE=path` also writes it.
 //!
-//! The generator must fail when a class is broken in any one command. The check, done by hand
-//! once (a switch in release code for a test is not wanted): break one command on a scratch
-//! commit and run `cargo test -p instpol --test hostile`, e.g.
+//! The generator (with full_disk.rs, which tries every output argument of the definition on a
+//! full disk) must fail when a class is broken in any one command. Checked by hand (a switch in
+//! release code for a test is not wanted): break one command on a scratch commit, run
+//! `cargo test --no-fail-fast -p instpol --test hostile --test full_disk`, and see it fail;
+//! then drop the commit. Done once, with these two mutations:
 //!
-//! 1. in `util::check_output` (crates/cli/src/util.rs) return `Ok(())` at once when the output's
-//!    extension is `png` (an input check removed for one kind of output): the `output over
-//!    input` cases of `stokes --plot` fail ("exit 0 ... input ... modified");
-//! 2. in `instpol fit`, write the calibration straight to its final name instead of through the
-//!    durable writer: full_disk.rs fails for `fit` ("left [...]").
-//!
-//! then drop the commit.
+//! 1. an input check removed: the two `util::check_output` calls of `instpol scan`
+//!    (crates/cli/src/cmd/night.rs) taken out. 12 `output over input` cases of scan fail, e.g.
+//!    "scan [output over input]: --out = --instrument (same path) -> input
+//!    .../input_tiny_fors2.toml modified; exit 0, not refused (exit 2)";
+//! 2. a broken writer: `stokes --plot` drawn straight onto its final name
+//!    (`BitMapBackend::new(path)` in crates/cli/src/cmd/stokes_plot.rs instead of
+//!    `plot::save_image`). full_disk.rs fails: "stokes --plot --plot: a full disk must fail the
+//!    command" (exit 0 under the injected fsync failure), and on a real full tmpfs "stokes --plot
+//!    --plot: left [\"fourier.png\"]".
 
 mod common;
 
