@@ -4,7 +4,7 @@
 //! refused with the reason (exit 2, nothing written); a bad --field names itself.
 
 mod common;
-mod mueller_maps;
+use common::mueller_maps;
 
 use mueller::linear::{physical_block, retardance_vector, LinearBlock};
 use skyfield::maps::{BinGeometry, StokesMap};

@@ -7,7 +7,7 @@
 //! calibration by name (exit 2).
 
 mod common;
-mod mueller_maps;
+use common::mueller_maps;
 
 use mueller::linear::{physical_block, retardance_vector, LinearBlock};
 use mueller_maps::{map, sky_args};

@@ -6,8 +6,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-#[path = "../mueller_maps/mod.rs"]
-mod mueller_maps;
+use super::mueller_maps;
 
 /// Every command's arguments and their kinds and roles, from the binary's own definition.
 pub fn spec() -> serde_json::Value {

@@ -4,6 +4,7 @@
 #![allow(dead_code)]
 
 pub mod invocations;
+pub mod mueller_maps;
 pub mod night;
 pub mod raw;
 
