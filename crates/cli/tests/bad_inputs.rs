@@ -159,6 +159,31 @@ const GOOD_STOKES: &str =
 // instpol stokes: the CSV reader
 // ---------------------------------------------------------------------------------------
 
+/// An ECSV whose `hwp_deg` column declares radians is read in degrees from its unit (the
+/// numbers of the degree CSV); `--angles-in-radians` beside it is refused, naming the column:
+/// it converted the angles a second time (0, 22.5, ... deg became 0, 1289, ... deg) with exit 0.
+#[test]
+fn stokes_angles_declared_in_radians_are_converted_once() {
+    let f = Fixture::new();
+    let mut e = String::from("# %ECSV 1.0\n# ---\n# datatype:\n# - {name: hwp_deg, unit: rad, datatype: float64}\n");
+    e += "# - {name: f_o, datatype: float64}\n# - {name: f_e, datatype: float64}\n# schema: astropy-2.0\nhwp_deg f_o f_e\n";
+    for line in GOOD_STOKES.lines().skip(1) {
+        let v: Vec<f64> = line.split(',').map(|x| x.parse().unwrap()).collect();
+        e += &format!("{:.17} {} {}\n", v[0].to_radians(), v[1], v[2]);
+    }
+    let rad = f.csv("rad.ecsv", &e);
+    let good = f.csv("good.csv", GOOD_STOKES);
+    let p = |path: &str| -> f64 {
+        let (code, out, err) = run(&["stokes", "--input", path, "--json"]);
+        assert_eq!(code, 0, "{err}");
+        serde_json::from_str::<serde_json::Value>(&out).unwrap()["p"].as_f64().unwrap()
+    };
+    assert!((p(&rad) - p(&good)).abs() < 1e-12);
+    let (code, _, err) = run(&["stokes", "--input", &rad, "--angles-in-radians"]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("hwp_deg") && err.contains("rad") && err.contains("--angles-in-radians"), "{err}");
+}
+
 #[test]
 fn stokes_control_good_csv_reduces() {
     let f = Fixture::new();

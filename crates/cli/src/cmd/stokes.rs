@@ -66,9 +66,16 @@ struct Table {
     lines: Vec<u64>,
 }
 
-fn read_table(path: &Path) -> Result<Table> {
+fn read_table(path: &Path, angles_in_radians: bool) -> Result<Table> {
     let name = path.display();
     let t = skyfield::table::Table::read(path, None)?;
+    // A declared unit is converted to degrees when the column is read: the flag would convert
+    // the angles a second time.
+    if let (true, Some(u)) = (angles_in_radians, t.unit_of("hwp_deg")) {
+        bail!(
+            "{name}: column 'hwp_deg' declares its unit ({u}) and is read in degrees from it: drop --angles-in-radians"
+        );
+    }
     let col = |c: &str| -> Result<Option<Vec<f64>>> {
         if t.column(c).is_none() {
             return Ok(None);
@@ -225,7 +232,7 @@ pub fn run(a: Args) -> Result<()> {
         crate::plot::ImageFormat::of(p)?;
     }
     let name = a.input.display().to_string();
-    let mut t = read_table(&a.input)?;
+    let mut t = read_table(&a.input, a.angles_in_radians)?;
     if a.angles_in_radians {
         t.hwp_deg.iter_mut().for_each(|r| *r = r.to_degrees());
     } else if let Err(e) = stokes::check_degrees(&t.hwp_deg) {
