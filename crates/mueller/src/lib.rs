@@ -261,14 +261,23 @@ pub struct Harmonic {
     pub phase: f64,
 }
 
-/// A half-wave plate: retardance `pi + retardance_error`, fast axis at the commanded angle
-/// plus `chi_offset / 2`, and optional defects.
+/// The polarimeter's wave plate: retardance `nominal_retardance + retardance_error` (a linear
+/// [`retarder`]), fast axis at the commanded angle plus `chi_offset / 2`, and optional defects.
+/// The half-wave plate of linear polarimetry (`nominal_retardance = pi`, [`Hwp::ideal`],
+/// section `sec:HWP`) and the quarter-wave plate of circular polarimetry (`pi / 2`,
+/// [`Hwp::quarter_wave`]) are this one type; everything below holds for both.
 ///
-/// `chi_offset` is the chromatic zero angle expressed, as instruments tabulate it, as the
-/// polarization-angle correction to *add* to a measured chi: a plate whose axis sits at
-/// `theta + chi_offset / 2` makes every measured chi smaller by `chi_offset`.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+/// `chi_offset` is the chromatic zero angle expressed, as instruments tabulate it for a
+/// half-wave plate, as the polarization-angle correction to *add* to a measured chi: a plate
+/// whose axis sits at `theta + chi_offset / 2` makes every measured chi smaller by
+/// `chi_offset`. For a quarter-wave plate it is likewise twice the fast axis's offset from
+/// the commanded angle.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Hwp {
+    /// The plate's design retardance (rad): `pi` for a half-wave plate, `pi / 2` for a
+    /// quarter-wave plate.
+    #[serde(default = "half_wave")]
+    pub nominal_retardance: f64,
     pub retardance_error: f64,
     pub chi_offset: f64,
     /// k = 1 harmonic (dust, dirt: repeats after a full turn): a weak partial polarizer aligned
@@ -279,16 +288,44 @@ pub struct Hwp {
     pub pleochroism: Option<Harmonic>,
 }
 
+fn half_wave() -> f64 {
+    std::f64::consts::PI
+}
+
+impl Default for Hwp {
+    /// The ideal half-wave plate.
+    fn default() -> Self {
+        Self { nominal_retardance: half_wave(), retardance_error: 0.0, chi_offset: 0.0, dust: None, pleochroism: None }
+    }
+}
+
 impl Hwp {
     /// The ideal half-wave plate.
     pub fn ideal() -> Self {
         Self::default()
     }
 
+    /// The ideal quarter-wave plate (retardance `pi / 2`): with its fast axis at 0 it turns
+    /// +45 deg linear light into `V > 0` (IAU, the crate's convention).
+    ///
+    /// ```
+    /// use mueller::{stokes_p_chi, Hwp};
+    /// let s = Hwp::quarter_wave().matrix(0.0) * stokes_p_chi(1.0, 1.0, std::f64::consts::FRAC_PI_4);
+    /// assert!((s[3] - 1.0).abs() < 1e-15 && s[1].abs() < 1e-15 && s[2].abs() < 1e-15);
+    /// ```
+    pub fn quarter_wave() -> Self {
+        Self { nominal_retardance: std::f64::consts::FRAC_PI_2, ..Self::default() }
+    }
+
+    /// Whether this is a quarter-wave plate (nominal retardance `pi / 2`).
+    pub fn is_quarter_wave(&self) -> bool {
+        self.nominal_retardance == std::f64::consts::FRAC_PI_2
+    }
+
     /// Mueller matrix of the plate (with its defects) at commanded angle `theta`.
     /// Only the defects that are present are computed.
     pub fn matrix(&self, theta: f64) -> Mueller {
-        let mut m = retarder(std::f64::consts::PI + self.retardance_error, theta + 0.5 * self.chi_offset);
+        let mut m = retarder(self.nominal_retardance + self.retardance_error, theta + 0.5 * self.chi_offset);
         if let Some(h) = self.pleochroism {
             m = partial_polarizer_signed(h.amplitude, theta + 0.5 * h.phase) * m;
         }
@@ -690,7 +727,8 @@ mod tests {
     /// The plate's matrix averaged over a sweep, against the plain mean of the matrix over
     /// 20000 equal sub-steps (midpoint rule, written here; its error is of order
     /// (8 h)^2 / 24 < 1e-9): the ideal plate with a zero angle and a retardance error (closed
-    /// form), and a plate with dust and pleochroism (quadrature); sweeps of 22.5, 60 and 90 deg.
+    /// form), a plate with dust and pleochroism (quadrature), and a quarter-wave plate (closed
+    /// form: its elements have the same harmonics); sweeps of 22.5, 60 and 90 deg.
     #[test]
     fn swept_plate_is_the_mean_over_its_motion() {
         let plates = [
@@ -700,7 +738,9 @@ mod tests {
                 chi_offset: 0.02,
                 dust: Some(Harmonic { amplitude: 0.01, phase: 0.4 }),
                 pleochroism: Some(Harmonic { amplitude: 0.02, phase: 1.1 }),
+                ..Hwp::ideal()
             },
+            Hwp { retardance_error: 0.04, chi_offset: -0.06, ..Hwp::quarter_wave() },
         ];
         for hwp in plates {
             for (mid_deg, sweep_deg) in [(11.25, 22.5), (47.0, 60.0), (100.0, 90.0), (3.0, -22.5)] {
