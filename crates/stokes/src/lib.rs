@@ -8,8 +8,11 @@
 //! `mueller` crate.
 //!
 //! There is exactly one `F_i` ([`normalized_difference`]) and one Stokes solver
-//! ([`StokesSolver`]); everything in the workspace that needs them calls these.
+//! ([`StokesSolver`]); everything in the workspace that needs them calls these. Circular
+//! polarization from a quarter-wave plate has its own demodulation ([`circular`]: `V/I` from
+//! the same `F_i`, the value [`Circular`]).
 
+pub mod circular;
 pub mod equivalent;
 pub mod fourier;
 pub mod kappa;
@@ -19,6 +22,7 @@ pub mod repeats;
 pub mod solver;
 pub mod stats;
 
+pub use circular::{Circular, CircularSolver};
 /// The one value of normalized `(q, u)` with its covariance (defined in `mueller`).
 pub use mueller::Qu;
 pub use reduce::{
@@ -37,6 +41,12 @@ pub enum Error {
     TooFewAngles(usize),
     #[error("HWP angle {deg} deg is the same plate position as an earlier one (positions {first} and {second}, equal modulo 360 deg)")]
     DuplicateAngle { deg: f64, first: usize, second: usize },
+    #[error(
+        "the quarter-wave-plate angles {angles_deg} deg do not determine V: F = q cos^2 2theta + u sin 2theta cos 2theta \
+         + v sin 2theta needs positions where sin 2theta differs in a way the offset and the linear terms cannot mimic \
+         (e.g. -45 and +45 deg, or -45, 45, 135 and 225 deg)"
+    )]
+    CircularUndetermined { angles_deg: String },
     #[error("the HWP angles do not constrain both Q and U (all angles give the same modulation modulo 45 deg)")]
     Degenerate,
     #[error(
