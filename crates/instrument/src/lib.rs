@@ -78,6 +78,29 @@ pub enum Layout {
     TwoCameras,
 }
 
+/// The wave plate before the analyser (`[polarimetry] plate`): a half-wave plate measures
+/// linear polarization (`q`, `u`: `eq:F`), a quarter-wave plate circular polarization (`V/I`,
+/// `stokes::circular`). Both are `mueller::Hwp` of their nominal retardance.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Plate {
+    /// Retardance pi: linear polarization.
+    #[default]
+    HalfWave,
+    /// Retardance pi/2: circular polarization.
+    QuarterWave,
+}
+
+impl Plate {
+    /// The plate's nominal retardance (rad).
+    pub fn retardance(self) -> f64 {
+        match self {
+            Plate::HalfWave => std::f64::consts::PI,
+            Plate::QuarterWave => std::f64::consts::FRAC_PI_2,
+        }
+    }
+}
+
 /// How an image is turned relative to another: one of the 8 flips and rotations by multiples
 /// of 90 deg that map pixel rows and columns onto rows and columns.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -222,6 +245,10 @@ pub struct Polarimetry {
     /// `"strips"` (default) or `"maskless"`.
     #[serde(default)]
     pub layout: Layout,
+    /// The wave plate: `"half_wave"` (default: linear polarization) or `"quarter_wave"`
+    /// (circular polarization; its zero angle is each filter's `qwp_zero_angle_deg`).
+    #[serde(default)]
+    pub plate: Plate,
     /// Strips: the Wollaston throw (arcsec), also the height of each mask strip.
     #[serde(default)]
     pub throw_arcsec: f64,
@@ -425,6 +452,11 @@ pub struct Filter {
     /// plate's frame ([`Filter::chi_offset_deg`] is 0) with [`Filter::zero_angle_warning`].
     #[serde(default)]
     pub hwp_chi_offset_deg: Option<f64>,
+    /// Quarter-wave plate (`[polarimetry] plate = "quarter_wave"`): the angle (deg) of the
+    /// plate's fast axis when the header's plate angle reads 0, i.e. the axis sits at the
+    /// header's angle plus this; absent: 0.
+    #[serde(default)]
+    pub qwp_zero_angle_deg: Option<f64>,
     /// Strips: this filter's variation of the o/e offset, in place of `polarimetry.throw_terms`
     /// (a Wollaston's throw is chromatic: FORS2's differs by 2 px between b_HIGH and v_HIGH).
     /// Frames of this filter are reduced, measured and simulated with it
@@ -437,6 +469,12 @@ impl Filter {
     /// The zero angle to add to a measured chi (deg): the file's, or 0 when it gives none.
     pub fn chi_offset_deg(&self) -> f64 {
         self.hwp_chi_offset_deg.unwrap_or(0.0)
+    }
+
+    /// A quarter-wave plate's zero angle (deg): its fast axis sits at the header's plate angle
+    /// plus this; 0 when the file gives none.
+    pub fn qwp_zero_angle_deg(&self) -> f64 {
+        self.qwp_zero_angle_deg.unwrap_or(0.0)
     }
 
     /// What to tell whoever reads a chi measured in this filter of instrument `inst` when the
@@ -623,6 +661,39 @@ impl Instrument {
         }
         if let Some(Err((key, value, why))) = self.polarimetry.rotation.as_ref().map(HwpRotation::check) {
             return bad(&key, value, &why);
+        }
+        let qwp = self.polarimetry.plate == Plate::QuarterWave;
+        if qwp && self.polarimetry.rotation.is_some() {
+            return bad(
+                "polarimetry.rotation",
+                "set".into(),
+                "a quarter-wave plate that turns during its exposures is not modelled: plate = \"quarter_wave\" takes a \
+                 plate standing still at each angle",
+            );
+        }
+        for f in &self.filters {
+            if let (true, Some(c)) = (qwp, f.hwp_chi_offset_deg) {
+                return bad(
+                    &format!("filters.{}.hwp_chi_offset_deg", f.name),
+                    c.to_string(),
+                    "the plate is a quarter-wave plate (plate = \"quarter_wave\"): its zero angle is qwp_zero_angle_deg, \
+                     the angle of its fast axis when the header reads 0",
+                );
+            }
+            if let Some(z) = f.qwp_zero_angle_deg {
+                let key = format!("filters.{}.qwp_zero_angle_deg", f.name);
+                if !qwp {
+                    return bad(
+                        &key,
+                        z.to_string(),
+                        "only a quarter-wave plate (polarimetry.plate = \"quarter_wave\") has this zero angle; a \
+                         half-wave plate's is hwp_chi_offset_deg",
+                    );
+                }
+                if !(z.is_finite() && z.abs() <= 90.0) {
+                    return bad(&key, z.to_string(), "must be an angle in degrees within +-90");
+                }
+            }
         }
         if let Err((key, value, why)) = self.format.check(d.nx, d.ny) {
             return bad(&key, value, &why);
@@ -1149,6 +1220,42 @@ mod tests {
             assert_eq!(w[1].o_start - w[0].o_start, 220);
         }
         assert!(strips.last().unwrap().e_start + 110 <= f.detector.ny);
+    }
+
+    /// `[polarimetry] plate`: the example quarter-wave instrument loads with its zero angles;
+    /// a half-wave instrument by default; each plate's zero-angle key refused on the other
+    /// plate, a turning quarter-wave plate and an unknown plate refused, each naming the key.
+    #[test]
+    fn plate_kind_and_its_zero_angle() {
+        let qwp = include_str!("../../../instruments/calcite_qwp.toml");
+        let i = Instrument::from_toml_str(qwp, Path::new("q.toml")).unwrap();
+        assert_eq!(i.polarimetry.plate, Plate::QuarterWave);
+        assert_eq!(i.polarimetry.plate.retardance(), std::f64::consts::FRAC_PI_2);
+        assert_eq!(i.filter("V").unwrap().qwp_zero_angle_deg(), 0.0);
+        assert_eq!(Instrument::load("calcite").unwrap().polarimetry.plate, Plate::HalfWave);
+        let cases = [
+            (
+                qwp.replace("qwp_zero_angle_deg = 0.0       # [example]\n\n", "qwp_zero_angle_deg = 95.0\n\n"),
+                "filters.V.qwp_zero_angle_deg",
+            ),
+            (
+                qwp.replace("qwp_zero_angle_deg = 0.0       # [example]\n\n", "hwp_chi_offset_deg = 1.0\n\n"),
+                "filters.V.hwp_chi_offset_deg",
+            ),
+            (qwp.replace("plate = \"quarter_wave\"", "plate = \"half_wave\""), "filters.V.qwp_zero_angle_deg"),
+            (
+                qwp.replace(
+                    "exptime_keyword = \"EXPTIME\"",
+                    "exptime_keyword = \"EXPTIME\"\n[polarimetry.rotation]\nbegin_keyword = \"B\"\nend_keyword = \"E\"",
+                ),
+                "polarimetry.rotation",
+            ),
+            (qwp.replace("plate = \"quarter_wave\"", "plate = \"eighth_wave\""), "eighth_wave"),
+        ];
+        for (text, key) in cases {
+            let e = Instrument::from_toml_str(&text, Path::new("q.toml")).unwrap_err().to_string();
+            assert!(e.contains(key) && e.contains("q.toml"), "{key}: {e}");
+        }
     }
 
     #[test]
