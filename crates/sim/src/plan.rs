@@ -113,6 +113,9 @@ pub struct Plan {
     sky: SkyAtPlate,
     /// Per HWP angle: rows giving `f_O`, `f_E` from `(I, Q, U)` at the plate.
     rows: Vec<(Iqu, Iqu)>,
+    /// Per plate angle: `f_O`, `f_E` of unit `V` at the plate (the rows' fourth column, for
+    /// stars with circular polarization: a quarter-wave plate turns V into the beams' difference).
+    rows_v: Vec<(f64, f64)>,
     flat: Option<Vec<f64>>,
     steps: Vec<DetStep>,
     cosmic: Option<crate::scene::CosmicSpec>,
@@ -137,6 +140,9 @@ struct StarDraw {
     y: f64,
     st: Iqu,
     psf: PsfShape,
+    /// `V` at the plate (e-, with `st`'s normalization; 0 for the sky's stars without circular
+    /// polarization).
+    v: f64,
     /// With a telescope: `st` is the light before it, and this the field's block at the star
     /// (applied after the telescope's matrix of each frame).
     field: Option<FieldBlock>,
@@ -414,7 +420,11 @@ impl Plan {
         }
         // Stars go frame by frame when the two beams overlap (maskless) or the frames move;
         // otherwise they are folded into the sky image once.
-        let per_frame = geom.layout != instrument::Layout::Strips || !scene.frame_shifts_px.is_empty();
+        // A star with circular polarization is drawn frame by frame too: the sky image holds
+        // (I, Q, U) only.
+        let per_frame = geom.layout != instrument::Layout::Strips
+            || !scene.frame_shifts_px.is_empty()
+            || scene.stars.iter().any(|s| s.v != 0.0);
         let shifts: Vec<(f64, f64)> = if scene.frame_shifts_px.is_empty() {
             vec![(0.0, 0.0); scene.hwp_angles_deg.len()]
         } else {
@@ -428,7 +438,19 @@ impl Plan {
                 let v = mueller::stokes_p_chi(st.flux_e, st.p, st.chi_deg.to_radians());
                 let mut iqu = [v[0], v[1], v[2]];
                 let mut at_star = None;
-                if !chain.is_empty() {
+                let mut v_plate = st.flux_e * st.v;
+                if st.v != 0.0 {
+                    // (I, Q, U, V) through the field's elements' Mueller matrices (a telescope
+                    // is refused with V by the scene's checks).
+                    let s4 = Stokes::new(v[0], v[1], v[2], v_plate);
+                    let s4 = if chain.is_empty() {
+                        s4
+                    } else {
+                        let (xa, ya) = inst.pixel_to_arcmin(x, y);
+                        chain.mueller_at(xa, ya) * s4
+                    };
+                    (iqu, v_plate) = ([s4[0], s4[1], s4[2]], s4[3]);
+                } else if !chain.is_empty() {
                     let (xa, ya) = inst.pixel_to_arcmin(x, y);
                     match tel {
                         // After each frame's telescope matrix: kept as the chain's block.
@@ -436,7 +458,7 @@ impl Plan {
                         None => iqu = chain.apply_at(xa, ya, iqu),
                     }
                 }
-                moving.push(StarDraw { x, y, st: iqu, psf: PsfShape::of(st, &inst), field: at_star });
+                moving.push(StarDraw { x, y, st: iqu, psf: PsfShape::of(st, &inst), v: v_plate, field: at_star });
             }
             if !scene.frame_shifts_px.is_empty() {
                 explain.push(format!("  frames moved by {:?} px", scene.frame_shifts_px));
@@ -537,14 +559,25 @@ impl Plan {
         };
 
         // --- the optics: the one forward model, compiled once ---
-        let mut hwp = Hwp::ideal();
+        let mut hwp = Hwp { nominal_retardance: inst.polarimetry.plate.retardance(), ..Hwp::ideal() };
         let mut optics = Vec::new();
+        let qwp = inst.polarimetry.plate == instrument::Plate::QuarterWave;
+        if qwp {
+            optics.push("quarter-wave plate (retardance pi/2)".into());
+        }
         if let Some(d) = fx.hwp_retardance_error_deg {
             hwp.retardance_error = d.to_radians();
             optics.push(format!("HWP retardance error {d} deg"));
         }
         let chi_off = if fx.hwp_chi_offset_from_filter { Some(filter.chi_offset_deg()) } else { fx.hwp_chi_offset_deg };
-        if let Some(c) = chi_off {
+        // A quarter-wave plate's zero angle is its axis's offset: twice it is the plate's
+        // chi_offset (mueller::Hwp: the axis at theta + chi_offset / 2).
+        let qwp_zero =
+            if fx.hwp_chi_offset_from_filter { Some(filter.qwp_zero_angle_deg()) } else { fx.qwp_zero_angle_deg };
+        if let Some(z) = qwp_zero.filter(|_| qwp) {
+            hwp.chi_offset = 2.0 * z.to_radians();
+            optics.push(format!("QWP zero angle {z} deg (fast axis at the plate angle + {z} deg)"));
+        } else if let Some(c) = chi_off.filter(|_| !qwp) {
             hwp.chi_offset = c.to_radians();
             optics.push(format!("HWP chromatic zero angle {c} deg"));
         }
@@ -587,6 +620,22 @@ impl Plan {
                 }
             ));
         }
+        // The fluxes of Stokes vector `b` at the plate in the exposure at plate angle `t`.
+        let fluxes = |b: &Stokes, t: f64| match &scene.hwp_motion {
+            None => train.fluxes_at_plate(b, t),
+            Some(m) if m.substeps == 0 => train.fluxes_at_plate_swept(b, t, m.sweep_deg.to_radians()),
+            Some(m) => {
+                // The motion by sub-steps: the mean of the fixed plate's fluxes.
+                let (d, n) = (m.sweep_deg.to_radians(), m.substeps as f64);
+                let (mut fo, mut fe) = (0.0, 0.0);
+                for j in 0..m.substeps {
+                    let f = train.fluxes_at_plate(b, t - 0.5 * d + (j as f64 + 0.5) * d / n);
+                    fo += f.f_o;
+                    fe += f.f_e;
+                }
+                mueller::BeamFluxes { f_o: fo / n, f_e: fe / n }
+            }
+        };
         let rows = scene
             .hwp_angles_deg
             .iter()
@@ -595,25 +644,19 @@ impl Plan {
                 let mut ro = [0.0; 3];
                 let mut re = [0.0; 3];
                 for (k, b) in basis.iter().enumerate() {
-                    let f = match &scene.hwp_motion {
-                        None => train.fluxes_at_plate(b, t),
-                        Some(m) if m.substeps == 0 => train.fluxes_at_plate_swept(b, t, m.sweep_deg.to_radians()),
-                        Some(m) => {
-                            // The motion by sub-steps: the mean of the fixed plate's fluxes.
-                            let (d, n) = (m.sweep_deg.to_radians(), m.substeps as f64);
-                            let (mut fo, mut fe) = (0.0, 0.0);
-                            for j in 0..m.substeps {
-                                let f = train.fluxes_at_plate(b, t - 0.5 * d + (j as f64 + 0.5) * d / n);
-                                fo += f.f_o;
-                                fe += f.f_e;
-                            }
-                            mueller::BeamFluxes { f_o: fo / n, f_e: fe / n }
-                        }
-                    };
+                    let f = fluxes(b, t);
                     ro[k] = f.f_o;
                     re[k] = f.f_e;
                 }
                 (ro, re)
+            })
+            .collect();
+        let rows_v = scene
+            .hwp_angles_deg
+            .iter()
+            .map(|a| {
+                let f = fluxes(&Stokes::new(0.0, 0.0, 0.0, 1.0), a.to_radians());
+                (f.f_o, f.f_e)
             })
             .collect();
 
@@ -676,6 +719,7 @@ impl Plan {
             sky_pixels,
             sky,
             rows,
+            rows_v,
             flat,
             steps,
             cosmic: fx.cosmic_rays.clone(),
@@ -787,7 +831,7 @@ impl Plan {
             }
         }
         for st in &self.moving {
-            self.draw_star(&mut img, st, k, (&ro, &re));
+            self.draw_star(&mut img, st, k, (&ro, &re), self.rows_v[k]);
         }
         if let Some(t) = self.scene.effects.transparency_rms.filter(|&t| t > 0.0) {
             let mut rng = stream(self.scene.seed, STREAM_TRANSPARENCY, k as u64, 0);
@@ -874,17 +918,27 @@ impl Plan {
     /// star, on the detector pixels that beam reaches (strips: its image of the mask strips;
     /// maskless: every pixel). The PSF is normalized over its window, as for the stars of the
     /// sky image, so that the mask hides light instead of moving it.
-    fn draw_star(&self, img: &mut [f64], s: &StarDraw, k: usize, rows: (&Iqu, &Iqu)) {
+    fn draw_star(&self, img: &mut [f64], s: &StarDraw, k: usize, rows: (&Iqu, &Iqu), rows_v: (f64, f64)) {
         let (nx, ny) = (self.geom.nx, self.geom.ny);
         let (x, y) = (s.x + self.shifts[k].0, s.y + self.shifts[k].1);
         let mut st = s.st;
         if let Some(t) = &self.tel {
             st = through(&t.per_frame[k], s.field.as_ref(), &st);
         }
-        let dot = |r: &Iqu| r[0] * st[0] + r[1] * st[1] + r[2] * st[2];
+        // The star's V reaches the beams through the plate's fourth column (a quarter-wave
+        // plate's modulation of V); a star without V adds nothing.
+        let dot = |r: &Iqu, rv: f64| {
+            let f = r[0] * st[0] + r[1] * st[1] + r[2] * st[2];
+            if s.v != 0.0 {
+                f + rv * s.v
+            } else {
+                f
+            }
+        };
         let Some((dx, dy)) = self.geom.e_offset(x, y) else { return };
         let radius = s.psf.radius();
-        for (beam, (cx, cy), flux) in [(0, (x, y), dot(rows.0)), (1, (x + dx, y + dy), dot(rows.1))] {
+        for (beam, (cx, cy), flux) in [(0, (x, y), dot(rows.0, rows_v.0)), (1, (x + dx, y + dy), dot(rows.1, rows_v.1))]
+        {
             if cx + radius < 0.0 || cy + radius < 0.0 || cx - radius > nx as f64 || cy - radius > ny as f64 {
                 continue;
             }

@@ -75,6 +75,9 @@ pub fn default_angles() -> Vec<f64> {
 fn one() -> f64 {
     1.0
 }
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
+}
 fn default_bitpix() -> i32 {
     16
 }
@@ -338,6 +341,10 @@ pub struct Star {
     pub p: f64,
     #[serde(default)]
     pub chi_deg: f64,
+    /// Circular polarization `V/I` (fraction, IAU sign: `V > 0` for counter-clockwise rotation
+    /// of the electric vector as seen by the observer); `p^2 + v^2 <= 1`.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub v: f64,
     pub fwhm_arcsec: f64,
     #[serde(default)]
     pub psf: Psf,
@@ -504,9 +511,14 @@ pub struct Effects {
     pub hwp_retardance_error_deg: Option<f64>,
     /// HWP chromatic zero angle (deg, the correction instruments tabulate: added to measured chi).
     pub hwp_chi_offset_deg: Option<f64>,
-    /// Take the zero angle from the instrument's filter table instead.
+    /// Take the zero angle from the instrument's filter table instead (a quarter-wave plate's
+    /// `qwp_zero_angle_deg`).
     #[serde(default)]
     pub hwp_chi_offset_from_filter: bool,
+    /// A quarter-wave plate's zero angle (deg): its fast axis at the frame's plate angle plus
+    /// this (`[polarimetry] plate = "quarter_wave"` only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub qwp_zero_angle_deg: Option<f64>,
     pub dust: Option<HarmonicSpec>,
     pub pleochroism: Option<HarmonicSpec>,
     pub post_analyzer: Option<PostAnalyzerSpec>,
@@ -623,13 +635,50 @@ impl Scene {
             }
             None => vec![0.0; th.len()],
         };
+        if inst.polarimetry.plate == instrument::Plate::QuarterWave {
+            let qwp_bad = |key: &str, value: String| {
+                bad(
+                    key,
+                    value,
+                    &format!(
+                        "instrument {} has a quarter-wave plate (plate = \"quarter_wave\"), which this does not apply to: \
+                         its zero angle is qwp_zero_angle_deg (here or the filter's, hwp_chi_offset_from_filter), it stands \
+                         still, and the simulator carries (I, Q, U) through a telescope, not V",
+                        inst.name
+                    ),
+                )
+            };
+            if let Some(c) = self.effects.hwp_chi_offset_deg {
+                return qwp_bad("effects.hwp_chi_offset_deg", c.to_string());
+            }
+            if let Some(m) = &self.hwp_motion {
+                return qwp_bad("hwp_motion", m.sweep_deg.to_string());
+            }
+            if self.telescope.is_some() {
+                return qwp_bad("telescope", "set".into());
+            }
+            if let Err(e) = stokes::CircularSolver::new(&th) {
+                return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &e.to_string());
+            }
+        } else if let Some(z) = self.effects.qwp_zero_angle_deg {
+            return bad(
+                "effects.qwp_zero_angle_deg",
+                z.to_string(),
+                &format!("instrument {} has a half-wave plate: its zero angle is hwp_chi_offset_deg", inst.name),
+            );
+        }
+        if let Some(z) = self.effects.qwp_zero_angle_deg.filter(|z| !(z.is_finite() && z.abs() <= 90.0)) {
+            return bad("effects.qwp_zero_angle_deg", z.to_string(), "must be an angle in degrees within +-90");
+        }
+        // A half-wave plate's angles must determine q and u (a quarter-wave plate's V, above).
+        let linear = inst.polarimetry.plate == instrument::Plate::HalfWave;
         match stokes::StokesSolver::with_sweeps(&th, &sweeps) {
-            Err(e @ stokes::Error::NoModulation { .. }) => {
+            Err(e @ stokes::Error::NoModulation { .. }) if linear => {
                 let d = self.hwp_motion.as_ref().map_or(0.0, |m| m.sweep_deg);
                 return bad("hwp_motion.sweep_deg", d.to_string(), &e.to_string());
             }
-            Err(e) => return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &e.to_string()),
-            Ok(_) => {}
+            Err(e) if linear => return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &e.to_string()),
+            _ => {}
         }
         if let (None, Some(r)) = (&self.hwp_motion, &inst.polarimetry.rotation) {
             if r.by_position() {
@@ -777,6 +826,21 @@ impl Scene {
         for (k, s) in self.stars.iter().enumerate() {
             nonneg(&format!("stars[{k}].flux_e"), s.flux_e)?;
             frac(&format!("stars[{k}].p"), s.p)?;
+            if !(s.v.abs() <= 1.0 && s.p * s.p + s.v * s.v <= 1.0 + 1e-12) {
+                return bad(
+                    &format!("stars[{k}].v"),
+                    s.v.to_string(),
+                    "V/I is a fraction with p^2 + v^2 <= 1 (no light is more than fully polarized)",
+                );
+            }
+            if s.v != 0.0 && self.telescope.is_some() {
+                return bad(
+                    &format!("stars[{k}].v"),
+                    s.v.to_string(),
+                    "a star's circular polarization is not carried through [telescope]: the simulator takes (I, Q, U) \
+                     through the telescope's matrices",
+                );
+            }
             if !(s.fwhm_arcsec.is_finite() && s.fwhm_arcsec > 0.0) {
                 return bad(&format!("stars[{k}].fwhm_arcsec"), s.fwhm_arcsec.to_string(), "must be positive");
             }

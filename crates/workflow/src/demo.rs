@@ -342,6 +342,7 @@ pub fn corner_star(
             flux_e: 3e6,
             p: 0.0,
             chi_deg: 0.0,
+            v: 0.0,
             fwhm_arcsec: 1.4,
             psf: Psf::Gaussian,
             moffat_beta: sim::scene::DEFAULT_MOFFAT_BETA,
