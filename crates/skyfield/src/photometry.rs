@@ -304,6 +304,85 @@ pub fn photometry_with(
     finish(out, &set.files, x, y, opts)
 }
 
+/// The photometry of one source through a quarter-wave plate and its `V/I`
+/// (`stokes::circular`): the same apertures, backgrounds and errors as [`StarPhotometry`], the
+/// fluxes demodulated by [`stokes::CircularSolver`] at the plate's axis angles (the frames'
+/// plate angles plus the filter's `qwp_zero_angle_deg`). `P` and `chi` are not given: the
+/// 2- and 4-position sets (-45, 45, 135, 225 deg) do not determine `q` and `u`.
+#[derive(Debug, Clone)]
+pub struct CircularPhotometry {
+    /// Source position as given (px, o coordinates).
+    pub x: f64,
+    pub y: f64,
+    /// The frames' plate angles (deg, as the headers or `--hwp-angles` give them).
+    pub hwp_deg: Vec<f64>,
+    /// The zero angle the demodulation added to them (deg).
+    pub zero_angle_deg: f64,
+    /// Aperture centres per plate angle: `[x_o, y_o, x_e, y_e]` (px).
+    pub centres: Vec<[f64; 4]>,
+    /// Background-subtracted fluxes (e-) and their errors, per plate angle.
+    pub f_o: Vec<f64>,
+    pub f_e: Vec<f64>,
+    pub sigma_o: Vec<f64>,
+    pub sigma_e: Vec<f64>,
+    /// `V/I` and its variance.
+    pub circular: stokes::Circular,
+}
+
+/// Measure the source at `(x, y)` (0-based px, o coordinates) in every frame of `set` taken
+/// through a quarter-wave plate whose fast axis sits at the frames' angles plus
+/// `zero_angle_deg`, with layout `g` and options `opts` (its `kappa` is not used: the
+/// demodulation's offset term takes the beams' ratio). Errors as [`photometry_with`], and the
+/// angle sets that do not determine `V` (`stokes::Error::CircularUndetermined`).
+pub fn circular_with(
+    set: &FrameSet,
+    g: &BeamGeometry,
+    x: f64,
+    y: f64,
+    ap: &Aperture,
+    opts: &PhotOptions,
+    zero_angle_deg: f64,
+) -> Result<CircularPhotometry, Error> {
+    if set.hwp_sweep_deg != 0.0 {
+        return Err(Error::Invalid(format!(
+            "the frames' plate swept {} deg during each exposure: a turning quarter-wave plate is not modelled",
+            set.hwp_sweep_deg
+        )));
+    }
+    let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();
+    let solver = stokes::CircularSolver::with_zero_angle(&theta, zero_angle_deg.to_radians())?;
+    let out = measure_fluxes(set, g, x, y, ap, opts)?;
+    if let Some(i) = (0..out.hwp_deg.len()).find(|&i| !(out.f_o[i] + out.f_e[i] > 0.0)) {
+        return Err(Error::Invalid(format!(
+            "no source at ({x:.1}, {y:.1}) px: the background-subtracted flux f_O + f_E = {:.1} e- at plate angle {} deg ({}) is not positive",
+            out.f_o[i] + out.f_e[i],
+            out.hwp_deg[i],
+            set.files[i].iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" + ")
+        )));
+    }
+    let circular = solver.solve_fluxes(&out.f_o, &out.f_e, &out.sigma_o, &out.sigma_e)?;
+    Ok(CircularPhotometry {
+        x,
+        y,
+        hwp_deg: out.hwp_deg,
+        zero_angle_deg,
+        centres: out.centres,
+        f_o: out.f_o,
+        f_e: out.f_e,
+        sigma_o: out.sigma_o,
+        sigma_e: out.sigma_e,
+        circular,
+    })
+}
+
+/// [`circular_with`] with the default options, the instrument's own layout and its filter's
+/// quarter-wave zero angle (`qwp_zero_angle_deg`; 0 for a filter the instrument does not know).
+pub fn circular(set: &FrameSet, inst: &Instrument, x: f64, y: f64, ap: &Aperture) -> Result<CircularPhotometry, Error> {
+    let g = layout_for(set, inst)?;
+    let zero = inst.filter(&set.filter).map_or(0.0, |f| f.qwp_zero_angle_deg());
+    circular_with(set, &g, x, y, ap, &PhotOptions::default(), zero)
+}
+
 /// The reduction of a source's fluxes in every frame (`files`: each angle's exposures, for
 /// messages): refused where `f_O + f_E` is not positive (no source there), else the one
 /// Stokes solver with the kappa correction `opts` asks for.
