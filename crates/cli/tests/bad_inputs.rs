@@ -307,6 +307,39 @@ fn instrument_unknown_key() {
     refuses(&out, &["raytrace", "--instrument", &p2, "--filter", "V"], &["extra.toml", "colour"]);
 }
 
+/// A quarter-wave plate's mistakes: plate angles that do not determine V (0, 90 deg), a
+/// half-wave plate's zero angle in a quarter-wave instrument, a star more than fully polarized.
+#[test]
+fn quarter_wave_plate_mistakes_are_named() {
+    let f = Fixture::new();
+    let qwp = include_str!("../../../instruments/calcite_qwp.toml");
+    let inst = f.csv("qwp.toml", qwp);
+    let out = f.out_dir();
+    let scene = |name: &str, angles: &str, v: f64| {
+        f.csv(
+            name,
+            &format!(
+                "instrument = {inst:?}\nfilter = \"V\"\nhwp_angles_deg = {angles}\n[[stars]]\nx = 200\ny = 300\n\
+                 coords = \"pixel\"\nflux_e = 1e6\nv = {v}\nfwhm_arcsec = 0.9\n"
+            ),
+        )
+    };
+    let s = scene("angles.toml", "[0, 90]", 0.01);
+    refuses(
+        &out,
+        &["simulate", &s, "--out", &f.s("out/frames")],
+        &["hwp_angles_deg", "[0, 90] deg do not determine V"],
+    );
+    let s = scene("bright.toml", "[-45, 45]", 1.2);
+    refuses(&out, &["simulate", &s, "--out", &f.s("out/frames")], &["stars[0].v", "p^2 + v^2 <= 1"]);
+    let bad = f.csv("hwpzero.toml", &qwp.replacen("qwp_zero_angle_deg = 0.0", "hwp_chi_offset_deg = 1.0", 1));
+    refuses(
+        &out,
+        &["raytrace", "--instrument", &bad, "--filter", "V"],
+        &["hwpzero.toml", "filters.V.hwp_chi_offset_deg"],
+    );
+}
+
 #[test]
 fn instrument_wrong_type_and_missing_key() {
     let f = Fixture::new();

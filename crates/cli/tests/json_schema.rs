@@ -467,6 +467,31 @@ fn night(f: &Fix) -> (String, String) {
         .clone()
 }
 
+/// Frames of the example quarter-wave instrument (instruments/calcite_qwp.toml) at -45 and 45
+/// deg, one star of V/I = 1 %, simulated once: (the instrument, the frames).
+fn qwp_frames(f: &Fix) -> (String, Vec<String>) {
+    static QWP: OnceLock<(String, Vec<String>)> = OnceLock::new();
+    QWP.get_or_init(|| {
+        let inst = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../instruments/calcite_qwp.toml");
+        let scene = f.d.join("qwp.toml");
+        std::fs::write(
+            &scene,
+            format!(
+                "instrument = {:?}\nfilter = \"V\"\nhwp_angles_deg = [-45, 45]\nseed = 3\n[output]\nbitpix = -32\n\
+                 [[stars]]\nx = 200\ny = 300\ncoords = \"pixel\"\nflux_e = 1e6\nv = 0.01\nfwhm_arcsec = 0.9\n\
+                 [effects]\nphoton_noise = true\n",
+                s(&inst)
+            ),
+        )
+        .unwrap();
+        let dir = f.d.join("qwp_frames");
+        let (code, _, err) = common::run(&v(&["simulate", &s(&scene), "--out", &s(&dir)]));
+        assert_eq!(code, 0, "{err}");
+        (s(&inst), common::fits_in(&dir).iter().map(|p| s(p)).collect())
+    })
+    .clone()
+}
+
 fn out(f: &Fix, name: &str) -> String {
     s(&f.d.join(format!("{}_{name}", std::process::id())))
 }
@@ -524,6 +549,14 @@ const CASES: &[(&str, Args)] = &[
     ("photometry", |f| {
         let mut a = star_args(f, "photometry");
         a.extend(v(&["--x", &f.star.0.to_string(), "--y", &f.star.1.to_string()]));
+        a
+    }),
+    ("photometry-circular", |f| {
+        let (inst, frames) = qwp_frames(f);
+        let mut a = v(&["photometry"]);
+        a.extend(frames);
+        a.extend(v(&["--instrument", &inst, "--hwp-angles", "-45,45", "--x", "200", "--y", "300", "--aperture", "9"]));
+        a.extend(v(&["--annulus", "14,24"]));
         a
     }),
     ("catalog", |f| {
@@ -619,6 +652,7 @@ macro_rules! cases {
 cases! {
     simulate_json => "simulate", reduce_json => "reduce", master_bias_json => "master-bias",
     master_flat_json => "master-flat", photometry_json => "photometry", catalog_json => "catalog",
+    photometry_circular_json => "photometry-circular",
     zero_angle_json => "zero-angle", calibrate_json => "calibrate", calibrate_stars_json => "calibrate-stars", fit_json => "fit", plot_json => "plot",
     wavelength_law_json => "wavelength-law", correct_json => "correct", stokes_json => "stokes",
     bias_json => "bias", mc_json => "mc", mc_sweep_json => "mc-sweep", mc_accuracy_json => "mc-accuracy",

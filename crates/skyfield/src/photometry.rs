@@ -929,6 +929,28 @@ pub fn check_overlap(
     )))
 }
 
+/// [`photometry_sized`] through a quarter-wave plate: [`circular_with`] at the radius
+/// `radius` chooses (the same choice: the total flux's S/N, which `sigma_v` follows as
+/// `sigma_P` does); returns the photometry and the radius used.
+#[allow(clippy::too_many_arguments)]
+pub fn circular_sized(
+    set: &FrameSet,
+    g: &BeamGeometry,
+    x: f64,
+    y: f64,
+    radius: ApertureRadius,
+    fwhm_px: f64,
+    annulus: Option<(f64, f64)>,
+    opts: &PhotOptions,
+    zero_angle_deg: f64,
+) -> Result<(CircularPhotometry, f64), Error> {
+    let tried = candidate_radii(x, y, radius, fwhm_px, annulus)?
+        .into_iter()
+        .map(|r| (r, circular_with(set, g, x, y, &Aperture { radius_px: r, annulus }, opts, zero_angle_deg)))
+        .collect();
+    pick_radius(radius, tried)
+}
+
 /// The aperture radii [`photometry_sized`] measures a star of FWHM `fwhm_px` with: the one
 /// radius of [`ApertureRadius::Px`] or [`ApertureRadius::FwhmMultiple`], or every candidate of
 /// [`ApertureRadius::BestSnr`] inside the annulus (refused when there is none, or when the
@@ -969,18 +991,19 @@ pub(crate) fn candidate_radii(
 /// The photometry [`photometry_sized`] keeps of those measured at each candidate radius
 /// (`tried`, in [`candidate_radii`]'s order): the one of a fixed radius as it came, or the
 /// best S/N of the total flux; when every radius failed, the first failure.
-pub(crate) fn pick_radius(
+pub(crate) fn pick_radius<T: Fluxes>(
     radius: ApertureRadius,
-    tried: Vec<(f64, Result<StarPhotometry, Error>)>,
-) -> Result<(StarPhotometry, f64), Error> {
-    let mut best: Option<(f64, StarPhotometry, f64)> = None;
+    tried: Vec<(f64, Result<T, Error>)>,
+) -> Result<(T, f64), Error> {
+    let mut best: Option<(f64, T, f64)> = None;
     let mut first_err = None;
     for (r, res) in tried {
         match res {
             Ok(ph) if !matches!(radius, ApertureRadius::BestSnr) => return Ok((ph, r)),
             Ok(ph) => {
-                let flux: f64 = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum();
-                let var: f64 = ph.sigma_o.iter().zip(&ph.sigma_e).map(|(a, b)| a * a + b * b).sum();
+                let (f_o, f_e, sigma_o, sigma_e) = ph.fluxes();
+                let flux: f64 = f_o.iter().zip(f_e).map(|(a, b)| a + b).sum();
+                let var: f64 = sigma_o.iter().zip(sigma_e).map(|(a, b)| a * a + b * b).sum();
                 let snr = flux / var.sqrt();
                 if snr.is_finite() && best.as_ref().is_none_or(|b| snr > b.0) {
                     best = Some((snr, ph, r));
@@ -995,6 +1018,24 @@ pub(crate) fn pick_radius(
         (Some((_, ph, r)), _) => Ok((ph, r)),
         (None, Some(e)) => Err(e),
         (None, None) => Err(Error::Invalid("no aperture radius gave a finite S/N of the star's flux".into())),
+    }
+}
+
+/// The beams' fluxes and errors per plate angle of a measured source, linear or circular:
+/// what [`pick_radius`] weighs.
+pub(crate) trait Fluxes {
+    fn fluxes(&self) -> (&[f64], &[f64], &[f64], &[f64]);
+}
+
+impl Fluxes for StarPhotometry {
+    fn fluxes(&self) -> (&[f64], &[f64], &[f64], &[f64]) {
+        (&self.f_o, &self.f_e, &self.sigma_o, &self.sigma_e)
+    }
+}
+
+impl Fluxes for CircularPhotometry {
+    fn fluxes(&self) -> (&[f64], &[f64], &[f64], &[f64]) {
+        (&self.f_o, &self.f_e, &self.sigma_o, &self.sigma_e)
     }
 }
 

@@ -216,7 +216,9 @@ fn group_frames(
             }
         }
     }
-    if require_complete {
+    // The optimal sets are a half-wave plate's; a quarter-wave plate's angles are judged by
+    // the circular demodulation (stokes::CircularSolver), which names a set lacking V.
+    if require_complete && inst.polarimetry.plate == instrument::Plate::HalfWave {
         check_complete(&filter, &angles)?;
     }
     Ok(Grouping { filter, angles, members, nx, ny, warnings })

@@ -1,4 +1,5 @@
-//! `instpol photometry`: Q, U, P, chi of a point source from a set of frames.
+//! `instpol photometry`: Q, U, P, chi of a point source from a set of frames (V/I through a
+//! quarter-wave plate).
 
 use anyhow::{bail, Result};
 use skyfield::reduce::FrameSet;
@@ -9,6 +10,12 @@ use std::path::PathBuf;
 /// polarized background is removed vectorially (paper, section background). Prints Q/I, U/I,
 /// P (%), chi (deg) and their errors.
 ///
+/// With an instrument whose plate is a quarter-wave plate ([polarimetry] plate =
+/// "quarter_wave") it prints V/I and its error instead (IAU sign; the plate angles plus the
+/// filter's qwp_zero_angle_deg; 2 positions -45,45 or 4 positions -45,45,135,225 deg): Q, U, P
+/// and chi are not reported, those sets do not determine them. The JSON is then
+/// schemas/photometry-circular.schema.json.
+///
 /// With --star NAME (a standard of instruments/standards.toml or --standards) the JSON also
 /// records the star, its catalogued P (p_true, a fraction) and chi (chi_true_deg) in the
 /// frames' band when it is a polarized standard, the filter and its wavelength, and the middle
@@ -18,6 +25,10 @@ use std::path::PathBuf;
 ///
 /// Example: instpol photometry star/*.fits --instrument fors1 --x 1900 --y 90 --aperture 8
 /// --annulus 12,20
+///
+/// Example (circular polarization, docs/guide/circular.md):
+///   instpol photometry qwp/*.fits --instrument instruments/calcite_qwp.toml --hwp-angles -45,45
+///   --x 200 --y 300 --aperture 9 --annulus 14,24
 ///
 /// Example (an EFOSC2 standard, a point of the telescope fit):
 ///   instpol photometry std/*.fits --instrument efosc2 --x 512 --y 300 --star "HD 64299" --json
@@ -133,6 +144,27 @@ struct Out {
     record: fit::telescope::StandardRecord,
 }
 
+/// The JSON of a source measured through a quarter-wave plate.
+#[derive(serde::Serialize)]
+struct CircularOut {
+    x_px: f64,
+    y_px: f64,
+    hwp_deg: Vec<f64>,
+    /// The filter's quarter-wave zero angle added to the plate angles (deg).
+    qwp_zero_angle_deg: f64,
+    f_o: Vec<f64>,
+    f_e: Vec<f64>,
+    sigma_o: Vec<f64>,
+    sigma_e: Vec<f64>,
+    /// V/I (fraction, IAU sign) and its error.
+    v: f64,
+    sigma_v: f64,
+    centres_px: Vec<[f64; 4]>,
+    oe_offset_px: Option<(f64, f64)>,
+    aperture_px: f64,
+    filter: String,
+}
+
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs(
         a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)).chain(a.standards.as_deref()),
@@ -197,6 +229,42 @@ pub fn run(a: Args) -> Result<()> {
     };
     if let Some(w) = skyfield::photometry::check_overlap(&set, &g, x, y, fwhm, a.allow_overlap)? {
         eprintln!("warning: {w}");
+    }
+    if inst.polarimetry.plate == instrument::Plate::QuarterWave {
+        if a.star.is_some() {
+            bail!("--star records a standard's linear polarization for fit-standards: not with a quarter-wave plate");
+        }
+        let zero = inst.filter(&set.filter).map_or(0.0, |f| f.qwp_zero_angle_deg());
+        let (ph, radius_px) = skyfield::photometry::circular_sized(&set, &g, x, y, radius, fwhm, annulus, &opts, zero)?;
+        let o = CircularOut {
+            x_px: x,
+            y_px: y,
+            hwp_deg: ph.hwp_deg.clone(),
+            qwp_zero_angle_deg: zero,
+            f_o: ph.f_o.clone(),
+            f_e: ph.f_e.clone(),
+            sigma_o: ph.sigma_o.clone(),
+            sigma_e: ph.sigma_e.clone(),
+            v: ph.circular.v,
+            sigma_v: ph.circular.sigma_v(),
+            centres_px: ph.centres.clone(),
+            oe_offset_px: g.e_offset(x, y),
+            aperture_px: radius_px,
+            filter: set.filter.clone(),
+        };
+        if a.json {
+            crate::util::print_json(&o)?;
+        } else {
+            outln!(
+                "source at ({:.2}, {:.2}) px, aperture {:.2} px, {} quarter-wave plate angles",
+                x,
+                y,
+                radius_px,
+                o.hwp_deg.len()
+            );
+            outln!("  V/I = {:+.5} +- {:.5}", o.v, o.sigma_v);
+        }
+        return Ok(());
     }
     let (ph, radius_px) = skyfield::photometry::photometry_sized(&set, &g, x, y, radius, fwhm, annulus, &opts)?;
     let exposures = match &singles {
