@@ -723,6 +723,19 @@ fn optional_keys_json() {
             ]),
             vec!["mueller_model", "mueller_free"],
         ),
+        // A catalog through a quarter-wave plate: V/I in its rows.
+        (
+            "catalog",
+            {
+                let (inst, frames) = qwp_frames(f);
+                let mut a = v(&["catalog"]);
+                a.extend(frames);
+                a.extend(v(&["--instrument", &inst, "--hwp-angles", "-45,45", "--fwhm", "4.2", "--aperture", "9"]));
+                a.extend(v(&["--annulus", "14,24", "--json"]));
+                a
+            },
+            vec!["qwp_zero_angle_deg"],
+        ),
     ];
     for (name, a, keys) in runs {
         let (code, o, err) = common::run(&a);
@@ -734,6 +747,9 @@ fn optional_keys_json() {
         }
         for k in keys {
             assert!(doc.get(k).is_some(), "{name}: {k} not printed: {doc}");
+        }
+        if doc.get("qwp_zero_angle_deg").is_some() {
+            assert!(doc["rows"][0]["v"].is_number() && doc["rows"][0]["sigma_v"].is_number(), "{doc}");
         }
         let e = validate(&schema(name), &doc);
         assert!(e.is_empty(), "{name}: {}", e.join("\n"));

@@ -35,6 +35,11 @@ pub enum Error {
     Exposures(String),
     #[error("no field model to correct with")]
     NoModel,
+    #[error(
+        "the catalog holds V/I through a quarter-wave plate: a calibration corrects linear polarization (q, u), which \
+         these frames do not measure"
+    )]
+    Circular,
     #[error("{0}")]
     Calibration(crate::Error),
     #[error(
@@ -76,6 +81,9 @@ pub fn correct_catalog_loaded(
     loaded: &crate::calibration::CalibrationFile,
     opts: CorrectOptions,
 ) -> Result<(CorrectedCatalog, Option<TelescopeUsed>), Error> {
+    if cat.qwp_zero_angle_deg.is_some() {
+        return Err(Error::Circular);
+    }
     let (field, tel) = loaded.p_phi_models().map_err(Error::Calibration)?;
     if let Some(cal) = field {
         if !cal.filter.eq_ignore_ascii_case(&cat.filter) {

@@ -118,7 +118,7 @@ fn jones_calculation_is_the_modulation() {
 /// Simulated QWP frames at 2 (-45, 45 deg) and 4 (-45, 45, 135, 225 deg) positions with
 /// photon and read noise: every star's V/I within its error of the Jones calculation's (pulls
 /// over 16 values with an RMS near 1, none beyond 4), and each frame's measured `F` within its
-/// error of the Jones `F` at that angle.
+/// error of the Jones `F` at that angle; the catalog's rows carry the same V/I.
 #[test]
 fn qwp_frames_give_v_within_errors() {
     let dir = tempfile::tempdir().unwrap();
@@ -132,6 +132,15 @@ fn qwp_frames_give_v_within_errors() {
         let out = sim::simulate(&sc, &dir.path().join(format!("frames{n}")), &|| {}).unwrap();
         let set = frame_set(&out.frames, &inst);
         assert_eq!(set.angles_deg.len(), n);
+        let cfg = skyfield::catalog::CatalogConfig {
+            detect: skyfield::detect::DetectConfig { fwhm_px: 4.2, ..Default::default() },
+            radius: skyfield::photometry::ApertureRadius::Px(9.0),
+            annulus: Some((14.0, 24.0)),
+            ..Default::default()
+        };
+        let cat = skyfield::catalog::catalog(&set, &inst, &cfg).unwrap();
+        assert_eq!(cat.qwp_zero_angle_deg, Some(0.0));
+        assert_eq!(cat.rows.len(), stars().len());
         for (x, y, p, chi, v) in stars() {
             let (q, u) = (p * (2.0 * chi.to_radians()).cos(), p * (2.0 * chi.to_radians()).sin());
             let ph = circular(&set, &inst, x, y, &ap).unwrap();
@@ -144,6 +153,11 @@ fn qwp_frames_give_v_within_errors() {
             let snr = (ph.f_o[0] + ph.f_e[0]).sqrt();
             assert!(c.sigma_v() > 1.0 / ((n as f64).sqrt() * snr) && c.sigma_v() < 1.3 / ((n as f64).sqrt() * snr));
             pulls.push(pull);
+            // The catalog measures the same star the same way (its row's v, sigma_v).
+            let row = cat.rows.iter().find(|r| (r.x - x).hypot(r.y - y) < 1.0).expect("star in the catalog");
+            let (rv, rs) = (row.v.unwrap(), row.sigma_v.unwrap());
+            assert!(((rv - want) / rs).abs() < 4.0 && (rs / c.sigma_v() - 1.0).abs() < 0.05, "{rv} +- {rs}");
+            assert!(row.q.is_nan() && row.p.is_nan());
             for (i, a) in set.angles_deg.iter().enumerate() {
                 let f = stokes::normalized_difference(ph.f_o[i], ph.f_e[i]);
                 let s = stokes::sigma_normalized_difference(ph.f_o[i], ph.f_e[i], ph.sigma_o[i], ph.sigma_e[i]);

@@ -10,8 +10,8 @@ use crate::beams::BeamGeometry;
 use crate::calib::ReadOptions;
 use crate::detect::{detect_reusing, pair, DetectConfig, Source};
 use crate::photometry::{
-    candidate_radii, check_placement, finish, layout_for, layout_of_image, measure_frame, pick_radius, Aperture,
-    ApertureRadius, FrameFacts, FrameFluxes, Partial, PhotOptions,
+    candidate_radii, check_placement, circular_solver, finish, finish_circular, layout_for, layout_of_image,
+    measure_frame, pick_radius, Aperture, ApertureRadius, FrameFacts, FrameFluxes, Partial, PhotOptions,
 };
 use crate::reduce::{DiskFrames, FrameSet, FrameSource};
 use crate::Warning;
@@ -189,6 +189,13 @@ pub struct Row {
     /// With repeated HWP positions ([`check_exposures`]): the exposures (0-based, in the order
     /// the frames were given) flagged for this star; empty otherwise.
     pub outlier_exposures: Vec<usize>,
+    /// Through a quarter-wave plate: `V/I` (IAU sign) and its error (`stokes::circular`); the
+    /// linear quantities above are then NaN (the plate's 2- and 4-position sets do not
+    /// determine them). `None` (and not written) for a half-wave plate.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub v: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sigma_v: Option<f64>,
 }
 
 /// The camera transform a two-camera catalog was measured with.
@@ -214,6 +221,10 @@ pub struct Catalog {
     /// star pairs it rests on (absent for other layouts).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub camera_transform: Option<CameraTransform>,
+    /// A quarter-wave plate's zero angle (deg) added to the plate angles: the rows carry `V/I`
+    /// ([`Row::v`]). Absent for a half-wave plate.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub qwp_zero_angle_deg: Option<f64>,
     pub rows: Vec<Row>,
     /// Sources without a partner image (their positions).
     pub unpaired: Vec<(f64, f64)>,
@@ -367,6 +378,12 @@ impl Catalog {
                     .collect(),
             ),
         ];
+        if self.qwp_zero_angle_deg.is_some() {
+            // Through a quarter-wave plate: V/I, the linear columns above being NaN.
+            let v = |g: fn(&Row) -> Option<f64>| r.iter().map(|x| g(x).unwrap_or(f64::NAN)).collect::<Vec<f64>>();
+            c.push(Column::f64("v", None, "V/I (dimensionless fraction, IAU sign)", v(|x| x.v)));
+            c.push(Column::f64("sigma_v", None, "1-sigma error of v", v(|x| x.sigma_v)));
+        }
         for i in 0..self.hwp_deg.len() {
             let v = r.iter().map(|x| x.f.get(i).copied().unwrap_or(f64::NAN)).collect();
             c.push(Column::f64(&format!("f_{i}"), None, &format!("F_i (eq:F) at HWP {} deg", self.hwp_deg[i]), v));
@@ -444,6 +461,11 @@ pub fn pairing_warning(cat: &Catalog, inst: &Instrument, tol: f64) -> Option<War
 
 /// The warning for chi values of `filter` when the instrument file gives no zero angle.
 pub fn zero_angle_warning(inst: &Instrument, filter: &str) -> Option<Warning> {
+    // A quarter-wave plate measures no chi: its zero angle (qwp_zero_angle_deg, 0 when absent)
+    // enters the demodulation, not a turn of chi.
+    if inst.polarimetry.plate == instrument::Plate::QuarterWave {
+        return None;
+    }
     let f = inst.filter(filter).ok()?;
     f.zero_angle_warning(&inst.name).map(|message| Warning { file: None, message })
 }
@@ -490,6 +512,21 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         unpaired.iter().map(|&k| (&sources[k], g.e_position(sources[k].x, sources[k].y))).collect();
     let chi_off = inst.filter(src.filter()).map(|f| f.chi_offset_deg()).unwrap_or(0.0);
     let opts = PhotOptions { weighting: cfg.weighting, recentre: true, kappa: cfg.kappa };
+    // A quarter-wave plate: every star's V/I by one demodulation (refused here, before any
+    // star is measured, when the plate angles do not determine V).
+    let circular = match inst.polarimetry.plate {
+        instrument::Plate::HalfWave => None,
+        instrument::Plate::QuarterWave => {
+            if src.hwp_sweep_deg() != 0.0 {
+                return Err(Error::Invalid(format!(
+                    "the frames' plate swept {} deg during each exposure: a turning quarter-wave plate is not modelled",
+                    src.hwp_sweep_deg()
+                )));
+            }
+            let zero = inst.filter(src.filter()).map_or(0.0, |f| f.qwp_zero_angle_deg());
+            Some((circular_solver(src.angles_deg(), zero)?, zero))
+        }
+    };
     // Each star's row as far as the detection tells (its flags), and the aperture radii to
     // measure it with, each with its placement checked (nothing to measure when saturated).
     let planned: Vec<(Row, Result<Vec<Try>, Error>)> = pairs
@@ -557,6 +594,8 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                 flags,
                 note: String::new(),
                 outlier_exposures: vec![],
+                v: None,
+                sigma_v: None,
             };
             if flags & flags::SATURATED != 0 {
                 row.note = "saturated: not measured".into();
@@ -678,7 +717,13 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                     .map(|((r, placed), m)| {
                         let ph = placed.and_then(|()| {
                             let m: Vec<FrameFluxes> = m.into_iter().collect::<Result<_, _>>()?;
-                            finish(Partial::from_frames(src.angles_deg(), src.hwp_sweep_deg(), &m), files, x, y, &opts)
+                            let part = Partial::from_frames(src.angles_deg(), src.hwp_sweep_deg(), &m);
+                            match &circular {
+                                None => finish(part, files, x, y, &opts).map(Measured::Linear),
+                                Some((solver, zero)) => {
+                                    finish_circular(part, files, x, y, solver, *zero).map(Measured::Circular)
+                                }
+                            }
                         });
                         (r, ph)
                     })
@@ -687,7 +732,16 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
             });
             let mut centres = None;
             match result {
-                Ok((ph, radius)) => {
+                Ok((Measured::Circular(ph), radius)) => {
+                    centres = Some(ph.centres.clone());
+                    row.aperture_px = radius;
+                    let n = ph.f_o.len();
+                    row.flux_e = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum::<f64>() / n as f64;
+                    row.f = ph.f_o.iter().zip(&ph.f_e).map(|(&o, &e)| stokes::normalized_difference(o, e)).collect();
+                    row.v = Some(ph.circular.v);
+                    row.sigma_v = Some(ph.circular.sigma_v());
+                }
+                Ok((Measured::Linear(ph), radius)) => {
                     centres = Some(ph.centres.clone());
                     row.aperture_px = radius;
                     let r = &ph.reduction;
@@ -755,6 +809,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                 pairs: c.measured.map(|m| m.1),
             })
         }),
+        qwp_zero_angle_deg: circular.as_ref().map(|c| c.1),
         rows,
         unpaired: unpaired.iter().map(|&k| (sources[k].x, sources[k].y)).collect(),
         unpaired_shift_px: crate::detect::unpaired_shift(&sources, &unpaired, &g, UNPAIRED_REACH_PX),
@@ -765,12 +820,29 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
     })
 }
 
+/// A star measured at one radius: through a half-wave plate (`q`, `u`) or a quarter-wave
+/// plate (`V/I`).
+enum Measured {
+    Linear(crate::photometry::StarPhotometry),
+    Circular(crate::photometry::CircularPhotometry),
+}
+
+impl crate::photometry::Fluxes for Measured {
+    fn fluxes(&self) -> (&[f64], &[f64], &[f64], &[f64]) {
+        match self {
+            Measured::Linear(p) => p.fluxes(),
+            Measured::Circular(p) => p.fluxes(),
+        }
+    }
+}
+
 /// Check every measured star of `cat` exposure by exposure (as `photometry` does for one
 /// star): `frames` are the exposures `set` was summed from, in the order given.
 /// Each star is measured in each exposure alone with its own aperture, its repeats compared
 /// through `stokes::repeats` (`crate::photometry::exposure_checks`); a star with a flagged
 /// exposure gets [`flags::OUTLIER_EXPOSURE`] and the exposures' indices, and the catalog a
-/// summary per exposure. Nothing is done when no HWP position repeats. Flagged exposures stay
+/// summary per exposure. Nothing is done when no HWP position repeats, nor through a
+/// quarter-wave plate (the checks compare linear reductions). Flagged exposures stay
 /// in the sum (a change common to both beams cancels in `F`): this reports, it does not cut.
 pub fn check_exposures(
     cat: &mut Catalog,
@@ -781,7 +853,8 @@ pub fn check_exposures(
 ) -> Result<(), Error> {
     use crate::photometry::{exposure_checks, single_exposures, Aperture, EXPOSURE_OUTLIER_SIGMA};
     let theta: Vec<f64> = frames.iter().map(|f| f.hwp_deg.to_radians()).collect();
-    if !stokes::repeats::has_repeats(&theta) {
+    // The exposures' checks compare linear reductions: not made through a quarter-wave plate.
+    if !stokes::repeats::has_repeats(&theta) || cat.qwp_zero_angle_deg.is_some() {
         return Ok(());
     }
     let g: BeamGeometry = layout_for(set, inst)?;

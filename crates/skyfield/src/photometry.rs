@@ -349,15 +349,34 @@ pub fn circular_with(
             set.hwp_sweep_deg
         )));
     }
-    let theta: Vec<f64> = set.angles_deg.iter().map(|a| a.to_radians()).collect();
-    let solver = stokes::CircularSolver::with_zero_angle(&theta, zero_angle_deg.to_radians())?;
+    let solver = circular_solver(&set.angles_deg, zero_angle_deg)?;
     let out = measure_fluxes(set, g, x, y, ap, opts)?;
+    finish_circular(out, &set.files, x, y, &solver, zero_angle_deg)
+}
+
+/// The circular demodulation of plate angles `angles_deg` (deg) with the plate's zero angle
+/// (deg): refused, naming the angles, when they do not determine `V`.
+pub fn circular_solver(angles_deg: &[f64], zero_angle_deg: f64) -> Result<stokes::CircularSolver, Error> {
+    let theta: Vec<f64> = angles_deg.iter().map(|a| a.to_radians()).collect();
+    Ok(stokes::CircularSolver::with_zero_angle(&theta, zero_angle_deg.to_radians())?)
+}
+
+/// [`finish`] through a quarter-wave plate: refused where `f_O + f_E` is not positive, else
+/// `V/I` by `solver`.
+pub(crate) fn finish_circular(
+    out: Partial,
+    files: &[Vec<PathBuf>],
+    x: f64,
+    y: f64,
+    solver: &stokes::CircularSolver,
+    zero_angle_deg: f64,
+) -> Result<CircularPhotometry, Error> {
     if let Some(i) = (0..out.hwp_deg.len()).find(|&i| !(out.f_o[i] + out.f_e[i] > 0.0)) {
         return Err(Error::Invalid(format!(
             "no source at ({x:.1}, {y:.1}) px: the background-subtracted flux f_O + f_E = {:.1} e- at plate angle {} deg ({}) is not positive",
             out.f_o[i] + out.f_e[i],
             out.hwp_deg[i],
-            set.files[i].iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" + ")
+            files[i].iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" + ")
         )));
     }
     let circular = solver.solve_fluxes(&out.f_o, &out.f_e, &out.sigma_o, &out.sigma_e)?;

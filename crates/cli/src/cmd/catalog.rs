@@ -15,8 +15,17 @@ use std::path::PathBuf;
 /// short of light (a cloud, a cosmic ray in one beam) flags the star (outlier_exposure, with
 /// the exposure's index in outlier_exposures) and is named when most stars flag it.
 ///
+/// With a quarter-wave plate ([polarimetry] plate = "quarter_wave") every star's V/I and its
+/// error are measured instead (columns and JSON keys v, sigma_v; the catalog's
+/// qwp_zero_angle_deg): the linear columns are NaN, the 2- and 4-position sets not determining
+/// Q and U, and --cal is refused.
+///
 /// Example:
 ///   instpol catalog frames/*.fits --instrument fors1 --fwhm 4 --out stars.csv
+///
+/// Example (circular polarization, docs/guide/circular.md):
+///   instpol catalog qwp/*.fits --instrument instruments/calcite_qwp.toml --hwp-angles -45,45
+///   --fwhm 4.2 --aperture 9 --annulus 14,24
 #[derive(clap::Args)]
 pub struct Args {
     /// Frame files (FITS), one or more per HWP angle.
@@ -240,7 +249,7 @@ pub fn run(a: Args) -> Result<()> {
         }
         t.write(out)?;
     }
-    let measured = cat.rows.iter().filter(|r| r.q.is_finite()).count();
+    let measured = cat.rows.iter().filter(|r| r.q.is_finite() || r.v.is_some_and(f64::is_finite)).count();
     // Frames turned against each other: said, since apertures then follow each star by its
     // own centroid only (a star too faint to centre would sit off its aperture).
     for f in cat.alignment.iter().filter(|f| f.rotation_significant) {
@@ -284,6 +293,25 @@ pub fn run(a: Args) -> Result<()> {
                 if n_rot == 0 { "none".to_string() } else { format!("{n_rot} frames") },
                 skyfield::catalog::ROTATION_SIGNIFICANT_SIGMA
             );
+        }
+        if let Some(z) = cat.qwp_zero_angle_deg {
+            outln!("quarter-wave plate (zero angle {z} deg): V/I of every star; P and chi are not measured");
+            outln!("  id        x        y    V/I %     +-  flags");
+            for r in &cat.rows {
+                outln!(
+                    "{:4} {:8.2} {:8.2} {:+8.3} {:6.3}  {}",
+                    r.id,
+                    r.x,
+                    r.y,
+                    100.0 * r.v.unwrap_or(f64::NAN),
+                    100.0 * r.sigma_v.unwrap_or(f64::NAN),
+                    flags::names(r.flags)
+                );
+            }
+            if let Some(out) = &a.out {
+                outln!("wrote {}", out.display());
+            }
+            return Ok(());
         }
         outln!("  id        x        y      P %     +-   chi deg     +-  flags");
         for r in &cat.rows {
