@@ -1077,6 +1077,13 @@ fn _catalog<'py>(
     d.set_item("flags", PyArray1::from_vec(py, rows.iter().map(|r| r.flags).collect()))?;
     d.set_item("flag_names", rows.iter().map(|r| skyfield::catalog::flags::names(r.flags)).collect::<Vec<_>>())?;
     d.set_item("note", rows.iter().map(|r| r.note.clone()).collect::<Vec<_>>())?;
+    // Through a quarter-wave plate: V/I of every star and the plate's zero angle (the linear
+    // columns are NaN), as `instpol catalog` writes them.
+    if let Some(z) = cat.qwp_zero_angle_deg {
+        d.set_item("v", col(|r| opt(r.v)))?;
+        d.set_item("sigma_v", col(|r| opt(r.sigma_v)))?;
+        d.set_item("qwp_zero_angle_deg", z)?;
+    }
     let f: Vec<f64> = rows.iter().flat_map(|r| (0..n).map(|i| r.f.get(i).copied().unwrap_or(f64::NAN))).collect();
     d.set_item("f", arr2(py, f, rows.len(), n)?)?;
     d.set_item("hwp_deg", cat.hwp_deg.clone())?;

@@ -733,11 +733,26 @@ pub fn bin_geometry(inst: &Instrument, bin_px: usize) -> BinGeometry {
     BinGeometry::covering(bin_px, ox, oy, g.nx, g.ny, inst.detector.pixel_scale_arcsec)
 }
 
+/// A Stokes map holds `Q/I`, `U/I`: refused, with the reason and what works instead, for an
+/// instrument whose plate is a quarter-wave plate.
+fn require_half_wave(inst: &Instrument) -> Result<(), Error> {
+    if inst.polarimetry.plate == instrument::Plate::QuarterWave {
+        return Err(Error::Invalid(format!(
+            "instrument {} has a quarter-wave plate (plate = \"quarter_wave\"): a per-pixel V/I map is not built (a \
+             Stokes map holds Q/I and U/I, which its 2- and 4-position sets do not determine); measure V/I of point \
+             sources with photometry or catalog",
+            inst.name
+        )));
+    }
+    Ok(())
+}
+
 /// Per-pixel `Q/I`, `U/I` of every sky pixel (NaN where masked or outside the sky bands),
 /// row-major over the detector in o coordinates: for inspection and tests. Computed by the
 /// reduction's own kernel, row by row.
 pub fn pixel_qu(set: &FrameSet, inst: &Instrument) -> Result<(Vec<f64>, Vec<f64>), Error> {
     let inst = &*inst.for_filter(&set.filter);
+    require_half_wave(inst)?;
     let solver = solver_of(&set.angles_deg, set.hwp_sweep_deg)?;
     let (cq, cu) = solver.weights();
     let g = BeamGeometry::new(inst);
@@ -925,6 +940,7 @@ fn reduce_bands(
     if cfg.bin_px == 0 {
         return Err(Error::Invalid("bin size must be at least 1 px".into()));
     }
+    require_half_wave(inst)?;
     let solver = solver_of(angles_deg, sweep_deg)?;
     let g = BeamGeometry::new(inst);
     g.require_separable_sky().map_err(Error::Invalid)?;

@@ -273,16 +273,18 @@ pub fn run(a: Args) -> Result<()> {
             })?,
         }
     } else {
+        let plate = match cat.qwp_zero_angle_deg {
+            None => format!("{} HWP angles, chi zero angle {} deg", cat.hwp_deg.len(), cat.chi_offset_deg),
+            Some(z) => format!("{} quarter-wave plate angles, plate zero angle {z} deg", cat.hwp_deg.len()),
+        };
         outln!(
-            "{} sources, {} stars paired ({} measured, {} flagged), {} unpaired; filter {}, {} HWP angles, chi zero angle {} deg",
+            "{} sources, {} stars paired ({} measured, {} flagged), {} unpaired; filter {}, {plate}",
             cat.n_sources,
             cat.rows.len(),
             measured,
             cat.rows.len() - measured,
             cat.unpaired.len(),
             cat.filter,
-            cat.hwp_deg.len(),
-            cat.chi_offset_deg
         );
         if !cat.alignment.is_empty() {
             let shift = cat.alignment.iter().map(|f| f.dx_px.hypot(f.dy_px)).fold(0.0, f64::max);
@@ -294,8 +296,8 @@ pub fn run(a: Args) -> Result<()> {
                 skyfield::catalog::ROTATION_SIGNIFICANT_SIGMA
             );
         }
-        if let Some(z) = cat.qwp_zero_angle_deg {
-            outln!("quarter-wave plate (zero angle {z} deg): V/I of every star; P and chi are not measured");
+        if cat.qwp_zero_angle_deg.is_some() {
+            outln!("V/I of every star (IAU sign); P and chi are not measured through a quarter-wave plate");
             outln!("  id        x        y    V/I %     +-  flags");
             for r in &cat.rows {
                 outln!(

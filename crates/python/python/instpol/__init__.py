@@ -606,7 +606,8 @@ _COLUMN_UNITS = {"x": "pix", "y": "pix", "x_e": "pix", "y_e": "pix", "fwhm_px": 
 #: What a catalog holds once for all its stars (the rest is one value per star).
 _CATALOG_META = ("hwp_deg", "filter", "chi_offset_deg", "oe_offset_px", "unpaired", "unpaired_shift_px",
                  "n_sources", "warnings", "recorded_angles", "chi_offset_applied_deg", "n_extrapolated",
-                 "telescope_model", "telescope_band", "telescope_exposures", "camera_transform")
+                 "telescope_model", "telescope_band", "telescope_exposures", "camera_transform",
+                 "qwp_zero_angle_deg")
 
 
 def _unit_of(name: str) -> Optional[str]:
@@ -751,6 +752,10 @@ def catalog(
     ``force=True``: measure the stars even when the photometry is estimated beyond 2e10 pixel
     visits (stars x frames x the annulus's area; a threshold far below the noise or a huge
     annulus is refused with the estimate otherwise).
+
+    With an instrument whose plate is a quarter-wave plate (``plate = "quarter_wave"``) the
+    stars' V/I is measured instead: columns ``v, sigma_v`` (fractions, IAU sign) and the
+    catalog-wide ``qwp_zero_angle_deg``; the linear columns are NaN and ``cal`` is refused.
 
     ``cal``: a calibration file to remove the instrumental polarization with in the same run, as
     ``instpol catalog --cal``: adds the columns ``q0, u0, sigma_q0, sigma_u0, cov_qu0, p0,
