@@ -719,7 +719,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                             let m: Vec<FrameFluxes> = m.into_iter().collect::<Result<_, _>>()?;
                             let part = Partial::from_frames(src.angles_deg(), src.hwp_sweep_deg(), &m);
                             match &circular {
-                                None => finish(part, files, x, y, &opts).map(Measured::Linear),
+                                None => finish(part, files, x, y, &opts).map(|p| Measured::Linear(Box::new(p))),
                                 Some((solver, zero)) => {
                                     finish_circular(part, files, x, y, solver, *zero).map(Measured::Circular)
                                 }
@@ -823,7 +823,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
 /// A star measured at one radius: through a half-wave plate (`q`, `u`) or a quarter-wave
 /// plate (`V/I`).
 enum Measured {
-    Linear(crate::photometry::StarPhotometry),
+    Linear(Box<crate::photometry::StarPhotometry>),
     Circular(crate::photometry::CircularPhotometry),
 }
 

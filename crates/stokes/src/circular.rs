@@ -266,7 +266,7 @@ mod tests {
         let sets = [
             deg(&[-45.0, 45.0]),
             deg(&[-45.0, 45.0, 135.0, 225.0]),
-            (0..16).map(|k| k as f64 * 0.39269908169872414).collect(),
+            (0..16).map(|k| k as f64 * std::f64::consts::FRAC_PI_8).collect(),
         ];
         for th in &sets {
             let s = CircularSolver::new(th).unwrap();
