@@ -1292,8 +1292,9 @@ fn telescope_term(
 
 fn describe_star(s: &Star) -> String {
     let unit = if s.coords == Coords::Pixel { "px" } else { "arcmin" };
+    let v = if s.v != 0.0 { format!(", V/I = {}", s.v) } else { String::new() };
     format!(
-        "at ({}, {}) {unit}, {} e-, p = {}, chi = {} deg, {:?} PSF FWHM {}\"",
+        "at ({}, {}) {unit}, {} e-, p = {}, chi = {} deg{v}, {:?} PSF FWHM {}\"",
         s.x, s.y, s.flux_e, s.p, s.chi_deg, s.psf, s.fwhm_arcsec
     )
 }

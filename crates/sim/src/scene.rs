@@ -38,6 +38,7 @@
 //! flux_e = 2e6
 //! p = 0.0
 //! chi_deg = 0
+//! # v = 0.01                  # circular polarization V/I (fraction, IAU sign; default 0)
 //! fwhm_arcsec = 0.8
 //! psf = "gaussian"              # or "moffat" (with moffat_beta, default 2.5)
 //!
@@ -48,6 +49,7 @@
 //! instpol = { kind = "radial", coeffs_percent = [0, 0.012, 0.046, 0.002] }
 //! wollaston = { t = 0.51, s = 0.49, delta_alpha_deg = 0 }
 //! post_analyzer = { b = 0.004, phi_deg = 30 }
+//! # qwp_zero_angle_deg = 1.5  # a quarter-wave plate's axis offset (plate = "quarter_wave")
 //! flat = { pixel_rms_o = 0.01, pixel_rms_e = 0.012, large_scale_o = 0.02, large_scale_e = 0.03 }
 //! cosmic_rays = { rate_per_frame = 50 }
 //!

@@ -13,8 +13,8 @@
 //! `s = sin 2theta`). The sign of `v` is `+` in the workspace's IAU convention (`V > 0` for
 //! counter-clockwise rotation of the electric vector as seen by the observer;
 //! `mueller::retarder` turns +45 deg linear light into `V > 0` with its fast axis at 0), so
-//! `F(+45 deg) = v`, `F(-45 deg) = -v` for any linear polarization. `crates/mueller/tests/
-//! quarter_wave.rs` checks this form against a Jones calculation.
+//! `F(+45 deg) = v`, `F(-45 deg) = -v` for any linear polarization.
+//! `crates/mueller/tests/quarter_wave.rs` checks this form against a Jones calculation.
 //!
 //! # The estimator
 //!
