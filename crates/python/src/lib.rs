@@ -1159,6 +1159,71 @@ fn _demo(py: Python<'_>, out: PathBuf, through_frames: bool, keep_frames: bool, 
     serde_json::to_string(&demo.report).map_err(|e| input_err(format!("the demo's report: {e}")))
 }
 
+/// The instrumental field from field-star catalogs (`fit::stars_field`, what `instpol
+/// calibrate-stars` runs): the summary as JSON text (`calibrate-stars --json`'s keys, no
+/// plots); the calibration written to `out` when given. `interstellar`: None for a fitted
+/// term, `(0, 0)` with `zero` for none, or `(P percent, chi deg)`.
+#[pyfunction]
+#[pyo3(signature = (catalogs, instrument, filter, out, interstellar_free, interstellar, offsets, model, free_centre, reject_alpha, match_radius_arcsec))]
+#[allow(clippy::too_many_arguments)]
+fn _calibrate_stars(
+    py: Python<'_>,
+    catalogs: Vec<PathBuf>,
+    instrument: &str,
+    filter: &str,
+    out: Option<PathBuf>,
+    interstellar_free: bool,
+    interstellar: Option<(f64, f64)>,
+    offsets: Option<Vec<(f64, f64)>>,
+    model: &str,
+    free_centre: bool,
+    reject_alpha: f64,
+    match_radius_arcsec: f64,
+) -> PyResult<String> {
+    use fit::stars_field::{read_catalogs, stars_field, stars_meta, Interstellar, StarsOptions, StarsSummary};
+    if catalogs.is_empty() {
+        return Err(input_err("no catalogs given: the star catalogs of the pointings (instpol catalog --out)"));
+    }
+    refuse_overwrite(out.as_deref(), catalogs.iter())?;
+    let inst = instrument::Instrument::load(instrument).map_err(inst_err)?;
+    let interstellar = match (interstellar_free, interstellar) {
+        (true, _) => Interstellar::Free,
+        (false, None) => Interstellar::Zero,
+        (false, Some((p, chi))) => {
+            Interstellar::from_percent_deg(p, chi).map_err(|e| input_err(format!("interstellar: {e}")))?
+        }
+    };
+    let mut calibrate = fit::pipeline::CalibrateOptions::default();
+    calibrate.set_model_name(model).map_err(input_err)?;
+    calibrate.fit.free_centre = free_centre;
+    if !(match_radius_arcsec > 0.0 && match_radius_arcsec.is_finite()) {
+        return Err(input_err(format!("match_radius_arcsec {match_radius_arcsec} must be positive")));
+    }
+    let opts = StarsOptions {
+        calibrate,
+        interstellar,
+        offsets: offsets.map(|o| o.into_iter().map(|(x, y)| [x, y]).collect()),
+        match_radius_arcmin: match_radius_arcsec / 60.0,
+        reject_alpha,
+    };
+    let summary = py.detach(|| -> Result<StarsSummary, fit::Error> {
+        let (rows, z) = read_catalogs(&catalogs)?;
+        let meta = stars_meta(&inst, filter, z, catalogs.iter().map(|p| p.display().to_string()).collect());
+        let run = stars_field(&rows, catalogs.len(), meta, &opts)?;
+        if let Some(p) = &out {
+            run.run.calibration.save(p)?;
+        }
+        let mut s = StarsSummary::new(&run, &rows, reject_alpha);
+        s.fit.calibration_file = out.as_ref().map(|p| p.display().to_string());
+        Ok(s)
+    });
+    let summary = summary.map_err(|e| match e {
+        fit::Error::Io { .. } | fit::Error::Fits { .. } => FileError::new_err(e.to_string()),
+        e => input_err(e),
+    })?;
+    serde_json::to_string(&summary).map_err(|e| input_err(format!("the summary: {e}")))
+}
+
 fn night_err(e: workflow::night::Error) -> PyErr {
     match e {
         workflow::night::Error::Output { .. } => FileError::new_err(e.to_string()),
@@ -1256,6 +1321,7 @@ fn _instpol(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_bias, m)?)?;
     m.add_function(wrap_pyfunction!(_reduce, m)?)?;
     m.add_function(wrap_pyfunction!(_catalog, m)?)?;
+    m.add_function(wrap_pyfunction!(_calibrate_stars, m)?)?;
     m.add_function(wrap_pyfunction!(_demo, m)?)?;
     m.add_function(wrap_pyfunction!(_scan, m)?)?;
     m.add_function(wrap_pyfunction!(_run, m)?)?;

@@ -48,6 +48,7 @@ __all__ = [
     "Calibration",
     "reduce",
     "catalog",
+    "calibrate_stars",
     "demo",
     "StokesMap",
     "CatalogTable",
@@ -792,6 +793,79 @@ def catalog(
     if as_table and not _HAVE_ASTROPY:
         raise InputError("as_table=True needs astropy installed")
     return _table(d) if as_table else d
+
+
+def calibrate_stars(
+    catalogs: Union[PathLike, Sequence[PathLike]],
+    instrument: str = "fors1",
+    *,
+    filter: str,
+    out: Optional[PathLike] = None,
+    interstellar: Union[str, Tuple[float, float]] = "free",
+    offsets: Optional[Sequence[Tuple[float, float]]] = None,
+    model: str = "radial3",
+    free_centre: bool = False,
+    reject_alpha: float = 1e-3,
+    match_radius_arcsec: float = 1.0,
+) -> Dict[str, Any]:
+    """The instrumental field from field stars, as ``instpol calibrate-stars``.
+
+    ``catalogs``: the star catalogs ``catalog(..., out=)`` or ``instpol catalog --out`` wrote,
+    one per dithered pointing of a dense field. Each star's measured ``q, u`` is the
+    instrument's field at its detector position plus one interstellar polarization common to
+    the stars: ``interstellar="free"`` (fitted), ``"zero"``, or ``(P_percent, chi_deg)``.
+    ``offsets``: each pointing's ``(dx, dy)`` in arcmin (the first ``(0, 0)``); None measures
+    them from the stars the catalogs share. ``model``: ``"radialN"``, ``"polyN"`` or ``"plane"``
+    (a plane needs the interstellar term fixed: its constant and a free interstellar term are
+    the same at every position). Stars polarized in themselves are rejected by their residual
+    chi^2 at the false-rejection probability ``reject_alpha`` and named.
+
+    Returns
+    -------
+    dict
+        ``instpol calibrate-stars --json``'s keys (``fit``, ``interstellar``, ``rejected``,
+        ``offsets_arcmin``, ...) with the same numbers, less ``provenance`` and the plots; the
+        calibration is written to ``out`` when given (the file ``calibrate`` writes, ``IP
+        SOURCE = field stars``), readable by :meth:`Calibration.load`.
+
+    Raises
+    ------
+    FileError, InputError
+
+    Example (catalogs of four pointings)::
+
+        s = instpol.calibrate_stars(["p1.ecsv", "p2.ecsv", "p3.ecsv", "p4.ecsv"], "fors1",
+                                    filter="V", interstellar="zero", out="cal_V.fits")
+        s["fit"]["coefficients"], [r["id"] for r in s["rejected"]]
+    """
+    cats = [catalogs] if isinstance(catalogs, (str, os.PathLike)) else list(catalogs)
+    free, given = False, None
+    if isinstance(interstellar, str):
+        name = interstellar.strip().lower()
+        if name == "free":
+            free = True
+        elif name not in ("zero", "none"):
+            raise InputError(f"interstellar {interstellar!r}: expected 'free', 'zero' or (P_percent, chi_deg)")
+    else:
+        try:
+            p, chi = (float(v) for v in interstellar)
+        except (TypeError, ValueError):
+            raise InputError(f"interstellar {interstellar!r}: expected 'free', 'zero' or (P_percent, chi_deg)") from None
+        given = (p, chi)
+    offs = None
+    if offsets is not None:
+        try:
+            offs = [(float(a), float(b)) for a, b in offsets]
+        except (TypeError, ValueError):
+            raise InputError(f"offsets {offsets!r}: expected one (dx, dy) in arcmin per catalog") from None
+        if len(offs) != len(cats):
+            raise InputError(f"{len(offs)} offsets for {len(cats)} catalogs: give one per catalog, (0, 0) for the first")
+    return json.loads(
+        _instpol._calibrate_stars(
+            [os.fspath(c) for c in cats], str(instrument), str(filter), _opt_path(out), free, given, offs,
+            str(model), bool(free_centre), float(reject_alpha), float(match_radius_arcsec),
+        )
+    )
 
 
 def demo(out_dir: PathLike, *, frames: bool = True, keep_frames: bool = False, seed: int = 2006) -> Dict[str, Any]:

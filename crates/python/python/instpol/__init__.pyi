@@ -220,6 +220,26 @@ def catalog(
     Raises FileError or InputError.
     """
 
+def calibrate_stars(
+    catalogs: Union[PathLike, Sequence[PathLike]],
+    instrument: str = ...,
+    *,
+    filter: str,
+    out: Optional[PathLike] = ...,
+    interstellar: Union[str, Tuple[float, float]] = ...,
+    offsets: Optional[Sequence[Tuple[float, float]]] = ...,
+    model: str = ...,
+    free_centre: bool = ...,
+    reject_alpha: float = ...,
+    match_radius_arcsec: float = ...,
+) -> Dict[str, Any]:
+    """The instrumental field from field-star catalogs of dithered pointings (calibrate-stars).
+
+    interstellar: "free", "zero" or (P_percent, chi_deg); offsets: (dx, dy) arcmin per catalog
+    or None to measure them; model: radialN, polyN or plane; out: the calibration file.
+    """
+    ...
+
 def demo(out_dir: PathLike, *, frames: bool = ..., keep_frames: bool = ..., seed: int = ...) -> Dict[str, Any]:
     """The paper's three empty fields simulated, calibrated and validated: instpol demo's report."""
 
