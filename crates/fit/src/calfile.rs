@@ -573,7 +573,7 @@ impl Calibration {
         } else {
             return Err(Error::BadFile { path: path.into(), what: format!("unknown model kind MODEL = '{kind}'") });
         };
-        let mut poly = if kind == "POLY" { Some(read_poly(&mut r, path)?) } else { None };
+        let poly = if kind == "POLY" { Some(read_poly(&mut r, path)?) } else { None };
         let polar_angle = r.opt_real("POLANG SLOPE").map(|slope| PolarAngleSummary {
             slope,
             slope_err: r.opt_real("POLANG SLOPE ERR").unwrap_or(f64::NAN),
@@ -703,10 +703,10 @@ impl Calibration {
                 .collect();
         }
 
-        let model = match (kind.as_str(), radial) {
-            ("POLY", _) if poly.is_some() => Model::Poly(poly.take().expect("checked")),
-            ("RADIAL", Some(r)) => Model::Radial(r),
-            ("RADIAL+RESIDUAL", Some(r)) => {
+        let model = match (kind.as_str(), radial, poly) {
+            (_, _, Some(p)) => Model::Poly(p),
+            ("RADIAL", Some(r), _) => Model::Radial(r),
+            ("RADIAL+RESIDUAL", Some(r), _) => {
                 let residual = residual_from_bins(&r, &bins)?;
                 Model::RadialResidual { radial: r, residual }
             }

@@ -149,7 +149,12 @@ pub fn fit_poly(bins: &[Bin], degree: usize, opts: &RadialFitOptions) -> Result<
     if sel.len() < needed {
         return Err(Error::TooFewBins { used: sel.len(), total: bins.len(), needed });
     }
-    let a = DMatrix::from_fn(sel.len(), m, |r, c| basis(degree, sel[r].x, sel[r].y)[c]);
+    let mut a = DMatrix::<f64>::zeros(sel.len(), m);
+    for (r, b) in sel.iter().enumerate() {
+        for (c, t) in basis(degree, b.x, b.y).into_iter().enumerate() {
+            a[(r, c)] = t;
+        }
+    }
     // Each component's weighted least squares with the bins' robust weights `w`: coefficients
     // and the inverse normal matrix.
     let solve = |w: &[f64], values: &dyn Fn(&Bin) -> (f64, f64)| -> Result<(DVector<f64>, DMatrix<f64>)> {

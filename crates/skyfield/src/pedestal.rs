@@ -112,14 +112,14 @@ pub fn levels(g: &BeamGeometry, rows: &[(usize, &[f64])], bias: f64, saturation:
 
 /// What the levels of `path` say: an error when the masked lines sit above [`REFUSE_FRACTION`]
 /// of the strips' level, a warning above [`WARN_FRACTION`], nothing otherwise (or when the
-/// strips hold no light to compare with). `unit`: what the values are ("ADU").
-pub fn judge(path: &Path, l: &Levels, unit: &str, bias: f64) -> Result<Option<Warning>, Error> {
+/// strips hold no light to compare with). Plain frames' values, and so the levels, are ADU.
+pub fn judge(path: &Path, l: &Levels, bias: f64) -> Result<Option<Warning>, Error> {
     if !(l.strips > 0.0) || !(l.masked > 0.0) {
         return Ok(None);
     }
     let f = l.masked / l.strips;
     let what = format!(
-        "the masked strips, which receive no light, sit at {:.1} {unit} above the instrument's bias of {bias} {unit}: {:.1} % of the strips' level of {:.1} {unit}, so P would be {:.1} % low",
+        "the masked strips, which receive no light, sit at {:.1} ADU above the instrument's bias of {bias} ADU: {:.1} % of the strips' level of {:.1} ADU, so P would be {:.1} % low",
         l.masked,
         100.0 * f,
         l.strips,
@@ -172,7 +172,7 @@ mod tests {
             let l = levels(&g, &r, 0.0, f64::INFINITY).unwrap();
             assert_eq!(l.masked, p);
             assert_eq!(l.strips, 5000.0 + p);
-            judge(Path::new("f.fits"), &l, "ADU", 0.0)
+            judge(Path::new("f.fits"), &l, 0.0)
         };
         let e = judge_of(200.0).unwrap_err().to_string();
         assert!(e.contains("f.fits") && e.contains("200.0 ADU") && e.contains("3.8 %"), "{e}");

@@ -805,7 +805,7 @@ pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Resu
         let r: Vec<(usize, &[f64])> = rows.iter().map(|&y| (y, &d[y * set.nx..(y + 1) * set.nx])).collect();
         let c = &set.conversion;
         if let Some(l) = crate::pedestal::levels(&g, &r, n * c.bias, n * c.saturation) {
-            warnings.extend(crate::pedestal::judge(&f[0], &l, "ADU", n * c.bias)?);
+            warnings.extend(crate::pedestal::judge(&f[0], &l, n * c.bias)?);
         }
     }
     let pass = reduce_bands(&inputs, 0, set.nx, set.ny, (&set.angles_deg, set.hwp_sweep_deg), inst, cfg, &|| {})?;
@@ -1628,7 +1628,7 @@ fn pedestal_notes(frames: &[OpenFrame], inst: &Instrument, conv: &Conversion) ->
             let r: Vec<(usize, &[f64])> =
                 rows.iter().enumerate().map(|(k, &y)| (y, &buf[k * f.nx..(k + 1) * f.nx])).collect();
             match crate::pedestal::levels(&g, &r, conv.bias, conv.saturation) {
-                Some(l) => crate::pedestal::judge(&f.path, &l, "ADU", conv.bias),
+                Some(l) => crate::pedestal::judge(&f.path, &l, conv.bias),
                 None => Ok(None),
             }
         })
