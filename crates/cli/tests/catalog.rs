@@ -601,6 +601,29 @@ fn a_catalog_with_flagged_stars_is_corrected_in_every_format() {
     }
 }
 
+/// The maskless example with three stars: one 5 % at (150, 200) px whose e image falls on the
+/// o image of an unpolarized neighbour 70.2 px to its right (the example calcite
+/// instrument's o/e offset), and one unpolarized star clear of both at (420, 450) px;
+/// simulated into `dir/ov`. Returns the instrument file and the frames' folder.
+fn overlapping_stars(dir: &Path) -> (PathBuf, PathBuf) {
+    let star = |x: f64, y: f64, p: f64| {
+        format!(
+            "[[stars]]\nx = {x}\ny = {y}\ncoords = \"pixel\"\nflux_e = 4e5\np = {p}\nchi_deg = 30\nfwhm_arcsec = 1.0\n"
+        )
+    };
+    let (inst, _) = calcite_scene(dir, "");
+    let base = include_str!("../../../instruments/scenes/calcite_stars.toml")
+        .replace("instrument = \"calcite\"", &format!("instrument = \"{}\"", inst.display()));
+    let head = &base[..base.find("[[stars]]").unwrap()];
+    let scene = format!("{head}{}{}{}", star(150.0, 200.0, 0.05), star(220.2, 200.0, 0.0), star(420.0, 450.0, 0.0));
+    let sp = dir.join("overlap.toml");
+    std::fs::write(&sp, scene).unwrap();
+    let out = dir.join("ov");
+    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert_eq!(code, 0, "{err}");
+    (inst, out)
+}
+
 /// Maskless layout: a star whose e image falls on a neighbour's o image (the neighbour 70.2 px
 /// to its right, the o/e offset of the example calcite instrument). The shared image held both
 /// stars' light, and the star was measured from it as P = 3.3 % for a true 5 %, unflagged: now
@@ -608,21 +631,7 @@ fn a_catalog_with_flagged_stars_is_corrected_in_every_format() {
 #[test]
 fn overlapping_images_of_two_stars_are_flagged_not_measured() {
     let dir = tempfile::tempdir().unwrap();
-    let star = |x: f64, y: f64, p: f64| {
-        format!(
-            "[[stars]]\nx = {x}\ny = {y}\ncoords = \"pixel\"\nflux_e = 4e5\np = {p}\nchi_deg = 30\nfwhm_arcsec = 1.0\n"
-        )
-    };
-    let (inst, _) = calcite_scene(dir.path(), "");
-    let base = include_str!("../../../instruments/scenes/calcite_stars.toml")
-        .replace("instrument = \"calcite\"", &format!("instrument = \"{}\"", inst.display()));
-    let head = &base[..base.find("[[stars]]").unwrap()];
-    let scene = format!("{head}{}{}{}", star(150.0, 200.0, 0.05), star(220.2, 200.0, 0.0), star(420.0, 450.0, 0.0));
-    let sp = dir.path().join("overlap.toml");
-    std::fs::write(&sp, scene).unwrap();
-    let out = dir.path().join("ov");
-    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
-    assert_eq!(code, 0, "{err}");
+    let (inst, out) = overlapping_stars(dir.path());
     let mut args: Vec<OsString> = vec!["catalog".into()];
     args.extend(fits_in(&out).into_iter().map(PathBuf::into_os_string));
     for a in
@@ -654,21 +663,7 @@ fn overlapping_images_of_two_stars_are_flagged_not_measured() {
 #[test]
 fn photometry_refuses_a_star_whose_image_is_shared() {
     let dir = tempfile::tempdir().unwrap();
-    let star = |x: f64, y: f64, p: f64| {
-        format!(
-            "[[stars]]\nx = {x}\ny = {y}\ncoords = \"pixel\"\nflux_e = 4e5\np = {p}\nchi_deg = 30\nfwhm_arcsec = 1.0\n"
-        )
-    };
-    let (inst, _) = calcite_scene(dir.path(), "");
-    let base = include_str!("../../../instruments/scenes/calcite_stars.toml")
-        .replace("instrument = \"calcite\"", &format!("instrument = \"{}\"", inst.display()));
-    let head = &base[..base.find("[[stars]]").unwrap()];
-    let scene = format!("{head}{}{}{}", star(150.0, 200.0, 0.05), star(220.2, 200.0, 0.0), star(420.0, 450.0, 0.0));
-    let sp = dir.path().join("overlap.toml");
-    std::fs::write(&sp, scene).unwrap();
-    let out = dir.path().join("ov");
-    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
-    assert_eq!(code, 0, "{err}");
+    let (inst, out) = overlapping_stars(dir.path());
     let phot = |x: &str, y: &str, extra: &[&str]| {
         let mut args: Vec<OsString> = vec!["photometry".into()];
         args.extend(fits_in(&out).into_iter().map(PathBuf::into_os_string));

@@ -5,6 +5,7 @@
 mod common;
 
 use common::{fits_in, run};
+use std::path::Path;
 
 /// `simulate` then `photometry` of the scene shipped for the maskless example (three stars, a
 /// 5.7 % standard among them, frames moving by up to 3 px): each star's q, u within 4 sigma of
@@ -77,12 +78,18 @@ fn layout_mistakes_in_the_instrument_file_are_named() {
             "strip_margin_px",
         ),
     ];
+    refused_by_simulate(dir.path(), &cases);
+}
+
+/// Each instrument file `(name, text, key)` of `cases`, written to `dir/name` and simulated
+/// through a bare scene, is refused (exit 2) naming the file and the key, before any output.
+fn refused_by_simulate(dir: &Path, cases: &[(&str, String, &str)]) {
     for (name, text, key) in cases {
-        let p = dir.path().join(name);
+        let p = dir.join(name);
         std::fs::write(&p, text).unwrap();
-        let scene = dir.path().join(format!("{name}.scene.toml"));
+        let scene = dir.join(format!("{name}.scene.toml"));
         std::fs::write(&scene, format!("instrument = \"{}\"\nfilter = \"V\"\n", p.display())).unwrap();
-        let out = dir.path().join(format!("{name}.out"));
+        let out = dir.join(format!("{name}.out"));
         let (code, _, err) = run(&["simulate".as_ref(), scene.as_os_str(), "--out".as_ref(), out.as_os_str()]);
         assert_eq!(code, 2, "{name}: {err}");
         assert!(err.contains(name) && err.contains(key), "{name}: {err}");
@@ -116,17 +123,7 @@ fn plate_motion_and_camera_mistakes_are_named() {
         ("nocams.toml", no_cameras, "polarimetry.cameras"),
         ("chip.toml", moptop.replace("e_chip = \"CAM2\"", "e_chip = \"CAM9\""), "e_chip"),
     ];
-    for (name, text, key) in cases {
-        let p = dir.path().join(name);
-        std::fs::write(&p, text).unwrap();
-        let scene = dir.path().join(format!("{name}.scene.toml"));
-        std::fs::write(&scene, format!("instrument = \"{}\"\nfilter = \"V\"\n", p.display())).unwrap();
-        let out = dir.path().join(format!("{name}.out"));
-        let (code, _, err) = run(&["simulate".as_ref(), scene.as_os_str(), "--out".as_ref(), out.as_os_str()]);
-        assert_eq!(code, 2, "{name}: {err}");
-        assert!(err.contains(name) && err.contains(key), "{name}: {err}");
-        assert!(!out.exists(), "{name}: output folder created");
-    }
+    refused_by_simulate(dir.path(), &cases);
     let scene = dir.path().join("quarter.scene.toml");
     std::fs::write(
         &scene,
