@@ -289,21 +289,7 @@ fn a_small_svg_on_a_full_disk_fails_and_leaves_nothing() {
     while fill.write_all(&[0u8; 4096]).and_then(|_| fill.sync_all()).is_ok() {}
     drop(fill);
     let plot = mnt.path().join("plan.svg");
-    let (code, _, err) = common::run(&[
-        "plan",
-        "--target-percent",
-        "0.05",
-        "--sky-rate",
-        "2",
-        "--bin",
-        "200",
-        "--candidate",
-        "6.45:68.4",
-        "--candidate",
-        "4:10",
-        "--plot",
-        plot.to_str().unwrap(),
-    ]);
+    let (code, _, err) = common::run(&[&common::QUICK_PLAN[..], &["--plot", plot.to_str().unwrap()]].concat());
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("No space left on device"), "{err}");
     assert_eq!(common::listing(mnt.path()), ["filler"]);

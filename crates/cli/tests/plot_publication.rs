@@ -360,24 +360,7 @@ fn every_figure_keeps_its_legends_off_the_data() {
             "--plot".into(),
             s("rt.svg"),
         ],
-        [
-            "plan",
-            "--target-percent",
-            "0.05",
-            "--sky-rate",
-            "2",
-            "--bin",
-            "200",
-            "--candidate",
-            "6.45:68.4",
-            "--candidate",
-            "4:10",
-            "--plot",
-        ]
-        .iter()
-        .map(|x| x.to_string())
-        .chain([s("plan.svg")])
-        .collect(),
+        common::QUICK_PLAN.iter().chain(&["--plot"]).map(|x| x.to_string()).chain([s("plan.svg")]).collect(),
         ["mc", "--sweep", "--trials", "2000", "--plot"].iter().map(|x| x.to_string()).chain([s("sweep.svg")]).collect(),
         ["mc", "--accuracy-report", "--trials", "1000", "--noise", "gauss-qu", "--plot"]
             .iter()

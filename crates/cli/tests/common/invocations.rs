@@ -469,26 +469,7 @@ pub fn templates(f: &Fixture) -> Vec<Template> {
             ]),
             None,
         ),
-        t(
-            "plan",
-            s(&[
-                "plan",
-                "--target-percent",
-                "0.05",
-                "--sky-rate",
-                "2",
-                "--bin",
-                "200",
-                "--candidate",
-                "6.45:68.4",
-                "--candidate",
-                "4:10",
-                "--plot",
-                "{OUT}",
-                "--json",
-            ]),
-            Some("plan.svg"),
-        ),
+        t("plan", s(&[&super::QUICK_PLAN[..], &["--plot", "{OUT}", "--json"]].concat()), Some("plan.svg")),
         t(
             "import-map",
             s(&[

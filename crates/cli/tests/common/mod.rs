@@ -140,6 +140,23 @@ lambda_eff_nm = 554.0
     }
 }
 
+/// A `plan` that runs in seconds: FORS1 in 200 px bins for a 0.05 % target, two candidate
+/// fields (the paper's B sky, 6.45 % at 68.4 deg, and 4 % at 10 deg). Add `--plot FILE` and
+/// the rest.
+pub const QUICK_PLAN: [&str; 11] = [
+    "plan",
+    "--target-percent",
+    "0.05",
+    "--sky-rate",
+    "2",
+    "--bin",
+    "200",
+    "--candidate",
+    "6.45:68.4",
+    "--candidate",
+    "4:10",
+];
+
 /// `instruments/fors1.toml` shrunk to a 128 x 128 detector with one strip of `throw_arcsec`
 /// (pixels of 0.2") from row `first_strip_y_px`, written to `dir/tiny.toml`.
 pub fn tiny_fors1(dir: &Path, throw_arcsec: f64, first_strip_y_px: usize) -> PathBuf {
