@@ -52,35 +52,16 @@ const HD161056: (f64, f64) = ((17.0 + 43.0 / 60.0 + 47.0 / 3600.0) * 15.0, -(7.0
 /// file, a frame of another instrument, a text file named .fits and a text file.
 fn make_night(root: &Path) -> PathBuf {
     let std_pointing = |(ra, dec): (f64, f64)| (ra, dec + 50.0 / 3600.0); // the star 50 px below the centre
-    let mut specs = vec![Spec {
-        dir: "bias",
-        filter: "v_HIGH",
-        angles: vec![0.0, 22.5, 45.0, 67.5, 90.0],
-        start_mjd: NIGHT + 0.80,
-        first_exp: 1,
-        dpr: ["CALIB", "BIAS", "IMAGE"],
-        target: "BIAS",
-        ra_dec: (0.0, 0.0),
-        sky: None,
-        stars: vec![],
-        instrume: None,
-        seed: 1,
-    }];
+    let mut specs = vec![Spec::bias(vec![0.0, 22.5, 45.0, 67.5, 90.0], NIGHT + 0.80, 1)];
     for (k, f) in ["v_HIGH", "I_BESS"].iter().enumerate() {
-        specs.push(Spec {
-            dir: ["flat_v", "flat_i"][k],
-            filter: f,
-            angles: vec![0.0, 22.5, 45.0, 67.5, 90.0],
-            start_mjd: NIGHT + 0.81 + 0.005 * k as f64,
-            first_exp: 11 + 10 * k as i64,
-            dpr: ["CALIB", "FLAT,SKY", "IMAGE"],
-            target: "FLAT",
-            ra_dec: (0.0, 0.0),
-            sky: Some((20000.0, 0.0, 0.0)),
-            stars: vec![],
-            instrume: None,
-            seed: 2 + k as u64,
-        });
+        specs.push(Spec::sky_flat(
+            ["flat_v", "flat_i"][k],
+            f,
+            vec![0.0, 22.5, 45.0, 67.5, 90.0],
+            NIGHT + 0.81 + 0.005 * k as f64,
+            11 + 10 * k as i64,
+            2 + k as u64,
+        ));
     }
     let empties = [("EMPTY-V1", "v_HIGH"), ("EMPTY-V2", "v_HIGH"), ("EMPTY-I1", "I_BESS"), ("EMPTY-I2", "I_BESS")];
     for (k, (name, f)) in empties.iter().enumerate() {
@@ -813,34 +794,8 @@ fn twelve_months(root: &Path, steps: bool, seed: u64) -> Vec<PathBuf> {
         let a16: Vec<f64> = (0..16).map(|i| i as f64 * 22.5).collect();
         let unpol = vec![(79.5, 57.5, 6e5, if after { 0.001 } else { 0.0 }, 0.0)];
         let specs = vec![
-            Spec {
-                dir: "bias",
-                filter: "v_HIGH",
-                angles: vec![0.0, 22.5, 45.0, 67.5, 90.0],
-                start_mjd: night + 0.80,
-                first_exp: 1,
-                dpr: ["CALIB", "BIAS", "IMAGE"],
-                target: "BIAS",
-                ra_dec: (0.0, 0.0),
-                sky: None,
-                stars: vec![],
-                instrume: None,
-                seed: s + 1,
-            },
-            Spec {
-                dir: "flat",
-                filter: "v_HIGH",
-                angles: Q4.to_vec(),
-                start_mjd: night + 0.81,
-                first_exp: 11,
-                dpr: ["CALIB", "FLAT,SKY", "IMAGE"],
-                target: "FLAT",
-                ra_dec: (0.0, 0.0),
-                sky: Some((20000.0, 0.0, 0.0)),
-                stars: vec![],
-                instrume: None,
-                seed: s + 2,
-            },
+            Spec::bias(vec![0.0, 22.5, 45.0, 67.5, 90.0], night + 0.80, s + 1),
+            Spec::sky_flat("flat", "v_HIGH", Q4.to_vec(), night + 0.81, 11, s + 2),
             Spec {
                 dir: "pol",
                 filter: "v_HIGH",

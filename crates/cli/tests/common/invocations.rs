@@ -128,34 +128,8 @@ fn night(root: &Path, mjd: f64, seed: u64) {
     use super::night::{simulate_scene, tiny_fors2, Spec};
     let q4 = vec![0.0, 22.5, 45.0, 67.5];
     let specs = [
-        Spec {
-            dir: "bias",
-            filter: "v_HIGH",
-            angles: vec![0.0, 22.5, 45.0],
-            start_mjd: mjd + 0.80,
-            first_exp: 1,
-            dpr: ["CALIB", "BIAS", "IMAGE"],
-            target: "BIAS",
-            ra_dec: (0.0, 0.0),
-            sky: None,
-            stars: vec![],
-            instrume: None,
-            seed,
-        },
-        Spec {
-            dir: "flat",
-            filter: "v_HIGH",
-            angles: q4.clone(),
-            start_mjd: mjd + 0.81,
-            first_exp: 11,
-            dpr: ["CALIB", "FLAT,SKY", "IMAGE"],
-            target: "FLAT",
-            ra_dec: (0.0, 0.0),
-            sky: Some((20000.0, 0.0, 0.0)),
-            stars: vec![],
-            instrume: None,
-            seed: seed + 1,
-        },
+        Spec::bias(vec![0.0, 22.5, 45.0], mjd + 0.80, seed),
+        Spec::sky_flat("flat", "v_HIGH", q4.clone(), mjd + 0.81, 11, seed + 1),
         Spec {
             dir: "empty",
             filter: "v_HIGH",

@@ -28,6 +28,52 @@ pub struct Spec<'a> {
     pub seed: u64,
 }
 
+impl<'a> Spec<'a> {
+    /// Bias frames of the night (ESO DPR CALIB/BIAS/IMAGE, exposure numbers from 1), one per
+    /// entry of `angles` (a bias has no plate angle of its own: it only numbers the frames).
+    pub fn bias(angles: Vec<f64>, start_mjd: f64, seed: u64) -> Self {
+        Spec {
+            dir: "bias",
+            filter: "v_HIGH",
+            angles,
+            start_mjd,
+            first_exp: 1,
+            dpr: ["CALIB", "BIAS", "IMAGE"],
+            target: "BIAS",
+            ra_dec: (0.0, 0.0),
+            sky: None,
+            stars: vec![],
+            instrume: None,
+            seed,
+        }
+    }
+
+    /// Sky flats in `filter` (CALIB/FLAT,SKY/IMAGE, an unpolarized 20000 e- sky) into `dir`.
+    pub fn sky_flat(
+        dir: &'a str,
+        filter: &'a str,
+        angles: Vec<f64>,
+        start_mjd: f64,
+        first_exp: i64,
+        seed: u64,
+    ) -> Self {
+        Spec {
+            dir,
+            filter,
+            angles,
+            start_mjd,
+            first_exp,
+            dpr: ["CALIB", "FLAT,SKY", "IMAGE"],
+            target: "FLAT",
+            ra_dec: (0.0, 0.0),
+            sky: Some((20000.0, 0.0, 0.0)),
+            stars: vec![],
+            instrume: None,
+            seed,
+        }
+    }
+}
+
 /// `s` through the instrument file `instrument`, its field's radial pattern (percent), and
 /// `extra` scene text (a `[telescope]` section) at the end.
 pub fn simulate_scene(root: &Path, s: &Spec, instrument: &Path, pattern: [f64; 4], extra: &str) {
