@@ -9,6 +9,12 @@
 //! - `range`: a fraction option given a percentage (50 for 0.5) must be refused (exit 2) naming
 //!   the flag; an angle option in degrees given radians (0.785) and a percent option given a
 //!   fraction (0.5) are tried (nothing more is decidable without knowing the intent);
+//! - `turn`: every orientation option ([`ORIENTATIONS`]: a polarization angle, plate angles, a
+//!   zero angle, a sector) given a value and the same value a full turn (360 deg) further: the
+//!   command prints the same numbers (but for the echoed angle, a whole number of turns off) or
+//!   refuses the turned value naming the flag. An option read in radians fails it (360 rad is
+//!   not a whole number of turns); every angle option in degrees is in [`ORIENTATIONS`] or in
+//!   [`NOT_ORIENTATIONS`] with its reason;
 //! - `text`: every text option (`--aperture 2.5fwhm`, `--annulus 12,20`, `--parang`, ...) x text
 //!   edges (empty, NaN, "1e999", "-1", "2,", ",", "inf,inf", 5000 characters, non-UTF-8);
 //! - `file`: every input-file argument of the invocation, and every input-file option the
@@ -35,7 +41,7 @@
 //! full disk) must fail when a class is broken in any one command. Checked by hand (a switch in
 //! release code for a test is not wanted): break one command on a scratch commit, run
 //! `cargo test --no-fail-fast -p instpol --test hostile --test full_disk`, and see it fail;
-//! then drop the commit. Done once, with these two mutations:
+//! then drop the commit. Done once each, with these mutations:
 //!
 //! 1. an input check removed: the two `util::check_output` calls of `instpol scan`
 //!    (crates/cli/src/cmd/night.rs) taken out. 12 `output over input` cases of scan fail, e.g.
@@ -46,6 +52,10 @@
 //!    `plot::save_image`). full_disk.rs fails: "stokes --plot --plot: a full disk must fail the
 //!    command" (exit 0 under the injected fsync failure), and on a real full tmpfs "stokes --plot
 //!    --plot: left [\"fourier.png\"]".
+//! 3. an angle read in radians: `bias --chi` and `mc --chi0` passed on without `to_radians()`
+//!    (crates/cli/src/cmd/bias.rs, mc.rs). The `turn` class fails for both: "bias [turn]: --chi
+//!    390 (a turn further) -> exit 0 with other numbers than a full turn back: the angle is not
+//!    read in degrees", and the same for mc.
 
 mod common;
 
@@ -124,6 +134,105 @@ enum Expect {
         reference: usize,
         column: String,
     },
+    /// The case `reference` must exit 0; this one, its orientation a full turn further, exits 0
+    /// with its numbers (each the same, or a whole number of turns off) or 2 naming `flag`.
+    SameTurned {
+        reference: usize,
+        flag: String,
+    },
+}
+
+/// How an orientation option's value is turned a full turn further: every number in it (a
+/// single angle, a list of plate angles, a sector `sector:FROM:TO`), the number after its last
+/// `:` (`P_PERCENT:CHI_DEG`, `MAP:P_PERCENT:CHI_DEG`), or the one after its `,` (`P,CHI`).
+#[derive(Clone, Copy)]
+enum Turn {
+    Every,
+    AfterLastColon,
+    AfterComma,
+}
+
+/// Orientation options in degrees, by template (`Template::command`): the flag, the value tried
+/// (`None`: the template's own), how it turns, and arguments added to both cases where the
+/// template's own do not let the angle matter (`bias --chi` acts with unequal errors only). Moved by a full turn they name the same
+/// orientation (a polarization angle repeats every 180 deg, a plate angle every 90, a sector
+/// every 360).
+const ORIENTATIONS: &[(&str, &str, Option<&str>, Turn, &[&str])] = &[
+    ("calibrate", "--sky-chi", None, Turn::Every, &[]),
+    ("calibrate", "--exclude", Some("sector:10:80"), Turn::Every, &[]),
+    ("calibrate-stars", "--exclude", Some("sector:10:80"), Turn::Every, &[]),
+    ("calibrate-stars", "--interstellar", Some("0.5,30"), Turn::AfterComma, &[]),
+    ("calibrate-mueller", "--field", None, Turn::AfterLastColon, &[]),
+    ("fit", "--exclude", Some("sector:10:80"), Turn::Every, &[]),
+    ("plan", "--candidate", None, Turn::AfterLastColon, &[]),
+    ("reduce", "--hwp-angles", Some("0,22.5,45,67.5"), Turn::Every, &[]),
+    ("photometry", "--hwp-angles", Some("0,22.5,45,67.5"), Turn::Every, &[]),
+    ("catalog", "--hwp-angles", Some("0,22.5,45,67.5"), Turn::Every, &[]),
+    ("zero-angle", "--hwp-angles", Some("0,22.5,45,67.5"), Turn::Every, &[]),
+    ("zero-angle", "--chi-deg", None, Turn::Every, &[]),
+    ("validate", "--hwp-angles", Some("0,22.5,45,67.5"), Turn::Every, &[]),
+    ("explain", "--hwp-angles", Some("0,22.5,45,67.5"), Turn::Every, &[]),
+    ("import-map", "--zero-angle", Some("2.5"), Turn::Every, &[]),
+    ("bias", "--chi", Some("30"), Turn::Every, &["--sigma-q", "0.002", "--sigma-u", "0.004"]),
+    ("mc", "--chi0", Some("30"), Turn::Every, &[]),
+];
+
+/// Options in degrees (or that speak of angles) that are not orientations, or that the
+/// fixture's invocations cannot exercise, with why (by command name).
+const NOT_ORIENTATIONS: &[(&str, &str, &str)] = &[
+    ("fresnel", "--aoi-deg", "an angle of incidence in [0, 90), not periodic"),
+    ("mc", "--n-hwp", "a number of plate angles"),
+    ("zero-angle", "--sigma-chi-deg", "an error, not an orientation"),
+    (
+        "zero-angle",
+        "--standard",
+        "X,Y:CHI_DEG+-SIGMA_DEG names the stars --x, --y and --chi-deg name (tried) and replaces them; its angle is read by the same parser",
+    ),
+    (
+        "calibrate",
+        "--hwp-angles",
+        "applies to frames; the fixture calibrates from a reduced map (refused beside it); the frames' --hwp-angles is tried in reduce, photometry, catalog, zero-angle and validate",
+    ),
+    ("scan", "--sky", "the fixture's night takes its skies from a table (skies.csv); TARGET:P:CHI is the --field form of calibrate-mueller, tried"),
+    (
+        "correct",
+        "--parang",
+        "needs a telescope model, which the fixture's calibration has not (refused); a parallactic track a turn further is checked by crates/cli/tests/telescope_frames.rs",
+    ),
+    (
+        "correct",
+        "--rotator",
+        "needs a telescope model fitted with rotator angles, which the fixture's calibration has not (refused)",
+    ),
+    ("validate", "--parang", "needs a telescope calibration, which the fixture's calibration has not (refused)"),
+];
+
+/// Whether an option of the CLI's definition takes an angle in degrees: its help speaks of an
+/// angle (or chi) and of degrees.
+fn is_angle_in_degrees(a: &serde_json::Value) -> bool {
+    let h = a["help"].as_str().unwrap_or("").to_ascii_lowercase();
+    ["number", "text"].contains(&a["kind"].as_str().unwrap_or(""))
+        && (h.contains("angle") || h.contains("chi"))
+        && (h.contains("deg") || h.contains("degree"))
+}
+
+/// `value` a full turn (360 deg) further, as `how` says: `30` -> `390`, `sector:10:80` ->
+/// `sector:370:440`, `6.45:68.4` -> `6.45:428.4`, `0.5,30` -> `0.5,390`.
+fn turned(value: &str, how: Turn) -> String {
+    let tok = |t: &str| t.parse::<f64>().map_or(t.to_string(), |v| format!("{}", v + 360.0));
+    match how {
+        Turn::Every => {
+            value.split(',').map(|p| p.split(':').map(tok).collect::<Vec<_>>().join(":")).collect::<Vec<_>>().join(",")
+        }
+        Turn::AfterLastColon => match value.rsplit_once(':') {
+            Some((head, last)) => format!("{head}:{}", tok(last)),
+            None => value.to_string(),
+        },
+        Turn::AfterComma => match value.split_once(',') {
+            Some((head, last)) => format!("{head},{}", tok(last)),
+            None => value.to_string(),
+        },
+    }
 }
 
 /// One generated case.
@@ -338,6 +447,20 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
                 let what = format!("{flag} 0.785 (radians for degrees)");
                 out.push(case("range", what, with_flag(&flag, "0.785"), new_dir(), Expect::Nothing));
             }
+        }
+        // Every orientation option, and the same a full turn further.
+        for (_, flag, base, how, extra) in ORIENTATIONS.iter().filter(|(c, ..)| *c == t.command) {
+            let own = t.args.iter().position(|a| a == flag).map(|i| t.args[i + 1].clone());
+            let base = base.map(str::to_string).or(own).expect("an orientation without a value");
+            let with = |v: &str| {
+                let mut a = with_flag(flag, v);
+                a.extend(extra.iter().map(|x| x.to_string()));
+                a
+            };
+            let reference = out.len();
+            out.push(case("turn", format!("{flag} {base}"), with(&base), new_dir(), Expect::Nothing));
+            let (turn, e) = (turned(&base, *how), Expect::SameTurned { reference, flag: flag.to_string() });
+            out.push(case("turn", format!("{flag} {turn} (a turn further)"), with(&turn), new_dir(), e));
         }
         // Every text option at its edges (the instrument's name is a file argument's business).
         for a in flags(&|a| a["kind"] == "text" && a["long"] != "--instrument") {
@@ -609,7 +732,7 @@ fn run_case(c: &Case) -> (i32, Option<String>) {
         problems.push(format!("temporaries left: {t:?}"));
     }
     match &c.expect {
-        Expect::Nothing | Expect::SameOrRefused { .. } => {}
+        Expect::Nothing | Expect::SameOrRefused { .. } | Expect::SameTurned { .. } => {}
         Expect::NotAccepted => {
             if code == 0 {
                 problems.push("exit 0: a file that is not one was accepted".into());
@@ -643,7 +766,7 @@ fn numbers(v: &serde_json::Value, out: &mut Vec<f64>) {
         serde_json::Value::Array(a) => a.iter().for_each(|x| numbers(x, out)),
         serde_json::Value::Object(o) => {
             for (k, x) in o {
-                if k != "provenance" && !k.contains("seconds") && !k.ends_with("_s") {
+                if k != "provenance" && !k.contains("seconds") && !k.contains("per_second") && !k.ends_with("_s") {
                     numbers(x, out);
                 }
             }
@@ -677,6 +800,74 @@ fn check_units(c: &Case, code: i32, cases: &[Case]) -> Option<String> {
             (!same).then(|| failure(c, "exit 0 with other numbers than the plain table's: the unit was ignored"))
         }
         _ => None,
+    }
+}
+
+/// The `turn` property: the reference (the option at its value) exits 0, and the case (a full
+/// turn further) exits 0 with each printed number the reference's (to 1e-6 relative) or a whole
+/// number of turns off it (the angle echoed), or exits 2 naming the flag.
+fn check_turned(c: &Case, code: i32, cases: &[Case], codes: &[i32]) -> Option<String> {
+    let Expect::SameTurned { reference, flag } = &c.expect else { return None };
+    if codes[*reference] != 0 {
+        return Some(failure(
+            &cases[*reference],
+            "the orientation's value is not taken: the turned case tests nothing",
+        ));
+    }
+    let err = std::fs::read_to_string(c.dir.join("stderr.txt")).unwrap_or_default();
+    match code {
+        2 if err.contains(flag.as_str()) => None,
+        2 => Some(failure(c, &format!("refused without naming {flag}"))),
+        0 => {
+            let (got, want) = (printed_numbers(c), printed_numbers(&cases[*reference]));
+            let turns = |d: f64| (d / 360.0).round() != 0.0 && (d - 360.0 * (d / 360.0).round()).abs() < 1e-6;
+            let same = matches!((&got, &want), (Some(g), Some(w)) if g.len() == w.len()
+                && g.iter().zip(w).all(|(a, b)| a == b || (a - b).abs() <= 1e-6 * a.abs().max(b.abs()) + 1e-12 || turns(a - b)));
+            (!same).then(|| {
+                failure(c, "exit 0 with other numbers than a full turn back: the angle is not read in degrees")
+            })
+        }
+        _ => Some(failure(c, &format!("exit {code}: a full turn further is neither taken nor refused"))),
+    }
+}
+
+/// Every angle option in degrees of the CLI's definition is tried a full turn further
+/// ([`ORIENTATIONS`]) or says why not ([`NOT_ORIENTATIONS`]), and both lists name options the
+/// CLI has: a new angle option cannot pass untried without a word.
+#[test]
+fn every_angle_option_is_tried_a_turn_further() {
+    let defs = invocations::args_by_command(&invocations::spec());
+    let mut wrong = vec![];
+    for (command, args) in &defs {
+        for a in args.iter().filter(|a| a["long"].is_string() && is_angle_in_degrees(a)) {
+            let flag = a["long"].as_str().unwrap();
+            let name = |label: &str| label.split(' ').next().unwrap().to_string();
+            let listed = ORIENTATIONS.iter().any(|(c, f, ..)| name(c) == *command && *f == flag)
+                || NOT_ORIENTATIONS.iter().any(|(c, f, _)| c == command && *f == flag);
+            if !listed {
+                wrong.push(format!(
+                    "{command} {flag}: an angle in degrees, in neither ORIENTATIONS nor NOT_ORIENTATIONS"
+                ));
+            }
+        }
+    }
+    let labels = ORIENTATIONS.iter().map(|(c, f, ..)| (c.split(' ').next().unwrap(), *f));
+    for (c, f) in labels.chain(NOT_ORIENTATIONS.iter().map(|(c, f, _)| (*c, *f))) {
+        let has = defs.get(c).is_some_and(|args| args.iter().any(|a| a["long"] == f));
+        if !has {
+            wrong.push(format!("{c} {f}: listed, but the CLI has no such option"));
+        }
+    }
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+    assert_eq!(turned("sector:10:80", Turn::Every), "sector:370:440");
+    assert_eq!(turned("0,22.5", Turn::Every), "360,382.5");
+    assert_eq!(turned("m.fits:6.45:68.4", Turn::AfterLastColon), "m.fits:6.45:428.4");
+    assert_eq!(turned("0.5,30", Turn::AfterComma), "0.5,390");
+    // Every template an orientation names exists.
+    let f = invocations::fixture();
+    let names: Vec<&str> = invocations::templates(&f).iter().map(|t| t.command).collect();
+    for (c, ..) in ORIENTATIONS {
+        assert!(names.contains(c), "ORIENTATIONS names {c}, which is no template");
     }
 }
 
@@ -747,9 +938,10 @@ fn hostile_inputs() {
     });
     let mut results = results.into_inner().unwrap();
     results.sort_by_key(|r| r.0);
+    let codes: Vec<i32> = results.iter().map(|r| r.1).collect();
     for r in results.iter_mut() {
         if r.2.is_none() {
-            r.2 = check_units(&cases[r.0], r.1, &cases);
+            r.2 = check_units(&cases[r.0], r.1, &cases).or_else(|| check_turned(&cases[r.0], r.1, &cases, &codes));
         }
     }
     let is_known =

@@ -35,7 +35,7 @@ fn catalog(n: usize) -> Vec<Measurement> {
     (0..n)
         .map(|i| {
             let t = i as f64;
-            Measurement::new(
+            Measurement::at_plate(
                 3.4 * (0.618_033_988_7 * t).fract() * 2.0 - 3.4,
                 3.4 * (0.754_877_666_2 * t).fract() * 2.0 - 3.4,
                 0.01 * (0.1 * t).cos(),
@@ -79,7 +79,10 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("correct");
     g.throughput(Throughput::Elements(input.len() as u64));
     for (name, method) in [("exact", Method::Exact), ("first_order", Method::FirstOrder)] {
-        let cor = Corrector::new(&model, CorrectOptions { method, chi_offset: 0.01, ..Default::default() });
+        let cor = Corrector::new(
+            &model,
+            CorrectOptions { method, zero_angle_deg: 0.01f64.to_degrees(), ..Default::default() },
+        );
         g.bench_function(name, |b| {
             b.iter(|| cor.correct_batch(black_box(&input), black_box(&mut out)).unwrap());
         });

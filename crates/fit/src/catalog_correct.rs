@@ -124,9 +124,11 @@ pub fn correct_catalog_loaded(
             (Some(r), Some(band))
         }
     };
+    // The catalog's rows are in the sky frame of the zero angle it was made with.
+    let frame = mueller::Frame::Sky { zero_angle_deg: cat.chi_offset_deg };
     let request = crate::request::Request {
         band: band.as_deref(),
-        carried_zero_angle_deg: Some(cat.chi_offset_deg),
+        frame,
         recorded: recorded.as_ref(),
         ..crate::request::Request::new(opts.method, opts.allow_extrapolation, opts.extrapolation_rel_error)
     };
@@ -137,7 +139,7 @@ pub fn correct_catalog_loaded(
     })?;
     let mut rows = Vec::with_capacity(cat.rows.len());
     for (i, r) in cat.rows.iter().enumerate() {
-        let Some(m) = measurement(r) else {
+        let Some(m) = measurement(r, frame) else {
             rows.push(None);
             continue;
         };
@@ -165,7 +167,7 @@ pub struct CorrectedCatalog {
 }
 
 /// The measurement of a catalog row (`None` for a star not measured).
-fn measurement(r: &skyfield::catalog::Row) -> Option<Measurement> {
-    (r.q.is_finite() && r.u.is_finite())
-        .then_some(Measurement::new(r.x_arcmin, r.y_arcmin, r.q, r.u, r.sigma_q, r.sigma_u, r.cov_qu))
+fn measurement(r: &skyfield::catalog::Row, frame: mueller::Frame) -> Option<Measurement> {
+    let qu = mueller::Qu::from_sigmas(r.q, r.u, r.sigma_q, r.sigma_u, r.cov_qu);
+    (r.q.is_finite() && r.u.is_finite()).then_some(Measurement::at(r.x_arcmin, r.y_arcmin, qu, frame))
 }

@@ -11,8 +11,9 @@
 //! - the field ([`FieldStep`]): a partial polarizer `M_I(p, phi)` of `eq:instpol` (a field
 //!   calibration, inverted exactly or to first order, `eq:approx`, with the model's own
 //!   covariance, [`Corrector`]), or a fitted Mueller field ([`MuellerCal::correct`]);
-//! - the half-wave plate's zero angle ([`Chain::to_sky`]): the measurements are at the plate
-//!   and the models in the sky frame.
+//! - the half-wave plate's zero angle ([`Chain::zero_angle_deg`]): the models live in the sky
+//!   frame of that zero angle; each measurement says its own frame ([`mueller::Frame`]: at the
+//!   plate, or in a sky frame with the zero angle it carries) and is turned from there, once.
 //!
 //! [`Chain::instrument`] gives the same chain as a forward model ([`field::InstrumentChain`]),
 //! the one the simulator renders through, so that what a correction undoes can be checked
@@ -31,11 +32,11 @@ pub enum FieldStep<'a> {
     /// No field model (a telescope model alone).
     None,
     /// A field calibration's partial polarizer, with the method, the extrapolation rule and
-    /// (without a telescope) the zero angle in its options; the corrector's model is the
+    /// the zero angle of its sky frame in its options; the corrector's model is the
     /// calibration, or the calibration with an added model error
     /// ([`crate::correct::WithModelError`]).
     PartialPolarizer { corrector: Corrector<'a, dyn FieldModel + 'a>, calibration: &'a Calibration },
-    /// A Mueller field, inverted exactly; its options carry the zero angle.
+    /// A Mueller field, inverted exactly; its options carry the zero angle of its sky frame.
     Mueller(&'a MuellerCal, CorrectOptions),
 }
 
@@ -52,7 +53,8 @@ pub enum Tracks {
 
 /// Exposures a set of data recorded (`skyfield::RecordedAngles`), ready for the correction:
 /// the telescope's demodulations of them built once, and the exposures themselves (HWP angle
-/// as read, track) with the zero angle of the plate they were taken through.
+/// as read, track) with the zero angle of the plate they were taken through (the chain's, else
+/// the one the data carry).
 pub struct RecordedExposures {
     pub prepared: PreparedExposures,
     pub list: Vec<mueller::telescope::Exposure>,
@@ -128,9 +130,11 @@ pub enum RowError {
 
 /// The chain a calibration defines for a set of data, ready to invert (module docs).
 pub struct Chain<'a> {
-    /// The HWP zero angle (rad) the data are turned by into the sky frame: the calibration's
-    /// less the one the data already carry.
-    pub to_sky: f64,
+    /// The HWP zero angle (deg) of the sky frame the models live in (the field calibration's,
+    /// else for a map the one it records): each measurement is turned into it from its own
+    /// frame ([`Measurement::in_sky`]). `None`: the data's own frame, as a telescope model
+    /// alone takes rows (its standards were measured so).
+    pub zero_angle_deg: Option<f64>,
     pub field: FieldStep<'a>,
     pub telescope: Option<TelescopeStep<'a>>,
 }
@@ -144,7 +148,7 @@ impl<'a> FieldStep<'a> {
 
 impl Chain<'_> {
     /// The sky's polarization of row `i` (its track, when the rows each have their own; any
-    /// `i` otherwise) from its measurement at the plate: the zero angle turned, then the field
+    /// `i` otherwise) from its measurement in its frame: turned into the models' frame, then the field
     /// and the telescope undone in the reverse of the order light met them, the errors of the
     /// measurement and of the models propagated. With a telescope, the returned `inst` holds the
     /// field's and the telescope's instrumental polarization together (first order), as
@@ -171,7 +175,8 @@ impl Chain<'_> {
                         )))
                     }
                 };
-                let mut r = crate::telescope_cal::correct_chain_seen(cor, t.fit, &t.band, m, t.seen(i), self.to_sky)?;
+                let mut r =
+                    crate::telescope_cal::correct_chain_seen(cor, t.fit, &t.band, m, t.seen(i), self.zero_angle_deg)?;
                 let c = &mut r.corrected;
                 if let (Some(_), Tracks::Exposures(e)) = (cor, &t.tracks) {
                     // Exposures that each saw another telescope matrix behind the same field:
@@ -181,8 +186,8 @@ impl Chain<'_> {
                     // linearization, is the one of the two steps.
                     let chain =
                         e.whole.get_or_init(|| field::InstrumentChain { zero_angle: e.plate, ..self.instrument(i).0 });
-                    // The measurement as the plate gave it: it may carry part of the zero angle.
-                    let at_plate = m.qu.rotated(self.to_sky - e.plate);
+                    // The measurement as the plate gave it, whatever frame it came in.
+                    let at_plate = m.frame.at_plate(&m.qu);
                     let exact = chain
                         .invert_exposures(m.x, m.y, &at_plate, &e.list)
                         .map_err(|err| crate::Error::Input(format!("the chain over the exposures: {err}")))?;
@@ -236,11 +241,9 @@ impl Chain<'_> {
                 (t.fit.band(&t.band).copied(), Some(track))
             }
         };
-        let zero_angle = match (&self.field, &self.telescope) {
-            (FieldStep::PartialPolarizer { corrector, .. }, None) => corrector.options().chi_offset,
-            (FieldStep::Mueller(_, o), _) => o.chi_offset,
-            _ => self.to_sky,
-        };
+        // The forward model ends at the plate: its zero angle is the one the models' sky frame
+        // has (0 for a telescope model alone, which takes data in their own frame).
+        let zero_angle = self.zero_angle_deg.unwrap_or(0.0).to_radians();
         (field::InstrumentChain { telescope, elements, zero_angle }, track)
     }
 }

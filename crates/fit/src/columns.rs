@@ -199,9 +199,11 @@ impl TableColumns {
         Ok(())
     }
 
-    /// The columns as the input of [`correct_columns`] (positions in arcmin: [`Self::to_arcmin`]).
-    pub fn inputs(&self) -> Inputs<'_> {
+    /// The columns as the input of [`correct_columns`] (positions in arcmin: [`Self::to_arcmin`]),
+    /// their `q, u` in `frame` (the table's: [`TableAngles::frame`]).
+    pub fn inputs(&self, frame: mueller::Frame) -> Inputs<'_> {
         Inputs {
+            frame,
             x: &self.x,
             y: &self.y,
             q: &self.q,
@@ -237,13 +239,13 @@ pub fn read_catalog(path: &Path, fits: bool, hdu: Option<&str>) -> Result<Table,
     Ok(table)
 }
 
-/// What a catalog says of its frames, for [`crate::request::Request`]: the HWP zero angle its
-/// `q, u` carry (`skyfield::table::Table::carried_zero_angle`), each row's telescope angles
+/// What a catalog says of its frames, for [`crate::request::Request`]: the frame of its `q, u`
+/// (`skyfield::table::Table::frame`: the HWP zero angle they carry, or none), each row's telescope angles
 /// ([`PARANG_COLUMNS`], and [`ROTATOR_COLUMN`] only where it is used: per-row angles and a model
 /// fitted with rotator angles), or else, for a telescope model, the angles of the exposures
 /// the catalog recorded (`instpol catalog` writes them into ECSV, FITS and VOTable tables).
 pub struct TableAngles {
-    pub carried_zero_angle_deg: Option<f64>,
+    pub frame: mueller::Frame,
     pub parang_deg: Option<Vec<f64>>,
     pub parang_end_deg: Option<Vec<f64>>,
     pub rotator_deg: Option<Vec<f64>>,
@@ -253,7 +255,7 @@ pub struct TableAngles {
 impl TableAngles {
     /// The angles of table `t` read from `path`, for a correction with `loaded`.
     pub fn read(t: &Table, path: &Path, loaded: &CalibrationFile) -> Result<Self, skyfield::Error> {
-        let carried_zero_angle_deg = t.carried_zero_angle(path)?;
+        let frame = t.frame(path)?;
         let column = |name: &str| t.column(name).map(|_| t.numbers(name, path)).transpose();
         let (parang_deg, parang_end_deg) = (column(PARANG_COLUMNS[0])?, column(PARANG_COLUMNS[1])?);
         let with_rotator = loaded.telescope.as_ref().is_some_and(|t| t.with_rotator);
@@ -263,13 +265,13 @@ impl TableAngles {
         } else {
             None
         };
-        Ok(Self { carried_zero_angle_deg, parang_deg, parang_end_deg, rotator_deg, recorded })
+        Ok(Self { frame, parang_deg, parang_end_deg, rotator_deg, recorded })
     }
 
     /// `base` with these angles: the rows' data, not a caller's arguments.
     pub fn request<'a>(&'a self, base: crate::request::Request<'a>) -> crate::request::Request<'a> {
         crate::request::Request {
-            carried_zero_angle_deg: self.carried_zero_angle_deg,
+            frame: self.frame,
             recorded: self.recorded.as_ref(),
             per_row: self.parang_deg.as_deref().map(|s| crate::request::PerRowAngles {
                 start_deg: s,
@@ -377,10 +379,11 @@ impl Report {
 }
 
 /// The input columns of a correction: positions in arcmin from the detector centre, the
-/// measured `q, u` (fractions), their 1-sigma errors and optional covariance (0 when absent),
-/// all of one length.
+/// measured `q, u` (fractions) in `frame`, their 1-sigma errors and optional covariance (0 when
+/// absent), all of one length.
 #[derive(Clone, Copy)]
 pub struct Inputs<'a> {
+    pub frame: mueller::Frame,
     pub x: &'a [f64],
     pub y: &'a [f64],
     pub q: &'a [f64],
@@ -560,7 +563,8 @@ where
             n_unmeasured += 1;
             continue;
         }
-        let m = Measurement::new(x[k], y[k], q[k], u[k], sq[k], su[k], cov.map_or(0.0, |c| c[k]));
+        let qu = mueller::Qu::from_sigmas(q[k], u[k], sq[k], su[k], cov.map_or(0.0, |c| c[k]));
+        let m = Measurement::at(x[k], y[k], qu, i.frame);
         let r = cor(r0 + k, &m).map_err(|e| (r0 + k, e))?;
         // Written column by column here, not through an array of columns: this loop is the 1e7/s
         // path (bench/python_correct.sh) and the array-of-slices loop measured ~20 % slower.
@@ -626,8 +630,9 @@ mod tests {
     fn columns_are_the_rows_output() {
         let n = 10_000;
         let [x, y, q, u, sq, su, cov] = rows(n);
-        let input = Inputs { x: &x, y: &y, q: &q, u: &u, sigma_q: &sq, sigma_u: &su, cov_qu: Some(&cov) };
-        let opts = CorrectOptions { allow_extrapolation: true, chi_offset: 0.02, ..CorrectOptions::default() };
+        let frame = mueller::Frame::Sky { zero_angle_deg: -0.4 };
+        let input = Inputs { frame, x: &x, y: &y, q: &q, u: &u, sigma_q: &sq, sigma_u: &su, cov_qu: Some(&cov) };
+        let opts = CorrectOptions { allow_extrapolation: true, zero_angle_deg: 1.2, ..CorrectOptions::default() };
         let cor = Corrector::new(&Radial, opts);
         let est: Estimator = "mas".parse().unwrap();
         let done = AtomicUsize::new(0);
@@ -641,7 +646,7 @@ mod tests {
         assert_eq!(out.values.len(), out.names.len());
         let mut n_extra = 0;
         for k in 0..n {
-            let m = Measurement::new(x[k], y[k], q[k], u[k], sq[k], su[k], cov[k]);
+            let m = Measurement::at(x[k], y[k], mueller::Qu::from_sigmas(q[k], u[k], sq[k], su[k], cov[k]), frame);
             let r = cor.correct(&m).unwrap();
             let want = r.output_row(Some(est));
             let got: Vec<f64> = out.values.iter().map(|c| c[k]).collect();
@@ -673,7 +678,16 @@ mod tests {
         for k in [17_000, 9_001, 12_345] {
             y[k] = 50.0;
         }
-        let input = Inputs { x: &x, y: &y, q: &q, u: &u, sigma_q: &sq, sigma_u: &su, cov_qu: None };
+        let input = Inputs {
+            frame: mueller::Frame::Plate,
+            x: &x,
+            y: &y,
+            q: &q,
+            u: &u,
+            sigma_q: &sq,
+            sigma_u: &su,
+            cov_qu: None,
+        };
         let cor = Corrector::new(&Radial, CorrectOptions::default());
         let e = correct_columns(&input, None, &|_| {}, |_, m| cor.correct(m)).err().map(|e| e.0);
         assert_eq!(e, Some(9_001));

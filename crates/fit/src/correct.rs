@@ -56,7 +56,7 @@
 //! (`M_I`, then a plate with a zero-angle offset) and recovers the sky exactly.
 
 use crate::model::{FieldModel, InstPol};
-use mueller::Qu;
+use mueller::{Frame, Qu};
 
 /// Errors of the correction; each names the position or the input that was wrong.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -114,20 +114,22 @@ pub struct CorrectOptions {
     /// `f` of the inflation rule: outside the field, `(f p)^2` is added to the calibration's
     /// `var_q` and `var_u` (fraction; default 0.5).
     pub extrapolation_rel_error: f64,
-    /// HWP chromatic zero angle (rad), the angle to *add* to a measured chi.
-    pub chi_offset: f64,
+    /// The HWP zero angle (deg) of the sky frame the model lives in (its calibration's
+    /// `hwp_chi_offset_deg`): each measurement is turned into that frame from its own
+    /// ([`mueller::Frame::turn_to`]).
+    pub zero_angle_deg: f64,
 }
 
 impl Default for CorrectOptions {
     fn default() -> Self {
-        Self { method: Method::Exact, allow_extrapolation: false, extrapolation_rel_error: 0.5, chi_offset: 0.0 }
+        Self { method: Method::Exact, allow_extrapolation: false, extrapolation_rel_error: 0.5, zero_angle_deg: 0.0 }
     }
 }
 
 impl CorrectOptions {
     /// The defaults with the HWP zero angle of a calibration file (its filter's offset).
     pub fn for_calibration(cal: &crate::Calibration) -> Self {
-        Self { chi_offset: cal.hwp_chi_offset_deg.to_radians(), ..Self::default() }
+        Self { zero_angle_deg: cal.hwp_chi_offset_deg, ..Self::default() }
     }
 }
 
@@ -156,25 +158,35 @@ impl<M: FieldModel + ?Sized> FieldModel for WithModelError<'_, M> {
     }
 }
 
-/// A measurement to correct: position in arcmin from the detector centre and the measured
-/// normalized Stokes parameters with their covariance (fractions).
-#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+/// A measurement to correct: position in arcmin from the detector centre, the measured
+/// normalized Stokes parameters with their covariance (fractions), and the frame they are in
+/// (at the plate, or in the sky's with the zero angle they carry): a correction turns it into
+/// its model's frame from there, so that no value is taken in the wrong frame or turned twice.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Measurement {
     pub x: f64,
     pub y: f64,
     #[serde(flatten)]
     pub qu: Qu,
+    pub frame: Frame,
 }
 
 impl Measurement {
-    /// `(q, u)` at `(x, y)` arcmin with 1-sigma errors and a covariance, as tables give them.
-    pub fn new(x: f64, y: f64, q: f64, u: f64, sigma_q: f64, sigma_u: f64, cov_qu: f64) -> Self {
-        Self { x, y, qu: Qu::from_sigmas(q, u, sigma_q, sigma_u, cov_qu) }
+    /// `(q, u)` as the plate measured them, at `(x, y)` arcmin, with 1-sigma errors and a
+    /// covariance as tables give them.
+    pub fn at_plate(x: f64, y: f64, q: f64, u: f64, sigma_q: f64, sigma_u: f64, cov_qu: f64) -> Self {
+        Self { x, y, qu: Qu::from_sigmas(q, u, sigma_q, sigma_u, cov_qu), frame: Frame::Plate }
     }
 
-    /// `qu` at `(x, y)` arcmin.
-    pub fn at(x: f64, y: f64, qu: Qu) -> Self {
-        Self { x, y, qu }
+    /// `qu`, in `frame`, at `(x, y)` arcmin.
+    pub fn at(x: f64, y: f64, qu: Qu, frame: Frame) -> Self {
+        Self { x, y, qu, frame }
+    }
+
+    /// This measurement in the sky frame of a plate of zero angle `zero_angle_deg`
+    /// ([`Frame::to_sky`]): itself, bit for bit, when it is in that frame already.
+    pub fn in_sky(&self, zero_angle_deg: f64) -> Self {
+        Self { qu: self.frame.to_sky(&self.qu, zero_angle_deg), frame: Frame::Sky { zero_angle_deg }, ..*self }
     }
 }
 
@@ -369,25 +381,6 @@ pub fn exact_jacobian(qi: f64, ui: f64, q1: f64, u1: f64) -> Result<((f64, f64),
     Ok(((q0, u0), jm, ja))
 }
 
-/// `m` in the sky frame: its chi larger by the HWP zero angle `offset` (rad), its covariance
-/// turned alike (`R C R^T`, [`Qu::rotated`]). `m` itself when `offset` is 0.
-pub fn to_sky_frame(m: &Measurement, offset: f64) -> Measurement {
-    Measurement { qu: m.qu.rotated(offset), ..*m }
-}
-
-/// The HWP zero angles (deg) for correcting rows whose q, u carry `carried` already (`None`:
-/// at the plate, as measured) with a field calibration of zero angle `field` (`None`: a
-/// telescope model alone): `(to_sky, plate)`. `to_sky` is what the rows are turned by: the
-/// field's less what they carry (so that a catalog of `instpol catalog` is not turned twice),
-/// nothing without a field (the rows are taken in their own frame, as the telescope's
-/// standards were). `plate` is the zero angle of the plate the exposures were taken through,
-/// for their demodulation (`telescope_cal::telescope_exposures`): the carried one, else the
-/// field's, else 0. The one rule of the CLI's tables, `catalog_correct` and the Python package.
-pub fn row_zero_angles(field: Option<f64>, carried: Option<f64>) -> (f64, f64) {
-    let to_sky = field.map_or(0.0, |z| z - carried.unwrap_or(0.0));
-    (to_sky, carried.or(field).unwrap_or(0.0))
-}
-
 /// `P`, `chi` of `(q, u)` with their linearized errors (`eq:sigp`, `eq:sigchi` generalized to a
 /// full covariance): [`Qu::p_chi_with_errors`], as a tuple `(P, sigma_P, chi, sigma_chi)`.
 #[inline]
@@ -449,7 +442,7 @@ pub(crate) fn check_measurement(m: &Measurement) -> Result<(), Error> {
 /// }
 ///
 /// let c = Corrector::new(&Flat, CorrectOptions::default());
-/// let m = Measurement::new(1.0, -0.5, 0.01, 0.0, 1e-4, 1e-4, 0.0);
+/// let m = Measurement::at_plate(1.0, -0.5, 0.01, 0.0, 1e-4, 1e-4, 0.0);
 /// let r = c.correct(&m).unwrap();
 /// assert!(r.p0 < 1e-12); // an unpolarized star seen through the instrument
 /// assert!(c.correct(&Measurement { x: 3.0, ..m }).is_err()); // outside the field
@@ -457,15 +450,27 @@ pub(crate) fn check_measurement(m: &Measurement) -> Result<(), Error> {
 pub struct Corrector<'a, M: FieldModel + ?Sized> {
     model: &'a M,
     opts: CorrectOptions,
-    cos2off: f64,
-    sin2off: f64,
+    /// `cos, sin` of twice the turn of a measurement at the plate into the model's frame,
+    /// computed once: most rows of a batch share that frame.
+    plate_turn: (f64, f64),
 }
 
 impl<'a, M: FieldModel + ?Sized> Corrector<'a, M> {
-    /// Prepare a corrector for `model` (precomputes the zero-angle rotation).
+    /// Prepare a corrector for `model` (precomputes the zero-angle rotation of values at the
+    /// plate).
     pub fn new(model: &'a M, opts: CorrectOptions) -> Self {
-        let (s, c) = (2.0 * opts.chi_offset).sin_cos();
-        Self { model, opts, cos2off: c, sin2off: s }
+        let (s, c) = (2.0 * opts.zero_angle_deg.to_radians()).sin_cos();
+        Self { model, opts, plate_turn: (c, s) }
+    }
+
+    /// `m`'s `(q, u)` in the model's frame ([`Frame::to_sky`]; the rotation of a value at the
+    /// plate computed once).
+    #[inline]
+    fn in_model_frame(&self, m: &Measurement) -> Qu {
+        match m.frame {
+            Frame::Plate => m.qu.rotated_cos_sin(self.plate_turn.0, self.plate_turn.1),
+            f => f.to_sky(&m.qu, self.opts.zero_angle_deg),
+        }
     }
 
     /// The options in use.
@@ -505,8 +510,8 @@ impl<'a, M: FieldModel + ?Sized> Corrector<'a, M> {
     pub fn correct(&self, m: &Measurement) -> Result<Corrected, Error> {
         check_measurement(m)?;
         let (a, extrapolated) = self.instrumental(m.x, m.y)?;
-        // Zero angle first: the measured (q, u) are at the plate; M_I lives in the sky frame.
-        let Qu { q: q1, u: u1, var_q: vq1, var_u: vu1, cov_qu: cv1 } = m.qu.rotated_cos_sin(self.cos2off, self.sin2off);
+        // Zero angle first: M_I lives in the sky frame; the measurement says its own.
+        let Qu { q: q1, u: u1, var_q: vq1, var_u: vu1, cov_qu: cv1 } = self.in_model_frame(m);
         let (q0, u0, vq0, vu0, cv0) = match self.opts.method {
             Method::Exact => {
                 let ((q0, u0), jm, ja) = exact_jacobian(a.q, a.u, q1, u1).map_err(|e| match e {
@@ -681,12 +686,19 @@ pub fn correct_map_with(
         .map(|&k| {
             let (i, j) = (k % g.nx, k / g.nx);
             let (x, y) = g.centre_arcmin(i, j);
-            let meas = Measurement::new(x, y, map.q[k], map.u[k], map.sigma_q[k], map.sigma_u[k], map.cov_qu[k]);
+            let meas = Measurement::at_plate(x, y, map.q[k], map.u[k], map.sigma_q[k], map.sigma_u[k], map.cov_qu[k]);
             let bin_err = |source| MapError::Bin { i, j, x, y, source };
             let r = correct(&meas).map_err(bin_err)?;
-            let rp =
-                correct(&Measurement::new(x, y, map.q[k], map.u[k], map.sigma_q_phot[k], map.sigma_u_phot[k], 0.0))
-                    .map_err(bin_err)?;
+            let rp = correct(&Measurement::at_plate(
+                x,
+                y,
+                map.q[k],
+                map.u[k],
+                map.sigma_q_phot[k],
+                map.sigma_u_phot[k],
+                0.0,
+            ))
+            .map_err(bin_err)?;
             Ok((r, rp))
         })
         .collect();

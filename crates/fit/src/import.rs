@@ -25,8 +25,8 @@ pub struct ImportOptions {
     /// the area the map covers.
     pub origin_px: Option<[f64; 2]>,
     /// The HWP zero angle (deg, added to a measured chi) of the frame the maps' `Q/I`, `U/I`
-    /// are in, recorded as the calibration's own: a correction turns rows by it less the one
-    /// they carry (`crate::correct::row_zero_angles`). [`ImportOptions::for_instrument`] takes
+    /// are in, recorded as the calibration's own: a correction turns rows from their frame
+    /// into this one ([`mueller::Frame::turn_to`]). [`ImportOptions::for_instrument`] takes
     /// the instrument file's for the filter, the frame its catalogs are written in.
     pub hwp_chi_offset_deg: f64,
 }

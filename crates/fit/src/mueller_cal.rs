@@ -171,16 +171,16 @@ impl MuellerCal {
 
     /// Correct one measurement exactly (module docs): the source's `(q0, u0)` with the
     /// measurement's and the model's covariance propagated; `inst` is the field's
-    /// instrumental polarization of unpolarized light there. The HWP zero angle of `opts` is
-    /// applied first, as in [`correct::Corrector`] (the file's [`MuellerCal::hwp_chi_offset_deg`]
-    /// for a measurement at the plate, less what it carries already).
+    /// instrumental polarization of unpolarized light there. The measurement is first turned
+    /// from its frame into the sky frame of the HWP zero angle of `opts` (the file's
+    /// [`MuellerCal::hwp_chi_offset_deg`]), as in [`correct::Corrector`].
     pub fn correct(&self, m: &Measurement, opts: &CorrectOptions) -> std::result::Result<Corrected, correct::Error> {
         correct::check_measurement(m)?;
         let inside = self.field.contains(m.x, m.y);
         if !inside && !opts.allow_extrapolation {
             return Err(correct::Error::OutsideField { x: m.x, y: m.y });
         }
-        let m1 = m.qu.rotated(opts.chi_offset);
+        let m1 = m.frame.to_sky(&m.qu, opts.zero_angle_deg);
         let (q1, u1) = (m1.q, m1.u);
         let var1 = [m1.var_q, m1.cov_qu, m1.var_u];
         let ((q0, u0), mut cov) =

@@ -3,7 +3,7 @@
 //! polarization, turned into the sky frame of the maps they join, and the fitted field summed
 //! up over its positions (what `instpol calibrate-mueller` reports).
 
-use crate::correct::{self, Measurement};
+use crate::correct::Measurement;
 use crate::mueller_field::{Kind, MuellerField};
 use crate::{Error, Result};
 
@@ -12,10 +12,10 @@ use crate::{Error, Result};
 /// "FILE row N (line L)": columns `x`, `y` (or `x_arcmin`, `y_arcmin`; arcmin from the detector
 /// centre), `q`, `u`, `sigma_q`, `sigma_u` (measured, fractions), `p_true` (fraction),
 /// `chi_true_deg` (or `chi_true`, deg) and optionally `sigma_true` (1-sigma of the true q, u).
-/// The measured q, u are turned into the maps' sky frame by the maps' zero angle
-/// `zero_angle_deg` less the one the table carries (its column `hwp_chi_offset_deg`, as
-/// `instpol catalog` writes it; at the plate without it: [`correct::row_zero_angles`]), with
-/// their covariance ([`correct::to_sky_frame`]). Rows with a non-finite value, an error <= 0,
+/// The measured q, u are turned from the table's frame (the zero angle its column
+/// `hwp_chi_offset_deg` carries, as `instpol catalog` writes it; at the plate without it:
+/// `skyfield::table::Table::frame`) into the maps' sky frame of zero angle `zero_angle_deg`,
+/// with their covariance ([`Measurement::in_sky`]). Rows with a non-finite value, an error <= 0,
 /// or a `p_true` or measured P outside [0, 1) (percent given for a fraction) are refused, and so
 /// is a star outside the detector the maps cover (`half_field`: its half width and half height
 /// in arcmin, when known): a polynomial field fitted to it would be an extrapolation.
@@ -26,8 +26,7 @@ pub fn read_star_fields(
 ) -> Result<Vec<crate::mueller_field::CalField>> {
     use crate::mueller_field::{CalField, Observation};
     let t = skyfield::table::Table::read(path, None)?;
-    let (turn, _) = correct::row_zero_angles(Some(zero_angle_deg), t.carried_zero_angle(path)?);
-    let turn = turn.to_radians();
+    let frame = t.frame(path)?;
     let bad = |what: String| Error::BadFile { path: path.to_path_buf(), what };
     let pick = |names: &[&str]| -> Result<Vec<f64>> {
         for n in names {
@@ -80,7 +79,8 @@ pub fn read_star_fields(
             );
             return Err(Error::Row { at, what });
         }
-        let m = correct::to_sky_frame(&Measurement::new(x[i], y[i], q[i], u[i], sq[i], su[i], 0.0), turn);
+        let m = Measurement::at(x[i], y[i], mueller::Qu::from_sigmas(q[i], u[i], sq[i], su[i], 0.0), frame)
+            .in_sky(zero_angle_deg);
         let obs = Observation::new(x[i], y[i], m.qu.q, m.qu.u, m.qu.var_q, m.qu.var_u, m.qu.cov_qu);
         out.push(CalField::from_p_chi(&at, pt[i], ct[i].to_radians(), st[i], vec![obs]));
     }

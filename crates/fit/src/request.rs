@@ -8,9 +8,9 @@
 //!
 //! The rules, by what the file holds ([`crate::calibration::Kind`]):
 //!
-//! - **A field model** (`eq:instpol` inverted, or `eq:approx`): the rows are turned into the
-//!   sky frame by the calibration's HWP zero angle less the one they already carry
-//!   ([`crate::correct::row_zero_angles`]), then corrected by the [`crate::correct::Corrector`]. Telescope
+//! - **A field model** (`eq:instpol` inverted, or `eq:approx`): the rows are turned from their
+//!   frame ([`Request::frame`]) into the sky frame of the calibration's HWP zero angle
+//!   ([`mueller::Frame::turn_to`]), then corrected by the [`crate::correct::Corrector`]. Telescope
 //!   options given as arguments are refused (they would change nothing); per-row angles that
 //!   are data (a catalog's column) are noted as unused.
 //! - **A Mueller field**: the same zero angle, then the exact inverse of the fitted block; the
@@ -32,8 +32,9 @@
 
 use crate::calibration::{CalibrationFile, Kind};
 use crate::chain::{Chain, FieldStep, RecordedExposures, TelescopeStep, Tracks};
-use crate::correct::{row_zero_angles, CorrectOptions, Corrected, CorrectedMap, MapError, Measurement, Method};
+use crate::correct::{CorrectOptions, Corrected, CorrectedMap, MapError, Measurement, Method};
 use crate::telescope::{BandChoiceError, TelescopeFit, Track, TrackChoiceError};
+use mueller::Frame;
 
 pub use crate::chain::RowError;
 
@@ -58,9 +59,10 @@ pub struct Request<'a> {
     /// The telescope model's band (default: the field calibration's filter, else the model's
     /// only band; [`TelescopeFit::choose_band`]).
     pub band: Option<&'a str>,
-    /// The HWP zero angle (deg) the rows' `q, u` already carry (`None`: at the plate, as
-    /// measured).
-    pub carried_zero_angle_deg: Option<f64>,
+    /// The frame of the rows' `q, u`: at the plate, as measured, or in the sky frame of the HWP
+    /// zero angle they carry (a catalog of `instpol catalog`). The rows' measurements say it too
+    /// ([`Measurement::frame`]); the plan uses it for its notes and the exposures' plate.
+    pub frame: Frame,
     pub per_row: Option<PerRowAngles<'a>>,
     /// One parallactic track for every row, given by the caller (rad); replaces a recorded one.
     pub parang: Option<Track>,
@@ -80,14 +82,14 @@ pub struct Request<'a> {
 
 impl Request<'_> {
     /// A request with `method` and the extrapolation rule, and nothing else asked: no band,
-    /// track, rotator or per-row angles, no zero angle carried, no mismatch allowed.
+    /// track, rotator or per-row angles, rows at the plate, no mismatch allowed.
     pub fn new(method: Method, allow_extrapolation: bool, extrapolation_rel_error: f64) -> Self {
         Request {
             method,
             allow_extrapolation,
             extrapolation_rel_error,
             band: None,
-            carried_zero_angle_deg: None,
+            frame: Frame::Plate,
             per_row: None,
             parang: None,
             rotator: None,
@@ -199,7 +201,8 @@ pub struct TelescopePlan<'a> {
 /// one row, in any order and in parallel, through the plan's [`Chain`].
 pub struct RowsPlan<'a> {
     pub kind: Kind,
-    /// The zero angle (deg) the rows are turned by into the sky frame.
+    /// The zero angle (deg) rows in the request's frame are turned by into the sky frame
+    /// ([`Frame::turn_to`]; for the report: each row's measurement is turned by its own).
     pub to_sky_deg: f64,
     /// The zero angle (deg) of the plate the exposures were taken through.
     pub plate_deg: f64,
@@ -264,16 +267,15 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
             }
         }
     }
-    let opts = |chi_offset_deg: f64| CorrectOptions {
+    let opts = |zero_angle_deg: f64| CorrectOptions {
         method: req.method,
         allow_extrapolation: req.allow_extrapolation,
         extrapolation_rel_error: req.extrapolation_rel_error,
-        chi_offset: chi_offset_deg.to_radians(),
+        zero_angle_deg,
     };
-    let carried = req.carried_zero_angle_deg;
     let mut notes = vec![];
     let note_carried = |notes: &mut Vec<Note>, calibration: f64, applied: f64| {
-        if let Some(c) = carried.filter(|_| applied != 0.0) {
+        if let Some(c) = req.frame.zero_angle_deg().filter(|_| applied != 0.0) {
             notes.push(Note::CarriedZeroAngle { carried: c, calibration, applied });
         }
     };
@@ -283,7 +285,7 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
     }
     let Some(tel) = &file.telescope else {
         if let Some(mc) = &file.mueller {
-            let (to_sky, plate) = row_zero_angles(Some(mc.hwp_chi_offset_deg), carried);
+            let (to_sky, plate) = row_zero_angles(Some(mc.hwp_chi_offset_deg), req.frame);
             note_carried(&mut notes, mc.hwp_chi_offset_deg, to_sky);
             return Ok(RowsPlan {
                 kind: Kind::Mueller,
@@ -292,8 +294,8 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
                 telescope: None,
                 notes,
                 chain: Chain {
-                    to_sky: to_sky.to_radians(),
-                    field: FieldStep::Mueller(mc, opts(to_sky)),
+                    zero_angle_deg: Some(mc.hwp_chi_offset_deg),
+                    field: FieldStep::Mueller(mc, opts(mc.hwp_chi_offset_deg)),
                     telescope: None,
                 },
             });
@@ -302,7 +304,7 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
         if req.per_row.is_some() {
             notes.push(Note::AnglesWithoutTelescope);
         }
-        let (to_sky, plate) = row_zero_angles(Some(cal.hwp_chi_offset_deg), carried);
+        let (to_sky, plate) = row_zero_angles(Some(cal.hwp_chi_offset_deg), req.frame);
         note_carried(&mut notes, cal.hwp_chi_offset_deg, to_sky);
         return Ok(RowsPlan {
             kind: Kind::Field,
@@ -311,15 +313,15 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
             telescope: None,
             notes,
             chain: Chain {
-                to_sky: to_sky.to_radians(),
-                field: FieldStep::partial_polarizer(cal, opts(to_sky)),
+                zero_angle_deg: Some(cal.hwp_chi_offset_deg),
+                field: FieldStep::partial_polarizer(cal, opts(cal.hwp_chi_offset_deg)),
                 telescope: None,
             },
         });
     };
     let field = file.field.as_ref();
     let band = tel.choose_band(req.band, field.map(|c| c.filter.as_str()), None).map_err(Refusal::Band)?;
-    let (to_sky, plate) = row_zero_angles(field.map(|c| c.hwp_chi_offset_deg), carried);
+    let (to_sky, plate) = row_zero_angles(field.map(|c| c.hwp_chi_offset_deg), req.frame);
     if let Some(c) = field {
         note_carried(&mut notes, c.hwp_chi_offset_deg, to_sky);
     }
@@ -377,13 +379,24 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
         telescope: Some(TelescopePlan { fit: tel, band: band.clone(), exposures }),
         notes,
         chain: Chain {
-            to_sky: to_sky.to_radians(),
-            // The telescope's offset is the instrument's angle zero: the chain turns the rows
-            // itself, once, before both models.
-            field: field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(0.0))),
+            // The telescope's offset is the instrument's angle zero: the chain turns each row
+            // itself, once, into the field's frame before both models (a telescope model alone
+            // takes the rows in their own frame).
+            zero_angle_deg: field.map(|c| c.hwp_chi_offset_deg),
+            field: field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(c.hwp_chi_offset_deg))),
             telescope: Some(TelescopeStep { fit: tel, band, tracks }),
         },
     })
+}
+
+/// The HWP zero angles (deg) of a correction of rows in `frame` by models in the sky frame of
+/// the zero angle `models` (`None`: a telescope model alone, which takes the rows in their own
+/// frame, as its standards were measured): `(to_sky, plate)`. `to_sky` is the turn the rows
+/// get ([`Frame::turn_to`]: 0 for a catalog of `instpol catalog` in that frame already); `plate`
+/// is the zero angle of the plate the exposures were taken through, for their demodulation
+/// (`telescope_cal::telescope_exposures`): the models', else the one the rows carry, else 0.
+fn row_zero_angles(models: Option<f64>, frame: Frame) -> (f64, f64) {
+    (models.map_or(0.0, |z| frame.turn_to(z)), models.or(frame.zero_angle_deg()).unwrap_or(0.0))
 }
 
 impl RowsPlan<'_> {
@@ -513,11 +526,11 @@ pub fn plan_map<'a>(
     }
     let kind = file.kind();
     let mut notes = vec![];
-    let opts = |method, chi_offset_deg: f64| CorrectOptions {
+    let opts = |method, zero_angle_deg: f64| CorrectOptions {
         method,
         allow_extrapolation: req.allow_extrapolation,
         extrapolation_rel_error: req.extrapolation_rel_error,
-        chi_offset: chi_offset_deg.to_radians(),
+        zero_angle_deg,
     };
     let Some(tel) = &file.telescope else {
         let (zero_angle_deg, field) = match (&file.mueller, &file.field) {
@@ -527,7 +540,11 @@ pub fn plan_map<'a>(
             }
             (None, None) => unreachable!("check_options refuses a file without a model"),
         };
-        let chain = Chain { to_sky: zero_angle_deg.to_radians(), field, telescope: None };
+        let zero = match &field {
+            FieldStep::Mueller(mc, _) => mc.hwp_chi_offset_deg,
+            _ => zero_angle_deg,
+        };
+        let chain = Chain { zero_angle_deg: Some(zero), field, telescope: None };
         return Ok(MapPlan { kind, method: req.method, telescope: None, zero_angle_deg, notes, chain, exposures: 0 });
     };
     let field = file.field.as_ref();
@@ -557,8 +574,8 @@ pub fn plan_map<'a>(
         None => (Tracks::Shared(track), 0),
     };
     let chain = Chain {
-        to_sky: zero_angle_deg.to_radians(),
-        field: field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(req.method, 0.0))),
+        zero_angle_deg: Some(zero_angle_deg),
+        field: field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(req.method, zero_angle_deg))),
         telescope: Some(TelescopeStep { fit: tel, band: band.clone(), tracks }),
     };
     let telescope = MapTelescope { fit: tel, band, track, by_exposure };

@@ -341,8 +341,8 @@ pub fn validate_star<M: FieldModel + ?Sized>(
 ) -> Result<Validation, Error> {
     let cor = Corrector::new(model, CorrectOptions { method: correct::Method::Exact, ..opts });
     let (a, extrapolated) = cor.instrumental(x, y)?;
-    // Measured, in the sky frame (zero angle undone), with its covariance rotated alike.
-    let sky = measured.rotated(opts.chi_offset);
+    // Measured at the plate; in the sky frame of the model, with its covariance turned alike.
+    let sky = mueller::Frame::Plate.to_sky(measured, opts.zero_angle_deg);
     let Qu { q: q1, u: u1, var_q: vq1, var_u: vu1, cov_qu: cv1 } = sky;
     let e = sky.p_chi_with_errors();
     let (mp, msp, mchi, msc) = (e.p, e.sigma_p, e.chi, e.sigma_chi);
@@ -367,7 +367,7 @@ pub fn validate_star<M: FieldModel + ?Sized>(
     let (pp, psp, pchi, _) = correct::p_chi_with_errors(pq, pu, pvq, pvu, pcv);
     let residual_sigma = mahalanobis(q1 - pq, u1 - pu, vq1 + pvq, vu1 + pvu, cv1 + pcv)?;
     // Corrected star vs expected intrinsic polarization.
-    let r = cor.correct(&Measurement::at(x, y, *measured))?;
+    let r = cor.correct(&Measurement::at(x, y, *measured, mueller::Frame::Plate))?;
     let corrected_residual_sigma = sigma_from(expected, &Qu::new(r.q0, r.u0, r.var_q0, r.var_u0, r.cov_qu0))?;
     Ok(Validation {
         measured_p: mp,

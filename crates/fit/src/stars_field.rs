@@ -165,7 +165,7 @@ impl StarsRun {
 /// skipped. Returns the rows (with `pointing`) and the zero angle they carry.
 pub fn catalog_rows(table: &Table, path: &Path, pointing: usize) -> Result<(Vec<StarRow>, f64)> {
     let bad = |what: String| Error::Input(format!("{}: {what}", path.display()));
-    let z = table.carried_zero_angle(path)?.ok_or_else(|| {
+    let z = table.frame(path)?.zero_angle_deg().ok_or_else(|| {
         bad(format!(
             "no column '{}': the field from stars needs q, u in the sky frame, with the HWP zero angle they carry \
              (the catalogs of `instpol catalog` have it)",

@@ -35,10 +35,11 @@
 //! angle added (`crate::correct` module docs): the field because the sky-field solution is
 //! made there (`crate::pipeline`), the telescope because its standards' `q, u` are there (what
 //! `instpol photometry`, `catalog` and `zero-angle` report, and what published standards are).
-//! So the chain first brings the measurement into that frame, by the zero angle it does not
-//! carry yet (`to_sky`: a Stokes map or a star measured by `validate` is at the plate and needs
+//! So the chain first brings the measurement into that frame from the frame it says it is in
+//! ([`mueller::Frame`]: a Stokes map or a star measured by `validate` is at the plate and needs
 //! the whole zero angle; a catalog of `instpol catalog` already carries it), with the
-//! covariance turned alike, and the field corrector it is given applies none of its own.
+//! covariance turned alike; the field corrector it is given lives in the same frame, so it
+//! turns nothing more.
 //! The exposures' demodulations take each plate angle in that frame too
 //! ([`telescope_exposures`]). Without this turn a plate-frame measurement would be corrected
 //! by models turned by the zero angle against it, off by about `2 sin(z) P` (9e-3 for the
@@ -292,19 +293,19 @@ impl ChainCorrected {
     }
 }
 
-/// Correct `m` for the field (when `field` is given, its corrector without a zero angle of its
-/// own) and then the telescope of `band` over `track`, after bringing `m` into the sky frame
-/// by `to_sky` (rad: the HWP zero angle `m` does not carry yet; see the module docs for the
-/// frame, the order and what each step uses).
+/// Correct `m` for the field (when `field` is given, its corrector in the same sky frame) and
+/// then the telescope of `band` over `track`, after bringing `m` from its frame into the sky
+/// frame of the HWP zero angle `zero_angle_deg` (`None`: `m`'s own frame; see the module docs
+/// for the frame, the order and what each step uses).
 pub fn correct_chain<M: FieldModel + ?Sized>(
     field: Option<&Corrector<M>>,
     tel: &TelescopeFit,
     band: &str,
     m: &Measurement,
     track: Track,
-    to_sky: f64,
+    zero_angle_deg: Option<f64>,
 ) -> Result<ChainCorrected> {
-    correct_chain_seen(field, tel, band, m, Seen::Track(track), to_sky)
+    correct_chain_seen(field, tel, band, m, Seen::Track(track), zero_angle_deg)
 }
 
 /// [`correct_chain`] for a measurement that saw the telescope as `seen` says; `q_tel, u_tel`
@@ -315,11 +316,15 @@ pub fn correct_chain_seen<M: FieldModel + ?Sized>(
     band: &str,
     m: &Measurement,
     seen: Seen<'_>,
-    to_sky: f64,
+    zero_angle_deg: Option<f64>,
 ) -> Result<ChainCorrected> {
-    if field.is_some_and(|c| c.options().chi_offset != 0.0) {
-        // One zero angle, applied once: here (module docs).
-        return Err(Error::Input("the chain's field corrector must not apply a zero angle of its own".into()));
+    if let Some(c) = field.filter(|c| zero_angle_deg != Some(c.options().zero_angle_deg)) {
+        // The field and the telescope are undone in one sky frame (module docs).
+        return Err(Error::Input(format!(
+            "the chain's field model lives in the sky frame of HWP zero angle {} deg, the chain in {}",
+            c.options().zero_angle_deg,
+            zero_angle_deg.map_or("the data's own frame".to_string(), |z| format!("that of {z} deg"))
+        )));
     }
     let tracks: Vec<Track> = match seen {
         Seen::Track(t) => vec![t],
@@ -344,10 +349,10 @@ pub fn correct_chain_seen<M: FieldModel + ?Sized>(
             return Err(Error::Input(format!("{what} = {v} is not a finite number (>= 0 for errors)")));
         }
     }
-    if !to_sky.is_finite() {
-        return Err(Error::Input(format!("HWP zero angle {to_sky} rad is not a finite number")));
+    if let Some(z) = zero_angle_deg.filter(|z| !z.is_finite()) {
+        return Err(Error::Input(format!("HWP zero angle {z} deg is not a finite number")));
     }
-    let m = &crate::correct::to_sky_frame(m, to_sky);
+    let m = &zero_angle_deg.map_or(*m, |z| m.in_sky(z));
     let (q1, u1, cov, inst, extrapolated) = match field {
         Some(c) => {
             let r = c.correct(m).map_err(|e| Error::Input(e.to_string()))?;

@@ -114,7 +114,7 @@ pub fn validate_chain(
             corrector: Corrector::new(
                 m as &dyn FieldModel,
                 CorrectOptions {
-                    chi_offset: 0.0,
+                    zero_angle_deg: zero_angle,
                     allow_extrapolation: opts.allow_extrapolation,
                     ..CorrectOptions::for_calibration(c)
                 },
@@ -130,11 +130,11 @@ pub fn validate_chain(
         None => Tracks::Shared(track),
     };
     let chain = Chain {
-        to_sky: zero_angle.to_radians(),
+        zero_angle_deg: Some(zero_angle),
         field: field_step,
         telescope: Some(TelescopeStep { fit: tel, band: band.to_string(), tracks }),
     };
-    let m = crate::correct::Measurement::at(x, y, *measured);
+    let m = crate::correct::Measurement::at(x, y, *measured, mueller::Frame::Plate);
     let r = chain.invert_parts(0, &m).map_err(|e| match e {
         RowError::Chain(e) => e,
         RowError::Field(e) => Error::Input(e.to_string()),

@@ -342,9 +342,12 @@ pub fn merge_repeats(rows: Vec<MeasuredStandard>) -> Vec<MeasuredStandard> {
 /// table in any format `skyfield::table` reads, with columns `label` (or `name`),
 /// `chi_measured_deg`, `sigma_chi_measured_deg`, `chi_catalogue_deg`,
 /// `sigma_chi_catalogue_deg`, and optionally `filter` (one for all rows), `x`, `y`,
-/// `p_measured`, `sigma_p_measured`. Every row is checked (finite angles, errors in (0, 90)
-/// deg, a catalogue error of 0 allowed) and named in errors; a row without a label is called
-/// by the file and its row number.
+/// `p_measured`, `sigma_p_measured`. The measured angles are at the plate; a table whose
+/// zero-angle column (`hwp_chi_offset_deg`) says they carry a zero angle already
+/// (`skyfield::table::Table::frame`) has it taken off ([`mueller::Frame::turn_to`]), or the
+/// zero angle found would be what was left of it. Every row is checked (finite angles, errors
+/// in (0, 90) deg, a catalogue error of 0 allowed) and named in errors; a row without a label
+/// is called by the file and its row number.
 pub fn read_measured(path: &Path) -> crate::Result<(Option<String>, Vec<MeasuredStandard>)> {
     let src = path.display().to_string();
     let bad = |what: String| crate::Error::BadFile { path: path.to_path_buf(), what };
@@ -397,8 +400,10 @@ pub fn read_measured(path: &Path) -> crate::Result<(Option<String>, Vec<Measured
                 skyfield::table::Data::I64(v) => v.iter().map(|x| x.to_string()).collect(),
             })
         };
+        // Back to the plate from the frame the table says (0 for one at the plate).
+        let to_plate = t.frame(path)?.turn_to(0.0);
         let (cm, sm, cc, sc) = (
-            num("chi_measured_deg")?,
+            num("chi_measured_deg")?.into_iter().map(|c| c + to_plate).collect::<Vec<_>>(),
             num("sigma_chi_measured_deg")?,
             num("chi_catalogue_deg")?,
             num("sigma_chi_catalogue_deg")?,
@@ -666,6 +671,12 @@ mod tests {
         assert!((r.sigma_zero_angle_deg - 0.5 / 2f64.sqrt()).abs() < 1e-9, "{r:?}");
         assert_eq!(r.instrument_file_line, "hwp_chi_offset_deg = 21.00   # filter V");
         assert_eq!(r.standards[1].measured.label, "b");
+        // The same measurements in the sky frame of a zero angle of 2.89 deg, saying so in the
+        // column catalogs carry: the same zero angle.
+        let sky = "label,chi_measured_deg,sigma_chi_measured_deg,chi_catalogue_deg,sigma_chi_catalogue_deg,filter,hwp_chi_offset_deg\n";
+        std::fs::write(&path, format!("{sky}a,12.89,0.5,30,0,V,2.89\nb,52.89,0.5,72,0,V,2.89\n")).unwrap();
+        let (r2, _) = ZeroAngleReport::combine("V".into(), read_measured(&path).unwrap().1).unwrap();
+        assert!((r2.zero_angle_deg - 21.0).abs() < 1e-9, "{r2:?}");
         std::fs::write(&path, format!("{head}a,10,0,30,0,V\n")).unwrap();
         let e = read_measured(&path).unwrap_err().to_string();
         assert!(e.contains("m.csv") && e.contains("row 1") && e.contains("(0, 90)"), "{e}");

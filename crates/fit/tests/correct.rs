@@ -102,7 +102,7 @@ fn round_trip_polarized_star_over_the_field_exact() {
         max_p = max_p.max(p);
         for chi0 in [0.0, 0.4, 1.0, 2.2, 3.0] {
             let (q1, u1) = observe(p, phi, 0.01, chi0, 0.0);
-            let r = c.correct(&Measurement::new(x, y, q1, u1, 1e-4, 1e-4, 0.0)).unwrap();
+            let r = c.correct(&Measurement::at_plate(x, y, q1, u1, 1e-4, 1e-4, 0.0)).unwrap();
             assert!((r.p0 - 0.01).abs() < 1e-12, "P0 at ({x},{y}) chi0={chi0}: {}", r.p0);
             assert!(angle_diff(r.chi0, chi0) < 1e-9, "chi0 at ({x},{y}): {} vs {chi0}", r.chi0);
             worst = worst.max((r.p0 - 0.01).abs());
@@ -135,7 +135,7 @@ fn round_trip_with_noise_recovered_within_errors_everywhere() {
             let noisy_cal =
                 Shifted { inner: &model, dq: model.sigma * g.sample(&mut rng), du: model.sigma * g.sample(&mut rng) };
             let cn = Corrector::new(&noisy_cal, CorrectOptions::default());
-            let m = Measurement::new(
+            let m = Measurement::at_plate(
                 x,
                 y,
                 q1 + s_meas * g.sample(&mut rng),
@@ -300,7 +300,7 @@ fn reported_errors_match_monte_carlo_scatter() {
     let (q1, u1) = observe(p, phi, p0, chi0, 0.0);
     let (sq, su, rho) = (0.003, 0.002, -0.3);
     let reported = Corrector::new(&Const(truth), CorrectOptions::default())
-        .correct(&Measurement::new(0.0, 0.0, q1, u1, sq, su, rho * sq * su))
+        .correct(&Measurement::at_plate(0.0, 0.0, q1, u1, sq, su, rho * sq * su))
         .unwrap();
     let mut rng = Xoshiro256PlusPlus::seed_from_u64(2006);
     let g = Normal::new(0.0, 1.0).unwrap();
@@ -316,7 +316,7 @@ fn reported_errors_match_monte_carlo_scatter() {
         let (cq, cu) = draw(&mut rng, 0.002, 0.0015, 0.5);
         let cal = Const(InstPol { q: truth.q + cq, u: truth.u + cu, ..truth });
         let r = Corrector::new(&cal, CorrectOptions::default())
-            .correct(&Measurement::new(0.0, 0.0, q1 + dq, u1 + du, sq, su, 0.0))
+            .correct(&Measurement::at_plate(0.0, 0.0, q1 + dq, u1 + du, sq, su, 0.0))
             .unwrap();
         out.push(r);
     }
@@ -361,8 +361,8 @@ fn forward_model_with_hwp_offset_round_trip() {
     let (p, phi, p0, chi0, off): (f64, f64, f64, f64, f64) = (0.02, 0.7, 0.03, 2.5, 0.15);
     let (q1, u1) = observe(p, phi, p0, chi0, off);
     let model = Const(InstPol { q: p * (2.0 * phi).cos(), u: p * (2.0 * phi).sin(), ..Default::default() });
-    let opts = CorrectOptions { chi_offset: off, ..Default::default() };
-    let m = Measurement::new(0.0, 0.0, q1, u1, 1e-4, 1e-4, 0.0);
+    let opts = CorrectOptions { zero_angle_deg: off.to_degrees(), ..Default::default() };
+    let m = Measurement::at_plate(0.0, 0.0, q1, u1, 1e-4, 1e-4, 0.0);
     let r = Corrector::new(&model, opts).correct(&m).unwrap();
     assert!((r.p0 - p0).abs() < 1e-13);
     assert!(angle_diff(r.chi0, chi0) < 1e-11);
@@ -382,7 +382,7 @@ fn forward_model_with_hwp_offset_round_trip() {
 #[test]
 fn outside_the_field_is_an_error_or_an_inflated_extrapolation() {
     let model = Radial::fors1_v();
-    let m = Measurement::new(3.6, -1.0, 0.01, 0.0, 1e-4, 1e-4, 0.0);
+    let m = Measurement::at_plate(3.6, -1.0, 0.01, 0.0, 1e-4, 1e-4, 0.0);
     let e = Corrector::new(&model, CorrectOptions::default()).correct(&m).unwrap_err();
     assert_eq!(e, Error::OutsideField { x: 3.6, y: -1.0 });
     assert!(e.to_string().contains("3.6"));
@@ -415,7 +415,7 @@ fn model_without_value_is_an_error() {
             x <= 1.0
         }
     }
-    let m = Measurement::new(2.0, 0.0, 0.01, 0.0, 1e-4, 1e-4, 0.0);
+    let m = Measurement::at_plate(2.0, 0.0, 0.01, 0.0, 1e-4, 1e-4, 0.0);
     let opts = CorrectOptions { allow_extrapolation: true, ..Default::default() };
     let e = Corrector::new(&Holey, opts).correct(&m).unwrap_err();
     assert_eq!(e, Error::NoModelValue { x: 2.0, y: 0.0 });
@@ -427,13 +427,21 @@ fn model_without_value_is_an_error() {
 fn bad_input_and_batches() {
     let model = Radial::fors1_v();
     let c = Corrector::new(&model, CorrectOptions::default());
-    let good = Measurement::new(1.0, 1.0, 0.01, 0.0, 1e-3, 1e-3, 0.0);
+    let good = Measurement::at_plate(1.0, 1.0, 0.01, 0.0, 1e-3, 1e-3, 0.0);
     assert!(matches!(
         c.correct(&Measurement { qu: Qu { q: f64::NAN, ..good.qu }, ..good }),
         Err(Error::NonFinite { what: "q", .. })
     ));
     assert!(matches!(
-        c.correct(&Measurement::new(good.x, good.y, good.qu.q, good.qu.u, good.qu.sigma_q(), -1.0, good.qu.cov_qu)),
+        c.correct(&Measurement::at_plate(
+            good.x,
+            good.y,
+            good.qu.q,
+            good.qu.u,
+            good.qu.sigma_q(),
+            -1.0,
+            good.qu.cov_qu
+        )),
         Err(Error::Negative { what: "sigma_u", .. })
     ));
     let mut inputs = vec![good; 10000];
@@ -463,11 +471,11 @@ fn edges_zero_polarization_and_zero_instrumental() {
     let model = Radial::fors1_v();
     let c = Corrector::new(&model, CorrectOptions::default());
     let a = model.eval(2.0, -1.0);
-    let r = c.correct(&Measurement::new(2.0, -1.0, a.q, a.u, 1e-3, 1e-3, 0.0)).unwrap();
+    let r = c.correct(&Measurement::at_plate(2.0, -1.0, a.q, a.u, 1e-3, 1e-3, 0.0)).unwrap();
     assert!(r.p0 < 1e-15);
     assert_relative_eq!(r.sigma_chi0, PI / 12f64.sqrt(), epsilon = 1e-12);
     assert!(r.sigma_p0 > 0.0 && r.sigma_p0.is_finite());
-    let r = c.correct(&Measurement::new(0.0, 0.0, 0.02, -0.01, 1e-3, 1e-3, 0.0)).unwrap();
+    let r = c.correct(&Measurement::at_plate(0.0, 0.0, 0.02, -0.01, 1e-3, 1e-3, 0.0)).unwrap();
     assert_eq!((r.q0, r.u0), (0.02, -0.01));
     let (p, chi) = polarization(0.02, -0.01);
     assert_eq!((r.p0, r.chi0), (p, chi));

@@ -50,7 +50,7 @@ fn a_map_through_m_i_is_corrected_back_bin_by_bin() {
         let (x, y) = map.geometry.centre_arcmin(k % map.geometry.nx, k / map.geometry.nx);
         let cor = Corrector::new(&model, CorrectOptions::default());
         let at = |dq: f64, du: f64| {
-            let m = Measurement::new(x, y, map.q[k] + dq, map.u[k] + du, 0.0, 0.0, 0.0);
+            let m = Measurement::at_plate(x, y, map.q[k] + dq, map.u[k] + du, 0.0, 0.0, 0.0);
             let r = cor.correct(&m).unwrap();
             (r.q0, r.u0)
         };

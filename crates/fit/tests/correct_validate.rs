@@ -154,7 +154,9 @@ fn hwp_zero_angle_is_applied_before_comparing() {
     let off = 2f64.to_radians();
     let (qm, um) = fit::correct::rotate_chi(q1, u1, -off); // what the plate reports
     let m = MeasuredStar { q: qm, u: um, var_q: 1e-8, var_u: 1e-8, cov_qu: 0.0 };
-    let with = validate_star(&v, x, y, &m, &e, CorrectOptions { chi_offset: off, ..Default::default() }, 3.0).unwrap();
+    let with =
+        validate_star(&v, x, y, &m, &e, CorrectOptions { zero_angle_deg: off.to_degrees(), ..Default::default() }, 3.0)
+            .unwrap();
     assert!(with.pass && with.residual_sigma < 1e-5, "{with:?}");
     let without = validate_star(&v, x, y, &m, &e, CorrectOptions::default(), 3.0).unwrap();
     assert!(!without.pass);

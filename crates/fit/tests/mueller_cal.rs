@@ -189,7 +189,7 @@ fn propagated_errors_match_a_monte_carlo() {
     let mf = fit_mueller_field(&f, &MuellerFitOptions { deg: 2, scale_arcmin: 2.4, ..Default::default() }).unwrap();
     let cal = calibration(mf.clone(), vec![]);
     let (x, y) = (1.7, -0.9);
-    let m = Measurement::new(x, y, 0.031, -0.018, 2e-4, 3e-4, 2e-8);
+    let m = Measurement::at_plate(x, y, 0.031, -0.018, 2e-4, 3e-4, 2e-8);
     let r = cal.correct(&m, &CorrectOptions::default()).unwrap();
     // The central value is the hand inverse of the fitted block.
     let (qh, uh) = invert_by_hand(&mf.block_at(x, y).0, m.qu.q, m.qu.u);
@@ -243,7 +243,7 @@ fn outside_the_field_is_refused_unless_extrapolation_is_allowed() {
     let f = fields(3e-4, 5);
     let mf = fit_mueller_field(&f, &MuellerFitOptions { deg: 1, scale_arcmin: 2.4, ..Default::default() }).unwrap();
     let cal = calibration(mf.clone(), vec![]);
-    let m = Measurement::new(3.0, 0.0, 0.05, 0.01, 3e-4, 3e-4, 0.0);
+    let m = Measurement::at_plate(3.0, 0.0, 0.05, 0.01, 3e-4, 3e-4, 0.0);
     let e = cal.correct(&m, &CorrectOptions::default()).unwrap_err();
     assert!(matches!(e, CorrError::OutsideField { .. }), "{e}");
     let opts = CorrectOptions { allow_extrapolation: true, extrapolation_rel_error: 0.5, ..Default::default() };

@@ -205,7 +205,7 @@ fn stars_corrected_with_every_form_come_back_within_errors() {
             let (p, chi) = (0.08 * unit.sample(&mut rng), std::f64::consts::PI * unit.sample(&mut rng));
             let (qt, ut) = (p * (2.0 * chi).cos(), p * (2.0 * chi).sin());
             let (q, u) = radial_truth(x, y).forward(qt, ut).unwrap();
-            let m = Measurement::new(x, y, q + s * g.sample(&mut rng), u + s * g.sample(&mut rng), s, s, 0.0);
+            let m = Measurement::at_plate(x, y, q + s * g.sample(&mut rng), u + s * g.sample(&mut rng), s, s, 0.0);
             let r = cal.correct(&m, &CorrectOptions::default()).unwrap();
             let rb = back.correct(&m, &CorrectOptions::default()).unwrap();
             assert!(

@@ -82,14 +82,16 @@ fn field_rows_turned_by_the_zero_angle_they_lack_then_inverted() {
     let f = file(Some(field(z)), None);
     let n = 3;
     let rows = [(0.5, -0.3, 0.012, -0.004), (-1.1, 0.7, -0.002, 0.009), (1.5, 1.5, 0.0, 0.0)];
-    let req = Request { carried_zero_angle_deg: Some(carried), ..request() };
+    let frame = mueller::Frame::Sky { zero_angle_deg: carried };
+    let req = Request { frame, ..request() };
     let plan = plan_rows(&f, &req, n).unwrap();
     assert_eq!(plan.kind, Kind::Field);
     assert!((plan.to_sky_deg - (z - carried)).abs() < 1e-15);
     assert_eq!(plan.notes, vec![Note::CarriedZeroAngle { carried, calibration: z, applied: z - carried }]);
     let cal = field(z);
     for (i, &(x, y, q, u)) in rows.iter().enumerate() {
-        let r = plan.correct(i, &Measurement::new(x, y, q, u, 1e-4, 1e-4, 0.0)).unwrap();
+        let r =
+            plan.correct(i, &Measurement::at(x, y, mueller::Qu::from_sigmas(q, u, 1e-4, 1e-4, 0.0), frame)).unwrap();
         let d = 2.0 * (z - carried).to_radians();
         let (q1, u1) = (d.cos() * q - d.sin() * u, d.sin() * q + d.cos() * u);
         let (p, phi) = cal.eval(x, y).p_chi();
@@ -153,13 +155,13 @@ fn telescope_rows_get_their_own_track_and_rotator() {
     let with_rot = PerRowAngles { rotator_deg: Some(&rot), ..rows };
     let plan = plan_rows(&f, &Request { per_row: Some(with_rot), ..request() }, 3).unwrap();
     assert_eq!(plan.kind, Kind::FieldAndTelescope);
-    let cor = Corrector::new(&cal, CorrectOptions { chi_offset: 0.0, ..CorrectOptions::default() });
+    let cor = Corrector::new(&cal, CorrectOptions { zero_angle_deg: 0.0, ..CorrectOptions::default() });
     let mut seen = vec![];
     for i in 0..3 {
-        let m = Measurement::new(0.4, -0.2, 0.02, 0.01, 1e-4, 1e-4, 0.0);
+        let m = Measurement::at_plate(0.4, -0.2, 0.02, 0.01, 1e-4, 1e-4, 0.0);
         let got = plan.correct(i, &m).unwrap();
         let track = Track::at(pa[i].to_radians()).with_rotator(rot[i].to_radians());
-        let want = fit::telescope_cal::correct_chain(Some(&cor), &tel, "V", &m, track, 0.0).unwrap();
+        let want = fit::telescope_cal::correct_chain(Some(&cor), &tel, "V", &m, track, Some(0.0)).unwrap();
         assert_eq!(got, want.with_telescope_in_inst(), "row {i}");
         seen.push(got.q0);
     }
@@ -167,14 +169,14 @@ fn telescope_rows_get_their_own_track_and_rotator() {
     assert!((seen[0] - seen[2]).abs() > 1e-4, "{seen:?}");
     // One rotator angle for every row stands in for the column.
     let plan = plan_rows(&f, &Request { per_row: Some(rows), rotator: Some(0.3), ..request() }, 3).unwrap();
-    let m = Measurement::new(0.4, -0.2, 0.02, 0.01, 1e-4, 1e-4, 0.0);
+    let m = Measurement::at_plate(0.4, -0.2, 0.02, 0.01, 1e-4, 1e-4, 0.0);
     let want = fit::telescope_cal::correct_chain(
         Some(&cor),
         &tel,
         "V",
         &m,
         Track::at(pa[1].to_radians()).with_rotator(0.3),
-        0.0,
+        Some(0.0),
     );
     assert_eq!(plan.correct(1, &m).unwrap(), want.unwrap().with_telescope_in_inst());
     // Arguments may not give per-row angles and a recorded track both.
@@ -243,7 +245,7 @@ fn the_correction_inverts_the_chain_it_holds() {
                 } else {
                     chain.forward(x, y, &sky, track).unwrap()
                 };
-                let got = plan.correct(i, &Measurement::at(x, y, measured)).unwrap();
+                let got = plan.correct(i, &Measurement::at(x, y, measured, mueller::Frame::Plate)).unwrap();
                 let d = (got.q0 - sky.q).abs().max((got.u0 - sky.u).abs());
                 if by_exposure && kind == Kind::FieldAndTelescope {
                     worst_exposures = worst_exposures.max(d);
@@ -258,6 +260,73 @@ fn the_correction_inverts_the_chain_it_holds() {
     // undoing the field and then the telescope would be 1.4e-5 off here; the chain is inverted
     // whole.
     assert!(worst_exposures < 1e-12, "exposure by exposure: {worst_exposures:e}");
+}
+
+/// Rows in another sky frame than the calibration's: a catalog made with an instrument file of
+/// zero angle 1.2 deg, corrected with a field calibration of 2.9 deg. The light the plan's own
+/// forward model puts at the plate, written into the rows' frame by a rotation by hand
+/// (`chi + 1.2 deg`), comes back to the sky through the field alone and through the field and
+/// the telescope over one track and over the recorded exposures, as the same light given at
+/// the plate does. Each measurement says its frame (`mueller::Frame`), so the exact inversion
+/// over the exposures takes it back to the plate from there (it had turned such rows by
+/// `2.9 - 2 x 1.2` deg instead of `-1.2`, and demodulated them through a plate of 1.2 deg).
+#[test]
+fn rows_in_another_sky_frame_come_back_to_the_sky() {
+    let (z, carried) = (2.9, 1.2);
+    let rec = skyfield::RecordedAngles {
+        parallactic_rad: Some((-0.6, 0.4)),
+        rotator_rad: Some(0.0),
+        exposure_tracks: (0..4)
+            .map(|k| skyfield::ExposureTrack {
+                hwp_deg: 22.5 * k as f64,
+                start: -0.6 + 0.25 * k as f64,
+                end: -0.6 + 0.25 * (k + 1) as f64,
+            })
+            .collect(),
+    };
+    let exposures: Vec<_> = rec
+        .exposure_tracks
+        .iter()
+        .map(|e| mueller::telescope::Exposure { hwp: e.hwp_deg.to_radians(), track: Track::new(e.start, Some(e.end)) })
+        .collect();
+    let sky = mueller::Qu::new(0.021, -0.013, 1e-8, 1e-8, 0.0);
+    let (x, y) = (1.3, -0.7);
+    let frame = mueller::Frame::Sky { zero_angle_deg: carried };
+    let (s2, c2) = (2.0 * carried.to_radians()).sin_cos();
+    let mut worst = 0.0f64;
+    for (f, req) in [
+        (file(Some(field(z)), None), request()),
+        (
+            file(Some(field(z)), Some(telescope(false))),
+            Request { parang: Some(Track::new(-0.3, Some(0.1))), ..request() },
+        ),
+        (file(Some(field(z)), Some(telescope(false))), Request { recorded: Some(&rec), ..request() }),
+    ] {
+        let by_exposure = req.recorded.is_some();
+        let plan = plan_rows(&f, &Request { frame, ..req }, 1).unwrap();
+        let at_plate_plan = plan_rows(&f, &req, 1).unwrap();
+        assert_eq!(plan.plate_deg, z, "the exposures were taken through the calibration's plate");
+        let (chain, track) = plan.chain.instrument(0);
+        let plate = if by_exposure {
+            chain.forward_exposures(x, y, &sky, &exposures).unwrap()
+        } else {
+            chain.forward(x, y, &sky, track).unwrap()
+        };
+        // The same light in the sky frame of the rows' zero angle, by hand.
+        let (q, u) = (c2 * plate.q - s2 * plate.u, s2 * plate.q + c2 * plate.u);
+        let row = mueller::Qu::new(q, u, 1e-8, 1e-8, 0.0);
+        let got = plan.correct(0, &Measurement::at(x, y, row, frame)).unwrap();
+        let plate = mueller::Qu::new(plate.q, plate.u, 1e-8, 1e-8, 0.0);
+        let from_plate = at_plate_plan.correct(0, &Measurement::at(x, y, plate, mueller::Frame::Plate)).unwrap();
+        for (a, b) in [(got.q0, sky.q), (got.u0, sky.u), (from_plate.q0, sky.q), (from_plate.u0, sky.u)] {
+            worst = worst.max((a - b).abs());
+        }
+        assert!(
+            (got.var_q0 / from_plate.var_q0 - 1.0).abs() < 1e-8 && (got.var_u0 / from_plate.var_u0 - 1.0).abs() < 1e-8,
+            "{got:?}\n{from_plate:?}"
+        );
+    }
+    assert!(worst < 1e-12, "rows in another frame miss the sky by {worst:e}");
 }
 
 #[test]

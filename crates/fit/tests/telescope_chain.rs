@@ -101,8 +101,8 @@ fn real_efosc2_standards_leave_one_out_through_the_calibration_file_are_unpolari
             // The measurement errors scaled as the fit scaled its own (the standards scatter
             // by sqrt(chi2/dof) more than their errors say).
             let s = tel.chi2_reduced.max(1.0).sqrt();
-            let m = Measurement::new(0.0, 0.0, o.qu.q, o.qu.u, o.qu.sigma_q() * s, o.qu.sigma_u() * s, 0.0);
-            let r = correct_chain::<dyn FieldModel>(None, &tel, &o.band, &m, Track::at(o.parallactic), 0.0).unwrap();
+            let m = Measurement::at_plate(0.0, 0.0, o.qu.q, o.qu.u, o.qu.sigma_q() * s, o.qu.sigma_u() * s, 0.0);
+            let r = correct_chain::<dyn FieldModel>(None, &tel, &o.band, &m, Track::at(o.parallactic), None).unwrap();
             let c = r.corrected;
             // 2-dof chi^2 of (q0, u0) against zero with the full covariance.
             let det = c.var_q0 * c.var_u0 - c.cov_qu0 * c.cov_qu0;
@@ -192,8 +192,8 @@ fn polarized_standard_through_a_night_comes_back_with_its_catalogued_p_and_chi()
         let a = (-150.0 + 27.0 * k as f64).to_radians();
         let b = a + 5f64.to_radians();
         let (q, u) = measure(sky, a, b);
-        let m = Measurement::new(0.0, 0.0, q + g.sample(&mut rng), u + g.sample(&mut rng), sigma, sigma, 0.0);
-        let c = correct_chain::<dyn FieldModel>(None, &tel, "V", &m, Track { start: a, end: b, rotator: 0.0 }, 0.0)
+        let m = Measurement::at_plate(0.0, 0.0, q + g.sample(&mut rng), u + g.sample(&mut rng), sigma, sigma, 0.0);
+        let c = correct_chain::<dyn FieldModel>(None, &tel, "V", &m, Track { start: a, end: b, rotator: 0.0 }, None)
             .unwrap()
             .corrected;
         let dchi = mueller::wrap_half_pi(c.chi0 - chi_true);
@@ -269,8 +269,8 @@ fn the_chain_inverts_the_field_after_the_telescope_as_jones_matrices_say() {
     for &(pq, chi, pa) in &[(0.0, 0.0, 0.4), (0.05, 1.0, -2.0), (0.1, 2.5, 2.9)] {
         let sky = [1.0, pq * (2.0f64 * chi).cos(), pq * (2.0f64 * chi).sin(), 0.0];
         let o = partial_after(field.p, field.phi, &transform(&chain(n * 0.9, 0.5, pa), &coherency(sky)));
-        let m = Measurement::new(0.1, 0.2, o[1] / o[0], o[2] / o[0], 1e-4, 1e-4, 0.0);
-        let c = correct_chain(Some(&cor), &tel, "V", &m, Track::at(pa), 0.0).unwrap().corrected;
+        let m = Measurement::at_plate(0.1, 0.2, o[1] / o[0], o[2] / o[0], 1e-4, 1e-4, 0.0);
+        let c = correct_chain(Some(&cor), &tel, "V", &m, Track::at(pa), Some(0.0)).unwrap().corrected;
         assert!((c.q0 - sky[1]).abs() < 1e-9 && (c.u0 - sky[2]).abs() < 1e-9, "{} {} vs {:?}", c.q0, c.u0, sky);
         // The inverse order differs by terms of size p_field x P_M3.
         let [qa, ua, ..] = tel.correct_cov("V", m.qu.q, m.qu.u, [0.0; 3], Track::at(pa), false).unwrap();
@@ -288,25 +288,29 @@ fn the_chain_inverts_the_field_after_the_telescope_as_jones_matrices_say() {
         let (qp, up) = (c2 * m.qu.q + s2 * m.qu.u, -s2 * m.qu.q + c2 * m.qu.u);
         // Unequal errors with a covariance, to see them turned back too.
         let (vq, vu, cv) = (c2 * c2 * 1e-8 + s2 * s2 * 4e-8, s2 * s2 * 1e-8 + c2 * c2 * 4e-8, s2 * c2 * 3e-8);
-        let plate = Measurement::new(m.x, m.y, qp, up, vq.sqrt(), vu.sqrt(), cv);
-        let c = correct_chain(Some(&cor), &tel, "V", &plate, Track::at(pa), z).unwrap().corrected;
+        let plate = Measurement::at_plate(m.x, m.y, qp, up, vq.sqrt(), vu.sqrt(), cv);
+        let z_deg = z.to_degrees();
+        let in_z = Corrector::new(&field, CorrectOptions { zero_angle_deg: z_deg, ..CorrectOptions::default() });
+        let c = correct_chain(Some(&in_z), &tel, "V", &plate, Track::at(pa), Some(z_deg)).unwrap().corrected;
         assert!((c.q0 - sky[1]).abs() < 1e-9 && (c.u0 - sky[2]).abs() < 1e-9, "{} {} vs {:?}", c.q0, c.u0, sky);
-        let unturned = correct_chain(Some(&cor), &tel, "V", &plate, Track::at(pa), 0.0).unwrap().corrected;
+        let unturned = correct_chain(Some(&cor), &tel, "V", &plate, Track::at(pa), Some(0.0)).unwrap().corrected;
         let off = (unturned.q0 - sky[1]).hypot(unturned.u0 - sky[2]);
         let p_meas = m.qu.q.hypot(m.qu.u);
         assert!(off > 0.5 * 2.0 * z.sin() * p_meas, "zero angle ignored: off by {off:e} only");
         // Errors turned back into the sky frame: the same as those of the measurement made
         // there with errors (1e-4, 2e-4) along q, u and no covariance.
-        let c0 = correct_chain::<dyn FieldModel>(None, &tel, "V", &plate, Track::at(pa), z).unwrap().corrected;
-        let there = Measurement::new(m.x, m.y, m.qu.q, m.qu.u, 1e-4, 2e-4, 0.0);
-        let c1 = correct_chain::<dyn FieldModel>(None, &tel, "V", &there, Track::at(pa), 0.0).unwrap().corrected;
+        let c0 =
+            correct_chain::<dyn FieldModel>(None, &tel, "V", &plate, Track::at(pa), Some(z_deg)).unwrap().corrected;
+        let there = Measurement::at_plate(m.x, m.y, m.qu.q, m.qu.u, 1e-4, 2e-4, 0.0);
+        let c1 = correct_chain::<dyn FieldModel>(None, &tel, "V", &there, Track::at(pa), None).unwrap().corrected;
         for (a, b) in [(c0.var_q0, c1.var_q0), (c0.var_u0, c1.var_u0), (c0.cov_qu0, c1.cov_qu0)] {
             assert!((a - b).abs() < 1e-9 * c1.var_u0, "{a:e} vs {b:e}");
         }
         assert!((c0.q0 - c1.q0).abs() < 1e-12 && (c0.u0 - c1.u0).abs() < 1e-12);
-        // A field corrector with a zero angle of its own would apply it twice: refused.
-        let twice = Corrector::new(&field, CorrectOptions { chi_offset: z, ..CorrectOptions::default() });
-        assert!(correct_chain(Some(&twice), &tel, "V", &plate, Track::at(pa), z).is_err());
+        // A field corrector in another sky frame than the chain's would undo the field in one
+        // frame and the telescope in another: refused.
+        assert!(correct_chain(Some(&cor), &tel, "V", &plate, Track::at(pa), Some(z_deg)).is_err());
+        assert!(correct_chain(Some(&in_z), &tel, "V", &plate, Track::at(pa), None).is_err());
     }
 }
 

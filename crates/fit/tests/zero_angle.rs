@@ -131,7 +131,7 @@ fn correct_star(run: &CalibrationRun, data_offset_deg: f64) -> (f64, f64, f64) {
     let (q1, u1) = observe(p, phi, 0.02, 30f64.to_radians(), data_offset_deg.to_radians());
     let cal = &run.calibration;
     let cor = Corrector::new(cal, CorrectOptions::for_calibration(cal));
-    let r = cor.correct(&Measurement::new(x, y, q1, u1, 1e-5, 1e-5, 0.0)).unwrap();
+    let r = cor.correct(&Measurement::at_plate(x, y, q1, u1, 1e-5, 1e-5, 0.0)).unwrap();
     (r.p0, r.chi0.to_degrees(), r.sigma_chi0.to_degrees())
 }
 

@@ -39,7 +39,7 @@ pub mod thinfilm;
 
 pub use analysis::{inverse, is_physical, jones_to_mueller};
 pub use fresnel::C64;
-pub use qu::{sandwich, PolErrors, Qu};
+pub use qu::{sandwich, Frame, PolErrors, Qu};
 
 /// A Stokes vector `(I, Q, U, V)`.
 pub type Stokes = Vector4<f64>;

@@ -56,6 +56,85 @@ pub struct Qu {
     pub cov_qu: f64,
 }
 
+/// The frame a `(q, u)`'s angle is measured in. A dual-beam reduction measures `chi` from the
+/// plate's zero; standards, catalogs and the models of a calibration give it in the sky's
+/// frame. The two differ by the plate's zero angle: the angle (deg, as instrument files,
+/// catalogs and calibration files tabulate it, `hwp_chi_offset_deg`) added to a `chi` measured
+/// at the plate ([`crate::Hwp`]'s `chi_offset`). A value that goes from a reduction to a
+/// correction says which frame it is in, and [`Frame::turn_to`] is the one conversion: a value
+/// in the sky frame already is not turned again, and one at the plate is not taken as the sky's.
+///
+/// ```
+/// use mueller::{Frame, Qu};
+/// // A catalog of FORS2 v_HIGH (zero angle -1.8 deg) is in the sky frame; a calibration of
+/// // that filter recording the same zero angle does not turn it, one recording 0 (the plate
+/// // as measured) turns it back by 1.8 deg.
+/// let row = Frame::Sky { zero_angle_deg: -1.8 };
+/// assert_eq!(row.turn_to(-1.8), 0.0);
+/// assert_eq!(row.turn_to(0.0), 1.8);
+/// let qu = Qu::new(0.02, 0.0, 1e-6, 1e-6, 0.0);
+/// assert_eq!(row.to_sky(&qu, -1.8), qu);
+/// let plate = row.at_plate(&qu);
+/// assert!((plate.p_chi().1.to_degrees() - 1.8).abs() < 1e-12);
+/// ```
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Frame {
+    /// As the plate measured it: `chi` from the plate's zero, which these values do not place
+    /// on the sky.
+    Plate,
+    /// The sky's: the plate's zero angle `zero_angle_deg` (deg) added to the `chi` measured at
+    /// the plate (`instpol catalog`'s rows, with their `hwp_chi_offset_deg` column).
+    Sky { zero_angle_deg: f64 },
+}
+
+impl Frame {
+    /// The frame of rows that carry the zero angle `carried` (deg): the sky's, or the plate's
+    /// when they carry none (a table without the zero-angle column).
+    pub fn carrying(carried: Option<f64>) -> Self {
+        carried.map_or(Frame::Plate, |zero_angle_deg| Frame::Sky { zero_angle_deg })
+    }
+
+    /// The zero angle (deg) a value in this frame has been turned by: 0 at the plate.
+    #[inline]
+    pub fn carried_deg(self) -> f64 {
+        match self {
+            Frame::Plate => 0.0,
+            Frame::Sky { zero_angle_deg } => zero_angle_deg,
+        }
+    }
+
+    /// The plate's zero angle (deg) this frame says, when it says one.
+    pub fn zero_angle_deg(self) -> Option<f64> {
+        match self {
+            Frame::Plate => None,
+            Frame::Sky { zero_angle_deg } => Some(zero_angle_deg),
+        }
+    }
+
+    /// The turn (deg, added to `chi`, `eq:polang`) that takes a value in this frame into the
+    /// sky frame of a plate of zero angle `zero_angle_deg`: that angle less the one the value
+    /// carries. Exactly 0 for a value in that frame already.
+    #[inline]
+    pub fn turn_to(self, zero_angle_deg: f64) -> f64 {
+        zero_angle_deg - self.carried_deg()
+    }
+
+    /// `qu`, given in this frame, in the sky frame of a plate of zero angle `zero_angle_deg`
+    /// ([`turn_to`](Self::turn_to), [`Qu::rotated`]): `qu` itself, bit for bit, when it is in
+    /// that frame already.
+    #[inline]
+    pub fn to_sky(self, qu: &Qu, zero_angle_deg: f64) -> Qu {
+        qu.rotated(self.turn_to(zero_angle_deg).to_radians())
+    }
+
+    /// `qu`, given in this frame, as the plate measured it (the sky frame of a zero angle of 0).
+    #[inline]
+    pub fn at_plate(self, qu: &Qu) -> Qu {
+        self.to_sky(qu, 0.0)
+    }
+}
+
 /// `P`, `chi` and their linearized errors (fractions and radians), from
 /// [`Qu::p_chi_with_errors`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -186,6 +265,45 @@ mod tests {
     use super::*;
     use nalgebra::{Matrix2, Vector2};
     use std::f64::consts::{FRAC_PI_2, PI};
+
+    /// The frames against rotations written here with nalgebra: a value in the sky frame of
+    /// `z` is not turned into that frame again (bit for bit); one carrying `c` goes into the
+    /// frame of `z` by `R(2 (z - c))` and back to the plate by `R(-2 c)`; a value at the plate
+    /// goes into the frame of `z` by `R(2 z)`; going through a third frame on the way changes
+    /// nothing but rounding.
+    #[test]
+    fn frames_turn_by_the_zero_angle_they_lack() {
+        let e = Qu::new(0.03, -0.01, 4e-6, 9e-6, 1e-6);
+        let by_hand = |v: &Qu, deg: f64| {
+            let a = 2.0 * deg.to_radians();
+            let m = Matrix2::new(a.cos(), -a.sin(), a.sin(), a.cos());
+            let x = m * Vector2::new(v.q, v.u);
+            let c = m * Matrix2::new(v.var_q, v.cov_qu, v.cov_qu, v.var_u) * m.transpose();
+            Qu::new(x[0], x[1], c[(0, 0)], c[(1, 1)], c[(0, 1)])
+        };
+        let close = |a: &Qu, b: &Qu| {
+            (a.q - b.q).abs() < 5e-17
+                && (a.u - b.u).abs() < 5e-17
+                && (a.var_q - b.var_q).abs() < 1e-20
+                && (a.var_u - b.var_u).abs() < 1e-20
+                && (a.cov_qu - b.cov_qu).abs() < 1e-20
+        };
+        for (c, z) in [(-1.8, -1.8), (-1.8, 0.0), (1.2, 2.9), (0.0, 45.0), (170.0, -10.0)] {
+            let sky = Frame::Sky { zero_angle_deg: c };
+            assert_eq!(sky.to_sky(&e, c), e);
+            assert_eq!(sky.turn_to(c), 0.0);
+            assert!(close(&sky.to_sky(&e, z), &by_hand(&e, z - c)), "{c} -> {z}");
+            assert!(close(&sky.at_plate(&e), &by_hand(&e, -c)), "{c} -> plate");
+            assert!(close(&Frame::Plate.to_sky(&e, z), &by_hand(&e, z)), "plate -> {z}");
+            let via = Frame::Sky { zero_angle_deg: 7.0 }.to_sky(&sky.to_sky(&e, 7.0), z);
+            assert!(close(&via, &sky.to_sky(&e, z)), "{c} -> 7 -> {z}");
+            assert_eq!(sky.zero_angle_deg(), Some(c));
+        }
+        assert_eq!(Frame::Plate.at_plate(&e), e);
+        assert_eq!(Frame::Plate.zero_angle_deg(), None);
+        assert_eq!(Frame::carrying(None), Frame::Plate);
+        assert_eq!(Frame::carrying(Some(2.89)), Frame::Sky { zero_angle_deg: 2.89 });
+    }
 
     /// The rotation against nalgebra's `R v` and `R C R^T`: the invariants (trace,
     /// determinant, P) hold, a 90 deg turn of chi negates (q, u), and chi moves by the turn.

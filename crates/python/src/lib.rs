@@ -689,14 +689,14 @@ impl _Calibration {
         }
         // The one rule set of `instpol correct`'s tables (fit::request).
         let request = fit::request::Request {
-            carried_zero_angle_deg: carried,
+            frame: mueller::Frame::carrying(carried),
             per_row: pa.map(|start_deg| fit::request::PerRowAngles { start_deg, end_deg: pa_end, rotator_deg: None }),
             recorded: recorded.as_ref().map(|r| &r.angles),
             ..base
         };
         let plan = fit::request::plan_rows(&self.file, &request, n).map_err(|e| self.rows_error(e, pa.is_some()))?;
         let (x, y) = self.arcmin(x, y, units)?;
-        let input = Inputs { x: &x, y: &y, q, u, sigma_q: sq, sigma_u: su, cov_qu: cov };
+        let input = Inputs { frame: request.frame, x: &x, y: &y, q, u, sigma_q: sq, sigma_u: su, cov_qu: cov };
         let out = py.detach(|| fit::columns::correct_columns(&input, est, &|_| {}, |k, m| plan.correct(k, m)));
         let out = out.map_err(|(row, e)| input_err(format!("index {row}: {e}")))?;
         let d = PyDict::new(py);

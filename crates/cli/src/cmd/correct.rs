@@ -239,9 +239,10 @@ fn run_table(
     })?;
     // The root-finding estimators take ~1 us a row: show progress on big catalogs.
     let pb = if n >= 500_000 { indicatif::ProgressBar::new(n as u64) } else { indicatif::ProgressBar::hidden() };
-    let out =
-        fit::columns::correct_columns(&cols.inputs(), Some(est), &|k| pb.inc(k as u64), |i, m| plan.correct(i, m))
-            .map_err(|(i, e)| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)));
+    let out = fit::columns::correct_columns(&cols.inputs(angles.frame), Some(est), &|k| pb.inc(k as u64), |i, m| {
+        plan.correct(i, m)
+    })
+    .map_err(|(i, e)| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)));
     pb.finish_and_clear();
     let out = out?;
     let (filter, zero_angle) = fit::columns::reported_zero_angle(loaded, &plan);

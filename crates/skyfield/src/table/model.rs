@@ -119,7 +119,7 @@ pub struct Table {
 }
 
 /// The column of a catalog table holding the HWP zero angle (deg) its q, u already carry
-/// ([`Table::carried_zero_angle`]).
+/// ([`Table::frame`]).
 pub const ZERO_ANGLE_COLUMN: &str = "hwp_chi_offset_deg";
 
 pub(super) fn terr(path: &Path, message: impl Into<String>) -> Error {
@@ -154,13 +154,13 @@ impl Table {
         self.columns.iter().map(|c| c.name.clone()).collect()
     }
 
-    /// The HWP zero angle (deg) the table's q, u already carry, from its column
-    /// [`ZERO_ANGLE_COLUMN`] (what `instpol catalog` writes; one value for every row, else an
-    /// error naming the first row that differs); `None` without the column (q, u as measured,
-    /// at the plate).
-    pub fn carried_zero_angle(&self, path: &Path) -> Result<Option<f64>, Error> {
+    /// The frame of the table's q, u: the sky's, with the HWP zero angle (deg) they carry in
+    /// the column [`ZERO_ANGLE_COLUMN`] (what `instpol catalog` writes; one value for every row,
+    /// else an error naming the first row that differs); the plate's without the column (q, u
+    /// as measured).
+    pub fn frame(&self, path: &Path) -> Result<mueller::Frame, Error> {
         if self.column(ZERO_ANGLE_COLUMN).is_none() {
-            return Ok(None);
+            return Ok(mueller::Frame::Plate);
         }
         let z = self.numbers(ZERO_ANGLE_COLUMN, path)?;
         let z0 = z.first().copied().unwrap_or(0.0);
@@ -184,7 +184,7 @@ impl Table {
                 ),
             ));
         }
-        Ok(Some(z0))
+        Ok(mueller::Frame::Sky { zero_angle_deg: z0 })
     }
 
     /// The unit column `name` declares (astropy's unit string, trimmed), `None` when it
