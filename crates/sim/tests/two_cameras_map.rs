@@ -1,0 +1,122 @@
+//! A per-pixel Stokes map of two cameras behind a polarizing beam splitter: simulated frames of
+//! a uniformly polarized sky (each exposure two raw files, one per camera; the e camera flipped
+//! in x, shifted by a fraction of a pixel, with a 3 % higher gain and flat-field errors of its
+//! own) reduced by `skyfield::reduce` (the e camera resampled onto the o camera's pixels
+//! through the camera transform, bilinearly) to the sky's q, u within the bins' errors.
+
+use skyfield::reduce::{reduce_files, ReduceConfig};
+use std::path::{Path, PathBuf};
+
+/// Two 160 x 160 px cameras, 10 px apart in the detector frame, 8 overscan columns each; the o
+/// camera's pixel (x, y) falls at (x + 1.7, y - 2.3) on the e camera once that is flipped back
+/// in x (the transform of crates/sim/tests/two_cameras.rs); the e camera's gain 3 % above the
+/// o camera's; a plate standing still at the header's angle.
+fn instrument(dir: &Path) -> PathBuf {
+    let text = r#"name = "TWOCAM"
+[detector]
+nx = 330
+ny = 160
+pixel_scale_arcsec = 0.44
+gain_e_per_adu = 1.0
+read_noise_e = 5.0
+saturation_adu = 65535.0
+[field]
+width_arcmin = 2.42
+height_arcmin = 1.17
+[polarimetry]
+layout = "two_cameras"
+hwp_angle_keyword = "HWPANG"
+filter_keyword = "FILTER1"
+exptime_keyword = "EXPTIME"
+[polarimetry.cameras]
+o_chip = "CAM1"
+e_chip = "CAM2"
+e_orientation = "flip_x"
+transform = [1.0, 0.0, 1.7, 0.0, 1.0, -2.3]
+[format]
+exposure_keywords = ["MOPRUN"]
+[[format.chips]]
+name = "CAM1"
+match_keyword = "CAMERA"
+match_value = "1"
+origin_px = [0, 0]
+size_px = [160, 160]
+overscan_x = 8
+gain_e_per_adu = 1.0
+[[format.chips]]
+name = "CAM2"
+match_keyword = "CAMERA"
+match_value = "2"
+origin_px = [170, 0]
+size_px = [160, 160]
+overscan_x = 8
+gain_e_per_adu = 1.03
+[[filters]]
+name = "R"
+lambda_eff_nm = 650.0
+"#;
+    let p = dir.join("twocam.toml");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+const P: f64 = 0.04;
+const CHI_DEG: f64 = 30.0;
+
+/// The must-show: the sky's q, u (the simulator's truth, `P cos 2chi`, `P sin 2chi`) in every
+/// valid bin within its errors (pulls over all bins with an RMS near 1, none beyond 4.5); every
+/// bin's error is the photon error of its mean, the closed form `sqrt(2 / N) / sqrt(n S)`
+/// (`eq:sigp` over `n` pixels of `S` e- per exposure; read noise added), which the bins'
+/// scatter understates for the resampled pixels' correlated noise; the bins cover the o camera
+/// from its first pixel, and those whose pixels' e images fall off the e camera are the edge.
+#[test]
+fn uniform_sky_through_two_cameras_gives_its_q_u() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst_path = instrument(dir.path());
+    let body = format!(
+        "instrument = \"{}\"\nfilter = \"R\"\nseed = 12\nhwp_angles_deg = [0, 22.5, 45, 67.5]\n[output]\nbitpix = -32\n\
+         [sky]\nbrightness_e = 4000\np = {P}\nchi_deg = {CHI_DEG}\n[effects]\nphoton_noise = true\nread_noise = true\n\
+         flat = {{ pixel_rms_o = 0.004, pixel_rms_e = 0.007, large_scale_o = 0.01, large_scale_e = 0.02 }}\n",
+        inst_path.display()
+    );
+    let sc = sim::Scene::from_toml_str(&body, &dir.path().join("scene.toml")).unwrap();
+    let files = sim::simulate(&sc, &dir.path().join("frames"), &|| {}).unwrap().frames;
+    assert_eq!(files.len(), 8, "two files per exposure");
+    let inst = instrument::Instrument::load(inst_path.to_str().unwrap()).unwrap();
+    let m = reduce_files(&files, &inst, &ReduceConfig { bin_px: 16, ..Default::default() }, &|| {}).unwrap().map;
+    let g = &m.geometry;
+    assert_eq!((g.origin_x, g.origin_y, g.nx, g.ny, g.detector_nx), (0, 0, 10, 10, 330));
+    // Bilinear interpolation needs the four e pixels around a point: the o camera's last two
+    // columns (x + 1.7 + 1 > 159, flipped: below e column 0) and first three rows (y - 2.3 < 0)
+    // have them off the e camera and are masked; their bins keep the rest.
+    assert_eq!(m.n_valid(), 100);
+    let (q0, u0) = (P * (2.0 * CHI_DEG.to_radians()).cos(), P * (2.0 * CHI_DEG.to_radians()).sin());
+    let mut pulls = Vec::new();
+    for (k, i, j) in m.valid_bins() {
+        let full = if i == 9 { 14 } else { 16 } * if j == 0 { 13 } else { 16 };
+        // (The sigma clipping of q, u and the intensity keeps most of the rest.)
+        assert!(
+            m.n_pixels[k] as usize <= full && m.n_pixels[k] as f64 >= 0.9 * full as f64,
+            "bin ({i}, {j}): {}",
+            m.n_pixels[k]
+        );
+        let (pq, pu) = ((m.q[k] - q0) / m.sigma_q[k], (m.u[k] - u0) / m.sigma_u[k]);
+        assert!(pq.abs() < 4.5 && pu.abs() < 4.5, "bin ({i}, {j}): q {} u {} +- {}", m.q[k], m.u[k], m.sigma_q[k]);
+        pulls.extend([pq, pu]);
+        // eq:sigp per pixel and exposure, sigma_F^2 = (S + 2 rn^2) / S^2 (S = f_O + f_E), over n
+        // pixels and N = 4 angles: sigma_Q^2 = (2 / N) sigma_F^2 / n.
+        let s = m.intensity[k];
+        let closed = (0.5 * (s + 2.0 * 25.0) / (s * s) / m.n_pixels[k] as f64).sqrt();
+        assert!((m.sigma_q[k] / closed - 1.0).abs() < 0.03, "bin ({i}, {j}): {} vs {closed}", m.sigma_q[k]);
+    }
+    // The scatter of the resampled pixels understates the error: in (nearly) every bin the
+    // photon error is the larger, and the error given.
+    let photon = m.valid_bins().filter(|&(k, _, _)| m.sigma_q[k] == m.sigma_q_phot[k]).count();
+    eprintln!("two cameras: the photon error is the larger in {photon} of {} bins", m.n_valid());
+    assert!(photon >= 90, "{photon}");
+    let rms = (pulls.iter().map(|p| p * p).sum::<f64>() / pulls.len() as f64).sqrt();
+    let mean = pulls.iter().sum::<f64>() / pulls.len() as f64;
+    eprintln!("two cameras: {} pulls, RMS {rms:.3}, mean {mean:+.3}", pulls.len());
+    assert!((0.8..1.2).contains(&rms), "pull RMS {rms}");
+    assert!(mean.abs() < 4.0 / (pulls.len() as f64).sqrt(), "mean pull {mean}");
+}
