@@ -68,7 +68,7 @@ const CHI_DEG: f64 = 30.0;
 /// bin's error is the photon error of its mean, the closed form `sqrt(2 / N) / sqrt(n S)`
 /// (`eq:sigp` over `n` pixels of `S` e- per exposure; read noise added), which the bins'
 /// scatter understates for the resampled pixels' correlated noise; the bins cover the o camera
-/// from its first pixel, and those whose pixels' e images fall off the e camera are the edge.
+/// at the instrument's field positions (arcmin from the o camera's centre).
 #[test]
 fn uniform_sky_through_two_cameras_gives_its_q_u() {
     let dir = tempfile::tempdir().unwrap();
@@ -85,7 +85,14 @@ fn uniform_sky_through_two_cameras_gives_its_q_u() {
     let inst = instrument::Instrument::load(inst_path.to_str().unwrap()).unwrap();
     let m = reduce_files(&files, &inst, &ReduceConfig { bin_px: 16, ..Default::default() }, &|| {}).unwrap().map;
     let g = &m.geometry;
-    assert_eq!((g.origin_x, g.origin_y, g.nx, g.ny, g.detector_nx), (0, 0, 10, 10, 330));
+    // The map's detector is the o camera (at the frame's origin here): its bins' field positions
+    // are the instrument's, arcmin from the o camera's centre.
+    assert_eq!((g.origin_x, g.origin_y, g.nx, g.ny, g.detector_nx, g.detector_ny), (0, 0, 10, 10, 160, 160));
+    for (i, j) in [(0, 0), (9, 4), (3, 9)] {
+        let (x, y) = g.centre_px(i, j);
+        let (a, b) = (g.centre_arcmin(i, j), inst.pixel_to_arcmin(x, y));
+        assert!((a.0 - b.0).abs() < 1e-12 && (a.1 - b.1).abs() < 1e-12, "bin ({i}, {j}): {a:?} vs {b:?}");
+    }
     // Bilinear interpolation needs the four e pixels around a point: the o camera's last two
     // columns (x + 1.7 + 1 > 159, flipped: below e column 0) and first three rows (y - 2.3 < 0)
     // have them off the e camera and are masked; their bins keep the rest.

@@ -903,8 +903,8 @@ fn reduce_set_plate(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Re
 /// stars of the first angle's frame, [`crate::layout`]), by bilinear interpolation
 /// ([`crate::beams::CameraMap::e_value`]), and the pair laid out as the one strip of a strip
 /// layout (o camera in rows `0..h`, its resampled e image in rows `h..2h`), which the
-/// reduction proper then takes as it takes a mask strip. The map is put back on the o camera's
-/// pixels of the detector frame (its bins start at the o chip's first pixel).
+/// reduction proper then takes as it takes a mask strip. The map is put on the o camera's own
+/// pixels ([`on_o_camera`]).
 ///
 /// Errors: a resampled pixel is a weighted mean of four e pixels, so neighbouring pixels share
 /// noise and each one's scatter is below an e pixel's (the weights' squares sum to 1/4 ... 1);
@@ -980,10 +980,11 @@ fn reduce_two_cameras(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> 
     Ok((r, zero))
 }
 
-/// The map of a two-camera pair ([`reduce_two_cameras`]) put on the o camera of the detector
-/// frame: only the bin rows of the o camera kept, the bins starting at the o chip's first
-/// pixel, and every bin's error the larger of its scatter and photon errors (the resampled e
-/// pixels' noise is correlated: see [`reduce_two_cameras`]).
+/// The map of a two-camera pair ([`reduce_two_cameras`]) put on the o camera: only the bin rows
+/// of the o camera kept, its pixels the o camera's own (from its first pixel: the detector
+/// frame's when the o camera sits at the frame's origin, as MOPTOP's camera 1 does), and every
+/// bin's error the larger of its scatter and photon errors (the resampled e pixels' noise is
+/// correlated: see [`reduce_two_cameras`]).
 fn on_o_camera(m: &mut StokesMap, inst: &Instrument, c: &crate::beams::CameraMap) {
     let b = m.geometry.bin_px;
     let nbx = m.geometry.nx;
@@ -1010,15 +1011,17 @@ fn on_o_camera(m: &mut StokesMap, inst: &Instrument, c: &crate::beams::CameraMap
         m.sigma_q[k] = m.sigma_q[k].max(m.sigma_q_phot[k]);
         m.sigma_u[k] = m.sigma_u[k].max(m.sigma_u_phot[k]);
     }
+    // The map's detector is the o camera: its field coordinates are then centred on the o
+    // camera, as the instrument's are for two cameras (`instrument::Instrument::field_coords`).
     m.geometry = BinGeometry {
         bin_px: b,
-        origin_x: c.o_origin.0,
-        origin_y: c.o_origin.1,
+        origin_x: 0,
+        origin_y: 0,
         nx: nbx,
         ny: nby,
         pixel_scale_arcsec: inst.detector.pixel_scale_arcsec,
-        detector_nx: inst.detector.nx,
-        detector_ny: inst.detector.ny,
+        detector_nx: c.o_size.0,
+        detector_ny: c.o_size.1,
     };
 }
 
