@@ -196,3 +196,31 @@ fn the_plate_decides_the_map() {
     let e = refused(reduce_circular_files_with(&out.frames, &blind, &cfg, &opts, &|| {}).map(|_| ()));
     assert!(e.contains("[0, 90] deg do not determine V"), "{e}");
 }
+
+/// The sky's V reaches the frames through the plate alone: a scene that puts the field's
+/// elements or a telescope in front of it is refused, naming `sky.v` and why (a telescope in
+/// front of a quarter-wave plate is refused already; the telescope case is a half-wave
+/// instrument's, whose plate passes a little V when its retardance is off).
+#[test]
+fn a_sky_v_behind_the_field_or_a_telescope_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst = instrument_file(dir.path());
+    let base = format!(
+        "instrument = \"{}\"\nfilter = \"V\"\nhwp_angles_deg = [-45, 45]\n[sky]\nbrightness_e = 100\nv = 0.01\n",
+        inst.display()
+    );
+    let field = format!("{base}[effects]\ninstpol = {{ kind = \"radial\", coeffs_percent = [0, 0.05] }}\n");
+    let e = match sim::Scene::from_toml_str(&field, &dir.path().join("field.toml")).map(|sc| sim::Plan::build(&sc)) {
+        Ok(Ok(_)) => panic!("a sky's V behind an instrumental field was accepted"),
+        Ok(Err(e)) | Err(e) => e.to_string(),
+    };
+    assert!(e.contains("sky.v") && e.contains("instrumental field"), "{e}");
+    // (A quarter-wave instrument behind a telescope is refused as such: a half-wave one here.)
+    let tel = "instrument = \"fors1\"\nfilter = \"V\"\n[sky]\nbrightness_e = 100\nv = 0.01\n\
+               [telescope]\nmetal = \"aluminium\"\ndec_deg = -30\nha_start_deg = 15\n";
+    let e = match sim::Scene::from_toml_str(tel, &dir.path().join("tel.toml")) {
+        Ok(_) => panic!("a sky's V behind a telescope was accepted"),
+        Err(e) => e.to_string(),
+    };
+    assert!(e.contains("sky.v") && e.contains("[telescope]"), "{e}");
+}

@@ -12,7 +12,12 @@ use std::path::{Path, PathBuf};
 /// in x (the transform of crates/sim/tests/two_cameras.rs); the e camera's gain 3 % above the
 /// o camera's; a plate standing still at the header's angle.
 fn instrument(dir: &Path) -> PathBuf {
-    let text = r#"name = "TWOCAM"
+    let p = dir.join("twocam.toml");
+    std::fs::write(&p, TWOCAM).unwrap();
+    p
+}
+
+const TWOCAM: &str = r#"name = "TWOCAM"
 [detector]
 nx = 330
 ny = 160
@@ -55,10 +60,6 @@ gain_e_per_adu = 1.03
 name = "R"
 lambda_eff_nm = 650.0
 "#;
-    let p = dir.join("twocam.toml");
-    std::fs::write(&p, text).unwrap();
-    p
-}
 
 const P: f64 = 0.04;
 const CHI_DEG: f64 = 30.0;
@@ -126,4 +127,44 @@ fn uniform_sky_through_two_cameras_gives_its_q_u() {
     eprintln!("two cameras: {} pulls, RMS {rms:.3}, mean {mean:+.3}", pulls.len());
     assert!((0.8..1.2).contains(&rms), "pull RMS {rms}");
     assert!(mean.abs() < 4.0 / (pulls.len() as f64).sqrt(), "mean pull {mean}");
+}
+
+/// Without a transform in the instrument file the reduction measures it from the stars of the
+/// first frame (`skyfield::layout`) and says so in a warning: frames of the same sky with 12
+/// stars of the sky's own polarization (so that the bins they fall in keep the sky's q, u)
+/// reduce to a map whose bins agree with the sky's q, u within their errors, as with the
+/// file's transform.
+#[test]
+fn transform_measured_from_stars_gives_the_sky() {
+    let dir = tempfile::tempdir().unwrap();
+    let sim_inst = instrument(dir.path());
+    let read = dir.path().join("twocam_read.toml");
+    let text = TWOCAM.replace("transform = [1.0, 0.0, 1.7, 0.0, 1.0, -2.3]\n", "max_residual_px = 0.3\n");
+    assert_ne!(text, TWOCAM);
+    std::fs::write(&read, text).unwrap();
+    let mut body = format!(
+        "instrument = \"{}\"\nfilter = \"R\"\nseed = 13\nhwp_angles_deg = [0, 22.5, 45, 67.5]\n[output]\nbitpix = -32\n\
+         [sky]\nbrightness_e = 4000\np = {P}\nchi_deg = {CHI_DEG}\n[effects]\nphoton_noise = true\nread_noise = true\n",
+        sim_inst.display()
+    );
+    for k in 0..12 {
+        let (x, y) = (20.0 + 37.3 * (k % 4) as f64, 25.0 + 48.1 * (k / 4) as f64);
+        body += &format!(
+            "[[stars]]\nx = {x}\ny = {y}\ncoords = \"pixel\"\nflux_e = 4e5\np = {P}\nchi_deg = {CHI_DEG}\nfwhm_arcsec = 1.0\n"
+        );
+    }
+    let sc = sim::Scene::from_toml_str(&body, &dir.path().join("scene.toml")).unwrap();
+    let files = sim::simulate(&sc, &dir.path().join("frames"), &|| {}).unwrap().frames;
+    let inst = instrument::Instrument::load(read.to_str().unwrap()).unwrap();
+    let r = reduce_files(&files, &inst, &ReduceConfig { bin_px: 16, ..Default::default() }, &|| {}).unwrap();
+    let note: Vec<String> = r.warnings.iter().map(|w| w.to_string()).collect();
+    assert!(note.iter().any(|w| w.contains("camera transform measured from")), "{note:?}");
+    let m = &r.map;
+    assert_eq!(m.n_valid(), 100);
+    let (q0, u0) = (P * (2.0 * CHI_DEG.to_radians()).cos(), P * (2.0 * CHI_DEG.to_radians()).sin());
+    let pulls: Vec<f64> =
+        m.valid_bins().flat_map(|(k, _, _)| [(m.q[k] - q0) / m.sigma_q[k], (m.u[k] - u0) / m.sigma_u[k]]).collect();
+    let rms = (pulls.iter().map(|p| p * p).sum::<f64>() / pulls.len() as f64).sqrt();
+    eprintln!("two cameras, measured transform: {} pulls, RMS {rms:.3}; {note:?}", pulls.len());
+    assert!(pulls.iter().all(|p| p.abs() < 4.5) && (0.8..1.2).contains(&rms), "RMS {rms}: {pulls:?}");
 }
