@@ -492,6 +492,31 @@ fn qwp_frames(f: &Fix) -> (String, Vec<String>) {
     .clone()
 }
 
+/// The tiny FORS1 with a quarter-wave plate and its frames of a sky with V/I = 1 % at -45 and
+/// 45 deg, simulated once: (the instrument, the frames).
+fn qwp_sky_frames(f: &Fix) -> (String, Vec<String>) {
+    static QWP: OnceLock<(String, Vec<String>)> = OnceLock::new();
+    QWP.get_or_init(|| {
+        let text = std::fs::read_to_string(&f.tiny).unwrap();
+        let inst = f.d.join("tiny_qwp.toml");
+        std::fs::write(&inst, text.replace("[polarimetry]\n", "[polarimetry]\nplate = \"quarter_wave\"\n")).unwrap();
+        let scene = f.d.join("qwp_sky.toml");
+        std::fs::write(
+            &scene,
+            format!(
+                "instrument = {:?}\nfilter = \"V\"\nhwp_angles_deg = [-45, 45]\n[sky]\nbrightness_e = 3000\nv = 0.01\n",
+                s(&inst)
+            ),
+        )
+        .unwrap();
+        let dir = f.d.join("qwp_sky");
+        let (code, _, err) = common::run(&v(&["simulate", &s(&scene), "--out", &s(&dir)]));
+        assert_eq!(code, 0, "{err}");
+        (s(&inst), common::fits_in(&dir).iter().map(|p| s(p)).collect())
+    })
+    .clone()
+}
+
 fn out(f: &Fix, name: &str) -> String {
     s(&f.d.join(format!("{}_{name}", std::process::id())))
 }
@@ -532,6 +557,14 @@ const CASES: &[(&str, Args)] = &[
         let mut a = v(&["reduce"]);
         a.extend(f.sky_frames.iter().cloned());
         a.extend(v(&["--instrument", &s(&f.tiny), "--bin", "10", "--out", &out(f, "map.fits")]));
+        a
+    }),
+    ("reduce-circular", |f| {
+        // A quarter-wave plate's frames: the V/I map's summary.
+        let (inst, frames) = qwp_sky_frames(f);
+        let mut a = v(&["reduce"]);
+        a.extend(frames);
+        a.extend(v(&["--instrument", &inst, "--bin", "10", "--out", &out(f, "vmap_circ.fits")]));
         a
     }),
     ("master-bias", |f| {
@@ -650,7 +683,8 @@ macro_rules! cases {
 }
 
 cases! {
-    simulate_json => "simulate", reduce_json => "reduce", master_bias_json => "master-bias",
+    simulate_json => "simulate", reduce_json => "reduce", reduce_circular_json => "reduce-circular",
+    master_bias_json => "master-bias",
     master_flat_json => "master-flat", photometry_json => "photometry", catalog_json => "catalog",
     photometry_circular_json => "photometry-circular",
     zero_angle_json => "zero-angle", calibrate_json => "calibrate", calibrate_stars_json => "calibrate-stars", fit_json => "fit", plot_json => "plot",

@@ -175,3 +175,65 @@ fn a_pedestal_left_in_plain_frames_is_refused() {
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert!((j["median_p"].as_f64().unwrap() - 0.0645).abs() < 1e-9, "{j}");
 }
+
+/// Through a quarter-wave plate (the tiny FORS1 with `plate = "quarter_wave"`), `instpol reduce`
+/// writes a V/I map: noiseless frames of a sky with V/I = 1.5 % and 4 % linear polarization at
+/// -45 and 45 deg give every valid bin the sky's V/I (the closed form `v = (F(45) - F(-45)) /
+/// 2`, where the linear terms vanish), read back from the file (`STOKES = 'V'`); the JSON
+/// summary says so. The commands that need Q/I, U/I (calibrate, calibrate-mueller, correct)
+/// refuse the map, saying what it is.
+#[test]
+fn quarter_wave_plate_reduces_to_a_v_map_the_q_u_readers_refuse() {
+    let dir = tempfile::tempdir().unwrap();
+    let tiny = std::fs::read_to_string(tiny_instrument(dir.path())).unwrap();
+    let inst = dir.path().join("tiny_qwp.toml");
+    std::fs::write(&inst, tiny.replace("[polarimetry]\n", "[polarimetry]\nplate = \"quarter_wave\"\n")).unwrap();
+    let scene = dir.path().join("qwp.toml");
+    std::fs::write(
+        &scene,
+        format!(
+            "instrument = \"{}\"\nfilter = \"V\"\nhwp_angles_deg = [-45, 45]\n[output]\nbitpix = -64\n[sky]\n\
+             brightness_e = 3000\np = 0.04\nchi_deg = 30\nv = 0.015\n",
+            inst.display()
+        ),
+    )
+    .unwrap();
+    let o = instpol().arg("simulate").arg(&scene).arg("--out").arg(dir.path().join("f")).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let frames = fits_in(&dir.path().join("f"));
+    let map = dir.path().join("vmap.fits");
+    let o = instpol()
+        .arg("reduce")
+        .args(&frames)
+        .args(["--instrument", inst.to_str().unwrap(), "--bin", "10", "--out", map.to_str().unwrap(), "--json"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(j["stokes"], "V", "{j}");
+    assert_eq!(j["plate_deg"], serde_json::json!([-45.0, 45.0]));
+    assert!((j["median_v"].as_f64().unwrap() - 0.015).abs() < 1e-10, "{j}");
+    let m = skyfield::CircularMap::read_fits(&map).unwrap();
+    // One 40-px strip (4 bin rows), 128 px across: 12 bins of 10 px and one of 8.
+    assert_eq!(m.n_valid(), 13 * 4);
+    for (k, _, _) in m.valid_bins() {
+        assert!((m.v[k] - 0.015).abs() < 1e-10, "bin {k}: {}", m.v[k]);
+    }
+    let cal = dir.path().join("cal.fits");
+    common::fors1_radial_calibration("V", common::V_COEFFS).save(&cal).unwrap();
+    let m_s = map.to_str().unwrap();
+    let field = format!("{m_s}:4:10");
+    let out = |n: &str| dir.path().join(n).to_string_lossy().into_owned();
+    for args in [
+        common::calibrate_v_args(&map, &dir.path().join("c.fits")),
+        ["calibrate-mueller", "--field", &field, "--out", &out("mf.json")].map(String::from).to_vec(),
+        ["correct", "--cal", cal.to_str().unwrap(), "--in", m_s, "--out", &out("corr.fits")].map(String::from).to_vec(),
+    ] {
+        let (code, _, err) = common::run(&args);
+        assert_eq!(code, 2, "{args:?}: {err}");
+        assert!(
+            err.contains("vmap.fits") && err.contains("STOKES = 'V'") && err.contains("holds no Q/I, U/I"),
+            "{args:?}: {err}"
+        );
+    }
+}

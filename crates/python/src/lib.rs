@@ -13,7 +13,7 @@
 //! | `Calibration.load`         | `fit::Calibration::load` (`instpol correct --cal`)         |
 //! | `Calibration.evaluate`     | `fit::correct::Corrector::instrumental`                    |
 //! | `Calibration.correct`      | `fit::correct::Corrector::par_correct_batch` (`correct`)   |
-//! | `instpol.reduce`           | `skyfield::reduce::reduce_files_with` (`instpol reduce`)   |
+//! | `instpol.reduce`           | `skyfield::reduce::reduce_for_plate` (`instpol reduce`)    |
 //! | `instpol.catalog`          | `skyfield::catalog::catalog_files` (`instpol catalog`)     |
 //!
 //! Errors: `instpol.InputError` (a `ValueError`) for bad values or file contents,
@@ -907,29 +907,48 @@ fn _reduce<'py>(
     };
     let read = read_options(bias, flat, hwp_angles, assembled)?;
     refuse_overwrite(output.as_deref(), frames.iter().chain(&read.bias).chain(&read.flat))?;
+    // The instrument's plate decides the map (the library's rule, as `instpol reduce` takes it).
     let r = py
         .detach(|| {
-            let mut r = skyfield::reduce::reduce_files_with(&frames, &inst, &cfg, &read, &|| {})?;
-            // The exposures' telescope angles, as `instpol reduce` records them.
-            fit::telescope_cal::record_telescope_angles(&mut r.map, &r.exposures, &frames, &inst);
-            if let Some(out) = &output {
-                r.map.write_fits(out)?;
+            let mut r = skyfield::reduce::reduce_for_plate(&frames, &inst, &cfg, &read, &|| {})?;
+            match &mut r {
+                skyfield::reduce::PlateReduced::Linear(r) => {
+                    // The exposures' telescope angles, as `instpol reduce` records them.
+                    fit::telescope_cal::record_telescope_angles(&mut r.map, &r.exposures, &frames, &inst);
+                    if let Some(out) = &output {
+                        r.map.write_fits(out)?;
+                    }
+                }
+                skyfield::reduce::PlateReduced::Circular(r) => {
+                    if let Some(out) = &output {
+                        r.map.write_fits(out)?;
+                    }
+                }
             }
             Ok::<_, skyfield::Error>(r)
         })
         .map_err(sky_err)?;
-    map_dict(py, &r.map, r.warnings.iter().map(|w| w.to_string()).collect())
+    match &r {
+        skyfield::reduce::PlateReduced::Linear(r) => {
+            map_dict(py, &r.map, r.warnings.iter().map(|w| w.to_string()).collect())
+        }
+        skyfield::reduce::PlateReduced::Circular(r) => {
+            circular_map_dict(py, &r.map, r.warnings.iter().map(|w| w.to_string()).collect())
+        }
+    }
 }
 
-/// A Stokes map as the Python package returns it: its arrays flat, in bin order (row j,
-/// column i at j * nx + i), its header values and `warnings`.
-fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>) -> PyResult<Bound<'py, PyDict>> {
-    let g = &m.geometry;
-    let d = PyDict::new(py);
+/// The header values and bin centres every map dict carries (`map_dict`, `circular_map_dict`).
+fn map_header<'py>(
+    py: Python<'py>,
+    d: &Bound<'py, PyDict>,
+    g: &skyfield::BinGeometry,
+    instrument: &str,
+    filter: &str,
+) -> PyResult<Bound<'py, PyDict>> {
     let h = PyDict::new(py);
-    h.set_item("instrument", &m.instrument)?;
-    h.set_item("filter", &m.filter)?;
-    h.set_item("hwp_angles_deg", m.hwp_angles_deg.clone())?;
+    h.set_item("instrument", instrument)?;
+    h.set_item("filter", filter)?;
     h.set_item("bin_px", g.bin_px)?;
     h.set_item("origin_x", g.origin_x)?;
     h.set_item("origin_y", g.origin_y)?;
@@ -938,6 +957,54 @@ fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>
     h.set_item("pixel_scale_arcsec", g.pixel_scale_arcsec)?;
     h.set_item("detector_nx", g.detector_nx)?;
     h.set_item("detector_ny", g.detector_ny)?;
+    let (mut xa, mut ya) = (Vec::with_capacity(g.len()), Vec::with_capacity(g.len()));
+    for j in 0..g.ny {
+        for i in 0..g.nx {
+            let (x, y) = g.centre_arcmin(i, j);
+            xa.push(x);
+            ya.push(y);
+        }
+    }
+    d.set_item("x_arcmin", arr1(py, xa))?;
+    d.set_item("y_arcmin", arr1(py, ya))?;
+    Ok(h)
+}
+
+/// A quarter-wave plate's V/I map as the Python package returns it (`instpol.CircularMap`):
+/// `v`, `sigma_v`, `sigma_v_phot`, coverage, intensity, validity flat in bin order, the header
+/// (with `stokes = "V"`, `plate_angles_deg`, `qwp_zero_angle_deg`) and `warnings`.
+fn circular_map_dict<'py>(
+    py: Python<'py>,
+    m: &skyfield::CircularMap,
+    warnings: Vec<String>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    let h = map_header(py, &d, &m.geometry, &m.instrument, &m.filter)?;
+    h.set_item("stokes", "V")?;
+    h.set_item("plate_angles_deg", m.plate_angles_deg.clone())?;
+    h.set_item("qwp_zero_angle_deg", m.qwp_zero_angle_deg)?;
+    d.set_item("header", h)?;
+    for (name, v) in [
+        ("v", &m.v),
+        ("sigma_v", &m.sigma_v),
+        ("sigma_v_phot", &m.sigma_v_phot),
+        ("intensity", &m.intensity),
+        ("intensity_snr", &m.intensity_snr),
+    ] {
+        d.set_item(name, arr1(py, v.clone()))?;
+    }
+    d.set_item("n_pixels", PyArray1::from_vec(py, m.n_pixels.clone()))?;
+    d.set_item("valid", bools(py, m.valid.clone()))?;
+    d.set_item("warnings", warnings)?;
+    Ok(d)
+}
+
+/// A Stokes map as the Python package returns it: its arrays flat, in bin order (row j,
+/// column i at j * nx + i), its header values and `warnings`.
+fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    let h = map_header(py, &d, &m.geometry, &m.instrument, &m.filter)?;
+    h.set_item("hwp_angles_deg", m.hwp_angles_deg.clone())?;
     // What the map's q, u lack to be in the sky frame (HWPZERO; None when not recorded).
     h.set_item("hwp_zero_angle_deg", m.hwp_zero_angle_deg)?;
     d.set_item("header", h)?;
@@ -958,16 +1025,6 @@ fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>
     d.set_item("chi_deg", arr1(py, m.chi.iter().map(|c| c.to_degrees()).collect()))?;
     d.set_item("n_pixels", PyArray1::from_vec(py, m.n_pixels.clone()))?;
     d.set_item("valid", bools(py, m.valid.clone()))?;
-    let (mut xa, mut ya) = (Vec::with_capacity(g.len()), Vec::with_capacity(g.len()));
-    for j in 0..g.ny {
-        for i in 0..g.nx {
-            let (x, y) = g.centre_arcmin(i, j);
-            xa.push(x);
-            ya.push(y);
-        }
-    }
-    d.set_item("x_arcmin", arr1(py, xa))?;
-    d.set_item("y_arcmin", arr1(py, ya))?;
     d.set_item("warnings", warnings)?;
     Ok(d)
 }

@@ -74,6 +74,15 @@ enum SkyAtPlate {
     Image(Vec<Iqu>),
 }
 
+/// The sky's circular polarization at the plate (e-/px per exposure: `sky.v` times the sky's
+/// brightness): one value for a uniform sky, else one per sky pixel (in the order of
+/// `Plan::sky_pixels`).
+#[derive(Debug, Clone)]
+enum SkyV {
+    Constant(f64),
+    Image(Vec<f64>),
+}
+
 /// A per-pixel detector step, applied in this order to the electrons of each pixel.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum DetStep {
@@ -116,6 +125,8 @@ pub struct Plan {
     /// Per plate angle: `f_O`, `f_E` of unit `V` at the plate (the rows' fourth column, for
     /// stars with circular polarization: a quarter-wave plate turns V into the beams' difference).
     rows_v: Vec<(f64, f64)>,
+    /// The sky's `V` at the plate (scene `sky.v`), which the sky's `(I, Q, U)` does not hold.
+    sky_v: Option<SkyV>,
     flat: Option<Vec<f64>>,
     steps: Vec<DetStep>,
     cosmic: Option<crate::scene::CosmicSpec>,
@@ -557,6 +568,38 @@ impl Plan {
             }
             SkyAtPlate::Image(img)
         };
+        // The sky's V reaches the beams through the plate's fourth column (`rows_v`). The field's
+        // elements (an instrumental field, a stressed lens, plate defects) would mix it with
+        // I, Q, U pixel by pixel, which the sky image of (I, Q, U) does not carry: refused (a
+        // telescope is refused by the scene's checks).
+        let sky_v = match scene.sky.as_ref().filter(|s| s.v != 0.0) {
+            None => None,
+            Some(_) if !chain.is_empty() => {
+                return Err(Error::Scene {
+                    path: PathBuf::from("<scene>"),
+                    message: "sky.v: the sky's circular polarization is not carried through the instrumental field's \
+                              elements ([effects.instpol], a stressed lens, plate defects): the sky image holds \
+                              (I, Q, U)"
+                        .into(),
+                })
+            }
+            Some(s) => {
+                explain.push(format!("  sky V/I = {} (through the plate's V column)", s.v));
+                Some(match (&sky, s.gradient_e_per_arcmin) {
+                    (SkyAtPlate::Constant(_), _) | (_, None) => SkyV::Constant(s.brightness_e * s.v),
+                    (SkyAtPlate::Image(_), Some([gx, gy])) => SkyV::Image(
+                        sky_pixels
+                            .iter()
+                            .map(|&(o, _)| {
+                                let (x, y) = ((o as usize) % geom.nx, (o as usize) / geom.nx);
+                                let (xa, ya) = inst.pixel_to_arcmin(x as f64, y as f64);
+                                s.v * (s.brightness_e + gx * xa + gy * ya).max(0.0)
+                            })
+                            .collect(),
+                    ),
+                })
+            }
+        };
 
         // --- the optics: the one forward model, compiled once ---
         let mut hwp = Hwp { nominal_retardance: inst.polarimetry.plate.retardance(), ..Hwp::ideal() };
@@ -720,6 +763,7 @@ impl Plan {
             sky,
             rows,
             rows_v,
+            sky_v,
             flat,
             steps,
             cosmic: fx.cosmic_rays.clone(),
@@ -828,6 +872,11 @@ impl Plan {
                         img[e as usize] = dot(&re, s);
                     }
                 }
+            }
+            // The sky's V in each beam, through the plate's V column (a telescope in front is
+            // refused with it).
+            if let Some(sv) = &self.sky_v {
+                self.add_sky_v(&mut img, sv, self.rows_v[k]);
             }
         }
         for st in &self.moving {
@@ -962,6 +1011,37 @@ impl Plan {
                     if reaches {
                         img[py * nx + px] += flux * w(px, py) / norm;
                     }
+                }
+            }
+        }
+    }
+
+    /// Add the sky's `V` (`sv`) to `img` through the plate's `V` column `(rvo, rve)`: each
+    /// beam's pixel of every sky pixel (on a maskless detector every pixel holds both beams; on
+    /// two cameras each camera holds one).
+    fn add_sky_v(&self, img: &mut [f64], sv: &SkyV, (rvo, rve): (f64, f64)) {
+        let nx = self.geom.nx;
+        match (sv, self.geom.layout) {
+            (SkyV::Constant(v), instrument::Layout::Maskless) => img.iter_mut().for_each(|x| *x += (rvo + rve) * v),
+            (SkyV::Constant(v), instrument::Layout::TwoCameras) => {
+                for (p, x) in img.iter_mut().enumerate() {
+                    match self.geom.kind(p % nx, p / nx) {
+                        PixelKind::Ordinary(_) => *x += rvo * v,
+                        PixelKind::Extraordinary(_) => *x += rve * v,
+                        _ => {}
+                    }
+                }
+            }
+            (SkyV::Constant(v), _) => {
+                for &(o, e) in &self.sky_pixels {
+                    img[o as usize] += rvo * v;
+                    img[e as usize] += rve * v;
+                }
+            }
+            (SkyV::Image(w), _) => {
+                for (v, &(o, e)) in w.iter().zip(&self.sky_pixels) {
+                    img[o as usize] += rvo * v;
+                    img[e as usize] += rve * v;
                 }
             }
         }

@@ -29,6 +29,7 @@
 //! brightness_e = 20000          # e-/px per exposure at the detector centre
 //! p = 0.0174                    # fraction
 //! chi_deg = -53.8
+//! # v = 0.01                    # circular polarization V/I (fraction, IAU sign; default 0)
 //! gradient_e_per_arcmin = [0, 0]   # optional linear gradient along x, y
 //!
 //! [[stars]]
@@ -306,6 +307,11 @@ pub struct Sky {
     pub p: f64,
     #[serde(default)]
     pub chi_deg: f64,
+    /// Circular polarization `V/I` (fraction, IAU sign, as a star's `v`), the same over the
+    /// sky; `p^2 + v^2 <= 1`. It reaches the beams through the plate's fourth column (a
+    /// quarter-wave plate's modulation of `V`).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub v: f64,
     /// Linear gradient (e-/px per arcmin along detector x and y).
     #[serde(default)]
     pub gradient_e_per_arcmin: Option<[f64; 2]>,
@@ -824,6 +830,21 @@ impl Scene {
         if let Some(s) = &self.sky {
             nonneg("sky.brightness_e", s.brightness_e)?;
             frac("sky.p", s.p)?;
+            if !(s.v.abs() <= 1.0 && s.p * s.p + s.v * s.v <= 1.0 + 1e-12) {
+                return bad(
+                    "sky.v",
+                    s.v.to_string(),
+                    "V/I is a fraction with p^2 + v^2 <= 1 (no light is more than fully polarized)",
+                );
+            }
+            if s.v != 0.0 && self.telescope.is_some() {
+                return bad(
+                    "sky.v",
+                    s.v.to_string(),
+                    "the sky's circular polarization is not carried through [telescope]: the simulator takes (I, Q, U) \
+                     through the telescope's matrices",
+                );
+            }
         }
         for (k, s) in self.stars.iter().enumerate() {
             nonneg(&format!("stars[{k}].flux_e"), s.flux_e)?;

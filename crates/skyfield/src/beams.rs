@@ -22,8 +22,9 @@
 //!   `[format]` chips. The sky's coordinates are the o camera's pixels; a point's e image is
 //!   where the camera transform puts it on the e camera, turned back into the e chip's pixels as
 //!   read ([`CameraMap`]). The transform is the instrument file's, or measured from the stars
-//!   of the frames (`skyfield::photometry::layout_for`). A per-pixel map is refused: the e
-//!   camera would have to be resampled onto the o camera's pixels, which is not built.
+//!   of the frames (`skyfield::photometry::layout_for`). A per-pixel map resamples the e
+//!   camera onto the o camera's pixels through the transform ([`CameraMap::e_value`],
+//!   `skyfield::reduce`).
 //!
 //! Field positions of a sky point are those of its o pixel (arcmin from the detector centre).
 
@@ -78,6 +79,39 @@ impl CameraMap {
         let (tu, tv) = (t[0] * u + t[1] * v + t[2], t[3] * u + t[4] * v + t[5]);
         let (rx, ry) = self.e_orientation.inverse().apply(tu, tv, self.o_size.0, self.o_size.1);
         (self.e_origin.0 as f64 + rx, self.e_origin.1 as f64 + ry)
+    }
+
+    /// The e camera's value at the e image of the o camera's local pixel `(u, v)` (the
+    /// transform `t`, [`Self::e_of_local`]), by bilinear interpolation between the four e chip
+    /// pixels around it in the detector frame `img` (`nx` px wide): NaN when one of the four is
+    /// off the e chip, not finite, or at or above `saturation` (a saturated pixel would
+    /// otherwise pass into its neighbours' values below the level, unmasked). Bilinear
+    /// interpolation keeps a uniform or linear sky as it is and the mean of a bin; it mixes
+    /// neighbouring pixels, so their noise is correlated (see `skyfield::reduce` on the
+    /// errors of the bins).
+    pub fn e_value(&self, img: &[f64], nx: usize, t: &[f64; 6], u: usize, v: usize, saturation: f64) -> f64 {
+        let (xe, ye) = self.e_of_local(t, u as f64, v as f64);
+        let (x0, y0) = (xe.floor(), ye.floor());
+        let (fx, fy) = (xe - x0, ye - y0);
+        if !(x0 >= 0.0 && y0 >= 0.0) {
+            return f64::NAN;
+        }
+        let (x0, y0) = (x0 as usize, y0 as usize);
+        let mut acc = 0.0;
+        for (dx, dy, w) in
+            [(0, 0, (1.0 - fx) * (1.0 - fy)), (1, 0, fx * (1.0 - fy)), (0, 1, (1.0 - fx) * fy), (1, 1, fx * fy)]
+        {
+            let (x, y) = (x0 + dx, y0 + dy);
+            if x >= nx || self.kind(x, y) != PixelKind::Extraordinary(0) {
+                return f64::NAN;
+            }
+            let z = img.get(y * nx + x).copied().unwrap_or(f64::NAN);
+            if !(z.is_finite() && z < saturation) {
+                return f64::NAN;
+            }
+            acc += w * z;
+        }
+        acc
     }
 
     /// The e chip's detector pixel `(x, y)` (real) in the turned e camera's coordinates (the
@@ -206,7 +240,7 @@ impl BeamGeometry {
         match self.layout {
             Layout::Strips => Ok(()),
             Layout::TwoCameras => Err(format!(
-                "instrument {} has two cameras: a per-pixel map would need the e camera's image resampled onto the o camera's pixels through the camera transform, which is not built; point sources work: use photometry or catalog",
+                "instrument {} has two cameras: its sky's o and e images are on two detectors, not in one frame's pixels; a Stokes map resamples the e camera onto the o camera's pixels (reduce), a per-pixel view of the frames as read is not built",
                 self.name
             )),
             Layout::Maskless => Err(format!(

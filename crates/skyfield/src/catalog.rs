@@ -9,9 +9,10 @@ use crate::aperture::Weighting;
 use crate::beams::BeamGeometry;
 use crate::calib::ReadOptions;
 use crate::detect::{detect_reusing, pair, DetectConfig, Source};
+use crate::layout::layout_of_image;
 use crate::photometry::{
-    candidate_radii, check_placement, circular_solver, finish, finish_circular, layout_for, layout_of_image,
-    measure_frame, pick_radius, Aperture, ApertureRadius, FrameFacts, FrameFluxes, Partial, PhotOptions,
+    candidate_radii, check_placement, circular_solver, finish, finish_circular, layout_for, measure_frame, pick_radius,
+    Aperture, ApertureRadius, FrameFacts, FrameFluxes, Partial, PhotOptions,
 };
 use crate::reduce::{DiskFrames, FrameSet, FrameSource};
 use crate::Warning;

@@ -25,6 +25,7 @@ pub mod durable;
 pub mod fits;
 pub mod frame;
 pub mod io;
+pub mod layout;
 pub mod maps;
 pub mod pedestal;
 pub mod photometry;
@@ -35,7 +36,7 @@ pub mod table;
 pub mod wcs;
 
 pub use beams::BeamGeometry;
-pub use maps::{BinGeometry, CorrectionStamp, ExposureTrack, RecordedAngles, StokesMap, TelescopeStamp};
+pub use maps::{BinGeometry, CircularMap, CorrectionStamp, ExposureTrack, RecordedAngles, StokesMap, TelescopeStamp};
 
 use std::path::PathBuf;
 

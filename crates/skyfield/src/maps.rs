@@ -34,6 +34,15 @@
 //! and a correction that must bring them into the sky frame takes it from there (a name in
 //! `INSTRUME` may be a custom instrument file's, whose zero angle no lookup by name can find).
 //! A corrected map also carries the correction's record ([`CorrectionStamp`]).
+//!
+//! A circular-polarization map ([`CircularMap`], frames through a quarter-wave plate) has the
+//! same primary header with `STOKES = 'V'` and `QWPZERO` (deg, the plate's zero angle its
+//! demodulation added to the plate angles, which `NHWP`, `HWPANGk` then hold), and the image
+//! extensions `V` (`V/I`, IAU sign), `SIGMA_V` (from the scatter of the kept pixels),
+//! `SIGV_PHOT` (photon + read noise), `INTENSITY`, `INT_SNR`, `COVERAGE`, `VALID`, with the same
+//! units and WCSs. A map without `STOKES` (or with `STOKES = 'QU'`) is a linear one; the one
+//! Stokes-map reader ([`StokesMap::read_fits`], which fitting, calibrating, correcting and the
+//! Python package use) refuses a `V` map, as it holds no `Q/I`, `U/I`.
 
 use crate::wcs::{CelestialWcs, WcsValue};
 use crate::{fits_err, Error};
@@ -437,6 +446,198 @@ pub fn file_kind(path: &Path) -> Result<FileKind, FileKindError> {
     Ok(FileKind::TextTable)
 }
 
+/// Which Stokes parameters a map holds: its `STOKES` keyword (module docs).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MapStokes {
+    /// `Q/I`, `U/I` from a half-wave plate (no `STOKES` keyword, or `'QU'`).
+    Linear,
+    /// `V/I` from a quarter-wave plate (`STOKES = 'V'`, a [`CircularMap`]).
+    Circular,
+}
+
+/// The `STOKES` keyword of a map's primary header: absent or `'QU'` a linear map, `'V'` a
+/// circular one; anything else is an error naming it.
+fn map_stokes(f: &mut FitsFile, ph: &fitsio::hdu::FitsHdu, path: &Path) -> Result<MapStokes, Error> {
+    match crate::fits::read_key_str(f, ph, "STOKES") {
+        Err(_) => Ok(MapStokes::Linear),
+        Ok(v) => match v.trim() {
+            "QU" => Ok(MapStokes::Linear),
+            "V" => Ok(MapStokes::Circular),
+            _ => Err(Error::BadKeyword {
+                path: path.into(),
+                keyword: "STOKES".into(),
+                value: v,
+                expected: "'QU' (a linear map) or 'V' (a circular one)".into(),
+            }),
+        },
+    }
+}
+
+/// What the primary header of every map holds ([`write_primary`]).
+struct MapHeader {
+    instrument: String,
+    filter: String,
+    angles_deg: Vec<f64>,
+    geometry: BinGeometry,
+}
+
+/// Read and check the primary header every map starts with (format version, instrument,
+/// filter, plate angles, bin geometry).
+fn read_header(f: &mut FitsFile, ph: &fitsio::hdu::FitsHdu, path: &Path) -> Result<MapHeader, Error> {
+    let key_i = |f: &mut FitsFile, k: &str| -> Result<i64, Error> {
+        ph.read_key::<i64>(f, k).map_err(|_| Error::MissingKeyword { path: path.into(), keyword: k.into() })
+    };
+    let ver = key_i(f, "MAPVERS")?;
+    if ver != MAP_FORMAT_VERSION as i64 {
+        return Err(Error::BadKeyword {
+            path: path.into(),
+            keyword: "MAPVERS".into(),
+            value: ver.to_string(),
+            expected: format!("a supported Stokes-map format version ({MAP_FORMAT_VERSION})"),
+        });
+    }
+    let key_s = |f: &mut FitsFile, k: &str| -> Result<String, Error> {
+        crate::fits::read_key_str(f, ph, k).map_err(|_| Error::MissingKeyword { path: path.into(), keyword: k.into() })
+    };
+    let instrument = key_s(f, "INSTRUME")?;
+    let filter = key_s(f, "FILTER")?;
+    let nhwp = key_i(f, "NHWP")?.max(0) as usize;
+    let mut hwp = Vec::with_capacity(nhwp);
+    for k in 1..=nhwp {
+        let name = format!("HWPANG{k}");
+        hwp.push(
+            ph.read_key::<f64>(f, &name)
+                .map_err(|_| Error::MissingKeyword { path: path.into(), keyword: name.clone() })?,
+        );
+    }
+    let usz = |f: &mut FitsFile, k: &str| -> Result<usize, Error> {
+        let v = key_i(f, k)?;
+        usize::try_from(v).map_err(|_| Error::BadKeyword {
+            path: path.into(),
+            keyword: k.into(),
+            value: v.to_string(),
+            expected: "a non-negative integer".into(),
+        })
+    };
+    let geometry = BinGeometry {
+        bin_px: usz(f, "BINSIZE")?,
+        origin_x: usz(f, "BINORGX")?,
+        origin_y: usz(f, "BINORGY")?,
+        nx: usz(f, "NBINX")?,
+        ny: usz(f, "NBINY")?,
+        pixel_scale_arcsec: ph
+            .read_key::<f64>(f, "PIXSCALE")
+            .map_err(|_| Error::MissingKeyword { path: path.into(), keyword: "PIXSCALE".into() })?,
+        detector_nx: usz(f, "DETNX")?,
+        detector_ny: usz(f, "DETNY")?,
+    };
+    Ok(MapHeader { instrument, filter, angles_deg: hwp, geometry })
+}
+
+/// Image extension `name` of a map of `n` bins.
+fn read_plane(f: &mut FitsFile, path: &Path, name: &str, n: usize) -> Result<Vec<f64>, Error> {
+    let hdu = f.hdu(name).map_err(|_| fits_err(path, format!("missing image extension {name}")))?;
+    let v: Vec<f64> = hdu.read_image(f).map_err(|e| fits_err(path, format!("extension {name}: {e}")))?;
+    if v.len() != n {
+        return Err(fits_err(path, format!("extension {name} has {} values, header says {n} bins", v.len())));
+    }
+    Ok(v)
+}
+
+/// Units as FITS/astropy unit strings; '' for the dimensionless Stokes fractions (an empty
+/// BUNIT reads as dimensionless in astropy; 'fraction' is no unit and fails).
+const FRAC: (&str, &str) = ("", "dimensionless fraction");
+
+/// One float image of a map: extension name, values, `CONTENT`, `BUNIT` with its comment.
+type Plane<'a> = (&'a str, &'a [f64], &'a str, (&'a str, &'a str));
+
+/// The primary header every map starts with (module docs): format version, instrument,
+/// filter, plate angles and bin geometry.
+fn write_primary(
+    f: &mut FitsFile,
+    path: &Path,
+    g: &BinGeometry,
+    instrument: &str,
+    filter: &str,
+    angles_deg: &[f64],
+) -> Result<fitsio::hdu::FitsHdu, Error> {
+    let e = |x: fitsio::errors::Error| Error::Write { path: path.into(), message: x.to_string() };
+    let ph = f.primary_hdu().map_err(e)?;
+    ph.write_key(f, "MAPVERS", (MAP_FORMAT_VERSION, "instpol Stokes map format version")).map_err(e)?;
+    ph.write_key(f, "ORIGIN", "instpol").map_err(e)?;
+    ph.write_key(f, "INSTRUME", instrument).map_err(e)?;
+    ph.write_key(f, "FILTER", filter).map_err(e)?;
+    ph.write_key(f, "NHWP", (angles_deg.len() as i64, "number of HWP angles")).map_err(e)?;
+    for (k, a) in angles_deg.iter().enumerate() {
+        ph.write_key(f, &format!("HWPANG{}", k + 1), (*a, "HWP angle [deg]")).map_err(e)?;
+    }
+    ph.write_key(f, "BINSIZE", (g.bin_px as i64, "bin side [px]")).map_err(e)?;
+    ph.write_key(f, "BINORGX", (g.origin_x as i64, "0-based x pixel where bin 0 starts")).map_err(e)?;
+    ph.write_key(f, "BINORGY", (g.origin_y as i64, "0-based y pixel where bin 0 starts")).map_err(e)?;
+    ph.write_key(f, "NBINX", (g.nx as i64, "bins along x")).map_err(e)?;
+    ph.write_key(f, "NBINY", (g.ny as i64, "bins along y")).map_err(e)?;
+    ph.write_key(f, "PIXSCALE", (g.pixel_scale_arcsec, "detector scale [arcsec/px]")).map_err(e)?;
+    ph.write_key(f, "DETNX", (g.detector_nx as i64, "detector size x [px]")).map_err(e)?;
+    ph.write_key(f, "DETNY", (g.detector_ny as i64, "detector size y [px]")).map_err(e)?;
+    Ok(ph)
+}
+
+/// The image extensions of a map: its float `planes`, then `COVERAGE` and `VALID`, each with
+/// its `BUNIT` and the bins' WCSs (module docs).
+fn write_planes(
+    f: &mut FitsFile,
+    path: &Path,
+    g: &BinGeometry,
+    celestial: Option<&CelestialWcs>,
+    planes: &[Plane],
+    n_pixels: &[u32],
+    valid: &[bool],
+) -> Result<(), Error> {
+    let e = |x: fitsio::errors::Error| Error::Write { path: path.into(), message: x.to_string() };
+    let dims = [g.ny, g.nx];
+    // The celestial WCS, when the frames had one, is the primary WCS (what astropy's
+    // WCS(header) gives); the detector grid is then alternate D.
+    let wcs = match celestial {
+        Some(c) => {
+            let mut v = g.wcs_cards_keyed("D");
+            v.splice(1..1, c.cards());
+            v
+        }
+        None => g.wcs_cards(),
+    };
+    let put = |f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, bunit: (&str, &str)| -> Result<(), Error> {
+        hdu.write_key(f, "BUNIT", (bunit.0, bunit.1)).map_err(e)?;
+        for (k, v, c) in &wcs {
+            match v {
+                WcsValue::Int(x) => hdu.write_key(f, k, (*x, *c)),
+                WcsValue::Real(x) => hdu.write_key(f, k, (*x, *c)),
+                WcsValue::Text(x) => hdu.write_key(f, k, (x.as_str(), *c)),
+            }
+            .map_err(e)?;
+        }
+        Ok(())
+    };
+    for (name, data, comment, bunit) in planes.iter() {
+        let d = ImageDescription { data_type: ImageType::Double, dimensions: &dims };
+        let hdu = f.create_image(name.to_string(), &d).map_err(e)?;
+        hdu.write_image(f, data).map_err(e)?;
+        hdu.write_key(f, "CONTENT", *comment).map_err(e)?;
+        put(f, &hdu, *bunit)?;
+    }
+    let d = ImageDescription { data_type: ImageType::Long, dimensions: &dims };
+    let cov: Vec<i32> = n_pixels.iter().map(|&n| n as i32).collect();
+    let hdu = f.create_image("COVERAGE".to_string(), &d).map_err(e)?;
+    hdu.write_image(f, &cov).map_err(e)?;
+    hdu.write_key(f, "CONTENT", "pixels kept by sigma clipping").map_err(e)?;
+    put(f, &hdu, ("pix", "detector pixels kept"))?;
+    let valid: Vec<i32> = valid.iter().map(|&v| v as i32).collect();
+    let hdu = f.create_image("VALID".to_string(), &d).map_err(e)?;
+    hdu.write_image(f, &valid).map_err(e)?;
+    hdu.write_key(f, "CONTENT", "1 = usable bin").map_err(e)?;
+    put(f, &hdu, ("", "flag"))?;
+    Ok(())
+}
+
 impl StokesMap {
     /// The telescope angles the map records ([`RecordedAngles`]).
     pub fn recorded_angles(&self) -> RecordedAngles {
@@ -522,24 +723,7 @@ impl StokesMap {
 
     fn write_into(&self, f: &mut FitsFile, path: &Path) -> Result<(), Error> {
         let e = |x: fitsio::errors::Error| Error::Write { path: path.into(), message: x.to_string() };
-        let g = &self.geometry;
-        let ph = f.primary_hdu().map_err(e)?;
-        ph.write_key(f, "MAPVERS", (MAP_FORMAT_VERSION, "instpol Stokes map format version")).map_err(e)?;
-        ph.write_key(f, "ORIGIN", "instpol").map_err(e)?;
-        ph.write_key(f, "INSTRUME", self.instrument.as_str()).map_err(e)?;
-        ph.write_key(f, "FILTER", self.filter.as_str()).map_err(e)?;
-        ph.write_key(f, "NHWP", (self.hwp_angles_deg.len() as i64, "number of HWP angles")).map_err(e)?;
-        for (k, a) in self.hwp_angles_deg.iter().enumerate() {
-            ph.write_key(f, &format!("HWPANG{}", k + 1), (*a, "HWP angle [deg]")).map_err(e)?;
-        }
-        ph.write_key(f, "BINSIZE", (g.bin_px as i64, "bin side [px]")).map_err(e)?;
-        ph.write_key(f, "BINORGX", (g.origin_x as i64, "0-based x pixel where bin 0 starts")).map_err(e)?;
-        ph.write_key(f, "BINORGY", (g.origin_y as i64, "0-based y pixel where bin 0 starts")).map_err(e)?;
-        ph.write_key(f, "NBINX", (g.nx as i64, "bins along x")).map_err(e)?;
-        ph.write_key(f, "NBINY", (g.ny as i64, "bins along y")).map_err(e)?;
-        ph.write_key(f, "PIXSCALE", (g.pixel_scale_arcsec, "detector scale [arcsec/px]")).map_err(e)?;
-        ph.write_key(f, "DETNX", (g.detector_nx as i64, "detector size x [px]")).map_err(e)?;
-        ph.write_key(f, "DETNY", (g.detector_ny as i64, "detector size y [px]")).map_err(e)?;
+        let ph = write_primary(f, path, &self.geometry, &self.instrument, &self.filter, &self.hwp_angles_deg)?;
         for (k, v, comment) in self.recorded_angles().keywords() {
             v.write(f, &ph, &k, comment).map_err(e)?;
         }
@@ -548,12 +732,8 @@ impl StokesMap {
                 .write(f, &ph, "HWPZERO", "HWP zero angle of the filter, not in Q, U [deg]")
                 .map_err(e)?;
         }
-        let dims = [g.ny, g.nx];
         let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
-        // Units as FITS/astropy unit strings; '' for the dimensionless Stokes fractions (an
-        // empty BUNIT reads as dimensionless in astropy; 'fraction' is no unit and fails).
-        const FRAC: (&str, &str) = ("", "dimensionless fraction");
-        let floats: [(&str, &[f64], &str, (&str, &str)); 11] = [
+        let floats: [Plane; 11] = [
             ("Q", &self.q, "Q/I", FRAC),
             ("U", &self.u, "U/I", FRAC),
             ("SIGMA_Q", &self.sigma_q, "error of Q/I from pixel scatter", FRAC),
@@ -566,47 +746,7 @@ impl StokesMap {
             ("INTENSITY", &self.intensity, "mean f_O+f_E per exposure [e-/px]", ("electron/pix", "per exposure")),
             ("INT_SNR", &self.intensity_snr, "per-pixel SNR of combined intensity", ("", "dimensionless ratio")),
         ];
-        // The celestial WCS, when the frames had one, is the primary WCS (what astropy's
-        // WCS(header) gives); the detector grid is then alternate D.
-        let wcs = match &self.celestial_wcs {
-            Some(c) => {
-                let mut v = g.wcs_cards_keyed("D");
-                v.splice(1..1, c.cards());
-                v
-            }
-            None => g.wcs_cards(),
-        };
-        let put = |f: &mut FitsFile, hdu: &fitsio::hdu::FitsHdu, bunit: (&str, &str)| -> Result<(), Error> {
-            hdu.write_key(f, "BUNIT", (bunit.0, bunit.1)).map_err(e)?;
-            for (k, v, c) in &wcs {
-                match v {
-                    WcsValue::Int(x) => hdu.write_key(f, k, (*x, *c)),
-                    WcsValue::Real(x) => hdu.write_key(f, k, (*x, *c)),
-                    WcsValue::Text(x) => hdu.write_key(f, k, (x.as_str(), *c)),
-                }
-                .map_err(e)?;
-            }
-            Ok(())
-        };
-        for (name, data, comment, bunit) in floats.iter() {
-            let d = ImageDescription { data_type: ImageType::Double, dimensions: &dims };
-            let hdu = f.create_image(name.to_string(), &d).map_err(e)?;
-            hdu.write_image(f, data).map_err(e)?;
-            hdu.write_key(f, "CONTENT", *comment).map_err(e)?;
-            put(f, &hdu, *bunit)?;
-        }
-        let d = ImageDescription { data_type: ImageType::Long, dimensions: &dims };
-        let cov: Vec<i32> = self.n_pixels.iter().map(|&n| n as i32).collect();
-        let hdu = f.create_image("COVERAGE".to_string(), &d).map_err(e)?;
-        hdu.write_image(f, &cov).map_err(e)?;
-        hdu.write_key(f, "CONTENT", "pixels kept by sigma clipping").map_err(e)?;
-        put(f, &hdu, ("pix", "detector pixels kept"))?;
-        let valid: Vec<i32> = self.valid.iter().map(|&v| v as i32).collect();
-        let hdu = f.create_image("VALID".to_string(), &d).map_err(e)?;
-        hdu.write_image(f, &valid).map_err(e)?;
-        hdu.write_key(f, "CONTENT", "1 = usable bin").map_err(e)?;
-        put(f, &hdu, ("", "flag"))?;
-        Ok(())
+        write_planes(f, path, &self.geometry, self.celestial_wcs.as_ref(), &floats, &self.n_pixels, &self.valid)
     }
 
     /// Write a map corrected for the instrumental polarization ([`StokesMap::write_fits`], the
@@ -638,6 +778,13 @@ impl StokesMap {
     fn read(path: &Path, uncorrected_only: bool) -> Result<Self, Error> {
         let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
         let ph = f.primary_hdu().map_err(|e| fits_err(path, e))?;
+        // The one check that keeps a circular map from every reader that needs Q/I, U/I (fit,
+        // calibrate, correct, the Python package all read maps here).
+        if map_stokes(&mut f, &ph, path)? == MapStokes::Circular {
+            return Err(Error::Invalid(
+                "a circular-polarization map (STOKES = 'V': V/I from a quarter-wave plate, by instpol reduce): it holds no Q/I, U/I, which fitting, calibrating and correcting the instrumental polarization need".into(),
+            ));
+        }
         if uncorrected_only {
             if let Ok(cal) = crate::fits::read_key_str(&mut f, &ph, "INSTCORR") {
                 return Err(Error::Invalid(format!(
@@ -645,63 +792,9 @@ impl StokesMap {
                 )));
             }
         }
-        let key_i = |f: &mut FitsFile, k: &str| -> Result<i64, Error> {
-            ph.read_key::<i64>(f, k).map_err(|_| Error::MissingKeyword { path: path.into(), keyword: k.into() })
-        };
-        let ver = key_i(&mut f, "MAPVERS")?;
-        if ver != MAP_FORMAT_VERSION as i64 {
-            return Err(Error::BadKeyword {
-                path: path.into(),
-                keyword: "MAPVERS".into(),
-                value: ver.to_string(),
-                expected: format!("a supported Stokes-map format version ({MAP_FORMAT_VERSION})"),
-            });
-        }
-        let key_s = |f: &mut FitsFile, k: &str| -> Result<String, Error> {
-            crate::fits::read_key_str(f, &ph, k)
-                .map_err(|_| Error::MissingKeyword { path: path.into(), keyword: k.into() })
-        };
-        let instrument = key_s(&mut f, "INSTRUME")?;
-        let filter = key_s(&mut f, "FILTER")?;
-        let nhwp = key_i(&mut f, "NHWP")?.max(0) as usize;
-        let mut hwp = Vec::with_capacity(nhwp);
-        for k in 1..=nhwp {
-            let name = format!("HWPANG{k}");
-            hwp.push(
-                ph.read_key::<f64>(&mut f, &name)
-                    .map_err(|_| Error::MissingKeyword { path: path.into(), keyword: name.clone() })?,
-            );
-        }
-        let usz = |f: &mut FitsFile, k: &str| -> Result<usize, Error> {
-            let v = key_i(f, k)?;
-            usize::try_from(v).map_err(|_| Error::BadKeyword {
-                path: path.into(),
-                keyword: k.into(),
-                value: v.to_string(),
-                expected: "a non-negative integer".into(),
-            })
-        };
-        let geometry = BinGeometry {
-            bin_px: usz(&mut f, "BINSIZE")?,
-            origin_x: usz(&mut f, "BINORGX")?,
-            origin_y: usz(&mut f, "BINORGY")?,
-            nx: usz(&mut f, "NBINX")?,
-            ny: usz(&mut f, "NBINY")?,
-            pixel_scale_arcsec: ph
-                .read_key::<f64>(&mut f, "PIXSCALE")
-                .map_err(|_| Error::MissingKeyword { path: path.into(), keyword: "PIXSCALE".into() })?,
-            detector_nx: usz(&mut f, "DETNX")?,
-            detector_ny: usz(&mut f, "DETNY")?,
-        };
+        let MapHeader { instrument, filter, angles_deg: hwp, geometry } = read_header(&mut f, &ph, path)?;
         let n = geometry.len();
-        let read_f = |f: &mut FitsFile, name: &str| -> Result<Vec<f64>, Error> {
-            let hdu = f.hdu(name).map_err(|_| fits_err(path, format!("missing image extension {name}")))?;
-            let v: Vec<f64> = hdu.read_image(f).map_err(|e| fits_err(path, format!("extension {name}: {e}")))?;
-            if v.len() != n {
-                return Err(fits_err(path, format!("extension {name} has {} values, header says {n} bins", v.len())));
-            }
-            Ok(v)
-        };
+        let read_f = |f: &mut FitsFile, name: &str| read_plane(f, path, name, n);
         let q = read_f(&mut f, "Q")?;
         let u = read_f(&mut f, "U")?;
         let sigma_q = read_f(&mut f, "SIGMA_Q")?;
@@ -784,6 +877,153 @@ impl StokesMap {
             rotator_rad,
             exposure_tracks,
             hwp_zero_angle_deg,
+        })
+    }
+}
+
+/// A binned map of circular polarization `V/I` of one filter, from frames taken through a
+/// quarter-wave plate (`skyfield::reduce`'s circular reduction; `stokes::circular` for the
+/// demodulation). The same bins, coverage, intensity and WCS as a [`StokesMap`]; in place of
+/// `Q/I`, `U/I`, `P`, `chi` it holds `V/I` and its errors, as those plate positions do not
+/// determine `Q/I`, `U/I`. In FITS (module docs) its primary header says `STOKES = 'V'`, which
+/// the Stokes-map reader ([`StokesMap::read_fits`]) refuses with the reason.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CircularMap {
+    pub geometry: BinGeometry,
+    pub instrument: String,
+    pub filter: String,
+    /// The frames' plate angles (deg, as the headers or the caller gave them).
+    pub plate_angles_deg: Vec<f64>,
+    /// The plate's zero angle (deg) the demodulation added to them: its fast axis at the plate
+    /// angle plus this (the instrument's `qwp_zero_angle_deg` of the filter).
+    pub qwp_zero_angle_deg: f64,
+    /// `V/I` (fraction, IAU sign) of the bin means.
+    pub v: Vec<f64>,
+    /// Standard error of the bin mean of `V/I` from the scatter of the kept pixels (floored by
+    /// the photon error in bins of few pixels, as `SIGMA_Q` of a [`StokesMap`]).
+    pub sigma_v: Vec<f64>,
+    /// Error of the bin mean propagated from photon and read noise.
+    pub sigma_v_phot: Vec<f64>,
+    /// Pixels kept by the sigma clipping (coverage).
+    pub n_pixels: Vec<u32>,
+    /// Mean intensity `f_O + f_E` per exposure of the kept pixels (e-/px).
+    pub intensity: Vec<f64>,
+    /// Per-pixel SNR of the intensity summed over all exposures (photon + read noise).
+    pub intensity_snr: Vec<f64>,
+    /// Usable bins.
+    pub valid: Vec<bool>,
+    /// The frames' celestial WCS carried through the binning, when they had one.
+    pub celestial_wcs: Option<CelestialWcs>,
+}
+
+impl CircularMap {
+    /// Number of valid bins.
+    pub fn n_valid(&self) -> usize {
+        self.valid.iter().filter(|&&v| v).count()
+    }
+
+    /// Iterate over valid bins as `(index, i, j)`.
+    pub fn valid_bins(&self) -> impl Iterator<Item = (usize, usize, usize)> + '_ {
+        let nx = self.geometry.nx;
+        (0..self.geometry.len()).filter(move |&k| self.valid[k]).map(move |k| (k, k % nx, k / nx))
+    }
+
+    fn check_lengths(&self) -> Result<(), Error> {
+        let n = self.geometry.len();
+        for (name, l) in [
+            ("V", self.v.len()),
+            ("SIGMA_V", self.sigma_v.len()),
+            ("SIGV_PHOT", self.sigma_v_phot.len()),
+            ("COVERAGE", self.n_pixels.len()),
+            ("INTENSITY", self.intensity.len()),
+            ("INT_SNR", self.intensity_snr.len()),
+            ("VALID", self.valid.len()),
+        ] {
+            if l != n {
+                return Err(Error::Invalid(format!(
+                    "circular map array {name} has {l} entries, geometry has {n} bins"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Write the map as a multi-extension FITS file (module docs: `STOKES = 'V'`, `QWPZERO`,
+    /// images `V`, `SIGMA_V`, `SIGV_PHOT`, `INTENSITY`, `INT_SNR`, `COVERAGE`, `VALID`),
+    /// atomically.
+    pub fn write_fits(&self, path: &Path) -> Result<(), Error> {
+        self.check_lengths()?;
+        crate::fits::write_fits_atomic(path, |f| {
+            let e = |x: fitsio::errors::Error| Error::Write { path: path.into(), message: x.to_string() };
+            let ph = write_primary(f, path, &self.geometry, &self.instrument, &self.filter, &self.plate_angles_deg)?;
+            ph.write_key(f, "STOKES", ("V", "circular polarization V/I (quarter-wave plate)")).map_err(e)?;
+            ph.write_key(f, "QWPZERO", (self.qwp_zero_angle_deg, "QWP zero angle used in the demodulation [deg]"))
+                .map_err(e)?;
+            let planes: [Plane; 5] = [
+                ("V", &self.v, "V/I (IAU sign)", FRAC),
+                ("SIGMA_V", &self.sigma_v, "error of V/I from pixel scatter", FRAC),
+                ("SIGV_PHOT", &self.sigma_v_phot, "error of V/I from photon+read noise", FRAC),
+                ("INTENSITY", &self.intensity, "mean f_O+f_E per exposure [e-/px]", ("electron/pix", "per exposure")),
+                ("INT_SNR", &self.intensity_snr, "per-pixel SNR of combined intensity", ("", "dimensionless ratio")),
+            ];
+            write_planes(f, path, &self.geometry, self.celestial_wcs.as_ref(), &planes, &self.n_pixels, &self.valid)
+        })
+    }
+
+    /// Read a map written by [`Self::write_fits`]; a linear map (no `STOKES = 'V'`) is refused
+    /// naming what it is, and so is a valid bin whose `V/I` is not a fraction or whose error is
+    /// not one.
+    pub fn read_fits(path: &Path) -> Result<Self, Error> {
+        let mut f = FitsFile::open(path).map_err(|e| fits_err(path, format!("cannot open as FITS: {e}")))?;
+        let ph = f.primary_hdu().map_err(|e| fits_err(path, e))?;
+        if map_stokes(&mut f, &ph, path)? != MapStokes::Circular {
+            return Err(fits_err(
+                path,
+                "a linear Stokes map (Q/I, U/I; no STOKES = 'V'), not a circular-polarization map",
+            ));
+        }
+        let MapHeader { instrument, filter, angles_deg, geometry } = read_header(&mut f, &ph, path)?;
+        let qwp_zero_angle_deg = ph
+            .read_key::<f64>(&mut f, "QWPZERO")
+            .map_err(|_| Error::MissingKeyword { path: path.into(), keyword: "QWPZERO".into() })?;
+        let n = geometry.len();
+        let v = read_plane(&mut f, path, "V", n)?;
+        let sigma_v = read_plane(&mut f, path, "SIGMA_V", n)?;
+        let sigma_v_phot = read_plane(&mut f, path, "SIGV_PHOT", n)?;
+        let intensity = read_plane(&mut f, path, "INTENSITY", n)?;
+        let intensity_snr = read_plane(&mut f, path, "INT_SNR", n)?;
+        let n_pixels = read_plane(&mut f, path, "COVERAGE", n)?.into_iter().map(|v| v.max(0.0) as u32).collect();
+        let valid: Vec<bool> = read_plane(&mut f, path, "VALID", n)?.into_iter().map(|v| v > 0.5).collect();
+        let celestial_wcs = match f.hdu("V") {
+            Ok(h) => CelestialWcs::read(&mut f, &h).ok().flatten(),
+            Err(_) => None,
+        };
+        for k in (0..n).filter(|&k| valid[k]) {
+            let (i, j) = (k % geometry.nx.max(1), k / geometry.nx.max(1));
+            if !(v[k].is_finite() && v[k].abs() <= 1.0) {
+                return Err(fits_err(path, format!("bin ({i}, {j}): V/I = {} is not a fraction in [-1, 1]", v[k])));
+            }
+            if !(sigma_v[k].is_finite() && sigma_v[k] >= 0.0) {
+                return Err(fits_err(
+                    path,
+                    format!("bin ({i}, {j}): SIGMA_V = {} is not a finite error >= 0", sigma_v[k]),
+                ));
+            }
+        }
+        Ok(Self {
+            geometry,
+            instrument,
+            filter,
+            plate_angles_deg: angles_deg,
+            qwp_zero_angle_deg,
+            v,
+            sigma_v,
+            sigma_v_phot,
+            n_pixels,
+            intensity,
+            intensity_snr,
+            valid,
+            celestial_wcs,
         })
     }
 }
@@ -981,5 +1221,72 @@ mod tests {
         assert!(e.contains("XPAE2") && e.contains("north"), "{e}");
         let e = edit("NEXPTRK", "many");
         assert!(e.contains("NEXPTRK") && e.contains("many"), "{e}");
+    }
+
+    /// A circular map written and read back keeps every value (the V plane and its errors, the
+    /// plate angles and zero angle); its primary header says STOKES = 'V' (read here with
+    /// CFITSIO); the Stokes-map reader refuses it by what it is, with the reason, both as
+    /// read_fits and as read_uncorrected; the circular reader refuses a linear map, and an
+    /// unknown STOKES value is named.
+    #[test]
+    fn circular_map_round_trip_and_refusals() {
+        let dir = tempfile::tempdir().unwrap();
+        let lin = sample();
+        let c = CircularMap {
+            geometry: lin.geometry.clone(),
+            instrument: "FORS_QWP".into(),
+            filter: "V".into(),
+            plate_angles_deg: vec![-45.0, 45.0],
+            qwp_zero_angle_deg: 1.5,
+            v: lin.q.iter().map(|q| 0.5 * q).collect(),
+            sigma_v: lin.sigma_q.clone(),
+            sigma_v_phot: lin.sigma_q_phot.clone(),
+            n_pixels: lin.n_pixels.clone(),
+            intensity: lin.intensity.clone(),
+            intensity_snr: lin.intensity_snr.clone(),
+            valid: lin.valid.clone(),
+            celestial_wcs: None,
+        };
+        let path = dir.path().join("vmap.fits");
+        c.write_fits(&path).unwrap();
+        {
+            let mut f = FitsFile::open(&path).unwrap();
+            let ph = f.primary_hdu().unwrap();
+            assert_eq!(crate::fits::read_key_str(&mut f, &ph, "STOKES").unwrap(), "V");
+            assert_eq!(ph.read_key::<f64>(&mut f, "QWPZERO").unwrap(), 1.5);
+            assert!(f.hdu("Q").is_err() && f.hdu("V").is_ok() && f.hdu("SIGV_PHOT").is_ok());
+        }
+        let r = CircularMap::read_fits(&path).unwrap();
+        assert_eq!(
+            (r.geometry.clone(), r.plate_angles_deg.clone(), r.qwp_zero_angle_deg),
+            (c.geometry.clone(), c.plate_angles_deg.clone(), 1.5)
+        );
+        assert_eq!((r.valid.clone(), r.n_pixels.clone()), (c.valid.clone(), c.n_pixels.clone()));
+        for k in (0..c.v.len()).filter(|&k| c.valid[k]) {
+            assert_eq!((r.v[k], r.sigma_v[k], r.sigma_v_phot[k]), (c.v[k], c.sigma_v[k], c.sigma_v_phot[k]));
+        }
+        for e in [StokesMap::read_fits(&path).unwrap_err(), StokesMap::read_uncorrected(&path).unwrap_err()] {
+            let e = e.to_string();
+            assert!(e.contains("STOKES = 'V'") && e.contains("holds no Q/I, U/I"), "{e}");
+        }
+        assert_eq!(file_kind(&path).unwrap(), FileKind::StokesMap);
+        let lpath = dir.path().join("qmap.fits");
+        lin.write_fits(&lpath).unwrap();
+        let e = CircularMap::read_fits(&lpath).unwrap_err().to_string();
+        assert!(e.contains("qmap.fits") && e.contains("a linear Stokes map"), "{e}");
+        // An unknown STOKES value is refused by name.
+        let bad = dir.path().join("bad.fits");
+        std::fs::copy(&path, &bad).unwrap();
+        {
+            let mut f = FitsFile::edit(&bad).unwrap();
+            f.primary_hdu().unwrap();
+            let (k, v) = (std::ffi::CString::new("STOKES").unwrap(), std::ffi::CString::new("I").unwrap());
+            let mut status = 0;
+            // SAFETY: an open file at its primary HDU; NUL-terminated strings (CFITSIO's update).
+            unsafe { fitsio::sys::ffukys(f.as_raw(), k.as_ptr(), v.as_ptr(), std::ptr::null(), &mut status) };
+            assert_eq!(status, 0);
+        }
+        let e = StokesMap::read_fits(&bad).unwrap_err().to_string();
+        assert!(e.contains("STOKES") && e.contains("bad.fits"), "{e}");
     }
 }

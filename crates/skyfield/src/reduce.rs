@@ -8,6 +8,11 @@
 //! electrons), the one `F_i` (`stokes::normalized_difference`) and `Q/I`, `U/I` from the one
 //! `stokes::StokesSolver`, and finally the sigma-clipped mean of each bin ([`crate::bin`]).
 //!
+//! Frames taken through a quarter-wave plate go through the same steps with the circular
+//! demodulation's weights (`stokes::circular`) in place of `eq:Q`'s, and give a map of `V/I`
+//! ([`CircularMap`], [`reduce_circular_files_with`]); [`reduce_for_plate`] takes the one the
+//! instrument's plate calls for.
+//!
 //! [`reduce_files`] never holds a frame whole: bands of bin rows are reduced in parallel, each
 //! reading the few detector rows it needs from every file just before using them (so reading
 //! overlaps computing and the rows are still in cache). [`reduce_set`] does the same from
@@ -30,7 +35,7 @@ use crate::calib::{avx2_dispatch, Calibrated, MasterRows, ReadOptions, SumScratc
 use crate::fits::{PixelView, RawKind};
 use crate::frame::{Conversion, Frame};
 use crate::io::{FrameRows, OpenFrame};
-use crate::maps::{BinGeometry, StokesMap};
+use crate::maps::{BinGeometry, CircularMap, StokesMap};
 use crate::{Error, Warning};
 use instrument::Instrument;
 use rayon::prelude::*;
@@ -353,6 +358,13 @@ pub fn solver_of(angles_deg: &[f64], sweep_deg: f64) -> Result<StokesSolver, Err
         return Ok(StokesSolver::new(&theta)?);
     }
     Ok(StokesSolver::with_sweeps(&theta, &vec![sweep_deg.to_radians(); theta.len()])?)
+}
+
+/// The circular demodulation of plate angles `angles_deg` (deg) with the plate's zero angle
+/// (deg): refused, naming the angles, when they do not determine `V`.
+pub fn circular_solver(angles_deg: &[f64], zero_angle_deg: f64) -> Result<stokes::CircularSolver, Error> {
+    let theta: Vec<f64> = angles_deg.iter().map(|a| a.to_radians()).collect();
+    Ok(stokes::CircularSolver::with_zero_angle(&theta, zero_angle_deg.to_radians())?)
 }
 
 /// Frames by HWP angle as the catalog measures them, one angle at a time: held in memory
@@ -738,13 +750,65 @@ pub fn bin_geometry(inst: &Instrument, bin_px: usize) -> BinGeometry {
 fn require_half_wave(inst: &Instrument) -> Result<(), Error> {
     if inst.polarimetry.plate == instrument::Plate::QuarterWave {
         return Err(Error::Invalid(format!(
-            "instrument {} has a quarter-wave plate (plate = \"quarter_wave\"): a per-pixel V/I map is not built (a \
-             Stokes map holds Q/I and U/I, which its 2- and 4-position sets do not determine); measure V/I of point \
-             sources with photometry or catalog",
+            "instrument {} has a quarter-wave plate (plate = \"quarter_wave\"): its 2- and 4-position sets do not \
+             determine Q/I and U/I, which a Stokes map holds; its frames reduce to a V/I map \
+             (reduce_circular_files_with, reduce_for_plate; instpol reduce)",
             inst.name
         )));
     }
     Ok(())
+}
+
+/// A circular map holds `V/I`, which a half-wave plate does not modulate: refused, naming the
+/// instrument's plate.
+fn require_quarter_wave(inst: &Instrument) -> Result<(), Error> {
+    if inst.polarimetry.plate != instrument::Plate::QuarterWave {
+        return Err(Error::Invalid(format!(
+            "instrument {} has a half-wave plate, which does not modulate V/I: its frames reduce to a Q/I, U/I map \
+             (reduce_files_with)",
+            inst.name
+        )));
+    }
+    Ok(())
+}
+
+/// The weights each angle's `F_i` is folded with, per pixel, by the reduction's kernel.
+struct PlateWeights {
+    cq: Vec<f64>,
+    cu: Vec<f64>,
+    /// A quarter-wave plate's zero angle (deg) the demodulation used; `None` for a half-wave
+    /// plate.
+    qwp_zero_deg: Option<f64>,
+}
+
+/// The kernel's weights for the instrument's plate. A half-wave plate: `eq:Q`'s and `eq:U`'s
+/// (`StokesSolver`, with the modulation a turning plate averages). A quarter-wave plate: the
+/// circular demodulation's `w_i` of `v = sum w_i F_i` (`stokes::circular`, at the plate's
+/// axis angles: the angles plus the filter's `qwp_zero_angle_deg`) in the first slot and zeros
+/// in the second, so the kernel's `Q` sums carry `V/I` and its photon variance, and its `U`
+/// sums stay 0 (the bins' clipping of that column then rejects nothing). A turning
+/// quarter-wave plate is refused, as photometry and catalog refuse it.
+fn plate_weights(inst: &Instrument, filter: &str, angles_deg: &[f64], sweep_deg: f64) -> Result<PlateWeights, Error> {
+    match inst.polarimetry.plate {
+        instrument::Plate::HalfWave => {
+            let solver = solver_of(angles_deg, sweep_deg)?;
+            let (cq, cu) = solver.weights();
+            Ok(PlateWeights { cq: cq.to_vec(), cu: cu.to_vec(), qwp_zero_deg: None })
+        }
+        instrument::Plate::QuarterWave => {
+            if sweep_deg != 0.0 {
+                return Err(Error::Invalid(format!(
+                    "the frames' plate swept {sweep_deg} deg during each exposure: a turning quarter-wave plate is not \
+                     modelled"
+                )));
+            }
+            // As photometry and catalog take it: 0 for a filter the instrument does not know.
+            let zero = inst.filter(filter).map_or(0.0, |f| f.qwp_zero_angle_deg());
+            let solver = circular_solver(angles_deg, zero)?;
+            let w = solver.weights().to_vec();
+            Ok(PlateWeights { cu: vec![0.0; w.len()], cq: w, qwp_zero_deg: Some(zero) })
+        }
+    }
 }
 
 /// Per-pixel `Q/I`, `U/I` of every sky pixel (NaN where masked or outside the sky bands),
@@ -782,8 +846,28 @@ pub fn pixel_qu(set: &FrameSet, inst: &Instrument) -> Result<(Vec<f64>, Vec<f64>
     Ok((q, u))
 }
 
-/// Reduce a checked frame set to a binned Stokes map.
+/// Reduce a checked frame set to a binned Stokes map (a half-wave plate's frames; a
+/// quarter-wave plate's are refused: [`reduce_circular_set`]).
 pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Result<Reduced, Error> {
+    require_half_wave(inst)?;
+    Ok(reduce_set_plate(set, inst, cfg)?.0)
+}
+
+/// Reduce a checked frame set taken through a quarter-wave plate to a binned `V/I` map (a
+/// half-wave plate's frames are refused: [`reduce_set`]).
+pub fn reduce_circular_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Result<CircularReduced, Error> {
+    require_quarter_wave(inst)?;
+    let (r, zero) = reduce_set_plate(set, inst, cfg)?;
+    Ok(CircularReduced::of(r, zero))
+}
+
+/// The reduction of a frame set with the weights of the instrument's plate
+/// ([`plate_weights`]): the map of a half-wave plate, or the carrier of a quarter-wave plate's
+/// `V/I` ([`CircularReduced::of`]) with the zero angle used.
+fn reduce_set_plate(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Result<(Reduced, Option<f64>), Error> {
+    if inst.polarimetry.layout == instrument::Layout::TwoCameras {
+        return reduce_two_cameras(set, inst, cfg);
+    }
     // The beam layout of the frames' filter (its own throw, when the instrument gives one).
     let inst = &*inst.for_filter(&set.filter);
     let inputs: Vec<AngleInput> = set
@@ -808,9 +892,137 @@ pub fn reduce_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Resu
             warnings.extend(crate::pedestal::judge(&f[0], &l, n * c.bias)?);
         }
     }
-    let pass = reduce_bands(&inputs, 0, set.nx, set.ny, (&set.angles_deg, set.hwp_sweep_deg), inst, cfg, &|| {})?;
+    let pass =
+        reduce_bands(&inputs, 0, set.nx, set.ny, (&set.filter, &set.angles_deg, set.hwp_sweep_deg), inst, cfg, &|| {})?;
     let map = assemble_map(pass.stats, inst, cfg, &set.filter, &set.angles_deg, &inputs)?;
-    Ok(Reduced { map, warnings, exposures: exposures_of(&set.files, &set.angles_deg) })
+    Ok((Reduced { map, warnings, exposures: exposures_of(&set.files, &set.angles_deg) }, pass.qwp_zero_deg))
+}
+
+/// Two cameras (`layout = "two_cameras"`): the e camera of every angle resampled onto the o
+/// camera's pixels through the camera transform (the instrument file's, or measured from the
+/// stars of the first angle's frame, [`crate::layout`]), by bilinear interpolation
+/// ([`crate::beams::CameraMap::e_value`]), and the pair laid out as the one strip of a strip
+/// layout (o camera in rows `0..h`, its resampled e image in rows `h..2h`), which the
+/// reduction proper then takes as it takes a mask strip. The map is put on the o camera's own
+/// pixels ([`on_o_camera`]).
+///
+/// Errors: a resampled pixel is a weighted mean of four e pixels, so neighbouring pixels share
+/// noise and each one's scatter is below an e pixel's (the weights' squares sum to 1/4 ... 1);
+/// the scatter of a bin's pixels then understates the error of its mean. The photon and read
+/// noise propagated pixel by pixel (`SIGQ_PHOT`) counts each pixel's full variance as if
+/// independent, which for a transform that keeps pixel areas (each e pixel's weights over the o
+/// grid sum to about 1) is the variance of the bin's mean. So a two-camera map's `SIGMA_Q`,
+/// `SIGMA_U` are the larger of the scatter error and the photon error in every bin (not only in
+/// bins of fewer than [`SCATTER_MIN_PIXELS`]).
+fn reduce_two_cameras(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Result<(Reduced, Option<f64>), Error> {
+    let img = set.data.first().ok_or(Error::NoFrames)?;
+    let g = crate::layout::layout_of_image(img, set.nx, set.ny, &set.files[0][0], &inst.for_filter(&set.filter))?;
+    let no_map = || Error::Invalid(format!("instrument {}: two cameras without their camera map", inst.name));
+    let c = g.cameras.as_ref().ok_or_else(no_map)?;
+    let t = c.transform.ok_or_else(no_map)?;
+    let (w, h) = c.o_size;
+    let nx = set.nx;
+    let data: Vec<Vec<f64>> = set
+        .data
+        .par_iter()
+        .zip(&set.files)
+        .map(|(d, files)| {
+            // The angle's sum of `files.len()` exposures saturates at that many times the level.
+            let sat = set.conversion.saturation * files.len() as f64;
+            let mut out = vec![f64::NAN; 2 * w * h];
+            for v in 0..h {
+                let row = (c.o_origin.1 + v) * nx + c.o_origin.0;
+                out[v * w..(v + 1) * w].copy_from_slice(&d[row..row + w]);
+                for u in 0..w {
+                    out[(h + v) * w + u] = c.e_value(d, nx, &t, u, v, sat);
+                }
+            }
+            out
+        })
+        .collect();
+    // The strip layout of the pair: one strip of h rows from row 0, its e image h rows on. The
+    // throw is a millionth of a pixel over h so that the strip keeps h whole rows however
+    // h * scale / scale rounds.
+    let mut strip = inst.clone();
+    strip.detector.nx = w;
+    strip.detector.ny = 2 * h;
+    let p = &mut strip.polarimetry;
+    p.layout = instrument::Layout::Strips;
+    p.strip_axis = "y".into();
+    p.strip_starts_px = Some(vec![0.0]);
+    p.strip_margin_px = 0.0;
+    p.extraordinary_offset_sign = 1;
+    p.throw_terms.clear();
+    p.throw_arcsec = (h as f64 + 1e-6) * strip.detector.pixel_scale_arcsec;
+    p.cameras = None;
+    for f in &mut strip.filters {
+        f.throw_terms = None;
+    }
+    let pair = FrameSet {
+        filter: set.filter.clone(),
+        angles_deg: set.angles_deg.clone(),
+        hwp_sweep_deg: set.hwp_sweep_deg,
+        data,
+        files: set.files.clone(),
+        nx: w,
+        ny: 2 * h,
+        warnings: set.warnings.clone(),
+        conversion: set.conversion,
+    };
+    let (mut r, zero) = reduce_set_plate(&pair, &strip, cfg)?;
+    if let Some((rms, n)) = c.measured {
+        r.warnings.push(Warning {
+            file: set.files.first().and_then(|f| f.first()).cloned(),
+            message: format!("camera transform measured from {n} star pairs of this frame, residual {rms:.3} px"),
+        });
+    }
+    on_o_camera(&mut r.map, inst, c);
+    Ok((r, zero))
+}
+
+/// The map of a two-camera pair ([`reduce_two_cameras`]) put on the o camera: only the bin rows
+/// of the o camera kept, its pixels the o camera's own (from its first pixel: the detector
+/// frame's when the o camera sits at the frame's origin, as MOPTOP's camera 1 does), and every
+/// bin's error the larger of its scatter and photon errors (the resampled e pixels' noise is
+/// correlated: see [`reduce_two_cameras`]).
+fn on_o_camera(m: &mut StokesMap, inst: &Instrument, c: &crate::beams::CameraMap) {
+    let b = m.geometry.bin_px;
+    let nbx = m.geometry.nx;
+    let nby = c.o_size.1.div_ceil(b).min(m.geometry.ny);
+    let keep = nbx * nby;
+    for v in [
+        &mut m.q,
+        &mut m.u,
+        &mut m.sigma_q,
+        &mut m.sigma_u,
+        &mut m.cov_qu,
+        &mut m.sigma_q_phot,
+        &mut m.sigma_u_phot,
+        &mut m.p,
+        &mut m.chi,
+        &mut m.intensity,
+        &mut m.intensity_snr,
+    ] {
+        v.truncate(keep);
+    }
+    m.n_pixels.truncate(keep);
+    m.valid.truncate(keep);
+    for k in (0..keep).filter(|&k| m.valid[k]) {
+        m.sigma_q[k] = m.sigma_q[k].max(m.sigma_q_phot[k]);
+        m.sigma_u[k] = m.sigma_u[k].max(m.sigma_u_phot[k]);
+    }
+    // The map's detector is the o camera: its field coordinates are then centred on the o
+    // camera, as the instrument's are for two cameras (`instrument::Instrument::field_coords`).
+    m.geometry = BinGeometry {
+        bin_px: b,
+        origin_x: 0,
+        origin_y: 0,
+        nx: nbx,
+        ny: nby,
+        pixel_scale_arcsec: inst.detector.pixel_scale_arcsec,
+        detector_nx: c.o_size.0,
+        detector_ny: c.o_size.1,
+    };
 }
 
 /// One HWP angle's input: the exposures taken at it (summed) and how many exposures the
@@ -917,6 +1129,8 @@ struct Pass {
     dark: Vec<usize>,
     /// Pixels of each frame the pass used (o and e pixels of the binned sky pixels).
     used_px: usize,
+    /// A quarter-wave plate's zero angle (deg) the demodulation used ([`PlateWeights`]).
+    qwp_zero_deg: Option<f64>,
 }
 
 /// The reduction proper: for each band of bin rows, group by group, read the detector rows
@@ -932,7 +1146,7 @@ fn reduce_bands(
     nfiles: usize,
     nx: usize,
     ny: usize,
-    (angles_deg, sweep_deg): (&[f64], f64),
+    (filter, angles_deg, sweep_deg): (&str, &[f64], f64),
     inst: &Instrument,
     cfg: &ReduceConfig,
     on_file: &(dyn Fn() + Sync),
@@ -940,8 +1154,8 @@ fn reduce_bands(
     if cfg.bin_px == 0 {
         return Err(Error::Invalid("bin size must be at least 1 px".into()));
     }
-    require_half_wave(inst)?;
-    let solver = solver_of(angles_deg, sweep_deg)?;
+    let weights = plate_weights(inst, filter, angles_deg, sweep_deg)?;
+    let (cq, cu) = (&weights.cq[..], &weights.cu[..]);
     let g = BeamGeometry::new(inst);
     g.require_separable_sky().map_err(Error::Invalid)?;
     if (nx, ny) != (g.nx, g.ny) {
@@ -951,7 +1165,7 @@ fn reduce_bands(
         )));
     }
     let geom = bin_geometry(inst, cfg.bin_px);
-    let n = angles_deg.len();
+    let n = cq.len();
     // Bytes a group holds per detector row, so that its rows stay in cache between reading and
     // folding: 4 a pixel for a frame read by rows (f32 frames), 8 for rows summed over repeated
     // exposures or calibrated from raw chips (f64 buffers), plus for raw chips the scratch
@@ -965,7 +1179,6 @@ fn reduce_bands(
         + if inputs.iter().any(|inp| inp.members.iter().any(calibrated)) { 16 * nx } else { 0 };
     let (bands, used_px) = plan_bands(&g, &geom, row_bytes);
     let min_pixels = cfg.min_pixels.unwrap_or((cfg.bin_px * cfg.bin_px / 4).max(3));
-    let (cq, cu) = solver.weights();
     let bp = geom.bin_px;
     let done = std::sync::atomic::AtomicUsize::new(0);
     let nb = bands.len().max(1);
@@ -1070,7 +1283,7 @@ fn reduce_bands(
             *t += x;
         }
     }
-    Ok(Pass { stats, bad, dark, used_px })
+    Ok(Pass { stats, bad, dark, used_px, qwp_zero_deg: weights.qwp_zero_deg })
 }
 
 /// The fewest kept pixels whose scatter is taken as a bin's error as it is. The scatter of
@@ -1638,7 +1851,9 @@ fn pedestal_notes(frames: &[OpenFrame], inst: &Instrument, conv: &Conversion) ->
 
 /// [`reduce_files`] with calibration frames and HWP angles ([`ReadOptions`]). Raw frames
 /// (chips, overscan, bias, flat) are calibrated in the same pass, row by row as the bands read
-/// them (see [`crate::calib`]): no frame is held whole, raw or calibrated.
+/// them (see [`crate::calib`]): no frame is held whole, raw or calibrated. A quarter-wave
+/// plate's frames are refused ([`reduce_circular_files_with`]; [`reduce_for_plate`] takes
+/// either).
 pub fn reduce_files_with(
     paths: &[PathBuf],
     inst: &Instrument,
@@ -1646,6 +1861,104 @@ pub fn reduce_files_with(
     opts: &ReadOptions,
     on_read: &(dyn Fn() + Sync),
 ) -> Result<Reduced, Error> {
+    require_half_wave(inst)?;
+    Ok(reduce_files_plate(paths, inst, cfg, opts, on_read)?.0)
+}
+
+/// [`reduce_files_with`] for frames taken through a quarter-wave plate: the binned `V/I` map
+/// (the same reading, masking, bins, clipping and errors; the circular demodulation's weights,
+/// `stokes::circular`, in place of `eq:Q`'s). A half-wave plate's frames are refused.
+pub fn reduce_circular_files_with(
+    paths: &[PathBuf],
+    inst: &Instrument,
+    cfg: &ReduceConfig,
+    opts: &ReadOptions,
+    on_read: &(dyn Fn() + Sync),
+) -> Result<CircularReduced, Error> {
+    require_quarter_wave(inst)?;
+    let (r, zero) = reduce_files_plate(paths, inst, cfg, opts, on_read)?;
+    Ok(CircularReduced::of(r, zero))
+}
+
+/// What a frame set reduces to, by the instrument's plate ([`reduce_for_plate`]).
+#[derive(Debug, Clone)]
+pub enum PlateReduced {
+    /// A half-wave plate: the Stokes map of `Q/I`, `U/I`.
+    Linear(Box<Reduced>),
+    /// A quarter-wave plate: the map of `V/I`.
+    Circular(Box<CircularReduced>),
+}
+
+/// The reduction `instpol reduce` and the Python package's `reduce` run: the instrument's plate
+/// decides the map ([`reduce_files_with`] for a half-wave plate, [`reduce_circular_files_with`]
+/// for a quarter-wave plate), so no face holds that rule.
+pub fn reduce_for_plate(
+    paths: &[PathBuf],
+    inst: &Instrument,
+    cfg: &ReduceConfig,
+    opts: &ReadOptions,
+    on_read: &(dyn Fn() + Sync),
+) -> Result<PlateReduced, Error> {
+    match inst.polarimetry.plate {
+        instrument::Plate::HalfWave => {
+            reduce_files_with(paths, inst, cfg, opts, on_read).map(|r| PlateReduced::Linear(Box::new(r)))
+        }
+        instrument::Plate::QuarterWave => {
+            reduce_circular_files_with(paths, inst, cfg, opts, on_read).map(|r| PlateReduced::Circular(Box::new(r)))
+        }
+    }
+}
+
+/// A quarter-wave plate's reduced map with the notes gathered on the way.
+#[derive(Debug, Clone)]
+pub struct CircularReduced {
+    pub map: CircularMap,
+    pub warnings: Vec<Warning>,
+    /// Each exposure's file and the plate angle (deg) it was reduced at, angle by angle.
+    pub exposures: Vec<(PathBuf, f64)>,
+}
+
+impl CircularReduced {
+    /// The circular map from the reduction's pass with a quarter-wave plate's weights
+    /// ([`plate_weights`]): the carrier's `Q/I` sums are `V/I`, their scatter and photon errors
+    /// `V/I`'s, and the bins, coverage, intensity and WCS are the map's as they are.
+    fn of(r: Reduced, qwp_zero_deg: Option<f64>) -> Self {
+        let m = r.map;
+        let map = CircularMap {
+            geometry: m.geometry,
+            instrument: m.instrument,
+            filter: m.filter,
+            plate_angles_deg: m.hwp_angles_deg,
+            qwp_zero_angle_deg: qwp_zero_deg.unwrap_or(0.0),
+            v: m.q,
+            sigma_v: m.sigma_q,
+            sigma_v_phot: m.sigma_q_phot,
+            n_pixels: m.n_pixels,
+            intensity: m.intensity,
+            intensity_snr: m.intensity_snr,
+            valid: m.valid,
+            celestial_wcs: m.celestial_wcs,
+        };
+        Self { map, warnings: r.warnings, exposures: r.exposures }
+    }
+}
+
+/// The reduction of frame files with the weights of the instrument's plate
+/// ([`plate_weights`]), and the quarter-wave plate's zero angle used (`None` for a half-wave
+/// plate).
+fn reduce_files_plate(
+    paths: &[PathBuf],
+    inst: &Instrument,
+    cfg: &ReduceConfig,
+    opts: &ReadOptions,
+    on_read: &(dyn Fn() + Sync),
+) -> Result<(Reduced, Option<f64>), Error> {
+    // Two cameras: the frames in memory, for the e camera's resampling (reduce_two_cameras).
+    if inst.polarimetry.layout == instrument::Layout::TwoCameras {
+        let frames = read_frames_with(paths, inst, opts, on_read)?;
+        let set = FrameSet::from_frames(frames, inst, cfg.require_complete_set)?;
+        return reduce_set_plate(&set, inst, cfg);
+    }
     // Opened and grouped as the catalog opens them; the bands below read the rows.
     let set = DiskFrames::open(paths, inst, opts, cfg.require_complete_set)?;
     let inst = &*inst.for_filter(&set.filter);
@@ -1665,8 +1978,16 @@ pub fn reduce_files_with(
         })
         .collect();
     let pedestals = pedestal_notes(frames, inst, &conversion)?;
-    let pass =
-        reduce_bands(&inputs, frames.len(), set.nx, set.ny, (&set.angles, set.hwp_sweep_deg), inst, cfg, on_read)?;
+    let pass = reduce_bands(
+        &inputs,
+        frames.len(),
+        set.nx,
+        set.ny,
+        (&set.filter, &set.angles, set.hwp_sweep_deg),
+        inst,
+        cfg,
+        on_read,
+    )?;
     let chips: Vec<_> = frames.iter().map(|f| f.chip_paths()).collect();
     let mut warnings = bad_pixel_notes(&meta, &chips, &pass.bad, pass.used_px, &conversion)?;
     warnings.extend(pedestals);
@@ -1705,7 +2026,7 @@ pub fn reduce_files_with(
             message: format!("celestial WCS not carried to the map: {why}"),
         }),
     }
-    Ok(Reduced { map, warnings, exposures: exposures_of(&set.files, &set.angles) })
+    Ok((Reduced { map, warnings, exposures: exposures_of(&set.files, &set.angles) }, pass.qwp_zero_deg))
 }
 
 #[cfg(test)]

@@ -174,6 +174,7 @@ fn map_through_frames(
             brightness_e: 20000.0,
             p: c.sky_p_pct / 100.0,
             chi_deg: c.sky_chi_deg,
+            v: 0.0,
             gradient_e_per_arcmin: None,
         }),
         stars: vec![],
@@ -334,7 +335,7 @@ pub fn corner_star(
         exposure_s: 1.0,
         seed,
         output: Output { bitpix: -32, prefix: "standard".into(), ..Default::default() },
-        sky: Some(Sky { brightness_e: 200.0, p: 0.0, chi_deg: 0.0, gradient_e_per_arcmin: None }),
+        sky: Some(Sky { brightness_e: 200.0, p: 0.0, chi_deg: 0.0, v: 0.0, gradient_e_per_arcmin: None }),
         stars: vec![Star {
             x,
             y,

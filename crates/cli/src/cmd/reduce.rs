@@ -14,7 +14,9 @@ use stokes::stats::robust::{median, Middle};
 /// unreadable file are errors (exit 2) and leave no output file. When the instrument's
 /// [telescope] section names the parallactic-angle keywords and the frames carry them, the map
 /// records the exposures' track (PARANG1, PARANG2, ROTANG), which `correct` uses to remove a
-/// telescope model.
+/// telescope model. Through a quarter-wave plate (plate = "quarter_wave" in the instrument
+/// file) the map holds V/I instead (STOKES = 'V': images V, SIGMA_V, SIGV_PHOT, ...), which
+/// fit, calibrate and correct refuse.
 ///
 /// Example: instpol reduce frames/*.fits --instrument fors1 --bin 30 --out map_V.fits
 #[derive(clap::Args)]
@@ -81,11 +83,15 @@ pub fn run(a: Args) -> Result<()> {
             .progress_chars("=> "),
     );
     bar.set_message("reading");
-    // The library's fast path: frames stay in their stored type, no f64 copies.
+    // The library's fast path: frames stay in their stored type, no f64 copies. The instrument's
+    // plate decides the map (the library's rule: Q/I, U/I or, through a quarter-wave plate, V/I).
     let read = a.frame.read_options()?;
-    let r = skyfield::reduce::reduce_files_with(&a.frames, &inst, &cfg, &read, &|| bar.inc(1));
+    let r = skyfield::reduce::reduce_for_plate(&a.frames, &inst, &cfg, &read, &|| bar.inc(1));
     bar.finish_and_clear();
-    let mut r = r?;
+    let mut r = match r? {
+        skyfield::reduce::PlateReduced::Linear(r) => *r,
+        skyfield::reduce::PlateReduced::Circular(r) => return circular(&a, *r),
+    };
     for w in &r.warnings {
         eprintln!("warning: {w}");
     }
@@ -122,6 +128,65 @@ pub fn run(a: Args) -> Result<()> {
             100.0 * s.median_p,
             s.median_chi_deg,
             100.0 * s.median_sigma_q
+        );
+    }
+    Ok(())
+}
+
+/// `instpol reduce --json` through a quarter-wave plate (`schemas/reduce-circular.schema.json`).
+#[derive(serde::Serialize)]
+struct CircularSummary {
+    #[serde(rename = "output")]
+    out: PathBuf,
+    filter: String,
+    /// Always "V": the map holds V/I.
+    stokes: &'static str,
+    plate_deg: Vec<f64>,
+    qwp_zero_angle_deg: f64,
+    bin_px: usize,
+    n_bins: usize,
+    n_valid_bins: usize,
+    median_v: f64,
+    median_sigma_v: f64,
+    warnings: Vec<String>,
+}
+
+/// Write and report a quarter-wave plate's V/I map.
+fn circular(a: &Args, r: skyfield::reduce::CircularReduced) -> Result<()> {
+    for w in &r.warnings {
+        eprintln!("warning: {w}");
+    }
+    r.map.write_fits(&a.out)?;
+    let m = &r.map;
+    let pick = |v: &[f64]| median(&mut m.valid_bins().map(|(k, _, _)| v[k]).collect::<Vec<_>>(), Middle::Mean);
+    let s = CircularSummary {
+        out: a.out.clone(),
+        filter: m.filter.clone(),
+        stokes: "V",
+        plate_deg: m.plate_angles_deg.clone(),
+        qwp_zero_angle_deg: m.qwp_zero_angle_deg,
+        bin_px: m.geometry.bin_px,
+        n_bins: m.geometry.len(),
+        n_valid_bins: m.n_valid(),
+        median_v: pick(&m.v),
+        median_sigma_v: pick(&m.sigma_v),
+        warnings: r.warnings.iter().map(|w| w.to_string()).collect(),
+    };
+    if a.json {
+        crate::util::print_json(&s)?;
+    } else {
+        outln!(
+            "{}: filter {}, V/I map from {} quarter-wave plate angles ({:?} deg, zero angle {} deg), {} of {} bins of {} px valid; median V/I = {:+.4}%, sigma_V/I = {:.4}%",
+            s.out.display(),
+            s.filter,
+            s.plate_deg.len(),
+            s.plate_deg,
+            s.qwp_zero_angle_deg,
+            s.n_valid_bins,
+            s.n_bins,
+            s.bin_px,
+            100.0 * s.median_v,
+            100.0 * s.median_sigma_v
         );
     }
     Ok(())

@@ -51,6 +51,7 @@ __all__ = [
     "calibrate_stars",
     "demo",
     "StokesMap",
+    "CircularMap",
     "CatalogTable",
     "InputError",
     "FileError",
@@ -540,6 +541,38 @@ class StokesMap:
         )
 
 
+class CircularMap:
+    """A binned circular-polarization map from :func:`reduce` on frames taken through a
+    quarter-wave plate: 2-D arrays of shape ``(ny, nx)`` (bin row j, column i) and the map's
+    header values. Its FITS file (``output=``) says ``STOKES = 'V'``; it holds no Q/I, U/I.
+
+    Attributes: ``v`` (V/I, fraction, IAU sign), ``sigma_v`` (scatter error of the bin means),
+    ``sigma_v_phot`` (photon and read noise), ``n_pixels``, ``intensity``, ``intensity_snr``,
+    ``valid``, ``x_arcmin, y_arcmin`` (bin centres from the detector centre), ``header``
+    (instrument, filter, stokes = "V", plate_angles_deg, qwp_zero_angle_deg: the plate's zero
+    angle the demodulation added, bin_px, origin_x/y, nx, ny, pixel_scale_arcsec,
+    detector_nx/ny) and ``warnings``.
+    """
+
+    _ARRAYS = (
+        "v", "sigma_v", "sigma_v_phot", "n_pixels", "intensity", "intensity_snr", "valid", "x_arcmin", "y_arcmin",
+    )
+
+    def __init__(self, d: Dict[str, Any]) -> None:
+        self.header: Dict[str, Any] = d["header"]
+        self.warnings = list(d["warnings"])
+        shape = (self.header["ny"], self.header["nx"])
+        for k in self._ARRAYS:
+            setattr(self, k, d[k].reshape(shape))
+
+    def __repr__(self) -> str:
+        h = self.header
+        return (
+            f"<instpol.CircularMap {h['instrument']} {h['filter']} V/I: {h['nx']} x {h['ny']} bins of "
+            f"{h['bin_px']} px, {int(self.valid.sum())} valid>"
+        )
+
+
 def _paths(frames: Union[PathLike, Sequence[PathLike]]) -> list:
     if isinstance(frames, (str, os.PathLike)):
         frames = [frames]
@@ -665,11 +698,13 @@ def reduce(
     hwp_angles: Optional[Sequence[float]] = None,
     assembled: bool = False,
     output: Optional[PathLike] = None,
-) -> StokesMap:
+) -> Union[StokesMap, CircularMap]:
     """Reduce dual-beam frames (one filter, N HWP angles) to a binned Stokes map, as
     ``instpol reduce``: per pixel F_i (eq:F) and Q/I, U/I (eq:Q, eq:U) from the ordinary and
     extraordinary images of every mask strip, then a sigma-clipped mean per ``bin`` x ``bin``
-    px bin. ``frames``: paths of FITS files, or astropy ``HDUList``, ``CCDData`` or
+    px bin. For an instrument with a quarter-wave plate (``plate = "quarter_wave"``) the
+    result is a :class:`CircularMap` of V/I instead (the circular demodulation of
+    ``stokes::circular`` in place of eq:Q, eq:U). ``frames``: paths of FITS files, or astropy ``HDUList``, ``CCDData`` or
     ``(array, header)`` objects (written to temporary FITS files for the call: the headers must
     carry what a file's would, the HWP angle, filter and exposure time, or give ``hwp_angles``).
     ``instrument``: a built-in name or an instrument TOML file; ``bias``, ``flat``:
@@ -699,7 +734,7 @@ def reduce(
             _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles], bool(assembled),
             _opt_path(output),
         )
-    return StokesMap(d)
+    return CircularMap(d) if d["header"].get("stokes") == "V" else StokesMap(d)
 
 
 def catalog(

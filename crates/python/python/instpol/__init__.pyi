@@ -165,6 +165,22 @@ class StokesMap:
     x_arcmin: npt.NDArray[np.float64]
     y_arcmin: npt.NDArray[np.float64]
 
+class CircularMap:
+    """A binned V/I map from frames through a quarter-wave plate: (ny, nx) arrays of V/I
+    (fraction, IAU sign) and its errors, bin centres in arcmin, and the header's values."""
+
+    header: Dict[str, Any]
+    warnings: List[str]
+    v: npt.NDArray[np.float64]
+    sigma_v: npt.NDArray[np.float64]
+    sigma_v_phot: npt.NDArray[np.float64]
+    n_pixels: npt.NDArray[np.uint32]
+    intensity: npt.NDArray[np.float64]
+    intensity_snr: npt.NDArray[np.float64]
+    valid: npt.NDArray[np.bool_]
+    x_arcmin: npt.NDArray[np.float64]
+    y_arcmin: npt.NDArray[np.float64]
+
 def reduce(
     frames: Union[PathLike, Sequence[Any]],
     instrument: str = ...,
@@ -177,8 +193,9 @@ def reduce(
     hwp_angles: Optional[Sequence[float]] = ...,
     assembled: bool = ...,
     output: Optional[PathLike] = ...,
-) -> StokesMap:
-    """Frames to a binned Stokes map (eq:F, eq:Q, eq:U per pixel, clipped bin means).
+) -> Union[StokesMap, CircularMap]:
+    """Frames to a binned Stokes map (eq:F, eq:Q, eq:U per pixel, clipped bin means); through
+    a quarter-wave plate, a CircularMap of V/I.
 
     bin: bin side (px); nsigma: clipping threshold (robust sigmas); hwp_angles: deg per frame
     when the headers carry none. Raises FileError or InputError with the CLI's messages.
