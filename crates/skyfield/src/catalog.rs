@@ -75,7 +75,8 @@ impl Default for CatalogConfig {
 impl CatalogConfig {
     /// Refuse settings no star field can have (the CLI and the Python package both ask here):
     /// an aperture radius outside (0, 1000) px, a star width outside (0.5, 200) px, a
-    /// threshold that is not a positive number of sigma.
+    /// threshold that is not a positive number of sigma, a sky annulus that is not
+    /// `0 <= inner < outer` px, a known kappa outside (-1, 1) (`eq:kappa2`).
     pub fn check(&self) -> Result<(), Error> {
         let (w, t) = (self.detect.fwhm_px, self.detect.threshold_sigma);
         match self.radius {
@@ -92,6 +93,16 @@ impl CatalogConfig {
         }
         if !(t.is_finite() && t > 0.0) {
             return Err(Error::Invalid(format!("threshold {t}: must be a positive number of sigma")));
+        }
+        if let Some((a, b)) = self.annulus {
+            if !(a.is_finite() && b.is_finite() && a >= 0.0 && b > a) {
+                return Err(Error::Invalid(format!("annulus ({a}, {b}) px: expected radii 0 <= inner < outer")));
+            }
+        }
+        if let stokes::KappaCorrection::Known(k) = self.kappa {
+            if !(k.is_finite() && k.abs() < 1.0) {
+                return Err(Error::Invalid(format!("kappa {k}: must be in the open interval (-1, 1)")));
+            }
         }
         let tol = self.detect.pair_tol_px;
         if !(tol.is_finite() && tol > 0.0 && tol <= 20.0) {
@@ -912,4 +923,27 @@ pub fn check_exposures(
     }
     cat.exposures = Some(summary);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The settings no star field can have are refused by the one check both faces call,
+    /// naming the setting: a sky annulus that is not `0 <= inner < outer` and a known kappa
+    /// outside (-1, 1), NaN and infinities included; the defaults and a valid setting pass.
+    #[test]
+    fn impossible_settings_are_refused_by_name() {
+        let ok = CatalogConfig { annulus: Some((12.0, 20.0)), ..CatalogConfig::default() };
+        assert!(ok.check().is_ok() && CatalogConfig::default().check().is_ok());
+        for a in [(f64::NAN, 20.0), (12.0, f64::INFINITY), (20.0, 12.0), (-1.0, 5.0), (8.0, 8.0)] {
+            let e = CatalogConfig { annulus: Some(a), ..ok }.check().unwrap_err().to_string();
+            assert!(e.contains("annulus"), "{a:?}: {e}");
+        }
+        for k in [f64::NAN, f64::NEG_INFINITY, 1.0, -1.0, 3.0] {
+            let e = CatalogConfig { kappa: stokes::KappaCorrection::Known(k), ..ok }.check().unwrap_err();
+            assert!(e.to_string().contains("kappa"), "{k}: {e}");
+        }
+        assert!(CatalogConfig { kappa: stokes::KappaCorrection::Known(0.03), ..ok }.check().is_ok());
+    }
 }

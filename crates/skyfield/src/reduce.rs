@@ -62,6 +62,22 @@ impl Default for ReduceConfig {
     }
 }
 
+impl ReduceConfig {
+    /// Refuse settings no reduction can have, whoever asks (the CLI and the Python package
+    /// reach the reduction through [`reduce_set_plate`] and [`reduce_files_plate`], which ask
+    /// here): a clipping threshold that is not a positive number of sigma (a NaN clipped
+    /// nothing and the map came out as if unclipped).
+    pub fn check(&self) -> Result<(), Error> {
+        let k = self.clip.nsigma;
+        if !(k.is_finite() && k > 0.0) {
+            return Err(Error::Invalid(format!(
+                "nsigma {k}: the clipping threshold must be a positive number of sigma"
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// Read frames in parallel; `on_read` is called once per file read (for a progress bar).
 /// The first unreadable file (in the order given) is the error.
 pub fn read_frames(paths: &[PathBuf], inst: &Instrument, on_read: &(dyn Fn() + Sync)) -> Result<Vec<Frame>, Error> {
@@ -865,6 +881,7 @@ pub fn reduce_circular_set(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig
 /// ([`plate_weights`]): the map of a half-wave plate, or the carrier of a quarter-wave plate's
 /// `V/I` ([`CircularReduced::of`]) with the zero angle used.
 fn reduce_set_plate(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> Result<(Reduced, Option<f64>), Error> {
+    cfg.check()?;
     if inst.polarimetry.layout == instrument::Layout::TwoCameras {
         return reduce_two_cameras(set, inst, cfg);
     }
@@ -1953,6 +1970,7 @@ fn reduce_files_plate(
     opts: &ReadOptions,
     on_read: &(dyn Fn() + Sync),
 ) -> Result<(Reduced, Option<f64>), Error> {
+    cfg.check()?;
     // Two cameras: the frames in memory, for the e camera's resampling (reduce_two_cameras).
     if inst.polarimetry.layout == instrument::Layout::TwoCameras {
         let frames = read_frames_with(paths, inst, opts, on_read)?;
@@ -2032,6 +2050,19 @@ fn reduce_files_plate(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A clipping threshold that is not a positive number of sigma is refused by the check
+    /// every reduction asks, naming it; the default passes.
+    #[test]
+    fn a_clipping_threshold_is_a_positive_number() {
+        assert!(ReduceConfig::default().check().is_ok());
+        for k in [f64::NAN, f64::INFINITY, 0.0, -3.0] {
+            let cfg =
+                ReduceConfig { clip: ClipConfig { nsigma: k, ..ClipConfig::default() }, ..ReduceConfig::default() };
+            let e = cfg.check().unwrap_err().to_string();
+            assert!(e.contains("nsigma"), "{k}: {e}");
+        }
+    }
 
     /// The exposures of one reduction share the plate's motion: equal sweeps (to 0.05 deg)
     /// are the set's, two different ones are refused naming both files; the set's solver with a
