@@ -42,13 +42,15 @@ use crate::calfile::Provenance;
 use crate::pipeline::{calibrate_bins, CalibrateOptions, CalibrationMeta, CalibrationRun};
 use crate::polar::chi2_even_sf;
 use crate::{Bin, Error, Result};
+use mueller::Qu;
 use nalgebra::DMatrix;
 use serde::Serialize;
 use skyfield::table::Table;
 use std::path::Path;
 
 /// One star's measurement in one pointing: field position (arcmin from the detector centre) and
-/// the measured `(q, u)` in the sky frame (the HWP zero angle added) with their errors.
+/// the measured `(q, u)` in the sky frame (the HWP zero angle added, [`catalog_rows`]) with
+/// their errors (no covariance: a catalog's `q, u` errors are taken as independent).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct StarRow {
     /// The pointing (catalog) it was measured in, 0-based.
@@ -57,10 +59,7 @@ pub struct StarRow {
     pub row: usize,
     pub x: f64,
     pub y: f64,
-    pub q: f64,
-    pub u: f64,
-    pub sigma_q: f64,
-    pub sigma_u: f64,
+    pub qu: Qu,
 }
 
 /// The interstellar polarization common to the stars.
@@ -184,13 +183,12 @@ pub fn catalog_rows(table: &Table, path: &Path, pointing: usize) -> Result<(Vec<
         let flagged = flags
             .as_ref()
             .is_some_and(|f| f[i].split('|').map(str::trim).any(|g| !g.is_empty() && g != "outlier_exposure"));
-        let r =
-            StarRow { pointing, row: i, x: x[i], y: y[i], q: v[0][i], u: v[1][i], sigma_q: v[2][i], sigma_u: v[3][i] };
-        let ok = [r.x, r.y, r.q, r.u].iter().all(|a| a.is_finite())
-            && r.sigma_q.is_finite()
-            && r.sigma_u.is_finite()
-            && r.sigma_q > 0.0
-            && r.sigma_u > 0.0;
+        let qu = Qu::from_sigmas(v[0][i], v[1][i], v[2][i], v[3][i], 0.0);
+        let r = StarRow { pointing, row: i, x: x[i], y: y[i], qu };
+        let ok = [r.x, r.y, qu.q, qu.u].iter().all(|a| a.is_finite())
+            && [v[2][i], v[3][i]].iter().all(|s| s.is_finite() && *s > 0.0)
+            && qu.var_q.is_finite()
+            && qu.var_u.is_finite();
         if ok && !flagged {
             rows.push(r);
         }
@@ -522,10 +520,10 @@ fn star_chi2(
     for (k, &i) in g.iter().enumerate() {
         let m = &rows[i];
         let (fq, fu) = run.field_qu(m.x, m.y);
-        r[2 * k] = m.q - fq - isp.q;
-        r[2 * k + 1] = m.u - fu - isp.u;
-        s[(2 * k, 2 * k)] = scale * m.sigma_q.powi(2);
-        s[(2 * k + 1, 2 * k + 1)] = scale * m.sigma_u.powi(2);
+        r[2 * k] = m.qu.q - fq - isp.q;
+        r[2 * k + 1] = m.qu.u - fu - isp.u;
+        s[(2 * k, 2 * k)] = scale * m.qu.var_q;
+        s[(2 * k + 1, 2 * k + 1)] = scale * m.qu.var_u;
         if let Some((gq, gu)) = run.field_jacobian(m.x, m.y) {
             for p in 0..np {
                 jac[(2 * k, p)] = gq[p];
@@ -586,7 +584,7 @@ fn fit_kept(
         keep.iter()
             .map(|&i| {
                 let r = &rows[i];
-                Bin::new(r.x, r.y, r.q - iq, r.u - iu, r.sigma_q, r.sigma_u)
+                Bin::new(r.x, r.y, r.qu.q - iq, r.qu.u - iu, r.qu.sigma_q(), r.qu.sigma_u())
             })
             .collect()
     };
@@ -598,10 +596,10 @@ fn fit_kept(
                 let w = run.weights()[k];
                 let r = &rows[i];
                 let (fq, fu) = run.field_qu(r.x, r.y);
-                sq += w * (r.q - fq) / r.sigma_q.powi(2);
-                su += w * (r.u - fu) / r.sigma_u.powi(2);
-                wq += w / r.sigma_q.powi(2);
-                wu += w / r.sigma_u.powi(2);
+                sq += w * (r.qu.q - fq) / r.qu.var_q;
+                su += w * (r.qu.u - fu) / r.qu.var_u;
+                wq += w / r.qu.var_q;
+                wu += w / r.qu.var_u;
             }
             let (nq, nu) = (sq / wq, su / wu);
             let step = ((nq - iq).powi(2) * wq + (nu - iu).powi(2) * wu).sqrt();
@@ -654,7 +652,7 @@ fn joint_covariance(
             gu[nf] = 0.0;
             gu[nf + 1] = 1.0;
         }
-        let (wq, wu) = (w / r.sigma_q.powi(2), w / r.sigma_u.powi(2));
+        let (wq, wu) = (w / r.qu.var_q, w / r.qu.var_u);
         for a_ in 0..n {
             for b in 0..n {
                 a[(a_, b)] += wq * gq[a_] * gq[b] + wu * gu[a_] * gu[b];

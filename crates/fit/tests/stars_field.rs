@@ -79,10 +79,13 @@ fn simulate_field(seed: u64, n: usize, frac_pol: f64, iq: f64, iu: f64, field: f
                 row: rows.len(),
                 x,
                 y,
-                q: fq + iq + pq + noise.sample(&mut rng),
-                u: fu + iu + pu + noise.sample(&mut rng),
-                sigma_q: SIGMA,
-                sigma_u: SIGMA,
+                qu: mueller::Qu::from_sigmas(
+                    fq + iq + pq + noise.sample(&mut rng),
+                    fu + iu + pu + noise.sample(&mut rng),
+                    SIGMA,
+                    SIGMA,
+                    0.0,
+                ),
             });
         }
     }
@@ -237,8 +240,11 @@ fn refusals_name_the_problem() {
     assert!(e.contains("too few"), "{e}");
     // Errors understated 100 times and taken as they are (absolute scaling; the default scales
     // them by the fit's chi^2): every star is beyond any threshold.
-    let tight: Vec<StarRow> =
-        sim.rows.iter().map(|r| StarRow { sigma_q: SIGMA / 100.0, sigma_u: SIGMA / 100.0, ..*r }).collect();
+    let tight: Vec<StarRow> = sim
+        .rows
+        .iter()
+        .map(|r| StarRow { qu: mueller::Qu::from_sigmas(r.qu.q, r.qu.u, SIGMA / 100.0, SIGMA / 100.0, 0.0), ..*r })
+        .collect();
     let absolute = CalibrateOptions {
         fit: RadialFitOptions { error_scaling: fit::ErrorScaling::Absolute, ..Default::default() },
         ..Default::default()

@@ -63,10 +63,9 @@ impl Default for ReduceConfig {
 }
 
 impl ReduceConfig {
-    /// Refuse settings no reduction can have, whoever asks (the CLI and the Python package
-    /// reach the reduction through [`reduce_set_plate`] and [`reduce_files_plate`], which ask
-    /// here): a clipping threshold that is not a positive number of sigma (a NaN clipped
-    /// nothing and the map came out as if unclipped).
+    /// Refuse settings no reduction can have, whoever asks (every reduction of frames, in
+    /// memory or from files, asks here first): a clipping threshold that is not a positive
+    /// number of sigma (a NaN clipped nothing and the map came out as if unclipped).
     pub fn check(&self) -> Result<(), Error> {
         let k = self.clip.nsigma;
         if !(k.is_finite() && k > 0.0) {
