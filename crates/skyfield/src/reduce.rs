@@ -766,8 +766,8 @@ fn require_half_wave(inst: &Instrument) -> Result<(), Error> {
     if inst.polarimetry.plate == instrument::Plate::QuarterWave {
         return Err(Error::Invalid(format!(
             "instrument {} has a quarter-wave plate (plate = \"quarter_wave\"): its 2- and 4-position sets do not \
-             determine Q/I and U/I, which a Stokes map holds; its frames reduce to a V/I map \
-             (reduce_circular_files_with, reduce_for_plate; instpol reduce)",
+             determine Q/I and U/I, which a Stokes map and a sky-field calibration need; its frames give a V/I map \
+             (instpol reduce) and the V/I of stars (photometry, catalog)",
             inst.name
         )));
     }
