@@ -190,14 +190,10 @@ fn telescope_rows_get_their_own_track_and_rotator() {
     assert_eq!((plan.kind, plan.notes.clone()), (Kind::Telescope, vec![Note::RotatorIgnored]));
 }
 
-/// The plan's chain as a forward model ([`fit::chain::Chain::instrument`], the
-/// `field::InstrumentChain` the simulator renders through and that is checked against a Jones
-/// calculation in `crates/sim/tests/chain_end_to_end.rs`) and the plan's correction are each
-/// other's inverse, for every kind of calibration file and every way the rows saw the
-/// telescope: one track, their own tracks, the recorded exposures each over its own track.
-#[test]
-fn the_correction_inverts_the_chain_it_holds() {
-    let z = 2.9;
+/// Four exposures of 22.5 deg plate steps recorded over a parallactic track from -0.6 to 0.4
+/// rad, as a catalog records them, and the same exposures as the chain's forward model takes
+/// them (HWP angle in rad, each over its own track).
+fn recorded_exposures() -> (skyfield::RecordedAngles, Vec<mueller::telescope::Exposure>) {
     let rec = skyfield::RecordedAngles {
         parallactic_rad: Some((-0.6, 0.4)),
         rotator_rad: Some(0.0),
@@ -209,6 +205,23 @@ fn the_correction_inverts_the_chain_it_holds() {
             })
             .collect(),
     };
+    let exposures = rec
+        .exposure_tracks
+        .iter()
+        .map(|e| mueller::telescope::Exposure { hwp: e.hwp_deg.to_radians(), track: Track::new(e.start, Some(e.end)) })
+        .collect();
+    (rec, exposures)
+}
+
+/// The plan's chain as a forward model ([`fit::chain::Chain::instrument`], the
+/// `field::InstrumentChain` the simulator renders through and that is checked against a Jones
+/// calculation in `crates/sim/tests/chain_end_to_end.rs`) and the plan's correction are each
+/// other's inverse, for every kind of calibration file and every way the rows saw the
+/// telescope: one track, their own tracks, the recorded exposures each over its own track.
+#[test]
+fn the_correction_inverts_the_chain_it_holds() {
+    let z = 2.9;
+    let (rec, exposures) = recorded_exposures();
     let pa = [10.0, -35.0, 70.0];
     let rows = PerRowAngles { start_deg: &pa, end_deg: None, rotator_deg: None };
     let sky = mueller::Qu::new(0.021, -0.013, 0.0, 0.0, 0.0);
@@ -233,14 +246,6 @@ fn the_correction_inverts_the_chain_it_holds() {
             for i in 0..3 {
                 let (chain, track) = plan.chain.instrument(i);
                 let measured = if by_exposure {
-                    let exposures: Vec<_> = rec
-                        .exposure_tracks
-                        .iter()
-                        .map(|e| mueller::telescope::Exposure {
-                            hwp: e.hwp_deg.to_radians(),
-                            track: Track::new(e.start, Some(e.end)),
-                        })
-                        .collect();
                     chain.forward_exposures(x, y, &sky, &exposures).unwrap()
                 } else {
                     chain.forward(x, y, &sky, track).unwrap()
@@ -273,22 +278,7 @@ fn the_correction_inverts_the_chain_it_holds() {
 #[test]
 fn rows_in_another_sky_frame_come_back_to_the_sky() {
     let (z, carried) = (2.9, 1.2);
-    let rec = skyfield::RecordedAngles {
-        parallactic_rad: Some((-0.6, 0.4)),
-        rotator_rad: Some(0.0),
-        exposure_tracks: (0..4)
-            .map(|k| skyfield::ExposureTrack {
-                hwp_deg: 22.5 * k as f64,
-                start: -0.6 + 0.25 * k as f64,
-                end: -0.6 + 0.25 * (k + 1) as f64,
-            })
-            .collect(),
-    };
-    let exposures: Vec<_> = rec
-        .exposure_tracks
-        .iter()
-        .map(|e| mueller::telescope::Exposure { hwp: e.hwp_deg.to_radians(), track: Track::new(e.start, Some(e.end)) })
-        .collect();
+    let (rec, exposures) = recorded_exposures();
     let sky = mueller::Qu::new(0.021, -0.013, 1e-8, 1e-8, 0.0);
     let (x, y) = (1.3, -0.7);
     let frame = mueller::Frame::Sky { zero_angle_deg: carried };

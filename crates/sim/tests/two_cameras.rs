@@ -12,60 +12,18 @@ use skyfield::photometry::{layout_for, photometry_with, Aperture, PhotOptions};
 use skyfield::reduce::{read_frames, FrameSet};
 use std::path::{Path, PathBuf};
 
-/// The sky's point at o camera pixel (x, y) falls at (x + 1.7, y - 2.3) on the e camera once
-/// that is flipped back in x.
-const TRANSFORM: &str = "[1.0, 0.0, 1.7, 0.0, 1.0, -2.3]";
+#[path = "common/two_cameras.rs"]
+mod two_cameras;
+use two_cameras::TRANSFORM;
 
-/// Two 160 x 160 px cameras, 10 px apart in the detector frame, 8 overscan columns each; the
-/// simulating file gives the camera transform, the reading one (`measured`) leaves it to the
-/// stars.
+/// Two 160 x 160 px cameras (`common/two_cameras.rs`) behind a plate turning through 16
+/// positions a turn; the simulating file gives the camera transform, the reading one
+/// (`measured`) leaves it to the stars.
 fn instrument(dir: &Path, measured: bool) -> PathBuf {
     let transform = if measured { String::new() } else { format!("transform = {TRANSFORM}\n") };
-    let text = format!(
-        r#"name = "TWOCAM"
-[detector]
-nx = 330
-ny = 160
-pixel_scale_arcsec = 0.44
-gain_e_per_adu = 1.0
-read_noise_e = 5.0
-saturation_adu = 65535.0
-[field]
-width_arcmin = 2.42
-height_arcmin = 1.17
-[polarimetry]
-layout = "two_cameras"
-filter_keyword = "FILTER1"
-exptime_keyword = "EXPTIME"
-rotation = {{ position_keyword = "MOPRPOS", positions_per_turn = 16, first_position = 1, zero_deg = 0.0 }}
-[polarimetry.cameras]
-o_chip = "CAM1"
-e_chip = "CAM2"
-e_orientation = "flip_x"
-{transform}max_residual_px = 0.3
-[format]
-exposure_keywords = ["MOPRUN"]
-[[format.chips]]
-name = "CAM1"
-match_keyword = "CAMERA"
-match_value = "1"
-origin_px = [0, 0]
-size_px = [160, 160]
-overscan_x = 8
-gain_e_per_adu = 1.0
-[[format.chips]]
-name = "CAM2"
-match_keyword = "CAMERA"
-match_value = "2"
-origin_px = [170, 0]
-size_px = [160, 160]
-overscan_x = 8
-gain_e_per_adu = 1.03
-[[filters]]
-name = "R"
-lambda_eff_nm = 650.0
-"#
-    );
+    let plate =
+        "rotation = { position_keyword = \"MOPRPOS\", positions_per_turn = 16, first_position = 1, zero_deg = 0.0 }\n";
+    let text = two_cameras::instrument_text(plate, &format!("{transform}max_residual_px = 0.3\n"));
     let p = dir.join(if measured { "twocam_read.toml" } else { "twocam_sim.toml" });
     std::fs::write(&p, text).unwrap();
     p

@@ -7,59 +7,25 @@
 use skyfield::reduce::{reduce_circular_files_with, reduce_files, ReduceConfig};
 use std::path::{Path, PathBuf};
 
-/// Two 160 x 160 px cameras, 10 px apart in the detector frame, 8 overscan columns each; the o
-/// camera's pixel (x, y) falls at (x + 1.7, y - 2.3) on the e camera once that is flipped back
-/// in x (the transform of crates/sim/tests/two_cameras.rs); the e camera's gain 3 % above the
-/// o camera's; a plate standing still at the header's angle.
+#[path = "common/two_cameras.rs"]
+mod two_cameras;
+
+/// The two cameras of `common/two_cameras.rs` (the o camera's pixel (x, y) falls at
+/// (x + 1.7, y - 2.3) on the e camera once that is flipped back in x; the e camera's gain 3 %
+/// above the o camera's) behind a plate standing still at the header's angle.
 fn instrument(dir: &Path) -> PathBuf {
     let p = dir.join("twocam.toml");
-    std::fs::write(&p, TWOCAM).unwrap();
+    std::fs::write(&p, twocam()).unwrap();
     p
 }
 
-const TWOCAM: &str = r#"name = "TWOCAM"
-[detector]
-nx = 330
-ny = 160
-pixel_scale_arcsec = 0.44
-gain_e_per_adu = 1.0
-read_noise_e = 5.0
-saturation_adu = 65535.0
-[field]
-width_arcmin = 2.42
-height_arcmin = 1.17
-[polarimetry]
-layout = "two_cameras"
-hwp_angle_keyword = "HWPANG"
-filter_keyword = "FILTER1"
-exptime_keyword = "EXPTIME"
-[polarimetry.cameras]
-o_chip = "CAM1"
-e_chip = "CAM2"
-e_orientation = "flip_x"
-transform = [1.0, 0.0, 1.7, 0.0, 1.0, -2.3]
-[format]
-exposure_keywords = ["MOPRUN"]
-[[format.chips]]
-name = "CAM1"
-match_keyword = "CAMERA"
-match_value = "1"
-origin_px = [0, 0]
-size_px = [160, 160]
-overscan_x = 8
-gain_e_per_adu = 1.0
-[[format.chips]]
-name = "CAM2"
-match_keyword = "CAMERA"
-match_value = "2"
-origin_px = [170, 0]
-size_px = [160, 160]
-overscan_x = 8
-gain_e_per_adu = 1.03
-[[filters]]
-name = "R"
-lambda_eff_nm = 650.0
-"#;
+/// That instrument file's text.
+fn twocam() -> String {
+    two_cameras::instrument_text(
+        "hwp_angle_keyword = \"HWPANG\"\n",
+        &format!("transform = {}\n", two_cameras::TRANSFORM),
+    )
+}
 
 const P: f64 = 0.04;
 const CHI_DEG: f64 = 30.0;
@@ -139,8 +105,9 @@ fn transform_measured_from_stars_gives_the_sky() {
     let dir = tempfile::tempdir().unwrap();
     let sim_inst = instrument(dir.path());
     let read = dir.path().join("twocam_read.toml");
-    let text = TWOCAM.replace("transform = [1.0, 0.0, 1.7, 0.0, 1.0, -2.3]\n", "max_residual_px = 0.3\n");
-    assert_ne!(text, TWOCAM);
+    let base = twocam();
+    let text = base.replace("transform = [1.0, 0.0, 1.7, 0.0, 1.0, -2.3]\n", "max_residual_px = 0.3\n");
+    assert_ne!(text, base);
     std::fs::write(&read, text).unwrap();
     let mut body = format!(
         "instrument = \"{}\"\nfilter = \"R\"\nseed = 13\nhwp_angles_deg = [0, 22.5, 45, 67.5]\n[output]\nbitpix = -32\n\
@@ -176,8 +143,9 @@ fn transform_measured_from_stars_gives_the_sky() {
 fn quarter_wave_plate_on_two_cameras_gives_the_sky_v() {
     let dir = tempfile::tempdir().unwrap();
     let inst_path = dir.path().join("twocam_qwp.toml");
-    let text = TWOCAM.replace("layout = \"two_cameras\"\n", "layout = \"two_cameras\"\nplate = \"quarter_wave\"\n");
-    assert_ne!(text, TWOCAM);
+    let base = twocam();
+    let text = base.replace("layout = \"two_cameras\"\n", "layout = \"two_cameras\"\nplate = \"quarter_wave\"\n");
+    assert_ne!(text, base);
     std::fs::write(&inst_path, text).unwrap();
     let body = format!(
         "instrument = \"{}\"\nfilter = \"R\"\nseed = 14\nhwp_angles_deg = [-45, 45, 135, 225]\n[output]\nbitpix = -32\n\

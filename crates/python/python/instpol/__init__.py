@@ -506,7 +506,21 @@ class Calibration:
 
 
 
-class StokesMap:
+class _BinnedMap:
+    """What a binned map from :func:`reduce` holds: its header values, its warnings, and the
+    arrays its class names in ``_ARRAYS``, each of shape ``(ny, nx)``."""
+
+    _ARRAYS: Tuple[str, ...] = ()
+
+    def __init__(self, d: Dict[str, Any]) -> None:
+        self.header: Dict[str, Any] = d["header"]
+        self.warnings = list(d["warnings"])
+        shape = (self.header["ny"], self.header["nx"])
+        for k in self._ARRAYS:
+            setattr(self, k, d[k].reshape(shape))
+
+
+class StokesMap(_BinnedMap):
     """A binned Stokes map from :func:`reduce`: 2-D arrays of shape ``(ny, nx)`` (bin row j,
     column i) and the map's header values.
 
@@ -525,13 +539,9 @@ class StokesMap:
     )
 
     def __init__(self, d: Dict[str, Any]) -> None:
-        self.header: Dict[str, Any] = d["header"]
-        self.warnings = list(d["warnings"])
+        super().__init__(d)
         # A corrected map's record (Calibration.correct_map); None for a map from reduce().
         self.correction: Optional[Dict[str, Any]] = d.get("correction")
-        shape = (self.header["ny"], self.header["nx"])
-        for k in self._ARRAYS:
-            setattr(self, k, d[k].reshape(shape))
 
     def __repr__(self) -> str:
         h = self.header
@@ -541,7 +551,7 @@ class StokesMap:
         )
 
 
-class CircularMap:
+class CircularMap(_BinnedMap):
     """A binned circular-polarization map from :func:`reduce` on frames taken through a
     quarter-wave plate: 2-D arrays of shape ``(ny, nx)`` (bin row j, column i) and the map's
     header values. Its FITS file (``output=``) says ``STOKES = 'V'``; it holds no Q/I, U/I.
@@ -557,13 +567,6 @@ class CircularMap:
     _ARRAYS = (
         "v", "sigma_v", "sigma_v_phot", "n_pixels", "intensity", "intensity_snr", "valid", "x_arcmin", "y_arcmin",
     )
-
-    def __init__(self, d: Dict[str, Any]) -> None:
-        self.header: Dict[str, Any] = d["header"]
-        self.warnings = list(d["warnings"])
-        shape = (self.header["ny"], self.header["nx"])
-        for k in self._ARRAYS:
-            setattr(self, k, d[k].reshape(shape))
 
     def __repr__(self) -> str:
         h = self.header
