@@ -533,18 +533,20 @@ pub fn plan_map<'a>(
         zero_angle_deg,
     };
     let Some(tel) = &file.telescope else {
-        let (zero_angle_deg, field) = match (&file.mueller, &file.field) {
-            (Some(mc), _) => (0.0, FieldStep::Mueller(mc, opts(Method::Exact, mc.hwp_chi_offset_deg))),
+        // The plan's zero angle (reported; a Mueller field's record states its own) and the
+        // zero angle of the frame the model lives in.
+        let (zero_angle_deg, model_zero, field) = match (&file.mueller, &file.field) {
+            (Some(mc), _) => {
+                let z = mc.hwp_chi_offset_deg;
+                (0.0, z, FieldStep::Mueller(mc, opts(Method::Exact, z)))
+            }
             (None, Some(c)) => {
-                (c.hwp_chi_offset_deg, FieldStep::partial_polarizer(c, opts(req.method, c.hwp_chi_offset_deg)))
+                let z = c.hwp_chi_offset_deg;
+                (z, z, FieldStep::partial_polarizer(c, opts(req.method, z)))
             }
             (None, None) => unreachable!("check_options refuses a file without a model"),
         };
-        let zero = match &field {
-            FieldStep::Mueller(mc, _) => mc.hwp_chi_offset_deg,
-            _ => zero_angle_deg,
-        };
-        let chain = Chain { zero_angle_deg: Some(zero), field, telescope: None };
+        let chain = Chain { zero_angle_deg: Some(model_zero), field, telescope: None };
         return Ok(MapPlan { kind, method: req.method, telescope: None, zero_angle_deg, notes, chain, exposures: 0 });
     };
     let field = file.field.as_ref();
