@@ -527,7 +527,7 @@ fn maps_are_turned_by_their_recorded_zero_angle_before_the_fit() {
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     }
     let cols = |p: &Path| -> Vec<(f64, f64)> {
-        let mut r = csv::Reader::from_path(p).unwrap();
+        let mut r = csv::ReaderBuilder::new().comment(Some(b'#')).from_path(p).unwrap();
         let h = r.headers().unwrap().clone();
         let (iq, iu) = (h.iter().position(|c| c == "q0").unwrap(), h.iter().position(|c| c == "u0").unwrap());
         r.records().map(|x| x.unwrap()).map(|x| (x[iq].parse().unwrap(), x[iu].parse().unwrap())).collect()

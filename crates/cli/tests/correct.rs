@@ -41,7 +41,7 @@ fn correct(cal: &Path, input: &Path, out: &Path, extra: &[&str]) -> std::process
 }
 
 fn read_csv(path: &Path) -> (Vec<String>, Vec<Vec<String>>) {
-    let mut r = csv::Reader::from_path(path).unwrap();
+    let mut r = csv::ReaderBuilder::new().comment(Some(b'#')).from_path(path).unwrap();
     let h = r.headers().unwrap().iter().map(String::from).collect();
     let rows = r.records().map(|x| x.unwrap().iter().map(String::from).collect()).collect();
     (h, rows)
@@ -133,7 +133,7 @@ fn outside_the_field_and_extrapolation() {
     assert_eq!(o.status.code(), Some(2));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
-        err.starts_with("error:") && err.contains("row 2") && err.contains("outside the calibrated field"),
+        err.lines().any(|l| l.starts_with("error:")) && err.contains("row 2") && err.contains("outside the calibrated field"),
         "{err}"
     );
     assert!(!out.exists(), "no half-written output");
@@ -443,4 +443,80 @@ fn a_catalog_in_the_sky_frame_is_not_turned_twice() {
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("mixed.csv") && err.contains("row 2") && err.contains("hwp_chi_offset_deg"), "{err}");
     assert!(!out.exists());
+}
+
+/// A catalog says what it is: `instpol catalog` writes its instrument, filter, plate and frame
+/// into every table format (CSV comment lines, ECSV meta, FITS keywords, VOTable PARAMs), the
+/// table reader gives them back, and `instpol correct` refuses a calibration of another filter
+/// naming both (a catalog measured in I corrected with a V calibration went through with exit
+/// 0), corrects with `--allow-mismatch` saying so, and corrects with its own filter's.
+#[test]
+fn a_catalog_of_another_filter_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst = common::tiny_fors1(dir.path(), 8.0, 20);
+    let scene = format!(
+        "instrument = \"{}\"\nfilter = \"I\"\nseed = 3\nhwp_angles_deg = [0, 22.5, 45, 67.5]\n[output]\nbitpix = -64\n[sky]\nbrightness_e = 50\n[effects]\nphoton_noise = true\n[[stars]]\nx = 64\ny = 40\ncoords = \"pixel\"\nflux_e = 1.5e6\np = 0.02\nchi_deg = 30\nfwhm_arcsec = 0.8\n",
+        inst.display()
+    );
+    let sp = dir.path().join("scene.toml");
+    std::fs::write(&sp, scene).unwrap();
+    let frames_dir = dir.path().join("f");
+    let o = run(&["simulate", sp.to_str().unwrap(), "--out", frames_dir.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (cal_v, cal_i) = (dir.path().join("cal_V.fits"), dir.path().join("cal_I.fits"));
+    common::fors1_radial_calibration("V", V).save(&cal_v).unwrap();
+    common::fors1_radial_calibration("I", V).save(&cal_i).unwrap();
+    let frames: Vec<String> = common::fits_in(&frames_dir).iter().map(|p| p.display().to_string()).collect();
+    let def_hash = skyfield::provenance::hash_hex(&std::fs::read(&inst).unwrap());
+    for ext in ["csv", "ecsv", "fits", "vot"] {
+        let cat = dir.path().join(format!("stars.{ext}"));
+        let mut args: Vec<&str> = vec!["catalog"];
+        args.extend(frames.iter().map(String::as_str));
+        args.extend(["--instrument", inst.to_str().unwrap(), "--fwhm", "4", "--aperture", "6", "--annulus", "8,12"]);
+        args.extend(["--out", cat.to_str().unwrap()]);
+        let o = run(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        // The file holds the keywords as text a person or another reader sees.
+        let bytes = std::fs::read(&cat).unwrap();
+        let text = String::from_utf8_lossy(&bytes);
+        assert!(text.contains("INSTRUME") && text.contains("FILTER"), "{ext}: no product keywords");
+        let t = skyfield::table::Table::read(&cat, None).unwrap();
+        let p = t.product.as_ref().unwrap_or_else(|| panic!("{ext}: no product read back"));
+        assert_eq!(p.instrument.as_deref(), Some("FORS1"), "{ext}");
+        assert_eq!(p.filter.as_deref(), Some("I"), "{ext}");
+        assert_eq!(p.plate.as_deref(), Some("half_wave"), "{ext}");
+        assert_eq!(p.instrument_hash.as_deref(), Some(def_hash.as_str()), "{ext}: the instrument file's BLAKE3");
+        assert_eq!(p.frame(), Some(mueller::Frame::Sky { zero_angle_deg: 0.0 }), "{ext}");
+        assert_eq!(p.inputs.len(), frames.len() + 1, "{ext}: the frames' and the instrument's hashes");
+        let out = dir.path().join(format!("c.{ext}"));
+        let args = ["correct", "--in", cat.to_str().unwrap(), "--out", out.to_str().unwrap(), "--coords", "pixel"];
+        let refused = run(&[&args[..], &["--cal", cal_v.to_str().unwrap()]].concat());
+        let err = String::from_utf8_lossy(&refused.stderr);
+        assert_eq!(refused.status.code(), Some(2), "{ext}: {err}");
+        assert!(err.contains("FORS1 I catalog") && err.contains("FORS1 V"), "{ext}: {err}");
+        assert!(!out.exists(), "{ext}: an output was written");
+        let forced = run(&[&args[..], &["--cal", cal_v.to_str().unwrap(), "--allow-mismatch"]].concat());
+        assert!(forced.status.success(), "{ext}: {}", String::from_utf8_lossy(&forced.stderr));
+        std::fs::remove_file(&out).unwrap();
+        let own = run(&[&args[..], &["--cal", cal_i.to_str().unwrap()]].concat());
+        assert!(own.status.success(), "{ext}: {}", String::from_utf8_lossy(&own.stderr));
+        // The corrected table still says what it is.
+        let c = skyfield::table::Table::read(&out, None).unwrap();
+        assert_eq!(c.product.and_then(|p| p.filter).as_deref(), Some("I"), "{ext}");
+    }
+}
+
+/// A table that does not say what it is (written by other software) is corrected with a
+/// warning that nothing could be checked.
+#[test]
+fn a_table_without_product_keywords_is_corrected_with_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let cal = dir.path().join("v.fits");
+    v_calibration().save(&cal).unwrap();
+    let input = dir.path().join("in.csv");
+    std::fs::write(&input, "x,y,q,u,sigma_q,sigma_u\n0.5,0.5,0.01,0.0,0.001,0.001\n").unwrap();
+    let out = dir.path().join("out.csv");
+    let o = correct(&cal, &input, &out, &[]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("does not say which instrument and filter"), "{err}");
 }

@@ -160,7 +160,7 @@ fn efosc2_v_calibration_corrects_the_standards_through_the_cli() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let sum: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(sum["telescope_model"], "wiersema");
-    let mut rdr = csv::Reader::from_path(&out).unwrap();
+    let mut rdr = csv::ReaderBuilder::new().comment(Some(b'#')).from_path(&out).unwrap();
     let h = rdr.headers().unwrap().clone();
     let col = |n: &str| h.iter().position(|x| x == n).unwrap();
     let (iq, iu, isq, isu) = (col("q0"), col("u0"), col("sigma_q0"), col("sigma_u0"));

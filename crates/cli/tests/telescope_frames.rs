@@ -634,7 +634,7 @@ fn correct_gives_a_catalog_without_angles_the_frames_track() {
     assert_eq!(correct(&cw, "a.csv", &[]).0, Some(0));
     assert_eq!(correct(&cb, "b.csv", &["--parang", "-41.5,-37.25"]).0, Some(0));
     let columns = |f: &str| -> Vec<Vec<String>> {
-        let mut r = csv::Reader::from_path(d.join(f)).unwrap();
+        let mut r = csv::ReaderBuilder::new().comment(Some(b'#')).from_path(d.join(f)).unwrap();
         let h = r.headers().unwrap().clone();
         let want = ["q0", "u0", "sigma_q0", "sigma_u0", "q_inst", "u_inst"];
         let idx: Vec<usize> =
@@ -814,7 +814,7 @@ fn catalog_undoes_the_telescope_exposure_by_exposure() {
     let one = d.join("one.csv");
     let o = correct(&table, &one, &["--parang", &format!("{pa0},{pa1}")]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let mut rdr = csv::Reader::from_path(&one).unwrap();
+    let mut rdr = csv::ReaderBuilder::new().comment(Some(b'#')).from_path(&one).unwrap();
     let h = rdr.headers().unwrap().clone();
     let col = |name: &str| h.iter().position(|c| c == name).unwrap();
     let mut worst_one = 0.0f64;
@@ -845,7 +845,7 @@ fn catalog_undoes_the_telescope_exposure_by_exposure() {
         let o = correct(&t, &out, &[]);
         assert!(o.status.success(), "{ext}: {}", String::from_utf8_lossy(&o.stderr));
         assert!(String::from_utf8_lossy(&o.stdout).contains("exposure by exposure (8"), "{ext}");
-        let mut rdr = csv::Reader::from_path(&out).unwrap();
+        let mut rdr = csv::ReaderBuilder::new().comment(Some(b'#')).from_path(&out).unwrap();
         let h = rdr.headers().unwrap().clone();
         let col = |name: &str| h.iter().position(|c| c == name).unwrap();
         for rec in rdr.records() {

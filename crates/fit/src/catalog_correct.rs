@@ -21,12 +21,10 @@ use skyfield::catalog::Catalog;
 /// Why a catalog cannot be corrected with a calibration.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    #[error(
-        "the calibration is of filter {cal} but the frames are {frames}: a calibration corrects its own filter only"
-    )]
-    Filter { cal: String, frames: String },
-    #[error("the calibration is of instrument {cal} but the frames were reduced as {frames}")]
-    Instrument { cal: String, frames: String },
+    /// Frames of another instrument, filter or plate than the calibration's
+    /// ([`crate::setup::check_compatible`]).
+    #[error("{0}: a calibration corrects data of its own instrument and filter only")]
+    Mismatch(crate::setup::Mismatch),
     #[error("star {id} at ({x:.2}, {y:.2}) arcmin: {source}")]
     Star { id: usize, x: f64, y: f64, source: crate::correct::Error },
     #[error("star {id} at ({x:.2}, {y:.2}) arcmin: {source}")]
@@ -35,11 +33,6 @@ pub enum Error {
     Exposures(String),
     #[error("no field model to correct with")]
     NoModel,
-    #[error(
-        "the catalog holds V/I through a quarter-wave plate: a calibration corrects linear polarization (q, u), which \
-         these frames do not measure"
-    )]
-    Circular,
     #[error("{0}")]
     Calibration(crate::Error),
     #[error(
@@ -81,18 +74,12 @@ pub fn correct_catalog_loaded(
     loaded: &crate::calibration::CalibrationFile,
     opts: CorrectOptions,
 ) -> Result<(CorrectedCatalog, Option<TelescopeUsed>), Error> {
-    if cat.qwp_zero_angle_deg.is_some() {
-        return Err(Error::Circular);
-    }
+    // What the frames are, checked against the calibration by the one rule (the plate first:
+    // a quarter-wave plate's V/I is refused before the models are asked for).
+    let plate = inst.polarimetry.plate.name().to_string();
+    let data = crate::setup::Setup { instrument: inst.name.clone(), filter: cat.filter.clone(), plate: Some(plate) };
+    crate::setup::check_compatible(&data, None).map_err(Error::Mismatch)?;
     let (field, tel) = loaded.p_phi_models().map_err(Error::Calibration)?;
-    if let Some(cal) = field {
-        if !cal.filter.eq_ignore_ascii_case(&cat.filter) {
-            return Err(Error::Filter { cal: cal.filter.clone(), frames: cat.filter.clone() });
-        }
-        if !cal.instrument.eq_ignore_ascii_case(&inst.name) {
-            return Err(Error::Instrument { cal: cal.instrument.clone(), frames: inst.name.clone() });
-        }
-    }
     // The exposures' angles from the frames' headers, for a telescope model.
     let (recorded, band) = match tel {
         None => {
@@ -130,11 +117,13 @@ pub fn correct_catalog_loaded(
         band: band.as_deref(),
         frame,
         recorded: recorded.as_ref(),
+        data: Some(&data),
         ..crate::request::Request::new(opts.method, opts.allow_extrapolation, opts.extrapolation_rel_error)
     };
     let plan = crate::request::plan_rows(loaded, &request, cat.rows.len()).map_err(|e| match e {
         crate::request::Refusal::NoRotator { .. } => Error::NoRotator(inst.name.clone()),
         crate::request::Refusal::Exposures(e) => Error::Exposures(e),
+        crate::request::Refusal::Mismatch { mismatch, .. } => Error::Mismatch(mismatch),
         e => Error::Calibration(crate::Error::Input(e.to_string())),
     })?;
     let mut rows = Vec::with_capacity(cat.rows.len());

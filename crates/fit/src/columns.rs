@@ -250,6 +250,9 @@ pub struct TableAngles {
     pub parang_end_deg: Option<Vec<f64>>,
     pub rotator_deg: Option<Vec<f64>>,
     pub recorded: Option<skyfield::RecordedAngles>,
+    /// What the table says its rows are (instrument, filter, plate: its product keywords),
+    /// checked against the calibration; `None` for a table that does not say.
+    pub setup: Option<crate::setup::Setup>,
 }
 
 impl TableAngles {
@@ -265,7 +268,8 @@ impl TableAngles {
         } else {
             None
         };
-        Ok(Self { frame, parang_deg, parang_end_deg, rotator_deg, recorded })
+        let setup = t.product.as_ref().and_then(crate::setup::Setup::of_product);
+        Ok(Self { frame, parang_deg, parang_end_deg, rotator_deg, recorded, setup })
     }
 
     /// `base` with these angles: the rows' data, not a caller's arguments.
@@ -273,6 +277,7 @@ impl TableAngles {
         crate::request::Request {
             frame: self.frame,
             recorded: self.recorded.as_ref(),
+            data: self.setup.as_ref(),
             per_row: self.parang_deg.as_deref().map(|s| crate::request::PerRowAngles {
                 start_deg: s,
                 end_deg: self.parang_end_deg.as_deref(),

@@ -75,9 +75,13 @@ pub struct Request<'a> {
     /// angles given as arguments are refused (they would change nothing) and angles in the data
     /// are noted; arguments may not give both per-row and recorded angles.
     pub angles_are_arguments: bool,
-    /// A Stokes map of another instrument or filter (or a band that is not the map's filter)
-    /// is corrected all the same.
+    /// A Stokes map or rows of another instrument or filter (or a band that is not the map's
+    /// filter) is corrected all the same.
     pub allow_mismatch: bool,
+    /// What the rows are, as their table says ([`skyfield::provenance::Product`]): checked
+    /// against the calibration ([`crate::setup::check_compatible`]); `None`: the rows do not
+    /// say (a table of other software, a caller's arrays), and nothing is checked.
+    pub data: Option<&'a crate::setup::Setup>,
 }
 
 impl Request<'_> {
@@ -96,6 +100,7 @@ impl Request<'_> {
             recorded: None,
             angles_are_arguments: false,
             allow_mismatch: false,
+            data: None,
         }
     }
 }
@@ -123,8 +128,9 @@ pub enum Refusal {
     Band(BandChoiceError),
     /// The recorded exposures cannot be prepared (their telescope chain).
     Exposures(String),
-    /// A Stokes map of another instrument or filter than the calibration's.
-    Mismatch { map: (String, String), calibration: (String, String) },
+    /// A Stokes map (`map`) or rows of another instrument, filter or plate than the
+    /// calibration's ([`crate::setup::check_compatible`]).
+    Mismatch { map: bool, mismatch: crate::setup::Mismatch },
     /// A Stokes map corrected by a telescope model alone, in a band that is not its filter.
     BandMismatch { map_filter: String, band: String },
 }
@@ -158,8 +164,8 @@ impl std::fmt::Display for Refusal {
                 write!(f, "the telescope model has bands {} and nothing says which", bands.join(", "))
             }
             Refusal::Exposures(e) => write!(f, "the recorded exposures: {e}"),
-            Refusal::Mismatch { map, calibration } => {
-                write!(f, "a {} {} map and a calibration of {} {}", map.0, map.1, calibration.0, calibration.1)
+            Refusal::Mismatch { map, mismatch } => {
+                write!(f, "{} and calibration do not fit together: {mismatch}", if *map { "map" } else { "rows" })
             }
             Refusal::BandMismatch { map_filter, band } => {
                 write!(f, "a {map_filter} map and the telescope model's band {band}")
@@ -183,6 +189,9 @@ pub enum Note {
     TrackReplaced { recorded: (f64, f64) },
     /// A rotator angle was given but the model was fitted without rotator angles.
     RotatorIgnored,
+    /// Rows of a table that does not say what it is (no instrument or filter among its
+    /// keywords: a table of other software): nothing could be checked against the calibration.
+    SetupUnknown,
     /// A map corrected by a telescope model alone records no HWP zero angle and its
     /// instrument gives none: what was taken, in words ([`crate::setup::map_zero_angle`]).
     ZeroAngleUnknown(String),
@@ -280,6 +289,11 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
         }
     };
     check_options(file, req)?;
+    match req.data {
+        Some(data) => check_setup(file, req, data, false)?,
+        None if !req.angles_are_arguments => notes.push(Note::SetupUnknown),
+        None => {}
+    }
     if req.angles_are_arguments && req.per_row.is_some() && req.recorded.is_some() {
         return Err(Refusal::TwoTracks);
     }
@@ -321,6 +335,11 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
     };
     let field = file.field.as_ref();
     let band = tel.choose_band(req.band, field.map(|c| c.filter.as_str()), None).map_err(Refusal::Band)?;
+    if let Some(d) = req.data.filter(|_| field.is_none() && !req.allow_mismatch) {
+        if !crate::setup::band_fits_data(&d.instrument, &d.filter, &band) {
+            return Err(Refusal::BandMismatch { map_filter: d.filter.clone(), band });
+        }
+    }
     let (to_sky, plate) = row_zero_angles(field.map(|c| c.hwp_chi_offset_deg), req.frame);
     if let Some(c) = field {
         note_carried(&mut notes, c.hwp_chi_offset_deg, to_sky);
@@ -502,6 +521,20 @@ impl MapPlan<'_> {
     }
 }
 
+/// The data's setup against the file's field or Mueller calibration (a telescope model alone
+/// is checked by its band), unless the request allows a mismatch.
+fn check_setup(file: &CalibrationFile, req: &Request<'_>, data: &crate::setup::Setup, map: bool) -> Result<(), Refusal> {
+    let setup = match (&file.field, &file.mueller) {
+        (Some(c), _) => Some((c.instrument.as_str(), c.filter.as_str())),
+        (None, Some(m)) => Some((m.instrument.as_str(), m.filter.as_str())),
+        (None, None) => None,
+    };
+    if req.allow_mismatch {
+        return Ok(());
+    }
+    crate::setup::check_compatible(data, setup).map_err(|mismatch| Refusal::Mismatch { map, mismatch })
+}
+
 /// Resolve how the Stokes map `map` is corrected with `file` as `req` asks (module docs; the
 /// request's per-row angles, recorded angles and carried zero angle are a table's and not
 /// used).
@@ -511,19 +544,8 @@ pub fn plan_map<'a>(
     map: &skyfield::StokesMap,
 ) -> Result<MapPlan<'a>, Refusal> {
     check_options(file, req)?;
-    let setup = match (&file.field, &file.mueller) {
-        (Some(c), _) => Some((c.instrument.as_str(), c.filter.as_str())),
-        (None, Some(m)) => Some((m.instrument.as_str(), m.filter.as_str())),
-        (None, None) => None,
-    };
-    if let Some((ci, cf)) = setup {
-        if !req.allow_mismatch && !crate::setup::matches_setup(&map.instrument, &map.filter, ci, cf) {
-            return Err(Refusal::Mismatch {
-                map: (map.instrument.clone(), map.filter.clone()),
-                calibration: (ci.to_string(), cf.to_string()),
-            });
-        }
-    }
+    let data = crate::setup::Setup { instrument: map.instrument.clone(), filter: map.filter.clone(), plate: None };
+    check_setup(file, req, &data, true)?;
     let kind = file.kind();
     let mut notes = vec![];
     let opts = |method, zero_angle_deg: f64| CorrectOptions {

@@ -106,6 +106,68 @@ pub fn matches_calibration(inst: &str, filter: &str, cal: &crate::Calibration) -
     matches_setup(inst, filter, &cal.instrument, &cal.filter)
 }
 
+/// What a product (a catalog's rows, a map) says it is, beside what a calibration is for: the
+/// one check of every combination of data with a calibration ([`check_compatible`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Setup {
+    pub instrument: String,
+    pub filter: String,
+    /// `half_wave` or `quarter_wave`, when known.
+    pub plate: Option<String>,
+}
+
+impl Setup {
+    /// The setup a product records (`None` when it records no instrument or filter: a table
+    /// written by other software).
+    pub fn of_product(p: &skyfield::provenance::Product) -> Option<Self> {
+        Some(Setup { instrument: p.instrument.clone()?, filter: p.filter.clone()?, plate: p.plate.clone() })
+    }
+}
+
+/// Why data and a calibration do not fit together, naming both sides' values.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Mismatch {
+    /// Another instrument or filter ([`matches_setup`]).
+    Setup { data: (String, String), calibration: (String, String) },
+    /// Data of a quarter-wave plate (`V/I`): a calibration corrects linear `q, u`.
+    Plate { plate: String },
+}
+
+impl std::fmt::Display for Mismatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Mismatch::Setup { data, calibration } => write!(
+                f,
+                "the data are of instrument {} in filter {}, the calibration of instrument {} in filter {}",
+                data.0, data.1, calibration.0, calibration.1
+            ),
+            Mismatch::Plate { plate } => write!(
+                f,
+                "the data were taken through a {} plate (V/I); a calibration corrects the linear q, u of a half-wave plate",
+                plate.replace('_', "-")
+            ),
+        }
+    }
+}
+
+/// The one compatibility check of data (`data`, what the product says) and a calibration of
+/// instrument and filter `cal` (`None`: a telescope model alone, whose band is checked apart):
+/// a half-wave plate's data, of the same instrument and filter ([`matches_setup`]: names that
+/// say nothing are not checked).
+pub fn check_compatible(data: &Setup, cal: Option<(&str, &str)>) -> Result<(), Mismatch> {
+    if let Some(p) = data.plate.as_deref().filter(|p| !p.eq_ignore_ascii_case("half_wave")) {
+        return Err(Mismatch::Plate { plate: p.to_string() });
+    }
+    let Some((cal_inst, cal_filter)) = cal else { return Ok(()) };
+    if !matches_setup(&data.instrument, &data.filter, cal_inst, cal_filter) {
+        return Err(Mismatch::Setup {
+            data: (data.instrument.clone(), data.filter.clone()),
+            calibration: (cal_inst.to_string(), cal_filter.to_string()),
+        });
+    }
+    Ok(())
+}
+
 /// [`matches_calibration`] for any calibration of instrument `cal_inst` and filter
 /// `cal_filter` (e.g. a Mueller field, [`crate::mueller_cal`]).
 pub fn matches_setup(inst: &str, filter: &str, cal_inst: &str, cal_filter: &str) -> bool {

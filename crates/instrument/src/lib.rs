@@ -92,6 +92,14 @@ pub enum Plate {
 }
 
 impl Plate {
+    /// The plate's name as the instrument file writes it (`half_wave`, `quarter_wave`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Plate::HalfWave => "half_wave",
+            Plate::QuarterWave => "quarter_wave",
+        }
+    }
+
     /// The plate's nominal retardance (rad).
     pub fn retardance(self) -> f64 {
         match self {
@@ -533,6 +541,11 @@ pub struct Instrument {
     /// sorting a folder of raw files; see [`headers`].
     #[serde(default)]
     pub headers: Option<Headers>,
+    /// The definition's TOML text, as read ([`Instrument::from_toml_str`]): products record its
+    /// hash, so that a product says which definition made it. `None` for an instrument built
+    /// in code.
+    #[serde(skip)]
+    pub definition: Option<String>,
 }
 
 /// One mask strip on the detector: rows `[o_start, o_start + height)` hold its ordinary image
@@ -599,9 +612,10 @@ impl Instrument {
                 why: "not a finite number".into(),
             });
         }
-        let inst: Instrument =
+        let mut inst: Instrument =
             toml::from_str(text).map_err(|e| Error::Parse { path: path.into(), message: e.to_string() })?;
         inst.validate(path)?;
+        inst.definition = Some(text.to_string());
         if let Some(t) = &inst.telescope {
             t.check(path.parent()).map_err(|(key, value, why)| Error::Invalid {
                 path: path.into(),

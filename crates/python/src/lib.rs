@@ -414,9 +414,9 @@ impl _Calibration {
                 "parang_deg, rotator_deg and band are for calibrations with a telescope model; {cal_path} holds {}",
                 if mueller { "a Mueller field" } else { "none" }
             ),
-            E::Mismatch { map, calibration } => format!(
-                "{input} is a {} {} map but {cal_path} calibrates {} {}: use the calibration of the map's instrument and filter (or allow_mismatch=True)",
-                map.0, map.1, calibration.0, calibration.1
+            E::Mismatch { mismatch: fit::setup::Mismatch::Setup { data, calibration }, .. } => format!(
+                "{input} is a {} {} map but {cal_path} calibrates {} {} (instrument, filter): use the calibration of the map's instrument and filter (or allow_mismatch=True)",
+                data.0, data.1, calibration.0, calibration.1
             ),
             E::BandMismatch { map_filter, band } => format!(
                 "{input} is a {map_filter} map but the telescope model's band is {band}: use the band of the map's filter (band=), or allow_mismatch=True"
@@ -452,6 +452,9 @@ impl _Calibration {
             Note::AnglesWithoutTelescope => format!(
                 "{cal_path} holds no telescope model: the telescope's polarization is NOT removed"
             ),
+            Note::SetupUnknown => format!(
+                "{input} does not say which instrument and filter it was measured with: it cannot be checked against {cal_path}"
+            ),
         }
     }
 
@@ -485,6 +488,9 @@ impl _Calibration {
             )),
             E::Band(b) => self.band_error(b),
             E::Exposures(m) => input_err(format!("recorded: {m}")),
+            E::Mismatch { mismatch, .. } => input_err(format!(
+                "{mismatch}: give the calibration of the rows' instrument and filter (instrument=, filter= are the rows'), or allow_mismatch=True"
+            )),
             e => input_err(e.to_string()),
         }
     }
@@ -639,7 +645,7 @@ impl _Calibration {
 
     /// `instpol correct` on flat arrays: exact inversion of `eq:instpol` (or `eq:approx`), the
     /// HWP zero angle first, errors propagated; `estimator`: also the bias-corrected `P0`.
-    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator, parang_deg, parang_end_deg, band, recorded, carried_deg))]
+    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator, parang_deg, parang_end_deg, band, recorded, carried_deg, setup, allow_mismatch))]
     #[allow(clippy::too_many_arguments)]
     fn _correct<'py>(
         &self,
@@ -661,8 +667,13 @@ impl _Calibration {
         band: Option<String>,
         recorded: Option<Recorded>,
         carried_deg: Option<f64>,
+        setup: Option<(String, String, Option<String>)>,
+        allow_mismatch: bool,
     ) -> PyResult<Bound<'py, PyDict>> {
-        let base = request(method, allow_extrapolation, extrapolation_error, band.as_deref(), false)?;
+        let base = request(method, allow_extrapolation, extrapolation_error, band.as_deref(), allow_mismatch)?;
+        // What the rows are (instrument, filter, plate: catalog()'s), checked against the
+        // calibration as a table's keywords are.
+        let setup = setup.map(|(instrument, filter, plate)| fit::setup::Setup { instrument, filter, plate });
         // The zero angle q, u already carry (catalog()'s do): given, else what `recorded`
         // says, else none (q, u at the plate); the calibration's less it is applied, as
         // `instpol correct` takes a table's hwp_chi_offset_deg column.
@@ -692,6 +703,7 @@ impl _Calibration {
             frame: mueller::Frame::carrying(carried),
             per_row: pa.map(|start_deg| fit::request::PerRowAngles { start_deg, end_deg: pa_end, rotator_deg: None }),
             recorded: recorded.as_ref().map(|r| &r.angles),
+            data: setup.as_ref(),
             ..base
         };
         let plan = fit::request::plan_rows(&self.file, &request, n).map_err(|e| self.rows_error(e, pa.is_some()))?;
@@ -1145,6 +1157,19 @@ fn _catalog<'py>(
     d.set_item("f", arr2(py, f, rows.len(), n)?)?;
     d.set_item("hwp_deg", cat.hwp_deg.clone())?;
     d.set_item("filter", &cat.filter)?;
+    // What the catalog is (instrument, filter, plate, frame, detector), as its tables' keywords.
+    if let Some(p) = &cat.product {
+        let pd = PyDict::new(py);
+        pd.set_item("instrument", p.instrument.as_deref())?;
+        pd.set_item("instrument_hash", p.instrument_hash.as_deref())?;
+        pd.set_item("filter", p.filter.as_deref())?;
+        pd.set_item("wavelength_um", p.wavelength_um)?;
+        pd.set_item("plate", p.plate.as_deref())?;
+        pd.set_item("hwp_chi_offset_deg", p.zero_angle_deg)?;
+        pd.set_item("detector_px", p.detector_px)?;
+        pd.set_item("pixel_scale_arcsec", p.pixel_scale_arcsec)?;
+        d.set_item("product", pd)?;
+    }
     d.set_item("chi_offset_deg", cat.chi_offset_deg)?;
     d.set_item("oe_offset_px", cat.oe_offset_px)?;
     d.set_item("unpaired", cat.unpaired.clone())?;

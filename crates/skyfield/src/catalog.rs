@@ -255,6 +255,10 @@ pub struct Catalog {
     /// (their headers' parallactic angles). Set by [`catalog_files`]; empty otherwise.
     #[serde(skip)]
     pub frames: Vec<(PathBuf, f64)>,
+    /// What the catalog is: instrument, filter, plate, the sky frame of its rows' `q, u`, the
+    /// detector (set by [`catalog_files`]; written into its table by [`Catalog::to_table`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub product: Option<crate::provenance::Product>,
 }
 
 /// One exposure across the catalog's stars (the per-exposure checks of [`check_exposures`]).
@@ -400,7 +404,7 @@ impl Catalog {
             let v = r.iter().map(|x| x.f.get(i).copied().unwrap_or(f64::NAN)).collect();
             c.push(Column::f64(&format!("f_{i}"), None, &format!("F_i (eq:F) at HWP {} deg", self.hwp_deg[i]), v));
         }
-        Table::new(c)
+        Table { product: self.product.clone(), ..Table::new(c) }
     }
 }
 
@@ -433,6 +437,8 @@ pub fn catalog_files(
         (cat, disk.bad_pixel_warnings()?)
     };
     cat.frames = exposures;
+    let frame = mueller::Frame::Sky { zero_angle_deg: cat.chi_offset_deg };
+    cat.product = Some(crate::provenance::Product::of_instrument(inst, &cat.filter, Some(frame)));
     warnings.extend(zero_angle_warning(inst, &cat.filter));
     warnings.extend(pairing_warning(&cat, inst, cfg.detect.pair_tol_px));
     if let Some(CameraTransform { transform: t, residual_rms_px: Some(rms), pairs: Some(n) }) = cat.camera_transform {
@@ -828,6 +834,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         n_sources: sources.len(),
         alignment,
         exposures: None,
+        product: None,
         frames: vec![],
     })
 }

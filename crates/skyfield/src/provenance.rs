@@ -212,6 +212,172 @@ impl Provenance {
     }
 }
 
+/// What a product is: the instrument and filter it was measured with, the plate, the frame of
+/// its `(q, u)`, the detector's geometry and the hashes of what it was made from. Carried by
+/// every table the workspace writes (as keywords: FITS table keywords, ECSV `meta`, VOTable
+/// `PARAM`s, CSV `# KEY = value` comment lines before the header: [`Product::pairs`]) and
+/// given back by every reader ([`Product::from_pairs`]), so that a command combining a table
+/// with a calibration can check that the two are of the same instrument, filter and plate
+/// (`fit::setup::check_compatible`). A table written by other software has none; every field
+/// is optional because a product knows only what its maker knew.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct Product {
+    /// The instrument's name (its file's `name`, as FITS `INSTRUME`).
+    pub instrument: Option<String>,
+    /// `blake3:<hex>` of the instrument's definition (its TOML text).
+    pub instrument_hash: Option<String>,
+    /// The filter's name as the instrument file gives it.
+    pub filter: Option<String>,
+    /// The filter's central wavelength (micron).
+    pub wavelength_um: Option<f64>,
+    /// The wave plate: `half_wave` or `quarter_wave`.
+    pub plate: Option<String>,
+    /// The frame of the product's `(q, u)`: `None` unknown, else `mueller::Frame` in words
+    /// ([`Product::frame`]).
+    pub zero_angle_deg: Option<f64>,
+    /// `true`: the values are at the plate, as demodulated; `false`: in the sky frame of
+    /// `zero_angle_deg`.
+    pub at_plate: Option<bool>,
+    /// The detector binning (x, y).
+    pub binning: Option<(u32, u32)>,
+    /// The detector's size (pixels, x by y) and pixel scale (arcsec per unbinned pixel).
+    pub detector_px: Option<(usize, usize)>,
+    pub pixel_scale_arcsec: Option<f64>,
+    /// `blake3:<hex>` of each input it was made from, in order.
+    pub inputs: Vec<String>,
+}
+
+/// The keywords of a [`Product`] (FITS-keyword names: at most 8 characters), in writing order;
+/// the inputs follow as `INHASH1`, `INHASH2`, ...
+pub const PRODUCT_KEYS: [&str; 10] =
+    ["INSTRUME", "INSTHASH", "FILTER", "WAVELEN", "PLATE", "FRAME", "HWPZERO", "BINNING", "DETSIZE", "PIXSCALE"];
+
+impl Product {
+    /// The frame of the product's `(q, u)`, when it says.
+    pub fn frame(&self) -> Option<mueller::Frame> {
+        match (self.at_plate, self.zero_angle_deg) {
+            (Some(true), _) => Some(mueller::Frame::Plate),
+            (Some(false), Some(z)) => Some(mueller::Frame::Sky { zero_angle_deg: z }),
+            _ => None,
+        }
+    }
+
+    /// Whether `key` is one of a product's keywords ([`PRODUCT_KEYS`] or `INHASH<n>`).
+    pub fn is_key(key: &str) -> bool {
+        let k = key.trim().to_ascii_uppercase();
+        PRODUCT_KEYS.contains(&k.as_str())
+            || k.strip_prefix("INHASH").is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+    }
+
+    /// The product as keyword and text value pairs, the ones it knows, in [`PRODUCT_KEYS`]
+    /// order, then one `INHASH<n>` per input (hex digits without the `blake3:` label: a FITS
+    /// string value holds at most 68 characters). Numbers are written to round-trip (`{:?}`).
+    pub fn pairs(&self) -> Vec<(String, String)> {
+        let hex = |h: &str| h.strip_prefix("blake3:").unwrap_or(h).to_string();
+        let mut out: Vec<(String, String)> = Vec::new();
+        let mut put = |k: &str, v: Option<String>| {
+            if let Some(v) = v {
+                out.push((k.to_string(), v));
+            }
+        };
+        put("INSTRUME", self.instrument.clone());
+        put("INSTHASH", self.instrument_hash.as_deref().map(hex));
+        put("FILTER", self.filter.clone());
+        put("WAVELEN", self.wavelength_um.map(|w| format!("{w:?}")));
+        put("PLATE", self.plate.clone());
+        put("FRAME", self.at_plate.map(|p| if p { "plate" } else { "sky" }.to_string()));
+        put("HWPZERO", self.zero_angle_deg.map(|z| format!("{z:?}")));
+        put("BINNING", self.binning.map(|(x, y)| format!("{x}x{y}")));
+        put("DETSIZE", self.detector_px.map(|(x, y)| format!("{x}x{y}")));
+        put("PIXSCALE", self.pixel_scale_arcsec.map(|s| format!("{s:?}")));
+        for (k, h) in self.inputs.iter().enumerate() {
+            out.push((format!("INHASH{}", k + 1), hex(h)));
+        }
+        out
+    }
+
+    /// A product read back from keyword and text pairs (any case; unknown keywords ignored);
+    /// `None` when none of a product's keywords is there (a table written by other software).
+    /// A value that does not parse is an error naming the keyword.
+    pub fn from_pairs<'a>(pairs: impl IntoIterator<Item = (&'a str, &'a str)>) -> Result<Option<Self>, String> {
+        let mut p = Product::default();
+        let mut any = false;
+        let mut inputs: Vec<(usize, String)> = Vec::new();
+        let num = |k: &str, v: &str| -> Result<f64, String> {
+            v.trim().parse::<f64>().ok().filter(|x| x.is_finite()).ok_or_else(|| format!("{k} = '{v}' is not a number"))
+        };
+        let two = |k: &str, v: &str| -> Result<(u64, u64), String> {
+            let bad = || format!("{k} = '{v}' is not of the form NxM");
+            let (a, b) = v.trim().split_once(['x', 'X']).ok_or_else(bad)?;
+            Ok((a.trim().parse().map_err(|_| bad())?, b.trim().parse().map_err(|_| bad())?))
+        };
+        for (k, v) in pairs {
+            let key = k.trim().to_ascii_uppercase();
+            if !Self::is_key(&key) {
+                continue;
+            }
+            any = true;
+            let text = v.trim().to_string();
+            match key.as_str() {
+                "INSTRUME" => p.instrument = Some(text),
+                "INSTHASH" => p.instrument_hash = Some(format!("blake3:{text}")),
+                "FILTER" => p.filter = Some(text),
+                "WAVELEN" => p.wavelength_um = Some(num(&key, v)?),
+                "PLATE" => p.plate = Some(text),
+                "FRAME" => {
+                    p.at_plate = Some(match text.to_ascii_lowercase().as_str() {
+                        "plate" => true,
+                        "sky" => false,
+                        _ => return Err(format!("FRAME = '{v}' is neither 'plate' nor 'sky'")),
+                    })
+                }
+                "HWPZERO" => p.zero_angle_deg = Some(num(&key, v)?),
+                "BINNING" => {
+                    let (x, y) = two(&key, v)?;
+                    p.binning = Some((x as u32, y as u32));
+                }
+                "DETSIZE" => {
+                    let (x, y) = two(&key, v)?;
+                    p.detector_px = Some((x as usize, y as usize));
+                }
+                "PIXSCALE" => p.pixel_scale_arcsec = Some(num(&key, v)?),
+                _ => {
+                    let n: usize = key["INHASH".len()..].parse().map_err(|_| format!("{key}: not a numbered input"))?;
+                    inputs.push((n, format!("blake3:{text}")));
+                }
+            }
+        }
+        inputs.sort();
+        p.inputs = inputs.into_iter().map(|(_, h)| h).collect();
+        Ok(any.then_some(p))
+    }
+
+    /// The product of measurements made with `inst` in `filter` (its name, the hash of its
+    /// definition when known, the filter's wavelength, the plate, the detector), in the frame
+    /// given; inputs and binning are the caller's to add.
+    pub fn of_instrument(inst: &instrument::Instrument, filter: &str, frame: Option<mueller::Frame>) -> Self {
+        let f = inst.filter(filter).ok();
+        Product {
+            instrument: Some(inst.name.clone()),
+            instrument_hash: inst.definition.as_deref().map(|t| hash_hex(t.as_bytes())),
+            filter: Some(f.map_or_else(|| filter.to_string(), |f| f.name.clone())),
+            wavelength_um: f.map(|f| f.lambda_eff_nm / 1000.0),
+            plate: Some(inst.polarimetry.plate.name().to_string()),
+            zero_angle_deg: frame.and_then(|f| f.zero_angle_deg()),
+            at_plate: frame.map(|f| matches!(f, mueller::Frame::Plate)),
+            binning: None,
+            detector_px: Some((inst.detector.nx, inst.detector.ny)),
+            pixel_scale_arcsec: Some(inst.detector.pixel_scale_arcsec),
+            inputs: Vec::new(),
+        }
+    }
+
+    /// The product as it goes into `--json` and a report: the pairs as an object.
+    pub fn describe(&self) -> String {
+        self.pairs().iter().filter(|(k, _)| !k.starts_with("INHASH")).map(|(k, v)| format!("{k}={v}")).collect::<Vec<_>>().join(" ")
+    }
+}
+
 static SESSION: Mutex<Option<Provenance>> = Mutex::new(None);
 
 /// Start the run's provenance with its command line (the CLI calls this once, first).

@@ -168,13 +168,16 @@ fn rows_error(a: &Args, table: Option<&Table>, e: fit::request::Refusal) -> anyh
         }
         E::Band(b) => crate::util::band_choice_error(b, &a.cal, None),
         E::Exposures(m) => anyhow!("{input}: its exposures: {m}"),
-        E::Mismatch { map, calibration } => anyhow!(
-            "{input} is a {} {} map but {cal} calibrates {} {}: use the calibration of the map's instrument and filter (or --allow-mismatch)",
-            map.0,
-            map.1,
+        E::Mismatch { map, mismatch: fit::setup::Mismatch::Setup { data, calibration } } => anyhow!(
+            "{input} is a {} {} {} but {cal} calibrates {} {} (instrument, filter): use the calibration of the {}'s instrument and filter (or --allow-mismatch)",
+            data.0,
+            data.1,
+            if map { "map" } else { "catalog" },
             calibration.0,
-            calibration.1
+            calibration.1,
+            if map { "map" } else { "catalog" },
         ),
+        E::Mismatch { mismatch, .. } => anyhow!("{input} and {cal}: {mismatch}"),
         E::BandMismatch { map_filter, band } => anyhow!(
             "{input} is a {map_filter} map but the telescope model's band is {band}: use the band of the map's filter (--band), or --allow-mismatch"
         ),
@@ -203,6 +206,9 @@ fn print_notes(a: &Args, notes: &[fit::request::Note]) {
                 e.to_degrees()
             ),
             Note::ZeroAngleUnknown(w) => eprintln!("warning: {input}: {w}"),
+            Note::SetupUnknown => eprintln!(
+                "warning: {input} does not say which instrument and filter it was measured with (no INSTRUME and FILTER among its keywords: not a table of instpol catalog), so it cannot be checked against {cal}: make sure they are the calibration's"
+            ),
             Note::RotatorIgnored => eprintln!(
                 "warning: --rotator is ignored: the telescope model of {cal} was fitted without rotator angles (its offset holds the rotator's)"
             ),

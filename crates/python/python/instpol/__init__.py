@@ -379,8 +379,18 @@ class Calibration:
         band: Optional[str] = None,
         recorded: Optional[Dict[str, Any]] = None,
         hwp_chi_offset_deg: Optional[float] = None,
+        instrument: Optional[str] = None,
+        filter: Optional[str] = None,
+        plate: Optional[str] = None,
+        allow_mismatch: bool = False,
     ) -> Dict[str, Any]:
         """Remove the instrumental polarization from measured ``(q, u)`` at ``(x, y)``.
+
+        ``instrument``, ``filter`` (and ``plate``): what the rows were measured with, as
+        :func:`catalog` returns them (``cat["product"]["instrument"]``, ...). Given, they are
+        checked against the calibration as ``instpol correct`` checks a catalog table's
+        keywords: another instrument or filter, or a quarter-wave plate's rows, raise InputError
+        unless ``allow_mismatch``.
 
         ``hwp_chi_offset_deg``: the HWP zero angle (deg) that ``q, u`` already carry, as
         ``catalog()``'s do (its ``chi_offset_deg``; ``instpol correct`` reads it from a table's
@@ -448,6 +458,8 @@ class Calibration:
             float(extrapolation_error), None if estimator is None else str(estimator),
             got.get("parang_deg"), got.get("parang_end_deg"), None if band is None else str(band), recorded,
             None if hwp_chi_offset_deg is None else float(hwp_chi_offset_deg),
+            None if instrument is None or filter is None else (str(instrument), str(filter), None if plate is None else str(plate)),
+            bool(allow_mismatch),
         )
         return _reshape(d, shape, flat[0].shape[0])
 

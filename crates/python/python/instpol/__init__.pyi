@@ -119,6 +119,10 @@ class Calibration:
         band: Optional[str] = ...,
         recorded: Optional[Dict[str, Any]] = ...,
         hwp_chi_offset_deg: Optional[float] = ...,
+        instrument: Optional[str] = ...,
+        filter: Optional[str] = ...,
+        plate: Optional[str] = ...,
+        allow_mismatch: bool = ...,
     ) -> Dict[str, Any]:
         """Exact inversion of eq:instpol (or eq:approx), as `instpol correct`, bit for bit.
 

@@ -9,7 +9,13 @@ impl Table {
     /// CSV: a header row and one row per record; NaN as an empty field (what spreadsheets and
     /// pandas read as missing).
     pub fn csv_bytes(&self) -> Result<Vec<u8>, String> {
-        let mut w = csv::Writer::from_writer(Vec::new());
+        // What the rows are, as `# KEY = value` comment lines before the header (readers that
+        // skip `#` lines, as pandas' `comment='#'` and astropy's do, see the plain table).
+        let mut head = String::new();
+        for (k, v) in self.product.iter().flat_map(|p| p.pairs()) {
+            head.push_str(&format!("# {k} = {v}\n"));
+        }
+        let mut w = csv::Writer::from_writer(head.into_bytes());
         w.write_record(self.columns.iter().map(|c| c.name.as_str())).map_err(|e| e.to_string())?;
         for i in 0..self.n_rows() {
             w.write_record(self.columns.iter().map(|c| match &c.data {
@@ -65,5 +71,17 @@ pub(super) fn read_csv(path: &Path) -> Result<Table, Error> {
         }
         lines.push(rec.position().map_or(0, |p| p.line()));
     }
-    Ok(Table { columns: typed(names, cells), lines, meta: Vec::new() })
+    let product = crate::provenance::Product::from_pairs(comment_pairs(&text))
+        .map_err(|m| terr(path, format!("its product comment lines: {m}")))?;
+    Ok(Table { columns: typed(names, cells), lines, meta: Vec::new(), product })
+}
+
+/// The `# KEY = value` comment lines before a CSV table's header row.
+fn comment_pairs(text: &str) -> Vec<(&str, &str)> {
+    text.lines()
+        .map(str::trim_start)
+        .take_while(|l| l.starts_with('#') || l.is_empty())
+        .filter_map(|l| l.trim_start_matches('#').split_once('='))
+        .map(|(k, v)| (k.trim(), v.trim()))
+        .collect()
 }

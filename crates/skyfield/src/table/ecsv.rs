@@ -25,8 +25,13 @@ impl Table {
             }
             s.push_str("}\n");
         }
-        if !self.meta.is_empty() {
+        let product = self.product.as_ref().map(|p| p.pairs()).unwrap_or_default();
+        if !self.meta.is_empty() || !product.is_empty() {
             s.push_str("# meta: !!omap\n");
+            // What the rows are, as quoted text (a product's numbers are read back from it).
+            for (k, v) in &product {
+                s.push_str(&format!("# - {{{}: '{}'}}\n", yaml_scalar(k), v.replace('\'', "''")));
+            }
             for (k, v) in &self.meta {
                 s.push_str(&format!("# - {{{}: {v:?}}}\n", yaml_scalar(k)));
             }
@@ -140,6 +145,7 @@ pub(super) fn read_ecsv(path: &Path) -> Result<Table, Error> {
     // The header's `meta` mapping: its numeric entries (`- {KEY: 1.5}` as astropy writes an
     // ordered map, or `KEY: 1.5` lines of a block mapping); others are not this reader's.
     let mut table_meta: Vec<(String, f64)> = Vec::new();
+    let mut product_pairs: Vec<(String, String)> = Vec::new();
     for (ln, h) in &header {
         if h.trim() == "---" || h.trim().is_empty() {
             continue;
@@ -151,7 +157,10 @@ pub(super) fn read_ecsv(path: &Path) -> Result<Table, Error> {
             let item = h.trim().trim_start_matches("- ").trim();
             let pairs = if item.starts_with('{') { flow_mapping(item) } else { flow_mapping(&format!("{{{item}}}")) };
             for (k, v) in pairs.into_iter().flatten() {
-                if let (Some(k), Ok(v)) = (yaml_unquote(&k), v.parse::<f64>()) {
+                let Some(k) = yaml_unquote(&k) else { continue };
+                if crate::provenance::Product::is_key(&k) {
+                    product_pairs.push((k, yaml_unquote(v.trim()).unwrap_or_default()));
+                } else if let Ok(v) = v.parse::<f64>() {
                     table_meta.push((k, v));
                 }
             }
@@ -262,5 +271,7 @@ pub(super) fn read_ecsv(path: &Path) -> Result<Table, Error> {
         let data = cells_to_data(v, kind, num, bad)?;
         columns.push(Column { name, unit, description, data });
     }
-    Ok(Table { columns, lines: src_lines, meta: table_meta })
+    let product = crate::provenance::Product::from_pairs(product_pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+        .map_err(|m| terr(path, format!("its meta: {m}")))?;
+    Ok(Table { columns, lines: src_lines, meta: table_meta, product })
 }

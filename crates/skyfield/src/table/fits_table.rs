@@ -40,6 +40,17 @@ impl Table {
             }
             .map_err(|x| e(format!("column {}: {x}", c.name)))?;
         }
+        for (k, v) in self.product.iter().flat_map(|p| p.pairs()) {
+            // What the rows are: numbers as numbers, names as strings.
+            match k.as_str() {
+                "WAVELEN" | "HWPZERO" | "PIXSCALE" => match v.parse::<f64>() {
+                    Ok(x) => write_key_exact(f, &k, x),
+                    Err(_) => Err(format!("not a number: {v}")),
+                },
+                _ => h.write_key(f, &k, v.as_str()).map_err(|x| x.to_string()),
+            }
+            .map_err(|x| e(format!("keyword {k}: {x}")))?;
+        }
         for (k, v) in &self.meta {
             write_key_exact(f, k, *v).map_err(|x| e(format!("keyword {k}: {x}")))?;
         }
@@ -200,9 +211,11 @@ pub(super) fn read_fits(path: &Path, name: Option<&str>) -> Result<Table, Error>
         };
         columns.push(Column { name: d.name.clone(), unit, description, data });
     }
-    let meta =
+    let (meta, pairs) =
         fits_table_numbers(&mut f, &hdu).map_err(|e| terr(path, format!("reading the table's keywords: {e}")))?;
-    Ok(Table { meta, ..Table::new(columns) })
+    let product = crate::provenance::Product::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+        .map_err(|m| terr(path, format!("its keywords: {m}")))?;
+    Ok(Table { meta, product, ..Table::new(columns) })
 }
 
 /// A number as a keyword of the current HDU with 17 significant digits, so that it reads back
@@ -221,8 +234,11 @@ fn write_key_exact(f: &mut fitsio::FitsFile, name: &str, v: f64) -> Result<(), S
 }
 
 /// The numeric keywords of a table HDU other than the ones that describe its columns and
-/// layout ([`Table::meta`]).
-fn fits_table_numbers(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<Vec<(String, f64)>, String> {
+/// layout ([`Table::meta`]), and apart the keywords of what its rows are
+/// ([`crate::provenance::Product`]) with their values as text.
+type Numbers = Vec<(String, f64)>;
+type Pairs = Vec<(String, String)>;
+fn fits_table_numbers(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<(Numbers, Pairs), String> {
     use std::ffi::CStr;
     let mut st = 0;
     let mut ty = 0;
@@ -242,6 +258,7 @@ fn fits_table_numbers(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> R
                 .any(|p| k.strip_prefix(p).is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit())))
     };
     let mut out = Vec::new();
+    let mut pairs = Vec::new();
     for i in 1..=nkeys {
         let mut name = [0 as std::os::raw::c_char; 80];
         let mut value = [0 as std::os::raw::c_char; 80];
@@ -255,15 +272,22 @@ fn fits_table_numbers(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> R
         }
         // SAFETY: CFITSIO wrote NUL-terminated strings.
         let (k, v) = unsafe { (CStr::from_ptr(name.as_ptr()), CStr::from_ptr(value.as_ptr())) };
-        let (k, v) = (k.to_string_lossy().into_owned(), v.to_string_lossy().replace(['D', 'd'], "E"));
+        let k = k.to_string_lossy().into_owned();
         if k.is_empty() || structural(&k) {
             continue;
         }
+        if crate::provenance::Product::is_key(&k) {
+            let raw = v.to_string_lossy();
+            let text = raw.trim().strip_prefix('\'').and_then(|s| s.strip_suffix('\'')).map(|s| s.trim_end().replace("''", "'"));
+            pairs.push((k, text.unwrap_or_else(|| raw.trim().replace(['D', 'd'], "E"))));
+            continue;
+        }
+        let v = v.to_string_lossy().replace(['D', 'd'], "E");
         if let Ok(x) = v.trim().parse::<f64>() {
             if x.is_finite() {
                 out.push((k, x));
             }
         }
     }
-    Ok(out)
+    Ok((out, pairs))
 }

@@ -116,6 +116,10 @@ pub struct Table {
     /// Table-level numbers (module docs): keyword-like names (at most 8 characters, upper case,
     /// digits, `_` or `-`, as FITS keywords), finite values.
     pub meta: Vec<(String, f64)>,
+    /// What the table's rows are (instrument, filter, plate, frame, geometry, inputs:
+    /// [`crate::provenance::Product`]), written and read by every format; `None` for a table
+    /// that does not say (written by other software).
+    pub product: Option<crate::provenance::Product>,
 }
 
 /// The column of a catalog table holding the HWP zero angle (deg) its q, u already carry
@@ -128,7 +132,7 @@ pub(super) fn terr(path: &Path, message: impl Into<String>) -> Error {
 
 impl Table {
     pub fn new(columns: Vec<Column>) -> Self {
-        Self { columns, lines: Vec::new(), meta: Vec::new() }
+        Self { columns, lines: Vec::new(), meta: Vec::new(), product: None }
     }
 
     pub fn n_rows(&self) -> usize {

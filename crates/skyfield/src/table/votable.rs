@@ -14,6 +14,13 @@ impl Table {
              xsi:schemaLocation=\"http://www.ivoa.net/xml/VOTable/v1.3 http://www.ivoa.net/xml/VOTable/VOTable-1.4.xsd\">\n\
              <RESOURCE type=\"results\">\n<TABLE>\n",
         );
+        for (k, v) in self.product.iter().flat_map(|p| p.pairs()) {
+            s.push_str(&format!(
+                "<PARAM name=\"{}\" datatype=\"char\" arraysize=\"*\" value=\"{}\"/>\n",
+                xml_escape(&k),
+                xml_escape(&v)
+            ));
+        }
         for (k, v) in &self.meta {
             s.push_str(&format!("<PARAM name=\"{}\" datatype=\"double\" value=\"{v:?}\"/>\n", xml_escape(k)));
         }
@@ -81,6 +88,7 @@ pub(super) fn read_votable(path: &Path) -> Result<Table, Error> {
     let mut rows: Vec<Vec<String>> = Vec::new();
     // The table's numeric PARAMs (Table::meta); a PARAM's own DESCRIPTION is not a FIELD's.
     let mut params: Vec<(String, f64)> = Vec::new();
+    let mut product_pairs: Vec<(String, String)> = Vec::new();
     let mut in_param = false;
     let (mut in_table, mut seen_table, mut in_desc, mut in_td, mut in_tabledata) = (false, false, false, false, false);
     let mut td = String::new();
@@ -121,7 +129,9 @@ pub(super) fn read_votable(path: &Path) -> Result<Table, Error> {
                 }
                 "PARAM" if in_table => {
                     if let (Some(n), Some(v)) = (attr("name")?, attr("value")?) {
-                        if let Ok(x) = v.trim().parse::<f64>() {
+                        if crate::provenance::Product::is_key(&n) {
+                            product_pairs.push((n, v));
+                        } else if let Ok(x) = v.trim().parse::<f64>() {
                             params.push((n, x));
                         }
                     }
@@ -226,5 +236,7 @@ pub(super) fn read_votable(path: &Path) -> Result<Table, Error> {
         let data = cells_to_data(v, kind, num, bad)?;
         columns.push(Column { name: f.name, unit: f.unit, description: f.description, data });
     }
-    Ok(Table { meta: params, ..Table::new(columns) })
+    let product = crate::provenance::Product::from_pairs(product_pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+        .map_err(|m| terr(path, format!("its PARAMs: {m}")))?;
+    Ok(Table { meta: params, product, ..Table::new(columns) })
 }
