@@ -83,6 +83,24 @@ fn register_inputs(paths: &[&Path]) -> Result<()> {
     Ok(())
 }
 
+/// The instrument a command that reads files reads them as: `--instrument` when given, else
+/// the built-in one the first file's `INSTRUME` names (said on stderr, and recorded in the
+/// run's provenance), else an error asking for `--instrument` (`skyfield::io::instrument_from_headers`).
+pub fn instrument_of(given: &Option<String>, first: Option<&Path>) -> Result<String> {
+    if let Some(g) = given {
+        return Ok(g.clone());
+    }
+    let Some(first) = first else {
+        bail!("no input file says which instrument it is of: give --instrument NAME or FILE")
+    };
+    let (name, how) = skyfield::io::instrument_from_headers(first).map_err(|e| anyhow::anyhow!("{e} (--instrument)"))?;
+    eprintln!("note: {how}; give --instrument to read them as another");
+    if let Some(text) = instrument::builtin_source(&name) {
+        skyfield::provenance::set_instrument(&name, text.as_bytes());
+    }
+    Ok(name)
+}
+
 /// Start the run's provenance (`skyfield::provenance`): the command line, and the instrument
 /// named by `--instrument` (a file, hashed as read, or a built-in definition). Inputs are added
 /// by [`inputs`]; every FITS output and every `--json` object then carries it.

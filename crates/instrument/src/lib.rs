@@ -566,6 +566,27 @@ const BUILTIN: &[(&str, &str)] = &[
     ("moptop", include_str!("../../../instruments/moptop.toml")),
 ];
 
+/// The built-in instrument (its short name, as [`Instrument::load`] takes it) that writes `value`
+/// in its files' instrument keyword (FITS `INSTRUME`): the one whose `name` is `value`, or whose
+/// `[headers] instrument_values` list it (case-insensitive). `None` when no built-in does.
+pub fn builtin_for_keyword(value: &str) -> Option<&'static str> {
+    let v = value.trim();
+    if v.is_empty() {
+        return None;
+    }
+    BUILTIN.iter().map(|(n, _)| *n).find(|n| {
+        Instrument::load(n).is_ok_and(|i| {
+            i.name.eq_ignore_ascii_case(v)
+                || i.headers.as_ref().is_some_and(|h| h.instrument_values.iter().any(|x| x.trim().eq_ignore_ascii_case(v)))
+        })
+    })
+}
+
+/// The names of the built-in instruments, for messages.
+pub fn builtin_names() -> Vec<&'static str> {
+    BUILTIN.iter().map(|(n, _)| *n).collect()
+}
+
 /// The TOML text of a built-in instrument (name case-insensitive), e.g. for provenance hashes.
 pub fn builtin_source(name: &str) -> Option<&'static str> {
     let lower = name.to_ascii_lowercase();

@@ -18,6 +18,34 @@ use std::path::{Path, PathBuf};
 /// HWP-angle and filter keywords the instrument names (the exposure-time keyword is optional).
 /// Frames of instruments whose `[format]` declares chips or a raw bias level go through
 /// [`crate::calib`] (trimmed, overscan-corrected, assembled, in electrons).
+/// The instrument a set of files is read as, when the caller names none: the built-in one whose
+/// name the first file's `INSTRUME` keyword carries ([`instrument::builtin_for_keyword`]),
+/// with a sentence that says so. No silent default: a file without the keyword, or with a
+/// value no built-in writes, is an error that names the file, the value and the built-ins,
+/// for the caller to ask for the instrument (`--instrument`, `instrument=`).
+pub fn instrument_from_headers(first: &Path) -> Result<(String, String), Error> {
+    let known = instrument::builtin_names().join(", ");
+    let mut f = fitsio::FitsFile::open(first).map_err(|e| Error::Invalid(format!("{}: {e}", first.display())))?;
+    let ph = f.primary_hdu().map_err(|e| Error::Invalid(format!("{}: {e}", first.display())))?;
+    let value = crate::fits::read_key_str(&mut f, &ph, "INSTRUME").ok().map(|v| v.trim().to_string()).filter(|v| !v.is_empty());
+    let Some(value) = value else {
+        return Err(Error::Invalid(format!(
+            "{}: no INSTRUME keyword says which instrument wrote it: name the instrument (a built-in one: {known}; or an instrument file)",
+            first.display()
+        )));
+    };
+    match instrument::builtin_for_keyword(&value) {
+        Some(name) => Ok((
+            name.to_string(),
+            format!("read as the built-in instrument {name} (INSTRUME = '{value}' in {})", first.display()),
+        )),
+        None => Err(Error::Invalid(format!(
+            "{}: INSTRUME = '{value}' is none of the built-in instruments ({known}): name its instrument file",
+            first.display()
+        ))),
+    }
+}
+
 pub fn read_frame(path: &Path, inst: &Instrument) -> Result<Frame, Error> {
     if inst.format.is_raw() {
         let mut v = read_exposures(&[path.to_path_buf()], inst, &ReadOptions::default())?;

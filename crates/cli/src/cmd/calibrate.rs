@@ -28,8 +28,10 @@ pub struct Args {
     #[arg(long, conflicts_with = "frames")]
     pub map: Option<PathBuf>,
     /// Built-in instrument name or instrument TOML file.
-    #[arg(long, default_value = "fors1")]
-    pub instrument: String,
+    /// Default: the built-in instrument the first file's INSTRUME keyword names (said on
+    /// stderr); a file without one, or of no built-in instrument, is refused.
+    #[arg(long)]
+    pub instrument: Option<String>,
     /// Sky polarization degree in PERCENT (Table tab:empty: B 6.45, V 1.74, I 1.34), not a
     /// fraction; a value below 0.1 draws a warning. Required.
     #[arg(long)]
@@ -229,13 +231,14 @@ pub fn print_table(s: &FitSummary) {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    let instrument = crate::util::instrument_of(&a.instrument, a.frames.first().map(|p| p.as_path()).or(a.map.as_deref()))?;
     crate::util::inputs(
-        a.frames.iter().map(|p| p.as_path()).chain(a.map.as_deref()).chain(crate::util::file_arg(&a.instrument)),
+        a.frames.iter().map(|p| p.as_path()).chain(a.map.as_deref()).chain(crate::util::file_arg(&instrument)),
     )?;
     crate::util::check_output(&a.out)?;
     let sky = sky_from_args(a.sky_p, a.sky_chi)?;
     let opts = a.fit.options()?;
-    let inst = instrument::Instrument::load(&a.instrument)?;
+    let inst = instrument::Instrument::load(&instrument)?;
     crate::util::check_bin(a.bin, &inst)?;
     let (map, inputs) = if let Some(m) = &a.map {
         // A map is reduced already: options that read frames would be ignored without a word.

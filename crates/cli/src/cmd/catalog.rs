@@ -32,8 +32,10 @@ pub struct Args {
     #[arg(required = true)]
     pub frames: Vec<PathBuf>,
     /// Instrument: built-in name or path to an instrument TOML.
-    #[arg(long, default_value = "fors1")]
-    pub instrument: String,
+    /// Default: the built-in instrument the first file's INSTRUME keyword names (said on
+    /// stderr); a file without one, or of no built-in instrument, is refused.
+    #[arg(long)]
+    pub instrument: Option<String>,
     /// Expected FWHM of the stars (px): the width of the detection filter.
     #[arg(long, default_value_t = 4.0)]
     pub fwhm: f64,
@@ -140,7 +142,8 @@ struct CorrectedJson<'a> {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let inst = instrument::Instrument::load(&a.instrument)?;
+    let instrument = crate::util::instrument_of(&a.instrument, a.frames.first().map(|p| p.as_path()))?;
+    let inst = instrument::Instrument::load(&instrument)?;
     let annulus = crate::util::parse_radii(&a.annulus)?;
     let radius = crate::util::parse_aperture(&a.aperture)?;
     let cfg = CatalogConfig {
@@ -165,7 +168,7 @@ pub fn run(a: Args) -> Result<()> {
     let others = [a.frame.bias.as_deref(), a.frame.flat.as_deref(), a.cal.as_deref()];
     crate::util::inputs_read_in_order(
         &frames,
-        others.into_iter().flatten().chain(crate::util::file_arg(&a.instrument)),
+        others.into_iter().flatten().chain(crate::util::file_arg(&instrument)),
     )?;
     if let Some(out) = &a.out {
         crate::util::check_output(out)?;

@@ -16,8 +16,10 @@ pub struct BiasArgs {
     #[arg(required = true)]
     pub frames: Vec<PathBuf>,
     /// Instrument: built-in name or path to an instrument TOML.
-    #[arg(long, default_value = "fors1")]
-    pub instrument: String,
+    /// Default: the built-in instrument the first file's INSTRUME keyword names (said on
+    /// stderr); a file without one, or of no built-in instrument, is refused.
+    #[arg(long)]
+    pub instrument: Option<String>,
     /// Clipping threshold per pixel in robust sigmas.
     #[arg(long, default_value_t = 3.0)]
     pub nsigma: f64,
@@ -43,8 +45,10 @@ pub struct FlatArgs {
     #[arg(required = true)]
     pub frames: Vec<PathBuf>,
     /// Instrument: built-in name or path to an instrument TOML.
-    #[arg(long, default_value = "fors1")]
-    pub instrument: String,
+    /// Default: the built-in instrument the first file's INSTRUME keyword names (said on
+    /// stderr); a file without one, or of no built-in instrument, is refused.
+    #[arg(long)]
+    pub instrument: Option<String>,
     /// Master bias (from `instpol master-bias`).
     #[arg(long, value_name = "BIAS.fits")]
     pub bias: Option<PathBuf>,
@@ -79,21 +83,23 @@ fn report(json: bool, out: &std::path::Path, what: &str, n_frames: usize, nx: us
 }
 
 pub fn run_bias(a: BiasArgs) -> Result<()> {
+    let instrument = crate::util::instrument_of(&a.instrument, a.frames.first().map(|p| p.as_path()))?;
     // Registered: the provenance hashes them, and the output may not be one of them.
-    crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
+    crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&instrument)))?;
     crate::util::check_output(&a.out)?;
-    let inst = instrument::Instrument::load(&a.instrument)?;
+    let inst = instrument::Instrument::load(&instrument)?;
     let m = skyfield::calib::master_bias(&a.frames, &inst, a.nsigma)?;
     m.write(&a.out, &inst)?;
     report(a.json, &a.out, "bias", a.frames.len(), m.nx, m.ny)
 }
 
 pub fn run_flat(a: FlatArgs) -> Result<()> {
+    let instrument = crate::util::instrument_of(&a.instrument, a.frames.first().map(|p| p.as_path()))?;
     crate::util::inputs(
-        a.frames.iter().map(|p| p.as_path()).chain(a.bias.as_deref()).chain(crate::util::file_arg(&a.instrument)),
+        a.frames.iter().map(|p| p.as_path()).chain(a.bias.as_deref()).chain(crate::util::file_arg(&instrument)),
     )?;
     crate::util::check_output(&a.out)?;
-    let inst = instrument::Instrument::load(&a.instrument)?;
+    let inst = instrument::Instrument::load(&instrument)?;
     let m = skyfield::calib::master_flat(&a.frames, &inst, a.bias.as_deref(), a.nsigma)?;
     m.write(&a.out, &inst)?;
     report(a.json, &a.out, "flat", a.frames.len(), m.nx, m.ny)

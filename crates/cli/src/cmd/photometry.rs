@@ -76,8 +76,10 @@ pub struct Args {
     #[arg(long)]
     pub allow_overlap: bool,
     /// Instrument: built-in name or path to an instrument TOML.
-    #[arg(long, default_value = "fors1")]
-    pub instrument: String,
+    /// Default: the built-in instrument the first file's INSTRUME keyword names (said on
+    /// stderr); a file without one, or of no built-in instrument, is refused.
+    #[arg(long)]
+    pub instrument: Option<String>,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
@@ -166,10 +168,11 @@ struct CircularOut {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    let instrument = crate::util::instrument_of(&a.instrument, a.frames.first().map(|p| p.as_path()))?;
     crate::util::inputs(
-        a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)).chain(a.standards.as_deref()),
+        a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&instrument)).chain(a.standards.as_deref()),
     )?;
-    let inst = instrument::Instrument::load(&a.instrument)?;
+    let inst = instrument::Instrument::load(&instrument)?;
     let list = match (&a.star, &a.standards) {
         (None, _) => None,
         (Some(_), Some(p)) => Some(fit::standards::Standards::load(p)?),

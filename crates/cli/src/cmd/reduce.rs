@@ -25,8 +25,10 @@ pub struct Args {
     #[arg(required = true)]
     pub frames: Vec<PathBuf>,
     /// Instrument: built-in name (fors1) or path to an instrument TOML.
-    #[arg(long, default_value = "fors1")]
-    pub instrument: String,
+    /// Default: the built-in instrument the first file's INSTRUME keyword names (said on
+    /// stderr); a file without one, or of no built-in instrument, is refused.
+    #[arg(long)]
+    pub instrument: Option<String>,
     /// Bin side in pixels (the paper uses 30).
     #[arg(long, default_value_t = 30)]
     pub bin: usize,
@@ -65,9 +67,10 @@ struct Summary {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
+    let instrument = crate::util::instrument_of(&a.instrument, a.frames.first().map(|p| p.as_path()))?;
+    crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&instrument)))?;
     crate::util::check_output(&a.out)?;
-    let inst = instrument::Instrument::load(&a.instrument)?;
+    let inst = instrument::Instrument::load(&instrument)?;
     crate::util::check_bin(a.bin, &inst)?;
     let cfg = ReduceConfig {
         bin_px: a.bin,

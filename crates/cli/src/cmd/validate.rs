@@ -85,8 +85,10 @@ pub struct Args {
     #[arg(long, value_name = "FILE")]
     pub standards: Option<PathBuf>,
     /// Instrument (built-in name or TOML file) the frames come from.
-    #[arg(long, default_value = "fors1")]
-    pub instrument: String,
+    /// Default: the built-in instrument the first file's INSTRUME keyword names (said on
+    /// stderr); a file without one, or of no built-in instrument, is refused.
+    #[arg(long)]
+    pub instrument: Option<String>,
     /// Aperture radius (px).
     #[arg(long, default_value_t = 10.0)]
     pub aperture: f64,
@@ -162,12 +164,13 @@ fn parse_model_error(s: &str) -> Result<Option<f64>> {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    let instrument = crate::util::instrument_of(&a.instrument, a.frames.first().map(|p| p.as_path()))?;
     crate::util::inputs(
         [a.cal.as_path()]
             .into_iter()
             .chain(a.frames.iter().map(|p| p.as_path()))
             .chain(a.standards.as_deref())
-            .chain(crate::util::file_arg(&a.instrument)),
+            .chain(crate::util::file_arg(&instrument)),
     )?;
     if !(a.threshold.is_finite() && a.threshold > 0.0) {
         bail!("--threshold {} must be a positive number of sigma", a.threshold);
@@ -176,7 +179,7 @@ pub fn run(a: Args) -> Result<()> {
         fit::calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     // A telescope model (alone or beside a field model) goes through the whole chain.
     if loaded.telescope.is_some() {
-        return run_telescope(&a, &loaded);
+        return run_telescope(&a, &instrument, &loaded);
     }
     if a.parang.is_some() || a.band.is_some() {
         bail!("--parang / --band: {} holds no telescope model (instpol fit-standards writes one)", a.cal.display());
@@ -184,7 +187,7 @@ pub fn run(a: Args) -> Result<()> {
     let (Some(cal), _) = loaded.p_phi_models()? else {
         bail!("{}: holds no field model", a.cal.display());
     };
-    let inst = Instrument::load(&a.instrument)?;
+    let inst = Instrument::load(&instrument)?;
     let (x_px, y_px) = match a.coords {
         crate::cmd::correct::Coords::Pixel => (a.x, a.y),
         crate::cmd::correct::Coords::Arcmin => inst.arcmin_to_pixel(a.x, a.y),
@@ -248,9 +251,9 @@ fn expected_star(a: &Args, band: &str) -> Result<(String, Expected)> {
 /// `validate` with a telescope calibration: the track from the headers (or --parang), the
 /// star measured, corrected through the chain and judged
 /// (fit::validate_telescope::validate_telescope).
-fn run_telescope(a: &Args, loaded: &fit::calibration::CalibrationFile) -> Result<()> {
+fn run_telescope(a: &Args, instrument: &str, loaded: &fit::calibration::CalibrationFile) -> Result<()> {
     use fit::validate_telescope::ValidateError;
-    let inst = Instrument::load(&a.instrument)?;
+    let inst = Instrument::load(instrument)?;
     let given = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
     let px = match a.coords {
         crate::cmd::correct::Coords::Pixel => (a.x, a.y),

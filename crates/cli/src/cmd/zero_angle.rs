@@ -72,8 +72,10 @@ pub struct Args {
     #[arg(long, default_value = "12,20")]
     pub annulus: String,
     /// Instrument: built-in name or path to an instrument TOML.
-    #[arg(long, default_value = "fors1")]
-    pub instrument: String,
+    /// Default: the built-in instrument the first file's INSTRUME keyword names (said on
+    /// stderr); a file without one, or of no built-in instrument, is refused.
+    #[arg(long)]
+    pub instrument: Option<String>,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
@@ -189,12 +191,13 @@ fn measure_frames(a: &Args, inst: &instrument::Instrument) -> Result<(String, Ve
 }
 
 pub fn run(a: Args) -> Result<()> {
+    let instrument = crate::util::instrument_of(&a.instrument, a.frames.first().map(|p| p.as_path()))?;
     crate::util::inputs(
         a.frames
             .iter()
             .map(|p| p.as_path())
             .chain(a.measured.iter().map(|p| p.as_path()))
-            .chain(crate::util::file_arg(&a.instrument))
+            .chain(crate::util::file_arg(&instrument))
             .chain(a.standards.as_deref()),
     )?;
     // A standards file given is read, and so checked, even when no star is looked up in it:
@@ -215,7 +218,7 @@ pub fn run(a: Args) -> Result<()> {
     let mut filters: Vec<(String, String)> = a.filter.iter().map(|f| (f.clone(), "--filter".to_string())).collect();
     let mut rows: Vec<MeasuredStandard> = Vec::new();
     if !a.frames.is_empty() {
-        let inst = instrument::Instrument::load(&a.instrument)?;
+        let inst = instrument::Instrument::load(&instrument)?;
         if inst.telescope.as_ref().is_some_and(|t| t.focus == instrument::telescope::Focus::Nasmyth) {
             // The M3's polarization and its turn of a polarized star's angle change with the
             // parallactic angle, and a Nasmyth telescope model's fitted offset already holds a
