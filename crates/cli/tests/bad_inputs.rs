@@ -1564,7 +1564,7 @@ fn every_writer_refuses_an_output_under_a_file() {
         &under("plots"),
     ]);
     assert_eq!(code, 2, "{err}");
-    assert!(err.starts_with("error: ") && err.contains("afile"), "{err}");
+    assert!(err.lines().any(|l| l.starts_with("error: ")) && err.contains("afile"), "{err}");
     assert!(!c2.exists(), "calibrate saved a calibration although its plots folder cannot be made");
     refuses(d, &["fit", &cal, "--out", &under("refit.fits")], &["afile"]);
     refuses(d, &["fit", &cal, "--plots", &under("plots")], &["afile"]);

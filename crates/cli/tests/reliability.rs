@@ -472,3 +472,67 @@ fn closed_stdout_ends_the_printing_not_the_command() {
         Err(e) => eprintln!("SKIPPED the full-stdout half: /dev/full cannot be opened ({e})"),
     }
 }
+
+/// No silent default instrument. Frames of an instrument that is no built-in one (`MINI`),
+/// read without `--instrument` by every command that reads frames, are refused naming the
+/// file, its `INSTRUME` and `--instrument` (they were read as FORS1 without a word); frames of
+/// the built-in FORS1 are read as it, said on stderr, with the same numbers as with
+/// `--instrument fors1`; a frame without `INSTRUME` is refused naming the keyword.
+#[test]
+fn frames_without_an_instrument_are_read_by_their_keyword_or_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let (_, fr, map) = frames(d.path());
+    let commands: Vec<Vec<String>> = vec![
+        [&["reduce".to_string()][..], &fr, &["--out".into(), s(&d.path().join("m.fits"))]].concat(),
+        [&["catalog".to_string()][..], &fr].concat(),
+        [&["photometry".to_string()][..], &fr, &["--x".into(), "40".into(), "--y".into(), "30".into()]].concat(),
+        vec![
+            "calibrate".into(),
+            "--map".into(),
+            s(&map),
+            "--sky-p".into(),
+            "2".into(),
+            "--sky-chi".into(),
+            "0".into(),
+            "--out".into(),
+            s(&d.path().join("c.fits")),
+        ],
+        [&["master-bias".to_string()][..], &fr[..1], &["--out".into(), s(&d.path().join("b.fits"))]].concat(),
+    ];
+    for args in &commands {
+        let (code, _, err) = run(args);
+        assert_eq!(code, 2, "{args:?}: {err}");
+        assert!(err.contains("INSTRUME = 'MINI'") && err.contains("--instrument"), "{args:?}: {err}");
+    }
+    // A frame without the keyword.
+    let bare = d.path().join("bare.fits");
+    {
+        let mut f = fitsio::FitsFile::create(&bare).open().unwrap();
+        let ph = f.primary_hdu().unwrap();
+        ph.write_key(&mut f, "EXPTIME", 1.0).unwrap();
+    }
+    let (code, _, err) = run(&["catalog".to_string(), s(&bare)]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("no INSTRUME keyword") && err.contains("bare.fits"), "{err}");
+    // The built-in FORS1's frames: read as it, said, the same numbers.
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../instruments/scenes/standard_V_corner.toml");
+    let star = d.path().join("star");
+    let (code, _, err) = run(&["simulate".to_string(), s(&scene), "--out".into(), s(&star)]);
+    assert_eq!(code, 0, "{err}");
+    let frames: Vec<String> = common::fits_in(&star).iter().map(|p| s(p)).collect();
+    let cat = |extra: &[&str]| {
+        let mut a = [&["catalog".to_string()][..], &frames].concat();
+        a.extend(extra.iter().map(|x| x.to_string()));
+        a.push("--json".into());
+        run(&a)
+    };
+    let (c1, o1, e1) = cat(&[]);
+    assert_eq!(c1, 0, "{e1}");
+    assert!(e1.contains("read as the built-in instrument fors1 (INSTRUME = 'FORS1'"), "{e1}");
+    let (c2, o2, e2) = cat(&["--instrument", "fors1"]);
+    assert_eq!(c2, 0, "{e2}");
+    assert!(!e2.contains("read as the built-in"), "{e2}");
+    let (j1, j2) = (json(&o1), json(&o2));
+    assert_eq!(j1["rows"], j2["rows"], "the same stars and numbers");
+    assert_eq!(j1["product"]["instrument"], "FORS1");
+}

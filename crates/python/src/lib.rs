@@ -64,6 +64,23 @@ fn load_err(path: &std::path::Path, e: fit::Error) -> PyErr {
     }
 }
 
+/// The instrument frames are read as: the one named, else the built-in one the first frame's
+/// `INSTRUME` names (with a Python warning that says so), else InputError asking for
+/// `instrument=` (`skyfield::io::instrument_from_headers`, as the CLI's `--instrument`).
+fn frames_instrument(given: Option<&str>, frames: &[PathBuf]) -> PyResult<String> {
+    if let Some(g) = given {
+        return Ok(g.to_string());
+    }
+    let first = frames.first().ok_or_else(|| input_err("no frames: give at least one file"))?;
+    let (name, how) =
+        skyfield::io::instrument_from_headers(first).map_err(|e| input_err(format!("{e} (instrument=)")))?;
+    Python::attach(|py| {
+        let w = py.import("warnings")?;
+        w.call_method1("warn", (format!("{how}; give instrument= to read them as another"),)).map(|_| ())
+    })?;
+    Ok(name)
+}
+
 fn inst_err(e: instrument::Error) -> PyErr {
     match e {
         instrument::Error::Io { .. } => FileError::new_err(e.to_string()),
@@ -899,7 +916,7 @@ fn request<'a>(
 fn _reduce<'py>(
     py: Python<'py>,
     frames: Vec<PathBuf>,
-    instrument: &str,
+    instrument: Option<&str>,
     bin: usize,
     nsigma: f64,
     allow_incomplete: bool,
@@ -909,7 +926,7 @@ fn _reduce<'py>(
     assembled: bool,
     output: Option<PathBuf>,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let inst = instrument::Instrument::load(instrument).map_err(inst_err)?;
+    let inst = instrument::Instrument::load(&frames_instrument(instrument, &frames)?).map_err(inst_err)?;
     skyfield::reduce::check_bin(bin, &inst).map_err(|e| input_err(format!("bin {bin}: {e}")))?;
     let cfg = skyfield::reduce::ReduceConfig {
         bin_px: bin,
@@ -1049,7 +1066,7 @@ fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>
 fn _catalog<'py>(
     py: Python<'py>,
     frames: Vec<PathBuf>,
-    instrument: &str,
+    instrument: Option<&str>,
     fwhm: f64,
     threshold: f64,
     aperture: &str,
@@ -1077,7 +1094,7 @@ fn _catalog<'py>(
         (None, true) => stokes::KappaCorrection::FromData,
         (None, false) => stokes::KappaCorrection::None,
     };
-    let inst = instrument::Instrument::load(instrument).map_err(inst_err)?;
+    let inst = instrument::Instrument::load(&frames_instrument(instrument, &frames)?).map_err(inst_err)?;
     let cfg = CatalogConfig {
         detect: skyfield::detect::DetectConfig {
             fwhm_px: fwhm,

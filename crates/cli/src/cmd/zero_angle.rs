@@ -191,7 +191,11 @@ fn measure_frames(a: &Args, inst: &instrument::Instrument) -> Result<(String, Ve
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let instrument = crate::util::instrument_of(&a.instrument, a.frames.first().map(|p| p.as_path()))?;
+    // The instrument reads frames; --measured tables alone need none.
+    let instrument = match a.frames.first() {
+        Some(first) => crate::util::instrument_of(&a.instrument, Some(first.as_path()))?,
+        None => a.instrument.clone().unwrap_or_default(),
+    };
     crate::util::inputs(
         a.frames
             .iter()

@@ -703,7 +703,7 @@ except ImportError:  # pragma: no cover - the dict is then what catalog() return
 
 def reduce(
     frames: Union[PathLike, Sequence[PathLike]],
-    instrument: str = "fors1",
+    instrument: Optional[str] = None,
     *,
     bin: int = 30,
     nsigma: float = 3.0,
@@ -745,7 +745,7 @@ def reduce(
         raise InputError(f"bin {bin!r}: expected a bin side in pixels (a positive integer)")
     with _frame_files(frames) as paths:
         d = _instpol._reduce(
-            paths, str(instrument), int(bin), float(nsigma), bool(allow_incomplete), _opt_path(bias),
+            paths, None if instrument is None else str(instrument), int(bin), float(nsigma), bool(allow_incomplete), _opt_path(bias),
             _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles], bool(assembled),
             _opt_path(output),
         )
@@ -754,7 +754,7 @@ def reduce(
 
 def catalog(
     frames: Union[PathLike, Sequence[PathLike]],
-    instrument: str = "fors1",
+    instrument: Optional[str] = None,
     *,
     fwhm: float = 4.0,
     threshold: float = 5.0,
@@ -833,7 +833,7 @@ def catalog(
         raise InputError(f"annulus {annulus!r}: expected two radii in px, e.g. (12, 20)") from None
     with _frame_files(frames) as paths:
         d = _instpol._catalog(
-            paths, str(instrument), float(fwhm), float(threshold), str(aperture), (r_in, r_out),
+            paths, None if instrument is None else str(instrument), float(fwhm), float(threshold), str(aperture), (r_in, r_out),
             _opt_path(bias), _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles],
             bool(assembled), None if kappa is None else float(kappa), bool(kappa_from_data), float(pair_tol),
             _opt_path(cal), bool(allow_extrapolation), bool(force),

@@ -187,7 +187,7 @@ class CircularMap:
 
 def reduce(
     frames: Union[PathLike, Sequence[Any]],
-    instrument: str = ...,
+    instrument: Optional[str] = ...,
     *,
     bin: int = ...,
     nsigma: float = ...,
@@ -213,7 +213,7 @@ class CatalogTable:
 
 def catalog(
     frames: Union[PathLike, Sequence[Any]],
-    instrument: str = ...,
+    instrument: Optional[str] = ...,
     *,
     fwhm: float = ...,
     threshold: float = ...,
