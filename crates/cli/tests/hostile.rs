@@ -129,6 +129,9 @@ enum Expect {
     NotAccepted,
     /// Exit 2, the message naming one of these.
     Refused(Vec<String>),
+    /// Exit 2 naming `word`, or exit 0 or 1 with a warning naming it (a combination a command
+    /// makes on purpose, such as `validate` showing a calibration of another filter fail).
+    RefusedOrWarned(String),
     /// Exit 0 with the numbers of the valid invocation (case index), or exit 2 naming the column.
     SameOrRefused {
         reference: usize,
@@ -293,6 +296,79 @@ fn set_flag(args: &mut Vec<String>, flag: &str, value: &str) {
         Some(i) => args[i + 1] = value.to_string(),
         None => args.extend([flag.to_string(), value.to_string()]),
     }
+}
+
+/// Where an input file says which instrument and filter it is of.
+#[derive(Clone, Copy, Debug)]
+enum Said {
+    /// A calibration file: `HIERARCH IP INSTRUMENT`, `HIERARCH IP FILTER`.
+    Calibration,
+    /// A Stokes map: `INSTRUME`, `FILTER`.
+    Map,
+    /// Frames of the tests' instrument: `INSTRUME` and its filter keyword.
+    Frames,
+    /// A table with its product keywords (`# INSTRUME = ...` lines of a CSV).
+    Table,
+}
+
+/// Combinations a command makes on purpose, with why: these warn instead of refusing.
+const PRODUCT_ON_PURPOSE: &[(&str, &str, &str)] = &[
+    ("validate", "filter", "a calibration of another filter is how a wrong calibration is shown to fail: warned"),
+    ("wavelength-law", "filter", "it takes calibrations of several filters: that is its input"),
+];
+
+/// What `p` says it is, by its bytes: `None` for a file that says nothing.
+fn said(p: &Path) -> Option<Said> {
+    let b = std::fs::read(p).ok()?;
+    let has = |k: &str| b.windows(k.len()).any(|w| w == k.as_bytes());
+    if b.starts_with(b"SIMPLE") {
+        if has("IP INSTRUMENT") {
+            Some(Said::Calibration)
+        } else if has("INSTRUME=") && has("FILTER  =") {
+            Some(Said::Map)
+        } else if has("INSTRUME=") && has("FILT1 NAME") {
+            Some(Said::Frames)
+        } else {
+            None
+        }
+    } else {
+        (has("# INSTRUME = ") && has("# FILTER = ")).then_some(Said::Table)
+    }
+}
+
+/// The files of an argument: the one at `index`, or the run of files it starts (frames).
+fn run_of_files(args: &[String], index: usize) -> Vec<PathBuf> {
+    args[index..].iter().map(PathBuf::from).take_while(|p| p.is_file()).collect()
+}
+
+/// Copies of `files` in `dir` saying another `what` (`filter`: R, which no file of the
+/// fixture is of; `instrument`: OTHERCAM).
+fn relabelled(files: &[PathBuf], how: Said, what: &str, dir: &Path) -> Vec<PathBuf> {
+    let (key, value) = match (how, what) {
+        (Said::Calibration, "filter") => ("IP FILTER", "'R'"),
+        (Said::Calibration, _) => ("IP INSTRUMENT", "'OTHERCAM'"),
+        (Said::Map, "filter") => ("FILTER  =", "'R'"),
+        (Said::Frames, "filter") => ("FILT1 NAME", "'R'"),
+        (Said::Map | Said::Frames, _) => ("INSTRUME=", "'OTHERCAM'"),
+        (Said::Table, "filter") => ("# FILTER = ", "R"),
+        (Said::Table, _) => ("# INSTRUME = ", "OTHERCAM"),
+    };
+    let copies: Vec<PathBuf> = files.iter().map(|f| dir.join(f.file_name().unwrap())).collect();
+    for (f, c) in files.iter().zip(&copies) {
+        std::fs::copy(f, c).unwrap();
+        match how {
+            Said::Table => {
+                let text = std::fs::read_to_string(c).unwrap();
+                let out: Vec<String> = text
+                    .lines()
+                    .map(|l| if l.starts_with(key) { format!("{key}{value}") } else { l.to_string() })
+                    .collect();
+                std::fs::write(c, out.join("\n") + "\n").unwrap();
+            }
+            _ => common::invocations::patch_card(c, key, value),
+        }
+    }
+    copies
 }
 
 /// A hostile stand-in for the input file `orig`, made in `dir`.
@@ -556,6 +632,34 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
                 out.push(case("duplicate input", format!("{} twice", fa.label), a, new_dir(), Expect::Nothing));
             }
         }
+        // Another product: every input that says which instrument and filter it is of
+        // (calibration files, Stokes maps, catalogs with their keywords, frames' filter), in a
+        // command that combines it with another such input, replaced by one of another filter
+        // or instrument: refused naming it (or warned where the command combines them on
+        // purpose, PRODUCT_ON_PURPOSE), never a number with exit 0.
+        let sides: Vec<(usize, Vec<PathBuf>, Said)> = used
+            .iter()
+            .filter_map(|fa| {
+                let files = run_of_files(&t.args, fa.index);
+                said(files.first()?).map(|s| (fa.index, files, s))
+            })
+            .collect();
+        if sides.len() >= 2 {
+            for (index, files, how) in &sides {
+                for what in ["filter", "instrument"] {
+                    let dir = new_dir();
+                    let copies = relabelled(files, *how, what, &dir);
+                    let mut a = t.args.clone();
+                    a.splice(*index..*index + files.len(), copies.iter().map(|p| p.display().to_string()));
+                    let label = format!("{} of another {what}", t.args[*index].rsplit('/').next().unwrap_or(""));
+                    let e = match PRODUCT_ON_PURPOSE.iter().find(|(c, w, _)| *c == t.command && *w == what) {
+                        Some(_) => Expect::RefusedOrWarned(what.to_string()),
+                        None => Expect::Refused(vec![what.to_string()]),
+                    };
+                    out.push(case("another product", label, a, dir, e));
+                }
+            }
+        }
         // Tables with units: each numeric column of each CSV input declaring a unit, its values
         // converted, in three formats.
         for fa in used.iter().filter(|fa| t.args[fa.index].ends_with(".csv")) {
@@ -736,6 +840,12 @@ fn run_case(c: &Case) -> (i32, Option<String>) {
         Expect::NotAccepted => {
             if code == 0 {
                 problems.push("exit 0: a file that is not one was accepted".into());
+            }
+        }
+        Expect::RefusedOrWarned(word) => {
+            let warned = err.lines().any(|l| l.starts_with("warning") && l.contains(word.as_str()));
+            if !(code == 2 && err.contains(word.as_str()) || (code == 0 || code == 1) && warned) {
+                problems.push(format!("exit {code}, neither refused nor warned naming the {word}"));
             }
         }
         Expect::Refused(names) => {

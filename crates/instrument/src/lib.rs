@@ -574,12 +574,7 @@ pub fn builtin_for_keyword(value: &str) -> Option<&'static str> {
     if v.is_empty() {
         return None;
     }
-    BUILTIN.iter().map(|(n, _)| *n).find(|n| {
-        Instrument::load(n).is_ok_and(|i| {
-            i.name.eq_ignore_ascii_case(v)
-                || i.headers.as_ref().is_some_and(|h| h.instrument_values.iter().any(|x| x.trim().eq_ignore_ascii_case(v)))
-        })
-    })
+    BUILTIN.iter().map(|(n, _)| *n).find(|n| Instrument::load(n).is_ok_and(|i| i.writes(v)))
 }
 
 /// The names of the built-in instruments, for messages.
@@ -615,6 +610,22 @@ impl Instrument {
                 known: BUILTIN.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", "),
             }),
         }
+    }
+
+    /// Whether a file whose instrument keyword (FITS `INSTRUME`) holds `value` is this
+    /// instrument's: `value` is its name, one of its `[headers] instrument_values`, or the value
+    /// by which a chip of its `[format]` is matched on that keyword (a camera named there)
+    /// (case-insensitive, blanks trimmed). The one rule of which instrument a file is of.
+    pub fn writes(&self, value: &str) -> bool {
+        let v = value.trim();
+        let key = self.headers.as_ref().map_or("INSTRUME", |h| h.instrument_keyword.as_str());
+        let same = |x: &str| x.trim().eq_ignore_ascii_case(v);
+        same(&self.name)
+            || self.headers.as_ref().is_some_and(|h| h.instrument_values.iter().any(|x| same(x)))
+            || self.format.chips.iter().any(|c| {
+                c.match_keyword.as_deref().is_some_and(|k| k.trim().eq_ignore_ascii_case(key))
+                    && c.match_value.as_deref().is_some_and(same)
+            })
     }
 
     /// Read and validate an instrument file.

@@ -154,6 +154,19 @@ pub(crate) fn frame_header_with(
         keys.retain(|k| !k.is_empty());
     }
     img.check_duplicates(path, &keys)?;
+    // A frame that says it is another instrument's is not read as this one's (its detector,
+    // keywords and zero angles would be the wrong ones, with no word).
+    let ikey = inst.headers.as_ref().map_or("INSTRUME", |h| h.instrument_keyword.as_str());
+    if let Some(v) = img.key(ikey).filter(|v| !v.trim().is_empty() && !inst.writes(v)) {
+        return Err(Error::Invalid(format!(
+            "{}: {ikey} = '{}' says the frame is of another instrument than {}, which it is read as: give that instrument's file (--instrument), or, if it is {}'s, list '{}' in [headers] instrument_values of its file",
+            path.display(),
+            v.trim(),
+            inst.name,
+            inst.name,
+            v.trim()
+        )));
+    }
     // The instrument's keyword, else its fallbacks in order: the first one present.
     let mut hwp_deg = None;
     if !pol.hwp_angle_keyword.is_empty() {

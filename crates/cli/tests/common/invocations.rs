@@ -186,7 +186,13 @@ pub fn fixture() -> Fixture {
     put(&f, "mini.toml", &super::MINI.toml());
     put(&f, "scene.toml", SCENE);
     put(&f, "f.csv", STOKES_CSV);
-    put(&f, "cat.csv", "x,y,q,u,sigma_q,sigma_u\n0.5,0.5,0.01,0,0.001,0.001\n-1,1,0,0.01,0.001,0.001\n");
+    // A catalog that says what it is (the keywords `instpol catalog` writes), of the
+    // calibration's instrument and filter.
+    put(
+        &f,
+        "cat.csv",
+        "# INSTRUME = MINI\n# FILTER = V\n# PLATE = half_wave\nx,y,q,u,sigma_q,sigma_u\n0.5,0.5,0.01,0,0.001,0.001\n-1,1,0,0.01,0.001,0.001\n",
+    );
     must(&["simulate", &f.s("scene.toml"), "--out", &f.s("frames"), "--json"]);
     // The truth file is not an input of anything.
     std::fs::remove_file(f.p("frames/truth.json")).unwrap();
