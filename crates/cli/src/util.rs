@@ -93,7 +93,8 @@ pub fn instrument_of(given: &Option<String>, first: Option<&Path>) -> Result<Str
     let Some(first) = first else {
         bail!("no input file says which instrument it is of: give --instrument NAME or FILE")
     };
-    let (name, how) = skyfield::io::instrument_from_headers(first).map_err(|e| anyhow::anyhow!("{e} (--instrument)"))?;
+    let (name, how) =
+        skyfield::io::instrument_from_headers(first).map_err(|e| anyhow::anyhow!("{e} (--instrument)"))?;
     eprintln!("note: {how}; give --instrument to read them as another");
     if let Some(text) = instrument::builtin_source(&name) {
         skyfield::provenance::set_instrument(&name, text.as_bytes());

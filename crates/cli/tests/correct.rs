@@ -133,7 +133,9 @@ fn outside_the_field_and_extrapolation() {
     assert_eq!(o.status.code(), Some(2));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
-        err.lines().any(|l| l.starts_with("error:")) && err.contains("row 2") && err.contains("outside the calibrated field"),
+        err.lines().any(|l| l.starts_with("error:"))
+            && err.contains("row 2")
+            && err.contains("outside the calibrated field"),
         "{err}"
     );
     assert!(!out.exists(), "no half-written output");

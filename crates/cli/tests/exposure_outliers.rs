@@ -159,7 +159,9 @@ fn catalog_flags_the_dimmed_exposure_for_every_star() {
     }
     assert!(err.contains("warning") && err.contains(&frames[5].display().to_string()), "{err}");
     // The table carries the flag and the exposures' indices.
-    let csv = std::fs::read_to_string(&out).unwrap();
+    // The lines after the `#` lines that say what the catalog is.
+    let text = std::fs::read_to_string(&out).unwrap();
+    let csv: String = text.lines().filter(|l| !l.starts_with('#')).map(|l| format!("{l}\n")).collect();
     let head: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
     let col = |n: &str| head.iter().position(|h| *h == n).unwrap_or_else(|| panic!("no column {n}: {head:?}"));
     let (cf, cn, ci) = (col("flags"), col("n_outlier_exposures"), col("outlier_exposures"));

@@ -25,6 +25,11 @@
 //!   link, a symlink) must be refused (exit 2) with the input byte-identical;
 //! - `output name`: an output in a missing folder, one that is a folder, one in /proc;
 //! - `duplicate input`: the same input file twice;
+//! - `another product`: in every command that combines two inputs that say which instrument
+//!   and filter they are of (a calibration file, a Stokes map, a catalog with its keywords,
+//!   frames), each of them in turn replaced by a copy that says another filter, then another
+//!   instrument: refused (exit 2) naming it, or, where the command combines them on purpose
+//!   ([`PRODUCT_ON_PURPOSE`]), warned naming it; never a number with exit 0;
 //! - `units`: every table a command reads, with one column at a time declaring a unit (ECSV,
 //!   FITS, VOTable: %, deg, rad, arcmin, arcsec, pix) and its values converted: the command
 //!   honours it (the numbers it prints equal those of the plain table) or refuses it (exit 2)

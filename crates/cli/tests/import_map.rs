@@ -114,7 +114,8 @@ fn identity_maps_keep_a_catalog_in_its_sky_frame() {
     };
     let (q0, u0, e) = corrected(&p("id.fits"), &p("out.csv"));
     assert!((q0 - q).abs() < 1e-15 && (u0 - u).abs() < 1e-15, "({q0}, {u0}) for ({q}, {u})");
-    assert!(!e.contains("warning"), "{e}");
+    // No warning but that the hand-written table does not say its instrument and filter.
+    assert!(!e.lines().any(|l| l.contains("warning") && !l.contains("does not say which instrument")), "{e}");
     assert_eq!(import(&p("plate.fits"), &["--zero-angle", "0"]), 0.0);
     let (q0, u0, e) = corrected(&p("plate.fits"), &p("out2.csv"));
     let t = 2.0 * 1.8f64.to_radians();

@@ -227,11 +227,12 @@ fn make_night(root: &Path) -> PathBuf {
 /// product made from a master carries the master's hash, and the master its date), so that two
 /// runs compare equal when every pixel, table value and other keyword is. FITS: every 80-byte
 /// card `HISTORY` (the provenance's block, skyfield::provenance) or holding a date or a hash
-/// left out; JSON: the
+/// (a product's `INHASHn`, its inputs' hashes) left out; JSON: the
 /// `provenance` object left out; text: the lines naming a hash or a date left out.
 fn unprovenanced(b: Vec<u8>) -> Vec<u8> {
     let dated = |l: &[u8]| {
         l.windows(7).any(|w| w == b"blake3:")
+            || l.windows(6).any(|w| w == b"INHASH")
             || l.windows(19).any(|w| {
                 w[4] == b'-' && w[7] == b'-' && w[10] == b'T' && w[13] == b':' && w[..4].iter().all(u8::is_ascii_digit)
             })

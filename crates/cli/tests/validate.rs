@@ -103,6 +103,10 @@ fn validate(
         "--json".into(),
     ];
     args.extend(extra.iter().map(|s| s.to_string()));
+    // The frames written here carry no INSTRUME: they are FORS1's, said.
+    if !extra.contains(&"--instrument") {
+        args.extend(["--instrument".to_string(), "fors1".to_string()]);
+    }
     args.extend(frames.iter().map(|p| p.display().to_string()));
     let o = common::instpol().args(&args).output().unwrap();
     let js = serde_json::from_slice(&o.stdout).unwrap_or(serde_json::Value::Null);

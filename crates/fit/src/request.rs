@@ -189,9 +189,6 @@ pub enum Note {
     TrackReplaced { recorded: (f64, f64) },
     /// A rotator angle was given but the model was fitted without rotator angles.
     RotatorIgnored,
-    /// Rows of a table that does not say what it is (no instrument or filter among its
-    /// keywords: a table of other software): nothing could be checked against the calibration.
-    SetupUnknown,
     /// A map corrected by a telescope model alone records no HWP zero angle and its
     /// instrument gives none: what was taken, in words ([`crate::setup::map_zero_angle`]).
     ZeroAngleUnknown(String),
@@ -289,10 +286,8 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
         }
     };
     check_options(file, req)?;
-    match req.data {
-        Some(data) => check_setup(file, req, data, false)?,
-        None if !req.angles_are_arguments => notes.push(Note::SetupUnknown),
-        None => {}
+    if let Some(data) = req.data {
+        check_setup(file, req, data, false)?;
     }
     if req.angles_are_arguments && req.per_row.is_some() && req.recorded.is_some() {
         return Err(Refusal::TwoTracks);
@@ -523,7 +518,12 @@ impl MapPlan<'_> {
 
 /// The data's setup against the file's field or Mueller calibration (a telescope model alone
 /// is checked by its band), unless the request allows a mismatch.
-fn check_setup(file: &CalibrationFile, req: &Request<'_>, data: &crate::setup::Setup, map: bool) -> Result<(), Refusal> {
+fn check_setup(
+    file: &CalibrationFile,
+    req: &Request<'_>,
+    data: &crate::setup::Setup,
+    map: bool,
+) -> Result<(), Refusal> {
     let setup = match (&file.field, &file.mueller) {
         (Some(c), _) => Some((c.instrument.as_str(), c.filter.as_str())),
         (None, Some(m)) => Some((m.instrument.as_str(), m.filter.as_str())),

@@ -75,13 +75,12 @@ pub const OUTLIER_PULL: f64 = 3.0;
 
 pub use mueller::wrap_half_pi;
 
-/// Weighted circular mean (period pi) of offsets `d` with weights `w`, and its chi^2.
+/// Weighted circular mean (period pi) of offsets `d` with weights `w`, and its chi^2
+/// (`stokes::stats::circular::weighted_mean`); offsets spread evenly round the half turn have
+/// no mean, and give NaN (their chi^2 then refuses them).
 fn mean_offset(d: &[f64], w: &[f64]) -> (f64, f64) {
-    let (s, c) =
-        d.iter().zip(w).fold((0.0, 0.0), |(s, c), (&a, &wi)| (s + wi * (2.0 * a).sin(), c + wi * (2.0 * a).cos()));
-    let m = wrap_half_pi(0.5 * s.atan2(c));
-    let chi2 = d.iter().zip(w).map(|(&a, &wi)| wi * wrap_half_pi(a - m).powi(2)).sum();
-    (m, chi2)
+    use stokes::stats::circular::{weighted_mean, Period};
+    weighted_mean(d, w, Period::HalfTurn).map_or((f64::NAN, f64::NAN), |m| (m.mean, m.chi2))
 }
 
 /// One sense's offsets `d` (all usable stars) with weights `w`, the worst disagreeing star left

@@ -469,9 +469,7 @@ impl _Calibration {
             Note::AnglesWithoutTelescope => format!(
                 "{cal_path} holds no telescope model: the telescope's polarization is NOT removed"
             ),
-            Note::SetupUnknown => format!(
-                "{input} does not say which instrument and filter it was measured with: it cannot be checked against {cal_path}"
-            ),
+
         }
     }
 

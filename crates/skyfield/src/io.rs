@@ -25,9 +25,14 @@ use std::path::{Path, PathBuf};
 /// for the caller to ask for the instrument (`--instrument`, `instrument=`).
 pub fn instrument_from_headers(first: &Path) -> Result<(String, String), Error> {
     let known = instrument::builtin_names().join(", ");
-    let mut f = fitsio::FitsFile::open(first).map_err(|e| Error::Invalid(format!("{}: {e}", first.display())))?;
+    if !first.is_file() {
+        return Err(Error::Invalid(format!("cannot read {}: no such file", first.display())));
+    }
+    let mut f = fitsio::FitsFile::open(first)
+        .map_err(|_| Error::Invalid(format!("{}: not a FITS file CFITSIO can open", first.display())))?;
     let ph = f.primary_hdu().map_err(|e| Error::Invalid(format!("{}: {e}", first.display())))?;
-    let value = crate::fits::read_key_str(&mut f, &ph, "INSTRUME").ok().map(|v| v.trim().to_string()).filter(|v| !v.is_empty());
+    let value =
+        crate::fits::read_key_str(&mut f, &ph, "INSTRUME").ok().map(|v| v.trim().to_string()).filter(|v| !v.is_empty());
     let Some(value) = value else {
         return Err(Error::Invalid(format!(
             "{}: no INSTRUME keyword says which instrument wrote it: name the instrument (a built-in one: {known}; or an instrument file)",

@@ -374,7 +374,12 @@ impl Product {
 
     /// The product as it goes into `--json` and a report: the pairs as an object.
     pub fn describe(&self) -> String {
-        self.pairs().iter().filter(|(k, _)| !k.starts_with("INHASH")).map(|(k, v)| format!("{k}={v}")).collect::<Vec<_>>().join(" ")
+        self.pairs()
+            .iter()
+            .filter(|(k, _)| !k.starts_with("INHASH"))
+            .map(|(k, v)| format!("{k}={v}"))
+            .collect::<Vec<_>>()
+            .join(" ")
     }
 }
 

@@ -231,13 +231,15 @@ pub fn print_table(s: &FitSummary) {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let instrument = crate::util::instrument_of(&a.instrument, a.frames.first().map(|p| p.as_path()).or(a.map.as_deref()))?;
+    // The options first: a missing --sky-p is said before any file is opened.
+    let sky = sky_from_args(a.sky_p, a.sky_chi)?;
+    let opts = a.fit.options()?;
+    let first = a.frames.first().map(|p| p.as_path()).or(a.map.as_deref());
+    let instrument = crate::util::instrument_of(&a.instrument, first)?;
     crate::util::inputs(
         a.frames.iter().map(|p| p.as_path()).chain(a.map.as_deref()).chain(crate::util::file_arg(&instrument)),
     )?;
     crate::util::check_output(&a.out)?;
-    let sky = sky_from_args(a.sky_p, a.sky_chi)?;
-    let opts = a.fit.options()?;
     let inst = instrument::Instrument::load(&instrument)?;
     crate::util::check_bin(a.bin, &inst)?;
     let (map, inputs) = if let Some(m) = &a.map {

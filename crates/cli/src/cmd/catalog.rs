@@ -166,10 +166,7 @@ pub fn run(a: Args) -> Result<()> {
     let frames: Vec<&std::path::Path> = a.frames.iter().map(|p| p.as_path()).collect();
     // The calibration frames and file are inputs too (provenance, and never written over).
     let others = [a.frame.bias.as_deref(), a.frame.flat.as_deref(), a.cal.as_deref()];
-    crate::util::inputs_read_in_order(
-        &frames,
-        others.into_iter().flatten().chain(crate::util::file_arg(&instrument)),
-    )?;
+    crate::util::inputs_read_in_order(&frames, others.into_iter().flatten().chain(crate::util::file_arg(&instrument)))?;
     if let Some(out) = &a.out {
         crate::util::check_output(out)?;
     }

@@ -206,9 +206,7 @@ fn print_notes(a: &Args, notes: &[fit::request::Note]) {
                 e.to_degrees()
             ),
             Note::ZeroAngleUnknown(w) => eprintln!("warning: {input}: {w}"),
-            Note::SetupUnknown => eprintln!(
-                "warning: {input} does not say which instrument and filter it was measured with (no INSTRUME and FILTER among its keywords: not a table of instpol catalog), so it cannot be checked against {cal}: make sure they are the calibration's"
-            ),
+
             Note::RotatorIgnored => eprintln!(
                 "warning: --rotator is ignored: the telescope model of {cal} was fitted without rotator angles (its offset holds the rotator's)"
             ),
@@ -228,6 +226,13 @@ fn run_table(
     let out_format = Some(Format::from_path(&a.out)?);
     let mut table = fit::columns::read_catalog(&a.input, kind == Kind::FitsTable, a.hdu.as_deref())?;
     let angles = fit::columns::TableAngles::read(&table, &a.input, loaded)?;
+    if angles.setup.is_none() {
+        eprintln!(
+            "warning: {} does not say which instrument and filter it was measured with (no INSTRUME and FILTER among its keywords: not a table of instpol catalog), so it cannot be checked against {}: make sure they are the calibration's",
+            a.input.display(),
+            a.cal.display()
+        );
+    }
     let n = table.n_rows();
     let plan =
         fit::request::plan_rows(loaded, &angles.request(*base), n).map_err(|e| rows_error(a, Some(&table), e))?;

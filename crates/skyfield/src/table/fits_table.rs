@@ -278,7 +278,11 @@ fn fits_table_numbers(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> R
         }
         if crate::provenance::Product::is_key(&k) {
             let raw = v.to_string_lossy();
-            let text = raw.trim().strip_prefix('\'').and_then(|s| s.strip_suffix('\'')).map(|s| s.trim_end().replace("''", "'"));
+            let text = raw
+                .trim()
+                .strip_prefix('\'')
+                .and_then(|s| s.strip_suffix('\''))
+                .map(|s| s.trim_end().replace("''", "'"));
             pairs.push((k, text.unwrap_or_else(|| raw.trim().replace(['D', 'd'], "E"))));
             continue;
         }

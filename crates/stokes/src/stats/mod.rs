@@ -14,9 +14,12 @@
 //!   68.27 % half-width;
 //! - [`estimators`]: naive, AS, WK, ML, MP2, MAS, MB and the paper's PR06 law, by name;
 //! - [`intervals`]: Neyman central intervals and Bayesian HPD intervals on `P0`;
-//! - [`robust`]: the workspace's one median, the MAD-to-sigma factor and the clipped mean.
+//! - [`robust`]: the workspace's one median, the MAD-to-sigma factor and the clipped mean;
+//! - [`circular`]: angles averaged as angles (mean, weighted mean, median, difference, scatter),
+//!   each with its period.
 
 pub mod angle;
+pub mod circular;
 pub mod debias;
 pub mod estimators;
 pub mod intervals;

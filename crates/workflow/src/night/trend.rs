@@ -36,6 +36,7 @@ use super::plan::Plan;
 use super::Error;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+use stokes::stats::circular::{self, Period};
 
 /// One measured value.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -94,9 +95,33 @@ fn weighted(v: &[(f64, f64)]) -> (f64, f64) {
     (m, scale / w.sqrt())
 }
 
+/// [`weighted`] of angles in degrees of `period`: the circular weighted mean
+/// (`stokes::stats::circular`), on the branch of the first value, its chi^2 on the wrapped
+/// differences; `None` when the angles have no mean (spread round the circle).
+fn weighted_angles(v: &[(f64, f64)], period: Period) -> Option<(f64, f64)> {
+    let a: Vec<f64> = v.iter().map(|(x, _)| x.to_radians()).collect();
+    let w: Vec<f64> = v.iter().map(|(_, s)| 1.0 / (s.to_radians() * s.to_radians())).collect();
+    let m = circular::weighted_mean(&a, &w, period)?;
+    let scale = if v.len() > 1 { (m.chi2 / (v.len() - 1) as f64).max(1.0).sqrt() } else { 1.0 };
+    let near_first = a[0] + circular::difference(m.mean, a[0], period);
+    Some((near_first.to_degrees(), (scale / w.iter().sum::<f64>().sqrt()).to_degrees()))
+}
+
+/// The period of a series' values: angles (a quantity in degrees: zero angles, the telescope's
+/// offsets) repeat every half turn; other quantities are not angles.
+pub fn period_of(quantity: &str) -> Option<Period> {
+    quantity.ends_with("_deg").then_some(Period::HalfTurn)
+}
+
 /// The most significant single step of a series `(mjd, value, sigma)` (module docs); `None`
 /// with fewer than four points. The points need not be sorted.
 pub fn find_step(points: &[(f64, f64, f64)], threshold_sigma: f64) -> Option<Step> {
+    find_step_of(points, threshold_sigma, None)
+}
+
+/// [`find_step`] of a series whose values are angles in degrees of `period` (`None`: not
+/// angles): the means of each part are circular, and the step their wrapped difference.
+pub fn find_step_of(points: &[(f64, f64, f64)], threshold_sigma: f64, period: Option<Period>) -> Option<Step> {
     let mut p: Vec<(f64, f64, f64)> = points
         .iter()
         .copied()
@@ -114,9 +139,19 @@ pub fn find_step(points: &[(f64, f64, f64)], threshold_sigma: f64) -> Option<Ste
         }
         let a: Vec<(f64, f64)> = p[..k].iter().map(|x| (x.1, x.2)).collect();
         let b: Vec<(f64, f64)> = p[k..].iter().map(|x| (x.1, x.2)).collect();
-        let ((m1, e1), (m2, e2)) = (weighted(&a), weighted(&b));
+        let ((m1, e1), (m2, e2), d) = match period {
+            None => {
+                let ((m1, e1), (m2, e2)) = (weighted(&a), weighted(&b));
+                ((m1, e1), (m2, e2), m2 - m1)
+            }
+            Some(per) => {
+                let (Some(x), Some(y)) = (weighted_angles(&a, per), weighted_angles(&b, per)) else { continue };
+                let d = circular::difference(y.0.to_radians(), x.0.to_radians(), per).to_degrees();
+                (x, y, d)
+            }
+        };
         let sd = e1.hypot(e2);
-        let z = (m2 - m1).abs() / sd;
+        let z = d.abs() / sd;
         if best.as_ref().is_none_or(|s| z > s.significance) {
             best = Some(Step {
                 quantity: String::new(),
@@ -125,7 +160,7 @@ pub fn find_step(points: &[(f64, f64, f64)], threshold_sigma: f64) -> Option<Ste
                 first_after_mjd: p[k].0,
                 before: m1,
                 after: m2,
-                delta: m2 - m1,
+                delta: d,
                 sigma_delta: sd,
                 significance: z,
                 flagged: z > threshold_sigma,
@@ -297,7 +332,7 @@ pub fn gather(plans: &[PathBuf], threshold_sigma: f64) -> Result<Trend, Error> {
         .filter_map(|(q, f)| {
             let s: Vec<(f64, f64, f64)> =
                 points.iter().filter(|p| p.quantity == q && p.filter == f).map(|p| (p.mjd, p.value, p.sigma)).collect();
-            find_step(&s, threshold_sigma).map(|st| Step { quantity: q, filter: f, ..st })
+            find_step_of(&s, threshold_sigma, period_of(&q)).map(|st| Step { quantity: q, filter: f, ..st })
         })
         .collect();
     Ok(Trend { points, steps, threshold_sigma })
@@ -370,6 +405,23 @@ mod tests {
         let t = find_step(&small, 5.0).unwrap();
         assert!(!t.flagged, "{t:?}");
         assert!(find_step(&p[..3], 5.0).is_none());
+    }
+
+    /// A zero angle that sits at the wrap: -89.5 and +89.7 deg are 0.8 deg apart, not 179.2.
+    /// Twelve points of one zero angle, 89.8 deg, the later six written -90.2 deg (another
+    /// reduction folds them the other way) flag no step, where a linear mean finds one of 180
+    /// deg; a real step of 1 deg across the wrap is found with its size.
+    #[test]
+    fn angles_step_across_the_wrap_as_angles() {
+        let p: Vec<(f64, f64, f64)> = (0..12).map(|k| (k as f64, if k < 6 { 89.8 } else { -90.2 }, 0.1)).collect();
+        let lin = find_step(&p, 5.0).unwrap();
+        assert!(lin.flagged, "the linear test is fooled: {lin:?}");
+        let s = find_step_of(&p, 5.0, period_of("zero_angle_deg")).unwrap();
+        assert!(!s.flagged && s.delta.abs() < 1e-9, "{s:?}");
+        let q: Vec<(f64, f64, f64)> = (0..12).map(|k| (k as f64, if k < 6 { 89.6 } else { -89.4 }, 0.05)).collect();
+        let s = find_step_of(&q, 5.0, Some(Period::HalfTurn)).unwrap();
+        assert!(s.flagged && (s.delta - 1.0).abs() < 1e-9 && (s.n_before, s.n_after) == (6, 6), "{s:?}");
+        assert_eq!(period_of("p_unpolarized"), None);
     }
 
     #[test]
