@@ -110,7 +110,7 @@ pub fn validate_frames(
     opts: &ValidateOptions,
 ) -> Result<ValidationReport, Error> {
     // A calibration's positions and pattern mean nothing on another instrument's detector.
-    if !cal.instrument.eq_ignore_ascii_case(&inst.name) {
+    if !inst.writes(&cal.instrument) {
         return Err(Error::WrongInstrument { cal: cal.instrument.clone(), frames: inst.name.clone() });
     }
     let MeasuredFrames { star: measured, filter, .. } = measure_frames(inst, frames, x_px, y_px, opts)?;

@@ -235,7 +235,7 @@ pub fn validate_telescope(
 ) -> std::result::Result<TelescopeValidation, ValidateError> {
     let (field, tel) = loaded.p_phi_models()?;
     let tel = tel.ok_or_else(|| Error::Input("the calibration holds no telescope model".into()))?;
-    if loaded.instrument != "unknown" && !loaded.instrument.eq_ignore_ascii_case(&inst.name) {
+    if crate::setup::is_known(&loaded.instrument) && !inst.writes(&loaded.instrument) {
         return Err(ValidateError::Instrument { calibration: loaded.instrument.clone(), frames: inst.name.clone() });
     }
     let headers = match (parang, inst.telescope.as_ref()) {

@@ -1195,7 +1195,7 @@ fn open_master(path: &Path, inst: &Instrument, kind: &str) -> Result<OpenMaster,
         }
     }
     if let Some(i) = img.key("INSTRUME") {
-        if !i.eq_ignore_ascii_case(&inst.name) {
+        if !inst.writes(&i) {
             return Err(Error::Invalid(format!(
                 "{}: master {} of instrument {i}, but the frames are read as instrument {}",
                 path.display(),
