@@ -61,6 +61,10 @@
 //!    (crates/cli/src/cmd/bias.rs, mc.rs). The `turn` class fails for both: "bias [turn]: --chi
 //!    390 (a turn further) -> exit 0 with other numbers than a full turn back: the angle is not
 //!    read in degrees", and the same for mc.
+//! 4. a combination not checked: a catalog's rows corrected without what its table says it is
+//!    (`data: None` in `fit::columns::TableAngles::request`). The `another product` class
+//!    fails four cases of `correct (catalog)`, e.g. "correct (catalog) [another product]:
+//!    cat.csv of another filter -> exit 0, not refused (exit 2)".
 
 mod common;
 
