@@ -362,9 +362,35 @@ def test_catalog_columns_are_not_turned_twice(run, cal_v_offset, tmp_path):
     r = c.correct(*cols, hwp_chi_offset_deg=cat["chi_offset_deg"])
     for k in ["q0", "u0", "sigma_q0", "sigma_u0"]:
         assert np.max(np.abs(r[k] - ref[k])) < 1e-12, k
+    # What the catalog is travels with it: the same rows of another filter are refused, as
+    # instpol correct refuses a table whose keywords say so, unless allow_mismatch.
+    prod = cat["product"]
+    assert prod["instrument"] == "FORS1" and prod["filter"] == "V" and prod["plate"] == "half_wave"
+    said = c.correct(*cols, hwp_chi_offset_deg=cat["chi_offset_deg"], instrument=prod["instrument"],
+                     filter=prod["filter"])
+    assert np.array_equal(said["q0"], r["q0"], equal_nan=True)
+    with pytest.raises(instpol.InputError, match="filter I"):
+        c.correct(*cols, hwp_chi_offset_deg=cat["chi_offset_deg"], instrument="FORS1", filter="I")
+    forced = c.correct(*cols, hwp_chi_offset_deg=cat["chi_offset_deg"], instrument="FORS1", filter="I",
+                       allow_mismatch=True)
+    assert np.array_equal(forced["q0"], r["q0"], equal_nan=True)
     twice = c.correct(*cols)
     i = int(np.argmax(cat["p"]))
     dchi = (twice["chi0_deg"][i] - r["chi0_deg"][i] + 90) % 180 - 90
     assert abs(dchi - 3.5) < 0.05, dchi
     with pytest.raises(instpol.InputError, match="hwp_chi_offset_deg"):
         c.correct(*cols, hwp_chi_offset_deg=float("nan"))
+
+
+def test_frames_of_no_built_in_instrument_need_one_named(tmp_path):
+    """No silent default instrument: frames whose INSTRUME no built-in instrument writes are
+    refused naming the keyword and instrument=, where they were read as FORS1."""
+    from astropy.io import fits
+    path = tmp_path / "f.fits"
+    h = fits.Header()
+    h["INSTRUME"] = "NOSUCH"
+    fits.PrimaryHDU(np.zeros((8, 8), dtype=np.float32), header=h).writeto(path)
+    with pytest.raises(instpol.InputError, match="INSTRUME = 'NOSUCH'.*instrument="):
+        instpol.catalog([path])
+    with pytest.raises(instpol.InputError, match="INSTRUME = 'NOSUCH'"):
+        instpol.reduce([path])

@@ -32,9 +32,11 @@ pub struct Args {
     /// field in the radial or interp form is compared through the file's per-bin fits.
     pub mueller_cal: PathBuf,
     /// Instrument name (built-in: fors1) or path to an instrument TOML; its [optics] give the
-    /// ray-trace candidate (left out, with a note, when it has none).
-    #[arg(long, default_value = "fors1")]
-    pub instrument: String,
+    /// ray-trace candidate (left out, with a note, when it has none). Default: the built-in
+    /// instrument the calibration file records (said on stderr); a field that records none, or
+    /// an instrument that is no built-in one, needs it given.
+    #[arg(long)]
+    pub instrument: Option<String>,
     /// Filter whose effective wavelength the ray trace uses.
     #[arg(long, default_value = "B")]
     pub band: String,
@@ -106,7 +108,9 @@ fn finite(v: f64) -> Option<f64> {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    crate::util::inputs(std::iter::once(a.mueller_cal.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
+    crate::util::inputs(
+        std::iter::once(a.mueller_cal.as_path()).chain(a.instrument.as_deref().and_then(crate::util::file_arg)),
+    )?;
     if let Some(p) = &a.plot {
         crate::util::check_output(p)?;
         crate::plot::ImageFormat::of(p)?;
@@ -129,7 +133,20 @@ pub fn run(a: Args) -> Result<()> {
     stokes::check_degrees(&angles_deg).map_err(|e| anyhow!("--hwp-angles holds {e}: give them in degrees"))?;
     let what = a.mueller_cal.display().to_string();
     let loaded = fit::mueller_cal::load_field(&a.mueller_cal).map_err(|e| anyhow!("{e}"))?;
-    let inst = instrument::Instrument::load(&a.instrument)?;
+    let name = match (&a.instrument, &loaded.of) {
+        (Some(n), _) => n.clone(),
+        (None, Some((recorded, _))) => {
+            let b = instrument::builtin_for_keyword(recorded).ok_or_else(|| {
+                anyhow!(
+                    "{what} records instrument {recorded}, which is no built-in one: give its file with --instrument"
+                )
+            })?;
+            eprintln!("note: instrument {b}, which {what} records; give --instrument to use another file");
+            b.to_string()
+        }
+        (None, None) => bail!("{what} records no instrument (the JSON form): give it with --instrument"),
+    };
+    let inst = instrument::Instrument::load(&name)?;
     loaded.check_for(&inst, &a.band, &what).map_err(|e| anyhow!("{e}"))?;
     let (mf, per_bin) = (loaded.field, loaded.per_bin);
     let mut notes = Vec::new();
