@@ -116,15 +116,26 @@ pub fn start_provenance() {
     skyfield::provenance::set_session(p);
 }
 
-/// For `instpol run` (`workflow::night::run`, "Hashes read once"): when the environment names
-/// a file in `INPUT_HASHES_ENV`, the run's provenance inputs with the hashes computed while
-/// reading them are written there, so that the runner need not read the inputs again. A file
-/// that cannot be written is no error of the command: the runner then hashes the inputs itself.
+/// For `instpol run` (`workflow::night::run`, "Hashes read once" and "Up to date"): when the
+/// environment names a file in `INPUT_HASHES_ENV`, every file the command read is written
+/// there with its hash: the run's provenance inputs with the hashes computed while reading
+/// them, and every other file its arguments name as inputs ([`guard_arguments`]: an instrument
+/// file, a master, a calibration), hashed now. A file that cannot be written is no error of
+/// the command: the runner then hashes the plan's inputs itself.
 pub fn report_input_hashes() {
-    if let Some(path) = std::env::var_os(workflow::night::run::INPUT_HASHES_ENV) {
-        if let Ok(text) = serde_json::to_string(&skyfield::provenance::current().inputs) {
-            let _ = std::fs::write(path, text);
+    let Some(path) = std::env::var_os(workflow::night::run::INPUT_HASHES_ENV) else { return };
+    let mut read = skyfield::provenance::current().inputs;
+    let named: Vec<PathBuf> = INPUTS.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    for p in named.iter().filter(|p| p.is_file()) {
+        let name = p.display().to_string();
+        if !read.iter().any(|i| i.path == name) {
+            if let Ok(hash) = skyfield::provenance::hash_file(p) {
+                read.push(skyfield::provenance::InputFile { path: name, hash });
+            }
         }
+    }
+    if let Ok(text) = serde_json::to_string(&read) {
+        let _ = std::fs::write(path, text);
     }
 }
 
