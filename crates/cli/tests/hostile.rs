@@ -24,7 +24,12 @@
 //! - `output over input`: every output argument named like every input (the same path, a hard
 //!   link, a symlink) must be refused (exit 2) with the input byte-identical;
 //! - `output name`: an output in a missing folder, one that is a folder, one in /proc;
-//! - `duplicate input`: the same input file twice;
+//! - `duplicate input`: every input-file argument of the invocation given a second time under
+//!   another name (the same path, a copy, a hard link, a symlink; a folder by its path and a
+//!   symlink): a list (frames, catalogs, tables, folders) gets the second name after the
+//!   first, a single input the second name in place of the invocation's next input. The
+//!   command refuses it (exit 2) naming both names, or uses it once and names both (a warning)
+//!   with the numbers of the valid invocation (its `--json`), never counting it twice;
 //! - `units`: every table a command reads, with one column at a time declaring a unit (ECSV,
 //!   FITS, VOTable: %, deg, rad, arcmin, arcsec, pix) and its values converted: the command
 //!   honours it (the numbers it prints equal those of the plain table) or refuses it (exit 2)
@@ -139,6 +144,12 @@ enum Expect {
     SameTurned {
         reference: usize,
         flag: String,
+    },
+    /// An input under two names: exit 2 naming both `names`, or exit 0 naming both with the
+    /// numbers of the valid invocation (case index `reference`).
+    Once {
+        reference: usize,
+        names: Vec<String>,
     },
 }
 
@@ -324,6 +335,23 @@ fn variant(kind: &str, orig: &Path, dir: &Path) -> PathBuf {
     p
 }
 
+/// A second name of the input `orig` in `dir`: the same path, a copy, a hard link or a
+/// symlink (`None` where a folder has no such name: a copy or a hard link of a folder).
+fn second_name(orig: &Path, how: &str, dir: &Path) -> Option<PathBuf> {
+    let name = dir.join(format!("again_{}", orig.file_name()?.to_string_lossy()));
+    match how {
+        "same path" => return Some(orig.to_path_buf()),
+        "symlink" => std::os::unix::fs::symlink(orig, &name).unwrap(),
+        _ if orig.is_dir() => return None,
+        "copy" => {
+            std::fs::copy(orig, &name).unwrap();
+        }
+        "hard link" => std::fs::hard_link(orig, &name).unwrap(),
+        _ => unreachable!(),
+    }
+    Some(name)
+}
+
 const FILE_VARIANTS: &[&str] =
     &["empty", "text", "truncated", "garbage", "directory", "missing", "symlink-loop", "dev-null"];
 
@@ -375,6 +403,44 @@ fn numeric_columns(plain: &Path) -> Vec<String> {
     use skyfield::table::{Data, Table};
     let Ok(t) = Table::read(plain, None) else { return vec![] };
     t.columns.iter().filter(|c| !matches!(c.data, Data::Str(_))).map(|c| c.name.clone()).collect()
+}
+
+/// The `duplicate input` cases of template `t` (module docs): every input file `used` under a
+/// second name, after the first in a list, else in place of the invocation's next input; each
+/// (what, arguments, folder, expectation).
+fn duplicate_inputs(
+    t: &Template,
+    defs: &[serde_json::Value],
+    used: &[FileArg],
+    control: usize,
+    new_dir: &dyn Fn() -> PathBuf,
+) -> Vec<(String, Vec<String>, PathBuf, Expect)> {
+    let mut out = vec![];
+    for fa in used {
+        let label = fa.label.as_str();
+        let def = defs.iter().find(|a| a["id"] == label || a["long"] == label);
+        let many = def.is_some_and(|a| a["multiple"] == true);
+        let next = used.iter().find(|g| g.index != fa.index).map(|g| g.index);
+        if !many && next.is_none() {
+            continue;
+        }
+        let orig = PathBuf::from(&t.args[fa.index]);
+        for how in ["same path", "copy", "hard link", "symlink"] {
+            let dir = new_dir();
+            let Some(second) = second_name(&orig, how, &dir) else { continue };
+            let second = second.to_str().unwrap().to_string();
+            let mut a = t.args.clone();
+            match next {
+                _ if many && label.starts_with("--") => a.extend([label.to_string(), second.clone()]),
+                _ if many => a.insert(fa.index + 1, second.clone()),
+                Some(j) => a[j] = second.clone(),
+                None => unreachable!(),
+            }
+            let names = vec![orig.to_str().unwrap().to_string(), second];
+            out.push((format!("{label} twice ({how})"), a, dir, Expect::Once { reference: control, names }));
+        }
+    }
+    out
 }
 
 fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
@@ -547,14 +613,9 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
                 out.push(c);
             }
         }
-        // The same input file twice (frames): refused.
-        if let Some(fa) = used.iter().find(|fa| !fa.label.starts_with("--")) {
-            let (i, many) = (fa.index, defs.iter().any(|a| a["id"] == fa.label.as_str() && a["multiple"] == true));
-            if many && t.args.get(i + 1).is_some_and(|n| Path::new(n).is_file()) {
-                let mut a = t.args.clone();
-                a[i + 1] = a[i].clone();
-                out.push(case("duplicate input", format!("{} twice", fa.label), a, new_dir(), Expect::Nothing));
-            }
+        // Every input file under a second name.
+        for (what, a, dir, e) in duplicate_inputs(&t, defs, &used, control, &new_dir) {
+            out.push(case("duplicate input", what, a, dir, e));
         }
         // Tables with units: each numeric column of each CSV input declaring a unit, its values
         // converted, in three formats.
@@ -732,7 +793,7 @@ fn run_case(c: &Case) -> (i32, Option<String>) {
         problems.push(format!("temporaries left: {t:?}"));
     }
     match &c.expect {
-        Expect::Nothing | Expect::SameOrRefused { .. } | Expect::SameTurned { .. } => {}
+        Expect::Nothing | Expect::SameOrRefused { .. } | Expect::SameTurned { .. } | Expect::Once { .. } => {}
         Expect::NotAccepted => {
             if code == 0 {
                 problems.push("exit 0: a file that is not one was accepted".into());
@@ -828,6 +889,36 @@ fn check_turned(c: &Case, code: i32, cases: &[Case], codes: &[i32]) -> Option<St
             })
         }
         _ => Some(failure(c, &format!("exit {code}: a full turn further is neither taken nor refused"))),
+    }
+}
+
+/// The `duplicate input` property: exit 2 naming both names, or exit 0 naming both (a warning,
+/// or the printed plan's list of what it left out) with each printed number the valid
+/// invocation's (to 1e-9 relative: an input counted twice moves its errors by sqrt(2)).
+fn check_once(c: &Case, code: i32, cases: &[Case]) -> Option<String> {
+    let Expect::Once { reference, names } = &c.expect else { return None };
+    let err = std::fs::read_to_string(c.dir.join("stderr.txt")).unwrap_or_default();
+    let said = |text: &str| names.iter().all(|n| text.contains(n.as_str()));
+    match code {
+        2 if said(&err) => None,
+        2 => Some(failure(c, &format!("refused without naming both {}", names.join(" and ")))),
+        0 => {
+            let out = std::fs::read_to_string(c.dir.join("stdout.txt")).unwrap_or_default();
+            if !said(&format!("{err}{out}")) {
+                return Some(failure(c, &format!("exit 0 without naming both {}", names.join(" and "))));
+            }
+            let (got, want) = (printed_numbers(c), printed_numbers(&cases[*reference]));
+            let same = match (&got, &want) {
+                (Some(g), Some(w)) => {
+                    g.len() == w.len()
+                        && g.iter().zip(w).all(|(a, b)| a == b || (a - b).abs() <= 1e-9 * a.abs().max(b.abs()))
+                }
+                (None, None) => true,
+                _ => false,
+            };
+            (!same).then(|| failure(c, "exit 0 with other numbers than the input once: counted twice"))
+        }
+        _ => Some(failure(c, &format!("exit {code}: the same input twice neither refused nor used once"))),
     }
 }
 
@@ -941,7 +1032,9 @@ fn hostile_inputs() {
     let codes: Vec<i32> = results.iter().map(|r| r.1).collect();
     for r in results.iter_mut() {
         if r.2.is_none() {
-            r.2 = check_units(&cases[r.0], r.1, &cases).or_else(|| check_turned(&cases[r.0], r.1, &cases, &codes));
+            r.2 = check_units(&cases[r.0], r.1, &cases)
+                .or_else(|| check_turned(&cases[r.0], r.1, &cases, &codes))
+                .or_else(|| check_once(&cases[r.0], r.1, &cases));
         }
     }
     let is_known =

@@ -581,9 +581,13 @@ pub fn scan(dirs: &[PathBuf], opts: &ScanOptions) -> Result<Plan, Error> {
         None => fit::standards::Standards::builtin(),
     }
     .map_err(|e| Error::Option(e.to_string()))?;
-    let (paths, again) = list_files(&dirs)?;
+    let (mut paths, again) = list_files(&dirs)?;
+    // Of a file's names, the one reached through no symlink is kept, else the first by path.
+    paths.sort_by_cached_key(|p| (std::fs::canonicalize(p).ok().as_deref() != Some(p.as_path()), p.clone()));
     let distinct = skyfield::same::distinct_files(&paths);
-    let mut sorted = sort_files(&distinct.files, &inst);
+    let mut files = distinct.files.clone();
+    files.sort();
+    let mut sorted = sort_files(&files, &inst);
     sorted.left_out.extend(again);
     sorted.left_out.extend(distinct.duplicates.iter().map(|d| LeftOut {
         files: vec![d.again.clone(), d.first.clone()],
