@@ -61,6 +61,13 @@
 //!    (crates/cli/src/cmd/bias.rs, mc.rs). The `turn` class fails for both: "bias [turn]: --chi
 //!    390 (a turn further) -> exit 0 with other numbers than a full turn back: the angle is not
 //!    read in degrees", and the same for mc.
+//! 4. the same input counted twice: in `instpol fit-standards`, the definition's duplicate
+//!    check skipped (`util::guard_arguments`) and the repeated measurements found but kept
+//!    (crates/cli/src/cmd/fit_standards.rs). The `duplicate input` class fails for its four
+//!    names: "fit-standards [duplicate input]: files twice (copy) -> exit 0 with other numbers
+//!    than the input once: counted twice", the same for the same path, a hard link and a
+//!    symlink. (With the check skipped alone nothing fails: the repeated rows are then used
+//!    once, naming both files, with the numbers of the table once, which the property allows.)
 
 mod common;
 

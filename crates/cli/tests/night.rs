@@ -620,7 +620,7 @@ fn a_simulated_night_scanned_and_run() {
     // A Cassegrain instrument's standard gives no parallactic angle: not a point of the
     // telescope fit, refused naming the file.
     let phot = vu_output(&strict, "photometry-20190304-HD_14069-v_HIGH");
-    let o = instpol(&["fit-standards", phot.to_str().unwrap(), phot.to_str().unwrap()]);
+    let o = instpol(&["fit-standards", phot.to_str().unwrap()]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("HD_14069-v_HIGH.json") && err.contains("no parallactic angle"), "{err}");
@@ -1087,7 +1087,9 @@ fn scan_reads_a_file_once_whatever_its_names() {
             }
         };
         let units = plan["units"].as_array().unwrap().iter();
-        units.map(|u| (u["id"].as_str().unwrap().into(), u["command"].as_array().unwrap().iter().map(arg).collect())).collect()
+        units
+            .map(|u| (u["id"].as_str().unwrap().into(), u["command"].as_array().unwrap().iter().map(arg).collect()))
+            .collect()
     };
     let control = scan_small(root, &inst(), &root.join("control.json"));
     assert!(units(&control).len() >= 4, "{control}");
@@ -1129,7 +1131,8 @@ fn run_reruns_the_units_of_an_edited_instrument_file() {
     assert!(ok, "{first}");
     let (ok, second) = run_json(&plan_path, &[]);
     assert!(ok && statuses(&second).iter().all(|(_, s)| s == "up_to_date"), "{second}");
-    let cal_unit = plan["units"].as_array().unwrap().iter().find(|u| u["kind"] == "calibrate").expect("a calibrate unit");
+    let cal_unit =
+        plan["units"].as_array().unwrap().iter().find(|u| u["kind"] == "calibrate").expect("a calibrate unit");
     let cal = PathBuf::from(cal_unit["outputs"][0].as_str().unwrap());
     assert_eq!(fit::Calibration::load(&cal).unwrap().hwp_chi_offset_deg, -1.80);
     let text = std::fs::read_to_string(&own).unwrap();

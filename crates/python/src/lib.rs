@@ -861,7 +861,9 @@ fn refuse_overwrite<'a>(
 fn refuse_same_data<'a>(inputs: impl IntoIterator<Item = &'a PathBuf>) -> PyResult<()> {
     let paths: Vec<&PathBuf> = inputs.into_iter().collect();
     match skyfield::same::distinct_files(&paths).duplicates.first() {
-        Some(d) => Err(input_err(format!("{d}: each input may be given once (the same data twice would be counted twice)"))),
+        Some(d) => {
+            Err(input_err(format!("{d}: each input may be given once (the same data twice would be counted twice)")))
+        }
         None => Ok(()),
     }
 }
