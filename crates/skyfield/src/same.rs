@@ -77,6 +77,8 @@ fn prefix_hash(path: &Path) -> Option<blake3::Hash> {
 pub fn distinct_files<P: AsRef<Path>>(paths: &[P]) -> Distinct {
     use std::os::unix::fs::MetadataExt;
     let mut out = Distinct::default();
+    // Each duplicate with the index of its later name.
+    let mut found: Vec<(usize, Duplicate)> = vec![];
     let mut by_path: HashMap<&Path, usize> = HashMap::new();
     let mut by_id: HashMap<(u64, u64), usize> = HashMap::new();
     // Kept regular files by size: (index in `paths`).
@@ -85,14 +87,14 @@ pub fn distinct_files<P: AsRef<Path>>(paths: &[P]) -> Distinct {
     for (i, p) in paths.iter().enumerate() {
         let p = p.as_ref();
         if let Some(&j) = by_path.get(p) {
-            out.duplicates.push(Duplicate { first: paths[j].as_ref().into(), again: p.into(), how: How::SamePath });
+            found.push((i, Duplicate { first: paths[j].as_ref().into(), again: p.into(), how: How::SamePath }));
             kept[i] = false;
             continue;
         }
         by_path.insert(p, i);
         let Ok(m) = std::fs::metadata(p) else { continue };
         if let Some(&j) = by_id.get(&(m.dev(), m.ino())) {
-            out.duplicates.push(Duplicate { first: paths[j].as_ref().into(), again: p.into(), how: How::SameFile });
+            found.push((i, Duplicate { first: paths[j].as_ref().into(), again: p.into(), how: How::SameFile }));
             kept[i] = false;
             continue;
         }
@@ -119,7 +121,7 @@ pub fn distinct_files<P: AsRef<Path>>(paths: &[P]) -> Distinct {
                 let Ok(h) = crate::provenance::hash_file(paths[i].as_ref()) else { continue };
                 if let Some(&j) = by_hash.get(&h) {
                     let (first, again) = (paths[j].as_ref().into(), paths[i].as_ref().into());
-                    out.duplicates.push(Duplicate { first, again, how: How::SameContent });
+                    found.push((i, Duplicate { first, again, how: How::SameContent }));
                     kept[i] = false;
                 } else {
                     by_hash.insert(h, i);
@@ -129,8 +131,8 @@ pub fn distinct_files<P: AsRef<Path>>(paths: &[P]) -> Distinct {
     }
     out.files = paths.iter().zip(&kept).filter(|(_, k)| **k).map(|(p, _)| p.as_ref().to_path_buf()).collect();
     // Reported in the order the later names were given.
-    let pos = |d: &Duplicate| paths.iter().position(|p| p.as_ref() == d.again).unwrap_or(usize::MAX);
-    out.duplicates.sort_by_key(pos);
+    found.sort_by_key(|f| f.0);
+    out.duplicates = found.into_iter().map(|f| f.1).collect();
     out
 }
 
