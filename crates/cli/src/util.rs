@@ -20,13 +20,19 @@ pub const OUTPUT_ARGUMENTS: [&str; 8] =
 /// Guard every file a command line names as an input against being written over, whatever
 /// the command (the one registry of inputs: a command's own [`inputs`] call still hashes them
 /// for the provenance, but a file it forgot there, such as a master bias passed with `--bias`,
-/// is guarded here), and refuse the same data named twice among them
-/// ([`skyfield::same::distinct_files`]: the same path, a link, a copy): it would be counted
-/// twice. `def` is the subcommand's definition and `m` its matches.
+/// is guarded here), and refuse the same data named twice among the files of one argument
+/// (the frames, the catalogs, the tables: [`skyfield::same::distinct_files`] by content, the
+/// same path, a link or a copy): it would be counted twice. `def` is the subcommand's
+/// definition and `m` its matches.
 pub fn guard_arguments(def: &clap::Command, m: &clap::ArgMatches) -> Result<()> {
     let guarded = input_arguments(def, m);
     INPUTS.lock().unwrap_or_else(|e| e.into_inner()).extend(guarded.iter().cloned());
-    refuse_duplicates(&guarded)
+    for arg in def.get_arguments().filter(|a| a.get_value_parser().type_id() == std::any::TypeId::of::<PathBuf>()) {
+        if let Ok(Some(v)) = m.try_get_many::<PathBuf>(arg.get_id().as_str()) {
+            refuse_duplicates(&v.collect::<Vec<_>>(), skyfield::same::By::Content)?;
+        }
+    }
+    Ok(())
 }
 
 /// Every file a command line names as an input, by the roles of the command's definition:
@@ -53,9 +59,9 @@ pub fn input_arguments(def: &clap::Command, m: &clap::ArgMatches) -> Vec<PathBuf
 }
 
 /// Refuse (exit 2) input files that are the same data under two names, naming both
-/// ([`skyfield::same::distinct_files`] decides).
-fn refuse_duplicates<P: AsRef<Path>>(paths: &[P]) -> Result<()> {
-    let d = skyfield::same::distinct_files(paths);
+/// ([`skyfield::same::distinct_files`] decides, `by` identity or content).
+pub fn refuse_duplicates<P: AsRef<Path>>(paths: &[P], by: skyfield::same::By) -> Result<()> {
+    let d = skyfield::same::distinct_files(paths, by);
     if let Some(first) = d.duplicates.first() {
         let more = match d.duplicates.len() {
             1 => String::new(),
@@ -90,7 +96,7 @@ pub fn inputs_read_in_order<'a>(streamed: &[&'a Path], others: impl IntoIterator
 
 /// The checks of [`inputs`] (no file twice) and the registration against overwriting.
 fn register_inputs(paths: &[&Path]) -> Result<()> {
-    refuse_duplicates(paths)?;
+    refuse_duplicates(paths, skyfield::same::By::Identity)?;
     INPUTS.lock().unwrap_or_else(|e| e.into_inner()).extend(paths.iter().map(|p| p.to_path_buf()));
     Ok(())
 }

@@ -24,12 +24,14 @@
 //! - `output over input`: every output argument named like every input (the same path, a hard
 //!   link, a symlink) must be refused (exit 2) with the input byte-identical;
 //! - `output name`: an output in a missing folder, one that is a folder, one in /proc;
-//! - `duplicate input`: every input-file argument of the invocation given a second time under
-//!   another name (the same path, a copy, a hard link, a symlink; a folder by its path and a
-//!   symlink): a list (frames, catalogs, tables, folders) gets the second name after the
-//!   first, a single input the second name in place of the invocation's next input. The
-//!   command refuses it (exit 2) naming both names, or uses it once and names both (a warning)
-//!   with the numbers of the valid invocation (its `--json`), never counting it twice;
+//! - `duplicate input`: every input-file argument of the invocation that takes a list (frames,
+//!   catalogs, tables, calibrations, plans, folders) given its first file a second time, after
+//!   it, under another name (the same path, a copy, a hard link, a symlink; a folder by its
+//!   path and a symlink). The command refuses it (exit 2) naming both names, or uses it once
+//!   and names both (a warning, or the plan's list of what it left out) with the numbers of
+//!   the valid invocation (its `--json`), never counting it twice. (A single input has no
+//!   second place in its role; the same bytes in two roles, a Q and a U map both zero, are two
+//!   inputs);
 //! - `units`: every table a command reads, with one column at a time declaring a unit (ECSV,
 //!   FITS, VOTable: %, deg, rad, arcmin, arcsec, pix) and its values converted: the command
 //!   honours it (the numbers it prints equal those of the plain table) or refuses it (exit 2)
@@ -412,9 +414,8 @@ fn numeric_columns(plain: &Path) -> Vec<String> {
     t.columns.iter().filter(|c| !matches!(c.data, Data::Str(_))).map(|c| c.name.clone()).collect()
 }
 
-/// The `duplicate input` cases of template `t` (module docs): every input file `used` under a
-/// second name, after the first in a list, else in place of the invocation's next input; each
-/// (what, arguments, folder, expectation).
+/// The `duplicate input` cases of template `t` (module docs): the first file of every list
+/// input `used` under a second name after it; each (what, arguments, folder, expectation).
 fn duplicate_inputs(
     t: &Template,
     defs: &[serde_json::Value],
@@ -426,9 +427,7 @@ fn duplicate_inputs(
     for fa in used {
         let label = fa.label.as_str();
         let def = defs.iter().find(|a| a["id"] == label || a["long"] == label);
-        let many = def.is_some_and(|a| a["multiple"] == true);
-        let next = used.iter().find(|g| g.index != fa.index).map(|g| g.index);
-        if !many && next.is_none() {
+        if !def.is_some_and(|a| a["multiple"] == true) {
             continue;
         }
         let orig = PathBuf::from(&t.args[fa.index]);
@@ -437,11 +436,10 @@ fn duplicate_inputs(
             let Some(second) = second_name(&orig, how, &dir) else { continue };
             let second = second.to_str().unwrap().to_string();
             let mut a = t.args.clone();
-            match next {
-                _ if many && label.starts_with("--") => a.extend([label.to_string(), second.clone()]),
-                _ if many => a.insert(fa.index + 1, second.clone()),
-                Some(j) => a[j] = second.clone(),
-                None => unreachable!(),
+            if label.starts_with("--") {
+                a.extend([label.to_string(), second.clone()]);
+            } else {
+                a.insert(fa.index + 1, second.clone());
             }
             let names = vec![orig.to_str().unwrap().to_string(), second];
             out.push((format!("{label} twice ({how})"), a, dir, Expect::Once { reference: control, names }));

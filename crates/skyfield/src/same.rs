@@ -3,9 +3,12 @@
 //!
 //! Files ([`distinct_files`]) are the same when they are named by the same path, when they are
 //! the same file on disk (a hard link, a symlink, the same file reached through another
-//! folder: the same device and inode), or when their bytes are the same (a copy, a folder
-//! downloaded twice): by the BLAKE3 hash of their content, the provenance's hash
-//! ([`crate::provenance::hash_file`]). Files are compared by size first and by the hash of
+//! folder: the same device and inode), or, among the files of one role (the frames of a set,
+//! the catalogs of a calibration, the tables of a fit, the files of a night: [`By::Content`]),
+//! when their bytes are the same (a copy, a folder downloaded twice): by the BLAKE3 hash of
+//! their content, the provenance's hash ([`crate::provenance::hash_file`]). Files of different
+//! roles are compared by name and identity only ([`By::Identity`]): a Q map and a U map of
+//! the same bytes (both zero) are two inputs. Files are compared by size first and by the hash of
 //! their first 64 KiB next, so that only files alike so far are read whole: a night's frames,
 //! all of one size, differ in their headers and cost one block each.
 //!
@@ -52,6 +55,15 @@ impl std::fmt::Display for Duplicate {
     }
 }
 
+/// What makes two files the same (module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum By {
+    /// The same path or the same file on disk.
+    Identity,
+    /// As [`By::Identity`], or the same bytes.
+    Content,
+}
+
 /// Files after [`distinct_files`]: each distinct one once, in the order given, and every later
 /// name of one of them.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -71,10 +83,10 @@ fn prefix_hash(path: &Path) -> Option<blake3::Hash> {
 }
 
 /// The files of `paths` that are the same data under another name (module docs), by path, by
-/// identity and by content; the first name of each is kept. A name that is not a readable
+/// identity and (with [`By::Content`]) by content; the first name of each is kept. A name that is not a readable
 /// regular file (missing, a folder, unreadable) is kept unless its path or identity repeats:
 /// its reader reports it.
-pub fn distinct_files<P: AsRef<Path>>(paths: &[P]) -> Distinct {
+pub fn distinct_files<P: AsRef<Path>>(paths: &[P], by: By) -> Distinct {
     use std::os::unix::fs::MetadataExt;
     let mut out = Distinct::default();
     // Each duplicate with the index of its later name.
@@ -99,7 +111,7 @@ pub fn distinct_files<P: AsRef<Path>>(paths: &[P]) -> Distinct {
             continue;
         }
         by_id.insert((m.dev(), m.ino()), i);
-        if m.is_file() {
+        if m.is_file() && by == By::Content {
             by_size.entry(m.len()).or_default().push(i);
         }
     }
@@ -200,7 +212,7 @@ mod tests {
         std::os::unix::fs::symlink(p("a"), p("a_sym")).unwrap();
         std::fs::write(p("c"), b"other").unwrap();
         let names = ["a", "b", "a_copy", "b_link", "a_sym", "c", "a", "missing", "missing"].map(p);
-        let r = distinct_files(&names);
+        let r = distinct_files(&names, By::Content);
         assert_eq!(r.files, ["a", "b", "c", "missing"].map(p));
         let got: Vec<(PathBuf, PathBuf, How)> =
             r.duplicates.iter().map(|x| (x.first.clone(), x.again.clone(), x.how)).collect();
@@ -215,6 +227,9 @@ mod tests {
             ]
         );
         assert!(r.duplicates[0].to_string().contains("a_copy"));
+        // By identity, the copy is another input.
+        let r = distinct_files(&names, By::Identity);
+        assert_eq!(r.files, ["a", "b", "a_copy", "c", "missing"].map(p));
     }
 
     #[test]

@@ -584,7 +584,7 @@ pub fn scan(dirs: &[PathBuf], opts: &ScanOptions) -> Result<Plan, Error> {
     let (mut paths, again) = list_files(&dirs)?;
     // Of a file's names, the one reached through no symlink is kept, else the first by path.
     paths.sort_by_cached_key(|p| (std::fs::canonicalize(p).ok().as_deref() != Some(p.as_path()), p.clone()));
-    let distinct = skyfield::same::distinct_files(&paths);
+    let distinct = skyfield::same::distinct_files(&paths, skyfield::same::By::Content);
     let mut files = distinct.files.clone();
     files.sort();
     let mut sorted = sort_files(&files, &inst);
