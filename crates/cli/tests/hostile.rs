@@ -563,61 +563,8 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
                 out.push(case("file", format!("{label} {kind}"), a, dir, e));
             }
         }
-        // Every output argument named like every input file (a copy, so that the fixture
-        // stays intact): the same path, a hard link, a symlink. Refused, the input unchanged.
-        for o in flags(&|a| a["role"] == "output") {
-            let oflag = long(&o);
-            for fa in &used {
-                for how in ["same path", "hard link", "symlink"] {
-                    let dir = new_dir();
-                    let orig = Path::new(&t.args[fa.index]);
-                    if !orig.is_file() {
-                        continue;
-                    }
-                    let copy = dir.join(format!("input_{}", orig.file_name().unwrap().to_string_lossy()));
-                    std::fs::copy(orig, &copy).unwrap();
-                    let name = match how {
-                        "same path" => copy.clone(),
-                        "hard link" => {
-                            let l = dir.join("hardlink_out");
-                            std::fs::hard_link(&copy, &l).unwrap();
-                            l
-                        }
-                        _ => {
-                            let l = dir.join("symlink_out");
-                            std::os::unix::fs::symlink(&copy, &l).unwrap();
-                            l
-                        }
-                    };
-                    let mut a = t.args.clone();
-                    a[fa.index] = copy.to_str().unwrap().to_string();
-                    set_flag(&mut a, &oflag, name.to_str().unwrap());
-                    let what = format!("{oflag} = {} ({how})", fa.label);
-                    let mut c = case("output over input", what, a, dir, Expect::Refused(vec![]));
-                    c.outputs.clear();
-                    out.push(c);
-                }
-            }
-        }
-        // Hostile output names: a folder that does not exist, an existing folder, a name in
-        // /proc (not writable).
-        if let Some(name) = t.out_name {
-            for kind in ["missing-folder", "is-a-folder", "proc"] {
-                let dir = new_dir();
-                let o = match kind {
-                    "missing-folder" => dir.join("no/such/folder").join(name),
-                    "is-a-folder" => {
-                        std::fs::create_dir_all(dir.join(name)).unwrap();
-                        dir.join(name)
-                    }
-                    _ => PathBuf::from("/proc/instpol_hostile").join(name),
-                };
-                let a: Vec<String> = t.args.iter().map(|x| x.replace("{OUT}", o.to_str().unwrap())).collect();
-                let mut c = case("output name", format!("--out {kind}"), a, dir, Expect::Nothing);
-                c.outputs = if kind == "is-a-folder" { vec![] } else { vec![o] };
-                out.push(c);
-            }
-        }
+        let outputs: Vec<String> = flags(&|a| a["role"] == "output").iter().map(long).collect();
+        out.extend(output_cases(&t, &outputs, &used, &new_dir, &case));
         // Every input file under a second name.
         for (what, a, dir, e) in duplicate_inputs(&t, defs, &used, control, &new_dir) {
             out.push(case("duplicate input", what, a, dir, e));
@@ -646,7 +593,80 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
             }
         }
     }
-    // Scene keys at their edges.
+    out.extend(scene_key_cases(f, &new_dir));
+    out
+}
+
+/// The `output over input` and `output name` cases of template `t`: every output argument
+/// (`outputs`) named like every input file `used`, and hostile output names; `case` makes each.
+fn output_cases(
+    t: &Template,
+    outputs: &[String],
+    used: &[FileArg],
+    new_dir: &dyn Fn() -> PathBuf,
+    case: &dyn Fn(&'static str, String, Vec<String>, PathBuf, Expect) -> Case,
+) -> Vec<Case> {
+    let mut out = vec![];
+    // Every output argument named like every input file (a copy, so that the fixture
+    // stays intact): the same path, a hard link, a symlink. Refused, the input unchanged.
+    for oflag in outputs {
+        for fa in used {
+            for how in ["same path", "hard link", "symlink"] {
+                let dir = new_dir();
+                let orig = Path::new(&t.args[fa.index]);
+                if !orig.is_file() {
+                    continue;
+                }
+                let copy = dir.join(format!("input_{}", orig.file_name().unwrap().to_string_lossy()));
+                std::fs::copy(orig, &copy).unwrap();
+                let name = match how {
+                    "same path" => copy.clone(),
+                    "hard link" => {
+                        let l = dir.join("hardlink_out");
+                        std::fs::hard_link(&copy, &l).unwrap();
+                        l
+                    }
+                    _ => {
+                        let l = dir.join("symlink_out");
+                        std::os::unix::fs::symlink(&copy, &l).unwrap();
+                        l
+                    }
+                };
+                let mut a = t.args.clone();
+                a[fa.index] = copy.to_str().unwrap().to_string();
+                set_flag(&mut a, oflag, name.to_str().unwrap());
+                let what = format!("{oflag} = {} ({how})", fa.label);
+                let mut c = case("output over input", what, a, dir, Expect::Refused(vec![]));
+                c.outputs.clear();
+                out.push(c);
+            }
+        }
+    }
+    // Hostile output names: a folder that does not exist, an existing folder, a name in
+    // /proc (not writable).
+    if let Some(name) = t.out_name {
+        for kind in ["missing-folder", "is-a-folder", "proc"] {
+            let dir = new_dir();
+            let o = match kind {
+                "missing-folder" => dir.join("no/such/folder").join(name),
+                "is-a-folder" => {
+                    std::fs::create_dir_all(dir.join(name)).unwrap();
+                    dir.join(name)
+                }
+                _ => PathBuf::from("/proc/instpol_hostile").join(name),
+            };
+            let a: Vec<String> = t.args.iter().map(|x| x.replace("{OUT}", o.to_str().unwrap())).collect();
+            let mut c = case("output name", format!("--out {kind}"), a, dir, Expect::Nothing);
+            c.outputs = if kind == "is-a-folder" { vec![] } else { vec![o] };
+            out.push(c);
+        }
+    }
+    out
+}
+
+/// Every numeric key of a scene at its TOML edges (the `scene keys` class).
+fn scene_key_cases(f: &Fixture, new_dir: &dyn Fn() -> PathBuf) -> Vec<Case> {
+    let mut out = vec![];
     let keys: &[(&str, &str)] = &[
         ("exposure_s = 10.0", "exposure_s = {}"),
         ("seed = 3", "seed = {}"),
