@@ -5,6 +5,7 @@ from: 150 stars over 4 dithered pointings of FORS1 through a plane field (q = 0.
 with 0.05 % Gaussian errors drawn here (numpy, seeded)."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -79,3 +80,25 @@ def test_calibrate_stars_refusals(tmp_path):
         instpol.calibrate_stars(files, "fors1", filter="V", offsets=OFFSETS[:2])
     with pytest.raises(instpol.InputError, match="refusing to write over an input"):
         instpol.calibrate_stars(files, "fors1", filter="V", interstellar="zero", offsets=OFFSETS, out=files[0])
+
+
+def test_the_same_catalog_under_two_names_is_one_input(tmp_path):
+    """A copy, a hard link or a symlink of a catalog beside it is refused naming both; a
+    catalog with every row written twice gives the numbers of the catalog written once, with a
+    warning naming the repeats (counted twice, the errors would shrink by sqrt(2))."""
+    files, _ = write_catalogs(tmp_path)
+    copy, link, sym = tmp_path / "copy.csv", tmp_path / "link.csv", tmp_path / "sym.csv"
+    copy.write_bytes(files[0].read_bytes())
+    os.link(files[0], link)
+    os.symlink(files[0], sym)
+    for other in (files[0], copy, link, sym):
+        with pytest.raises(instpol.InputError, match="given once") as e:
+            instpol.calibrate_stars([files[0], other], "fors1", filter="V", model="plane", interstellar="zero")
+        assert other.name in str(e.value) and files[0].name in str(e.value)
+    lines = files[0].read_text().splitlines()
+    twice = tmp_path / "twice.csv"
+    twice.write_text("\n".join(lines + lines[1:]) + "\n")
+    once = instpol.calibrate_stars([files[0]], "fors1", filter="V", model="plane", interstellar="zero")
+    again = instpol.calibrate_stars([twice], "fors1", filter="V", model="plane", interstellar="zero")
+    assert again["poly"]["sigma_q"] == once["poly"]["sigma_q"]
+    assert any("repeat" in w and "twice.csv row" in w for w in again["warnings"]), again["warnings"]

@@ -123,3 +123,22 @@ def test_reduce_refuses_to_write_over_an_input(sky_frames, tmp_path):
     with pytest.raises(instpol.InputError, match="refusing to write over an input"):
         instpol.reduce(copies, instrument=inst, bin=10, output=link)
     assert [open(f, "rb").read() for f in copies] == before
+
+
+def test_a_frame_under_two_names_is_refused_naming_both(sky_frames, star_frames, tmp_path):
+    """A frame given again under another name (the same path, a copy, a symlink) would be summed
+    with itself: reduce and catalog refuse it, naming both names."""
+    for fixture, call in ((sky_frames, lambda f, i: instpol.reduce(f, instrument=i, bin=10)),
+                          (star_frames, lambda f, i: instpol.catalog(f, instrument=i))):
+        frames, inst = fixture
+        first = str(frames[0])
+        copy, sym = tmp_path / "copy.fits", tmp_path / "sym.fits"
+        copy.write_bytes(open(first, "rb").read())
+        if not sym.exists():
+            os.symlink(first, sym)
+        for again in (first, str(copy), str(sym)):
+            with pytest.raises(instpol.InputError, match="given once") as e:
+                call(list(frames) + [again], inst)
+            assert first in str(e.value) and again in str(e.value)
+        copy.unlink()
+        sym.unlink()

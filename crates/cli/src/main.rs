@@ -137,7 +137,9 @@ fn main() {
         matches.subcommand().and_then(|(_, m)| m.try_get_one::<bool>("json").ok().flatten().copied()).unwrap_or(false);
     if let Some((name, m)) = matches.subcommand() {
         if let Some(def) = Cli::command().find_subcommand(name) {
-            util::guard_arguments(def, m);
+            if let Err(e) = util::guard_arguments(def, m) {
+                exit_with(e, json);
+            }
             if let Err(message) = util::check_finite_options(def, m) {
                 clap_error(clap::Error::raw(clap::error::ErrorKind::ValueValidation, message), json_arg);
             }
@@ -197,21 +199,27 @@ fn main() {
         util::report_input_hashes();
     }
     if let Err(e) = result {
-        // Exit codes: 0 success, 1 a check that ran and failed, 2 bad input.
-        let (kind, code, message) = match e.downcast_ref::<util::CheckFailed>() {
-            Some(f) => (ErrorKind::Check, 1, f.to_string()),
-            None if is_io(&e) => (ErrorKind::Io, 2, format!("{e:#}")),
-            None => (ErrorKind::Input, 2, format!("{e:#}")),
-        };
-        if json {
-            eprintln!("{}", error_json(kind, code, &message));
-        } else if kind == ErrorKind::Check {
-            eprintln!("{message}");
-        } else {
-            eprintln!("error: {message}");
-        }
-        std::process::exit(code);
+        exit_with(e, json);
     }
+}
+
+/// End the command with its error: exit 2 for bad input or an unusable file, 1 for a check
+/// that ran and failed; the message on stderr (as JSON under `--json`).
+fn exit_with(e: anyhow::Error, json: bool) -> ! {
+    // Exit codes: 0 success, 1 a check that ran and failed, 2 bad input.
+    let (kind, code, message) = match e.downcast_ref::<util::CheckFailed>() {
+        Some(f) => (ErrorKind::Check, 1, f.to_string()),
+        None if is_io(&e) => (ErrorKind::Io, 2, format!("{e:#}")),
+        None => (ErrorKind::Input, 2, format!("{e:#}")),
+    };
+    if json {
+        eprintln!("{}", error_json(kind, code, &message));
+    } else if kind == ErrorKind::Check {
+        eprintln!("{message}");
+    } else {
+        eprintln!("error: {message}");
+    }
+    std::process::exit(code);
 }
 
 /// What went wrong, for the `kind` of a `--json` error: the input (a bad value, file content or

@@ -10,8 +10,6 @@ use std::sync::Mutex;
 /// writes over one of its own inputs, whatever the name it is given by.
 static INPUTS: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 
-use skyfield::durable::file_id;
-
 /// The arguments of any command that name files it WRITES (a file or a folder of outputs).
 /// Every other path argument, and `--instrument` when it names a file, is an input
 /// ([`guard_arguments`]). A new output argument must be listed here: the test
@@ -21,10 +19,26 @@ pub const OUTPUT_ARGUMENTS: [&str; 8] =
 
 /// Guard every file a command line names as an input against being written over, whatever
 /// the command (the one registry of inputs: a command's own [`inputs`] call still hashes them
-/// for the provenance and refuses one given twice, but a file it forgot there, such as a
-/// master bias passed with `--bias`, is guarded here). `def` is the subcommand's definition
-/// and `m` its matches.
-pub fn guard_arguments(def: &clap::Command, m: &clap::ArgMatches) {
+/// for the provenance, but a file it forgot there, such as a master bias passed with `--bias`,
+/// is guarded here), and refuse the same data named twice among the files of one argument
+/// (the frames, the catalogs, the tables: [`skyfield::same::distinct_files`] by content, the
+/// same path, a link or a copy): it would be counted twice. `def` is the subcommand's
+/// definition and `m` its matches.
+pub fn guard_arguments(def: &clap::Command, m: &clap::ArgMatches) -> Result<()> {
+    let guarded = input_arguments(def, m);
+    INPUTS.lock().unwrap_or_else(|e| e.into_inner()).extend(guarded.iter().cloned());
+    for arg in def.get_arguments().filter(|a| a.get_value_parser().type_id() == std::any::TypeId::of::<PathBuf>()) {
+        if let Ok(Some(v)) = m.try_get_many::<PathBuf>(arg.get_id().as_str()) {
+            refuse_duplicates(&v.collect::<Vec<_>>(), skyfield::same::By::Content)?;
+        }
+    }
+    Ok(())
+}
+
+/// Every file a command line names as an input, by the roles of the command's definition:
+/// every path argument but the outputs ([`OUTPUT_ARGUMENTS`]), and `--instrument` when it names
+/// a file.
+pub fn input_arguments(def: &clap::Command, m: &clap::ArgMatches) -> Vec<PathBuf> {
     let mut guarded = vec![];
     for arg in def.get_arguments() {
         let id = arg.get_id().as_str();
@@ -41,7 +55,21 @@ pub fn guard_arguments(def: &clap::Command, m: &clap::ArgMatches) {
             }
         }
     }
-    INPUTS.lock().unwrap_or_else(|e| e.into_inner()).extend(guarded);
+    guarded
+}
+
+/// Refuse (exit 2) input files that are the same data under two names, naming both
+/// ([`skyfield::same::distinct_files`] decides, `by` identity or content).
+pub fn refuse_duplicates<P: AsRef<Path>>(paths: &[P], by: skyfield::same::By) -> Result<()> {
+    let d = skyfield::same::distinct_files(paths, by);
+    if let Some(first) = d.duplicates.first() {
+        let more = match d.duplicates.len() {
+            1 => String::new(),
+            n => format!(" ({} such pairs in all)", n),
+        };
+        bail!("{first}{more}: each input may be given once (the same data twice would be counted twice)");
+    }
+    Ok(())
 }
 
 /// Register the files this command reads, after refusing one passed twice (it would be summed
@@ -68,17 +96,7 @@ pub fn inputs_read_in_order<'a>(streamed: &[&'a Path], others: impl IntoIterator
 
 /// The checks of [`inputs`] (no file twice) and the registration against overwriting.
 fn register_inputs(paths: &[&Path]) -> Result<()> {
-    // Existing files by identity, each stat'ed once (a missing file is reported by its reader).
-    let mut seen: std::collections::HashMap<(u64, u64), &Path> = std::collections::HashMap::new();
-    for a in paths {
-        let Some(id) = file_id(a) else { continue };
-        if let Some(b) = seen.insert(id, a) {
-            if *a == b {
-                bail!("{} is given twice: each input file may be given once", a.display());
-            }
-            bail!("{} and {} are the same file: each input file may be given once", b.display(), a.display());
-        }
-    }
+    refuse_duplicates(paths, skyfield::same::By::Identity)?;
     INPUTS.lock().unwrap_or_else(|e| e.into_inner()).extend(paths.iter().map(|p| p.to_path_buf()));
     Ok(())
 }
@@ -123,15 +141,26 @@ pub fn start_provenance() {
     skyfield::provenance::set_session(p);
 }
 
-/// For `instpol run` (`workflow::night::run`, "Hashes read once"): when the environment names
-/// a file in `INPUT_HASHES_ENV`, the run's provenance inputs with the hashes computed while
-/// reading them are written there, so that the runner need not read the inputs again. A file
-/// that cannot be written is no error of the command: the runner then hashes the inputs itself.
+/// For `instpol run` (`workflow::night::run`, "Hashes read once" and "Up to date"): when the
+/// environment names a file in `INPUT_HASHES_ENV`, every file the command read is written
+/// there with its hash: the run's provenance inputs with the hashes computed while reading
+/// them, and every other file its arguments name as inputs ([`guard_arguments`]: an instrument
+/// file, a master, a calibration), hashed now. A file that cannot be written is no error of
+/// the command: the runner then hashes the plan's inputs itself.
 pub fn report_input_hashes() {
-    if let Some(path) = std::env::var_os(workflow::night::run::INPUT_HASHES_ENV) {
-        if let Ok(text) = serde_json::to_string(&skyfield::provenance::current().inputs) {
-            let _ = std::fs::write(path, text);
+    let Some(path) = std::env::var_os(workflow::night::run::INPUT_HASHES_ENV) else { return };
+    let mut read = skyfield::provenance::current().inputs;
+    let named: Vec<PathBuf> = INPUTS.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    for p in named.iter().filter(|p| p.is_file()) {
+        let name = p.display().to_string();
+        if !read.iter().any(|i| i.path == name) {
+            if let Ok(hash) = skyfield::provenance::hash_file(p) {
+                read.push(skyfield::provenance::InputFile { path: name, hash });
+            }
         }
+    }
+    if let Ok(text) = serde_json::to_string(&read) {
+        let _ = std::fs::write(path, text);
     }
 }
 

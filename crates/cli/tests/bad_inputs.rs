@@ -530,7 +530,9 @@ fn frames_missing_hwp_angles() {
 fn frames_duplicated_hwp_angle_is_summed_with_a_warning() {
     let f = Fixture::new();
     let mut frames = f.frames();
-    frames.push(f.frame("again.fits", 45.0, "V", |_| {}));
+    // Another exposure at 45 deg (a byte-identical copy would be the same data twice, refused):
+    // one pixel outside the beams differs.
+    frames.push(f.frame("again.fits", 45.0, "V", |d| d[0] += 1.0));
     let out = f.out_dir().join("cal.fits");
     let (code, _, err) = run(&calibrate_args(&f, &frames, out.to_str().unwrap()));
     assert!(!err.contains("panicked"));
@@ -832,11 +834,18 @@ fn wavelength_law_needs_two_filters() {
     let f = Fixture::new();
     let cal = f.cal();
     let out = f.out_dir();
-    // Two files of the same filter (the same file twice is refused earlier, as a duplicate).
-    let cal2 = out.join("cal_copy.fits");
-    std::fs::copy(&cal, &cal2).unwrap();
+    // Two calibrations of the same filter (the same file twice, or a copy, is refused earlier,
+    // as the same data twice).
+    let cal2 = out.join("cal_again.fits");
+    let map = f.map("map2.fits");
+    let (code, _, err) =
+        run(&["calibrate", "--map", &map, "--sky-p", "1.74", "--sky-chi", "-53.8", "--out", cal2.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
     refuses(&out, &["wavelength-law", &cal, cal2.to_str().unwrap()], &["V"]);
     refuses(&out, &["wavelength-law", &cal, &cal], &["given twice"]);
+    let copy = out.join("cal_copy.fits");
+    std::fs::copy(&cal, &copy).unwrap();
+    refuses(&out, &["wavelength-law", &cal, copy.to_str().unwrap()], &["cal_copy.fits", "same data"]);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -1339,7 +1348,9 @@ fn photometry_and_validate_duplicated_hwp_angle_is_summed_with_a_warning() {
     let f = Fixture::new();
     let (p0, v0, _) = photometry_and_validate_json(&f, &star_frames(&f));
     let mut frames = star_frames(&f);
-    frames.push(star_frame(&f, "again.fits", 45.0, "V", |_| {}));
+    // Another exposure at 45 deg, one pixel in a corner off (a byte-identical copy would be the
+    // same data twice, refused).
+    frames.push(star_frame(&f, "again.fits", 45.0, "V", |d| d[0] += 1.0));
     let (p, v, err) = photometry_and_validate_json(&f, &frames);
     assert!(err.contains("again.fits") && err.contains("second frame at HWP angle 45"), "{err}");
     for k in ["q", "u"] {
@@ -1529,10 +1540,11 @@ fn every_calibration_reader_refuses_another_format_version() {
         refuses(&out, &validate_args(&cal, &ins, &frames, &[]), &["minical.fits", word]);
         refuses(&out, &["fit", &cal, "--out", out.join("refit.fits").to_str().unwrap()], &["minical.fits", word]);
         refuses(&out, &["plot", &cal, "--out", out.join("plots").to_str().unwrap()], &["minical.fits", word]);
-        let copy = out.join("minical_copy.fits");
-        std::fs::copy(&cal, &copy).unwrap();
-        refuses(&out, &["wavelength-law", &cal, copy.to_str().unwrap()], &["minical.fits", word]);
-        std::fs::remove_file(&copy).unwrap();
+        // A second calibration of that version (a copy would be the same data twice, refused).
+        let other = mini_cal(&f, "minical_other.fits", 3.3);
+        patch_card(Path::new(&other), "FORMAT VERSION", version);
+        refuses(&out, &["wavelength-law", &cal, &other], &["minical.fits", word]);
+        std::fs::remove_file(&other).unwrap();
     }
 }
 
@@ -1857,7 +1869,7 @@ fn messages_name_the_actual_problem() {
     let f = Fixture::new();
     let out = f.out_dir();
     let flats: Vec<String> = (0..3)
-        .map(|i| f.frame(&format!("flat{i}.fits"), 0.0, "V", |d| d.iter_mut().for_each(|v| *v = 65000.0)))
+        .map(|i| f.frame(&format!("flat{i}.fits"), 0.0, "V", |d| d.iter_mut().for_each(|v| *v = 65000.0 + i as f64)))
         .collect();
     let mut a = vec!["master-flat".to_string(), "--instrument".into(), f.s("mini.toml")];
     a.extend(["--out".into(), out.join("mf.fits").to_str().unwrap().to_string()]);

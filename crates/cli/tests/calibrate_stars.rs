@@ -243,3 +243,68 @@ fn end_to_end_through_the_simulator_and_catalog() {
         j["chi2_dof"]
     );
 }
+
+/// A catalog of `n` stars on a tilted plane with noise drawn here (a fixed LCG), as
+/// `instpol catalog` writes its columns, every row written `times` times.
+fn plane_catalog(path: &Path, n: usize, times: usize) {
+    let mut state = 12345u64;
+    let mut uniform = || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut rows = vec![];
+    for i in 0..n {
+        let (x, y) = (6.0 * uniform() - 3.0, 6.0 * uniform() - 3.0);
+        let (nq, nu) = (uniform() - 0.5, uniform() - 0.5);
+        let q = 0.001 + 0.0004 * x - 0.0003 * y + 6e-4 * nq;
+        let u = -0.0005 + 0.0002 * x + 0.0006 * y + 6e-4 * nu;
+        rows.push(format!("{i},{x},{y},{q},{u},0.0003,0.0003,0\n"));
+    }
+    let mut text = String::from("id,x_arcmin,y_arcmin,q,u,sigma_q,sigma_u,hwp_chi_offset_deg\n");
+    for _ in 0..times {
+        text.extend(rows.iter().cloned());
+    }
+    std::fs::write(path, text).unwrap();
+}
+
+/// The same catalog under two names (the same path, a copy, a hard link, a symlink) is refused
+/// naming both; a catalog with every row written twice is used once, with a warning naming the
+/// repeats: its plane's errors are those of the catalog written once (counted twice they would
+/// shrink by sqrt(2)).
+#[test]
+fn the_same_catalog_under_two_names_is_one_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    plane_catalog(&p("a.csv"), 120, 1);
+    plane_catalog(&p("twice.csv"), 120, 2);
+    std::fs::copy(p("a.csv"), p("copy.csv")).unwrap();
+    std::fs::hard_link(p("a.csv"), p("link.csv")).unwrap();
+    std::os::unix::fs::symlink(p("a.csv"), p("sym.csv")).unwrap();
+    let extra = ["--model", "plane", "--interstellar", "zero", "--error-scaling", "absolute", "--json"];
+    let fit = |files: &[&str]| {
+        let files: Vec<PathBuf> = files.iter().map(|f| p(f)).collect();
+        let mut a = args(&files, &extra);
+        a.extend(["--out".to_string(), p(&format!("cal{}.fits", files.len())).display().to_string()]);
+        run(&a)
+    };
+    let sigmas = |stdout: &str| -> Vec<f64> {
+        let j: serde_json::Value = serde_json::from_str(stdout).unwrap();
+        j["poly"]["sigma_q"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect()
+    };
+    let (code, once, err) = fit(&["a.csv"]);
+    assert_eq!(code, 0, "{err}");
+    for other in ["a.csv", "copy.csv", "link.csv", "sym.csv"] {
+        let (code, _, err) = fit(&["a.csv", other]);
+        assert_eq!(code, 2, "a.csv and {other}: {err}");
+        assert!(err.contains("a.csv") && err.contains(other) && err.contains("given once"), "{err}");
+    }
+    let (code, twice, err) = fit(&["twice.csv"]);
+    assert_eq!(code, 0, "{err}");
+    let repeat = format!("twice.csv row 121 repeats {} row 1;", p("twice.csv").display());
+    assert!(err.contains("120 measurements repeat") && err.contains(&repeat), "{err}");
+    let (s1, s2) = (sigmas(&once), sigmas(&twice));
+    assert_eq!(s1.len(), 3);
+    for (a, b) in s1.iter().zip(&s2) {
+        assert!((a / b - 1.0).abs() < 1e-9, "sigma once {s1:?}, every row twice {s2:?}");
+    }
+}

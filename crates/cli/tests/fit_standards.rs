@@ -376,3 +376,55 @@ fn an_angle_without_a_degree_is_refused() {
     let e = String::from_utf8_lossy(&r.stderr);
     assert!(e.contains("half.csv") && e.contains("line 2") && e.contains("p_true is empty"), "{e}");
 }
+
+/// The same table of standards under two names (the same path, a copy, a hard link, a symlink)
+/// is refused naming both; a table with every row written twice is fitted once, with a warning
+/// naming the repeats: the parameters' errors are those of the table written once (counted
+/// twice they would shrink by sqrt(2)).
+#[test]
+fn the_same_table_under_two_names_is_one_input() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    let pm = p45(1.0 * 0.9, 6.5 * 0.9);
+    let mut rows = vec![];
+    for i in 0..12 {
+        let pa = -165.0 + 30.0 * i as f64;
+        let a = 2.0 * (25.0 - pa).to_radians();
+        // Deterministic scatter of about one sigma, so that the errors are the data's.
+        let (dq, du) = (0.001 * ((i * 7 % 5) as f64 - 2.0) / 2.0, 0.001 * ((i * 3 % 5) as f64 - 2.0) / 2.0);
+        rows.push(format!("V,S{i},{pa},{},0.001,{},0.001,0.55\n", pm * a.cos() + dq, -pm * a.sin() + du));
+    }
+    let head = "filter,star,pa_deg,q,sigma_q,u,sigma_u,wavelength_um\n";
+    std::fs::write(p("std.csv"), format!("{head}{}", rows.concat())).unwrap();
+    std::fs::write(p("twice.csv"), format!("{head}{}{}", rows.concat(), rows.concat())).unwrap();
+    std::fs::copy(p("std.csv"), p("copy.csv")).unwrap();
+    std::fs::hard_link(p("std.csv"), p("link.csv")).unwrap();
+    std::os::unix::fs::symlink(p("std.csv"), p("sym.csv")).unwrap();
+    let fit = |files: &[&str]| {
+        let mut a: Vec<String> = files.iter().map(|f| p(f).display().to_string()).collect();
+        a.extend(["--model", "wiersema", "--json"].map(String::from));
+        let a: Vec<&str> = a.iter().map(String::as_str).collect();
+        run(&a)
+    };
+    let sigmas = |o: &std::process::Output| -> Vec<f64> {
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        v[0]["params"].as_array().unwrap().iter().map(|x| x["sigma_value"].as_f64().unwrap()).collect()
+    };
+    let once = fit(&["std.csv"]);
+    assert!(once.status.success(), "{}", String::from_utf8_lossy(&once.stderr));
+    for other in ["std.csv", "copy.csv", "link.csv", "sym.csv"] {
+        let o = fit(&["std.csv", other]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "std.csv and {other}: {err}");
+        assert!(err.contains("std.csv") && err.contains(other) && err.contains("given once"), "{err}");
+    }
+    let twice = fit(&["twice.csv"]);
+    let err = String::from_utf8_lossy(&twice.stderr);
+    assert!(twice.status.success(), "{err}");
+    assert!(err.contains("12 measurements repeat") && err.contains("twice.csv:14 repeats"), "{err}");
+    let (s1, s2) = (sigmas(&once), sigmas(&twice));
+    assert!(!s1.is_empty() && s1.iter().all(|s| *s > 0.0), "{s1:?}");
+    for (a, b) in s1.iter().zip(&s2) {
+        assert!((a / b - 1.0).abs() < 1e-9, "sigma once {s1:?}, every row twice {s2:?}");
+    }
+}

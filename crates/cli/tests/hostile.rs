@@ -24,7 +24,14 @@
 //! - `output over input`: every output argument named like every input (the same path, a hard
 //!   link, a symlink) must be refused (exit 2) with the input byte-identical;
 //! - `output name`: an output in a missing folder, one that is a folder, one in /proc;
-//! - `duplicate input`: the same input file twice;
+//! - `duplicate input`: every input-file argument of the invocation that takes a list (frames,
+//!   catalogs, tables, calibrations, plans, folders) given its first file a second time, after
+//!   it, under another name (the same path, a copy, a hard link, a symlink; a folder by its
+//!   path and a symlink). The command refuses it (exit 2) naming both names, or uses it once
+//!   and names both (a warning, or the plan's list of what it left out) with the numbers of
+//!   the valid invocation (its `--json`), never counting it twice. (A single input has no
+//!   second place in its role; the same bytes in two roles, a Q and a U map both zero, are two
+//!   inputs);
 //! - `another product`: in every command that combines two inputs that say which instrument
 //!   and filter they are of (a calibration file, a Stokes map, a catalog with its keywords,
 //!   frames), each of them in turn replaced by a copy that says another filter, then another
@@ -61,7 +68,14 @@
 //!    (crates/cli/src/cmd/bias.rs, mc.rs). The `turn` class fails for both: "bias [turn]: --chi
 //!    390 (a turn further) -> exit 0 with other numbers than a full turn back: the angle is not
 //!    read in degrees", and the same for mc.
-//! 4. a combination not checked: a catalog's rows corrected without what its table says it is
+//! 4. the same input counted twice: in `instpol fit-standards`, the definition's duplicate
+//!    check skipped (`util::guard_arguments`) and the repeated measurements found but kept
+//!    (crates/cli/src/cmd/fit_standards.rs). The `duplicate input` class fails for its four
+//!    names: "fit-standards [duplicate input]: files twice (copy) -> exit 0 with other numbers
+//!    than the input once: counted twice", the same for the same path, a hard link and a
+//!    symlink. (With the check skipped alone nothing fails: the repeated rows are then used
+//!    once, naming both files, with the numbers of the table once, which the property allows.)
+//! 5. a combination not checked: a catalog's rows corrected without what its table says it is
 //!    (`data: None` in `fit::columns::TableAngles::request`). The `another product` class
 //!    fails four cases of `correct (catalog)`, e.g. "correct (catalog) [another product]:
 //!    cat.csv of another filter -> exit 0, not refused (exit 2)".
@@ -151,6 +165,12 @@ enum Expect {
     SameTurned {
         reference: usize,
         flag: String,
+    },
+    /// An input under two names: exit 2 naming both `names`, or exit 0 naming both with the
+    /// numbers of the valid invocation (case index `reference`).
+    Once {
+        reference: usize,
+        names: Vec<String>,
     },
 }
 
@@ -409,6 +429,23 @@ fn variant(kind: &str, orig: &Path, dir: &Path) -> PathBuf {
     p
 }
 
+/// A second name of the input `orig` in `dir`: the same path, a copy, a hard link or a
+/// symlink (`None` where a folder has no such name: a copy or a hard link of a folder).
+fn second_name(orig: &Path, how: &str, dir: &Path) -> Option<PathBuf> {
+    let name = dir.join(format!("again_{}", orig.file_name()?.to_string_lossy()));
+    match how {
+        "same path" => return Some(orig.to_path_buf()),
+        "symlink" => std::os::unix::fs::symlink(orig, &name).unwrap(),
+        _ if orig.is_dir() => return None,
+        "copy" => {
+            std::fs::copy(orig, &name).unwrap();
+        }
+        "hard link" => std::fs::hard_link(orig, &name).unwrap(),
+        _ => unreachable!(),
+    }
+    Some(name)
+}
+
 const FILE_VARIANTS: &[&str] =
     &["empty", "text", "truncated", "garbage", "directory", "missing", "symlink-loop", "dev-null"];
 
@@ -460,6 +497,40 @@ fn numeric_columns(plain: &Path) -> Vec<String> {
     use skyfield::table::{Data, Table};
     let Ok(t) = Table::read(plain, None) else { return vec![] };
     t.columns.iter().filter(|c| !matches!(c.data, Data::Str(_))).map(|c| c.name.clone()).collect()
+}
+
+/// The `duplicate input` cases of template `t` (module docs): the first file of every list
+/// input `used` under a second name after it; each (what, arguments, folder, expectation).
+fn duplicate_inputs(
+    t: &Template,
+    defs: &[serde_json::Value],
+    used: &[FileArg],
+    control: usize,
+    new_dir: &dyn Fn() -> PathBuf,
+) -> Vec<(String, Vec<String>, PathBuf, Expect)> {
+    let mut out = vec![];
+    for fa in used {
+        let label = fa.label.as_str();
+        let def = defs.iter().find(|a| a["id"] == label || a["long"] == label);
+        if !def.is_some_and(|a| a["multiple"] == true) {
+            continue;
+        }
+        let orig = PathBuf::from(&t.args[fa.index]);
+        for how in ["same path", "copy", "hard link", "symlink"] {
+            let dir = new_dir();
+            let Some(second) = second_name(&orig, how, &dir) else { continue };
+            let second = second.to_str().unwrap().to_string();
+            let mut a = t.args.clone();
+            if label.starts_with("--") {
+                a.extend([label.to_string(), second.clone()]);
+            } else {
+                a.insert(fa.index + 1, second.clone());
+            }
+            let names = vec![orig.to_str().unwrap().to_string(), second];
+            out.push((format!("{label} twice ({how})"), a, dir, Expect::Once { reference: control, names }));
+        }
+    }
+    out
 }
 
 fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
@@ -577,69 +648,11 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
                 out.push(case("file", format!("{label} {kind}"), a, dir, e));
             }
         }
-        // Every output argument named like every input file (a copy, so that the fixture
-        // stays intact): the same path, a hard link, a symlink. Refused, the input unchanged.
-        for o in flags(&|a| a["role"] == "output") {
-            let oflag = long(&o);
-            for fa in &used {
-                for how in ["same path", "hard link", "symlink"] {
-                    let dir = new_dir();
-                    let orig = Path::new(&t.args[fa.index]);
-                    if !orig.is_file() {
-                        continue;
-                    }
-                    let copy = dir.join(format!("input_{}", orig.file_name().unwrap().to_string_lossy()));
-                    std::fs::copy(orig, &copy).unwrap();
-                    let name = match how {
-                        "same path" => copy.clone(),
-                        "hard link" => {
-                            let l = dir.join("hardlink_out");
-                            std::fs::hard_link(&copy, &l).unwrap();
-                            l
-                        }
-                        _ => {
-                            let l = dir.join("symlink_out");
-                            std::os::unix::fs::symlink(&copy, &l).unwrap();
-                            l
-                        }
-                    };
-                    let mut a = t.args.clone();
-                    a[fa.index] = copy.to_str().unwrap().to_string();
-                    set_flag(&mut a, &oflag, name.to_str().unwrap());
-                    let what = format!("{oflag} = {} ({how})", fa.label);
-                    let mut c = case("output over input", what, a, dir, Expect::Refused(vec![]));
-                    c.outputs.clear();
-                    out.push(c);
-                }
-            }
-        }
-        // Hostile output names: a folder that does not exist, an existing folder, a name in
-        // /proc (not writable).
-        if let Some(name) = t.out_name {
-            for kind in ["missing-folder", "is-a-folder", "proc"] {
-                let dir = new_dir();
-                let o = match kind {
-                    "missing-folder" => dir.join("no/such/folder").join(name),
-                    "is-a-folder" => {
-                        std::fs::create_dir_all(dir.join(name)).unwrap();
-                        dir.join(name)
-                    }
-                    _ => PathBuf::from("/proc/instpol_hostile").join(name),
-                };
-                let a: Vec<String> = t.args.iter().map(|x| x.replace("{OUT}", o.to_str().unwrap())).collect();
-                let mut c = case("output name", format!("--out {kind}"), a, dir, Expect::Nothing);
-                c.outputs = if kind == "is-a-folder" { vec![] } else { vec![o] };
-                out.push(c);
-            }
-        }
-        // The same input file twice (frames): refused.
-        if let Some(fa) = used.iter().find(|fa| !fa.label.starts_with("--")) {
-            let (i, many) = (fa.index, defs.iter().any(|a| a["id"] == fa.label.as_str() && a["multiple"] == true));
-            if many && t.args.get(i + 1).is_some_and(|n| Path::new(n).is_file()) {
-                let mut a = t.args.clone();
-                a[i + 1] = a[i].clone();
-                out.push(case("duplicate input", format!("{} twice", fa.label), a, new_dir(), Expect::Nothing));
-            }
+        let outputs: Vec<String> = flags(&|a| a["role"] == "output").iter().map(long).collect();
+        out.extend(output_cases(&t, &outputs, &used, &new_dir, &case));
+        // Every input file under a second name.
+        for (what, a, dir, e) in duplicate_inputs(&t, defs, &used, control, &new_dir) {
+            out.push(case("duplicate input", what, a, dir, e));
         }
         // Another product: every input that says which instrument and filter it is of
         // (calibration files, Stokes maps, catalogs with their keywords, frames' filter), in a
@@ -693,7 +706,80 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
             }
         }
     }
-    // Scene keys at their edges.
+    out.extend(scene_key_cases(f, &new_dir));
+    out
+}
+
+/// The `output over input` and `output name` cases of template `t`: every output argument
+/// (`outputs`) named like every input file `used`, and hostile output names; `case` makes each.
+fn output_cases(
+    t: &Template,
+    outputs: &[String],
+    used: &[FileArg],
+    new_dir: &dyn Fn() -> PathBuf,
+    case: &dyn Fn(&'static str, String, Vec<String>, PathBuf, Expect) -> Case,
+) -> Vec<Case> {
+    let mut out = vec![];
+    // Every output argument named like every input file (a copy, so that the fixture
+    // stays intact): the same path, a hard link, a symlink. Refused, the input unchanged.
+    for oflag in outputs {
+        for fa in used {
+            for how in ["same path", "hard link", "symlink"] {
+                let dir = new_dir();
+                let orig = Path::new(&t.args[fa.index]);
+                if !orig.is_file() {
+                    continue;
+                }
+                let copy = dir.join(format!("input_{}", orig.file_name().unwrap().to_string_lossy()));
+                std::fs::copy(orig, &copy).unwrap();
+                let name = match how {
+                    "same path" => copy.clone(),
+                    "hard link" => {
+                        let l = dir.join("hardlink_out");
+                        std::fs::hard_link(&copy, &l).unwrap();
+                        l
+                    }
+                    _ => {
+                        let l = dir.join("symlink_out");
+                        std::os::unix::fs::symlink(&copy, &l).unwrap();
+                        l
+                    }
+                };
+                let mut a = t.args.clone();
+                a[fa.index] = copy.to_str().unwrap().to_string();
+                set_flag(&mut a, oflag, name.to_str().unwrap());
+                let what = format!("{oflag} = {} ({how})", fa.label);
+                let mut c = case("output over input", what, a, dir, Expect::Refused(vec![]));
+                c.outputs.clear();
+                out.push(c);
+            }
+        }
+    }
+    // Hostile output names: a folder that does not exist, an existing folder, a name in
+    // /proc (not writable).
+    if let Some(name) = t.out_name {
+        for kind in ["missing-folder", "is-a-folder", "proc"] {
+            let dir = new_dir();
+            let o = match kind {
+                "missing-folder" => dir.join("no/such/folder").join(name),
+                "is-a-folder" => {
+                    std::fs::create_dir_all(dir.join(name)).unwrap();
+                    dir.join(name)
+                }
+                _ => PathBuf::from("/proc/instpol_hostile").join(name),
+            };
+            let a: Vec<String> = t.args.iter().map(|x| x.replace("{OUT}", o.to_str().unwrap())).collect();
+            let mut c = case("output name", format!("--out {kind}"), a, dir, Expect::Nothing);
+            c.outputs = if kind == "is-a-folder" { vec![] } else { vec![o] };
+            out.push(c);
+        }
+    }
+    out
+}
+
+/// Every numeric key of a scene at its TOML edges (the `scene keys` class).
+fn scene_key_cases(f: &Fixture, new_dir: &dyn Fn() -> PathBuf) -> Vec<Case> {
+    let mut out = vec![];
     let keys: &[(&str, &str)] = &[
         ("exposure_s = 10.0", "exposure_s = {}"),
         ("seed = 3", "seed = {}"),
@@ -845,7 +931,7 @@ fn run_case(c: &Case) -> (i32, Option<String>) {
         problems.push(format!("temporaries left: {t:?}"));
     }
     match &c.expect {
-        Expect::Nothing | Expect::SameOrRefused { .. } | Expect::SameTurned { .. } => {}
+        Expect::Nothing | Expect::SameOrRefused { .. } | Expect::SameTurned { .. } | Expect::Once { .. } => {}
         Expect::NotAccepted => {
             if code == 0 {
                 problems.push("exit 0: a file that is not one was accepted".into());
@@ -947,6 +1033,36 @@ fn check_turned(c: &Case, code: i32, cases: &[Case], codes: &[i32]) -> Option<St
             })
         }
         _ => Some(failure(c, &format!("exit {code}: a full turn further is neither taken nor refused"))),
+    }
+}
+
+/// The `duplicate input` property: exit 2 naming both names, or exit 0 naming both (a warning,
+/// or the printed plan's list of what it left out) with each printed number the valid
+/// invocation's (to 1e-9 relative: an input counted twice moves its errors by sqrt(2)).
+fn check_once(c: &Case, code: i32, cases: &[Case]) -> Option<String> {
+    let Expect::Once { reference, names } = &c.expect else { return None };
+    let err = std::fs::read_to_string(c.dir.join("stderr.txt")).unwrap_or_default();
+    let said = |text: &str| names.iter().all(|n| text.contains(n.as_str()));
+    match code {
+        2 if said(&err) => None,
+        2 => Some(failure(c, &format!("refused without naming both {}", names.join(" and ")))),
+        0 => {
+            let out = std::fs::read_to_string(c.dir.join("stdout.txt")).unwrap_or_default();
+            if !said(&format!("{err}{out}")) {
+                return Some(failure(c, &format!("exit 0 without naming both {}", names.join(" and "))));
+            }
+            let (got, want) = (printed_numbers(c), printed_numbers(&cases[*reference]));
+            let same = match (&got, &want) {
+                (Some(g), Some(w)) => {
+                    g.len() == w.len()
+                        && g.iter().zip(w).all(|(a, b)| a == b || (a - b).abs() <= 1e-9 * a.abs().max(b.abs()))
+                }
+                (None, None) => true,
+                _ => false,
+            };
+            (!same).then(|| failure(c, "exit 0 with other numbers than the input once: counted twice"))
+        }
+        _ => Some(failure(c, &format!("exit {code}: the same input twice neither refused nor used once"))),
     }
 }
 
@@ -1060,7 +1176,9 @@ fn hostile_inputs() {
     let codes: Vec<i32> = results.iter().map(|r| r.1).collect();
     for r in results.iter_mut() {
         if r.2.is_none() {
-            r.2 = check_units(&cases[r.0], r.1, &cases).or_else(|| check_turned(&cases[r.0], r.1, &cases, &codes));
+            r.2 = check_units(&cases[r.0], r.1, &cases)
+                .or_else(|| check_turned(&cases[r.0], r.1, &cases, &codes))
+                .or_else(|| check_once(&cases[r.0], r.1, &cases));
         }
     }
     let is_known =

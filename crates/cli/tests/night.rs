@@ -621,7 +621,7 @@ fn a_simulated_night_scanned_and_run() {
     // A Cassegrain instrument's standard gives no parallactic angle: not a point of the
     // telescope fit, refused naming the file.
     let phot = vu_output(&strict, "photometry-20190304-HD_14069-v_HIGH");
-    let o = instpol(&["fit-standards", phot.to_str().unwrap(), phot.to_str().unwrap()]);
+    let o = instpol(&["fit-standards", phot.to_str().unwrap()]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(2), "{err}");
     assert!(err.contains("HD_14069-v_HIGH.json") && err.contains("no parallactic angle"), "{err}");
@@ -1025,4 +1025,137 @@ fn a_nasmyth_night_fits_its_telescope_model() {
     }
     // The polarized standard's photometry is no point of the instrument's own polarization.
     assert_eq!(points.iter().filter(|p| p["quantity"] == "q_unpolarized").count(), 4, "{t}");
+}
+
+/// A small night of the shrunk FORS2 (biases, sky flats, an empty field of known sky
+/// polarization at four angles) simulated through the instrument file `instrument` into
+/// `root/raw`, its sky field in `root/skies.csv`.
+fn small_night(root: &Path, instrument: &Path) {
+    let specs = [
+        Spec::bias(vec![0.0, 22.5, 45.0], NIGHT + 0.80, 1),
+        Spec::sky_flat("flat", "v_HIGH", Q4.to_vec(), NIGHT + 0.81, 11, 2),
+        Spec {
+            dir: "empty",
+            filter: "v_HIGH",
+            angles: Q4.to_vec(),
+            start_mjd: NIGHT + 0.83,
+            first_exp: 21,
+            dpr: ["SCIENCE", "OBJECT", "POLARIMETRY"],
+            target: "EMPTY-V",
+            ra_dec: (150.0, -30.0),
+            sky: Some((3000.0, 0.0174, -53.8)),
+            stars: vec![],
+            instrume: None,
+            seed: 3,
+        },
+    ];
+    for s in &specs {
+        simulate_scene(root, s, instrument, PATTERN, "");
+    }
+    std::fs::write(root.join("skies.csv"), "target,p_percent,chi_deg\nEMPTY-V,1.74,-53.8\n").unwrap();
+}
+
+/// `scan_args` with the small night's sky table; the plan as JSON.
+fn scan_small(root: &Path, instrument: &Path, plan: &Path) -> Value {
+    let mut a = scan_args(&root.join("raw"), instrument, plan);
+    a.extend(["--sky-table".to_string(), root.join("skies.csv").display().to_string()]);
+    let a: Vec<&str> = a.iter().map(String::as_str).collect();
+    let o = instpol(&a);
+    assert!(o.status.success(), "scan: {}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_str(&std::fs::read_to_string(plan).unwrap()).unwrap()
+}
+
+/// A file reached under several names (a copy, a hard link, a symlink, a folder linked twice, a
+/// symlink loop back to the night's root) is one file to `scan`: the plan's units are those of
+/// the night without the extra names, and every extra name is listed as left out naming the
+/// file it repeats.
+#[test]
+fn scan_reads_a_file_once_whatever_its_names() {
+    let d = tempfile::tempdir().unwrap();
+    let root = d.path();
+    small_night(root, &inst());
+    // Each unit's id and command, a file of the raw folder by its content (of two names of one
+    // file, either may be the one kept).
+    let raw = root.join("raw");
+    let units = |plan: &Value| -> Vec<(String, Vec<String>)> {
+        let arg = |a: &Value| {
+            let a = a.as_str().unwrap();
+            let p = Path::new(a);
+            if p.starts_with(&raw) && p.is_file() {
+                blake3::hash(&std::fs::read(p).unwrap()).to_hex().to_string()
+            } else {
+                a.to_string()
+            }
+        };
+        let units = plan["units"].as_array().unwrap().iter();
+        units
+            .map(|u| (u["id"].as_str().unwrap().into(), u["command"].as_array().unwrap().iter().map(arg).collect()))
+            .collect()
+    };
+    let control = scan_small(root, &inst(), &root.join("control.json"));
+    assert!(units(&control).len() >= 4, "{control}");
+    let mut frames: Vec<PathBuf> =
+        std::fs::read_dir(root.join("raw/empty")).unwrap().map(|e| e.unwrap().path()).collect();
+    frames.sort();
+    let again = root.join("raw/again");
+    std::fs::create_dir_all(&again).unwrap();
+    std::fs::copy(&frames[0], again.join("copy.fits")).unwrap();
+    std::fs::hard_link(&frames[1], again.join("link.fits")).unwrap();
+    std::os::unix::fs::symlink(&frames[2], again.join("sym.fits")).unwrap();
+    std::os::unix::fs::symlink(root.join("raw/flat"), root.join("raw/flat_again")).unwrap();
+    std::os::unix::fs::symlink(root, root.join("raw/loop")).unwrap();
+    let plan = scan_small(root, &inst(), &root.join("plan.json"));
+    assert_eq!(units(&plan), units(&control), "the units of the night with the extra names");
+    let left = serde_json::to_string(&plan["left_out"]).unwrap();
+    for (name, orig) in [("copy.fits", &frames[0]), ("link.fits", &frames[1]), ("sym.fits", &frames[2])] {
+        let entry = plan["left_out"].as_array().unwrap().iter().find(|l| l.to_string().contains(name));
+        let entry = entry.unwrap_or_else(|| panic!("{name} not named: {left}"));
+        assert!(entry.to_string().contains(orig.to_str().unwrap()), "{name} without {}: {entry}", orig.display());
+    }
+    assert!(left.contains("raw/loop") && left.contains("again (a symlink loop"), "{left}");
+}
+
+/// An instrument file edited after a run re-runs every unit whose command reads it, with the
+/// new file's numbers (the calibration's HWP zero angle is the edited one); a run after that
+/// has nothing to do. Temporaries a killed run left, tagged with a unit's id, are removed by
+/// that unit's next run.
+#[test]
+fn run_reruns_the_units_of_an_edited_instrument_file() {
+    let d = tempfile::tempdir().unwrap();
+    let root = d.path();
+    let own = root.join("inst.toml");
+    std::fs::copy(inst(), &own).unwrap();
+    small_night(root, &own);
+    let plan_path = root.join("plan.json");
+    let plan = scan_small(root, &own, &plan_path);
+    let (ok, first) = run_json(&plan_path, &[]);
+    assert!(ok, "{first}");
+    let (ok, second) = run_json(&plan_path, &[]);
+    assert!(ok && statuses(&second).iter().all(|(_, s)| s == "up_to_date"), "{second}");
+    let cal_unit =
+        plan["units"].as_array().unwrap().iter().find(|u| u["kind"] == "calibrate").expect("a calibrate unit");
+    let cal = PathBuf::from(cal_unit["outputs"][0].as_str().unwrap());
+    assert_eq!(fit::Calibration::load(&cal).unwrap().hwp_chi_offset_deg, -1.80);
+    let text = std::fs::read_to_string(&own).unwrap();
+    assert!(text.contains("hwp_chi_offset_deg = -1.80"));
+    std::fs::write(&own, text.replacen("hwp_chi_offset_deg = -1.80", "hwp_chi_offset_deg = 25.0", 1)).unwrap();
+    // What a run killed in the calibrate unit would have left: its command's temporary beside
+    // its output and its hash report beside its record.
+    let id = cal_unit["id"].as_str().unwrap();
+    let tmp = cal.with_file_name(format!(".instpol-{id}.abc123.fits.tmp"));
+    std::fs::write(&tmp, b"half a file").unwrap();
+    let records = PathBuf::from(plan["records"].as_str().unwrap());
+    let report = records.join(format!(".{id}.hashes-4242.json"));
+    std::fs::write(&report, b"[").unwrap();
+    let (ok, third) = run_json(&plan_path, &[]);
+    assert!(ok, "{third}");
+    let reads_it = |u: &Value| u["command"].as_array().unwrap().iter().any(|a| a.as_str() == own.to_str());
+    for u in plan["units"].as_array().unwrap().iter().filter(|u| reads_it(u)) {
+        let s = statuses(&third).into_iter().find(|(i, _)| u["id"] == i.as_str()).unwrap().1;
+        assert_eq!(s, "done", "{} reads the edited instrument file: {third}", u["id"]);
+    }
+    assert_eq!(fit::Calibration::load(&cal).unwrap().hwp_chi_offset_deg, 25.0);
+    assert!(!tmp.exists() && !report.exists(), "leftovers of a killed run kept");
+    let (ok, fourth) = run_json(&plan_path, &[]);
+    assert!(ok && statuses(&fourth).iter().all(|(_, s)| s == "up_to_date"), "{fourth}");
 }

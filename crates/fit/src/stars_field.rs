@@ -198,8 +198,10 @@ pub fn catalog_rows(table: &Table, path: &Path, pointing: usize) -> Result<(Vec<
 
 /// The rows of the catalogs `paths`, one pointing each in their order ([`catalog_rows`]), and
 /// the HWP zero angle their `q, u` carry: one for all (a calibration has one), else refused
-/// naming the two catalogs that differ.
-pub fn read_catalogs(paths: &[std::path::PathBuf]) -> Result<(Vec<StarRow>, f64)> {
+/// naming the two catalogs that differ. A measurement written twice (a row whose position and
+/// `q, u` with their errors repeat an earlier row's, in the same catalog or another:
+/// `skyfield::same::repeated_rows`) is used once, and the third value says so naming both.
+pub fn read_catalogs(paths: &[std::path::PathBuf]) -> Result<(Vec<StarRow>, f64, Vec<String>)> {
     let mut rows = vec![];
     let mut zero: Option<(f64, &std::path::PathBuf)> = None;
     for (k, path) in paths.iter().enumerate() {
@@ -219,7 +221,32 @@ pub fn read_catalogs(paths: &[std::path::PathBuf]) -> Result<(Vec<StarRow>, f64)
         }
         rows.extend(r);
     }
-    Ok((rows, zero.map_or(0.0, |z| z.0)))
+    let (rows, notes) = distinct_rows(rows, paths);
+    Ok((rows, zero.map_or(0.0, |z| z.0), notes))
+}
+
+/// `rows` with every repeated measurement (`skyfield::same::repeated_rows` over position and
+/// `q, u` with their variances) left out, and a note naming the repeats (catalog and data row,
+/// from 1) when there were any.
+fn distinct_rows(rows: Vec<StarRow>, paths: &[std::path::PathBuf]) -> (Vec<StarRow>, Vec<String>) {
+    let values: Vec<[f64; 7]> =
+        rows.iter().map(|r| [r.x, r.y, r.qu.q, r.qu.u, r.qu.var_q, r.qu.var_u, r.qu.cov_qu]).collect();
+    let repeats = skyfield::same::repeated_rows(&values);
+    if repeats.is_empty() {
+        return (rows, vec![]);
+    }
+    let name = |i: usize| {
+        let r = &rows[i];
+        format!("{} row {}", paths.get(r.pointing).map_or(String::new(), |p| p.display().to_string()), r.row + 1)
+    };
+    let note = format!(
+        "{} measurements repeat earlier ones value for value (the same data written twice) and are used once: {}",
+        repeats.len(),
+        skyfield::same::describe_repeated(&repeats, &name, 3)
+    );
+    let again: std::collections::HashSet<usize> = repeats.iter().map(|r| r.again).collect();
+    let kept = rows.into_iter().enumerate().filter(|(i, _)| !again.contains(i)).map(|(_, r)| r).collect();
+    (kept, vec![note])
 }
 
 impl Interstellar {

@@ -132,6 +132,32 @@ fn observation_from_json(path: &Path) -> Result<Observation> {
     })
 }
 
+/// `obs` with every repeated measurement left out (one whose angles, `(q, u)` with their
+/// errors, wavelength and sky polarization repeat an earlier one's value for value: the same
+/// data written twice, `skyfield::same::repeated_rows`), and a note naming the repeats by
+/// their file and line when there were any: each is used once.
+pub fn distinct_observations(obs: Vec<Observation>) -> (Vec<Observation>, Option<String>) {
+    let values: Vec<[f64; 10]> = obs
+        .iter()
+        .map(|o| {
+            let q = &o.qu;
+            [o.parallactic, q.q, q.u, q.var_q, q.var_u, q.cov_qu, o.wavelength_um, o.rotator, o.sky.0, o.sky.1]
+        })
+        .collect();
+    let repeats = skyfield::same::repeated_rows(&values);
+    if repeats.is_empty() {
+        return (obs, None);
+    }
+    let note = format!(
+        "{} measurements repeat earlier ones value for value (the same data written twice) and are used once: {}",
+        repeats.len(),
+        skyfield::same::describe_repeated(&repeats, &|i| obs[i].source.clone(), 3)
+    );
+    let again: std::collections::HashSet<usize> = repeats.iter().map(|r| r.again).collect();
+    let kept = obs.into_iter().enumerate().filter(|(i, _)| !again.contains(i)).map(|(_, o)| o).collect();
+    (kept, Some(note))
+}
+
 /// Read standard-star measurements: either the EFOSC2 format of Wiersema et al. (no header;
 /// `star, parallactic_deg, q, sigma_q, u, sigma_u, wavelength_um`, comma-separated, trailing
 /// blanks allowed) or a CSV whose header names the columns `star`, `parallactic_deg` (or

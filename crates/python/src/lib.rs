@@ -883,6 +883,19 @@ fn refuse_overwrite<'a>(
     skyfield::durable::refuse_overwrite(out, inputs.into_iter().map(PathBuf::as_path)).map_err(input_err)
 }
 
+/// Input files that are the same data under two names (the same path, a link, or with
+/// `By::Content` a copy: `skyfield::same::distinct_files` decides) refused naming both: they
+/// would be counted twice.
+fn refuse_same_data<'a>(inputs: impl IntoIterator<Item = &'a PathBuf>, by: skyfield::same::By) -> PyResult<()> {
+    let paths: Vec<&PathBuf> = inputs.into_iter().collect();
+    match skyfield::same::distinct_files(&paths, by).duplicates.first() {
+        Some(d) => {
+            Err(input_err(format!("{d}: each input may be given once (the same data twice would be counted twice)")))
+        }
+        None => Ok(()),
+    }
+}
+
 /// What the package's corrections ask of `fit::request`, before each adds its angles: `method=`
 /// ("exact" or "first-order") and `extrapolation_error=` checked, no angles yet, and any angles
 /// given later are the caller's arguments (refused without a telescope model, where a table's
@@ -933,6 +946,8 @@ fn _reduce<'py>(
         require_complete_set: !allow_incomplete,
     };
     let read = read_options(bias, flat, hwp_angles, assembled)?;
+    refuse_same_data(&frames, skyfield::same::By::Content)?;
+    refuse_same_data(frames.iter().chain(&read.bias).chain(&read.flat), skyfield::same::By::Identity)?;
     refuse_overwrite(output.as_deref(), frames.iter().chain(&read.bias).chain(&read.flat))?;
     // The instrument's plate decides the map (the library's rule, as `instpol reduce` takes it).
     let r = py
@@ -1108,6 +1123,8 @@ fn _catalog<'py>(
     };
     cfg.check().map_err(sky_err)?;
     let read = read_options(bias, flat, hwp_angles, assembled)?;
+    refuse_same_data(&frames, skyfield::same::By::Content)?;
+    refuse_same_data(frames.iter().chain(&read.bias).chain(&read.flat).chain(&cal), skyfield::same::By::Identity)?;
     let loaded = match &cal {
         Some(p) => Some(py.detach(|| fit::calibration::load(p)).map_err(|e| load_err(p, e))?),
         None => None,
@@ -1281,6 +1298,7 @@ fn _calibrate_stars(
     if catalogs.is_empty() {
         return Err(input_err("no catalogs given: the star catalogs of the pointings (instpol catalog --out)"));
     }
+    refuse_same_data(&catalogs, skyfield::same::By::Content)?;
     refuse_overwrite(out.as_deref(), catalogs.iter())?;
     let inst = instrument::Instrument::load(instrument).map_err(inst_err)?;
     let interstellar = match (interstellar_free, interstellar) {
@@ -1304,13 +1322,14 @@ fn _calibrate_stars(
         reject_alpha,
     };
     let summary = py.detach(|| -> Result<StarsSummary, fit::Error> {
-        let (rows, z) = read_catalogs(&catalogs)?;
+        let (rows, z, notes) = read_catalogs(&catalogs)?;
         let meta = stars_meta(&inst, filter, z, catalogs.iter().map(|p| p.display().to_string()).collect());
         let run = stars_field(&rows, catalogs.len(), meta, &opts)?;
         if let Some(p) = &out {
             run.run.calibration.save(p)?;
         }
         let mut s = StarsSummary::new(&run, &rows, reject_alpha);
+        s.warnings.splice(0..0, notes);
         s.fit.calibration_file = out.as_ref().map(|p| p.display().to_string());
         Ok(s)
     });

@@ -68,14 +68,40 @@ pub fn write_fits_atomic(path: &Path, fill: impl FnOnce(&mut FitsFile) -> Result
     write_fits_atomic_with(path, None, fill)
 }
 
+/// The environment variable that tags the temporaries of a command with the unit of a plan it
+/// runs for (`workflow::night::run`): they are named `.instpol-<tag>.*` ([`temp_prefix`]), so
+/// that the next run of that unit, under the unit's lock, finds and removes the ones a killed
+/// run left, and no other unit's.
+pub const TEMP_TAG_ENV: &str = "INSTPOL_TEMP_TAG";
+
+/// The name every temporary of the workspace starts with: `.instpol-`, then, for a tagged
+/// one, the tag (letters, digits, `-` and `_` kept, anything else made `_`) and a dot.
+pub fn temp_prefix(tag: Option<&str>) -> String {
+    match tag {
+        Some(t) => {
+            let t: String = t.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' { c } else { '_' }).collect();
+            format!(".instpol-{t}.")
+        }
+        None => ".instpol-".into(),
+    }
+}
+
 /// A temporary file (`.instpol-*SUFFIX`) in the folder of `path`, to be renamed onto it: the
 /// one way the workspace starts writing an output, so that a failed run leaves no half file.
 /// It gets the permissions of an ordinary new file (0o666 less the umask) rather than
-/// tempfile's private 0o600, which a rename would otherwise carry into the output.
+/// tempfile's private 0o600, which a rename would otherwise carry into the output. Tagged by
+/// [`TEMP_TAG_ENV`] when it is set.
 pub fn temp_beside(path: &Path, suffix: &str) -> std::io::Result<tempfile::NamedTempFile> {
+    let tag = std::env::var(TEMP_TAG_ENV).ok().filter(|t| !t.is_empty());
+    temp_beside_tagged(path, tag.as_deref(), suffix)
+}
+
+/// [`temp_beside`] with the tag given ([`temp_prefix`]).
+pub fn temp_beside_tagged(path: &Path, tag: Option<&str>, suffix: &str) -> std::io::Result<tempfile::NamedTempFile> {
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let mut b = tempfile::Builder::new();
-    b.prefix(".instpol-").suffix(suffix);
+    let prefix = temp_prefix(tag);
+    b.prefix(&prefix).suffix(suffix);
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;

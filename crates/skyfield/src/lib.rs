@@ -31,6 +31,7 @@ pub mod pedestal;
 pub mod photometry;
 pub mod provenance;
 pub mod reduce;
+pub mod same;
 pub mod solve;
 pub mod table;
 pub mod wcs;

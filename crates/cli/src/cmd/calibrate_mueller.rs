@@ -7,7 +7,7 @@ use fit::mueller_field::{
     fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions,
 };
 use fit::mueller_stars::{read_star_fields, FieldSummary, ParamSummary};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Fit the linear block of the pre-analyzer Mueller matrix over the field jointly to two or
 /// more Stokes maps of empty fields whose sky polarization is known: the diattenuation p, phi
@@ -151,6 +151,9 @@ struct Report {
 pub fn run(a: Args) -> Result<()> {
     let kind = kind_of(&a)?;
     let specs: Vec<(PathBuf, f64, f64, f64)> = a.fields.iter().map(|s| parse_field(s)).collect::<Result<_>>()?;
+    // The fields' maps are one role: a map under two names (a copy too) would be fitted twice.
+    let maps: Vec<&Path> = specs.iter().map(|s| s.0.as_path()).collect();
+    crate::util::refuse_duplicates(&maps, skyfield::same::By::Content)?;
     crate::util::inputs(specs.iter().map(|s| s.0.as_path()).chain(a.stars.as_deref()))?;
     crate::util::check_output(&a.out)?;
     let fits_out = match a.out.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {

@@ -101,7 +101,7 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--match-radius {} arcsec must be positive", a.match_radius);
     }
     let inst = instrument::Instrument::load(&a.instrument)?;
-    let (rows, z) = read_catalogs(&a.catalogs)?;
+    let (rows, z, notes) = read_catalogs(&a.catalogs)?;
     let meta = stars_meta(&inst, &a.filter, z, a.catalogs.iter().map(|p| p.display().to_string()).collect());
     let opts = StarsOptions {
         calibrate: a.fit.options()?,
@@ -111,10 +111,11 @@ pub fn run(a: Args) -> Result<()> {
         reject_alpha: a.reject_alpha,
     };
     let run = stars_field(&rows, a.catalogs.len(), meta, &opts)?;
-    for w in &run.warnings {
+    let mut s = StarsSummary::new(&run, &rows, a.reject_alpha);
+    s.warnings.splice(0..0, notes);
+    for w in &s.warnings {
         eprintln!("warning: {w}");
     }
-    let mut s = StarsSummary::new(&run, &rows, a.reject_alpha);
     let (file, plots) = crate::cmd::calibrate::save_and_plot(&run.run, Some(&a.out), a.plots.as_deref())?;
     s.fit.calibration_file = file;
     s.fit.plot_outputs = plots;

@@ -187,6 +187,10 @@ pub fn run(a: Args) -> Result<()> {
     for f in &a.files {
         obs.extend(read_observations(f)?);
     }
+    let (obs, repeated) = fit::telescope::distinct_observations(obs);
+    if let Some(note) = repeated {
+        eprintln!("warning: {note}");
+    }
     let fits =
         fit_all(&obs, &models, table, &opts, a.joint).map_err(|(what, e)| anyhow::Error::new(e).context(what))?;
     let outputs = write_calibrations(&a, &fits, &obs, inst.as_ref(), &mirror.metal)?;

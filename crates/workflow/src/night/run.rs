@@ -10,10 +10,13 @@
 //!
 //! - **Up to date**: after a unit succeeds, a record (`<records>/<id>.json`) keeps its command
 //!   and the BLAKE3 hashes (`skyfield::provenance::hash_file`, the provenance's hash) of its
-//!   inputs and outputs, with each file's size and modification time. A unit is up to date,
-//!   and skipped, when its record exists, names the same command and inputs with the same
-//!   hashes, and every output exists with its recorded hash. An edited option, a changed frame
-//!   or a damaged product runs it again. A file whose size and modification time (to the
+//!   inputs and outputs, with each file's size and modification time. Its inputs are the
+//!   plan's for the unit and every other file the command says it read: the files its own
+//!   arguments name as inputs by their roles in the command's definition (an instrument file,
+//!   a master, a calibration, a table), reported with the hashes ([`INPUT_HASHES_ENV`]). A
+//!   unit is up to date, and skipped, when its record exists, names the same command and
+//!   inputs with the same hashes, and every output exists with its recorded hash. An edited
+//!   option, a changed frame, an edited instrument file or a damaged product runs it again. A file whose size and modification time (to the
 //!   nanosecond) are those recorded is taken to have its recorded hash, as make and rsync
 //!   take it, so that checking a plan's finished units does not read every frame again.
 //! - **Hashes read once**: an input's hash is the one the command itself computed for its
@@ -24,7 +27,9 @@
 //! - **Atomic**: every command writes its outputs through a temporary file and a rename; the
 //!   runner writes a printed output and the record the same way, the record last. A run killed
 //!   at any point leaves each unit either recorded (finished: skipped next time) or not (run
-//!   again, its outputs replaced whole).
+//!   again, its outputs replaced whole). The temporaries of a unit's command and of the
+//!   runner's writes for it carry the unit's id (`skyfield::fits::TEMP_TAG_ENV`); those a
+//!   killed run left are removed by the unit's next run, under its lock.
 //! - **Locks**: a unit runs holding an exclusive lock on `<records>/<id>.lock`, so workers of a
 //!   Slurm array or GNU parallel that reach the same dependency run it once: the second waits,
 //!   then finds it up to date.
@@ -158,6 +163,7 @@ pub fn process_executor(program: PathBuf, records: PathBuf) -> impl Fn(&Unit) ->
         let out = std::process::Command::new(&program)
             .args(&u.command)
             .env(INPUT_HASHES_ENV, &report)
+            .env(skyfield::fits::TEMP_TAG_ENV, &u.id)
             .stdin(std::process::Stdio::null())
             .output()
             .map_err(|e| format!("cannot start {}: {e}", program.display()))?;
@@ -190,13 +196,18 @@ impl Status {
 /// Write `bytes` to `path` through a temporary file in the same folder and a rename, so that
 /// `path` holds either its old content or all of the new.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+    write_atomic_tagged(path, None, bytes)
+}
+
+/// [`write_atomic`] through a temporary tagged `tag` (`skyfield::fits::temp_prefix`).
+fn write_atomic_tagged(path: &Path, tag: Option<&str>, bytes: &[u8]) -> Result<(), Error> {
     use std::io::Write;
     let err = |e: std::io::Error| Error::Output { path: path.into(), why: e.to_string() };
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir).map_err(err)?;
     // The workspace's one durable writer (skyfield::durable): a temporary beside the file,
     // fsynced, then renamed; on error the temporary is deleted.
-    let mut tmp = skyfield::fits::temp_beside(path, ".tmp").map_err(err)?;
+    let mut tmp = skyfield::fits::temp_beside_tagged(path, tag, ".tmp").map_err(err)?;
     tmp.write_all(bytes).and_then(|_| tmp.flush()).map_err(err)?;
     skyfield::durable::finish(tmp.into_temp_path(), path).map_err(err)
 }
@@ -233,6 +244,41 @@ fn hashes(paths: &[PathBuf], rec: Option<&Record>) -> Option<Vec<(PathBuf, Strin
     })
 }
 
+/// Remove what a killed run of unit `u` left: its command's temporaries and the runner's
+/// (tagged with its id) beside its outputs and its record, and its command's hash report.
+/// Called under the unit's lock, when no other run of it can be writing them.
+fn remove_leftovers(plan: &Plan, u: &Unit) {
+    let prefix = skyfield::fits::temp_prefix(Some(&u.id));
+    let report = format!(".{}.hashes-", u.id);
+    let mut dirs: Vec<PathBuf> = u
+        .outputs
+        .iter()
+        .map(|o| o.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new(".")).to_path_buf())
+        .collect();
+    dirs.push(plan.records.clone());
+    dirs.sort();
+    dirs.dedup();
+    for d in dirs {
+        let Ok(rd) = std::fs::read_dir(&d) else { continue };
+        for e in rd.flatten() {
+            let name = e.file_name().to_string_lossy().to_string();
+            if name.starts_with(&prefix) || (d == plan.records && name.starts_with(&report)) {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
+}
+
+/// Every input of unit `u` a record keeps: the plan's, in order, then the other files its
+/// command reported reading (module docs, "Up to date"), by path.
+fn all_inputs(u: &Unit, reported: &[(PathBuf, String)]) -> Vec<PathBuf> {
+    let mut extra: Vec<PathBuf> =
+        reported.iter().map(|(p, _)| p.clone()).filter(|p| !u.inputs.contains(p) && p.is_file()).collect();
+    extra.sort();
+    extra.dedup();
+    u.inputs.iter().cloned().chain(extra).collect()
+}
+
 fn record_path(plan: &Plan, u: &Unit) -> PathBuf {
     plan.records.join(format!("{}.json", u.id))
 }
@@ -242,9 +288,11 @@ fn record_path(plan: &Plan, u: &Unit) -> PathBuf {
 pub fn up_to_date(plan: &Plan, u: &Unit) -> Option<Record> {
     let text = std::fs::read_to_string(record_path(plan, u)).ok()?;
     let r = serde_json::from_str::<Record>(&text).ok()?;
+    let recorded: Vec<PathBuf> = r.inputs.iter().map(|(p, _)| p.clone()).collect();
     let same = r.command == u.command
         && r.outputs.iter().map(|(p, _)| p).eq(u.outputs.iter())
-        && hashes(&u.inputs, Some(&r)).is_some_and(|h| h == r.inputs)
+        && recorded.starts_with(&u.inputs)
+        && hashes(&recorded, Some(&r)).is_some_and(|h| h == r.inputs)
         && hashes(&u.outputs, Some(&r)).is_some_and(|h| h == r.outputs);
     same.then_some(r)
 }
@@ -270,6 +318,7 @@ fn run_unit(plan: &Plan, u: &Unit, exec: &Executor) -> Status {
     if let Err(e) = lock.lock() {
         return Status::Failed(format!("cannot lock {}: {e}", lock_path.display()));
     }
+    remove_leftovers(plan, u);
     if let Some(r) = up_to_date(plan, u) {
         return recorded_status(r);
     }
@@ -291,12 +340,13 @@ fn run_unit(plan: &Plan, u: &Unit, exec: &Executor) -> Status {
         Err(why) => return Status::Failed(why),
     };
     if u.stdout {
-        if let Err(e) = write_atomic(&u.outputs[0], &ran.stdout) {
+        if let Err(e) = write_atomic_tagged(&u.outputs[0], Some(&u.id), &ran.stdout) {
             return Status::Failed(e.to_string());
         }
     }
     let reported = |p: &Path| ran.input_hashes.iter().find(|(q, _)| q == p).map(|(_, h)| h.clone());
-    let Some(inputs) = hashes_with(&u.inputs, &reported) else {
+    let read = all_inputs(u, &ran.input_hashes);
+    let Some(inputs) = hashes_with(&read, &reported) else {
         let missing =
             u.inputs.iter().find(|p| !p.is_file()).map_or_else(|| "an input".into(), |p| p.display().to_string());
         return Status::Failed(format!("input {missing} is missing or unreadable"));
@@ -307,16 +357,17 @@ fn run_unit(plan: &Plan, u: &Unit, exec: &Executor) -> Status {
         return Status::Failed(format!("the command succeeded but did not write {missing}"));
     };
     // An input whose size or time moved during the run keeps no stat: it is hashed next time.
+    // (The other files the command read were not known before it ran: theirs is taken now.)
     let stats = u
         .inputs
         .iter()
         .zip(&before)
         .filter_map(|(p, b)| stat(p).filter(|s| Some(*s) == *b).map(|(n, t)| (p.clone(), n, t)))
-        .chain(u.outputs.iter().filter_map(|p| stat(p).map(|(n, t)| (p.clone(), n, t))))
+        .chain(read[u.inputs.len()..].iter().chain(&u.outputs).filter_map(|p| stat(p).map(|(n, t)| (p.clone(), n, t))))
         .collect();
     let rec = Record { command: u.command.clone(), inputs, outputs, stats, check_failed: ran.check_failed };
     let text = serde_json::to_string_pretty(&rec).unwrap_or_default();
-    match write_atomic(&record_path(plan, u), text.as_bytes()) {
+    match write_atomic_tagged(&record_path(plan, u), Some(&u.id), text.as_bytes()) {
         Ok(()) => recorded_status(rec).done(),
         Err(e) => Status::Failed(e.to_string()),
     }

@@ -195,9 +195,13 @@ pub struct Sorted {
 }
 
 /// Every `.fits`/`.fit`/`.fts` file (any case, `.gz` not) under `dirs` (recursively), and any
-/// file given directly, sorted by path. A folder that holds none is an error naming it.
-pub fn list_files(dirs: &[PathBuf]) -> Result<Vec<PathBuf>, Error> {
+/// file given directly, sorted by path. A folder that holds none is an error naming it. A
+/// folder is entered once, however many links lead to it: a symlink loop (`raw/loop -> ..`)
+/// ends there, and the second value names each folder not entered again.
+pub fn list_files(dirs: &[PathBuf]) -> Result<(Vec<PathBuf>, Vec<LeftOut>), Error> {
     let mut out = Vec::new();
+    let mut again = Vec::new();
+    let mut entered: std::collections::HashMap<(u64, u64), PathBuf> = std::collections::HashMap::new();
     for d in dirs {
         if d.is_file() {
             out.push(d.clone());
@@ -207,6 +211,17 @@ pub fn list_files(dirs: &[PathBuf]) -> Result<Vec<PathBuf>, Error> {
         let mut stack = vec![d.clone()];
         let mut others = 0usize;
         while let Some(dir) = stack.pop() {
+            if let Some(id) = skyfield::durable::file_id(&dir) {
+                if let Some(first) = entered.get(&id) {
+                    let why = format!(
+                        "the folder {} again (a symlink loop or a second link to it): its files are read once",
+                        first.display()
+                    );
+                    again.push(LeftOut { files: vec![dir], why });
+                    continue;
+                }
+                entered.insert(id, dir.clone());
+            }
             let rd = std::fs::read_dir(&dir).map_err(|e| Error::Input { path: dir.clone(), why: e.to_string() })?;
             for e in rd {
                 let e = e.map_err(|e| Error::Input { path: dir.clone(), why: e.to_string() })?;
@@ -239,7 +254,7 @@ pub fn list_files(dirs: &[PathBuf]) -> Result<Vec<PathBuf>, Error> {
     }
     out.sort();
     out.dedup();
-    Ok(out)
+    Ok((out, again))
 }
 
 /// What one file is (rule 1 of the module docs).
@@ -566,8 +581,18 @@ pub fn scan(dirs: &[PathBuf], opts: &ScanOptions) -> Result<Plan, Error> {
         None => fit::standards::Standards::builtin(),
     }
     .map_err(|e| Error::Option(e.to_string()))?;
-    let paths = list_files(&dirs)?;
-    let sorted = sort_files(&paths, &inst);
+    let (mut paths, again) = list_files(&dirs)?;
+    // Of a file's names, the one reached through no symlink is kept, else the first by path.
+    paths.sort_by_cached_key(|p| (std::fs::canonicalize(p).ok().as_deref() != Some(p.as_path()), p.clone()));
+    let distinct = skyfield::same::distinct_files(&paths, skyfield::same::By::Content);
+    let mut files = distinct.files.clone();
+    files.sort();
+    let mut sorted = sort_files(&files, &inst);
+    sorted.left_out.extend(again);
+    sorted.left_out.extend(distinct.duplicates.iter().map(|d| LeftOut {
+        files: vec![d.again.clone(), d.first.clone()],
+        why: format!("{d}: used once, as {}", d.first.display()),
+    }));
     plan_sorted(sorted, &inst, &standards, opts)
 }
 
