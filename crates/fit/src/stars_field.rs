@@ -201,11 +201,27 @@ pub fn catalog_rows(table: &Table, path: &Path, pointing: usize) -> Result<(Vec<
 /// naming the two catalogs that differ. A measurement written twice (a row whose position and
 /// `q, u` with their errors repeat an earlier row's, in the same catalog or another:
 /// `skyfield::same::repeated_rows`) is used once, and the third value says so naming both.
-pub fn read_catalogs(paths: &[std::path::PathBuf]) -> Result<(Vec<StarRow>, f64, Vec<String>)> {
+/// `expect`: the instrument and filter of the calibration asked for; a catalog that says it is
+/// of another ([`crate::setup::check_compatible`], its product keywords) is refused naming
+/// both (`None`: a mismatch allowed).
+pub fn read_catalogs(
+    paths: &[std::path::PathBuf],
+    expect: Option<(&str, &str)>,
+) -> Result<(Vec<StarRow>, f64, Vec<String>)> {
     let mut rows = vec![];
     let mut zero: Option<(f64, &std::path::PathBuf)> = None;
     for (k, path) in paths.iter().enumerate() {
         let table = Table::read(path, None)?;
+        if let (Some(setup), Some(e)) = (table.product.as_ref().and_then(crate::setup::Setup::of_product), expect) {
+            crate::setup::check_compatible(&setup, Some(e)).map_err(|m| {
+                Error::Input(format!(
+                    "{} and the calibration asked for ({} {}): {m}: give the catalogs' instrument and filter",
+                    path.display(),
+                    e.0,
+                    e.1
+                ))
+            })?;
+        }
         let (r, z) = catalog_rows(&table, path, k)?;
         match zero {
             Some((z0, p0)) if (z - z0).abs() > 1e-9 => {
@@ -223,6 +239,27 @@ pub fn read_catalogs(paths: &[std::path::PathBuf]) -> Result<(Vec<StarRow>, f64,
     }
     let (rows, notes) = distinct_rows(rows, paths);
     Ok((rows, zero.map_or(0.0, |z| z.0), notes))
+}
+
+/// The instrument the catalogs `paths` say they are of (their product keywords, `INSTRUME`):
+/// `None` when none says; refused naming two catalogs that say different ones.
+pub fn recorded_instrument(paths: &[std::path::PathBuf]) -> Result<Option<String>> {
+    let mut found: Option<(String, &std::path::PathBuf)> = None;
+    for path in paths {
+        let Some(i) = Table::read(path, None)?.product.and_then(|p| p.instrument) else { continue };
+        match &found {
+            Some((j, q)) if !j.eq_ignore_ascii_case(&i) => {
+                return Err(Error::Input(format!(
+                    "{} is a catalog of instrument {i}, {} of {j}: one calibration is of one instrument",
+                    path.display(),
+                    q.display()
+                )))
+            }
+            Some(_) => {}
+            None => found = Some((i, path)),
+        }
+    }
+    Ok(found.map(|f| f.0))
 }
 
 /// `rows` with every repeated measurement (`skyfield::same::repeated_rows` over position and

@@ -1322,7 +1322,7 @@ fn _calibrate_stars(
         reject_alpha,
     };
     let summary = py.detach(|| -> Result<StarsSummary, fit::Error> {
-        let (rows, z, notes) = read_catalogs(&catalogs)?;
+        let (rows, z, notes) = read_catalogs(&catalogs, Some((inst.name.as_str(), filter)))?;
         let meta = stars_meta(&inst, filter, z, catalogs.iter().map(|p| p.display().to_string()).collect());
         let run = stars_field(&rows, catalogs.len(), meta, &opts)?;
         if let Some(p) = &out {

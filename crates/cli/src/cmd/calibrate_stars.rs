@@ -26,9 +26,15 @@ pub struct Args {
     /// Star catalogs (`instpol catalog --out`; CSV, ECSV, FITS or VOTable), one per pointing,
     /// each with the HWP zero-angle column (hwp_chi_offset_deg) its q, u carry.
     pub catalogs: Vec<PathBuf>,
-    /// Built-in instrument name or instrument TOML file.
-    #[arg(long, default_value = "fors1")]
-    pub instrument: String,
+    /// Built-in instrument name or instrument TOML file. Default: the built-in one the catalogs
+    /// say they are of (their INSTRUME keyword, said on stderr); catalogs that do not say are
+    /// taken as FORS1's, with a warning.
+    #[arg(long)]
+    pub instrument: Option<String>,
+    /// Use catalogs whose keywords say another instrument or filter than --instrument,
+    /// --filter (refused otherwise, naming both); the calibration records the ones given.
+    #[arg(long)]
+    pub allow_mismatch: bool,
     /// The filter of the catalogs (a name of the instrument's filter table, e.g. V).
     #[arg(long)]
     pub filter: String,
@@ -87,7 +93,25 @@ fn interstellar(s: &str) -> Result<Interstellar> {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    crate::util::inputs(a.catalogs.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&a.instrument)))?;
+    let instrument = match &a.instrument {
+        Some(i) => i.clone(),
+        None => match fit::stars_field::recorded_instrument(&a.catalogs)? {
+            Some(i) => {
+                let b = instrument::builtin_for_keyword(&i).ok_or_else(|| {
+                    anyhow::anyhow!(
+                        "the catalogs are of instrument {i}, no built-in one: give its file with --instrument"
+                    )
+                })?;
+                eprintln!("note: instrument {b}, which the catalogs say they are of (INSTRUME = '{i}')");
+                b.to_string()
+            }
+            None => {
+                eprintln!("warning: the catalogs do not say which instrument they are of (no INSTRUME keyword): taken as fors1; give --instrument if they are another's");
+                "fors1".to_string()
+            }
+        },
+    };
+    crate::util::inputs(a.catalogs.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&instrument)))?;
     crate::util::check_output(&a.out)?;
     if a.catalogs.is_empty() {
         bail!("no catalogs given: list the star catalogs of the pointings (instpol catalog --out)");
@@ -100,8 +124,9 @@ pub fn run(a: Args) -> Result<()> {
     if !(a.match_radius > 0.0 && a.match_radius.is_finite()) {
         bail!("--match-radius {} arcsec must be positive", a.match_radius);
     }
-    let inst = instrument::Instrument::load(&a.instrument)?;
-    let (rows, z, notes) = read_catalogs(&a.catalogs)?;
+    let inst = instrument::Instrument::load(&instrument)?;
+    let expect = (!a.allow_mismatch).then_some((inst.name.as_str(), a.filter.as_str()));
+    let (rows, z, notes) = read_catalogs(&a.catalogs, expect)?;
     let meta = stars_meta(&inst, &a.filter, z, a.catalogs.iter().map(|p| p.display().to_string()).collect());
     let opts = StarsOptions {
         calibrate: a.fit.options()?,
