@@ -559,7 +559,7 @@ impl lsq::Problem for Fit<'_> {
     fn linearize(&self, coef: &[f64], _: &f64) -> std::result::Result<Linear<()>, LsqError> {
         // Its vector is `J^T W (measured - model)`: the right-hand side of the step.
         let (normal, rhs, _) = normal_equations(self.data, self.kind, self.free, coef);
-        Ok(Linear { normal, rhs, kept: () })
+        Ok(Linear { normal, rhs, kept: (), design: None })
     }
 }
 
