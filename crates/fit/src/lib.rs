@@ -76,7 +76,7 @@ pub enum Error {
     #[error("degenerate fit: {0}")]
     Degenerate(String),
     /// The data leave a parameter free ([`conditioning::judge`]).
-    #[error("undetermined fit: {0}")]
+    #[error(transparent)]
     Undetermined(#[from] conditioning::Undetermined),
     #[error("fit failed: {0}")]
     FitFailed(String),
