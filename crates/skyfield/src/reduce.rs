@@ -154,6 +154,39 @@ fn bad_pixel_notes(
     Ok(warnings)
 }
 
+/// The bad-pixel notes of `frames` (`whole`: [`bad_pixel_notes`] per exposure), with those of
+/// an exposure assembled from chips made per chip file: each chip's NaN and saturated pixels
+/// counted on its own place and named by its own file, so that a saturated pixel of CHIP2 is
+/// reported in the CHIP2 file ([`crate::frame::file_of`]'s decision, by rectangle).
+fn chip_bad_notes(frames: &[Frame], whole: Vec<Warning>, conv: &Conversion) -> Vec<Warning> {
+    let sat = conv.saturation_label();
+    let mut out: Vec<Warning> = whole
+        .into_iter()
+        .filter(|w| !frames.iter().any(|f| !f.chips.is_empty() && w.file.as_deref() == Some(f.path.as_path())))
+        .collect();
+    for f in frames.iter().filter(|f| !f.chips.is_empty()) {
+        for c in &f.chips {
+            let (mut nbad, mut nsat) = (0, 0);
+            for y in c.y0..(c.y0 + c.ny).min(f.ny) {
+                let row = &f.data[y * f.nx + c.x0.min(f.nx)..y * f.nx + (c.x0 + c.nx).min(f.nx)];
+                let (b, s) = PixelView::F64(row).count_bad(conv.saturation);
+                nbad += b;
+                nsat += s;
+            }
+            if nbad > 0 {
+                out.push(Warning { file: Some(c.path.clone()), message: format!("{nbad} NaN/infinite pixels masked") });
+            }
+            if nsat > 0 {
+                out.push(Warning {
+                    file: Some(c.path.clone()),
+                    message: format!("{nsat} saturated pixels (>= {sat}) masked"),
+                });
+            }
+        }
+    }
+    out
+}
+
 /// What grouping decided: the filter, sorted angles, which frames (indices) at each angle in
 /// summing order, and the notes.
 struct Grouping {
@@ -299,6 +332,9 @@ pub struct FrameSet {
     pub warnings: Vec<Warning>,
     /// How the values become electrons (the instrument's ADU, or electrons already).
     pub conversion: Conversion,
+    /// Per angle, the chip files of its first exposure with their places (empty for plain
+    /// frames): which file a pixel came from ([`crate::frame::file_of`]).
+    pub chips: Vec<Vec<crate::frame::ChipPlace>>,
 }
 
 /// Angles (deg) equal within this tolerance are the same plate position.
@@ -310,6 +346,10 @@ fn fmt_angles(a: &[f64]) -> String {
 }
 
 impl FrameSet {
+    fn chip_places(&self) -> Vec<Vec<crate::frame::ChipPlace>> {
+        self.chips.clone()
+    }
+
     /// Each exposure's file and the HWP angle (deg) it is grouped at, angle by angle.
     pub fn exposures(&self) -> Vec<(PathBuf, f64)> {
         exposures_of(&self.files, &self.angles_deg)
@@ -324,7 +364,7 @@ impl FrameSet {
             frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
         let hwp_sweep_deg = common_sweep(frames.iter().map(|f| (f.path.as_path(), f.hwp_sweep_deg)))?;
         let g = group_frames(&meta, inst, require_complete, hwp_sweep_deg)?;
-        let mut warnings = bad_pixel_notes(&meta, &[], &bad, g.nx * g.ny, &conversion)?;
+        let mut warnings = chip_bad_notes(&frames, bad_pixel_notes(&meta, &[], &bad, g.nx * g.ny, &conversion)?, &conversion);
         warnings.extend(g.warnings);
         // Move (not copy) each angle's first frame; add the repeats to it.
         let data: Vec<Vec<f64>> = g
@@ -341,7 +381,9 @@ impl FrameSet {
             })
             .collect();
         let files = g.members.iter().map(|m| m.iter().map(|&k| frames[k].path.clone()).collect()).collect();
+        let chips = g.members.iter().map(|m| frames[m[0]].chips.clone()).collect();
         Ok(Self {
+            chips,
             filter: g.filter,
             angles_deg: g.angles,
             hwp_sweep_deg,
@@ -406,6 +448,9 @@ pub trait FrameSource: Sync {
     fn hwp_sweep_deg(&self) -> f64;
     /// The exposures of each angle.
     fn files(&self) -> &[Vec<PathBuf>];
+    /// Per angle, the chip files of its first exposure with their places (empty for plain
+    /// frames), for naming a pixel's file ([`crate::frame::file_of`]).
+    fn chips(&self) -> Vec<Vec<crate::frame::ChipPlace>>;
     fn conversion(&self) -> Conversion;
     /// `f` applied to angle `i`'s pixels (row-major).
     fn with_frame<R>(&self, i: usize, f: impl FnOnce(&[f64]) -> R) -> Result<R, Error>;
@@ -436,6 +481,9 @@ impl FrameSource for FrameSet {
     }
     fn files(&self) -> &[Vec<PathBuf>] {
         &self.files
+    }
+    fn chips(&self) -> Vec<Vec<crate::frame::ChipPlace>> {
+        self.chip_places()
     }
     fn conversion(&self) -> Conversion {
         self.conversion
@@ -510,6 +558,10 @@ impl DiskFrames {
             frames,
             on_read: None,
         })
+    }
+
+    fn chip_places(&self) -> Vec<Vec<crate::frame::ChipPlace>> {
+        self.members.iter().map(|m| self.frames[m[0]].chip_places()).collect()
     }
 
     /// Call `f` once for every exposure the first time it is read (a progress bar).
@@ -597,6 +649,9 @@ impl FrameSource for DiskFrames {
     }
     fn files(&self) -> &[Vec<PathBuf>] {
         &self.files
+    }
+    fn chips(&self) -> Vec<Vec<crate::frame::ChipPlace>> {
+        self.chip_places()
     }
     fn conversion(&self) -> Conversion {
         self.conversion
@@ -1027,6 +1082,7 @@ fn reduce_two_cameras(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> 
         ny: 2 * h,
         warnings: set.warnings.clone(),
         conversion: set.conversion,
+        chips: vec![],
     };
     let (mut r, zero) = reduce_set_plate(&pair, &strip, cfg)?;
     if let Some((rms, n)) = c.measured {
@@ -2174,6 +2230,7 @@ mod tests {
                 ny: g.ny,
                 warnings: vec![],
                 conversion: Conversion::of_instrument(&inst),
+                chips: vec![],
             };
             let cfg = ReduceConfig { bin_px: 4, ..Default::default() };
             let m = reduce_set(&set, &inst, &cfg).unwrap().map;
@@ -2221,6 +2278,7 @@ mod tests {
                 ny: g.ny,
                 warnings: vec![],
                 conversion: Conversion::of_instrument(&inst),
+                chips: vec![],
             };
             let (q, u) = pixel_qu(&set, &inst).unwrap();
             let theta: Vec<f64> = angles.iter().map(|a| a.to_radians()).collect();
