@@ -29,7 +29,15 @@
 //!   FITS, VOTable: %, deg, rad, arcmin, arcsec, pix) and its values converted: the command
 //!   honours it (the numbers it prints equal those of the plain table) or refuses it (exit 2)
 //!   naming the column;
-//! - `scene keys`: every numeric key of a scene file x TOML edges (nan, inf, 1e308, text, ...).
+//! - `scene keys`: every numeric key of a scene file x TOML edges (nan, inf, 1e308, text, ...);
+//! - `collapsed`: every CSV table a command reads (all of a list at once) with its positions
+//!   collapsed onto a point or onto the line `y = 0.5 x + 0.2`, or its angles onto one
+//!   ([`POSITION_PAIRS`], [`ANGLE_COLUMNS`]): a fitting command ([`FITTERS`]) must refuse
+//!   (exit 2) saying what the data do not determine, wherever the collapse leaves a parameter
+//!   free (a point; a line under a plane; one parallactic angle under the oxide model);
+//! - `plate set`: every list of frames (the positional argument taking several; calibrate
+//!   given frames in place of its map) with one frame dropped, a set missing a plate angle:
+//!   refused (exit 2) or reduced (exit 0), either way naming the missing angle ("missing [").
 //!
 //! Every case runs the built binary with a timeout (killed after [`TIMEOUT`]) and must: not
 //! panic ("panicked at", exit 101, or a signal such as SIGABRT/SIGSEGV), not hang, exit 0, 1
@@ -56,6 +64,14 @@
 //!    (crates/cli/src/cmd/bias.rs, mc.rs). The `turn` class fails for both: "bias [turn]: --chi
 //!    390 (a turn further) -> exit 0 with other numbers than a full turn back: the angle is not
 //!    read in degrees", and the same for mc.
+//! 4. a fit the data do not determine: the conditioning judge's call taken out of the
+//!    polynomial field's solve (crates/fit/src/poly.rs). The `collapsed` class fails:
+//!    "calibrate-stars [collapsed]: x_arcmin,y_arcmin onto a line, a plane -> refused without
+//!    naming do not determine" (the failed inverse's words, where it refuses at all).
+//! 5. a plate-angle set reduced silently: `instpol photometry` grouping its frames without the
+//!    completeness check and not printing the note that names the gap
+//!    (crates/cli/src/cmd/photometry.rs). The `plate set` class fails: "photometry [plate set]:
+//!    frames without frame_01_hwp022.5.fits -> exit 0 without naming the missing plate angle".
 
 mod common;
 
