@@ -282,11 +282,8 @@ fn tmpfs_filled_to_every_page_of_each_fits_writer() {
         let pages: u64 = want.iter().map(|(_, n)| n.div_ceil(4096)).sum();
         // Every page of a writer of up to MAX_PAGES; of a larger one, its first and last
         // pages (where headers and the last flush are), each run taking the whole output.
-        let frees: Vec<u64> = if pages <= MAX_PAGES {
-            (0..=pages + 1).collect()
-        } else {
-            (0..8).chain(pages - 8..=pages + 1).collect()
-        };
+        let frees: Vec<u64> =
+            if pages <= MAX_PAGES { (0..=pages + 1).collect() } else { (0..8).chain(pages - 8..=pages + 1).collect() };
         for free in frees {
             std::fs::create_dir(&dir).unwrap();
             let fill = (free_bytes(&dir) / 4096).saturating_sub(free) * 4096;

@@ -644,7 +644,8 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
 
 /// Columns the `collapsed` class collapses: position pairs (onto the first row's point, or onto
 /// the line `y = 0.5 x + 0.2`) and angles (every row at the first row's).
-const POSITION_PAIRS: &[(&str, &str)] = &[("x_arcmin", "y_arcmin"), ("x", "y"), ("x_px", "y_px"), ("ra_deg", "dec_deg")];
+const POSITION_PAIRS: &[(&str, &str)] =
+    &[("x_arcmin", "y_arcmin"), ("x", "y"), ("x_px", "y_px"), ("ra_deg", "dec_deg")];
 const ANGLE_COLUMNS: &[&str] = &["parallactic_deg", "rotator_deg", "hwp_deg", "hwp_angle_deg"];
 
 /// Commands that fit a model to their tables: a collapse leaves a parameter free, refused
@@ -717,7 +718,12 @@ fn collapsed_cases(t: &Template, new_dir: &dyn Fn() -> PathBuf) -> Vec<Case> {
     let mut base = t.args.clone();
     if let Some(k) = base.iter().position(|a| a == "--offset") {
         let first = base.iter().position(|a| a.ends_with(".csv")).unwrap_or(k);
-        base = base.iter().enumerate().filter(|(i, a)| !(*i > first && a.ends_with(".csv"))).map(|(_, a)| a.clone()).collect();
+        base = base
+            .iter()
+            .enumerate()
+            .filter(|(i, a)| !(*i > first && a.ends_with(".csv")))
+            .map(|(_, a)| a.clone())
+            .collect();
         while let Some(k) = base.iter().position(|a| a == "--offset") {
             base.drain(k..k + 2);
         }

@@ -84,7 +84,10 @@ fn a_saturated_pixel_is_named_in_the_chip_file_it_came_from() {
         .format
         .chips
         .iter()
-        .find(|c| (c.origin_px[0]..c.origin_px[0] + c.size_px[0]).contains(&1000) && (c.origin_px[1]..c.origin_px[1] + c.size_px[1]).contains(&476))
+        .find(|c| {
+            (c.origin_px[0]..c.origin_px[0] + c.size_px[0]).contains(&1000)
+                && (c.origin_px[1]..c.origin_px[1] + c.size_px[1]).contains(&476)
+        })
         .unwrap();
     assert_eq!(holder.name, "CHIP2");
     let dir = tempfile::tempdir().unwrap();

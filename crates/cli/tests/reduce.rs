@@ -286,7 +286,11 @@ fn a_turning_plate_set_missing_a_position_is_refused_naming_it() {
             .args(extra)
             .output()
             .unwrap();
-        (o.status.code(), String::from_utf8_lossy(&o.stdout).to_string(), String::from_utf8_lossy(&o.stderr).to_string())
+        (
+            o.status.code(),
+            String::from_utf8_lossy(&o.stdout).to_string(),
+            String::from_utf8_lossy(&o.stderr).to_string(),
+        )
     };
     let (code, out, err) = reduce(&frames, &[]);
     assert_eq!(code, Some(0), "{err}");

@@ -20,7 +20,9 @@ pub const REL_TOL: f64 = 1e-10;
 
 /// The data do not determine some parameter of a fit.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("the data do not determine {free} (smallest singular value {ratio:.1e} of the largest, below {tol:.0e}): {remedy}")]
+#[error(
+    "the data do not determine {free} (smallest singular value {ratio:.1e} of the largest, below {tol:.0e}): {remedy}"
+)]
 pub struct Undetermined {
     /// The parameter, or the combination of parameters, left free.
     pub free: String,

@@ -99,7 +99,8 @@ pub fn fits_extent(path: &Path, nhdu: usize) -> Result<u64, String> {
         }
         let get = |k: &str| keys.iter().find(|(n, _)| n == k).map(|(_, v)| *v);
         let naxis = get("NAXIS").unwrap_or(0);
-        let elements: i64 = if naxis > 0 { (1..=naxis).map(|i| get(&format!("NAXIS{i}")).unwrap_or(0)).product() } else { 0 };
+        let elements: i64 =
+            if naxis > 0 { (1..=naxis).map(|i| get(&format!("NAXIS{i}")).unwrap_or(0)).product() } else { 0 };
         let bytes = get("BITPIX").unwrap_or(8).unsigned_abs() / 8
             * get("GCOUNT").unwrap_or(1).max(0) as u64
             * (get("PCOUNT").unwrap_or(0).max(0) + elements.max(0)) as u64;

@@ -364,7 +364,8 @@ impl FrameSet {
             frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
         let hwp_sweep_deg = common_sweep(frames.iter().map(|f| (f.path.as_path(), f.hwp_sweep_deg)))?;
         let g = group_frames(&meta, inst, require_complete, hwp_sweep_deg)?;
-        let mut warnings = chip_bad_notes(&frames, bad_pixel_notes(&meta, &[], &bad, g.nx * g.ny, &conversion)?, &conversion);
+        let mut warnings =
+            chip_bad_notes(&frames, bad_pixel_notes(&meta, &[], &bad, g.nx * g.ny, &conversion)?, &conversion);
         warnings.extend(g.warnings);
         // Move (not copy) each angle's first frame; add the repeats to it.
         let data: Vec<Vec<f64>> = g
