@@ -141,6 +141,26 @@ pub fn judge(design: &DMatrix<f64>, words: &Words) -> Result<(), Undetermined> {
     Err(Undetermined { free: describe(&v, words), ratio, tol: REL_TOL, remedy: words.remedy.clone() })
 }
 
+/// The weak directions of a fit known by its normal matrix `normal = J^T W J` alone (the
+/// Mueller field accumulates it from each datum's 2 x 2 weight): every eigenvector of the
+/// matrix scaled to unit diagonal (the normal matrix of the column-scaled design) whose
+/// eigenvalue is below `rel` times the largest. Those eigenvalues are the squares of the
+/// scaled design's singular values, so `rel` here is [`REL_TOL`]'s square in kind; a fit
+/// with a zero diagonal (a parameter no datum touches) must say so before asking.
+pub fn weak_directions(normal: &DMatrix<f64>, rel: f64) -> Vec<Vec<f64>> {
+    let n = normal.nrows();
+    let d: Vec<f64> = (0..n).map(|i| normal[(i, i)].sqrt()).collect();
+    let s = DMatrix::from_fn(n, n, |i, j| normal[(i, j)] / (d[i] * d[j]));
+    let eig = s.symmetric_eigen();
+    let mx = eig.eigenvalues.max();
+    eig.eigenvalues
+        .iter()
+        .zip(eig.eigenvectors.column_iter())
+        .filter(|(e, _)| **e < rel * mx)
+        .map(|(_, v)| v.iter().copied().collect())
+        .collect()
+}
+
 /// The weighted design matrix of a linear fit from its basis values per datum (`rows[i][k]`,
 /// the k-th basis function at datum i) and each datum's weight (`1 / sigma^2` times a robust
 /// weight): row i is `sqrt(w_i) rows[i]`.
@@ -197,6 +217,23 @@ mod tests {
         assert!(judge(&short, &words(3)).is_err());
         let nan = DMatrix::from_fn(4, 2, |i, k| if i == 2 && k == 1 { f64::NAN } else { (i + k) as f64 });
         assert!(judge(&nan, &words(2)).is_err());
+    }
+
+    /// The normal matrix's weak directions are the scaled design's: a plane on a tilted line
+    /// has one, the combination the judge names; a plane on spread points none.
+    #[test]
+    fn weak_directions_of_a_normal_matrix() {
+        let line = DMatrix::from_fn(40, 3, |i, k| {
+            let x = -3.0 + 6.0 * i as f64 / 39.0;
+            [1.0, x, 0.5 * x + 0.2][k]
+        });
+        let w = weak_directions(&(line.transpose() * &line), 1e-12);
+        assert_eq!(w.len(), 1);
+        let (_, v) = scaled_conditioning(&line).unwrap();
+        let dot: f64 = w[0].iter().zip(&v).map(|(a, b)| a * b).sum();
+        assert!((dot.abs() - 1.0).abs() < 1e-6, "{w:?} against {v:?}");
+        let spread = DMatrix::from_fn(30, 3, |i, k| [1.0, (i % 6) as f64, (i / 6) as f64][k]);
+        assert!(weak_directions(&(spread.transpose() * &spread), 1e-12).is_empty());
     }
 
     /// The weights scale rows by their square roots: the normal matrix of the weighted design
