@@ -308,3 +308,48 @@ fn the_same_catalog_under_two_names_is_one_input() {
         assert!((a / b - 1.0).abs() < 1e-9, "sigma once {s1:?}, every row twice {s2:?}");
     }
 }
+
+/// Writes a catalog of 40 stars at `(x, y(x))`, `x` over -3..3 arcmin, each with the plane
+/// `q = 0.001 + 0.0004 x`, `u = -0.0005` (no noise), and returns its path.
+fn line_catalog(dir: &Path, name: &str, y: impl Fn(usize, f64) -> f64) -> PathBuf {
+    let path = dir.join(name);
+    let mut s = String::from("id,x_arcmin,y_arcmin,q,u,sigma_q,sigma_u,hwp_chi_offset_deg\n");
+    for i in 0..40 {
+        let x = -3.0 + 6.0 * i as f64 / 39.0;
+        s += &format!("{i},{x},{},{},-0.0005,0.0003,0.0003,0\n", y(i, x), 0.001 + 0.0004 * x);
+    }
+    std::fs::write(&path, s).unwrap();
+    path
+}
+
+/// A plane through stars on a tilted line (`y = 0.5 x + 0.2`) is not determined: refused
+/// (exit 2) as on the line `y = 0`, naming the terms left free and the star layout, where it
+/// was written with coefficients of +-2000. The same stars with every second one moved 0.3
+/// arcmin off the line give the plane back: its coefficients are the written ones (closed
+/// form, no noise), `q = 0.001 + 0.0004 x + 0 y`.
+#[test]
+fn a_plane_on_stars_on_a_line_is_refused_and_off_it_is_fitted() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("cal.fits");
+    let common = ["--instrument", "fors1", "--model", "plane", "--interstellar", "zero", "--json"];
+    for (name, y) in [("tilted.csv", 0.5), ("flat.csv", 0.0)] {
+        let cat = line_catalog(dir.path(), name, |_, x| y * x + 0.2 * y);
+        let mut a = args(&[cat], &common);
+        a.extend(["--out".into(), out.display().to_string()]);
+        let (code, _, err) = run(&a);
+        assert_eq!(code, 2, "{name}: {err}");
+        assert!(err.contains("do not determine") && err.contains("the y term"), "{name}: {err}");
+        assert!(err.contains("not on one line"), "{name}: {err}");
+        assert!(!out.exists(), "{name}: a calibration was written");
+    }
+    let cat = line_catalog(dir.path(), "off.csv", |i, x| 0.5 * x + 0.2 + if i % 2 == 0 { 0.3 } else { 0.0 });
+    let mut a = args(&[cat], &common);
+    a.extend(["--out".into(), out.display().to_string()]);
+    let (code, stdout, err) = run(&a);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let q: Vec<f64> = j["poly"]["q"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    for (got, want) in q.iter().zip([0.001, 0.0004, 0.0]) {
+        assert!((got - want).abs() < 1e-10, "{q:?}");
+    }
+}

@@ -211,3 +211,98 @@ fn real_full_tmpfs_fails_every_writer_and_leaves_nothing() {
     }
     assert_eq!(tested, writers(&f).len());
 }
+
+/// Bytes free on the file system holding `dir` (`stat -f`: available blocks times their size).
+fn free_bytes(dir: &Path) -> u64 {
+    let o = Command::new("stat").args(["-f", "-c", "%a %S"]).arg(dir).output().unwrap();
+    let s = String::from_utf8_lossy(&o.stdout);
+    let v: Vec<u64> = s.split_whitespace().map(|x| x.parse().unwrap()).collect();
+    v[0] * v[1]
+}
+
+/// The output files of a run in `dir` with their sizes (the filler left out).
+fn sizes(dir: &Path) -> Vec<(String, u64)> {
+    files(dir)
+        .into_iter()
+        .filter(|f| !f.starts_with("filler"))
+        .map(|f| {
+            let n = std::fs::symlink_metadata(dir.join(&f)).map_or(0, |m| m.len());
+            (f, n)
+        })
+        .collect()
+}
+
+/// Outputs of up to this many pages are tried at every page ([`tmpfs_filled_to_every_page_of_each_fits_writer`]).
+const MAX_PAGES: u64 = 48;
+
+/// A tmpfs filled to every page boundary of each FITS writer: for a writer whose outputs
+/// take P pages of 4 KiB, the disk is left with 0, 1, ..., P + 1 pages free, so that it fills
+/// in every block the writer writes, the last one included (where CFITSIO's last flush at
+/// close lost its error and left a file a partial page short under the final name, exit 0).
+/// Each run either succeeds with every output the size of the run with room to spare, or
+/// fails (exit 2, an error) leaving nothing. The FITS writers are those of
+/// [`writers`] whose outputs hold a FITS file, `import-map --out` and `fit-standards
+/// --output` among them. Needs root to mount; elsewhere it says so and returns.
+#[test]
+fn tmpfs_filled_to_every_page_of_each_fits_writer() {
+    let f = invocations::fixture();
+    let mnt = tempfile::tempdir().unwrap();
+    let m = mnt.path().to_str().unwrap();
+    let st = Command::new("mount").args(["-t", "tmpfs", "-o", "size=32m", "tmpfs", m]).output();
+    if !matches!(&st, Ok(o) if o.status.success()) {
+        eprintln!("note: cannot mount a tmpfs here (not root?); the injected-failure test covers the writers");
+        return;
+    }
+    struct Umount(PathBuf);
+    impl Drop for Umount {
+        fn drop(&mut self) {
+            let _ = Command::new("umount").arg(&self.0).status();
+        }
+    }
+    let _guard = Umount(mnt.path().to_path_buf());
+    let run = |w: &Writer, dir: &Path| {
+        let o = Command::new(common::bin()).args(in_dir(&w.args, dir)).current_dir(dir).output().unwrap();
+        (o.status.code(), String::from_utf8_lossy(&o.stderr).to_string())
+    };
+    let mut tried = vec![];
+    let mut too_big = vec![];
+    for w in writers(&f) {
+        let control = tempfile::tempdir().unwrap();
+        let (code, err) = run(&w, control.path());
+        assert_eq!(code, Some(0), "{} control: {err}", w.label);
+        let want = sizes(control.path());
+        if !want.iter().any(|(n, _)| n.ends_with(".fits")) {
+            continue;
+        }
+        if want.iter().map(|(_, n)| n).sum::<u64>() > 16 << 20 {
+            too_big.push(w.label.clone());
+            continue;
+        }
+        let dir = mnt.path().join("w");
+        let pages: u64 = want.iter().map(|(_, n)| n.div_ceil(4096)).sum();
+        // Every page of a writer of up to MAX_PAGES; of a larger one, its first and last
+        // pages (where headers and the last flush are), each run taking the whole output.
+        let frees: Vec<u64> =
+            if pages <= MAX_PAGES { (0..=pages + 1).collect() } else { (0..8).chain(pages - 8..=pages + 1).collect() };
+        for free in frees {
+            std::fs::create_dir(&dir).unwrap();
+            let fill = (free_bytes(&dir) / 4096).saturating_sub(free) * 4096;
+            std::fs::write(dir.join("filler"), vec![0u8; fill as usize]).unwrap();
+            let (code, err) = run(&w, &dir);
+            let case = format!("{} with {free} of {pages} pages free", w.label);
+            assert!(!err.contains("panicked"), "{case}: panic: {err}");
+            match code {
+                Some(0) => assert_eq!(sizes(&dir), want, "{case}: exit 0 with outputs unlike the control's"),
+                Some(2) => assert!(sizes(&dir).is_empty(), "{case}: failed but left {:?}", sizes(&dir)),
+                other => panic!("{case}: exit {other:?}: {err}"),
+            }
+            std::fs::remove_dir_all(&dir).unwrap();
+        }
+        tried.push(w.label.clone());
+    }
+    println!("FITS writers tried at every page: {}", tried.join(", "));
+    println!("not tried (outputs over 16 MiB, the real full tmpfs test covers them): {}", too_big.join(", "));
+    for named in ["import-map --out", "fit-standards --output"] {
+        assert!(tried.iter().any(|t| t == named), "{named} not tried: {tried:?}");
+    }
+}

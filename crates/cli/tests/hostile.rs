@@ -41,7 +41,15 @@
 //!   FITS, VOTable: %, deg, rad, arcmin, arcsec, pix) and its values converted: the command
 //!   honours it (the numbers it prints equal those of the plain table) or refuses it (exit 2)
 //!   naming the column;
-//! - `scene keys`: every numeric key of a scene file x TOML edges (nan, inf, 1e308, text, ...).
+//! - `scene keys`: every numeric key of a scene file x TOML edges (nan, inf, 1e308, text, ...);
+//! - `collapsed`: every CSV table a command reads (all of a list at once) with its positions
+//!   collapsed onto a point or onto the line `y = 0.5 x + 0.2`, or its angles onto one
+//!   ([`POSITION_PAIRS`], [`ANGLE_COLUMNS`]): a fitting command ([`FITTERS`]) must refuse
+//!   (exit 2) saying what the data do not determine, wherever the collapse leaves a parameter
+//!   free (a point; a line under a plane; one parallactic angle under the oxide model);
+//! - `plate set`: every list of frames (the positional argument taking several; calibrate
+//!   given frames in place of its map) with one frame dropped, a set missing a plate angle:
+//!   refused (exit 2) or reduced (exit 0), either way naming the missing angle ("missing [").
 //!
 //! Every case runs the built binary with a timeout (killed after [`TIMEOUT`]) and must: not
 //! panic ("panicked at", exit 101, or a signal such as SIGABRT/SIGSEGV), not hang, exit 0, 1
@@ -79,6 +87,14 @@
 //!    (`data: None` in `fit::columns::TableAngles::request`). The `another product` class
 //!    fails four cases of `correct (catalog)`, e.g. "correct (catalog) [another product]:
 //!    cat.csv of another filter -> exit 0, not refused (exit 2)".
+//! 6. a fit the data do not determine: the conditioning judge's call taken out of the
+//!    polynomial field's solve (crates/fit/src/poly.rs). The `collapsed` class fails:
+//!    "calibrate-stars [collapsed]: x_arcmin,y_arcmin onto a line, a plane -> refused without
+//!    naming do not determine" (the failed inverse's words, where it refuses at all).
+//! 7. a plate-angle set reduced silently: `instpol photometry` grouping its frames without the
+//!    completeness check and not printing the note that names the gap
+//!    (crates/cli/src/cmd/photometry.rs). The `plate set` class fails: "photometry [plate set]:
+//!    frames without frame_01_hwp022.5.fits -> exit 0 without naming the missing plate angle".
 
 mod common;
 
@@ -172,6 +188,9 @@ enum Expect {
         reference: usize,
         names: Vec<String>,
     },
+    /// A set of plate angles with one dropped: refused (exit 2) or reduced (exit 0), either way
+    /// with the missing angle named ("missing" in the messages); never a silent number.
+    MissingNamed,
 }
 
 /// How an orientation option's value is turned a full turn further: every number in it (a
@@ -706,6 +725,11 @@ fn cases(f: &Fixture, root: &Path) -> Vec<Case> {
             }
         }
     }
+    // Fits given inputs collapsed onto a point or a line, and plate-angle sets missing one.
+    for t in invocations::templates(f) {
+        out.extend(collapsed_cases(&t, &new_dir));
+        out.extend(dropped_angle_cases(&t, &defs[t.name()], &f.frames(), &new_dir));
+    }
     out.extend(scene_key_cases(f, &new_dir));
     out
 }
@@ -815,6 +839,205 @@ fn scene_key_cases(f: &Fixture, new_dir: &dyn Fn() -> PathBuf) -> Vec<Case> {
         }
     }
     out
+}
+
+/// Columns the `collapsed` class collapses: position pairs (onto the first row's point, or onto
+/// the line `y = 0.5 x + 0.2`) and angles (every row at the first row's).
+const POSITION_PAIRS: &[(&str, &str)] =
+    &[("x_arcmin", "y_arcmin"), ("x", "y"), ("x_px", "y_px"), ("ra_deg", "dec_deg")];
+const ANGLE_COLUMNS: &[&str] = &["parallactic_deg", "rotator_deg", "hwp_deg", "hwp_angle_deg"];
+
+/// Commands that fit a model to their tables: a collapse leaves a parameter free, refused
+/// (exit 2) naming what the data do not determine, or the collapsed input. Other commands'
+/// tables are collapsed too, with the properties every case has.
+/// (calibrate-mueller fits its field to the --field maps; its --stars table only adds stars to
+/// them, and is collapsed with the properties every case has.)
+const FITTERS: &[&str] = &["calibrate-stars", "fit-standards"];
+
+/// Commands whose frame lists are not sets of plate angles (the `plate set` class leaves them
+/// out), with the reason.
+const NOT_ANGLE_SETS: &[(&str, &str)] = &[
+    ("master-bias", "bias frames: no plate angles"),
+    ("master-flat", "flat frames are combined whatever their plate angles"),
+    ("wavelength-law", "its list is calibration files of several filters, not frames"),
+];
+
+/// How a table's rows are collapsed.
+#[derive(Clone, Copy)]
+enum Collapse<'a> {
+    Point(&'a str, &'a str),
+    Line(&'a str, &'a str),
+    Angle(&'a str),
+}
+
+/// `src` (CSV) written to `dst` with its rows collapsed as `how` says; `false` when the table
+/// has not the columns.
+fn collapse_table(src: &Path, dst: &Path, how: Collapse) -> bool {
+    let text = std::fs::read_to_string(src).unwrap_or_default();
+    let mut lines = text.lines();
+    let Some(head) = lines.next() else { return false };
+    let cols: Vec<&str> = head.split(',').map(str::trim).collect();
+    let at = |c: &str| cols.iter().position(|h| *h == c);
+    let (a, b) = match how {
+        Collapse::Point(x, y) | Collapse::Line(x, y) => match (at(x), at(y)) {
+            (Some(i), Some(j)) => (i, Some(j)),
+            _ => return false,
+        },
+        Collapse::Angle(c) => match at(c) {
+            Some(i) => (i, None),
+            None => return false,
+        },
+    };
+    let rows: Vec<Vec<String>> = lines.map(|l| l.split(',').map(String::from).collect()).collect();
+    let Some(first) = rows.first().cloned() else { return false };
+    let mut out = format!("{head}\n");
+    for mut r in rows {
+        match (how, b) {
+            (Collapse::Point(..), Some(j)) => (r[a], r[j]) = (first[a].clone(), first[j].clone()),
+            (Collapse::Line(..), Some(j)) => {
+                let x: f64 = r[a].trim().parse().unwrap_or(0.0);
+                r[j] = format!("{}", 0.5 * x + 0.2);
+            }
+            _ => r[a] = first[a].clone(),
+        }
+        out += &format!("{}\n", r.join(","));
+    }
+    std::fs::write(dst, out).unwrap();
+    true
+}
+
+/// The `collapsed` class of template `t`: every CSV table it reads (all of them at once, a
+/// list of catalogs included) with its positions collapsed onto a point or a line, or its
+/// angles onto one. A fitting command ([`FITTERS`]) must refuse a point or one angle naming
+/// what is left free; a line is refused by a plane (`--model plane`, tried for every fitter
+/// with a `--model` option), while a radial profile is still determined along it.
+fn collapsed_cases(t: &Template, new_dir: &dyn Fn() -> PathBuf) -> Vec<Case> {
+    // Dithered catalogs placed by their --offset are each at their own place: collapsed, they
+    // are one catalog without offsets.
+    let mut base = t.args.clone();
+    if let Some(k) = base.iter().position(|a| a == "--offset") {
+        let first = base.iter().position(|a| a.ends_with(".csv")).unwrap_or(k);
+        base = base
+            .iter()
+            .enumerate()
+            .filter(|(i, a)| !(*i > first && a.ends_with(".csv")))
+            .map(|(_, a)| a.clone())
+            .collect();
+        while let Some(k) = base.iter().position(|a| a == "--offset") {
+            base.drain(k..k + 2);
+        }
+    }
+    let tables: Vec<usize> =
+        (0..base.len()).filter(|&i| base[i].ends_with(".csv") && Path::new(&base[i]).is_file()).collect();
+    let fitter = FITTERS.contains(&t.name());
+    // What a collapse leaves to a fit: (what, how, options added, refused by a fitter).
+    let mut kinds: Vec<(String, Collapse, &[&str], bool)> = vec![];
+    for (x, y) in POSITION_PAIRS {
+        kinds.push((format!("{x},{y} onto a point"), Collapse::Point(x, y), &[], true));
+        kinds.push((format!("{x},{y} onto a line"), Collapse::Line(x, y), &[], false));
+        if t.name() == "calibrate-stars" {
+            let plane: &[&str] = &["--model", "plane", "--interstellar", "zero"];
+            kinds.push((format!("{x},{y} onto a line, a plane"), Collapse::Line(x, y), plane, true));
+        }
+    }
+    for c in ANGLE_COLUMNS {
+        // One parallactic angle gives the Wiersema model's two numbers one (q, u) each: a
+        // fit of its two parameters; the oxide model's four are not determined.
+        let refused = t.name() != "fit-standards";
+        kinds.push((format!("{c} onto one angle"), Collapse::Angle(c), &[], refused));
+        if t.name() == "fit-standards" {
+            kinds.push((format!("{c} onto one angle, oxide"), Collapse::Angle(c), &["--model", "oxide"], true));
+        }
+    }
+    let mut out = vec![];
+    for (what, how, extra, refusing) in kinds {
+        let dir = new_dir();
+        let mut args = base.clone();
+        let mut any = false;
+        for &i in &tables {
+            let dst = dir.join(format!("collapsed{i}.csv"));
+            if collapse_table(Path::new(&base[i]), &dst, how) {
+                args[i] = dst.to_str().unwrap().to_string();
+                any = true;
+            }
+        }
+        if !any {
+            std::fs::remove_dir_all(&dir).ok();
+            continue;
+        }
+        for pair in extra.chunks(2) {
+            set_flag(&mut args, pair[0], pair[1]);
+        }
+        let refused = fitter && refusing;
+        let expect = if refused { Expect::Refused(vec!["do not determine".into()]) } else { Expect::Nothing };
+        let a = fill(&args, &dir, t.out_name);
+        out.push(Case {
+            command: t.command,
+            class: "collapsed",
+            what,
+            inputs: files_in(&a),
+            outputs: t.out_name.map(|n| vec![dir.join(n)]).unwrap_or_default(),
+            args: a,
+            dir,
+            expect,
+        });
+    }
+    out
+}
+
+/// The `plate set` class of template `t`: its list of frames (the positional argument taking
+/// several, [`NOT_ANGLE_SETS`] left out) with the second frame dropped, a set missing one plate
+/// angle: refused or reduced with the missing angle named ([`Expect::MissingNamed`]). A
+/// command whose invocation reads a map but that also takes frames (calibrate) is given the
+/// fixture's frames, one dropped, in place of the map.
+fn dropped_angle_cases(
+    t: &Template,
+    defs: &[serde_json::Value],
+    frames: &[String],
+    new_dir: &dyn Fn() -> PathBuf,
+) -> Vec<Case> {
+    if NOT_ANGLE_SETS.iter().any(|(c, _)| *c == t.name()) {
+        return vec![];
+    }
+    let takes_frames = defs.iter().any(|a| a["long"].is_null() && a["role"] == "input" && a["multiple"] == true);
+    if let (true, Some(k)) = (takes_frames, t.args.iter().position(|a| a == "--map")) {
+        let mut args = t.args.clone();
+        args.drain(k..k + 2);
+        args.extend(frames.iter().enumerate().filter(|(i, _)| *i != 1).map(|(_, f)| f.clone()));
+        let dir = new_dir();
+        let a = fill(&args, &dir, t.out_name);
+        return vec![Case {
+            command: t.command,
+            class: "plate set",
+            what: format!("frames in place of --map, without {}", frames.get(1).map_or("", |f| f.as_str())),
+            inputs: files_in(&a),
+            outputs: t.out_name.map(|n| vec![dir.join(n)]).unwrap_or_default(),
+            args: a,
+            dir,
+            expect: Expect::MissingNamed,
+        }];
+    }
+    let Some(fa) = file_args(t, defs).into_iter().find(|fa| !fa.label.starts_with("--")) else { return vec![] };
+    let many = defs.iter().any(|a| a["id"] == fa.label.as_str() && a["multiple"] == true);
+    let i = fa.index;
+    let frames = |k: usize| t.args.get(k).is_some_and(|a| a.ends_with(".fits") && Path::new(a).is_file());
+    if !(many && frames(i) && frames(i + 1)) {
+        return vec![];
+    }
+    let mut args = t.args.clone();
+    let dropped = args.remove(i + 1);
+    let dir = new_dir();
+    let a = fill(&args, &dir, t.out_name);
+    vec![Case {
+        command: t.command,
+        class: "plate set",
+        what: format!("{} without {}", fa.label, Path::new(&dropped).file_name().unwrap().to_string_lossy()),
+        inputs: files_in(&a),
+        outputs: t.out_name.map(|n| vec![dir.join(n)]).unwrap_or_default(),
+        args: a,
+        dir,
+        expect: Expect::MissingNamed,
+    }]
 }
 
 fn hash(p: &Path) -> Option<u64> {
@@ -941,6 +1164,11 @@ fn run_case(c: &Case) -> (i32, Option<String>) {
             let warned = err.lines().any(|l| l.starts_with("warning") && l.contains(word.as_str()));
             if !(code == 2 && err.contains(word.as_str()) || (code == 0 || code == 1) && warned) {
                 problems.push(format!("exit {code}, neither refused nor warned naming the {word}"));
+            }
+        }
+        Expect::MissingNamed => {
+            if ![0, 2].contains(&code) || !err.contains("missing [") {
+                problems.push(format!("exit {code} without naming the missing plate angle"));
             }
         }
         Expect::Refused(names) => {

@@ -1159,3 +1159,49 @@ fn run_reruns_the_units_of_an_edited_instrument_file() {
     let (ok, fourth) = run_json(&plan_path, &[]);
     assert!(ok && statuses(&fourth).iter().all(|(_, s)| s == "up_to_date"), "{fourth}");
 }
+
+/// A turning plate's night: the shrunk FORS2 with a rotor of 16 positions (MOPRPOS), one set
+/// of all 16 and one with position 3 (56.25 deg, the middle of 45 .. 67.5) missing. scan
+/// keeps the whole set and leaves the other out naming the missing range's middle, by the
+/// reduction's rule for a turning plate (it had no plate angle for a rotor's frames).
+#[test]
+fn scan_names_the_missing_position_of_a_turning_plate() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = std::fs::read_to_string(inst()).unwrap().replace(
+        "hwp_angle_keyword = \"HIERARCH ESO INS RETA2 POSANG\"",
+        "rotation = { position_keyword = \"MOPRPOS\", positions_per_turn = 16, first_position = 1, zero_deg = 0.0 }",
+    );
+    let turning = dir.path().join("turning.toml");
+    std::fs::write(&turning, text).unwrap();
+    let mids: Vec<f64> = (0..16).map(|k| 11.25 + 22.5 * k as f64).collect();
+    let set = |name: &'static str, target: &'static str, angles: Vec<f64>, start: f64, first: i64| Spec {
+        dir: name,
+        filter: "v_HIGH",
+        angles,
+        start_mjd: start,
+        first_exp: first,
+        dpr: ["SCIENCE", "OBJECT", "POLARIMETRY"],
+        target,
+        ra_dec: (150.0, -30.0),
+        sky: Some((3000.0, 0.02, 30.0)),
+        stars: vec![],
+        instrume: None,
+        seed: 5,
+    };
+    let sweep = "[hwp_motion]\nsweep_deg = 22.5\n";
+    simulate_scene(dir.path(), &set("whole", "WHOLE", mids.clone(), NIGHT + 0.1, 10), &turning, PATTERN, sweep);
+    let short: Vec<f64> = mids.iter().enumerate().filter(|(k, _)| *k != 2).map(|(_, a)| *a).collect();
+    simulate_scene(dir.path(), &set("short", "SHORT", short, NIGHT + 0.3, 40), &turning, PATTERN, sweep);
+    let plan = dir.path().join("night.json");
+    let mut args = scan_args(&dir.path().join("raw"), &turning, &plan);
+    args.push("--json".into());
+    let o = Command::new(bin()).args(&args).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    let plan: Value = serde_json::from_str(&std::fs::read_to_string(&plan).unwrap()).unwrap();
+    let left: Vec<String> =
+        plan["left_out"].as_array().unwrap().iter().map(|l| l["why"].as_str().unwrap().to_string()).collect();
+    let short_why = left.iter().find(|w| w.contains("SHORT")).unwrap_or_else(|| panic!("{left:?}"));
+    assert!(short_why.contains("incomplete") && short_why.contains("56.25 missing"), "{short_why}");
+    assert!(!left.iter().any(|w| w.contains("WHOLE")), "{left:?}");
+}

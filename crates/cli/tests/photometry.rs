@@ -72,3 +72,50 @@ fn star_polarization_after_vectorial_background_subtraction() {
     assert_eq!(o.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&o.stderr).contains("behind the mask"));
 }
+
+/// FORS2's exposures are two chip files (CHIP1 above, CHIP2 below, instrument file): a star
+/// saturated at (1000, 476), a pixel of CHIP2's place (origin (0, 0), 1024 rows), is named in
+/// the CHIP2 file in the photometry's error and in the saturation warnings, and never in a
+/// CHIP1 file, where both named the exposure's first (CHIP1) file.
+#[test]
+fn a_saturated_pixel_is_named_in_the_chip_file_it_came_from() {
+    let inst = instrument::Instrument::load("fors2").unwrap();
+    let holder = inst
+        .format
+        .chips
+        .iter()
+        .find(|c| {
+            (c.origin_px[0]..c.origin_px[0] + c.size_px[0]).contains(&1000)
+                && (c.origin_px[1]..c.origin_px[1] + c.size_px[1]).contains(&476)
+        })
+        .unwrap();
+    assert_eq!(holder.name, "CHIP2");
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("s.toml");
+    std::fs::write(
+        &scene,
+        "instrument = \"fors2\"\nfilter = \"v_HIGH\"\nhwp_angles_deg = [0, 22.5, 45, 67.5]\nexposure_s = 30\nseed = 21\n\
+         [sky]\nbrightness_e = 300\np = 0.0\n[[stars]]\nx = 1000\ny = 476\ncoords = \"pixel\"\nflux_e = 2e6\np = 0.05\n\
+         chi_deg = 30\nfwhm_arcsec = 0.8\n[effects]\nphoton_noise = true\nread_noise = true\n",
+    )
+    .unwrap();
+    let out = dir.path().join("f");
+    let o = instpol().arg("simulate").arg(&scene).arg("--out").arg(&out).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let frames = fits_in(&out);
+    let o = instpol()
+        .arg("photometry")
+        .args(&frames)
+        .args(["--instrument", "fors2", "--x", "1000", "--y", "476"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    let error = err.lines().find(|l| l.starts_with("error")).unwrap();
+    assert!(error.contains("is saturated") && error.contains("_CHIP2.fits"), "{err}");
+    let warned: Vec<&str> = err.lines().filter(|l| l.contains("saturated pixels")).collect();
+    assert!(!warned.is_empty(), "{err}");
+    for w in warned {
+        assert!(w.contains("_CHIP2.fits") && !w.contains("_CHIP1.fits"), "{w}");
+    }
+}

@@ -246,3 +246,47 @@ fn assembled_frames_reduce_to_the_raw_files_map() {
     }
     assert_scene_sky(&dir.path().join("assembled.fits"));
 }
+
+/// An instrumental field more than fully polarized somewhere on the detector is refused
+/// (exit 2) naming its key and the first place found, as the sky's p above 1 is; it was
+/// simulated. The radial pattern `p = 12 r^2` (1200 % per arcmin^2) on the tiny 128 px
+/// detector stays below 1 on the axes (r = 0.212 arcmin: 0.54) and passes it only towards the
+/// corners (r = 0.299: 1.075): the named p is the closed form at the named position, and above
+/// 1. The same pattern at 1000 % (0.90 at the corners) is simulated.
+#[test]
+fn an_instrumental_field_above_full_polarization_is_refused_naming_where() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst = tiny_instrument(dir.path());
+    let scene = |c: f64| {
+        let p = dir.path().join(format!("s{c}.toml"));
+        std::fs::write(
+            &p,
+            format!(
+                "instrument = \"{}\"\nfilter = \"V\"\n[sky]\nbrightness_e = 3000\n[effects.instpol]\nkind = \"radial\"\n\
+                 coeffs_percent = [0, 0, {c}]\n",
+                inst.display()
+            ),
+        )
+        .unwrap();
+        p
+    };
+    let out = dir.path().join("out");
+    let o = instpol().arg("simulate").arg(scene(1200.0)).arg("--out").arg(&out).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(err.contains("effects.instpol.coeffs_percent") && err.contains("more than fully polarized"), "{err}");
+    let num = |after: &str| -> Vec<f64> {
+        let rest = &err[err.find(after).unwrap() + after.len()..];
+        rest.split(|c: char| !(c.is_ascii_digit() || c == '.' || c == '-'))
+            .filter(|t| !t.is_empty())
+            .take(3)
+            .map(|t| t.parse().unwrap())
+            .collect()
+    };
+    let v = num("polarization degree is ");
+    let (p, x, y) = (v[0], v[1], v[2]);
+    assert!(p > 1.0 && (p - 12.0 * (x * x + y * y)).abs() < 0.01, "{err}");
+    assert!(!out.exists() || common::fits_in(&out).is_empty(), "frames written");
+    let o = instpol().arg("simulate").arg(scene(1000.0)).arg("--out").arg(&out).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}

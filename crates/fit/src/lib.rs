@@ -24,6 +24,7 @@ pub mod calibration;
 pub mod catalog_correct;
 pub mod chain;
 pub mod columns;
+pub mod conditioning;
 pub mod correlation;
 pub mod import;
 pub mod keys;
@@ -74,6 +75,9 @@ pub enum Error {
     TooFewBins { used: usize, total: usize, needed: usize },
     #[error("degenerate fit: {0}")]
     Degenerate(String),
+    /// The data leave a parameter free ([`conditioning::judge`]).
+    #[error(transparent)]
+    Undetermined(#[from] conditioning::Undetermined),
     #[error("fit failed: {0}")]
     FitFailed(String),
     #[error("bad exclusion region '{spec}': {why}")]

@@ -50,8 +50,9 @@
 //! # The loop
 //!
 //! At the top of each iteration the problem is linearized at the current point (a failure ends
-//! the run: [`Ending::Failed`]). A Gauss-Newton step is always taken (a singular normal matrix
-//! or a point that cannot be evaluated ends the run as failed) and the run's result is the best
+//! the run: [`Ending::Failed`]). A Gauss-Newton step is always taken (a weighted design matrix
+//! the conditioning judge refuses, [`crate::conditioning::judge`], a singular normal matrix or
+//! a point that cannot be evaluated ends the run as failed) and the run's result is the best
 //! point visited. A Levenberg-Marquardt iteration tries damped steps up the lambda ladder until
 //! one is accepted (a damped matrix that cannot be factorized or a trial point that cannot be
 //! evaluated counts as a rejected step); none accepted ends the run ([`Ending::NoDecrease`]).
@@ -73,6 +74,10 @@ pub enum LsqError {
     /// The problem could not be evaluated or linearized at a point (its own words).
     #[error("{0}")]
     Evaluation(String),
+    /// The data do not determine a parameter at a point ([`crate::conditioning::judge`] on the
+    /// weighted design matrix of a Gauss-Newton step).
+    #[error(transparent)]
+    Undetermined(#[from] crate::conditioning::Undetermined),
 }
 
 /// What the loop needs of a problem: the model at a point and its linearization there.
@@ -87,6 +92,14 @@ pub trait Problem {
     fn chi2(&self, e: &Self::Eval) -> f64;
     /// The normal equations at `x` (evaluated as `e`).
     fn linearize(&self, x: &[f64], e: &Self::Eval) -> Result<Linear<Self::Lin>, LsqError>;
+    /// The conditioning judge's words for the parameters (their names, and the input that
+    /// determines them); by default their numbers.
+    fn words(&self, n: usize) -> crate::conditioning::Words {
+        crate::conditioning::Words::new(
+            (1..=n).map(|k| format!("parameter {k}")).collect(),
+            "more data, or data that vary in what this fit models",
+        )
+    }
 }
 
 /// The normal equations at a point: the Gauss-Newton step `delta` solves `normal delta = rhs`.
@@ -98,6 +111,9 @@ pub struct Linear<L> {
     pub rhs: DVector<f64>,
     /// What the caller gets back with the solution.
     pub kept: L,
+    /// The weighted design matrix `W^1/2 J`, when the problem has one: what a Gauss-Newton step
+    /// has judged ([`crate::conditioning::judge`]) before it inverts.
+    pub design: Option<DMatrix<f64>>,
 }
 
 impl Linear<DMatrix<f64>> {
@@ -106,7 +122,7 @@ impl Linear<DMatrix<f64>> {
     pub fn of_jacobian(j: DMatrix<f64>, r: &DVector<f64>) -> Self {
         let normal = j.transpose() * &j;
         let rhs = -(j.transpose() * r);
-        Linear { normal, rhs, kept: j }
+        Linear { normal, rhs, design: Some(j.clone()), kept: j }
     }
 }
 
@@ -334,6 +350,10 @@ pub fn run<P: Problem>(problem: &P, x0: Vec<f64>, e0: P::Eval, policy: &Policy) 
         lin = Some(l.kept);
         match policy.step {
             Step::GaussNewton { fraction } => {
+                if let Some(Err(why)) = l.design.map(|d| crate::conditioning::judge(&d, &problem.words(x.len()))) {
+                    ending = Ending::Failed(why.into());
+                    break;
+                }
                 let Some(inv) = normal.try_inverse() else {
                     ending = Ending::Failed(LsqError::Singular);
                     break;
@@ -616,18 +636,24 @@ mod tests {
         }
     }
 
-    /// Two parameters that enter only as their sum: the undamped ladders say the normal matrix
-    /// is singular (no panic, no NaN); the damped runs reach the minimum chi^2 on the line
+    /// Two parameters that enter only as their sum: the undamped ladders say the data do not
+    /// determine their combination, before any inverse (no panic, no NaN); the damped runs reach the minimum chi^2 on the line
     /// `x + y = 7/5` (closed form: 0.4^2 + 0.2^2 = 0.2) at a finite point.
     #[test]
-    fn a_singular_problem_gives_the_singular_error() {
+    fn a_singular_problem_is_judged_undetermined() {
         let p = Written {
             r: |x| vec![x[0] + x[1] - 1.0, 2.0 * (x[0] + x[1]) - 3.0],
             j: |_| vec![vec![1.0, 1.0], vec![2.0, 2.0]],
             domain: anywhere,
         };
         for (name, l) in LADDERS {
-            assert_eq!(ladder(&p, vec![0.0, 0.0], &l).unwrap_err(), LsqError::Singular, "{name}");
+            match ladder(&p, vec![0.0, 0.0], &l) {
+                Err(LsqError::Undetermined(u)) => {
+                    assert_eq!(u.free, "a combination of parameter 1 and parameter 2", "{name}");
+                    assert!(u.ratio < 1e-15, "{name}: {u}");
+                }
+                other => panic!("{name}: {other:?}"),
+            }
         }
         for (name, pol) in RUNS {
             let s = run(&p, vec![0.0, 0.0], start(&p, &[0.0, 0.0]), &pol);

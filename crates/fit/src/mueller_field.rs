@@ -559,7 +559,7 @@ impl lsq::Problem for Fit<'_> {
     fn linearize(&self, coef: &[f64], _: &f64) -> std::result::Result<Linear<()>, LsqError> {
         // Its vector is `J^T W (measured - model)`: the right-hand side of the step.
         let (normal, rhs, _) = normal_equations(self.data, self.kind, self.free, coef);
-        Ok(Linear { normal, rhs, kept: () })
+        Ok(Linear { normal, rhs, kept: (), design: None })
     }
 }
 
@@ -694,16 +694,12 @@ fn check_constrained(
         }
     }
     if !weak.iter().any(|&w| w) {
-        let d: Vec<f64> = diag.iter().map(|v| v.sqrt()).collect();
-        let s = DMatrix::from_fn(n, n, |i, j| fisher[(i, j)] / (d[i] * d[j]));
-        let eig = s.symmetric_eigen();
-        let mx = eig.eigenvalues.max();
-        for (e, v) in eig.eigenvalues.iter().zip(eig.eigenvectors.column_iter()) {
-            if *e < min_ratio * mx {
-                for (p, c) in v.iter().enumerate() {
-                    if c.abs() > 0.2 {
-                        weak[p / nm] = true;
-                    }
+        // The judge's scaled spectrum (the field has its normal matrix only, accumulated
+        // from each datum's 2 x 2 weight), with the fit's own tolerance on eigenvalues.
+        for v in crate::conditioning::weak_directions(fisher, min_ratio) {
+            for (p, c) in v.iter().enumerate() {
+                if c.abs() > 0.2 {
+                    weak[p / nm] = true;
                 }
             }
         }

@@ -117,6 +117,34 @@ impl FieldModel for PolyModel {
     }
 }
 
+/// The conditioning judge's words for a polynomial field: its terms, and the layout that
+/// determines them.
+pub(crate) fn plane_words(degree: usize) -> crate::conditioning::Words {
+    let names = PolyModel::powers(degree)
+        .into_iter()
+        .map(|(i, j)| match (i, j) {
+            (0, 0) => "the constant term".to_string(),
+            (i, j) => {
+                let p = |v: &str, k: usize| match k {
+                    0 => String::new(),
+                    1 => v.to_string(),
+                    k => format!("{v}^{k}"),
+                };
+                format!("the {}{} term", p("x", i), p("y", j))
+            }
+        })
+        .collect();
+    crate::conditioning::Words::new(
+        names,
+        format!(
+            "a degree-{degree} polynomial in x and y needs positions (stars or bins) spread in two dimensions, \
+             at {} or more distinct places not on one line (or curve of that degree): add positions off the line, \
+             or fit a radial model instead",
+            PolyModel::n_terms(degree)
+        ),
+    )
+}
+
 /// The result of a polynomial fit: the model and what the fit saw (as [`crate::RadialFit`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PolyFit {
@@ -160,6 +188,8 @@ pub fn fit_poly(bins: &[Bin], degree: usize, opts: &RadialFitOptions) -> Result<
     let solve = |w: &[f64], values: &dyn Fn(&Bin) -> (f64, f64)| -> Result<(DVector<f64>, DMatrix<f64>)> {
         let mut ata = DMatrix::<f64>::zeros(m, m);
         let mut atb = DVector::<f64>::zeros(m);
+        let wts: Vec<f64> = sel.iter().zip(w).map(|(b, wr)| wr / values(b).1.powi(2)).collect();
+        crate::conditioning::judge(&crate::conditioning::weighted_design(&a, &wts), &plane_words(degree))?;
         for (r, b) in sel.iter().enumerate() {
             let (v, s) = values(b);
             let wr = w[r] / (s * s);

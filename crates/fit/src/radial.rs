@@ -7,6 +7,7 @@
 //! sign (a tangential pattern is a negative `p`), and constrains the centre through the angles.
 
 use crate::bins::Bin;
+use crate::conditioning::{self, Words};
 use crate::lsq::{self, Linear, LsqError};
 use crate::model::{FieldModel, InstPol};
 use crate::region::Exclusion;
@@ -545,6 +546,34 @@ impl lsq::Problem for Problem<'_> {
     fn linearize(&self, x: &[f64], r: &DVector<f64>) -> std::result::Result<Linear<DMatrix<f64>>, LsqError> {
         Ok(Linear::of_jacobian(self.jacobian(x), r))
     }
+    fn words(&self, _n: usize) -> Words {
+        self.words()
+    }
+}
+
+impl Problem<'_> {
+    /// The conditioning judge's words: the coefficients by their power of r, the centre, and
+    /// the layout that determines them (the radii present, and a pattern to centre on).
+    fn words(&self) -> Words {
+        let mut names: Vec<String> =
+            (0..self.nc).map(|k| format!("the r^{} coefficient", k + self.first_power)).collect();
+        if self.free_centre {
+            names.extend(["the centre's x".to_string(), "the centre's y".to_string()]);
+        }
+        let (lo, hi) = self.bins.iter().fold((f64::INFINITY, 0.0f64), |(l, h), b| {
+            let r = (b.x - self.fixed_centre[0]).hypot(b.y - self.fixed_centre[1]);
+            (l.min(r), h.max(r))
+        });
+        let mut remedy = format!(
+            "the bins' radii span only {lo:.4}..{hi:.4} arcmin from the centre; a radial profile of {} powers of r \
+             needs bins at several distances from the centre",
+            self.nc
+        );
+        if self.free_centre {
+            remedy.push_str(", and a free centre a polarization that changes with radius to centre on");
+        }
+        Words::new(names, remedy)
+    }
 }
 
 /// Gauss-Newton from `start` under [`lsq::RADIAL`] (full steps; if they do not lower the cost,
@@ -554,31 +583,13 @@ fn gauss_newton(problem: &Problem, start: Vec<f64>) -> Result<Vec<f64>> {
         // The fit's words for its failures, as when argmin's solver ran it (its own for a
         // singular normal matrix).
         let why = match e {
+            LsqError::Undetermined(u) => return Error::Undetermined(u),
             LsqError::Singular => "Non-invertible matrix".to_string(),
             LsqError::NoDecrease { from, to } => format!("cost rose from {from} to {to}"),
             LsqError::Evaluation(w) => w,
         };
         Error::FitFailed(format!("Gauss-Newton did not converge: {why}"))
     })
-}
-
-/// Ratio of the smallest to the largest singular value of `j` with unit-norm columns: near 0
-/// when some parameter (combination) is not constrained by the data.
-fn conditioning(j: &DMatrix<f64>) -> f64 {
-    let mut j = j.clone();
-    for mut col in j.column_iter_mut() {
-        let n = col.norm();
-        if n > 0.0 {
-            col /= n;
-        }
-    }
-    let sv = j.singular_values();
-    let max = sv.max();
-    if max > 0.0 {
-        sv.min() / max
-    } else {
-        0.0
-    }
 }
 
 /// Fit the radial model (section `sec:fors1`) to the bins by robust weighted least squares on
@@ -689,16 +700,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
     };
     // The coefficients must be constrained by the radii present (all bins at one radius make
     // every r^k column the same shape).
-    let j0 = problem.jacobian(&vec![0.0; nc]);
-    let radii: Vec<f64> = problem.bins.iter().map(|b| (b.x - start_centre[0]).hypot(b.y - start_centre[1])).collect();
-    if conditioning(&j0) < 1e-9 {
-        let (lo, hi) = radii.iter().fold((f64::INFINITY, 0.0f64), |(l, h), r| (l.min(*r), h.max(*r)));
-        return Err(Error::Degenerate(format!(
-            "the {} polynomial coefficients are not constrained by the bins: their radii span only {lo:.4}..{hi:.4} arcmin \
-             (a radial profile needs bins at several distances from the centre)",
-            nc
-        )));
-    }
+    conditioning::judge(&problem.jacobian(&vec![0.0; nc]), &problem.words())?;
 
     // Robust weights from the standardized residuals of each bin (without the weights).
     let robust_weights = |problem: &Problem, params: &[f64]| -> Vec<f64> {
@@ -751,12 +753,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
 
     // Covariance from the Jacobian at the solution, scaled as the options say.
     let j = problem.jacobian(&params);
-    if conditioning(&j) < 1e-10 {
-        return Err(Error::Degenerate(
-            "the parameters are not all constrained at the solution (free centre with no polarization gradient?)"
-                .into(),
-        ));
-    }
+    conditioning::judge(&j, &problem.words())?;
     let r = problem.residuals(&params);
     let dof = (2 * problem.bins.len()).saturating_sub(n_free).max(1);
     let chi2_reduced = r.norm_squared() / dof as f64;

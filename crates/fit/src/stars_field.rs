@@ -700,6 +700,7 @@ fn joint_covariance(
     let mut a = DMatrix::<f64>::zeros(n, n);
     let mut gq = vec![0.0; n];
     let mut gu = vec![0.0; n];
+    let mut rows_w: Vec<Vec<f64>> = vec![];
     for (k, &i) in keep.iter().enumerate() {
         let w = run.weights()[k];
         if w <= 0.0 {
@@ -717,6 +718,8 @@ fn joint_covariance(
             gu[nf + 1] = 1.0;
         }
         let (wq, wu) = (w / r.qu.var_q, w / r.qu.var_u);
+        rows_w.push(gq.iter().map(|g| g * wq.sqrt()).collect());
+        rows_w.push(gu.iter().map(|g| g * wu.sqrt()).collect());
         for a_ in 0..n {
             for b in 0..n {
                 a[(a_, b)] += wq * gq[a_] * gq[b] + wu * gu[a_] * gu[b];
@@ -724,6 +727,8 @@ fn joint_covariance(
         }
     }
     let scale = run.covariance_scale();
+    let design = DMatrix::from_fn(rows_w.len(), n, |i, k| rows_w[i][k]);
+    crate::conditioning::judge(&design, &joint_words(run, nf, with_isp))?;
     let inv = a.try_inverse().ok_or_else(|| {
         Error::Degenerate("the field and the interstellar polarization cannot be told apart by these stars".into())
     })? * scale;
@@ -735,6 +740,34 @@ fn joint_covariance(
     }
     let var = if with_isp { [inv[(nf, nf)], inv[(nf + 1, nf + 1)], inv[(nf, nf + 1)]] } else { [0.0; 3] };
     Ok((cov, var))
+}
+
+/// The conditioning judge's words for the joint fit of the field (its first `nf` parameters)
+/// and, with `with_isp`, the interstellar polarization.
+fn joint_words(run: &CalibrationRun, nf: usize, with_isp: bool) -> crate::conditioning::Words {
+    let mut names: Vec<String> = match &run.poly {
+        Some(p) => {
+            let terms = crate::poly::plane_words(p.model.degree).names;
+            ["q", "u"].iter().flat_map(|c| terms.iter().map(move |t| format!("{t} of {c}"))).collect()
+        }
+        None => {
+            let m = &run.fit.model;
+            let mut v: Vec<String> =
+                (0..m.coeffs.len()).map(|k| format!("the r^{} coefficient", k + m.first_power)).collect();
+            v.extend(["the centre's x".to_string(), "the centre's y".to_string()]);
+            v
+        }
+    };
+    names.truncate(nf);
+    if with_isp {
+        names.extend(["the interstellar q".to_string(), "the interstellar u".to_string()]);
+    }
+    crate::conditioning::Words::new(
+        names,
+        "the interstellar polarization is told apart from the instrument's field only where the field changes \
+         over the stars: stars spread over the field of view, at several distances from its centre, or the \
+         interstellar polarization given rather than fitted",
+    )
 }
 
 /// The calibration's description for a fit from stars of `inst` in `filter`, with the HWP

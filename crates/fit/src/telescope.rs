@@ -878,6 +878,33 @@ impl lsq::Problem for Problem<'_> {
         let j = self.jac(x).map_err(|e| LsqError::Evaluation(e.to_string()))?;
         Ok(Linear::of_jacobian(j, r))
     }
+    fn words(&self, _n: usize) -> crate::conditioning::Words {
+        self.words()
+    }
+}
+
+impl Problem<'_> {
+    /// The conditioning judge's words: the model's parameters, and the coverage that
+    /// determines them (the parallactic and rotator angles the standards were observed at).
+    fn words(&self) -> crate::conditioning::Words {
+        let span = |f: &dyn Fn(&Observation) -> f64| {
+            let v: Vec<f64> = self.obs.iter().map(|(o, _)| f(o).to_degrees()).collect();
+            let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
+            let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            format!("{lo:.1} to {hi:.1} deg")
+        };
+        crate::conditioning::Words::new(
+            self.spec.names(),
+            format!(
+                "the telescope's terms are told apart by how the standards' (q, u) turn with the parallactic angle: \
+                 observe them over a wider range of parallactic angles (these {} observations span {}; rotator \
+                 angles {}), with more standards, or in each band fitted",
+                self.obs.len(),
+                span(&|o| o.parallactic),
+                span(&|o| o.rotator)
+            ),
+        )
+    }
 }
 
 fn chi2_of(problem: &Problem, p: &[f64]) -> f64 {
@@ -1003,6 +1030,7 @@ pub fn fit_joint(
     let dof = 2 * n_used - np;
     let chi2_reduced = chi2 / dof as f64;
     let j = problem.jac(&p).map_err(|e| Error::FitFailed(e.to_string()))?;
+    crate::conditioning::judge(&j, &problem.words())?;
     let jtj = j.transpose() * &j;
     let cov0 = jtj.clone().try_inverse().ok_or_else(|| {
         Error::Degenerate(format!(

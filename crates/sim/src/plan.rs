@@ -337,6 +337,61 @@ fn load_field(spec: &InstPolSpec, inst: &Instrument) -> Result<Arc<dyn FieldMode
     })
 }
 
+/// An instrumental field is a partial polarizer of degree `p <= 1` everywhere on the detector
+/// (as the sky's p is refused above 1): refused naming the key and the first position where
+/// it is not, searched over the field's coordinates of every detector pixel of a grid of at
+/// most 257 x 257 points with the corners, and for a radial pattern also along every radius
+/// out to the farthest corner (a polynomial's peak between grid points). NaN map cells carry
+/// no instrumental polarization and pass.
+fn check_field_physical(spec: &InstPolSpec, model: &dyn FieldModel, inst: &Instrument) -> Result<(), Error> {
+    let (key, value) = match spec {
+        InstPolSpec::Radial { coeffs_percent, .. } => ("effects.instpol.coeffs_percent", format!("{coeffs_percent:?}")),
+        InstPolSpec::Map { q_file, u_file, .. } => {
+            ("effects.instpol.q_file/u_file", format!("{} / {}", q_file.display(), u_file.display()))
+        }
+        InstPolSpec::Raytrace { file, .. } => ("effects.instpol.file", file.display().to_string()),
+    };
+    let coords = inst.field_coords();
+    let (nx, ny) = (inst.detector.nx.max(1), inst.detector.ny.max(1));
+    let axis = |n: usize| -> Vec<f64> {
+        let k = n.min(257);
+        (0..k).map(|i| if k == 1 { 0.0 } else { i as f64 * (n - 1) as f64 / (k - 1) as f64 }).collect()
+    };
+    let mut points: Vec<(f64, f64)> = Vec::new();
+    for &py in &axis(ny) {
+        for &px in &axis(nx) {
+            points.push(coords.pixel_to_arcmin(px, py));
+        }
+    }
+    if let InstPolSpec::Radial { centre_arcmin, .. } = spec {
+        let corners = [(0.0, 0.0), ((nx - 1) as f64, 0.0), (0.0, (ny - 1) as f64), ((nx - 1) as f64, (ny - 1) as f64)];
+        let r_max = corners
+            .iter()
+            .map(|&(px, py)| {
+                let (x, y) = coords.pixel_to_arcmin(px, py);
+                (x - centre_arcmin[0]).hypot(y - centre_arcmin[1])
+            })
+            .fold(0.0, f64::max);
+        points.extend((0..=4096).map(|i| (centre_arcmin[0] + r_max * i as f64 / 4096.0, centre_arcmin[1])));
+    }
+    for (x, y) in points {
+        let (p, _) = model.p_phi(x, y);
+        if p > 1.0 {
+            let (px, py) = coords.arcmin_to_pixel(x, y);
+            return Err(Error::Invalid {
+                path: PathBuf::from("<scene>"),
+                key: key.into(),
+                value,
+                why: format!(
+                    "the instrumental field's polarization degree is {p:.4} at ({x:.3}, {y:.3}) arcmin (detector pixel \
+                     ({px:.0}, {py:.0})): a fraction above 1, more than fully polarized (coefficients are in percent)"
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
 /// Sersic `b_n` (asymptotic expansion, good to < 1e-4 for n > 0.36).
 fn sersic_b(n: f64) -> f64 {
     2.0 * n - 1.0 / 3.0 + 4.0 / (405.0 * n) + 46.0 / (25515.0 * n * n)
@@ -410,7 +465,11 @@ impl Plan {
                 let d = m.describe();
                 Some((m, d))
             }
-            (None, Some(spec)) => Some((load_field(spec, &inst)?, describe_instpol(spec))),
+            (None, Some(spec)) => {
+                let model = load_field(spec, &inst)?;
+                check_field_physical(spec, model.as_ref(), &inst)?;
+                Some((model, describe_instpol(spec)))
+            }
             (None, None) => None,
         };
         // Half-wave-plate causes (tilted, wedged plate): equivalent blocks at the scene's angles.

@@ -221,6 +221,7 @@ fn reference_frames(inst: &Instrument, science: &[PathBuf], masters: Option<(&Pa
             }
         }
         frames.push(Frame {
+            chips: vec![],
             path: pair[0].clone(),
             nx,
             ny,

@@ -908,6 +908,14 @@ impl Calibrated {
         self.chips.iter().map(|c| c.path.as_path()).collect()
     }
 
+    /// The chip files with their places on the detector.
+    pub(crate) fn chip_places(&self) -> Vec<crate::frame::ChipPlace> {
+        self.chips
+            .iter()
+            .map(|c| crate::frame::ChipPlace { path: c.path.clone(), x0: c.x0, y0: c.y0, nx: c.cx, ny: c.cy })
+            .collect()
+    }
+
     /// Whether `other`'s rows can be summed with this exposure's by
     /// [`Calibrated::load_rows_summed`]: the same masters and the same chips in the same places.
     pub(crate) fn summable_with(&self, other: &Calibrated) -> bool {
@@ -1568,7 +1576,9 @@ pub fn read_exposures(paths: &[PathBuf], inst: &Instrument, opts: &ReadOptions) 
     let res: Vec<Result<Frame, Error>> = ex
         .into_par_iter()
         .map(|e| {
+            let chips = e.rows.chip_places();
             Ok(Frame {
+                chips,
                 data: e.rows.whole()?,
                 path: e.path,
                 nx: inst.detector.nx,

@@ -501,6 +501,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
     let inst = &*inst.for_filter(src.filter());
     let (nx, ny, n) = (src.nx(), src.ny(), src.angles_deg().len());
     let files = src.files();
+    let chips = src.chips();
     if n == 0 || files.iter().any(|f| f.is_empty()) {
         return Err(Error::NoFrames);
     }
@@ -667,6 +668,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                 nexp: files[i].len(),
                 file: &files[i][0],
                 hwp_deg: src.angles_deg()[i],
+                chips: &chips[i],
             };
             let mut out: Vec<Vec<Option<Result<FrameFluxes, Error>>>> = planned.iter().map(|_| vec![]).collect();
             let mut next = 0;

@@ -28,27 +28,89 @@ use std::path::Path;
 pub const FAIL_SYNC_ENV: &str = "INSTPOL_TEST_FAIL_SYNC";
 
 /// Close `f` through CFITSIO and return its status as an error. CFITSIO writes its buffered
-/// header and data blocks here, so on a full disk this is where the error appears.
+/// header and data blocks here, so on a full disk this is where the error appears; but a
+/// write that fails in the C library's last flush at `fclose` is not always in that status
+/// (a file a partial page short came back with status 0), so the file on disk is then read
+/// back and must hold every HDU CFITSIO had, whole ([`fits_extent`]).
 pub fn close_fits(mut f: FitsFile) -> Result<(), String> {
     let mut status: std::os::raw::c_int = 0;
-    // SAFETY: `as_raw` gives the live pointer the FitsFile owns. ffclos frees the fitsfile
-    // structure whatever the status, so the FitsFile must not run its Drop (a second
-    // ffclos on freed memory): it is forgotten (leaking only its path and mode, a few bytes).
+    let mut nhdu: std::os::raw::c_int = 0;
+    let mut name = [0 as std::os::raw::c_char; 1025];
+    // SAFETY: `as_raw` gives the live pointer the FitsFile owns; ffflnm writes at most
+    // FLEN_FILENAME (1025) bytes with the NUL. ffclos frees the fitsfile structure whatever
+    // the status, so the FitsFile must not run its Drop (a second ffclos on freed memory): it
+    // is forgotten (leaking only its path and mode, a few bytes).
     unsafe {
+        fitsio::sys::ffthdu(f.as_raw(), &mut nhdu, &mut status);
+        fitsio::sys::ffflnm(f.as_raw(), name.as_mut_ptr(), &mut status);
         fitsio::sys::ffclos(f.as_raw(), &mut status);
     }
     std::mem::forget(f);
-    if status == 0 {
-        Ok(())
-    } else {
+    if status != 0 {
         let mut buf = [0 as std::os::raw::c_char; 32];
         // SAFETY: ffgerr writes at most 30 characters and a NUL into the 32-byte buffer.
         let text = unsafe {
             fitsio::sys::ffgerr(status, buf.as_mut_ptr());
             std::ffi::CStr::from_ptr(buf.as_ptr()).to_string_lossy().into_owned()
         };
-        Err(format!("closing the FITS file failed (CFITSIO status {status}: {text}); disk full?"))
+        return Err(format!("closing the FITS file failed (CFITSIO status {status}: {text}); disk full?"));
     }
+    // SAFETY: ffflnm wrote a NUL-terminated name into the buffer (zeroed beforehand).
+    let name = unsafe { std::ffi::CStr::from_ptr(name.as_ptr()) }.to_string_lossy().into_owned();
+    let path = Path::new(name.trim_start_matches('!'));
+    let len = std::fs::metadata(path).map_err(|e| format!("reading back {}: {e}", path.display()))?.len();
+    match fits_extent(path, nhdu.max(0) as usize) {
+        Ok(end) if end == len => Ok(()),
+        Ok(end) => Err(format!(
+            "the FITS file holds {len} bytes where its {nhdu} HDUs end at byte {end}: a write was lost at close (disk full?)"
+        )),
+        Err(why) => Err(format!("the FITS file is not whole after closing ({why}): a write was lost (disk full?)")),
+    }
+}
+
+/// Where the first `nhdu` HDUs of the FITS file at `path` end (bytes, a multiple of 2880),
+/// read from their headers (`BITPIX`, `NAXISn`, `PCOUNT`, `GCOUNT`); `Err` naming what is cut
+/// short when the file ends before them.
+pub fn fits_extent(path: &Path, nhdu: usize) -> Result<u64, String> {
+    use std::io::{Read, Seek, SeekFrom};
+    const BLOCK: u64 = 2880;
+    let mut f = std::fs::File::open(path).map_err(|e| e.to_string())?;
+    let mut at = 0u64;
+    for h in 0..nhdu {
+        let mut keys: Vec<(String, i64)> = Vec::new();
+        let mut block = [0u8; BLOCK as usize];
+        'header: loop {
+            f.seek(SeekFrom::Start(at)).map_err(|e| e.to_string())?;
+            f.read_exact(&mut block).map_err(|_| format!("HDU {} header cut short at byte {at}", h + 1))?;
+            at += BLOCK;
+            for card in block.chunks(80) {
+                let card = String::from_utf8_lossy(card);
+                let key = card.get(..8).unwrap_or("").trim_end();
+                if key == "END" {
+                    break 'header;
+                }
+                if card.get(8..10) == Some("= ") {
+                    let value = card[10..].split('/').next().unwrap_or("").trim();
+                    if let Ok(v) = value.parse::<i64>() {
+                        keys.push((key.to_string(), v));
+                    }
+                }
+            }
+        }
+        let get = |k: &str| keys.iter().find(|(n, _)| n == k).map(|(_, v)| *v);
+        let naxis = get("NAXIS").unwrap_or(0);
+        let elements: i64 =
+            if naxis > 0 { (1..=naxis).map(|i| get(&format!("NAXIS{i}")).unwrap_or(0)).product() } else { 0 };
+        let bytes = get("BITPIX").unwrap_or(8).unsigned_abs() / 8
+            * get("GCOUNT").unwrap_or(1).max(0) as u64
+            * (get("PCOUNT").unwrap_or(0).max(0) + elements.max(0)) as u64;
+        at += bytes.div_ceil(BLOCK) * BLOCK;
+    }
+    let len = f.metadata().map_err(|e| e.to_string())?.len();
+    if len < at {
+        return Err(format!("its {nhdu} HDUs need {at} bytes, the file holds {len}"));
+    }
+    Ok(at)
 }
 
 /// fsync the file at `path` (data and metadata), so that a deferred write error (ENOSPC, EIO,

@@ -32,6 +32,34 @@ pub struct Frame {
     pub bitpix: i32,
     /// How the values become electrons (the instrument's ADU, or already electrons).
     pub conversion: Conversion,
+    /// The chip files the exposure was assembled from, each with its place on the detector
+    /// (empty for a plain frame): what [`file_of`] names a pixel's file by.
+    pub chips: Vec<ChipPlace>,
+}
+
+/// One chip file's place in an exposure assembled from chips: detector pixels
+/// `x0 .. x0 + nx` by `y0 .. y0 + ny`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ChipPlace {
+    pub path: PathBuf,
+    pub x0: usize,
+    pub y0: usize,
+    pub nx: usize,
+    pub ny: usize,
+}
+
+impl ChipPlace {
+    /// Whether detector pixel `(px, py)` is on this chip.
+    pub fn holds(&self, px: usize, py: usize) -> bool {
+        (self.x0..self.x0 + self.nx).contains(&px) && (self.y0..self.y0 + self.ny).contains(&py)
+    }
+}
+
+/// The one decision of which file a detector pixel of an exposure came from: the chip file
+/// whose place holds it, else the exposure's `file` (a plain frame, or a pixel between the
+/// chips). Every message about a pixel names its file by this.
+pub fn file_of<'a>(chips: &'a [ChipPlace], file: &'a Path, px: usize, py: usize) -> &'a Path {
+    chips.iter().find(|c| c.holds(px, py)).map_or(file, |c| c.path.as_path())
 }
 
 /// How a frame's values become electrons: `(value - bias) * gain`; values at or above
@@ -115,7 +143,19 @@ pub(crate) struct RawFrame {
 impl RawFrame {
     pub(crate) fn into_frame(self) -> Frame {
         let RawFrame { path, nx, ny, pixels, hwp_deg, hwp_sweep_deg, filter, exptime_s, bitpix, conversion } = self;
-        Frame { path, nx, ny, data: pixels.into_f64(), hwp_deg, hwp_sweep_deg, filter, exptime_s, bitpix, conversion }
+        Frame {
+            path,
+            nx,
+            ny,
+            data: pixels.into_f64(),
+            hwp_deg,
+            hwp_sweep_deg,
+            filter,
+            exptime_s,
+            bitpix,
+            conversion,
+            chips: Vec::new(),
+        }
     }
 }
 

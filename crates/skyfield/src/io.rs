@@ -69,6 +69,16 @@ pub(crate) enum FrameRows {
     Calibrated(Calibrated),
 }
 
+impl FrameRows {
+    /// The chip files with their places, for rows assembled from chips (else none).
+    pub(crate) fn chip_places(&self) -> Vec<crate::frame::ChipPlace> {
+        match self {
+            FrameRows::Calibrated(c) => c.chip_places(),
+            _ => Vec::new(),
+        }
+    }
+}
+
 impl From<StoredRows> for FrameRows {
     fn from(s: StoredRows) -> Self {
         match s {
@@ -97,6 +107,12 @@ impl OpenFrame {
     /// Whether the frame is plain (its values as stored), not assembled from raw chip files.
     pub fn is_plain(&self) -> bool {
         !matches!(self.rows, FrameRows::Calibrated(_))
+    }
+
+    /// The chip files the exposure was assembled from, with their places (empty for a plain
+    /// frame).
+    pub fn chip_places(&self) -> Vec<crate::frame::ChipPlace> {
+        self.rows.chip_places()
     }
 
     /// The chip files the exposure was assembled from (empty for a plain frame).

@@ -303,6 +303,8 @@ pub(crate) struct FrameFacts<'a> {
     pub nexp: usize,
     pub file: &'a Path,
     pub hwp_deg: f64,
+    /// The chip files of the exposure with their places (empty for a plain frame).
+    pub chips: &'a [crate::frame::ChipPlace],
 }
 
 impl<'a> FrameFacts<'a> {
@@ -313,6 +315,7 @@ impl<'a> FrameFacts<'a> {
             nexp: set.files[i].len(),
             file: &set.files[i][0],
             hwp_deg: set.angles_deg[i],
+            chips: set.chips.get(i).map_or(&[], |c| c.as_slice()),
         }
     }
 }
@@ -422,7 +425,9 @@ pub(crate) fn measure_frame(
     // The frames' own conversion: the instrument's ADU, or electrons for calibrated frames.
     let (bias, gain, sat, rn2) = facts.conversion.det();
     let nexp = facts.nexp as f64;
-    let file = facts.file.display();
+    // Each pixel's own file: a chip file of an assembled exposure (the one decision).
+    let file_of = |px: usize, py: usize| crate::frame::file_of(facts.chips, facts.file, px, py).display();
+    let file_at = |x: f64, y: f64| file_of(x.round().max(0.0) as usize, y.round().max(0.0) as usize);
     let to_e = |v: f64| (v - bias * nexp) * gain;
     let strip0 = g.strip_of_sky(x.round() as usize, y.round() as usize);
     let o_pixel = |px: usize, py: usize| match g.kind(px, py) {
@@ -433,8 +438,8 @@ pub(crate) fn measure_frame(
     let (xo, yo) = if opts.recentre {
         centroid(data, g.nx, g.ny, x, y, ap.radius_px, o_pixel).ok_or_else(|| {
             Error::Invalid(format!(
-                "no source at ({x:.1}, {y:.1}) px in {file} (HWP angle {} deg): nothing rises above the local background within the aperture radius {} px, so the aperture cannot be centred (turn re-centring off to measure a fixed position)",
-                facts.hwp_deg, ap.radius_px
+                "no source at ({x:.1}, {y:.1}) px in {} (HWP angle {} deg): nothing rises above the local background within the aperture radius {} px, so the aperture cannot be centred (turn re-centring off to measure a fixed position)",
+                file_at(x, y), facts.hwp_deg, ap.radius_px
             ))
         })?
     } else {
@@ -442,7 +447,8 @@ pub(crate) fn measure_frame(
     };
     let (xe, ye) = g.e_position(xo, yo).ok_or_else(|| {
         Error::mask_edge(format!(
-            "the e image of ({xo:.1}, {yo:.1}) px falls behind the mask or off the detector ({file})"
+            "the e image of ({xo:.1}, {yo:.1}) px falls behind the mask or off the detector ({})",
+            file_at(xo, yo)
         ))
     })?;
     let strip = g.strip_of_sky(xo.round().max(0.0) as usize, yo.round().max(0.0) as usize);
@@ -484,12 +490,14 @@ pub(crate) fn measure_frame(
             }
             if !val.is_finite() {
                 return Err(Error::Invalid(format!(
-                    "aperture pixel ({px}, {py}) of the {name} beam in {file} is {val}; photometry needs clean aperture pixels"
+                    "aperture pixel ({px}, {py}) of the {name} beam in {} is {val}; photometry needs clean aperture pixels",
+                    file_of(px, py)
                 )));
             }
             if val >= sat * nexp {
                 return Err(Error::saturated(format!(
-                        "aperture pixel ({px}, {py}) of the {name} beam in {file} is saturated; photometry needs clean aperture pixels"
+                        "aperture pixel ({px}, {py}) of the {name} beam in {} is saturated; photometry needs clean aperture pixels",
+                        file_of(px, py)
                     )));
             }
             let e = to_e(val);
@@ -598,6 +606,7 @@ pub fn single_exposures(frames: &[crate::frame::Frame], set: &FrameSet) -> Vec<F
             ny: f.ny,
             warnings: vec![],
             conversion: set.conversion,
+            chips: vec![f.chips.clone()],
         })
         .collect()
 }

@@ -154,6 +154,39 @@ fn bad_pixel_notes(
     Ok(warnings)
 }
 
+/// The bad-pixel notes of `frames` (`whole`: [`bad_pixel_notes`] per exposure), with those of
+/// an exposure assembled from chips made per chip file: each chip's NaN and saturated pixels
+/// counted on its own place and named by its own file, so that a saturated pixel of CHIP2 is
+/// reported in the CHIP2 file ([`crate::frame::file_of`]'s decision, by rectangle).
+fn chip_bad_notes(frames: &[Frame], whole: Vec<Warning>, conv: &Conversion) -> Vec<Warning> {
+    let sat = conv.saturation_label();
+    let mut out: Vec<Warning> = whole
+        .into_iter()
+        .filter(|w| !frames.iter().any(|f| !f.chips.is_empty() && w.file.as_deref() == Some(f.path.as_path())))
+        .collect();
+    for f in frames.iter().filter(|f| !f.chips.is_empty()) {
+        for c in &f.chips {
+            let (mut nbad, mut nsat) = (0, 0);
+            for y in c.y0..(c.y0 + c.ny).min(f.ny) {
+                let row = &f.data[y * f.nx + c.x0.min(f.nx)..y * f.nx + (c.x0 + c.nx).min(f.nx)];
+                let (b, s) = PixelView::F64(row).count_bad(conv.saturation);
+                nbad += b;
+                nsat += s;
+            }
+            if nbad > 0 {
+                out.push(Warning { file: Some(c.path.clone()), message: format!("{nbad} NaN/infinite pixels masked") });
+            }
+            if nsat > 0 {
+                out.push(Warning {
+                    file: Some(c.path.clone()),
+                    message: format!("{nsat} saturated pixels (>= {sat}) masked"),
+                });
+            }
+        }
+    }
+    out
+}
+
 /// What grouping decided: the filter, sorted angles, which frames (indices) at each angle in
 /// summing order, and the notes.
 struct Grouping {
@@ -166,11 +199,12 @@ struct Grouping {
 }
 
 /// The checks of [`FrameSet::from_frames`] on frame facts alone (`meta`: path, filter, nx,
-/// ny, HWP angle).
+/// ny, HWP angle; `sweep_deg`: the set's common sweep, 0 for a fixed plate).
 fn group_frames(
     meta: &[(&Path, &str, usize, usize, f64)],
     inst: &Instrument,
     require_complete: bool,
+    sweep_deg: f64,
 ) -> Result<Grouping, Error> {
     if meta.is_empty() {
         return Err(Error::NoFrames);
@@ -236,10 +270,19 @@ fn group_frames(
             }
         }
     }
-    // The optimal sets are a half-wave plate's; a quarter-wave plate's angles are judged by
-    // the circular demodulation (stokes::CircularSolver), which names a set lacking V.
-    if require_complete && inst.polarimetry.plate == instrument::Plate::HalfWave {
-        check_complete(&filter, &angles)?;
+    // The optimal sets are a half-wave plate's, fixed or turning; a quarter-wave plate's
+    // angles are judged by the circular demodulation (stokes::CircularSolver), which names a
+    // set lacking V.
+    if inst.polarimetry.plate == instrument::Plate::HalfWave {
+        match check_complete(&filter, &angles, sweep_deg) {
+            Err(e) if require_complete => return Err(e),
+            // Reduced as asked, by least squares on what is there, with the gap named.
+            Err(e) => warnings.push(Warning {
+                file: None,
+                message: format!("{e}: reduced by least squares on the angles present, as asked"),
+            }),
+            Ok(()) => {}
+        }
     }
     Ok(Grouping { filter, angles, members, nx, ny, warnings })
 }
@@ -289,6 +332,9 @@ pub struct FrameSet {
     pub warnings: Vec<Warning>,
     /// How the values become electrons (the instrument's ADU, or electrons already).
     pub conversion: Conversion,
+    /// Per angle, the chip files of its first exposure with their places (empty for plain
+    /// frames): which file a pixel came from ([`crate::frame::file_of`]).
+    pub chips: Vec<Vec<crate::frame::ChipPlace>>,
 }
 
 /// Angles (deg) equal within this tolerance are the same plate position.
@@ -300,6 +346,10 @@ fn fmt_angles(a: &[f64]) -> String {
 }
 
 impl FrameSet {
+    fn chip_places(&self) -> Vec<Vec<crate::frame::ChipPlace>> {
+        self.chips.clone()
+    }
+
     /// Each exposure's file and the HWP angle (deg) it is grouped at, angle by angle.
     pub fn exposures(&self) -> Vec<(PathBuf, f64)> {
         exposures_of(&self.files, &self.angles_deg)
@@ -312,9 +362,10 @@ impl FrameSet {
         let bad: Vec<BadCounts> = frames.par_iter().map(|fr| PixelView::F64(&fr.data).count_bad(sat)).collect();
         let meta: Vec<_> =
             frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
-        let g = group_frames(&meta, inst, require_complete)?;
         let hwp_sweep_deg = common_sweep(frames.iter().map(|f| (f.path.as_path(), f.hwp_sweep_deg)))?;
-        let mut warnings = bad_pixel_notes(&meta, &[], &bad, g.nx * g.ny, &conversion)?;
+        let g = group_frames(&meta, inst, require_complete, hwp_sweep_deg)?;
+        let mut warnings =
+            chip_bad_notes(&frames, bad_pixel_notes(&meta, &[], &bad, g.nx * g.ny, &conversion)?, &conversion);
         warnings.extend(g.warnings);
         // Move (not copy) each angle's first frame; add the repeats to it.
         let data: Vec<Vec<f64>> = g
@@ -331,7 +382,9 @@ impl FrameSet {
             })
             .collect();
         let files = g.members.iter().map(|m| m.iter().map(|&k| frames[k].path.clone()).collect()).collect();
+        let chips = g.members.iter().map(|m| frames[m[0]].chips.clone()).collect();
         Ok(Self {
+            chips,
             filter: g.filter,
             angles_deg: g.angles,
             hwp_sweep_deg,
@@ -396,6 +449,9 @@ pub trait FrameSource: Sync {
     fn hwp_sweep_deg(&self) -> f64;
     /// The exposures of each angle.
     fn files(&self) -> &[Vec<PathBuf>];
+    /// Per angle, the chip files of its first exposure with their places (empty for plain
+    /// frames), for naming a pixel's file ([`crate::frame::file_of`]).
+    fn chips(&self) -> Vec<Vec<crate::frame::ChipPlace>>;
     fn conversion(&self) -> Conversion;
     /// `f` applied to angle `i`'s pixels (row-major).
     fn with_frame<R>(&self, i: usize, f: impl FnOnce(&[f64]) -> R) -> Result<R, Error>;
@@ -426,6 +482,9 @@ impl FrameSource for FrameSet {
     }
     fn files(&self) -> &[Vec<PathBuf>] {
         &self.files
+    }
+    fn chips(&self) -> Vec<Vec<crate::frame::ChipPlace>> {
+        self.chip_places()
     }
     fn conversion(&self) -> Conversion {
         self.conversion
@@ -481,8 +540,8 @@ impl DiskFrames {
         let frames: Vec<OpenFrame> = crate::io::open_exposures(paths, inst, opts)?;
         let conversion = common_conversion(frames.iter().map(|f| &f.conversion), inst)?;
         let meta: Vec<_> = frames.iter().map(open_meta).collect();
-        let g = group_frames(&meta, inst, require_complete)?;
         let hwp_sweep_deg = common_sweep(frames.iter().map(|f| (f.path.as_path(), f.hwp_sweep_deg)))?;
+        let g = group_frames(&meta, inst, require_complete, hwp_sweep_deg)?;
         let files = g.members.iter().map(|m| m.iter().map(|&k| frames[k].path.clone()).collect()).collect();
         let n = frames.len();
         Ok(Self {
@@ -500,6 +559,10 @@ impl DiskFrames {
             frames,
             on_read: None,
         })
+    }
+
+    fn chip_places(&self) -> Vec<Vec<crate::frame::ChipPlace>> {
+        self.members.iter().map(|m| self.frames[m[0]].chip_places()).collect()
     }
 
     /// Call `f` once for every exposure the first time it is read (a progress bar).
@@ -588,6 +651,9 @@ impl FrameSource for DiskFrames {
     fn files(&self) -> &[Vec<PathBuf>] {
         &self.files
     }
+    fn chips(&self) -> Vec<Vec<crate::frame::ChipPlace>> {
+        self.chip_places()
+    }
     fn conversion(&self) -> Conversion {
         self.conversion
     }
@@ -666,10 +732,9 @@ fn common_conversion<'a>(convs: impl Iterator<Item = &'a Conversion>, inst: &Ins
     Ok(out.unwrap_or_else(|| Conversion::of_instrument(inst)))
 }
 
-/// For angles on the optimal grid (`i * 22.5 deg`), the smallest optimal set containing them
-/// must be complete; `{0, 22.5}` is the complete `N = 2` set.
-fn check_complete(filter: &str, angles: &[f64]) -> Result<(), Error> {
-    match optimal_set_gap(angles) {
+/// The set's plate angles must be complete ([`plate_set_gap`]): refused naming the missing ones.
+fn check_complete(filter: &str, angles: &[f64], sweep_deg: f64) -> Result<(), Error> {
+    match plate_set_gap(angles, sweep_deg) {
         None => Ok(()),
         Some(g) => Err(Error::MissingAngle {
             filter: filter.into(),
@@ -697,28 +762,62 @@ pub struct AngleGap {
 /// (`{0, 22.5}` is the complete `N = 2` set). `None` when it is, or when the angles are off the
 /// grid (least squares on what is there).
 pub fn optimal_set_gap(angles: &[f64]) -> Option<AngleGap> {
+    grid_set_gap(angles, 0.0, 22.5, true)
+}
+
+/// The completeness rule of every half-wave plate, fixed or turning: a fixed plate's angles
+/// by [`optimal_set_gap`]; a turning plate's exposures (`sweep_deg > 0`, `angles` the middles
+/// of their ranges) are positions of a rotor whose ranges tile the turn, each `sweep_deg`
+/// wide, and the set must hold every position of the whole modulation periods (90 deg) it
+/// touches, as the fixed plate's optimal set must (a rotor of 16 positions: 4 per period; a
+/// turn that does not divide into periods: the whole turn). `None` when complete, or when the
+/// angles are not on one grid (least squares on what is there).
+pub fn plate_set_gap(angles: &[f64], sweep_deg: f64) -> Option<AngleGap> {
+    if sweep_deg == 0.0 {
+        return optimal_set_gap(angles);
+    }
+    let step = sweep_deg.abs();
+    if !(step.is_finite() && step > 0.0) {
+        return None;
+    }
+    // The ranges' starts, on a grid offset from 0 by the first one's remainder.
+    let starts: Vec<f64> = angles.iter().map(|a| (a - 0.5 * step).rem_euclid(360.0)).collect();
+    let offset = starts.first()?.rem_euclid(step);
+    let gap = grid_set_gap(&starts, offset, step, false)?;
+    let mid = |v: Vec<f64>| v.into_iter().map(|a| a + 0.5 * step).collect();
+    Some(AngleGap { n: gap.n, expected_deg: mid(gap.expected_deg), missing_deg: mid(gap.missing_deg) })
+}
+
+/// The set gap of `angles` on the grid `offset + i step` (deg): the smallest set of whole
+/// modulation periods (90 deg; the whole turn when `step` does not divide 90 deg) containing
+/// them, less the angles. `two`: a pair of neighbours is the complete `N = 2` set.
+fn grid_set_gap(angles: &[f64], offset: f64, step: f64, two: bool) -> Option<AngleGap> {
+    let whole = |x: f64| ((x - x.round()).abs() < 1e-9).then_some(x.round() as usize);
+    let per_turn = whole(360.0 / step)?;
+    let per = whole(90.0 / step).unwrap_or(per_turn).max(1);
     let idx: Option<Vec<usize>> = angles
         .iter()
         .map(|a| {
-            let r = a / 22.5;
-            ((r - r.round()).abs() * 22.5 < ANGLE_TOL_DEG && r.round() >= 0.0).then_some(r.round() as usize)
+            let r = (a - offset) / step;
+            ((r - r.round()).abs() * step < ANGLE_TOL_DEG && r.round() >= 0.0).then_some(r.round() as usize)
         })
         .collect();
     let idx = idx?;
     // A half-wave plate at theta + 360 deg is the same plate position, and the modulation
     // (eq:F) repeats every 90 deg: a set such as 90 ... 157.5 or 360 ... 427.5 is the optimal
-    // set shifted, not an incomplete one. Indices are taken modulo 16 (360 deg) and shifted by
-    // whole multiples of 4 (90 deg) to start at the first quarter.
-    let idx: Vec<usize> = idx.iter().map(|i| i % 16).collect();
-    let base = idx.iter().min().map_or(0, |&i| i / 4 * 4);
+    // set shifted, not an incomplete one. Indices are taken modulo the turn (360 deg) and
+    // shifted by whole periods (90 deg) to start at the first one.
+    let idx: Vec<usize> = idx.iter().map(|i| i % per_turn).collect();
+    let base = idx.iter().min().map_or(0, |&i| i / per * per);
     let idx: Vec<usize> = idx.iter().map(|i| i - base).collect();
     let m = idx.iter().max().map_or(0, |&i| i + 1);
-    if m <= 2 && idx.len() == 2 {
+    if two && m <= 2 && idx.len() == 2 {
         return None;
     }
-    let n = m.div_ceil(4).max(1) * 4;
-    let expected: Vec<f64> = (0..n).map(|i| (i + base) as f64 * 22.5).collect();
-    let missing: Vec<f64> = (0..n).filter(|i| !idx.contains(i)).map(|i| (i + base) as f64 * 22.5).collect();
+    let n = m.div_ceil(per).max(1) * per;
+    let at = |i: usize| offset + (i + base) as f64 * step;
+    let expected: Vec<f64> = (0..n).map(at).collect();
+    let missing: Vec<f64> = (0..n).filter(|i| !idx.contains(i)).map(at).collect();
     (!missing.is_empty()).then_some(AngleGap { n, expected_deg: expected, missing_deg: missing })
 }
 
@@ -984,6 +1083,7 @@ fn reduce_two_cameras(set: &FrameSet, inst: &Instrument, cfg: &ReduceConfig) -> 
         ny: 2 * h,
         warnings: set.warnings.clone(),
         conversion: set.conversion,
+        chips: vec![],
     };
     let (mut r, zero) = reduce_set_plate(&pair, &strip, cfg)?;
     if let Some((rms, n)) = c.measured {
@@ -2131,6 +2231,7 @@ mod tests {
                 ny: g.ny,
                 warnings: vec![],
                 conversion: Conversion::of_instrument(&inst),
+                chips: vec![],
             };
             let cfg = ReduceConfig { bin_px: 4, ..Default::default() };
             let m = reduce_set(&set, &inst, &cfg).unwrap().map;
@@ -2178,6 +2279,7 @@ mod tests {
                 ny: g.ny,
                 warnings: vec![],
                 conversion: Conversion::of_instrument(&inst),
+                chips: vec![],
             };
             let (q, u) = pixel_qu(&set, &inst).unwrap();
             let theta: Vec<f64> = angles.iter().map(|a| a.to_radians()).collect();
@@ -2207,14 +2309,14 @@ mod tests {
 
     #[test]
     fn missing_angle_is_named() {
-        let e = check_complete("V", &[0.0, 22.5, 67.5]).unwrap_err().to_string();
+        let e = check_complete("V", &[0.0, 22.5, 67.5], 0.0).unwrap_err().to_string();
         assert!(e.contains("missing [45 deg]") && e.contains("N = 4"), "{e}");
-        let e = check_complete("V", &[0.0, 22.5, 45.0, 67.5, 90.0]).unwrap_err().to_string();
+        let e = check_complete("V", &[0.0, 22.5, 45.0, 67.5, 90.0], 0.0).unwrap_err().to_string();
         assert!(e.contains("N = 8") && e.contains("112.5 deg"), "{e}");
-        check_complete("V", &[0.0, 22.5]).unwrap();
-        check_complete("V", &[0.0, 22.5, 45.0, 67.5]).unwrap();
+        check_complete("V", &[0.0, 22.5], 0.0).unwrap();
+        check_complete("V", &[0.0, 22.5, 45.0, 67.5], 0.0).unwrap();
         // Off-grid sets are left to the solver.
-        check_complete("V", &[0.0, 10.0, 50.0]).unwrap();
+        check_complete("V", &[0.0, 10.0, 50.0], 0.0).unwrap();
     }
 
     /// HWP sets complete modulo 90 or 360 deg are accepted (the plate at theta + 360 is the
@@ -2228,12 +2330,46 @@ mod tests {
             vec![180.0, 202.5, 225.0, 247.5, 270.0, 292.5, 315.0, 337.5],
             vec![0.0, 22.5, 45.0, 67.5],
         ] {
-            check_complete("V", &set).unwrap_or_else(|e| panic!("{set:?}: {e}"));
+            check_complete("V", &set, 0.0).unwrap_or_else(|e| panic!("{set:?}: {e}"));
         }
-        let e = check_complete("V", &[90.0, 112.5, 135.0]).unwrap_err().to_string();
+        let e = check_complete("V", &[90.0, 112.5, 135.0], 0.0).unwrap_err().to_string();
         assert!(e.contains("missing [157.5 deg]"), "{e}");
-        let e = check_complete("V", &[0.0, 22.5, 67.5]).unwrap_err().to_string();
+        let e = check_complete("V", &[0.0, 22.5, 67.5], 0.0).unwrap_err().to_string();
         assert!(e.contains("missing [45 deg]"), "{e}");
+    }
+
+    /// A turning plate's set is judged by the same rule on its rotor's positions: 16 ranges
+    /// of 22.5 deg (middles at 11.25 + 22.5 k) with one missing is refused naming that range's
+    /// middle; the whole turn, or one whole period (4 positions), is complete; a rotor of 8
+    /// ranges of 45 deg needs both of a period's positions; a rotor offset from 0 (zero_deg
+    /// 5 deg) the same.
+    #[test]
+    fn a_turning_plate_set_is_complete_by_the_same_rule() {
+        let mids = |n: usize, zero: f64| -> Vec<f64> {
+            let step = 360.0 / n as f64;
+            (0..n).map(|k| zero + (k as f64 + 0.5) * step).collect()
+        };
+        let all = mids(16, 0.0);
+        check_complete("R", &all, 22.5).unwrap();
+        check_complete("R", &all[..4], 22.5).unwrap();
+        check_complete("R", &all[8..12], 22.5).unwrap();
+        let mut gap = all.clone();
+        gap.remove(2);
+        let e = check_complete("R", &gap, 22.5).unwrap_err().to_string();
+        assert!(e.contains("missing [56.25 deg]") && e.contains("N = 16"), "{e}");
+        let g = plate_set_gap(&all[..3], 22.5).unwrap();
+        assert_eq!((g.n, g.missing_deg), (4, vec![78.75]));
+        let eight = mids(8, 0.0);
+        check_complete("R", &eight, 45.0).unwrap();
+        check_complete("R", &eight[..2], 45.0).unwrap();
+        let g = plate_set_gap(&eight[..3], 45.0).unwrap();
+        assert_eq!((g.n, g.missing_deg), (4, vec![157.5]));
+        let shifted = mids(16, 5.0);
+        check_complete("R", &shifted, 22.5).unwrap();
+        let e = check_complete("R", &shifted[1..], 22.5).unwrap_err().to_string();
+        assert!(e.contains("missing [16.25 deg]"), "{e}");
+        // Ranges not on one grid are left to the solver, as a fixed plate's off-grid angles.
+        assert!(plate_set_gap(&[11.25, 40.0, 56.25], 22.5).is_none());
     }
 
     /// Angle sets in radians are refused naming the unit; degrees pass.

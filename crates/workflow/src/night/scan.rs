@@ -19,7 +19,7 @@
 //! 5. **Sets**: polarimetric exposures following each other in time with the same role,
 //!    target, filter and binning, pointing within `pointing_tol_arcsec` of the set's first and
 //!    started within `max_gap_min` of the previous exposure. A set must hold the optimal set
-//!    of HWP angles that its angles belong to (`skyfield::reduce::optimal_set_gap`, the
+//!    of HWP angles that its angles belong to (`skyfield::reduce::plate_set_gap`, the
 //!    reduction's rule) the same number of times (complete repeated cycles); exposures beyond
 //!    the last complete cycle are left out, and a set that lacks an angle is left out naming
 //!    the missing angles.
@@ -177,6 +177,10 @@ pub struct FileInfo {
     /// The instrument's name of the filter.
     pub filter: Option<String>,
     pub hwp_deg: Option<f64>,
+    /// The plate angle (deg) a turning plate swept during the exposure (`hwp_deg` its range's
+    /// middle); 0 for a fixed plate.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub hwp_sweep_deg: f64,
     pub exptime_s: Option<f64>,
     pub binning: [u32; 2],
     /// The `exposure_keywords` values, joined by `/` (empty: the file is its own exposure).
@@ -313,10 +317,30 @@ pub fn classify(path: &Path, inst: &Instrument) -> Result<FileInfo, String> {
         None if matches!(role, Role::Bias) => None,
         None => return Err(format!("no filter keyword {}", pol.filter_keyword)),
     };
-    let hwp_deg = std::iter::once(&pol.hwp_angle_keyword)
+    let mut hwp_deg = std::iter::once(&pol.hwp_angle_keyword)
         .chain(&pol.hwp_angle_fallback_keywords)
         .filter(|k| !k.is_empty())
         .find_map(|k| c.number(k));
+    // A turning plate: the middle and the width of the range the exposure swept, as the
+    // reduction reads them (instrument::HwpRotation).
+    let mut hwp_sweep_deg = 0.0;
+    if let Some(r) = &pol.rotation {
+        let range = if r.by_position() {
+            match c.number(&r.position_keyword) {
+                Some(pos) if pos.fract() == 0.0 && pos.abs() <= 1e9 => Some(r.position_range(pos as i64)?),
+                Some(pos) => return Err(format!("{} = {pos}: not a rotor position (an integer)", r.position_keyword)),
+                None => None,
+            }
+        } else {
+            match (c.number(&r.begin_keyword), c.number(&r.end_keyword)) {
+                (Some(b), Some(e)) => Some(instrument::HwpRotation::range(b, e)),
+                _ => None,
+            }
+        };
+        if let Some((mid, sweep)) = range {
+            (hwp_deg, hwp_sweep_deg) = (Some(mid), sweep);
+        }
+    }
     if matches!(role, Role::Polarimetry | Role::Standard) && hwp_deg.is_none() && !pol.hwp_angle_keyword.is_empty() {
         return Err(format!("a polarimetric exposure without its HWP angle ({})", pol.hwp_angle_keyword));
     }
@@ -326,6 +350,7 @@ pub fn classify(path: &Path, inst: &Instrument) -> Result<FileInfo, String> {
         chip,
         filter,
         hwp_deg,
+        hwp_sweep_deg,
         exptime_s: c.number(&pol.exptime_keyword),
         binning,
         exposure,
@@ -334,6 +359,10 @@ pub fn classify(path: &Path, inst: &Instrument) -> Result<FileInfo, String> {
         dec_deg: c.number(&h.dec_keyword),
         mjd,
     })
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
 }
 
 /// Classify every file (in parallel; headers only).
@@ -738,7 +767,8 @@ pub fn plan_sorted(
             left.push(LeftOut { files: all_files, why: format!("set {label}: an exposure without an HWP angle") });
             continue;
         }
-        if let Some(g) = skyfield::reduce::optimal_set_gap(&distinct) {
+        // The one completeness rule of the reduction, for a fixed or a turning plate.
+        if let Some(g) = skyfield::reduce::plate_set_gap(&distinct, info.hwp_sweep_deg) {
             left.push(LeftOut {
                 files: all_files,
                 why: format!(
