@@ -353,3 +353,39 @@ fn a_plane_on_stars_on_a_line_is_refused_and_off_it_is_fitted() {
         assert!((got - want).abs() < 1e-10, "{q:?}");
     }
 }
+
+/// Catalogs say what they are: one whose keywords say filter I, given for a V calibration, is
+/// refused naming both (exit 2, no calibration written); `--allow-mismatch` uses it, with the
+/// numbers of the same catalog that says nothing; without `--instrument` the instrument is the
+/// one the catalogs say, and a catalog that says nothing is taken as FORS1's with a warning.
+#[test]
+fn catalogs_of_another_filter_are_refused_naming_both() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    plane_catalog(&p("plain.csv"), 120, 1);
+    let plain = std::fs::read_to_string(p("plain.csv")).unwrap();
+    std::fs::write(p("i.csv"), format!("# INSTRUME = FORS1\n# FILTER = I\n{plain}")).unwrap();
+    std::fs::write(p("v.csv"), format!("# INSTRUME = FORS1\n# FILTER = V\n{plain}")).unwrap();
+    let extra = ["--model", "plane", "--interstellar", "zero", "--json"];
+    let fit = |file: &str, more: &[&str]| {
+        let mut a = args(&[p(file)], &extra);
+        a.extend(more.iter().map(|s| s.to_string()));
+        a.extend(["--out".to_string(), p(&format!("{file}.fits")).display().to_string()]);
+        run(&a)
+    };
+    let (code, _, err) = fit("i.csv", &[]);
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("i.csv") && err.contains("filter I") && err.contains("filter V"), "{err}");
+    assert!(!p("i.csv.fits").exists());
+    let (code, forced, err) = fit("i.csv", &["--allow-mismatch"]);
+    assert_eq!(code, 0, "{err}");
+    let (code, said, err) = fit("v.csv", &[]);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("instrument fors1, which the catalogs say"), "{err}");
+    let (code, bare, err) = fit("plain.csv", &[]);
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("warning: the catalogs do not say which instrument"), "{err}");
+    let q = |s: &str| serde_json::from_str::<serde_json::Value>(s).unwrap()["poly"]["q"].clone();
+    assert_eq!(q(&forced), q(&bare));
+    assert_eq!(q(&said), q(&bare));
+}

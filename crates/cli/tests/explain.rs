@@ -86,7 +86,9 @@ fn bad_inputs_exit_2_naming_the_input() {
         (vec!["explain", "/nonexistent/m.json"], "m.json"),
         (vec!["explain", l, "--grid", "2"], "--grid"),
     ];
-    for (args, needle) in cases {
+    for (mut args, needle) in cases {
+        // A JSON field records no instrument: it is named.
+        args.extend(["--instrument", "fors1"]);
         let (code, _, err) = common::run(&args);
         assert_eq!(code, 2, "{args:?}: {err}");
         assert!(err.contains(needle), "{args:?}: {err}");

@@ -159,11 +159,20 @@ fn explain_and_plan_read_the_fits_calibration_as_the_json() {
     calibrate(&fields, &["--deg", "4"], &fits);
     calibrate(&fields, &["--deg", "4"], &json);
     let explain = |f: &Path| {
-        let a: Vec<String> =
-            ["explain", &s(f), "--causes", "stressed_lens,diattenuation_only", "--grid", "8", "--json"]
-                .iter()
-                .map(|v| v.to_string())
-                .collect();
+        let a: Vec<String> = [
+            "explain",
+            &s(f),
+            "--instrument",
+            "fors1",
+            "--causes",
+            "stressed_lens,diattenuation_only",
+            "--grid",
+            "8",
+            "--json",
+        ]
+        .iter()
+        .map(|v| v.to_string())
+        .collect();
         let (code, j, err) = run(&a);
         assert_eq!(code, 0, "{err}");
         j
