@@ -656,7 +656,7 @@ _COLUMN_UNITS = {"x": "pix", "y": "pix", "x_e": "pix", "y_e": "pix", "fwhm_px": 
 _CATALOG_META = ("hwp_deg", "filter", "chi_offset_deg", "oe_offset_px", "unpaired", "unpaired_shift_px",
                  "n_sources", "warnings", "recorded_angles", "chi_offset_applied_deg", "n_extrapolated",
                  "telescope_model", "telescope_band", "telescope_exposures", "camera_transform",
-                 "qwp_zero_angle_deg")
+                 "qwp_zero_angle_deg", "product")
 
 
 def _unit_of(name: str) -> Optional[str]:
