@@ -165,7 +165,7 @@ mod tests {
 
     #[test]
     fn the_half_turn_wrap_is_the_workspaces() {
-        for a in [-7.0, -3.2, -1.6, 0.0, 1.5707963267948966, 2.0, 9.9] {
+        for a in [-7.0, -3.2, -1.6, 0.0, std::f64::consts::FRAC_PI_2, 2.0, 9.9] {
             assert_eq!(wrap(a, Period::HalfTurn).to_bits(), mueller::wrap_half_pi(a).to_bits());
             let w = wrap(a, Period::Turn);
             assert!(w > -PI && w <= PI && ((a - w) / (2.0 * PI)).fract().abs() < 1e-12);
