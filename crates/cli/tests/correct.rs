@@ -498,7 +498,15 @@ fn a_catalog_of_another_filter_is_refused() {
         assert!(err.contains("FORS1 I catalog") && err.contains("FORS1 V"), "{ext}: {err}");
         assert!(!out.exists(), "{ext}: an output was written");
         let forced = run(&[&args[..], &["--cal", cal_v.to_str().unwrap(), "--allow-mismatch"]].concat());
-        assert!(forced.status.success(), "{ext}: {}", String::from_utf8_lossy(&forced.stderr));
+        let err = String::from_utf8_lossy(&forced.stderr);
+        assert!(forced.status.success(), "{ext}: {err}");
+        assert!(err.contains("warning: --allow-mismatch") && err.contains("filter I"), "{ext}: {err}");
+        // The output records what was allowed (a FITS catalog copied with its columns appended
+        // keeps the input's keywords).
+        if ext != "fits" {
+            let m = skyfield::table::Table::read(&out, None).unwrap().product.and_then(|p| p.mismatch_allowed);
+            assert_eq!(m.as_deref(), Some("data FORS1 I, calibration FORS1 V"), "{ext}");
+        }
         std::fs::remove_file(&out).unwrap();
         let own = run(&[&args[..], &["--cal", cal_i.to_str().unwrap()]].concat());
         assert!(own.status.success(), "{ext}: {}", String::from_utf8_lossy(&own.stderr));

@@ -189,6 +189,9 @@ pub enum Note {
     TrackReplaced { recorded: (f64, f64) },
     /// A rotator angle was given but the model was fitted without rotator angles.
     RotatorIgnored,
+    /// Data of another instrument, filter or plate than the calibration's, corrected because
+    /// the request allows the mismatch: what differs (the output records it).
+    MismatchAllowed(crate::setup::Mismatch),
     /// A map corrected by a telescope model alone records no HWP zero angle and its
     /// instrument gives none: what was taken, in words ([`crate::setup::map_zero_angle`]).
     ZeroAngleUnknown(String),
@@ -287,7 +290,7 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
     };
     check_options(file, req)?;
     if let Some(data) = req.data {
-        check_setup(file, req, data, false)?;
+        check_setup(file, req, data, false, &mut notes)?;
     }
     if req.angles_are_arguments && req.per_row.is_some() && req.recorded.is_some() {
         return Err(Refusal::TwoTracks);
@@ -523,16 +526,21 @@ fn check_setup(
     req: &Request<'_>,
     data: &crate::setup::Setup,
     map: bool,
+    notes: &mut Vec<Note>,
 ) -> Result<(), Refusal> {
     let setup = match (&file.field, &file.mueller) {
         (Some(c), _) => Some((c.instrument.as_str(), c.filter.as_str())),
         (None, Some(m)) => Some((m.instrument.as_str(), m.filter.as_str())),
         (None, None) => None,
     };
-    if req.allow_mismatch {
-        return Ok(());
+    match crate::setup::check_compatible(data, setup) {
+        Ok(()) => Ok(()),
+        Err(mismatch) if req.allow_mismatch => {
+            notes.push(Note::MismatchAllowed(mismatch));
+            Ok(())
+        }
+        Err(mismatch) => Err(Refusal::Mismatch { map, mismatch }),
     }
-    crate::setup::check_compatible(data, setup).map_err(|mismatch| Refusal::Mismatch { map, mismatch })
 }
 
 /// Resolve how the Stokes map `map` is corrected with `file` as `req` asks (module docs; the
@@ -545,9 +553,9 @@ pub fn plan_map<'a>(
 ) -> Result<MapPlan<'a>, Refusal> {
     check_options(file, req)?;
     let data = crate::setup::Setup { instrument: map.instrument.clone(), filter: map.filter.clone(), plate: None };
-    check_setup(file, req, &data, true)?;
-    let kind = file.kind();
     let mut notes = vec![];
+    check_setup(file, req, &data, true, &mut notes)?;
+    let kind = file.kind();
     let opts = |method, zero_angle_deg: f64| CorrectOptions {
         method,
         allow_extrapolation: req.allow_extrapolation,

@@ -133,6 +133,19 @@ pub enum Mismatch {
     Plate { plate: String },
 }
 
+impl Mismatch {
+    /// What differs, in a few words (a FITS keyword's value: at most 68 characters).
+    pub fn short(&self) -> String {
+        let s = match self {
+            Mismatch::Setup { data, calibration } => {
+                format!("data {} {}, calibration {} {}", data.0, data.1, calibration.0, calibration.1)
+            }
+            Mismatch::Plate { plate } => format!("data of a {plate} plate"),
+        };
+        s.chars().filter(|c| (' '..='~').contains(c) && *c != '\'').take(68).collect()
+    }
+}
+
 impl std::fmt::Display for Mismatch {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {

@@ -463,6 +463,9 @@ impl _Calibration {
                 "rotator_deg is ignored: the telescope model of {cal_path} was fitted without rotator angles (its offset holds the rotator's)"
             ),
             Note::ZeroAngleUnknown(w) => w.clone(),
+            Note::MismatchAllowed(m) => format!(
+                "allow_mismatch: {input} and {cal_path} do not fit together ({m}); corrected all the same"
+            ),
             Note::CarriedZeroAngle { carried, calibration, applied } => format!(
                 "q, u carry the HWP zero angle {carried} deg but {cal_path} records {calibration} deg: the rows are turned by the difference, {applied} deg, into the calibration's frame (every chi0 moves by it)"
             ),

@@ -245,12 +245,18 @@ pub struct Product {
     pub pixel_scale_arcsec: Option<f64>,
     /// `blake3:<hex>` of each input it was made from, in order.
     pub inputs: Vec<String>,
+    /// What differed between the data and a calibration that corrected them all the same
+    /// (`--allow-mismatch`), in a few words; `None` when nothing did.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mismatch_allowed: Option<String>,
 }
 
 /// The keywords of a [`Product`] (FITS-keyword names: at most 8 characters), in writing order;
 /// the inputs follow as `INHASH1`, `INHASH2`, ...
-pub const PRODUCT_KEYS: [&str; 10] =
-    ["INSTRUME", "INSTHASH", "FILTER", "WAVELEN", "PLATE", "FRAME", "HWPZERO", "BINNING", "DETSIZE", "PIXSCALE"];
+pub const PRODUCT_KEYS: [&str; 11] = [
+    "INSTRUME", "INSTHASH", "FILTER", "WAVELEN", "PLATE", "FRAME", "HWPZERO", "BINNING", "DETSIZE", "PIXSCALE",
+    "MISMATCH",
+];
 
 impl Product {
     /// The frame of the product's `(q, u)`, when it says.
@@ -290,6 +296,7 @@ impl Product {
         put("BINNING", self.binning.map(|(x, y)| format!("{x}x{y}")));
         put("DETSIZE", self.detector_px.map(|(x, y)| format!("{x}x{y}")));
         put("PIXSCALE", self.pixel_scale_arcsec.map(|s| format!("{s:?}")));
+        put("MISMATCH", self.mismatch_allowed.clone());
         for (k, h) in self.inputs.iter().enumerate() {
             out.push((format!("INHASH{}", k + 1), hex(h)));
         }
@@ -341,6 +348,7 @@ impl Product {
                     p.detector_px = Some((x as usize, y as usize));
                 }
                 "PIXSCALE" => p.pixel_scale_arcsec = Some(num(&key, v)?),
+                "MISMATCH" => p.mismatch_allowed = Some(text),
                 _ => {
                     let n: usize = key["INHASH".len()..].parse().map_err(|_| format!("{key}: not a numbered input"))?;
                     inputs.push((n, format!("blake3:{text}")));
@@ -369,6 +377,7 @@ impl Product {
             detector_px: Some((inst.detector.nx, inst.detector.ny)),
             pixel_scale_arcsec: Some(inst.detector.pixel_scale_arcsec),
             inputs: Vec::new(),
+            mismatch_allowed: None,
         }
     }
 

@@ -206,6 +206,9 @@ fn print_notes(a: &Args, notes: &[fit::request::Note]) {
                 e.to_degrees()
             ),
             Note::ZeroAngleUnknown(w) => eprintln!("warning: {input}: {w}"),
+            Note::MismatchAllowed(m) => eprintln!(
+                "warning: --allow-mismatch: {input} and {cal} do not fit together ({m}); corrected all the same, and a catalog written records it (MISMATCH)"
+            ),
 
             Note::RotatorIgnored => eprintln!(
                 "warning: --rotator is ignored: the telescope model of {cal} was fitted without rotator angles (its offset holds the rotator's)"
@@ -279,6 +282,15 @@ fn run_table(
         skyfield::table::append_fits_columns(&a.input, a.hdu.as_deref(), &out.into_table_columns(), &a.out)?;
     } else {
         table.columns.extend(out.into_table_columns());
+        // A mismatch allowed is recorded with what the table says it is.
+        if let Some(m) = plan.notes.iter().find_map(|n| match n {
+            fit::request::Note::MismatchAllowed(m) => Some(m.short()),
+            _ => None,
+        }) {
+            if let Some(p) = table.product.as_mut() {
+                p.mismatch_allowed = Some(m);
+            }
+        }
         table.write(&a.out)?;
     }
     let telescope = plan.telescope.as_ref().map(|t| {
