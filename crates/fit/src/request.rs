@@ -84,6 +84,16 @@ pub struct Request<'a> {
     pub data: Option<&'a crate::setup::Setup>,
 }
 
+/// The one rule of the extrapolation inflation's `F` ([`CorrectOptions::extrapolation_rel_error`]):
+/// a finite number, 0 or more. `Err` gives the value back for the face to word.
+pub fn check_extrapolation_error(f: f64) -> Result<(), f64> {
+    if f.is_finite() && f >= 0.0 {
+        Ok(())
+    } else {
+        Err(f)
+    }
+}
+
 impl Request<'_> {
     /// A request with `method` and the extrapolation rule, and nothing else asked: no band,
     /// track, rotator or per-row angles, rows at the plate, no mismatch allowed.

@@ -109,6 +109,20 @@ pub fn fold_pi(a: f64) -> f64 {
     }
 }
 
+/// Whether `v` reads as an angle in degrees as the workspace's inputs give them (a header's
+/// zero angle or parallactic angle, a table's or an array's): finite and within two turns either
+/// way. The one rule of such inputs: a value beyond is not an angle of a plate or a sky (a
+/// count, an uninitialised keyword) and is refused by its reader.
+///
+/// ```
+/// assert!(mueller::plausible_degrees(-1.8) && mueller::plausible_degrees(720.0));
+/// assert!(!mueller::plausible_degrees(f64::NAN) && !mueller::plausible_degrees(1e5));
+/// ```
+#[inline]
+pub fn plausible_degrees(v: f64) -> bool {
+    v.is_finite() && v.abs() <= 720.0
+}
+
 /// Angle `a` (rad) wrapped into (-pi/2, pi/2]: a difference of polarization angles, which are
 /// defined modulo pi.
 ///

@@ -695,7 +695,7 @@ impl _Calibration {
         // The zero angle q, u already carry (catalog()'s do): given, else what `recorded`
         // says, else none (q, u at the plate); the calibration's less it is applied, as
         // `instpol correct` takes a table's hwp_chi_offset_deg column.
-        if carried_deg.is_some_and(|z| !(z.is_finite() && z.abs() <= 720.0)) {
+        if carried_deg.is_some_and(|z| !mueller::plausible_degrees(z)) {
             return Err(input_err("hwp_chi_offset_deg must be finite degrees"));
         }
         let carried = carried_deg.or_else(|| recorded.as_ref().and_then(|r| r.zero_angle_deg));
@@ -836,7 +836,7 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Recorded {
             Some(z) => Some(z.extract().map_err(|_| bad())?),
             None => None,
         };
-        let finite = |v: f64| v.is_finite() && v.abs() <= 720.0;
+        let finite = mueller::plausible_degrees;
         if !zero_angle_deg.is_none_or(finite) {
             return Err(input_err("recorded: hwp_chi_offset_deg must be finite degrees"));
         }
@@ -915,9 +915,8 @@ fn request<'a>(
         "first-order" | "first_order" => Method::FirstOrder,
         m => return Err(input_err(format!("method '{m}': expected \"exact\" or \"first-order\""))),
     };
-    if !(extrapolation_error.is_finite() && extrapolation_error >= 0.0) {
-        return Err(input_err(format!("extrapolation_error {extrapolation_error} must be a non-negative number")));
-    }
+    fit::request::check_extrapolation_error(extrapolation_error)
+        .map_err(|f| input_err(format!("extrapolation_error {f} must be a non-negative number")))?;
     let base = fit::request::Request::new(method, allow_extrapolation, extrapolation_error);
     Ok(fit::request::Request { band, angles_are_arguments: true, allow_mismatch, ..base })
 }

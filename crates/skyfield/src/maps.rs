@@ -342,7 +342,7 @@ impl RecordedAngles {
             match get(k) {
                 None => Ok(None),
                 Some(s) => match s.trim().parse::<f64>() {
-                    Ok(v) if v.is_finite() && v.abs() <= 720.0 => Ok(Some(v)),
+                    Ok(v) if mueller::plausible_degrees(v) => Ok(Some(v)),
                     _ => Err(Error::BadKeyword {
                         path: path.into(),
                         keyword: k.into(),

@@ -3,7 +3,7 @@
 //! them, `skyfield` reads and writes the files; this module parses the options and prints the
 //! summary, the notes and the refusals in the command's words.
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, Context, Result};
 use fit::columns::{TableColumns, Units};
 use fit::correct::Method;
 use fit::request::Request;
@@ -104,9 +104,8 @@ pub fn run(a: Args) -> Result<()> {
     crate::util::inputs([a.cal.as_path(), a.input.as_path()])?;
     crate::util::check_output(&a.out)?;
     let est: Estimator = a.estimator.parse().map_err(|e| anyhow!("--estimator: {e}"))?;
-    if !(a.extrapolation_error.is_finite() && a.extrapolation_error >= 0.0) {
-        bail!("--extrapolation-error {} must be a non-negative number", a.extrapolation_error);
-    }
+    fit::request::check_extrapolation_error(a.extrapolation_error)
+        .map_err(|f| anyhow!("--extrapolation-error {f} must be a non-negative number"))?;
     let loaded =
         fit::calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     let parang = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
