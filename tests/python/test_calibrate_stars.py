@@ -102,3 +102,19 @@ def test_the_same_catalog_under_two_names_is_one_input(tmp_path):
     again = instpol.calibrate_stars([twice], "fors1", filter="V", model="plane", interstellar="zero")
     assert again["poly"]["sigma_q"] == once["poly"]["sigma_q"]
     assert any("repeat" in w and "twice.csv row" in w for w in again["warnings"]), again["warnings"]
+
+
+def test_catalogs_of_another_filter_are_refused_unless_allowed(tmp_path):
+    """A catalog whose keywords say filter I, for a V calibration, raises InputError naming
+    both, as instpol calibrate-stars refuses it; allow_mismatch=True uses it, with the numbers
+    of the same catalog that says nothing."""
+    files, _ = write_catalogs(tmp_path)
+    said = tmp_path / "said_i.csv"
+    said.write_text("# INSTRUME = FORS1\n# FILTER = I\n" + files[0].read_text())
+    kw = dict(filter="V", model="plane", interstellar="zero")
+    with pytest.raises(instpol.InputError, match="filter I") as e:
+        instpol.calibrate_stars([said], "fors1", **kw)
+    assert "said_i.csv" in str(e.value) and "filter V" in str(e.value)
+    forced = instpol.calibrate_stars([said], "fors1", allow_mismatch=True, **kw)
+    plain = instpol.calibrate_stars([files[0]], "fors1", **kw)
+    assert forced["poly"]["q"] == plain["poly"]["q"]

@@ -1280,7 +1280,7 @@ fn _demo(py: Python<'_>, out: PathBuf, through_frames: bool, keep_frames: bool, 
 /// plots); the calibration written to `out` when given. `interstellar`: None for a fitted
 /// term, `(0, 0)` with `zero` for none, or `(P percent, chi deg)`.
 #[pyfunction]
-#[pyo3(signature = (catalogs, instrument, filter, out, interstellar_free, interstellar, offsets, model, free_centre, reject_alpha, match_radius_arcsec))]
+#[pyo3(signature = (catalogs, instrument, filter, out, interstellar_free, interstellar, offsets, model, free_centre, reject_alpha, match_radius_arcsec, allow_mismatch))]
 #[allow(clippy::too_many_arguments)]
 fn _calibrate_stars(
     py: Python<'_>,
@@ -1295,6 +1295,7 @@ fn _calibrate_stars(
     free_centre: bool,
     reject_alpha: f64,
     match_radius_arcsec: f64,
+    allow_mismatch: bool,
 ) -> PyResult<String> {
     use fit::stars_field::{read_catalogs, stars_field, stars_meta, Interstellar, StarsOptions, StarsSummary};
     if catalogs.is_empty() {
@@ -1324,7 +1325,8 @@ fn _calibrate_stars(
         reject_alpha,
     };
     let summary = py.detach(|| -> Result<StarsSummary, fit::Error> {
-        let (rows, z, notes) = read_catalogs(&catalogs, Some((inst.name.as_str(), filter)))?;
+        let expect = (!allow_mismatch).then_some((inst.name.as_str(), filter));
+        let (rows, z, notes) = read_catalogs(&catalogs, expect)?;
         let meta = stars_meta(&inst, filter, z, catalogs.iter().map(|p| p.display().to_string()).collect());
         let run = stars_field(&rows, catalogs.len(), meta, &opts)?;
         if let Some(p) = &out {

@@ -857,8 +857,12 @@ def calibrate_stars(
     free_centre: bool = False,
     reject_alpha: float = 1e-3,
     match_radius_arcsec: float = 1.0,
+    allow_mismatch: bool = False,
 ) -> Dict[str, Any]:
     """The instrumental field from field stars, as ``instpol calibrate-stars``.
+
+    A catalog whose keywords say another instrument or filter than ``instrument``, ``filter``
+    raises InputError naming both, unless ``allow_mismatch``.
 
     ``catalogs``: the star catalogs ``catalog(..., out=)`` or ``instpol catalog --out`` wrote,
     one per dithered pointing of a dense field. Each star's measured ``q, u`` is the
@@ -913,7 +917,7 @@ def calibrate_stars(
     return json.loads(
         _instpol._calibrate_stars(
             [os.fspath(c) for c in cats], str(instrument), str(filter), _opt_path(out), free, given, offs,
-            str(model), bool(free_centre), float(reject_alpha), float(match_radius_arcsec),
+            str(model), bool(free_centre), float(reject_alpha), float(match_radius_arcsec), bool(allow_mismatch),
         )
     )
 

@@ -253,6 +253,7 @@ def calibrate_stars(
     free_centre: bool = ...,
     reject_alpha: float = ...,
     match_radius_arcsec: float = ...,
+    allow_mismatch: bool = ...,
 ) -> Dict[str, Any]:
     """The instrumental field from field-star catalogs of dithered pointings (calibrate-stars).
 
