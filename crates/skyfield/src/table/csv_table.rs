@@ -12,7 +12,7 @@ impl Table {
         // What the rows are, as `# KEY = value` comment lines before the header (readers that
         // skip `#` lines, as pandas' `comment='#'` and astropy's do, see the plain table).
         let mut head = String::new();
-        for (k, v) in self.product.iter().flat_map(|p| p.pairs()) {
+        for (k, v) in self.product_pairs() {
             head.push_str(&format!("# {k} = {v}\n"));
         }
         let mut w = csv::Writer::from_writer(head.into_bytes());

@@ -25,7 +25,7 @@ impl Table {
             }
             s.push_str("}\n");
         }
-        let product = self.product.as_ref().map(|p| p.pairs()).unwrap_or_default();
+        let product = self.product_pairs();
         if !self.meta.is_empty() || !product.is_empty() {
             s.push_str("# meta: !!omap\n");
             // What the rows are, as quoted text (a product's numbers are read back from it).

@@ -40,7 +40,7 @@ impl Table {
             }
             .map_err(|x| e(format!("column {}: {x}", c.name)))?;
         }
-        for (k, v) in self.product.iter().flat_map(|p| p.pairs()) {
+        for (k, v) in self.product_pairs() {
             // What the rows are: numbers as numbers, names as strings.
             match k.as_str() {
                 "WAVELEN" | "HWPZERO" | "PIXSCALE" => match v.parse::<f64>() {

@@ -69,25 +69,6 @@ impl Table {
     pub fn write(&self, path: &Path) -> Result<(), Error> {
         let format = Format::from_path(path)?;
         self.check(path)?;
-        // A product that lists no inputs gets the run's (the provenance's hashes), as every
-        // FITS writer stamps the run's provenance without each command passing it down.
-        let filled;
-        let table = match &self.product {
-            Some(p) if p.inputs.is_empty() => {
-                let mut t = self.clone();
-                let run = crate::provenance::current();
-                if let Some(q) = t.product.as_mut() {
-                    q.inputs = run.inputs.iter().map(|i| i.hash.clone()).collect();
-                }
-                filled = t;
-                &filled
-            }
-            _ => self,
-        };
-        table.write_unchecked(path, format)
-    }
-
-    fn write_unchecked(&self, path: &Path, format: Format) -> Result<(), Error> {
         if format == Format::Fits {
             return crate::fits::write_fits_atomic(path, |f| self.write_fits_into(f, path));
         }

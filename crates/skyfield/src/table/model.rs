@@ -135,6 +135,20 @@ impl Table {
         Self { columns, lines: Vec::new(), meta: Vec::new(), product: None }
     }
 
+    /// The product's keyword and value pairs as written ([`crate::provenance::Product::pairs`]):
+    /// a product that lists no inputs gets the run's (the provenance's hashes), as every FITS
+    /// writer stamps the run's provenance without each command passing it down. Empty without
+    /// a product.
+    pub(super) fn product_pairs(&self) -> Vec<(String, String)> {
+        let Some(p) = &self.product else { return vec![] };
+        if !p.inputs.is_empty() {
+            return p.pairs();
+        }
+        let run = crate::provenance::current();
+        let inputs = run.inputs.into_iter().map(|i| i.hash).collect();
+        crate::provenance::Product { inputs, ..p.clone() }.pairs()
+    }
+
     pub fn n_rows(&self) -> usize {
         self.columns.first().map_or(0, |c| c.data.len())
     }

@@ -14,7 +14,7 @@ impl Table {
              xsi:schemaLocation=\"http://www.ivoa.net/xml/VOTable/v1.3 http://www.ivoa.net/xml/VOTable/VOTable-1.4.xsd\">\n\
              <RESOURCE type=\"results\">\n<TABLE>\n",
         );
-        for (k, v) in self.product.iter().flat_map(|p| p.pairs()) {
+        for (k, v) in self.product_pairs() {
             s.push_str(&format!(
                 "<PARAM name=\"{}\" datatype=\"char\" arraysize=\"*\" value=\"{}\"/>\n",
                 xml_escape(&k),
