@@ -76,11 +76,11 @@ pub const OUTLIER_PULL: f64 = 3.0;
 pub use mueller::wrap_half_pi;
 
 /// Weighted circular mean (period pi) of offsets `d` with weights `w`, and its chi^2
-/// (`stokes::stats::circular::weighted_mean`); offsets spread evenly round the half turn have
-/// no mean, and give NaN (their chi^2 then refuses them).
+/// (`stokes::stats::circular::direction`: offsets spread evenly round the half turn give a
+/// direction that means nothing, which their chi^2 says, as the sums' atan2 always did).
 fn mean_offset(d: &[f64], w: &[f64]) -> (f64, f64) {
-    use stokes::stats::circular::{weighted_mean, Period};
-    weighted_mean(d, w, Period::HalfTurn).map_or((f64::NAN, f64::NAN), |m| (m.mean, m.chi2))
+    use stokes::stats::circular::{direction, Period};
+    direction(d, w, Period::HalfTurn).map_or((f64::NAN, f64::NAN), |m| (m.mean, m.chi2))
 }
 
 /// One sense's offsets `d` (all usable stars) with weights `w`, the worst disagreeing star left

@@ -78,17 +78,22 @@ pub const UNDEFINED_RESULTANT: f64 = 1e-12;
 /// of period `period`; `None` for an empty sample, weights that are not finite and positive,
 /// or a mean resultant below [`UNDEFINED_RESULTANT`].
 pub fn weighted_mean(angles: &[f64], w: &[f64], period: Period) -> Option<Mean> {
+    direction(angles, w, period).filter(|m| m.resultant >= UNDEFINED_RESULTANT)
+}
+
+/// [`weighted_mean`] whatever the mean resultant: the direction of the weighted sum of the
+/// unit vectors even where it is rounding noise (0 where the sum is exactly zero), with the
+/// resultant that says how much it means. For a caller that judges the spread itself (by the
+/// chi^2 about the direction); `None` only for an empty sample or weights that are not finite
+/// and positive.
+pub fn direction(angles: &[f64], w: &[f64], period: Period) -> Option<Mean> {
     if angles.is_empty() || angles.len() != w.len() || w.iter().any(|x| !(x.is_finite() && *x > 0.0)) {
         return None;
     }
     let k = 2.0 * PI / period.rad();
     let (s, c) =
         angles.iter().zip(w).fold((0.0, 0.0), |(s, c), (&a, &wi)| (s + wi * (k * a).sin(), c + wi * (k * a).cos()));
-    let total: f64 = w.iter().sum();
-    let resultant = s.hypot(c) / total;
-    if !(resultant >= UNDEFINED_RESULTANT) {
-        return None;
-    }
+    let resultant = s.hypot(c) / w.iter().sum::<f64>();
     let mean = wrap(s.atan2(c) / k, period);
     let chi2 = angles.iter().zip(w).map(|(&a, &wi)| wi * difference(a, mean, period).powi(2)).sum();
     Some(Mean { mean, chi2, resultant })
@@ -179,6 +184,10 @@ mod tests {
         assert!(scatter(&deg(&[0.0, 90.0, 180.0, 270.0]), Period::Turn).is_infinite());
         assert!(weighted_mean(&[], &[], Period::Turn).is_none());
         assert!(weighted_mean(&[0.1], &[f64::NAN], Period::Turn).is_none());
+        // The direction is still given (of the sums' rounding noise), with a resultant that
+        // says it means nothing and a finite chi^2 about it.
+        let d = direction(&[0.0, PI / 2.0], &[1.0, 1.0], Period::HalfTurn).unwrap();
+        assert!(d.resultant < 1e-15 && d.chi2.is_finite(), "{d:?}");
     }
 
     #[test]
