@@ -241,6 +241,40 @@ pub fn read_catalogs(
     Ok((rows, zero.map_or(0.0, |z| z.0), notes))
 }
 
+/// How the instrument of a calibration from catalogs was chosen ([`catalogs_instrument`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum InstrumentChoice {
+    /// Given by the caller.
+    Given,
+    /// The built-in one that writes the value the catalogs record (`INSTRUME`).
+    Recorded(String),
+    /// The catalogs say none: [`ASSUMED_INSTRUMENT`], which the faces warn of.
+    Assumed,
+}
+
+/// The instrument of catalogs that say none.
+pub const ASSUMED_INSTRUMENT: &str = "fors1";
+
+/// The instrument a calibration from the catalogs `paths` is of: `given`, else the built-in one
+/// the catalogs say they are of ([`recorded_instrument`], `instrument::builtin_for_keyword`;
+/// an instrument that is no built-in one is refused, its file to be given), else
+/// [`ASSUMED_INSTRUMENT`]. The one rule of `instpol calibrate-stars` and Python's
+/// `calibrate_stars`.
+pub fn catalogs_instrument(given: Option<&str>, paths: &[std::path::PathBuf]) -> Result<(String, InstrumentChoice)> {
+    if let Some(g) = given {
+        return Ok((g.to_string(), InstrumentChoice::Given));
+    }
+    match recorded_instrument(paths)? {
+        Some(i) => match instrument::builtin_for_keyword(&i) {
+            Some(b) => Ok((b.to_string(), InstrumentChoice::Recorded(i))),
+            None => Err(Error::Input(format!(
+                "the catalogs are of instrument {i}, no built-in one: give its instrument file"
+            ))),
+        },
+        None => Ok((ASSUMED_INSTRUMENT.to_string(), InstrumentChoice::Assumed)),
+    }
+}
+
 /// The instrument the catalogs `paths` say they are of (their product keywords, `INSTRUME`):
 /// `None` when none says; refused naming two catalogs that say different ones.
 pub fn recorded_instrument(paths: &[std::path::PathBuf]) -> Result<Option<String>> {

@@ -1285,7 +1285,7 @@ fn _demo(py: Python<'_>, out: PathBuf, through_frames: bool, keep_frames: bool, 
 fn _calibrate_stars(
     py: Python<'_>,
     catalogs: Vec<PathBuf>,
-    instrument: &str,
+    instrument: Option<&str>,
     filter: &str,
     out: Option<PathBuf>,
     interstellar_free: bool,
@@ -1303,7 +1303,26 @@ fn _calibrate_stars(
     }
     refuse_same_data(&catalogs, skyfield::same::By::Content)?;
     refuse_overwrite(out.as_deref(), catalogs.iter())?;
-    let inst = instrument::Instrument::load(instrument).map_err(inst_err)?;
+    // The one rule of the instrument of catalogs (`instpol calibrate-stars`'s): an inferred or
+    // assumed one is said as a Python warning.
+    let fit_err = |e: fit::Error| match e {
+        fit::Error::Io { .. } | fit::Error::Fits { .. } => FileError::new_err(e.to_string()),
+        e => input_err(format!("{e} (instrument=)")),
+    };
+    let (name, chosen) = fit::stars_field::catalogs_instrument(instrument, &catalogs).map_err(fit_err)?;
+    let said = match chosen {
+        fit::stars_field::InstrumentChoice::Given => None,
+        fit::stars_field::InstrumentChoice::Recorded(i) => {
+            Some(format!("instrument {name}, which the catalogs say they are of (INSTRUME = '{i}')"))
+        }
+        fit::stars_field::InstrumentChoice::Assumed => Some(format!(
+            "the catalogs do not say which instrument they are of (no INSTRUME keyword): taken as {name}; give instrument= if they are another's"
+        )),
+    };
+    if let Some(w) = said {
+        py.import("warnings")?.call_method1("warn", (w,))?;
+    }
+    let inst = instrument::Instrument::load(&name).map_err(inst_err)?;
     let interstellar = match (interstellar_free, interstellar) {
         (true, _) => Interstellar::Free,
         (false, None) => Interstellar::Zero,

@@ -93,24 +93,18 @@ fn interstellar(s: &str) -> Result<Interstellar> {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let instrument = match &a.instrument {
-        Some(i) => i.clone(),
-        None => match fit::stars_field::recorded_instrument(&a.catalogs)? {
-            Some(i) => {
-                let b = instrument::builtin_for_keyword(&i).ok_or_else(|| {
-                    anyhow::anyhow!(
-                        "the catalogs are of instrument {i}, no built-in one: give its file with --instrument"
-                    )
-                })?;
-                eprintln!("note: instrument {b}, which the catalogs say they are of (INSTRUME = '{i}')");
-                b.to_string()
-            }
-            None => {
-                eprintln!("warning: the catalogs do not say which instrument they are of (no INSTRUME keyword): taken as fors1; give --instrument if they are another's");
-                "fors1".to_string()
-            }
-        },
-    };
+    use fit::stars_field::InstrumentChoice;
+    let (instrument, chosen) = fit::stars_field::catalogs_instrument(a.instrument.as_deref(), &a.catalogs)
+        .map_err(|e| anyhow::anyhow!("{e} (--instrument)"))?;
+    match chosen {
+        InstrumentChoice::Given => {}
+        InstrumentChoice::Recorded(i) => {
+            eprintln!("note: instrument {instrument}, which the catalogs say they are of (INSTRUME = '{i}')")
+        }
+        InstrumentChoice::Assumed => eprintln!(
+            "warning: the catalogs do not say which instrument they are of (no INSTRUME keyword): taken as {instrument}; give --instrument if they are another's"
+        ),
+    }
     crate::util::inputs(a.catalogs.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&instrument)))?;
     crate::util::check_output(&a.out)?;
     if a.catalogs.is_empty() {

@@ -847,7 +847,7 @@ def catalog(
 
 def calibrate_stars(
     catalogs: Union[PathLike, Sequence[PathLike]],
-    instrument: str = "fors1",
+    instrument: Optional[str] = None,
     *,
     filter: str,
     out: Optional[PathLike] = None,
@@ -861,8 +861,10 @@ def calibrate_stars(
 ) -> Dict[str, Any]:
     """The instrumental field from field stars, as ``instpol calibrate-stars``.
 
-    A catalog whose keywords say another instrument or filter than ``instrument``, ``filter``
-    raises InputError naming both, unless ``allow_mismatch``.
+    ``instrument``: a built-in name or an instrument file; None: the built-in one the
+    catalogs' keywords say (``INSTRUME``), else FORS1, each with a warning. A catalog whose
+    keywords say another instrument or filter than ``instrument``, ``filter`` raises InputError
+    naming both, unless ``allow_mismatch``.
 
     ``catalogs``: the star catalogs ``catalog(..., out=)`` or ``instpol catalog --out`` wrote,
     one per dithered pointing of a dense field. Each star's measured ``q, u`` is the
@@ -916,7 +918,7 @@ def calibrate_stars(
             raise InputError(f"{len(offs)} offsets for {len(cats)} catalogs: give one per catalog, (0, 0) for the first")
     return json.loads(
         _instpol._calibrate_stars(
-            [os.fspath(c) for c in cats], str(instrument), str(filter), _opt_path(out), free, given, offs,
+            [os.fspath(c) for c in cats], None if instrument is None else str(instrument), str(filter), _opt_path(out), free, given, offs,
             str(model), bool(free_centre), float(reject_alpha), float(match_radius_arcsec), bool(allow_mismatch),
         )
     )

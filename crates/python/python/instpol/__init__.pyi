@@ -243,7 +243,7 @@ def catalog(
 
 def calibrate_stars(
     catalogs: Union[PathLike, Sequence[PathLike]],
-    instrument: str = ...,
+    instrument: Optional[str] = ...,
     *,
     filter: str,
     out: Optional[PathLike] = ...,
