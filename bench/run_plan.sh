@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # `instpol run` over a night's plan against the same units' commands run one after another by
 # a shell script (issue 31: within 5 %), both on one core (`--jobs 1`). The night is the
-# simulated one of crates/cli/tests/night.rs (~100 exposures of a tiny FORS2, 31 units), so
+# simulated one of crates/cli/tests/it/night.rs (~100 exposures of a tiny FORS2, 31 units), so
 # what is measured is what `run` adds to the commands: reading the plan, hashing every input
 # before and every output after, the records and locks. Each timed REPS times, alternating,
 # from an empty products folder; medians.
@@ -20,7 +20,7 @@ BIN="$(cd "$T/release" && pwd)/instpol"
 DIR=${NIGHT_DIR:-$LOG/night}
 if [ ! -f "$DIR/.made" ]; then
   rm -rf "$DIR"
-  INSTPOL_NIGHT_DIR="$DIR" cargo test --release -q -p instpol --test night -- --ignored --exact write_night_for_bench >&2
+  INSTPOL_NIGHT_DIR="$DIR" cargo test --release -q -p instpol --test it -- --ignored --exact night::write_night_for_bench >&2
   touch "$DIR/.made"
 fi
 PLAN="$LOG/night.json"

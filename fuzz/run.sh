@@ -4,7 +4,7 @@
 #
 # With a nightly toolchain and cargo-fuzz (`cargo install cargo-fuzz`), the cargo-fuzz targets
 # of fuzz/fuzz_targets/ run in-process over the library loaders (coverage-guided libFuzzer);
-# otherwise the byte-mutation tests of crates/cli/tests/fuzz.rs run (FUZZ_BYTES=1 forces them).
+# otherwise the byte-mutation tests of crates/cli/tests/it/fuzz.rs run (FUZZ_BYTES=1 forces them).
 # Environment: FUZZ_TARGET_DIR (nightly build folder, default target/fuzz-nightly),
 # FUZZ_TARGETS (space-separated subset). Corpora grow in fuzz/corpus/<target>/ (not committed;
 # seeded from fuzz/seeds/<target>/ and, for the FITS readers, generated here), findings land in
@@ -109,21 +109,21 @@ if [ -z "${FUZZ_BYTES:-}" ] && cargo +nightly fuzz --version >/dev/null 2>&1; th
   exit $status
 fi
 
-# ---- fallback: byte mutation through crates/cli/tests/fuzz.rs ----
+# ---- fallback: byte mutation through crates/cli/tests/it/fuzz.rs ----
 SEED=${SEED:-11400714819323198485}
 REPORT=$(mktemp)
 export FUZZ_SECS=$SECS FUZZ_SEED=$SEED FUZZ_REPORT=$REPORT
 rm -rf fuzz/findings
-cargo test -p instpol --test fuzz --no-run -q 2>/dev/null || { echo "build failed"; exit 1; }
+cargo test -p instpol --test it --no-run -q 2>/dev/null || { echo "build failed"; exit 1; }
 for t in fuzz_instrument_toml fuzz_scene_toml fuzz_stokes_csv fuzz_calibration_file fuzz_frame_fits; do
   echo "== $t ($SECS s)"
-  cargo test -q -p instpol --test fuzz -- --ignored --exact "$t" --nocapture 2>&1 | grep -E '\| [0-9]+ runs|panicked|FAILED|error' | head -5 || true
+  cargo test -q -p instpol --test it -- --ignored --exact "fuzz::$t" --nocapture 2>&1 | grep -E '\| [0-9]+ runs|panicked|FAILED|error' | head -5 || true
 done
 {
   echo "# Fuzzing findings"
   echo
   echo "Last run: $(date -u +%Y-%m-%dT%H:%MZ), $SECS s per target, seed $SEED, \`FUZZ_BYTES=1 fuzz/run.sh $SECS $SEED\`."
-  echo "Byte-mutation fuzzing (crates/cli/tests/fuzz.rs; nightly cargo-fuzz not available). Corpus size ="
+  echo "Byte-mutation fuzzing (crates/cli/tests/it/fuzz.rs; nightly cargo-fuzz not available). Corpus size ="
   echo "distinct outcome classes reached (first error line with digits removed). Findings' inputs"
   echo "are kept in fuzz/findings/<target>/ (not committed)."
   echo

@@ -2,7 +2,7 @@
 # Regenerate the gallery's figures (docs/guide/gallery.md) into docs/guide/img/, with the
 # instpol binary given as $INSTPOL (default: instpol on PATH). Run from the repository root:
 #   INSTPOL=target/release/instpol bash docs/guide/make-gallery.sh
-# The tests draw the same kinds of figure and check them (crates/cli/tests/plot_publication.rs:
+# The tests draw the same kinds of figure and check them (crates/cli/tests/it/plot_publication.rs:
 # fonts, text inside the image, legends off the data); this script only refreshes the images.
 set -euo pipefail
 cd "$(dirname "$0")/../.."

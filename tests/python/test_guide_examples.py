@@ -1,7 +1,7 @@
 """Every Python example of the README and the guide (docs/**/*.md) runs against the installed
 package. A file's blocks run in order in one fresh folder holding links to the repository's
 instruments/ and tests/: its ```toml file=NAME blocks are written to NAME, its ```console
-commands are run (their output is checked by crates/cli/tests/doc_examples.rs; here they only
+commands are run (their output is checked by crates/cli/tests/it/doc_examples.rs; here they only
 make the inputs the Python blocks read), and its ```python blocks are executed in one namespace,
 as a reader pasting them into one session would."""
 

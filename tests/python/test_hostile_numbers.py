@@ -1,6 +1,6 @@
 """Every number a function of the Python package takes is refused when it is NaN, +inf or
 -inf, with an InputError (a ValueError) that names the parameter: the property the CLI's
-hostile-input generator checks of every numeric option (crates/cli/tests/hostile.rs, class
+hostile-input generator checks of every numeric option (crates/cli/tests/it/hostile.rs, class
 `numeric`), here for the other face.
 
 The parameters are found by inspection, not listed: every parameter of every public function

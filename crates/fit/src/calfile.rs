@@ -204,7 +204,7 @@ impl Calibration {
     /// them (an interpolant with a hole there).
     ///
     /// A radial pattern `P(r) = c r^2` about the centre of a region of half-sides `a`, `b`
-    /// gives `c (a^2 + b^2) / 2` (`crates/fit/tests/request.rs` checks an off-centre case).
+    /// gives `c (a^2 + b^2) / 2` (`crates/fit/tests/it/request.rs` checks an off-centre case).
     pub fn p_at_edge(&self) -> Option<(f64, f64)> {
         let r = &self.region;
         let (xc, yc) = (0.5 * (r.x_min + r.x_max), 0.5 * (r.y_min + r.y_max));

@@ -13,7 +13,7 @@
 //! a point is kept, a stopping rule on the change of that chi^2, an iteration limit; and the
 //! caller computes the covariance from the linearization at the end. How they differed, which
 //! the policies below keep exactly (every fit gives the same bits as before,
-//! `tests/lsq_bits.rs` and the numbers of record):
+//! `tests/it/lsq_bits.rs` and the numbers of record):
 //!
 //! - problem: the radial fit's residuals with their analytic Jacobian; the telescope's and
 //!   the causes' with central-difference Jacobians; the Mueller field's normal equations and

@@ -45,7 +45,7 @@
 //! by models turned by the zero angle against it, off by about `2 sin(z) P` (9e-3 for the
 //! 3.6 % an unpolarized star shows through the test's M3 with `z` = 7 deg, an estimate); with
 //! it such a star comes back to 1e-16
-//! (`crates/cli/tests/telescope_frames.rs`, `the_chain_undoes_the_telescope_through_a_hwp_zero_angle`).
+//! (`crates/cli/tests/it/telescope_frames.rs`, `the_chain_undoes_the_telescope_through_a_hwp_zero_angle`).
 
 use crate::correct::{p_chi_with_errors, Corrected, Corrector, Measurement};
 use crate::keys::{fits_err, KeyReader, KeyWriter};

@@ -6,7 +6,7 @@
 //! plain clipping with the one median (`stokes::stats::robust::median`) and the one
 //! `MAD_TO_SIGMA`, searched faster (windowed selections on integer keys): the binning's
 //! clipping of several columns at once ([`sigma_clip_columns`], checked to the bit by
-//! `tests/clip_reference.rs`) and the background mesh's median and sigma (`clipped_stats`,
+//! `tests/it/clip_reference.rs`) and the background mesh's median and sigma (`clipped_stats`,
 //! checked by this module's tests). The one-pass clipped mean of the raw calibration is
 //! `stokes::stats::robust::clipped_mean`.
 

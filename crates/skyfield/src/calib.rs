@@ -1871,7 +1871,7 @@ mod tests {
     /// sum (`Cal::sum`, each exposure set or added in turn) and the same counts, over rows with
     /// saturated values, NaN and zero flat responses, huge inverse flats (values beyond f32:
     /// infinities) and a length that is not a multiple of the block. (The blocked sum itself is
-    /// checked against an independent calibration by `sim/tests/raw_calibration_bits.rs`.)
+    /// checked against an independent calibration by `sim/tests/it/raw_calibration_bits.rs`.)
     #[test]
     fn blocked_u16_sum_is_the_exposure_by_exposure_sum() {
         use rand::{RngExt, SeedableRng};

@@ -310,7 +310,7 @@ mod tests {
     /// The reduction's fast path reads rows straight from the file for images in an extension
     /// (`[CHIP1]`, found automatically) as for the primary, and CFITSIO reads gzip, tile
     /// compression and BLANK images whole: either way the pixels of `read_frame` (which
-    /// `tests/formats.rs` checks against astropy).
+    /// `tests/it/formats.rs` checks against astropy).
     #[test]
     fn rows_of_extension_and_compressed_frames_are_the_frame_pixels() {
         let text = include_str!("../../../instruments/fors1.toml")

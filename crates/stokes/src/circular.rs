@@ -14,7 +14,7 @@
 //! counter-clockwise rotation of the electric vector as seen by the observer;
 //! `mueller::retarder` turns +45 deg linear light into `V > 0` with its fast axis at 0), so
 //! `F(+45 deg) = v`, `F(-45 deg) = -v` for any linear polarization.
-//! `crates/mueller/tests/quarter_wave.rs` checks this form against a Jones calculation.
+//! `crates/mueller/tests/it/quarter_wave.rs` checks this form against a Jones calculation.
 //!
 //! # The estimator
 //!

@@ -1,6 +1,6 @@
 //! `instpol cli-spec` (hidden): every command's arguments and the kind of value each takes,
 //! read from the clap definition itself, so that a test can enumerate the commands and their
-//! inputs instead of listing them by hand (crates/cli/tests/hostile.rs).
+//! inputs instead of listing them by hand (crates/cli/tests/it/hostile.rs).
 
 use anyhow::Result;
 use clap::CommandFactory;

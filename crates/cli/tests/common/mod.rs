@@ -7,6 +7,8 @@ pub mod invocations;
 pub mod mueller_maps;
 pub mod night;
 pub mod raw;
+#[path = "../../../fit/tests/common/shared_data.rs"]
+pub mod shared_data;
 
 use fit::calfile::{Model, PixelGrid, Provenance, FORMAT_VERSION};
 use fit::synth::{sky_field, FnField};

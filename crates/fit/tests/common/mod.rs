@@ -3,6 +3,7 @@
 #![allow(dead_code)]
 
 pub mod mueller_fields;
+pub mod shared_data;
 
 use fit::Bin;
 use rand::SeedableRng;

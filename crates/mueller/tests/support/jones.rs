@@ -1,7 +1,7 @@
 //! A Jones calculus written for the tests, apart from the library's Mueller code, so that the
 //! library's matrices (mirrors, retarders, the instrument chain) can be checked against it.
 //! Included by path where it is used (`mueller::mirror`'s unit tests,
-//! `crates/sim/tests/chain_end_to_end.rs`).
+//! `crates/sim/tests/it/chain_end_to_end.rs`).
 
 #![allow(dead_code)]
 

@@ -2,7 +2,7 @@
 //! the F_i with their errors, the eq:system curve through the solver's Q/I and U/I, a_0, and
 //! the harmonic amplitudes. Nothing is solved here: every number is the `stokes` reduction's.
 //! Kept apart from the drawing and free of `crate::` paths, so that
-//! `tests/stokes_plot.rs` can include this file and check it against the solver.
+//! `tests/it/stokes_plot.rs` can include this file and check it against the solver.
 
 use stokes::fourier::Harmonic;
 use stokes::Reduction;

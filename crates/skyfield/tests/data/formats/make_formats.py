@@ -1,4 +1,4 @@
-"""Write the tiny FITS files of crates/skyfield/tests/formats.rs with astropy, and what astropy
+"""Write the tiny FITS files of crates/skyfield/tests/it/formats.rs with astropy, and what astropy
 reads from them (expected.json), so the Rust reader is checked against an independent one.
 
 Run from this folder:  python3 make_formats.py   (astropy >= 6, numpy). The files are committed;

@@ -1,4 +1,4 @@
-"""Write the astropy-made tables that `crates/skyfield/tests/tables.rs` reads.
+"""Write the astropy-made tables that `crates/skyfield/tests/it/tables.rs` reads.
 
 Run from this folder with astropy installed:  python3 make_tables.py
 The same small catalog in ECSV, VOTable (TABLEDATA), FITS and CSV, with units, a NaN, a

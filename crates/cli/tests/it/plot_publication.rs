@@ -1,0 +1,425 @@
+//! Plots for publication, checked on the files the commands write:
+//! - every text of every SVG is at least 9 pt when the figure is printed one journal column
+//!   wide (8.8 cm = 249.45 pt; px per pt = the SVG's own width / 249.45), read from the SVG;
+//! - every decade inside a log axis carries a label (mc --sweep: the eta and SNR_P axes, whose
+//!   ranges are read from the command's JSON);
+//! - the bytes are the format the extension names (PNG magic, SVG text); .pdf is refused with
+//!   an error naming the supported extensions and no file.
+
+use crate::common;
+
+use common::run;
+use std::path::{Path, PathBuf};
+
+/// One journal column in points: 8.8 cm / 2.54 cm per inch x 72 pt per inch.
+const COLUMN_PT: f64 = 8.8 / 2.54 * 72.0;
+
+fn svg_width(svg: &str) -> f64 {
+    let at = svg.find("<svg width=\"").expect("an <svg width=...> element") + 12;
+    svg[at..].split('"').next().unwrap().parse().unwrap()
+}
+
+/// Every (font-size in px, text) of an SVG written by plotters.
+fn texts(svg: &str) -> Vec<(f64, String)> {
+    let mut out = vec![];
+    for part in svg.split("<text ").skip(1) {
+        let fs = part.split("font-size=\"").nth(1).and_then(|r| r.split('"').next()).expect("font-size");
+        let body = part.split_once('>').map(|(_, b)| b.split("</text>").next().unwrap_or("")).unwrap_or("");
+        out.push((fs.parse().unwrap(), body.trim().to_string()));
+    }
+    out
+}
+
+/// The smallest text of `svg` in points at one column's width, and that text.
+fn smallest_pt(svg: &str) -> (f64, String) {
+    let px_per_pt = svg_width(svg) / COLUMN_PT;
+    texts(svg)
+        .into_iter()
+        .filter(|(_, t)| !t.is_empty())
+        .map(|(px, t)| (px / px_per_pt, t))
+        .fold((f64::INFINITY, String::new()), |a, b| if b.0 < a.0 { b } else { a })
+}
+
+fn assert_fonts(path: &Path) {
+    let svg = std::fs::read_to_string(path).unwrap();
+    assert!(!texts(&svg).is_empty(), "{}: no text", path.display());
+    let (size, text) = smallest_pt(&svg);
+    assert!(size >= 9.0 - 1e-9, "{}: '{text}' is {size:.2} pt at a {COLUMN_PT:.1} pt column", path.display());
+}
+
+fn magic(path: &Path) -> Vec<u8> {
+    std::fs::read(path).unwrap().into_iter().take(8).collect()
+}
+
+const PNG: &[u8] = b"\x89PNG\r\n\x1a\n";
+
+fn fluxes(dir: &Path) -> String {
+    let p = dir.join("f.csv");
+    std::fs::write(&p, "hwp_deg,f_o,f_e\n0,1000,1100\n22.5,1050,1010\n45,1100,1000\n67.5,1010,1050\n90,1000,1095\n112.5,1049,1012\n135,1101,1001\n157.5,1012,1049\n").unwrap();
+    p.to_str().unwrap().to_string()
+}
+
+#[test]
+fn stokes_plot_fonts_and_formats() {
+    let d = tempfile::tempdir().unwrap();
+    let input = fluxes(d.path());
+    for name in ["f.svg", "f.png", "F.SVG"] {
+        let out = d.path().join(name);
+        let (code, _, err) = run(&["stokes", "--input", &input, "--plot", out.to_str().unwrap()]);
+        assert_eq!(code, 0, "{err}");
+        let m = magic(&out);
+        if name.to_lowercase().ends_with(".png") {
+            assert_eq!(m, PNG, "{name}");
+        } else {
+            assert!(m.starts_with(b"<svg"), "{name}: {m:?}");
+            assert_fonts(&out);
+        }
+    }
+}
+
+/// raytrace and plan draw PNG or SVG by the extension (they drew PNG only), at >= 9 pt.
+#[test]
+fn raytrace_and_plan_plots_follow_the_extension() {
+    let d = tempfile::tempdir().unwrap();
+    for ext in ["svg", "png"] {
+        let rt = d.path().join(format!("rt.{ext}"));
+        let (code, _, err) =
+            run(&["raytrace", "--instrument", "fors1", "--filter", "V", "--plot", rt.to_str().unwrap()]);
+        assert_eq!(code, 0, "{err}");
+        let pl = d.path().join(format!("plan.{ext}"));
+        let args = ["plan", "--target-percent", "0.05", "--sky-rate", "2", "--bin", "200", "--candidate", "6.45:68.4"];
+        let (code, _, err) = run(&[&args[..], &["--candidate", "4:10", "--plot", pl.to_str().unwrap()]].concat());
+        assert_eq!(code, 0, "{err}");
+        for f in [&rt, &pl] {
+            if ext == "png" {
+                assert_eq!(magic(f), PNG, "{}", f.display());
+            } else {
+                assert!(magic(f).starts_with(b"<svg"), "{}", f.display());
+                assert_fonts(f);
+            }
+        }
+    }
+}
+
+#[test]
+fn pdf_is_refused_naming_the_supported_extensions() {
+    let d = tempfile::tempdir().unwrap();
+    let input = fluxes(d.path());
+    let pdf = d.path().join("f.pdf");
+    for args in [
+        vec!["stokes", "--input", &input, "--plot", pdf.to_str().unwrap()],
+        vec!["mc", "--sweep", "--trials", "10", "--plot", pdf.to_str().unwrap()],
+    ] {
+        let (code, out, err) = run(&args);
+        assert_eq!(code, 2, "{args:?}: {out}");
+        assert!(err.contains("f.pdf") && err.contains(".png and .svg"), "{err}");
+        assert!(!pdf.exists(), "a refused plot leaves no file");
+    }
+}
+
+#[test]
+fn calibration_plots_fonts_and_formats() {
+    let d = tempfile::tempdir().unwrap();
+    let cal = d.path().join("cal.fits");
+    let map = d.path().join("map.fits");
+    common::write_v_sky_map(&map, |_| true);
+    let (code, _, err) = run(&common::calibrate_v_args(&map, &cal));
+    assert_eq!(code, 0, "{err}");
+    let plots = d.path().join("plots");
+    let (code, out, err) = run(&["plot", cal.to_str().unwrap(), "--out", plots.to_str().unwrap(), "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let files: Vec<String> = j["outputs"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().to_string()).collect();
+    assert!(files.len() >= 4, "{files:?}");
+    for f in &files {
+        let p = Path::new(f);
+        match p.extension().and_then(|e| e.to_str()) {
+            Some("png") => assert_eq!(magic(p), PNG, "{f}"),
+            Some("svg") => {
+                assert!(magic(p).starts_with(b"<svg"), "{f}");
+                assert_fonts(p);
+            }
+            other => panic!("{f}: unexpected extension {other:?}"),
+        }
+    }
+}
+
+/// The label plotters writes for a decade (the CLI's tick format: 0.1, 1, 10, 1e-6).
+fn decade_label(k: i32) -> String {
+    if (-3..5).contains(&k) {
+        let v = 10f64.powi(k);
+        let s = format!("{v:.3}");
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        format!("1e{k}")
+    }
+}
+
+#[test]
+fn mc_sweep_log_axes_label_every_decade() {
+    let d = tempfile::tempdir().unwrap();
+    let svg = d.path().join("sweep.svg");
+    let (code, out, err) =
+        run(&["mc", "--sweep", "--trials", "300", "--noise", "gauss-qu", "--plot", svg.to_str().unwrap(), "--json"]);
+    assert_eq!(code, 0, "{err}");
+    assert!(magic(&svg).starts_with(b"<svg"));
+    assert_fonts(&svg);
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let range = |key: &str, field: &str| {
+        let v: Vec<f64> = j[key].as_array().unwrap().iter().map(|p| p[field].as_f64().unwrap()).collect();
+        (v.iter().cloned().fold(f64::INFINITY, f64::min), v.iter().cloned().fold(0.0, f64::max))
+    };
+    let text = std::fs::read_to_string(&svg).unwrap();
+    let labels: Vec<String> = texts(&text).into_iter().map(|t| t.1).collect();
+    for (key, field) in [("deltap", "eta"), ("bias", "snr_p")] {
+        let (lo, hi) = range(key, field);
+        let (k0, k1) = ((lo.log10() - 1e-9).ceil() as i32, (hi.log10() + 1e-9).floor() as i32);
+        assert!(k1 > k0, "{key}: the axis spans {lo}..{hi}, at least two decades expected");
+        for k in k0..=k1 {
+            let want = decade_label(k);
+            assert!(labels.contains(&want), "{key}.{field}: decade {want} has no label in {labels:?}");
+        }
+    }
+}
+
+#[test]
+fn mc_accuracy_png_magic() {
+    let d = tempfile::tempdir().unwrap();
+    let png = d.path().join("acc.png");
+    let (code, _, err) =
+        run(&["mc", "--accuracy-report", "--trials", "1000", "--noise", "gauss-qu", "--plot", png.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert_eq!(magic(&png), PNG);
+}
+
+/// Every text of an SVG written by plotters: (x, y, anchor, its `dy`, plotters' font size in
+/// px, rotated, text). plotters writes `font-size` as its size / 1.24 (the em).
+fn placed_texts(svg: &str) -> Vec<(f64, f64, String, String, f64, bool, String)> {
+    let attr = |part: &str, name: &str| -> Option<String> {
+        part.split(&format!(" {name}=\"")).nth(1).and_then(|r| r.split('"').next()).map(str::to_string)
+    };
+    let mut out = vec![];
+    for part in svg.split("<text").skip(1) {
+        let head = part.split('>').next().unwrap_or("");
+        let body = part.split_once('>').map(|(_, b)| b.split("</text>").next().unwrap_or("")).unwrap_or("");
+        let text = body.trim().replace("&lt;", "<").replace("&gt;", ">").replace("&quot;", "\"").replace("&amp;", "&");
+        let num = |n: &str| attr(head, n).and_then(|v| v.parse::<f64>().ok()).unwrap_or(f64::NAN);
+        let anchor = attr(head, "text-anchor").unwrap_or_else(|| "start".into());
+        let dy = attr(head, "dy").unwrap_or_default();
+        out.push((num("x"), num("y"), anchor, dy, 1.24 * num("font-size"), head.contains("rotate("), text));
+    }
+    out
+}
+
+/// The width (px) the embedded DejaVu Sans gives `text` at plotters' size `size`: plotters'
+/// own measure, the one it lays the text out with.
+fn text_width(text: &str, size: f64) -> f64 {
+    use plotters::prelude::*;
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
+    });
+    ("sans-serif", size).into_font().box_size(text).map(|(w, _)| w as f64).unwrap_or(0.0)
+}
+
+/// The texts of `svg` whose box reaches outside the image (a pixel of slack), as messages.
+fn texts_outside(path: &Path) -> Vec<String> {
+    let svg = std::fs::read_to_string(path).unwrap();
+    let w = svg_width(&svg);
+    let h: f64 = svg.split("height=\"").nth(1).and_then(|r| r.split('"').next()).unwrap().parse().unwrap();
+    let mut bad = vec![];
+    for (x, y, anchor, dy, size, rotated, text) in placed_texts(&svg) {
+        if text.is_empty() {
+            continue;
+        }
+        let len = text_width(&text, size);
+        // Along the text, from the anchor.
+        let (lo, hi) = match anchor.as_str() {
+            "middle" => (-0.5 * len, 0.5 * len),
+            "end" => (-len, 0.0),
+            _ => (0.0, len),
+        };
+        // Across it, from the anchor (plotters' dy: top, bottom or centre at the anchor).
+        let em = size / 1.24;
+        let (a, b) = match dy.as_str() {
+            "0.76em" => (0.0, em),
+            "-0.5ex" => (-em, 0.0),
+            _ => (-0.5 * em, 0.5 * em),
+        };
+        // Rotated texts (the y-axis titles, by 270 deg) run upwards from their anchor, and
+        // what lies below the text before the turn lies right of it after.
+        let (x0, x1, y0, y1) = if rotated { (x + a, x + b, y - hi, y - lo) } else { (x + lo, x + hi, y + a, y + b) };
+        if x0 < -1.0 || x1 > w + 1.0 || y0 < -1.0 || y1 > h + 1.0 {
+            bad.push(format!("{}: '{text}' spans x {x0:.0}..{x1:.0}, y {y0:.0}..{y1:.0} in {w} x {h}", path.display()));
+        }
+    }
+    bad
+}
+
+/// No text falls outside the figure, in the stokes plot (its title was cut at the left edge
+/// at 1000 px) and in the calibration plots: measured with plotters' own text width.
+#[test]
+fn no_text_falls_outside_the_figures() {
+    let d = tempfile::tempdir().unwrap();
+    let svg = d.path().join("fourier.svg");
+    let csv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/fors1_v_star_n16.csv");
+    let (code, _, err) = run(&["stokes", "--input", csv.to_str().unwrap(), "--plot", svg.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let mut bad = texts_outside(&svg);
+    let cal = d.path().join("cal.fits");
+    let map = d.path().join("map.fits");
+    common::write_v_sky_map(&map, |_| true);
+    let (code, _, err) = run(&common::calibrate_v_args(&map, &cal));
+    assert_eq!(code, 0, "{err}");
+    let plots = d.path().join("plots");
+    let (code, _, err) = run(&["plot", cal.to_str().unwrap(), "--out", plots.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    let mut n = 1;
+    for e in std::fs::read_dir(&plots).unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_some_and(|x| x == "svg") {
+            bad.extend(texts_outside(&p));
+            n += 1;
+        }
+    }
+    assert!(n >= 4, "{n} figures");
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+    // The measure itself: a longer text is wider, and the old stokes title at 10 pt on 1000 px
+    // (plotters' size 50) was wider than the figure.
+    assert!(text_width("N = 16: P = 0.421 ± 0.022 %, χ = 21.11 deg", 50.0) > 900.0);
+}
+
+/// `(x, y, width, height)` of an SVG element's attributes, or its circle `(cx, cy, r, r)`.
+fn geometry(head: &str) -> Option<(f64, f64, f64, f64)> {
+    let num = |n: &str| head.split(&format!(" {n}=\"")).nth(1)?.split('"').next()?.parse::<f64>().ok();
+    if head.starts_with("circle") {
+        return Some((num("cx")?, num("cy")?, num("r")?, num("r")?));
+    }
+    Some((num("x")?, num("y")?, num("width")?, num("height")?))
+}
+
+/// The plotted points (circles, polygons' vertices) and bars (filled rectangles that are not
+/// a white background) of `svg` that fall inside a legend box drawn after them, as messages.
+/// plotters draws a legend as a translucent white rectangle and a bordered one of the same
+/// geometry, after the series of its chart and before its own keys: what comes before the
+/// box in the file is data.
+fn legend_overlaps(path: &Path) -> Vec<String> {
+    let svg = std::fs::read_to_string(path).unwrap();
+    let elems: Vec<&str> = svg.split('<').skip(1).collect();
+    let mut bad = vec![];
+    for (i, e) in elems.iter().enumerate() {
+        let is_border = e.starts_with("rect") && e.contains("fill=\"none\"") && !e.contains("stroke=\"none\"");
+        let Some((lx, ly, lw, lh)) = is_border.then(|| geometry(e)).flatten() else { continue };
+        let same_background =
+            i > 0 && elems[i - 1].starts_with("rect") && geometry(elems[i - 1]) == Some((lx, ly, lw, lh));
+        if !same_background {
+            continue;
+        }
+        let inside = |x: f64, y: f64, pad: f64| x + pad > lx && x - pad < lx + lw && y + pad > ly && y - pad < ly + lh;
+        for d in &elems[..i - 1] {
+            let hit = if d.starts_with("circle") {
+                geometry(d).is_some_and(|(cx, cy, r, _)| inside(cx, cy, r))
+            } else if d.starts_with("rect") && !d.contains("fill=\"#FFFFFF\"") && !d.contains("fill=\"none\"") {
+                geometry(d).is_some_and(|(x, y, w, h)| x < lx + lw && x + w > lx && y < ly + lh && y + h > ly)
+            } else if d.starts_with("polygon") {
+                let pts = d.split("points=\"").nth(1).and_then(|r| r.split('"').next()).unwrap_or("");
+                pts.split_whitespace()
+                    .filter_map(|p| p.split_once(','))
+                    .any(|(x, y)| matches!((x.parse::<f64>(), y.parse::<f64>()), (Ok(x), Ok(y)) if inside(x, y, 0.0)))
+            } else {
+                false
+            };
+            if hit {
+                let d: String = d.chars().take(90).collect();
+                bad.push(format!("{}: legend at ({lx}, {ly}) {lw} x {lh} covers <{d}", path.display()));
+            }
+        }
+    }
+    bad
+}
+
+/// Every figure a command draws, as SVG: no legend box covers a plotted point or bar, and no
+/// text falls outside the image. The figures: the gallery's (calibration map, profile and
+/// residual; the Fourier plot), raytrace, plan, mc's sweep and accuracy report, a telescope
+/// fit of the EFOSC2 standards (real data), and a night's trend.
+#[test]
+fn every_figure_keeps_its_legends_off_the_data() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n);
+    let s = |n: &str| p(n).to_str().unwrap().to_string();
+    let mut figures = vec![];
+    let csv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/fors1_v_star_n16.csv");
+    let runs: Vec<Vec<String>> = vec![
+        vec!["stokes".into(), "--input".into(), csv.display().to_string(), "--plot".into(), s("fourier.svg")],
+        vec![
+            "raytrace".into(),
+            "--instrument".into(),
+            "fors1".into(),
+            "--filter".into(),
+            "V".into(),
+            "--plot".into(),
+            s("rt.svg"),
+        ],
+        common::QUICK_PLAN.iter().chain(&["--plot"]).map(|x| x.to_string()).chain([s("plan.svg")]).collect(),
+        ["mc", "--sweep", "--trials", "2000", "--plot"].iter().map(|x| x.to_string()).chain([s("sweep.svg")]).collect(),
+        ["mc", "--accuracy-report", "--trials", "1000", "--noise", "gauss-qu", "--plot"]
+            .iter()
+            .map(|x| x.to_string())
+            .chain([s("acc.svg")])
+            .collect(),
+    ];
+    for args in &runs {
+        let a: Vec<&str> = args.iter().map(|x| x.as_str()).collect();
+        let (code, _, err) = run(&a);
+        assert_eq!(code, 0, "{a:?}: {err}");
+        figures.push(PathBuf::from(args.last().unwrap()));
+    }
+    let (cal, map) = (p("cal.fits"), p("map.fits"));
+    common::write_v_sky_map(&map, |_| true);
+    let (code, _, err) = run(&common::calibrate_v_args(&map, &cal));
+    assert_eq!(code, 0, "{err}");
+    let (code, _, err) = run(&["plot", cal.to_str().unwrap(), "--out", &s("plots")]);
+    assert_eq!(code, 0, "{err}");
+    if let Some(d) =
+        crate::common::shared_data::shared_data("efosc2-standards", &["pv_standards.txt"], "the telescope-fit figure")
+    {
+        let efosc2 = d.join("pv_standards.txt");
+        let (code, _, err) =
+            run(&["fit-standards", efosc2.to_str().unwrap(), "--model", "wiersema", "--plot-dir", &s("plots")]);
+        assert_eq!(code, 0, "{err}");
+    }
+    for e in std::fs::read_dir(p("plots")).unwrap() {
+        let f = e.unwrap().path();
+        if f.extension().is_some_and(|x| x == "svg") {
+            figures.push(f);
+        }
+    }
+    assert!(figures.len() >= 8, "{figures:?}");
+    let mut bad = vec![];
+    for f in &figures {
+        assert!(magic(f).starts_with(b"<svg"), "{}", f.display());
+        bad.extend(legend_overlaps(f));
+        bad.extend(texts_outside(f));
+    }
+    assert!(bad.is_empty(), "{}", bad.join("\n"));
+}
+
+/// The overlap check sees what it looks for: a legend drawn over a point and a bar.
+#[test]
+fn the_legend_check_sees_a_covered_point_and_bar() {
+    let d = tempfile::tempdir().unwrap();
+    let f = d.path().join("x.svg");
+    std::fs::write(
+        &f,
+        "<svg width=\"100\" height=\"100\">\n<circle cx=\"50\" cy=\"50\" r=\"3\" fill=\"#0000FF\"/>\n\
+         <rect x=\"60\" y=\"80\" width=\"10\" height=\"30\" opacity=\"0.5\" fill=\"#FF0000\" stroke=\"none\"/>\n\
+         <circle cx=\"5\" cy=\"5\" r=\"3\" fill=\"#0000FF\"/>\n\
+         <rect x=\"40\" y=\"40\" width=\"40\" height=\"45\" opacity=\"0.85\" fill=\"#FFFFFF\" stroke=\"none\"/>\n\
+         <rect x=\"40\" y=\"40\" width=\"40\" height=\"45\" opacity=\"1\" fill=\"none\" stroke=\"#000000\"/>\n\
+         <circle cx=\"50\" cy=\"50\" r=\"3\" fill=\"#0000FF\"/>\n</svg>\n",
+    )
+    .unwrap();
+    let bad = legend_overlaps(&f);
+    assert_eq!(bad.len(), 2, "{bad:?}");
+    assert!(bad[0].contains("circle cx=\"50\"") && bad[1].contains("rect x=\"60\""), "{bad:?}");
+}

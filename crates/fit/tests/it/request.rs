@@ -1,0 +1,336 @@
+//! `fit::request`: the one rule set of correcting rows with any calibration file. The field
+//! path is checked against an inversion written here (nalgebra's inverse of `M_I`,
+//! `eq:instpol`, after a rotation of the rows' `(q, u)` by the zero angle they lack); the
+//! refusals and notes against the situations that call for them; the telescope path against the
+//! chain called with the track and rotator angle each row should get.
+
+use fit::calibration::{CalibrationFile, Kind};
+use fit::correct::{CorrectOptions, Corrector, Measurement, Method};
+use fit::model::FieldModel;
+use fit::request::{plan_rows, Note, PerRowAngles, Refusal, Request};
+use fit::telescope::{fit_band, FitOptions, ModelKind, Observation, TelescopeFit, Track};
+use mueller::mirror::MetalTable;
+use std::path::PathBuf;
+
+/// The paper-like V field as a radial calibration of EFOSC2 with an HWP zero angle `z` (deg).
+fn field(z: f64) -> fit::Calibration {
+    fit::Calibration {
+        format_version: fit::calfile::FORMAT_VERSION,
+        instrument: "EFOSC2".into(),
+        filter: "V".into(),
+        lambda_nm: 550.0,
+        hwp_chi_offset_deg: z,
+        model: fit::Model::Radial(fit::RadialModel {
+            first_power: 0,
+            coeffs: vec![2e-4, 1e-3, 3e-4],
+            centre: [0.0, 0.0],
+            centre_free: false,
+            cov: vec![0.0; 25],
+            scaling: None,
+        }),
+        region: fit::FieldRegion { x_min: -2.0, x_max: 2.0, y_min: -2.0, y_max: 2.0 },
+        rms_residual: f64::NAN,
+        n_bins_used: 0,
+        polar_angle: None,
+        exclusions: vec![],
+        robust: "none".into(),
+        pixel: None,
+        provenance: fit::calfile::Provenance::now("test", vec![]),
+        bins: vec![],
+        grid: None,
+    }
+}
+
+/// A Nasmyth M3 model of one band (V) fitted to noise-free standards over the meridian.
+fn telescope(with_rotator: bool) -> TelescopeFit {
+    let table = MetalTable::builtin("aluminium").unwrap();
+    let obs: Vec<_> = (0..12)
+        .map(|k| {
+            let pa = (-160.0 + 29.0 * k as f64).to_radians();
+            let a = 2.0 * (0.6 - pa);
+            Observation {
+                star: format!("S{k}"),
+                parallactic: pa,
+                qu: mueller::Qu::from_sigmas(0.035 * a.cos(), -0.035 * a.sin(), 2e-4, 2e-4, 0.0),
+                wavelength_um: 0.55,
+                band: "V".into(),
+                rotator: 0.0,
+                sky: (0.0, 0.0),
+                source: format!("t:{k}"),
+            }
+        })
+        .collect();
+    let mut f = fit_band(ModelKind::Wiersema, &obs, &table, &FitOptions::default()).unwrap();
+    f.with_rotator = with_rotator;
+    f
+}
+
+fn file(field: Option<fit::Calibration>, telescope: Option<TelescopeFit>) -> CalibrationFile {
+    CalibrationFile { path: PathBuf::from("cal.fits"), instrument: "EFOSC2".into(), field, telescope, mueller: None }
+}
+
+fn request<'a>() -> Request<'a> {
+    Request::new(Method::Exact, false, 0.5)
+}
+
+/// Rows carrying part of the zero angle: only the rest is turned, then `M_I` is inverted. The
+/// reference: the row's (q, u) rotated by hand by `2 (z - carried)`, then `M_I(p, phi)^-1` by
+/// nalgebra on the Stokes vector, renormalized.
+#[test]
+fn field_rows_turned_by_the_zero_angle_they_lack_then_inverted() {
+    let (z, carried) = (2.9, 1.2);
+    let f = file(Some(field(z)), None);
+    let n = 3;
+    let rows = [(0.5, -0.3, 0.012, -0.004), (-1.1, 0.7, -0.002, 0.009), (1.5, 1.5, 0.0, 0.0)];
+    let frame = mueller::Frame::Sky { zero_angle_deg: carried };
+    let req = Request { frame, ..request() };
+    let plan = plan_rows(&f, &req, n).unwrap();
+    assert_eq!(plan.kind, Kind::Field);
+    assert!((plan.to_sky_deg - (z - carried)).abs() < 1e-15);
+    assert_eq!(plan.notes, vec![Note::CarriedZeroAngle { carried, calibration: z, applied: z - carried }]);
+    let cal = field(z);
+    for (i, &(x, y, q, u)) in rows.iter().enumerate() {
+        let r =
+            plan.correct(i, &Measurement::at(x, y, mueller::Qu::from_sigmas(q, u, 1e-4, 1e-4, 0.0), frame)).unwrap();
+        let d = 2.0 * (z - carried).to_radians();
+        let (q1, u1) = (d.cos() * q - d.sin() * u, d.sin() * q + d.cos() * u);
+        let (p, phi) = cal.eval(x, y).p_chi();
+        let s0 = mueller::partial_polarizer(p, phi).try_inverse().unwrap() * mueller::stokes_qu(1.0, q1, u1);
+        assert!((r.q0 - s0[1] / s0[0]).abs() < 1e-12 && (r.u0 - s0[2] / s0[0]).abs() < 1e-12, "row {i}");
+    }
+    // Without a carried angle the whole zero angle is turned and nothing is noted.
+    let plan = plan_rows(&f, &request(), n).unwrap();
+    assert_eq!((plan.to_sky_deg, plan.notes.len()), (z, 0));
+}
+
+/// What a file without a telescope model refuses (arguments that would change nothing) and
+/// notes (angles that are only data).
+#[test]
+fn field_only_refusals_and_notes() {
+    let f = file(Some(field(0.0)), None);
+    let pa = [10.0, 20.0];
+    let rows = PerRowAngles { start_deg: &pa, end_deg: None, rotator_deg: None };
+    for req in [
+        Request { band: Some("V"), ..request() },
+        Request { parang: Some(Track::at(0.1)), ..request() },
+        Request { rotator: Some(0.1), ..request() },
+        Request { per_row: Some(rows), angles_are_arguments: true, ..request() },
+    ] {
+        assert_eq!(plan_rows(&f, &req, 2).err(), Some(Refusal::TelescopeOptions { mueller: false }));
+    }
+    let plan = plan_rows(&f, &Request { per_row: Some(rows), ..request() }, 2).unwrap();
+    assert_eq!(plan.notes, vec![Note::AnglesWithoutTelescope]);
+    // A file built by hand with no model is refused, not a panic.
+    assert_eq!(plan_rows(&file(None, None), &request(), 2).err(), Some(Refusal::NoModel));
+}
+
+/// The telescope's tracks: each row's own with its rotator angle (never an assumed 0 for a
+/// model fitted with rotator angles), one track for all, and the refusals when neither or both
+/// are given. Each row is corrected as the chain corrects it over the track it should get.
+#[test]
+fn telescope_rows_get_their_own_track_and_rotator() {
+    let (cal, tel) = (field(0.0), telescope(true));
+    let f = file(Some(cal.clone()), Some(tel.clone()));
+    let pa = [-30.0, 5.0, 40.0];
+    let rot = [10.0, -20.0, 0.0];
+    let rows = PerRowAngles { start_deg: &pa, end_deg: None, rotator_deg: None };
+    assert_eq!(
+        plan_rows(&f, &Request { per_row: Some(rows), ..request() }, 3).err(),
+        Some(Refusal::NoRotator { per_row: true })
+    );
+    assert_eq!(plan_rows(&f, &request(), 3).err(), Some(Refusal::NoParallactic));
+    assert_eq!(
+        plan_rows(
+            &f,
+            &Request { per_row: Some(rows), parang: Some(Track::at(0.0)), rotator: Some(0.0), ..request() },
+            3
+        )
+        .err(),
+        Some(Refusal::TwoTracks)
+    );
+    assert!(matches!(
+        plan_rows(&f, &Request { per_row: Some(rows), ..request() }, 2).err(),
+        Some(Refusal::Length { rows: 2, len: 3, .. })
+    ));
+    let with_rot = PerRowAngles { rotator_deg: Some(&rot), ..rows };
+    let plan = plan_rows(&f, &Request { per_row: Some(with_rot), ..request() }, 3).unwrap();
+    assert_eq!(plan.kind, Kind::FieldAndTelescope);
+    let cor = Corrector::new(&cal, CorrectOptions { zero_angle_deg: 0.0, ..CorrectOptions::default() });
+    let mut seen = vec![];
+    for i in 0..3 {
+        let m = Measurement::at_plate(0.4, -0.2, 0.02, 0.01, 1e-4, 1e-4, 0.0);
+        let got = plan.correct(i, &m).unwrap();
+        let track = Track::at(pa[i].to_radians()).with_rotator(rot[i].to_radians());
+        let want = fit::telescope_cal::correct_chain(Some(&cor), &tel, "V", &m, track, Some(0.0)).unwrap();
+        assert_eq!(got, want.with_telescope_in_inst(), "row {i}");
+        seen.push(got.q0);
+    }
+    // The rows saw different tracks, so the same measurement comes out differently.
+    assert!((seen[0] - seen[2]).abs() > 1e-4, "{seen:?}");
+    // One rotator angle for every row stands in for the column.
+    let plan = plan_rows(&f, &Request { per_row: Some(rows), rotator: Some(0.3), ..request() }, 3).unwrap();
+    let m = Measurement::at_plate(0.4, -0.2, 0.02, 0.01, 1e-4, 1e-4, 0.0);
+    let want = fit::telescope_cal::correct_chain(
+        Some(&cor),
+        &tel,
+        "V",
+        &m,
+        Track::at(pa[1].to_radians()).with_rotator(0.3),
+        Some(0.0),
+    );
+    assert_eq!(plan.correct(1, &m).unwrap(), want.unwrap().with_telescope_in_inst());
+    // Arguments may not give per-row angles and a recorded track both.
+    let rec =
+        skyfield::RecordedAngles { parallactic_rad: Some((0.1, 0.2)), rotator_rad: Some(0.0), exposure_tracks: vec![] };
+    let req = Request { per_row: Some(with_rot), recorded: Some(&rec), angles_are_arguments: true, ..request() };
+    assert_eq!(plan_rows(&f, &req, 3).err(), Some(Refusal::TwoTracks));
+    // A model fitted without rotator angles takes none, and a given one is noted as unused.
+    let f0 = file(None, Some(telescope(false)));
+    let plan = plan_rows(&f0, &Request { parang: Some(Track::at(0.2)), rotator: Some(0.5), ..request() }, 1).unwrap();
+    assert_eq!((plan.kind, plan.notes.clone()), (Kind::Telescope, vec![Note::RotatorIgnored]));
+}
+
+/// Four exposures of 22.5 deg plate steps recorded over a parallactic track from -0.6 to 0.4
+/// rad, as a catalog records them, and the same exposures as the chain's forward model takes
+/// them (HWP angle in rad, each over its own track).
+fn recorded_exposures() -> (skyfield::RecordedAngles, Vec<mueller::telescope::Exposure>) {
+    let rec = skyfield::RecordedAngles {
+        parallactic_rad: Some((-0.6, 0.4)),
+        rotator_rad: Some(0.0),
+        exposure_tracks: (0..4)
+            .map(|k| skyfield::ExposureTrack {
+                hwp_deg: 22.5 * k as f64,
+                start: -0.6 + 0.25 * k as f64,
+                end: -0.6 + 0.25 * (k + 1) as f64,
+            })
+            .collect(),
+    };
+    let exposures = rec
+        .exposure_tracks
+        .iter()
+        .map(|e| mueller::telescope::Exposure { hwp: e.hwp_deg.to_radians(), track: Track::new(e.start, Some(e.end)) })
+        .collect();
+    (rec, exposures)
+}
+
+/// The plan's chain as a forward model ([`fit::chain::Chain::instrument`], the
+/// `field::InstrumentChain` the simulator renders through and that is checked against a Jones
+/// calculation in `crates/sim/tests/it/chain_end_to_end.rs`) and the plan's correction are each
+/// other's inverse, for every kind of calibration file and every way the rows saw the
+/// telescope: one track, their own tracks, the recorded exposures each over its own track.
+#[test]
+fn the_correction_inverts_the_chain_it_holds() {
+    let z = 2.9;
+    let (rec, exposures) = recorded_exposures();
+    let pa = [10.0, -35.0, 70.0];
+    let rows = PerRowAngles { start_deg: &pa, end_deg: None, rotator_deg: None };
+    let sky = mueller::Qu::new(0.021, -0.013, 0.0, 0.0, 0.0);
+    let (x, y) = (1.3, -0.7);
+    let (mut worst_exact, mut worst_exposures) = (0.0f64, 0.0f64);
+    for (f, kind) in [
+        (file(Some(field(z)), None), Kind::Field),
+        (file(None, Some(telescope(false))), Kind::Telescope),
+        (file(Some(field(z)), Some(telescope(false))), Kind::FieldAndTelescope),
+    ] {
+        let mut requests = vec![(request(), false)];
+        if f.telescope.is_some() {
+            requests = vec![
+                (Request { parang: Some(Track::new(-0.3, Some(0.1))), ..request() }, false),
+                (Request { per_row: Some(rows), ..request() }, false),
+                (Request { recorded: Some(&rec), ..request() }, true),
+            ];
+        }
+        for (req, by_exposure) in requests {
+            let plan = plan_rows(&f, &req, 3).unwrap();
+            assert_eq!(plan.kind, kind);
+            for i in 0..3 {
+                let (chain, track) = plan.chain.instrument(i);
+                let measured = if by_exposure {
+                    chain.forward_exposures(x, y, &sky, &exposures).unwrap()
+                } else {
+                    chain.forward(x, y, &sky, track).unwrap()
+                };
+                let got = plan.correct(i, &Measurement::at(x, y, measured, mueller::Frame::Plate)).unwrap();
+                let d = (got.q0 - sky.q).abs().max((got.u0 - sky.u).abs());
+                if by_exposure && kind == Kind::FieldAndTelescope {
+                    worst_exposures = worst_exposures.max(d);
+                } else {
+                    worst_exact = worst_exact.max(d);
+                }
+            }
+        }
+    }
+    assert!(worst_exact < 1e-12, "the correction misses its own chain by {worst_exact:e}");
+    // A demodulated set whose exposures each saw another telescope matrix behind the field:
+    // undoing the field and then the telescope would be 1.4e-5 off here; the chain is inverted
+    // whole.
+    assert!(worst_exposures < 1e-12, "exposure by exposure: {worst_exposures:e}");
+}
+
+/// Rows in another sky frame than the calibration's: a catalog made with an instrument file of
+/// zero angle 1.2 deg, corrected with a field calibration of 2.9 deg. The light the plan's own
+/// forward model puts at the plate, written into the rows' frame by a rotation by hand
+/// (`chi + 1.2 deg`), comes back to the sky through the field alone and through the field and
+/// the telescope over one track and over the recorded exposures, as the same light given at
+/// the plate does. Each measurement says its frame (`mueller::Frame`), so the exact inversion
+/// over the exposures takes it back to the plate from there (it had turned such rows by
+/// `2.9 - 2 x 1.2` deg instead of `-1.2`, and demodulated them through a plate of 1.2 deg).
+#[test]
+fn rows_in_another_sky_frame_come_back_to_the_sky() {
+    let (z, carried) = (2.9, 1.2);
+    let (rec, exposures) = recorded_exposures();
+    let sky = mueller::Qu::new(0.021, -0.013, 1e-8, 1e-8, 0.0);
+    let (x, y) = (1.3, -0.7);
+    let frame = mueller::Frame::Sky { zero_angle_deg: carried };
+    let (s2, c2) = (2.0 * carried.to_radians()).sin_cos();
+    let mut worst = 0.0f64;
+    for (f, req) in [
+        (file(Some(field(z)), None), request()),
+        (
+            file(Some(field(z)), Some(telescope(false))),
+            Request { parang: Some(Track::new(-0.3, Some(0.1))), ..request() },
+        ),
+        (file(Some(field(z)), Some(telescope(false))), Request { recorded: Some(&rec), ..request() }),
+    ] {
+        let by_exposure = req.recorded.is_some();
+        let plan = plan_rows(&f, &Request { frame, ..req }, 1).unwrap();
+        let at_plate_plan = plan_rows(&f, &req, 1).unwrap();
+        assert_eq!(plan.plate_deg, z, "the exposures were taken through the calibration's plate");
+        let (chain, track) = plan.chain.instrument(0);
+        let plate = if by_exposure {
+            chain.forward_exposures(x, y, &sky, &exposures).unwrap()
+        } else {
+            chain.forward(x, y, &sky, track).unwrap()
+        };
+        // The same light in the sky frame of the rows' zero angle, by hand.
+        let (q, u) = (c2 * plate.q - s2 * plate.u, s2 * plate.q + c2 * plate.u);
+        let row = mueller::Qu::new(q, u, 1e-8, 1e-8, 0.0);
+        let got = plan.correct(0, &Measurement::at(x, y, row, frame)).unwrap();
+        let plate = mueller::Qu::new(plate.q, plate.u, 1e-8, 1e-8, 0.0);
+        let from_plate = at_plate_plan.correct(0, &Measurement::at(x, y, plate, mueller::Frame::Plate)).unwrap();
+        for (a, b) in [(got.q0, sky.q), (got.u0, sky.u), (from_plate.q0, sky.q), (from_plate.u0, sky.u)] {
+            worst = worst.max((a - b).abs());
+        }
+        assert!(
+            (got.var_q0 / from_plate.var_q0 - 1.0).abs() < 1e-8 && (got.var_u0 / from_plate.var_u0 - 1.0).abs() < 1e-8,
+            "{got:?}\n{from_plate:?}"
+        );
+    }
+    assert!(worst < 1e-12, "rows in another frame miss the sky by {worst:e}");
+}
+
+#[test]
+fn p_at_the_field_edge_is_the_mean_over_the_four_sides() {
+    // P(r) = 2e-4 + 1e-3 r + 3e-4 r^2 over x in [-1, 3], y in [-2, 2] (arcmin): the sides'
+    // midpoints lie at r = 1, 3 and sqrt(5) twice.
+    let mut cal = field(0.0);
+    cal.region = fit::FieldRegion { x_min: -1.0, x_max: 3.0, y_min: -2.0, y_max: 2.0 };
+    if let fit::Model::Radial(r) = &mut cal.model {
+        r.cov[0] = 1e-8; // sigma(c0) = 1e-4: every P moves with c0, so each side's error is 1e-4
+    }
+    let p = |r: f64| 2e-4 + 1e-3 * r + 3e-4 * r * r;
+    let expected = (p(1.0) + p(3.0) + 2.0 * p(5f64.sqrt())) / 4.0;
+    let (v, s) = cal.p_at_edge().unwrap();
+    assert!((v - expected).abs() < 1e-15, "{v} vs {expected}");
+    assert!((s - 1e-4).abs() < 1e-15, "{s}");
+}

@@ -1,0 +1,8 @@
+//! Every integration test of the `instpol-mueller` package, one module per file, gathered into one test
+//! binary: one link instead of one per file, which is where most of a fresh clone's
+//! `cargo test --workspace` went. Run one file's tests with `cargo test -p instpol-mueller --test it
+//! <file>::`.
+
+mod oblique_plate;
+mod quarter_wave;
+mod stability;
