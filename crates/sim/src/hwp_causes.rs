@@ -98,18 +98,23 @@ pub struct HwpCauses {
 }
 
 impl HwpCauses {
-    /// None when the scene calls for neither.
-    pub fn of_scene(scene: &crate::scene::Scene) -> Result<Option<Self>, crate::Error> {
-        let fx = &scene.effects;
-        if fx.tilted_hwp.is_none() && fx.wedged_hwp.is_none() {
+    /// The causes given (a scene's `effects`, through `Scene::hwp_causes`), None when neither is
+    /// called for; `hwp_angles_deg` are the scene's plate angles, whose solver each cause's
+    /// block goes through.
+    pub fn new(
+        tilted: Option<&TiltedHwpSpec>,
+        wedged: Option<&WedgedHwpSpec>,
+        hwp_angles_deg: &[f64],
+    ) -> Result<Option<Self>, crate::Error> {
+        if tilted.is_none() && wedged.is_none() {
             return Ok(None);
         }
-        let th: Vec<f64> = scene.hwp_angles_deg.iter().map(|a| a.to_radians()).collect();
+        let th: Vec<f64> = hwp_angles_deg.iter().map(|a| a.to_radians()).collect();
         let solver = StokesSolver::new(&th).map_err(|e| crate::Error::Scene {
             path: std::path::PathBuf::from("<scene>"),
             message: format!("hwp_angles_deg: {e}"),
         })?;
-        Ok(Some(Self { solver, tilted: fx.tilted_hwp.clone(), wedged: fx.wedged_hwp.clone() }))
+        Ok(Some(Self { solver, tilted: tilted.cloned(), wedged: wedged.cloned() }))
     }
 
     /// The product of the plates' equivalent blocks at `(x, y)` arcmin.
@@ -156,7 +161,7 @@ mod tests {
             "{min}[effects.tilted_hwp]\ntilt_deg = 5\nmagnification = 90\n[effects.wedged_hwp]\nretardance_error_deg = 3\n"
         );
         let sc = crate::scene::Scene::from_toml_str(&ok, path).unwrap();
-        let hc = HwpCauses::of_scene(&sc).unwrap().unwrap();
+        let hc = sc.hwp_causes().unwrap().unwrap();
         // At the centre the wedge depolarizes by sin^2(eps/2); the 5 deg tilt adds below 1e-5
         // to that (fourth order; its second-order offset is not a depolarization).
         let ph = mueller::causes::physical_of_block(&hc.block_at(0.0, 0.0));

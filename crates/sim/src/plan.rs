@@ -473,7 +473,7 @@ impl Plan {
             (None, None) => None,
         };
         // Half-wave-plate causes (tilted, wedged plate): equivalent blocks at the scene's angles.
-        let hwp_causes = crate::hwp_causes::HwpCauses::of_scene(scene)?;
+        let hwp_causes = scene.hwp_causes()?;
         // The field-dependent elements in the order light meets them: the instrumental field,
         // the stressed lens, the plate. The telescope acts before all of them, per exposure.
         let mut chain = field::FieldChain::new();

@@ -1001,6 +1001,13 @@ impl Scene {
 }
 
 impl Scene {
+    /// The plate causes this scene calls for (`effects.tilted_hwp`, `effects.wedged_hwp`) with
+    /// the solver of its plate angles; None when it calls for neither.
+    pub fn hwp_causes(&self) -> Result<Option<crate::hwp_causes::HwpCauses>, Error> {
+        let fx = &self.effects;
+        crate::hwp_causes::HwpCauses::new(fx.tilted_hwp.as_ref(), fx.wedged_hwp.as_ref(), &self.hwp_angles_deg)
+    }
+
     /// The site latitude of the scene's telescope (deg): its own, else the instrument's.
     pub fn site_latitude_deg(&self, inst: &instrument::Instrument) -> Option<f64> {
         self.telescope

@@ -220,8 +220,15 @@ fn use_tree(toks: &[Token]) -> Vec<(Vec<String>, usize)> {
 
 /// The modules a file declares and the module paths it uses (see [`FileModules`]). `root`:
 /// the crate root, whose paths through its own child modules (`pub use maps::StokesMap`) are
-/// the crate's table of contents, not uses.
+/// the crate's table of contents, not uses. A directory module's `mod.rs` (`dir`) is the root
+/// of its folder: its `pub use child::Item` re-exports are that folder's table of contents,
+/// while its other uses of a child (calls, private `use`) are uses.
 pub fn file_modules(src: &str, root: bool) -> FileModules {
+    file_modules_of(src, root, false)
+}
+
+/// [`file_modules`], with `dir` saying whether the file is a directory module's `mod.rs`.
+pub fn file_modules_of(src: &str, root: bool, dir: bool) -> FileModules {
     let code = code_only(src);
     let toks = tokens(&code);
     let mut fm = FileModules::default();
@@ -286,8 +293,10 @@ pub fn file_modules(src: &str, root: bool) -> FileModules {
             _ if in_test(&stack) => i += 1,
             "use" => {
                 let end = (i..toks.len()).find(|&k| toks[k].text == ";").unwrap_or(toks.len());
+                let reexport = i > 0 && matches!(toks[i - 1].text.as_str(), "pub" | ")");
                 for (segments, line) in use_tree(&toks[i + 1..end]) {
-                    if starts_module_path(&segments[0], &fm.children, root) {
+                    let contents = dir && reexport && fm.children.contains(&segments[0]);
+                    if !contents && starts_module_path(&segments[0], &fm.children, root) {
                         fm.uses.push(PathUse { inline: inline(&stack), segments, line });
                     }
                 }
@@ -356,7 +365,7 @@ pub fn graph_of(files: &[(String, String)]) -> Graph {
     for (rel, text) in files {
         let here = module_of(rel);
         let root = here.is_empty();
-        let fm = file_modules(text, root);
+        let fm = file_modules_of(text, root, rel == "mod.rs" || rel.ends_with("/mod.rs"));
         let entry = g.edges.entry(rel.clone()).or_default();
         for u in fm.uses {
             let mut abs: Vec<String> = here.iter().chain(&u.inline).cloned().collect();

@@ -8,5 +8,6 @@ mod citations;
 mod common;
 mod crate_layers;
 mod docs_links;
+mod function_length;
 mod import_circles;
 mod one_of_each;

@@ -125,7 +125,7 @@ fn forward_model_matches_a_jones_calculation() {
     assert_eq!(chain.zero_angle, zero, "the scene's zero angle");
     let radial = field::RadialPattern::new(vec![0.0, 0.00012, 0.00046, 0.00002], [0.0, 0.0]);
     let lens = sc.effects.stressed_lens.clone().unwrap();
-    let plate = sim::hwp_causes::HwpCauses::of_scene(&sc).unwrap().unwrap();
+    let plate = sc.hwp_causes().unwrap().unwrap();
     let exposures = plan.exposures();
     assert!(exposures.windows(2).all(|w| w[0].track.start != w[1].track.start), "the exposures' tracks differ");
     let (mut worst, mut n) = (0.0f64, 0);

@@ -91,7 +91,7 @@ fn telescope_then_field_lens_and_plate() {
     // The elements, each on its own.
     let radial = field::RadialPattern::new(vec![0.0, 0.003, 0.004, 0.0], [0.0, 0.0]);
     let lens = sc.effects.stressed_lens.clone().unwrap();
-    let plate = sim::hwp_causes::HwpCauses::of_scene(&sc).unwrap().unwrap();
+    let plate = sc.hwp_causes().unwrap().unwrap();
     let chi = 20f64.to_radians();
     let sky = [1.0, 0.03 * (2.0 * chi).cos(), 0.03 * (2.0 * chi).sin(), 0.0];
     let coords = inst.field_coords();

@@ -140,7 +140,7 @@ impl Plan {
     /// Write the plan atomically (TOML, or JSON for a `.json` path).
     pub fn write(&self, path: &Path) -> Result<(), Error> {
         let text = self.to_text(path)?;
-        super::run::write_atomic(path, text.as_bytes())
+        super::write_atomic(path, text.as_bytes())
     }
 
     /// Read and check a plan file (TOML, or JSON for a `.json` path).

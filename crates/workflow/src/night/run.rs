@@ -41,7 +41,7 @@
 //!   [`Status::CheckFailed`], again on every later run that skips it.
 
 use super::plan::{Plan, Unit};
-use super::Error;
+use super::{write_atomic_tagged, Error};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::{Condvar, Mutex};
@@ -191,25 +191,6 @@ impl Status {
             s => s,
         }
     }
-}
-
-/// Write `bytes` to `path` through a temporary file in the same folder and a rename, so that
-/// `path` holds either its old content or all of the new.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
-    write_atomic_tagged(path, None, bytes)
-}
-
-/// [`write_atomic`] through a temporary tagged `tag` (`skyfield::fits::temp_prefix`).
-fn write_atomic_tagged(path: &Path, tag: Option<&str>, bytes: &[u8]) -> Result<(), Error> {
-    use std::io::Write;
-    let err = |e: std::io::Error| Error::Output { path: path.into(), why: e.to_string() };
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir).map_err(err)?;
-    // The workspace's one durable writer (skyfield::durable): a temporary beside the file,
-    // fsynced, then renamed; on error the temporary is deleted.
-    let mut tmp = skyfield::fits::temp_beside_tagged(path, tag, ".tmp").map_err(err)?;
-    tmp.write_all(bytes).and_then(|_| tmp.flush()).map_err(err)?;
-    skyfield::durable::finish(tmp.into_temp_path(), path).map_err(err)
 }
 
 /// The `(path, hash)` pairs of a command's report ([`INPUT_HASHES_ENV`]); none when it wrote

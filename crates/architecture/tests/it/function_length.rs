@@ -1,0 +1,145 @@
+//! No function over 150 lines outside tests (`docs/architecture.md`, Conventions): a function a
+//! reader cannot hold in view is split at its seams. Lines run from the `fn` to its closing
+//! brace, comments and blank lines included; `#[cfg(test)]` modules and `tests/` are left out.
+//!
+//! The functions that were longer when the rule became a test are listed in `LONGER` with the
+//! length each had then: each may only shrink, and leaves the list (the test says so) once it is
+//! within the rule. A function not listed fails at 151 lines.
+
+use crate::common;
+
+use common::{code_only, files_under, tokens, workspace, Token};
+
+const LIMIT: usize = 150;
+
+/// (file, function, its length when listed). Shrink, never add.
+const LONGER: &[(&str, &str, usize)] = &[
+    ("crates/sim/src/plan.rs", "build_with_field", 430),
+    ("crates/sim/src/scene.rs", "validate", 390),
+    ("crates/skyfield/src/catalog.rs", "catalog_of", 344),
+    ("crates/workflow/src/night/scan.rs", "plan_sorted", 330),
+    ("crates/skyfield/src/calib.rs", "calibrate_exposure", 268),
+    ("crates/fit/src/calfile.rs", "write_to", 231),
+    ("crates/fit/src/calfile.rs", "load", 225),
+    ("crates/cli/src/cmd/catalog.rs", "run", 194),
+    ("crates/fit/src/mueller_cal.rs", "load", 185),
+    ("crates/cli/src/cmd/photometry.rs", "run", 184),
+    ("crates/cli/src/cmd/calibrate_mueller.rs", "run", 181),
+    ("crates/python/src/lib.rs", "_catalog", 178),
+    ("crates/python/src/lib.rs", "_stokes", 169),
+    ("crates/skyfield/src/table/votable.rs", "read_votable", 167),
+    ("crates/cli/src/cmd/plan.rs", "run", 165),
+    ("crates/cli/src/cmd/explain.rs", "run", 164),
+    ("crates/skyfield/src/table/ecsv.rs", "read_ecsv", 154),
+];
+
+/// Every function with a body in `src` (outside `#[cfg(test)]` modules): (name, first line,
+/// length in lines).
+fn functions(src: &str) -> Vec<(String, usize, usize)> {
+    let toks = tokens(&code_only(src));
+    let text = |k: usize| toks.get(k).map_or("", |t: &Token| t.text.as_str());
+    let close = |open: usize| -> usize {
+        let mut depth = 0usize;
+        for (k, t) in toks.iter().enumerate().skip(open) {
+            match t.text.as_str() {
+                "{" => depth += 1,
+                "}" => {
+                    depth -= 1;
+                    if depth == 0 {
+                        return k;
+                    }
+                }
+                _ => {}
+            }
+        }
+        toks.len() - 1
+    };
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < toks.len() {
+        // `#[cfg(test)]`, any further attributes, then `mod name {`: skipped whole.
+        if text(i) == "#" && text(i + 1) == "[" && text(i + 2) == "cfg" && text(i + 4) == "test" && text(i + 5) == ")" {
+            let mut k = i + 7;
+            while text(k) == "#" {
+                while text(k) != "]" {
+                    k += 1;
+                }
+                k += 1;
+            }
+            k += usize::from(text(k) == "pub");
+            if text(k) == "mod" && text(k + 2) == "{" {
+                i = close(k + 2) + 1;
+                continue;
+            }
+        }
+        if text(i) == "fn" && text(i + 1).chars().next().is_some_and(|c| c.is_alphabetic() || c == '_') {
+            let mut k = i + 2;
+            let mut depth = 0i32;
+            while k < toks.len() {
+                match text(k) {
+                    "(" | "[" => depth += 1,
+                    ")" | "]" => depth -= 1,
+                    "{" | ";" if depth == 0 => break,
+                    _ => {}
+                }
+                k += 1;
+            }
+            if text(k) == "{" {
+                let end = close(k);
+                out.push((text(i + 1).to_string(), toks[i].line, toks[end].line - toks[i].line + 1));
+            }
+        }
+        i += 1;
+    }
+    out
+}
+
+#[test]
+fn no_function_is_over_150_lines_outside_tests() {
+    let root = workspace();
+    let mut found = Vec::new();
+    let mut shrunk = Vec::new();
+    let mut seen = Vec::new();
+    for file in files_under(&root.join("crates"), Some(".rs")) {
+        let rel = file.strip_prefix(&root).unwrap().to_string_lossy().replace('\\', "/");
+        if rel.split('/').nth(2) != Some("src") {
+            continue;
+        }
+        let src = std::fs::read_to_string(&file).unwrap();
+        for (name, line, len) in functions(&src) {
+            let listed = LONGER.iter().find(|(f, n, _)| *f == rel && *n == name);
+            match listed {
+                Some(&(_, _, was)) => {
+                    seen.push((rel.clone(), name.clone()));
+                    if len > was {
+                        found.push(format!(
+                            "{rel}:{line}: {name} is {len} lines, longer than the {was} it was listed at"
+                        ));
+                    } else if len <= LIMIT {
+                        shrunk.push(format!("{rel}: {name} is now {len} lines: take it out of LONGER"));
+                    }
+                }
+                None if len > LIMIT => found.push(format!("{rel}:{line}: {name} is {len} lines (at most {LIMIT})")),
+                None => {}
+            }
+        }
+    }
+    let gone: Vec<String> = LONGER
+        .iter()
+        .filter(|(f, n, _)| !seen.iter().any(|(sf, sn)| sf == f && sn == n))
+        .map(|(f, n, _)| format!("{f}: {n} is gone: take it out of LONGER"))
+        .collect();
+    let all: Vec<String> = found.into_iter().chain(shrunk).chain(gone).collect();
+    assert!(all.is_empty(), "function lengths (docs/architecture.md, Conventions):\n  {}", all.join("\n  "));
+}
+
+#[test]
+fn lengths_are_counted_from_fn_to_its_closing_brace() {
+    let src = "fn a() {\n    let s = \"}\";\n    // }\n}\n\ntrait T {\n    fn decl(&self);\n    fn b(&self) -> [u8; 2] {\n        [0; 2]\n    }\n}\n\n#[cfg(test)]\n#[allow(dead_code)]\nmod tests {\n    fn hidden() {}\n}\nfn c<F: Fn(u8) -> u8>(f: F) where F: Copy { f(1); }\n";
+    let got = functions(src);
+    assert_eq!(
+        got,
+        vec![("a".to_string(), 1, 4), ("b".to_string(), 8, 3), ("c".to_string(), 18, 1)],
+        "a literal brace and a comment do not count; a declaration has no body; a test module is skipped"
+    );
+}
