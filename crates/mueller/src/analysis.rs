@@ -5,9 +5,9 @@
 //! `I = |E_x|^2 + |E_y|^2`, `Q = |E_x|^2 - |E_y|^2`, `U = 2 Re(E_x^* E_y)`,
 //! `V = 2 Im(E_x^* E_y)` (IAU sign, see the crate docs).
 
+use crate::C64;
 use crate::{Error, Mueller};
 use nalgebra::{Matrix2, Matrix3, Matrix4, Vector3};
-use crate::C64;
 
 /// `A` with `S = A (E (x) E^*)`, `(E (x) E^*) = (ExEx*, ExEy*, EyEx*, EyEy*)`.
 fn a_matrix() -> Matrix4<C64> {

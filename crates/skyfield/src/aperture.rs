@@ -330,8 +330,7 @@ mod tests {
             if ring.is_empty() {
                 return None;
             }
-            ring.sort_by(f64::total_cmp);
-            let bg = ring[ring.len() / 2];
+            let bg = stokes::stats::robust::median(&mut ring, stokes::stats::robust::Middle::Upper);
             let (mut sw, mut sx, mut sy) = (0.0, 0.0, 0.0);
             for py in ya..=yb {
                 for px in xa..=xb {

@@ -924,9 +924,8 @@ pub fn check_exposures(
     }
     for (s, mut t) in summary.iter_mut().zip(trans) {
         t.retain(|x| x.is_finite());
-        t.sort_by(f64::total_cmp);
         if !t.is_empty() {
-            s.median_transparency = 0.5 * (t[(t.len() - 1) / 2] + t[t.len() / 2]);
+            s.median_transparency = stokes::stats::robust::median(&mut t, stokes::stats::robust::Middle::Mean);
         }
         s.outlier = s.n_stars > 0 && 2 * s.n_stars_flagged >= s.n_stars;
     }

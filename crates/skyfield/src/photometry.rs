@@ -634,8 +634,7 @@ pub fn exposure_checks(
     let col = |k: usize| m.iter().map(|t| [t.0, t.1, t.2, t.3][k]).collect::<Vec<f64>>();
     let c = stokes::repeats::combine_repeats(&theta, &col(0), &col(1), &col(2), &col(3), threshold);
     let mut tot: Vec<f64> = m.iter().map(|t| t.0 + t.1).collect();
-    tot.sort_by(f64::total_cmp);
-    let med = if tot.is_empty() { f64::NAN } else { 0.5 * (tot[(tot.len() - 1) / 2] + tot[tot.len() / 2]) };
+    let med = stokes::stats::robust::median(&mut tot, stokes::stats::robust::Middle::Mean);
     Ok(singles
         .iter()
         .zip(&m)

@@ -141,3 +141,54 @@ fn one_least_squares_loop() {
         found.join("\n  ")
     );
 }
+
+/// Where a sample's middle is taken by hand on purpose: speed kernels that give the one median
+/// exactly (their tests check them to the bit against it), with why.
+/// `(file, the first token of what is found there, why)`.
+const INLINE_ALLOWED: &[(&str, &str, &str)] = &[
+    ("crates/stokes/src/stats/robust.rs", "select_nth_unstable_by", "the one median itself"),
+    ("crates/skyfield/src/bin.rs", "select_nth_unstable", "the windowed and integer-key searches listed in ALLOWED"),
+    (
+        "crates/skyfield/src/aperture.rs",
+        "select_nth_unstable",
+        "the centroid's background ring: its upper middle selected on the integer keys of the total order",
+    ),
+];
+
+/// A median written inline instead of called: the middle of a sorted or selected sample taken
+/// by hand (`v[v.len() / 2]`, `v[(v.len() - 1) / 2]`, `select_nth_unstable`), in every crate's
+/// `src/` (the CLI and the Python module included; `#[cfg(test)]` modules are tests).
+#[test]
+fn no_inline_median() {
+    let root = workspace();
+    let mut found = Vec::new();
+    for path in files_under(&root.join("crates"), Some(".rs")) {
+        let rel = path.strip_prefix(&root).unwrap().to_string_lossy().replace('\\', "/");
+        if rel.split('/').nth(2) != Some("src") {
+            continue;
+        }
+        let text = std::fs::read_to_string(&path).unwrap();
+        let code = code_only(&text);
+        // The code before the first `#[cfg(test)]` module: unit tests sit at a file's end.
+        let code = match code.find("#[cfg(test)]") {
+            Some(k) => &code[..k],
+            None => &code[..],
+        };
+        let toks = tokens(code);
+        let t: Vec<&str> = toks.iter().map(|t| t.text.as_str()).collect();
+        for k in 0..t.len() {
+            let middle = t[k..].starts_with(&["len", "(", ")", "/", "2", "]"])
+                || t[k..].starts_with(&["len", "(", ")", "-", "1", ")", "/", "2", "]"]);
+            let allowed = INLINE_ALLOWED.iter().any(|(f, first, _)| *f == rel && t[k] == *first);
+            if (middle || t[k].starts_with("select_nth_unstable")) && !allowed {
+                found.push(format!("{rel}:{}: {}", toks[k].line, t[k..(k + 9).min(t.len())].concat()));
+            }
+        }
+    }
+    assert!(
+        found.is_empty(),
+        "a median written inline (call stokes::stats::robust::median with the Middle it takes, or list a \
+         kernel of the same definition in INLINE_ALLOWED with why):\n  {}",
+        found.join("\n  ")
+    );
+}
