@@ -259,6 +259,10 @@ pub struct Catalog {
     /// detector (set by [`catalog_files`]; written into its table by [`Catalog::to_table`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub product: Option<crate::provenance::Product>,
+    /// How the files given were grouped into exposures, for an instrument whose chips come one
+    /// per file (set by [`catalog_files`]; absent otherwise).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub grouping: Option<crate::calib::Grouping>,
 }
 
 /// One exposure across the catalog's stars (the per-exposure checks of [`check_exposures`]).
@@ -436,6 +440,7 @@ pub fn catalog_files(
         let cat = catalog_of(&disk, inst, cfg)?;
         (cat, disk.bad_pixel_warnings()?)
     };
+    cat.grouping = crate::calib::Grouping::of(inst, opts, paths.len(), exposures.len());
     cat.frames = exposures;
     let frame = mueller::Frame::Sky { zero_angle_deg: cat.chi_offset_deg };
     cat.product = Some(crate::provenance::Product::of_instrument(inst, &cat.filter, Some(frame)));
@@ -837,6 +842,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         alignment,
         exposures: None,
         product: None,
+        grouping: None,
         frames: vec![],
     })
 }
