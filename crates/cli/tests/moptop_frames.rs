@@ -156,7 +156,7 @@ fn catalog(files: &[PathBuf], extra: &[&str]) -> (i32, String, String) {
 /// The must-show: the archive's frames in glob order, read by the built-in `moptop` as it is:
 /// 64 files grouped into 32 exposures (reported), the plate ranges from MOPRBEG/MOPREND (16
 /// positions of 18.2 deg, whatever MOPRARC says), the unmirrored camera map measured from the
-/// stars (residual below 0.1 px, the true map to 0.1 px at the corners) and every star's q, u
+/// stars (at least 36 of the 40 stars, residual below 0.2 px, the true map to 0.1 px at the corners) and every star's q, u
 /// within its errors of the simulator's (RMS pull near 1, none beyond 4).
 #[test]
 fn archive_frames_in_glob_order_are_read_by_the_builtin_moptop() {
@@ -171,10 +171,11 @@ fn archive_frames_in_glob_order_are_read_by_the_builtin_moptop() {
     assert_eq!(g["chip_keyword"], "MOPCNUM");
     let hwp: Vec<f64> = cat["hwp_deg"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
     let want: Vec<f64> = (1..=16).map(middle_deg).collect();
-    assert_eq!(hwp, want, "each position's middle, once per position (two turns summed)");
+    assert_eq!(hwp.len(), 16, "each position once (two turns summed): {hwp:?}");
+    assert!(hwp.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-9), "each position's middle: {hwp:?}");
     let ct = &cat["camera_transform"];
     let (rms, pairs) = (ct["residual_rms_px"].as_f64().unwrap(), ct["pairs"].as_u64().unwrap());
-    assert!(rms < 0.1 && pairs >= 30, "camera map from {pairs} pairs, residual {rms} px");
+    assert!(rms < 0.2 && pairs >= 36, "camera map from {pairs} pairs, residual {rms} px");
     let m: Vec<f64> = ct["transform"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
     let t = camera_map();
     for (u, v) in [(0.0, 0.0), (1023.0, 0.0), (0.0, 1023.0), (1023.0, 1023.0), STAR_CAM1] {
@@ -206,7 +207,7 @@ fn archive_frames_in_glob_order_are_read_by_the_builtin_moptop() {
 }
 
 /// The same archive's mistakes, each refused with exit 2 naming the file: a camera-1 file whose
-/// camera-2 partner is missing, a file given twice; and `reduce --bias` on level-1 frames
+/// camera-2 partner is missing, a second file of one camera and exposure; and `reduce --bias` on level-1 frames
 /// (bias corrected already) refused unless `--correct-again`.
 #[test]
 fn archive_mistakes_are_refused_naming_the_file() {
@@ -218,11 +219,18 @@ fn archive_mistakes_are_refused_naming_the_file() {
     let (code, _, err) = catalog(&short, &[]);
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("3_e_20240315_7_2_5_1.fits") && err.contains("no file of chip CAM2"), "{err}");
+    // A camera file and another of the same camera and exposure (its copy, one card changed).
+    let copy = dir.path().join("archive/3_e_20240315_7_1_3_1_copy.fits");
+    std::fs::copy(dir.path().join("archive/3_e_20240315_7_1_3_1.fits"), &copy).unwrap();
+    set_cards(&copy, &[("EXPID", "'copy'".into())]);
     let mut twice = files.clone();
-    twice.push(files[3].clone());
+    twice.push(copy);
     let (code, _, err) = catalog(&twice, &[]);
     assert_eq!(code, 2, "{err}");
-    assert!(err.contains(&*files[3].file_name().unwrap().to_string_lossy()) && err.contains("again"), "{err}");
+    assert!(
+        err.contains("3_e_20240315_7_1_3_1_copy.fits") && err.contains("MOPRNUM = 1, MOPRPOS = 3 again"),
+        "{err}"
+    );
     let map = dir.path().join("map.fits");
     let bias = dir.path().join("bias.fits");
     std::fs::write(&bias, b"not read").unwrap();
