@@ -71,7 +71,8 @@ fn set_cards(path: &Path, cards: &[(&str, String)]) {
     }
     let data_start = ((end.unwrap() + 1) * 80).div_ceil(2880) * 2880;
     for (key, value) in cards {
-        let card = if value.starts_with('\'') { format!("{key:<8}= {value}") } else { format!("{key:<8}= {value:>20}") };
+        let card =
+            if value.starts_with('\'') { format!("{key:<8}= {value}") } else { format!("{key:<8}= {value:>20}") };
         let card = format!("{card:<80}");
         match header.iter().position(|c| c[..8].trim_end() == *key) {
             Some(i) => header[i] = card,
@@ -227,10 +228,7 @@ fn archive_mistakes_are_refused_naming_the_file() {
     twice.push(copy);
     let (code, _, err) = catalog(&twice, &[]);
     assert_eq!(code, 2, "{err}");
-    assert!(
-        err.contains("3_e_20240315_7_1_3_1_copy.fits") && err.contains("MOPRNUM = 1, MOPRPOS = 3 again"),
-        "{err}"
-    );
+    assert!(err.contains("3_e_20240315_7_1_3_1_copy.fits") && err.contains("MOPRNUM = 1, MOPRPOS = 3 again"), "{err}");
     let map = dir.path().join("map.fits");
     let bias = dir.path().join("bias.fits");
     std::fs::write(&bias, b"not read").unwrap();

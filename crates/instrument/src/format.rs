@@ -138,11 +138,18 @@ impl FrameFormat {
     /// assert!(f.check_masters("MOPTOP", false, true, true).is_ok());
     /// assert!(FrameFormat::default().check_masters("FORS2", true, true, false).is_ok());
     /// ```
-    pub fn check_masters(&self, inst_name: &str, bias_given: bool, flat_given: bool, again: bool) -> Result<(), String> {
+    pub fn check_masters(
+        &self,
+        inst_name: &str,
+        bias_given: bool,
+        flat_given: bool,
+        again: bool,
+    ) -> Result<(), String> {
         if again {
             return Ok(());
         }
-        let given = [(bias_given, Correction::Bias, "subtract a bias"), (flat_given, Correction::Flat, "divide by a flat")];
+        let given =
+            [(bias_given, Correction::Bias, "subtract a bias"), (flat_given, Correction::Flat, "divide by a flat")];
         match given.into_iter().find(|(g, c, _)| *g && self.already(*c)) {
             None => Ok(()),
             Some((_, c, what)) => Err(format!(

@@ -1360,7 +1360,8 @@ mod tests {
         assert_eq!((r.begin_keyword.as_str(), r.end_keyword.as_str()), ("MOPRBEG", "MOPREND"));
         assert_eq!(m.format.exposure_keywords, ["MOPRNUM", "MOPRPOS"]);
         assert!(m.format.already(Correction::Bias) && m.format.already(Correction::Flat));
-        let chips: Vec<_> = m.format.chips.iter().map(|c| (c.match_keyword.as_deref(), c.match_value.as_deref())).collect();
+        let chips: Vec<_> =
+            m.format.chips.iter().map(|c| (c.match_keyword.as_deref(), c.match_value.as_deref())).collect();
         assert_eq!(chips, [(Some("MOPCNUM"), Some("1")), (Some("MOPCNUM"), Some("2"))]);
         assert!(m.writes("Moptop"), "both cameras write INSTRUME = 'Moptop'");
         // 1024 px x 0.416" = 7.10': one camera's field.

@@ -64,7 +64,12 @@ fn camera_files_are_grouped_by_their_exposure_keywords_in_any_order() {
     let given = read(&files, &inst).unwrap();
     assert_eq!(given.len(), 32);
     for (k, f) in given.iter().enumerate() {
-        assert!((f.hwp_deg - middle_deg(k)).abs() < 1e-9 && (f.hwp_sweep_deg - 18.2).abs() < 1e-9, "{k}: {} +- {}", f.hwp_deg, f.hwp_sweep_deg);
+        assert!(
+            (f.hwp_deg - middle_deg(k)).abs() < 1e-9 && (f.hwp_sweep_deg - 18.2).abs() < 1e-9,
+            "{k}: {} +- {}",
+            f.hwp_deg,
+            f.hwp_sweep_deg
+        );
         assert_eq!(f.chips.len(), 2);
     }
     let (cam1, cam2): (Vec<PathBuf>, Vec<PathBuf>) =

@@ -1590,12 +1590,12 @@ fn calibrate_exposure(
         }
         // Without overscan or master bias, the instrument's constant bias (as for plain frames),
         // unless the frames are declared bias corrected already.
-        let const_bias = if stage != Stage::Bias && !subtract_scan && bias_map.is_none() && !fmt.already(Correction::Bias)
-        {
-            d.bias_adu
-        } else {
-            0.0
-        };
+        let const_bias =
+            if stage != Stage::Bias && !subtract_scan && bias_map.is_none() && !fmt.already(Correction::Bias) {
+                d.bias_adu
+            } else {
+                0.0
+            };
         chip.level = level + const_bias;
         chip.to_e = if stage == Stage::Bias { 1.0 } else { gain };
         chip.use_bias = bias_map.is_some();
