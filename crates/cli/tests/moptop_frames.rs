@@ -22,6 +22,18 @@ const STAR_CAM1: (f64, f64) = (694.8, 346.9);
 const STAR_CAM2: (f64, f64) = (715.8, 322.9);
 /// The arc each exposure sweeps (deg): 4 s at 4.5 deg/s, as MOPRARC gives it on camera 1.
 const SWEEP_DEG: f64 = 18.2;
+/// The frames' celestial WCS: a gnomonic projection about (RA, Dec) = CRVAL (deg) at 1-based
+/// pixel CRPIX, 0.416" px turned by CROTA1 = 142 deg (the real frames' numbers).
+const CRVAL: (f64, f64) = (250.4, 36.46);
+const CRPIX: (f64, f64) = (512.5, 512.5);
+const PIXEL_ARCSEC: f64 = 0.416;
+const CROTA_DEG: f64 = 142.0;
+
+/// The CD matrix (deg/px): east to the left at rotation 0, turned by CROTA_DEG.
+fn cd() -> [[f64; 2]; 2] {
+    let (s, r) = (PIXEL_ARCSEC / 3600.0, CROTA_DEG.to_radians());
+    [[-s * r.cos(), s * r.sin()], [s * r.sin(), s * r.cos()]]
+}
 
 /// `[a, b, c, d, e, f]`: camera 1 px (x, y) -> camera 2 px (a x + b y + c, d x + e y + f), a
 /// turn by ROTATION_DEG and a scale by SCALE through STAR_CAM1 -> STAR_CAM2.
@@ -136,6 +148,18 @@ fn archive_frames(dir: &Path) -> Vec<PathBuf> {
                     ("MOPRRATE", "4.5".into()),
                     ("L1DARK", "'dark_master.fits'".into()),
                     ("L1FLAT", "'flat_master_R.fits'".into()),
+                    ("CTYPE1", "'RA---TAN'".into()),
+                    ("CTYPE2", "'DEC--TAN'".into()),
+                    ("CRPIX1", CRPIX.0.to_string()),
+                    ("CRPIX2", CRPIX.1.to_string()),
+                    ("CRVAL1", CRVAL.0.to_string()),
+                    ("CRVAL2", CRVAL.1.to_string()),
+                    ("CD1_1", format!("{:e}", cd()[0][0])),
+                    ("CD1_2", format!("{:e}", cd()[0][1])),
+                    ("CD2_1", format!("{:e}", cd()[1][0])),
+                    ("CD2_2", format!("{:e}", cd()[1][1])),
+                    ("CROTA1", CROTA_DEG.to_string()),
+                    ("ROTSKYPA", (-CROTA_DEG).to_string()),
                 ],
             );
             files.push(to);
@@ -198,6 +222,25 @@ fn archive_frames_in_glob_order_are_read_by_the_builtin_moptop() {
         pulls.extend([pq, pu]);
     }
     let rms_pull = (pulls.iter().map(|p| p * p).sum::<f64>() / pulls.len() as f64).sqrt();
+    // RA, Dec from camera 1's WCS: a star's distance from CRVAL on the sky is atan of its
+    // projected distance (the gnomonic projection's closed form), and its position angle the
+    // direction the CD matrix gives its pixel offset.
+    let mut with_sky = 0;
+    for r in rows.iter().filter(|r| r["ra_deg"].is_number()) {
+        let (ra, dec) = (r["ra_deg"].as_f64().unwrap().to_radians(), r["dec_deg"].as_f64().unwrap().to_radians());
+        let (a0, d0) = (CRVAL.0.to_radians(), CRVAL.1.to_radians());
+        let (dx, dy) = (r["x"].as_f64().unwrap() + 1.0 - CRPIX.0, r["y"].as_f64().unwrap() + 1.0 - CRPIX.1);
+        let m = cd();
+        let (xi, eta) = (m[0][0] * dx + m[0][1] * dy, m[1][0] * dx + m[1][1] * dy);
+        let sep = (d0.sin() * dec.sin() + d0.cos() * dec.cos() * (ra - a0).cos()).acos();
+        let want = xi.hypot(eta).to_radians().atan();
+        assert!((sep - want).abs().to_degrees() * 3600.0 < 1e-4, "separation {sep} vs {want}");
+        let pa = ((ra - a0).sin() * dec.cos()).atan2(d0.cos() * dec.sin() - d0.sin() * dec.cos() * (ra - a0).cos());
+        let d_pa = (pa - xi.atan2(eta)).to_degrees().rem_euclid(360.0);
+        assert!(d_pa.min(360.0 - d_pa) < 1e-6, "position angle {} vs {}", pa.to_degrees(), xi.atan2(eta).to_degrees());
+        with_sky += 1;
+    }
+    assert_eq!(with_sky, rows.len(), "every row has its RA, Dec");
     eprintln!("MOPTOP archive frames: camera map residual {rms:.3} px from {pairs} pairs; RMS pull {rms_pull:.2}");
     assert!(rms_pull > 0.6 && rms_pull < 1.4, "RMS pull {rms_pull}");
 

@@ -325,6 +325,20 @@ fn group_by_keywords(
     Ok(groups)
 }
 
+/// Each chip of the exposure whose (first) file is `first` among `paths`, with the file that
+/// holds it: the file itself for an instrument without chips, the exposure's chip files for
+/// chips in separate files; empty when the files cannot be grouped, and chips held as HDUs of
+/// one file left out (what `crate::catalog::sky_positions` reads a WCS from).
+pub(crate) fn first_exposure_chips(paths: &[PathBuf], first: &Path, inst: &Instrument) -> Vec<(Chip, PathBuf)> {
+    let chips = chips_of(inst);
+    if chips.iter().any(|c| c.hdu.is_some()) && inst.format.chips.len() > 1 {
+        return vec![];
+    }
+    let Ok(groups) = group_exposures(paths, inst, &chips) else { return vec![] };
+    let Some(g) = groups.into_iter().find(|g| g.first().is_some_and(|c| c.path == first)) else { return vec![] };
+    g.into_iter().map(|c| (chips[c.chip].clone(), c.path)).collect()
+}
+
 /// How the files given were grouped into exposures, for the faces to report beside their
 /// results: chip files (matched to the instrument's chips by a keyword) grouped by the format's
 /// exposure keywords.
