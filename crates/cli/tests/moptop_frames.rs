@@ -181,8 +181,9 @@ fn catalog(files: &[PathBuf], extra: &[&str]) -> (i32, String, String) {
 /// The must-show: the archive's frames in glob order, read by the built-in `moptop` as it is:
 /// 64 files grouped into 32 exposures (reported), the plate ranges from MOPRBEG/MOPREND (16
 /// positions of 18.2 deg, whatever MOPRARC says), the unmirrored camera map measured from the
-/// stars (at least 36 of the 40 stars, residual below 0.2 px, the true map to 0.1 px at the corners) and every star's q, u
-/// within its errors of the simulator's (RMS pull near 1, none beyond 4).
+/// stars (at least 36 of the 40 stars, residual below 0.2 px, the true map to 0.1 px at the
+/// corners), every star's q, u within its errors of the simulator's (RMS pull near 1, none
+/// beyond 4) and its RA, Dec from camera 1's WCS; without --instrument, INSTRUME names the file.
 #[test]
 fn archive_frames_in_glob_order_are_read_by_the_builtin_moptop() {
     let dir = tempfile::tempdir().unwrap();
@@ -244,9 +245,13 @@ fn archive_frames_in_glob_order_are_read_by_the_builtin_moptop() {
     eprintln!("MOPTOP archive frames: camera map residual {rms:.3} px from {pairs} pairs; RMS pull {rms_pull:.2}");
     assert!(rms_pull > 0.6 && rms_pull < 1.4, "RMS pull {rms_pull}");
 
-    // The console says how the files were grouped.
-    let (code, out, err) = catalog(&files, &[]);
+    // Without --instrument the frames' INSTRUME = 'Moptop' names the built-in file, and the
+    // console says how the files were grouped.
+    let mut args: Vec<std::ffi::OsString> = vec!["catalog".into()];
+    args.extend(files.iter().map(|f| f.clone().into_os_string()));
+    let (code, out, err) = run(&args);
     assert_eq!(code, 0, "{err}");
+    assert!(err.contains("read as the built-in instrument moptop (INSTRUME = 'Moptop'"), "{err}");
     assert!(out.contains("64 chip files grouped into 32 exposures by MOPRNUM, MOPRPOS (chip by MOPCNUM)"), "{out}");
 }
 
