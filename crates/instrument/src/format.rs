@@ -37,8 +37,35 @@ pub struct FrameFormat {
     /// an overscan region nor by a master bias is refused when its darkest pixels sit at or
     /// above this level (a frame still carrying its bias is never reduced silently).
     pub raw_bias_adu: Option<f64>,
+    /// What the frames already had done to them before they reach instpol (an archive's
+    /// level-1 products): `"bias"` (bias and dark subtracted) and `"flat"` (divided by a flat
+    /// field). Such frames are read without subtracting a constant bias level, and a master bias
+    /// or flat given for them is refused unless the caller asks for the correction to be made
+    /// again ([`FrameFormat::check_masters`]).
+    pub already_corrected: Vec<Correction>,
     /// The chips: none means one chip covering the whole detector with no pre/overscan.
     pub chips: Vec<Chip>,
+}
+
+/// A correction an archive's pipeline may already have made to its frames
+/// ([`FrameFormat::already_corrected`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Correction {
+    /// Bias (and dark) subtracted: a master bias would subtract it a second time.
+    Bias,
+    /// Divided by a flat field: a master flat would divide by the response a second time.
+    Flat,
+}
+
+impl Correction {
+    /// The correction's name in the instrument file (`"bias"`, `"flat"`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Correction::Bias => "bias",
+            Correction::Flat => "flat",
+        }
+    }
 }
 
 /// One CCD of a mosaic (or the only one).
@@ -92,6 +119,46 @@ impl FrameFormat {
     /// check.
     pub fn is_raw(&self) -> bool {
         !self.chips.is_empty() || self.raw_bias_adu.is_some()
+    }
+
+    /// Whether the frames already had `c` done to them ([`FrameFormat::already_corrected`]).
+    pub fn already(&self, c: Correction) -> bool {
+        self.already_corrected.contains(&c)
+    }
+
+    /// The rule for calibration frames given for frames of this format: a master bias
+    /// (`bias_given`) or flat (`flat_given`) for frames that already had that correction is
+    /// refused, unless `again` (the caller asks for the correction to be made a second time).
+    /// `Err` names the correction, the instrument (`inst_name`) and the way to ask.
+    ///
+    /// ```
+    /// use instrument::{Correction, FrameFormat};
+    /// let f = FrameFormat { already_corrected: vec![Correction::Bias, Correction::Flat], ..Default::default() };
+    /// assert!(f.check_masters("MOPTOP", true, false, false).unwrap_err().contains("already bias corrected"));
+    /// assert!(f.check_masters("MOPTOP", false, true, true).is_ok());
+    /// assert!(FrameFormat::default().check_masters("FORS2", true, true, false).is_ok());
+    /// ```
+    pub fn check_masters(
+        &self,
+        inst_name: &str,
+        bias_given: bool,
+        flat_given: bool,
+        again: bool,
+    ) -> Result<(), String> {
+        if again {
+            return Ok(());
+        }
+        let given =
+            [(bias_given, Correction::Bias, "subtract a bias"), (flat_given, Correction::Flat, "divide by a flat")];
+        match given.into_iter().find(|(g, c, _)| *g && self.already(*c)) {
+            None => Ok(()),
+            Some((_, c, what)) => Err(format!(
+                "instrument {inst_name}'s frames are already {} corrected ([format] already_corrected = [{}]): a master {} would {what} a second time; leave it out, or ask for the correction again (--correct-again)",
+                c.name(),
+                self.already_corrected.iter().map(|c| format!("\"{}\"", c.name())).collect::<Vec<_>>().join(", "),
+                c.name()
+            )),
+        }
     }
 
     /// Check the section against the detector size `nx` x `ny`; `Err((key, value, why))`.

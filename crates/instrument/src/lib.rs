@@ -14,7 +14,7 @@ mod format;
 pub mod headers;
 pub mod telescope;
 pub mod toml_numbers;
-pub use format::{Chip, FrameFormat, NumberOrKeyword};
+pub use format::{Chip, Correction, FrameFormat, NumberOrKeyword};
 pub use headers::{Headers, Role};
 pub use telescope::{Focus, Telescope};
 
@@ -1344,18 +1344,27 @@ mod tests {
         assert_eq!(HwpRotation::range(32.5, 10.0), (21.25, -22.5));
     }
 
-    /// The built-in MOPTOP: two cameras of 1024 px side by side, the e camera mirrored in x,
-    /// 16 rotor positions per turn of 22.5 deg each ([LT] in moptop.toml), the 7' field about
-    /// camera 1's centre; without its cameras table the layout is refused naming the key.
+    /// The built-in MOPTOP as its level-1 frames' headers describe it (instruments/moptop.toml):
+    /// two cameras of 1024 px side by side, camera 2 not mirrored, the plate's range from the
+    /// rotor's begin and end angles, 0.416" px (a 7.1' field about camera 1's centre), camera
+    /// files matched by MOPCNUM and grouped by MOPRNUM and MOPRPOS, bias and flat already
+    /// corrected; without its cameras table the layout is refused naming the key.
     #[test]
     fn moptop_loads_with_its_cameras_and_rotor() {
         let m = Instrument::load("moptop").unwrap();
         assert_eq!(m.polarimetry.layout, Layout::TwoCameras);
         let c = m.polarimetry.cameras.as_ref().unwrap();
-        assert_eq!((c.o_chip.as_str(), c.e_chip.as_str(), c.e_orientation), ("CAM1", "CAM2", Orientation::FlipX));
+        assert_eq!((c.o_chip.as_str(), c.e_chip.as_str(), c.e_orientation), ("CAM1", "CAM2", Orientation::Identity));
         let r = m.polarimetry.rotation.as_ref().unwrap();
-        assert_eq!(r.position_range(16).unwrap(), (348.75, 22.5));
-        // 1024 px x 0.41" = 7.0': the field of [LT].
+        assert!(!r.by_position());
+        assert_eq!((r.begin_keyword.as_str(), r.end_keyword.as_str()), ("MOPRBEG", "MOPREND"));
+        assert_eq!(m.format.exposure_keywords, ["MOPRNUM", "MOPRPOS"]);
+        assert!(m.format.already(Correction::Bias) && m.format.already(Correction::Flat));
+        let chips: Vec<_> =
+            m.format.chips.iter().map(|c| (c.match_keyword.as_deref(), c.match_value.as_deref())).collect();
+        assert_eq!(chips, [(Some("MOPCNUM"), Some("1")), (Some("MOPCNUM"), Some("2"))]);
+        assert!(m.writes("Moptop"), "both cameras write INSTRUME = 'Moptop'");
+        // 1024 px x 0.416" = 7.10': one camera's field.
         assert!((1024.0 * m.detector.pixel_scale_arcsec / 60.0 - m.field.width_arcmin).abs() < 0.01);
         let (x, y) = m.pixel_to_arcmin(511.5, 511.5);
         assert!(x.abs() < 1e-12 && y.abs() < 1e-12, "camera 1's centre is the field's: {x} {y}");

@@ -873,7 +873,7 @@ fn read_options(
             ));
         }
     }
-    Ok(skyfield::calib::ReadOptions { bias, flat, hwp_angles_deg: hwp_angles, assembled })
+    Ok(skyfield::calib::ReadOptions { bias, flat, hwp_angles_deg: hwp_angles, assembled, correct_again: false })
 }
 
 /// No function writes over one of its own inputs, whatever name `output` gives it (the one

@@ -1250,9 +1250,11 @@ impl Plan {
 
     /// Number of bias frames written: a chip instrument with a chip whose bias level no
     /// overscan removes (subtraction off, or no pre/overscan region) cannot be reduced without
-    /// a master bias, so its simulation writes the frames to make one; none otherwise.
+    /// a master bias, so its simulation writes the frames to make one; none otherwise, and none
+    /// for frames the instrument declares bias corrected already (`[format] already_corrected`).
     pub fn n_bias_frames(&self) -> usize {
         let needs = self.writes_chips()
+            && !self.inst.format.already(instrument::Correction::Bias)
             && self.inst.format.chips.iter().any(|c| {
                 !c.subtract_overscan
                     || (c.prescan_x.is_none()
@@ -1323,7 +1325,14 @@ impl Plan {
     /// and read noise the frames were rendered with, the scene's keyword-declared scan sizes.
     fn readouts(&self) -> Vec<crate::raw::RawChip> {
         let out = &self.scene.output;
-        let bias = out.raw_bias_adu.or(self.inst.format.raw_bias_adu).unwrap_or(crate::scene::DEFAULT_RAW_BIAS_ADU);
+        // Frames the instrument declares bias corrected already (an archive's level-1 frames)
+        // carry no bias level unless the scene gives one.
+        let default_bias = if self.inst.format.already(instrument::Correction::Bias) {
+            0.0
+        } else {
+            crate::scene::DEFAULT_RAW_BIAS_ADU
+        };
+        let bias = out.raw_bias_adu.or(self.inst.format.raw_bias_adu).unwrap_or(default_bias);
         let gain = self.steps.iter().find_map(|s| if let DetStep::Gain(g) = s { Some(*g) } else { None });
         let rn = self.steps.iter().find_map(|s| if let DetStep::ReadNoise(r) = s { Some(*r) } else { None });
         let rc = crate::raw::RawChip {

@@ -33,7 +33,7 @@ use crate::frame::{
     frame_header_with, read_frame_raw_with, require_hwp, Conversion, Frame, GAP, GAP_LIMIT, SATURATED, SATURATED_LIMIT,
 };
 use crate::{Error, Warning};
-use instrument::{Chip, Instrument, NumberOrKeyword};
+use instrument::{Chip, Correction, Instrument, NumberOrKeyword};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -52,6 +52,10 @@ pub struct ReadOptions {
     /// (another pipeline's products): read as one image of the detector's size in ADU, not as
     /// the instrument's raw chip files ([`ReadOptions::instrument`]).
     pub assembled: bool,
+    /// Apply `bias` and `flat` even to frames whose instrument declares that correction made
+    /// already (`[format] already_corrected`); without it such a master is refused
+    /// (`instrument::FrameFormat::check_masters`).
+    pub correct_again: bool,
 }
 
 impl ReadOptions {
@@ -154,7 +158,12 @@ struct ChipFile {
     spec: String,
 }
 
-/// Files grouped into exposures, each with one [`ChipFile`] per chip (in chip order).
+/// Files grouped into exposures, each with one [`ChipFile`] per chip (in chip order). Chips in
+/// separate files are matched by their keyword, and the files of one exposure are those that
+/// share the format's `exposure_keywords` values, in whatever order the files are given (a
+/// shell glob gives every file of one camera before the other's); the exposures come in the
+/// order of their first file. A format without exposure keywords takes the files of one
+/// exposure next to each other.
 fn group_exposures(paths: &[PathBuf], inst: &Instrument, chips: &[Chip]) -> Result<Vec<Vec<ChipFile>>, Error> {
     if paths.is_empty() {
         return Err(Error::NoFrames);
@@ -177,52 +186,78 @@ fn group_exposures(paths: &[PathBuf], inst: &Instrument, chips: &[Chip]) -> Resu
             .collect();
         return res.into_iter().collect();
     }
-    // Chips in separate files: match each file to its chip; the chip files of one exposure
-    // are given next to each other (as a time-sorted archive listing puts them).
-    let opened: Vec<Result<ChipFile, Error>> = paths
-        .par_iter()
-        .map(|p| {
-            let mut img = open_image(p, &inst.format.hdu)?;
-            let key = chips[0].match_keyword.clone().unwrap_or_default();
-            let mut found = None;
-            for (k, c) in chips.iter().enumerate() {
-                let kw = c.match_keyword.as_deref().unwrap_or_default();
-                let v = match img.key(kw) {
-                    Some(v) => v,
-                    // A frame of the assembled detector's size without the chip keyword is most
-                    // likely another pipeline's product: say what to do with it.
-                    None if (img.nx, img.ny) == (inst.detector.nx, inst.detector.ny) => {
-                        return Err(Error::Invalid(format!(
-                            "{}: missing header keyword '{kw}' (the name of a chip of instrument {}){}",
-                            p.display(),
-                            inst.name,
-                            assembled_hint(img.nx, img.ny, inst)
-                        )))
-                    }
-                    None => return Err(Error::MissingKeyword { path: p.clone(), keyword: kw.into() }),
-                };
-                if c.match_value.as_deref().is_some_and(|m| m.trim() == v) {
-                    found = Some(k);
-                    break;
-                }
-            }
-            let chip = found.ok_or_else(|| {
-                let v = img.key(&key).unwrap_or_default();
-                Error::Invalid(format!(
-                    "{}: header keyword '{key}' = '{v}' names none of instrument {}'s chips ({}){}",
+    let opened: Vec<Result<(ChipFile, Vec<String>), Error>> =
+        paths.par_iter().map(|p| chip_of_file(p, inst, chips)).collect();
+    let opened: Vec<(ChipFile, Vec<String>)> = opened.into_iter().collect::<Result<_, _>>()?;
+    if inst.format.exposure_keywords.is_empty() {
+        return group_adjacent(opened.into_iter().map(|(c, _)| c), chips, inst);
+    }
+    group_by_keywords(opened, chips, inst)
+}
+
+/// Which chip the file `p` holds (its match keyword's value) and its exposure keywords' values
+/// (in the format's order; a missing one is refused, as the file could not be grouped).
+fn chip_of_file(p: &Path, inst: &Instrument, chips: &[Chip]) -> Result<(ChipFile, Vec<String>), Error> {
+    let mut img = open_image(p, &inst.format.hdu)?;
+    let key = chips[0].match_keyword.clone().unwrap_or_default();
+    let mut found = None;
+    for (k, c) in chips.iter().enumerate() {
+        let kw = c.match_keyword.as_deref().unwrap_or_default();
+        let v = match img.key(kw) {
+            Some(v) => v,
+            // A frame of the assembled detector's size without the chip keyword is most likely
+            // another pipeline's product: say what to do with it.
+            None if (img.nx, img.ny) == (inst.detector.nx, inst.detector.ny) => {
+                return Err(Error::Invalid(format!(
+                    "{}: missing header keyword '{kw}' (the name of a chip of instrument {}){}",
                     p.display(),
                     inst.name,
-                    chips.iter().map(|c| c.match_value.clone().unwrap_or_default()).collect::<Vec<_>>().join(", "),
                     assembled_hint(img.nx, img.ny, inst)
-                ))
-            })?;
-            Ok(ChipFile { path: p.clone(), chip, spec: inst.format.hdu.clone() })
-        })
-        .collect();
+                )))
+            }
+            None => return Err(Error::MissingKeyword { path: p.into(), keyword: kw.into() }),
+        };
+        if c.match_value.as_deref().is_some_and(|m| m.trim() == v) {
+            found = Some(k);
+            break;
+        }
+    }
+    let chip = found.ok_or_else(|| {
+        let v = img.key(&key).unwrap_or_default();
+        Error::Invalid(format!(
+            "{}: header keyword '{key}' = '{v}' names none of instrument {}'s chips ({}){}",
+            p.display(),
+            inst.name,
+            chips.iter().map(|c| c.match_value.clone().unwrap_or_default()).collect::<Vec<_>>().join(", "),
+            assembled_hint(img.nx, img.ny, inst)
+        ))
+    })?;
+    let mut values = Vec::with_capacity(inst.format.exposure_keywords.len());
+    for k in &inst.format.exposure_keywords {
+        match img.key(k) {
+            Some(v) => values.push(v.trim().to_string()),
+            None => {
+                return Err(Error::Invalid(format!(
+                    "{}: missing header keyword '{k}': instrument {} groups its chip files into exposures by {}, so this file cannot be grouped",
+                    p.display(),
+                    inst.name,
+                    inst.format.exposure_keywords.join(", ")
+                )))
+            }
+        }
+    }
+    Ok((ChipFile { path: p.into(), chip, spec: inst.format.hdu.clone() }, values))
+}
+
+/// The chip files of each exposure next to each other (a format without exposure keywords).
+fn group_adjacent(
+    opened: impl Iterator<Item = ChipFile>,
+    chips: &[Chip],
+    inst: &Instrument,
+) -> Result<Vec<Vec<ChipFile>>, Error> {
     let mut groups: Vec<Vec<ChipFile>> = Vec::new();
     let mut cur: Vec<ChipFile> = Vec::new();
     for cf in opened {
-        let cf = cf?;
         if cur.iter().any(|c| c.chip == cf.chip) {
             return Err(incomplete(&cur, chips, inst));
         }
@@ -236,6 +271,118 @@ fn group_exposures(paths: &[PathBuf], inst: &Instrument, chips: &[Chip]) -> Resu
         return Err(incomplete(&cur, chips, inst));
     }
     Ok(groups)
+}
+
+/// `MOPRNUM = 1, MOPRPOS = 3`: an exposure's keyword values, for messages.
+fn exposure_label(inst: &Instrument, values: &[String]) -> String {
+    inst.format.exposure_keywords.iter().zip(values).map(|(k, v)| format!("{k} = {v}")).collect::<Vec<_>>().join(", ")
+}
+
+/// The files sharing their exposure keywords' values, one per chip, whatever their order; a
+/// chip given twice for one exposure, or an exposure lacking a chip, is refused naming the file.
+fn group_by_keywords(
+    opened: Vec<(ChipFile, Vec<String>)>,
+    chips: &[Chip],
+    inst: &Instrument,
+) -> Result<Vec<Vec<ChipFile>>, Error> {
+    let by = inst.format.exposure_keywords.join(", ");
+    let mut order: Vec<Vec<String>> = Vec::new();
+    let mut slots: std::collections::HashMap<Vec<String>, Vec<Option<ChipFile>>> = Default::default();
+    for (cf, values) in opened {
+        let slot = slots.entry(values.clone()).or_insert_with(|| {
+            order.push(values.clone());
+            (0..chips.len()).map(|_| None).collect()
+        });
+        if let Some(prev) = &slot[cf.chip] {
+            return Err(Error::Invalid(format!(
+                "{}: chip {} of the exposure {} again ({} is that chip of that exposure already): instrument {} groups its chip files into exposures by {by}; give each exposure's file of each chip once",
+                cf.path.display(),
+                chips[cf.chip].name,
+                exposure_label(inst, &values),
+                prev.path.display(),
+                inst.name
+            )));
+        }
+        let k = cf.chip;
+        slot[k] = Some(cf);
+    }
+    let mut groups = Vec::with_capacity(order.len());
+    for values in order {
+        let slot = slots.remove(&values).unwrap_or_default();
+        let missing: Vec<&str> =
+            slot.iter().zip(chips).filter(|(f, _)| f.is_none()).map(|(_, c)| c.name.as_str()).collect();
+        if !missing.is_empty() {
+            let have = slot.iter().flatten().next().map(|f| f.path.display().to_string()).unwrap_or_default();
+            return Err(Error::Invalid(format!(
+                "{have}: the exposure {} has no file of chip {} of instrument {} among the files given (chip files are grouped into exposures by {by}): give every chip's file of each exposure, or leave this one out",
+                exposure_label(inst, &values),
+                missing.join(", "),
+                inst.name
+            )));
+        }
+        groups.push(slot.into_iter().flatten().collect());
+    }
+    Ok(groups)
+}
+
+/// Each chip of the exposure whose (first) file is `first` among `paths`, with the file that
+/// holds it: the file itself for an instrument without chips, the exposure's chip files for
+/// chips in separate files; empty when the files cannot be grouped, and chips held as HDUs of
+/// one file left out (what `crate::catalog::sky_positions` reads a WCS from).
+pub(crate) fn first_exposure_chips(paths: &[PathBuf], first: &Path, inst: &Instrument) -> Vec<(Chip, PathBuf)> {
+    let chips = chips_of(inst);
+    if chips.iter().any(|c| c.hdu.is_some()) && inst.format.chips.len() > 1 {
+        return vec![];
+    }
+    let Ok(groups) = group_exposures(paths, inst, &chips) else { return vec![] };
+    let Some(g) = groups.into_iter().find(|g| g.first().is_some_and(|c| c.path == first)) else { return vec![] };
+    g.into_iter().map(|c| (chips[c.chip].clone(), c.path)).collect()
+}
+
+/// How the files given were grouped into exposures, for the faces to report beside their
+/// results: chip files (matched to the instrument's chips by a keyword) grouped by the format's
+/// exposure keywords.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Grouping {
+    /// Files given.
+    pub files: usize,
+    /// Exposures formed.
+    pub exposures: usize,
+    /// The keywords the files of one exposure share (empty: the files of one exposure were
+    /// taken next to each other).
+    pub exposure_keywords: Vec<String>,
+    /// The keyword naming each file's chip (camera).
+    pub chip_keyword: String,
+}
+
+impl Grouping {
+    /// The grouping of `n_files` files read with `opts` into `n_exposures` exposures, when the
+    /// instrument's chips come one per file (matched by a keyword); `None` otherwise (a file is
+    /// an exposure).
+    pub fn of(inst: &Instrument, opts: &ReadOptions, n_files: usize, n_exposures: usize) -> Option<Self> {
+        let inst = opts.instrument(inst);
+        let chip_keyword = inst.format.chips.iter().find_map(|c| c.match_keyword.clone())?;
+        Some(Self {
+            files: n_files,
+            exposures: n_exposures,
+            exposure_keywords: inst.format.exposure_keywords.clone(),
+            chip_keyword,
+        })
+    }
+
+    /// One line for a person: `64 chip files grouped into 32 exposures by MOPRNUM, MOPRPOS
+    /// (chip by MOPCNUM)`.
+    pub fn describe(&self) -> String {
+        let by = if self.exposure_keywords.is_empty() {
+            "as given (the files of one exposure next to each other)".to_string()
+        } else {
+            format!("by {}", self.exposure_keywords.join(", "))
+        };
+        format!(
+            "{} chip files grouped into {} exposures {by} (chip by {})",
+            self.files, self.exposures, self.chip_keyword
+        )
+    }
 }
 
 /// For an image of the assembled detector's size read as a raw chip file: what to do if it is
@@ -1455,41 +1602,21 @@ fn calibrate_exposure(
                 }
             }
         }
-        // Without overscan or master bias, the instrument's constant bias (as for plain frames).
-        let const_bias = if stage != Stage::Bias && !subtract_scan && bias_map.is_none() { d.bias_adu } else { 0.0 };
+        // Without overscan or master bias, the instrument's constant bias (as for plain frames),
+        // unless the frames are declared bias corrected already.
+        let const_bias =
+            if stage != Stage::Bias && !subtract_scan && bias_map.is_none() && !fmt.already(Correction::Bias) {
+                d.bias_adu
+            } else {
+                0.0
+            };
         chip.level = level + const_bias;
         chip.to_e = if stage == Stage::Bias { 1.0 } else { gain };
         chip.use_bias = bias_map.is_some();
         chip.use_flat = stage == Stage::Science && masters.flat.is_some();
         chip_rows.push(chip);
     }
-    // The chip files of one exposure must agree on what the exposure was.
-    let pol = &inst.polarimetry;
-    let (h0, k0) = &heads[0];
-    for (n, (h, k)) in heads.iter().enumerate().skip(1) {
-        let differ = |key: &str, a: String, b: String| {
-            Error::Invalid(format!(
-                "chip files of different exposures paired: {} has '{key}' = {a} but {} has {b}; give the chip files of each exposure next to each other",
-                files[0].path.display(),
-                files[n].path.display()
-            ))
-        };
-        let fmt_opt = |v: Option<f64>| v.map_or("(none)".to_string(), |x| x.to_string());
-        if h.hwp_deg != h0.hwp_deg || h.hwp_sweep_deg != h0.hwp_sweep_deg {
-            return Err(differ(&pol.hwp_angle_keyword, fmt_opt(h0.hwp_deg), fmt_opt(h.hwp_deg)));
-        }
-        if h.filter != h0.filter {
-            return Err(differ(&pol.filter_keyword, h0.filter.clone(), h.filter.clone()));
-        }
-        if h.exptime_s != h0.exptime_s {
-            return Err(differ(&pol.exptime_keyword, fmt_opt(h0.exptime_s), fmt_opt(h.exptime_s)));
-        }
-        for ((key, a), (_, b)) in k0.iter().zip(k) {
-            if a != b {
-                return Err(differ(key, a.clone().unwrap_or("(none)".into()), b.clone().unwrap_or("(none)".into())));
-            }
-        }
-    }
+    check_one_exposure(&files, &heads, inst)?;
     let (h0, _) = heads.swap_remove(0);
     Ok(Exposure {
         path: files[0].path.clone(),
@@ -1503,6 +1630,62 @@ fn calibrate_exposure(
     })
 }
 
+/// The chip files of one exposure must agree on what the exposure was: plate angle (or range),
+/// filter, exposure time and the format's exposure keywords; `Err` names both files and the
+/// keyword.
+fn check_one_exposure(
+    files: &[Opened],
+    heads: &[(crate::frame::FrameHeader, Vec<(String, Option<String>)>)],
+    inst: &Instrument,
+) -> Result<(), Error> {
+    let fmt = &inst.format;
+    let pol = &inst.polarimetry;
+    let plate_keyword = match &pol.rotation {
+        Some(r) if r.by_position() => r.position_keyword.clone(),
+        Some(r) => format!("{}' and '{}", r.begin_keyword, r.end_keyword),
+        None => pol.hwp_angle_keyword.clone(),
+    };
+    let (h0, k0) = &heads[0];
+    let hint = if fmt.exposure_keywords.is_empty() {
+        "give the chip files of each exposure next to each other".to_string()
+    } else {
+        format!(
+            "they share the exposure keywords {} by which instrument {} groups chip files, yet disagree: check their headers",
+            fmt.exposure_keywords.join(", "),
+            inst.name
+        )
+    };
+    for (n, (h, k)) in heads.iter().enumerate().skip(1) {
+        let differ = |key: &str, a: String, b: String| {
+            Error::Invalid(format!(
+                "chip files of different exposures paired: {} has '{key}' = {a} but {} has {b}; {hint}",
+                files[0].path.display(),
+                files[n].path.display()
+            ))
+        };
+        let fmt_opt = |v: Option<f64>| v.map_or("(none)".to_string(), |x| x.to_string());
+        let range = |h: &crate::frame::FrameHeader| match &pol.rotation {
+            Some(_) => format!("{} (sweep {} deg)", fmt_opt(h.hwp_deg), h.hwp_sweep_deg),
+            None => fmt_opt(h.hwp_deg),
+        };
+        if h.hwp_deg != h0.hwp_deg || h.hwp_sweep_deg != h0.hwp_sweep_deg {
+            return Err(differ(&plate_keyword, range(h0), range(h)));
+        }
+        if h.filter != h0.filter {
+            return Err(differ(&pol.filter_keyword, h0.filter.clone(), h.filter.clone()));
+        }
+        if h.exptime_s != h0.exptime_s {
+            return Err(differ(&pol.exptime_keyword, fmt_opt(h0.exptime_s), fmt_opt(h.exptime_s)));
+        }
+        for ((key, a), (_, b)) in k0.iter().zip(k) {
+            if a != b {
+                return Err(differ(key, a.clone().unwrap_or("(none)".into()), b.clone().unwrap_or("(none)".into())));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Calibrate every exposure of `paths` at `stage`, in parallel, in the order given.
 pub(crate) fn calibrate_all(
     paths: &[PathBuf],
@@ -1511,6 +1694,10 @@ pub(crate) fn calibrate_all(
     stage: Stage,
 ) -> Result<Vec<Exposure>, Error> {
     let chips = chips_of(inst);
+    // What the frames already had done is not done again, unless asked.
+    inst.format
+        .check_masters(&inst.name, opts.bias.is_some(), opts.flat.is_some(), opts.correct_again)
+        .map_err(Error::Invalid)?;
     // Opened once for all exposures (headers checked); their pixels are read as needed.
     let master = |p: &Option<PathBuf>, kind| p.as_deref().map(|p| open_master(p, inst, kind)).transpose();
     let masters = Arc::new(Masters { bias: master(&opts.bias, "BIAS")?, flat: master(&opts.flat, "FLAT")? });

@@ -19,7 +19,7 @@ use crate::Warning;
 use crate::{Error, Unmeasurable};
 use instrument::Instrument;
 use rayon::prelude::*;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Catalog settings.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -208,6 +208,13 @@ pub struct Row {
     pub v: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sigma_v: Option<f64>,
+    /// The o image's sky position (deg) through the celestial WCS of the first exposure's file
+    /// holding it ([`sky_positions`]); `None` (and not written) when that file has no WCS this
+    /// reads.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ra_deg: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dec_deg: Option<f64>,
 }
 
 /// The camera transform a two-camera catalog was measured with.
@@ -259,6 +266,10 @@ pub struct Catalog {
     /// detector (set by [`catalog_files`]; written into its table by [`Catalog::to_table`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub product: Option<crate::provenance::Product>,
+    /// How the files given were grouped into exposures, for an instrument whose chips come one
+    /// per file (set by [`catalog_files`]; absent otherwise).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub grouping: Option<crate::calib::Grouping>,
 }
 
 /// One exposure across the catalog's stars (the per-exposure checks of [`check_exposures`]).
@@ -400,6 +411,12 @@ impl Catalog {
             c.push(Column::f64("v", None, "V/I (dimensionless fraction, IAU sign)", v(|x| x.v)));
             c.push(Column::f64("sigma_v", None, "1-sigma error of v", v(|x| x.sigma_v)));
         }
+        if r.iter().any(|x| x.ra_deg.is_some()) {
+            // The frames' celestial WCS: columns only when a row has a position.
+            let v = |g: fn(&Row) -> Option<f64>| r.iter().map(|x| g(x).unwrap_or(f64::NAN)).collect::<Vec<f64>>();
+            c.insert(3, Column::f64("ra_deg", Some("deg"), "o image RA from the frame's WCS", v(|x| x.ra_deg)));
+            c.insert(4, Column::f64("dec_deg", Some("deg"), "o image Dec from the frame's WCS", v(|x| x.dec_deg)));
+        }
         for i in 0..self.hwp_deg.len() {
             let v = r.iter().map(|x| x.f.get(i).copied().unwrap_or(f64::NAN)).collect();
             c.push(Column::f64(&format!("f_{i}"), None, &format!("F_i (eq:F) at HWP {} deg", self.hwp_deg[i]), v));
@@ -436,6 +453,13 @@ pub fn catalog_files(
         let cat = catalog_of(&disk, inst, cfg)?;
         (cat, disk.bad_pixel_warnings()?)
     };
+    cat.grouping = crate::calib::Grouping::of(inst, opts, paths.len(), exposures.len());
+    if let Some((first, _)) = exposures.first() {
+        let xy: Vec<(f64, f64)> = cat.rows.iter().map(|r| (r.x, r.y)).collect();
+        for (r, sky) in cat.rows.iter_mut().zip(sky_positions(paths, first, inst, opts, &xy)) {
+            (r.ra_deg, r.dec_deg) = (sky.map(|s| s.0), sky.map(|s| s.1));
+        }
+    }
     cat.frames = exposures;
     let frame = mueller::Frame::Sky { zero_angle_deg: cat.chi_offset_deg };
     cat.product = Some(crate::provenance::Product::of_instrument(inst, &cat.filter, Some(frame)));
@@ -451,6 +475,48 @@ pub fn catalog_files(
         });
     }
     Ok((cat, warnings))
+}
+
+/// The sky positions (RA, Dec deg) of detector pixels `xy` through the celestial WCS of the
+/// exposure whose (first) file is `first` among `paths`: each pixel in the file of the chip
+/// that holds it (an instrument without chips: the frame itself), shifted by the chip's place
+/// and prescan. `None` for a pixel no chip holds, a file without a WCS this reads (a TAN
+/// projection, [`crate::wcs::CelestialWcs::sky_of_pixel`]), or a chip whose prescan is given by
+/// a keyword or whose file is another size than its chip.
+pub fn sky_positions(
+    paths: &[PathBuf],
+    first: &Path,
+    inst: &Instrument,
+    opts: &ReadOptions,
+    xy: &[(f64, f64)],
+) -> Vec<Option<(f64, f64)>> {
+    let inst = &*opts.instrument(inst);
+    // Each chip's file of the first exposure, its place and prescan.
+    let chips = crate::calib::first_exposure_chips(paths, first, inst);
+    let number = |v: &Option<instrument::NumberOrKeyword>| match v {
+        None => Some(0.0),
+        Some(instrument::NumberOrKeyword::Number(n)) => Some(*n),
+        Some(instrument::NumberOrKeyword::Keyword(_)) => None,
+    };
+    let placed: Vec<_> = chips
+        .into_iter()
+        .map(|(c, path)| {
+            let (prx, pry) = (number(&c.prescan_x)?, number(&c.prescan_y)?);
+            let (ovx, ovy) = (number(&c.overscan_x)?, number(&c.overscan_y)?);
+            let (w, (nx, ny)) = crate::wcs::celestial_wcs_in(&path).ok()??;
+            let size = (prx + c.size_px[0] as f64 + ovx, pry + c.size_px[1] as f64 + ovy);
+            (size == (nx as f64, ny as f64)).then_some((c, prx, pry, w))
+        })
+        .collect();
+    xy.iter()
+        .map(|&(x, y)| {
+            placed.iter().flatten().find_map(|(c, prx, pry, w)| {
+                let (u, v) = (x - c.origin_px[0] as f64, y - c.origin_px[1] as f64);
+                let inside = u >= -0.5 && v >= -0.5 && u < c.size_px[0] as f64 - 0.5 && v < c.size_px[1] as f64 - 0.5;
+                inside.then(|| w.sky_of_pixel(u + prx, v + pry)).flatten()
+            })
+        })
+        .collect()
 }
 
 /// How far from its predicted place an unpaired source's other image is looked for
@@ -615,6 +681,8 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                 outlier_exposures: vec![],
                 v: None,
                 sigma_v: None,
+                ra_deg: None,
+                dec_deg: None,
             };
             if flags & flags::SATURATED != 0 {
                 row.note = "saturated: not measured".into();
@@ -837,6 +905,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         alignment,
         exposures: None,
         product: None,
+        grouping: None,
         frames: vec![],
     })
 }

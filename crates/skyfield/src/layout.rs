@@ -135,13 +135,48 @@ fn camera_transform_of_image(
             pe.len()
         )));
     };
+    // Pairs through the best shift, fitted; then matched again through that first fit (a
+    // camera map's turn and scale move the far corners' stars beyond the shift's reach) and
+    // fitted again.
+    let shift = [1.0, 0.0, best.0 as f64, 0.0, 1.0, best.1 as f64];
+    let pairs = camera_pairs(img, nx, ny, c, &po, &pe, &shift);
+    let first = fit_affine(&pairs).map_err(refuse)?;
+    let again = camera_pairs(img, nx, ny, c, &po, &pe, &first);
+    let pairs = if again.len() >= pairs.len() { again } else { pairs };
+    let t = fit_affine(&pairs).map_err(refuse)?;
+    let [a, b, cc, d, e, f] = t;
+    let n = pairs.len() as f64;
+    let ss: f64 =
+        pairs.iter().map(|((u, v), (x, y))| (a * u + b * v + cc - x).powi(2) + (d * u + e * v + f - y).powi(2)).sum();
+    let rms = (ss / n).sqrt();
+    if !(rms <= bound) {
+        return Err(refuse(format!(
+            "the affine map fitted to {} star pairs leaves an RMS residual of {rms:.3} px, beyond the bound of {bound} px (max_residual_px)",
+            pairs.len()
+        )));
+    }
+    Ok((t, rms, pairs.len()))
+}
+
+/// The o peaks `po` (value, x, y in the detector frame) matched to the turned e peaks `pe`
+/// (value, local turned x, y) within 1.5 px of where the map `t` (o camera local px -> turned e
+/// px) puts them, each pair centred in the image: `((o local x, y), (turned e x, y))`.
+fn camera_pairs(
+    img: &[f64],
+    nx: usize,
+    ny: usize,
+    c: &crate::beams::CameraMap,
+    po: &[(f64, usize, usize)],
+    pe: &[(f64, f64, f64)],
+    t: &[f64; 6],
+) -> Vec<((f64, f64), (f64, f64))> {
     let r = 3.0;
     let (ex0, ey0) = c.e_origin;
     let e_pixel = |px: usize, py: usize| px >= ex0 && py >= ey0 && px < ex0 + c.e_size.0 && py < ey0 + c.e_size.1;
     let mut pairs: Vec<((f64, f64), (f64, f64))> = Vec::new();
-    for a in &po {
+    for a in po {
         let (ua, va) = (a.1 as f64 - c.o_origin.0 as f64, a.2 as f64 - c.o_origin.1 as f64);
-        let (tu, tv) = (ua + best.0 as f64, va + best.1 as f64);
+        let (tu, tv) = (t[0] * ua + t[1] * va + t[2], t[3] * ua + t[4] * va + t[5]);
         let Some(b) = pe.iter().find(|b| (b.1 - tu).abs() <= 1.5 && (b.2 - tv).abs() <= 1.5) else { continue };
         // The e peak's detector pixel: back through the orientation.
         let (ex, ey) = c.e_of_local(&[1.0, 0.0, 0.0, 0.0, 1.0, 0.0], b.1, b.2);
@@ -153,15 +188,21 @@ fn camera_transform_of_image(
             pairs.push((o, c.turned_e(cb.0, cb.1)));
         }
     }
+    pairs
+}
+
+/// The affine map `[a, b, c, d, e, f]` of least squares through `pairs` (`(u, v) -> (x, y)`),
+/// solved about the pairs' mean (well conditioned); `Err` with the reason when fewer than 3
+/// pairs or all on a line.
+fn fit_affine(pairs: &[((f64, f64), (f64, f64))]) -> Result<[f64; 6], String> {
     if pairs.len() < 3 {
-        return Err(refuse(format!("only {} star pairs could be matched and centred (3 needed)", pairs.len())));
+        return Err(format!("only {} star pairs could be matched and centred (3 needed)", pairs.len()));
     }
-    // Least squares about the pairs' mean (well conditioned): [u v 1] [a b c]^T = u'.
     let n = pairs.len() as f64;
     let (mu, mv) = (pairs.iter().map(|p| p.0 .0).sum::<f64>() / n, pairs.iter().map(|p| p.0 .1).sum::<f64>() / n);
     let (mut suu, mut suv, mut svv) = (0.0, 0.0, 0.0);
     let (mut sx, mut sy) = ([0.0; 3], [0.0; 3]);
-    for ((u, v), (x, y)) in &pairs {
+    for ((u, v), (x, y)) in pairs {
         let (du, dv) = (u - mu, v - mv);
         suu += du * du;
         suv += du * dv;
@@ -175,25 +216,15 @@ fn camera_transform_of_image(
     }
     let det = suu * svv - suv * suv;
     if !(det > 1e-9 * (suu + svv).powi(2) && det > 0.0) {
-        return Err(refuse(format!("the {} matched stars lie on a line: the map is not determined", pairs.len())));
+        return Err(format!("the {} matched stars lie on a line: the map is not determined", pairs.len()));
     }
     let solve = |s: [f64; 3]| {
         let a = (svv * s[0] - suv * s[1]) / det;
         let b = (suu * s[1] - suv * s[0]) / det;
         (a, b, s[2] / n - a * mu - b * mv)
     };
-    let ((a, b, cc), (d, e, f)) = (solve(sx), solve(sy));
-    let t = [a, b, cc, d, e, f];
-    let ss: f64 =
-        pairs.iter().map(|((u, v), (x, y))| (a * u + b * v + cc - x).powi(2) + (d * u + e * v + f - y).powi(2)).sum();
-    let rms = (ss / n).sqrt();
-    if !(rms <= bound) {
-        return Err(refuse(format!(
-            "the affine map fitted to {} star pairs leaves an RMS residual of {rms:.3} px, beyond the bound of {bound} px (max_residual_px)",
-            pairs.len()
-        )));
-    }
-    Ok((t, rms, pairs.len()))
+    let ((a, b, c), (d, e, f)) = (solve(sx), solve(sy));
+    Ok([a, b, c, d, e, f])
 }
 
 /// [`crate::photometry::measure_oe_offset`] from one frame (`img`, `nx` x `ny`, read from `file`).

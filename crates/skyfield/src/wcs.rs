@@ -11,19 +11,26 @@ use std::path::Path;
 /// when that image is `nx x ny` px (the map's detector pixels); `Err(why)` when there is one
 /// that cannot be carried.
 pub fn celestial_wcs_of(path: &Path, nx: usize, ny: usize) -> Result<Option<CelestialWcs>, String> {
+    match celestial_wcs_in(path)? {
+        Some((_, (w, h))) if (w, h) != (nx, ny) => {
+            Err(format!("the image is {w} x {h} px, the reduced frame {nx} x {ny} px"))
+        }
+        found => Ok(found.map(|(wcs, _)| wcs)),
+    }
+}
+
+/// The celestial WCS of a file's first 2-D image HDU and that image's size `(nx, ny)`;
+/// `Ok(None)` when the image has no celestial WCS (or the file no 2-D image), `Err(why)` when it
+/// has one that cannot be carried ([`CelestialWcs::read`]).
+pub fn celestial_wcs_in(path: &Path) -> Result<Option<(CelestialWcs, (usize, usize))>, String> {
     let mut f = FitsFile::open(path).map_err(|e| e.to_string())?;
     let n_hdu = f.iter().count();
     for i in 0..n_hdu {
         let h = f.hdu(i).map_err(|e| e.to_string())?;
         if let fitsio::hdu::HduInfo::ImageInfo { shape, .. } = &h.info {
             if shape.len() == 2 {
-                let w = CelestialWcs::read(&mut f, &h)?;
-                return match w {
-                    Some(_) if shape[..] != [ny, nx] => {
-                        Err(format!("the image is {} x {} px, the reduced frame {nx} x {ny} px", shape[1], shape[0]))
-                    }
-                    w => Ok(w),
-                };
+                let size = (shape[1], shape[0]);
+                return Ok(CelestialWcs::read(&mut f, &h)?.map(|w| (w, size)));
             }
         }
     }
@@ -116,6 +123,52 @@ impl CelestialWcs {
             }
         }
         w
+    }
+
+    /// The sky position (RA, Dec in deg, RA in [0, 360)) of 0-based pixel `(x, y)` of the
+    /// image this WCS belongs to, for the gnomonic projection (`TAN`, the projection of CCD
+    /// frames); `None` for any other projection or a pixel the projection does not reach.
+    /// Calabretta & Greisen 2002, A&A 395, 1077: intermediate world coordinates through the CD
+    /// matrix (eq. 1, FITS pixels 1-based), native spherical coordinates of `TAN` (sec. 5.1.3:
+    /// `phi = arg(-y, x)`, `theta = atan(180 / (pi R))`), then the turn to celestial
+    /// coordinates with the reference point at the native pole's `theta_0 = 90` deg and
+    /// `LONPOLE = 180` deg (eq. 2).
+    ///
+    /// ```
+    /// use skyfield::wcs::CelestialWcs;
+    /// let w = CelestialWcs { ctype: ["RA---TAN".into(), "DEC--TAN".into()], crpix: [11.0, 21.0],
+    ///     crval: [150.0, -30.0], cd: [[-1e-4, 0.0], [0.0, 1e-4]], radesys: None, equinox: None };
+    /// let (ra, dec) = w.sky_of_pixel(10.0, 20.0).unwrap(); // CRPIX, 1-based
+    /// assert!((ra - 150.0).abs() < 1e-12 && (dec + 30.0).abs() < 1e-12);
+    /// ```
+    pub fn sky_of_pixel(&self, x: f64, y: f64) -> Option<(f64, f64)> {
+        if !(self.ctype[0].ends_with("-TAN") && self.ctype[1].ends_with("-TAN")) {
+            return None;
+        }
+        let (lat_first, lon, lat) = match (&self.ctype[0][..4], &self.ctype[1][..4]) {
+            ("RA--", "DEC-") => (false, 0, 1),
+            ("DEC-", "RA--") => (true, 1, 0),
+            _ => return None,
+        };
+        let (dx, dy) = (x + 1.0 - self.crpix[0], y + 1.0 - self.crpix[1]);
+        let iw = [self.cd[0][0] * dx + self.cd[0][1] * dy, self.cd[1][0] * dx + self.cd[1][1] * dy];
+        let (xi, eta) = if lat_first { (iw[1], iw[0]) } else { (iw[0], iw[1]) };
+        let (xi, eta) = (xi.to_radians(), eta.to_radians());
+        let r = xi.hypot(eta);
+        let phi = xi.atan2(-eta);
+        let theta = if r == 0.0 { std::f64::consts::FRAC_PI_2 } else { (1.0 / r).atan() };
+        let (a0, d0) = (self.crval[lon].to_radians(), self.crval[lat].to_radians());
+        // LONPOLE = 180 deg: phi - phi_p = phi - pi.
+        let dphi = phi - std::f64::consts::PI;
+        // The direction's components: cos(dec) cos(ra - a0), cos(dec) sin(ra - a0), sin(dec);
+        // Dec by atan2 of them (an arcsine loses digits near the poles).
+        let cx = theta.sin() * d0.cos() - theta.cos() * d0.sin() * dphi.cos();
+        let cy = -theta.cos() * dphi.sin();
+        let sz = theta.sin() * d0.sin() + theta.cos() * d0.cos() * dphi.cos();
+        let ra = a0 + cy.atan2(cx);
+        let dec = sz.atan2(cx.hypot(cy));
+        let out = (ra.to_degrees().rem_euclid(360.0), dec.to_degrees());
+        (out.0.is_finite() && out.1.is_finite()).then_some(out)
     }
 
     pub(crate) fn cards(&self) -> Vec<(String, WcsValue, &'static str)> {

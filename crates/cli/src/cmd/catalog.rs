@@ -277,6 +277,9 @@ pub fn run(a: Args) -> Result<()> {
             None => format!("{} HWP angles, chi zero angle {} deg", cat.hwp_deg.len(), cat.chi_offset_deg),
             Some(z) => format!("{} quarter-wave plate angles, plate zero angle {z} deg", cat.hwp_deg.len()),
         };
+        if let Some(g) = &cat.grouping {
+            outln!("{}", g.describe());
+        }
         outln!(
             "{} sources, {} stars paired ({} measured, {} flagged), {} unpaired; filter {}, {plate}",
             cat.n_sources,

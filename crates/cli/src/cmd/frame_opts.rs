@@ -23,23 +23,29 @@ pub struct FrameOpts {
     /// overscan; --bias and --flat still apply when given.
     #[arg(long)]
     pub assembled: bool,
+    /// Apply --bias and --flat even when the instrument file declares its frames already bias
+    /// or flat corrected ([format] already_corrected, e.g. MOPTOP's level-1 frames); without
+    /// it such a master is refused.
+    #[arg(long)]
+    pub correct_again: bool,
 }
 
 impl FrameOpts {
-    /// The library's reading options.
     /// The first frame-reading option given (`--bias`, `--flat`, `--hwp-angles`,
-    /// `--assembled`), for a command that was given no frames to apply it to.
+    /// `--assembled`, `--correct-again`), for a command that was given no frames to apply it to.
     pub fn first_given(&self) -> Option<&'static str> {
         [
             (self.bias.is_some(), "--bias"),
             (self.flat.is_some(), "--flat"),
             (self.hwp_angles.is_some(), "--hwp-angles"),
             (self.assembled, "--assembled"),
+            (self.correct_again, "--correct-again"),
         ]
         .into_iter()
         .find_map(|(given, name)| given.then_some(name))
     }
 
+    /// The library's reading options.
     pub fn read_options(&self) -> Result<skyfield::calib::ReadOptions> {
         let hwp_angles_deg = match &self.hwp_angles {
             None => None,
@@ -59,6 +65,7 @@ impl FrameOpts {
             flat: self.flat.clone(),
             hwp_angles_deg,
             assembled: self.assembled,
+            correct_again: self.correct_again,
         })
     }
 }

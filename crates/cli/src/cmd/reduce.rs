@@ -64,6 +64,8 @@ struct Summary {
     median_chi_deg: f64,
     median_sigma_q: f64,
     warnings: Vec<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    grouping: Option<skyfield::calib::Grouping>,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -115,10 +117,14 @@ pub fn run(a: Args) -> Result<()> {
         median_chi_deg: pick(&m.chi).to_degrees(),
         median_sigma_q: pick(&m.sigma_q),
         warnings: r.warnings.iter().map(|w| w.to_string()).collect(),
+        grouping: skyfield::calib::Grouping::of(&inst, &read, a.frames.len(), r.exposures.len()),
     };
     if a.json {
         crate::util::print_json(&s)?;
     } else {
+        if let Some(g) = &s.grouping {
+            outln!("{}", g.describe());
+        }
         outln!(
             "{}: filter {}, N = {} ({:?} deg), {} of {} bins of {} px valid; median P = {:.3}%, chi = {:.1} deg, sigma_Q/I = {:.4}%",
             s.out.display(),

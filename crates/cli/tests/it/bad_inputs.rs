@@ -1733,8 +1733,12 @@ fn reduce_an_extension_that_is_a_table() {
 #[test]
 fn reduce_chip_files_of_different_exposures() {
     let f = Fixture::new();
-    let (inst, set) = fors2_fixture(&f);
+    let (_, set) = fors2_fixture(&f);
+    // Without exposure keywords the chip files of one exposure are taken next to each other:
     // CHIP1 of the exposure at 0 deg with CHIP2 of the one at 22.5 deg.
+    let text = common::raw::fors2_tiny_text().replace("exposure_keywords = [\"HIERARCH ESO DET EXP NO\"]", "");
+    std::fs::write(f.p("adjacent.toml"), text).unwrap();
+    let inst = f.s("adjacent.toml");
     let mut files = strs(&set.science);
     files.swap(1, 3);
     let out = f.out_dir().join("m.fits");
