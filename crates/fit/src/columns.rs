@@ -412,6 +412,23 @@ pub struct Outputs {
 }
 
 impl Outputs {
+    /// The columns of rows already corrected one by one (`catalog --cal`'s stars), `None` for a
+    /// row not measured (every value NaN, not extrapolated): the same columns, in the same
+    /// order, as [`correct_columns`] writes without an estimator.
+    pub fn of_rows(rows: &[Option<Corrected>]) -> Outputs {
+        let values = (0..N_OUT)
+            .map(|k| rows.iter().map(|r| r.as_ref().map_or(f64::NAN, |r| r.output_values()[k])).collect())
+            .collect();
+        let extrapolated: Vec<bool> = rows.iter().map(|r| r.as_ref().is_some_and(|r| r.extrapolated)).collect();
+        Outputs {
+            names: output_columns(None),
+            values,
+            n_extrapolated: extrapolated.iter().filter(|&&e| e).count(),
+            extrapolated,
+            n_unmeasured: rows.iter().filter(|r| r.is_none()).count(),
+        }
+    }
+
     /// The column named `name`, if written.
     pub fn column(&self, name: &str) -> Option<&[f64]> {
         self.names.iter().position(|n| n == name).map(|k| self.values[k].as_slice())

@@ -1229,24 +1229,11 @@ fn _catalog<'py>(
     }
     if let Some((c, used)) = &corrected {
         // The columns of `instpol correct` (NaN for a star not measured).
-        let ccol = |g: fn(&fit::correct::Corrected) -> f64| {
-            arr1(py, c.rows.iter().map(|r| r.as_ref().map_or(f64::NAN, g)).collect())
-        };
-        d.set_item("q0", ccol(|r| r.q0))?;
-        d.set_item("u0", ccol(|r| r.u0))?;
-        d.set_item("sigma_q0", ccol(|r| r.var_q0.sqrt()))?;
-        d.set_item("sigma_u0", ccol(|r| r.var_u0.sqrt()))?;
-        d.set_item("cov_qu0", ccol(|r| r.cov_qu0))?;
-        d.set_item("p0", ccol(|r| r.p0))?;
-        d.set_item("sigma_p0", ccol(|r| r.sigma_p0))?;
-        d.set_item("chi0_deg", ccol(|r| r.chi0.to_degrees()))?;
-        d.set_item("sigma_chi0_deg", ccol(|r| r.sigma_chi0.to_degrees()))?;
-        d.set_item("q_inst", ccol(|r| r.inst.q))?;
-        d.set_item("u_inst", ccol(|r| r.inst.u))?;
-        d.set_item(
-            "extrapolated",
-            PyArray1::from_vec(py, c.rows.iter().map(|r| r.as_ref().is_some_and(|r| r.extrapolated)).collect()),
-        )?;
+        let out = fit::columns::Outputs::of_rows(&c.rows);
+        for (name, values) in out.names.iter().zip(out.values) {
+            d.set_item(name, arr1(py, values))?;
+        }
+        d.set_item("extrapolated", PyArray1::from_vec(py, out.extrapolated))?;
         d.set_item("chi_offset_applied_deg", c.chi_offset_applied_deg)?;
         d.set_item("n_extrapolated", c.n_extrapolated)?;
         d.set_item("telescope_model", used.as_ref().map(|t| t.model))?;

@@ -559,6 +559,39 @@ pub fn catalog(set: &FrameSet, inst: &Instrument, cfg: &CatalogConfig) -> Result
     catalog_of(set, inst, cfg)
 }
 
+/// The quarter-wave plate's demodulation and zero angle, when the instrument has one (`None`
+/// for a half-wave plate): every star's V/I is one demodulation, refused here, before any star
+/// is measured, when the plate angles do not determine V or the plate turned.
+fn circular_plate<S: FrameSource>(src: &S, inst: &Instrument) -> Result<Option<(stokes::CircularSolver, f64)>, Error> {
+    match inst.polarimetry.plate {
+        instrument::Plate::HalfWave => Ok(None),
+        instrument::Plate::QuarterWave => {
+            if src.hwp_sweep_deg() != 0.0 {
+                return Err(Error::Invalid(format!(
+                    "the frames' plate swept {} deg during each exposure: a turning quarter-wave plate is not modelled",
+                    src.hwp_sweep_deg()
+                )));
+            }
+            let zero = inst.filter(src.filter()).map_or(0.0, |f| f.qwp_zero_angle_deg());
+            Ok(Some((circular_solver(src.angles_deg(), zero)?, zero)))
+        }
+    }
+}
+
+/// Refuse a measurement of `n_pairs` stars in `n` frames of `nx` x `ny` px that would take
+/// more than [`MAX_PIXEL_VISITS`], unless forced.
+fn check_work(cfg: &CatalogConfig, n_pairs: usize, n: usize, nx: usize, ny: usize) -> Result<(), Error> {
+    let work = photometry_work(cfg, n_pairs, n, nx, ny);
+    if work > MAX_PIXEL_VISITS && !cfg.force {
+        return Err(Error::Invalid(format!(
+            "{n_pairs} stars paired at a threshold of {} sigma, each measured in {n} frames within {} px: about {work:.1e} pixel visits (limit {MAX_PIXEL_VISITS:.0e}, about a minute of one core): raise the threshold, shrink the annulus, or force it (--force, force=True)",
+            cfg.detect.threshold_sigma,
+            cfg.annulus.map_or(String::from("the aperture"), |(_, b)| format!("an annulus of {b}")),
+        )));
+    }
+    Ok(())
+}
+
 /// Build the catalog of the frames of `src`: the layout and the sources from the first
 /// angle's frame, then every star measured in every frame, one frame at a time (so that frames
 /// read from disk are read once each and need not all be held), and each star reduced.
@@ -583,35 +616,13 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
     // The detection's work images take the measuring pass's frames.
     src.recycle(spare);
     let (pairs, unpaired) = pair(&sources, &g, dcfg.pair_tol_px);
-    let work = photometry_work(cfg, pairs.len(), n, nx, ny);
-    if work > MAX_PIXEL_VISITS && !cfg.force {
-        return Err(Error::Invalid(format!(
-            "{} stars paired at a threshold of {} sigma, each measured in {n} frames within {} px: about {work:.1e} pixel visits (limit {MAX_PIXEL_VISITS:.0e}, about a minute of one core): raise the threshold, shrink the annulus, or force it (--force, force=True)",
-            pairs.len(),
-            cfg.detect.threshold_sigma,
-            cfg.annulus.map_or(String::from("the aperture"), |(_, b)| format!("an annulus of {b}")),
-        )));
-    }
+    check_work(cfg, pairs.len(), n, nx, ny)?;
     // The unpaired sources and where the layout puts their e images, for the overlap test.
     let unpaired_e: Vec<(&Source, Option<(f64, f64)>)> =
         unpaired.iter().map(|&k| (&sources[k], g.e_position(sources[k].x, sources[k].y))).collect();
     let chi_off = inst.filter(src.filter()).map(|f| f.chi_offset_deg()).unwrap_or(0.0);
     let opts = PhotOptions { weighting: cfg.weighting, recentre: true, kappa: cfg.kappa };
-    // A quarter-wave plate: every star's V/I by one demodulation (refused here, before any
-    // star is measured, when the plate angles do not determine V).
-    let circular = match inst.polarimetry.plate {
-        instrument::Plate::HalfWave => None,
-        instrument::Plate::QuarterWave => {
-            if src.hwp_sweep_deg() != 0.0 {
-                return Err(Error::Invalid(format!(
-                    "the frames' plate swept {} deg during each exposure: a turning quarter-wave plate is not modelled",
-                    src.hwp_sweep_deg()
-                )));
-            }
-            let zero = inst.filter(src.filter()).map_or(0.0, |f| f.qwp_zero_angle_deg());
-            Some((circular_solver(src.angles_deg(), zero)?, zero))
-        }
-    };
+    let circular = circular_plate(src, inst)?;
     // Each star's row as far as the detection tells (its flags), and the aperture radii to
     // measure it with, each with its placement checked (nothing to measure when saturated).
     let planned: Vec<(Row, Result<Vec<Try>, Error>)> = pairs

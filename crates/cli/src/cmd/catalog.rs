@@ -222,30 +222,7 @@ pub fn run(a: Args) -> Result<()> {
         }
         if let Some(c) = &corrected {
             // The columns of `instpol correct`, for the stars measured (NaN for the others).
-            let col = |g: fn(&fit::correct::Corrected) -> f64| -> Vec<f64> {
-                c.rows.iter().map(|r| r.as_ref().map_or(f64::NAN, g)).collect()
-            };
-            use skyfield::table::Column;
-            for (name, unit, g) in [
-                ("q0", None, (|r: &fit::correct::Corrected| r.q0) as fn(&fit::correct::Corrected) -> f64),
-                ("u0", None, |r| r.u0),
-                ("sigma_q0", None, |r| r.var_q0.sqrt()),
-                ("sigma_u0", None, |r| r.var_u0.sqrt()),
-                ("cov_qu0", None, |r| r.cov_qu0),
-                ("p0", None, |r| r.p0),
-                ("sigma_p0", None, |r| r.sigma_p0),
-                ("chi0_deg", Some("deg"), |r| r.chi0.to_degrees()),
-                ("sigma_chi0_deg", Some("deg"), |r| r.sigma_chi0.to_degrees()),
-                ("q_inst", None, |r| r.inst.q),
-                ("u_inst", None, |r| r.inst.u),
-            ] {
-                t.columns.push(Column::f64(name, unit, "corrected with --cal (instpol correct's column)", col(g)));
-            }
-            t.columns.push(Column::i64(
-                "extrapolated",
-                "1 = outside the calibrated field",
-                c.rows.iter().map(|r| r.as_ref().is_some_and(|r| r.extrapolated) as i64).collect(),
-            ));
+            t.columns.extend(fit::columns::Outputs::of_rows(&c.rows).into_table_columns());
         }
         t.write(out)?;
     }
@@ -273,68 +250,74 @@ pub fn run(a: Args) -> Result<()> {
             })?,
         }
     } else {
-        let plate = match cat.qwp_zero_angle_deg {
-            None => format!("{} HWP angles, chi zero angle {} deg", cat.hwp_deg.len(), cat.chi_offset_deg),
-            Some(z) => format!("{} quarter-wave plate angles, plate zero angle {z} deg", cat.hwp_deg.len()),
-        };
-        if let Some(g) = &cat.grouping {
-            outln!("{}", g.describe());
-        }
+        print_summary(&cat, measured, a.out.as_deref());
+    }
+    Ok(())
+}
+
+/// The console summary of a catalog: the grouping of chip files, the counts, the frames'
+/// alignment and a line per star (V/I through a quarter-wave plate, P and chi otherwise).
+fn print_summary(cat: &skyfield::catalog::Catalog, measured: usize, out: Option<&std::path::Path>) {
+    let plate = match cat.qwp_zero_angle_deg {
+        None => format!("{} HWP angles, chi zero angle {} deg", cat.hwp_deg.len(), cat.chi_offset_deg),
+        Some(z) => format!("{} quarter-wave plate angles, plate zero angle {z} deg", cat.hwp_deg.len()),
+    };
+    if let Some(g) = &cat.grouping {
+        outln!("{}", g.describe());
+    }
+    outln!(
+        "{} sources, {} stars paired ({} measured, {} flagged), {} unpaired; filter {}, {plate}",
+        cat.n_sources,
+        cat.rows.len(),
+        measured,
+        cat.rows.len() - measured,
+        cat.unpaired.len(),
+        cat.filter,
+    );
+    if !cat.alignment.is_empty() {
+        let shift = cat.alignment.iter().map(|f| f.dx_px.hypot(f.dy_px)).fold(0.0, f64::max);
+        let rot = cat.alignment.iter().map(|f| f.rotation_deg.abs()).fold(0.0, f64::max);
+        let n_rot = cat.alignment.iter().filter(|f| f.rotation_significant).count();
         outln!(
-            "{} sources, {} stars paired ({} measured, {} flagged), {} unpaired; filter {}, {plate}",
-            cat.n_sources,
-            cat.rows.len(),
-            measured,
-            cat.rows.len() - measured,
-            cat.unpaired.len(),
-            cat.filter,
+            "frames against the first: largest shift {shift:.2} px, largest rotation {rot:.3} deg ({} significant at {} sigma)",
+            if n_rot == 0 { "none".to_string() } else { format!("{n_rot} frames") },
+            skyfield::catalog::ROTATION_SIGNIFICANT_SIGMA
         );
-        if !cat.alignment.is_empty() {
-            let shift = cat.alignment.iter().map(|f| f.dx_px.hypot(f.dy_px)).fold(0.0, f64::max);
-            let rot = cat.alignment.iter().map(|f| f.rotation_deg.abs()).fold(0.0, f64::max);
-            let n_rot = cat.alignment.iter().filter(|f| f.rotation_significant).count();
-            outln!(
-                "frames against the first: largest shift {shift:.2} px, largest rotation {rot:.3} deg ({} significant at {} sigma)",
-                if n_rot == 0 { "none".to_string() } else { format!("{n_rot} frames") },
-                skyfield::catalog::ROTATION_SIGNIFICANT_SIGMA
-            );
-        }
-        if cat.qwp_zero_angle_deg.is_some() {
-            outln!("V/I of every star (IAU sign); P and chi are not measured through a quarter-wave plate");
-            outln!("  id        x        y    V/I %     +-  flags");
-            for r in &cat.rows {
-                outln!(
-                    "{:4} {:8.2} {:8.2} {:+8.3} {:6.3}  {}",
-                    r.id,
-                    r.x,
-                    r.y,
-                    100.0 * r.v.unwrap_or(f64::NAN),
-                    100.0 * r.sigma_v.unwrap_or(f64::NAN),
-                    flags::names(r.flags)
-                );
-            }
-            if let Some(out) = &a.out {
-                outln!("wrote {}", out.display());
-            }
-            return Ok(());
-        }
-        outln!("  id        x        y      P %     +-   chi deg     +-  flags");
+    }
+    if cat.qwp_zero_angle_deg.is_some() {
+        outln!("V/I of every star (IAU sign); P and chi are not measured through a quarter-wave plate");
+        outln!("  id        x        y    V/I %     +-  flags");
         for r in &cat.rows {
             outln!(
-                "{:4} {:8.2} {:8.2} {:8.3} {:6.3} {:9.2} {:6.2}  {}",
+                "{:4} {:8.2} {:8.2} {:+8.3} {:6.3}  {}",
                 r.id,
                 r.x,
                 r.y,
-                100.0 * r.p,
-                100.0 * r.sigma_p,
-                r.chi_deg,
-                r.sigma_chi_deg,
+                100.0 * r.v.unwrap_or(f64::NAN),
+                100.0 * r.sigma_v.unwrap_or(f64::NAN),
                 flags::names(r.flags)
             );
         }
-        if let Some(out) = &a.out {
+        if let Some(out) = &out {
             outln!("wrote {}", out.display());
         }
+        return;
     }
-    Ok(())
+    outln!("  id        x        y      P %     +-   chi deg     +-  flags");
+    for r in &cat.rows {
+        outln!(
+            "{:4} {:8.2} {:8.2} {:8.3} {:6.3} {:9.2} {:6.2}  {}",
+            r.id,
+            r.x,
+            r.y,
+            100.0 * r.p,
+            100.0 * r.sigma_p,
+            r.chi_deg,
+            r.sigma_chi_deg,
+            flags::names(r.flags)
+        );
+    }
+    if let Some(out) = &out {
+        outln!("wrote {}", out.display());
+    }
 }

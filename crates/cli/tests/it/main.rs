@@ -10,6 +10,7 @@ mod calibrate_mueller;
 mod calibrate_stars;
 mod catalog;
 mod catalog_alignment;
+mod chip_grouping;
 #[path = "../common/mod.rs"]
 mod common;
 mod correct;
@@ -28,6 +29,7 @@ mod import_map;
 mod json_schema;
 mod layouts;
 mod mc;
+mod moptop_frames;
 mod mueller_smooth;
 mod night;
 mod numbers_of_record;

@@ -16,6 +16,7 @@ mod fuzz_regressions;
 #[path = "../common/jones.rs"]
 mod jones;
 mod layouts;
+mod moptop_grouping;
 mod mueller_field;
 mod mueller_plan;
 mod raw_calibration_bits;

@@ -14,3 +14,4 @@ mod fuzz_regressions;
 mod read_paths;
 mod stability;
 mod tables;
+mod wcs_sky;

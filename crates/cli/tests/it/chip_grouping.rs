@@ -4,7 +4,7 @@
 //! swapped, and with every CHIP1 file first (as a glob of names ending in the chip gives them):
 //! the same map each time, the grouping reported, and the sky's known polarization measured.
 
-mod common;
+use crate::common;
 
 use common::raw::{fors2_tiny_text, write_raw_set, Q0, U0};
 use common::run;

@@ -10,7 +10,7 @@
 //! names and keywords here; `catalog` gets them in the order a shell glob gives (every camera-1
 //! file first) and measures every star against the simulator's truth.
 
-mod common;
+use crate::common;
 
 use common::run;
 use std::path::{Path, PathBuf};
@@ -102,7 +102,7 @@ fn set_cards(path: &Path, cards: &[(&str, String)]) {
 /// truth), then give each file the archive's name and keywords; the files in glob order.
 fn archive_frames(dir: &Path) -> Vec<PathBuf> {
     let t = camera_map();
-    let text = include_str!("../../../instruments/moptop.toml").replacen(
+    let text = include_str!("../../../../instruments/moptop.toml").replacen(
         "max_residual_px = 0.5",
         &format!("transform = [{}, {}, {}, {}, {}, {}]\nmax_residual_px = 0.5", t[0], t[1], t[2], t[3], t[4], t[5]),
         1,

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 /// The built-in file with its cameras shrunk to 80 x 80 px (the field with them); every other
 /// line as built in. `transform`: the simulating file's camera transform line, if any.
 fn small_moptop(transform: &str) -> String {
-    let text = include_str!("../../../instruments/moptop.toml");
+    let text = include_str!("../../../../instruments/moptop.toml");
     let out = text
         .replacen("nx = 2048 ", "nx = 160 ", 1)
         .replacen("ny = 1024 ", "ny = 80 ", 1)
