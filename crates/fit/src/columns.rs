@@ -340,6 +340,32 @@ pub struct Report {
 }
 
 impl Report {
+    /// The report of a table's rows corrected as `plan` planned into `out` (`kind`: what the
+    /// input was, for the summary): the median corrected `P0` and instrumental `p` removed
+    /// (`hypot(q_inst, u_inst)` of each row), the filter and zero angle reported, the telescope
+    /// applied.
+    pub fn of_rows(
+        loaded: &CalibrationFile,
+        kind: &'static str,
+        out: &Outputs,
+        est: Estimator,
+        plan: &crate::request::RowsPlan<'_>,
+    ) -> Self {
+        let col = |name: &str| out.column(name).expect("an output column of a correction");
+        let p_inst: Vec<f64> = col("q_inst").iter().zip(col("u_inst")).map(|(q, u)| q.hypot(*u)).collect();
+        let used = plan.telescope.as_ref().map(|t| (t.fit.model.name(), t.band.clone(), t.exposures));
+        Report::new(
+            loaded,
+            kind,
+            (out.extrapolated.len(), out.n_extrapolated, out.n_unmeasured),
+            est.name().into(),
+            reported_zero_angle(loaded, plan),
+            col("p0").to_vec(),
+            p_inst,
+            used,
+        )
+    }
+
     /// The report of a correction with `loaded` of `kind` ("Stokes map", "catalog (text
     /// table)", ...): `n` = (rows or bins, extrapolated ones, unmeasured ones), the estimator's name, the filter
     /// and zero angle the correction reports (the file's own filter replaces `filter` for a

@@ -274,6 +274,17 @@ fn shared_track(
 }
 
 /// Resolve how `n` rows are corrected with `file` as `req` asks.
+impl RowsPlan<'_> {
+    /// What differed between the input and the calibration when `--allow-mismatch` let it
+    /// through (the short form a product records as `MISMATCH`), if anything did.
+    pub fn mismatch_allowed(&self) -> Option<String> {
+        self.notes.iter().find_map(|n| match n {
+            Note::MismatchAllowed(m) => Some(m.short()),
+            _ => None,
+        })
+    }
+}
+
 pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> Result<RowsPlan<'a>, Refusal> {
     if let Some(p) = &req.per_row {
         for (what, len) in [

@@ -258,37 +258,17 @@ fn run_table(
     .map_err(|(i, e)| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)));
     pb.finish_and_clear();
     let out = out?;
-    let (filter, zero_angle) = fit::columns::reported_zero_angle(loaded, &plan);
-    let col = |name: &str| out.column(name).expect("an output column");
-    let p_inst: Vec<f64> = col("q_inst").iter().zip(col("u_inst")).map(|(q, u)| q.hypot(*u)).collect();
     let text = if kind == Kind::TextTable { "catalog (text table)" } else { "catalog (FITS table)" };
-    let (rows, extra) = (out.extrapolated.len(), out.n_extrapolated);
-    let unmeasured = out.n_unmeasured;
-    let used = plan.telescope.as_ref().map(|t| (t.fit.model.name(), t.band.clone(), t.exposures));
-    let p0 = col("p0").to_vec();
-    let report = fit::columns::Report::new(
-        loaded,
-        text,
-        (rows, extra, unmeasured),
-        est.name().into(),
-        (filter, zero_angle),
-        p0,
-        p_inst,
-        used,
-    );
+    let report = fit::columns::Report::of_rows(loaded, text, &out, est, &plan);
+    let rows = out.extrapolated.len();
     crate::util::check_output(&a.out)?;
     if kind == Kind::FitsTable && out_format == Some(Format::Fits) {
         skyfield::table::append_fits_columns(&a.input, a.hdu.as_deref(), &out.into_table_columns(), &a.out)?;
     } else {
         table.columns.extend(out.into_table_columns());
         // A mismatch allowed is recorded with what the table says it is.
-        if let Some(m) = plan.notes.iter().find_map(|n| match n {
-            fit::request::Note::MismatchAllowed(m) => Some(m.short()),
-            _ => None,
-        }) {
-            if let Some(p) = table.product.as_mut() {
-                p.mismatch_allowed = Some(m);
-            }
+        if let Some(p) = table.product.as_mut() {
+            p.mismatch_allowed = plan.mismatch_allowed().or(p.mismatch_allowed.take());
         }
         table.write(&a.out)?;
     }
