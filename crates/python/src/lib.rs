@@ -38,9 +38,36 @@ create_exception!(
     instpol,
     InputError,
     PyValueError,
-    "Bad input: a value, an array or a file's content (a ValueError)."
+    "Bad input: a value, an array or a file's content (a ValueError), with the message the CLI
+prints for it.
+
+Examples
+--------
+A polarization degree cannot be negative:
+
+>>> import instpol
+>>> try:
+...     instpol.bias(-0.01, 0.002)
+... except instpol.InputError as e:
+...     print(isinstance(e, ValueError))
+True"
 );
-create_exception!(instpol, FileError, PyOSError, "A file that cannot be opened, read or written (an OSError).");
+create_exception!(
+    instpol,
+    FileError,
+    PyOSError,
+    "A file that cannot be opened, read or written (an OSError), with the message the CLI prints
+for it.
+
+Examples
+--------
+>>> import instpol
+>>> try:
+...     instpol.Calibration.load(\"no-such-calibration.fits\")
+... except instpol.FileError as e:
+...     print(isinstance(e, OSError))
+True"
+);
 
 fn input_err(msg: impl std::fmt::Display) -> PyErr {
     InputError::new_err(msg.to_string())
@@ -1353,6 +1380,59 @@ fn _simulate(
     serde_json::to_string(&written).map_err(|e| input_err(format!("what was written: {e}")))
 }
 
+/// The instrumental field from a Stokes map of an empty field whose sky polarization is known
+/// (`fit::pipeline::calibrate_sky_field`, what `instpol calibrate --map` runs): the fit's
+/// summary as JSON text (`instpol calibrate --json`'s keys, no plots); the calibration written
+/// to `out` when given. `sky`: (P percent, chi deg); `model`, `exclude` as the CLI's options.
+#[pyfunction]
+#[pyo3(signature = (map, instrument, sky, model, include_c0, free_centre, exclude, residual_map, out))]
+#[allow(clippy::too_many_arguments)]
+fn _calibrate(
+    py: Python<'_>,
+    map: PathBuf,
+    instrument: Option<&str>,
+    sky: (f64, f64),
+    model: &str,
+    include_c0: bool,
+    free_centre: bool,
+    exclude: Vec<String>,
+    residual_map: bool,
+    out: Option<PathBuf>,
+) -> PyResult<String> {
+    let fit_err = |e: fit::Error| match e {
+        fit::Error::Io { .. } | fit::Error::Fits { .. } => FileError::new_err(e.to_string()),
+        e => input_err(e),
+    };
+    let sky = skyfield::solve::SkyPolarization::from_percent_deg(sky.0, sky.1).map_err(sky_err)?;
+    let mut fo = fit::RadialFitOptions { include_c0, free_centre, ..Default::default() };
+    for e in &exclude {
+        fo.exclusions.push(e.parse().map_err(fit_err)?);
+    }
+    let mut opts = fit::pipeline::CalibrateOptions { fit: fo, residual_map, ..Default::default() };
+    opts.set_model_name(model).map_err(fit_err)?;
+    let inputs = [map.clone()];
+    let name = frames_instrument(instrument, &inputs)?;
+    let inst = instrument::Instrument::load(&name).map_err(inst_err)?;
+    let mut all_inputs = inputs.to_vec();
+    if std::path::Path::new(&name).is_file() {
+        all_inputs.push(PathBuf::from(&name));
+    }
+    refuse_overwrite(out.as_deref(), &all_inputs)?;
+    let stokes_map = skyfield::StokesMap::read_uncorrected(&map).map_err(sky_err)?;
+    if let Some(w) = fit::setup::zero_angle_disagreement(&stokes_map, &inst) {
+        py.import("warnings")?.call_method1("warn", (w,))?;
+    }
+    let run = py
+        .detach(|| fit::pipeline::calibrate_sky_field(&stokes_map, &sky, &inst, vec![map.display().to_string()], &opts))
+        .map_err(fit_err)?;
+    let mut summary = fit::pipeline::FitSummary::new(&run);
+    if let Some(out) = &out {
+        run.calibration.save(out).map_err(fit_err)?;
+        summary.calibration_file = Some(out.display().to_string());
+    }
+    serde_json::to_string(&summary).map_err(|e| input_err(format!("the fit's summary: {e}")))
+}
+
 /// The instrumental field from field-star catalogs (`fit::stars_field`, what `instpol
 /// calibrate-stars` runs): the summary as JSON text (`calibrate-stars --json`'s keys, no
 /// plots); the calibration written to `out` when given. `interstellar`: None for a fitted
@@ -1542,6 +1622,7 @@ fn _instpol(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_calibrate_stars, m)?)?;
     m.add_function(wrap_pyfunction!(_demo, m)?)?;
     m.add_function(wrap_pyfunction!(_simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(_calibrate, m)?)?;
     m.add_function(wrap_pyfunction!(_scan, m)?)?;
     m.add_function(wrap_pyfunction!(_run, m)?)?;
     m.add_class::<_Calibration>()?;
