@@ -108,6 +108,10 @@ CALLS = {
         instpol.catalog,
         dict(frames=c["stars"][0], instrument=c["stars"][1], fwhm=4.0, kappa=0.0),
     ),
+    "calibrate": lambda c: (
+        instpol.calibrate,
+        dict(map=c["map"], sky_p_percent=6.45, sky_chi_deg=68.4, instrument=c["sky"][1]),
+    ),
     "calibrate_stars": lambda c: (
         instpol.calibrate_stars,
         dict(

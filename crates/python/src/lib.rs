@@ -1403,6 +1403,11 @@ fn _calibrate(
         fit::Error::Io { .. } | fit::Error::Fits { .. } => FileError::new_err(e.to_string()),
         e => input_err(e),
     };
+    for (name, v) in [("sky_p_percent", sky.0), ("sky_chi_deg", sky.1)] {
+        if !v.is_finite() {
+            return Err(input_err(format!("{name} {v}: expected a finite number")));
+        }
+    }
     let sky = skyfield::solve::SkyPolarization::from_percent_deg(sky.0, sky.1).map_err(sky_err)?;
     let mut fo = fit::RadialFitOptions { include_c0, free_centre, ..Default::default() };
     for e in &exclude {
