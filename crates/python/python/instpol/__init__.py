@@ -435,6 +435,11 @@ class Calibration:
     ) -> Dict[str, Any]:
         """Remove the instrumental polarization from measured ``(q, u)`` at ``(x, y)``.
 
+        Units: ``x, y`` arcmin from the detector centre (or 0-based px with ``units="px"``);
+        ``q, u, sigma_q, sigma_u`` fractions (Q/I, U/I) and ``cov_qu`` a fraction squared;
+        ``parang_deg``, ``parang_end_deg``, ``hwp_chi_offset_deg`` degrees;
+        ``extrapolation_error`` a fraction of the instrumental p. Arrays broadcast together.
+
         ``instrument``, ``filter`` (and ``plate``): what the rows were measured with, as
         :func:`catalog` returns them (``cat["product"]["instrument"]``, ...). Given, they are
         checked against the calibration as ``instpol correct`` checks a catalog table's
@@ -890,7 +895,8 @@ def reduce(
     ``(array, header)`` objects (written to temporary FITS files for the call: the headers must
     carry what a file's would, the HWP angle, filter and exposure time, or give ``hwp_angles``).
     ``instrument``: a built-in name or an instrument TOML file; ``bias``, ``flat``:
-    master frames; ``hwp_angles``: degrees per frame for headers without the keyword;
+    master frames; ``bin``: the bin side (px); ``nsigma``: the clipping threshold (robust
+    standard deviations); ``hwp_angles``: degrees per frame for headers without the keyword;
     ``assembled=True``: frames already trimmed and assembled by another pipeline (bias-
     subtracted, one detector-sized image each), for an instrument whose raw frames are chip
     files (FORS2, EFOSC2); ``output``: also write the FITS map there (atomically).
@@ -972,6 +978,9 @@ def catalog(
     the HWP zero angle the stars' q, u carry, ``chi_offset_deg``), or None when the instrument
     names no header keyword for them; :meth:`Calibration.correct` takes it as ``recorded``).
 
+    ``fwhm``: the stars' expected FWHM (px) for detection; ``threshold``: the detection
+    threshold (standard deviations of the filtered image's noise); ``annulus``: the background
+    annulus's inner and outer radii (px); ``kappa``: a dimensionless ratio, (t - s)/(t + s).
     ``aperture``: a radius in px, ``"2.5fwhm"`` (a multiple of each star's FWHM) or ``"best"``
     (the radius of best S/N on each star's curve of growth). ``kappa`` applies a known Wollaston
     imbalance; ``kappa_from_data=True`` estimates it per star (Eq. 15 [eq:kappa2]) and applies it.
@@ -1373,6 +1382,10 @@ def scan(
 ) -> Dict[str, Any]:
     """Sort folders of raw files by their headers into a plan of work, as ``instpol scan``.
 
+    Units: ``pointing_tol_arcsec`` (arcsec: exposures this close are one pointing),
+    ``max_gap_min`` (minutes: a longer gap starts a new set), ``bin``, ``fwhm``, ``aperture``
+    (px, the options of the units' ``reduce`` and ``catalog``); ``sky`` values (percent, deg).
+
     Every file is classified from its headers alone (the instrument file's ``[headers]``
     table): bias, flat, polarimetric exposure or standard, or left out with the reason. Chip
     files of one exposure are grouped, exposures into complete HWP sets (repeated cycles kept),
@@ -1449,6 +1462,7 @@ def run(
     instpol_bin: Optional[PathLike] = None,
 ) -> Dict[str, Any]:
     """Run a plan from :func:`scan` (a dict, edited or not, or a plan file), as ``instpol run``.
+    ``jobs``: how many units run at once (a count).
 
     Units run in dependency order, ``jobs`` at once; a unit whose record says its inputs and
     outputs are unchanged is skipped; a failing unit is reported and the units that follow it
