@@ -1291,6 +1291,18 @@ def demo(out_dir: PathLike, *, frames: bool = True, keep_frames: bool = False, s
     return json.loads(_instpol._demo(os.fspath(out_dir), bool(frames), bool(keep_frames), int(seed)))
 
 
+def _first_non_finite(v: Any, key: str) -> Optional[Tuple[str, float]]:
+    """The dotted key and value of the first float of a nested table that is NaN or infinite."""
+    if isinstance(v, float) and not np.isfinite(v):
+        return key, v
+    items = v.items() if isinstance(v, dict) else enumerate(v) if isinstance(v, (list, tuple)) else ()
+    for k, w in items:
+        found = _first_non_finite(w, f"{key}.{k}" if key else str(k))
+        if found is not None:
+            return found
+    return None
+
+
 def simulate(
     scene: Union[PathLike, Dict[str, Any]],
     out: PathLike,
@@ -1356,11 +1368,14 @@ def simulate(
     4 truth.json
     """
     if isinstance(scene, dict):
+        bad = _first_non_finite(scene, "")
+        if bad is not None:
+            raise InputError(f"scene: {bad[0]} = {bad[1]}: not a finite number")
         try:
-            text = json.dumps(scene, allow_nan=False)
+            text = json.dumps(scene)
         except (TypeError, ValueError) as e:
             raise InputError(f"scene: not a table of numbers, strings, lists and tables ({e})") from None
-        label, text = "<scene dict>", text
+        label = "<scene dict>"
     else:
         label, text = os.fspath(scene), None
     return json.loads(_instpol._simulate(label, text, os.fspath(out), _opt_path(field), bool(force)))
