@@ -16,6 +16,7 @@
 //! | `instpol.reduce`           | `skyfield::reduce::reduce_for_plate` (`instpol reduce`)    |
 //! | `instpol.catalog`          | `skyfield::catalog::catalog_files` (`instpol catalog`)     |
 //! | `instpol.simulate`         | `sim::Plan::write` (`instpol simulate`)                    |
+//! | `instpol.calibrate`        | `fit::pipeline::calibrate_sky_field` (`calibrate --map`)   |
 //!
 //! Errors: `instpol.InputError` (a `ValueError`) for bad values or file contents,
 //! `instpol.FileError` (an `OSError`) for files that cannot be opened, read or written; the
