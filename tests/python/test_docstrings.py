@@ -165,7 +165,7 @@ def test_equation_numbers_in_docstrings_are_the_papers():
     tex = next((p for p in PAPER_TEX if p.is_file()), None)
     text = "\n".join(inspect.getdoc(o) or "" for _, o in api_objects()) + (instpol.__doc__ or "")
     text += STUB.read_text()
-    cited = re.findall(r"Eq\. (\d+) \[eq:(\w+)\]", text)
+    cited = re.findall(r"Eq\.\s+(\d+)\s+\[eq:(\w+)\]", text)
     bare = re.findall(r"(?<!\[)eq:\w+", text)
     assert not bare, f"equation labels without their number (write 'Eq. N [eq:label]'): {sorted(set(bare))}"
     assert len(cited) > 20

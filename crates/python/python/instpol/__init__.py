@@ -138,11 +138,12 @@ def stokes(
 ) -> Dict[str, Any]:
     """Reduce dual-beam fluxes at N half-wave-plate angles to Q/I, U/I, P and chi.
 
-    The normalized flux differences ``F_i`` (Eq. 5 [eq:F]) give Q/I and U/I by the Fourier sums Eq. 7 [eq:Q],
-    Eq. 8 [eq:U] on the optimal angle set (theta_i = i * 22.5 deg, N a multiple of 4), else by (weighted)
-    least squares of Eq. 6 [eq:system]; P and chi (Eq. 1 [eq:poldeg], Eq. 2 [eq:polang]) with errors propagated from
-    the per-beam errors and the analytic Eq. 10 [eq:sigp] / Eq. 11 [eq:sigchi]; the harmonics (Eq. 9 [eq:fourcoeff]),
-    a_0 (Eq. 16 [eq:a0]) and the Wollaston kappa_j (Eq. 14 [eq:g], Eq. 15 [eq:kappa2]). The same reduction as
+    The normalized flux differences ``F_i`` (Eq. 5 [eq:F]) give Q/I and U/I by the Fourier sums
+    Eq. 7 [eq:Q], Eq. 8 [eq:U] on the optimal angle set (theta_i = i * 22.5 deg, N a multiple of
+    4), else by (weighted) least squares of Eq. 6 [eq:system]; P and chi (Eq. 1 [eq:poldeg],
+    Eq. 2 [eq:polang]) with errors propagated from the per-beam errors and the analytic Eq. 10
+    [eq:sigp] / Eq. 11 [eq:sigchi]; the harmonics (Eq. 9 [eq:fourcoeff]), a_0 (Eq. 16 [eq:a0])
+    and the Wollaston kappa_j (Eq. 14 [eq:g], Eq. 15 [eq:kappa2]). The same reduction as
     ``instpol stokes``.
 
     Parameters
@@ -188,8 +189,8 @@ def stokes(
     Examples
     --------
     An ideal dual beam at the optimal four angles, P = 1 % at chi = 30 deg, 1e6 e- per beam:
-    Eq. 5 [eq:F] is F_i = P cos(4 theta_i - 2 chi), and Eq. 10 [eq:sigp] gives sigma_P = 1/(sqrt(N/2) SNR) with
-    SNR = sqrt(2e6).
+    Eq. 5 [eq:F] is F_i = P cos(4 theta_i - 2 chi), and Eq. 10 [eq:sigp] gives sigma_P =
+    1/(sqrt(N/2) SNR) with SNR = sqrt(2e6).
 
     >>> import numpy as np, instpol
     >>> theta = np.arange(4) * 22.5
@@ -287,7 +288,8 @@ class Calibration:
     :meth:`evaluate`.
 
     Load it with :meth:`load`; :meth:`evaluate` gives the instrumental (q, u) at positions,
-    :meth:`correct` removes it from measurements (Eq. 17 [eq:instpol] inverted exactly, or Eq. 18 [eq:approx]).
+    :meth:`correct` removes it from measurements (Eq. 17 [eq:instpol] inverted exactly, or
+    Eq. 18 [eq:approx]).
 
     Examples
     --------
@@ -636,12 +638,13 @@ class StokesMap(_BinnedMap):
     column i) and the map's header values.
 
     Attributes: ``q, u`` (Q/I, U/I fractions), ``sigma_q, sigma_u, cov_qu`` (scatter errors of
-    the bin means), ``sigma_q_phot, sigma_u_phot`` (photon and read noise), ``p`` (Eq. 1 [eq:poldeg]),
-    ``chi_deg`` (Eq. 2 [eq:polang], [0, 180)), ``n_pixels``, ``intensity``, ``intensity_snr``,
-    ``valid``, ``x_arcmin, y_arcmin`` (bin centres from the detector centre), ``header``
-    (instrument, filter, hwp_angles_deg, bin_px, origin_x/y, nx, ny, pixel_scale_arcsec,
-    detector_nx/ny, and hwp_zero_angle_deg: the HWP zero angle of the filter, which the map's
-    q, u do not carry, ``HWPZERO``; None when not recorded) and ``warnings``.
+    the bin means), ``sigma_q_phot, sigma_u_phot`` (photon and read noise), ``p`` (Eq. 1
+    [eq:poldeg]), ``chi_deg`` (Eq. 2 [eq:polang], [0, 180)), ``n_pixels``, ``intensity``,
+    ``intensity_snr``, ``valid``, ``x_arcmin, y_arcmin`` (bin centres from the detector centre),
+    ``header`` (instrument, filter, hwp_angles_deg, bin_px, origin_x/y, nx, ny,
+    pixel_scale_arcsec, detector_nx/ny, and hwp_zero_angle_deg: the HWP zero angle of the
+    filter, which the map's q, u do not carry, ``HWPZERO``; None when not recorded) and
+    ``warnings``.
 
     Examples
     --------
@@ -886,20 +889,21 @@ def reduce(
     assembled: bool = False,
     output: Optional[PathLike] = None,
 ) -> Union[StokesMap, CircularMap]:
-    """Reduce dual-beam frames (one filter, N HWP angles) to a binned Stokes map, as
-    ``instpol reduce``: per pixel F_i (Eq. 5 [eq:F]) and Q/I, U/I (Eq. 7 [eq:Q], Eq. 8 [eq:U]) from the ordinary and
-    extraordinary images of every mask strip, then a sigma-clipped mean per ``bin`` x ``bin``
-    px bin. For an instrument with a quarter-wave plate (``plate = "quarter_wave"``) the
-    result is a :class:`CircularMap` of V/I instead (the circular demodulation of
-    ``stokes::circular`` in place of Eq. 7 [eq:Q], Eq. 8 [eq:U]). ``frames``: paths of FITS files, or astropy ``HDUList``, ``CCDData`` or
-    ``(array, header)`` objects (written to temporary FITS files for the call: the headers must
-    carry what a file's would, the HWP angle, filter and exposure time, or give ``hwp_angles``).
-    ``instrument``: a built-in name or an instrument TOML file; ``bias``, ``flat``:
-    master frames; ``bin``: the bin side (px); ``nsigma``: the clipping threshold (robust
-    standard deviations); ``hwp_angles``: degrees per frame for headers without the keyword;
-    ``assembled=True``: frames already trimmed and assembled by another pipeline (bias-
-    subtracted, one detector-sized image each), for an instrument whose raw frames are chip
-    files (FORS2, EFOSC2); ``output``: also write the FITS map there (atomically).
+    """Reduce dual-beam frames (one filter, N HWP angles) to a binned Stokes map, as ``instpol
+    reduce``: per pixel F_i (Eq. 5 [eq:F]) and Q/I, U/I (Eq. 7 [eq:Q], Eq. 8 [eq:U]) from the
+    ordinary and extraordinary images of every mask strip, then a sigma-clipped mean per ``bin``
+    x ``bin`` px bin. For an instrument with a quarter-wave plate (``plate = "quarter_wave"``)
+    the result is a :class:`CircularMap` of V/I instead (the circular demodulation of
+    ``stokes::circular`` in place of Eq. 7 [eq:Q], Eq. 8 [eq:U]). ``frames``: paths of FITS
+    files, or astropy ``HDUList``, ``CCDData`` or ``(array, header)`` objects (written to
+    temporary FITS files for the call: the headers must carry what a file's would, the HWP
+    angle, filter and exposure time, or give ``hwp_angles``). ``instrument``: a built-in name or
+    an instrument TOML file; ``bias``, ``flat``: master frames; ``bin``: the bin side (px);
+    ``nsigma``: the clipping threshold (robust standard deviations); ``hwp_angles``: degrees per
+    frame for headers without the keyword; ``assembled=True``: frames already trimmed and
+    assembled by another pipeline (bias-subtracted, one detector-sized image each), for an
+    instrument whose raw frames are chip files (FORS2, EFOSC2); ``output``: also write the FITS
+    map there (atomically).
 
     Raises
     ------
@@ -963,10 +967,11 @@ def catalog(
     force: bool = False,
     as_table: Optional[bool] = None,
 ) -> Any:
-    """Every paired star of a frame set measured, as ``instpol catalog``: detection on the
-    first frame, ordinary/extraordinary pairing through the instrument's beam layout, aperture
-    photometry per frame with the background removed in each beam, then Q/I, U/I, P, chi
-    (Eq. 7 [eq:Q], Eq. 8 [eq:U], Eq. 1 [eq:poldeg], Eq. 2 [eq:polang]) with propagated and scatter-based errors and flags.
+    """Every paired star of a frame set measured, as ``instpol catalog``: detection on the first
+    frame, ordinary/extraordinary pairing through the instrument's beam layout, aperture
+    photometry per frame with the background removed in each beam, then Q/I, U/I, P, chi (Eq. 7
+    [eq:Q], Eq. 8 [eq:U], Eq. 1 [eq:poldeg], Eq. 2 [eq:polang]) with propagated and
+    scatter-based errors and flags.
 
     The stars' columns (one value per star: ``id, x, y, x_e, y_e, x_arcmin, y_arcmin,
     fwhm_px, aperture_px, flux_e, q, u, sigma_q, sigma_u, cov_qu, p, sigma_p, chi_deg, sigma_chi_deg, a0,
@@ -1313,11 +1318,11 @@ def simulate(
     """Raw-like dual-beam frames of a scene, as ``instpol simulate``: one FITS file per HWP
     angle in ``out`` (created if needed), with the detector, the mask strips, the ordinary and
     extraordinary images and the header keywords the instrument describes, and ``truth.json``
-    with every input. Each beam's flux follows Eq. 4 [eq:ord] through the instrument's
-    optics, so the frames reduce to the scene's polarization by Eq. 5 [eq:F], Eq. 7 [eq:Q] and Eq. 8 [eq:U];
-    only the effects the scene's ``effects`` table lists are computed (photon and read noise,
-    an instrumental field ``instpol`` seen through Eq. 17 [eq:instpol], a Wollaston imbalance
-    as Eq. 12 [eq:WP], ...).
+    with every input. Each beam's flux follows Eq. 4 [eq:ord] through the instrument's optics,
+    so the frames reduce to the scene's polarization by Eq. 5 [eq:F], Eq. 7 [eq:Q] and Eq. 8
+    [eq:U]; only the effects the scene's ``effects`` table lists are computed (photon and read
+    noise, an instrumental field ``instpol`` seen through Eq. 17 [eq:instpol], a Wollaston
+    imbalance as Eq. 12 [eq:WP], ...).
 
     Parameters
     ----------
