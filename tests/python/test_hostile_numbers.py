@@ -76,6 +76,14 @@ def ctx(run, cal_v, sky_frames, star_frames, tmp_path_factory):
     stars, star_inst = star_frames
     stokes_map = d / "map.fits"
     instpol.reduce(sky, instrument=str(sky_inst), bin=8, output=stokes_map)
+    # An empty field of FORS1 in V, full size (the tiny one's bins are too few to calibrate on).
+    empty = instpol.simulate(
+        {"instrument": "fors1", "filter": "V", "sky": {"brightness_e": 12000, "p": 0.0174, "chi_deg": -53.8},
+         "effects": {"instpol": {"kind": "radial", "coeffs_percent": [0, 0.012, 0.046, 0.002]}, "photon_noise": True}},
+        d / "empty_V",
+    )
+    empty_map = d / "empty_V.fits"
+    instpol.reduce(empty["outputs"], instrument="fors1", output=empty_map)
     return {
         "dir": d,
         "cal": instpol.Calibration.load(cal_v),
@@ -83,6 +91,7 @@ def ctx(run, cal_v, sky_frames, star_frames, tmp_path_factory):
         "sky": (sky, str(sky_inst)),
         "stars": (stars, str(star_inst)),
         "map": stokes_map,
+        "empty_map": empty_map,
         "raw": d / "raw",
     }
 
@@ -107,6 +116,10 @@ CALLS = {
     "catalog": lambda c: (
         instpol.catalog,
         dict(frames=c["stars"][0], instrument=c["stars"][1], fwhm=4.0, kappa=0.0),
+    ),
+    "calibrate": lambda c: (
+        instpol.calibrate,
+        dict(map=c["empty_map"], sky_p_percent=1.74, sky_chi_deg=-53.8, instrument="fors1"),
     ),
     "calibrate_stars": lambda c: (
         instpol.calibrate_stars,

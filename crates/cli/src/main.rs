@@ -30,10 +30,18 @@ mod util;
 /// input; with --json the error is one JSON object on stderr:
 /// {"error": {"message", "kind": "input" | "io" | "check", "exit_code"}}.
 #[derive(clap::Parser)]
-#[command(name = "instpol", version, about, long_about)]
+#[command(name = "instpol", version, long_version = long_version(), about, long_about)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
+}
+
+/// What `instpol --version` prints: the version, then how to cite the tool and the paper
+/// (`skyfield::provenance::citation`, the one text of it, also the Python package's
+/// `__citation__`); `-V` prints the version alone.
+fn long_version() -> &'static str {
+    static TEXT: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    TEXT.get_or_init(|| format!("{}\n\n{}", env!("CARGO_PKG_VERSION"), skyfield::provenance::citation().trim_end()))
 }
 
 #[derive(Subcommand)]
@@ -285,6 +293,17 @@ fn clap_error(e: clap::Error, json: bool) -> ! {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `--version` gives the version and then the citation (the paper's reference and the
+    /// BibTeX entries); `-V` the version line alone.
+    #[test]
+    fn long_version_cites_the_tool_and_the_paper() {
+        let long = Cli::command().render_long_version();
+        assert!(long.starts_with(&format!("instpol {}\n", env!("CARGO_PKG_VERSION"))), "{long}");
+        assert!(long.contains("PASP 118, 146") && long.contains("@article{") && long.contains("@software{"), "{long}");
+        assert!(long.trim_end().ends_with(skyfield::provenance::citation().trim_end()));
+        assert_eq!(Cli::command().render_version(), format!("instpol {}\n", env!("CARGO_PKG_VERSION")));
+    }
 
     /// Every path argument of every command is either a listed output
     /// ([`util::OUTPUT_ARGUMENTS`]) or guarded as an input ([`util::guard_arguments`]). The

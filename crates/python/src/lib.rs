@@ -15,6 +15,8 @@
 //! | `Calibration.correct`      | `fit::correct::Corrector::par_correct_batch` (`correct`)   |
 //! | `instpol.reduce`           | `skyfield::reduce::reduce_for_plate` (`instpol reduce`)    |
 //! | `instpol.catalog`          | `skyfield::catalog::catalog_files` (`instpol catalog`)     |
+//! | `instpol.simulate`         | `sim::Plan::write` (`instpol simulate`)                    |
+//! | `instpol.calibrate`        | `fit::pipeline::calibrate_sky_field` (`calibrate --map`)   |
 //!
 //! Errors: `instpol.InputError` (a `ValueError`) for bad values or file contents,
 //! `instpol.FileError` (an `OSError`) for files that cannot be opened, read or written; the
@@ -37,9 +39,36 @@ create_exception!(
     instpol,
     InputError,
     PyValueError,
-    "Bad input: a value, an array or a file's content (a ValueError)."
+    "Bad input: a value, an array or a file's content (a ValueError), with the message the CLI
+prints for it.
+
+Examples
+--------
+A polarization degree cannot be negative:
+
+>>> import instpol
+>>> try:
+...     instpol.bias(-0.01, 0.002)
+... except instpol.InputError as e:
+...     print(isinstance(e, ValueError))
+True"
 );
-create_exception!(instpol, FileError, PyOSError, "A file that cannot be opened, read or written (an OSError).");
+create_exception!(
+    instpol,
+    FileError,
+    PyOSError,
+    "A file that cannot be opened, read or written (an OSError), with the message the CLI prints
+for it.
+
+Examples
+--------
+>>> import instpol
+>>> try:
+...     instpol.Calibration.load(\"no-such-calibration.fits\")
+... except instpol.FileError as e:
+...     print(isinstance(e, OSError))
+True"
+);
 
 fn input_err(msg: impl std::fmt::Display) -> PyErr {
     InputError::new_err(msg.to_string())
@@ -1262,6 +1291,141 @@ fn _demo(py: Python<'_>, out: PathBuf, through_frames: bool, keep_frames: bool, 
     serde_json::to_string(&demo.report).map_err(|e| input_err(format!("the demo's report: {e}")))
 }
 
+/// Raw-like frames of a scene (`sim::Plan::write`, what `instpol simulate` runs) into the folder
+/// `out`: what was written as JSON text (`instpol simulate --json`'s keys). `scene`: a scene
+/// file, or with `scene_json` the scene's table as JSON text (`label` names it in errors, its
+/// paths taken as they are). `field`: a calibration whose model replaces the scene's
+/// `[effects.instpol]` (of the scene's instrument and filter). No frame lands on the scene, its
+/// instrument file or the calibration; a run that fails removes the files it created.
+#[pyfunction]
+#[pyo3(signature = (scene, scene_json, out, field, force))]
+fn _simulate(
+    py: Python<'_>,
+    scene: PathBuf,
+    scene_json: Option<&str>,
+    out: PathBuf,
+    field: Option<PathBuf>,
+    force: bool,
+) -> PyResult<String> {
+    let sim_err = |e: sim::Error| match e {
+        sim::Error::File { .. } => FileError::new_err(e.to_string()),
+        sim::Error::Frames(e) => sky_err(e),
+        sim::Error::Instrument(e) => inst_err(e),
+        e => input_err(e),
+    };
+    let sc = match scene_json {
+        Some(text) => serde_json::from_str::<sim::Scene>(text)
+            .map_err(|e| input_err(format!("scene {}: {e}", scene.display())))?
+            .checked(&scene)
+            .map_err(sim_err)?,
+        None => sim::Scene::from_file(&scene).map_err(sim_err)?,
+    };
+    let mut inputs: Vec<PathBuf> = vec![];
+    if scene_json.is_none() {
+        inputs.push(scene.clone());
+    }
+    if std::path::Path::new(&sc.instrument).is_file() {
+        inputs.push(PathBuf::from(&sc.instrument));
+    }
+    let model = match &field {
+        Some(p) => {
+            inputs.push(p.clone());
+            let cal = fit::Calibration::load(p).map_err(|e| load_err(p, e))?;
+            let inst = instrument::Instrument::load(&sc.instrument).map_err(inst_err)?;
+            if !fit::setup::matches_calibration(&inst.name, &sc.filter, &cal) {
+                return Err(input_err(format!(
+                    "{} calibrates {} {} but the scene is {} {}: use a calibration of the scene's instrument and filter",
+                    p.display(),
+                    cal.instrument,
+                    cal.filter,
+                    inst.name,
+                    sc.filter
+                )));
+            }
+            Some(std::sync::Arc::new(cal) as std::sync::Arc<dyn field::FieldModel>)
+        }
+        None => None,
+    };
+    let plan = sim::Plan::build_with_field(&sc, model).map_err(sim_err)?;
+    plan.check_output_size(&scene, force).map_err(sim_err)?;
+    let planned: Vec<PathBuf> = plan.output_files().iter().map(|f| out.join(f)).collect();
+    for p in &planned {
+        refuse_overwrite(Some(p), &inputs)?;
+    }
+    let existed: Vec<bool> = planned.iter().map(|p| p.exists()).collect();
+    let written = py.detach(|| plan.write(&out, &|| {}));
+    let written = match written {
+        Ok(w) => w,
+        Err(e) => {
+            for (p, was) in planned.iter().zip(existed) {
+                if !was {
+                    let _ = std::fs::remove_file(p);
+                }
+            }
+            return Err(sim_err(e));
+        }
+    };
+    serde_json::to_string(&written).map_err(|e| input_err(format!("what was written: {e}")))
+}
+
+/// The instrumental field from a Stokes map of an empty field whose sky polarization is known
+/// (`fit::pipeline::calibrate_sky_field`, what `instpol calibrate --map` runs): the fit's
+/// summary as JSON text (`instpol calibrate --json`'s keys, no plots); the calibration written
+/// to `out` when given. `sky`: (P percent, chi deg); `model`, `exclude` as the CLI's options.
+#[pyfunction]
+#[pyo3(signature = (map, instrument, sky, model, include_c0, free_centre, exclude, residual_map, out))]
+#[allow(clippy::too_many_arguments)]
+fn _calibrate(
+    py: Python<'_>,
+    map: PathBuf,
+    instrument: Option<&str>,
+    sky: (f64, f64),
+    model: &str,
+    include_c0: bool,
+    free_centre: bool,
+    exclude: Vec<String>,
+    residual_map: bool,
+    out: Option<PathBuf>,
+) -> PyResult<String> {
+    let fit_err = |e: fit::Error| match e {
+        fit::Error::Io { .. } | fit::Error::Fits { .. } => FileError::new_err(e.to_string()),
+        e => input_err(e),
+    };
+    for (name, v) in [("sky_p_percent", sky.0), ("sky_chi_deg", sky.1)] {
+        if !v.is_finite() {
+            return Err(input_err(format!("{name} {v}: expected a finite number")));
+        }
+    }
+    let sky = skyfield::solve::SkyPolarization::from_percent_deg(sky.0, sky.1).map_err(sky_err)?;
+    let mut fo = fit::RadialFitOptions { include_c0, free_centre, ..Default::default() };
+    for e in &exclude {
+        fo.exclusions.push(e.parse().map_err(fit_err)?);
+    }
+    let mut opts = fit::pipeline::CalibrateOptions { fit: fo, residual_map, ..Default::default() };
+    opts.set_model_name(model).map_err(fit_err)?;
+    let inputs = [map.clone()];
+    let name = frames_instrument(instrument, &inputs)?;
+    let inst = instrument::Instrument::load(&name).map_err(inst_err)?;
+    let mut all_inputs = inputs.to_vec();
+    if std::path::Path::new(&name).is_file() {
+        all_inputs.push(PathBuf::from(&name));
+    }
+    refuse_overwrite(out.as_deref(), &all_inputs)?;
+    let stokes_map = skyfield::StokesMap::read_uncorrected(&map).map_err(sky_err)?;
+    if let Some(w) = fit::setup::zero_angle_disagreement(&stokes_map, &inst) {
+        py.import("warnings")?.call_method1("warn", (w,))?;
+    }
+    let run = py
+        .detach(|| fit::pipeline::calibrate_sky_field(&stokes_map, &sky, &inst, vec![map.display().to_string()], &opts))
+        .map_err(fit_err)?;
+    let mut summary = fit::pipeline::FitSummary::new(&run);
+    if let Some(out) = &out {
+        run.calibration.save(out).map_err(fit_err)?;
+        summary.calibration_file = Some(out.display().to_string());
+    }
+    serde_json::to_string(&summary).map_err(|e| input_err(format!("the fit's summary: {e}")))
+}
+
 /// The instrumental field from field-star catalogs (`fit::stars_field`, what `instpol
 /// calibrate-stars` runs): the summary as JSON text (`calibrate-stars --json`'s keys, no
 /// plots); the calibration written to `out` when given. `interstellar`: None for a fitted
@@ -1443,12 +1607,15 @@ fn _instpol(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("InputError", py.get_type::<InputError>())?;
     m.add("FileError", py.get_type::<FileError>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add("__citation__", skyfield::provenance::citation())?;
     m.add_function(wrap_pyfunction!(_stokes, m)?)?;
     m.add_function(wrap_pyfunction!(_bias, m)?)?;
     m.add_function(wrap_pyfunction!(_reduce, m)?)?;
     m.add_function(wrap_pyfunction!(_catalog, m)?)?;
     m.add_function(wrap_pyfunction!(_calibrate_stars, m)?)?;
     m.add_function(wrap_pyfunction!(_demo, m)?)?;
+    m.add_function(wrap_pyfunction!(_simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(_calibrate, m)?)?;
     m.add_function(wrap_pyfunction!(_scan, m)?)?;
     m.add_function(wrap_pyfunction!(_run, m)?)?;
     m.add_class::<_Calibration>()?;

@@ -30,6 +30,15 @@
 //! `blake3` package reproduce the hashes.
 
 use serde::{Deserialize, Serialize};
+
+/// How to cite `instpol` and the paper it implements (Patat & Romaniello 2006, PASP 118, 146),
+/// with BibTeX entries: the one text of the citation, which `instpol --version` prints after
+/// the version and the Python package gives as `instpol.__citation__`. It agrees with
+/// `CITATION.cff` at the repository's root (a test below compares the paper's fields).
+pub fn citation() -> String {
+    include_str!("citation.txt").replace("VERSION", env!("CARGO_PKG_VERSION"))
+}
+
 use std::io::Read;
 use std::path::Path;
 use std::sync::Mutex;
@@ -584,5 +593,33 @@ mod tests {
         let joined: String = lines.iter().map(|l| l.strip_prefix("  ").unwrap_or(l)).collect();
         assert!(joined.contains(&p.command_line));
         assert!(joined.contains("instrument: fors1 blake3:6437b3ac"));
+    }
+
+    /// The citation says what `CITATION.cff` says of the paper (its title, journal, volume,
+    /// issue, pages, year and DOI, each read from the file) and of the software (title and
+    /// version), so that the two cannot drift apart.
+    #[test]
+    fn citation_agrees_with_citation_cff() {
+        let cff = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../CITATION.cff")).unwrap();
+        let field = |indent: &str, key: &str| -> String {
+            let line = cff
+                .lines()
+                .find(|l| l.starts_with(&format!("{indent}{key}:")))
+                .unwrap_or_else(|| panic!("CITATION.cff has no '{indent}{key}:'"));
+            line.split_once(':').unwrap().1.trim().trim_matches('"').to_string()
+        };
+        let c = citation();
+        let paper = "    ";
+        for key in ["title", "journal", "doi", "year", "volume"] {
+            let v = field(paper, key);
+            assert!(c.contains(&v), "the citation lacks the paper's {key} '{v}' of CITATION.cff");
+        }
+        let (start, end) = (field(paper, "start"), field(paper, "end"));
+        assert!(c.contains(&format!("pages   = {{{start}--{end}}}")), "pages {start}--{end}");
+        assert!(c.contains(&format!("number  = {{{}}}", field(paper, "issue"))));
+        assert!(c.contains(&field("", "title")), "the software's title");
+        assert_eq!(field("", "version"), env!("CARGO_PKG_VERSION"), "CITATION.cff's version");
+        assert!(c.contains(&format!("version = {{{}}}", env!("CARGO_PKG_VERSION"))));
+        assert!(c.contains("PASP 118, 146") && !c.contains("VERSION"));
     }
 }

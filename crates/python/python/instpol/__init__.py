@@ -1,29 +1,39 @@
 """instpol: find, model and remove the instrumental polarization of dual-beam imaging
 polarimeters (half-wave plate + Wollaston prism), after Patat & Romaniello 2006, PASP 118, 146
-(equations cited by their labels, e.g. ``eq:Q``).
+(PR06; equations cited by their number in the published paper and their label in its source,
+e.g. Eq. 7 [eq:Q]).
 
 The same library functions as the ``instpol`` command-line tool, with numpy arrays in and out:
 
+- :func:`simulate`: raw-like frames of a scene (``instpol simulate``);
+- :func:`reduce`: frames -> binned Stokes map (``instpol reduce``), a :class:`StokesMap` or,
+  through a quarter-wave plate, a :class:`CircularMap`;
+- :func:`catalog`: frames -> every paired star measured (``instpol catalog``), a
+  :class:`CatalogTable`;
 - :func:`stokes`: dual-beam fluxes at N half-wave-plate angles -> Q/I, U/I, P, chi and errors
   (``instpol stokes``), for one star or many at once;
 - :func:`bias`: bias-corrected polarization degree and an interval on P0 (``instpol bias``);
+- :func:`calibrate`, :func:`calibrate_stars`: the instrumental polarization over the field from
+  an empty field of known sky polarization or from field stars (``instpol calibrate``,
+  ``instpol calibrate-stars``);
 - :class:`Calibration`: a calibration file; ``evaluate`` gives the instrumental polarization,
-  ``correct`` removes it (``instpol correct``);
-- :func:`reduce`: frames -> binned Stokes map (``instpol reduce``);
-- :func:`catalog`: frames -> every paired star measured (``instpol catalog``).
+  ``correct`` and ``correct_map`` remove it (``instpol correct``);
+- :func:`demo`: the whole chain on the paper's FORS1 fields (``instpol demo``);
+- :func:`scan`, :func:`run`: a folder of raw files sorted into a plan, and the plan run
+  (``instpol scan``, ``instpol run``).
+
+Units: polarization degrees and Stokes ratios are fractions (not percent) unless a name says
+``percent``; angles are degrees (``_deg``); positions are arcmin from the detector centre
+(``_arcmin``) or 0-based pixels; fluxes are electrons.
 
 This module only converts arguments; the numbers come from the compiled library
 (``instpol._instpol``), which works with the GIL released. Errors raise :class:`InputError`
 (a ``ValueError``) or :class:`FileError` (an ``OSError``) with the CLI's messages.
 
-Example (``instpol demo --out demo-out`` writes the calibration)::
-
-    import numpy as np, instpol
-    cal = instpol.Calibration.load("demo-out/cal_V.fits")
-    c = cal.correct(x, y, q, u, sigma_q, sigma_u, units="arcmin")
-    print(np.median(c["p0"]))
-
-The guide, docs/guide/correcting.md, has a pipeline from frames to corrected stars.
+``instpol.__citation__`` says how to cite the tool and PR06 (with BibTeX), as
+``instpol --version`` does. The guide's tutorial notebook, docs/guide/tutorial.ipynb, walks
+through a night on simulated data; docs/guide/correcting.md has a pipeline from frames to
+corrected stars.
 """
 
 from __future__ import annotations
@@ -38,7 +48,7 @@ from typing import Any, Dict, Iterator, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from . import _instpol
-from ._instpol import FileError, InputError, __version__
+from ._instpol import FileError, InputError, __citation__, __version__
 
 __all__ = [
     "scan",
@@ -48,14 +58,17 @@ __all__ = [
     "Calibration",
     "reduce",
     "catalog",
+    "calibrate",
     "calibrate_stars",
     "demo",
+    "simulate",
     "StokesMap",
     "CircularMap",
     "CatalogTable",
     "InputError",
     "FileError",
     "__version__",
+    "__citation__",
 ]
 
 ArrayLike = Any
@@ -125,11 +138,12 @@ def stokes(
 ) -> Dict[str, Any]:
     """Reduce dual-beam fluxes at N half-wave-plate angles to Q/I, U/I, P and chi.
 
-    The normalized flux differences ``F_i`` (eq:F) give Q/I and U/I by the Fourier sums eq:Q,
-    eq:U on the optimal angle set (theta_i = i * 22.5 deg, N a multiple of 4), else by (weighted)
-    least squares of eq:system; P and chi (eq:poldeg, eq:polang) with errors propagated from
-    the per-beam errors and the analytic eq:sigp / eq:sigchi; the harmonics (eq:fourcoeff),
-    a_0 (eq:a0) and the Wollaston kappa_j (eq:g, eq:kappa2). The same reduction as
+    The normalized flux differences ``F_i`` (Eq. 5 [eq:F]) give Q/I and U/I by the Fourier sums
+    Eq. 7 [eq:Q], Eq. 8 [eq:U] on the optimal angle set (theta_i = i * 22.5 deg, N a multiple of
+    4), else by (weighted) least squares of Eq. 6 [eq:system]; P and chi (Eq. 1 [eq:poldeg],
+    Eq. 2 [eq:polang]) with errors propagated from the per-beam errors and the analytic Eq. 10
+    [eq:sigp] / Eq. 11 [eq:sigchi]; the harmonics (Eq. 9 [eq:fourcoeff]), a_0 (Eq. 16 [eq:a0])
+    and the Wollaston kappa_j (Eq. 14 [eq:g], Eq. 15 [eq:kappa2]). The same reduction as
     ``instpol stokes``.
 
     Parameters
@@ -161,7 +175,7 @@ def stokes(
     as ``instpol stokes`` does: the fluxes of each position summed, their variances added
     (photon counts stay counts, checked with their Poisson errors; a negative count is
     refused), so ``n_hwp`` and ``f`` count positions. ``exposures`` is then a dict of every
-    input exposure's ``index``, ``hwp_deg``, its own ``f`` (eq:F), its ``pull`` about its
+    input exposure's ``index``, ``hwp_deg``, its own ``f`` (Eq. 5 [eq:F]), its ``pull`` about its
     position's mean and ``outlier`` (pull beyond 4 sigma; kept in the sum), ((N_in,) or
     (M, N_in)); None when no position repeats.
 
@@ -175,8 +189,8 @@ def stokes(
     Examples
     --------
     An ideal dual beam at the optimal four angles, P = 1 % at chi = 30 deg, 1e6 e- per beam:
-    eq:F is F_i = P cos(4 theta_i - 2 chi), and eq:sigp gives sigma_P = 1/(sqrt(N/2) SNR) with
-    SNR = sqrt(2e6).
+    Eq. 5 [eq:F] is F_i = P cos(4 theta_i - 2 chi), and Eq. 10 [eq:sigp] gives sigma_P =
+    1/(sqrt(N/2) SNR) with SNR = sqrt(2e6).
 
     >>> import numpy as np, instpol
     >>> theta = np.arange(4) * 22.5
@@ -213,14 +227,14 @@ def bias(
     sigma_u: Optional[ArrayLike] = None,
     chi_deg: ArrayLike = 0.0,
 ) -> Dict[str, Any]:
-    """Bias-corrected polarization degree P0 and an interval on it (section sec:bias).
+    """Bias-corrected polarization degree P0 and an interval on it (section 4.1 [sec:bias]).
 
     P is biased high at low signal-to-noise. Estimators: ``naive``, ``as`` (asymptotic),
     ``wk`` (Wardle & Kronberg 1974), ``ml`` (maximum likelihood), ``mp2`` (2-D most probable),
     ``mas`` (Plaszczynski et al. 2014, takes unequal ``sigma_q``, ``sigma_u``; default),
     ``mb`` (posterior mean), ``pr06`` (the paper's law, valid for P/sigma > 4). Intervals:
     ``neyman`` (classical, from the Rice distribution) or ``hpd`` (Bayesian, flat prior), at
-    confidence ``cl``. ``sigma`` is the error of each of Q and U (eq:sigp); P and sigma in the
+    confidence ``cl``. ``sigma`` is the error of each of Q and U (Eq. 10 [eq:sigp]); P and sigma in the
     same units. Vectorized: the arguments broadcast together; the same numbers as
     ``instpol bias``.
 
@@ -274,24 +288,26 @@ class Calibration:
     :meth:`evaluate`.
 
     Load it with :meth:`load`; :meth:`evaluate` gives the instrumental (q, u) at positions,
-    :meth:`correct` removes it from measurements (eq:instpol inverted exactly, or eq:approx).
+    :meth:`correct` removes it from measurements (Eq. 17 [eq:instpol] inverted exactly, or
+    Eq. 18 [eq:approx]).
 
     Examples
     --------
     The demo's V calibration at the paper's corner star, (2.53', -3.23'), where the paper's V
-    polynomial predicts 0.96 % (section sec:fors1); an unpolarized star seen there through the
+    polynomial predicts 0.96 % (section 11 [sec:fors1]); an unpolarized star seen there through the
     instrument corrects to P0 = 0.
 
     >>> import tempfile, numpy as np, instpol
-    >>> out = tempfile.mkdtemp()
-    >>> _ = instpol.demo(out, frames=False)
-    >>> cal = instpol.Calibration.load(f"{out}/cal_V.fits")
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> _ = instpol.demo(tmp.name, frames=False)
+    >>> cal = instpol.Calibration.load(f"{tmp.name}/cal_V.fits")
     >>> e = cal.evaluate(2.53, -3.23)
     >>> print(f"{100 * np.hypot(e['q'], e['u']):.2f} %", e["inside"])
     0.96 % True
     >>> c = cal.correct(2.53, -3.23, e["q"], e["u"], 4e-4, 4e-4)
     >>> abs(c["p0"]) < 1e-12
     True
+    >>> tmp.cleanup()
     """
 
     def __init__(self, inner: Any) -> None:
@@ -308,6 +324,18 @@ class Calibration:
             The file cannot be opened or read.
         InputError
             It is not a valid calibration; the message is that of ``instpol correct --cal``.
+
+        Examples
+        --------
+        The V calibration the demo writes (the paper's FORS1 V field, a radial model):
+
+        >>> import tempfile, instpol
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> _ = instpol.demo(tmp.name, frames=False)
+        >>> cal = instpol.Calibration.load(f"{tmp.name}/cal_V.fits")
+        >>> print(cal.instrument, cal.filter, cal.model, f"{cal.lambda_nm:.0f} nm")
+        FORS1 V RADIAL 554 nm
+        >>> tmp.cleanup()
         """
         return cls(_instpol._Calibration.load(os.fspath(path)))
 
@@ -347,14 +375,37 @@ class Calibration:
 
     def evaluate(self, x: ArrayLike, y: ArrayLike, units: str = "arcmin") -> Dict[str, Any]:
         """The instrumental polarization at positions ``(x, y)``: ``q, u`` = p (cos 2phi,
-        sin 2phi) (eq:instpol), ``sigma_q, sigma_u, cov_qu`` (the calibration's own
+        sin 2phi) (Eq. 17 [eq:instpol]), ``sigma_q, sigma_u, cov_qu`` (the calibration's own
         uncertainty), and ``inside`` (the position lies in the calibrated field).
 
         ``units``: ``"arcmin"`` (from the detector centre; the default, as ``instpol correct
         --coords``) or ``"px"`` (0-based detector pixels of the calibration's grid). Arrays
         broadcast; scalars give scalars. Raises InputError for unknown ``units``, pixels on a
         calibration without a pixel grid, or a Mueller-field or telescope-only calibration.
-        An example is in the class's documentation.
+
+        Returns
+        -------
+        dict
+            ``q, u, sigma_q, sigma_u, cov_qu`` (fractions; cov_qu a fraction squared) and
+            ``inside`` (bool), in the broadcast shape of ``x, y``.
+
+        Examples
+        --------
+        The demo's V calibration along the x axis at r = 1, 2, 3 arcmin, against the paper's
+        V polynomial it was made from, p(r) = 0.012 r + 0.046 r^2 + 0.002 r^3 % (section 11
+        [sec:fors1]), with phi the polar angle (0 deg on the x axis):
+
+        >>> import tempfile, numpy as np, instpol
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> _ = instpol.demo(tmp.name, frames=False)
+        >>> cal = instpol.Calibration.load(f"{tmp.name}/cal_V.fits")
+        >>> r = np.array([1.0, 2.0, 3.0])
+        >>> e = cal.evaluate(r, 0 * r)
+        >>> print(np.round(100 * np.hypot(e["q"], e["u"]), 2), np.round(0.012 * r + 0.046 * r**2 + 0.002 * r**3, 2))
+        [0.06 0.22 0.5 ] [0.06 0.22 0.5 ]
+        >>> print(np.round(np.degrees(np.arctan2(e["u"], e["q"])) / 2, 1))
+        [0. 0. 0.]
+        >>> tmp.cleanup()
         """
         shape, (xf, yf) = _broadcast(["x", "y"], [x, y])
         return _reshape(self._c._evaluate(xf, yf, str(units)), shape, xf.shape[0])
@@ -386,6 +437,11 @@ class Calibration:
     ) -> Dict[str, Any]:
         """Remove the instrumental polarization from measured ``(q, u)`` at ``(x, y)``.
 
+        Units: ``x, y`` arcmin from the detector centre (or 0-based px with ``units="px"``);
+        ``q, u, sigma_q, sigma_u`` fractions (Q/I, U/I) and ``cov_qu`` a fraction squared;
+        ``parang_deg``, ``parang_end_deg``, ``hwp_chi_offset_deg`` degrees;
+        ``extrapolation_error`` a fraction of the instrumental p. Arrays broadcast together.
+
         ``instrument``, ``filter`` (and ``plate``): what the rows were measured with, as
         :func:`catalog` returns them (``cat["product"]["instrument"]``, ...). Given, they are
         checked against the calibration as ``instpol correct`` checks a catalog table's
@@ -399,8 +455,8 @@ class Calibration:
         else 0 (``q, u`` as measured at the plate).
 
         The HWP zero angle of the calibration's filter is applied first, then ``M_I`` is
-        inverted exactly (``method="exact"``, eq:instpol) or to first order
-        (``method="first-order"``, eq:approx); the measurement's and the calibration's
+        inverted exactly (``method="exact"``, Eq. 17 [eq:instpol]) or to first order
+        (``method="first-order"``, Eq. 18 [eq:approx]); the measurement's and the calibration's
         covariances are propagated. Positions outside the calibrated field raise InputError
         unless ``allow_extrapolation``; then they are flagged and the calibration variance is
         inflated by (F p)^2 (F = ``extrapolation_error``). ``units`` as in :meth:`evaluate`.
@@ -442,7 +498,26 @@ class Calibration:
             that do not broadcast, an unknown ``method``, ``units`` or estimator, a telescope
             model without parallactic angles, angles given without one.
 
-        An example is in the class's documentation.
+        Examples
+        --------
+        A star of P0 = 2 % at chi0 = 30 deg seen at (2.53', -3.23') through the demo's V field:
+        the measured (q, u) are made here with Eq. 17 [eq:instpol] in numpy (the instrument's
+        p, phi at that position from :meth:`evaluate`), and the correction gives the star back.
+
+        >>> import tempfile, numpy as np, instpol
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> _ = instpol.demo(tmp.name, frames=False)
+        >>> cal = instpol.Calibration.load(f"{tmp.name}/cal_V.fits")
+        >>> e = cal.evaluate(2.53, -3.23)
+        >>> p, c, s = np.hypot(e["q"], e["u"]), e["q"] / np.hypot(e["q"], e["u"]), e["u"] / np.hypot(e["q"], e["u"])
+        >>> q0, u0 = 0.02 * np.cos(np.radians(60)), 0.02 * np.sin(np.radians(60))
+        >>> i1 = 1 + p * c * q0 + p * s * u0
+        >>> q1 = (q0 + p * c - p * s**2 * q0 + p * c * s * u0) / i1
+        >>> u1 = (u0 + p * s + p * c * s * q0 - p * c**2 * u0) / i1
+        >>> r = cal.correct(2.53, -3.23, q1, u1, 1e-4, 1e-4)
+        >>> print(f"P0 = {100 * r['p0']:.3f} %, chi0 = {r['chi0_deg']:.2f} deg")
+        P0 = 2.000 %, chi0 = 30.00 deg
+        >>> tmp.cleanup()
         """
         names = ["x", "y", "q", "u", "sigma_q", "sigma_u"]
         arrs = [x, y, q, u, sigma_q, sigma_u]
@@ -503,6 +578,32 @@ class Calibration:
             ``telescope_band``, ``rotator_deg``, ``parang_deg`` with a telescope model).
             Notes (a recorded parallactic angle replaced, a rotator angle ignored) are in
             ``warnings`` and issued as Python warnings.
+
+        Examples
+        --------
+        Simulated frames of the paper's V empty field (sky P = 1.74 %, chi = -53.8 deg, Table 1
+        [tab:empty]) through the paper's V instrumental field, reduced to a map, then corrected
+        with the demo's V calibration: every bin gives back the sky (chi modulo 180 deg).
+
+        >>> import tempfile, numpy as np, instpol
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> d = tmp.name
+        >>> _ = instpol.demo(d, frames=False)
+        >>> scene = {"instrument": "fors1", "filter": "V", "seed": 102,
+        ...          "sky": {"brightness_e": 12000, "p": 0.0174, "chi_deg": -53.8},
+        ...          "effects": {"instpol": {"kind": "radial", "coeffs_percent": [0, 0.012, 0.046, 0.002]},
+        ...                      "photon_noise": True, "read_noise": True}}
+        >>> frames = instpol.simulate(scene, f"{d}/frames")["outputs"]
+        >>> m = instpol.reduce(frames, "fors1", output=f"{d}/map_V.fits")
+        >>> c = instpol.Calibration.load(f"{d}/cal_V.fits").correct_map(f"{d}/map_V.fits", f"{d}/map_V_corr.fits")
+        >>> for name, mp in [("before", m), ("after", c)]:
+        ...     lo, hi = np.percentile(100 * mp.p[mp.valid], [1, 99])
+        ...     print(f"{name}: P from {lo:.1f} to {hi:.1f} % in 98 % of the bins")
+        before: P from 0.8 to 2.8 % in 98 % of the bins
+        after: P from 1.7 to 1.8 % in 98 % of the bins
+        >>> print(f"median P = {100 * np.median(c.p[c.valid]):.2f} %, chi = {np.median(c.chi_deg[c.valid]):.1f} deg")
+        median P = 1.74 %, chi = 126.2 deg
+        >>> tmp.cleanup()
         """
         pa = None
         if parang_deg is not None:
@@ -537,12 +638,31 @@ class StokesMap(_BinnedMap):
     column i) and the map's header values.
 
     Attributes: ``q, u`` (Q/I, U/I fractions), ``sigma_q, sigma_u, cov_qu`` (scatter errors of
-    the bin means), ``sigma_q_phot, sigma_u_phot`` (photon and read noise), ``p`` (eq:poldeg),
-    ``chi_deg`` (eq:polang, [0, 180)), ``n_pixels``, ``intensity``, ``intensity_snr``,
-    ``valid``, ``x_arcmin, y_arcmin`` (bin centres from the detector centre), ``header``
-    (instrument, filter, hwp_angles_deg, bin_px, origin_x/y, nx, ny, pixel_scale_arcsec,
-    detector_nx/ny, and hwp_zero_angle_deg: the HWP zero angle of the filter, which the map's
-    q, u do not carry, ``HWPZERO``; None when not recorded) and ``warnings``.
+    the bin means), ``sigma_q_phot, sigma_u_phot`` (photon and read noise), ``p`` (Eq. 1
+    [eq:poldeg]), ``chi_deg`` (Eq. 2 [eq:polang], [0, 180)), ``n_pixels``, ``intensity``,
+    ``intensity_snr``, ``valid``, ``x_arcmin, y_arcmin`` (bin centres from the detector centre),
+    ``header`` (instrument, filter, hwp_angles_deg, bin_px, origin_x/y, nx, ny,
+    pixel_scale_arcsec, detector_nx/ny, and hwp_zero_angle_deg: the HWP zero angle of the
+    filter, which the map's q, u do not carry, ``HWPZERO``; None when not recorded) and
+    ``warnings``.
+
+    Examples
+    --------
+    The map of four simulated frames of a uniformly polarized sky (P = 1.74 %, chi = -53.8 deg):
+    its ``p`` is Eq. 1 [eq:poldeg] of its ``q, u`` and every valid bin holds the sky's value.
+
+    >>> import tempfile, numpy as np, instpol
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> scene = {"instrument": "fors1", "filter": "V",
+    ...          "sky": {"brightness_e": 12000, "p": 0.0174, "chi_deg": -53.8}, "effects": {"photon_noise": True}}
+    >>> m = instpol.reduce(instpol.simulate(scene, tmp.name)["outputs"], "fors1", bin=60)
+    >>> m.q.shape == (m.header["ny"], m.header["nx"]), m.header["bin_px"]
+    (True, 60)
+    >>> bool(np.allclose(m.p[m.valid], np.hypot(m.q, m.u)[m.valid]))
+    True
+    >>> print(f"{100 * np.median(m.p[m.valid]):.2f} %, {np.median(m.chi_deg[m.valid]):.1f} deg")
+    1.74 %, 126.2 deg
+    >>> tmp.cleanup()
     """
 
     _ARRAYS = (
@@ -574,6 +694,47 @@ class CircularMap(_BinnedMap):
     (instrument, filter, stokes = "V", plate_angles_deg, qwp_zero_angle_deg: the plate's zero
     angle the demodulation added, bin_px, origin_x/y, nx, ny, pixel_scale_arcsec,
     detector_nx/ny) and ``warnings``.
+
+    Examples
+    --------
+    A small strip instrument of one's own with a quarter-wave plate (an instrument file:
+    docs/guide/instrument-file.md), its sky of V/I = 2 % seen at plate angles -45 and 45 deg:
+
+    >>> import tempfile, numpy as np, instpol
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> inst = f"{tmp.name}/qwp.toml"
+    >>> _ = open(inst, "w").write('''name = "TINYQWP"
+    ... [detector]
+    ... nx = 128
+    ... ny = 128
+    ... pixel_scale_arcsec = 0.2
+    ... gain_e_per_adu = 1.0
+    ... read_noise_e = 5.0
+    ... saturation_adu = 65535.0
+    ... [field]
+    ... width_arcmin = 0.4
+    ... height_arcmin = 0.4
+    ... [polarimetry]
+    ... plate = "quarter_wave"
+    ... throw_arcsec = 8.0
+    ... strip_axis = "y"
+    ... strip_count = 1
+    ... first_strip_y_px = 20
+    ... hwp_angle_keyword = "HWPANG"
+    ... filter_keyword = "FILTER"
+    ... exptime_keyword = "EXPTIME"
+    ... [[filters]]
+    ... name = "V"
+    ... lambda_eff_nm = 554.0
+    ... ''')
+    >>> scene = {"instrument": inst, "filter": "V", "hwp_angles_deg": [-45, 45], "seed": 8,
+    ...          "sky": {"brightness_e": 4000, "p": 0.03, "chi_deg": 20, "v": 0.02}, "effects": {"photon_noise": True}}
+    >>> m = instpol.reduce(instpol.simulate(scene, f"{tmp.name}/frames")["outputs"], inst, bin=8)
+    >>> type(m).__name__, m.header["stokes"], m.v.shape
+    ('CircularMap', 'V', (14, 16))
+    >>> print(f"V/I = {100 * np.median(m.v[m.valid]):.1f} %")
+    V/I = 2.0 %
+    >>> tmp.cleanup()
     """
 
     _ARRAYS = (
@@ -688,7 +849,21 @@ try:
         their units (``t["x"].unit`` is px, ``t["chi_deg"].unit`` deg; plain arrays in
         arithmetic, as the dict's were), the catalog-wide values in ``meta``. ``t["filter"]``
         and the other catalog-wide keys are looked up in ``meta`` too, so that code written for
-        the dict reads a table unchanged; ``QTable(t)`` gives quantities."""
+        the dict reads a table unchanged; ``QTable(t)`` gives quantities.
+
+        Examples
+        --------
+        >>> import tempfile, instpol
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> scene = {"instrument": "calcite", "filter": "V", "hwp_angles_deg": [0, 22.5, 45, 67.5], "seed": 7,
+        ...          "stars": [{"x": 150, "y": 200, "coords": "pixel", "flux_e": 4e5, "p": 0.0572,
+        ...                     "chi_deg": 136.0, "fwhm_arcsec": 1.0}], "effects": {"photon_noise": True}}
+        >>> frames = instpol.simulate(scene, tmp.name)["outputs"]
+        >>> t = instpol.catalog(frames, "calcite", hwp_angles=[0, 22.5, 45, 67.5], aperture=9)
+        >>> len(t), str(t["x"].unit), str(t["chi_deg"].unit), t["filter"]
+        (1, 'pix', 'deg', 'V')
+        >>> tmp.cleanup()
+        """
 
         def __getitem__(self, item: Any) -> Any:
             if isinstance(item, str) and item not in self.colnames and item in self.meta:
@@ -714,19 +889,21 @@ def reduce(
     assembled: bool = False,
     output: Optional[PathLike] = None,
 ) -> Union[StokesMap, CircularMap]:
-    """Reduce dual-beam frames (one filter, N HWP angles) to a binned Stokes map, as
-    ``instpol reduce``: per pixel F_i (eq:F) and Q/I, U/I (eq:Q, eq:U) from the ordinary and
-    extraordinary images of every mask strip, then a sigma-clipped mean per ``bin`` x ``bin``
-    px bin. For an instrument with a quarter-wave plate (``plate = "quarter_wave"``) the
-    result is a :class:`CircularMap` of V/I instead (the circular demodulation of
-    ``stokes::circular`` in place of eq:Q, eq:U). ``frames``: paths of FITS files, or astropy ``HDUList``, ``CCDData`` or
-    ``(array, header)`` objects (written to temporary FITS files for the call: the headers must
-    carry what a file's would, the HWP angle, filter and exposure time, or give ``hwp_angles``).
-    ``instrument``: a built-in name or an instrument TOML file; ``bias``, ``flat``:
-    master frames; ``hwp_angles``: degrees per frame for headers without the keyword;
-    ``assembled=True``: frames already trimmed and assembled by another pipeline (bias-
-    subtracted, one detector-sized image each), for an instrument whose raw frames are chip
-    files (FORS2, EFOSC2); ``output``: also write the FITS map there (atomically).
+    """Reduce dual-beam frames (one filter, N HWP angles) to a binned Stokes map, as ``instpol
+    reduce``: per pixel F_i (Eq. 5 [eq:F]) and Q/I, U/I (Eq. 7 [eq:Q], Eq. 8 [eq:U]) from the
+    ordinary and extraordinary images of every mask strip, then a sigma-clipped mean per ``bin``
+    x ``bin`` px bin. For an instrument with a quarter-wave plate (``plate = "quarter_wave"``)
+    the result is a :class:`CircularMap` of V/I instead (the circular demodulation of
+    ``stokes::circular`` in place of Eq. 7 [eq:Q], Eq. 8 [eq:U]). ``frames``: paths of FITS
+    files, or astropy ``HDUList``, ``CCDData`` or ``(array, header)`` objects (written to
+    temporary FITS files for the call: the headers must carry what a file's would, the HWP
+    angle, filter and exposure time, or give ``hwp_angles``). ``instrument``: a built-in name or
+    an instrument TOML file; ``bias``, ``flat``: master frames; ``bin``: the bin side (px);
+    ``nsigma``: the clipping threshold (robust standard deviations); ``hwp_angles``: degrees per
+    frame for headers without the keyword; ``assembled=True``: frames already trimmed and
+    assembled by another pipeline (bias-subtracted, one detector-sized image each), for an
+    instrument whose raw frames are chip files (FORS2, EFOSC2); ``output``: also write the FITS
+    map there (atomically).
 
     Raises
     ------
@@ -736,10 +913,28 @@ def reduce(
         An incomplete angle set, mixed filters or sizes, a missing header keyword, a maskless
         instrument (its beams' skies overlap), a bin side out of range.
 
+    Returns
+    -------
+    StokesMap or CircularMap
+        (ny, nx) arrays of the bins: fractions for q, u, p and their errors, degrees for chi.
+
     Examples
     --------
-    ``m = instpol.reduce(sorted(glob.glob("frames/*.fits")), instrument="fors1", bin=30)``,
-    then ``m.p[m.valid]`` are the valid bins' P; docs/guide/correcting.md runs such a pipeline.
+    Four simulated FORS1 frames of a sky polarized as the paper's V empty field (P = 1.74 %,
+    chi = -53.8 deg, Table 1 [tab:empty]) and no instrumental polarization: the map's bins give
+    the sky back (chi in [0, 180)).
+
+    >>> import tempfile, numpy as np, instpol
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> scene = {"instrument": "fors1", "filter": "V", "hwp_angles_deg": [0, 22.5, 45, 67.5],
+    ...          "sky": {"brightness_e": 12000, "p": 0.0174, "chi_deg": -53.8},
+    ...          "effects": {"photon_noise": True, "read_noise": True}}
+    >>> frames = instpol.simulate(scene, tmp.name)["outputs"]
+    >>> m = instpol.reduce(frames, instrument="fors1", bin=30)
+    >>> print(f"{m.header['nx']} x {m.header['ny']} bins, median P = {100 * np.median(m.p[m.valid]):.2f} %, "
+    ...       f"chi = {np.median(m.chi_deg[m.valid]):.1f} deg")
+    69 x 68 bins, median P = 1.74 %, chi = 126.2 deg
+    >>> tmp.cleanup()
     """
     if isinstance(bin, bool) or not isinstance(bin, (int, np.integer)) or bin < 0:
         raise InputError(f"bin {bin!r}: expected a bin side in pixels (a positive integer)")
@@ -772,10 +967,11 @@ def catalog(
     force: bool = False,
     as_table: Optional[bool] = None,
 ) -> Any:
-    """Every paired star of a frame set measured, as ``instpol catalog``: detection on the
-    first frame, ordinary/extraordinary pairing through the instrument's beam layout, aperture
-    photometry per frame with the background removed in each beam, then Q/I, U/I, P, chi
-    (eq:Q, eq:U, eq:poldeg, eq:polang) with propagated and scatter-based errors and flags.
+    """Every paired star of a frame set measured, as ``instpol catalog``: detection on the first
+    frame, ordinary/extraordinary pairing through the instrument's beam layout, aperture
+    photometry per frame with the background removed in each beam, then Q/I, U/I, P, chi (Eq. 7
+    [eq:Q], Eq. 8 [eq:U], Eq. 1 [eq:poldeg], Eq. 2 [eq:polang]) with propagated and
+    scatter-based errors and flags.
 
     The stars' columns (one value per star: ``id, x, y, x_e, y_e, x_arcmin, y_arcmin,
     fwhm_px, aperture_px, flux_e, q, u, sigma_q, sigma_u, cov_qu, p, sigma_p, chi_deg, sigma_chi_deg, a0,
@@ -787,9 +983,12 @@ def catalog(
     the HWP zero angle the stars' q, u carry, ``chi_offset_deg``), or None when the instrument
     names no header keyword for them; :meth:`Calibration.correct` takes it as ``recorded``).
 
+    ``fwhm``: the stars' expected FWHM (px) for detection; ``threshold``: the detection
+    threshold (standard deviations of the filtered image's noise); ``annulus``: the background
+    annulus's inner and outer radii (px); ``kappa``: a dimensionless ratio, (t - s)/(t + s).
     ``aperture``: a radius in px, ``"2.5fwhm"`` (a multiple of each star's FWHM) or ``"best"``
     (the radius of best S/N on each star's curve of growth). ``kappa`` applies a known Wollaston
-    imbalance; ``kappa_from_data=True`` estimates it per star (eq:kappa2) and applies it.
+    imbalance; ``kappa_from_data=True`` estimates it per star (Eq. 15 [eq:kappa2]) and applies it.
     ``pair_tol``: how far (px) a detected e image may sit from where the instrument's o/e offset
     puts it (a warning gives the shift when many sit further off, e.g. another filter's throw).
     ``assembled=True``: frames already trimmed and assembled (as for :func:`reduce`).
@@ -824,8 +1023,24 @@ def catalog(
 
     Examples
     --------
-    ``cat = instpol.catalog(frames, instrument="calcite", hwp_angles=[0, 22.5, 45, 67.5])``
-    then ``cat["p"][cat["flags"] == 0]``; docs/guide/correcting.md runs such a pipeline.
+    A 5.72 % star at chi = 136 deg simulated through the maskless calcite example instrument at
+    eight HWP angles (its headers carry no angle: ``hwp_angles`` gives them), measured with an
+    aperture of 9 px; its P lies within 3 sigma of the truth:
+
+    >>> import tempfile, instpol
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> angles = [0, 22.5, 45, 67.5, 90, 112.5, 135, 157.5]
+    >>> scene = {"instrument": "calcite", "filter": "V", "hwp_angles_deg": angles, "seed": 7,
+    ...          "sky": {"brightness_e": 300},
+    ...          "stars": [{"x": 150, "y": 200, "coords": "pixel", "flux_e": 4e5, "p": 0.0572,
+    ...                     "chi_deg": 136.0, "fwhm_arcsec": 1.0}],
+    ...          "effects": {"photon_noise": True, "read_noise": True}}
+    >>> frames = instpol.simulate(scene, tmp.name)["outputs"]
+    >>> cat = instpol.catalog(frames, "calcite", hwp_angles=angles, aperture=9, annulus=(14, 24))
+    >>> star = cat[0]
+    >>> print(f"P = {100 * star['p']:.1f} %", abs(star["p"] - 0.0572) < 3 * star["sigma_p"], star["flags"])
+    P = 5.7 % True 0
+    >>> tmp.cleanup()
     """
     try:
         r_in, r_out = (float(a) for a in annulus)
@@ -843,6 +1058,101 @@ def catalog(
     if as_table and not _HAVE_ASTROPY:
         raise InputError("as_table=True needs astropy installed")
     return _table(d) if as_table else d
+
+
+def calibrate(
+    map: PathLike,
+    sky_p_percent: float,
+    sky_chi_deg: float,
+    instrument: Optional[str] = None,
+    *,
+    out: Optional[PathLike] = None,
+    model: str = "radial3",
+    include_c0: bool = False,
+    free_centre: bool = False,
+    exclude: Sequence[str] = (),
+    residual_map: bool = False,
+) -> Dict[str, Any]:
+    """The instrumental polarization over the field from a Stokes map of an empty field whose
+    sky polarization is known, as ``instpol calibrate --map``: the paper's sky-field method
+    (section 10 [sec:instr]). In each bin the measured Stokes vector is the sky's seen through the
+    instrument's M_I, so Eq. 17 [eq:instpol] is solved exactly for p and phi (the
+    first-order Eq. 18 [eq:approx] kept for comparison); the bins' instrumental (q, u) are then
+    fitted by robust weighted least squares with the radial model p(r) = sum_k c_k r^k (r in
+    arcmin, the paper's third-degree polynomial by default) and the polar-angle test is run.
+
+    Parameters
+    ----------
+    map : path
+        A Stokes map file from :func:`reduce` (``output=``) or ``instpol reduce`` (not yet
+        corrected), in the plate frame: the filter's HWP zero angle is applied here.
+    sky_p_percent : float
+        The sky's polarization degree in PERCENT (Table 1 [tab:empty]: B 6.45, V 1.74, I 1.34).
+    sky_chi_deg : float
+        The sky's polarization angle (deg, any sign, taken modulo 180).
+    instrument : str, optional
+        A built-in name or an instrument file; None: the one the map's ``INSTRUME`` names.
+    out : path, optional
+        Write the calibration file (FITS) there, readable by :meth:`Calibration.load`.
+    model : str
+        ``"radialN"`` (a polynomial of degree N in r about the optical axis), ``"polyN"`` (of
+        total degree N in x and y for each of q and u) or ``"plane"``.
+    include_c0, free_centre : bool
+        Fit a constant term c_0 too; fit the optical-axis centre (arcmin) instead of fixing it
+        at the detector centre.
+    exclude : list of str
+        Parts of the field left out: ``"sector:FROM:TO"`` (polar angle, deg), ``"ring:R0:R1"``
+        or ``"box:X0:X1:Y0:Y1"`` (arcmin).
+    residual_map : bool
+        Keep an interpolant of the residuals in the model (fields that are not radial).
+
+    Returns
+    -------
+    dict
+        ``instpol calibrate --json``'s keys less ``provenance``: ``coefficients`` c_k and
+        ``sigma_coefficients`` (fractions per arcmin^k, for the ``powers`` k),
+        ``centre_arcmin``, ``rms_residual`` (fraction per component), ``chi2_dof``, the
+        polar-angle test (``polar_angle_slope``, ...), ``output`` (the calibration file).
+
+    Raises
+    ------
+    InputError
+        A sky polarization that is not a number, an unknown model or exclusion, a map that was
+        corrected already, too few valid bins.
+    FileError
+        The map cannot be read or ``out`` written.
+
+    Examples
+    --------
+    The paper's V field (section 11 [sec:fors1]: p(r) = 0.012 r + 0.046 r^2 + 0.002 r^3 %, phi the
+    polar angle) in simulated frames of its empty field (P_sky = 1.74 %, chi_sky = -53.8 deg),
+    reduced, then calibrated: the fit gives back the polynomial's coefficients within their
+    errors, and p(3') = 0.50 %:
+
+    >>> import tempfile, numpy as np, instpol
+    >>> scene = {"instrument": "fors1", "filter": "V", "seed": 102,
+    ...          "sky": {"brightness_e": 12000, "p": 0.0174, "chi_deg": -53.8},
+    ...          "effects": {"instpol": {"kind": "radial", "coeffs_percent": [0, 0.012, 0.046, 0.002]},
+    ...                      "photon_noise": True, "read_noise": True}}
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> d = tmp.name
+    >>> frames = instpol.simulate(scene, f"{d}/frames")["outputs"]
+    >>> _ = instpol.reduce(frames, "fors1", output=f"{d}/map_V.fits")
+    >>> fit = instpol.calibrate(f"{d}/map_V.fits", 1.74, -53.8, "fors1", out=f"{d}/cal_V.fits")
+    >>> paper = [0.012e-2, 0.046e-2, 0.002e-2]
+    >>> all(abs(c - t) < 3 * e for c, t, e in zip(fit["coefficients"], paper, fit["sigma_coefficients"]))
+    True
+    >>> e = instpol.Calibration.load(f"{d}/cal_V.fits").evaluate(3.0, 0.0)
+    >>> print(f"p(3') = {100 * np.hypot(e['q'], e['u']):.2f} %")
+    p(3') = 0.50 %
+    >>> tmp.cleanup()
+    """
+    return json.loads(
+        _instpol._calibrate(
+            os.fspath(map), None if instrument is None else str(instrument), (float(sky_p_percent), float(sky_chi_deg)),
+            str(model), bool(include_c0), bool(free_centre), [str(e) for e in exclude], bool(residual_map), _opt_path(out),
+        )
+    )
 
 
 def calibrate_stars(
@@ -888,11 +1198,30 @@ def calibrate_stars(
     ------
     FileError, InputError
 
-    Example (catalogs of four pointings)::
+    Examples
+    --------
+    Catalogs of two dithered pointings (0 and (0.6', 0.3')) of 49 unpolarized stars on a grid,
+    written here as CSV tables with numpy (q, u in the sky frame: the HWP zero angle they carry,
+    ``hwp_chi_offset_deg``, is 0), each star's measured (q, u) the instrument's plane
+    field q = 0.10 % + 0.03 % x, u = -0.04 % + 0.025 % y (x, y in arcmin on the detector); the
+    fit gives the plane's coefficients back (in %, for the terms 1, x, y):
 
-        s = instpol.calibrate_stars(["p1.ecsv", "p2.ecsv", "p3.ecsv", "p4.ecsv"], "fors1",
-                                    filter="V", interstellar="zero", out="cal_V.fits")
-        s["fit"]["coefficients"], [r["id"] for r in s["rejected"]]
+    >>> import tempfile, numpy as np, instpol
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> gx, gy = np.meshgrid(np.linspace(-2.4, 2.4, 7), np.linspace(-2.4, 2.4, 7))
+    >>> files = []
+    >>> for k, (dx, dy) in enumerate([(0.0, 0.0), (0.6, 0.3)]):
+    ...     x, y = gx.ravel() - dx, gy.ravel() - dy
+    ...     q, u = 1e-3 + 3e-4 * x, -4e-4 + 2.5e-4 * y
+    ...     rows = np.column_stack([np.arange(1, 50), x, y, q, u, np.full(49, 5e-4), np.full(49, 5e-4), np.zeros(49)])
+    ...     files.append(f"{tmp.name}/p{k}.csv")
+    ...     np.savetxt(files[-1], rows, delimiter=",", fmt="%.10g", comments="",
+    ...                header="id,x_arcmin,y_arcmin,q,u,sigma_q,sigma_u,hwp_chi_offset_deg")
+    >>> s = instpol.calibrate_stars(files, "fors1", filter="V", model="plane", interstellar="zero",
+    ...                             offsets=[(0, 0), (0.6, 0.3)], out=f"{tmp.name}/cal_plane.fits")
+    >>> print(np.round(100 * np.array(s["poly"]["q"]), 4), np.round(100 * np.array(s["poly"]["u"]), 4))
+    [0.1  0.03 0.  ] [-0.04   0.     0.025]
+    >>> tmp.cleanup()
     """
     cats = [catalogs] if isinstance(catalogs, (str, os.PathLike)) else list(catalogs)
     free, given = False, None
@@ -927,9 +1256,9 @@ def calibrate_stars(
 def demo(out_dir: PathLike, *, frames: bool = True, keep_frames: bool = False, seed: int = 2006) -> Dict[str, Any]:
     """The main job end to end on the paper's three empty fields, as ``instpol demo``.
 
-    The paper's FORS1 fields (section sec:fors1: V and I as fitted there, B scaled from V by
-    the wavelength law with an asymmetric component) are seen on the empty fields of Table
-    tab:empty: through simulated frames (photon and read noise) reduced in 30 x 30 px bins, or
+    The paper's FORS1 fields (section 11 [sec:fors1]: V and I as fitted there, B scaled from V by
+    the wavelength law with an asymmetric component) are seen on the empty fields of Table 1
+    [tab:empty]: through simulated frames (photon and read noise) reduced in 30 x 30 px bins, or
     with ``frames=False`` as binned maps measured directly through the same M_I (fast). Each
     filter is calibrated by the sky-field method (``out_dir/cal_<filter>.fits``), the
     wavelength law is fitted, and the V calibration is validated on a simulated unpolarized
@@ -948,9 +1277,113 @@ def demo(out_dir: PathLike, *, frames: bool = True, keep_frames: bool = False, s
     FileError
         ``out_dir`` cannot be created or written.
 
-    An example is in :class:`Calibration`'s documentation.
+    Examples
+    --------
+    The V field's fitted polynomial (%, for r, r^2, r^3 with r in arcmin) against the paper's
+    (section 11 [sec:fors1]: 0.012, 0.046, 0.002), and the check on the corner star: its measured P
+    against the P the calibration predicts there, in units of its error (a pull):
+
+    >>> import tempfile, instpol
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> r = instpol.demo(tmp.name, frames=False)
+    >>> v = next(f for f in r["filters"] if f["filter"] == "V")
+    >>> print([round(100 * c, 3) for c in v["input_coefficients"]], [round(100 * c, 3) for c in v["fitted_coefficients"]])
+    [0.012, 0.046, 0.002] [0.011, 0.047, 0.002]
+    >>> abs(r["validation"]["pull"]) < 3
+    True
+    >>> tmp.cleanup()
     """
     return json.loads(_instpol._demo(os.fspath(out_dir), bool(frames), bool(keep_frames), int(seed)))
+
+
+def _first_non_finite(v: Any, key: str) -> Optional[Tuple[str, float]]:
+    """The dotted key and value of the first float of a nested table that is NaN or infinite."""
+    if isinstance(v, float) and not np.isfinite(v):
+        return key, v
+    items = v.items() if isinstance(v, dict) else enumerate(v) if isinstance(v, (list, tuple)) else ()
+    for k, w in items:
+        found = _first_non_finite(w, f"{key}.{k}" if key else str(k))
+        if found is not None:
+            return found
+    return None
+
+
+def simulate(
+    scene: Union[PathLike, Dict[str, Any]],
+    out: PathLike,
+    *,
+    field: Optional[PathLike] = None,
+    force: bool = False,
+) -> Dict[str, Any]:
+    """Raw-like dual-beam frames of a scene, as ``instpol simulate``: one FITS file per HWP
+    angle in ``out`` (created if needed), with the detector, the mask strips, the ordinary and
+    extraordinary images and the header keywords the instrument describes, and ``truth.json``
+    with every input. Each beam's flux follows Eq. 4 [eq:ord] through the instrument's optics,
+    so the frames reduce to the scene's polarization by Eq. 5 [eq:F], Eq. 7 [eq:Q] and Eq. 8
+    [eq:U]; only the effects the scene's ``effects`` table lists are computed (photon and read
+    noise, an instrumental field ``instpol`` seen through Eq. 17 [eq:instpol], a Wollaston
+    imbalance as Eq. 12 [eq:WP], ...).
+
+    Parameters
+    ----------
+    scene : path or dict
+        A scene file (TOML; instruments/scenes/ has examples) or the same table as a dict:
+        ``instrument`` (a built-in name or an instrument file), ``filter``, ``hwp_angles_deg``
+        (deg), ``exposure_s`` (s), ``seed``, ``sky`` (``brightness_e``: e- per pixel per
+        exposure, ``p``: a fraction, ``chi_deg``: deg), ``stars`` (``x``, ``y`` in px or arcmin
+        as ``coords`` says, ``flux_e``: e- per exposure, ``p``, ``chi_deg``, ``fwhm_arcsec``),
+        ``effects``, ``output``. Fluxes are electrons per exposure, polarization degrees
+        fractions, angles degrees. A dict's file paths are taken as they are; a file's are
+        relative to it.
+    out : path
+        The output folder; a frame never lands on the scene, its instrument file or ``field``.
+    field : path, optional
+        A calibration file (of the scene's instrument and filter) whose model replaces the
+        scene's ``effects.instpol``, as ``instpol simulate --field``.
+    force : bool
+        Write the frames even when they take more than 16 GB.
+
+    Returns
+    -------
+    dict
+        ``outputs`` (the frame files, in HWP-angle order), ``truth_output`` (``truth.json``)
+        and, for chip instruments whose bias no overscan removes, ``bias_outputs``: the keys of
+        ``instpol simulate --json`` less ``provenance``.
+
+    Raises
+    ------
+    InputError
+        A scene that is not valid (an unknown key, a value out of range), a calibration of
+        another instrument or filter, frames beyond 16 GB without ``force``.
+    FileError
+        ``out`` cannot be created or written.
+
+    Examples
+    --------
+    Four frames of an empty FORS1 field in V whose sky is polarized as the paper's V field
+    (Table 1 [tab:empty]: P = 1.74 %, chi = -53.8 deg):
+
+    >>> import os, tempfile, instpol
+    >>> scene = {"instrument": "fors1", "filter": "V", "hwp_angles_deg": [0, 22.5, 45, 67.5],
+    ...          "sky": {"brightness_e": 12000, "p": 0.0174, "chi_deg": -53.8},
+    ...          "effects": {"photon_noise": True, "read_noise": True}}
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     w = instpol.simulate(scene, d)
+    ...     print(len(w["outputs"]), os.path.basename(w["truth_output"]))
+    4 truth.json
+    """
+    if isinstance(scene, dict):
+        bad = _first_non_finite(scene, "")
+        if bad is not None:
+            raise InputError(f"scene: {bad[0]} = {bad[1]}: not a finite number")
+        try:
+            text = json.dumps(scene)
+        except (TypeError, ValueError) as e:
+            raise InputError(f"scene: not a table of numbers, strings, lists and tables ({e})") from None
+        label = "<scene dict>"
+    else:
+        label, text = os.fspath(scene), None
+    return json.loads(_instpol._simulate(label, text, os.fspath(out), _opt_path(field), bool(force)))
 
 
 def scan(
@@ -969,6 +1402,10 @@ def scan(
 ) -> Dict[str, Any]:
     """Sort folders of raw files by their headers into a plan of work, as ``instpol scan``.
 
+    Units: ``pointing_tol_arcsec`` (arcsec: exposures this close are one pointing),
+    ``max_gap_min`` (minutes: a longer gap starts a new set), ``bin``, ``fwhm``, ``aperture``
+    (px, the options of the units' ``reduce`` and ``catalog``); ``sky`` values (percent, deg).
+
     Every file is classified from its headers alone (the instrument file's ``[headers]``
     table): bias, flat, polarimetric exposure or standard, or left out with the reason. Chip
     files of one exposure are grouped, exposures into complete HWP sets (repeated cycles kept),
@@ -985,6 +1422,28 @@ def scan(
         ``left_out``): the keys of ``instpol scan --json`` less ``provenance``. Filter or edit
         it (drop units, change a command's options) and hand it to :func:`run`. ``out``:
         also written there (TOML, or JSON for a ``.json`` name), as the CLI writes it.
+
+    Examples
+    --------
+    A folder holding the raw chip files of one FORS2 empty-field set (simulated with the ESO
+    archive's names and DPR keywords), whose sky polarization is known: the plan reduces the
+    set to a map, then calibrates the instrument on it.
+
+    >>> import tempfile, instpol
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> keys = {"HIERARCH ESO DPR CATG": "SCIENCE", "HIERARCH ESO DPR TYPE": "OBJECT",
+    ...         "HIERARCH ESO DPR TECH": "POLARIMETRY", "HIERARCH ESO OBS TARG NAME": "EMPTY V",
+    ...         "RA": 10.0, "DEC": -20.0}
+    >>> scene = {"instrument": "fors2", "filter": "v_HIGH", "seed": 3,
+    ...          "sky": {"brightness_e": 12000, "p": 0.0174, "chi_deg": -53.8},
+    ...          "output": {"archive": {"start_mjd": 58546.9, "cadence_s": 60}, "keywords": keys},
+    ...          "effects": {"photon_noise": True, "read_noise": True}}
+    >>> len(instpol.simulate(scene, f"{tmp.name}/raw")["outputs"])
+    8
+    >>> plan = instpol.scan(f"{tmp.name}/raw", "fors2", f"{tmp.name}/products", sky={"EMPTY V": (1.74, -53.8)})
+    >>> [u["id"] for u in plan["units"]]
+    ['reduce-20190304-EMPTY_V-v_HIGH', 'calibrate-20190304-EMPTY_V-v_HIGH']
+    >>> tmp.cleanup()
     """
     sky_list, sky_table = [], None
     if isinstance(sky, (str, os.PathLike)):
@@ -1023,6 +1482,7 @@ def run(
     instpol_bin: Optional[PathLike] = None,
 ) -> Dict[str, Any]:
     """Run a plan from :func:`scan` (a dict, edited or not, or a plan file), as ``instpol run``.
+    ``jobs``: how many units run at once (a count).
 
     Units run in dependency order, ``jobs`` at once; a unit whose record says its inputs and
     outputs are unchanged is skipped; a failing unit is reported and the units that follow it
@@ -1036,6 +1496,28 @@ def run(
         The report (``outcomes``: ``id``, ``kind``, ``status`` of ``done``, ``up_to_date``,
         ``would_run``, ``failed``, ``blocked`` or ``check_failed``, ``reason``, ``seconds``): the keys of
         ``instpol run --json`` less ``provenance``.
+
+    Examples
+    --------
+    The plan of :func:`scan`'s example run (the binary from ``$INSTPOL_BIN`` or ``PATH``), then
+    run again: the second run finds every product up to date.
+
+    >>> import tempfile, instpol
+    >>> tmp = tempfile.TemporaryDirectory()
+    >>> keys = {"HIERARCH ESO DPR CATG": "SCIENCE", "HIERARCH ESO DPR TYPE": "OBJECT",
+    ...         "HIERARCH ESO DPR TECH": "POLARIMETRY", "HIERARCH ESO OBS TARG NAME": "EMPTY V",
+    ...         "RA": 10.0, "DEC": -20.0}
+    >>> scene = {"instrument": "fors2", "filter": "v_HIGH", "seed": 3,
+    ...          "sky": {"brightness_e": 12000, "p": 0.0174, "chi_deg": -53.8},
+    ...          "output": {"archive": {"start_mjd": 58546.9, "cadence_s": 60}, "keywords": keys},
+    ...          "effects": {"photon_noise": True, "read_noise": True}}
+    >>> _ = instpol.simulate(scene, f"{tmp.name}/raw")
+    >>> plan = instpol.scan(f"{tmp.name}/raw", "fors2", f"{tmp.name}/products", sky={"EMPTY V": (1.74, -53.8)})
+    >>> [(o["kind"], o["status"]) for o in instpol.run(plan)["outcomes"]]
+    [('reduce', 'done'), ('calibrate', 'done')]
+    >>> [o["status"] for o in instpol.run(plan)["outcomes"]]
+    ['up_to_date', 'up_to_date']
+    >>> tmp.cleanup()
     """
     text, path = (json.dumps(plan), None) if isinstance(plan, dict) else (None, os.fspath(plan))
     only = None if units is None else [str(u) for u in units]

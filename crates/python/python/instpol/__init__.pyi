@@ -1,20 +1,25 @@
 # Type stubs of the Python package `instpol` (see __init__.py for the docstrings, which cite
 # Patat & Romaniello 2006 by equation label).
+from __future__ import annotations
+
 import os
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import numpy.typing as npt
+from astropy.table import Table
 
 __version__: str
+#: How to cite instpol and Patat & Romaniello 2006 (PASP 118, 146), with BibTeX entries.
+__citation__: str
 ArrayLike = npt.ArrayLike
 PathLike = Union[str, os.PathLike[str]]
 
 class InputError(ValueError):
-    """Bad input: a value, an array or a file's content."""
+    """Bad input: a value, an array or a file's content (a ValueError), with the CLI's message."""
 
 class FileError(OSError):
-    """A file that cannot be opened, read or written."""
+    """A file that cannot be opened, read or written (an OSError), with the CLI's message."""
 
 def stokes(
     hwp_deg: ArrayLike,
@@ -26,7 +31,7 @@ def stokes(
     *,
     angles_in_radians: bool = ...,
 ) -> Dict[str, Any]:
-    """Q/I, U/I, P, chi with errors from dual-beam fluxes (eq:F, eq:Q, eq:U, eq:sigp, eq:sigchi).
+    """Q/I, U/I, P, chi with errors from dual-beam fluxes (Eq. 5 [eq:F], Eq. 7 [eq:Q], Eq. 8 [eq:U], Eq. 10 [eq:sigp], Eq. 11 [eq:sigchi]).
 
     hwp_deg: HWP angles (deg); f_o, f_e: fluxes of the two beams, (N,) or (M, N) for M stars
     (electrons with Poisson errors unless sigma_o, sigma_e are given); kappa: a known Wollaston
@@ -45,7 +50,7 @@ def bias(
     sigma_u: Optional[ArrayLike] = ...,
     chi_deg: ArrayLike = ...,
 ) -> Dict[str, Any]:
-    """Bias-corrected P0 and an interval on it (section sec:bias), vectorized.
+    """Bias-corrected P0 and an interval on it (section 4.1 [sec:bias]), vectorized.
 
     p, sigma: measured P and the error of each of Q and U, in the same units (fraction or
     percent); estimator: naive, as, wk, ml, mp2, mas, mb, pr06; interval: neyman or hpd at
@@ -97,7 +102,7 @@ class Calibration:
     def telescope_bands(self) -> List[str]:
         """Bands of the telescope model in the file (empty without one)."""
     def evaluate(self, x: ArrayLike, y: ArrayLike, units: str = ...) -> Dict[str, Any]:
-        """Instrumental (q, u) = p (cos 2phi, sin 2phi) (eq:instpol) with errors at (x, y)
+        """Instrumental (q, u) = p (cos 2phi, sin 2phi) (Eq. 17 [eq:instpol]) with errors at (x, y)
         (arcmin from the detector centre, or px with units="px"); fractions."""
     def correct(
         self,
@@ -124,7 +129,7 @@ class Calibration:
         plate: Optional[str] = ...,
         allow_mismatch: bool = ...,
     ) -> Dict[str, Any]:
-        """Exact inversion of eq:instpol (or eq:approx), as `instpol correct`, bit for bit.
+        """Exact inversion of Eq. 17 [eq:instpol] (or Eq. 18 [eq:approx]), as `instpol correct`, bit for bit.
 
         x, y: arcmin (or px with units="px"); q, u and their errors: fractions; parang_deg:
         each row's parallactic angle (deg) for a telescope model. Returns q0, u0, p0 (fractions),
@@ -198,18 +203,16 @@ def reduce(
     assembled: bool = ...,
     output: Optional[PathLike] = ...,
 ) -> Union[StokesMap, CircularMap]:
-    """Frames to a binned Stokes map (eq:F, eq:Q, eq:U per pixel, clipped bin means); through
+    """Frames to a binned Stokes map (Eq. 5 [eq:F], Eq. 7 [eq:Q], Eq. 8 [eq:U] per pixel, clipped bin means); through
     a quarter-wave plate, a CircularMap of V/I.
 
     bin: bin side (px); nsigma: clipping threshold (robust sigmas); hwp_angles: deg per frame
     when the headers carry none. Raises FileError or InputError with the CLI's messages.
     """
 
-class CatalogTable:
+class CatalogTable(Table):
     """The stars of catalog() as an astropy Table with units; catalog-wide values in meta and by key."""
-    meta: Dict[str, Any]
     def __getitem__(self, item: Any) -> Any: ...
-    def __len__(self) -> int: ...
 
 def catalog(
     frames: Union[PathLike, Sequence[Any]],
@@ -241,6 +244,24 @@ def catalog(
     Raises FileError or InputError.
     """
 
+def calibrate(
+    map: PathLike,
+    sky_p_percent: float,
+    sky_chi_deg: float,
+    instrument: Optional[str] = ...,
+    *,
+    out: Optional[PathLike] = ...,
+    model: str = ...,
+    include_c0: bool = ...,
+    free_centre: bool = ...,
+    exclude: Sequence[str] = ...,
+    residual_map: bool = ...,
+) -> Dict[str, Any]:
+    """The instrumental field from a Stokes map of an empty field of known sky polarization
+    (sky_p_percent in PERCENT, sky_chi_deg in deg): Eq. 17 [eq:instpol] solved per bin, the
+    radial model fitted (coefficients: fractions per arcmin^k); out: the calibration file.
+    instpol calibrate --map."""
+
 def calibrate_stars(
     catalogs: Union[PathLike, Sequence[PathLike]],
     instrument: Optional[str] = ...,
@@ -264,6 +285,18 @@ def calibrate_stars(
 
 def demo(out_dir: PathLike, *, frames: bool = ..., keep_frames: bool = ..., seed: int = ...) -> Dict[str, Any]:
     """The paper's three empty fields simulated, calibrated and validated: instpol demo's report."""
+
+def simulate(
+    scene: Union[PathLike, Dict[str, Any]],
+    out: PathLike,
+    *,
+    field: Optional[PathLike] = ...,
+    force: bool = ...,
+) -> Dict[str, Any]:
+    """Raw-like dual-beam FITS frames of a scene (a TOML file or the same table as a dict), one
+    per HWP angle, and truth.json, in out: instpol simulate. Fluxes in e- per exposure,
+    polarization as fractions, angles in deg; field: a calibration whose model replaces the
+    scene's effects.instpol. Returns the files written (outputs, truth_output)."""
 
 def scan(
     dirs: Union[PathLike, Sequence[PathLike]],
