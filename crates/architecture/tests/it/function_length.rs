@@ -142,3 +142,33 @@ fn lengths_are_counted_from_fn_to_its_closing_brace() {
         "a literal brace and a comment do not count; a declaration has no body; a test module is skipped"
     );
 }
+
+/// A CLI command's file, at most (`docs/architecture.md`, Conventions): a face parses, prints
+/// and calls; a command file longer than this holds a rule or a workflow that belongs in a
+/// library, or is two files (its words, its plot) in one.
+const COMMAND_LIMIT: usize = 350;
+
+/// Command files longer when the rule became a test, with their lengths then. Shrink, never add.
+const LONGER_COMMANDS: &[(&str, usize)] =
+    &[("crates/cli/src/cmd/photometry.rs", 353), ("crates/cli/src/cmd/fit_standards.rs", 352)];
+
+#[test]
+fn no_cli_command_file_is_over_350_lines() {
+    let root = workspace();
+    let mut found = Vec::new();
+    for file in files_under(&root.join("crates/cli/src/cmd"), Some(".rs")) {
+        let rel = file.strip_prefix(&root).unwrap().to_string_lossy().replace('\\', "/");
+        let n = std::fs::read_to_string(&file).unwrap().lines().count();
+        match LONGER_COMMANDS.iter().find(|(f, _)| *f == rel) {
+            Some(&(_, was)) if n > was => {
+                found.push(format!("{rel}: {n} lines, longer than the {was} it was listed at"))
+            }
+            Some(_) if n <= COMMAND_LIMIT => {
+                found.push(format!("{rel}: now {n} lines: take it out of LONGER_COMMANDS"))
+            }
+            None if n > COMMAND_LIMIT => found.push(format!("{rel}: {n} lines (at most {COMMAND_LIMIT})")),
+            _ => {}
+        }
+    }
+    assert!(found.is_empty(), "CLI command files (docs/architecture.md, Conventions):\n  {}", found.join("\n  "));
+}

@@ -757,7 +757,7 @@ fn one_bin_map(path: &Path, instrument: &str, filter: &str) {
 }
 
 /// Regression (was a defect, fixed in 2e448c5): `correct` applied a FORS1 calibration to a Stokes map written for another
-/// instrument (MAP instrument "OTHER") silently, exit 0. Fix (crates/cli/src/cmd/correct.rs,
+/// instrument (MAP instrument "OTHER") silently, exit 0. Fix (crates/cli/src/cmd/correct/mod.rs,
 /// map path): compare the map's instrument and filter with the calibration's (filter names
 /// through the instrument's aliases) and refuse with both names unless forced.
 #[test]

@@ -10,14 +10,16 @@ use fit::request::Request;
 use fit::Calibration;
 use serde::Serialize;
 use skyfield::maps::FileKind as Kind;
-use skyfield::table::{Format, Table};
-use std::path::{Path, PathBuf};
+use skyfield::table::Format;
+use std::path::PathBuf;
 use stokes::stats::Estimator;
+
+mod words;
 
 // `instpol correct`'s options; the long help (what is read, written and reported, with the
 // telescope's and the Mueller field's cases) is the text file beside this one (users read it).
 #[derive(clap::Args)]
-#[command(long_about = include_str!("correct_help.txt").trim_end())]
+#[command(long_about = include_str!("help.txt").trim_end())]
 pub struct Args {
     /// Calibration file (instpol calibration FITS: `instpol calibrate`, `instpol import-map`,
     /// `instpol fit-standards --output` or `instpol calibrate-mueller --out CAL.fits`).
@@ -113,7 +115,7 @@ pub fn run(a: Args) -> Result<()> {
     let method = if a.method == MethodArg::Exact { Method::Exact } else { Method::FirstOrder };
     let base = Request::new(method, a.allow_extrapolation, a.extrapolation_error);
     let request = Request { band: a.band.as_deref(), parang, rotator, allow_mismatch: a.allow_mismatch, ..base };
-    fit::request::check_options(&loaded, &request).map_err(|e| rows_error(&a, None, e))?;
+    fit::request::check_options(&loaded, &request).map_err(|e| words::rows_error(&a.cal, &a.input, None, e))?;
     let kind = skyfield::maps::file_kind(&a.input)?;
     if kind == Kind::StokesMap {
         return run_map(&a, &loaded, &request);
@@ -132,88 +134,6 @@ fn field_line(a: &Args, s: &fit::columns::Report, cal: &Calibration) -> String {
         cal.filter,
         cal.hwp_chi_offset_deg
     )
-}
-
-/// A refusal of `fit::request` in this command's words (`table`: the catalog, for the names of its
-/// columns).
-fn rows_error(a: &Args, table: Option<&Table>, e: fit::request::Refusal) -> anyhow::Error {
-    use fit::request::Refusal as E;
-    let (cal, input) = (a.cal.display(), a.input.display());
-    match e {
-        E::TelescopeOptions { mueller } => anyhow!(
-            "--band, --parang, --rotator are for calibrations with a telescope model; {cal} {}",
-            if mueller { "holds a Mueller field" } else { "has none" }
-        ),
-        E::MuellerFirstOrder => anyhow!(
-            "--method first-order: {cal} holds a Mueller field, which is inverted exactly (eq:approx is the p, phi model's first order)"
-        ),
-        E::NoParallactic if table.is_none() => anyhow!(
-            "{input}: a Stokes map needs the parallactic angle of its exposures for the telescope model of {cal}: give --parang START[,END] (deg: the first frame's start, the last frame's end, as their headers say; instpol reduce records it in the map when the instrument's [telescope] section names the header keywords)"
-        ),
-        E::NoParallactic => anyhow!(
-            "{input}: no column '{}' (columns: {}) and no recorded parallactic angles: the telescope model of {cal} needs each row's parallactic angle (deg), or --parang START[,END] when every row comes from the same frames (instpol catalog records them in ECSV, FITS and VOTable outputs when the instrument's [telescope] section names the header keywords)",
-            PARANG[0],
-            table.map_or(String::new(), |t| t.names().join(", "))
-        ),
-        E::TwoTracks => anyhow!(
-            "{input} has a {} column and --parang is given: use one (the column gives each row's angle)",
-            PARANG[0]
-        ),
-        E::NoRotator { per_row: true } => anyhow!(
-            "{input}: no column 'rotator_deg': the telescope model of {cal} was fitted with rotator angles and needs each row's (or --rotator DEG for all)"
-        ),
-        E::NoRotator { per_row: false } => {
-            anyhow!("the telescope model of {cal} was fitted with rotator angles: give the exposures' with --rotator DEG")
-        }
-        E::Band(b) => crate::util::band_choice_error(b, &a.cal, None),
-        E::Exposures(m) => anyhow!("{input}: its exposures: {m}"),
-        E::Mismatch { map, mismatch: fit::setup::Mismatch::Setup { data, calibration } } => anyhow!(
-            "{input} is a {} {} {} but {cal} calibrates {} {} (instrument, filter): use the calibration of the {}'s instrument and filter (or --allow-mismatch)",
-            data.0,
-            data.1,
-            if map { "map" } else { "catalog" },
-            calibration.0,
-            calibration.1,
-            if map { "map" } else { "catalog" },
-        ),
-        E::Mismatch { mismatch, .. } => anyhow!("{input} and {cal}: {mismatch}"),
-        E::BandMismatch { map_filter, band } => anyhow!(
-            "{input} is a {map_filter} map but the telescope model's band is {band}: use the band of the map's filter (--band), or --allow-mismatch"
-        ),
-        e => anyhow!("{input}: {e}"),
-    }
-}
-
-/// Say what `fit::request` noted about a correction that goes ahead.
-fn print_notes(a: &Args, notes: &[fit::request::Note]) {
-    use fit::request::Note;
-    let (cal, input) = (a.cal.display(), a.input.display());
-    for n in notes {
-        match n {
-            Note::CarriedZeroAngle { carried, calibration, applied } => eprintln!(
-                "warning: {input}: q, u carry the HWP zero angle {carried} deg (column '{ZERO_ANGLE}') but {cal} records {calibration} deg: the rows are turned by the difference, {applied} deg, into the calibration's frame (every chi0 moves by it); if the catalog's zero angle is the right one, remake the calibration with it (import-map --zero-angle, or the instrument file's hwp_chi_offset_deg; see {})",
-                instrument::ZERO_ANGLE_GUIDE
-            ),
-            Note::AnglesWithoutTelescope => eprintln!(
-                "warning: {input} has a {} column but {cal} holds no telescope model: the telescope's polarization is NOT removed (fit one with instpol fit-standards --output)",
-                PARANG[0]
-            ),
-            Note::TrackReplaced { recorded: (s, e) } => eprintln!(
-                "warning: --parang {} replaces the parallactic angle {input} recorded ({:.3} to {:.3} deg)",
-                a.parang.as_deref().unwrap_or(""),
-                s.to_degrees(),
-                e.to_degrees()
-            ),
-            Note::ZeroAngleUnknown(w) => eprintln!("warning: {input}: {w}"),
-            Note::MismatchAllowed(m) => eprintln!(
-                "warning: --allow-mismatch: {input} and {cal} do not fit together ({m}); corrected all the same, and a catalog written records it (MISMATCH)"
-            ),
-
-            Note::RotatorIgnored => eprintln!(
-                "warning: --rotator is ignored: the telescope model of {cal} was fitted without rotator angles (its offset holds the rotator's)"
-            ),
-        }
-    }
 }
 
 /// Correct a catalog's rows with any calibration (`fit::request`): read the table and its angles,
@@ -236,9 +156,9 @@ fn run_table(
         );
     }
     let n = table.n_rows();
-    let plan =
-        fit::request::plan_rows(loaded, &angles.request(*base), n).map_err(|e| rows_error(a, Some(&table), e))?;
-    print_notes(a, &plan.notes);
+    let plan = fit::request::plan_rows(loaded, &angles.request(*base), n)
+        .map_err(|e| words::rows_error(&a.cal, &a.input, Some(&table), e))?;
+    words::print_notes(&a.cal, &a.input, a.parang.as_deref(), &plan.notes);
     let mut cols = TableColumns::read(&table, &a.input)?;
     let given = a.coords.map(|c| if c == Coords::Pixel { Units::Pixel } else { Units::Arcmin });
     let units = cols.place(given, loaded).map_err(|e| match e {
@@ -341,8 +261,6 @@ fn mueller_line(a: &Args, s: &fit::columns::Report, cal: &fit::mueller_cal::Muel
 
 // The column a catalog carries when its q, u already have the instrument's HWP zero angle
 // applied (`instpol catalog` writes it): they are then in the sky's frame.
-use fit::columns::PARANG_COLUMNS as PARANG;
-use skyfield::table::ZERO_ANGLE_COLUMN as ZERO_ANGLE;
 
 /// The summary on stdout: the JSON object (--json), or `line`, the medians of the
 /// instrumental p removed (`of`: what it is the p of, "" or " (unpolarized light)") and of
@@ -380,10 +298,11 @@ fn warn_extrapolated(s: &fit::columns::Report, field: &str) {
 fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Request<'_>) -> Result<()> {
     let map = skyfield::StokesMap::read_uncorrected(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
-    let plan = fit::request::plan_map(loaded, request, &map).map_err(|e| rows_error(a, None, e))?;
-    print_notes(a, &plan.notes);
+    let plan =
+        fit::request::plan_map(loaded, request, &map).map_err(|e| words::rows_error(&a.cal, &a.input, None, e))?;
+    words::print_notes(&a.cal, &a.input, a.parang.as_deref(), &plan.notes);
     let name = a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
-    let (c, stamp) = plan.correct(&map, &name).map_err(|e| map_error(e, &a.input))?;
+    let (c, stamp) = plan.correct(&map, &name).map_err(|e| words::map_error(e, &a.input))?;
     crate::util::check_output(&a.out)?;
     c.map.write_corrected_fits(&a.out, &stamp).with_context(|| format!("cannot write {}", a.out.display()))?;
     let (n, filter) = ((c.n_bins, c.n_extrapolated, 0), map.filter.clone());
@@ -406,11 +325,4 @@ fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Reque
     });
     let s = Summary { input: a.input.clone(), output: a.out.clone(), method: a.method, coords: None, report };
     finish(a, s, loaded, telescope)
-}
-
-fn map_error(e: fit::correct::MapError, input: &Path) -> anyhow::Error {
-    match e {
-        fit::correct::MapError::NoValidBins => anyhow!("{}: {e}", input.display()),
-        e => anyhow!("{} {e}", input.display()),
-    }
 }
