@@ -1236,6 +1236,7 @@ fn _catalog<'py>(
     d.set_item("chi_offset_deg", cat.chi_offset_deg)?;
     d.set_item("oe_offset_px", cat.oe_offset_px)?;
     d.set_item("unpaired", cat.unpaired.clone())?;
+    d.set_item("unpaired_why", cat.unpaired_why.iter().map(|w| pythonize_why(*w)).collect::<Vec<_>>())?;
     d.set_item("unpaired_shift_px", cat.unpaired_shift_px)?;
     d.set_item("n_sources", cat.n_sources)?;
     // The exposures' telescope angles, as `instpol catalog` records them in its tables: what
@@ -1620,4 +1621,10 @@ fn _instpol(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(_run, m)?)?;
     m.add_class::<_Calibration>()?;
     Ok(())
+}
+
+/// An unpaired source's reason as the catalog JSON writes it (`off_detector`, `no_partner`,
+/// `lone_e`).
+fn pythonize_why(w: skyfield::detect::Unpaired) -> String {
+    serde_json::to_value(w).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default()
 }

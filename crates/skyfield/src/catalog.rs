@@ -247,6 +247,8 @@ pub struct Catalog {
     pub rows: Vec<Row>,
     /// Sources without a partner image (their positions).
     pub unpaired: Vec<(f64, f64)>,
+    /// Why each of [`Catalog::unpaired`] has no partner, in the same order.
+    pub unpaired_why: Vec<crate::detect::Unpaired>,
     /// How far the unpaired sources' other images sit from the layout's prediction: median
     /// `(dx, dy)` px and how many agree with it within 1 px (`detect::unpaired_shift`).
     pub unpaired_shift_px: Option<(f64, f64, usize)>,
@@ -911,6 +913,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         qwp_zero_angle_deg: circular.as_ref().map(|c| c.1),
         rows,
         unpaired: unpaired.iter().map(|&k| (sources[k].x, sources[k].y)).collect(),
+        unpaired_why: crate::detect::Unpaired::of(&sources, &g, &unpaired),
         unpaired_shift_px: crate::detect::unpaired_shift(&sources, &unpaired, &g, UNPAIRED_REACH_PX),
         n_sources: sources.len(),
         alignment,

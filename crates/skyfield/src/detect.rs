@@ -333,6 +333,46 @@ pub fn pair(sources: &[Source], g: &BeamGeometry, tol: f64) -> (Vec<Pair>, Vec<u
     (pairs, unpaired)
 }
 
+/// Why a source found no partner in the other beam ([`pair`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Unpaired {
+    /// Its e image would fall off the detector or behind the mask: a star at the field's edge.
+    OffDetector,
+    /// Nothing was found where its e image should be (within the pairing tolerance): a cosmic
+    /// ray, a hot pixel or a noise peak, a star too faint in the e beam, or an o/e offset that
+    /// does not fit these frames.
+    NoPartner,
+    /// A source in the e images whose o image was not found (the o image faint, off the
+    /// detector, or the source not a star).
+    LoneE,
+}
+
+impl Unpaired {
+    /// Why each of `unpaired` (source indices, as [`pair`] returns them) has no partner.
+    pub fn of(sources: &[Source], g: &BeamGeometry, unpaired: &[usize]) -> Vec<Unpaired> {
+        unpaired
+            .iter()
+            .map(|&k| match (sources[k].kind, g.e_position(sources[k].x, sources[k].y)) {
+                (PixelKind::Extraordinary(_), _) => Unpaired::LoneE,
+                (_, None) => Unpaired::OffDetector,
+                (_, Some(_)) => Unpaired::NoPartner,
+            })
+            .collect()
+    }
+
+    /// The reason in a few words, for a console summary.
+    pub fn words(self) -> &'static str {
+        match self {
+            Unpaired::OffDetector => "whose e image falls off the detector",
+            Unpaired::NoPartner => {
+                "with nothing where their e image should be (noise peaks, cosmic rays, or stars too faint in one beam)"
+            }
+            Unpaired::LoneE => "in the e images with no o image",
+        }
+    }
+}
+
 /// Where the unpaired sources' other images sit against the layout's prediction: for each
 /// unpaired source outside the e images, the nearest unpaired source outside the o images
 /// within `reach` px of where `g` puts its e image. Returns the median residual `(dx, dy)` (px)

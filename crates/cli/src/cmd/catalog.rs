@@ -274,6 +274,9 @@ fn print_summary(cat: &skyfield::catalog::Catalog, measured: usize, out: Option<
         cat.unpaired.len(),
         cat.filter,
     );
+    if let Some(why) = unpaired_words(cat) {
+        outln!("unpaired: {why}");
+    }
     if !cat.alignment.is_empty() {
         let shift = cat.alignment.iter().map(|f| f.dx_px.hypot(f.dy_px)).fold(0.0, f64::max);
         let rot = cat.alignment.iter().map(|f| f.rotation_deg.abs()).fold(0.0, f64::max);
@@ -289,13 +292,14 @@ fn print_summary(cat: &skyfield::catalog::Catalog, measured: usize, out: Option<
         outln!("  id        x        y    V/I %     +-  flags");
         for r in &cat.rows {
             outln!(
-                "{:4} {:8.2} {:8.2} {:+8.3} {:6.3}  {}",
+                "{:4} {:8.2} {:8.2} {:+8.3} {:6.3}  {}{}",
                 r.id,
                 r.x,
                 r.y,
                 100.0 * r.v.unwrap_or(f64::NAN),
                 100.0 * r.sigma_v.unwrap_or(f64::NAN),
-                flags::names(r.flags)
+                flags::names(r.flags),
+                note_of(r)
             );
         }
         if let Some(out) = &out {
@@ -306,7 +310,7 @@ fn print_summary(cat: &skyfield::catalog::Catalog, measured: usize, out: Option<
     outln!("  id        x        y      P %     +-   chi deg     +-  flags");
     for r in &cat.rows {
         outln!(
-            "{:4} {:8.2} {:8.2} {:8.3} {:6.3} {:9.2} {:6.2}  {}",
+            "{:4} {:8.2} {:8.2} {:8.3} {:6.3} {:9.2} {:6.2}  {}{}",
             r.id,
             r.x,
             r.y,
@@ -314,10 +318,33 @@ fn print_summary(cat: &skyfield::catalog::Catalog, measured: usize, out: Option<
             100.0 * r.sigma_p,
             r.chi_deg,
             r.sigma_chi_deg,
-            flags::names(r.flags)
+            flags::names(r.flags),
+            note_of(r)
         );
     }
     if let Some(out) = &out {
         outln!("wrote {}", out.display());
     }
+}
+
+/// A star's note (why it was not measured, or what was done to it) after its flags.
+fn note_of(r: &skyfield::catalog::Row) -> String {
+    if r.note.is_empty() {
+        String::new()
+    } else {
+        format!("  ({})", r.note)
+    }
+}
+
+/// How many sources went unpaired for each reason the library gives, most first.
+fn unpaired_words(cat: &skyfield::catalog::Catalog) -> Option<String> {
+    use skyfield::detect::Unpaired;
+    let mut counts: Vec<(usize, Unpaired)> = [Unpaired::NoPartner, Unpaired::OffDetector, Unpaired::LoneE]
+        .into_iter()
+        .map(|w| (cat.unpaired_why.iter().filter(|&&x| x == w).count(), w))
+        .filter(|(n, _)| *n > 0)
+        .collect();
+    counts.sort_by_key(|c| std::cmp::Reverse(c.0));
+    let parts: Vec<String> = counts.iter().map(|(n, w)| format!("{n} {}", w.words())).collect();
+    (!parts.is_empty()).then(|| parts.join("; "))
 }

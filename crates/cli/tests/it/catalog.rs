@@ -686,3 +686,48 @@ fn photometry_refuses_a_star_whose_image_is_shared() {
     assert_eq!(code, 0, "{err}");
     assert!(!err.contains("shares an image"), "{err}");
 }
+
+/// Why a source went unpaired, said by the catalog: a star placed 20 px from the right edge of
+/// the calcite detector (700 px wide) has its e image 70.2 px to the right, off the detector
+/// (the instrument's o/e offset, computed here); it is the one source whose reason is
+/// `off_detector`, at its place, and the console says so in words.
+#[test]
+fn an_unpaired_source_says_why() {
+    let dir = tempfile::tempdir().unwrap();
+    let edge = "\n[[stars]]\nx = 680\ny = 350\ncoords = \"pixel\"\nflux_e = 4e5\np = 0.0\nchi_deg = 0.0\nfwhm_arcsec = 1.0\n";
+    let (inst, frames) = calcite_scene(dir.path(), "");
+    // The star goes after the scene's (appended text would land in its [effects] table).
+    let scene = std::fs::read_to_string(dir.path().join("scene.toml")).unwrap();
+    let at = scene.find("[[stars]]").unwrap();
+    std::fs::write(dir.path().join("scene.toml"), format!("{}{}{}", &scene[..at], edge.trim_start(), &scene[at - 1..]))
+        .unwrap();
+    let out = dir.path().join("g");
+    let sp = dir.path().join("scene.toml");
+    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), out.as_os_str()]);
+    assert_eq!(code, 0, "{err}");
+    drop(frames);
+    let frames = fits_in(&out);
+    let mut args: Vec<OsString> = vec!["catalog".into()];
+    args.extend(frames.iter().map(|f| f.clone().into_os_string()));
+    for a in ["--instrument", inst.to_str().unwrap(), "--fwhm", "4.7", "--aperture", "9", "--annulus", "14,24"] {
+        args.push(a.into());
+    }
+    let (code, text, err) = run(&args);
+    assert_eq!(code, 0, "{err}");
+    args.push("--json".into());
+    let (code, stdout, err) = run(&args);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let (pos, why) = (j["unpaired"].as_array().unwrap(), j["unpaired_why"].as_array().unwrap());
+    assert_eq!(pos.len(), why.len(), "a reason per unpaired source: {j}");
+    let off: Vec<(f64, f64)> = pos
+        .iter()
+        .zip(why)
+        .filter(|(_, w)| *w == "off_detector")
+        .map(|(p, _)| (p[0].as_f64().unwrap(), p[1].as_f64().unwrap()))
+        .collect();
+    assert_eq!(off.len(), 1, "{j}");
+    assert!((off[0].0 - 680.0).abs() < 4.0 && (off[0].1 - 350.0).abs() < 4.0, "{off:?}");
+    assert!(680.0 + 70.2 > 700.0, "the e image is off the detector");
+    assert!(text.contains("unpaired: ") && text.contains("1 whose e image falls off the detector"), "{text}");
+}

@@ -814,7 +814,7 @@ _COLUMN_UNITS = {"x": "pix", "y": "pix", "x_e": "pix", "y_e": "pix", "fwhm_px": 
                  "flux_e": "electron", "a0": "electron"}
 
 #: What a catalog holds once for all its stars (the rest is one value per star).
-_CATALOG_META = ("hwp_deg", "filter", "chi_offset_deg", "oe_offset_px", "unpaired", "unpaired_shift_px",
+_CATALOG_META = ("hwp_deg", "filter", "chi_offset_deg", "oe_offset_px", "unpaired", "unpaired_why", "unpaired_shift_px",
                  "n_sources", "warnings", "recorded_angles", "chi_offset_applied_deg", "n_extrapolated",
                  "telescope_model", "telescope_band", "telescope_exposures", "camera_transform",
                  "qwp_zero_angle_deg", "product")
@@ -977,7 +977,7 @@ def catalog(
     fwhm_px, aperture_px, flux_e, q, u, sigma_q, sigma_u, cov_qu, p, sigma_p, chi_deg, sigma_chi_deg, a0,
     kappa, kappa_applied, chi2_mod, dof_mod, sigma_q_scatter, sigma_u_scatter, flags, flag_names, note``, and
     ``f`` of shape (stars, N)) and metadata (``hwp_deg, filter, chi_offset_deg, oe_offset_px,
-    unpaired, unpaired_shift_px, n_sources, warnings``, and ``recorded_angles``: the exposures'
+    unpaired, unpaired_why, unpaired_shift_px, n_sources, warnings``, and ``recorded_angles``: the exposures'
     telescope angles from their headers, ``{"parang_deg": (start, end), "rotator_deg": ...,
     "exposures": [(hwp_deg, start_deg, end_deg), ...], "hwp_chi_offset_deg": ...}`` (the last:
     the HWP zero angle the stars' q, u carry, ``chi_offset_deg``), or None when the instrument
