@@ -12,10 +12,12 @@ use std::path::{Path, PathBuf};
 
 mod format;
 pub mod headers;
+mod sky_angle;
 pub mod telescope;
 pub mod toml_numbers;
 pub use format::{Chip, Correction, FrameFormat, NumberOrKeyword};
 pub use headers::{Headers, Role};
+pub use sky_angle::SkyAngle;
 pub use telescope::{Focus, Telescope};
 
 /// Errors while loading an instrument definition.
@@ -308,6 +310,11 @@ pub struct Polarimetry {
     /// Two cameras (`layout = "two_cameras"`): which chip is which and how they map.
     #[serde(default)]
     pub cameras: Option<Cameras>,
+    /// Where the instrument's position angle on the sky is read (`[polarimetry.sky_angle]`):
+    /// catalogs and corrected maps then give `chi` north through east. Absent: angles stay in
+    /// the instrument's frame.
+    #[serde(default)]
+    pub sky_angle: Option<SkyAngle>,
 }
 
 /// A half-wave plate that turns continuously: each exposure integrates the modulation over the
@@ -706,6 +713,9 @@ impl Instrument {
             );
         }
         if let Some(Err((key, value, why))) = self.polarimetry.rotation.as_ref().map(HwpRotation::check) {
+            return bad(&key, value, &why);
+        }
+        if let Some(Err((key, value, why))) = self.polarimetry.sky_angle.as_ref().map(SkyAngle::check) {
             return bad(&key, value, &why);
         }
         let qwp = self.polarimetry.plate == Plate::QuarterWave;
