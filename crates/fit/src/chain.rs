@@ -154,7 +154,9 @@ impl Chain<'_> {
     /// field's and the telescope's instrumental polarization together (first order), as
     /// catalogs and maps report it ([`crate::telescope_cal::ChainCorrected::with_telescope_in_inst`]).
     pub fn invert(&self, i: usize, m: &Measurement) -> Result<Corrected, RowError> {
-        Ok(self.invert_parts(i, m)?.with_telescope_in_inst())
+        // Corrected where the models live (the instrument's frame), then given back on the sky
+        // when the measurement came in the celestial frame.
+        Ok(self.invert_parts(i, m)?.with_telescope_in_inst().onto_sky(m.frame))
     }
 
     /// [`invert`](Self::invert) with the telescope's part kept apart: `corrected.inst` is the

@@ -188,6 +188,16 @@ impl Measurement {
     pub fn in_sky(&self, zero_angle_deg: f64) -> Self {
         Self { qu: self.frame.to_sky(&self.qu, zero_angle_deg), frame: Frame::Sky { zero_angle_deg }, ..*self }
     }
+
+    /// This measurement as the instrument sees it: one in the celestial frame turned back by
+    /// its position angle into the sky frame of its zero angle ([`Frame::in_instrument`]), any
+    /// other itself.
+    pub fn in_instrument(&self) -> Self {
+        match self.frame.zero_angle_deg().filter(|_| self.frame.position_angle_deg().is_some()) {
+            Some(z) => self.in_sky(z),
+            None => *self,
+        }
+    }
 }
 
 /// The intrinsic polarization of a source after correction.
@@ -247,6 +257,25 @@ pub fn is_output_column(name: &str) -> bool {
 }
 
 impl Corrected {
+    /// This correction, made in a model's frame (the instrument's), turned onto the sky by
+    /// `frame`'s position angle ([`Frame::onto_sky`]): the corrected `q0, u0` with their
+    /// covariance, `chi0` and the instrumental `q, u` removed; `P0` and the errors of `P0` and
+    /// `chi0` do not change under a turn. Itself for any frame but the celestial one.
+    pub fn onto_sky(&self, frame: Frame) -> Self {
+        let Some(pa) = frame.position_angle_deg() else { return *self };
+        let t = frame.onto_sky(&Qu::new(self.q0, self.u0, self.var_q0, self.var_u0, self.cov_qu0));
+        Corrected {
+            q0: t.q,
+            u0: t.u,
+            var_q0: t.var_q,
+            var_u0: t.var_u,
+            cov_qu0: t.cov_qu,
+            chi0: mueller::fold_pi(self.chi0 + pa.to_radians()),
+            inst: frame.onto_sky(&self.inst),
+            ..*self
+        }
+    }
+
     /// The values written for a corrected row, named by [`OUTPUT_NAMES`]: errors as standard
     /// deviations, angles in degrees, the instrumental `q, u` that was removed.
     #[inline]

@@ -21,6 +21,7 @@ mod mueller_field;
 mod mueller_plan;
 mod raw_calibration_bits;
 mod rotating_plate;
+mod sky_angle;
 mod roundtrip;
 mod toml_numbers;
 mod two_cameras;
