@@ -257,21 +257,22 @@ pub fn is_output_column(name: &str) -> bool {
 }
 
 impl Corrected {
-    /// This correction, made in a model's frame (the instrument's), turned onto the sky by
-    /// `frame`'s position angle ([`Frame::onto_sky`]): the corrected `q0, u0` with their
-    /// covariance, `chi0` and the instrumental `q, u` removed; `P0` and the errors of `P0` and
-    /// `chi0` do not change under a turn. Itself for any frame but the celestial one.
-    pub fn onto_sky(&self, frame: Frame) -> Self {
-        let Some(pa) = frame.position_angle_deg() else { return *self };
-        let t = frame.onto_sky(&Qu::new(self.q0, self.u0, self.var_q0, self.var_u0, self.cov_qu0));
+    /// This correction turned by `deg` (added to `chi0`, `eq:polang`): `q0, u0` with their
+    /// covariance, `chi0` and the instrumental `q, u` removed ([`Qu::rotated`]). Itself, bit
+    /// for bit, for a turn of 0.
+    pub fn turned(&self, deg: f64) -> Self {
+        if deg == 0.0 {
+            return *self;
+        }
+        let t = Qu::new(self.q0, self.u0, self.var_q0, self.var_u0, self.cov_qu0).rotated(deg.to_radians());
         Corrected {
             q0: t.q,
             u0: t.u,
             var_q0: t.var_q,
             var_u0: t.var_u,
             cov_qu0: t.cov_qu,
-            chi0: mueller::fold_pi(self.chi0 + pa.to_radians()),
-            inst: frame.onto_sky(&self.inst),
+            chi0: mueller::fold_pi(self.chi0 + deg.to_radians()),
+            inst: self.inst.rotated(deg.to_radians()),
             ..*self
         }
     }
@@ -687,14 +688,18 @@ pub enum MapError {
 /// `eq:approx`, as `opts` says): the scatter errors (`sigma_q/u`, `cov_qu`) and the
 /// photon-noise errors (`sigma_q/u_phot`) are each propagated with the calibration's own
 /// error. The map's instrument and filter are not checked here: the caller does (`instpol
-/// correct` refuses a map of another instrument or filter, [`crate::setup::same_filter`]).
+/// correct` refuses a map of another instrument or filter, [`crate::setup::same_filter`]). A
+/// map that records its instrument's position angle on the sky (`SKYPA`) is corrected as the
+/// instrument saw it and then turned onto the sky by that angle ([`Corrected::turned`]).
 pub fn correct_map<M: FieldModel + ?Sized>(
     model: &M,
     map: &skyfield::StokesMap,
     opts: CorrectOptions,
 ) -> Result<CorrectedMap, MapError> {
     let cor = Corrector::new(model, opts);
-    correct_map_with(map, |m| cor.correct(m))
+    // On a rotator the corrected bin goes onto the sky by the map's position angle.
+    let pa = map.sky_pa_deg.unwrap_or(0.0);
+    correct_map_with(map, |m| cor.correct(m).map(|r| r.turned(pa)))
 }
 
 /// [`correct_map`] with any correction of one measurement (`correct`, e.g. the Mueller

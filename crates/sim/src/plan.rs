@@ -415,7 +415,9 @@ impl Plan {
         if let Some(pa) = scene.sky_pa_deg {
             plan.explain.insert(
                 1,
-                format!("instrument at position angle {pa} deg on the sky: every chi below as it sees it (chi - {pa} deg)"),
+                format!(
+                    "instrument at position angle {pa} deg on the sky: every chi below as it sees it (chi - {pa} deg)"
+                ),
             );
         }
         Ok(plan)

@@ -613,7 +613,9 @@ impl Scene {
     /// `rotator_deg` turn the sky into the instrument already: one turn, given once).
     fn validate_sky_pa(&self, path: &Path) -> Result<(), Error> {
         let Some(pa) = self.sky_pa_deg else { return Ok(()) };
-        let bad = |why: String| Err(Error::Invalid { path: path.into(), key: "sky_pa_deg".into(), value: pa.to_string(), why });
+        let bad = |why: String| {
+            Err(Error::Invalid { path: path.into(), key: "sky_pa_deg".into(), value: pa.to_string(), why })
+        };
         if !pa.is_finite() {
             return bad("must be a finite angle in degrees".into());
         }

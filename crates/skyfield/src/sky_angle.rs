@@ -27,7 +27,8 @@ pub fn of_file(path: &Path, a: &SkyAngle) -> Result<f64, Error> {
             path: path.into(),
             message: format!("the instrument's position angle on the sky (sky_angle from_wcs): {why}"),
         };
-        let (wcs, _) = crate::wcs::celestial_wcs_in(path).map_err(&bad)?.ok_or_else(|| bad("no celestial WCS".into()))?;
+        let (wcs, _) =
+            crate::wcs::celestial_wcs_in(path).map_err(&bad)?.ok_or_else(|| bad("no celestial WCS".into()))?;
         wcs.y_axis_position_angle_deg().map_err(bad)?
     } else {
         let mut img = crate::fits::open_image(path, "")?;

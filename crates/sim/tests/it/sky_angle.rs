@@ -66,7 +66,8 @@ fn standard(frames: &[PathBuf], inst: &Path) -> Result<(f64, f64, mueller::Frame
         annulus: Some((14.0, 24.0)),
         ..Default::default()
     };
-    let (cat, _) = catalog_files(frames, &inst, &Default::default(), &cfg, Box::new(|| {})).map_err(|e| e.to_string())?;
+    let (cat, _) =
+        catalog_files(frames, &inst, &Default::default(), &cfg, Box::new(|| {})).map_err(|e| e.to_string())?;
     let r = cat.rows.iter().find(|r| (r.x - STAR.0).hypot(r.y - STAR.1) < 1.5).expect("the standard is found");
     assert!(r.chi_deg.is_finite(), "the standard is measured: flags {}, {}", r.flags, r.note);
     let frame = cat.product.as_ref().and_then(|p| p.frame()).expect("the catalog says its frame");
@@ -147,7 +148,9 @@ fn the_angle_is_read_from_each_frames_wcs() {
     let frames = simulate(dir.path(), &wcs, 60.0, 31, &wcs_keywords(60.0, false));
     let (chi, sigma, frame, _) = standard(&frames, &wcs).unwrap();
     assert!(diff(chi, CHI_SKY).abs() < 3.0 * sigma, "chi {chi} +- {sigma}, truth {CHI_SKY}");
-    assert!(matches!(frame, mueller::Frame::Celestial { position_angle_deg, .. } if (position_angle_deg - 60.0).abs() < 1e-9));
+    assert!(
+        matches!(frame, mueller::Frame::Celestial { position_angle_deg, .. } if (position_angle_deg - 60.0).abs() < 1e-9)
+    );
     let mirrored = simulate(dir.path(), &wcs, 60.0, 32, &wcs_keywords(60.0, true));
     let e = standard(&mirrored, &wcs).unwrap_err();
     assert!(e.contains(&*mirrored[0].to_string_lossy()) && e.contains("mirrored"), "{e}");
