@@ -1354,6 +1354,31 @@ mod tests {
         assert_eq!(HwpRotation::range(32.5, 10.0), (21.25, -22.5));
     }
 
+    /// `[polarimetry.sky_angle]`: a keyword with its sense and offset, or the WCS; one of the
+    /// two, a sense of +-1 (+1 with the WCS), each mistake refused naming its key and the file.
+    #[test]
+    fn sky_angle_keys_are_checked() {
+        let base = include_str!("../../../instruments/fors1.toml");
+        let with = |table: &str| {
+            let text =
+                base.replace("exptime_keyword = \"EXPTIME\"\n", &format!("exptime_keyword = \"EXPTIME\"\n{table}\n"));
+            Instrument::from_toml_str(&text, Path::new("x.toml")).map_err(|e| e.to_string())
+        };
+        let i = with("sky_angle = { keyword = \"HIERARCH ESO ADA POSANG\", sense = -1, offset_deg = 90 }").unwrap();
+        assert_eq!(i.polarimetry.sky_angle.unwrap().position_angle_deg(30.0), 60.0);
+        with("sky_angle = { from_wcs = true, offset_deg = 0.5 }").unwrap();
+        for (table, key) in [
+            ("sky_angle = { keyword = \"ROTSKYPA\", from_wcs = true }", "keyword/from_wcs"),
+            ("sky_angle = { sense = 1 }", "keyword/from_wcs"),
+            ("sky_angle = { keyword = \"ROTSKYPA\", sense = 2 }", "sense"),
+            ("sky_angle = { from_wcs = true, sense = -1 }", "sense"),
+            ("sky_angle = { keyword = \"ROTSKYPA\", angle = 2 }", "angle"),
+        ] {
+            let e = with(table).unwrap_err();
+            assert!(e.contains(key) && e.contains("x.toml"), "{table}: {e}");
+        }
+    }
+
     /// The built-in MOPTOP as its level-1 frames' headers describe it (instruments/moptop.toml):
     /// two cameras of 1024 px side by side, camera 2 not mirrored, the plate's range from the
     /// rotor's begin and end angles, 0.416" px (a 7.1' field about camera 1's centre), camera

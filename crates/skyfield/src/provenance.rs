@@ -585,6 +585,30 @@ mod tests {
         assert_eq!(h.finish(), want);
     }
 
+    /// A product in the celestial frame says it (`FRAME = 'celestial'` with `SKYPA`) and is
+    /// read back as that frame; `SKYPA` without that frame, or that frame without `SKYPA`, is
+    /// refused naming what is missing.
+    #[test]
+    fn the_celestial_frame_goes_through_the_keywords() {
+        let frame = mueller::Frame::Celestial { zero_angle_deg: 2.5, position_angle_deg: -142.0 };
+        let p = Product {
+            at_plate: Some(false),
+            zero_angle_deg: Some(2.5),
+            position_angle_deg: Some(-142.0),
+            ..Default::default()
+        };
+        let pairs = p.pairs();
+        assert!(
+            pairs.contains(&("FRAME".into(), "celestial".into())) && pairs.contains(&("SKYPA".into(), "-142.0".into()))
+        );
+        let back = Product::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str()))).unwrap().unwrap();
+        assert_eq!(back.frame(), Some(frame));
+        let e = Product::from_pairs([("FRAME", "celestial"), ("HWPZERO", "0")]).unwrap_err();
+        assert!(e.contains("without SKYPA"), "{e}");
+        let e = Product::from_pairs([("FRAME", "sky"), ("HWPZERO", "0"), ("SKYPA", "3")]).unwrap_err();
+        assert!(e.contains("SKYPA"), "{e}");
+    }
+
     #[test]
     fn iso_dates_at_known_epochs() {
         assert_eq!(iso_utc(0), "1970-01-01T00:00:00");
