@@ -65,7 +65,7 @@ impl SkyAngle {
     /// `Err((key, value, why))`.
     pub(crate) fn check(&self) -> Result<(), (String, String, String)> {
         let key = |k: &str| format!("polarimetry.sky_angle.{k}");
-        if self.keyword.trim().is_empty() == !self.from_wcs {
+        if self.keyword.trim().is_empty() != self.from_wcs {
             return Err((
                 key("keyword/from_wcs"),
                 format!("'{}' / {}", self.keyword, self.from_wcs),
