@@ -111,8 +111,13 @@ pub fn correct_catalog_loaded(
             (Some(r), Some(band))
         }
     };
-    // The catalog's rows are in the sky frame of the zero angle it was made with.
-    let frame = mueller::Frame::Sky { zero_angle_deg: cat.chi_offset_deg };
+    // The catalog's rows are in the sky frame of the zero angle it was made with (celestial on
+    // a rotator: its product says so).
+    let frame = cat
+        .product
+        .as_ref()
+        .and_then(|p| p.frame())
+        .unwrap_or(mueller::Frame::Sky { zero_angle_deg: cat.chi_offset_deg });
     let request = crate::request::Request {
         band: band.as_deref(),
         frame,

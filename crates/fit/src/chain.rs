@@ -154,7 +154,23 @@ impl Chain<'_> {
     /// field's and the telescope's instrumental polarization together (first order), as
     /// catalogs and maps report it ([`crate::telescope_cal::ChainCorrected::with_telescope_in_inst`]).
     pub fn invert(&self, i: usize, m: &Measurement) -> Result<Corrected, RowError> {
-        Ok(self.invert_parts(i, m)?.with_telescope_in_inst())
+        // Corrected where the models live (the instrument's frame), then given back on the sky
+        // when the measurement came in the celestial frame ([`Chain::turn_onto_sky_deg`]).
+        let c = self.invert_parts(i, m)?.with_telescope_in_inst();
+        Ok(c.turned(self.turn_onto_sky_deg(m.frame.position_angle_deg())))
+    }
+
+    /// The turn (deg) that puts a correction made in the instrument's frame onto the sky, for
+    /// data taken at the instrument's position angle on the sky `pa_deg` (a celestial row's, a
+    /// map's `SKYPA`): that angle, or 0 when the chain holds a telescope model, whose inverse
+    /// ends on the sky already (its offset and rotator angle turn the sky into the instrument,
+    /// `mueller::telescope`), or when the data give no angle.
+    pub fn turn_onto_sky_deg(&self, pa_deg: Option<f64>) -> f64 {
+        if self.telescope.is_some() {
+            0.0
+        } else {
+            pa_deg.unwrap_or(0.0)
+        }
     }
 
     /// [`invert`](Self::invert) with the telescope's part kept apart: `corrected.inst` is the
@@ -208,8 +224,9 @@ impl Chain<'_> {
     /// (the bins share their exposures), the scatter and the photon-noise errors each
     /// propagated ([`crate::correct::correct_map_with`]).
     pub fn invert_map(&self, map: &skyfield::StokesMap) -> Result<CorrectedMap, MapError> {
+        let pa = self.turn_onto_sky_deg(map.sky_pa_deg);
         crate::correct::correct_map_with(map, |m| {
-            self.invert(0, m).map_err(|e| match e {
+            self.invert(0, m).map(|c| c.turned(pa)).map_err(|e| match e {
                 RowError::Field(e) => e,
                 RowError::Chain(e) => crate::correct::Error::Telescope(e.to_string()),
             })

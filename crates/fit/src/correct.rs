@@ -188,6 +188,16 @@ impl Measurement {
     pub fn in_sky(&self, zero_angle_deg: f64) -> Self {
         Self { qu: self.frame.to_sky(&self.qu, zero_angle_deg), frame: Frame::Sky { zero_angle_deg }, ..*self }
     }
+
+    /// This measurement as the instrument sees it: one in the celestial frame turned back by
+    /// its position angle into the sky frame of its zero angle ([`Frame::in_instrument`]), any
+    /// other itself.
+    pub fn in_instrument(&self) -> Self {
+        match self.frame.zero_angle_deg().filter(|_| self.frame.position_angle_deg().is_some()) {
+            Some(z) => self.in_sky(z),
+            None => *self,
+        }
+    }
 }
 
 /// The intrinsic polarization of a source after correction.
@@ -247,6 +257,26 @@ pub fn is_output_column(name: &str) -> bool {
 }
 
 impl Corrected {
+    /// This correction turned by `deg` (added to `chi0`, `eq:polang`): `q0, u0` with their
+    /// covariance, `chi0` and the instrumental `q, u` removed ([`Qu::rotated`]). Itself, bit
+    /// for bit, for a turn of 0.
+    pub fn turned(&self, deg: f64) -> Self {
+        if deg == 0.0 {
+            return *self;
+        }
+        let t = Qu::new(self.q0, self.u0, self.var_q0, self.var_u0, self.cov_qu0).rotated(deg.to_radians());
+        Corrected {
+            q0: t.q,
+            u0: t.u,
+            var_q0: t.var_q,
+            var_u0: t.var_u,
+            cov_qu0: t.cov_qu,
+            chi0: mueller::fold_pi(self.chi0 + deg.to_radians()),
+            inst: self.inst.rotated(deg.to_radians()),
+            ..*self
+        }
+    }
+
     /// The values written for a corrected row, named by [`OUTPUT_NAMES`]: errors as standard
     /// deviations, angles in degrees, the instrumental `q, u` that was removed.
     #[inline]
@@ -658,14 +688,18 @@ pub enum MapError {
 /// `eq:approx`, as `opts` says): the scatter errors (`sigma_q/u`, `cov_qu`) and the
 /// photon-noise errors (`sigma_q/u_phot`) are each propagated with the calibration's own
 /// error. The map's instrument and filter are not checked here: the caller does (`instpol
-/// correct` refuses a map of another instrument or filter, [`crate::setup::same_filter`]).
+/// correct` refuses a map of another instrument or filter, [`crate::setup::same_filter`]). A
+/// map that records its instrument's position angle on the sky (`SKYPA`) is corrected as the
+/// instrument saw it and then turned onto the sky by that angle ([`Corrected::turned`]).
 pub fn correct_map<M: FieldModel + ?Sized>(
     model: &M,
     map: &skyfield::StokesMap,
     opts: CorrectOptions,
 ) -> Result<CorrectedMap, MapError> {
     let cor = Corrector::new(model, opts);
-    correct_map_with(map, |m| cor.correct(m))
+    // On a rotator the corrected bin goes onto the sky by the map's position angle.
+    let pa = map.sky_pa_deg.unwrap_or(0.0);
+    correct_map_with(map, |m| cor.correct(m).map(|r| r.turned(pa)))
 }
 
 /// [`correct_map`] with any correction of one measurement (`correct`, e.g. the Mueller

@@ -430,11 +430,13 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
 /// The HWP zero angles (deg) of a correction of rows in `frame` by models in the sky frame of
 /// the zero angle `models` (`None`: a telescope model alone, which takes the rows in their own
 /// frame, as its standards were measured): `(to_sky, plate)`. `to_sky` is the turn the rows
-/// get ([`Frame::turn_to`]: 0 for a catalog of `instpol catalog` in that frame already); `plate`
+/// get for the zero angle ([`Frame::turn_to`] from the instrument's frame: 0 for a catalog of
+/// `instpol catalog` in that frame already; a celestial row's position angle is undone before
+/// the models and given back after them, `crate::chain::Chain::invert`); `plate`
 /// is the zero angle of the plate the exposures were taken through, for their demodulation
 /// (`telescope_cal::telescope_exposures`): the models', else the one the rows carry, else 0.
 fn row_zero_angles(models: Option<f64>, frame: Frame) -> (f64, f64) {
-    (models.map_or(0.0, |z| frame.turn_to(z)), models.or(frame.zero_angle_deg()).unwrap_or(0.0))
+    (models.map_or(0.0, |z| frame.in_instrument().turn_to(z)), models.or(frame.zero_angle_deg()).unwrap_or(0.0))
 }
 
 impl RowsPlan<'_> {

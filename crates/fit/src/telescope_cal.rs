@@ -352,7 +352,9 @@ pub fn correct_chain_seen<M: FieldModel + ?Sized>(
     if let Some(z) = zero_angle_deg.filter(|z| !z.is_finite()) {
         return Err(Error::Input(format!("HWP zero angle {z} deg is not a finite number")));
     }
-    let m = &zero_angle_deg.map_or(*m, |z| m.in_sky(z));
+    // Without a field's zero angle the data are taken in their own frame, as the instrument
+    // saw them (a celestial row turned back by its position angle).
+    let m = &zero_angle_deg.map_or(m.in_instrument(), |z| m.in_sky(z));
     let (q1, u1, cov, inst, extrapolated) = match field {
         Some(c) => {
             let r = c.correct(m).map_err(|e| Error::Input(e.to_string()))?;

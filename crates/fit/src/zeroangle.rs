@@ -233,9 +233,12 @@ pub struct MeasuredStandard {
 }
 
 impl MeasuredStandard {
-    /// A standard measured in frames at `(x, y)` px with `P`, `chi` (rad) and their errors,
-    /// catalogued at `chi_catalogue_deg +- sigma_catalogue_deg`: refused when
-    /// `P <= MIN_P_SNR sigma_P` (its angle is not measured).
+    /// A standard measured in frames at `(x, y)` px with `P`, `chi` (rad, at the plate) and
+    /// their errors, catalogued at `chi_catalogue_deg +- sigma_catalogue_deg`: refused when
+    /// `P <= MIN_P_SNR sigma_P` (its angle is not measured). On a rotator `sky_pa_deg` is the
+    /// frames' position angle on the sky (`skyfield::sky_angle::of_set`), added to the measured
+    /// `chi` so that the zero angle found is the plate's alone, as catalogs of the instrument
+    /// add both (a catalogued angle is north through east).
     #[allow(clippy::too_many_arguments)]
     pub fn from_frames(
         label: String,
@@ -244,15 +247,20 @@ impl MeasuredStandard {
         (chi, sigma_chi): (f64, f64),
         chi_catalogue_deg: f64,
         sigma_catalogue_deg: f64,
+        sky_pa_deg: Option<f64>,
     ) -> Result<Self, Error> {
         if !(p > MIN_P_SNR * sigma_p) {
             return Err(Error::TooLittlePolarization { label, x, y, p, sigma_p });
         }
+        let chi_measured_deg = match sky_pa_deg {
+            Some(pa) => mueller::fold_pi(chi + pa.to_radians()).to_degrees(),
+            None => chi.to_degrees(),
+        };
         Ok(Self {
             label,
             x: Some(x),
             y: Some(y),
-            chi_measured_deg: chi.to_degrees(),
+            chi_measured_deg,
             sigma_chi_measured_deg: sigma_chi.to_degrees(),
             chi_catalogue_deg,
             sigma_chi_catalogue_deg: sigma_catalogue_deg,
@@ -652,7 +660,8 @@ mod tests {
     /// naming the file and the row.
     #[test]
     fn measured_standards_selected_read_and_combined() {
-        let at = |p: f64| MeasuredStandard::from_frames("s".into(), (1.0, 2.0), (p, 0.001), (0.1, 0.01), 30.0, 0.1);
+        let at =
+            |p: f64| MeasuredStandard::from_frames("s".into(), (1.0, 2.0), (p, 0.001), (0.1, 0.01), 30.0, 0.1, None);
         assert!(matches!(at(0.003), Err(Error::TooLittlePolarization { .. })));
         let m = at(0.0031).unwrap();
         assert_eq!(

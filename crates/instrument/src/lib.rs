@@ -12,10 +12,12 @@ use std::path::{Path, PathBuf};
 
 mod format;
 pub mod headers;
+mod sky_angle;
 pub mod telescope;
 pub mod toml_numbers;
 pub use format::{Chip, Correction, FrameFormat, NumberOrKeyword};
 pub use headers::{Headers, Role};
+pub use sky_angle::SkyAngle;
 pub use telescope::{Focus, Telescope};
 
 /// Errors while loading an instrument definition.
@@ -308,6 +310,11 @@ pub struct Polarimetry {
     /// Two cameras (`layout = "two_cameras"`): which chip is which and how they map.
     #[serde(default)]
     pub cameras: Option<Cameras>,
+    /// Where the instrument's position angle on the sky is read (`[polarimetry.sky_angle]`):
+    /// catalogs and corrected maps then give `chi` north through east. Absent: angles stay in
+    /// the instrument's frame.
+    #[serde(default)]
+    pub sky_angle: Option<SkyAngle>,
 }
 
 /// A half-wave plate that turns continuously: each exposure integrates the modulation over the
@@ -706,6 +713,9 @@ impl Instrument {
             );
         }
         if let Some(Err((key, value, why))) = self.polarimetry.rotation.as_ref().map(HwpRotation::check) {
+            return bad(&key, value, &why);
+        }
+        if let Some(Err((key, value, why))) = self.polarimetry.sky_angle.as_ref().map(SkyAngle::check) {
             return bad(&key, value, &why);
         }
         let qwp = self.polarimetry.plate == Plate::QuarterWave;
@@ -1342,6 +1352,31 @@ mod tests {
         }
         assert_eq!(HwpRotation::range(10.0, 32.5), (21.25, 22.5));
         assert_eq!(HwpRotation::range(32.5, 10.0), (21.25, -22.5));
+    }
+
+    /// `[polarimetry.sky_angle]`: a keyword with its sense and offset, or the WCS; one of the
+    /// two, a sense of +-1 (+1 with the WCS), each mistake refused naming its key and the file.
+    #[test]
+    fn sky_angle_keys_are_checked() {
+        let base = include_str!("../../../instruments/fors1.toml");
+        let with = |table: &str| {
+            let text =
+                base.replace("exptime_keyword = \"EXPTIME\"\n", &format!("exptime_keyword = \"EXPTIME\"\n{table}\n"));
+            Instrument::from_toml_str(&text, Path::new("x.toml")).map_err(|e| e.to_string())
+        };
+        let i = with("sky_angle = { keyword = \"HIERARCH ESO ADA POSANG\", sense = -1, offset_deg = 90 }").unwrap();
+        assert_eq!(i.polarimetry.sky_angle.unwrap().position_angle_deg(30.0), 60.0);
+        with("sky_angle = { from_wcs = true, offset_deg = 0.5 }").unwrap();
+        for (table, key) in [
+            ("sky_angle = { keyword = \"ROTSKYPA\", from_wcs = true }", "keyword/from_wcs"),
+            ("sky_angle = { sense = 1 }", "keyword/from_wcs"),
+            ("sky_angle = { keyword = \"ROTSKYPA\", sense = 2 }", "sense"),
+            ("sky_angle = { from_wcs = true, sense = -1 }", "sense"),
+            ("sky_angle = { keyword = \"ROTSKYPA\", angle = 2 }", "angle"),
+        ] {
+            let e = with(table).unwrap_err();
+            assert!(e.contains(key) && e.contains("x.toml"), "{table}: {e}");
+        }
     }
 
     /// The built-in MOPTOP as its level-1 frames' headers describe it (instruments/moptop.toml):

@@ -83,9 +83,18 @@ pub enum Frame {
     /// As the plate measured it: `chi` from the plate's zero, which these values do not place
     /// on the sky.
     Plate,
-    /// The sky's: the plate's zero angle `zero_angle_deg` (deg) added to the `chi` measured at
-    /// the plate (`instpol catalog`'s rows, with their `hwp_chi_offset_deg` column).
+    /// The sky's as the instrument sees it: the plate's zero angle `zero_angle_deg` (deg) added
+    /// to the `chi` measured at the plate (`instpol catalog`'s rows, with their
+    /// `hwp_chi_offset_deg` column). On an instrument whose angle zero points north this is the
+    /// celestial frame; on a rotator it turns with the instrument. The models of a calibration
+    /// live here.
     Sky { zero_angle_deg: f64 },
+    /// The celestial frame, north through east, of an instrument a rotator turns: the plate's
+    /// zero angle `zero_angle_deg`, then the instrument's position angle on the sky
+    /// `position_angle_deg` (deg), added to the `chi` measured at the plate (`instpol
+    /// catalog`'s rows of an instrument with `[polarimetry.sky_angle]`, with their
+    /// `hwp_chi_offset_deg` and `sky_pa_deg` columns).
+    Celestial { zero_angle_deg: f64, position_angle_deg: f64 },
 }
 
 impl Frame {
@@ -101,6 +110,7 @@ impl Frame {
         match self {
             Frame::Plate => 0.0,
             Frame::Sky { zero_angle_deg } => zero_angle_deg,
+            Frame::Celestial { zero_angle_deg, position_angle_deg } => zero_angle_deg + position_angle_deg,
         }
     }
 
@@ -108,7 +118,36 @@ impl Frame {
     pub fn zero_angle_deg(self) -> Option<f64> {
         match self {
             Frame::Plate => None,
-            Frame::Sky { zero_angle_deg } => Some(zero_angle_deg),
+            Frame::Sky { zero_angle_deg } | Frame::Celestial { zero_angle_deg, .. } => Some(zero_angle_deg),
+        }
+    }
+
+    /// The instrument's position angle on the sky (deg) this frame has been turned by, when it
+    /// is the celestial frame.
+    pub fn position_angle_deg(self) -> Option<f64> {
+        match self {
+            Frame::Celestial { position_angle_deg, .. } => Some(position_angle_deg),
+            _ => None,
+        }
+    }
+
+    /// The frame as the instrument sees it: the celestial frame without its position angle (the
+    /// sky frame of its zero angle), any other frame itself. A calibration's models live there.
+    pub fn in_instrument(self) -> Frame {
+        match self {
+            Frame::Celestial { zero_angle_deg, .. } => Frame::Sky { zero_angle_deg },
+            f => f,
+        }
+    }
+
+    /// `qu`, given in the instrument's frame (after a correction in a model's sky frame), turned
+    /// onto the sky by this frame's position angle: itself, bit for bit, for any frame but the
+    /// celestial one.
+    #[inline]
+    pub fn onto_sky(self, qu: &Qu) -> Qu {
+        match self {
+            Frame::Celestial { position_angle_deg, .. } => qu.rotated(position_angle_deg.to_radians()),
+            _ => *qu,
         }
     }
 
@@ -303,6 +342,16 @@ mod tests {
         assert_eq!(Frame::Plate.zero_angle_deg(), None);
         assert_eq!(Frame::carrying(None), Frame::Plate);
         assert_eq!(Frame::carrying(Some(2.89)), Frame::Sky { zero_angle_deg: 2.89 });
+        // The celestial frame: the position angle on top of the zero angle, each undone by hand.
+        for (z, pa) in [(2.89, -142.0), (0.0, 30.0), (-1.8, 181.5)] {
+            let cel = Frame::Celestial { zero_angle_deg: z, position_angle_deg: pa };
+            assert!(close(&cel.at_plate(&e), &by_hand(&e, -z - pa)), "{z}, {pa} -> plate");
+            assert!(close(&cel.to_sky(&e, z), &by_hand(&e, -pa)), "{z}, {pa} -> instrument");
+            assert!(close(&cel.onto_sky(&cel.to_sky(&e, z)), &e), "{z}, {pa} back onto the sky");
+            assert_eq!(cel.in_instrument(), Frame::Sky { zero_angle_deg: z });
+            assert_eq!((cel.zero_angle_deg(), cel.position_angle_deg()), (Some(z), Some(pa)));
+            assert_eq!(Frame::Sky { zero_angle_deg: z }.onto_sky(&e), e);
+        }
     }
 
     /// The rotation against nalgebra's `R v` and `R C R^T`: the invariants (trace,

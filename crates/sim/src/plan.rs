@@ -408,7 +408,23 @@ impl Plan {
     /// closure), evaluated at every sky pixel's field position (arcmin from the detector
     /// centre). The scene must then not name an `[effects.instpol]` of its own. Where the model
     /// gives no finite polarization (outside a map, NaN pixels) there is none.
+    /// A scene whose instrument stands at a position angle on the sky (`sky_pa_deg`) is
+    /// rendered as the instrument sees it ([`Scene::seen_by_instrument`]).
     pub fn build_with_field(scene: &Scene, field: Option<Arc<dyn FieldModel>>) -> Result<Self, Error> {
+        let mut plan = Self::build_seen(&scene.seen_by_instrument(), field)?;
+        if let Some(pa) = scene.sky_pa_deg {
+            plan.explain.insert(
+                1,
+                format!(
+                    "instrument at position angle {pa} deg on the sky: every chi below as it sees it (chi - {pa} deg)"
+                ),
+            );
+        }
+        Ok(plan)
+    }
+
+    /// [`Plan::build_with_field`] of a scene already as the instrument sees it.
+    fn build_seen(scene: &Scene, field: Option<Arc<dyn FieldModel>>) -> Result<Self, Error> {
         let inst = Instrument::load(&scene.instrument)?;
         let filter = inst.filter(&scene.filter)?.clone();
         // The beam layout of the scene's filter (its own throw, when the instrument gives one).
@@ -1138,6 +1154,7 @@ impl Plan {
             self.header_keys("instpol simulation", Some(self.scene.hwp_angles_deg[k]), self.scene.exposure_s);
         keys.extend(tel_keys);
         keys.extend(self.rotation_keys(k));
+        keys.extend(self.sky_angle_keys());
         if let Some(m) = self.frame_start_mjd(k) {
             keys.push(("MJD-OBS".into(), KeyValue::F64(m), "start of the exposure [MJD]".into()));
         }
@@ -1206,6 +1223,20 @@ impl Plan {
             (r.begin_keyword.clone(), KeyValue::F64(a - 0.5 * d), "plate angle at the start [deg]".into()),
             (r.end_keyword.clone(), KeyValue::F64(a + 0.5 * d), "plate angle at the end [deg]".into()),
         ]
+    }
+
+    /// The keyword of the instrument's position angle on the sky (`[polarimetry.sky_angle]`),
+    /// when the scene gives the angle (`sky_pa_deg`): the header's value, the sense and offset
+    /// undone. An instrument that reads the angle from a WCS gets none: the simulator writes no
+    /// celestial WCS (a scene gives one through `[output] keywords`).
+    fn sky_angle_keys(&self) -> Vec<(String, KeyValue, String)> {
+        match (&self.inst.polarimetry.sky_angle, self.scene.sky_pa_deg) {
+            (Some(a), Some(pa)) if !a.from_wcs => {
+                let what = "instrument position angle on the sky [deg]".to_string();
+                vec![(a.keyword.clone(), KeyValue::F64(a.header_value_deg(pa)), what)]
+            }
+            _ => vec![],
+        }
     }
 
     /// File name of frame `k` (for a chip instrument, [`Plan::frame_files`]).
@@ -1676,7 +1707,9 @@ impl Plan {
             .flatten()
             .collect();
         let rel = |p: &PathBuf| p.strip_prefix(out).unwrap_or(p).to_string_lossy().into_owned();
-        let (sky_q, sky_u) = match &self.scene.sky {
+        // The truth on the sky, as the scene gave it (the plan holds it as the instrument saw it).
+        let on_sky = self.scene.on_sky();
+        let (sky_q, sky_u) = match &on_sky.sky {
             Some(s) => {
                 (Some(s.p * (2.0 * s.chi_deg.to_radians()).cos()), Some(s.p * (2.0 * s.chi_deg.to_radians()).sin()))
             }
@@ -1684,7 +1717,7 @@ impl Plan {
         };
         let truth = Truth {
             format: "instpol-sim-truth-1",
-            scene: &self.scene,
+            scene: &on_sky,
             instrument: &self.inst,
             frames: files
                 .iter()

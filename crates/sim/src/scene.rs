@@ -135,6 +135,13 @@ pub struct Scene {
     /// A half-wave plate that turns during each exposure; absent: it stands still.
     #[serde(default)]
     pub hwp_motion: Option<HwpMotion>,
+    /// The instrument's position angle on the sky (deg, north through east) on a rotator: the
+    /// sky's, stars' and extended sources' `chi_deg` are then the sky's, and the instrument sees
+    /// each at `chi - sky_pa_deg` ([`Scene::seen_by_instrument`]); the frames carry the angle
+    /// under the instrument's `[polarimetry.sky_angle]` keyword (its sense and offset undone).
+    /// Positions stay as given, on the detector. Absent: the instrument's frame is the sky's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sky_pa_deg: Option<f64>,
 }
 
 /// A half-wave plate turning uniformly during each exposure: exposure `k` sweeps `sweep_deg`
@@ -561,6 +568,7 @@ impl Scene {
         let base = path.parent().unwrap_or(Path::new(""));
         s.resolve_paths(base);
         s.validate(path)?;
+        s.validate_sky_pa(path)?;
         Ok(s)
     }
 
@@ -568,7 +576,65 @@ impl Scene {
     /// returned; `label` names it in errors. Its file paths are taken as they are.
     pub fn checked(self, label: &Path) -> Result<Self, Error> {
         self.validate(label)?;
+        self.validate_sky_pa(label)?;
         Ok(self)
+    }
+
+    /// The scene as the instrument sees it on its rotator: every `chi_deg` (sky, stars,
+    /// extended sources) less the instrument's position angle on the sky `sky_pa_deg`, so that
+    /// the one chain of the simulator renders what reaches the instrument; `sky_pa_deg` is
+    /// kept (the frames' headers say it), and [`Scene::on_sky`] is the way back.
+    pub fn seen_by_instrument(&self) -> Scene {
+        self.turned(-self.sky_pa_deg.unwrap_or(0.0))
+    }
+
+    /// The inverse of [`Scene::seen_by_instrument`]: the scene's angles on the sky again.
+    pub fn on_sky(&self) -> Scene {
+        self.turned(self.sky_pa_deg.unwrap_or(0.0))
+    }
+
+    /// Every `chi_deg` turned by `deg`, folded into [0, 180).
+    fn turned(&self, deg: f64) -> Scene {
+        let mut s = self.clone();
+        if deg == 0.0 {
+            return s;
+        }
+        let turn = |chi: &mut f64| *chi = mueller::fold_pi((*chi + deg).to_radians()).to_degrees();
+        if let Some(sky) = &mut s.sky {
+            turn(&mut sky.chi_deg);
+        }
+        s.stars.iter_mut().for_each(|st| turn(&mut st.chi_deg));
+        s.extended.iter_mut().for_each(|e| turn(&mut e.chi_deg));
+        s
+    }
+
+    /// The checks of `sky_pa_deg`: a finite angle, an instrument that says where its frames
+    /// carry the angle (`[polarimetry.sky_angle]`), and no `[telescope]` (whose `offset_deg` and
+    /// `rotator_deg` turn the sky into the instrument already: one turn, given once).
+    fn validate_sky_pa(&self, path: &Path) -> Result<(), Error> {
+        let Some(pa) = self.sky_pa_deg else { return Ok(()) };
+        let bad = |why: String| {
+            Err(Error::Invalid { path: path.into(), key: "sky_pa_deg".into(), value: pa.to_string(), why })
+        };
+        if !pa.is_finite() {
+            return bad("must be a finite angle in degrees".into());
+        }
+        if self.telescope.is_some() {
+            return bad(
+                "a [telescope] turns the sky into the instrument by its offset_deg and rotator_deg already: give the \
+                 instrument's angle there, not twice"
+                    .into(),
+            );
+        }
+        let inst = instrument::Instrument::load(&self.instrument)?;
+        if inst.polarimetry.sky_angle.is_none() {
+            return bad(format!(
+                "instrument {} does not say where its frames carry their position angle on the sky \
+                 ([polarimetry.sky_angle]): the frames could not tell it",
+                inst.name
+            ));
+        }
+        Ok(())
     }
 
     /// Read and validate a scene file.

@@ -343,6 +343,24 @@ pub fn frame_alignment(hwp_deg: &[f64], centres: &[&Vec<[f64; 4]>]) -> Vec<Frame
 }
 
 impl Catalog {
+    /// Turn every row's `q, u` (with their covariance and scatter-based errors) and `chi` by
+    /// the instrument's position angle on the sky `pa_deg`: from the instrument's frame into the
+    /// celestial one, north through east (`mueller::Frame::Celestial`). `P` and the errors of
+    /// `P` and `chi` do not change under a turn.
+    pub fn turn_onto_sky(&mut self, pa_deg: f64) {
+        let frame = mueller::Frame::Celestial { zero_angle_deg: self.chi_offset_deg, position_angle_deg: pa_deg };
+        for r in &mut self.rows {
+            let qu = mueller::Qu::from_sigmas(r.q, r.u, r.sigma_q, r.sigma_u, r.cov_qu);
+            let t = frame.onto_sky(&qu);
+            // The scatter-based errors are the propagated ones times one factor (`Row`).
+            let k = if r.sigma_q > 0.0 { r.sigma_q_scatter / r.sigma_q } else { f64::NAN };
+            (r.q, r.u, r.cov_qu) = (t.q, t.u, t.cov_qu);
+            (r.sigma_q, r.sigma_u) = (t.var_q.sqrt(), t.var_u.sqrt());
+            (r.sigma_q_scatter, r.sigma_u_scatter) = (k * r.sigma_q, k * r.sigma_u);
+            r.chi_deg = mueller::fold_pi((r.chi_deg + pa_deg).to_radians()).to_degrees();
+        }
+    }
+
     /// The catalog as a table (one row per paired star; `f_0`, `f_1`, ... the `F_i` of each
     /// HWP angle), with units (`pix`, `arcmin`, `deg`, `ct` for photo-electrons, the FITS standard having no electron unit; q, u and their errors are
     /// dimensionless fractions), for [`crate::table::Table::write`] in any format.
@@ -369,7 +387,12 @@ impl Catalog {
             fr("cov_qu", |x| x.cov_qu, "covariance of q and u"),
             fr("p", |x| x.p, "polarization degree (fraction)"),
             fr("sigma_p", |x| x.sigma_p, "1-sigma error of p"),
-            Column::f64("chi_deg", Some("deg"), "polarization angle, HWP zero angle added", col(|x| x.chi_deg)),
+            Column::f64(
+                "chi_deg",
+                Some("deg"),
+                "polarization angle, HWP zero angle (and any position angle on the sky) added",
+                col(|x| x.chi_deg),
+            ),
             Column::f64(
                 crate::table::ZERO_ANGLE_COLUMN,
                 Some("deg"),
@@ -412,6 +435,12 @@ impl Catalog {
             let v = |g: fn(&Row) -> Option<f64>| r.iter().map(|x| g(x).unwrap_or(f64::NAN)).collect::<Vec<f64>>();
             c.push(Column::f64("v", None, "V/I (dimensionless fraction, IAU sign)", v(|x| x.v)));
             c.push(Column::f64("sigma_v", None, "1-sigma error of v", v(|x| x.sigma_v)));
+        }
+        if let Some(pa) = self.product.as_ref().and_then(|p| p.position_angle_deg) {
+            // On a rotator: the position angle the rows were turned by, beside the zero angle.
+            let at = c.iter().position(|x| x.name == crate::table::ZERO_ANGLE_COLUMN).map_or(c.len(), |i| i + 1);
+            let what = "instrument's position angle on the sky already applied to q, u, chi (north through east)";
+            c.insert(at, Column::f64(crate::table::SKY_PA_COLUMN, Some("deg"), what, vec![pa; r.len()]));
         }
         if r.iter().any(|x| x.ra_deg.is_some()) {
             // The frames' celestial WCS: columns only when a row has a position.
@@ -463,7 +492,15 @@ pub fn catalog_files(
         }
     }
     cat.frames = exposures;
-    let frame = mueller::Frame::Sky { zero_angle_deg: cat.chi_offset_deg };
+    // On a rotator: the rows onto the sky, north through east, by the set's one position angle.
+    let firsts: Vec<&Path> = cat.frames.iter().map(|(p, _)| p.as_path()).collect();
+    let frame = match crate::sky_angle::of_set(&firsts, inst)? {
+        Some(pa) => {
+            cat.turn_onto_sky(pa);
+            mueller::Frame::Celestial { zero_angle_deg: cat.chi_offset_deg, position_angle_deg: pa }
+        }
+        None => mueller::Frame::Sky { zero_angle_deg: cat.chi_offset_deg },
+    };
     cat.product = Some(crate::provenance::Product::of_instrument(inst, &cat.filter, Some(frame)));
     warnings.extend(zero_angle_warning(inst, &cat.filter));
     warnings.extend(pairing_warning(&cat, inst, cfg.detect.pair_tol_px));

@@ -32,6 +32,7 @@ pub mod photometry;
 pub mod provenance;
 pub mod reduce;
 pub mod same;
+pub mod sky_angle;
 pub mod solve;
 pub mod table;
 pub mod wcs;

@@ -33,6 +33,10 @@
 //! `Q`, `U` and `CHI` of a map from `instpol reduce` do not carry it (they are at the plate),
 //! and a correction that must bring them into the sky frame takes it from there (a name in
 //! `INSTRUME` may be a custom instrument file's, whose zero angle no lookup by name can find).
+//! `SKYPA` (deg, optional) is the instrument's position angle on the sky of the map's exposures,
+//! when its instrument says where to read it (`[polarimetry.sky_angle]`): an uncorrected map's
+//! `Q`, `U` and `CHI` are at the plate all the same, and a corrected map's are turned by it onto
+//! the sky, north through east (the celestial frame).
 //! A corrected map also carries the correction's record ([`CorrectionStamp`]).
 //!
 //! A circular-polarization map ([`CircularMap`], frames through a quarter-wave plate) has the
@@ -280,6 +284,12 @@ pub struct StokesMap {
     /// `HWPZERO` in FITS (module docs); `None` for a map that does not say.
     #[serde(default)]
     pub hwp_zero_angle_deg: Option<f64>,
+    /// The instrument's position angle on the sky (deg, north through east) of the map's
+    /// exposures, when its instrument says where to read it (`[polarimetry.sky_angle]`,
+    /// `crate::sky_angle`): `SKYPA` in FITS. The map's own `Q/I`, `U/I` stay at the plate; a
+    /// corrected map is turned by it onto the sky, the celestial frame.
+    #[serde(default)]
+    pub sky_pa_deg: Option<f64>,
 }
 
 /// One exposure of a map ([`StokesMap::exposure_tracks`]): its HWP angle (deg) and the
@@ -675,6 +685,7 @@ impl StokesMap {
             rotator_rad: None,
             exposure_tracks: vec![],
             hwp_zero_angle_deg: None,
+            sky_pa_deg: None,
         }
     }
 
@@ -730,6 +741,11 @@ impl StokesMap {
         if let Some(z) = self.hwp_zero_angle_deg {
             crate::fits::KeyValue::F64(z)
                 .write(f, &ph, "HWPZERO", "HWP zero angle of the filter, not in Q, U [deg]")
+                .map_err(e)?;
+        }
+        if let Some(a) = self.sky_pa_deg {
+            crate::fits::KeyValue::F64(a)
+                .write(f, &ph, "SKYPA", "instrument position angle on the sky [deg]")
                 .map_err(e)?;
         }
         let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
@@ -816,20 +832,19 @@ impl StokesMap {
         };
         let RecordedAngles { parallactic_rad, rotator_rad, exposure_tracks } =
             RecordedAngles::from_keywords(|k| crate::fits::read_key_str(&mut f, &ph, k).ok(), path)?;
-        let hwp_zero_angle_deg = match crate::fits::read_key_str(&mut f, &ph, "HWPZERO").ok() {
-            None => None,
+        let mut angle = |key: &str| match crate::fits::read_key_str(&mut f, &ph, key).ok() {
+            None => Ok(None),
             Some(v) => match v.trim().parse::<f64>() {
-                Ok(z) if z.is_finite() => Some(z),
-                _ => {
-                    return Err(Error::BadKeyword {
-                        path: path.into(),
-                        keyword: "HWPZERO".into(),
-                        value: v,
-                        expected: "a finite angle in degrees".into(),
-                    })
-                }
+                Ok(z) if z.is_finite() => Ok(Some(z)),
+                _ => Err(Error::BadKeyword {
+                    path: path.into(),
+                    keyword: key.into(),
+                    value: v,
+                    expected: "a finite angle in degrees".into(),
+                }),
             },
         };
+        let (hwp_zero_angle_deg, sky_pa_deg) = (angle("HWPZERO")?, angle("SKYPA")?);
         // A map made elsewhere (or edited) is checked before anything is fitted to it: every
         // valid bin holds a physical polarization and a covariance that is one.
         for k in (0..n).filter(|&k| valid[k]) {
@@ -877,6 +892,7 @@ impl StokesMap {
             rotator_rad,
             exposure_tracks,
             hwp_zero_angle_deg,
+            sky_pa_deg,
         })
     }
 }

@@ -245,8 +245,12 @@ pub struct Product {
     /// ([`Product::frame`]).
     pub zero_angle_deg: Option<f64>,
     /// `true`: the values are at the plate, as demodulated; `false`: in the sky frame of
-    /// `zero_angle_deg`.
+    /// `zero_angle_deg` (the celestial frame when `position_angle_deg` is given).
     pub at_plate: Option<bool>,
+    /// The instrument's position angle on the sky (deg) the values were turned by into the
+    /// celestial frame, north through east (`mueller::Frame::Celestial`, keyword `SKYPA`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub position_angle_deg: Option<f64>,
     /// The detector binning (x, y).
     pub binning: Option<(u32, u32)>,
     /// The detector's size (pixels, x by y) and pixel scale (arcsec per unbinned pixel).
@@ -262,17 +266,20 @@ pub struct Product {
 
 /// The keywords of a [`Product`] (FITS-keyword names: at most 8 characters), in writing order;
 /// the inputs follow as `INHASH1`, `INHASH2`, ...
-pub const PRODUCT_KEYS: [&str; 11] = [
-    "INSTRUME", "INSTHASH", "FILTER", "WAVELEN", "PLATE", "FRAME", "HWPZERO", "BINNING", "DETSIZE", "PIXSCALE",
-    "MISMATCH",
+pub const PRODUCT_KEYS: [&str; 12] = [
+    "INSTRUME", "INSTHASH", "FILTER", "WAVELEN", "PLATE", "FRAME", "HWPZERO", "SKYPA", "BINNING", "DETSIZE",
+    "PIXSCALE", "MISMATCH",
 ];
 
 impl Product {
     /// The frame of the product's `(q, u)`, when it says.
     pub fn frame(&self) -> Option<mueller::Frame> {
-        match (self.at_plate, self.zero_angle_deg) {
-            (Some(true), _) => Some(mueller::Frame::Plate),
-            (Some(false), Some(z)) => Some(mueller::Frame::Sky { zero_angle_deg: z }),
+        match (self.at_plate, self.zero_angle_deg, self.position_angle_deg) {
+            (Some(true), _, _) => Some(mueller::Frame::Plate),
+            (Some(false), Some(z), Some(pa)) => {
+                Some(mueller::Frame::Celestial { zero_angle_deg: z, position_angle_deg: pa })
+            }
+            (Some(false), Some(z), None) => Some(mueller::Frame::Sky { zero_angle_deg: z }),
             _ => None,
         }
     }
@@ -300,8 +307,10 @@ impl Product {
         put("FILTER", self.filter.clone());
         put("WAVELEN", self.wavelength_um.map(|w| format!("{w:?}")));
         put("PLATE", self.plate.clone());
-        put("FRAME", self.at_plate.map(|p| if p { "plate" } else { "sky" }.to_string()));
+        let sky = if self.position_angle_deg.is_some() { "celestial" } else { "sky" };
+        put("FRAME", self.at_plate.map(|p| if p { "plate" } else { sky }.to_string()));
         put("HWPZERO", self.zero_angle_deg.map(|z| format!("{z:?}")));
+        put("SKYPA", self.position_angle_deg.map(|a| format!("{a:?}")));
         put("BINNING", self.binning.map(|(x, y)| format!("{x}x{y}")));
         put("DETSIZE", self.detector_px.map(|(x, y)| format!("{x}x{y}")));
         put("PIXSCALE", self.pixel_scale_arcsec.map(|s| format!("{s:?}")));
@@ -319,6 +328,7 @@ impl Product {
         let mut p = Product::default();
         let mut any = false;
         let mut inputs: Vec<(usize, String)> = Vec::new();
+        let mut celestial = false;
         let num = |k: &str, v: &str| -> Result<f64, String> {
             v.trim().parse::<f64>().ok().filter(|x| x.is_finite()).ok_or_else(|| format!("{k} = '{v}' is not a number"))
         };
@@ -343,11 +353,13 @@ impl Product {
                 "FRAME" => {
                     p.at_plate = Some(match text.to_ascii_lowercase().as_str() {
                         "plate" => true,
-                        "sky" => false,
-                        _ => return Err(format!("FRAME = '{v}' is neither 'plate' nor 'sky'")),
-                    })
+                        "sky" | "celestial" => false,
+                        _ => return Err(format!("FRAME = '{v}' is none of 'plate', 'sky' and 'celestial'")),
+                    });
+                    celestial = text.eq_ignore_ascii_case("celestial");
                 }
                 "HWPZERO" => p.zero_angle_deg = Some(num(&key, v)?),
+                "SKYPA" => p.position_angle_deg = Some(num(&key, v)?),
                 "BINNING" => {
                     let (x, y) = two(&key, v)?;
                     p.binning = Some((x as u32, y as u32));
@@ -363,6 +375,13 @@ impl Product {
                     inputs.push((n, format!("blake3:{text}")));
                 }
             }
+        }
+        if celestial != p.position_angle_deg.is_some() {
+            return Err(if celestial {
+                "FRAME = 'celestial' without SKYPA, the position angle it was turned by".to_string()
+            } else {
+                "SKYPA is given but FRAME is not 'celestial'".to_string()
+            });
         }
         inputs.sort();
         p.inputs = inputs.into_iter().map(|(_, h)| h).collect();
@@ -382,6 +401,7 @@ impl Product {
             plate: Some(inst.polarimetry.plate.name().to_string()),
             zero_angle_deg: frame.and_then(|f| f.zero_angle_deg()),
             at_plate: frame.map(|f| matches!(f, mueller::Frame::Plate)),
+            position_angle_deg: frame.and_then(|f| f.position_angle_deg()),
             binning: None,
             detector_px: Some((inst.detector.nx, inst.detector.ny)),
             pixel_scale_arcsec: Some(inst.detector.pixel_scale_arcsec),
@@ -572,6 +592,30 @@ mod tests {
             h.update(piece);
         }
         assert_eq!(h.finish(), want);
+    }
+
+    /// A product in the celestial frame says it (`FRAME = 'celestial'` with `SKYPA`) and is
+    /// read back as that frame; `SKYPA` without that frame, or that frame without `SKYPA`, is
+    /// refused naming what is missing.
+    #[test]
+    fn the_celestial_frame_goes_through_the_keywords() {
+        let frame = mueller::Frame::Celestial { zero_angle_deg: 2.5, position_angle_deg: -142.0 };
+        let p = Product {
+            at_plate: Some(false),
+            zero_angle_deg: Some(2.5),
+            position_angle_deg: Some(-142.0),
+            ..Default::default()
+        };
+        let pairs = p.pairs();
+        assert!(
+            pairs.contains(&("FRAME".into(), "celestial".into())) && pairs.contains(&("SKYPA".into(), "-142.0".into()))
+        );
+        let back = Product::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str()))).unwrap().unwrap();
+        assert_eq!(back.frame(), Some(frame));
+        let e = Product::from_pairs([("FRAME", "celestial"), ("HWPZERO", "0")]).unwrap_err();
+        assert!(e.contains("without SKYPA"), "{e}");
+        let e = Product::from_pairs([("FRAME", "sky"), ("HWPZERO", "0"), ("SKYPA", "3")]).unwrap_err();
+        assert!(e.contains("SKYPA"), "{e}");
     }
 
     #[test]

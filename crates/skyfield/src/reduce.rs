@@ -1978,7 +1978,11 @@ pub fn reduce_files_with(
     on_read: &(dyn Fn() + Sync),
 ) -> Result<Reduced, Error> {
     require_half_wave(inst)?;
-    Ok(reduce_files_plate(paths, inst, cfg, opts, on_read)?.0)
+    let mut r = reduce_files_plate(paths, inst, cfg, opts, on_read)?.0;
+    // On a rotator: the set's one position angle on the sky, for the corrected map's turn.
+    let files: Vec<&std::path::Path> = r.exposures.iter().map(|(p, _)| p.as_path()).collect();
+    r.map.sky_pa_deg = crate::sky_angle::of_set(&files, inst)?;
+    Ok(r)
 }
 
 /// [`reduce_files_with`] for frames taken through a quarter-wave plate: the binned `V/I` map

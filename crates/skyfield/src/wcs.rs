@@ -171,6 +171,42 @@ impl CelestialWcs {
         (out.0.is_finite() && out.1.is_finite()).then_some(out)
     }
 
+    /// The position angle on the sky (deg, north through east) of the image's +y axis, at the
+    /// reference point: the direction of the CD matrix's second column in the intermediate
+    /// (east, north) coordinates (Calabretta & Greisen 2002, A&A 395, 1077, eq. 1). `Err(why)`
+    /// when the axes are not RA and Dec, or when the image is mirrored against the sky (east
+    /// counter-clockwise from north when seen with +y up: `det CD > 0` for RA first), in which
+    /// a polarization angle counted from x toward y runs the other way round on the sky.
+    ///
+    /// ```
+    /// use skyfield::wcs::CelestialWcs;
+    /// // North up, east left, then the image turned: the CROTA2 form of the same matrix.
+    /// let rho = 30f64.to_radians();
+    /// let s = 1e-4;
+    /// let w = CelestialWcs { ctype: ["RA---TAN".into(), "DEC--TAN".into()], crpix: [1.0, 1.0],
+    ///     crval: [150.0, -30.0], cd: [[-s * rho.cos(), -s * rho.sin()], [-s * rho.sin(), s * rho.cos()]],
+    ///     radesys: None, equinox: None };
+    /// assert!((w.y_axis_position_angle_deg().unwrap() + 30.0).abs() < 1e-12);
+    /// ```
+    pub fn y_axis_position_angle_deg(&self) -> Result<f64, String> {
+        let (ra_row, dec_row) = match (&self.ctype[0][..4], &self.ctype[1][..4]) {
+            ("RA--", "DEC-") => (0, 1),
+            ("DEC-", "RA--") => (1, 0),
+            _ => return Err(format!("CTYPE '{}', '{}' are not RA and Dec", self.ctype[0], self.ctype[1])),
+        };
+        // Pixel axis x then y: (east, north) of each.
+        let east = [self.cd[ra_row][0], self.cd[ra_row][1]];
+        let north = [self.cd[dec_row][0], self.cd[dec_row][1]];
+        let det = east[0] * north[1] - east[1] * north[0];
+        if det.is_nan() || det >= 0.0 {
+            return Err(format!(
+                "the image is mirrored against the sky (CD matrix of determinant {det:e} in east, north): a \
+                 polarization angle counted from x toward y would turn west of north"
+            ));
+        }
+        Ok(east[1].atan2(north[1]).to_degrees())
+    }
+
     pub(crate) fn cards(&self) -> Vec<(String, WcsValue, &'static str)> {
         use WcsValue::{Real, Text};
         let mut v = vec![

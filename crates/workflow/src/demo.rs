@@ -183,6 +183,7 @@ fn map_through_frames(
         frame_shifts_px: vec![],
         telescope: None,
         hwp_motion: None,
+        sky_pa_deg: None,
     }
     .checked(Path::new("<demo scene>"))?;
     progress(Progress::Message(&format!("{}: simulating frames", c.name)));
@@ -363,6 +364,7 @@ pub fn corner_star(
         frame_shifts_px: vec![],
         telescope: None,
         hwp_motion: None,
+        sky_pa_deg: None,
     };
     std::fs::create_dir_all(dir).map_err(|err| Error::Create { path: dir.to_path_buf(), err })?;
     let sc = scene.checked(&dir.join("standard.toml"))?;

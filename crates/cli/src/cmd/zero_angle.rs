@@ -172,6 +172,8 @@ fn measure_frames(a: &Args, inst: &instrument::Instrument) -> Result<(String, Ve
         }
     }
     let g = layout_for(&set, inst)?;
+    let files: Vec<&std::path::Path> = a.frames.iter().map(|p| p.as_path()).collect();
+    let sky_pa = skyfield::sky_angle::of_set(&files, inst)?;
     let ap = Aperture { radius_px: a.aperture, annulus: Some(annulus) };
     let mut rows = Vec::with_capacity(stds.len());
     for s in stds {
@@ -185,6 +187,7 @@ fn measure_frames(a: &Args, inst: &instrument::Instrument) -> Result<(String, Ve
             (r.chi, r.sigma_chi),
             s.chi,
             s.sigma,
+            sky_pa,
         )?);
     }
     Ok((set.filter.clone(), rows))

@@ -8,7 +8,9 @@
 //! sky through a map of scale 1.0017 and rotation 0.17 deg that puts (694.8, 346.9) at (715.8,
 //! 322.9), the numbers of real frames. The frames are simulated, then given the archive's
 //! names and keywords here; `catalog` gets them in the order a shell glob gives (every camera-1
-//! file first) and measures every star against the simulator's truth.
+//! file first) and measures every star against the simulator's truth. The instrument stands at
+//! ROTSKYPA = -142 deg on the sky, as in the real frames: the stars' angles are the sky's, and
+//! the catalog gives them north through east.
 
 use crate::common;
 
@@ -112,9 +114,10 @@ fn archive_frames(dir: &Path) -> Vec<PathBuf> {
     // Two turns: positions 1..16, twice.
     let angles: Vec<String> = (0..32).map(|k| middle_deg(k % 16 + 1).to_string()).collect();
     let mut scene = format!(
-        "instrument = \"{}\"\nfilter = \"R\"\nseed = 43\nexposure_s = 4\nhwp_angles_deg = [{}]\nhwp_motion = {{ sweep_deg = {SWEEP_DEG} }}\n\
+        "instrument = \"{}\"\nfilter = \"R\"\nseed = 43\nexposure_s = 4\nsky_pa_deg = {}\nhwp_angles_deg = [{}]\nhwp_motion = {{ sweep_deg = {SWEEP_DEG} }}\n\
          [output]\nbitpix = -32\n[sky]\nbrightness_e = 80\np = 0.0\nchi_deg = 0\n[effects]\nphoton_noise = true\nread_noise = true\n",
         sim_inst.display(),
+        -CROTA_DEG,
         angles.join(", ")
     );
     for (x, y, p, chi, f) in stars() {

@@ -81,3 +81,37 @@ fn a_map_without_valid_bins_is_an_error() {
     map.valid.iter_mut().for_each(|v| *v = false);
     assert!(matches!(correct_map(&model, &map, CorrectOptions::default()), Err(MapError::NoValidBins)));
 }
+
+/// A map of an instrument on a rotator (`SKYPA`): its bins are at the plate, the sky turned by
+/// minus the position angle, through `M_I` (`mueller::partial_polarizer`, applied here) and
+/// back by minus the HWP zero angle; corrected, every bin is the sky's `(q, u)` north through
+/// east, and without `SKYPA` the same map comes back turned by the angle.
+#[test]
+fn a_map_on_a_rotator_is_corrected_onto_the_sky() {
+    let model = RadialPattern::new(vec![0.0, -0.085e-2, 0.525e-2, -0.03e-2], [0.0, 0.0]);
+    let (q0, u0, z, pa) = (0.012, -0.004, 2.9, 60.0);
+    let turn = |q: f64, u: f64, deg: f64| {
+        let (s, c) = (2.0 * deg.to_radians()).sin_cos();
+        (c * q - s * u, s * q + c * u)
+    };
+    let (qs, us) = turn(q0, u0, -pa);
+    let mut map = map_through(&model, qs, us);
+    for k in 0..map.q.len() {
+        (map.q[k], map.u[k]) = turn(map.q[k], map.u[k], -z);
+    }
+    map.sky_pa_deg = Some(pa);
+    let opts = CorrectOptions { zero_angle_deg: z, ..CorrectOptions::default() };
+    let c = correct_map(&model, &map, opts).unwrap();
+    let mut worst = 0.0f64;
+    for k in (0..map.q.len()).filter(|&k| map.valid[k]) {
+        worst = worst.max((c.map.q[k] - q0).abs()).max((c.map.u[k] - u0).abs());
+    }
+    assert!(worst < 1e-12, "bins miss the sky by {worst:e}");
+    map.sky_pa_deg = None;
+    let c = correct_map(&model, &map, opts).unwrap();
+    let k = (0..map.q.len()).find(|&k| map.valid[k]).unwrap();
+    assert!(
+        (c.map.q[k] - qs).abs() < 1e-12 && (c.map.u[k] - us).abs() < 1e-12,
+        "without SKYPA: the instrument's frame"
+    );
+}

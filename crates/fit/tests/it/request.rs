@@ -334,3 +334,80 @@ fn p_at_the_field_edge_is_the_mean_over_the_four_sides() {
     assert!((v - expected).abs() < 1e-15, "{v} vs {expected}");
     assert!((s - 1e-4).abs() < 1e-15, "{s}");
 }
+
+/// `(q, u)` turned by `deg` (added to chi), by hand.
+fn turned(q: f64, u: f64, deg: f64) -> (f64, f64) {
+    let (s, c) = (2.0 * deg.to_radians()).sin_cos();
+    (c * q - s * u, s * q + c * u)
+}
+
+/// Rows in the celestial frame (a catalog of an instrument on a rotator, turned by its position
+/// angle on the sky). A field model alone acts in the instrument's frame, which saw the sky
+/// turned by minus that angle: the rows are made here by hand (the sky turned by -PA,
+/// `M_I(p, phi)` by `mueller::partial_polarizer`, then turned by the zero angle the rows carry
+/// less the calibration's and by +PA), and the correction gives the sky's `(q, u)` back, north
+/// through east, to 1e-12. Behind a telescope model the chain's inverse ends on the sky already
+/// (its offset and rotator turn the sky into the instrument): the rows are the chain's forward
+/// model of the sky turned by +PA, and their correction is the correction of the same light
+/// given in the instrument's frame (the sky itself with a field model, 1e-12; a telescope model
+/// alone also subtracts a constant the forward model leaves out).
+#[test]
+fn celestial_rows_are_corrected_in_the_instruments_frame_and_come_back_to_the_sky() {
+    let (z, carried, pa) = (2.9, 1.2, -142.0);
+    let sky = mueller::Qu::new(0.021, -0.013, 1e-8, 1e-8, 0.0);
+    let (x, y) = (1.3, -0.7);
+    let frame = mueller::Frame::Celestial { zero_angle_deg: carried, position_angle_deg: pa };
+    let seen = turned(sky.q, sky.u, -pa);
+    // A field model alone, by hand.
+    let cal = field(z);
+    let (p, phi) = cal.eval(x, y).p_chi();
+    let s1 = mueller::partial_polarizer(p, phi) * mueller::stokes_qu(1.0, seen.0, seen.1);
+    let (q, u) = turned(s1[1] / s1[0], s1[2] / s1[0], carried - z + pa);
+    let alone = file(Some(field(z)), None);
+    let plan = plan_rows(&alone, &Request { frame, ..request() }, 1).unwrap();
+    assert!((plan.to_sky_deg - (z - carried)).abs() < 1e-15, "only the zero angle is reported as the turn");
+    let got = plan.correct(0, &Measurement::at(x, y, mueller::Qu::new(q, u, 1e-8, 1e-8, 0.0), frame)).unwrap();
+    assert!((got.q0 - sky.q).abs() < 1e-12 && (got.u0 - sky.u).abs() < 1e-12, "field alone: {got:?}");
+    let chi = 0.5 * sky.u.atan2(sky.q);
+    assert!(mueller::wrap_half_pi(got.chi0 - chi).abs() < 1e-10, "chi0 {} vs {chi}", got.chi0);
+
+    let (rec, exposures) = recorded_exposures();
+    let mut worst = 0.0f64;
+    for (f, req) in [
+        (
+            file(Some(field(z)), Some(telescope(false))),
+            Request { parang: Some(Track::new(-0.3, Some(0.1))), ..request() },
+        ),
+        (file(Some(field(z)), Some(telescope(false))), Request { recorded: Some(&rec), ..request() }),
+        (file(None, Some(telescope(false))), Request { parang: Some(Track::new(-0.3, Some(0.1))), ..request() }),
+    ] {
+        let by_exposure = req.recorded.is_some();
+        let plan = plan_rows(&f, &Request { frame, ..req }, 1).unwrap();
+        let (chain, track) = plan.chain.instrument(0);
+        let plate = if by_exposure {
+            chain.forward_exposures(x, y, &sky, &exposures).unwrap()
+        } else {
+            chain.forward(x, y, &sky, track).unwrap()
+        };
+        // In the frame the instrument saw (a telescope model alone takes the rows as they are),
+        // then onto the sky by +PA.
+        let carried_here = if f.field.is_some() { carried } else { 0.0 };
+        let inst_frame = mueller::Frame::Sky { zero_angle_deg: carried_here };
+        let (qi, ui) = turned(plate.q, plate.u, carried_here);
+        let (q, u) = turned(qi, ui, pa);
+        let got = plan.correct(0, &Measurement::at(x, y, mueller::Qu::new(q, u, 1e-8, 1e-8, 0.0), frame)).unwrap();
+        let plan_i = plan_rows(&f, &Request { frame: inst_frame, ..req }, 1).unwrap();
+        let inst =
+            plan_i.correct(0, &Measurement::at(x, y, mueller::Qu::new(qi, ui, 1e-8, 1e-8, 0.0), inst_frame)).unwrap();
+        let mut pairs = vec![(got.q0, inst.q0), (got.u0, inst.u0)];
+        if f.field.is_some() {
+            pairs.extend([(got.q0, sky.q), (got.u0, sky.u)]);
+        }
+        for (a, b) in pairs {
+            worst = worst.max((a - b).abs());
+        }
+        let (v_sky, v_inst) = (got.var_q0 + got.var_u0, inst.var_q0 + inst.var_u0);
+        assert!((v_sky / v_inst - 1.0).abs() < 1e-9, "{got:?}\n{inst:?}");
+    }
+    assert!(worst < 1e-12, "celestial rows miss the sky by {worst:e}");
+}

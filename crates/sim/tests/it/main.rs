@@ -22,6 +22,7 @@ mod mueller_plan;
 mod raw_calibration_bits;
 mod rotating_plate;
 mod roundtrip;
+mod sky_angle;
 mod toml_numbers;
 mod two_cameras;
 mod two_cameras_map;

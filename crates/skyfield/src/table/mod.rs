@@ -34,7 +34,7 @@ mod units;
 mod votable;
 
 pub use fits_table::{append_fits_columns, fits_table_hdu};
-pub use model::{Column, Data, Format, Table, EXTENSIONS, ZERO_ANGLE_COLUMN};
+pub use model::{Column, Data, Format, Table, EXTENSIONS, SKY_PA_COLUMN, ZERO_ANGLE_COLUMN};
 
 use crate::Error;
 use model::terr;

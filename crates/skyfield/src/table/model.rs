@@ -126,6 +126,10 @@ pub struct Table {
 /// ([`Table::frame`]).
 pub const ZERO_ANGLE_COLUMN: &str = "hwp_chi_offset_deg";
 
+/// The column of a catalog table holding the instrument's position angle on the sky (deg) its
+/// q, u were turned by into the celestial frame ([`Table::frame`]; `instrument::SkyAngle`).
+pub const SKY_PA_COLUMN: &str = "sky_pa_deg";
+
 pub(super) fn terr(path: &Path, message: impl Into<String>) -> Error {
     Error::Table { path: path.to_path_buf(), message: message.into() }
 }
@@ -174,19 +178,41 @@ impl Table {
 
     /// The frame of the table's q, u: the sky's, with the HWP zero angle (deg) they carry in
     /// the column [`ZERO_ANGLE_COLUMN`] (what `instpol catalog` writes; one value for every row,
-    /// else an error naming the first row that differs); the plate's without the column (q, u
-    /// as measured).
+    /// else an error naming the first row that differs); the celestial frame when the column
+    /// [`SKY_PA_COLUMN`] gives the instrument's position angle they were turned by too (one
+    /// value for every row); the plate's without the zero-angle column (q, u as measured).
     pub fn frame(&self, path: &Path) -> Result<mueller::Frame, Error> {
-        if self.column(ZERO_ANGLE_COLUMN).is_none() {
+        let zero = ("the HWP zero angle the row's q, u carry", "HWP zero angle");
+        let Some(z) = self.one_value(ZERO_ANGLE_COLUMN, zero, path)? else {
+            if self.column(SKY_PA_COLUMN).is_some() {
+                return Err(terr(
+                    path,
+                    format!("column '{SKY_PA_COLUMN}' without '{ZERO_ANGLE_COLUMN}': the rows' frame is not whole"),
+                ));
+            }
             return Ok(mueller::Frame::Plate);
+        };
+        let pa = ("the instrument's position angle on the sky the row's q, u were turned by", "position angle");
+        Ok(match self.one_value(SKY_PA_COLUMN, pa, path)? {
+            Some(pa) => mueller::Frame::Celestial { zero_angle_deg: z, position_angle_deg: pa },
+            None => mueller::Frame::Sky { zero_angle_deg: z },
+        })
+    }
+
+    /// The one value (deg) of column `name` that every row shares (`what` it is at length and
+    /// in short, for the errors that name the first row that is not a number or differs);
+    /// `None` without the column.
+    fn one_value(&self, name: &str, (what, short): (&str, &str), path: &Path) -> Result<Option<f64>, Error> {
+        if self.column(name).is_none() {
+            return Ok(None);
         }
-        let z = self.numbers(ZERO_ANGLE_COLUMN, path)?;
+        let z = self.numbers(name, path)?;
         let z0 = z.first().copied().unwrap_or(0.0);
         if let Some(i) = z.iter().position(|v| !v.is_finite()) {
             return Err(terr(
                 path,
                 format!(
-                    "{}: column '{ZERO_ANGLE_COLUMN}' = {} is not a number: the HWP zero angle the row's q, u carry must be given (0 for none)",
+                    "{}: column '{name}' = {} is not a number: {what} must be given (0 for none)",
                     self.row_label(i),
                     z[i]
                 ),
@@ -196,13 +222,13 @@ impl Table {
             return Err(terr(
                 path,
                 format!(
-                    "{}: column '{ZERO_ANGLE_COLUMN}' = {} differs from the first row's {z0}: one catalog has one HWP zero angle",
+                    "{}: column '{name}' = {} differs from the first row's {z0}: one catalog has one {short}",
                     self.row_label(i),
                     z[i]
                 ),
             ));
         }
-        Ok(mueller::Frame::Sky { zero_angle_deg: z0 })
+        Ok(Some(z0))
     }
 
     /// The unit column `name` declares (astropy's unit string, trimmed), `None` when it
