@@ -104,6 +104,20 @@ impl Frame {
         carried.map_or(Frame::Plate, |zero_angle_deg| Frame::Sky { zero_angle_deg })
     }
 
+    /// The frame of values that carry the zero angle `carried` (deg) and, on a rotator, were
+    /// then turned onto the sky by the instrument's position angle `position_angle` (deg):
+    /// [`Frame::carrying`] without one, [`Frame::Celestial`] with both; `None` for a position
+    /// angle without the zero angle under it (the frame is not whole).
+    pub fn carrying_on_sky(carried: Option<f64>, position_angle: Option<f64>) -> Option<Self> {
+        match (carried, position_angle) {
+            (Some(zero_angle_deg), Some(position_angle_deg)) => {
+                Some(Frame::Celestial { zero_angle_deg, position_angle_deg })
+            }
+            (None, Some(_)) => None,
+            (c, None) => Some(Frame::carrying(c)),
+        }
+    }
+
     /// The zero angle (deg) a value in this frame has been turned by: 0 at the plate.
     #[inline]
     pub fn carried_deg(self) -> f64 {

@@ -692,7 +692,7 @@ impl _Calibration {
 
     /// `instpol correct` on flat arrays: exact inversion of `eq:instpol` (or `eq:approx`), the
     /// HWP zero angle first, errors propagated; `estimator`: also the bias-corrected `P0`.
-    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator, parang_deg, parang_end_deg, band, recorded, carried_deg, setup, allow_mismatch))]
+    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator, parang_deg, parang_end_deg, band, recorded, carried_deg, setup, allow_mismatch, sky_pa_deg=None))]
     #[allow(clippy::too_many_arguments)]
     fn _correct<'py>(
         &self,
@@ -716,6 +716,7 @@ impl _Calibration {
         carried_deg: Option<f64>,
         setup: Option<(String, String, Option<String>)>,
         allow_mismatch: bool,
+        sky_pa_deg: Option<f64>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let base = request(method, allow_extrapolation, extrapolation_error, band.as_deref(), allow_mismatch)?;
         // What the rows are (instrument, filter, plate: catalog()'s), checked against the
@@ -728,6 +729,12 @@ impl _Calibration {
             return Err(input_err("hwp_chi_offset_deg must be finite degrees"));
         }
         let carried = carried_deg.or_else(|| recorded.as_ref().and_then(|r| r.zero_angle_deg));
+        if sky_pa_deg.is_some_and(|z| !mueller::plausible_degrees(z)) {
+            return Err(input_err("sky_pa_deg must be finite degrees"));
+        }
+        let frame = mueller::Frame::carrying_on_sky(carried, sky_pa_deg).ok_or_else(|| {
+            input_err("sky_pa_deg without hwp_chi_offset_deg: give the zero angle the rows carry too (catalog()'s chi_offset_deg)")
+        })?;
         let est: Option<Estimator> =
             estimator.map(|e| e.parse().map_err(|e| input_err(format!("estimator: {e}")))).transpose()?;
         let (x, y, q, u) = (slice(&x, "x")?, slice(&y, "y")?, slice(&q, "q")?, slice(&u, "u")?);
@@ -747,7 +754,7 @@ impl _Calibration {
         }
         // The one rule set of `instpol correct`'s tables (fit::request).
         let request = fit::request::Request {
-            frame: mueller::Frame::carrying(carried),
+            frame,
             per_row: pa.map(|start_deg| fit::request::PerRowAngles { start_deg, end_deg: pa_end, rotator_deg: None }),
             recorded: recorded.as_ref().map(|r| &r.angles),
             data: setup.as_ref(),
@@ -1222,16 +1229,7 @@ fn _catalog<'py>(
     d.set_item("filter", &cat.filter)?;
     // What the catalog is (instrument, filter, plate, frame, detector), as its tables' keywords.
     if let Some(p) = &cat.product {
-        let pd = PyDict::new(py);
-        pd.set_item("instrument", p.instrument.as_deref())?;
-        pd.set_item("instrument_hash", p.instrument_hash.as_deref())?;
-        pd.set_item("filter", p.filter.as_deref())?;
-        pd.set_item("wavelength_um", p.wavelength_um)?;
-        pd.set_item("plate", p.plate.as_deref())?;
-        pd.set_item("hwp_chi_offset_deg", p.zero_angle_deg)?;
-        pd.set_item("detector_px", p.detector_px)?;
-        pd.set_item("pixel_scale_arcsec", p.pixel_scale_arcsec)?;
-        d.set_item("product", pd)?;
+        d.set_item("product", product_dict(py, p)?)?;
     }
     d.set_item("chi_offset_deg", cat.chi_offset_deg)?;
     d.set_item("oe_offset_px", cat.oe_offset_px)?;
@@ -1627,4 +1625,20 @@ fn _instpol(m: &Bound<'_, PyModule>) -> PyResult<()> {
 /// `lone_e`).
 fn pythonize_why(w: skyfield::detect::Unpaired) -> String {
     serde_json::to_value(w).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default()
+}
+
+/// What a catalog is (`skyfield::provenance::Product`), as `catalog()["product"]`.
+fn product_dict<'py>(py: Python<'py>, p: &skyfield::provenance::Product) -> PyResult<Bound<'py, PyDict>> {
+    let pd = PyDict::new(py);
+    pd.set_item("instrument", p.instrument.as_deref())?;
+    pd.set_item("instrument_hash", p.instrument_hash.as_deref())?;
+    pd.set_item("filter", p.filter.as_deref())?;
+    pd.set_item("wavelength_um", p.wavelength_um)?;
+    pd.set_item("plate", p.plate.as_deref())?;
+    pd.set_item("hwp_chi_offset_deg", p.zero_angle_deg)?;
+    pd.set_item("detector_px", p.detector_px)?;
+    pd.set_item("pixel_scale_arcsec", p.pixel_scale_arcsec)?;
+    // On a rotator the rows' q, u are in the celestial frame: Calibration.correct takes it.
+    pd.set_item("sky_pa_deg", p.position_angle_deg)?;
+    Ok(pd)
 }

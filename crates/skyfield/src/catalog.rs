@@ -631,6 +631,19 @@ fn check_work(cfg: &CatalogConfig, n_pairs: usize, n: usize, nx: usize, ny: usiz
     Ok(())
 }
 
+impl CameraTransform {
+    /// The transform a two-camera geometry was measured with (`None` for one camera, or when
+    /// none was set).
+    fn of(g: &BeamGeometry) -> Option<Self> {
+        let c = g.cameras.as_ref()?;
+        Some(CameraTransform {
+            transform: c.transform?,
+            residual_rms_px: c.measured.map(|m| m.0),
+            pairs: c.measured.map(|m| m.1),
+        })
+    }
+}
+
 /// Build the catalog of the frames of `src`: the layout and the sources from the first
 /// angle's frame, then every star measured in every frame, one frame at a time (so that frames
 /// read from disk are read once each and need not all be held), and each star reduced.
@@ -940,13 +953,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         filter: src.filter().to_string(),
         chi_offset_deg: chi_off,
         oe_offset_px: g.oe_offset,
-        camera_transform: g.cameras.as_ref().and_then(|c| {
-            Some(CameraTransform {
-                transform: c.transform?,
-                residual_rms_px: c.measured.map(|m| m.0),
-                pairs: c.measured.map(|m| m.1),
-            })
-        }),
+        camera_transform: CameraTransform::of(&g),
         qwp_zero_angle_deg: circular.as_ref().map(|c| c.1),
         rows,
         unpaired: unpaired.iter().map(|&k| (sources[k].x, sources[k].y)).collect(),

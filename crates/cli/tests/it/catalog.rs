@@ -694,7 +694,8 @@ fn photometry_refuses_a_star_whose_image_is_shared() {
 #[test]
 fn an_unpaired_source_says_why() {
     let dir = tempfile::tempdir().unwrap();
-    let edge = "\n[[stars]]\nx = 680\ny = 350\ncoords = \"pixel\"\nflux_e = 4e5\np = 0.0\nchi_deg = 0.0\nfwhm_arcsec = 1.0\n";
+    let edge =
+        "\n[[stars]]\nx = 680\ny = 350\ncoords = \"pixel\"\nflux_e = 4e5\np = 0.0\nchi_deg = 0.0\nfwhm_arcsec = 1.0\n";
     let (inst, frames) = calcite_scene(dir.path(), "");
     // The star goes after the scene's (appended text would land in its [effects] table).
     let scene = std::fs::read_to_string(dir.path().join("scene.toml")).unwrap();
@@ -728,6 +729,5 @@ fn an_unpaired_source_says_why() {
         .collect();
     assert_eq!(off.len(), 1, "{j}");
     assert!((off[0].0 - 680.0).abs() < 4.0 && (off[0].1 - 350.0).abs() < 4.0, "{off:?}");
-    assert!(680.0 + 70.2 > 700.0, "the e image is off the detector");
     assert!(text.contains("unpaired: ") && text.contains("1 whose e image falls off the detector"), "{text}");
 }

@@ -434,6 +434,7 @@ class Calibration:
         filter: Optional[str] = None,
         plate: Optional[str] = None,
         allow_mismatch: bool = False,
+        sky_pa_deg: Optional[float] = None,
     ) -> Dict[str, Any]:
         """Remove the instrumental polarization from measured ``(q, u)`` at ``(x, y)``.
 
@@ -453,6 +454,14 @@ class Calibration:
         column of that name): only the calibration's zero angle less this one is applied, so
         that it is not applied twice. Default: ``recorded["hwp_chi_offset_deg"]`` when given,
         else 0 (``q, u`` as measured at the plate).
+
+        ``sky_pa_deg``: on a rotator, the instrument's position angle on the sky (deg) the rows
+        were turned by into the celestial frame, as :func:`catalog` gives it
+        (``cat["product"]["sky_pa_deg"]``, not None for an instrument file with a
+        ``[polarimetry.sky_angle]``): the rows are turned back before the instrument is undone
+        and the result is on the sky again (north through east). It needs
+        ``hwp_chi_offset_deg``. Rows of such a catalog given without it are taken as the
+        instrument saw them, and their angles are wrong by the position angle.
 
         The HWP zero angle of the calibration's filter is applied first, then ``M_I`` is
         inverted exactly (``method="exact"``, Eq. 17 [eq:instpol]) or to first order
@@ -535,6 +544,7 @@ class Calibration:
             None if hwp_chi_offset_deg is None else float(hwp_chi_offset_deg),
             None if instrument is None or filter is None else (str(instrument), str(filter), None if plate is None else str(plate)),
             bool(allow_mismatch),
+            None if sky_pa_deg is None else float(sky_pa_deg),
         )
         return _reshape(d, shape, flat[0].shape[0])
 

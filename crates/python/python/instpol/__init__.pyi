@@ -128,6 +128,7 @@ class Calibration:
         filter: Optional[str] = ...,
         plate: Optional[str] = ...,
         allow_mismatch: bool = ...,
+        sky_pa_deg: Optional[float] = ...,
     ) -> Dict[str, Any]:
         """Exact inversion of Eq. 17 [eq:instpol] (or Eq. 18 [eq:approx]), as `instpol correct`, bit for bit.
 

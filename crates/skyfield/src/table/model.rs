@@ -193,10 +193,8 @@ impl Table {
             return Ok(mueller::Frame::Plate);
         };
         let pa = ("the instrument's position angle on the sky the row's q, u were turned by", "position angle");
-        Ok(match self.one_value(SKY_PA_COLUMN, pa, path)? {
-            Some(pa) => mueller::Frame::Celestial { zero_angle_deg: z, position_angle_deg: pa },
-            None => mueller::Frame::Sky { zero_angle_deg: z },
-        })
+        let pa = self.one_value(SKY_PA_COLUMN, pa, path)?;
+        Ok(mueller::Frame::carrying_on_sky(Some(z), pa).expect("a zero angle under the position angle"))
     }
 
     /// The one value (deg) of column `name` that every row shares (`what` it is at length and

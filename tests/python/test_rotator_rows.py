@@ -1,0 +1,35 @@
+"""Rows measured on a rotator (catalog()'s q, u in the celestial frame, turned onto the sky by the
+instrument's position angle) corrected with ``sky_pa_deg``: the same star as the rows turned back
+by hand in numpy (a rotation of (q, u) by -2 PA) and corrected as the instrument saw them, with
+chi0 then turned onto the sky by PA: the identity of a frame rotation, computed here."""
+
+import numpy as np
+import pytest
+
+import instpol
+
+
+@pytest.fixture(scope="module")
+def cal(tmp_path_factory):
+    d = tmp_path_factory.mktemp("demo")
+    instpol.demo(str(d), frames=False)
+    return instpol.Calibration.load(f"{d}/cal_V.fits")
+
+
+def test_celestial_rows_are_turned_back_then_onto_the_sky(cal):
+    pa, zero = 37.5, cal.hwp_chi_offset_deg
+    x, y = np.array([2.53, -1.0]), np.array([-3.23, 2.0])
+    # Rows as the instrument saw them (carrying the calibration's zero angle).
+    qi, ui = np.array([0.012, -0.004]), np.array([0.007, 0.015])
+    c, s = np.cos(np.radians(2 * pa)), np.sin(np.radians(2 * pa))
+    qc, uc = c * qi - s * ui, s * qi + c * ui  # onto the sky by PA
+    inst = cal.correct(x, y, qi, ui, 1e-4, 1e-4, hwp_chi_offset_deg=zero)
+    sky = cal.correct(x, y, qc, uc, 1e-4, 1e-4, hwp_chi_offset_deg=zero, sky_pa_deg=pa)
+    np.testing.assert_allclose(sky["p0"], inst["p0"], rtol=1e-12)
+    dchi = (sky["chi0_deg"] - inst["chi0_deg"] - pa + 90.0) % 180.0 - 90.0
+    np.testing.assert_allclose(dchi, 0.0, atol=1e-9)
+
+
+def test_a_position_angle_without_the_zero_angle_is_refused(cal):
+    with pytest.raises(instpol.InputError, match="sky_pa_deg without hwp_chi_offset_deg"):
+        cal.correct(1.0, 1.0, 0.01, 0.0, 1e-4, 1e-4, sky_pa_deg=10.0)
