@@ -22,7 +22,6 @@ const LONGER: &[(&str, &str, usize)] = &[
     ("crates/fit/src/calfile.rs", "write_to", 231),
     ("crates/fit/src/calfile.rs", "load", 225),
     ("crates/fit/src/mueller_cal.rs", "load", 185),
-    ("crates/cli/src/cmd/photometry.rs", "run", 184),
     ("crates/cli/src/cmd/calibrate_mueller.rs", "run", 181),
     ("crates/python/src/lib.rs", "_catalog", 165),
     ("crates/python/src/lib.rs", "_stokes", 169),
@@ -149,8 +148,7 @@ fn lengths_are_counted_from_fn_to_its_closing_brace() {
 const COMMAND_LIMIT: usize = 350;
 
 /// Command files longer when the rule became a test, with their lengths then. Shrink, never add.
-const LONGER_COMMANDS: &[(&str, usize)] =
-    &[("crates/cli/src/cmd/photometry.rs", 353), ("crates/cli/src/cmd/fit_standards.rs", 352)];
+const LONGER_COMMANDS: &[(&str, usize)] = &[("crates/cli/src/cmd/fit_standards.rs", 352)];
 
 #[test]
 fn no_cli_command_file_is_over_350_lines() {

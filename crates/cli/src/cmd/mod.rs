@@ -21,6 +21,7 @@ pub mod mc_plot;
 pub mod mc_table;
 pub mod night;
 pub mod photometry;
+pub mod photometry_text;
 pub mod plan;
 pub mod plot;
 pub mod raytrace;

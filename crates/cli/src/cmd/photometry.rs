@@ -1,6 +1,7 @@
 //! `instpol photometry`: Q, U, P, chi of a point source from a set of frames (V/I through a
 //! quarter-wave plate).
 
+use super::photometry_text::{CircularOut, Out};
 use anyhow::{bail, Result};
 use skyfield::reduce::FrameSet;
 use std::path::PathBuf;
@@ -108,65 +109,6 @@ pub enum CoordsArg {
     Arcmin,
 }
 
-#[derive(serde::Serialize)]
-struct Out {
-    x_px: f64,
-    y_px: f64,
-    hwp_deg: Vec<f64>,
-    f_o: Vec<f64>,
-    f_e: Vec<f64>,
-    q: f64,
-    u: f64,
-    sigma_q: f64,
-    sigma_u: f64,
-    p: f64,
-    sigma_p: f64,
-    chi_deg: f64,
-    /// null when chi is undetermined (the rule of `instpol stokes`).
-    sigma_chi_deg: Option<f64>,
-    /// The filter's HWP zero angle added to chi (deg).
-    hwp_chi_offset_deg: f64,
-    n_aperture: usize,
-    aperture_area_px: f64,
-    n_annulus: usize,
-    /// Aperture centres per HWP angle `[x_o, y_o, x_e, y_e]` (px).
-    centres_px: Vec<[f64; 4]>,
-    /// The o/e offset used (px) at the source.
-    oe_offset_px: Option<(f64, f64)>,
-    /// The Wollaston kappa applied to the fluxes before the reduction (null: none).
-    kappa_applied: Option<f64>,
-    /// The aperture radius used (px).
-    aperture_px: f64,
-    /// With repeated HWP positions (frames summed per position): every exposure measured on
-    /// its own and checked against the others (null when no position repeats).
-    exposures: Option<Vec<skyfield::photometry::ExposureCheck>>,
-    n_outlier_exposures: usize,
-    /// The standard and the frames' filter, wavelength and telescope angles (--star).
-    #[serde(flatten)]
-    record: fit::telescope::StandardRecord,
-}
-
-/// The JSON of a source measured through a quarter-wave plate.
-#[derive(serde::Serialize)]
-struct CircularOut {
-    x_px: f64,
-    y_px: f64,
-    hwp_deg: Vec<f64>,
-    /// The filter's quarter-wave zero angle added to the plate angles (deg).
-    qwp_zero_angle_deg: f64,
-    f_o: Vec<f64>,
-    f_e: Vec<f64>,
-    sigma_o: Vec<f64>,
-    sigma_e: Vec<f64>,
-    /// V/I (fraction, IAU sign) and its error.
-    v: f64,
-    sigma_v: f64,
-    centres_px: Vec<[f64; 4]>,
-    oe_offset_px: Option<(f64, f64)>,
-    aperture_px: f64,
-    filter: String,
-}
-
 pub fn run(a: Args) -> Result<()> {
     let instrument = crate::util::instrument_of(&a.instrument, a.frames.first().map(|p| p.as_path()))?;
     crate::util::inputs(
@@ -239,33 +181,11 @@ pub fn run(a: Args) -> Result<()> {
         }
         let zero = inst.filter(&set.filter).map_or(0.0, |f| f.qwp_zero_angle_deg());
         let (ph, radius_px) = skyfield::photometry::circular_sized(&set, &g, x, y, radius, fwhm, annulus, &opts, zero)?;
-        let o = CircularOut {
-            x_px: x,
-            y_px: y,
-            hwp_deg: ph.hwp_deg.clone(),
-            qwp_zero_angle_deg: zero,
-            f_o: ph.f_o.clone(),
-            f_e: ph.f_e.clone(),
-            sigma_o: ph.sigma_o.clone(),
-            sigma_e: ph.sigma_e.clone(),
-            v: ph.circular.v,
-            sigma_v: ph.circular.sigma_v(),
-            centres_px: ph.centres.clone(),
-            oe_offset_px: g.e_offset(x, y),
-            aperture_px: radius_px,
-            filter: set.filter.clone(),
-        };
+        let o = CircularOut::of(&ph, (x, y), zero, g.e_offset(x, y), radius_px, &set.filter);
         if a.json {
             crate::util::print_json(&o)?;
         } else {
-            outln!(
-                "source at ({:.2}, {:.2}) px, aperture {:.2} px, {} quarter-wave plate angles",
-                x,
-                y,
-                radius_px,
-                o.hwp_deg.len()
-            );
-            outln!("  V/I = {:+.5} +- {:.5}", o.v, o.sigma_v);
+            super::photometry_text::print_circular(&o);
         }
         return Ok(());
     }
@@ -325,29 +245,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&o)?;
     } else {
-        outln!("source at ({:.2}, {:.2}) px, aperture {:.2} px, {} HWP angles", x, y, radius_px, o.hwp_deg.len());
-        let moved = o.centres_px.iter().map(|c| (c[0] - x).hypot(c[1] - y)).fold(0.0, f64::max);
-        if !a.fixed {
-            outln!("  apertures re-centred in every frame (largest move {moved:.2} px)");
-        }
-        if let Some(k) = o.kappa_applied {
-            let how = if a.kappa.kappa_from_data { ", estimated from these data (eq:kappa2)" } else { "" };
-            outln!("  fluxes corrected for kappa = {k:.6e}{how}");
-        }
-        if let Some(ex) = &o.exposures {
-            outln!(
-                "  {} exposures measured one by one at repeated HWP positions: {} flagged",
-                ex.len(),
-                o.n_outlier_exposures
-            );
-        }
-        outln!("  Q/I = {:+.5} +- {:.5}", o.q, o.sigma_q);
-        outln!("  U/I = {:+.5} +- {:.5}", o.u, o.sigma_u);
-        outln!("  P   = {:.4}% +- {:.4}%", 100.0 * o.p, 100.0 * o.sigma_p);
-        match o.sigma_chi_deg {
-            Some(s) => outln!("  chi = {:.2} +- {:.2} deg", o.chi_deg, s),
-            None => outln!("  chi = {:.2} deg (undetermined: P is not above its error)", o.chi_deg),
-        }
+        super::photometry_text::print(&o, (x, y), !a.fixed, a.kappa.kappa_from_data);
     }
     Ok(())
 }
