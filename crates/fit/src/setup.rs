@@ -181,10 +181,17 @@ pub fn check_compatible(data: &Setup, cal: Option<(&str, &str)>) -> Result<(), M
     Ok(())
 }
 
+/// Whether two instrument names a product or calibration records are one instrument (any
+/// case, surrounding blanks ignored); names that say nothing ([`is_known`]) are not compared
+/// here: the callers decide what an unknown name means.
+pub fn same_instrument(a: &str, b: &str) -> bool {
+    a.trim().eq_ignore_ascii_case(b.trim())
+}
+
 /// [`matches_calibration`] for any calibration of instrument `cal_inst` and filter
 /// `cal_filter` (e.g. a Mueller field, [`crate::mueller_cal`]).
 pub fn matches_setup(inst: &str, filter: &str, cal_inst: &str, cal_filter: &str) -> bool {
-    let same_inst = !is_known(inst) || !is_known(cal_inst) || inst.trim().eq_ignore_ascii_case(cal_inst.trim());
+    let same_inst = !is_known(inst) || !is_known(cal_inst) || same_instrument(inst, cal_inst);
     let same_filter = !is_known(filter)
         || !is_known(cal_filter)
         || same_filter(Instrument::load(cal_inst).ok().as_ref(), filter, cal_filter);

@@ -121,6 +121,18 @@ pub fn write_hdu(f: &mut FitsFile, path: &Path, fit: &TelescopeFit, metal: &str)
     Ok(())
 }
 
+/// A band or model name as part of a file name: every character but ASCII letters, digits and
+/// dots made `_`, so that a name cannot reach another folder.
+pub fn safe_name(s: &str) -> String {
+    s.chars().map(|c| if c.is_ascii_alphanumeric() || c == '.' { c } else { '_' }).collect()
+}
+
+/// The file name of band `band`'s telescope model in a folder of them (`fit-standards
+/// --output-dir`): `telescope_<band>.fits` ([`safe_name`]).
+pub fn band_file_name(band: &str) -> String {
+    format!("telescope_{}.fits", safe_name(band))
+}
+
 /// Write a calibration file holding only the telescope model of `instrument` (atomically:
 /// a temporary file beside `path`, renamed when complete).
 pub fn save_alone(path: &Path, instrument: &str, fit: &TelescopeFit, metal: &str, inputs: &[String]) -> Result<()> {
@@ -650,4 +662,14 @@ pub fn record_telescope_angles(
     map.parallactic_rad = r.parallactic_rad;
     map.rotator_rad = r.rotator_rad;
     map.exposure_tracks = r.exposure_tracks;
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn a_band_name_cannot_leave_the_folder() {
+        assert_eq!(super::band_file_name("V"), "telescope_V.fits");
+        assert_eq!(super::band_file_name("../../etc/x y"), "telescope_.._.._etc_x_y.fits");
+        assert!(!super::band_file_name("a/b\\c").contains(['/', '\\']));
+    }
 }

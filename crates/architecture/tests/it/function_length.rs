@@ -147,8 +147,9 @@ fn lengths_are_counted_from_fn_to_its_closing_brace() {
 /// library, or is two files (its words, its plot) in one.
 const COMMAND_LIMIT: usize = 350;
 
-/// Command files longer when the rule became a test, with their lengths then. Shrink, never add.
-const LONGER_COMMANDS: &[(&str, usize)] = &[("crates/cli/src/cmd/fit_standards.rs", 352)];
+/// Command files longer when the rule became a test, with their lengths then (none now). Shrink,
+/// never add.
+const LONGER_COMMANDS: &[(&str, usize)] = &[];
 
 #[test]
 fn no_cli_command_file_is_over_350_lines() {

@@ -3,6 +3,7 @@
 
 use anyhow::{bail, Context, Result};
 use fit::telescope::{read_observations, FitOptions, ModelKind, Observation, TelescopeFit};
+use fit::telescope_cal::{band_file_name, safe_name};
 use fit::telescope_report::{choose_mirror, fit_all, FitReport, Mirror, MirrorError};
 use fit::ErrorScaling;
 use std::path::{Path, PathBuf};
@@ -202,7 +203,7 @@ pub fn run(a: Args) -> Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("--plot-dir {}", dir.display()))?;
         for (f, j) in &fits {
             for (bi, (b, _)) in f.bands.iter().enumerate() {
-                let name = format!("standards_{}_{}{}", f.model.name(), sanitize(b), if *j { "_joint" } else { "" });
+                let name = format!("standards_{}_{}{}", f.model.name(), safe_name(b), if *j { "_joint" } else { "" });
                 for path in super::fit_standards_plot::plot_band(&dir.join(name), f, bi)? {
                     if !a.json {
                         eprintln!("wrote {}", path.display());
@@ -309,7 +310,7 @@ fn write_calibrations(
         for b in &bands {
             let (i, (f, _)) = pick(false, Some(b.as_str()))
                 .ok_or_else(|| anyhow::anyhow!("--save-model {}: that model was not fitted", save.name()))?;
-            let path = dir.join(format!("telescope_{}.fits", sanitize(b)));
+            let path = dir.join(band_file_name(b));
             crate::util::check_output(&path)?;
             fit::telescope_cal::save_alone(&path, &instrument, f, metal, &inputs)?;
             written.push((i, path));
@@ -329,7 +330,7 @@ fn check_field_instrument(
 ) -> Result<()> {
     let (Some(name), Some(inst)) = (name, inst) else { return Ok(()) };
     let fi = field_instrument.trim();
-    if fi.is_empty() || fi.eq_ignore_ascii_case("unknown") {
+    if !fit::setup::is_known(fi) {
         eprintln!(
             "warning: --field-cal {} does not say its instrument ('{fi}'): taken as {} (--instrument {name}) unchecked",
             fc.display(),
@@ -337,7 +338,7 @@ fn check_field_instrument(
         );
         return Ok(());
     }
-    if !fi.eq_ignore_ascii_case(inst.name.trim()) {
+    if !fit::setup::same_instrument(fi, &inst.name) {
         bail!(
             "--field-cal {} is a calibration of instrument {fi}, but --instrument {name} is {}: the field and the telescope model must be of one instrument",
             fc.display(),
@@ -345,8 +346,4 @@ fn check_field_instrument(
         );
     }
     Ok(())
-}
-
-fn sanitize(s: &str) -> String {
-    s.chars().map(|c| if c.is_ascii_alphanumeric() || c == '.' { c } else { '_' }).collect()
 }
