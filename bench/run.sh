@@ -66,9 +66,9 @@ INSTPOL_BIN="$BIN" BENCH_RAW_DIR="${RAW_DIR:-$LOG/raw}" cargo bench -q -p instpo
 
 # 3. Correction throughput and 4. ray trace (criterion).
 echo "== fit correct bench" >&2
-cargo bench -q -p instpol-fit --bench correct 2>/dev/null | tee "$LOG/correct.txt" | grep -E 'thrpt|^correct' >&2 || true
+cargo bench -q -p instpol-fit --features bench --bench correct 2>/dev/null | tee "$LOG/correct.txt" | grep -E 'thrpt|^correct' >&2 || true
 echo "== mueller raytrace bench" >&2
-cargo bench -q -p instpol-mueller --bench raytrace 2>/dev/null | tee "$LOG/raytrace.txt" | grep -E 'thrpt|^raytrace' >&2 || true
+cargo bench -q -p instpol-mueller --features bench --bench raytrace 2>/dev/null | tee "$LOG/raytrace.txt" | grep -E 'thrpt|^raytrace' >&2 || true
 
 python3 - "$LOG" "$REPS" "$(nproc)" > "$LOG/table.md" <<'PY'
 import json, re, sys, glob, os

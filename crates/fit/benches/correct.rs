@@ -1,6 +1,6 @@
 //! Throughput of the correction (the target: >= 1e7 corrections per second per core with the
 //! polynomial model, so that a pipeline never waits for it). Run: `cargo bench -p instpol-fit
-//! --bench correct`; criterion reports elements per second for batches of 100 000 catalog rows
+//! --features bench --bench correct`; criterion reports elements per second for batches of 100 000 catalog rows
 //! on one thread, for the exact inversion with full error propagation and for `eq:approx`.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};

@@ -1,5 +1,5 @@
 //! Speed of the joint Mueller-field fit (the target: three fields of 2700 bins in under a
-//! second). Run: `cargo bench -p instpol-fit --bench mueller_field`. Side by side:
+//! second). Run: `cargo bench -p instpol-fit --features bench --bench mueller_field`. Side by side:
 //! - `forward_pass`: one evaluation of the forward model (`LinearBlock::forward`) at every
 //!   observation of the three fields, the bound: a Gauss-Newton iteration needs at least
 //!   `1 + 2 n_free` such passes (value and central differences);

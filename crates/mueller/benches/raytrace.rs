@@ -1,5 +1,5 @@
 //! Ray-tracing throughput: field points x pupil rays per second on the FORS1-like collimator.
-//! `cargo bench -p instpol-mueller --bench raytrace`
+//! `cargo bench -p instpol-mueller --features bench --bench raytrace`
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use mueller::raytrace::{Prescription, Sampling};

@@ -1,6 +1,6 @@
 //! Time per 2048 x 2048 FORS1 frame: the ideal scene, then with each effect added in turn
 //! (cumulative), and the whole N = 16 set rendered and written. Run with
-//! `cargo bench -p instpol-sim --bench frame`.
+//! `cargo bench -p instpol-sim --features bench --bench frame`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use sim::{Plan, Scene};

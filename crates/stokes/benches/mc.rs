@@ -2,7 +2,7 @@
 //! SNR = 100 (5000 counts per beam), the numpy peer's work (`bench/mc.sh` runs the side-by-side
 //! comparison with `shared/peers/numpy_mc.py`).
 //!
-//! `cargo bench -p instpol-stokes --bench mc`
+//! `cargo bench -p instpol-stokes --features bench --bench mc`
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use rand::SeedableRng;
