@@ -33,3 +33,19 @@ def test_celestial_rows_are_turned_back_then_onto_the_sky(cal):
 def test_a_position_angle_without_the_zero_angle_is_refused(cal):
     with pytest.raises(instpol.InputError, match="sky_pa_deg without hwp_chi_offset_deg"):
         cal.correct(1.0, 1.0, 0.01, 0.0, 1e-4, 1e-4, sky_pa_deg=10.0)
+
+
+def test_a_product_stands_for_its_arguments(cal):
+    """catalog()["product"] given whole corrects as its fields given one by one; a field given
+    both ways and differing is refused."""
+    pa, zero = 20.0, cal.hwp_chi_offset_deg
+    product = {"instrument": cal.instrument, "filter": cal.filter, "plate": "half_wave",
+               "hwp_chi_offset_deg": zero, "sky_pa_deg": pa}
+    args = (np.array([1.0, -2.0]), np.array([0.5, 1.5]), np.array([0.01, 0.0]), np.array([0.0, 0.02]), 1e-4, 1e-4)
+    by_product = cal.correct(*args, product=product)
+    by_hand = cal.correct(*args, instrument=cal.instrument, filter=cal.filter, plate="half_wave",
+                          hwp_chi_offset_deg=zero, sky_pa_deg=pa)
+    for k in ("q0", "u0", "p0", "chi0_deg"):
+        np.testing.assert_array_equal(by_product[k], by_hand[k])
+    with pytest.raises(instpol.InputError, match="sky_pa_deg=5.0 but product says 20.0"):
+        cal.correct(*args, product=product, sky_pa_deg=5.0)

@@ -276,6 +276,21 @@ def bias(
     return _reshape(d, shape, flat[0].shape[0])
 
 
+
+def _from_product(product, **given):
+    """The arguments ``product`` (``catalog()["product"]``) stands for, each given argument kept
+    when it agrees with the product's value: (instrument, filter, plate, hwp_chi_offset_deg,
+    sky_pa_deg)."""
+    if not isinstance(product, dict):
+        raise InputError("product: expected catalog()['product'] (a dict)")
+    out = []
+    for name in ("instrument", "filter", "plate", "hwp_chi_offset_deg", "sky_pa_deg"):
+        have, theirs = given[name], product.get(name)
+        if have is not None and theirs is not None and have != theirs:
+            raise InputError(f"{name}={have!r} but product says {theirs!r}: give one")
+        out.append(have if have is not None else theirs)
+    return tuple(out)
+
 class Calibration:
     """A calibration file (``instpol calibrate`` or ``instpol import-map``): the instrumental
     polarization field p(x, y), phi(x, y) of one instrument and filter, its covariance, the
@@ -435,6 +450,7 @@ class Calibration:
         plate: Optional[str] = None,
         allow_mismatch: bool = False,
         sky_pa_deg: Optional[float] = None,
+        product: Optional[Dict[str, Any]] = None,
     ) -> Dict[str, Any]:
         """Remove the instrumental polarization from measured ``(q, u)`` at ``(x, y)``.
 
@@ -462,6 +478,11 @@ class Calibration:
         and the result is on the sky again (north through east). It needs
         ``hwp_chi_offset_deg``. Rows of such a catalog given without it are taken as the
         instrument saw them, and their angles are wrong by the position angle.
+
+        ``product``: what the rows are, whole, as :func:`catalog` gives it
+        (``cat["product"]``): its ``instrument``, ``filter``, ``plate``, ``hwp_chi_offset_deg``
+        and ``sky_pa_deg`` stand for those arguments (one given both ways must agree, or
+        InputError). The safe way to correct a catalog's rows.
 
         The HWP zero angle of the calibration's filter is applied first, then ``M_I`` is
         inverted exactly (``method="exact"``, Eq. 17 [eq:instpol]) or to first order
@@ -528,6 +549,10 @@ class Calibration:
         P0 = 2.000 %, chi0 = 30.00 deg
         >>> tmp.cleanup()
         """
+        if product is not None:
+            instrument, filter, plate, hwp_chi_offset_deg, sky_pa_deg = _from_product(
+                product, instrument=instrument, filter=filter, plate=plate,
+                hwp_chi_offset_deg=hwp_chi_offset_deg, sky_pa_deg=sky_pa_deg)
         names = ["x", "y", "q", "u", "sigma_q", "sigma_u"]
         arrs = [x, y, q, u, sigma_q, sigma_u]
         optional = {"cov_qu": cov_qu, "parang_deg": parang_deg, "parang_end_deg": parang_end_deg}

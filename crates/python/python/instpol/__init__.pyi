@@ -129,6 +129,7 @@ class Calibration:
         plate: Optional[str] = ...,
         allow_mismatch: bool = ...,
         sky_pa_deg: Optional[float] = ...,
+        product: Optional[Dict[str, Any]] = ...,
     ) -> Dict[str, Any]:
         """Exact inversion of Eq. 17 [eq:instpol] (or Eq. 18 [eq:approx]), as `instpol correct`, bit for bit.
 
