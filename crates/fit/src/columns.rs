@@ -442,9 +442,9 @@ impl Outputs {
     /// row not measured (every value NaN, not extrapolated): the same columns, in the same
     /// order, as [`correct_columns`] writes without an estimator.
     pub fn of_rows(rows: &[Option<Corrected>]) -> Outputs {
-        let values = (0..N_OUT)
-            .map(|k| rows.iter().map(|r| r.as_ref().map_or(f64::NAN, |r| r.output_values()[k])).collect())
-            .collect();
+        let each: Vec<[f64; N_OUT]> =
+            rows.iter().map(|r| r.as_ref().map_or([f64::NAN; N_OUT], Corrected::output_values)).collect();
+        let values = (0..N_OUT).map(|k| each.iter().map(|v| v[k]).collect()).collect();
         let extrapolated: Vec<bool> = rows.iter().map(|r| r.as_ref().is_some_and(|r| r.extrapolated)).collect();
         Outputs {
             names: output_columns(None),
