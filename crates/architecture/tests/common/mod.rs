@@ -34,6 +34,19 @@ pub fn files_under(dir: &Path, ext: Option<&str>) -> Vec<PathBuf> {
     out
 }
 
+/// Every Rust file of every crate's `src/` (sorted), with its path relative to the workspace
+/// (`crates/fit/src/lsq.rs`): the code the design rules are about (tests are elsewhere).
+pub fn source_files() -> Vec<(PathBuf, String)> {
+    let root = workspace();
+    files_under(&root.join("crates"), Some(".rs"))
+        .into_iter()
+        .filter_map(|p| {
+            let rel = p.strip_prefix(&root).ok()?.to_string_lossy().replace('\\', "/");
+            (rel.split('/').nth(2) == Some("src")).then_some((p, rel))
+        })
+        .collect()
+}
+
 /// `src` with every comment and every string and character literal blanked out (newlines
 /// kept, so line numbers stay), leaving the code.
 pub fn code_only(src: &str) -> String {

@@ -8,7 +8,7 @@
 
 use crate::common;
 
-use common::{code_only, files_under, tokens, workspace, Token};
+use common::{code_only, files_under, source_files, tokens, workspace, Token};
 
 const LIMIT: usize = 150;
 
@@ -94,15 +94,10 @@ fn functions(src: &str) -> Vec<(String, usize, usize)> {
 
 #[test]
 fn no_function_is_over_150_lines_outside_tests() {
-    let root = workspace();
     let mut found = Vec::new();
     let mut shrunk = Vec::new();
     let mut seen = Vec::new();
-    for file in files_under(&root.join("crates"), Some(".rs")) {
-        let rel = file.strip_prefix(&root).unwrap().to_string_lossy().replace('\\', "/");
-        if rel.split('/').nth(2) != Some("src") {
-            continue;
-        }
+    for (file, rel) in source_files() {
         let src = std::fs::read_to_string(&file).unwrap();
         for (name, line, len) in functions(&src) {
             let listed = LONGER.iter().find(|(f, n, _)| *f == rel && *n == name);

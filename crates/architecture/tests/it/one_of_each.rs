@@ -9,7 +9,7 @@
 
 use crate::common;
 
-use common::{code_only, files_under, tokens, workspace};
+use common::{code_only, files_under, source_files, tokens, workspace};
 
 /// The module that defines the median and the factor.
 const ROBUST: &str = "crates/stokes/src/stats/robust.rs";
@@ -32,14 +32,8 @@ const ALLOWED: &[(&str, &str, &str)] = &[
 /// Every `fn median*` defined in `crates/*/src` (test functions left out), as
 /// `(file relative to the workspace, name, line)`.
 fn median_definitions() -> Vec<(String, String, usize)> {
-    let root = workspace();
     let mut out = Vec::new();
-    for krate in files_under(&root.join("crates"), None).iter().filter_map(|p| {
-        let rel = p.strip_prefix(&root).ok()?.to_string_lossy().replace('\\', "/");
-        let parts: Vec<&str> = rel.split('/').collect();
-        (parts.len() > 3 && parts[2] == "src" && rel.ends_with(".rs")).then_some((p.clone(), rel))
-    }) {
-        let (path, rel) = krate;
+    for (path, rel) in source_files() {
         let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{rel}: {e}"));
         let toks = tokens(&code_only(&text));
         for (k, w) in toks.windows(2).enumerate() {
@@ -160,13 +154,8 @@ const INLINE_ALLOWED: &[(&str, &str, &str)] = &[
 /// `src/` (the CLI and the Python module included; `#[cfg(test)]` modules are tests).
 #[test]
 fn no_inline_median() {
-    let root = workspace();
     let mut found = Vec::new();
-    for path in files_under(&root.join("crates"), Some(".rs")) {
-        let rel = path.strip_prefix(&root).unwrap().to_string_lossy().replace('\\', "/");
-        if rel.split('/').nth(2) != Some("src") {
-            continue;
-        }
+    for (path, rel) in source_files() {
         let text = std::fs::read_to_string(&path).unwrap();
         let code = code_only(&text);
         // The code before the first `#[cfg(test)]` module: unit tests sit at a file's end.
