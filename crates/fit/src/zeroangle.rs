@@ -303,16 +303,17 @@ use std::path::Path;
 /// Measurements of one standard merged into one row, each star once: rows with the same name
 /// (a name, not a catalogued angle given by number) and the same catalogued angle. Their
 /// measured angles share the catalogue's error, so counting them as independent stars made the
-/// zero angle's error too small by up to sqrt(n). The merged angle is the mean of the measured
-/// ones weighted by `1 / sigma^2` (taken about the first, modulo 180 deg), its error
-/// `1 / sqrt(sum w)`; the catalogue error then enters once, which is the generalized
-/// least-squares combination of measurements that share one error term. The merged row's
-/// source lists the sources; its position and P are the first measurement's.
+/// zero angle's error too small by up to sqrt(n). The merged angle is the circular mean
+/// (period 180 deg, `stokes::stats::circular`) of the measured ones weighted by
+/// `1 / sigma^2`, whichever comes first; its error `1 / sqrt(sum w)`; the catalogue error then
+/// enters once, which is the generalized least-squares combination of measurements that share
+/// one error term. The merged row's source lists the sources; its position and P are the first
+/// measurement's. A star measured once keeps its row bit for bit.
 pub fn merge_repeats(rows: Vec<MeasuredStandard>) -> Vec<MeasuredStandard> {
+    use stokes::stats::circular::{difference, direction, Period};
     let key = |m: &MeasuredStandard| m.label.trim().to_ascii_lowercase();
-    // Each star: its first row, its rows' count, sum of weights and of weighted differences
-    // from the first.
-    let mut out: Vec<(MeasuredStandard, usize, f64, f64)> = Vec::with_capacity(rows.len());
+    // Each star: its first row, and its rows' measured angles (rad) and weights.
+    let mut out: Vec<(MeasuredStandard, Vec<f64>, Vec<f64>)> = Vec::with_capacity(rows.len());
     for m in rows {
         let w = m.sigma_chi_measured_deg.powi(-2);
         let same = out.iter().position(|(o, ..)| {
@@ -320,24 +321,29 @@ pub fn merge_repeats(rows: Vec<MeasuredStandard>) -> Vec<MeasuredStandard> {
         });
         match same {
             Some(k) => {
-                let (o, n, sw, swd) = &mut out[k];
-                let d = wrap_half_pi((m.chi_measured_deg - o.chi_measured_deg).to_radians()).to_degrees();
-                *n += 1;
-                *sw += w;
-                *swd += w * d;
+                let (o, angles, weights) = &mut out[k];
+                angles.push(m.chi_measured_deg.to_radians());
+                weights.push(w);
                 if !o.source.split(" + ").any(|s| s == m.source) {
                     o.source = format!("{} + {}", o.source, m.source);
                 }
             }
-            None => out.push((m, 1, w, 0.0)),
+            None => {
+                let a = m.chi_measured_deg.to_radians();
+                out.push((m, vec![a], vec![w]));
+            }
         }
     }
     out.into_iter()
-        .map(|(mut o, n, sw, swd)| {
-            // A star measured once keeps its row bit for bit.
-            if n > 1 {
-                o.chi_measured_deg += swd / sw;
-                o.sigma_chi_measured_deg = sw.sqrt().recip();
+        .map(|(mut o, angles, weights)| {
+            if angles.len() > 1 {
+                // The rows were checked on reading (finite angles, errors in (0, 90) deg), so
+                // the weights are finite and positive and a direction exists.
+                // The mean is written on the first row's branch (170 deg stays near 170, not -10).
+                if let Some(mean) = direction(&angles, &weights, Period::HalfTurn) {
+                    o.chi_measured_deg += difference(mean.mean, angles[0], Period::HalfTurn).to_degrees();
+                }
+                o.sigma_chi_measured_deg = weights.iter().sum::<f64>().sqrt().recip();
             }
             o
         })
@@ -731,5 +737,53 @@ mod tests {
         // Different stars that share a catalogued angle given by number stay apart.
         let rows = vec![row("40", 10.0, 40.0, "a"), row("40", 12.0, 40.0, "b")];
         assert_eq!(merge_repeats(rows).len(), 2);
+    }
+
+    #[test]
+    fn repeats_are_averaged_as_angles_whichever_comes_first() {
+        let row = |chi: f64, sigma: f64| MeasuredStandard {
+            label: "Vela1 95".into(),
+            x: None,
+            y: None,
+            chi_measured_deg: chi,
+            sigma_chi_measured_deg: sigma,
+            chi_catalogue_deg: 40.0,
+            sigma_chi_catalogue_deg: 0.5,
+            p_measured: None,
+            sigma_p_measured: None,
+            source: "frames".into(),
+        };
+        // The closed form: the direction of the weighted sum of the doubled angles' unit
+        // vectors, halved; compared modulo 180 deg.
+        let truth = |chis: &[(f64, f64)]| {
+            let (s, c) = chis.iter().fold((0.0, 0.0), |(s, c), (chi, sg)| {
+                let a = 2.0 * chi.to_radians();
+                (s + a.sin() / (sg * sg), c + a.cos() / (sg * sg))
+            });
+            (0.5 * s.atan2(c)).to_degrees()
+        };
+        let near = |a: f64, b: f64| ((a - b + 90.0).rem_euclid(180.0) - 90.0).abs() < 1e-9;
+        // Across the wrap: 179 and 1 deg average to 0 deg, in either order, and the merged
+        // angle stays on the first row's branch.
+        for (a, b) in [(179.0, 1.0), (1.0, 179.0)] {
+            let m = merge_repeats(vec![row(a, 1.0), row(b, 1.0)]);
+            assert_eq!(m.len(), 1);
+            assert!(near(m[0].chi_measured_deg, 0.0), "{a}, {b}: {}", m[0].chi_measured_deg);
+            assert!((m[0].chi_measured_deg - a).abs() <= 1.0 + 1e-9, "{}", m[0].chi_measured_deg);
+            assert!((m[0].sigma_chi_measured_deg - 0.5f64.sqrt()).abs() < 1e-12);
+        }
+        // Widely spread repeats: the mean does not depend on which row came first (a mean of
+        // wrapped differences about the first row did: 59.3 deg from 0 first, 88.0 from 89).
+        let chis = [(0.0, 1.0), (89.0, 1.0), (89.0, 1.0)];
+        let want = truth(&chis);
+        for order in [[0, 1, 2], [1, 0, 2], [1, 2, 0]] {
+            let m = merge_repeats(order.iter().map(|&k| row(chis[k].0, chis[k].1)).collect());
+            assert!(near(m[0].chi_measured_deg, want), "{order:?}: {} vs {want}", m[0].chi_measured_deg);
+        }
+        // Unequal weights.
+        let chis = [(30.0, 1.0), (36.0, 2.0)];
+        let m = merge_repeats(chis.iter().map(|&(c, s)| row(c, s)).collect());
+        assert!(near(m[0].chi_measured_deg, truth(&chis)));
+        assert!((m[0].sigma_chi_measured_deg - 1.25f64.recip().sqrt()).abs() < 1e-12);
     }
 }

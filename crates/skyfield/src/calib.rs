@@ -1051,10 +1051,6 @@ impl Calibrated {
     }
 
     /// The chip files of the exposure, in the instrument file's chip order.
-    pub(crate) fn chip_paths(&self) -> Vec<&Path> {
-        self.chips.iter().map(|c| c.path.as_path()).collect()
-    }
-
     /// The chip files with their places on the detector.
     pub(crate) fn chip_places(&self) -> Vec<crate::frame::ChipPlace> {
         self.chips

@@ -114,14 +114,6 @@ impl OpenFrame {
     pub fn chip_places(&self) -> Vec<crate::frame::ChipPlace> {
         self.rows.chip_places()
     }
-
-    /// The chip files the exposure was assembled from (empty for a plain frame).
-    pub fn chip_paths(&self) -> Vec<&Path> {
-        match &self.rows {
-            FrameRows::Calibrated(c) => c.chip_paths(),
-            _ => Vec::new(),
-        }
-    }
 }
 
 /// Open a plain frame for reduction: the header is checked now; the pixels are read later, by

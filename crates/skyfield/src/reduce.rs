@@ -111,80 +111,110 @@ fn open_meta(f: &OpenFrame) -> (&Path, &str, usize, usize, f64) {
 type BadCounts = (usize, usize);
 
 /// Warnings for masked bad pixels of each file, and the error for a frame none of whose
-/// `counted_px` pixels is finite (`bad`: non-finite and saturated counts per file).
-///
-/// `chips[i]`: the chip files of exposure `i` when it was assembled from several (empty for a
-/// plain frame). The reduction counts an exposure's pixels on the assembled detector, not per
-/// chip, so such a note names every chip file of the exposure rather than only the first (a
-/// saturated pixel of CHIP2 must not be reported in the CHIP1 file).
+/// `counted_px` pixels is finite (`bad`: non-finite and saturated counts per file). An
+/// exposure assembled from chips is named by its first file here; [`chip_bad_notes`] then
+/// replaces its notes by one per chip file.
 fn bad_pixel_notes(
     meta: &[(&Path, &str, usize, usize, f64)],
-    chips: &[Vec<&Path>],
     bad: &[BadCounts],
     counted_px: usize,
     conv: &Conversion,
 ) -> Result<Vec<Warning>, Error> {
     let sat = conv.saturation_label();
     let mut warnings = Vec::new();
-    for (i, (fr, &(nbad, nsat))) in meta.iter().zip(bad).enumerate() {
+    for (fr, &(nbad, nsat)) in meta.iter().zip(bad) {
         if counted_px > 0 && nbad == counted_px {
             return Err(Error::AllNonFinite { path: fr.0.into() });
         }
-        // A multi-chip exposure is named by its first file (as every exposure is) and by all
-        // its chip files in the message.
-        let of = match chips.get(i) {
-            Some(c) if c.len() > 1 => {
-                let names: Vec<String> =
-                    c.iter().map(|p| p.file_name().unwrap_or(p.as_os_str()).to_string_lossy().into_owned()).collect();
-                format!(" in the exposure of chips {} (counted per exposure)", names.join(", "))
-            }
-            _ => String::new(),
-        };
         if nbad > 0 {
-            warnings
-                .push(Warning { file: Some(fr.0.into()), message: format!("{nbad} NaN/infinite pixels masked{of}") });
+            warnings.push(Warning { file: Some(fr.0.into()), message: format!("{nbad} NaN/infinite pixels masked") });
         }
         if nsat > 0 {
             warnings.push(Warning {
                 file: Some(fr.0.into()),
-                message: format!("{nsat} saturated pixels (>= {sat}) masked{of}"),
+                message: format!("{nsat} saturated pixels (>= {sat}) masked"),
             });
         }
     }
     Ok(warnings)
 }
 
-/// The bad-pixel notes of `frames` (`whole`: [`bad_pixel_notes`] per exposure), with those of
-/// an exposure assembled from chips made per chip file: each chip's NaN and saturated pixels
-/// counted on its own place and named by its own file, so that a saturated pixel of CHIP2 is
-/// reported in the CHIP2 file ([`crate::frame::file_of`]'s decision, by rectangle).
-fn chip_bad_notes(frames: &[Frame], whole: Vec<Warning>, conv: &Conversion) -> Vec<Warning> {
+/// One exposure assembled from chip files: its (first) file, and each chip's place with its
+/// non-finite and saturated pixel counts.
+type ChipCounts = (PathBuf, Vec<(crate::frame::ChipPlace, BadCounts)>);
+
+/// Each chip's non-finite and saturated pixels of an exposure of `nx` x `ny` assembled from
+/// `chips`, counted on the chip's own place over the whole detector; `rows(row0, out)` fills
+/// `out` with whole rows from `row0` (bands of [`LOAD_ROWS`]).
+fn count_per_chip(
+    chips: &[crate::frame::ChipPlace],
+    (nx, ny): (usize, usize),
+    sat: f64,
+    mut rows: impl FnMut(usize, &mut [f64]) -> Result<(), Error>,
+) -> Result<Vec<(crate::frame::ChipPlace, BadCounts)>, Error> {
+    let mut counts = vec![(0, 0); chips.len()];
+    let mut band = Vec::new();
+    let mut row0 = 0;
+    while row0 < ny {
+        let n = LOAD_ROWS.min(ny - row0);
+        band.resize(n * nx, 0.0);
+        rows(row0, &mut band)?;
+        for (c, k) in chips.iter().zip(counts.iter_mut()) {
+            for y in c.y0.max(row0)..(c.y0 + c.ny).min(row0 + n).min(ny) {
+                let at = (y - row0) * nx;
+                let (b, s) = PixelView::F64(&band[at + c.x0.min(nx)..at + (c.x0 + c.nx).min(nx)]).count_bad(sat);
+                *k = (k.0 + b, k.1 + s);
+            }
+        }
+        row0 += n;
+    }
+    Ok(chips.iter().cloned().zip(counts).collect())
+}
+
+/// The bad-pixel notes `whole` ([`bad_pixel_notes`] per exposure), with those of each
+/// exposure assembled from chips (`chips`) made per chip file: each chip's NaN and saturated
+/// pixels counted on its own place and named by its own file, so that a saturated pixel of
+/// CHIP2 is reported in the CHIP2 file ([`crate::frame::file_of`]'s decision, by rectangle).
+/// Frames in memory and frames read from disk both come here.
+fn chip_bad_notes(whole: Vec<Warning>, chips: &[ChipCounts], conv: &Conversion) -> Vec<Warning> {
     let sat = conv.saturation_label();
     let mut out: Vec<Warning> = whole
         .into_iter()
-        .filter(|w| !frames.iter().any(|f| !f.chips.is_empty() && w.file.as_deref() == Some(f.path.as_path())))
+        .filter(|w| !chips.iter().any(|(path, _)| w.file.as_deref() == Some(path.as_path())))
         .collect();
-    for f in frames.iter().filter(|f| !f.chips.is_empty()) {
-        for c in &f.chips {
-            let (mut nbad, mut nsat) = (0, 0);
-            for y in c.y0..(c.y0 + c.ny).min(f.ny) {
-                let row = &f.data[y * f.nx + c.x0.min(f.nx)..y * f.nx + (c.x0 + c.nx).min(f.nx)];
-                let (b, s) = PixelView::F64(row).count_bad(conv.saturation);
-                nbad += b;
-                nsat += s;
-            }
-            if nbad > 0 {
-                out.push(Warning { file: Some(c.path.clone()), message: format!("{nbad} NaN/infinite pixels masked") });
-            }
-            if nsat > 0 {
-                out.push(Warning {
-                    file: Some(c.path.clone()),
-                    message: format!("{nsat} saturated pixels (>= {sat}) masked"),
-                });
-            }
+    for (c, (nbad, nsat)) in chips.iter().flat_map(|(_, per)| per) {
+        if *nbad > 0 {
+            out.push(Warning { file: Some(c.path.clone()), message: format!("{nbad} NaN/infinite pixels masked") });
+        }
+        if *nsat > 0 {
+            out.push(Warning {
+                file: Some(c.path.clone()),
+                message: format!("{nsat} saturated pixels (>= {sat}) masked"),
+            });
         }
     }
     out
+}
+
+/// [`chip_bad_notes`]'s counts for the exposures of `frames` read from disk that were
+/// assembled from chips and have a bad pixel among those `bad` counted (per exposure): each
+/// such exposure is read once more, by bands, and counted per chip. Only exposures with a bad
+/// pixel are read again (a saturated star in a chip exposure costs one more read of it).
+fn disk_chip_counts<'a>(
+    frames: impl Iterator<Item = (&'a OpenFrame, BadCounts)>,
+    sat: f64,
+) -> Result<Vec<ChipCounts>, Error> {
+    let mut out = Vec::new();
+    let mut bytes = Vec::new();
+    for (f, (nbad, nsat)) in frames {
+        let places = f.chip_places();
+        if places.is_empty() || nbad + nsat == 0 {
+            continue;
+        }
+        let per = count_per_chip(&places, (f.nx, f.ny), sat, |row0, out| f.load_rows(row0, out, &mut bytes))?;
+        out.push((f.path.clone(), per));
+    }
+    Ok(out)
 }
 
 /// What grouping decided: the filter, sorted angles, which frames (indices) at each angle in
@@ -364,8 +394,18 @@ impl FrameSet {
             frames.iter().map(|f| (f.path.as_path(), f.filter.as_str(), f.nx, f.ny, f.hwp_deg)).collect();
         let hwp_sweep_deg = common_sweep(frames.iter().map(|f| (f.path.as_path(), f.hwp_sweep_deg)))?;
         let g = group_frames(&meta, inst, require_complete, hwp_sweep_deg)?;
-        let mut warnings =
-            chip_bad_notes(&frames, bad_pixel_notes(&meta, &[], &bad, g.nx * g.ny, &conversion)?, &conversion);
+        let chips: Vec<ChipCounts> = frames
+            .iter()
+            .filter(|f| !f.chips.is_empty())
+            .map(|f| {
+                let per = count_per_chip(&f.chips, (f.nx, f.ny), sat, |row0, out| {
+                    out.copy_from_slice(&f.data[row0 * f.nx..row0 * f.nx + out.len()]);
+                    Ok(())
+                })?;
+                Ok((f.path.clone(), per))
+            })
+            .collect::<Result<_, Error>>()?;
+        let mut warnings = chip_bad_notes(bad_pixel_notes(&meta, &bad, g.nx * g.ny, &conversion)?, &chips, &conversion);
         warnings.extend(g.warnings);
         // Move (not copy) each angle's first frame; add the repeats to it.
         let data: Vec<Vec<f64>> = g
@@ -588,9 +628,13 @@ impl DiskFrames {
         let bad = self.bad.lock().unwrap_or_else(|e| e.into_inner());
         let read: Vec<usize> = (0..self.frames.len()).filter(|&k| bad[k].is_some()).collect();
         let meta: Vec<_> = read.iter().map(|&k| open_meta(&self.frames[k])).collect();
-        let chips: Vec<_> = read.iter().map(|&k| self.frames[k].chip_paths()).collect();
         let counts: Vec<BadCounts> = read.iter().map(|&k| bad[k].unwrap_or_default()).collect();
-        let mut w = bad_pixel_notes(&meta, &chips, &counts, self.nx * self.ny, &self.conversion)?;
+        let chips = disk_chip_counts(
+            read.iter().map(|&k| &self.frames[k]).zip(counts.iter().copied()),
+            self.conversion.saturation,
+        )?;
+        let whole = bad_pixel_notes(&meta, &counts, self.nx * self.ny, &self.conversion)?;
+        let mut w = chip_bad_notes(whole, &chips, &self.conversion);
         w.extend(self.warnings.iter().cloned());
         Ok(w)
     }
@@ -2109,8 +2153,9 @@ fn reduce_files_plate(
         cfg,
         on_read,
     )?;
-    let chips: Vec<_> = frames.iter().map(|f| f.chip_paths()).collect();
-    let mut warnings = bad_pixel_notes(&meta, &chips, &pass.bad, pass.used_px, &conversion)?;
+    let chips = disk_chip_counts(frames.iter().zip(pass.bad.iter().copied()), conversion.saturation)?;
+    let whole = bad_pixel_notes(&meta, &pass.bad, pass.used_px, &conversion)?;
+    let mut warnings = chip_bad_notes(whole, &chips, &conversion);
     warnings.extend(pedestals);
     warnings.extend(set.warnings.iter().cloned());
     let mut map = match assemble_map(pass.stats, inst, cfg, &set.filter, &set.angles, &inputs) {
