@@ -142,7 +142,7 @@ impl LoadedField {
     /// aliases, [`crate::setup::same_filter`]); `what` names the file in the message.
     pub fn check_for(&self, inst: &instrument::Instrument, band: &str, what: &str) -> Result<()> {
         let Some((i, f)) = &self.of else { return Ok(()) };
-        if !i.trim().eq_ignore_ascii_case(inst.name.trim()) {
+        if !crate::setup::same_instrument(i, &inst.name) {
             return Err(Error::Input(format!(
                 "{what} is a Mueller field of instrument {i}, not of {} (--instrument): explain it with its own instrument",
                 inst.name

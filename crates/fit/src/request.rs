@@ -283,6 +283,18 @@ impl RowsPlan<'_> {
             _ => None,
         })
     }
+
+    /// The product a corrected table records: the input's (`product`), with the mismatch
+    /// allowed by this plan, if any, in place of one it recorded before; a table that said
+    /// nothing of itself gets a product that says only that. `None` when there is nothing
+    /// to record. Every corrected catalog records it through here, whatever its format.
+    pub fn recorded(&self, product: Option<skyfield::provenance::Product>) -> Option<skyfield::provenance::Product> {
+        match (product, self.mismatch_allowed()) {
+            (Some(p), None) => Some(p),
+            (p, Some(m)) => Some(skyfield::provenance::Product { mismatch_allowed: Some(m), ..p.unwrap_or_default() }),
+            (None, None) => None,
+        }
+    }
 }
 
 pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> Result<RowsPlan<'a>, Refusal> {

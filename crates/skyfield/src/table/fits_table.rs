@@ -98,7 +98,15 @@ pub fn fits_table_hdu(
 /// Each column must have one value per row of the table. The new columns get a name and a type
 /// (`TTYPEn`, `TFORMn`), not `TUNITn`/`TCOMMn`: floats are written as 64-bit (`D`), integers as
 /// 32-bit (`J`) when every value fits and 64-bit (`K`) otherwise, text as fixed-width strings.
-pub fn append_fits_columns(input: &Path, hdu: Option<&str>, columns: &[Column], path: &Path) -> Result<(), Error> {
+/// `keys`: string keywords set on the table HDU, replacing one of the same name (a product's
+/// `MISMATCH` when the correction allowed one).
+pub fn append_fits_columns(
+    input: &Path,
+    hdu: Option<&str>,
+    columns: &[Column],
+    keys: &[(String, String)],
+    path: &Path,
+) -> Result<(), Error> {
     use fitsio::tables::{ColumnDataType as T, ColumnDescription};
     let werr = |m: String| Error::Write { path: path.into(), message: m };
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
@@ -134,6 +142,9 @@ pub fn append_fits_columns(input: &Path, hdu: Option<&str>, columns: &[Column], 
             (Data::Str(v), _) => t.write_col(&mut f, &c.name, v),
         }
         .map_err(|e| werr(format!("writing column {}: {e}", c.name)))?;
+    }
+    for (k, v) in keys {
+        update_key_str(&mut f, k, v).map_err(|e| werr(format!("keyword {k}: {e}")))?;
     }
     crate::provenance::stamp(&mut f).map_err(werr)?;
     // Closed explicitly: CFITSIO flushes its buffers here and a full disk must fail the write.
@@ -220,6 +231,22 @@ pub(super) fn read_fits(path: &Path, name: Option<&str>) -> Result<Table, Error>
 
 /// A number as a keyword of the current HDU with 17 significant digits, so that it reads back
 /// to the bit (fitsio's `write_key` keeps 15).
+/// Set string keyword `name` of the current HDU to `v`, replacing one of that name (CFITSIO's
+/// update, where `write_key` would add a second).
+fn update_key_str(f: &mut fitsio::FitsFile, name: &str, v: &str) -> Result<(), String> {
+    let key = std::ffi::CString::new(name).map_err(|x| x.to_string())?;
+    let val = std::ffi::CString::new(v).map_err(|x| x.to_string())?;
+    let mut st = 0;
+    // SAFETY: an open file positioned on the table HDU; NUL-terminated name and value; a null
+    // comment keeps the existing one (or none).
+    unsafe { fitsio::sys::ffukys(f.as_raw(), key.as_ptr(), val.as_ptr() as *mut _, std::ptr::null_mut(), &mut st) };
+    if st == 0 {
+        Ok(())
+    } else {
+        Err(format!("CFITSIO status {st}"))
+    }
+}
+
 fn write_key_exact(f: &mut fitsio::FitsFile, name: &str, v: f64) -> Result<(), String> {
     let key = std::ffi::CString::new(name).map_err(|x| x.to_string())?;
     let mut st = 0;

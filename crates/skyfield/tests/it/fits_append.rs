@@ -43,7 +43,7 @@ fn appended_columns_and_everything_else_kept() {
         Column::i64("flag", "a flag", vec![0, 1, 0]),
         Column::i64("big", "", vec![1, 5_000_000_000, -3]),
     ];
-    append_fits_columns(&input, None, &cols, &out).unwrap();
+    append_fits_columns(&input, None, &cols, &[], &out).unwrap();
     assert_eq!(std::fs::read(&input).unwrap(), before, "the input is not touched");
     let mut f = FitsFile::open(&out).unwrap();
     assert_eq!(f.iter().count(), 4, "every HDU kept");
@@ -85,11 +85,11 @@ fn refusals_leave_no_file() {
     let (input, out) = (dir.path().join("in.fits"), dir.path().join("out.fits"));
     write_input(&input);
     let short = [Column::f64("q0", None, "", vec![0.1, 0.2])];
-    let e = append_fits_columns(&input, None, &short, &out).unwrap_err().to_string();
+    let e = append_fits_columns(&input, None, &short, &[], &out).unwrap_err().to_string();
     assert!(e.contains("column 'q0' has 2 values for 3 rows"), "{e}");
-    let e = append_fits_columns(&input, Some("NOPE"), &[], &out).unwrap_err().to_string();
+    let e = append_fits_columns(&input, Some("NOPE"), &[], &[], &out).unwrap_err().to_string();
     assert!(e.contains("no HDU named 'NOPE'"), "{e}");
-    let e = append_fits_columns(&input, Some("IMG"), &[], &out).unwrap_err().to_string();
+    let e = append_fits_columns(&input, Some("IMG"), &[], &[], &out).unwrap_err().to_string();
     assert!(e.contains("is not a table"), "{e}");
     assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "only the input");
 }

@@ -182,14 +182,16 @@ fn run_table(
     let report = fit::columns::Report::of_rows(loaded, text, &out, est, &plan);
     let rows = out.extrapolated.len();
     crate::util::check_output(&a.out)?;
+    table.product = plan.recorded(table.product.take());
     if kind == Kind::FitsTable && out_format == Some(Format::Fits) {
-        skyfield::table::append_fits_columns(&a.input, a.hdu.as_deref(), &out.into_table_columns(), &a.out)?;
+        let keys: Vec<(String, String)> = table
+            .product
+            .as_ref()
+            .map(|p| p.pairs().into_iter().filter(|(k, _)| k == "MISMATCH").collect())
+            .unwrap_or_default();
+        skyfield::table::append_fits_columns(&a.input, a.hdu.as_deref(), &out.into_table_columns(), &keys, &a.out)?;
     } else {
         table.columns.extend(out.into_table_columns());
-        // A mismatch allowed is recorded with what the table says it is.
-        if let Some(p) = table.product.as_mut() {
-            p.mismatch_allowed = plan.mismatch_allowed().or(p.mismatch_allowed.take());
-        }
         table.write(&a.out)?;
     }
     let telescope = plan.telescope.as_ref().map(|t| {
