@@ -278,22 +278,33 @@ impl RowsPlan<'_> {
     /// What differed between the input and the calibration when `--allow-mismatch` let it
     /// through (the short form a product records as `MISMATCH`), if anything did.
     pub fn mismatch_allowed(&self) -> Option<String> {
-        self.notes.iter().find_map(|n| match n {
-            Note::MismatchAllowed(m) => Some(m.short()),
-            _ => None,
-        })
+        mismatch_in(&self.notes)
     }
 
-    /// The product a corrected table records: the input's (`product`), with the mismatch
-    /// allowed by this plan, if any, in place of one it recorded before; a table that said
-    /// nothing of itself gets a product that says only that. `None` when there is nothing
-    /// to record. Every corrected catalog records it through here, whatever its format.
+    /// The product a corrected table records ([`recorded`]).
     pub fn recorded(&self, product: Option<skyfield::provenance::Product>) -> Option<skyfield::provenance::Product> {
-        match (product, self.mismatch_allowed()) {
-            (Some(p), None) => Some(p),
-            (p, Some(m)) => Some(skyfield::provenance::Product { mismatch_allowed: Some(m), ..p.unwrap_or_default() }),
-            (None, None) => None,
-        }
+        recorded(product, &self.notes)
+    }
+}
+
+/// What differed between data and calibration when `--allow-mismatch` let it through, among a
+/// plan's notes (the short form a product records as `MISMATCH`).
+fn mismatch_in(notes: &[Note]) -> Option<String> {
+    notes.iter().find_map(|n| match n {
+        Note::MismatchAllowed(m) => Some(m.short()),
+        _ => None,
+    })
+}
+
+/// The product corrected data record: the input's (`product`), with the mismatch a plan's
+/// `notes` allowed, if any, in place of one it recorded before; data that said nothing of
+/// themselves get a product that says only that. `None` when there is nothing to record.
+/// Every corrected catalog and map records it through here, whatever its format.
+fn recorded(product: Option<skyfield::provenance::Product>, notes: &[Note]) -> Option<skyfield::provenance::Product> {
+    match (product, mismatch_in(notes)) {
+        (Some(p), None) => Some(p),
+        (p, Some(m)) => Some(skyfield::provenance::Product { mismatch_allowed: Some(m), ..p.unwrap_or_default() }),
+        (None, None) => None,
     }
 }
 
@@ -550,6 +561,7 @@ impl MapPlan<'_> {
         // The corrected map is in the sky frame, its zero angle applied (CORRHWP): it no longer
         // lacks one (HWPZERO).
         c.map.hwp_zero_angle_deg = None;
+        c.map.product = recorded(map.product.clone(), &self.notes);
         Ok((c, s))
     }
 }

@@ -290,7 +290,17 @@ pub struct StokesMap {
     /// corrected map is turned by it onto the sky, the celestial frame.
     #[serde(default)]
     pub sky_pa_deg: Option<f64>,
+    /// What else the map is ([`crate::provenance::Product`]: the instrument file's hash, the
+    /// plate, the filter's wavelength, the detector, the inputs' hashes, a mismatch allowed
+    /// in its correction), as primary-header keywords beside the map's own (`INSTRUME`,
+    /// `FILTER`, `HWPZERO`, `SKYPA`, which the fields above hold and which say the frame);
+    /// `None` for a map that does not say.
+    #[serde(default)]
+    pub product: Option<crate::provenance::Product>,
 }
+
+/// The product keywords a Stokes map writes from its own fields, not from its product.
+const MAP_OWN_KEYS: [&str; 5] = ["INSTRUME", "FILTER", "HWPZERO", "SKYPA", "FRAME"];
 
 /// One exposure of a map ([`StokesMap::exposure_tracks`]): its HWP angle (deg) and the
 /// parallactic angle at its start and end (rad, the instrument's sense).
@@ -686,6 +696,7 @@ impl StokesMap {
             exposure_tracks: vec![],
             hwp_zero_angle_deg: None,
             sky_pa_deg: None,
+            product: None,
         }
     }
 
@@ -747,6 +758,11 @@ impl StokesMap {
             crate::fits::KeyValue::F64(a)
                 .write(f, &ph, "SKYPA", "instrument position angle on the sky [deg]")
                 .map_err(e)?;
+        }
+        for (k, v) in self.product.iter().flat_map(|p| p.with_run_inputs().pairs()) {
+            if !MAP_OWN_KEYS.contains(&k.as_str()) {
+                crate::fits::KeyValue::Str(v).write(f, &ph, &k, "what the map is").map_err(e)?;
+            }
         }
         let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
         let floats: [Plane; 11] = [
@@ -845,6 +861,16 @@ impl StokesMap {
             },
         };
         let (hwp_zero_angle_deg, sky_pa_deg) = (angle("HWPZERO")?, angle("SKYPA")?);
+        let pairs = crate::table::header_product_pairs(&mut f, &ph).map_err(|x| fits_err(path, x))?;
+        let product = crate::provenance::Product::from_pairs(
+            pairs.iter().filter(|(k, _)| !MAP_OWN_KEYS.contains(&k.as_str())).map(|(k, v)| (k.as_str(), v.as_str())),
+        )
+        .map_err(|x| fits_err(path, x))?
+        .map(|p| crate::provenance::Product {
+            instrument: Some(instrument.clone()),
+            filter: Some(filter.clone()),
+            ..p
+        });
         // A map made elsewhere (or edited) is checked before anything is fitted to it: every
         // valid bin holds a physical polarization and a covariance that is one.
         for k in (0..n).filter(|&k| valid[k]) {
@@ -893,6 +919,7 @@ impl StokesMap {
             exposure_tracks,
             hwp_zero_angle_deg,
             sky_pa_deg,
+            product,
         })
     }
 }

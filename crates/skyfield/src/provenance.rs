@@ -410,6 +410,17 @@ impl Product {
         }
     }
 
+    /// The product as written: one that lists no inputs gets the run's (the provenance's
+    /// hashes), as every writer stamps the run's provenance without each command passing
+    /// its inputs down.
+    pub fn with_run_inputs(&self) -> Product {
+        if !self.inputs.is_empty() {
+            return self.clone();
+        }
+        let inputs = current().inputs.into_iter().map(|i| i.hash).collect();
+        Product { inputs, ..self.clone() }
+    }
+
     /// The product as it goes into `--json` and a report: the pairs as an object.
     pub fn describe(&self) -> String {
         self.pairs()

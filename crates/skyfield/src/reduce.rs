@@ -1470,6 +1470,7 @@ fn assemble_map(
     let mut map = StokesMap::empty(geom, &inst.name, filter, angles_deg.to_vec());
     // The map stays at the plate; what turns it into the sky frame is recorded with it.
     map.hwp_zero_angle_deg = inst.filter(filter).ok().map(|f| f.chi_offset_deg());
+    map.product = Some(crate::provenance::Product::of_instrument(inst, filter, Some(mueller::Frame::Plate)));
     for (k, s) in stats.into_iter().enumerate() {
         let Some(s) = s else { continue };
         let (p, chi) = s.qu.p_chi();

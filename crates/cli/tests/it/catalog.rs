@@ -364,6 +364,47 @@ fn catalog_provenance_hashes_are_the_files_blake3() {
     common::assert_inputs_hashed_as_b3sum(inputs, &files);
 }
 
+/// A Stokes map says what it is, as a catalog does: `reduce` writes the product's keywords into
+/// the map's primary header beside its own (`INSTRUME`, `FILTER`, `HWPZERO`), and the map
+/// reader gives them back: the plate, the instrument file's and every input's BLAKE3 (as
+/// `b3sum` gives them), the filter's wavelength and the detector.
+#[test]
+fn a_stokes_map_records_its_product() {
+    let dir = tempfile::tempdir().unwrap();
+    let inst = common::tiny_fors1(dir.path(), 8.0, 20);
+    let scene = format!(
+        "instrument = \"{}\"\nfilter = \"V\"\nseed = 5\nhwp_angles_deg = [0, 22.5, 45, 67.5]\n[output]\nbitpix = -32\n[sky]\nbrightness_e = 500\np = 0.01\n[effects]\nphoton_noise = true\n",
+        inst.display()
+    );
+    let sp = dir.path().join("scene.toml");
+    std::fs::write(&sp, scene).unwrap();
+    let fdir = dir.path().join("f");
+    let (code, _, err) = run(&["simulate".as_ref(), sp.as_os_str(), "--out".as_ref(), fdir.as_os_str()]);
+    assert_eq!(code, 0, "{err}");
+    let frames = common::fits_in(&fdir);
+    let map = dir.path().join("map.fits");
+    let mut args: Vec<OsString> = vec!["reduce".into()];
+    args.extend(frames.iter().map(|f| f.clone().into_os_string()));
+    for a in ["--instrument", inst.to_str().unwrap(), "--bin", "16", "--out", map.to_str().unwrap()] {
+        args.push(a.into());
+    }
+    let (code, _, err) = run(&args);
+    assert_eq!(code, 0, "{err}");
+    let m = skyfield::StokesMap::read_fits(&map).unwrap();
+    let p = m.product.as_ref().expect("the map's product");
+    assert_eq!(p.plate.as_deref(), Some("half_wave"));
+    assert_eq!(p.instrument.as_deref(), Some(m.instrument.as_str()));
+    assert_eq!(p.filter.as_deref(), Some(m.filter.as_str()));
+    let def = instrument::Instrument::from_file(&inst).unwrap();
+    assert_eq!(p.detector_px, Some((def.detector.nx, def.detector.ny)));
+    assert_eq!(p.wavelength_um, def.filter(&m.filter).ok().map(|f| f.lambda_eff_nm / 1000.0));
+    let files: Vec<PathBuf> = frames.iter().cloned().chain([inst.clone()]).collect();
+    if let Some(sums) = common::b3sum(&files) {
+        assert_eq!(p.instrument_hash.as_deref(), sums.last().map(String::as_str), "the instrument file's BLAKE3");
+        assert_eq!(p.inputs, sums, "the frames' and the instrument file's BLAKE3, in order");
+    }
+}
+
 /// A small FORS1-like strip instrument (200 x 220 px, 0.2"/px, two strips, a 50 px throw,
 /// 3 px margins; o images on rows 13..57 and 113..157), edited by `edit`.
 fn small_strips(edit: impl Fn(String) -> String) -> String {

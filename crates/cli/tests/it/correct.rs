@@ -267,6 +267,9 @@ fn stokes_map_corrected_bin_by_bin() {
     let mut a2 = args.to_vec();
     a2.push("--allow-mismatch");
     assert!(run(&a2).status.success());
+    // The corrected map records what was allowed, as a corrected catalog does.
+    let mismatch = StokesMap::read_fits(&outb).unwrap().product.and_then(|p| p.mismatch_allowed);
+    assert_eq!(mismatch.as_deref(), Some("data FORS1 B, calibration FORS1 V"));
     let c = StokesMap::read_fits(&out).unwrap();
     let mut f = FitsFile::open(&out).unwrap();
     assert_eq!(f.primary_hdu().unwrap().read_key::<String>(&mut f, "INSTCORR").unwrap(), "v.fits");

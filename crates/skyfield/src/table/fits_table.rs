@@ -265,6 +265,13 @@ fn write_key_exact(f: &mut fitsio::FitsFile, name: &str, v: f64) -> Result<(), S
 /// ([`crate::provenance::Product`]) with their values as text.
 type Numbers = Vec<(String, f64)>;
 type Pairs = Vec<(String, String)>;
+
+/// The keywords of a [`crate::provenance::Product`] in any HDU of `f` (a Stokes map's primary
+/// header), with their values as text, as a table's are read.
+pub(crate) fn header_product_pairs(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<Pairs, String> {
+    fits_table_numbers(f, hdu).map(|(_, pairs)| pairs)
+}
+
 fn fits_table_numbers(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<(Numbers, Pairs), String> {
     use std::ffi::CStr;
     let mut st = 0;

@@ -144,13 +144,7 @@ impl Table {
     /// writer stamps the run's provenance without each command passing it down. Empty without
     /// a product.
     pub(super) fn product_pairs(&self) -> Vec<(String, String)> {
-        let Some(p) = &self.product else { return vec![] };
-        if !p.inputs.is_empty() {
-            return p.pairs();
-        }
-        let run = crate::provenance::current();
-        let inputs = run.inputs.into_iter().map(|i| i.hash).collect();
-        crate::provenance::Product { inputs, ..p.clone() }.pairs()
+        self.product.as_ref().map_or_else(Vec::new, |p| p.with_run_inputs().pairs())
     }
 
     pub fn n_rows(&self) -> usize {
