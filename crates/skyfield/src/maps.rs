@@ -299,8 +299,44 @@ pub struct StokesMap {
     pub product: Option<crate::provenance::Product>,
 }
 
-/// The product keywords a Stokes map writes from its own fields, not from its product.
+/// The product keywords a map writes from its own fields, not from its product.
 const MAP_OWN_KEYS: [&str; 5] = ["INSTRUME", "FILTER", "HWPZERO", "SKYPA", "FRAME"];
+
+/// A map's product ([`StokesMap::product`], [`CircularMap::product`]) into its primary header
+/// `ph`, but for the keywords the map writes from its own fields ([`MAP_OWN_KEYS`]).
+fn write_product(
+    f: &mut FitsFile,
+    ph: &fitsio::hdu::FitsHdu,
+    product: Option<&crate::provenance::Product>,
+) -> Result<(), fitsio::errors::Error> {
+    for (k, v) in product.iter().flat_map(|p| p.with_run_inputs().pairs()) {
+        if !MAP_OWN_KEYS.contains(&k.as_str()) {
+            crate::fits::KeyValue::Str(v).write(f, ph, &k, "what the map is")?;
+        }
+    }
+    Ok(())
+}
+
+/// A map's product read back from its primary header `ph`, with the map's instrument and
+/// filter (`of`); `None` for a map that records none of it.
+fn read_product(
+    f: &mut FitsFile,
+    ph: &fitsio::hdu::FitsHdu,
+    path: &Path,
+    of: (&str, &str),
+) -> Result<Option<crate::provenance::Product>, Error> {
+    let pairs = crate::table::header_product_pairs(f, ph).map_err(|x| fits_err(path, x))?;
+    let own = |k: &str| MAP_OWN_KEYS.contains(&k);
+    let product = crate::provenance::Product::from_pairs(
+        pairs.iter().filter(|(k, _)| !own(k)).map(|(k, v)| (k.as_str(), v.as_str())),
+    )
+    .map_err(|x| fits_err(path, x))?;
+    Ok(product.map(|p| crate::provenance::Product {
+        instrument: Some(of.0.to_string()),
+        filter: Some(of.1.to_string()),
+        ..p
+    }))
+}
 
 /// One exposure of a map ([`StokesMap::exposure_tracks`]): its HWP angle (deg) and the
 /// parallactic angle at its start and end (rad, the instrument's sense).
@@ -759,11 +795,7 @@ impl StokesMap {
                 .write(f, &ph, "SKYPA", "instrument position angle on the sky [deg]")
                 .map_err(e)?;
         }
-        for (k, v) in self.product.iter().flat_map(|p| p.with_run_inputs().pairs()) {
-            if !MAP_OWN_KEYS.contains(&k.as_str()) {
-                crate::fits::KeyValue::Str(v).write(f, &ph, &k, "what the map is").map_err(e)?;
-            }
-        }
+        write_product(f, &ph, self.product.as_ref()).map_err(e)?;
         let chi_deg: Vec<f64> = self.chi.iter().map(|c| c.to_degrees()).collect();
         let floats: [Plane; 11] = [
             ("Q", &self.q, "Q/I", FRAC),
@@ -861,16 +893,7 @@ impl StokesMap {
             },
         };
         let (hwp_zero_angle_deg, sky_pa_deg) = (angle("HWPZERO")?, angle("SKYPA")?);
-        let pairs = crate::table::header_product_pairs(&mut f, &ph).map_err(|x| fits_err(path, x))?;
-        let product = crate::provenance::Product::from_pairs(
-            pairs.iter().filter(|(k, _)| !MAP_OWN_KEYS.contains(&k.as_str())).map(|(k, v)| (k.as_str(), v.as_str())),
-        )
-        .map_err(|x| fits_err(path, x))?
-        .map(|p| crate::provenance::Product {
-            instrument: Some(instrument.clone()),
-            filter: Some(filter.clone()),
-            ..p
-        });
+        let product = read_product(&mut f, &ph, path, (&instrument, &filter))?;
         // A map made elsewhere (or edited) is checked before anything is fitted to it: every
         // valid bin holds a physical polarization and a covariance that is one.
         for k in (0..n).filter(|&k| valid[k]) {
@@ -957,6 +980,8 @@ pub struct CircularMap {
     pub valid: Vec<bool>,
     /// The frames' celestial WCS carried through the binning, when they had one.
     pub celestial_wcs: Option<CelestialWcs>,
+    /// What else the map is, as a [`StokesMap`]'s product.
+    pub product: Option<crate::provenance::Product>,
 }
 
 impl CircularMap {
@@ -1002,6 +1027,7 @@ impl CircularMap {
             ph.write_key(f, "STOKES", ("V", "circular polarization V/I (quarter-wave plate)")).map_err(e)?;
             ph.write_key(f, "QWPZERO", (self.qwp_zero_angle_deg, "QWP zero angle used in the demodulation [deg]"))
                 .map_err(e)?;
+            write_product(f, &ph, self.product.as_ref()).map_err(e)?;
             let planes: [Plane; 5] = [
                 ("V", &self.v, "V/I (IAU sign)", FRAC),
                 ("SIGMA_V", &self.sigma_v, "error of V/I from pixel scatter", FRAC),
@@ -1029,6 +1055,7 @@ impl CircularMap {
         let qwp_zero_angle_deg = ph
             .read_key::<f64>(&mut f, "QWPZERO")
             .map_err(|_| Error::MissingKeyword { path: path.into(), keyword: "QWPZERO".into() })?;
+        let product = read_product(&mut f, &ph, path, (&instrument, &filter))?;
         let n = geometry.len();
         let v = read_plane(&mut f, path, "V", n)?;
         let sigma_v = read_plane(&mut f, path, "SIGMA_V", n)?;
@@ -1067,6 +1094,7 @@ impl CircularMap {
             intensity_snr,
             valid,
             celestial_wcs,
+            product,
         })
     }
 }
@@ -1289,6 +1317,7 @@ mod tests {
             intensity_snr: lin.intensity_snr.clone(),
             valid: lin.valid.clone(),
             celestial_wcs: None,
+            product: None,
         };
         let path = dir.path().join("vmap.fits");
         c.write_fits(&path).unwrap();

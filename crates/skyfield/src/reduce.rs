@@ -2103,6 +2103,7 @@ impl CircularReduced {
             intensity_snr: m.intensity_snr,
             valid: m.valid,
             celestial_wcs: m.celestial_wcs,
+            product: m.product,
         };
         Self { map, warnings: r.warnings, exposures: r.exposures }
     }

@@ -214,6 +214,11 @@ fn quarter_wave_plate_reduces_to_a_v_map_the_q_u_readers_refuse() {
     assert_eq!(j["plate_deg"], serde_json::json!([-45.0, 45.0]));
     assert!((j["median_v"].as_f64().unwrap() - 0.015).abs() < 1e-10, "{j}");
     let m = skyfield::CircularMap::read_fits(&map).unwrap();
+    // The V map says what it is: a quarter-wave plate's, of this instrument file.
+    let p = m.product.as_ref().expect("the V map's product");
+    assert_eq!(p.plate.as_deref(), Some("quarter_wave"));
+    assert_eq!(p.instrument_hash, Some(skyfield::provenance::hash_hex(&std::fs::read(&inst).unwrap())));
+    assert_eq!(p.inputs.len(), frames.len() + 1, "the frames' and the instrument file's hashes");
     // One 40-px strip (4 bin rows), 128 px across: 12 bins of 10 px and one of 8.
     assert_eq!(m.n_valid(), 13 * 4);
     for (k, _, _) in m.valid_bins() {
