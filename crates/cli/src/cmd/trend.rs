@@ -33,6 +33,10 @@ pub struct Args {
     /// Significance (sigma) above which a step is flagged.
     #[arg(long, default_value_t = 5.0)]
     pub threshold: f64,
+    /// Put plans of several instruments into one trend (refused otherwise: a step between two
+    /// instruments is no step); the table records it (MISMATCH).
+    #[arg(long)]
+    pub allow_mismatch: bool,
     /// Print the points and steps as JSON.
     #[arg(long)]
     pub json: bool,
@@ -47,7 +51,10 @@ pub fn run(a: Args) -> Result<()> {
             bail!("--plot {} is also --out: choose two names", p.display());
         }
     }
-    let t = trend::gather(&a.plans, a.threshold)?;
+    let t = trend::gather(&a.plans, a.threshold, a.allow_mismatch)?;
+    if let Some(m) = &t.product.mismatch_allowed {
+        eprintln!("warning: --allow-mismatch: {m} in one trend; the table records it (MISMATCH)");
+    }
     t.table().write(&a.out)?;
     if let Some(p) = &a.plot {
         plot(p, &t)?;

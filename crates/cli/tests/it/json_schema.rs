@@ -76,10 +76,18 @@ fn check(root: &Value, s: &Value, v: &Value, path: &str, errs: &mut Vec<String>)
         }
     }
     if let Some(r) = s.get("$ref") {
-        let target = r.as_str().and_then(|r| r.strip_prefix("#/$defs/")).and_then(|n| root["$defs"].get(n));
-        match target {
-            Some(t) => check(root, t, v, path, errs),
-            None => errs.push(format!("{path}: unresolved $ref {r}")),
+        // `#/$defs/<name>` in this schema, or another schema file of the folder by its name
+        // (`product.schema.json`: what a product is, shared by the outputs that carry one).
+        let file = r.as_str().filter(|r| r.ends_with(".schema.json") && !r.contains('/'));
+        if let Some(f) = file {
+            let other = schema(f.trim_end_matches(".schema.json"));
+            check(&other, &other, v, path, errs);
+        } else {
+            let target = r.as_str().and_then(|r| r.strip_prefix("#/$defs/")).and_then(|n| root["$defs"].get(n));
+            match target {
+                Some(t) => check(root, t, v, path, errs),
+                None => errs.push(format!("{path}: unresolved $ref {r}")),
+            }
         }
     }
     if let Some(t) = s.get("type") {
@@ -290,6 +298,18 @@ fn validator_refuses_added_dropped_and_mistyped_values() {
     assert!(validate(&small_schema(), &d).iter().any(|m| m.contains("'n_bins' is missing")));
     // Not an object at all.
     assert!(!validate(&small_schema(), &json!([1, 2])).is_empty());
+}
+
+/// A `$ref` to another schema file is followed: a product (`product.schema.json`, shared by the
+/// catalog, the plan and the trend) with an unknown key or a mistyped value fails through it.
+#[test]
+fn validator_follows_a_ref_to_another_schema_file() {
+    let sc = json!({"type": "object", "additionalProperties": false, "properties": {"product": {"$ref": "product.schema.json"}}});
+    assert!(validate(&sc, &json!({"product": {"instrument": "FORS1", "plate": "half_wave"}})).is_empty());
+    let e = validate(&sc, &json!({"product": {"instrument": "FORS1", "colour": "red"}}));
+    assert!(e.iter().any(|m| m.contains("colour")), "{e:?}");
+    let e = validate(&sc, &json!({"product": {"instrument": 3}}));
+    assert!(e.iter().any(|m| m.contains("$.product.instrument")), "{e:?}");
 }
 
 #[test]
@@ -809,6 +829,7 @@ fn every_case_has_a_test_and_every_schema_a_case() {
         let Some(stem) = name.strip_suffix(".schema.json") else { continue };
         assert!(
             stem == "error"
+                || stem == "product"
                 || stem == "validate"
                 || stem == "validate-telescope"
                 || stem == "fit-standards"

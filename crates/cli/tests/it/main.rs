@@ -45,6 +45,7 @@ mod stokes;
 mod stokes_plot;
 mod table_formats;
 mod telescope_frames;
+mod trend_instrument;
 mod validate;
 mod zero_angle_measured;
 mod zero_angle_stars;

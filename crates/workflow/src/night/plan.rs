@@ -119,6 +119,11 @@ pub struct Plan {
     pub files: Vec<FileRole>,
     #[serde(default)]
     pub left_out: Vec<LeftOut>,
+    /// What the night's products are of (`skyfield::provenance::Product`): the instrument's
+    /// name, the BLAKE3 of its definition, its plate and detector (each unit names its filter).
+    /// `None` in plans written before plans recorded it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub product: Option<skyfield::provenance::Product>,
 }
 
 fn is_json(path: &Path) -> bool {

@@ -952,6 +952,11 @@ pub fn plan_sorted(
         units,
         files: files_seen.into_iter().map(|(path, role)| super::plan::FileRole { path, role }).collect(),
         left_out: left,
+        product: Some(skyfield::provenance::Product {
+            filter: None,
+            wavelength_um: None,
+            ..skyfield::provenance::Product::of_instrument(inst, "", None)
+        }),
     };
     plan.check()?;
     Ok(plan)

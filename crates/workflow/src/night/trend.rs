@@ -84,6 +84,69 @@ pub struct Trend {
     pub points: Vec<Point>,
     pub steps: Vec<Step>,
     pub threshold_sigma: f64,
+    /// What the points are of ([`plans_product`]): the nights' instrument, the BLAKE3 of its
+    /// definition when every plan recorded the same one, its plate, the plans' BLAKE3, and
+    /// what differed when plans of several instruments were allowed together.
+    #[serde(default)]
+    pub product: skyfield::provenance::Product,
+}
+
+/// What a plan's products are of: the product it recorded ([`Plan::product`]), else its
+/// instrument as the commands were given it, loaded (a built-in name, or a file as given or
+/// beside the plan), else that name alone.
+fn plan_product(plan: &Plan, path: &Path) -> skyfield::provenance::Product {
+    use skyfield::provenance::Product;
+    if let Some(p) = &plan.product {
+        return p.clone();
+    }
+    let beside = path.parent().map(|d| d.join(&plan.instrument));
+    let loaded = instrument::Instrument::load(&plan.instrument)
+        .ok()
+        .or_else(|| beside.and_then(|b| instrument::Instrument::from_file(&b).ok()));
+    match loaded {
+        Some(i) => Product { filter: None, wavelength_um: None, ..Product::of_instrument(&i, "", None) },
+        None => Product { instrument: Some(plan.instrument.clone()), ..Product::default() },
+    }
+}
+
+/// The one product of the nights' plans (`(path, product)` each, in order): one instrument
+/// (`fit::setup::same_instrument`), or, with `allow_mismatch`, several with what differed
+/// recorded (`MISMATCH`); otherwise an error naming two plans and their instruments. A
+/// trend compares one instrument's nights: a step between two instruments is no step.
+pub fn plans_product(
+    plans: &[(PathBuf, skyfield::provenance::Product)],
+    allow_mismatch: bool,
+) -> Result<skyfield::provenance::Product, Error> {
+    let name = |p: &skyfield::provenance::Product| p.instrument.clone().unwrap_or_else(|| "(unnamed)".into());
+    let Some((first_path, first)) = plans.first() else { return Err(Error::Option("no plan given".into())) };
+    let mut out = first.clone();
+    out.inputs = Vec::new();
+    for (path, p) in &plans[1..] {
+        if !fit::setup::same_instrument(&name(p), &name(first)) {
+            if !allow_mismatch {
+                return Err(Error::Option(format!(
+                    "{} is a plan of instrument {}, {} of {}: a trend follows one instrument's nights (give each instrument's plans on their own, or --allow-mismatch to put them together)",
+                    path.display(),
+                    name(p),
+                    first_path.display(),
+                    name(first)
+                )));
+            }
+            out.mismatch_allowed.get_or_insert_with(|| format!("plans of {} and {}", name(first), name(p)));
+        }
+        if p.instrument_hash != out.instrument_hash {
+            out.instrument_hash = None;
+        }
+        if p.plate != out.plate {
+            out.plate = None;
+        }
+    }
+    out.inputs = plans
+        .iter()
+        .filter_map(|(path, _)| std::fs::read(path).ok())
+        .map(|b| skyfield::provenance::hash_hex(&b))
+        .collect();
+    Ok(out)
 }
 
 /// Weighted mean, its error scaled by sqrt(chi^2/dof) when above 1, of `(value, sigma)`.
@@ -265,16 +328,19 @@ fn telescope_points(u: &super::plan::Unit, out: &Path, mjd: f64) -> Result<Vec<P
 /// whose units have not run (no output) contributes nothing from those units; a plan that
 /// cannot be read, or an output that does not hold what its kind writes, is an error naming
 /// the file.
-pub fn gather(plans: &[PathBuf], threshold_sigma: f64) -> Result<Trend, Error> {
+pub fn gather(plans: &[PathBuf], threshold_sigma: f64, allow_mismatch: bool) -> Result<Trend, Error> {
     if !(threshold_sigma.is_finite() && threshold_sigma > 0.0) {
         return Err(Error::Option(format!("step threshold {threshold_sigma} sigma: must be positive")));
     }
     if plans.is_empty() {
         return Err(Error::Option("no plan given".into()));
     }
+    let loaded: Vec<Plan> = plans.iter().map(|p| Plan::load(p)).collect::<Result<_, _>>()?;
+    let products: Vec<_> =
+        plans.iter().zip(&loaded).map(|(path, plan)| (path.clone(), plan_product(plan, path))).collect();
+    let product = plans_product(&products, allow_mismatch)?;
     let mut points = Vec::new();
-    for path in plans {
-        let plan = Plan::load(path)?;
+    for plan in &loaded {
         for u in &plan.units {
             let (Some(out), Some(mjd)) = (u.outputs.first(), u.mjd) else { continue };
             if !out.is_file() {
@@ -335,7 +401,7 @@ pub fn gather(plans: &[PathBuf], threshold_sigma: f64) -> Result<Trend, Error> {
             find_step_of(&s, threshold_sigma, period_of(&q)).map(|st| Step { quantity: q, filter: f, ..st })
         })
         .collect();
-    Ok(Trend { points, steps, threshold_sigma })
+    Ok(Trend { points, steps, threshold_sigma, product })
 }
 
 impl Trend {
@@ -354,7 +420,7 @@ impl Trend {
             })
             .collect();
         let col = |f: fn(&Point) -> f64| self.points.iter().map(f).collect::<Vec<f64>>();
-        Table::new(vec![
+        let mut t = Table::new(vec![
             Column::text(
                 "quantity",
                 "zero_angle_deg (deg), p_minus_catalogue, q_unpolarized, u_unpolarized, p_unpolarized, p_field_edge (fractions) or telescope_<parameter>[_<unit>]",
@@ -371,7 +437,9 @@ impl Trend {
             Column::f64("sigma", None, "its 1-sigma error", col(|p| p.sigma)),
             Column::i64("after_step", "1: after its series' flagged step", after),
             Column::text("source", "file read", self.points.iter().map(|p| p.source.display().to_string()).collect()),
-        ])
+        ]);
+        t.product = Some(self.product.clone());
+        t
     }
 }
 
