@@ -482,6 +482,14 @@ fn a_simulated_night_scanned_and_run() {
             continue;
         }
         let r: Value = serde_json::from_slice(&std::fs::read(&rec).unwrap()).unwrap();
+        // What the unit's products are of: the night's instrument (its definition's BLAKE3)
+        // in the unit's filter.
+        let id = rec.file_stem().unwrap().to_string_lossy().into_owned();
+        let unit = plan["units"].as_array().unwrap().iter().find(|u| u["id"] == id.as_str()).unwrap();
+        assert_eq!(r["product"]["instrument"], plan["product"]["instrument"], "{id}");
+        let def = format!("blake3:{}", blake3::hash(&std::fs::read(&inst).unwrap()).to_hex());
+        assert_eq!(r["product"]["instrument_hash"], def.as_str(), "{id}");
+        assert_eq!(r["product"]["filter"], unit.get("filter").cloned().unwrap_or(Value::Null), "{id}");
         for pair in r["inputs"].as_array().unwrap().iter().chain(r["outputs"].as_array().unwrap()) {
             let (path, hash) = (pair[0].as_str().unwrap(), pair[1].as_str().unwrap());
             let bytes = std::fs::read(path).unwrap();

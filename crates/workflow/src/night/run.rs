@@ -66,6 +66,10 @@ pub struct Record {
     /// A check unit whose check did not pass: why (module docs, "Checks").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub check_failed: Option<String>,
+    /// What the unit's products are of: the plan's product ([`Plan::product`]) in the unit's
+    /// filter. Absent in records written before records said it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub product: Option<skyfield::provenance::Product>,
 }
 
 /// What happened to a unit.
@@ -346,7 +350,9 @@ fn run_unit(plan: &Plan, u: &Unit, exec: &Executor) -> Status {
         .filter_map(|(p, b)| stat(p).filter(|s| Some(*s) == *b).map(|(n, t)| (p.clone(), n, t)))
         .chain(read[u.inputs.len()..].iter().chain(&u.outputs).filter_map(|p| stat(p).map(|(n, t)| (p.clone(), n, t))))
         .collect();
-    let rec = Record { command: u.command.clone(), inputs, outputs, stats, check_failed: ran.check_failed };
+    let product =
+        plan.product.clone().map(|p| skyfield::provenance::Product { filter: u.filter.clone().or(p.filter.clone()), ..p });
+    let rec = Record { command: u.command.clone(), inputs, outputs, stats, check_failed: ran.check_failed, product };
     let text = serde_json::to_string_pretty(&rec).unwrap_or_default();
     match write_atomic_tagged(&record_path(plan, u), Some(&u.id), text.as_bytes()) {
         Ok(()) => recorded_status(rec).done(),
