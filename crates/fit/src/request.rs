@@ -575,12 +575,20 @@ fn check_setup(
     map: bool,
     notes: &mut Vec<Note>,
 ) -> Result<(), Refusal> {
+    // A telescope model alone: its instrument (the file's), its band checked apart
+    // (`band_fits_data`); an empty filter is one that says nothing ([`crate::setup::is_known`]).
     let setup = match (&file.field, &file.mueller) {
         (Some(c), _) => Some((c.instrument.as_str(), c.filter.as_str())),
         (None, Some(m)) => Some((m.instrument.as_str(), m.filter.as_str())),
-        (None, None) => None,
+        (None, None) => Some((file.instrument.as_str(), "")),
     };
-    match crate::setup::check_compatible(data, setup) {
+    let checked = crate::setup::check_compatible(data, setup).map_err(|m| match m {
+        crate::setup::Mismatch::Setup { data, calibration: (i, f) } if f.is_empty() => {
+            crate::setup::Mismatch::Setup { data, calibration: (i, "(a telescope model's band)".into()) }
+        }
+        m => m,
+    });
+    match checked {
         Ok(()) => Ok(()),
         Err(mismatch) if req.allow_mismatch => {
             notes.push(Note::MismatchAllowed(mismatch));

@@ -411,3 +411,28 @@ fn celestial_rows_are_corrected_in_the_instruments_frame_and_come_back_to_the_sk
     }
     assert!(worst < 1e-12, "celestial rows miss the sky by {worst:e}");
 }
+
+/// A telescope model alone is of its file's instrument: rows of another instrument are refused
+/// naming both (it checked the band only), corrected with a note under `allow_mismatch`, and
+/// rows of its own instrument (or that say none) go through.
+#[test]
+fn a_telescope_model_alone_is_checked_against_the_data_instrument() {
+    let f = file(None, Some(telescope(false)));
+    let setup = |inst: &str| fit::setup::Setup { instrument: inst.into(), filter: "V".into(), plate: None };
+    let other = setup("FORS2");
+    let req = Request { data: Some(&other), parang: Some(Track::at(0.2)), ..request() };
+    match plan_rows(&f, &req, 1).err() {
+        Some(Refusal::Mismatch { mismatch: fit::setup::Mismatch::Setup { data, calibration }, .. }) => {
+            assert_eq!(data.0, "FORS2");
+            assert_eq!(calibration.0, "EFOSC2");
+        }
+        e => panic!("{e:?}"),
+    }
+    let plan = plan_rows(&f, &Request { allow_mismatch: true, ..req }, 1).unwrap();
+    assert!(plan.notes.iter().any(|n| matches!(n, Note::MismatchAllowed(_))), "{:?}", plan.notes);
+    for inst in ["EFOSC2", "efosc2 ", "unknown"] {
+        let own = setup(inst);
+        let req = Request { data: Some(&own), parang: Some(Track::at(0.2)), ..request() };
+        assert!(plan_rows(&f, &req, 1).is_ok(), "{inst}");
+    }
+}

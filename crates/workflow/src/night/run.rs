@@ -350,8 +350,10 @@ fn run_unit(plan: &Plan, u: &Unit, exec: &Executor) -> Status {
         .filter_map(|(p, b)| stat(p).filter(|s| Some(*s) == *b).map(|(n, t)| (p.clone(), n, t)))
         .chain(read[u.inputs.len()..].iter().chain(&u.outputs).filter_map(|p| stat(p).map(|(n, t)| (p.clone(), n, t))))
         .collect();
-    let product =
-        plan.product.clone().map(|p| skyfield::provenance::Product { filter: u.filter.clone().or(p.filter.clone()), ..p });
+    let product = plan
+        .product
+        .clone()
+        .map(|p| skyfield::provenance::Product { filter: u.filter.clone().or(p.filter.clone()), ..p });
     let rec = Record { command: u.command.clone(), inputs, outputs, stats, check_failed: ran.check_failed, product };
     let text = serde_json::to_string_pretty(&rec).unwrap_or_default();
     match write_atomic_tagged(&record_path(plan, u), Some(&u.id), text.as_bytes()) {
