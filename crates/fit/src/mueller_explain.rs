@@ -606,7 +606,18 @@ fn fit_cause(cause: Cause, target: &Target, ctx: &Context, rt: &[Option<[f64; 8]
     };
     let chi2_dof = if dof > 0 { chi2 / dof as f64 } else { f64::NAN };
     let scale = if dof >= 30 && chi2_dof > 1.0 { chi2_dof } else { 1.0 };
-    let cov = if k > 0 { (j.transpose() * &j).try_inverse() } else { None };
+    // The covariance only where the data determine every parameter: the workspace's judge
+    // (`crate::conditioning`) on the whitened Jacobian, not a failed inverse; its refusal,
+    // naming the free parameter, is the cause's note.
+    let words = crate::conditioning::Words::new(
+        names.iter().map(|n| n.to_string()).collect(),
+        "fields whose sky polarization or field positions tell this cause's parameters apart",
+    );
+    let judged = if k > 0 { crate::conditioning::judge(&j, &words) } else { Ok(()) };
+    let cov = match &judged {
+        Ok(()) if k > 0 => (j.transpose() * &j).try_inverse(),
+        _ => None,
+    };
     let params = names
         .iter()
         .enumerate()
@@ -617,7 +628,9 @@ fn fit_cause(cause: Cause, target: &Target, ctx: &Context, rt: &[Option<[f64; 8]
             Param { name, value: t[i], sigma: v.map_or(f64::INFINITY, f64::sqrt) }
         })
         .collect::<Vec<_>>();
-    if params.iter().any(|p| !p.sigma.is_finite()) {
+    if let Err(u) = judged {
+        note = Some(u.to_string());
+    } else if params.iter().any(|p| !p.sigma.is_finite()) {
         note = Some("some parameters are not constrained by the data (singular information matrix)".into());
     }
     let chi2_as_computed = if cause == Cause::Raytrace {
