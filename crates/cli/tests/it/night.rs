@@ -745,6 +745,24 @@ fn bad_folders_and_nonsense_plans_are_refused_by_name() {
     );
     let a = products.join("a.fits");
     let b = products.join("b.fits");
+    // The frame under other names: spelled otherwise, and a hard link; a file a command names
+    // (an instrument file) that is no unit's listed input.
+    std::fs::create_dir_all(d.join("sub")).unwrap();
+    let spelled = d.join("sub").join("..").join("frame.fits");
+    let linked = d.join("linked.fits");
+    std::fs::hard_link(&frame, &linked).unwrap();
+    let inst_file = d.join("inst.toml");
+    std::fs::write(&inst_file, "not read").unwrap();
+    let names_inst = format!(
+        "[[units]]\nid = \"A\"\nkind = \"reduce\"\ninputs = [{:?}]\noutputs = [{:?}]\ncommand = [\"reduce\", {:?}, \"--instrument\", {:?}, \"--out\", {:?}]\nafter = []\n",
+        frame.display().to_string(),
+        a.display().to_string(),
+        frame.display().to_string(),
+        inst_file.display().to_string(),
+        a.display().to_string()
+    );
+    let over_inst =
+        names_inst.clone() + &unit("B", "reduce", &frame, &inst_file, "").replace("id = \"B\"", "id = \"B\"");
     let cases = [
         (
             "a cycle",
@@ -771,6 +789,17 @@ fn bad_folders_and_nonsense_plans_are_refused_by_name() {
             format!("{head}{}{}", unit("A", "reduce", &frame, &a, ""), unit("B", "reduce", &a, &frame, "\"A\"")),
             "refusing to write over an input",
         ),
+        (
+            "output over its input spelled otherwise",
+            format!("{head}{}", unit("A", "reduce", &frame, &spelled, "")),
+            "under another name",
+        ),
+        (
+            "output over a hard link of an input",
+            format!("{head}{}", unit("A", "reduce", &frame, &linked, "")),
+            "under another name",
+        ),
+        ("output over a file a command names", format!("{head}{over_inst}"), "inst.toml is"),
     ];
     for (what, text, says) in cases {
         let p = d.join("bad.toml");
@@ -781,6 +810,7 @@ fn bad_folders_and_nonsense_plans_are_refused_by_name() {
         assert!(e.contains("bad.toml") && e.contains("unit ") && e.contains(says), "{what}: {e}");
         assert!(!products.exists(), "{what}: something was written");
         assert_eq!(std::fs::read_to_string(&frame).unwrap(), "raw");
+        assert_eq!(std::fs::read_to_string(&inst_file).unwrap(), "not read");
     }
     let o = instpol(&["run", d.join("none.toml").to_str().unwrap()]);
     assert_eq!(o.status.code(), Some(2));

@@ -221,8 +221,15 @@ impl Plan {
                     return bad(&u.id, format!("it follows unit '{d}', which the plan does not have"));
                 }
             }
-            for i in &u.inputs {
-                match maker.get(i.as_path()) {
+            // Its inputs, and the files its command names besides (an instrument file, a
+            // calibration): either way the command reads them.
+            let named = u.command[1..]
+                .iter()
+                .map(Path::new)
+                .filter(|p| !u.outputs.iter().any(|o| o == p) && !u.inputs.iter().any(|i| i == p))
+                .filter(|p| p.is_file() || maker.contains_key(p));
+            for i in u.inputs.iter().map(PathBuf::as_path).chain(named) {
+                match maker.get(i) {
                     Some(m) if *m == u.id => {
                         return bad(&u.id, format!("output {} is also its input: refusing to write over an input", i.display()))
                     }
@@ -249,7 +256,39 @@ impl Plan {
                 }
             }
         }
+        self.check_outputs_against_sources(&maker)?;
         self.order().map(|_| ())
+    }
+
+    /// Every file the plan reads that no unit makes (the units' inputs, the night's raw files,
+    /// the instrument file, every existing file a command names): an output that is one of
+    /// them under another name (spelled otherwise, through a symlink, a hard link) is refused,
+    /// naming both names.
+    fn check_outputs_against_sources(&self, maker: &BTreeMap<&Path, &str>) -> Result<(), Error> {
+        let mut sources: Vec<&Path> = self.files.iter().map(|f| f.path.as_path()).collect();
+        sources.push(Path::new(&self.instrument));
+        for u in &self.units {
+            sources.extend(u.inputs.iter().map(PathBuf::as_path));
+            sources.extend(u.command.iter().map(Path::new).filter(|p| !u.outputs.iter().any(|o| o == p)));
+        }
+        let sources: Vec<(&Path, FileId)> =
+            sources.into_iter().filter(|p| !maker.contains_key(p) && p.is_file()).map(|p| (p, FileId::of(p))).collect();
+        for u in &self.units {
+            for o in &u.outputs {
+                let id = FileId::of(o);
+                if let Some((src, _)) = sources.iter().find(|(_, s)| s.same(&id)) {
+                    return Err(Error::Unit {
+                        id: u.id.clone(),
+                        why: format!(
+                            "output {} is {} under another name: refusing to write over an input",
+                            o.display(),
+                            src.display()
+                        ),
+                    });
+                }
+            }
+        }
+        Ok(())
     }
 
     /// True when `u` follows unit `id`, directly or through others.
@@ -304,5 +343,39 @@ impl Plan {
             .into_iter()
             .filter(|&i| self.units[i].id == u.id || Self::follows(&by_id, u, &self.units[i].id))
             .collect())
+    }
+}
+
+/// Which file a path names, for telling two names of one file apart: its device and inode
+/// when it exists, and its absolute path with `.`, `..` and symlinked folders resolved.
+#[derive(Debug, Clone, PartialEq)]
+struct FileId {
+    inode: Option<(u64, u64)>,
+    path: PathBuf,
+}
+
+impl FileId {
+    fn of(p: &Path) -> FileId {
+        #[cfg(unix)]
+        let inode = {
+            use std::os::unix::fs::MetadataExt;
+            std::fs::metadata(p).ok().map(|m| (m.dev(), m.ino()))
+        };
+        #[cfg(not(unix))]
+        let inode = None;
+        let path = std::fs::canonicalize(p).unwrap_or_else(|_| {
+            // Not there yet: its folder resolved, then its name.
+            let dir = p.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+            match (std::fs::canonicalize(dir), p.file_name()) {
+                (Ok(d), Some(n)) => d.join(n),
+                _ => std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf()),
+            }
+        });
+        FileId { inode, path }
+    }
+
+    /// Whether the two name one file.
+    fn same(&self, other: &FileId) -> bool {
+        matches!((self.inode, other.inode), (Some(a), Some(b)) if a == b) || self.path == other.path
     }
 }
