@@ -85,7 +85,7 @@ pub fn run(a: Args) -> Result<()> {
 
 /// One panel per series: the points with their errors against MJD, the step's two weighted
 /// means as horizontal lines (red when flagged).
-fn plot(path: &Path, t: &Trend) -> Result<()> {
+pub fn plot(path: &Path, t: &Trend) -> Result<()> {
     let mut series: Vec<(String, String)> = t.points.iter().map(|p| (p.quantity.clone(), p.filter.clone())).collect();
     series.dedup();
     if series.is_empty() {
