@@ -297,3 +297,33 @@ pub fn write_archive_night(dir: &Path) -> Result<WrittenNight, Error> {
     }
     Ok(WrittenNight { instrument, raw: dir.join("raw"), sky_table, scenes, frames, truths })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every block of the night is a valid scene of the shrunk FORS2, and no two blocks share a
+    /// folder, an exposure number or a minute of the night (the archive names are the start
+    /// times, one exposure a minute: two blocks at one time would write one file twice).
+    #[test]
+    fn the_archive_nights_blocks_are_valid_scenes_apart_in_numbers_and_time() {
+        let dir = tempfile::tempdir().unwrap();
+        let inst = dir.path().join(INSTRUMENT_FILE);
+        std::fs::write(&inst, TINY_FORS2).unwrap();
+        let blocks = archive_night();
+        let mut exposures = std::collections::BTreeSet::new();
+        let mut minutes = std::collections::BTreeSet::new();
+        let mut dirs = std::collections::BTreeSet::new();
+        for b in &blocks {
+            let path = dir.path().join(format!("{}.toml", b.dir));
+            Scene::from_toml_str(&b.scene_text(&inst, PATTERN_PERCENT, ""), &path).unwrap();
+            assert!(dirs.insert(b.dir), "{} twice", b.dir);
+            for k in 0..b.angles.len() as i64 {
+                assert!(exposures.insert(b.first_exp + k), "{}: exposure {} twice", b.dir, b.first_exp + k);
+                let minute = ((b.start_mjd - NIGHT_MJD) * 1440.0).round() as i64 + k;
+                assert!(minutes.insert(minute), "{}: minute {minute} of the night twice", b.dir);
+            }
+        }
+        assert_eq!(blocks.len(), 15);
+    }
+}

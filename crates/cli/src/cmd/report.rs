@@ -1,6 +1,7 @@
 //! `instpol report`: a static HTML page of nights' plans and products and of their trend
 //! (`workflow::night::report` gathers; this draws the figures and `report_html` prints the page).
 
+use super::report_html::Figures;
 use anyhow::{bail, Context, Result};
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
@@ -34,17 +35,6 @@ pub struct Args {
     /// Print what was written as JSON.
     #[arg(long)]
     pub json: bool,
-}
-
-/// What the report's figures are: the file names under figures/, by what they show.
-#[derive(Default)]
-pub struct Figures {
-    /// Per night, per calibration (in the report's order): its map, profile and residual SVGs.
-    pub calibrations: Vec<Vec<Vec<String>>>,
-    /// Per night: the standards' pulls, when it measured any.
-    pub pulls: Vec<Option<String>>,
-    /// The trend's series, when any point was measured.
-    pub trend: Option<String>,
 }
 
 #[derive(serde::Serialize)]

@@ -1,12 +1,22 @@
 //! The page of `instpol report`: `workflow::night::report`'s values printed as one HTML file,
-//! its figures (SVG files beside it) named by `report::Figures`. Printing only: every number is
+//! its figures (SVG files beside it) named by [`Figures`]. Printing only: every number is
 //! read from the report; fractions are shown in percent, labelled.
 
-use super::report::Figures;
 use skyfield::provenance::Provenance;
 use std::fmt::Write;
 use workflow::night::report::{NightReport, Report, UnitState};
 use workflow::night::trend::Trend;
+
+/// What the report's figures are: the file names under figures/, by what they show.
+#[derive(Default)]
+pub struct Figures {
+    /// Per night, per calibration (in the report's order): its map, profile and residual SVGs.
+    pub calibrations: Vec<Vec<Vec<String>>>,
+    /// Per night: the standards' pulls, when it measured any.
+    pub pulls: Vec<Option<String>>,
+    /// The trend's series, when any point was measured.
+    pub trend: Option<String>,
+}
 
 /// Text escaped for HTML.
 fn esc(s: &str) -> String {
