@@ -18,20 +18,9 @@ pub struct Figures {
     pub trend: Option<String>,
 }
 
-/// Text escaped for HTML.
+/// Text escaped for HTML (quick-xml's escape of `&`, `<`, `>`, `"` and `'`).
 fn esc(s: &str) -> String {
-    let mut o = String::with_capacity(s.len());
-    for c in s.chars() {
-        match c {
-            '&' => o.push_str("&amp;"),
-            '<' => o.push_str("&lt;"),
-            '>' => o.push_str("&gt;"),
-            '"' => o.push_str("&quot;"),
-            '\'' => o.push_str("&#39;"),
-            c => o.push(c),
-        }
-    }
-    o
+    quick_xml::escape::escape(s).into_owned()
 }
 
 /// A number as written in a JSON output, for a person: four significant digits.

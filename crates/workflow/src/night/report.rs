@@ -9,7 +9,7 @@
 
 use super::plan::{LeftOut, Plan, Unit};
 use super::run::up_to_date;
-use super::trend::{self, Trend};
+use super::trend::{self, number, read_json, Trend};
 use super::Error;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -218,18 +218,6 @@ fn values(u: &Unit) -> Result<Vec<(String, f64)>, Error> {
     let Some((_, keys)) = VALUES.iter().find(|(k, _)| *k == u.kind) else { return Ok(vec![]) };
     let v = read_json(&u.outputs[0])?;
     Ok(keys.iter().filter_map(|k| v.get(*k).and_then(|x| x.as_f64()).map(|x| (k.to_string(), x))).collect())
-}
-
-fn read_json(path: &Path) -> Result<serde_json::Value, Error> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::Input { path: path.into(), why: e.to_string() })?;
-    serde_json::from_str(&text).map_err(|e| Error::Input { path: path.into(), why: format!("not JSON: {e}") })
-}
-
-fn number(v: &serde_json::Value, key: &str, path: &Path) -> Result<f64, Error> {
-    v.get(key)
-        .and_then(|x| x.as_f64())
-        .filter(|x| x.is_finite())
-        .ok_or_else(|| Error::Input { path: path.into(), why: format!("no number '{key}'") })
 }
 
 fn check(u: &Unit, star: &str, quantity: &str, (m, s): (f64, f64), (c, sc): (f64, f64)) -> StandardCheck {

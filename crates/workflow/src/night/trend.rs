@@ -172,12 +172,14 @@ pub fn find_step_of(points: &[(f64, f64, f64)], threshold_sigma: f64, period: Op
     best
 }
 
-fn read_json(path: &Path) -> Result<serde_json::Value, Error> {
+/// A unit's JSON output, or an error naming the file.
+pub(crate) fn read_json(path: &Path) -> Result<serde_json::Value, Error> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::Input { path: path.into(), why: e.to_string() })?;
     serde_json::from_str(&text).map_err(|e| Error::Input { path: path.into(), why: format!("not JSON: {e}") })
 }
 
-fn number(v: &serde_json::Value, key: &str, path: &Path) -> Result<f64, Error> {
+/// The finite number under `key` of a JSON output, or an error naming the file and key.
+pub(crate) fn number(v: &serde_json::Value, key: &str, path: &Path) -> Result<f64, Error> {
     v.get(key)
         .and_then(|x| x.as_f64())
         .filter(|x| x.is_finite())
