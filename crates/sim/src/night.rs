@@ -279,7 +279,25 @@ pub fn write_archive_night(dir: &Path) -> Result<WrittenNight, Error> {
     } else if dir.exists() {
         return Err(err("is not a folder".into()));
     }
+    let existed = dir.exists();
     std::fs::create_dir_all(dir).map_err(|e| err(format!("cannot create: {e}")))?;
+    let written = write_into(dir);
+    if written.is_err() {
+        // The folder was empty or absent: a failed night (a full disk at frame 90) leaves
+        // nothing that looks like a night to the next command.
+        for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+            let p = e.path();
+            let _ = if p.is_dir() { std::fs::remove_dir_all(&p) } else { std::fs::remove_file(&p) };
+        }
+        if !existed {
+            let _ = std::fs::remove_dir(dir);
+        }
+    }
+    written
+}
+
+/// The files of [`write_archive_night`] into the existing folder `dir`.
+fn write_into(dir: &Path) -> Result<WrittenNight, Error> {
     let instrument = dir.join(INSTRUMENT_FILE);
     write_text(&instrument, TINY_FORS2)?;
     let mut table = String::from("target,p_percent,chi_deg\n");

@@ -59,6 +59,31 @@ fn safe(name: &str) -> String {
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs(a.plans.iter().map(|p| p.as_path()))?;
     let r = report::gather(&a.plans, a.threshold)?;
+    let before = files_in(&a.out);
+    let out_existed = a.out.exists();
+    let result = write(&a, &r);
+    if result.is_err() {
+        // A failed report (a full disk at its fifth figure) leaves none of the files it made:
+        // a page without its figures would look complete. Files of an earlier report stay.
+        for p in files_in(&a.out).into_iter().filter(|p| !before.contains(p)) {
+            let _ = std::fs::remove_file(p);
+        }
+        let _ = std::fs::remove_dir(a.out.join("figures"));
+        if !out_existed {
+            let _ = std::fs::remove_dir(&a.out);
+        }
+    }
+    result
+}
+
+/// The files of a report folder: its page and its figures.
+fn files_in(out: &Path) -> Vec<PathBuf> {
+    let figures = std::fs::read_dir(out.join("figures")).into_iter().flatten().flatten().map(|e| e.path());
+    figures.chain(std::iter::once(out.join("index.html")).filter(|p| p.exists())).collect()
+}
+
+/// Draw the figures and write the page of `r` (module docs).
+fn write(a: &Args, r: &Report) -> Result<()> {
     // Nothing the nights read or wrote may be written over: the plans (registered above), their
     // products and records.
     let products: Vec<&Path> =
@@ -107,9 +132,9 @@ pub fn run(a: Args) -> Result<()> {
         figs.trend = Some("trend.svg".into());
     }
     let provenance = skyfield::provenance::current();
-    let html = crate::cmd::report_html::page(&r, &figs, &provenance);
+    let html = crate::cmd::report_html::page(r, &figs, &provenance);
     crate::util::write_atomic(&index, html.as_bytes())?;
-    let w = summary(&r, index, written);
+    let w = summary(r, index, written);
     if a.json {
         return crate::util::print_json(&w);
     }
