@@ -776,6 +776,22 @@ fn trend_over_twelve_months_finds_the_steps_and_only_them() {
         assert!(v.abs() < 0.0032 + 4.0 * e, "{p}");
     }
     assert_eq!(t["points"].as_array().unwrap().len(), 12 * 6);
+    // The report of the twelve nights: the three simulated steps flagged in four series (the
+    // unpolarized standard's P moves with its q), as trend flags them, and no other.
+    let out = with.join("report");
+    let mut args = vec!["report".to_string()];
+    args.extend(plans.iter().map(|p| p.display().to_string()));
+    args.extend(["--out", out.to_str().unwrap(), "--json"].map(String::from));
+    let o = Command::new(bin()).args(&args).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: Value = serde_json::from_slice(&o.stdout).unwrap();
+    let flagged = t["steps"].as_array().unwrap().iter().filter(|s| s["flagged"] == true).count();
+    assert_eq!(step("p_unpolarized")["flagged"], true, "{t}");
+    assert_eq!((r["nights"].as_u64(), r["trend_flagged"].as_u64()), (Some(12), Some(4)), "{r}");
+    assert_eq!(flagged, 4, "{t}");
+    crate::report::check_static(&out);
+    let html = std::fs::read_to_string(out.join("index.html")).unwrap();
+    assert_eq!(html.matches(" flagged</td>").count(), 4, "the page shows the four steps flagged");
 
     let without = dir.path().join("without");
     let plans = twelve_months(&without, false, 11);

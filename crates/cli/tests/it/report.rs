@@ -81,7 +81,7 @@ fn xml_root(text: &str) -> Result<String, String> {
 }
 
 /// The static checks of a report folder; the figures' paths (relative to the folder).
-fn check_static(dir: &Path) -> Vec<String> {
+pub fn check_static(dir: &Path) -> Vec<String> {
     let html = std::fs::read_to_string(dir.join("index.html")).unwrap();
     assert!(!html.contains("<script"), "the page runs no script");
     assert!(!html.contains("http://") && !html.contains("https://") && !html.contains("//cdn"), "nothing fetched");
