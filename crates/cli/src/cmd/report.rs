@@ -2,7 +2,7 @@
 //! (`workflow::night::report` gathers; this draws the figures and `report_html` prints the page).
 
 use super::report_html::Figures;
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
 use workflow::night::report::{self, Report, StandardCheck};
@@ -177,11 +177,9 @@ fn summary(r: &Report, output: PathBuf, figures: Vec<PathBuf>) -> Written {
 }
 
 /// The standards' pulls against the row number of the page's table, the 0, +-1 and +-3 sigma
-/// lines drawn.
+/// lines drawn (a pull that is not a number, of a value without an error, is left out of the
+/// figure; the table prints it).
 fn draw_pulls(path: &Path, checks: &[StandardCheck]) -> Result<()> {
-    if let Some(c) = checks.iter().find(|c| !c.pull.is_finite()) {
-        bail!("unit {}: the pull of {} {} is not a number", c.unit, c.star, c.quantity);
-    }
     crate::plot::save_image(path, (900, 500), |a| pulls_on(a, checks), |a| pulls_on(a, checks))
 }
 
@@ -190,7 +188,7 @@ fn pulls_on<DB: DrawingBackend>(
     checks: &[StandardCheck],
 ) -> Result<()> {
     // At least +-5 sigma: the ticks at -5, 0 and 5 are labelled whatever the pulls.
-    let top = (checks.iter().map(|c| c.pull.abs()).fold(0.0, f64::max) * 1.1).max(5.2);
+    let top = (checks.iter().map(|c| c.pull.abs()).filter(|p| p.is_finite()).fold(0.0, f64::max) * 1.1).max(5.2);
     let n = checks.len() as f64;
     let whole = |x: &f64| if (x - x.round()).abs() < 1e-6 { format!("{}", x.round()) } else { String::new() };
     let ax = crate::plot::Axes::new(
@@ -204,7 +202,8 @@ fn pulls_on<DB: DrawingBackend>(
     for (y, colour) in lines {
         c.draw_series(LineSeries::new([(0.5, y), (n + 0.5, y)], colour.stroke_width(2))).map_err(crate::plot::pe)?;
     }
-    c.draw_series(checks.iter().enumerate().map(|(k, ch)| Circle::new(((k + 1) as f64, ch.pull), 6, BLACK.filled())))
+    let finite = checks.iter().enumerate().filter(|(_, ch)| ch.pull.is_finite());
+    c.draw_series(finite.map(|(k, ch)| Circle::new(((k + 1) as f64, ch.pull), 6, BLACK.filled())))
         .map_err(crate::plot::pe)?;
     Ok(())
 }
