@@ -124,20 +124,8 @@ fn found(h: &mut String, n: &NightReport) {
     } else {
         h.push_str("<table><tr><th>files</th><th>why</th></tr>\n");
         for l in &n.left_out {
-            let names: Vec<String> = l
-                .files
-                .iter()
-                .take(3)
-                .map(|p| p.file_name().map_or_else(|| p.display().to_string(), |f| f.to_string_lossy().into()))
-                .collect();
-            let more = if l.files.len() > 3 { format!(" and {} more", l.files.len() - 3) } else { String::new() };
-            let _ = writeln!(
-                h,
-                "<tr><td><code>{}</code>{}</td><td>{}</td></tr>",
-                esc(&names.join(", ")),
-                more,
-                esc(&l.why)
-            );
+            let files = super::night::left_out_files(l);
+            let _ = writeln!(h, "<tr><td><code>{}</code></td><td>{}</td></tr>", esc(&files), esc(&l.why));
         }
         h.push_str("</table>\n");
     }
