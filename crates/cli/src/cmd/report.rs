@@ -30,7 +30,7 @@ pub struct Args {
     #[arg(long)]
     pub out: PathBuf,
     /// Step significance (sigma) above which a trend's step is flagged (as `instpol trend`).
-    #[arg(long, default_value_t = 5.0)]
+    #[arg(long, default_value_t = workflow::night::trend::DEFAULT_THRESHOLD_SIGMA)]
     pub threshold: f64,
     /// Print what was written as JSON.
     #[arg(long)]

@@ -31,7 +31,7 @@ pub struct Args {
     #[arg(long, value_name = "TREND.png")]
     pub plot: Option<PathBuf>,
     /// Significance (sigma) above which a step is flagged.
-    #[arg(long, default_value_t = 5.0)]
+    #[arg(long, default_value_t = workflow::night::trend::DEFAULT_THRESHOLD_SIGMA)]
     pub threshold: f64,
     /// Print the points and steps as JSON.
     #[arg(long)]

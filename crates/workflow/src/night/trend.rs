@@ -38,6 +38,10 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use stokes::stats::circular::{self, Period};
 
+/// The step significance (sigma) above which a step is flagged unless told otherwise: the
+/// search over splits is a look-elsewhere of about as many trials as nights (module docs).
+pub const DEFAULT_THRESHOLD_SIGMA: f64 = 5.0;
+
 /// One measured value.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Point {
