@@ -24,7 +24,7 @@ if [ ! -f "$DIR/.made" ]; then
   touch "$DIR/.made"
 fi
 PLAN="$LOG/night.json"
-"$BIN" scan "$DIR/raw" --instrument crates/cli/tests/data/night/tiny_fors2.toml --out "$PLAN" \
+"$BIN" scan "$DIR/raw" --instrument instruments/tiny_fors2.toml --out "$PLAN" \
   --products "$LOG/products" --bin 8 --fwhm 3 --aperture 4 \
   --sky EMPTY-V1:1.74:-53.8 --sky EMPTY-V2:1.74:-53.8 --sky EMPTY-I1:1.74:-53.8 --sky EMPTY-I2:1.74:-53.8 > /dev/null
 # The units' commands in the plan's order, as a person would run them by hand.

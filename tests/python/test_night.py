@@ -11,7 +11,7 @@ import pytest
 import instpol
 
 ROOT = Path(__file__).resolve().parents[2]
-INST = ROOT / "crates" / "cli" / "tests" / "data" / "night" / "tiny_fors2.toml"
+INST = ROOT / "instruments" / "tiny_fors2.toml"
 
 
 def simulate(run, tmp, name, angles, start_mjd, first_exp, dpr, target, sky=None, stars=()):

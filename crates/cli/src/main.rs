@@ -60,6 +60,10 @@ enum Command {
         about = "The standards' zero angle and instrumental polarization of many nights against date, steps flagged"
     )]
     Trend(cmd::trend::Args),
+    #[command(
+        about = "A static HTML report of nights' plans and products and of their trend: one folder, SVG figures, no network"
+    )]
+    Report(cmd::report::Args),
     #[command(about = "Simulate raw-like dual-beam FITS frames of a scene (only the effects it lists)")]
     Simulate(cmd::simulate::Args),
     #[command(about = "Reduce frames to a binned, sigma-clipped Stokes map")]
@@ -173,6 +177,7 @@ fn main() {
         Command::Scan(a) => cmd::night::run_scan(a),
         Command::Run(a) => cmd::night::run_run(a),
         Command::Trend(a) => cmd::trend::run(a),
+        Command::Report(a) => cmd::report::run(a),
         Command::Simulate(a) => cmd::simulate::run(a),
         Command::Reduce(a) => cmd::reduce::run(a),
         Command::MasterBias(a) => cmd::master::run_bias(a),

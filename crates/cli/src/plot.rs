@@ -870,26 +870,40 @@ fn nearest_spacing(res: &[(f64, f64, f64, f64)]) -> f64 {
 }
 
 /// Draw the three calibration plots into `dir` as `{stem}_map`, `{stem}_profile`,
-/// `{stem}_residual` (PNG and SVG); returns the files written.
-pub fn calibration_plots(dir: &Path, stem: &str, d: &CalPlotData) -> Result<Vec<PathBuf>> {
+/// `{stem}_residual` (PNG and SVG, or SVG only when `png` is false: a report's figures);
+/// returns the files written.
+pub fn calibration_figures(dir: &Path, stem: &str, d: &CalPlotData, png: bool) -> Result<Vec<PathBuf>> {
     let mut out = vec![];
     let map_size = (900 + MAP_SIDE_ROOM, 900);
-    out.extend(save_png_svg(&dir.join(format!("{stem}_map")), map_size, |a| draw_map(a, d), |a| draw_map(a, d))?);
-    out.extend(save_png_svg(
-        &dir.join(format!("{stem}_profile")),
-        (900, 1100),
-        |a| draw_profile(a, d),
-        |a| draw_profile(a, d),
-    )?);
+    let stem_of = |name: &str| dir.join(format!("{stem}_{name}"));
+    out.extend(save_figure(&stem_of("map"), map_size, png, |a| draw_map(a, d), |a| draw_map(a, d))?);
+    out.extend(save_figure(&stem_of("profile"), (900, 1100), png, |a| draw_profile(a, d), |a| draw_profile(a, d))?);
     if d.radial.is_some() {
-        out.extend(save_png_svg(
-            &dir.join(format!("{stem}_residual")),
+        out.extend(save_figure(
+            &stem_of("residual"),
             (900 + COLOUR_BAR_ROOM, 900),
+            png,
             |a| draw_residual(a, d),
             |a| draw_residual(a, d),
         )?);
     }
     Ok(out)
+}
+
+/// `STEM.png` and `STEM.svg` ([`save_png_svg`]), or `STEM.svg` alone when `png` is false.
+fn save_figure(
+    stem: &Path,
+    size: (u32, u32),
+    png: bool,
+    png_draw: impl FnOnce(&DrawingArea<BitMapBackend, Shift>) -> Result<()>,
+    svg_draw: impl FnOnce(&DrawingArea<SVGBackend, Shift>) -> Result<()>,
+) -> Result<Vec<PathBuf>> {
+    if png {
+        return save_png_svg(stem, size, png_draw, svg_draw);
+    }
+    let s = stem.with_extension("svg");
+    save_image(&s, size, png_draw, svg_draw)?;
+    Ok(vec![s])
 }
 
 /// A progress bar on stderr (hidden when `quiet`, e.g. with --json, or when stderr is not a

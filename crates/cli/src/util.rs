@@ -14,8 +14,8 @@ static INPUTS: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 /// Every other path argument, and `--instrument` when it names a file, is an input
 /// ([`guard_arguments`]). A new output argument must be listed here: the test
 /// `path_arguments_are_inputs_or_listed_outputs` reads every command's definition.
-pub const OUTPUT_ARGUMENTS: [&str; 8] =
-    ["out", "output", "output_dir", "plot", "plots", "plot_dir", "field_out", "products"];
+pub const OUTPUT_ARGUMENTS: [&str; 9] =
+    ["out", "output", "output_dir", "plot", "plots", "plot_dir", "field_out", "products", "night"];
 
 /// Guard every file a command line names as an input against being written over, whatever
 /// the command (the one registry of inputs: a command's own [`inputs`] call still hashes them

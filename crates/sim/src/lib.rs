@@ -27,6 +27,7 @@
 //! threads.
 
 pub mod hwp_causes;
+pub mod night;
 pub mod plan;
 pub mod raw;
 pub mod scene;

@@ -26,6 +26,8 @@ pub mod plan;
 pub mod plot;
 pub mod raytrace;
 pub mod reduce;
+pub mod report;
+pub mod report_html;
 pub mod simulate;
 pub mod stokes;
 pub mod stokes_plot;

@@ -163,14 +163,7 @@ pub fn run_scan(a: ScanArgs) -> Result<()> {
     if !plan.left_out.is_empty() {
         outln!("left out:");
         for l in &plan.left_out {
-            let names: Vec<String> = l
-                .files
-                .iter()
-                .take(3)
-                .map(|p| p.file_name().map_or_else(|| p.display().to_string(), |n| n.to_string_lossy().to_string()))
-                .collect();
-            let more = if l.files.len() > 3 { format!(" and {} more", l.files.len() - 3) } else { String::new() };
-            outln!("  {}{}: {}", names.join(", "), more, l.why);
+            outln!("  {}: {}", left_out_files(l), l.why);
         }
     }
     Ok(())
@@ -261,4 +254,16 @@ pub fn run_run(a: RunArgs) -> Result<()> {
         .into());
     }
     Ok(())
+}
+
+/// The files of a left-out entry for a person: the first three names, and how many more.
+pub fn left_out_files(l: &night::LeftOut) -> String {
+    let names: Vec<String> = l
+        .files
+        .iter()
+        .take(3)
+        .map(|p| p.file_name().map_or_else(|| p.display().to_string(), |n| n.to_string_lossy().to_string()))
+        .collect();
+    let more = if l.files.len() > 3 { format!(" and {} more", l.files.len() - 3) } else { String::new() };
+    format!("{}{more}", names.join(", "))
 }

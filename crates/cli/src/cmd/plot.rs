@@ -64,10 +64,32 @@ fn read_raytrace(path: &Path) -> Result<Vec<(f64, f64)>> {
 
 /// Plots of a calibration run (used by calibrate, fit and demo too).
 pub fn plot_run(dir: &Path, stem: &str, run: &CalibrationRun) -> Result<Vec<PathBuf>> {
-    plot_with(dir, stem, run, None)
+    plot_with(dir, stem, run, None, true)
 }
 
-fn plot_with(dir: &Path, stem: &str, run: &CalibrationRun, raytrace: Option<Vec<(f64, f64)>>) -> Result<Vec<PathBuf>> {
+/// A calibration file with the radial refit its profile panel draws (as `instpol plot` does).
+pub fn refit_file(path: &Path) -> Result<CalibrationRun> {
+    let cal = fit::Calibration::load(path)?;
+    let fo = fit::pipeline::refit_options(&cal);
+    let mut run = refit(&cal, &CalibrateOptions { fit: fo, ..Default::default() })
+        .with_context(|| format!("radial fit of {} for the profile", path.display()))?;
+    run.calibration = cal;
+    Ok(run)
+}
+
+/// The figures of a calibration as SVG files only: `DIR/STEM_map.svg`, `_profile.svg`,
+/// `_residual.svg` (a report's figures).
+pub fn svg_figures(dir: &Path, stem: &str, run: &CalibrationRun) -> Result<Vec<PathBuf>> {
+    plot_with(dir, stem, run, None, false)
+}
+
+fn plot_with(
+    dir: &Path,
+    stem: &str,
+    run: &CalibrationRun,
+    raytrace: Option<Vec<(f64, f64)>>,
+    png: bool,
+) -> Result<Vec<PathBuf>> {
     let cal = &run.calibration;
     let d = crate::plot::CalPlotData {
         cal,
@@ -76,7 +98,7 @@ fn plot_with(dir: &Path, stem: &str, run: &CalibrationRun, raytrace: Option<Vec<
         raytrace,
         title: format!("{} {}", cal.instrument, cal.filter),
     };
-    crate::plot::calibration_plots(dir, &stem.replace(['/', ' '], "_"), &d)
+    crate::plot::calibration_figures(dir, &stem.replace(['/', ' '], "_"), &d, png)
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -92,7 +114,7 @@ pub fn run(a: Args) -> Result<()> {
     // Draw the file's own model and images, not the refit's.
     run.calibration = cal;
     let stem = a.calibration.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_else(|| "cal".into());
-    let files = plot_with(&a.out, &stem, &run, raytrace)?;
+    let files = plot_with(&a.out, &stem, &run, raytrace, true)?;
     if a.json {
         crate::util::print_json(&serde_json::json!({ "outputs": files }))
     } else {

@@ -16,14 +16,26 @@ use std::path::PathBuf;
 /// Scene format: see the `sim::scene` docs and instruments/scenes/*.toml; fluxes in e- per
 /// exposure, polarization as fractions, angles in degrees.
 ///
+/// `--night DIR` writes a whole archive night instead (sim::night: bias frames, sky flats, empty
+/// fields, standards, a target, an aborted set and another instrument's frames of a FORS2 shrunk
+/// to 160 x 216 px): the instrument file, one scene per block, the frames under DIR/raw and the
+/// sky fields' table DIR/skies.csv, for `instpol scan`, `run` and `report` (docs/nights.md).
+///
 /// Example: instpol simulate instruments/scenes/empty_V.toml --out frames_V
+///
+/// Example: instpol simulate --night night
 #[derive(clap::Args)]
 pub struct Args {
     /// Scene file (TOML).
-    pub scene: PathBuf,
+    #[arg(required_unless_present = "night")]
+    pub scene: Option<PathBuf>,
     /// Output folder (created if needed); files are written atomically.
-    #[arg(long)]
-    pub out: PathBuf,
+    #[arg(long, required_unless_present = "night")]
+    pub out: Option<PathBuf>,
+    /// Write the documented archive night into this new (or empty) folder instead of a scene's
+    /// frames.
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["scene", "out", "field", "explain", "force"])]
+    pub night: Option<PathBuf>,
     /// Instrumental field from a calibration file (`instpol calibrate` or `instpol import-map`):
     /// its model (any kind) is put into the frames instead of the scene's [effects.instpol].
     /// The calibration must be of the scene's instrument and filter.
@@ -42,8 +54,12 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    crate::util::inputs([a.scene.as_path()])?;
-    let scene = sim::Scene::from_file(&a.scene)?;
+    if let Some(dir) = &a.night {
+        return night(dir, a.json);
+    }
+    let (Some(scene_path), Some(out_dir)) = (&a.scene, &a.out) else { bail!("give a scene and --out, or --night DIR") };
+    crate::util::inputs([scene_path.as_path()])?;
+    let scene = sim::Scene::from_file(scene_path)?;
     let field = match &a.field {
         Some(p) => {
             crate::util::inputs([p.as_path()])?;
@@ -63,14 +79,14 @@ pub fn run(a: Args) -> Result<()> {
         }
         None => None,
     };
-    let plan = sim::Plan::build_with_field(&scene, field).with_context(|| format!("scene {}", a.scene.display()))?;
-    plan.check_output_size(&a.scene, a.force)?;
+    let plan = sim::Plan::build_with_field(&scene, field).with_context(|| format!("scene {}", scene_path.display()))?;
+    plan.check_output_size(scene_path, a.force)?;
     if plan.output_bytes() > 1_000_000_000 && !a.json {
         eprintln!("note: writing about {:.1} GB of frames", plan.output_bytes() as f64 / 1e9);
     }
     // No frame or truth file may land on the scene or its instrument file.
     crate::util::inputs(crate::util::file_arg(&scene.instrument))?;
-    let planned: Vec<PathBuf> = plan.output_files().iter().map(|f| a.out.join(f)).collect();
+    let planned: Vec<PathBuf> = plan.output_files().iter().map(|f| out_dir.join(f)).collect();
     for p in &planned {
         crate::util::check_output(p)?;
     }
@@ -89,7 +105,7 @@ pub fn run(a: Args) -> Result<()> {
     // A failed run (a full disk at frame 3) must not leave the frames it did write: they look
     // like a complete set to the next command. Only files this run created are removed.
     let existed: Vec<bool> = planned.iter().map(|p| p.exists()).collect();
-    let out = match plan.write(&a.out, &|| bar.inc(1)) {
+    let out = match plan.write(out_dir, &|| bar.inc(1)) {
         Ok(o) => o,
         Err(e) => {
             bar.finish_and_clear();
@@ -105,7 +121,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         crate::util::print_json(&out)?;
     } else {
-        outln!("wrote {} frames and {} to {}", plan.n_frames(), out.truth.display(), a.out.display());
+        outln!("wrote {} frames and {} to {}", plan.n_frames(), out.truth.display(), out_dir.display());
         if plan.writes_chips() {
             outln!(
                 "{}'s frames are raw chip files ({} files, {} per frame, with pre/overscan and a bias level): reduce them with --instrument {}",
@@ -116,7 +132,7 @@ pub fn run(a: Args) -> Result<()> {
             );
         }
         if !out.bias.is_empty() {
-            let dir = a.out.join("bias");
+            let dir = out_dir.join("bias");
             outln!(
                 "its bias level needs a master bias: {} bias frames in {}; make it (outside the frames' folder) with\n  instpol master-bias {}/*.fits --instrument {} --out master_bias.fits\nthen give --bias master_bias.fits to reduce",
                 plan.n_bias_frames(),
@@ -126,5 +142,28 @@ pub fn run(a: Args) -> Result<()> {
             );
         }
     }
+    Ok(())
+}
+
+/// `--night DIR`: the archive night of `sim::night`, and what to run on it.
+fn night(dir: &std::path::Path, json: bool) -> Result<()> {
+    let w = sim::night::write_archive_night(dir)?;
+    if json {
+        return crate::util::print_json(&w);
+    }
+    outln!(
+        "wrote {} frame files of {} blocks to {}, the instrument file {} and the sky fields {}",
+        w.frames.len(),
+        w.scenes.len(),
+        w.raw.display(),
+        w.instrument.display(),
+        w.sky_table.display()
+    );
+    outln!(
+        "sort and run it with\n  instpol scan {} --instrument {} --sky-table {} --bin 8 --fwhm 3 --aperture 4 --out night.toml\n  instpol run night.toml",
+        w.raw.display(),
+        w.instrument.display(),
+        w.sky_table.display()
+    );
     Ok(())
 }

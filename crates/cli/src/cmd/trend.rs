@@ -31,7 +31,7 @@ pub struct Args {
     #[arg(long, value_name = "TREND.png")]
     pub plot: Option<PathBuf>,
     /// Significance (sigma) above which a step is flagged.
-    #[arg(long, default_value_t = 5.0)]
+    #[arg(long, default_value_t = workflow::night::trend::DEFAULT_THRESHOLD_SIGMA)]
     pub threshold: f64,
     /// Put plans of several instruments into one trend (refused otherwise: a step between two
     /// instruments is no step); the table records it (MISMATCH).
@@ -92,7 +92,7 @@ pub fn run(a: Args) -> Result<()> {
 
 /// One panel per series: the points with their errors against MJD, the step's two weighted
 /// means as horizontal lines (red when flagged).
-fn plot(path: &Path, t: &Trend) -> Result<()> {
+pub fn plot(path: &Path, t: &Trend) -> Result<()> {
     let mut series: Vec<(String, String)> = t.points.iter().map(|p| (p.quantity.clone(), p.filter.clone())).collect();
     series.dedup();
     if series.is_empty() {

@@ -346,6 +346,7 @@ pub fn templates(f: &Fixture) -> Vec<Template> {
             s(&["trend", &f.s("night1/night.toml"), &f.s("night2/night.toml"), "--out", "{OUT}", "--json"]),
             Some("trend.ecsv"),
         ),
+        t("report", s(&["report", &f.s("night1/night.toml"), "--out", "{DIR}/report", "--json"]), None),
         t(
             "master-bias",
             [s(&["master-bias", "--instrument", &tiny, "--out", "{OUT}", "--json"]), bias].concat(),
@@ -489,6 +490,7 @@ pub fn templates(f: &Fixture) -> Vec<Template> {
         ),
         t("wavelength-law", s(&["wavelength-law", &f.s("cal.fits"), &f.s("cal2.fits"), "--json"]), None),
         t("simulate", s(&["simulate", &f.s("scene.toml"), "--out", "{DIR}/frames", "--json"]), None),
+        t("simulate", s(&["simulate", "--night", "{DIR}/night", "--json"]), None),
     ]
 }
 

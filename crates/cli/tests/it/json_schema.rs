@@ -457,13 +457,13 @@ fn star_args(f: &Fix, sub: &str) -> Vec<String> {
     a
 }
 
-/// A night of five bias exposures (two chip files each) of the tiny FORS2 of tests/data/night,
+/// A night of five bias exposures (two chip files each) of the tiny FORS2 of instruments/tiny_fors2.toml,
 /// with ESO DPR keywords, simulated once; and the plan `instpol scan` makes of it.
 fn night(f: &Fix) -> (String, String) {
     static NIGHT: OnceLock<(String, String)> = OnceLock::new();
     NIGHT
         .get_or_init(|| {
-            let inst = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/night/tiny_fors2.toml");
+            let inst = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../instruments/tiny_fors2.toml");
             let scene = f.d.join("night_bias.toml");
             std::fs::write(
                 &scene,
@@ -679,7 +679,7 @@ const CASES: &[(&str, Args)] = &[
     ("demo", |f| v(&["demo", "--no-frames", "--out", &out(f, "demo")])),
     ("scan", |f| {
         let (raw, _) = night(f);
-        let inst = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/night/tiny_fors2.toml");
+        let inst = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../instruments/tiny_fors2.toml");
         v(&["scan", &raw, "--instrument", &s(&inst), "--out", &out(f, "plan.json")])
     }),
     ("run", |f| v(&["run", &night(f).1, "--dry-run"])),
@@ -687,6 +687,9 @@ const CASES: &[(&str, Args)] = &[
         // A plan of bias frames measures no standard: the shape of an empty trend.
         v(&["trend", &night(f).1, "--out", &out(f, "trend.ecsv")])
     }),
+    // A plan not yet run: the page of its units, none done.
+    ("report", |f| v(&["report", &night(f).1, "--out", &out(f, "report")])),
+    ("simulate-night", |f| v(&["simulate", "--night", &out(f, "simulated_night")])),
 ];
 
 /// Run one case and validate its stdout against its schema.
@@ -719,7 +722,7 @@ cases! {
     bias_json => "bias", mc_json => "mc", mc_sweep_json => "mc-sweep", mc_accuracy_json => "mc-accuracy",
     fresnel_json => "fresnel", raytrace_json => "raytrace", demo_json => "demo", plan_json => "plan",
     calibrate_mueller_json => "calibrate-mueller", explain_json => "explain", scan_json => "scan",
-    run_json => "run", trend_json => "trend",
+    run_json => "run", trend_json => "trend", report_json => "report", simulate_night_json => "simulate-night",
 }
 
 /// The keys only some options print (residual map, RNG baseline) are in the schemas too:

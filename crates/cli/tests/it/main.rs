@@ -39,6 +39,7 @@ mod raw_fors2;
 mod raytrace;
 mod reduce;
 mod reliability;
+mod report;
 mod simulate;
 mod simulate_field;
 mod stokes;

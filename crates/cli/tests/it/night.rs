@@ -6,7 +6,7 @@
 //! GNU parallel give the same products; bad folders and nonsense plans are refused by name.
 //!
 //! The frames are written by `instpol simulate` (archive-like names, ESO DPR keywords through
-//! the scene's `[output]`) for a FORS2 shrunk to 160 x 216 px (tests/data/night/), so the
+//! the scene's `[output]`) for a FORS2 shrunk to 160 x 216 px (instruments/tiny_fors2.toml), so the
 //! night of ~100 exposures is written and run in seconds.
 
 use crate::common;
@@ -21,7 +21,7 @@ fn bin() -> &'static str {
 }
 
 fn inst() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/night/tiny_fors2.toml")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../instruments/tiny_fors2.toml")
 }
 
 fn instpol(args: &[&str]) -> std::process::Output {
@@ -29,7 +29,7 @@ fn instpol(args: &[&str]) -> std::process::Output {
 }
 
 /// The instrument's radial pattern (percent, powers 0 to 3 of r in arcmin) in every frame.
-const PATTERN: [f64; 4] = [0.0, 0.1, 0.3, 0.05];
+use sim::night::PATTERN_PERCENT as PATTERN;
 
 fn simulate(root: &Path, s: &Spec) {
     simulate_with(root, s, PATTERN)
@@ -39,168 +39,14 @@ fn simulate_with(root: &Path, s: &Spec, pattern: [f64; 4]) {
     simulate_scene(root, s, &inst(), pattern, "")
 }
 
-const NIGHT: f64 = 58546.0; // 2019-03-04
-const Q4: [f64; 4] = [0.0, 22.5, 45.0, 67.5];
-/// HD 110984 and HD 161056 (instruments/standards.toml), degrees.
-const HD110984: (f64, f64) = ((12.0 + 46.0 / 60.0 + 44.9 / 3600.0) * 15.0, -(61.0 + 11.0 / 60.0 + 11.0 / 3600.0));
-const HD14069: (f64, f64) = ((2.0 + 16.0 / 60.0 + 45.16 / 3600.0) * 15.0, 7.0 + 41.0 / 60.0 + 11.1 / 3600.0);
-const HD64299: (f64, f64) = ((7.0 + 52.0 / 60.0 + 25.55 / 3600.0) * 15.0, -(23.0 + 17.0 / 60.0 + 45.9 / 3600.0));
-const HD161056: (f64, f64) = ((17.0 + 43.0 / 60.0 + 47.0 / 3600.0) * 15.0, -(7.0 + 4.0 / 60.0 + 47.0 / 3600.0));
+use sim::night::{HD110984, HD14069, HD64299, NIGHT_MJD as NIGHT, Q4};
 
-/// The night: 5 bias, 5 flats in each of 2 filters, 2 empty fields per filter, 2 polarized and
-/// 2 unpolarized standards, a target at 16 angles observed twice, an aborted set, a truncated
-/// file, a frame of another instrument, a text file named .fits and a text file.
+/// The night of `sim::night::archive_night` (5 bias, 5 flats in each of 2 filters, 2 empty
+/// fields per filter, 2 polarized and 2 unpolarized standards, a target at 16 angles observed
+/// twice, an aborted set, another instrument's frames), the other instrument's cut to one
+/// exposure, and a truncated file, a text file named .fits and a text file.
 fn make_night(root: &Path) -> PathBuf {
-    let std_pointing = |(ra, dec): (f64, f64)| (ra, dec + 50.0 / 3600.0); // the star 50 px below the centre
-    let mut specs = vec![Spec::bias(vec![0.0, 22.5, 45.0, 67.5, 90.0], NIGHT + 0.80, 1)];
-    for (k, f) in ["v_HIGH", "I_BESS"].iter().enumerate() {
-        specs.push(Spec::sky_flat(
-            ["flat_v", "flat_i"][k],
-            f,
-            vec![0.0, 22.5, 45.0, 67.5, 90.0],
-            NIGHT + 0.81 + 0.005 * k as f64,
-            11 + 10 * k as i64,
-            2 + k as u64,
-        ));
-    }
-    let empties = [("EMPTY-V1", "v_HIGH"), ("EMPTY-V2", "v_HIGH"), ("EMPTY-I1", "I_BESS"), ("EMPTY-I2", "I_BESS")];
-    for (k, (name, f)) in empties.iter().enumerate() {
-        specs.push(Spec {
-            dir: ["ev1", "ev2", "ei1", "ei2"][k],
-            filter: f,
-            angles: Q4.to_vec(),
-            start_mjd: NIGHT + 0.83 + 0.01 * k as f64,
-            first_exp: 31 + 10 * k as i64,
-            dpr: ["SCIENCE", "OBJECT", "POLARIMETRY"],
-            target: name,
-            ra_dec: (150.0 + 10.0 * k as f64, -30.0),
-            sky: Some((3000.0, 0.0174, -53.8)),
-            stars: vec![],
-            instrume: None,
-            seed: 10 + k as u64,
-        });
-    }
-    let star = |p: f64, chi: f64| vec![(79.5, 57.5, 4e5, p, chi)];
-    specs.extend([
-        Spec {
-            dir: "std1",
-            filter: "v_HIGH",
-            angles: Q4.to_vec(),
-            start_mjd: NIGHT + 0.87,
-            first_exp: 71,
-            dpr: ["CALIB", "STD", "POLARIMETRY"],
-            target: "HD110984",
-            ra_dec: std_pointing(HD110984),
-            sky: Some((300.0, 0.0, 0.0)),
-            stars: star(0.057, 91.65),
-            instrume: None,
-            seed: 20,
-        },
-        // Named otherwise by the headers: matched by position.
-        Spec {
-            dir: "std2",
-            filter: "v_HIGH",
-            angles: Q4.to_vec(),
-            start_mjd: NIGHT + 0.88,
-            first_exp: 81,
-            dpr: ["CALIB", "STD", "POLARIMETRY"],
-            target: "STD-2",
-            ra_dec: std_pointing(HD161056),
-            sky: Some((300.0, 0.0, 0.0)),
-            stars: star(0.0403, 66.93),
-            instrume: None,
-            seed: 21,
-        },
-        Spec {
-            dir: "std3",
-            filter: "v_HIGH",
-            angles: Q4.to_vec(),
-            start_mjd: NIGHT + 0.89,
-            first_exp: 91,
-            dpr: ["CALIB", "STD", "POLARIMETRY"],
-            target: "HD 14069",
-            ra_dec: std_pointing(HD14069),
-            sky: Some((300.0, 0.0, 0.0)),
-            stars: star(0.0, 0.0),
-            instrume: None,
-            seed: 22,
-        },
-        Spec {
-            dir: "std4",
-            filter: "I_BESS",
-            angles: Q4.to_vec(),
-            start_mjd: NIGHT + 0.90,
-            first_exp: 101,
-            dpr: ["CALIB", "STD", "POLARIMETRY"],
-            target: "HD64299",
-            ra_dec: std_pointing(HD64299),
-            sky: Some((300.0, 0.0, 0.0)),
-            stars: star(0.0, 0.0),
-            instrume: None,
-            seed: 23,
-        },
-    ]);
-    let angles16: Vec<f64> = (0..16).map(|i| i as f64 * 22.5).collect();
-    let field = vec![(40.0, 33.5, 2e5, 0.02, 30.0), (110.0, 130.5, 3e5, 0.01, 120.0), (60.0, 178.0, 1e5, 0.0, 0.0)];
-    specs.extend([
-        // The cycle of 16 angles and its repeat, 16 min later.
-        Spec {
-            dir: "target",
-            filter: "v_HIGH",
-            angles: angles16.clone(),
-            start_mjd: NIGHT + 0.91,
-            first_exp: 111,
-            dpr: ["SCIENCE", "OBJECT", "POLARIMETRY"],
-            target: "NGC 1234",
-            ra_dec: (49.0, -20.0),
-            sky: Some((500.0, 0.0, 0.0)),
-            stars: field.clone(),
-            instrume: None,
-            seed: 30,
-        },
-        Spec {
-            dir: "target_again",
-            filter: "v_HIGH",
-            angles: angles16,
-            start_mjd: NIGHT + 0.9212,
-            first_exp: 127,
-            dpr: ["SCIENCE", "OBJECT", "POLARIMETRY"],
-            target: "NGC 1234",
-            ra_dec: (49.0, -20.0),
-            sky: Some((500.0, 0.0, 0.0)),
-            stars: field.clone(),
-            instrume: None,
-            seed: 33,
-        },
-        Spec {
-            dir: "aborted",
-            filter: "v_HIGH",
-            angles: vec![0.0, 22.5, 45.0],
-            start_mjd: NIGHT + 0.95,
-            first_exp: 151,
-            dpr: ["SCIENCE", "OBJECT", "POLARIMETRY"],
-            target: "NGC 5678",
-            ra_dec: (51.0, -21.0),
-            sky: Some((500.0, 0.0, 0.0)),
-            stars: field,
-            instrume: None,
-            seed: 31,
-        },
-        Spec {
-            dir: "hawki",
-            filter: "v_HIGH",
-            angles: Q4.to_vec(),
-            start_mjd: NIGHT + 0.96,
-            first_exp: 161,
-            dpr: ["SCIENCE", "OBJECT", "POLARIMETRY"],
-            target: "X",
-            ra_dec: (52.0, -21.0),
-            sky: Some((500.0, 0.0, 0.0)),
-            stars: vec![],
-            instrume: Some("HAWKI"),
-            seed: 32,
-        },
-    ]);
+    let specs = sim::night::archive_night();
     for s in &specs {
         simulate(root, s);
     }
@@ -968,6 +814,22 @@ fn trend_over_twelve_months_finds_the_steps_and_only_them() {
         assert!(v.abs() < 0.0032 + 4.0 * e, "{p}");
     }
     assert_eq!(t["points"].as_array().unwrap().len(), 12 * 6);
+    // The report of the twelve nights: the three simulated steps flagged in four series (the
+    // unpolarized standard's P moves with its q), as trend flags them, and no other.
+    let out = with.join("report");
+    let mut args = vec!["report".to_string()];
+    args.extend(plans.iter().map(|p| p.display().to_string()));
+    args.extend(["--out", out.to_str().unwrap(), "--json"].map(String::from));
+    let o = Command::new(bin()).args(&args).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: Value = serde_json::from_slice(&o.stdout).unwrap();
+    let flagged = t["steps"].as_array().unwrap().iter().filter(|s| s["flagged"] == true).count();
+    assert_eq!(step("p_unpolarized")["flagged"], true, "{t}");
+    assert_eq!((r["nights"].as_u64(), r["trend_flagged"].as_u64()), (Some(12), Some(4)), "{r}");
+    assert_eq!(flagged, 4, "{t}");
+    crate::report::check_static(&out);
+    let html = std::fs::read_to_string(out.join("index.html")).unwrap();
+    assert_eq!(html.matches(" flagged</td>").count(), 4, "the page shows the four steps flagged");
 
     let without = dir.path().join("without");
     let plans = twelve_months(&without, false, 11);

@@ -3,13 +3,15 @@
 //! angles from them ([`plan`]), and run the plan in dependency order, idempotently, any number
 //! of units at once or one unit at a time for a cluster's job array ([`run`]); and over many
 //! nights, the standards' zero angle and instrumental polarization against date, with the
-//! steps that stand out of their errors ([`trend`]).
+//! steps that stand out of their errors ([`trend`]); and what a report of nights shows, gathered
+//! from the plans, the run's records and the products ([`report`], printed by `instpol report`).
 //!
 //! `instpol scan` / `instpol run` and Python's `instpol.scan` / `instpol.run` are faces over
 //! [`scan::scan`] and [`run::run`]; docs/nights.md gives the Slurm and GNU parallel recipes.
 
 pub mod header;
 pub mod plan;
+pub mod report;
 pub mod run;
 pub mod scan;
 pub mod trend;

@@ -38,6 +38,10 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use stokes::stats::circular::{self, Period};
 
+/// The step significance (sigma) above which a step is flagged unless told otherwise: the
+/// search over splits is a look-elsewhere of about as many trials as nights (module docs).
+pub const DEFAULT_THRESHOLD_SIGMA: f64 = 5.0;
+
 /// One measured value.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Point {
@@ -235,12 +239,14 @@ pub fn find_step_of(points: &[(f64, f64, f64)], threshold_sigma: f64, period: Op
     best
 }
 
-fn read_json(path: &Path) -> Result<serde_json::Value, Error> {
+/// A unit's JSON output, or an error naming the file.
+pub(crate) fn read_json(path: &Path) -> Result<serde_json::Value, Error> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::Input { path: path.into(), why: e.to_string() })?;
     serde_json::from_str(&text).map_err(|e| Error::Input { path: path.into(), why: format!("not JSON: {e}") })
 }
 
-fn number(v: &serde_json::Value, key: &str, path: &Path) -> Result<f64, Error> {
+/// The finite number under `key` of a JSON output, or an error naming the file and key.
+pub(crate) fn number(v: &serde_json::Value, key: &str, path: &Path) -> Result<f64, Error> {
     v.get(key)
         .and_then(|x| x.as_f64())
         .filter(|x| x.is_finite())
@@ -271,18 +277,8 @@ fn p_against_catalogue(
     mjd: f64,
 ) -> Result<Option<Point>, Error> {
     let (Some(star), Some(filter)) = (&u.standard, &u.filter) else { return Ok(None) };
-    let row = &v["standards"][0];
-    let (Some(p), Some(sp)) = (row["p_measured"].as_f64(), row["sigma_p_measured"].as_f64()) else {
-        return Ok(None);
-    };
-    let file = u.command.windows(2).find(|w| w[0] == "--standards").map(|w| PathBuf::from(&w[1]));
-    let list = match &file {
-        Some(f) => fit::standards::Standards::load(f),
-        None => fit::standards::Standards::builtin(),
-    }
-    .map_err(|e| Error::Input { path: file.clone().unwrap_or_else(|| out.into()), why: e.to_string() })?;
-    let Ok(band) = list.star(star).and_then(|s| s.band(filter).cloned()) else { return Ok(None) };
-    let (pc, spc) = (band.p_percent / 100.0, band.sigma_p_percent / 100.0);
+    let Some((p, sp)) = measured_p(v) else { return Ok(None) };
+    let Some((pc, spc)) = catalogue_p(u, out)? else { return Ok(None) };
     Ok(Some(Point {
         quantity: "p_minus_catalogue".into(),
         filter: filter.clone(),
@@ -292,6 +288,28 @@ fn p_against_catalogue(
         sigma: sp.hypot(spc),
         source: out.into(),
     }))
+}
+
+/// A `zero-angle` output's measured `P` of its (first) standard and its error (fractions).
+pub(crate) fn measured_p(v: &serde_json::Value) -> Option<(f64, f64)> {
+    let row = &v["standards"][0];
+    Some((row["p_measured"].as_f64()?, row["sigma_p_measured"].as_f64()?))
+}
+
+/// The catalogued `P` and its error (fractions) of a unit's standard in its filter's band, from
+/// the standards list its command names (`--standards`), else the built-in one; none when the
+/// list has no `P` in the band. `out` names the unit's output in the error of a list that
+/// cannot be read.
+pub(crate) fn catalogue_p(u: &super::plan::Unit, out: &Path) -> Result<Option<(f64, f64)>, Error> {
+    let (Some(star), Some(filter)) = (&u.standard, &u.filter) else { return Ok(None) };
+    let file = u.command.windows(2).find(|w| w[0] == "--standards").map(|w| PathBuf::from(&w[1]));
+    let list = match &file {
+        Some(f) => fit::standards::Standards::load(f),
+        None => fit::standards::Standards::builtin(),
+    }
+    .map_err(|e| Error::Input { path: file.clone().unwrap_or_else(|| out.into()), why: e.to_string() })?;
+    let Ok(band) = list.star(star).and_then(|s| s.band(filter).cloned()) else { return Ok(None) };
+    Ok(Some((band.p_percent / 100.0, band.sigma_p_percent / 100.0)))
 }
 
 /// The `telescope_*` points of a `fit-standards` unit's output (module docs): every parameter
