@@ -410,6 +410,12 @@ impl Product {
         }
     }
 
+    /// The product of measurements made with `inst` in no one filter (a night's plan, a
+    /// trend): [`Product::of_instrument`] without the filter and its wavelength.
+    pub fn of_instrument_alone(inst: &instrument::Instrument) -> Self {
+        Product { filter: None, wavelength_um: None, ..Product::of_instrument(inst, "", None) }
+    }
+
     /// The product as written: one that lists no inputs gets the run's (the provenance's
     /// hashes), as every writer stamps the run's provenance without each command passing
     /// its inputs down.

@@ -32,6 +32,10 @@ pub struct Args {
     /// Step significance (sigma) above which a trend's step is flagged (as `instpol trend`).
     #[arg(long, default_value_t = workflow::night::trend::DEFAULT_THRESHOLD_SIGMA)]
     pub threshold: f64,
+    /// Report plans of several instruments together (refused otherwise, as `instpol trend`
+    /// refuses them); the page says so.
+    #[arg(long)]
+    pub allow_mismatch: bool,
     /// Print what was written as JSON.
     #[arg(long)]
     pub json: bool,
@@ -58,7 +62,10 @@ fn safe(name: &str) -> String {
 
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs(a.plans.iter().map(|p| p.as_path()))?;
-    let r = report::gather(&a.plans, a.threshold)?;
+    let r = report::gather(&a.plans, a.threshold, a.allow_mismatch)?;
+    if let Some(m) = &r.trend.product.mismatch_allowed {
+        eprintln!("warning: --allow-mismatch: {m} in one report");
+    }
     let before = files_in(&a.out);
     let out_existed = a.out.exists();
     let result = write(&a, &r);

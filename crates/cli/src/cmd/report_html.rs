@@ -62,7 +62,7 @@ pub fn page(r: &Report, figs: &Figures, prov: &Provenance) -> String {
         night(&mut h, k, n, figs);
     }
     trend(&mut h, &r.trend, figs.trend.as_deref());
-    provenance(&mut h, prov);
+    provenance(&mut h, prov, &r.trend.product);
     h += "</body>\n</html>\n";
     h
 }
@@ -262,15 +262,20 @@ fn trend(h: &mut String, t: &Trend, fig: Option<&str>) {
     h.push_str("</section>\n");
 }
 
-fn provenance(h: &mut String, p: &Provenance) {
+fn provenance(h: &mut String, p: &Provenance, product: &skyfield::provenance::Product) {
     let _ = write!(
         h,
-        "<section id=\"provenance\">\n<h2>Provenance</h2>\n<p>{} {}, <code>{}</code>, {} UTC.</p>\n<table><tr><th>input</th><th>BLAKE3</th></tr>\n",
+        "<section id=\"provenance\">\n<h2>Provenance</h2>\n<p>{} {}, <code>{}</code>, {} UTC.</p>\n<p>What the nights' products are of: <code>{}</code>.</p>\n",
         esc(&p.program),
         esc(&p.version),
         esc(&p.command_line),
-        esc(&p.date_utc)
+        esc(&p.date_utc),
+        esc(&product.describe())
     );
+    if let Some(m) = &product.mismatch_allowed {
+        let _ = writeln!(h, "<p class=\"bad\">--allow-mismatch: {} in one report.</p>", esc(m));
+    }
+    h.push_str("<table><tr><th>input</th><th>BLAKE3</th></tr>\n");
     for i in &p.inputs {
         let _ = writeln!(h, "<tr><td><code>{}</code></td><td><code>{}</code></td></tr>", esc(&i.path), esc(&i.hash));
     }

@@ -291,6 +291,28 @@ impl Plan {
         Ok(())
     }
 
+    /// The plan of instrument `inst` (given to the commands as `instrument`; what its products
+    /// are of recorded) writing into the folder `products`, checked ([`Plan::check`]).
+    pub(crate) fn checked(
+        (instrument, inst): (&str, &instrument::Instrument),
+        products: &Path,
+        units: Vec<Unit>,
+        files: Vec<FileRole>,
+        left_out: Vec<LeftOut>,
+    ) -> Result<Plan, Error> {
+        let plan = Plan {
+            version: PLAN_VERSION,
+            instrument: instrument.to_string(),
+            records: products.join(".instpol-run"),
+            units,
+            files,
+            left_out,
+            product: Some(skyfield::provenance::Product::of_instrument_alone(inst)),
+        };
+        plan.check()?;
+        Ok(plan)
+    }
+
     /// True when `u` follows unit `id`, directly or through others.
     fn follows(by_id: &BTreeMap<&str, &Unit>, u: &Unit, id: &str) -> bool {
         let mut stack: Vec<&str> = u.after.iter().map(|s| s.as_str()).collect();

@@ -112,10 +112,10 @@ pub struct Report {
 }
 
 /// Gather the report of `plans` (plan files; module docs), the trend's steps at
-/// `threshold_sigma` ([`trend::gather`]). An output that does not hold what its kind writes is
-/// an error naming the file.
-pub fn gather(plans: &[PathBuf], threshold_sigma: f64) -> Result<Report, Error> {
-    let trend = trend::gather(plans, threshold_sigma)?;
+/// `threshold_sigma` ([`trend::gather`]: plans of one instrument, unless `allow_mismatch`).
+/// An output that does not hold what its kind writes is an error naming the file.
+pub fn gather(plans: &[PathBuf], threshold_sigma: f64, allow_mismatch: bool) -> Result<Report, Error> {
+    let trend = trend::gather(plans, threshold_sigma, allow_mismatch)?;
     let nights = plans.iter().map(|p| night(p)).collect::<Result<_, _>>()?;
     Ok(Report { nights, trend })
 }

@@ -47,7 +47,7 @@
 //!    them (`instpol fit-standards --model wiersema --json`).
 
 use super::header::{read_cards, Cards};
-use super::plan::{LeftOut, Plan, Unit, PLAN_VERSION};
+use super::plan::{LeftOut, Plan, Unit};
 use super::Error;
 use instrument::{Instrument, Role};
 use rayon::prelude::*;
@@ -945,21 +945,8 @@ pub fn plan_sorted(
         }
     }
     units.extend(night_checks(&standard_sets, &calibrations, nasmyth, opts));
-    let plan = Plan {
-        version: PLAN_VERSION,
-        instrument: opts.instrument.clone(),
-        records: p.join(".instpol-run"),
-        units,
-        files: files_seen.into_iter().map(|(path, role)| super::plan::FileRole { path, role }).collect(),
-        left_out: left,
-        product: Some(skyfield::provenance::Product {
-            filter: None,
-            wavelength_um: None,
-            ..skyfield::provenance::Product::of_instrument(inst, "", None)
-        }),
-    };
-    plan.check()?;
-    Ok(plan)
+    let files = files_seen.into_iter().map(|(path, role)| super::plan::FileRole { path, role }).collect();
+    Plan::checked((&opts.instrument, inst), p, units, files, left)
 }
 
 /// Rule 8 (module docs): each standard's set validated against its filter's calibration

@@ -108,7 +108,7 @@ fn plan_product(plan: &Plan, path: &Path) -> skyfield::provenance::Product {
         .ok()
         .or_else(|| beside.and_then(|b| instrument::Instrument::from_file(&b).ok()));
     match loaded {
-        Some(i) => Product { filter: None, wavelength_um: None, ..Product::of_instrument(&i, "", None) },
+        Some(i) => Product::of_instrument_alone(&i),
         None => Product { instrument: Some(plan.instrument.clone()), ..Product::default() },
     }
 }
