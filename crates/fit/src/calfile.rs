@@ -518,6 +518,12 @@ impl Calibration {
                 what: "holds only a telescope model (instpol fit-standards), no field model: read it with fit::calibration::load".into(),
             });
         }
+        if r.opt_str("MODEL").as_deref() == Some(crate::response_cal::RESPONSE_MODEL) {
+            return Err(Error::BadFile {
+                path: path.into(),
+                what: "holds an instrument's constant response from standards (instpol efficiency), not a partial polarizer p, phi: read it with fit::calibration::load".into(),
+            });
+        }
         if r.opt_str("MODEL").as_deref() == Some(crate::keys::MUELLER_MODEL) {
             return Err(Error::BadFile {
                 path: path.into(),

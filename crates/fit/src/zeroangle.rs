@@ -227,6 +227,13 @@ pub struct MeasuredStandard {
     pub sigma_chi_catalogue_deg: f64,
     pub p_measured: Option<f64>,
     pub sigma_p_measured: Option<f64>,
+    /// The catalogued `P` (fraction) and its error, when known (a named standard of the list,
+    /// or a file's `p_catalogue` column): the polarimetric efficiency is `p_measured` over it
+    /// ([`efficiency`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub p_catalogue: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sigma_p_catalogue: Option<f64>,
     /// Where the measurement came from: "frames" or the file.
     #[serde(skip)]
     pub source: String,
@@ -266,6 +273,8 @@ impl MeasuredStandard {
             sigma_chi_catalogue_deg: sigma_catalogue_deg,
             p_measured: Some(p),
             sigma_p_measured: Some(sigma_p),
+            p_catalogue: None,
+            sigma_p_catalogue: None,
             source: "frames".into(),
         })
     }
@@ -300,6 +309,69 @@ impl MeasuredStandard {
 
 use std::path::Path;
 
+/// The name a standard's measurements are merged by ([`merge_repeats`]).
+fn key_of(m: &MeasuredStandard) -> String {
+    m.label.trim().to_ascii_lowercase()
+}
+
+/// The polarimetric efficiency from polarized standards: the measured `P` over the catalogued
+/// one, `eta = P_measured / P_catalogue`, averaged with weights `1 / sigma_eta^2`, where
+/// `sigma_eta^2 = (sigma_P_measured / P_cat)^2 + (eta sigma_P_cat / P_cat)^2`; its error is
+/// `1 / sqrt(sum w)`. Measurements of one star (one name and one catalogued `P`) are first
+/// averaged (weights `1 / sigma_P^2`), so that the catalogue's error enters once, as
+/// [`merge_repeats`] does for the angle. The measured `P` is not corrected for its bias: the
+/// standards are measured at a signal-to-noise ratio where it is negligible (the bias is
+/// `sigma_P^2 / (2 P)`, `sec:bias`). `None` when no row has a measured and a positive
+/// catalogued `P` with finite errors.
+pub fn efficiency(rows: &[MeasuredStandard]) -> Option<Efficiency> {
+    // Each star: catalogued P and its error, sum of weights and of weighted P.
+    let mut stars: Vec<(String, f64, f64, f64, f64)> = Vec::new();
+    for m in rows {
+        let (Some(p), Some(sp), Some(pc), Some(spc)) = (m.p_measured, m.sigma_p_measured, m.p_catalogue, m.sigma_p_catalogue)
+        else {
+            continue;
+        };
+        if !(p.is_finite() && sp.is_finite() && sp > 0.0 && pc.is_finite() && pc > 0.0 && spc.is_finite() && spc >= 0.0) {
+            continue;
+        }
+        let w = sp.powi(-2);
+        match stars.iter_mut().find(|s| s.0 == key_of(m) && s.1 == pc && m.label.trim().parse::<f64>().is_err()) {
+            Some(s) => {
+                s.3 += w;
+                s.4 += w * p;
+            }
+            None => stars.push((key_of(m), pc, spc, w, w * p)),
+        }
+    }
+    if stars.is_empty() {
+        return None;
+    }
+    let (ratios, weights): (Vec<f64>, Vec<f64>) = stars
+        .iter()
+        .map(|&(_, pc, spc, sw, swp)| {
+            let eta = swp / sw / pc;
+            (eta, 1.0 / (1.0 / (sw * pc * pc) + (eta * spc / pc).powi(2)))
+        })
+        .unzip();
+    let sw: f64 = weights.iter().sum();
+    let eta = ratios.iter().zip(&weights).map(|(r, w)| r * w).sum::<f64>() / sw;
+    let chi2: f64 = ratios.iter().zip(&weights).map(|(r, w)| w * (r - eta).powi(2)).sum();
+    let dof = ratios.len() - 1;
+    Some(Efficiency { efficiency: eta, sigma_efficiency: sw.sqrt().recip(), chi2_dof: (dof > 0).then(|| chi2 / dof as f64), n_standards: ratios.len() })
+}
+
+/// The polarimetric efficiency of [`efficiency`].
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Efficiency {
+    /// Measured `P` over catalogued `P` (fraction; 1: nothing lost).
+    pub efficiency: f64,
+    pub sigma_efficiency: f64,
+    /// Reduced chi^2 of the stars' ratios about the mean; `None` with one star.
+    pub chi2_dof: Option<f64>,
+    /// Stars in the mean (measurements of one star counted once).
+    pub n_standards: usize,
+}
+
 /// Measurements of one standard merged into one row, each star once: rows with the same name
 /// (a name, not a catalogued angle given by number) and the same catalogued angle. Their
 /// measured angles share the catalogue's error, so counting them as independent stars made the
@@ -309,7 +381,7 @@ use std::path::Path;
 /// least-squares combination of measurements that share one error term. The merged row's
 /// source lists the sources; its position and P are the first measurement's.
 pub fn merge_repeats(rows: Vec<MeasuredStandard>) -> Vec<MeasuredStandard> {
-    let key = |m: &MeasuredStandard| m.label.trim().to_ascii_lowercase();
+    let key = key_of;
     // Each star: its first row, its rows' count, sum of weights and of weighted differences
     // from the first.
     let mut out: Vec<(MeasuredStandard, usize, f64, f64)> = Vec::with_capacity(rows.len());
@@ -385,6 +457,8 @@ pub fn read_measured(path: &Path) -> crate::Result<(Option<String>, Vec<Measured
                 sigma_chi_catalogue_deg: num("sigma_chi_catalogue_deg")?,
                 p_measured: opt("p_measured"),
                 sigma_p_measured: opt("sigma_p_measured"),
+                p_catalogue: opt("p_catalogue"),
+                sigma_p_catalogue: opt("sigma_p_catalogue"),
                 source: src.clone(),
             };
             m.check(path, &at)?;
@@ -416,6 +490,7 @@ pub fn read_measured(path: &Path) -> crate::Result<(Option<String>, Vec<Measured
             num("sigma_chi_catalogue_deg")?,
         );
         let (xs, ys, ps, sps) = (opt("x")?, opt("y")?, opt("p_measured")?, opt("sigma_p_measured")?);
+        let (pcs, spcs) = (opt("p_catalogue")?, opt("sigma_p_catalogue")?);
         let labels = text("label").or_else(|| text("name"));
         let filters = text("filter");
         filter = match &filters {
@@ -444,6 +519,8 @@ pub fn read_measured(path: &Path) -> crate::Result<(Option<String>, Vec<Measured
                 sigma_chi_catalogue_deg: sc[i],
                 p_measured: pick(&ps, i),
                 sigma_p_measured: pick(&sps, i),
+                p_catalogue: pick(&pcs, i),
+                sigma_p_catalogue: pick(&spcs, i),
                 source: src.clone(),
             };
             m.check(path, &t.row_label(i))?;
@@ -493,6 +570,10 @@ pub struct ZeroAngleReport {
     pub standards: Vec<StandardOffset>,
     /// The line to put in the instrument file's filter entry.
     pub instrument_file_line: String,
+    /// The polarimetric efficiency beside the zero angle, when the standards' catalogued `P`
+    /// is known ([`efficiency`]; the stars left out of the zero angle left out of it too).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub efficiency: Option<Efficiency>,
 }
 
 impl ZeroAngleReport {
@@ -500,6 +581,7 @@ impl ZeroAngleReport {
     /// Measurements of one standard (the same name and catalogued angle) are first merged into
     /// one ([`merge_repeats`]): they share its catalogue error, so they are not independent.
     pub fn combine(filter: String, rows: Vec<MeasuredStandard>) -> Result<(Self, ZeroAngle), Error> {
+        let all = rows.clone();
         let rows = merge_repeats(rows);
         let chis: Vec<StandardChi> = rows.iter().map(MeasuredStandard::chi).collect();
         let z = zero_angle(&chis).ok_or(Error::NoFiniteError)?;
@@ -509,7 +591,10 @@ impl ZeroAngleReport {
         let zd = z.offset.to_degrees();
         let instrument_file_line = format!("hwp_chi_offset_deg = {zd:.2}   # filter {filter}");
         let label = |k: usize| rows[k].label.clone();
+        let left_out: Vec<String> = z.excluded.iter().map(|&k| key_of(&rows[k])).collect();
+        let kept: Vec<MeasuredStandard> = all.into_iter().filter(|m| !left_out.contains(&key_of(m))).collect();
         let r = ZeroAngleReport {
+            efficiency: efficiency(&kept),
             zero_angle_deg: zd,
             sigma_zero_angle_deg: z.sigma.to_degrees(),
             sigma_scatter_zero_angle_deg: z.sigma_scatter.map(f64::to_degrees),
@@ -707,6 +792,8 @@ mod tests {
             sigma_chi_catalogue_deg: 0.5,
             p_measured: None,
             sigma_p_measured: None,
+            p_catalogue: None,
+            sigma_p_catalogue: None,
             source: source.into(),
         };
         let rows = vec![
