@@ -82,9 +82,7 @@ impl ConstantResponse {
     pub fn unphysical(&self) -> Option<String> {
         let ConstantResponse { q0, u0, efficiency: e, offset_deg } = *self;
         if ![q0, u0, e, offset_deg].iter().all(|v| v.is_finite()) {
-            return Some(format!(
-                "q0 {q0}, u0 {u0}, efficiency {e} and offset_deg {offset_deg} must all be numbers"
-            ));
+            return Some(format!("q0 {q0}, u0 {u0}, efficiency {e} and offset_deg {offset_deg} must all be numbers"));
         }
         if !(e > 0.0 && e <= 1.0) {
             return Some(format!("efficiency {e} must lie in (0, 1]"));

@@ -327,7 +327,14 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
             let (to_sky, plate) = row_zero_angles(Some(z), req.frame);
             note_carried(&mut notes, z, to_sky);
             let chain = Chain { zero_angle_deg: Some(z), field: FieldStep::Response(r), telescope: None };
-            return Ok(RowsPlan { kind: Kind::Response, to_sky_deg: to_sky, plate_deg: plate, telescope: None, notes, chain });
+            return Ok(RowsPlan {
+                kind: Kind::Response,
+                to_sky_deg: to_sky,
+                plate_deg: plate,
+                telescope: None,
+                notes,
+                chain,
+            });
         }
         if let Some(mc) = &file.mueller {
             let (to_sky, plate) = row_zero_angles(Some(mc.hwp_chi_offset_deg), req.frame);

@@ -93,7 +93,9 @@ impl ResponseCal {
         }
         let frame = r.str("FRAME")?;
         if !frame.trim().eq_ignore_ascii_case("sky") {
-            return Err(bad(format!("FRAME = '{frame}': this build reads a response in the instrument's sky frame only")));
+            return Err(bad(format!(
+                "FRAME = '{frame}': this build reads a response in the instrument's sky frame only"
+            )));
         }
         let response = ConstantResponse {
             q0: r.real("RE Q0")?,
@@ -149,7 +151,8 @@ impl ResponseCal {
         let mut bpb = [[0.0; 2]; 2];
         for (i, bi) in b.iter().enumerate() {
             for (j, bj) in b.iter().enumerate() {
-                bpb[i][j] = (0..4).flat_map(|k| (0..4).map(move |l| (k, l))).map(|(k, l)| bi[k] * p[k][l] * bj[l]).sum();
+                bpb[i][j] =
+                    (0..4).flat_map(|k| (0..4).map(move |l| (k, l))).map(|(k, l)| bi[k] * p[k][l] * bj[l]).sum();
             }
         }
         let (vq, vu, cv) = (aq + bpb[0][0], au + bpb[1][1], ac + bpb[0][1]);

@@ -327,11 +327,13 @@ pub fn efficiency(rows: &[MeasuredStandard]) -> Option<Efficiency> {
     // Each star: catalogued P and its error, sum of weights and of weighted P.
     let mut stars: Vec<(String, f64, f64, f64, f64)> = Vec::new();
     for m in rows {
-        let (Some(p), Some(sp), Some(pc), Some(spc)) = (m.p_measured, m.sigma_p_measured, m.p_catalogue, m.sigma_p_catalogue)
+        let (Some(p), Some(sp), Some(pc), Some(spc)) =
+            (m.p_measured, m.sigma_p_measured, m.p_catalogue, m.sigma_p_catalogue)
         else {
             continue;
         };
-        if !(p.is_finite() && sp.is_finite() && sp > 0.0 && pc.is_finite() && pc > 0.0 && spc.is_finite() && spc >= 0.0) {
+        if !(p.is_finite() && sp.is_finite() && sp > 0.0 && pc.is_finite() && pc > 0.0 && spc.is_finite() && spc >= 0.0)
+        {
             continue;
         }
         let w = sp.powi(-2);
@@ -357,7 +359,12 @@ pub fn efficiency(rows: &[MeasuredStandard]) -> Option<Efficiency> {
     let eta = ratios.iter().zip(&weights).map(|(r, w)| r * w).sum::<f64>() / sw;
     let chi2: f64 = ratios.iter().zip(&weights).map(|(r, w)| w * (r - eta).powi(2)).sum();
     let dof = ratios.len() - 1;
-    Some(Efficiency { efficiency: eta, sigma_efficiency: sw.sqrt().recip(), chi2_dof: (dof > 0).then(|| chi2 / dof as f64), n_standards: ratios.len() })
+    Some(Efficiency {
+        efficiency: eta,
+        sigma_efficiency: sw.sqrt().recip(),
+        chi2_dof: (dof > 0).then(|| chi2 / dof as f64),
+        n_standards: ratios.len(),
+    })
 }
 
 /// The polarimetric efficiency of [`efficiency`].

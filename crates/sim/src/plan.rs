@@ -497,6 +497,9 @@ impl Plan {
             chain = chain
                 .then(f.clone(), format!("instrumental field Element::PartialPolarizer{{p(x,y), phi(x,y)}}: {what}"));
         }
+        if let Some(r) = &fx.constant_response {
+            chain = chain.then(Arc::new(*r), format!("constant response from standards: {}", r.describe()));
+        }
         if let Some(sl) = &fx.stressed_lens {
             chain = chain.then(Arc::new(sl.clone()), format!("stressed lens (mueller::linear block): {sl:?}"));
         }

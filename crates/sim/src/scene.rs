@@ -518,6 +518,11 @@ pub struct Effects {
     pub instpol: Option<InstPolSpec>,
     /// A stressed collimator lens: a retardance field applied after `instpol` ([`crate::stress`]).
     pub stressed_lens: Option<crate::stress::StressedLensSpec>,
+    /// The instrument's constant response as standards calibrate it (`[effects.constant_response]`,
+    /// `q0`, `u0`, `efficiency`, `offset_deg`: [`field::ConstantResponse`]): an element of the
+    /// chain after `instpol` and before the stressed lens, the same over the field, so that
+    /// every star shows `(q0, u0) + efficiency R(-offset) (q, u)` in the instrument's sky frame.
+    pub constant_response: Option<field::ConstantResponse>,
     /// A tilted half-wave plate, applied as its equivalent block ([`crate::hwp_causes`]).
     pub tilted_hwp: Option<crate::hwp_causes::TiltedHwpSpec>,
     /// A wedged half-wave plate, applied as its equivalent block ([`crate::hwp_causes`]).
@@ -775,6 +780,11 @@ impl Scene {
                         return bad("hwp_angles_deg", a.to_string(), &why);
                     }
                 }
+            }
+        }
+        if let Some(r) = &self.effects.constant_response {
+            if let Some(why) = r.unphysical() {
+                return bad("effects.constant_response", format!("{r:?}"), &why);
             }
         }
         if let Some(sl) = &self.effects.stressed_lens {
