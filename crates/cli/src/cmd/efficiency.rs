@@ -92,7 +92,11 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--match-radius {} must be a positive number of pixels", a.match_radius);
     }
     let specs = a.standard.iter().map(|s| parse(s)).collect::<Result<Vec<_>>>()?;
-    crate::util::inputs(specs.iter().map(|s| s.0.as_path()).chain(a.standards.as_deref()))?;
+    // One catalog may hold several standards: each file is checked once.
+    let mut files: Vec<&std::path::Path> = specs.iter().map(|s| s.0.as_path()).collect();
+    files.sort();
+    files.dedup();
+    crate::util::inputs(files.into_iter().chain(a.standards.as_deref()))?;
     if let Some(o) = &a.output {
         crate::util::check_output(o)?;
     }
