@@ -146,10 +146,10 @@ pub fn run(a: Args) -> Result<()> {
     );
     outln!(
         "  (q0, u0) = ({:.5} +- {:.5}, {:.5} +- {:.5})   (fractions; the instrument's sky frame, zero angle {:.2} deg)",
-        s.q0,
-        s.sigma_q0,
-        s.u0,
-        s.sigma_u0,
+        s.q_inst,
+        s.sigma_q_inst,
+        s.u_inst,
+        s.sigma_u_inst,
         s.hwp_chi_offset_deg
     );
     outln!("  efficiency = {:.4} +- {:.4}   (measured P over catalogued P)", s.efficiency, s.sigma_efficiency);

@@ -131,7 +131,7 @@ fn response_from_simulated_standards_and_applied_by_correct() {
     let j: serde_json::Value = serde_json::from_str(&out).unwrap();
     let num = |k: &str| j[k].as_f64().unwrap_or_else(|| panic!("{k} in {out}"));
     let (q0, u0, eta, k) = TRUTH;
-    for (name, truth) in [("q0", q0), ("u0", u0), ("efficiency", eta), ("offset_deg", k)] {
+    for (name, truth) in [("q_inst", q0), ("u_inst", u0), ("efficiency", eta), ("offset_deg", k)] {
         let (v, e) = (num(name), num(&format!("sigma_{name}")));
         eprintln!("{name}: {v:.5} +- {e:.5} (truth {truth})");
         assert!((v - truth).abs() < 3.0 * e, "{name} = {v} +- {e}, truth {truth}");
