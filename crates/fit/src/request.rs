@@ -310,9 +310,7 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
     };
     let mut notes = vec![];
     let note_carried = |notes: &mut Vec<Note>, calibration: f64, applied: f64| {
-        if let Some(c) = req.frame.zero_angle_deg().filter(|_| applied != 0.0) {
-            notes.push(Note::CarriedZeroAngle { carried: c, calibration, applied });
-        }
+        notes.extend(carried_note(req.frame, calibration, applied));
     };
     check_options(file, req)?;
     if let Some(data) = req.data {
@@ -323,18 +321,7 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
     }
     let Some(tel) = &file.telescope else {
         if let Some(r) = &file.response {
-            let z = r.hwp_chi_offset_deg;
-            let (to_sky, plate) = row_zero_angles(Some(z), req.frame);
-            note_carried(&mut notes, z, to_sky);
-            let chain = Chain { zero_angle_deg: Some(z), field: FieldStep::Response(r), telescope: None };
-            return Ok(RowsPlan {
-                kind: Kind::Response,
-                to_sky_deg: to_sky,
-                plate_deg: plate,
-                telescope: None,
-                notes,
-                chain,
-            });
+            return Ok(response_rows(r, req.frame, notes));
         }
         if let Some(mc) = &file.mueller {
             let (to_sky, plate) = row_zero_angles(Some(mc.hwp_chi_offset_deg), req.frame);
@@ -444,6 +431,25 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
             telescope: Some(TelescopeStep { fit: tel, band, tracks }),
         },
     })
+}
+
+/// The note for rows in `frame` that carry a zero angle while the calibration's is
+/// `calibration` (deg): `applied` (deg) is what is turned; none when nothing is.
+fn carried_note(frame: Frame, calibration: f64, applied: f64) -> Option<Note> {
+    frame.zero_angle_deg().filter(|_| applied != 0.0).map(|carried| Note::CarriedZeroAngle {
+        carried,
+        calibration,
+        applied,
+    })
+}
+
+/// The plan of rows in `frame` corrected by a constant response (module docs).
+fn response_rows<'a>(r: &'a crate::response_cal::ResponseCal, frame: Frame, mut notes: Vec<Note>) -> RowsPlan<'a> {
+    let z = r.hwp_chi_offset_deg;
+    let (to_sky, plate) = row_zero_angles(Some(z), frame);
+    notes.extend(carried_note(frame, z, to_sky));
+    let chain = Chain { zero_angle_deg: Some(z), field: FieldStep::Response(r), telescope: None };
+    RowsPlan { kind: Kind::Response, to_sky_deg: to_sky, plate_deg: plate, telescope: None, notes, chain }
 }
 
 /// The HWP zero angles (deg) of a correction of rows in `frame` by models in the sky frame of

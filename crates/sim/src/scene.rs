@@ -782,25 +782,17 @@ impl Scene {
                 }
             }
         }
-        if let Some(r) = &self.effects.constant_response {
-            if let Some(why) = r.unphysical() {
-                return bad("effects.constant_response", format!("{r:?}"), &why);
-            }
-        }
-        if let Some(sl) = &self.effects.stressed_lens {
-            if let Err(why) = sl.validate() {
-                return bad("effects.stressed_lens", format!("{sl:?}"), &why);
-            }
-        }
-        if let Some(t) = &self.effects.tilted_hwp {
-            if let Err(why) = t.validate() {
-                return bad("effects.tilted_hwp", format!("{t:?}"), &why);
-            }
-        }
-        if let Some(w) = &self.effects.wedged_hwp {
-            if let Err(why) = w.validate() {
-                return bad("effects.wedged_hwp", format!("{w:?}"), &why);
-            }
+        // The elements a scene names, each checked by its own rule: the first refusal.
+        let fx = &self.effects;
+        let elements = [
+            ("effects.constant_response", fx.constant_response.map(|r| (format!("{r:?}"), r.unphysical()))),
+            ("effects.stressed_lens", fx.stressed_lens.as_ref().map(|e| (format!("{e:?}"), e.validate().err()))),
+            ("effects.tilted_hwp", fx.tilted_hwp.as_ref().map(|e| (format!("{e:?}"), e.validate().err()))),
+            ("effects.wedged_hwp", fx.wedged_hwp.as_ref().map(|e| (format!("{e:?}"), e.validate().err()))),
+        ];
+        let refused = elements.into_iter().find_map(|(k, c)| c.and_then(|(v, why)| Some((k, v, why?))));
+        if let Some((key, value, why)) = refused {
+            return bad(key, value, &why);
         }
         if !(self.exposure_s.is_finite() && self.exposure_s > 0.0) {
             return bad("exposure_s", self.exposure_s.to_string(), "must be positive");
