@@ -76,7 +76,7 @@ def test_celestial_rows_and_other_setups(tmp_path):
     sky = cal.correct(0.0, 0.0, c * q - s * u, s * q + c * u, 1e-4, 1e-4, hwp_chi_offset_deg=ZERO, sky_pa_deg=pa)
     np.testing.assert_allclose(sky["p0"], inst["p0"], rtol=1e-12)
     np.testing.assert_allclose((sky["chi0_deg"] - inst["chi0_deg"] - pa + 90.0) % 180.0 - 90.0, 0.0, atol=1e-9)
-    with pytest.raises(instpol.InputError, match="do not fit together"):
+    with pytest.raises(instpol.InputError, match="in filter R, the calibration of instrument CALCITE in filter V"):
         cal.correct(0.0, 0.0, q, u, 1e-4, 1e-4, instrument="CALCITE", filter="R")
     bad = tmp_path / "bad.fits"
     write(bad, efficiency=1.2)
