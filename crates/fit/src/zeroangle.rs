@@ -826,4 +826,43 @@ mod tests {
         let rows = vec![row("40", 10.0, 40.0, "a"), row("40", 12.0, 40.0, "b")];
         assert_eq!(merge_repeats(rows).len(), 2);
     }
+
+    /// The efficiency of two measurements of one star (P 3.60 and 3.64 % +- 0.04 %, catalogued
+    /// 4.00 +- 0.02 %) and one of another (4.5 +- 0.05 % against 5.0 +- 0.03 %), written out:
+    /// the first star's measurements averaged (equal weights), each star's ratio with the
+    /// catalogue's error entered once, the ratios averaged with weights 1 / variance; a row
+    /// without a catalogued P does not count, and none with one gives no efficiency.
+    #[test]
+    fn the_efficiency_of_standards_written_out() {
+        let row = |label: &str, p: f64, sp: f64, pc: Option<f64>, spc: f64| MeasuredStandard {
+            label: label.into(),
+            x: None,
+            y: None,
+            chi_measured_deg: 10.0,
+            sigma_chi_measured_deg: 1.0,
+            chi_catalogue_deg: 12.0,
+            sigma_chi_catalogue_deg: 0.5,
+            p_measured: Some(p),
+            sigma_p_measured: Some(sp),
+            p_catalogue: pc,
+            sigma_p_catalogue: Some(spc),
+            source: "frames".into(),
+        };
+        let rows = vec![
+            row("A", 0.0360, 0.0004, Some(0.04), 0.0002),
+            row("B", 0.045, 0.0005, Some(0.05), 0.0003),
+            row("a ", 0.0364, 0.0004, Some(0.04), 0.0002),
+            row("C", 0.02, 0.0004, None, 0.0),
+        ];
+        let e = efficiency(&rows).unwrap();
+        let (ea, va) =
+            (0.0362 / 0.04, 0.0004f64.powi(2) / 2.0 / 0.04f64.powi(2) + (0.0362f64 / 0.04 * 0.0002 / 0.04).powi(2));
+        let (eb, vb) = (0.9, (0.0005f64 / 0.05).powi(2) + (0.9 * 0.0003f64 / 0.05).powi(2));
+        let want = (ea / va + eb / vb) / (1.0 / va + 1.0 / vb);
+        assert!((e.efficiency - want).abs() < 1e-12, "{e:?} vs {want}");
+        assert!((e.sigma_efficiency - (1.0 / va + 1.0 / vb).powf(-0.5)).abs() < 1e-12, "{e:?}");
+        let chi2 = (ea - want).powi(2) / va + (eb - want).powi(2) / vb;
+        assert!((e.chi2_dof.unwrap() - chi2).abs() < 1e-9 && e.n_standards == 2, "{e:?}");
+        assert!(efficiency(&rows[3..]).is_none());
+    }
 }

@@ -216,3 +216,43 @@ fn a_map_through_the_response_is_corrected_to_the_sky() {
         assert!(rms > 0.6 && rms < 1.5, "{what}: pull rms {rms}");
     }
 }
+
+/// `zero-angle` reports the efficiency beside the zero angle when the standards' catalogued P
+/// is known: one star measured at 3.6 +- 0.04 % against 4.0 +- 0.02 % catalogued gives 0.9 with
+/// the error `sqrt((0.04 / 4)^2 + (0.9 0.02 / 4)^2)` (written out). `efficiency` refuses, by
+/// name, standards without an unpolarized one and a polarized one catalogued at P = 0.
+#[test]
+fn zero_angle_reports_the_efficiency_and_efficiency_refuses() {
+    let dir = tempfile::tempdir().unwrap();
+    let t = dir.path().join("measured.csv");
+    std::fs::write(
+        &t,
+        "label,chi_measured_deg,sigma_chi_measured_deg,chi_catalogue_deg,sigma_chi_catalogue_deg,p_measured,sigma_p_measured,p_catalogue,sigma_p_catalogue,filter\n\
+         A,10,0.3,12,0.1,0.036,0.0004,0.04,0.0002,V\n",
+    )
+    .unwrap();
+    let (code, out, err) = run(&["zero-angle", "--measured", &s(&t), "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let j: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let e = &j["efficiency"];
+    let want = (0.01f64.powi(2) + (0.9f64 * 0.005).powi(2)).sqrt();
+    assert!((e["efficiency"].as_f64().unwrap() - 0.9).abs() < 1e-12, "{e}");
+    assert!((e["sigma_efficiency"].as_f64().unwrap() - want).abs() < 1e-12, "{e}");
+    let (code, out, _) = run(&["zero-angle", "--measured", &s(&t)]);
+    assert_eq!(code, 0);
+    assert!(out.contains("polarimetric efficiency (measured P over catalogued P): 0.9000 +- "), "{out}");
+
+    let cat = dir.path().join("rows.csv");
+    std::fs::write(&cat, "x,y,q,u,sigma_q,sigma_u\n10,10,0.004,-0.003,3e-4,3e-4\n30,30,0.018,0.030,3e-4,3e-4\n")
+        .unwrap();
+    let std = |xy: &str, what: &str| format!("{}:{xy}:{what}", s(&cat));
+    let (pol, unpol, zero) =
+        (std("30,30", "0.04+-0.0001/30+-0.1"), std("10,10", "unpolarized"), std("30,30", "0+-0.0001/30+-0.1"));
+    let base = ["efficiency", "--instrument", "calcite", "--filter", "V", "--standard"];
+    let (code, _, err) = run(&[&base[..], &[pol.as_str()]].concat());
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("no unpolarized standard"), "{err}");
+    let (code, _, err) = run(&[&base[..], &[unpol.as_str(), "--standard", zero.as_str()]].concat());
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("catalogued P = 0"), "{err}");
+}
