@@ -428,7 +428,7 @@ pub fn merge_repeats(rows: Vec<MeasuredStandard>) -> Vec<MeasuredStandard> {
 /// table in any format `skyfield::table` reads, with columns `label` (or `name`),
 /// `chi_measured_deg`, `sigma_chi_measured_deg`, `chi_catalogue_deg`,
 /// `sigma_chi_catalogue_deg`, and optionally `filter` (one for all rows), `x`, `y`,
-/// `p_measured`, `sigma_p_measured`. The measured angles are at the plate; a table whose
+/// `p_measured`, `sigma_p_measured`, `p_catalogue`, `sigma_p_catalogue`. The measured angles are at the plate; a table whose
 /// zero-angle column (`hwp_chi_offset_deg`) says they carry a zero angle already
 /// (`skyfield::table::Table::frame`) has it taken off ([`mueller::Frame::turn_to`]), or the
 /// zero angle found would be what was left of it. Every row is checked (finite angles, errors

@@ -28,7 +28,7 @@ use std::path::PathBuf;
 /// `--measured FILE`, repeated: the --json output of an earlier zero-angle run, or a table
 /// (.csv, .fits, .ecsv, .vot) with columns label, chi_measured_deg, sigma_chi_measured_deg,
 /// chi_catalogue_deg, sigma_chi_catalogue_deg (optional: filter, x, y, p_measured,
-/// sigma_p_measured). Frames are then optional.
+/// sigma_p_measured, p_catalogue, sigma_p_catalogue). Frames are then optional.
 ///
 /// Examples:
 ///   instpol zero-angle std/*.fits --instrument fors1 --x 1024 --y 90 --star "Hiltner 652"
