@@ -9,6 +9,8 @@ import pytest
 from astropy.io import fits
 
 import instpol
+from conftest import same
+from test_correct_map import v_map  # noqa: F401 (fixture)
 
 Q0, U0, ETA, K_DEG, ZERO = 0.004, -0.003, 0.9, 3.0, 2.5
 # Covariance of (q0, u0, eta, k) with k in rad.
@@ -20,10 +22,10 @@ COV = np.array([
 ])
 
 
-def write(path, efficiency=ETA):
+def write(path, efficiency=ETA, instrument="CALCITE", zero=ZERO):
     h = fits.Header()
-    for k, v in [("FORMAT VERSION", 1), ("INSTRUMENT", "CALCITE"), ("FILTER", "V"), ("MODEL", "RESPONSE"),
-                 ("PLATE", "half_wave"), ("FRAME", "sky"), ("HWP CHI OFFSET DEG", ZERO), ("RE Q0", Q0),
+    for k, v in [("FORMAT VERSION", 1), ("INSTRUMENT", instrument), ("FILTER", "V"), ("MODEL", "RESPONSE"),
+                 ("PLATE", "half_wave"), ("FRAME", "sky"), ("HWP CHI OFFSET DEG", zero), ("RE Q0", Q0),
                  ("RE U0", U0), ("RE EFFICIENCY", efficiency), ("RE OFFSET DEG", K_DEG)]:
         h[f"HIERARCH IP {k}"] = v
     for i in range(4):
@@ -82,3 +84,23 @@ def test_celestial_rows_and_other_setups(tmp_path):
     write(bad, efficiency=1.2)
     with pytest.raises(Exception, match="efficiency 1.2 must lie in"):
         instpol.Calibration.load(str(bad))
+
+
+def test_a_map_is_corrected_as_by_the_cli_and_by_numpy(run, v_map, tmp_path):  # noqa: F811
+    """A Stokes map (at the plate, a response of zero angle 0) through correct_map: the CLI's
+    file bit for bit, and each valid bin's q0, u0 the numpy inverse of the response."""
+    path = tmp_path / "response.fits"
+    write(path, instrument="FORS1", zero=0.0)
+    cli, py = tmp_path / "cli.fits", tmp_path / "py.fits"
+    run("correct", "--cal", path, "--in", v_map, "--out", cli)
+    m = instpol.Calibration.load(str(path)).correct_map(v_map, py)
+    with fits.open(cli) as a, fits.open(py) as b:
+        for e in ("Q", "U", "SIGMA_Q", "SIGMA_U", "COV_QU"):
+            assert same(np.asarray(a[e].data, dtype=float), np.asarray(b[e].data, dtype=float)), e
+        assert "constant response" in b[0].header["CORRMETH"]
+    with fits.open(v_map) as h:
+        q, u = h["Q"].data.ravel(), h["U"].data.ravel()
+    ok = m.valid.ravel()
+    t = np.array([truth(qi, ui, np.zeros((2, 2)))[0] for qi, ui in zip(q[ok], u[ok])])
+    np.testing.assert_allclose(m.q.ravel()[ok], t[:, 0], rtol=1e-12, atol=1e-17)
+    np.testing.assert_allclose(m.u.ravel()[ok], t[:, 1], rtol=1e-12, atol=1e-17)
