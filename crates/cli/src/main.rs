@@ -100,6 +100,10 @@ enum Command {
     Correct(cmd::correct::Args),
     #[command(about = "HWP zero angle of a filter from a polarized standard star in frames")]
     ZeroAngle(cmd::zero_angle::Args),
+    #[command(
+        about = "The instrument's (q0, u0), efficiency and angle offset from standards in catalogs, as a calibration file"
+    )]
+    Efficiency(cmd::efficiency::Args),
     #[command(about = "Check a calibration against a standard star in frames")]
     Validate(cmd::validate::Args),
     #[command(about = "Reduce one source's dual-beam fluxes: Q, U, P, chi, errors, harmonics, kappa")]
@@ -195,6 +199,7 @@ fn main() {
         Command::Plot(a) => cmd::plot::run(a),
         Command::Correct(a) => cmd::correct::run(a),
         Command::ZeroAngle(a) => cmd::zero_angle::run(a),
+        Command::Efficiency(a) => cmd::efficiency::run(a),
         Command::Validate(a) => cmd::validate::run(a),
         Command::Stokes(a) => cmd::stokes::run(a),
         Command::Bias(a) => cmd::bias::run(a),

@@ -11,6 +11,9 @@
 //! - [`grid::GridMap`]: a gridded `Q/I`, `U/I` map with errors, evaluated bilinearly (the form
 //!   of calibration-file images and imported third-party maps) or by nearest cell.
 //!
+//! - [`ConstantResponse`]: the instrument's constant response calibrated on standard stars
+//!   (`(q0, u0)`, efficiency, angle offset), the same over the field.
+//!
 //! This crate is separate from `fit` because both the simulator (`sim`, which puts a model's
 //! field into frames) and the fitter (`fit`, which fits and stores models) need the same model
 //! values and the same coordinates, and `sim` must not depend on `fit`'s fitting machinery
@@ -22,12 +25,14 @@ pub mod coords;
 pub mod grid;
 pub mod model;
 pub mod radial;
+pub mod response;
 
 pub use chain::{ChainError, FieldChain, InstrumentChain};
 pub use coords::FieldCoords;
 pub use grid::{GridMap, NearestCell};
 pub use model::{FieldModel, InstPol, LinearElement};
 pub use radial::RadialPattern;
+pub use response::ConstantResponse;
 
 /// The crate README's example, compiled and run with the documentation tests.
 #[cfg(doctest)]

@@ -512,18 +512,7 @@ impl Calibration {
         let hdu = f.primary_hdu().map_err(e("reading the primary HDU"))?;
         let mut r = KeyReader { f: &mut f, hdu: &hdu, path };
         let version = r.int("FORMAT VERSION")?;
-        if r.opt_str("MODEL").as_deref() == Some(crate::keys::TELESCOPE_MODEL) {
-            return Err(Error::BadFile {
-                path: path.into(),
-                what: "holds only a telescope model (instpol fit-standards), no field model: read it with fit::calibration::load".into(),
-            });
-        }
-        if r.opt_str("MODEL").as_deref() == Some(crate::keys::MUELLER_MODEL) {
-            return Err(Error::BadFile {
-                path: path.into(),
-                what: "holds a Mueller field (instpol calibrate-mueller), not a partial polarizer p, phi: read it with fit::calibration::load".into(),
-            });
-        }
+        refuse_other_kind(path, r.opt_str("MODEL").as_deref())?;
         let instrument = r.str("INSTRUMENT")?;
         let filter = r.str("FILTER")?;
         let lambda_nm = r.opt_real("LAMBDA NM").unwrap_or(f64::NAN);
@@ -856,4 +845,18 @@ impl FieldModel for Calibration {
     fn describe(&self) -> String {
         format!("calibration of {} {}, model {}", self.instrument, self.filter, self.model.kind())
     }
+}
+
+/// A file of another kind than a field model, refused by name (`model`: its `MODEL`): a
+/// telescope model alone, a Mueller field, a constant response.
+fn refuse_other_kind(path: &Path, model: Option<&str>) -> Result<()> {
+    let what = match model {
+        Some(crate::keys::TELESCOPE_MODEL) => "holds only a telescope model (instpol fit-standards), no field model",
+        Some(crate::keys::MUELLER_MODEL) => "holds a Mueller field (instpol calibrate-mueller), not a partial polarizer p, phi",
+        Some(crate::response_cal::RESPONSE_MODEL) => {
+            "holds an instrument's constant response from standards (instpol efficiency), not a partial polarizer p, phi"
+        }
+        _ => return Ok(()),
+    };
+    Err(Error::BadFile { path: path.into(), what: format!("{what}: read it with fit::calibration::load") })
 }

@@ -1,10 +1,11 @@
 //! Any calibration file, read once, and the corrections it defines: the top of the calibration
 //! files' layers.
 //!
-//! A calibration file holds one of three things, told apart by its `HIERARCH IP MODEL`
+//! A calibration file holds one of four things, told apart by its `HIERARCH IP MODEL`
 //! keyword (`docs/calibration-file.md`): a field model of the partial polarizer `M_I(p, phi)`
 //! (`eq:instpol`; [`crate::calfile`]), a telescope model (`TELESCOPE`, [`crate::telescope_cal`])
-//! alone or beside a field model, or a Mueller field (`MUELLER`, [`crate::mueller_cal`]).
+//! alone or beside a field model, a Mueller field (`MUELLER`, [`crate::mueller_cal`]), or an
+//! instrument's constant response from standards (`RESPONSE`, [`crate::response_cal`]).
 //! [`load`] is the one reader both faces call: it answers which kind the file is and returns
 //! its models; [`crate::request`] makes the correction they define.
 //!
@@ -13,6 +14,7 @@
 
 use crate::calfile::Calibration;
 use crate::mueller_cal::MuellerCal;
+use crate::response_cal::ResponseCal;
 use crate::telescope::TelescopeFit;
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
@@ -28,6 +30,9 @@ pub enum Kind {
     FieldAndTelescope,
     /// A Mueller field (`instpol calibrate-mueller --out CAL.fits`).
     Mueller,
+    /// A constant response from standards: `(q0, u0)`, efficiency and angle offset
+    /// (`instpol efficiency --output CAL.fits`).
+    Response,
 }
 
 /// A calibration file as read by [`load`]: its instrument and the models it holds (a field
@@ -40,6 +45,7 @@ pub struct CalibrationFile {
     pub field: Option<Calibration>,
     pub telescope: Option<TelescopeFit>,
     pub mueller: Option<MuellerCal>,
+    pub response: Option<ResponseCal>,
 }
 
 /// Read any calibration file: the format version is checked, the kind is read from
@@ -50,7 +56,25 @@ pub fn load(path: &Path) -> Result<CalibrationFile> {
     let path_buf = path.to_path_buf();
     if model == crate::keys::MUELLER_MODEL {
         let m = MuellerCal::load(path)?;
-        return Ok(CalibrationFile { path: path_buf, instrument, field: None, telescope: None, mueller: Some(m) });
+        return Ok(CalibrationFile {
+            path: path_buf,
+            instrument,
+            field: None,
+            telescope: None,
+            mueller: Some(m),
+            response: None,
+        });
+    }
+    if model == crate::response_cal::RESPONSE_MODEL {
+        let r = ResponseCal::load(path)?;
+        return Ok(CalibrationFile {
+            path: path_buf,
+            instrument,
+            field: None,
+            telescope: None,
+            mueller: None,
+            response: Some(r),
+        });
     }
     let field = if model == crate::keys::TELESCOPE_MODEL { None } else { Some(Calibration::load(path)?) };
     let telescope = crate::telescope_cal::read_hdu(path)?;
@@ -60,12 +84,15 @@ pub fn load(path: &Path) -> Result<CalibrationFile> {
             what: format!("MODEL = '{}' but no {} HDU", crate::keys::TELESCOPE_MODEL, crate::telescope_cal::HDU),
         });
     }
-    Ok(CalibrationFile { path: path_buf, instrument, field, telescope, mueller: None })
+    Ok(CalibrationFile { path: path_buf, instrument, field, telescope, mueller: None, response: None })
 }
 
 impl CalibrationFile {
     /// Which models the file holds.
     pub fn kind(&self) -> Kind {
+        if self.response.is_some() {
+            return Kind::Response;
+        }
         match (&self.field, &self.telescope, &self.mueller) {
             (_, _, Some(_)) => Kind::Mueller,
             (Some(_), Some(_), None) => Kind::FieldAndTelescope,
@@ -76,8 +103,14 @@ impl CalibrationFile {
 
     /// The field and telescope models, for a use that cannot take a Mueller field (the
     /// catalog's and the standard's corrections through the chain): a Mueller field is refused
-    /// by name.
+    /// by name, and so is a constant response.
     pub fn p_phi_models(&self) -> Result<(Option<&Calibration>, Option<&TelescopeFit>)> {
+        if self.response.is_some() {
+            return Err(Error::BadFile {
+                path: self.path.clone(),
+                what: "holds an instrument's constant response from standards (instpol efficiency), not a partial polarizer p, phi or a telescope model: correct with it by instpol correct".into(),
+            });
+        }
         if self.mueller.is_some() {
             return Err(Error::BadFile {
                 path: self.path.clone(),

@@ -10,7 +10,9 @@
 //!   track, one shared track, or the recorded exposures each over its own track;
 //! - the field ([`FieldStep`]): a partial polarizer `M_I(p, phi)` of `eq:instpol` (a field
 //!   calibration, inverted exactly or to first order, `eq:approx`, with the model's own
-//!   covariance, [`Corrector`]), or a fitted Mueller field ([`MuellerCal::correct`]);
+//!   covariance, [`Corrector`]), or a fitted Mueller field ([`MuellerCal::correct`]), or an
+//!   instrument's constant response from standards (`(q0, u0)`, efficiency and angle offset,
+//!   [`ResponseCal::correct`], the same over the field);
 //! - the half-wave plate's zero angle ([`Chain::zero_angle_deg`]): the models live in the sky
 //!   frame of that zero angle; each measurement says its own frame ([`mueller::Frame`]: at the
 //!   plate, or in a sky frame with the zero angle it carries) and is turned from there, once.
@@ -23,6 +25,7 @@ use crate::calfile::Calibration;
 use crate::correct::{CorrectOptions, Corrected, CorrectedMap, Corrector, MapError, Measurement};
 use crate::model::FieldModel;
 use crate::mueller_cal::MuellerCal;
+use crate::response_cal::ResponseCal;
 use crate::telescope::{PreparedExposures, Seen, TelescopeFit, Track};
 use crate::telescope_cal::ChainCorrected;
 use std::sync::Arc;
@@ -38,6 +41,9 @@ pub enum FieldStep<'a> {
     PartialPolarizer { corrector: Corrector<'a, dyn FieldModel + 'a>, calibration: &'a Calibration },
     /// A Mueller field, inverted exactly; its options carry the zero angle of its sky frame.
     Mueller(&'a MuellerCal, CorrectOptions),
+    /// A constant response from standards ([`field::ConstantResponse`]), inverted exactly in
+    /// the sky frame of its own zero angle.
+    Response(&'a ResponseCal),
 }
 
 /// How the data saw the telescope.
@@ -181,6 +187,7 @@ impl Chain<'_> {
         match (&self.telescope, &self.field) {
             (None, FieldStep::PartialPolarizer { corrector, .. }) => Ok(alone(corrector.correct(m)?)),
             (None, FieldStep::Mueller(mc, o)) => Ok(alone(mc.correct(m, o)?)),
+            (None, FieldStep::Response(r)) => Ok(alone(r.correct(m)?)),
             (Some(t), field) => {
                 let cor = match field {
                     FieldStep::PartialPolarizer { corrector, .. } => Some(corrector),
@@ -188,6 +195,11 @@ impl Chain<'_> {
                     FieldStep::Mueller(..) => {
                         return Err(RowError::Chain(crate::Error::Input(
                             "a Mueller field and a telescope model are not corrected together".into(),
+                        )))
+                    }
+                    FieldStep::Response(..) => {
+                        return Err(RowError::Chain(crate::Error::Input(
+                            "a constant response and a telescope model are not corrected together".into(),
                         )))
                     }
                 };
@@ -245,6 +257,9 @@ impl Chain<'_> {
                 elements = elements.then(Arc::new((*calibration).clone()), "the field calibration's M_I(p, phi)")
             }
             FieldStep::Mueller(mc, _) => elements = elements.then(Arc::new(mc.field.clone()), "the Mueller field"),
+            FieldStep::Response(r) => {
+                elements = elements.then(Arc::new(r.response), "the constant response from standards")
+            }
             FieldStep::None => {}
         }
         let (telescope, track) = match &self.telescope {

@@ -165,7 +165,8 @@ impl TableColumns {
 
     /// Put `x, y` in arcmin for a correction with `loaded` ([`Self::units`], then
     /// [`Self::to_arcmin`] on the calibration's pixel grid), and return the units they were
-    /// read in. A telescope model alone does not look at positions: they are left as they are.
+    /// read in. A telescope model alone, or a constant response, does not look at positions:
+    /// they are left as they are.
     pub fn place(&mut self, given: Option<Units>, loaded: &CalibrationFile) -> Result<Units, PlaceError> {
         if loaded.field.is_none() && loaded.mueller.is_none() {
             return Ok(self.declared.or(given).unwrap_or(Units::Arcmin));
@@ -292,6 +293,9 @@ impl TableAngles {
 /// own (the rows were turned by it less what they carry), else the one applied, with the
 /// field calibration's filter, the Mueller field's, or the telescope model's band.
 pub fn reported_zero_angle(loaded: &CalibrationFile, plan: &crate::request::RowsPlan<'_>) -> (String, f64) {
+    if let Some(r) = &loaded.response {
+        return (r.filter.clone(), r.hwp_chi_offset_deg);
+    }
     match (&loaded.field, &loaded.mueller, &plan.telescope) {
         (Some(c), _, None) => (c.filter.clone(), c.hwp_chi_offset_deg),
         (None, Some(m), _) => (m.filter.clone(), plan.to_sky_deg.to_radians().to_degrees()),
@@ -386,6 +390,7 @@ impl Report {
         use stokes::stats::robust::{finite_median, Middle};
         let telescope = telescope.filter(|_| loaded.mueller.is_none());
         let filter = match (&loaded.mueller, &telescope, &loaded.field) {
+            _ if loaded.response.is_some() => loaded.response.as_ref().map_or(filter, |r| r.filter.clone()),
             (Some(m), _, _) => m.filter.clone(),
             (None, None, Some(c)) => c.filter.clone(),
             _ => filter,

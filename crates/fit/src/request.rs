@@ -15,6 +15,11 @@
 //!   are data (a catalog's column) are noted as unused.
 //! - **A Mueller field**: the same zero angle, then the exact inverse of the fitted block; the
 //!   first-order method and telescope options are refused.
+//! - **A constant response from standards** (`(q0, u0)`, efficiency and angle offset,
+//!   [`crate::response_cal`]): the rows are turned from their frame into the sky frame of the
+//!   response's zero angle (a celestial row back by its position angle, given back after), then
+//!   the response is inverted exactly, whatever the method asked (it is affine in `(q, u)`:
+//!   its first order is itself); telescope options are refused.
 //! - **A telescope model** (beside a field model or alone): the rows are turned by the field's
 //!   zero angle less the carried one (by nothing without a field: the rows are taken in their
 //!   own frame, as the telescope's standards were), then the field and the telescope are undone
@@ -235,7 +240,7 @@ pub struct RowsPlan<'a> {
 /// file without any model, telescope options (a band, one track, a rotator angle, angles given as arguments) for a file
 /// without a telescope model, and the first-order method for a Mueller field.
 pub fn check_options(file: &CalibrationFile, req: &Request<'_>) -> Result<(), Refusal> {
-    if file.field.is_none() && file.telescope.is_none() && file.mueller.is_none() {
+    if file.field.is_none() && file.telescope.is_none() && file.mueller.is_none() && file.response.is_none() {
         return Err(Refusal::NoModel);
     }
     if file.telescope.is_none() {
@@ -328,9 +333,7 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
     };
     let mut notes = vec![];
     let note_carried = |notes: &mut Vec<Note>, calibration: f64, applied: f64| {
-        if let Some(c) = req.frame.zero_angle_deg().filter(|_| applied != 0.0) {
-            notes.push(Note::CarriedZeroAngle { carried: c, calibration, applied });
-        }
+        notes.extend(carried_note(req.frame, calibration, applied));
     };
     check_options(file, req)?;
     if let Some(data) = req.data {
@@ -340,6 +343,9 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
         return Err(Refusal::TwoTracks);
     }
     let Some(tel) = &file.telescope else {
+        if let Some(r) = &file.response {
+            return Ok(response_rows(r, req.frame, notes));
+        }
         if let Some(mc) = &file.mueller {
             let (to_sky, plate) = row_zero_angles(Some(mc.hwp_chi_offset_deg), req.frame);
             note_carried(&mut notes, mc.hwp_chi_offset_deg, to_sky);
@@ -450,6 +456,25 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
     })
 }
 
+/// The note for rows in `frame` that carry a zero angle while the calibration's is
+/// `calibration` (deg): `applied` (deg) is what is turned; none when nothing is.
+fn carried_note(frame: Frame, calibration: f64, applied: f64) -> Option<Note> {
+    frame.zero_angle_deg().filter(|_| applied != 0.0).map(|carried| Note::CarriedZeroAngle {
+        carried,
+        calibration,
+        applied,
+    })
+}
+
+/// The plan of rows in `frame` corrected by a constant response (module docs).
+fn response_rows<'a>(r: &'a crate::response_cal::ResponseCal, frame: Frame, mut notes: Vec<Note>) -> RowsPlan<'a> {
+    let z = r.hwp_chi_offset_deg;
+    let (to_sky, plate) = row_zero_angles(Some(z), frame);
+    notes.extend(carried_note(frame, z, to_sky));
+    let chain = Chain { zero_angle_deg: Some(z), field: FieldStep::Response(r), telescope: None };
+    RowsPlan { kind: Kind::Response, to_sky_deg: to_sky, plate_deg: plate, telescope: None, notes, chain }
+}
+
 /// The HWP zero angles (deg) of a correction of rows in `frame` by models in the sky frame of
 /// the zero angle `models` (`None`: a telescope model alone, which takes the rows in their own
 /// frame, as its standards were measured): `(to_sky, plate)`. `to_sky` is the turn the rows
@@ -534,6 +559,11 @@ impl MapPlan<'_> {
             (FieldStep::PartialPolarizer { .. }, None) => {
                 stamp(method_words(self.method).into(), self.zero_angle_deg, None)
             }
+            (FieldStep::Response(r), _) => stamp(
+                "exact inverse of the constant response from standards ((q0, u0), efficiency, angle offset)".into(),
+                r.hwp_chi_offset_deg,
+                None,
+            ),
             (field, Some(t)) => {
                 if !t.by_exposure {
                     c.map.exposure_tracks.clear();
@@ -577,10 +607,11 @@ fn check_setup(
 ) -> Result<(), Refusal> {
     // A telescope model alone: its instrument (the file's), its band checked apart
     // (`band_fits_data`); an empty filter is one that says nothing ([`crate::setup::is_known`]).
-    let setup = match (&file.field, &file.mueller) {
-        (Some(c), _) => Some((c.instrument.as_str(), c.filter.as_str())),
-        (None, Some(m)) => Some((m.instrument.as_str(), m.filter.as_str())),
-        (None, None) => Some((file.instrument.as_str(), "")),
+    let setup = match (&file.field, &file.mueller, &file.response) {
+        (Some(c), _, _) => Some((c.instrument.as_str(), c.filter.as_str())),
+        (None, Some(m), _) => Some((m.instrument.as_str(), m.filter.as_str())),
+        (None, None, Some(r)) => Some((r.instrument.as_str(), r.filter.as_str())),
+        (None, None, None) => Some((file.instrument.as_str(), "")),
     };
     let checked = crate::setup::check_compatible(data, setup).map_err(|m| match m {
         crate::setup::Mismatch::Setup { data, calibration: (i, f) } if f.is_empty() => {
@@ -620,16 +651,17 @@ pub fn plan_map<'a>(
     let Some(tel) = &file.telescope else {
         // The plan's zero angle (reported; a Mueller field's record states its own) and the
         // zero angle of the frame the model lives in.
-        let (zero_angle_deg, model_zero, field) = match (&file.mueller, &file.field) {
-            (Some(mc), _) => {
+        let (zero_angle_deg, model_zero, field) = match (&file.response, &file.mueller, &file.field) {
+            (Some(r), _, _) => (r.hwp_chi_offset_deg, r.hwp_chi_offset_deg, FieldStep::Response(r)),
+            (None, Some(mc), _) => {
                 let z = mc.hwp_chi_offset_deg;
                 (0.0, z, FieldStep::Mueller(mc, opts(Method::Exact, z)))
             }
-            (None, Some(c)) => {
+            (None, None, Some(c)) => {
                 let z = c.hwp_chi_offset_deg;
                 (z, z, FieldStep::partial_polarizer(c, opts(req.method, z)))
             }
-            (None, None) => unreachable!("check_options refuses a file without a model"),
+            (None, None, None) => unreachable!("check_options refuses a file without a model"),
         };
         let chain = Chain { zero_angle_deg: Some(model_zero), field, telescope: None };
         return Ok(MapPlan { kind, method: req.method, telescope: None, zero_angle_deg, notes, chain, exposures: 0 });

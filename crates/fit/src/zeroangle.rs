@@ -227,6 +227,13 @@ pub struct MeasuredStandard {
     pub sigma_chi_catalogue_deg: f64,
     pub p_measured: Option<f64>,
     pub sigma_p_measured: Option<f64>,
+    /// The catalogued `P` (fraction) and its error, when known (a named standard of the list,
+    /// or a file's `p_catalogue` column): the polarimetric efficiency is `p_measured` over it
+    /// ([`efficiency`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub p_catalogue: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sigma_p_catalogue: Option<f64>,
     /// Where the measurement came from: "frames" or the file.
     #[serde(skip)]
     pub source: String,
@@ -266,6 +273,8 @@ impl MeasuredStandard {
             sigma_chi_catalogue_deg: sigma_catalogue_deg,
             p_measured: Some(p),
             sigma_p_measured: Some(sigma_p),
+            p_catalogue: None,
+            sigma_p_catalogue: None,
             source: "frames".into(),
         })
     }
@@ -300,6 +309,76 @@ impl MeasuredStandard {
 
 use std::path::Path;
 
+/// The name a standard's measurements are merged by ([`merge_repeats`]).
+fn key_of(m: &MeasuredStandard) -> String {
+    m.label.trim().to_ascii_lowercase()
+}
+
+/// The polarimetric efficiency from polarized standards: the measured `P` over the catalogued
+/// one, `eta = P_measured / P_catalogue`, averaged with weights `1 / sigma_eta^2`, where
+/// `sigma_eta^2 = (sigma_P_measured / P_cat)^2 + (eta sigma_P_cat / P_cat)^2`; its error is
+/// `1 / sqrt(sum w)`. Measurements of one star (one name and one catalogued `P`) are first
+/// averaged (weights `1 / sigma_P^2`), so that the catalogue's error enters once, as
+/// [`merge_repeats`] does for the angle. The measured `P` is not corrected for its bias: the
+/// standards are measured at a signal-to-noise ratio where it is negligible (the bias is
+/// `sigma_P^2 / (2 P)`, `sec:bias`). `None` when no row has a measured and a positive
+/// catalogued `P` with finite errors.
+pub fn efficiency(rows: &[MeasuredStandard]) -> Option<Efficiency> {
+    // Each star: catalogued P and its error, sum of weights and of weighted P.
+    let mut stars: Vec<(String, f64, f64, f64, f64)> = Vec::new();
+    for m in rows {
+        let (Some(p), Some(sp), Some(pc), Some(spc)) =
+            (m.p_measured, m.sigma_p_measured, m.p_catalogue, m.sigma_p_catalogue)
+        else {
+            continue;
+        };
+        if !(p.is_finite() && sp.is_finite() && sp > 0.0 && pc.is_finite() && pc > 0.0 && spc.is_finite() && spc >= 0.0)
+        {
+            continue;
+        }
+        let w = sp.powi(-2);
+        match stars.iter_mut().find(|s| s.0 == key_of(m) && s.1 == pc && m.label.trim().parse::<f64>().is_err()) {
+            Some(s) => {
+                s.3 += w;
+                s.4 += w * p;
+            }
+            None => stars.push((key_of(m), pc, spc, w, w * p)),
+        }
+    }
+    if stars.is_empty() {
+        return None;
+    }
+    let (ratios, weights): (Vec<f64>, Vec<f64>) = stars
+        .iter()
+        .map(|&(_, pc, spc, sw, swp)| {
+            let eta = swp / sw / pc;
+            (eta, 1.0 / (1.0 / (sw * pc * pc) + (eta * spc / pc).powi(2)))
+        })
+        .unzip();
+    let sw: f64 = weights.iter().sum();
+    let eta = ratios.iter().zip(&weights).map(|(r, w)| r * w).sum::<f64>() / sw;
+    let chi2: f64 = ratios.iter().zip(&weights).map(|(r, w)| w * (r - eta).powi(2)).sum();
+    let dof = ratios.len() - 1;
+    Some(Efficiency {
+        efficiency: eta,
+        sigma_efficiency: sw.sqrt().recip(),
+        chi2_dof: (dof > 0).then(|| chi2 / dof as f64),
+        n_standards: ratios.len(),
+    })
+}
+
+/// The polarimetric efficiency of [`efficiency`].
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Efficiency {
+    /// Measured `P` over catalogued `P` (fraction; 1: nothing lost).
+    pub efficiency: f64,
+    pub sigma_efficiency: f64,
+    /// Reduced chi^2 of the stars' ratios about the mean; `None` with one star.
+    pub chi2_dof: Option<f64>,
+    /// Stars in the mean (measurements of one star counted once).
+    pub n_standards: usize,
+}
+
 /// Measurements of one standard merged into one row, each star once: rows with the same name
 /// (a name, not a catalogued angle given by number) and the same catalogued angle. Their
 /// measured angles share the catalogue's error, so counting them as independent stars made the
@@ -311,7 +390,7 @@ use std::path::Path;
 /// measurement's. A star measured once keeps its row bit for bit.
 pub fn merge_repeats(rows: Vec<MeasuredStandard>) -> Vec<MeasuredStandard> {
     use stokes::stats::circular::{difference, direction, Period};
-    let key = |m: &MeasuredStandard| m.label.trim().to_ascii_lowercase();
+    let key = key_of;
     // Each star: its first row, and its rows' measured angles (rad) and weights.
     let mut out: Vec<(MeasuredStandard, Vec<f64>, Vec<f64>)> = Vec::with_capacity(rows.len());
     for m in rows {
@@ -355,7 +434,7 @@ pub fn merge_repeats(rows: Vec<MeasuredStandard>) -> Vec<MeasuredStandard> {
 /// table in any format `skyfield::table` reads, with columns `label` (or `name`),
 /// `chi_measured_deg`, `sigma_chi_measured_deg`, `chi_catalogue_deg`,
 /// `sigma_chi_catalogue_deg`, and optionally `filter` (one for all rows), `x`, `y`,
-/// `p_measured`, `sigma_p_measured`. The measured angles are at the plate; a table whose
+/// `p_measured`, `sigma_p_measured`, `p_catalogue`, `sigma_p_catalogue`. The measured angles are at the plate; a table whose
 /// zero-angle column (`hwp_chi_offset_deg`) says they carry a zero angle already
 /// (`skyfield::table::Table::frame`) has it taken off ([`mueller::Frame::turn_to`]), or the
 /// zero angle found would be what was left of it. Every row is checked (finite angles, errors
@@ -391,6 +470,8 @@ pub fn read_measured(path: &Path) -> crate::Result<(Option<String>, Vec<Measured
                 sigma_chi_catalogue_deg: num("sigma_chi_catalogue_deg")?,
                 p_measured: opt("p_measured"),
                 sigma_p_measured: opt("sigma_p_measured"),
+                p_catalogue: opt("p_catalogue"),
+                sigma_p_catalogue: opt("sigma_p_catalogue"),
                 source: src.clone(),
             };
             m.check(path, &at)?;
@@ -422,6 +503,7 @@ pub fn read_measured(path: &Path) -> crate::Result<(Option<String>, Vec<Measured
             num("sigma_chi_catalogue_deg")?,
         );
         let (xs, ys, ps, sps) = (opt("x")?, opt("y")?, opt("p_measured")?, opt("sigma_p_measured")?);
+        let (pcs, spcs) = (opt("p_catalogue")?, opt("sigma_p_catalogue")?);
         let labels = text("label").or_else(|| text("name"));
         let filters = text("filter");
         filter = match &filters {
@@ -450,6 +532,8 @@ pub fn read_measured(path: &Path) -> crate::Result<(Option<String>, Vec<Measured
                 sigma_chi_catalogue_deg: sc[i],
                 p_measured: pick(&ps, i),
                 sigma_p_measured: pick(&sps, i),
+                p_catalogue: pick(&pcs, i),
+                sigma_p_catalogue: pick(&spcs, i),
                 source: src.clone(),
             };
             m.check(path, &t.row_label(i))?;
@@ -499,6 +583,10 @@ pub struct ZeroAngleReport {
     pub standards: Vec<StandardOffset>,
     /// The line to put in the instrument file's filter entry.
     pub instrument_file_line: String,
+    /// The polarimetric efficiency beside the zero angle, when the standards' catalogued `P`
+    /// is known ([`efficiency`]; the stars left out of the zero angle left out of it too).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub efficiency: Option<Efficiency>,
 }
 
 impl ZeroAngleReport {
@@ -506,6 +594,7 @@ impl ZeroAngleReport {
     /// Measurements of one standard (the same name and catalogued angle) are first merged into
     /// one ([`merge_repeats`]): they share its catalogue error, so they are not independent.
     pub fn combine(filter: String, rows: Vec<MeasuredStandard>) -> Result<(Self, ZeroAngle), Error> {
+        let all = rows.clone();
         let rows = merge_repeats(rows);
         let chis: Vec<StandardChi> = rows.iter().map(MeasuredStandard::chi).collect();
         let z = zero_angle(&chis).ok_or(Error::NoFiniteError)?;
@@ -515,7 +604,10 @@ impl ZeroAngleReport {
         let zd = z.offset.to_degrees();
         let instrument_file_line = format!("hwp_chi_offset_deg = {zd:.2}   # filter {filter}");
         let label = |k: usize| rows[k].label.clone();
+        let left_out: Vec<String> = z.excluded.iter().map(|&k| key_of(&rows[k])).collect();
+        let kept: Vec<MeasuredStandard> = all.into_iter().filter(|m| !left_out.contains(&key_of(m))).collect();
         let r = ZeroAngleReport {
+            efficiency: efficiency(&kept),
             zero_angle_deg: zd,
             sigma_zero_angle_deg: z.sigma.to_degrees(),
             sigma_scatter_zero_angle_deg: z.sigma_scatter.map(f64::to_degrees),
@@ -713,6 +805,8 @@ mod tests {
             sigma_chi_catalogue_deg: 0.5,
             p_measured: None,
             sigma_p_measured: None,
+            p_catalogue: None,
+            sigma_p_catalogue: None,
             source: source.into(),
         };
         let rows = vec![
@@ -751,6 +845,8 @@ mod tests {
             sigma_chi_catalogue_deg: 0.5,
             p_measured: None,
             sigma_p_measured: None,
+            p_catalogue: None,
+            sigma_p_catalogue: None,
             source: "frames".into(),
         };
         // The closed form: the direction of the weighted sum of the doubled angles' unit
@@ -785,5 +881,44 @@ mod tests {
         let m = merge_repeats(chis.iter().map(|&(c, s)| row(c, s)).collect());
         assert!(near(m[0].chi_measured_deg, truth(&chis)));
         assert!((m[0].sigma_chi_measured_deg - 1.25f64.recip().sqrt()).abs() < 1e-12);
+    }
+
+    /// The efficiency of two measurements of one star (P 3.60 and 3.64 % +- 0.04 %, catalogued
+    /// 4.00 +- 0.02 %) and one of another (4.5 +- 0.05 % against 5.0 +- 0.03 %), written out:
+    /// the first star's measurements averaged (equal weights), each star's ratio with the
+    /// catalogue's error entered once, the ratios averaged with weights 1 / variance; a row
+    /// without a catalogued P does not count, and none with one gives no efficiency.
+    #[test]
+    fn the_efficiency_of_standards_written_out() {
+        let row = |label: &str, p: f64, sp: f64, pc: Option<f64>, spc: f64| MeasuredStandard {
+            label: label.into(),
+            x: None,
+            y: None,
+            chi_measured_deg: 10.0,
+            sigma_chi_measured_deg: 1.0,
+            chi_catalogue_deg: 12.0,
+            sigma_chi_catalogue_deg: 0.5,
+            p_measured: Some(p),
+            sigma_p_measured: Some(sp),
+            p_catalogue: pc,
+            sigma_p_catalogue: Some(spc),
+            source: "frames".into(),
+        };
+        let rows = vec![
+            row("A", 0.0360, 0.0004, Some(0.04), 0.0002),
+            row("B", 0.045, 0.0005, Some(0.05), 0.0003),
+            row("a ", 0.0364, 0.0004, Some(0.04), 0.0002),
+            row("C", 0.02, 0.0004, None, 0.0),
+        ];
+        let e = efficiency(&rows).unwrap();
+        let (ea, va) =
+            (0.0362 / 0.04, 0.0004f64.powi(2) / 2.0 / 0.04f64.powi(2) + (0.0362f64 / 0.04 * 0.0002 / 0.04).powi(2));
+        let (eb, vb) = (0.9, (0.0005f64 / 0.05).powi(2) + (0.9 * 0.0003f64 / 0.05).powi(2));
+        let want = (ea / va + eb / vb) / (1.0 / va + 1.0 / vb);
+        assert!((e.efficiency - want).abs() < 1e-12, "{e:?} vs {want}");
+        assert!((e.sigma_efficiency - (1.0 / va + 1.0 / vb).powf(-0.5)).abs() < 1e-12, "{e:?}");
+        let chi2 = (ea - want).powi(2) / va + (eb - want).powi(2) / vb;
+        assert!((e.chi2_dof.unwrap() - chi2).abs() < 1e-9 && e.n_standards == 2, "{e:?}");
+        assert!(efficiency(&rows[3..]).is_none());
     }
 }

@@ -395,7 +395,12 @@ fn _bias<'py>(
 enum Field<'a> {
     PPhi(&'a fit::Calibration),
     Mueller(&'a fit::mueller_cal::MuellerCal),
-    TelescopeOnly { instrument: &'a str, filter: &'a str },
+    TelescopeOnly {
+        instrument: &'a str,
+        filter: &'a str,
+    },
+    /// An instrument's constant response from standards (`instpol efficiency`).
+    Response(&'a fit::response_cal::ResponseCal),
 }
 
 /// A calibration file as `fit::calibration::load` reads it (`instpol correct`'s reader): a
@@ -411,6 +416,9 @@ struct _Calibration {
 impl _Calibration {
     /// The file's field model, or what names a telescope-only file.
     fn field(&self) -> Field<'_> {
+        if let Some(r) = &self.file.response {
+            return Field::Response(r);
+        }
         match (&self.file.field, &self.file.mueller, &self.file.telescope) {
             (Some(c), _, _) => Field::PPhi(c),
             (None, Some(m), _) => Field::Mueller(m),
@@ -426,6 +434,7 @@ impl _Calibration {
             Field::PPhi(c) => (&c.instrument, &c.filter),
             Field::Mueller(m) => (&m.instrument, &m.filter),
             Field::TelescopeOnly { instrument, filter } => (instrument, filter),
+            Field::Response(r) => (&r.instrument, &r.filter),
         }
     }
 
@@ -585,7 +594,7 @@ impl _Calibration {
     fn lambda_nm(&self) -> f64 {
         match self.field() {
             Field::PPhi(c) => c.lambda_nm,
-            Field::Mueller(_) | Field::TelescopeOnly { .. } => f64::NAN,
+            Field::Mueller(_) | Field::TelescopeOnly { .. } | Field::Response(_) => f64::NAN,
         }
     }
     #[getter]
@@ -596,6 +605,8 @@ impl _Calibration {
             // telescope model alone records none (its frame: fit::telescope_cal).
             Field::Mueller(m) => m.hwp_chi_offset_deg,
             Field::TelescopeOnly { .. } => 0.0,
+            // A constant response: the zero angle of the sky frame it lives in.
+            Field::Response(r) => r.hwp_chi_offset_deg,
         }
     }
     #[getter]
@@ -604,6 +615,7 @@ impl _Calibration {
             Field::PPhi(c) => c.model.kind(),
             Field::Mueller(_) => "MUELLER",
             Field::TelescopeOnly { .. } => "TELESCOPE",
+            Field::Response(_) => fit::response_cal::RESPONSE_MODEL,
         }
     }
     /// A Mueller field's model in words (`physical`, `general`), as `instpol correct --json`
@@ -612,7 +624,7 @@ impl _Calibration {
     fn mueller_model(&self) -> Option<&'static str> {
         match self.field() {
             Field::Mueller(m) => Some(m.field.kind.model_name()),
-            Field::PPhi(_) | Field::TelescopeOnly { .. } => None,
+            Field::PPhi(_) | Field::TelescopeOnly { .. } | Field::Response(_) => None,
         }
     }
     /// A Mueller field's free effects (`diattenuation`, `retardance`, ...); empty otherwise.
@@ -620,14 +632,14 @@ impl _Calibration {
     fn mueller_free(&self) -> Vec<&'static str> {
         match self.field() {
             Field::Mueller(m) => m.field.kind.free_words(),
-            Field::PPhi(_) | Field::TelescopeOnly { .. } => vec![],
+            Field::PPhi(_) | Field::TelescopeOnly { .. } | Field::Response(_) => vec![],
         }
     }
     #[getter]
     fn rms_residual(&self) -> f64 {
         match self.field() {
             Field::PPhi(c) => c.rms_residual,
-            Field::Mueller(_) | Field::TelescopeOnly { .. } => f64::NAN,
+            Field::Mueller(_) | Field::TelescopeOnly { .. } | Field::Response(_) => f64::NAN,
         }
     }
     #[getter]
@@ -637,7 +649,7 @@ impl _Calibration {
                 let c = c.centre_arcmin();
                 (c[0], c[1])
             }
-            Field::Mueller(_) | Field::TelescopeOnly { .. } => (f64::NAN, f64::NAN),
+            Field::Mueller(_) | Field::TelescopeOnly { .. } | Field::Response(_) => (f64::NAN, f64::NAN),
         }
     }
     #[getter]
@@ -679,6 +691,11 @@ impl _Calibration {
             Field::PPhi(c) => at(c, x, y),
             Field::Mueller(m) => at(&m.field, x, y),
             Field::TelescopeOnly { .. } => vec![],
+            // The same everywhere: (q0, u0) with the file's covariance.
+            Field::Response(r) => {
+                let (q0, u0, c) = (r.response.q0, r.response.u0, &r.covariance);
+                vec![(mueller::Qu::new(q0, u0, c[0][0], c[1][1], c[0][1]), true); x.len()]
+            }
         });
         let d = PyDict::new(py);
         d.set_item("q", arr1(py, v.iter().map(|a| a.0.q).collect()))?;

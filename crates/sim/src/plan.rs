@@ -492,18 +492,7 @@ impl Plan {
         let hwp_causes = scene.hwp_causes()?;
         // The field-dependent elements in the order light meets them: the instrumental field,
         // the stressed lens, the plate. The telescope acts before all of them, per exposure.
-        let mut chain = field::FieldChain::new();
-        if let Some((f, what)) = &field {
-            chain = chain
-                .then(f.clone(), format!("instrumental field Element::PartialPolarizer{{p(x,y), phi(x,y)}}: {what}"));
-        }
-        if let Some(sl) = &fx.stressed_lens {
-            chain = chain.then(Arc::new(sl.clone()), format!("stressed lens (mueller::linear block): {sl:?}"));
-        }
-        if let Some(hc) = hwp_causes {
-            let what = format!("half-wave-plate causes (equivalent block): {}", hc.describe());
-            chain = chain.then(Arc::new(field::LinearElement(move |x, y| hc.block_at(x, y))), what);
-        }
+        let chain = field_elements(&field, fx, hwp_causes);
         // Stars go frame by frame when the two beams overlap (maskless) or the frames move;
         // otherwise they are folded into the sky image once.
         // A star with circular polarization is drawn frame by frame too: the sky image holds
@@ -1744,4 +1733,30 @@ impl Plan {
         tmp.persist(&tpath).map_err(|e| file_err(&tpath, e))?;
         Ok(Simulated { frames: files.into_iter().flatten().collect(), truth: tpath, bias })
     }
+}
+
+/// The field-dependent elements of a scene in the order light meets them: the instrumental
+/// field, the constant response, the stressed lens, the plate's causes (the telescope acts
+/// before all of them, per exposure).
+fn field_elements(
+    field: &Option<(Arc<dyn FieldModel>, String)>,
+    fx: &crate::scene::Effects,
+    hwp_causes: Option<crate::hwp_causes::HwpCauses>,
+) -> field::FieldChain {
+    let mut chain = field::FieldChain::new();
+    if let Some((f, what)) = &field {
+        chain =
+            chain.then(f.clone(), format!("instrumental field Element::PartialPolarizer{{p(x,y), phi(x,y)}}: {what}"));
+    }
+    if let Some(r) = &fx.constant_response {
+        chain = chain.then(Arc::new(*r), format!("constant response from standards: {}", r.describe()));
+    }
+    if let Some(sl) = &fx.stressed_lens {
+        chain = chain.then(Arc::new(sl.clone()), format!("stressed lens (mueller::linear block): {sl:?}"));
+    }
+    if let Some(hc) = hwp_causes {
+        let what = format!("half-wave-plate causes (equivalent block): {}", hc.describe());
+        chain = chain.then(Arc::new(field::LinearElement(move |x, y| hc.block_at(x, y))), what);
+    }
+    chain
 }

@@ -518,6 +518,11 @@ pub struct Effects {
     pub instpol: Option<InstPolSpec>,
     /// A stressed collimator lens: a retardance field applied after `instpol` ([`crate::stress`]).
     pub stressed_lens: Option<crate::stress::StressedLensSpec>,
+    /// The instrument's constant response as standards calibrate it (`[effects.constant_response]`,
+    /// `q0`, `u0`, `efficiency`, `offset_deg`: [`field::ConstantResponse`]): an element of the
+    /// chain after `instpol` and before the stressed lens, the same over the field, so that
+    /// every star shows `(q0, u0) + efficiency R(-offset) (q, u)` in the instrument's sky frame.
+    pub constant_response: Option<field::ConstantResponse>,
     /// A tilted half-wave plate, applied as its equivalent block ([`crate::hwp_causes`]).
     pub tilted_hwp: Option<crate::hwp_causes::TiltedHwpSpec>,
     /// A wedged half-wave plate, applied as its equivalent block ([`crate::hwp_causes`]).
@@ -777,20 +782,17 @@ impl Scene {
                 }
             }
         }
-        if let Some(sl) = &self.effects.stressed_lens {
-            if let Err(why) = sl.validate() {
-                return bad("effects.stressed_lens", format!("{sl:?}"), &why);
-            }
-        }
-        if let Some(t) = &self.effects.tilted_hwp {
-            if let Err(why) = t.validate() {
-                return bad("effects.tilted_hwp", format!("{t:?}"), &why);
-            }
-        }
-        if let Some(w) = &self.effects.wedged_hwp {
-            if let Err(why) = w.validate() {
-                return bad("effects.wedged_hwp", format!("{w:?}"), &why);
-            }
+        // The elements a scene names, each checked by its own rule: the first refusal.
+        let fx = &self.effects;
+        let elements = [
+            ("effects.constant_response", fx.constant_response.map(|r| (format!("{r:?}"), r.unphysical()))),
+            ("effects.stressed_lens", fx.stressed_lens.as_ref().map(|e| (format!("{e:?}"), e.validate().err()))),
+            ("effects.tilted_hwp", fx.tilted_hwp.as_ref().map(|e| (format!("{e:?}"), e.validate().err()))),
+            ("effects.wedged_hwp", fx.wedged_hwp.as_ref().map(|e| (format!("{e:?}"), e.validate().err()))),
+        ];
+        let refused = elements.into_iter().find_map(|(k, c)| c.and_then(|(v, why)| Some((k, v, why?))));
+        if let Some((key, value, why)) = refused {
+            return bad(key, value, &why);
         }
         if !(self.exposure_s.is_finite() && self.exposure_s > 0.0) {
             return bad("exposure_s", self.exposure_s.to_string(), "must be positive");

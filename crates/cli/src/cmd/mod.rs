@@ -8,6 +8,7 @@ pub mod catalog;
 pub mod cli_spec;
 pub mod correct;
 pub mod demo;
+pub mod efficiency;
 pub mod explain;
 pub mod fit;
 pub mod fit_standards;

@@ -20,13 +20,15 @@ use std::path::PathBuf;
 /// pull against the mean of the OTHER stars, the star that disagrees with the others (pull >
 /// 3, three or more stars: named and left out of the mean while most stars remain), and the
 /// sense of the angle (decided when the stars' chi differ: counter-clockwise as the IAU, or
-/// mirrored).
+/// mirrored). Beside it, when the stars' catalogued P is known (stars of the list, or a
+/// p_catalogue column), the polarimetric efficiency: measured P over catalogued P, with its
+/// error (the instrument's constant (q0, u0) is not taken off here; `instpol efficiency` does).
 ///
 /// Standards measured in separate runs (other nights, other fields) are combined with
 /// `--measured FILE`, repeated: the --json output of an earlier zero-angle run, or a table
 /// (.csv, .fits, .ecsv, .vot) with columns label, chi_measured_deg, sigma_chi_measured_deg,
 /// chi_catalogue_deg, sigma_chi_catalogue_deg (optional: filter, x, y, p_measured,
-/// sigma_p_measured). Frames are then optional.
+/// sigma_p_measured, p_catalogue, sigma_p_catalogue). Frames are then optional.
 ///
 /// Examples:
 ///   instpol zero-angle std/*.fits --instrument fors1 --x 1024 --y 90 --star "Hiltner 652"
@@ -90,14 +92,22 @@ struct Std {
     y: f64,
     chi: f64,
     sigma: f64,
+    /// The catalogued P and its error (fractions), for a star of the list.
+    p: Option<(f64, f64)>,
 }
 
-/// The catalogued chi of a named star in `filter`.
-fn catalogued(list: &fit::standards::Standards, name: &str, filter: &str) -> Result<(String, f64, f64)> {
+/// The catalogued chi of a named star in `filter`, and its P.
+fn catalogued(
+    list: &fit::standards::Standards,
+    name: &str,
+    filter: &str,
+) -> Result<(String, f64, f64, Option<(f64, f64)>)> {
     let star = list.star(name)?;
     let b = star.band(filter)?;
-    match (b.chi_deg, b.sigma_chi_deg) {
-        (Some(c), Some(s)) => Ok((star.name.clone(), c, s)),
+    match fit::efficiency::Truth::of_star(star, filter)? {
+        fit::efficiency::Truth::Polarized { p, sigma_p, chi_deg, sigma_chi_deg } => {
+            Ok((star.name.clone(), chi_deg, sigma_chi_deg, Some((p, sigma_p))))
+        }
         _ => bail!(
             "{} has no catalogued chi in {} ({}): a zero angle needs a polarized standard",
             star.name,
@@ -123,15 +133,15 @@ fn parse_standard(spec: &str, list: &dyn Fn() -> Result<fit::standards::Standard
         }
         None => what.parse::<f64>().ok().map(|c| (c, f64::NAN)),
     };
-    let (label, chi, sigma) = match angle {
+    let (label, chi, sigma, p) = match angle {
         Some((_, s)) if s.is_nan() => {
             bail!("--standard '{spec}': give the catalogued angle with its error, CHI+-SIGMA")
         }
-        Some((c, s)) => (format!("chi {c} deg at ({x}, {y})"), c, s),
+        Some((c, s)) => (format!("chi {c} deg at ({x}, {y})"), c, s, None),
         None if what.is_empty() => return Err(bad()),
         None => catalogued(&list()?, what, filter)?,
     };
-    Ok(Std { label, x, y, chi, sigma })
+    Ok(Std { label, x, y, chi, sigma, p })
 }
 
 /// Measure the standards given on the command line in the frames: their rows and the filter.
@@ -154,12 +164,12 @@ fn measure_frames(a: &Args, inst: &instrument::Instrument) -> Result<(String, Ve
         let (Some(x), Some(y)) = (a.x, a.y) else {
             bail!("give the standard's position by --x --y (one star) or --standard X,Y:NAME (repeated)")
         };
-        let (label, chi, sigma) = match (&a.star, a.chi_deg) {
+        let (label, chi, sigma, p) = match (&a.star, a.chi_deg) {
             (Some(name), None) => catalogued(&list()?, name, &set.filter)?,
-            (None, Some(c)) => (format!("chi {c} deg at ({x}, {y})"), c, a.sigma_chi_deg),
+            (None, Some(c)) => (format!("chi {c} deg at ({x}, {y})"), c, a.sigma_chi_deg, None),
             _ => bail!("give the standard either by --star NAME or by --chi-deg (not both)"),
         };
-        vec![Std { label, x, y, chi, sigma }]
+        vec![Std { label, x, y, chi, sigma, p }]
     };
     for s in &stds {
         if !(s.chi.is_finite() && s.sigma.is_finite() && s.sigma >= 0.0 && s.sigma < 90.0) {
@@ -180,7 +190,7 @@ fn measure_frames(a: &Args, inst: &instrument::Instrument) -> Result<(String, Ve
         let ph = photometry_with(&set, &g, s.x, s.y, &ap, &PhotOptions::default())
             .map_err(|e| anyhow::anyhow!("standard {}: {e}", s.label))?;
         let r = ph.reduction;
-        rows.push(MeasuredStandard::from_frames(
+        let mut m = MeasuredStandard::from_frames(
             s.label,
             (s.x, s.y),
             (r.p, r.sigma_p),
@@ -188,7 +198,9 @@ fn measure_frames(a: &Args, inst: &instrument::Instrument) -> Result<(String, Ve
             s.chi,
             s.sigma,
             sky_pa,
-        )?);
+        )?;
+        (m.p_catalogue, m.sigma_p_catalogue) = (s.p.map(|p| p.0), s.p.map(|p| p.1));
+        rows.push(m);
     }
     Ok((set.filter.clone(), rows))
 }
@@ -308,6 +320,14 @@ pub fn run(a: Args) -> Result<()> {
             Sense::Undetermined => outln!("sense of the angle: undetermined (one standard, or standards of one chi); assumed counter-clockwise (IAU)"),
             Sense::Iau => outln!("sense of the angle: counter-clockwise on the sky (IAU), as assumed"),
             Sense::Mirrored => outln!("sense of the angle: MIRRORED (chi_true = offset - chi_measured): the instrument's angles run clockwise"),
+        }
+        if let Some(e) = &o.efficiency {
+            outln!(
+                "polarimetric efficiency (measured P over catalogued P): {:.4} +- {:.4} ({} stars; (q0, u0) not taken off: see instpol efficiency)",
+                e.efficiency,
+                e.sigma_efficiency,
+                e.n_standards
+            );
         }
         outln!("in the instrument file, filter {}:  {}", o.filter, o.instrument_file_line);
     }

@@ -193,6 +193,12 @@ pub fn fixture() -> Fixture {
         "cat.csv",
         "# INSTRUME = MINI\n# FILTER = V\n# PLATE = half_wave\nx,y,q,u,sigma_q,sigma_u\n0.5,0.5,0.01,0,0.001,0.001\n-1,1,0,0.01,0.001,0.001\n",
     );
+    // Standards' rows of that instrument and filter: one unpolarized, two polarized.
+    put(
+        &f,
+        "std.csv",
+        "# INSTRUME = MINI\n# FILTER = V\n# PLATE = half_wave\nx,y,q,u,sigma_q,sigma_u\n10,10,0.004,-0.003,3e-4,3e-4\n30,30,0.018,0.030,3e-4,3e-4\n50,10,0.035,-0.012,3e-4,3e-4\n",
+    );
     must(&["simulate", &f.s("scene.toml"), "--out", &f.s("frames"), "--json"]);
     // The truth file is not an input of anything.
     std::fs::remove_file(f.p("frames/truth.json")).unwrap();
@@ -381,6 +387,22 @@ pub fn templates(f: &Fixture) -> Vec<Template> {
             "zero-angle --measured",
             s(&["zero-angle", "--measured", &f.s("measured.csv"), "--filter", "V", "--json"]),
             None,
+        ),
+        t(
+            "efficiency",
+            s(&[
+                "efficiency",
+                "--standard",
+                &format!("{}:10,10:unpolarized", f.s("std.csv")),
+                "--standard",
+                &format!("{}:30,30:0.04+-0.0001/30+-0.1", f.s("std.csv")),
+                "--standard",
+                &format!("{}:50,10:0.04+-0.0001/170+-0.1", f.s("std.csv")),
+                "--output",
+                "{OUT}",
+                "--json",
+            ]),
+            Some("response.fits"),
         ),
         t("fit-standards", s(&["fit-standards", &f.s("standards.csv"), "--model", "wiersema", "--json"]), None),
         t("stokes", s(&["stokes", "--input", &f.s("f.csv"), "--json"]), None),

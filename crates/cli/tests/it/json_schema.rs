@@ -638,6 +638,29 @@ const CASES: &[(&str, Args)] = &[
         ]));
         a
     }),
+    ("efficiency", |f| {
+        // Three standards' rows in one table of other software (no setup recorded): one
+        // unpolarized, two polarized.
+        let cat = f.d.join("standards_rows.csv");
+        let rows = "x,y,q,u,sigma_q,sigma_u\n100,100,0.004,-0.003,3e-4,3e-4\n300,300,0.018,0.030,3e-4,3e-4\n200,50,0.035,-0.012,3e-4,3e-4\n";
+        std::fs::write(&cat, rows).unwrap();
+        let std = |xy: &str, what: &str| format!("{}:{xy}:{what}", s(&cat));
+        v(&[
+            "efficiency",
+            "--standard",
+            &std("100,100", "unpolarized"),
+            "--standard",
+            &std("300,300", "0.04+-0.0001/30+-0.1"),
+            "--standard",
+            &std("200,50", "0.04+-0.0001/170+-0.1"),
+            "--instrument",
+            "calcite",
+            "--filter",
+            "V",
+            "--output",
+            &out(f, "response.fits"),
+        ])
+    }),
     ("calibrate-stars", |f| {
         // Catalogs of 60 stars over two pointings drawn through the V pattern: the shape of
         // the output, with stars rejected (6 polarized) so the rejected list has rows.
@@ -717,7 +740,7 @@ cases! {
     master_bias_json => "master-bias",
     master_flat_json => "master-flat", photometry_json => "photometry", catalog_json => "catalog",
     photometry_circular_json => "photometry-circular",
-    zero_angle_json => "zero-angle", calibrate_json => "calibrate", calibrate_stars_json => "calibrate-stars", fit_json => "fit", plot_json => "plot",
+    zero_angle_json => "zero-angle", efficiency_json => "efficiency", calibrate_json => "calibrate", calibrate_stars_json => "calibrate-stars", fit_json => "fit", plot_json => "plot",
     wavelength_law_json => "wavelength-law", correct_json => "correct", stokes_json => "stokes",
     bias_json => "bias", mc_json => "mc", mc_sweep_json => "mc-sweep", mc_accuracy_json => "mc-accuracy",
     fresnel_json => "fresnel", raytrace_json => "raytrace", demo_json => "demo", plan_json => "plan",

@@ -16,6 +16,7 @@ mod common;
 mod correct;
 mod demo;
 mod doc_examples;
+mod efficiency;
 mod explain;
 mod exposure_outliers;
 mod file_modes;

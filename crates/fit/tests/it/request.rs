@@ -66,7 +66,14 @@ fn telescope(with_rotator: bool) -> TelescopeFit {
 }
 
 fn file(field: Option<fit::Calibration>, telescope: Option<TelescopeFit>) -> CalibrationFile {
-    CalibrationFile { path: PathBuf::from("cal.fits"), instrument: "EFOSC2".into(), field, telescope, mueller: None }
+    CalibrationFile {
+        path: PathBuf::from("cal.fits"),
+        instrument: "EFOSC2".into(),
+        field,
+        telescope,
+        mueller: None,
+        response: None,
+    }
 }
 
 fn request<'a>() -> Request<'a> {

@@ -300,7 +300,10 @@ class Calibration:
     frame (``hwp_chi_offset_deg`` 0), as ``instpol correct`` does. A telescope-only file
     (``instpol fit-standards --output``, ``model == "TELESCOPE"``) loads too: :meth:`correct`
     then removes the telescope alone, with each row's ``parang_deg``; it has no field to
-    :meth:`evaluate`.
+    :meth:`evaluate`. An instrument's constant response from standards (``instpol efficiency
+    --output CAL.fits``, ``model == "RESPONSE"``: ``(q0, u0)``, efficiency and angle offset, the
+    same over the field) loads too: :meth:`correct` and :meth:`correct_map` invert it exactly, and
+    :meth:`evaluate` gives ``(q0, u0)`` everywhere.
 
     Load it with :meth:`load`; :meth:`evaluate` gives the instrumental (q, u) at positions,
     :meth:`correct` removes it from measurements (Eq. 17 [eq:instpol] inverted exactly, or
@@ -363,7 +366,7 @@ class Calibration:
     )
     model = property(
         lambda self: self._c.model,
-        doc="Model kind: RADIAL, RADIAL+RESIDUAL, MAP, MUELLER or TELESCOPE (a telescope-only file).",
+        doc="Model kind: RADIAL, RADIAL+RESIDUAL, MAP, MUELLER, TELESCOPE (a telescope-only file) or RESPONSE.",
     )
     mueller_model = property(
         lambda self: self._c.mueller_model,

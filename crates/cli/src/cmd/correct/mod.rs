@@ -22,7 +22,8 @@ mod words;
 #[command(long_about = include_str!("help.txt").trim_end())]
 pub struct Args {
     /// Calibration file (instpol calibration FITS: `instpol calibrate`, `instpol import-map`,
-    /// `instpol fit-standards --output` or `instpol calibrate-mueller --out CAL.fits`).
+    /// `instpol fit-standards --output`, `instpol calibrate-mueller --out CAL.fits` or
+    /// `instpol efficiency --output CAL.fits`).
     #[arg(long, value_name = "CAL.fits")]
     pub cal: PathBuf,
     /// Catalog (CSV or FITS table) or Stokes map (FITS) to correct.
@@ -230,6 +231,21 @@ fn first(loaded: &fit::calibration::CalibrationFile) -> &'static str {
 /// telescope model was applied), after the warning for extrapolated positions.
 fn finish(a: &Args, s: Summary, loaded: &fit::calibration::CalibrationFile, telescope: Option<String>) -> Result<()> {
     let r = &s.report;
+    if let Some(c) = &loaded.response {
+        let line = format!(
+            "corrected {} {} with the constant response of {} ({} {}: efficiency {:.4}, offset {:+.2} deg, (q0, u0) = ({:.5}, {:.5})), exact inverse",
+            r.rows,
+            if r.kind == "Stokes map" { "bins" } else { "rows" },
+            a.cal.display(),
+            c.instrument,
+            c.filter,
+            c.response.efficiency,
+            c.response.offset_deg,
+            c.response.q0,
+            c.response.u0
+        );
+        return report(a, &s, &line, "");
+    }
     match (&loaded.mueller, telescope, &loaded.field) {
         (Some(m), _, _) => {
             warn_extrapolated(r, "fitted Mueller field");
