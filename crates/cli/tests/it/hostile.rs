@@ -49,7 +49,10 @@
 //!   free (a point; a line under a plane; one parallactic angle under the oxide model);
 //! - `plate set`: every list of frames (the positional argument taking several; calibrate
 //!   given frames in place of its map) with one frame dropped, a set missing a plate angle:
-//!   refused (exit 2) or reduced (exit 0), either way naming the missing angle ("missing [").
+//!   refused (exit 2) or reduced (exit 0), either way naming the missing angle ("missing [");
+//! - `edited input` (in `hostile_edited.rs`, which runs `instpol run` over one-unit plans): every
+//!   command a night's unit may run, its command line's files edited one at a time after a run:
+//!   the unit is never called up to date.
 //!
 //! Every case runs the built binary with a timeout (killed after [`TIMEOUT`]) and must: not
 //! panic ("panicked at", exit 101, or a signal such as SIGABRT/SIGSEGV), not hang, exit 0, 1

@@ -25,6 +25,7 @@ mod fresnel;
 mod full_disk;
 mod fuzz;
 mod hostile;
+mod hostile_edited;
 mod hostile_found;
 mod import_map;
 mod json_schema;
