@@ -1,0 +1,109 @@
+"""The Python face's share of the hostile generator (crates/cli/tests/it/hostile.rs): each
+class's property over every public function of the package that takes its kind of input,
+enumerated from the package itself (``inspect``), so that a function added later is tried or
+named here with a reason, never skipped without a word.
+
+- duplicate input: every parameter taking a list of files (``frames``, ``catalogs``) given its
+  first file again after it under another name (the same path, a copy, a hard link, a
+  symlink): refused (InputError) naming both names; never counted twice.
+- plate set: every parameter taking frames given the set with one frame left out (one plate
+  angle missing): refused (InputError) or reduced with a warning, either way naming the
+  missing angle.
+- another product: every public function or method taking a calibration and the data's
+  instrument and filter (``Calibration.correct``) given data of another filter: refused
+  naming both, unless ``allow_mismatch``.
+"""
+
+import inspect
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+import instpol
+from test_calibrate_stars import write_catalogs
+
+LISTS = ("frames", "catalogs")
+
+# Functions taking a list of files that the generator does not call here, with the reason.
+NOT_HERE = {
+    "scan": "takes folders of a night (its duplicates are the CLI's night tests, the same library call)",
+}
+
+
+def public_functions():
+    return {n: f for n, f in vars(instpol).items() if inspect.isfunction(f) and not n.startswith("_")}
+
+
+def taking(names):
+    return sorted(n for n, f in public_functions().items()
+                  if any(p in names for p in inspect.signature(f).parameters))
+
+
+@pytest.fixture(scope="module")
+def calls(sky_frames, star_frames, tmp_path_factory):
+    """Per function taking a list of files: its valid files and a call with a list of them."""
+    cats, _ = write_catalogs(tmp_path_factory.mktemp("cats"))
+    return {
+        "reduce": (list(sky_frames[0]), lambda f: instpol.reduce(f, instrument=str(sky_frames[1]), bin=10)),
+        "catalog": (list(star_frames[0]), lambda f: instpol.catalog(f, instrument=str(star_frames[1]))),
+        "calibrate_stars": (cats, lambda f: instpol.calibrate_stars(f, "fors1", filter="V", model="plane",
+                                                                    interstellar="zero")),
+    }
+
+
+def test_every_function_taking_files_is_tried_or_named(calls):
+    for name in taking(LISTS):
+        assert name in calls or name in NOT_HERE, f"instpol.{name} takes a list of files: add it to the generator"
+
+
+@pytest.mark.parametrize("how", ["same path", "copy", "hard link", "symlink"])
+@pytest.mark.parametrize("name", ["reduce", "catalog", "calibrate_stars"])
+def test_duplicate_input(calls, name, how, tmp_path):
+    files, call = calls[name]
+    first = str(files[0])
+    other = {"same path": first, "copy": str(tmp_path / ("copy" + os.path.splitext(first)[1])),
+             "hard link": str(tmp_path / ("link" + os.path.splitext(first)[1])),
+             "symlink": str(tmp_path / ("sym" + os.path.splitext(first)[1]))}[how]
+    if how == "copy":
+        shutil.copyfile(first, other)
+    elif how == "hard link":
+        os.link(first, other)
+    elif how == "symlink":
+        os.symlink(first, other)
+    with pytest.raises(instpol.InputError) as e:
+        call([str(f) for f in files] + [other])
+    msg = str(e.value)
+    assert os.path.basename(first) in msg and os.path.basename(other) in msg, f"{name} [{how}]: {msg}"
+
+
+@pytest.mark.parametrize("name", ["reduce", "catalog"])
+def test_plate_set_with_an_angle_missing(calls, name):
+    files, call = calls[name]
+    assert len(files) >= 4
+    try:
+        r = call([str(f) for f in files[1:]])
+    except instpol.InputError as e:
+        assert "missing [" in str(e), f"{name}: refused without naming the missing angle: {e}"
+        return
+    warnings = r["warnings"] if isinstance(r, dict) else getattr(r, "warnings", [])
+    assert any("missing [" in str(w) for w in warnings), f"{name}: reduced without naming the gap: {warnings}"
+
+
+def test_another_filter_for_every_correction(cal_v):
+    """Every method of Calibration that corrects data of a stated filter refuses another one."""
+    cal = instpol.Calibration.load(cal_v)
+    methods = [m for m, f in inspect.getmembers(instpol.Calibration, inspect.isfunction)
+               if not m.startswith("_") and "filter" in inspect.signature(f).parameters]
+    assert "correct" in methods, methods
+    x, y = np.array([0.5]), np.array([-0.3])
+    q, u = np.array([0.01]), np.array([0.0])
+    s = np.array([1e-3])
+    for m in methods:
+        assert m == "correct", f"Calibration.{m} takes a filter: add it to the generator"
+        with pytest.raises(instpol.InputError) as e:
+            cal.correct(x, y, q, u, s, s, instrument="FORS1", filter="I")
+        assert "I" in str(e.value) and "V" in str(e.value), str(e.value)
+        ok = cal.correct(x, y, q, u, s, s, instrument="FORS1", filter="I", allow_mismatch=True)
+        assert np.isfinite(ok["q0"]).all()
