@@ -142,3 +142,20 @@ def test_a_frame_under_two_names_is_refused_naming_both(sky_frames, star_frames,
             assert first in str(e.value) and again in str(e.value)
         copy.unlink()
         sym.unlink()
+
+
+def test_a_map_says_what_it_is(run_json, sky_frames, tmp_path):
+    """reduce()'s map carries its product as the CLI's reduce --json and the map's header do:
+    the plate, the instrument file's BLAKE3 (checked with Python's blake3) and the inputs'."""
+    blake3 = pytest.importorskip("blake3")
+    frames, inst = sky_frames
+    out = tmp_path / "m.fits"
+    m = instpol.reduce([str(f) for f in frames], instrument=str(inst), bin=10, output=out)
+    assert m.product is not None
+    assert m.product["plate"] == "half_wave"
+    assert m.product["instrument_hash"] == "blake3:" + blake3.blake3(inst.read_bytes()).hexdigest()
+    j = run_json("reduce", *frames, "--instrument", inst, "--bin", "10", "--out", tmp_path / "cli.fits")
+    assert j["product"]["instrument_hash"] == m.product["instrument_hash"]
+    assert j["product"]["plate"] == m.product["plate"]
+    want = ["blake3:" + blake3.blake3(f.read_bytes()).hexdigest() for f in list(frames) + [inst]]
+    assert j["product"]["inputs"] == want

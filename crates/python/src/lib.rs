@@ -1067,6 +1067,19 @@ fn map_header<'py>(
     Ok(h)
 }
 
+/// A map's product (`skyfield::provenance::Product`, as its header records it) as the map
+/// dictionary's `product` (None for a map that records none).
+fn map_product<'py>(
+    py: Python<'py>,
+    d: &Bound<'py, PyDict>,
+    p: Option<&skyfield::provenance::Product>,
+) -> PyResult<()> {
+    match p {
+        Some(p) => d.set_item("product", product_dict(py, &p.with_run_inputs())?),
+        None => d.set_item("product", py.None()),
+    }
+}
+
 /// A quarter-wave plate's V/I map as the Python package returns it (`instpol.CircularMap`):
 /// `v`, `sigma_v`, `sigma_v_phot`, coverage, intensity, validity flat in bin order, the header
 /// (with `stokes = "V"`, `plate_angles_deg`, `qwp_zero_angle_deg`) and `warnings`.
@@ -1081,6 +1094,7 @@ fn circular_map_dict<'py>(
     h.set_item("plate_angles_deg", m.plate_angles_deg.clone())?;
     h.set_item("qwp_zero_angle_deg", m.qwp_zero_angle_deg)?;
     d.set_item("header", h)?;
+    map_product(py, &d, m.product.as_ref())?;
     for (name, v) in [
         ("v", &m.v),
         ("sigma_v", &m.sigma_v),
@@ -1105,6 +1119,7 @@ fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>
     // What the map's q, u lack to be in the sky frame (HWPZERO; None when not recorded).
     h.set_item("hwp_zero_angle_deg", m.hwp_zero_angle_deg)?;
     d.set_item("header", h)?;
+    map_product(py, &d, m.product.as_ref())?;
     for (name, v) in [
         ("q", &m.q),
         ("u", &m.u),

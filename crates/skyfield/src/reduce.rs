@@ -196,13 +196,24 @@ fn chip_bad_notes(whole: Vec<Warning>, chips: &[ChipCounts], conv: &Conversion) 
     out
 }
 
+/// Which pixels of an exposure its bad values are counted over: all of them (a catalog), or
+/// those the reduction's pass reads, the o and e pixels of every binned sky pixel (`reduce`:
+/// a saturated pixel in a masked strip changes nothing and is not reported).
+#[derive(Clone, Copy)]
+enum Counted<'a> {
+    Whole,
+    Used(&'a Instrument, &'a BinGeometry),
+}
+
 /// [`chip_bad_notes`]'s counts for the exposures of `frames` read from disk that were
 /// assembled from chips and have a bad pixel among those `bad` counted (per exposure): each
-/// such exposure is read once more, by bands, and counted per chip. Only exposures with a bad
-/// pixel are read again (a saturated star in a chip exposure costs one more read of it).
+/// such exposure is read once more and counted per chip, over the pixels `counted`. Only
+/// exposures with a bad pixel are read again (a saturated star in a chip exposure costs one
+/// more read of it).
 fn disk_chip_counts<'a>(
     frames: impl Iterator<Item = (&'a OpenFrame, BadCounts)>,
     sat: f64,
+    counted: Counted<'_>,
 ) -> Result<Vec<ChipCounts>, Error> {
     let mut out = Vec::new();
     let mut bytes = Vec::new();
@@ -211,10 +222,46 @@ fn disk_chip_counts<'a>(
         if places.is_empty() || nbad + nsat == 0 {
             continue;
         }
-        let per = count_per_chip(&places, (f.nx, f.ny), sat, |row0, out| f.load_rows(row0, out, &mut bytes))?;
+        let per = match counted {
+            Counted::Whole => {
+                count_per_chip(&places, (f.nx, f.ny), sat, |row0, out| f.load_rows(row0, out, &mut bytes))?
+            }
+            Counted::Used(inst, geom) => {
+                let mut data = vec![0.0; f.nx * f.ny];
+                f.load_rows(0, &mut data, &mut bytes)?;
+                count_used_per_chip(&places, &data, f.nx, inst, geom, sat)
+            }
+        };
         out.push((f.path.clone(), per));
     }
     Ok(out)
+}
+
+/// The non-finite and saturated values of an exposure (`data`, `nx` wide) among the o and e
+/// pixels of every sky pixel inside the map's bins `geom`, each given to the chip whose place
+/// holds it ([`crate::frame::file_of`]'s rectangles): what the reduction's pass counted, per chip.
+fn count_used_per_chip(
+    chips: &[crate::frame::ChipPlace],
+    data: &[f64],
+    nx: usize,
+    inst: &Instrument,
+    geom: &BinGeometry,
+    sat: f64,
+) -> Vec<(crate::frame::ChipPlace, BadCounts)> {
+    let g = BeamGeometry::new(inst);
+    let xs = geom.origin_x..geom.origin_x + geom.nx * geom.bin_px;
+    let ys = geom.origin_y..geom.origin_y + geom.ny * geom.bin_px;
+    let mut counts = vec![(0, 0); chips.len()];
+    let beams =
+        g.sky_pixels().filter(|(x, y)| xs.contains(x) && ys.contains(y)).filter_map(|(x, y)| g.beams_of_sky(x, y));
+    for k in beams.flat_map(|(o, e)| [o, e]) {
+        let v = data[k];
+        if let Some(c) = chips.iter().position(|c| c.holds(k % nx, k / nx)) {
+            counts[c].0 += usize::from(!v.is_finite());
+            counts[c].1 += usize::from(v >= sat);
+        }
+    }
+    chips.iter().cloned().zip(counts).collect()
 }
 
 /// What grouping decided: the filter, sorted angles, which frames (indices) at each angle in
@@ -629,10 +676,8 @@ impl DiskFrames {
         let read: Vec<usize> = (0..self.frames.len()).filter(|&k| bad[k].is_some()).collect();
         let meta: Vec<_> = read.iter().map(|&k| open_meta(&self.frames[k])).collect();
         let counts: Vec<BadCounts> = read.iter().map(|&k| bad[k].unwrap_or_default()).collect();
-        let chips = disk_chip_counts(
-            read.iter().map(|&k| &self.frames[k]).zip(counts.iter().copied()),
-            self.conversion.saturation,
-        )?;
+        let read_counts = read.iter().map(|&k| &self.frames[k]).zip(counts.iter().copied());
+        let chips = disk_chip_counts(read_counts, self.conversion.saturation, Counted::Whole)?;
         let whole = bad_pixel_notes(&meta, &counts, self.nx * self.ny, &self.conversion)?;
         let mut w = chip_bad_notes(whole, &chips, &self.conversion);
         w.extend(self.warnings.iter().cloned());
@@ -2155,7 +2200,9 @@ fn reduce_files_plate(
         cfg,
         on_read,
     )?;
-    let chips = disk_chip_counts(frames.iter().zip(pass.bad.iter().copied()), conversion.saturation)?;
+    let geom = bin_geometry(inst, cfg.bin_px);
+    let counted = Counted::Used(inst, &geom);
+    let chips = disk_chip_counts(frames.iter().zip(pass.bad.iter().copied()), conversion.saturation, counted)?;
     let whole = bad_pixel_notes(&meta, &pass.bad, pass.used_px, &conversion)?;
     let mut warnings = chip_bad_notes(whole, &chips, &conversion);
     warnings.extend(pedestals);

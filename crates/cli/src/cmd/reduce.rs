@@ -66,6 +66,8 @@ struct Summary {
     warnings: Vec<String>,
     #[serde(skip_serializing_if = "Option::is_none")]
     grouping: Option<skyfield::calib::Grouping>,
+    /// What the map is, as its header records it.
+    product: Option<skyfield::provenance::Product>,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -118,6 +120,7 @@ pub fn run(a: Args) -> Result<()> {
         median_sigma_q: pick(&m.sigma_q),
         warnings: r.warnings.iter().map(|w| w.to_string()).collect(),
         grouping: skyfield::calib::Grouping::of(&inst, &read, a.frames.len(), r.exposures.len()),
+        product: m.product.as_ref().map(|p| p.with_run_inputs()),
     };
     if a.json {
         crate::util::print_json(&s)?;
@@ -158,6 +161,8 @@ struct CircularSummary {
     median_v: f64,
     median_sigma_v: f64,
     warnings: Vec<String>,
+    /// What the map is, as its header records it.
+    product: Option<skyfield::provenance::Product>,
 }
 
 /// Write and report a quarter-wave plate's V/I map.
@@ -180,6 +185,7 @@ fn circular(a: &Args, r: skyfield::reduce::CircularReduced) -> Result<()> {
         median_v: pick(&m.v),
         median_sigma_v: pick(&m.sigma_v),
         warnings: r.warnings.iter().map(|w| w.to_string()).collect(),
+        product: m.product.as_ref().map(|p| p.with_run_inputs()),
     };
     if a.json {
         crate::util::print_json(&s)?;

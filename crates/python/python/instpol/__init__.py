@@ -666,6 +666,9 @@ class _BinnedMap:
     def __init__(self, d: Dict[str, Any]) -> None:
         self.header: Dict[str, Any] = d["header"]
         self.warnings = list(d["warnings"])
+        # What the map is (instrument file's and inputs' BLAKE3, plate, ...), as its header
+        # records it; None for a map that records none.
+        self.product: Optional[Dict[str, Any]] = d.get("product")
         shape = (self.header["ny"], self.header["nx"])
         for k in self._ARRAYS:
             setattr(self, k, d[k].reshape(shape))
@@ -681,8 +684,9 @@ class StokesMap(_BinnedMap):
     ``intensity_snr``, ``valid``, ``x_arcmin, y_arcmin`` (bin centres from the detector centre),
     ``header`` (instrument, filter, hwp_angles_deg, bin_px, origin_x/y, nx, ny,
     pixel_scale_arcsec, detector_nx/ny, and hwp_zero_angle_deg: the HWP zero angle of the
-    filter, which the map's q, u do not carry, ``HWPZERO``; None when not recorded) and
-    ``warnings``.
+    filter, which the map's q, u do not carry, ``HWPZERO``; None when not recorded),
+    ``product`` (what the map is, as :func:`catalog`'s ``product``: the instrument file's and
+    the inputs' BLAKE3, the plate, ...; None when not recorded) and ``warnings``.
 
     Examples
     --------
