@@ -299,8 +299,13 @@ pub struct StokesMap {
     pub product: Option<crate::provenance::Product>,
 }
 
-/// The product keywords a map writes from its own fields, not from its product.
-const MAP_OWN_KEYS: [&str; 5] = ["INSTRUME", "FILTER", "HWPZERO", "SKYPA", "FRAME"];
+/// The product keywords a map writes from its own fields, not from its product: its
+/// instrument, filter and pixel scale (`write_primary`) and its frame (`HWPZERO`, `SKYPA`).
+const MAP_OWN_KEYS: [&str; 6] = ["INSTRUME", "FILTER", "PIXSCALE", "HWPZERO", "SKYPA", "FRAME"];
+
+/// Of [`MAP_OWN_KEYS`], those whose meaning in a map is not the product's (the map's frame
+/// keywords say what its `Q`, `U` lack, not what they carry): not read into its product.
+const MAP_FRAME_KEYS: [&str; 3] = ["HWPZERO", "SKYPA", "FRAME"];
 
 /// A map's product ([`StokesMap::product`], [`CircularMap::product`]) into its primary header
 /// `ph`, but for the keywords the map writes from its own fields ([`MAP_OWN_KEYS`]).
@@ -326,7 +331,7 @@ fn read_product(
     of: (&str, &str),
 ) -> Result<Option<crate::provenance::Product>, Error> {
     let pairs = crate::table::header_product_pairs(f, ph).map_err(|x| fits_err(path, x))?;
-    let own = |k: &str| MAP_OWN_KEYS.contains(&k);
+    let own = |k: &str| MAP_FRAME_KEYS.contains(&k);
     let product = crate::provenance::Product::from_pairs(
         pairs.iter().filter(|(k, _)| !own(k)).map(|(k, v)| (k.as_str(), v.as_str())),
     )

@@ -397,6 +397,13 @@ fn a_stokes_map_records_its_product() {
     assert_eq!(p.filter.as_deref(), Some(m.filter.as_str()));
     let def = instrument::Instrument::from_file(&inst).unwrap();
     assert_eq!(p.detector_px, Some((def.detector.nx, def.detector.ny)));
+    assert_eq!(p.pixel_scale_arcsec, Some(def.detector.pixel_scale_arcsec));
+    // Each keyword once in the header (fitsverify warns of a duplicate; PIXSCALE is the map's).
+    let text = String::from_utf8_lossy(&std::fs::read(&map).unwrap()[..2880 * 2]).into_owned();
+    for key in ["PIXSCALE", "INSTHASH", "PLATE", "INSTRUME", "FILTER"] {
+        let cards = text.as_bytes().chunks(80).filter(|c| c.starts_with(format!("{key:<8}=").as_bytes())).count();
+        assert_eq!(cards, 1, "{key} written {cards} times");
+    }
     assert_eq!(p.wavelength_um, def.filter(&m.filter).ok().map(|f| f.lambda_eff_nm / 1000.0));
     let files: Vec<PathBuf> = frames.iter().cloned().chain([inst.clone()]).collect();
     if let Some(sums) = common::b3sum(&files) {
