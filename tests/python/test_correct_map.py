@@ -191,14 +191,15 @@ def meridian_star(run, tmp_path, inst, seed, hwp_angles, effects=""):
 
 
 def nasmyth_setup(run, tmp_path, what):
-    """A telescope model fitted to the EFOSC2 V standards (`instpol fit-standards`), and the
-    tiny FORS1 put on a Nasmyth focus (its [telescope] section replaced by NASMYTH)."""
+    """The tiny FORS1 put on a Nasmyth focus (its [telescope] section replaced by NASMYTH), and a
+    telescope model fitted to V standards as that instrument measured them (`instpol
+    fit-standards --instrument` it: a model is of its instrument, and correcting another
+    instrument's data with it is refused)."""
     from conftest import tiny_fors1
     from test_correct import v_standards
 
     std = v_standards(tmp_path, what)
     tel = tmp_path / "tel_V.fits"
-    run("fit-standards", std, "--instrument", "efosc2", "--model", "wiersema", "--output", tel)
     text = tiny_fors1(tmp_path).read_text()
     head, _, rest = text.partition("[telescope]")
     assert rest, "instruments/fors1.toml no longer has a [telescope] section"
@@ -206,6 +207,7 @@ def nasmyth_setup(run, tmp_path, what):
     assert "\n[" not in rest.replace("\n[[telescope", ""), "a section follows [telescope] in fors1.toml"
     inst = tmp_path / "nasmyth.toml"
     inst.write_text(head + NASMYTH)
+    run("fit-standards", std, "--instrument", inst, "--model", "wiersema", "--output", tel)
     return tel, inst
 
 

@@ -37,8 +37,10 @@ def public_functions():
 
 
 def taking(names):
+    """The public functions whose first parameter is one of `names` (a keyword of the same name,
+    demo's ``frames=True``, is not a list of files)."""
     return sorted(n for n, f in public_functions().items()
-                  if any(p in names for p in inspect.signature(f).parameters))
+                  if next(iter(inspect.signature(f).parameters), None) in names)
 
 
 @pytest.fixture(scope="module")
