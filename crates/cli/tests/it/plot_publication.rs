@@ -505,7 +505,8 @@ fn aspect_problems(name: &str, svg: &str) -> Vec<String> {
 /// A tick label's value: plain (`0.25`, `-4`, `10000`), exponent (`1e-4`) or a power of ten
 /// (`10⁻⁴`, `10³`), with its notation.
 fn tick_value(t: &str) -> Option<(f64, &'static str)> {
-    if let Some(e) = t.strip_prefix("10").filter(|e| !e.is_empty() && e.chars().all(|c| "⁻⁰¹²³⁴⁵⁶⁷⁸⁹".contains(c))) {
+    if let Some(e) = t.strip_prefix("10").filter(|e| !e.is_empty() && e.chars().all(|c| "⁻⁰¹²³⁴⁵⁶⁷⁸⁹".contains(c)))
+    {
         let digits: String = e
             .chars()
             .map(|c| match c {
@@ -586,9 +587,10 @@ fn text_problem(text: &str) -> Option<String> {
     if text.split("(s)").next().is_some_and(|b| b.len() < text.len() && b.ends_with(char::is_alphabetic)) {
         return Some("a '(s)' plural".into());
     }
-    let list = text.split('[').skip(1).any(|r| {
-        r.split(']').next().is_some_and(|l| !l.is_empty() && l.split(", ").all(|n| n.parse::<i64>().is_ok()))
-    });
+    let list = text
+        .split('[')
+        .skip(1)
+        .any(|r| r.split(']').next().is_some_and(|l| !l.is_empty() && l.split(", ").all(|n| n.parse::<i64>().is_ok())));
     list.then(|| "a list printed as code ('[0, 1]')".into())
 }
 
@@ -641,7 +643,8 @@ fn hue_sat(c: [f64; 3]) -> (f64, f64) {
 /// polygons' fills and strokes; not the rectangles of colour images and bars), with the
 /// stroke width of each line.
 fn drawn_colours(svg: &str) -> Vec<(String, [f64; 3], f64)> {
-    let attr = |e: &str, n: &str| e.split(&format!(" {n}=\"")).nth(1).and_then(|r| r.split('"').next()).map(str::to_string);
+    let attr =
+        |e: &str, n: &str| e.split(&format!(" {n}=\"")).nth(1).and_then(|r| r.split('"').next()).map(str::to_string);
     let mut out = vec![];
     for e in svg.split('<').skip(1) {
         let e = e.split('>').next().unwrap_or("");
@@ -733,7 +736,10 @@ fn the_print_checks_see_each_problem() {
             .iter()
             .enumerate()
             .map(|(i, t)| {
-                format!("<text x=\"{}\" y=\"900\" dy=\"0.76em\" text-anchor=\"middle\" font-size=\"40\">{t}</text>\n", 100 * i)
+                format!(
+                    "<text x=\"{}\" y=\"900\" dy=\"0.76em\" text-anchor=\"middle\" font-size=\"40\">{t}</text>\n",
+                    100 * i
+                )
             })
             .collect()
     };
