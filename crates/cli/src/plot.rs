@@ -29,10 +29,19 @@ pub const PRINTED_WIDTH_CM: f64 = 8.8;
 /// The smallest font size, in points at the printed width (tick labels, legends).
 pub const MIN_FONT_PT: f64 = 9.0;
 
+/// A figure at least this wide (px) is drawn to be printed across a page, [`PAGE_WIDTH_CM`]
+/// (two columns and their gap): a figure of several panels side by side.
+pub const PAGE_FIGURE_PX: u32 = 1800;
+
+/// The printed width of a page-wide figure (A&A's two columns and the gap between: 18 cm).
+pub const PAGE_WIDTH_CM: f64 = 18.0;
+
 /// Pixels per typographic point (1/72 inch) for a figure `width_px` wide printed
-/// [`PRINTED_WIDTH_CM`] wide: e.g. 1000 px / 249.4 pt = 4.01 px/pt.
+/// [`PRINTED_WIDTH_CM`] wide (or [`PAGE_WIDTH_CM`] from [`PAGE_FIGURE_PX`] on): e.g.
+/// 1000 px / 249.4 pt = 4.01 px/pt.
 pub fn px_per_pt(width_px: u32) -> f64 {
-    width_px as f64 / (PRINTED_WIDTH_CM / 2.54 * 72.0)
+    let cm = if width_px >= PAGE_FIGURE_PX { PAGE_WIDTH_CM } else { PRINTED_WIDTH_CM };
+    width_px as f64 / (cm / 2.54 * 72.0)
 }
 
 thread_local! {
@@ -194,6 +203,42 @@ fn write_svg(
     std::fs::write(tmp, text).with_context(|| format!("cannot write {}", tmp.display()))
 }
 
+/// The series colours, decided once: Okabe & Ito's colour-blind-safe palette (2008), the
+/// members with a contrast of at least 3 against white (its orange, sky blue and yellow are
+/// too light for lines on white), black last.
+pub const BLUE_OI: RGBColor = RGBColor(0x00, 0x72, 0xB2);
+pub const VERMILLION: RGBColor = RGBColor(0xD5, 0x5E, 0x00);
+pub const BLUISH_GREEN: RGBColor = RGBColor(0x00, 0x9E, 0x73);
+pub const REDDISH_PURPLE: RGBColor = RGBColor(0xCC, 0x79, 0xA7);
+pub const PALETTE: [RGBColor; 5] = [BLUE_OI, VERMILLION, BLUISH_GREEN, REDDISH_PURPLE, BLACK];
+
+/// The `k`-th series colour (cycling through [`PALETTE`]).
+pub fn series_colour(k: usize) -> RGBColor {
+    PALETTE[k % PALETTE.len()]
+}
+
+/// A power of ten as `10⁻⁴`, `10³` (other values as [`tick`]).
+pub fn power_tick(v: &f64) -> String {
+    let k = v.abs().log10().round();
+    if *v <= 0.0 || (v.log10() - k).abs() > 1e-9 {
+        return tick(v);
+    }
+    const SUP: [char; 10] = ['⁰', '¹', '²', '³', '⁴', '⁵', '⁶', '⁷', '⁸', '⁹'];
+    let digits: String =
+        (k.abs() as u32).to_string().chars().map(|c| SUP[c.to_digit(10).unwrap_or(0) as usize]).collect();
+    format!("10{}{digits}", if k < 0.0 { "⁻" } else { "" })
+}
+
+/// The label format of a log axis over `a..b`: [`tick`] when every decade reads plainly
+/// (0.001 to 10000), else [`power_tick`] for all, so that one axis never mixes `10000` and `1e5`.
+pub fn log_labels(a: f64, b: f64) -> &'static dyn Fn(&f64) -> String {
+    if decades(a, b).iter().all(|d| (1e-3..1e5).contains(d)) {
+        &tick
+    } else {
+        &power_tick
+    }
+}
+
 /// Tick labels without float noise: `0` (never `-0.0`), `0.25`, `150`, `1e5`, `2.5e-4`:
 /// three significant digits, whole numbers below 1e5 in full, trailing zeros dropped.
 pub fn tick(v: &f64) -> String {
@@ -234,6 +279,8 @@ pub struct Axes<'s> {
     pub x_labels: Option<usize>,
     /// x tick labels (default [`tick`]).
     pub x_fmt: Option<&'s dyn Fn(&f64) -> String>,
+    /// y tick labels (default [`tick`]).
+    pub y_fmt: Option<&'s dyn Fn(&f64) -> String>,
 }
 
 /// Room right of the plotting area for half of the last x tick label (points): half of a
@@ -250,6 +297,7 @@ impl<'s> Axes<'s> {
             grid: true,
             x_labels: None,
             x_fmt: None,
+            y_fmt: None,
         }
     }
 
@@ -260,6 +308,12 @@ impl<'s> Axes<'s> {
     pub fn x_ticks(mut self, n: usize, fmt: &'s dyn Fn(&f64) -> String) -> Self {
         self.x_labels = Some(n);
         self.x_fmt = Some(fmt);
+        self
+    }
+    /// Log axes over `x` and `y` (`None`: linear) labelled in one notation each ([`log_labels`]).
+    pub fn log_labels(mut self, x: Option<(f64, f64)>, y: Option<(f64, f64)>) -> Self {
+        self.x_fmt = x.map(|(a, b)| log_labels(a, b)).or(self.x_fmt);
+        self.y_fmt = y.map(|(a, b)| log_labels(a, b));
         self
     }
 }
@@ -294,7 +348,9 @@ where
     // lines of text, an x label per about five characters.
     let (w, h) = c.plotting_area().dim_in_pixel();
     let f = pt(TICK_PT) as f64;
-    let (nx, ny) = (((w as f64 / (2.5 * f)) as usize).clamp(3, 10), ((h as f64 / (2.0 * f)) as usize).clamp(3, 10));
+    // At least five asked of y: plotters picks round steps up to that many, and a short panel
+    // asked for three may get two.
+    let (nx, ny) = (((w as f64 / (2.5 * f)) as usize).clamp(3, 10), ((h as f64 / (2.0 * f)) as usize).clamp(5, 10));
     let mut m = c.configure_mesh();
     m.x_labels(nx).y_labels(ny);
     m.x_desc(ax.x_desc)
@@ -302,7 +358,7 @@ where
         .label_style((FONT, pt(TICK_PT)))
         .axis_desc_style((FONT, pt(AXIS_PT)))
         .x_label_formatter(xf)
-        .y_label_formatter(&tick);
+        .y_label_formatter(ax.y_fmt.unwrap_or(&tick));
     if !ax.grid {
         m.disable_mesh();
     }
@@ -336,13 +392,50 @@ where
     X: AsRangedCoord<Value = f64> + Clone,
     X::CoordDescType: ValueFormatter<f64>,
 {
-    let (_, h) = chart(area, ax, x.clone(), y.clone())?.plotting_area().dim_in_pixel();
+    chart_with_legend_room_by(area, ax, || x.clone(), y, entries)
+}
+
+/// [`chart_with_legend_room`] for an x axis built by `x` (one that cannot be cloned, such as
+/// a [`log_axis`]).
+pub fn chart_with_legend_room_by<'a, DB, X>(
+    area: &'a DrawingArea<DB, Shift>,
+    ax: &Axes,
+    x: impl Fn() -> X,
+    y: std::ops::Range<f64>,
+    entries: usize,
+) -> Result<Chart<'a, DB, X::CoordDescType, RangedCoordf64>>
+where
+    DB: DrawingBackend + 'a,
+    X: AsRangedCoord<Value = f64>,
+    X::CoordDescType: ValueFormatter<f64>,
+{
+    let (_, h) = chart(area, ax, x(), y.clone())?.plotting_area().dim_in_pixel();
     area.fill(&WHITE).map_err(pe)?;
     let h = h as f64;
     // The box, a gap of half a line below it, and at least a third of the height for the data.
     let free = (h - legend_height_px(entries) - 0.5 * pt(LEGEND_PT) as f64).max(h / 3.0);
     let top = y.start + (y.end - y.start) * h / free;
-    chart(area, ax, x, y.start..top)
+    chart(area, ax, x(), y.start..top)
+}
+
+/// The key points of a log axis over `[a, b]` (a > 0): its [`decades`], with 2x and 5x
+/// between them when fewer than three decades fall inside (so that an axis carries at least
+/// three labelled ticks).
+pub fn log_keys(a: f64, b: f64) -> Vec<f64> {
+    let d = decades(a, b);
+    let (lo, hi) = (a.min(b), a.max(b));
+    if d.len() >= 3 || !(lo > 0.0) {
+        return d;
+    }
+    let k0 = lo.log10().floor() as i32;
+    let k1 = hi.log10().ceil() as i32;
+    let inside = |v: &f64| *v >= lo * (1.0 - 1e-9) && *v <= hi * (1.0 + 1e-9);
+    let mut keys: Vec<f64> =
+        (k0..=k1).flat_map(|k| [1.0, 2.0, 5.0].map(|m| m * 10f64.powi(k))).filter(inside).collect();
+    if keys.len() < 3 {
+        keys = vec![lo, (lo * hi).sqrt(), hi];
+    }
+    keys
 }
 
 /// The decades 10^k inside `[a, b]` (a > 0): the key points of a log axis, so that every decade
@@ -361,13 +454,14 @@ pub fn decades(a: f64, b: f64) -> Vec<f64> {
     (k0..=k1).map(|k| 10f64.powi(k)).collect()
 }
 
-/// A log axis over `a..b` labelled at every decade ([`decades`]).
+/// A log axis over `a..b` labelled at every decade ([`log_keys`]: 2x and 5x too when it
+/// spans fewer than three).
 pub fn log_axis(
     a: f64,
     b: f64,
 ) -> plotters::coord::combinators::WithKeyPoints<plotters::coord::combinators::LogCoord<f64>> {
     use plotters::coord::combinators::{BindKeyPoints, IntoLogRange};
-    (a..b).log_scale().with_key_points(decades(a, b))
+    (a..b).log_scale().with_key_points(log_keys(a, b))
 }
 
 /// A legend key: a short line in `style` (for `.legend(line_key(BLUE))`).
@@ -459,6 +553,28 @@ where
 {
     let pos = quiet_corner(c, data, entries, chars, prefer);
     legend(c, pos)
+}
+
+/// A legend as one row of keys across `area` (a strip below a chart), each drawn by its
+/// `key` at the key's left (the text follows), centred: for a chart whose data leave no
+/// corner free, so that the axes need not grow past the data to make room.
+pub fn key_row<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    entries: &[(String, &dyn Fn(&DrawingArea<DB, Shift>, BackendCoord) -> Result<()>)],
+) -> Result<()> {
+    let f = pt(LEGEND_PT) as f64;
+    // f is plotters' size, 1.24 em: a character about 0.5 f, a key 2 f with its gap.
+    let widths: Vec<f64> = entries.iter().map(|(t, _)| f * (0.5 * t.chars().count() as f64 + 2.0)).collect();
+    let (w, h) = area.dim_in_pixel();
+    let mut x = 0.5 * (w as f64 - widths.iter().sum::<f64>() - f * (entries.len() as f64 - 1.0)).max(0.0);
+    let y = h as i32 / 2;
+    let style = TextStyle::from((FONT, pt(LEGEND_PT)).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
+    for ((text, key), wd) in entries.iter().zip(&widths) {
+        key(area, (x as i32, y))?;
+        area.draw(&Text::new(text.clone(), ((x + 1.5 * f) as i32, y), style.clone())).map_err(pe)?;
+        x += wd + f;
+    }
+    Ok(())
 }
 
 /// The four corners, upper right first (the usual place of a legend).
@@ -594,7 +710,7 @@ fn map_chart<'a, DB: DrawingBackend + 'a>(
 const CONTOUR_LEVELS: [f64; 3] = [0.003, 0.006, 0.009];
 
 /// fig:insmapB: a colour image of the model's p with its colour bar, white contours of 0.3, 0.6
-/// and 0.9 % (marked on the colour bar), vectors at about 18 bins across (black on a white halo, readable
+/// and 0.9 % (marked and labelled on the colour bar), vectors at about 18 bins across (black on a white halo, readable
 /// on any colour), the scale vector of 1 % above the colour bar, and the centre as a cross; equal
 /// aspect, nothing in a box over the data.
 pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotData) -> Result<()> {
@@ -622,7 +738,7 @@ pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotDa
     // Contours of p in white; the colour bar carries the same levels as white lines.
     for level in CONTOUR_LEVELS {
         let segs = contour_segments(&p, g.nx, g.ny, g.x0, g.y0, g.dx, g.dy, level);
-        c.draw_series(segs.into_iter().map(|s| PathElement::new(s.to_vec(), WHITE.stroke_width(2)))).map_err(pe)?;
+        c.draw_series(segs.into_iter().map(|s| PathElement::new(s.to_vec(), WHITE.stroke_width(3)))).map_err(pe)?;
     }
     // Vectors at the bins, about 18 across, the longest 0.9 of their spacing.
     let bins = thin(&cal.bins, &cal.region, 18.0);
@@ -644,12 +760,16 @@ pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotDa
     let px_per_arcmin = c.backend_coord(&(xr.start + 1.0, 0.0)).0 - c.backend_coord(&(xr.start, 0.0)).0;
     let one_pct_px = (0.01 * scale * px_per_arcmin as f64).round() as i32;
     let (_, rows) = c.plotting_area().get_pixel_range();
-    colour_bar(&side, "p (%)", 100.0 * top, (rows.start, rows.end))?;
+    // The bar's ticks at the contours' levels (and 0), so that each white mark is labelled.
+    let levels: Vec<f64> =
+        std::iter::once(0.0).chain(CONTOUR_LEVELS.into_iter().filter(|l| *l < top).map(|l| 100.0 * l)).collect();
+    let ticks = if levels.len() >= 3 { Some(levels.as_slice()) } else { None };
+    colour_bar(&side, "p (%)", 100.0 * top, (rows.start, rows.end), ticks)?;
     // The contours' levels as white lines across the bar.
     let (bx0, bx1) = (pt(4.0) as i32, pt(10.0) as i32);
     for level in CONTOUR_LEVELS.into_iter().filter(|l| *l < top) {
         let y = rows.end - ((rows.end - rows.start) as f64 * level / top).round() as i32;
-        side.draw(&PathElement::new(vec![(bx0, y), (bx1, y)], WHITE.stroke_width(2))).map_err(pe)?;
+        side.draw(&PathElement::new(vec![(bx0, y), (bx1, y)], WHITE.stroke_width(3))).map_err(pe)?;
     }
     // Below the bar, level with the x axis's tick labels: the vector of 1 %, labelled beside it.
     let (x0, y0) = (pt(4.0) as i32, rows.end + pt(7.0) as i32);
@@ -692,15 +812,18 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
         pts.iter()
             .step_by(stride)
             .filter(|p| !p.2)
-            .map(|p| Circle::new((p.0, p.1 * 100.0), 2, RGBColor(200, 120, 120).filled())),
+            .map(|p| Circle::new((p.0, p.1 * 100.0), 2, VERMILLION.mix(0.6).filled())),
     )
     .map_err(pe)?;
     c.draw_series(
-        pts.iter().step_by(stride).filter(|p| p.2).map(|p| Circle::new((p.0, p.1 * 100.0), 2, BLUE.mix(0.5).filled())),
+        pts.iter()
+            .step_by(stride)
+            .filter(|p| p.2)
+            .map(|p| Circle::new((p.0, p.1 * 100.0), 2, BLUE_OI.mix(0.8).filled())),
     )
     .map_err(pe)?
-    .label("bins (red: not used)")
-    .legend(|(x, y)| Circle::new((x + 10, y), 3, BLUE.filled()));
+    .label("bins (orange: not used)")
+    .legend(|(x, y)| Circle::new((x + 10, y), 3, BLUE_OI.filled()));
     if let Some(r) = d.radial {
         let curve: Vec<(f64, f64)> =
             (0..=200).map(|k| rmax * k as f64 / 200.0).map(|x| (x, 100.0 * r.p_of_r(x))).collect();
@@ -710,10 +833,10 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
             .legend(line_key(BLACK.stroke_width(3)));
     }
     if let Some(rt) = &d.raytrace {
-        c.draw_series(LineSeries::new(rt.iter().map(|(x, p)| (*x, 100.0 * p)), RED.stroke_width(1)))
+        c.draw_series(LineSeries::new(rt.iter().map(|(x, p)| (*x, 100.0 * p)), VERMILLION.stroke_width(2)))
             .map_err(pe)?
             .label("ray trace")
-            .legend(line_key(RED));
+            .legend(line_key(VERMILLION.stroke_width(2)));
     }
     let mut data: Vec<(f64, f64)> = pts.iter().step_by(stride).map(|p| (p.0, p.1 * 100.0)).collect();
     if let Some(r) = d.radial {
@@ -730,8 +853,8 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
     let (plo, phi_hi) = (plo.min(-190.0), phi_hi.max(190.0));
     let ax = Axes::new(
         format!("slope {:.4} ± {:.4}, intercept {:.1}°", t.slope, t.slope_err, t.intercept_deg),
-        "polar angle alpha (deg)",
-        "phi (deg)",
+        "polar angle α (deg)",
+        "φ (deg)",
     );
     let mut c = chart(&lower, &ax, -180.0..180.0, plo..phi_hi)?;
     let stride = (t.alpha_deg.len() / 6000).max(1);
@@ -740,7 +863,7 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
             .iter()
             .zip(&t.phi_deg)
             .step_by(stride)
-            .map(|(a, p)| Circle::new((*a, *p), 2, BLUE.mix(0.5).filled())),
+            .map(|(a, p)| Circle::new((*a, *p), 2, BLUE_OI.mix(0.8).filled())),
     )
     .map_err(pe)?;
     c.draw_series(LineSeries::new([(-180.0, -180.0), (180.0, 180.0)], BLACK.stroke_width(2)))
@@ -788,7 +911,7 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
     let caption = format!("{}: residual, 0 to {:.3}%", d.title, top * 100.0);
     let (mut c, xr, _yr) = map_chart(&main, caption, xr, yr)?;
     let (_, rows) = c.plotting_area().get_pixel_range();
-    colour_bar(&side, "|residual| (%)", 100.0 * top, (rows.start, rows.end))?;
+    colour_bar(&side, "|residual| (%)", 100.0 * top, (rows.start, rows.end), None)?;
     // Squares at the bins, coloured with viridis; size from the typical bin spacing.
     let spacing = nearest_spacing(&res);
     let h = 0.5 * spacing;
@@ -800,17 +923,22 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
     let thinned: Vec<&fit::Bin> = thin(&cal.bins, &cal.region, 30.0);
     let vspace = (xr.end - xr.start) / 30.0;
     let scale = 0.9 * vspace / top;
-    c.draw_series(thinned.iter().map(|b| {
+    let stick = |b: &&fit::Bin| {
         let (q, u) = radial.qu(b.x, b.y);
         let (dq, du) = (b.q - q, b.u - u);
         let m = dq.hypot(du).min(top);
         let a = 0.5 * du.atan2(dq);
         let (hx, hy) = (0.5 * m * scale * a.cos(), 0.5 * m * scale * a.sin());
-        PathElement::new(vec![(b.x - hx, b.y - hy), (b.x + hx, b.y + hy)], WHITE.stroke_width(1))
-    }))
-    .map_err(pe)?;
+        vec![(b.x - hx, b.y - hy), (b.x + hx, b.y + hy)]
+    };
+    // Black on a white halo, as on the map: readable on every colour of the scale.
+    c.draw_series(thinned.iter().map(|b| PathElement::new(stick(b), WHITE.stroke_width(5)))).map_err(pe)?;
+    c.draw_series(thinned.iter().map(|b| PathElement::new(stick(b), BLACK.stroke_width(2)))).map_err(pe)?;
     Ok(())
 }
+
+/// A map's height (px) beside its 900 px: the plotting area about square.
+const MAP_HEIGHT: u32 = 790;
 
 /// Width kept right of a map for its colour bar: the bar, tick labels of up to five
 /// characters and the rotated title (at 9 pt on a column-wide figure of about 1000 px).
@@ -825,13 +953,15 @@ fn nice_step(top: f64) -> f64 {
 
 /// A viridis colour bar from 0 to `top` on `area` (the strip right of a map), spanning the
 /// map's plotting area from pixel row `rows.0` to `rows.1` (the map's own frame, so the two are
-/// level), tick labels right of the bar and `label` rotated beside them. Drawn in pixels: the
+/// level), tick labels right of the bar (at `ticks`, else round steps) and `label` rotated
+/// beside them. Drawn in pixels: the
 /// strip is too narrow for a chart's label areas.
 fn colour_bar<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
     label: &str,
     top: f64,
     rows: (i32, i32),
+    ticks: Option<&[f64]>,
 ) -> Result<()> {
     let (y0, y1) = rows;
     let (x0, x1) = (pt(4.0) as i32, pt(10.0) as i32);
@@ -844,12 +974,11 @@ fn colour_bar<DB: DrawingBackend>(
     area.draw(&Rectangle::new([(x0, y0), (x1, y1)], BLACK.stroke_width(1))).map_err(pe)?;
     let tick_style = TextStyle::from((FONT, pt(TICK_PT)).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
     let step = nice_step(top);
-    let mut v = 0.0;
-    while v <= top * (1.0 + 1e-9) {
+    let nice: Vec<f64> = (0..).map(|i| i as f64 * step).take_while(|v| *v <= top * (1.0 + 1e-9)).collect();
+    for v in ticks.unwrap_or(&nice) {
         let y = y1 - ((y1 - y0) as f64 * v / top).round() as i32;
         area.draw(&PathElement::new(vec![(x1, y), (x1 + pt(1.5) as i32, y)], BLACK.stroke_width(1))).map_err(pe)?;
-        area.draw(&Text::new(tick(&v), (x1 + pt(2.5) as i32, y), tick_style.clone())).map_err(pe)?;
-        v += step;
+        area.draw(&Text::new(tick(v), (x1 + pt(2.5) as i32, y), tick_style.clone())).map_err(pe)?;
     }
     let (w, _) = area.dim_in_pixel();
     let title = TextStyle::from((FONT, pt(AXIS_PT)).into_font())
@@ -874,14 +1003,16 @@ fn nearest_spacing(res: &[(f64, f64, f64, f64)]) -> f64 {
 /// returns the files written.
 pub fn calibration_figures(dir: &Path, stem: &str, d: &CalPlotData, png: bool) -> Result<Vec<PathBuf>> {
     let mut out = vec![];
-    let map_size = (900 + MAP_SIDE_ROOM, 900);
+    // The plotting area about square (the label areas take more height than width), so that
+    // equal arcmin per pixel adds little to the field's ranges.
+    let map_size = (900 + MAP_SIDE_ROOM, MAP_HEIGHT);
     let stem_of = |name: &str| dir.join(format!("{stem}_{name}"));
     out.extend(save_figure(&stem_of("map"), map_size, png, |a| draw_map(a, d), |a| draw_map(a, d))?);
     out.extend(save_figure(&stem_of("profile"), (900, 1100), png, |a| draw_profile(a, d), |a| draw_profile(a, d))?);
     if d.radial.is_some() {
         out.extend(save_figure(
             &stem_of("residual"),
-            (900 + COLOUR_BAR_ROOM, 900),
+            (900 + COLOUR_BAR_ROOM, MAP_HEIGHT),
             png,
             |a| draw_residual(a, d),
             |a| draw_residual(a, d),

@@ -90,43 +90,77 @@ struct Figure {
     pts: Vec<PlotPoint>,
     ymax: f64,
     rmax: f64,
+    /// The parallactic angles shown: the data's, 5 % of their span beyond each end.
+    xr: (f64, f64),
 }
 
 fn figure(f: &TelescopeFit, bi: usize) -> Result<Figure> {
     let band = &f.bands[bi].0;
     let BandPlot { curve, points: pts } = band_plot(f, bi)?;
-    let curve: Vec<(f64, f64, f64)> = curve.iter().map(|&(pa, q, u)| (pa, 100.0 * q, 100.0 * u)).collect();
+    let (lo, hi) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), p| (l.min(p.pa_deg), h.max(p.pa_deg)));
+    let pad = 0.05 * (hi - lo).max(20.0);
+    let xr = if lo.is_finite() { ((lo - pad).max(-180.0), (hi + pad).min(180.0)) } else { (-180.0, 180.0) };
+    let curve: Vec<(f64, f64, f64)> = curve
+        .iter()
+        .filter(|c| c.0 >= xr.0 - 1.0 && c.0 <= xr.1 + 1.0)
+        .map(|&(pa, q, u)| (pa.clamp(xr.0, xr.1), 100.0 * q, 100.0 * u))
+        .collect();
     let ymax = curve
         .iter()
         .map(|c| c.1.abs().max(c.2.abs()))
         .chain(pts.iter().map(|p| 100.0 * (p.q.abs().max(p.u.abs()) + 2.0 * p.sigma_q.max(p.sigma_u))))
-        .fold(0.5, f64::max)
-        * 1.1;
+        .fold(0.05, f64::max)
+        * 1.05;
     let rmax =
         pts.iter().map(|p| 100.0 * (p.resid_q.abs() + p.sigma_q).max(p.resid_u.abs() + p.sigma_u)).fold(0.05, f64::max)
             * 1.2;
-    let title = format!("{band}: {} model, chi2/dof = {:.2}", f.model.name(), f.chi2_reduced);
-    Ok(Figure { title, curve, pts, ymax, rmax })
+    // A band named by its wavelength ("0.550um", the data name no filter) is written in µm.
+    let band = match band.strip_suffix("um").and_then(|w| w.parse::<f64>().ok()) {
+        Some(w) => format!("{w:.3} µm"),
+        None => band.clone(),
+    };
+    let title = format!("{band}, {} model: χ²/dof = {:.2}", f.model.name(), f.chi2_reduced);
+    Ok(Figure { title, curve, pts, ymax, rmax, xr })
+}
+
+/// The upper panel's legend, a row below it: q and u (data and model), and the polarized
+/// standards' triangle when any is drawn.
+fn draw_keys<DB: DrawingBackend>(area: &DrawingArea<DB, plotters::coord::Shift>, keyed: bool) -> Result<()> {
+    type Key<'k, DB> = &'k dyn Fn(&DrawingArea<DB, plotters::coord::Shift>, (i32, i32)) -> Result<()>;
+    let data_and_model = |col: RGBColor| {
+        move |a: &DrawingArea<DB, plotters::coord::Shift>, (x, y): (i32, i32)| -> Result<()> {
+            a.draw(&PathElement::new([(x, y), (x + 22, y)], col.stroke_width(2))).map_err(crate::plot::pe)?;
+            a.draw(&Circle::new((x + 11, y), 5, col.filled())).map_err(crate::plot::pe)
+        }
+    };
+    let (q, u) = (data_and_model(crate::plot::VERMILLION), data_and_model(crate::plot::BLUE_OI));
+    let tri = |a: &DrawingArea<DB, plotters::coord::Shift>, (x, y): (i32, i32)| -> Result<()> {
+        a.draw(&TriangleMarker::new((x + 11, y), 6, BLACK.filled())).map_err(crate::plot::pe)
+    };
+    let mut entries: Vec<(String, Key<DB>)> = vec![("q data, model".into(), &q), ("u data, model".into(), &u)];
+    if keyed {
+        entries.push((POL_KEY.into(), &tri));
+    }
+    crate::plot::key_row(area, &entries)
 }
 
 fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, d: &Figure) -> Result<()> {
-    let Figure { title, curve, pts, ymax, rmax } = d;
+    let Figure { title, curve, pts, ymax, rmax, xr } = d;
+    let xr = xr.0..xr.1;
     let (ymax, rmax) = (*ymax, *rmax);
     {
         let (top, bottom) = root.split_vertically(520);
+        // The model spans every angle and leaves no corner free: the legend is a row below.
+        let (top, keys) = top.split_vertically(520 - 2 * crate::plot::pt(crate::plot::LEGEND_PT));
         let ax = crate::plot::Axes::new(title.clone(), "parallactic angle (deg)", "q, u (%)");
-        // Room above the curves for the legend: the model spans every angle.
-        let entries = if pts.iter().any(|p| p.shifted) { 3 } else { 2 };
-        let mut c = crate::plot::chart_with_legend_room(&top, &ax, -180.0..180.0, -ymax..ymax, entries)?;
+        let mut c = crate::plot::chart(&top, &ax, xr.clone(), -ymax..ymax)?;
         let mut keyed = false;
-        for (col, idx, label) in [(RED, 0usize, "q"), (BLUE, 1, "u")] {
+        for (col, idx) in [(crate::plot::VERMILLION, 0usize), (crate::plot::BLUE_OI, 1)] {
             c.draw_series(LineSeries::new(
                 curve.iter().map(|p| (p.0, if idx == 0 { p.1 } else { p.2 })),
                 col.stroke_width(2),
             ))
-            .map_err(crate::plot::pe)?
-            .label(format!("{label} model"))
-            .legend(crate::plot::line_key(col.stroke_width(2)));
+            .map_err(crate::plot::pe)?;
             for p in pts.iter() {
                 let (v, s) = if idx == 0 { (p.q, p.sigma_q) } else { (p.u, p.sigma_u) };
                 let x = p.pa_deg;
@@ -134,43 +168,26 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, d: &
                     .map_err(crate::plot::pe)?;
                 let style = if p.flagged { col.stroke_width(2) } else { col.filled() };
                 if p.shifted {
-                    let a = c
-                        .draw_series(std::iter::once(TriangleMarker::new((x, 100.0 * v), 6, style)))
+                    c.draw_series(std::iter::once(TriangleMarker::new((x, 100.0 * v), 6, style)))
                         .map_err(crate::plot::pe)?;
-                    if !keyed && idx == 1 {
-                        keyed = true;
-                        a.label(POL_KEY).legend(|(x, y)| TriangleMarker::new((x + 10, y), 6, BLACK.filled()));
-                    }
+                    keyed = true;
                 } else {
                     c.draw_series(std::iter::once(Circle::new((x, 100.0 * v), 5, style))).map_err(crate::plot::pe)?;
                 }
             }
         }
-        let data: Vec<(f64, f64)> = curve
-            .iter()
-            .flat_map(|p| [(p.0, p.1), (p.0, p.2)])
-            .chain(pts.iter().flat_map(|p| {
-                let x = p.pa_deg;
-                [
-                    (x, 100.0 * (p.q + p.sigma_q)),
-                    (x, 100.0 * (p.q - p.sigma_q)),
-                    (x, 100.0 * (p.u + p.sigma_u)),
-                    (x, 100.0 * (p.u - p.sigma_u)),
-                ]
-            }))
-            .collect();
-        let (entries, chars) = if keyed { (3, POL_KEY.len()) } else { (2, 7) };
-        crate::plot::legend_off_data(&mut c, &data, entries, chars, crate::plot::CORNERS)?;
+        draw_keys(&keys, keyed)?;
         let ax = crate::plot::Axes::new(
             "residuals (data - model; hollow: flagged)",
             "parallactic angle (deg)",
             "residual (%)",
         );
-        let mut r = crate::plot::chart(&bottom, &ax, -180.0..180.0, -rmax..rmax)?;
-        r.draw_series(LineSeries::new([(-180.0, 0.0), (180.0, 0.0)], BLACK)).map_err(crate::plot::pe)?;
+        let mut r = crate::plot::chart(&bottom, &ax, xr.clone(), -rmax..rmax)?;
+        r.draw_series(LineSeries::new([(xr.start, 0.0), (xr.end, 0.0)], BLACK)).map_err(crate::plot::pe)?;
         for p in pts.iter() {
             let x = p.pa_deg;
-            for (col, d, s, dx) in [(RED, p.resid_q, p.sigma_q, -1.5), (BLUE, p.resid_u, p.sigma_u, 1.5)] {
+            let (q, u) = (crate::plot::VERMILLION, crate::plot::BLUE_OI);
+            for (col, d, s, dx) in [(q, p.resid_q, p.sigma_q, -1.5), (u, p.resid_u, p.sigma_u, 1.5)] {
                 r.draw_series(std::iter::once(PathElement::new(
                     [(x + dx, 100.0 * (d - s)), (x + dx, 100.0 * (d + s))],
                     col,

@@ -14,9 +14,13 @@ use stokes::stats::rice::{mean_bias_n, mode_n, std_n};
 use crate::plot::{chart, dashed_key, legend_off_data, line_key, log_axis, pe, save_image, Axes, CORNERS, FONT};
 use plotters::coord::Shift;
 
-/// Three panels stacked, for one journal column (fonts: crate::plot): tall enough for the
-/// fig:bias legend of every estimator at 9 pt.
-const SIZE: (u32, u32) = (1000, 2400);
+/// Three panels stacked, for one journal column (fonts: crate::plot): 12.3 cm tall at the
+/// column's 8.8 cm, half a page.
+const SIZE: (u32, u32) = (1000, 1400);
+
+/// The sweep's four quarters (fig:deltap's two panels above, fig:bias and its legend of every
+/// estimator below), printed across a page (`crate::plot::PAGE_FIGURE_PX`): 18 x 11.7 cm.
+const SWEEP_SIZE: (u32, u32) = (2000, 1300);
 
 fn logspace(a: f64, b: f64, n: usize) -> Vec<f64> {
     (0..n).map(|i| (a.ln() + (b.ln() - a.ln()) * i as f64 / (n - 1) as f64).exp()).collect()
@@ -24,7 +28,7 @@ fn logspace(a: f64, b: f64, n: usize) -> Vec<f64> {
 
 /// fig:deltap (sigma_P and Delta P against eta, N and SNR given) and fig:bias.
 pub fn sweep_png(path: &Path, dp: &[DeltaPPoint], bias: &[BiasPoint], n: usize, snr: f64) -> Result<()> {
-    save_image(path, SIZE, |r| draw_sweep(r, dp, bias, n, snr), |r| draw_sweep(r, dp, bias, n, snr))
+    save_image(path, SWEEP_SIZE, |r| draw_sweep(r, dp, bias, n, snr), |r| draw_sweep(r, dp, bias, n, snr))
 }
 
 fn draw_sweep<DB: DrawingBackend>(
@@ -36,26 +40,29 @@ fn draw_sweep<DB: DrawingBackend>(
 ) -> Result<()> {
     let k = (n as f64 / 2.0).sqrt();
     {
-        let areas = root.split_evenly((3, 1));
+        let areas = root.split_evenly((2, 2));
         let emin = dp.iter().map(|p| p.eta).fold(f64::INFINITY, f64::min).max(1e-3);
         let emax = dp.iter().map(|p| p.eta).fold(0.0, f64::max).max(emin * 10.0);
         let curve = logspace(emin, emax, 200);
         // Upper panel of fig:deltap: sigma_P x SNR.
-        let ax = Axes::new(format!("fig:deltap  sigma_P (N = {n}, SNR = {snr})"), "eta = P0 SNR", "sigma_P x SNR");
-        let mut c = chart(&areas[0], &ax, log_axis(emin, emax), 0.0..(1.25 / k))?;
+        let ax = Axes::new(format!("σ_P (N = {n}, SNR = {snr})"), "η = P₀ SNR", "σ_P × SNR");
+        let mut c = crate::plot::chart_with_legend_room_by(&areas[0], &ax, || log_axis(emin, emax), 0.0..(1.1 / k), 4)?;
         c.draw_series(LineSeries::new([(emin, 1.0 / k), (emax, 1.0 / k)], BLACK.stroke_width(2)))
             .map_err(pe)?
-            .label("eq:sigp")
+            .label("√(2/N) / SNR")
             .legend(line_key(BLACK.stroke_width(2)));
         let ray = (2.0 - std::f64::consts::PI / 2.0).sqrt() / k;
-        c.draw_series(DashedLineSeries::new([(emin, ray), (emax, ray)], 8, 6, BLUE.stroke_width(2)))
+        c.draw_series(DashedLineSeries::new([(emin, ray), (emax, ray)], 8, 6, crate::plot::BLUE_OI.stroke_width(2)))
             .map_err(pe)?
             .label("Rayleigh")
-            .legend(dashed_key(BLUE.stroke_width(2)));
-        c.draw_series(LineSeries::new(curve.iter().map(|&e| (e, std_n(k * e) / k)), RED.mix(0.6)))
-            .map_err(pe)?
-            .label("Rice")
-            .legend(line_key(RED));
+            .legend(dashed_key(crate::plot::BLUE_OI.stroke_width(2)));
+        c.draw_series(LineSeries::new(
+            curve.iter().map(|&e| (e, std_n(k * e) / k)),
+            crate::plot::VERMILLION.stroke_width(2),
+        ))
+        .map_err(pe)?
+        .label("Rice")
+        .legend(line_key(crate::plot::VERMILLION.stroke_width(2)));
         c.draw_series(dp.iter().map(|p| Circle::new((p.eta, p.sigma_p * snr), 4, BLACK.stroke_width(1))))
             .map_err(pe)?
             .label("Monte Carlo")
@@ -65,11 +72,11 @@ fn draw_sweep<DB: DrawingBackend>(
             .flat_map(|&e| [(e, 1.0 / k), (e, ray), (e, std_n(k * e) / k)])
             .chain(dp.iter().map(|p| (p.eta, p.sigma_p * snr)))
             .collect();
-        legend_off_data(&mut c, &data, 4, 11, CORNERS)?;
+        legend_off_data(&mut c, &data, 4, 13, CORNERS)?;
 
         // Lower panel of fig:deltap: Delta P x SNR.
         let ymax = dp.iter().map(|p| p.delta_mean * snr).fold(0.0, f64::max).max(0.1) * 1.1;
-        let ax = Axes::new("fig:deltap  bias Delta P", "eta = P0 SNR", "Delta P x SNR");
+        let ax = Axes::new("bias ΔP", "η = P₀ SNR", "ΔP × SNR");
         let mut c = chart(&areas[1], &ax, log_axis(emin, emax), 0.0..ymax)?;
         c.draw_series(LineSeries::new(curve.iter().map(|&e| (e, (mode_n(k * e) - k * e) / k)), BLACK.stroke_width(2)))
             .map_err(pe)?
@@ -79,21 +86,23 @@ fn draw_sweep<DB: DrawingBackend>(
             curve.iter().map(|&e| (e, mean_bias_n(k * e) / k)),
             8,
             6,
-            BLUE.stroke_width(2),
+            crate::plot::BLUE_OI.stroke_width(2),
         ))
         .map_err(pe)?
         .label("Rice mean")
-        .legend(dashed_key(BLUE.stroke_width(2)));
+        .legend(dashed_key(crate::plot::BLUE_OI.stroke_width(2)));
         c.draw_series(
             dp.iter().filter_map(|p| p.delta_mode.map(|d| Circle::new((p.eta, d * snr), 4, BLACK.stroke_width(1)))),
         )
         .map_err(pe)?
         .label("MC mode")
         .legend(|(x, y)| Circle::new((x + 10, y), 4, BLACK));
-        c.draw_series(dp.iter().map(|p| Cross::new((p.eta, p.delta_mean * snr), 5, BLUE.stroke_width(2))))
-            .map_err(pe)?
-            .label("MC mean")
-            .legend(|(x, y)| Cross::new((x + 10, y), 5, BLUE));
+        c.draw_series(
+            dp.iter().map(|p| Cross::new((p.eta, p.delta_mean * snr), 5, crate::plot::BLUE_OI.stroke_width(2))),
+        )
+        .map_err(pe)?
+        .label("MC mean")
+        .legend(|(x, y)| Cross::new((x + 10, y), 5, crate::plot::BLUE_OI));
         let data: Vec<(f64, f64)> = curve
             .iter()
             .flat_map(|&e| [(e, (mode_n(k * e) - k * e) / k), (e, mean_bias_n(k * e) / k)])
@@ -105,15 +114,14 @@ fn draw_sweep<DB: DrawingBackend>(
         // fig:bias: Delta P / sigma_P against SNR_P.
         let smin = bias.iter().map(|b| b.snr_p).fold(f64::INFINITY, f64::min).max(1e-3);
         let smax = bias.iter().map(|b| b.snr_p).fold(0.0, f64::max).max(smin * 10.0);
-        let ax = Axes::new("fig:bias  Delta P / sigma_P", "SNR_P = P0 / sigma_P", "Delta P / sigma_P");
+        let ax = Axes::new("ΔP / σ_P", "SNR_P = P₀ / σ_P", "ΔP / σ_P");
         // Every estimator's curve crosses the whole panel: no corner is free for a legend of
         // this many lines, so it stands beside the chart, in a column of its own.
-        let (w, _) = areas[2].dim_in_pixel();
-        let (plot_area, key_area) = areas[2].split_horizontally(w * 64 / 100);
-        let mut c = chart(&plot_area, &ax, log_axis(smin, smax), -1.5f64..1.6)?;
+        let (plot_area, key_area) = (&areas[2], &areas[3]);
+        let mut c = chart(plot_area, &ax, log_axis(smin, smax), -1.5f64..1.6)?;
         // The legend's chart: no axes, the plotting area the whole column below the caption's
         // height, so that the box starts level with the chart's top.
-        let mut keys = ChartBuilder::on(&key_area)
+        let mut keys = ChartBuilder::on(key_area)
             .margin(crate::plot::pt(3.0))
             .margin_top(crate::plot::pt(3.0 + 1.3 * crate::plot::CAPTION_PT))
             .build_cartesian_2d(0f64..1.0, 0f64..1.0)
@@ -121,22 +129,28 @@ fn draw_sweep<DB: DrawingBackend>(
         let names: Vec<String> =
             bias.first().map(|b| b.estimators.iter().map(|e| e.0.clone()).collect()).unwrap_or_default();
         for (j, nm) in names.iter().enumerate() {
-            let col = Palette99::pick(j + 2).to_rgba();
-            c.draw_series(LineSeries::new(bias.iter().map(|b| (b.snr_p, b.estimators[j].1)), col.stroke_width(2)))
-                .map_err(pe)?;
-            keys.draw_series(LineSeries::new(std::iter::empty(), col.stroke_width(2)))
-                .map_err(pe)?
-                .label(format!("E[{nm}] - P0"))
-                .legend(line_key(col.stroke_width(2)));
+            // The palette's colours solid, then again dashed.
+            let col = crate::plot::series_colour(j).stroke_width(2);
+            let pts = bias.iter().map(|b| (b.snr_p, b.estimators[j].1));
+            let key = keys.draw_series(LineSeries::new(std::iter::empty(), col)).map_err(pe)?;
+            key.label(format!("E[{nm}] − P₀"));
+            if j < crate::plot::PALETTE.len() {
+                c.draw_series(LineSeries::new(pts, col)).map_err(pe)?;
+                key.legend(line_key(col));
+            } else {
+                c.draw_series(DashedLineSeries::new(pts, 8, 6, col)).map_err(pe)?;
+                key.legend(dashed_key(col));
+            }
         }
         c.draw_series(
             bias.iter().filter_map(|b| b.mc_mode.map(|m| Circle::new((b.snr_p, m), 4, BLACK.stroke_width(1)))),
         )
         .map_err(pe)?;
-        c.draw_series(bias.iter().map(|b| Cross::new((b.snr_p, b.mc_mean), 5, BLUE.stroke_width(2)))).map_err(pe)?;
-        c.draw_series(
-            bias.iter().filter_map(|b| b.mc_median.map(|m| TriangleMarker::new((b.snr_p, m), 5, RED.stroke_width(1)))),
-        )
+        c.draw_series(bias.iter().map(|b| Cross::new((b.snr_p, b.mc_mean), 5, crate::plot::BLUE_OI.stroke_width(2))))
+            .map_err(pe)?;
+        c.draw_series(bias.iter().filter_map(|b| {
+            b.mc_median.map(|m| TriangleMarker::new((b.snr_p, m), 5, crate::plot::VERMILLION.stroke_width(1)))
+        }))
         .map_err(pe)?;
         keys.draw_series(std::iter::empty::<Circle<(f64, f64), i32>>())
             .map_err(pe)?
@@ -145,11 +159,11 @@ fn draw_sweep<DB: DrawingBackend>(
         keys.draw_series(std::iter::empty::<Cross<(f64, f64), i32>>())
             .map_err(pe)?
             .label("MC mean")
-            .legend(|(x, y)| Cross::new((x + 10, y), 5, BLUE));
+            .legend(|(x, y)| Cross::new((x + 10, y), 5, crate::plot::BLUE_OI));
         keys.draw_series(std::iter::empty::<TriangleMarker<(f64, f64), i32>>())
             .map_err(pe)?
             .label("MC median")
-            .legend(|(x, y)| TriangleMarker::new((x + 10, y), 5, RED));
+            .legend(|(x, y)| TriangleMarker::new((x + 10, y), 5, crate::plot::VERMILLION));
         crate::plot::legend(&mut keys, plotters::chart::SeriesLabelPosition::UpperLeft)?;
         Ok(())
     }
@@ -182,13 +196,14 @@ fn draw_accuracy<DB: DrawingBackend>(
             vals.iter().cloned().fold(f64::INFINITY, f64::min).max(1e-6) / 2.0,
             vals.iter().cloned().fold(1e-5, f64::max) * 2.0,
         );
-        let ax = Axes::new("MC precision: scatter / P0 vs trials", "trials", "scatter / P0");
+        let ax = Axes::new("MC precision: scatter / P₀ vs trials", "trials", "scatter / P₀")
+            .log_labels(Some((tmin, tmax)), Some((ylo, yhi)));
         let mut c = chart(&areas[0], &ax, log_axis(tmin, tmax), log_axis(ylo, yhi))?;
         type Get = fn(&PrecisionRow) -> f64;
         let series: [(&str, Get, RGBColor); 3] = [
-            ("sigma_P", |r| r.sigma_p_scatter, BLACK),
-            ("bias (mean)", |r| r.bias_mean_scatter, BLUE),
-            ("bias (mode)", |r| r.bias_mode_scatter, RED),
+            ("σ_P", |r| r.sigma_p_scatter, BLACK),
+            ("bias (mean)", |r| r.bias_mean_scatter, crate::plot::BLUE_OI),
+            ("bias (mode)", |r| r.bias_mode_scatter, crate::plot::VERMILLION),
         ];
         for (name, get, col) in series {
             c.draw_series(LineSeries::new(prec.iter().map(|r| (r.trials as f64, get(r) / p0)), col.stroke_width(2)))
@@ -229,10 +244,11 @@ fn draw_accuracy<DB: DrawingBackend>(
         // 2. sigma_P vs SNR with the systematic floors.
         let smin = obs.first().and_then(|o| o.sigma_p.first()).map_or(10.0, |s| s.0);
         let smax = obs.first().and_then(|o| o.sigma_p.last()).map_or(1e4, |s| s.0);
-        let ax = Axes::new("sigma_P (solid), HWP floors (dashed)", "SNR per HWP angle", "P error");
+        let ax = Axes::new("σ_P (solid), HWP floors (dashed)", "SNR per HWP angle", "P error")
+            .log_labels(Some((smin, smax)), Some((1e-6, 0.2)));
         let mut c = chart(&areas[1], &ax, log_axis(smin, smax), log_axis(1e-6, 0.2))?;
         for (j, o) in obs.iter().enumerate() {
-            let col = Palette99::pick(j).to_rgba();
+            let col = crate::plot::series_colour(j);
             c.draw_series(LineSeries::new(o.sigma_p.iter().map(|s| (s.0, s.1)), col.stroke_width(2)))
                 .map_err(pe)?
                 .label(format!("N = {}", o.n_hwp))
@@ -257,10 +273,11 @@ fn draw_accuracy<DB: DrawingBackend>(
         // 3. Noise modes: relative sigma_P difference to Poisson vs SNR.
         let snrs: Vec<f64> = nm.iter().map(|r| r.snr).collect();
         let (a, b) = (snrs.iter().cloned().fold(f64::INFINITY, f64::min), snrs.iter().cloned().fold(0.0, f64::max));
-        let ax = Axes::new("fast noise modes vs exact Poisson", "SNR", "rel. sigma_P difference");
+        let ax = Axes::new("fast noise modes vs exact Poisson", "SNR", "relative σ_P difference")
+            .log_labels(Some((a, b.max(a * 2.0))), None);
         let mut c = chart(&areas[2], &ax, log_axis(a, b.max(a * 2.0)), -0.3f64..0.3)?;
         for (j, mode) in ["gauss-f", "gauss-qu"].iter().enumerate() {
-            let col = if j == 0 { BLUE } else { RED };
+            let col = crate::plot::series_colour(j);
             c.draw_series(LineSeries::new(
                 nm.iter().filter(|r| r.noise == *mode).map(|r| (r.snr, r.rms_rel_dev)),
                 col.stroke_width(2),

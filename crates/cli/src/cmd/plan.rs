@@ -279,6 +279,17 @@ fn check_result(missed: Option<f64>, target: f64) -> Result<()> {
     }
 }
 
+/// A legend's words for the candidate fields `f` (0-based, as the table numbers them):
+/// "field 0", "fields 0 and 1", "fields 0, 1 and 3".
+fn fields_label(f: &[usize]) -> String {
+    let n: Vec<String> = f.iter().map(|i| i.to_string()).collect();
+    match n.as_slice() {
+        [] => "no field".into(),
+        [one] => format!("field {one}"),
+        [rest @ .., last] => format!("fields {} and {last}", rest.join(", ")),
+    }
+}
+
 /// Accuracy against total observing time, one curve per number of fields (either backend).
 fn draw_plan<DB: DrawingBackend>(
     root: &DrawingArea<DB, plotters::coord::Shift>,
@@ -291,14 +302,14 @@ fn draw_plan<DB: DrawingBackend>(
         format!("Accuracy vs time (target {} %)", target_percent),
         "total observing time (s)",
         "RMS corrected q, u (%)",
-    );
-    let mut c = crate::plot::chart(root, &ax, (x0..x1).log_scale(), (y0..y1).log_scale())?;
-    let colours = [RED, BLUE, GREEN, MAGENTA, CYAN, BLACK, RGBColor(200, 120, 0), RGBColor(120, 60, 160)];
-    for (k, (n, f, pts)) in curves.iter().enumerate() {
-        let col = colours[k % colours.len()];
+    )
+    .log_labels(Some((x0, x1)), Some((y0, y1)));
+    let mut c = crate::plot::chart(root, &ax, crate::plot::log_axis(x0, x1), crate::plot::log_axis(y0, y1))?;
+    for (k, (_, f, pts)) in curves.iter().enumerate() {
+        let col = crate::plot::series_colour(k);
         c.draw_series(LineSeries::new(pts.iter().map(|p| (p.0, 100.0 * p.1)), col.stroke_width(2)))
             .map_err(crate::plot::pe)?
-            .label(format!("{n} field(s) {f:?}"))
+            .label(fields_label(f))
             .legend(crate::plot::line_key(col.stroke_width(2)));
     }
     c.draw_series(LineSeries::new([(x0, target_percent), (x1, target_percent)], BLACK.stroke_width(1)))
@@ -306,6 +317,6 @@ fn draw_plan<DB: DrawingBackend>(
         .label("target")
         .legend(crate::plot::line_key(BLACK.stroke_width(1)));
     let data: Vec<(f64, f64)> = curves.iter().flat_map(|c| c.2.iter().map(|p| (p.0, 100.0 * p.1))).collect();
-    let chars = curves.iter().map(|(n, f, _)| format!("{n} field(s) {f:?}").len()).max().unwrap_or(6);
+    let chars = curves.iter().map(|(_, f, _)| fields_label(f).chars().count()).max().unwrap_or(6);
     crate::plot::legend_off_data(&mut c, &data, curves.len() + 1, chars, crate::plot::CORNERS)
 }

@@ -262,14 +262,14 @@ fn draw<DB: DrawingBackend>(
     // The shared frame (fonts sized for a journal column, crate::plot).
     let ax = crate::plot::Axes::new(format!("{name}: ray trace at {lam} nm"), "r (arcmin)", "p (%)");
     let mut ch = crate::plot::chart(root, &ax, 0.0..rmax, 0.0..ymax)?;
-    ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, v(x))), GREEN.stroke_width(2)))
+    ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, v(x))), crate::plot::BLUE_OI.stroke_width(2)))
         .map_err(|e| pe(&e))?
         .label("paper V fit")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], GREEN));
-    ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, i(x))), RED.stroke_width(2)))
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], crate::plot::BLUE_OI.stroke_width(2)));
+    ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, i(x))), crate::plot::VERMILLION.stroke_width(2)))
         .map_err(|e| pe(&e))?
         .label("paper I fit")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED));
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], crate::plot::VERMILLION.stroke_width(2)));
     ch.draw_series(LineSeries::new(r.iter().zip(p).map(|(&x, &y)| (x, 100.0 * y)), BLACK.stroke_width(2)))
         .map_err(|e| pe(&e))?
         .label("ray trace")

@@ -1,6 +1,6 @@
 //! `instpol stokes --plot FILE.png`: the paper's fig:fourier for one source. Upper panel, F_i
 //! (eq:F) with their 1-sigma errors against the HWP angle, the eq:system curve through the
-//! solver's Q/I and U/I and the a_0 level (eq:a0); lower panel, the harmonic amplitudes
+//! solver's Q/I and U/I and the a_0 level; lower panel, the harmonic amplitudes
 //! (eq:fourcoeff) as bars with their noise level. Drawing only: the numbers are
 //! [`data::fourier_plot`]'s.
 
@@ -58,10 +58,10 @@ fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) 
     // Room above the data for the legend's lines at 9 pt: the legend never covers a point.
     let entries = 2 + d.a0.is_some() as usize;
     let mut c = chart_with_legend_room(area, &ax, -pad..d.theta_max_deg + pad, padded(lo, hi, 0.0), entries)?;
-    c.draw_series(LineSeries::new(d.curve.iter().map(|(t, f)| (*t, pct(*f))), BLUE.stroke_width(2)))
+    c.draw_series(LineSeries::new(d.curve.iter().map(|(t, f)| (*t, pct(*f))), crate::plot::BLUE_OI.stroke_width(2)))
         .map_err(pe)?
-        .label(format!("Q = {:.3} %, U = {:.3} %", pct(d.q), pct(d.u)))
-        .legend(line_key(BLUE.stroke_width(2)));
+        .label("fit")
+        .legend(line_key(crate::plot::BLUE_OI.stroke_width(2)));
     if let Some(a0) = d.a0 {
         let grey = BLACK.mix(0.6);
         c.draw_series(DashedLineSeries::new(
@@ -71,7 +71,7 @@ fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) 
             grey.stroke_width(1),
         ))
         .map_err(pe)?
-        .label(format!("a_0 = {:.3} % (eq:a0)", pct(a0)))
+        .label(format!("a_0 = {:.3} %", pct(a0)))
         .legend(dashed_key(grey));
     }
     // Error bars as one I-shaped path each (capped, cap width 1/200 of the axis).
@@ -83,7 +83,7 @@ fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) 
     .map_err(pe)?;
     c.draw_series(d.points.iter().map(|p| Circle::new((p.theta_deg, pct(p.f)), 4, BLACK.filled())))
         .map_err(pe)?
-        .label("F_i ± 1σ (eq:F)")
+        .label("F_i ± 1σ")
         .legend(|(x, y)| Circle::new((x + 10, y), 4, BLACK.filled()));
     let mut data: Vec<(f64, f64)> = d.curve.iter().map(|(t, f)| (*t, pct(*f))).collect();
     data.extend(d.points.iter().flat_map(|p| {
@@ -125,26 +125,26 @@ fn draw_harmonics<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &Fourier
     let kmax = d.bars.last().map_or(0, |b| b.k) as f64;
     let top = d.bars.iter().map(|b| 100.0 * b.amplitude.max(b.sigma)).fold(0.0, f64::max);
     let k_pol = d.k_pol.map_or("N/4".to_string(), |k| k.to_string());
-    let ax = Axes::new(format!("√(a_k² + b_k²) (eq:fourcoeff); P at k = {k_pol}"), "harmonic k", "amplitude (%)")
+    let ax = Axes::new(format!("harmonics √(a_k² + b_k²); P at k = {k_pol}"), "harmonic k", "amplitude (%)")
         .x_ticks(d.bars.len() + 1, &whole);
     let mut c = chart_with_legend_room(area, &ax, -0.6..kmax + 0.6, 0.0..padded(0.0, top, 0.0).end, 3)?;
     let pol = d.k_pol;
     c.draw_series(d.bars.iter().filter(|b| Some(b.k) != pol).map(|b| {
         let k = b.k as f64;
-        Rectangle::new([(k - 0.35, 0.0), (k + 0.35, 100.0 * b.amplitude)], BLUE.mix(0.45).filled())
+        Rectangle::new([(k - 0.35, 0.0), (k + 0.35, 100.0 * b.amplitude)], crate::plot::BLUE_OI.mix(0.45).filled())
     }))
     .map_err(pe)?
-    .label(if d.n == 16 { "k = 1 dust, 2 pleochroism" } else { "other harmonics" })
-    .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], BLUE.mix(0.45).filled()));
+    .label("other harmonics")
+    .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], crate::plot::BLUE_OI.mix(0.45).filled()));
     if let Some(b) = d.bars.iter().find(|b| Some(b.k) == pol) {
         let k = b.k as f64;
         c.draw_series(std::iter::once(Rectangle::new(
             [(k - 0.35, 0.0), (k + 0.35, 100.0 * b.amplitude)],
-            RED.mix(0.7).filled(),
+            crate::plot::VERMILLION.mix(0.7).filled(),
         )))
         .map_err(pe)?
         .label("k = N/4: P")
-        .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], RED.mix(0.7).filled()));
+        .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], crate::plot::VERMILLION.mix(0.7).filled()));
     }
     c.draw_series(d.bars.iter().map(|b| {
         let k = b.k as f64;

@@ -14,6 +14,19 @@ use std::path::{Path, PathBuf};
 /// One journal column in points: 8.8 cm / 2.54 cm per inch x 72 pt per inch.
 const COLUMN_PT: f64 = 8.8 / 2.54 * 72.0;
 
+/// A page's width in points (A&A: two columns and their gap, 18 cm).
+const PAGE_PT: f64 = 18.0 / 2.54 * 72.0;
+
+/// The width (pt) a figure `w` px wide is printed at: a column, or a page from 1800 px on
+/// (the CLI's convention for figures of panels side by side).
+fn printed_pt(w: f64) -> f64 {
+    if w >= 1800.0 {
+        PAGE_PT
+    } else {
+        COLUMN_PT
+    }
+}
+
 fn svg_width(svg: &str) -> f64 {
     let at = svg.find("<svg width=\"").expect("an <svg width=...> element") + 12;
     svg[at..].split('"').next().unwrap().parse().unwrap()
@@ -32,7 +45,7 @@ fn texts(svg: &str) -> Vec<(f64, String)> {
 
 /// The smallest text of `svg` in points at one column's width, and that text.
 fn smallest_pt(svg: &str) -> (f64, String) {
-    let px_per_pt = svg_width(svg) / COLUMN_PT;
+    let px_per_pt = svg_width(svg) / printed_pt(svg_width(svg));
     texts(svg)
         .into_iter()
         .filter(|(_, t)| !t.is_empty())
@@ -44,7 +57,8 @@ fn assert_fonts(path: &Path) {
     let svg = std::fs::read_to_string(path).unwrap();
     assert!(!texts(&svg).is_empty(), "{}: no text", path.display());
     let (size, text) = smallest_pt(&svg);
-    assert!(size >= 9.0 - 1e-9, "{}: '{text}' is {size:.2} pt at a {COLUMN_PT:.1} pt column", path.display());
+    let at = printed_pt(svg_width(&svg));
+    assert!(size >= 9.0 - 1e-9, "{}: '{text}' is {size:.2} pt printed {at:.1} pt wide", path.display());
 }
 
 fn magic(path: &Path) -> Vec<u8> {
@@ -422,4 +436,315 @@ fn the_legend_check_sees_a_covered_point_and_bar() {
     let bad = legend_overlaps(&f);
     assert_eq!(bad.len(), 2, "{bad:?}");
     assert!(bad[0].contains("circle cx=\"50\"") && bad[1].contains("rect x=\"60\""), "{bad:?}");
+}
+
+/// Every figure the commands draw, as SVG in `dir`: the gallery's (calibration map, profile
+/// and residual; the Fourier plot), raytrace, plan, mc's sweep and accuracy report, a telescope
+/// fit of the EFOSC2 standards (real data, when present).
+fn every_figure(dir: &Path) -> Vec<PathBuf> {
+    let s = |n: &str| dir.join(n).to_str().unwrap().to_string();
+    let csv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/fors1_v_star_n16.csv");
+    let words = |w: &[&str], out: &str| w.iter().map(|x| x.to_string()).chain([s(out)]).collect::<Vec<String>>();
+    let runs: Vec<Vec<String>> = vec![
+        vec!["stokes".into(), "--input".into(), csv.display().to_string(), "--plot".into(), s("fourier.svg")],
+        words(&["raytrace", "--instrument", "fors1", "--filter", "V", "--plot"], "rt.svg"),
+        common::QUICK_PLAN.iter().chain(&["--plot"]).map(|x| x.to_string()).chain([s("plan.svg")]).collect(),
+        words(&["mc", "--sweep", "--trials", "2000", "--plot"], "sweep.svg"),
+        words(&["mc", "--accuracy-report", "--trials", "100000", "--noise", "gauss-qu", "--plot"], "acc.svg"),
+    ];
+    let mut figures = vec![];
+    for args in &runs {
+        let a: Vec<&str> = args.iter().map(|x| x.as_str()).collect();
+        let (code, _, err) = run(&a);
+        assert_eq!(code, 0, "{a:?}: {err}");
+        figures.push(PathBuf::from(args.last().unwrap()));
+    }
+    let (cal, map) = (dir.join("cal.fits"), dir.join("map.fits"));
+    common::write_v_sky_map(&map, |_| true);
+    let (code, _, err) = run(&common::calibrate_v_args(&map, &cal));
+    assert_eq!(code, 0, "{err}");
+    let (code, _, err) = run(&["plot", cal.to_str().unwrap(), "--out", &s("plots")]);
+    assert_eq!(code, 0, "{err}");
+    if let Some(d) =
+        crate::common::shared_data::shared_data("efosc2-standards", &["pv_standards.txt"], "the telescope-fit figure")
+    {
+        let efosc2 = d.join("pv_standards.txt");
+        let (code, _, err) =
+            run(&["fit-standards", efosc2.to_str().unwrap(), "--model", "wiersema", "--plot-dir", &s("plots")]);
+        assert_eq!(code, 0, "{err}");
+    }
+    for e in std::fs::read_dir(dir.join("plots")).unwrap() {
+        let f = e.unwrap().path();
+        if f.extension().is_some_and(|x| x == "svg") {
+            figures.push(f);
+        }
+    }
+    figures
+}
+
+/// Height over width of a figure printed one column wide: at most 1.4 (12.3 cm at a column's
+/// 8.8 cm, half a journal page), panels and all; across a page, at most 1.3 (23.4 cm at 18 cm,
+/// the height of a page's text).
+const MAX_ASPECT: f64 = 1.4;
+const MAX_PAGE_ASPECT: f64 = 1.3;
+
+fn svg_height(svg: &str) -> f64 {
+    svg.split("height=\"").nth(1).and_then(|r| r.split('"').next()).unwrap().parse().unwrap()
+}
+
+fn aspect_problems(name: &str, svg: &str) -> Vec<String> {
+    let (w, h) = (svg_width(svg), svg_height(svg));
+    let (width_cm, most) = if printed_pt(w) == PAGE_PT { (18.0, MAX_PAGE_ASPECT) } else { (8.8, MAX_ASPECT) };
+    let cm = h / w * width_cm;
+    if h / w > most {
+        return vec![format!("{name}: {w} x {h} px is {cm:.1} cm tall at {width_cm} cm wide (at most {most} x)")];
+    }
+    vec![]
+}
+
+/// A tick label's value: plain (`0.25`, `-4`, `10000`), exponent (`1e-4`) or a power of ten
+/// (`10⁻⁴`, `10³`), with its notation.
+fn tick_value(t: &str) -> Option<(f64, &'static str)> {
+    if let Some(e) = t.strip_prefix("10").filter(|e| !e.is_empty() && e.chars().all(|c| "⁻⁰¹²³⁴⁵⁶⁷⁸⁹".contains(c)))
+    {
+        let digits: String = e
+            .chars()
+            .map(|c| match c {
+                '⁻' => '-',
+                c => char::from_digit("⁰¹²³⁴⁵⁶⁷⁸⁹".chars().position(|d| d == c).unwrap() as u32, 10).unwrap(),
+            })
+            .collect();
+        return digits.parse::<i32>().ok().map(|k| (10f64.powi(k), "power"));
+    }
+    let v: f64 = t.parse().ok()?;
+    Some((v, if t.contains('e') { "exponent" } else { "plain" }))
+}
+
+/// The tick labels of each axis: x axes (labels below a line, centred) grouped by their row,
+/// y axes and colour bars (labels ended or started at a column) by their column; a figure
+/// drawn twice (measured, cleared, redrawn) repeats labels, counted once.
+fn tick_groups(svg: &str) -> Vec<(String, Vec<(f64, String)>)> {
+    let mut groups: std::collections::BTreeMap<String, Vec<(f64, String)>> = Default::default();
+    let placed = placed_texts(svg);
+    let is_x = |t: &(f64, f64, String, String, f64, bool, String)| t.2 == "middle" && t.3 == "0.76em" && !t.5;
+    let x_rows: Vec<f64> = placed.iter().filter(|t| is_x(t) && tick_value(&t.6).is_some()).map(|t| t.1).collect();
+    for (x, y, anchor, dy, _, rotated, text) in placed.iter().cloned() {
+        if rotated || tick_value(&text).is_none() {
+            continue;
+        }
+        // A y axis's panel: the x axis below it (the nearest row of x tick labels).
+        let panel = x_rows.iter().copied().filter(|r| *r > y).fold(f64::INFINITY, f64::min);
+        let (key, at) = match (anchor.as_str(), dy.as_str()) {
+            ("middle", "0.76em") => (format!("x axis at row {y}"), x),
+            ("end", _) | ("start", "0.5ex") => (format!("y axis ({anchor}) at column {x} above row {panel}"), y),
+            _ => continue,
+        };
+        let g = groups.entry(key).or_default();
+        if !g.iter().any(|(a, t)| *a == at && *t == text) {
+            g.push((at, text));
+        }
+    }
+    groups.into_iter().collect()
+}
+
+/// Each axis carries at least three labelled ticks, in one notation.
+fn tick_problems(name: &str, svg: &str) -> Vec<String> {
+    let mut bad = vec![];
+    for (axis, labels) in tick_groups(svg) {
+        let texts: Vec<&str> = labels.iter().map(|l| l.1.as_str()).collect();
+        if labels.len() < 3 {
+            bad.push(format!("{name}: {axis} has {} labelled tick(s) {texts:?}, at least 3 wanted", labels.len()));
+        }
+        let mut kinds: Vec<&str> = texts.iter().filter_map(|t| tick_value(t)).map(|v| v.1).collect();
+        kinds.sort();
+        kinds.dedup();
+        if kinds.len() > 1 {
+            bad.push(format!("{name}: {axis} mixes notations {kinds:?} in {texts:?}"));
+        }
+    }
+    bad
+}
+
+/// Greek written as an ASCII word, a LaTeX label, "um" for µm, a "(s)" plural or a list
+/// printed as code, in `text`.
+fn text_problem(text: &str) -> Option<String> {
+    const GREEK: [&str; 11] =
+        ["eta", "Delta", "delta", "sigma", "chi", "phi", "lambda", "alpha", "theta", "kappa", "mu"];
+    for t in text.split(|c: char| !c.is_alphanumeric()) {
+        if GREEK.contains(&t) || GREEK.contains(&t.trim_end_matches(|c: char| c.is_ascii_digit())) {
+            return Some(format!("the Greek letter '{t}' spelled in ASCII"));
+        }
+        let unit = t.strip_suffix("um").is_some_and(|n| n.is_empty() || n.chars().all(|c| c.is_ascii_digit()));
+        if unit && (t != "um" || text.contains(" um")) {
+            return Some("'um' for µm".into());
+        }
+    }
+    for label in ["fig:", "eq:", "tab:", "sec:", "\\"] {
+        if text.contains(label) {
+            return Some(format!("a LaTeX label or command '{label}'"));
+        }
+    }
+    if text.split("(s)").next().is_some_and(|b| b.len() < text.len() && b.ends_with(char::is_alphabetic)) {
+        return Some("a '(s)' plural".into());
+    }
+    let list = text
+        .split('[')
+        .skip(1)
+        .any(|r| r.split(']').next().is_some_and(|l| !l.is_empty() && l.split(", ").all(|n| n.parse::<i64>().is_ok())));
+    list.then(|| "a list printed as code ('[0, 1]')".into())
+}
+
+fn text_problems(name: &str, svg: &str) -> Vec<String> {
+    let mut seen = std::collections::BTreeSet::new();
+    placed_texts(svg)
+        .into_iter()
+        .filter(|t| seen.insert(t.6.clone()))
+        .filter_map(|t| text_problem(&t.6).map(|why| format!("{name}: '{}': {why}", t.6)))
+        .collect()
+}
+
+/// `#RRGGBB` as 0..1 channels, seen through `opacity` on white.
+fn colour(hex: &str, opacity: f64) -> Option<[f64; 3]> {
+    let h = hex.strip_prefix('#').filter(|h| h.len() == 6)?;
+    let ch = |i: usize| u8::from_str_radix(&h[i..i + 2], 16).ok().map(|v| v as f64 / 255.0);
+    let o = opacity.clamp(0.0, 1.0);
+    Some([ch(0)?, ch(2)?, ch(4)?].map(|c| 1.0 - o + o * c))
+}
+
+/// WCAG relative luminance of an sRGB colour.
+fn luminance(c: [f64; 3]) -> f64 {
+    let lin = |v: f64| if v <= 0.04045 { v / 12.92 } else { ((v + 0.055) / 1.055).powf(2.4) };
+    0.2126 * lin(c[0]) + 0.7152 * lin(c[1]) + 0.0722 * lin(c[2])
+}
+
+/// WCAG contrast ratio against white: 3 is its least for graphics.
+fn contrast_on_white(c: [f64; 3]) -> f64 {
+    1.05 / (luminance(c) + 0.05)
+}
+
+/// Hue in degrees and saturation (HSV) of a colour.
+fn hue_sat(c: [f64; 3]) -> (f64, f64) {
+    let (mx, mn) = (c[0].max(c[1]).max(c[2]), c[0].min(c[1]).min(c[2]));
+    let d = mx - mn;
+    if d < 1e-9 {
+        return (0.0, 0.0);
+    }
+    let h = if mx == c[0] {
+        60.0 * ((c[1] - c[2]) / d).rem_euclid(6.0)
+    } else if mx == c[1] {
+        60.0 * ((c[2] - c[0]) / d + 2.0)
+    } else {
+        60.0 * ((c[0] - c[1]) / d + 4.0)
+    };
+    (h, d / mx)
+}
+
+/// The colours lines and markers are drawn in (polylines' and paths' strokes, circles' and
+/// polygons' fills and strokes; not the rectangles of colour images and bars), with the
+/// stroke width of each line.
+fn drawn_colours(svg: &str) -> Vec<(String, [f64; 3], f64)> {
+    let attr =
+        |e: &str, n: &str| e.split(&format!(" {n}=\"")).nth(1).and_then(|r| r.split('"').next()).map(str::to_string);
+    let mut out = vec![];
+    for e in svg.split('<').skip(1) {
+        let e = e.split('>').next().unwrap_or("");
+        let line = e.starts_with("polyline") || e.starts_with("path") || e.starts_with("line ");
+        let marker = e.starts_with("circle") || e.starts_with("polygon");
+        if !(line || marker) {
+            continue;
+        }
+        let opacity: f64 = attr(e, "opacity").and_then(|o| o.parse().ok()).unwrap_or(1.0);
+        let width = attr(e, "stroke-width").and_then(|o| o.parse().ok()).unwrap_or(1.0);
+        for key in ["stroke", "fill"] {
+            if let Some(c) = attr(e, key).and_then(|h| colour(&h, opacity).map(|c| (h, c))) {
+                out.push((c.0, c.1, if key == "stroke" { width } else { f64::INFINITY }));
+            }
+        }
+    }
+    out
+}
+
+/// Lines and markers stand out on white (contrast >= 3, WCAG's least for graphics; white
+/// itself only as a line of at least 0.5 pt over an image, never a hairline); no two series
+/// told apart by red against green alone.
+fn colour_problems(name: &str, svg: &str) -> Vec<String> {
+    let px_per_pt = svg_width(svg) / printed_pt(svg_width(svg));
+    let mut bad = std::collections::BTreeSet::new();
+    let drawn = drawn_colours(svg);
+    for (hex, c, width) in &drawn {
+        if luminance(*c) > 0.99 {
+            if *width < 0.5 * px_per_pt {
+                bad.insert(format!("{name}: a white line {width} px wide ({:.2} pt): a hairline", width / px_per_pt));
+            }
+        } else if hue_sat(*c).1 > 0.05 && contrast_on_white(*c) < 3.0 {
+            bad.insert(format!("{name}: {hex} has contrast {:.2} on white (at least 3)", contrast_on_white(*c)));
+        }
+    }
+    let saturated = || drawn.iter().filter(|d| hue_sat(d.1).1 > 0.4);
+    let red = saturated().find(|d| hue_sat(d.1).0 <= 15.0 || hue_sat(d.1).0 >= 345.0);
+    let green = saturated().find(|d| (75.0..=150.0).contains(&hue_sat(d.1).0));
+    if let (Some(r), Some(g)) = (red, green) {
+        bad.insert(format!("{name}: red {} and green {} series", r.0, g.0));
+    }
+    bad.into_iter().collect()
+}
+
+/// Every figure reads in print: a column's or half a page's height, three labelled ticks an
+/// axis in one notation, colours that stand out and differ for colour-blind readers, and
+/// words a journal prints (no LaTeX labels, no Greek in ASCII, µm, plurals).
+#[test]
+fn every_figure_reads_in_print() {
+    let d = tempfile::tempdir().unwrap();
+    let figures = every_figure(d.path());
+    assert!(figures.len() >= 8, "{figures:?}");
+    let mut bad = vec![];
+    for f in &figures {
+        let svg = std::fs::read_to_string(f).unwrap();
+        let name = f.file_name().unwrap().to_string_lossy().to_string();
+        bad.extend(aspect_problems(&name, &svg));
+        bad.extend(tick_problems(&name, &svg));
+        bad.extend(text_problems(&name, &svg));
+        bad.extend(colour_problems(&name, &svg));
+    }
+    assert!(bad.is_empty(), "{} problems:\n{}", bad.len(), bad.join("\n"));
+}
+
+/// The print checks see what they look for, on made-up cases.
+#[test]
+fn the_print_checks_see_each_problem() {
+    assert!(text_problem("fig:deltap  bias").is_some());
+    assert!(text_problem("eta = P0 SNR").is_some());
+    assert!(text_problem("Delta P / sigma_P").is_some());
+    assert!(text_problem("0.550um: model").is_some());
+    assert!(text_problem("2 field(s) [0, 1]").is_some());
+    assert!(text_problem("fields 1 and 2").is_none());
+    assert!(text_problem("total observing time (s)").is_none());
+    assert!(text_problem("chi2/dof").is_some());
+    assert!(text_problem("V (0.550 µm): Wiersema model, χ²/dof = 1.32").is_none());
+    assert!(text_problem("ΔP / σ_P against η = P₀ SNR; beta, zeta, theta_x").is_some());
+    assert!(contrast_on_white(colour("#FFE119", 1.0).unwrap()) < 3.0);
+    assert!(contrast_on_white(colour("#0072B2", 1.0).unwrap()) > 3.0);
+    let svg = "<svg width=\"1000\" height=\"600\">\n<polyline stroke=\"#FF0000\" stroke-width=\"2\"/>\n\
+               <polyline stroke=\"#00A000\" stroke-width=\"2\"/>\n<path stroke=\"#FFFFFF\" stroke-width=\"1\"/>\n</svg>";
+    let bad = colour_problems("x", svg);
+    assert!(bad.iter().any(|b| b.contains("green")) && bad.iter().any(|b| b.contains("hairline")), "{bad:?}");
+    assert_eq!(aspect_problems("x", "<svg width=\"1000\" height=\"2400\">").len(), 1);
+    assert_eq!(aspect_problems("x", "<svg width=\"1000\" height=\"1300\">").len(), 0);
+    assert_eq!(aspect_problems("x", "<svg width=\"2000\" height=\"2700\">").len(), 1);
+    let ticks = |labels: &[&str]| -> String {
+        labels
+            .iter()
+            .enumerate()
+            .map(|(i, t)| {
+                format!(
+                    "<text x=\"{}\" y=\"900\" dy=\"0.76em\" text-anchor=\"middle\" font-size=\"40\">{t}</text>\n",
+                    100 * i
+                )
+            })
+            .collect()
+    };
+    assert_eq!(tick_problems("x", &ticks(&["0"])).len(), 1);
+    assert_eq!(tick_problems("x", &ticks(&["1000", "10000", "1e5"])).len(), 1);
+    assert_eq!(tick_problems("x", &ticks(&["10³", "10⁴", "10⁵"])).len(), 0);
+    assert_eq!(tick_value("10⁻⁴"), Some((1e-4, "power")));
 }
