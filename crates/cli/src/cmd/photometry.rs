@@ -241,6 +241,12 @@ pub fn run(a: Args) -> Result<()> {
         exposures,
         n_outlier_exposures,
         record,
+        product: skyfield::provenance::Product::of_instrument(
+            &inst,
+            &set.filter,
+            Some(mueller::Frame::Sky { zero_angle_deg: offset }),
+        )
+        .with_run_inputs(),
     };
     if a.json {
         crate::util::print_json(&o)?;

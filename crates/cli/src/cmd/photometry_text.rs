@@ -37,6 +37,9 @@ pub struct Out {
     /// The standard and the frames' filter, wavelength and telescope angles (--star).
     #[serde(flatten)]
     pub record: fit::telescope::StandardRecord,
+    /// What the measurement is (`skyfield::provenance::Product`): q, u in the sky frame of
+    /// `hwp_chi_offset_deg`.
+    pub product: skyfield::provenance::Product,
 }
 
 /// The JSON of a source measured through a quarter-wave plate.

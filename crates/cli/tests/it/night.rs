@@ -607,8 +607,7 @@ fn bad_folders_and_nonsense_plans_are_refused_by_name() {
         inst_file.display().to_string(),
         a.display().to_string()
     );
-    let over_inst =
-        names_inst.clone() + &unit("B", "reduce", &frame, &inst_file, "").replace("id = \"B\"", "id = \"B\"");
+    let over_inst = names_inst.clone() + &unit("B", "reduce", &frame, &inst_file, "");
     let cases = [
         (
             "a cycle",

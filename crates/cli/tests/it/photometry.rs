@@ -61,6 +61,11 @@ fn star_polarization_after_vectorial_background_subtraction() {
     assert!((k["q"].as_f64().unwrap() - 0.03 * 55f64.to_radians().cos()).abs() < 1e-6, "{k}");
     assert!((k["u"].as_f64().unwrap() - 0.03 * 55f64.to_radians().sin()).abs() < 1e-6, "{k}");
     assert_eq!(k["hwp_chi_offset_deg"].as_f64(), Some(7.5));
+    // What the measurement is: q, u in the sky frame of that zero angle, of this instrument file.
+    assert_eq!(k["product"]["zero_angle_deg"].as_f64(), Some(7.5), "{k}");
+    assert_eq!(k["product"]["at_plate"], false, "{k}");
+    let def = format!("blake3:{}", blake3::hash(&std::fs::read(&inst2).unwrap()).to_hex());
+    assert_eq!(k["product"]["instrument_hash"], def.as_str(), "{k}");
     // An aperture reaching behind the mask is refused by name.
     let o = instpol()
         .arg("photometry")
