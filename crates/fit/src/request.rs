@@ -286,7 +286,8 @@ impl RowsPlan<'_> {
         mismatch_in(&self.notes)
     }
 
-    /// The product a corrected table records ([`recorded`]).
+    /// The product a corrected table records: the input's, with the mismatch this plan allowed
+    /// (the one rule maps use too).
     pub fn recorded(&self, product: Option<skyfield::provenance::Product>) -> Option<skyfield::provenance::Product> {
         recorded(product, &self.notes)
     }
