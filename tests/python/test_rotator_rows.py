@@ -49,3 +49,27 @@ def test_a_product_stands_for_its_arguments(cal):
         np.testing.assert_array_equal(by_product[k], by_hand[k])
     with pytest.raises(instpol.InputError, match="sky_pa_deg=5.0 but product says 20.0"):
         cal.correct(*args, product=product, sky_pa_deg=5.0)
+
+
+def test_rows_of_a_rotator_instrument_must_say_their_frame(tmp_path):
+    """A calibration of MOPTOP (on a rotator): bare arrays that say nothing of the sky's
+    position angle are refused (taken in the instrument's frame, rows from catalog(), which are
+    on the sky, would be corrected wrongly with no error); stated either way they are
+    corrected, and rows turned onto the sky by PA with sky_pa_deg=PA give the p0 of the
+    unturned rows with sky_pa_deg=0 (a frame rotation, done here in numpy)."""
+    from test_response import write
+
+    path = tmp_path / "moptop_response.fits"
+    write(path, instrument="MOPTOP")
+    cal = instpol.Calibration.load(path)
+    qi, ui = np.array([0.012, -0.004]), np.array([0.007, 0.015])
+    x, y = np.zeros(2), np.zeros(2)
+    with pytest.raises(instpol.InputError, match="rotator") as e:
+        cal.correct(x, y, qi, ui, 1e-4, 1e-4)
+    assert "sky_pa_deg" in str(e.value)
+    zero = cal.hwp_chi_offset_deg
+    own = cal.correct(x, y, qi, ui, 1e-4, 1e-4, hwp_chi_offset_deg=zero, sky_pa_deg=0.0)
+    pa = 25.0
+    c, s = np.cos(np.radians(2 * pa)), np.sin(np.radians(2 * pa))
+    sky = cal.correct(x, y, c * qi - s * ui, s * qi + c * ui, 1e-4, 1e-4, hwp_chi_offset_deg=zero, sky_pa_deg=pa)
+    np.testing.assert_allclose(sky["p0"], own["p0"], rtol=1e-12)

@@ -87,6 +87,11 @@ pub struct Request<'a> {
     /// against the calibration ([`crate::setup::check_compatible`]); `None`: the rows do not
     /// say (a table of other software, a caller's arrays), and nothing is checked.
     pub data: Option<&'a crate::setup::Setup>,
+    /// Nothing stated the rows' frame on the sky (a caller's arrays given without the
+    /// instrument's position angle): rows of an instrument on a rotator
+    /// ([`FrameUnstated`](Refusal::FrameUnstated)) are then refused, not taken in the
+    /// instrument's frame. A table says its frame (its product, its `sky_pa_deg` column).
+    pub frame_unstated: bool,
 }
 
 /// The one rule of the extrapolation inflation's `F` ([`CorrectOptions::extrapolation_rel_error`]):
@@ -116,6 +121,7 @@ impl Request<'_> {
             angles_are_arguments: false,
             allow_mismatch: false,
             data: None,
+            frame_unstated: false,
         }
     }
 }
@@ -148,6 +154,9 @@ pub enum Refusal {
     Mismatch { map: bool, mismatch: crate::setup::Mismatch },
     /// A Stokes map corrected by a telescope model alone, in a band that is not its filter.
     BandMismatch { map_filter: String, band: String },
+    /// Rows of an instrument on a rotator (`[polarimetry.sky_angle]`) whose frame nobody
+    /// stated ([`Request::frame_unstated`]): in the instrument's frame or on the sky?
+    FrameUnstated { instrument: String },
 }
 
 impl std::fmt::Display for Refusal {
@@ -185,6 +194,10 @@ impl std::fmt::Display for Refusal {
             Refusal::BandMismatch { map_filter, band } => {
                 write!(f, "a {map_filter} map and the telescope model's band {band}")
             }
+            Refusal::FrameUnstated { instrument } => write!(
+                f,
+                "{instrument} is on a rotator and nothing says whether the rows' q, u are in its frame or turned onto the sky (its catalogs are on the sky, north through east)"
+            ),
         }
     }
 }
@@ -314,7 +327,23 @@ fn recorded(product: Option<skyfield::provenance::Product>, notes: &[Note]) -> O
     }
 }
 
+/// Refuse rows whose frame nobody stated ([`Request::frame_unstated`]) when the calibration's
+/// instrument (a built-in one, by the name the file records) is on a rotator: taken in the
+/// instrument's frame, rows turned onto the sky would be corrected wrongly by twice the
+/// position angle, with no error.
+fn check_frame_stated(file: &CalibrationFile, req: &Request<'_>) -> Result<(), Refusal> {
+    if !req.frame_unstated || matches!(req.frame, Frame::Celestial { .. }) {
+        return Ok(());
+    }
+    let rotator = instrument::Instrument::load(&file.instrument).is_ok_and(|i| i.polarimetry.sky_angle.is_some());
+    if rotator {
+        return Err(Refusal::FrameUnstated { instrument: file.instrument.clone() });
+    }
+    Ok(())
+}
+
 pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> Result<RowsPlan<'a>, Refusal> {
+    check_frame_stated(file, req)?;
     if let Some(p) = &req.per_row {
         for (what, len) in [
             ("the parallactic angles", Some(p.start_deg.len())),

@@ -547,6 +547,9 @@ impl _Calibration {
             E::Mismatch { mismatch, .. } => input_err(format!(
                 "{mismatch}: give the calibration of the rows' instrument and filter (instrument=, filter= are the rows'), or allow_mismatch=True"
             )),
+            E::FrameUnstated { .. } => input_err(format!(
+                "{e}: give sky_pa_deg= (catalog()['product']['sky_pa_deg']) or product=catalog()['product'], or sky_pa_deg=0 (with hwp_chi_offset_deg=) for rows in the instrument's own frame"
+            )),
             e => input_err(e.to_string()),
         }
     }
@@ -775,6 +778,7 @@ impl _Calibration {
             per_row: pa.map(|start_deg| fit::request::PerRowAngles { start_deg, end_deg: pa_end, rotator_deg: None }),
             recorded: recorded.as_ref().map(|r| &r.angles),
             data: setup.as_ref(),
+            frame_unstated: sky_pa_deg.is_none(),
             ..base
         };
         let plan = fit::request::plan_rows(&self.file, &request, n).map_err(|e| self.rows_error(e, pa.is_some()))?;

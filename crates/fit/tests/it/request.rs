@@ -443,3 +443,17 @@ fn a_telescope_model_alone_is_checked_against_the_data_instrument() {
         assert!(plan_rows(&f, &req, 1).is_ok(), "{inst}");
     }
 }
+
+/// Rows whose frame nobody stated are refused for a calibration of an instrument on a rotator
+/// (MOPTOP's `[polarimetry.sky_angle]`), not taken in the instrument's frame; stated (on the
+/// sky, or by a table), or of an instrument without a rotator, they go through.
+#[test]
+fn rows_of_a_rotator_instrument_must_state_their_frame() {
+    let moptop = CalibrationFile { instrument: "MOPTOP".into(), ..file(Some(field(0.0)), None) };
+    let unstated = Request { frame_unstated: true, ..request() };
+    assert_eq!(plan_rows(&moptop, &unstated, 1).err(), Some(Refusal::FrameUnstated { instrument: "MOPTOP".into() }));
+    let celestial = mueller::Frame::Celestial { zero_angle_deg: 0.0, position_angle_deg: 0.0 };
+    assert!(plan_rows(&moptop, &Request { frame: celestial, ..unstated }, 1).is_ok());
+    assert!(plan_rows(&moptop, &request(), 1).is_ok(), "a table states its frame");
+    assert!(plan_rows(&file(Some(field(0.0)), None), &unstated, 1).is_ok(), "EFOSC2 has no rotator");
+}

@@ -479,8 +479,10 @@ class Calibration:
         (``cat["product"]["sky_pa_deg"]``, not None for an instrument file with a
         ``[polarimetry.sky_angle]``): the rows are turned back before the instrument is undone
         and the result is on the sky again (north through east). It needs
-        ``hwp_chi_offset_deg``. Rows of such a catalog given without it are taken as the
-        instrument saw them, and their angles are wrong by the position angle.
+        ``hwp_chi_offset_deg``. With a calibration of a built-in instrument on a rotator
+        (MOPTOP), rows given without it (or ``product``) raise InputError: nothing would say
+        whether they are on the sky or as the instrument saw them (``sky_pa_deg=0`` says the
+        latter).
 
         ``product``: what the rows are, whole, as :func:`catalog` gives it
         (``cat["product"]``): its ``instrument``, ``filter``, ``plate``, ``hwp_chi_offset_deg``
