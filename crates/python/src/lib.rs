@@ -922,6 +922,7 @@ fn read_options(
     flat: Option<PathBuf>,
     hwp_angles: Option<Vec<f64>>,
     assembled: bool,
+    correct_again: bool,
 ) -> PyResult<skyfield::calib::ReadOptions> {
     if let Some(v) = &hwp_angles {
         if v.is_empty() || v.iter().any(|x| !x.is_finite()) {
@@ -930,7 +931,7 @@ fn read_options(
             ));
         }
     }
-    Ok(skyfield::calib::ReadOptions { bias, flat, hwp_angles_deg: hwp_angles, assembled, correct_again: false })
+    Ok(skyfield::calib::ReadOptions { bias, flat, hwp_angles_deg: hwp_angles, assembled, correct_again })
 }
 
 /// No function writes over one of its own inputs, whatever name `output` gives it (the one
@@ -981,7 +982,7 @@ fn request<'a>(
 /// Frames to a binned Stokes map (`instpol reduce`): returns the map's arrays flat, in bin order
 /// (row j, column i at j * nx + i), its header values and the warnings.
 #[pyfunction]
-#[pyo3(signature = (frames, instrument, bin, nsigma, allow_incomplete, bias, flat, hwp_angles, assembled, output))]
+#[pyo3(signature = (frames, instrument, bin, nsigma, allow_incomplete, bias, flat, hwp_angles, assembled, output, correct_again=false))]
 #[allow(clippy::too_many_arguments)]
 fn _reduce<'py>(
     py: Python<'py>,
@@ -995,6 +996,7 @@ fn _reduce<'py>(
     hwp_angles: Option<Vec<f64>>,
     assembled: bool,
     output: Option<PathBuf>,
+    correct_again: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     let inst = instrument::Instrument::load(&frames_instrument(instrument, &frames)?).map_err(inst_err)?;
     skyfield::reduce::check_bin(bin, &inst).map_err(|e| input_err(format!("bin {bin}: {e}")))?;
@@ -1004,7 +1006,7 @@ fn _reduce<'py>(
         min_pixels: None,
         require_complete_set: !allow_incomplete,
     };
-    let read = read_options(bias, flat, hwp_angles, assembled)?;
+    let read = read_options(bias, flat, hwp_angles, assembled, correct_again)?;
     refuse_same_data(&frames, skyfield::same::By::Content)?;
     refuse_same_data(frames.iter().chain(&read.bias).chain(&read.flat), skyfield::same::By::Identity)?;
     refuse_overwrite(output.as_deref(), frames.iter().chain(&read.bias).chain(&read.flat))?;
@@ -1148,7 +1150,7 @@ fn map_dict<'py>(py: Python<'py>, m: &skyfield::StokesMap, warnings: Vec<String>
 /// Every paired star of a frame set (`instpol catalog`): one entry per column, one value per
 /// star, plus the catalog's metadata.
 #[pyfunction]
-#[pyo3(signature = (frames, instrument, fwhm, threshold, aperture, annulus, bias, flat, hwp_angles, assembled, kappa, kappa_from_data, pair_tol, cal, allow_extrapolation, force))]
+#[pyo3(signature = (frames, instrument, fwhm, threshold, aperture, annulus, bias, flat, hwp_angles, assembled, kappa, kappa_from_data, pair_tol, cal, allow_extrapolation, force, correct_again=false))]
 #[allow(clippy::too_many_arguments)]
 fn _catalog<'py>(
     py: Python<'py>,
@@ -1168,6 +1170,7 @@ fn _catalog<'py>(
     cal: Option<PathBuf>,
     allow_extrapolation: bool,
     force: bool,
+    correct_again: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
     use skyfield::catalog::{catalog_files, CatalogConfig};
     let radius = skyfield::photometry::ApertureRadius::parse(aperture).ok_or_else(|| {
@@ -1196,7 +1199,7 @@ fn _catalog<'py>(
         force,
     };
     cfg.check().map_err(sky_err)?;
-    let read = read_options(bias, flat, hwp_angles, assembled)?;
+    let read = read_options(bias, flat, hwp_angles, assembled, correct_again)?;
     refuse_same_data(&frames, skyfield::same::By::Content)?;
     refuse_same_data(frames.iter().chain(&read.bias).chain(&read.flat).chain(&cal), skyfield::same::By::Identity)?;
     let loaded = match &cal {
@@ -1252,6 +1255,11 @@ fn _catalog<'py>(
     d.set_item("flags", PyArray1::from_vec(py, rows.iter().map(|r| r.flags).collect()))?;
     d.set_item("flag_names", rows.iter().map(|r| skyfield::catalog::flags::names(r.flags)).collect::<Vec<_>>())?;
     d.set_item("note", rows.iter().map(|r| r.note.clone()).collect::<Vec<_>>())?;
+    // The frames' celestial WCS: each star's RA, Dec (deg), as the catalog's table has them.
+    if rows.iter().any(|r| r.ra_deg.is_some()) {
+        d.set_item("ra_deg", col(|r| opt(r.ra_deg)))?;
+        d.set_item("dec_deg", col(|r| opt(r.dec_deg)))?;
+    }
     // Through a quarter-wave plate: V/I of every star and the plate's zero angle (the linear
     // columns are NaN), as `instpol catalog` writes them.
     if let Some(z) = cat.qwp_zero_angle_deg {

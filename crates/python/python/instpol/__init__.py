@@ -932,6 +932,7 @@ def reduce(
     hwp_angles: Optional[Sequence[float]] = None,
     assembled: bool = False,
     output: Optional[PathLike] = None,
+    correct_again: bool = False,
 ) -> Union[StokesMap, CircularMap]:
     """Reduce dual-beam frames (one filter, N HWP angles) to a binned Stokes map, as ``instpol
     reduce``: per pixel F_i (Eq. 5 [eq:F]) and Q/I, U/I (Eq. 7 [eq:Q], Eq. 8 [eq:U]) from the
@@ -947,7 +948,9 @@ def reduce(
     frame for headers without the keyword; ``assembled=True``: frames already trimmed and
     assembled by another pipeline (bias-subtracted, one detector-sized image each), for an
     instrument whose raw frames are chip files (FORS2, EFOSC2); ``output``: also write the FITS
-    map there (atomically).
+    map there (atomically); ``correct_again=True``: apply ``bias``/``flat`` to frames the
+    instrument file declares already corrected (``[format] already_corrected``, level-1 frames;
+    refused otherwise, naming the option).
 
     Raises
     ------
@@ -986,7 +989,7 @@ def reduce(
         d = _instpol._reduce(
             paths, None if instrument is None else str(instrument), int(bin), float(nsigma), bool(allow_incomplete), _opt_path(bias),
             _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles], bool(assembled),
-            _opt_path(output),
+            _opt_path(output), correct_again=bool(correct_again),
         )
     return CircularMap(d) if d["header"].get("stokes") == "V" else StokesMap(d)
 
@@ -1010,6 +1013,7 @@ def catalog(
     allow_extrapolation: bool = False,
     force: bool = False,
     as_table: Optional[bool] = None,
+    correct_again: bool = False,
 ) -> Any:
     """Every paired star of a frame set measured, as ``instpol catalog``: detection on the first
     frame, ordinary/extraordinary pairing through the instrument's beam layout, aperture
@@ -1019,8 +1023,8 @@ def catalog(
 
     The stars' columns (one value per star: ``id, x, y, x_e, y_e, x_arcmin, y_arcmin,
     fwhm_px, aperture_px, flux_e, q, u, sigma_q, sigma_u, cov_qu, p, sigma_p, chi_deg, sigma_chi_deg, a0,
-    kappa, kappa_applied, chi2_mod, dof_mod, sigma_q_scatter, sigma_u_scatter, flags, flag_names, note``, and
-    ``f`` of shape (stars, N)) and metadata (``hwp_deg, filter, chi_offset_deg, oe_offset_px,
+    kappa, kappa_applied, chi2_mod, dof_mod, sigma_q_scatter, sigma_u_scatter, flags, flag_names, note``,
+    with ``ra_deg, dec_deg`` when the frames carry a celestial WCS, and ``f`` of shape (stars, N)) and metadata (``hwp_deg, filter, chi_offset_deg, oe_offset_px,
     unpaired, unpaired_why, unpaired_shift_px, n_sources, warnings``, and ``recorded_angles``: the exposures'
     telescope angles from their headers, ``{"parang_deg": (start, end), "rotator_deg": ...,
     "exposures": [(hwp_deg, start_deg, end_deg), ...], "hwp_chi_offset_deg": ...}`` (the last:
@@ -1036,6 +1040,8 @@ def catalog(
     ``pair_tol``: how far (px) a detected e image may sit from where the instrument's o/e offset
     puts it (a warning gives the shift when many sit further off, e.g. another filter's throw).
     ``assembled=True``: frames already trimmed and assembled (as for :func:`reduce`).
+    ``correct_again=True``: give ``bias``/``flat`` to frames the instrument declares already
+    corrected (level-1 frames; refused otherwise, as for :func:`reduce`).
 
     ``frames``: paths of FITS files, or astropy ``HDUList``, ``CCDData`` or ``(array, header)``
     objects (as for :func:`reduce`). Returned, where astropy is installed (``as_table=None``, the
@@ -1095,7 +1101,7 @@ def catalog(
             paths, None if instrument is None else str(instrument), float(fwhm), float(threshold), str(aperture), (r_in, r_out),
             _opt_path(bias), _opt_path(flat), None if hwp_angles is None else [float(a) for a in hwp_angles],
             bool(assembled), None if kappa is None else float(kappa), bool(kappa_from_data), float(pair_tol),
-            _opt_path(cal), bool(allow_extrapolation), bool(force),
+            _opt_path(cal), bool(allow_extrapolation), bool(force), correct_again=bool(correct_again),
         )
     if as_table is None:
         as_table = _HAVE_ASTROPY
