@@ -257,6 +257,26 @@ pub fn is_output_column(name: &str) -> bool {
 }
 
 impl Corrected {
+    /// A correction from its `(q0, u0)` and their covariance (`qu`), with `P`, `chi` and their
+    /// errors derived from them ([`p_chi_with_errors`]), the instrumental `inst` it removed and
+    /// whether the position was `extrapolated`: what every correction path ends in.
+    pub fn of(qu: Qu, inst: Qu, extrapolated: bool) -> Self {
+        let (p0, sigma_p0, chi0, sigma_chi0) = p_chi_with_errors(qu.q, qu.u, qu.var_q, qu.var_u, qu.cov_qu);
+        Corrected {
+            q0: qu.q,
+            u0: qu.u,
+            var_q0: qu.var_q,
+            var_u0: qu.var_u,
+            cov_qu0: qu.cov_qu,
+            p0,
+            sigma_p0,
+            chi0,
+            sigma_chi0,
+            inst,
+            extrapolated,
+        }
+    }
+
     /// This correction turned by `deg` (added to `chi0`, `eq:polang`): `q0, u0` with their
     /// covariance, `chi0` and the instrumental `q, u` removed ([`Qu::rotated`]). Itself, bit
     /// for bit, for a turn of 0.
@@ -557,20 +577,7 @@ impl<'a, M: FieldModel + ?Sized> Corrector<'a, M> {
                 (q0, u0, vq1 + a.var_q, vu1 + a.var_u, cv1 + a.cov_qu)
             }
         };
-        let (p0, sigma_p0, chi0, sigma_chi0) = p_chi_with_errors(q0, u0, vq0, vu0, cv0);
-        Ok(Corrected {
-            q0,
-            u0,
-            var_q0: vq0,
-            var_u0: vu0,
-            cov_qu0: cv0,
-            p0,
-            sigma_p0,
-            chi0,
-            sigma_chi0,
-            inst: a,
-            extrapolated,
-        })
+        Ok(Corrected::of(Qu::new(q0, u0, vq0, vu0, cv0), a, extrapolated))
     }
 
     /// Correct a batch into `out` (same length). Stops at the first bad row with an error that

@@ -32,7 +32,7 @@
 //! ([`CorrectOptions::extrapolation_rel_error`]), `(f |v0 - m|)^2` added to each variance.
 
 use crate::calfile::{PixelGrid, Provenance};
-use crate::correct::{self, p_chi_with_errors, CorrectOptions, Corrected, Measurement};
+use crate::correct::{self, CorrectOptions, Corrected, Measurement};
 use crate::keys::{fits_err, open_versioned, save_fits_atomically, KeyReader, KeyWriter, FORMAT_VERSION};
 use crate::mueller_field::{monomial_powers, BinFit, Kind, MuellerField, Smooth};
 use crate::mueller_smooth;
@@ -197,20 +197,7 @@ impl MuellerCal {
                 m.x, m.y
             )));
         }
-        let (p0, sigma_p0, chi0, sigma_chi0) = p_chi_with_errors(q0, u0, cov[0], cov[2], cov[1]);
-        Ok(Corrected {
-            q0,
-            u0,
-            var_q0: cov[0],
-            var_u0: cov[2],
-            cov_qu0: cov[1],
-            p0,
-            sigma_p0,
-            chi0,
-            sigma_chi0,
-            inst: self.field.eval(m.x, m.y),
-            extrapolated: !inside,
-        })
+        Ok(Corrected::of(mueller::Qu::new(q0, u0, cov[0], cov[2], cov[1]), self.field.eval(m.x, m.y), !inside))
     }
 
     /// Write the calibration to `path` atomically (a temporary file beside it, renamed when

@@ -156,19 +156,7 @@ impl ResponseCal {
             }
         }
         let (vq, vu, cv) = (aq + bpb[0][0], au + bpb[1][1], ac + bpb[0][1]);
-        let (p0, sigma_p0, chi0, sigma_chi0) = crate::correct::p_chi_with_errors(tq, tu, vq, vu, cv);
-        Ok(Corrected {
-            q0: tq,
-            u0: tu,
-            var_q0: vq,
-            var_u0: vu,
-            cov_qu0: cv,
-            p0,
-            sigma_p0,
-            chi0,
-            sigma_chi0,
-            inst: mueller::Qu::new(r.q0, r.u0, p[0][0], p[1][1], p[0][1]),
-            extrapolated: false,
-        })
+        let inst = mueller::Qu::new(r.q0, r.u0, p[0][0], p[1][1], p[0][1]);
+        Ok(Corrected::of(mueller::Qu::new(tq, tu, vq, vu, cv), inst, false))
     }
 }

@@ -47,7 +47,7 @@
 //! it such a star comes back to 1e-16
 //! (`crates/cli/tests/it/telescope_frames.rs`, `the_chain_undoes_the_telescope_through_a_hwp_zero_angle`).
 
-use crate::correct::{p_chi_with_errors, Corrected, Corrector, Measurement};
+use crate::correct::{Corrected, Corrector, Measurement};
 use crate::keys::{fits_err, KeyReader, KeyWriter};
 use crate::model::{FieldModel, InstPol};
 use crate::radial::ErrorScaling;
@@ -390,21 +390,8 @@ pub fn correct_chain_seen<M: FieldModel + ?Sized>(
         q_tel += b.q0;
         u_tel += b.u0;
     }
-    let (p0, sigma_p0, chi0, sigma_chi0) = p_chi_with_errors(q0, u0, vq, vu, cv);
     Ok(ChainCorrected {
-        corrected: Corrected {
-            q0,
-            u0,
-            var_q0: vq,
-            var_u0: vu,
-            cov_qu0: cv,
-            p0,
-            sigma_p0,
-            chi0,
-            sigma_chi0,
-            inst,
-            extrapolated,
-        },
+        corrected: Corrected::of(mueller::Qu::new(q0, u0, vq, vu, cv), inst, extrapolated),
         q_tel,
         u_tel,
     })
