@@ -599,15 +599,10 @@ fn bad_folders_and_nonsense_plans_are_refused_by_name() {
     std::fs::hard_link(&frame, &linked).unwrap();
     let inst_file = d.join("inst.toml");
     std::fs::write(&inst_file, "not read").unwrap();
-    let names_inst = format!(
-        "[[units]]\nid = \"A\"\nkind = \"reduce\"\ninputs = [{:?}]\noutputs = [{:?}]\ncommand = [\"reduce\", {:?}, \"--instrument\", {:?}, \"--out\", {:?}]\nafter = []\n",
-        frame.display().to_string(),
-        a.display().to_string(),
-        frame.display().to_string(),
-        inst_file.display().to_string(),
-        a.display().to_string()
-    );
-    let over_inst = names_inst.clone() + &unit("B", "reduce", &frame, &inst_file, "");
+    // Unit A's command names the instrument file besides its listed input.
+    let inst_arg = format!("\"--instrument\", {:?}, \"--out\"", inst_file.display().to_string());
+    let names_inst = unit("A", "reduce", &frame, &a, "").replace("\"--out\"", &inst_arg);
+    let over_inst = names_inst + &unit("B", "reduce", &frame, &inst_file, "");
     let cases = [
         (
             "a cycle",
