@@ -352,62 +352,12 @@ fn legend_overlaps(path: &Path) -> Vec<String> {
     bad
 }
 
-/// Every figure a command draws, as SVG: no legend box covers a plotted point or bar, and no
-/// text falls outside the image. The figures: the gallery's (calibration map, profile and
-/// residual; the Fourier plot), raytrace, plan, mc's sweep and accuracy report, a telescope
-/// fit of the EFOSC2 standards (real data), and a night's trend.
+/// Every figure a command draws, as SVG ([`every_figure`]): no legend box covers a plotted
+/// point or bar, and no text falls outside the image.
 #[test]
 fn every_figure_keeps_its_legends_off_the_data() {
     let d = tempfile::tempdir().unwrap();
-    let p = |n: &str| d.path().join(n);
-    let s = |n: &str| p(n).to_str().unwrap().to_string();
-    let mut figures = vec![];
-    let csv = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/data/fors1_v_star_n16.csv");
-    let runs: Vec<Vec<String>> = vec![
-        vec!["stokes".into(), "--input".into(), csv.display().to_string(), "--plot".into(), s("fourier.svg")],
-        vec![
-            "raytrace".into(),
-            "--instrument".into(),
-            "fors1".into(),
-            "--filter".into(),
-            "V".into(),
-            "--plot".into(),
-            s("rt.svg"),
-        ],
-        common::QUICK_PLAN.iter().chain(&["--plot"]).map(|x| x.to_string()).chain([s("plan.svg")]).collect(),
-        ["mc", "--sweep", "--trials", "2000", "--plot"].iter().map(|x| x.to_string()).chain([s("sweep.svg")]).collect(),
-        ["mc", "--accuracy-report", "--trials", "1000", "--noise", "gauss-qu", "--plot"]
-            .iter()
-            .map(|x| x.to_string())
-            .chain([s("acc.svg")])
-            .collect(),
-    ];
-    for args in &runs {
-        let a: Vec<&str> = args.iter().map(|x| x.as_str()).collect();
-        let (code, _, err) = run(&a);
-        assert_eq!(code, 0, "{a:?}: {err}");
-        figures.push(PathBuf::from(args.last().unwrap()));
-    }
-    let (cal, map) = (p("cal.fits"), p("map.fits"));
-    common::write_v_sky_map(&map, |_| true);
-    let (code, _, err) = run(&common::calibrate_v_args(&map, &cal));
-    assert_eq!(code, 0, "{err}");
-    let (code, _, err) = run(&["plot", cal.to_str().unwrap(), "--out", &s("plots")]);
-    assert_eq!(code, 0, "{err}");
-    if let Some(d) =
-        crate::common::shared_data::shared_data("efosc2-standards", &["pv_standards.txt"], "the telescope-fit figure")
-    {
-        let efosc2 = d.join("pv_standards.txt");
-        let (code, _, err) =
-            run(&["fit-standards", efosc2.to_str().unwrap(), "--model", "wiersema", "--plot-dir", &s("plots")]);
-        assert_eq!(code, 0, "{err}");
-    }
-    for e in std::fs::read_dir(p("plots")).unwrap() {
-        let f = e.unwrap().path();
-        if f.extension().is_some_and(|x| x == "svg") {
-            figures.push(f);
-        }
-    }
+    let figures = every_figure(d.path());
     assert!(figures.len() >= 8, "{figures:?}");
     let mut bad = vec![];
     for f in &figures {
