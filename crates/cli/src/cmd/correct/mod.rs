@@ -129,7 +129,7 @@ fn field_line(a: &Args, s: &fit::columns::Report, cal: &Calibration) -> String {
     format!(
         "corrected {} {} with {} ({} {}, HWP zero angle {:+.2} deg)",
         s.rows,
-        if s.kind == "Stokes map" { "bins" } else { "rows" },
+        words::what_counted(s),
         a.cal.display(),
         cal.instrument,
         cal.filter,
@@ -235,7 +235,7 @@ fn finish(a: &Args, s: Summary, loaded: &fit::calibration::CalibrationFile, tele
         let line = format!(
             "corrected {} {} with the constant response of {} ({} {}: efficiency {:.4}, offset {:+.2} deg, (q0, u0) = ({:.5}, {:.5})), exact inverse",
             r.rows,
-            if r.kind == "Stokes map" { "bins" } else { "rows" },
+            words::what_counted(r),
             a.cal.display(),
             c.instrument,
             c.filter,
@@ -268,7 +268,7 @@ fn mueller_line(a: &Args, s: &fit::columns::Report, cal: &fit::mueller_cal::Muel
     format!(
         "corrected {} {} with the Mueller field of {} ({} {}, {} model: {}), exact inverse",
         s.rows,
-        if s.kind == "Stokes map" { "bins" } else { "rows" },
+        words::what_counted(s),
         a.cal.display(),
         cal.instrument,
         cal.filter,

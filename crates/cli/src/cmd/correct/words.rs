@@ -101,3 +101,12 @@ pub(super) fn map_error(e: fit::correct::MapError, input: &Path) -> anyhow::Erro
         e => anyhow!("{} {e}", input.display()),
     }
 }
+
+/// What a summary counts: a map's bins or a table's rows.
+pub(super) fn what_counted(s: &fit::columns::Report) -> &'static str {
+    if s.kind == "Stokes map" {
+        "bins"
+    } else {
+        "rows"
+    }
+}
