@@ -62,6 +62,17 @@ pub struct Unit {
 }
 
 impl Unit {
+    /// The arguments of its command (after the command's name) that are neither its listed
+    /// inputs nor its outputs, as paths: the files it names besides (an instrument file, a
+    /// calibration), for the callers to test which exist.
+    fn named_besides(&self) -> impl Iterator<Item = &Path> + '_ {
+        self.command
+            .iter()
+            .skip(1)
+            .map(Path::new)
+            .filter(|p| !self.outputs.iter().any(|o| o == p) && !self.inputs.iter().any(|i| i == p))
+    }
+
     pub fn new(
         id: &str,
         kind: &str,
@@ -223,11 +234,7 @@ impl Plan {
             }
             // Its inputs, and the files its command names besides (an instrument file, a
             // calibration): either way the command reads them.
-            let named = u.command[1..]
-                .iter()
-                .map(Path::new)
-                .filter(|p| !u.outputs.iter().any(|o| o == p) && !u.inputs.iter().any(|i| i == p))
-                .filter(|p| p.is_file() || maker.contains_key(p));
+            let named = u.named_besides().filter(|p| p.is_file() || maker.contains_key(p));
             for i in u.inputs.iter().map(PathBuf::as_path).chain(named) {
                 match maker.get(i) {
                     Some(m) if *m == u.id => {
@@ -268,8 +275,7 @@ impl Plan {
         let mut sources: Vec<&Path> = self.files.iter().map(|f| f.path.as_path()).collect();
         sources.push(Path::new(&self.instrument));
         for u in &self.units {
-            sources.extend(u.inputs.iter().map(PathBuf::as_path));
-            sources.extend(u.command.iter().map(Path::new).filter(|p| !u.outputs.iter().any(|o| o == p)));
+            sources.extend(u.inputs.iter().map(PathBuf::as_path).chain(u.named_besides()));
         }
         let sources: Vec<(&Path, FileId)> =
             sources.into_iter().filter(|p| !maker.contains_key(p) && p.is_file()).map(|p| (p, FileId::of(p))).collect();

@@ -124,7 +124,6 @@ pub fn plans_product(
     let name = |p: &skyfield::provenance::Product| p.instrument.clone().unwrap_or_else(|| "(unnamed)".into());
     let Some((first_path, first)) = plans.first() else { return Err(Error::Option("no plan given".into())) };
     let mut out = first.clone();
-    out.inputs = Vec::new();
     for (path, p) in &plans[1..] {
         if !fit::setup::same_instrument(&name(p), &name(first)) {
             if !allow_mismatch {
