@@ -3,6 +3,7 @@
 
 use anyhow::{anyhow, bail, Context, Result};
 use fit::mueller_field::cal::{MuellerCal, SkyField};
+use fit::mueller_field::smooth;
 use fit::mueller_field::stars::{read_star_fields, FieldSummary, ParamSummary};
 use fit::mueller_field::{
     fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions,
@@ -224,12 +225,8 @@ pub fn run(a: Args) -> Result<()> {
         None
     };
     let mf: MuellerField = match (a.smooth.as_str(), &per_bin) {
-        ("radial", Some(b)) => {
-            fit::mueller_field::smooth::radial_field(&b.0, a.deg).map_err(|e| anyhow!("--smooth radial: {e}"))?
-        }
-        ("interp", Some(b)) => {
-            fit::mueller_field::smooth::interp_field(&b.0).map_err(|e| anyhow!("--smooth interp: {e}"))?
-        }
+        ("radial", Some(b)) => smooth::radial_field(&b.0, a.deg).map_err(|e| anyhow!("--smooth radial: {e}"))?,
+        ("interp", Some(b)) => smooth::interp_field(&b.0).map_err(|e| anyhow!("--smooth interp: {e}"))?,
         _ => fit_mueller_field(&fields, &opts).map_err(|e| anyhow!("{e}"))?,
     };
     let mut mf = mf;

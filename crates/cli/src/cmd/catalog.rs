@@ -1,6 +1,7 @@
 //! `instpol catalog`: every paired star of a frame set, measured in one run.
 
 use anyhow::{Context, Result};
+use fit::correction::{catalog_correct, correct};
 use skyfield::catalog::{flags, CatalogConfig};
 use skyfield::detect::DetectConfig;
 use std::path::PathBuf;
@@ -103,8 +104,8 @@ struct CorrRow {
     extrapolated: bool,
 }
 
-impl From<&fit::correction::correct::Corrected> for CorrRow {
-    fn from(c: &fit::correction::correct::Corrected) -> Self {
+impl From<&correct::Corrected> for CorrRow {
+    fn from(c: &correct::Corrected) -> Self {
         Self {
             q0: c.q0,
             u0: c.u0,
@@ -192,19 +193,15 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     // With a telescope model: its name, the band used and how many exposures were undone one by one.
-    let mut telescope_used: Option<fit::correction::catalog_correct::TelescopeUsed> = None;
+    let mut telescope_used: Option<catalog_correct::TelescopeUsed> = None;
     let corrected = match &a.cal {
         None => None,
         Some(path) => {
             let loaded = fit::files::calibration::load(path)
                 .with_context(|| format!("cannot load calibration {}", path.display()))?;
-            let opts = fit::correction::correct::CorrectOptions {
-                allow_extrapolation: a.allow_extrapolation,
-                ..Default::default()
-            };
-            let (c, used) =
-                fit::correction::catalog_correct::correct_catalog_loaded(&cat, &inst, &a.frames, &loaded, opts)
-                    .with_context(|| format!("--cal {}", path.display()))?;
+            let opts = correct::CorrectOptions { allow_extrapolation: a.allow_extrapolation, ..Default::default() };
+            let (c, used) = catalog_correct::correct_catalog_loaded(&cat, &inst, &a.frames, &loaded, opts)
+                .with_context(|| format!("--cal {}", path.display()))?;
             telescope_used = used;
             if c.n_extrapolated > 0 {
                 eprintln!(
