@@ -25,7 +25,6 @@
 
 use crate::linear::LinearBlock;
 use crate::{retarder, Mueller};
-use nalgebra::Matrix3;
 
 /// Retardance (rad) and fast-axis angle (rad) of the stressed-lens pattern at `(x, y)`
 /// arcmin: `delta = delta_edge (r / radius)^2` with `r` measured from `centre`, axis at the
