@@ -526,13 +526,15 @@ fn tick_groups(svg: &str) -> Vec<(String, Vec<(f64, String)>)> {
     let mut groups: std::collections::BTreeMap<String, Vec<(f64, String)>> = Default::default();
     let placed = placed_texts(svg);
     let is_x = |t: &(f64, f64, String, String, f64, bool, String)| t.2 == "middle" && t.3 == "0.76em" && !t.5;
-    let x_rows: Vec<f64> = placed.iter().filter(|t| is_x(t) && tick_value(&t.6).is_some()).map(|t| t.1).collect();
+    let x_rows: Vec<(f64, f64)> =
+        placed.iter().filter(|t| is_x(t) && tick_value(&t.6).is_some()).map(|t| (t.0, t.1)).collect();
     for (x, y, anchor, dy, _, rotated, text) in placed.iter().cloned() {
         if rotated || tick_value(&text).is_none() {
             continue;
         }
-        // A y axis's panel: the x axis below it (the nearest row of x tick labels).
-        let panel = x_rows.iter().copied().filter(|r| *r > y).fold(f64::INFINITY, f64::min);
+        // A y axis's panel: the x axis below it (the nearest row of x tick labels right of its
+        // labels: a panel beside it may be of another height).
+        let panel = x_rows.iter().filter(|r| r.1 > y && r.0 > x).map(|r| r.1).fold(f64::INFINITY, f64::min);
         let (key, at) = match (anchor.as_str(), dy.as_str()) {
             ("middle", "0.76em") => (format!("x axis at row {y}"), x),
             ("end", _) | ("start", "0.5ex") => (format!("y axis ({anchor}) at column {x} above row {panel}"), y),
