@@ -100,14 +100,33 @@ def demo_dir(run, tmp_path_factory):
     return d
 
 
-@pytest.fixture(scope="session")
-def cal_v(demo_dir):
-    return demo_dir / "cal_V.fits"
+PRODUCT_KEYS = ["INSTHASH", "WAVELEN", "PLATE", "DETSIZE", "PIXSCALE", "INSTRUME", "FILTER"]
+
+
+def without_product(cal: Path, dest: Path) -> Path:
+    """A copy of calibration `cal` without its product keywords, as a file written before
+    calibrations recorded them: the demo's calibrations are of the built-in FORS1 (2048 px),
+    the tests' maps and catalogs of a tiny FORS1 (128 px), a detector the one compatibility
+    check would refuse; these tests are about the correction's arithmetic, not that check
+    (test_product.py is)."""
+    from astropy.io import fits
+
+    with fits.open(cal) as h:
+        for k in list(h[0].header.keys()):
+            if k in PRODUCT_KEYS or k.startswith("INHASH"):
+                del h[0].header[k]
+        h.writeto(dest)
+    return dest
 
 
 @pytest.fixture(scope="session")
-def cal_b(demo_dir):
-    return demo_dir / "cal_B.fits"
+def cal_v(demo_dir, tmp_path_factory):
+    return without_product(demo_dir / "cal_V.fits", tmp_path_factory.mktemp("calv") / "cal_V.fits")
+
+
+@pytest.fixture(scope="session")
+def cal_b(demo_dir, tmp_path_factory):
+    return without_product(demo_dir / "cal_B.fits", tmp_path_factory.mktemp("calb") / "cal_B.fits")
 
 
 def shrunk(name: str, replacements, dest: Path) -> Path:

@@ -1,0 +1,31 @@
+"""A calibration file says what it is, as every table and map does (its primary header's product
+keywords, checked here against Python's blake3 of the instrument file), and the one
+compatibility check reads them in the Python face as in the CLI: a map of another detector than
+the calibration's is refused naming both, and corrected with a warning when allowed."""
+
+import pytest
+from astropy.io import fits
+
+import instpol
+from conftest import ROOT
+from test_correct_map import v_map  # noqa: F401 (fixture)
+
+
+def test_a_calibration_file_records_its_instrument_file(demo_dir):
+    blake3 = pytest.importorskip("blake3")
+    with fits.open(demo_dir / "cal_V.fits") as h:
+        head = h[0].header
+    text = (ROOT / "instruments" / "fors1.toml").read_bytes()
+    assert head["INSTHASH"] == blake3.blake3(text).hexdigest()
+    assert (head["INSTRUME"], head["FILTER"], head["PLATE"]) == ("FORS1", "V", "half_wave")
+    # FORS1's detector as its file gives it (2048 x 2048 px of 0.2 arcsec).
+    assert head["DETSIZE"] == "2048x2048" and float(head["PIXSCALE"]) == 0.2
+
+
+def test_a_map_of_another_detector_is_refused(demo_dir, v_map):  # noqa: F811
+    # The demo's V calibration is of the built-in FORS1 (2048 px); the map of a tiny FORS1 (128 px).
+    c = instpol.Calibration.load(demo_dir / "cal_V.fits")
+    with pytest.raises(instpol.InputError, match="detector is 128x128 px.*2048x2048 px"):
+        c.correct_map(v_map)
+    with pytest.warns(UserWarning, match="detector"):
+        c.correct_map(v_map, allow_mismatch=True)
