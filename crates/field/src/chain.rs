@@ -11,9 +11,12 @@
 //! and applied after each exposure's telescope matrix, circular polarization included: M3
 //! makes some, a retarder after it turns some back).
 //!
-//! [`InstrumentChain`] is the whole chain as one value: the telescope, these elements and the
-//! half-wave plate's zero angle, with the forward model of one exposure or of a demodulated
-//! set of exposures and its exact inverse, the covariance carried through both.
+//! [`InstrumentChain`] is the whole chain as one value, the one the simulator renders through
+//! and the correction inverts: the telescope, these elements, the half-wave plate's zero angle
+//! and, for rendering frames, the plate and the analyser ([`crate::analyser::Analyser`]). Its
+//! forward models: to the two beams' fluxes of one exposure (`crate::render`, what every
+//! simulated frame is made of), and to the `(q, u)` demodulated from one exposure or a set of
+//! them, with their exact inverses, the covariance carried through both.
 
 use crate::FieldModel;
 use mueller::linear::LinearBlock;
@@ -81,6 +84,9 @@ pub enum ChainError {
     NoTrack,
     /// No light passes the chain at this position, or the result is not finite.
     NoLight { x: f64, y: f64 },
+    /// The fluxes were asked of a chain without a plate and analyser (one that starts from
+    /// demodulated `(q, u)`).
+    NoAnalyser,
 }
 
 impl std::fmt::Display for ChainError {
@@ -91,6 +97,7 @@ impl std::fmt::Display for ChainError {
             ChainError::NoLight { x, y } => {
                 write!(f, "the chain passes no light or no finite polarization at ({x}, {y}) arcmin")
             }
+            ChainError::NoAnalyser => write!(f, "the chain has no plate and analyser: it gives (q, u), not fluxes"),
         }
     }
 }
@@ -117,12 +124,21 @@ impl From<mueller::Error> for ChainError {
 /// The telescope's matrix is divided by its `M_00` (fluxes kept, as the simulator renders) and
 /// its band model's constant `q0, u0` is not used: the instrument's own polarization is the
 /// elements'.
+///
+/// With an [`Analyser`](crate::analyser::Analyser) (the plate with its defects and motion, the
+/// Wollaston, the post-analyser optics) the chain goes on to the detector's two beams:
+/// [`fluxes`](Self::fluxes) and its pieces (`crate::render`), through which the simulator
+/// renders every frame. A correction's chain has none: it starts from the `(q, u)` the
+/// reduction demodulated, at the plate.
 #[derive(Clone, Default)]
 pub struct InstrumentChain {
     pub telescope: Option<BandModel>,
     pub elements: FieldChain,
-    /// The HWP zero angle (rad).
+    /// The HWP zero angle (rad); with an analyser, its plate's
+    /// ([`with_analyser`](Self::with_analyser)).
     pub zero_angle: f64,
+    /// The plate and the analyser, when the chain renders fluxes.
+    pub analyser: Option<crate::analyser::Analyser>,
 }
 
 /// The telescope's matrix over `track` ([`BandModel::matrix_track`]) divided by its `M_00`,

@@ -276,6 +276,6 @@ impl Chain<'_> {
         // The forward model ends at the plate: its zero angle is the one the models' sky frame
         // has (0 for a telescope model alone, which takes data in their own frame).
         let zero_angle = self.zero_angle_deg.unwrap_or(0.0).to_radians();
-        (field::InstrumentChain { telescope, elements, zero_angle }, track)
+        (field::InstrumentChain { telescope, elements, zero_angle, analyser: None }, track)
     }
 }

@@ -10,4 +10,5 @@ mod crate_layers;
 mod docs_links;
 mod function_length;
 mod import_circles;
+mod one_chain;
 mod one_of_each;
