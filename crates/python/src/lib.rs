@@ -11,19 +11,19 @@
 //! | `instpol.stokes`           | `stokes::Measurement::reduce` (`instpol stokes`)           |
 //! | `instpol.bias`             | `stokes::stats::debias` (`instpol bias`)                   |
 //! | `Calibration.load`         | `fit::Calibration::load` (`instpol correct --cal`)         |
-//! | `Calibration.evaluate`     | `fit::correct::Corrector::instrumental`                    |
-//! | `Calibration.correct`      | `fit::correct::Corrector::par_correct_batch` (`correct`)   |
+//! | `Calibration.evaluate`     | `fit::correction::correct::Corrector::instrumental`                    |
+//! | `Calibration.correct`      | `fit::correction::correct::Corrector::par_correct_batch` (`correct`)   |
 //! | `instpol.reduce`           | `skyfield::reduce::reduce_for_plate` (`instpol reduce`)    |
 //! | `instpol.catalog`          | `skyfield::catalog::catalog_files` (`instpol catalog`)     |
 //! | `instpol.simulate`         | `sim::Plan::write` (`instpol simulate`)                    |
-//! | `instpol.calibrate`        | `fit::pipeline::calibrate_sky_field` (`calibrate --map`)   |
+//! | `instpol.calibrate`        | `fit::models::pipeline::calibrate_sky_field` (`calibrate --map`)   |
 //!
 //! Errors: `instpol.InputError` (a `ValueError`) for bad values or file contents,
 //! `instpol.FileError` (an `OSError`) for files that cannot be opened, read or written; the
 //! messages are the libraries', as the CLI prints them.
 
-use fit::columns::{Inputs, Units};
-use fit::correct::Method;
+use fit::correction::columns::{Inputs, Units};
+use fit::correction::correct::Method;
 use numpy::prelude::*;
 use numpy::{PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::create_exception;
@@ -394,22 +394,22 @@ fn _bias<'py>(
 /// and its telescope model's only band ("" with several).
 enum Field<'a> {
     PPhi(&'a fit::Calibration),
-    Mueller(&'a fit::mueller_cal::MuellerCal),
+    Mueller(&'a fit::mueller_field::cal::MuellerCal),
     TelescopeOnly {
         instrument: &'a str,
         filter: &'a str,
     },
     /// An instrument's constant response from standards (`instpol efficiency`).
-    Response(&'a fit::response_cal::ResponseCal),
+    Response(&'a fit::response::cal::ResponseCal),
 }
 
-/// A calibration file as `fit::calibration::load` reads it (`instpol correct`'s reader): a
-/// partial polarizer (`fit::Calibration`) or a Mueller field (`fit::mueller_cal::MuellerCal`),
+/// A calibration file as `fit::files::calibration::load` reads it (`instpol correct`'s reader): a
+/// partial polarizer (`fit::Calibration`) or a Mueller field (`fit::mueller_field::cal::MuellerCal`),
 /// with the telescope model stored beside the field one or alone (`instpol fit-standards
 /// --output`), applied after the field with each row's parallactic angle.
 #[pyclass(module = "instpol._instpol", frozen)]
 struct _Calibration {
-    file: fit::calibration::CalibrationFile,
+    file: fit::files::calibration::CalibrationFile,
     path: PathBuf,
 }
 
@@ -438,8 +438,8 @@ impl _Calibration {
         }
     }
 
-    fn pixel(&self) -> Option<fit::calfile::PixelGrid> {
-        fit::columns::pixel_grid(&self.file)
+    fn pixel(&self) -> Option<fit::files::calfile::PixelGrid> {
+        fit::correction::columns::pixel_grid(&self.file)
     }
 
     /// A telescope model's band that cannot be chosen, in this package's words.
@@ -460,16 +460,16 @@ impl _Calibration {
         })
     }
 
-    /// A refusal of `fit::request::plan_map` in this package's words.
-    fn map_error(&self, e: fit::request::Refusal, input: &std::path::Path) -> PyErr {
-        use fit::request::Refusal as E;
+    /// A refusal of `fit::correction::request::plan_map` in this package's words.
+    fn map_error(&self, e: fit::correction::request::Refusal, input: &std::path::Path) -> PyErr {
+        use fit::correction::request::Refusal as E;
         let (cal_path, input) = (self.path.display(), input.display());
         input_err(match e {
             E::TelescopeOptions { mueller } => format!(
                 "parang_deg, rotator_deg and band are for calibrations with a telescope model; {cal_path} holds {}",
                 if mueller { "a Mueller field" } else { "none" }
             ),
-            E::Mismatch { mismatch: fit::setup::Mismatch::Setup { data, calibration }, .. } => format!(
+            E::Mismatch { mismatch: fit::correction::setup::Mismatch::Setup { data, calibration }, .. } => format!(
                 "{input} is a {} {} map but {cal_path} calibrates {} {} (instrument, filter): use the calibration of the map's instrument and filter (or allow_mismatch=True)",
                 data.0, data.1, calibration.0, calibration.1
             ),
@@ -487,9 +487,9 @@ impl _Calibration {
         })
     }
 
-    /// A note of `fit::request` on a map's correction, in this package's words.
-    fn note_text(&self, n: &fit::request::Note, input: &std::path::Path) -> String {
-        use fit::request::Note;
+    /// A note of `fit::correction::request` on a map's correction, in this package's words.
+    fn note_text(&self, n: &fit::correction::request::Note, input: &std::path::Path) -> String {
+        use fit::correction::request::Note;
         let (cal_path, input) = (self.path.display(), input.display());
         match n {
             Note::TrackReplaced { recorded: (s, e) } => format!(
@@ -514,9 +514,9 @@ impl _Calibration {
         }
     }
 
-    /// A refusal of `fit::request` in this package's words (`per_row`: parang_deg was given).
-    fn rows_error(&self, e: fit::request::Refusal, per_row: bool) -> PyErr {
-        use fit::request::Refusal as E;
+    /// A refusal of `fit::correction::request` in this package's words (`per_row`: parang_deg was given).
+    fn rows_error(&self, e: fit::correction::request::Refusal, per_row: bool) -> PyErr {
+        use fit::correction::request::Refusal as E;
         let path = self.path.display();
         match e {
             E::TelescopeOptions { mueller: true } => input_err(format!(
@@ -555,14 +555,14 @@ impl _Calibration {
     }
 
     /// Positions in arcmin from the detector centre, from `units` "px" (0-based pixels of the
-    /// calibration's grid) or "arcmin" (`fit::columns::arcmin_positions`).
+    /// calibration's grid) or "arcmin" (`fit::correction::columns::arcmin_positions`).
     fn arcmin<'a>(&self, x: &'a [f64], y: &'a [f64], units: &str) -> PyResult<(Cow<'a, [f64]>, Cow<'a, [f64]>)> {
         let units = match units {
             "arcmin" => Units::Arcmin,
             "px" | "pixel" => Units::Pixel,
             u => return Err(input_err(format!("units '{u}': expected \"px\" or \"arcmin\""))),
         };
-        fit::columns::arcmin_positions(x, y, units, self.pixel()).map_err(|_| {
+        fit::correction::columns::arcmin_positions(x, y, units, self.pixel()).map_err(|_| {
             input_err("the calibration has no pixel grid: give the positions in arcmin (units=\"arcmin\")")
         })
     }
@@ -577,7 +577,7 @@ impl _Calibration {
         // as the sky's).
         // A telescope-only file (instpol fit-standards --output): correct() applies the
         // telescope alone, as `instpol correct` does.
-        let file = py.detach(|| fit::calibration::load(&path)).map_err(|e| load_err(&path, e))?;
+        let file = py.detach(|| fit::files::calibration::load(&path)).map_err(|e| load_err(&path, e))?;
         Ok(Self { file, path })
     }
 
@@ -604,8 +604,8 @@ impl _Calibration {
     fn hwp_chi_offset_deg(&self) -> f64 {
         match self.field() {
             Field::PPhi(c) => c.hwp_chi_offset_deg,
-            // A Mueller field: the zero angle its maps were turned by (fit::mueller_cal); a
-            // telescope model alone records none (its frame: fit::telescope_cal).
+            // A Mueller field: the zero angle its maps were turned by (fit::mueller_field::cal); a
+            // telescope model alone records none (its frame: fit::telescope::cal).
             Field::Mueller(m) => m.hwp_chi_offset_deg,
             Field::TelescopeOnly { .. } => 0.0,
             // A constant response: the zero angle of the sky frame it lives in.
@@ -618,7 +618,7 @@ impl _Calibration {
             Field::PPhi(c) => c.model.kind(),
             Field::Mueller(_) => "MUELLER",
             Field::TelescopeOnly { .. } => "TELESCOPE",
-            Field::Response(_) => fit::response_cal::RESPONSE_MODEL,
+            Field::Response(_) => fit::response::cal::RESPONSE_MODEL,
         }
     }
     /// A Mueller field's model in words (`physical`, `general`), as `instpol correct --json`
@@ -687,7 +687,7 @@ impl _Calibration {
         }
         let (x, y) = self.arcmin(x, y, units)?;
         let (x, y) = (x.as_ref(), y.as_ref());
-        fn at<M: FieldModel + Sync>(m: &M, x: &[f64], y: &[f64]) -> Vec<(fit::model::InstPol, bool)> {
+        fn at<M: FieldModel + Sync>(m: &M, x: &[f64], y: &[f64]) -> Vec<(fit::models::model::InstPol, bool)> {
             x.par_iter().zip(y).map(|(&x, &y)| (m.eval(x, y), m.contains(x, y))).collect()
         }
         let v = py.detach(|| match self.field() {
@@ -741,7 +741,8 @@ impl _Calibration {
         let base = request(method, allow_extrapolation, extrapolation_error, band.as_deref(), allow_mismatch)?;
         // What the rows are (instrument, filter, plate: catalog()'s), checked against the
         // calibration as a table's keywords are.
-        let setup = setup.map(|(instrument, filter, plate)| fit::setup::Setup { instrument, filter, plate });
+        let setup =
+            setup.map(|(instrument, filter, plate)| fit::correction::setup::Setup { instrument, filter, plate });
         // The zero angle q, u already carry (catalog()'s do): given, else what `recorded`
         // says, else none (q, u at the plate); the calibration's less it is applied, as
         // `instpol correct` takes a table's hwp_chi_offset_deg column.
@@ -772,25 +773,31 @@ impl _Calibration {
         if pa_end.is_some() && pa.is_none() {
             return Err(input_err("parang_end_deg needs parang_deg (each row's start)"));
         }
-        // The one rule set of `instpol correct`'s tables (fit::request).
-        let request = fit::request::Request {
+        // The one rule set of `instpol correct`'s tables (fit::correction::request).
+        let request = fit::correction::request::Request {
             frame,
-            per_row: pa.map(|start_deg| fit::request::PerRowAngles { start_deg, end_deg: pa_end, rotator_deg: None }),
+            per_row: pa.map(|start_deg| fit::correction::request::PerRowAngles {
+                start_deg,
+                end_deg: pa_end,
+                rotator_deg: None,
+            }),
             recorded: recorded.as_ref().map(|r| &r.angles),
             data: setup.as_ref(),
             frame_unstated: sky_pa_deg.is_none(),
             ..base
         };
-        let plan = fit::request::plan_rows(&self.file, &request, n).map_err(|e| self.rows_error(e, pa.is_some()))?;
+        let plan = fit::correction::request::plan_rows(&self.file, &request, n)
+            .map_err(|e| self.rows_error(e, pa.is_some()))?;
         let (x, y) = self.arcmin(x, y, units)?;
         let input = Inputs { frame: request.frame, x: &x, y: &y, q, u, sigma_q: sq, sigma_u: su, cov_qu: cov };
-        let out = py.detach(|| fit::columns::correct_columns(&input, est, &|_| {}, |k, m| plan.correct(k, m)));
+        let out =
+            py.detach(|| fit::correction::columns::correct_columns(&input, est, &|_| {}, |k, m| plan.correct(k, m)));
         let out = out.map_err(|(row, e)| input_err(format!("index {row}: {e}")))?;
         let d = PyDict::new(py);
         for (name, c) in out.names.iter().zip(out.values) {
             d.set_item(name, arr1(py, c))?;
         }
-        d.set_item(fit::correct::EXTRAPOLATED_COLUMN, bools(py, out.extrapolated))?;
+        d.set_item(fit::correction::correct::EXTRAPOLATED_COLUMN, bools(py, out.extrapolated))?;
         d.set_item("n_extrapolated", out.n_extrapolated)?;
         d.set_item("n_unmeasured", out.n_unmeasured)?;
         if let Some(t) = &plan.telescope {
@@ -803,7 +810,7 @@ impl _Calibration {
 
     /// `instpol correct` on a Stokes map file (from `instpol reduce` or `reduce(output=)`): the
     /// calibration's field, Mueller field or telescope chain over every valid bin
-    /// (`fit::request::MapPlan::correct`), the map's instrument and filter checked, the
+    /// (`fit::correction::request::MapPlan::correct`), the map's instrument and filter checked, the
     /// telescope's band and track by the CLI's rules; `output`: the corrected map, written with
     /// the correction's record (`INSTCORR`, ...). Returns the corrected map as `_reduce` does,
     /// with the correction's summary.
@@ -834,9 +841,10 @@ impl _Calibration {
         let map = py
             .detach(|| skyfield::StokesMap::read_uncorrected(&input))
             .map_err(|e| input_err(format!("Stokes map {}: {e}", input.display())))?;
-        // The one rule set of `instpol correct` on a map (fit::request::plan_map).
-        let request = fit::request::Request { parang: given, rotator, ..base };
-        let plan = fit::request::plan_map(&self.file, &request, &map).map_err(|e| self.map_error(e, &input))?;
+        // The one rule set of `instpol correct` on a map (fit::correction::request::plan_map).
+        let request = fit::correction::request::Request { parang: given, rotator, ..base };
+        let plan =
+            fit::correction::request::plan_map(&self.file, &request, &map).map_err(|e| self.map_error(e, &input))?;
         let notes: Vec<String> = plan.notes.iter().map(|n| self.note_text(n, &input)).collect();
         let name = self.path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
         let (c, stamp) = py
@@ -957,7 +965,7 @@ fn refuse_same_data<'a>(inputs: impl IntoIterator<Item = &'a PathBuf>, by: skyfi
     }
 }
 
-/// What the package's corrections ask of `fit::request`, before each adds its angles: `method=`
+/// What the package's corrections ask of `fit::correction::request`, before each adds its angles: `method=`
 /// ("exact" or "first-order") and `extrapolation_error=` checked, no angles yet, and any angles
 /// given later are the caller's arguments (refused without a telescope model, where a table's
 /// columns would only be noted).
@@ -967,16 +975,16 @@ fn request<'a>(
     extrapolation_error: f64,
     band: Option<&'a str>,
     allow_mismatch: bool,
-) -> PyResult<fit::request::Request<'a>> {
+) -> PyResult<fit::correction::request::Request<'a>> {
     let method = match method {
         "exact" => Method::Exact,
         "first-order" | "first_order" => Method::FirstOrder,
         m => return Err(input_err(format!("method '{m}': expected \"exact\" or \"first-order\""))),
     };
-    fit::request::check_extrapolation_error(extrapolation_error)
+    fit::correction::request::check_extrapolation_error(extrapolation_error)
         .map_err(|f| input_err(format!("extrapolation_error {f} must be a non-negative number")))?;
-    let base = fit::request::Request::new(method, allow_extrapolation, extrapolation_error);
-    Ok(fit::request::Request { band, angles_are_arguments: true, allow_mismatch, ..base })
+    let base = fit::correction::request::Request::new(method, allow_extrapolation, extrapolation_error);
+    Ok(fit::correction::request::Request { band, angles_are_arguments: true, allow_mismatch, ..base })
 }
 
 /// Frames to a binned Stokes map (`instpol reduce`): returns the map's arrays flat, in bin order
@@ -1017,7 +1025,7 @@ fn _reduce<'py>(
             match &mut r {
                 skyfield::reduce::PlateReduced::Linear(r) => {
                     // The exposures' telescope angles, as `instpol reduce` records them.
-                    fit::telescope_cal::record_telescope_angles(&mut r.map, &r.exposures, &frames, &inst);
+                    fit::telescope::cal::record_telescope_angles(&mut r.map, &r.exposures, &frames, &inst);
                     if let Some(out) = &output {
                         r.map.write_fits(out)?;
                     }
@@ -1203,7 +1211,7 @@ fn _catalog<'py>(
     refuse_same_data(&frames, skyfield::same::By::Content)?;
     refuse_same_data(frames.iter().chain(&read.bias).chain(&read.flat).chain(&cal), skyfield::same::By::Identity)?;
     let loaded = match &cal {
-        Some(p) => Some(py.detach(|| fit::calibration::load(p)).map_err(|e| load_err(p, e))?),
+        Some(p) => Some(py.detach(|| fit::files::calibration::load(p)).map_err(|e| load_err(p, e))?),
         None => None,
     };
     let (cat, warnings) = py
@@ -1212,11 +1220,11 @@ fn _catalog<'py>(
             Ok::<_, skyfield::Error>((cat, warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>()))
         })
         .map_err(sky_err)?;
-    // Corrected in the same run, as `instpol catalog --cal` (the one rule in fit::catalog_correct).
+    // Corrected in the same run, as `instpol catalog --cal` (the one rule in fit::correction::catalog_correct).
     let corrected = match (&loaded, &cal) {
         (Some(l), Some(p)) => {
-            let opts = fit::correct::CorrectOptions { allow_extrapolation, ..Default::default() };
-            let (c, used) = fit::catalog_correct::correct_catalog_loaded(&cat, &inst, &frames, l, opts)
+            let opts = fit::correction::correct::CorrectOptions { allow_extrapolation, ..Default::default() };
+            let (c, used) = fit::correction::catalog_correct::correct_catalog_loaded(&cat, &inst, &frames, l, opts)
                 .map_err(|e| input_err(format!("cal {}: {e}", p.display())))?;
             Some((c, used))
         }
@@ -1283,7 +1291,7 @@ fn _catalog<'py>(
     d.set_item("n_sources", cat.n_sources)?;
     // The exposures' telescope angles, as `instpol catalog` records them in its tables: what
     // `Calibration.correct(..., recorded=...)` takes.
-    match fit::telescope_cal::recorded_angles(&cat.frames, &frames, &inst) {
+    match fit::telescope::cal::recorded_angles(&cat.frames, &frames, &inst) {
         Some(r) => {
             let rd = PyDict::new(py);
             let (s, e) = r.parallactic_rad.unwrap_or_default();
@@ -1301,7 +1309,7 @@ fn _catalog<'py>(
     }
     if let Some((c, used)) = &corrected {
         // The columns of `instpol correct` (NaN for a star not measured).
-        let out = fit::columns::Outputs::of_rows(&c.rows);
+        let out = fit::correction::columns::Outputs::of_rows(&c.rows);
         for (name, values) in out.names.iter().zip(out.values) {
             d.set_item(name, arr1(py, values))?;
         }
@@ -1375,7 +1383,7 @@ fn _simulate(
             inputs.push(p.clone());
             let cal = fit::Calibration::load(p).map_err(|e| load_err(p, e))?;
             let inst = instrument::Instrument::load(&sc.instrument).map_err(inst_err)?;
-            if !fit::setup::matches_calibration(&inst.name, &sc.filter, &cal) {
+            if !fit::correction::setup::matches_calibration(&inst.name, &sc.filter, &cal) {
                 return Err(input_err(format!(
                     "{} calibrates {} {} but the scene is {} {}: use a calibration of the scene's instrument and filter",
                     p.display(),
@@ -1412,7 +1420,7 @@ fn _simulate(
 }
 
 /// The instrumental field from a Stokes map of an empty field whose sky polarization is known
-/// (`fit::pipeline::calibrate_sky_field`, what `instpol calibrate --map` runs): the fit's
+/// (`fit::models::pipeline::calibrate_sky_field`, what `instpol calibrate --map` runs): the fit's
 /// summary as JSON text (`instpol calibrate --json`'s keys, no plots); the calibration written
 /// to `out` when given. `sky`: (P percent, chi deg); `model`, `exclude` as the CLI's options.
 #[pyfunction]
@@ -1444,7 +1452,7 @@ fn _calibrate(
     for e in &exclude {
         fo.exclusions.push(e.parse().map_err(fit_err)?);
     }
-    let mut opts = fit::pipeline::CalibrateOptions { fit: fo, residual_map, ..Default::default() };
+    let mut opts = fit::models::pipeline::CalibrateOptions { fit: fo, residual_map, ..Default::default() };
     opts.set_model_name(model).map_err(fit_err)?;
     let inputs = [map.clone()];
     let name = frames_instrument(instrument, &inputs)?;
@@ -1455,13 +1463,15 @@ fn _calibrate(
     }
     refuse_overwrite(out.as_deref(), &all_inputs)?;
     let stokes_map = skyfield::StokesMap::read_uncorrected(&map).map_err(sky_err)?;
-    if let Some(w) = fit::setup::zero_angle_disagreement(&stokes_map, &inst) {
+    if let Some(w) = fit::correction::setup::zero_angle_disagreement(&stokes_map, &inst) {
         py.import("warnings")?.call_method1("warn", (w,))?;
     }
     let run = py
-        .detach(|| fit::pipeline::calibrate_sky_field(&stokes_map, &sky, &inst, vec![map.display().to_string()], &opts))
+        .detach(|| {
+            fit::models::pipeline::calibrate_sky_field(&stokes_map, &sky, &inst, vec![map.display().to_string()], &opts)
+        })
         .map_err(fit_err)?;
-    let mut summary = fit::pipeline::FitSummary::new(&run);
+    let mut summary = fit::models::pipeline::FitSummary::new(&run);
     if let Some(out) = &out {
         run.calibration.save(out).map_err(fit_err)?;
         summary.calibration_file = Some(out.display().to_string());
@@ -1469,7 +1479,7 @@ fn _calibrate(
     serde_json::to_string(&summary).map_err(|e| input_err(format!("the fit's summary: {e}")))
 }
 
-/// The instrumental field from field-star catalogs (`fit::stars_field`, what `instpol
+/// The instrumental field from field-star catalogs (`fit::models::stars_field`, what `instpol
 /// calibrate-stars` runs): the summary as JSON text (`calibrate-stars --json`'s keys, no
 /// plots); the calibration written to `out` when given. `interstellar`: None for a fitted
 /// term, `(0, 0)` with `zero` for none, or `(P percent, chi deg)`.
@@ -1491,7 +1501,7 @@ fn _calibrate_stars(
     match_radius_arcsec: f64,
     allow_mismatch: bool,
 ) -> PyResult<String> {
-    use fit::stars_field::{read_catalogs, stars_field, stars_meta, Interstellar, StarsOptions, StarsSummary};
+    use fit::models::stars_field::{read_catalogs, stars_field, stars_meta, Interstellar, StarsOptions, StarsSummary};
     if catalogs.is_empty() {
         return Err(input_err("no catalogs given: the star catalogs of the pointings (instpol catalog --out)"));
     }
@@ -1503,13 +1513,13 @@ fn _calibrate_stars(
         fit::Error::Io { .. } | fit::Error::Fits { .. } => FileError::new_err(e.to_string()),
         e => input_err(format!("{e} (instrument=)")),
     };
-    let (name, chosen) = fit::stars_field::catalogs_instrument(instrument, &catalogs).map_err(fit_err)?;
+    let (name, chosen) = fit::models::stars_field::catalogs_instrument(instrument, &catalogs).map_err(fit_err)?;
     let said = match chosen {
-        fit::stars_field::InstrumentChoice::Given => None,
-        fit::stars_field::InstrumentChoice::Recorded(i) => {
+        fit::models::stars_field::InstrumentChoice::Given => None,
+        fit::models::stars_field::InstrumentChoice::Recorded(i) => {
             Some(format!("instrument {name}, which the catalogs say they are of (INSTRUME = '{i}')"))
         }
-        fit::stars_field::InstrumentChoice::Assumed => Some(format!(
+        fit::models::stars_field::InstrumentChoice::Assumed => Some(format!(
             "the catalogs do not say which instrument they are of (no INSTRUME keyword): taken as {name}; give instrument= if they are another's"
         )),
     };
@@ -1524,7 +1534,7 @@ fn _calibrate_stars(
             Interstellar::from_percent_deg(p, chi).map_err(|e| input_err(format!("interstellar: {e}")))?
         }
     };
-    let mut calibrate = fit::pipeline::CalibrateOptions::default();
+    let mut calibrate = fit::models::pipeline::CalibrateOptions::default();
     calibrate.set_model_name(model).map_err(input_err)?;
     calibrate.fit.free_centre = free_centre;
     if !(match_radius_arcsec > 0.0 && match_radius_arcsec.is_finite()) {

@@ -2,11 +2,12 @@
 //! polarization, fitted jointly by `fit::mueller_field`.
 
 use anyhow::{anyhow, bail, Context, Result};
-use fit::mueller_cal::{MuellerCal, SkyField};
+use fit::mueller_field::cal::{MuellerCal, SkyField};
+use fit::mueller_field::smooth;
+use fit::mueller_field::stars::{read_star_fields, FieldSummary, ParamSummary};
 use fit::mueller_field::{
     fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions,
 };
-use fit::mueller_stars::{read_star_fields, FieldSummary, ParamSummary};
 use std::path::{Path, PathBuf};
 
 /// Fit the linear block of the pre-analyzer Mueller matrix over the field jointly to two or
@@ -167,7 +168,7 @@ pub fn run(a: Args) -> Result<()> {
     // The detector the maps cover (half width, half height, arcmin): the star table's stars must lie on it.
     let mut half_field: Option<(f64, f64)> = None;
     // The HWP zero angle the maps record (HWPZERO): each is turned by it into the sky frame of
-    // its known polarization (fit::mueller_cal module docs); one value for all of them.
+    // its known polarization (fit::mueller_field::cal module docs); one value for all of them.
     let mut zero: Option<(Option<f64>, &PathBuf)> = None;
     let says = |z: Option<f64>| z.map_or("none (taken as 0 deg)".to_string(), |z| format!("{z} deg"));
     for (path, p, chi, sig) in &specs {
@@ -185,7 +186,7 @@ pub fn run(a: Args) -> Result<()> {
             ),
             Some(_) => {}
         }
-        let map = fit::pipeline::map_to_sky_frame(&map, z.to_radians());
+        let map = fit::models::pipeline::map_to_sky_frame(&map, z.to_radians());
         let obs = observations_of_map(&map);
         if obs.is_empty() {
             bail!("{}: the Stokes map has no valid bin", path.display());
@@ -224,10 +225,8 @@ pub fn run(a: Args) -> Result<()> {
         None
     };
     let mf: MuellerField = match (a.smooth.as_str(), &per_bin) {
-        ("radial", Some(b)) => {
-            fit::mueller_smooth::radial_field(&b.0, a.deg).map_err(|e| anyhow!("--smooth radial: {e}"))?
-        }
-        ("interp", Some(b)) => fit::mueller_smooth::interp_field(&b.0).map_err(|e| anyhow!("--smooth interp: {e}"))?,
+        ("radial", Some(b)) => smooth::radial_field(&b.0, a.deg).map_err(|e| anyhow!("--smooth radial: {e}"))?,
+        ("interp", Some(b)) => smooth::interp_field(&b.0).map_err(|e| anyhow!("--smooth interp: {e}"))?,
         _ => fit_mueller_field(&fields, &opts).map_err(|e| anyhow!("{e}"))?,
     };
     let mut mf = mf;
@@ -255,7 +254,7 @@ pub fn run(a: Args) -> Result<()> {
                 .collect(),
             per_bin: per_bin.as_ref().map(|b| b.0.clone()).unwrap_or_default(),
             hwp_chi_offset_deg: zero_angle_deg,
-            provenance: fit::calfile::Provenance::now(
+            provenance: fit::files::calfile::Provenance::now(
                 "instpol calibrate-mueller",
                 specs
                     .iter()

@@ -2,9 +2,9 @@
 //! measured at many parallactic angles (library: `fit::telescope`).
 
 use anyhow::{bail, Context, Result};
+use fit::telescope::cal::{band_file_name, safe_name};
+use fit::telescope::report::{choose_mirror, fit_all, FitReport, Mirror, MirrorError};
 use fit::telescope::{read_observations, FitOptions, ModelKind, Observation, TelescopeFit};
-use fit::telescope_cal::{band_file_name, safe_name};
-use fit::telescope_report::{choose_mirror, fit_all, FitReport, Mirror, MirrorError};
 use fit::ErrorScaling;
 use std::path::{Path, PathBuf};
 
@@ -39,7 +39,7 @@ use std::path::{Path, PathBuf};
 /// (text and JSON "minima").
 ///
 /// Calibration files (--output, --output-dir): the fitted model (--save-model, default
-/// wiersema) is written as a TELESCOPE HDU (fit::telescope_cal): with --field-cal beside that
+/// wiersema) is written as a TELESCOPE HDU (fit::telescope::cal): with --field-cal beside that
 /// field calibration (its filter must be the band), else alone. `instpol correct` then takes
 /// the parallactic angle per row (catalog column parang_deg, optionally parang_end_deg).
 ///
@@ -136,7 +136,7 @@ fn print_fit(o: &FitReport) {
 }
 
 /// --metal, else --instrument's oblique mirror (metal, alumina over-layer), else aluminium
-/// (fit::telescope_report::choose_mirror), with this command's words.
+/// (fit::telescope::report::choose_mirror), with this command's words.
 fn mirror(a: &Args, inst: Option<&instrument::Instrument>) -> Result<Mirror> {
     let base = a.instrument.as_deref().map(Path::new).filter(|p| p.is_file()).and_then(|p| p.parent());
     let c = choose_mirror(a.metal.as_deref(), inst, base).map_err(|e| match e {
@@ -271,7 +271,7 @@ fn write_calibrations(
         })
     };
     let mut written = Vec::new();
-    let bands = fit::telescope_report::bands_of(obs);
+    let bands = fit::telescope::report::bands_of(obs);
     if let Some(path) = &a.output {
         crate::util::check_output(path)?;
         let f = if a.joint {
@@ -299,9 +299,9 @@ fn write_calibrations(
                         f.bands.iter().map(|b| b.0.as_str()).collect::<Vec<_>>().join(", ")
                     );
                 }
-                fit::telescope_cal::save_with_field(path, &cal, f, metal)?;
+                fit::telescope::cal::save_with_field(path, &cal, f, metal)?;
             }
-            None => fit::telescope_cal::save_alone(path, &instrument, f, metal, &inputs)?,
+            None => fit::telescope::cal::save_alone(path, &instrument, f, metal, &inputs)?,
         }
         written.push((i, path.clone()));
     }
@@ -312,7 +312,7 @@ fn write_calibrations(
                 .ok_or_else(|| anyhow::anyhow!("--save-model {}: that model was not fitted", save.name()))?;
             let path = dir.join(band_file_name(b));
             crate::util::check_output(&path)?;
-            fit::telescope_cal::save_alone(&path, &instrument, f, metal, &inputs)?;
+            fit::telescope::cal::save_alone(&path, &instrument, f, metal, &inputs)?;
             written.push((i, path));
         }
     }
@@ -330,7 +330,7 @@ fn check_field_instrument(
 ) -> Result<()> {
     let (Some(name), Some(inst)) = (name, inst) else { return Ok(()) };
     let fi = field_instrument.trim();
-    if !fit::setup::is_known(fi) {
+    if !fit::correction::setup::is_known(fi) {
         eprintln!(
             "warning: --field-cal {} does not say its instrument ('{fi}'): taken as {} (--instrument {name}) unchecked",
             fc.display(),
@@ -338,7 +338,7 @@ fn check_field_instrument(
         );
         return Ok(());
     }
-    if !fit::setup::same_instrument(fi, &inst.name) {
+    if !fit::correction::setup::same_instrument(fi, &inst.name) {
         bail!(
             "--field-cal {} is a calibration of instrument {fi}, but --instrument {name} is {}: the field and the telescope model must be of one instrument",
             fc.display(),

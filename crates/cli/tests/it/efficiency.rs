@@ -183,7 +183,7 @@ fn a_map_through_the_response_is_corrected_to_the_sky() {
     assert_eq!(code, 0, "reduce: {err}");
     let (q0, u0, efficiency, offset_deg) = TRUTH;
     let cal = d.join("response.fits");
-    fit::response_cal::ResponseCal {
+    fit::response::cal::ResponseCal {
         instrument: "FORS1".into(),
         filter: "V".into(),
         plate: "half_wave".into(),
