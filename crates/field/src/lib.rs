@@ -36,7 +36,7 @@ pub use analyser::{Analyser, PlateMotion};
 pub use chain::{ChainError, FieldChain, InstrumentChain};
 pub use coords::FieldCoords;
 pub use grid::{GridMap, NearestCell};
-pub use model::{FieldModel, InstPol, LinearElement};
+pub use model::{FieldModel, InstPol, LinearElement, PartialPolarizer};
 pub use radial::RadialPattern;
 pub use render::{ExposureForward, FieldBlock};
 pub use response::ConstantResponse;
