@@ -501,6 +501,9 @@ impl _Calibration {
                 "rotator_deg is ignored: the telescope model of {cal_path} was fitted without rotator angles (its offset holds the rotator's)"
             ),
             Note::ZeroAngleUnknown(w) => w.clone(),
+            Note::InstrumentFileDiffers { data, calibration } => format!(
+                "{input} and {cal_path} are of one instrument but were made with two different instrument files ({data} and {calibration}, BLAKE3): corrected; if the file's geometry, strips or zero angles changed between them, remake the calibration"
+            ),
             Note::MismatchAllowed(m) => format!(
                 "allow_mismatch: {input} and {cal_path} do not fit together ({m}); corrected all the same"
             ),
@@ -741,8 +744,10 @@ impl _Calibration {
         let base = request(method, allow_extrapolation, extrapolation_error, band.as_deref(), allow_mismatch)?;
         // What the rows are (instrument, filter, plate: catalog()'s), checked against the
         // calibration as a table's keywords are.
-        let setup =
-            setup.map(|(instrument, filter, plate)| fit::correction::setup::Setup { instrument, filter, plate });
+        let setup = setup.map(|(instrument, filter, plate)| fit::correction::setup::Setup {
+            plate,
+            ..fit::correction::setup::Setup::named(&instrument, &filter)
+        });
         // The zero angle q, u already carry (catalog()'s do): given, else what `recorded`
         // says, else none (q, u at the plate); the calibration's less it is applied, as
         // `instpol correct` takes a table's hwp_chi_offset_deg column.

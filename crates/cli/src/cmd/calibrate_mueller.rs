@@ -147,6 +147,8 @@ struct Report {
     n_bins_fitted: Option<usize>,
     n_bins_unconstrained: Option<usize>,
     warnings: Vec<String>,
+    /// What the calibration is: the maps' instrument file and detector, the run's inputs.
+    product: skyfield::provenance::Product,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -165,6 +167,8 @@ pub fn run(a: Args) -> Result<()> {
     let mut fields = Vec::new();
     // The first map's instrument, filter and field coordinates: every field must share them.
     let mut setup: Option<(String, String, field::FieldCoords)> = None;
+    // What the first map records of its instrument file and detector, for the calibration's product.
+    let mut first_product: Option<skyfield::provenance::Product> = None;
     // The detector the maps cover (half width, half height, arcmin): the star table's stars must lie on it.
     let mut half_field: Option<(f64, f64)> = None;
     // The HWP zero angle the maps record (HWPZERO): each is turned by it into the sky frame of
@@ -186,6 +190,7 @@ pub fn run(a: Args) -> Result<()> {
             ),
             Some(_) => {}
         }
+        first_product.get_or_insert_with(|| map.product.clone().unwrap_or_default());
         let map = fit::models::pipeline::map_to_sky_frame(&map, z.to_radians());
         let obs = observations_of_map(&map);
         if obs.is_empty() {
@@ -238,8 +243,9 @@ pub fn run(a: Args) -> Result<()> {
             fields.len() - n_maps
         ));
     }
+    let (instrument, filter, coords) = setup.expect("at least one field (clap requires one)");
+    let product = fit::correction::setup::Setup::named(&instrument, &filter).with_product(first_product.as_ref());
     if fits_out {
-        let (instrument, filter, coords) = setup.expect("at least one field (clap requires one)");
         let cal = MuellerCal {
             instrument,
             filter,
@@ -261,7 +267,8 @@ pub fn run(a: Args) -> Result<()> {
                     .map(|s| s.0.display().to_string())
                     .chain(a.stars.iter().map(|p| p.display().to_string()))
                     .collect(),
-            ),
+            )
+            .with_product(product.product()),
         };
         cal.save(&a.out).map_err(|e| anyhow!("{e}"))?;
     } else {
@@ -291,6 +298,7 @@ pub fn run(a: Args) -> Result<()> {
         n_bins_fitted: per_bin.as_ref().map(|b| b.0.len()),
         n_bins_unconstrained: per_bin.as_ref().map(|b| b.1),
         warnings: mf.warnings.clone(),
+        product: product.product().with_run_inputs(),
     };
     if a.json {
         return crate::util::print_json(&rep);

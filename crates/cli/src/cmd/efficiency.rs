@@ -125,9 +125,9 @@ pub fn run(a: Args) -> Result<()> {
     }
     let f = fit::response::fit(&setup.filter, &stds)?;
     if let Some(o) = &a.output {
-        fit::response::cal::ResponseCal::of_fit(&f, &setup.instrument, &setup.filter).save(o)?;
+        fit::response::cal::ResponseCal::of_fit(&f, &setup).save(o)?;
     }
-    let s = f.summary(&setup.instrument, &setup.filter, a.output.as_ref().map(|o| o.display().to_string()));
+    let s = f.summary(&setup, a.output.as_ref().map(|o| o.display().to_string()));
     for p in s.polarized.iter().filter(|p| p.excluded) {
         eprintln!(
             "warning: standard {} disagrees with the others in angle (pull {:.1}): left out; check its identification and catalogue value",

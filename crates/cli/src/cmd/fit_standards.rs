@@ -195,7 +195,8 @@ pub fn run(a: Args) -> Result<()> {
     let fits =
         fit_all(&obs, &models, table, &opts, a.joint).map_err(|(what, e)| anyhow::Error::new(e).context(what))?;
     let outputs = write_calibrations(&a, &fits, &obs, inst.as_ref(), &mirror.metal)?;
-    let mut outs: Vec<FitReport> = fits.iter().map(|(f, j)| FitReport::new(f, *j, &mirror)).collect();
+    let product = inst.as_ref().map(|i| skyfield::provenance::Product::of_instrument_alone(i).with_run_inputs());
+    let mut outs: Vec<FitReport> = fits.iter().map(|(f, j)| FitReport::new(f, *j, &mirror, product.clone())).collect();
     for (i, p) in &outputs {
         outs[*i].output = Some(p.clone());
     }
@@ -265,6 +266,7 @@ fn write_calibrations(
         _ => "unknown".to_string(),
     };
     let inputs: Vec<String> = a.files.iter().map(|f| f.display().to_string()).collect();
+    let product = inst.map(skyfield::provenance::Product::of_instrument_alone);
     let pick = |joint: bool, band: Option<&str>| {
         fits.iter().enumerate().find(|(_, (f, j))| {
             f.model == save && *j == joint && band.is_none_or(|b| f.bands.len() == 1 && f.bands[0].0 == b)
@@ -301,7 +303,7 @@ fn write_calibrations(
                 }
                 fit::telescope::cal::save_with_field(path, &cal, f, metal)?;
             }
-            None => fit::telescope::cal::save_alone(path, &instrument, f, metal, &inputs)?,
+            None => fit::telescope::cal::save_alone(path, &instrument, f, metal, &inputs, product.as_ref())?,
         }
         written.push((i, path.clone()));
     }
@@ -312,16 +314,15 @@ fn write_calibrations(
                 .ok_or_else(|| anyhow::anyhow!("--save-model {}: that model was not fitted", save.name()))?;
             let path = dir.join(band_file_name(b));
             crate::util::check_output(&path)?;
-            fit::telescope::cal::save_alone(&path, &instrument, f, metal, &inputs)?;
+            fit::telescope::cal::save_alone(&path, &instrument, f, metal, &inputs, product.as_ref())?;
             written.push((i, path));
         }
     }
     Ok(written)
 }
 
-/// The field calibration and the telescope model go into one file for one instrument: a field
-/// calibration of another instrument than --instrument is refused, naming both; one that does
-/// not say its instrument is taken with a warning (nothing to compare).
+/// The field calibration and the telescope model go into one file for one instrument: another
+/// instrument than --instrument is refused, naming both; none said is taken with a warning.
 fn check_field_instrument(
     fc: &Path,
     field_instrument: &str,

@@ -70,6 +70,12 @@ fn field_interstellar_and_polarized_stars_from_catalogs() {
     assert_eq!(cal.provenance.source, "field stars");
     assert_eq!(cal.model.kind(), "RADIAL");
     assert_eq!(cal.provenance.inputs.len(), 4);
+    let product = loaded.product.expect("the calibration's product");
+    assert_eq!(
+        (product.instrument.as_deref(), product.plate.as_deref()),
+        (Some(cal.instrument.as_str()), Some("half_wave"))
+    );
+    assert_eq!(product.inputs.len(), 4, "the four catalogs' BLAKE3: {:?}", product.inputs);
     // The table form names the rejected stars too.
     let mut t = args(&files, &["--out", dir.path().join("cal2.fits").to_str().unwrap()]);
     t.extend(offsets_args());

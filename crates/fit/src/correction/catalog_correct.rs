@@ -78,9 +78,8 @@ pub fn correct_catalog_loaded(
     // a quarter-wave plate's V/I is refused before the models are asked for).
     let plate = inst.polarimetry.plate.name().to_string();
     let data = crate::correction::setup::Setup {
-        instrument: inst.name.clone(),
-        filter: cat.filter.clone(),
         plate: Some(plate),
+        ..crate::correction::setup::Setup::named(&inst.name, &cat.filter)
     };
     crate::correction::setup::check_compatible(&data, None).map_err(Error::Mismatch)?;
     let (field, tel) = loaded.p_phi_models().map_err(Error::Calibration)?;

@@ -220,6 +220,10 @@ pub enum Note {
     /// Data of another instrument, filter or plate than the calibration's, corrected because
     /// the request allows the mismatch: what differs (the output records it).
     MismatchAllowed(crate::correction::setup::Mismatch),
+    /// The data and the calibration are of one instrument but were made with two different
+    /// instrument files (their BLAKE3, `blake3:<hex>`): corrected, and said, since an edit of
+    /// the file may have changed what the calibration assumed.
+    InstrumentFileDiffers { data: String, calibration: String },
     /// A map corrected by a telescope model alone records no HWP zero angle and its
     /// instrument gives none: what was taken, in words ([`crate::correction::setup::map_zero_angle`]).
     ZeroAngleUnknown(String),
@@ -626,8 +630,9 @@ impl MapPlan<'_> {
     }
 }
 
-/// The data's setup against the file's field or Mueller calibration (a telescope model alone
-/// is checked by its band), unless the request allows a mismatch.
+/// The data's setup against the file's ([`crate::correction::setup::Setup::of_calibration`]: a
+/// telescope model alone is checked by its band apart), unless the request allows a
+/// mismatch; two instrument files of one instrument are a note.
 fn check_setup(
     file: &CalibrationFile,
     req: &Request<'_>,
@@ -635,20 +640,17 @@ fn check_setup(
     map: bool,
     notes: &mut Vec<Note>,
 ) -> Result<(), Refusal> {
-    // A telescope model alone: its instrument (the file's), its band checked apart
-    // (`band_fits_data`); an empty filter is one that says nothing ([`crate::correction::setup::is_known`]).
-    let setup = match (&file.field, &file.mueller, &file.response) {
-        (Some(c), _, _) => Some((c.instrument.as_str(), c.filter.as_str())),
-        (None, Some(m), _) => Some((m.instrument.as_str(), m.filter.as_str())),
-        (None, None, Some(r)) => Some((r.instrument.as_str(), r.filter.as_str())),
-        (None, None, None) => Some((file.instrument.as_str(), "")),
-    };
-    let checked = crate::correction::setup::check_compatible(data, setup).map_err(|m| match m {
-        crate::correction::setup::Mismatch::Setup { data, calibration: (i, f) } if f.is_empty() => {
-            crate::correction::setup::Mismatch::Setup { data, calibration: (i, "(a telescope model's band)".into()) }
+    use crate::correction::setup::{check_compatible, definition_differs, Mismatch, Setup};
+    let cal = Setup::of_calibration(file);
+    let checked = check_compatible(data, Some(&cal)).map_err(|m| match m {
+        Mismatch::Setup { data, calibration: (i, f) } if f.is_empty() => {
+            Mismatch::Setup { data, calibration: (i, "(a telescope model's band)".into()) }
         }
         m => m,
     });
+    if let Some((data, calibration)) = definition_differs(data, &cal) {
+        notes.push(Note::InstrumentFileDiffers { data, calibration });
+    }
     match checked {
         Ok(()) => Ok(()),
         Err(mismatch) if req.allow_mismatch => {
@@ -668,8 +670,7 @@ pub fn plan_map<'a>(
     map: &skyfield::StokesMap,
 ) -> Result<MapPlan<'a>, Refusal> {
     check_options(file, req)?;
-    let data =
-        crate::correction::setup::Setup { instrument: map.instrument.clone(), filter: map.filter.clone(), plate: None };
+    let data = crate::correction::setup::Setup::named(&map.instrument, &map.filter).with_product(map.product.as_ref());
     let mut notes = vec![];
     check_setup(file, req, &data, true, &mut notes)?;
     let kind = file.kind();

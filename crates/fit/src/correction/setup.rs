@@ -106,21 +106,87 @@ pub fn matches_calibration(inst: &str, filter: &str, cal: &crate::Calibration) -
     matches_setup(inst, filter, &cal.instrument, &cal.filter)
 }
 
-/// What a product (a catalog's rows, a map) says it is, beside what a calibration is for: the
-/// one check of every combination of data with a calibration ([`check_compatible`]).
-#[derive(Debug, Clone, PartialEq)]
+/// What a product (a catalog's rows, a map) or a calibration says it is: the one check of
+/// every combination of data with a calibration ([`check_compatible`]). Each field but the
+/// instrument and filter is `None` when the side does not say (a table written by other
+/// software, a calibration file written before products were recorded).
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct Setup {
     pub instrument: String,
     pub filter: String,
     /// `half_wave` or `quarter_wave`, when known.
     pub plate: Option<String>,
+    /// `blake3:<hex>` of the instrument file the side was made with.
+    pub instrument_hash: Option<String>,
+    /// The detector's size (unbinned pixels, x by y) and its pixel scale (arcsec per unbinned
+    /// pixel): the geometry field positions are measured in.
+    pub detector_px: Option<(usize, usize)>,
+    pub pixel_scale_arcsec: Option<f64>,
 }
 
 impl Setup {
     /// The setup a product records (`None` when it records no instrument or filter: a table
     /// written by other software).
     pub fn of_product(p: &skyfield::provenance::Product) -> Option<Self> {
-        Some(Setup { instrument: p.instrument.clone()?, filter: p.filter.clone()?, plate: p.plate.clone() })
+        Some(Setup { instrument: p.instrument.clone()?, filter: p.filter.clone()?, ..Setup::of_product_parts(p) })
+    }
+
+    /// A setup of instrument `instrument` and filter `filter` that says nothing else.
+    pub fn named(instrument: &str, filter: &str) -> Self {
+        Setup { instrument: instrument.to_string(), filter: filter.to_string(), ..Default::default() }
+    }
+
+    /// `self` with what `p` records beside the instrument and filter (plate, instrument file,
+    /// detector), where `self` does not say; `p` may be `None`.
+    pub fn with_product(self, p: Option<&skyfield::provenance::Product>) -> Self {
+        let Some(p) = p else { return self };
+        let o = Setup::of_product_parts(p);
+        Setup {
+            plate: self.plate.or(o.plate),
+            instrument_hash: self.instrument_hash.or(o.instrument_hash),
+            detector_px: self.detector_px.or(o.detector_px),
+            pixel_scale_arcsec: self.pixel_scale_arcsec.or(o.pixel_scale_arcsec),
+            ..self
+        }
+    }
+
+    fn of_product_parts(p: &skyfield::provenance::Product) -> Self {
+        Setup {
+            instrument: String::new(),
+            filter: String::new(),
+            plate: p.plate.clone(),
+            instrument_hash: p.instrument_hash.clone(),
+            detector_px: p.detector_px,
+            pixel_scale_arcsec: p.pixel_scale_arcsec,
+        }
+    }
+
+    /// The product keywords of a calibration made from data of this setup (its instrument,
+    /// filter, plate, instrument file and detector; the inputs are the run's when written).
+    pub fn product(&self) -> skyfield::provenance::Product {
+        let known = |s: &str| is_known(s).then(|| s.to_string());
+        skyfield::provenance::Product {
+            instrument: known(&self.instrument),
+            instrument_hash: self.instrument_hash.clone(),
+            filter: known(&self.filter),
+            plate: self.plate.clone(),
+            detector_px: self.detector_px,
+            pixel_scale_arcsec: self.pixel_scale_arcsec,
+            ..Default::default()
+        }
+    }
+
+    /// The setup of a calibration file: its model's instrument and filter (a telescope model
+    /// alone: the file's instrument and no filter, its band checked apart) and what the file's
+    /// product keywords record.
+    pub fn of_calibration(file: &crate::files::calibration::CalibrationFile) -> Self {
+        let (inst, filter) = match (&file.field, &file.mueller, &file.response) {
+            (Some(c), _, _) => (c.instrument.as_str(), c.filter.as_str()),
+            (None, Some(m), _) => (m.instrument.as_str(), m.filter.as_str()),
+            (None, None, Some(r)) => (r.instrument.as_str(), r.filter.as_str()),
+            (None, None, None) => (file.instrument.as_str(), ""),
+        };
+        Setup::named(inst, filter).with_product(file.product.as_ref())
     }
 }
 
@@ -131,6 +197,11 @@ pub enum Mismatch {
     Setup { data: (String, String), calibration: (String, String) },
     /// Data of a quarter-wave plate (`V/I`): a calibration corrects linear `q, u`.
     Plate { plate: String },
+    /// Data and calibration each say their plate, and they differ.
+    PlateDiffers { data: String, calibration: String },
+    /// Data and calibration each say their detector (size in pixels, pixel scale), and the
+    /// field positions of one are not the other's.
+    Geometry { data: String, calibration: String },
 }
 
 impl Mismatch {
@@ -141,6 +212,8 @@ impl Mismatch {
                 format!("data {} {}, calibration {} {}", data.0, data.1, calibration.0, calibration.1)
             }
             Mismatch::Plate { plate } => format!("data of a {plate} plate"),
+            Mismatch::PlateDiffers { data, calibration } => format!("plate: data {data}, calibration {calibration}"),
+            Mismatch::Geometry { data, calibration } => format!("detector: data {data}, calibration {calibration}"),
         };
         s.chars().filter(|c| (' '..='~').contains(c) && *c != '\'').take(68).collect()
     }
@@ -159,26 +232,67 @@ impl std::fmt::Display for Mismatch {
                 "the data were taken through a {} plate (V/I); a calibration corrects the linear q, u of a half-wave plate",
                 plate.replace('_', "-")
             ),
+            Mismatch::PlateDiffers { data, calibration } => write!(
+                f,
+                "the data were taken through a {} plate, the calibration through a {} plate",
+                data.replace('_', "-"),
+                calibration.replace('_', "-")
+            ),
+            Mismatch::Geometry { data, calibration } => write!(
+                f,
+                "the data's detector is {data}, the calibration's {calibration}: their field positions are not the same"
+            ),
         }
     }
 }
 
-/// The one compatibility check of data (`data`, what the product says) and a calibration of
-/// instrument and filter `cal` (`None`: a telescope model alone, whose band is checked apart):
-/// a half-wave plate's data, of the same instrument and filter ([`matches_setup`]: names that
-/// say nothing are not checked).
-pub fn check_compatible(data: &Setup, cal: Option<(&str, &str)>) -> Result<(), Mismatch> {
+/// The one compatibility check of data (`data`, what the product says) and a calibration
+/// (`cal`, what the file says: [`Setup::of_calibration`]; `None`: nothing to compare): a
+/// half-wave plate's data, of the same instrument and filter ([`matches_setup`]: names that
+/// say nothing are not checked; a calibration of no filter, a telescope model alone, has its
+/// band checked apart), through the same plate and on the same detector where both sides say.
+pub fn check_compatible(data: &Setup, cal: Option<&Setup>) -> Result<(), Mismatch> {
     if let Some(p) = data.plate.as_deref().filter(|p| !p.eq_ignore_ascii_case("half_wave")) {
         return Err(Mismatch::Plate { plate: p.to_string() });
     }
-    let Some((cal_inst, cal_filter)) = cal else { return Ok(()) };
-    if !matches_setup(&data.instrument, &data.filter, cal_inst, cal_filter) {
+    let Some(cal) = cal else { return Ok(()) };
+    if !matches_setup(&data.instrument, &data.filter, &cal.instrument, &cal.filter) {
         return Err(Mismatch::Setup {
             data: (data.instrument.clone(), data.filter.clone()),
-            calibration: (cal_inst.to_string(), cal_filter.to_string()),
+            calibration: (cal.instrument.clone(), cal.filter.clone()),
         });
     }
+    if let (Some(d), Some(c)) = (&data.plate, &cal.plate) {
+        if !d.trim().eq_ignore_ascii_case(c.trim()) {
+            return Err(Mismatch::PlateDiffers { data: d.clone(), calibration: c.clone() });
+        }
+    }
+    let geometry = |s: &Setup| (s.detector_px, s.pixel_scale_arcsec);
+    let words = |s: &Setup| {
+        let size = s.detector_px.map_or("?".to_string(), |(x, y)| format!("{x}x{y} px"));
+        let scale = s.pixel_scale_arcsec.map_or("?".to_string(), |a| format!("{a} arcsec/px"));
+        format!("{size} at {scale}")
+    };
+    let size_differs = matches!((data.detector_px, cal.detector_px), (Some(a), Some(b)) if a != b);
+    // The pixel scale as written round-trips ({:?}); a relative 1e-9 only forgives arithmetic.
+    let scale_differs = matches!(
+        (data.pixel_scale_arcsec, cal.pixel_scale_arcsec),
+        (Some(a), Some(b)) if (a - b).abs() > 1e-9 * a.abs().max(b.abs())
+    );
+    if (size_differs || scale_differs) && geometry(data) != geometry(cal) {
+        return Err(Mismatch::Geometry { data: words(data), calibration: words(cal) });
+    }
     Ok(())
+}
+
+/// Whether data and a calibration of one instrument were made with two different instrument
+/// files (both record the file's BLAKE3, and they differ): not refused (a file edited for a
+/// comment is the same instrument), but said, with the two hashes.
+pub fn definition_differs(data: &Setup, cal: &Setup) -> Option<(String, String)> {
+    match (&data.instrument_hash, &cal.instrument_hash) {
+        (Some(d), Some(c)) if d != c => Some((d.clone(), c.clone())),
+        _ => None,
+    }
 }
 
 /// Whether two instrument names a product or calibration records are one instrument (any

@@ -87,6 +87,12 @@ pub struct Provenance {
     pub tool_version: String,
     /// UTC, ISO 8601.
     pub date: String,
+    /// What the calibration is: the instrument file's BLAKE3, the filter and its wavelength,
+    /// the plate, the detector, the inputs' BLAKE3 (`skyfield::provenance::Product`, written
+    /// as the product keywords every table and map carries); `None` for a file that does not
+    /// say (written before products were recorded, or made without an instrument file).
+    #[serde(default)]
+    pub product: Option<skyfield::provenance::Product>,
 }
 
 impl Provenance {
@@ -99,8 +105,68 @@ impl Provenance {
             source: source.into(),
             tool_version: format!("instpol {}", env!("CARGO_PKG_VERSION")),
             date: utc_now_iso(),
+            product: None,
         }
     }
+
+    /// [`Provenance::now`] of a calibration of `inst` in `filter`, with its product
+    /// (`skyfield::provenance::Product::of_instrument`; the inputs' hashes are the run's).
+    pub fn of_instrument(source: &str, inputs: Vec<String>, inst: &instrument::Instrument, filter: &str) -> Self {
+        let product = skyfield::provenance::Product::of_instrument(inst, filter, None);
+        Provenance { product: Some(product), ..Provenance::now(source, inputs) }
+    }
+
+    /// `self` recording what the calibration is (`product`).
+    pub fn with_product(self, product: skyfield::provenance::Product) -> Self {
+        Provenance { product: Some(product), ..self }
+    }
+
+    /// The keywords every calibration file writes of where it came from (`IP SOURCE`, `IP
+    /// TOOL`, `IP DATE`) and the product keywords of what it is; the inputs are each format's.
+    pub(crate) fn write_common(&self, w: &mut KeyWriter) -> Result<()> {
+        w.str("SOURCE", &self.source)?;
+        w.str("TOOL", &self.tool_version)?;
+        w.str("DATE", &self.date)?;
+        write_product(w, self.product.as_ref())
+    }
+
+    /// What [`Provenance::write_common`] wrote, read back (no inputs: each format reads its
+    /// own); a product keyword that does not parse is an error naming it.
+    pub(crate) fn read_common(r: &mut KeyReader) -> Result<Self> {
+        Ok(Provenance {
+            inputs: vec![],
+            sky_p: None,
+            sky_chi_deg: None,
+            source: r.opt_str("SOURCE").unwrap_or_default(),
+            tool_version: r.opt_str("TOOL").unwrap_or_default(),
+            date: r.opt_str("DATE").unwrap_or_default(),
+            product: read_product(r)?,
+        })
+    }
+}
+
+/// A calibration's product into its primary header, as the product keywords of every table
+/// and map (`skyfield::provenance::Product::pairs`; plain FITS keywords beside the `HIERARCH
+/// IP` ones), the inputs the run's when it lists none.
+pub(crate) fn write_product(w: &mut KeyWriter, product: Option<&skyfield::provenance::Product>) -> Result<()> {
+    for (k, v) in product.iter().flat_map(|p| p.with_run_inputs().pairs()) {
+        w.plain(&k, &v)?;
+    }
+    Ok(())
+}
+
+/// The product keywords of a calibration file's primary header (any kind of calibration
+/// file), `None` when it has none.
+pub fn product_of(path: &Path) -> Result<Option<skyfield::provenance::Product>> {
+    let mut f = open_versioned(path)?;
+    let hdu = f.primary_hdu().map_err(fits_err(path, "reading the primary HDU"))?;
+    read_product(&mut KeyReader { f: &mut f, hdu: &hdu, path })
+}
+
+/// The product keywords of the HDU `r` reads, `None` when it has none.
+pub(crate) fn read_product(r: &mut KeyReader) -> Result<Option<skyfield::provenance::Product>> {
+    skyfield::provenance::Product::from_header(r.f, r.hdu)
+        .map_err(|what| Error::BadFile { path: r.path.to_path_buf(), what: format!("product keywords: {what}") })
 }
 
 /// The detector pixel grid behind the field coordinates: field position `(0, 0)` arcmin is
@@ -372,9 +438,7 @@ impl Calibration {
         if let Some(chi) = pv.sky_chi_deg {
             w.real("SKY CHI DEG", chi)?;
         }
-        w.str("SOURCE", &pv.source)?;
-        w.str("TOOL", &pv.tool_version)?;
-        w.str("DATE", &pv.date)?;
+        pv.write_common(&mut w)?;
         w.int("NINPUT", pv.inputs.len() as i64)?;
 
         // Images.
@@ -574,12 +638,9 @@ impl Calibration {
             origin_px: [r.opt_real("PIX ORIGIN X").unwrap_or(0.0), r.opt_real("PIX ORIGIN Y").unwrap_or(0.0)],
         });
         let mut provenance = Provenance {
-            inputs: vec![],
             sky_p: r.opt_real("SKY P"),
             sky_chi_deg: r.opt_real("SKY CHI DEG"),
-            source: r.opt_str("SOURCE").unwrap_or_default(),
-            tool_version: r.opt_str("TOOL").unwrap_or_default(),
-            date: r.opt_str("DATE").unwrap_or_default(),
+            ..Provenance::read_common(&mut r)?
         };
         let ninput = r.opt_int("NINPUT").unwrap_or(0);
 

@@ -46,6 +46,10 @@ pub struct CalibrationFile {
     pub telescope: Option<TelescopeFit>,
     pub mueller: Option<MuellerCal>,
     pub response: Option<ResponseCal>,
+    /// What the file is: the product keywords of its primary header (the instrument file's
+    /// BLAKE3, the filter, the plate, the detector, the inputs' BLAKE3), `None` for a file
+    /// that does not record them (written before products were, or by other software).
+    pub product: Option<skyfield::provenance::Product>,
 }
 
 /// Read any calibration file: the format version is checked, the kind is read from
@@ -53,6 +57,7 @@ pub struct CalibrationFile {
 /// keyword, HDU or row at fault). A file with no model is refused.
 pub fn load(path: &Path) -> Result<CalibrationFile> {
     let (model, instrument) = crate::files::keys::model_and_instrument(path)?;
+    let product = crate::files::calfile::product_of(path)?;
     let path_buf = path.to_path_buf();
     if model == crate::files::keys::MUELLER_MODEL {
         let m = MuellerCal::load(path)?;
@@ -63,6 +68,7 @@ pub fn load(path: &Path) -> Result<CalibrationFile> {
             telescope: None,
             mueller: Some(m),
             response: None,
+            product,
         });
     }
     if model == crate::response::cal::RESPONSE_MODEL {
@@ -74,6 +80,7 @@ pub fn load(path: &Path) -> Result<CalibrationFile> {
             telescope: None,
             mueller: None,
             response: Some(r),
+            product,
         });
     }
     let field = if model == crate::files::keys::TELESCOPE_MODEL { None } else { Some(Calibration::load(path)?) };
@@ -88,7 +95,7 @@ pub fn load(path: &Path) -> Result<CalibrationFile> {
             ),
         });
     }
-    Ok(CalibrationFile { path: path_buf, instrument, field, telescope, mueller: None, response: None })
+    Ok(CalibrationFile { path: path_buf, instrument, field, telescope, mueller: None, response: None, product })
 }
 
 impl CalibrationFile {

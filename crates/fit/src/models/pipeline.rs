@@ -60,7 +60,7 @@ impl CalibrationMeta {
         inputs: Vec<String>,
     ) -> Self {
         let filter = inst.filter(map_filter).ok();
-        let mut provenance = Provenance::now("sky-field", inputs);
+        let mut provenance = Provenance::of_instrument("sky-field", inputs, inst, map_filter);
         provenance.sky_p = Some(sky.p);
         provenance.sky_chi_deg = Some(sky.chi.to_degrees());
         CalibrationMeta {
@@ -387,6 +387,10 @@ pub struct FitSummary {
     /// `rms_residual`, `chi2_dof`, `n_bins_used` the polynomial's.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub poly: Option<PolySummary>,
+    /// What the calibration is (its product keywords, the inputs the run's); omitted for a
+    /// calibration that does not say (refitted from a file written before products were).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub product: Option<skyfield::provenance::Product>,
 }
 
 /// A polynomial field in [`FitSummary`]: its terms `x^i y^j` (`powers`, `[i, j]`) and the
@@ -437,6 +441,7 @@ impl FitSummary {
             calibration_file: None,
             plot_outputs: Vec::new(),
             poly: None,
+            product: cal.provenance.product.as_ref().map(|p| p.with_run_inputs()),
         };
         if let Some(p) = &run.poly {
             let m = &p.model;

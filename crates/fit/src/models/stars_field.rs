@@ -215,14 +215,15 @@ pub fn read_catalogs(
         if let (Some(setup), Some(e)) =
             (table.product.as_ref().and_then(crate::correction::setup::Setup::of_product), expect)
         {
-            crate::correction::setup::check_compatible(&setup, Some(e)).map_err(|m| {
-                Error::Input(format!(
-                    "{} and the calibration asked for ({} {}): {m}: give the catalogs' instrument and filter",
-                    path.display(),
-                    e.0,
-                    e.1
-                ))
-            })?;
+            crate::correction::setup::check_compatible(&setup, Some(&crate::correction::setup::Setup::named(e.0, e.1)))
+                .map_err(|m| {
+                    Error::Input(format!(
+                        "{} and the calibration asked for ({} {}): {m}: give the catalogs' instrument and filter",
+                        path.display(),
+                        e.0,
+                        e.1
+                    ))
+                })?;
         }
         let (r, z) = catalog_rows(&table, path, k)?;
         match zero {
@@ -822,7 +823,7 @@ pub fn stars_meta(
         lambda_nm: f.map(|f| f.lambda_eff_nm).unwrap_or(f64::NAN),
         hwp_chi_offset_deg: zero_angle_deg,
         pixel: Some(crate::files::calfile::PixelGrid::of_instrument(inst)),
-        provenance: Provenance::now(SOURCE, inputs),
+        provenance: Provenance::of_instrument(SOURCE, inputs, inst, filter),
     }
 }
 

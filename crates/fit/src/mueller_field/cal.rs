@@ -228,9 +228,7 @@ impl MuellerCal {
             w.int("PIX BINNING", c.binning as i64)?;
         }
         let pv = &self.provenance;
-        w.str("SOURCE", &pv.source)?;
-        w.str("TOOL", &pv.tool_version)?;
-        w.str("DATE", &pv.date)?;
+        pv.write_common(&mut w)?;
         w.int("NINPUT", pv.inputs.len() as i64)?;
         for (k, name) in pv.inputs.iter().enumerate() {
             w.str(&format!("INPUT{}", k + 1), name)?;
@@ -394,14 +392,7 @@ impl MuellerCal {
                 Some(FieldCoords::with_origin(origin, scale).binned(binning as usize))
             }
         };
-        let mut provenance = Provenance {
-            inputs: vec![],
-            sky_p: None,
-            sky_chi_deg: None,
-            source: r.opt_str("SOURCE").unwrap_or_default(),
-            tool_version: r.opt_str("TOOL").unwrap_or_default(),
-            date: r.opt_str("DATE").unwrap_or_default(),
-        };
+        let mut provenance = Provenance::read_common(&mut r)?;
         let ninput = r.opt_int("NINPUT").unwrap_or(0).clamp(0, 10_000);
         for k in 1..=ninput {
             provenance.inputs.push(r.opt_str(&format!("INPUT{k}")).unwrap_or_default());

@@ -35,20 +35,26 @@ pub struct ResponseCal {
     pub covariance: [[f64; 4]; 4],
     pub n_unpolarized: usize,
     pub n_polarized: usize,
+    /// What the calibration is (the product keywords: the instrument file's BLAKE3, the
+    /// detector, the inputs' BLAKE3), `None` for a file that does not say.
+    pub product: Option<skyfield::provenance::Product>,
 }
 
 impl ResponseCal {
-    /// The calibration of a fit ([`crate::response::fit`]) for `instrument` and `filter`.
-    pub fn of_fit(fit: &crate::response::ResponseFit, instrument: &str, filter: &str) -> Self {
+    /// The calibration of a fit ([`crate::response::fit`]) of standards measured with
+    /// `setup` ([`crate::response::one_setup`]: its instrument, filter and what the catalogs
+    /// record of their instrument file and detector).
+    pub fn of_fit(fit: &crate::response::ResponseFit, setup: &crate::correction::setup::Setup) -> Self {
         ResponseCal {
-            instrument: instrument.into(),
-            filter: filter.into(),
+            instrument: setup.instrument.clone(),
+            filter: setup.filter.clone(),
             plate: "half_wave".into(),
             hwp_chi_offset_deg: fit.hwp_chi_offset_deg,
             response: fit.response,
             covariance: fit.covariance,
             n_unpolarized: fit.unpolarized.len(),
             n_polarized: fit.polarized.standards.len(),
+            product: Some(setup.product()),
         }
     }
 
@@ -76,7 +82,8 @@ impl ResponseCal {
             }
             w.int("RE NUNPOL", self.n_unpolarized as i64)?;
             w.int("RE NPOL", self.n_polarized as i64)?;
-            w.str("CREATED", &crate::files::keys::utc_now_iso())
+            w.str("CREATED", &crate::files::keys::utc_now_iso())?;
+            crate::files::calfile::write_product(&mut w, self.product.as_ref())
         })
     }
 
@@ -128,6 +135,7 @@ impl ResponseCal {
             covariance,
             n_unpolarized: r.opt_int("RE NUNPOL").unwrap_or(0).max(0) as usize,
             n_polarized: r.opt_int("RE NPOL").unwrap_or(0).max(0) as usize,
+            product: crate::files::calfile::read_product(&mut r)?,
         })
     }
 

@@ -394,6 +394,7 @@ pub fn one_setup(
         instrument: instrument.map(str::to_string).or(r.map(|s| s.instrument.clone())).unwrap_or_default(),
         filter: filter.map(str::to_string).or(r.map(|s| s.filter.clone())).unwrap_or_default(),
         plate: Some("half_wave".into()),
+        ..r.cloned().unwrap_or_default()
     };
     let one = given(recorded.as_ref());
     if one.instrument.is_empty() || one.filter.is_empty() {
@@ -401,7 +402,7 @@ pub fn one_setup(
     }
     for (name, s) in setups {
         if let Some(s) = s {
-            crate::correction::setup::check_compatible(s, Some((&one.instrument, &one.filter)))
+            crate::correction::setup::check_compatible(s, Some(&one))
                 .map_err(|m| format!("{name} and the other standards do not fit together: {m}"))?;
         }
     }
@@ -432,6 +433,9 @@ pub struct Summary {
     pub polarized: Vec<PolarizedRow>,
     /// The file written, if any.
     pub output: Option<String>,
+    /// What the standards' catalogs record of their instrument file and detector, and the
+    /// run's inputs: the response file's product.
+    pub product: skyfield::provenance::Product,
 }
 
 /// A polarized standard's row of the [`Summary`]: measured (with `(q0, u0)` taken off, in the
@@ -450,12 +454,14 @@ pub struct PolarizedRow {
 }
 
 impl ResponseFit {
-    /// The summary for `instrument` and `filter`, with the file written (`output`).
-    pub fn summary(&self, instrument: &str, filter: &str, output: Option<String>) -> Summary {
+    /// The summary for the standards' `setup` ([`one_setup`]), with the file written
+    /// (`output`).
+    pub fn summary(&self, setup: &crate::correction::setup::Setup, output: Option<String>) -> Summary {
         let r = &self.polarized;
         Summary {
-            instrument: instrument.into(),
-            filter: filter.into(),
+            instrument: setup.instrument.clone(),
+            filter: setup.filter.clone(),
+            product: setup.product().with_run_inputs(),
             hwp_chi_offset_deg: self.hwp_chi_offset_deg,
             q_inst: self.response.q0,
             sigma_q_inst: self.sigma_q0,
@@ -559,6 +565,7 @@ mod tests {
             covariance: [[0.0; 4]; 4],
             n_unpolarized: 1,
             n_polarized: 1,
+            product: None,
         };
         let m = meas(0.02, -0.01, 0.001);
         let c = cal(1.0, 0.0).correct(&m).unwrap();

@@ -48,6 +48,7 @@
 //! (`crates/cli/tests/it/telescope_frames.rs`, `the_chain_undoes_the_telescope_through_a_hwp_zero_angle`).
 
 use crate::correction::correct::{Corrected, Corrector, Measurement};
+use crate::files::calfile::Provenance;
 use crate::files::keys::{fits_err, KeyReader, KeyWriter};
 use crate::models::model::{FieldModel, InstPol};
 use crate::models::radial::ErrorScaling;
@@ -134,17 +135,24 @@ pub fn band_file_name(band: &str) -> String {
 }
 
 /// Write a calibration file holding only the telescope model of `instrument` (atomically:
-/// a temporary file beside `path`, renamed when complete).
-pub fn save_alone(path: &Path, instrument: &str, fit: &TelescopeFit, metal: &str, inputs: &[String]) -> Result<()> {
+/// a temporary file beside `path`, renamed when complete), with what it is (`product`: the
+/// instrument file's hash, the plate, the detector, the inputs' hashes) when known.
+pub fn save_alone(
+    path: &Path,
+    instrument: &str,
+    fit: &TelescopeFit,
+    metal: &str,
+    inputs: &[String],
+    product: Option<&skyfield::provenance::Product>,
+) -> Result<()> {
     crate::files::keys::write_fits_atomically(path, |f| {
         let hdu = f.primary_hdu().map_err(fits_err(path, "opening the primary HDU"))?;
         let mut w = KeyWriter { f, hdu: &hdu, path };
         w.int("FORMAT VERSION", crate::files::keys::FORMAT_VERSION)?;
         w.str("INSTRUMENT", instrument)?;
         w.str("MODEL", MODEL_KIND)?;
-        w.str("SOURCE", "instpol fit-standards")?;
-        w.str("TOOL", &format!("instpol {}", env!("CARGO_PKG_VERSION")))?;
-        w.str("DATE", &crate::files::keys::utc_now_iso())?;
+        let pv = Provenance { product: product.cloned(), ..Provenance::now("instpol fit-standards", inputs.to_vec()) };
+        pv.write_common(&mut w)?;
         w.int("NINPUT", inputs.len() as i64)?;
         for (k, name) in inputs.iter().enumerate() {
             w.str(&format!("INPUT{}", k + 1), name)?;

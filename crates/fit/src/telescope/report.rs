@@ -210,11 +210,16 @@ pub struct FitReport {
     /// The calibration file this fit was written to, if any.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub output: Option<PathBuf>,
+    /// What the model is of: the instrument file and detector (`--instrument`), the run's
+    /// inputs; omitted without an instrument.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub product: Option<skyfield::provenance::Product>,
 }
 
 impl FitReport {
-    /// The report of fit `f` (`joint` or of one band) from `mirror`.
-    pub fn new(f: &TelescopeFit, joint: bool, mirror: &Mirror) -> Self {
+    /// The report of fit `f` (`joint` or of one band) from `mirror`, of the instrument
+    /// `product` says (`None`: none given).
+    pub fn new(f: &TelescopeFit, joint: bool, mirror: &Mirror, product: Option<skyfield::provenance::Product>) -> Self {
         FitReport {
             model: f.model.name(),
             metal: mirror.metal.clone(),
@@ -277,6 +282,7 @@ impl FitReport {
                 })
                 .collect(),
             output: None,
+            product,
         }
     }
 }

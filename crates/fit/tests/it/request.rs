@@ -73,6 +73,7 @@ fn file(field: Option<fit::Calibration>, telescope: Option<TelescopeFit>) -> Cal
         telescope,
         mueller: None,
         response: None,
+        product: None,
     }
 }
 
@@ -425,7 +426,7 @@ fn celestial_rows_are_corrected_in_the_instruments_frame_and_come_back_to_the_sk
 #[test]
 fn a_telescope_model_alone_is_checked_against_the_data_instrument() {
     let f = file(None, Some(telescope(false)));
-    let setup = |inst: &str| fit::correction::setup::Setup { instrument: inst.into(), filter: "V".into(), plate: None };
+    let setup = |inst: &str| fit::correction::setup::Setup::named(inst, "V");
     let other = setup("FORS2");
     let req = Request { data: Some(&other), parang: Some(Track::at(0.2)), ..request() };
     match plan_rows(&f, &req, 1).err() {

@@ -86,7 +86,7 @@ fn real_efosc2_standards_leave_one_out_through_the_calibration_file_are_unpolari
             let rest: Vec<_> = obs.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, o)| o.clone()).collect();
             let f = fit_v(&rest, &table);
             let path = t.path().join(format!("{stem}_{k}.fits"));
-            save_alone(&path, "EFOSC2", &f, "Rakic 1995", &[]).unwrap();
+            save_alone(&path, "EFOSC2", &f, "Rakic 1995", &[], None).unwrap();
             let l = load(&path).unwrap();
             assert!(l.field.is_none());
             assert_eq!(l.kind(), fit::files::calibration::Kind::Telescope);
@@ -177,7 +177,7 @@ fn polarized_standard_through_a_night_comes_back_with_its_catalogued_p_and_chi()
     let f = fit_v(&obs, &table);
     let t = tmp();
     let path = t.path().join("tel.fits");
-    save_alone(&path, "EFOSC2", &f, "aluminium", &[]).unwrap();
+    save_alone(&path, "EFOSC2", &f, "aluminium", &[], None).unwrap();
     let tel = load(&path).unwrap().telescope.unwrap();
     let sky = [1.0, p_true * (2.0 * chi_true).cos(), p_true * (2.0 * chi_true).sin(), 0.0];
     let (mut chi2, mut n) = (0.0, 0);
@@ -375,7 +375,7 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
     }
     // A telescope-only file is refused by the field reader, by name.
     let alone = t.path().join("alone.fits");
-    save_alone(&alone, "EFOSC2", &f, "aluminium", &["pv_standards.txt".into()]).unwrap();
+    save_alone(&alone, "EFOSC2", &f, "aluminium", &["pv_standards.txt".into()], None).unwrap();
     let e = fit::Calibration::load(&alone).unwrap_err().to_string();
     assert!(e.contains("only a telescope model"), "{e}");
     // Malformed HDUs (written by hand, e.g.) are refused by keyword or row.
@@ -386,7 +386,7 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
     neg.bands[0].1.factor = -0.5;
     for (bad, key) in [(extra, "HIERARCH IP TEL NPAR = 3"), (neg, "row 1 (band V)")] {
         let p = t.path().join("bad.fits");
-        save_alone(&p, "EFOSC2", &bad, "aluminium", &[]).unwrap();
+        save_alone(&p, "EFOSC2", &bad, "aluminium", &[], None).unwrap();
         let e = load(&p).unwrap_err().to_string();
         assert!(e.contains(key) && e.contains("bad.fits"), "{key}: {e}");
     }
@@ -394,7 +394,7 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
     let p = t.path().join("badcov.fits");
     let mut bad = f.clone();
     bad.covariance[0][1] = 1.0;
-    save_alone(&p, "EFOSC2", &bad, "aluminium", &[]).unwrap();
+    save_alone(&p, "EFOSC2", &bad, "aluminium", &[], None).unwrap();
     let e = load(&p).unwrap_err().to_string();
     assert!(e.contains("TEL COV 0 1") && e.contains("correlation"), "{e}");
 }

@@ -101,6 +101,9 @@ struct Summary {
     coords: Option<Coords>,
     #[serde(flatten)]
     report: columns::Report,
+    /// What the output is, as it records it (a table written by other software: none).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    product: Option<skyfield::provenance::Product>,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -184,6 +187,7 @@ fn run_table(
     let rows = out.extrapolated.len();
     crate::util::check_output(&a.out)?;
     table.product = plan.recorded(table.product.take());
+    let product = table.product.as_ref().map(|p| p.with_run_inputs());
     if kind == Kind::FitsTable && out_format == Some(Format::Fits) {
         let keys: Vec<(String, String)> = table
             .product
@@ -216,6 +220,7 @@ fn run_table(
             method: a.method,
             coords: Some(if units == Units::Pixel { Coords::Pixel } else { Coords::Arcmin }),
             report,
+            product,
         },
         loaded,
         telescope,
@@ -253,15 +258,15 @@ fn finish(
     }
     match (&loaded.mueller, telescope, &loaded.field) {
         (Some(m), _, _) => {
-            warn_extrapolated(r, "fitted Mueller field");
+            words::warn_extrapolated(r, "fitted Mueller field");
             report(a, &s, &mueller_line(a, r, m), " (unpolarized light)")
         }
         (None, Some(line), _) => {
-            warn_extrapolated(r, "calibrated field");
+            words::warn_extrapolated(r, "calibrated field");
             report(a, &s, &line, "")
         }
         (None, None, Some(cal)) => {
-            warn_extrapolated(r, "calibrated field");
+            words::warn_extrapolated(r, "calibrated field");
             report(a, &s, &field_line(a, r, cal), "")
         }
         (None, None, None) => unreachable!("the loader refuses a file without a model"),
@@ -300,22 +305,6 @@ fn report(a: &Args, s: &Summary, line: &str, of: &str) -> Result<()> {
     Ok(())
 }
 
-/// The warning for corrected positions outside the model's field (`field`: which).
-fn warn_extrapolated(s: &columns::Report, field: &str) {
-    if s.extrapolated > 0 {
-        eprintln!(
-            "warning: {} of {} positions lie outside the {field}; corrected by extrapolation with inflated errors (flagged)",
-            s.extrapolated, s.rows
-        );
-    }
-    if s.unmeasured > 0 {
-        eprintln!(
-            "note: {} of {} rows were not measured (q, u empty: flagged stars); they are passed through with empty corrected columns",
-            s.unmeasured, s.rows
-        );
-    }
-}
-
 /// Correct a Stokes map with any calibration (`request::plan_map`): every valid bin at
 /// its centre, written with the correction's record, and report.
 fn run_map(a: &Args, loaded: &fit::files::calibration::CalibrationFile, request: &Request<'_>) -> Result<()> {
@@ -345,6 +334,7 @@ fn run_map(a: &Args, loaded: &fit::files::calibration::CalibrationFile, request:
         );
         line
     });
-    let s = Summary { input: a.input.clone(), output: a.out.clone(), method: a.method, coords: None, report };
+    let product = c.map.product.as_ref().map(|p| p.with_run_inputs());
+    let s = Summary { input: a.input.clone(), output: a.out.clone(), method: a.method, coords: None, report, product };
     finish(a, s, loaded, telescope)
 }

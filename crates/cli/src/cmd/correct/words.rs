@@ -83,6 +83,9 @@ pub(super) fn print_notes(cal: &Path, input: &Path, parang: Option<&str>, notes:
                 e.to_degrees()
             ),
             Note::ZeroAngleUnknown(w) => eprintln!("warning: {input}: {w}"),
+            Note::InstrumentFileDiffers { data, calibration } => eprintln!(
+                "warning: {input} and {cal} are of one instrument but were made with two different instrument files ({data} and {calibration}, BLAKE3): corrected; if the file's geometry, strips or zero angles changed between them, remake the calibration"
+            ),
             Note::MismatchAllowed(m) => eprintln!(
                 "warning: --allow-mismatch: {input} and {cal} do not fit together ({m}); corrected all the same, and a catalog written records it (MISMATCH)"
             ),
@@ -108,5 +111,21 @@ pub(super) fn what_counted(s: &fit::correction::columns::Report) -> &'static str
         "bins"
     } else {
         "rows"
+    }
+}
+
+/// The warning for corrected positions outside the model's field (`field`: which).
+pub(super) fn warn_extrapolated(s: &fit::correction::columns::Report, field: &str) {
+    if s.extrapolated > 0 {
+        eprintln!(
+            "warning: {} of {} positions lie outside the {field}; corrected by extrapolation with inflated errors (flagged)",
+            s.extrapolated, s.rows
+        );
+    }
+    if s.unmeasured > 0 {
+        eprintln!(
+            "note: {} of {} rows were not measured (q, u empty: flagged stars); they are passed through with empty corrected columns",
+            s.unmeasured, s.rows
+        );
     }
 }
