@@ -388,14 +388,6 @@ impl Product {
         Ok(any.then_some(p))
     }
 
-    /// The product a FITS header records (any HDU of `f`: a map's or a calibration file's
-    /// primary header, a table's), read as a table's keywords are ([`Product::from_pairs`]);
-    /// `None` when it records none. The error says which keyword did not parse.
-    pub fn from_header(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<Option<Self>, String> {
-        let pairs = crate::table::header_product_pairs(f, hdu)?;
-        Product::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
-    }
-
     /// The product of measurements made with `inst` in `filter` (its name, the hash of its
     /// definition when known, the filter's wavelength, the plate, the detector), in the frame
     /// given; inputs and binning are the caller's to add.

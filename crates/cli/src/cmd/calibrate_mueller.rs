@@ -120,6 +120,24 @@ fn same_setup(a: &(String, String, field::FieldCoords), b: &(String, String, fie
     a.0.eq_ignore_ascii_case(&b.0) && a.1.eq_ignore_ascii_case(&b.1) && a.2 == b.2
 }
 
+/// The refusal of a field map of another setup than the first map's.
+fn mixed_fields(
+    path: &Path,
+    this: &(String, String, field::FieldCoords),
+    first: &Path,
+    s: &(String, String, field::FieldCoords),
+) -> anyhow::Error {
+    anyhow!(
+        "{}: a {} {} map, but {} is {} {}: fit the fields of one instrument and filter together",
+        path.display(),
+        this.0,
+        this.1,
+        first.display(),
+        s.0,
+        s.1
+    )
+}
+
 fn kind_of(a: &Args) -> Result<Kind> {
     if a.general {
         return Ok(Kind::General);
@@ -202,15 +220,7 @@ pub fn run(a: Args) -> Result<()> {
         half_field.get_or_insert((0.5 * g.detector_nx as f64 * arcmin, 0.5 * g.detector_ny as f64 * arcmin));
         match &setup {
             None => setup = Some(this),
-            Some(s) if !same_setup(s, &this) => bail!(
-                "{}: a {} {} map, but {} is {} {}: fit the fields of one instrument and filter together",
-                path.display(),
-                this.0,
-                this.1,
-                specs[0].0.display(),
-                s.0,
-                s.1
-            ),
+            Some(s) if !same_setup(s, &this) => return Err(mixed_fields(path, &this, &specs[0].0, s)),
             Some(_) => {}
         }
         fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));

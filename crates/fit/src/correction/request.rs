@@ -630,7 +630,7 @@ impl MapPlan<'_> {
     }
 }
 
-/// The data's setup against the file's ([`crate::correction::setup::Setup::of_calibration`]: a
+/// The data's setup against the file's ([`CalibrationFile::setup`]: a
 /// telescope model alone is checked by its band apart), unless the request allows a
 /// mismatch; two instrument files of one instrument are a note.
 fn check_setup(
@@ -640,8 +640,8 @@ fn check_setup(
     map: bool,
     notes: &mut Vec<Note>,
 ) -> Result<(), Refusal> {
-    use crate::correction::setup::{check_compatible, definition_differs, Mismatch, Setup};
-    let cal = Setup::of_calibration(file);
+    use crate::correction::setup::{check_compatible, definition_differs, Mismatch};
+    let cal = file.setup();
     let checked = check_compatible(data, Some(&cal)).map_err(|m| match m {
         Mismatch::Setup { data, calibration: (i, f) } if f.is_empty() => {
             Mismatch::Setup { data, calibration: (i, "(a telescope model's band)".into()) }

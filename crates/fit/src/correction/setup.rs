@@ -175,19 +175,6 @@ impl Setup {
             ..Default::default()
         }
     }
-
-    /// The setup of a calibration file: its model's instrument and filter (a telescope model
-    /// alone: the file's instrument and no filter, its band checked apart) and what the file's
-    /// product keywords record.
-    pub fn of_calibration(file: &crate::files::calibration::CalibrationFile) -> Self {
-        let (inst, filter) = match (&file.field, &file.mueller, &file.response) {
-            (Some(c), _, _) => (c.instrument.as_str(), c.filter.as_str()),
-            (None, Some(m), _) => (m.instrument.as_str(), m.filter.as_str()),
-            (None, None, Some(r)) => (r.instrument.as_str(), r.filter.as_str()),
-            (None, None, None) => (file.instrument.as_str(), ""),
-        };
-        Setup::named(inst, filter).with_product(file.product.as_ref())
-    }
 }
 
 /// Why data and a calibration do not fit together, naming both sides' values.
@@ -247,7 +234,7 @@ impl std::fmt::Display for Mismatch {
 }
 
 /// The one compatibility check of data (`data`, what the product says) and a calibration
-/// (`cal`, what the file says: [`Setup::of_calibration`]; `None`: nothing to compare): a
+/// (`cal`, what the file says: `CalibrationFile::setup`; `None`: nothing to compare): a
 /// half-wave plate's data, of the same instrument and filter ([`matches_setup`]: names that
 /// say nothing are not checked; a calibration of no filter, a telescope model alone, has its
 /// band checked apart), through the same plate and on the same detector where both sides say.

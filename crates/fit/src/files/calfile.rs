@@ -127,7 +127,7 @@ impl Provenance {
         w.str("SOURCE", &self.source)?;
         w.str("TOOL", &self.tool_version)?;
         w.str("DATE", &self.date)?;
-        write_product(w, self.product.as_ref())
+        crate::files::keys::write_product(w, self.product.as_ref())
     }
 
     /// What [`Provenance::write_common`] wrote, read back (no inputs: each format reads its
@@ -140,33 +140,9 @@ impl Provenance {
             source: r.opt_str("SOURCE").unwrap_or_default(),
             tool_version: r.opt_str("TOOL").unwrap_or_default(),
             date: r.opt_str("DATE").unwrap_or_default(),
-            product: read_product(r)?,
+            product: crate::files::keys::read_product(r)?,
         })
     }
-}
-
-/// A calibration's product into its primary header, as the product keywords of every table
-/// and map (`skyfield::provenance::Product::pairs`; plain FITS keywords beside the `HIERARCH
-/// IP` ones), the inputs the run's when it lists none.
-pub(crate) fn write_product(w: &mut KeyWriter, product: Option<&skyfield::provenance::Product>) -> Result<()> {
-    for (k, v) in product.iter().flat_map(|p| p.with_run_inputs().pairs()) {
-        w.plain(&k, &v)?;
-    }
-    Ok(())
-}
-
-/// The product keywords of a calibration file's primary header (any kind of calibration
-/// file), `None` when it has none.
-pub fn product_of(path: &Path) -> Result<Option<skyfield::provenance::Product>> {
-    let mut f = open_versioned(path)?;
-    let hdu = f.primary_hdu().map_err(fits_err(path, "reading the primary HDU"))?;
-    read_product(&mut KeyReader { f: &mut f, hdu: &hdu, path })
-}
-
-/// The product keywords of the HDU `r` reads, `None` when it has none.
-pub(crate) fn read_product(r: &mut KeyReader) -> Result<Option<skyfield::provenance::Product>> {
-    skyfield::provenance::Product::from_header(r.f, r.hdu)
-        .map_err(|what| Error::BadFile { path: r.path.to_path_buf(), what: format!("product keywords: {what}") })
 }
 
 /// The detector pixel grid behind the field coordinates: field position `(0, 0)` arcmin is

@@ -57,7 +57,7 @@ pub struct CalibrationFile {
 /// keyword, HDU or row at fault). A file with no model is refused.
 pub fn load(path: &Path) -> Result<CalibrationFile> {
     let (model, instrument) = crate::files::keys::model_and_instrument(path)?;
-    let product = crate::files::calfile::product_of(path)?;
+    let product = crate::files::keys::product_of(path)?;
     let path_buf = path.to_path_buf();
     if model == crate::files::keys::MUELLER_MODEL {
         let m = MuellerCal::load(path)?;
@@ -99,6 +99,18 @@ pub fn load(path: &Path) -> Result<CalibrationFile> {
 }
 
 impl CalibrationFile {
+    /// The setup of a calibration file: its model's instrument and filter (a telescope model
+    /// alone: the file's instrument and no filter, its band checked apart) and what the file's
+    /// product keywords record.
+    pub fn setup(&self) -> crate::correction::setup::Setup {
+        let (inst, filter) = match (&self.field, &self.mueller, &self.response) {
+            (Some(c), _, _) => (c.instrument.as_str(), c.filter.as_str()),
+            (None, Some(m), _) => (m.instrument.as_str(), m.filter.as_str()),
+            (None, None, Some(r)) => (r.instrument.as_str(), r.filter.as_str()),
+            (None, None, None) => (self.instrument.as_str(), ""),
+        };
+        crate::correction::setup::Setup::named(inst, filter).with_product(self.product.as_ref())
+    }
     /// Which models the file holds.
     pub fn kind(&self) -> Kind {
         if self.response.is_some() {

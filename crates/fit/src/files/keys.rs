@@ -209,3 +209,27 @@ pub(crate) fn model_and_instrument(path: &Path) -> Result<(String, String)> {
     let mut r = KeyReader { f: &mut f, hdu: &hdu, path };
     Ok((r.str("MODEL")?, r.str("INSTRUMENT")?))
 }
+
+/// A calibration's product into its primary header, as the product keywords of every table
+/// and map (`skyfield::provenance::Product::pairs`; plain FITS keywords beside the `HIERARCH
+/// IP` ones), the inputs the run's when it lists none.
+pub(crate) fn write_product(w: &mut KeyWriter, product: Option<&skyfield::provenance::Product>) -> Result<()> {
+    for (k, v) in product.iter().flat_map(|p| p.with_run_inputs().pairs()) {
+        w.plain(&k, &v)?;
+    }
+    Ok(())
+}
+
+/// The product keywords of a calibration file's primary header (any kind of calibration
+/// file), `None` when it has none.
+pub fn product_of(path: &Path) -> Result<Option<skyfield::provenance::Product>> {
+    let mut f = open_versioned(path)?;
+    let hdu = f.primary_hdu().map_err(fits_err(path, "reading the primary HDU"))?;
+    read_product(&mut KeyReader { f: &mut f, hdu: &hdu, path })
+}
+
+/// The product keywords of the HDU `r` reads, `None` when it has none.
+pub(crate) fn read_product(r: &mut KeyReader) -> Result<Option<skyfield::provenance::Product>> {
+    skyfield::table::product_of_header(r.f, r.hdu)
+        .map_err(|what| Error::BadFile { path: r.path.to_path_buf(), what: format!("product keywords: {what}") })
+}

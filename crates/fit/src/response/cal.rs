@@ -83,7 +83,7 @@ impl ResponseCal {
             w.int("RE NUNPOL", self.n_unpolarized as i64)?;
             w.int("RE NPOL", self.n_polarized as i64)?;
             w.str("CREATED", &crate::files::keys::utc_now_iso())?;
-            crate::files::calfile::write_product(&mut w, self.product.as_ref())
+            crate::files::keys::write_product(&mut w, self.product.as_ref())
         })
     }
 
@@ -135,7 +135,7 @@ impl ResponseCal {
             covariance,
             n_unpolarized: r.opt_int("RE NUNPOL").unwrap_or(0).max(0) as usize,
             n_polarized: r.opt_int("RE NPOL").unwrap_or(0).max(0) as usize,
-            product: crate::files::calfile::read_product(&mut r)?,
+            product: crate::files::keys::read_product(&mut r)?,
         })
     }
 
