@@ -102,13 +102,14 @@ pub struct Plan {
     shifts: Vec<(f64, f64)>,
     /// The telescope's parallactic-angle track of each exposure (scene `[telescope]`).
     tracks: Option<Vec<mueller::telescope::Track>>,
-    /// The optical chain the frames are rendered through: the telescope, the field's elements
-    /// and the plate's zero angle.
+    /// The optical chain every frame is rendered through: the telescope, the field's elements,
+    /// the plate and the analyser (`forwards`, `behind`, `sky` and `moving` are its pieces).
     chain: field::InstrumentChain,
 }
 
 /// A star drawn frame by frame: its position (px, o image, before the frame's shift), its
-/// normalized Stokes vector at the plate (instrumental field applied) and its PSF.
+/// Stokes vector as it enters the exposures' part of the chain
+/// ([`field::InstrumentChain::before_exposures`]) and its PSF.
 struct StarDraw {
     x: f64,
     y: f64,
