@@ -283,6 +283,17 @@ impl InstrumentChain {
         Ok(Qu::new(q, u, vq, vu, c))
     }
 
+    /// The first-order inverse (`eq:approx` for any chain): the `(q, u)` the chain gives
+    /// unpolarized light at `(x, y)` arcmin over `track` ([`forward`](Self::forward) of a zero
+    /// sky, with the elements' own covariance) subtracted from the measurement, the zero angle
+    /// turned back first; the covariances add. For one partial polarizer `M_I` this is
+    /// `q0 = q1 - p cos 2phi`, `u0 = u1 - p sin 2phi`.
+    pub fn invert_first_order(&self, x: f64, y: f64, measured: &Qu, track: Option<Track>) -> Result<Qu, ChainError> {
+        let at = measured.rotated(self.zero_angle);
+        let own = Self { zero_angle: 0.0, ..self.clone() }.forward(x, y, &Qu::ZERO, track)?;
+        Ok(Qu::new(at.q - own.q, at.u - own.u, at.var_q + own.var_q, at.var_u + own.var_u, at.cov_qu + own.cov_qu))
+    }
+
     /// The sky's `(q, u)` of a measurement demodulated from `exposures` at `(x, y)` arcmin:
     /// the zero angle turned back, then [`Demodulation::solve`] from the inverse over the first
     /// exposure's track; the covariance through the inverse Jacobian.
@@ -364,6 +375,13 @@ mod tests {
         };
         let f = at_zero.forward(0.0, 0.0, &zero, None).unwrap();
         assert!((f.var_q - 1e-6).abs() < 1e-18 && (f.var_u - 1e-6).abs() < 1e-18, "{f:?}");
+        // First order (eq:approx): the element's (q, u) subtracted, the covariances added.
+        let m = Qu::new(0.05, -0.01, 1e-6, 2e-6, 0.0);
+        let fo = chain.invert_first_order(0.0, 0.0, &m, None).unwrap();
+        assert!((fo.q - (m.q - p)).abs() < 1e-17 && (fo.u - m.u).abs() < 1e-17, "{fo:?}");
+        for (a, b) in [(fo.var_q, m.var_q + e.var_q), (fo.var_u, m.var_u + e.var_u), (fo.cov_qu, e.cov_qu)] {
+            assert!((a - b).abs() < 1e-15 * b.abs(), "{fo:?}");
+        }
     }
 
     /// The order of the elements: unpolarized light through a partial polarizer at 45 deg
