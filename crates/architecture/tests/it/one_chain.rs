@@ -37,12 +37,37 @@ const ELEMENT_FILES: &[(&str, &str)] = &[
     ("crates/sim/src/hwp_causes.rs", "the tilted and wedged plate: their equivalent block"),
 ];
 
-/// The code tokens of `rel` before its `#[cfg(test)]` module.
-fn code_tokens(rel: &str) -> Vec<common::Token> {
-    let text = std::fs::read_to_string(workspace().join(rel)).unwrap_or_else(|e| panic!("{rel}: {e}"));
-    let code = code_only(&text);
+/// The code tokens of `text` before its `#[cfg(test)]` module.
+fn code_tokens_of(text: &str) -> Vec<common::Token> {
+    let code = code_only(text);
     let end = code.find("#[cfg(test)]").unwrap_or(code.len());
     tokens(&code[..end])
+}
+
+/// The code tokens of the file `rel` before its `#[cfg(test)]` module.
+fn code_tokens(rel: &str) -> Vec<common::Token> {
+    code_tokens_of(&std::fs::read_to_string(workspace().join(rel)).unwrap_or_else(|e| panic!("{rel}: {e}")))
+}
+
+/// The forbidden names in `toks` as `(line, name)`: the chain's own ones everywhere, an
+/// element's ones outside an element's file.
+fn forbidden(toks: &[common::Token], element: bool) -> Vec<(usize, String)> {
+    toks.iter()
+        .filter(|t| CHAIN_NAMES.contains(&t.text.as_str()) || (!element && ELEMENT_NAMES.contains(&t.text.as_str())))
+        .map(|t| (t.line, t.text.clone()))
+        .collect()
+}
+
+/// The check finds a product written by hand, and not a name in a comment, a string or a
+/// longer identifier, nor in the tests module.
+#[test]
+fn the_check_finds_a_product_by_hand() {
+    let code = "fn f(c: &Chain) {\n    let m = c.elements.mueller_at(x, y) * s;\n    // apply_at in a comment\n    \
+                let t = \"matrix_swept in a string\";\n    let b = c.field_block_at(x, y);\n}\n\
+                #[cfg(test)]\nmod tests { fn g() { h.matrix_swept(0.0, 0.1); } }\n";
+    let found = forbidden(&code_tokens_of(code), false);
+    assert_eq!(found, vec![(2, "mueller_at".to_string())]);
+    assert!(forbidden(&code_tokens_of(code), true).is_empty(), "an element's file may name its own matrix");
 }
 
 #[test]
@@ -54,10 +79,8 @@ fn the_simulator_has_no_mueller_product_outside_the_chain() {
         let rel = p.strip_prefix(workspace()).unwrap().to_string_lossy().replace('\\', "/");
         let element = ELEMENT_FILES.iter().any(|(f, _)| *f == rel);
         files += 1;
-        for t in code_tokens(&rel) {
-            if CHAIN_NAMES.contains(&t.text.as_str()) || (!element && ELEMENT_NAMES.contains(&t.text.as_str())) {
-                found.push(format!("{rel}:{}: `{}`", t.line, t.text));
-            }
+        for (line, name) in forbidden(&code_tokens(&rel), element) {
+            found.push(format!("{rel}:{line}: `{name}`"));
         }
     }
     assert!(files >= 5, "crates/sim/src has {files} files: the test reads the wrong folder");
