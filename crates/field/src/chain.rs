@@ -11,9 +11,12 @@
 //! and applied after each exposure's telescope matrix, circular polarization included: M3
 //! makes some, a retarder after it turns some back).
 //!
-//! [`InstrumentChain`] is the whole chain as one value: the telescope, these elements and the
-//! half-wave plate's zero angle, with the forward model of one exposure or of a demodulated
-//! set of exposures and its exact inverse, the covariance carried through both.
+//! [`InstrumentChain`] is the whole chain as one value, the one the simulator renders through
+//! and the correction inverts: the telescope, these elements, the half-wave plate's zero angle
+//! and, for rendering frames, the plate and the analyser ([`crate::analyser::Analyser`]). Its
+//! forward models: to the two beams' fluxes of one exposure (`crate::render`, what every
+//! simulated frame is made of), and to the `(q, u)` demodulated from one exposure or a set of
+//! them, with their exact inverses, the covariance carried through both.
 
 use crate::FieldModel;
 use mueller::linear::LinearBlock;
@@ -63,6 +66,27 @@ impl FieldChain {
         it.fold(first.block_at(x_arcmin, y_arcmin), |b, (e, _)| LinearBlock(e.block_at(x_arcmin, y_arcmin).0 * b.0))
     }
 
+    /// For each element whose own `(q, u)` has known derivatives
+    /// ([`FieldModel::qu_derivatives`]): `d v / d q_e` and `d v / d u_e` of the Stokes vector
+    /// `v` that leaves the chain for `s` entering it at `(x, y)` arcmin (the elements before
+    /// it, the derivative, the elements after it), with the element's `(q, u)` and covariance.
+    pub fn qu_sensitivities(
+        &self,
+        x_arcmin: f64,
+        y_arcmin: f64,
+        s: &mueller::Stokes,
+    ) -> Vec<([mueller::Stokes; 2], Qu)> {
+        let ms: Vec<Mueller> = self.elements.iter().map(|(e, _)| e.mueller_at(x_arcmin, y_arcmin)).collect();
+        let mut out = Vec::new();
+        for (k, (e, _)) in self.elements.iter().enumerate() {
+            let Some([dq, du]) = e.qu_derivatives(x_arcmin, y_arcmin) else { continue };
+            let before = ms[..k].iter().fold(*s, |v, m| m * v);
+            let after = |v: mueller::Stokes| ms[k + 1..].iter().fold(v, |v, m| m * v);
+            out.push(([after(dq * before), after(du * before)], e.eval(x_arcmin, y_arcmin)));
+        }
+        out
+    }
+
     /// The chain's Mueller matrix at `(x, y)` arcmin: the product of its elements' matrices
     /// ([`FieldModel::mueller_at`]), the last met on the left.
     pub fn mueller_at(&self, x_arcmin: f64, y_arcmin: f64) -> Mueller {
@@ -81,6 +105,9 @@ pub enum ChainError {
     NoTrack,
     /// No light passes the chain at this position, or the result is not finite.
     NoLight { x: f64, y: f64 },
+    /// The fluxes were asked of a chain without a plate and analyser (one that starts from
+    /// demodulated `(q, u)`).
+    NoAnalyser,
 }
 
 impl std::fmt::Display for ChainError {
@@ -91,6 +118,7 @@ impl std::fmt::Display for ChainError {
             ChainError::NoLight { x, y } => {
                 write!(f, "the chain passes no light or no finite polarization at ({x}, {y}) arcmin")
             }
+            ChainError::NoAnalyser => write!(f, "the chain has no plate and analyser: it gives (q, u), not fluxes"),
         }
     }
 }
@@ -117,12 +145,21 @@ impl From<mueller::Error> for ChainError {
 /// The telescope's matrix is divided by its `M_00` (fluxes kept, as the simulator renders) and
 /// its band model's constant `q0, u0` is not used: the instrument's own polarization is the
 /// elements'.
+///
+/// With an [`Analyser`](crate::analyser::Analyser) (the plate with its defects and motion, the
+/// Wollaston, the post-analyser optics) the chain goes on to the detector's two beams:
+/// [`fluxes`](Self::fluxes) and its pieces (`crate::render`), through which the simulator
+/// renders every frame. A correction's chain has none: it starts from the `(q, u)` the
+/// reduction demodulated, at the plate.
 #[derive(Clone, Default)]
 pub struct InstrumentChain {
     pub telescope: Option<BandModel>,
     pub elements: FieldChain,
-    /// The HWP zero angle (rad).
+    /// The HWP zero angle (rad); with an analyser, its plate's
+    /// ([`with_analyser`](Self::with_analyser)).
     pub zero_angle: f64,
+    /// The plate and the analyser, when the chain renders fluxes.
+    pub analyser: Option<crate::analyser::Analyser>,
 }
 
 /// The telescope's matrix over `track` ([`BandModel::matrix_track`]) divided by its `M_00`,
@@ -159,17 +196,47 @@ impl InstrumentChain {
     }
 
     /// The `(q, u)` one exposure over `track` measures at the plate at `(x, y)` arcmin for
-    /// the sky's `sky` (without circular polarization), its covariance `J C J^T` through the
-    /// chain's exact Jacobian.
+    /// the sky's `sky` (without circular polarization), its covariance through the chain's
+    /// analytic Jacobians: `J C J^T` of the sky's, plus `J_e C_e J_e^T` of every element whose
+    /// own `(q, u)` carries a covariance and has derivatives ([`FieldChain::qu_sensitivities`]:
+    /// a calibration's partial polarizer with its errors).
     pub fn forward(&self, x: f64, y: f64, sky: &Qu, track: Option<Track>) -> Result<Qu, ChainError> {
         let m = self.matrix(x, y, track)?;
-        let v = m * mueller::Stokes::new(1.0, sky.q, sky.u, 0.0);
+        let s = mueller::Stokes::new(1.0, sky.q, sky.u, 0.0);
+        let v = m * s;
         if !(v[0] > 0.0 && v[0].is_finite()) {
             return Err(ChainError::NoLight { x, y });
         }
         let j = normalized_jacobian(&m, &v);
         let (vq, vu, c) = sky.covariance_through(&j);
-        Ok(Qu::new(v[1] / v[0], v[2] / v[0], vq, vu, c).rotated(-self.zero_angle))
+        let (eq, eu, ec) = self.elements_covariance(x, y, &s, &v, track)?;
+        Ok(Qu::new(v[1] / v[0], v[2] / v[0], vq + eq, vu + eu, c + ec).rotated(-self.zero_angle))
+    }
+
+    /// The covariance the elements' own errors give the normalized output `v` of the sky's
+    /// `s` at `(x, y)` arcmin: `sum J_e C_e J_e^T` over the elements with derivatives
+    /// ([`FieldChain::qu_sensitivities`]), `J_e = d (v1/v0, v2/v0) / d (q_e, u_e)`; zero when
+    /// no element has them.
+    fn elements_covariance(
+        &self,
+        x: f64,
+        y: f64,
+        s: &mueller::Stokes,
+        v: &mueller::Stokes,
+        track: Option<Track>,
+    ) -> Result<(f64, f64, f64), ChainError> {
+        let entering = match (&self.telescope, track) {
+            (Some(t), Some(track)) => telescope_matrix(t, track)? * s,
+            _ => *s,
+        };
+        let mut out = (0.0, 0.0, 0.0);
+        for ([dq, du], e) in self.elements.qu_sensitivities(x, y, &entering) {
+            // d (v1 / v0) = (dv1 v0 - v1 dv0) / v0^2, and alike for v2.
+            let d = |dv: &mueller::Stokes, k: usize| (dv[k] * v[0] - v[k] * dv[0]) / (v[0] * v[0]);
+            let (a, b, c) = e.covariance_through(&[[d(&dq, 1), d(&du, 1)], [d(&dq, 2), d(&du, 2)]]);
+            out = (out.0 + a, out.1 + b, out.2 + c);
+        }
+        Ok(out)
     }
 
     /// The demodulation (`eq:Q`, `eq:U`) of `exposures` at `(x, y)` arcmin, each exposure
@@ -185,14 +252,14 @@ impl InstrumentChain {
 
     /// The `(q, u)` the dual-beam reduction demodulates at the plate from `exposures` (HWP
     /// angle as read, track each) at `(x, y)` arcmin for the sky's `sky`; the covariance
-    /// through the Jacobian (central differences of the demodulation, which is smooth).
+    /// through the demodulation's analytic Jacobian ([`Demodulation::jacobian`]).
     pub fn forward_exposures(&self, x: f64, y: f64, sky: &Qu, exposures: &[Exposure]) -> Result<Qu, ChainError> {
         let d = self.demodulation(x, y, exposures)?;
         let (q, u) = d.forward(sky.q, sky.u);
         if !(q.is_finite() && u.is_finite()) {
             return Err(ChainError::NoLight { x, y });
         }
-        let j = demodulation_jacobian(&d, sky.q, sky.u);
+        let j = d.jacobian(sky.q, sky.u);
         let (vq, vu, c) = sky.covariance_through(&j);
         Ok(Qu::new(q, u, vq, vu, c).rotated(-self.zero_angle))
     }
@@ -200,15 +267,31 @@ impl InstrumentChain {
     /// The sky's `(q, u)` of a measurement `measured` at the plate at `(x, y)` arcmin from one
     /// exposure over `track` (or a set that shares it): the zero angle turned back, then the
     /// chain's matrix inverted exactly ([`mueller::telescope::invert_normalized`]); the
-    /// covariance through the inverse Jacobian, `J^-1 C J^-T`.
+    /// covariance through the same Jacobians as [`forward`](Self::forward)'s, inverted (the
+    /// measurement is `f(sky, elements)`, so `d sky = J^-1 (d measured - J_e d e)`):
+    /// `J^-1 (C + sum J_e C_e J_e^T) J^-T`.
     pub fn invert(&self, x: f64, y: f64, measured: &Qu, track: Option<Track>) -> Result<Qu, ChainError> {
         let m = self.matrix(x, y, track)?;
         let at = measured.rotated(self.zero_angle);
         let (q, u) = mueller::telescope::invert_normalized(&m, [at.q, at.u])?;
-        let v = m * mueller::Stokes::new(1.0, q, u, 0.0);
+        let s = mueller::Stokes::new(1.0, q, u, 0.0);
+        let v = m * s;
         let ji = inverse2(&normalized_jacobian(&m, &v)).ok_or(ChainError::NoLight { x, y })?;
-        let (vq, vu, c) = at.covariance_through(&ji);
+        let (eq, eu, ec) = self.elements_covariance(x, y, &s, &v, track)?;
+        let with_elements = Qu { var_q: at.var_q + eq, var_u: at.var_u + eu, cov_qu: at.cov_qu + ec, ..at };
+        let (vq, vu, c) = with_elements.covariance_through(&ji);
         Ok(Qu::new(q, u, vq, vu, c))
+    }
+
+    /// The first-order inverse (`eq:approx` for any chain): the `(q, u)` the chain gives
+    /// unpolarized light at `(x, y)` arcmin over `track` ([`forward`](Self::forward) of a zero
+    /// sky, with the elements' own covariance) subtracted from the measurement, the zero angle
+    /// turned back first; the covariances add. For one partial polarizer `M_I` this is
+    /// `q0 = q1 - p cos 2phi`, `u0 = u1 - p sin 2phi`.
+    pub fn invert_first_order(&self, x: f64, y: f64, measured: &Qu, track: Option<Track>) -> Result<Qu, ChainError> {
+        let at = measured.rotated(self.zero_angle);
+        let own = Self { zero_angle: 0.0, ..self.clone() }.forward(x, y, &Qu::ZERO, track)?;
+        Ok(Qu::new(at.q - own.q, at.u - own.u, at.var_q + own.var_q, at.var_u + own.var_u, at.cov_qu + own.cov_qu))
     }
 
     /// The sky's `(q, u)` of a measurement demodulated from `exposures` at `(x, y)` arcmin:
@@ -220,22 +303,10 @@ impl InstrumentChain {
         let first = exposures.first().map(|e| e.track);
         let start = self.invert(x, y, &Qu::new(measured.q, measured.u, 0.0, 0.0, 0.0), first)?;
         let (q, u) = d.solve((at.q, at.u), (start.q, start.u))?;
-        let ji = inverse2(&demodulation_jacobian(&d, q, u)).ok_or(ChainError::NoLight { x, y })?;
+        let ji = inverse2(&d.jacobian(q, u)).ok_or(ChainError::NoLight { x, y })?;
         let (vq, vu, c) = at.covariance_through(&ji);
         Ok(Qu::new(q, u, vq, vu, c))
     }
-}
-
-/// `d forward / d (q, u)` of a demodulation, by central differences (step 1e-6 on fractions:
-/// the forward model is linear-fractional, its second derivative of order 1, so the error is
-/// of order 1e-12).
-fn demodulation_jacobian(d: &Demodulation, q: f64, u: f64) -> [[f64; 2]; 2] {
-    let h = 1e-6;
-    let (aq, au) = d.forward(q + h, u);
-    let (bq, bu) = d.forward(q - h, u);
-    let (cq, cu) = d.forward(q, u + h);
-    let (dq, du) = d.forward(q, u - h);
-    [[(aq - bq) / (2.0 * h), (cq - dq) / (2.0 * h)], [(au - bu) / (2.0 * h), (cu - du) / (2.0 * h)]]
 }
 
 #[cfg(test)]
@@ -265,6 +336,51 @@ mod tests {
         }
         fn contains(&self, _: f64, _: f64) -> bool {
             true
+        }
+    }
+
+    /// An element's own errors through the chain, against the closed form of `eq:instpol`
+    /// for a polarizer along `Q` of degree `p` (`q' = (q + p) / (1 + p q)`,
+    /// `u' = u (1 - p) / (1 + p q)`, and for unpolarized light `(q', u') = (q_e, u_e)`):
+    /// `forward` gives an unpolarized sky the element's covariance itself, a sky `(q, 0)` the
+    /// variance of `q_e` times `((1 - q^2) / (1 + p q)^2)^2`; `invert` of an exact measurement
+    /// of an unpolarized sky gives `var_qe / (1 - p^2)^2` and `var_ue / (1 - p)^2`.
+    #[test]
+    fn an_elements_errors_go_through_the_chains_jacobians() {
+        let p = 0.03;
+        let e = Qu::new(p, 0.0, 4e-6, 9e-6, 1e-6);
+        let chain = InstrumentChain {
+            elements: FieldChain::new().then(Arc::new(crate::PartialPolarizer(e)), "pol"),
+            ..Default::default()
+        };
+        let zero = Qu::new(0.0, 0.0, 0.0, 0.0, 0.0);
+        let f = chain.forward(0.2, 0.1, &zero, None).unwrap();
+        assert!((f.q - p).abs() < 1e-15 && f.u.abs() < 1e-15, "{f:?}");
+        for (a, b) in [(f.var_q, e.var_q), (f.var_u, e.var_u), (f.cov_qu, e.cov_qu)] {
+            assert!((a - b).abs() < 1e-15 * b.abs().max(1e-6), "{f:?} vs {e:?}");
+        }
+        let qs = 0.05;
+        let f = chain.forward(0.0, 0.0, &Qu::new(qs, 0.0, 0.0, 0.0, 0.0), None).unwrap();
+        let want = ((1.0 - qs * qs) / (1.0 + p * qs).powi(2)).powi(2) * e.var_q;
+        assert!((f.var_q - want).abs() < 1e-12 * want, "{} vs {want}", f.var_q);
+        let back = chain.invert(0.0, 0.0, &Qu::new(p, 0.0, 0.0, 0.0, 0.0), None).unwrap();
+        assert!(back.q.abs() < 1e-15 && back.u.abs() < 1e-15, "{back:?}");
+        let (wq, wu) = (e.var_q / (1.0 - p * p).powi(2), e.var_u / (1.0 - p).powi(2));
+        assert!((back.var_q - wq).abs() < 1e-12 * wq && (back.var_u - wu).abs() < 1e-12 * wu, "{back:?}");
+        // Near zero polarization the derivatives take their symmetric limit: no NaN.
+        let at_zero = InstrumentChain {
+            elements: FieldChain::new()
+                .then(Arc::new(crate::PartialPolarizer(Qu::new(0.0, 0.0, 1e-6, 1e-6, 0.0))), "0"),
+            ..Default::default()
+        };
+        let f = at_zero.forward(0.0, 0.0, &zero, None).unwrap();
+        assert!((f.var_q - 1e-6).abs() < 1e-18 && (f.var_u - 1e-6).abs() < 1e-18, "{f:?}");
+        // First order (eq:approx): the element's (q, u) subtracted, the covariances added.
+        let m = Qu::new(0.05, -0.01, 1e-6, 2e-6, 0.0);
+        let fo = chain.invert_first_order(0.0, 0.0, &m, None).unwrap();
+        assert!((fo.q - (m.q - p)).abs() < 1e-17 && (fo.u - m.u).abs() < 1e-17, "{fo:?}");
+        for (a, b) in [(fo.var_q, m.var_q + e.var_q), (fo.var_u, m.var_u + e.var_u), (fo.cov_qu, e.cov_qu)] {
+            assert!((a - b).abs() < 1e-15 * b.abs(), "{fo:?}");
         }
     }
 

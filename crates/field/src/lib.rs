@@ -11,6 +11,9 @@
 //! - [`grid::GridMap`]: a gridded `Q/I`, `U/I` map with errors, evaluated bilinearly (the form
 //!   of calibration-file images and imported third-party maps) or by nearest cell.
 //!
+//! - [`InstrumentChain`]: the instrument's optical chain as one value (telescope, field
+//!   elements, plate and analyser), with its forward model to the two beams' fluxes
+//!   ([`render`]) and to demodulated `(q, u)`, and its inverses ([`chain`]).
 //! - [`ConstantResponse`]: the instrument's constant response calibrated on standard stars
 //!   (`(q0, u0)`, efficiency, angle offset), the same over the field.
 //!
@@ -20,18 +23,22 @@
 //! (argmin, spade, the calibration file). It fits nothing, reads no files and knows no
 //! instrument: instruments give it their pixel scale and size.
 
+pub mod analyser;
 pub mod chain;
 pub mod coords;
 pub mod grid;
 pub mod model;
 pub mod radial;
+pub mod render;
 pub mod response;
 
+pub use analyser::{Analyser, PlateMotion};
 pub use chain::{ChainError, FieldChain, InstrumentChain};
 pub use coords::FieldCoords;
 pub use grid::{GridMap, NearestCell};
-pub use model::{FieldModel, InstPol, LinearElement};
+pub use model::{FieldModel, InstPol, LinearElement, PartialPolarizer};
 pub use radial::RadialPattern;
+pub use render::{ExposureForward, FieldBlock};
 pub use response::ConstantResponse;
 
 /// The crate README's example, compiled and run with the documentation tests.

@@ -74,6 +74,15 @@ pub trait FieldModel: Send + Sync {
         mueller::linear::LinearBlock::of_mueller(&self.mueller_at(x_arcmin, y_arcmin))
     }
 
+    /// `d mueller_at / d q` and `d mueller_at / d u` at `(x, y)` arcmin, the derivatives of
+    /// the element's matrix with respect to its own `(q, u)` ([`eval`](Self::eval)), for an
+    /// element whose matrix is a function of them: the chain then carries the element's
+    /// covariance into its forward model's (`InstrumentChain::forward`). `None` (the default):
+    /// the element's own errors are not the chain's.
+    fn qu_derivatives(&self, _x_arcmin: f64, _y_arcmin: f64) -> Option<[mueller::Mueller; 2]> {
+        None
+    }
+
     /// One line saying what the model is (for `--explain` and provenance).
     fn describe(&self) -> String {
         "a field model".into()
@@ -102,5 +111,56 @@ impl<F: Fn(f64, f64) -> mueller::linear::LinearBlock + Send + Sync> FieldModel f
     }
     fn describe(&self) -> String {
         "a linear Mueller block".into()
+    }
+}
+
+/// A partial polarizer `M_I(p, phi)` of `eq:instpol` the same over the field, given by its
+/// `(q, u)` with their covariance (a calibration's instrumental polarization at one position):
+/// an element whose errors the chain carries ([`FieldModel::qu_derivatives`]).
+#[derive(Clone, Copy, Debug)]
+pub struct PartialPolarizer(pub InstPol);
+
+impl FieldModel for PartialPolarizer {
+    fn eval(&self, _: f64, _: f64) -> InstPol {
+        self.0
+    }
+    fn contains(&self, _: f64, _: f64) -> bool {
+        true
+    }
+    /// `M_I = N / (1 + p)` with (rows and columns `I, Q, U, V`, `p = hypot(q, u)`)
+    /// `N = [[1, q, u, 0], [q, 1 - u^2/p, q u/p, 0], [u, q u/p, 1 - q^2/p, 0], [0, 0, 0, 1 - p]]`
+    /// (`mueller::partial_polarizer` with `p cos 2phi = q`, `p sin 2phi = u`), differentiated
+    /// term by term. At `p = 0`, where the terms in `1/p` have a direction, the symmetric limit
+    /// (that of central differences): `N' = [[0, 1, 0, 0], [1, 0, 0, 0], 0, 0]` for `q` and
+    /// its companion for `u`.
+    fn qu_derivatives(&self, _: f64, _: f64) -> Option<[mueller::Mueller; 2]> {
+        let (q, u) = (self.0.q, self.0.u);
+        let p = mueller::hypot(q, u);
+        if !p.is_finite() {
+            return None;
+        }
+        let mut dq = mueller::Mueller::zeros();
+        let mut du = mueller::Mueller::zeros();
+        (dq[(0, 1)], dq[(1, 0)], du[(0, 2)], du[(2, 0)]) = (1.0, 1.0, 1.0, 1.0);
+        if p == 0.0 {
+            return Some([dq, du]);
+        }
+        let (p3, k) = (p * p * p, 1.0 / (1.0 + p));
+        dq[(1, 1)] = u * u * q / p3;
+        dq[(1, 2)] = u / p - q * q * u / p3;
+        dq[(2, 1)] = dq[(1, 2)];
+        dq[(2, 2)] = -2.0 * q / p + q * q * q / p3;
+        dq[(3, 3)] = -q / p;
+        du[(1, 1)] = -2.0 * u / p + u * u * u / p3;
+        du[(1, 2)] = q / p - q * u * u / p3;
+        du[(2, 1)] = du[(1, 2)];
+        du[(2, 2)] = q * q * u / p3;
+        du[(3, 3)] = -u / p;
+        // M = k N with dk/dp = -k^2 and dp/dq = q/p, dp/du = u/p.
+        let n = mueller::partial_polarizer(p, 0.5 * u.atan2(q)) / k;
+        Some([dq * k - n * (k * k * q / p), du * k - n * (k * k * u / p)])
+    }
+    fn describe(&self) -> String {
+        format!("a partial polarizer q = {}, u = {}", self.0.q, self.0.u)
     }
 }

@@ -29,6 +29,8 @@ pub enum Error {
     SingularCovariance,
     #[error(transparent)]
     Correct(#[from] correct::Error),
+    #[error("the calibration's prediction at the star: {0}")]
+    Prediction(String),
 }
 
 /// Unpolarized (null) or polarized standard.
@@ -317,12 +319,21 @@ pub(crate) fn mahalanobis(dq: f64, du: f64, a: f64, b: f64, c: f64) -> Result<f6
     Ok(((b * dq * dq - 2.0 * c * dq * du + a * du * du) / det).max(0.0).sqrt())
 }
 
+/// The chain of one element, the partial polarizer `M_I` of the instrumental polarization `a`
+/// at a star (with its covariance): what [`validate_star`] predicts through.
+fn chain_of(a: Qu) -> field::InstrumentChain {
+    let elements = field::FieldChain::new().then(std::sync::Arc::new(field::PartialPolarizer(a)), "M_I at the star");
+    field::InstrumentChain { elements, ..Default::default() }
+}
+
 /// `M_I(a)` applied to the intrinsic `(qs, us)`: the normalized `(q1, u1)` the star shows
-/// through the instrumental polarization `a = (qi, ui)` (`eq:instpol`, the one `M_I`).
+/// through the instrumental polarization `a = (qi, ui)` (`eq:instpol`, the one `M_I`), the
+/// chain's forward model ([`field::InstrumentChain::forward`]); NaN where no light passes.
 pub fn forward(qi: f64, ui: f64, qs: f64, us: f64) -> (f64, f64) {
-    let (p, phi) = stokes::polarization(qi, ui);
-    let s1 = mueller::partial_polarizer(p, phi) * mueller::stokes_qu(1.0, qs, us);
-    (s1[1] / s1[0], s1[2] / s1[0])
+    match chain_of(Qu::new(qi, ui, 0.0, 0.0, 0.0)).forward(0.0, 0.0, &Qu::new(qs, us, 0.0, 0.0, 0.0), None) {
+        Ok(r) => (r.q, r.u),
+        Err(_) => (f64::NAN, f64::NAN),
+    }
 }
 
 /// Validate a calibration (`model`) on a standard star measured at `(x, y)` arcmin: compare the
@@ -346,24 +357,11 @@ pub fn validate_star<M: FieldModel + ?Sized>(
     let Qu { q: q1, u: u1, var_q: vq1, var_u: vu1, cov_qu: cv1 } = sky;
     let e = sky.p_chi_with_errors();
     let (mp, msp, mchi, msc) = (e.p, e.sigma_p, e.chi, e.sigma_chi);
-    // Prediction and its covariance: Jacobians of the forward map by central differences
-    // (step 1e-7 on quantities of order 1e-2: truncation ~1e-14, rounding ~1e-9 relative).
-    let (pq, pu) = forward(a.q, a.u, expected.q, expected.u);
-    let h = 1e-7;
-    let jac = |f: &dyn Fn(f64) -> (f64, f64)| {
-        let (p1, p2) = (f(h), f(-h));
-        ((p1.0 - p2.0) / (2.0 * h), (p1.1 - p2.1) / (2.0 * h))
-    };
-    let ja_q = jac(&|d| forward(a.q + d, a.u, expected.q, expected.u));
-    let ja_u = jac(&|d| forward(a.q, a.u + d, expected.q, expected.u));
-    let js_q = jac(&|d| forward(a.q, a.u, expected.q + d, expected.u));
-    let js_u = jac(&|d| forward(a.q, a.u, expected.q, expected.u + d));
-    let prop = |jq: (f64, f64), ju: (f64, f64), va: f64, vb: f64, cab: f64| {
-        mueller::sandwich(&[[jq.0, ju.0], [jq.1, ju.1]], va, vb, cab)
-    };
-    let (aq, au, ac) = prop(ja_q, ja_u, a.var_q, a.var_u, a.cov_qu);
-    let (sq, su, sc) = prop(js_q, js_u, expected.var_q, expected.var_u, expected.cov_qu);
-    let (pvq, pvu, pcv) = (aq + sq, au + su, ac + sc);
+    // Prediction and its covariance through the chain of the calibration's M_I at the star: the
+    // expected star's and the calibration's covariances each through the chain's analytic
+    // Jacobian.
+    let Qu { q: pq, u: pu, var_q: pvq, var_u: pvu, cov_qu: pcv } =
+        chain_of(a).forward(x, y, expected, None).map_err(|e| Error::Prediction(e.to_string()))?;
     let (pp, psp, pchi, _) = correct::p_chi_with_errors(pq, pu, pvq, pvu, pcv);
     let residual_sigma = mahalanobis(q1 - pq, u1 - pu, vq1 + pvq, vu1 + pvu, cv1 + pcv)?;
     // Corrected star vs expected intrinsic polarization.

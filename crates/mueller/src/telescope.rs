@@ -177,6 +177,35 @@ impl Demodulation {
         (2.0 * qm / n, 2.0 * um / n)
     }
 
+    /// `d forward / d (q, u)` at the sky `(q, u)`, row `i` the derivatives of the `i`-th
+    /// output: the derivative of each angle's `F = D / S` (`D`, `S` the sums of
+    /// [`forward`](Self::forward), linear in `(q, u)` through the columns 1 and 2 of the
+    /// matrices) is `(D' S - D S') / S^2`, and `Q`, `U` are linear in the `F`.
+    pub fn jacobian(&self, q: f64, u: f64) -> [[f64; 2]; 2] {
+        let s = Stokes::new(1.0, q, u, 0.0);
+        let n = self.angles.len() as f64;
+        let mut j = [[0.0; 2]; 2];
+        for ((c, sn), ms) in &self.angles {
+            let (mut diff, mut sum) = (0.0, 0.0);
+            let (mut d_diff, mut d_sum) = ([0.0; 2], [0.0; 2]);
+            for m in ms {
+                let v = m * s;
+                diff += v[1] * c + v[2] * sn;
+                sum += v[0];
+                for (k, col) in [1, 2].into_iter().enumerate() {
+                    d_diff[k] += m[(1, col)] * c + m[(2, col)] * sn;
+                    d_sum[k] += m[(0, col)];
+                }
+            }
+            for k in 0..2 {
+                let df = (d_diff[k] * sum - diff * d_sum[k]) / (sum * sum);
+                j[0][k] += 2.0 * df * c / n;
+                j[1][k] += 2.0 * df * sn / n;
+            }
+        }
+        j
+    }
+
     /// The sky `(q, u)` (without circular polarization) whose demodulation is `meas`:
     /// [`forward`](Self::forward)`(q, u) = meas` solved by Newton's method from `start`, with
     /// the forward model's Jacobian by central differences (the model is linear-fractional in
@@ -377,6 +406,49 @@ mod tests {
     fn aluminium_v(factor: f64, q0: f64, u0: f64) -> BandModel {
         let t = MetalTable::builtin("aluminium").unwrap();
         BandModel { wavelength_um: 0.55, index: t.index(0.55).unwrap(), factor, thickness_nm: 7.0, offset: 0.7, q0, u0 }
+    }
+
+    /// The demodulation's analytic Jacobian: the identity through ideal optics (eq:Q, eq:U
+    /// give back the sky), the derivatives of the closed form through a partial polarizer
+    /// along `Q` of degree `p` seen at four angles (`eq:instpol` normalized:
+    /// `q' = (q + p) / (1 + p q)`, `u' = u (1 - p) / (1 + p q)`), and central differences of
+    /// the forward model through a telescope's exposures.
+    #[test]
+    fn demodulation_jacobian_is_the_derivative_of_its_forward_model() {
+        let angles = [0.0, 22.5, 45.0, 67.5].map(f64::to_radians);
+        let ideal = Demodulation::of_matrices(angles.iter().map(|&a| (a, Matrix4::identity()))).unwrap();
+        let j = ideal.jacobian(0.03, -0.02);
+        assert!((j[0][0] - 1.0).abs() < 1e-15 && (j[1][1] - 1.0).abs() < 1e-15, "{j:?}");
+        assert!(j[0][1].abs() < 1e-15 && j[1][0].abs() < 1e-15, "{j:?}");
+        let p = 0.04;
+        let pol = crate::partial_polarizer(p, 0.0);
+        let d = Demodulation::of_matrices(angles.iter().map(|&a| (a, pol))).unwrap();
+        let (q, u) = (0.03, -0.02);
+        let den = 1.0 + p * q;
+        let want = [[(1.0 - p * p) / (den * den), 0.0], [-u * (1.0 - p) * p / (den * den), (1.0 - p) / den]];
+        let got = d.jacobian(q, u);
+        for i in 0..2 {
+            for k in 0..2 {
+                assert!((got[i][k] - want[i][k]).abs() < 1e-15, "{got:?} vs {want:?}");
+            }
+        }
+        let b = aluminium_v(0.85, 0.0, 0.0);
+        let exposures: Vec<Exposure> = angles
+            .iter()
+            .enumerate()
+            .map(|(k, &a)| Exposure { hwp: a, track: Track::new(0.2 * k as f64, Some(0.2 * k as f64 + 0.15)) })
+            .collect();
+        let d = b.demodulation(&exposures).unwrap();
+        let h = 1e-6;
+        let j = d.jacobian(q, u);
+        for k in 0..2 {
+            let dq = if k == 0 { h } else { 0.0 };
+            let du = if k == 1 { h } else { 0.0 };
+            let (a, c) = (d.forward(q + dq, u + du), d.forward(q - dq, u - du));
+            for (i, fd) in [(a.0 - c.0) / (2.0 * h), (a.1 - c.1) / (2.0 * h)].into_iter().enumerate() {
+                assert!((j[i][k] - fd).abs() < 1e-8, "d{i}/d{k}: {} vs {fd}", j[i][k]);
+            }
+        }
     }
 
     #[test]

@@ -117,6 +117,12 @@ impl HwpCauses {
         Ok(Some(Self { solver, tilted: tilted.cloned(), wedged: wedged.cloned() }))
     }
 
+    /// The causes as one element of the chain: the plate's equivalent block
+    /// ([`block_at`](Self::block_at)) at every field position.
+    pub fn into_element(self) -> std::sync::Arc<dyn field::FieldModel> {
+        std::sync::Arc::new(field::LinearElement(move |x, y| self.block_at(x, y)))
+    }
+
     /// The product of the plates' equivalent blocks at `(x, y)` arcmin.
     pub fn block_at(&self, x: f64, y: f64) -> LinearBlock {
         let mut b = LinearBlock::identity();

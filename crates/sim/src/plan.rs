@@ -2,6 +2,7 @@
 
 use crate::scene::{Coords, Extended, InstPolSpec, Profile, Psf, Scene, Star};
 use crate::Error;
+use field::{Analyser, ExposureForward, FieldBlock, PlateMotion};
 use field::{FieldModel, GridMap, InstPol, NearestCell, RadialPattern};
 use instrument::Instrument;
 use mueller::{DualBeam, Harmonic, Hwp, Stokes, Wollaston};
@@ -18,52 +19,13 @@ use std::sync::Arc;
 /// Normalized Stokes `(I, Q, U)` of one sky pixel at the plate (V = 0 throughout).
 type Iqu = [f64; 3];
 
-/// A telescope's Mueller matrix as the plan keeps it: rows `I, Q, U, V`, columns `I, Q, U`
-/// (the sky has no circular polarization; M3 makes some, which a retarder after it turns back
-/// into linear polarization, so it is carried to the field's elements).
-type TelBlock = [[f64; 3]; 4];
-
-/// The field's elements behind a telescope: rows `I, Q, U` (the analyser with an ideal HWP
-/// does not see V), columns `I, Q, U, V`.
-type FieldBlock = [[f64; 4]; 3];
-
-fn tel_block(m: &mueller::Mueller) -> TelBlock {
-    std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)]))
-}
-
-fn field_block(m: &mueller::Mueller) -> FieldBlock {
-    std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)]))
-}
-
-#[inline]
-fn apply_tel(b: &TelBlock, s: &Iqu) -> [f64; 4] {
-    std::array::from_fn(|i| b[i][0] * s[0] + b[i][1] * s[1] + b[i][2] * s[2])
-}
-
-#[inline]
-fn apply_field(b: &FieldBlock, s: &[f64; 4]) -> Iqu {
-    std::array::from_fn(|i| b[i][0] * s[0] + b[i][1] * s[1] + b[i][2] * s[2] + b[i][3] * s[3])
-}
-
-/// The light after a frame's telescope matrix and, when there is one, the field's elements.
-#[inline]
-fn through(t: &TelBlock, f: Option<&FieldBlock>, s: &Iqu) -> Iqu {
-    let v = apply_tel(t, s);
-    match f {
-        Some(f) => apply_field(f, &v),
-        None => [v[0], v[1], v[2]],
-    }
-}
-
-/// The telescope of a scene: per frame, the M3 matrix averaged over the exposure's
-/// parallactic-angle track (normalized to keep an unpolarized source's flux), and, when an
-/// instrumental field acts after it on a sky image, that field's matrix per sky pixel (the
-/// image then holds the light before the telescope).
+/// The telescope of a scene: its band model (the chain's) and each exposure's
+/// parallactic-angle track.
 struct TelescopeTerm {
-    per_frame: Vec<TelBlock>,
-    tracks: Vec<mueller::telescope::Track>,
-    field: Option<Vec<FieldBlock>>,
     model: mueller::telescope::BandModel,
+    tracks: Vec<mueller::telescope::Track>,
+    /// Each exposure's hour angles at start and end (deg), for `--explain`.
+    hour_angles: Vec<(f64, f64)>,
 }
 
 /// The sky at the HWP: one vector for a uniform sky with no field-dependent effect, else one
@@ -120,11 +82,12 @@ pub struct Plan {
     /// (o, e) detector indices of every sky pixel the mask lets through.
     sky_pixels: Vec<(u32, u32)>,
     sky: SkyAtPlate,
-    /// Per HWP angle: rows giving `f_O`, `f_E` from `(I, Q, U)` at the plate.
-    rows: Vec<(Iqu, Iqu)>,
-    /// Per plate angle: `f_O`, `f_E` of unit `V` at the plate (the rows' fourth column, for
-    /// stars with circular polarization: a quarter-wave plate turns V into the beams' difference).
-    rows_v: Vec<(f64, f64)>,
+    /// Behind a telescope: the field's elements at every sky pixel (in the order of
+    /// `sky_pixels`), applied after each exposure's telescope matrix
+    /// ([`field::InstrumentChain::field_block_at`]).
+    behind: Option<Vec<FieldBlock>>,
+    /// Per exposure: the chain's forward model compiled ([`field::InstrumentChain::exposure_forward`]).
+    forwards: Vec<ExposureForward>,
     /// The sky's `V` at the plate (scene `sky.v`), which the sky's `(I, Q, U)` does not hold.
     sky_v: Option<SkyV>,
     flat: Option<Vec<f64>>,
@@ -137,15 +100,16 @@ pub struct Plan {
     moving: Vec<StarDraw>,
     /// Pointing offset of each frame (px).
     shifts: Vec<(f64, f64)>,
-    /// The telescope in front (scene `[telescope]`).
-    tel: Option<TelescopeTerm>,
-    /// The optical chain the frames are rendered through: the telescope, the field's elements
-    /// and the plate's zero angle.
+    /// The telescope's parallactic-angle track of each exposure (scene `[telescope]`).
+    tracks: Option<Vec<mueller::telescope::Track>>,
+    /// The optical chain every frame is rendered through: the telescope, the field's elements,
+    /// the plate and the analyser (`forwards`, `behind`, `sky` and `moving` are its pieces).
     chain: field::InstrumentChain,
 }
 
 /// A star drawn frame by frame: its position (px, o image, before the frame's shift), its
-/// normalized Stokes vector at the plate (instrumental field applied) and its PSF.
+/// Stokes vector as it enters the exposures' part of the chain
+/// ([`field::InstrumentChain::before_exposures`]) and its PSF.
 struct StarDraw {
     x: f64,
     y: f64,
@@ -423,38 +387,22 @@ impl Plan {
         Ok(plan)
     }
 
-    /// [`Plan::build_with_field`] of a scene already as the instrument sees it.
+    /// [`Plan::build_with_field`] of a scene already as the instrument sees it: the scene's
+    /// optical chain ([`field::InstrumentChain`] with its plate and analyser, the effects the
+    /// scene names and no others) built once, the sky and the stars as they enter it, each
+    /// exposure's forward model compiled from it, and the detector's steps.
     fn build_seen(scene: &Scene, field: Option<Arc<dyn FieldModel>>) -> Result<Self, Error> {
         let inst = Instrument::load(&scene.instrument)?;
         let filter = inst.filter(&scene.filter)?.clone();
         // The beam layout of the scene's filter (its own throw, when the instrument gives one).
         let geom = BeamGeometry::new(&inst.for_filter(&scene.filter));
-        let mut explain = Vec::new();
-        let layout = match geom.layout {
-            instrument::Layout::Strips => format!("{} strips, throw {} px", geom.strips.len(), inst.throw_px_exact()),
-            instrument::Layout::Maskless => format!("maskless, o/e offset {:?} px", geom.oe_offset.unwrap_or_default()),
-            instrument::Layout::TwoCameras => {
-                let c = geom.cameras.as_ref();
-                format!(
-                    "two cameras, e camera turned {:?}, transform {:?}",
-                    c.map(|c| c.e_orientation),
-                    c.and_then(|c| c.transform)
-                )
-            }
-        };
-        explain.push(format!(
-            "instrument {} ({} x {} px, {layout}), filter {}, {} HWP angles {:?} deg",
-            inst.name,
-            geom.nx,
-            geom.ny,
-            filter.name,
-            scene.hwp_angles_deg.len(),
-            scene.hwp_angles_deg
-        ));
-        let mut tel = match &scene.telescope {
+        let mut explain = vec![describe_setup(scene, &inst, &filter, &geom)];
+        let tel = match &scene.telescope {
             Some(t) => Some(telescope_term(scene, t, &inst, &filter, &mut explain)?),
             None => None,
         };
+        // Each exposure's telescope line goes here, once the chain has its matrix.
+        let telescope_lines_at = explain.len();
         let sky_pixels: Vec<(u32, u32)> = geom
             .sky_pixels()
             .map(|(x, y)| {
@@ -463,36 +411,21 @@ impl Plan {
             })
             .collect();
 
-        // --- the sky at the plate ---
         explain.push("sky at the plate (once per scene):".into());
-        let base = scene.sky.as_ref().map(|s| {
-            let st = mueller::stokes_p_chi(s.brightness_e, s.p, s.chi_deg.to_radians());
-            [st[0], st[1], st[2]]
-        });
         let fx = &scene.effects;
-        let field: Option<(Arc<dyn FieldModel>, String)> = match (field, &fx.instpol) {
-            (Some(_), Some(_)) => {
-                return Err(Error::Scene {
-                    path: PathBuf::from("<scene>"),
-                    message: "the scene names [effects.instpol] and a field model was given too: give one".into(),
-                })
-            }
-            (Some(m), None) => {
-                let d = m.describe();
-                Some((m, d))
-            }
-            (None, Some(spec)) => {
-                let model = load_field(spec, &inst)?;
-                check_field_physical(spec, model.as_ref(), &inst)?;
-                Some((model, describe_instpol(spec)))
-            }
-            (None, None) => None,
-        };
+        let field = resolve_field(field, fx, &inst)?;
         // Half-wave-plate causes (tilted, wedged plate): equivalent blocks at the scene's angles.
         let hwp_causes = scene.hwp_causes()?;
-        // The field-dependent elements in the order light meets them: the instrumental field,
-        // the stressed lens, the plate. The telescope acts before all of them, per exposure.
-        let chain = field_elements(&field, fx, hwp_causes);
+        let (analyser, optics) = analyser_of(scene, &inst, &filter);
+        // The chain: the telescope, the field-dependent elements in the order light meets them
+        // (the instrumental field, the stressed lens, the plate's causes), the plate and the
+        // analyser. Every frame is rendered through it.
+        let chain = field::InstrumentChain {
+            telescope: tel.as_ref().map(|t| t.model),
+            elements: field_elements(&field, fx, hwp_causes),
+            ..Default::default()
+        }
+        .with_analyser(analyser);
         // Stars go frame by frame when the two beams overlap (maskless) or the frames move;
         // otherwise they are folded into the sky image once.
         // A star with circular polarization is drawn frame by frame too: the sky image holds
@@ -505,328 +438,40 @@ impl Plan {
         } else {
             scene.frame_shifts_px.iter().map(|s| (s[0], s[1])).collect()
         };
-        let mut moving = Vec::new();
-        if per_frame {
-            for st in &scene.stars {
-                explain.push(format!("  + star {} (drawn frame by frame in both beams)", describe_star(st)));
-                let (x, y) = source_pixel(&inst, st.x, st.y, st.coords);
-                let v = mueller::stokes_p_chi(st.flux_e, st.p, st.chi_deg.to_radians());
-                let mut iqu = [v[0], v[1], v[2]];
-                let mut at_star = None;
-                let mut v_plate = st.flux_e * st.v;
-                if st.v != 0.0 {
-                    // (I, Q, U, V) through the field's elements' Mueller matrices (a telescope
-                    // is refused with V by the scene's checks).
-                    let s4 = Stokes::new(v[0], v[1], v[2], v_plate);
-                    let s4 = if chain.is_empty() {
-                        s4
-                    } else {
-                        let (xa, ya) = inst.pixel_to_arcmin(x, y);
-                        chain.mueller_at(xa, ya) * s4
-                    };
-                    (iqu, v_plate) = ([s4[0], s4[1], s4[2]], s4[3]);
-                } else if !chain.is_empty() {
-                    let (xa, ya) = inst.pixel_to_arcmin(x, y);
-                    match tel {
-                        // After each frame's telescope matrix: kept as the chain's block.
-                        Some(_) => at_star = Some(field_block(&chain.mueller_at(xa, ya))),
-                        None => iqu = chain.apply_at(xa, ya, iqu),
-                    }
-                }
-                moving.push(StarDraw { x, y, st: iqu, psf: PsfShape::of(st, &inst), v: v_plate, field: at_star });
-            }
-            if !scene.frame_shifts_px.is_empty() {
-                explain.push(format!("  frames moved by {:?} px", scene.frame_shifts_px));
-            }
-        }
-        let needs_image = scene.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some())
-            || (!scene.stars.is_empty() && !per_frame)
-            || !scene.extended.is_empty()
-            || (!chain.is_empty() && geom.layout == instrument::Layout::Strips);
-        let sky = if !needs_image {
-            let c = base.unwrap_or([0.0; 3]);
-            match &scene.sky {
-                Some(s) => explain.push(format!(
-                    "  uniform sky I = {} e-/px, p = {} ({:.3}%), chi = {} deg: one Stokes vector, nothing per pixel",
-                    s.brightness_e,
-                    s.p,
-                    100.0 * s.p,
-                    s.chi_deg
-                )),
-                None => explain.push("  empty sky: no light".into()),
-            }
-            SkyAtPlate::Constant(c)
-        } else {
-            let mut img = vec![base.unwrap_or([0.0; 3]); sky_pixels.len()];
-            let nx = geom.nx;
-            let pos = |o: u32| ((o as usize) % nx, (o as usize) / nx);
-            if let Some(s) = &scene.sky {
-                explain.push(format!(
-                    "  sky I = {} e-/px, p = {} ({:.3}%), chi = {} deg",
-                    s.brightness_e,
-                    s.p,
-                    100.0 * s.p,
-                    s.chi_deg
-                ));
-                if let Some([gx, gy]) = s.gradient_e_per_arcmin {
-                    explain.push(format!("  + linear gradient ({gx}, {gy}) e-/px per arcmin"));
-                    let (q0, u0) =
-                        (s.p * (2.0 * s.chi_deg.to_radians()).cos(), s.p * (2.0 * s.chi_deg.to_radians()).sin());
-                    for (k, &(o, _)) in sky_pixels.iter().enumerate() {
-                        let (x, y) = pos(o);
-                        let (xa, ya) = inst.pixel_to_arcmin(x as f64, y as f64);
-                        let i = (s.brightness_e + gx * xa + gy * ya).max(0.0);
-                        img[k] = [i, i * q0, i * u0];
-                    }
-                }
-            }
-            if (!scene.stars.is_empty() && !per_frame) || !scene.extended.is_empty() {
-                // Sky-pixel ordinal of each detector pixel, for sources that touch a window.
-                let mut ordinal = vec![u32::MAX; geom.nx * geom.ny];
-                for (k, &(o, _)) in sky_pixels.iter().enumerate() {
-                    ordinal[o as usize] = k as u32;
-                }
-                for st in scene.stars.iter().filter(|_| !per_frame) {
-                    explain.push(format!("  + star {}", describe_star(st)));
-                    add_star(&mut img, &ordinal, &inst, st);
-                }
-                for ex in &scene.extended {
-                    explain.push(format!(
-                        "  + extended source: {:?} profile, p = {}, chi = {} deg",
-                        ex.profile, ex.p, ex.chi_deg
-                    ));
-                    add_extended(&mut img, &sky_pixels, &inst, ex)?;
-                }
-            }
-            if !chain.is_empty() && geom.layout == instrument::Layout::Strips {
-                let coords = inst.field_coords();
-                let arcmin = |o: u32| {
-                    let (x, y) = pos(o);
-                    coords.pixel_to_arcmin(x as f64, y as f64)
-                };
-                for what in chain.describe() {
-                    explain.push(format!("  x {what}, per pixel"));
-                }
-                match tel.as_mut() {
-                    // After the telescope, which changes frame by frame: the chain's block kept
-                    // per pixel.
-                    Some(t) => {
-                        explain.push(
-                            "    (kept per pixel as one block: it acts after each frame's telescope matrix)".into(),
-                        );
-                        t.field = Some(
-                            sky_pixels
-                                .par_iter()
-                                .map(|&(o, _)| {
-                                    let (xa, ya) = arcmin(o);
-                                    field_block(&chain.mueller_at(xa, ya))
-                                })
-                                .collect(),
-                        );
-                    }
-                    None => img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(s, &(o, _))| {
-                        let (xa, ya) = arcmin(o);
-                        *s = chain.apply_at(xa, ya, *s);
-                    }),
-                }
-            }
-            SkyAtPlate::Image(img)
-        };
-        // The sky's V reaches the beams through the plate's fourth column (`rows_v`). The field's
-        // elements (an instrumental field, a stressed lens, plate defects) would mix it with
-        // I, Q, U pixel by pixel, which the sky image of (I, Q, U) does not carry: refused (a
-        // telescope is refused by the scene's checks).
-        let sky_v = match scene.sky.as_ref().filter(|s| s.v != 0.0) {
-            None => None,
-            Some(_) if !chain.is_empty() => {
-                return Err(Error::Scene {
-                    path: PathBuf::from("<scene>"),
-                    message: "sky.v: the sky's circular polarization is not carried through the instrumental field's \
-                              elements ([effects.instpol], a stressed lens, plate defects): the sky image holds \
-                              (I, Q, U)"
-                        .into(),
-                })
-            }
-            Some(s) => {
-                explain.push(format!("  sky V/I = {} (through the plate's V column)", s.v));
-                Some(match (&sky, s.gradient_e_per_arcmin) {
-                    (SkyAtPlate::Constant(_), _) | (_, None) => SkyV::Constant(s.brightness_e * s.v),
-                    (SkyAtPlate::Image(_), Some([gx, gy])) => SkyV::Image(
-                        sky_pixels
-                            .iter()
-                            .map(|&(o, _)| {
-                                let (x, y) = ((o as usize) % geom.nx, (o as usize) / geom.nx);
-                                let (xa, ya) = inst.pixel_to_arcmin(x as f64, y as f64);
-                                s.v * (s.brightness_e + gx * xa + gy * ya).max(0.0)
-                            })
-                            .collect(),
-                    ),
-                })
-            }
-        };
+        let moving = if per_frame { stars_frame_by_frame(scene, &inst, &chain, &mut explain) } else { Vec::new() };
+        let (sky, behind) = sky_at_plate(scene, &inst, &geom, &sky_pixels, &chain, per_frame, &mut explain)?;
+        let sky_v = sky_v_of(scene, &inst, &geom, &sky_pixels, &sky, &chain, &mut explain)?;
+        explain.extend(optics);
 
-        // --- the optics: the one forward model, compiled once ---
-        let mut hwp = Hwp { nominal_retardance: inst.polarimetry.plate.retardance(), ..Hwp::ideal() };
-        let mut optics = Vec::new();
-        let qwp = inst.polarimetry.plate == instrument::Plate::QuarterWave;
-        if qwp {
-            optics.push("quarter-wave plate (retardance pi/2)".into());
-        }
-        if let Some(d) = fx.hwp_retardance_error_deg {
-            hwp.retardance_error = d.to_radians();
-            optics.push(format!("HWP retardance error {d} deg"));
-        }
-        let chi_off = if fx.hwp_chi_offset_from_filter { Some(filter.chi_offset_deg()) } else { fx.hwp_chi_offset_deg };
-        // A quarter-wave plate's zero angle is its axis's offset: twice it is the plate's
-        // chi_offset (mueller::Hwp: the axis at theta + chi_offset / 2).
-        let qwp_zero =
-            if fx.hwp_chi_offset_from_filter { Some(filter.qwp_zero_angle_deg()) } else { fx.qwp_zero_angle_deg };
-        if let Some(z) = qwp_zero.filter(|_| qwp) {
-            hwp.chi_offset = 2.0 * z.to_radians();
-            optics.push(format!("QWP zero angle {z} deg (fast axis at the plate angle + {z} deg)"));
-        } else if let Some(c) = chi_off.filter(|_| !qwp) {
-            hwp.chi_offset = c.to_radians();
-            optics.push(format!("HWP chromatic zero angle {c} deg"));
-        }
-        if let Some(h) = &fx.dust {
-            hwp.dust = Some(Harmonic { amplitude: h.amplitude, phase: h.phase_deg.to_radians() });
-            optics.push(format!("HWP dust (k = 1) amplitude {} phase {} deg", h.amplitude, h.phase_deg));
-        }
-        if let Some(h) = &fx.pleochroism {
-            hwp.pleochroism = Some(Harmonic { amplitude: h.amplitude, phase: h.phase_deg.to_radians() });
-            optics.push(format!("HWP pleochroism (k = 2) amplitude {} phase {} deg", h.amplitude, h.phase_deg));
-        }
-        let wollaston = match &fx.wollaston {
-            Some(w) => {
-                let s = w.s.unwrap_or(1.0 - w.t);
-                optics.push(format!("Wollaston t = {}, s = {s}, delta_alpha = {} deg", w.t, w.delta_alpha_deg));
-                Wollaston { t: w.t, s, delta_alpha: w.delta_alpha_deg.to_radians() }
-            }
-            None => Wollaston::ideal(),
-        };
-        let post = fx.post_analyzer.as_ref().map(|p| {
-            optics.push(format!("post-analyzer M_PA(A = {}, B = {}, C = {}, phi = {} deg)", p.a, p.b, p.c, p.phi_deg));
-            mueller::post_analyzer(p.a, p.b, p.c, p.phi_deg.to_radians())
-        });
-        let train = DualBeam { pre: vec![], hwp, wollaston, post }.compile();
-        if optics.is_empty() {
-            explain.push("optics: ideal HWP + ideal Wollaston (eq:ord)".into());
-        } else {
-            explain.push(format!("optics (mueller::DualBeam, compiled once): {}", optics.join("; ")));
-        }
-        explain.push("  per HWP angle: f_O, f_E = two rows . (I, Q, U) at the plate (the model is linear)".into());
-        let basis = [Stokes::new(1.0, 0.0, 0.0, 0.0), Stokes::new(0.0, 1.0, 0.0, 0.0), Stokes::new(0.0, 0.0, 1.0, 0.0)];
-        if let Some(m) = &scene.hwp_motion {
-            explain.push(format!(
-                "  the plate turns {} deg during each exposure, centred on its angle ({})",
-                m.sweep_deg,
-                if m.substeps > 0 {
-                    format!("the fixed plate's fluxes averaged over {} sub-steps", m.substeps)
-                } else {
-                    "the plate's matrix averaged over the motion, mueller::Hwp::matrix_swept".into()
-                }
-            ));
-        }
-        // The fluxes of Stokes vector `b` at the plate in the exposure at plate angle `t`.
-        let fluxes = |b: &Stokes, t: f64| match &scene.hwp_motion {
-            None => train.fluxes_at_plate(b, t),
-            Some(m) if m.substeps == 0 => train.fluxes_at_plate_swept(b, t, m.sweep_deg.to_radians()),
-            Some(m) => {
-                // The motion by sub-steps: the mean of the fixed plate's fluxes.
-                let (d, n) = (m.sweep_deg.to_radians(), m.substeps as f64);
-                let (mut fo, mut fe) = (0.0, 0.0);
-                for j in 0..m.substeps {
-                    let f = train.fluxes_at_plate(b, t - 0.5 * d + (j as f64 + 0.5) * d / n);
-                    fo += f.f_o;
-                    fe += f.f_e;
-                }
-                mueller::BeamFluxes { f_o: fo / n, f_e: fe / n }
-            }
-        };
-        let rows = scene
-            .hwp_angles_deg
+        // --- the chain's forward model of each exposure, compiled once ---
+        let tracks = tel.as_ref().map(|t| t.tracks.clone());
+        let forwards = exposures_of(scene, tracks.as_deref())
             .iter()
-            .map(|a| {
-                let t = a.to_radians();
-                let mut ro = [0.0; 3];
-                let mut re = [0.0; 3];
-                for (k, b) in basis.iter().enumerate() {
-                    let f = fluxes(b, t);
-                    ro[k] = f.f_o;
-                    re[k] = f.f_e;
-                }
-                (ro, re)
-            })
-            .collect();
-        let rows_v = scene
-            .hwp_angles_deg
-            .iter()
-            .map(|a| {
-                let f = fluxes(&Stokes::new(0.0, 0.0, 0.0, 1.0), a.to_radians());
-                (f.f_o, f.f_e)
-            })
-            .collect();
+            .map(|e| chain.exposure_forward(e))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| Error::Scene { path: PathBuf::from("<scene>"), message: format!("telescope: {e}") })?;
+        if let Some(t) = &tel {
+            let lines = t.tracks.iter().zip(&t.hour_angles).zip(&forwards).enumerate().map(|(k, ((track, (a, b)), f))| {
+                let [q, u] = f.telescope_qu().unwrap_or_default();
+                format!(
+                    "  frame {k}: hour angle {a:.3} to {b:.3} deg, parallactic angle {:.3} to {:.3} deg: unpolarized light -> q = {q:.5}, u = {u:.5}",
+                    track.start.to_degrees(),
+                    track.end.to_degrees(),
+                )
+            });
+            explain.splice(telescope_lines_at..telescope_lines_at, lines.collect::<Vec<_>>());
+        }
 
-        // --- detector steps ---
-        let d = &inst.detector;
-        let mut steps = Vec::new();
-        let mut det = Vec::new();
-        let flat = match &fx.flat {
-            Some(f) => {
-                steps.push(DetStep::Flat);
-                det.push(format!(
-                    "flat-field errors (o: rms {} + large-scale {}; e: rms {} + large-scale {})",
-                    f.pixel_rms_o, f.large_scale_o, f.pixel_rms_e, f.large_scale_e
-                ));
-                Some(flat_map(&geom, f, scene.seed))
-            }
-            None => None,
-        };
-        if let Some(t) = fx.transparency_rms {
-            det.push(format!("transparency noise {t} rms per frame (both beams together)"));
-        }
-        if fx.photon_noise {
-            steps.push(DetStep::Photon);
-            det.push("photon noise (Poisson)".into());
-        }
-        if let Some(c) = &fx.cosmic_rays {
-            steps.push(DetStep::Cosmic);
-            det.push(format!(
-                "cosmic rays ({} per frame, {} e- over {} px squares)",
-                c.rate_per_frame, c.energy_e, c.size_px
-            ));
-        }
-        let rn = fx.read_noise_e.or(if fx.read_noise { Some(d.read_noise_e) } else { None });
-        if let Some(r) = rn.filter(|&r| r > 0.0) {
-            steps.push(DetStep::ReadNoise(r));
-            det.push(format!("read noise {r} e- rms"));
-        }
-        let gain = fx.gain_e_per_adu.unwrap_or(d.gain_e_per_adu);
-        steps.push(DetStep::Gain(gain));
-        det.push(format!("gain {gain} e-/ADU"));
-        if d.bias_adu != 0.0 {
-            steps.push(DetStep::Bias(d.bias_adu));
-            det.push(format!("bias {} ADU", d.bias_adu));
-        }
-        if fx.saturation {
-            steps.push(DetStep::Saturate(d.saturation_adu));
-            det.push(format!("saturation at {} ADU", d.saturation_adu));
-        }
-        let bitpix = Bitpix::from_fits(scene.output.bitpix).unwrap_or(Bitpix::U16);
-        det.push(format!(
-            "written as BITPIX {}{}",
-            scene.output.bitpix,
-            if bitpix == Bitpix::U16 { " (rounded)" } else { "" }
-        ));
-        explain.push(format!("detector steps per pixel: {}", det.join(" -> ")));
+        let (steps, flat, bitpix, det) = detector_steps(scene, &inst, &geom);
+        explain.push(det);
         Ok(Self {
             scene: scene.clone(),
             inst,
             geom,
             sky_pixels,
             sky,
-            rows,
-            rows_v,
+            behind,
+            forwards,
             sky_v,
             flat,
             steps,
@@ -835,12 +480,8 @@ impl Plan {
             explain,
             moving,
             shifts,
-            chain: field::InstrumentChain {
-                telescope: tel.as_ref().map(|t| t.model),
-                elements: chain,
-                zero_angle: hwp.chi_offset,
-            },
-            tel,
+            chain,
+            tracks,
         })
     }
 
@@ -855,15 +496,7 @@ impl Plan {
     /// The exposures as the chain sees them: each frame's HWP angle as commanded (rad) and its
     /// parallactic-angle track (a fixed angle 0 without a telescope), in frame order.
     pub fn exposures(&self) -> Vec<mueller::telescope::Exposure> {
-        self.scene
-            .hwp_angles_deg
-            .iter()
-            .enumerate()
-            .map(|(k, a)| mueller::telescope::Exposure {
-                hwp: a.to_radians(),
-                track: self.tel.as_ref().map_or(mueller::telescope::Track::at(0.0), |t| t.tracks[k]),
-            })
-            .collect()
+        exposures_of(&self.scene, self.tracks.as_deref())
     }
 
     /// The train and noise steps, one per line, for `--explain`.
@@ -873,7 +506,7 @@ impl Plan {
 
     /// Number of frames (HWP angles).
     pub fn n_frames(&self) -> usize {
-        self.rows.len()
+        self.forwards.len()
     }
 
     /// Detector size `(nx, ny)`.
@@ -885,66 +518,39 @@ impl Plan {
     pub fn render(&self, k: usize) -> Vec<f64> {
         let (nx, ny) = (self.geom.nx, self.geom.ny);
         let mut img = vec![0.0; nx * ny];
-        let (ro, re) = self.rows[k];
-        let dot = |r: &Iqu, s: &Iqu| r[0] * s[0] + r[1] * s[1] + r[2] * s[2];
-        if let Some(t) = &self.tel {
-            // The telescope's matrix of this frame, then (per pixel) the field.
-            let m = &t.per_frame[k];
-            match &self.sky {
-                SkyAtPlate::Constant(s) => {
-                    let s = through(m, None, s);
-                    let (fo, fe) = (dot(&ro, &s), dot(&re, &s));
-                    if self.geom.layout == instrument::Layout::Maskless {
-                        img.fill(fo + fe);
-                    } else if self.geom.layout == instrument::Layout::TwoCameras {
-                        self.fill_cameras(&mut img, fo, fe);
-                    } else {
+        // Every pixel through the chain's forward model of this exposure.
+        let fwd = &self.forwards[k];
+        let v_at = |i: usize| match &self.sky_v {
+            None => 0.0,
+            Some(SkyV::Constant(v)) => *v,
+            Some(SkyV::Image(w)) => w[i],
+        };
+        match &self.sky {
+            SkyAtPlate::Constant(s) => {
+                let (fo, fe) = fwd.fluxes(s, v_at(0), None);
+                match self.geom.layout {
+                    // Every pixel takes the o light of one sky point and the e light of another.
+                    instrument::Layout::Maskless => img.fill(fo + fe),
+                    // Each camera sees the whole uniform sky in its beam.
+                    instrument::Layout::TwoCameras => self.fill_cameras(&mut img, fo, fe),
+                    instrument::Layout::Strips => {
                         for &(o, e) in &self.sky_pixels {
                             img[o as usize] = fo;
                             img[e as usize] = fe;
                         }
                     }
                 }
-                SkyAtPlate::Image(v) => {
-                    for (i, (s, &(o, e))) in v.iter().zip(&self.sky_pixels).enumerate() {
-                        let s = through(m, t.field.as_ref().map(|f| &f[i]), s);
-                        img[o as usize] = dot(&ro, &s);
-                        img[e as usize] = dot(&re, &s);
-                    }
-                }
             }
-        } else {
-            match &self.sky {
-                SkyAtPlate::Constant(s) if self.geom.layout == instrument::Layout::Maskless => {
-                    // Every pixel takes the o light of one sky point and the e light of another.
-                    img.fill(dot(&ro, s) + dot(&re, s));
+            SkyAtPlate::Image(v) => {
+                for (i, (s, &(o, e))) in v.iter().zip(&self.sky_pixels).enumerate() {
+                    let (fo, fe) = fwd.fluxes(s, v_at(i), self.behind.as_ref().map(|b| &b[i]));
+                    img[o as usize] = fo;
+                    img[e as usize] = fe;
                 }
-                SkyAtPlate::Constant(s) if self.geom.layout == instrument::Layout::TwoCameras => {
-                    // Each camera sees the whole uniform sky in its beam.
-                    self.fill_cameras(&mut img, dot(&ro, s), dot(&re, s));
-                }
-                SkyAtPlate::Constant(s) => {
-                    let (fo, fe) = (dot(&ro, s), dot(&re, s));
-                    for &(o, e) in &self.sky_pixels {
-                        img[o as usize] = fo;
-                        img[e as usize] = fe;
-                    }
-                }
-                SkyAtPlate::Image(v) => {
-                    for (s, &(o, e)) in v.iter().zip(&self.sky_pixels) {
-                        img[o as usize] = dot(&ro, s);
-                        img[e as usize] = dot(&re, s);
-                    }
-                }
-            }
-            // The sky's V in each beam, through the plate's V column (a telescope in front is
-            // refused with it).
-            if let Some(sv) = &self.sky_v {
-                self.add_sky_v(&mut img, sv, self.rows_v[k]);
             }
         }
         for st in &self.moving {
-            self.draw_star(&mut img, st, k, (&ro, &re), self.rows_v[k]);
+            self.draw_star(&mut img, st, k, fwd);
         }
         if let Some(t) = self.scene.effects.transparency_rms.filter(|&t| t > 0.0) {
             let mut rng = stream(self.scene.seed, STREAM_TRANSPARENCY, k as u64, 0);
@@ -1027,31 +633,20 @@ impl Plan {
     }
 
     /// Add star `s` of frame `k` to `img` (e- at the plate): in each beam the light of that
-    /// beam (`rows`), spread by the PSF about where the layout puts the beam's image of the
-    /// star, on the detector pixels that beam reaches (strips: its image of the mask strips;
-    /// maskless: every pixel). The PSF is normalized over its window, as for the stars of the
-    /// sky image, so that the mask hides light instead of moving it.
-    fn draw_star(&self, img: &mut [f64], s: &StarDraw, k: usize, rows: (&Iqu, &Iqu), rows_v: (f64, f64)) {
+    /// beam (the chain's forward model of the exposure, `fwd`), spread by the PSF about where
+    /// the layout puts the beam's image of the star, on the detector pixels that beam reaches
+    /// (strips: its image of the mask strips; maskless: every pixel). The PSF is normalized over
+    /// its window, as for the stars of the sky image, so that the mask hides light instead of
+    /// moving it.
+    fn draw_star(&self, img: &mut [f64], s: &StarDraw, k: usize, fwd: &ExposureForward) {
         let (nx, ny) = (self.geom.nx, self.geom.ny);
         let (x, y) = (s.x + self.shifts[k].0, s.y + self.shifts[k].1);
-        let mut st = s.st;
-        if let Some(t) = &self.tel {
-            st = through(&t.per_frame[k], s.field.as_ref(), &st);
-        }
-        // The star's V reaches the beams through the plate's fourth column (a quarter-wave
+        // The star's V reaches the beams through the analyser's V column (a quarter-wave
         // plate's modulation of V); a star without V adds nothing.
-        let dot = |r: &Iqu, rv: f64| {
-            let f = r[0] * st[0] + r[1] * st[1] + r[2] * st[2];
-            if s.v != 0.0 {
-                f + rv * s.v
-            } else {
-                f
-            }
-        };
+        let (fo, fe) = fwd.fluxes(&s.st, s.v, s.field.as_ref());
         let Some((dx, dy)) = self.geom.e_offset(x, y) else { return };
         let radius = s.psf.radius();
-        for (beam, (cx, cy), flux) in [(0, (x, y), dot(rows.0, rows_v.0)), (1, (x + dx, y + dy), dot(rows.1, rows_v.1))]
-        {
+        for (beam, (cx, cy), flux) in [(0, (x, y), fo), (1, (x + dx, y + dy), fe)] {
             if cx + radius < 0.0 || cy + radius < 0.0 || cx - radius > nx as f64 || cy - radius > ny as f64 {
                 continue;
             }
@@ -1080,37 +675,6 @@ impl Plan {
         }
     }
 
-    /// Add the sky's `V` (`sv`) to `img` through the plate's `V` column `(rvo, rve)`: each
-    /// beam's pixel of every sky pixel (on a maskless detector every pixel holds both beams; on
-    /// two cameras each camera holds one).
-    fn add_sky_v(&self, img: &mut [f64], sv: &SkyV, (rvo, rve): (f64, f64)) {
-        let nx = self.geom.nx;
-        match (sv, self.geom.layout) {
-            (SkyV::Constant(v), instrument::Layout::Maskless) => img.iter_mut().for_each(|x| *x += (rvo + rve) * v),
-            (SkyV::Constant(v), instrument::Layout::TwoCameras) => {
-                for (p, x) in img.iter_mut().enumerate() {
-                    match self.geom.kind(p % nx, p / nx) {
-                        PixelKind::Ordinary(_) => *x += rvo * v,
-                        PixelKind::Extraordinary(_) => *x += rve * v,
-                        _ => {}
-                    }
-                }
-            }
-            (SkyV::Constant(v), _) => {
-                for &(o, e) in &self.sky_pixels {
-                    img[o as usize] += rvo * v;
-                    img[e as usize] += rve * v;
-                }
-            }
-            (SkyV::Image(w), _) => {
-                for (v, &(o, e)) in w.iter().zip(&self.sky_pixels) {
-                    img[o as usize] += rvo * v;
-                    img[e as usize] += rve * v;
-                }
-            }
-        }
-    }
-
     /// A uniform sky on two cameras: `fo` on every o camera pixel, `fe` on every e camera pixel.
     fn fill_cameras(&self, img: &mut [f64], fo: f64, fe: f64) {
         let nx = self.geom.nx;
@@ -1126,9 +690,9 @@ impl Plan {
     /// The header keywords of frame `k`.
     fn keys(&self, k: usize) -> Vec<(String, KeyValue, String)> {
         let mut tel_keys = Vec::new();
-        if let (Some(t), Some(it)) = (&self.tel, &self.inst.telescope) {
+        if let (Some(t), Some(it)) = (&self.tracks, &self.inst.telescope) {
             let sense = it.parang_sense as f64;
-            let tr = t.tracks[k];
+            let tr = t[k];
             // Header angles in (-180, 180] as a telescope writes them, in the header's sense.
             let deg = |a: f64| 2.0 * mueller::wrap_half_pi(0.5 * a).to_degrees();
             for (key, v, what) in [
@@ -1405,10 +969,11 @@ impl Plan {
     }
 }
 
-/// The telescope of a scene frame by frame: the mirror of `mueller::telescope::BandModel` at the
-/// filter's effective wavelength, each exposure's parallactic-angle track from its hour
-/// angles (`mueller::telescope::exposure_track`), and the matrix averaged over it
-/// (`BandModel::matrix_track`), divided by its `M_00` so that fluxes stay those of the scene.
+/// The telescope of a scene: the mirror of `mueller::telescope::BandModel` at the filter's
+/// effective wavelength and each exposure's parallactic-angle track from its hour angles
+/// (`mueller::telescope::exposure_track`). The chain averages the matrix over each track and
+/// divides it by its `M_00`, so that fluxes stay those of the scene
+/// (`field::chain::telescope_matrix`).
 fn telescope_term(
     scene: &Scene,
     t: &crate::scene::TelescopeSpec,
@@ -1436,26 +1001,17 @@ fn telescope_term(
     };
     let lat = scene.site_latitude_deg(inst).ok_or_else(|| bad("no site latitude".into()))?.to_radians();
     let dec = t.dec_deg.to_radians();
-    let (mut per_frame, mut tracks) = (Vec::new(), Vec::new());
+    let (mut hour_angles, mut tracks) = (Vec::new(), Vec::new());
     explain.push(format!(
         "telescope: M3 of {} (n, k x {}, alumina {} nm) at 45 deg, offset {} deg, rotator {} deg, dec {} deg, latitude {:.3} deg; per exposure the matrix averaged over its parallactic-angle track:",
         t.metal, t.factor, t.overlayer_thickness_nm, t.offset_deg, t.rotator_deg, t.dec_deg, lat.to_degrees()
     ));
     for k in 0..scene.hwp_angles_deg.len() {
         let (a, b) = t.hour_angles(k, scene.exposure_s);
-        let track = exposure_track(lat, dec, a.to_radians(), b.to_radians()).with_rotator(t.rotator_deg.to_radians());
-        let m = field::chain::telescope_matrix(&model, track).map_err(|e| bad(e.to_string()))?;
-        explain.push(format!(
-            "  frame {k}: hour angle {a:.3} to {b:.3} deg, parallactic angle {:.3} to {:.3} deg: unpolarized light -> q = {:.5}, u = {:.5}",
-            track.start.to_degrees(),
-            track.end.to_degrees(),
-            m[(1, 0)],
-            m[(2, 0)]
-        ));
-        per_frame.push(tel_block(&m));
-        tracks.push(track);
+        tracks.push(exposure_track(lat, dec, a.to_radians(), b.to_radians()).with_rotator(t.rotator_deg.to_radians()));
+        hour_angles.push((a, b));
     }
-    Ok(TelescopeTerm { per_frame, tracks, field: None, model })
+    Ok(TelescopeTerm { model, tracks, hour_angles })
 }
 
 fn describe_star(s: &Star) -> String {
@@ -1716,9 +1272,9 @@ impl Plan {
                     file: rel(&p[0]),
                     chip_files: if self.writes_chips() { p.iter().map(rel).collect() } else { vec![] },
                     hwp_deg: a,
-                    parallactic_start_deg: self.tel.as_ref().map(|t| t.tracks[k].start.to_degrees()),
-                    parallactic_end_deg: self.tel.as_ref().map(|t| t.tracks[k].end.to_degrees()),
-                    telescope_qu: self.tel.as_ref().map(|t| [t.per_frame[k][1][0], t.per_frame[k][2][0]]),
+                    parallactic_start_deg: self.tracks.as_ref().map(|t| t[k].start.to_degrees()),
+                    parallactic_end_deg: self.tracks.as_ref().map(|t| t[k].end.to_degrees()),
+                    telescope_qu: self.forwards[k].telescope_qu(),
                 })
                 .collect(),
             bias_frames: bias.iter().map(rel).collect(),
@@ -1756,7 +1312,397 @@ fn field_elements(
     }
     if let Some(hc) = hwp_causes {
         let what = format!("half-wave-plate causes (equivalent block): {}", hc.describe());
-        chain = chain.then(Arc::new(field::LinearElement(move |x, y| hc.block_at(x, y))), what);
+        chain = chain.then(hc.into_element(), what);
     }
     chain
+}
+
+/// The first line of a scene's `--explain`: the instrument, its beam layout, the filter and
+/// the plate's angles.
+fn describe_setup(scene: &Scene, inst: &Instrument, filter: &instrument::Filter, geom: &BeamGeometry) -> String {
+    let layout = match geom.layout {
+        instrument::Layout::Strips => format!("{} strips, throw {} px", geom.strips.len(), inst.throw_px_exact()),
+        instrument::Layout::Maskless => format!("maskless, o/e offset {:?} px", geom.oe_offset.unwrap_or_default()),
+        instrument::Layout::TwoCameras => {
+            let c = geom.cameras.as_ref();
+            format!(
+                "two cameras, e camera turned {:?}, transform {:?}",
+                c.map(|c| c.e_orientation),
+                c.and_then(|c| c.transform)
+            )
+        }
+    };
+    format!(
+        "instrument {} ({} x {} px, {layout}), filter {}, {} HWP angles {:?} deg",
+        inst.name,
+        geom.nx,
+        geom.ny,
+        filter.name,
+        scene.hwp_angles_deg.len(),
+        scene.hwp_angles_deg
+    )
+}
+
+/// The instrumental field of a scene with the line that says what it is: the model given
+/// (`field`) or the scene's `[effects.instpol]` (one of them, not both), checked physical.
+fn resolve_field(
+    field: Option<Arc<dyn FieldModel>>,
+    fx: &crate::scene::Effects,
+    inst: &Instrument,
+) -> Result<Option<(Arc<dyn FieldModel>, String)>, Error> {
+    Ok(match (field, &fx.instpol) {
+        (Some(_), Some(_)) => {
+            return Err(Error::Scene {
+                path: PathBuf::from("<scene>"),
+                message: "the scene names [effects.instpol] and a field model was given too: give one".into(),
+            })
+        }
+        (Some(m), None) => {
+            let d = m.describe();
+            Some((m, d))
+        }
+        (None, Some(spec)) => {
+            let model = load_field(spec, inst)?;
+            check_field_physical(spec, model.as_ref(), inst)?;
+            Some((model, describe_instpol(spec)))
+        }
+        (None, None) => None,
+    })
+}
+
+/// The exposures as the chain sees them: each frame's HWP angle as commanded (rad) and its
+/// parallactic-angle track (`tracks`, a telescope's; a fixed angle 0 without one).
+fn exposures_of(scene: &Scene, tracks: Option<&[mueller::telescope::Track]>) -> Vec<mueller::telescope::Exposure> {
+    scene
+        .hwp_angles_deg
+        .iter()
+        .enumerate()
+        .map(|(k, a)| mueller::telescope::Exposure {
+            hwp: a.to_radians(),
+            track: tracks.map_or(mueller::telescope::Track::at(0.0), |t| t[k]),
+        })
+        .collect()
+}
+
+/// The stars drawn frame by frame, each as it enters the exposures' part of the chain
+/// ([`field::InstrumentChain::before_exposures`]; behind a telescope the field's elements at
+/// the star kept as one block).
+fn stars_frame_by_frame(
+    scene: &Scene,
+    inst: &Instrument,
+    chain: &field::InstrumentChain,
+    explain: &mut Vec<String>,
+) -> Vec<StarDraw> {
+    let mut moving = Vec::new();
+    for st in &scene.stars {
+        explain.push(format!("  + star {} (drawn frame by frame in both beams)", describe_star(st)));
+        let (x, y) = source_pixel(inst, st.x, st.y, st.coords);
+        let v = mueller::stokes_p_chi(st.flux_e, st.p, st.chi_deg.to_radians());
+        let (xa, ya) = inst.pixel_to_arcmin(x, y);
+        // (I, Q, U, V): a star's V goes through the field's elements' Mueller matrices (a
+        // telescope is refused with V by the scene's checks).
+        let s = chain.before_exposures(xa, ya, Stokes::new(v[0], v[1], v[2], st.flux_e * st.v));
+        let field = chain.elements_per_exposure().then(|| chain.field_block_at(xa, ya));
+        moving.push(StarDraw { x, y, st: [s[0], s[1], s[2]], psf: PsfShape::of(st, inst), v: s[3], field });
+    }
+    if !scene.frame_shifts_px.is_empty() {
+        explain.push(format!("  frames moved by {:?} px", scene.frame_shifts_px));
+    }
+    moving
+}
+
+/// The sky as it enters the exposures' part of the chain: one vector for a uniform sky with
+/// no field-dependent effect, else an image (gradient, stars folded in, extended sources)
+/// with the field's elements applied once per pixel, or, behind a telescope, kept per pixel
+/// (the second value).
+#[allow(clippy::too_many_arguments)]
+fn sky_at_plate(
+    scene: &Scene,
+    inst: &Instrument,
+    geom: &BeamGeometry,
+    sky_pixels: &[(u32, u32)],
+    chain: &field::InstrumentChain,
+    per_frame: bool,
+    explain: &mut Vec<String>,
+) -> Result<(SkyAtPlate, Option<Vec<FieldBlock>>), Error> {
+    let base = scene.sky.as_ref().map(|s| {
+        let st = mueller::stokes_p_chi(s.brightness_e, s.p, s.chi_deg.to_radians());
+        [st[0], st[1], st[2]]
+    });
+    let elements = !chain.elements.is_empty() && geom.layout == instrument::Layout::Strips;
+    let needs_image = scene.sky.as_ref().is_some_and(|s| s.gradient_e_per_arcmin.is_some())
+        || (!scene.stars.is_empty() && !per_frame)
+        || !scene.extended.is_empty()
+        || elements;
+    if !needs_image {
+        match &scene.sky {
+            Some(s) => explain.push(format!(
+                "  uniform sky I = {} e-/px, p = {} ({:.3}%), chi = {} deg: one Stokes vector, nothing per pixel",
+                s.brightness_e,
+                s.p,
+                100.0 * s.p,
+                s.chi_deg
+            )),
+            None => explain.push("  empty sky: no light".into()),
+        }
+        return Ok((SkyAtPlate::Constant(base.unwrap_or([0.0; 3])), None));
+    }
+    let mut img = sky_image(scene, inst, geom, sky_pixels, base, per_frame, explain)?;
+    let mut behind = None;
+    if elements {
+        let coords = inst.field_coords();
+        let arcmin = |o: u32| coords.pixel_to_arcmin((o as usize % geom.nx) as f64, (o as usize / geom.nx) as f64);
+        for what in chain.elements.describe() {
+            explain.push(format!("  x {what}, per pixel"));
+        }
+        if chain.elements_per_exposure() {
+            // After the telescope, which changes frame by frame: the elements kept per pixel.
+            explain.push("    (kept per pixel as one block: it acts after each frame's telescope matrix)".into());
+            behind = Some(
+                sky_pixels
+                    .par_iter()
+                    .map(|&(o, _)| {
+                        let (xa, ya) = arcmin(o);
+                        chain.field_block_at(xa, ya)
+                    })
+                    .collect(),
+            );
+        } else {
+            img.par_iter_mut().zip(sky_pixels.par_iter()).for_each(|(s, &(o, _))| {
+                let (xa, ya) = arcmin(o);
+                let t = chain.before_exposures(xa, ya, Stokes::new(s[0], s[1], s[2], 0.0));
+                *s = [t[0], t[1], t[2]];
+            });
+        }
+    }
+    Ok((SkyAtPlate::Image(img), behind))
+}
+
+/// The sky image before the chain: the sky (with its gradient), the stars folded in (when
+/// not drawn frame by frame) and the extended sources, one `(I, Q, U)` per sky pixel.
+#[allow(clippy::too_many_arguments)]
+fn sky_image(
+    scene: &Scene,
+    inst: &Instrument,
+    geom: &BeamGeometry,
+    sky_pixels: &[(u32, u32)],
+    base: Option<Iqu>,
+    per_frame: bool,
+    explain: &mut Vec<String>,
+) -> Result<Vec<Iqu>, Error> {
+    let mut img = vec![base.unwrap_or([0.0; 3]); sky_pixels.len()];
+    let nx = geom.nx;
+    let pos = |o: u32| ((o as usize) % nx, (o as usize) / nx);
+    if let Some(s) = &scene.sky {
+        explain.push(format!(
+            "  sky I = {} e-/px, p = {} ({:.3}%), chi = {} deg",
+            s.brightness_e,
+            s.p,
+            100.0 * s.p,
+            s.chi_deg
+        ));
+        if let Some([gx, gy]) = s.gradient_e_per_arcmin {
+            explain.push(format!("  + linear gradient ({gx}, {gy}) e-/px per arcmin"));
+            let (q0, u0) = (s.p * (2.0 * s.chi_deg.to_radians()).cos(), s.p * (2.0 * s.chi_deg.to_radians()).sin());
+            for (k, &(o, _)) in sky_pixels.iter().enumerate() {
+                let (x, y) = pos(o);
+                let (xa, ya) = inst.pixel_to_arcmin(x as f64, y as f64);
+                let i = (s.brightness_e + gx * xa + gy * ya).max(0.0);
+                img[k] = [i, i * q0, i * u0];
+            }
+        }
+    }
+    if (!scene.stars.is_empty() && !per_frame) || !scene.extended.is_empty() {
+        // Sky-pixel ordinal of each detector pixel, for sources that touch a window.
+        let mut ordinal = vec![u32::MAX; geom.nx * geom.ny];
+        for (k, &(o, _)) in sky_pixels.iter().enumerate() {
+            ordinal[o as usize] = k as u32;
+        }
+        for st in scene.stars.iter().filter(|_| !per_frame) {
+            explain.push(format!("  + star {}", describe_star(st)));
+            add_star(&mut img, &ordinal, inst, st);
+        }
+        for ex in &scene.extended {
+            explain
+                .push(format!("  + extended source: {:?} profile, p = {}, chi = {} deg", ex.profile, ex.p, ex.chi_deg));
+            add_extended(&mut img, sky_pixels, inst, ex)?;
+        }
+    }
+    Ok(img)
+}
+
+/// The sky's `V` at the plate (scene `sky.v`), which the sky's `(I, Q, U)` does not hold: it
+/// reaches the beams through the analyser's `V` column. The field's elements (an
+/// instrumental field, a stressed lens, plate defects) would mix it with `I, Q, U` pixel by
+/// pixel, which the sky image of `(I, Q, U)` does not carry: refused (a telescope is refused
+/// by the scene's checks).
+fn sky_v_of(
+    scene: &Scene,
+    inst: &Instrument,
+    geom: &BeamGeometry,
+    sky_pixels: &[(u32, u32)],
+    sky: &SkyAtPlate,
+    chain: &field::InstrumentChain,
+    explain: &mut Vec<String>,
+) -> Result<Option<SkyV>, Error> {
+    let Some(s) = scene.sky.as_ref().filter(|s| s.v != 0.0) else { return Ok(None) };
+    if !chain.elements.is_empty() {
+        return Err(Error::Scene {
+            path: PathBuf::from("<scene>"),
+            message: "sky.v: the sky's circular polarization is not carried through the instrumental field's \
+                      elements ([effects.instpol], a stressed lens, plate defects): the sky image holds \
+                      (I, Q, U)"
+                .into(),
+        });
+    }
+    explain.push(format!("  sky V/I = {} (through the plate's V column)", s.v));
+    Ok(Some(match (sky, s.gradient_e_per_arcmin) {
+        (SkyAtPlate::Constant(_), _) | (_, None) => SkyV::Constant(s.brightness_e * s.v),
+        (SkyAtPlate::Image(_), Some([gx, gy])) => SkyV::Image(
+            sky_pixels
+                .iter()
+                .map(|&(o, _)| {
+                    let (x, y) = ((o as usize) % geom.nx, (o as usize) / geom.nx);
+                    let (xa, ya) = inst.pixel_to_arcmin(x as f64, y as f64);
+                    s.v * (s.brightness_e + gx * xa + gy * ya).max(0.0)
+                })
+                .collect(),
+        ),
+    }))
+}
+
+/// The plate and the analyser a scene names (`field::Analyser`): the instrument's plate
+/// (half- or quarter-wave) with the scene's retardance error, zero angle, dust and
+/// pleochroism, its motion during an exposure, the Wollaston and the post-analyser optics;
+/// with the lines that say so.
+fn analyser_of(scene: &Scene, inst: &Instrument, filter: &instrument::Filter) -> (Analyser, Vec<String>) {
+    let fx = &scene.effects;
+    let mut hwp = Hwp { nominal_retardance: inst.polarimetry.plate.retardance(), ..Hwp::ideal() };
+    let mut optics: Vec<String> = Vec::new();
+    let qwp = inst.polarimetry.plate == instrument::Plate::QuarterWave;
+    if qwp {
+        optics.push("quarter-wave plate (retardance pi/2)".into());
+    }
+    if let Some(d) = fx.hwp_retardance_error_deg {
+        hwp.retardance_error = d.to_radians();
+        optics.push(format!("HWP retardance error {d} deg"));
+    }
+    let chi_off = if fx.hwp_chi_offset_from_filter { Some(filter.chi_offset_deg()) } else { fx.hwp_chi_offset_deg };
+    // A quarter-wave plate's zero angle is its axis's offset: twice it is the plate's
+    // chi_offset (mueller::Hwp: the axis at theta + chi_offset / 2).
+    let qwp_zero =
+        if fx.hwp_chi_offset_from_filter { Some(filter.qwp_zero_angle_deg()) } else { fx.qwp_zero_angle_deg };
+    if let Some(z) = qwp_zero.filter(|_| qwp) {
+        hwp.chi_offset = 2.0 * z.to_radians();
+        optics.push(format!("QWP zero angle {z} deg (fast axis at the plate angle + {z} deg)"));
+    } else if let Some(c) = chi_off.filter(|_| !qwp) {
+        hwp.chi_offset = c.to_radians();
+        optics.push(format!("HWP chromatic zero angle {c} deg"));
+    }
+    if let Some(h) = &fx.dust {
+        hwp.dust = Some(Harmonic { amplitude: h.amplitude, phase: h.phase_deg.to_radians() });
+        optics.push(format!("HWP dust (k = 1) amplitude {} phase {} deg", h.amplitude, h.phase_deg));
+    }
+    if let Some(h) = &fx.pleochroism {
+        hwp.pleochroism = Some(Harmonic { amplitude: h.amplitude, phase: h.phase_deg.to_radians() });
+        optics.push(format!("HWP pleochroism (k = 2) amplitude {} phase {} deg", h.amplitude, h.phase_deg));
+    }
+    let wollaston = match &fx.wollaston {
+        Some(w) => {
+            let s = w.s.unwrap_or(1.0 - w.t);
+            optics.push(format!("Wollaston t = {}, s = {s}, delta_alpha = {} deg", w.t, w.delta_alpha_deg));
+            Wollaston { t: w.t, s, delta_alpha: w.delta_alpha_deg.to_radians() }
+        }
+        None => Wollaston::ideal(),
+    };
+    let post = fx.post_analyzer.as_ref().map(|p| {
+        optics.push(format!("post-analyzer M_PA(A = {}, B = {}, C = {}, phi = {} deg)", p.a, p.b, p.c, p.phi_deg));
+        mueller::post_analyzer(p.a, p.b, p.c, p.phi_deg.to_radians())
+    });
+    let mut lines = vec![if optics.is_empty() {
+        "optics: ideal HWP + ideal Wollaston (eq:ord)".to_string()
+    } else {
+        format!("optics (mueller::DualBeam, compiled once): {}", optics.join("; "))
+    }];
+    lines.push("  per HWP angle: f_O, f_E = two rows . (I, Q, U) at the plate (the model is linear)".into());
+    let motion = match &scene.hwp_motion {
+        None => PlateMotion::Fixed,
+        Some(m) => {
+            lines.push(format!(
+                "  the plate turns {} deg during each exposure, centred on its angle ({})",
+                m.sweep_deg,
+                if m.substeps > 0 {
+                    format!("the fixed plate's fluxes averaged over {} sub-steps", m.substeps)
+                } else {
+                    "the plate's matrix averaged over the motion, mueller::Hwp::matrix_swept".into()
+                }
+            ));
+            match m.substeps {
+                0 => PlateMotion::Swept { sweep: m.sweep_deg.to_radians() },
+                n => PlateMotion::Substeps { sweep: m.sweep_deg.to_radians(), n },
+            }
+        }
+    };
+    (Analyser::new(&DualBeam { pre: vec![], hwp, wollaston, post }, motion), lines)
+}
+
+/// The detector's steps per pixel a scene names, in order, with the flat-field error map,
+/// the output's BITPIX and the line that says so.
+fn detector_steps(
+    scene: &Scene,
+    inst: &Instrument,
+    geom: &BeamGeometry,
+) -> (Vec<DetStep>, Option<Vec<f64>>, Bitpix, String) {
+    let fx = &scene.effects;
+    let d = &inst.detector;
+    let mut steps = Vec::new();
+    let mut det = Vec::new();
+    let flat = match &fx.flat {
+        Some(f) => {
+            steps.push(DetStep::Flat);
+            det.push(format!(
+                "flat-field errors (o: rms {} + large-scale {}; e: rms {} + large-scale {})",
+                f.pixel_rms_o, f.large_scale_o, f.pixel_rms_e, f.large_scale_e
+            ));
+            Some(flat_map(geom, f, scene.seed))
+        }
+        None => None,
+    };
+    if let Some(t) = fx.transparency_rms {
+        det.push(format!("transparency noise {t} rms per frame (both beams together)"));
+    }
+    if fx.photon_noise {
+        steps.push(DetStep::Photon);
+        det.push("photon noise (Poisson)".into());
+    }
+    if let Some(c) = &fx.cosmic_rays {
+        steps.push(DetStep::Cosmic);
+        det.push(format!(
+            "cosmic rays ({} per frame, {} e- over {} px squares)",
+            c.rate_per_frame, c.energy_e, c.size_px
+        ));
+    }
+    let rn = fx.read_noise_e.or(if fx.read_noise { Some(d.read_noise_e) } else { None });
+    if let Some(r) = rn.filter(|&r| r > 0.0) {
+        steps.push(DetStep::ReadNoise(r));
+        det.push(format!("read noise {r} e- rms"));
+    }
+    let gain = fx.gain_e_per_adu.unwrap_or(d.gain_e_per_adu);
+    steps.push(DetStep::Gain(gain));
+    det.push(format!("gain {gain} e-/ADU"));
+    if d.bias_adu != 0.0 {
+        steps.push(DetStep::Bias(d.bias_adu));
+        det.push(format!("bias {} ADU", d.bias_adu));
+    }
+    if fx.saturation {
+        steps.push(DetStep::Saturate(d.saturation_adu));
+        det.push(format!("saturation at {} ADU", d.saturation_adu));
+    }
+    let bitpix = Bitpix::from_fits(scene.output.bitpix).unwrap_or(Bitpix::U16);
+    det.push(format!(
+        "written as BITPIX {}{}",
+        scene.output.bitpix,
+        if bitpix == Bitpix::U16 { " (rounded)" } else { "" }
+    ));
+    (steps, flat, bitpix, format!("detector steps per pixel: {}", det.join(" -> ")))
 }

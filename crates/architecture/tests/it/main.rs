@@ -11,4 +11,5 @@ mod docs_links;
 mod folders;
 mod function_length;
 mod import_circles;
+mod one_chain;
 mod one_of_each;

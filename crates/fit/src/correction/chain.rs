@@ -17,9 +17,10 @@
 //!   frame of that zero angle; each measurement says its own frame ([`mueller::Frame`]: at the
 //!   plate, or in a sky frame with the zero angle it carries) and is turned from there, once.
 //!
-//! [`Chain::instrument`] gives the same chain as a forward model ([`field::InstrumentChain`]),
-//! the one the simulator renders through, so that what a correction undoes can be checked
-//! against what a simulation put in.
+//! A [`Chain`] holds the same chain as the one forward model ([`field::InstrumentChain`], built
+//! once by [`Chain::new`]; [`Chain::chain`], [`Chain::instrument`]), the one the simulator
+//! renders through, so that what a correction undoes can be checked against what a simulation
+//! put in.
 
 use crate::correction::correct::{CorrectOptions, Corrected, CorrectedMap, Corrector, MapError, Measurement};
 use crate::files::calfile::Calibration;
@@ -143,6 +144,8 @@ pub struct Chain<'a> {
     pub zero_angle_deg: Option<f64>,
     pub field: FieldStep<'a>,
     pub telescope: Option<TelescopeStep<'a>>,
+    /// The same chain as the one forward model, built once ([`Chain::new`]).
+    one: field::InstrumentChain,
 }
 
 impl<'a> FieldStep<'a> {
@@ -152,7 +155,50 @@ impl<'a> FieldStep<'a> {
     }
 }
 
+impl<'a> Chain<'a> {
+    /// The chain of `field` behind `telescope`, its models in the sky frame of
+    /// `zero_angle_deg` ([`Chain::zero_angle_deg`]), with the one forward model it is
+    /// ([`field::InstrumentChain`], [`chain`](Self::chain)) built once.
+    pub fn new(zero_angle_deg: Option<f64>, field: FieldStep<'a>, telescope: Option<TelescopeStep<'a>>) -> Self {
+        let one = one_chain(zero_angle_deg, &field, telescope.as_ref());
+        Self { zero_angle_deg, field, telescope, one }
+    }
+}
+
+/// The forward model of a correction's chain: the telescope's band model, the field model,
+/// Mueller field or constant response as the one element, and the zero angle of the models'
+/// sky frame (0 for a telescope model alone, which takes data in their own frame). The
+/// telescope's constant `q0, u0`, which a telescope model alone subtracts, is not an element.
+fn one_chain(
+    zero_angle_deg: Option<f64>,
+    field: &FieldStep,
+    telescope: Option<&TelescopeStep>,
+) -> field::InstrumentChain {
+    let mut elements = field::FieldChain::new();
+    match field {
+        FieldStep::PartialPolarizer { calibration, .. } => {
+            elements = elements.then(Arc::new((*calibration).clone()), "the field calibration's M_I(p, phi)")
+        }
+        FieldStep::Mueller(mc, _) => elements = elements.then(Arc::new(mc.field.clone()), "the Mueller field"),
+        FieldStep::Response(r) => {
+            elements = elements.then(Arc::new(r.response), "the constant response from standards")
+        }
+        FieldStep::None => {}
+    }
+    let telescope = telescope.and_then(|t| t.fit.band(&t.band).copied());
+    // The forward model ends at the plate: its zero angle is the one the models' sky frame has.
+    let zero_angle = zero_angle_deg.unwrap_or(0.0).to_radians();
+    field::InstrumentChain { telescope, elements, zero_angle, analyser: None }
+}
+
 impl Chain<'_> {
+    /// The one forward model this correction inverts ([`field::InstrumentChain`]): what the
+    /// simulator renders through, so that what a correction undoes can be checked against what
+    /// a simulation put in.
+    pub fn chain(&self) -> &field::InstrumentChain {
+        &self.one
+    }
+
     /// The sky's polarization of row `i` (its track, when the rows each have their own; any
     /// `i` otherwise) from its measurement in its frame: turned into the models' frame, then the field
     /// and the telescope undone in the reverse of the order light met them, the errors of the
@@ -213,7 +259,7 @@ impl Chain<'_> {
                     // the exact inverse of the whole chain over the set; the covariance, a
                     // linearization, is the one of the two steps.
                     let chain =
-                        e.whole.get_or_init(|| field::InstrumentChain { zero_angle: e.plate, ..self.instrument(i).0 });
+                        e.whole.get_or_init(|| field::InstrumentChain { zero_angle: e.plate, ..self.one.clone() });
                     // The measurement as the plate gave it, whatever frame it came in.
                     let at_plate = m.frame.at_plate(&m.qu);
                     let exact = chain
@@ -245,37 +291,15 @@ impl Chain<'_> {
         })
     }
 
-    /// The same chain as a forward model for row `i`'s exposure (its track, or the shared
-    /// one; a chain undone exposure by exposure gives the whole set's track): the telescope's
-    /// band model, the field model or Mueller field as the one element, and the zero angle.
-    /// The telescope's constant `q0, u0`, which a telescope model alone subtracts, is not an
-    /// element of it.
+    /// The same chain as a forward model ([`chain`](Self::chain)) with row `i`'s exposure: its
+    /// track, or the shared one (a chain undone exposure by exposure gives the whole set's
+    /// track); `None` without a telescope.
     pub fn instrument(&self, i: usize) -> (field::InstrumentChain, Option<Track>) {
-        let mut elements = field::FieldChain::new();
-        match &self.field {
-            FieldStep::PartialPolarizer { calibration, .. } => {
-                elements = elements.then(Arc::new((*calibration).clone()), "the field calibration's M_I(p, phi)")
-            }
-            FieldStep::Mueller(mc, _) => elements = elements.then(Arc::new(mc.field.clone()), "the Mueller field"),
-            FieldStep::Response(r) => {
-                elements = elements.then(Arc::new(r.response), "the constant response from standards")
-            }
-            FieldStep::None => {}
-        }
-        let (telescope, track) = match &self.telescope {
-            None => (None, None),
-            Some(t) => {
-                let track = match t.seen(i) {
-                    Seen::Track(tr) => tr,
-                    Seen::Prepared(p) => p.whole(),
-                    Seen::Exposures { whole, .. } => whole,
-                };
-                (t.fit.band(&t.band).copied(), Some(track))
-            }
-        };
-        // The forward model ends at the plate: its zero angle is the one the models' sky frame
-        // has (0 for a telescope model alone, which takes data in their own frame).
-        let zero_angle = self.zero_angle_deg.unwrap_or(0.0).to_radians();
-        (field::InstrumentChain { telescope, elements, zero_angle }, track)
+        let track = self.telescope.as_ref().map(|t| match t.seen(i) {
+            Seen::Track(tr) => tr,
+            Seen::Prepared(p) => p.whole(),
+            Seen::Exposures { whole, .. } => whole,
+        });
+        (self.one.clone(), track)
     }
 }

@@ -389,11 +389,11 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
                 plate_deg: plate,
                 telescope: None,
                 notes,
-                chain: Chain {
-                    zero_angle_deg: Some(mc.hwp_chi_offset_deg),
-                    field: FieldStep::Mueller(mc, opts(mc.hwp_chi_offset_deg)),
-                    telescope: None,
-                },
+                chain: Chain::new(
+                    Some(mc.hwp_chi_offset_deg),
+                    FieldStep::Mueller(mc, opts(mc.hwp_chi_offset_deg)),
+                    None,
+                ),
             });
         }
         let cal = file.field.as_ref().expect("check_options refuses a file without a model");
@@ -408,11 +408,11 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
             plate_deg: plate,
             telescope: None,
             notes,
-            chain: Chain {
-                zero_angle_deg: Some(cal.hwp_chi_offset_deg),
-                field: FieldStep::partial_polarizer(cal, opts(cal.hwp_chi_offset_deg)),
-                telescope: None,
-            },
+            chain: Chain::new(
+                Some(cal.hwp_chi_offset_deg),
+                FieldStep::partial_polarizer(cal, opts(cal.hwp_chi_offset_deg)),
+                None,
+            ),
         });
     };
     let field = file.field.as_ref();
@@ -479,14 +479,14 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
         plate_deg: plate,
         telescope: Some(TelescopePlan { fit: tel, band: band.clone(), exposures }),
         notes,
-        chain: Chain {
-            // The telescope's offset is the instrument's angle zero: the chain turns each row
-            // itself, once, into the field's frame before both models (a telescope model alone
-            // takes the rows in their own frame).
-            zero_angle_deg: field.map(|c| c.hwp_chi_offset_deg),
-            field: field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(c.hwp_chi_offset_deg))),
-            telescope: Some(TelescopeStep { fit: tel, band, tracks }),
-        },
+        // The telescope's offset is the instrument's angle zero: the chain turns each row
+        // itself, once, into the field's frame before both models (a telescope model alone
+        // takes the rows in their own frame).
+        chain: Chain::new(
+            field.map(|c| c.hwp_chi_offset_deg),
+            field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(c.hwp_chi_offset_deg))),
+            Some(TelescopeStep { fit: tel, band, tracks }),
+        ),
     })
 }
 
@@ -505,7 +505,7 @@ fn response_rows<'a>(r: &'a crate::response::cal::ResponseCal, frame: Frame, mut
     let z = r.hwp_chi_offset_deg;
     let (to_sky, plate) = row_zero_angles(Some(z), frame);
     notes.extend(carried_note(frame, z, to_sky));
-    let chain = Chain { zero_angle_deg: Some(z), field: FieldStep::Response(r), telescope: None };
+    let chain = Chain::new(Some(z), FieldStep::Response(r), None);
     RowsPlan { kind: Kind::Response, to_sky_deg: to_sky, plate_deg: plate, telescope: None, notes, chain }
 }
 
@@ -695,7 +695,7 @@ pub fn plan_map<'a>(
             }
             (None, None, None) => unreachable!("check_options refuses a file without a model"),
         };
-        let chain = Chain { zero_angle_deg: Some(model_zero), field, telescope: None };
+        let chain = Chain::new(Some(model_zero), field, None);
         return Ok(MapPlan { kind, method: req.method, telescope: None, zero_angle_deg, notes, chain, exposures: 0 });
     };
     let field = file.field.as_ref();
@@ -727,11 +727,11 @@ pub fn plan_map<'a>(
         Some(p) => (Tracks::Exposures(Box::new(p)), recorded.len()),
         None => (Tracks::Shared(track), 0),
     };
-    let chain = Chain {
-        zero_angle_deg: Some(zero_angle_deg),
-        field: field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(req.method, zero_angle_deg))),
-        telescope: Some(TelescopeStep { fit: tel, band: band.clone(), tracks }),
-    };
+    let chain = Chain::new(
+        Some(zero_angle_deg),
+        field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(req.method, zero_angle_deg))),
+        Some(TelescopeStep { fit: tel, band: band.clone(), tracks }),
+    );
     let telescope = MapTelescope { fit: tel, band, track, by_exposure };
     Ok(MapPlan { kind, method: req.method, telescope: Some(telescope), zero_angle_deg, notes, chain, exposures })
 }

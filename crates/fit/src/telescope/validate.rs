@@ -129,11 +129,8 @@ pub fn validate_chain(
         Some(r) => Tracks::Exposures(Box::new(r)),
         None => Tracks::Shared(track),
     };
-    let chain = Chain {
-        zero_angle_deg: Some(zero_angle),
-        field: field_step,
-        telescope: Some(TelescopeStep { fit: tel, band: band.to_string(), tracks }),
-    };
+    let chain =
+        Chain::new(Some(zero_angle), field_step, Some(TelescopeStep { fit: tel, band: band.to_string(), tracks }));
     let m = crate::correction::correct::Measurement::at(x, y, *measured, mueller::Frame::Plate);
     let r = chain.invert_parts(0, &m).map_err(|e| match e {
         RowError::Chain(e) => e,

@@ -520,3 +520,40 @@ fn paper_validation_position_in_fors1_v_field() {
     assert_relative_eq!(p1, p, epsilon = 1e-15);
     assert_relative_eq!(chi1, phi, epsilon = 1e-12);
 }
+
+/// The correction of a field calibration and the chain's inverse are one inversion written
+/// twice: the closed form with its Jacobians (`Corrector`, exact and `eq:approx`) and the
+/// chain of the calibration's `M_I` at the position as one element with its covariance
+/// (`field::PartialPolarizer`), inverted through the 4 x 4 matrix and the implicit-function
+/// Jacobians (`InstrumentChain::invert`, `invert_first_order`), agree in value and covariance
+/// (1e-12 relative) over the FORS1 V field, a polarized source and a plate zero angle.
+#[test]
+fn the_correction_is_the_chains_inverse_covariance_included() {
+    let model = Radial::fors1_v();
+    let (mut worst_value, mut worst_cov) = (0.0f64, 0.0f64);
+    for (method, zero_deg) in [(Method::Exact, 0.0), (Method::Exact, 2.9), (Method::FirstOrder, 2.9)] {
+        let opts = CorrectOptions { method, zero_angle_deg: zero_deg, ..Default::default() };
+        let cor = Corrector::new(&model, opts);
+        for &(x, y, q1, u1) in &[(0.0, 0.0, 0.01, -0.02), (2.9, 3.1, 0.031, 0.004), (-3.3, 1.2, -0.02, 0.05)] {
+            let measured = Qu::new(q1, u1, 2.5e-7, 1.6e-7, 3e-8);
+            let got = cor.correct(&Measurement::at(x, y, measured, mueller::Frame::Plate)).unwrap();
+            let (a, _) = cor.instrumental(x, y).unwrap();
+            let chain = field::InstrumentChain {
+                elements: field::FieldChain::new().then(std::sync::Arc::new(field::PartialPolarizer(a)), "M_I"),
+                zero_angle: zero_deg.to_radians(),
+                ..Default::default()
+            };
+            let want = match method {
+                Method::Exact => chain.invert(x, y, &measured, None).unwrap(),
+                Method::FirstOrder => chain.invert_first_order(x, y, &measured, None).unwrap(),
+            };
+            worst_value = worst_value.max((got.q0 - want.q).abs()).max((got.u0 - want.u).abs());
+            let scale = want.var_q.max(want.var_u);
+            for (g, w) in [(got.var_q0, want.var_q), (got.var_u0, want.var_u), (got.cov_qu0, want.cov_qu)] {
+                worst_cov = worst_cov.max((g - w).abs() / scale);
+            }
+        }
+    }
+    assert!(worst_value < 1e-15, "the two inversions differ by {worst_value:e}");
+    assert!(worst_cov < 1e-12, "their covariances differ by {worst_cov:e} of the variance");
+}

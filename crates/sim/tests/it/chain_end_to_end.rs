@@ -46,6 +46,11 @@ const SKY_P: f64 = 0.03;
 const SKY_CHI_DEG: f64 = 20.0;
 
 fn scene(dir: &Path, lens: bool) -> sim::Scene {
+    scene_with(dir, lens, "photon_noise = true\n")
+}
+
+/// The scene with `effects`, the lines of `[effects]` besides the zero angle, each ended.
+fn scene_with(dir: &Path, lens: bool, effects: &str) -> sim::Scene {
     let inst = coarse_nasmyth_fors1(dir);
     let lens = if lens {
         "[effects.stressed_lens]\nretardance_edge_deg = 40.0\nradius_arcmin = 3.4\ncentre_arcmin = [0.3, -0.2]\n"
@@ -56,7 +61,7 @@ fn scene(dir: &Path, lens: bool) -> sim::Scene {
         "instrument = \"{}\"\nfilter = \"V\"\nseed = 11\nhwp_angles_deg = {ANGLES:?}\nexposure_s = 600\n\
          [output]\nbitpix = -64\n\
          [sky]\nbrightness_e = 50000.0\np = {SKY_P}\nchi_deg = {SKY_CHI_DEG}\n\
-         [effects]\nphoton_noise = true\nhwp_chi_offset_deg = 7.0\n\
+         [effects]\n{effects}hwp_chi_offset_deg = 7.0\n\
          [effects.instpol]\nkind = \"radial\"\ncoeffs_percent = [0.0, 0.012, 0.046, 0.002]\n\
          {lens}\
          [effects.tilted_hwp]\ntilt_deg = 2.0\nmagnification = 20.0\n\
@@ -150,9 +155,57 @@ fn forward_model_matches_a_jones_calculation() {
     assert!(worst < 1e-9, "the chain's forward model differs from the Jones calculation by {worst:e}");
 }
 
+/// The frames are the chain's forward model to the detector: without noise, the o and e pixels
+/// of a sky point hold the sky's brightness times the fluxes of a Jones calculation of the
+/// whole instrument (telescope over the exposure's track, field, lens, tilted plate, then an
+/// ideal half-wave plate with its axis at the frame's angle plus half the zero angle and an
+/// ideal Wollaston: `f_O, f_E = (I +- Q) / 2` behind the plate), in ADU of the scene's gain
+/// (1e-9 relative).
+#[test]
+fn frames_are_the_chains_fluxes_of_a_jones_calculation() {
+    let dir = tempfile::tempdir().unwrap();
+    let sc = scene_with(dir.path(), true, "gain_e_per_adu = 1.0\n");
+    let plan = sim::Plan::build(&sc).unwrap();
+    let chain = plan.chain();
+    let band = chain.telescope.expect("the scene's telescope is in the chain");
+    let (rp, rs) = textbook_r(band.index * band.factor, std::f64::consts::FRAC_PI_4);
+    let zero = 7f64.to_radians();
+    let lens = sc.effects.stressed_lens.clone().unwrap();
+    let plate = sc.hwp_causes().unwrap().unwrap();
+    let radial = field::RadialPattern::new(vec![0.0, 0.00012, 0.00046, 0.00002], [0.0, 0.0]);
+    let inst = instrument::Instrument::load(&sc.instrument).unwrap();
+    let geom = skyfield::beams::BeamGeometry::new(&inst.for_filter(&sc.filter));
+    let coords = inst.field_coords();
+    let sky: Vec<(usize, usize)> = geom.sky_pixels().filter_map(|(x, y)| geom.beams_of_sky(x, y)).collect();
+    let brightness = 50000.0;
+    let chi = SKY_CHI_DEG.to_radians();
+    let (sq, su) = (SKY_P * (2.0 * chi).cos(), SKY_P * (2.0 * chi).sin());
+    let (mut worst, mut n) = (0.0f64, 0);
+    for (k, e) in plan.exposures().iter().enumerate().step_by(3) {
+        let img = plan.render(k);
+        let tel = m3_track(rp, rs, e.track, band.offset);
+        let hwp = mueller_of_jones(&jones_retarder(std::f64::consts::PI, e.hwp + 0.5 * zero));
+        for &(o, ex) in sky.iter().step_by(sky.len() / 40) {
+            let (x, y) = coords.pixel_to_arcmin((o % geom.nx) as f64, (o / geom.nx) as f64);
+            let (p, phi) = radial.p_phi(x, y);
+            let (delta, axis) = lens.retardance_at(x, y);
+            let h = plate.block_at(x, y).to_mueller();
+            let lensm = mueller_of_jones(&jones_retarder(delta, axis));
+            let s = hwp * h * lensm * partial_polarizer(p, phi) * tel * nalgebra::Vector4::new(1.0, sq, su, 0.0);
+            let (fo, fe) = (0.5 * (s[0] + s[1]) * brightness, 0.5 * (s[0] - s[1]) * brightness);
+            for (got, want) in [(img[o], fo), (img[ex], fe)] {
+                worst = worst.max((got - want).abs() / want);
+                n += 1;
+            }
+        }
+    }
+    assert!(n >= 200, "{n} pixels");
+    assert!(worst < 1e-9, "a frame differs from the Jones calculation by {worst:e} of its flux");
+}
+
 /// `forward` and `invert` are each other's inverse, the covariance included
-/// (`J^-1 (J C J^T) J^-T = C`), for one exposure (exact Jacobians) and for a demodulated set
-/// (Jacobians by central differences, whose error of order 1e-11 sets the tolerance).
+/// (`J^-1 (J C J^T) J^-T = C`), for one exposure and for a demodulated set (both through
+/// analytic Jacobians; the set's inverse is Newton's, converged to rounding).
 #[test]
 fn invert_undoes_forward_with_its_covariance() {
     let dir = tempfile::tempdir().unwrap();
@@ -165,7 +218,7 @@ fn invert_undoes_forward_with_its_covariance() {
         let back = chain.invert(x, y, &m, Some(exposures[2].track)).unwrap();
         let m2 = chain.forward_exposures(x, y, &sky, &exposures).unwrap();
         let back2 = chain.invert_exposures(x, y, &m2, &exposures).unwrap();
-        for (b, var_tol) in [(back, 1e-12), (back2, 1e-9)] {
+        for (b, var_tol) in [(back, 1e-12), (back2, 1e-11)] {
             for (a, w, tol) in [
                 (b.q, sky.q, 1e-13),
                 (b.u, sky.u, 1e-13),
