@@ -196,7 +196,28 @@ fn _stokes<'py>(
         }
         hwp.iter().map(|d| d.to_radians()).collect()
     };
-    type Star = (stokes::Reduction, Option<stokes::repeats::Combined>);
+    let (red, repeats) = reduce_stars(py, &theta, (fo, fe), sig, kappa, m, single)?;
+    let d = reductions_dict(py, &red, n)?;
+    d.set_item("exposures", exposures_dict(py, &repeats, hwp)?)?;
+    Ok(d)
+}
+
+/// A star's reduction, and its exposures' check when a plate position repeats.
+type Star = (stokes::Reduction, Option<stokes::repeats::Combined>);
+
+/// Each star's row of `f_o`, `f_e` (and of the per-beam errors) reduced at the plate angles
+/// `theta` (rad) (`m` stars), repeated exposures combined and kappa corrected as `instpol stokes` does;
+/// the first failure is the error (naming its star unless `single`).
+fn reduce_stars(
+    py: Python<'_>,
+    theta: &[f64],
+    (fo, fe): (&[f64], &[f64]),
+    sig: Option<(&[f64], &[f64])>,
+    kappa: Option<f64>,
+    m: usize,
+    single: bool,
+) -> PyResult<(Vec<stokes::Reduction>, Vec<Option<stokes::repeats::Combined>>)> {
+    let n = theta.len();
     let results: Vec<Result<Star, String>> = py.detach(|| {
         (0..m)
             .into_par_iter()
@@ -206,7 +227,7 @@ fn _stokes<'py>(
                 let errs = sig.map(|(so, se)| (row(so), row(se)));
                 // Exposures at one plate position are combined as instpol stokes does.
                 let combined =
-                    stokes::repeats::combine_exposures(&theta, &o, &e, errs.as_ref().map(|(a, b)| (&a[..], &b[..])))
+                    stokes::repeats::combine_exposures(theta, &o, &e, errs.as_ref().map(|(a, b)| (&a[..], &b[..])))
                         .map_err(|e| match e {
                             stokes::Error::NegativeCount { index } => format!("column {index} of f_o, f_e: {e}"),
                             e => e.to_string(),
@@ -218,7 +239,7 @@ fn _stokes<'py>(
                         c.f_e.clone(),
                         errs.map(|_| (c.sigma_o.clone(), c.sigma_e.clone())),
                     ),
-                    None => (theta.clone(), o, e, errs),
+                    None => (theta.to_vec(), o, e, errs),
                 };
                 let meas = match errs {
                     Some((so, se)) => stokes::Measurement::with_errors(th, o, e, so, se),
@@ -245,8 +266,14 @@ fn _stokes<'py>(
             Err(e) => return Err(input_err(format!("star {s} (row {s} of f_o, f_e): {e}"))),
         }
     }
+    Ok((red, repeats))
+}
+
+/// The stars' reductions as Python columns (one value per star; `f`, kappa and the harmonics
+/// one row per star); `n` the plate angles before repeats were combined.
+fn reductions_dict<'py>(py: Python<'py>, red: &[stokes::Reduction], n: usize) -> PyResult<Bound<'py, PyDict>> {
+    let m = red.len();
     // The HWP positions after combining repeats (the same for every star: the angles are).
-    let n_in = n;
     let n = red.first().map_or(n, |r| r.n);
     let col = |f: &dyn Fn(&stokes::Reduction) -> f64| -> Vec<f64> { red.iter().map(f).collect() };
     let d = PyDict::new(py);
@@ -295,27 +322,35 @@ fn _stokes<'py>(
     d.set_item("estimator", est)?;
     let warn: Vec<Vec<String>> = red.iter().map(|r| r.warnings.iter().map(|w| w.to_string()).collect()).collect();
     d.set_item("warnings", warn)?;
-    // Repeated exposures: each input exposure's own F and its pull about its position's mean
-    // (stokes::repeats), as instpol stokes --json's `exposures`; None when no position repeats.
-    if repeats.iter().all(|c| c.is_some()) && !repeats.is_empty() {
-        let checks = |f: &dyn Fn(&stokes::repeats::ExposureCheck) -> f64| -> Vec<f64> {
-            repeats.iter().flat_map(|c| c.as_ref().map_or(vec![], |c| c.checks.iter().map(f).collect())).collect()
-        };
-        let ex = PyDict::new(py);
-        ex.set_item("index", (0..n_in).collect::<Vec<usize>>())?;
-        ex.set_item("hwp_deg", arr1(py, hwp.to_vec()))?;
-        ex.set_item("f", arr2(py, checks(&|k| k.f), m, n_in)?)?;
-        ex.set_item("pull", arr2(py, checks(&|k| k.pull), m, n_in)?)?;
-        let outl: Vec<bool> = repeats
-            .iter()
-            .flat_map(|c| c.as_ref().map_or(vec![], |c| c.checks.iter().map(|k| k.outlier).collect()))
-            .collect();
-        ex.set_item("outlier", bools(py, outl).reshape([m, n_in])?)?;
-        d.set_item("exposures", ex)?;
-    } else {
-        d.set_item("exposures", py.None())?;
-    }
     Ok(d)
+}
+
+/// Repeated exposures: each input exposure's own F and its pull about its position's mean
+/// (stokes::repeats), as instpol stokes --json's `exposures`; None when no position repeats.
+/// `hwp` the input plate angles (deg).
+fn exposures_dict<'py>(
+    py: Python<'py>,
+    repeats: &[Option<stokes::repeats::Combined>],
+    hwp: &[f64],
+) -> PyResult<Option<Bound<'py, PyDict>>> {
+    let (m, n_in) = (repeats.len(), hwp.len());
+    if !(repeats.iter().all(|c| c.is_some()) && !repeats.is_empty()) {
+        return Ok(None);
+    }
+    let checks = |f: &dyn Fn(&stokes::repeats::ExposureCheck) -> f64| -> Vec<f64> {
+        repeats.iter().flat_map(|c| c.as_ref().map_or(vec![], |c| c.checks.iter().map(f).collect())).collect()
+    };
+    let ex = PyDict::new(py);
+    ex.set_item("index", (0..n_in).collect::<Vec<usize>>())?;
+    ex.set_item("hwp_deg", arr1(py, hwp.to_vec()))?;
+    ex.set_item("f", arr2(py, checks(&|k| k.f), m, n_in)?)?;
+    ex.set_item("pull", arr2(py, checks(&|k| k.pull), m, n_in)?)?;
+    let outl: Vec<bool> = repeats
+        .iter()
+        .flat_map(|c| c.as_ref().map_or(vec![], |c| c.checks.iter().map(|k| k.outlier).collect()))
+        .collect();
+    ex.set_item("outlier", bools(py, outl).reshape([m, n_in])?)?;
+    Ok(Some(ex))
 }
 
 /// Bias correction of `P` (section `sec:bias`) and an interval on `P0`, element by element over
@@ -1222,6 +1257,17 @@ fn _catalog<'py>(
         }
         _ => None,
     };
+    let d = catalog_dict(py, &cat)?;
+    d.set_item("recorded_angles", recorded_angles_dict(py, &cat, &frames, &inst)?)?;
+    if let Some((c, used)) = &corrected {
+        set_corrected(&d, c, used.as_ref())?;
+    }
+    d.set_item("warnings", warnings)?;
+    Ok(d)
+}
+
+/// A catalog's rows as Python columns (one value per star), with its metadata.
+fn catalog_dict<'py>(py: Python<'py>, cat: &skyfield::catalog::Catalog) -> PyResult<Bound<'py, PyDict>> {
     let rows = &cat.rows;
     let n = cat.hwp_deg.len();
     let d = PyDict::new(py);
@@ -1281,39 +1327,50 @@ fn _catalog<'py>(
     d.set_item("unpaired_why", cat.unpaired_why.iter().map(|w| pythonize_why(*w)).collect::<Vec<_>>())?;
     d.set_item("unpaired_shift_px", cat.unpaired_shift_px)?;
     d.set_item("n_sources", cat.n_sources)?;
-    // The exposures' telescope angles, as `instpol catalog` records them in its tables: what
-    // `Calibration.correct(..., recorded=...)` takes.
-    match fit::telescope_cal::recorded_angles(&cat.frames, &frames, &inst) {
-        Some(r) => {
-            let rd = PyDict::new(py);
-            let (s, e) = r.parallactic_rad.unwrap_or_default();
-            rd.set_item("parang_deg", (s.to_degrees(), e.to_degrees()))?;
-            rd.set_item("rotator_deg", r.rotator_rad.map(f64::to_degrees))?;
-            let ex: Vec<(f64, f64, f64)> =
-                r.exposure_tracks.iter().map(|x| (x.hwp_deg, x.start.to_degrees(), x.end.to_degrees())).collect();
-            rd.set_item("exposures", ex)?;
-            // What the q, u carry: correct(recorded=...) takes it as the CLI takes a table's
-            // hwp_chi_offset_deg column.
-            rd.set_item("hwp_chi_offset_deg", cat.chi_offset_deg)?;
-            d.set_item("recorded_angles", rd)?;
-        }
-        None => d.set_item("recorded_angles", py.None())?,
-    }
-    if let Some((c, used)) = &corrected {
-        // The columns of `instpol correct` (NaN for a star not measured).
-        let out = fit::columns::Outputs::of_rows(&c.rows);
-        for (name, values) in out.names.iter().zip(out.values) {
-            d.set_item(name, arr1(py, values))?;
-        }
-        d.set_item("extrapolated", PyArray1::from_vec(py, out.extrapolated))?;
-        d.set_item("chi_offset_applied_deg", c.chi_offset_applied_deg)?;
-        d.set_item("n_extrapolated", c.n_extrapolated)?;
-        d.set_item("telescope_model", used.as_ref().map(|t| t.model))?;
-        d.set_item("telescope_band", used.as_ref().map(|t| t.band.clone()))?;
-        d.set_item("telescope_exposures", used.as_ref().map(|t| t.exposures))?;
-    }
-    d.set_item("warnings", warnings)?;
     Ok(d)
+}
+
+/// The exposures' telescope angles, as `instpol catalog` records them in its tables: what
+/// `Calibration.correct(..., recorded=...)` takes; None when the frames record none.
+fn recorded_angles_dict<'py>(
+    py: Python<'py>,
+    cat: &skyfield::catalog::Catalog,
+    frames: &[PathBuf],
+    inst: &instrument::Instrument,
+) -> PyResult<Option<Bound<'py, PyDict>>> {
+    let Some(r) = fit::telescope_cal::recorded_angles(&cat.frames, frames, inst) else { return Ok(None) };
+    let rd = PyDict::new(py);
+    let (s, e) = r.parallactic_rad.unwrap_or_default();
+    rd.set_item("parang_deg", (s.to_degrees(), e.to_degrees()))?;
+    rd.set_item("rotator_deg", r.rotator_rad.map(f64::to_degrees))?;
+    let ex: Vec<(f64, f64, f64)> =
+        r.exposure_tracks.iter().map(|x| (x.hwp_deg, x.start.to_degrees(), x.end.to_degrees())).collect();
+    rd.set_item("exposures", ex)?;
+    // What the q, u carry: correct(recorded=...) takes it as the CLI takes a table's
+    // hwp_chi_offset_deg column.
+    rd.set_item("hwp_chi_offset_deg", cat.chi_offset_deg)?;
+    Ok(Some(rd))
+}
+
+/// The corrected columns of `instpol correct` (NaN for a star not measured), with what the
+/// correction applied and the telescope model it used.
+fn set_corrected(
+    d: &Bound<'_, PyDict>,
+    c: &fit::catalog_correct::CorrectedCatalog,
+    used: Option<&fit::catalog_correct::TelescopeUsed>,
+) -> PyResult<()> {
+    let py = d.py();
+    let out = fit::columns::Outputs::of_rows(&c.rows);
+    for (name, values) in out.names.iter().zip(out.values) {
+        d.set_item(name, arr1(py, values))?;
+    }
+    d.set_item("extrapolated", PyArray1::from_vec(py, out.extrapolated))?;
+    d.set_item("chi_offset_applied_deg", c.chi_offset_applied_deg)?;
+    d.set_item("n_extrapolated", c.n_extrapolated)?;
+    d.set_item("telescope_model", used.map(|t| t.model))?;
+    d.set_item("telescope_band", used.map(|t| t.band.clone()))?;
+    d.set_item("telescope_exposures", used.map(|t| t.exposures))?;
+    Ok(())
 }
 
 /// The main job end to end on the paper's fields (`workflow::demo::run`, what `instpol demo` runs)

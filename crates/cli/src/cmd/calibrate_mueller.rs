@@ -115,7 +115,7 @@ fn parse_field(spec: &str) -> Result<(PathBuf, f64, f64, f64)> {
 }
 
 /// One instrument, filter and field-coordinate system (names compared case-insensitively).
-fn same_setup(a: &(String, String, field::FieldCoords), b: &(String, String, field::FieldCoords)) -> bool {
+fn same_setup(a: &Setup, b: &Setup) -> bool {
     a.0.eq_ignore_ascii_case(&b.0) && a.1.eq_ignore_ascii_case(&b.1) && a.2 == b.2
 }
 
@@ -161,56 +161,8 @@ pub fn run(a: Args) -> Result<()> {
         Some("json") => false,
         _ => bail!("--out {}: the extension says the format: .fits (calibration file) or .json", a.out.display()),
     };
-    let mut fields = Vec::new();
-    // The first map's instrument, filter and field coordinates: every field must share them.
-    let mut setup: Option<(String, String, field::FieldCoords)> = None;
-    // The detector the maps cover (half width, half height, arcmin): the star table's stars must lie on it.
-    let mut half_field: Option<(f64, f64)> = None;
-    // The HWP zero angle the maps record (HWPZERO): each is turned by it into the sky frame of
-    // its known polarization (fit::mueller_cal module docs); one value for all of them.
-    let mut zero: Option<(Option<f64>, &PathBuf)> = None;
-    let says = |z: Option<f64>| z.map_or("none (taken as 0 deg)".to_string(), |z| format!("{z} deg"));
-    for (path, p, chi, sig) in &specs {
-        let map =
-            skyfield::maps::StokesMap::read_uncorrected(path).with_context(|| format!("reading {}", path.display()))?;
-        let z = map.hwp_zero_angle_deg.unwrap_or(0.0);
-        match zero {
-            None => zero = Some((map.hwp_zero_angle_deg, path)),
-            Some((z0, first)) if z0.unwrap_or(0.0) != z => bail!(
-                "{}: records an HWP zero angle of {} (HWPZERO), but {} records {}: fit the maps of one instrument and filter together",
-                path.display(),
-                says(map.hwp_zero_angle_deg),
-                first.display(),
-                says(z0)
-            ),
-            Some(_) => {}
-        }
-        let map = fit::pipeline::map_to_sky_frame(&map, z.to_radians());
-        let obs = observations_of_map(&map);
-        if obs.is_empty() {
-            bail!("{}: the Stokes map has no valid bin", path.display());
-        }
-        let this = (map.instrument.clone(), map.filter.clone(), map.geometry.field_coords());
-        let g = &map.geometry;
-        let arcmin = g.pixel_scale_arcsec / 60.0;
-        half_field.get_or_insert((0.5 * g.detector_nx as f64 * arcmin, 0.5 * g.detector_ny as f64 * arcmin));
-        match &setup {
-            None => setup = Some(this),
-            Some(s) if !same_setup(s, &this) => bail!(
-                "{}: a {} {} map, but {} is {} {}: fit the fields of one instrument and filter together",
-                path.display(),
-                this.0,
-                this.1,
-                specs[0].0.display(),
-                s.0,
-                s.1
-            ),
-            Some(_) => {}
-        }
-        fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));
-    }
+    let (mut fields, setup, half_field, zero_angle_deg) = read_maps(&specs)?;
     let n_maps = fields.len();
-    let zero_angle_deg = zero.and_then(|z| z.0).unwrap_or(0.0);
     if let Some(t) = &a.stars {
         fields.extend(read_star_fields(t, zero_angle_deg, half_field)?);
     }
@@ -296,6 +248,12 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         return crate::util::print_json(&rep);
     }
+    print_report(&rep, mf.condition);
+    Ok(())
+}
+
+/// The report as text (`condition`: the Fisher condition number, infinite ones too).
+fn print_report(rep: &Report, condition: f64) {
     outln!(
         "Mueller field from {} fields and {} stars, {} observations: {} model, free {}",
         rep.n_fields,
@@ -309,7 +267,7 @@ pub fn run(a: Args) -> Result<()> {
         "radial" => format!("radial patterns, powers 1..{} of r", rep.deg),
         _ => "interpolated per-bin fits".into(),
     };
-    outln!("  {form}, chi2/dof {:.3}, Fisher condition number {:.3e}", rep.chi2_dof, mf.condition);
+    outln!("  {form}, chi2/dof {:.3}, Fisher condition number {:.3e}", rep.chi2_dof, condition);
     outln!("  {:<16} {:>12} {:>12} {:>12}", "parameter", "median", "rms", "median sigma");
     for p in &rep.parameters {
         outln!("  {:<16} {:>12.3e} {:>12.3e} {:>12.3e}", p.name, p.median_value, p.rms_value, p.median_sigma);
@@ -327,5 +285,63 @@ pub fn run(a: Args) -> Result<()> {
         eprintln!("WARNING: {w}");
     }
     outln!("  written: {}", rep.output.display());
-    Ok(())
+}
+
+/// A map's instrument, filter and field coordinates.
+type Setup = (String, String, field::FieldCoords);
+
+/// The fields' maps, each turned into the sky frame of its known polarization by the HWP zero
+/// angle it records (one for all, and one instrument, filter and field coordinates): the fields,
+/// the first map's setup, the half size of the detector (arcmin) and the zero angle (deg).
+fn read_maps(specs: &[(PathBuf, f64, f64, f64)]) -> Result<(Vec<CalField>, Option<Setup>, Option<(f64, f64)>, f64)> {
+    let mut fields = Vec::new();
+    // The first map's instrument, filter and field coordinates: every field must share them.
+    let mut setup: Option<Setup> = None;
+    // The detector the maps cover (half width, half height, arcmin): the star table's stars must lie on it.
+    let mut half_field: Option<(f64, f64)> = None;
+    // The HWP zero angle the maps record (HWPZERO): each is turned by it into the sky frame of
+    // its known polarization (fit::mueller_cal module docs); one value for all of them.
+    let mut zero: Option<(Option<f64>, &PathBuf)> = None;
+    let says = |z: Option<f64>| z.map_or("none (taken as 0 deg)".to_string(), |z| format!("{z} deg"));
+    for (path, p, chi, sig) in specs {
+        let map =
+            skyfield::maps::StokesMap::read_uncorrected(path).with_context(|| format!("reading {}", path.display()))?;
+        let z = map.hwp_zero_angle_deg.unwrap_or(0.0);
+        match zero {
+            None => zero = Some((map.hwp_zero_angle_deg, path)),
+            Some((z0, first)) if z0.unwrap_or(0.0) != z => bail!(
+                "{}: records an HWP zero angle of {} (HWPZERO), but {} records {}: fit the maps of one instrument and filter together",
+                path.display(),
+                says(map.hwp_zero_angle_deg),
+                first.display(),
+                says(z0)
+            ),
+            Some(_) => {}
+        }
+        let map = fit::pipeline::map_to_sky_frame(&map, z.to_radians());
+        let obs = observations_of_map(&map);
+        if obs.is_empty() {
+            bail!("{}: the Stokes map has no valid bin", path.display());
+        }
+        let this = (map.instrument.clone(), map.filter.clone(), map.geometry.field_coords());
+        let g = &map.geometry;
+        let arcmin = g.pixel_scale_arcsec / 60.0;
+        half_field.get_or_insert((0.5 * g.detector_nx as f64 * arcmin, 0.5 * g.detector_ny as f64 * arcmin));
+        match &setup {
+            None => setup = Some(this),
+            Some(s) if !same_setup(s, &this) => bail!(
+                "{}: a {} {} map, but {} is {} {}: fit the fields of one instrument and filter together",
+                path.display(),
+                this.0,
+                this.1,
+                specs[0].0.display(),
+                s.0,
+                s.1
+            ),
+            Some(_) => {}
+        }
+        fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));
+    }
+    let zero_angle_deg = zero.and_then(|z| z.0).unwrap_or(0.0);
+    Ok((fields, setup, half_field, zero_angle_deg))
 }
