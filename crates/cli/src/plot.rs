@@ -5,8 +5,8 @@
 //! comes from the `fit` crate.
 
 use anyhow::{anyhow, Context, Result};
-use fit::calfile::{Calibration, Model};
-use fit::polar::PolarAngleTest;
+use fit::files::calfile::{Calibration, Model};
+use fit::models::polar::PolarAngleTest;
 use fit::RadialModel;
 use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
 use plotters::coord::types::RangedCoordf64;

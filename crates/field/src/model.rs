@@ -12,7 +12,7 @@ pub type InstPol = mueller::Qu;
 /// Conventions).
 ///
 /// The simulator puts any model into frames (`sim::Plan::build_with_field`), the fitter fits
-/// and stores models (`fit`), the correction inverts them (`fit::correct`): none of them asks
+/// and stores models (`fit`), the correction inverts them (`fit::correction::correct`): none of them asks
 /// which model it has. A new model (elliptical paraboloid, a telescope term that depends on the
 /// parallactic angle, a full Mueller field) implements this trait; only `eval` and `contains`
 /// are required.

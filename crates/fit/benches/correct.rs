@@ -4,8 +4,8 @@
 //! on one thread, for the exact inversion with full error propagation and for `eq:approx`.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use fit::correct::{CorrectOptions, Corrected, Corrector, Measurement, Method};
-use fit::model::{FieldModel, InstPol};
+use fit::correction::correct::{CorrectOptions, Corrected, Corrector, Measurement, Method};
+use fit::models::model::{FieldModel, InstPol};
 use std::hint::black_box;
 
 /// The FORS1 V radial polynomial of section `sec:fors1` (fractions, r in arcmin), radial
@@ -50,10 +50,10 @@ fn catalog(n: usize) -> Vec<Measurement> {
 
 /// A radial3 calibration fitted to a simulated FORS1 V sky field (30 px bins, 0.01% noise).
 fn calibration(free_centre: bool) -> fit::Calibration {
-    use fit::pipeline::{calibrate_bins, CalibrateOptions, CalibrationMeta};
+    use fit::models::pipeline::{calibrate_bins, CalibrateOptions, CalibrationMeta};
     let truth = fit::RadialModel::new(1, vec![0.012e-2, 0.046e-2, 0.002e-2], [0.1, -0.05]);
-    let centres = fit::synth::bin_centres(2048, 2048, 0.2, 30);
-    let bins: Vec<fit::Bin> = fit::synth::sky_field(&centres, &truth, 0.0, 0.0, 1e-4, 7)
+    let centres = fit::models::synth::bin_centres(2048, 2048, 0.2, 30);
+    let bins: Vec<fit::Bin> = fit::models::synth::sky_field(&centres, &truth, 0.0, 0.0, 1e-4, 7)
         .iter()
         .map(|m| fit::Bin::new(m.x, m.y, m.q1, m.u1, m.sigma, m.sigma))
         .collect();
@@ -63,7 +63,7 @@ fn calibration(free_centre: bool) -> fit::Calibration {
         lambda_nm: 554.0,
         hwp_chi_offset_deg: 0.0,
         pixel: None,
-        provenance: fit::calfile::Provenance::now("bench", vec![]),
+        provenance: fit::files::calfile::Provenance::now("bench", vec![]),
     };
     let mut opts = CalibrateOptions::default();
     opts.fit.free_centre = free_centre;
@@ -87,7 +87,7 @@ fn bench(c: &mut Criterion) {
             b.iter(|| cor.correct_batch(black_box(&input), black_box(&mut out)).unwrap());
         });
     }
-    // The calibration file's radial model (fit::radial), with a coefficient covariance.
+    // The calibration file's radial model (fit::models::radial), with a coefficient covariance.
     let mut rm = fit::RadialModel::new(1, vec![0.012e-2, 0.046e-2, 0.002e-2], [0.0, 0.0]);
     let np = rm.n_params();
     for i in 0..3 {

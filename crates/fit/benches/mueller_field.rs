@@ -7,7 +7,7 @@
 //!   degree-4 / degree-6 polynomial: 60 / 112 coefficients);
 //! - `per_bin`: 2700 independent 4-parameter fits (rayon);
 //! - `radial_deg4_from_bins`, `interp_from_bins`: the radial and interpolant smooth forms
-//!   built from those per-bin fits (`fit::mueller_smooth`), on top of `per_bin`.
+//!   built from those per-bin fits (`fit::mueller_field::smooth`), on top of `per_bin`.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use fit::mueller_field::{fit_mueller_field, fit_per_bin, CalField, Kind, MuellerFitOptions, Observation};
@@ -73,9 +73,11 @@ fn bench(c: &mut Criterion) {
     // The other smooth forms, from the per-bin fits (their cost on top of `per_bin`).
     let (bins, _) = fit_per_bin(&f, &o).unwrap();
     g.bench_function("radial_deg4_from_bins", |b| {
-        b.iter(|| black_box(fit::mueller_smooth::radial_field(&bins, 4).unwrap()))
+        b.iter(|| black_box(fit::mueller_field::smooth::radial_field(&bins, 4).unwrap()))
     });
-    g.bench_function("interp_from_bins", |b| b.iter(|| black_box(fit::mueller_smooth::interp_field(&bins).unwrap())));
+    g.bench_function("interp_from_bins", |b| {
+        b.iter(|| black_box(fit::mueller_field::smooth::interp_field(&bins).unwrap()))
+    });
     g.finish();
 }
 

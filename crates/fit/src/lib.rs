@@ -1,72 +1,53 @@
-//! Fitted models of the instrumental polarization field and their use: radial polynomials with
-//! an optional free optical-axis centre, the polar-angle test, the wavelength law, the
-//! Delaunay-interpolated residual map (spade), the per-filter calibration file with its
-//! metadata and refit policy ([`pipeline`]), the correction of measured Stokes parameters (one
-//! row or a whole Stokes map) with error propagation ([`correct`]; a table's rows column by
-//! column, [`columns`]), the validation of a
-//! calibration on a standard star in frames ([`validate`]), the paper's own fields
-//! ([`paper`]), the telescope term (a Nasmyth M3 model fitted to standard stars against the
-//! parallactic angle, [`telescope`]) and the HWP zero angle from polarized standards
-//! ([`zeroangle`]). The main job end to end, which also simulates, is one crate up
-//! (`workflow::demo`).
+//! Fitted models of the instrumental polarization and their use, one folder per part of the
+//! instrument and one per step around them:
+//!
+//! - [`models`]: the field models and their fits (radial polynomials with an optional free
+//!   optical-axis centre, 2-D polynomials, the polar-angle test, the wavelength law, the
+//!   residual map, field stars, the paper's own fields) and the fit from binned measurements to
+//!   a field calibration ([`models::pipeline`]);
+//! - [`telescope`]: the telescope term, a Nasmyth M3 model fitted to standard stars against the
+//!   parallactic angle, its calibration file and its validation;
+//! - [`mueller_field`]: the instrument's Mueller field fitted to sky fields of known
+//!   polarization, its calibration file, its causes and what a calibration costs;
+//! - [`response`]: the instrument's constant response (efficiency, cross-talk) from standards
+//!   and its calibration file;
+//! - [`correction`]: what a caller asks of a calibration and the one chain that answers it, for
+//!   a row, a table or a Stokes map, with the compatibility check of data and calibration;
+//! - [`files`]: the field calibration file, the reading of any calibration file, the keywords
+//!   they share, and imported maps of other tools.
+//!
+//! Beside them: the one least-squares loop ([`lsq`]) and the one judge of whether data determine
+//! a fit ([`conditioning`]); the validation of a calibration on a standard star in frames
+//! ([`validate`], with the standards' catalogue and predictions in [`standards`]); and the HWP
+//! zero angle from polarized standards ([`zeroangle`]). The main job end to end, which also
+//! simulates, is one crate up (`workflow::demo`).
 //!
 //! A model is a value that answers "what is the instrumental polarization here"
-//! ([`model::FieldModel`], defined in the `field` crate with the field coordinates, so the
-//! simulator evaluates the same values); fitters, the calibration file and the correction do not
-//! care which model it is. Every nonlinear fit runs the one least-squares loop ([`lsq`]) under
-//! its own named policy. This crate does not make Stokes maps from frames (that is
+//! ([`models::model::FieldModel`], defined in the `field` crate with the field coordinates, so
+//! the simulator evaluates the same values); fitters, the calibration file and the correction do
+//! not care which model it is. This crate does not make Stokes maps from frames (that is
 //! `skyfield`, which [`validate`] calls for the star's photometry), and it draws no plots and
 //! parses no arguments (that is the CLI).
 
-pub mod bins;
-pub mod calfile;
-pub mod calibration;
-pub mod catalog_correct;
-pub mod chain;
-pub mod columns;
 pub mod conditioning;
-pub mod correlation;
-pub mod efficiency;
-pub mod import;
-pub mod keys;
+pub mod correction;
+pub mod files;
 pub mod lsq;
-pub mod model;
-pub mod mueller_block;
-pub mod mueller_cal;
-pub mod mueller_explain;
+pub mod models;
 pub mod mueller_field;
-pub mod mueller_forms;
-pub mod mueller_plan;
-pub mod mueller_smooth;
-pub mod mueller_stars;
-pub mod paper;
-pub mod pipeline;
-pub mod polar;
-pub mod poly;
-pub mod radial;
-pub mod region;
-pub mod request;
-pub mod residual;
-pub mod response_cal;
-pub mod setup;
-pub mod stars_field;
-pub mod synth;
+pub mod response;
 pub mod telescope;
-pub mod telescope_cal;
-pub mod telescope_report;
 pub mod validate;
-pub mod validate_telescope;
-pub mod wavelength;
 
 /// The gridded map lives in the `field` crate (the simulator evaluates it too).
 pub use field::grid as gridmap;
 
-pub use bins::Bin;
-pub use calfile::{Calibration, Model};
-pub use model::{FieldModel, InstPol};
-pub use poly::{fit_poly, PolyFit, PolyModel};
-pub use radial::{fit_radial, CovarianceScaling, ErrorScaling, RadialFit, RadialFitOptions, RadialModel};
-pub use region::{Exclusion, FieldRegion};
+pub use files::calfile::{Calibration, Model};
+pub use models::bins::Bin;
+pub use models::model::{FieldModel, InstPol};
+pub use models::poly::{fit_poly, PolyFit, PolyModel};
+pub use models::radial::{fit_radial, CovarianceScaling, ErrorScaling, RadialFit, RadialFitOptions, RadialModel};
+pub use models::region::{Exclusion, FieldRegion};
 
 use std::path::PathBuf;
 
@@ -104,7 +85,6 @@ pub enum Error {
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
-pub mod correct;
 pub mod standards;
 pub mod zeroangle;
 

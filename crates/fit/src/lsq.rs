@@ -6,9 +6,9 @@
 //!
 //! # The four fits and how their loops differed
 //!
-//! The radial model ([`crate::radial`]), the telescope model ([`crate::telescope`]), the
+//! The radial model ([`crate::models::radial`]), the telescope model ([`crate::telescope`]), the
 //! Mueller field ([`crate::mueller_field`]) and the candidate causes
-//! ([`crate::mueller_explain`]) each had their own loop. What they share: a step from the
+//! ([`crate::mueller_field::explain`]) each had their own loop. What they share: a step from the
 //! normal equations `A delta = v` (`A = J^T W J`, `v = -J^T W r`), a chi^2 that decides whether
 //! a point is kept, a stopping rule on the change of that chi^2, an iteration limit; and the
 //! caller computes the covariance from the linearization at the end. How they differed, which

@@ -6,8 +6,8 @@
 //! what the calibration predicts there, the way section `sec:fors1` checks the V map with an
 //! unpolarized star in the lower-right corner.
 
-use crate::correct::{self, CorrectOptions, Corrector, Measurement};
-use crate::model::FieldModel;
+use crate::correction::correct::{self, CorrectOptions, Corrector, Measurement};
+use crate::models::model::FieldModel;
 use mueller::Qu;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -329,7 +329,7 @@ pub fn forward(qi: f64, ui: f64, qs: f64, us: f64) -> (f64, f64) {
 /// measurement with the calibration's prediction there (`residual_sigma`) and the corrected
 /// star with its expected intrinsic polarization (`corrected_residual_sigma`); pass when both
 /// are within `threshold` (in sigma). `opts` carries the HWP zero angle and the extrapolation
-/// policy (see [`crate::correct`]). This is the check of section `sec:fors1`.
+/// policy (see [`crate::correction::correct`]). This is the check of section `sec:fors1`.
 pub fn validate_star<M: FieldModel + ?Sized>(
     model: &M,
     x: f64,

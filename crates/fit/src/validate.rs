@@ -5,7 +5,7 @@
 //! ([`crate::standards::validate_star`]: the prediction, the comparison and the pass/fail
 //! decision). `instpol validate` and `instpol demo` run this; so can any other front end.
 
-use crate::correct::{CorrectOptions, WithModelError};
+use crate::correction::correct::{CorrectOptions, WithModelError};
 use crate::standards::{validate_star as compare, Expected, MeasuredStar, Validation};
 use crate::Calibration;
 use instrument::Instrument;
@@ -117,7 +117,7 @@ pub fn validate_frames(
     // Another filter's calibration is allowed (it is how a wrong calibration is shown to
     // fail), but said.
     let mut warnings = vec![];
-    if !crate::setup::same_filter(Some(inst), &filter, &cal.filter) {
+    if !crate::correction::setup::same_filter(Some(inst), &filter, &cal.filter) {
         warnings.push(format!("the frames are in filter {filter} but the calibration is for filter {}", cal.filter));
     }
     let (x, y) = inst.pixel_to_arcmin(x_px, y_px);

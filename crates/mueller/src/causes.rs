@@ -1,6 +1,6 @@
 //! Physical causes of a Mueller field: the optics each candidate explanation
 //! of a fitted field puts in the beam, as functions of the field position and a few
-//! parameters. `fit::mueller_explain` fits them to a fitted field; the simulator applies them
+//! parameters. `fit::mueller_field::explain` fits them to a fitted field; the simulator applies them
 //! (`sim::stress`, `sim::hwp_causes`).
 //!
 //! - a stressed lens: stress birefringence growing as `r^2` from a stress centre, fast axis

@@ -8,7 +8,7 @@ use pyo3::prelude::*;
 use std::path::PathBuf;
 
 /// The instrumental field from a Stokes map of an empty field whose sky polarization is known
-/// (`fit::pipeline::calibrate_sky_field`, what `instpol calibrate --map` runs): the fit's
+/// (`fit::models::pipeline::calibrate_sky_field`, what `instpol calibrate --map` runs): the fit's
 /// summary as JSON text (`instpol calibrate --json`'s keys, no plots); the calibration written
 /// to `out` when given. `sky`: (P percent, chi deg); `model`, `exclude` as the CLI's options.
 #[pyfunction]
@@ -40,7 +40,7 @@ pub(crate) fn _calibrate(
     for e in &exclude {
         fo.exclusions.push(e.parse().map_err(fit_err)?);
     }
-    let mut opts = fit::pipeline::CalibrateOptions { fit: fo, residual_map, ..Default::default() };
+    let mut opts = fit::models::pipeline::CalibrateOptions { fit: fo, residual_map, ..Default::default() };
     opts.set_model_name(model).map_err(fit_err)?;
     let inputs = [map.clone()];
     let name = frames_instrument(instrument, &inputs)?;
@@ -51,13 +51,15 @@ pub(crate) fn _calibrate(
     }
     refuse_overwrite(out.as_deref(), &all_inputs)?;
     let stokes_map = skyfield::StokesMap::read_uncorrected(&map).map_err(sky_err)?;
-    if let Some(w) = fit::setup::zero_angle_disagreement(&stokes_map, &inst) {
+    if let Some(w) = fit::correction::setup::zero_angle_disagreement(&stokes_map, &inst) {
         py.import("warnings")?.call_method1("warn", (w,))?;
     }
     let run = py
-        .detach(|| fit::pipeline::calibrate_sky_field(&stokes_map, &sky, &inst, vec![map.display().to_string()], &opts))
+        .detach(|| {
+            fit::models::pipeline::calibrate_sky_field(&stokes_map, &sky, &inst, vec![map.display().to_string()], &opts)
+        })
         .map_err(fit_err)?;
-    let mut summary = fit::pipeline::FitSummary::new(&run);
+    let mut summary = fit::models::pipeline::FitSummary::new(&run);
     if let Some(out) = &out {
         run.calibration.save(out).map_err(fit_err)?;
         summary.calibration_file = Some(out.display().to_string());
@@ -65,7 +67,7 @@ pub(crate) fn _calibrate(
     serde_json::to_string(&summary).map_err(|e| input_err(format!("the fit's summary: {e}")))
 }
 
-/// The instrumental field from field-star catalogs (`fit::stars_field`, what `instpol
+/// The instrumental field from field-star catalogs (`fit::models::stars_field`, what `instpol
 /// calibrate-stars` runs): the summary as JSON text (`calibrate-stars --json`'s keys, no
 /// plots); the calibration written to `out` when given. `interstellar`: None for a fitted
 /// term, `(0, 0)` with `zero` for none, or `(P percent, chi deg)`.
@@ -87,7 +89,7 @@ pub(crate) fn _calibrate_stars(
     match_radius_arcsec: f64,
     allow_mismatch: bool,
 ) -> PyResult<String> {
-    use fit::stars_field::{read_catalogs, stars_field, stars_meta, Interstellar, StarsOptions, StarsSummary};
+    use fit::models::stars_field::{read_catalogs, stars_field, stars_meta, Interstellar, StarsOptions, StarsSummary};
     if catalogs.is_empty() {
         return Err(input_err("no catalogs given: the star catalogs of the pointings (instpol catalog --out)"));
     }
@@ -99,13 +101,13 @@ pub(crate) fn _calibrate_stars(
         fit::Error::Io { .. } | fit::Error::Fits { .. } => FileError::new_err(e.to_string()),
         e => input_err(format!("{e} (instrument=)")),
     };
-    let (name, chosen) = fit::stars_field::catalogs_instrument(instrument, &catalogs).map_err(fit_err)?;
+    let (name, chosen) = fit::models::stars_field::catalogs_instrument(instrument, &catalogs).map_err(fit_err)?;
     let said = match chosen {
-        fit::stars_field::InstrumentChoice::Given => None,
-        fit::stars_field::InstrumentChoice::Recorded(i) => {
+        fit::models::stars_field::InstrumentChoice::Given => None,
+        fit::models::stars_field::InstrumentChoice::Recorded(i) => {
             Some(format!("instrument {name}, which the catalogs say they are of (INSTRUME = '{i}')"))
         }
-        fit::stars_field::InstrumentChoice::Assumed => Some(format!(
+        fit::models::stars_field::InstrumentChoice::Assumed => Some(format!(
             "the catalogs do not say which instrument they are of (no INSTRUME keyword): taken as {name}; give instrument= if they are another's"
         )),
     };
@@ -120,7 +122,7 @@ pub(crate) fn _calibrate_stars(
             Interstellar::from_percent_deg(p, chi).map_err(|e| input_err(format!("interstellar: {e}")))?
         }
     };
-    let mut calibrate = fit::pipeline::CalibrateOptions::default();
+    let mut calibrate = fit::models::pipeline::CalibrateOptions::default();
     calibrate.set_model_name(model).map_err(input_err)?;
     calibrate.fit.free_centre = free_centre;
     if !(match_radius_arcsec > 0.0 && match_radius_arcsec.is_finite()) {

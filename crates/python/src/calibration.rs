@@ -4,8 +4,8 @@
 use crate::convert::*;
 use crate::errors::*;
 use crate::maps::map_dict;
-use fit::columns::{Inputs, Units};
-use fit::correct::Method;
+use fit::correction::columns::{Inputs, Units};
+use fit::correction::correct::Method;
 use numpy::PyReadonlyArray1;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -20,22 +20,22 @@ use stokes::stats::Estimator;
 /// and its telescope model's only band ("" with several).
 pub(crate) enum Field<'a> {
     PPhi(&'a fit::Calibration),
-    Mueller(&'a fit::mueller_cal::MuellerCal),
+    Mueller(&'a fit::mueller_field::cal::MuellerCal),
     TelescopeOnly {
         instrument: &'a str,
         filter: &'a str,
     },
     /// An instrument's constant response from standards (`instpol efficiency`).
-    Response(&'a fit::response_cal::ResponseCal),
+    Response(&'a fit::response::cal::ResponseCal),
 }
 
-/// A calibration file as `fit::calibration::load` reads it (`instpol correct`'s reader): a
-/// partial polarizer (`fit::Calibration`) or a Mueller field (`fit::mueller_cal::MuellerCal`),
+/// A calibration file as `fit::files::calibration::load` reads it (`instpol correct`'s reader): a
+/// partial polarizer (`fit::Calibration`) or a Mueller field (`fit::mueller_field::cal::MuellerCal`),
 /// with the telescope model stored beside the field one or alone (`instpol fit-standards
 /// --output`), applied after the field with each row's parallactic angle.
 #[pyclass(module = "instpol._instpol", frozen)]
 pub(crate) struct _Calibration {
-    file: fit::calibration::CalibrationFile,
+    file: fit::files::calibration::CalibrationFile,
     path: PathBuf,
 }
 
@@ -64,8 +64,8 @@ impl _Calibration {
         }
     }
 
-    fn pixel(&self) -> Option<fit::calfile::PixelGrid> {
-        fit::columns::pixel_grid(&self.file)
+    fn pixel(&self) -> Option<fit::files::calfile::PixelGrid> {
+        fit::correction::columns::pixel_grid(&self.file)
     }
 
     /// A telescope model's band that cannot be chosen, in this package's words.
@@ -86,16 +86,16 @@ impl _Calibration {
         })
     }
 
-    /// A refusal of `fit::request::plan_map` in this package's words.
-    fn map_error(&self, e: fit::request::Refusal, input: &std::path::Path) -> PyErr {
-        use fit::request::Refusal as E;
+    /// A refusal of `fit::correction::request::plan_map` in this package's words.
+    fn map_error(&self, e: fit::correction::request::Refusal, input: &std::path::Path) -> PyErr {
+        use fit::correction::request::Refusal as E;
         let (cal_path, input) = (self.path.display(), input.display());
         input_err(match e {
             E::TelescopeOptions { mueller } => format!(
                 "parang_deg, rotator_deg and band are for calibrations with a telescope model; {cal_path} holds {}",
                 if mueller { "a Mueller field" } else { "none" }
             ),
-            E::Mismatch { mismatch: fit::setup::Mismatch::Setup { data, calibration }, .. } => format!(
+            E::Mismatch { mismatch: fit::correction::setup::Mismatch::Setup { data, calibration }, .. } => format!(
                 "{input} is a {} {} map but {cal_path} calibrates {} {} (instrument, filter): use the calibration of the map's instrument and filter (or allow_mismatch=True)",
                 data.0, data.1, calibration.0, calibration.1
             ),
@@ -113,9 +113,9 @@ impl _Calibration {
         })
     }
 
-    /// A note of `fit::request` on a map's correction, in this package's words.
-    fn note_text(&self, n: &fit::request::Note, input: &std::path::Path) -> String {
-        use fit::request::Note;
+    /// A note of `fit::correction::request` on a map's correction, in this package's words.
+    fn note_text(&self, n: &fit::correction::request::Note, input: &std::path::Path) -> String {
+        use fit::correction::request::Note;
         let (cal_path, input) = (self.path.display(), input.display());
         match n {
             Note::TrackReplaced { recorded: (s, e) } => format!(
@@ -127,6 +127,9 @@ impl _Calibration {
                 "rotator_deg is ignored: the telescope model of {cal_path} was fitted without rotator angles (its offset holds the rotator's)"
             ),
             Note::ZeroAngleUnknown(w) => w.clone(),
+            Note::InstrumentFileDiffers { data, calibration } => format!(
+                "{input} and {cal_path} are of one instrument but were made with two different instrument files ({data} and {calibration}, BLAKE3): corrected; if the file's geometry, strips or zero angles changed between them, remake the calibration"
+            ),
             Note::MismatchAllowed(m) => format!(
                 "allow_mismatch: {input} and {cal_path} do not fit together ({m}); corrected all the same"
             ),
@@ -140,9 +143,9 @@ impl _Calibration {
         }
     }
 
-    /// A refusal of `fit::request` in this package's words (`per_row`: parang_deg was given).
-    fn rows_error(&self, e: fit::request::Refusal, per_row: bool) -> PyErr {
-        use fit::request::Refusal as E;
+    /// A refusal of `fit::correction::request` in this package's words (`per_row`: parang_deg was given).
+    fn rows_error(&self, e: fit::correction::request::Refusal, per_row: bool) -> PyErr {
+        use fit::correction::request::Refusal as E;
         let path = self.path.display();
         match e {
             E::TelescopeOptions { mueller: true } => input_err(format!(
@@ -181,14 +184,14 @@ impl _Calibration {
     }
 
     /// Positions in arcmin from the detector centre, from `units` "px" (0-based pixels of the
-    /// calibration's grid) or "arcmin" (`fit::columns::arcmin_positions`).
+    /// calibration's grid) or "arcmin" (`fit::correction::columns::arcmin_positions`).
     fn arcmin<'a>(&self, x: &'a [f64], y: &'a [f64], units: &str) -> PyResult<(Cow<'a, [f64]>, Cow<'a, [f64]>)> {
         let units = match units {
             "arcmin" => Units::Arcmin,
             "px" | "pixel" => Units::Pixel,
             u => return Err(input_err(format!("units '{u}': expected \"px\" or \"arcmin\""))),
         };
-        fit::columns::arcmin_positions(x, y, units, self.pixel()).map_err(|_| {
+        fit::correction::columns::arcmin_positions(x, y, units, self.pixel()).map_err(|_| {
             input_err("the calibration has no pixel grid: give the positions in arcmin (units=\"arcmin\")")
         })
     }
@@ -203,7 +206,7 @@ impl _Calibration {
         // as the sky's).
         // A telescope-only file (instpol fit-standards --output): correct() applies the
         // telescope alone, as `instpol correct` does.
-        let file = py.detach(|| fit::calibration::load(&path)).map_err(|e| load_err(&path, e))?;
+        let file = py.detach(|| fit::files::calibration::load(&path)).map_err(|e| load_err(&path, e))?;
         Ok(Self { file, path })
     }
 
@@ -230,8 +233,8 @@ impl _Calibration {
     fn hwp_chi_offset_deg(&self) -> f64 {
         match self.field() {
             Field::PPhi(c) => c.hwp_chi_offset_deg,
-            // A Mueller field: the zero angle its maps were turned by (fit::mueller_cal); a
-            // telescope model alone records none (its frame: fit::telescope_cal).
+            // A Mueller field: the zero angle its maps were turned by (fit::mueller_field::cal); a
+            // telescope model alone records none (its frame: fit::telescope::cal).
             Field::Mueller(m) => m.hwp_chi_offset_deg,
             Field::TelescopeOnly { .. } => 0.0,
             // A constant response: the zero angle of the sky frame it lives in.
@@ -244,7 +247,7 @@ impl _Calibration {
             Field::PPhi(c) => c.model.kind(),
             Field::Mueller(_) => "MUELLER",
             Field::TelescopeOnly { .. } => "TELESCOPE",
-            Field::Response(_) => fit::response_cal::RESPONSE_MODEL,
+            Field::Response(_) => fit::response::cal::RESPONSE_MODEL,
         }
     }
     /// A Mueller field's model in words (`physical`, `general`), as `instpol correct --json`
@@ -313,7 +316,7 @@ impl _Calibration {
         }
         let (x, y) = self.arcmin(x, y, units)?;
         let (x, y) = (x.as_ref(), y.as_ref());
-        fn at<M: FieldModel + Sync>(m: &M, x: &[f64], y: &[f64]) -> Vec<(fit::model::InstPol, bool)> {
+        fn at<M: FieldModel + Sync>(m: &M, x: &[f64], y: &[f64]) -> Vec<(fit::models::model::InstPol, bool)> {
             x.par_iter().zip(y).map(|(&x, &y)| (m.eval(x, y), m.contains(x, y))).collect()
         }
         let v = py.detach(|| match self.field() {
@@ -367,7 +370,10 @@ impl _Calibration {
         let base = request(method, allow_extrapolation, extrapolation_error, band.as_deref(), allow_mismatch)?;
         // What the rows are (instrument, filter, plate: catalog()'s), checked against the
         // calibration as a table's keywords are.
-        let setup = setup.map(|(instrument, filter, plate)| fit::setup::Setup { instrument, filter, plate });
+        let setup = setup.map(|(instrument, filter, plate)| fit::correction::setup::Setup {
+            plate,
+            ..fit::correction::setup::Setup::named(&instrument, &filter)
+        });
         // The zero angle q, u already carry (catalog()'s do): given, else what `recorded`
         // says, else none (q, u at the plate); the calibration's less it is applied, as
         // `instpol correct` takes a table's hwp_chi_offset_deg column.
@@ -398,25 +404,31 @@ impl _Calibration {
         if pa_end.is_some() && pa.is_none() {
             return Err(input_err("parang_end_deg needs parang_deg (each row's start)"));
         }
-        // The one rule set of `instpol correct`'s tables (fit::request).
-        let request = fit::request::Request {
+        // The one rule set of `instpol correct`'s tables (fit::correction::request).
+        let request = fit::correction::request::Request {
             frame,
-            per_row: pa.map(|start_deg| fit::request::PerRowAngles { start_deg, end_deg: pa_end, rotator_deg: None }),
+            per_row: pa.map(|start_deg| fit::correction::request::PerRowAngles {
+                start_deg,
+                end_deg: pa_end,
+                rotator_deg: None,
+            }),
             recorded: recorded.as_ref().map(|r| &r.angles),
             data: setup.as_ref(),
             frame_unstated: sky_pa_deg.is_none(),
             ..base
         };
-        let plan = fit::request::plan_rows(&self.file, &request, n).map_err(|e| self.rows_error(e, pa.is_some()))?;
+        let plan = fit::correction::request::plan_rows(&self.file, &request, n)
+            .map_err(|e| self.rows_error(e, pa.is_some()))?;
         let (x, y) = self.arcmin(x, y, units)?;
         let input = Inputs { frame: request.frame, x: &x, y: &y, q, u, sigma_q: sq, sigma_u: su, cov_qu: cov };
-        let out = py.detach(|| fit::columns::correct_columns(&input, est, &|_| {}, |k, m| plan.correct(k, m)));
+        let out =
+            py.detach(|| fit::correction::columns::correct_columns(&input, est, &|_| {}, |k, m| plan.correct(k, m)));
         let out = out.map_err(|(row, e)| input_err(format!("index {row}: {e}")))?;
         let d = PyDict::new(py);
         for (name, c) in out.names.iter().zip(out.values) {
             d.set_item(name, arr1(py, c))?;
         }
-        d.set_item(fit::correct::EXTRAPOLATED_COLUMN, bools(py, out.extrapolated))?;
+        d.set_item(fit::correction::correct::EXTRAPOLATED_COLUMN, bools(py, out.extrapolated))?;
         d.set_item("n_extrapolated", out.n_extrapolated)?;
         d.set_item("n_unmeasured", out.n_unmeasured)?;
         if let Some(t) = &plan.telescope {
@@ -429,7 +441,7 @@ impl _Calibration {
 
     /// `instpol correct` on a Stokes map file (from `instpol reduce` or `reduce(output=)`): the
     /// calibration's field, Mueller field or telescope chain over every valid bin
-    /// (`fit::request::MapPlan::correct`), the map's instrument and filter checked, the
+    /// (`fit::correction::request::MapPlan::correct`), the map's instrument and filter checked, the
     /// telescope's band and track by the CLI's rules; `output`: the corrected map, written with
     /// the correction's record (`INSTCORR`, ...). Returns the corrected map as `_reduce` does,
     /// with the correction's summary.
@@ -460,9 +472,10 @@ impl _Calibration {
         let map = py
             .detach(|| skyfield::StokesMap::read_uncorrected(&input))
             .map_err(|e| input_err(format!("Stokes map {}: {e}", input.display())))?;
-        // The one rule set of `instpol correct` on a map (fit::request::plan_map).
-        let request = fit::request::Request { parang: given, rotator, ..base };
-        let plan = fit::request::plan_map(&self.file, &request, &map).map_err(|e| self.map_error(e, &input))?;
+        // The one rule set of `instpol correct` on a map (fit::correction::request::plan_map).
+        let request = fit::correction::request::Request { parang: given, rotator, ..base };
+        let plan =
+            fit::correction::request::plan_map(&self.file, &request, &map).map_err(|e| self.map_error(e, &input))?;
         let notes: Vec<String> = plan.notes.iter().map(|n| self.note_text(n, &input)).collect();
         let name = self.path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
         let (c, stamp) = py
@@ -543,7 +556,7 @@ impl<'a, 'py> FromPyObject<'a, 'py> for Recorded {
     }
 }
 
-/// What the package's corrections ask of `fit::request`, before each adds its angles: `method=`
+/// What the package's corrections ask of `fit::correction::request`, before each adds its angles: `method=`
 /// ("exact" or "first-order") and `extrapolation_error=` checked, no angles yet, and any angles
 /// given later are the caller's arguments (refused without a telescope model, where a table's
 /// columns would only be noted).
@@ -553,14 +566,14 @@ pub(crate) fn request<'a>(
     extrapolation_error: f64,
     band: Option<&'a str>,
     allow_mismatch: bool,
-) -> PyResult<fit::request::Request<'a>> {
+) -> PyResult<fit::correction::request::Request<'a>> {
     let method = match method {
         "exact" => Method::Exact,
         "first-order" | "first_order" => Method::FirstOrder,
         m => return Err(input_err(format!("method '{m}': expected \"exact\" or \"first-order\""))),
     };
-    fit::request::check_extrapolation_error(extrapolation_error)
+    fit::correction::request::check_extrapolation_error(extrapolation_error)
         .map_err(|f| input_err(format!("extrapolation_error {f} must be a non-negative number")))?;
-    let base = fit::request::Request::new(method, allow_extrapolation, extrapolation_error);
-    Ok(fit::request::Request { band, angles_are_arguments: true, allow_mismatch, ..base })
+    let base = fit::correction::request::Request::new(method, allow_extrapolation, extrapolation_error);
+    Ok(fit::correction::request::Request { band, angles_are_arguments: true, allow_mismatch, ..base })
 }

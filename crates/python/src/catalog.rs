@@ -64,7 +64,7 @@ pub(crate) fn _catalog<'py>(
     refuse_same_data(&frames, skyfield::same::By::Content)?;
     refuse_same_data(frames.iter().chain(&read.bias).chain(&read.flat).chain(&cal), skyfield::same::By::Identity)?;
     let loaded = match &cal {
-        Some(p) => Some(py.detach(|| fit::calibration::load(p)).map_err(|e| load_err(p, e))?),
+        Some(p) => Some(py.detach(|| fit::files::calibration::load(p)).map_err(|e| load_err(p, e))?),
         None => None,
     };
     let (cat, warnings) = py
@@ -73,11 +73,11 @@ pub(crate) fn _catalog<'py>(
             Ok::<_, skyfield::Error>((cat, warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>()))
         })
         .map_err(sky_err)?;
-    // Corrected in the same run, as `instpol catalog --cal` (the one rule in fit::catalog_correct).
+    // Corrected in the same run, as `instpol catalog --cal` (the one rule in fit::correction::catalog_correct).
     let corrected = match (&loaded, &cal) {
         (Some(l), Some(p)) => {
-            let opts = fit::correct::CorrectOptions { allow_extrapolation, ..Default::default() };
-            let (c, used) = fit::catalog_correct::correct_catalog_loaded(&cat, &inst, &frames, l, opts)
+            let opts = fit::correction::correct::CorrectOptions { allow_extrapolation, ..Default::default() };
+            let (c, used) = fit::correction::catalog_correct::correct_catalog_loaded(&cat, &inst, &frames, l, opts)
                 .map_err(|e| input_err(format!("cal {}: {e}", p.display())))?;
             Some((c, used))
         }
@@ -164,7 +164,7 @@ pub(crate) fn recorded_angles_dict<'py>(
     frames: &[PathBuf],
     inst: &instrument::Instrument,
 ) -> PyResult<Option<Bound<'py, PyDict>>> {
-    let Some(r) = fit::telescope_cal::recorded_angles(&cat.frames, frames, inst) else { return Ok(None) };
+    let Some(r) = fit::telescope::cal::recorded_angles(&cat.frames, frames, inst) else { return Ok(None) };
     let rd = PyDict::new(py);
     let (s, e) = r.parallactic_rad.unwrap_or_default();
     rd.set_item("parang_deg", (s.to_degrees(), e.to_degrees()))?;
@@ -182,11 +182,11 @@ pub(crate) fn recorded_angles_dict<'py>(
 /// correction applied and the telescope model it used.
 pub(crate) fn set_corrected(
     d: &Bound<'_, PyDict>,
-    c: &fit::catalog_correct::CorrectedCatalog,
-    used: Option<&fit::catalog_correct::TelescopeUsed>,
+    c: &fit::correction::catalog_correct::CorrectedCatalog,
+    used: Option<&fit::correction::catalog_correct::TelescopeUsed>,
 ) -> PyResult<()> {
     let py = d.py();
-    let out = fit::columns::Outputs::of_rows(&c.rows);
+    let out = fit::correction::columns::Outputs::of_rows(&c.rows);
     for (name, values) in out.names.iter().zip(out.values) {
         d.set_item(name, arr1(py, values))?;
     }

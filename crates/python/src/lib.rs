@@ -11,12 +11,12 @@
 //! | `instpol.stokes`           | `stokes::Measurement::reduce` (`instpol stokes`)           |
 //! | `instpol.bias`             | `stokes::stats::debias` (`instpol bias`)                   |
 //! | `Calibration.load`         | `fit::Calibration::load` (`instpol correct --cal`)         |
-//! | `Calibration.evaluate`     | `fit::correct::Corrector::instrumental`                    |
-//! | `Calibration.correct`      | `fit::correct::Corrector::par_correct_batch` (`correct`)   |
+//! | `Calibration.evaluate`     | `fit::correction::correct::Corrector::instrumental`                    |
+//! | `Calibration.correct`      | `fit::correction::correct::Corrector::par_correct_batch` (`correct`)   |
 //! | `instpol.reduce`           | `skyfield::reduce::reduce_for_plate` (`instpol reduce`)    |
 //! | `instpol.catalog`          | `skyfield::catalog::catalog_files` (`instpol catalog`)     |
 //! | `instpol.simulate`         | `sim::Plan::write` (`instpol simulate`)                    |
-//! | `instpol.calibrate`        | `fit::pipeline::calibrate_sky_field` (`calibrate --map`)   |
+//! | `instpol.calibrate`        | `fit::models::pipeline::calibrate_sky_field` (`calibrate --map`)   |
 //!
 //! One module per topic, this file only registering them: `stokes` (one source, bias), `maps`
 //! (frames to a Stokes map), `catalog` (stars of a frame set), `calibration` (a calibration file

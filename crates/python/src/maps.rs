@@ -46,7 +46,7 @@ pub(crate) fn _reduce<'py>(
             match &mut r {
                 skyfield::reduce::PlateReduced::Linear(r) => {
                     // The exposures' telescope angles, as `instpol reduce` records them.
-                    fit::telescope_cal::record_telescope_angles(&mut r.map, &r.exposures, &frames, &inst);
+                    fit::telescope::cal::record_telescope_angles(&mut r.map, &r.exposures, &frames, &inst);
                     if let Some(out) = &output {
                         r.map.write_fits(out)?;
                     }

@@ -71,7 +71,7 @@ pub(crate) fn _simulate(
             inputs.push(p.clone());
             let cal = fit::Calibration::load(p).map_err(|e| load_err(p, e))?;
             let inst = instrument::Instrument::load(&sc.instrument).map_err(inst_err)?;
-            if !fit::setup::matches_calibration(&inst.name, &sc.filter, &cal) {
+            if !fit::correction::setup::matches_calibration(&inst.name, &sc.filter, &cal) {
                 return Err(input_err(format!(
                     "{} calibrates {} {} but the scene is {} {}: use a calibration of the scene's instrument and filter",
                     p.display(),

@@ -227,7 +227,7 @@ impl Provenance {
 /// `PARAM`s, CSV `# KEY = value` comment lines before the header: [`Product::pairs`]) and
 /// given back by every reader ([`Product::from_pairs`]), so that a command combining a table
 /// with a calibration can check that the two are of the same instrument, filter and plate
-/// (`fit::setup::check_compatible`). A table written by other software has none; every field
+/// (`fit::correction::setup::check_compatible`). A table written by other software has none; every field
 /// is optional because a product knows only what its maker knew.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct Product {

@@ -1,5 +1,5 @@
 //! The linear block a half-wave-plate defect is equivalent to after the demodulation (what
-//! `fit::mueller_explain` compares a fitted Mueller field with).
+//! `fit::mueller_field::explain` compares a fitted Mueller field with).
 //!
 //! A defect of the modulator (a tilted, wedged or polarizing plate) is not a pre-analyzer
 //! element: it changes each `F_i` (`eq:F`), and the Stokes solver turns the changed `F_i` into

@@ -2,20 +2,20 @@
 //! `instpol demo` and the Python `instpol.demo` run and report.
 //!
 //! The paper's FORS1 patterns (section `sec:fors1`: V and I as fitted there, B the V pattern
-//! scaled by the ray-traced wavelength law with an asymmetric component, [`fit::paper`]) are
+//! scaled by the ray-traced wavelength law with an asymmetric component, [`fit::models::paper`]) are
 //! seen on the empty fields of Table `tab:empty`, either through simulated frames (the `sim`
 //! crate: photon and read noise, written as FITS and reduced by `skyfield` in 30 x 30 px
-//! bins) or as binned maps measured directly through the same `M_I` ([`fit::synth`]); each
-//! filter is calibrated by the sky-field method ([`fit::pipeline::calibrate_sky_field`]),
-//! the wavelength law is fitted to the three models ([`fit::wavelength`]), and the V
+//! bins) or as binned maps measured directly through the same `M_I` ([`fit::models::synth`]); each
+//! filter is calibrated by the sky-field method ([`fit::models::pipeline::calibrate_sky_field`]),
+//! the wavelength law is fitted to the three models ([`fit::models::wavelength`]), and the V
 //! calibration is validated on a simulated unpolarized standard in the lower-right corner
 //! ([`corner_star`]), as the paper checks its V map. Scenes are built as `sim::Scene` values.
 //! Plots are the faces' (the report lists the files a face drew, none here).
 
 use field::{FieldModel, GridMap, NearestCell, RadialPattern};
-use fit::calfile::Calibration;
-use fit::paper::DemoField;
-use fit::pipeline::{ApproxVsExact, CalibrateOptions, CalibrationRun, FitSummary};
+use fit::files::calfile::Calibration;
+use fit::models::paper::DemoField;
+use fit::models::pipeline::{ApproxVsExact, CalibrateOptions, CalibrationRun, FitSummary};
 use fit::standards::Expected;
 use fit::validate::{ValidateOptions, ValidationReport};
 use fit::RadialModel;
@@ -205,7 +205,7 @@ fn map_direct(c: &DemoField, inst: &instrument::Instrument, seed: u64) -> Result
     let (q0, u0) = sky.qu();
     // SNR 280 per pixel, 4 HWP angles, 900 px: sigma of a bin mean ~ 1 / (280 sqrt(900)).
     let sigma = 1.0 / (280.0 * 30.0);
-    let meas = fit::synth::sky_field(&centres, &c.truth(), q0, u0, sigma, seed);
+    let meas = fit::models::synth::sky_field(&centres, &c.truth(), q0, u0, sigma, seed);
     for (k, m) in meas.iter().enumerate() {
         map.q[k] = m.q1;
         map.u[k] = m.u1;
@@ -244,7 +244,7 @@ fn rms_vs_input(cal: &Calibration, c: &DemoField) -> f64 {
 pub fn run(out: &Path, opts: &DemoOptions, progress: &(dyn Fn(Progress<'_>) + Sync)) -> Result<Demo, Error> {
     std::fs::create_dir_all(out).map_err(|err| Error::Create { path: out.to_path_buf(), err })?;
     let inst = instrument::Instrument::load("fors1")?;
-    let cases = fit::paper::demo_fields(&inst)?;
+    let cases = fit::models::paper::demo_fields(&inst)?;
     let mut filters = vec![];
     let mut runs: Vec<CalibrationRun> = vec![];
     for (k, c) in cases.iter().enumerate() {
@@ -260,7 +260,7 @@ pub fn run(out: &Path, opts: &DemoOptions, progress: &(dyn Fn(Progress<'_>) + Sy
         progress(Progress::Message(&format!("{}: sky-field solution and fit", c.name)));
         let sky = skyfield::solve::SkyPolarization::from_percent_deg(c.sky_p_pct, c.sky_chi_deg)?;
         let copts = CalibrateOptions { residual_map: c.asymmetric, ..Default::default() };
-        let run = fit::pipeline::calibrate_sky_field(&map, &sky, &inst, inputs, &copts)?;
+        let run = fit::models::pipeline::calibrate_sky_field(&map, &sky, &inst, inputs, &copts)?;
         progress(Progress::Step);
         let path = out.join(format!("cal_{}.fits", c.name));
         run.calibration.save(&path)?;
@@ -297,7 +297,7 @@ pub fn run(out: &Path, opts: &DemoOptions, progress: &(dyn Fn(Progress<'_>) + Sy
     }
     progress(Progress::Step);
     let models: Vec<(f64, &RadialModel)> = runs.iter().map(|r| (r.calibration.lambda_nm, &r.fit.model)).collect();
-    let law = fit::wavelength::fit_wavelength_law(&models, [1.0, 3.3])?;
+    let law = fit::models::wavelength::fit_wavelength_law(&models, [1.0, 3.3])?;
     let report = DemoReport {
         filters,
         wavelength_law: LawReport {
@@ -305,8 +305,8 @@ pub fn run(out: &Path, opts: &DemoOptions, progress: &(dyn Fn(Progress<'_>) + Sy
             b: law.b,
             sigma_a: law.a_err,
             sigma_b: law.b_err,
-            paper_a: fit::paper::RAYTRACED_LAW.0,
-            paper_b: fit::paper::RAYTRACED_LAW.1,
+            paper_a: fit::models::paper::RAYTRACED_LAW.0,
+            paper_b: fit::models::paper::RAYTRACED_LAW.1,
         },
         validation,
         through_frames: opts.through_frames,
@@ -317,7 +317,7 @@ pub fn run(out: &Path, opts: &DemoOptions, progress: &(dyn Fn(Progress<'_>) + Sy
 
 /// The demo's validation step, as the paper did it (section `sec:fors1`): simulate (photon and
 /// read noise, saturation) frames of an unpolarized standard of the paper's precision (3e6 e-
-/// per exposure, sigma_P ~ 0.04%) at [`fit::paper::corner_position_arcmin`] seen through
+/// per exposure, sigma_P ~ 0.04%) at [`fit::models::paper::corner_position_arcmin`] seen through
 /// the true V field `true_coeffs_percent` (index = power of r, as in a scene file), write them
 /// into `dir`, and validate the calibration `cal` on them
 /// ([`fit::validate::validate_frames`], default options; its warnings are in the report).
@@ -328,7 +328,7 @@ pub fn corner_star(
     seed: u64,
 ) -> Result<ValidationReport, Error> {
     use sim::scene::{Coords, Effects, InstPolSpec, Output, Psf, Sky, Star};
-    let (x, y) = fit::paper::corner_position_arcmin();
+    let (x, y) = fit::models::paper::corner_position_arcmin();
     let scene = sim::Scene {
         instrument: "fors1".into(),
         filter: "V".into(),
@@ -385,7 +385,7 @@ pub fn corner_star(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use fit::calfile::{PixelGrid, Provenance, FORMAT_VERSION};
+    use fit::files::calfile::{PixelGrid, Provenance, FORMAT_VERSION};
     use fit::FieldRegion;
 
     fn cal(filter: &str, coeffs: [f64; 3]) -> Calibration {

@@ -8,6 +8,7 @@ mod citations;
 mod common;
 mod crate_layers;
 mod docs_links;
+mod folders;
 mod function_length;
 mod import_circles;
 mod one_of_each;

@@ -1,8 +1,8 @@
 //! `instpol calibrate`: empty-field frames of known sky polarization to a calibration file.
 
 use anyhow::{anyhow, bail, Context, Result};
-use fit::pipeline::{CalibrateOptions, CalibrationRun, FitSummary};
-use fit::radial::Robust;
+use fit::models::pipeline::{CalibrateOptions, CalibrationRun, FitSummary};
+use fit::models::radial::Robust;
 use fit::RadialFitOptions;
 use skyfield::solve::SkyPolarization;
 use std::path::{Path, PathBuf};
@@ -118,7 +118,7 @@ impl FitArgs {
     }
 }
 
-/// Solve a Stokes map for the instrumental field and calibrate (`fit::pipeline::calibrate_sky_field`,
+/// Solve a Stokes map for the instrumental field and calibrate (`fit::models::pipeline::calibrate_sky_field`,
 /// which `workflow::demo` calls too).
 fn calibrate_map(
     map: &skyfield::StokesMap,
@@ -127,7 +127,7 @@ fn calibrate_map(
     inputs: Vec<String>,
     opts: &CalibrateOptions,
 ) -> Result<CalibrationRun> {
-    Ok(fit::pipeline::calibrate_sky_field(map, sky, inst, inputs, opts)?)
+    Ok(fit::models::pipeline::calibrate_sky_field(map, sky, inst, inputs, opts)?)
 }
 
 /// The sky values are required: without them the sky-field equations have no solution.
@@ -266,7 +266,7 @@ pub fn run(a: Args) -> Result<()> {
         }
         (red.map, a.frames.iter().map(|p| p.display().to_string()).collect())
     };
-    if let Some(w) = fit::setup::zero_angle_disagreement(&map, &inst) {
+    if let Some(w) = fit::correction::setup::zero_angle_disagreement(&map, &inst) {
         eprintln!("warning: {w}");
     }
     let run = calibrate_map(&map, &sky, &inst, inputs, &opts)?;

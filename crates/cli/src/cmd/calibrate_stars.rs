@@ -1,8 +1,8 @@
 //! `instpol calibrate-stars`: star catalogs of a dense field (one per dithered pointing) to a
-//! calibration file, through `fit::stars_field`.
+//! calibration file, through `fit::models::stars_field`.
 
 use anyhow::{bail, Context, Result};
-use fit::stars_field::{read_catalogs, stars_field, stars_meta, Interstellar, StarsOptions, StarsSummary};
+use fit::models::stars_field::{read_catalogs, stars_field, stars_meta, Interstellar, StarsOptions, StarsSummary};
 use std::path::PathBuf;
 
 /// Measure the instrumental polarization over the field from many field stars, where no empty
@@ -93,8 +93,8 @@ fn interstellar(s: &str) -> Result<Interstellar> {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    use fit::stars_field::InstrumentChoice;
-    let (instrument, chosen) = fit::stars_field::catalogs_instrument(a.instrument.as_deref(), &a.catalogs)
+    use fit::models::stars_field::InstrumentChoice;
+    let (instrument, chosen) = fit::models::stars_field::catalogs_instrument(a.instrument.as_deref(), &a.catalogs)
         .map_err(|e| anyhow::anyhow!("{e} (--instrument)"))?;
     match chosen {
         InstrumentChoice::Given => {}

@@ -1,6 +1,7 @@
 //! `instpol catalog`: every paired star of a frame set, measured in one run.
 
 use anyhow::{Context, Result};
+use fit::correction::{catalog_correct, correct};
 use skyfield::catalog::{flags, CatalogConfig};
 use skyfield::detect::DetectConfig;
 use std::path::PathBuf;
@@ -103,8 +104,8 @@ struct CorrRow {
     extrapolated: bool,
 }
 
-impl From<&fit::correct::Corrected> for CorrRow {
-    fn from(c: &fit::correct::Corrected) -> Self {
+impl From<&correct::Corrected> for CorrRow {
+    fn from(c: &correct::Corrected) -> Self {
         Self {
             q0: c.q0,
             u0: c.u0,
@@ -192,15 +193,14 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     // With a telescope model: its name, the band used and how many exposures were undone one by one.
-    let mut telescope_used: Option<fit::catalog_correct::TelescopeUsed> = None;
+    let mut telescope_used: Option<catalog_correct::TelescopeUsed> = None;
     let corrected = match &a.cal {
         None => None,
         Some(path) => {
-            let loaded =
-                fit::calibration::load(path).with_context(|| format!("cannot load calibration {}", path.display()))?;
-            let opts =
-                fit::correct::CorrectOptions { allow_extrapolation: a.allow_extrapolation, ..Default::default() };
-            let (c, used) = fit::catalog_correct::correct_catalog_loaded(&cat, &inst, &a.frames, &loaded, opts)
+            let loaded = fit::files::calibration::load(path)
+                .with_context(|| format!("cannot load calibration {}", path.display()))?;
+            let opts = correct::CorrectOptions { allow_extrapolation: a.allow_extrapolation, ..Default::default() };
+            let (c, used) = catalog_correct::correct_catalog_loaded(&cat, &inst, &a.frames, &loaded, opts)
                 .with_context(|| format!("--cal {}", path.display()))?;
             telescope_used = used;
             if c.n_extrapolated > 0 {
@@ -217,12 +217,12 @@ pub fn run(a: Args) -> Result<()> {
         let mut t = cat.to_table();
         // The exposures' telescope angles, for `instpol correct` (ECSV, FITS and VOTable carry
         // them; CSV has no place for them).
-        if let Some(angles) = fit::telescope_cal::recorded_angles(&cat.frames, &a.frames, &inst) {
+        if let Some(angles) = fit::telescope::cal::recorded_angles(&cat.frames, &a.frames, &inst) {
             t.meta = angles.to_meta();
         }
         if let Some(c) = &corrected {
             // The columns of `instpol correct`, for the stars measured (NaN for the others).
-            t.columns.extend(fit::columns::Outputs::of_rows(&c.rows).into_table_columns());
+            t.columns.extend(fit::correction::columns::Outputs::of_rows(&c.rows).into_table_columns());
         }
         t.write(out)?;
     }

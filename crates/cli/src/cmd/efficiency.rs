@@ -1,9 +1,9 @@
 //! `instpol efficiency`: the instrument's constant response from standards in catalogs
-//! (`fit::efficiency`), written as a calibration file `instpol correct` applies
-//! (`fit::response_cal`).
+//! (`fit::response`), written as a calibration file `instpol correct` applies
+//! (`fit::response::cal`).
 
 use anyhow::{anyhow, bail, Result};
-use fit::efficiency::{catalog_standard, one_setup, Standard, Truth};
+use fit::response::{catalog_standard, one_setup, Standard, Truth};
 use std::path::PathBuf;
 
 /// The instrumental polarization (q0, u0) from unpolarized standards, then the polarimetric
@@ -123,11 +123,11 @@ pub fn run(a: Args) -> Result<()> {
         };
         stds.push(Standard { label, measured, truth });
     }
-    let f = fit::efficiency::fit(&setup.filter, &stds)?;
+    let f = fit::response::fit(&setup.filter, &stds)?;
     if let Some(o) = &a.output {
-        fit::response_cal::ResponseCal::of_fit(&f, &setup.instrument, &setup.filter).save(o)?;
+        fit::response::cal::ResponseCal::of_fit(&f, &setup).save(o)?;
     }
-    let s = f.summary(&setup.instrument, &setup.filter, a.output.as_ref().map(|o| o.display().to_string()));
+    let s = f.summary(&setup, a.output.as_ref().map(|o| o.display().to_string()));
     for p in s.polarized.iter().filter(|p| p.excluded) {
         eprintln!(
             "warning: standard {} disagrees with the others in angle (pull {:.1}): left out; check its identification and catalogue value",

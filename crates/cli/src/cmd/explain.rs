@@ -1,8 +1,8 @@
 //! `instpol explain`: which physics explains a fitted Mueller field. All
-//! numbers come from `fit::mueller_explain`; this file parses, prints and plots.
+//! numbers come from `fit::mueller_field::explain`; this file parses, prints and plots.
 
 use anyhow::{anyhow, bail, Result};
-use fit::mueller_explain::{explain, Cause, Context, Explanation, Target};
+use fit::mueller_field::explain::{explain, Cause, Context, Explanation, Target};
 use fit::mueller_field::Smooth;
 use std::path::PathBuf;
 
@@ -121,7 +121,7 @@ pub fn run(a: Args) -> Result<()> {
     let which = Cause::parse_list(&a.causes).map_err(|e| anyhow!("--causes '{}': {e}", a.causes))?;
     let angles_deg = hwp_angles(a.hwp_angles.as_deref())?;
     let what = a.mueller_cal.display().to_string();
-    let loaded = fit::mueller_cal::load_field(&a.mueller_cal).map_err(|e| anyhow!("{e}"))?;
+    let loaded = fit::mueller_field::cal::load_field(&a.mueller_cal).map_err(|e| anyhow!("{e}"))?;
     let name = match (&a.instrument, &loaded.of) {
         (Some(n), _) => n.clone(),
         (None, Some((recorded, _))) => {
@@ -275,7 +275,7 @@ fn draw_on<DB: plotters::prelude::DrawingBackend>(
                     .map_err(crate::plot::pe)?;
             }
         }
-        let t = 1.0 + fit::mueller_explain::DELTA_BIC;
+        let t = 1.0 + fit::mueller_field::explain::DELTA_BIC;
         c.draw_series(LineSeries::new(vec![(-0.5, t), (n as f64 - 0.5, t)], RED.stroke_width(2)))
             .map_err(crate::plot::pe)?
             .label("delta BIC = 10")

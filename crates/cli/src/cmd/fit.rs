@@ -1,7 +1,7 @@
 //! `instpol fit`: refit a calibration file (native or imported) with the radial model.
 
 use anyhow::{Context, Result};
-use fit::pipeline::refit;
+use fit::models::pipeline::refit;
 use std::path::PathBuf;
 
 /// Refit the binned measurements of any calibration file (made by `calibrate` or by

@@ -2,9 +2,9 @@
 //! measured at many parallactic angles (library: `fit::telescope`).
 
 use anyhow::{bail, Context, Result};
+use fit::telescope::cal::{band_file_name, safe_name};
+use fit::telescope::report::{choose_mirror, fit_all, FitReport, Mirror, MirrorError};
 use fit::telescope::{read_observations, FitOptions, ModelKind, Observation, TelescopeFit};
-use fit::telescope_cal::{band_file_name, safe_name};
-use fit::telescope_report::{choose_mirror, fit_all, FitReport, Mirror, MirrorError};
 use fit::ErrorScaling;
 use std::path::{Path, PathBuf};
 
@@ -39,7 +39,7 @@ use std::path::{Path, PathBuf};
 /// (text and JSON "minima").
 ///
 /// Calibration files (--output, --output-dir): the fitted model (--save-model, default
-/// wiersema) is written as a TELESCOPE HDU (fit::telescope_cal): with --field-cal beside that
+/// wiersema) is written as a TELESCOPE HDU (fit::telescope::cal): with --field-cal beside that
 /// field calibration (its filter must be the band), else alone. `instpol correct` then takes
 /// the parallactic angle per row (catalog column parang_deg, optionally parang_end_deg).
 ///
@@ -136,7 +136,7 @@ fn print_fit(o: &FitReport) {
 }
 
 /// --metal, else --instrument's oblique mirror (metal, alumina over-layer), else aluminium
-/// (fit::telescope_report::choose_mirror), with this command's words.
+/// (fit::telescope::report::choose_mirror), with this command's words.
 fn mirror(a: &Args, inst: Option<&instrument::Instrument>) -> Result<Mirror> {
     let base = a.instrument.as_deref().map(Path::new).filter(|p| p.is_file()).and_then(|p| p.parent());
     let c = choose_mirror(a.metal.as_deref(), inst, base).map_err(|e| match e {
@@ -195,7 +195,8 @@ pub fn run(a: Args) -> Result<()> {
     let fits =
         fit_all(&obs, &models, table, &opts, a.joint).map_err(|(what, e)| anyhow::Error::new(e).context(what))?;
     let outputs = write_calibrations(&a, &fits, &obs, inst.as_ref(), &mirror.metal)?;
-    let mut outs: Vec<FitReport> = fits.iter().map(|(f, j)| FitReport::new(f, *j, &mirror)).collect();
+    let product = inst.as_ref().map(|i| skyfield::provenance::Product::of_instrument_alone(i).with_run_inputs());
+    let mut outs: Vec<FitReport> = fits.iter().map(|(f, j)| FitReport::new(f, *j, &mirror, product.clone())).collect();
     for (i, p) in &outputs {
         outs[*i].output = Some(p.clone());
     }
@@ -265,13 +266,14 @@ fn write_calibrations(
         _ => "unknown".to_string(),
     };
     let inputs: Vec<String> = a.files.iter().map(|f| f.display().to_string()).collect();
+    let product = inst.map(skyfield::provenance::Product::of_instrument_alone);
     let pick = |joint: bool, band: Option<&str>| {
         fits.iter().enumerate().find(|(_, (f, j))| {
             f.model == save && *j == joint && band.is_none_or(|b| f.bands.len() == 1 && f.bands[0].0 == b)
         })
     };
     let mut written = Vec::new();
-    let bands = fit::telescope_report::bands_of(obs);
+    let bands = fit::telescope::report::bands_of(obs);
     if let Some(path) = &a.output {
         crate::util::check_output(path)?;
         let f = if a.joint {
@@ -299,9 +301,9 @@ fn write_calibrations(
                         f.bands.iter().map(|b| b.0.as_str()).collect::<Vec<_>>().join(", ")
                     );
                 }
-                fit::telescope_cal::save_with_field(path, &cal, f, metal)?;
+                fit::telescope::cal::save_with_field(path, &cal, f, metal)?;
             }
-            None => fit::telescope_cal::save_alone(path, &instrument, f, metal, &inputs)?,
+            None => fit::telescope::cal::save_alone(path, &instrument, f, metal, &inputs, product.as_ref())?,
         }
         written.push((i, path.clone()));
     }
@@ -312,16 +314,15 @@ fn write_calibrations(
                 .ok_or_else(|| anyhow::anyhow!("--save-model {}: that model was not fitted", save.name()))?;
             let path = dir.join(band_file_name(b));
             crate::util::check_output(&path)?;
-            fit::telescope_cal::save_alone(&path, &instrument, f, metal, &inputs)?;
+            fit::telescope::cal::save_alone(&path, &instrument, f, metal, &inputs, product.as_ref())?;
             written.push((i, path));
         }
     }
     Ok(written)
 }
 
-/// The field calibration and the telescope model go into one file for one instrument: a field
-/// calibration of another instrument than --instrument is refused, naming both; one that does
-/// not say its instrument is taken with a warning (nothing to compare).
+/// The field calibration and the telescope model go into one file for one instrument: another
+/// instrument than --instrument is refused, naming both; none said is taken with a warning.
 fn check_field_instrument(
     fc: &Path,
     field_instrument: &str,
@@ -330,7 +331,7 @@ fn check_field_instrument(
 ) -> Result<()> {
     let (Some(name), Some(inst)) = (name, inst) else { return Ok(()) };
     let fi = field_instrument.trim();
-    if !fit::setup::is_known(fi) {
+    if !fit::correction::setup::is_known(fi) {
         eprintln!(
             "warning: --field-cal {} does not say its instrument ('{fi}'): taken as {} (--instrument {name}) unchecked",
             fc.display(),
@@ -338,7 +339,7 @@ fn check_field_instrument(
         );
         return Ok(());
     }
-    if !fit::setup::same_instrument(fi, &inst.name) {
+    if !fit::correction::setup::same_instrument(fi, &inst.name) {
         bail!(
             "--field-cal {} is a calibration of instrument {fi}, but --instrument {name} is {}: the field and the telescope model must be of one instrument",
             fc.display(),

@@ -1,7 +1,7 @@
 //! `instpol import-map`: third-party Q/I, U/I maps to a calibration file.
 
 use anyhow::{bail, Result};
-use fit::import::{import_map, ImportOptions};
+use fit::files::import::{import_map, ImportOptions};
 use serde::Serialize;
 use std::path::PathBuf;
 use stokes::stats::robust::{median, Middle};

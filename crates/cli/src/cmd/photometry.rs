@@ -214,7 +214,7 @@ pub fn run(a: Args) -> Result<()> {
         eprintln!("warning: {w}");
     }
     let (sky, chi_deg) = r.in_sky_frame(offset);
-    let record = fit::telescope_cal::standard_record(&a.frames, &inst, &set.filter, star)?;
+    let record = fit::telescope::cal::standard_record(&a.frames, &inst, &set.filter, star)?;
     let (q, u, var_q, var_u) = (sky.q, sky.u, sky.var_q, sky.var_u);
     let o = Out {
         x_px: x,

@@ -1,9 +1,9 @@
 //! `instpol plan`: what a Mueller-field calibration costs: how many sky fields,
-//! which, and how long per HWP angle reach a target accuracy, from `fit::mueller_plan`.
+//! which, and how long per HWP angle reach a target accuracy, from `fit::mueller_field::plan`.
 
 use anyhow::{anyhow, bail, Result};
+use fit::mueller_field::plan::{PlanRequest, PlanRow, PlanSetup, SIMULATION_TOLERANCE};
 use fit::mueller_field::{Kind, MuellerField};
-use fit::mueller_plan::{PlanRequest, PlanRow, PlanSetup, SIMULATION_TOLERANCE};
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -123,7 +123,7 @@ pub fn run(a: Args) -> Result<()> {
     let expected: Option<Arc<MuellerField>> = match &a.expected {
         Some(p) => {
             crate::util::inputs([p.as_path()])?;
-            Some(Arc::new(fit::mueller_cal::load_field(p).map_err(|e| anyhow!("{e}"))?.field))
+            Some(Arc::new(fit::mueller_field::cal::load_field(p).map_err(|e| anyhow!("{e}"))?.field))
         }
         None => None,
     };
@@ -131,10 +131,10 @@ pub fn run(a: Args) -> Result<()> {
         crate::plot::ImageFormat::of(p)?;
         crate::util::check_output(p)?;
     }
-    let positions = fit::mueller_plan::detector_bin_centres(&inst, a.bin);
+    let positions = fit::mueller_field::plan::detector_bin_centres(&inst, a.bin);
     if let (Some(m), Some(p)) = (&expected, &a.expected) {
         // The interpolant has no value outside the hull of its bins: no silent NaN field.
-        if let Some((x, y)) = fit::mueller_plan::uncovered_position(m, &positions) {
+        if let Some((x, y)) = fit::mueller_field::plan::uncovered_position(m, &positions) {
             bail!(
                 "--expected {}: the {} form has no value at the plan's bin centre ({x:.2}, {y:.2}) arcmin (outside the bins it was built from): give a poly or radial field, or a --bin whose centres lie inside",
                 p.display(),
@@ -321,7 +321,7 @@ fn print_plan(rep: &Report, a: &Args) {
     if let Some(s) = rep.simulated_rms_qu {
         outln!(
             "  simulated ({} noise draws): RMS {:.4} % against the target {} %",
-            fit::mueller_plan::SIMULATION_DRAWS,
+            fit::mueller_field::plan::SIMULATION_DRAWS,
             100.0 * s,
             a.target_percent
         );

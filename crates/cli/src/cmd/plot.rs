@@ -1,7 +1,7 @@
 //! `instpol plot`: the paper's figures for a calibration file.
 
 use anyhow::{Context, Result};
-use fit::pipeline::{refit, CalibrateOptions, CalibrationRun};
+use fit::models::pipeline::{refit, CalibrateOptions, CalibrationRun};
 use std::path::{Path, PathBuf};
 
 /// Draw a calibration's figures as PNG and SVG into a folder: the instrumental polarization map
@@ -70,7 +70,7 @@ pub fn plot_run(dir: &Path, stem: &str, run: &CalibrationRun) -> Result<Vec<Path
 /// A calibration file with the radial refit its profile panel draws (as `instpol plot` does).
 pub fn refit_file(path: &Path) -> Result<CalibrationRun> {
     let cal = fit::Calibration::load(path)?;
-    let fo = fit::pipeline::refit_options(&cal);
+    let fo = fit::models::pipeline::refit_options(&cal);
     let mut run = refit(&cal, &CalibrateOptions { fit: fo, ..Default::default() })
         .with_context(|| format!("radial fit of {} for the profile", path.display()))?;
     run.calibration = cal;
@@ -108,7 +108,7 @@ pub fn run(a: Args) -> Result<()> {
     let raytrace = a.raytrace.as_deref().map(read_raytrace).transpose()?;
     // The stored model is drawn; the profile and polar-angle panels need the fit's products,
     // which a refit with the stored options reproduces (imported maps: free centre).
-    let fo = fit::pipeline::refit_options(&cal);
+    let fo = fit::models::pipeline::refit_options(&cal);
     let mut run = refit(&cal, &CalibrateOptions { fit: fo, ..Default::default() })
         .with_context(|| format!("radial fit of {} for the profile", a.calibration.display()))?;
     // Draw the file's own model and images, not the refit's.

@@ -104,7 +104,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     // The exposures' telescope angles, when the headers have them (what `correct` needs to
     // remove a telescope model from this map).
-    fit::telescope_cal::record_telescope_angles(&mut r.map, &r.exposures, &a.frames, &inst);
+    fit::telescope::cal::record_telescope_angles(&mut r.map, &r.exposures, &a.frames, &inst);
     r.map.write_fits(&a.out)?;
     let m = &r.map;
     let pick = |v: &[f64]| median(&mut m.valid_bins().map(|(k, _, _)| v[k]).collect::<Vec<_>>(), Middle::Mean);

@@ -65,7 +65,7 @@ pub fn run(a: Args) -> Result<()> {
             crate::util::inputs([p.as_path()])?;
             let cal = fit::Calibration::load(p).with_context(|| format!("cannot load calibration {}", p.display()))?;
             let inst = instrument::Instrument::load(&scene.instrument)?;
-            if !fit::setup::matches_calibration(&inst.name, &scene.filter, &cal) {
+            if !fit::correction::setup::matches_calibration(&inst.name, &scene.filter, &cal) {
                 bail!(
                     "{} calibrates {} {} but the scene is {} {}: use a calibration of the scene's instrument and filter",
                     p.display(),

@@ -36,7 +36,7 @@ use std::path::PathBuf;
 /// Example: instpol validate --cal V.fits frames/*.fits --x 1782 --y 56 --threshold 3
 ///
 /// A calibration holding a telescope model (instpol fit-standards: a Nasmyth M3, alone or
-/// beside a field model) is applied through the whole chain (fit::validate_telescope::validate_chain:
+/// beside a field model) is applied through the whole chain (fit::telescope::validate::validate_chain:
 /// the field first, then the telescope as each exposure saw it). The angles come from the
 /// frames' headers, under the keywords of the instrument's [telescope] section (parallactic
 /// angle at start and end, rotator angle): each exposure is undone over its own track, the
@@ -175,8 +175,8 @@ pub fn run(a: Args) -> Result<()> {
     if !(a.threshold.is_finite() && a.threshold > 0.0) {
         bail!("--threshold {} must be a positive number of sigma", a.threshold);
     }
-    let loaded =
-        fit::calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
+    let loaded = fit::files::calibration::load(&a.cal)
+        .with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     // A telescope model (alone or beside a field model) goes through the whole chain.
     if loaded.telescope.is_some() {
         return run_telescope(&a, &instrument, &loaded);
@@ -250,9 +250,9 @@ fn expected_star(a: &Args, band: &str) -> Result<(String, Expected)> {
 
 /// `validate` with a telescope calibration: the track from the headers (or --parang), the
 /// star measured, corrected through the chain and judged
-/// (fit::validate_telescope::validate_telescope).
-fn run_telescope(a: &Args, instrument: &str, loaded: &fit::calibration::CalibrationFile) -> Result<()> {
-    use fit::validate_telescope::ValidateError;
+/// (fit::telescope::validate::validate_telescope).
+fn run_telescope(a: &Args, instrument: &str, loaded: &fit::files::calibration::CalibrationFile) -> Result<()> {
+    use fit::telescope::validate::ValidateError;
     let inst = Instrument::load(instrument)?;
     let given = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
     let px = match a.coords {
@@ -261,7 +261,7 @@ fn run_telescope(a: &Args, instrument: &str, loaded: &fit::calibration::Calibrat
     };
     let opts = validate_options(a)?;
     let expected = |band: &str| expected_star(a, band).map_err(|e| fit::Error::Input(format!("{e:#}")));
-    let v = fit::validate_telescope::validate_telescope(
+    let v = fit::telescope::validate::validate_telescope(
         loaded,
         &inst,
         &a.frames,

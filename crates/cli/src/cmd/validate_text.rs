@@ -1,8 +1,8 @@
 //! `instpol validate`'s text reports, as printed without --json: a field calibration's check
 //! on a star, and a telescope chain's.
 
+use fit::telescope::validate::ChainValidation;
 use fit::validate::ValidationReport;
-use fit::validate_telescope::ChainValidation;
 use std::path::Path;
 
 /// A star validated through a telescope chain (`name` in `band` at `(x_px, y_px)`, measured in

@@ -1,7 +1,7 @@
 //! `instpol wavelength-law`: p(lambda)/p(550 nm) = a + b lambda across filters.
 
 use anyhow::{bail, Context, Result};
-use fit::wavelength::fit_wavelength_law;
+use fit::models::wavelength::fit_wavelength_law;
 use std::path::PathBuf;
 
 /// Fit the wavelength law p(lambda)/p(550 nm) = a + b lambda (lambda in nm; the paper's ray
@@ -42,7 +42,8 @@ pub fn run(a: Args) -> Result<()> {
                 p.display()
             );
         }
-        let model = fit::pipeline::radial_model_of(&cal).with_context(|| format!("radial fit of {}", p.display()))?;
+        let model =
+            fit::models::pipeline::radial_model_of(&cal).with_context(|| format!("radial fit of {}", p.display()))?;
         let reg = cal.region;
         let c = model.centre;
         r_in = r_in.min((c[0] - reg.x_min).min(reg.x_max - c[0]).min(c[1] - reg.y_min).min(reg.y_max - c[1]));
@@ -67,7 +68,7 @@ pub fn run(a: Args) -> Result<()> {
         struct Out<'a> {
             filters: &'a [String],
             #[serde(flatten)]
-            law: &'a fit::wavelength::WavelengthLaw,
+            law: &'a fit::models::wavelength::WavelengthLaw,
         }
         crate::util::print_json(&Out { filters: &names, law: &law })
     } else {

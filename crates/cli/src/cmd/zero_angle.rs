@@ -104,8 +104,8 @@ fn catalogued(
 ) -> Result<(String, f64, f64, Option<(f64, f64)>)> {
     let star = list.star(name)?;
     let b = star.band(filter)?;
-    match fit::efficiency::Truth::of_star(star, filter)? {
-        fit::efficiency::Truth::Polarized { p, sigma_p, chi_deg, sigma_chi_deg } => {
+    match fit::response::Truth::of_star(star, filter)? {
+        fit::response::Truth::Polarized { p, sigma_p, chi_deg, sigma_chi_deg } => {
             Ok((star.name.clone(), chi_deg, sigma_chi_deg, Some((p, sigma_p))))
         }
         _ => bail!(
@@ -241,7 +241,7 @@ pub fn run(a: Args) -> Result<()> {
         if inst.telescope.as_ref().is_some_and(|t| t.focus == instrument::telescope::Focus::Nasmyth) {
             // The M3's polarization and its turn of a polarized star's angle change with the
             // parallactic angle, and a Nasmyth telescope model's fitted offset already holds a
-            // constant turn (fit::telescope_cal): the offset measured here mixes the two.
+            // constant turn (fit::telescope::cal): the offset measured here mixes the two.
             eprintln!(
                 "WARNING: instrument {} sits at a Nasmyth focus: the tertiary mirror adds polarization and turns a polarized star's angle by an amount that changes with the parallactic angle, so the offset measured here holds the mirror's turn at these frames' angles besides the plate's zero angle. Fit the mirror with instpol fit-standards (its offset then holds the constant turn) rather than put this value in the instrument file",
                 inst.name

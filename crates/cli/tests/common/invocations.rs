@@ -242,7 +242,7 @@ pub fn fixture() -> Fixture {
     patch_card(&f.p("cal2.fits"), "IP LAMBDA NM", "440.0");
     // Imported q, u maps (a 96 x 96 px detector of 4" pixels in 8 px bins).
     let field = fit::RadialModel::new(1, vec![1e-4, 4e-4, 0.0], [0.0, 0.0]);
-    fit::synth::write_qu_cubes(&f.p("q.fits"), &f.p("u.fits"), &field, 96, 96, 4.0, 8, 1e-4).unwrap();
+    fit::models::synth::write_qu_cubes(&f.p("q.fits"), &f.p("u.fits"), &field, 96, 96, 4.0, 8, 1e-4).unwrap();
     // Star catalogs of four dithered pointings for calibrate-stars.
     std::fs::create_dir_all(f.p("stars")).unwrap();
     super::star_catalogs(&f.p("stars"), 5, 60, 0, (0.0, 0.0), 5e-4, &OFFSETS);

@@ -10,8 +10,8 @@ pub mod raw;
 #[path = "../../../fit/tests/common/shared_data.rs"]
 pub mod shared_data;
 
-use fit::calfile::{Model, PixelGrid, Provenance, FORMAT_VERSION};
-use fit::synth::{sky_field, FnField};
+use fit::files::calfile::{Model, PixelGrid, Provenance, FORMAT_VERSION};
+use fit::models::synth::{sky_field, FnField};
 use fit::{Calibration, FieldRegion, RadialModel};
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
@@ -331,7 +331,7 @@ pub fn assert_inputs_hashed_as_b3sum<P: AsRef<std::ffi::OsStr>>(inputs: &[serde_
 }
 
 /// Star catalogs of a dense field seen through the paper's V pattern (section `sec:fors1`,
-/// `fit::paper::V_COEFFS_PCT`, angle radial about the detector centre), one CSV per pointing in
+/// `fit::models::paper::V_COEFFS_PCT`, angle radial about the detector centre), one CSV per pointing in
 /// the columns `instpol catalog` writes (`x_arcmin, y_arcmin, q, u, sigma_q, sigma_u,
 /// hwp_chi_offset_deg`): `n` stars at least 3" apart, uniform over the dithered field; the
 /// first `n_pol` polarized in themselves at 1-5 %; every star shares the interstellar
@@ -352,7 +352,7 @@ pub fn star_catalogs(
         let (a, b): (f64, f64) = (rng.random_range(1e-300..1.0), rng.random_range(0.0..1.0));
         (-2.0 * a.ln()).sqrt() * (2.0 * std::f64::consts::PI * b).cos()
     };
-    let c = fit::paper::V_COEFFS_PCT;
+    let c = fit::models::paper::V_COEFFS_PCT;
     let field = |x: f64, y: f64| {
         let r = x.hypot(y);
         let p = (c[0] * r + c[1] * r * r + c[2] * r * r * r) / 100.0;

@@ -990,13 +990,13 @@ fn killed_correct_leaves_no_partial_output() {
     let _ = complete_seen;
 }
 
-/// Regression (was a defect of fit::calfile + fitsio 0.21.10, fixed in 7bb1761): a calibration file whose INPUTS table has a string
+/// Regression (was a defect of fit::files::calfile + fitsio 0.21.10, fixed in 7bb1761): a calibration file whose INPUTS table has a string
 /// column 24 (or 40, 56, ... : 8 mod 16) characters wide crashes every reader with heap
 /// corruption (`free(): invalid pointer`, SIGABRT, exit 134). fitsio's
 /// `read_col::<String>` allocates `width` bytes per row but CFITSIO's `ffgcvs` writes
 /// `width + 1` (the terminating NUL); glibc has no slack in chunks of 8 mod 16 usable bytes.
 /// Any input path of that length (e.g. `/tmp/.tmpXXXXXX/map.fits`, 24 chars) triggers it.
-/// Fix in `Calibration::load` (crates/fit/src/calfile.rs): read the FILE column with buffers
+/// Fix in `Calibration::load` (crates/fit/src/files/calfile.rs): read the FILE column with buffers
 /// of `width + 1` bytes via `fitsio::sys::ffgcvs` (or store the inputs as header cards),
 /// never with `read_col::<String>`.
 #[test]
@@ -1195,7 +1195,7 @@ fn mini_cal(f: &Fixture, name: &str, half: f64) -> String {
     let mut c = common::fors1_radial_calibration("V", common::V_COEFFS);
     c.instrument = "MINI".into();
     c.region = fit::FieldRegion { x_min: -half, x_max: half, y_min: -half, y_max: half };
-    c.pixel = Some(fit::calfile::PixelGrid { scale_arcsec: 4.0, origin_px: [47.5, 47.5] });
+    c.pixel = Some(fit::files::calfile::PixelGrid { scale_arcsec: 4.0, origin_px: [47.5, 47.5] });
     c.save(&f.p(name)).unwrap();
     f.s(name)
 }
@@ -1463,7 +1463,7 @@ fn validate_calibration_of_another_instrument() {
 /// Was a defect (found by fuzz/run.sh, fuzz_calibration_file; fixed in 2e5086f): a calibration whose UMAP
 /// header claims NAXIS2 = 99999999999 aborts `instpol correct` with "memory allocation of
 /// 55199999999448 bytes failed" (SIGABRT, no `error:` line): `fit::Calibration::load` reads the
-/// image with the size its header claims. Fix (crates/fit/src/calfile.rs, `load`): check each
+/// image with the size its header claims. Fix (crates/fit/src/files/calfile.rs, `load`): check each
 /// map's NAXIS1 x NAXIS2 against the grid of the primary header (and the bytes left in the
 /// file) before `read_image`, and refuse naming the extension.
 #[test]
@@ -1485,9 +1485,9 @@ fn calibration_with_absurd_image_size_is_refused() {
     );
 }
 
-/// Was a defect (fixed in 2e5086f; same class, fit::import): a Q cube for `import-map` whose header claims NAXIS2 =
+/// Was a defect (fixed in 2e5086f; same class, fit::files::import): a Q cube for `import-map` whose header claims NAXIS2 =
 /// 99999999999 (the file holds 2 x 20 x 20) aborts with "memory allocation of 31999999999680
-/// bytes failed". Fix (crates/fit/src/import.rs): check the claimed size against the file's
+/// bytes failed". Fix (crates/fit/src/files/import.rs): check the claimed size against the file's
 /// length (NAXIS1 x NAXIS2 x NAXIS3 x |BITPIX|/8 <= bytes after the header) before reading.
 #[test]
 fn import_map_with_absurd_image_size_is_refused() {

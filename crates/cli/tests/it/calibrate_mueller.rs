@@ -238,7 +238,7 @@ fn mueller_calibration_corrects_polarized_stars_where_p_phi_leaves_a_residual() 
     assert_eq!(j["free"], serde_json::json!(["diattenuation", "retardance"]));
     // Noiseless maps with errors of 3e-4: the errors are over-estimated, and it is said.
     assert!(j["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains("over-estimated")), "{j}");
-    let mc = fit::mueller_cal::MuellerCal::load(&cal).unwrap();
+    let mc = fit::mueller_field::cal::MuellerCal::load(&cal).unwrap();
     assert_eq!((mc.instrument.as_str(), mc.filter.as_str(), mc.skies.len(), mc.per_bin.len()), ("fors1", "B", 3, 1024));
 
     // The paper's p, phi calibration of the same B data.
@@ -500,8 +500,8 @@ fn maps_are_turned_by_their_recorded_zero_angle_before_the_fit() {
     let c2 = |j: &serde_json::Value| j["chi2_dof"].as_f64().unwrap();
     assert!((c2(&js) - c2(&jp)).abs() < 1e-6 * c2(&js).max(1e-3), "{} vs {}", c2(&js), c2(&jp));
     let (a, b) = (
-        fit::mueller_cal::MuellerCal::load(&cal_sky).unwrap(),
-        fit::mueller_cal::MuellerCal::load(&cal_plate).unwrap(),
+        fit::mueller_field::cal::MuellerCal::load(&cal_sky).unwrap(),
+        fit::mueller_field::cal::MuellerCal::load(&cal_plate).unwrap(),
     );
     assert_eq!((a.hwp_chi_offset_deg, b.hwp_chi_offset_deg), (0.0, z));
     let (pa, pb) = (a.field.physical_at(2.0, 1.0).unwrap(), b.field.physical_at(2.0, 1.0).unwrap());

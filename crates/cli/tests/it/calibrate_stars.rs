@@ -3,7 +3,7 @@
 //! 1-5 %, sharing an interstellar 0.5 % at 30 deg, each measurement drawn in the test with
 //! 0.05 % errors (`common::star_catalogs`). The radial coefficients come out within errors of
 //! the paper's, the interstellar polarization within its error, every polarized star is named;
-//! the file is the sky-field calibration's (read back by `fit::calibration::load`, IP SOURCE
+//! the file is the sky-field calibration's (read back by `fit::files::calibration::load`, IP SOURCE
 //! "field stars"). The refusals name their input.
 
 use crate::common;
@@ -38,7 +38,7 @@ fn field_interstellar_and_polarized_stars_from_catalogs() {
     assert_eq!(code, 0, "{err}");
     let j: serde_json::Value = serde_json::from_str(&stdout).unwrap();
     let f = |v: &serde_json::Value| v.as_f64().unwrap();
-    for (k, t) in fit::paper::V_COEFFS_PCT.iter().enumerate() {
+    for (k, t) in fit::models::paper::V_COEFFS_PCT.iter().enumerate() {
         let (c, s) = (f(&j["coefficients"][k]), f(&j["sigma_coefficients"][k]));
         assert!(((c - t / 100.0) / s).abs() < 3.0, "c_{}: {c} +- {s} against {t} %", k + 1);
     }
@@ -65,11 +65,17 @@ fn field_interstellar_and_polarized_stars_from_catalogs() {
         assert!(drawn.iter().any(|p| p.ends_with(name)) && plots.join(name).is_file(), "{name}: {drawn:?}");
     }
     // The calibration file is the sky-field calibration's, read by the one loader.
-    let loaded = fit::calibration::load(&out).unwrap();
+    let loaded = fit::files::calibration::load(&out).unwrap();
     let cal = loaded.field.expect("a field calibration");
     assert_eq!(cal.provenance.source, "field stars");
     assert_eq!(cal.model.kind(), "RADIAL");
     assert_eq!(cal.provenance.inputs.len(), 4);
+    let product = loaded.product.expect("the calibration's product");
+    assert_eq!(
+        (product.instrument.as_deref(), product.plate.as_deref()),
+        (Some(cal.instrument.as_str()), Some("half_wave"))
+    );
+    assert_eq!(product.inputs.len(), 4, "the four catalogs' BLAKE3: {:?}", product.inputs);
     // The table form names the rejected stars too.
     let mut t = args(&files, &["--out", dir.path().join("cal2.fits").to_str().unwrap()]);
     t.extend(offsets_args());
@@ -211,7 +217,7 @@ fn end_to_end_through_the_simulator_and_catalog() {
         let o = &j["offsets_arcmin"][k];
         assert!((f(&o[0]) + sh * 0.2 / 60.0).abs() < 2e-3 && f(&o[1]).abs() < 2e-3, "pointing {k}: {o}");
     }
-    for (k, t) in fit::paper::V_COEFFS_PCT.iter().enumerate() {
+    for (k, t) in fit::models::paper::V_COEFFS_PCT.iter().enumerate() {
         let (c, s) = (f(&j["coefficients"][k]), f(&j["sigma_coefficients"][k]));
         assert!(((c - t / 100.0) / s).abs() < 3.0, "c_{}: {c} +- {s} against {t} %", k + 1);
     }

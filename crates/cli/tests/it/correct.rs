@@ -5,7 +5,7 @@
 use crate::common;
 
 use common::V_COEFFS as V;
-use fit::model::FieldModel;
+use fit::models::model::FieldModel;
 use fit::Calibration;
 use fitsio::tables::{ColumnDataType, ColumnDescription};
 use fitsio::FitsFile;
@@ -23,7 +23,7 @@ fn v_calibration() -> Calibration {
 fn observed(cal: &Calibration, x: f64, y: f64, p0: f64, chi0: f64) -> (f64, f64) {
     let a = cal.eval(x, y);
     let (q1, u1) = fit::standards::forward(a.q, a.u, p0 * (2.0 * chi0).cos(), p0 * (2.0 * chi0).sin());
-    fit::correct::rotate_chi(q1, u1, -OFFSET_DEG.to_radians())
+    fit::correction::correct::rotate_chi(q1, u1, -OFFSET_DEG.to_radians())
 }
 
 fn run(args: &[&str]) -> std::process::Output {
@@ -343,7 +343,7 @@ fn fors2_map_calibration_corrects_its_own_instrumental_values() {
                 continue;
             }
             let a = cal.eval(x, y);
-            let (q, u) = fit::correct::rotate_chi(a.q, a.u, -cal.hwp_chi_offset_deg.to_radians());
+            let (q, u) = fit::correction::correct::rotate_chi(a.q, a.u, -cal.hwp_chi_offset_deg.to_radians());
             text.push_str(&format!("{x},{y},{q:e},{u:e},1e-4,1e-4\n"));
             n += 1;
         }

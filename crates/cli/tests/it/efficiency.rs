@@ -138,6 +138,15 @@ fn response_from_simulated_standards_and_applied_by_correct() {
         assert!(e > 0.0 && e < 0.2 * truth.abs().max(0.01), "{name}: error {e} not a measurement's");
     }
     assert_eq!(j["hwp_chi_offset_deg"].as_f64(), Some(ZERO), "the response lives in the catalogs' zero angle");
+    // The file says what it is: the catalogs' instrument file and detector (what `catalog`
+    // recorded, checked against b3sum there), and the catalogs as its inputs.
+    let product = fit::files::calibration::load(&cal).unwrap().product.expect("the response file's product");
+    let def = instrument::Instrument::from_file(&inst).unwrap();
+    assert_eq!(product.detector_px, Some((def.detector.nx, def.detector.ny)));
+    assert_eq!(product.plate.as_deref(), Some("half_wave"));
+    if let Some(sums) = common::b3sum(std::slice::from_ref(&inst)) {
+        assert_eq!(product.instrument_hash.as_deref(), Some(sums[0].as_str()), "the instrument file's BLAKE3");
+    }
 
     // A different star, at a fourth position angle, corrected to the truth.
     let (p, chi, at): (f64, f64, _) = (0.025, 75.0, (160.0, 200.0));
@@ -183,7 +192,7 @@ fn a_map_through_the_response_is_corrected_to_the_sky() {
     assert_eq!(code, 0, "reduce: {err}");
     let (q0, u0, efficiency, offset_deg) = TRUTH;
     let cal = d.join("response.fits");
-    fit::response_cal::ResponseCal {
+    fit::response::cal::ResponseCal {
         instrument: "FORS1".into(),
         filter: "V".into(),
         plate: "half_wave".into(),
@@ -192,6 +201,7 @@ fn a_map_through_the_response_is_corrected_to_the_sky() {
         covariance: [[0.0; 4]; 4],
         n_unpolarized: 0,
         n_polarized: 0,
+        product: None,
     }
     .save(&cal)
     .unwrap();

@@ -107,14 +107,14 @@ fn a_field_is_explained_with_its_own_instrument_and_band() {
         &MuellerFitOptions { kind: Kind::diattenuation_retardance(), deg: 4, scale_arcmin: 3.4, ..Default::default() },
     )
     .unwrap();
-    let cal = fit::mueller_cal::MuellerCal {
+    let cal = fit::mueller_field::cal::MuellerCal {
         instrument: "FORS1".into(),
         filter: "B".into(),
         field: mf,
         coords: None,
         skies: vec![],
         per_bin: vec![],
-        provenance: fit::calfile::Provenance::now("test", vec![]),
+        provenance: fit::files::calfile::Provenance::now("test", vec![]),
         hwp_chi_offset_deg: 0.0,
     };
     let path = dir.path().join("fors1_B.fits");

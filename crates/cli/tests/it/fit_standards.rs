@@ -267,7 +267,7 @@ fn field_cal_of_another_instrument_is_refused() {
 
 /// A telescope model fitted from the real EFOSC2 V standards names its band by wavelength
 /// (`0.550um`: the file has no filter column). A V map of EFOSC2 is corrected with it as it
-/// is (the band is the filter at that wavelength, fit::setup::band_is_filter), with the map
+/// is (the band is the filter at that wavelength, fit::correction::setup::band_is_filter), with the map
 /// turned back by the model at the parallactic angle given; a B map is refused, naming the band.
 #[test]
 fn a_wavelength_band_corrects_the_filter_at_that_wavelength() {

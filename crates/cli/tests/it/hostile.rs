@@ -87,11 +87,11 @@
 //!    symlink. (With the check skipped alone nothing fails: the repeated rows are then used
 //!    once, naming both files, with the numbers of the table once, which the property allows.)
 //! 5. a combination not checked: a catalog's rows corrected without what its table says it is
-//!    (`data: None` in `fit::columns::TableAngles::request`). The `another product` class
+//!    (`data: None` in `fit::correction::columns::TableAngles::request`). The `another product` class
 //!    fails four cases of `correct (catalog)`, e.g. "correct (catalog) [another product]:
 //!    cat.csv of another filter -> exit 0, not refused (exit 2)".
 //! 6. a fit the data do not determine: the conditioning judge's call taken out of the
-//!    polynomial field's solve (crates/fit/src/poly.rs). The `collapsed` class fails:
+//!    polynomial field's solve (crates/fit/src/models/poly.rs). The `collapsed` class fails:
 //!    "calibrate-stars [collapsed]: x_arcmin,y_arcmin onto a line, a plane -> refused without
 //!    naming do not determine" (the failed inverse's words, where it refuses at all).
 //! 7. a plate-angle set reduced silently: `instpol photometry` grouping its frames without the

@@ -13,8 +13,17 @@ fn a_non_finite_option_is_refused_naming_it() {
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
     let field = fit::RadialModel::new(1, vec![1e-4, 4e-4, 0.0], [0.0, 0.0]);
-    fit::synth::write_qu_cubes(&d.path().join("q.fits"), &d.path().join("u.fits"), &field, 96, 96, 4.0, 8, 1e-4)
-        .unwrap();
+    fit::models::synth::write_qu_cubes(
+        &d.path().join("q.fits"),
+        &d.path().join("u.fits"),
+        &field,
+        96,
+        96,
+        4.0,
+        8,
+        1e-4,
+    )
+    .unwrap();
     let import = |flag: &str, value: &str| {
         let a = [
             "import-map",

@@ -82,8 +82,17 @@ fn identity_maps_keep_a_catalog_in_its_sky_frame() {
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
     let zero = fit::RadialModel::new(1, vec![0.0, 0.0, 0.0], [0.0, 0.0]);
-    fit::synth::write_qu_cubes(&d.path().join("q.fits"), &d.path().join("u.fits"), &zero, 400, 400, 0.25, 20, 1e-5)
-        .unwrap();
+    fit::models::synth::write_qu_cubes(
+        &d.path().join("q.fits"),
+        &d.path().join("u.fits"),
+        &zero,
+        400,
+        400,
+        0.25,
+        20,
+        1e-5,
+    )
+    .unwrap();
     let (q, u) = (0.031, -0.012);
     std::fs::write(
         p("cat.csv"),
@@ -133,8 +142,17 @@ fn a_map_of_no_polarization_fits_to_zero() {
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
     let zero = fit::RadialModel::new(1, vec![0.0, 0.0, 0.0], [0.0, 0.0]);
-    fit::synth::write_qu_cubes(&d.path().join("q.fits"), &d.path().join("u.fits"), &zero, 400, 400, 0.25, 20, 1e-5)
-        .unwrap();
+    fit::models::synth::write_qu_cubes(
+        &d.path().join("q.fits"),
+        &d.path().join("u.fits"),
+        &zero,
+        400,
+        400,
+        0.25,
+        20,
+        1e-5,
+    )
+    .unwrap();
     let (c, _, e) = instpol(&[
         "import-map",
         "--q",

@@ -393,7 +393,7 @@ fn fix() -> &'static Fix {
         let h = 350.0 * 0.2138 / 60.0;
         let cc = fit::Calibration {
             instrument: "CALCITE".into(),
-            pixel: Some(fit::calfile::PixelGrid { scale_arcsec: 0.2138, origin_px: [349.5, 349.5] }),
+            pixel: Some(fit::files::calfile::PixelGrid { scale_arcsec: 0.2138, origin_px: [349.5, 349.5] }),
             region: fit::FieldRegion { x_min: -h, x_max: h, y_min: -h, y_max: h },
             ..common::fors1_radial_calibration("V", common::V_COEFFS)
         };
@@ -750,7 +750,7 @@ cases! {
 
 /// The keys only some options print (residual map, RNG baseline) are in the schemas too:
 /// validated on runs that print them. (`correlation`, from --correlated-errors on a regular
-/// map, is described by hand from `fit::correlation::CorrelationInflation`.)
+/// map, is described by hand from `fit::models::correlation::CorrelationInflation`.)
 #[test]
 fn optional_keys_json() {
     let f = fix();

@@ -8,6 +8,7 @@ mod bias;
 mod calibrate;
 mod calibrate_mueller;
 mod calibrate_stars;
+mod calibration_product;
 mod catalog;
 mod catalog_alignment;
 mod chip_grouping;

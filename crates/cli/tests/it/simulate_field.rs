@@ -64,7 +64,7 @@ fn a_plane_field_through_the_frames_and_back() {
     });
     let h = 3.2;
     cal.region = fit::FieldRegion { x_min: -h, x_max: h, y_min: -h, y_max: h };
-    cal.pixel = Some(fit::calfile::PixelGrid { scale_arcsec: 4.0, origin_px: [47.5, 47.5] });
+    cal.pixel = Some(fit::files::calfile::PixelGrid { scale_arcsec: 4.0, origin_px: [47.5, 47.5] });
     let cal_path = d.join("plane.fits");
     cal.save(&cal_path).unwrap();
     let scene = d.join("scene.toml");

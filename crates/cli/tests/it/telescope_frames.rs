@@ -181,9 +181,9 @@ fn frames_of_a_night_give_the_mirror_and_the_field_back() {
     );
     let frames = simulate(&scene, d, "sky");
     // The sky as it reaches the instrument over the set's track, through the FITTED model.
-    let fitted = fit::calibration::load(&tel).unwrap().telescope.unwrap();
+    let fitted = fit::files::calibration::load(&tel).unwrap().telescope.unwrap();
     let it = instrument::Instrument::load(small.to_str().unwrap()).unwrap().telescope.unwrap();
-    let track = fit::telescope_cal::frames_track(&frames, &it).unwrap();
+    let track = fit::telescope::cal::frames_track(&frames, &it).unwrap();
     assert!((track.start.to_degrees() - key(&frames[0], "HIERARCH ESO TEL PARANG START")).abs() < 1e-9);
     let chi = f64::to_radians(-53.8);
     let (qs, us) =
@@ -686,7 +686,7 @@ fn correct_gives_a_catalog_without_angles_the_frames_track() {
     assert_ne!(r1, columns("r4.csv"));
 
     // A catalog whose q, u carry a HWP zero angle is in the sky frame, where the telescope
-    // model lives (fit::telescope_cal module docs): without a field model nothing is turned,
+    // model lives (fit::telescope::cal module docs): without a field model nothing is turned,
     // and nothing needs saying (this warned before the chain had one frame).
     let cz = plus_column("hwp_chi_offset_deg", "2.5", "zero.csv");
     let (code, err) = correct(&cz, "z.csv", &[]);

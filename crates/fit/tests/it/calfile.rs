@@ -4,7 +4,7 @@
 use crate::common;
 
 use common::*;
-use fit::calfile::{Calibration, Model, PixelGrid, Provenance, FORMAT_VERSION};
+use fit::files::calfile::{Calibration, Model, PixelGrid, Provenance, FORMAT_VERSION};
 use fit::{fit_radial, Error, FieldModel, FieldRegion, RadialFitOptions};
 
 fn sample(residual: bool) -> Calibration {
@@ -17,7 +17,7 @@ fn sample(residual: bool) -> Calibration {
         b.used = *u;
     }
     let model = if residual {
-        let r = fit::calfile::residual_from_bins(&fit.model, &bins).unwrap();
+        let r = fit::files::calfile::residual_from_bins(&fit.model, &bins).unwrap();
         Model::RadialResidual { radial: fit.model.clone(), residual: r }
     } else {
         Model::Radial(fit.model.clone())
@@ -55,8 +55,8 @@ fn round_trip_keeps_model_bins_and_provenance() {
         cal.save(&path).unwrap();
         let back = Calibration::load(&path).unwrap();
         // The one loader says what the file is and holds the same field model.
-        let any = fit::calibration::load(&path).unwrap();
-        assert_eq!(any.kind(), fit::calibration::Kind::Field);
+        let any = fit::files::calibration::load(&path).unwrap();
+        assert_eq!(any.kind(), fit::files::calibration::Kind::Field);
         assert!(any.telescope.is_none() && any.mueller.is_none());
         assert_eq!(any.field.as_ref().unwrap().model.radial().unwrap().coeffs, back.model.radial().unwrap().coeffs);
         let (a, b) = (cal.model.radial().unwrap(), back.model.radial().unwrap());

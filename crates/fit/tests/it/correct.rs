@@ -1,12 +1,12 @@
-//! The correction of measured Stokes parameters (`fit::correct`) against the forward model
+//! The correction of measured Stokes parameters (`fit::correction::correct`) against the forward model
 //! (`mueller`: `M_I` of `eq:instpol`, the dual-beam train with a plate zero-angle offset, the one
 //! Stokes solver), against `eq:approx`, against finite differences and against Monte Carlo.
 
 use approx::assert_relative_eq;
-use fit::correct::{
+use fit::correction::correct::{
     exact_jacobian, invert_exact, invert_first_order, CorrectOptions, Corrected, Corrector, Error, Measurement, Method,
 };
-use fit::model::{FieldModel, InstPol};
+use fit::models::model::{FieldModel, InstPol};
 use mueller::Qu;
 use mueller::{optimal_angles, partial_polarizer, stokes_p_chi, DualBeam, Element, Hwp};
 use rand::SeedableRng;
@@ -368,7 +368,7 @@ fn forward_model_with_hwp_offset_round_trip() {
     assert!(angle_diff(r.chi0, chi0) < 1e-11);
     // The other order: invert M_I on the plate-frame data, then rotate.
     let (a, b) = invert_exact(model.0.q, model.0.u, q1, u1).unwrap();
-    let (a, b) = fit::correct::rotate_chi(a, b, off);
+    let (a, b) = fit::correction::correct::rotate_chi(a, b, off);
     let wrong = (a - p0 * (2.0 * chi0).cos()).hypot(b - p0 * (2.0 * chi0).sin());
     assert!(wrong > 1e-3, "the order matters at the p * offset level: {wrong}");
     // Without the offset the angle is off by the offset.

@@ -1,11 +1,11 @@
-//! `fit::correct::correct_map` (moved from `instpol correct`): a Stokes map of sources of known
+//! `fit::correction::correct::correct_map` (moved from `instpol correct`): a Stokes map of sources of known
 //! intrinsic polarization seen through `M_I` (`eq:instpol`, `mueller::partial_polarizer`
 //! applied here, independently of the correction's closed form) is corrected back to that
 //! polarization in every valid bin; invalid bins are left alone; the scatter and photon errors
 //! are propagated as central differences of the correction say.
 
 use field::{FieldModel, RadialPattern};
-use fit::correct::{correct_map, CorrectOptions, Corrector, MapError, Measurement};
+use fit::correction::correct::{correct_map, CorrectOptions, Corrector, MapError, Measurement};
 use skyfield::{BinGeometry, StokesMap};
 
 fn map_through(model: &dyn FieldModel, q0: f64, u0: f64) -> StokesMap {

@@ -3,8 +3,8 @@
 //! the FORS1 V field measured 0.92 +- 0.04 % at -48 +- 1.4 deg where the V map predicts 0.96 %
 //! at -51.9 deg) and against the forward model.
 
-use fit::correct::CorrectOptions;
-use fit::model::{FieldModel, InstPol};
+use fit::correction::correct::CorrectOptions;
+use fit::models::model::{FieldModel, InstPol};
 use fit::standards::{forward, validate_star, Expected, MeasuredStar, Standards};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
@@ -152,7 +152,7 @@ fn hwp_zero_angle_is_applied_before_comparing() {
     let a = v.eval(x, y);
     let (q1, u1) = forward(a.q, a.u, e.q, e.u);
     let off = 2f64.to_radians();
-    let (qm, um) = fit::correct::rotate_chi(q1, u1, -off); // what the plate reports
+    let (qm, um) = fit::correction::correct::rotate_chi(q1, u1, -off); // what the plate reports
     let m = MeasuredStar { q: qm, u: um, var_q: 1e-8, var_u: 1e-8, cov_qu: 0.0 };
     let with =
         validate_star(&v, x, y, &m, &e, CorrectOptions { zero_angle_deg: off.to_degrees(), ..Default::default() }, 3.0)

@@ -7,7 +7,7 @@
 use crate::common;
 
 use common::*;
-use fit::radial::Robust;
+use fit::models::radial::Robust;
 use fit::{fit_radial, Bin, ErrorScaling, RadialFitOptions};
 use nalgebra::{DMatrix, DVector};
 use rand::SeedableRng;

@@ -4,7 +4,7 @@
 use crate::common;
 
 use common::*;
-use fit::polar::polar_angle_test;
+use fit::models::polar::polar_angle_test;
 use fit::{fit_radial, Error, FieldModel, RadialFitOptions};
 
 fn check_recovery(coeffs: &[f64; 3], seed: u64) {
@@ -120,7 +120,7 @@ fn b_band_residual_interpolant_reproduces_injected_asymmetry_at_held_out_points(
     let bins = noisy_bins(&train, truth, SIGMA_BIN, 5);
     let fit = fit_radial(&bins, &RadialFitOptions::default()).unwrap();
     assert!(fit.rms_residual > 5.0 * SIGMA_BIN, "the radial fit alone cannot describe the B field");
-    let residual = fit::calfile::residual_from_bins(&fit.model, &bins).unwrap();
+    let residual = fit::files::calfile::residual_from_bins(&fit.model, &bins).unwrap();
     let mut ss = 0.0;
     let mut n = 0;
     for &(x, y) in &held {

@@ -2,8 +2,8 @@
 //! A&A 634, A70) in ../shared/data/fors2-instpol/, imported and refitted with the radial
 //! model. Skipped with a message when the folder is absent.
 
-use fit::import::{import_map, ImportOptions};
-use fit::pipeline::{refit, CalibrateOptions};
+use fit::files::import::{import_map, ImportOptions};
+use fit::models::pipeline::{refit, CalibrateOptions};
 use fit::{FieldModel, RadialFitOptions};
 use std::path::PathBuf;
 

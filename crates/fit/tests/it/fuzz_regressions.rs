@@ -1,6 +1,6 @@
 //! Regression tests for defects found by the cargo-fuzz targets (fuzz/FINDINGS.md).
 
-use fit::residual::{ResidualMap, ResidualPoint};
+use fit::models::residual::{ResidualMap, ResidualPoint};
 
 /// fuzz/FINDINGS.md, calibration_file 1: `ResidualMap::eval` (and so `FieldModel::eval` and
 /// `contains` of a RADIAL+RESIDUAL calibration) panicked inside spade at a NaN position
@@ -34,7 +34,7 @@ use crate::common;
 /// A radial calibration with two input names, saved to `dir/cal.fits`.
 fn saved_calibration(dir: &std::path::Path) -> std::path::PathBuf {
     use common::*;
-    use fit::calfile::{Calibration, Model, Provenance, FORMAT_VERSION};
+    use fit::files::calfile::{Calibration, Model, Provenance, FORMAT_VERSION};
     let bins = noisy_bins(&fors1_bin_centres(16), radial_field(&V_COEFFS, (0.0, 0.0)), SIGMA_BIN, 3);
     let fit = fit::fit_radial(&bins, &fit::RadialFitOptions::default()).unwrap();
     let cal = Calibration {

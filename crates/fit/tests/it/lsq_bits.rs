@@ -13,7 +13,7 @@ use crate::common;
 
 use common::mueller_fields::{diat_and_lens, fors1_grid, sky_fields, through};
 use common::{fors1_bin_centres, noisy_bins, radial_field, SIGMA_BIN, V_COEFFS};
-use fit::mueller_explain::{explain, Cause, Context, Target};
+use fit::mueller_field::explain::{explain, Cause, Context, Target};
 use fit::mueller_field::{fit_mueller_field, fit_per_bin, Kind, MuellerFitOptions};
 use fit::telescope::{fit_band, fit_joint, read_observations, FitOptions, ModelKind};
 use fit::{fit_radial, RadialFitOptions};
@@ -45,8 +45,12 @@ fn radial_fits_are_unchanged() {
     let bins = noisy_bins(&fors1_bin_centres(64), radial_field(&V_COEFFS, (0.3, -0.2)), SIGMA_BIN, 7);
     let free = RadialFitOptions { free_centre: true, centre: [0.1, 0.1], ..Default::default() };
     check("radial free centre, Huber", &fit_radial(&bins, &free).unwrap(), 0xa6c798f1b488712b);
-    let plain =
-        RadialFitOptions { include_c0: true, robust: fit::radial::Robust::None, degree: 4, ..Default::default() };
+    let plain = RadialFitOptions {
+        include_c0: true,
+        robust: fit::models::radial::Robust::None,
+        degree: 4,
+        ..Default::default()
+    };
     check("radial c0..c4, no robust weights", &fit_radial(&bins, &plain).unwrap(), 0xfade8b4d5543078d);
     // No pattern: the free centre is refused with the fixed-centre fit's coefficients.
     let flat: Vec<fit::Bin> =

@@ -1,11 +1,11 @@
-//! The Mueller field in a calibration file (`fit::mueller_cal`): written and read back exactly,
+//! The Mueller field in a calibration file (`fit::mueller_field::cal`): written and read back exactly,
 //! malformed files refused by name, today's p, phi reader refusing it by name; the exact
 //! correction's propagated errors against a Monte Carlo written here (coefficients drawn from
 //! their covariance, measurements from theirs, each inverted with nalgebra's own 3 x 3
 //! inverse); positions outside the fitted field refused as on the p, phi path.
 
-use fit::correct::{CorrectOptions, Error as CorrError, Measurement};
-use fit::mueller_cal::{MuellerCal, SkyField};
+use fit::correction::correct::{CorrectOptions, Error as CorrError, Measurement};
+use fit::mueller_field::cal::{MuellerCal, SkyField};
 use fit::mueller_field::{fit_mueller_field, fit_per_bin, CalField, Kind, MuellerField, MuellerFitOptions};
 use mueller::Qu;
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
@@ -54,7 +54,7 @@ fn calibration(mf: MuellerField, per_bin: Vec<fit::mueller_field::BinFit>) -> Mu
             SkyField { name: "sky1.fits".into(), p: 0.04, chi_deg: 10.0, sigma: 1e-4 },
         ],
         per_bin,
-        provenance: fit::calfile::Provenance::now("instpol calibrate-mueller", vec!["sky0.fits".into()]),
+        provenance: fit::files::calfile::Provenance::now("instpol calibrate-mueller", vec!["sky0.fits".into()]),
         // FORS2 b_HIGH's (instruments/fors2.toml), so that the keyword is written and read.
         hwp_chi_offset_deg: -1.54,
     }
@@ -72,7 +72,7 @@ fn save_and_load_give_back_the_same_calibration() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("cal.fits");
     cal.save(&path).unwrap();
-    assert_eq!(fit::calibration::load(&path).unwrap().kind(), fit::calibration::Kind::Mueller);
+    assert_eq!(fit::files::calibration::load(&path).unwrap().kind(), fit::files::calibration::Kind::Mueller);
     let back = MuellerCal::load(&path).unwrap();
     assert_eq!(back.field.kind, cal.field.kind);
     assert_eq!(back.field.free, cal.field.free);
@@ -85,7 +85,7 @@ fn save_and_load_give_back_the_same_calibration() {
     assert!((back.field.chi2_dof / cal.field.chi2_dof - 1.0).abs() < 1e-14);
     // The box's edges stay inside after the round trip.
     let b = cal.field.bounds;
-    assert!(fit::model::FieldModel::contains(&back.field, b[1], b[3]));
+    assert!(fit::models::model::FieldModel::contains(&back.field, b[1], b[3]));
     assert_eq!((back.instrument.as_str(), back.filter.as_str()), ("fors1", "B"));
     assert_eq!(back.coords, cal.coords);
     assert_eq!(back.skies, cal.skies);
@@ -111,7 +111,7 @@ fn save_and_load_give_back_the_same_calibration() {
 
     let err = fit::Calibration::load(&path).unwrap_err().to_string();
     assert!(err.contains("Mueller field") && err.contains("cal.fits"), "{err}");
-    let err = fit::calibration::load(&path).unwrap().p_phi_models().unwrap_err().to_string();
+    let err = fit::files::calibration::load(&path).unwrap().p_phi_models().unwrap_err().to_string();
     assert!(err.contains("Mueller field"), "{err}");
 }
 

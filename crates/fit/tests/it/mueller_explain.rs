@@ -5,7 +5,7 @@
 //! follows the closed form derived in `stokes::equivalent`, checked against a frame-level
 //! calculation with the simulator's own plate matrix at each angle.
 
-use fit::mueller_explain::{explain, Cause, Context, Target};
+use fit::mueller_field::explain::{explain, Cause, Context, Target};
 use fit::mueller_field::{fit_mueller_field, CalField, Kind, MuellerFitOptions};
 use mueller::linear::{physical_block, retardance_vector, LinearBlock};
 use rand::SeedableRng;
@@ -34,7 +34,7 @@ fn opts(kind: Kind) -> MuellerFitOptions {
     MuellerFitOptions { kind, deg: 4, scale_arcmin: 3.4, ..Default::default() }
 }
 
-fn pick(e: &fit::mueller_explain::Explanation, c: Cause) -> &fit::mueller_explain::CauseFit {
+fn pick(e: &fit::mueller_field::explain::Explanation, c: Cause) -> &fit::mueller_field::explain::CauseFit {
     e.fits.iter().find(|f| f.cause == c).unwrap()
 }
 

@@ -1,4 +1,4 @@
-//! The smooth forms of the Mueller field built from the per-bin fits (`fit::mueller_smooth`):
+//! The smooth forms of the Mueller field built from the per-bin fits (`fit::mueller_field::smooth`):
 //! a radially symmetric diattenuation + retardance (a partial polarizer with a radial axis and
 //! a stressed-lens retardance with a radial axis, written here in closed form) recovered by the
 //! radial form within its errors; a field that is not radial flagged by the radial form's
@@ -9,10 +9,10 @@
 #[path = "../smooth_fixture/mod.rs"]
 mod smooth_fixture;
 
-use fit::correct::{CorrectOptions, Measurement};
-use fit::mueller_cal::{MuellerCal, SkyField};
+use fit::correction::correct::{CorrectOptions, Measurement};
+use fit::mueller_field::cal::{MuellerCal, SkyField};
+use fit::mueller_field::smooth::{interp_field, radial_field};
 use fit::mueller_field::{fit_mueller_field, fit_per_bin, BinFit, Kind, MuellerField, MuellerFitOptions, Smooth};
-use fit::mueller_smooth::{interp_field, radial_field};
 use mueller::linear::{physical_block, retardance_vector, LinearBlock};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal, Uniform};
@@ -169,7 +169,7 @@ fn calibration(mf: MuellerField, per_bin: Vec<BinFit>) -> MuellerCal {
             .map(|&(p, chi_deg)| SkyField { name: "sky".into(), p, chi_deg, sigma: 0.0 })
             .collect(),
         per_bin,
-        provenance: fit::calfile::Provenance::now("instpol calibrate-mueller", vec!["sky0.fits".into()]),
+        provenance: fit::files::calfile::Provenance::now("instpol calibrate-mueller", vec!["sky0.fits".into()]),
         hwp_chi_offset_deg: 0.0,
     }
 }

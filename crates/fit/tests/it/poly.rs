@@ -1,12 +1,12 @@
-//! The polynomial field (`fit::poly`): a plane fitted on a symmetric grid equals the closed-form
+//! The polynomial field (`fit::models::poly`): a plane fitted on a symmetric grid equals the closed-form
 //! least-squares solution (the design's columns 1, x, y are orthogonal there, so each
 //! coefficient is a plain weighted sum and its variance `sigma^2 / sum t^2`); a degree-2 field
 //! with noise is recovered within its errors; the calibration file keeps it; bad degrees and
 //! positions that cannot constrain the terms are refused by name.
 
 use field::FieldModel;
-use fit::poly::{fit_poly, PolyModel};
-use fit::radial::{ErrorScaling, Robust};
+use fit::models::poly::{fit_poly, PolyModel};
+use fit::models::radial::{ErrorScaling, Robust};
 use fit::{Bin, RadialFitOptions};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
@@ -70,16 +70,16 @@ fn a_curved_field_is_recovered_within_errors_and_kept_by_the_file() {
     assert!((0.7..1.4).contains(&f.chi2_reduced), "{}", f.chi2_reduced);
     // Through the calibration pipeline and a file: the model read back gives the truth within
     // its stated errors at the field's corners.
-    let opts = fit::pipeline::CalibrateOptions { poly_degree: Some(2), ..Default::default() };
-    let meta = fit::pipeline::CalibrationMeta {
+    let opts = fit::models::pipeline::CalibrateOptions { poly_degree: Some(2), ..Default::default() };
+    let meta = fit::models::pipeline::CalibrationMeta {
         instrument: "FORS1".into(),
         filter: "V".into(),
         lambda_nm: 554.0,
         hwp_chi_offset_deg: 0.0,
         pixel: None,
-        provenance: fit::calfile::Provenance::now("test", vec![]),
+        provenance: fit::files::calfile::Provenance::now("test", vec![]),
     };
-    let run = fit::pipeline::calibrate_bins(bins, meta, &opts).unwrap();
+    let run = fit::models::pipeline::calibrate_bins(bins, meta, &opts).unwrap();
     assert_eq!(run.calibration.model.kind(), "POLY");
     let dir = tempfile::tempdir().unwrap();
     let p = dir.path().join("poly.fits");
@@ -118,7 +118,7 @@ fn refusals_name_the_problem() {
     // Too few bins for the terms.
     let e = fit_poly(&bins[..5], 1, &plain()).unwrap_err().to_string();
     assert!(e.contains('5'), "{e}");
-    let mut o = fit::pipeline::CalibrateOptions::default();
+    let mut o = fit::models::pipeline::CalibrateOptions::default();
     assert!(o.set_model_name("poly4").unwrap_err().to_string().contains("N = 1 (a plane) to 3"));
     o.set_model_name("plane").unwrap();
     assert_eq!(o.poly_degree, Some(1));

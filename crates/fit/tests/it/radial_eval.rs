@@ -11,7 +11,7 @@
 //! by; the plain relative difference is printed too (large only where q or u, or their
 //! variance, pass through zero with the angle).
 
-use fit::pipeline::{calibrate_bins, CalibrateOptions, CalibrationMeta};
+use fit::models::pipeline::{calibrate_bins, CalibrateOptions, CalibrationMeta};
 use fit::{FieldModel, InstPol, RadialModel};
 use rand::{RngExt, SeedableRng};
 use rand_xoshiro::Xoshiro256PlusPlus;
@@ -121,8 +121,8 @@ fn positions(m: &RadialModel, rng: &mut Xoshiro256PlusPlus) -> Vec<(f64, f64)> {
 /// coefficient covariance), decentred by (0.12, -0.08)', centre fixed or fitted.
 fn fitted(free_centre: bool) -> RadialModel {
     let truth = RadialModel::new(1, vec![0.012e-2, 0.046e-2, 0.002e-2], [0.12, -0.08]);
-    let centres = fit::synth::bin_centres(2048, 2048, 0.2, 128);
-    let bins: Vec<fit::Bin> = fit::synth::sky_field(&centres, &truth, 0.0, 0.0, 2e-5, 11)
+    let centres = fit::models::synth::bin_centres(2048, 2048, 0.2, 128);
+    let bins: Vec<fit::Bin> = fit::models::synth::sky_field(&centres, &truth, 0.0, 0.0, 2e-5, 11)
         .iter()
         .map(|b| fit::Bin::new(b.x, b.y, b.q1, b.u1, b.sigma, b.sigma))
         .collect();
@@ -132,7 +132,7 @@ fn fitted(free_centre: bool) -> RadialModel {
         lambda_nm: 554.0,
         hwp_chi_offset_deg: 0.0,
         pixel: None,
-        provenance: fit::calfile::Provenance::now("test", vec![]),
+        provenance: fit::files::calfile::Provenance::now("test", vec![]),
     };
     let mut opts = CalibrateOptions::default();
     opts.fit.free_centre = free_centre;

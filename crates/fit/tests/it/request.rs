@@ -1,13 +1,13 @@
-//! `fit::request`: the one rule set of correcting rows with any calibration file. The field
+//! `fit::correction::request`: the one rule set of correcting rows with any calibration file. The field
 //! path is checked against an inversion written here (nalgebra's inverse of `M_I`,
 //! `eq:instpol`, after a rotation of the rows' `(q, u)` by the zero angle they lack); the
 //! refusals and notes against the situations that call for them; the telescope path against the
 //! chain called with the track and rotator angle each row should get.
 
-use fit::calibration::{CalibrationFile, Kind};
-use fit::correct::{CorrectOptions, Corrector, Measurement, Method};
-use fit::model::FieldModel;
-use fit::request::{plan_rows, Note, PerRowAngles, Refusal, Request};
+use fit::correction::correct::{CorrectOptions, Corrector, Measurement, Method};
+use fit::correction::request::{plan_rows, Note, PerRowAngles, Refusal, Request};
+use fit::files::calibration::{CalibrationFile, Kind};
+use fit::models::model::FieldModel;
 use fit::telescope::{fit_band, FitOptions, ModelKind, Observation, TelescopeFit, Track};
 use mueller::mirror::MetalTable;
 use std::path::PathBuf;
@@ -15,7 +15,7 @@ use std::path::PathBuf;
 /// The paper-like V field as a radial calibration of EFOSC2 with an HWP zero angle `z` (deg).
 fn field(z: f64) -> fit::Calibration {
     fit::Calibration {
-        format_version: fit::calfile::FORMAT_VERSION,
+        format_version: fit::files::calfile::FORMAT_VERSION,
         instrument: "EFOSC2".into(),
         filter: "V".into(),
         lambda_nm: 550.0,
@@ -35,7 +35,7 @@ fn field(z: f64) -> fit::Calibration {
         exclusions: vec![],
         robust: "none".into(),
         pixel: None,
-        provenance: fit::calfile::Provenance::now("test", vec![]),
+        provenance: fit::files::calfile::Provenance::now("test", vec![]),
         bins: vec![],
         grid: None,
     }
@@ -73,6 +73,7 @@ fn file(field: Option<fit::Calibration>, telescope: Option<TelescopeFit>) -> Cal
         telescope,
         mueller: None,
         response: None,
+        product: None,
     }
 }
 
@@ -168,7 +169,7 @@ fn telescope_rows_get_their_own_track_and_rotator() {
         let m = Measurement::at_plate(0.4, -0.2, 0.02, 0.01, 1e-4, 1e-4, 0.0);
         let got = plan.correct(i, &m).unwrap();
         let track = Track::at(pa[i].to_radians()).with_rotator(rot[i].to_radians());
-        let want = fit::telescope_cal::correct_chain(Some(&cor), &tel, "V", &m, track, Some(0.0)).unwrap();
+        let want = fit::telescope::cal::correct_chain(Some(&cor), &tel, "V", &m, track, Some(0.0)).unwrap();
         assert_eq!(got, want.with_telescope_in_inst(), "row {i}");
         seen.push(got.q0);
     }
@@ -177,7 +178,7 @@ fn telescope_rows_get_their_own_track_and_rotator() {
     // One rotator angle for every row stands in for the column.
     let plan = plan_rows(&f, &Request { per_row: Some(rows), rotator: Some(0.3), ..request() }, 3).unwrap();
     let m = Measurement::at_plate(0.4, -0.2, 0.02, 0.01, 1e-4, 1e-4, 0.0);
-    let want = fit::telescope_cal::correct_chain(
+    let want = fit::telescope::cal::correct_chain(
         Some(&cor),
         &tel,
         "V",
@@ -220,7 +221,7 @@ fn recorded_exposures() -> (skyfield::RecordedAngles, Vec<mueller::telescope::Ex
     (rec, exposures)
 }
 
-/// The plan's chain as a forward model ([`fit::chain::Chain::instrument`], the
+/// The plan's chain as a forward model ([`fit::correction::chain::Chain::instrument`], the
 /// `field::InstrumentChain` the simulator renders through and that is checked against a Jones
 /// calculation in `crates/sim/tests/it/chain_end_to_end.rs`) and the plan's correction are each
 /// other's inverse, for every kind of calibration file and every way the rows saw the
@@ -425,11 +426,11 @@ fn celestial_rows_are_corrected_in_the_instruments_frame_and_come_back_to_the_sk
 #[test]
 fn a_telescope_model_alone_is_checked_against_the_data_instrument() {
     let f = file(None, Some(telescope(false)));
-    let setup = |inst: &str| fit::setup::Setup { instrument: inst.into(), filter: "V".into(), plate: None };
+    let setup = |inst: &str| fit::correction::setup::Setup::named(inst, "V");
     let other = setup("FORS2");
     let req = Request { data: Some(&other), parang: Some(Track::at(0.2)), ..request() };
     match plan_rows(&f, &req, 1).err() {
-        Some(Refusal::Mismatch { mismatch: fit::setup::Mismatch::Setup { data, calibration }, .. }) => {
+        Some(Refusal::Mismatch { mismatch: fit::correction::setup::Mismatch::Setup { data, calibration }, .. }) => {
             assert_eq!(data.0, "FORS2");
             assert_eq!(calibration.0, "EFOSC2");
         }

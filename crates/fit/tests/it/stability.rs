@@ -1,10 +1,10 @@
-//! Stability of the correction (`fit::correct`, `eq:instpol` inverted) over wide ranges:
+//! Stability of the correction (`fit::correction::correct`, `eq:instpol` inverted) over wide ranges:
 //! source P in [0, 0.99], instrumental p in [0, 0.3] and up to 1 - 1e-6, angles
 //! across the 0/180 deg wrap. The observed (q1, u1) come from the Mueller matrix `M_I(p, phi)`
 //! (mueller crate), independent of the closed form. Deterministic pseudo-random sweeps (no
 //! proptest dependency in this crate).
 
-use fit::correct::{exact_jacobian, invert_exact, invert_exact_matrix, invert_first_order, rotate_chi};
+use fit::correction::correct::{exact_jacobian, invert_exact, invert_exact_matrix, invert_first_order, rotate_chi};
 use std::f64::consts::PI;
 
 struct Rng(u64);

@@ -1,14 +1,14 @@
-//! The instrumental field from field stars (`fit::stars_field`): 300 stars over 4 dithered
+//! The instrumental field from field stars (`fit::models::stars_field`): 300 stars over 4 dithered
 //! pointings of FORS1 seen through the paper's V pattern (section `sec:fors1`,
-//! `p(r) = 0.012 r + 0.046 r^2 + 0.002 r^3` %, angle radial, `fit::paper::V_COEFFS_PCT`), 10 % of
+//! `p(r) = 0.012 r + 0.046 r^2 + 0.002 r^3` %, angle radial, `fit::models::paper::V_COEFFS_PCT`), 10 % of
 //! them polarized in themselves at 1-5 %, each measurement drawn here (seeded) with Gaussian
 //! errors about the truth. The fit gives the radial coefficients within errors of the truth and
 //! names every polarized star; a common interstellar polarization of 0.5 % is recovered within
 //! its error; the false-rejection rate is what the threshold says.
 
-use fit::pipeline::CalibrateOptions;
-use fit::radial::Robust;
-use fit::stars_field::{stars_field, stars_meta, Interstellar, StarRow, StarsOptions};
+use fit::models::pipeline::CalibrateOptions;
+use fit::models::radial::Robust;
+use fit::models::stars_field::{stars_field, stars_meta, Interstellar, StarRow, StarsOptions};
 use fit::RadialFitOptions;
 use rand::{RngExt, SeedableRng};
 use rand_distr::{Distribution, Normal};
@@ -24,7 +24,7 @@ const SIGMA: f64 = 5e-4;
 
 /// The paper's V field at `(x, y)` arcmin, written out: `p(r)` with the angle along the radius.
 fn truth(x: f64, y: f64) -> (f64, f64) {
-    let c = fit::paper::V_COEFFS_PCT;
+    let c = fit::models::paper::V_COEFFS_PCT;
     let r = x.hypot(y);
     let p = (c[0] * r + c[1] * r * r + c[2] * r * r * r) / 100.0;
     let a = y.atan2(x);
@@ -92,7 +92,7 @@ fn simulate_field(seed: u64, n: usize, frac_pol: f64, iq: f64, iu: f64, field: f
     Sim { rows, polarized, sky }
 }
 
-fn meta() -> fit::pipeline::CalibrationMeta {
+fn meta() -> fit::models::pipeline::CalibrationMeta {
     let inst = instrument::Instrument::load("fors1").unwrap();
     stars_meta(&inst, "V", 0.0, vec!["simulated".into()])
 }
@@ -102,15 +102,15 @@ fn options(interstellar: Interstellar, offsets: bool) -> StarsOptions {
 }
 
 /// Pulls of the fitted coefficients against the paper's (fractions).
-fn pulls(run: &fit::stars_field::StarsRun) -> Vec<f64> {
+fn pulls(run: &fit::models::stars_field::StarsRun) -> Vec<f64> {
     let m = &run.run.fit.model;
     let e = m.coefficient_errors();
-    m.coeffs.iter().zip(&e).zip(fit::paper::V_COEFFS_PCT).map(|((c, s), t)| (c - t / 100.0) / s).collect()
+    m.coeffs.iter().zip(&e).zip(fit::models::paper::V_COEFFS_PCT).map(|((c, s), t)| (c - t / 100.0) / s).collect()
 }
 
 /// The sky order of the stars the fit found is its own: map each of its stars to the simulated
 /// one at the same sky position.
-fn found_polarized(sim: &Sim, run: &fit::stars_field::StarsRun) -> (usize, usize) {
+fn found_polarized(sim: &Sim, run: &fit::models::stars_field::StarsRun) -> (usize, usize) {
     let (mut hit, mut false_rej) = (0, 0);
     for s in run.stars.iter().filter(|s| s.rejected) {
         let k = sim

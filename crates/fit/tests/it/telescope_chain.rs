@@ -8,11 +8,11 @@
 
 use crate::common;
 use common::jones::{mul, rot, C, J};
-use fit::calibration::load;
-use fit::correct::{CorrectOptions, Corrector, Measurement};
-use fit::model::{FieldModel, InstPol};
+use fit::correction::correct::{CorrectOptions, Corrector, Measurement};
+use fit::files::calibration::load;
+use fit::models::model::{FieldModel, InstPol};
+use fit::telescope::cal::{correct_chain, save_alone, save_with_field};
 use fit::telescope::{fit_band, read_observations, FitOptions, ModelKind, TelescopeFit, Track};
-use fit::telescope_cal::{correct_chain, save_alone, save_with_field};
 use mueller::mirror::MetalTable;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
@@ -86,10 +86,10 @@ fn real_efosc2_standards_leave_one_out_through_the_calibration_file_are_unpolari
             let rest: Vec<_> = obs.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, o)| o.clone()).collect();
             let f = fit_v(&rest, &table);
             let path = t.path().join(format!("{stem}_{k}.fits"));
-            save_alone(&path, "EFOSC2", &f, "Rakic 1995", &[]).unwrap();
+            save_alone(&path, "EFOSC2", &f, "Rakic 1995", &[], None).unwrap();
             let l = load(&path).unwrap();
             assert!(l.field.is_none());
-            assert_eq!(l.kind(), fit::calibration::Kind::Telescope);
+            assert_eq!(l.kind(), fit::files::calibration::Kind::Telescope);
             let tel = l.telescope.unwrap();
             let o = &obs[k];
             // The measurement errors scaled as the fit scaled its own (the standards scatter
@@ -177,7 +177,7 @@ fn polarized_standard_through_a_night_comes_back_with_its_catalogued_p_and_chi()
     let f = fit_v(&obs, &table);
     let t = tmp();
     let path = t.path().join("tel.fits");
-    save_alone(&path, "EFOSC2", &f, "aluminium", &[]).unwrap();
+    save_alone(&path, "EFOSC2", &f, "aluminium", &[], None).unwrap();
     let tel = load(&path).unwrap().telescope.unwrap();
     let sky = [1.0, p_true * (2.0 * chi_true).cos(), p_true * (2.0 * chi_true).sin(), 0.0];
     let (mut chi2, mut n) = (0.0, 0);
@@ -268,7 +268,8 @@ fn the_chain_inverts_the_field_after_the_telescope_as_jones_matrices_say() {
         assert!((c.q0 - sky[1]).abs() < 1e-9 && (c.u0 - sky[2]).abs() < 1e-9, "{} {} vs {:?}", c.q0, c.u0, sky);
         // The inverse order differs by terms of size p_field x P_M3.
         let [qa, ua, ..] = tel.correct_cov("V", m.qu.q, m.qu.u, [0.0; 3], Track::at(pa), false).unwrap();
-        let (qb, ub) = fit::correct::invert_exact(field.eval(0.0, 0.0).q, field.eval(0.0, 0.0).u, qa, ua).unwrap();
+        let (qb, ub) =
+            fit::correction::correct::invert_exact(field.eval(0.0, 0.0).q, field.eval(0.0, 0.0).u, qa, ua).unwrap();
         assert!((qb - sky[1]).hypot(ub - sky[2]) > 1e-5, "order should matter");
         // Errors: the measurement's 1e-4 passes through nearly unchanged (|M| ~ 1).
         assert!(c.var_q0.sqrt() > 0.9e-4 && c.var_q0.sqrt() < 1.2e-4, "{}", c.var_q0.sqrt());
@@ -337,7 +338,7 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
     let t = tmp();
     // Beside a field model: the paper's V field as a calibration, then the telescope HDU.
     let cal = fit::Calibration {
-        format_version: fit::calfile::FORMAT_VERSION,
+        format_version: fit::files::calfile::FORMAT_VERSION,
         instrument: "EFOSC2".into(),
         filter: "V".into(),
         lambda_nm: 550.0,
@@ -357,14 +358,14 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
         exclusions: vec![],
         robust: "none".into(),
         pixel: None,
-        provenance: fit::calfile::Provenance::now("test", vec![]),
+        provenance: fit::files::calfile::Provenance::now("test", vec![]),
         bins: vec![],
         grid: None,
     };
     let path = t.path().join("both.fits");
     save_with_field(&path, &cal, &f, "aluminium").unwrap();
     let l = load(&path).unwrap();
-    assert_eq!(l.kind(), fit::calibration::Kind::FieldAndTelescope);
+    assert_eq!(l.kind(), fit::files::calibration::Kind::FieldAndTelescope);
     assert_eq!(l.instrument, cal.instrument);
     let field = l.field.expect("the field model is still there");
     assert_eq!(field.model.kind(), cal.model.kind());
@@ -374,7 +375,7 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
     }
     // A telescope-only file is refused by the field reader, by name.
     let alone = t.path().join("alone.fits");
-    save_alone(&alone, "EFOSC2", &f, "aluminium", &["pv_standards.txt".into()]).unwrap();
+    save_alone(&alone, "EFOSC2", &f, "aluminium", &["pv_standards.txt".into()], None).unwrap();
     let e = fit::Calibration::load(&alone).unwrap_err().to_string();
     assert!(e.contains("only a telescope model"), "{e}");
     // Malformed HDUs (written by hand, e.g.) are refused by keyword or row.
@@ -385,7 +386,7 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
     neg.bands[0].1.factor = -0.5;
     for (bad, key) in [(extra, "HIERARCH IP TEL NPAR = 3"), (neg, "row 1 (band V)")] {
         let p = t.path().join("bad.fits");
-        save_alone(&p, "EFOSC2", &bad, "aluminium", &[]).unwrap();
+        save_alone(&p, "EFOSC2", &bad, "aluminium", &[], None).unwrap();
         let e = load(&p).unwrap_err().to_string();
         assert!(e.contains(key) && e.contains("bad.fits"), "{key}: {e}");
     }
@@ -393,7 +394,7 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
     let p = t.path().join("badcov.fits");
     let mut bad = f.clone();
     bad.covariance[0][1] = 1.0;
-    save_alone(&p, "EFOSC2", &bad, "aluminium", &[]).unwrap();
+    save_alone(&p, "EFOSC2", &bad, "aluminium", &[], None).unwrap();
     let e = load(&p).unwrap_err().to_string();
     assert!(e.contains("TEL COV 0 1") && e.contains("correlation"), "{e}");
 }

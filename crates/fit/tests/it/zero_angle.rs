@@ -2,7 +2,7 @@
 //! (`docs/architecture.md`, "The two frames"): a Stokes map made through a plate whose zero is
 //! off by `chi_offset` is in the plate frame (`chi_meas = chi_sky - chi_offset`,
 //! `mueller::Hwp`); the calibration pipeline must turn it into the sky frame before the
-//! sky-field solution (`eq:instpol`), because the correction (`fit::correct`) assumes a
+//! sky-field solution (`eq:instpol`), because the correction (`fit::correction::correct`) assumes a
 //! sky-frame instrumental field.
 //!
 //! The data come from the one forward model (`mueller::DualBeam`: the instrumental field as
@@ -10,8 +10,10 @@
 //! (`eq:F`) and the one Stokes solver on 16 optimal HWP angles. The instrument is FORS1 with
 //! its V-band zero angle set to 3 deg by editing `instruments/fors1.toml`.
 
-use fit::correct::{CorrectOptions, Corrector, Measurement};
-use fit::pipeline::{calibrate_map, map_to_sky_frame, refit, CalibrateOptions, CalibrationMeta, CalibrationRun};
+use fit::correction::correct::{CorrectOptions, Corrector, Measurement};
+use fit::models::pipeline::{
+    calibrate_map, map_to_sky_frame, refit, CalibrateOptions, CalibrationMeta, CalibrationRun,
+};
 use fit::RadialModel;
 use mueller::{optimal_angles, stokes_p_chi, DualBeam, Element, Hwp};
 use rand::SeedableRng;
@@ -116,7 +118,7 @@ fn calibrate(inst: &instrument::Instrument, map: &StokesMap) -> CalibrationRun {
         lambda_nm: f.lambda_eff_nm,
         hwp_chi_offset_deg: f.chi_offset_deg(),
         pixel: None,
-        provenance: fit::calfile::Provenance::now("test", vec![]),
+        provenance: fit::files::calfile::Provenance::now("test", vec![]),
     };
     calibrate_map(map, &sky(), meta, &CalibrateOptions::default()).unwrap()
 }
@@ -238,9 +240,11 @@ fn map_rotation_is_a_rotation_of_q_u_and_their_covariance() {
         assert!((p - p1).abs() < 1e-15, "bin {k}: p {p} -> {p1}");
         let (_, chi) = stokes::polarization(map.q[k], map.u[k]);
         let (_, chi1) = stokes::polarization(r.q[k], r.u[k]);
-        let d = fit::polar::wrap_half_turn_deg((chi1 - chi).to_degrees());
+        let d = fit::models::polar::wrap_half_turn_deg((chi1 - chi).to_degrees());
         assert!((d - OFFSET_DEG).abs() < 1e-9, "bin {k}: chi moved by {d} deg");
-        assert!((fit::polar::wrap_half_turn_deg((r.chi[k] - map.chi[k]).to_degrees()) - OFFSET_DEG).abs() < 1e-9);
+        assert!(
+            (fit::models::polar::wrap_half_turn_deg((r.chi[k] - map.chi[k]).to_degrees()) - OFFSET_DEG).abs() < 1e-9
+        );
         let tr = |m: &StokesMap| m.sigma_q[k].powi(2) + m.sigma_u[k].powi(2);
         let det = |m: &StokesMap| m.sigma_q[k].powi(2) * m.sigma_u[k].powi(2) - m.cov_qu[k].powi(2);
         assert!((tr(&r) - tr(&map)).abs() < 1e-12 * tr(&map));

@@ -3,7 +3,7 @@
 //! two independent FORS2 analyses transcribe it, Gonzalez-Gaitan et al. 2020's `eso_ipol.py`
 //! (`chromatism_correction`) and Jassef's `zero_angle_corrections.dat`. Both subtract the
 //! table's value from the polarization angle measured after Q and U; instpol's
-//! `hwp_chi_offset_deg` is the angle *added* to a measured chi (`fit::pipeline` module docs), so
+//! `hwp_chi_offset_deg` is the angle *added* to a measured chi (`fit::models::pipeline` module docs), so
 //! the file must hold minus the table.
 
 use instrument::Instrument;

@@ -133,7 +133,7 @@ fn one_field_says_retardance_is_unconstrained() {
 /// Polarized stars across the field, corrected with the Mueller field fitted from three
 /// fields, come back within their propagated errors; the paper's p, phi calibration from the
 /// B field alone (exact eq:instpol per bin, skyfield::solve::solve_exact, corrected with
-/// fit::correct::invert_exact_matrix) leaves a residual many times the errors.
+/// fit::correction::correct::invert_exact_matrix) leaves a residual many times the errors.
 #[test]
 fn polarized_stars_are_corrected_within_errors_where_p_phi_is_not() {
     let fields: Vec<CalField> = (0..3).map(|k| field(k, 400)).collect();
@@ -168,7 +168,7 @@ fn polarized_stars_are_corrected_within_errors_where_p_phi_is_not() {
             })
             .unwrap();
         let (pi, phi) = skyfield::solve::solve_exact(o.qu.q, o.qu.u, b.sky_q, b.sky_u).unwrap();
-        let (qp, up) = fit::correct::invert_exact_matrix(pi, phi, qm, um).unwrap();
+        let (qp, up) = fit::correction::correct::invert_exact_matrix(pi, phi, qm, um).unwrap();
         resid_pp.push(qp - q0);
         resid_pp.push(up - u0);
     }

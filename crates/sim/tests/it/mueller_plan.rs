@@ -1,8 +1,8 @@
 //! The plan for a 0.02 % calibration of the Mueller field (diattenuation +
 //! stressed-lens retardance, FORS1 B band), checked by simulating what it prescribes.
 
+use fit::mueller_field::plan::{simulate_plan, PlanSetup};
 use fit::mueller_field::{Kind, MuellerFitOptions};
-use fit::mueller_plan::{simulate_plan, PlanSetup};
 use mueller::linear::{physical_block, retardance_vector, LinearBlock};
 
 fn truth(x: f64, y: f64) -> LinearBlock {
@@ -68,7 +68,7 @@ fn plan_for_0_02_percent_is_met_by_simulating_it() {
     eprintln!("simulated RMS {got:?} -> {rms:.3e} against the target {target:.1e}");
     assert!((rms / target - 1.0).abs() < 0.25, "simulated {rms:.3e} vs target {target:.1e}");
     // Half the exposure misses it, as the plan's scaling says (error ~ 1/sqrt(t) when sky-limited).
-    let half = fit::mueller_plan::PlanRow { exposure_s: 0.25 * best.exposure_s, ..best.clone() };
+    let half = fit::mueller_field::plan::PlanRow { exposure_s: 0.25 * best.exposure_s, ..best.clone() };
     let worse = simulate_plan(&s, &half, &field::LinearElement(truth), 9).unwrap();
     assert!(worse > 1.5 * target, "a quarter of the exposure gives {worse:.3e}");
 }

@@ -272,6 +272,18 @@ pub(crate) fn header_product_pairs(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::
     fits_table_numbers(f, hdu).map(|(_, pairs)| pairs)
 }
 
+/// The product a FITS header records (any HDU of `f`: a map's or a calibration file's primary
+/// header, a table's), read as a table's keywords are
+/// ([`crate::provenance::Product::from_pairs`]); `None` when it records none. The error says
+/// which keyword did not parse.
+pub fn product_of_header(
+    f: &mut fitsio::FitsFile,
+    hdu: &fitsio::hdu::FitsHdu,
+) -> Result<Option<crate::provenance::Product>, String> {
+    let pairs = header_product_pairs(f, hdu)?;
+    crate::provenance::Product::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+}
+
 fn fits_table_numbers(f: &mut fitsio::FitsFile, hdu: &fitsio::hdu::FitsHdu) -> Result<(Numbers, Pairs), String> {
     use std::ffi::CStr;
     let mut st = 0;

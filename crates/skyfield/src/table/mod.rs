@@ -34,6 +34,7 @@ mod units;
 mod votable;
 
 pub(crate) use fits_table::header_product_pairs;
+pub use fits_table::product_of_header;
 pub use fits_table::{append_fits_columns, fits_table_hdu};
 pub use model::{Column, Data, Format, Table, EXTENSIONS, SKY_PA_COLUMN, ZERO_ANGLE_COLUMN};
 

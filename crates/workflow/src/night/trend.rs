@@ -114,7 +114,7 @@ fn plan_product(plan: &Plan, path: &Path) -> skyfield::provenance::Product {
 }
 
 /// The one product of the nights' plans (`(path, product)` each, in order): one instrument
-/// (`fit::setup::same_instrument`), or, with `allow_mismatch`, several with what differed
+/// (`fit::correction::setup::same_instrument`), or, with `allow_mismatch`, several with what differed
 /// recorded (`MISMATCH`); otherwise an error naming two plans and their instruments. A
 /// trend compares one instrument's nights: a step between two instruments is no step.
 pub fn plans_product(
@@ -125,7 +125,7 @@ pub fn plans_product(
     let Some((first_path, first)) = plans.first() else { return Err(Error::Option("no plan given".into())) };
     let mut out = first.clone();
     for (path, p) in &plans[1..] {
-        if !fit::setup::same_instrument(&name(p), &name(first)) {
+        if !fit::correction::setup::same_instrument(&name(p), &name(first)) {
             if !allow_mismatch {
                 return Err(Error::Option(format!(
                     "{} is a plan of instrument {}, {} of {}: a trend follows one instrument's nights (give each instrument's plans on their own, or --allow-mismatch to put them together)",

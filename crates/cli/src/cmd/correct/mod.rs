@@ -1,12 +1,12 @@
-//! `instpol correct`: apply a calibration to a catalog or a Stokes map. `fit::request` plans the
-//! correction (and corrects a map's bins), `fit::columns` reads a catalog's rows and corrects
-//! them, `skyfield` reads and writes the files; this module parses the options and prints the
-//! summary, the notes and the refusals in the command's words.
+//! `instpol correct`: apply a calibration to a catalog or a Stokes map. `fit::correction`'s
+//! `request` plans the correction (and corrects a map's bins), its `columns` reads a catalog's
+//! rows and corrects them, `skyfield` reads and writes the files; this module parses the
+//! options and prints the summary, the notes and the refusals in the command's words.
 
 use anyhow::{anyhow, Context, Result};
-use fit::columns::{TableColumns, Units};
-use fit::correct::Method;
-use fit::request::Request;
+use fit::correction::columns::{self, TableColumns, Units};
+use fit::correction::correct::Method;
+use fit::correction::request::{self, Request};
 use fit::Calibration;
 use serde::Serialize;
 use skyfield::maps::FileKind as Kind;
@@ -92,7 +92,7 @@ pub enum MethodArg {
     FirstOrder,
 }
 
-/// The JSON summary: the paths and options, and what the correction did (`fit::columns::Report`).
+/// The JSON summary: the paths and options, and what the correction did (`columns::Report`).
 #[derive(Serialize)]
 struct Summary {
     input: PathBuf,
@@ -100,23 +100,26 @@ struct Summary {
     method: MethodArg,
     coords: Option<Coords>,
     #[serde(flatten)]
-    report: fit::columns::Report,
+    report: columns::Report,
+    /// What the output is, as it records it (a table written by other software: none).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    product: Option<skyfield::provenance::Product>,
 }
 
 pub fn run(a: Args) -> Result<()> {
     crate::util::inputs([a.cal.as_path(), a.input.as_path()])?;
     crate::util::check_output(&a.out)?;
     let est: Estimator = a.estimator.parse().map_err(|e| anyhow!("--estimator: {e}"))?;
-    fit::request::check_extrapolation_error(a.extrapolation_error)
+    request::check_extrapolation_error(a.extrapolation_error)
         .map_err(|f| anyhow!("--extrapolation-error {f} must be a non-negative number"))?;
-    let loaded =
-        fit::calibration::load(&a.cal).with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
+    let loaded = fit::files::calibration::load(&a.cal)
+        .with_context(|| format!("cannot load calibration {}", a.cal.display()))?;
     let parang = a.parang.as_deref().map(crate::util::parse_parang).transpose()?;
     let rotator = a.rotator.map(crate::util::parse_rotator).transpose()?;
     let method = if a.method == MethodArg::Exact { Method::Exact } else { Method::FirstOrder };
     let base = Request::new(method, a.allow_extrapolation, a.extrapolation_error);
     let request = Request { band: a.band.as_deref(), parang, rotator, allow_mismatch: a.allow_mismatch, ..base };
-    fit::request::check_options(&loaded, &request).map_err(|e| words::rows_error(&a.cal, &a.input, None, e))?;
+    request::check_options(&loaded, &request).map_err(|e| words::rows_error(&a.cal, &a.input, None, e))?;
     let kind = skyfield::maps::file_kind(&a.input)?;
     if kind == Kind::StokesMap {
         return run_map(&a, &loaded, &request);
@@ -125,7 +128,7 @@ pub fn run(a: Args) -> Result<()> {
 }
 
 /// The first line of the summary of a correction by a field calibration.
-fn field_line(a: &Args, s: &fit::columns::Report, cal: &Calibration) -> String {
+fn field_line(a: &Args, s: &columns::Report, cal: &Calibration) -> String {
     format!(
         "corrected {} {} with {} ({} {}, HWP zero angle {:+.2} deg)",
         s.rows,
@@ -137,18 +140,18 @@ fn field_line(a: &Args, s: &fit::columns::Report, cal: &Calibration) -> String {
     )
 }
 
-/// Correct a catalog's rows with any calibration (`fit::request`): read the table and its angles,
+/// Correct a catalog's rows with any calibration (`fit::correction::request`): read the table and its angles,
 /// correct every row in parallel, write the table with the corrected columns and report.
 fn run_table(
     a: &Args,
-    loaded: &fit::calibration::CalibrationFile,
+    loaded: &fit::files::calibration::CalibrationFile,
     base: &Request<'_>,
     kind: Kind,
     est: Estimator,
 ) -> Result<()> {
     let out_format = Some(Format::from_path(&a.out)?);
-    let mut table = fit::columns::read_catalog(&a.input, kind == Kind::FitsTable, a.hdu.as_deref())?;
-    let angles = fit::columns::TableAngles::read(&table, &a.input, loaded)?;
+    let mut table = columns::read_catalog(&a.input, kind == Kind::FitsTable, a.hdu.as_deref())?;
+    let angles = columns::TableAngles::read(&table, &a.input, loaded)?;
     if angles.setup.is_none() {
         eprintln!(
             "warning: {} does not say which instrument and filter it was measured with (no INSTRUME and FILTER among its keywords: not a table of instpol catalog), so it cannot be checked against {}: make sure they are the calibration's",
@@ -157,14 +160,14 @@ fn run_table(
         );
     }
     let n = table.n_rows();
-    let plan = fit::request::plan_rows(loaded, &angles.request(*base), n)
+    let plan = request::plan_rows(loaded, &angles.request(*base), n)
         .map_err(|e| words::rows_error(&a.cal, &a.input, Some(&table), e))?;
     words::print_notes(&a.cal, &a.input, a.parang.as_deref(), &plan.notes);
     let mut cols = TableColumns::read(&table, &a.input)?;
     let given = a.coords.map(|c| if c == Coords::Pixel { Units::Pixel } else { Units::Arcmin });
     let units = cols.place(given, loaded).map_err(|e| match e {
-        fit::columns::PlaceError::Conflict(m) => anyhow!("{}: {m}", a.input.display()),
-        fit::columns::PlaceError::NoPixelGrid => {
+        columns::PlaceError::Conflict(m) => anyhow!("{}: {m}", a.input.display()),
+        columns::PlaceError::NoPixelGrid => {
             let (input, row) = (a.input.display(), table.row_label(0));
             anyhow!(
                 "{input} {row}: the calibration has no pixel grid: give the catalog positions in arcmin (--coords arcmin)"
@@ -173,17 +176,18 @@ fn run_table(
     })?;
     // The root-finding estimators take ~1 us a row: show progress on big catalogs.
     let pb = if n >= 500_000 { indicatif::ProgressBar::new(n as u64) } else { indicatif::ProgressBar::hidden() };
-    let out = fit::columns::correct_columns(&cols.inputs(angles.frame), Some(est), &|k| pb.inc(k as u64), |i, m| {
+    let out = columns::correct_columns(&cols.inputs(angles.frame), Some(est), &|k| pb.inc(k as u64), |i, m| {
         plan.correct(i, m)
     })
     .map_err(|(i, e)| anyhow!("{} {}: {e}", a.input.display(), table.row_label(i)));
     pb.finish_and_clear();
     let out = out?;
     let text = if kind == Kind::TextTable { "catalog (text table)" } else { "catalog (FITS table)" };
-    let report = fit::columns::Report::of_rows(loaded, text, &out, est, &plan);
+    let report = columns::Report::of_rows(loaded, text, &out, est, &plan);
     let rows = out.extrapolated.len();
     crate::util::check_output(&a.out)?;
     table.product = plan.recorded(table.product.take());
+    let product = table.product.as_ref().map(|p| p.with_run_inputs());
     if kind == Kind::FitsTable && out_format == Some(Format::Fits) {
         let keys: Vec<(String, String)> = table
             .product
@@ -216,6 +220,7 @@ fn run_table(
             method: a.method,
             coords: Some(if units == Units::Pixel { Coords::Pixel } else { Coords::Arcmin }),
             report,
+            product,
         },
         loaded,
         telescope,
@@ -223,13 +228,18 @@ fn run_table(
 }
 
 /// How a telescope correction's line says whether the field was undone first.
-fn first(loaded: &fit::calibration::CalibrationFile) -> &'static str {
+fn first(loaded: &fit::files::calibration::CalibrationFile) -> &'static str {
     [", no field model", ", field model first"][loaded.field.is_some() as usize]
 }
 
 /// Print the summary (`telescope`: the model's name and the line that says what was done, when a
 /// telescope model was applied), after the warning for extrapolated positions.
-fn finish(a: &Args, s: Summary, loaded: &fit::calibration::CalibrationFile, telescope: Option<String>) -> Result<()> {
+fn finish(
+    a: &Args,
+    s: Summary,
+    loaded: &fit::files::calibration::CalibrationFile,
+    telescope: Option<String>,
+) -> Result<()> {
     let r = &s.report;
     if let Some(c) = &loaded.response {
         let line = format!(
@@ -248,15 +258,15 @@ fn finish(a: &Args, s: Summary, loaded: &fit::calibration::CalibrationFile, tele
     }
     match (&loaded.mueller, telescope, &loaded.field) {
         (Some(m), _, _) => {
-            warn_extrapolated(r, "fitted Mueller field");
+            words::warn_extrapolated(r, "fitted Mueller field");
             report(a, &s, &mueller_line(a, r, m), " (unpolarized light)")
         }
         (None, Some(line), _) => {
-            warn_extrapolated(r, "calibrated field");
+            words::warn_extrapolated(r, "calibrated field");
             report(a, &s, &line, "")
         }
         (None, None, Some(cal)) => {
-            warn_extrapolated(r, "calibrated field");
+            words::warn_extrapolated(r, "calibrated field");
             report(a, &s, &field_line(a, r, cal), "")
         }
         (None, None, None) => unreachable!("the loader refuses a file without a model"),
@@ -264,7 +274,7 @@ fn finish(a: &Args, s: Summary, loaded: &fit::calibration::CalibrationFile, tele
 }
 
 /// The first line of the summary of a correction by a Mueller field.
-fn mueller_line(a: &Args, s: &fit::columns::Report, cal: &fit::mueller_cal::MuellerCal) -> String {
+fn mueller_line(a: &Args, s: &columns::Report, cal: &fit::mueller_field::cal::MuellerCal) -> String {
     format!(
         "corrected {} {} with the Mueller field of {} ({} {}, {} model: {}), exact inverse",
         s.rows,
@@ -295,29 +305,12 @@ fn report(a: &Args, s: &Summary, line: &str, of: &str) -> Result<()> {
     Ok(())
 }
 
-/// The warning for corrected positions outside the model's field (`field`: which).
-fn warn_extrapolated(s: &fit::columns::Report, field: &str) {
-    if s.extrapolated > 0 {
-        eprintln!(
-            "warning: {} of {} positions lie outside the {field}; corrected by extrapolation with inflated errors (flagged)",
-            s.extrapolated, s.rows
-        );
-    }
-    if s.unmeasured > 0 {
-        eprintln!(
-            "note: {} of {} rows were not measured (q, u empty: flagged stars); they are passed through with empty corrected columns",
-            s.unmeasured, s.rows
-        );
-    }
-}
-
-/// Correct a Stokes map with any calibration (`fit::request::plan_map`): every valid bin at
+/// Correct a Stokes map with any calibration (`request::plan_map`): every valid bin at
 /// its centre, written with the correction's record, and report.
-fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Request<'_>) -> Result<()> {
+fn run_map(a: &Args, loaded: &fit::files::calibration::CalibrationFile, request: &Request<'_>) -> Result<()> {
     let map = skyfield::StokesMap::read_uncorrected(&a.input)
         .with_context(|| format!("cannot read Stokes map {}", a.input.display()))?;
-    let plan =
-        fit::request::plan_map(loaded, request, &map).map_err(|e| words::rows_error(&a.cal, &a.input, None, e))?;
+    let plan = request::plan_map(loaded, request, &map).map_err(|e| words::rows_error(&a.cal, &a.input, None, e))?;
     words::print_notes(&a.cal, &a.input, a.parang.as_deref(), &plan.notes);
     let name = a.cal.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
     let (c, stamp) = plan.correct(&map, &name).map_err(|e| words::map_error(e, &a.input))?;
@@ -326,7 +319,7 @@ fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Reque
     let (n, filter) = ((c.n_bins, c.n_extrapolated, 0), map.filter.clone());
     let used = plan.telescope.as_ref().map(|t| (t.fit.model.name(), t.band.clone(), plan.exposures));
     let zero = (filter, stamp.hwp_chi_offset_deg);
-    let report = fit::columns::Report::new(loaded, "Stokes map", n, a.estimator.clone(), zero, c.p0, c.p_inst, used);
+    let report = columns::Report::new(loaded, "Stokes map", n, a.estimator.clone(), zero, c.p0, c.p_inst, used);
     // A Mueller field's summary names no telescope model.
     let telescope = plan.telescope.as_ref().filter(|_| loaded.mueller.is_none()).map(|t| {
         let (input, cal, track) = (a.input.display(), a.cal.display(), t.track);
@@ -341,6 +334,7 @@ fn run_map(a: &Args, loaded: &fit::calibration::CalibrationFile, request: &Reque
         );
         line
     });
-    let s = Summary { input: a.input.clone(), output: a.out.clone(), method: a.method, coords: None, report };
+    let product = c.map.product.as_ref().map(|p| p.with_run_inputs());
+    let s = Summary { input: a.input.clone(), output: a.out.clone(), method: a.method, coords: None, report, product };
     finish(a, s, loaded, telescope)
 }

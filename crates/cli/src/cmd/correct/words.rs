@@ -1,21 +1,21 @@
 //! `instpol correct`'s words: its refusals and notes as the command says them (the library
-//! decides them: `fit::request::Refusal`, `fit::request::Note`).
+//! decides them: `fit::correction::request::Refusal`, `fit::correction::request::Note`).
 
 use anyhow::anyhow;
-use fit::columns::PARANG_COLUMNS as PARANG;
+use fit::correction::columns::PARANG_COLUMNS as PARANG;
 use skyfield::table::Table;
 use skyfield::table::ZERO_ANGLE_COLUMN as ZERO_ANGLE;
 use std::path::Path;
 
-/// A refusal of `fit::request` in this command's words (`table`: the catalog, for the names of its
+/// A refusal of `fit::correction::request` in this command's words (`table`: the catalog, for the names of its
 /// columns).
 pub(super) fn rows_error(
     cal_path: &Path,
     input: &Path,
     table: Option<&Table>,
-    e: fit::request::Refusal,
+    e: fit::correction::request::Refusal,
 ) -> anyhow::Error {
-    use fit::request::Refusal as E;
+    use fit::correction::request::Refusal as E;
     let (cal, input) = (cal_path.display(), input.display());
     match e {
         E::TelescopeOptions { mueller } => anyhow!(
@@ -45,7 +45,7 @@ pub(super) fn rows_error(
         }
         E::Band(b) => crate::util::band_choice_error(b, cal_path, None),
         E::Exposures(m) => anyhow!("{input}: its exposures: {m}"),
-        E::Mismatch { map, mismatch: fit::setup::Mismatch::Setup { data, calibration } } => anyhow!(
+        E::Mismatch { map, mismatch: fit::correction::setup::Mismatch::Setup { data, calibration } } => anyhow!(
             "{input} is a {} {} {} but {cal} calibrates {} {} (instrument, filter): use the calibration of the {}'s instrument and filter (or --allow-mismatch)",
             data.0,
             data.1,
@@ -62,9 +62,9 @@ pub(super) fn rows_error(
     }
 }
 
-/// Say what `fit::request` noted about a correction that goes ahead.
-pub(super) fn print_notes(cal: &Path, input: &Path, parang: Option<&str>, notes: &[fit::request::Note]) {
-    use fit::request::Note;
+/// Say what `fit::correction::request` noted about a correction that goes ahead.
+pub(super) fn print_notes(cal: &Path, input: &Path, parang: Option<&str>, notes: &[fit::correction::request::Note]) {
+    use fit::correction::request::Note;
     let (cal, input) = (cal.display(), input.display());
     for n in notes {
         match n {
@@ -83,6 +83,9 @@ pub(super) fn print_notes(cal: &Path, input: &Path, parang: Option<&str>, notes:
                 e.to_degrees()
             ),
             Note::ZeroAngleUnknown(w) => eprintln!("warning: {input}: {w}"),
+            Note::InstrumentFileDiffers { data, calibration } => eprintln!(
+                "warning: {input} and {cal} are of one instrument but were made with two different instrument files ({data} and {calibration}, BLAKE3): corrected; if the file's geometry, strips or zero angles changed between them, remake the calibration"
+            ),
             Note::MismatchAllowed(m) => eprintln!(
                 "warning: --allow-mismatch: {input} and {cal} do not fit together ({m}); corrected all the same, and a catalog written records it (MISMATCH)"
             ),
@@ -95,18 +98,34 @@ pub(super) fn print_notes(cal: &Path, input: &Path, parang: Option<&str>, notes:
 }
 
 /// A map correction's failure, naming the map.
-pub(super) fn map_error(e: fit::correct::MapError, input: &Path) -> anyhow::Error {
+pub(super) fn map_error(e: fit::correction::correct::MapError, input: &Path) -> anyhow::Error {
     match e {
-        fit::correct::MapError::NoValidBins => anyhow!("{}: {e}", input.display()),
+        fit::correction::correct::MapError::NoValidBins => anyhow!("{}: {e}", input.display()),
         e => anyhow!("{} {e}", input.display()),
     }
 }
 
 /// What a summary counts: a map's bins or a table's rows.
-pub(super) fn what_counted(s: &fit::columns::Report) -> &'static str {
+pub(super) fn what_counted(s: &fit::correction::columns::Report) -> &'static str {
     if s.kind == "Stokes map" {
         "bins"
     } else {
         "rows"
+    }
+}
+
+/// The warning for corrected positions outside the model's field (`field`: which).
+pub(super) fn warn_extrapolated(s: &fit::correction::columns::Report, field: &str) {
+    if s.extrapolated > 0 {
+        eprintln!(
+            "warning: {} of {} positions lie outside the {field}; corrected by extrapolation with inflated errors (flagged)",
+            s.extrapolated, s.rows
+        );
+    }
+    if s.unmeasured > 0 {
+        eprintln!(
+            "note: {} of {} rows were not measured (q, u empty: flagged stars); they are passed through with empty corrected columns",
+            s.unmeasured, s.rows
+        );
     }
 }
