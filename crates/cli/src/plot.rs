@@ -11,7 +11,7 @@ use fit::RadialModel;
 use plotters::coord::ranged1d::{AsRangedCoord, ValueFormatter};
 use plotters::coord::types::RangedCoordf64;
 use plotters::coord::{CoordTranslate, Shift};
-use plotters::element::DashedPathElement;
+use plotters::element::{DashedPathElement, MultiLineText};
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::path::{Path, PathBuf};
@@ -231,12 +231,27 @@ pub fn power_tick(v: &f64) -> String {
 
 /// The label format of a log axis over `a..b`: [`tick`] when every decade reads plainly
 /// (0.001 to 10000), else [`power_tick`] for all, so that one axis never mixes `10000` and `1e5`.
+/// An axis labelled at 2x and 5x too ([`log_keys`]) beyond that range reads in exponents
+/// (`5e-4`, `1e-3`, `2e-3`), one notation for all its labels.
 pub fn log_labels(a: f64, b: f64) -> &'static dyn Fn(&f64) -> String {
-    if decades(a, b).iter().all(|d| (1e-3..1e5).contains(d)) {
+    let keys = log_keys(a, b);
+    if keys.iter().all(|d| (1e-3..1e5).contains(d)) {
         &tick
-    } else {
+    } else if keys.len() == decades(a, b).len() {
         &power_tick
+    } else {
+        &exponent_tick
     }
+}
+
+/// A value as `m e k` with one or two significant digits: `5e-4`, `1e-3`, `2.5e-3`.
+pub fn exponent_tick(v: &f64) -> String {
+    if *v == 0.0 || !v.is_finite() {
+        return tick(v);
+    }
+    let k = v.abs().log10().floor();
+    let m = format!("{:.1}", v / 10f64.powf(k));
+    format!("{}e{}", m.trim_end_matches('0').trim_end_matches('.'), k as i32)
 }
 
 /// Tick labels without float noise: `0` (never `-0.0`), `0.25`, `150`, `1e5`, `2.5e-4`:
@@ -267,6 +282,7 @@ pub fn tick(v: &f64) -> String {
 
 /// The frame every chart shares: caption, axis titles, tick labels ([`tick`]) and margins that
 /// leave room for the widest labels. Build with [`Axes::new`], adjust, draw with [`chart`].
+#[derive(Clone)]
 pub struct Axes<'s> {
     pub caption: String,
     /// Caption font size (points at the printed width, >= [`MIN_FONT_PT`]).
@@ -281,6 +297,9 @@ pub struct Axes<'s> {
     pub x_fmt: Option<&'s dyn Fn(&f64) -> String>,
     /// y tick labels (default [`tick`]).
     pub y_fmt: Option<&'s dyn Fn(&f64) -> String>,
+    /// Blank pixels below the x axis title (where [`chart_with_legend`] puts a legend that
+    /// no corner has room for).
+    pub below_px: u32,
 }
 
 /// Room right of the plotting area for half of the last x tick label (points): half of a
@@ -298,6 +317,7 @@ impl<'s> Axes<'s> {
             x_labels: None,
             x_fmt: None,
             y_fmt: None,
+            below_px: 0,
         }
     }
 
@@ -321,7 +341,7 @@ impl<'s> Axes<'s> {
 /// A chart with `ax`'s frame on `area`, x and y ranges given (linear `a..b` or
 /// `(a..b).log_scale()`), mesh and axis labels drawn.
 pub fn chart<'a, DB, X, Y>(
-    area: &'a DrawingArea<DB, Shift>,
+    area: &DrawingArea<DB, Shift>,
     ax: &Axes,
     x: X,
     y: Y,
@@ -333,16 +353,54 @@ where
     X::CoordDescType: ValueFormatter<f64>,
     Y::CoordDescType: ValueFormatter<f64>,
 {
+    let mut c = frame(area, ax, x, y)?;
+    mesh(&mut c, ax)?;
+    Ok(c)
+}
+
+/// The height (px) of the band below a chart's x axis: a tick label and the axis title.
+fn x_label_area_px() -> u32 {
+    pt((1.3 * (TICK_PT + AXIS_PT) + 6.0) / PLOTTERS_SIZE_PER_EM)
+}
+
+/// The width of the band left of a chart's y axis: up to seven characters of tick label and
+/// the rotated axis title.
+fn y_label_area_px() -> u32 {
+    pt((0.6 * 6.0 * TICK_PT + 1.3 * AXIS_PT + 6.0) / PLOTTERS_SIZE_PER_EM)
+}
+
+/// A [`chart`]'s coordinates and caption, without its mesh and axes yet.
+fn frame<'a, DB, X, Y>(
+    area: &DrawingArea<DB, Shift>,
+    ax: &Axes,
+    x: X,
+    y: Y,
+) -> Result<Chart<'a, DB, X::CoordDescType, Y::CoordDescType>>
+where
+    DB: DrawingBackend + 'a,
+    X: AsRangedCoord<Value = f64>,
+    Y: AsRangedCoord<Value = f64>,
+{
     // Label areas sized from the fonts: a tick label and the axis title below x; up to seven
     // characters of tick label and the rotated title left of y.
-    let mut c = ChartBuilder::on(area)
+    ChartBuilder::on(area)
         .caption(&ax.caption, (FONT, pt(ax.caption_pt.max(MIN_FONT_PT))))
         .margin(pt(3.0))
         .margin_right(pt(RIGHT_PAD_PT))
-        .x_label_area_size(pt((1.3 * (TICK_PT + AXIS_PT) + 6.0) / PLOTTERS_SIZE_PER_EM))
-        .y_label_area_size(pt((0.6 * 6.0 * TICK_PT + 1.3 * AXIS_PT + 6.0) / PLOTTERS_SIZE_PER_EM))
+        .margin_bottom(pt(3.0) + ax.below_px)
+        .x_label_area_size(x_label_area_px())
+        .y_label_area_size(y_label_area_px())
         .build_cartesian_2d(x, y)
-        .map_err(pe)?;
+        .map_err(pe)
+}
+
+/// The mesh, ticks and axis titles of a [`frame`].
+fn mesh<DB, X, Y>(c: &mut Chart<'_, DB, X, Y>, ax: &Axes) -> Result<()>
+where
+    DB: DrawingBackend,
+    X: plotters::coord::ranged1d::Ranged<ValueType = f64> + ValueFormatter<f64>,
+    Y: plotters::coord::ranged1d::Ranged<ValueType = f64> + ValueFormatter<f64>,
+{
     let xf = ax.x_fmt.unwrap_or(&tick);
     // As many ticks as fit without touching at this font (f = 1.24 em): a y label per 1.6
     // lines of text, an x label per about five characters.
@@ -365,57 +423,268 @@ where
     if let Some(n) = ax.x_labels {
         m.x_labels(n);
     }
-    m.draw().map_err(pe)?;
-    Ok(c)
+    m.draw().map_err(pe)
 }
 
-/// Height in pixels of a legend box of `entries` lines at [`LEGEND_PT`] (plotters' size `f`:
-/// a line is about 1.1 f, the box's padding about f), as [`quiet_corner`] estimates it.
-fn legend_height_px(entries: usize) -> f64 {
-    let f = pt(LEGEND_PT) as f64;
-    f * (1.1 * entries as f64 + 1.0)
+/// What a legend entry draws beside its words (plotters' own keys: a 20 px line, a 22 px
+/// dashed line, a marker at the key's middle, a 20 x 10 px bar).
+#[derive(Clone, Copy)]
+pub enum Mark {
+    Line(ShapeStyle),
+    Dashed(ShapeStyle),
+    Circle(ShapeStyle),
+    Cross(ShapeStyle),
+    Bar(ShapeStyle),
+    /// A solid line above a dashed one: a series with its dashed counterpart.
+    LineAndDashed(ShapeStyle),
 }
 
-/// A [`chart`] whose y range starts at `y.start` and leaves, above `y.end` (the data's top),
-/// room for a legend of `entries` lines in an upper corner: the plotting area is measured on
-/// a first drawing, the area cleared, and the chart drawn again with the top raised so that the
-/// data stay below the legend box.
-pub fn chart_with_legend_room<'a, DB, X>(
-    area: &'a DrawingArea<DB, Shift>,
-    ax: &Axes,
-    x: X,
-    y: std::ops::Range<f64>,
-    entries: usize,
-) -> Result<Chart<'a, DB, X::CoordDescType, RangedCoordf64>>
-where
-    DB: DrawingBackend + 'a,
-    X: AsRangedCoord<Value = f64> + Clone,
-    X::CoordDescType: ValueFormatter<f64>,
-{
-    chart_with_legend_room_by(area, ax, || x.clone(), y, entries)
+/// A legend entry: its words and its mark.
+pub struct Key {
+    pub label: String,
+    pub mark: Mark,
 }
 
-/// [`chart_with_legend_room`] for an x axis built by `x` (one that cannot be cloned, such as
-/// a [`log_axis`]).
-pub fn chart_with_legend_room_by<'a, DB, X>(
-    area: &'a DrawingArea<DB, Shift>,
+/// A [`Key`].
+pub fn key(label: impl Into<String>, mark: Mark) -> Key {
+    Key { label: label.into(), mark }
+}
+
+/// plotters' legend layout, kept: the key column's width and the box's inner margin (px).
+const KEY_AREA_PX: i32 = 30;
+const KEY_MARGIN_PX: i32 = 10;
+
+/// The legend's words as one block of lines at [`LEGEND_PT`], placed at `at`.
+fn legend_text<'k>(
+    keys: &'k [Key],
+    font: &TextStyle<'k>,
+    at: BackendCoord,
+) -> MultiLineText<'k, BackendCoord, &'k str> {
+    let mut t = MultiLineText::new(at, font.clone());
+    for k in keys {
+        t.push_line(k.label.as_str());
+    }
+    t
+}
+
+/// The size (px) of the legend box of `keys`, as plotters lays a legend out.
+fn legend_size(keys: &[Key]) -> (i32, i32) {
+    let font = TextStyle::from((FONT, pt(LEGEND_PT)).into_font());
+    let (w, h) = legend_text(keys, &font, (0, 0)).estimate_dimension().unwrap_or((0, 0));
+    (w + KEY_AREA_PX + 2 * KEY_MARGIN_PX, h + 2 * KEY_MARGIN_PX)
+}
+
+/// The legend of `keys` laid out in rows at most `width` px wide (a band below a chart): each
+/// entry's top left relative to the box, and the box's size.
+fn legend_rows(keys: &[Key], width: i32) -> (Vec<BackendCoord>, (i32, i32)) {
+    let font = (FONT, pt(LEGEND_PT)).into_font();
+    let line = pt(LEGEND_PT) as i32;
+    let (mut at, mut x, mut y, mut widest) = (vec![], KEY_MARGIN_PX, KEY_MARGIN_PX, 0);
+    for k in keys {
+        let w = KEY_AREA_PX + font.box_size(&k.label).map_or(0, |b| b.0 as i32) + 2 * KEY_MARGIN_PX;
+        if x > KEY_MARGIN_PX && x + w > width {
+            (x, y) = (KEY_MARGIN_PX, y + line);
+        }
+        at.push((x, y));
+        x += w;
+        widest = widest.max(x);
+    }
+    (at, (widest, y + line + KEY_MARGIN_PX))
+}
+
+/// A legend box at `(x, y)`, `size` px, on `da`: translucent white with a border.
+fn draw_box<DB: DrawingBackend>(da: &DrawingArea<DB, Shift>, (x, y): BackendCoord, (w, h): (i32, i32)) -> Result<()> {
+    da.draw(&Rectangle::new([(x, y), (x + w, y + h)], WHITE.mix(0.85).filled())).map_err(pe)?;
+    da.draw(&Rectangle::new([(x, y), (x + w, y + h)], BLACK)).map_err(pe)
+}
+
+/// The legend box of `keys` drawn on `da` with its top left at `(x, y)` (px in `da`): a
+/// translucent white box with a border, each entry's mark and words, one entry a line.
+fn draw_legend_box<DB: DrawingBackend>(da: &DrawingArea<DB, Shift>, (x, y): BackendCoord, keys: &[Key]) -> Result<()> {
+    draw_box(da, (x, y), legend_size(keys))?;
+    let font = TextStyle::from((FONT, pt(LEGEND_PT)).into_font());
+    let text = legend_text(keys, &font, (x + KEY_AREA_PX + KEY_MARGIN_PX, y + KEY_MARGIN_PX));
+    da.draw(&text).map_err(pe)?;
+    let lines = text.compute_line_layout().map_err(pe)?;
+    for (((_, y0), (_, y1)), k) in lines.into_iter().zip(keys) {
+        draw_mark(da, (x + KEY_MARGIN_PX, (y0 + y1) / 2), k.mark)?;
+    }
+    Ok(())
+}
+
+/// The legend of `keys` in rows ([`legend_rows`]) on `da`, its top left at `(x, y)`.
+fn draw_legend_rows<DB: DrawingBackend>(da: &DrawingArea<DB, Shift>, (x, y): BackendCoord, keys: &[Key]) -> Result<()> {
+    let (at, size) = legend_rows(keys, da.dim_in_pixel().0 as i32 - x);
+    draw_box(da, (x, y), size)?;
+    let style = TextStyle::from((FONT, pt(LEGEND_PT)).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
+    let half = pt(LEGEND_PT) as i32 / 2;
+    for ((ex, ey), k) in at.into_iter().zip(keys) {
+        let (kx, ky) = (x + ex, y + ey + half);
+        draw_mark(da, (kx, ky), k.mark)?;
+        da.draw(&Text::new(k.label.clone(), (kx + KEY_AREA_PX, ky), style.clone())).map_err(pe)?;
+    }
+    Ok(())
+}
+
+/// A legend entry's mark with its left end at `(kx, ky)`.
+fn draw_mark<DB: DrawingBackend>(da: &DrawingArea<DB, Shift>, (kx, ky): BackendCoord, mark: Mark) -> Result<()> {
+    {
+        let drawn = match mark {
+            Mark::Line(s) => da.draw(&PathElement::new([(kx, ky), (kx + 20, ky)], s)),
+            Mark::Dashed(s) => da.draw(&DashedPathElement::new(vec![(kx, ky), (kx + 22, ky)], 6, 2, s)),
+            Mark::Circle(s) => da.draw(&Circle::new((kx + 10, ky), 4, s)),
+            Mark::Cross(s) => da.draw(&Cross::new((kx + 10, ky), 5, s)),
+            Mark::Bar(s) => da.draw(&Rectangle::new([(kx, ky - 5), (kx + 20, ky + 5)], s)),
+            Mark::LineAndDashed(s) => da
+                .draw(&PathElement::new([(kx, ky - 3), (kx + 22, ky - 3)], s))
+                .and_then(|_| da.draw(&DashedPathElement::new(vec![(kx, ky + 3), (kx + 22, ky + 3)], 6, 2, s))),
+        };
+        drawn.map_err(pe)
+    }
+}
+
+/// Where a chart's legend goes, decided once for every figure ([`chart_with_legend`]): in a
+/// corner of the plotting area where its box covers none of the data (no marker, and no line
+/// between a curve's points), else in a band below the chart, outside the axes. No axis is
+/// stretched past the data to make room for a legend.
+pub enum LegendPlace<DB: DrawingBackend> {
+    /// The box's top left in the plotting area (px).
+    Corner(BackendCoord),
+    /// The band below the chart, and the plotting area's left edge in it (px).
+    Below(DrawingArea<DB, Shift>, i32),
+}
+
+/// A [`chart`] with its legend's place: `marks` are what the legend must not cover, in data
+/// coordinates (each a curve through its points in order, or a single point), and `keys` the
+/// legend's entries. The frame is measured first; when no corner of its plotting area is free
+/// (tried in [`CORNERS`] order, 5 px in from the axes as plotters puts a legend), the area is
+/// cleared and the chart drawn over less height, leaving a band below it for the legend. Draw
+/// the legend with [`draw_legend`] after the series.
+pub fn chart_with_legend<'a, DB, X, Y>(
+    area: &DrawingArea<DB, Shift>,
     ax: &Axes,
     x: impl Fn() -> X,
-    y: std::ops::Range<f64>,
-    entries: usize,
-) -> Result<Chart<'a, DB, X::CoordDescType, RangedCoordf64>>
+    y: impl Fn() -> Y,
+    marks: &[Vec<(f64, f64)>],
+    keys: &[Key],
+) -> Result<(Chart<'a, DB, X::CoordDescType, Y::CoordDescType>, LegendPlace<DB>)>
 where
     DB: DrawingBackend + 'a,
     X: AsRangedCoord<Value = f64>,
+    Y: AsRangedCoord<Value = f64>,
     X::CoordDescType: ValueFormatter<f64>,
+    Y::CoordDescType: ValueFormatter<f64>,
 {
-    let (_, h) = chart(area, ax, x(), y.clone())?.plotting_area().dim_in_pixel();
+    let mut c = frame(area, ax, x(), y())?;
+    if let Some(at) = free_corner(&c, marks, legend_size(keys)) {
+        mesh(&mut c, ax)?;
+        return Ok((c, LegendPlace::Corner(at)));
+    }
     area.fill(&WHITE).map_err(pe)?;
-    let h = h as f64;
-    // The box, a gap of half a line below it, and at least a third of the height for the data.
-    let free = (h - legend_height_px(entries) - 0.5 * pt(LEGEND_PT) as f64).max(h / 3.0);
-    let top = y.start + (y.end - y.start) * h / free;
-    chart(area, ax, x(), y.start..top)
+    // Left-aligned with the plotting area (the chart's margin and y label band in), as wide as
+    // the area leaves.
+    let left = (pt(3.0) + y_label_area_px()) as i32;
+    let band = legend_rows(keys, area.dim_in_pixel().0 as i32 - left).1 .1 as u32 + pt(LEGEND_PT) / 2;
+    let (upper, below) = area.split_vertically(area.dim_in_pixel().1.saturating_sub(band));
+    let c = chart(&upper, ax, x(), y())?;
+    Ok((c, LegendPlace::Below(below, left)))
+}
+
+/// The legend of `keys` at `place` ([`chart_with_legend`]).
+pub fn draw_legend<'a, DB, X, Y>(c: &Chart<'a, DB, X, Y>, place: LegendPlace<DB>, keys: &[Key]) -> Result<()>
+where
+    DB: DrawingBackend + 'a,
+    X: plotters::coord::ranged1d::Ranged<ValueType = f64>,
+    Y: plotters::coord::ranged1d::Ranged<ValueType = f64>,
+{
+    match place {
+        LegendPlace::Corner(at) => draw_legend_box(&c.plotting_area().strip_coord_spec(), at, keys),
+        LegendPlace::Below(band, left) => draw_legend_rows(&band, (left, pt(LEGEND_PT) as i32 / 4), keys),
+    }
+}
+
+/// The first corner of [`CORNERS`] whose legend box of `size` covers none of `marks` (points,
+/// and the segments between a curve's consecutive points): the box's top left in the plotting
+/// area, or None.
+fn free_corner<'a, DB, X, Y>(
+    c: &Chart<'a, DB, X, Y>,
+    marks: &[Vec<(f64, f64)>],
+    size: (i32, i32),
+) -> Option<BackendCoord>
+where
+    DB: DrawingBackend + 'a,
+    X: plotters::coord::ranged1d::Ranged<ValueType = f64>,
+    Y: plotters::coord::ranged1d::Ranged<ValueType = f64>,
+{
+    let (x0, y0) = c.plotting_area().get_base_pixel();
+    let curves: Vec<Vec<(f64, f64)>> = marks
+        .iter()
+        .map(|m| {
+            let finite = m.iter().filter(|p| p.0.is_finite() && p.1.is_finite());
+            finite.map(|p| c.backend_coord(p)).map(|(x, y)| ((x - x0) as f64, (y - y0) as f64)).collect()
+        })
+        .collect();
+    let (w, h) = c.plotting_area().dim_in_pixel();
+    let (bw, bh) = size;
+    CORNERS.into_iter().find_map(|pos| {
+        use SeriesLabelPosition::*;
+        let x = if matches!(pos, UpperLeft | LowerLeft) { 5 } else { w as i32 - bw - 5 };
+        let y = if matches!(pos, UpperLeft | UpperRight) { 5 } else { h as i32 - bh - 5 };
+        // A marker's size beyond its centre: a few pixels of slack around the box.
+        let pad = 0.2 * pt(LEGEND_PT) as f64;
+        let b = (x as f64 - pad, y as f64 - pad, (x + bw) as f64 + pad, (y + bh) as f64 + pad);
+        let covered = curves.iter().any(|k| match k[..] {
+            [p] => inside(p, b),
+            _ => k.windows(2).any(|s| crosses(s[0], s[1], b)),
+        });
+        (!covered).then_some((x, y))
+    })
+}
+
+/// Whether `p` lies in the box `(x0, y0, x1, y1)`.
+fn inside(p: (f64, f64), b: (f64, f64, f64, f64)) -> bool {
+    p.0 >= b.0 && p.0 <= b.2 && p.1 >= b.1 && p.1 <= b.3
+}
+
+/// Whether the segment `p`-`q` meets the box `b`: an end inside it, or the segment crossing
+/// one of its four edges.
+fn crosses(p: (f64, f64), q: (f64, f64), b: (f64, f64, f64, f64)) -> bool {
+    // The signed area of (a, b, c): which side of a-b the point c is on.
+    let side = |a: (f64, f64), b: (f64, f64), c: (f64, f64)| (b.0 - a.0) * (c.1 - a.1) - (b.1 - a.1) * (c.0 - a.0);
+    let cut =
+        |a: (f64, f64), b: (f64, f64)| side(p, q, a) * side(p, q, b) <= 0.0 && side(a, b, p) * side(a, b, q) <= 0.0;
+    let (c00, c10, c11, c01) = ((b.0, b.1), (b.2, b.1), (b.2, b.3), (b.0, b.3));
+    inside(p, b) || inside(q, b) || cut(c00, c10) || cut(c10, c11) || cut(c11, c01) || cut(c01, c00)
+}
+
+/// The data range `lo..hi` with 2 % of its span added on each side (an axis that ends just
+/// past its data; a single value gets 2 % of its size, or 1e-9): what every linear axis of
+/// data spans.
+pub fn data_range(lo: f64, hi: f64) -> std::ops::Range<f64> {
+    let span = hi - lo;
+    let pad = if span > 0.0 { 0.02 * span } else { (0.02 * lo.abs().max(hi.abs())).max(1e-9) };
+    lo - pad..hi + pad
+}
+
+/// [`data_range`] for a log axis over positive data: 2 % of the span in decades added on each
+/// side, at least a factor 1.02.
+pub fn log_data_range(lo: f64, hi: f64) -> (f64, f64) {
+    let k = 10f64.powf(0.02 * (hi / lo).log10()).max(1.02);
+    (lo / k, hi * k)
+}
+
+/// [`data_range`] of the y values of `marks` (0..1 when there are none).
+pub fn marks_y_range(marks: &[Vec<(f64, f64)>]) -> std::ops::Range<f64> {
+    let (lo, hi) = extent(marks.iter().flatten().map(|p| p.1)).unwrap_or((0.0, 1.0));
+    data_range(lo, hi)
+}
+
+/// The smallest and largest finite value of `v` (None when there is none).
+pub fn extent(v: impl IntoIterator<Item = f64>) -> Option<(f64, f64)> {
+    v.into_iter().filter(|x| x.is_finite()).fold(None, |acc, x| match acc {
+        None => Some((x, x)),
+        Some((a, b)) => Some((a.min(x), b.max(x))),
+    })
 }
 
 /// The key points of a log axis over `[a, b]` (a > 0): its [`decades`], with 2x and 5x
@@ -430,8 +699,14 @@ pub fn log_keys(a: f64, b: f64) -> Vec<f64> {
     let k0 = lo.log10().floor() as i32;
     let k1 = hi.log10().ceil() as i32;
     let inside = |v: &f64| *v >= lo * (1.0 - 1e-9) && *v <= hi * (1.0 + 1e-9);
-    let mut keys: Vec<f64> =
-        (k0..=k1).flat_map(|k| [1.0, 2.0, 5.0].map(|m| m * 10f64.powi(k))).filter(inside).collect();
+    let with = |ms: &[f64]| -> Vec<f64> {
+        (k0..=k1).flat_map(|k| ms.iter().map(move |m| m * 10f64.powi(k))).filter(inside).collect()
+    };
+    // 1x and 5x when they give three labels (fewer to crowd a short axis), else 2x too.
+    let mut keys = with(&[1.0, 5.0]);
+    if keys.len() < 3 {
+        keys = with(&[1.0, 2.0, 5.0]);
+    }
     if keys.len() < 3 {
         keys = vec![lo, (lo * hi).sqrt(), hi];
     }
@@ -490,69 +765,6 @@ pub fn legend<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
         .label_font((FONT, pt(LEGEND_PT)))
         .draw()
         .map_err(pe)
-}
-
-/// The corner of the plotting area whose legend box would cover the fewest of `data` (the
-/// points and sampled curves drawn, in data coordinates), for a legend of `entries` lines of
-/// up to `chars` characters; ties go to the earlier corner of `prefer`. The box size follows
-/// the legend's font ([`LEGEND_PT`]; DejaVu Sans averages 0.6 em per character).
-pub fn quiet_corner<'a, DB, X, Y>(
-    c: &Chart<'a, DB, X, Y>,
-    data: &[(f64, f64)],
-    entries: usize,
-    chars: usize,
-    prefer: [SeriesLabelPosition; 4],
-) -> SeriesLabelPosition
-where
-    DB: DrawingBackend + 'a,
-    X: plotters::coord::ranged1d::Ranged<ValueType = f64>,
-    Y: plotters::coord::ranged1d::Ranged<ValueType = f64>,
-{
-    use SeriesLabelPosition::*;
-    let (xr, yr) = c.plotting_area().get_pixel_range();
-    let f = pt(LEGEND_PT) as f64;
-    // f is plotters' size, 1.24 em: a character is about 0.5 f wide, a legend line 1.1 f.
-    let (w, h) = ((f * (0.5 * chars as f64 + 3.5)) as i32, (f * (1.1 * entries as f64 + 1.0)) as i32);
-    let pts: Vec<(i32, i32)> =
-        data.iter().filter(|p| p.0.is_finite() && p.1.is_finite()).map(|p| c.backend_coord(p)).collect();
-    let cover = |pos: &SeriesLabelPosition| {
-        let x0 = match pos {
-            UpperLeft | LowerLeft => xr.start,
-            _ => xr.end - w,
-        };
-        let y0 = match pos {
-            UpperLeft | UpperRight => yr.start,
-            _ => yr.end - h,
-        };
-        pts.iter().filter(|p| p.0 >= x0 && p.0 <= x0 + w && p.1 >= y0 && p.1 <= y0 + h).count()
-    };
-    let mut best = 0;
-    let mut best_n = usize::MAX;
-    for (i, p) in prefer.iter().enumerate() {
-        let n = cover(p);
-        if n < best_n {
-            (best, best_n) = (i, n);
-        }
-    }
-    let [a, b, cc, d] = prefer;
-    [a, b, cc, d].into_iter().nth(best).unwrap_or(UpperRight)
-}
-
-/// [`legend`] in the [`quiet_corner`] of the data.
-pub fn legend_off_data<'a, DB, X, Y>(
-    c: &mut Chart<'a, DB, X, Y>,
-    data: &[(f64, f64)],
-    entries: usize,
-    chars: usize,
-    prefer: [SeriesLabelPosition; 4],
-) -> Result<()>
-where
-    DB: DrawingBackend + 'a,
-    X: plotters::coord::ranged1d::Ranged<ValueType = f64>,
-    Y: plotters::coord::ranged1d::Ranged<ValueType = f64>,
-{
-    let pos = quiet_corner(c, data, entries, chars, prefer);
-    legend(c, pos)
 }
 
 /// A legend as one row of keys across `area` (a strip below a chart), each drawn by its
@@ -807,7 +1019,21 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
     hi += pad;
     let ax =
         Axes::new(format!("{}: radial profile", d.title), "r (arcmin from the model centre)", "p along the radius (%)");
-    let mut c = chart(&upper, &ax, 0.0..rmax, (lo * 100.0)..(hi * 100.0))?;
+    let mut marks: Vec<Vec<(f64, f64)>> = pts.iter().step_by(stride).map(|p| vec![(p.0, p.1 * 100.0)]).collect();
+    if let Some(r) = d.radial {
+        marks.push((0..=200).map(|k| rmax * k as f64 / 200.0).map(|x| (x, 100.0 * r.p_of_r(x))).collect());
+    }
+    if let Some(rt) = &d.raytrace {
+        marks.push(rt.iter().map(|(x, p)| (*x, 100.0 * p)).collect());
+    }
+    let mut keys = vec![key("bins (orange: not used)", Mark::Circle(BLUE_OI.filled()))];
+    if d.radial.is_some() {
+        keys.push(key("fit p(r)", Mark::Line(BLACK.stroke_width(3))));
+    }
+    if d.raytrace.is_some() {
+        keys.push(key("ray trace", Mark::Line(VERMILLION.stroke_width(2))));
+    }
+    let (mut c, place) = chart_with_legend(&upper, &ax, || 0.0..rmax, || (lo * 100.0)..(hi * 100.0), &marks, &keys)?;
     c.draw_series(
         pts.iter()
             .step_by(stride)
@@ -821,31 +1047,17 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
             .filter(|p| p.2)
             .map(|p| Circle::new((p.0, p.1 * 100.0), 2, BLUE_OI.mix(0.8).filled())),
     )
-    .map_err(pe)?
-    .label("bins (orange: not used)")
-    .legend(|(x, y)| Circle::new((x + 10, y), 3, BLUE_OI.filled()));
+    .map_err(pe)?;
     if let Some(r) = d.radial {
         let curve: Vec<(f64, f64)> =
             (0..=200).map(|k| rmax * k as f64 / 200.0).map(|x| (x, 100.0 * r.p_of_r(x))).collect();
-        c.draw_series(LineSeries::new(curve, BLACK.stroke_width(3)))
-            .map_err(pe)?
-            .label("fit p(r)")
-            .legend(line_key(BLACK.stroke_width(3)));
+        c.draw_series(LineSeries::new(curve, BLACK.stroke_width(3))).map_err(pe)?;
     }
     if let Some(rt) = &d.raytrace {
         c.draw_series(LineSeries::new(rt.iter().map(|(x, p)| (*x, 100.0 * p)), VERMILLION.stroke_width(2)))
-            .map_err(pe)?
-            .label("ray trace")
-            .legend(line_key(VERMILLION.stroke_width(2)));
+            .map_err(pe)?;
     }
-    let mut data: Vec<(f64, f64)> = pts.iter().step_by(stride).map(|p| (p.0, p.1 * 100.0)).collect();
-    if let Some(r) = d.radial {
-        data.extend((0..=200).map(|k| rmax * k as f64 / 200.0).map(|x| (x, 100.0 * r.p_of_r(x))));
-    }
-    if let Some(rt) = &d.raytrace {
-        data.extend(rt.iter().map(|(x, p)| (*x, 100.0 * p)));
-    }
-    legend_off_data(&mut c, &data, 3, 20, CORNERS)?;
+    draw_legend(&c, place, &keys)?;
 
     // Lower panel: phi against alpha.
     let Some(t) = d.polar else { return Ok(()) };
@@ -856,8 +1068,17 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
         "polar angle α (deg)",
         "φ (deg)",
     );
-    let mut c = chart(&lower, &ax, -180.0..180.0, plo..phi_hi)?;
     let stride = (t.alpha_deg.len() / 6000).max(1);
+    let tangential: Vec<f64> = [-90.0, 90.0].into_iter().filter(|off| (t.intercept_deg - off).abs() < 30.0).collect();
+    let mut marks: Vec<Vec<(f64, f64)>> =
+        t.alpha_deg.iter().zip(&t.phi_deg).step_by(stride).map(|(a, p)| vec![(*a, *p)]).collect();
+    marks.push(vec![(-180.0, -180.0), (180.0, 180.0)]);
+    marks.extend(tangential.iter().map(|off| vec![(-180.0, off - 180.0), (180.0, off + 180.0)]));
+    let mut keys = vec![key("unit slope", Mark::Line(BLACK.stroke_width(2)))];
+    if !tangential.is_empty() {
+        keys.push(key("tangential (±90°)", Mark::Line(BLACK.mix(0.5).into())));
+    }
+    let (mut c, place) = chart_with_legend(&lower, &ax, || -180.0..180.0, || plo..phi_hi, &marks, &keys)?;
     c.draw_series(
         t.alpha_deg
             .iter()
@@ -866,27 +1087,12 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
             .map(|(a, p)| Circle::new((*a, *p), 2, BLUE_OI.mix(0.8).filled())),
     )
     .map_err(pe)?;
-    c.draw_series(LineSeries::new([(-180.0, -180.0), (180.0, 180.0)], BLACK.stroke_width(2)))
-        .map_err(pe)?
-        .label("unit slope")
-        .legend(line_key(BLACK.stroke_width(2)));
-    for off in [-90.0, 90.0] {
-        if (t.intercept_deg - off).abs() < 30.0 {
-            c.draw_series(LineSeries::new(
-                [(-180.0, off - 180.0), (180.0, off + 180.0)],
-                BLACK.mix(0.5).stroke_width(1),
-            ))
-            .map_err(pe)?
-            .label("tangential (±90°)")
-            .legend(line_key(BLACK.mix(0.5)));
-        }
+    c.draw_series(LineSeries::new([(-180.0, -180.0), (180.0, 180.0)], BLACK.stroke_width(2))).map_err(pe)?;
+    for off in tangential {
+        c.draw_series(LineSeries::new([(-180.0, off - 180.0), (180.0, off + 180.0)], BLACK.mix(0.5).stroke_width(1)))
+            .map_err(pe)?;
     }
-    let mut data: Vec<(f64, f64)> = t.alpha_deg.iter().zip(&t.phi_deg).step_by(stride).map(|(a, p)| (*a, *p)).collect();
-    data.extend((-180..=180).step_by(5).flat_map(|a| {
-        let a = a as f64;
-        [(a, a), (a, a - 90.0), (a, a + 90.0)]
-    }));
-    legend_off_data(&mut c, &data, 2, 17, CORNERS)
+    draw_legend(&c, place, &keys)
 }
 
 /// fig:residB: the residual field (data minus radial model, as Q and U), coloured by its size,
@@ -1084,20 +1290,58 @@ mod tests {
 mod publication_tests {
     use super::*;
 
-    /// The data's top lies below a legend box of three lines in the upper corners, with half a
-    /// line to spare, on a panel as short as the stokes plot's lower one (585 px).
+    /// A legend goes in the first corner whose box no line crosses, and in a band below the
+    /// chart, outside the axes, when every corner is crossed; the axes keep their ranges.
     #[test]
-    fn legend_room_keeps_the_data_below_the_legend_box() {
+    fn a_legend_takes_a_free_corner_or_goes_below_the_chart() {
         font();
         set_figure_width(1000);
         let mut buf = vec![0u8; 1000 * 585 * 3];
         let root = BitMapBackend::with_buffer(&mut buf, (1000, 585)).into_drawing_area();
         let ax = Axes::new("caption", "x", "y");
-        let c = chart_with_legend_room(&root, &ax, 0.0..360.0, -0.1..0.9, 3).unwrap();
-        let (_, rows) = c.plotting_area().get_pixel_range();
-        let data_top = c.backend_coord(&(0.0, 0.9)).1;
-        let box_bottom = rows.start as f64 + legend_height_px(3);
-        assert!(data_top as f64 >= box_bottom + 0.5 * pt(LEGEND_PT) as f64 - 1.0, "{data_top} vs {box_bottom}");
+        let (x, y) = (|| 0.0..1.0, || 0.0..1.0);
+        let keys = [key("one", Mark::Line(BLACK.into())), key("two", Mark::Circle(BLACK.into()))];
+        // A diagonal from the lower left to the upper right crosses those two corners' boxes,
+        // though neither of its two points lies in them: the upper left is taken.
+        let diagonal = vec![vec![(0.0, 0.0), (1.0, 1.0)]];
+        let (c, place) = chart_with_legend(&root, &ax, x, y, &diagonal, &keys).unwrap();
+        assert!(matches!(place, LegendPlace::Corner((5, 5))));
+        let full_height = c.plotting_area().dim_in_pixel().1;
+        // Both diagonals: no corner is free.
+        let crossed = vec![vec![(0.0, 0.0), (1.0, 1.0)], vec![(0.0, 1.0), (1.0, 0.0)]];
+        let (c, place) = chart_with_legend(&root, &ax, x, y, &crossed, &keys).unwrap();
+        let LegendPlace::Below(band, _) = place else { panic!("no band below") };
+        // The chart gave up the band's height, the band lies below the chart's x axis title,
+        // and the ranges are the caller's.
+        let h = c.plotting_area().dim_in_pixel().1;
+        assert_eq!(full_height - h, band.dim_in_pixel().1);
+        // One row: both entries fit across.
+        assert_eq!(band.dim_in_pixel().1, (pt(LEGEND_PT) as i32 + 2 * KEY_MARGIN_PX) as u32 + pt(LEGEND_PT) / 2);
+        assert!(band.get_base_pixel().1 >= c.plotting_area().get_base_pixel().1 + h as i32);
+        assert_eq!(c.x_range(), 0.0..1.0);
+    }
+
+    /// The segment test against its definition: ends inside, a crossing with no end inside,
+    /// and segments that pass by, along and beyond the box.
+    #[test]
+    fn a_segment_meets_a_box_where_it_crosses_it() {
+        let b = (0.0, 0.0, 10.0, 10.0);
+        assert!(crosses((5.0, 5.0), (20.0, 20.0), b));
+        assert!(crosses((-5.0, 5.0), (15.0, 6.0), b));
+        assert!(!crosses((-5.0, 12.0), (15.0, 11.0), b));
+        assert!(!crosses((11.0, -5.0), (30.0, 20.0), b));
+        assert!(crosses((-5.0, -5.0), (15.0, 15.0), b));
+    }
+
+    /// Axes end 2 % past their data: of the span, or of the value when there is one.
+    #[test]
+    fn data_ranges_end_just_past_the_data() {
+        let r = data_range(1.0, 3.0);
+        assert!((r.start - 0.96).abs() < 1e-12 && (r.end - 3.04).abs() < 1e-12);
+        let r = data_range(5.0, 5.0);
+        assert!((r.start - 4.9).abs() < 1e-12 && (r.end - 5.1).abs() < 1e-12);
+        let (a, b) = log_data_range(1e-3, 1e2);
+        assert!((a.log10() + 3.1).abs() < 1e-12 && (b.log10() - 2.1).abs() < 1e-12);
     }
 
     /// Equal aspect: the same arcmin per pixel on both axes, the shorter range grown about its

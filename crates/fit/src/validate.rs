@@ -34,6 +34,10 @@ pub struct ValidationReport {
     /// than the calibration's); not part of the JSON.
     #[serde(skip)]
     pub warnings: Vec<String>,
+    /// What the star was measured in: the frames' instrument file, filter, plate and detector,
+    /// the run's inputs (`None`: a measurement given as numbers, not frames).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub product: Option<skyfield::provenance::Product>,
 }
 
 /// How to measure and judge the star.
@@ -126,6 +130,7 @@ pub fn validate_frames(
     r.y_px = y_px;
     r.n_frames = frames.len();
     r.warnings = warnings;
+    r.product = Some(skyfield::provenance::Product::of_instrument(inst, &filter, None).with_run_inputs());
     Ok(r)
 }
 
@@ -200,5 +205,6 @@ pub fn validate_measured(
         hwp_chi_offset_deg: cal.hwp_chi_offset_deg,
         n_frames: 0,
         warnings: vec![],
+        product: None,
     })
 }

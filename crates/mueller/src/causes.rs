@@ -25,7 +25,6 @@
 
 use crate::linear::LinearBlock;
 use crate::{retarder, Mueller};
-use nalgebra::Matrix3;
 
 /// Retardance (rad) and fast-axis angle (rad) of the stressed-lens pattern at `(x, y)`
 /// arcmin: `delta = delta_edge (r / radius)^2` with `r` measured from `centre`, axis at the
@@ -123,7 +122,9 @@ pub fn tilted_hwp(plate: &UniaxialPlate, theta: f64, inc: f64, alpha: f64) -> Mu
     let e1 = p * ca - s * sa;
     let e2 = p * sa + s * ca;
     let v = Matrix2::new(eo.dot(&e1), ee.dot(&e1), eo.dot(&e2), ee.dot(&e2));
-    let vinv = v.try_inverse().unwrap_or_else(Matrix2::identity);
+    // V is singular only where the two waves' fields coincide, which no plate of real indices
+    // reaches (non-finite inputs do): the matrix is then NaN, never a silent identity.
+    let vinv = v.try_inverse().unwrap_or_else(|| Matrix2::from_element(f64::NAN));
     let k = 2.0 * std::f64::consts::PI * plate.thickness_waves;
     // Phases relative to the ordinary wave (a common phase does not change the Mueller matrix).
     let ph = C64::from_polar(1.0, k * (kez - koz));
@@ -146,12 +147,17 @@ pub fn wedged_hwp(theta: f64, x: f64, y: f64, eps0: f64, gx: f64, gy: f64) -> Mu
 /// by the polar decomposition of a 2 x 2 matrix (rotation angle `atan2(b21 - b12, b11 +
 /// b22)`; the symmetric factor's largest eigenvalue is `1 - depol`, its anisotropy the
 /// retardance vector). A block of another form (e.g. an additive offset in `m10, m20` after a
-/// demodulation) gets the physical parameters of its row 0 and Q, U part.
+/// demodulation) gets the physical parameters of its row 0 and Q, U part. A perfect
+/// polarizer (diattenuation 1: `M_I` has no inverse) leaves the rest undetermined: NaN, so that
+/// a fit through it fails rather than read the block as having no retardance.
 pub fn physical_of_block(block: &LinearBlock) -> [f64; 6] {
     let l = block.normalized().0;
     let (qd, ud) = (l[(0, 1)], l[(0, 2)]);
     let mi = crate::linear::physical_block(qd, ud, [0.0, 0.0], 0.0, 0.0).normalized().0;
-    let b = l * mi.try_inverse().unwrap_or_else(Matrix3::identity);
+    let Some(mi_inv) = mi.try_inverse() else {
+        return [qd, ud, f64::NAN, f64::NAN, f64::NAN, f64::NAN];
+    };
+    let b = l * mi_inv;
     let (b11, b12, b21, b22) = (b[(1, 1)], b[(1, 2)], b[(2, 1)], b[(2, 2)]);
     let ang = (b21 - b12).atan2(b11 + b22);
     let (s, c) = ang.sin_cos();

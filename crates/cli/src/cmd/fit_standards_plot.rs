@@ -88,8 +88,10 @@ struct Figure {
     title: String,
     curve: Vec<(f64, f64, f64)>,
     pts: Vec<PlotPoint>,
-    ymax: f64,
-    rmax: f64,
+    /// The q, u panel's and the residual panel's y ranges: the data's, error bars included
+    /// ([`crate::plot::data_range`]).
+    y: std::ops::Range<f64>,
+    r: std::ops::Range<f64>,
     /// The parallactic angles shown: the data's, 5 % of their span beyond each end.
     xr: (f64, f64),
 }
@@ -105,22 +107,25 @@ fn figure(f: &TelescopeFit, bi: usize) -> Result<Figure> {
         .filter(|c| c.0 >= xr.0 - 1.0 && c.0 <= xr.1 + 1.0)
         .map(|&(pa, q, u)| (pa.clamp(xr.0, xr.1), 100.0 * q, 100.0 * u))
         .collect();
-    let ymax = curve
-        .iter()
-        .map(|c| c.1.abs().max(c.2.abs()))
-        .chain(pts.iter().map(|p| 100.0 * (p.q.abs().max(p.u.abs()) + 2.0 * p.sigma_q.max(p.sigma_u))))
-        .fold(0.05, f64::max)
-        * 1.05;
-    let rmax =
-        pts.iter().map(|p| 100.0 * (p.resid_q.abs() + p.sigma_q).max(p.resid_u.abs() + p.sigma_u)).fold(0.05, f64::max)
-            * 1.2;
+    let ys = curve.iter().flat_map(|c| [c.1, c.2]).chain(pts.iter().flat_map(|p| {
+        [100.0 * (p.q - p.sigma_q), 100.0 * (p.q + p.sigma_q), 100.0 * (p.u - p.sigma_u), 100.0 * (p.u + p.sigma_u)]
+    }));
+    let (ylo, yhi) = crate::plot::extent(ys).unwrap_or((-0.05, 0.05));
+    // The residuals with their error bars, and the zero line drawn through them.
+    let rs = pts.iter().flat_map(|p| {
+        [100.0 * (p.resid_q - p.sigma_q), 100.0 * (p.resid_q + p.sigma_q), 100.0 * (p.resid_u - p.sigma_u)]
+            .into_iter()
+            .chain([100.0 * (p.resid_u + p.sigma_u), 0.0])
+    });
+    let (rlo, rhi) = crate::plot::extent(rs).unwrap_or((-0.05, 0.05));
+    let (y, r) = (crate::plot::data_range(ylo, yhi), crate::plot::data_range(rlo, rhi));
     // A band named by its wavelength ("0.550um", the data name no filter) is written in µm.
     let band = match band.strip_suffix("um").and_then(|w| w.parse::<f64>().ok()) {
         Some(w) => format!("{w:.3} µm"),
         None => band.clone(),
     };
     let title = format!("{band}, {} model: χ²/dof = {:.2}", f.model.name(), f.chi2_reduced);
-    Ok(Figure { title, curve, pts, ymax, rmax, xr })
+    Ok(Figure { title, curve, pts, y, r, xr })
 }
 
 /// The upper panel's legend, a row below it: q and u (data and model), and the polarized
@@ -145,15 +150,14 @@ fn draw_keys<DB: DrawingBackend>(area: &DrawingArea<DB, plotters::coord::Shift>,
 }
 
 fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, d: &Figure) -> Result<()> {
-    let Figure { title, curve, pts, ymax, rmax, xr } = d;
+    let Figure { title, curve, pts, y, r: rr, xr } = d;
     let xr = xr.0..xr.1;
-    let (ymax, rmax) = (*ymax, *rmax);
     {
         let (top, bottom) = root.split_vertically(520);
         // The model spans every angle and leaves no corner free: the legend is a row below.
         let (top, keys) = top.split_vertically(520 - 2 * crate::plot::pt(crate::plot::LEGEND_PT));
         let ax = crate::plot::Axes::new(title.clone(), "parallactic angle (deg)", "q, u (%)");
-        let mut c = crate::plot::chart(&top, &ax, xr.clone(), -ymax..ymax)?;
+        let mut c = crate::plot::chart(&top, &ax, xr.clone(), y.clone())?;
         let mut keyed = false;
         for (col, idx) in [(crate::plot::VERMILLION, 0usize), (crate::plot::BLUE_OI, 1)] {
             c.draw_series(LineSeries::new(
@@ -182,7 +186,7 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, d: &
             "parallactic angle (deg)",
             "residual (%)",
         );
-        let mut r = crate::plot::chart(&bottom, &ax, xr.clone(), -rmax..rmax)?;
+        let mut r = crate::plot::chart(&bottom, &ax, xr.clone(), rr.clone())?;
         r.draw_series(LineSeries::new([(xr.start, 0.0), (xr.end, 0.0)], BLACK)).map_err(crate::plot::pe)?;
         for p in pts.iter() {
             let x = p.pa_deg;

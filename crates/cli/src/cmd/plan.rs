@@ -252,21 +252,21 @@ fn draw_plan<DB: DrawingBackend>(
         "RMS corrected q, u (%)",
     )
     .log_labels(Some((x0, x1)), Some((y0, y1)));
-    let mut c = crate::plot::chart(root, &ax, crate::plot::log_axis(x0, x1), crate::plot::log_axis(y0, y1))?;
-    for (k, (_, f, pts)) in curves.iter().enumerate() {
-        let col = crate::plot::series_colour(k);
-        c.draw_series(LineSeries::new(pts.iter().map(|p| (p.0, 100.0 * p.1)), col.stroke_width(2)))
-            .map_err(crate::plot::pe)?
-            .label(fields_label(f))
-            .legend(crate::plot::line_key(col.stroke_width(2)));
+    let mut marks: Vec<Vec<(f64, f64)>> =
+        curves.iter().map(|c| c.2.iter().map(|p| (p.0, 100.0 * p.1)).collect()).collect();
+    marks.push(vec![(x0, target_percent), (x1, target_percent)]);
+    use crate::plot::{key, Mark};
+    let mut keys: Vec<crate::plot::Key> = (curves.iter().enumerate())
+        .map(|(k, (_, f, _))| key(fields_label(f), Mark::Line(crate::plot::series_colour(k).stroke_width(2))))
+        .collect();
+    keys.push(key("target", Mark::Line(BLACK.stroke_width(1))));
+    let (x, y) = (|| crate::plot::log_axis(x0, x1), || crate::plot::log_axis(y0, y1));
+    let (mut c, place) = crate::plot::chart_with_legend(root, &ax, x, y, &marks, &keys)?;
+    for (m, k) in marks.iter().zip(&keys) {
+        let Mark::Line(style) = k.mark else { continue };
+        c.draw_series(LineSeries::new(m.iter().copied(), style)).map_err(crate::plot::pe)?;
     }
-    c.draw_series(LineSeries::new([(x0, target_percent), (x1, target_percent)], BLACK.stroke_width(1)))
-        .map_err(crate::plot::pe)?
-        .label("target")
-        .legend(crate::plot::line_key(BLACK.stroke_width(1)));
-    let data: Vec<(f64, f64)> = curves.iter().flat_map(|c| c.2.iter().map(|p| (p.0, 100.0 * p.1))).collect();
-    let chars = curves.iter().map(|(_, f, _)| fields_label(f).chars().count()).max().unwrap_or(6);
-    crate::plot::legend_off_data(&mut c, &data, curves.len() + 1, chars, crate::plot::CORNERS)
+    crate::plot::draw_legend(&c, place, &keys)
 }
 
 /// The plot of each plan's RMS against exposure time, over a decade either side of the

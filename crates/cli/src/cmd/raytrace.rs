@@ -258,29 +258,26 @@ fn draw<DB: DrawingBackend>(
     let v = |x: f64| 0.012 * x + 0.046 * x * x + 0.002 * x * x * x;
     let i = |x: f64| -0.017 * x + 0.105 * x * x - 0.006 * x * x * x;
     let grid: Vec<f64> = (0..=100).map(|k| rmax * k as f64 / 100.0).collect();
-    let ymax = grid.iter().map(|&x| v(x).max(i(x))).chain(p.iter().map(|&x| 100.0 * x)).fold(0.0, f64::max) * 1.1;
+    let marks: Vec<Vec<(f64, f64)>> = vec![
+        grid.iter().map(|&x| (x, v(x))).collect(),
+        grid.iter().map(|&x| (x, i(x))).collect(),
+        r.iter().zip(p).map(|(&x, &y)| (x, 100.0 * y)).collect(),
+    ];
     // The shared frame (fonts sized for a journal column, crate::plot).
     let ax = crate::plot::Axes::new(format!("{name}: ray trace at {lam} nm"), "r (arcmin)", "p (%)");
-    let mut ch = crate::plot::chart(root, &ax, 0.0..rmax, 0.0..ymax)?;
-    ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, v(x))), crate::plot::BLUE_OI.stroke_width(2)))
-        .map_err(|e| pe(&e))?
-        .label("paper V fit")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], crate::plot::BLUE_OI.stroke_width(2)));
-    ch.draw_series(LineSeries::new(grid.iter().map(|&x| (x, i(x))), crate::plot::VERMILLION.stroke_width(2)))
-        .map_err(|e| pe(&e))?
-        .label("paper I fit")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], crate::plot::VERMILLION.stroke_width(2)));
-    ch.draw_series(LineSeries::new(r.iter().zip(p).map(|(&x, &y)| (x, 100.0 * y)), BLACK.stroke_width(2)))
-        .map_err(|e| pe(&e))?
-        .label("ray trace")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
+    let y = || crate::plot::marks_y_range(&marks);
+    use crate::plot::{key, Mark};
+    let keys = [
+        key("paper V fit", Mark::Line(crate::plot::BLUE_OI.stroke_width(2))),
+        key("paper I fit", Mark::Line(crate::plot::VERMILLION.stroke_width(2))),
+        key("ray trace", Mark::Line(BLACK.stroke_width(2))),
+    ];
+    let (mut ch, place) = crate::plot::chart_with_legend(root, &ax, || 0.0..rmax, y, &marks, &keys)?;
+    for (m, k) in marks.iter().zip(&keys) {
+        let Mark::Line(style) = k.mark else { continue };
+        ch.draw_series(LineSeries::new(m.iter().copied(), style)).map_err(|e| pe(&e))?;
+    }
     ch.draw_series(r.iter().zip(p).map(|(&x, &y)| Circle::new((x, 100.0 * y), 3, BLACK.filled())))
         .map_err(|e| pe(&e))?;
-    let data: Vec<(f64, f64)> = grid
-        .iter()
-        .flat_map(|&x| [(x, v(x)), (x, i(x))])
-        .chain(r.iter().zip(p).map(|(&x, &y)| (x, 100.0 * y)))
-        .collect();
-    crate::plot::legend_off_data(&mut ch, &data, 3, 12, crate::plot::CORNERS)?;
-    Ok(())
+    crate::plot::draw_legend(&ch, place, &keys)
 }

@@ -13,8 +13,8 @@ use std::path::PathBuf;
 /// turns the plate through that range (deg) during each exposure, and the frames carry the
 /// range under the instrument's [polarimetry.rotation] keywords (begin/end angles or rotor
 /// position). Only the effects the scene's [effects] table lists are computed.
-/// Scene format: see the `sim::scene` docs and instruments/scenes/*.toml; fluxes in e- per
-/// exposure, polarization as fractions, angles in degrees.
+/// Scene format: every key in docs/guide/scene-file.md, examples in instruments/scenes/*.toml;
+/// fluxes in e- per exposure, polarization as fractions, angles in degrees.
 ///
 /// `--night DIR` writes a whole archive night instead (sim::night: bias frames, sky flats, empty
 /// fields, standards, a target, an aborted set and another instrument's frames of a FORS2 shrunk

@@ -14,7 +14,7 @@ use plotters::series::DashedLineSeries;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::path::Path;
 
-use crate::plot::{chart_with_legend_room, dashed_key, legend_off_data, line_key, pe, save_image, tick, Axes, FONT};
+use crate::plot::{chart_with_legend, data_range, draw_legend, key, pe, save_image, tick, Axes, Mark, FONT};
 
 /// Width and height of the PNG in pixels.
 pub const SIZE: (u32, u32) = (1000, 1300);
@@ -29,13 +29,6 @@ fn draw_both<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, d: &FourierPlot)
     let (upper, lower) = root.split_vertically(SIZE.1 * 11 / 20);
     draw_fit(&upper, d)?;
     draw_harmonics(&lower, d)
-}
-
-/// A finite range around `lo..hi` (percent), padded below and with `head` of the span free
-/// above for the legend.
-fn padded(lo: f64, hi: f64, head: f64) -> std::ops::Range<f64> {
-    let span = (hi - lo).max(1e-6);
-    (lo - 0.08 * span)..(hi + (0.08 + head) * span)
 }
 
 fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) -> Result<()> {
@@ -55,24 +48,33 @@ fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) 
     );
     // A little room either side, so that the points at 0 deg are not cut by the axis.
     let pad = d.theta_max_deg / 60.0;
-    // Room above the data for the legend's lines at 9 pt: the legend never covers a point.
-    let entries = 2 + d.a0.is_some() as usize;
-    let mut c = chart_with_legend_room(area, &ax, -pad..d.theta_max_deg + pad, padded(lo, hi, 0.0), entries)?;
-    c.draw_series(LineSeries::new(d.curve.iter().map(|(t, f)| (*t, pct(*f))), crate::plot::BLUE_OI.stroke_width(2)))
-        .map_err(pe)?
-        .label("fit")
-        .legend(line_key(crate::plot::BLUE_OI.stroke_width(2)));
+    // What the legend must keep off: the curve, the a_0 level, each point with its error bar.
+    let mut marks: Vec<Vec<(f64, f64)>> = vec![d.curve.iter().map(|(t, f)| (*t, pct(*f))).collect()];
+    marks.extend(d.points.iter().map(|p| {
+        let s = if p.sigma.is_finite() { p.sigma.max(0.0) } else { 0.0 };
+        vec![(p.theta_deg, pct(p.f - s)), (p.theta_deg, pct(p.f + s))]
+    }));
     if let Some(a0) = d.a0 {
-        let grey = BLACK.mix(0.6);
+        marks.push(vec![(-pad, pct(a0)), (d.theta_max_deg + pad, pct(a0))]);
+    }
+    let grey = BLACK.mix(0.6);
+    let mut keys = vec![key("fit", Mark::Line(crate::plot::BLUE_OI.stroke_width(2)))];
+    if let Some(a0) = d.a0 {
+        keys.push(key(format!("a_0 = {:.3} %", pct(a0)), Mark::Dashed(grey.into())));
+    }
+    keys.push(key("F_i ± 1σ", Mark::Circle(BLACK.filled())));
+    let x = || -pad..d.theta_max_deg + pad;
+    let (mut c, place) = chart_with_legend(area, &ax, x, || data_range(lo, hi), &marks, &keys)?;
+    c.draw_series(LineSeries::new(d.curve.iter().map(|(t, f)| (*t, pct(*f))), crate::plot::BLUE_OI.stroke_width(2)))
+        .map_err(pe)?;
+    if let Some(a0) = d.a0 {
         c.draw_series(DashedLineSeries::new(
             [(-pad, pct(a0)), (d.theta_max_deg + pad, pct(a0))],
             8,
             6,
             grey.stroke_width(1),
         ))
-        .map_err(pe)?
-        .label(format!("a_0 = {:.3} %", pct(a0)))
-        .legend(dashed_key(grey));
+        .map_err(pe)?;
     }
     // Error bars as one I-shaped path each (capped, cap width 1/200 of the axis).
     let w = d.theta_max_deg / 200.0;
@@ -81,28 +83,9 @@ fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) 
         PathElement::new([(x - w, hi), (x + w, hi), (x, hi), (x, lo), (x - w, lo), (x + w, lo)], BLACK)
     }))
     .map_err(pe)?;
-    c.draw_series(d.points.iter().map(|p| Circle::new((p.theta_deg, pct(p.f)), 4, BLACK.filled())))
-        .map_err(pe)?
-        .label("F_i ± 1σ")
-        .legend(|(x, y)| Circle::new((x + 10, y), 4, BLACK.filled()));
-    let mut data: Vec<(f64, f64)> = d.curve.iter().map(|(t, f)| (*t, pct(*f))).collect();
-    data.extend(d.points.iter().flat_map(|p| {
-        let s = if p.sigma.is_finite() { p.sigma.max(0.0) } else { 0.0 };
-        [(p.theta_deg, pct(p.f)), (p.theta_deg, pct(p.f - s)), (p.theta_deg, pct(p.f + s))]
-    }));
-    if let Some(a0) = d.a0 {
-        data.extend(d.curve.iter().map(|(t, _)| (*t, pct(a0))));
-    }
-    legend_off_data(&mut c, &data, entries, 22, UPPER)
+    c.draw_series(d.points.iter().map(|p| Circle::new((p.theta_deg, pct(p.f)), 4, BLACK.filled()))).map_err(pe)?;
+    draw_legend(&c, place, &keys)
 }
-
-/// The upper corners, right first: [`chart_with_legend_room`] keeps the data below them.
-const UPPER: [SeriesLabelPosition; 4] = [
-    SeriesLabelPosition::UpperRight,
-    SeriesLabelPosition::UpperLeft,
-    SeriesLabelPosition::UpperRight,
-    SeriesLabelPosition::UpperLeft,
-];
 
 /// Tick labels at the whole harmonic numbers only.
 fn whole(v: &f64) -> String {
@@ -127,46 +110,39 @@ fn draw_harmonics<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &Fourier
     let k_pol = d.k_pol.map_or("N/4".to_string(), |k| k.to_string());
     let ax = Axes::new(format!("harmonics √(a_k² + b_k²); P at k = {k_pol}"), "harmonic k", "amplitude (%)")
         .x_ticks(d.bars.len() + 1, &whole);
-    let mut c = chart_with_legend_room(area, &ax, -0.6..kmax + 0.6, 0.0..padded(0.0, top, 0.0).end, 3)?;
+    // What the legend must keep off: each bar's outline and its noise level.
+    let marks: Vec<Vec<(f64, f64)>> = d
+        .bars
+        .iter()
+        .flat_map(|b| {
+            let (k, a, s) = (b.k as f64, 100.0 * b.amplitude, 100.0 * b.sigma);
+            [vec![(k - 0.35, 0.0), (k - 0.35, a), (k + 0.35, a), (k + 0.35, 0.0)], vec![(k - 0.45, s), (k + 0.45, s)]]
+        })
+        .collect();
+    // The bars stand on zero; the axis ends just above the tallest.
+    let y = || 0.0..data_range(0.0, top).end;
     let pol = d.k_pol;
+    let (other, p_bar) = (crate::plot::BLUE_OI.mix(0.45).filled(), crate::plot::VERMILLION.mix(0.7).filled());
+    let mut keys = vec![key("other harmonics", Mark::Bar(other))];
+    if d.bars.iter().any(|b| Some(b.k) == pol) {
+        keys.push(key("k = N/4: P", Mark::Bar(p_bar)));
+    }
+    keys.push(key("1σ noise", Mark::Line(BLACK.stroke_width(2))));
+    let (mut c, place) = chart_with_legend(area, &ax, || -0.6..kmax + 0.6, y, &marks, &keys)?;
     c.draw_series(d.bars.iter().filter(|b| Some(b.k) != pol).map(|b| {
         let k = b.k as f64;
-        Rectangle::new([(k - 0.35, 0.0), (k + 0.35, 100.0 * b.amplitude)], crate::plot::BLUE_OI.mix(0.45).filled())
+        Rectangle::new([(k - 0.35, 0.0), (k + 0.35, 100.0 * b.amplitude)], other)
     }))
-    .map_err(pe)?
-    .label("other harmonics")
-    .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], crate::plot::BLUE_OI.mix(0.45).filled()));
+    .map_err(pe)?;
     if let Some(b) = d.bars.iter().find(|b| Some(b.k) == pol) {
         let k = b.k as f64;
-        c.draw_series(std::iter::once(Rectangle::new(
-            [(k - 0.35, 0.0), (k + 0.35, 100.0 * b.amplitude)],
-            crate::plot::VERMILLION.mix(0.7).filled(),
-        )))
-        .map_err(pe)?
-        .label("k = N/4: P")
-        .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 20, y + 5)], crate::plot::VERMILLION.mix(0.7).filled()));
+        c.draw_series(std::iter::once(Rectangle::new([(k - 0.35, 0.0), (k + 0.35, 100.0 * b.amplitude)], p_bar)))
+            .map_err(pe)?;
     }
     c.draw_series(d.bars.iter().map(|b| {
         let k = b.k as f64;
         PathElement::new([(k - 0.45, 100.0 * b.sigma), (k + 0.45, 100.0 * b.sigma)], BLACK.stroke_width(2))
     }))
-    .map_err(pe)?
-    .label("1σ noise")
-    .legend(line_key(BLACK.stroke_width(2)));
-    let data: Vec<(f64, f64)> = d
-        .bars
-        .iter()
-        .flat_map(|b| {
-            let k = b.k as f64;
-            // The bar's top edge and its middle: a legend may not sit on a bar.
-            [
-                (k, 100.0 * b.amplitude),
-                (k, 50.0 * b.amplitude),
-                (k, 100.0 * b.sigma),
-                (k - 0.3, 100.0 * b.amplitude),
-                (k + 0.3, 100.0 * b.amplitude),
-            ]
-        })
-        .collect();
-    legend_off_data(&mut c, &data, 3, 25, UPPER)
+    .map_err(pe)?;
+    draw_legend(&c, place, &keys)
 }

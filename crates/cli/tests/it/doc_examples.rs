@@ -17,7 +17,8 @@
 //!   (`cargo install`, `cargo test`, `pip`) are left out, because this test is part of that
 //!   suite and CI installs the Python package itself. ```` ```sh data=DIR ```` runs on the
 //!   files of `DIR` (relative to the repository, linked into the folder): real data kept
-//!   outside the repository, and when `DIR` is missing the block is skipped, loudly.
+//!   outside the repository, and when `DIR` is missing the block is skipped, loudly. A
+//!   ```` ```console data=DIR ```` block does the same and checks its shown output.
 //!
 //! The shown output is checked against stdout, or else against stdout followed by stderr.
 //! Every command must exit with 0. Commands run through `sh` with the built binary first on
@@ -135,6 +136,22 @@ fn run(cmd: &str, dir: &Path) -> (i32, String, usize) {
     (o.status.code().unwrap_or(-1), text, stdout.lines().count())
 }
 
+/// The files of a block's `data=DIR` (relative to the repository) linked into `dir`: false
+/// (and a loud note) when `DIR` is missing, and the block is skipped; true without `data=`.
+fn link_data(info: &str, dir: &Path, name: &str, line: usize) -> bool {
+    let Some(data) = info.split_whitespace().find_map(|w| w.strip_prefix("data=")) else { return true };
+    let src = root().join(data);
+    let Ok(entries) = std::fs::read_dir(&src) else {
+        eprintln!("skipping {name}:{line}: its data {} is not there", src.display());
+        return false;
+    };
+    for e in entries {
+        let p = e.unwrap().path();
+        let _ = std::os::unix::fs::symlink(&p, dir.join(p.file_name().unwrap()));
+    }
+    true
+}
+
 /// The examples of one Markdown file, run in order in a fresh folder: the failures found.
 fn run_file(md: &Path) -> Vec<String> {
     let text = std::fs::read_to_string(md).unwrap();
@@ -165,7 +182,10 @@ fn run_file(md: &Path) -> Vec<String> {
             continue;
         }
         match b.info.as_str() {
-            "console" => {
+            info if info == "console" || info.starts_with("console ") => {
+                if !link_data(info, dir.path(), &name, b.line) {
+                    continue;
+                }
                 let mut cmd: Option<(String, usize)> = None;
                 let mut expected: Vec<String> = vec![];
                 for (k, l) in b.lines.iter().enumerate() {
@@ -185,16 +205,8 @@ fn run_file(md: &Path) -> Vec<String> {
                 }
             }
             info if info == "sh" || info.starts_with("sh ") => {
-                if let Some(data) = info.split_whitespace().find_map(|w| w.strip_prefix("data=")) {
-                    let src = root().join(data);
-                    let Ok(entries) = std::fs::read_dir(&src) else {
-                        eprintln!("skipping {name}:{}: its data {} is not there", b.line, src.display());
-                        continue;
-                    };
-                    for e in entries {
-                        let p = e.unwrap().path();
-                        let _ = std::os::unix::fs::symlink(&p, dir.path().join(p.file_name().unwrap()));
-                    }
+                if !link_data(info, dir.path(), &name, b.line) {
+                    continue;
                 }
                 let mut pending = String::new();
                 for (k, l) in b.lines.iter().enumerate() {
@@ -245,8 +257,13 @@ fn the_block_reader_finds_indented_blocks_and_files() {
 /// The examples of every documentation file, the files run two at a time.
 #[test]
 fn every_shell_example_in_the_readme_and_the_guide_runs_with_its_shown_output() {
-    let files = markdown_files();
+    let mut files = markdown_files();
     assert!(files.len() >= 10, "{files:?}");
+    // While writing a page: INSTPOL_DOC_ONLY=scene-file runs the files whose path holds it.
+    if let Ok(only) = std::env::var("INSTPOL_DOC_ONLY") {
+        files.retain(|f| f.to_string_lossy().contains(&only));
+        eprintln!("INSTPOL_DOC_ONLY={only}: running {files:?} only");
+    }
     let next = std::sync::Mutex::new(files.into_iter());
     let failures = std::sync::Mutex::new(vec![]);
     std::thread::scope(|s| {

@@ -43,6 +43,7 @@ mod raytrace;
 mod reduce;
 mod reliability;
 mod report;
+mod scene_file_page;
 mod simulate;
 mod simulate_field;
 mod stokes;

@@ -312,8 +312,52 @@ fn geometry(head: &str) -> Option<(f64, f64, f64, f64)> {
     Some((num("x")?, num("y")?, num("width")?, num("height")?))
 }
 
-/// The plotted points (circles, polygons' vertices) and bars (filled rectangles that are not
-/// a white background) of `svg` that fall inside a legend box drawn after them, as messages.
+/// The vertices of a polyline's or polygon's `points`.
+fn points(e: &str) -> Vec<(f64, f64)> {
+    let pts = e.split("points=\"").nth(1).and_then(|r| r.split('"').next()).unwrap_or("");
+    pts.split_whitespace()
+        .filter_map(|p| p.split_once(','))
+        .filter_map(|(x, y)| Some((x.parse::<f64>().ok()?, y.parse::<f64>().ok()?)))
+        .collect()
+}
+
+/// Whether the segment `a`-`b` meets the box `(x0, y0, x1, y1)` (Liang-Barsky clipping: the
+/// part of the segment inside each of the four half-planes, intersected).
+fn segment_meets(a: (f64, f64), b: (f64, f64), (x0, y0, x1, y1): (f64, f64, f64, f64)) -> bool {
+    let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for (p, q) in [(-dx, a.0 - x0), (dx, x1 - a.0), (-dy, a.1 - y0), (dy, y1 - a.1)] {
+        if p == 0.0 {
+            if q < 0.0 {
+                return false;
+            }
+        } else if p < 0.0 {
+            t0 = t0.max(q / p);
+        } else {
+            t1 = t1.min(q / p);
+        }
+    }
+    t0 <= t1
+}
+
+/// The legend boxes of `svg`'s elements: (index of the bordered rectangle, its box `(x0, y0,
+/// x1, y1)`). plotters draws a legend as a translucent white rectangle and a bordered one of
+/// the same geometry.
+fn legend_boxes(elems: &[&str]) -> Vec<(usize, (f64, f64, f64, f64))> {
+    let mut out = vec![];
+    for (i, e) in elems.iter().enumerate() {
+        let is_border = e.starts_with("rect") && e.contains("fill=\"none\"") && !e.contains("stroke=\"none\"");
+        let Some((x, y, w, h)) = is_border.then(|| geometry(e)).flatten() else { continue };
+        if i > 0 && elems[i - 1].starts_with("rect") && geometry(elems[i - 1]) == Some((x, y, w, h)) {
+            out.push((i, (x, y, x + w, y + h)));
+        }
+    }
+    out
+}
+
+/// The plotted points (circles, polygons' vertices), lines (polylines' segments) and bars
+/// (filled rectangles that are not a white background) of `svg` that fall inside a legend box
+/// drawn after them, as messages.
 /// plotters draws a legend as a translucent white rectangle and a bordered one of the same
 /// geometry, after the series of its chart and before its own keys: what comes before the
 /// box in the file is data.
@@ -321,14 +365,8 @@ fn legend_overlaps(path: &Path) -> Vec<String> {
     let svg = std::fs::read_to_string(path).unwrap();
     let elems: Vec<&str> = svg.split('<').skip(1).collect();
     let mut bad = vec![];
-    for (i, e) in elems.iter().enumerate() {
-        let is_border = e.starts_with("rect") && e.contains("fill=\"none\"") && !e.contains("stroke=\"none\"");
-        let Some((lx, ly, lw, lh)) = is_border.then(|| geometry(e)).flatten() else { continue };
-        let same_background =
-            i > 0 && elems[i - 1].starts_with("rect") && geometry(elems[i - 1]) == Some((lx, ly, lw, lh));
-        if !same_background {
-            continue;
-        }
+    for (i, (lx, ly, x1, y1)) in legend_boxes(&elems) {
+        let (lw, lh) = (x1 - lx, y1 - ly);
         let inside = |x: f64, y: f64, pad: f64| x + pad > lx && x - pad < lx + lw && y + pad > ly && y - pad < ly + lh;
         for d in &elems[..i - 1] {
             let hit = if d.starts_with("circle") {
@@ -336,10 +374,11 @@ fn legend_overlaps(path: &Path) -> Vec<String> {
             } else if d.starts_with("rect") && !d.contains("fill=\"#FFFFFF\"") && !d.contains("fill=\"none\"") {
                 geometry(d).is_some_and(|(x, y, w, h)| x < lx + lw && x + w > lx && y < ly + lh && y + h > ly)
             } else if d.starts_with("polygon") {
-                let pts = d.split("points=\"").nth(1).and_then(|r| r.split('"').next()).unwrap_or("");
-                pts.split_whitespace()
-                    .filter_map(|p| p.split_once(','))
-                    .any(|(x, y)| matches!((x.parse::<f64>(), y.parse::<f64>()), (Ok(x), Ok(y)) if inside(x, y, 0.0)))
+                points(d).iter().any(|&(x, y)| inside(x, y, 0.0))
+            } else if d.starts_with("polyline") {
+                // A line crosses the box even when none of its vertices is inside it.
+                let p = points(d);
+                p.windows(2).any(|w| segment_meets(w[0], w[1], (lx + 0.5, ly + 0.5, lx + lw - 0.5, ly + lh - 0.5)))
             } else {
                 false
             };
@@ -353,7 +392,7 @@ fn legend_overlaps(path: &Path) -> Vec<String> {
 }
 
 /// Every figure a command draws, as SVG ([`every_figure`]): no legend box covers a plotted
-/// point or bar, and no text falls outside the image.
+/// point, line or bar, and no text falls outside the image.
 #[test]
 fn every_figure_keeps_its_legends_off_the_data() {
     let d = tempfile::tempdir().unwrap();
@@ -368,9 +407,9 @@ fn every_figure_keeps_its_legends_off_the_data() {
     assert!(bad.is_empty(), "{}", bad.join("\n"));
 }
 
-/// The overlap check sees what it looks for: a legend drawn over a point and a bar.
+/// The overlap check sees what it looks for: a legend drawn over a point, a bar and a line.
 #[test]
-fn the_legend_check_sees_a_covered_point_and_bar() {
+fn the_legend_check_sees_a_covered_point_bar_and_line() {
     let d = tempfile::tempdir().unwrap();
     let f = d.path().join("x.svg");
     std::fs::write(
@@ -386,6 +425,16 @@ fn the_legend_check_sees_a_covered_point_and_bar() {
     let bad = legend_overlaps(&f);
     assert_eq!(bad.len(), 2, "{bad:?}");
     assert!(bad[0].contains("circle cx=\"50\"") && bad[1].contains("rect x=\"60\""), "{bad:?}");
+    // A line whose vertices are all outside the box but which crosses it, and one that passes by.
+    let svg = std::fs::read_to_string(&f).unwrap().replacen(
+        "<circle cx=\"5\"",
+        "<polyline fill=\"none\" stroke=\"#000000\" stroke-width=\"2\" points=\"10,60 95,70 \"/>\n\
+         <polyline fill=\"none\" stroke=\"#000000\" stroke-width=\"2\" points=\"10,90 95,99 \"/>\n<circle cx=\"5\"",
+        1,
+    );
+    std::fs::write(&f, svg).unwrap();
+    let bad = legend_overlaps(&f);
+    assert!(bad.len() == 3 && bad.iter().any(|b| b.contains("points=\"10,60")), "{bad:?}");
 }
 
 /// Every figure the commands draw, as SVG in `dir`: the gallery's (calibration map, profile
@@ -477,13 +526,15 @@ fn tick_groups(svg: &str) -> Vec<(String, Vec<(f64, String)>)> {
     let mut groups: std::collections::BTreeMap<String, Vec<(f64, String)>> = Default::default();
     let placed = placed_texts(svg);
     let is_x = |t: &(f64, f64, String, String, f64, bool, String)| t.2 == "middle" && t.3 == "0.76em" && !t.5;
-    let x_rows: Vec<f64> = placed.iter().filter(|t| is_x(t) && tick_value(&t.6).is_some()).map(|t| t.1).collect();
+    let x_rows: Vec<(f64, f64)> =
+        placed.iter().filter(|t| is_x(t) && tick_value(&t.6).is_some()).map(|t| (t.0, t.1)).collect();
     for (x, y, anchor, dy, _, rotated, text) in placed.iter().cloned() {
         if rotated || tick_value(&text).is_none() {
             continue;
         }
-        // A y axis's panel: the x axis below it (the nearest row of x tick labels).
-        let panel = x_rows.iter().copied().filter(|r| *r > y).fold(f64::INFINITY, f64::min);
+        // A y axis's panel: the x axis below it (the nearest row of x tick labels right of its
+        // labels: a panel beside it may be of another height).
+        let panel = x_rows.iter().filter(|r| r.1 > y && r.0 > x).map(|r| r.1).fold(f64::INFINITY, f64::min);
         let (key, at) = match (anchor.as_str(), dy.as_str()) {
             ("middle", "0.76em") => (format!("x axis at row {y}"), x),
             ("end", _) | ("start", "0.5ex") => (format!("y axis ({anchor}) at column {x} above row {panel}"), y),
@@ -639,8 +690,95 @@ fn colour_problems(name: &str, svg: &str) -> Vec<String> {
     bad.into_iter().collect()
 }
 
+/// The plotting areas of `svg`: where plotters' y axis line (a vertical black line one pixel
+/// left of the area) meets its x axis line (a horizontal one one pixel below it), as `(x0, y0,
+/// x1, y1)`.
+fn plotting_areas(elems: &[&str]) -> Vec<(f64, f64, f64, f64)> {
+    let axis_lines: Vec<((f64, f64), (f64, f64))> = elems
+        .iter()
+        .filter(|e| e.starts_with("polyline") && e.contains("stroke=\"#000000\" stroke-width=\"1\""))
+        .filter_map(|e| match points(e)[..] {
+            [a, b] => Some((a, b)),
+            _ => None,
+        })
+        .collect();
+    let mut out = vec![];
+    for &((vx, va), (vx2, vb)) in &axis_lines {
+        let (ya, yb) = (va.min(vb), va.max(vb));
+        if vx != vx2 || yb - ya < 20.0 {
+            continue;
+        }
+        for &((ha, hy), (hb, hy2)) in &axis_lines {
+            let (xa, xb) = (ha.min(hb), ha.max(hb));
+            if hy == hy2 && xb - xa >= 20.0 && (xa - (vx + 1.0)).abs() <= 1.5 && (hy - (yb + 1.0)).abs() <= 1.5 {
+                let a = (xa, ya, xb, yb);
+                if !out.contains(&a) {
+                    out.push(a);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// The share of each side of a plotting area (x0, y0, x1, y1) that the data leave empty:
+/// `[left, right, top, bottom]` as fractions of the area's width and height, from every line
+/// vertex, marker, polygon vertex and filled (non-white) rectangle inside the area that is
+/// not part of a legend. None when the area holds no data.
+fn empty_margins(elems: &[&str], (x0, y0, x1, y1): (f64, f64, f64, f64)) -> Option<[f64; 4]> {
+    let boxes = legend_boxes(elems);
+    let in_box = |(x, y): (f64, f64), b: &(f64, f64, f64, f64)| x >= b.0 && x <= b.2 && y >= b.1 && y <= b.3;
+    let inside = |(x, y): (f64, f64)| x >= x0 - 0.5 && x <= x1 + 0.5 && y >= y0 - 0.5 && y <= y1 + 0.5;
+    let (mut lo, mut hi) = ((f64::INFINITY, f64::INFINITY), (f64::NEG_INFINITY, f64::NEG_INFINITY));
+    for e in elems {
+        let p: Vec<(f64, f64)> = if e.starts_with("polyline") || e.starts_with("polygon") {
+            points(e)
+        } else if e.starts_with("circle") {
+            geometry(e).map(|(x, y, _, _)| vec![(x, y)]).unwrap_or_default()
+        } else if e.starts_with("rect") && !e.contains("fill=\"#FFFFFF\"") && !e.contains("fill=\"none\"") {
+            geometry(e).map(|(x, y, w, h)| vec![(x, y), (x + w, y + h)]).unwrap_or_default()
+        } else {
+            vec![]
+        };
+        // A legend's own keys lie inside its box.
+        if p.is_empty() || boxes.iter().any(|(_, b)| p.iter().all(|&q| in_box(q, b))) {
+            continue;
+        }
+        for q in p.into_iter().filter(|&q| inside(q)) {
+            lo = (lo.0.min(q.0), lo.1.min(q.1));
+            hi = (hi.0.max(q.0), hi.1.max(q.1));
+        }
+    }
+    let (w, h) = (x1 - x0, y1 - y0);
+    lo.0.is_finite().then(|| [(lo.0 - x0) / w, (x1 - hi.0) / w, (lo.1 - y0) / h, (y1 - hi.1) / h])
+}
+
+/// How far an axis may run past the data: 5 % of its length on each side.
+const MAX_EMPTY_MARGIN: f64 = 0.05;
+
+/// Each plotting area's axes end within 5 % of the data on every side.
+fn axis_problems(name: &str, svg: &str) -> Vec<String> {
+    let elems: Vec<&str> = svg.split('<').skip(1).collect();
+    let mut bad = vec![];
+    for a in plotting_areas(&elems) {
+        let Some(m) = empty_margins(&elems, a) else { continue };
+        for (side, v) in ["left", "right", "top", "bottom"].iter().zip(m) {
+            if v > MAX_EMPTY_MARGIN {
+                bad.push(format!(
+                    "{name}: the plotting area at ({}, {}) runs {:.0} % of its size past the data on the {side} (at most {:.0} %)",
+                    a.0,
+                    a.1,
+                    100.0 * v,
+                    100.0 * MAX_EMPTY_MARGIN
+                ));
+            }
+        }
+    }
+    bad
+}
+
 /// Every figure reads in print: a column's or half a page's height, three labelled ticks an
-/// axis in one notation, colours that stand out and differ for colour-blind readers, and
+/// axis in one notation, axes that end within 5 % of the data, colours that stand out and differ for colour-blind readers, and
 /// words a journal prints (no LaTeX labels, no Greek in ASCII, µm, plurals).
 #[test]
 fn every_figure_reads_in_print() {
@@ -655,6 +793,7 @@ fn every_figure_reads_in_print() {
         bad.extend(tick_problems(&name, &svg));
         bad.extend(text_problems(&name, &svg));
         bad.extend(colour_problems(&name, &svg));
+        bad.extend(axis_problems(&name, &svg));
     }
     assert!(bad.is_empty(), "{} problems:\n{}", bad.len(), bad.join("\n"));
 }
@@ -697,4 +836,16 @@ fn the_print_checks_see_each_problem() {
     assert_eq!(tick_problems("x", &ticks(&["1000", "10000", "1e5"])).len(), 1);
     assert_eq!(tick_problems("x", &ticks(&["10³", "10⁴", "10⁵"])).len(), 0);
     assert_eq!(tick_value("10⁻⁴"), Some((1e-4, "power")));
+    // An area 100 x 100 px whose data fill x but only the lower 80 % of y, beside a legend
+    // whose keys sit higher: 20 % empty at the top, the keys not counted.
+    let axes = "<svg width=\"400\" height=\"400\">\n\
+                <polyline fill=\"none\" opacity=\"1\" stroke=\"#000000\" stroke-width=\"1\" points=\"99,100 99,200 \"/>\n\
+                <polyline fill=\"none\" opacity=\"1\" stroke=\"#000000\" stroke-width=\"1\" points=\"100,201 200,201 \"/>\n\
+                <polyline fill=\"none\" opacity=\"1\" stroke=\"#0072B2\" stroke-width=\"2\" points=\"100,200 150,120 200,190 \"/>\n\
+                <rect x=\"150\" y=\"101\" width=\"40\" height=\"10\" opacity=\"0.85\" fill=\"#FFFFFF\" stroke=\"none\"/>\n\
+                <rect x=\"150\" y=\"101\" width=\"40\" height=\"10\" opacity=\"1\" fill=\"none\" stroke=\"#000000\"/>\n\
+                <polyline fill=\"none\" opacity=\"1\" stroke=\"#0072B2\" stroke-width=\"2\" points=\"152,105 160,105 \"/>\n</svg>";
+    let bad = axis_problems("x", axes);
+    assert!(bad.len() == 1 && bad[0].contains("20 %") && bad[0].contains("top"), "{bad:?}");
+    assert!(axis_problems("x", &axes.replace("150,120", "150,102")).is_empty());
 }

@@ -255,3 +255,35 @@ fn tilted_plate_effect_is_second_order_in_incidence() {
         }
     }
 }
+
+/// Bins at one position cannot tell a stressed lens's centre from its strength and axis: four
+/// parameters against the one retardance vector measured there. The
+/// cause's fit is judged by the one conditioning judge: its note names a free parameter of the
+/// lens and no error is claimed; the same lens over the full grid is determined (the control).
+#[test]
+fn a_cause_the_bin_layout_leaves_free_is_said_naming_the_parameter() {
+    let lens = |x: f64, y: f64, q: f64, u: f64| {
+        diat_and_lens(x, y, common::mueller_fields::LENS_EDGE_DEG, LENS_CENTRE_ARCMIN, 0.0).forward(q, u).unwrap()
+    };
+    let ctx = Context::new(&full_turn(), 90.0, 3.4).unwrap();
+    let per_bin_opts = MuellerFitOptions { kind: Kind::diattenuation_retardance(), deg: 0, ..Default::default() };
+    let run = |positions: &[(f64, f64)]| {
+        let f = sky_fields(3, positions, &lens, 5);
+        let (bins, _) = fit::mueller_field::fit_per_bin(&f, &per_bin_opts).unwrap();
+        let target = Target::per_bin(&bins, "test").unwrap();
+        explain(&target, &ctx, &[Cause::StressedLens]).unwrap()
+    };
+    let one = run(&[(LENS_CENTRE_ARCMIN[0] + 1.5, LENS_CENTRE_ARCMIN[1])]);
+    let w = pick(&one, Cause::StressedLens);
+    let note = w.note.clone().unwrap_or_default();
+    let names = Cause::StressedLens.param_names();
+    assert!(
+        note.contains("do not determine") && names.iter().any(|n| note.contains(n)),
+        "the note must name a free parameter of the lens: {note:?}"
+    );
+    assert!(w.params.iter().all(|p| !p.sigma.is_finite()), "no error where the fit is undetermined: {:?}", w.params);
+    let full = run(&fors1_grid(10, 8));
+    let w = pick(&full, Cause::StressedLens);
+    assert!(w.note.is_none(), "{:?}", w.note);
+    assert!(w.params.iter().all(|p| p.sigma.is_finite() && p.sigma > 0.0), "{:?}", w.params);
+}

@@ -3,6 +3,7 @@
 //! `cargo test --workspace` went. Run one file's tests with `cargo test -p instpol-mueller --test it
 //! <file>::`.
 
+mod causes_singular;
 mod oblique_plate;
 mod quarter_wave;
 mod stability;
