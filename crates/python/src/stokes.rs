@@ -206,7 +206,7 @@ pub(crate) fn exposures_dict<'py>(
     hwp: &[f64],
 ) -> PyResult<Option<Bound<'py, PyDict>>> {
     let (m, n_in) = (repeats.len(), hwp.len());
-    if !(repeats.iter().all(|c| c.is_some()) && !repeats.is_empty()) {
+    if repeats.is_empty() || repeats.iter().any(|c| c.is_none()) {
         return Ok(None);
     }
     let checks = |f: &dyn Fn(&stokes::repeats::ExposureCheck) -> f64| -> Vec<f64> {
