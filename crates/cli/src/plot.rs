@@ -1195,13 +1195,16 @@ fn colour_bar<DB: DrawingBackend>(
 }
 
 fn nearest_spacing(res: &[(f64, f64, f64, f64)]) -> f64 {
-    // Median distance to the next bin along x in the same row: enough for a regular grid.
+    // The median distance (the upper middle) to the next bin along x in the same row: enough
+    // for a regular grid.
     let mut xs: Vec<f64> = res.iter().map(|r| r.0).collect();
     xs.sort_by(|a, b| a.total_cmp(b));
     xs.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
     let mut d: Vec<f64> = xs.windows(2).map(|w| w[1] - w[0]).collect();
-    d.sort_by(|a, b| a.total_cmp(b));
-    d.get(d.len() / 2).copied().unwrap_or(0.1)
+    if d.is_empty() {
+        return 0.1;
+    }
+    stokes::stats::robust::median(&mut d, stokes::stats::robust::Middle::Upper)
 }
 
 /// Draw the three calibration plots into `dir` as `{stem}_map`, `{stem}_profile`,

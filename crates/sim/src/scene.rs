@@ -680,11 +680,46 @@ impl Scene {
     }
 
     fn validate(&self, path: &Path) -> Result<(), Error> {
-        let bad = |key: &str, value: String, why: &str| {
-            Err(Error::Invalid { path: path.into(), key: key.into(), value, why: why.into() })
-        };
         let inst = instrument::Instrument::load(&self.instrument)?;
         inst.filter(&self.filter)?;
+        self.validate_plate(&inst, path)?;
+        self.validate_elements(path)?;
+        self.validate_layout(&inst, path)?;
+        self.validate_output(path)?;
+        self.validate_sources(path)?;
+        self.validate_effects(&inst, path)?;
+        // Frames are written as OUT/PREFIX_NN_hwpA.fits: the prefix is a plain file-name part,
+        // so a scene cannot put files outside the output folder the user named.
+        let pre = &self.output.prefix;
+        if pre.is_empty() || pre.contains(['/', '\\', '\0']) || pre.starts_with('.') || Path::new(pre).is_absolute() {
+            return Err(invalid(
+                path,
+                "output.prefix",
+                format!("{pre:?}"),
+                "must be a plain file-name part (no '/', '\\', '..', not starting with '.', not empty): frames are written inside --out",
+            ));
+        }
+        if let Some(t) = &self.telescope {
+            self.validate_telescope(t, &inst, path)?;
+        }
+        if let Some(InstPolSpec::Radial { coeffs_percent, .. }) = &self.effects.instpol {
+            if coeffs_percent.iter().any(|c| !c.is_finite()) {
+                return Err(invalid(
+                    path,
+                    "effects.instpol.coeffs_percent",
+                    format!("{coeffs_percent:?}"),
+                    "must be finite numbers",
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The plate's checks: its angles in degrees, its motion (a sweep below 180 deg, a bounded
+    /// number of substeps), what a quarter-wave plate does not take, angles that determine what
+    /// the plate measures, and a rotor that reads its range from a position.
+    fn validate_plate(&self, inst: &instrument::Instrument, path: &Path) -> Result<(), Error> {
+        let bad = |key: &str, value: String, why: &str| Err(invalid(path, key, value, why));
         if let Err(e) = stokes::check_degrees(&self.hwp_angles_deg) {
             return bad("hwp_angles_deg", format!("{:?}", self.hwp_angles_deg), &format!("{e}: give degrees"));
         }
@@ -782,7 +817,13 @@ impl Scene {
                 }
             }
         }
-        // The elements a scene names, each checked by its own rule: the first refusal.
+        Ok(())
+    }
+
+    /// The optical elements a scene names, each by its own rule (the first refusal), then the
+    /// exposure time and the frames' shifts (one per plate angle, at most 100 px).
+    fn validate_elements(&self, path: &Path) -> Result<(), Error> {
+        let bad = |key: &str, value: String, why: &str| Err(invalid(path, key, value, why));
         let fx = &self.effects;
         let elements = [
             ("effects.constant_response", fx.constant_response.map(|r| (format!("{r:?}"), r.unphysical()))),
@@ -813,6 +854,13 @@ impl Scene {
                 );
             }
         }
+        Ok(())
+    }
+
+    /// What a two-camera or maskless beam layout cannot simulate: an extended or varying sky,
+    /// an instrumental field on the sky, and the geometry the instrument file must give.
+    fn validate_layout(&self, inst: &instrument::Instrument, path: &Path) -> Result<(), Error> {
+        let bad = |key: &str, value: String, why: &str| Err(invalid(path, key, value, why));
         if inst.polarimetry.layout == instrument::Layout::TwoCameras {
             let why = "a two-camera scene takes a uniform sky and stars (an extended or varying sky would need each camera's \
                        pixels mapped through the camera transform, which is not modelled)";
@@ -860,6 +908,13 @@ impl Scene {
                 );
             }
         }
+        Ok(())
+    }
+
+    /// The output frames' format: BITPIX, the raw bias level, the pre/overscan sizes and the
+    /// number of bias frames.
+    fn validate_output(&self, path: &Path) -> Result<(), Error> {
+        let bad = |key: &str, value: String, why: &str| Err(invalid(path, key, value, why));
         if ![16, -32, -64].contains(&self.output.bitpix) {
             return bad("output.bitpix", self.output.bitpix.to_string(), "must be 16, -32 or -64");
         }
@@ -878,18 +933,16 @@ impl Scene {
                 return bad("output.bias_frames", n.to_string(), "must be 3 to 100 (a per-pixel sigma clip needs 3)");
             }
         }
-        let frac = |key: &str, v: f64| -> Result<(), Error> {
-            if !(v.is_finite() && (0.0..1.0).contains(&v)) {
-                return bad(key, v.to_string(), "a polarization degree is a fraction in [0, 1) (0.0174 for 1.74%)");
-            }
-            Ok(())
-        };
-        let nonneg = |key: &str, v: f64| -> Result<(), Error> {
-            if !(v.is_finite() && v >= 0.0) {
-                return bad(key, v.to_string(), "must be a finite number >= 0");
-            }
-            Ok(())
-        };
+        Ok(())
+    }
+
+    /// The light's sources: the transparency's scatter, the sky, each star and each extended
+    /// source (fluxes >= 0, polarization degrees fractions, `p^2 + v^2 <= 1`, no circular
+    /// polarization through a telescope, positive sizes).
+    fn validate_sources(&self, path: &Path) -> Result<(), Error> {
+        let bad = |key: &str, value: String, why: &str| Err(invalid(path, key, value, why));
+        let frac = |key: &str, v: f64| non_negative_fraction(path, key, v);
+        let nonneg = |key: &str, v: f64| non_negative(path, key, v);
         if let Some(t) = self.effects.transparency_rms {
             if !(t.is_finite() && (0.0..0.5).contains(&t)) {
                 return bad("effects.transparency_rms", t.to_string(), "a relative rms in [0, 0.5) (0.05 for 5 %)");
@@ -969,6 +1022,15 @@ impl Scene {
                 }
             }
         }
+        Ok(())
+    }
+
+    /// The instrument's and detector's effects: the analyser's transmissions, the
+    /// post-analyser term, the plate's harmonics, the flat-field errors, read noise, gain and
+    /// cosmic rays (whose hits must fit the detector and its memory).
+    fn validate_effects(&self, inst: &instrument::Instrument, path: &Path) -> Result<(), Error> {
+        let bad = |key: &str, value: String, why: &str| Err(invalid(path, key, value, why));
+        let nonneg = |key: &str, v: f64| non_negative(path, key, v);
         let fx = &self.effects;
         if let Some(w) = &fx.wollaston {
             for (k, v) in [("effects.wollaston.t", Some(w.t)), ("effects.wollaston.s", w.s)] {
@@ -1046,26 +1108,34 @@ impl Scene {
                 );
             }
         }
-        // Frames are written as OUT/PREFIX_NN_hwpA.fits: the prefix is a plain file-name part,
-        // so a scene cannot put files outside the output folder the user named.
-        let pre = &self.output.prefix;
-        if pre.is_empty() || pre.contains(['/', '\\', '\0']) || pre.starts_with('.') || Path::new(pre).is_absolute() {
-            return bad(
-                "output.prefix",
-                format!("{pre:?}"),
-                "must be a plain file-name part (no '/', '\\', '..', not starting with '.', not empty): frames are written inside --out",
-            );
-        }
-        if let Some(t) = &self.telescope {
-            self.validate_telescope(t, &inst, path)?;
-        }
-        if let Some(InstPolSpec::Radial { coeffs_percent, .. }) = &fx.instpol {
-            if coeffs_percent.iter().any(|c| !c.is_finite()) {
-                return bad("effects.instpol.coeffs_percent", format!("{coeffs_percent:?}"), "must be finite numbers");
-            }
-        }
         Ok(())
     }
+}
+
+/// A scene's value refused: the file, the key, the value given and why.
+fn invalid(path: &Path, key: &str, value: String, why: &str) -> Error {
+    Error::Invalid { path: path.into(), key: key.into(), value, why: why.into() }
+}
+
+/// A polarization degree: a fraction in [0, 1).
+fn non_negative_fraction(path: &Path, key: &str, v: f64) -> Result<(), Error> {
+    if !(v.is_finite() && (0.0..1.0).contains(&v)) {
+        return Err(invalid(
+            path,
+            key,
+            v.to_string(),
+            "a polarization degree is a fraction in [0, 1) (0.0174 for 1.74%)",
+        ));
+    }
+    Ok(())
+}
+
+/// A flux, a brightness, a noise or a rate: finite and >= 0.
+fn non_negative(path: &Path, key: &str, v: f64) -> Result<(), Error> {
+    if !(v.is_finite() && v >= 0.0) {
+        return Err(invalid(path, key, v.to_string(), "must be a finite number >= 0"));
+    }
+    Ok(())
 }
 
 impl Scene {

@@ -615,13 +615,11 @@ impl Clip {
 /// One pixel's contribution to a bin.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PixelSample {
-    pub q: f64,
-    pub u: f64,
+    /// The pixel's `q`, `u` with the photon + read noise variances of each (the covariance is
+    /// not used: a bin's covariance comes from its pixels' scatter).
+    pub qu: mueller::Qu,
     /// Intensity `f_O + f_E` per exposure (e-).
     pub i: f64,
-    /// Photon + read noise variances of this pixel's q and u.
-    pub var_q: f64,
-    pub var_u: f64,
 }
 
 /// The clipped mean of a bin.
@@ -649,11 +647,11 @@ pub struct BinSamples {
 
 impl BinSamples {
     pub fn push(&mut self, s: PixelSample) {
-        self.q.push(s.q);
-        self.u.push(s.u);
+        self.q.push(s.qu.q);
+        self.u.push(s.qu.u);
         self.i.push(s.i);
-        self.var_q.push(s.var_q);
-        self.var_u.push(s.var_u);
+        self.var_q.push(s.qu.var_q);
+        self.var_u.push(s.qu.var_u);
     }
 
     pub fn clear(&mut self) {
@@ -896,17 +894,14 @@ mod tests {
             .iter()
             .enumerate()
             .map(|(k, &d)| PixelSample {
-                q: 0.01 + d,
-                u: -0.02 - d * 0.5,
+                qu: mueller::Qu::new(0.01 + d, -0.02 - d * 0.5, 1e-6, 1e-6, 0.0),
                 i: 5000.0 + (k % 7) as f64,
-                var_q: 1e-6,
-                var_u: 1e-6,
             })
             .collect();
         // A star: bright, same polarization; a cosmic ray: wild q.
         s[10].i = 50000.0;
         s[11].i = 20000.0;
-        s[500].q = 0.5;
+        s[500].qu.q = 0.5;
         let b = clipped_bin(&s, ClipConfig::default(), 10).unwrap();
         assert!(b.n_kept <= 897 && b.n_kept > 880, "{}", b.n_kept);
         assert!((b.qu.q - 0.01).abs() < 1e-4, "{}", b.qu.q);
@@ -917,8 +912,8 @@ mod tests {
 
     #[test]
     fn identical_values_survive_and_outlier_goes() {
-        let mut s = vec![PixelSample { q: 0.02, u: 0.01, i: 100.0, var_q: 0.0, var_u: 0.0 }; 50];
-        s[3].q = 0.9;
+        let mut s = vec![PixelSample { qu: mueller::Qu::new(0.02, 0.01, 0.0, 0.0, 0.0), i: 100.0 }; 50];
+        s[3].qu.q = 0.9;
         let b = clipped_bin(&s, ClipConfig::default(), 2).unwrap();
         assert_eq!(b.n_kept, 49);
         assert!((b.qu.q - 0.02).abs() < 1e-15);

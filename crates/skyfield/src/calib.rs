@@ -1369,7 +1369,6 @@ fn open_master(path: &Path, inst: &Instrument, kind: &str) -> Result<OpenMaster,
     })
 }
 
-/// Calibrate one exposure (its chip files) into the detector frame.
 /// A chip file opened by the worker calibrating it.
 struct Opened {
     path: PathBuf,
@@ -1377,6 +1376,7 @@ struct Opened {
     img: ImageHdu,
 }
 
+/// Calibrate one exposure (its chip files) into the detector frame.
 fn calibrate_exposure(
     files: Vec<ChipFile>,
     inst: &Instrument,
@@ -1403,213 +1403,8 @@ fn calibrate_exposure(
             exp_keys.push((k.clone(), cf.img.key(k)));
         }
         heads.push((h, exp_keys));
-        let c = &chips[cf.chip];
-        // Binning: the instrument's geometry is for one binning only.
-        if fmt.binning.len() == 2 && fmt.binning_keywords.len() == 2 {
-            let mut got = [0.0; 2];
-            for a in 0..2 {
-                let k = &fmt.binning_keywords[a];
-                got[a] = cf
-                    .img
-                    .number(&path, k, "a binning factor")?
-                    .ok_or_else(|| Error::MissingKeyword { path: path.clone(), keyword: k.clone() })?;
-            }
-            if got != [fmt.binning[0] as f64, fmt.binning[1] as f64] {
-                return Err(Error::Invalid(format!(
-                    "{}: binned {} x {} ('{}', '{}') but instrument {} is defined for {} x {} binning; use an instrument file for this binning",
-                    path.display(),
-                    got[0],
-                    got[1],
-                    fmt.binning_keywords[0],
-                    fmt.binning_keywords[1],
-                    inst.name,
-                    fmt.binning[0],
-                    fmt.binning[1]
-                )));
-            }
-        }
-        let mut missing = Vec::new();
-        let mut counts = [0usize; 4];
-        for (n, v) in [&c.prescan_x, &c.overscan_x, &c.prescan_y, &c.overscan_y].into_iter().enumerate() {
-            match resolve(cf, v, 0.0, "a number of pixels")? {
-                Ok(x) if x.fract() == 0.0 && x < 1e6 => counts[n] = x as usize,
-                Ok(x) => {
-                    return Err(Error::Invalid(format!(
-                        "{}: a pre/overscan of {x} px is not a whole number",
-                        path.display()
-                    )))
-                }
-                Err(k) => missing.push(k),
-            }
-        }
-        if !missing.is_empty() {
-            return Err(Error::Invalid(format!(
-                "{}: missing prescan/overscan header keyword{} {} (instrument {} reads the chip {} regions from them)",
-                path.display(),
-                if missing.len() > 1 { "s" } else { "" },
-                missing.iter().map(|k| format!("'{k}'")).collect::<Vec<_>>().join(", "),
-                inst.name,
-                c.name
-            )));
-        }
-        let [prx, ovx, pry, ovy] = counts;
-        let [cx, cy] = c.size_px;
-        if cf.img.nx != prx + cx + ovx || cf.img.ny != pry + cy + ovy {
-            return Err(Error::SizeMismatch {
-                path: path.clone(),
-                got_nx: cf.img.nx,
-                got_ny: cf.img.ny,
-                expected: format!(
-                    "chip {} of instrument {} is {cx} x {cy} px plus prescan/overscan {prx} + {ovx} columns and {pry} + {ovy} rows{}",
-                    c.name,
-                    inst.name,
-                    if fmt.chips.is_empty() { String::new() } else { assembled_hint(cf.img.nx, cf.img.ny, inst) }
-                ),
-            });
-        }
-        let gain = match resolve(cf, &c.gain_e_per_adu, d.gain_e_per_adu, "a gain in e-/ADU")? {
-            Ok(g) if g > 0.0 => g,
-            Ok(g) => return Err(Error::Invalid(format!("{}: gain {g} e-/ADU must be positive", path.display()))),
-            Err(k) => return Err(Error::MissingKeyword { path: path.clone(), keyword: k }),
-        };
-        let rn = match resolve(cf, &c.read_noise_e, d.read_noise_e, "a read noise in e-")? {
-            Ok(r) => r,
-            Err(k) => return Err(Error::MissingKeyword { path: path.clone(), keyword: k }),
-        };
+        let (chip, rn) = calibrate_chip(cf, &chips[cf.chip], inst, stage, masters)?;
         rn2 = rn2.max(rn * rn);
-        let sat = c.saturation_adu.unwrap_or(d.saturation_adu);
-        // The raw image stays in its file (read by rows later, as the reduction needs them)
-        // unless only CFITSIO can decode it.
-        let [x0, y0] = c.origin_px;
-        let rnx = cf.img.nx;
-        let mut chip = ChipRows {
-            path: path.clone(),
-            src: pixel_source(&path, &mut cf.img)?,
-            rnx,
-            prx,
-            pry,
-            cx,
-            cy,
-            x0,
-            y0,
-            level: 0.0,
-            to_e: 1.0,
-            sat,
-            use_bias: false,
-            use_flat: false,
-        };
-        let mut row = vec![0.0f64; rnx];
-        let mut bytes = Vec::new();
-        // The bias level from the prescan and overscan pixels (in row-major order: the mean
-        // sums them in that order). Only those rows are read when the chip has no prescan or
-        // overscan columns.
-        let mut scan = Vec::new();
-        // Each scan row's median, and each scan column's values beside the image rows, to see
-        // light where only the bias should be.
-        let mut row_levels: Vec<(usize, f64)> = Vec::new();
-        let scan_cols: Vec<usize> = (0..prx).chain(prx + cx..rnx).collect();
-        let mut col_values: Vec<Vec<f64>> = vec![Vec::new(); scan_cols.len()];
-        for y in 0..cf.img.ny {
-            let in_rows = y < pry || y >= pry + cy;
-            if !in_rows && prx + ovx == 0 {
-                continue;
-            }
-            chip.raw_row(y, &mut row, &mut bytes)?;
-            if in_rows {
-                let before = scan.len();
-                push_usable(&mut scan, &row, sat);
-                if scan.len() > before {
-                    let mut r = scan[before..].to_vec();
-                    row_levels.push((y, robust::median(&mut r, Middle::Mean)));
-                }
-            } else {
-                push_usable(&mut scan, &row[..prx], sat);
-                push_usable(&mut scan, &row[prx + cx..], sat);
-                for (vals, &x) in col_values.iter_mut().zip(&scan_cols) {
-                    push_usable(vals, &row[x..x + 1], sat);
-                }
-            }
-        }
-        let col_levels: Vec<(usize, f64)> = scan_cols
-            .iter()
-            .zip(col_values.iter_mut())
-            .filter(|(_, v)| !v.is_empty())
-            .map(|(&x, v)| (x, robust::median(v, Middle::Mean)))
-            .collect();
-        let declared = (prx + ovx) * cy + (pry + ovy) * rnx;
-        let scan_level = robust_mean(scan);
-        // A scan row far above the scan's level holds light: the pre/overscan keywords do
-        // not fit the chip (7 + 3 rows given for 5 + 5 put two image rows in the "prescan",
-        // and the bias taken from it 16 % of the sky too high). 20 read noises (at least 20
-        // ADU) is far beyond a bias row's own structure.
-        if let Some(level) = scan_level {
-            let limit = (20.0 * rn / gain).max(20.0);
-            let rows = row_levels.iter().map(|&(y, l)| ("row", y, l));
-            let cols = col_levels.iter().map(|&(x, l)| ("column", x, l));
-            if let Some((what, k, l)) = rows.chain(cols).find(|(_, _, l)| l - level > limit) {
-                return Err(Error::Invalid(format!(
-                    "{}: chip {}: its prescan/overscan {what} {k} sits {:.0} ADU above the scan's level of {level:.1} ADU: it holds light, so the scan regions ({pry} + {ovy} rows, {prx} + {ovx} columns) do not fit the chip; check the pre/overscan keywords",
-                    path.display(),
-                    c.name,
-                    l - level
-                )));
-            }
-        }
-        // Declared pre/overscan regions with no usable pixel (all NaN, BLANK or saturated):
-        // the bias level cannot be measured, and the frame would be reduced with it in.
-        if c.subtract_overscan && declared > 0 && scan_level.is_none() {
-            return Err(Error::Invalid(format!(
-                "{}: chip {}: none of its {declared} prescan/overscan pixels is usable (NaN, BLANK or saturated): its bias level cannot be measured; the file is damaged or its scan keywords are wrong",
-                path.display(),
-                c.name
-            )));
-        }
-        let subtract_scan = c.subtract_overscan && scan_level.is_some();
-        let level = if subtract_scan { scan_level.unwrap_or(0.0) } else { 0.0 };
-        let bias_map = if stage == Stage::Bias { None } else { masters.bias.as_ref() };
-        // A frame still carrying its bias is refused, never reduced silently.
-        if stage != Stage::Bias && !subtract_scan && bias_map.is_none() {
-            let rn_adu = rn / gain;
-            if let Some(l) = scan_level.filter(|l| *l > 10.0 * rn_adu.max(1.0)) {
-                return Err(Error::Invalid(format!(
-                    "{}: the chip {} overscan sits at {l:.1} ADU, so the frame still carries its bias level, and instrument {} does not subtract the overscan: give a master bias (--bias)",
-                    path.display(),
-                    c.name,
-                    inst.name
-                )));
-            }
-            if let Some(b) = fmt.raw_bias_adu {
-                let mut sample: Vec<f64> = Vec::new();
-                let step = ((cx * cy) / 20000).max(1);
-                for y in (pry..pry + cy).step_by(1.max(step / cx.max(1))) {
-                    chip.raw_row(y, &mut row, &mut bytes)?;
-                    sample.extend(
-                        row[prx..prx + cx].iter().step_by(step.min(cx).max(1)).copied().filter(|v| v.is_finite()),
-                    );
-                }
-                sample.sort_by(f64::total_cmp);
-                let q = sample.get(sample.len() / 100).copied().unwrap_or(0.0);
-                if q >= b - 5.0 * rn_adu.max(1.0) {
-                    return Err(Error::Invalid(format!(
-                        "{}: the frame still carries its bias level: its darkest 1% of pixels sit at {q:.1} ADU, at or above the raw bias of {b} ADU of instrument {} (format.raw_bias_adu), and no overscan is subtracted: give a master bias (--bias)",
-                        path.display(),
-                        inst.name
-                    )));
-                }
-            }
-        }
-        // Without overscan or master bias, the instrument's constant bias (as for plain frames),
-        // unless the frames are declared bias corrected already.
-        let const_bias =
-            if stage != Stage::Bias && !subtract_scan && bias_map.is_none() && !fmt.already(Correction::Bias) {
-                d.bias_adu
-            } else {
-                0.0
-            };
-        chip.level = level + const_bias;
-        chip.to_e = if stage == Stage::Bias { 1.0 } else { gain };
-        chip.use_bias = bias_map.is_some();
-        chip.use_flat = stage == Stage::Science && masters.flat.is_some();
         chip_rows.push(chip);
     }
     check_one_exposure(&files, &heads, inst)?;
@@ -1624,6 +1419,280 @@ fn calibrate_exposure(
         rows: Calibrated { chips: chip_rows, masters: masters.clone(), nx, ny },
         rn2,
     })
+}
+
+/// One chip file's calibration: its binning and regions checked against the instrument, its
+/// gain and read noise, and the level to subtract (the pre/overscan's, else the instrument's
+/// constant bias, none where a master bias is used or for a master bias itself). Returns the
+/// chip's rows to read and its read noise in electrons.
+fn calibrate_chip(
+    cf: &mut Opened,
+    c: &Chip,
+    inst: &Instrument,
+    stage: Stage,
+    masters: &Masters,
+) -> Result<(ChipRows, f64), Error> {
+    let d = &inst.detector;
+    let fmt = &inst.format;
+    let path = cf.path.clone();
+    check_binning(cf, inst)?;
+    let counts = scan_counts(cf, c, inst)?;
+    let [prx, _, pry, _] = counts;
+    let [cx, cy] = c.size_px;
+    let gain = match resolve(cf, &c.gain_e_per_adu, d.gain_e_per_adu, "a gain in e-/ADU")? {
+        Ok(g) if g > 0.0 => g,
+        Ok(g) => return Err(Error::Invalid(format!("{}: gain {g} e-/ADU must be positive", path.display()))),
+        Err(k) => return Err(Error::MissingKeyword { path: path.clone(), keyword: k }),
+    };
+    let rn = match resolve(cf, &c.read_noise_e, d.read_noise_e, "a read noise in e-")? {
+        Ok(r) => r,
+        Err(k) => return Err(Error::MissingKeyword { path: path.clone(), keyword: k }),
+    };
+    let sat = c.saturation_adu.unwrap_or(d.saturation_adu);
+    // The raw image stays in its file (read by rows later, as the reduction needs them)
+    // unless only CFITSIO can decode it.
+    let [x0, y0] = c.origin_px;
+    let rnx = cf.img.nx;
+    let mut chip = ChipRows {
+        path: path.clone(),
+        src: pixel_source(&path, &mut cf.img)?,
+        rnx,
+        prx,
+        pry,
+        cx,
+        cy,
+        x0,
+        y0,
+        level: 0.0,
+        to_e: 1.0,
+        sat,
+        use_bias: false,
+        use_flat: false,
+    };
+    let scan_level = scan_level(&chip, cf.img.ny, counts, c, (rn, gain))?;
+    let subtract_scan = c.subtract_overscan && scan_level.is_some();
+    let level = if subtract_scan { scan_level.unwrap_or(0.0) } else { 0.0 };
+    let bias_map = if stage == Stage::Bias { None } else { masters.bias.as_ref() };
+    // A frame still carrying its bias is refused, never reduced silently.
+    if stage != Stage::Bias && !subtract_scan && bias_map.is_none() {
+        check_bias_removed(&chip, c, inst, scan_level, rn / gain)?;
+    }
+    // Without overscan or master bias, the instrument's constant bias (as for plain frames),
+    // unless the frames are declared bias corrected already.
+    let const_bias = if stage != Stage::Bias && !subtract_scan && bias_map.is_none() && !fmt.already(Correction::Bias) {
+        d.bias_adu
+    } else {
+        0.0
+    };
+    chip.level = level + const_bias;
+    chip.to_e = if stage == Stage::Bias { 1.0 } else { gain };
+    chip.use_bias = bias_map.is_some();
+    chip.use_flat = stage == Stage::Science && masters.flat.is_some();
+    Ok((chip, rn))
+}
+
+/// The chip file's binning, where the format names its keywords: the instrument's geometry is
+/// for one binning only.
+fn check_binning(cf: &mut Opened, inst: &Instrument) -> Result<(), Error> {
+    let fmt = &inst.format;
+    let path = cf.path.clone();
+    if fmt.binning.len() == 2 && fmt.binning_keywords.len() == 2 {
+        let mut got = [0.0; 2];
+        for a in 0..2 {
+            let k = &fmt.binning_keywords[a];
+            got[a] = cf
+                .img
+                .number(&path, k, "a binning factor")?
+                .ok_or_else(|| Error::MissingKeyword { path: path.clone(), keyword: k.clone() })?;
+        }
+        if got != [fmt.binning[0] as f64, fmt.binning[1] as f64] {
+            return Err(Error::Invalid(format!(
+                "{}: binned {} x {} ('{}', '{}') but instrument {} is defined for {} x {} binning; use an instrument file for this binning",
+                path.display(),
+                got[0],
+                got[1],
+                fmt.binning_keywords[0],
+                fmt.binning_keywords[1],
+                inst.name,
+                fmt.binning[0],
+                fmt.binning[1]
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// The chip's prescan and overscan sizes `[prescan x, overscan x, prescan y, overscan y]` (in
+/// pixels, given or read from the keywords the instrument names), checked to add up with the
+/// chip to the file's image size.
+fn scan_counts(cf: &mut Opened, c: &Chip, inst: &Instrument) -> Result<[usize; 4], Error> {
+    let path = cf.path.clone();
+    let mut missing = Vec::new();
+    let mut counts = [0usize; 4];
+    for (n, v) in [&c.prescan_x, &c.overscan_x, &c.prescan_y, &c.overscan_y].into_iter().enumerate() {
+        match resolve(cf, v, 0.0, "a number of pixels")? {
+            Ok(x) if x.fract() == 0.0 && x < 1e6 => counts[n] = x as usize,
+            Ok(x) => {
+                return Err(Error::Invalid(format!(
+                    "{}: a pre/overscan of {x} px is not a whole number",
+                    path.display()
+                )))
+            }
+            Err(k) => missing.push(k),
+        }
+    }
+    if !missing.is_empty() {
+        return Err(Error::Invalid(format!(
+            "{}: missing prescan/overscan header keyword{} {} (instrument {} reads the chip {} regions from them)",
+            path.display(),
+            if missing.len() > 1 { "s" } else { "" },
+            missing.iter().map(|k| format!("'{k}'")).collect::<Vec<_>>().join(", "),
+            inst.name,
+            c.name
+        )));
+    }
+    let [prx, ovx, pry, ovy] = counts;
+    let [cx, cy] = c.size_px;
+    if cf.img.nx != prx + cx + ovx || cf.img.ny != pry + cy + ovy {
+        return Err(Error::SizeMismatch {
+            path: path.clone(),
+            got_nx: cf.img.nx,
+            got_ny: cf.img.ny,
+            expected: format!(
+                "chip {} of instrument {} is {cx} x {cy} px plus prescan/overscan {prx} + {ovx} columns and {pry} + {ovy} rows{}",
+                c.name,
+                inst.name,
+                if inst.format.chips.is_empty() { String::new() } else { assembled_hint(cf.img.nx, cf.img.ny, inst) }
+            ),
+        });
+    }
+    Ok(counts)
+}
+
+/// The bias level of the chip's prescan and overscan pixels (their robust mean; `None` when
+/// none is usable), refused when a scan row or column holds light, or when the declared
+/// regions have no usable pixel and the instrument subtracts the overscan. `noise` is the read
+/// noise in electrons and the gain in e-/ADU; `ny` the file's rows; `counts` as
+/// [`scan_counts`] gives them.
+fn scan_level(
+    chip: &ChipRows,
+    ny: usize,
+    counts: [usize; 4],
+    c: &Chip,
+    (rn, gain): (f64, f64),
+) -> Result<Option<f64>, Error> {
+    let [prx, ovx, pry, ovy] = counts;
+    let (rnx, cx, cy, sat) = (chip.rnx, chip.cx, chip.cy, chip.sat);
+    let path = &chip.path;
+    let mut row = vec![0.0f64; rnx];
+    let mut bytes = Vec::new();
+    // The bias level from the prescan and overscan pixels (in row-major order: the mean
+    // sums them in that order). Only those rows are read when the chip has no prescan or
+    // overscan columns.
+    let mut scan = Vec::new();
+    // Each scan row's median, and each scan column's values beside the image rows, to see
+    // light where only the bias should be.
+    let mut row_levels: Vec<(usize, f64)> = Vec::new();
+    let scan_cols: Vec<usize> = (0..prx).chain(prx + cx..rnx).collect();
+    let mut col_values: Vec<Vec<f64>> = vec![Vec::new(); scan_cols.len()];
+    for y in 0..ny {
+        let in_rows = y < pry || y >= pry + cy;
+        if !in_rows && prx + ovx == 0 {
+            continue;
+        }
+        chip.raw_row(y, &mut row, &mut bytes)?;
+        if in_rows {
+            let before = scan.len();
+            push_usable(&mut scan, &row, sat);
+            if scan.len() > before {
+                let mut r = scan[before..].to_vec();
+                row_levels.push((y, robust::median(&mut r, Middle::Mean)));
+            }
+        } else {
+            push_usable(&mut scan, &row[..prx], sat);
+            push_usable(&mut scan, &row[prx + cx..], sat);
+            for (vals, &x) in col_values.iter_mut().zip(&scan_cols) {
+                push_usable(vals, &row[x..x + 1], sat);
+            }
+        }
+    }
+    let col_levels: Vec<(usize, f64)> = scan_cols
+        .iter()
+        .zip(col_values.iter_mut())
+        .filter(|(_, v)| !v.is_empty())
+        .map(|(&x, v)| (x, robust::median(v, Middle::Mean)))
+        .collect();
+    let declared = (prx + ovx) * cy + (pry + ovy) * rnx;
+    let scan_level = robust_mean(scan);
+    // A scan row far above the scan's level holds light: the pre/overscan keywords do
+    // not fit the chip (7 + 3 rows given for 5 + 5 put two image rows in the "prescan",
+    // and the bias taken from it 16 % of the sky too high). 20 read noises (at least 20
+    // ADU) is far beyond a bias row's own structure.
+    if let Some(level) = scan_level {
+        let limit = (20.0 * rn / gain).max(20.0);
+        let rows = row_levels.iter().map(|&(y, l)| ("row", y, l));
+        let cols = col_levels.iter().map(|&(x, l)| ("column", x, l));
+        if let Some((what, k, l)) = rows.chain(cols).find(|(_, _, l)| l - level > limit) {
+            return Err(Error::Invalid(format!(
+                "{}: chip {}: its prescan/overscan {what} {k} sits {:.0} ADU above the scan's level of {level:.1} ADU: it holds light, so the scan regions ({pry} + {ovy} rows, {prx} + {ovx} columns) do not fit the chip; check the pre/overscan keywords",
+                path.display(),
+                c.name,
+                l - level
+            )));
+        }
+    }
+    // Declared pre/overscan regions with no usable pixel (all NaN, BLANK or saturated):
+    // the bias level cannot be measured, and the frame would be reduced with it in.
+    if c.subtract_overscan && declared > 0 && scan_level.is_none() {
+        return Err(Error::Invalid(format!(
+            "{}: chip {}: none of its {declared} prescan/overscan pixels is usable (NaN, BLANK or saturated): its bias level cannot be measured; the file is damaged or its scan keywords are wrong",
+            path.display(),
+            c.name
+        )));
+    }
+    Ok(scan_level)
+}
+
+/// A frame from which no bias is removed (no overscan subtracted, no master bias) must not
+/// still carry its bias: refused when its overscan sits well above zero, or when its darkest
+/// 1 % of pixels reach the format's raw bias level. `rn_adu` is the read noise in ADU.
+fn check_bias_removed(
+    chip: &ChipRows,
+    c: &Chip,
+    inst: &Instrument,
+    scan_level: Option<f64>,
+    rn_adu: f64,
+) -> Result<(), Error> {
+    let path = &chip.path;
+    let (prx, pry, cx, cy) = (chip.prx, chip.pry, chip.cx, chip.cy);
+    if let Some(l) = scan_level.filter(|l| *l > 10.0 * rn_adu.max(1.0)) {
+        return Err(Error::Invalid(format!(
+            "{}: the chip {} overscan sits at {l:.1} ADU, so the frame still carries its bias level, and instrument {} does not subtract the overscan: give a master bias (--bias)",
+            path.display(),
+            c.name,
+            inst.name
+        )));
+    }
+    if let Some(b) = inst.format.raw_bias_adu {
+        let mut row = vec![0.0f64; chip.rnx];
+        let mut bytes = Vec::new();
+        let mut sample: Vec<f64> = Vec::new();
+        let step = ((cx * cy) / 20000).max(1);
+        for y in (pry..pry + cy).step_by(1.max(step / cx.max(1))) {
+            chip.raw_row(y, &mut row, &mut bytes)?;
+            sample.extend(row[prx..prx + cx].iter().step_by(step.min(cx).max(1)).copied().filter(|v| v.is_finite()));
+        }
+        sample.sort_by(f64::total_cmp);
+        let q = sample.get(sample.len() / 100).copied().unwrap_or(0.0);
+        if q >= b - 5.0 * rn_adu.max(1.0) {
+            return Err(Error::Invalid(format!(
+                "{}: the frame still carries its bias level: its darkest 1% of pixels sit at {q:.1} ADU, at or above the raw bias of {b} ADU of instrument {} (format.raw_bias_adu), and no overscan is subtracted: give a master bias (--bias)",
+                path.display(),
+                inst.name
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// The chip files of one exposure must agree on what the exposure was: plate angle (or range),

@@ -652,7 +652,6 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
     let inst = &*inst.for_filter(src.filter());
     let (nx, ny, n) = (src.nx(), src.ny(), src.angles_deg().len());
     let files = src.files();
-    let chips = src.chips();
     if n == 0 || files.iter().any(|f| f.is_empty()) {
         return Err(Error::NoFrames);
     }
@@ -672,103 +671,172 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
     // The unpaired sources and where the layout puts their e images, for the overlap test.
     let unpaired_e: Vec<(&Source, Option<(f64, f64)>)> =
         unpaired.iter().map(|&k| (&sources[k], g.e_position(sources[k].x, sources[k].y))).collect();
+    let detected = Detected { sources: &sources, g: &g, unpaired_e: &unpaired_e, pair_tol_px: dcfg.pair_tol_px };
     let chi_off = inst.filter(src.filter()).map(|f| f.chi_offset_deg()).unwrap_or(0.0);
     let opts = PhotOptions { weighting: cfg.weighting, recentre: true, kappa: cfg.kappa };
     let circular = circular_plate(src, inst)?;
-    // Each star's row as far as the detection tells (its flags), and the aperture radii to
-    // measure it with, each with its placement checked (nothing to measure when saturated).
-    let planned: Vec<(Row, Result<Vec<Try>, Error>)> = pairs
-        .par_iter()
-        .enumerate()
-        .map(|(id, pr)| {
-            let (so, se) = (&sources[pr.o], &sources[pr.e]);
-            let (xa, ya) = inst.pixel_to_arcmin(so.x, so.y);
-            let mut flags = 0;
-            if so.saturated || se.saturated {
-                flags |= flags::SATURATED;
-            }
-            // Blended: another source within two aperture radii (the radius this star will get;
-            // for the best-S/N choice, its largest candidate's typical 2 FWHM).
-            let r_nominal = match cfg.radius {
-                ApertureRadius::Px(r) => r,
-                ApertureRadius::FwhmMultiple(k) => k * so.fwhm_px,
-                ApertureRadius::BestSnr => 2.0 * so.fwhm_px,
-            };
-            let blend_r = 2.0 * if r_nominal.is_finite() { r_nominal } else { 2.0 * cfg.detect.fwhm_px };
-            // (The box test first: it is exact and spares the hypot of far sources.)
-            let near = |s: &Source, skip: [usize; 2]| {
-                sources.iter().enumerate().any(|(k, t)| {
-                    (t.x - s.x).abs() < blend_r
-                        && (t.y - s.y).abs() < blend_r
-                        && !skip.contains(&k)
-                        && (t.x - s.x).hypot(t.y - s.y) < blend_r
-                })
-            };
-            if near(so, [pr.o, pr.e]) || near(se, [pr.o, pr.e]) {
-                flags |= flags::BLENDED;
-            }
-            if crate::detect::shared_image(&g, &unpaired_e, (so.x, so.y), (se.x, se.y), dcfg.pair_tol_px).is_some() {
-                flags |= flags::OVERLAP;
-            }
-            let nan = f64::NAN;
-            let mut row = Row {
-                id: id + 1,
-                x: so.x,
-                y: so.y,
-                x_e: se.x,
-                y_e: se.y,
-                x_arcmin: xa,
-                y_arcmin: ya,
-                fwhm_px: so.fwhm_px,
-                aperture_px: nan,
-                flux_e: nan,
-                f: vec![],
-                q: nan,
-                u: nan,
-                sigma_q: nan,
-                sigma_u: nan,
-                cov_qu: nan,
-                p: nan,
-                sigma_p: nan,
-                chi_deg: nan,
-                sigma_chi_deg: nan,
-                a0: nan,
-                kappa: None,
-                kappa_applied: None,
-                chi2_mod: nan,
-                dof_mod: 0,
-                sigma_q_scatter: nan,
-                sigma_u_scatter: nan,
-                flags,
-                note: String::new(),
-                outlier_exposures: vec![],
-                v: None,
-                sigma_v: None,
-                ra_deg: None,
-                dec_deg: None,
-            };
-            if flags & flags::SATURATED != 0 {
-                row.note = "saturated: not measured".into();
-                return (row, Ok(vec![]));
-            }
-            if flags & flags::OVERLAP != 0 {
-                row.note = "its image overlaps another star's other image: not measured".into();
-                return (row, Ok(vec![]));
-            }
-            // The detection's FWHM of the o image, or the expected one if it could not be measured.
-            let fwhm = if so.fwhm_px.is_finite() && so.fwhm_px > 0.0 { so.fwhm_px } else { cfg.detect.fwhm_px };
-            let tries = candidate_radii(so.x, so.y, cfg.radius, fwhm, cfg.annulus).map(|radii| {
-                radii
-                    .into_iter()
-                    .map(|r| {
-                        let ap = Aperture { radius_px: r, annulus: cfg.annulus };
-                        (r, check_placement(&g, so.x, so.y, &ap, &opts))
-                    })
-                    .collect()
-            });
-            (row, tries)
+    let planned: Vec<(Row, Result<Vec<Try>, Error>)> =
+        pairs.par_iter().enumerate().map(|(id, pr)| plan_star(id, pr, &detected, inst, cfg, &opts)).collect();
+    let by_star = measure_every_frame(src, &planned, &g, cfg, &opts)?;
+    // Each star reduced at each radius (the first failing frame, in angle order, is its error,
+    // as when it is measured alone), its radius chosen, its row filled.
+    let reduce = Reduce { src, circular: &circular, cfg, opts: &opts, chi_off };
+    let measured: Vec<(Row, Option<Vec<[f64; 4]>>)> =
+        planned.into_par_iter().zip(by_star).map(|((row, tries), frames)| reduce.star(row, tries, frames)).collect();
+    let good: Vec<&Vec<[f64; 4]>> = measured.iter().filter_map(|(_, c)| c.as_ref()).collect();
+    let alignment = frame_alignment(src.angles_deg(), &good);
+    let rows: Vec<Row> = measured.into_iter().map(|(r, _)| r).collect();
+    Ok(Catalog {
+        hwp_deg: src.angles_deg().to_vec(),
+        filter: src.filter().to_string(),
+        chi_offset_deg: chi_off,
+        oe_offset_px: g.oe_offset,
+        camera_transform: CameraTransform::of(&g),
+        qwp_zero_angle_deg: circular.as_ref().map(|c| c.1),
+        rows,
+        unpaired: unpaired.iter().map(|&k| (sources[k].x, sources[k].y)).collect(),
+        unpaired_why: crate::detect::Unpaired::of(&sources, &g, &unpaired),
+        unpaired_shift_px: crate::detect::unpaired_shift(&sources, &unpaired, &g, UNPAIRED_REACH_PX),
+        n_sources: sources.len(),
+        alignment,
+        exposures: None,
+        product: None,
+        grouping: None,
+        frames: vec![],
+    })
+}
+
+/// What the first frame's detection found: every source, the layout, the unpaired sources
+/// with where the layout puts their e images, and the pairing tolerance.
+struct Detected<'a> {
+    sources: &'a [Source],
+    g: &'a BeamGeometry,
+    unpaired_e: &'a [(&'a Source, Option<(f64, f64)>)],
+    pair_tol_px: f64,
+}
+
+/// A star's measurements in every frame, at each of its candidate radii (`None` where the
+/// aperture does not fit): `[frame][radius]`.
+type StarFrames = Vec<Vec<Option<Result<FrameFluxes, Error>>>>;
+
+/// A star's row as far as the detection tells (its flags: saturated, blended, overlapping),
+/// and the aperture radii to measure it with, each with its placement checked (nothing to
+/// measure when saturated or overlapping).
+fn plan_star(
+    id: usize,
+    pr: &crate::detect::Pair,
+    d: &Detected,
+    inst: &Instrument,
+    cfg: &CatalogConfig,
+    opts: &PhotOptions,
+) -> (Row, Result<Vec<Try>, Error>) {
+    let (sources, g) = (d.sources, d.g);
+    let (so, se) = (&sources[pr.o], &sources[pr.e]);
+    let (xa, ya) = inst.pixel_to_arcmin(so.x, so.y);
+    let mut flags = 0;
+    if so.saturated || se.saturated {
+        flags |= flags::SATURATED;
+    }
+    // Blended: another source within two aperture radii (the radius this star will get;
+    // for the best-S/N choice, its largest candidate's typical 2 FWHM).
+    let r_nominal = match cfg.radius {
+        ApertureRadius::Px(r) => r,
+        ApertureRadius::FwhmMultiple(k) => k * so.fwhm_px,
+        ApertureRadius::BestSnr => 2.0 * so.fwhm_px,
+    };
+    let blend_r = 2.0 * if r_nominal.is_finite() { r_nominal } else { 2.0 * cfg.detect.fwhm_px };
+    // (The box test first: it is exact and spares the hypot of far sources.)
+    let near = |s: &Source, skip: [usize; 2]| {
+        sources.iter().enumerate().any(|(k, t)| {
+            (t.x - s.x).abs() < blend_r
+                && (t.y - s.y).abs() < blend_r
+                && !skip.contains(&k)
+                && (t.x - s.x).hypot(t.y - s.y) < blend_r
         })
-        .collect();
+    };
+    if near(so, [pr.o, pr.e]) || near(se, [pr.o, pr.e]) {
+        flags |= flags::BLENDED;
+    }
+    if crate::detect::shared_image(g, d.unpaired_e, (so.x, so.y), (se.x, se.y), d.pair_tol_px).is_some() {
+        flags |= flags::OVERLAP;
+    }
+    let mut row = detected_row(id + 1, so, se, (xa, ya), flags);
+    if flags & flags::SATURATED != 0 {
+        row.note = "saturated: not measured".into();
+        return (row, Ok(vec![]));
+    }
+    if flags & flags::OVERLAP != 0 {
+        row.note = "its image overlaps another star's other image: not measured".into();
+        return (row, Ok(vec![]));
+    }
+    // The detection's FWHM of the o image, or the expected one if it could not be measured.
+    let fwhm = if so.fwhm_px.is_finite() && so.fwhm_px > 0.0 { so.fwhm_px } else { cfg.detect.fwhm_px };
+    let tries = candidate_radii(so.x, so.y, cfg.radius, fwhm, cfg.annulus).map(|radii| {
+        radii
+            .into_iter()
+            .map(|r| {
+                let ap = Aperture { radius_px: r, annulus: cfg.annulus };
+                (r, check_placement(g, so.x, so.y, &ap, opts))
+            })
+            .collect()
+    });
+    (row, tries)
+}
+
+/// The row of star `id` (its o image `so`, e image `se`, field position `arcmin`) as detected:
+/// every measured value NaN until it is measured.
+fn detected_row(id: usize, so: &Source, se: &Source, arcmin: (f64, f64), flags: u32) -> Row {
+    let nan = f64::NAN;
+    Row {
+        id,
+        x: so.x,
+        y: so.y,
+        x_e: se.x,
+        y_e: se.y,
+        x_arcmin: arcmin.0,
+        y_arcmin: arcmin.1,
+        fwhm_px: so.fwhm_px,
+        aperture_px: nan,
+        flux_e: nan,
+        f: vec![],
+        q: nan,
+        u: nan,
+        sigma_q: nan,
+        sigma_u: nan,
+        cov_qu: nan,
+        p: nan,
+        sigma_p: nan,
+        chi_deg: nan,
+        sigma_chi_deg: nan,
+        a0: nan,
+        kappa: None,
+        kappa_applied: None,
+        chi2_mod: nan,
+        dof_mod: 0,
+        sigma_q_scatter: nan,
+        sigma_u_scatter: nan,
+        flags,
+        note: String::new(),
+        outlier_exposures: vec![],
+        v: None,
+        sigma_v: None,
+        ra_deg: None,
+        dec_deg: None,
+    }
+}
+
+/// Every planned star measured in every frame, the frames in parallel and each read once:
+/// by star, `[star][frame][radius]`.
+fn measure_every_frame<S: FrameSource>(
+    src: &S,
+    planned: &[(Row, Result<Vec<Try>, Error>)],
+    g: &BeamGeometry,
+    cfg: &CatalogConfig,
+    opts: &PhotOptions,
+) -> Result<Vec<StarFrames>, Error> {
+    let (nx, ny, n) = (src.nx(), src.ny(), src.angles_deg().len());
+    let files = src.files();
+    let chips = src.chips();
     // The last detector row each star's measurement can read: its centroid window (within
     // 2r + 5 of the detection), apertures and annuli about o and e centres that each lie
     // within r of where the detection and the layout put them, with a margin. Stars are
@@ -791,7 +859,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
     let mut order: Vec<usize> = (0..planned.len()).collect();
     order.sort_by_key(|&s| last_row[s]);
     // Every star in each frame: the frames in parallel, each read once.
-    let per_frame: Vec<Vec<Vec<Option<Result<FrameFluxes, Error>>>>> = (0..n)
+    let per_frame: Vec<StarFrames> = (0..n)
         .into_par_iter()
         .map(|i| {
             let facts = FrameFacts {
@@ -801,7 +869,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                 hwp_deg: src.angles_deg()[i],
                 chips: &chips[i],
             };
-            let mut out: Vec<Vec<Option<Result<FrameFluxes, Error>>>> = planned.iter().map(|_| vec![]).collect();
+            let mut out: StarFrames = planned.iter().map(|_| vec![]).collect();
             let mut next = 0;
             src.with_frame_rows(i, &mut |data| {
                 let ready = data.len() / nx.max(1);
@@ -821,7 +889,7 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
                             .iter()
                             .map(|(r, placed)| {
                                 let ap = Aperture { radius_px: *r, annulus: cfg.annulus };
-                                placed.is_ok().then(|| measure_frame(data, &g, row.x, row.y, &ap, &opts, &facts))
+                                placed.is_ok().then(|| measure_frame(data, g, row.x, row.y, &ap, opts, &facts))
                             })
                             .collect();
                         Some((s, m))
@@ -835,137 +903,133 @@ pub fn catalog_of<S: FrameSource>(src: &S, inst: &Instrument, cfg: &CatalogConfi
         })
         .collect::<Result<_, Error>>()?;
     // By star: [star][frame][radius].
-    let mut by_star: Vec<Vec<Vec<Option<Result<FrameFluxes, Error>>>>> =
-        planned.iter().map(|_| Vec::with_capacity(n)).collect();
+    let mut by_star: Vec<StarFrames> = planned.iter().map(|_| Vec::with_capacity(n)).collect();
     for frame in per_frame {
         for (s, v) in frame.into_iter().enumerate() {
             by_star[s].push(v);
         }
     }
-    // Each star reduced at each radius (the first failing frame, in angle order, is its error,
-    // as when it is measured alone), its radius chosen, its row filled.
-    let measured: Vec<(Row, Option<Vec<[f64; 4]>>)> = planned
-        .into_par_iter()
-        .zip(by_star)
-        .map(|((mut row, tries), frames)| {
-            if row.flags & flags::NOT_MEASURED != 0 {
-                return (row, None);
-            }
-            let (x, y) = (row.x, row.y);
-            let result = tries.and_then(|tries| {
-                let mut per_try: Vec<Vec<Result<FrameFluxes, Error>>> =
-                    tries.iter().map(|_| Vec::with_capacity(n)).collect();
-                for f in frames {
-                    for (k, r) in f.into_iter().enumerate() {
-                        if let Some(r) = r {
-                            per_try[k].push(r);
-                        }
+    Ok(by_star)
+}
+
+/// What reducing a star's frames takes: the frames (their angles, sweep and files), the
+/// quarter-wave plate's demodulation if any, the options, and the filter's zero angle.
+struct Reduce<'a, S> {
+    src: &'a S,
+    circular: &'a Option<(stokes::CircularSolver, f64)>,
+    cfg: &'a CatalogConfig,
+    opts: &'a PhotOptions,
+    chi_off: f64,
+}
+
+impl<S: FrameSource> Reduce<'_, S> {
+    /// A star reduced at each radius (the first failing frame, in angle order, is its error),
+    /// its radius chosen and its row filled; with its centres in each frame when measured.
+    fn star(&self, mut row: Row, tries: Result<Vec<Try>, Error>, frames: StarFrames) -> (Row, Option<Vec<[f64; 4]>>) {
+        if row.flags & flags::NOT_MEASURED != 0 {
+            return (row, None);
+        }
+        let (x, y) = (row.x, row.y);
+        let (src, files, n) = (self.src, self.src.files(), self.src.angles_deg().len());
+        let result = tries.and_then(|tries| {
+            let mut per_try: Vec<Vec<Result<FrameFluxes, Error>>> =
+                tries.iter().map(|_| Vec::with_capacity(n)).collect();
+            for f in frames {
+                for (k, r) in f.into_iter().enumerate() {
+                    if let Some(r) = r {
+                        per_try[k].push(r);
                     }
                 }
-                let tried = tries
-                    .into_iter()
-                    .zip(per_try)
-                    .map(|((r, placed), m)| {
-                        let ph = placed.and_then(|()| {
-                            let m: Vec<FrameFluxes> = m.into_iter().collect::<Result<_, _>>()?;
-                            let part = Partial::from_frames(src.angles_deg(), src.hwp_sweep_deg(), &m);
-                            match &circular {
-                                None => finish(part, files, x, y, &opts).map(|p| Measured::Linear(Box::new(p))),
-                                Some((solver, zero)) => {
-                                    finish_circular(part, files, x, y, solver, *zero).map(Measured::Circular)
-                                }
-                            }
-                        });
-                        (r, ph)
-                    })
-                    .collect();
-                pick_radius(cfg.radius, tried)
-            });
-            let mut centres = None;
-            match result {
-                Ok((Measured::Circular(ph), radius)) => {
-                    centres = Some(ph.centres.clone());
-                    row.aperture_px = radius;
-                    let n = ph.f_o.len();
-                    row.flux_e = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum::<f64>() / n as f64;
-                    row.f = ph.f_o.iter().zip(&ph.f_e).map(|(&o, &e)| stokes::normalized_difference(o, e)).collect();
-                    row.v = Some(ph.circular.v);
-                    row.sigma_v = Some(ph.circular.sigma_v());
-                }
-                Ok((Measured::Linear(ph), radius)) => {
-                    centres = Some(ph.centres.clone());
-                    row.aperture_px = radius;
-                    let r = &ph.reduction;
-                    let n = r.n;
-                    row.flux_e = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum::<f64>() / n as f64;
-                    row.f = r.f.clone();
-                    // In the sky's frame: the filter's HWP zero angle turns q, u as it turns chi.
-                    let (sky, chi_deg) = r.in_sky_frame(chi_off);
-                    row.q = sky.q;
-                    row.u = sky.u;
-                    row.sigma_q = sky.var_q.sqrt();
-                    row.sigma_u = sky.var_u.sqrt();
-                    row.cov_qu = sky.cov_qu;
-                    row.p = r.p;
-                    row.sigma_p = r.sigma_p;
-                    row.chi_deg = chi_deg;
-                    // Undetermined (NaN, as every command reports it) where P is at the noise.
-                    row.sigma_chi_deg = r.sigma_chi_deg_reported().unwrap_or(f64::NAN);
-                    row.a0 = r.a0;
-                    row.kappa = r.kappa_mean;
-                    row.kappa_applied = ph.kappa_applied;
-                    // Modulation chi^2: F_i about a_0 + Q cos 4theta + U sin 4theta (a_0 is fitted
-                    // too, as the Wollaston's transmission offset makes one).
-                    let chi2: f64 = r
-                        .theta
-                        .iter()
-                        .zip(&r.f)
-                        .zip(&r.sigma_f)
-                        .map(|((t, f), s)| {
-                            let m = r.a0 + r.qu.q * (4.0 * t).cos() + r.qu.u * (4.0 * t).sin();
-                            ((f - m) / s).powi(2)
-                        })
-                        .sum();
-                    let dof = n.saturating_sub(3);
-                    row.chi2_mod = chi2;
-                    row.dof_mod = dof;
-                    let scale = if dof > 0 { (chi2 / dof as f64).sqrt() } else { f64::NAN };
-                    row.sigma_q_scatter = row.sigma_q * scale;
-                    row.sigma_u_scatter = row.sigma_u * scale;
-                }
-                Err(e) => {
-                    row.flags |= match &e {
-                        Error::Unmeasurable { why: Unmeasurable::MaskEdge, .. } => flags::MASK_EDGE,
-                        Error::Unmeasurable { why: Unmeasurable::Saturated, .. } => flags::SATURATED,
-                        _ => flags::FAILED,
-                    };
-                    row.note = e.to_string();
-                }
             }
-            (row, centres)
+            let tried = tries
+                .into_iter()
+                .zip(per_try)
+                .map(|((r, placed), m)| {
+                    let ph = placed.and_then(|()| {
+                        let m: Vec<FrameFluxes> = m.into_iter().collect::<Result<_, _>>()?;
+                        let part = Partial::from_frames(src.angles_deg(), src.hwp_sweep_deg(), &m);
+                        match self.circular {
+                            None => finish(part, files, x, y, self.opts).map(|p| Measured::Linear(Box::new(p))),
+                            Some((solver, zero)) => {
+                                finish_circular(part, files, x, y, solver, *zero).map(Measured::Circular)
+                            }
+                        }
+                    });
+                    (r, ph)
+                })
+                .collect();
+            pick_radius(self.cfg.radius, tried)
+        });
+        let mut centres = None;
+        match result {
+            Ok((Measured::Circular(ph), radius)) => {
+                centres = Some(ph.centres.clone());
+                row.aperture_px = radius;
+                let n = ph.f_o.len();
+                row.flux_e = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum::<f64>() / n as f64;
+                row.f = ph.f_o.iter().zip(&ph.f_e).map(|(&o, &e)| stokes::normalized_difference(o, e)).collect();
+                row.v = Some(ph.circular.v);
+                row.sigma_v = Some(ph.circular.sigma_v());
+            }
+            Ok((Measured::Linear(ph), radius)) => {
+                centres = Some(ph.centres.clone());
+                fill_linear(&mut row, &ph, radius, self.chi_off);
+            }
+            Err(e) => {
+                row.flags |= match &e {
+                    Error::Unmeasurable { why: Unmeasurable::MaskEdge, .. } => flags::MASK_EDGE,
+                    Error::Unmeasurable { why: Unmeasurable::Saturated, .. } => flags::SATURATED,
+                    _ => flags::FAILED,
+                };
+                row.note = e.to_string();
+            }
+        }
+        (row, centres)
+    }
+}
+
+/// A star's row filled from its reduction through a half-wave plate at aperture `radius`:
+/// `(q, u)` in the sky's frame (turned by the filter's zero angle `chi_off`), `P`, `chi`, the
+/// modulation's chi^2 and the errors scaled by it.
+fn fill_linear(row: &mut Row, ph: &crate::photometry::StarPhotometry, radius: f64, chi_off: f64) {
+    row.aperture_px = radius;
+    let r = &ph.reduction;
+    let n = r.n;
+    row.flux_e = ph.f_o.iter().zip(&ph.f_e).map(|(a, b)| a + b).sum::<f64>() / n as f64;
+    row.f = r.f.clone();
+    // In the sky's frame: the filter's HWP zero angle turns q, u as it turns chi.
+    let (sky, chi_deg) = r.in_sky_frame(chi_off);
+    row.q = sky.q;
+    row.u = sky.u;
+    row.sigma_q = sky.var_q.sqrt();
+    row.sigma_u = sky.var_u.sqrt();
+    row.cov_qu = sky.cov_qu;
+    row.p = r.p;
+    row.sigma_p = r.sigma_p;
+    row.chi_deg = chi_deg;
+    // Undetermined (NaN, as every command reports it) where P is at the noise.
+    row.sigma_chi_deg = r.sigma_chi_deg_reported().unwrap_or(f64::NAN);
+    row.a0 = r.a0;
+    row.kappa = r.kappa_mean;
+    row.kappa_applied = ph.kappa_applied;
+    // Modulation chi^2: F_i about a_0 + Q cos 4theta + U sin 4theta (a_0 is fitted
+    // too, as the Wollaston's transmission offset makes one).
+    let chi2: f64 = r
+        .theta
+        .iter()
+        .zip(&r.f)
+        .zip(&r.sigma_f)
+        .map(|((t, f), s)| {
+            let m = r.a0 + r.qu.q * (4.0 * t).cos() + r.qu.u * (4.0 * t).sin();
+            ((f - m) / s).powi(2)
         })
-        .collect();
-    let good: Vec<&Vec<[f64; 4]>> = measured.iter().filter_map(|(_, c)| c.as_ref()).collect();
-    let alignment = frame_alignment(src.angles_deg(), &good);
-    let rows: Vec<Row> = measured.into_iter().map(|(r, _)| r).collect();
-    Ok(Catalog {
-        hwp_deg: src.angles_deg().to_vec(),
-        filter: src.filter().to_string(),
-        chi_offset_deg: chi_off,
-        oe_offset_px: g.oe_offset,
-        camera_transform: CameraTransform::of(&g),
-        qwp_zero_angle_deg: circular.as_ref().map(|c| c.1),
-        rows,
-        unpaired: unpaired.iter().map(|&k| (sources[k].x, sources[k].y)).collect(),
-        unpaired_why: crate::detect::Unpaired::of(&sources, &g, &unpaired),
-        unpaired_shift_px: crate::detect::unpaired_shift(&sources, &unpaired, &g, UNPAIRED_REACH_PX),
-        n_sources: sources.len(),
-        alignment,
-        exposures: None,
-        product: None,
-        grouping: None,
-        frames: vec![],
-    })
+        .sum();
+    let dof = n.saturating_sub(3);
+    row.chi2_mod = chi2;
+    row.dof_mod = dof;
+    let scale = if dof > 0 { (chi2 / dof as f64).sqrt() } else { f64::NAN };
+    row.sigma_q_scatter = row.sigma_q * scale;
+    row.sigma_u_scatter = row.sigma_u * scale;
 }
 
 /// A star measured at one radius: through a half-wave plate (`q`, `u`) or a quarter-wave

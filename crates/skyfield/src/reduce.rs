@@ -1447,11 +1447,8 @@ fn reduce_bands(
                                 } else {
                                     for t in (j..end).filter(|&t| ok[t] != 0) {
                                         b.push(PixelSample {
-                                            q: q[t],
-                                            u: u[t],
+                                            qu: mueller::Qu::new(q[t], u[t], vq[t], vu[t], 0.0),
                                             i: isum[t] / nf,
-                                            var_q: vq[t],
-                                            var_u: vu[t],
                                         });
                                     }
                                 }

@@ -149,9 +149,73 @@ const INLINE_ALLOWED: &[(&str, &str, &str)] = &[
     ),
 ];
 
+/// Where a token sequence takes a sample's middle rank: `len() / 2` or `(len() - 1) / 2` (the
+/// receiver written before `len`), as `(first token of the receiver, index after the rank)`.
+fn middle_rank(t: &[&str], k: usize) -> Option<(usize, usize)> {
+    let end = if t[k..].starts_with(&["len", "(", ")", "/", "2"]) {
+        k + 5
+    } else if t[k..].starts_with(&["len", "(", ")", "-", "1", ")", "/", "2"]) {
+        k + 8
+    } else {
+        return None;
+    };
+    // The receiver: `v.`, `self.v.`, `a.b.c.` (identifiers and dots) before `len`.
+    let mut start = k;
+    while start >= 2 && t[start - 1] == "." && t[start - 2].chars().all(|c| c.is_alphanumeric() || c == '_') {
+        start -= 2;
+    }
+    // `(v.len() - 1) / 2` opens a parenthesis before its receiver.
+    if end == k + 8 {
+        start = start.checked_sub(1).filter(|&s| t[s] == "(")?;
+    }
+    Some((start, end))
+}
+
+/// The inline medians of one file's code (test modules already cut off): the middle of a
+/// sample taken by hand, as `(line, what)`. Found: `v[v.len() / 2]` and `v[(v.len() - 1) / 2]`;
+/// `v.get(v.len() / 2)` and `.nth(..)`; a name bound to that rank (`let mid = v.len() / 2;`)
+/// and then used as an index (`v[mid]`, `v.get(mid)`, `.nth(mid)`); and any
+/// `select_nth_unstable*`.
+fn inline_medians(code: &str) -> Vec<(usize, String, String)> {
+    let toks = tokens(code);
+    let t: Vec<&str> = toks.iter().map(|t| t.text.as_str()).collect();
+    let show = |k: usize| t[k..(k + 9).min(t.len())].concat();
+    let mut found = Vec::new();
+    let mut names: Vec<&str> = Vec::new();
+    for k in 0..t.len() {
+        if t[k].starts_with("select_nth_unstable") {
+            found.push((toks[k].line, t[k].to_string(), show(k)));
+            continue;
+        }
+        let Some((start, end)) = middle_rank(&t, k) else { continue };
+        let next = t.get(end).copied().unwrap_or("");
+        let call = start >= 2 && t[start - 1] == "(" && matches!(t[start - 2], "get" | "nth");
+        if next == "]" || (next == ")" && call) {
+            found.push((toks[k].line, t[k].to_string(), show(k)));
+        } else if next == ";" && start >= 3 && t[start - 1] == "=" {
+            // `let name =` or `let mut name =`.
+            let bound = t[start - 3] == "let" || (start >= 4 && t[start - 4..start - 2] == ["let", "mut"]);
+            if bound {
+                names.push(t[start - 2]);
+            }
+        }
+    }
+    // A name bound to the middle rank, used as an index.
+    for k in 1..t.len().saturating_sub(1) {
+        if names.contains(&t[k]) {
+            let indexed = t[k - 1] == "[" && t[k + 1] == "]";
+            let called = k >= 2 && t[k - 1] == "(" && matches!(t[k - 2], "get" | "nth") && t[k + 1] == ")";
+            if indexed || called {
+                found.push((toks[k].line, t[k].to_string(), show(k.saturating_sub(2))));
+            }
+        }
+    }
+    found
+}
+
 /// A median written inline instead of called: the middle of a sorted or selected sample taken
-/// by hand (`v[v.len() / 2]`, `v[(v.len() - 1) / 2]`, `select_nth_unstable`), in every crate's
-/// `src/` (the CLI and the Python module included; `#[cfg(test)]` modules are tests).
+/// by hand ([`inline_medians`]), in every crate's `src/` (the CLI and the Python module
+/// included; `#[cfg(test)]` modules are tests).
 #[test]
 fn no_inline_median() {
     let mut found = Vec::new();
@@ -163,14 +227,10 @@ fn no_inline_median() {
             Some(k) => &code[..k],
             None => &code[..],
         };
-        let toks = tokens(code);
-        let t: Vec<&str> = toks.iter().map(|t| t.text.as_str()).collect();
-        for k in 0..t.len() {
-            let middle = t[k..].starts_with(&["len", "(", ")", "/", "2", "]"])
-                || t[k..].starts_with(&["len", "(", ")", "-", "1", ")", "/", "2", "]"]);
-            let allowed = INLINE_ALLOWED.iter().any(|(f, first, _)| *f == rel && t[k] == *first);
-            if (middle || t[k].starts_with("select_nth_unstable")) && !allowed {
-                found.push(format!("{rel}:{}: {}", toks[k].line, t[k..(k + 9).min(t.len())].concat()));
+        for (line, first, what) in inline_medians(code) {
+            let allowed = INLINE_ALLOWED.iter().any(|(f, a, _)| *f == rel && first == *a);
+            if !allowed {
+                found.push(format!("{rel}:{line}: {what}"));
             }
         }
     }
@@ -180,4 +240,18 @@ fn no_inline_median() {
          kernel of the same definition in INLINE_ALLOWED with why):\n  {}",
         found.join("\n  ")
     );
+}
+
+/// The finder on code written out: each way of taking the middle by hand is found once, and
+/// a half length that is not an index (a capacity, a count) is not.
+#[test]
+fn inline_medians_are_found_in_each_form() {
+    let found = |code: &str| inline_medians(code).into_iter().map(|f| f.0).collect::<Vec<_>>();
+    let code = "fn a(v: &mut Vec<f64>) -> f64 {\n    v[v.len() / 2]\n}\n\
+                fn b(s: &S) -> f64 {\n    s.d[(s.d.len() - 1) / 2]\n}\n\
+                fn c(d: &[f64]) -> f64 {\n    d.get(d.len() / 2).copied().unwrap_or(0.1)\n}\n\
+                fn d(v: &[f64]) -> f64 {\n    let mid = v.len() / 2;\n    v[mid]\n}\n\
+                fn e(v: &mut [f64]) -> f64 {\n    *v.select_nth_unstable_by(3, f64::total_cmp).1\n}\n\
+                fn f(v: &[f64]) -> usize {\n    let half = v.len() / 2;\n    Vec::<f64>::with_capacity(v.len() / 2).len() + half\n}\n";
+    assert_eq!(found(code), vec![2, 5, 8, 15, 12]);
 }

@@ -119,18 +119,7 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--grid {} must be in 4..=64", a.grid);
     }
     let which = Cause::parse_list(&a.causes).map_err(|e| anyhow!("--causes '{}': {e}", a.causes))?;
-    let angles_deg: Vec<f64> = match &a.hwp_angles {
-        None => (0..16).map(|k| 22.5 * k as f64).collect(),
-        Some(s) => s
-            .split(',')
-            .map(|w| w.trim().parse::<f64>().ok().filter(|v| v.is_finite()))
-            .collect::<Option<Vec<_>>>()
-            .ok_or_else(|| anyhow!("--hwp-angles '{s}': not a comma-separated list of numbers (deg)"))?,
-    };
-    if angles_deg.len() > 1024 {
-        bail!("--hwp-angles: {} angles, at most 1024", angles_deg.len());
-    }
-    stokes::check_degrees(&angles_deg).map_err(|e| anyhow!("--hwp-angles holds {e}: give them in degrees"))?;
+    let angles_deg = hwp_angles(a.hwp_angles.as_deref())?;
     let what = a.mueller_cal.display().to_string();
     let loaded = fit::mueller_field::cal::load_field(&a.mueller_cal).map_err(|e| anyhow!("{e}"))?;
     let name = match (&a.instrument, &loaded.of) {
@@ -234,41 +223,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         return crate::util::print_json(&rep);
     }
-    outln!("{}: {} numbers compared ({})", what, rep.n_data, rep.compared.join(", "));
-    outln!("{:<20} {:>10} {:>5} {:>9} {:>10}  parameters", "cause", "chi2", "dof", "chi2/dof", "dBIC");
-    for c in &rep.causes {
-        let ps: Vec<String> = c
-            .params
-            .iter()
-            .map(|p| match (p.value, p.sigma_value) {
-                (Some(v), Some(s)) => format!("{} = {v:.4} +- {s:.4}", p.name),
-                (Some(v), None) => format!("{} = {v:.4} (unconstrained)", p.name),
-                (None, _) => format!("{} = none", p.name),
-            })
-            .collect();
-        outln!(
-            "{:<20} {:>10.2} {:>5} {:>9.3} {:>10.1}  {}",
-            c.cause,
-            c.chi2.unwrap_or(f64::INFINITY),
-            c.dof,
-            c.chi2_dof.unwrap_or(f64::NAN),
-            c.delta_bic.unwrap_or(f64::INFINITY),
-            ps.join(", ")
-        );
-        if let Some(x) = c.chi2_as_computed {
-            outln!("{:<20} chi2 of the ray trace as computed (amplitude 1): {x:.2}", "");
-        }
-        if let Some(n) = &c.note {
-            outln!("{:<20} note: {n}", "");
-        }
-    }
-    for n in &rep.notes {
-        outln!("note: {n}");
-    }
-    outln!("verdict: {}", rep.verdict);
-    if let Some(p) = &a.plot {
-        outln!("wrote {}", p.display());
-    }
+    print_explanation(&rep, &what);
     Ok(())
 }
 
@@ -327,5 +282,61 @@ fn draw_on<DB: plotters::prelude::DrawingBackend>(
             .legend(crate::plot::line_key(RED));
         crate::plot::legend(&mut c, SeriesLabelPosition::UpperLeft)?;
         Ok(())
+    }
+}
+
+/// The plate angles the candidates are computed at (deg): the given list, else 16 over a turn.
+fn hwp_angles(given: Option<&str>) -> Result<Vec<f64>> {
+    let angles_deg: Vec<f64> = match given {
+        None => (0..16).map(|k| 22.5 * k as f64).collect(),
+        Some(s) => s
+            .split(',')
+            .map(|w| w.trim().parse::<f64>().ok().filter(|v| v.is_finite()))
+            .collect::<Option<Vec<_>>>()
+            .ok_or_else(|| anyhow!("--hwp-angles '{s}': not a comma-separated list of numbers (deg)"))?,
+    };
+    if angles_deg.len() > 1024 {
+        bail!("--hwp-angles: {} angles, at most 1024", angles_deg.len());
+    }
+    stokes::check_degrees(&angles_deg).map_err(|e| anyhow!("--hwp-angles holds {e}: give them in degrees"))?;
+    Ok(angles_deg)
+}
+
+/// The report as text (`what`: the calibration's name).
+fn print_explanation(rep: &Report, what: &str) {
+    outln!("{}: {} numbers compared ({})", what, rep.n_data, rep.compared.join(", "));
+    outln!("{:<20} {:>10} {:>5} {:>9} {:>10}  parameters", "cause", "chi2", "dof", "chi2/dof", "dBIC");
+    for c in &rep.causes {
+        let ps: Vec<String> = c
+            .params
+            .iter()
+            .map(|p| match (p.value, p.sigma_value) {
+                (Some(v), Some(s)) => format!("{} = {v:.4} +- {s:.4}", p.name),
+                (Some(v), None) => format!("{} = {v:.4} (unconstrained)", p.name),
+                (None, _) => format!("{} = none", p.name),
+            })
+            .collect();
+        outln!(
+            "{:<20} {:>10.2} {:>5} {:>9.3} {:>10.1}  {}",
+            c.cause,
+            c.chi2.unwrap_or(f64::INFINITY),
+            c.dof,
+            c.chi2_dof.unwrap_or(f64::NAN),
+            c.delta_bic.unwrap_or(f64::INFINITY),
+            ps.join(", ")
+        );
+        if let Some(x) = c.chi2_as_computed {
+            outln!("{:<20} chi2 of the ray trace as computed (amplitude 1): {x:.2}", "");
+        }
+        if let Some(n) = &c.note {
+            outln!("{:<20} note: {n}", "");
+        }
+    }
+    for n in &rep.notes {
+        outln!("note: {n}");
+    }
+    outln!("verdict: {}", rep.verdict);
+    if let Some(p) = &rep.output {
+        outln!("wrote {}", p.display());
     }
 }

@@ -4,6 +4,7 @@ use anyhow::{bail, Result};
 use fit::files::import::{import_map, ImportOptions};
 use serde::Serialize;
 use std::path::PathBuf;
+use stokes::stats::robust::{median, Middle};
 
 /// Turn instrumental Q/I and U/I maps made elsewhere into a calibration file of this tool whose
 /// model is the map itself (bilinearly interpolated), so that fitting (`instpol fit`),
@@ -96,7 +97,7 @@ pub fn run(a: Args) -> Result<()> {
     let cal = import_map(&a.q, &a.u, &opts)?;
     cal.save(&a.out)?;
     let mut p: Vec<f64> = cal.bins.iter().map(|b| b.p_phi().0).collect();
-    p.sort_by(|x, y| x.total_cmp(y));
+    let p_max = p.iter().copied().max_by(f64::total_cmp).unwrap_or(f64::NAN);
     let r = cal.region;
     let s = Summary {
         filter: cal.filter.clone(),
@@ -105,8 +106,9 @@ pub fn run(a: Args) -> Result<()> {
         n_pixels: cal.bins.len(),
         region_arcmin: [r.x_min, r.x_max, r.y_min, r.y_max],
         origin_px: cal.pixel.map(|g| g.origin_px).unwrap_or([0.0, 0.0]),
-        p_max: p.last().copied().unwrap_or(f64::NAN),
-        p_median: p.get(p.len() / 2).copied().unwrap_or(f64::NAN),
+        p_max,
+        // The upper middle of an even count (NaN for none), as the summary always took it.
+        p_median: median(&mut p, Middle::Upper),
         calibration_file: a.out.display().to_string(),
     };
     if a.json {

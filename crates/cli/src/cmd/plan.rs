@@ -5,7 +5,7 @@ use anyhow::{anyhow, bail, Result};
 use fit::mueller_field::plan::{PlanRequest, PlanRow, PlanSetup, SIMULATION_TOLERANCE};
 use fit::mueller_field::{Kind, MuellerField};
 use plotters::prelude::*;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// Plan a calibration of the Mueller field: for a target accuracy (RMS over the field of the
@@ -186,25 +186,7 @@ pub fn run(a: Args) -> Result<()> {
         _ => None,
     };
     if let (Some(path), Some(b)) = (&a.plot, &best) {
-        let ts: Vec<f64> = (0..40).map(|k| b.exposure_s * 10f64.powf(-1.0 + 2.0 * k as f64 / 39.0)).collect();
-        let mut curves = Vec::new();
-        for r in &rows {
-            curves.push((r.n_fields, r.fields.clone(), setup.curve(&r.fields, &ts).map_err(|e| anyhow!("{e}"))?));
-        }
-        let (x0, x1) = curves
-            .iter()
-            .flat_map(|c| c.2.iter().map(|p| p.0))
-            .fold((f64::MAX, 0.0f64), |(a, b), x| (a.min(x), b.max(x)));
-        let (y0, y1) = curves
-            .iter()
-            .flat_map(|c| c.2.iter().map(|p| 100.0 * p.1))
-            .fold((f64::MAX, 0.0f64), |(a, b), y| (a.min(y), b.max(y)));
-        crate::plot::save_image(
-            path,
-            (900, 600),
-            |r| draw_plan(r, &curves, a.target_percent, (x0, x1), (y0, y1)),
-            |r| draw_plan(r, &curves, a.target_percent, (x0, x1), (y0, y1)),
-        )?;
+        plot_plan(path, b, &rows, &setup, a.target_percent)?;
     }
     let conv = |r: &PlanRow| Row {
         n_fields: r.n_fields,
@@ -228,41 +210,7 @@ pub fn run(a: Args) -> Result<()> {
         crate::util::print_json(&rep)?;
         return check_result(missed, target);
     }
-    outln!(
-        "Plan for an RMS of {} % in corrected q, u ({} bins, {} HWP angles per field)",
-        a.target_percent,
-        rep.n_bins,
-        a.angles
-    );
-    outln!("  {:>8} {:<16} {:>14} {:>12}", "fields", "candidates", "s per angle", "total s");
-    for r in &rep.plans {
-        outln!("  {:>8} {:<16} {:>14.1} {:>12.0}", r.n_fields, format!("{:?}", r.fields), r.exposure_s, r.total_s);
-    }
-    for r in &rep.refused {
-        outln!("  refused: {r}");
-    }
-    if let Some(b) = &rep.best {
-        outln!(
-            "  cheapest: {} field(s) {:?}, {:.1} s per HWP angle, {:.0} s in all",
-            b.n_fields,
-            b.fields,
-            b.exposure_s,
-            b.total_s
-        );
-    } else {
-        eprintln!("WARNING: no choice of the candidates constrains the model: see the refusals");
-    }
-    if let Some(s) = rep.simulated_rms_qu {
-        outln!(
-            "  simulated ({} noise draws): RMS {:.4} % against the target {} %",
-            fit::mueller_field::plan::SIMULATION_DRAWS,
-            100.0 * s,
-            a.target_percent
-        );
-    }
-    if let Some(p) = &rep.output {
-        outln!("  plot: {}", p.display());
-    }
+    print_plan(&rep, &a);
     check_result(missed, target)
 }
 
@@ -319,4 +267,66 @@ fn draw_plan<DB: DrawingBackend>(
         c.draw_series(LineSeries::new(m.iter().copied(), style)).map_err(crate::plot::pe)?;
     }
     crate::plot::draw_legend(&c, place, &keys)
+}
+
+/// The plot of each plan's RMS against exposure time, over a decade either side of the
+/// cheapest plan's, with the target (percent) marked.
+fn plot_plan(path: &Path, b: &PlanRow, rows: &[PlanRow], setup: &PlanSetup, target_percent: f64) -> Result<()> {
+    let ts: Vec<f64> = (0..40).map(|k| b.exposure_s * 10f64.powf(-1.0 + 2.0 * k as f64 / 39.0)).collect();
+    let mut curves = Vec::new();
+    for r in rows {
+        curves.push((r.n_fields, r.fields.clone(), setup.curve(&r.fields, &ts).map_err(|e| anyhow!("{e}"))?));
+    }
+    let (x0, x1) =
+        curves.iter().flat_map(|c| c.2.iter().map(|p| p.0)).fold((f64::MAX, 0.0f64), |(a, b), x| (a.min(x), b.max(x)));
+    let (y0, y1) = curves
+        .iter()
+        .flat_map(|c| c.2.iter().map(|p| 100.0 * p.1))
+        .fold((f64::MAX, 0.0f64), |(a, b), y| (a.min(y), b.max(y)));
+    crate::plot::save_image(
+        path,
+        (900, 600),
+        |r| draw_plan(r, &curves, target_percent, (x0, x1), (y0, y1)),
+        |r| draw_plan(r, &curves, target_percent, (x0, x1), (y0, y1)),
+    )?;
+    Ok(())
+}
+
+/// The report as text.
+fn print_plan(rep: &Report, a: &Args) {
+    outln!(
+        "Plan for an RMS of {} % in corrected q, u ({} bins, {} HWP angles per field)",
+        a.target_percent,
+        rep.n_bins,
+        a.angles
+    );
+    outln!("  {:>8} {:<16} {:>14} {:>12}", "fields", "candidates", "s per angle", "total s");
+    for r in &rep.plans {
+        outln!("  {:>8} {:<16} {:>14.1} {:>12.0}", r.n_fields, format!("{:?}", r.fields), r.exposure_s, r.total_s);
+    }
+    for r in &rep.refused {
+        outln!("  refused: {r}");
+    }
+    if let Some(b) = &rep.best {
+        outln!(
+            "  cheapest: {} field(s) {:?}, {:.1} s per HWP angle, {:.0} s in all",
+            b.n_fields,
+            b.fields,
+            b.exposure_s,
+            b.total_s
+        );
+    } else {
+        eprintln!("WARNING: no choice of the candidates constrains the model: see the refusals");
+    }
+    if let Some(s) = rep.simulated_rms_qu {
+        outln!(
+            "  simulated ({} noise draws): RMS {:.4} % against the target {} %",
+            fit::mueller_field::plan::SIMULATION_DRAWS,
+            100.0 * s,
+            a.target_percent
+        );
+    }
+    if let Some(p) = &rep.output {
+        outln!("  plot: {}", p.display());
+    }
 }

@@ -139,6 +139,85 @@ pub(super) fn read_ecsv(path: &Path) -> Result<Table, Error> {
             break;
         }
     }
+    let Header { delimiter, meta, table_meta, product_pairs } = parse_header(path, &header)?;
+    let body = lines.map(|(_, l)| l).collect::<Vec<_>>().join("\n");
+    let mut rdr =
+        csv::ReaderBuilder::new().delimiter(delimiter).has_headers(false).flexible(true).from_reader(body.as_bytes());
+    let first_data_line = header.last().map_or(1, |h| h.0) + 1;
+    let mut records = rdr.records();
+    let names: Vec<String> = match records.next() {
+        Some(r) => r.map_err(|e| terr(path, format!("malformed ECSV: {e}")))?.iter().map(String::from).collect(),
+        None => return Err(terr(path, "no column-name row after the ECSV header")),
+    };
+    let expected: Vec<&String> = meta.iter().map(|m| &m.1).collect();
+    if names.iter().collect::<Vec<_>>() != expected {
+        return Err(terr(
+            path,
+            format!(
+                "line {first_data_line}: the column names ({}) differ from the header's ({})",
+                names.join(" "),
+                meta.iter().map(|m| m.1.as_str()).collect::<Vec<_>>().join(" ")
+            ),
+        ));
+    }
+    let mut cells: Vec<Vec<String>> = vec![Vec::new(); names.len()];
+    let mut src_lines = Vec::new();
+    for rec in records {
+        let rec = rec.map_err(|e| terr(path, format!("malformed ECSV: {e}")))?;
+        let line = rec.position().map_or(0, |p| p.line()) + first_data_line as u64 - 1;
+        if rec.len() != names.len() {
+            return Err(terr(
+                path,
+                format!("line {line}: {} fields, the header has {} columns", rec.len(), names.len()),
+            ));
+        }
+        for (c, v) in cells.iter_mut().zip(rec.iter()) {
+            c.push(v.to_string());
+        }
+        src_lines.push(line);
+    }
+    let mut columns = Vec::new();
+    for ((ln, name, dt, unit, description), v) in meta.into_iter().zip(cells) {
+        let bad = |i: usize, s: &str| {
+            terr(
+                path,
+                format!("line {}: column '{name}' = '{s}' is not a {dt}", src_lines.get(i).copied().unwrap_or(0)),
+            )
+        };
+        let kind = match dt.as_str() {
+            "float16" | "float32" | "float64" | "float128" => Kind::Float,
+            "int8" | "int16" | "int32" | "int64" | "uint8" | "uint16" | "uint32" | "uint64" => Kind::Int,
+            "bool" => Kind::Bool,
+            "string" => Kind::Text,
+            other => {
+                return Err(terr(path, format!("line {ln}: column '{name}' has datatype '{other}': not supported")))
+            }
+        };
+        let num = |i: usize, s: &str| if s.is_empty() { Ok(f64::NAN) } else { s.parse().map_err(|_| bad(i, s)) };
+        let data = cells_to_data(v, kind, num, bad)?;
+        columns.push(Column { name, unit, description, data });
+    }
+    let product = crate::provenance::Product::from_pairs(product_pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+        .map_err(|m| terr(path, format!("its meta: {m}")))?;
+    Ok(Table { columns, lines: src_lines, meta: table_meta, product })
+}
+
+/// A column as the ECSV header declares it: its header line, name, datatype, unit and
+/// description.
+type ColumnEntry = (usize, String, String, Option<String>, Option<String>);
+
+/// What the ECSV header says: the delimiter, the columns, the numeric entries of its `meta`
+/// mapping and the provenance pairs among them.
+struct Header {
+    delimiter: u8,
+    meta: Vec<ColumnEntry>,
+    table_meta: Vec<(String, f64)>,
+    product_pairs: Vec<(String, String)>,
+}
+
+/// The YAML header's lines (with their line numbers, '#' taken off): the columns are the
+/// entries of its `datatype:` list; arrays and objects (a `subtype`) are refused.
+fn parse_header(path: &Path, header: &[(usize, String)]) -> Result<Header, Error> {
     let mut entries: Vec<(usize, String)> = Vec::new();
     let mut delimiter = b' ';
     let (mut in_dt, mut in_meta) = (false, false);
@@ -146,7 +225,7 @@ pub(super) fn read_ecsv(path: &Path) -> Result<Table, Error> {
     // ordered map, or `KEY: 1.5` lines of a block mapping); others are not this reader's.
     let mut table_meta: Vec<(String, f64)> = Vec::new();
     let mut product_pairs: Vec<(String, String)> = Vec::new();
-    for (ln, h) in &header {
+    for (ln, h) in header {
         if h.trim() == "---" || h.trim().is_empty() {
             continue;
         }
@@ -214,64 +293,5 @@ pub(super) fn read_ecsv(path: &Path) -> Result<Table, Error> {
         }
         meta.push((*ln, name, dt, get("unit"), get("description")));
     }
-    let body = lines.map(|(_, l)| l).collect::<Vec<_>>().join("\n");
-    let mut rdr =
-        csv::ReaderBuilder::new().delimiter(delimiter).has_headers(false).flexible(true).from_reader(body.as_bytes());
-    let first_data_line = header.last().map_or(1, |h| h.0) + 1;
-    let mut records = rdr.records();
-    let names: Vec<String> = match records.next() {
-        Some(r) => r.map_err(|e| terr(path, format!("malformed ECSV: {e}")))?.iter().map(String::from).collect(),
-        None => return Err(terr(path, "no column-name row after the ECSV header")),
-    };
-    let expected: Vec<&String> = meta.iter().map(|m| &m.1).collect();
-    if names.iter().collect::<Vec<_>>() != expected {
-        return Err(terr(
-            path,
-            format!(
-                "line {first_data_line}: the column names ({}) differ from the header's ({})",
-                names.join(" "),
-                meta.iter().map(|m| m.1.as_str()).collect::<Vec<_>>().join(" ")
-            ),
-        ));
-    }
-    let mut cells: Vec<Vec<String>> = vec![Vec::new(); names.len()];
-    let mut src_lines = Vec::new();
-    for rec in records {
-        let rec = rec.map_err(|e| terr(path, format!("malformed ECSV: {e}")))?;
-        let line = rec.position().map_or(0, |p| p.line()) + first_data_line as u64 - 1;
-        if rec.len() != names.len() {
-            return Err(terr(
-                path,
-                format!("line {line}: {} fields, the header has {} columns", rec.len(), names.len()),
-            ));
-        }
-        for (c, v) in cells.iter_mut().zip(rec.iter()) {
-            c.push(v.to_string());
-        }
-        src_lines.push(line);
-    }
-    let mut columns = Vec::new();
-    for ((ln, name, dt, unit, description), v) in meta.into_iter().zip(cells) {
-        let bad = |i: usize, s: &str| {
-            terr(
-                path,
-                format!("line {}: column '{name}' = '{s}' is not a {dt}", src_lines.get(i).copied().unwrap_or(0)),
-            )
-        };
-        let kind = match dt.as_str() {
-            "float16" | "float32" | "float64" | "float128" => Kind::Float,
-            "int8" | "int16" | "int32" | "int64" | "uint8" | "uint16" | "uint32" | "uint64" => Kind::Int,
-            "bool" => Kind::Bool,
-            "string" => Kind::Text,
-            other => {
-                return Err(terr(path, format!("line {ln}: column '{name}' has datatype '{other}': not supported")))
-            }
-        };
-        let num = |i: usize, s: &str| if s.is_empty() { Ok(f64::NAN) } else { s.parse().map_err(|_| bad(i, s)) };
-        let data = cells_to_data(v, kind, num, bad)?;
-        columns.push(Column { name, unit, description, data });
-    }
-    let product = crate::provenance::Product::from_pairs(product_pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
-        .map_err(|m| terr(path, format!("its meta: {m}")))?;
-    Ok(Table { columns, lines: src_lines, meta: table_meta, product })
+    Ok(Header { delimiter, meta, table_meta, product_pairs })
 }

@@ -74,16 +74,37 @@ fn xml_escape(s: &str) -> String {
 }
 
 pub(super) fn read_votable(path: &Path) -> Result<Table, Error> {
-    use quick_xml::events::Event;
     let text = read_text(path)?;
-    let mut r = quick_xml::Reader::from_str(&text);
+    let Parsed { fields, rows, params, product_pairs } = parse(path, &text)?;
+    let columns = columns_of(path, fields, rows)?;
+    let product = crate::provenance::Product::from_pairs(product_pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+        .map_err(|m| terr(path, format!("its PARAMs: {m}")))?;
+    Ok(Table { meta: params, product, ..Table::new(columns) })
+}
+
+/// A FIELD of the VOTable: a column's name, datatype, unit and description.
+struct Field {
+    name: String,
+    datatype: String,
+    unit: Option<String>,
+    description: Option<String>,
+}
+
+/// What the first TABLE holds, as read: its FIELDs, its rows' TD cells as text, its numeric
+/// PARAMs and the PARAMs of its product's provenance.
+struct Parsed {
+    fields: Vec<Field>,
+    rows: Vec<Vec<String>>,
+    params: Vec<(String, f64)>,
+    product_pairs: Vec<(String, String)>,
+}
+
+/// The first TABLE of the VOTable `text` (read from `path`), as TABLEDATA; other
+/// serializations and array FIELDs are refused.
+fn parse(path: &Path, text: &str) -> Result<Parsed, Error> {
+    use quick_xml::events::Event;
+    let mut r = quick_xml::Reader::from_str(text);
     let xerr = |e: &dyn std::fmt::Display, pos: u64| terr(path, format!("malformed VOTable XML near byte {pos}: {e}"));
-    struct Field {
-        name: String,
-        datatype: String,
-        unit: Option<String>,
-        description: Option<String>,
-    }
     let mut fields: Vec<Field> = Vec::new();
     let mut rows: Vec<Vec<String>> = Vec::new();
     // The table's numeric PARAMs (Table::meta); a PARAM's own DESCRIPTION is not a FIELD's.
@@ -201,6 +222,11 @@ pub(super) fn read_votable(path: &Path) -> Result<Table, Error> {
     if fields.is_empty() {
         return Err(terr(path, "the VOTable's first TABLE has no FIELD"));
     }
+    Ok(Parsed { fields, rows, params, product_pairs })
+}
+
+/// The table's columns: each FIELD's cells, one per row, as data of its datatype.
+fn columns_of(path: &Path, fields: Vec<Field>, rows: Vec<Vec<String>>) -> Result<Vec<Column>, Error> {
     let mut cells: Vec<Vec<String>> = vec![Vec::with_capacity(rows.len()); fields.len()];
     for (i, row) in rows.iter().enumerate() {
         if row.len() != fields.len() {
@@ -236,7 +262,5 @@ pub(super) fn read_votable(path: &Path) -> Result<Table, Error> {
         let data = cells_to_data(v, kind, num, bad)?;
         columns.push(Column { name: f.name, unit: f.unit, description: f.description, data });
     }
-    let product = crate::provenance::Product::from_pairs(product_pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
-        .map_err(|m| terr(path, format!("its PARAMs: {m}")))?;
-    Ok(Table { meta: params, product, ..Table::new(columns) })
+    Ok(columns)
 }

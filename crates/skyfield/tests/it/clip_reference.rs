@@ -71,14 +71,14 @@ fn reference_stats(s: &[PixelSample], keep: &[bool], min_pixels: usize) -> Optio
     }
     let nf = n as f64;
     let mean = |f: &dyn Fn(&PixelSample) -> f64| k.iter().map(|p| f(p)).sum::<f64>() / nf;
-    let (mq, mu, mi) = (mean(&|p| p.q), mean(&|p| p.u), mean(&|p| p.i));
+    let (mq, mu, mi) = (mean(&|p| p.qu.q), mean(&|p| p.qu.u), mean(&|p| p.i));
     let (mut vq, mut vu, mut c, mut pq, mut pu) = (0.0, 0.0, 0.0, 0.0, 0.0);
     for p in &k {
-        vq += (p.q - mq) * (p.q - mq);
-        vu += (p.u - mu) * (p.u - mu);
-        c += (p.q - mq) * (p.u - mu);
-        pq += p.var_q;
-        pu += p.var_u;
+        vq += (p.qu.q - mq) * (p.qu.q - mq);
+        vu += (p.qu.u - mu) * (p.qu.u - mu);
+        c += (p.qu.q - mq) * (p.qu.u - mu);
+        pq += p.qu.var_q;
+        pu += p.qu.var_u;
     }
     let d = (nf - 1.0) * nf;
     Some([mq, mu, (vq / d).sqrt(), (vu / d).sqrt(), c / d, pq.sqrt() / nf, pu.sqrt() / nf, mi])
@@ -92,8 +92,8 @@ fn bits(b: &skyfield::bin::BinStats) -> [u64; 8] {
 /// Checks one bin every way the library offers (plain, hinted with several hint sets, and the
 /// bin statistics), against the reference.
 fn check(label: &str, s: &[PixelSample], cfg: ClipConfig, min_pixels: usize, rng: &mut Rand) {
-    let q: Vec<f64> = s.iter().map(|p| p.q).collect();
-    let u: Vec<f64> = s.iter().map(|p| p.u).collect();
+    let q: Vec<f64> = s.iter().map(|p| p.qu.q).collect();
+    let u: Vec<f64> = s.iter().map(|p| p.qu.u).collect();
     let i: Vec<f64> = s.iter().map(|p| p.i).collect();
     let cols: [&[f64]; 3] = [&q, &u, &i];
     let want = reference_keep(&cols, cfg);
@@ -138,7 +138,7 @@ fn check(label: &str, s: &[PixelSample], cfg: ClipConfig, min_pixels: usize, rng
 }
 
 fn sample(q: f64, u: f64, i: f64) -> PixelSample {
-    PixelSample { q, u, i, var_q: 1e-6 * (1.0 + q.abs()), var_u: 2e-6 }
+    PixelSample { qu: mueller::Qu::new(q, u, 1e-6 * (1.0 + q.abs()), 2e-6, 0.0), i }
 }
 
 #[test]
@@ -163,8 +163,8 @@ fn clipping_matches_a_sort_based_reference() {
                 let k = Uniform::new(0, n).unwrap().sample(&mut rng);
                 match Uniform::new(0, 3).unwrap().sample(&mut rng) {
                     0 => s[k].i *= 10.0,
-                    1 => s[k].q += 0.3,
-                    _ => s[k].u -= 5e-3,
+                    1 => s[k].qu.q += 0.3,
+                    _ => s[k].qu.u -= 5e-3,
                 }
             }
             check(&format!("gaussian n={n} rep={rep}"), &s, cfg, 3, &mut rng);
@@ -183,7 +183,7 @@ fn clipping_matches_a_sort_based_reference() {
     }
     // All equal but one: the zero-spread column rejects only the value that differs.
     let mut s = vec![sample(0.02, 0.01, 100.0); 50];
-    s[3].q = 0.9;
+    s[3].qu.q = 0.9;
     check("all equal but one", &s, cfg, 2, &mut rng);
     // All equal: nothing clipped, zero scatter.
     check("all equal", &vec![sample(0.02, 0.01, 100.0); 40], cfg, 2, &mut rng);
@@ -196,8 +196,8 @@ fn clipping_matches_a_sort_based_reference() {
     let mut s: Vec<PixelSample> = (0..40)
         .map(|_| sample(1e-3 * g.sample(&mut rng), 1e-3 * g.sample(&mut rng), 10.0 + g.sample(&mut rng)))
         .collect();
-    s[0].q = f64::NAN;
-    s[5].u = f64::INFINITY;
+    s[0].qu.q = f64::NAN;
+    s[5].qu.u = f64::INFINITY;
     s[9].i = f64::NEG_INFINITY;
     check("non-finite rows", &s, cfg, 3, &mut rng);
     check("two rows", &s[10..12], cfg, 2, &mut rng);

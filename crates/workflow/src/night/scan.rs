@@ -636,14 +636,50 @@ pub fn plan_sorted(
     let files_seen: Vec<(PathBuf, String)> =
         sorted.files.iter().map(|f| (f.path.clone(), f.role.name().to_string())).collect();
     let exps = exposures(sorted.files, inst, &mut left);
-    let p = &opts.products;
-    let inst_arg = opts.instrument.clone();
     let mut units: Vec<Unit> = Vec::new();
+    let (biases, flats) = master_units(&exps, opts, &mut left, &mut units);
+    // A telescope whose mirrors polarize (a Nasmyth fold) and whose headers give the
+    // parallactic angle: its standards are fitted for a telescope model.
+    let nasmyth = inst
+        .telescope
+        .as_ref()
+        .is_some_and(|t| t.focus == instrument::telescope::Focus::Nasmyth && !t.parang_start_keyword.is_empty());
+    let mut sets = SetPlanner {
+        inst,
+        standards,
+        opts,
+        biases,
+        flats,
+        nasmyth,
+        units,
+        left,
+        set_names: BTreeMap::new(),
+        standard_sets: Vec::new(),
+        calibrations: Vec::new(),
+    };
+    for q in sequences(&exps, opts) {
+        sets.plan_set(&q);
+    }
+    let SetPlanner { mut units, left, standard_sets, calibrations, .. } = sets;
+    units.extend(night_checks(&standard_sets, &calibrations, nasmyth, opts));
+    let files = files_seen.into_iter().map(|(path, role)| super::plan::FileRole { path, role }).collect();
+    Plan::checked((&opts.instrument, inst), &opts.products, units, files, left)
+}
 
-    // Rule 4: masters.
+/// Rule 4: a master bias of each night and binning, and a master flat of each night, binning
+/// and filter (after its night's nearest bias), each of at least 3 exposures (fewer are left
+/// out, with why). Returns the biases and the flats.
+fn master_units(
+    exps: &[Exposure],
+    opts: &ScanOptions,
+    left: &mut Vec<LeftOut>,
+    units: &mut Vec<Unit>,
+) -> (Vec<Master>, Vec<Master>) {
+    let p = &opts.products;
+    let inst_arg = &opts.instrument;
     let mut bias_groups: BTreeMap<(i64, [u32; 2]), Vec<&Exposure>> = BTreeMap::new();
     let mut flat_groups: BTreeMap<(i64, [u32; 2], String), Vec<&Exposure>> = BTreeMap::new();
-    for e in &exps {
+    for e in exps {
         let n = night_of(e.info.mjd);
         match e.info.role {
             Role::Bias => bias_groups.entry((n, e.info.binning)).or_default().push(e),
@@ -706,8 +742,13 @@ pub fn plan_sorted(
         units.push(Unit::new(&id, "master-flat", inputs, vec![out.clone()], args, after));
         flats.push(Master { id, out, night: *n, binning: *b, filter: Some(f.clone()) });
     }
+    (biases, flats)
+}
 
-    // Rule 5: sets.
+/// Rule 5: the polarimetric and standard exposures in sequences, an exposure joining the last
+/// sequence when it has the same role, target, filter and binning, points within the
+/// tolerance of its first exposure and starts within the largest gap of its last.
+fn sequences<'a>(exps: &'a [Exposure], opts: &ScanOptions) -> Vec<Vec<&'a Exposure>> {
     let tol = opts.pointing_tol_arcsec;
     let mut seqs: Vec<Vec<&Exposure>> = Vec::new();
     for e in exps.iter().filter(|e| matches!(e.info.role, Role::Polarimetry | Role::Standard)) {
@@ -734,18 +775,90 @@ pub fn plan_sorted(
             seqs.push(vec![e]);
         }
     }
-    let mut set_names: BTreeMap<String, usize> = BTreeMap::new();
-    let mut standard_sets: Vec<StandardSet> = Vec::new();
-    // A telescope whose mirrors polarize (a Nasmyth fold) and whose headers give the
-    // parallactic angle: its standards are fitted for a telescope model.
-    let nasmyth = inst
-        .telescope
-        .as_ref()
-        .is_some_and(|t| t.focus == instrument::telescope::Focus::Nasmyth && !t.parang_start_keyword.is_empty());
-    let mut calibrations: Vec<SkyCalibration> = Vec::new();
-    for q in seqs {
+    seqs
+}
+
+/// A sequence's complete cycles of plate angles, in time order; `None` (the sequence left out,
+/// with why) when an exposure has no angle or the angles are not a complete set. Exposures
+/// beyond the complete cycles are left out.
+fn complete_cycles<'a>(q: &[&'a Exposure], label: &str, left: &mut Vec<LeftOut>) -> Option<Vec<&'a Exposure>> {
+    let info = &q[0].info;
+    let all_files: Vec<PathBuf> = q.iter().flat_map(|e| e.files.clone()).collect();
+    // Angles and their counts.
+    let mut angles: Vec<(f64, Vec<&Exposure>)> = Vec::new();
+    for e in q {
+        let a = e.info.hwp_deg.unwrap_or(f64::NAN);
+        match angles.iter_mut().find(|(b, _)| (a - *b).abs() < 0.05) {
+            Some((_, v)) => v.push(e),
+            None => angles.push((a, vec![e])),
+        }
+    }
+    let distinct: Vec<f64> = angles.iter().map(|(a, _)| *a).collect();
+    if distinct.iter().any(|a| !a.is_finite()) {
+        left.push(LeftOut { files: all_files, why: format!("set {label}: an exposure without an HWP angle") });
+        return None;
+    }
+    // The one completeness rule of the reduction, for a fixed or a turning plate.
+    if let Some(g) = skyfield::reduce::plate_set_gap(&distinct, info.hwp_sweep_deg) {
+        left.push(LeftOut {
+            files: all_files,
+            why: format!(
+                "set {label}: incomplete, HWP angle(s) {} missing from the N = {} set ({}); has {}",
+                fmt_deg(&g.missing_deg),
+                g.n,
+                fmt_deg(&g.expected_deg),
+                fmt_deg(&distinct)
+            ),
+        });
+        return None;
+    }
+    let cycles = angles.iter().map(|(_, v)| v.len()).min().unwrap_or(0);
+    let mut keep: Vec<&Exposure> = Vec::new();
+    let mut extra: Vec<PathBuf> = Vec::new();
+    for (_, v) in &angles {
+        keep.extend(v.iter().take(cycles));
+        extra.extend(v.iter().skip(cycles).flat_map(|e| e.files.clone()));
+    }
+    if !extra.is_empty() {
+        left.push(LeftOut {
+            files: extra,
+            why: format!("set {label}: exposures beyond its {cycles} complete cycle(s) of {} angles", distinct.len()),
+        });
+    }
+    keep.sort_by(|a, b| a.info.mjd.total_cmp(&b.info.mjd));
+    Some(keep)
+}
+
+/// The units of each complete set (rules 5 to 7), and what the night's checks need of them.
+struct SetPlanner<'a> {
+    inst: &'a Instrument,
+    standards: &'a fit::standards::Standards,
+    opts: &'a ScanOptions,
+    biases: Vec<Master>,
+    flats: Vec<Master>,
+    nasmyth: bool,
+    units: Vec<Unit>,
+    left: Vec<LeftOut>,
+    /// How many sets have each base name so far (the second is `-2`).
+    set_names: BTreeMap<String, usize>,
+    standard_sets: Vec<StandardSet>,
+    calibrations: Vec<SkyCalibration>,
+}
+
+/// A set's frames with the masters that calibrate them, as a unit's inputs and arguments.
+struct SetInputs {
+    frame_args: Vec<String>,
+    masters_args: Vec<String>,
+    inputs: Vec<PathBuf>,
+    after: Vec<String>,
+}
+
+impl<'a> SetPlanner<'a> {
+    /// One sequence's units: its map and its catalog (or, for a sky field, its calibration),
+    /// and, for a standard star, its standard units.
+    fn plan_set(&mut self, q: &[&Exposure]) {
+        let opts = self.opts;
         let info = &q[0].info;
-        let all_files: Vec<PathBuf> = q.iter().flat_map(|e| e.files.clone()).collect();
         let label = format!(
             "{} {} ({} exposure(s) from MJD {:.5})",
             if info.target.is_empty() { "(no target name)" } else { &info.target },
@@ -753,137 +866,27 @@ pub fn plan_sorted(
             q.len(),
             info.mjd
         );
-        // Angles and their counts.
-        let mut angles: Vec<(f64, Vec<&Exposure>)> = Vec::new();
-        for e in &q {
-            let a = e.info.hwp_deg.unwrap_or(f64::NAN);
-            match angles.iter_mut().find(|(b, _)| (a - *b).abs() < 0.05) {
-                Some((_, v)) => v.push(e),
-                None => angles.push((a, vec![e])),
-            }
-        }
-        let distinct: Vec<f64> = angles.iter().map(|(a, _)| *a).collect();
-        if distinct.iter().any(|a| !a.is_finite()) {
-            left.push(LeftOut { files: all_files, why: format!("set {label}: an exposure without an HWP angle") });
-            continue;
-        }
-        // The one completeness rule of the reduction, for a fixed or a turning plate.
-        if let Some(g) = skyfield::reduce::plate_set_gap(&distinct, info.hwp_sweep_deg) {
-            left.push(LeftOut {
-                files: all_files,
-                why: format!(
-                    "set {label}: incomplete, HWP angle(s) {} missing from the N = {} set ({}); has {}",
-                    fmt_deg(&g.missing_deg),
-                    g.n,
-                    fmt_deg(&g.expected_deg),
-                    fmt_deg(&distinct)
-                ),
-            });
-            continue;
-        }
-        let cycles = angles.iter().map(|(_, v)| v.len()).min().unwrap_or(0);
-        let mut keep: Vec<&Exposure> = Vec::new();
-        let mut extra: Vec<PathBuf> = Vec::new();
-        for (_, v) in &angles {
-            keep.extend(v.iter().take(cycles));
-            extra.extend(v.iter().skip(cycles).flat_map(|e| e.files.clone()));
-        }
-        if !extra.is_empty() {
-            left.push(LeftOut {
-                files: extra,
-                why: format!(
-                    "set {label}: exposures beyond its {cycles} complete cycle(s) of {} angles",
-                    distinct.len()
-                ),
-            });
-        }
-        keep.sort_by(|a, b| a.info.mjd.total_cmp(&b.info.mjd));
+        let Some(keep) = complete_cycles(q, &label, &mut self.left) else { return };
         let frames: Vec<PathBuf> = keep.iter().flat_map(|e| e.files.clone()).collect();
         let night = night_of(info.mjd);
         let filter = info.filter.clone().unwrap_or_default();
-
-        // Rule 6: standards.
-        let by_name = standards.star(&info.target).ok();
-        let by_pos = match (info.ra_deg, info.dec_deg) {
-            (Some(ra), Some(dec)) => standards
-                .stars
-                .iter()
-                .find(|st| st.position_deg().is_some_and(|(sra, sdec)| sep_arcsec(ra, dec, sra, sdec) <= tol)),
-            _ => None,
-        };
-        let star = by_name.or(by_pos);
-        if star.is_none() && info.role == Role::Standard {
-            left.push(LeftOut {
-                files: vec![],
-                why: format!("set {label}: the headers call it a standard, but the standards list knows no '{}' there: measured as a target", info.target),
-            });
-        }
-
-        let first_unit = units.len();
+        let star = self.standard_of(info, &label);
+        let first_unit = self.units.len();
         let base = format!("{}-{}-{}", night_label(night), slug(&info.target), slug(&filter));
-        let k = set_names.entry(base.clone()).or_insert(0);
+        let k = self.set_names.entry(base.clone()).or_insert(0);
         *k += 1;
         let set_id = if *k == 1 { base } else { format!("{base}-{k}") };
-
-        let mut masters_args: Vec<String> = vec![];
-        let mut masters_in: Vec<PathBuf> = vec![];
-        let mut after: Vec<String> = vec![];
-        if let Some(m) = nearest(&biases, night, info.binning, None) {
-            masters_args.extend(["--bias".into(), s(&m.out)]);
-            masters_in.push(m.out.clone());
-            after.push(m.id.clone());
-        }
-        if let Some(m) = nearest(&flats, night, info.binning, info.filter.as_ref()) {
-            masters_args.extend(["--flat".into(), s(&m.out)]);
-            masters_in.push(m.out.clone());
-            after.push(m.id.clone());
-        }
-        let inputs: Vec<PathBuf> = frames.iter().cloned().chain(masters_in.iter().cloned()).collect();
-        let frame_args: Vec<String> = frames.iter().map(|x| s(x)).collect();
-
-        let map = p.join("maps").join(format!("{set_id}.fits"));
-        let mut args = vec!["reduce".to_string()];
-        args.extend(frame_args.iter().cloned());
-        args.extend(["--instrument".into(), inst_arg.clone(), "--bin".into(), opts.bin_px.to_string()]);
-        args.extend(masters_args.iter().cloned());
-        args.extend(["--out".into(), s(&map)]);
-        units.push(Unit::new(
-            &format!("reduce-{set_id}"),
-            "reduce",
-            inputs.clone(),
-            vec![map.clone()],
-            args,
-            after.clone(),
-        ));
-
+        let set = self.inputs_of(&frames, night, info);
         let sky = opts.sky_fields.iter().find(|f| norm_name(&f.target) == norm_name(&info.target));
-        // A sky field is empty: its stars, if any, are not what it was taken for.
-        let cat = p.join("catalogs").join(format!("{set_id}.ecsv"));
-        let mut args = vec!["catalog".to_string()];
-        args.extend(frame_args.iter().cloned());
-        args.extend(["--instrument".into(), inst_arg.clone(), "--fwhm".into(), opts.fwhm_px.to_string()]);
-        args.extend(["--aperture".into(), opts.aperture_px.to_string()]);
-        args.extend(masters_args.iter().cloned());
-        args.extend(["--out".into(), s(&cat)]);
-        if sky.is_none() {
-            units.push(Unit::new(
-                &format!("catalog-{set_id}"),
-                "catalog",
-                inputs.clone(),
-                vec![cat],
-                args,
-                after.clone(),
-            ));
-        }
-
+        let map = self.map_and_catalog(&set_id, &set, sky.is_none());
         if let Some(sky) = sky {
-            let cal = p.join("calibrations").join(format!("{set_id}.fits"));
+            let cal = opts.products.join("calibrations").join(format!("{set_id}.fits"));
             let args = vec![
                 "calibrate".to_string(),
                 "--map".into(),
                 s(&map),
                 "--instrument".into(),
-                inst_arg.clone(),
+                opts.instrument.clone(),
                 "--sky-p".into(),
                 sky.p_percent.to_string(),
                 "--sky-chi".into(),
@@ -894,13 +897,13 @@ pub fn plan_sorted(
                 s(&cal),
             ];
             let unit = format!("calibrate-{set_id}");
-            calibrations.push(SkyCalibration {
+            self.calibrations.push(SkyCalibration {
                 unit: unit.clone(),
                 out: cal.clone(),
                 filter: filter.clone(),
                 mjd: info.mjd,
             });
-            units.push(Unit::new(
+            self.units.push(Unit::new(
                 &unit,
                 "calibrate",
                 vec![map.clone()],
@@ -909,9 +912,8 @@ pub fn plan_sorted(
                 vec![format!("reduce-{set_id}")],
             ));
         }
-
         if let Some(st) = star {
-            match star_pixel(inst, st, info.ra_deg, info.dec_deg) {
+            match star_pixel(self.inst, st, info.ra_deg, info.dec_deg) {
                 Some((x, y)) => {
                     let set = StandardSet {
                         set_id: set_id.clone(),
@@ -921,15 +923,15 @@ pub fn plan_sorted(
                         star: st.name.clone(),
                         polarized: st.kind == fit::standards::Kind::Polarized,
                         xy: [format!("{x:.2}"), format!("{y:.2}")],
-                        frame_args: frame_args.clone(),
-                        masters_args: masters_args.clone(),
-                        inputs: inputs.clone(),
-                        after: after.clone(),
+                        frame_args: set.frame_args,
+                        masters_args: set.masters_args,
+                        inputs: set.inputs,
+                        after: set.after,
                     };
-                    units.extend(standard_units(&set, nasmyth, opts));
-                    standard_sets.push(set);
+                    self.units.extend(standard_units(&set, self.nasmyth, opts));
+                    self.standard_sets.push(set);
                 }
-                None => left.push(LeftOut {
+                None => self.left.push(LeftOut {
                     files: vec![],
                     why: format!(
                         "set {label}: standard {} without a catalogued position or a pointing: not measured at its position",
@@ -939,14 +941,93 @@ pub fn plan_sorted(
             }
         }
         // What each unit of the set measures (module docs of `trend`).
-        for u in &mut units[first_unit..] {
+        for u in &mut self.units[first_unit..] {
             u.mjd = Some(info.mjd);
             u.filter = info.filter.clone();
         }
     }
-    units.extend(night_checks(&standard_sets, &calibrations, nasmyth, opts));
-    let files = files_seen.into_iter().map(|(path, role)| super::plan::FileRole { path, role }).collect();
-    Plan::checked((&opts.instrument, inst), p, units, files, left)
+
+    /// Rule 6: the standard star a set observes, by its target name or within the pointing
+    /// tolerance of a catalogued position. A set the headers call a standard that the list
+    /// does not know is measured as a target, and the plan says so.
+    fn standard_of(&mut self, info: &FileInfo, label: &str) -> Option<&'a fit::standards::Star> {
+        let standards = self.standards;
+        let tol = self.opts.pointing_tol_arcsec;
+        let by_name = standards.star(&info.target).ok();
+        let by_pos = match (info.ra_deg, info.dec_deg) {
+            (Some(ra), Some(dec)) => standards
+                .stars
+                .iter()
+                .find(|st| st.position_deg().is_some_and(|(sra, sdec)| sep_arcsec(ra, dec, sra, sdec) <= tol)),
+            _ => None,
+        };
+        let star = by_name.or(by_pos);
+        if star.is_none() && info.role == Role::Standard {
+            self.left.push(LeftOut {
+                files: vec![],
+                why: format!("set {label}: the headers call it a standard, but the standards list knows no '{}' there: measured as a target", info.target),
+            });
+        }
+        star
+    }
+
+    /// A set's frames and the night's nearest master bias and flat of its binning (and filter).
+    fn inputs_of(&self, frames: &[PathBuf], night: i64, info: &FileInfo) -> SetInputs {
+        let mut masters_args: Vec<String> = vec![];
+        let mut masters_in: Vec<PathBuf> = vec![];
+        let mut after: Vec<String> = vec![];
+        if let Some(m) = nearest(&self.biases, night, info.binning, None) {
+            masters_args.extend(["--bias".into(), s(&m.out)]);
+            masters_in.push(m.out.clone());
+            after.push(m.id.clone());
+        }
+        if let Some(m) = nearest(&self.flats, night, info.binning, info.filter.as_ref()) {
+            masters_args.extend(["--flat".into(), s(&m.out)]);
+            masters_in.push(m.out.clone());
+            after.push(m.id.clone());
+        }
+        let inputs: Vec<PathBuf> = frames.iter().cloned().chain(masters_in.iter().cloned()).collect();
+        let frame_args: Vec<String> = frames.iter().map(|x| s(x)).collect();
+        SetInputs { frame_args, masters_args, inputs, after }
+    }
+
+    /// Rule 7: the set's map (`reduce`), and its catalog unless it is a sky field (an empty
+    /// field: its stars, if any, are not what it was taken for). Returns the map's path.
+    fn map_and_catalog(&mut self, set_id: &str, set: &SetInputs, with_catalog: bool) -> PathBuf {
+        let (opts, p, inst_arg) = (self.opts, &self.opts.products, &self.opts.instrument);
+        let map = p.join("maps").join(format!("{set_id}.fits"));
+        let mut args = vec!["reduce".to_string()];
+        args.extend(set.frame_args.iter().cloned());
+        args.extend(["--instrument".into(), inst_arg.clone(), "--bin".into(), opts.bin_px.to_string()]);
+        args.extend(set.masters_args.iter().cloned());
+        args.extend(["--out".into(), s(&map)]);
+        self.units.push(Unit::new(
+            &format!("reduce-{set_id}"),
+            "reduce",
+            set.inputs.clone(),
+            vec![map.clone()],
+            args,
+            set.after.clone(),
+        ));
+        let cat = p.join("catalogs").join(format!("{set_id}.ecsv"));
+        let mut args = vec!["catalog".to_string()];
+        args.extend(set.frame_args.iter().cloned());
+        args.extend(["--instrument".into(), inst_arg.clone(), "--fwhm".into(), opts.fwhm_px.to_string()]);
+        args.extend(["--aperture".into(), opts.aperture_px.to_string()]);
+        args.extend(set.masters_args.iter().cloned());
+        args.extend(["--out".into(), s(&cat)]);
+        if with_catalog {
+            self.units.push(Unit::new(
+                &format!("catalog-{set_id}"),
+                "catalog",
+                set.inputs.clone(),
+                vec![cat],
+                args,
+                set.after.clone(),
+            ));
+        }
+        map
+    }
 }
 
 /// Rule 8 (module docs): each standard's set validated against its filter's calibration

@@ -4,11 +4,15 @@
 use anyhow::{anyhow, bail, Context, Result};
 use fit::mueller_field::cal::{MuellerCal, SkyField};
 use fit::mueller_field::smooth;
-use fit::mueller_field::stars::{read_star_fields, FieldSummary, ParamSummary};
+use fit::mueller_field::stars::{read_star_fields, FieldSummary};
 use fit::mueller_field::{
     fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions,
 };
 use std::path::{Path, PathBuf};
+
+mod words;
+
+use words::Report;
 
 /// Fit the linear block of the pre-analyzer Mueller matrix over the field jointly to two or
 /// more Stokes maps of empty fields whose sky polarization is known: the diattenuation p, phi
@@ -115,18 +119,16 @@ fn parse_field(spec: &str) -> Result<(PathBuf, f64, f64, f64)> {
     Ok((PathBuf::from(path), p / 100.0, chi.to_radians(), sig / 100.0))
 }
 
+/// A map's instrument, filter and field coordinates.
+type Setup = (String, String, field::FieldCoords);
+
 /// One instrument, filter and field-coordinate system (names compared case-insensitively).
-fn same_setup(a: &(String, String, field::FieldCoords), b: &(String, String, field::FieldCoords)) -> bool {
+fn same_setup(a: &Setup, b: &Setup) -> bool {
     a.0.eq_ignore_ascii_case(&b.0) && a.1.eq_ignore_ascii_case(&b.1) && a.2 == b.2
 }
 
 /// The refusal of a field map of another setup than the first map's.
-fn mixed_fields(
-    path: &Path,
-    this: &(String, String, field::FieldCoords),
-    first: &Path,
-    s: &(String, String, field::FieldCoords),
-) -> anyhow::Error {
+fn mixed_fields(path: &Path, this: &Setup, first: &Path, s: &Setup) -> anyhow::Error {
     anyhow!(
         "{}: a {} {} map, but {} is {} {}: fit the fields of one instrument and filter together",
         path.display(),
@@ -145,30 +147,6 @@ fn kind_of(a: &Args) -> Result<Kind> {
     Kind::parse_free(&a.free).map_err(|e| anyhow!("--free '{}': {e}", a.free))
 }
 
-#[derive(serde::Serialize)]
-struct Report {
-    output: PathBuf,
-    n_fields: usize,
-    n_stars: usize,
-    n_obs: usize,
-    deg: usize,
-    smooth: &'static str,
-    model: &'static str,
-    free: Vec<&'static str>,
-    chi2_dof: f64,
-    condition: Option<f64>,
-    parameters: Vec<ParamSummary>,
-    median_p: Option<f64>,
-    max_p: Option<f64>,
-    median_retardance_deg: Option<f64>,
-    max_retardance_deg: Option<f64>,
-    n_bins_fitted: Option<usize>,
-    n_bins_unconstrained: Option<usize>,
-    warnings: Vec<String>,
-    /// What the calibration is: the maps' instrument file and detector, the run's inputs.
-    product: skyfield::provenance::Product,
-}
-
 pub fn run(a: Args) -> Result<()> {
     let kind = kind_of(&a)?;
     let specs: Vec<(PathBuf, f64, f64, f64)> = a.fields.iter().map(|s| parse_field(s)).collect::<Result<_>>()?;
@@ -182,51 +160,8 @@ pub fn run(a: Args) -> Result<()> {
         Some("json") => false,
         _ => bail!("--out {}: the extension says the format: .fits (calibration file) or .json", a.out.display()),
     };
-    let mut fields = Vec::new();
-    // The first map's instrument, filter and field coordinates: every field must share them.
-    let mut setup: Option<(String, String, field::FieldCoords)> = None;
-    // What the first map records of its instrument file and detector, for the calibration's product.
-    let mut first_product: Option<skyfield::provenance::Product> = None;
-    // The detector the maps cover (half width, half height, arcmin): the star table's stars must lie on it.
-    let mut half_field: Option<(f64, f64)> = None;
-    // The HWP zero angle the maps record (HWPZERO): each is turned by it into the sky frame of
-    // its known polarization (fit::mueller_field::cal module docs); one value for all of them.
-    let mut zero: Option<(Option<f64>, &PathBuf)> = None;
-    let says = |z: Option<f64>| z.map_or("none (taken as 0 deg)".to_string(), |z| format!("{z} deg"));
-    for (path, p, chi, sig) in &specs {
-        let map =
-            skyfield::maps::StokesMap::read_uncorrected(path).with_context(|| format!("reading {}", path.display()))?;
-        let z = map.hwp_zero_angle_deg.unwrap_or(0.0);
-        match zero {
-            None => zero = Some((map.hwp_zero_angle_deg, path)),
-            Some((z0, first)) if z0.unwrap_or(0.0) != z => bail!(
-                "{}: records an HWP zero angle of {} (HWPZERO), but {} records {}: fit the maps of one instrument and filter together",
-                path.display(),
-                says(map.hwp_zero_angle_deg),
-                first.display(),
-                says(z0)
-            ),
-            Some(_) => {}
-        }
-        first_product.get_or_insert_with(|| map.product.clone().unwrap_or_default());
-        let map = fit::models::pipeline::map_to_sky_frame(&map, z.to_radians());
-        let obs = observations_of_map(&map);
-        if obs.is_empty() {
-            bail!("{}: the Stokes map has no valid bin", path.display());
-        }
-        let this = (map.instrument.clone(), map.filter.clone(), map.geometry.field_coords());
-        let g = &map.geometry;
-        let arcmin = g.pixel_scale_arcsec / 60.0;
-        half_field.get_or_insert((0.5 * g.detector_nx as f64 * arcmin, 0.5 * g.detector_ny as f64 * arcmin));
-        match &setup {
-            None => setup = Some(this),
-            Some(s) if !same_setup(s, &this) => return Err(mixed_fields(path, &this, &specs[0].0, s)),
-            Some(_) => {}
-        }
-        fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));
-    }
+    let (mut fields, setup, first_product, half_field, zero_angle_deg) = read_maps(&specs)?;
     let n_maps = fields.len();
-    let zero_angle_deg = zero.and_then(|z| z.0).unwrap_or(0.0);
     if let Some(t) = &a.stars {
         fields.extend(read_star_fields(t, zero_angle_deg, half_field)?);
     }
@@ -313,36 +248,59 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         return crate::util::print_json(&rep);
     }
-    outln!(
-        "Mueller field from {} fields and {} stars, {} observations: {} model, free {}",
-        rep.n_fields,
-        rep.n_stars,
-        rep.n_obs,
-        rep.model,
-        rep.free.join(", ")
-    );
-    let form = match rep.smooth {
-        "poly" => format!("degree {} polynomials", rep.deg),
-        "radial" => format!("radial patterns, powers 1..{} of r", rep.deg),
-        _ => "interpolated per-bin fits".into(),
-    };
-    outln!("  {form}, chi2/dof {:.3}, Fisher condition number {:.3e}", rep.chi2_dof, mf.condition);
-    outln!("  {:<16} {:>12} {:>12} {:>12}", "parameter", "median", "rms", "median sigma");
-    for p in &rep.parameters {
-        outln!("  {:<16} {:>12.3e} {:>12.3e} {:>12.3e}", p.name, p.median_value, p.rms_value, p.median_sigma);
-    }
-    if let (Some(m), Some(x)) = (rep.median_p, rep.max_p) {
-        outln!("  diattenuation p: median {:.4} %, largest {:.4} %", 100.0 * m, 100.0 * x);
-    }
-    if let (Some(m), Some(x)) = (rep.median_retardance_deg, rep.max_retardance_deg) {
-        outln!("  retardance: median {m:.2} deg, largest {x:.2} deg");
-    }
-    if let (Some(n), Some(s)) = (rep.n_bins_fitted, rep.n_bins_unconstrained) {
-        outln!("  per bin: {n} bins fitted, {s} not constrained on their own");
-    }
-    for w in &rep.warnings {
-        eprintln!("WARNING: {w}");
-    }
-    outln!("  written: {}", rep.output.display());
+    words::print_report(&rep, mf.condition);
     Ok(())
+}
+
+/// The fields' maps, each turned into the sky frame of its known polarization by the HWP zero
+/// angle it records (one for all, and one instrument, filter and field coordinates): the fields,
+/// the first map's setup and product, the detector's half size (arcmin) and the zero angle (deg).
+type Maps = (Vec<CalField>, Option<Setup>, Option<skyfield::provenance::Product>, Option<(f64, f64)>, f64);
+
+fn read_maps(specs: &[(PathBuf, f64, f64, f64)]) -> Result<Maps> {
+    let mut fields = Vec::new();
+    // The first map's instrument, filter and field coordinates: every field must share them.
+    let mut setup: Option<Setup> = None;
+    // What the first map records of its instrument file and detector, for the calibration's product.
+    let mut first_product: Option<skyfield::provenance::Product> = None;
+    // The detector the maps cover (half width, half height, arcmin): the star table's stars must lie on it.
+    let mut half_field: Option<(f64, f64)> = None;
+    // The HWP zero angle the maps record (HWPZERO): each is turned by it into the sky frame of
+    // its known polarization (fit::mueller_field::cal module docs); one value for all of them.
+    let mut zero: Option<(Option<f64>, &PathBuf)> = None;
+    let says = |z: Option<f64>| z.map_or("none (taken as 0 deg)".to_string(), |z| format!("{z} deg"));
+    for (path, p, chi, sig) in specs {
+        let map =
+            skyfield::maps::StokesMap::read_uncorrected(path).with_context(|| format!("reading {}", path.display()))?;
+        let z = map.hwp_zero_angle_deg.unwrap_or(0.0);
+        match zero {
+            None => zero = Some((map.hwp_zero_angle_deg, path)),
+            Some((z0, first)) if z0.unwrap_or(0.0) != z => bail!(
+                "{}: records an HWP zero angle of {} (HWPZERO), but {} records {}: fit the maps of one instrument and filter together",
+                path.display(),
+                says(map.hwp_zero_angle_deg),
+                first.display(),
+                says(z0)
+            ),
+            Some(_) => {}
+        }
+        first_product.get_or_insert_with(|| map.product.clone().unwrap_or_default());
+        let map = fit::models::pipeline::map_to_sky_frame(&map, z.to_radians());
+        let obs = observations_of_map(&map);
+        if obs.is_empty() {
+            bail!("{}: the Stokes map has no valid bin", path.display());
+        }
+        let this = (map.instrument.clone(), map.filter.clone(), map.geometry.field_coords());
+        let g = &map.geometry;
+        let arcmin = g.pixel_scale_arcsec / 60.0;
+        half_field.get_or_insert((0.5 * g.detector_nx as f64 * arcmin, 0.5 * g.detector_ny as f64 * arcmin));
+        match &setup {
+            None => setup = Some(this),
+            Some(s) if !same_setup(s, &this) => return Err(mixed_fields(path, &this, &specs[0].0, s)),
+            Some(_) => {}
+        }
+        fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));
+    }
+    let zero_angle_deg = zero.and_then(|z| z.0).unwrap_or(0.0);
+    Ok((fields, setup, first_product, half_field, zero_angle_deg))
 }
