@@ -90,8 +90,12 @@ fn a_telescope_model_file_records_its_instrument_file() {
     let table = data.join("pv_standards.txt");
     let (code, _, err) = run(&["fit-standards", &s(&table), "--instrument", "efosc2", "--output", &s(&out)]);
     assert_eq!(code, 0, "fit-standards: {err}");
-    let p = fit::files::calibration::load(&out).unwrap().product.expect("the telescope model's product");
+    let file = fit::files::calibration::load(&out).unwrap();
+    let p = file.product.clone().expect("the telescope model's product");
     assert_eq!(p.instrument.as_deref(), Some("EFOSC2"));
+    // A telescope model is the same at every field position: its detector is recorded but not
+    // compared (data of any detector of the instrument are corrected with it).
+    assert!(p.detector_px.is_some() && file.setup().detector_px.is_none() && file.setup().pixel_scale_arcsec.is_none());
     assert_eq!(p.filter, None, "a telescope model is of bands, not one filter");
     let toml = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../instruments/efosc2.toml");
     if let Some(sums) = common::b3sum(&[toml, table]) {

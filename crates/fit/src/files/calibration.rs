@@ -101,7 +101,9 @@ pub fn load(path: &Path) -> Result<CalibrationFile> {
 impl CalibrationFile {
     /// The setup of a calibration file: its model's instrument and filter (a telescope model
     /// alone: the file's instrument and no filter, its band checked apart) and what the file's
-    /// product keywords record.
+    /// product keywords record. The detector only where a model depends on the field position
+    /// (a field or a Mueller field): a telescope model or a constant response is the same at
+    /// every position, on any detector of the instrument.
     pub fn setup(&self) -> crate::correction::setup::Setup {
         let (inst, filter) = match (&self.field, &self.mueller, &self.response) {
             (Some(c), _, _) => (c.instrument.as_str(), c.filter.as_str()),
@@ -109,8 +111,14 @@ impl CalibrationFile {
             (None, None, Some(r)) => (r.instrument.as_str(), r.filter.as_str()),
             (None, None, None) => (self.instrument.as_str(), ""),
         };
-        crate::correction::setup::Setup::named(inst, filter).with_product(self.product.as_ref())
+        let s = crate::correction::setup::Setup::named(inst, filter).with_product(self.product.as_ref());
+        if self.field.is_some() || self.mueller.is_some() {
+            s
+        } else {
+            crate::correction::setup::Setup { detector_px: None, pixel_scale_arcsec: None, ..s }
+        }
     }
+
     /// Which models the file holds.
     pub fn kind(&self) -> Kind {
         if self.response.is_some() {
