@@ -128,7 +128,7 @@ impl Setup {
     /// The setup a product records (`None` when it records no instrument or filter: a table
     /// written by other software).
     pub fn of_product(p: &skyfield::provenance::Product) -> Option<Self> {
-        Some(Setup { instrument: p.instrument.clone()?, filter: p.filter.clone()?, ..Setup::of_product_parts(p) })
+        Some(Setup::named(p.instrument.as_deref()?, p.filter.as_deref()?).with_product(Some(p)))
     }
 
     /// A setup of instrument `instrument` and filter `filter` that says nothing else.
@@ -140,24 +140,12 @@ impl Setup {
     /// detector), where `self` does not say; `p` may be `None`.
     pub fn with_product(self, p: Option<&skyfield::provenance::Product>) -> Self {
         let Some(p) = p else { return self };
-        let o = Setup::of_product_parts(p);
         Setup {
-            plate: self.plate.or(o.plate),
-            instrument_hash: self.instrument_hash.or(o.instrument_hash),
-            detector_px: self.detector_px.or(o.detector_px),
-            pixel_scale_arcsec: self.pixel_scale_arcsec.or(o.pixel_scale_arcsec),
+            plate: self.plate.or_else(|| p.plate.clone()),
+            instrument_hash: self.instrument_hash.or_else(|| p.instrument_hash.clone()),
+            detector_px: self.detector_px.or(p.detector_px),
+            pixel_scale_arcsec: self.pixel_scale_arcsec.or(p.pixel_scale_arcsec),
             ..self
-        }
-    }
-
-    fn of_product_parts(p: &skyfield::provenance::Product) -> Self {
-        Setup {
-            instrument: String::new(),
-            filter: String::new(),
-            plate: p.plate.clone(),
-            instrument_hash: p.instrument_hash.clone(),
-            detector_px: p.detector_px,
-            pixel_scale_arcsec: p.pixel_scale_arcsec,
         }
     }
 
@@ -254,7 +242,6 @@ pub fn check_compatible(data: &Setup, cal: Option<&Setup>) -> Result<(), Mismatc
             return Err(Mismatch::PlateDiffers { data: d.clone(), calibration: c.clone() });
         }
     }
-    let geometry = |s: &Setup| (s.detector_px, s.pixel_scale_arcsec);
     let words = |s: &Setup| {
         let size = s.detector_px.map_or("?".to_string(), |(x, y)| format!("{x}x{y} px"));
         let scale = s.pixel_scale_arcsec.map_or("?".to_string(), |a| format!("{a} arcsec/px"));
@@ -266,7 +253,7 @@ pub fn check_compatible(data: &Setup, cal: Option<&Setup>) -> Result<(), Mismatc
         (data.pixel_scale_arcsec, cal.pixel_scale_arcsec),
         (Some(a), Some(b)) if (a - b).abs() > 1e-9 * a.abs().max(b.abs())
     );
-    if (size_differs || scale_differs) && geometry(data) != geometry(cal) {
+    if size_differs || scale_differs {
         return Err(Mismatch::Geometry { data: words(data), calibration: words(cal) });
     }
     Ok(())

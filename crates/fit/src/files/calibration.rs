@@ -56,8 +56,7 @@ pub struct CalibrationFile {
 /// `HIERARCH IP MODEL`, and each model is read by its own format's reader (which names the
 /// keyword, HDU or row at fault). A file with no model is refused.
 pub fn load(path: &Path) -> Result<CalibrationFile> {
-    let (model, instrument) = crate::files::keys::model_and_instrument(path)?;
-    let product = crate::files::keys::product_of(path)?;
+    let (model, instrument, product) = crate::files::keys::model_instrument_product(path)?;
     let path_buf = path.to_path_buf();
     if model == crate::files::keys::MUELLER_MODEL {
         let m = MuellerCal::load(path)?;

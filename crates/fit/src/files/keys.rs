@@ -202,12 +202,13 @@ pub(crate) fn write_fits_atomically(path: &Path, write: impl FnOnce(&mut FitsFil
 }
 
 /// `HIERARCH IP MODEL` and `HIERARCH IP INSTRUMENT` of a calibration file, after the format
-/// check of [`open_versioned`]: what tells the kinds of calibration file apart.
-pub(crate) fn model_and_instrument(path: &Path) -> Result<(String, String)> {
+/// check of [`open_versioned`] (what tells the kinds of calibration file apart), and its product
+/// keywords ([`read_product`]; `None` when it has none), read in one opening.
+pub(crate) fn model_instrument_product(path: &Path) -> Result<(String, String, Option<skyfield::provenance::Product>)> {
     let mut f = open_versioned(path)?;
     let hdu = f.primary_hdu().map_err(fits_err(path, "reading the primary HDU"))?;
     let mut r = KeyReader { f: &mut f, hdu: &hdu, path };
-    Ok((r.str("MODEL")?, r.str("INSTRUMENT")?))
+    Ok((r.str("MODEL")?, r.str("INSTRUMENT")?, read_product(&mut r)?))
 }
 
 /// A calibration's product into its primary header, as the product keywords of every table
@@ -218,14 +219,6 @@ pub(crate) fn write_product(w: &mut KeyWriter, product: Option<&skyfield::proven
         w.plain(&k, &v)?;
     }
     Ok(())
-}
-
-/// The product keywords of a calibration file's primary header (any kind of calibration
-/// file), `None` when it has none.
-pub fn product_of(path: &Path) -> Result<Option<skyfield::provenance::Product>> {
-    let mut f = open_versioned(path)?;
-    let hdu = f.primary_hdu().map_err(fits_err(path, "reading the primary HDU"))?;
-    read_product(&mut KeyReader { f: &mut f, hdu: &hdu, path })
 }
 
 /// The product keywords of the HDU `r` reads, `None` when it has none.
