@@ -85,6 +85,10 @@ pub enum Error {
         "the calibration is for instrument {cal} but the frames are read as instrument {frames} (--instrument); use a calibration of {frames}"
     )]
     WrongInstrument { cal: String, frames: String },
+    /// The frames' plate or detector is not the calibration's
+    /// ([`crate::correction::setup::check_compatible`]).
+    #[error("{0}: a calibration is validated on frames of its own plate and detector")]
+    Mismatch(crate::correction::setup::Mismatch),
     #[error("{doing}")]
     Frames {
         doing: String,
@@ -117,6 +121,9 @@ pub fn validate_frames(
     if !inst.writes(&cal.instrument) {
         return Err(Error::WrongInstrument { cal: cal.instrument.clone(), frames: inst.name.clone() });
     }
+    let cal_setup = crate::correction::setup::Setup::named(&cal.instrument, &cal.filter)
+        .with_product(cal.provenance.product.as_ref());
+    check_frames_against(inst, &cal_setup)?;
     let MeasuredFrames { star: measured, filter, .. } = measure_frames(inst, frames, x_px, y_px, opts)?;
     // Another filter's calibration is allowed (it is how a wrong calibration is shown to
     // fail), but said.
@@ -132,6 +139,15 @@ pub fn validate_frames(
     r.warnings = warnings;
     r.product = Some(skyfield::provenance::Product::of_instrument(inst, &filter, None).with_run_inputs());
     Ok(r)
+}
+
+/// Frames read as `inst` against a calibration of setup `cal`, by the one compatibility check
+/// ([`crate::correction::setup::check_compatible`]): the plate and the detector where both
+/// sides say. The filter is not compared here: a calibration of another filter is how a
+/// wrong calibration is shown to fail, and the callers warn of it.
+pub fn check_frames_against(inst: &Instrument, cal: &crate::correction::setup::Setup) -> Result<(), Error> {
+    use crate::correction::setup::{check_same_instrument, Setup};
+    check_same_instrument(&Setup::of_instrument(inst, ""), cal).map_err(Error::Mismatch)
 }
 
 /// A star measured from frames ([`measure_frames`]).

@@ -587,9 +587,50 @@ pub struct ZeroAngleReport {
     /// is known ([`efficiency`]; the stars left out of the zero angle left out of it too).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub efficiency: Option<Efficiency>,
+    /// What the standards were measured in ([`ZeroAngleReport::with_product`]): the frames'
+    /// instrument file, filter, plate and detector, the run's inputs; with tables alone, the
+    /// filter and the inputs.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub product: Option<skyfield::provenance::Product>,
+}
+
+/// Every filter a zero angle's inputs name must be one: a zero angle is a filter's.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum FilterError {
+    /// Nothing names a filter (tables without one, and no frames).
+    #[error("no input names a filter")]
+    None,
+    /// Two inputs name different filters: each `(filter, where it is named)`.
+    #[error("{} is in filter '{}', {} in '{}': a zero angle is per filter, combine one filter at a time", .other.1, .other.0, .first.1, .first.0)]
+    Differ { first: (String, String), other: (String, String) },
+}
+
+/// The one filter of a zero angle's inputs: each `(filter, where it is named)` (frames,
+/// tables, an option), compared as `inst` names its filters (aliases; without an
+/// instrument, by name in any case). The first named is the one.
+pub fn one_filter(named: &[(String, String)], inst: Option<&instrument::Instrument>) -> Result<String, FilterError> {
+    let first = named.first().ok_or(FilterError::None)?;
+    let same = |f: &str| match inst {
+        Some(_) => crate::correction::setup::same_filter(inst, f, &first.0),
+        None => f.trim().eq_ignore_ascii_case(first.0.trim()),
+    };
+    match named.iter().find(|(f, _)| !same(f)) {
+        Some(other) => Err(FilterError::Differ { first: first.clone(), other: other.clone() }),
+        None => Ok(first.0.clone()),
+    }
 }
 
 impl ZeroAngleReport {
+    /// The report with its product: of the frames' instrument `inst` in the report's filter,
+    /// or, for tables alone (`None`), the filter; the run's inputs either way.
+    pub fn with_product(self, inst: Option<&instrument::Instrument>) -> Self {
+        let product = match inst {
+            Some(i) => skyfield::provenance::Product::of_instrument(i, &self.filter, None),
+            None => skyfield::provenance::Product { filter: Some(self.filter.clone()), ..Default::default() },
+        };
+        ZeroAngleReport { product: Some(product.with_run_inputs()), ..self }
+    }
+
     /// Combine the standards of `filter` ([`zero_angle`]); every star must have a finite error.
     /// Measurements of one standard (the same name and catalogued angle) are first merged into
     /// one ([`merge_repeats`]): they share its catalogue error, so they are not independent.
@@ -607,6 +648,7 @@ impl ZeroAngleReport {
         let left_out: Vec<String> = z.excluded.iter().map(|&k| key_of(&rows[k])).collect();
         let kept: Vec<MeasuredStandard> = all.into_iter().filter(|m| !left_out.contains(&key_of(m))).collect();
         let r = ZeroAngleReport {
+            product: None,
             efficiency: efficiency(&kept),
             zero_angle_deg: zd,
             sigma_zero_angle_deg: z.sigma.to_degrees(),

@@ -341,7 +341,7 @@ impl _Calibration {
 
     /// `instpol correct` on flat arrays: exact inversion of `eq:instpol` (or `eq:approx`), the
     /// HWP zero angle first, errors propagated; `estimator`: also the bias-corrected `P0`.
-    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator, parang_deg, parang_end_deg, band, recorded, carried_deg, setup, allow_mismatch, sky_pa_deg=None))]
+    #[pyo3(signature = (x, y, q, u, sigma_q, sigma_u, cov_qu, units, method, allow_extrapolation, extrapolation_error, estimator, parang_deg, parang_end_deg, band, recorded, carried_deg, setup, allow_mismatch, sky_pa_deg=None, product=None))]
     #[allow(clippy::too_many_arguments)]
     fn _correct<'py>(
         &self,
@@ -366,13 +366,16 @@ impl _Calibration {
         setup: Option<(String, String, Option<String>)>,
         allow_mismatch: bool,
         sky_pa_deg: Option<f64>,
+        product: Option<Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyDict>> {
         let base = request(method, allow_extrapolation, extrapolation_error, band.as_deref(), allow_mismatch)?;
-        // What the rows are (instrument, filter, plate: catalog()'s), checked against the
-        // calibration as a table's keywords are.
-        let setup = setup.map(|(instrument, filter, plate)| fit::correction::setup::Setup {
-            plate,
-            ..fit::correction::setup::Setup::named(&instrument, &filter)
+        // What the rows are (instrument, filter, plate, and what else catalog()'s product
+        // records: instrument file, detector), checked against the calibration as a table's
+        // keywords are.
+        let product = product_of_dict(product.as_ref())?;
+        let setup = setup.map(|(instrument, filter, plate)| {
+            fit::correction::setup::Setup { plate, ..fit::correction::setup::Setup::named(&instrument, &filter) }
+                .with_product(product.as_ref())
         });
         // The zero angle q, u already carry (catalog()'s do): given, else what `recorded`
         // says, else none (q, u at the plate); the calibration's less it is applied, as
@@ -428,6 +431,10 @@ impl _Calibration {
         for (name, c) in out.names.iter().zip(out.values) {
             d.set_item(name, arr1(py, c))?;
         }
+        // What the correction decided and a person should know (a mismatch allowed, two
+        // instrument files, a carried zero angle): warned by `Calibration.correct`.
+        let rows = std::path::Path::new("the rows");
+        d.set_item("warnings", plan.notes.iter().map(|n| self.note_text(n, rows)).collect::<Vec<String>>())?;
         d.set_item(fit::correction::correct::EXTRAPOLATED_COLUMN, bools(py, out.extrapolated))?;
         d.set_item("n_extrapolated", out.n_extrapolated)?;
         d.set_item("n_unmeasured", out.n_unmeasured)?;

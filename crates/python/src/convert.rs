@@ -115,3 +115,31 @@ pub(crate) fn product_dict<'py>(py: Python<'py>, p: &skyfield::provenance::Produ
     pd.set_item("sky_pa_deg", p.position_angle_deg)?;
     Ok(pd)
 }
+
+/// What `product_dict` gave back (`catalog()["product"]`): the instrument file, detector and
+/// pixel scale it records, for the one compatibility check; `None` for `None`. A value of the
+/// wrong type is an InputError naming its key.
+pub(crate) fn product_of_dict(d: Option<&Bound<'_, PyDict>>) -> PyResult<Option<skyfield::provenance::Product>> {
+    let Some(d) = d else { return Ok(None) };
+    fn get<'py, T: for<'a> FromPyObject<'a, 'py>>(
+        d: &Bound<'py, PyDict>,
+        key: &str,
+        what: &str,
+    ) -> PyResult<Option<T>> {
+        match d.get_item(key)? {
+            Some(v) if !v.is_none() => {
+                v.extract().map(Some).map_err(|_| input_err(format!("product['{key}']: expected {what}")))
+            }
+            _ => Ok(None),
+        }
+    }
+    Ok(Some(skyfield::provenance::Product {
+        instrument: get(d, "instrument", "a name")?,
+        instrument_hash: get(d, "instrument_hash", "'blake3:<hex>'")?,
+        filter: get(d, "filter", "a name")?,
+        plate: get(d, "plate", "half_wave or quarter_wave")?,
+        detector_px: get(d, "detector_px", "(nx, ny) pixels")?,
+        pixel_scale_arcsec: get(d, "pixel_scale_arcsec", "arcsec per pixel")?,
+        ..Default::default()
+    }))
+}

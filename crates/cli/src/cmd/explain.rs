@@ -101,6 +101,9 @@ struct Report {
     verdict: String,
     notes: Vec<String>,
     output: Option<PathBuf>,
+    /// What was explained: the instrument file the candidates were built from, the band, the
+    /// run's inputs.
+    product: skyfield::provenance::Product,
 }
 
 fn finite(v: f64) -> Option<f64> {
@@ -216,6 +219,7 @@ pub fn run(a: Args) -> Result<()> {
         verdict: e.verdict.clone(),
         notes,
         output: a.plot.clone(),
+        product: skyfield::provenance::Product::of_instrument(&inst, &a.band, None).with_run_inputs(),
     };
     if let Some(p) = &a.plot {
         draw(p, &e)?;

@@ -72,6 +72,9 @@ struct Summary {
     p_median: f64,
     #[serde(rename = "output")]
     calibration_file: String,
+    /// What the calibration is, as its file records it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    product: Option<skyfield::provenance::Product>,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -110,6 +113,7 @@ pub fn run(a: Args) -> Result<()> {
         // The upper middle of an even count (NaN for none), as the summary always took it.
         p_median: median(&mut p, Middle::Upper),
         calibration_file: a.out.display().to_string(),
+        product: cal.provenance.product.as_ref().map(|p| p.with_run_inputs()),
     };
     if a.json {
         crate::util::print_json(&s)

@@ -181,7 +181,8 @@ pub fn run(a: Args) -> Result<()> {
         }
         let zero = inst.filter(&set.filter).map_or(0.0, |f| f.qwp_zero_angle_deg());
         let (ph, radius_px) = skyfield::photometry::circular_sized(&set, &g, x, y, radius, fwhm, annulus, &opts, zero)?;
-        let o = CircularOut::of(&ph, (x, y), zero, g.e_offset(x, y), radius_px, &set.filter);
+        let product = skyfield::provenance::Product::of_instrument(&inst, &set.filter, None).with_run_inputs();
+        let o = CircularOut::of(&ph, (x, y), zero, g.e_offset(x, y), radius_px, &set.filter, product);
         if a.json {
             crate::util::print_json(&o)?;
         } else {

@@ -61,6 +61,9 @@ pub struct CircularOut {
     pub oe_offset_px: Option<(f64, f64)>,
     pub aperture_px: f64,
     pub filter: String,
+    /// What the source was measured in: the instrument file, filter, plate and detector, the
+    /// run's inputs.
+    pub product: skyfield::provenance::Product,
 }
 
 /// The text report of a source measured at `(x, y)` px: the apertures (`recentred`: followed in
@@ -102,6 +105,7 @@ impl CircularOut {
         oe_offset_px: Option<(f64, f64)>,
         aperture_px: f64,
         filter: &str,
+        product: skyfield::provenance::Product,
     ) -> Self {
         CircularOut {
             x_px: x,
@@ -118,6 +122,7 @@ impl CircularOut {
             oe_offset_px,
             aperture_px,
             filter: filter.to_string(),
+            product,
         }
     }
 }

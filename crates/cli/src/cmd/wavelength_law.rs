@@ -34,8 +34,12 @@ pub fn run(a: Args) -> Result<()> {
     let mut models = vec![];
     let mut r_in = f64::INFINITY;
     let mut names = vec![];
-    for p in &a.calibrations {
-        let cal = fit::Calibration::load(p)?;
+    let cals: Vec<fit::Calibration> =
+        a.calibrations.iter().map(|p| fit::Calibration::load(p)).collect::<Result<_, _>>()?;
+    let paired: Vec<(&std::path::Path, &fit::Calibration)> =
+        a.calibrations.iter().map(|p| p.as_path()).zip(&cals).collect();
+    fit::models::wavelength::check_one_instrument(&paired)?;
+    for (p, cal) in a.calibrations.iter().zip(cals) {
         if !cal.lambda_nm.is_finite() {
             bail!(
                 "{}: the calibration has no wavelength (HIERARCH IP LAMBDA NM); re-import it with --lambda-nm",

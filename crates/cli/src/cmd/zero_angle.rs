@@ -236,6 +236,7 @@ pub fn run(a: Args) -> Result<()> {
     // Every filter named (frames, files, --filter) must be one: a zero angle is per filter.
     let mut filters: Vec<(String, String)> = a.filter.iter().map(|f| (f.clone(), "--filter".to_string())).collect();
     let mut rows: Vec<MeasuredStandard> = Vec::new();
+    let mut frames_inst = None;
     if !a.frames.is_empty() {
         let inst = instrument::Instrument::load(&instrument)?;
         if inst.telescope.as_ref().is_some_and(|t| t.focus == instrument::telescope::Focus::Nasmyth) {
@@ -250,6 +251,7 @@ pub fn run(a: Args) -> Result<()> {
         let (f, r) = measure_frames(&a, &inst)?;
         filters.push((f, "the frames".into()));
         rows.extend(r);
+        frames_inst = Some(inst);
     } else if a.x.is_some() || a.star.is_some() || !a.standard.is_empty() || a.chi_deg.is_some() {
         bail!("--x/--y, --star, --standard and --chi-deg name stars in frames: give the frames too (or only --measured files)");
     }
@@ -260,13 +262,14 @@ pub fn run(a: Args) -> Result<()> {
         }
         rows.extend(r);
     }
-    let Some((filter, from)) = filters.first().cloned() else {
-        bail!("no filter is named by the --measured files: give it with --filter NAME");
-    };
-    if let Some((f, w)) = filters.iter().find(|(f, _)| !f.eq_ignore_ascii_case(&filter)) {
-        bail!("{w} is in filter '{f}', {from} in '{filter}': a zero angle is per filter, combine one filter at a time");
-    }
+    let filter = fit::zeroangle::one_filter(&filters, frames_inst.as_ref()).map_err(|e| match e {
+        fit::zeroangle::FilterError::None => {
+            anyhow::anyhow!("no filter is named by the --measured files: give it with --filter NAME")
+        }
+        e => anyhow::anyhow!("{e}"),
+    })?;
     let (o, z) = ZeroAngleReport::combine(filter, rows)?;
+    let o = o.with_product(frames_inst.as_ref());
     let zd = o.zero_angle_deg;
     for &k in &z.excluded {
         eprintln!(

@@ -187,11 +187,11 @@ pub fn fixture() -> Fixture {
     put(&f, "scene.toml", SCENE);
     put(&f, "f.csv", STOKES_CSV);
     // A catalog that says what it is (the keywords `instpol catalog` writes), of the
-    // calibration's instrument and filter.
+    // calibration's instrument, filter and detector (MINI's 96 px of 4").
     put(
         &f,
         "cat.csv",
-        "# INSTRUME = MINI\n# FILTER = V\n# PLATE = half_wave\nx,y,q,u,sigma_q,sigma_u\n0.5,0.5,0.01,0,0.001,0.001\n-1,1,0,0.01,0.001,0.001\n",
+        "# INSTRUME = MINI\n# FILTER = V\n# PLATE = half_wave\n# DETSIZE = 96x96\n# PIXSCALE = 4.0\nx,y,q,u,sigma_q,sigma_u\n0.5,0.5,0.01,0,0.001,0.001\n-1,1,0,0.01,0.001,0.001\n",
     );
     // Standards' rows of that instrument and filter: one unpolarized, two polarized.
     put(
@@ -318,6 +318,8 @@ pub fn templates(f: &Fixture) -> Vec<Template> {
         v
     };
     let star = ["--instrument", &ins, "--x", "48", "--y", "24", "--aperture", "3", "--annulus", "4,6"];
+    let cat_opts = ["--instrument", &ins, "--fwhm", "3", "--aperture", "3", "--annulus", "4,6"];
+    let cal = f.s("cal.fits");
     let lines = |name: &str| -> Vec<String> {
         std::fs::read_to_string(f.p(name)).unwrap().lines().map(str::to_string).collect()
     };
@@ -418,20 +420,12 @@ pub fn templates(f: &Fixture) -> Vec<Template> {
         ),
         t(
             "catalog",
-            with_frames(s(&[
-                "catalog",
-                "--instrument",
-                &ins,
-                "--fwhm",
-                "3",
-                "--aperture",
-                "3",
-                "--annulus",
-                "4,6",
-                "--out",
-                "{OUT}",
-                "--json",
-            ])),
+            with_frames(s(&[&["catalog"][..], &cat_opts[..], &["--out", "{OUT}", "--json"]].concat())),
+            Some("cat.csv"),
+        ),
+        t(
+            "catalog --cal",
+            with_frames(s(&[&["catalog"][..], &cat_opts[..], &["--cal", &cal, "--out", "{OUT}", "--json"]].concat())),
             Some("cat.csv"),
         ),
         t("photometry", with_frames(s(&[&["photometry"][..], &star[..], &["--json"]].concat())), None),

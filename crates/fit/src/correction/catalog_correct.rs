@@ -76,11 +76,7 @@ pub fn correct_catalog_loaded(
 ) -> Result<(CorrectedCatalog, Option<TelescopeUsed>), Error> {
     // What the frames are, checked against the calibration by the one rule (the plate first:
     // a quarter-wave plate's V/I is refused before the models are asked for).
-    let plate = inst.polarimetry.plate.name().to_string();
-    let data = crate::correction::setup::Setup {
-        plate: Some(plate),
-        ..crate::correction::setup::Setup::named(&inst.name, &cat.filter)
-    };
+    let data = crate::correction::setup::Setup::of_instrument(inst, &cat.filter);
     crate::correction::setup::check_compatible(&data, None).map_err(Error::Mismatch)?;
     let (field, tel) = loaded.p_phi_models().map_err(Error::Calibration)?;
     // The exposures' angles from the frames' headers, for a telescope model.

@@ -131,6 +131,13 @@ impl Setup {
         Some(Setup::named(p.instrument.as_deref()?, p.filter.as_deref()?).with_product(Some(p)))
     }
 
+    /// The setup of data read with `inst` in `filter`: its name, file, plate and detector
+    /// ([`skyfield::provenance::Product::of_instrument`]), what frames reduced with it are.
+    pub fn of_instrument(inst: &Instrument, filter: &str) -> Self {
+        Setup::named(&inst.name, filter)
+            .with_product(Some(&skyfield::provenance::Product::of_instrument(inst, filter, None)))
+    }
+
     /// A setup of instrument `instrument` and filter `filter` that says nothing else.
     pub fn named(instrument: &str, filter: &str) -> Self {
         Setup { instrument: instrument.to_string(), filter: filter.to_string(), ..Default::default() }
@@ -197,11 +204,14 @@ impl Mismatch {
 impl std::fmt::Display for Mismatch {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            Mismatch::Setup { data, calibration } => write!(
-                f,
-                "the data are of instrument {} in filter {}, the calibration of instrument {} in filter {}",
-                data.0, data.1, calibration.0, calibration.1
-            ),
+            Mismatch::Setup { data, calibration } => {
+                // A side compared without its filter (check_same_instrument) names none.
+                let side = |(i, fl): &(String, String)| match fl.as_str() {
+                    "" => format!("instrument {i}"),
+                    fl => format!("instrument {i} in filter {fl}"),
+                };
+                write!(f, "the data are of {}, the calibration of {}", side(data), side(calibration))
+            }
             Mismatch::Plate { plate } => write!(
                 f,
                 "the data were taken through a {} plate (V/I); a calibration corrects the linear q, u of a half-wave plate",
@@ -257,6 +267,14 @@ pub fn check_compatible(data: &Setup, cal: Option<&Setup>) -> Result<(), Mismatc
         return Err(Mismatch::Geometry { data: words(data), calibration: words(cal) });
     }
     Ok(())
+}
+
+/// [`check_compatible`] of two sides that must be of one instrument, plate and detector but
+/// may be of different filters (calibrations of several filters for a wavelength law; frames
+/// judged against a calibration of another filter, which `validate` shows failing).
+pub fn check_same_instrument(a: &Setup, b: &Setup) -> Result<(), Mismatch> {
+    let any_filter = |s: &Setup| Setup { filter: String::new(), ..s.clone() };
+    check_compatible(&any_filter(a), Some(&any_filter(b)))
 }
 
 /// Whether data and a calibration of one instrument were made with two different instrument

@@ -199,7 +199,15 @@ pub fn import_map(q_path: &Path, u_path: &Path, opts: &ImportOptions) -> Result<
         exclusions: vec![],
         robust: String::new(),
         pixel: Some(PixelGrid { scale_arcsec: opts.pixel_scale_arcsec, origin_px: origin }),
-        provenance: Provenance::now("imported map", vec![q_path.display().to_string(), u_path.display().to_string()]),
+        // What the maps say they are: the instrument and filter given (the detector and the
+        // plate are not known from a pair of maps, and are not claimed).
+        provenance: Provenance::now("imported map", vec![q_path.display().to_string(), u_path.display().to_string()])
+            .with_product(skyfield::provenance::Product {
+                instrument: Some(opts.instrument.clone()),
+                filter: Some(opts.filter.clone()),
+                wavelength_um: Some(opts.lambda_nm / 1000.0).filter(|w| w.is_finite()),
+                ..Default::default()
+            }),
         bins,
         grid: Some(grid),
     })

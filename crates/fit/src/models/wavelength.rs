@@ -27,6 +27,26 @@ pub struct WavelengthLaw {
     pub r_range: [f64; 2],
 }
 
+/// Calibrations of several filters for one wavelength law must be of one instrument, plate
+/// and detector ([`crate::correction::setup::check_same_instrument`], each against the first;
+/// their filters differ, as they should): `Err` names the two files and what differs.
+pub fn check_one_instrument(cals: &[(&std::path::Path, &crate::Calibration)]) -> Result<()> {
+    let setup = |c: &crate::Calibration| {
+        crate::correction::setup::Setup::named(&c.instrument, &c.filter).with_product(c.provenance.product.as_ref())
+    };
+    let Some((first_path, first)) = cals.first() else { return Ok(()) };
+    for (p, c) in &cals[1..] {
+        crate::correction::setup::check_same_instrument(&setup(first), &setup(c)).map_err(|m| {
+            Error::Input(format!(
+                "{} and {} do not fit together: {m} (as data, then calibration); a wavelength law is of one instrument",
+                first_path.display(),
+                p.display()
+            ))
+        })?;
+    }
+    Ok(())
+}
+
 /// Fit `p(lambda) / p(550) = a + b lambda` (section `sec:cause`) to radial models at the given
 /// wavelengths: each model's `p(r)` is averaged over `n` radii evenly spread in `r_range`
 /// (arcmin), a straight line `A + B lambda` is fitted to the averages by weighted least squares,

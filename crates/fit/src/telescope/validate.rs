@@ -66,6 +66,10 @@ pub struct ChainValidation {
     /// Things a person should know (not in the JSON).
     #[serde(skip)]
     pub warnings: Vec<String>,
+    /// What the star was measured in: the frames' instrument file, filter, plate and
+    /// detector, the run's inputs (`None`: a measurement given as numbers, not frames).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub product: Option<skyfield::provenance::Product>,
 }
 
 /// Validate the telescope model `tel` (band `band`) and, when given, the field calibration
@@ -177,6 +181,7 @@ pub fn validate_chain(
         pass: corrected <= opts.threshold,
         extrapolated: c.extrapolated,
         warnings,
+        product: None,
     })
 }
 
@@ -235,6 +240,7 @@ pub fn validate_telescope(
     if crate::correction::setup::is_known(&loaded.instrument) && !inst.writes(&loaded.instrument) {
         return Err(ValidateError::Instrument { calibration: loaded.instrument.clone(), frames: inst.name.clone() });
     }
+    crate::validate::check_frames_against(inst, &loaded.setup())?;
     let headers = match (parang, inst.telescope.as_ref()) {
         (Some(_), _) => None,
         (None, Some(t)) => Some(t),
@@ -258,6 +264,8 @@ pub fn validate_telescope(
     // The frames are at the plate: their filter's zero angle brings them into the sky frame
     // of the models (crate::telescope::cal module docs).
     let zero_angle_deg = inst.filter(&filter).map_or(0.0, |f| f.chi_offset_deg());
-    let result = validate_chain(field, tel, &band, &measured, pos, track, &each, (&name, exp), opts, zero_angle_deg)?;
+    let mut result =
+        validate_chain(field, tel, &band, &measured, pos, track, &each, (&name, exp), opts, zero_angle_deg)?;
+    result.product = Some(skyfield::provenance::Product::of_instrument(inst, &filter, None).with_run_inputs());
     Ok(TelescopeValidation { result, filter, band_is_filter })
 }

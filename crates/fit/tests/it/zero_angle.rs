@@ -263,3 +263,22 @@ fn map_rotation_is_a_rotation_of_q_u_and_their_covariance() {
     // A zero offset changes nothing, bit for bit.
     assert_eq!(map_to_sky_frame(&map, 0.0), map);
 }
+
+/// A zero angle is a filter's: its inputs' filters are compared as the instrument names them
+/// (FORS1's `V_BESS` is its `V`), and two filters are refused naming both and where each is
+/// named.
+#[test]
+fn one_filter_compares_as_the_instrument_names_filters() {
+    use fit::zeroangle::{one_filter, FilterError};
+    let fors1 = instrument::Instrument::load("fors1").unwrap();
+    let named = |v: &[(&str, &str)]| v.iter().map(|(f, w)| (f.to_string(), w.to_string())).collect::<Vec<_>>();
+    let alias = named(&[("V", "the frames"), ("v_bess", "--measured a.csv")]);
+    assert_eq!(one_filter(&alias, Some(&fors1)), Ok("V".to_string()));
+    // Without the instrument an alias is not known: two names.
+    assert!(matches!(one_filter(&alias, None), Err(FilterError::Differ { .. })));
+    let two = named(&[("V", "the frames"), ("I", "--measured b.csv")]);
+    let e = one_filter(&two, Some(&fors1)).unwrap_err();
+    let words = e.to_string();
+    assert!(words.contains("--measured b.csv") && words.contains("'I'") && words.contains("'V'"), "{words}");
+    assert_eq!(one_filter(&[], None), Err(FilterError::None));
+}

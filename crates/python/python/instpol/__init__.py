@@ -575,7 +575,10 @@ class Calibration:
             None if instrument is None or filter is None else (str(instrument), str(filter), None if plate is None else str(plate)),
             bool(allow_mismatch),
             None if sky_pa_deg is None else float(sky_pa_deg),
+            product,
         )
+        for w in d.pop("warnings"):
+            warnings.warn(w, stacklevel=2)
         return _reshape(d, shape, flat[0].shape[0])
 
     def correct_map(
