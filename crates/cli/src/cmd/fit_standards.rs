@@ -292,14 +292,11 @@ fn write_calibrations(
         match &a.field_cal {
             Some(fc) => {
                 let cal = fit::Calibration::load(fc).with_context(|| format!("--field-cal {}", fc.display()))?;
-                check_field_instrument(fc, &cal.instrument, a.instrument.as_deref(), inst)?;
-                if f.band(&cal.filter).is_none() {
-                    bail!(
-                        "--field-cal {} is for filter {}, but the telescope model has band(s) {} (name the bands by a 'filter' column)",
-                        fc.display(),
-                        cal.filter,
-                        f.bands.iter().map(|b| b.0.as_str()).collect::<Vec<_>>().join(", ")
-                    );
+                let inst = a.instrument.as_deref().and(inst);
+                match fit::telescope::cal::check_field_beside(&cal, f, inst) {
+                    Ok(None) => {}
+                    Ok(Some(w)) => eprintln!("warning: --field-cal {}: {w} (--instrument)", fc.display()),
+                    Err(e) => bail!("--field-cal {}: {e}", fc.display()),
                 }
                 fit::telescope::cal::save_with_field(path, &cal, f, metal)?;
             }
@@ -319,32 +316,4 @@ fn write_calibrations(
         }
     }
     Ok(written)
-}
-
-/// The field calibration and the telescope model go into one file for one instrument: another
-/// instrument than --instrument is refused, naming both; none said is taken with a warning.
-fn check_field_instrument(
-    fc: &Path,
-    field_instrument: &str,
-    name: Option<&str>,
-    inst: Option<&instrument::Instrument>,
-) -> Result<()> {
-    let (Some(name), Some(inst)) = (name, inst) else { return Ok(()) };
-    let fi = field_instrument.trim();
-    if !fit::correction::setup::is_known(fi) {
-        eprintln!(
-            "warning: --field-cal {} does not say its instrument ('{fi}'): taken as {} (--instrument {name}) unchecked",
-            fc.display(),
-            inst.name
-        );
-        return Ok(());
-    }
-    if !fit::correction::setup::same_instrument(fi, &inst.name) {
-        bail!(
-            "--field-cal {} is a calibration of instrument {fi}, but --instrument {name} is {}: the field and the telescope model must be of one instrument",
-            fc.display(),
-            inst.name
-        );
-    }
-    Ok(())
 }

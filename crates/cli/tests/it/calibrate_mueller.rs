@@ -346,6 +346,35 @@ fn mueller_calibration_bad_inputs_are_refused_by_name() {
     assert!(err.contains("v.fits") && err.contains("one instrument and filter"), "{err}");
     assert!(!out.exists());
 
+    // Two maps whose products say two detectors (2048 and 1000 px a side): the one
+    // compatibility check refuses them naming both sides' detectors.
+    let with_detector = |from: &Path, name: &str, n: usize| {
+        let to = d.join(name);
+        let mut m = StokesMap::read_fits(from).unwrap();
+        let mut p = m.product.clone().unwrap_or_default();
+        p.detector_px = Some((n, n));
+        p.pixel_scale_arcsec = Some(m.geometry.pixel_scale_arcsec);
+        m.product = Some(p);
+        m.write_fits(&to).unwrap();
+        to
+    };
+    let (first, other) = (with_detector(&b1, "b1_2048.fits", 2048), with_detector(&b2, "other_detector.fits", 1000));
+    let mut args = base(&out);
+    args[2] = field(&first, "6.45:68.4");
+    args[4] = field(&other, "4.0:10");
+    let o = run(&args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("other_detector.fits") && err.contains("1000x1000 px") && err.contains("2048x2048 px"),
+        "{err}"
+    );
+    assert!(!out.exists());
+    // The same detector on both: fitted (the control).
+    args[4] = field(&with_detector(&b2, "b2_2048.fits", 2048), "4.0:10");
+    assert!(run(&args).status.success());
+    std::fs::remove_file(&out).unwrap();
+
     let cal = d.join("cal.fits");
     assert!(run(&base(&cal)).status.success());
     let stars = d.join("s.csv");

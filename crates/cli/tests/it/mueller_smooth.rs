@@ -181,7 +181,7 @@ fn explain_and_plan_read_the_fits_calibration_as_the_json() {
     assert_eq!(ef["best"], "stressed_lens", "{ef}");
     // FITS doubles are exact; the JSON's floats parse to within an ulp, which the candidates'
     // optimizers carry to ~1e-7 of a poorly fitting chi^2.
-    same(&ef, &ej, 1e-6, &["input", "provenance"], "explain");
+    same(&ef, &ej, 1e-6, &["input", "provenance", "inputs"], "explain");
     let plan = |f: &Path| {
         let a: Vec<String> = [
             "plan",
@@ -232,5 +232,5 @@ fn explain_and_plan_read_the_fits_calibration_as_the_json() {
     // A FITS calibration copied under a .json name is still read as FITS.
     let renamed = d.join("really_fits.json");
     std::fs::copy(&fits, &renamed).unwrap();
-    same(&explain(&renamed), &ef, 1e-12, &["input", "provenance"], "renamed");
+    same(&explain(&renamed), &ef, 1e-12, &["input", "provenance", "inputs"], "renamed");
 }

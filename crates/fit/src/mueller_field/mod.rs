@@ -27,6 +27,7 @@ pub mod block;
 pub mod cal;
 pub mod explain;
 pub mod forms;
+pub mod maps;
 pub mod plan;
 pub mod smooth;
 pub mod stars;

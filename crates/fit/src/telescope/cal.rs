@@ -161,6 +161,52 @@ pub fn save_alone(
     })
 }
 
+/// Why a field calibration may not go into one file beside a telescope model
+/// ([`check_field_beside`]); each face names the file and its option.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum FieldBesideError {
+    /// The field calibration is of another instrument, plate or detector than the standards'
+    /// (the one compatibility check, the filter apart).
+    #[error("{0}: the field and the telescope model must be of one instrument")]
+    Mismatch(crate::correction::setup::Mismatch),
+    /// The field calibration's filter is no band of the telescope model.
+    #[error(
+        "it is for filter {filter}, but the telescope model has band(s) {bands} (name the bands by a 'filter' column)"
+    )]
+    Band { filter: String, bands: String },
+}
+
+/// Whether the field calibration `field` goes into one file beside the telescope model `fit`
+/// of standards measured with `inst` (`None`: no instrument said, nothing to compare): one
+/// instrument, plate and detector by the one check
+/// ([`crate::correction::setup::check_same_instrument`]), and its filter one of the model's
+/// bands. `Ok(Some(words))`: a field that names no instrument, taken unchecked, said.
+pub fn check_field_beside(
+    field: &Calibration,
+    fit: &TelescopeFit,
+    inst: Option<&instrument::Instrument>,
+) -> std::result::Result<Option<String>, FieldBesideError> {
+    use crate::correction::setup::{check_same_instrument, is_known, Setup};
+    let mut said = None;
+    if let Some(inst) = inst {
+        let theirs = Setup::named(&field.instrument, &field.filter).with_product(field.provenance.product.as_ref());
+        if is_known(field.instrument.trim()) {
+            check_same_instrument(&Setup::of_instrument(inst, ""), &theirs).map_err(FieldBesideError::Mismatch)?;
+        } else {
+            said = Some(format!(
+                "it does not say its instrument ('{}'): taken as {} unchecked",
+                field.instrument.trim(),
+                inst.name
+            ));
+        }
+    }
+    if fit.band(&field.filter).is_none() {
+        let bands = fit.bands.iter().map(|b| b.0.as_str()).collect::<Vec<_>>().join(", ");
+        return Err(FieldBesideError::Band { filter: field.filter.clone(), bands });
+    }
+    Ok(said)
+}
+
 /// Write the field calibration `cal` with the telescope model beside it.
 pub fn save_with_field(path: &Path, cal: &Calibration, fit: &TelescopeFit, metal: &str) -> Result<()> {
     cal.save_with(path, |f, p| write_hdu(f, p, fit, metal))

@@ -1,13 +1,12 @@
 //! `instpol calibrate-mueller`: the instrument's Mueller field from several sky fields of known
 //! polarization, fitted jointly by `fit::mueller_field`.
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, Result};
 use fit::mueller_field::cal::{MuellerCal, SkyField};
+use fit::mueller_field::maps::{read_field_maps, FieldMap, MapFields};
 use fit::mueller_field::smooth;
 use fit::mueller_field::stars::{read_star_fields, FieldSummary};
-use fit::mueller_field::{
-    fit_mueller_field, fit_per_bin, observations_of_map, CalField, Kind, MuellerField, MuellerFitOptions,
-};
+use fit::mueller_field::{fit_mueller_field, fit_per_bin, Kind, MuellerField, MuellerFitOptions};
 use std::path::{Path, PathBuf};
 
 mod words;
@@ -120,26 +119,6 @@ fn parse_field(spec: &str) -> Result<(PathBuf, f64, f64, f64)> {
 }
 
 /// A map's instrument, filter and field coordinates.
-type Setup = (String, String, field::FieldCoords);
-
-/// One instrument, filter and field-coordinate system (names compared case-insensitively).
-fn same_setup(a: &Setup, b: &Setup) -> bool {
-    a.0.eq_ignore_ascii_case(&b.0) && a.1.eq_ignore_ascii_case(&b.1) && a.2 == b.2
-}
-
-/// The refusal of a field map of another setup than the first map's.
-fn mixed_fields(path: &Path, this: &Setup, first: &Path, s: &Setup) -> anyhow::Error {
-    anyhow!(
-        "{}: a {} {} map, but {} is {} {}: fit the fields of one instrument and filter together",
-        path.display(),
-        this.0,
-        this.1,
-        first.display(),
-        s.0,
-        s.1
-    )
-}
-
 fn kind_of(a: &Args) -> Result<Kind> {
     if a.general {
         return Ok(Kind::General);
@@ -160,10 +139,15 @@ pub fn run(a: Args) -> Result<()> {
         Some("json") => false,
         _ => bail!("--out {}: the extension says the format: .fits (calibration file) or .json", a.out.display()),
     };
-    let (mut fields, setup, first_product, half_field, zero_angle_deg) = read_maps(&specs)?;
+    let field_maps: Vec<FieldMap> = specs
+        .iter()
+        .map(|(path, p, chi_deg, sigma)| FieldMap { path: path.clone(), p: *p, chi_deg: *chi_deg, sigma: *sigma })
+        .collect();
+    let MapFields { mut fields, setup: product, coords, half_field_arcmin, zero_angle_deg } =
+        read_field_maps(&field_maps).map_err(|e| anyhow!("{e}"))?;
     let n_maps = fields.len();
     if let Some(t) = &a.stars {
-        fields.extend(read_star_fields(t, zero_angle_deg, half_field)?);
+        fields.extend(read_star_fields(t, zero_angle_deg, Some(half_field_arcmin))?);
     }
     let opts = MuellerFitOptions { kind, deg: a.deg, scale_arcmin: a.scale_arcmin, ..Default::default() };
     if a.deg > 8 {
@@ -188,8 +172,7 @@ pub fn run(a: Args) -> Result<()> {
             fields.len() - n_maps
         ));
     }
-    let (instrument, filter, coords) = setup.expect("at least one field (clap requires one)");
-    let product = fit::correction::setup::Setup::named(&instrument, &filter).with_product(first_product.as_ref());
+    let (instrument, filter) = (product.instrument.clone(), product.filter.clone());
     if fits_out {
         let cal = MuellerCal {
             instrument,
@@ -250,57 +233,4 @@ pub fn run(a: Args) -> Result<()> {
     }
     words::print_report(&rep, mf.condition);
     Ok(())
-}
-
-/// The fields' maps, each turned into the sky frame of its known polarization by the HWP zero
-/// angle it records (one for all, and one instrument, filter and field coordinates): the fields,
-/// the first map's setup and product, the detector's half size (arcmin) and the zero angle (deg).
-type Maps = (Vec<CalField>, Option<Setup>, Option<skyfield::provenance::Product>, Option<(f64, f64)>, f64);
-
-fn read_maps(specs: &[(PathBuf, f64, f64, f64)]) -> Result<Maps> {
-    let mut fields = Vec::new();
-    // The first map's instrument, filter and field coordinates: every field must share them.
-    let mut setup: Option<Setup> = None;
-    // What the first map records of its instrument file and detector, for the calibration's product.
-    let mut first_product: Option<skyfield::provenance::Product> = None;
-    // The detector the maps cover (half width, half height, arcmin): the star table's stars must lie on it.
-    let mut half_field: Option<(f64, f64)> = None;
-    // The HWP zero angle the maps record (HWPZERO): each is turned by it into the sky frame of
-    // its known polarization (fit::mueller_field::cal module docs); one value for all of them.
-    let mut zero: Option<(Option<f64>, &PathBuf)> = None;
-    let says = |z: Option<f64>| z.map_or("none (taken as 0 deg)".to_string(), |z| format!("{z} deg"));
-    for (path, p, chi, sig) in specs {
-        let map =
-            skyfield::maps::StokesMap::read_uncorrected(path).with_context(|| format!("reading {}", path.display()))?;
-        let z = map.hwp_zero_angle_deg.unwrap_or(0.0);
-        match zero {
-            None => zero = Some((map.hwp_zero_angle_deg, path)),
-            Some((z0, first)) if z0.unwrap_or(0.0) != z => bail!(
-                "{}: records an HWP zero angle of {} (HWPZERO), but {} records {}: fit the maps of one instrument and filter together",
-                path.display(),
-                says(map.hwp_zero_angle_deg),
-                first.display(),
-                says(z0)
-            ),
-            Some(_) => {}
-        }
-        first_product.get_or_insert_with(|| map.product.clone().unwrap_or_default());
-        let map = fit::models::pipeline::map_to_sky_frame(&map, z.to_radians());
-        let obs = observations_of_map(&map);
-        if obs.is_empty() {
-            bail!("{}: the Stokes map has no valid bin", path.display());
-        }
-        let this = (map.instrument.clone(), map.filter.clone(), map.geometry.field_coords());
-        let g = &map.geometry;
-        let arcmin = g.pixel_scale_arcsec / 60.0;
-        half_field.get_or_insert((0.5 * g.detector_nx as f64 * arcmin, 0.5 * g.detector_ny as f64 * arcmin));
-        match &setup {
-            None => setup = Some(this),
-            Some(s) if !same_setup(s, &this) => return Err(mixed_fields(path, &this, &specs[0].0, s)),
-            Some(_) => {}
-        }
-        fields.push(CalField::from_p_chi(&path.display().to_string(), *p, *chi, *sig, obs));
-    }
-    let zero_angle_deg = zero.and_then(|z| z.0).unwrap_or(0.0);
-    Ok((fields, setup, first_product, half_field, zero_angle_deg))
 }
