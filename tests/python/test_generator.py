@@ -11,7 +11,9 @@ named here with a reason, never skipped without a word.
   missing angle.
 - another product: every public function or method taking a calibration and the data's
   instrument and filter (``Calibration.correct``) given data of another filter: refused
-  naming both, unless ``allow_mismatch``.
+  naming both, unless ``allow_mismatch``; and every method taking the data's whole
+  ``product`` (``catalog()["product"]``) given one of another filter, instrument or detector:
+  refused naming what differs.
 """
 
 import inspect
@@ -109,3 +111,26 @@ def test_another_filter_for_every_correction(cal_v):
         assert "I" in str(e.value) and "V" in str(e.value), str(e.value)
         ok = cal.correct(x, y, q, u, s, s, instrument="FORS1", filter="I", allow_mismatch=True)
         assert np.isfinite(ok["q0"]).all()
+
+
+# A product of the demo's V calibration's own setup (the built-in FORS1: 2048 px of 0.2"), and
+# each way another product differs from it, with the word the refusal must name.
+SAME = {"instrument": "FORS1", "filter": "V", "plate": "half_wave", "hwp_chi_offset_deg": 0.0,
+        "detector_px": (2048, 2048), "pixel_scale_arcsec": 0.2, "sky_pa_deg": None}
+OTHER = [({"filter": "I"}, "filter I"), ({"instrument": "EFOSC2"}, "EFOSC2"),
+         ({"detector_px": (1000, 1000)}, "1000x1000"), ({"pixel_scale_arcsec": 0.25}, "0.25 arcsec")]
+
+
+@pytest.mark.parametrize("change,word", OTHER, ids=[w for _, w in OTHER])
+def test_another_product_for_every_correction(demo_dir, change, word):
+    """Every method of Calibration taking the data's product refuses one of another setup."""
+    cal = instpol.Calibration.load(demo_dir / "cal_V.fits")
+    methods = [m for m, f in inspect.getmembers(instpol.Calibration, inspect.isfunction)
+               if not m.startswith("_") and "product" in inspect.signature(f).parameters]
+    assert methods == ["correct"], f"Calibration methods taking a product: {methods}; add each to the generator"
+    args = (np.array([0.5]), np.array([-0.3]), np.array([0.01]), np.array([0.0]), np.array([1e-3]), np.array([1e-3]))
+    same = cal.correct(*args, product=dict(SAME))
+    assert np.isfinite(same["q0"]).all()
+    with pytest.raises(instpol.InputError) as e:
+        cal.correct(*args, product={**SAME, **change})
+    assert word in str(e.value), str(e.value)
