@@ -71,12 +71,35 @@ struct Out {
     n_frames: usize,
     nx_px: usize,
     ny_px: usize,
+    /// What the master is of: the instrument file, its filter (a flat's), binning and
+    /// detector, the frames' hashes.
+    product: skyfield::provenance::Product,
 }
 
 /// Print what was written: JSON or one line naming the master.
-fn report(json: bool, out: &std::path::Path, what: &str, n_frames: usize, nx: usize, ny: usize) -> Result<()> {
+fn report(
+    json: bool,
+    out: &std::path::Path,
+    what: &str,
+    m: &skyfield::calib::Master,
+    inst: &instrument::Instrument,
+) -> Result<()> {
+    let (n_frames, nx, ny) = (m.inputs.len(), m.nx, m.ny);
     if json {
-        return crate::util::print_json(&Out { output: out.display().to_string(), n_frames, nx_px: nx, ny_px: ny });
+        let product = skyfield::provenance::Product {
+            filter: m.filter.clone(),
+            wavelength_um: None,
+            binning: m.binning.map(|[x, y]| (x, y)),
+            ..skyfield::provenance::Product::of_instrument_alone(inst)
+        }
+        .with_run_inputs();
+        return crate::util::print_json(&Out {
+            output: out.display().to_string(),
+            n_frames,
+            nx_px: nx,
+            ny_px: ny,
+            product,
+        });
     }
     outln!("{}: master {what} of {n_frames} frames ({nx} x {ny} px)", out.display());
     Ok(())
@@ -90,7 +113,7 @@ pub fn run_bias(a: BiasArgs) -> Result<()> {
     let inst = instrument::Instrument::load(&instrument)?;
     let m = skyfield::calib::master_bias(&a.frames, &inst, a.nsigma)?;
     m.write(&a.out, &inst)?;
-    report(a.json, &a.out, "bias", a.frames.len(), m.nx, m.ny)
+    report(a.json, &a.out, "bias", &m, &inst)
 }
 
 pub fn run_flat(a: FlatArgs) -> Result<()> {
@@ -102,5 +125,5 @@ pub fn run_flat(a: FlatArgs) -> Result<()> {
     let inst = instrument::Instrument::load(&instrument)?;
     let m = skyfield::calib::master_flat(&a.frames, &inst, a.bias.as_deref(), a.nsigma)?;
     m.write(&a.out, &inst)?;
-    report(a.json, &a.out, "flat", a.frames.len(), m.nx, m.ny)
+    report(a.json, &a.out, "flat", &m, &inst)
 }

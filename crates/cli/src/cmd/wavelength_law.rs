@@ -39,6 +39,13 @@ pub fn run(a: Args) -> Result<()> {
     let paired: Vec<(&std::path::Path, &fit::Calibration)> =
         a.calibrations.iter().map(|p| p.as_path()).zip(&cals).collect();
     fit::models::wavelength::check_one_instrument(&paired)?;
+    // What the law is of: the calibrations' one instrument (file, plate, detector), no filter.
+    let product = cals.first().map(|c| {
+        fit::correction::setup::Setup::named(&c.instrument, "")
+            .with_product(c.provenance.product.as_ref())
+            .product()
+            .with_run_inputs()
+    });
     for (p, cal) in a.calibrations.iter().zip(cals) {
         if !cal.lambda_nm.is_finite() {
             bail!(
@@ -73,8 +80,10 @@ pub fn run(a: Args) -> Result<()> {
             filters: &'a [String],
             #[serde(flatten)]
             law: &'a fit::models::wavelength::WavelengthLaw,
+            #[serde(skip_serializing_if = "Option::is_none")]
+            product: Option<skyfield::provenance::Product>,
         }
-        crate::util::print_json(&Out { filters: &names, law: &law })
+        crate::util::print_json(&Out { filters: &names, law: &law, product })
     } else {
         outln!("p(lambda)/p(550) = a + b lambda[nm], p(r) averaged over r = {:.2}..{:.2} arcmin", a.r_min, r_max);
         outln!(

@@ -882,6 +882,42 @@ fn every_schema_is_draft_2020_12_closed_and_described() {
     }
 }
 
+/// Outputs that say no product, each with why: they measure no data of an instrument (or are
+/// not a command's output). Every other schema describes a `product` (at its top, or in each
+/// entry for a command that writes several), so every `--json` on data says what it is of.
+const NO_PRODUCT: &[(&str, &str)] = &[
+    ("bias", "the bias of P from numbers given"),
+    ("mc", "a simulation of numbers given"),
+    ("mc-sweep", "a simulation of numbers given"),
+    ("mc-accuracy", "a simulation of numbers given"),
+    ("fresnel", "a mirror's Mueller matrix from numbers given"),
+    ("raytrace", "the optics of an instrument file, no data"),
+    ("stokes", "fluxes given as numbers, of no instrument"),
+    ("plan", "the exposures a Mueller-field calibration would need, no data"),
+    ("simulate", "frames made, which carry the instrument's own header keywords"),
+    ("simulate-night", "frames made, which carry the instrument's own header keywords"),
+    ("run", "the units of a plan, each of whose products says what it is"),
+    ("report", "a page of a plan's products, each of which says what it is"),
+    ("plot", "figures of a calibration file, which says what it is"),
+    ("error", "an error, not a product"),
+    ("product", "the product itself"),
+];
+
+#[test]
+fn every_schema_of_data_describes_its_product() {
+    for e in std::fs::read_dir(schema_dir()).unwrap() {
+        let p = e.unwrap().path();
+        let Some(name) = p.file_name().and_then(|n| n.to_str()).and_then(|n| n.strip_suffix(".schema.json")) else {
+            continue;
+        };
+        let text = std::fs::read_to_string(&p).unwrap();
+        let described = text.contains("\"$ref\": \"product.schema.json\"");
+        let excused = NO_PRODUCT.iter().any(|(n, _)| *n == name);
+        assert!(described || excused, "{name}: its schema has no product; add one, or say why in NO_PRODUCT");
+        assert!(!(described && excused), "{name}: describes a product but is listed in NO_PRODUCT");
+    }
+}
+
 /// A renamed key in a real command's output fails its schema (the schemas can fail).
 #[test]
 fn a_renamed_key_in_real_output_fails() {
