@@ -229,12 +229,12 @@ pub fn write_v_sky_map(path: &Path, keep: impl Fn(usize) -> bool) {
         if !keep(k) {
             continue;
         }
-        map.q[k] = b.q1;
-        map.u[k] = b.u1;
+        map.q[k] = b.qu.q;
+        map.u[k] = b.qu.u;
         map.sigma_q[k] = 1e-4;
         map.sigma_u[k] = 1e-4;
         map.cov_qu[k] = 0.0;
-        map.p[k] = b.q1.hypot(b.u1);
+        map.p[k] = b.qu.q.hypot(b.qu.u);
         map.chi[k] = 0.0;
         map.n_pixels[k] = 3600;
         map.valid[k] = true;
