@@ -209,9 +209,13 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, d: &
 }
 
 #[cfg(test)]
+#[path = "../../tests/common/standards.rs"]
+mod standards;
+
+#[cfg(test)]
 mod tests {
     use super::*;
-    use fit::telescope::{fit_band, parse_observations, BandModel, FitOptions, ModelKind, Track};
+    use fit::telescope::{fit_band, parse_observations, FitOptions, ModelKind};
     use mueller::mirror::MetalTable;
 
     /// Two unpolarized and two polarized standards (5 % at 30 deg, 4 % at 120 deg) seen through
@@ -220,31 +224,7 @@ mod tests {
     /// a fixed +-2e-4 pattern for noise; fitted with the Wiersema model.
     fn fitted() -> TelescopeFit {
         let table = MetalTable::builtin("aluminium").unwrap();
-        let truth = BandModel {
-            wavelength_um: 0.55,
-            index: table.index(0.55).unwrap(),
-            factor: 0.86,
-            thickness_nm: 0.0,
-            offset: 40f64.to_radians(),
-            q0: 0.0,
-            u0: 0.0,
-        };
-        let mut text =
-            String::from("star,parallactic_deg,q,sigma_q,u,sigma_u,wavelength_um,filter,p_true,chi_true_deg\n");
-        for (s, (star, p, chi)) in
-            [("WD a", 0.0, 0.0), ("WD b", 0.0, 0.0), ("Pol a", 0.05f64, 30f64), ("Pol b", 0.04, 120.0)]
-                .into_iter()
-                .enumerate()
-        {
-            for k in 0..12 {
-                let pa = -170.0 + 29.0 * k as f64 + 7.0 * s as f64;
-                let (qs, us) = (p * (2.0 * chi.to_radians()).cos(), p * (2.0 * chi.to_radians()).sin());
-                let (q, u) = truth.sky_through(qs, us, Track::at(pa.to_radians())).unwrap();
-                let e = if (k + s) % 2 == 0 { 2e-4 } else { -2e-4 };
-                let (pt, ct) = if p > 0.0 { (p.to_string(), chi.to_string()) } else { (String::new(), String::new()) };
-                text += &format!("{star},{pa},{},3e-4,{},3e-4,0.55,V,{pt},{ct}\n", q + e, u - e);
-            }
-        }
+        let text = standards::polarized_standards_csv(Some("V"));
         let obs = parse_observations(&text, Path::new("night.csv")).unwrap();
         fit_band(ModelKind::Wiersema, &obs, &table, &FitOptions { clip: None, ..Default::default() }).unwrap()
     }

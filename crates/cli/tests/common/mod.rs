@@ -9,6 +9,8 @@ pub mod night;
 pub mod raw;
 #[path = "../../../fit/tests/common/shared_data.rs"]
 pub mod shared_data;
+#[allow(dead_code)]
+pub mod standards;
 
 use fit::files::calfile::{Model, PixelGrid, Provenance, FORMAT_VERSION};
 use fit::models::synth::{sky_field, FnField};

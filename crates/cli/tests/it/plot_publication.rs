@@ -1048,6 +1048,7 @@ fn more_figures(dir: &Path) -> Vec<PathBuf> {
     let (code, _, err) =
         run(&["explain", lens.to_str().unwrap(), "--instrument", "fors1", "--band", "B", "--plot", &s("explain.svg")]);
     assert_eq!(code, 0, "{err}");
+    let _ = std::fs::remove_file(&lens);
     // The inner bins of the V field (r < 2.1'): p up to about 0.5 %, whose
     // colour bar's round ticks (0, 0.2, 0.4) miss the 0.3 % contour.
     let (cal, map) = (dir.join("weak.fits"), dir.join("weak_map.fits"));
@@ -1076,38 +1077,11 @@ fn more_figures(dir: &Path) -> Vec<PathBuf> {
     out
 }
 
-/// Two unpolarized and two polarized standards (5 % at 30 deg, 4 % at 120 deg) seen through an
-/// aluminium M3 (factor 0.86, offset 40 deg) at twelve parallactic angles each, with a fixed
-/// +-2e-4 pattern for noise, at 0.55 µm and no filter column: `dir/standards.csv`.
+/// The standards of [`common::standards::polarized_standards_csv`], at 0.55 µm with no filter
+/// column: `dir/standards.csv`.
 fn standards_csv(dir: &Path) -> PathBuf {
-    use fit::telescope::{BandModel, Track};
-    let table = mueller::mirror::MetalTable::builtin("aluminium").unwrap();
-    let truth = BandModel {
-        wavelength_um: 0.55,
-        index: table.index(0.55).unwrap(),
-        factor: 0.86,
-        thickness_nm: 0.0,
-        offset: 40f64.to_radians(),
-        q0: 0.0,
-        u0: 0.0,
-    };
-    let mut text = String::from("star,parallactic_deg,q,sigma_q,u,sigma_u,wavelength_um,p_true,chi_true_deg\n");
-    for (s, (star, p, chi)) in
-        [("WD a", 0.0, 0.0), ("WD b", 0.0, 0.0), ("Pol a", 0.05f64, 30f64), ("Pol b", 0.04, 120.0)]
-            .into_iter()
-            .enumerate()
-    {
-        for k in 0..12 {
-            let pa = -170.0 + 29.0 * k as f64 + 7.0 * s as f64;
-            let (qs, us) = (p * (2.0 * chi.to_radians()).cos(), p * (2.0 * chi.to_radians()).sin());
-            let (q, u) = truth.sky_through(qs, us, Track::at(pa.to_radians())).unwrap();
-            let e = if (k + s) % 2 == 0 { 2e-4 } else { -2e-4 };
-            let (pt, ct) = if p > 0.0 { (p.to_string(), chi.to_string()) } else { (String::new(), String::new()) };
-            text += &format!("{star},{pa},{},3e-4,{},3e-4,0.55,{pt},{ct}\n", q + e, u - e);
-        }
-    }
     let path = dir.join("standards.csv");
-    std::fs::write(&path, text).unwrap();
+    std::fs::write(&path, common::standards::polarized_standards_csv(None)).unwrap();
     path
 }
 
