@@ -1040,7 +1040,7 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
         .map(|b| {
             let (dx, dy) = (b.x - centre[0], b.y - centre[1]);
             let a = dy.atan2(dx);
-            (dx.hypot(dy), b.q * (2.0 * a).cos() + b.u * (2.0 * a).sin(), b.used)
+            (dx.hypot(dy), b.qu.q * (2.0 * a).cos() + b.qu.u * (2.0 * a).sin(), b.used)
         })
         .collect();
     // Thin very large sets (imported maps) for drawing.
@@ -1140,7 +1140,7 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
         .filter(|b| b.is_valid())
         .map(|b| {
             let (q, u) = radial.qu(b.x, b.y);
-            (b.x, b.y, b.q - q, b.u - u)
+            (b.x, b.y, b.qu.q - q, b.qu.u - u)
         })
         .collect();
     let mut mags: Vec<f64> = res.iter().map(|r| r.2.hypot(r.3)).collect();
@@ -1164,7 +1164,7 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
     let scale = 0.9 * vspace / top;
     let stick = |b: &&fit::Bin| {
         let (q, u) = radial.qu(b.x, b.y);
-        let (dq, du) = (b.q - q, b.u - u);
+        let (dq, du) = (b.qu.q - q, b.qu.u - u);
         let m = dq.hypot(du).min(top);
         let a = 0.5 * du.atan2(dq);
         let (hx, hy) = (0.5 * m * scale * a.cos(), 0.5 * m * scale * a.sin());
