@@ -702,15 +702,27 @@ pub fn log_keys(a: f64, b: f64) -> Vec<f64> {
     let with = |ms: &[f64]| -> Vec<f64> {
         (k0..=k1).flat_map(|k| ms.iter().map(move |m| m * 10f64.powi(k))).filter(inside).collect()
     };
-    // 1x and 5x when they give three labels (fewer to crowd a short axis), else 2x too.
+    // 1x and 5x when they give three labels reaching both ends (fewer to crowd a short
+    // axis), else 2x too.
     let mut keys = with(&[1.0, 5.0]);
-    if keys.len() < 3 {
+    if keys.len() < 3 || !reaches_ends(&keys, lo, hi) {
         keys = with(&[1.0, 2.0, 5.0]);
     }
     if keys.len() < 3 {
         keys = vec![lo, (lo * hi).sqrt(), hi];
     }
     keys
+}
+
+/// Whether the labels `keys` (ascending, inside `[lo, hi]`) leave at most a third of the log
+/// axis `lo..hi` unlabelled at either end (a label near each end, so that no end of the axis
+/// is read by eye from a grid line alone).
+fn reaches_ends(keys: &[f64], lo: f64, hi: f64) -> bool {
+    let third = (hi / lo).log10() / 3.0;
+    match (keys.first(), keys.last()) {
+        (Some(a), Some(b)) => (a / lo).log10() <= third && (hi / b).log10() <= third,
+        _ => false,
+    }
 }
 
 /// The decades 10^k inside `[a, b]` (a > 0): the key points of a log axis, so that every decade
@@ -972,23 +984,44 @@ pub fn draw_map<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPlotDa
     let px_per_arcmin = c.backend_coord(&(xr.start + 1.0, 0.0)).0 - c.backend_coord(&(xr.start, 0.0)).0;
     let one_pct_px = (0.01 * scale * px_per_arcmin as f64).round() as i32;
     let (_, rows) = c.plotting_area().get_pixel_range();
-    // The bar's ticks at the contours' levels (and 0), so that each white mark is labelled.
-    let levels: Vec<f64> =
-        std::iter::once(0.0).chain(CONTOUR_LEVELS.into_iter().filter(|l| *l < top).map(|l| 100.0 * l)).collect();
-    let ticks = if levels.len() >= 3 { Some(levels.as_slice()) } else { None };
-    colour_bar(&side, "p (%)", 100.0 * top, (rows.start, rows.end), ticks)?;
+    let ticks = bar_ticks(100.0 * top);
+    colour_bar(&side, "p (%)", 100.0 * top, (rows.start, rows.end), Some(&ticks))?;
     // The contours' levels as white lines across the bar.
     let (bx0, bx1) = (pt(4.0) as i32, pt(10.0) as i32);
     for level in CONTOUR_LEVELS.into_iter().filter(|l| *l < top) {
         let y = rows.end - ((rows.end - rows.start) as f64 * level / top).round() as i32;
         side.draw(&PathElement::new(vec![(bx0, y), (bx1, y)], WHITE.stroke_width(3))).map_err(pe)?;
     }
-    // Below the bar, level with the x axis's tick labels: the vector of 1 %, labelled beside it.
+    // Below the bar, level with the x axis's tick labels: the scale vector (1 %, or the
+    // largest of 0.5, 0.2, 0.1 % that fits the strip beside its words), labelled beside it.
     let (x0, y0) = (pt(4.0) as i32, rows.end + pt(7.0) as i32);
-    side.draw(&PathElement::new(vec![(x0, y0), (x0 + one_pct_px, y0)], BLACK.stroke_width(3))).map_err(pe)?;
-    let beside = TextStyle::from((FONT, pt(LEGEND_PT)).into_font()).pos(Pos::new(HPos::Left, VPos::Center));
-    side.draw(&Text::new("= 1%", (x0 + one_pct_px + pt(1.5) as i32, y0), beside)).map_err(pe)?;
+    let room = side.dim_in_pixel().0 as i32 - x0 - pt(1.5) as i32;
+    let font = (FONT, pt(LEGEND_PT)).into_font();
+    let (len, words) = [1.0, 0.5, 0.2, 0.1]
+        .into_iter()
+        .map(|pct| ((pct * one_pct_px as f64).round() as i32, format!("= {}%", tick(&pct))))
+        .find(|(len, w)| len + font.box_size(w).map_or(0, |b| b.0 as i32) <= room)
+        .unwrap_or_else(|| ((0.1 * one_pct_px as f64).round() as i32, "= 0.1%".into()));
+    side.draw(&PathElement::new(vec![(x0, y0), (x0 + len, y0)], BLACK.stroke_width(3))).map_err(pe)?;
+    let beside = TextStyle::from(font).pos(Pos::new(HPos::Left, VPos::Center));
+    side.draw(&Text::new(words, (x0 + len + pt(1.5) as i32, y0), beside)).map_err(pe)?;
     Ok(())
+}
+
+/// The colour bar's tick values (%) from 0 to `top` (%): 0 and every contour level inside the
+/// bar (each white mark labelled), and when that makes fewer than three, the bar's round steps
+/// ([`nice_step`]) that stand at least a seventh of the bar from those.
+fn bar_ticks(top: f64) -> Vec<f64> {
+    let mut ticks: Vec<f64> =
+        std::iter::once(0.0).chain(CONTOUR_LEVELS.iter().map(|l| 100.0 * l).filter(|l| *l < top)).collect();
+    if ticks.len() < 3 {
+        let step = nice_step(top);
+        let steps = (1..).map(|i| i as f64 * step).take_while(|v| *v <= top * (1.0 + 1e-9));
+        let apart: Vec<f64> = steps.filter(|v| ticks.iter().all(|t| (v - t).abs() >= top / 7.0)).collect();
+        ticks.extend(apart);
+        ticks.sort_by(f64::total_cmp);
+    }
+    ticks
 }
 
 /// fig:radprofB: upper, the signed radial component of each bin's polarization against r with
@@ -1007,7 +1040,7 @@ pub fn draw_profile<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalPl
         .map(|b| {
             let (dx, dy) = (b.x - centre[0], b.y - centre[1]);
             let a = dy.atan2(dx);
-            (dx.hypot(dy), b.q * (2.0 * a).cos() + b.u * (2.0 * a).sin(), b.used)
+            (dx.hypot(dy), b.qu.q * (2.0 * a).cos() + b.qu.u * (2.0 * a).sin(), b.used)
         })
         .collect();
     // Thin very large sets (imported maps) for drawing.
@@ -1107,7 +1140,7 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
         .filter(|b| b.is_valid())
         .map(|b| {
             let (q, u) = radial.qu(b.x, b.y);
-            (b.x, b.y, b.q - q, b.u - u)
+            (b.x, b.y, b.qu.q - q, b.qu.u - u)
         })
         .collect();
     let mut mags: Vec<f64> = res.iter().map(|r| r.2.hypot(r.3)).collect();
@@ -1131,7 +1164,7 @@ pub fn draw_residual<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &CalP
     let scale = 0.9 * vspace / top;
     let stick = |b: &&fit::Bin| {
         let (q, u) = radial.qu(b.x, b.y);
-        let (dq, du) = (b.q - q, b.u - u);
+        let (dq, du) = (b.qu.q - q, b.qu.u - u);
         let m = dq.hypot(du).min(top);
         let a = 0.5 * du.atan2(dq);
         let (hx, hy) = (0.5 * m * scale * a.cos(), 0.5 * m * scale * a.sin());
@@ -1352,6 +1385,29 @@ mod publication_tests {
         assert!((x.end - x.start) / 600.0 - (y.end - y.start) / 400.0 < 1e-15);
         assert_eq!((y.start, y.end), (-3.0, 3.0));
         assert!((x.start + 4.5).abs() < 1e-12 && (x.end - 4.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn colour_bar_ticks_label_every_contour_mark() {
+        // 0.5 %: the 0.3 % contour's mark, with the round steps 0.2 and 0.4 (0.1 from it, a
+        // fifth of the bar); 1.2 %: 0 and the three contours.
+        let close = |a: &[f64], b: &[f64]| a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-12);
+        assert!(close(&bar_ticks(0.5), &[0.0, 0.2, 0.3, 0.4]), "{:?}", bar_ticks(0.5));
+        assert!(close(&bar_ticks(1.2), &[0.0, 0.3, 0.6, 0.9]), "{:?}", bar_ticks(1.2));
+        // 0.25 %: no contour inside; the round steps of 0.1.
+        assert!(close(&bar_ticks(0.25), &[0.0, 0.1, 0.2]), "{:?}", bar_ticks(0.25));
+    }
+
+    #[test]
+    fn log_labels_reach_both_ends() {
+        let close =
+            |a: &[f64], b: &[f64]| a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x / y - 1.0).abs() < 1e-12);
+        // The plan's RMS axis, 0.0098 to 0.36: 1x and 5x alone stop at 0.1, 0.56 decade (a
+        // third of its 1.57) below the top; with 2x the last label is 0.2, 0.26 decade below.
+        assert!(close(&log_keys(0.0098, 0.36), &[0.01, 0.02, 0.05, 0.1, 0.2]));
+        // A short axis whose 1x and 5x reach both ends keeps them.
+        assert!(close(&log_keys(0.009, 0.11), &[0.01, 0.05, 0.1]));
+        assert!(reaches_ends(&[0.01, 0.05, 0.1], 0.009, 0.11) && !reaches_ends(&[0.01, 0.05, 0.1], 0.0098, 0.36));
     }
 
     #[test]

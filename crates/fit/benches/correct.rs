@@ -55,7 +55,7 @@ fn calibration(free_centre: bool) -> fit::Calibration {
     let centres = fit::models::synth::bin_centres(2048, 2048, 0.2, 30);
     let bins: Vec<fit::Bin> = fit::models::synth::sky_field(&centres, &truth, 0.0, 0.0, 1e-4, 7)
         .iter()
-        .map(|m| fit::Bin::new(m.x, m.y, m.q1, m.u1, m.sigma, m.sigma))
+        .map(|m| fit::Bin::new(m.x, m.y, m.qu.q, m.qu.u, m.qu.sigma_q(), m.qu.sigma_u()))
         .collect();
     let meta = CalibrationMeta {
         instrument: "FORS1".into(),

@@ -122,12 +122,10 @@ pub struct BinSolution {
     /// Exact solution: degree (fraction) and angle (rad, [0, pi)).
     pub p: f64,
     pub phi: f64,
-    /// `q = p cos 2phi`, `u = p sin 2phi` of the exact solution and their covariance.
-    pub q: f64,
-    pub u: f64,
-    pub var_q: f64,
-    pub var_u: f64,
-    pub cov_qu: f64,
+    /// `q = p cos 2phi`, `u = p sin 2phi` of the exact solution and their covariance
+    /// (serialized as the fields `q`, `u`, `var_q`, `var_u`, `cov_qu`, as before).
+    #[serde(flatten)]
+    pub qu: mueller::Qu,
     pub sigma_p: f64,
     pub sigma_phi: f64,
     /// The approximate solution (`eq:approx`).
@@ -205,11 +203,7 @@ pub fn solve_bin(
         y,
         p,
         phi,
-        q,
-        u,
-        var_q: vq,
-        var_u: vu,
-        cov_qu: cqu,
+        qu: mueller::Qu::new(q, u, vq, vu, cqu),
         sigma_p,
         sigma_phi,
         p_approx: pa,
@@ -326,8 +320,8 @@ mod tests {
     fn errors_propagate_as_identity_for_an_unpolarized_sky() {
         let sky = SkyPolarization { p: 0.0, chi: 0.0 };
         let s = solve_bin(1.0, 2.0, 0.01, 0.005, 1e-4, 2e-4, 0.0, &sky).unwrap();
-        assert!((s.var_q.sqrt() - 1e-4).abs() < 1e-9 && (s.var_u.sqrt() - 2e-4).abs() < 1e-9);
-        assert!((s.q - 0.01).abs() < 1e-15 && (s.u - 0.005).abs() < 1e-15);
+        assert!((s.qu.var_q.sqrt() - 1e-4).abs() < 1e-9 && (s.qu.var_u.sqrt() - 2e-4).abs() < 1e-9);
+        assert!((s.qu.q - 0.01).abs() < 1e-15 && (s.qu.u - 0.005).abs() < 1e-15);
         // sigma_p of eq:sigp-like propagation: (q^2 sq^2 + u^2 su^2) / p^2.
         let want = ((0.01f64 * 1e-4).powi(2) + (0.005f64 * 2e-4).powi(2)).sqrt() / 0.01f64.hypot(0.005);
         assert!((s.sigma_p - want).abs() < 1e-9, "{} {want}", s.sigma_p);

@@ -207,11 +207,11 @@ fn map_direct(c: &DemoField, inst: &instrument::Instrument, seed: u64) -> Result
     let sigma = 1.0 / (280.0 * 30.0);
     let meas = fit::models::synth::sky_field(&centres, &c.truth(), q0, u0, sigma, seed);
     for (k, m) in meas.iter().enumerate() {
-        map.q[k] = m.q1;
-        map.u[k] = m.u1;
-        map.sigma_q[k] = m.sigma;
-        map.sigma_u[k] = m.sigma;
-        map.cov_qu[k] = 0.0;
+        map.q[k] = m.qu.q;
+        map.u[k] = m.qu.u;
+        map.sigma_q[k] = m.qu.sigma_q();
+        map.sigma_u[k] = m.qu.sigma_u();
+        map.cov_qu[k] = m.qu.cov_qu;
         map.valid[k] = true;
         map.n_pixels[k] = 900;
     }

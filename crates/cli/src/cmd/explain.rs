@@ -222,71 +222,13 @@ pub fn run(a: Args) -> Result<()> {
         product: skyfield::provenance::Product::of_instrument(&inst, &a.band, None).with_run_inputs(),
     };
     if let Some(p) = &a.plot {
-        draw(p, &e)?;
+        super::explain_plot::draw(p, &e)?;
     }
     if a.json {
         return crate::util::print_json(&rep);
     }
     print_explanation(&rep, &what);
     Ok(())
-}
-
-/// Delta BIC per candidate (log scale: 1 + delta BIC), the threshold of "told apart" marked.
-fn draw(path: &std::path::Path, e: &Explanation) -> Result<()> {
-    let vals: Vec<f64> = e.fits.iter().map(|f| 1.0 + f.delta_bic.min(1e12)).collect();
-    let top = vals.iter().cloned().filter(|v| v.is_finite()).fold(100.0, f64::max) * 2.0;
-    crate::plot::save_image(path, (900, 700), |r| draw_on(r, e, &vals, top), |r| draw_on(r, e, &vals, top))
-}
-
-/// The bar chart of [`draw`] on either backend (PNG or SVG by the file's extension).
-fn draw_on<DB: plotters::prelude::DrawingBackend>(
-    root: &plotters::prelude::DrawingArea<DB, plotters::coord::Shift>,
-    e: &Explanation,
-    vals: &[f64],
-    top: f64,
-) -> Result<()> {
-    use plotters::prelude::*;
-    let n = e.fits.len();
-    {
-        // Short names: six candidates side by side in a one-column figure.
-        let labels: Vec<&str> = e
-            .fits
-            .iter()
-            .map(|f| match f.cause {
-                Cause::DiattenuationOnly => "none",
-                Cause::Raytrace => "trace",
-                Cause::StressedLens => "lens",
-                Cause::TiltedHwp => "tilt",
-                Cause::WedgedHwp => "wedge",
-                Cause::PolarizingHwp => "pol",
-            })
-            .collect();
-        let fmt = move |x: &f64| {
-            let k = x.round();
-            if (x - k).abs() < 1e-6 && k >= 0.0 && (k as usize) < labels.len() {
-                labels[k as usize].to_string()
-            } else {
-                String::new()
-            }
-        };
-        let ax =
-            crate::plot::Axes::new("Which cause explains the field", "candidate", "1 + delta BIC").x_ticks(n + 1, &fmt);
-        let mut c = crate::plot::chart(root, &ax, -0.5..(n as f64 - 0.5), (1.0..top).log_scale())?;
-        for (k, v) in vals.iter().enumerate() {
-            if v.is_finite() {
-                let x = k as f64;
-                c.draw_series(std::iter::once(Rectangle::new([(x - 0.35, 1.0), (x + 0.35, *v)], BLUE.filled())))
-                    .map_err(crate::plot::pe)?;
-            }
-        }
-        let t = 1.0 + fit::mueller_field::explain::DELTA_BIC;
-        c.draw_series(LineSeries::new(vec![(-0.5, t), (n as f64 - 0.5, t)], RED.stroke_width(2)))
-            .map_err(crate::plot::pe)?
-            .label("delta BIC = 10")
-            .legend(crate::plot::line_key(RED));
-        crate::plot::legend(&mut c, SeriesLabelPosition::UpperLeft)?;
-        Ok(())
-    }
 }
 
 /// The plate angles the candidates are computed at (deg): the given list, else 16 over a turn.

@@ -99,42 +99,6 @@ pub struct Args {
     pub json: bool,
 }
 
-fn print_fit(o: &FitReport) {
-    let head = if o.joint { format!("joint ({})", o.bands.join(", ")) } else { o.bands.join(", ") };
-    outln!("{head}: model {}", o.model);
-    for p in &o.params {
-        if p.unit == "fraction" {
-            outln!("  {:<22} {:>10.4} +- {:.4} %", p.name, 100.0 * p.value, 100.0 * p.sigma_value);
-        } else {
-            outln!("  {:<22} {:>10.4} +- {:.4} {}", p.name, p.value, p.sigma_value, p.unit);
-        }
-    }
-    outln!(
-        "  chi2/dof = {:.2} / {} = {:.2}; errors x sqrt({:.2}) ({}); RMS q = {:.3} %, u = {:.3} %; {} of {} points used",
-        o.chi2,
-        o.n_dof,
-        o.chi2_dof,
-        o.error_factor,
-        o.error_scaling,
-        100.0 * o.rms_q,
-        100.0 * o.rms_u,
-        o.n_used,
-        o.n_total
-    );
-    if o.minima.len() > 1 {
-        outln!(
-            "  {} minima in the thickness within delta chi2 < 4 (the data do not choose between them):",
-            o.minima.len()
-        );
-        for m in &o.minima {
-            outln!("    {:>8.2} nm   chi2 = {:.2}   delta chi2 = {:.2}", m.thickness_nm, m.chi2, m.delta_chi2);
-        }
-    }
-    for f in &o.flagged {
-        outln!("  flagged: {f}");
-    }
-}
-
 /// --metal, else --instrument's oblique mirror (metal, alumina over-layer), else aluminium
 /// (fit::telescope::report::choose_mirror), with this command's words.
 fn mirror(a: &Args, inst: Option<&instrument::Instrument>) -> Result<Mirror> {
@@ -205,7 +169,8 @@ pub fn run(a: Args) -> Result<()> {
         for (f, j) in &fits {
             for (bi, (b, _)) in f.bands.iter().enumerate() {
                 let name = format!("standards_{}_{}{}", f.model.name(), safe_name(b), if *j { "_joint" } else { "" });
-                for path in super::fit_standards_plot::plot_band(&dir.join(name), f, bi)? {
+                let label = fit::correction::setup::band_label(b, inst.as_ref());
+                for path in super::fit_standards_plot::plot_band(&dir.join(name), f, bi, &label)? {
                     if !a.json {
                         eprintln!("wrote {}", path.display());
                     }
@@ -217,7 +182,7 @@ pub fn run(a: Args) -> Result<()> {
         return crate::util::print_json(&outs);
     }
     for o in &outs {
-        print_fit(o);
+        super::fit_standards_text::print_fit(o, inst.as_ref());
         outln!();
     }
     for (_, p) in &outputs {

@@ -78,8 +78,9 @@ const SIZE: (u32, u32) = (900, 1000);
 /// (lower panel); flagged points hollow; polarized standards (triangles) with their own
 /// polarization removed as the model has it, so that they sit on the same curve ([`band_plot`]).
 /// Written as `STEM.png` and `STEM.svg`; returns both paths.
-pub fn plot_band(stem: &Path, f: &TelescopeFit, bi: usize) -> Result<Vec<std::path::PathBuf>> {
-    let d = figure(f, bi)?;
+/// `band` is the band as the title writes it (`V (550 nm)`).
+pub fn plot_band(stem: &Path, f: &TelescopeFit, bi: usize, band: &str) -> Result<Vec<std::path::PathBuf>> {
+    let d = figure(f, bi, band)?;
     crate::plot::save_png_svg(stem, SIZE, |root| draw(root, &d), |root| draw(root, &d))
 }
 
@@ -96,8 +97,7 @@ struct Figure {
     xr: (f64, f64),
 }
 
-fn figure(f: &TelescopeFit, bi: usize) -> Result<Figure> {
-    let band = &f.bands[bi].0;
+fn figure(f: &TelescopeFit, bi: usize, band: &str) -> Result<Figure> {
     let BandPlot { curve, points: pts } = band_plot(f, bi)?;
     let (lo, hi) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), p| (l.min(p.pa_deg), h.max(p.pa_deg)));
     let pad = 0.05 * (hi - lo).max(20.0);
@@ -119,17 +119,14 @@ fn figure(f: &TelescopeFit, bi: usize) -> Result<Figure> {
     });
     let (rlo, rhi) = crate::plot::extent(rs).unwrap_or((-0.05, 0.05));
     let (y, r) = (crate::plot::data_range(ylo, yhi), crate::plot::data_range(rlo, rhi));
-    // A band named by its wavelength ("0.550um", the data name no filter) is written in µm.
-    let band = match band.strip_suffix("um").and_then(|w| w.parse::<f64>().ok()) {
-        Some(w) => format!("{w:.3} µm"),
-        None => band.clone(),
-    };
-    let title = format!("{band}, {} model: χ²/dof = {:.2}", f.model.name(), f.chi2_reduced);
+    let model = f.model.name();
+    let model = model.get(..1).map_or(String::new(), |c| c.to_uppercase()) + model.get(1..).unwrap_or("");
+    let title = format!("{band}, {model}: χ²/dof = {:.2}", f.chi2_reduced);
     Ok(Figure { title, curve, pts, y, r, xr })
 }
 
-/// The upper panel's legend, a row below it: q and u (data and model), and the polarized
-/// standards' triangle when any is drawn.
+/// The upper panel's legend below it: q and u (data and model), and in a second row, when
+/// any is drawn, the polarized standards' triangles in q's and u's colours, as plotted.
 fn draw_keys<DB: DrawingBackend>(area: &DrawingArea<DB, plotters::coord::Shift>, keyed: bool) -> Result<()> {
     type Key<'k, DB> = &'k dyn Fn(&DrawingArea<DB, plotters::coord::Shift>, (i32, i32)) -> Result<()>;
     let data_and_model = |col: RGBColor| {
@@ -140,13 +137,18 @@ fn draw_keys<DB: DrawingBackend>(area: &DrawingArea<DB, plotters::coord::Shift>,
     };
     let (q, u) = (data_and_model(crate::plot::VERMILLION), data_and_model(crate::plot::BLUE_OI));
     let tri = |a: &DrawingArea<DB, plotters::coord::Shift>, (x, y): (i32, i32)| -> Result<()> {
-        a.draw(&TriangleMarker::new((x + 11, y), 6, BLACK.filled())).map_err(crate::plot::pe)
+        for (dx, col) in [(6, crate::plot::VERMILLION), (20, crate::plot::BLUE_OI)] {
+            a.draw(&TriangleMarker::new((x + dx, y), 6, col.filled())).map_err(crate::plot::pe)?;
+        }
+        Ok(())
     };
-    let mut entries: Vec<(String, Key<DB>)> = vec![("q data, model".into(), &q), ("u data, model".into(), &u)];
-    if keyed {
-        entries.push((POL_KEY.into(), &tri));
+    let qu: Vec<(String, Key<DB>)> = vec![("q data, model".into(), &q), ("u data, model".into(), &u)];
+    if !keyed {
+        return crate::plot::key_row(area, &qu);
     }
-    crate::plot::key_row(area, &entries)
+    let (first, second) = area.split_vertically(area.dim_in_pixel().1 / 2);
+    crate::plot::key_row(&first, &qu)?;
+    crate::plot::key_row(&second, &[(POL_KEY.to_string(), &tri as Key<DB>)])
 }
 
 fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, d: &Figure) -> Result<()> {
@@ -154,11 +156,13 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, d: &
     let xr = xr.0..xr.1;
     {
         let (top, bottom) = root.split_vertically(520);
-        // The model spans every angle and leaves no corner free: the legend is a row below.
-        let (top, keys) = top.split_vertically(520 - 2 * crate::plot::pt(crate::plot::LEGEND_PT));
+        // The model spans every angle and leaves no corner free: the legend is a row below
+        // (two with the polarized standards' key).
+        let keyed = pts.iter().any(|p| p.shifted);
+        let rows = if keyed { 3 } else { 2 };
+        let (top, keys) = top.split_vertically(520 - rows * crate::plot::pt(crate::plot::LEGEND_PT));
         let ax = crate::plot::Axes::new(title.clone(), "parallactic angle (deg)", "q, u (%)");
         let mut c = crate::plot::chart(&top, &ax, xr.clone(), y.clone())?;
-        let mut keyed = false;
         for (col, idx) in [(crate::plot::VERMILLION, 0usize), (crate::plot::BLUE_OI, 1)] {
             c.draw_series(LineSeries::new(
                 curve.iter().map(|p| (p.0, if idx == 0 { p.1 } else { p.2 })),
@@ -174,7 +178,6 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, d: &
                 if p.shifted {
                     c.draw_series(std::iter::once(TriangleMarker::new((x, 100.0 * v), 6, style)))
                         .map_err(crate::plot::pe)?;
-                    keyed = true;
                 } else {
                     c.draw_series(std::iter::once(Circle::new((x, 100.0 * v), 5, style))).map_err(crate::plot::pe)?;
                 }
@@ -206,9 +209,13 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, d: &
 }
 
 #[cfg(test)]
+#[path = "../../tests/common/standards.rs"]
+mod standards;
+
+#[cfg(test)]
 mod tests {
     use super::*;
-    use fit::telescope::{fit_band, parse_observations, BandModel, FitOptions, ModelKind, Track};
+    use fit::telescope::{fit_band, parse_observations, FitOptions, ModelKind};
     use mueller::mirror::MetalTable;
 
     /// Two unpolarized and two polarized standards (5 % at 30 deg, 4 % at 120 deg) seen through
@@ -217,31 +224,7 @@ mod tests {
     /// a fixed +-2e-4 pattern for noise; fitted with the Wiersema model.
     fn fitted() -> TelescopeFit {
         let table = MetalTable::builtin("aluminium").unwrap();
-        let truth = BandModel {
-            wavelength_um: 0.55,
-            index: table.index(0.55).unwrap(),
-            factor: 0.86,
-            thickness_nm: 0.0,
-            offset: 40f64.to_radians(),
-            q0: 0.0,
-            u0: 0.0,
-        };
-        let mut text =
-            String::from("star,parallactic_deg,q,sigma_q,u,sigma_u,wavelength_um,filter,p_true,chi_true_deg\n");
-        for (s, (star, p, chi)) in
-            [("WD a", 0.0, 0.0), ("WD b", 0.0, 0.0), ("Pol a", 0.05f64, 30f64), ("Pol b", 0.04, 120.0)]
-                .into_iter()
-                .enumerate()
-        {
-            for k in 0..12 {
-                let pa = -170.0 + 29.0 * k as f64 + 7.0 * s as f64;
-                let (qs, us) = (p * (2.0 * chi.to_radians()).cos(), p * (2.0 * chi.to_radians()).sin());
-                let (q, u) = truth.sky_through(qs, us, Track::at(pa.to_radians())).unwrap();
-                let e = if (k + s) % 2 == 0 { 2e-4 } else { -2e-4 };
-                let (pt, ct) = if p > 0.0 { (p.to_string(), chi.to_string()) } else { (String::new(), String::new()) };
-                text += &format!("{star},{pa},{},3e-4,{},3e-4,0.55,V,{pt},{ct}\n", q + e, u - e);
-            }
-        }
+        let text = standards::polarized_standards_csv(Some("V"));
         let obs = parse_observations(&text, Path::new("night.csv")).unwrap();
         fit_band(ModelKind::Wiersema, &obs, &table, &FitOptions { clip: None, ..Default::default() }).unwrap()
     }
@@ -272,7 +255,7 @@ mod tests {
             }
         }
         let dir = tempfile::tempdir().unwrap();
-        let written = plot_band(&dir.path().join("v"), &f, 0).unwrap();
+        let written = plot_band(&dir.path().join("v"), &f, 0, "V (550 nm)").unwrap();
         assert_eq!(written, [dir.path().join("v.png"), dir.path().join("v.svg")]);
         assert!(written.iter().all(|p| p.is_file()));
     }

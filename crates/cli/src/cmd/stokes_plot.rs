@@ -58,7 +58,8 @@ fn draw_fit<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &FourierPlot) 
         marks.push(vec![(-pad, pct(a0)), (d.theta_max_deg + pad, pct(a0))]);
     }
     let grey = BLACK.mix(0.6);
-    let mut keys = vec![key("fit", Mark::Line(crate::plot::BLUE_OI.stroke_width(2)))];
+    // The fitted curve named by what was fitted, with its value (the title adds its error).
+    let mut keys = vec![key(format!("fit, P = {:.3} %", pct(d.p)), Mark::Line(crate::plot::BLUE_OI.stroke_width(2)))];
     if let Some(a0) = d.a0 {
         keys.push(key(format!("a_0 = {:.3} %", pct(a0)), Mark::Dashed(grey.into())));
     }
@@ -125,7 +126,7 @@ fn draw_harmonics<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, d: &Fourier
     let (other, p_bar) = (crate::plot::BLUE_OI.mix(0.45).filled(), crate::plot::VERMILLION.mix(0.7).filled());
     let mut keys = vec![key("other harmonics", Mark::Bar(other))];
     if d.bars.iter().any(|b| Some(b.k) == pol) {
-        keys.push(key("k = N/4: P", Mark::Bar(p_bar)));
+        keys.push(key(format!("k = {k_pol}: P"), Mark::Bar(p_bar)));
     }
     keys.push(key("1σ noise", Mark::Line(BLACK.stroke_width(2))));
     let (mut c, place) = chart_with_legend(area, &ax, || -0.6..kmax + 0.6, y, &marks, &keys)?;

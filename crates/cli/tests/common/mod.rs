@@ -9,6 +9,8 @@ pub mod night;
 pub mod raw;
 #[path = "../../../fit/tests/common/shared_data.rs"]
 pub mod shared_data;
+#[allow(dead_code)]
+pub mod standards;
 
 use fit::files::calfile::{Model, PixelGrid, Provenance, FORMAT_VERSION};
 use fit::models::synth::{sky_field, FnField};
@@ -229,12 +231,12 @@ pub fn write_v_sky_map(path: &Path, keep: impl Fn(usize) -> bool) {
         if !keep(k) {
             continue;
         }
-        map.q[k] = b.q1;
-        map.u[k] = b.u1;
+        map.q[k] = b.qu.q;
+        map.u[k] = b.qu.u;
         map.sigma_q[k] = 1e-4;
         map.sigma_u[k] = 1e-4;
         map.cov_qu[k] = 0.0;
-        map.p[k] = b.q1.hypot(b.u1);
+        map.p[k] = b.qu.q.hypot(b.qu.u);
         map.chi[k] = 0.0;
         map.n_pixels[k] = 3600;
         map.valid[k] = true;

@@ -8,7 +8,7 @@ use fit::mueller_field::{fit_mueller_field, CalField, Kind, MuellerFitOptions, O
 use mueller::linear::{physical_block, retardance_vector};
 
 /// Noise-free observations (small variances) of a field on three skies.
-fn fields(ret_deg: f64) -> Vec<CalField> {
+pub(crate) fn fields(ret_deg: f64) -> Vec<CalField> {
     [(0.0645, 68.4f64), (0.04, 10.0), (0.08, 130.0)]
         .iter()
         .map(|&(p, chi)| {
@@ -30,7 +30,7 @@ fn fields(ret_deg: f64) -> Vec<CalField> {
         .collect()
 }
 
-fn write(kind: Kind, name: &str) -> std::path::PathBuf {
+pub(crate) fn write(kind: Kind, name: &str) -> std::path::PathBuf {
     let dir = std::env::temp_dir().join(format!("instpol_explain_{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let mf =

@@ -849,3 +849,339 @@ fn the_print_checks_see_each_problem() {
     assert!(bad.len() == 1 && bad[0].contains("20 %") && bad[0].contains("top"), "{bad:?}");
     assert!(axis_problems("x", &axes.replace("150,120", "150,102")).is_empty());
 }
+
+/// The colour bars' marks (short white lines across a bar, at the map's contour levels) that
+/// carry no tick label level with them, as messages. A bar is a black outline (`fill="none"`)
+/// of a narrow, tall rectangle; a mark is a white two-point line spanning its width; its label
+/// a number written right of the bar within two pixels of the mark's row.
+fn colour_bar_problems(name: &str, svg: &str) -> Vec<String> {
+    let elems: Vec<&str> = svg.split('<').skip(1).collect();
+    let bars: Vec<(f64, f64, f64, f64)> = elems
+        .iter()
+        .filter(|e| e.starts_with("rect") && e.contains("fill=\"none\"") && e.contains("stroke=\"#000000\""))
+        .filter_map(|e| geometry(e))
+        .filter(|&(_, _, w, h)| w > 0.0 && h > 4.0 * w)
+        .collect();
+    let labels: Vec<(f64, f64, String)> = placed_texts(svg)
+        .into_iter()
+        .filter(|t| t.2 == "start" && tick_value(&t.6).is_some())
+        .map(|t| (t.0, t.1, t.6))
+        .collect();
+    let mut bad = vec![];
+    for &(bx, by, bw, bh) in &bars {
+        for e in elems.iter().filter(|e| e.starts_with("polyline") && e.contains("stroke=\"#FFFFFF\"")) {
+            let [a, b] = points(e)[..] else { continue };
+            let across = a.1 == b.1 && (a.0.min(b.0) - bx).abs() <= 1.0 && (a.0.max(b.0) - (bx + bw)).abs() <= 1.0;
+            if !across || a.1 < by - 1.0 || a.1 > by + bh + 1.0 {
+                continue;
+            }
+            let labelled = labels.iter().any(|l| l.0 > bx + bw && l.0 < bx + bw + 60.0 && (l.1 - a.1).abs() <= 2.0);
+            if !labelled {
+                bad.push(format!("{name}: the colour bar's mark at row {} has no label", a.1));
+            }
+        }
+    }
+    bad
+}
+
+/// The legend entries of `svg`: each text inside a legend box (a bordered translucent box, as
+/// plotters and plot.rs draw one) or written right of a key (a marker or a short line ending
+/// within two font sizes left of it, at its row), as (x, y, text), with the legend it belongs
+/// to (its box, or its row).
+fn legend_entries(svg: &str) -> Vec<(f64, f64, String, String)> {
+    let elems: Vec<&str> = svg.split('<').skip(1).collect();
+    let boxes = legend_boxes(&elems);
+    let keys = key_marks(svg);
+    placed_texts(svg)
+        .into_iter()
+        .filter(|t| !t.5 && !t.6.is_empty() && tick_value(&t.6).is_none())
+        .filter(|t| {
+            let in_box = boxes.iter().any(|(_, b)| t.0 >= b.0 && t.0 <= b.2 && t.1 >= b.1 && t.1 <= b.3);
+            in_box
+                || (t.2 == "start"
+                    && keys.iter().any(|k| k.1 < t.0 && k.1 > t.0 - 2.0 * t.4 && (k.2 - t.1).abs() <= 3.0))
+        })
+        .map(|t| {
+            let b = boxes.iter().find(|(_, b)| t.0 >= b.0 && t.0 <= b.2 && t.1 >= b.1 && t.1 <= b.3);
+            let legend = b.map_or_else(|| format!("the row at {}", t.1), |(i, _)| format!("the legend box {i}"));
+            (t.0, t.1, t.6, legend)
+        })
+        .collect()
+}
+
+/// Every marker (circle, polygon) and line of `svg` as (kind and fill, right end x, y): the
+/// circles and polygons with their shape and colour, the lines as their stroke.
+fn key_marks(svg: &str) -> Vec<(String, f64, f64)> {
+    let attr = |e: &str, n: &str| {
+        e.split(&format!(" {n}=\"")).nth(1).and_then(|r| r.split('"').next()).unwrap_or("").to_string()
+    };
+    let mut out = vec![];
+    for e in svg.split('<').skip(1) {
+        if e.starts_with("circle") {
+            let Some((cx, cy, r, _)) = geometry(e) else { continue };
+            out.push((format!("circle {}", attr(e, "fill")), cx + r, cy));
+        } else if e.starts_with("polygon") {
+            let p = points(e);
+            let Some(right) = p.iter().map(|q| q.0).reduce(f64::max) else { continue };
+            let cy = p.iter().map(|q| q.1).sum::<f64>() / p.len() as f64;
+            out.push((format!("polygon {}", attr(e, "fill")), right, cy));
+        } else if e.starts_with("polyline") {
+            if let [a, b] = points(e)[..] {
+                if a.1 == b.1 && (b.0 - a.0).abs() <= 30.0 {
+                    out.push((format!("line {}", attr(e, "stroke")), a.0.max(b.0), a.1));
+                }
+            }
+        }
+    }
+    out
+}
+
+/// No legend entry is written twice in a legend (one entry per kind of bar, not one per bar),
+/// and the entry of a fitted curve says what was fitted: a function of its variable (`fit
+/// p(r)`) or a quantity with its value (`fit, P = 0.421 %`); "fit" alone does not.
+fn legend_text_problems(name: &str, svg: &str) -> Vec<String> {
+    let entries = legend_entries(svg);
+    let mut bad = vec![];
+    let mut seen = std::collections::BTreeMap::<(String, String), usize>::new();
+    for (_, _, t, legend) in &entries {
+        *seen.entry((legend.clone(), t.clone())).or_default() += 1;
+    }
+    for ((legend, t), n) in seen.into_iter().filter(|s| s.1 > 1) {
+        bad.push(format!("{name}: the legend entry '{t}' is written {n} times in {legend}"));
+    }
+    for (_, _, t, _) in entries.iter().filter(|e| e.2.split_whitespace().next().is_some_and(|w| w.starts_with("fit"))) {
+        let valued =
+            t.split(" = ").skip(1).any(|v| v.trim_start_matches('-').starts_with(|c: char| c.is_ascii_digit()));
+        let function = t.split_whitespace().skip(1).any(|w| w.contains('(') && w.ends_with(')'));
+        if !(valued || function) {
+            bad.push(format!("{name}: the fit's legend entry '{t}' names no fitted quantity with its value"));
+        }
+    }
+    bad
+}
+
+/// Each legend entry that names data ("data", "standards", "polarized") carries a marker left
+/// of its words, and each such marker is of a shape and colour the plotted points have (a
+/// marker of the same kind and fill outside every legend row).
+fn legend_marker_problems(name: &str, svg: &str) -> Vec<String> {
+    let marks = key_marks(svg);
+    let is_marker = |m: &&(String, f64, f64)| !m.0.starts_with("line");
+    let mut bad = vec![];
+    let entries = legend_entries(svg);
+    let near = |m: &(String, f64, f64), e: &(f64, f64, String, String)| {
+        m.1 < e.0 && m.1 > e.0 - 60.0 && (m.2 - e.1).abs() <= 3.0
+    };
+    for e in entries.iter().filter(|e| ["data", "standards", "polarized"].iter().any(|w| e.2.contains(w))) {
+        let keys: Vec<&(String, f64, f64)> = marks.iter().filter(is_marker).filter(|m| near(m, e)).collect();
+        if keys.is_empty() {
+            bad.push(format!("{name}: the legend entry '{}' names data but shows no marker", e.2));
+        }
+        for k in keys {
+            let plotted = marks.iter().filter(is_marker).any(|m| m.0 == k.0 && !entries.iter().any(|e| near(m, e)));
+            if !plotted {
+                bad.push(format!("{name}: the legend entry '{}' shows a {} no plotted point has", e.2, k.0));
+            }
+        }
+    }
+    bad
+}
+
+/// Each axis's labelled ticks reach its ends: the stretch of an axis past its last label, at
+/// either end, is at most a third of the axis (a log axis labelled only in its lower half
+/// fails). Axes are the plotting areas' ([`plotting_areas`]); their labels the numbers written
+/// under the x axis and left of the y axis.
+fn axis_end_problems(name: &str, svg: &str) -> Vec<String> {
+    let elems: Vec<&str> = svg.split('<').skip(1).collect();
+    let placed = placed_texts(svg);
+    let mut bad = vec![];
+    for (x0, y0, x1, y1) in plotting_areas(&elems) {
+        let numbers = |t: &&(f64, f64, String, String, f64, bool, String)| !t.5 && tick_value(&t.6).is_some();
+        let xs: Vec<f64> = placed
+            .iter()
+            .filter(numbers)
+            .filter(|t| t.2 == "middle" && t.3 == "0.76em" && t.0 >= x0 - 1.0 && t.0 <= x1 + 1.0)
+            .filter(|t| t.1 > y1 && t.1 < y1 + 2.0 * t.4)
+            .map(|t| t.0)
+            .collect();
+        let ys: Vec<f64> = placed
+            .iter()
+            .filter(numbers)
+            .filter(|t| t.2 == "end" && t.0 < x0 && t.0 > x0 - 8.0 * t.4 && t.1 >= y0 - 1.0 && t.1 <= y1 + 1.0)
+            .map(|t| t.1)
+            .collect();
+        for (axis, at, lo, hi) in [("x", &xs, x0, x1), ("y", &ys, y0, y1)] {
+            let (Some(a), Some(b)) = (at.iter().copied().reduce(f64::min), at.iter().copied().reduce(f64::max)) else {
+                continue;
+            };
+            let len = hi - lo;
+            for (end, gap) in [("low", a - lo), ("high", hi - b)] {
+                // Screen rows grow downwards: a y axis's low end on screen is its top.
+                let side = if axis == "y" {
+                    if end == "low" {
+                        "top"
+                    } else {
+                        "bottom"
+                    }
+                } else {
+                    end
+                };
+                if gap > len / 3.0 + 1.0 {
+                    bad.push(format!(
+                        "{name}: the {axis} axis of the area at ({x0}, {y0}) has no label over its {side} {:.0} % ({at:?})",
+                        100.0 * gap / len
+                    ));
+                }
+            }
+        }
+    }
+    bad
+}
+
+/// A Mueller field and the EFOSC2-like standards (two polarized): the figures `every_figure`
+/// leaves out, drawn into `dir`: explain's candidates, a weak field's map (its p under 0.6 %,
+/// so that one contour level falls inside its colour bar) and a telescope fit with polarized
+/// standards (triangles in the legend).
+fn more_figures(dir: &Path) -> Vec<PathBuf> {
+    std::fs::create_dir_all(dir).unwrap();
+    let s = |n: &str| dir.join(n).to_str().unwrap().to_string();
+    let lens = crate::explain::write(fit::mueller_field::Kind::diattenuation_retardance(), "lens_pub.json");
+    let (code, _, err) =
+        run(&["explain", lens.to_str().unwrap(), "--instrument", "fors1", "--band", "B", "--plot", &s("explain.svg")]);
+    assert_eq!(code, 0, "{err}");
+    let _ = std::fs::remove_file(&lens);
+    // The inner bins of the V field (r < 2.1'): p up to about 0.5 %, whose
+    // colour bar's round ticks (0, 0.2, 0.4) miss the 0.3 % contour.
+    let (cal, map) = (dir.join("weak.fits"), dir.join("weak_map.fits"));
+    let geom = skyfield::BinGeometry::covering(60, 0, 0, 2048, 2048, 0.2);
+    common::write_v_sky_map(&map, move |k| {
+        let c = geom.centre_arcmin(k % geom.nx, k / geom.nx);
+        c.0.hypot(c.1) < 2.1
+    });
+    let (code, _, err) = run(&common::calibrate_v_args(&map, &cal));
+    assert_eq!(code, 0, "{err}");
+    let (code, _, err) = run(&["plot", cal.to_str().unwrap(), "--out", &s("weak")]);
+    assert_eq!(code, 0, "{err}");
+    let csv = standards_csv(dir);
+    let (code, _, err) =
+        run(&["fit-standards", csv.to_str().unwrap(), "--model", "wiersema", "--plot-dir", &s("standards")]);
+    assert_eq!(code, 0, "{err}");
+    let mut out = vec![PathBuf::from(s("explain.svg"))];
+    for sub in ["weak", "standards"] {
+        for e in std::fs::read_dir(dir.join(sub)).unwrap() {
+            let f = e.unwrap().path();
+            if f.extension().is_some_and(|x| x == "svg") {
+                out.push(f);
+            }
+        }
+    }
+    out
+}
+
+/// The standards of [`common::standards::polarized_standards_csv`], at 0.55 µm with no filter
+/// column: `dir/standards.csv`.
+fn standards_csv(dir: &Path) -> PathBuf {
+    let path = dir.join("standards.csv");
+    std::fs::write(&path, common::standards::polarized_standards_csv(None)).unwrap();
+    path
+}
+
+/// The figures' words and marks, on every figure and those [`more_figures`] adds (explain,
+/// a weak field's map, a fit of polarized standards): the print checks of
+/// [`every_figure_reads_in_print`] and the legend-overlap checks, and colour-bar marks
+/// labelled, legend entries written once with the fit's value, data markers in the legend as
+/// plotted, every axis labelled to within a third of its ends.
+#[test]
+fn every_figure_labels_its_marks_and_keys() {
+    let d = tempfile::tempdir().unwrap();
+    let figures = every_figure(d.path());
+    let more = more_figures(&d.path().join("more"));
+    assert!(figures.len() >= 8 && more.len() >= 5, "{figures:?} {more:?}");
+    let mut bad = vec![];
+    for f in figures.iter().chain(&more) {
+        let svg = std::fs::read_to_string(f).unwrap();
+        let name = f.strip_prefix(d.path()).unwrap_or(f).to_string_lossy().to_string();
+        bad.extend(colour_bar_problems(&name, &svg));
+        bad.extend(legend_text_problems(&name, &svg));
+        bad.extend(legend_marker_problems(&name, &svg));
+        bad.extend(axis_end_problems(&name, &svg));
+        // The figures every_figure draws pass the print checks in every_figure_reads_in_print.
+        if more.contains(f) {
+            bad.extend(aspect_problems(&name, &svg));
+            bad.extend(tick_problems(&name, &svg));
+            bad.extend(text_problems(&name, &svg));
+            bad.extend(colour_problems(&name, &svg));
+            bad.extend(axis_problems(&name, &svg));
+            bad.extend(legend_overlaps(f));
+            bad.extend(texts_outside(f));
+        }
+    }
+    assert!(bad.is_empty(), "{} problems:\n{}", bad.len(), bad.join("\n"));
+}
+
+/// fit-standards names a band given by its wavelength as astronomers write it: the filter
+/// there and the wavelength in nm ("V (550 nm)": Bessell's V is at 545-551 nm), on the console
+/// and in the figure's title; never "0.550um".
+#[test]
+fn fit_standards_names_its_band_and_wavelength() {
+    let d = tempfile::tempdir().unwrap();
+    let csv = standards_csv(d.path());
+    let plots = d.path().join("p");
+    let (code, out, err) =
+        run(&["fit-standards", csv.to_str().unwrap(), "--model", "wiersema", "--plot-dir", plots.to_str().unwrap()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(out.contains("V (550 nm)"), "{out}");
+    let micron = |t: &str| t.strip_suffix("um").is_some_and(|n| n.parse::<f64>().is_ok());
+    assert!(!out.split([' ', ':', ',', '(', ')']).any(micron) && !out.contains("µm"), "{out}");
+    let svg = std::fs::read_to_string(plots.join("standards_wiersema_0.svg")).unwrap();
+    assert!(placed_texts(&svg).iter().any(|t| t.6.starts_with("V (550 nm)")), "the title names the band");
+}
+
+/// The checks above see what they look for, on made-up figures.
+#[test]
+fn the_mark_and_key_checks_see_each_problem() {
+    // A bar 20 x 200 px at (100, 100) with white marks at rows 160 (labelled) and 240 (not).
+    let bar = "<svg width=\"400\" height=\"400\">\n\
+               <rect x=\"100\" y=\"100\" width=\"20\" height=\"200\" opacity=\"1\" fill=\"none\" stroke=\"#000000\"/>\n\
+               <polyline fill=\"none\" opacity=\"1\" stroke=\"#FFFFFF\" stroke-width=\"3\" points=\"100,160 120,160 \"/>\n\
+               <polyline fill=\"none\" opacity=\"1\" stroke=\"#FFFFFF\" stroke-width=\"3\" points=\"100,240 120,240 \"/>\n\
+               <text x=\"130\" y=\"160\" dy=\"0.5ex\" text-anchor=\"start\" font-size=\"20\">0.6</text>\n\
+               <text x=\"130\" y=\"250\" dy=\"0.5ex\" text-anchor=\"start\" font-size=\"20\">0.2</text>\n</svg>";
+    let bad = colour_bar_problems("x", bar);
+    assert!(bad.len() == 1 && bad[0].contains("row 240"), "{bad:?}");
+    // Legend entries: a box with "fit" alone and a bar's words twice.
+    let legend = "<svg width=\"400\" height=\"400\">\n\
+                  <rect x=\"10\" y=\"10\" width=\"200\" height=\"100\" opacity=\"0.85\" fill=\"#FFFFFF\" stroke=\"none\"/>\n\
+                  <rect x=\"10\" y=\"10\" width=\"200\" height=\"100\" opacity=\"1\" fill=\"none\" stroke=\"#000000\"/>\n\
+                  <text x=\"50\" y=\"30\" dy=\"0.5ex\" text-anchor=\"start\" font-size=\"20\">fit</text>\n\
+                  <text x=\"50\" y=\"60\" dy=\"0.5ex\" text-anchor=\"start\" font-size=\"20\">k = 1 dust, 2 pleochroism</text>\n\
+                  <text x=\"50\" y=\"90\" dy=\"0.5ex\" text-anchor=\"start\" font-size=\"20\">k = 1 dust, 2 pleochroism</text>\n</svg>";
+    let bad = legend_text_problems("x", legend);
+    assert!(bad.len() == 2 && bad.iter().any(|b| b.contains("2 times")), "{bad:?}");
+    assert!(legend_text_problems("x", &legend.replace(">fit<", ">fit, P = 0.421 %<")).len() == 1);
+    // A data entry whose key is a black triangle beside vermillion plotted triangles, and one
+    // whose key is a line only.
+    let keys = "<svg width=\"400\" height=\"400\">\n\
+                <polygon points=\"200,200 206,210 194,210 \" opacity=\"1\" fill=\"#D55E00\"/>\n\
+                <polygon points=\"20,300 26,310 14,310 \" opacity=\"1\" fill=\"#000000\"/>\n\
+                <text x=\"40\" y=\"306\" dy=\"0.5ex\" text-anchor=\"start\" font-size=\"20\">polarized, own P removed</text>\n\
+                <polyline fill=\"none\" opacity=\"1\" stroke=\"#D55E00\" stroke-width=\"2\" points=\"10,350 32,350 \"/>\n\
+                <text x=\"40\" y=\"350\" dy=\"0.5ex\" text-anchor=\"start\" font-size=\"20\">q data, model</text>\n</svg>";
+    let bad = legend_marker_problems("x", keys);
+    assert!(bad.len() == 2 && bad[0].contains("polygon #000000") && bad[1].contains("no marker"), "{bad:?}");
+    assert_eq!(legend_marker_problems("x", &keys.replace("fill=\"#000000\"", "fill=\"#D55E00\"")).len(), 1);
+    // A y axis (rows 100..400) labelled at rows 400, 330, 300 only: its top 67 % unlabelled.
+    let axes = |rows: &[f64]| -> String {
+        let mut s = String::from(
+            "<svg width=\"600\" height=\"600\">\n\
+             <polyline fill=\"none\" opacity=\"1\" stroke=\"#000000\" stroke-width=\"1\" points=\"99,100 99,400 \"/>\n\
+             <polyline fill=\"none\" opacity=\"1\" stroke=\"#000000\" stroke-width=\"1\" points=\"100,401 400,401 \"/>\n",
+        );
+        for (i, r) in rows.iter().enumerate() {
+            s += &format!("<text x=\"90\" y=\"{r}\" dy=\"0.5ex\" text-anchor=\"end\" font-size=\"20\">{i}</text>\n");
+        }
+        s + "</svg>"
+    };
+    let bad = axis_end_problems("x", &axes(&[400.0, 330.0, 300.0]));
+    assert!(bad.len() == 1 && bad[0].contains("top 67 %"), "{bad:?}");
+    assert!(axis_end_problems("x", &axes(&[400.0, 300.0, 200.0])).is_empty());
+}

@@ -77,6 +77,31 @@ pub fn band_wavelength_nm(band: &str) -> Option<f64> {
     (um.is_finite() && um > 0.0).then_some(1000.0 * um)
 }
 
+/// The Johnson-Cousins bands U, B, V, R, I and their effective wavelengths (nm) for a star
+/// like Vega (Bessell, Castelli & Plez 1998, A&A 333, 231, table A2): the names a band given by
+/// its wavelength alone is written with when no instrument names its filters.
+pub const STANDARD_BANDS: [(&str, f64); 5] = [("U", 366.0), ("B", 438.0), ("V", 545.0), ("R", 641.0), ("I", 798.0)];
+
+/// A band as astronomers write it: a band named by its wavelength ([`band_wavelength_nm`],
+/// `0.550um`) as its filter and the wavelength in nm, `V (550 nm)`: the filter of `inst`
+/// nearest that wavelength within [`BAND_WAVELENGTH_TOL`], else the standard band
+/// ([`STANDARD_BANDS`]) there, else the wavelength alone (`1250 nm`). Other names unchanged.
+pub fn band_label(band: &str, inst: Option<&Instrument>) -> String {
+    let Some(w) = band_wavelength_nm(band) else { return band.to_string() };
+    let near = |lambda: f64| (lambda - w).abs() <= BAND_WAVELENGTH_TOL * lambda;
+    let of_inst = inst.and_then(|i| {
+        i.filters.iter().min_by(|p, q| (p.lambda_eff_nm - w).abs().total_cmp(&(q.lambda_eff_nm - w).abs()))
+    });
+    let name = match of_inst {
+        Some(f) => near(f.lambda_eff_nm).then(|| f.name.clone()),
+        None => STANDARD_BANDS.iter().find(|(_, l)| near(*l)).map(|(n, _)| n.to_string()),
+    };
+    match name {
+        Some(n) => format!("{n} ({w:.0} nm)"),
+        None => format!("{w:.0} nm"),
+    }
+}
+
 /// How far (as a fraction of the filter's effective wavelength) a band named by its wavelength
 /// may lie from a filter and still be that filter's: 2.5 %, well inside a broad-band filter's
 /// width (about 15-20 % of its wavelength for Bessell B, V, R, I) and less than half the
@@ -334,6 +359,11 @@ mod tests {
         assert!(!same_filter(None, "V", "0.550um"));
         assert!(!same_filter(Some(&e), "V", "550nm"), "micrometres only, as the models name bands");
         assert_eq!(band_wavelength_nm(" 0.550um "), Some(550.0));
+        // Written as astronomers do: the filter there and nm, EFOSC2's own or the standard's.
+        assert_eq!(band_label("0.550um", None), "V (550 nm)");
+        assert_eq!(band_label("0.440um", Some(&e)), "B (440 nm)");
+        assert_eq!(band_label("0.600um", None), "600 nm", "6 % from R, 10 % from V");
+        assert_eq!(band_label("V#641", Some(&e)), "V#641");
         assert_eq!(band_wavelength_nm("-0.5um"), None);
         assert_eq!(band_wavelength_nm("Vum"), None);
     }

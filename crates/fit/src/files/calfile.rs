@@ -489,18 +489,18 @@ impl Calibration {
         let columns: Vec<(&str, Vec<f64>)> = vec![
             ("X_ARCMIN", col(&|i| b[i].x)),
             ("Y_ARCMIN", col(&|i| b[i].y)),
-            ("Q", col(&|i| b[i].q)),
-            ("U", col(&|i| b[i].u)),
-            ("SIGMA_Q", col(&|i| b[i].sigma_q)),
-            ("SIGMA_U", col(&|i| b[i].sigma_u)),
+            ("Q", col(&|i| b[i].qu.q)),
+            ("U", col(&|i| b[i].qu.u)),
+            ("SIGMA_Q", col(&|i| b[i].sigma_q())),
+            ("SIGMA_U", col(&|i| b[i].sigma_u())),
             ("P", col(&|i| b[i].p_phi().0)),
             ("PHI_DEG", col(&|i| b[i].p_phi().1.to_degrees())),
             ("P_APPROX", col(&|i| b[i].p_approx)),
             ("PHI_APPROX_DEG", col(&|i| b[i].phi_approx.to_degrees())),
             ("MODEL_Q", col(&|i| model_qu[i].0)),
             ("MODEL_U", col(&|i| model_qu[i].1)),
-            ("RES_Q", col(&|i| b[i].q - model_qu[i].0)),
-            ("RES_U", col(&|i| b[i].u - model_qu[i].1)),
+            ("RES_Q", col(&|i| b[i].qu.q - model_qu[i].0)),
+            ("RES_U", col(&|i| b[i].qu.u - model_qu[i].1)),
         ];
         // Units (FITS/astropy strings) of the columns that have one; q, u, p are dimensionless.
         for (k, c) in dcols.iter().enumerate() {
@@ -685,29 +685,26 @@ impl Calibration {
             let used: Vec<i32> = h.read_col(&mut f, "USED").map_err(e("reading BINS column USED"))?;
             for i in 0..nrows {
                 bins.push(Bin {
-                    x: x[i],
-                    y: y[i],
-                    q: q[i],
-                    u: u[i],
-                    sigma_q: sq[i],
-                    sigma_u: su[i],
                     p_approx: pa[i],
                     phi_approx: pha[i].to_radians(),
                     used: used[i] != 0,
+                    ..Bin::new(x[i], y[i], q[i], u[i], sq[i], su[i])
                 });
             }
             if let Some((i, b)) = bins.iter().enumerate().find(|(_, b)| {
-                b.sigma_q < 0.0 || b.sigma_u < 0.0 || (b.q.is_finite() && b.u.is_finite() && b.q.hypot(b.u) > 1.0)
+                b.qu.var_q < 0.0
+                    || b.qu.var_u < 0.0
+                    || (b.qu.q.is_finite() && b.qu.u.is_finite() && b.qu.q.hypot(b.qu.u) > 1.0)
             }) {
                 return Err(Error::BadFile {
                     path: path.into(),
                     what: format!(
                         "BINS row {}: Q, U = {}, {} with errors {}, {}: errors must be >= 0 and P = hypot(Q, U) at most 1",
                         i + 1,
-                        b.q,
-                        b.u,
-                        b.sigma_q,
-                        b.sigma_u
+                        b.qu.q,
+                        b.qu.u,
+                        sq[i],
+                        su[i]
                     ),
                 });
             }
@@ -767,7 +764,7 @@ pub fn residual_from_bins(radial: &RadialModel, bins: &[Bin]) -> Result<Residual
         .filter(|b| b.used && b.is_valid())
         .map(|b| {
             let (q, u) = radial.qu(b.x, b.y);
-            ResidualPoint { x: b.x, y: b.y, dq: b.q - q, du: b.u - u }
+            ResidualPoint { x: b.x, y: b.y, dq: b.qu.q - q, du: b.qu.u - u }
         })
         .collect();
     ResidualMap::new(pts)

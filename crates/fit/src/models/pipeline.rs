@@ -321,7 +321,7 @@ pub fn approx_vs_exact(bins: &[Bin]) -> Option<ApproxVsExact> {
         max_dp = max_dp.max(dp.abs());
         ss += dp * dp;
         // Angles of bins with p at the noise say nothing; weigh only bins with a clear p.
-        if p > 5.0 * b.sigma_q.max(b.sigma_u) {
+        if p > 5.0 * b.sigma_q().max(b.sigma_u()) {
             max_dphi = max_dphi.max(dphi.abs());
         }
         n += 1;
@@ -584,15 +584,9 @@ pub fn calibrate_map(
 pub fn bins_from_solutions(sol: &[skyfield::solve::BinSolution]) -> Vec<Bin> {
     sol.iter()
         .map(|s| Bin {
-            x: s.x,
-            y: s.y,
-            q: s.q,
-            u: s.u,
-            sigma_q: s.var_q.max(0.0).sqrt(),
-            sigma_u: s.var_u.max(0.0).sqrt(),
             p_approx: s.p_approx,
             phi_approx: s.phi_approx,
-            used: true,
+            ..Bin::new(s.x, s.y, s.qu.q, s.qu.u, s.qu.var_q.max(0.0).sqrt(), s.qu.var_u.max(0.0).sqrt())
         })
         .collect()
 }

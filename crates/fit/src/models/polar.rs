@@ -132,12 +132,12 @@ pub fn polar_angle_test_with(
         if dx.hypot(dy) < r_min {
             continue;
         }
-        if b.sigma_q > 0.0 && b.sigma_u > 0.0 {
-            chi2_zero += (b.q / b.sigma_q).powi(2) + (b.u / b.sigma_u).powi(2);
+        if b.sigma_q() > 0.0 && b.sigma_u() > 0.0 {
+            chi2_zero += (b.qu.q / b.sigma_q()).powi(2) + (b.qu.u / b.sigma_u()).powi(2);
             n_noise += 1;
             let al = 2.0 * dy.atan2(dx);
-            let radial = b.q * al.cos() + b.u * al.sin();
-            let var = (b.sigma_q * al.cos()).powi(2) + (b.sigma_u * al.sin()).powi(2);
+            let radial = b.qu.q * al.cos() + b.qu.u * al.sin();
+            let var = (b.sigma_q() * al.cos()).powi(2) + (b.sigma_u() * al.sin()).powi(2);
             zr_num += radial / var;
             zr_w += 1.0 / var;
         }
@@ -146,7 +146,8 @@ pub fn polar_angle_test_with(
             continue;
         }
         // sigma_phi = sqrt(u^2 sq^2 + q^2 su^2) / (2 p^2) (rad), from phi = atan2(u, q) / 2.
-        let s = (b.u * b.u * b.sigma_q * b.sigma_q + b.q * b.q * b.sigma_u * b.sigma_u).sqrt() / (2.0 * p * p);
+        let s = (b.qu.u * b.qu.u * b.sigma_q() * b.sigma_q() + b.qu.q * b.qu.q * b.sigma_u() * b.sigma_u()).sqrt()
+            / (2.0 * p * p);
         alpha.push(crate::models::region::polar_angle(dx, dy).to_degrees());
         phi.push(ph.to_degrees());
         // Floor at 1e-3 deg: maps given without noise must not get infinite weights.

@@ -207,8 +207,8 @@ pub fn fit_poly(bins: &[Bin], degree: usize, opts: &RadialFitOptions) -> Result<
         })?;
         Ok((&inv * atb, inv))
     };
-    let q_of = |b: &Bin| (b.q, b.sigma_q);
-    let u_of = |b: &Bin| (b.u, b.sigma_u);
+    let q_of = |b: &Bin| (b.qu.q, b.sigma_q());
+    let u_of = |b: &Bin| (b.qu.u, b.sigma_u());
     let mut w = vec![1.0; sel.len()];
     let (mut cq, mut iq) = solve(&w, &q_of)?;
     let (mut cu, mut iu) = solve(&w, &u_of)?;
@@ -219,7 +219,7 @@ pub fn fit_poly(bins: &[Bin], degree: usize, opts: &RadialFitOptions) -> Result<
                 .enumerate()
                 .map(|(r, b)| {
                     let fit = |c: &DVector<f64>| (0..m).map(|i| a[(r, i)] * c[i]).sum::<f64>();
-                    let (tq, tu) = ((fit(&cq) - b.q) / b.sigma_q, (fit(&cu) - b.u) / b.sigma_u);
+                    let (tq, tu) = ((fit(&cq) - b.qu.q) / b.sigma_q(), (fit(&cu) - b.qu.u) / b.sigma_u());
                     (0.5 * (tq * tq + tu * tu)).sqrt()
                 })
                 .collect();
@@ -235,9 +235,9 @@ pub fn fit_poly(bins: &[Bin], degree: usize, opts: &RadialFitOptions) -> Result<
     }
     let (mut chi2, mut ss) = (0.0, 0.0);
     for (r, b) in sel.iter().enumerate() {
-        let rq = (0..m).map(|i| a[(r, i)] * cq[i]).sum::<f64>() - b.q;
-        let ru = (0..m).map(|i| a[(r, i)] * cu[i]).sum::<f64>() - b.u;
-        chi2 += w[r] * ((rq / b.sigma_q).powi(2) + (ru / b.sigma_u).powi(2));
+        let rq = (0..m).map(|i| a[(r, i)] * cq[i]).sum::<f64>() - b.qu.q;
+        let ru = (0..m).map(|i| a[(r, i)] * cu[i]).sum::<f64>() - b.qu.u;
+        chi2 += w[r] * ((rq / b.sigma_q()).powi(2) + (ru / b.sigma_u()).powi(2));
         ss += rq * rq + ru * ru;
     }
     let dof = (2 * sel.len()).saturating_sub(2 * m).max(1);

@@ -512,8 +512,8 @@ impl Problem<'_> {
         let (mut gq, mut gu) = (vec![0.0; self.nc + 2], vec![0.0; self.nc + 2]);
         for (i, b) in self.bins.iter().enumerate() {
             let (q, u) = radial_eval(self.first_power, &c, centre, b.x, b.y, &mut gq, &mut gu);
-            r[2 * i] = (q - b.q) * self.wq[i];
-            r[2 * i + 1] = (u - b.u) * self.wu[i];
+            r[2 * i] = (q - b.qu.q) * self.wq[i];
+            r[2 * i + 1] = (u - b.qu.u) * self.wu[i];
         }
         r
     }
@@ -651,7 +651,7 @@ pub fn fit_radial(bins: &[Bin], opts: &RadialFitOptions) -> Result<RadialFit> {
             .map(|(b, _)| {
                 let m = &fit.model;
                 let (q, u) = radial_eval(m.first_power, &m.coeffs, m.centre, b.x, b.y, &mut gq, &mut gu);
-                (b.x, b.y, (b.q - q) / b.sigma_q, (b.u - u) / b.sigma_u)
+                (b.x, b.y, (b.qu.q - q) / b.sigma_q(), (b.qu.u - u) / b.sigma_u())
             })
             .collect();
         let c = crate::models::correlation::residual_inflation(&z)?;
@@ -690,8 +690,8 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
         return Err(Error::TooFewBins { used: sel.len(), total: bins.len(), needed });
     }
     let mut problem = Problem {
-        wq: sel.iter().map(|b| 1.0 / b.sigma_q).collect(),
-        wu: sel.iter().map(|b| 1.0 / b.sigma_u).collect(),
+        wq: sel.iter().map(|b| 1.0 / b.sigma_q()).collect(),
+        wu: sel.iter().map(|b| 1.0 / b.sigma_u()).collect(),
         bins: sel,
         first_power,
         nc,
@@ -711,7 +711,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
             .iter()
             .map(|b| {
                 let (q, u) = radial_eval(first_power, &c, centre, b.x, b.y, &mut gq, &mut gu);
-                let (tq, tu) = ((q - b.q) / b.sigma_q, (u - b.u) / b.sigma_u);
+                let (tq, tu) = ((q - b.qu.q) / b.sigma_q(), (u - b.qu.u) / b.sigma_u());
                 (0.5 * (tq * tq + tu * tu)).sqrt()
             })
             .collect();
@@ -720,7 +720,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
 
     let mut params = gauss_newton(&problem, vec![0.0; nc])?;
     let mut weights = vec![1.0; problem.bins.len()];
-    let sigmas: Vec<(f64, f64)> = problem.bins.iter().map(|b| (b.sigma_q, b.sigma_u)).collect();
+    let sigmas: Vec<(f64, f64)> = problem.bins.iter().map(|b| (b.sigma_q(), b.sigma_u())).collect();
     let set_weights = |problem: &mut Problem, w: &[f64]| {
         for i in 0..w.len() {
             problem.wq[i] = w[i].sqrt() / sigmas[i].0;
@@ -776,7 +776,7 @@ fn fit_pass(bins: &[Bin], opts: &RadialFitOptions, start_centre: [f64; 2], used:
     let mut ss = 0.0;
     for b in &problem.bins {
         let (q, u) = model.qu(b.x, b.y);
-        ss += (b.q - q).powi(2) + (b.u - u).powi(2);
+        ss += (b.qu.q - q).powi(2) + (b.qu.u - u).powi(2);
     }
     let n_used = problem.bins.len();
     let rms_residual = (ss / (2 * n_used) as f64).sqrt();

@@ -8,14 +8,13 @@ use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 use rand_xoshiro::Xoshiro256PlusPlus;
 
-/// One measured bin: position (arcmin), measured `Q1/I1`, `U1/I1`, and the noise per component.
+/// One measured bin: position (arcmin), and the measured `Q1/I1`, `U1/I1` with the noise of
+/// each component (independent, equal: `var_q = var_u = sigma^2`, no covariance).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MeasuredBin {
     pub x: f64,
     pub y: f64,
-    pub q1: f64,
-    pub u1: f64,
-    pub sigma: f64,
+    pub qu: mueller::Qu,
 }
 
 /// Bin centres (arcmin from the detector centre) of a regular grid of `bin_px` bins over a
@@ -50,7 +49,9 @@ pub fn sky_field(
             let ip = truth.eval(x, y);
             let (p, phi) = ip.p_chi();
             let s1 = mueller::partial_polarizer(p, phi) * s0;
-            MeasuredBin { x, y, q1: s1[1] / s1[0] + n.sample(&mut rng), u1: s1[2] / s1[0] + n.sample(&mut rng), sigma }
+            let q1 = s1[1] / s1[0] + n.sample(&mut rng);
+            let u1 = s1[2] / s1[0] + n.sample(&mut rng);
+            MeasuredBin { x, y, qu: mueller::Qu::from_sigmas(q1, u1, sigma, sigma, 0.0) }
         })
         .collect()
 }

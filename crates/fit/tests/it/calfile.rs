@@ -178,12 +178,12 @@ fn error_scaling_is_recorded_and_files_without_it_still_load() {
 #[test]
 fn unphysical_bins_in_a_calibration_are_refused() {
     let dir = tempfile::tempdir().unwrap();
-    for (k, edit) in
-        [&(|c: &mut Calibration| c.bins[3].sigma_q = -1e-4) as &dyn Fn(&mut Calibration), &|c: &mut Calibration| {
-            c.bins[5].q = 1.2
-        }]
-        .iter()
-        .enumerate()
+    for (k, edit) in [
+        &(|c: &mut Calibration| c.bins[3].qu.var_q = -1e-4 * 1e-4) as &dyn Fn(&mut Calibration),
+        &|c: &mut Calibration| c.bins[5].qu.q = 1.2,
+    ]
+    .iter()
+    .enumerate()
     {
         let mut cal = sample(false);
         edit(&mut cal);

@@ -35,8 +35,8 @@ fn design(bins: &[Bin], sigma_q: &[f64], sigma_u: &[f64]) -> (DMatrix<f64>, DVec
             a[(2 * i, k)] = rk * c2 / sigma_q[i];
             a[(2 * i + 1, k)] = rk * s2 / sigma_u[i];
         }
-        y[2 * i] = b.q / sigma_q[i];
-        y[2 * i + 1] = b.u / sigma_u[i];
+        y[2 * i] = b.qu.q / sigma_q[i];
+        y[2 * i + 1] = b.qu.u / sigma_u[i];
     }
     (a, y)
 }
@@ -107,7 +107,7 @@ fn overstated_errors_scaled_recovers_the_truth_absolute_and_conservative_do_not_
     let n = centres.len();
     let truth_bins = noisy_bins(&centres, radial_field(&I_COEFFS, (0.0, 0.0)), SIGMA_BIN, 22);
     let stated: Vec<Bin> =
-        truth_bins.iter().map(|b| Bin::new(b.x, b.y, b.q, b.u, 2.0 * SIGMA_BIN, 2.0 * SIGMA_BIN)).collect();
+        truth_bins.iter().map(|b| Bin::new(b.x, b.y, b.qu.q, b.qu.u, 2.0 * SIGMA_BIN, 2.0 * SIGMA_BIN)).collect();
     let (a, _) = design(&truth_bins, &vec![SIGMA_BIN; n], &vec![SIGMA_BIN; n]);
     let truth = (a.transpose() * &a).try_inverse().unwrap();
     let dof = (2 * n - 3) as f64;
@@ -131,7 +131,7 @@ fn overstated_errors_scaled_recovers_the_truth_absolute_and_conservative_do_not_
     // Understated errors (stated 1e-4, true 2e-4): conservative and scaled both recover the
     // truth (chi2_red ~ 4), absolute is 4x too small.
     let loud = noisy_bins(&centres, radial_field(&I_COEFFS, (0.0, 0.0)), 2.0 * SIGMA_BIN, 23);
-    let understated: Vec<Bin> = loud.iter().map(|b| Bin::new(b.x, b.y, b.q, b.u, SIGMA_BIN, SIGMA_BIN)).collect();
+    let understated: Vec<Bin> = loud.iter().map(|b| Bin::new(b.x, b.y, b.qu.q, b.qu.u, SIGMA_BIN, SIGMA_BIN)).collect();
     let truth4 = &truth * 4.0;
     for (m, want) in [(ErrorScaling::Conservative, 1.0), (ErrorScaling::Scaled, 1.0), (ErrorScaling::Absolute, 0.25)] {
         let f = fit_radial(&understated, &linear_opts(m)).unwrap();
@@ -308,8 +308,19 @@ fn sectors_are_measured_about_the_fitted_centre_of_a_decentred_axis() {
     let differ = old.iter().zip(&f.used).filter(|(a, b)| a != b).count();
     assert!(differ > 100, "only {differ} bins differ");
     // ... and that old membership keeps disturbed bins in the fit: a visibly bad fit.
-    let old_bins: Vec<Bin> =
-        bins.iter().zip(&old).map(|(b, keep)| if *keep { *b } else { Bin { sigma_q: f64::NAN, ..*b } }).collect();
+    let old_bins: Vec<Bin> = bins
+        .iter()
+        .zip(&old)
+        .map(|(b, keep)| {
+            if *keep {
+                *b
+            } else {
+                let mut bad = *b;
+                bad.qu.var_q = f64::NAN;
+                bad
+            }
+        })
+        .collect();
     let g = fit_radial(&old_bins, &RadialFitOptions { free_centre: true, ..Default::default() }).unwrap();
     let ge = g.model.coefficient_errors();
     let worst = (0..3).map(|k| ((g.model.coeffs[k] - V_COEFFS[k]) / ge[k]).abs()).fold(0.0, f64::max);

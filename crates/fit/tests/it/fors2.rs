@@ -76,7 +76,7 @@ fn fors2_maps_import_and_fit_radially_about_a_decentred_axis() {
         // The imported map model reproduces its own pixels.
         let b = &cal.bins[cal.bins.len() / 2];
         let v = cal.eval(b.x, b.y);
-        assert!((v.q - b.q).abs() < 1e-12 && (v.u - b.u).abs() < 1e-12);
+        assert!((v.q - b.qu.q).abs() < 1e-12 && (v.u - b.qu.u).abs() < 1e-12);
     }
 }
 

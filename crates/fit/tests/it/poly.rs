@@ -41,7 +41,9 @@ fn a_plane_on_a_symmetric_grid_is_the_closed_form() {
     let n = bins.len() as f64;
     let sxx: f64 = bins.iter().map(|b| b.x * b.x).sum();
     let syy: f64 = bins.iter().map(|b| b.y * b.y).sum();
-    for (c, v) in [(&m.q, bins.iter().map(|b| b.q).collect::<Vec<_>>()), (&m.u, bins.iter().map(|b| b.u).collect())] {
+    for (c, v) in
+        [(&m.q, bins.iter().map(|b| b.qu.q).collect::<Vec<_>>()), (&m.u, bins.iter().map(|b| b.qu.u).collect())]
+    {
         let mean = v.iter().sum::<f64>() / n;
         let ax = bins.iter().zip(&v).map(|(b, v)| b.x * v).sum::<f64>() / sxx;
         let ay = bins.iter().zip(&v).map(|(b, v)| b.y * v).sum::<f64>() / syy;

@@ -124,7 +124,7 @@ fn fitted(free_centre: bool) -> RadialModel {
     let centres = fit::models::synth::bin_centres(2048, 2048, 0.2, 128);
     let bins: Vec<fit::Bin> = fit::models::synth::sky_field(&centres, &truth, 0.0, 0.0, 2e-5, 11)
         .iter()
-        .map(|b| fit::Bin::new(b.x, b.y, b.q1, b.u1, b.sigma, b.sigma))
+        .map(|b| fit::Bin::new(b.x, b.y, b.qu.q, b.qu.u, b.qu.sigma_q(), b.qu.sigma_u()))
         .collect();
     let meta = CalibrationMeta {
         instrument: "FORS1".into(),

@@ -179,7 +179,7 @@ fn a_night_with_a_known_mirror_and_field_gives_both_back() {
     // Without the telescope term (the sky as catalogued), the "field" carries the M3's
     // few percent as a constant: wrong by far more than the pattern.
     let off = |bins: &[Bin]| {
-        let d: f64 = bins.iter().map(|b| (b.q - field_v(b.x, b.y).0).hypot(b.u - field_v(b.x, b.y).1)).sum();
+        let d: f64 = bins.iter().map(|b| (b.qu.q - field_v(b.x, b.y).0).hypot(b.qu.u - field_v(b.x, b.y).1)).sum();
         d / bins.len() as f64
     };
     let (with, without) = (off(&solve(qs, us)), off(&solve(sky.0, sky.1)));

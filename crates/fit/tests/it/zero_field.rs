@@ -12,8 +12,8 @@ use fit::{fit_radial, RadialFitOptions};
 fn an_all_zero_map_fits_to_zero() {
     let mut bins = noisy_bins(&fors1_bin_centres(64), radial_field(&[0.0, 0.0, 0.0], (0.0, 0.0)), SIGMA_BIN, 3);
     for b in &mut bins {
-        b.q = 0.0;
-        b.u = 0.0;
+        b.qu.q = 0.0;
+        b.qu.u = 0.0;
     }
     let fit = fit_radial(&bins, &RadialFitOptions { free_centre: false, ..Default::default() }).unwrap();
     for c in &fit.model.coeffs {
