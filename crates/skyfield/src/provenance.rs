@@ -440,6 +440,51 @@ impl Product {
 
 static SESSION: Mutex<Option<Provenance>> = Mutex::new(None);
 
+impl Provenance {
+    /// The provenance a command line starts with: `args` (the program's name first, then the
+    /// command and its arguments) as the command line, and the instrument its `--instrument`
+    /// names (a file, hashed, or a built-in definition by its lower-case name). The CLI starts
+    /// every run with it, and `workflow::night` every unit it runs in process.
+    pub fn of_command(args: &[String]) -> Provenance {
+        let mut p = Provenance::new(&args.join(" "));
+        let inst = args.iter().enumerate().find_map(|(i, a)| match a.strip_prefix("--instrument=") {
+            Some(v) => Some(v.to_string()),
+            None if a == "--instrument" => args.get(i + 1).cloned(),
+            None => None,
+        });
+        if let Some(name) = inst {
+            if let Ok(bytes) = std::fs::read(&name) {
+                p.set_instrument(&name, &bytes);
+            } else if let Some(text) = instrument::builtin_source(&name) {
+                p.set_instrument(&name.to_ascii_lowercase(), text.as_bytes());
+            }
+        }
+        p
+    }
+}
+
+/// Held while a [`scoped`] session runs: one at a time in a process, since the session, its
+/// pending hashes and the temporaries' tag are the process's.
+static SCOPE: Mutex<()> = Mutex::new(());
+
+/// Run `work` as a run of its own within this process: with `p` as the session's provenance
+/// and `tag` as the tag of the temporaries it writes (`crate::fits::temp_prefix`, as
+/// `crate::fits::TEMP_TAG_ENV` gives a command); returns what it returned and the provenance
+/// it ended with (its inputs with their hashes). The session before is restored after. Scoped
+/// runs take their turn: a second waits for the first to end. What `workflow::night` runs a
+/// plan's unit in process with, so that the unit's products record its own command and inputs.
+pub fn scoped<R>(p: Provenance, tag: Option<&str>, work: impl FnOnce() -> R) -> (R, Provenance) {
+    let _turn = SCOPE.lock().unwrap_or_else(|e| e.into_inner());
+    settle();
+    let before = SESSION.lock().unwrap_or_else(|e| e.into_inner()).replace(p);
+    crate::fits::set_scope_tag(tag);
+    let out = work();
+    let ended = current();
+    crate::fits::set_scope_tag(None);
+    *SESSION.lock().unwrap_or_else(|e| e.into_inner()) = before;
+    (out, ended)
+}
+
 /// Start the run's provenance with its command line (the CLI calls this once, first).
 pub fn set_session(p: Provenance) {
     *SESSION.lock().unwrap_or_else(|e| e.into_inner()) = Some(p);
