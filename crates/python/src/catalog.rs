@@ -41,7 +41,7 @@ pub(crate) fn _catalog<'py>(
     })?;
     let kappa = match (kappa, kappa_from_data) {
         (Some(_), true) => return Err(InputError::new_err("give kappa or kappa_from_data, not both")),
-        (Some(k), false) => stokes::KappaCorrection::Known(k),
+        (Some(k), false) => stokes::KappaCorrection::known(k).map_err(|e| input_err(format!("kappa {k}: {e}")))?,
         (None, true) => stokes::KappaCorrection::FromData,
         (None, false) => stokes::KappaCorrection::None,
     };

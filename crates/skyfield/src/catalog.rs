@@ -120,9 +120,7 @@ impl CatalogConfig {
             }
         }
         if let stokes::KappaCorrection::Known(k) = self.kappa {
-            if !(k.is_finite() && k.abs() < 1.0) {
-                return Err(Error::Invalid(format!("kappa {k}: must be in the open interval (-1, 1)")));
-            }
+            stokes::KappaCorrection::known(k).map_err(|e| Error::Invalid(format!("kappa {k}: {e}")))?;
         }
         let tol = self.detect.pair_tol_px;
         if !(tol.is_finite() && tol > 0.0 && tol <= 20.0) {

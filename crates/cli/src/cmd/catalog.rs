@@ -178,7 +178,8 @@ pub fn run(a: Args) -> Result<()> {
     let loaded = match &a.cal {
         None => None,
         Some(path) => Some(
-            fit::files::calibration::load(path).with_context(|| format!("cannot load calibration {}", path.display()))?,
+            fit::files::calibration::load(path)
+                .with_context(|| format!("cannot load calibration {}", path.display()))?,
         ),
     };
     let opts = correct::CorrectOptions { allow_extrapolation: a.allow_extrapolation, ..Default::default() };

@@ -89,10 +89,8 @@ impl KappaOpts {
     /// The library's setting.
     pub fn correction(&self) -> Result<stokes::KappaCorrection> {
         match (self.kappa, self.kappa_from_data) {
-            (Some(k), _) if !(k.is_finite() && k.abs() < 1.0) => {
-                bail!("--kappa {k}: kappa = (t - s)/(t + s) lies in the open interval (-1, 1)")
-            }
-            (Some(k), _) => Ok(stokes::KappaCorrection::Known(k)),
+            // The library's rule (stokes::KappaCorrection::known), worded for the option.
+            (Some(k), _) => stokes::KappaCorrection::known(k).map_err(|e| anyhow::anyhow!("--kappa {k}: {e}")),
             (None, true) => Ok(stokes::KappaCorrection::FromData),
             (None, false) => Ok(stokes::KappaCorrection::None),
         }

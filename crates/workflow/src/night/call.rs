@@ -15,9 +15,27 @@ use std::path::{Path, PathBuf};
 /// The library call of a unit's command.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Call {
-    MasterBias { frames: Vec<PathBuf>, instrument: String, nsigma: f64, out: PathBuf },
-    MasterFlat { frames: Vec<PathBuf>, instrument: String, bias: Option<PathBuf>, nsigma: f64, out: PathBuf },
-    Reduce { frames: Vec<PathBuf>, instrument: String, bin: usize, bias: Option<PathBuf>, flat: Option<PathBuf>, out: PathBuf },
+    MasterBias {
+        frames: Vec<PathBuf>,
+        instrument: String,
+        nsigma: f64,
+        out: PathBuf,
+    },
+    MasterFlat {
+        frames: Vec<PathBuf>,
+        instrument: String,
+        bias: Option<PathBuf>,
+        nsigma: f64,
+        out: PathBuf,
+    },
+    Reduce {
+        frames: Vec<PathBuf>,
+        instrument: String,
+        bin: usize,
+        bias: Option<PathBuf>,
+        flat: Option<PathBuf>,
+        out: PathBuf,
+    },
     Catalog {
         frames: Vec<PathBuf>,
         instrument: String,
@@ -27,7 +45,14 @@ pub enum Call {
         flat: Option<PathBuf>,
         out: PathBuf,
     },
-    Calibrate { map: PathBuf, instrument: String, sky_p: f64, sky_chi: f64, bin: usize, out: PathBuf },
+    Calibrate {
+        map: PathBuf,
+        instrument: String,
+        sky_p: f64,
+        sky_chi: f64,
+        bin: usize,
+        out: PathBuf,
+    },
 }
 
 /// The defaults of the commands' options a unit's command may leave out, as `instpol`'s
@@ -167,7 +192,8 @@ impl Call {
             }
             Call::MasterFlat { frames, instrument, bias, nsigma, out } => {
                 distinct(frames)?;
-                let named = frames.iter().map(|p| p.as_path()).chain(bias.as_deref()).chain(instrument_file(instrument));
+                let named =
+                    frames.iter().map(|p| p.as_path()).chain(bias.as_deref()).chain(instrument_file(instrument));
                 register(&named.collect::<Vec<_>>());
                 let inst = load(instrument)?;
                 crate::steps::master_flat(frames, &inst, bias.as_deref(), *nsigma, out).map_err(|e| err(&e))?;
@@ -188,7 +214,12 @@ impl Call {
                 skyfield::table::Format::from_path(out).map_err(|e| format!("--out {e}"))?;
                 let streamed: Vec<&Path> = frames.iter().map(|p| p.as_path()).collect();
                 skyfield::provenance::add_inputs_read_in_order(&streamed);
-                register(&[bias.as_deref(), flat.as_deref(), instrument_file(instrument)].into_iter().flatten().collect::<Vec<_>>());
+                register(
+                    &[bias.as_deref(), flat.as_deref(), instrument_file(instrument)]
+                        .into_iter()
+                        .flatten()
+                        .collect::<Vec<_>>(),
+                );
                 let read = ReadOptions { bias: bias.clone(), flat: flat.clone(), ..Default::default() };
                 crate::steps::catalog(frames, &inst, &read, &cfg, None, Some(out), Box::new(|| {}))
                     .map_err(|e| err(&e))?;
@@ -266,5 +297,87 @@ pub fn library_executor(
              (instpol.run's instpol_bin or $INSTPOL_BIN, or instpol on PATH)",
             u.kind, u.id
         )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit(kind: &str, command: &[&str]) -> Unit {
+        let command = command.iter().map(|s| s.to_string()).collect();
+        Unit::new("u", kind, vec![], vec![PathBuf::from("o")], command, vec![])
+    }
+
+    /// The commands `instpol scan` writes read back into their calls, the options left out at
+    /// the values `instpol --help` gives them (nsigma 3, bin 30, fwhm 4, aperture 8).
+    #[test]
+    fn the_commands_a_plan_holds_are_read_back() {
+        let u = unit(
+            "reduce",
+            &["reduce", "a.fits", "b.fits", "--instrument", "fors2", "--bin", "8", "--flat=f.fits", "--out", "m.fits"],
+        );
+        let want = Call::Reduce {
+            frames: vec!["a.fits".into(), "b.fits".into()],
+            instrument: "fors2".into(),
+            bin: 8,
+            bias: None,
+            flat: Some("f.fits".into()),
+            out: "m.fits".into(),
+        };
+        assert_eq!(Call::of_unit(&u), Some(want));
+        let u = unit("master-bias", &["master-bias", "b1.fits", "--instrument", "fors2", "--out", "bias.fits"]);
+        let want = Call::MasterBias {
+            frames: vec!["b1.fits".into()],
+            instrument: "fors2".into(),
+            nsigma: 3.0,
+            out: "bias.fits".into(),
+        };
+        assert_eq!(Call::of_unit(&u), Some(want));
+        let u = unit("catalog", &["catalog", "a.fits", "--instrument", "i.toml", "--out", "c.ecsv"]);
+        let Some(Call::Catalog { fwhm, aperture, .. }) = Call::of_unit(&u) else { panic!("not a catalog") };
+        assert_eq!((fwhm, aperture.as_str()), (4.0, "8"));
+        let cmd = [
+            "calibrate",
+            "--map",
+            "m.fits",
+            "--instrument",
+            "fors2",
+            "--sky-p",
+            "1.74",
+            "--sky-chi",
+            "-53.8",
+            "--out",
+            "c.fits",
+        ];
+        let want = Call::Calibrate {
+            map: "m.fits".into(),
+            instrument: "fors2".into(),
+            sky_p: 1.74,
+            sky_chi: -53.8,
+            bin: 30,
+            out: "c.fits".into(),
+        };
+        assert_eq!(Call::of_unit(&unit("calibrate", &cmd)), Some(want));
+    }
+
+    /// A command the runner does not know whole goes to the binary: an option it does not
+    /// read, one given twice or without a value, a number that is none, a printed result, a
+    /// kind that is not its command's, a command of another kind, no frames.
+    #[test]
+    fn a_command_not_known_whole_is_left_to_the_binary() {
+        let base = ["reduce", "a.fits", "--instrument", "fors2", "--out", "m.fits"];
+        assert!(Call::of_unit(&unit("reduce", &base)).is_some());
+        let with = |extra: &[&str]| unit("reduce", &[&base[..], extra].concat());
+        for extra in [&["--allow-incomplete"][..], &["--bin", "8", "--bin", "9"], &["--bin", "eight"], &["--json"]] {
+            assert_eq!(Call::of_unit(&with(extra)), None, "{extra:?}");
+        }
+        let mut printed = unit("reduce", &base);
+        printed.stdout = true;
+        assert_eq!(Call::of_unit(&printed), None);
+        assert_eq!(Call::of_unit(&unit("catalog", &base)), None);
+        let za = ["zero-angle", "a.fits", "--instrument", "fors2", "--out", "z.json"];
+        assert_eq!(Call::of_unit(&unit("zero-angle", &za)), None);
+        assert_eq!(Call::of_unit(&unit("reduce", &["reduce", "--instrument", "fors2", "--out", "m.fits"])), None);
     }
 }
