@@ -50,10 +50,10 @@ impl FrameOpts {
         let hwp_angles_deg = match &self.hwp_angles {
             None => None,
             Some(s) => {
-                let v: Option<Vec<f64>> =
-                    s.split(',').map(|t| t.trim().parse::<f64>().ok().filter(|x| x.is_finite())).collect();
+                // Parsed here; the rule (some angles, each finite) is the library's.
+                let v: Option<Vec<f64>> = s.split(',').map(|t| t.trim().parse::<f64>().ok()).collect();
                 match v {
-                    Some(v) if !v.is_empty() => Some(v),
+                    Some(v) if skyfield::calib::ReadOptions::check_hwp_angles(&v).is_ok() => Some(v),
                     _ => {
                         bail!("--hwp-angles '{s}': expected angles in degrees separated by commas, e.g. 0,22.5,45,67.5")
                     }
