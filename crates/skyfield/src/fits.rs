@@ -92,18 +92,10 @@ pub fn temp_prefix(tag: Option<&str>) -> String {
 /// tempfile's private 0o600, which a rename would otherwise carry into the output. Tagged by
 /// [`TEMP_TAG_ENV`] when it is set.
 pub fn temp_beside(path: &Path, suffix: &str) -> std::io::Result<tempfile::NamedTempFile> {
-    let scoped = SCOPE_TAG.lock().unwrap_or_else(|e| e.into_inner()).clone();
-    let tag = scoped.or_else(|| std::env::var(TEMP_TAG_ENV).ok()).filter(|t| !t.is_empty());
+    // A run scoped within the process (`crate::provenance::scoped`) has its tag in place of
+    // the environment's.
+    let tag = crate::provenance::scope_tag().or_else(|| std::env::var(TEMP_TAG_ENV).ok()).filter(|t| !t.is_empty());
     temp_beside_tagged(path, tag.as_deref(), suffix)
-}
-
-/// The tag of a run scoped within the process (`crate::provenance::scoped`), which takes the
-/// place of [`TEMP_TAG_ENV`] while it runs.
-static SCOPE_TAG: std::sync::Mutex<Option<String>> = std::sync::Mutex::new(None);
-
-/// Set (or clear) the tag of the scoped run (`crate::provenance::scoped`).
-pub(crate) fn set_scope_tag(tag: Option<&str>) {
-    *SCOPE_TAG.lock().unwrap_or_else(|e| e.into_inner()) = tag.map(str::to_string);
 }
 
 /// [`temp_beside`] with the tag given ([`temp_prefix`]).

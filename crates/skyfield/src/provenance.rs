@@ -463,13 +463,21 @@ impl Provenance {
     }
 }
 
+/// The tag of the temporaries of the [`scoped`] run (`crate::fits::temp_beside`).
+static SCOPE_TAG: Mutex<Option<String>> = Mutex::new(None);
+
+/// The tag of the temporaries of the [`scoped`] run now running, if any.
+pub(crate) fn scope_tag() -> Option<String> {
+    SCOPE_TAG.lock().unwrap_or_else(|e| e.into_inner()).clone()
+}
+
 /// Held while a [`scoped`] session runs: one at a time in a process, since the session, its
 /// pending hashes and the temporaries' tag are the process's.
 static SCOPE: Mutex<()> = Mutex::new(());
 
 /// Run `work` as a run of its own within this process: with `p` as the session's provenance
-/// and `tag` as the tag of the temporaries it writes (`crate::fits::temp_prefix`, as
-/// `crate::fits::TEMP_TAG_ENV` gives a command); returns what it returned and the provenance
+/// and `tag` as the tag of the temporaries it writes (`.instpol-<tag>.*`, as the environment
+/// variable `INSTPOL_TEMP_TAG` gives a command); returns what it returned and the provenance
 /// it ended with (its inputs with their hashes). The session before is restored after. Scoped
 /// runs take their turn: a second waits for the first to end. What `workflow::night` runs a
 /// plan's unit in process with, so that the unit's products record its own command and inputs.
@@ -477,10 +485,10 @@ pub fn scoped<R>(p: Provenance, tag: Option<&str>, work: impl FnOnce() -> R) -> 
     let _turn = SCOPE.lock().unwrap_or_else(|e| e.into_inner());
     settle();
     let before = SESSION.lock().unwrap_or_else(|e| e.into_inner()).replace(p);
-    crate::fits::set_scope_tag(tag);
+    *SCOPE_TAG.lock().unwrap_or_else(|e| e.into_inner()) = tag.map(str::to_string);
     let out = work();
     let ended = current();
-    crate::fits::set_scope_tag(None);
+    *SCOPE_TAG.lock().unwrap_or_else(|e| e.into_inner()) = None;
     *SESSION.lock().unwrap_or_else(|e| e.into_inner()) = before;
     (out, ended)
 }
