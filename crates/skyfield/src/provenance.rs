@@ -645,6 +645,30 @@ pub fn stamp(f: &mut fitsio::FitsFile) -> Result<(), String> {
 mod tests {
     use super::*;
 
+    /// A scoped run records its own command and inputs (the BLAKE3 team's vector of "abc"),
+    /// tags its temporaries with its tag, and leaves no session behind: after it, the
+    /// provenance is the default one again and temporaries are untagged.
+    #[test]
+    fn a_scoped_run_has_its_own_provenance_and_tag() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("a.txt");
+        std::fs::write(&input, b"abc").unwrap();
+        let name = |t: tempfile::NamedTempFile| t.path().file_name().unwrap().to_string_lossy().to_string();
+        let (temp, p) = scoped(Provenance::new("instpol reduce a.txt"), Some("reduce-1"), || {
+            add_input(&input);
+            name(crate::fits::temp_beside(&dir.path().join("m.fits"), ".tmp").unwrap())
+        });
+        assert!(temp.starts_with(".instpol-reduce-1."), "{temp}");
+        assert_eq!(p.command_line, "instpol reduce a.txt");
+        let want = "blake3:6437b3ac38465133ffb63b75273a8db548c558465d79db03fd359c6cd5bd9d85";
+        assert_eq!(p.inputs, vec![InputFile { path: input.display().to_string(), hash: want.into() }]);
+        assert!(current().command_line.is_empty() && current().inputs.is_empty());
+        if std::env::var(crate::fits::TEMP_TAG_ENV).is_err() {
+            let after = name(crate::fits::temp_beside(&dir.path().join("m.fits"), ".tmp").unwrap());
+            assert!(!after.starts_with(".instpol-reduce-1."), "{after}");
+        }
+    }
+
     #[test]
     fn blake3_of_known_vectors() {
         // The BLAKE3 team's test vectors (test_vectors.json: input byte i is i mod 251), checked
