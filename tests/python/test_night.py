@@ -6,6 +6,7 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import instpol
@@ -114,3 +115,64 @@ def test_sky_fields_from_a_table_are_the_dict(night, tmp_path):
     by_table = instpol.scan(*args, sky=table, **kw)
     assert by_table["units"] == by_dict["units"]
     assert any(u["kind"] == "calibrate" for u in by_table["units"])
+
+
+def _numbers(path):
+    """Every number a product holds, by extension or column: a FITS file's HDUs' data, a
+    table's columns (astropy reads both, a reader of its own)."""
+    from astropy.io import fits
+    from astropy.table import Table
+
+    if path.suffix == ".fits":
+        with fits.open(path) as h:
+            return {i: None if hdu.data is None else hdu.data.copy() for i, hdu in enumerate(h)}
+    t = Table.read(path, format="ascii.ecsv")
+    return {c: np.array(t[c]) for c in t.colnames}
+
+
+def test_run_makes_the_cli_products_in_process_without_the_binary(night, run, tmp_path, monkeypatch):
+    """instpol.run with no instpol binary anywhere (INSTPOL_BIN unset, PATH stripped of every
+    folder holding one): the units run in process through the library calls the CLI's
+    commands make, and every product's numbers are those `instpol run` made from the same
+    plan; a unit whose command the in-process runner does not know whole fails saying that it
+    needs the binary."""
+    import shutil
+
+    monkeypatch.delenv("INSTPOL_BIN", raising=False)
+    path = [d for d in os.environ.get("PATH", "").split(os.pathsep) if not (Path(d) / "instpol").exists()]
+    monkeypatch.setenv("PATH", os.pathsep.join(path))
+    assert shutil.which("instpol") is None
+    py_plan = instpol.scan(night / "raw", str(INST), tmp_path / "py", fwhm=3, aperture=4, bin=8)
+    report = instpol.run(py_plan, jobs=2)
+    assert sorted(o["status"] for o in report["outcomes"]) == ["done"] * 4, report
+    assert [o["status"] for o in instpol.run(py_plan)["outcomes"]] == ["up_to_date"] * 4
+    # The CLI's run of the same plan, in its own products folder (the binary by its full path).
+    cli_plan = tmp_path / "cli.toml"
+    run("scan", night / "raw", "--instrument", INST, "--out", cli_plan, "--products", tmp_path / "cli",
+        "--fwhm", "3", "--aperture", "4", "--bin", "8")
+    run("run", cli_plan)
+    outputs = [Path(o) for u in py_plan["units"] for o in u["outputs"]]
+    assert len(outputs) == 4
+    for py_out in outputs:
+        cli_out = tmp_path / "cli" / py_out.relative_to(tmp_path / "py")
+        a, b = _numbers(py_out), _numbers(cli_out)
+        assert a.keys() == b.keys(), py_out.name
+        for k in a:
+            if a[k] is None or b[k] is None:
+                assert a[k] is None and b[k] is None, (py_out.name, k)
+            elif a[k].dtype.kind in "fc":
+                assert np.array_equal(a[k], b[k], equal_nan=True), (py_out.name, k)
+            else:
+                assert np.array_equal(a[k], b[k]), (py_out.name, k)
+    # An option the in-process runner does not read: the unit needs the binary, and says so.
+    edited = json.loads(json.dumps(py_plan))
+    edited["records"] = str(tmp_path / "edited-records")
+    for u in edited["units"]:
+        u["outputs"] = [o.replace(str(tmp_path / "py"), str(tmp_path / "edited")) for o in u["outputs"]]
+        u["inputs"] = [i.replace(str(tmp_path / "py"), str(tmp_path / "edited")) for i in u["inputs"]]
+        u["command"] = [c.replace(str(tmp_path / "py"), str(tmp_path / "edited")) for c in u["command"]]
+        if u["kind"] == "reduce":
+            u["command"].append("--allow-incomplete")
+    status = {o["kind"]: (o["status"], o.get("reason", "")) for o in instpol.run(edited)["outcomes"]}
+    assert status["reduce"][0] == "failed" and "runs only through the instpol binary" in status["reduce"][1], status
+    assert status["master-bias"][0] == "done" and status["catalog"][0] == "done"

@@ -125,20 +125,7 @@ pub fn instrument_of(given: &Option<String>, first: Option<&Path>) -> Result<Str
 /// by [`inputs`]; every FITS output and every `--json` object then carries it.
 pub fn start_provenance() {
     let args: Vec<String> = std::env::args().collect();
-    let mut p = skyfield::provenance::Provenance::new(&args.join(" "));
-    let inst = args.iter().enumerate().find_map(|(i, a)| match a.strip_prefix("--instrument=") {
-        Some(v) => Some(v.to_string()),
-        None if a == "--instrument" => args.get(i + 1).cloned(),
-        None => None,
-    });
-    if let Some(name) = inst {
-        if let Ok(bytes) = std::fs::read(&name) {
-            p.set_instrument(&name, &bytes);
-        } else if let Some(text) = instrument::builtin_source(&name) {
-            p.set_instrument(&name.to_ascii_lowercase(), text.as_bytes());
-        }
-    }
-    skyfield::provenance::set_session(p);
+    skyfield::provenance::set_session(skyfield::provenance::Provenance::of_command(&args));
 }
 
 /// For `instpol run` (`workflow::night::run`, "Hashes read once" and "Up to date"): when the

@@ -8,7 +8,7 @@ use pyo3::prelude::*;
 use std::path::PathBuf;
 
 /// The instrumental field from a Stokes map of an empty field whose sky polarization is known
-/// (`fit::models::pipeline::calibrate_sky_field`, what `instpol calibrate --map` runs): the fit's
+/// (`workflow::steps::calibrate_map`, what `instpol calibrate --map` runs): the fit's
 /// summary as JSON text (`instpol calibrate --json`'s keys, no plots); the calibration written
 /// to `out` when given. `sky`: (P percent, chi deg); `model`, `exclude` as the CLI's options.
 #[pyfunction]
@@ -50,20 +50,19 @@ pub(crate) fn _calibrate(
         all_inputs.push(PathBuf::from(&name));
     }
     refuse_overwrite(out.as_deref(), &all_inputs)?;
-    let stokes_map = skyfield::StokesMap::read_uncorrected(&map).map_err(sky_err)?;
-    if let Some(w) = fit::correction::setup::zero_angle_disagreement(&stokes_map, &inst) {
+    // The one step `instpol calibrate --map` makes (workflow::steps::calibrate_map): the map
+    // read, the fit, the calibration saved to `out`.
+    let (run, warning) = py
+        .detach(|| workflow::steps::calibrate_map(&map, &sky, &inst, &opts, out.as_deref()))
+        .map_err(|e| match e {
+            fit::Error::Frames(e) => sky_err(e),
+            e => fit_err(e),
+        })?;
+    if let Some(w) = warning {
         py.import("warnings")?.call_method1("warn", (w,))?;
     }
-    let run = py
-        .detach(|| {
-            fit::models::pipeline::calibrate_sky_field(&stokes_map, &sky, &inst, vec![map.display().to_string()], &opts)
-        })
-        .map_err(fit_err)?;
     let mut summary = fit::models::pipeline::FitSummary::new(&run);
-    if let Some(out) = &out {
-        run.calibration.save(out).map_err(fit_err)?;
-        summary.calibration_file = Some(out.display().to_string());
-    }
+    summary.calibration_file = out.as_ref().map(|o| o.display().to_string());
     serde_json::to_string(&summary).map_err(|e| input_err(format!("the fit's summary: {e}")))
 }
 

@@ -33,7 +33,7 @@ pub(crate) fn _catalog<'py>(
     force: bool,
     correct_again: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
-    use skyfield::catalog::{catalog_files, CatalogConfig};
+    use skyfield::catalog::CatalogConfig;
     let radius = skyfield::photometry::ApertureRadius::parse(aperture).ok_or_else(|| {
         InputError::new_err(format!(
             "aperture '{aperture}': expected a radius in px (8), a multiple of the FWHM ('2.5fwhm') or 'best'"
@@ -41,7 +41,7 @@ pub(crate) fn _catalog<'py>(
     })?;
     let kappa = match (kappa, kappa_from_data) {
         (Some(_), true) => return Err(InputError::new_err("give kappa or kappa_from_data, not both")),
-        (Some(k), false) => stokes::KappaCorrection::Known(k),
+        (Some(k), false) => stokes::KappaCorrection::known(k).map_err(|e| input_err(format!("kappa {k}: {e}")))?,
         (None, true) => stokes::KappaCorrection::FromData,
         (None, false) => stokes::KappaCorrection::None,
     };
@@ -67,22 +67,18 @@ pub(crate) fn _catalog<'py>(
         Some(p) => Some(py.detach(|| fit::files::calibration::load(p)).map_err(|e| load_err(p, e))?),
         None => None,
     };
-    let (cat, warnings) = py
-        .detach(|| {
-            let (cat, warnings) = catalog_files(&frames, &inst, &read, &cfg, Box::new(|| {}))?;
-            Ok::<_, skyfield::Error>((cat, warnings.iter().map(|w| w.to_string()).collect::<Vec<_>>()))
-        })
-        .map_err(sky_err)?;
-    // Corrected in the same run, as `instpol catalog --cal` (the one rule in fit::correction::catalog_correct).
-    let corrected = match (&loaded, &cal) {
-        (Some(l), Some(p)) => {
-            let opts = fit::correction::correct::CorrectOptions { allow_extrapolation, ..Default::default() };
-            let (c, used) = fit::correction::catalog_correct::correct_catalog_loaded(&cat, &inst, &frames, l, opts)
-                .map_err(|e| input_err(format!("cal {}: {e}", p.display())))?;
-            Some((c, used))
-        }
-        _ => None,
-    };
+    // The one step `instpol catalog` makes (workflow::steps::catalog), corrected in the same
+    // run as `instpol catalog --cal`.
+    let opts = fit::correction::correct::CorrectOptions { allow_extrapolation, ..Default::default() };
+    let run = py.detach(|| {
+        workflow::steps::catalog(&frames, &inst, &read, &cfg, loaded.as_ref().map(|l| (l, opts)), None, Box::new(|| {}))
+    });
+    let workflow::steps::CatalogRun { catalog: cat, warnings, corrected } = run.map_err(|e| match (e, &cal) {
+        (workflow::steps::CatalogError::Correction(e), Some(p)) => input_err(format!("cal {}: {e}", p.display())),
+        (workflow::steps::CatalogError::Frames(e) | workflow::steps::CatalogError::Output(e), _) => sky_err(e),
+        (e, None) => input_err(e),
+    })?;
+    let warnings: Vec<String> = warnings.iter().map(|w| w.to_string()).collect();
     let d = catalog_dict(py, &cat)?;
     d.set_item("recorded_angles", recorded_angles_dict(py, &cat, &frames, &inst)?)?;
     if let Some((c, used)) = &corrected {

@@ -59,7 +59,8 @@ pub(crate) fn read_options(
     correct_again: bool,
 ) -> PyResult<skyfield::calib::ReadOptions> {
     if let Some(v) = &hwp_angles {
-        if v.is_empty() || v.iter().any(|x| !x.is_finite()) {
+        // The library's rule (skyfield::calib::ReadOptions::check_hwp_angles), worded here.
+        if skyfield::calib::ReadOptions::check_hwp_angles(v).is_err() {
             return Err(input_err(
                 "hwp_angles: expected finite angles in degrees, one per frame, e.g. [0, 22.5, 45, 67.5]",
             ));

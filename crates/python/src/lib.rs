@@ -8,15 +8,16 @@
 //!
 //! | Python                     | library function (as the CLI command)                      |
 //! |----------------------------|------------------------------------------------------------|
-//! | `instpol.stokes`           | `stokes::Measurement::reduce` (`instpol stokes`)           |
+//! | `instpol.stokes`           | `stokes::repeats::reduce_repeated` (`instpol stokes`)      |
 //! | `instpol.bias`             | `stokes::stats::debias` (`instpol bias`)                   |
 //! | `Calibration.load`         | `fit::Calibration::load` (`instpol correct --cal`)         |
 //! | `Calibration.evaluate`     | `fit::correction::correct::Corrector::instrumental`                    |
 //! | `Calibration.correct`      | `fit::correction::correct::Corrector::par_correct_batch` (`correct`)   |
-//! | `instpol.reduce`           | `skyfield::reduce::reduce_for_plate` (`instpol reduce`)    |
-//! | `instpol.catalog`          | `skyfield::catalog::catalog_files` (`instpol catalog`)     |
+//! | `instpol.reduce`           | `workflow::steps::reduce` (`instpol reduce`)               |
+//! | `instpol.catalog`          | `workflow::steps::catalog` (`instpol catalog`)             |
 //! | `instpol.simulate`         | `sim::Plan::write` (`instpol simulate`)                    |
-//! | `instpol.calibrate`        | `fit::models::pipeline::calibrate_sky_field` (`calibrate --map`)   |
+//! | `instpol.calibrate`        | `workflow::steps::calibrate_map` (`calibrate --map`)       |
+//! | `instpol.run`              | `workflow::night::run::run`, `library_executor` (`run`)    |
 //!
 //! One module per topic, this file only registering them: `stokes` (one source, bias), `maps`
 //! (frames to a Stokes map), `catalog` (stars of a frame set), `calibration` (a calibration file

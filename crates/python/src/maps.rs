@@ -40,25 +40,9 @@ pub(crate) fn _reduce<'py>(
     refuse_same_data(frames.iter().chain(&read.bias).chain(&read.flat), skyfield::same::By::Identity)?;
     refuse_overwrite(output.as_deref(), frames.iter().chain(&read.bias).chain(&read.flat))?;
     // The instrument's plate decides the map (the library's rule, as `instpol reduce` takes it).
+    // The one step `instpol reduce` makes (workflow::steps::reduce).
     let r = py
-        .detach(|| {
-            let mut r = skyfield::reduce::reduce_for_plate(&frames, &inst, &cfg, &read, &|| {})?;
-            match &mut r {
-                skyfield::reduce::PlateReduced::Linear(r) => {
-                    // The exposures' telescope angles, as `instpol reduce` records them.
-                    fit::telescope::cal::record_telescope_angles(&mut r.map, &r.exposures, &frames, &inst);
-                    if let Some(out) = &output {
-                        r.map.write_fits(out)?;
-                    }
-                }
-                skyfield::reduce::PlateReduced::Circular(r) => {
-                    if let Some(out) = &output {
-                        r.map.write_fits(out)?;
-                    }
-                }
-            }
-            Ok::<_, skyfield::Error>(r)
-        })
+        .detach(|| workflow::steps::reduce(&frames, &inst, &cfg, &read, output.as_deref(), &|| {}))
         .map_err(sky_err)?;
     match &r {
         skyfield::reduce::PlateReduced::Linear(r) => {

@@ -48,8 +48,9 @@ pub(crate) fn _scan(
 }
 
 /// Run a plan, given as JSON text or as a plan file (TOML, or JSON for a .json name;
-/// `workflow::night::run::run`, what `instpol run` runs), with the `instpol` binary `program` as
-/// the units' executor: the report as JSON text (`instpol run --json`'s keys but `provenance`).
+/// `workflow::night::run::run`, what `instpol run` runs), each unit in process through the
+/// library (`workflow::night::library_executor`), a command it does not know whole through the
+/// `instpol` binary `program` when given: the report as JSON text (`instpol run --json`'s keys but `provenance`).
 /// A plan that cannot run (a cycle, a missing input, an unknown kind or unit, outputs over
 /// inputs): InputError, nothing run.
 #[pyfunction]
@@ -61,7 +62,7 @@ pub(crate) fn _run(
     jobs: usize,
     only: Option<Vec<String>>,
     dry_run: bool,
-    program: PathBuf,
+    program: Option<PathBuf>,
 ) -> PyResult<String> {
     let plan: workflow::night::Plan = match (plan_text, plan_path) {
         (Some(t), _) => serde_json::from_str(&t).map_err(|e| input_err(format!("the plan is not a plan: {e}")))?,
@@ -80,7 +81,7 @@ pub(crate) fn _run(
         }
     }
     let opts = workflow::night::RunOptions { jobs, only, dry_run };
-    let exec = workflow::night::process_executor(program, plan.records.clone());
+    let exec = workflow::night::library_executor(program, plan.records.clone());
     let report = py.detach(|| workflow::night::run::run(&plan, &opts, &exec, &|_| {})).map_err(night_err)?;
     serde_json::to_string(&report).map_err(|e| input_err(format!("the report: {e}")))
 }

@@ -93,32 +93,22 @@ pub(crate) fn reduce_stars(
                 let row = |a: &[f64]| a[s * n..(s + 1) * n].to_vec();
                 let (o, e) = (row(fo), row(fe));
                 let errs = sig.map(|(so, se)| (row(so), row(se)));
-                // Exposures at one plate position are combined as instpol stokes does.
-                let combined =
-                    stokes::repeats::combine_exposures(theta, &o, &e, errs.as_ref().map(|(a, b)| (&a[..], &b[..])))
-                        .map_err(|e| match e {
-                            stokes::Error::NegativeCount { index } => format!("column {index} of f_o, f_e: {e}"),
-                            e => e.to_string(),
-                        })?;
-                let (th, o, e, errs) = match &combined {
-                    Some(c) => (
-                        c.theta.clone(),
-                        c.f_o.clone(),
-                        c.f_e.clone(),
-                        errs.map(|_| (c.sigma_o.clone(), c.sigma_e.clone())),
-                    ),
-                    None => (theta.to_vec(), o, e, errs),
-                };
-                let meas = match errs {
-                    Some((so, se)) => stokes::Measurement::with_errors(th, o, e, so, se),
-                    None => stokes::Measurement::poisson(th, o, e),
+                // The one composition of instpol stokes (stokes::repeats::reduce_repeated):
+                // repeats combined, the measurement, kappa, the reduction.
+                let kappa = kappa.map_or(stokes::KappaCorrection::None, stokes::KappaCorrection::Known);
+                let sigma = errs.as_ref().map(|(a, b)| (&a[..], &b[..]));
+                match stokes::repeats::reduce_repeated(theta, &o, &e, sigma, kappa) {
+                    Ok(r) => Ok((r.reduction, r.combined)),
+                    Err(stokes::repeats::RepeatedError::Combine(e)) => Err(match e {
+                        stokes::Error::NegativeCount { index } => format!("column {index} of f_o, f_e: {e}"),
+                        e => e.to_string(),
+                    }),
+                    Err(stokes::repeats::RepeatedError::Reduce {
+                        error: e @ stokes::Error::KappaOutOfRange(_),
+                        ..
+                    }) => Err(format!("kappa: {e}")),
+                    Err(stokes::repeats::RepeatedError::Reduce { error, .. }) => Err(error.to_string()),
                 }
-                .map_err(|e| e.to_string())?;
-                let meas = match kappa {
-                    Some(k) => meas.corrected_for_kappa(k).map_err(|e| format!("kappa: {e}"))?,
-                    None => meas,
-                };
-                Ok((meas.reduce().map_err(|e| e.to_string())?, combined))
             })
             .collect()
     });

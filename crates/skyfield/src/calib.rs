@@ -58,7 +58,29 @@ pub struct ReadOptions {
     pub correct_again: bool,
 }
 
+/// Why HWP angles given by hand ([`ReadOptions::hwp_angles_deg`]) are refused; a face words
+/// it for its option ([`ReadOptions::check_hwp_angles`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum HwpAnglesRefusal {
+    /// No angle at all.
+    Empty,
+    /// An angle that is no finite number of degrees.
+    NotFinite { index: usize, value: f64 },
+}
+
 impl ReadOptions {
+    /// The rule of HWP angles given by hand, whichever face gives them: at least one, each a
+    /// finite number of degrees.
+    pub fn check_hwp_angles(angles_deg: &[f64]) -> Result<(), HwpAnglesRefusal> {
+        if angles_deg.is_empty() {
+            return Err(HwpAnglesRefusal::Empty);
+        }
+        match angles_deg.iter().position(|a| !a.is_finite()) {
+            Some(index) => Err(HwpAnglesRefusal::NotFinite { index, value: angles_deg[index] }),
+            None => Ok(()),
+        }
+    }
+
     /// True when frames are read as they are (the instrument's ADU, no calibration step).
     pub fn is_plain(&self, inst: &Instrument) -> bool {
         !self.instrument(inst).format.is_raw() && self.bias.is_none() && self.flat.is_none()

@@ -39,6 +39,26 @@ pub struct CatalogConfig {
     pub force: bool,
 }
 
+/// The background annulus `(r_in, r_out)` (px) of `instpol catalog` and `instpol.catalog`
+/// unless told otherwise.
+pub const DEFAULT_ANNULUS_PX: (f64, f64) = (12.0, 20.0);
+
+impl CatalogConfig {
+    /// The settings of `instpol catalog` but the stars' expected FWHM and the aperture (what a
+    /// night's catalog unit gives): detection at `DetectConfig`'s defaults, the annulus
+    /// [`DEFAULT_ANNULUS_PX`], exact pixel weights, no kappa correction.
+    pub fn with_detection(fwhm_px: f64, radius: ApertureRadius) -> Self {
+        CatalogConfig {
+            detect: DetectConfig { fwhm_px, ..Default::default() },
+            radius,
+            annulus: Some(DEFAULT_ANNULUS_PX),
+            weighting: Weighting::Exact,
+            kappa: stokes::KappaCorrection::None,
+            force: false,
+        }
+    }
+}
+
 /// The most pixel visits a catalog's photometry makes unless told it may: about a minute of
 /// one core. A detection threshold far below the noise (thousands of "stars") with an annulus
 /// of a thousand pixels took hours, with no estimate.
@@ -100,9 +120,7 @@ impl CatalogConfig {
             }
         }
         if let stokes::KappaCorrection::Known(k) = self.kappa {
-            if !(k.is_finite() && k.abs() < 1.0) {
-                return Err(Error::Invalid(format!("kappa {k}: must be in the open interval (-1, 1)")));
-            }
+            stokes::KappaCorrection::known(k).map_err(|e| Error::Invalid(format!("kappa {k}: {e}")))?;
         }
         let tol = self.detect.pair_tol_px;
         if !(tol.is_finite() && tol > 0.0 && tol <= 20.0) {

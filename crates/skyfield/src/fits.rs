@@ -92,7 +92,9 @@ pub fn temp_prefix(tag: Option<&str>) -> String {
 /// tempfile's private 0o600, which a rename would otherwise carry into the output. Tagged by
 /// [`TEMP_TAG_ENV`] when it is set.
 pub fn temp_beside(path: &Path, suffix: &str) -> std::io::Result<tempfile::NamedTempFile> {
-    let tag = std::env::var(TEMP_TAG_ENV).ok().filter(|t| !t.is_empty());
+    // A run scoped within the process (`crate::provenance::scoped`) has its tag in place of
+    // the environment's.
+    let tag = crate::provenance::scope_tag().or_else(|| std::env::var(TEMP_TAG_ENV).ok()).filter(|t| !t.is_empty());
     temp_beside_tagged(path, tag.as_deref(), suffix)
 }
 

@@ -440,6 +440,59 @@ impl Product {
 
 static SESSION: Mutex<Option<Provenance>> = Mutex::new(None);
 
+impl Provenance {
+    /// The provenance a command line starts with: `args` (the program's name first, then the
+    /// command and its arguments) as the command line, and the instrument its `--instrument`
+    /// names (a file, hashed, or a built-in definition by its lower-case name). The CLI starts
+    /// every run with it, and `workflow::night` every unit it runs in process.
+    pub fn of_command(args: &[String]) -> Provenance {
+        let mut p = Provenance::new(&args.join(" "));
+        let inst = args.iter().enumerate().find_map(|(i, a)| match a.strip_prefix("--instrument=") {
+            Some(v) => Some(v.to_string()),
+            None if a == "--instrument" => args.get(i + 1).cloned(),
+            None => None,
+        });
+        if let Some(name) = inst {
+            if let Ok(bytes) = std::fs::read(&name) {
+                p.set_instrument(&name, &bytes);
+            } else if let Some(text) = instrument::builtin_source(&name) {
+                p.set_instrument(&name.to_ascii_lowercase(), text.as_bytes());
+            }
+        }
+        p
+    }
+}
+
+/// The tag of the temporaries of the [`scoped`] run (`crate::fits::temp_beside`).
+static SCOPE_TAG: Mutex<Option<String>> = Mutex::new(None);
+
+/// The tag of the temporaries of the [`scoped`] run now running, if any.
+pub(crate) fn scope_tag() -> Option<String> {
+    SCOPE_TAG.lock().unwrap_or_else(|e| e.into_inner()).clone()
+}
+
+/// Held while a [`scoped`] session runs: one at a time in a process, since the session, its
+/// pending hashes and the temporaries' tag are the process's.
+static SCOPE: Mutex<()> = Mutex::new(());
+
+/// Run `work` as a run of its own within this process: with `p` as the session's provenance
+/// and `tag` as the tag of the temporaries it writes (`.instpol-<tag>.*`, as the environment
+/// variable `INSTPOL_TEMP_TAG` gives a command); returns what it returned and the provenance
+/// it ended with (its inputs with their hashes). The session before is restored after. Scoped
+/// runs take their turn: a second waits for the first to end. What `workflow::night` runs a
+/// plan's unit in process with, so that the unit's products record its own command and inputs.
+pub fn scoped<R>(p: Provenance, tag: Option<&str>, work: impl FnOnce() -> R) -> (R, Provenance) {
+    let _turn = SCOPE.lock().unwrap_or_else(|e| e.into_inner());
+    settle();
+    let before = SESSION.lock().unwrap_or_else(|e| e.into_inner()).replace(p);
+    *SCOPE_TAG.lock().unwrap_or_else(|e| e.into_inner()) = tag.map(str::to_string);
+    let out = work();
+    let ended = current();
+    *SCOPE_TAG.lock().unwrap_or_else(|e| e.into_inner()) = None;
+    *SESSION.lock().unwrap_or_else(|e| e.into_inner()) = before;
+    (out, ended)
+}
+
 /// Start the run's provenance with its command line (the CLI calls this once, first).
 pub fn set_session(p: Provenance) {
     *SESSION.lock().unwrap_or_else(|e| e.into_inner()) = Some(p);
@@ -591,6 +644,30 @@ pub fn stamp(f: &mut fitsio::FitsFile) -> Result<(), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A scoped run records its own command and inputs (the BLAKE3 team's vector of "abc"),
+    /// tags its temporaries with its tag, and leaves no session behind: after it, the
+    /// provenance is the default one again and temporaries are untagged.
+    #[test]
+    fn a_scoped_run_has_its_own_provenance_and_tag() {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("a.txt");
+        std::fs::write(&input, b"abc").unwrap();
+        let name = |t: tempfile::NamedTempFile| t.path().file_name().unwrap().to_string_lossy().to_string();
+        let (temp, p) = scoped(Provenance::new("instpol reduce a.txt"), Some("reduce-1"), || {
+            add_input(&input);
+            name(crate::fits::temp_beside(&dir.path().join("m.fits"), ".tmp").unwrap())
+        });
+        assert!(temp.starts_with(".instpol-reduce-1."), "{temp}");
+        assert_eq!(p.command_line, "instpol reduce a.txt");
+        let want = "blake3:6437b3ac38465133ffb63b75273a8db548c558465d79db03fd359c6cd5bd9d85";
+        assert_eq!(p.inputs, vec![InputFile { path: input.display().to_string(), hash: want.into() }]);
+        assert!(current().command_line.is_empty() && current().inputs.is_empty());
+        if std::env::var(crate::fits::TEMP_TAG_ENV).is_err() {
+            let after = name(crate::fits::temp_beside(&dir.path().join("m.fits"), ".tmp").unwrap());
+            assert!(!after.starts_with(".instpol-reduce-1."), "{after}");
+        }
+    }
 
     #[test]
     fn blake3_of_known_vectors() {

@@ -361,9 +361,7 @@ impl Measurement {
     /// `sec:wollaston`): `f_O/(1 + kappa)`, `f_E/(1 - kappa)`, errors scaled alike (the
     /// result carries explicit errors: the corrected fluxes are no longer counts).
     pub fn corrected_for_kappa(&self, kappa: f64) -> Result<Self, Error> {
-        if !(kappa.is_finite() && kappa.abs() < 1.0) {
-            return Err(Error::KappaOutOfRange(kappa));
-        }
+        KappaCorrection::known(kappa)?;
         let n = self.theta.len();
         let mut m = self.clone();
         for i in 0..n {
@@ -428,6 +426,19 @@ pub enum KappaCorrection {
     Known(f64),
     /// `kappa` estimated from the data themselves (`eq:kappa2`) and applied in the same run.
     FromData,
+}
+
+impl KappaCorrection {
+    /// A known `kappa`: `kappa = (t - s)/(t + s)` lies in the open interval (-1, 1) (a beam of
+    /// no light at the ends), the one rule every face and step takes it by
+    /// ([`Error::KappaOutOfRange`] names the value).
+    pub fn known(kappa: f64) -> Result<Self, Error> {
+        if kappa.is_finite() && kappa.abs() < 1.0 {
+            Ok(KappaCorrection::Known(kappa))
+        } else {
+            Err(Error::KappaOutOfRange(kappa))
+        }
+    }
 }
 
 /// True when HWP angles given "in degrees" all lie within `[-2pi, 2pi]`: radians by mistake

@@ -118,18 +118,6 @@ impl FitArgs {
     }
 }
 
-/// Solve a Stokes map for the instrumental field and calibrate (`fit::models::pipeline::calibrate_sky_field`,
-/// which `workflow::demo` calls too).
-fn calibrate_map(
-    map: &skyfield::StokesMap,
-    sky: &SkyPolarization,
-    inst: &instrument::Instrument,
-    inputs: Vec<String>,
-    opts: &CalibrateOptions,
-) -> Result<CalibrationRun> {
-    Ok(fit::models::pipeline::calibrate_sky_field(map, sky, inst, inputs, opts)?)
-}
-
 /// The sky values are required: without them the sky-field equations have no solution.
 pub fn sky_from_args(p: Option<f64>, chi: Option<f64>) -> Result<SkyPolarization> {
     match (p, chi) {
@@ -266,10 +254,11 @@ pub fn run(a: Args) -> Result<()> {
         }
         (red.map, a.frames.iter().map(|p| p.display().to_string()).collect())
     };
-    if let Some(w) = fit::correction::setup::zero_angle_disagreement(&map, &inst) {
+    // The one step (workflow::steps::calibrate_read_map); `finish` saves it beside its plots.
+    let (run, warning) = workflow::steps::calibrate_read_map(&map, inputs, &sky, &inst, &opts, None)?;
+    if let Some(w) = warning {
         eprintln!("warning: {w}");
     }
-    let run = calibrate_map(&map, &sky, &inst, inputs, &opts)?;
     finish(&run, Some(&a.out), a.plots.as_deref(), a.json)
 }
 

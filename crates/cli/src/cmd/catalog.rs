@@ -175,10 +175,30 @@ pub fn run(a: Args) -> Result<()> {
         if a.json { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(a.frames.len() as u64) };
     bar.set_message("reading");
     let read = a.frame.read_options()?;
+    let loaded = match &a.cal {
+        None => None,
+        Some(path) => Some(
+            fit::files::calibration::load(path)
+                .with_context(|| format!("cannot load calibration {}", path.display()))?,
+        ),
+    };
+    let opts = correct::CorrectOptions { allow_extrapolation: a.allow_extrapolation, ..Default::default() };
     let tick = bar.clone();
-    let res = skyfield::catalog::catalog_files(&a.frames, &inst, &read, &cfg, Box::new(move || tick.inc(1)));
+    // The one step (workflow::steps::catalog): measured, corrected with --cal, written.
+    let res = workflow::steps::catalog(
+        &a.frames,
+        &inst,
+        &read,
+        &cfg,
+        loaded.as_ref().map(|l| (l, opts)),
+        a.out.as_deref(),
+        Box::new(move || tick.inc(1)),
+    );
     bar.finish_and_clear();
-    let (cat, warnings) = res?;
+    let workflow::steps::CatalogRun { catalog: cat, warnings, corrected } = res.map_err(|e| match (e, &a.cal) {
+        (workflow::steps::CatalogError::Correction(e), Some(p)) => anyhow::anyhow!("--cal {}: {e}", p.display()),
+        (e, _) => e.into(),
+    })?;
     for w in &warnings {
         eprintln!("warning: {w}");
     }
@@ -193,38 +213,15 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     // With a telescope model: its name, the band used and how many exposures were undone one by one.
-    let mut telescope_used: Option<catalog_correct::TelescopeUsed> = None;
-    let corrected = match &a.cal {
-        None => None,
-        Some(path) => {
-            let loaded = fit::files::calibration::load(path)
-                .with_context(|| format!("cannot load calibration {}", path.display()))?;
-            let opts = correct::CorrectOptions { allow_extrapolation: a.allow_extrapolation, ..Default::default() };
-            let (c, used) = catalog_correct::correct_catalog_loaded(&cat, &inst, &a.frames, &loaded, opts)
-                .with_context(|| format!("--cal {}", path.display()))?;
-            telescope_used = used;
-            if c.n_extrapolated > 0 {
-                eprintln!(
-                    "warning: {} stars lie outside the calibrated field; corrected by extrapolation with inflated errors (flagged)",
-                    c.n_extrapolated
-                );
-            }
-            Some(c)
-        }
+    let (corrected, telescope_used): (Option<catalog_correct::CorrectedCatalog>, _) = match corrected {
+        Some((c, used)) => (Some(c), used),
+        None => (None, None),
     };
-    if let Some(out) = &a.out {
-        crate::util::check_output(out)?;
-        let mut t = cat.to_table();
-        // The exposures' telescope angles, for `instpol correct` (ECSV, FITS and VOTable carry
-        // them; CSV has no place for them).
-        if let Some(angles) = fit::telescope::cal::recorded_angles(&cat.frames, &a.frames, &inst) {
-            t.meta = angles.to_meta();
-        }
-        if let Some(c) = &corrected {
-            // The columns of `instpol correct`, for the stars measured (NaN for the others).
-            t.columns.extend(fit::correction::columns::Outputs::of_rows(&c.rows).into_table_columns());
-        }
-        t.write(out)?;
+    if let Some(c) = corrected.as_ref().filter(|c| c.n_extrapolated > 0) {
+        eprintln!(
+            "warning: {} stars lie outside the calibrated field; corrected by extrapolation with inflated errors (flagged)",
+            c.n_extrapolated
+        );
     }
     let measured = cat.rows.iter().filter(|r| r.q.is_finite() || r.v.is_some_and(f64::is_finite)).count();
     // Frames turned against each other: said, since apertures then follow each star by its

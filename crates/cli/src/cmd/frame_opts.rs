@@ -50,10 +50,10 @@ impl FrameOpts {
         let hwp_angles_deg = match &self.hwp_angles {
             None => None,
             Some(s) => {
-                let v: Option<Vec<f64>> =
-                    s.split(',').map(|t| t.trim().parse::<f64>().ok().filter(|x| x.is_finite())).collect();
+                // Parsed here; the rule (some angles, each finite) is the library's.
+                let v: Option<Vec<f64>> = s.split(',').map(|t| t.trim().parse::<f64>().ok()).collect();
                 match v {
-                    Some(v) if !v.is_empty() => Some(v),
+                    Some(v) if skyfield::calib::ReadOptions::check_hwp_angles(&v).is_ok() => Some(v),
                     _ => {
                         bail!("--hwp-angles '{s}': expected angles in degrees separated by commas, e.g. 0,22.5,45,67.5")
                     }
@@ -89,10 +89,8 @@ impl KappaOpts {
     /// The library's setting.
     pub fn correction(&self) -> Result<stokes::KappaCorrection> {
         match (self.kappa, self.kappa_from_data) {
-            (Some(k), _) if !(k.is_finite() && k.abs() < 1.0) => {
-                bail!("--kappa {k}: kappa = (t - s)/(t + s) lies in the open interval (-1, 1)")
-            }
-            (Some(k), _) => Ok(stokes::KappaCorrection::Known(k)),
+            // The library's rule (stokes::KappaCorrection::known), worded for the option.
+            (Some(k), _) => stokes::KappaCorrection::known(k).map_err(|e| anyhow::anyhow!("--kappa {k}: {e}")),
             (None, true) => Ok(stokes::KappaCorrection::FromData),
             (None, false) => Ok(stokes::KappaCorrection::None),
         }

@@ -111,8 +111,7 @@ pub fn run_bias(a: BiasArgs) -> Result<()> {
     crate::util::inputs(a.frames.iter().map(|p| p.as_path()).chain(crate::util::file_arg(&instrument)))?;
     crate::util::check_output(&a.out)?;
     let inst = instrument::Instrument::load(&instrument)?;
-    let m = skyfield::calib::master_bias(&a.frames, &inst, a.nsigma)?;
-    m.write(&a.out, &inst)?;
+    let m = workflow::steps::master_bias(&a.frames, &inst, a.nsigma, &a.out)?;
     report(a.json, &a.out, "bias", &m, &inst)
 }
 
@@ -123,7 +122,6 @@ pub fn run_flat(a: FlatArgs) -> Result<()> {
     )?;
     crate::util::check_output(&a.out)?;
     let inst = instrument::Instrument::load(&instrument)?;
-    let m = skyfield::calib::master_flat(&a.frames, &inst, a.bias.as_deref(), a.nsigma)?;
-    m.write(&a.out, &inst)?;
+    let m = workflow::steps::master_flat(&a.frames, &inst, a.bias.as_deref(), a.nsigma, &a.out)?;
     report(a.json, &a.out, "flat", &m, &inst)
 }

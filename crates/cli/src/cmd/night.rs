@@ -205,8 +205,10 @@ pub fn run_run(a: RunArgs) -> Result<()> {
         bail!("--jobs 0: run at least one unit at a time");
     }
     let opts = night::RunOptions { jobs: a.jobs, only, dry_run: a.dry_run };
+    // Units run in process through the library; a command the runner does not know whole
+    // (one that prints its result) runs this binary.
     let exe = std::env::current_exe().context("cannot find the instpol binary to run the units")?;
-    let exec = night::process_executor(exe, plan.records.clone());
+    let exec = night::library_executor(Some(exe), plan.records.clone());
     let n = night::run::selection(&plan, &opts.only)?.len();
     let bar =
         if a.json || a.dry_run { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(n as u64) };

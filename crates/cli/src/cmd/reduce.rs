@@ -93,19 +93,16 @@ pub fn run(a: Args) -> Result<()> {
     // The library's fast path: frames stay in their stored type, no f64 copies. The instrument's
     // plate decides the map (the library's rule: Q/I, U/I or, through a quarter-wave plate, V/I).
     let read = a.frame.read_options()?;
-    let r = skyfield::reduce::reduce_for_plate(&a.frames, &inst, &cfg, &read, &|| bar.inc(1));
+    // The one step (workflow::steps::reduce): the map, its telescope angles recorded, written.
+    let r = workflow::steps::reduce(&a.frames, &inst, &cfg, &read, Some(&a.out), &|| bar.inc(1));
     bar.finish_and_clear();
-    let mut r = match r? {
+    let r = match r? {
         skyfield::reduce::PlateReduced::Linear(r) => *r,
         skyfield::reduce::PlateReduced::Circular(r) => return circular(&a, *r),
     };
     for w in &r.warnings {
         eprintln!("warning: {w}");
     }
-    // The exposures' telescope angles, when the headers have them (what `correct` needs to
-    // remove a telescope model from this map).
-    fit::telescope::cal::record_telescope_angles(&mut r.map, &r.exposures, &a.frames, &inst);
-    r.map.write_fits(&a.out)?;
     let m = &r.map;
     let pick = |v: &[f64]| median(&mut m.valid_bins().map(|(k, _, _)| v[k]).collect::<Vec<_>>(), Middle::Mean);
     let s = Summary {
@@ -165,12 +162,11 @@ struct CircularSummary {
     product: Option<skyfield::provenance::Product>,
 }
 
-/// Write and report a quarter-wave plate's V/I map.
+/// Report a quarter-wave plate's V/I map (written by the step).
 fn circular(a: &Args, r: skyfield::reduce::CircularReduced) -> Result<()> {
     for w in &r.warnings {
         eprintln!("warning: {w}");
     }
-    r.map.write_fits(&a.out)?;
     let m = &r.map;
     let pick = |v: &[f64]| median(&mut m.valid_bins().map(|(k, _, _)| v[k]).collect::<Vec<_>>(), Middle::Mean);
     let s = CircularSummary {

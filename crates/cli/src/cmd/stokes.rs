@@ -3,7 +3,7 @@
 use anyhow::{anyhow, bail, Result};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
-use stokes::{Error as RedError, Measurement, Reduction};
+use stokes::{Error as RedError, Reduction};
 
 /// Reduce the ordinary/extraordinary fluxes of one source at N half-wave-plate angles to
 /// Q/I, U/I, P, chi with errors, the Fourier harmonics of F_i and the Wollaston kappa
@@ -116,18 +116,11 @@ struct JsonExposure {
     outlier: bool,
 }
 
-/// Exposures at the same plate position (rows at theta and theta + 360 deg too) combined into
-/// one row each (`stokes::repeats::combine_exposures`), with every exposure's check; `None`
-/// when no position repeats (the table is returned as read).
-fn combine_repeats(t: Table, name: &str) -> Result<(Table, Option<Vec<JsonExposure>>)> {
-    let theta: Vec<f64> = t.hwp_deg.iter().map(|d| d.to_radians()).collect();
-    let sigma = t.sigma.as_ref().map(|(a, b)| (&a[..], &b[..]));
-    let c = match stokes::repeats::combine_exposures(&theta, &t.f_o, &t.f_e, sigma) {
-        Ok(Some(c)) => c,
-        // The library checks the rows and names them (see `explain`).
-        Ok(None) => return Ok((t, None)),
-        Err(e) => return Err(explain(e, &t, name)),
-    };
+/// The table as the reduction combined it (`stokes::repeats::reduce_repeated`: exposures at
+/// the same plate position, rows at theta and theta + 360 deg too, one row each), with every
+/// exposure's check; `None` when no position repeats (the table is returned as read).
+fn combine_repeats(t: Table, combined: Option<stokes::repeats::Combined>) -> (Table, Option<Vec<JsonExposure>>) {
+    let Some(c) = combined else { return (t, None) };
     let checks = c
         .checks
         .iter()
@@ -148,7 +141,7 @@ fn combine_repeats(t: Table, name: &str) -> Result<(Table, Option<Vec<JsonExposu
         f_e: c.f_e,
         lines: first.iter().map(|&i| t.lines[i]).collect(),
     };
-    Ok((combined, Some(checks)))
+    (combined, Some(checks))
 }
 
 /// Say which row a library error is about.
@@ -238,7 +231,19 @@ pub fn run(a: Args) -> Result<()> {
     } else if let Err(e) = stokes::check_degrees(&t.hwp_deg) {
         bail!("{name}: column 'hwp_deg' holds {e}. Give the angles in degrees, or pass --angles-in-radians");
     }
-    let (t, exposures) = combine_repeats(t, &name)?;
+    // The one composition of instpol.stokes too (stokes::repeats::reduce_repeated): repeats
+    // combined, the measurement, kappa, the reduction.
+    let theta: Vec<f64> = t.hwp_deg.iter().map(|d| d.to_radians()).collect();
+    let sigma = t.sigma.as_ref().map(|(a, b)| (&a[..], &b[..]));
+    let kappa = a.kappa.correction()?;
+    let (r, applied, combined) = match stokes::repeats::reduce_repeated(&theta, &t.f_o, &t.f_e, sigma, kappa) {
+        Ok(r) => (r.reduction, r.kappa_applied, r.combined),
+        Err(stokes::repeats::RepeatedError::Combine(e)) => return Err(explain(e, &t, &name)),
+        Err(stokes::repeats::RepeatedError::Reduce { error, combined }) => {
+            return Err(explain(error, &combine_repeats(t, combined).0, &name))
+        }
+    };
+    let (t, exposures) = combine_repeats(t, combined);
     if let Some(ex) = &exposures {
         let n_pos = t.hwp_deg.len();
         if !a.json {
@@ -251,13 +256,6 @@ pub fn run(a: Args) -> Result<()> {
             );
         }
     }
-    let theta: Vec<f64> = t.hwp_deg.iter().map(|d| d.to_radians()).collect();
-    let m = match &t.sigma {
-        Some((so, se)) => Measurement::with_errors(theta, t.f_o.clone(), t.f_e.clone(), so.clone(), se.clone()),
-        None => Measurement::poisson(theta, t.f_o.clone(), t.f_e.clone()),
-    }
-    .map_err(|e| explain(e, &t, &name))?;
-    let (r, applied) = m.reduce_with(a.kappa.correction()?).map_err(|e| explain(e, &t, &name))?;
     let kappa = applied.map(|k| (k, a.kappa.kappa_from_data));
     // kappa = (t - s)/(t + s): beyond 0.2 one beam carries 1.5 times the other, far beyond any
     // working Wollaston prism; a column swap or a flux in the wrong units is more likely.

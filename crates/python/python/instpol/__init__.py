@@ -1515,15 +1515,15 @@ def scan(
     )
 
 
-def _instpol_binary(instpol_bin: Optional[PathLike]) -> str:
+def _instpol_binary(instpol_bin: Optional[PathLike]) -> Optional[str]:
     import shutil
 
-    b = instpol_bin if instpol_bin is not None else os.environ.get("INSTPOL_BIN") or shutil.which("instpol")
-    if b is None or not os.path.isfile(os.fspath(b)):
-        raise InputError(
-            "run needs the instpol binary to run the units: give instpol_bin=, set INSTPOL_BIN or put instpol on PATH"
-        )
-    return os.fspath(b)
+    if instpol_bin is not None:
+        if not os.path.isfile(os.fspath(instpol_bin)):
+            raise InputError(f"instpol_bin {os.fspath(instpol_bin)!r}: no such file")
+        return os.fspath(instpol_bin)
+    b = os.environ.get("INSTPOL_BIN") or shutil.which("instpol")
+    return os.fspath(b) if b is not None and os.path.isfile(os.fspath(b)) else None
 
 
 def run(
@@ -1539,9 +1539,13 @@ def run(
 
     Units run in dependency order, ``jobs`` at once; a unit whose record says its inputs and
     outputs are unchanged is skipped; a failing unit is reported and the units that follow it
-    are blocked, the others run. ``units``: only these ids and what they follow. Each unit is
-    the command of the ``instpol`` binary (``instpol_bin``, else ``$INSTPOL_BIN``, else the one
-    on ``PATH``), so the products are those of the CLI.
+    are blocked, the others run. ``units``: only these ids and what they follow. Each unit runs
+    in process through the library calls the CLI's commands make, so the products are those of
+    the CLI and no binary is needed for masters, maps, catalogs and calibrations; a command the
+    library runner does not know whole (``zero-angle``, ``photometry``, ``fit-standards``,
+    ``validate``, or an option added to a plan by hand) runs the ``instpol`` binary
+    (``instpol_bin``, else ``$INSTPOL_BIN``, else the one on ``PATH``), and fails saying so when
+    there is none.
 
     Returns
     -------
@@ -1552,7 +1556,7 @@ def run(
 
     Examples
     --------
-    The plan of :func:`scan`'s example run (the binary from ``$INSTPOL_BIN`` or ``PATH``), then
+    The plan of :func:`scan`'s example run in process, then
     run again: the second run finds every product up to date.
 
     >>> import tempfile, instpol

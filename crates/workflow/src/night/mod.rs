@@ -9,6 +9,7 @@
 //! `instpol scan` / `instpol run` and Python's `instpol.scan` / `instpol.run` are faces over
 //! [`scan::scan`] and [`run::run`]; docs/nights.md gives the Slurm and GNU parallel recipes.
 
+pub mod call;
 pub mod header;
 pub mod plan;
 pub mod report;
@@ -16,6 +17,7 @@ pub mod run;
 pub mod scan;
 pub mod trend;
 
+pub use call::library_executor;
 pub use plan::{LeftOut, Plan, Unit};
 pub use run::{process_executor, Outcome, Report, RunOptions, Status};
 pub use scan::{scan, ScanOptions, SkyField};

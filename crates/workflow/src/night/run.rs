@@ -2,10 +2,12 @@
 //! unit reported without stopping the others, any number at once.
 //!
 //! Design. A unit is the command line of an existing `instpol` command, and the runner hands
-//! it to an *executor* given as a parameter; the CLI's and Python's executor runs the
-//! `instpol` binary itself ([`process_executor`]), so a unit's outputs are those of the
-//! command run by hand, byte for byte apart from the provenance's date, by construction (no
-//! second way of making a map or a catalog to keep in step). What is this module's own is the
+//! it to an *executor* given as a parameter; the CLI's and Python's executor
+//! (`super::call::library_executor`) reads the command back into the library call the command
+//! makes (`crate::steps`) and makes it in process, or runs the `instpol` binary
+//! ([`process_executor`]) for a command it does not know whole, so a unit's outputs are those
+//! of the command run by hand, apart from the provenance's date and command line (no second
+//! way of making a map or a catalog to keep in step). What is this module's own is the
 //! scheduling:
 //!
 //! - **Up to date**: after a unit succeeds, a record (`<records>/<id>.json`) keeps its command
@@ -21,7 +23,7 @@
 //!   take it, so that checking a plan's finished units does not read every frame again.
 //! - **Hashes read once**: an input's hash is the one the command itself computed for its
 //!   provenance while reading it (the executor asks the `instpol` binary for them through
-//!   [`INPUT_HASHES_ENV`]), so a unit reads its frames once, not twice (`bench/run_plan.sh`:
+//!   [`INPUT_HASHES_ENV`]; a unit made in process hands over its provenance's), so a unit reads its frames once, not twice (`bench/run_plan.sh`:
 //!   hashing them again made a reduction of 16 full frames 40 % slower); an input the command
 //!   did not report is hashed by the runner.
 //! - **Atomic**: every command writes its outputs through a temporary file and a rename; the
