@@ -393,7 +393,8 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
                     Some(mc.hwp_chi_offset_deg),
                     FieldStep::Mueller(mc, opts(mc.hwp_chi_offset_deg)),
                     None,
-                ),
+                )
+                .with_elements(&file.elements),
             });
         }
         let cal = file.field.as_ref().expect("check_options refuses a file without a model");
@@ -412,7 +413,8 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
                 Some(cal.hwp_chi_offset_deg),
                 FieldStep::partial_polarizer(cal, opts(cal.hwp_chi_offset_deg)),
                 None,
-            ),
+            )
+            .with_elements(&file.elements),
         });
     };
     let field = file.field.as_ref();
@@ -486,7 +488,8 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
             field.map(|c| c.hwp_chi_offset_deg),
             field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(c.hwp_chi_offset_deg))),
             Some(TelescopeStep { fit: tel, band, tracks }),
-        ),
+        )
+        .with_elements(&file.elements),
     })
 }
 
@@ -695,7 +698,7 @@ pub fn plan_map<'a>(
             }
             (None, None, None) => unreachable!("check_options refuses a file without a model"),
         };
-        let chain = Chain::new(Some(model_zero), field, None);
+        let chain = Chain::new(Some(model_zero), field, None).with_elements(&file.elements);
         return Ok(MapPlan { kind, method: req.method, telescope: None, zero_angle_deg, notes, chain, exposures: 0 });
     };
     let field = file.field.as_ref();
@@ -731,7 +734,8 @@ pub fn plan_map<'a>(
         Some(zero_angle_deg),
         field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(req.method, zero_angle_deg))),
         Some(TelescopeStep { fit: tel, band: band.clone(), tracks }),
-    );
+    )
+    .with_elements(&file.elements);
     let telescope = MapTelescope { fit: tel, band, track, by_exposure };
     Ok(MapPlan { kind, method: req.method, telescope: Some(telescope), zero_angle_deg, notes, chain, exposures })
 }

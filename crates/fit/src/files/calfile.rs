@@ -314,6 +314,23 @@ impl Calibration {
         })
     }
 
+    /// [`Self::save`] of a file whose field elements are `order`, in the order light meets
+    /// them, this calibration's model among them ([`crate::files::elements::Element::Model`]);
+    /// `extra` writes further HDUs as in [`Self::save_with`] (a telescope model). An empty
+    /// order writes the model alone, as [`Self::save_with`] does.
+    pub fn save_with_elements(
+        &self,
+        path: &Path,
+        order: &[crate::files::elements::Element],
+        extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()>,
+    ) -> Result<()> {
+        crate::files::elements::check_unless_empty(order)?;
+        self.save_with(path, |f, p| {
+            crate::files::elements::write(f, p, order)?;
+            extra(f, p)
+        })
+    }
+
     fn write_to(&self, f: &mut FitsFile, path: &Path) -> Result<()> {
         let e = |doing: &str| fits_err(path, doing);
         let hdu = f.primary_hdu().map_err(e("opening the primary HDU"))?;

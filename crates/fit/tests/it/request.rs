@@ -73,6 +73,7 @@ fn file(field: Option<fit::Calibration>, telescope: Option<TelescopeFit>) -> Cal
         telescope,
         mueller: None,
         response: None,
+        elements: vec![],
         product: None,
     }
 }
