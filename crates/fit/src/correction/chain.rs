@@ -32,6 +32,9 @@ use crate::telescope::cal::ChainCorrected;
 use crate::telescope::{PreparedExposures, Seen, TelescopeFit, Track};
 use std::sync::Arc;
 
+/// The field elements of a file whose own model is its one field element.
+static MODEL_ALONE: [Element; 1] = [Element::Model];
+
 /// The field-dependent part of a correction.
 pub enum FieldStep<'a> {
     /// No field model (a telescope model alone).
@@ -164,8 +167,23 @@ impl<'a> Chain<'a> {
     /// `zero_angle_deg` ([`Chain::zero_angle_deg`]), with the one forward model it is
     /// ([`field::InstrumentChain`], [`chain`](Self::chain)) built once.
     pub fn new(zero_angle_deg: Option<f64>, field: FieldStep<'a>, telescope: Option<TelescopeStep<'a>>) -> Self {
-        let one = one_chain(zero_angle_deg, &field, telescope.as_ref(), &[]);
-        Self { zero_angle_deg, field, telescope, one, order: &[] }
+        // A Mueller field behind a telescope has no inverse of its own there: the whole chain's.
+        let order: &[Element] = match (&field, &telescope) {
+            (FieldStep::Mueller(..), Some(_)) => &MODEL_ALONE,
+            _ => &[],
+        };
+        let one = one_chain(zero_angle_deg, &field, telescope.as_ref(), order);
+        Self { zero_angle_deg, field, telescope, one, order }
+    }
+
+    /// The file's field elements in order when it holds several
+    /// ([`with_elements`](Self::with_elements)), else none.
+    pub fn elements(&self) -> &[Element] {
+        if self.order.len() > 1 {
+            self.order
+        } else {
+            &[]
+        }
     }
 
     /// This chain with the field elements of a file that holds several, in the order light
@@ -275,11 +293,7 @@ impl Chain<'_> {
                 let cor = match field {
                     FieldStep::PartialPolarizer { corrector, .. } => Some(corrector),
                     FieldStep::None => None,
-                    FieldStep::Mueller(..) => {
-                        return Err(RowError::Chain(crate::Error::Input(
-                            "a Mueller field and a telescope model are not corrected together".into(),
-                        )))
-                    }
+                    FieldStep::Mueller(..) => return self.invert_elements(i, m),
                     FieldStep::Response(..) => {
                         return Err(RowError::Chain(crate::Error::Input(
                             "a constant response and a telescope model are not corrected together".into(),

@@ -71,7 +71,9 @@ pub fn load(path: &Path) -> Result<CalibrationFile> {
             path: path_buf,
             instrument,
             field: None,
-            telescope: None,
+            // A telescope model beside the Mueller field acts before it (absent in the files
+            // `calibrate-mueller` writes).
+            telescope: crate::telescope::cal::read_hdu(path)?,
             mueller: Some(m),
             response: None,
             elements: crate::files::elements::read(path)?,

@@ -206,6 +206,16 @@ impl MuellerCal {
         save_fits_atomically(path, |f| self.write_to(f, path))
     }
 
+    /// [`Self::save`], with `extra` writing further HDUs into the same temporary file before it
+    /// is renamed: a telescope model beside the field (`crate::telescope::cal::write_hdu`),
+    /// or the field elements beside it (`crate::files::elements`).
+    pub fn save_with(&self, path: &Path, extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()>) -> Result<()> {
+        save_fits_atomically(path, |f| {
+            self.write_to(f, path)?;
+            extra(f, path)
+        })
+    }
+
     fn write_to(&self, f: &mut FitsFile, path: &Path) -> Result<()> {
         let e = |doing: &str| fits_err(path, doing);
         let mf = &self.field;

@@ -459,3 +459,65 @@ fn rows_of_a_rotator_instrument_must_state_their_frame() {
     assert!(plan_rows(&moptop, &request(), 1).is_ok(), "a table states its frame");
     assert!(plan_rows(&file(Some(field(0.0)), None), &unstated, 1).is_ok(), "EFOSC2 has no rotator");
 }
+
+/// A Mueller field beside a telescope model, in one file, corrected together: rows each over
+/// their own track come back to the sky through the product, formed here, of the telescope's
+/// matrix over the row's track (`mueller::telescope`, divided by its `M_00`), the Mueller
+/// field's block at the row's position and the zero angle's turn, in the order light meets
+/// them. The file is written with the telescope HDU beside the field and read back by the one
+/// loader.
+#[test]
+fn a_mueller_field_beside_a_telescope_is_corrected_with_it() {
+    use fit::mueller_field::{fit_mueller_field, MuellerFitOptions};
+    let truth = |x: f64, y: f64| {
+        mueller::linear::physical_block(0.002 + 3e-4 * x, -0.001 + 2e-4 * y, [0.01, -0.006 + 0.003 * x], 0.0, 0.0)
+    };
+    let grid: Vec<(f64, f64)> = (0..49).map(|i| ((i % 7) as f64 * 0.6 - 1.8, (i / 7) as f64 * 0.6 - 1.8)).collect();
+    let meas = crate::common::mueller_fields::through(truth);
+    let mut rng = <rand_xoshiro::Xoshiro256PlusPlus as rand::SeedableRng>::seed_from_u64(4);
+    let fields: Vec<_> = crate::common::mueller_fields::SKIES
+        .iter()
+        .enumerate()
+        .map(|(k, &(p, chi))| {
+            crate::common::mueller_fields::cal_field(&format!("s{k}"), p, chi, &grid, &meas, 1e-4, &mut rng)
+        })
+        .collect();
+    let mf =
+        fit_mueller_field(&fields, &MuellerFitOptions { deg: 1, scale_arcmin: 1.8, ..Default::default() }).unwrap();
+    let z = 3.0;
+    let mc = fit::mueller_field::cal::MuellerCal {
+        instrument: "EFOSC2".into(),
+        filter: "V".into(),
+        field: mf.clone(),
+        coords: None,
+        skies: vec![],
+        per_bin: vec![],
+        provenance: fit::files::calfile::Provenance::now("test", vec![]),
+        hwp_chi_offset_deg: z,
+    };
+    let tel = telescope(false);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("mueller_tel.fits");
+    mc.save_with(&path, |f, p| fit::telescope::cal::write_hdu(f, p, &tel, "aluminium")).unwrap();
+    let f = fit::files::calibration::load(&path).unwrap();
+    assert!(f.mueller.is_some() && f.telescope.is_some(), "{:?}", f.kind());
+    let pa = [-50.0, 10.0, 70.0];
+    let rows = PerRowAngles { start_deg: &pa, end_deg: None, rotator_deg: None };
+    let plan = plan_rows(&f, &Request { per_row: Some(rows), ..request() }, 3).unwrap();
+    assert_eq!(plan.kind, Kind::Mueller);
+    let sky = mueller::Stokes::new(1.0, 0.015, -0.02, 0.0);
+    let band = tel.band("V").unwrap();
+    let mut seen = vec![];
+    for (i, &(x, y)) in [(0.4, -0.2), (-1.1, 1.3), (1.5, 0.9)].iter().enumerate() {
+        let t = band.matrix_track(Track::at(pa[i].to_radians())).unwrap();
+        let t = t / t[(0, 0)];
+        let v = mf.block_at(x, y).to_mueller() * t * sky;
+        let (q, u) = turned(v[1] / v[0], v[2] / v[0], -z);
+        let m = Measurement::at_plate(x, y, q, u, 1e-4, 1e-4, 0.0);
+        let got = plan.correct(i, &m).unwrap();
+        assert!((got.q0 - sky[1]).abs() < 1e-10 && (got.u0 - sky[2]).abs() < 1e-10, "row {i}: {got:?}");
+        seen.push(q);
+    }
+    // The rows saw different tracks: the telescope is not left out.
+    assert!((seen[0] - seen[2]).abs() > 1e-4, "{seen:?}");
+}
