@@ -185,4 +185,20 @@ impl CalibrationFile {
         }
         Ok((self.field.as_ref(), self.telescope.as_ref()))
     }
+
+    /// [`p_phi_models`](Self::p_phi_models) for a prediction through the field model as the
+    /// one field element (`validate`): a file of several field elements is refused by name, as
+    /// its field model alone is not the instrument's field.
+    pub fn p_phi_models_alone(&self) -> Result<(Option<&Calibration>, Option<&TelescopeFit>)> {
+        if !self.elements.is_empty() {
+            return Err(Error::BadFile {
+                path: self.path.clone(),
+                what: format!(
+                    "holds {} field elements in order (IP NELEM), and a prediction takes one field model: correct with it by instpol correct",
+                    self.elements.len()
+                ),
+            });
+        }
+        self.p_phi_models()
+    }
 }
