@@ -155,6 +155,9 @@ fn the_order_is_written_and_read_back_and_one_element_keeps_version_one() {
     let one = dir.path().join("one.fits");
     calibration().save(&one).unwrap();
     assert_eq!(version(&one), 1);
+    // A prediction through the field model alone (validate) refuses it by name.
+    let msg = file.p_phi_models_alone().unwrap_err().to_string();
+    assert!(msg.contains("3 field elements") && msg.contains("three.fits"), "{msg}");
     let empty = save(dir.path(), "empty.fits", &[]);
     assert_eq!(version(&empty), 1);
     assert!(fit::files::calibration::load(&empty).unwrap().elements.is_empty());
