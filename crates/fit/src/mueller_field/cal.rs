@@ -206,9 +206,24 @@ impl MuellerCal {
         save_fits_atomically(path, |f| self.write_to(f, path))
     }
 
+    /// [`Self::save`] of a file whose field elements are `order`, in the order light meets
+    /// them, this Mueller field among them ([`crate::files::elements::Element::Model`]); `extra`
+    /// writes further HDUs as in [`Self::save_with`]. An empty order writes the field alone.
+    pub fn save_with_elements(
+        &self,
+        path: &Path,
+        order: &[crate::files::elements::Element],
+        extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()>,
+    ) -> Result<()> {
+        crate::files::elements::check_unless_empty(order)?;
+        self.save_with(path, |f, p| {
+            crate::files::elements::write(f, p, order)?;
+            extra(f, p)
+        })
+    }
+
     /// [`Self::save`], with `extra` writing further HDUs into the same temporary file before it
-    /// is renamed: a telescope model beside the field (`crate::telescope::cal::write_hdu`),
-    /// or the field elements beside it (`crate::files::elements`).
+    /// is renamed: a telescope model beside the field (`crate::telescope::cal::write_hdu`).
     pub fn save_with(&self, path: &Path, extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()>) -> Result<()> {
         save_fits_atomically(path, |f| {
             self.write_to(f, path)?;
