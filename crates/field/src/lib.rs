@@ -14,6 +14,8 @@
 //! - [`InstrumentChain`]: the instrument's optical chain as one value (telescope, field
 //!   elements, plate and analyser), with its forward model to the two beams' fluxes
 //!   ([`render`]) and to demodulated `(q, u)`, and its inverses ([`chain`]).
+//! - [`StressedLens`]: a stressed lens's retardance field, an element of the chain that the
+//!   simulator renders and a calibration file stores.
 //! - [`ConstantResponse`]: the instrument's constant response calibrated on standard stars
 //!   (`(q0, u0)`, efficiency, angle offset), the same over the field.
 //!
@@ -27,6 +29,7 @@ pub mod analyser;
 pub mod chain;
 pub mod coords;
 pub mod grid;
+pub mod lens;
 pub mod model;
 pub mod radial;
 pub mod render;
@@ -36,6 +39,7 @@ pub use analyser::{Analyser, PlateMotion};
 pub use chain::{ChainError, FieldChain, InstrumentChain};
 pub use coords::FieldCoords;
 pub use grid::{GridMap, NearestCell};
+pub use lens::StressedLens;
 pub use model::{FieldModel, InstPol, LinearElement, PartialPolarizer};
 pub use radial::RadialPattern;
 pub use render::{ExposureForward, FieldBlock};

@@ -1292,7 +1292,8 @@ impl Plan {
 }
 
 /// The field-dependent elements of a scene in the order light meets them: the instrumental
-/// field, the constant response, the stressed lens, the plate's causes (the telescope acts
+/// field, the constant response, the stressed lens (first of all when the scene puts it
+/// before the field, `before_instpol`), the plate's causes (the telescope acts
 /// before all of them, per exposure).
 fn field_elements(
     field: &Option<(Arc<dyn FieldModel>, String)>,
@@ -1300,6 +1301,10 @@ fn field_elements(
     hwp_causes: Option<crate::hwp_causes::HwpCauses>,
 ) -> field::FieldChain {
     let mut chain = field::FieldChain::new();
+    let lens = fx.stressed_lens.as_ref().map(|sl| (sl, format!("stressed lens (mueller::linear block): {sl:?}")));
+    if let Some((sl, what)) = lens.as_ref().filter(|(sl, _)| sl.before_instpol) {
+        chain = chain.then(Arc::new(sl.element()), what.clone());
+    }
     if let Some((f, what)) = &field {
         chain =
             chain.then(f.clone(), format!("instrumental field Element::PartialPolarizer{{p(x,y), phi(x,y)}}: {what}"));
@@ -1307,8 +1312,8 @@ fn field_elements(
     if let Some(r) = &fx.constant_response {
         chain = chain.then(Arc::new(*r), format!("constant response from standards: {}", r.describe()));
     }
-    if let Some(sl) = &fx.stressed_lens {
-        chain = chain.then(Arc::new(sl.clone()), format!("stressed lens (mueller::linear block): {sl:?}"));
+    if let Some((sl, what)) = lens.filter(|(sl, _)| !sl.before_instpol) {
+        chain = chain.then(Arc::new(sl.element()), what);
     }
     if let Some(hc) = hwp_causes {
         let what = format!("half-wave-plate causes (equivalent block): {}", hc.describe());

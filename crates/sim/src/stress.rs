@@ -9,7 +9,7 @@
 //! 18 degrees gives about 0.3 % at the field edge. The block is applied after the diattenuation
 //! field of `[effects.instpol]`, as in the physical form of `mueller::linear`.
 
-use mueller::linear::{physical_block, retardance_vector, LinearBlock};
+use mueller::linear::LinearBlock;
 use serde::{Deserialize, Serialize};
 
 /// `[effects.stressed_lens]` of a scene.
@@ -29,6 +29,10 @@ pub struct StressedLensSpec {
     /// Added to the axis (deg).
     #[serde(default)]
     pub axis_offset_deg: f64,
+    /// The lens before the instrumental field (`[effects.instpol]`) instead of after it: light
+    /// meets the lens first.
+    #[serde(default)]
+    pub before_instpol: bool,
 }
 
 impl StressedLensSpec {
@@ -46,47 +50,26 @@ impl StressedLensSpec {
         Ok(())
     }
 
+    /// The lens as an element of the chain ([`field::StressedLens`]): angles in radians, a
+    /// tangential axis as an offset of `pi / 2`.
+    pub fn element(&self) -> field::StressedLens {
+        let tangential = if self.tangential { std::f64::consts::FRAC_PI_2 } else { 0.0 };
+        field::StressedLens {
+            retardance_edge: self.retardance_edge_deg.to_radians(),
+            radius_arcmin: self.radius_arcmin,
+            centre_arcmin: self.centre_arcmin,
+            axis_offset: self.axis_offset_deg.to_radians() + tangential,
+        }
+    }
+
     /// Retardance (rad) and fast-axis angle (rad) at `(x, y)` arcmin.
     pub fn retardance_at(&self, x: f64, y: f64) -> (f64, f64) {
-        let tangential = if self.tangential { std::f64::consts::FRAC_PI_2 } else { 0.0 };
-        mueller::causes::stressed_lens(
-            x,
-            y,
-            self.retardance_edge_deg.to_radians(),
-            self.radius_arcmin,
-            self.centre_arcmin,
-            self.axis_offset_deg.to_radians() + tangential,
-        )
+        self.element().retardance_at(x, y)
     }
 
     /// The linear block of the lens at `(x, y)` arcmin.
     pub fn block_at(&self, x: f64, y: f64) -> LinearBlock {
-        let (delta, axis) = self.retardance_at(x, y);
-        physical_block(0.0, 0.0, retardance_vector(delta, axis), 0.0, 0.0)
-    }
-}
-
-/// a stressed lens as an element of the field-dependent chain ([`field::FieldChain`]): its own block;
-/// its `eval` is the polarization it gives unpolarized light.
-impl field::FieldModel for StressedLensSpec {
-    fn eval(&self, x: f64, y: f64) -> field::InstPol {
-        let o = field::FieldModel::block_at(self, x, y).apply([1.0, 0.0, 0.0]);
-        field::InstPol { q: o[1] / o[0], u: o[2] / o[0], ..Default::default() }
-    }
-    fn contains(&self, _x: f64, _y: f64) -> bool {
-        true
-    }
-    fn block_at(&self, x: f64, y: f64) -> LinearBlock {
-        StressedLensSpec::block_at(self, x, y)
-    }
-    /// The whole retarder, so that circular polarization made before the lens (by the
-    /// telescope's M3) is turned back into linear polarization as it is in the glass.
-    fn mueller_at(&self, x: f64, y: f64) -> mueller::Mueller {
-        let (delta, axis) = self.retardance_at(x, y);
-        mueller::retarder(delta, axis)
-    }
-    fn describe(&self) -> String {
-        "a stressed lens".into()
+        field::FieldModel::block_at(&self.element(), x, y)
     }
 }
 
@@ -105,6 +88,7 @@ mod tests {
             centre_arcmin: [0.0, 0.0],
             tangential: false,
             axis_offset_deg: 0.0,
+            before_instpol: false,
         };
         let chi = 68.4f64.to_radians();
         let (q0, u0) = (0.0645 * (2.0 * chi).cos(), 0.0645 * (2.0 * chi).sin());

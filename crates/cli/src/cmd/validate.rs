@@ -184,7 +184,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.parang.is_some() || a.band.is_some() {
         bail!("--parang / --band: {} holds no telescope model (instpol fit-standards writes one)", a.cal.display());
     }
-    let (Some(cal), _) = loaded.p_phi_models()? else {
+    let (Some(cal), _) = loaded.p_phi_models_alone()? else {
         bail!("{}: holds no field model", a.cal.display());
     };
     let inst = Instrument::load(&instrument)?;

@@ -17,6 +17,7 @@ fn lens() -> sim::stress::StressedLensSpec {
         centre_arcmin: [0.8, -0.4],
         tangential: false,
         axis_offset_deg: 0.0,
+        before_instpol: false,
     }
 }
 

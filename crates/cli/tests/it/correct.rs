@@ -530,3 +530,51 @@ fn a_table_without_product_keywords_is_corrected_with_a_warning() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("does not say which instrument and filter"), "{err}");
 }
+
+/// A calibration of two field elements, a stressed lens then the V radial field
+/// (`fit::files::elements`): `correct` gives back each star's `(q, u)`, made here by the lens's
+/// retarder (`mueller::retarder` of its retardance and axis, `mueller::causes::stressed_lens`),
+/// `M_I(p, phi)` of `eq:instpol` (`mueller::partial_polarizer`) and the zero angle in turn, and
+/// its summary says the two were inverted together.
+#[test]
+fn a_calibration_of_two_field_elements_corrects_rows_through_both() {
+    use fit::files::elements::Element;
+    let dir = tempfile::tempdir().unwrap();
+    let cal = v_calibration();
+    let (edge, radius, centre, offset) = (50f64.to_radians(), 3.0, [0.3, -0.4], 0.2);
+    let lens = field::StressedLens {
+        retardance_edge: edge,
+        radius_arcmin: radius,
+        centre_arcmin: centre,
+        axis_offset: offset,
+    };
+    let cal_path = dir.path().join("two.fits");
+    cal.save_with_elements(&cal_path, &[Element::StressedLens(lens), Element::Model], |_, _| Ok(())).unwrap();
+    let stars: [(f64, f64, f64, f64); 3] = [(1.2, -0.8, 0.03, 0.4), (-2.5, 2.0, 0.01, 1.9), (2.9, 2.7, 0.05, 2.6)];
+    let mut csv = String::from("x,y,q,u,sigma_q,sigma_u\n");
+    for &(x, y, p0, chi0) in &stars {
+        let (d, ax) = mueller::causes::stressed_lens(x, y, edge, radius, centre, offset);
+        let a = cal.eval(x, y);
+        let m_i = mueller::partial_polarizer(a.q.hypot(a.u), 0.5 * a.u.atan2(a.q));
+        let s =
+            m_i * mueller::retarder(d, ax) * mueller::stokes_qu(1.0, p0 * (2.0 * chi0).cos(), p0 * (2.0 * chi0).sin());
+        let (sn, cs) = (2.0 * OFFSET_DEG.to_radians()).sin_cos();
+        let (q, u) = (s[1] / s[0], s[2] / s[0]);
+        csv += &format!("{x},{y},{},{},1e-4,1e-4\n", cs * q + sn * u, -sn * q + cs * u);
+    }
+    let input = dir.path().join("rows.csv");
+    std::fs::write(&input, csv).unwrap();
+    let out = dir.path().join("out.csv");
+    let o = correct(&cal_path, &input, &out, &[]);
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(said.contains("within the chain of 2 field elements"), "{said}");
+    let text = std::fs::read_to_string(&out).unwrap();
+    let mut lines = text.lines();
+    let head: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |n: &str| head.iter().position(|h| *h == n).unwrap();
+    for (line, &(_, _, p0, chi0)) in lines.zip(&stars) {
+        let v: Vec<f64> = line.split(',').map(|t| t.parse().unwrap()).collect();
+        let (q0, u0) = (v[col("q0")], v[col("u0")]);
+        assert!((q0 - p0 * (2.0 * chi0).cos()).abs() < 1e-12 && (u0 - p0 * (2.0 * chi0).sin()).abs() < 1e-12, "{line}");
+    }
+}

@@ -129,6 +129,7 @@ fn full_scene(instpol: InstPolSpec) -> Scene {
                 centre_arcmin: [0.0, 0.0],
                 tangential: false,
                 axis_offset_deg: 0.0,
+                before_instpol: false,
             }),
             constant_response: Some(field::ConstantResponse { q0: 0.001, u0: 0.0, efficiency: 0.99, offset_deg: 1.0 }),
             tilted_hwp: Some(sim::hwp_causes::TiltedHwpSpec {

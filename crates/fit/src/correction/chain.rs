@@ -24,12 +24,16 @@
 
 use crate::correction::correct::{CorrectOptions, Corrected, CorrectedMap, Corrector, MapError, Measurement};
 use crate::files::calfile::Calibration;
+use crate::files::elements::Element;
 use crate::models::model::FieldModel;
 use crate::mueller_field::cal::MuellerCal;
 use crate::response::cal::ResponseCal;
 use crate::telescope::cal::ChainCorrected;
 use crate::telescope::{PreparedExposures, Seen, TelescopeFit, Track};
 use std::sync::Arc;
+
+/// The field elements of a file whose own model is its one field element.
+static MODEL_ALONE: [Element; 1] = [Element::Model];
 
 /// The field-dependent part of a correction.
 pub enum FieldStep<'a> {
@@ -146,6 +150,9 @@ pub struct Chain<'a> {
     pub telescope: Option<TelescopeStep<'a>>,
     /// The same chain as the one forward model, built once ([`Chain::new`]).
     one: field::InstrumentChain,
+    /// The file's field elements in order when it holds several ([`Chain::with_elements`]);
+    /// empty: the field step alone, inverted by its own path.
+    order: &'a [Element],
 }
 
 impl<'a> FieldStep<'a> {
@@ -160,8 +167,36 @@ impl<'a> Chain<'a> {
     /// `zero_angle_deg` ([`Chain::zero_angle_deg`]), with the one forward model it is
     /// ([`field::InstrumentChain`], [`chain`](Self::chain)) built once.
     pub fn new(zero_angle_deg: Option<f64>, field: FieldStep<'a>, telescope: Option<TelescopeStep<'a>>) -> Self {
-        let one = one_chain(zero_angle_deg, &field, telescope.as_ref());
-        Self { zero_angle_deg, field, telescope, one }
+        // A Mueller field behind a telescope has no inverse of its own there: the whole chain's.
+        let order: &[Element] = match (&field, &telescope) {
+            (FieldStep::Mueller(..), Some(_)) => &MODEL_ALONE,
+            _ => &[],
+        };
+        let one = one_chain(zero_angle_deg, &field, telescope.as_ref(), order);
+        Self { zero_angle_deg, field, telescope, one, order }
+    }
+
+    /// The file's field elements in order when it holds several
+    /// ([`with_elements`](Self::with_elements)), else none.
+    pub fn elements(&self) -> &[Element] {
+        if self.order.len() > 1 {
+            self.order
+        } else {
+            &[]
+        }
+    }
+
+    /// This chain with the field elements of a file that holds several, in the order light
+    /// meets them ([`crate::files::elements`]; the field step is the file's own model among
+    /// them): every row and bin is then corrected by inverting the whole chain
+    /// ([`field::InstrumentChain::invert`], or `invert_first_order` for `eq:approx`, or
+    /// `invert_exposures` over recorded exposures). Itself for an empty order.
+    pub fn with_elements(self, order: &'a [Element]) -> Self {
+        if order.is_empty() {
+            return self;
+        }
+        let one = one_chain(self.zero_angle_deg, &self.field, self.telescope.as_ref(), order);
+        Self { one, order, ..self }
     }
 }
 
@@ -173,22 +208,39 @@ fn one_chain(
     zero_angle_deg: Option<f64>,
     field: &FieldStep,
     telescope: Option<&TelescopeStep>,
+    order: &[Element],
 ) -> field::InstrumentChain {
-    let mut elements = field::FieldChain::new();
-    match field {
-        FieldStep::PartialPolarizer { calibration, .. } => {
-            elements = elements.then(Arc::new((*calibration).clone()), "the field calibration's M_I(p, phi)")
-        }
-        FieldStep::Mueller(mc, _) => elements = elements.then(Arc::new(mc.field.clone()), "the Mueller field"),
-        FieldStep::Response(r) => {
-            elements = elements.then(Arc::new(r.response), "the constant response from standards")
-        }
-        FieldStep::None => {}
-    }
+    let own = own_element(field);
+    let elements = if order.is_empty() {
+        own.into_iter().fold(field::FieldChain::new(), |c, (e, what)| c.then(e, what))
+    } else {
+        elements_in_order(order, own)
+    };
     let telescope = telescope.and_then(|t| t.fit.band(&t.band).copied());
     // The forward model ends at the plate: its zero angle is the one the models' sky frame has.
     let zero_angle = zero_angle_deg.unwrap_or(0.0).to_radians();
     field::InstrumentChain { telescope, elements, zero_angle, analyser: None }
+}
+
+/// The field step's own element as a chain element, with what it is; `None` without one.
+fn own_element(field: &FieldStep) -> Option<(Arc<dyn field::FieldModel>, &'static str)> {
+    match field {
+        FieldStep::PartialPolarizer { calibration, .. } => {
+            Some((Arc::new((*calibration).clone()), "the field calibration's M_I(p, phi)"))
+        }
+        FieldStep::Mueller(mc, _) => Some((Arc::new(mc.field.clone()), "the Mueller field")),
+        FieldStep::Response(r) => Some((Arc::new(r.response), "the constant response from standards")),
+        FieldStep::None => None,
+    }
+}
+
+/// The chain of a file's field elements in `order`, the file's own model `own` at its place.
+fn elements_in_order(order: &[Element], own: Option<(Arc<dyn field::FieldModel>, &str)>) -> field::FieldChain {
+    order.iter().fold(field::FieldChain::new(), |c, e| match (e, &own) {
+        (Element::Model, Some((m, what))) => c.then(m.clone(), *what),
+        (Element::Model, None) => c,
+        (Element::StressedLens(l), _) => c.then(Arc::new(*l), "a stressed lens"),
+    })
 }
 
 impl Chain<'_> {
@@ -229,6 +281,9 @@ impl Chain<'_> {
     /// field's alone, and `q_tel, u_tel` what the telescope makes of an unpolarized star as
     /// these data saw it (zero without a telescope).
     pub fn invert_parts(&self, i: usize, m: &Measurement) -> Result<ChainCorrected, RowError> {
+        if !self.order.is_empty() {
+            return self.invert_elements(i, m);
+        }
         let alone = |corrected| ChainCorrected { corrected, q_tel: 0.0, u_tel: 0.0 };
         match (&self.telescope, &self.field) {
             (None, FieldStep::PartialPolarizer { corrector, .. }) => Ok(alone(corrector.correct(m)?)),
@@ -238,11 +293,7 @@ impl Chain<'_> {
                 let cor = match field {
                     FieldStep::PartialPolarizer { corrector, .. } => Some(corrector),
                     FieldStep::None => None,
-                    FieldStep::Mueller(..) => {
-                        return Err(RowError::Chain(crate::Error::Input(
-                            "a Mueller field and a telescope model are not corrected together".into(),
-                        )))
-                    }
+                    FieldStep::Mueller(..) => return self.invert_elements(i, m),
                     FieldStep::Response(..) => {
                         return Err(RowError::Chain(crate::Error::Input(
                             "a constant response and a telescope model are not corrected together".into(),
@@ -276,6 +327,75 @@ impl Chain<'_> {
                 Err(RowError::Chain(crate::Error::Input("the chain holds neither a field nor a telescope".into())))
             }
         }
+    }
+
+    /// Row `i` through the whole chain of a file's several field elements
+    /// ([`with_elements`](Self::with_elements)): the measurement turned into the models' sky
+    /// frame, then the chain inverted at its position, exactly or to first order as the
+    /// options say (over recorded exposures: the whole chain's exact inverse from the plate).
+    /// The file's own model enters as its value here: a field calibration's `M_I` with the
+    /// model's covariance (inflated outside the field, [`Corrector::instrumental`]), carried
+    /// through the chain's Jacobians; a Mueller field or a constant response as its matrix.
+    /// `inst` is the field elements' polarization of unpolarized light, `q_tel, u_tel` the
+    /// telescope's over the row's track.
+    fn invert_elements(&self, i: usize, m: &Measurement) -> Result<ChainCorrected, RowError> {
+        use crate::correction::correct::{Error as E, Method};
+        crate::correction::correct::check_measurement(m)?;
+        let (x, y) = (m.x, m.y);
+        let (own, opts, extrapolated) = match &self.field {
+            FieldStep::PartialPolarizer { corrector, .. } => {
+                let (a, ex) = corrector.instrumental(x, y)?;
+                let own: Arc<dyn field::FieldModel> = Arc::new(field::PartialPolarizer(a));
+                (Some((own, "the field calibration's M_I(p, phi)")), *corrector.options(), ex)
+            }
+            FieldStep::Mueller(mc, o) => {
+                let inside = field::FieldModel::contains(&mc.field, x, y);
+                if !inside && !o.allow_extrapolation {
+                    return Err(E::OutsideField { x, y }.into());
+                }
+                (own_element(&self.field), *o, !inside)
+            }
+            FieldStep::Response(r) => {
+                let o = CorrectOptions { zero_angle_deg: r.hwp_chi_offset_deg, ..CorrectOptions::default() };
+                (own_element(&self.field), o, false)
+            }
+            FieldStep::None => {
+                return Err(E::Chain("the file's field elements have no model of their own".into()).into())
+            }
+        };
+        let chain = field::InstrumentChain {
+            telescope: self.one.telescope,
+            elements: elements_in_order(self.order, own),
+            zero_angle: 0.0,
+            analyser: None,
+        };
+        let at = m.in_sky(opts.zero_angle_deg).qu;
+        let track = self.instrument(i).1;
+        let chain_err = |e: field::ChainError| RowError::Field(E::Chain(e.to_string()));
+        let mut sky = match (self.telescope.as_ref().map(|t| &t.tracks), opts.method) {
+            (Some(Tracks::Exposures(e)), _) => field::InstrumentChain { zero_angle: e.plate, ..chain.clone() }
+                .invert_exposures(x, y, &m.frame.at_plate(&m.qu), &e.list),
+            (_, Method::Exact) => chain.invert(x, y, &at, track),
+            (_, Method::FirstOrder) => chain.invert_first_order(x, y, &at, track),
+        }
+        .map_err(chain_err)?;
+        if extrapolated && matches!(self.field, FieldStep::Mueller(..)) {
+            // The Mueller form of the `(F p)^2` rule, as a Mueller field alone is corrected.
+            let f = opts.extrapolation_rel_error;
+            let add = f * f * ((sky.q - at.q).powi(2) + (sky.u - at.u).powi(2));
+            (sky.var_q, sky.var_u) = (sky.var_q + add, sky.var_u + add);
+        }
+        let inst = field::InstrumentChain { telescope: None, ..chain.clone() }
+            .forward(x, y, &mueller::Qu::ZERO, None)
+            .map_err(chain_err)?;
+        let (q_tel, u_tel) = match (&chain.telescope, track) {
+            (Some(t), Some(tr)) => {
+                let mt = field::chain::telescope_matrix(t, tr).map_err(|e| chain_err(e.into()))?;
+                (mt[(1, 0)], mt[(2, 0)])
+            }
+            _ => (0.0, 0.0),
+        };
+        Ok(ChainCorrected { corrected: Corrected::of(sky, inst, extrapolated), q_tel, u_tel })
     }
 
     /// Every valid bin of a Stokes map through [`invert`](Self::invert) at the bin's centre

@@ -84,6 +84,10 @@ pub enum Error {
     /// A Mueller-field calibration ([`crate::mueller_field::cal`]) has no exact inverse here.
     #[error("{0}")]
     Mueller(String),
+    /// The whole chain of a file's several field elements could not be inverted here
+    /// ([`crate::correction::chain::Chain::with_elements`]).
+    #[error("the chain of the file's field elements: {0}")]
+    Chain(String),
     /// The telescope step of the chain failed here ([`crate::telescope::cal::correct_chain`]).
     #[error("telescope: {0}")]
     Telescope(String),

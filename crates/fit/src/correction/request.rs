@@ -393,7 +393,8 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
                     Some(mc.hwp_chi_offset_deg),
                     FieldStep::Mueller(mc, opts(mc.hwp_chi_offset_deg)),
                     None,
-                ),
+                )
+                .with_elements(&file.elements),
             });
         }
         let cal = file.field.as_ref().expect("check_options refuses a file without a model");
@@ -412,19 +413,21 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
                 Some(cal.hwp_chi_offset_deg),
                 FieldStep::partial_polarizer(cal, opts(cal.hwp_chi_offset_deg)),
                 None,
-            ),
+            )
+            .with_elements(&file.elements),
         });
     };
     let field = file.field.as_ref();
-    let band = tel.choose_band(req.band, field.map(|c| c.filter.as_str()), None).map_err(Refusal::Band)?;
-    if let Some(d) = req.data.filter(|_| field.is_none() && !req.allow_mismatch) {
+    let models = models_beside(file);
+    let band = tel.choose_band(req.band, models.map(|m| m.0), None).map_err(Refusal::Band)?;
+    if let Some(d) = req.data.filter(|_| models.is_none() && !req.allow_mismatch) {
         if !crate::correction::setup::band_fits_data(&d.instrument, &d.filter, &band) {
             return Err(Refusal::BandMismatch { map_filter: d.filter.clone(), band });
         }
     }
-    let (to_sky, plate) = row_zero_angles(field.map(|c| c.hwp_chi_offset_deg), req.frame);
-    if let Some(c) = field {
-        note_carried(&mut notes, c.hwp_chi_offset_deg, to_sky);
+    let (to_sky, plate) = row_zero_angles(models.map(|m| m.1), req.frame);
+    if let Some((_, z)) = models {
+        note_carried(&mut notes, z, to_sky);
     }
     let (tracks, exposures) = match &req.per_row {
         Some(p) => {
@@ -474,7 +477,7 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
         }
     };
     Ok(RowsPlan {
-        kind: if field.is_some() { Kind::FieldAndTelescope } else { Kind::Telescope },
+        kind: file.kind(),
         to_sky_deg: to_sky,
         plate_deg: plate,
         telescope: Some(TelescopePlan { fit: tel, band: band.clone(), exposures }),
@@ -483,11 +486,38 @@ pub fn plan_rows<'a>(file: &'a CalibrationFile, req: &Request<'_>, n: usize) -> 
         // itself, once, into the field's frame before both models (a telescope model alone
         // takes the rows in their own frame).
         chain: Chain::new(
-            field.map(|c| c.hwp_chi_offset_deg),
-            field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(c.hwp_chi_offset_deg))),
+            models.map(|m| m.1),
+            field_beside(file, field, &opts),
             Some(TelescopeStep { fit: tel, band, tracks }),
-        ),
+        )
+        .with_elements(&file.elements),
     })
+}
+
+/// The filter and the HWP zero angle (deg) of the field's frame of the model beside a
+/// telescope model in `file`: its field calibration's, else its Mueller field's; `None` for a
+/// telescope model alone.
+fn models_beside(file: &CalibrationFile) -> Option<(&str, f64)> {
+    match (&file.field, &file.mueller) {
+        (Some(c), _) => Some((c.filter.as_str(), c.hwp_chi_offset_deg)),
+        (None, Some(m)) => Some((m.filter.as_str(), m.hwp_chi_offset_deg)),
+        (None, None) => None,
+    }
+}
+
+/// The field step behind a telescope model: the field calibration `field` (of `file`), else
+/// the file's Mueller field (inverted with the telescope through the whole chain), with the
+/// options of their zero angle; none for a telescope model alone.
+fn field_beside<'a>(
+    file: &'a CalibrationFile,
+    field: Option<&'a crate::files::calfile::Calibration>,
+    opts: &dyn Fn(f64) -> CorrectOptions,
+) -> FieldStep<'a> {
+    match (field, &file.mueller) {
+        (Some(c), _) => FieldStep::partial_polarizer(c, opts(c.hwp_chi_offset_deg)),
+        (None, Some(mc)) => FieldStep::Mueller(mc, opts(mc.hwp_chi_offset_deg)),
+        (None, None) => FieldStep::None,
+    }
 }
 
 /// The note for rows in `frame` that carry a zero angle while the calibration's is
@@ -564,6 +594,15 @@ fn method_words(m: Method) -> &'static str {
 }
 
 impl MapPlan<'_> {
+    /// `what` the file's model is inverted by, or, for a file of several field elements, the
+    /// whole chain of them by which its record says the map was corrected.
+    fn chain_words(&self, what: &str) -> String {
+        match self.chain.elements() {
+            [] => what.to_string(),
+            els => format!("{what}, within the chain of {} field elements inverted together", els.len()),
+        }
+    }
+
     /// Correct every valid bin of `map` ([`Chain::invert_map`]), and the record the corrected
     /// map carries ([`skyfield::StokesMap::write_corrected_fits`]; `calibration`: the file's
     /// name). The one map correction of `instpol correct` and the Python package.
@@ -587,11 +626,13 @@ impl MapPlan<'_> {
             telescope,
         };
         let s = match (&self.chain.field, &self.telescope) {
-            (FieldStep::Mueller(mc, _), _) => {
-                stamp("exact inverse of the Mueller field (calibrate-mueller)".into(), mc.hwp_chi_offset_deg, None)
-            }
+            (FieldStep::Mueller(mc, _), None) => stamp(
+                format!("exact inverse of the {}", self.chain_words("Mueller field (calibrate-mueller)")),
+                mc.hwp_chi_offset_deg,
+                None,
+            ),
             (FieldStep::PartialPolarizer { .. }, None) => {
-                stamp(method_words(self.method).into(), self.zero_angle_deg, None)
+                stamp(self.chain_words(method_words(self.method)), self.zero_angle_deg, None)
             }
             (FieldStep::Response(r), _) => stamp(
                 "exact inverse of the constant response from standards ((q0, u0), efficiency, angle offset)".into(),
@@ -607,7 +648,12 @@ impl MapPlan<'_> {
                     c.map.rotator_rad = Some(t.track.rotator);
                 }
                 let mut method = match field {
-                    FieldStep::PartialPolarizer { .. } => format!("{}, then the telescope", method_words(self.method)),
+                    FieldStep::PartialPolarizer { .. } => {
+                        format!("{}, then the telescope", self.chain_words(method_words(self.method)))
+                    }
+                    FieldStep::Mueller(..) => {
+                        "exact inverse of the telescope and the Mueller field (calibrate-mueller) together".into()
+                    }
                     _ => "telescope model only".to_string(),
                 };
                 if self.exposures > 0 {
@@ -695,12 +741,13 @@ pub fn plan_map<'a>(
             }
             (None, None, None) => unreachable!("check_options refuses a file without a model"),
         };
-        let chain = Chain::new(Some(model_zero), field, None);
+        let chain = Chain::new(Some(model_zero), field, None).with_elements(&file.elements);
         return Ok(MapPlan { kind, method: req.method, telescope: None, zero_angle_deg, notes, chain, exposures: 0 });
     };
     let field = file.field.as_ref();
-    let band = tel.choose_band(req.band, field.map(|c| c.filter.as_str()), Some(&map.filter)).map_err(Refusal::Band)?;
-    if field.is_none()
+    let models = models_beside(file);
+    let band = tel.choose_band(req.band, models.map(|m| m.0), Some(&map.filter)).map_err(Refusal::Band)?;
+    if models.is_none()
         && !req.allow_mismatch
         && !crate::correction::setup::band_fits_data(&map.instrument, &map.filter, &band)
     {
@@ -709,8 +756,8 @@ pub fn plan_map<'a>(
     let track = shared_track(tel, req, map.parallactic_rad, map.rotator_rad, &mut notes)?;
     // The map is at the plate: without a field calibration its zero angle is the one it
     // records (HWPZERO), else its instrument's (a built-in one known by the name it records).
-    let zero_angle_deg = match field {
-        Some(c) => c.hwp_chi_offset_deg,
+    let zero_angle_deg = match models {
+        Some((_, z)) => z,
         None => {
             let (z, unknown) = crate::correction::setup::map_zero_angle(map);
             notes.extend(unknown.map(Note::ZeroAngleUnknown));
@@ -729,9 +776,10 @@ pub fn plan_map<'a>(
     };
     let chain = Chain::new(
         Some(zero_angle_deg),
-        field.map_or(FieldStep::None, |c| FieldStep::partial_polarizer(c, opts(req.method, zero_angle_deg))),
+        field_beside(file, field, &|z| opts(req.method, z)),
         Some(TelescopeStep { fit: tel, band: band.clone(), tracks }),
-    );
+    )
+    .with_elements(&file.elements);
     let telescope = MapTelescope { fit: tel, band, track, by_exposure };
     Ok(MapPlan { kind, method: req.method, telescope: Some(telescope), zero_angle_deg, notes, chain, exposures })
 }

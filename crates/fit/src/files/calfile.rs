@@ -314,7 +314,36 @@ impl Calibration {
         })
     }
 
+    /// [`Self::save`] of a file whose field elements are `order`, in the order light meets
+    /// them, this calibration's model among them ([`crate::files::elements::Element::Model`]);
+    /// `extra` writes further HDUs as in [`Self::save_with`] (a telescope model). An empty
+    /// order writes the model alone, as [`Self::save_with`] does.
+    pub fn save_with_elements(
+        &self,
+        path: &Path,
+        order: &[crate::files::elements::Element],
+        extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()>,
+    ) -> Result<()> {
+        crate::files::elements::check_unless_empty(order)?;
+        self.save_with(path, |f, p| {
+            crate::files::elements::write(f, p, order)?;
+            extra(f, p)
+        })
+    }
+
     fn write_to(&self, f: &mut FitsFile, path: &Path) -> Result<()> {
+        self.write_primary(f, path)?;
+        self.write_images(f, path)?;
+        self.write_bins(f, path)?;
+        if !self.provenance.inputs.is_empty() {
+            write_inputs(f, path, &self.provenance.inputs)?;
+        }
+        Ok(())
+    }
+
+    /// The primary HDU's keywords: the calibration, its model's parameters, its pixel grid
+    /// and where it came from.
+    fn write_primary(&self, f: &mut FitsFile, path: &Path) -> Result<()> {
         let e = |doing: &str| fits_err(path, doing);
         let hdu = f.primary_hdu().map_err(e("opening the primary HDU"))?;
         let mut w = KeyWriter { f, hdu: &hdu, path };
@@ -416,7 +445,12 @@ impl Calibration {
         }
         pv.write_common(&mut w)?;
         w.int("NINPUT", pv.inputs.len() as i64)?;
+        Ok(())
+    }
 
+    /// The `QMAP`, `UMAP`, `QERR`, `UERR` images: the model on a grid (a map: itself).
+    fn write_images(&self, f: &mut FitsFile, path: &Path) -> Result<()> {
+        let e = |doing: &str| fits_err(path, doing);
         // Images.
         let grid = match (&self.model, &self.grid) {
             (Model::Map(g), _) => g.clone(),
@@ -447,7 +481,12 @@ impl Calibration {
             w.plain_real("CDELT1", grid.dx)?;
             w.plain_real("CDELT2", grid.dy)?;
         }
+        Ok(())
+    }
 
+    /// The `BINS` table: the binned measurements with the model and the residuals at each.
+    fn write_bins(&self, f: &mut FitsFile, path: &Path) -> Result<()> {
+        let e = |doing: &str| fits_err(path, doing);
         // The binned measurements.
         let model_qu: Vec<(f64, f64)> = self
             .bins
@@ -517,29 +556,6 @@ impl Calibration {
             }
             let used: Vec<i32> = b.iter().map(|x| x.used as i32).collect();
             h.write_col(f, "USED", &used).map_err(e("writing column USED"))?;
-        }
-        if !pv.inputs.is_empty() {
-            // FILE (text, for people and astropy) and FILE_BYTES (the same names as bytes,
-            // zero-padded): the reader uses the bytes, because fitsio 0.21's string-column
-            // reader writes one byte past its buffer.
-            let width = pv.inputs.iter().map(|s| s.len()).max().unwrap_or(1).max(1);
-            let d = ColumnDescription::new("FILE")
-                .with_type(ColumnDataType::String)
-                .that_repeats(width)
-                .create()
-                .map_err(e("describing INPUTS"))?;
-            let db = ColumnDescription::new("FILE_BYTES")
-                .with_type(ColumnDataType::Byte)
-                .that_repeats(width)
-                .create()
-                .map_err(e("describing INPUTS"))?;
-            let h = f.create_table("INPUTS", &[d, db]).map_err(e("creating table INPUTS"))?;
-            h.write_col(f, "FILE", &pv.inputs).map_err(e("writing INPUTS"))?;
-            let mut bytes = vec![0u8; width * pv.inputs.len()];
-            for (k, name) in pv.inputs.iter().enumerate() {
-                bytes[k * width..k * width + name.len()].copy_from_slice(name.as_bytes());
-            }
-            h.write_col(f, "FILE_BYTES", &bytes).map_err(e("writing INPUTS"))?;
         }
         Ok(())
     }
@@ -620,110 +636,10 @@ impl Calibration {
         };
         let ninput = r.opt_int("NINPUT").unwrap_or(0);
 
-        // Images.
-        let mut planes = vec![];
-        let (mut nx, mut ny, mut x0, mut y0, mut dx, mut dy) = (0, 0, 0.0, 0.0, 1.0, 1.0);
-        for name in ["QMAP", "UMAP", "QERR", "UERR"] {
-            let h = f.hdu(name).map_err(e(&format!("finding image extension {name}")))?;
-            if let fitsio::hdu::HduInfo::ImageInfo { shape, .. } = &h.info {
-                if shape.len() != 2 {
-                    return Err(Error::BadFile { path: path.into(), what: format!("{name} is not a 2-D image") });
-                }
-                ny = shape[0];
-                nx = shape[1];
-            } else {
-                return Err(Error::BadFile { path: path.into(), what: format!("{name} is not an image") });
-            }
-            check_claimed_size(path, name, &[ny, nx])?;
-            let data: Vec<f64> = h.read_image(&mut f).map_err(e(&format!("reading image {name}")))?;
-            if name == "QMAP" {
-                let mut r = KeyReader { f: &mut f, hdu: &h, path };
-                x0 = r.plain_real("CRVAL1")?;
-                y0 = r.plain_real("CRVAL2")?;
-                dx = r.plain_real("CDELT1")?;
-                dy = r.plain_real("CDELT2")?;
-                let (p1, p2) = (r.plain_real("CRPIX1")?, r.plain_real("CRPIX2")?);
-                x0 -= (p1 - 1.0) * dx;
-                y0 -= (p2 - 1.0) * dy;
-            }
-            planes.push(data);
-        }
-        let grid = GridMap {
-            nx,
-            ny,
-            x0,
-            y0,
-            dx,
-            dy,
-            sigma_u: planes.pop().unwrap_or_default(),
-            sigma_q: planes.pop().unwrap_or_default(),
-            u: planes.pop().unwrap_or_default(),
-            q: planes.pop().unwrap_or_default(),
-        };
-
-        // Bins.
-        let h = f.hdu("BINS").map_err(e("finding table BINS"))?;
-        let nrows = match &h.info {
-            fitsio::hdu::HduInfo::TableInfo { num_rows, .. } => *num_rows,
-            _ => return Err(Error::BadFile { path: path.into(), what: "BINS is not a table".into() }),
-        };
-        let mut bins = vec![];
-        if nrows > 0 {
-            let mut get = |c: &str| -> Result<Vec<f64>> {
-                h.read_col::<f64>(&mut f, c).map_err(e(&format!("reading BINS column {c}")))
-            };
-            let (x, y, q, u, sq, su, pa, pha) = (
-                get("X_ARCMIN")?,
-                get("Y_ARCMIN")?,
-                get("Q")?,
-                get("U")?,
-                get("SIGMA_Q")?,
-                get("SIGMA_U")?,
-                get("P_APPROX")?,
-                get("PHI_APPROX_DEG")?,
-            );
-            let used: Vec<i32> = h.read_col(&mut f, "USED").map_err(e("reading BINS column USED"))?;
-            for i in 0..nrows {
-                bins.push(Bin {
-                    p_approx: pa[i],
-                    phi_approx: pha[i].to_radians(),
-                    used: used[i] != 0,
-                    ..Bin::new(x[i], y[i], q[i], u[i], sq[i], su[i])
-                });
-            }
-            if let Some((i, b)) = bins.iter().enumerate().find(|(_, b)| {
-                b.qu.var_q < 0.0
-                    || b.qu.var_u < 0.0
-                    || (b.qu.q.is_finite() && b.qu.u.is_finite() && b.qu.q.hypot(b.qu.u) > 1.0)
-            }) {
-                return Err(Error::BadFile {
-                    path: path.into(),
-                    what: format!(
-                        "BINS row {}: Q, U = {}, {} with errors {}, {}: errors must be >= 0 and P = hypot(Q, U) at most 1",
-                        i + 1,
-                        b.qu.q,
-                        b.qu.u,
-                        sq[i],
-                        su[i]
-                    ),
-                });
-            }
-        }
+        let grid = read_grid(&mut f, path)?;
+        let bins = read_bins(&mut f, path)?;
         if ninput > 0 {
-            let h = f.hdu("INPUTS").map_err(e("finding table INPUTS"))?;
-            let bytes: Vec<u8> = h.read_col(&mut f, "FILE_BYTES").map_err(e("reading INPUTS column FILE_BYTES"))?;
-            let n = ninput as usize;
-            if n == 0 || bytes.is_empty() || !bytes.len().is_multiple_of(n) {
-                return Err(Error::BadFile {
-                    path: path.into(),
-                    what: format!("INPUTS holds {} bytes, not a whole number of {n} names", bytes.len()),
-                });
-            }
-            let width = bytes.len() / n;
-            provenance.inputs = bytes
-                .chunks(width)
-                .map(|c| String::from_utf8_lossy(&c[..c.iter().position(|&b| b == 0).unwrap_or(c.len())]).into_owned())
-                .collect();
+            provenance.inputs = read_inputs(&mut f, path, ninput as usize)?;
         }
 
         let model = match (kind.as_str(), radial, poly) {
@@ -754,6 +670,121 @@ impl Calibration {
             grid: Some(grid),
         })
     }
+}
+
+/// The `QMAP`, `UMAP`, `QERR`, `UERR` images as a grid: each 2-D, of a plausible size, the
+/// grid from `QMAP`'s `CRVAL`, `CDELT` and `CRPIX`.
+fn read_grid(f: &mut FitsFile, path: &Path) -> Result<GridMap> {
+    let e = |doing: &str| fits_err(path, doing);
+    let mut planes = vec![];
+    let (mut nx, mut ny, mut x0, mut y0, mut dx, mut dy) = (0, 0, 0.0, 0.0, 1.0, 1.0);
+    for name in ["QMAP", "UMAP", "QERR", "UERR"] {
+        let h = f.hdu(name).map_err(e(&format!("finding image extension {name}")))?;
+        if let fitsio::hdu::HduInfo::ImageInfo { shape, .. } = &h.info {
+            if shape.len() != 2 {
+                return Err(Error::BadFile { path: path.into(), what: format!("{name} is not a 2-D image") });
+            }
+            ny = shape[0];
+            nx = shape[1];
+        } else {
+            return Err(Error::BadFile { path: path.into(), what: format!("{name} is not an image") });
+        }
+        check_claimed_size(path, name, &[ny, nx])?;
+        let data: Vec<f64> = h.read_image(f).map_err(e(&format!("reading image {name}")))?;
+        if name == "QMAP" {
+            let mut r = KeyReader { f, hdu: &h, path };
+            x0 = r.plain_real("CRVAL1")?;
+            y0 = r.plain_real("CRVAL2")?;
+            dx = r.plain_real("CDELT1")?;
+            dy = r.plain_real("CDELT2")?;
+            let (p1, p2) = (r.plain_real("CRPIX1")?, r.plain_real("CRPIX2")?);
+            x0 -= (p1 - 1.0) * dx;
+            y0 -= (p2 - 1.0) * dy;
+        }
+        planes.push(data);
+    }
+    Ok(GridMap {
+        nx,
+        ny,
+        x0,
+        y0,
+        dx,
+        dy,
+        sigma_u: planes.pop().unwrap_or_default(),
+        sigma_q: planes.pop().unwrap_or_default(),
+        u: planes.pop().unwrap_or_default(),
+        q: planes.pop().unwrap_or_default(),
+    })
+}
+
+/// The `BINS` table's rows, refused by row when an error is negative or `P` above 1.
+fn read_bins(f: &mut FitsFile, path: &Path) -> Result<Vec<Bin>> {
+    let e = |doing: &str| fits_err(path, doing);
+    let h = f.hdu("BINS").map_err(e("finding table BINS"))?;
+    let nrows = match &h.info {
+        fitsio::hdu::HduInfo::TableInfo { num_rows, .. } => *num_rows,
+        _ => return Err(Error::BadFile { path: path.into(), what: "BINS is not a table".into() }),
+    };
+    let mut bins = vec![];
+    if nrows > 0 {
+        let mut get =
+            |c: &str| -> Result<Vec<f64>> { h.read_col::<f64>(f, c).map_err(e(&format!("reading BINS column {c}"))) };
+        let (x, y, q, u, sq, su, pa, pha) = (
+            get("X_ARCMIN")?,
+            get("Y_ARCMIN")?,
+            get("Q")?,
+            get("U")?,
+            get("SIGMA_Q")?,
+            get("SIGMA_U")?,
+            get("P_APPROX")?,
+            get("PHI_APPROX_DEG")?,
+        );
+        let used: Vec<i32> = h.read_col(f, "USED").map_err(e("reading BINS column USED"))?;
+        for i in 0..nrows {
+            bins.push(Bin {
+                p_approx: pa[i],
+                phi_approx: pha[i].to_radians(),
+                used: used[i] != 0,
+                ..Bin::new(x[i], y[i], q[i], u[i], sq[i], su[i])
+            });
+        }
+        if let Some((i, b)) = bins.iter().enumerate().find(|(_, b)| {
+            b.qu.var_q < 0.0
+                || b.qu.var_u < 0.0
+                || (b.qu.q.is_finite() && b.qu.u.is_finite() && b.qu.q.hypot(b.qu.u) > 1.0)
+        }) {
+            return Err(Error::BadFile {
+                path: path.into(),
+                what: format!(
+                    "BINS row {}: Q, U = {}, {} with errors {}, {}: errors must be >= 0 and P = hypot(Q, U) at most 1",
+                    i + 1,
+                    b.qu.q,
+                    b.qu.u,
+                    sq[i],
+                    su[i]
+                ),
+            });
+        }
+    }
+    Ok(bins)
+}
+
+/// The `INPUTS` table's `n` names (from `FILE_BYTES`).
+fn read_inputs(f: &mut FitsFile, path: &Path, n: usize) -> Result<Vec<String>> {
+    let e = |doing: &str| fits_err(path, doing);
+    let h = f.hdu("INPUTS").map_err(e("finding table INPUTS"))?;
+    let bytes: Vec<u8> = h.read_col(f, "FILE_BYTES").map_err(e("reading INPUTS column FILE_BYTES"))?;
+    if n == 0 || bytes.is_empty() || !bytes.len().is_multiple_of(n) {
+        return Err(Error::BadFile {
+            path: path.into(),
+            what: format!("INPUTS holds {} bytes, not a whole number of {n} names", bytes.len()),
+        });
+    }
+    let width = bytes.len() / n;
+    Ok(bytes
+        .chunks(width)
+        .map(|c| String::from_utf8_lossy(&c[..c.iter().position(|&b| b == 0).unwrap_or(c.len())]).into_owned())
+        .collect())
 }
 
 /// The residual interpolant of a radial model: the residuals `q - q_model`, `u - u_model` of
@@ -893,4 +924,31 @@ fn refuse_other_kind(path: &Path, model: Option<&str>) -> Result<()> {
         _ => return Ok(()),
     };
     Err(Error::BadFile { path: path.into(), what: format!("{what}: read it with fit::files::calibration::load") })
+}
+
+/// The `INPUTS` table of the input file names.
+fn write_inputs(f: &mut FitsFile, path: &Path, inputs: &[String]) -> Result<()> {
+    let e = |doing: &str| fits_err(path, doing);
+    // FILE (text, for people and astropy) and FILE_BYTES (the same names as bytes,
+    // zero-padded): the reader uses the bytes, because fitsio 0.21's string-column
+    // reader writes one byte past its buffer.
+    let width = inputs.iter().map(|s| s.len()).max().unwrap_or(1).max(1);
+    let d = ColumnDescription::new("FILE")
+        .with_type(ColumnDataType::String)
+        .that_repeats(width)
+        .create()
+        .map_err(e("describing INPUTS"))?;
+    let db = ColumnDescription::new("FILE_BYTES")
+        .with_type(ColumnDataType::Byte)
+        .that_repeats(width)
+        .create()
+        .map_err(e("describing INPUTS"))?;
+    let h = f.create_table("INPUTS", &[d, db]).map_err(e("creating table INPUTS"))?;
+    h.write_col(f, "FILE", inputs).map_err(e("writing INPUTS"))?;
+    let mut bytes = vec![0u8; width * inputs.len()];
+    for (k, name) in inputs.iter().enumerate() {
+        bytes[k * width..k * width + name.len()].copy_from_slice(name.as_bytes());
+    }
+    h.write_col(f, "FILE_BYTES", &bytes).map_err(e("writing INPUTS"))?;
+    Ok(())
 }

@@ -9,6 +9,10 @@
 //! [`load`] is the one reader both faces call: it answers which kind the file is and returns
 //! its models; [`crate::correction::request`] makes the correction they define.
 //!
+//! A field model or a Mueller field may stand among several field elements in order (a lens
+//! measured on its own, then the partial polarizer: [`crate::files::elements`]), which the
+//! correction inverts together.
+//!
 //! Layers: this module imports the three file formats; none of them imports it, and they share
 //! their keywords through [`crate::files::keys`] only.
 
@@ -46,6 +50,9 @@ pub struct CalibrationFile {
     pub telescope: Option<TelescopeFit>,
     pub mueller: Option<MuellerCal>,
     pub response: Option<ResponseCal>,
+    /// The file's field elements in the order light meets them when it holds several (its own
+    /// model among them, [`crate::files::elements`]); empty when it holds its own model alone.
+    pub elements: Vec<crate::files::elements::Element>,
     /// What the file is: the product keywords of its primary header (the instrument file's
     /// BLAKE3, the filter, the plate, the detector, the inputs' BLAKE3), `None` for a file
     /// that does not record them (written before products were, or by other software).
@@ -64,9 +71,12 @@ pub fn load(path: &Path) -> Result<CalibrationFile> {
             path: path_buf,
             instrument,
             field: None,
-            telescope: None,
+            // A telescope model beside the Mueller field acts before it (absent in the files
+            // `calibrate-mueller` writes).
+            telescope: crate::telescope::cal::read_hdu(path)?,
             mueller: Some(m),
             response: None,
+            elements: crate::files::elements::read(path)?,
             product,
         });
     }
@@ -79,6 +89,7 @@ pub fn load(path: &Path) -> Result<CalibrationFile> {
             telescope: None,
             mueller: None,
             response: Some(r),
+            elements: no_elements(path, "a constant response")?,
             product,
         });
     }
@@ -94,7 +105,32 @@ pub fn load(path: &Path) -> Result<CalibrationFile> {
             ),
         });
     }
-    Ok(CalibrationFile { path: path_buf, instrument, field, telescope, mueller: None, response: None, product })
+    let elements = match field {
+        Some(_) => crate::files::elements::read(path)?,
+        None => no_elements(path, "a telescope model alone")?,
+    };
+    Ok(CalibrationFile {
+        path: path_buf,
+        instrument,
+        field,
+        telescope,
+        mueller: None,
+        response: None,
+        elements,
+        product,
+    })
+}
+
+/// No field elements besides a model that is not a field element (`what`): a file that
+/// places one among several is refused by name.
+fn no_elements(path: &Path, what: &str) -> Result<Vec<crate::files::elements::Element>> {
+    if crate::files::elements::read(path)?.is_empty() {
+        return Ok(vec![]);
+    }
+    Err(Error::BadFile {
+        path: path.into(),
+        what: format!("holds {what}, which is not a field element, yet names several field elements (IP NELEM)"),
+    })
 }
 
 impl CalibrationFile {
@@ -148,5 +184,21 @@ impl CalibrationFile {
             });
         }
         Ok((self.field.as_ref(), self.telescope.as_ref()))
+    }
+
+    /// [`p_phi_models`](Self::p_phi_models) for a prediction through the field model as the
+    /// one field element (`validate`): a file of several field elements is refused by name, as
+    /// its field model alone is not the instrument's field.
+    pub fn p_phi_models_alone(&self) -> Result<(Option<&Calibration>, Option<&TelescopeFit>)> {
+        if !self.elements.is_empty() {
+            return Err(Error::BadFile {
+                path: self.path.clone(),
+                what: format!(
+                    "holds {} field elements in order (IP NELEM), and a prediction takes one field model: correct with it by instpol correct",
+                    self.elements.len()
+                ),
+            });
+        }
+        self.p_phi_models()
     }
 }

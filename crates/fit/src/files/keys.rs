@@ -8,8 +8,14 @@ use fitsio::hdu::FitsHdu;
 use fitsio::FitsFile;
 use std::path::{Path, PathBuf};
 
-/// The calibration-file format this build writes and the newest it reads.
+/// The calibration-file format this build writes for a file of one field element (its own
+/// model): unchanged, so that older readers read such files as before.
 pub const FORMAT_VERSION: i64 = 1;
+
+/// The format of a file that holds several field elements in order
+/// ([`crate::files::elements`]), which a reader of version 1 would correct with its own model
+/// alone; the newest format this build reads.
+pub const NEWEST_FORMAT_VERSION: i64 = 2;
 
 /// `HIERARCH IP MODEL` of a file that holds a telescope model alone (`instpol fit-standards
 /// --output`; beside a field model the field's kind is written).
@@ -30,8 +36,8 @@ pub(crate) fn open_versioned(path: &Path) -> Result<FitsFile> {
     let mut f = FitsFile::open(path).map_err(fits_err(path, "opening"))?;
     let hdu = f.primary_hdu().map_err(fits_err(path, "reading the primary HDU"))?;
     let version = KeyReader { f: &mut f, hdu: &hdu, path }.int("FORMAT VERSION")?;
-    if version > FORMAT_VERSION {
-        return Err(Error::NewerFormat { path: path.into(), found: version, supported: FORMAT_VERSION });
+    if version > NEWEST_FORMAT_VERSION {
+        return Err(Error::NewerFormat { path: path.into(), found: version, supported: NEWEST_FORMAT_VERSION });
     }
     if version < 1 {
         return Err(Error::BadFile { path: path.into(), what: format!("format version {version} is not valid") });
@@ -73,6 +79,25 @@ impl KeyWriter<'_> {
     pub(crate) fn int(&mut self, name: &str, v: i64) -> Result<()> {
         let key = format!("HIERARCH IP {name}");
         self.hdu.write_key(self.f, &key, v).map_err(|e| self.err(&key, e))
+    }
+    /// Replace the value of `HIERARCH IP <name>`, an integer keyword already written to this
+    /// HDU (the format version of a file that turns out to hold several field elements).
+    pub(crate) fn update_int(&mut self, name: &str, v: i64) -> Result<()> {
+        let key = format!("HIERARCH IP {name}");
+        let k = std::ffi::CString::new(key.as_str()).map_err(|_| Error::Input(format!("keyword {key}")))?;
+        // The HDU made current, then CFITSIO's update of an existing card.
+        self.hdu.read_key::<i64>(self.f, &key).map_err(|e| self.err(&key, e))?;
+        let mut status = 0;
+        // SAFETY: an open file whose current HDU is this one; a NUL-terminated name.
+        unsafe { fitsio::sys::ffukyj(self.f.as_raw(), k.as_ptr(), v, std::ptr::null(), &mut status) };
+        if status != 0 {
+            return Err(Error::Fits {
+                path: self.path.to_path_buf(),
+                doing: format!("updating keyword {key}"),
+                message: format!("CFITSIO status {status}"),
+            });
+        }
+        Ok(())
     }
     pub(crate) fn plain(&mut self, key: &str, v: &str) -> Result<()> {
         self.hdu.write_key(self.f, key, v).map_err(|e| self.err(key, e))

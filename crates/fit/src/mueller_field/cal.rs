@@ -206,6 +206,31 @@ impl MuellerCal {
         save_fits_atomically(path, |f| self.write_to(f, path))
     }
 
+    /// [`Self::save`] of a file whose field elements are `order`, in the order light meets
+    /// them, this Mueller field among them ([`crate::files::elements::Element::Model`]); `extra`
+    /// writes further HDUs as in [`Self::save_with`]. An empty order writes the field alone.
+    pub fn save_with_elements(
+        &self,
+        path: &Path,
+        order: &[crate::files::elements::Element],
+        extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()>,
+    ) -> Result<()> {
+        crate::files::elements::check_unless_empty(order)?;
+        self.save_with(path, |f, p| {
+            crate::files::elements::write(f, p, order)?;
+            extra(f, p)
+        })
+    }
+
+    /// [`Self::save`], with `extra` writing further HDUs into the same temporary file before it
+    /// is renamed: a telescope model beside the field (`crate::telescope::cal::write_hdu`).
+    pub fn save_with(&self, path: &Path, extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()>) -> Result<()> {
+        save_fits_atomically(path, |f| {
+            self.write_to(f, path)?;
+            extra(f, path)
+        })
+    }
+
     fn write_to(&self, f: &mut FitsFile, path: &Path) -> Result<()> {
         let e = |doing: &str| fits_err(path, doing);
         let mf = &self.field;
@@ -375,23 +400,7 @@ impl MuellerCal {
         if !hwp_chi_offset_deg.is_finite() {
             return Err(bad(format!("HWP CHI OFFSET DEG = {hwp_chi_offset_deg}: not a finite angle")));
         }
-        let coords = match r.opt_real("PIX SCALE ARCSEC") {
-            None => None,
-            Some(scale) => {
-                let origin = [r.real("PIX ORIGIN X")?, r.real("PIX ORIGIN Y")?];
-                let binning = r.opt_int("PIX BINNING").unwrap_or(1);
-                let valid = scale > 0.0
-                    && scale.is_finite()
-                    && origin.iter().all(|v| v.is_finite())
-                    && (1..=64).contains(&binning);
-                if !valid {
-                    return Err(bad(format!(
-                        "pixel grid PIX SCALE ARCSEC = {scale}, PIX ORIGIN = {origin:?}, PIX BINNING = {binning} is not valid"
-                    )));
-                }
-                Some(FieldCoords::with_origin(origin, scale).binned(binning as usize))
-            }
-        };
+        let coords = read_coords(&mut r, path)?;
         let mut provenance = Provenance::read_common(&mut r)?;
         let ninput = r.opt_int("NINPUT").unwrap_or(0).clamp(0, 10_000);
         for k in 1..=ninput {
@@ -442,22 +451,7 @@ impl MuellerCal {
                 kind.free_words().join(", ")
             )));
         }
-        for row in 0..n {
-            let want = (rows[row].0 as i32, rows[row].1 as i32, rows[row].2 as i32);
-            if (param[row], px[row], py[row]) != want || !coeffs[row].is_finite() {
-                return Err(bad(format!(
-                    "MUELLER row {}: PARAM, PX, PY, COEFF = {}, {}, {}, {}: expected {}, {}, {} and a finite coefficient",
-                    row + 1,
-                    param[row],
-                    px[row],
-                    py[row],
-                    coeffs[row],
-                    want.0,
-                    want.1,
-                    want.2
-                )));
-            }
-        }
+        check_rows(&rows, (&param, &px, &py, &coeffs)).map_err(bad)?;
         let mut bounds = [0.0; 4];
         for (k, name) in ["MU XMIN", "MU XMAX", "MU YMIN", "MU YMAX"].iter().enumerate() {
             bounds[k] = r.real(name)?;
@@ -468,36 +462,11 @@ impl MuellerCal {
         let chi2_dof = r.opt_real("MU CHI2 DOF").unwrap_or(f64::NAN);
         let n_obs = r.opt_int("MU NOBS").unwrap_or(0).max(0) as usize;
         let condition = r.opt_real("MU CONDITION").unwrap_or(f64::NAN);
-        let nfield = r.opt_int("MU NFIELD").unwrap_or(0).clamp(0, 10_000);
-        let mut skies = vec![];
-        for k in 1..=nfield {
-            skies.push(SkyField {
-                name: r.opt_str(&format!("MU FIELD{k}")).unwrap_or_default(),
-                p: r.real(&format!("MU FIELD{k} P"))?,
-                chi_deg: r.real(&format!("MU FIELD{k} CHI DEG"))?,
-                sigma: r.opt_real(&format!("MU FIELD{k} SIGMA")).unwrap_or(0.0),
-            });
-        }
+        let skies = read_skies(&mut r)?;
         let nwarn = r.opt_int("MU NWARN").unwrap_or(0).clamp(0, 1000);
         let warnings = (1..=nwarn).filter_map(|k| r.opt_str(&format!("MU WARN{k}"))).collect();
 
-        let cov: Vec<f64> = if n == 0 {
-            vec![]
-        } else {
-            let h = f.hdu(COV_HDU).map_err(e("finding image MUELLER_COV"))?;
-            match &h.info {
-                fitsio::hdu::HduInfo::ImageInfo { shape, .. } if shape.as_slice() == [n, n] => {}
-                fitsio::hdu::HduInfo::ImageInfo { shape, .. } => {
-                    return Err(bad(format!(
-                        "MUELLER_COV is {shape:?}, not the {n} x {n} covariance of the coefficients"
-                    )))
-                }
-                _ => return Err(bad("MUELLER_COV is not an image".into())),
-            }
-            let cov: Vec<f64> = h.read_image(&mut f).map_err(e("reading image MUELLER_COV"))?;
-            check_covariance(&cov, n).map_err(|m| bad(format!("MUELLER_COV {m}")))?;
-            cov
-        };
+        let cov = if n == 0 { vec![] } else { read_cov(&mut f, path, n)? };
 
         let mut field = MuellerField {
             kind,
@@ -536,6 +505,85 @@ impl MuellerCal {
         };
         Ok(MuellerCal { instrument, filter, field, coords, skies, per_bin, provenance, hwp_chi_offset_deg })
     }
+}
+
+/// The field coordinates of the maps (`IP PIX SCALE ARCSEC`, `PIX ORIGIN X/Y`, `PIX BINNING`),
+/// none when the file gives no pixel scale; an unusable grid is refused naming the keywords.
+fn read_coords(r: &mut KeyReader, path: &Path) -> Result<Option<FieldCoords>> {
+    let bad = |what: String| Error::BadFile { path: path.into(), what };
+    Ok(match r.opt_real("PIX SCALE ARCSEC") {
+        None => None,
+        Some(scale) => {
+            let origin = [r.real("PIX ORIGIN X")?, r.real("PIX ORIGIN Y")?];
+            let binning = r.opt_int("PIX BINNING").unwrap_or(1);
+            let valid =
+                scale > 0.0 && scale.is_finite() && origin.iter().all(|v| v.is_finite()) && (1..=64).contains(&binning);
+            if !valid {
+                return Err(bad(format!(
+                    "pixel grid PIX SCALE ARCSEC = {scale}, PIX ORIGIN = {origin:?}, PIX BINNING = {binning} is not valid"
+                )));
+            }
+            Some(FieldCoords::with_origin(origin, scale).binned(binning as usize))
+        }
+    })
+}
+
+/// Each row of table MUELLER as the form expects it (`rows`: its `(PARAM, PX, PY)`) with a
+/// finite coefficient; the first that is not, named.
+fn check_rows(
+    rows: &[(usize, usize, usize)],
+    (param, px, py, coeffs): (&[i32], &[i32], &[i32], &[f64]),
+) -> std::result::Result<(), String> {
+    let n = rows.len();
+    for row in 0..n {
+        let want = (rows[row].0 as i32, rows[row].1 as i32, rows[row].2 as i32);
+        if (param[row], px[row], py[row]) != want || !coeffs[row].is_finite() {
+            return Err(format!(
+                "MUELLER row {}: PARAM, PX, PY, COEFF = {}, {}, {}, {}: expected {}, {}, {} and a finite coefficient",
+                row + 1,
+                param[row],
+                px[row],
+                py[row],
+                coeffs[row],
+                want.0,
+                want.1,
+                want.2
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The sky fields the Mueller field was fitted to (`IP MU NFIELD`, `IP MU FIELD<k>` ..).
+fn read_skies(r: &mut KeyReader) -> Result<Vec<SkyField>> {
+    let nfield = r.opt_int("MU NFIELD").unwrap_or(0).clamp(0, 10_000);
+    let mut skies = vec![];
+    for k in 1..=nfield {
+        skies.push(SkyField {
+            name: r.opt_str(&format!("MU FIELD{k}")).unwrap_or_default(),
+            p: r.real(&format!("MU FIELD{k} P"))?,
+            chi_deg: r.real(&format!("MU FIELD{k} CHI DEG"))?,
+            sigma: r.opt_real(&format!("MU FIELD{k} SIGMA")).unwrap_or(0.0),
+        });
+    }
+    Ok(skies)
+}
+
+/// The `n x n` covariance of the coefficients (image MUELLER_COV), checked.
+fn read_cov(f: &mut FitsFile, path: &Path, n: usize) -> Result<Vec<f64>> {
+    let e = |doing: &str| fits_err(path, doing);
+    let bad = |what: String| Error::BadFile { path: path.into(), what };
+    let h = f.hdu(COV_HDU).map_err(e("finding image MUELLER_COV"))?;
+    match &h.info {
+        fitsio::hdu::HduInfo::ImageInfo { shape, .. } if shape.as_slice() == [n, n] => {}
+        fitsio::hdu::HduInfo::ImageInfo { shape, .. } => {
+            return Err(bad(format!("MUELLER_COV is {shape:?}, not the {n} x {n} covariance of the coefficients")))
+        }
+        _ => return Err(bad("MUELLER_COV is not an image".into())),
+    }
+    let cov: Vec<f64> = h.read_image(f).map_err(e("reading image MUELLER_COV"))?;
+    check_covariance(&cov, n).map_err(|m| bad(format!("MUELLER_COV {m}")))?;
+    Ok(cov)
 }
 
 /// `(PARAM, PX, PY)` of each coefficient row of table MUELLER for a smooth form (`poly`:

@@ -235,7 +235,7 @@ pub fn validate_telescope(
     expected: impl FnOnce(&str) -> Result<(String, crate::standards::Expected)>,
     opts: &crate::validate::ValidateOptions,
 ) -> std::result::Result<TelescopeValidation, ValidateError> {
-    let (field, tel) = loaded.p_phi_models()?;
+    let (field, tel) = loaded.p_phi_models_alone()?;
     let tel = tel.ok_or_else(|| Error::Input("the calibration holds no telescope model".into()))?;
     if crate::correction::setup::is_known(&loaded.instrument) && !inst.writes(&loaded.instrument) {
         return Err(ValidateError::Instrument { calibration: loaded.instrument.clone(), frames: inst.name.clone() });

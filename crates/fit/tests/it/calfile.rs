@@ -99,10 +99,13 @@ fn newer_format_version_is_refused_by_name() {
     {
         let mut f = fitsio::FitsFile::edit(&path).unwrap();
         let h = f.primary_hdu().unwrap();
-        h.write_key(&mut f, "HIERARCH IP FORMAT VERSION", FORMAT_VERSION + 1).unwrap();
+        h.write_key(&mut f, "HIERARCH IP FORMAT VERSION", fit::files::keys::NEWEST_FORMAT_VERSION + 1).unwrap();
     }
     let e = Calibration::load(&path).unwrap_err();
-    assert!(matches!(e, Error::NewerFormat { found, .. } if found == FORMAT_VERSION + 1), "{e}");
+    assert!(
+        matches!(e, Error::NewerFormat { found, .. } if found == fit::files::keys::NEWEST_FORMAT_VERSION + 1),
+        "{e}"
+    );
     let msg = e.to_string();
     assert!(msg.contains("new.fits") && msg.contains("newer"), "{msg}");
 }

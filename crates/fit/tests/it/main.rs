@@ -10,6 +10,7 @@ mod correct;
 mod correct_map;
 mod correct_validate;
 mod efosc2_standards;
+mod elements;
 mod errors;
 mod fields;
 mod fors2;

@@ -28,3 +28,4 @@ mod two_cameras;
 mod two_cameras_map;
 #[path = "../common/two_cameras.rs"]
 mod two_cameras_setup;
+mod two_elements;

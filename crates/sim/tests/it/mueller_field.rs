@@ -29,6 +29,7 @@ fn lens() -> StressedLensSpec {
         centre_arcmin: LENS_CENTRE_ARCMIN,
         tangential: false,
         axis_offset_deg: 0.0,
+        before_instpol: false,
     }
 }
 

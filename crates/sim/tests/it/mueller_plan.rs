@@ -12,6 +12,7 @@ fn truth(x: f64, y: f64) -> LinearBlock {
         centre_arcmin: [0.8, -0.4],
         tangential: false,
         axis_offset_deg: 0.0,
+        before_instpol: false,
     };
     let (d, ax) = lens.retardance_at(x, y);
     physical_block(2e-4 * (x * x - y * y), 4e-4 * x * y, retardance_vector(d, ax), 0.0, 0.0)

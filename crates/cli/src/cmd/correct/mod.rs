@@ -259,7 +259,7 @@ fn finish(
     match (&loaded.mueller, telescope, &loaded.field) {
         (Some(m), _, _) => {
             words::warn_extrapolated(r, "fitted Mueller field");
-            report(a, &s, &mueller_line(a, r, m), " (unpolarized light)")
+            report(a, &s, &(mueller_line(a, r, m) + &words::chain(loaded)), " (unpolarized light)")
         }
         (None, Some(line), _) => {
             words::warn_extrapolated(r, "calibrated field");
@@ -267,7 +267,7 @@ fn finish(
         }
         (None, None, Some(cal)) => {
             words::warn_extrapolated(r, "calibrated field");
-            report(a, &s, &field_line(a, r, cal), "")
+            report(a, &s, &(field_line(a, r, cal) + &words::chain(loaded)), "")
         }
         (None, None, None) => unreachable!("the loader refuses a file without a model"),
     }

@@ -129,3 +129,16 @@ pub(super) fn warn_extrapolated(s: &fit::correction::columns::Report, field: &st
         );
     }
 }
+
+/// What a correction's summary adds for a file whose field model is not inverted on its own:
+/// the number of field elements inverted together, a telescope model before a Mueller field.
+pub(super) fn chain(loaded: &fit::files::calibration::CalibrationFile) -> String {
+    let mut out = String::new();
+    if !loaded.elements.is_empty() {
+        out += &format!(", within the chain of {} field elements inverted together", loaded.elements.len());
+    }
+    if loaded.mueller.is_some() && loaded.telescope.is_some() {
+        out += ", behind the telescope model (inverted together)";
+    }
+    out
+}
