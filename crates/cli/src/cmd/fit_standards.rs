@@ -158,8 +158,9 @@ pub fn run(a: Args) -> Result<()> {
     }
     let fits =
         fit_all(&obs, &models, table, &opts, a.joint).map_err(|(what, e)| anyhow::Error::new(e).context(what))?;
-    let outputs = write_calibrations(&a, &fits, &obs, inst.as_ref(), &mirror.metal)?;
+    // What the fits are of: the JSON's and the calibration files' one product.
     let product = inst.as_ref().map(|i| skyfield::provenance::Product::of_instrument_alone(i).with_run_inputs());
+    let outputs = write_calibrations(&a, &fits, &obs, inst.as_ref(), product.as_ref(), &mirror.metal)?;
     let mut outs: Vec<FitReport> = fits.iter().map(|(f, j)| FitReport::new(f, *j, &mirror, product.clone())).collect();
     for (i, p) in &outputs {
         outs[*i].output = Some(p.clone());
@@ -203,6 +204,7 @@ fn write_calibrations(
     fits: &[(TelescopeFit, bool)],
     obs: &[Observation],
     inst: Option<&instrument::Instrument>,
+    product: Option<&skyfield::provenance::Product>,
     metal: &str,
 ) -> Result<Vec<(usize, PathBuf)>> {
     if a.output.is_none() && a.output_dir.is_none() {
@@ -231,7 +233,6 @@ fn write_calibrations(
         _ => "unknown".to_string(),
     };
     let inputs: Vec<String> = a.files.iter().map(|f| f.display().to_string()).collect();
-    let product = inst.map(skyfield::provenance::Product::of_instrument_alone);
     let pick = |joint: bool, band: Option<&str>| {
         fits.iter().enumerate().find(|(_, (f, j))| {
             f.model == save && *j == joint && band.is_none_or(|b| f.bands.len() == 1 && f.bands[0].0 == b)
@@ -265,7 +266,7 @@ fn write_calibrations(
                 }
                 fit::telescope::cal::save_with_field(path, &cal, f, metal)?;
             }
-            None => fit::telescope::cal::save_alone(path, &instrument, f, metal, &inputs, product.as_ref())?,
+            None => fit::telescope::cal::save_alone(path, &instrument, f, metal, &inputs, product)?,
         }
         written.push((i, path.clone()));
     }
@@ -276,7 +277,7 @@ fn write_calibrations(
                 .ok_or_else(|| anyhow::anyhow!("--save-model {}: that model was not fitted", save.name()))?;
             let path = dir.join(band_file_name(b));
             crate::util::check_output(&path)?;
-            fit::telescope::cal::save_alone(&path, &instrument, f, metal, &inputs, product.as_ref())?;
+            fit::telescope::cal::save_alone(&path, &instrument, f, metal, &inputs, product)?;
             written.push((i, path));
         }
     }
