@@ -1286,7 +1286,9 @@ impl Plan {
         let text = serde_json::to_string_pretty(&truth).map_err(|e| file_err(&tpath, e))?;
         let mut tmp = skyfield::fits::temp_beside(&tpath, ".json").map_err(|e| file_err(&tpath, e))?;
         std::io::Write::write_all(&mut tmp, text.as_bytes()).map_err(|e| file_err(&tpath, e))?;
-        tmp.persist(&tpath).map_err(|e| file_err(&tpath, e))?;
+        // Through the durable writer, as every output: fsynced before its rename, so a full
+        // disk is reported here rather than lost.
+        skyfield::durable::finish(tmp.into_temp_path(), &tpath).map_err(|e| file_err(&tpath, e))?;
         Ok(Simulated { frames: files.into_iter().flatten().collect(), truth: tpath, bias })
     }
 }

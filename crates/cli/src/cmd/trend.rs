@@ -62,7 +62,13 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         return crate::util::print_json(&t);
     }
-    outln!("{}: {} measurements of {} series", a.out.display(), t.points.len(), t.steps.len());
+    match t.points.len() {
+        0 => outln!(
+            "{}: no measurements: no unit done in these plans measured a standard or made a sky-field calibration (run them first: instpol run PLAN)",
+            a.out.display()
+        ),
+        n => outln!("{}: {n} measurements of {} series", a.out.display(), t.steps.len()),
+    }
     outln!(
         "{:<16} {:<10} {:>4} {:>14} {:>14} {:>12} {:>8}  step after MJD",
         "quantity",

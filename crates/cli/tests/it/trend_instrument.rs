@@ -48,3 +48,16 @@ fn plans_of_two_instruments_are_refused_or_recorded() {
         assert_eq!(p.inputs, sums);
     }
 }
+
+/// Plans with no unit done give an empty trend, said as such (not "0 measurements of 0
+/// series"), with what to do.
+#[test]
+fn an_empty_trend_says_why() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = plan(dir.path(), "a.toml", "fors1");
+    let out = dir.path().join("trend.ecsv");
+    let (code, stdout, err) = common::run(&["trend", &a.display().to_string(), "--out", &out.display().to_string()]);
+    assert_eq!(code, 0, "{err}");
+    assert!(stdout.contains("no measurements") && stdout.contains("instpol run"), "{stdout}");
+    assert!(!stdout.contains("of 0 series"), "{stdout}");
+}
