@@ -30,9 +30,9 @@ pub(crate) fn fields(ret_deg: f64) -> Vec<CalField> {
         .collect()
 }
 
-pub(crate) fn write(kind: Kind, name: &str) -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("instpol_explain_{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+/// The Mueller field of `kind` fitted to the stressed lens's fields, written as `name` in `dir`
+/// (the caller's temporary folder, removed with it).
+pub(crate) fn write(dir: &std::path::Path, kind: Kind, name: &str) -> std::path::PathBuf {
     let mf =
         fit_mueller_field(&fields(18.0), &MuellerFitOptions { kind, deg: 4, scale_arcmin: 3.4, ..Default::default() })
             .unwrap();
@@ -43,7 +43,8 @@ pub(crate) fn write(kind: Kind, name: &str) -> std::path::PathBuf {
 
 #[test]
 fn stressed_lens_file_is_explained_by_a_stressed_lens() {
-    let f = write(Kind::diattenuation_retardance(), "lens.json");
+    let tmp = tempfile::tempdir().unwrap();
+    let f = write(tmp.path(), Kind::diattenuation_retardance(), "lens.json");
     let (code, out, err) =
         common::run(&["explain", f.to_str().unwrap(), "--instrument", "fors1", "--band", "B", "--json"]);
     assert_eq!(code, 0, "{err}");
@@ -73,8 +74,10 @@ fn stressed_lens_file_is_explained_by_a_stressed_lens() {
 
 #[test]
 fn bad_inputs_exit_2_naming_the_input() {
-    let diat = write(Kind::Physical { retardance: false, rotation: false, depolarization: false }, "diat.json");
-    let lens = write(Kind::diattenuation_retardance(), "lens2.json");
+    let tmp = tempfile::tempdir().unwrap();
+    let diat =
+        write(tmp.path(), Kind::Physical { retardance: false, rotation: false, depolarization: false }, "diat.json");
+    let lens = write(tmp.path(), Kind::diattenuation_retardance(), "lens2.json");
     let d = diat.to_str().unwrap();
     let l = lens.to_str().unwrap();
     let cases: Vec<(Vec<&str>, &str)> = vec![

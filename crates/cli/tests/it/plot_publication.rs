@@ -1044,7 +1044,7 @@ fn axis_end_problems(name: &str, svg: &str) -> Vec<String> {
 fn more_figures(dir: &Path) -> Vec<PathBuf> {
     std::fs::create_dir_all(dir).unwrap();
     let s = |n: &str| dir.join(n).to_str().unwrap().to_string();
-    let lens = crate::explain::write(fit::mueller_field::Kind::diattenuation_retardance(), "lens_pub.json");
+    let lens = crate::explain::write(dir, fit::mueller_field::Kind::diattenuation_retardance(), "lens_pub.json");
     let (code, _, err) =
         run(&["explain", lens.to_str().unwrap(), "--instrument", "fors1", "--band", "B", "--plot", &s("explain.svg")]);
     assert_eq!(code, 0, "{err}");
