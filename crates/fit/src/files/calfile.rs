@@ -324,11 +324,7 @@ impl Calibration {
         order: &[crate::files::elements::Element],
         extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()>,
     ) -> Result<()> {
-        crate::files::elements::check_unless_empty(order)?;
-        self.save_with(path, |f, p| {
-            crate::files::elements::write(f, p, order)?;
-            extra(f, p)
-        })
+        self.save_with(path, crate::files::elements::writing_then(order, extra)?)
     }
 
     fn write_to(&self, f: &mut FitsFile, path: &Path) -> Result<()> {

@@ -63,6 +63,20 @@ pub fn check(order: &[Element]) -> Result<()> {
     Ok(())
 }
 
+/// What a calibration's `save_with` writes after its model for a file of the field elements
+/// `order` ([`check`]ed first, unless empty: the model alone): the `ELEMENTS` table, then
+/// `extra`'s HDUs (a telescope model). The one body of every `save_with_elements`.
+pub fn writing_then<'a>(
+    order: &'a [Element],
+    extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()> + 'a,
+) -> Result<impl FnOnce(&mut FitsFile, &Path) -> Result<()> + 'a> {
+    check_unless_empty(order)?;
+    Ok(move |f: &mut FitsFile, p: &Path| {
+        write(f, p, order)?;
+        extra(f, p)
+    })
+}
+
 /// [`check`] of a non-empty order; an empty one (the model alone) passes.
 pub fn check_unless_empty(order: &[Element]) -> Result<()> {
     if order.is_empty() {

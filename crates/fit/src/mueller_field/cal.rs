@@ -215,11 +215,7 @@ impl MuellerCal {
         order: &[crate::files::elements::Element],
         extra: impl FnOnce(&mut FitsFile, &Path) -> Result<()>,
     ) -> Result<()> {
-        crate::files::elements::check_unless_empty(order)?;
-        self.save_with(path, |f, p| {
-            crate::files::elements::write(f, p, order)?;
-            extra(f, p)
-        })
+        self.save_with(path, crate::files::elements::writing_then(order, extra)?)
     }
 
     /// [`Self::save`], with `extra` writing further HDUs into the same temporary file before it

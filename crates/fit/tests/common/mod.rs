@@ -2,6 +2,7 @@
 //! (0.2"/px) in 30 x 30 px bins (section `sec:fors1`), with Gaussian noise per bin.
 #![allow(dead_code)]
 
+pub mod given;
 pub mod mueller_fields;
 pub mod shared_data;
 

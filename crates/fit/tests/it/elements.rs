@@ -24,24 +24,14 @@ fn lens() -> field::StressedLens {
 }
 
 fn calibration() -> fit::Calibration {
-    fit::Calibration {
-        format_version: fit::files::calfile::FORMAT_VERSION,
-        instrument: "FORS1".into(),
-        filter: "V".into(),
-        lambda_nm: 554.0,
-        hwp_chi_offset_deg: Z_DEG,
-        model: fit::Model::Radial(fit::RadialModel::new(0, COEFFS.to_vec(), [0.0, 0.0])),
-        region: fit::FieldRegion { x_min: -3.5, x_max: 3.5, y_min: -3.5, y_max: 3.5 },
-        rms_residual: f64::NAN,
-        n_bins_used: 0,
-        polar_angle: None,
-        exclusions: vec![],
-        robust: "none".into(),
-        pixel: None,
-        provenance: fit::files::calfile::Provenance::now("test", vec![]),
-        bins: vec![],
-        grid: None,
-    }
+    crate::common::given::given_calibration(
+        "FORS1",
+        "V",
+        554.0,
+        Z_DEG,
+        fit::Model::Radial(fit::RadialModel::new(0, COEFFS.to_vec(), [0.0, 0.0])),
+        3.5,
+    )
 }
 
 type M3 = [[f64; 3]; 3];

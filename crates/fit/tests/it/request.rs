@@ -14,13 +14,12 @@ use std::path::PathBuf;
 
 /// The paper-like V field as a radial calibration of EFOSC2 with an HWP zero angle `z` (deg).
 fn field(z: f64) -> fit::Calibration {
-    fit::Calibration {
-        format_version: fit::files::calfile::FORMAT_VERSION,
-        instrument: "EFOSC2".into(),
-        filter: "V".into(),
-        lambda_nm: 550.0,
-        hwp_chi_offset_deg: z,
-        model: fit::Model::Radial(fit::RadialModel {
+    crate::common::given::given_calibration(
+        "EFOSC2",
+        "V",
+        550.0,
+        z,
+        fit::Model::Radial(fit::RadialModel {
             first_power: 0,
             coeffs: vec![2e-4, 1e-3, 3e-4],
             centre: [0.0, 0.0],
@@ -28,17 +27,8 @@ fn field(z: f64) -> fit::Calibration {
             cov: vec![0.0; 25],
             scaling: None,
         }),
-        region: fit::FieldRegion { x_min: -2.0, x_max: 2.0, y_min: -2.0, y_max: 2.0 },
-        rms_residual: f64::NAN,
-        n_bins_used: 0,
-        polar_angle: None,
-        exclusions: vec![],
-        robust: "none".into(),
-        pixel: None,
-        provenance: fit::files::calfile::Provenance::now("test", vec![]),
-        bins: vec![],
-        grid: None,
-    }
+        2.0,
+    )
 }
 
 /// A Nasmyth M3 model of one band (V) fitted to noise-free standards over the meridian.

@@ -337,13 +337,12 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
     let f = fit_v(&obs, &table);
     let t = tmp();
     // Beside a field model: the paper's V field as a calibration, then the telescope HDU.
-    let cal = fit::Calibration {
-        format_version: fit::files::calfile::FORMAT_VERSION,
-        instrument: "EFOSC2".into(),
-        filter: "V".into(),
-        lambda_nm: 550.0,
-        hwp_chi_offset_deg: 0.0,
-        model: fit::Model::Radial(fit::RadialModel {
+    let cal = crate::common::given::given_calibration(
+        "EFOSC2",
+        "V",
+        550.0,
+        0.0,
+        fit::Model::Radial(fit::RadialModel {
             first_power: 0,
             coeffs: vec![2e-4, 0.0, 3e-4],
             centre: [0.0, 0.0],
@@ -351,17 +350,8 @@ fn telescope_beside_a_field_model_and_bad_hdus() {
             cov: vec![0.0; 25],
             scaling: None,
         }),
-        region: fit::FieldRegion { x_min: -2.0, x_max: 2.0, y_min: -2.0, y_max: 2.0 },
-        rms_residual: f64::NAN,
-        n_bins_used: 0,
-        polar_angle: None,
-        exclusions: vec![],
-        robust: "none".into(),
-        pixel: None,
-        provenance: fit::files::calfile::Provenance::now("test", vec![]),
-        bins: vec![],
-        grid: None,
-    };
+        2.0,
+    );
     let path = t.path().join("both.fits");
     save_with_field(&path, &cal, &f, "aluminium").unwrap();
     let l = load(&path).unwrap();

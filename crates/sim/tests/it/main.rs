@@ -13,6 +13,8 @@ mod circular_map;
 mod common;
 mod field_model;
 mod fuzz_regressions;
+#[path = "../../../fit/tests/common/given.rs"]
+mod given;
 #[path = "../common/jones.rs"]
 mod jones;
 mod layouts;

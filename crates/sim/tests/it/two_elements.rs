@@ -21,13 +21,7 @@ const ZERO_ANGLE_DEG: f64 = 7.0;
 
 /// FORS1's 6.8' field on 256 x 256 px of 1.6" (few pixels, the whole field).
 fn coarse_fors1(dir: &Path) -> PathBuf {
-    let text = include_str!("../../../../instruments/fors1.toml")
-        .replace("nx = 2048", "nx = 256")
-        .replace("ny = 2048", "ny = 256")
-        .replace("pixel_scale_arcsec = 0.2 ", "pixel_scale_arcsec = 1.6 ")
-        .replace("throw_arcsec = 22.0", "throw_arcsec = 22.4")
-        .replace("first_strip_y_px = 34", "first_strip_y_px = 4");
-    assert!(text.contains("pixel_scale_arcsec = 1.6"), "the instrument file changed: adapt the test");
+    let text = crate::common::coarse_fors1_text();
     let p = dir.join("coarse_fors1.toml");
     std::fs::write(&p, text).unwrap();
     p
@@ -50,24 +44,14 @@ fn scene(dir: &Path) -> sim::Scene {
 /// The scene's radial field as a calibration (its true coefficients, no errors), in the sky
 /// frame of the scene's zero angle.
 fn field_calibration() -> fit::Calibration {
-    fit::Calibration {
-        format_version: fit::files::calfile::FORMAT_VERSION,
-        instrument: "FORS1".into(),
-        filter: "V".into(),
-        lambda_nm: 554.0,
-        hwp_chi_offset_deg: ZERO_ANGLE_DEG,
-        model: fit::Model::Radial(fit::RadialModel::new(0, vec![0.0, 0.001, 0.002], [0.0, 0.0])),
-        region: fit::FieldRegion { x_min: -3.5, x_max: 3.5, y_min: -3.5, y_max: 3.5 },
-        rms_residual: f64::NAN,
-        n_bins_used: 0,
-        polar_angle: None,
-        exclusions: vec![],
-        robust: "none".into(),
-        pixel: None,
-        provenance: fit::files::calfile::Provenance::now("simulation", vec![]),
-        bins: vec![],
-        grid: None,
-    }
+    crate::given::given_calibration(
+        "FORS1",
+        "V",
+        554.0,
+        ZERO_ANGLE_DEG,
+        fit::Model::Radial(fit::RadialModel::new(0, vec![0.0, 0.001, 0.002], [0.0, 0.0])),
+        3.5,
+    )
 }
 
 /// The RMS and worst pull of the corrected map's valid bins about the scene's sky, and the
