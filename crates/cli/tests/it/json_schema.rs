@@ -850,9 +850,8 @@ fn every_case_has_a_test_and_every_schema_a_case() {
     for (n, _) in CASES {
         assert!(src.contains(&format!("=> \"{n}\"")), "case {n} has no test in cases!{{}}");
     }
-    for e in std::fs::read_dir(schema_dir()).unwrap() {
-        let name = e.unwrap().file_name().to_string_lossy().into_owned();
-        let Some(stem) = name.strip_suffix(".schema.json") else { continue };
+    for (stem, _) in schema_files() {
+        let stem = stem.as_str();
         assert!(
             stem == "error"
                 || stem == "product"
@@ -861,18 +860,27 @@ fn every_case_has_a_test_and_every_schema_a_case() {
                 || stem == "fit-standards"
                 || stem == "import-map"
                 || CASES.iter().any(|(n, _)| *n == stem),
-            "schemas/{name} is checked by no case"
+            "schemas/{stem}.schema.json is checked by no case"
         );
     }
 }
 
+/// Every schema file: its name (without `.schema.json`) and path.
+fn schema_files() -> Vec<(String, PathBuf)> {
+    std::fs::read_dir(schema_dir())
+        .unwrap()
+        .filter_map(|e| {
+            let p = e.unwrap().path();
+            let name = p.file_name()?.to_str()?.strip_suffix(".schema.json")?.to_string();
+            Some((name, p))
+        })
+        .collect()
+}
+
 #[test]
 fn every_schema_is_draft_2020_12_closed_and_described() {
-    for e in std::fs::read_dir(schema_dir()).unwrap() {
-        let p = e.unwrap().path();
-        let Some(name) = p.file_name().and_then(|n| n.to_str()).and_then(|n| n.strip_suffix(".schema.json")) else {
-            continue;
-        };
+    for (name, _) in schema_files() {
+        let name = name.as_str();
         let sc = schema(name);
         assert_eq!(sc["$schema"], "https://json-schema.org/draft/2020-12/schema", "{name}");
         let mut errs = vec![];
@@ -905,11 +913,8 @@ const NO_PRODUCT: &[(&str, &str)] = &[
 
 #[test]
 fn every_schema_of_data_describes_its_product() {
-    for e in std::fs::read_dir(schema_dir()).unwrap() {
-        let p = e.unwrap().path();
-        let Some(name) = p.file_name().and_then(|n| n.to_str()).and_then(|n| n.strip_suffix(".schema.json")) else {
-            continue;
-        };
+    for (name, p) in schema_files() {
+        let name = name.as_str();
         let text = std::fs::read_to_string(&p).unwrap();
         let described = text.contains("\"$ref\": \"product.schema.json\"");
         let excused = NO_PRODUCT.iter().any(|(n, _)| *n == name);
