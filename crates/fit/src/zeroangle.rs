@@ -610,11 +610,7 @@ pub enum FilterError {
 /// instrument, by name in any case). The first named is the one.
 pub fn one_filter(named: &[(String, String)], inst: Option<&instrument::Instrument>) -> Result<String, FilterError> {
     let first = named.first().ok_or(FilterError::None)?;
-    let same = |f: &str| match inst {
-        Some(_) => crate::correction::setup::same_filter(inst, f, &first.0),
-        None => f.trim().eq_ignore_ascii_case(first.0.trim()),
-    };
-    match named.iter().find(|(f, _)| !same(f)) {
+    match named.iter().find(|(f, _)| !crate::correction::setup::same_filter(inst, f, &first.0)) {
         Some(other) => Err(FilterError::Differ { first: first.clone(), other: other.clone() }),
         None => Ok(first.0.clone()),
     }

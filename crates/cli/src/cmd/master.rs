@@ -88,7 +88,6 @@ fn report(
     if json {
         let product = skyfield::provenance::Product {
             filter: m.filter.clone(),
-            wavelength_um: None,
             binning: m.binning.map(|[x, y]| (x, y)),
             ..skyfield::provenance::Product::of_instrument_alone(inst)
         }
