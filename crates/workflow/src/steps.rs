@@ -14,6 +14,13 @@ use skyfield::catalog::{Catalog, CatalogConfig};
 use skyfield::reduce::{PlateReduced, ReduceConfig};
 use std::path::{Path, PathBuf};
 
+/// The defaults of the steps' options, one place for the CLI's `--help` and a night's units
+/// read back in process ([`crate::night::call`]): a master's clipping threshold (robust
+/// sigma), a map's bin (px), a catalog's star FWHM (px) and aperture radius (px).
+pub const DEFAULT_MASTER_NSIGMA: f64 = 3.0;
+pub const DEFAULT_BIN_PX: usize = 30;
+pub const DEFAULT_FWHM_PX: f64 = 4.0;
+pub const DEFAULT_APERTURE: &str = "8";
 /// Frames to a Stokes map (`instpol reduce`, `instpol.reduce`): the instrument's plate decides
 /// the map (`skyfield::reduce::reduce_for_plate`: `Q/I`, `U/I`, or `V/I` through a quarter-wave
 /// plate); a linear map records the exposures' telescope angles when the headers have them

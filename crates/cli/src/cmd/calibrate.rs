@@ -42,7 +42,7 @@ pub struct Args {
     #[command(flatten)]
     pub fit: FitArgs,
     /// Bin side in detector pixels (the paper: 30).
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, default_value_t = workflow::steps::DEFAULT_BIN_PX)]
     pub bin: usize,
     /// Output calibration file (FITS).
     #[arg(long)]

@@ -38,7 +38,7 @@ pub struct Args {
     #[arg(long)]
     pub instrument: Option<String>,
     /// Expected FWHM of the stars (px): the width of the detection filter.
-    #[arg(long, default_value_t = 4.0)]
+    #[arg(long, default_value_t = workflow::steps::DEFAULT_FWHM_PX)]
     pub fwhm: f64,
     /// Detection threshold (sigma of the filtered image's noise).
     #[arg(long, default_value_t = 5.0)]
@@ -51,7 +51,7 @@ pub struct Args {
     /// Aperture radius: pixels (8), a multiple of each star's measured FWHM (2.5fwhm) or
     /// 'best': per star, the radius of best S/N of its total flux on the curve of growth,
     /// 0.5 to 4 FWHM inside the annulus (the radius used is the aperture_px column).
-    #[arg(long, default_value = "8", value_name = "PX|Kfwhm|best", allow_hyphen_values = true)]
+    #[arg(long, default_value = workflow::steps::DEFAULT_APERTURE, value_name = "PX|Kfwhm|best", allow_hyphen_values = true)]
     pub aperture: String,
     /// Background annulus inner,outer radius (px).
     #[arg(long, default_value = "12,20")]

@@ -21,7 +21,7 @@ pub struct BiasArgs {
     #[arg(long)]
     pub instrument: Option<String>,
     /// Clipping threshold per pixel in robust sigmas.
-    #[arg(long, default_value_t = 3.0)]
+    #[arg(long, default_value_t = workflow::steps::DEFAULT_MASTER_NSIGMA)]
     pub nsigma: f64,
     /// Output master bias (FITS).
     #[arg(long)]
@@ -53,7 +53,7 @@ pub struct FlatArgs {
     #[arg(long, value_name = "BIAS.fits")]
     pub bias: Option<PathBuf>,
     /// Clipping threshold per pixel in robust sigmas.
-    #[arg(long, default_value_t = 3.0)]
+    #[arg(long, default_value_t = workflow::steps::DEFAULT_MASTER_NSIGMA)]
     pub nsigma: f64,
     /// Output master flat (FITS).
     #[arg(long)]

@@ -30,7 +30,7 @@ pub struct Args {
     #[arg(long)]
     pub instrument: Option<String>,
     /// Bin side in pixels (the paper uses 30).
-    #[arg(long, default_value_t = 30)]
+    #[arg(long, default_value_t = workflow::steps::DEFAULT_BIN_PX)]
     pub bin: usize,
     /// Clipping threshold in robust sigmas.
     #[arg(long, default_value_t = 3.0)]

@@ -9,6 +9,11 @@
 
 use super::plan::Unit;
 use super::run::{process_executor, Executed};
+// The defaults of the options a unit's command may leave out: the CLI's own, which its
+// `--help` gives.
+use crate::steps::{
+    DEFAULT_APERTURE as APERTURE, DEFAULT_BIN_PX as BIN_PX, DEFAULT_FWHM_PX as FWHM_PX, DEFAULT_MASTER_NSIGMA as NSIGMA,
+};
 use skyfield::calib::ReadOptions;
 use std::path::{Path, PathBuf};
 
@@ -54,13 +59,6 @@ pub enum Call {
         out: PathBuf,
     },
 }
-
-/// The defaults of the commands' options a unit's command may leave out, as `instpol`'s
-/// `--help` gives them.
-const NSIGMA: f64 = 3.0;
-const BIN_PX: usize = 30;
-const FWHM_PX: f64 = 4.0;
-const APERTURE: &str = "8";
 
 /// A command line's arguments: the positional ones and `--name value` (or `--name=value`)
 /// options; `None` for an option given without a value or twice.
